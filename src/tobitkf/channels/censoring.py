@@ -1,0 +1,207 @@
+r"""Tobit censoring of measurements: left, right, two-sided ("saturation"), multi-region.
+
+Miller (2015), Table 1.1 and (3.18), (3.51), (6.59): per channel l,
+
+.. math::
+
+    y_k(l) = \begin{cases} l_k(l) & y^*_k(l) \le l_k(l) \\ y^*_k(l) & l_k(l) < y^*_k(l) < h_k(l) \\
+             h_k(l) & y^*_k(l) \ge h_k(l) \end{cases}
+
+with ``lower`` = l (``-inf``: no left censoring) and ``upper`` = h (``+inf``: no
+right censoring). Limits are scalars, ``(m,)`` per channel, or ``(T, m)`` per
+step and channel (the time-varying limit of Miller §3.4).
+
+Several censored regions for one output (Miller §6.6, "multi-region TKF") are
+modelled as the dissertation does: the output is measured by several sensors,
+each with its own noise and its own window, stacked as extra channels; see
+:func:`multi_region`. The Tobit update itself is unchanged (spec 001b §2.6).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from .._validation import ShapeError, ValidationError, as_float_array
+
+__all__ = ["Censoring", "multi_region"]
+
+
+class Censoring:
+    """Per-channel censoring limits, constant or time-varying.
+
+    Parameters
+    ----------
+    lower : float or (m,) or (T, m) array_like, default -inf
+        Left-censoring limits; ``-inf`` means the channel is not left-censored.
+    upper : float or (m,) or (T, m) array_like, default +inf
+        Right-censoring limits; ``+inf`` means the channel is not right-censored.
+
+    Raises
+    ------
+    ShapeError
+        If the two limits do not broadcast, or have more than two dimensions.
+    ValidationError
+        If a limit is NaN, ``lower = +inf``, ``upper = -inf`` or ``lower >= upper``.
+
+    Examples
+    --------
+    >>> cens = Censoring(lower=0.0)             # left censoring at 0 (Miller Example 1)
+    >>> cens.clip(np.array([[-0.3], [0.2]]), k=1).ravel().tolist()
+    [0.0, 0.2]
+    """
+
+    def __init__(self, lower: Any = -np.inf, upper: Any = np.inf):
+        lo = as_float_array(lower, "lower", ndim=(0, 1, 2), allow_inf=True)
+        hi = as_float_array(upper, "upper", ndim=(0, 1, 2), allow_inf=True)
+        try:
+            lo_b, hi_b = np.broadcast_arrays(lo, hi)
+        except ValueError:
+            raise ShapeError(f"lower/upper: shapes {lo.shape} and {hi.shape} do not broadcast") from None
+        if np.isposinf(lo_b).any():
+            raise ValidationError("lower: +inf is not a valid lower limit")
+        if np.isneginf(hi_b).any():
+            raise ValidationError("upper: -inf is not a valid upper limit")
+        bad = ~(lo_b < hi_b)
+        if bad.any():
+            idx = np.argwhere(bad)[0] if bad.ndim else ()
+            raise ValidationError(f"lower/upper: expected lower < upper, got lower={lo_b[tuple(idx)]} "
+                                  f">= upper={hi_b[tuple(idx)]} at index {tuple(int(i) for i in idx)}")
+        self.lower = np.array(lo_b)
+        self.upper = np.array(hi_b)
+        self.time_varying = self.lower.ndim == 2
+
+    @property
+    def channels(self) -> int | None:
+        """Number of channels fixed by the limits, or None for scalar limits."""
+        return None if self.lower.ndim == 0 else self.lower.shape[-1]
+
+    @property
+    def steps(self) -> int | None:
+        """Number of steps of time-varying limits, else None."""
+        return self.lower.shape[0] if self.time_varying else None
+
+    def check(self, m: int, steps: int | None = None) -> None:
+        """Raise :class:`ShapeError` unless the limits fit ``m`` channels and ``steps`` steps."""
+        if self.channels is not None and self.channels not in (1, m):
+            raise ShapeError(f"censoring limits: expected {m} channel(s) to match the system, got {self.channels}")
+        if steps is not None and self.time_varying and self.steps < steps:
+            raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, {steps} needed")
+
+    def limits(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(lower, upper)`` for measurement ``y_k`` (k >= 1; array index k-1)."""
+        if self.time_varying:
+            return self.lower[k - 1], self.upper[k - 1]
+        return self.lower, self.upper
+
+    def all_limits(self, steps: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """Limits broadcast to ``(T, m)`` for k = 1..T."""
+        self.check(m, steps)
+        lo = self.lower[:steps] if self.time_varying else self.lower
+        hi = self.upper[:steps] if self.time_varying else self.upper
+        return (np.broadcast_to(lo, (steps, m)).copy(), np.broadcast_to(hi, (steps, m)).copy())
+
+    def clip(self, y_latent: np.ndarray, k: int | None = None) -> np.ndarray:
+        """Censor latent measurements.
+
+        ``y_latent`` is ``(..., m)`` for a single step ``k``, or ``(..., T, m)``
+        with ``k=None`` for a whole record (time-varying limits are aligned
+        with the time axis).
+        """
+        if k is None:
+            steps, m = y_latent.shape[-2:]
+            lo, hi = self.all_limits(steps, m)
+        else:
+            lo, hi = self.limits(k)
+        return np.minimum(np.maximum(y_latent, lo), hi)
+
+    def censored_mask(self, y: np.ndarray, *, rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+        """Masks ``(at_lower, at_upper)`` of a record ``(..., T, m)`` reading exactly at a limit.
+
+        A reading counts as censored when it is within ``rtol * max(1, |limit|)`` of the limit
+        (spec 001a §3.5: "detect censoring as y <= T + tol" [non-source]).
+        """
+        steps, m = y.shape[-2:]
+        lo, hi = self.all_limits(steps, m)
+        with np.errstate(invalid="ignore"):
+            at_lo = np.isfinite(lo) & (y <= lo + rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0))))
+            at_hi = np.isfinite(hi) & (y >= hi - rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0))))
+        return at_lo, at_hi
+
+    def check_measurements(self, y: np.ndarray, name: str = "y", *, rtol: float = 1e-9) -> None:
+        """Raise :class:`ValidationError` if a (non-NaN) reading lies outside its limits."""
+        steps, m = y.shape[-2:]
+        lo, hi = self.all_limits(steps, m)
+        tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
+        tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
+        with np.errstate(invalid="ignore"):
+            bad = (y < lo - tol_lo) | (y > hi + tol_hi)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            t, ch = idx[-2], idx[-1]
+            raise ValidationError(f"{name}: measurement {y[idx]:.6g} at index {idx} lies outside its censoring "
+                                  f"limits [{lo[t, ch]:.6g}, {hi[t, ch]:.6g}]")
+
+    def __repr__(self) -> str:
+        def fmt(v):
+            return np.array2string(v, threshold=6) if v.ndim else str(float(v))
+        return f"Censoring(lower={fmt(self.lower)}, upper={fmt(self.upper)})"
+
+
+def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
+                 noise_var: Sequence[Sequence[float]] | None = None):
+    r"""Model several censored regions of each output as stacked sensors (Miller §6.6).
+
+    Output ``i`` (row ``C_i``) is observed by ``len(regions[i])`` sensors; sensor ``j``
+    reads ``clip(C_i x + v_ij, lower_ij, upper_ij)`` with independent noise
+    :math:`v_{ij} \sim N(0, \sigma_{ij}^2)`. The dissertation's Example 1 is one
+    output with windows ``(-inf, 0)`` (right-censored at 0) and ``(0, inf)``
+    (left-censored at 0): ``multi_region(sys, [[(-np.inf, 0.0), (0.0, np.inf)]])``.
+
+    Parameters
+    ----------
+    system : LinearSystem
+        The model whose outputs are measured; must have diagonal, time-invariant R
+        unless ``noise_var`` is given.
+    regions : sequence over outputs of sequences of ``(lower, upper)``
+        Windows for each output.
+    noise_var : sequence over outputs of sequences of float, optional
+        Per-sensor noise variance; default: ``R[i, i]`` for every sensor of output ``i``.
+
+    Returns
+    -------
+    system : LinearSystem
+        The stacked model (C rows repeated, R block-diagonal).
+    censoring : Censoring
+        The per-sensor limits.
+
+    Raises
+    ------
+    ShapeError
+        If ``regions`` does not list one entry per output or R is time-varying.
+    """
+    from ..models import LinearSystem
+
+    if len(regions) != system.m:
+        raise ShapeError(f"regions: expected one list of windows per output ({system.m}), got {len(regions)}")
+    if system.C.varying or system.R.varying:
+        raise ShapeError("system: multi_region needs time-invariant C and R")
+    C, R = system.C.at(1), system.R.at(1)
+    rows, var, lo, hi = [], [], [], []
+    for i, wins in enumerate(regions):
+        if len(wins) == 0:
+            raise ShapeError(f"regions[{i}]: expected at least one (lower, upper) window")
+        for j, win in enumerate(wins):
+            if len(win) != 2:
+                raise ShapeError(f"regions[{i}][{j}]: expected a (lower, upper) pair, got {win!r}")
+            rows.append(C[i])
+            var.append(R[i, i] if noise_var is None else noise_var[i][j])
+            lo.append(win[0])
+            hi.append(win[1])
+    stacked = LinearSystem(A=system.A.array if system.A.fn is None else system.A.fn, C=np.array(rows),
+                           Q=system.Q.array if system.Q.fn is None else system.Q.fn, R=np.diag(var),
+                           x0=system.x0, P0=system.P0,
+                           B=None if system.B is None else (system.B.array if system.B.fn is None else system.B.fn))
+    return stacked, Censoring(lower=np.array(lo, dtype=float), upper=np.array(hi, dtype=float))

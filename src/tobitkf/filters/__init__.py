@@ -1,0 +1,8 @@
+"""Estimators, one source family per module, all with the same batched call shape."""
+
+from .kalman import DroppingKalmanFilter, KalmanFilter, kalman_filter
+from .tobit import TobitKalmanFilter, tobit_kalman_filter, tobit_update
+from ._common import FilterResult
+
+__all__ = ["FilterResult", "KalmanFilter", "DroppingKalmanFilter", "kalman_filter", "TobitKalmanFilter",
+           "tobit_kalman_filter", "tobit_update"]

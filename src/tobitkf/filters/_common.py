@@ -1,0 +1,171 @@
+"""Pieces shared by the batched filters: result type, input preparation, gain update."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .._validation import ShapeError, ValidationError, as_float_array
+
+__all__ = ["FilterResult", "prepare_measurements", "gain_update", "symmetrize", "predict"]
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """Output of a batched filter.
+
+    Index ``k-1`` holds time ``k``: ``mean[..., k-1, :]`` is x̂_{k|k} and
+    ``pred_mean[..., k-1, :]`` is x̂_{k|k-1}.
+
+    Attributes
+    ----------
+    mean : (..., T, n) ndarray
+        Filtered means x̂_{k|k}.
+    cov : (..., T, n, n) ndarray
+        Filtered covariances P_{k|k}.
+    pred_mean : (..., T, n) ndarray
+        Predicted means x̂_{k|k-1}.
+    pred_cov : (..., T, n, n) ndarray
+        Predicted covariances P_{k|k-1}.
+    extras : dict
+        Estimator-specific per-step quantities (e.g. ``p_uncensored`` (..., T, m)).
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    pred_mean: np.ndarray
+    pred_cov: np.ndarray
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+def prepare_measurements(y: Any, m: int, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
+    """Validate ``y`` of shape ``(..., T, m)`` and flatten the batch axes.
+
+    NaN entries are allowed (missing samples); infinities are not.
+
+    Returns
+    -------
+    y2 : (N, T, m) ndarray
+    batch_shape : tuple
+        The leading shape to restore on outputs (``()`` for a single ``(T, m)`` record).
+    """
+    arr = as_float_array(y, name, allow_nan=True)
+    if arr.ndim < 2:
+        raise ShapeError(f"{name}: expected (..., T, {m}) (for one scalar channel pass y[:, None]), got shape {arr.shape}")
+    if arr.shape[-1] != m:
+        raise ShapeError(f"{name}: expected last axis of length m={m} (measurement channels), got shape {arr.shape}")
+    if arr.shape[-2] < 1:
+        raise ShapeError(f"{name}: expected at least one time step, got shape {arr.shape}")
+    batch = arr.shape[:-2]
+    return arr.reshape((-1,) + arr.shape[-2:]), batch
+
+
+def prepare_inputs(system, u: Any, runs: int, steps: int) -> np.ndarray | None:
+    """Validate control inputs ``(T, p)`` or ``(..., T, p)`` and broadcast to ``(N, T, p)``."""
+    if u is None:
+        return None
+    arr = system.check_inputs(u, steps)
+    if arr.ndim == 2:
+        return np.broadcast_to(arr, (runs, steps, arr.shape[-1]))
+    flat = arr.reshape((-1,) + arr.shape[-2:])
+    if flat.shape[0] != runs:
+        raise ShapeError(f"u: expected (T, p) or the batch shape of y, got {arr.shape}")
+    return flat
+
+
+def symmetrize(P: np.ndarray) -> np.ndarray:
+    """0.5 (P + P^T) over the last two axes."""
+    return 0.5 * (P + np.swapaxes(P, -1, -2))
+
+
+def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any = 0.0):
+    r"""Time update :math:`\bar x = A\hat x + B^u u`, :math:`\bar P = A P A^T + Q` (Miller (2.3), (3.20)–(3.21)).
+
+    ``x`` (N, n), ``P`` (N, n, n); ``A`` (n, n); ``Qd`` (n, n) the noise covariance B Q B^T.
+    """
+    xp = x @ A.T + bx
+    Pp = A @ P @ A.T + Qd
+    return xp, symmetrize(Pp)
+
+
+def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray, Ree: np.ndarray,
+                valid: np.ndarray | None = None, *, H: np.ndarray | None = None,
+                noise: np.ndarray | None = None):
+    r"""Linear MMSE measurement update, batched, with per-run channel masks.
+
+    .. math::
+
+        K = R_{xe} R_{ee}^{-1}, \qquad \hat x = \bar x + K e, \qquad P = \bar P - K R_{xe}^T
+
+    (Miller (3.32), (3.22), (3.42) corrected as in (3.55)). Channels where
+    ``valid`` is False (missing, dropped, or with :math:`R_{ee,ll} = 0`) are removed
+    from the update exactly: their rows and columns of :math:`R_{ee}` are replaced
+    by the identity and their gain columns are zero.
+
+    When ``H`` (N or 1, m, n) and ``noise`` (N or 1, m, m) are given, the covariance
+    uses the Joseph form :math:`(I - KH)\bar P(I - KH)^T + K\,\mathrm{noise}\,K^T`.
+
+    Parameters
+    ----------
+    x : (N, n) ; P : (N, n, n) ; innov : (N, m) ; Rxe : (N, n, m) ; Ree : (N, m, m)
+    valid : (N, m) bool, optional
+
+    Returns
+    -------
+    x, P, K
+    """
+    m = Ree.shape[-1]
+    diag = np.diagonal(Ree, axis1=-2, axis2=-1)
+    degenerate = ~(diag > 0)
+    if valid is None and not degenerate.any():
+        if m == 1:
+            K = Rxe / Ree
+        else:
+            K = np.swapaxes(np.linalg.solve(Ree, np.swapaxes(Rxe, -1, -2)), -1, -2)
+        e = innov
+    else:
+        ok = ~degenerate if valid is None else (valid & ~degenerate)
+        pair = ok[..., :, None] & ok[..., None, :]
+        Ree = np.where(pair, Ree, np.eye(m))
+        Rxe = Rxe * ok[..., None, :]
+        e = np.where(ok, innov, 0.0)
+        if m == 1:
+            K = Rxe / Ree
+        else:
+            K = np.swapaxes(np.linalg.solve(Ree, np.swapaxes(Rxe, -1, -2)), -1, -2)
+        if H is not None:
+            H = H * ok[..., :, None]
+    x_new = x + np.einsum("...ij,...j->...i", K, e)
+    if H is None:
+        P_new = P - K @ np.swapaxes(Rxe, -1, -2)
+    else:
+        n = P.shape[-1]
+        IKH = np.eye(n) - K @ H
+        P_new = IKH @ P @ np.swapaxes(IKH, -1, -2) + K @ noise @ np.swapaxes(K, -1, -2)
+    return x_new, symmetrize(P_new), K
+
+
+def check_prior(system, x0: Any, P0: Any, runs: int):
+    """Initial (x0, P0) broadcast to ``(N, n)``, ``(N, n, n)``; defaults from the system."""
+    n = system.n
+    x = system.x0 if x0 is None else as_float_array(x0, "x0")
+    P = system.P0 if P0 is None else as_float_array(P0, "P0")
+    if x.shape[-1:] != (n,) or P.shape[-2:] != (n, n):
+        raise ShapeError(f"x0/P0: expected (..., {n}) and (..., {n}, {n}), got {x.shape} and {P.shape}")
+    try:
+        x = np.broadcast_to(x, (runs, n)).copy()
+        P = np.broadcast_to(P, (runs, n, n)).copy()
+    except ValueError:
+        raise ShapeError(f"x0/P0: batch shapes {x.shape[:-1]} / {P.shape[:-2]} do not match {runs} runs") from None
+    return x, P
+
+
+def check_keywords(options: dict[str, Any], allowed: dict[str, tuple]) -> None:
+    """Check each option value against its allowed set."""
+    for key, value in options.items():
+        if key not in allowed:
+            raise TypeError(f"unexpected keyword argument {key!r}")
+        if value not in allowed[key]:
+            raise ValidationError(f"{key}: expected one of {', '.join(repr(a) for a in allowed[key])}, got {value!r}")

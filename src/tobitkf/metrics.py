@@ -1,0 +1,81 @@
+r"""Monte Carlo error metrics over a batch of runs.
+
+For truth :math:`x^{(i)}_k` and estimates :math:`\hat x^{(i)}_k`, i = 1..N runs:
+
+.. math::
+
+    \mathrm{RMSE}_k(j) = \Big(\frac1N\sum_i (\hat x^{(i)}_k(j) - x^{(i)}_k(j))^2\Big)^{1/2}, \qquad
+    \mathrm{bias}_k(j) = \frac1N\sum_i (\hat x^{(i)}_k(j) - x^{(i)}_k(j)), \\
+    \mathrm{NEES}_k = \frac1N\sum_i e^{(i)T}_k P^{(i)-1}_k e^{(i)}_k \quad (\approx n \text{ for a consistent filter}).
+
+The time average of the RMSE is :math:`\frac1T\sum_k \mathrm{RMSE}_k(j)` (the
+convention of the sources' "RMSE over k" plots averaged over the horizon).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ._validation import ShapeError
+
+__all__ = ["rmse", "bias", "nees", "summarize", "align_truth"]
+
+
+def align_truth(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+    """Drop x_0 from a ``(N, T+1, n)`` truth so it lines up with ``(N, T, n)`` estimates."""
+    truth = np.asarray(truth, dtype=float)
+    if truth.shape[-2] == estimate.shape[-2] + 1:
+        truth = truth[..., 1:, :]
+    if truth.shape[-2:] != estimate.shape[-2:]:
+        raise ShapeError(f"truth: shape {truth.shape} does not match estimates {estimate.shape}")
+    return truth
+
+
+def rmse(truth: Any, estimate: Any) -> np.ndarray:
+    """Per-step RMSE over runs (axis 0) of each state component: ``(T, n)``."""
+    est = np.asarray(estimate, dtype=float)
+    err = est - align_truth(truth, est)
+    return np.sqrt(np.mean(err**2, axis=0))
+
+
+def bias(truth: Any, estimate: Any) -> np.ndarray:
+    """Per-step mean error over runs: ``(T, n)``."""
+    est = np.asarray(estimate, dtype=float)
+    return np.mean(est - align_truth(truth, est), axis=0)
+
+
+def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
+    """Per-step average normalized estimation error squared over runs: ``(T,)``.
+
+    Uses a linear solve per run and step; singular covariances give ``inf``.
+    """
+    est = np.asarray(estimate, dtype=float)
+    err = est - align_truth(truth, est)
+    cov = np.asarray(cov, dtype=float)
+    try:
+        sol = np.linalg.solve(cov, err[..., None])[..., 0]
+        val = np.einsum("...i,...i->...", err, sol)
+    except np.linalg.LinAlgError:
+        val = np.full(err.shape[:-1], np.inf)
+    return np.mean(val, axis=0)
+
+
+def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 0) -> dict[str, Any]:
+    """RMSE per step and component, its time average, bias and (if ``cov``) NEES, as a JSON-able dict.
+
+    ``skip`` leaves the first steps out of the time averages (not out of the per-step arrays).
+    """
+    r = rmse(truth, estimate)
+    out = {
+        "rmse": r,
+        "rmse_time_avg": r[skip:].mean(axis=0),
+        "bias": bias(truth, estimate),
+        "bias_time_avg": bias(truth, estimate)[skip:].mean(axis=0),
+    }
+    if cov is not None:
+        ne = nees(truth, estimate, cov)
+        out["nees"] = ne
+        out["nees_time_avg"] = float(np.mean(ne[skip:]))
+    return out
