@@ -1,4 +1,4 @@
-"""Command line: ``tobitkf list`` and ``tobitkf reproduce ID|all``.
+"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``sweep FILE``, ``plot RESULT``.
 
 ``reproduce`` runs a registered experiment and writes ``DIR/ID/metrics.json`` and
 the experiment's figures (PNG), each file atomically.
@@ -90,6 +90,56 @@ def reproduce(
             console.print(f"wrote {outdir}")
             if overall is not None:
                 progress.advance(overall)
+
+
+@app.command()
+def sweep(
+    file: Annotated[Path, typer.Argument(help="sweep file (TOML)")],
+    out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results/sweeps"),
+    scheduler: Annotated[str, typer.Option("--scheduler", help="local | processes | a Dask scheduler address")] = "local",
+    workers: Annotated[int, typer.Option("--workers", min=1, help="worker processes for --scheduler processes")] = 2,
+) -> None:
+    """Run (or resume) a Monte Carlo sweep; results go to OUT/<name>.zarr."""
+    from ._validation import ValidationError
+    from .sweep import load_sweep, run_sweep
+
+    try:
+        spec = load_sweep(file)
+    except ValidationError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from None
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
+               TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, console=console) as progress:
+        task = progress.add_task(f"{spec.name}: blocks", total=None, rate="")
+
+        def report(done: int, total: int, rate: float) -> None:
+            progress.update(task, completed=done, total=total, rate=f"{rate:,.0f} runs/s" if rate else "")
+
+        try:
+            path = run_sweep(spec, out, scheduler=scheduler, workers=workers, progress=report)
+        except ValidationError as exc:
+            console.print(f"[red]error:[/red] {exc}")
+            raise typer.Exit(2) from None
+    console.print(f"wrote {path}")
+
+
+@app.command()
+def plot(
+    result: Annotated[Path, typer.Argument(help="a sweep store (DIR/<name>.zarr)")],
+    out: Annotated[Optional[Path], typer.Option("--out", help="figure folder (default: next to the store)")] = None,
+) -> None:
+    """Draw RMSE-over-time and RMSE-versus-parameter figures from a stored sweep."""
+    from ._validation import ValidationError
+    from .sweep import plot_result
+
+    try:
+        paths = plot_result(result, out)
+    except ValidationError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from None
+    for p in paths:
+        console.print(f"wrote {p}")
 
 
 def main() -> None:  # pragma: no cover - console entry point
