@@ -19,6 +19,7 @@ from .censored import CensoredMoments, censored_moments
 from .channels import Censoring, multi_region
 from .filters import (DroppingKalmanFilter, FilterResult, KalmanFilter, TobitKalmanFilter, kalman_filter,
                       tobit_kalman_filter)
+from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .models import LinearSystem
 from .simulate import SimulationData, simulate
 from . import metrics
@@ -28,6 +29,7 @@ __version__ = "0.1.0"
 __all__ = [
     "LinearSystem", "Censoring", "multi_region", "simulate", "SimulationData",
     "KalmanFilter", "DroppingKalmanFilter", "TobitKalmanFilter", "kalman_filter", "tobit_kalman_filter",
+    "SteadyStateTobitKalmanFilter", "tobit_kalman_filter_controlled",
     "FilterResult", "censored_moments", "CensoredMoments", "metrics", "ShapeError", "ValidationError",
     "__version__",
 ]

@@ -110,7 +110,7 @@ def _client(scheduler: str, workers: int):
     try:
         from distributed import Client, LocalCluster
     except ImportError:
-        raise ValidationError("--scheduler: Dask schedulers need 'distributed' (pip install 'tobitkf[scale]')") from None
+        raise ValidationError("--scheduler: Dask schedulers need 'distributed' (install tobitkf with its dependencies)") from None
     if scheduler == "processes":
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
         return Client(cluster), cluster
