@@ -79,7 +79,8 @@ index k-1 holds x̂_{k|k}.
 
 Code names -> paper symbols: ``mean`` x̂_{k|k}; ``cov`` P_{k|k}; ``pred_mean`` x̂_{k|k-1};
 ``p_uncensored`` :math:`\bar\gamma_k`; ``inverse_mills`` λ; ``expected_y`` :math:`\hat y_{k|k-1}`;
-``smoothed_mean[..., k-1, s, :]`` :math:`\hat x_{k-s|k}`; ``aug_mean`` :math:`\hat\xi_{k|k}`; ``aug_cov`` :math:`\mathcal P_{k|k}`.
+``smoothed_mean[..., k-1, s, :]`` :math:`\hat x_{k-s|k}`; ``aug_mean`` :math:`\hat\xi_{k|k}`;
+``aug_cov`` :math:`\mathcal P_{k|k}`.
 """
 
 from __future__ import annotations
@@ -249,8 +250,7 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
             if exact_tobit_variance:   # law of total variance (option, spec §4.6-2)
                 with np.errstate(invalid="ignore"):
                     noise = (gam * (st.truncated_var + (tmean - yhat) ** 2)
-                             + np.where(np.isfinite(lo), p_lo * (np.where(np.isfinite(lo), lo, 0.0) - yhat) ** 2, 0.0)
-                             + np.where(np.isfinite(hi), p_hi * (np.where(np.isfinite(hi), hi, 0.0) - yhat) ** 2, 0.0))
+                             + _limit_terms(p_lo, (lo - yhat) ** 2) + _limit_terms(p_hi, (hi - yhat) ** 2))
             else:
                 noise = st.truncated_var                                         # R (1 - psi), (25)-(26), (12)
             lam = st.inverse_mills
