@@ -8,6 +8,8 @@ the erfcx form of the inverse Mills ratio.
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy import special, stats
 
 import tobitkf as tk
@@ -32,16 +34,20 @@ def data(system, fading, steps=40, runs=3, lower=0.0, seed=0):
     return tk.simulate(system, steps, runs, censoring=cens, measurement=fading, seed=seed), cens
 
 
-def _reference(system, thb, lower, y, L, T):
+def _reference(system, thb, lower, y, L, T, *, thv=None, stale=False, exact=False, variance_term=False):
     """One run of Table 1 with the growing augmented state (tall A_k for k < L), written from the paper.
 
     thb: (L+1, m) mean gains. Uses the standard form P - K Syy K^T of (20').
+    Options as in spec §4.6: ``stale`` is (6) with x̂_{j|j-1} (x̂_{0|-1} = x̄_0); ``exact`` the total
+    variance gam R(1-psi) + gam(1-gam)(chi + sig lam - I)^2; ``variance_term`` adds gam^2 D_k.
     Returns per-step x̂_{k|k}, P_{k|k}, ŷ_{k|k-1}, K_k (first n rows) and ξ̂_{k|k}.
     """
     n, m = system.n, system.m
     A, Qd, C = system.A.at(0), system.process_cov(0), system.C.at(1)
     sig = np.sqrt(np.diag(system.R.at(1)))
     xi, P = system.x0.copy(), system.P0.copy()
+    x_pred_hist = [system.x0.copy()]                          # x̂_{j|j-1}, j = 0, 1, ...
+    X = [np.outer(system.x0, system.x0) + system.P0]         # X_j = E[x_j x_j^T]
     out = {"x": [], "P": [], "yhat": [], "K": [], "xi": []}
     for k in range(1, T + 1):
         l_prev, l_k = min(L, k - 1), min(L, k)
@@ -53,16 +59,27 @@ def _reference(system, thb, lower, y, L, T):
         Ba[:n] = np.eye(n)
         xi = Aa @ xi                                         # (17)
         P = Aa @ P @ Aa.T + Ba @ Qd @ Ba.T                   # (18)
+        x_pred_hist.append(xi[:n].copy())
+        X.append(A @ X[-1] @ A.T + Qd)
         H = np.hstack([thb[s][:, None] * C for s in range(l_k + 1)])
         chi = H @ xi
         z = (lower - chi) / sig
         lam = stats.norm.pdf(z) / stats.norm.sf(z)           # (14)
         psi = lam * (lam - z)                                # (13)
-        gam = stats.norm.cdf((chi - lower) / sig)            # (6)
+        if stale:
+            mu = sum(thb[s] * (C @ x_pred_hist[k - s]) for s in range(l_k + 1))
+            gam = stats.norm.cdf((mu - lower) / sig)         # (6) as printed
+        else:
+            gam = stats.norm.cdf((chi - lower) / sig)        # (6) at the augmented prediction
         yhat = gam * (chi + sig * lam) + (1 - gam) * lower   # (21)
+        noise = sig**2 * (1 - psi)                           # (25)-(26)
+        if exact:
+            noise = gam * noise + gam * (1 - gam) * (chi + sig * lam - lower) ** 2
+        if variance_term:
+            noise = noise + gam**2 * sum(thv[s] * np.diag(C @ X[k - s] @ C.T) for s in range(l_k + 1))
         G = gam[:, None] * H
         Sxy = P @ G.T                                        # (24)
-        Syy = G @ P @ G.T + np.diag(sig**2 * (1 - psi))      # (25)
+        Syy = G @ P @ G.T + np.diag(noise)                   # (25)
         K = np.linalg.solve(Syy.T, Sxy.T).T                  # (23)
         xi = xi + K @ (y[k - 1] - yhat)                      # (19)
         P = P - K @ Syy @ K.T                                # (20')
@@ -104,6 +121,46 @@ def test_matches_independent_growing_reference_including_k_below_L(L):
             np.testing.assert_allclose(out.extras["aug_mean"][r, k - 1, :size], ref["xi"][k - 1], rtol=0, atol=1e-10)
             assert np.all(out.extras["aug_mean"][r, k - 1, size:] == 0.0)
             assert np.all(out.extras["aug_cov"][r, k - 1, size:, :] == 0.0)
+
+
+@pytest.mark.parametrize("options", [
+    {"p_uncensored_mode": "eq6_stale"},
+    {"exact_tobit_variance": True},
+    {"fading_variance_term": True},
+    {"p_uncensored_mode": "eq6_stale", "exact_tobit_variance": True, "fading_variance_term": True},
+])
+def test_options_match_independent_reference(options):
+    sys = oscillator()
+    fad = RiceFading.gaussian(2, MEANS, VARS)
+    d, cens = data(sys, fad, steps=30, runs=2, seed=9)
+    out = FadingTobitKalmanFilter(sys, fad, cens, **options).filter(d.y)
+    base = FadingTobitKalmanFilter(sys, fad, cens).filter(d.y)
+    assert np.abs(out.mean - base.mean).max() > 1e-6          # each option changes the estimates
+    for r in range(2):
+        ref = _reference(sys, fad.mean_gains(1), 0.0, d.y[r], 2, 30, thv=fad.var_gains(1),
+                         stale=options.get("p_uncensored_mode") == "eq6_stale",
+                         exact=options.get("exact_tobit_variance", False),
+                         variance_term=options.get("fading_variance_term", False))
+        np.testing.assert_allclose(out.mean[r], ref["x"], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(out.cov[r], ref["P"], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(out.extras["expected_y"][r], ref["yhat"], rtol=0, atol=1e-10)
+
+
+def test_inputs_and_time_varying_C_reduce_to_core_tkf():
+    T = 25
+    w = 0.052 * np.pi
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    Cs = np.stack([[[1.0 + 0.02 * k, 0.1]] for k in range(1, T + 1)])
+    sys = tk.LinearSystem(A=A, C=Cs, Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2),
+                          Bu=[[0.0], [1.0]], D=[[0.3]])
+    u = np.random.default_rng(0).normal(size=(3, T, 1))
+    fad = RiceFading(0, [1.0])
+    cens = tk.Censoring(lower=0.0)
+    d = tk.simulate(sys, T, 3, censoring=cens, measurement=fad, inputs=u, seed=4)
+    a = FadingTobitKalmanFilter(sys, fad, cens).filter(d.y, u=u)
+    b = tk.TobitKalmanFilter(sys, cens).filter(d.y, u=u)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.cov, b.cov, rtol=0, atol=1e-10)
 
 
 def _augmented_system(sys, fad, T):
@@ -299,6 +356,18 @@ def test_yhat_above_limit_and_probabilities_in_range():
     GPG = np.einsum("ntmi,ntij,ntlj->ntml", G, out.extras["aug_pred_cov"], G)
     noise = (out.extras["innovation_cov"] - GPG)[..., 4:, 0, 0]
     assert np.all(noise > 0) and np.all(noise <= 1.0 + 1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(chi=st.floats(-60, 60), sigma=st.floats(0.05, 20), lower=st.floats(-10, 10))
+def test_property_yhat_above_limit_gamma_and_psi_in_range(chi, sigma, lower):
+    out, gam, noise = _one_step(chi, sigma, lower)
+    yhat = out.extras["expected_y"][0, 0, 0]
+    assert yhat >= lower - 1e-12 * max(1.0, abs(lower))                  # §4.4: ŷ >= I
+    assert 0.0 <= gam[0] <= 1.0
+    # 0 <= psi < 1  <=>  0 < R(1 - psi) <= R
+    assert 0.0 < noise[0] <= sigma**2 * (1 + 1e-12)
+    assert np.isfinite(out.mean).all() and np.isfinite(out.cov).all()
 
 
 # --- invariants (items 8-9) ----------------------------------------------------------------------------------
