@@ -255,6 +255,17 @@ def test_smoothed_blocks_are_fixed_lag_estimates():
     assert np.all(np.trace(smc[:, 0, 1], axis1=-2, axis2=-1) < 2.0)
 
 
+def test_keep_smoothed_false_changes_nothing_else():
+    sys = oscillator()
+    fad = RiceFading.gaussian(2, MEANS, VARS)
+    d, cens = data(sys, fad, runs=2)
+    a = FadingTobitKalmanFilter(sys, fad, cens).filter(d.y)
+    b = FadingTobitKalmanFilter(sys, fad, cens).filter(d.y, keep_smoothed=False)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.cov, b.cov)
+    assert "smoothed_mean" not in b.extras and "smoothed_mean" in a.extras
+
+
 def test_batched_equals_per_run_and_batch_shape_kept():
     sys = oscillator()
     fad = RiceFading.gaussian(2, MEANS, VARS)
