@@ -90,10 +90,13 @@ def _reference(system, thb, lower, y, L, T, *, thv=None, stale=False, exact=Fals
 
 # --- exact reductions (spec §8 items 1-5), 1e-10 on the same data --------------------------------------------
 
-def test_L0_unit_mean_equals_core_tkf():
+@pytest.mark.parametrize("upper", [np.inf, 3.0])
+def test_L0_unit_mean_equals_core_tkf(upper):
+    # upper < inf: two-sided censoring, a non-source extension that must still reduce to the core TKF
     sys = oscillator()
     fad_data = RiceFading.gaussian(0, [1.0], [0.0])
-    d, cens = data(sys, fad_data, runs=4)
+    cens = tk.Censoring(lower=0.0, upper=upper)
+    d = tk.simulate(sys, 40, 4, censoring=cens, measurement=fad_data, seed=0)
     a = FadingTobitKalmanFilter(sys, fad_data, cens).filter(d.y)
     b = tk.TobitKalmanFilter(sys, cens).filter(d.y)
     for f in ("mean", "cov", "pred_mean", "pred_cov"):
