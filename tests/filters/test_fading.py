@@ -204,6 +204,7 @@ def test_kf_fm_baseline_is_augmented_kf_on_censored_data():
     d, _ = data(sys, fad, steps=40)
     a = FadingKalmanFilter(sys, fad).filter(d.y)
     b = tk.KalmanFilter(_augmented_system(sys, fad, 40)).filter(d.y)
+    np.testing.assert_array_equal(fading_kalman_filter(sys, fad, d.y).mean, a.mean)
     np.testing.assert_allclose(a.mean, b.mean[..., :2], rtol=0, atol=1e-10)
     np.testing.assert_allclose(a.cov, b.cov[..., :2, :2], rtol=0, atol=1e-10)
 
