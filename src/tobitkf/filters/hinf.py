@@ -59,6 +59,7 @@ with Ω(P,ρ) ⊂ ℒ for the returned Λ, ``var_alpha``/``var_beta``/``varsigma
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -444,6 +445,8 @@ class HinfCertificate:
         γ after each step (``method="iterate"``).
     seconds : float
         Wall time of the solve(s).
+    best_max_eig : float or None
+        ``analyze(objective="max_margin")``: the smallest achievable largest eigenvalue of Ψ/Φ.
     """
 
     status: str
@@ -464,6 +467,7 @@ class HinfCertificate:
     verification: Verification | None = None
     history: list[float] = field(default_factory=list)
     seconds: float = 0.0
+    best_max_eig: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -491,7 +495,7 @@ class HinfCertificate:
                 "verification_reasons": None if ver is None else ver.reasons,
                 "max_eig": None if ver is None else ver.max_eig,
                 "gamma_min_for_certificate": None if ver is None else ver.gamma_min,
-                "history": self.history, "seconds": self.seconds}
+                "history": self.history, "seconds": self.seconds, "best_max_eig": self.best_max_eig}
 
 
 def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float, eps2: float,
@@ -570,12 +574,16 @@ def _solve(prob, solver: str, fallback: str | None) -> tuple[str, str]:
     for name in [solver] + ([fallback] if fallback and fallback != solver else []):
         try:
             kwargs = {"max_iters": 20000, "eps": 1e-9} if name == "SCS" else {}
-            prob.solve(solver=name, **kwargs)
+            with warnings.catch_warnings():
+                # "Solution may be inaccurate": reported through the status, then re-checked
+                warnings.simplefilter("ignore", UserWarning)
+                prob.solve(solver=name, **kwargs)
             status = prob.status
         except cp.error.SolverError as exc:  # pragma: no cover - depends on the solver build
             status = f"solver_error: {exc}"
         tried.append(name)
-        if status == "optimal":
+        if status == "optimal" or status in ("infeasible", "unbounded"):
+            # a clean answer (including a certificate of infeasibility) is final
             return status, name
     return status, tried[-1]
 
@@ -610,7 +618,7 @@ def _common_vars(cp, model: RossModel, objective: str, gamma: float | None):
     m = model.m
     z = cp.Variable(m)
     pi, e1, e2 = cp.Variable(), cp.Variable(), cp.Variable()
-    g2 = cp.Variable() if objective == "min_gamma" else gamma ** 2
+    g2 = cp.Variable() if objective == "min_gamma" else (0.0 if gamma is None else gamma ** 2)
     return z, pi, e1, e2, g2
 
 
@@ -685,7 +693,7 @@ def _check_common(objective: str, gamma: float | None, solver: str, fallback: st
 # ---------------------------------------------------------------------------------------
 # Theorems 1-2: analysis for given gains
 # ---------------------------------------------------------------------------------------
-def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: str = "min_gamma",
+def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: str | None = None,
             gamma: float | None = None, lyapunov: str = "block", P: Any = None, rho: float | None = None,
             covariance: str = "paper", solver: str = "CLARABEL", fallback: str | None = "SCS",
             margin: float = 1e-6, bound: float | None = 1e4) -> HinfCertificate:
@@ -701,9 +709,12 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     Bf : (n, m) array_like
     theorem : {1, 2}
         1: stability only (objective must be "feasibility", gamma ignored); 2: regional H∞.
-    objective : {"feasibility", "min_gamma"}
+    objective : {"feasibility", "min_gamma", "max_margin"}, optional
+        Default "min_gamma" for theorem 2, "feasibility" for theorem 1. ``"max_margin"``
+        minimises the largest eigenvalue t of Ψ (Φ) instead of requiring Ψ < 0 (status
+        "infeasible" when the best t is >= 0); useful for a fixed P.
     gamma : float, optional
-        γ for ``objective="feasibility"`` and theorem 2.
+        γ for ``objective="feasibility"``/``"max_margin"`` and theorem 2.
     lyapunov : {"block", "full"}
         ``"block"``: P = diag{Q_1, Q_2} (paper); ``"full"``: any P > 0 (not in the paper).
     P : (2n, 2n) array_like, optional
@@ -729,12 +740,16 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
         Bad options, shapes, a non-positive γ for a feasibility problem.
     """
     check_option(theorem, "theorem", (1, 2))
+    if objective is None:
+        objective = "feasibility" if theorem == 1 else "min_gamma"
     check_option(lyapunov, "lyapunov", ("block", "full"))
     if theorem == 1:
-        objective = "feasibility"
+        check_option(objective, "objective", ("feasibility", "max_margin"))
         gamma = None
         check_option(solver, "solver", SOLVERS)
         check_option(covariance, "covariance", COVARIANCES)
+    elif objective == "max_margin":
+        _check_common("feasibility", gamma, solver, fallback, covariance)
     else:
         _check_common(objective, gamma, solver, fallback, covariance)
     Af, Bf = _check_gains(model, Af, Bf)
@@ -780,20 +795,31 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
         Mbar = np.zeros((model.r, N)); Mbar[:, :n], Mbar[:, n:2 * n] = model.M, -model.M
         J = np.zeros((N, N)); J[3 * n + m:, 3 * n + m:] = np.eye(p + m)
         psi = psi + Mbar.T @ Mbar - g2 * J
-    cons.append(_sym(cp, psi) << -margin * np.eye(psi.shape[0]))
-    prob = cp.Problem(cp.Minimize(g2 if objective == "min_gamma" else 0), cons)
+    if objective == "max_margin":
+        t_eig = cp.Variable()
+        cons += [_sym(cp, psi) << t_eig * np.eye(psi.shape[0]), e1 <= (bound or 1e4), e2 <= (bound or 1e4)]
+        prob = cp.Problem(cp.Minimize(t_eig), cons)
+    else:
+        cons.append(_sym(cp, psi) << -margin * np.eye(psi.shape[0]))
+        prob = cp.Problem(cp.Minimize(g2 if objective == "min_gamma" else 0), cons)
     status, used = _solve(prob, solver, fallback)
     seconds = time.perf_counter() - t0
+    best_eig = (float(t_eig.value) if objective == "max_margin" and status in ("optimal", "optimal_inaccurate")
+                else None)
+    if best_eig is not None and best_eig >= 0:
+        return HinfCertificate(status="infeasible", method="analysis", objective=objective, theorem=theorem,
+                               solver=used, best_max_eig=best_eig, seconds=seconds)
     ok = status in ("optimal", "optimal_inaccurate")
     gam = (float(np.sqrt(max(g2.value, 0.0))) if objective == "min_gamma" else gamma) if ok and theorem == 2 else gamma
     Pval = (P_fixed if P_fixed is not None else Pv.value) if ok else None
-    return _finish(model, status=status, solver=used, method="analysis", objective=objective, theorem=theorem,
+    cert = _finish(model, status=status, solver=used, method="analysis", objective=objective, theorem=theorem,
                    gamma=gam, Af=Af, Bf=Bf, P=None if Pval is None else np.array(Pval, dtype=float),
                    z=None if not ok else z.value, e1=None if not ok else e1.value,
                    e2=None if not ok else e2.value,
                    pi=None if (not ok or rho_region is not None) else pi.value, covariance=covariance,
                    block_diagonal=(lyapunov == "block" and P_fixed is None), rho_fixed=rho_region,
                    seconds=seconds)
+    return replace(cert, best_max_eig=best_eig)
 
 
 def zero_filter_gamma(model: RossModel, *, lyapunov: str = "block", solver: str = "CLARABEL",
@@ -1170,7 +1196,8 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
         Process disturbance w_0..w_{T-1} (zeros by default).
     v : (T, m), (N, T, m) array_like or callable k -> (m,), optional
         Measurement noise ṽ_0..ṽ_{T-1} (zeros by default).
-    seed : int or Generator, optional
+    seed : int, SeedSequence or Generator
+        Required (an explicit seed, as in :func:`tobitkf.simulate`).
 
     Returns
     -------
@@ -1187,12 +1214,12 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValidationError(f"runs: expected a positive integer, got {runs!r}")
     n, m, p = model.n, model.m, model.p
-    rng = as_generator(seed)
     x0a = np.zeros(n) if x0 is None else as_float_array(x0, "x0", ndim=(1, 2))
     if x0a.shape[-1] != n or (x0a.ndim == 2 and x0a.shape[0] != runs):
         raise ShapeError(f"x0: expected ({n},) or ({runs}, {n}), got {x0a.shape}")
     ws = np.zeros((runs, steps, p)) if w is None else _sequence(w, "w", runs, steps, p)
     vs = np.zeros((runs, steps, m)) if v is None else _sequence(v, "v", runs, steps, m)
+    rng = as_generator(seed)
     x = np.empty((runs, steps + 1, n))
     y = np.empty((runs, steps, m))
     alpha = np.empty((runs, steps, m))
