@@ -447,6 +447,8 @@ class HinfCertificate:
         Wall time of the solve(s).
     best_max_eig : float or None
         ``analyze(objective="max_margin")``: the smallest achievable largest eigenvalue of Ψ/Φ.
+    margin : float or None
+        Strictness margin used by the accepted solve.
     """
 
     status: str
@@ -468,6 +470,7 @@ class HinfCertificate:
     history: list[float] = field(default_factory=list)
     seconds: float = 0.0
     best_max_eig: float | None = None
+    margin: float | None = None
 
     @property
     def ok(self) -> bool:
@@ -495,7 +498,8 @@ class HinfCertificate:
                 "verification_reasons": None if ver is None else ver.reasons,
                 "max_eig": None if ver is None else ver.max_eig,
                 "gamma_min_for_certificate": None if ver is None else ver.gamma_min,
-                "history": self.history, "seconds": self.seconds, "best_max_eig": self.best_max_eig}
+                "history": self.history, "seconds": self.seconds, "best_max_eig": self.best_max_eig,
+                "margin": self.margin}
 
 
 def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float, eps2: float,
@@ -644,9 +648,10 @@ def _region_constraints(cp, model: RossModel, P, z, pi, e2, margin: float, rho: 
 
 def _finish(model: RossModel, *, status: str, solver: str, method: str, objective: str, theorem: int,
             gamma: float | None, Af, Bf, P, z, e1, e2, pi, covariance: str, block_diagonal: bool,
-            rho_fixed: float | None, seconds: float, history: list[float] | None = None) -> HinfCertificate:
+            rho_fixed: float | None, seconds: float, history: list[float] | None = None,
+            margin: float | None = None) -> HinfCertificate:
     base = dict(method=method, objective=objective, theorem=theorem, solver=solver, seconds=seconds,
-                history=list(history or []))
+                history=list(history or []), margin=margin)
     if status not in ("optimal", "optimal_inaccurate"):
         st = "infeasible" if "infeasible" in status else status
         return HinfCertificate(status=st, **base)
@@ -818,7 +823,7 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
                    e2=None if not ok else e2.value,
                    pi=None if (not ok or rho_region is not None) else pi.value, covariance=covariance,
                    block_diagonal=(lyapunov == "block" and P_fixed is None), rho_fixed=rho_region,
-                   seconds=seconds)
+                   seconds=seconds, margin=margin)
     return replace(cert, best_max_eig=best_eig)
 
 
@@ -985,7 +990,8 @@ def _synthesis_fixed_P(cp, model: RossModel, P: np.ndarray, objective: str, gamm
 def design(model: RossModel, *, method: str = "theorem3", objective: str = "feasibility",
            gamma: float | None = 1.5, covariance: str = "paper", solver: str = "CLARABEL",
            fallback: str | None = "SCS", margin: float = 1e-6, bound: float | None = 1e4,
-           fixed_Q: tuple[Any, Any] | None = None, iterations: int = 4, tol: float = 1e-4) -> HinfCertificate:
+           fixed_Q: tuple[Any, Any] | None = None, iterations: int = 4, tol: float = 1e-4,
+           retries: int = 2) -> HinfCertificate:
     r"""Design A_f, B_f of the filter (5) with a regional H∞ certificate.
 
     Parameters
@@ -1013,6 +1019,10 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     iterations, tol : int, float
         ``"iterate"``: at most ``iterations`` (analysis, synthesis) rounds; stop when γ drops by
         less than ``tol``.
+    retries : int
+        When the numpy re-check rejects a solution (or the solver is inaccurate), solve again
+        with the margin multiplied by 10, at most ``retries`` times. ``margin`` of the result
+        says which margin was used.
 
     Returns
     -------
@@ -1038,6 +1048,24 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
         raise ValidationError("fixed_Q: only meaningful for method='theorem3'")
     if objective == "feasibility":
         gamma = float(gamma)
+    if not margin > 0:
+        raise ValidationError(f"margin: expected a positive number, got {margin!r}")
+    t0 = time.perf_counter()
+    cert = None
+    for attempt in range(retries + 1):
+        cert = _design_once(model, method=method, objective=objective, gamma=gamma, covariance=covariance,
+                            solver=solver, fallback=fallback, margin=margin * 10 ** attempt, bound=bound,
+                            fixed_Q=fixed_Q, iterations=iterations, tol=tol)
+        if cert.status not in ("rejected", "optimal_inaccurate") and not cert.status.startswith("solver_error"):
+            break
+        if cert.status == "optimal_inaccurate" and cert.ok:
+            break
+    return replace(cert, seconds=time.perf_counter() - t0)
+
+
+def _design_once(model: RossModel, *, method: str, objective: str, gamma: float | None, covariance: str,
+                 solver: str, fallback: str | None, margin: float, bound: float | None,
+                 fixed_Q: tuple[Any, Any] | None, iterations: int, tol: float) -> HinfCertificate:
     cp = _cp()
     n = model.n
     t0 = time.perf_counter()
@@ -1061,7 +1089,8 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     if not ok:
         return _finish(model, status=status, solver=used, method=method, objective=objective, theorem=2,
                        gamma=None, Af=None, Bf=None, P=None, z=None, e1=None, e2=None, pi=None,
-                       covariance=covariance, block_diagonal=False, rho_fixed=None, seconds=seconds)
+                       covariance=covariance, block_diagonal=False, rho_fixed=None, seconds=seconds,
+                       margin=margin)
     gam = float(np.sqrt(max(v["g2"].value, 0.0))) if objective == "min_gamma" else gamma
     if method == "theorem3":
         Q1 = Qf[0] if Qf is not None else v["Q1"].value
@@ -1079,7 +1108,7 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     return _finish(model, status=status, solver=used, method=method, objective=objective, theorem=2,
                    gamma=gam, Af=Af, Bf=Bf, P=P, z=v["z"].value, e1=v["e1"].value, e2=v["e2"].value,
                    pi=v["pi"].value, covariance=covariance, block_diagonal=blockdiag, rho_fixed=None,
-                   seconds=seconds)
+                   seconds=seconds, margin=margin)
 
 
 def _iterate(model: RossModel, *, objective: str, gamma: float | None, covariance: str, solver: str,
@@ -1106,7 +1135,7 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
                            theorem=2, gamma=float(np.sqrt(max(v["g2"].value, 0.0))), Af=v["Af"].value,
                            Bf=v["Bf"].value, P=best.P.copy(), z=v["z"].value, e1=v["e1"].value,
                            e2=v["e2"].value, pi=v["pi"].value, covariance=covariance, block_diagonal=False,
-                           rho_fixed=None, seconds=0.0)
+                           rho_fixed=None, seconds=0.0, margin=margin)
             improved = cand.ok and cand.gamma < best.gamma - tol
             if cand.ok and cand.gamma < best.gamma:
                 best = cand
