@@ -175,7 +175,7 @@ def test_block_diagonal_psi_equals_paper_layout_17(model):
 
 def test_bernoulli_mode_frequencies(model):
     ch = model.channel
-    a, b = ch.draw(np.random.default_rng(7), (200000,))
+    a, b = ch.draw_modes(np.random.default_rng(7), (200000,))
     n = a.shape[0]
     probs = ch.mode_probabilities()
     for mode, freq in (("saturated", a.mean(0)), ("normal", ((1 - a) * b).mean(0)),
@@ -490,3 +490,22 @@ def test_iterate_never_worse_than_coupled(model, improved):
 def test_coupled_feasibility_at_paper_gamma(model):
     c = H.design(model, method="coupled", gamma=1.5)
     assert c.ok and c.gamma == 1.5 and c.verification.ok and c.verification.gamma_min < 1.5
+
+
+def test_theorem1_stability_check_for_given_gains(model):
+    c = H.analyze(model, PAPER["Af"], PAPER["Bf"], theorem=1)
+    assert c.ok and c.gamma is None and c.verification.ok
+    # Φ (12) is the top-left block of Ψ (17) minus M̄^T M̄ (spec §2.2): (17) ⇒ (12)
+    psi = H.psi_matrix(model, PAPER["Af"], PAPER["Bf"], c.P, c.Lambda, c.eps1, c.eps2, 1.0)
+    phi = H.psi_matrix(model, PAPER["Af"], PAPER["Bf"], c.P, c.Lambda, c.eps1, c.eps2, None)
+    Mb = np.hstack([model.M, -model.M])
+    np.testing.assert_allclose(psi[:11, :11] - phi, np.pad(Mb.T @ Mb, ((0, 5), (0, 5))), atol=1e-12)
+
+
+def test_saturation_level_extension_A13(model):
+    m2 = model.with_channel(level=[2.0, 0.5])
+    c = H.design(m2)
+    assert c.ok
+    g = np.einsum("ij,jk,ik->i", m2.C, np.linalg.inv(c.Q1), m2.C)
+    assert (c.rho * c.Lambda ** 2 * g <= np.array([4.0, 0.25]) * (1 + 1e-7)).all()
+    np.testing.assert_allclose(c.rho_star, np.min(np.array([4.0, 0.25]) / (c.Lambda ** 2 * g)), rtol=1e-12)

@@ -111,7 +111,7 @@ class RandomSaturation:
                 "missing": (1 - self.mu) * (1 - self.nu)}
 
     # --- drawing and applying -------------------------------------------------------
-    def draw(self, rng: np.random.Generator, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    def draw_modes(self, rng: np.random.Generator, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Draw α and β of shape ``shape + (m,)`` (0/1 floats), α first, then β."""
         size = tuple(shape) + (self.m,)
         alpha = (rng.random(size) < self.mu).astype(float)
@@ -129,3 +129,18 @@ class RandomSaturation:
         alpha = np.asarray(alpha, dtype=float)
         beta = np.asarray(beta, dtype=float)
         return alpha * saturate(cx, self.level) + (1 - alpha) * beta * cx + noise
+
+    def draw(self, rng: np.random.Generator, x: np.ndarray, system: Any, noise: np.ndarray,
+             inputs: Any = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """Measurement-model hook of :func:`tobitkf.simulate`: eq. (2) on a linear system.
+
+        ``x`` is (N, T+1, n), ``noise`` the (N, T, m) draw of v_k; returns y_1..y_T and the
+        draws ``{"alpha", "beta"}`` (N, T, m). Lets the linear-Gaussian simulator produce ROSS
+        measurements for the other estimators (Gaussian noise instead of the paper's l_2 noise).
+        """
+        N, T = noise.shape[0], noise.shape[1]
+        alpha, beta = self.draw_modes(rng, (N, T))
+        cx = np.stack([x[:, k] @ system.measurement(k).T for k in range(1, T + 1)], axis=1)
+        if cx.shape[-1] != self.m:
+            raise ShapeError(f"system: expected {self.m} measurement channels (length of mu), got {cx.shape[-1]}")
+        return self.measure(cx, alpha, beta, noise), {"alpha": alpha, "beta": beta}

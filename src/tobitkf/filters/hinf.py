@@ -609,12 +609,14 @@ def _sector_sigma_terms(cp, model: RossModel, z, eps2, N: int):
     C = model.C
     out = 0
     for i in range(m):
-        Exx = np.zeros((N, N)); Exx[:n, :n] = -np.outer(C[i], C[i])
-        Exs = np.zeros((N, N)); Exs[:n, 3 * n + i] = C[i] / 2; Exs[3 * n + i, :n] = C[i] / 2
-        out = out + z[i] * (Exx + Exs)
-        Ess = np.zeros((N, N)); Ess[3 * n + i, 3 * n + i] = -1.0
-        Exs2 = np.zeros((N, N)); Exs2[:n, 3 * n + i] = C[i] / 2; Exs2[3 * n + i, :n] = C[i] / 2
-        out = out + eps2 * (Ess + Exs2)
+        Exs = np.zeros((N, N))                       # x-σ_i coupling C_i^T/2 (symmetric)
+        Exs[:n, 3 * n + i] = C[i] / 2
+        Exs[3 * n + i, :n] = C[i] / 2
+        Exx = np.zeros((N, N))
+        Exx[:n, :n] = -np.outer(C[i], C[i])
+        Ess = np.zeros((N, N))
+        Ess[3 * n + i, 3 * n + i] = -1.0
+        out = out + z[i] * (Exx + Exs) + eps2 * (Ess + Exs)
     return out
 
 
@@ -1256,7 +1258,7 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     x[:, 0] = x0a
     ch = model.channel
     for k in range(steps):
-        a, b = ch.draw(rng, (runs,))
+        a, b = ch.draw_modes(rng, (runs,))
         alpha[:, k], beta[:, k] = a, b
         y[:, k] = ch.measure(x[:, k] @ model.C.T, a, b, vs[:, k] * model.D)        # (2)
         x[:, k + 1] = model.f(x[:, k]) + ws[:, k] @ model.B.T                      # (1)
