@@ -10,6 +10,8 @@ import itertools
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from tobitkf._validation import ShapeError, ValidationError
 from tobitkf.channels.saturation import RandomSaturation, saturate
@@ -509,3 +511,22 @@ def test_saturation_level_extension_A13(model):
     g = np.einsum("ij,jk,ik->i", m2.C, np.linalg.inv(c.Q1), m2.C)
     assert (c.rho * c.Lambda ** 2 * g <= np.array([4.0, 0.25]) * (1 + 1e-7)).all()
     np.testing.assert_allclose(c.rho_star, np.min(np.array([4.0, 0.25]) / (c.Lambda ** 2 * g)), rtol=1e-12)
+
+
+_prob = st.sampled_from([0.0, 1.0]) | st.floats(0.0, 1.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(mu1=_prob, mu2=_prob, nu1=_prob, nu2=_prob, seed=st.integers(0, 2 ** 16))
+def test_expectation_identity_for_any_probabilities(mu1, mu2, nu1, nu2, seed):
+    model = H.wang2010_model(mu=[mu1, mu2], nu=[nu1, nu2])
+    rng = np.random.default_rng(seed)
+    Af, Bf = rng.normal(size=(3, 3)), rng.normal(size=(3, 2))
+    L = rng.normal(size=(6, 6))
+    P = L @ L.T + 0.1 * np.eye(6)
+    eta, w, v = rng.normal(scale=2, size=6), rng.normal(size=1), rng.normal(size=2)
+    ref = _enumerate_expectation(model, Af, Bf, P, eta, w, v)
+    exact = H.expected_lyapunov_next(model, Af, Bf, P, eta, w, v, covariance="exact")
+    bound = H.expected_lyapunov_next(model, Af, Bf, P, eta, w, v, covariance="paper")
+    assert abs(exact - ref) <= 1e-10 * max(1.0, abs(ref))
+    assert bound >= exact - 1e-10 * max(1.0, abs(ref))
