@@ -11,7 +11,11 @@ Public API (stable):
 - :class:`KalmanFilter`, :class:`DroppingKalmanFilter`, :class:`TobitKalmanFilter`,
   :class:`SteadyStateTobitKalmanFilter` -- estimators.
 - :func:`censored_moments` -- censored-normal statistics, safe in the tails.
-- :mod:`tobitkf.metrics` -- RMSE, bias, NEES.
+- :class:`FadingTobitKalmanFilter` (Rice fading, Geng et al. 2017), with :class:`RiceFading`
+  and the coefficient :mod:`~tobitkf.channels.laws`.
+- :class:`RossModel`, :func:`hinf_design`, :func:`hinf_analyze`, :class:`RegionalHinfFilter`
+  (regional H-infinity filtering with random saturation, Wang et al. 2010).
+- :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps.
 """
 
 from ._validation import ShapeError, ValidationError
@@ -22,6 +26,14 @@ from .filters import (DroppingKalmanFilter, FilterResult, KalmanFilter, TobitKal
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .models import LinearSystem
 from .simulate import SimulationData, simulate
+from .channels import laws
+from .channels.fading import RiceFading
+from .channels.saturation import RandomSaturation
+from .filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter, fading_kalman_filter, fading_tobit_kalman_filter
+from .filters.hinf import RegionalHinfFilter, RossModel
+from .filters.hinf import analyze as hinf_analyze
+from .filters.hinf import design as hinf_design
+from .filters.hinf import verify as hinf_verify
 from . import metrics
 
 __version__ = "0.1.0"
@@ -31,5 +43,7 @@ __all__ = [
     "KalmanFilter", "DroppingKalmanFilter", "TobitKalmanFilter", "kalman_filter", "tobit_kalman_filter",
     "SteadyStateTobitKalmanFilter", "tobit_kalman_filter_controlled",
     "FilterResult", "censored_moments", "CensoredMoments", "metrics", "ShapeError", "ValidationError",
-    "__version__",
+    "laws", "RiceFading", "FadingTobitKalmanFilter", "FadingKalmanFilter", "fading_tobit_kalman_filter",
+    "fading_kalman_filter", "RandomSaturation", "RossModel", "RegionalHinfFilter", "hinf_design", "hinf_analyze",
+    "hinf_verify", "__version__",
 ]
