@@ -32,6 +32,7 @@ import json
 import math
 import os
 import re
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -113,6 +114,7 @@ class ExperimentReport:
     figures: list[str]
     rmse_tables: list[RmseTable]
     problems: list[str] = field(default_factory=list)
+    figure_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
 
     def count(self, holds: bool | None) -> int:
         return sum(1 for c in self.claims if c.holds is holds)
@@ -151,6 +153,19 @@ def _format_value(v: Any, limit: int = _VALUE_LIMIT) -> str:
 
     s = fmt(v)
     return s if len(s) <= limit else s[: limit - 1] + "…"
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) in pixels from a PNG header, None if the file is not a PNG."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", head[16:24])
+        return int(w), int(h)
+    return None
 
 
 def _slug(text: str, taken: set[str], prefix: str) -> str:
@@ -250,7 +265,8 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
     tables = [_rmse_table(p, b) for p, b in _find_estimator_blocks(rest)]
     return ExperimentReport(id=exp_id, title=_text(metrics.get("title")), source=_text(metrics.get("source"))
                             or "unknown source", folder=folder.name, anchor=anchor, meta=meta, settings=settings,
-                            claims=claims, figures=figures, rmse_tables=tables, problems=problems)
+                            claims=claims, figures=figures, rmse_tables=tables, problems=problems,
+                            figure_sizes={f: size for f in figures if (size := _png_size(folder / f))})
 
 
 def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentReport], list[str]]:
@@ -338,7 +354,7 @@ padding:.05em .3em;border-radius:4px}
 .exp{border:1px solid var(--line);border-radius:12px;padding:16px 16px 8px;margin:18px 0;background:var(--bg)}
 .meta{color:var(--muted);font-size:.88rem;margin:0 0 .6em}
 .meta span{white-space:nowrap;margin-right:1em}
-.figs{display:grid;grid-template-columns:1fr;gap:12px;margin:10px 0}
+.figs{display:grid;grid-template-columns:minmax(0,1fr);gap:12px;margin:10px 0}
 figure{margin:0;border:1px solid var(--line);border-radius:8px;padding:6px;background:#fff}
 figure img{display:block;width:100%;height:auto}
 figcaption{font-size:.8rem;color:var(--muted);margin-top:4px;word-break:break-all}
@@ -374,7 +390,6 @@ margin:8px 0}
 .problems{border:1px solid #f0d48a;background:var(--warnbg);border-radius:8px;padding:8px 12px 8px 28px}
 .empty{color:var(--muted);font-style:italic}
 .top{font-size:.85rem;text-align:right;margin:0}
-@media (min-width:900px){.figs.two{grid-template-columns:1fr 1fr}}
 @media (max-width:600px){body{font-size:14px}main{padding:10px 10px 40px}.exp{padding:12px 10px 6px;
 border-radius:10px}th,td{padding:5px 6px}h2{margin-top:1.6em}
 table.settings thead,table.claims thead{display:none}
@@ -491,12 +506,15 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
     meta = " ".join(f"<span>{_e(k)}: <b>{_e(v)}</b></span>" for k, v in e.meta)
     out.append(f'<p class="meta">{meta} <span>claims: {_html_counts(e)}</span></p>')
     if e.figures:
-        two = " two" if len(e.figures) > 1 else ""
-        out.append(f'<div class="figs{two}">')
+        out.append('<div class="figs">')
         for name in e.figures:
             src = _e(f"{quote(e.folder)}/{quote(name)}")
-            out.append(f'<figure><img src="{src}" alt="{_e(e.id)}: {_e(name)}" loading="lazy" decoding="async" '
-                       f'width="100%"><figcaption>{_e(name)}</figcaption></figure>')
+            # intrinsic size attributes reserve the figure's aspect ratio before a lazy image loads;
+            # the CSS (width: 100%; height: auto) scales it to the column
+            size = e.figure_sizes.get(name)
+            dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
+            out.append(f'<figure><img src="{src}" alt="{_e(e.id)}: {_e(name)}" loading="lazy" decoding="async"'
+                       f"{dims}><figcaption>{_e(name)}</figcaption></figure>")
         out.append("</div>")
     else:
         out.append('<p class="empty">No figures.</p>')
