@@ -42,10 +42,10 @@ def _png(path: Path, seed: int) -> None:
 
     from tobitkf._io import atomic_savefig
 
-    fig, ax = plt.subplots(figsize=(3.0, 1.6))
+    fig, ax = plt.subplots(figsize=(7.0, 2.2))
     ax.plot(np.random.default_rng(seed).standard_normal(30).cumsum())
-    ax.set_title(path.name, fontsize=7)
-    atomic_savefig(fig, path, dpi=50)
+    ax.set_title(path.name, fontsize=9)
+    atomic_savefig(fig, path, dpi=80)
     plt.close(fig)
 
 
