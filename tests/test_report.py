@@ -350,6 +350,17 @@ def test_figure_names_cannot_leave_the_experiment_folder(tmp_path):
     assert problems == ["fake-beta: figure name '../fake-alpha/fig_a1.png' is not a plain file name; skipped"]
 
 
+def test_claim_verdict_other_than_true_false_null_is_unchecked_and_reported(tmp_path):
+    fake.build_fake_results(tmp_path)
+    mfile = tmp_path / "fake-beta" / "metrics.json"
+    m = json.loads(mfile.read_text())
+    m["claims"][0]["holds"] = "yes"
+    mfile.write_text(json.dumps(m))
+    exps, problems = collect_results(tmp_path)
+    assert next(e for e in exps if e.id == "fake-beta").claims[0].holds is None
+    assert problems == ["fake-beta: claim 1 has holds='yes'; expected true, false or null (shown as n/a)"]
+
+
 def test_empty_folder_gives_an_empty_report(tmp_path):
     index, md = write_report(tmp_path)
     assert "No results found" in index.read_text(encoding="utf-8")

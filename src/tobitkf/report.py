@@ -203,7 +203,7 @@ def _rmse_table(path: tuple[str, ...], block: dict) -> RmseTable:
         if avg is None:
             values: list[Any] = []
         elif isinstance(avg, list):
-            values = [x for x in _flatten(avg)]
+            values = _flatten(avg)
         else:
             values = [avg]
         rows.append((str(key), values, summ.get("nees_time_avg")))
@@ -243,6 +243,8 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
         if not isinstance(c, dict):
             c = {"claim": c}
         holds = c.get("holds")
+        if holds is not None and not isinstance(holds, bool):
+            problems.append(f"{exp_id}: claim {i} has holds={holds!r}; expected true, false or null (shown as n/a)")
         claims.append(Claim(number=i, claim=_text(c.get("claim")), measured=_text(c.get("measured")),
                             holds=holds if isinstance(holds, bool) else None, note=_text(c.get("note")),
                             explanation=_text(c.get("explanation")), anchor=f"{anchor}-claim-{i}"))
