@@ -616,9 +616,8 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
             out += [f"### `{_md(e.id)}` {_md(e.title)}", ""]
             if e.meta:
                 out += [" · ".join(f"{_md(k)}: {_md(v)}" for k, v in e.meta), ""]
-            out += [f"![{_md(e.id)}: {_md(n)}]({quote(e.folder)}/{quote(n)})" for n in e.figures]
-            if e.figures:
-                out.append("")
+            for n in e.figures:  # one paragraph per figure, so each renders on its own line
+                out += [f"![{_md(e.id)}: {_md(n)}]({quote(e.folder)}/{quote(n)})", ""]
             out += ["#### Parameters", ""]
             if e.settings:
                 rows = [[f"`{_md(s.name)}`", _md(s.value), ("⚑ " if s.flagged else "") + _md(s.provenance),
