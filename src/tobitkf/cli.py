@@ -1,7 +1,8 @@
-"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``sweep FILE``, ``plot RESULT``.
+"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``report DIR``, ``sweep FILE``, ``plot RESULT``.
 
 ``reproduce`` runs a registered experiment and writes ``DIR/ID/metrics.json`` and
-the experiment's figures (PNG), each file atomically.
+the experiment's figures (PNG), each file atomically, then (re)writes the report of
+everything in ``DIR``: ``DIR/index.html`` and ``DIR/REPORT.md`` (see :mod:`tobitkf.report`).
 """
 
 from __future__ import annotations
@@ -73,7 +74,7 @@ def reproduce(
     seed: Annotated[int, typer.Option("--seed", help="random seed")] = 0,
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results"),
 ) -> None:
-    """Run an experiment (or all) and write metrics.json and figures under OUT/ID/."""
+    """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html."""
     from ._validation import ValidationError
     from .experiments import all_experiments, get
 
@@ -90,6 +91,28 @@ def reproduce(
             console.print(f"wrote {outdir}")
             if overall is not None:
                 progress.advance(overall)
+    _write_report(out)
+
+
+def _write_report(out: Path) -> None:
+    from .report import write_report
+
+    index, md = write_report(out)
+    console.print(f"wrote {index} and {md}")
+
+
+@app.command()
+def report(
+    results: Annotated[Path, typer.Argument(help="folder written by 'reproduce' (one sub-folder per experiment)")],
+) -> None:
+    """Write RESULTS/index.html and RESULTS/REPORT.md from every RESULTS/*/metrics.json."""
+    from ._validation import ValidationError
+
+    try:
+        _write_report(results)
+    except ValidationError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from None
 
 
 @app.command()
