@@ -456,7 +456,7 @@ class DelayFadingSystem:
         q = self.q_mult(t)
         if q.size == 0:
             return np.zeros_like(Lam)
-        return np.einsum("i,ijk,kl,iml->jm", q, self.A_mult, Lam, self.A_mult)
+        return np.sum(q[:, None, None] * (self.A_mult @ Lam @ np.swapaxes(self.A_mult, -1, -2)), axis=0)
 
     def process_cov(self, t: int, Lam: np.ndarray) -> np.ndarray:
         r"""Q_u(t) = Σ_i Q_{ζ_i}(t) A_i Λ(t-d) A_i^T + Γ Q_w Γ^T (spec §1.6)."""
