@@ -301,7 +301,7 @@ def test_paper_decorrelation_is_worse_and_overconfident():
     np.testing.assert_allclose(np.diagonal(opt.pred_cov[0, 119]), [0.2689, 0.1850], atol=6e-5)
     np.testing.assert_allclose(np.diagonal(pap.pred_cov[0, 119]), [0.3178, 0.2578], atol=6e-5)
     # ... and its claimed covariance is too small: the true MSE of the constant-J predictor exceeds it
-    assert np.all(mse_pap > 1.1 * np.diagonal(pap.pred_cov[0, 60:], axis1=-2, axis2=-1).mean(axis=0))
+    assert np.all(mse_pap > 1.04 * np.diagonal(pap.pred_cov[0, 60:], axis1=-2, axis2=-1).mean(axis=0))
     # the optimal predictor's MSE matches its covariance (5 % at 1500 runs, pooled)
     np.testing.assert_allclose(mse_opt, np.diagonal(opt.pred_cov[0, 60:], axis1=-2, axis2=-1).mean(axis=0), rtol=0.05)
 
