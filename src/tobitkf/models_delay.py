@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from ._validation import ShapeError, ValidationError, as_float_array, check_probability, check_psd
+from .channels.laws import PMF
 from .simulate import SimulationData, _check_count, as_generator, psd_sqrt
 
 __all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "simulate_delay",
@@ -49,32 +50,34 @@ __all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "s
 
 # --------------------------------------------------------------------------- fading laws
 
-class FadingPMF:
-    r"""A fading coefficient with a probability mass function (spec §1.4).
+class FadingPMF(PMF):
+    r"""A scalar fading coefficient with a probability mass function (spec §1.4).
 
     :math:`P(\gamma = \gamma_l) = p_l`, :math:`\bar\gamma = \sum_l p_l\gamma_l`,
     :math:`\sigma^2 = \sum_l p_l(\gamma_l - \bar\gamma)^2`.
 
-    This is a minimal law interface (``mean``, ``variance``, ``sample``); any object with
-    these three members (e.g. the PMF law of ``tobitkf.channels.laws``) can be used instead.
+    The :class:`~tobitkf.channels.laws.PMF` law restricted to one scalar coefficient with
+    values in [0, 1] (the source's [α, β] ⊂ [0, 1]). Any law with ``mean``, ``variance`` and
+    ``sample(rng, shape)`` (scalar core shape) can be passed as ``fading`` instead.
 
     Parameters
     ----------
     values : (L,) array_like
-        The values :math:`\gamma_l`, in [0, 1] (the paper's [α, β] ⊂ [0, 1]).
+        The values :math:`\gamma_l`, in [0, 1].
     probs : (L,) array_like
         Their probabilities, each in [0, 1], summing to 1.
 
     Raises
     ------
     ValidationError
-        If a probability lies outside [0, 1], they do not sum to 1, a value lies outside
-        [0, 1], or the lengths differ.
+        If a probability lies outside [0, 1], they do not sum to 1, or a value lies outside [0, 1].
+    ShapeError
+        If the arrays are not one-dimensional of equal length.
 
     Examples
     --------
     >>> law = FadingPMF([0.95, 0.98, 1.0], [0.05, 0.15, 0.8])
-    >>> round(law.mean, 4), round(law.variance, 8)
+    >>> round(float(law.mean), 4), round(float(law.variance), 8)
     (0.9945, 0.00015475)
     """
 
@@ -84,32 +87,15 @@ class FadingPMF:
         if v.shape != p.shape or v.size == 0:
             raise ShapeError(f"values/probs: expected two non-empty (L,) arrays of equal length, got {v.shape} and {p.shape}")
         check_probability(p, "probs")
-        if abs(p.sum() - 1.0) > 1e-9:
-            raise ValidationError(f"probs: expected probabilities summing to 1, got sum {p.sum():.12g}")
         if ((v < 0) | (v > 1)).any():
             raise ValidationError(f"values: expected fading values in [0, 1], got {v[(v < 0) | (v > 1)][:3]}")
-        self.values, self.probs = v, p
+        super().__init__(v, p)
 
     @classmethod
     def bernoulli(cls, p_received: float) -> "FadingPMF":
         """γ ∈ {0, 1} with P(γ = 1) = ``p_received`` (missing measurements)."""
         p = float(check_probability(p_received, "p_received"))
         return cls([0.0, 1.0], [1.0 - p, p])
-
-    @property
-    def mean(self) -> float:
-        return float(self.probs @ self.values)
-
-    @property
-    def variance(self) -> float:
-        return float(self.probs @ (self.values - self.mean) ** 2)
-
-    def sample(self, rng: np.random.Generator, shape: Any) -> np.ndarray:
-        """Exact i.i.d. draws of shape ``shape``."""
-        return rng.choice(self.values, size=shape, p=self.probs)
-
-    def __repr__(self) -> str:
-        return f"FadingPMF(values={self.values.tolist()}, probs={self.probs.tolist()})"
 
 
 class FadingMoments:
@@ -124,12 +110,8 @@ class FadingMoments:
     def __init__(self, mean: Any, variance: Any):
         self._mean = _scalar_schedule(mean, "mean")
         self._var = _scalar_schedule(variance, "variance")
-        for t in self._probe_times():
-            if self._var(t) < 0:
-                raise ValidationError(f"variance: expected a non-negative fading variance, got {self._var(t)} at t={t}")
-
-    def _probe_times(self) -> range:
-        return range(0, 1)
+        if self._var(0) < 0:
+            raise ValidationError(f"variance: expected a non-negative fading variance, got {self._var(0)} at t=0")
 
     def mean_at(self, t: int) -> float:
         return self._mean(t)
@@ -198,7 +180,11 @@ class _FadingSchedule:
 
 
 def _is_law(obj: Any) -> bool:
-    return all(hasattr(obj, a) for a in ("mean", "variance", "sample")) and not callable(getattr(obj, "mean"))
+    if not all(hasattr(obj, a) for a in ("mean", "variance", "sample")) or callable(getattr(obj, "mean")):
+        return False
+    if np.shape(obj.mean) != ():
+        raise ValidationError(f"fading: expected a scalar law (one coefficient γ(t)), got core shape {np.shape(obj.mean)}")
+    return True
 
 
 class _NoFading:

@@ -493,6 +493,16 @@ def test_extra_lag_reduces_to_plain_kf_when_pure_markov():
         chain_lmmse(sys, prior, data.y[0])
 
 
+def test_shared_pmf_law_is_accepted_as_fading():
+    from tobitkf.channels.laws import PMF
+    sys = paper_example(S=0.2, q=0.6)
+    shared = sys.replace(fading=PMF([0.95, 0.98, 0.6], [0.05, 0.15, 0.8]))
+    data = simulate_delay(sys, paper_prior(), 30, 2, seed=16)
+    assert_same(chain_lmmse(shared, paper_prior(), data.y), chain_lmmse(sys, paper_prior(), data.y))
+    with pytest.raises(ValueError, match="fading"):
+        sys.replace(fading=PMF([[0.5, 1.0], [0.2, 1.0]], [0.5, 0.5]))
+
+
 # ----------------------------------------------------------------------------- bad input
 
 def test_bad_input():
