@@ -44,7 +44,7 @@ from ._validation import ShapeError, ValidationError, as_float_array, check_prob
 from .channels.laws import PMF
 from .simulate import SimulationData, _check_count, as_generator, psd_sqrt
 
-__all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "simulate_delay",
+__all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "simulate_delay", "full_states",
            "paper_example", "paper_prior", "paper_fading"]
 
 
@@ -551,8 +551,6 @@ def full_states(data: SimulationData) -> np.ndarray:
     """x(-d)..x(T) as one (N, T+d+1, n) array from :func:`simulate_delay` output."""
     return np.concatenate([data.extras["history"], data.x], axis=1)
 
-
-__all__.append("full_states")
 
 
 # --------------------------------------------------------------------------- paper example

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from tobitkf.filters.delay import (AugmentedLMMSE, ChainLMMSE, ReorganizedInnovationLMMSE, augmented_lmmse,
                                    chain_lmmse, reorganized_lmmse, second_moments, smooth_interval, smooth_point)
@@ -90,6 +92,17 @@ def test_chain_equals_augmented(d, n, m):
     np.testing.assert_allclose(c.second_moment, a.second_moment, atol=TOL, rtol=0)
 
 
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), d=st.integers(0, 4), n=st.integers(1, 3), m=st.integers(1, 2),
+       s_scale=st.sampled_from([0.0, 0.5, 0.999]))
+def test_chain_equals_augmented_property(seed, d, n, m, s_scale):
+    rng = np.random.default_rng(seed)
+    sys = random_system(rng, n, m, d, S_scale=s_scale)
+    prior = random_prior(rng, n, d)
+    data = simulate_delay(sys, prior, 15, 2, seed=rng)
+    assert_same(chain_lmmse(sys, prior, data.y), augmented_lmmse(sys, prior, data.y), tol=1e-9)
+
+
 # ----------------------------------------------------------------------------- §5 item 2: D ≡ A, errata guards
 
 @pytest.mark.parametrize("d", [1, 2, 3, 5])
@@ -115,6 +128,11 @@ def test_reorganized_general_random_prior_and_late_warmup():
     A = augmented_lmmse(sys, prior, data.y)
     for warm in (None, 12):
         assert_same(reorganized_lmmse(sys, prior, data.y, warmup=warm), A)
+    # an uncorrelated prior starts D at t = 0 (all Ψ zero) or after an augmented warm-up: same result
+    prior_u = random_prior(rng, 2, 3)
+    A_u = augmented_lmmse(sys, prior_u, data.y)
+    for warm in (None, 0, 3, 7):
+        assert_same(reorganized_lmmse(sys, prior_u, data.y, warmup=warm), A_u)
 
 
 @pytest.mark.parametrize("erratum", ["E5", "E6", "E7"])
@@ -284,6 +302,15 @@ def test_paper_decorrelation_equals_optimal_in_degenerate_cases(case):
     assert_same(chain_lmmse(sys, paper_prior(), data.y, decorrelation="paper"), chain_lmmse(sys, paper_prior(), data.y))
     assert_same(reorganized_lmmse(sys, paper_prior(), data.y, decorrelation="paper"),
                 chain_lmmse(sys, paper_prior(), data.y))
+
+
+def test_paper_decorrelation_same_in_chain_and_reorganized():
+    """The constant-J mode is the source's own scheme: D and C agree on it, and it differs from optimal."""
+    sys = paper_example(S=0.2, q=0.3)
+    data = simulate_delay(sys, paper_prior(), 40, 2, seed=17)
+    c = chain_lmmse(sys, paper_prior(), data.y, decorrelation="paper")
+    assert_same(reorganized_lmmse(sys, paper_prior(), data.y, decorrelation="paper"), c)
+    assert np.abs(c.pred_cov - chain_lmmse(sys, paper_prior(), data.y).pred_cov).max() > 1e-3
 
 
 def test_paper_decorrelation_is_worse_and_overconfident():
@@ -536,7 +563,7 @@ def test_bad_input():
     with pytest.raises(ValueError, match="window"):
         augmented_lmmse(sys, prior, y, window=2)
     with pytest.raises(ValueError, match="warmup"):
-        reorganized_lmmse(sys, prior, y, warmup=3)
+        reorganized_lmmse(sys, HistoryPrior.constant(np.zeros(2), np.eye(2), 3), y, warmup=3)
     with pytest.raises(ValueError, match="^y:"):
         chain_lmmse(sys, prior, np.zeros((5, 2)))
     with pytest.raises(ValueError, match="Qv"):

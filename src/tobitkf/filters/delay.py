@@ -524,8 +524,9 @@ def augmented_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, w
     Returns
     -------
     DelayEstimates
-        ``extras["final_mean"]`` (..., n(W+1)) and ``extras["final_cov"]``: X̂(T|T-1), i.e.
-        x̂(T-k|T-1) for k = 0..W (with W = T + d-1... T + d this is the fixed-interval smoother).
+        ``extras["final_mean"]`` (..., n(W+1)) and ``extras["final_cov"]`` (n(W+1), n(W+1)):
+        X̂(T|T-1), i.e. x̂(T-k|T-1) for k = 0..W. With W = T + d this is the fixed-interval
+        smoother of every element x(-d)..x(T) (the oracle for :func:`smooth_interval`).
 
     Raises
     ------
@@ -594,9 +595,11 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     (f) Ψ_d(t+d) = {Ā(t)[Ψ_1(t) - γ̄ K(t-d|t) H Ψ_1(t)]}^T (39);
     (g) Λ(t+1) by the corrected recursion (E2).
 
-    The steps t < ``warmup`` (default 2d+1, the source's "ε(i) = 0, i = 1..2d+1" range)
-    are computed by Algorithm A, from which every stored Ψ, gain and covariance is read
-    (spec §2.5 "Initialization"). For d = 0 this is Algorithm C.
+    Initialization (the source's list is garbled, spec §4 item 12): with a prior uncorrelated
+    across lags, D starts at t = 0 with every Ψ and every gain K(a|s), s ≠ a+d, equal to zero
+    (exact). Otherwise the steps t < ``warmup`` (default 2d+1, the source's "ε(i) = 0,
+    i = 1..2d+1" range) are computed by Algorithm A, from which every stored Ψ, gain and
+    covariance is read (spec §2.5). For d = 0 this is Algorithm C.
 
     Parameters
     ----------
@@ -604,8 +607,10 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
         As :func:`augmented_lmmse` (pure-delay model, any joint prior).
     decorrelation : {"optimal", "paper"}
         J(t) of the corrected E3 or the source's constant J = ΓS Q_v^{-1} (everywhere Ā appears).
-    warmup : int >= 2d+1, optional
-        First step done by the reorganized recursions.
+    warmup : int, optional
+        First step done by the reorganized recursions; >= 2d+1 for a correlated prior
+        (default 2d+1), >= 0 for an uncorrelated one (default 0). The steps before it are
+        exact (Algorithm A) in both ``decorrelation`` modes.
     reinsert_errata : iterable of {"E5", "E6", "E7"}
         For regression tests only: put back the source's printed (30)/(58): ``"E5"`` uses
         K(t-d-i|t-d) for K(t-d-i+1|t-d), ``"E6"`` the transposed Ψ_d(t)^T, ``"E7"`` the upper
@@ -619,7 +624,7 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     Raises
     ------
     ValidationError
-        Extra lags, an unknown option or erratum, ``warmup`` < 2d+1.
+        Extra lags, an unknown option or erratum, ``warmup`` too small for a correlated prior.
 
     Notes
     -----
@@ -641,9 +646,12 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
         if not prior.is_uncorrelated:  # pragma: no cover - a single block is always uncorrelated
             raise ValidationError("prior: unexpected correlated prior for d = 0")
         return chain_lmmse(system, prior, y, decorrelation=decorrelation, lags=(max(d - 1, 0),))
-    t0 = 2 * d + 1 if warmup is None else warmup
-    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < 2 * d + 1:
-        raise ValidationError(f"warmup: expected an integer >= 2d+1 = {2 * d + 1}, got {warmup!r}")
+    zero_init = prior.is_uncorrelated
+    t0 = (0 if zero_init else 2 * d + 1) if warmup is None else warmup
+    lowest = 0 if zero_init else 2 * d + 1
+    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < lowest:
+        raise ValidationError(f"warmup: expected an integer >= {lowest} ({'uncorrelated' if zero_init else 'correlated'} "
+                              f"prior; 2d+1 = {2 * d + 1}), got {warmup!r}")
     N, T, m = y2.shape
     H = system.H
     lam = second_moments(system, prior, T)
@@ -654,6 +662,14 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     Psi: dict[tuple[int, int], np.ndarray] = {}
     K: dict[tuple[int, int], np.ndarray] = {}
     eps, Qe, Pm = {}, {}, {}
+    zero_nn, zero_nm = np.zeros((n, n)), np.zeros((n, m))
+    # Exact initialization from an uncorrelated prior (spec §2.5): every Ψ and every gain
+    # K(a|s), s ≠ a+d, is zero; the elements x(-k) keep their prior until measured.
+    for k in range(d + 1):
+        mu = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
+        xf[-k], Pf[-k] = mu, prior.block_cov(k)            # x̂(-k|-k) = prior (no data before t = 0)
+    xp[0], Pp[0] = xf[0], Pf[0]
+    xsm[-1], Psm[-1] = xf[-d], Pf[-d]                      # x̂(-d|-1)
     for t, (Xf, PfA, Xp, PpA, KA, e_t, Q_t, Pprior) in enumerate(rec):
         xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
         xsm[t], Psm[t] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
@@ -671,6 +687,9 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     gbar = system.gamma_mean
     Jc: dict[int, tuple] = {}
 
+    def gk(s: int) -> float:          # γ̄(s); no measurement (and a zero gain) before s = 0
+        return gbar(s) if s >= 0 else 0.0
+
     def decor(s: int):
         if s not in Jc:
             Jc[s] = _decorrelation(system, s, lam[s - d], decorrelation)
@@ -686,29 +705,35 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
         eps[t], Qe[t] = e_t, Q
         HtQi = np.linalg.solve(Q, H).T
         # (b) filter, (35)-(38) shifted by one
-        Psd = Psi[(d, t + d - 1)]
+        Psd = Psi.get((d, t + d - 1), zero_nn)
         Kf = gb * (Psd.T @ HtQi)
         K[(t, t)] = Kf
         xf[t] = xp[t] + e_t @ Kf.T
         Pf[t] = symmetrize(Pp[t] - gb * (Kf @ H @ Psd))
         # (c) Ψ_i(t), i = d-1..1, corrected (58)
-        _, Abar_td, _ = decor(t - d)
+        # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
+        # gains of not-yet-measured elements vanish; times < 0 carry no measurement.
+        Abar_td = decor(t - d)[1] if t - d >= 0 else system.A
         for i in range(d - 1, 0, -1):
             a = t - d - i + 1
             a5 = a - 1 if "E5" in errata else a          # source (30)/(58) print K(t-d-i|t-d) (E5)
-            psi_d = Psi[(d, t)].T if "E6" in errata else Psi[(d, t)]   # source prints Ψ_d(t)^T (E6)
-            val = (Psi[(d - i + 1, t - i)].T - gbar(t - d) * (K[(a5, t - d)] @ H @ Pm[t - d])) @ Abar_td.T
-            val = val - gbar(t - d + 1) * (K[(a, t - d + 1)] @ H @ psi_d)
+            psi_dt = Psi.get((d, t), zero_nn)
+            psi_d = psi_dt.T if "E6" in errata else psi_dt   # source prints Ψ_d(t)^T (E6)
+            val = (Psi.get((d - i + 1, t - i), zero_nn).T
+                   - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))) @ Abar_td.T
+            val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
             top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (E7)
             for j in range(0, top + 1):
                 s = t - i - j
-                val = val - gbar(s) * (K[(a, s)] @ H @ Psi[(i + j + 1, t)])
+                val = val - gk(s) * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
             Psi[(i, t)] = val
         # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
         a = t - d + 1
         xs_, Ps_ = xf[a], Pf[a]
         for i in range(1, d):
             s = t - i + 1
+            if s < 0:
+                continue
             Ks = gbar(s) * (Psi[(i, t)].T @ np.linalg.solve(Qe[s], H).T)
             K[(a, s)] = Ks
             xs_ = xs_ + eps[s] @ Ks.T
@@ -723,7 +748,7 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
         xp[t + 1] = xm[t] @ Abar.T + y2[:, t] @ J.T
         Pp[t + 1] = symmetrize(Abar @ Pmeas[t] @ Abar.T + Sigma)
         # (f) corrected (39)
-        psi1 = Psi[(1, t)]
+        psi1 = Psi.get((1, t), zero_nn)
         Psi[(d, t + d)] = (Abar @ (psi1 - gb * (Ke @ H @ psi1))).T
         # drop what is no longer needed
         for key in [k for k in Psi if k[1] < t - 2 * d - 1]:
