@@ -135,6 +135,16 @@ def test_reorganized_general_random_prior_and_late_warmup():
         assert_same(reorganized_lmmse(sys, prior_u, data.y, warmup=warm), A_u)
 
 
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), d=st.integers(1, 4), n=st.integers(1, 3), m=st.integers(1, 2))
+def test_reorganized_equals_augmented_property(seed, d, n, m):
+    rng = np.random.default_rng(seed)
+    sys = random_system(rng, n, m, d)
+    prior = random_prior(rng, n, d, correlated=True)
+    data = simulate_delay(sys, prior, 4 * d + 8, 2, seed=rng)
+    assert_same(reorganized_lmmse(sys, prior, data.y), augmented_lmmse(sys, prior, data.y), tol=1e-9)
+
+
 @pytest.mark.parametrize("erratum", ["E5", "E6", "E7"])
 def test_printed_psi_recursion_is_not_optimal(erratum):
     """Each of the source's printed (30)/(58) errors, re-inserted, breaks the agreement with A."""

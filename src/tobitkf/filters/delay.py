@@ -60,6 +60,11 @@ _ERRATA = ("E5", "E6", "E7")
 class DelayEstimates:
     """Estimates of the delay system, index t = measurement time (y(0) at index 0).
 
+    Truth alignment with :func:`~tobitkf.models_delay.simulate_delay` output: ``mean`` lines up
+    with ``data.x[:, :T]`` (x(t)), ``pred_mean`` with ``data.x[:, 1:]`` (x(t+1), which is what
+    :func:`tobitkf.metrics.summarize` does with a (N, T+1, n) truth), ``measured_mean`` with
+    ``full_states(data)[:, :T]`` (x(t-d)).
+
     Attributes
     ----------
     mean, cov : (..., T, n), (..., T, n, n)
