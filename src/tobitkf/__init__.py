@@ -15,7 +15,10 @@ Public API (stable):
   and the coefficient :mod:`~tobitkf.channels.laws`.
 - :class:`RossModel`, :func:`hinf_design`, :func:`hinf_analyze`, :class:`RegionalHinfFilter`
   (regional H-infinity filtering with random saturation, Wang et al. 2010).
-- :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps.
+- :class:`DelayFadingSystem`, :func:`chain_lmmse` and relatives: optimal linear filter, predictor
+  and smoothers for time-delay systems with fading measurements (Li et al. 2018).
+- :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
+  :func:`write_report` -- the reproduction report.
 """
 
 from ._validation import ShapeError, ValidationError
@@ -34,6 +37,10 @@ from .filters.hinf import RegionalHinfFilter, RossModel
 from .filters.hinf import analyze as hinf_analyze
 from .filters.hinf import design as hinf_design
 from .filters.hinf import verify as hinf_verify
+from .filters.delay import (AugmentedLMMSE, ChainLMMSE, DelayEstimates, ReorganizedInnovationLMMSE, augmented_lmmse,
+                            chain_lmmse, reorganized_lmmse, smooth_interval, smooth_point)
+from .models_delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, simulate_delay
+from .report import write_report
 from . import metrics
 
 __version__ = "0.1.0"
@@ -45,5 +52,7 @@ __all__ = [
     "FilterResult", "censored_moments", "CensoredMoments", "metrics", "ShapeError", "ValidationError",
     "laws", "RiceFading", "FadingTobitKalmanFilter", "FadingKalmanFilter", "fading_tobit_kalman_filter",
     "fading_kalman_filter", "RandomSaturation", "RossModel", "RegionalHinfFilter", "hinf_design", "hinf_analyze",
-    "hinf_verify", "__version__",
+    "hinf_verify", "DelayFadingSystem", "HistoryPrior", "FadingPMF", "FadingMoments", "simulate_delay",
+    "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
+    "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "write_report", "__version__",
 ]
