@@ -447,6 +447,7 @@ class CovarianceBounds:
 
 
 def _gl_nodes(lo: float, hi: float, n: int = 64):
+    """Gauss-Legendre nodes on [lo, hi] and weights of the uniform density there (summing to 1)."""
     x, w = np.polynomial.legendre.leggauss(n)
     return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * w
 
@@ -479,8 +480,6 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
         elif hasattr(law, "low") and hasattr(law, "high"):
             lo, hi = float(law.low), float(law.high)
             nodes.append(_gl_nodes(lo, hi) if hi > lo else (np.array([lo]), np.array([1.0])))
-            if hi > lo:
-                nodes[-1] = (nodes[-1][0], nodes[-1][1] / (hi - lo))
         else:
             raise ValidationError(f"failures[{i}]: the analytic p_uncensored needs a discrete (values/probs) or "
                                   f"uniform (low/high) law, got {type(law).__name__}; pass p_uncensored explicitly")
