@@ -5,7 +5,8 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 import tobitkf as tk
-from tobitkf.channels.protocol import (LAMBDA_1, LAMBDA_BASE, FailureLaw, IntegralMeasurement, ProtocolChannel,
+from tobitkf.channels.laws import PMF, Constant, Gaussian, Uniform
+from tobitkf.channels.protocol import (LAMBDA_1, LAMBDA_BASE, NO_FAILURE, IntegralMeasurement, ProtocolChannel,
                                        RoundRobin, check_failure_law)
 
 
@@ -48,13 +49,23 @@ def test_laws_share_random_numbers():
 @pytest.mark.parametrize("values, probs, match", [
     ([0.0, 1.0], [0.5, 0.6], "sum"),
     ([0.0, 1.0], [-0.1, 1.1], ">= 0"),
-    ([0.0, 1.2], [0.5, 0.5], r"\[0, 1\]"),
-    ([-0.5, 1.0], [0.5, 0.5], r"\[0, 1\]"),
-    ([0.0, 1.0], [1.0], "same"),
 ])
-def test_bad_failure_law(values, probs, match):
+def test_bad_failure_law_probabilities(values, probs, match):
     with pytest.raises(ValueError, match=match):
-        FailureLaw(values, probs)
+        ProtocolChannel(2, failures=PMF(values, probs))
+
+
+@pytest.mark.parametrize("values", [[0.0, 1.2], [-0.5, 1.0]])
+def test_failure_law_support_must_lie_in_unit_interval(values):
+    with pytest.raises(ValueError, match=r"\[0, 1\]"):
+        ProtocolChannel(2, failures=PMF(values, [0.5, 0.5]))
+
+
+def test_failure_law_probabilities_checked_even_if_mutated():
+    law = PMF([0.0, 1.0], [0.5, 0.5])
+    law.probs = np.array([0.5, 0.6])
+    with pytest.raises(ValueError, match="sum to 1"):
+        check_failure_law(law)
 
 
 class _MomentLaw:
@@ -67,10 +78,11 @@ class _MomentLaw:
         return np.clip(self.mean + np.sqrt(self.variance) * rng.standard_normal(shape), 0, 1)
 
 
-class _UniformLaw(_MomentLaw):
-    def __init__(self, low, high):
-        super().__init__(0.5 * (low + high), (high - low) ** 2 / 12)
-        self.low, self.high = low, high
+def test_shared_laws_are_accepted():
+    ch = ProtocolChannel(3, failures=[LAMBDA_BASE, Uniform(0.2, 0.8), Constant(0.7)])
+    np.testing.assert_allclose(ch.failure_mean, [0.9, 0.5, 0.7], rtol=1e-15)
+    np.testing.assert_allclose(ch.failure_variance, [0.065, 0.03, 0.0], rtol=1e-12, atol=1e-15)
+    assert ProtocolChannel(2).laws[0] is NO_FAILURE and float(NO_FAILURE.mean) == 1.0
 
 
 def test_check_failure_law_accepts_any_law_with_mean_and_variance():
@@ -84,7 +96,8 @@ def test_check_failure_law_accepts_any_law_with_mean_and_variance():
     (_MomentLaw(0.5, 0.3), "mean\\(1-mean\\)"),
     (_MomentLaw(1.5, 0.0), r"\[0, 1\]"),
     (_MomentLaw(0.5, -0.1), "variance >= 0"),
-    (_UniformLaw(0.5, 1.5), r"\[0, 1\]"),
+    (Uniform(0.5, 1.5), r"\[0, 1\]"),
+    (Gaussian(0.9, 0.01), "Gaussian gain"),
     (object(), "no 'mean'"),
 ])
 def test_check_failure_law_rejects(law, match):

@@ -6,14 +6,14 @@ from hypothesis import given, settings, strategies as st
 from scipy.stats import norm
 
 import tobitkf as tk
-from tobitkf.channels.protocol import LAMBDA_1, LAMBDA_BASE, FailureLaw, ProtocolChannel
+from tobitkf.channels.laws import Constant, Uniform
+from tobitkf.channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
 from tobitkf.filters.protocol import (FAILURE_TERMS, ProtocolTobitKalmanFilter, analytic_p_uncensored,
                                       augmented_transition, noise_input, protocol_covariance_bounds,
                                       protocol_tobit_kalman_filter, stacked_measurement)
 
 W = 0.052 * np.pi
 ROT = np.array([[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]])
-NO_FAIL = FailureLaw([1.0], [1.0])
 
 
 def example(damped=False):
@@ -104,14 +104,7 @@ def test_analytic_p_uncensored_fixture():
 
 def test_analytic_p_uncensored_uniform_law_by_quadrature():
     # Uniform gains: compare with a brute-force Monte Carlo average of the conditional probability
-    class U:
-        low, high = 0.2, 0.8
-        mean, variance = 0.5, 0.03
-
-        def sample(self, rng, shape=()):
-            return rng.uniform(0.2, 0.8, shape)
-
-    ch = example_channel(failures=U())
+    ch = example_channel(failures=Uniform(0.2, 0.8))
     g = analytic_p_uncensored(example(), ch, 5)
     lam = np.linspace(0.2, 0.8, 200001)
     m = np.tile([5.0, 0.0], 3)
@@ -270,7 +263,7 @@ def test_R4_failures_only_lmmse_is_exact():
 
 def test_R5_modes_coincide_without_gain_variance():
     sys_ = example()
-    ch = example_channel(failures=FailureLaw([0.7], [1.0]))
+    ch = example_channel(failures=Constant(0.7))
     d = ch.simulate(sys_, 30, 6, seed=1)
     ref = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term="variance")
     for mode in ("second_moment", "lmmse_unconditional"):

@@ -16,8 +16,10 @@ Model of what reaches the estimator (paper equations (2)–(7)), sensors m = 1..
     y_k &= \max(\bar y_k, \tau), \qquad \gamma_k = \mathbb 1[\bar y_k > \tau]  &(4)\text{–}(5)
 
 * The "integral" is a plain sum of the last :math:`\ell+1` states (:class:`IntegralMeasurement`).
-* :math:`\Lambda_{m,k}\in[0,1]` are independent failure gains with a given law
-  (:class:`FailureLaw`, or any object with ``mean``, ``variance``, ``sample``).
+* :math:`\Lambda_{m,k}\in[0,1]` are independent failure gains with a given law: a
+  :class:`~tobitkf.channels.laws.PMF` (the example's discrete laws), a
+  :class:`~tobitkf.channels.laws.Uniform`, a constant, or any object with scalar ``mean``,
+  ``variance`` and ``sample(rng, shape)`` (checked by :func:`check_failure_law`).
 * Round-Robin with the **zero-input** strategy (:class:`RoundRobin`): only the
   scheduled sensor's value reaches the estimator; nothing is held (no ZOH).
   :math:`\delta` is a Kronecker delta (the paper says "Dirac", spec A14).
@@ -52,95 +54,21 @@ import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array
 from .censoring import Censoring
+from .laws import PMF, Constant, Gaussian
 
-__all__ = ["FailureLaw", "check_failure_law", "IntegralMeasurement", "RoundRobin", "ProtocolChannel",
-           "LAMBDA_BASE", "LAMBDA_1", "PREHISTORY"]
+__all__ = ["check_failure_law", "IntegralMeasurement", "RoundRobin", "ProtocolChannel",
+           "LAMBDA_BASE", "LAMBDA_1", "NO_FAILURE", "PREHISTORY"]
 
 _PROB_TOL = 1e-9
 PREHISTORY = ("prior", "hold", "zero")
 
 
-class FailureLaw:
-    r"""A discrete law of a failure gain: :math:`P(\Lambda = \lambda_j) = \pi_j`.
-
-    The example's laws are of this kind, e.g. :math:`p(s) = 0.05\delta(s) + 0.10\delta(s-0.5)
-    + 0.85\delta(s-1)` (spec §3.1). A minimal law interface (``mean``, ``variance``,
-    ``second_moment``, ``sample``, plus ``values``/``probs``), attribute-compatible with
-    the ``PMF`` law of the fading family so the two can be unified.
-
-    Parameters
-    ----------
-    values : (K,) array_like
-        Support points :math:`\lambda_j`.
-    probs : (K,) array_like
-        Probabilities :math:`\pi_j \ge 0` summing to 1 (to 1e-9).
-    unit_interval : bool, default True
-        Require the support to lie in [0, 1] (Assumption 2 of the source).
-
-    Raises
-    ------
-    ValidationError
-        Probabilities negative or not summing to 1, support outside [0, 1], non-finite entries.
-    ShapeError
-        ``values`` and ``probs`` not 1-D of the same length.
-
-    Examples
-    --------
-    >>> law = FailureLaw([0.0, 0.5, 1.0], [0.05, 0.10, 0.85])
-    >>> round(float(law.mean), 6), round(float(law.variance), 6), round(float(law.second_moment), 6)
-    (0.9, 0.065, 0.875)
-    """
-
-    def __init__(self, values: Any, probs: Any, *, unit_interval: bool = True):
-        val = as_float_array(values, "values", ndim=1)
-        p = as_float_array(probs, "probs", ndim=1)
-        if val.shape != p.shape or val.size == 0:
-            raise ShapeError(f"values/probs: expected two 1-D arrays of the same non-zero length, got {val.shape} "
-                             f"and {p.shape}")
-        if (p < 0).any():
-            raise ValidationError(f"probs: expected probabilities >= 0, got {p[p < 0][:3]}")
-        if abs(p.sum() - 1.0) > _PROB_TOL:
-            raise ValidationError(f"probs: expected probabilities summing to 1, got sum {p.sum():.12g}")
-        if unit_interval and ((val < 0) | (val > 1)).any():
-            raise ValidationError(f"values: a failure gain must lie in [0, 1] (Assumption 2), got "
-                                  f"{val[(val < 0) | (val > 1)][:3]}")
-        self.values, self.probs = val, p
-        self.shape: tuple[int, ...] = ()
-        self._cdf = np.cumsum(p)
-
-    @property
-    def mean(self) -> np.ndarray:
-        r""":math:`\bar\Lambda = \sum_j \pi_j\lambda_j`."""
-        return np.asarray(self.probs @ self.values)
-
-    @property
-    def variance(self) -> np.ndarray:
-        r""":math:`\check\Lambda = \sum_j \pi_j(\lambda_j - \bar\Lambda)^2`."""
-        return np.asarray(self.probs @ (self.values - self.mean) ** 2)
-
-    @property
-    def second_moment(self) -> np.ndarray:
-        r""":math:`E\Lambda^2 = \bar\Lambda^2 + \check\Lambda` (the paper's :math:`\tilde\Lambda` as defined)."""
-        return np.asarray(self.probs @ self.values**2)
-
-    def sample(self, rng: np.random.Generator, shape: Any = ()) -> np.ndarray:
-        """Draw ``shape`` gains by inverting the cdf of one uniform each.
-
-        One uniform per gain whatever the law, so two laws sampled from the same
-        generator state use common random numbers.
-        """
-        u = rng.random(shape)
-        idx = np.minimum((u[..., None] >= self._cdf).sum(-1), self.values.size - 1)
-        return self.values[idx]
-
-    def __repr__(self) -> str:
-        return f"FailureLaw(values={self.values.tolist()}, probs={self.probs.tolist()})"
-
-
 #: The example's base law (labelled :math:`\Lambda_2` in Fig. 8): mean 0.9, variance 0.065.
-LAMBDA_BASE = FailureLaw([0.0, 0.5, 1.0], [0.05, 0.10, 0.85])
+LAMBDA_BASE = PMF([0.0, 0.5, 1.0], [0.05, 0.10, 0.85])
 #: Fig. 8's :math:`\Lambda_1`: mean 0.6, variance 0.215 (35 % complete outages).
-LAMBDA_1 = FailureLaw([0.0, 0.5, 1.0], [0.35, 0.10, 0.55])
+LAMBDA_1 = PMF([0.0, 0.5, 1.0], [0.35, 0.10, 0.55])
+#: No failures: :math:`\Lambda \equiv 1`.
+NO_FAILURE = Constant(1.0)
 
 
 def check_failure_law(law: Any, name: str = "failures", *, unit_interval: bool = True) -> Any:
@@ -164,6 +92,9 @@ def check_failure_law(law: Any, name: str = "failures", *, unit_interval: bool =
                                   f"{type(law).__name__} has no {attr!r}")
     mean = np.asarray(law.mean, dtype=float)
     var = np.asarray(law.variance, dtype=float)
+    if isinstance(law, Gaussian) and unit_interval and float(var) > 0:
+        raise ValidationError(f"{name}: a Gaussian gain with positive variance leaves [0, 1] (Assumption 2); "
+                              "use a PMF or Uniform law, or any law supported in [0, 1]")
     if mean.shape != () or var.shape != ():
         raise ShapeError(f"{name}: expected a law of one scalar gain, got mean of shape {mean.shape}")
     if not (np.isfinite(mean) and np.isfinite(var)) or var < 0:
@@ -205,9 +136,10 @@ class IntegralMeasurement:
 
     Examples
     --------
-    >>> x = np.arange(5.0)[None, :, None]           # x_0..x_4 of one run, n = 1
-    >>> IntegralMeasurement(2).window_sum(x, np.array([[[-2.0], [-1.0]]]))[0, :, 0].tolist()
-    [-2.0, 1.0, 3.0, 6.0]
+    >>> x = np.arange(5.0)[None, :, None]           # x_0..x_4 = 0..4 of one run, n = 1
+    >>> past = np.array([[[-1.0], [-2.0]]])          # x_{-1} = -1, x_{-2} = -2
+    >>> IntegralMeasurement(2).window_sum(x, past)[0, :, 0].tolist()     # x_k + x_{k-1} + x_{k-2}
+    [0.0, 3.0, 6.0, 9.0]
     """
 
     def __init__(self, window: int):
@@ -335,7 +267,7 @@ class ProtocolChannel:
 
     Examples
     --------
-    >>> ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    >>> ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)   # a PMF on {0, 0.5, 1}
     >>> ch.failure_mean.tolist(), ch.failure_variance.round(6).tolist()
     ([0.9, 0.9], [0.065, 0.065])
     """
@@ -346,7 +278,7 @@ class ProtocolChannel:
         self.integral = IntegralMeasurement(window)
         p = self.schedule.sensors
         if failures is None:
-            failures = FailureLaw([1.0], [1.0])
+            failures = NO_FAILURE
         if isinstance(failures, (list, tuple)):
             if len(failures) != p:
                 raise ValidationError(f"failures: expected one law or {p} laws (one per sensor), got {len(failures)}")

@@ -64,7 +64,7 @@ from scipy.special import ndtr
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_psd
 from ..censored import censored_moments
-from ..channels.protocol import FailureLaw, ProtocolChannel
+from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models import LinearSystem
 from ._common import FilterResult, check_keywords, prepare_measurements, symmetrize
 
@@ -361,7 +361,7 @@ def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
     Same schedule and τ, but :math:`\ell_{model} = 0` and no failures
     (:math:`\bar\Lambda \equiv 1`, :math:`\check\Lambda \equiv 0`, so :math:`F_k = 0`).
     """
-    return channel.replace(window=0, failures=FailureLaw([1.0], [1.0]))
+    return channel.replace(window=0, failures=NO_FAILURE)
 
 
 class ProtocolTobitKalmanFilter:
@@ -462,8 +462,9 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
         {\sqrt{\lambda_j^2\mathcal C_h\Sigma_k\mathcal C_h^T + \mathcal R_k}}\Big)\Big]
 
     with the unconditional mean :math:`\mathfrak m_k` and covariance :math:`\Sigma_k` of
-    :math:`\xi_k`. Discrete laws (``values``/``probs``) are summed; uniform laws
-    (``low``/``high``) are integrated by 64-point Gauss–Legendre quadrature.
+    :math:`\xi_k`. Discrete laws (``values``/``probs``) are summed, constant gains (variance 0)
+    are a single point, uniform laws (``low``/``high``) are integrated by 64-point Gauss–Legendre
+    quadrature.
 
     Raises
     ------
@@ -480,6 +481,8 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
         elif hasattr(law, "low") and hasattr(law, "high"):
             lo, hi = float(law.low), float(law.high)
             nodes.append(_gl_nodes(lo, hi) if hi > lo else (np.array([lo]), np.array([1.0])))
+        elif float(law.variance) == 0.0:
+            nodes.append((np.array([float(law.mean)]), np.array([1.0])))
         else:
             raise ValidationError(f"failures[{i}]: the analytic p_uncensored needs a discrete (values/probs) or "
                                   f"uniform (low/high) law, got {type(law).__name__}; pass p_uncensored explicitly")
