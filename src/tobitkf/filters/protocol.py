@@ -321,9 +321,13 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     info_keys = ("theta_bar", "inverse_mills", "trunc_var_factor", "expected_y", "innovation", "innovation_var",
                  "p_uncensored")
     info_out = {key: np.empty((N, T)) for key in info_keys}
+    fixed = not (system.A.varying or system.Q.varying or (system.B is not None and system.B.varying))
+    if fixed:
+        Aa, BQB = augmented_transition(system.transition(0), ell), Bn @ system.process_cov(0) @ Bn.T
     for k in range(1, T + 1):
-        Aa = augmented_transition(system.transition(k - 1), ell)
-        BQB = Bn @ system.process_cov(k - 1) @ Bn.T
+        if not fixed:
+            Aa = augmented_transition(system.transition(k - 1), ell)
+            BQB = Bn @ system.process_cov(k - 1) @ Bn.T
         xi = xi @ Aa.T                                                      # (17)
         P = symmetrize(Aa @ P @ Aa.T + BQB)                                 # (18)
         if X is not None:
