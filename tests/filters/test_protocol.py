@@ -484,6 +484,8 @@ def test_bad_options_and_input():
         ProtocolTobitKalmanFilter(sys_, ch, prehistory_mean="hold")
     with pytest.raises(ValueError, match="covariance_update"):
         ProtocolTobitKalmanFilter(sys_, ch, covariance_update="fast")
+    with pytest.raises(ValueError, match=r"expected \(\.\.\., T, 1\)"):
+        protocol_tobit_kalman_filter(sys_, ch, np.ones((3, 5)))
     with pytest.raises(ValueError, match="below the threshold"):
         protocol_tobit_kalman_filter(sys_, ch, -y)
     with pytest.raises(ValueError, match="uncensored: expected shape"):

@@ -221,7 +221,7 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         ``R`` (:math:`R_{m,k}` on the diagonal). ``x0``, ``P0`` are :math:`\bar x_0`, :math:`P_0`.
     channel : ProtocolChannel
         Window ℓ, failure laws (only their means and variances are used), schedule, τ.
-    y : (..., T, 1) or (..., T) array_like
+    y : (..., T, 1) or (T,) array_like
         Received scalar measurements :math:`y_1..y_T` (censored readings equal τ).
     uncensored : (..., T) bool array_like, optional
         :math:`\gamma_k` from the detection device; default ``y > threshold``.
@@ -288,8 +288,10 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         raise ValidationError(f"channel: expected a ProtocolChannel, got {type(channel).__name__}")
     channel.check_system(system)
     arr = as_float_array(y, "y", allow_nan=False)
-    if arr.ndim >= 1 and arr.shape[-1] != 1:
-        arr = arr[..., None]
+    if arr.ndim == 1:                                   # one record (T,)
+        arr = arr[:, None]
+    elif arr.ndim >= 2 and arr.shape[-1] != 1:
+        raise ShapeError(f"y: expected (..., T, 1) received scalars (or one record (T,)), got shape {arr.shape}")
     y2, batch = prepare_measurements(arr, 1)
     N, T, _ = y2.shape
     tau = channel.threshold
