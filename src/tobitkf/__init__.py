@@ -15,6 +15,8 @@ Public API (stable):
   and the coefficient :mod:`~tobitkf.channels.laws`.
 - :class:`RossModel`, :func:`hinf_design`, :func:`hinf_analyze`, :class:`RegionalHinfFilter`
   (regional H-infinity filtering with random saturation, Wang et al. 2010).
+- :class:`ProtocolTobitKalmanFilter` with :class:`ProtocolChannel` (Round-Robin scheduling, integral
+  measurements, sensor failures) and :func:`protocol_covariance_bounds` (Geng et al.).
 - :class:`DelayFadingSystem`, :func:`chain_lmmse` and relatives: optimal linear filter, predictor
   and smoothers for time-delay systems with fading measurements (Li et al. 2018).
 - :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
@@ -40,6 +42,8 @@ from .filters.hinf import verify as hinf_verify
 from .filters.delay import (AugmentedLMMSE, ChainLMMSE, DelayEstimates, ReorganizedInnovationLMMSE, augmented_lmmse,
                             chain_lmmse, reorganized_lmmse, smooth_interval, smooth_point)
 from .models_delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, simulate_delay
+from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
+from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
 from .report import write_report
 from . import metrics
 
@@ -54,5 +58,7 @@ __all__ = [
     "fading_kalman_filter", "RandomSaturation", "RossModel", "RegionalHinfFilter", "hinf_design", "hinf_analyze",
     "hinf_verify", "DelayFadingSystem", "HistoryPrior", "FadingPMF", "FadingMoments", "simulate_delay",
     "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
-    "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "write_report", "__version__",
+    "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
+    "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
+    "__version__",
 ]
