@@ -14,7 +14,6 @@ from typing import Annotated, Optional
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Table
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Estimation from censored, fading, delayed and scheduled measurements.")
@@ -23,13 +22,13 @@ console = Console(stderr=True)
 
 @app.command("list")
 def list_cmd() -> None:
-    """List every experiment, one line each."""
+    """List every experiment, one line each: id, default run count, title."""
     from .experiments import all_experiments
 
-    table = Table("id", "source", "title", "default runs", box=None)
-    for exp in all_experiments():
-        table.add_row(exp.id, exp.source, exp.title, str(exp.default_runs))
-    Console().print(table)
+    exps = all_experiments()
+    width = max(len(e.id) for e in exps)
+    for exp in exps:
+        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}")
 
 
 def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progress: Progress | None = None) -> Path:

@@ -44,7 +44,7 @@ from ..filters.protocol import (FAILURE_TERMS, ProtocolTobitKalmanFilter, protoc
 from ..models import LinearSystem
 from . import ExperimentResult, register, setting
 
-SOURCE = "003 Geng et al., protocol-based TKF (Sec. V)"
+SOURCE = "Geng, Wang, Zou et al.: protocol-based Tobit Kalman filter (integral measurements, sensor failures)"
 W = 0.052 * np.pi
 STEPS = 100
 RUNS = 1000

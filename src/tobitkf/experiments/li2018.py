@@ -32,6 +32,8 @@ from ..metrics import summarize
 from ..models_delay import paper_example, paper_prior, simulate_delay
 from . import ExperimentResult, register, setting
 
+_SOURCE = "Li, Li & Wang 2018: optimal linear estimators for time-delay systems with fading measurements"
+
 S_VALUES = (0.0, 0.15, 0.3)
 Q_VALUES = (1.0, 0.6, 0.3)
 DEFAULT_S = 0.3
@@ -208,7 +210,7 @@ def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
 
 
 @register("li2018-tracking", title="Delay system with fading: filter tracking (Fig. 1)",
-          source="002 Li, Li & Wang 2018, §5 Fig. 1", plot=_plot_tracking, default_runs=150)
+          source=_SOURCE, plot=_plot_tracking, default_runs=150)
 def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
     """Fig. 1: true x1, x2 against x̂(t|t) for one run; ensemble MSE over ``runs`` for every S."""
     S_values, headline, by, keep = _common_run("li2018-tracking", runs=runs, seed=seed, progress=progress,
@@ -261,7 +263,7 @@ def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
 
 
 @register("li2018-fading", title="Delay system with fading: error variance vs fading level q (Fig. 2)",
-          source="002 Li, Li & Wang 2018, §5 Fig. 2", plot=_plot_fading, default_runs=150)
+          source=_SOURCE, plot=_plot_fading, default_runs=150)
 def run_fading(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
     """Fig. 2: P(t|t) and Monte Carlo MSE for P(γ = q) = 0.8, q = 1, 0.6, 0.3 (spec §4 item 17)."""
     S_values, headline, by, keep = _common_run("li2018-fading", runs=runs, seed=seed, progress=progress,
@@ -318,7 +320,7 @@ def _plot_tables(result: ExperimentResult, outdir: Path) -> list[Path]:
 
 
 @register("li2018-tables", title="Delay system with fading: filter/predictor MSE tables (Tables 1-2, Figs. 3-4)",
-          source="002 Li, Li & Wang 2018, §5 Tables 1-2, Figs. 3-4", plot=_plot_tables, default_runs=150)
+          source=_SOURCE, plot=_plot_tables, default_runs=150)
 def run_tables(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
     """Tables 1–2: running-average MSE at t = 25..150 for filter and predictor, all estimator keys."""
     S_values, headline, by, keep = _common_run("li2018-tables", runs=runs, seed=seed, progress=progress,
