@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array
+from .._validation import ShapeError, ValidationError, as_float_array, check_psd
 
 __all__ = ["FilterResult", "prepare_measurements", "gain_update", "symmetrize", "predict"]
 
@@ -152,6 +152,8 @@ def check_prior(system, x0: Any, P0: Any, runs: int):
     n = system.n
     x = system.x0 if x0 is None else as_float_array(x0, "x0")
     P = system.P0 if P0 is None else as_float_array(P0, "P0")
+    if P0 is not None and P.ndim >= 2:
+        check_psd(P, "P0")
     if x.shape[-1:] != (n,) or P.shape[-2:] != (n, n):
         raise ShapeError(f"x0/P0: expected (..., {n}) and (..., {n}, {n}), got {x.shape} and {P.shape}")
     try:
