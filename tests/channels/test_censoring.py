@@ -51,6 +51,15 @@ def test_time_varying_limits_align_with_measurement_index():
     np.testing.assert_array_equal(lo_all[:, 0], [0.0, 1.0, 2.0])
 
 
+def test_time_varying_limits_out_of_range_step():
+    """k counts measurements from 1; k = 0 must not silently wrap to the last row (numpy index -1)."""
+    cens = Censoring(lower=np.array([[0.0], [1.0], [2.0]]))
+    for k in (0, 4):
+        with pytest.raises(ShapeError, match=rf"censoring limits: time-varying limits have 3 steps, step k={k}"):
+            cens.limits(k)
+    Censoring(lower=0.0).limits(0)  # constant limits hold at every step
+
+
 def test_all_limits_broadcasts_scalars_and_channels():
     lo, hi = Censoring(lower=-1.0, upper=2.0).all_limits(5, 3)
     assert lo.shape == hi.shape == (5, 3)
@@ -165,6 +174,22 @@ def test_multi_region_keeps_noise_input_matrix():
                         P0=np.eye(2), B=[[0.5], [1.0]])
     stacked, _ = multi_region(base, [[(-np.inf, 0.0), (0.0, np.inf)]])
     np.testing.assert_allclose(stacked.process_cov(0), base.process_cov(0), rtol=0, atol=0)
+
+
+def test_multi_region_keeps_control_inputs():
+    """The stacked model keeps Bu, and D gets one row per sensor like C (a controlled plant stays controlled)."""
+    base = LinearSystem(A=[[1.0, 0.1], [0.0, 1.0]], C=[[1.0, 0.0], [0.0, 1.0]], Q=0.01 * np.eye(2),
+                        R=np.diag([0.1, 0.2]), x0=[0, 0], P0=np.eye(2), Bu=[[0.0], [0.1]], D=[[0.5], [-1.0]])
+    stacked, _ = multi_region(base, [[(-np.inf, 0.0), (0.0, np.inf)], [(-1.0, 1.0)]])
+    assert stacked.p == 1
+    np.testing.assert_array_equal(stacked.Bu.at(1), [[0.0], [0.1]])
+    np.testing.assert_array_equal(stacked.D.at(1), [[0.5], [0.5], [-1.0]])
+    bx, dy = stacked.input_effect(1, np.array([2.0]))
+    np.testing.assert_array_equal(bx, [0.0, 0.2])
+    np.testing.assert_array_equal(dy, [1.0, 1.0, -2.0])
+    only_bu = LinearSystem(A=np.eye(1), C=[[1.0]], Q=[[0.01]], R=[[0.1]], x0=[0], P0=[[1.0]], Bu=[[1.0]])
+    st2, _ = multi_region(only_bu, [[(-np.inf, 0.0), (0.0, np.inf)]])
+    assert st2.p == 1 and st2.D is None
 
 
 @pytest.mark.parametrize("regions,match", [
