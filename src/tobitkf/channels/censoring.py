@@ -93,6 +93,8 @@ class Censoring:
     def limits(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)`` for measurement ``y_k`` (k >= 1; array index k-1)."""
         if self.time_varying:
+            if not 1 <= k <= self.steps:
+                raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, step k={k} requested")
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
 
