@@ -296,3 +296,47 @@ def test_dropping_kf_input_validation():
         DroppingKalmanFilter(sys, Censoring(lower=[0.0, 0.0]))
     with pytest.raises(ValidationError, match="outside its censoring limits"):
         DroppingKalmanFilter(sys, Censoring(lower=0.0)).filter(np.array([[0.5], [-0.5]]))
+
+
+def test_batched_without_missing_samples_shares_covariance():
+    """No NaN: the shared-covariance path, with a two-axis batch, still equals per-run filtering."""
+    sys, _ = _cv_system()
+    y = np.random.default_rng(3).standard_normal((2, 3, 12, 2))
+    out = KalmanFilter(sys).filter(y)
+    assert out.cov.shape == (2, 3, 12, 2, 2)
+    for i in range(2):
+        for j in range(3):
+            one = KalmanFilter(sys).filter(y[i, j])
+            _assert_close(out.mean[i, j], one.mean)
+            _assert_close(out.cov[i, j], one.cov)
+
+
+@pytest.mark.parametrize("which", ["kf", "ikf"])
+def test_prior_override_with_multi_axis_batch(which):
+    """x0 (..., n) and P0 (..., n, n) with the same leading axes as y (..., T, m) (docstring of kalman_filter)."""
+    sys, _ = _cv_system()
+    rng = np.random.default_rng(2)
+    y = np.clip(rng.standard_normal((2, 3, 10, 2)), -0.5, None)
+    x0 = rng.standard_normal((2, 3, 2))
+    P0 = np.eye(2) * rng.uniform(0.5, 2.0, (2, 3))[..., None, None]
+    f = KalmanFilter(sys) if which == "kf" else DroppingKalmanFilter(sys, Censoring(lower=-0.5))
+    out = f.filter(y, x0=x0, P0=P0)
+    for i in range(2):
+        for j in range(3):
+            one = f.filter(y[i, j], x0=x0[i, j], P0=P0[i, j])
+            _assert_close(out.mean[i, j], one.mean)
+            _assert_close(out.cov[i, j], one.cov)
+    with pytest.raises(ShapeError, match="x0/P0"):
+        f.filter(y, x0=rng.standard_normal((3, 2, 2)))  # same number of runs, wrong layout
+
+
+def test_callable_matrices_are_validated_over_the_horizon():
+    """A callable returning NaN or a non-PSD covariance at a later step is rejected, as in simulate."""
+    bad_r = LinearSystem(A=np.eye(1), C=np.eye(1), Q=np.eye(1), R=lambda k: np.array([[1.0 - 0.5 * k]]),
+                         x0=[0.0], P0=np.eye(1))
+    with pytest.raises(ValidationError, match=r"R\(3\): expected a positive semi-definite matrix"):
+        KalmanFilter(bad_r).filter(np.zeros((4, 1)))
+    nan_a = LinearSystem(A=lambda k: np.array([[np.nan if k == 2 else 1.0]]), C=np.eye(1), Q=np.eye(1), R=np.eye(1),
+                         x0=[0.0], P0=np.eye(1))
+    with pytest.raises(ValidationError, match=r"A\(2\): expected finite numbers, found NaN"):
+        KalmanFilter(nan_a).filter(np.zeros((4, 1)))

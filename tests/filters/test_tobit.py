@@ -495,3 +495,26 @@ def test_tkf_input_validation():
     # check_limits=False lets data outside the limits through (for callers that validated already)
     out = tobit_kalman_filter(sys, cens, np.full((2, 2), -1.0), check_limits=False)
     assert np.isfinite(out.mean).all()
+
+
+def test_prior_override_with_multi_axis_batch():
+    sys, _ = _oscillator()
+    cens = Censoring(lower=[0.0, -0.5])
+    rng = np.random.default_rng(2)
+    y = cens.clip(rng.standard_normal((2, 3, 10, 2)))
+    x0 = rng.standard_normal((2, 3, 2))
+    P0 = np.eye(2) * rng.uniform(0.5, 2.0, (2, 3))[..., None, None]
+    tkf = TobitKalmanFilter(sys, cens)
+    out = tkf.filter(y, x0=x0, P0=P0)
+    for i in range(2):
+        for j in range(3):
+            one = tkf.filter(y[i, j], x0=x0[i, j], P0=P0[i, j])
+            _assert_close(out.mean[i, j], one.mean)
+            _assert_close(out.cov[i, j], one.cov)
+
+
+def test_callable_covariance_validated_over_the_horizon():
+    sys = LinearSystem(A=np.eye(1), C=np.eye(1), Q=lambda k: np.array([[0.1 - 0.05 * k]]), R=np.eye(1),
+                       x0=[0.0], P0=np.eye(1))
+    with pytest.raises(ValidationError, match=r"Q\(3\): expected a positive semi-definite matrix"):
+        TobitKalmanFilter(sys, Censoring(lower=-1.0)).filter(np.zeros((5, 1)))
