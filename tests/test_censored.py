@@ -278,7 +278,7 @@ def windows(draw):
     return mu, sigma, lo, hi
 
 
-PROPS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+PROPS = settings(max_examples=int(__import__("os").environ.get("TOBITKF_HYPOTHESIS_EXAMPLES", 150)), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
 @PROPS
@@ -369,9 +369,12 @@ def test_limits_40_sigma_away_are_finite(mu, sigma, k):
         assert got.p_uncensored < 1e-300
         edge = lo if np.isfinite(lo) and lo > mu else hi
         assert got.censored_mean == pytest.approx(edge, rel=1e-12, abs=1e-12 * sigma)
-        # the truncated normal beyond a z-score k is approximately exponential with scale sigma/k
-        assert abs(got.truncated_mean - edge) == pytest.approx(sigma / k, rel=2.0 / k**2 + 1e-9)
-        assert got.truncated_var == pytest.approx((sigma / k) ** 2, rel=6.0 / k**2 + 1e-9)
+        # beyond a z-score k the truncated normal is nearly exponential: mean offset
+        # sigma (1/k - 2/k^3 + ...), variance sigma^2 (1/k^2 - 6/k^4 + ...); the offset is a
+        # difference of two numbers of size |edge|, so it also carries a few eps*|edge| of rounding
+        slack = 16 * EPS * max(abs(mu), abs(edge))
+        assert abs(got.truncated_mean - edge) == pytest.approx(sigma / k, rel=3.0 / k**2, abs=slack)
+        assert got.truncated_var == pytest.approx((sigma / k) ** 2, rel=8.0 / k**2)
 
 
 FP_STRICT = dict(over="raise", invalid="raise", divide="raise", under="ignore")  # underflow to 0 is expected
