@@ -302,8 +302,10 @@ def test_joseph_equals_standard(noise_term):
     sys, _ = _oscillator()
     cens = Censoring(lower=[0.0, -0.5], upper=[np.inf, 0.5])
     data = simulate(sys, steps=60, runs=3, censoring=cens, seed=6)
-    a = TobitKalmanFilter(sys, cens, noise_term=noise_term).filter(data.y)
-    b = TobitKalmanFilter(sys, cens, noise_term=noise_term, covariance_update="joseph").filter(data.y)
+    y = data.y.copy()
+    y[0, 7, 1] = np.nan  # the masked path too
+    a = TobitKalmanFilter(sys, cens, noise_term=noise_term).filter(y)
+    b = TobitKalmanFilter(sys, cens, noise_term=noise_term, covariance_update="joseph").filter(y)
     _assert_close(a.mean, b.mean)
     _assert_close(a.cov, b.cov)
 
@@ -518,3 +520,22 @@ def test_callable_covariance_validated_over_the_horizon():
                        x0=[0.0], P0=np.eye(1))
     with pytest.raises(ValidationError, match=r"Q\(3\): expected a positive semi-definite matrix"):
         TobitKalmanFilter(sys, Censoring(lower=-1.0)).filter(np.zeros((5, 1)))
+
+
+def test_callable_measurement_matrix():
+    """Time-varying C given as a callable of k (first use at k = 1) against the reference, step by step."""
+    T = 15
+    A = np.array([[1.0, 0.1], [0.0, 0.95]])
+    C_fn = lambda k: np.array([[1.0, 0.1 * k], [0.0, 1.0]])  # noqa: E731
+    Q, R = 0.02 * np.eye(2), np.diag([0.05, 0.1])
+    sys = LinearSystem(A=A, C=C_fn, Q=Q, R=R, x0=[0.2, 0.0], P0=np.eye(2))
+    cens = Censoring(lower=[0.0, -0.2])
+    data = simulate(sys, steps=T, runs=1, censoring=cens, seed=3)
+    out = TobitKalmanFilter(sys, cens).filter(data.y[0])
+    x, P = sys.x0.copy(), sys.P0.copy()
+    lo, hi = cens.all_limits(T, 2)
+    for k in range(1, T + 1):
+        m, c = reference_tkf(A, C_fn(k), Q, R, x, P, data.y[0, k - 1:k], lo[k - 1:k], hi[k - 1:k])
+        x, P = m[0], c[0]
+        _assert_close(out.mean[k - 1], x, atol=1e-9)
+        _assert_close(out.cov[k - 1], P, atol=1e-9)
