@@ -67,7 +67,8 @@ class CensoredMoments(NamedTuple):
 
 
 def _norm_logpdf(z: np.ndarray) -> np.ndarray:
-    return -0.5 * z * z - _LOG_SQRT_2PI
+    with np.errstate(over="ignore"):  # |z| > 1e154: z*z overflows to inf, log-density -inf is right
+        return -0.5 * z * z - _LOG_SQRT_2PI
 
 
 def standardized_limits(mean, std, lower, upper):
@@ -84,7 +85,9 @@ def _tail_moments(a: np.ndarray, b: np.ndarray):
     Returns (log_gamma, zmean, zvar) with zmean = E[Z | window], zvar = Var[Z | window].
     """
     w = b - a
-    umax = -a + np.sqrt(a * a + 2.0 * 40.0)  # a u + u^2/2 = 40 -> density below e^-40 relative
+    # a u + u^2/2 = 40 -> density below e^-40 relative; root u = -a + sqrt(a^2 + 80) written
+    # without cancellation (and without overflowing a^2) so that a >~ 1e8 does not give umax = 0
+    umax = 80.0 / (a + np.hypot(a, np.sqrt(80.0)))
     top = np.minimum(w, umax)
     half = 0.5 * top[..., None]
     u = half * (_GL_X + 1.0)                         # (..., 64) nodes on [0, top]

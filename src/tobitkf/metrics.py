@@ -58,7 +58,14 @@ def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
         sol = np.linalg.solve(cov, err[..., None])[..., 0]
         val = np.einsum("...i,...i->...", err, sol)
     except np.linalg.LinAlgError:
-        val = np.full(err.shape[:-1], np.inf)
+        # one singular matrix makes the batched solve fail for all: redo per run and step
+        covb = np.broadcast_to(cov, err.shape + err.shape[-1:])
+        val = np.empty(err.shape[:-1])
+        for idx in np.ndindex(val.shape):
+            try:
+                val[idx] = err[idx] @ np.linalg.solve(covb[idx], err[idx])
+            except np.linalg.LinAlgError:
+                val[idx] = np.inf
     return np.mean(val, axis=0)
 
 

@@ -143,10 +143,15 @@ class LinearSystem:
         return not any(p.varying for p in parts)
 
     def check_horizon(self, steps: int) -> None:
-        """Raise :class:`ShapeError` if a time-indexed matrix is shorter than ``steps``."""
+        """Raise if a time-indexed matrix is shorter than ``steps`` or a callable misbehaves on it.
+
+        Callables are evaluated once over the horizon (shape, finiteness, PSD for Q and R),
+        so a bad value at a late step fails at the public call, not as NaN in the output.
+        """
         for part in (self.A, self.C, self.Q, self.R, self.B, self.Bu, self.D):
             if part is not None:
                 part.check_horizon(steps)
+                part.validate_all(steps)
 
     def check_inputs(self, u: Any, steps: int, name: str = "u") -> np.ndarray | None:
         """Validate a control sequence ``(..., T, p)``; None when the model has no input."""
