@@ -7,6 +7,7 @@ boundary (constructors, ``filter``, ``simulate``), never inside a time loop.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -36,7 +37,12 @@ def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = 
                    allow_nan: bool = False, allow_inf: bool = False) -> np.ndarray:
     """Convert ``value`` to a float64 array and check dimension and finiteness."""
     try:
-        arr = np.asarray(value, dtype=float)
+        with warnings.catch_warnings():
+            # complex input: numpy would drop the imaginary part with only a warning
+            warnings.simplefilter("error", np.exceptions.ComplexWarning)
+            arr = np.asarray(value, dtype=float)
+    except np.exceptions.ComplexWarning:
+        raise ValidationError(f"{name}: expected real numbers, got complex values") from None
     except (TypeError, ValueError) as exc:
         raise ValidationError(f"{name}: expected an array of numbers, got {type(value).__name__} ({exc})") from None
     if ndim is not None:
