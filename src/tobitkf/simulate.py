@@ -149,6 +149,16 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Cens
         if not isinstance(censoring, Censoring):
             raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
         censoring.check(system.m, steps)
+    if measurement is not None and not callable(getattr(measurement, "draw", None)):
+        raise ValidationError(f"measurement: expected an object with a draw(rng, x, system, noise, inputs) method, "
+                              f"got {type(measurement).__name__}")
+    if isinstance(post, (str, bytes)) or not hasattr(post, "__iter__"):
+        raise ValidationError(f"post: expected a sequence of channel pieces, got {type(post).__name__}")
+    post = tuple(post)
+    for i, piece in enumerate(post):
+        if not callable(getattr(piece, "apply", None)):
+            raise ValidationError(f"post[{i}]: expected an object with an apply(rng, y, extras) method, "
+                                  f"got {type(piece).__name__}")
     u = system.check_inputs(inputs, steps, "inputs")
     if u is not None:
         u = np.broadcast_to(u, (runs, steps, system.p)) if u.ndim == 2 else u
