@@ -51,7 +51,7 @@ import numpy as np
 from scipy.linalg import solve_discrete_are
 from scipy.special import ndtri
 
-from .._validation import ValidationError, as_float_array, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_option
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
 from ._common import FilterResult, prepare_inputs, prepare_measurements
@@ -94,6 +94,33 @@ def controlled_limit_statistics(xi_uncensored: Any, sigma: Any):
     upsilon = sig**2 * (1.0 - alpha * lam - lam**2)
     offset = sig * (phi - (1.0 - xi) * alpha)
     return alpha, lam, upsilon, offset
+
+
+def _xi_per_channel(xi_uncensored: Any, m: int) -> np.ndarray:
+    """Ξ as an (m,) array; a scalar applies to every channel."""
+    xi = as_float_array(xi_uncensored, "xi_uncensored")
+    if xi.ndim > 1 or xi.size not in (1, m):
+        raise ShapeError(f"xi_uncensored: expected a scalar or shape ({m},) (one per channel), got shape {xi.shape}")
+    return np.broadcast_to(xi.reshape(-1), (m,)).copy()
+
+
+def _no_missing(y2: np.ndarray, name: str) -> None:
+    # the gain and the reported covariance are the constant steady-state ones: a skipped
+    # (missing) sample would make the reported covariance wrong, so NaN is refused
+    if np.isnan(y2).any():
+        raise ValidationError(f"{name}: the steady-state TKF has a fixed gain and cannot skip missing samples "
+                              "(NaN found); use TobitKalmanFilter for records with gaps")
+
+
+def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ...]) -> np.ndarray:
+    n = system.n
+    x = system.x0 if x0 is None else as_float_array(x0, "x0")
+    for shape in ((runs, n), tuple(batch) + (n,)):
+        try:
+            return np.broadcast_to(x, shape).reshape(runs, n).copy()
+        except ValueError:
+            pass
+    raise ShapeError(f"x0: expected ({n},) or the batch shape of y + ({n},), got {x.shape}")
 
 
 class SteadyStateTobitKalmanFilter:
@@ -142,7 +169,7 @@ class SteadyStateTobitKalmanFilter:
             raise ValidationError("system: the steady-state TKF needs a time-invariant model (constant A, C, Q, R)")
         m = system.m
         sigma = _sigma_of(system.measurement_cov(1))
-        xi = np.broadcast_to(as_float_array(xi_uncensored, "xi_uncensored"), (m,)).copy()
+        xi = _xi_per_channel(xi_uncensored, m)
         self.alpha, self.inverse_mills, self.upsilon, self._offset = controlled_limit_statistics(xi, sigma)
         self.system, self.side, self.xi_uncensored, self.sigma = system, side, xi, sigma
         A, C, Q = system.transition(0), system.measurement(1), system.process_cov(0)
@@ -184,8 +211,11 @@ class SteadyStateTobitKalmanFilter:
         itself only needs :math:`E[y_k]`, which (3.58) gives without the limits.
         Covariances are the constant :math:`\Psi_\infty`, :math:`\bar\Psi_\infty`
         (read-only broadcast views).
+        NaN (a missing sample) is refused with a :class:`ValidationError`: a fixed gain
+        cannot skip a sample without making the reported covariance wrong.
         """
         y2, batch = prepare_measurements(y, self.system.m)
+        _no_missing(y2, "y")
         return self._run(y2, batch, u, x0, latent=False)
 
     def filter_controlled(self, y_latent: Any, *, u: Any = None, x0: Any = None) -> FilterResult:
@@ -197,6 +227,7 @@ class SteadyStateTobitKalmanFilter:
         used and the censored readings the filter received.
         """
         y2, batch = prepare_measurements(y_latent, self.system.m, "y_latent")
+        _no_missing(y2, "y_latent")
         return self._run(y2, batch, u, x0, latent=True)
 
     def _run(self, y2, batch, u, x0, *, latent: bool) -> FilterResult:
@@ -204,7 +235,7 @@ class SteadyStateTobitKalmanFilter:
         N, T, m = y2.shape
         n = sys.n
         u2 = prepare_inputs(sys, u, N, T)
-        x = np.broadcast_to(sys.x0 if x0 is None else as_float_array(x0, "x0"), (N, n)).copy()
+        x = _initial_mean(sys, x0, N, batch)
         A, C, K = sys.transition(0), sys.measurement(1), self.gain
         means = np.empty((N, T, n))
         pmeans = np.empty((N, T, n))
@@ -246,12 +277,14 @@ def tobit_kalman_filter_controlled(system: LinearSystem, xi_uncensored: Any, y_l
     from ._common import check_prior, predict
     from .tobit import tobit_update
 
+    if not isinstance(system, LinearSystem):
+        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
     check_option(side, "side", ("upper", "lower"))
     y2, batch = prepare_measurements(y_latent, system.m, "y_latent")
     N, T, m = y2.shape
     n = system.n
     sigma = _sigma_of(system.measurement_cov(1))
-    alpha, _, _, _ = controlled_limit_statistics(np.broadcast_to(xi_uncensored, (m,)), sigma)
+    alpha, _, _, _ = controlled_limit_statistics(_xi_per_channel(xi_uncensored, m), sigma)
     u2 = prepare_inputs(system, u, N, T)
     x, P = check_prior(system, None, None, N)
     out = {name: np.empty((N, T) + shape) for name, shape in
