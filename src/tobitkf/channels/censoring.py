@@ -191,6 +191,10 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
     if system.C.varying or system.R.varying:
         raise ShapeError("system: multi_region needs time-invariant C and R")
     C, R = system.C.at(1), system.R.at(1)
+    if noise_var is not None and (len(noise_var) != len(regions)
+                                  or any(len(nv) != len(w) for nv, w in zip(noise_var, regions))):
+        raise ShapeError("noise_var: expected one variance per window, laid out like regions "
+                         f"({[len(w) for w in regions]} per output), got {[len(nv) for nv in noise_var]}")
     rows, var, lo, hi, out_idx = [], [], [], [], []
     for i, wins in enumerate(regions):
         if len(wins) == 0:
