@@ -1203,7 +1203,11 @@ class RossSimulation:
 
 def _sequence(value: Any, name: str, runs: int, steps: int, dim: int) -> np.ndarray:
     if callable(value):
-        arr = np.array([np.asarray(value(k), dtype=float).reshape(dim) for k in range(steps)])
+        rows = [as_float_array(value(k), f"{name}({k})") for k in range(steps)]
+        for k, row in enumerate(rows):
+            if row.size != dim:
+                raise ShapeError(f"{name}({k}): expected {dim} value(s), got shape {row.shape}")
+        arr = np.array([row.reshape(dim) for row in rows])
     else:
         arr = as_float_array(value, name, ndim=(2, 3))
     if arr.shape[-2:] != (steps, dim) or (arr.ndim == 3 and arr.shape[0] != runs):
@@ -1244,6 +1248,8 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     ------
     ValidationError, ShapeError
     """
+    if not isinstance(model, RossModel):
+        raise ValidationError(f"model: expected a RossModel, got {type(model).__name__}")
     if model.f is None:
         raise ValidationError("model.f: expected the plant nonlinearity to simulate, got None")
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
@@ -1300,7 +1306,14 @@ def hinf_filter(Af: Any, Bf: Any, M: Any, y: Any, xhat0: Any = None) -> HinfFilt
         raise ShapeError(f"y: expected (..., T, {Bf.shape[1]}), got {y.shape}")
     batch, T = y.shape[:-2], y.shape[-2]
     xh = np.empty(batch + (T + 1, n))
-    xh[..., 0, :] = 0.0 if xhat0 is None else as_float_array(xhat0, "xhat0")
+    if xhat0 is None:
+        xh[..., 0, :] = 0.0
+    else:
+        x0 = as_float_array(xhat0, "xhat0")
+        try:
+            xh[..., 0, :] = x0
+        except ValueError:
+            raise ShapeError(f"xhat0: expected ({n},) or y's batch shape + ({n},), got {x0.shape}") from None
     for k in range(T):
         xh[..., k + 1, :] = xh[..., k, :] @ Af.T + y[..., k, :] @ Bf.T
     return HinfFilterResult(mean=xh, z=xh @ M.T)
@@ -1328,6 +1341,8 @@ class RegionalHinfFilter:
     @classmethod
     def from_certificate(cls, cert: HinfCertificate, model: RossModel) -> RegionalHinfFilter:
         """Filter from a successful :func:`design`; refuses a failed one."""
+        if not isinstance(cert, HinfCertificate):
+            raise ValidationError(f"cert: expected a HinfCertificate from design(), got {type(cert).__name__}")
         if not cert.ok:
             raise ValidationError(f"cert: expected a solved and verified design, got status {cert.status!r}")
         return cls(cert.Af, cert.Bf, model.M)
