@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import ShapeError
+from ._validation import ShapeError, ValidationError
 
 __all__ = ["rmse", "bias", "nees", "summarize", "align_truth"]
 
@@ -75,6 +75,9 @@ def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 
     ``skip`` leaves the first steps out of the time averages (not out of the per-step arrays).
     """
     r = rmse(truth, estimate)
+    if isinstance(skip, bool) or not isinstance(skip, (int, np.integer)) or not 0 <= skip < r.shape[0]:
+        raise ValidationError(f"skip: expected an integer in [0, {r.shape[0]}) (steps to leave out of the "
+                              f"time averages), got {skip!r}")
     out = {
         "rmse": r,
         "rmse_time_avg": r[skip:].mean(axis=0),

@@ -41,6 +41,8 @@ def _shape_tuple(shape: Any) -> tuple[int, ...]:
     if shape is None:
         return ()
     if isinstance(shape, (int, np.integer)):
+        if shape < 0:
+            raise ValidationError(f"shape: expected a non-negative size, got {shape}")
         return (int(shape),)
     try:
         out = tuple(int(s) for s in shape)
