@@ -143,6 +143,14 @@ def _failure_term(mode: str, Cc: np.ndarray, P_pred: np.ndarray, xi_pred: np.nda
     return lam_var * (CPC + (xi_pred @ Cc) ** 2)            # second_moment
 
 
+def _check_parts(system: Any, channel: Any) -> None:
+    if not isinstance(system, LinearSystem):
+        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
+    if not isinstance(channel, ProtocolChannel):
+        raise ValidationError(f"channel: expected a ProtocolChannel, got {type(channel).__name__}")
+    channel.check_system(system)
+
+
 def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamma: np.ndarray, Cc: np.ndarray,
                     r: float, tau: float, lam_mean: float, lam_var: float, *, failure_term: str = "variance",
                     second_moment: np.ndarray | None = None, covariance_update: str = "joseph"):
@@ -286,7 +294,7 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
     if not isinstance(channel, ProtocolChannel):
         raise ValidationError(f"channel: expected a ProtocolChannel, got {type(channel).__name__}")
-    channel.check_system(system)
+    _check_parts(system, channel)
     arr = as_float_array(y, "y", allow_nan=False)
     if arr.ndim == 1:                                   # one record (T,)
         arr = arr[:, None]
@@ -578,7 +586,7 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
                     "phi_upper": phi_upper, "prehistory_mean": prehistory_mean},
                    {"failure_term": FAILURE_TERMS, "upper_form": UPPER_FORMS, "lower_form": LOWER_FORMS,
                     "phi_upper": PHI_UPPER, "prehistory_mean": PRIOR_MEANS})
-    channel.check_system(system)
+    _check_parts(system, channel)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValidationError(f"steps: expected a positive integer, got {steps!r}")
     if isinstance(p_uncensored, str):
