@@ -190,7 +190,8 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     chunk_blocks = _int(text, sw, "chunk_blocks", "sweep.chunk_blocks", default=max(1, 10_000 // block_runs))
     experiment = sw.get("experiment")
     sname = sw.get("name", name)
-    if not isinstance(sname, str) or not sname or any(c in sname for c in "/\\") or sname.startswith("."):
+    if (not isinstance(sname, str) or not sname or any(c in sname for c in "/\\") or sname.startswith(".")
+            or not sname.isprintable()):
         raise _fail(text, "sweep.name", f"expected a plain file name, got {sname!r}")
     model = doc.get("model", {})
     cens = doc.get("censoring", {})
@@ -243,10 +244,20 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         allowed = {"settings"} if experiment is not None else {"model", "censoring", "estimators"}
         if root not in allowed or "." not in key:
             raise _fail(text, f"grid.{key}", f"grid keys are dotted paths starting with {' or '.join(sorted(allowed))}")
+        parts = key.split(".")
         if root == "estimators":
-            parts = key.split(".")
             if len(parts) != 3 or parts[1] not in ests:
                 raise _fail(text, f"grid.{key}", "expected 'estimators.<key>.<option>' naming a listed estimator")
+            opts = ESTIMATOR_TYPES[ests[parts[1]]["type"]]
+            if parts[2] not in opts:
+                raise _fail(text, f"grid.{key}", f"unknown option for {ests[parts[1]]['type']}; expected one of "
+                                                 f"{', '.join(opts) or 'none'}")
+        elif len(parts) != 2:
+            raise _fail(text, f"grid.{key}", f"expected '{root}.<key>' (one level deep)")
+        elif root == "model" and parts[1] not in _MODEL_KEYS:
+            raise _fail(text, f"grid.{key}", f"unknown model key; expected one of {', '.join(sorted(_MODEL_KEYS))}")
+        elif root == "censoring" and parts[1] not in _CENS_KEYS:
+            raise _fail(text, f"grid.{key}", "unknown censoring key; expected 'lower' or 'upper'")
     spec = SweepSpec(text=text, name=sname, runs=runs, steps=steps, seed=seed, block_runs=block_runs,
                      chunk_blocks=chunk_blocks, experiment=experiment, model=model, censoring=cens,
                      estimators=ests, settings=settings, grid=grid)
@@ -259,8 +270,9 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             build_point(spec, {})
         except ValidationError as exc:
             arg = str(exc).split(":", 1)[0].split("(")[0].strip()
+            est_key = next((f"estimators.{k}.{arg}" for k, e in ests.items() if arg in e), None)
             key = f"model.{arg}" if arg in _MODEL_KEYS else ("censoring" if arg.startswith(("lower", "upper", "censoring"))
-                                                              else "model")
+                                                              else (est_key or "model"))
             raise _fail(text, key, str(exc)) from None
         for point in spec.points():
             try:
