@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .. import metrics as mx
+from .._validation import ValidationError
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
@@ -80,6 +81,14 @@ def _plot_constant(result: ExperimentResult, outdir: Path) -> list[Path]:
     return paths
 
 
+
+def _seed_int(seed: Any) -> int:
+    """The experiment seed as a non-negative int (it is combined with a scenario index)."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValidationError(f"seed: expected a non-negative integer, got {seed!r}")
+    return int(seed)
+
+
 @register("miller-constant", title="TKF example 1: constant below/above the censoring limit (Figs 3.1-3.2)",
           source=_SOURCE, plot=_plot_constant, default_runs=200)
 def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000, sigma: float = 0.1,
@@ -104,7 +113,7 @@ def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000
     for i, truth in enumerate((-0.1, 0.1)):
         name = f"truth{truth:+.1f}"
         sys_t = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[truth], P0=[[0.0]])
-        sim = simulate(sys_t, steps, runs, censoring=cens, seed=np.random.SeedSequence([seed, i]))
+        sim = simulate(sys_t, steps, runs, censoring=cens, seed=np.random.SeedSequence([_seed_int(seed), i]))
         outs = _run_three(sys_f, cens, sim.y)
         st = censored_moments(truth, sigma, limit, np.inf)
         targets = {"kf": float(st.censored_mean), "ikf": float(st.truncated_mean), "tkf": truth}
@@ -273,7 +282,7 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
     for i, om in enumerate(omegas):
         sys_ = LinearSystem(A=_rotation(om), C=[[1.0, 0.0]], Q=q * np.eye(2), R=[[r]], x0=[0.0, 0.0],
                             P0=p0 * np.eye(2))
-        sim = simulate(sys_, steps, runs, censoring=cens, seed=np.random.SeedSequence([seed, i]))
+        sim = simulate(sys_, steps, runs, censoring=cens, seed=np.random.SeedSequence([_seed_int(seed), i]))
         outs = _run_three(sys_, cens, sim.y)
         summ = _summaries(sim.x, outs)
         sweep[f"omega={om}"] = {k: s["rmse_time_avg"] for k, s in summ.items()}
