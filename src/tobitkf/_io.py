@@ -15,7 +15,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write_text", "atomic_write_json", "atomic_savefig", "to_jsonable", "safe_child"]
+__all__ = ["atomic_write_text", "atomic_write_json", "atomic_savefig", "to_jsonable", "safe_child", "staging_dir",
+           "replace_dir"]
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -84,3 +85,48 @@ def safe_child(root: str | os.PathLike, name: str) -> Path:
     if root_p != child and root_p not in child.parents:
         raise ValidationError(f"output path: {name!r} would leave the output directory {root_p}")
     return child
+
+
+def staging_dir(final: str | os.PathLike) -> Path:
+    """A fresh hidden folder beside ``final`` to build a complete result in (see :func:`replace_dir`).
+
+    Leftovers of earlier interrupted runs (``.NAME.partial-*``) are removed, and a result that
+    was moved aside by an interrupted :func:`replace_dir` (``.NAME.old-*`` while ``final``
+    is missing) is put back first, so the previous complete result is never lost.
+    """
+    import shutil
+
+    final = Path(final)
+    final.parent.mkdir(parents=True, exist_ok=True)
+    for old in sorted(final.parent.glob(f".{final.name}.old-*")):
+        if not final.exists():
+            os.replace(old, final)
+        else:
+            shutil.rmtree(old, ignore_errors=True)
+    for part in final.parent.glob(f".{final.name}.partial-*"):
+        shutil.rmtree(part, ignore_errors=True)
+    import uuid
+
+    stage = final.parent / f".{final.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    stage.mkdir()  # (not mkdtemp: its 0700 mode would become the result folder's)
+    return stage
+
+
+def replace_dir(stage: str | os.PathLike, final: str | os.PathLike) -> Path:
+    """Put the complete folder ``stage`` in place of ``final`` with renames only.
+
+    The old ``final`` is first renamed aside, then ``stage`` renamed to ``final``, then the
+    old one deleted; an interruption between the two renames is repaired by the next
+    :func:`staging_dir` call.
+    """
+    import shutil
+
+    stage, final = Path(stage), Path(final)
+    aside = None
+    if final.exists():
+        aside = final.with_name(f".{final.name}.old-{os.getpid()}")
+        os.replace(final, aside)
+    os.replace(stage, final)
+    if aside is not None:
+        shutil.rmtree(aside, ignore_errors=True)
+    return final

@@ -37,7 +37,7 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
 
     matplotlib.use("Agg")
     from . import __version__
-    from ._io import atomic_write_json, safe_child
+    from ._io import atomic_write_json, replace_dir, safe_child, staging_dir
     from .experiments import get
 
     exp = get(exp_id)
@@ -53,8 +53,8 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
     t0 = time.perf_counter()
     result = exp.run(runs=n_runs, seed=seed, progress=report)
     elapsed = time.perf_counter() - t0
-    outdir = safe_child(out, exp_id)
-    outdir.mkdir(parents=True, exist_ok=True)
+    final = safe_child(out, exp_id)
+    outdir = staging_dir(final)  # built whole beside the previous result, then swapped in
     figures = exp.plot(result, outdir)
     atomic_write_json(outdir / "metrics.json", {
         "id": exp.id, "title": exp.title, "source": exp.source, "runs": n_runs, "seed": seed,
@@ -62,8 +62,28 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
         "settings": result.settings, "claims": result.claims, "figures": [Path(f).name for f in figures],
         **result.metrics,
     })
+    replace_dir(outdir, final)
     report(1.0)
-    return outdir
+    return final
+
+
+def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
+    """True when ``out/exp_id`` holds a readable metrics.json of the same runs, seed and
+    package version whose figures all exist (what ``reproduce --resume`` skips)."""
+    import json
+
+    from . import __version__
+    from .experiments import get
+
+    folder = out / exp_id
+    try:
+        meta = json.loads((folder / "metrics.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    n_runs = get(exp_id).default_runs if runs is None else runs
+    return (isinstance(meta, dict) and meta.get("runs") == n_runs and meta.get("seed") == seed
+            and meta.get("package_version") == __version__
+            and all((folder / str(f)).is_file() for f in meta.get("figures", [])))
 
 
 @app.command()
@@ -72,6 +92,8 @@ def reproduce(
     runs: Annotated[Optional[int], typer.Option("--runs", min=1, help="Monte Carlo runs (default: the experiment's)")] = None,
     seed: Annotated[int, typer.Option("--seed", help="random seed")] = 0,
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results"),
+    resume: Annotated[bool, typer.Option("--resume", help="skip experiments whose OUT/ID/metrics.json is complete "
+                                         "for the same runs, seed and package version")] = False,
 ) -> None:
     """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html."""
     from ._validation import ValidationError
@@ -86,6 +108,11 @@ def reproduce(
     with Progress(*columns, console=console, transient=False) as progress:
         overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None
         for exp_id in ids:
+            if resume and is_complete(out, exp_id, runs=runs, seed=seed):
+                console.print(f"kept {out / exp_id} (complete, --resume)")
+                if overall is not None:
+                    progress.advance(overall)
+                continue
             outdir = run_experiment(exp_id, runs=runs, seed=seed, out=out, progress=progress)
             console.print(f"wrote {outdir}")
             if overall is not None:
