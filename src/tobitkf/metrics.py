@@ -26,6 +26,9 @@ __all__ = ["rmse", "bias", "nees", "summarize", "align_truth"]
 def align_truth(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
     """Drop x_0 from a ``(N, T+1, n)`` truth so it lines up with ``(N, T, n)`` estimates."""
     truth = np.asarray(truth, dtype=float)
+    if estimate.ndim < 3:
+        raise ShapeError(f"estimate: expected (N, T, n) with runs on the first axis (one run: add a leading "
+                         f"axis), got shape {estimate.shape}")
     if truth.shape[-2] == estimate.shape[-2] + 1:
         truth = truth[..., 1:, :]
     if truth.shape[-2:] != estimate.shape[-2:]:

@@ -4,7 +4,7 @@ The model, with the package-wide time convention (Miller 2015, (2.2) and (3.18))
 
 .. math::
 
-    x_k &= A_{k-1} x_{k-1} + B^u_{k-1} u_k + B_{k-1} w_{k-1}, \qquad w_{k-1} \sim N(0, Q_{k-1}) \\
+    x_k &= A_{k-1} x_{k-1} + B^u_k u_k + B_{k-1} w_{k-1}, \qquad w_{k-1} \sim N(0, Q_{k-1}) \\
     y^*_k &= C_k x_k + D_k u_k + v_k, \qquad v_k \sim N(0, R_k), \qquad x_0 \sim N(\bar x_0, P_0)
 
 for :math:`k = 1, \dots, T`. ``x_0`` is the prior; the first measurement is

@@ -176,7 +176,7 @@ class DroppingKalmanFilter:
             raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
         censoring.check(system.m)
         check_keywords({"covariance_update": covariance_update}, _OPTIONS)
-        if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.integer, np.floating)) or not rtol >= 0:
+        if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
         self.system, self.censoring, self.rtol = system, censoring, float(rtol)
         self.covariance_update = covariance_update
