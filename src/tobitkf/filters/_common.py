@@ -90,6 +90,20 @@ def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any
     return xp, symmetrize(Pp)
 
 
+def _gain(Rxe: np.ndarray, Ree: np.ndarray) -> np.ndarray:
+    """K = Rxe Ree^{-1} for m > 1, solved with Ree scaled to unit diagonal.
+
+    Channels whose innovation variances differ by many orders of magnitude (a nearly
+    surely censored channel beside an ordinary one: Ree_ll ~ 1e-77 next to 1) make Ree
+    so badly scaled that an unscaled solve returns gain entries wrong by 1e50 and the
+    Joseph form turns them into a covariance of 1e33. With D = diag(Ree)^{-1/2},
+    K = Rxe D (D Ree D)^{-1} D, and D Ree D is well conditioned. Requires diag(Ree) > 0.
+    """
+    d = 1.0 / np.sqrt(np.diagonal(Ree, axis1=-2, axis2=-1))
+    scaled = Ree * d[..., :, None] * d[..., None, :]
+    return np.swapaxes(np.linalg.solve(scaled, np.swapaxes(Rxe * d[..., None, :], -1, -2)), -1, -2) * d[..., None, :]
+
+
 def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray, Ree: np.ndarray,
                 valid: np.ndarray | None = None, *, H: np.ndarray | None = None,
                 noise: np.ndarray | None = None):
@@ -118,12 +132,12 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
     """
     m = Ree.shape[-1]
     diag = np.diagonal(Ree, axis1=-2, axis2=-1)
-    degenerate = ~(diag > 0)
+    degenerate = ~(diag >= np.finfo(float).tiny)  # 0 or subnormal: no usable information (and 1/diag overflows)
     if valid is None and not degenerate.any():
         if m == 1:
             K = Rxe / Ree
         else:
-            K = np.swapaxes(np.linalg.solve(Ree, np.swapaxes(Rxe, -1, -2)), -1, -2)
+            K = _gain(Rxe, Ree)
         e = innov
     else:
         ok = ~degenerate if valid is None else (valid & ~degenerate)
@@ -134,7 +148,7 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
         if m == 1:
             K = Rxe / Ree
         else:
-            K = np.swapaxes(np.linalg.solve(Ree, np.swapaxes(Rxe, -1, -2)), -1, -2)
+            K = _gain(Rxe, Ree)
         if H is not None:
             H = H * ok[..., :, None]
     x_new = x + np.einsum("...ij,...j->...i", K, e)
