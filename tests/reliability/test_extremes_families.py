@@ -1,0 +1,168 @@
+"""Numerical extremes for every estimator family beyond the core (issue 9 item 3).
+
+Cases: P0 huge (1e8), tiny (1e-12) and zero; R and Q near singular (1e-12) and Q = 0;
+an ill-conditioned A (cond ~ 1e8); censoring limits 40 sigma inside and outside the
+predicted mean. Every output must be finite, exactly symmetric and PSD (smallest
+eigenvalue >= -1e-9 x the largest entry of that covariance or of its prediction),
+in both covariance forms where the estimator offers them.
+
+Measured limit (see docs/reliability.md): a huge prior together with a near-singular R
+(P0/R >= 1e20) and a direction the first measurement does not see loses PSD in *both*
+the plain and the Joseph form (rounding at the level of P0 survives the update, whose
+result is 20 orders smaller); only a square-root/UD form would hold there. That case is
+recorded below as a strict xfail.
+"""
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf.channels.fading import RiceFading
+from tobitkf.channels.protocol import ProtocolChannel
+from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
+from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
+from tobitkf.filters.hinf import WANG2010_PAPER, hinf_filter, simulate_ross, wang2010_disturbances, wang2010_model
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
+from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
+from tobitkf.models_delay import DelayFadingSystem, FadingPMF, HistoryPrior, simulate_delay
+
+
+def assert_healthy(mean, cov, pred_cov=None, tol=1e-9):
+    mean, cov = np.asarray(mean), np.asarray(cov)
+    assert np.all(np.isfinite(mean)) and np.all(np.isfinite(cov))
+    np.testing.assert_array_equal(cov, np.swapaxes(cov, -1, -2))
+    scale = np.abs(cov).max(axis=(-1, -2))
+    if pred_cov is not None:
+        scale = np.maximum(scale, np.abs(np.asarray(pred_cov)).max(axis=(-1, -2)))
+    eig = np.linalg.eigvalsh(cov)
+    worst = (eig.min(axis=-1) / np.maximum(scale, 1e-300)).min()
+    assert worst >= -tol, worst
+
+
+W = 0.05
+BASE = dict(A=[[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]],
+            x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+CASES = {
+    "P0 huge (1e8)": dict(P0=1e8 * np.eye(2)),
+    "P0 tiny (1e-12)": dict(P0=1e-12 * np.eye(2)),
+    "P0 zero": dict(P0=np.zeros((2, 2))),
+    "R near singular (1e-12)": dict(R=[[1e-12]]),
+    "Q near singular (1e-12)": dict(Q=1e-12 * np.eye(2)),
+    "Q zero": dict(Q=np.zeros((2, 2))),
+    "ill-conditioned A": dict(A=[[1.0, 1e4], [0.0, 1.0]], Q=np.diag([1e-6, 1e-10])),
+}
+NOMINAL = tk.LinearSystem(**BASE)
+CENS = tk.Censoring(lower=0.0)
+DATA = tk.simulate(NOMINAL, 150, 4, censoring=CENS, seed=3)   # data from the nominal model
+
+
+def system(case):
+    return tk.LinearSystem(**{**BASE, **CASES[case]})
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("form", ["standard", "joseph"])
+def test_fading_filters_extremes(case, form):
+    s = system(case)
+    out = FadingTobitKalmanFilter(s, RiceFading(2, [0.95, 0.75, 0.85]), CENS, covariance_update=form).filter(
+        DATA.y, keep_smoothed=False)
+    assert_healthy(out.mean, out.cov, out.pred_cov)
+    out = FadingKalmanFilter(s, RiceFading(1, [0.9, 0.5]), covariance_update=form).filter(DATA.y, keep_smoothed=False)
+    assert_healthy(out.mean, out.cov, out.pred_cov)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("form", ["standard", "joseph"])
+def test_protocol_filter_extremes(case, form):
+    s = system(case)
+    ch = ProtocolChannel(1, window=1, threshold=0.0)
+    out = ProtocolTobitKalmanFilter(s, ch, covariance_update=form).filter(DATA.y)
+    assert_healthy(out.mean, out.cov, out.pred_cov)
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_steady_state_filters_extremes(case):
+    s = system(case)
+    out = SteadyStateTobitKalmanFilter(s, 0.5).filter_controlled(DATA.y_latent)
+    assert_healthy(out.mean, out.cov)
+    out = tobit_kalman_filter_controlled(s, 0.5, DATA.y_latent)
+    assert_healthy(out.mean, out.cov, out.pred_cov)
+
+
+@pytest.mark.parametrize("shift", [-40.0, 40.0])
+def test_limits_40_sigma_from_the_prediction_all_families(shift):
+    """Limit 40 sigma below (never censored) or above (always censored) the prediction."""
+    s = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    T = 30
+    cens = tk.Censoring(lower=shift)
+    y = np.full((3, T, 1), shift if shift > 0 else 0.5)
+    fad = FadingTobitKalmanFilter(s, RiceFading(0, [1.0]), cens).filter(y)
+    prot = ProtocolTobitKalmanFilter(s, ProtocolChannel(1, threshold=shift)).filter(y)
+    kf = tk.KalmanFilter(s).filter(y)
+    for out in (fad, prot):
+        assert_healthy(out.mean, out.cov, out.pred_cov)
+        if shift > 0:   # every reading censored 40 sigma above the prediction: nothing learnt
+            np.testing.assert_allclose(out.mean, 0.0, atol=1e-12)
+            np.testing.assert_allclose(out.cov[0, :, 0, 0], 1.0 + 0.01 * np.arange(1, T + 1), rtol=1e-12)
+        else:           # limit 40 sigma below: the Kalman filter
+            np.testing.assert_allclose(out.mean, kf.mean, atol=1e-10)
+
+
+DELAY_CASES = {
+    "nominal": {}, "Qw near singular": dict(Qw=1e-12, S=np.sqrt(1e-12 * 0.3)), "Qv near singular": dict(Qv=1e-12, S=0.0),
+    "S at the singular bound": dict(S=np.sqrt(0.3 * 0.3)), "ill-conditioned A": dict(A=[[1.0, 1e4], [0.0, 1.0]]),
+}
+
+
+@pytest.mark.parametrize("case", list(DELAY_CASES))
+@pytest.mark.parametrize("prior_var", [1e8, 1e-12])
+def test_delay_filters_extremes(case, prior_var):
+    kw = dict(A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=0.3, d=2,
+              fading=FadingPMF([0.95, 0.98, 1.0], [0.05, 0.15, 0.8]))
+    kw.update(DELAY_CASES[case])
+    sys_ = DelayFadingSystem(**kw)
+    truth_sys = DelayFadingSystem(**{**kw, "A": [[0.4, 0.7], [0.2, 0.6]]})
+    prior = HistoryPrior.repeated(np.zeros(2), prior_var * np.eye(2), 2)
+    data = simulate_delay(truth_sys, HistoryPrior.repeated(np.zeros(2), np.eye(2), 2), 60, 3, seed=1)
+    for est in (chain_lmmse(sys_, prior, data.y), augmented_lmmse(sys_, prior, data.y),
+                reorganized_lmmse(sys_, prior, data.y)):
+        assert_healthy(est.mean, est.cov, est.pred_cov)
+
+
+def test_hinf_filter_paper_gains_long_and_huge_inputs_stay_finite():
+    """The printed gains are stable: 1e4 steps, and readings of 1e150, stay finite and bounded."""
+    model = wang2010_model()
+    w, v = wang2010_disturbances(10_000)
+    sim = simulate_ross(model, 10_000, 2, x0=WANG2010_PAPER["x0"], w=w, v=v, seed=0)
+    out = hinf_filter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M, sim.y)
+    assert np.all(np.isfinite(out.mean)) and np.abs(out.mean).max() < 10
+    big = hinf_filter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M, np.full((50, 2), 1e150))
+    assert np.all(np.isfinite(big.mean)) and np.abs(big.mean).max() < 1e150
+
+
+# --- the measured limit of the plain and Joseph forms -----------------------------------
+def _hard_case():
+    A = [[np.cos(W), -np.sin(W), 0.0], [np.sin(W), np.cos(W), 0.0], [0.0, 0.0, 0.99]]
+    C = [[1.0, 0.0, 1.0], [0.0, 1.0, 1e-3]]
+    s = tk.LinearSystem(A=A, C=C, Q=1e-10 * np.eye(3), R=1e-12 * np.eye(2), x0=[0.0] * 3, P0=1e8 * np.eye(3))
+    truth = tk.LinearSystem(A=A, C=C, Q=1e-10 * np.eye(3), R=0.01 * np.eye(2), x0=[0.0] * 3, P0=np.eye(3))
+    return s, tk.simulate(truth, 50, 2, seed=1)
+
+
+def test_huge_prior_with_near_singular_R_each_alone_is_fine():
+    s, data = _hard_case()
+    for kw in (dict(R=1e-2 * np.eye(2)), dict(P0=np.eye(3))):   # either extreme alone
+        s1 = tk.LinearSystem(A=s.A.array, C=s.C.array, Q=s.Q.array, R=kw.get("R", s.R.array), x0=s.x0,
+                             P0=kw.get("P0", s.P0))
+        for form in ("standard", "joseph"):
+            out = tk.KalmanFilter(s1, covariance_update=form).filter(data.y)
+            assert_healthy(out.mean, out.cov, out.pred_cov)
+
+
+@pytest.mark.xfail(strict=True, reason="P0/R = 1e20 with an unseen direction: needs a square-root/UD form "
+                                       "(not implemented); plain and Joseph forms both lose PSD")
+@pytest.mark.parametrize("form", ["standard", "joseph"])
+def test_huge_prior_with_near_singular_R_together_needs_square_root_form(form):
+    s, data = _hard_case()
+    out = tk.KalmanFilter(s, covariance_update=form).filter(data.y)
+    assert_healthy(out.mean, out.cov, out.pred_cov)
