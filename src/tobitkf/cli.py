@@ -83,7 +83,8 @@ def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
     n_runs = get(exp_id).default_runs if runs is None else runs
     return (isinstance(meta, dict) and meta.get("runs") == n_runs and meta.get("seed") == seed
             and meta.get("package_version") == __version__
-            and all((folder / str(f)).is_file() for f in meta.get("figures", [])))
+            and isinstance(meta.get("figures", []), list)
+            and all(isinstance(f, str) and Path(f).name == f and (folder / f).is_file() for f in meta.get("figures", [])))
 
 
 @app.command()
