@@ -1,0 +1,47 @@
+"""Runs of 10^6 steps (issue 9 item 3), slow-marked: ``pytest -m slow tests/reliability``.
+
+One run per estimator family (the cases of benchmarks/bench_reliability.py): the whole
+record stays finite, exactly symmetric and PSD, and the estimation error stays bounded
+(no drift). About 10 minutes for all on one core; the default suite has a 2e4-step run in
+test_extremes_core.py.
+"""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_BENCH = Path(__file__).parents[2] / "benchmarks" / "bench_reliability.py"
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("bench_reliability", _BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+NAMES = ["KF", "DKF", "TKF", "TKF total_variance+joseph", "SSTKF", "controlled TKF", "TKF-FM", "PBTKF-IMSF",
+         "chain LMMSE (delay)"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", NAMES)
+def test_one_million_steps_stay_finite_symmetric_psd_and_bounded(name):
+    bench = _bench()
+    mean, cov, truth = bench.cases(1_000_000)[name]()
+    h = bench.health(mean, cov, truth)
+    assert h["finite"] and h["symmetric"] and h["psd"], h
+    # bounded error: the oscillator's state has std ~ 1-2; 50 is a drift, not noise
+    assert h["max_abs_error"] < 50, h
+
+
+def test_long_run_helper_smoke():
+    """The same checks on 3000 steps (keeps the slow test's code exercised in the default suite)."""
+    bench = _bench()
+    for name in ("TKF", "PBTKF-IMSF", "chain LMMSE (delay)"):
+        mean, cov, truth = bench.cases(3000)[name]()
+        h = bench.health(mean, cov, truth)
+        assert h["finite"] and h["symmetric"] and h["psd"] and h["max_abs_error"] < 50, (name, h)
+        assert np.asarray(mean).shape[-2] == 3000
