@@ -1,0 +1,61 @@
+"""Small matplotlib helpers shared by the experiments' figure functions."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["new_figure", "save", "plot_rmse_over_time", "ESTIMATOR_STYLE"]
+
+ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
+    "truth": {"color": "black", "lw": 1.2, "label": "truth"},
+    "kf": {"color": "tab:blue", "lw": 1.0, "ls": "--", "label": "KF (censored values as data)"},
+    "ikf": {"color": "tab:orange", "lw": 1.0, "ls": "-.", "label": "IKF (drops censored)"},
+    "tkf": {"color": "tab:red", "lw": 1.2, "label": "TKF"},
+    "sstkf": {"color": "tab:green", "lw": 1.2, "label": "steady-state TKF"},
+}
+
+
+def new_figure(rows: int = 1, cols: int = 1, *, width: float = 7.0, height: float = 3.0, **kw):
+    """A figure with ``rows x cols`` axes (always a 2-D array of axes)."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(rows, cols, figsize=(width, height * rows), squeeze=False, **kw)
+    return fig, axes
+
+
+def save(fig, outdir: Path, name: str) -> Path:
+    """Save ``fig`` as ``outdir/name`` atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    from ._io import atomic_savefig
+
+    fig.tight_layout()
+    path = atomic_savefig(fig, Path(outdir) / name, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def style(key: str) -> dict[str, Any]:
+    """Plot style of an estimator key (falls back to a plain labelled line)."""
+    base = key.split("-")[0] if key not in ESTIMATOR_STYLE else key
+    st = dict(ESTIMATOR_STYLE.get(base, {"lw": 1.0}))
+    st["label"] = st.get("label", key) if key in ESTIMATOR_STYLE else key
+    return st
+
+
+def plot_rmse_over_time(ax, estimators: dict[str, dict[str, Any]], component: int, *, title: str = "",
+                        log: bool = False) -> None:
+    """Per-step RMSE of one state component for each estimator."""
+    for key, summ in estimators.items():
+        r = np.asarray(summ["rmse"])[:, component]
+        ax.plot(np.arange(1, r.size + 1), r, **style(key))
+    ax.set_xlabel("k")
+    ax.set_ylabel(f"RMSE of x{component + 1}")
+    if log:
+        ax.set_yscale("log")
+    if title:
+        ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7)
