@@ -174,3 +174,13 @@ def test_fixed_gain_observer_infinite_limit_is_luenberger():
     assert a == pytest.approx(b, abs=1e-13)
     with pytest.raises(ValidationError, match="gain_form"):
         fixed_gain_tobit_observer([[0.9]], [[0.3]], [[1.0]], y, 0.2, gain_form="x")
+
+
+def test_fixed_gain_filter_form_is_predictor_form_times_A():
+    rng = np.random.default_rng(2)
+    A, Kf, C = np.array([[0.9, 0.1], [0.0, 0.8]]), np.array([[0.4], [0.1]]), np.array([[1.0, 0.0]])
+    y = np.minimum(rng.standard_normal((2, 30, 1)), 0.2)
+    filt = fixed_gain_tobit_observer(A, Kf, C, y, 0.3, -np.inf, 0.2, form="filter")
+    pred = fixed_gain_tobit_observer(A, A @ Kf, C, y, 0.3, -np.inf, 0.2, xhat0=np.zeros(2) @ A.T, form="predictor")
+    # predictor x_{k+1|k} = A x_{k|k}, with the filter's prior x_{1|0} = A x_0 = 0 as the predictor's start
+    assert pred[:, :] == pytest.approx(filt @ A.T, abs=1e-12)

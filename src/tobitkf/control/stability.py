@@ -285,16 +285,21 @@ def mean_field_error(A: Any, L: Any, C: Any, x0: Any, e0: Any, steps: int, sigma
 
 
 def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower: Any = -np.inf,
-                              upper: Any = np.inf, *, xhat0: Any = None, gain_form: str = "tobit") -> np.ndarray:
-    r"""The fixed-gain observer of Ch. 5 in predictor form (5.2), batched over runs.
+                              upper: Any = np.inf, *, xhat0: Any = None, gain_form: str = "tobit",
+                              form: str = "predictor") -> np.ndarray:
+    r"""The fixed-gain observer of Ch. 5 (5.2), batched over runs.
 
-    :math:`\hat x_{k+1} = A\hat x_k + L(y_k - E[\hat y_k])` with ``gain_form="tobit"`` (E[ŷ] of (5.2)),
-    or :math:`L(y_k - C\hat x_k)` with ``gain_form="linear"`` (the uncompensated LQG observer of Fig 5.11).
+    ``form="predictor"`` (5.2): :math:`\hat x_{k+1} = A\hat x_k + L(y_k - E[\hat y_k])`, ``y`` holds
+    y_0..y_{T-1} and the output index k holds x̂_{k+1} (x̂_0 = ``xhat0``, default 0).
+    ``form="filter"`` (the package convention): :math:`\bar x_k = A\hat x_{k-1}`,
+    :math:`\hat x_k = \bar x_k + L(y_k - E[y_k](\bar x_k))`, ``y`` holds y_1..y_T and output index
+    k-1 holds x̂_{k|k} (x̂_0 = ``xhat0``); with L = K_f this is the predictor form with L_p = AK_f.
+    ``gain_form="linear"`` replaces E[ŷ] by Cx̂: the uncompensated LQG observer of Fig 5.11.
 
-    ``y`` (..., T, m) are measurements y_0..y_{T-1}; returns x̂_1..x̂_T as (..., T, n) (index k holds the
-    prediction made after y_k), with x̂_0 = ``xhat0`` (default 0).
+    Returns ``(..., T, n)``.
     """
     check_option(gain_form, "gain_form", ("tobit", "linear"))
+    check_option(form, "form", ("predictor", "filter"))
     A, L, C = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, L, C))
     y = np.asarray(y, dtype=float)
     n = A.shape[0]
@@ -302,10 +307,10 @@ def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower:
         np.asarray(xhat0, dtype=float), y.shape[:-2] + (n,)).copy()
     out = np.empty(y.shape[:-1] + (n,))
     for k in range(y.shape[-2]):
-        if gain_form == "tobit":
-            ey, _ = _expected(C, xh, sigma, lower, upper)
-        else:
-            ey = xh @ C.T
-        xh = xh @ A.T + (y[..., k, :] - ey) @ L.T
+        if form == "filter":
+            xh = xh @ A.T
+        ey = _expected(C, xh, sigma, lower, upper)[0] if gain_form == "tobit" else xh @ C.T
+        innov = (y[..., k, :] - ey) @ L.T
+        xh = xh @ A.T + innov if form == "predictor" else xh + innov
         out[..., k, :] = xh
     return out
