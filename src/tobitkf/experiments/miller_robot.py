@@ -64,6 +64,7 @@ def robot(*, runs: int = 20, seed: int = 0, progress=None, steps: int = 1000) ->
     cases = [(27.0, "tkf", 0.05), (19.0, "kf", 0.05), (27.0, "tkf", 1.0), (27.0, "kf", 1.0), (19.0, "tkf", 1.0),
              (19.0, "kf", 1.0), (12.0, "tkf", 0.05)]
     scen: dict[str, Any] = {}
+    estimators: dict[str, Any] = {}
     data = {}
     for i, (rad, fb, sr) in enumerate(cases):
         setup = robot_setup(sigma_r=sr)
@@ -79,6 +80,11 @@ def robot(*, runs: int = 20, seed: int = 0, progress=None, steps: int = 1000) ->
                       "median_position_error": {"tkf": float(np.median(e_t[ok])) if ok.any() else None,
                                                 "kf": float(np.median(e_k[ok])) if ok.any() else None},
                       "censored_fraction": res.censored.mean(axis=(0, 1)).tolist()}
+        if name == "zeta19-tkf-loop-sigmaLS1":
+            from .. import metrics as mx
+
+            estimators = {"tkf": mx.summarize(res.x[..., :4], res.estimate_tkf[..., :4]),
+                          "kf": mx.summarize(res.x[..., :4], res.estimate_kf[..., :4])}
         data[name] = {"xy": pos, "ref": res.reference, "rss": res.rss[0], "tx": setup.transmitters, "radius": rad,
                       "err_tkf": np.median(e_t, axis=0), "err_kf": np.median(e_k, axis=0)}
         progress((i + 1) / len(cases))
@@ -115,4 +121,4 @@ def robot(*, runs: int = 20, seed: int = 0, progress=None, steps: int = 1000) ->
         "U_d": setting("log10 beta", "reconstructed", "printed 1/2 log10 beta double counts (A28)"),
         "lqr": setting("Q = 1000 Cp'Cp, R = I", "reconstructed"), "P0": setting(0.1, "source"),
         "PL_d0": setting("dropped", "reconstructed", "A27")}
-    return ExperimentResult("miller-robot", settings, {"runs": runs, "scenarios": scen, "estimators": {}}, data, claims)
+    return ExperimentResult("miller-robot", settings, {"runs": runs, "scenarios": scen, "estimators": estimators}, data, claims)

@@ -339,7 +339,6 @@ def panning(*, runs: int = 20, seed: int = 0, progress=None, dt: float = 0.1, si
     sim, res = run("keep-in-view-6.72", sys1, 600, law72, "Fig 6.31: rule (6.72), T_h0 = 20, width 50", rng_seq[0])
     Th = res.upper[..., 0]
     active = Th > 20.0 + 1e-12
-    gap = (Th - res.mean[..., 0] * 0 - np.nan_to_num(0))  # placeholder for clarity
     prior = np.einsum("ij,ntj->nti", sys1.transition(0), np.concatenate([np.broadcast_to(sys1.x0, (runs, 1, 2)),
                                                                           res.mean[:, :-1]], axis=1))[..., 0]
     margin = (Th - prior)[active]
