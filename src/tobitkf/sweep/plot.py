@@ -1,0 +1,59 @@
+"""Figures from a stored sweep: RMSE over time and RMSE versus each swept parameter."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..plotting import new_figure, save
+
+__all__ = ["plot_result"]
+
+
+def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path]:
+    """Draw ``rmse_over_time.png`` and ``rmse_vs_<param>.png`` for a finished sweep store.
+
+    Returns the written paths (default folder: ``<store>/../<name>_plots``).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from .store import load_result
+
+    path = Path(path)
+    ds = load_result(path)
+    outdir = Path(outdir) if outdir is not None else path.parent / f"{path.stem}_plots"
+    grid_dims = [d for d in ds["rmse"].dims if d not in ("estimator", "time", "state")]
+    stacked = ds["rmse"].stack(point=grid_dims) if grid_dims else ds["rmse"].expand_dims(point=[0])
+    ests, n = list(ds["estimator"].values), ds.sizes["state"]
+    paths = []
+    fig, axes = new_figure(n, len(ests), width=4.2 * len(ests), height=2.8)
+    for j, est in enumerate(ests):
+        for i in range(n):
+            ax = axes[i, j]
+            for p in range(stacked.sizes["point"]):
+                label = str(stacked["point"].values[p]) if grid_dims else None
+                ax.plot(ds["time"].values, stacked.sel(estimator=est).isel(point=p, state=i).values, lw=0.9, label=label)
+            ax.set_title(f"{est}: RMSE of x{i + 1}", fontsize=9)
+            ax.set_xlabel("k")
+            if grid_dims and stacked.sizes["point"] <= 8:
+                ax.legend(fontsize=6, title=", ".join(grid_dims), title_fontsize=6)
+    paths.append(save(fig, outdir, "rmse_over_time.png"))
+    avg = ds["rmse"].mean("time")
+    for dim in grid_dims:
+        others = [d for d in grid_dims if d != dim]
+        fig, axes = new_figure(1, n, width=4.5 * n, height=3.2)
+        for i in range(n):
+            ax = axes[0, i]
+            for est in ests:
+                curve = avg.sel(estimator=est).isel(state=i)
+                if others:
+                    curve = curve.mean(others)
+                ax.plot(ds[dim].values, curve.values, "o-", label=est)
+            ax.set_xlabel(dim)
+            ax.set_ylabel(f"time-averaged RMSE of x{i + 1}")
+            ax.legend(fontsize=7)
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in dim)
+        paths.append(save(fig, outdir, f"rmse_vs_{safe}.png"))
+    return paths

@@ -1,0 +1,214 @@
+"""Executing a sweep: blocks of runs, seeded independently, on a laptop or a Dask cluster.
+
+Seeding: block ``b`` of every grid point draws from
+``numpy.random.SeedSequence(seed).spawn``-style children, concretely
+``SeedSequence(seed, spawn_key=(b,))`` — the ``b``-th child of the sweep's seed. The
+numbers therefore do not depend on how blocks are grouped into tasks or on the number of
+workers, and grid points share common random numbers (differences between grid points
+are not blurred by sampling noise).
+
+Each task returns sufficient statistics only (sums of errors, squared errors, NEES and
+censoring counts, see :mod:`tobitkf.sweep.store`), never trajectories, so memory does not
+grow with the run count.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._validation import ValidationError
+from .spec import SweepSpec
+from .store import open_store, reduce_store, write_block
+
+__all__ = ["build_point", "run_block", "run_sweep"]
+
+
+def build_point(spec: SweepSpec, point: dict[str, Any]):
+    """System, censoring and estimator objects of one grid point (model mode)."""
+    from ..channels.censoring import Censoring
+    from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
+    from ..filters.tobit import TobitKalmanFilter
+    from ..models import LinearSystem
+
+    r = spec.resolved(point)
+    sys_ = LinearSystem(**r["model"])
+    cens = Censoring(**r["censoring"])
+    cens.check(sys_.m, spec.steps)
+    estimators = {}
+    for key, est in r["estimators"].items():
+        opts = {k: v for k, v in est.items() if k != "type"}
+        if est["type"] == "KalmanFilter":
+            estimators[key] = KalmanFilter(sys_, **opts)
+        elif est["type"] == "DroppingKalmanFilter":
+            estimators[key] = DroppingKalmanFilter(sys_, cens, **opts)
+        else:
+            estimators[key] = TobitKalmanFilter(sys_, cens, **opts)
+    return sys_, cens, estimators
+
+
+def _nees_sum(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    sol = np.linalg.solve(cov, err[..., None])[..., 0]
+    return np.einsum("...i,...i->...", err, sol).sum(axis=0)
+
+
+def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int) -> dict[str, np.ndarray]:
+    """Simulate ``runs`` runs of block ``block`` and return its sufficient statistics."""
+    from ..simulate import simulate
+
+    sys_, cens, estimators = build_point(spec, point)
+    data = simulate(sys_, spec.steps, runs, censoring=cens, seed=np.random.SeedSequence(spec.seed, spawn_key=(block,)))
+    truth = data.x[:, 1:]
+    s_err, s_sq, s_nees = [], [], []
+    for est in estimators.values():
+        out = est.filter(data.y)
+        err = out.mean - truth
+        s_err.append(err.sum(axis=0))
+        s_sq.append((err**2).sum(axis=0))
+        s_nees.append(_nees_sum(err, out.cov))
+    at_lo, at_hi = cens.censored_mask(data.y)
+    return {"sum_err": np.stack(s_err), "sum_sq": np.stack(s_sq), "sum_nees": np.stack(s_nees),
+            "censored": (at_lo | at_hi).sum(axis=0).astype(float), "count": np.int64(runs)}
+
+
+def _experiment_point(spec: SweepSpec, point: dict[str, Any]) -> tuple[list[str], dict[str, np.ndarray]]:
+    from ..experiments import get
+
+    r = spec.resolved(point)
+    res = get(spec.experiment).run(runs=spec.runs, seed=spec.seed, **r["settings"])
+    est = res.metrics.get("estimators")
+    if not est:
+        raise ValidationError(f"sweep.experiment: {spec.experiment!r} reports no top-level 'estimators' block "
+                              "and cannot be swept")
+    keys = list(est)
+    runs = spec.runs
+    rmse = np.stack([np.asarray(est[k]["rmse"], dtype=float) for k in keys])
+    bias = np.stack([np.asarray(est[k]["bias"], dtype=float) for k in keys])
+    nees = np.stack([np.asarray(est[k].get("nees", np.full(rmse.shape[1], np.nan)), dtype=float) for k in keys])
+    stats = {"sum_err": bias * runs, "sum_sq": rmse**2 * runs, "sum_nees": nees * runs,
+             "censored": np.zeros((rmse.shape[1], 1)), "count": np.int64(runs)}
+    return keys, stats
+
+
+def run_task(spec_text: str, name: str, point_index: int, blocks: list[int]) -> list[tuple[int, dict]]:
+    """A unit of work for a worker: some blocks of one grid point (top-level so Dask can pickle it)."""
+    from .spec import parse_sweep
+
+    spec = parse_sweep(spec_text, name=name)
+    point = spec.points()[point_index]
+    sizes = spec.block_sizes()
+    if spec.experiment is not None:
+        return [(0, _experiment_point(spec, point)[1])]
+    return [(b, run_block(spec, point, b, sizes[b])) for b in blocks]
+
+
+def _client(scheduler: str, workers: int):
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ValidationError("--scheduler: Dask schedulers need 'distributed' (install tobitkf with its dependencies)") from None
+    if scheduler == "processes":
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        return Client(cluster), cluster
+    return Client(scheduler), None
+
+
+def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", workers: int = 2,
+              progress: Callable[[int, int, float], None] | None = None, max_tasks: int | None = None):
+    """Run (or resume) a sweep and return the path of its store.
+
+    Parameters
+    ----------
+    spec : SweepSpec
+    out : path
+        Output directory; the store is ``out/<name>.zarr``.
+    scheduler : {"local", "processes"} or a Dask scheduler address
+        ``local`` runs in this process; ``processes`` starts a ``distributed.LocalCluster``
+        with ``workers`` single-threaded worker processes; an address connects to a cluster.
+    progress : callable(done_blocks, total_blocks, runs_per_second), optional
+    max_tasks : int, optional
+        Stop after this many tasks (used to test resumption).
+
+    Returns
+    -------
+    Path of the store; the reduced Dataset is written to its ``summary`` group when complete.
+    """
+    from .._io import safe_child
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = safe_child(out, f"{spec.name}.zarr")
+    points = spec.points()
+    if spec.experiment is not None:
+        keys, first = _experiment_point(spec, points[0])
+        steps, n = first["sum_sq"].shape[1:]
+        g = open_store(path, spec, keys, n, 1, steps)
+        if not g["done"][0, 0]:
+            write_block(g, 0, 0, first)
+    else:
+        sys_, _, ests = build_point(spec, points[0])
+        g = open_store(path, spec, list(ests), sys_.n, sys_.m, spec.steps)
+    done = g["done"][:]
+    tasks = []
+    for p in range(len(points)):
+        todo = [b for b in range(spec.blocks) if not done[p, b]]
+        for i in range(0, len(todo), spec.chunk_blocks):
+            tasks.append((p, todo[i:i + spec.chunk_blocks]))
+    if max_tasks is not None:
+        tasks = tasks[:max_tasks]
+    total = int(done.size)
+    finished = int(done.sum())
+    sizes = spec.block_sizes()
+    t0 = time.perf_counter()
+    runs_done = 0
+
+    def record(p: int, results: Iterable[tuple[int, dict]]) -> None:
+        nonlocal finished, runs_done
+        for b, stats in results:
+            write_block(g, p, b, stats)
+            finished += 1
+            runs_done += sizes[b]
+        if progress is not None:
+            progress(finished, total, runs_done / max(time.perf_counter() - t0, 1e-9))
+
+    if progress is not None:
+        progress(finished, total, 0.0)
+    if scheduler == "local":
+        for p, blocks in tasks:
+            record(p, run_task(spec.text, spec.name, p, blocks))
+    else:
+        from distributed import as_completed
+
+        client, cluster = _client(scheduler, workers)
+        try:
+            futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
+            for fut in as_completed(futs):
+                record(futs[fut], fut.result())
+        finally:
+            client.close()
+            if cluster is not None:
+                cluster.close()
+    if bool(g["done"][:].all()):
+        _write_summary(path, reduce_store(g))
+    return path
+
+
+def _write_summary(path: Path, ds) -> None:
+    """Write the reduced Dataset to the store's ``summary`` group (replaced whole)."""
+    import shutil
+    import warnings
+
+    tmp = path / "summary.tmp"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ds.to_zarr(str(path), group="summary.tmp", mode="w", consolidated=False)
+    final = path / "summary"
+    if final.exists():
+        shutil.rmtree(final)
+    tmp.rename(final)

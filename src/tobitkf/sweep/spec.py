@@ -1,0 +1,295 @@
+"""Sweep files: TOML parsed as data (never evaluated), validated on load.
+
+A sweep file names either a model + censoring + estimators, or a registered experiment,
+plus a parameter grid, the run count, the horizon and a seed::
+
+    [sweep]
+    runs = 100000          # Monte Carlo runs per grid point
+    steps = 100            # horizon T
+    seed = 0
+    block_runs = 2000      # runs per block: the unit of seeding and of storage
+    chunk_blocks = 5       # blocks per task sent to a worker (does not change the numbers)
+
+    [model]                # LinearSystem arguments (constant matrices)
+    A = [[1.0, 0.05], [0.0, 1.0]]
+    C = [[1.0, 0.0]]
+    Q = [[1e-4, 0.0], [0.0, 1e-3]]
+    R = [[0.01]]
+    x0 = [0.0, 0.0]
+    P0 = [[1.0, 0.0], [0.0, 1.0]]
+
+    [censoring]
+    lower = 0.0            # TOML writes infinities as inf / -inf
+    upper = inf
+
+    [estimators.tkf]
+    type = "TobitKalmanFilter"
+    noise_term = "dissertation"
+
+    [estimators.kf]
+    type = "KalmanFilter"
+
+    [grid]                 # cartesian product; keys are dotted paths into this file
+    "censoring.lower" = [-0.5, 0.0, 0.5]
+
+Experiment mode: ``[sweep] experiment = "miller-oscillator"``, optional ``[settings]``
+(keyword overrides of the experiment's ``run``), and grid keys ``"settings.<name>"``.
+Each grid point then runs the experiment once with all runs (no run blocks).
+
+Errors name the key and the line of the file (:class:`SweepFileError`).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._validation import ValidationError
+
+__all__ = ["SweepFileError", "SweepSpec", "load_sweep", "parse_sweep", "ESTIMATOR_TYPES"]
+
+# estimator types a sweep file may name, with the options each accepts (checked on load)
+ESTIMATOR_TYPES: dict[str, tuple[str, ...]] = {
+    "KalmanFilter": ("covariance_update",),
+    "DroppingKalmanFilter": ("covariance_update", "rtol"),
+    "TobitKalmanFilter": ("noise_term", "covariance_update"),
+}
+_SWEEP_KEYS = {"runs", "steps", "seed", "block_runs", "chunk_blocks", "name", "experiment"}
+_MODEL_KEYS = {"A", "C", "Q", "R", "x0", "P0", "B"}
+_CENS_KEYS = {"lower", "upper"}
+_TOP = {"sweep", "model", "censoring", "estimators", "grid", "settings"}
+
+
+class SweepFileError(ValidationError):
+    """A sweep file is malformed; the message names the key and its line."""
+
+
+def _line_of(text: str, dotted: str) -> int | None:
+    """1-based line where ``dotted`` (``section.key`` or ``section``) is defined, if found."""
+    parts = dotted.split(".")
+    section, key = (".".join(parts[:-1]), parts[-1]) if len(parts) > 1 else ("", parts[0])
+    current = ""
+    for i, raw in enumerate(text.splitlines(), start=1):
+        line = raw.split("#", 1)[0].strip()
+        if line.startswith("[") and line.endswith("]"):
+            current = line.strip("[]").strip().replace('"', "")
+            if current == dotted:
+                return i
+            continue
+        if "=" in line:
+            lhs = line.split("=", 1)[0].strip().strip('"')
+            if (current == section and lhs == key) or (current == "" and lhs == dotted) or \
+                    (current == parts[0] and lhs == ".".join(parts[1:])):
+                return i
+    return None
+
+
+def _fail(text: str, key: str, message: str) -> SweepFileError:
+    line = _line_of(text, key)
+    where = f" (line {line})" if line else ""
+    return SweepFileError(f"sweep file: {key}{where}: {message}")
+
+
+@dataclass
+class SweepSpec:
+    """A validated sweep file."""
+
+    text: str
+    name: str
+    runs: int
+    steps: int
+    seed: int
+    block_runs: int
+    chunk_blocks: int
+    experiment: str | None
+    model: dict[str, Any]
+    censoring: dict[str, Any]
+    estimators: dict[str, dict[str, Any]]
+    settings: dict[str, Any]
+    grid: dict[str, list[Any]] = field(default_factory=dict)
+
+    @property
+    def blocks(self) -> int:
+        """Number of run blocks per grid point (experiment mode: 1)."""
+        if self.experiment is not None:
+            return 1
+        return -(-self.runs // self.block_runs)
+
+    def block_sizes(self) -> list[int]:
+        if self.experiment is not None:
+            return [self.runs]
+        full, rest = divmod(self.runs, self.block_runs)
+        return [self.block_runs] * full + ([rest] if rest else [])
+
+    @property
+    def grid_shape(self) -> tuple[int, ...]:
+        return tuple(len(v) for v in self.grid.values())
+
+    def points(self) -> list[dict[str, Any]]:
+        """Every grid point as ``{dotted key: value}`` (row-major over the grid keys)."""
+        keys = list(self.grid)
+        return [dict(zip(keys, combo)) for combo in itertools.product(*self.grid.values())] or [{}]
+
+    def resolved(self, point: dict[str, Any]) -> dict[str, Any]:
+        """Model, censoring, estimators and settings with a grid point applied."""
+        out = {"model": dict(self.model), "censoring": dict(self.censoring),
+               "estimators": {k: dict(v) for k, v in self.estimators.items()}, "settings": dict(self.settings)}
+        for dotted, value in point.items():
+            parts = dotted.split(".")
+            target = out[parts[0]]
+            for p in parts[1:-1]:
+                target = target[p]
+            target[parts[-1]] = value
+        return out
+
+    def canonical(self) -> str:
+        """A canonical JSON form of everything that determines the numbers (used to refuse
+        resuming a store made by a different sweep)."""
+        return json.dumps({"runs": self.runs, "steps": self.steps, "seed": self.seed, "block_runs": self.block_runs,
+                           "experiment": self.experiment, "model": self.model, "censoring": self.censoring,
+                           "estimators": self.estimators, "settings": self.settings, "grid": self.grid},
+                          sort_keys=True, default=str)
+
+
+def _int(text: str, table: dict, key: str, dotted: str, *, default: int | None = None, minimum: int = 1) -> int:
+    if key not in table:
+        if default is None:
+            raise _fail(text, dotted.rsplit(".", 1)[0], f"missing required key {key!r}")
+        return default
+    val = table[key]
+    if isinstance(val, bool) or not isinstance(val, int) or val < minimum:
+        raise _fail(text, dotted, f"expected an integer >= {minimum}, got {val!r}")
+    return val
+
+
+def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
+    """Parse and validate the text of a sweep file."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise SweepFileError(f"sweep file: not valid TOML: {exc}") from None
+    for key in doc:
+        if key not in _TOP:
+            raise _fail(text, key, f"unknown table; expected one of {', '.join(sorted(_TOP))}")
+    sw = doc.get("sweep")
+    if not isinstance(sw, dict):
+        raise SweepFileError("sweep file: missing the [sweep] table (runs, steps, seed)")
+    for key in sw:
+        if key not in _SWEEP_KEYS:
+            raise _fail(text, f"sweep.{key}", f"unknown key; expected one of {', '.join(sorted(_SWEEP_KEYS))}")
+    runs = _int(text, sw, "runs", "sweep.runs")
+    steps = _int(text, sw, "steps", "sweep.steps", default=0, minimum=0)
+    seed = _int(text, sw, "seed", "sweep.seed", minimum=0)
+    block_runs = _int(text, sw, "block_runs", "sweep.block_runs", default=min(runs, 2000))
+    chunk_blocks = _int(text, sw, "chunk_blocks", "sweep.chunk_blocks", default=max(1, 10_000 // block_runs))
+    experiment = sw.get("experiment")
+    sname = sw.get("name", name)
+    if not isinstance(sname, str) or not sname or any(c in sname for c in "/\\") or sname.startswith("."):
+        raise _fail(text, "sweep.name", f"expected a plain file name, got {sname!r}")
+    model = doc.get("model", {})
+    cens = doc.get("censoring", {})
+    ests = doc.get("estimators", {})
+    settings = doc.get("settings", {})
+    if experiment is not None:
+        from ..experiments import get
+
+        if not isinstance(experiment, str):
+            raise _fail(text, "sweep.experiment", f"expected an experiment id, got {experiment!r}")
+        try:
+            get(experiment)
+        except ValidationError as exc:
+            raise _fail(text, "sweep.experiment", str(exc)) from None
+        for tbl in ("model", "censoring", "estimators"):
+            if tbl in doc:
+                raise _fail(text, tbl, "not allowed together with sweep.experiment (use [settings])")
+    else:
+        if steps < 1:
+            raise _fail(text, "sweep.steps" if "steps" in sw else "sweep", "expected an integer >= 1 (the horizon)")
+        if "settings" in doc:
+            raise _fail(text, "settings", "only allowed with sweep.experiment")
+        for key in _MODEL_KEYS - {"B"}:
+            if key not in model:
+                raise _fail(text, "model", f"missing required key {key!r}")
+        for key in model:
+            if key not in _MODEL_KEYS:
+                raise _fail(text, f"model.{key}", f"unknown key; expected one of {', '.join(sorted(_MODEL_KEYS))}")
+        for key in cens:
+            if key not in _CENS_KEYS:
+                raise _fail(text, f"censoring.{key}", "unknown key; expected 'lower' or 'upper'")
+        if not ests:
+            raise _fail(text, "estimators", "expected at least one [estimators.<key>] table")
+        for key, est in ests.items():
+            if not isinstance(est, dict) or "type" not in est:
+                raise _fail(text, f"estimators.{key}", "expected a table with a 'type'")
+            if est["type"] not in ESTIMATOR_TYPES:
+                raise _fail(text, f"estimators.{key}.type",
+                            f"unknown estimator type {est['type']!r}; expected one of {', '.join(ESTIMATOR_TYPES)}")
+            for opt in est:
+                if opt != "type" and opt not in ESTIMATOR_TYPES[est["type"]]:
+                    raise _fail(text, f"estimators.{key}.{opt}",
+                                f"unknown option for {est['type']}; expected one of "
+                                f"{', '.join(ESTIMATOR_TYPES[est['type']]) or 'none'}")
+    grid = doc.get("grid", {})
+    for key, values in grid.items():
+        if not isinstance(values, list) or not values:
+            raise _fail(text, f"grid.{key}", "expected a non-empty list of values")
+        root = key.split(".")[0]
+        allowed = {"settings"} if experiment is not None else {"model", "censoring", "estimators"}
+        if root not in allowed or "." not in key:
+            raise _fail(text, f"grid.{key}", f"grid keys are dotted paths starting with {' or '.join(sorted(allowed))}")
+        if root == "estimators":
+            parts = key.split(".")
+            if len(parts) != 3 or parts[1] not in ests:
+                raise _fail(text, f"grid.{key}", "expected 'estimators.<key>.<option>' naming a listed estimator")
+    spec = SweepSpec(text=text, name=sname, runs=runs, steps=steps, seed=seed, block_runs=block_runs,
+                     chunk_blocks=chunk_blocks, experiment=experiment, model=model, censoring=cens,
+                     estimators=ests, settings=settings, grid=grid)
+    # build the base model and every grid point once, so that a bad matrix or limit fails on
+    # load (naming the key that holds it), not mid-sweep
+    if experiment is None:
+        from .run import build_point
+
+        try:
+            build_point(spec, {})
+        except ValidationError as exc:
+            arg = str(exc).split(":", 1)[0].split("(")[0].strip()
+            key = f"model.{arg}" if arg in _MODEL_KEYS else ("censoring" if arg.startswith(("lower", "upper", "censoring"))
+                                                              else "model")
+            raise _fail(text, key, str(exc)) from None
+        for point in spec.points():
+            try:
+                build_point(spec, point)
+            except ValidationError as exc:
+                key = next(iter(point))
+                raise _fail(text, f"grid.{key}", f"invalid at grid point {point}: {exc}") from None
+    return spec
+
+
+def load_sweep(path: str | Path) -> SweepSpec:
+    """Read and validate a sweep file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise SweepFileError(f"sweep file: cannot read {path}: {exc}") from None
+    return parse_sweep(text, name=path.stem)
+
+
+def jsonable_grid(grid: dict[str, list[Any]]) -> dict[str, list[Any]]:
+    """Grid values made JSON-friendly (infinities as strings)."""
+    from .._io import to_jsonable
+
+    return {k: to_jsonable(v) for k, v in grid.items()}
+
+
+def scalar_axis(values: list[Any]) -> np.ndarray | None:
+    """The grid values as a float coordinate if they are all scalars, else None."""
+    if all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values):
+        return np.asarray(values, dtype=float)
+    return None

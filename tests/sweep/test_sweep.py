@@ -1,0 +1,215 @@
+"""Sweeps: chunking invariance, Dask, resumption after a kill, reduction, validation errors."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf.sweep import SweepFileError, load_result, parse_sweep, plot_result, run_sweep
+
+BASE = """
+[sweep]
+runs = {runs}
+steps = {steps}
+seed = 3
+block_runs = {block}
+chunk_blocks = {chunk}
+
+[model]
+A = [[0.95]]
+C = [[1.0]]
+Q = [[0.04]]
+R = [[0.01]]
+x0 = [0.0]
+P0 = [[0.2]]
+
+[censoring]
+lower = 0.0
+
+[estimators.kf]
+type = "KalmanFilter"
+
+[estimators.tkf]
+type = "TobitKalmanFilter"
+
+[grid]
+"censoring.lower" = [-0.2, 0.1]
+"""
+
+
+def spec(runs=140, steps=30, block=20, chunk=7):
+    return parse_sweep(BASE.format(runs=runs, steps=steps, block=block, chunk=chunk), name="t")
+
+
+def arrays(path):
+    ds = load_result(path)
+    return {v: ds[v].values for v in ds.data_vars}
+
+
+def test_reduction_equals_direct_computation(tmp_path):
+    s = spec(runs=60, block=20)
+    path = run_sweep(s, tmp_path)
+    ds = load_result(path)
+    # independent: simulate the three blocks with the documented seeds and filter directly
+    sys_ = tk.LinearSystem(A=[[0.95]], C=[[1.0]], Q=[[0.04]], R=[[0.01]], x0=[0.0], P0=[[0.2]])
+    for lower in (-0.2, 0.1):
+        cens = tk.Censoring(lower=lower)
+        errs = {"kf": [], "tkf": []}
+        for b in range(3):
+            d = tk.simulate(sys_, 30, 20, censoring=cens, seed=np.random.SeedSequence(3, spawn_key=(b,)))
+            errs["kf"].append(tk.KalmanFilter(sys_).filter(d.y).mean - d.x[:, 1:])
+            errs["tkf"].append(tk.TobitKalmanFilter(sys_, cens).filter(d.y).mean - d.x[:, 1:])
+        for key, e in errs.items():
+            e = np.concatenate(e)
+            got = ds["rmse"].sel({"censoring.lower": lower, "estimator": key}).values
+            np.testing.assert_allclose(got, np.sqrt((e**2).mean(axis=0)), rtol=1e-12)
+            np.testing.assert_allclose(ds["bias"].sel({"censoring.lower": lower, "estimator": key}).values,
+                                       e.mean(axis=0), rtol=1e-10, atol=1e-15)
+    assert ds.attrs["sweep"].startswith("\n[sweep]") and ds.attrs["package_version"] == tk.__version__
+
+
+def test_chunking_and_dask_give_identical_statistics(tmp_path):
+    one = arrays(run_sweep(spec(chunk=7), tmp_path / "one"))           # 1 task per grid point
+    seven = arrays(run_sweep(spec(chunk=1), tmp_path / "seven"))       # 7 tasks per grid point
+    pytest.importorskip("distributed")
+    dask = arrays(run_sweep(spec(chunk=2), tmp_path / "dask", scheduler="processes", workers=2))
+    for name in one:
+        np.testing.assert_array_equal(one[name], seven[name])
+        np.testing.assert_array_equal(one[name], dask[name])
+
+
+def test_resume_after_partial_run_is_identical(tmp_path):
+    full = arrays(run_sweep(spec(chunk=1), tmp_path / "full"))
+    part = run_sweep(spec(chunk=1), tmp_path / "part", max_tasks=5)
+    assert not (part / "summary").exists()
+    with pytest.raises(tk.ValidationError, match="not finished"):
+        load_result(part)
+    run_sweep(spec(chunk=1), tmp_path / "part")
+    resumed = arrays(part)
+    for name in full:
+        np.testing.assert_array_equal(full[name], resumed[name])
+
+
+def test_resume_after_killed_process_is_identical(tmp_path):
+    text = BASE.format(runs=2000, steps=200, block=100, chunk=1)
+    f = tmp_path / "killme.toml"
+    f.write_text(text)
+    env = dict(os.environ, PYTHONPATH=str(Path(tk.__file__).parents[1]))
+    cmd = [sys.executable, "-m", "tobitkf", "sweep", str(f), "--out", str(tmp_path / "out")]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import zarr
+
+    store = tmp_path / "out" / "killme.zarr"
+    deadline = time.time() + 120
+    done = 0
+    while time.time() < deadline:
+        if (store / "zarr.json").exists():
+            try:
+                done = int(zarr.open_group(str(store), mode="r")["done"][:].sum())
+            except Exception:  # the store may be mid-creation
+                done = 0
+            if done >= 3:
+                break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert 3 <= done < 40, f"kill did not land mid-sweep (done={done})"
+    assert not (store / "summary").exists()
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    resumed = arrays(store)
+    full = arrays(run_sweep(parse_sweep(text, name="killme"), tmp_path / "ref"))
+    for name in full:
+        np.testing.assert_array_equal(full[name], resumed[name])
+
+
+def test_store_of_another_sweep_is_refused(tmp_path):
+    run_sweep(spec(runs=40), tmp_path)
+    with pytest.raises(tk.ValidationError, match="different sweep"):
+        run_sweep(spec(runs=60), tmp_path)
+
+
+def test_plot_writes_both_figures(tmp_path):
+    path = run_sweep(spec(runs=40), tmp_path)
+    paths = plot_result(path, tmp_path / "figs")
+    names = sorted(p.name for p in paths)
+    assert names == ["rmse_over_time.png", "rmse_vs_censoring.lower.png"]
+    assert all(p.stat().st_size > 2000 for p in paths)
+
+
+def test_experiment_mode_stores_the_experiment_rmse(tmp_path):
+    text = """
+[sweep]
+experiment = "miller-brownian"
+runs = 6
+seed = 2
+[settings]
+steps = 50
+[grid]
+"settings.sigma" = [0.05, 0.1]
+"""
+    ds = load_result(run_sweep(parse_sweep(text, name="exp"), tmp_path))
+    from tobitkf.experiments import get
+
+    ref = get("miller-brownian").run(runs=6, seed=2, steps=50, sigma=0.1)
+    np.testing.assert_allclose(ds["rmse"].sel({"settings.sigma": 0.1, "estimator": "tkf"}).values,
+                               np.asarray(ref.metrics["estimators"]["tkf"]["rmse"]), rtol=1e-12)
+
+
+@pytest.mark.parametrize("text, match", [
+    ("not toml = = 1", "not valid TOML"),
+    ("[model]\nA=[[1.0]]", "missing the \\[sweep\\] table"),
+    ("[sweep]\nruns = 0\nsteps = 5\nseed = 0", "sweep.runs \\(line 2\\): expected an integer >= 1"),
+    ("[sweep]\nruns = 5\nsteps = 5\nseed = 0\nrun = 3", "sweep.run \\(line 5\\): unknown key"),
+    ("[sweep]\nruns = 5\nsteps = 5", "missing required key 'seed'"),
+    ("[sweep]\nruns = 5\nsteps = 5\nseed = 0\n[modle]\nA = 1", "modle \\(line 5\\): unknown table"),
+])
+def test_sweep_file_errors_name_key_and_line(text, match):
+    with pytest.raises(SweepFileError, match=match):
+        parse_sweep(text)
+
+
+def _with(old, new):
+    return BASE.format(runs=10, steps=5, block=5, chunk=1).replace(old, new)
+
+
+@pytest.mark.parametrize("old, new, match", [
+    ('type = "KalmanFilter"', 'type = "Kalman"', "estimators.kf.type \\(line \\d+\\): unknown estimator type"),
+    ('type = "TobitKalmanFilter"', 'type = "TobitKalmanFilter"\nnoise = 1', "estimators.tkf.noise \\(line \\d+\\): unknown option"),
+    ('"censoring.lower" = [-0.2, 0.1]', '"censoring.lower" = []', "grid.censoring.lower \\(line \\d+\\): expected a non-empty list"),
+    ('"censoring.lower" = [-0.2, 0.1]', '"sweep.seed" = [1, 2]', "grid keys are dotted paths"),
+    ('"censoring.lower" = [-0.2, 0.1]', '"censoring.lower" = [0.0, inf]', "invalid at grid point .*lower"),
+    ("Q = [[0.04]]", "Q = [[-0.04]]", "model.Q \\(line \\d+\\): Q: expected a positive semi-definite"),
+    ("x0 = [0.0]\n", "", "missing required key 'x0'"),
+    ("[censoring]\nlower = 0.0", "[censoring]\nlow = 0.0", "censoring.low \\(line \\d+\\): unknown key"),
+    ("[sweep]", "[sweep]\nname = \"../escape\"", "sweep.name .*plain file name"),
+    ("[sweep]", "[sweep]\nexperiment = \"nope\"", "unknown id"),
+])
+def test_sweep_content_errors(old, new, match):
+    with pytest.raises(SweepFileError, match=match):
+        parse_sweep(_with(old, new))
+
+
+def test_cli_sweep_and_plot(tmp_path):
+    from typer.testing import CliRunner
+
+    from tobitkf.cli import app
+
+    f = tmp_path / "s.toml"
+    f.write_text(BASE.format(runs=40, steps=20, block=20, chunk=1))
+    runner = CliRunner()
+    res = runner.invoke(app, ["sweep", str(f), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    res = runner.invoke(app, ["plot", str(tmp_path / "o" / "s.zarr")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "o" / "s_plots" / "rmse_over_time.png").exists()
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[sweep]\nruns = -1\nsteps = 2\nseed = 0\n")
+    res = runner.invoke(app, ["sweep", str(bad)])
+    assert res.exit_code == 2 and "sweep.runs" in res.output
