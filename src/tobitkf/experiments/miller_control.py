@@ -39,7 +39,7 @@ from . import ExperimentResult, register, setting
 
 __all__ = ["jacobian_scalar", "dc_motor_speed_exp", "dc_motor_position_exp", "closed_loop", "steady_state_lqg"]
 
-_SOURCE = "Miller 2015 (dissertation), Ch. 5-6"
+_SOURCE = "Miller 2015: Estimation and Control with Censored Data (dissertation)"
 DT = 0.01
 
 

@@ -56,7 +56,7 @@ def _plot_robot(result: ExperimentResult, outdir: Path) -> list[Path]:
 
 
 @register("miller-robot", title="Mobile robot with censored RSS localisation, TKF vs KF in the loop (Figs 6.6-6.9)",
-          source="Miller 2015 (dissertation), §6.3", plot=_plot_robot, default_runs=20)
+          source="Miller 2015: Estimation and Control with Censored Data (dissertation)", plot=_plot_robot, default_runs=20)
 def robot(*, runs: int = 20, seed: int = 0, progress=None, steps: int = 1000) -> ExperimentResult:
     """ζ ∈ {27, 19} m with the TKF or the KF in the loop; pseudo-measurement noise σ_r = 0.05 (source) and
     1.0 (default variant, see the claims)."""

@@ -75,7 +75,7 @@ def _plot_tracker(result: ExperimentResult, outdir: Path) -> list[Path]:
 
 
 @register("miller-tracker", title="Multi-target tracker with gating, two-pass matching, occlusion feedback (Figs 2.4-2.9)",
-          source="Miller 2015 (dissertation), §2.2", plot=_plot_tracker, default_runs=10)
+          source="Miller 2015: Estimation and Control with Censored Data (dissertation)", plot=_plot_tracker, default_runs=10)
 def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult:
     """The three experiments of §2.2.4 (see the module docstring)."""
     progress = progress or _noop

@@ -31,7 +31,7 @@ from . import ExperimentResult, register, setting
 
 __all__ = ["multi_region_exp", "fov", "panning"]
 
-_SOURCE = "Miller 2015 (dissertation), §6.6-6.7"
+_SOURCE = "Miller 2015: Estimation and Control with Censored Data (dissertation)"
 
 
 def _noop(_: float) -> None:
