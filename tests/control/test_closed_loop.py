@@ -174,3 +174,27 @@ def test_t15_with_the_steady_state_observer():
     ok = simulate_closed_loop(plant, K, 2000, 10, observer="sstkf", xi_uncensored=0.8, reference=1.0, seed=0)
     bad = simulate_closed_loop(plant, K, 3000, 10, observer="sstkf", xi_uncensored=0.5, reference=1.0, seed=0)
     assert not ok.diverged.any() and bad.diverged.sum() >= 7
+
+
+@pytest.mark.parametrize("observer, kw", [("kf", {"censoring": Censoring(upper=0.02)}),
+                                          ("tkf", {"censoring": Censoring(upper=0.02)}),
+                                          ("tkf-moving", {"xi_uncensored": 0.7}),
+                                          ("sstkf", {"xi_uncensored": 0.7})])
+def test_batched_equals_per_run(speed, observer, kw):
+    plant, K = speed
+    rng = np.random.default_rng(9)
+    N, T = 3, 150
+    noise = {"x0": rng.standard_normal((N, 2)) * 1e-3,
+             "w": rng.standard_normal((N, T, 2)) @ np.linalg.cholesky(plant.process_cov(0) + 1e-30 * np.eye(2)).T,
+             "v": rng.standard_normal((N, T, 1)) * 0.05}
+    r = np.full(T, 0.05)
+    batch = simulate_closed_loop(plant, K, T, N, observer=observer, reference=r, noise=noise, **kw)
+    for i in range(N):
+        one = simulate_closed_loop(plant, K, T, 1, observer=observer, reference=r,
+                                   noise={k: v[i:i + 1] for k, v in noise.items()}, **kw)
+        assert one.x[0] == pytest.approx(batch.x[i], rel=1e-12, abs=1e-15)
+        assert one.estimate[0] == pytest.approx(batch.estimate[i], rel=1e-12, abs=1e-15)
+    with pytest.raises(ShapeError, match="noise"):
+        simulate_closed_loop(plant, K, T, 2, observer=observer, reference=r, noise=noise, **kw)
+    with pytest.raises(ValidationError, match="noise: expected keys"):
+        simulate_closed_loop(plant, K, T, N, observer=observer, reference=r, noise={"x0": noise["x0"]}, **kw)

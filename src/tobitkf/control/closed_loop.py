@@ -110,7 +110,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
                          censoring: Censoring | None = None, xi_uncensored: Any = None, side: str = "upper",
                          reference: Any = 0.0, Nbar: Any = None, Cz: Any = None, seed: Any = 0,
                          x0_estimate: Any = None, P0_estimate: Any = None, noise_term: str = "dissertation",
-                         divergence_bound: float = 1e8) -> ClosedLoopResult:
+                         divergence_bound: float = 1e8, noise: dict | None = None) -> ClosedLoopResult:
     r"""Simulate the LQG loop with a (Tobit) Kalman observer over many runs at once.
 
     Parameters
@@ -143,6 +143,10 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         Tobit noise term, passed to :func:`~tobitkf.filters.tobit.tobit_update`.
     divergence_bound : float, default 1e8
         Runs whose |x| or |x̂| exceed it are frozen and flagged.
+    noise : dict, optional
+        Pre-drawn randomness ``{"x0": (N, n), "w": (N, T, n), "v": (N, T, m)}`` (initial state, process
+        noise as added to the state, measurement noise); overrides ``seed`` (common random numbers
+        across designs, or one run of a batch re-run alone).
 
     Returns
     -------
@@ -209,15 +213,25 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
 
         sst = SteadyStateTobitKalmanFilter(plant, xi, side=side)
 
-    rng = as_generator(seed)
     x = np.empty((runs, steps + 1, n))
-    x[:, 0] = plant.x0 + rng.standard_normal((runs, n)) @ psd_sqrt(plant.P0).T
-    w = rng.standard_normal((runs, steps, plant.q))
-    v = rng.standard_normal((runs, steps, m)) @ psd_sqrt(R).T
-    G = psd_sqrt(plant.Q.at(0))
-    if plant.B is not None:
-        G = plant.B.at(0) @ G
-    w = w @ G.T
+    if noise is None:
+        rng = as_generator(seed)
+        x[:, 0] = plant.x0 + rng.standard_normal((runs, n)) @ psd_sqrt(plant.P0).T
+        w = rng.standard_normal((runs, steps, plant.q))
+        v = rng.standard_normal((runs, steps, m)) @ psd_sqrt(R).T
+        G = psd_sqrt(plant.Q.at(0))
+        if plant.B is not None:
+            G = plant.B.at(0) @ G
+        w = w @ G.T
+    else:
+        try:
+            x[:, 0], w, v = (np.broadcast_to(as_float_array(noise[key], f"noise[{key!r}]"), shape) for key, shape in
+                             (("x0", (runs, n)), ("w", (runs, steps, n)), ("v", (runs, steps, m))))
+        except KeyError as exc:
+            raise ValidationError(f"noise: expected keys 'x0', 'w', 'v', missing {exc}") from None
+        except ValueError:
+            raise ShapeError(f"noise: expected x0 ({runs}, {n}), w ({runs}, {steps}, {n}), v ({runs}, {steps}, {m}), got "
+                             f"{[np.shape(noise[k]) for k in ('x0', 'w', 'v')]}") from None
 
     xh, P = check_prior(plant, x0_estimate, P0_estimate, runs)
     if sst is not None:

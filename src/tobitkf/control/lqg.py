@@ -235,7 +235,7 @@ def lqr(A: Any, B: Any, Q: Any, R: Any) -> RegulatorGain:
     --------
     Scalar integrator, Q = R = 1: P = 1, K = 1.
 
-    >>> float(lqr([[0.0]], [[1.0]], [[1.0]], [[1.0]]).gain[0, 0])
+    >>> round(float(lqr([[0.0]], [[1.0]], [[1.0]], [[1.0]]).gain[0, 0]), 12)
     1.0
     """
     return _lqr(A, B, Q, R, "ct")
