@@ -40,7 +40,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ._validation import ShapeError, ValidationError, check_option
+from ._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
 from .filters._common import gain_update, predict
 
 __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
@@ -96,9 +96,13 @@ class MultiTargetTracker:
         if warmup < 0:
             raise ValidationError(f"warmup: expected a non-negative number of frames, got {warmup}")
         self.A, self.C = constant_velocity_pixel_model()
-        self.Q = 0.01 * np.eye(4) if Q is None else np.asarray(Q, dtype=float)
-        self.R = np.eye(2) if R is None else np.asarray(R, dtype=float)
-        self.P0 = np.diag([1.0, 10.0, 1.0, 10.0]) if P0 is None else np.asarray(P0, dtype=float)
+        self.Q = 0.01 * np.eye(4) if Q is None else as_float_array(Q, "Q")
+        self.R = np.eye(2) if R is None else as_float_array(R, "R")
+        self.P0 = np.diag([1.0, 10.0, 1.0, 10.0]) if P0 is None else as_float_array(P0, "P0")
+        for name, M, k in (("Q", self.Q, 4), ("R", self.R, 2), ("P0", self.P0, 4)):
+            if M.shape != (k, k):
+                raise ShapeError(f"{name}: expected shape ({k}, {k}), got {M.shape}")
+            check_psd(M, name, strict=(name == "R"))
         self.B = np.diag([mu, 1.0, mu, 1.0])
         self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
         self.feedback, self.second_map, self.gate = feedback, second_map, gate
@@ -124,7 +128,7 @@ class MultiTargetTracker:
     def track(self, initial: Any, detections: Sequence[Any]) -> TrackResult:
         """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
         of unordered points (L_k may be 0)."""
-        init = np.asarray(initial, dtype=float)
+        init = as_float_array(initial, "initial")
         if init.ndim != 2 or init.shape[1] != 2:
             raise ShapeError(f"initial: expected (N, 2) target locations, got {init.shape}")
         N = init.shape[0]

@@ -160,6 +160,8 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     ShapeError
         Non-conforming K, Nbar, Cz or reference.
     """
+    if not (isinstance(divergence_bound, (int, float, np.integer, np.floating)) and divergence_bound > 0):
+        raise ValidationError(f"divergence_bound: expected a positive number, got {divergence_bound!r}")
     check_option(observer, "observer", OBSERVERS)
     check_option(side, "side", ("upper", "lower"))
     check_option(noise_term, "noise_term", NOISE_TERMS)
@@ -224,6 +226,9 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
             G = plant.B.at(0) @ G
         w = w @ G.T
     else:
+        missing = [k for k in ("x0", "w", "v") if k not in noise] if isinstance(noise, dict) else ["x0", "w", "v"]
+        if missing:
+            raise ValidationError(f"noise: expected keys 'x0', 'w', 'v' (a dict), missing {', '.join(missing)}")
         try:
             x[:, 0], w, v = (np.broadcast_to(as_float_array(noise[key], f"noise[{key!r}]"), shape) for key, shape in
                              (("x0", (runs, n)), ("w", (runs, steps, n)), ("v", (runs, steps, m))))
@@ -295,8 +300,11 @@ def quadratic_cost(result: ClosedLoopResult, Q: Any, R: Any, x_ref: Any = None, 
     ``x_ref`` (n,) / (T, n) and ``u_ref`` (p,) / (T, p) default to 0; ``skip`` drops the first steps.
     Returns ``(N,)``; diverged runs give ``inf``.
     """
-    Q = np.atleast_2d(np.asarray(Q, dtype=float))
-    R = np.atleast_2d(np.asarray(R, dtype=float))
+    Q = np.atleast_2d(as_float_array(Q, "Q"))
+    R = np.atleast_2d(as_float_array(R, "R"))
+    n, p = result.x.shape[-1], result.u.shape[-1]
+    if Q.shape != (n, n) or R.shape != (p, p):
+        raise ShapeError(f"Q, R: expected ({n}, {n}) and ({p}, {p}), got {Q.shape} and {R.shape}")
     dx = result.x[:, 1:] - (0.0 if x_ref is None else np.asarray(x_ref, dtype=float))
     du = result.u - (0.0 if u_ref is None else np.asarray(u_ref, dtype=float))
     c = np.einsum("ntj,jk,ntk->nt", dx, Q, dx) + np.einsum("ntj,jk,ntk->nt", du, R, du)

@@ -414,7 +414,11 @@ def tobit_lqe(A: Any, G: Any, C: Any, W: Any, sigma: Any, xi_uncensored: Any, *,
     DC-motor speed model, T = 0 (Ξ = 0.5): printed L = [16.452, .305] (spec T8).
     """
     C = _mat(C, "C", (None, None))
-    lam, ups = controlled_noise(np.broadcast_to(as_float_array(xi_uncensored, "xi_uncensored"), (C.shape[0],)),
+    xi_arr = as_float_array(xi_uncensored, "xi_uncensored")
+    if xi_arr.ndim > 1 or xi_arr.size not in (1, C.shape[0]):
+        raise ShapeError(f"xi_uncensored: expected a scalar or shape ({C.shape[0]},) (one per row of C), "
+                         f"got shape {xi_arr.shape}")
+    lam, ups = controlled_noise(np.broadcast_to(xi_arr.reshape(-1), (C.shape[0],)),
                                 np.broadcast_to(as_float_array(sigma, "sigma"), (C.shape[0],)))
     xi = np.broadcast_to(np.asarray(xi_uncensored, dtype=float), (C.shape[0],))
     return _lqe(A, G, xi[:, None] * C, W, np.diag(ups), domain, tag="Tobit LQE (modified ARE)")
@@ -434,8 +438,14 @@ def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str = "dt") -> np
         a transmission zero at s = 0 / z = 1, or more outputs than inputs), or A − BK is not stable.
     """
     check_option(domain, "domain", DOMAINS)
-    A, B, Cz, K = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, B, Cz, K))
+    A, B, Cz, K = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (B, "B"), (Cz, "Cz"), (K, "K")))
     n = A.shape[0]
+    p = B.shape[-1]
+    for name, M_, shape in (("A", A, (n, n)), ("B", B, (n, p)), ("K", K, (p, n))):
+        if M_.shape != shape:
+            raise ShapeError(f"{name}: expected shape {shape}, got {M_.shape}")
+    if Cz.ndim != 2 or Cz.shape[1] != n:
+        raise ShapeError(f"Cz: expected (r, {n}), got {Cz.shape}")
     Acl = A - B @ K
     if not is_stable(Acl, domain=domain):
         raise ValidationError("K: the closed loop A - B K is not stable, the reference gain is undefined")

@@ -210,6 +210,8 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str = "dt", grid: i
     import cvxpy as cp
 
     check_option(domain, "domain", DOMAINS)
+    if isinstance(grid, bool) or not isinstance(grid, (int, np.integer)) or grid < 0:
+        raise ValidationError(f"grid: expected a non-negative integer, got {grid!r}")
     A, L, C = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (L, "L"), (C, "C")))
     n, m = A.shape[0], C.shape[0]
     if A.shape != (n, n) or L.shape != (n, m) or C.shape != (m, n):
