@@ -41,7 +41,8 @@ def test_one_million_steps_stay_finite_symmetric_psd_and_bounded(name, asked_for
     mean, cov, truth = bench.cases(1_000_000)[name]()
     h = bench.health(mean, cov, truth)
     assert h["finite"] and h["symmetric"] and h["psd"], h
-    # bounded error: the oscillator's state has std ~ 1-2; 50 is a drift, not noise
+    # bounded error: the estimation error of these filters has std ~ 0.1-1 (the state itself wanders to
+    # |x| ~ 100 over 10^6 steps); 50 is a divergence, not noise
     assert h["max_abs_error"] < 50, h
 
 
