@@ -22,6 +22,8 @@ from tobitkf.filters.protocol import ProtocolTobitKalmanFilter, protocol_covaria
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from tobitkf.models_delay import DelayFadingSystem, HistoryPrior, paper_example, paper_prior, simulate_delay
 from tobitkf.filters.delay import chain_lmmse, augmented_lmmse
+from tobitkf.control import certify_tkf_stability, dlqr, quadratic_cost, reference_gain, simulate_closed_loop, tobit_lqe
+from tobitkf.tracking import MultiTargetTracker
 
 GOOD = dict(A=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
 
@@ -38,6 +40,11 @@ ROSS = wang2010_model()
 W = WANG2010_PAPER
 DSYS, DPRI = paper_example(), paper_prior()
 DBASE = dict(A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=0.3, d=3)
+
+
+CA, CB = np.array([[1.0, 0.1], [0.0, 1.0]]), np.array([[0.0], [0.1]])
+PLANT = tk.LinearSystem(A=CA, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[1.0, 0.0], P0=0.1 * np.eye(2), Bu=CB)
+CK = dlqr(CA, CB, np.eye(2), [[1.0]]).gain
 
 
 class _NoDraw:
@@ -178,6 +185,25 @@ CASES = [
     ("augmented_lmmse window", lambda: augmented_lmmse(DSYS, DPRI, np.ones((2, 5, 1)), window=-1), ValidationError,
      r"^window"),
     ("simulate_delay system", lambda: simulate_delay("x", DPRI, 5), ValidationError, r"^system"),
+    # --- control and tracking -------------------------------------------------------
+    ("dlqr R singular", lambda: dlqr(CA, CB, np.eye(2), [[0.0]]), ValidationError, r"^R: .*positive definite"),
+    ("dlqr not stabilizable", lambda: dlqr(np.diag([2.0, 0.5]), [[0.0], [1.0]], np.eye(2), [[1.0]]), ValidationError,
+     r"stabilizable"),
+    ("tobit_lqe xi length", lambda: tobit_lqe(CA, np.eye(2), [[1.0, 0.0]], np.eye(2), [0.3], [0.5, 0.5]), ShapeError,
+     r"^xi_uncensored"),  # bug (broadcast error)
+    ("reference_gain K shape", lambda: reference_gain(CA, CB, [[1.0, 0.0]], np.ones((2, 2))), ShapeError,
+     r"^K: expected shape"),  # bug (matmul error)
+    ("closed loop observer", lambda: simulate_closed_loop(PLANT, CK, 5, 2, observer="x"), ValidationError, r"^observer"),
+    ("closed loop noise keys", lambda: simulate_closed_loop(PLANT, CK, 5, 2, noise={"x0": np.ones(3)}), ValidationError,
+     r"^noise: expected keys .* missing w, v"),  # bug (KeyError)
+    ("closed loop divergence_bound", lambda: simulate_closed_loop(PLANT, CK, 5, 2, divergence_bound=-1.0),
+     ValidationError, r"^divergence_bound"),  # bug (accepted: every run flagged diverged at once)
+    ("quadratic_cost Q shape", lambda: quadratic_cost(simulate_closed_loop(PLANT, CK, 5, 2), np.eye(3), [[1.0]]),
+     ShapeError, r"^Q, R"),  # bug (broadcast error)
+    ("certify grid", lambda: certify_tkf_stability(CA, 0.5 * np.ones((2, 1)), [[1.0, 0.0]], grid="x"),
+     ValidationError, r"^grid"),  # bug (TypeError from '>')
+    ("tracker Q indefinite", lambda: MultiTargetTracker(Q=-np.eye(4)), ValidationError, r"^Q: .*positive"),  # bug
+    ("tracker initial text", lambda: MultiTargetTracker().track("x", []), ValidationError, r"^initial"),  # bug
     # --- metrics --------------------------------------------------------------------
     ("summarize skip", lambda: tk.metrics.summarize(np.ones((3, 5, 2)), np.zeros((3, 5, 2)), skip=10), ValidationError,
      r"^skip"),  # bug (all-NaN time averages)
