@@ -46,7 +46,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ValidationError, as_float_array, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_option
 from ..censored import censored_moments
 from .lqg import DOMAINS
 
@@ -302,9 +302,11 @@ def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower:
     """
     check_option(gain_form, "gain_form", ("tobit", "linear"))
     check_option(form, "form", ("predictor", "filter"))
-    A, L, C = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, L, C))
-    y = np.asarray(y, dtype=float)
+    A, L, C = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (L, "L"), (C, "C")))
+    y = as_float_array(y, "y")    # NaN refused: the fixed-gain observer cannot skip a sample
     n = A.shape[0]
+    if y.ndim < 2 or y.shape[-1] != C.shape[0]:
+        raise ShapeError(f"y: expected (..., T, {C.shape[0]}), got shape {y.shape}")
     xh = np.zeros(y.shape[:-2] + (n,)) if xhat0 is None else np.broadcast_to(
         np.asarray(xhat0, dtype=float), y.shape[:-2] + (n,)).copy()
     out = np.empty(y.shape[:-1] + (n,))
