@@ -166,3 +166,20 @@ def test_huge_prior_with_near_singular_R_together_needs_square_root_form(form):
     s, data = _hard_case()
     out = tk.KalmanFilter(s, covariance_update=form).filter(data.y)
     assert_healthy(out.mean, out.cov, out.pred_cov)
+
+
+def test_diverging_fixed_gain_tobit_observer_warns_instead_of_returning_nan_silently():
+    """A = -1, Xi = 0.1, sigma = 0.01: the steady-state (fixed-gain) TKF is not globally stable; its
+    error grows geometrically and overflows after ~300 steps. The filter says so."""
+    s = tk.LinearSystem(A=[[-1.0]], C=[[1.0]], Q=[[0.15]], R=[[1e-4]], x0=[0.0], P0=[[1.0]])
+    d = tk.simulate(s, 1000, 2, seed=0)
+    with np.errstate(over="ignore", invalid="ignore"), pytest.warns(RuntimeWarning, match="diverged .* run 0 at step"):
+        out = SteadyStateTobitKalmanFilter(s, 0.1).filter_controlled(d.y_latent)
+    assert not np.isfinite(out.mean).all()
+    with np.errstate(over="ignore", invalid="ignore"):   # Xi = 0.5: stable on the same data, no warning
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            ok = SteadyStateTobitKalmanFilter(s, 0.5).filter_controlled(d.y_latent)
+    assert np.isfinite(ok.mean).all() and np.abs(ok.mean - d.x[:, 1:]).max() < 50

@@ -45,6 +45,7 @@ censored fraction, spec A-3.11), ``upsilon`` = υ, ``inverse_mills`` = λ̂, ``g
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -121,6 +122,17 @@ def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ..
         except ValueError:
             pass
     raise ShapeError(f"x0: expected ({n},) or the batch shape of y + ({n},), got {x.shape}")
+
+
+def _warn_if_diverged(means: np.ndarray, name: str) -> None:
+    # the fixed-gain Tobit observer is not globally stable (e.g. A = -1, Xi < 0.5, small sigma: the
+    # error grows geometrically and overflows); say so instead of returning NaN silently
+    bad = ~np.isfinite(means).all(axis=-1)
+    if bad.any():
+        run, step = (int(i) for i in np.argwhere(bad)[0])
+        warnings.warn(f"{name}: the estimate diverged (overflowed to inf/NaN) in run {run} at step k={step + 1}; "
+                      "the fixed-gain Tobit observer is not globally stable for this model and Xi "
+                      "(docs/reliability.md)", RuntimeWarning, stacklevel=3)
 
 
 class SteadyStateTobitKalmanFilter:
@@ -255,6 +267,7 @@ class SteadyStateTobitKalmanFilter:
                 limits[:, k - 1], ys[:, k - 1] = lim, yk
             x = x + (yk - self.expected_measurement(ybar)) @ K.T
             means[:, k - 1] = x
+        _warn_if_diverged(means, "SteadyStateTobitKalmanFilter")
         extras = {} if not latent else {"limits": limits.reshape(batch + (T, m)), "y": ys.reshape(batch + (T, m))}
         return FilterResult(mean=means.reshape(batch + (T, n)),
                             cov=np.broadcast_to(self.cov, batch + (T, n, n)),
