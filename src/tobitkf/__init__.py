@@ -11,7 +11,16 @@ Public API (stable):
 - :class:`KalmanFilter`, :class:`DroppingKalmanFilter`, :class:`TobitKalmanFilter`,
   :class:`SteadyStateTobitKalmanFilter` -- estimators.
 - :func:`censored_moments` -- censored-normal statistics, safe in the tails.
-- :mod:`tobitkf.metrics` -- RMSE, bias, NEES.
+- :class:`FadingTobitKalmanFilter` (Rice fading, Geng et al. 2017), with :class:`RiceFading`
+  and the coefficient :mod:`~tobitkf.channels.laws`.
+- :class:`RossModel`, :func:`hinf_design`, :func:`hinf_analyze`, :class:`RegionalHinfFilter`
+  (regional H-infinity filtering with random saturation, Wang et al. 2010).
+- :class:`ProtocolTobitKalmanFilter` with :class:`ProtocolChannel` (Round-Robin scheduling, integral
+  measurements, sensor failures) and :func:`protocol_covariance_bounds` (Geng et al.).
+- :class:`DelayFadingSystem`, :func:`chain_lmmse` and relatives: optimal linear filter, predictor
+  and smoothers for time-delay systems with fading measurements (Li et al. 2018).
+- :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
+  :func:`write_report` -- the reproduction report.
 """
 
 from ._validation import ShapeError, ValidationError
@@ -22,6 +31,20 @@ from .filters import (DroppingKalmanFilter, FilterResult, KalmanFilter, TobitKal
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .models import LinearSystem
 from .simulate import SimulationData, simulate
+from .channels import laws
+from .channels.fading import RiceFading
+from .channels.saturation import RandomSaturation
+from .filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter, fading_kalman_filter, fading_tobit_kalman_filter
+from .filters.hinf import RegionalHinfFilter, RossModel
+from .filters.hinf import analyze as hinf_analyze
+from .filters.hinf import design as hinf_design
+from .filters.hinf import verify as hinf_verify
+from .filters.delay import (AugmentedLMMSE, ChainLMMSE, DelayEstimates, ReorganizedInnovationLMMSE, augmented_lmmse,
+                            chain_lmmse, reorganized_lmmse, smooth_interval, smooth_point)
+from .models_delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, simulate_delay
+from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
+from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
+from .report import write_report
 from . import metrics
 
 __version__ = "0.1.0"
@@ -31,5 +54,11 @@ __all__ = [
     "KalmanFilter", "DroppingKalmanFilter", "TobitKalmanFilter", "kalman_filter", "tobit_kalman_filter",
     "SteadyStateTobitKalmanFilter", "tobit_kalman_filter_controlled",
     "FilterResult", "censored_moments", "CensoredMoments", "metrics", "ShapeError", "ValidationError",
+    "laws", "RiceFading", "FadingTobitKalmanFilter", "FadingKalmanFilter", "fading_tobit_kalman_filter",
+    "fading_kalman_filter", "RandomSaturation", "RossModel", "RegionalHinfFilter", "hinf_design", "hinf_analyze",
+    "hinf_verify", "DelayFadingSystem", "HistoryPrior", "FadingPMF", "FadingMoments", "simulate_delay",
+    "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
+    "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
+    "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
     "__version__",
 ]

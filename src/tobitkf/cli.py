@@ -1,7 +1,8 @@
-"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``sweep FILE``, ``plot RESULT``.
+"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``report DIR``, ``sweep FILE``, ``plot RESULT``.
 
 ``reproduce`` runs a registered experiment and writes ``DIR/ID/metrics.json`` and
-the experiment's figures (PNG), each file atomically.
+the experiment's figures (PNG), each file atomically, then (re)writes the report of
+everything in ``DIR``: ``DIR/index.html`` and ``DIR/REPORT.md`` (see :mod:`tobitkf.report`).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ from typing import Annotated, Optional
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-from rich.table import Table
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="Estimation from censored, fading, delayed and scheduled measurements.")
@@ -22,13 +22,13 @@ console = Console(stderr=True)
 
 @app.command("list")
 def list_cmd() -> None:
-    """List every experiment, one line each."""
+    """List every experiment, one line each: id, default run count, title."""
     from .experiments import all_experiments
 
-    table = Table("id", "source", "title", "default runs", box=None)
-    for exp in all_experiments():
-        table.add_row(exp.id, exp.source, exp.title, str(exp.default_runs))
-    Console().print(table)
+    exps = all_experiments()
+    width = max(len(e.id) for e in exps)
+    for exp in exps:
+        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}")
 
 
 def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progress: Progress | None = None) -> Path:
@@ -73,7 +73,7 @@ def reproduce(
     seed: Annotated[int, typer.Option("--seed", help="random seed")] = 0,
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results"),
 ) -> None:
-    """Run an experiment (or all) and write metrics.json and figures under OUT/ID/."""
+    """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html."""
     from ._validation import ValidationError
     from .experiments import all_experiments, get
 
@@ -90,6 +90,28 @@ def reproduce(
             console.print(f"wrote {outdir}")
             if overall is not None:
                 progress.advance(overall)
+    _write_report(out)
+
+
+def _write_report(out: Path) -> None:
+    from .report import write_report
+
+    index, md = write_report(out)
+    console.print(f"wrote {index} and {md}")
+
+
+@app.command()
+def report(
+    results: Annotated[Path, typer.Argument(help="folder written by 'reproduce' (one sub-folder per experiment)")],
+) -> None:
+    """Write RESULTS/index.html and RESULTS/REPORT.md from every RESULTS/*/metrics.json."""
+    from ._validation import ValidationError
+
+    try:
+        _write_report(results)
+    except ValidationError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from None
 
 
 @app.command()

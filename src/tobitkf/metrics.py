@@ -26,6 +26,9 @@ __all__ = ["rmse", "bias", "nees", "summarize", "align_truth"]
 def align_truth(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
     """Drop x_0 from a ``(N, T+1, n)`` truth so it lines up with ``(N, T, n)`` estimates."""
     truth = np.asarray(truth, dtype=float)
+    if estimate.ndim < 3:
+        raise ShapeError(f"estimate: expected (N, T, n) with runs on the first axis (one run: add a leading "
+                         f"axis), got shape {estimate.shape}")
     if truth.shape[-2] == estimate.shape[-2] + 1:
         truth = truth[..., 1:, :]
     if truth.shape[-2:] != estimate.shape[-2:]:
@@ -58,7 +61,14 @@ def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
         sol = np.linalg.solve(cov, err[..., None])[..., 0]
         val = np.einsum("...i,...i->...", err, sol)
     except np.linalg.LinAlgError:
-        val = np.full(err.shape[:-1], np.inf)
+        # one singular matrix makes the batched solve fail for all: redo per run and step
+        covb = np.broadcast_to(cov, err.shape + err.shape[-1:])
+        val = np.empty(err.shape[:-1])
+        for idx in np.ndindex(val.shape):
+            try:
+                val[idx] = err[idx] @ np.linalg.solve(covb[idx], err[idx])
+            except np.linalg.LinAlgError:
+                val[idx] = np.inf
     return np.mean(val, axis=0)
 
 

@@ -4,7 +4,7 @@ The model, with the package-wide time convention (Miller 2015, (2.2) and (3.18))
 
 .. math::
 
-    x_k &= A_{k-1} x_{k-1} + B^u_{k-1} u_k + B_{k-1} w_{k-1}, \qquad w_{k-1} \sim N(0, Q_{k-1}) \\
+    x_k &= A_{k-1} x_{k-1} + B^u_k u_k + B_{k-1} w_{k-1}, \qquad w_{k-1} \sim N(0, Q_{k-1}) \\
     y^*_k &= C_k x_k + D_k u_k + v_k, \qquad v_k \sim N(0, R_k), \qquad x_0 \sim N(\bar x_0, P_0)
 
 for :math:`k = 1, \dots, T`. ``x_0`` is the prior; the first measurement is
@@ -143,10 +143,15 @@ class LinearSystem:
         return not any(p.varying for p in parts)
 
     def check_horizon(self, steps: int) -> None:
-        """Raise :class:`ShapeError` if a time-indexed matrix is shorter than ``steps``."""
+        """Raise if a time-indexed matrix is shorter than ``steps`` or a callable misbehaves on it.
+
+        Callables are evaluated once over the horizon (shape, finiteness, PSD for Q and R),
+        so a bad value at a late step fails at the public call, not as NaN in the output.
+        """
         for part in (self.A, self.C, self.Q, self.R, self.B, self.Bu, self.D):
             if part is not None:
                 part.check_horizon(steps)
+                part.validate_all(steps)
 
     def check_inputs(self, u: Any, steps: int, name: str = "u") -> np.ndarray | None:
         """Validate a control sequence ``(..., T, p)``; None when the model has no input."""

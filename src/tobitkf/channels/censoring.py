@@ -93,6 +93,8 @@ class Censoring:
     def limits(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)`` for measurement ``y_k`` (k >= 1; array index k-1)."""
         if self.time_varying:
+            if not 1 <= k <= self.steps:
+                raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, step k={k} requested")
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
 
@@ -173,7 +175,7 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
     Returns
     -------
     system : LinearSystem
-        The stacked model (C rows repeated, R block-diagonal).
+        The stacked model (C and D rows repeated, R diagonal; A, Q, B, Bu and the prior kept).
     censoring : Censoring
         The per-sensor limits.
 
@@ -189,7 +191,7 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
     if system.C.varying or system.R.varying:
         raise ShapeError("system: multi_region needs time-invariant C and R")
     C, R = system.C.at(1), system.R.at(1)
-    rows, var, lo, hi = [], [], [], []
+    rows, var, lo, hi, out_idx = [], [], [], [], []
     for i, wins in enumerate(regions):
         if len(wins) == 0:
             raise ShapeError(f"regions[{i}]: expected at least one (lower, upper) window")
@@ -197,11 +199,22 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
             if len(win) != 2:
                 raise ShapeError(f"regions[{i}][{j}]: expected a (lower, upper) pair, got {win!r}")
             rows.append(C[i])
+            out_idx.append(i)
             var.append(R[i, i] if noise_var is None else noise_var[i][j])
             lo.append(win[0])
             hi.append(win[1])
-    stacked = LinearSystem(A=system.A.array if system.A.fn is None else system.A.fn, C=np.array(rows),
-                           Q=system.Q.array if system.Q.fn is None else system.Q.fn, R=np.diag(var),
-                           x0=system.x0, P0=system.P0,
-                           B=None if system.B is None else (system.B.array if system.B.fn is None else system.B.fn))
+
+    def same(ts):
+        return None if ts is None else (ts.array if ts.fn is None else ts.fn)
+
+    idx = np.array(out_idx)
+    D = system.D
+    if D is None:
+        D_st = None
+    elif D.fn is not None:
+        D_st = lambda k, f=D.fn: np.asarray(f(k), dtype=float)[idx]  # noqa: E731  (one row per sensor)
+    else:
+        D_st = D.array[..., idx, :]
+    stacked = LinearSystem(A=same(system.A), C=np.array(rows), Q=same(system.Q), R=np.diag(var),
+                           x0=system.x0, P0=system.P0, B=same(system.B), Bu=same(system.Bu), D=D_st)
     return stacked, Censoring(lower=np.array(lo, dtype=float), upper=np.array(hi, dtype=float))

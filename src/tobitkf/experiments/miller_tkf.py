@@ -32,7 +32,7 @@ from . import ExperimentResult, register, setting
 
 __all__ = ["constant", "brownian", "oscillator", "steady_state"]
 
-_SOURCE = "Miller 2015 (dissertation), Ch. 3"
+_SOURCE = "Miller 2015: Estimation and Control with Censored Data (dissertation)"
 
 
 def _noop(_: float) -> None:

@@ -26,7 +26,7 @@ from . import ExperimentResult, register, setting
 
 __all__ = ["design_experiment", "simulation_experiment"]
 
-_SOURCE = "Wang, Shen, Liu: H-infinity filtering with randomly occurring sensor saturations and missing measurements"
+_SOURCE = "Wang, Shen & Liu: regional H-infinity filtering with randomly occurring sensor saturations and missing measurements"
 _KEYS = ("paper-gains", "theorem3", "improved")
 
 

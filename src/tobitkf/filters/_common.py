@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array
+from .._validation import ShapeError, ValidationError, as_float_array, check_psd
 
 __all__ = ["FilterResult", "prepare_measurements", "gain_update", "symmetrize", "predict"]
 
@@ -147,14 +147,29 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
     return x_new, symmetrize(P_new), K
 
 
-def check_prior(system, x0: Any, P0: Any, runs: int):
-    """Initial (x0, P0) broadcast to ``(N, n)``, ``(N, n, n)``; defaults from the system."""
+def check_prior(system, x0: Any, P0: Any, runs: int, batch: tuple[int, ...] | None = None):
+    """Initial (x0, P0) broadcast to ``(N, n)``, ``(N, n, n)``; defaults from the system.
+
+    With ``batch`` (the leading shape of ``y``, N = prod(batch)), per-run priors of shape
+    ``batch + (n,)`` / ``batch + (n, n)`` (or broadcastable to them) are accepted.
+    """
     n = system.n
     x = system.x0 if x0 is None else as_float_array(x0, "x0")
     P = system.P0 if P0 is None else as_float_array(P0, "P0")
+    if P0 is not None and P.ndim >= 2:
+        check_psd(P, "P0")
     if x.shape[-1:] != (n,) or P.shape[-2:] != (n, n):
         raise ShapeError(f"x0/P0: expected (..., {n}) and (..., {n}, {n}), got {x.shape} and {P.shape}")
     try:
+        if batch is not None:  # priors laid out like y's leading axes; else flat (N, ...) as before
+            try:
+                x = np.broadcast_to(x, tuple(batch) + (n,)).reshape(runs, n)
+            except ValueError:
+                pass
+            try:
+                P = np.broadcast_to(P, tuple(batch) + (n, n)).reshape(runs, n, n)
+            except ValueError:
+                pass
         x = np.broadcast_to(x, (runs, n)).copy()
         P = np.broadcast_to(P, (runs, n, n)).copy()
     except ValueError:

@@ -89,7 +89,7 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
             raise ValidationError(f"skip: expected (..., {T}, {m}), got {skip.shape}")
         missing = missing | np.broadcast_to(skip.reshape((-1, T, m)), (N, T, m))
     per_run = bool(missing.any()) or x0 is not None and np.ndim(x0) > 1 or P0 is not None and np.ndim(P0) > 2
-    x, P = check_prior(system, x0, P0, N)
+    x, P = check_prior(system, x0, P0, N, batch)
     if not per_run:
         P = P[:1]
     means = np.empty((N, T, n))
@@ -176,7 +176,7 @@ class DroppingKalmanFilter:
             raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
         censoring.check(system.m)
         check_keywords({"covariance_update": covariance_update}, _OPTIONS)
-        if not rtol >= 0:
+        if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
         self.system, self.censoring, self.rtol = system, censoring, float(rtol)
         self.covariance_update = covariance_update
@@ -186,8 +186,9 @@ class DroppingKalmanFilter:
         y2, batch = prepare_measurements(y, self.system.m)
         self.censoring.check_measurements(y2)
         at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol)
-        out = kalman_filter(self.system, y2, u=u, skip=at_lo | at_hi, covariance_update=self.covariance_update,
-                            x0=x0, P0=P0)
+        T, m = y2.shape[1:]
+        out = kalman_filter(self.system, y2.reshape(batch + (T, m)), u=u, skip=(at_lo | at_hi).reshape(batch + (T, m)),
+                            covariance_update=self.covariance_update, x0=x0, P0=P0)
         T, n = y2.shape[1], self.system.n
         return FilterResult(mean=out.mean.reshape(batch + (T, n)), cov=out.cov.reshape(batch + (T, n, n)),
                             pred_mean=out.pred_mean.reshape(batch + (T, n)),

@@ -183,7 +183,7 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     if check_limits:
         censoring.check_measurements(y2)
     u2 = prepare_inputs(system, u, N, T)
-    x, P = check_prior(system, x0, P0, N)
+    x, P = check_prior(system, x0, P0, N, batch)
     means = np.empty((N, T, n))
     pmeans = np.empty((N, T, n))
     covs = np.empty((N, T, n, n))

@@ -1,0 +1,361 @@
+"""Li, Li & Wang (2018), time-delay systems with fading measurements and correlated noises (seed 002).
+
+Three experiments reproduce §5 of the source (spec ``002_timedelay_fading.md`` §3):
+
+* ``li2018-tracking``: Fig. 1, true states and the filter x̂(t|t) of one run.
+* ``li2018-fading``: Fig. 2, filter error variances for the pmf variants q = 1, 0.6, 0.3.
+* ``li2018-tables``: Tables 1–2 style running-average MSE of filter x̂(t|t) and predictor
+  x̂(t+1|t), against a labelled stand-in for the baseline of [28] (spec §5 item 14).
+
+Each runs for the cross-covariance S in {0, 0.15, 0.3}. The source does not state S; 0.3 =
+sqrt(Q_w Q_v) is inferred from Tables 1–2 (spec §3.5) and is the headline value
+(``metrics["estimators"]``). Estimator keys: ``chain`` (Algorithm C, the default), ``augmented``
+(Algorithm A), ``paper-j`` (the source's constant J = ΓSQ_v^{-1}), ``naive-kf`` (stand-in for
+[28]: the same estimator told S = 0 and γ ≡ 1; not the method of [28], which this paper does not
+specify enough to rebuild).
+
+MSE definitions (spec §4 item 16): ``per_step`` is the ensemble mean over runs of the squared
+error at each t; ``running_avg`` is (1/(t+1)) Σ_{s<=t} per_step(s) (the tables' reading inferred
+in spec §3.5). Time index t = 0..T-1 is the measurement time (y(0) measures x(-3)).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._io import atomic_savefig
+from ..filters.delay import augmented_lmmse, chain_lmmse
+from ..metrics import summarize
+from ..models_delay import paper_example, paper_prior, simulate_delay
+from . import ExperimentResult, register, setting
+
+_SOURCE = "Li, Li & Wang 2018: optimal linear estimators for time-delay systems with fading measurements"
+
+S_VALUES = (0.0, 0.15, 0.3)
+Q_VALUES = (1.0, 0.6, 0.3)
+DEFAULT_S = 0.3
+TABLE_TIMES = (25, 50, 75, 100, 125, 150)
+KEYS = ("chain", "augmented", "paper-j", "naive-kf")
+
+# Spec §3.3 (independent prototype, Algorithm C, prior x(-k) ~ (0, 0.01 I)): steady-state diag
+# P(t|t) = P(t|t-1), diag P(t-d|t) and Q_ε for d = 3.
+REFERENCE = {
+    (1.0, 0.0): ((0.44353, 0.36882), (0.11801, 0.09580), 1.16914),
+    (1.0, 0.15): ((0.25756, 0.23092), (0.09727, 0.08480), 0.82740),
+    (1.0, 0.3): ((0.02392, 0.01280), (0.02179, 0.01159), 0.33376),
+    (0.6, 0.0): ((0.57373, 0.43490), (0.25384, 0.19023), 0.86117),
+    (0.6, 0.15): ((0.34009, 0.26973), (0.19367, 0.15170), 0.66981),
+    (0.6, 0.3): ((0.08623, 0.06528), (0.07316, 0.05501), 0.44593),
+    (0.3, 0.0): ((0.85194, 0.57367), (0.56674, 0.38009), 0.82107),
+    (0.3, 0.15): ((0.55728, 0.38345), (0.41892, 0.28708), 0.72656),
+    (0.3, 0.3): ((0.24812, 0.17011), (0.21677, 0.14821), 0.62389),
+}
+
+# Tables 1-2 of the source (this paper's filter and predictor; [28]'s rows), t = 25..150.
+SOURCE_TABLES = {
+    "filter_x1": (0.2156, 0.1196, 0.0887, 0.0868, 0.0784, 0.0750),
+    "filter_x2": (0.0836, 0.0486, 0.0358, 0.0332, 0.0297, 0.0287),
+    "filter_x1_[28]": (1.2208, 0.8383, 0.6919, 0.6456, 0.5965, 0.6040),
+    "filter_x2_[28]": (1.0700, 0.6941, 0.5705, 0.5296, 0.4876, 0.4783),
+    "predictor_x1": (0.2876, 0.1555, 0.1127, 0.1048, 0.0928, 0.0870),
+    "predictor_x2": (0.1258, 0.0697, 0.0499, 0.0437, 0.0382, 0.0357),
+    "predictor_x1_[28]": (1.2881, 0.8718, 0.7143, 0.6624, 0.6099, 0.6152),
+    "predictor_x2_[28]": (0.8933, 0.6056, 0.5115, 0.4854, 0.4522, 0.4488),
+}
+
+
+def _settings(runs: int, steps: int, seed: int, S_values: tuple[float, ...], extra: dict | None = None) -> dict:
+    out = {
+        "A": setting([[0.4, 0.7], [0.2, 0.6]]), "A1": setting([[0.1, 0.2], [0.2, -0.1]]),
+        "Q_zeta1": setting(0.16), "Gamma": setting([1, 1]), "H": setting([0.5, 1]),
+        "Qw": setting(0.3), "Qv": setting(0.3), "d": setting(3),
+        "fading_pmf": setting({"values": [0.95, 0.98, 1.0], "probs": [0.05, 0.15, 0.8]}),
+        "S": setting(list(S_values), "reconstructed",
+                     f"not stated in the source; S = {DEFAULT_S} = sqrt(Qw Qv) inferred from Tables 1-2 (spec §3.5) "
+                     "is the headline value; 0 and 0.15 for comparison"),
+        "prior": setting("x(-k) ~ (0, 0.01 I), k = 0..3, uncorrelated", "reconstructed",
+                         "source gives x̂(0|0) = 0, P(0|0) = 0.01 I only (spec §4 item 1)"),
+        "true_history": setting("drawn from the prior (Gaussian)", "default", "not stated in the source"),
+        "noise": setting("Gaussian; w = S Qv^-1 v + eta (spec §4 item 3)", "default"),
+        "steps": setting(steps, "source", "t = 0..150 (tables up to t = 150)"),
+        "runs": setting(runs, "source" if runs == 150 else "default", "source: 150 Monte Carlo experiments"),
+        "seed": setting(seed, "default"),
+        "warmup": setting("none: exact initialization from the prior (the source's ε(i) = 0, i <= 2d+1, not used)",
+                          "default", "spec §4 item 12"),
+    }
+    out.update(extra or {})
+    return out
+
+
+def _estimate(S: float, q: float, data: Any, keys: tuple[str, ...]) -> dict[str, Any]:
+    system = paper_example(S=S, q=q)
+    prior = paper_prior()
+    out = {}
+    for key in keys:
+        if key == "chain":
+            out[key] = chain_lmmse(system, prior, data.y)
+        elif key == "augmented":
+            out[key] = augmented_lmmse(system, prior, data.y)
+        elif key == "paper-j":
+            out[key] = chain_lmmse(system, prior, data.y, decorrelation="paper")
+        elif key == "naive-kf":
+            out[key] = chain_lmmse(system.replace(S=0.0, fading=None), prior, data.y)
+    return out
+
+
+def _mse(err: np.ndarray) -> dict[str, np.ndarray]:
+    per_step = np.mean(err**2, axis=0)                      # (T, n)
+    running = np.cumsum(per_step, axis=0) / np.arange(1, per_step.shape[0] + 1)[:, None]
+    return {"per_step": per_step, "running_avg": running}
+
+
+def _steady_state(q_values=Q_VALUES, S_values=S_VALUES, horizon: int = 600) -> list[dict[str, Any]]:
+    rows = []
+    for q in q_values:
+        for S in S_values:
+            r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((horizon, 1)))
+            ref = REFERENCE.get((q, S))
+            row = {"q": q, "S": S, "P_filter_diag": np.diagonal(r.cov[-1]),
+                   "P_measured_diag": np.diagonal(r.measured_cov[-1]), "Q_eps": float(r.innovation_cov[-1, 0, 0])}
+            if ref is not None:
+                row.update({"reference_P_filter_diag": ref[0], "reference_P_measured_diag": ref[1],
+                            "reference_Q_eps": ref[2]})
+                row["matches_4_decimals"] = bool(
+                    np.allclose(row["P_filter_diag"], ref[0], atol=5e-5, rtol=0)
+                    and np.allclose(row["P_measured_diag"], ref[1], atol=5e-5, rtol=0)
+                    and abs(row["Q_eps"] - ref[2]) <= 5e-5)
+            rows.append(row)
+    return rows
+
+
+def _run_S(S: float, q: float, runs: int, steps: int, seed: int, keys: tuple[str, ...]):
+    system = paper_example(S=S, q=q)
+    data = simulate_delay(system, paper_prior(), steps, runs, seed=seed)
+    est = _estimate(S, q, data, keys)
+    truth_f, truth_p = data.x[:, :steps], data.x[:, 1:]
+    per = {}
+    for key, r in est.items():
+        per[key] = {"filter": _mse(r.mean - truth_f), "predictor": _mse(r.pred_mean - truth_p),
+                    "filter_summary": summarize(truth_f, r.mean, r.cov[0] if r.cov.ndim == 4 else r.cov, skip=10),
+                    "P_filter_diag": np.diagonal(r.cov[0], axis1=-2, axis2=-1),
+                    "P_pred_diag": np.diagonal(r.pred_cov[0], axis1=-2, axis2=-1)}
+    return data, est, per
+
+
+def _common_run(exp_id: str, *, runs: int, seed: int, progress, q_values: tuple[float, ...], S: Any,
+                steps: int, keys: tuple[str, ...] = KEYS):
+    S_values = S_VALUES if S is None else tuple(float(s) for s in np.atleast_1d(S))
+    headline = DEFAULT_S if DEFAULT_S in S_values else S_values[-1]
+    by = {}
+    data_keep = {}
+    jobs = [(q, s) for q in q_values for s in S_values]
+    for i, (q, s) in enumerate(jobs):
+        data, est, per = _run_S(s, q, runs, steps, seed, keys)
+        by[(q, s)] = per
+        if s == headline:
+            data_keep[q] = (data, est)
+        if progress is not None:
+            progress((i + 1) / (len(jobs) + 1))
+    return S_values, headline, by, data_keep
+
+
+def _metrics_block(by, q: float, S_values) -> dict[str, Any]:
+    out = {}
+    for s in S_values:
+        out[f"S={s:g}"] = {key: {"filter_mse": v["filter"], "predictor_mse": v["predictor"],
+                                  "P_filter_diag": v["P_filter_diag"], "P_pred_diag": v["P_pred_diag"]}
+                           for key, v in by[(q, s)].items()}
+    return out
+
+
+def _chain_vs_augmented(data_keep) -> float:
+    worst = 0.0
+    for data, est in data_keep.values():
+        if "augmented" in est:
+            worst = max(worst, float(np.abs(est["chain"].mean - est["augmented"].mean).max()),
+                        float(np.abs(est["chain"].pred_mean - est["augmented"].pred_mean).max()))
+    return worst
+
+
+def _filter_is_predictor(data_keep) -> float:
+    worst = 0.0
+    for data, est in data_keep.values():
+        r = est["chain"]
+        worst = max(worst, float(np.abs(r.mean[:, 1:] - r.pred_mean[:, :-1]).max()))
+    return worst
+
+
+# --------------------------------------------------------------------------- li2018-tracking
+
+def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    d = result.data
+    t = np.arange(d["x"].shape[0])
+    fig, axes = plt.subplots(2, 1, figsize=(7, 5), sharex=True)
+    for i, ax in enumerate(axes):
+        ax.plot(t, d["x"][:, i], "k-", lw=1, label=f"x{i + 1}(t)")
+        ax.plot(t, d["xhat"][:, i], "r--", lw=1, label=f"x̂{i + 1}(t|t) (chain)")
+        ax.set_ylabel(f"x{i + 1}")
+        ax.legend(loc="upper right", fontsize=8)
+    axes[-1].set_xlabel("t")
+    fig.suptitle(f"Li et al. 2018 Fig. 1: tracking (S = {d['S']:g}, inferred; one run)")
+    path = outdir / "fig1_tracking.png"
+    atomic_savefig(fig, path)
+    plt.close(fig)
+    return [path]
+
+
+@register("li2018-tracking", title="Delay system with fading: filter tracking (Fig. 1)",
+          source=_SOURCE, plot=_plot_tracking, default_runs=150)
+def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
+    """Fig. 1: true x1, x2 against x̂(t|t) for one run; ensemble MSE over ``runs`` for every S."""
+    S_values, headline, by, keep = _common_run("li2018-tracking", runs=runs, seed=seed, progress=progress,
+                                               q_values=(1.0,), S=S, steps=steps)
+    data, est = keep[1.0]
+    per = by[(1.0, headline)]
+    metrics = {"estimators": {k: v["filter_summary"] for k, v in per.items()},
+               "headline_S": headline, "mse": _metrics_block(by, 1.0, S_values),
+               "steady_state": _steady_state((1.0,), S_values)}
+    ratio = per["chain"]["filter"]["per_step"][50:].mean(0) / per["chain"]["P_filter_diag"][50:].mean(0)
+    worst = _chain_vs_augmented(keep)
+    claims = [
+        {"claim": "the filter has good tracking performance (Fig. 1)",
+         "measured": f"S={headline:g}: steady ensemble MSE of x̂(t|t) = {np.round(per['chain']['filter']['per_step'][50:].mean(0), 4).tolist()} "
+                     f"vs Var x = {np.round(np.diagonal(est['chain'].second_moment[-1]), 3).tolist()}; MSE/P = {np.round(ratio, 3).tolist()}",
+         "holds": bool(np.all(per["chain"]["filter"]["per_step"][50:].mean(0) < 0.1 * np.diagonal(est["chain"].second_moment[-1])))},
+        {"claim": "the estimator is optimal (equals the LMMSE of the augmented system)",
+         "measured": f"max |chain - augmented| = {worst:.2e}", "holds": worst < 1e-9},
+        {"claim": "x̂(t|t) of Theorem 1 is a filter that uses y(t) (spec §0 finds it equals x̂(t|t-1) for d >= 1)",
+         "measured": f"max |x̂(t|t) - x̂(t|t-1)| = {_filter_is_predictor(keep):.1e}", "holds": False},
+    ]
+    return ExperimentResult("li2018-tracking", _settings(runs, steps, seed, S_values), metrics,
+                            data={"x": data.x[0, :steps], "xhat": est["chain"].mean[0], "S": headline}, claims=claims)
+
+
+# --------------------------------------------------------------------------- li2018-fading
+
+def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    d = result.data
+    paths = []
+    for s, curves in d["P"].items():
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        for q, (P, mse) in curves.items():
+            t = np.arange(P.shape[0])
+            for i, ax in enumerate(axes):
+                line, = ax.plot(t, P[:, i], lw=1.2, label=f"P, q = {q:g}")
+                ax.plot(t, mse[:, i], ":", color=line.get_color(), lw=0.8, label=f"MC MSE, q = {q:g}")
+        for i, ax in enumerate(axes):
+            ax.set_title(f"({'ab'[i]}) x{i + 1}(t)")
+            ax.set_xlabel("t")
+            ax.legend(fontsize=7)
+        fig.suptitle(f"Li et al. 2018 Fig. 2: filter error variance, S = {s:g}")
+        path = outdir / f"fig2_fading_S{s:g}.png"
+        atomic_savefig(fig, path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+@register("li2018-fading", title="Delay system with fading: error variance vs fading level q (Fig. 2)",
+          source=_SOURCE, plot=_plot_fading, default_runs=150)
+def run_fading(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
+    """Fig. 2: P(t|t) and Monte Carlo MSE for P(γ = q) = 0.8, q = 1, 0.6, 0.3 (spec §4 item 17)."""
+    S_values, headline, by, keep = _common_run("li2018-fading", runs=runs, seed=seed, progress=progress,
+                                               q_values=Q_VALUES, S=S, steps=steps, keys=("chain", "paper-j"))
+    metrics = {"estimators": {}, "headline_S": headline, "by_q": {}}
+    for q in Q_VALUES:
+        metrics["by_q"][f"q={q:g}"] = _metrics_block(by, q, S_values)
+        for key, v in by[(q, headline)].items():
+            metrics["estimators"][key if q == 1.0 else f"{key}@q={q:g}"] = v["filter_summary"]
+    metrics["steady_state"] = _steady_state(Q_VALUES, S_values)
+    ordered = {}
+    for s in S_values:
+        ss = [by[(q, s)]["chain"]["P_filter_diag"][-1] for q in Q_VALUES]
+        ordered[s] = bool(np.all(ss[0] < ss[1]) and np.all(ss[1] < ss[2]))
+    claims = [{"claim": "the filter has the highest accuracy when q = 1 (error variance grows as q falls)",
+               "measured": "; ".join(f"S={s:g}: P(t|t) diag at t=150 for q=1,0.6,0.3 = "
+                                     + ", ".join(str(np.round(by[(q, s)]['chain']['P_filter_diag'][-1], 4).tolist())
+                                                 for q in Q_VALUES) for s in S_values),
+               "holds": all(ordered.values())},
+              {"claim": "steady-state covariances reproduce spec §3.3 (independent prototype) to 4 decimals",
+               "measured": f"{sum(r['matches_4_decimals'] for r in metrics['steady_state'])}/{len(metrics['steady_state'])} rows match",
+               "holds": all(r["matches_4_decimals"] for r in metrics["steady_state"])}]
+    data = {"P": {s: {q: (by[(q, s)]["chain"]["P_filter_diag"], by[(q, s)]["chain"]["filter"]["per_step"])
+                      for q in Q_VALUES} for s in S_values}}
+    return ExperimentResult("li2018-fading", _settings(runs, steps, seed, S_values,
+                                                       {"q": setting(list(Q_VALUES), "reconstructed",
+                                                                     "pmf {0.95: .05, 0.98: .15, q: .8} (spec §4 item 17)")}),
+                            metrics, data=data, claims=claims)
+
+
+# --------------------------------------------------------------------------- li2018-tables
+
+def _plot_tables(result: ExperimentResult, outdir: Path) -> list[Path]:
+    import matplotlib.pyplot as plt
+
+    d = result.data
+    paths = []
+    for which, fig_no in (("filter", 3), ("predictor", 4)):
+        fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+        for key, curves in d[which].items():
+            for i, ax in enumerate(axes):
+                style = {"chain": "-", "augmented": "--", "paper-j": ":", "naive-kf": "-."}.get(key, "-")
+                ax.semilogy(np.arange(1, curves.shape[0] + 1), curves[:, i], style, lw=1.2, label=key)
+        for i, ax in enumerate(axes):
+            ax.set_title(f"x{i + 1}: running-average MSE")
+            ax.set_xlabel("t")
+            ax.legend(fontsize=8)
+        fig.suptitle(f"Li et al. 2018 Fig. {fig_no}: {which} (S = {d['S']:g}; naive-kf is a stand-in for [28])")
+        path = outdir / f"fig{fig_no}_{which}_mse.png"
+        atomic_savefig(fig, path)
+        plt.close(fig)
+        paths.append(path)
+    return paths
+
+
+@register("li2018-tables", title="Delay system with fading: filter/predictor MSE tables (Tables 1-2, Figs. 3-4)",
+          source=_SOURCE, plot=_plot_tables, default_runs=150)
+def run_tables(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
+    """Tables 1–2: running-average MSE at t = 25..150 for filter and predictor, all estimator keys."""
+    S_values, headline, by, keep = _common_run("li2018-tables", runs=runs, seed=seed, progress=progress,
+                                               q_values=(1.0,), S=S, steps=steps)
+    per = by[(1.0, headline)]
+    rows = {}
+    for s in S_values:
+        rows[f"S={s:g}"] = {
+            key: {which: {f"x{i + 1}": [float(v[which]["running_avg"][t, i]) for t in TABLE_TIMES if t < steps]
+                          for i in range(2)} for which in ("filter", "predictor")}
+            for key, v in by[(1.0, s)].items()}
+    metrics = {"estimators": {k: v["filter_summary"] for k, v in per.items()}, "headline_S": headline,
+               "table_times": list(TABLE_TIMES), "tables": rows,
+               "source_tables": SOURCE_TABLES,
+               "source_tables_note": "not regression targets: the source's S, true initial states and run count are "
+                                     "unknown (spec §3.5); compare qualitatively",
+               "mse": _metrics_block(by, 1.0, S_values), "steady_state": _steady_state((1.0,), S_values)}
+    data, est = keep[1.0]
+    shift = float(np.abs(est["chain"].mean[:, 1:] - est["chain"].pred_mean[:, :-1]).max())
+    beats = all(np.all(by[(1.0, s)]["chain"][w]["running_avg"][-1] < by[(1.0, s)]["naive-kf"][w]["running_avg"][-1])
+                for s in S_values if s > 0 for w in ("filter", "predictor"))
+    head = by[(1.0, headline)]
+    claims = [
+        {"claim": "the proposed filter and predictor have lower MSE than [28] (Tables 1-2, Figs. 3-4)",
+         "measured": f"vs the stand-in naive-kf (S = 0, γ ≡ 1; not [28] itself): running-average MSE at t = {steps - 1}, "
+                     f"S={headline:g}: filter chain {np.round(head['chain']['filter']['running_avg'][-1], 4).tolist()} vs naive "
+                     f"{np.round(head['naive-kf']['filter']['running_avg'][-1], 4).tolist()}; predictor chain "
+                     f"{np.round(head['chain']['predictor']['running_avg'][-1], 4).tolist()} vs naive "
+                     f"{np.round(head['naive-kf']['predictor']['running_avg'][-1], 4).tolist()}",
+         "holds": bool(beats)},
+        {"claim": "filter and predictor tables differ by a constant running-sum offset (spec §3.5 inference)",
+         "measured": f"per-step filter errors equal the predictor errors shifted by one step: max |x̂(t|t) - x̂(t|t-1)| = {shift:.1e}",
+         "holds": shift == 0.0},
+    ]
+    plot_data = {"S": headline, "filter": {k: v["filter"]["running_avg"] for k, v in head.items()},
+                 "predictor": {k: v["predictor"]["running_avg"] for k, v in head.items()}}
+    return ExperimentResult("li2018-tables", _settings(runs, steps, seed, S_values), metrics, data=plot_data,
+                            claims=claims)

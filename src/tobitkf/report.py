@@ -1,0 +1,695 @@
+"""Readable report of a results folder: ``DIR/index.html`` and ``DIR/REPORT.md``.
+
+``tobitkf reproduce`` writes one folder per experiment, ``DIR/ID/metrics.json`` plus
+PNG figures. :func:`write_report` reads every such folder and writes
+
+* ``DIR/index.html``: one self-contained page (inline CSS, no scripts, no network),
+  readable on a phone. A summary at the top (experiments; claims held / not held /
+  unchecked; links), then one section per source and, in it, each experiment with
+  its figures, its parameters (those not stated by the source are flagged with the
+  reason), the source's claims with the verdict as a symbol *and* a word, and the
+  time-averaged RMSE of each estimator. A claim that does not hold links to an
+  explanation: what was measured, the claim's ``note`` and its optional
+  ``explanation``.
+* ``DIR/REPORT.md``: the same tables in Markdown, for terminals and diffs.
+
+Both files are written atomically and hold no time stamp, so rerunning the report on
+unchanged results changes nothing. The report only reads: a broken ``metrics.json``
+or a missing figure is listed under "Problems" instead of stopping the report.
+
+Fields read from ``metrics.json`` (all optional but ``id``): ``id``, ``title``,
+``source``, ``runs``, ``seed``, ``package_version``, ``elapsed_seconds``,
+``settings`` (``{name: {value, provenance, note}}``), ``claims`` (``[{claim,
+measured, holds, note?, explanation?}]``), ``figures`` (file names in the folder) and
+every ``estimators`` block anywhere in the remaining metrics (``{key: {rmse_time_avg,
+nees_time_avg?, ...}}``), e.g. at the top level or under ``scenarios: {name: ...}``.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import os
+import re
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote
+
+from ._io import atomic_write_text
+from ._validation import ValidationError
+
+__all__ = ["write_report", "collect_results", "render_html", "render_markdown", "ExperimentReport"]
+
+_META_KEYS = {"id", "title", "source", "runs", "seed", "package_version", "elapsed_seconds", "settings",
+              "claims", "figures"}
+_VALUE_LIMIT = 240  # characters of a parameter value shown before "…"
+_VERDICT = {True: ("held", "✓", "held"), False: ("failed", "✗", "not held"), None: ("unchecked", "–", "n/a")}
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One parameter row: ``flagged`` when the source does not state the value."""
+
+    name: str
+    value: str
+    provenance: str
+    note: str
+
+    @property
+    def flagged(self) -> bool:
+        return self.provenance != "source"
+
+
+@dataclass(frozen=True)
+class Claim:
+    """One claim row; ``holds`` is True, False or None (not checked)."""
+
+    number: int
+    claim: str
+    measured: str
+    holds: bool | None
+    note: str
+    explanation: str
+    anchor: str
+
+    @property
+    def needs_explanation(self) -> bool:
+        """Failed claims always get an explanation entry; unchecked ones when there is text to show."""
+        return self.holds is False or (self.holds is None and bool(self.note or self.explanation))
+
+
+@dataclass(frozen=True)
+class RmseTable:
+    """Time-averaged RMSE of each estimator in one ``estimators`` block."""
+
+    label: str
+    components: int
+    rows: list[tuple[str, list[Any], Any]]  # (estimator key, rmse_time_avg values, nees_time_avg or None)
+
+    @property
+    def has_nees(self) -> bool:
+        return any(nees is not None for _, _, nees in self.rows)
+
+    def lowest(self, j: int) -> float | None:
+        """Smallest finite value in component column ``j`` (None if there is none)."""
+        vals = [v[j] for _, v, _ in self.rows if j < len(v) and _finite(v[j])]
+        return min(vals) if vals else None
+
+
+@dataclass(frozen=True)
+class ExperimentReport:
+    """What the report shows of one experiment folder."""
+
+    id: str
+    title: str
+    source: str
+    folder: str
+    anchor: str
+    meta: list[tuple[str, str]]
+    settings: list[Setting]
+    claims: list[Claim]
+    figures: list[str]
+    rmse_tables: list[RmseTable]
+    problems: list[str] = field(default_factory=list)
+    figure_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+
+    def count(self, holds: bool | None) -> int:
+        return sum(1 for c in self.claims if c.holds is holds)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _finite(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _text(v: Any) -> str:
+    """A field as one line of plain text ('' for None)."""
+    if v is None:
+        return ""
+    s = v if isinstance(v, str) else _format_value(v, limit=10**6)
+    return " ".join(s.split())
+
+
+def _format_value(v: Any, limit: int = _VALUE_LIMIT) -> str:
+    """Compact text for a parameter value (numbers to 6 significant digits), cut at ``limit``."""
+
+    def fmt(x: Any) -> str:
+        if isinstance(x, bool) or x is None:
+            return str(x)
+        if isinstance(x, float):
+            return f"{x:.6g}"
+        if isinstance(x, (int, str)):
+            return str(x)
+        if isinstance(x, (list, tuple)):
+            return "[" + ", ".join(fmt(y) for y in x) + "]"
+        if isinstance(x, dict):
+            return "{" + ", ".join(f"{k}: {fmt(y)}" for k, y in x.items()) + "}"
+        return str(x)
+
+    s = fmt(v)
+    return s if len(s) <= limit else s[: limit - 1] + "…"
+
+
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """(width, height) in pixels from a PNG header, None if the file is not a PNG."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+        w, h = struct.unpack(">II", head[16:24])
+        return int(w), int(h)
+    return None
+
+
+def _slug(text: str, taken: set[str], prefix: str) -> str:
+    base = prefix + (re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-") or "x")
+    slug, i = base, 2
+    while slug in taken:
+        slug, i = f"{base}-{i}", i + 1
+    taken.add(slug)
+    return slug
+
+
+def _find_estimator_blocks(obj: Any, path: tuple[str, ...] = ()) -> list[tuple[tuple[str, ...], dict]]:
+    """Every ``estimators`` mapping inside ``obj`` (depth first, in insertion order) with its path."""
+    found: list[tuple[tuple[str, ...], dict]] = []
+    if isinstance(obj, dict):
+        for key, val in obj.items():
+            if key == "estimators" and isinstance(val, dict) and any(isinstance(s, dict) for s in val.values()):
+                found.append((path, val))
+            elif isinstance(val, (dict, list)):
+                found.extend(_find_estimator_blocks(val, path + (str(key),)))
+    elif isinstance(obj, list):
+        for i, val in enumerate(obj):
+            if isinstance(val, (dict, list)):
+                found.extend(_find_estimator_blocks(val, path + (f"[{i}]",)))
+    return found
+
+
+def _rmse_table(path: tuple[str, ...], block: dict) -> RmseTable:
+    label = " / ".join(p for p in path if p != "scenarios") or "all runs"
+    rows = []
+    for key, summ in block.items():
+        if not isinstance(summ, dict):
+            continue
+        avg = summ.get("rmse_time_avg")
+        if avg is None:
+            values: list[Any] = []
+        elif isinstance(avg, list):
+            values = _flatten(avg)
+        else:
+            values = [avg]
+        rows.append((str(key), values, summ.get("nees_time_avg")))
+    comps = max((len(v) for _, v, _ in rows), default=0)
+    return RmseTable(label=label, components=comps, rows=rows)
+
+
+def _flatten(x: Any) -> list[Any]:
+    if isinstance(x, list):
+        return [z for y in x for z in _flatten(y)]
+    return [x]
+
+
+def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> ExperimentReport:
+    exp_id = _text(metrics.get("id")) or folder.name
+    anchor = _slug(exp_id, taken, "exp-")
+    problems = []
+    meta = []
+    for key, label in (("runs", "runs"), ("seed", "seed"), ("package_version", "tobitkf"),
+                       ("elapsed_seconds", "time (s)")):
+        if metrics.get(key) is not None:
+            meta.append((label, _format_value(metrics[key])))
+
+    settings = []
+    raw_settings = metrics.get("settings") or {}
+    if isinstance(raw_settings, dict):
+        for name, s in raw_settings.items():
+            if isinstance(s, dict) and "value" in s:
+                settings.append(Setting(str(name), _format_value(s.get("value")),
+                                        _text(s.get("provenance")) or "unspecified", _text(s.get("note"))))
+            else:
+                settings.append(Setting(str(name), _format_value(s), "unspecified", ""))
+
+    claims = []
+    raw_claims = metrics.get("claims") or []
+    for i, c in enumerate(raw_claims if isinstance(raw_claims, list) else [], start=1):
+        if not isinstance(c, dict):
+            c = {"claim": c}
+        holds = c.get("holds")
+        if holds is not None and not isinstance(holds, bool):
+            problems.append(f"{exp_id}: claim {i} has holds={holds!r}; expected true, false or null (shown as n/a)")
+        claims.append(Claim(number=i, claim=_text(c.get("claim")), measured=_text(c.get("measured")),
+                            holds=holds if isinstance(holds, bool) else None, note=_text(c.get("note")),
+                            explanation=_text(c.get("explanation")), anchor=f"{anchor}-claim-{i}"))
+
+    listed = metrics.get("figures")
+    if isinstance(listed, list):
+        names = [str(f) for f in listed]
+    else:
+        names = sorted(p.name for p in folder.glob("*.png") if not p.name.startswith("."))
+    figures = []
+    for name in names:
+        if Path(name).name != name or name in ("", ".", ".."):
+            problems.append(f"{exp_id}: figure name {name!r} is not a plain file name; skipped")
+        elif not (folder / name).is_file():
+            problems.append(f"{exp_id}: figure {name} is listed in metrics.json but missing")
+        else:
+            figures.append(name)
+
+    rest = {k: v for k, v in metrics.items() if k not in _META_KEYS}
+    tables = [_rmse_table(p, b) for p, b in _find_estimator_blocks(rest)]
+    return ExperimentReport(id=exp_id, title=_text(metrics.get("title")), source=_text(metrics.get("source"))
+                            or "unknown source", folder=folder.name, anchor=anchor, meta=meta, settings=settings,
+                            claims=claims, figures=figures, rmse_tables=tables, problems=problems,
+                            figure_sizes={f: size for f in figures if (size := _png_size(folder / f))})
+
+
+def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentReport], list[str]]:
+    """Read every ``results_dir/*/metrics.json``.
+
+    Returns
+    -------
+    experiments : list of ExperimentReport
+        Sorted by source, then id.
+    problems : list of str
+        Unreadable files, missing figures and the like, one line each.
+
+    Raises
+    ------
+    ValidationError
+        If ``results_dir`` is not a directory.
+    """
+    root = Path(results_dir)
+    if not root.is_dir():
+        raise ValidationError(f"results_dir: expected a directory of experiment results, got {str(root)!r}")
+    experiments, problems, taken = [], [], set()
+    for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        mfile = folder / "metrics.json"
+        if not mfile.is_file():
+            continue
+        try:
+            metrics = json.loads(mfile.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            problems.append(f"{folder.name}/metrics.json could not be read ({exc}); experiment skipped")
+            continue
+        if not isinstance(metrics, dict):
+            problems.append(f"{folder.name}/metrics.json is not a JSON object; experiment skipped")
+            continue
+        exp = _read_experiment(folder, metrics, taken)
+        experiments.append(exp)
+        problems.extend(exp.problems)
+    experiments.sort(key=lambda e: (e.source.lower(), e.id))
+    return experiments, problems
+
+
+def _by_source(experiments: list[ExperimentReport]) -> list[tuple[str, str, list[ExperimentReport]]]:
+    groups: dict[str, list[ExperimentReport]] = {}
+    for e in experiments:
+        groups.setdefault(e.source, []).append(e)
+    taken: set[str] = set()
+    return [(src, _slug(src, taken, "src-"), exps) for src, exps in groups.items()]
+
+
+def _totals(experiments: list[ExperimentReport]) -> tuple[int, int, int]:
+    return (sum(e.count(True) for e in experiments), sum(e.count(False) for e in experiments),
+            sum(e.count(None) for e in experiments))
+
+
+def _num(v: Any) -> str:
+    if _finite(v):
+        return f"{v:.4g}"
+    return "—" if v is None else _text(v)
+
+
+# --------------------------------------------------------------------------- HTML
+
+_CSS = """
+:root{--fg:#1d2430;--muted:#5b6573;--line:#d9dee5;--bg:#fff;--soft:#f5f7fa;--ok:#146c2e;--okbg:#e3f4e8;
+--bad:#a4161a;--badbg:#fde8e8;--na:#5b6573;--nabg:#eceff3;--warn:#8a5a00;--warnbg:#fff4db;--link:#0b57d0}
+*{box-sizing:border-box}
+html{-webkit-text-size-adjust:100%}
+body{margin:0;background:var(--bg);color:var(--fg);font:15px/1.5 system-ui,-apple-system,"Segoe UI",Roboto,
+"Noto Sans","DejaVu Sans",sans-serif}
+main{max-width:1040px;margin:0 auto;padding:16px 18px 48px}
+a{color:var(--link)}
+h1{font-size:1.6rem;margin:.4em 0 .2em}
+h2{font-size:1.3rem;margin:2.2em 0 .6em;padding-bottom:.25em;border-bottom:2px solid var(--line)}
+h3{font-size:1.12rem;margin:0 0 .3em}
+h4{font-size:.95rem;margin:1.4em 0 .4em;color:var(--muted);text-transform:uppercase;letter-spacing:.04em}
+code{font:.9em ui-monospace,SFMono-Regular,Menlo,Consolas,"DejaVu Sans Mono",monospace;background:var(--soft);
+padding:.05em .3em;border-radius:4px}
+.lead{color:var(--muted);margin:0 0 1em}
+.cards{display:flex;flex-wrap:wrap;gap:10px;margin:12px 0 8px}
+.card{flex:1 1 130px;border:1px solid var(--line);border-radius:10px;padding:10px 12px;background:var(--soft)}
+.card b{display:block;font-size:1.6rem;line-height:1.2}
+.card.ok{background:var(--okbg);border-color:#b5dfc2;color:var(--ok)}
+.card.bad{background:var(--badbg);border-color:#f3b9b9;color:var(--bad)}
+.card.na{background:var(--nabg);color:var(--na)}
+.toc{padding-left:1.2em}.toc li{margin:.2em 0}.toc ul{padding-left:1.1em}
+.exp{border:1px solid var(--line);border-radius:12px;padding:16px 16px 8px;margin:18px 0;background:var(--bg)}
+.meta{color:var(--muted);font-size:.88rem;margin:0 0 .6em}
+.meta span{white-space:nowrap;margin-right:1em}
+.figs{display:grid;grid-template-columns:minmax(0,1fr);gap:12px;margin:10px 0}
+figure{margin:0;border:1px solid var(--line);border-radius:8px;padding:6px;background:#fff}
+figure img{display:block;width:100%;height:auto}
+figcaption{font-size:.8rem;color:var(--muted);margin-top:4px;word-break:break-all}
+.scroll{overflow-x:auto;-webkit-overflow-scrolling:touch;margin:6px 0 10px}
+table{border-collapse:collapse;width:100%;font-size:.9rem}
+caption{text-align:left;font-weight:600;padding:4px 0;color:var(--muted)}
+th,td{border-bottom:1px solid var(--line);padding:6px 8px;text-align:left;vertical-align:top}
+thead th{background:var(--soft);font-weight:600;white-space:nowrap}
+td.num,th.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
+td.val{font-family:ui-monospace,SFMono-Regular,Menlo,Consolas,"DejaVu Sans Mono",monospace;font-size:.85em;
+overflow-wrap:anywhere;min-width:6em}
+td.best{font-weight:700}
+table.rmse{width:auto;min-width:min(100%,420px)}
+table.rmse th[scope=row]{padding-right:24px}
+tr.flagged,tr.flagged td{background:var(--warnbg)}
+tr.flagged>:first-child{box-shadow:inset 4px 0 0 #e0a800}
+tr.failed,tr.failed td{background:var(--badbg)}
+tr.failed>:first-child{box-shadow:inset 4px 0 0 var(--bad)}
+.badge{display:inline-block;white-space:nowrap;border-radius:999px;padding:1px 9px;font-size:.82rem;font-weight:600;
+border:1px solid transparent}
+.badge.held{background:var(--okbg);color:var(--ok);border-color:#b5dfc2}
+.badge.failed{background:var(--badbg);color:var(--bad);border-color:#f3b9b9}
+.badge.unchecked{background:var(--nabg);color:var(--na);border-color:#d3d8df}
+.badge.source{color:var(--muted);font-weight:400;padding-left:0}
+.badge.reconstructed,.badge.default,.badge.unspecified{background:var(--warnbg);color:var(--warn);
+border-color:#f0d48a}
+.why{display:inline-block;margin-top:3px;font-size:.85rem}
+.explain{border-left:4px solid var(--bad);background:var(--badbg);border-radius:0 8px 8px 0;padding:8px 12px;
+margin:8px 0}
+.explain.unchecked{border-left-color:#9aa3ad;background:var(--nabg)}
+.explain p{margin:.25em 0}
+.counts{font-size:.85rem;color:var(--muted);white-space:nowrap}
+.problems{border:1px solid #f0d48a;background:var(--warnbg);border-radius:8px;padding:8px 12px 8px 28px}
+.empty{color:var(--muted);font-style:italic}
+.top{font-size:.85rem;text-align:right;margin:0}
+@media (max-width:600px){body{font-size:14px}main{padding:10px 10px 40px}.exp{padding:12px 10px 6px;
+border-radius:10px}th,td{padding:5px 6px}h2{margin-top:1.6em}
+table.settings thead,table.claims thead{display:none}
+table.settings tr,table.claims tr{display:grid;border-bottom:1px solid var(--line);padding:4px 0}
+table.settings th,table.settings td,table.claims td{border:0;padding:2px 6px}
+table.settings tr{grid-template-columns:10.5em minmax(0,1fr)}
+table.claims tr{grid-template-columns:2em 1fr}
+table.claims td:nth-child(n+3){grid-column:2}
+table.claims td:nth-child(3)::before{content:"measured: ";color:var(--muted)}
+table.claims td.num{text-align:left}
+tr.flagged{box-shadow:inset 4px 0 0 #e0a800}tr.failed{box-shadow:inset 4px 0 0 var(--bad)}
+tr.flagged>:first-child,tr.failed>:first-child{box-shadow:none}}
+@media print{.exp{break-inside:avoid-page}a{color:inherit}}
+"""
+
+
+def _e(s: Any) -> str:
+    return html.escape(str(s), quote=True)
+
+
+def _badge(holds: bool | None) -> str:
+    cls, sym, word = _VERDICT[holds]
+    return f'<span class="badge {cls}"><span aria-hidden="true">{sym}</span> {word}</span>'
+
+
+def _html_counts(e: ExperimentReport) -> str:
+    return (f'<span class="counts">{e.count(True)} ✓ held · {e.count(False)} ✗ not held · '
+            f'{e.count(None)} n/a</span>')
+
+
+def _html_settings(e: ExperimentReport) -> list[str]:
+    if not e.settings:
+        return ['<p class="empty">No parameters recorded.</p>']
+    out = ['<div class="scroll"><table class="settings">',
+           '<thead><tr><th scope="col">parameter</th><th scope="col">value</th><th scope="col">provenance</th>'
+           '<th scope="col">note / reason</th></tr></thead><tbody>']
+    for s in e.settings:
+        cls = ' class="flagged"' if s.flagged else ""
+        prov = _e(s.provenance)
+        badge = f'<span class="badge {prov if s.flagged else "source"}">{"⚑ " if s.flagged else ""}{prov}</span>'
+        if s.flagged and not s.note:
+            note = '<span class="empty">no reason given</span>'
+        else:
+            note = _e(s.note)
+        out.append(f'<tr{cls}><th scope="row"><code>{_e(s.name)}</code></th><td class="val">{_e(s.value)}</td>'
+                   f"<td>{badge}</td><td>{note}</td></tr>")
+    out.append("</tbody></table></div>")
+    return out
+
+
+def _html_claims(e: ExperimentReport) -> list[str]:
+    if not e.claims:
+        return ['<p class="empty">No claims recorded.</p>']
+    out = ['<div class="scroll"><table class="claims">',
+           '<thead><tr><th scope="col" class="num">#</th><th scope="col">claim (source)</th>'
+           '<th scope="col">measured</th><th scope="col">holds</th></tr></thead><tbody>']
+    for c in e.claims:
+        cls = _VERDICT[c.holds][0]
+        cell = _badge(c.holds)
+        if c.needs_explanation:
+            text = "why it does not hold" if c.holds is False else "why unchecked"
+            cell += f'<br><a class="why" href="#{c.anchor}">{text} →</a>'
+        out.append(f'<tr id="{c.anchor}-row" class="{cls}"><td class="num">{c.number}</td><td>{_e(c.claim)}</td>'
+                   f"<td>{_e(c.measured)}</td><td>{cell}</td></tr>")
+    out.append("</tbody></table></div>")
+    for c in e.claims:
+        if not c.needs_explanation:
+            continue
+        cls = "explain" if c.holds is False else "explain unchecked"
+        head = "does not hold" if c.holds is False else "was not checked"
+        out.append(f'<div class="{cls}" id="{c.anchor}"><p><strong>Claim {c.number} {head}:</strong> '
+                   f"{_e(c.claim)}</p>")
+        out.append(f"<p><strong>Measured:</strong> {_e(c.measured) or '<span class=empty>nothing recorded</span>'}"
+                   "</p>")
+        if c.note:
+            out.append(f"<p><strong>Note:</strong> {_e(c.note)}</p>")
+        if c.explanation:
+            out.append(f"<p><strong>Explanation:</strong> {_e(c.explanation)}</p>")
+        out.append(f'<p><a href="#{c.anchor}-row">↑ back to the claims table</a></p></div>')
+    return out
+
+
+def _html_rmse(e: ExperimentReport) -> list[str]:
+    if not e.rmse_tables:
+        return ['<p class="empty">No estimator summaries recorded.</p>']
+    out = []
+    for t in e.rmse_tables:
+        out.append('<div class="scroll"><table class="rmse">')
+        out.append(f"<caption>{_e(t.label)}</caption>")
+        heads = "".join(f'<th scope="col" class="num">x{j + 1}</th>' for j in range(t.components))
+        nees = '<th scope="col" class="num">NEES (avg)</th>' if t.has_nees else ""
+        out.append(f'<thead><tr><th scope="col">estimator</th>{heads}{nees}</tr></thead><tbody>')
+        lows = [t.lowest(j) for j in range(t.components)]
+        for key, vals, nees_v in t.rows:
+            cells = []
+            for j in range(t.components):
+                v = vals[j] if j < len(vals) else None
+                best = _finite(v) and lows[j] is not None and v == lows[j] and len(t.rows) > 1
+                cls = "num best" if best else "num"
+                title = ' title="lowest"' if best else ""
+                cells.append(f'<td class="{cls}"{title}>{_e(_num(v))}</td>')
+            if t.has_nees:
+                cells.append(f'<td class="num">{_e(_num(nees_v))}</td>')
+            out.append(f'<tr><th scope="row"><code>{_e(key)}</code></th>{"".join(cells)}</tr>')
+        out.append("</tbody></table></div>")
+    if any(len(t.rows) > 1 for t in e.rmse_tables):
+        out.append('<p class="meta">Bold: the lowest RMSE of that component in the table.</p>')
+    return out
+
+
+def _html_experiment(e: ExperimentReport) -> list[str]:
+    out = [f'<section class="exp" id="{e.anchor}" aria-labelledby="{e.anchor}-h">',
+           f'<h3 id="{e.anchor}-h"><code>{_e(e.id)}</code>{" — " + _e(e.title) if e.title else ""}</h3>']
+    meta = " ".join(f"<span>{_e(k)}: <b>{_e(v)}</b></span>" for k, v in e.meta)
+    out.append(f'<p class="meta">{meta} <span>claims: {_html_counts(e)}</span></p>')
+    if e.figures:
+        out.append('<div class="figs">')
+        for name in e.figures:
+            src = _e(f"{quote(e.folder)}/{quote(name)}")
+            # intrinsic size attributes reserve the figure's aspect ratio before a lazy image loads;
+            # the CSS (width: 100%; height: auto) scales it to the column
+            size = e.figure_sizes.get(name)
+            dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
+            out.append(f'<figure><img src="{src}" alt="{_e(e.id)}: {_e(name)}" loading="lazy" decoding="async"'
+                       f"{dims}><figcaption>{_e(name)}</figcaption></figure>")
+        out.append("</div>")
+    else:
+        out.append('<p class="empty">No figures.</p>')
+    out.append("<h4>Parameters</h4>")
+    out.extend(_html_settings(e))
+    out.append("<h4>Claims</h4>")
+    out.extend(_html_claims(e))
+    out.append("<h4>Time-averaged RMSE per estimator</h4>")
+    out.extend(_html_rmse(e))
+    out.append('<p class="top"><a href="#top">↑ top</a></p></section>')
+    return out
+
+
+def render_html(experiments: list[ExperimentReport], problems: list[str], *, title: str = "tobitkf results") -> str:
+    """The whole ``index.html`` page as a string (self-contained, no scripts)."""
+    held, failed, unchecked = _totals(experiments)
+    groups = _by_source(experiments)
+    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
+           '<meta name="viewport" content="width=device-width, initial-scale=1">',
+           f"<title>{_e(title)}</title>", f"<style>{_CSS}</style>", "</head>", "<body>", '<main id="top">',
+           f"<h1>{_e(title)}</h1>",
+           '<p class="lead">The sources\' numerical examples as reproduced by <code>tobitkf reproduce</code>: '
+           "figures, parameters (⚑ marks values the source does not state), the source's claims with what "
+           "we measured, and the time-averaged RMSE of each estimator.</p>",
+           '<div class="cards">',
+           f'<div class="card"><b>{len(experiments)}</b>experiments</div>',
+           f'<div class="card ok"><b>{held}</b>✓ claims held</div>',
+           f'<div class="card bad"><b>{failed}</b>✗ claims not held</div>',
+           f'<div class="card na"><b>{unchecked}</b>– claims unchecked</div>',
+           "</div>"]
+    if problems:
+        out.append('<h2 id="problems">Problems</h2><ul class="problems">')
+        out.extend(f"<li>{_e(p)}</li>" for p in problems)
+        out.append("</ul>")
+    if failed:
+        out.append('<h2 id="not-held">Claims not held</h2><ul class="toc">')
+        for e in experiments:
+            for c in e.claims:
+                if c.holds is False:
+                    out.append(f'<li><a href="#{c.anchor}"><code>{_e(e.id)}</code> claim {c.number}</a>: '
+                               f"{_e(c.claim)}</li>")
+        out.append("</ul>")
+    out.append('<h2 id="contents">Contents</h2>')
+    if not experiments:
+        out.append('<p class="empty">No results found (no <code>*/metrics.json</code> in this folder).</p>')
+    out.append('<ul class="toc">')
+    for src, anchor, exps in groups:
+        out.append(f'<li><a href="#{anchor}">{_e(src)}</a><ul>')
+        for e in exps:
+            out.append(f'<li><a href="#{e.anchor}"><code>{_e(e.id)}</code></a> {_e(e.title)} {_html_counts(e)}</li>')
+        out.append("</ul></li>")
+    out.append("</ul>")
+    for src, anchor, exps in groups:
+        out.append(f'<section id="{anchor}" class="source"><h2>{_e(src)}</h2>')
+        for e in exps:
+            out.extend(_html_experiment(e))
+        out.append("</section>")
+    out += ["</main>", "</body>", "</html>", ""]
+    return "\n".join(out)
+
+
+# --------------------------------------------------------------------------- Markdown
+
+
+def _md(s: Any) -> str:
+    """Text safe inside a Markdown table cell: no line breaks, pipes and '<' escaped."""
+    s = " ".join(str(s).split())
+    return s.replace("\\", "\\\\").replace("|", "\\|").replace("<", "\\<").replace("`", "\\`")
+
+
+def _md_table(head: list[str], rows: list[list[str]], right: set[int] = frozenset()) -> list[str]:
+    align = ["---:" if i in right else "---" for i in range(len(head))]
+    out = ["| " + " | ".join(head) + " |", "| " + " | ".join(align) + " |"]
+    out.extend("| " + " | ".join(r) + " |" for r in rows)
+    return out + [""]
+
+
+def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
+                    title: str = "tobitkf results") -> str:
+    """``REPORT.md``: the same tables as the HTML page, in Markdown."""
+    held, failed, unchecked = _totals(experiments)
+    out = [f"# {_md(title)}", "",
+           f"Experiments: {len(experiments)} · claims ✓ held: {held} · ✗ not held: {failed} · "
+           f"n/a unchecked: {unchecked}", ""]
+    if problems:
+        out += ["## Problems", ""] + [f"- {_md(p)}" for p in problems] + [""]
+    groups = _by_source(experiments)
+    out += ["## Contents", ""]
+    for src, _, exps in groups:
+        out.append(f"- {_md(src)}")
+        out.extend(f"  - `{_md(e.id)}` {_md(e.title)} ({e.count(True)} ✓, {e.count(False)} ✗, "
+                   f"{e.count(None)} n/a)" for e in exps)
+    out.append("")
+    for src, _, exps in groups:
+        out += [f"## {_md(src)}", ""]
+        for e in exps:
+            out += [f"### `{_md(e.id)}` {_md(e.title)}", ""]
+            if e.meta:
+                out += [" · ".join(f"{_md(k)}: {_md(v)}" for k, v in e.meta), ""]
+            for n in e.figures:  # one paragraph per figure, so each renders on its own line
+                out += [f"![{_md(e.id)}: {_md(n)}]({quote(e.folder)}/{quote(n)})", ""]
+            out += ["#### Parameters", ""]
+            if e.settings:
+                rows = [[f"`{_md(s.name)}`", _md(s.value), ("⚑ " if s.flagged else "") + _md(s.provenance),
+                         _md(s.note) if (s.note or not s.flagged) else "*no reason given*"] for s in e.settings]
+                out += _md_table(["parameter", "value", "provenance", "note / reason"], rows)
+            else:
+                out += ["*No parameters recorded.*", ""]
+            out += ["#### Claims", ""]
+            if e.claims:
+                rows = []
+                for c in e.claims:
+                    _, sym, word = _VERDICT[c.holds]
+                    verdict = f"{sym} {word}" + (f" (see note {c.number} below)" if c.needs_explanation else "")
+                    rows.append([str(c.number), _md(c.claim), _md(c.measured), verdict])
+                out += _md_table(["#", "claim (source)", "measured", "holds"], rows, right={0})
+                for c in e.claims:
+                    if c.needs_explanation:
+                        head = "does not hold" if c.holds is False else "was not checked"
+                        extra = "".join(f" {lbl}: {_md(t)}." for lbl, t in (("Note", c.note),
+                                                                             ("Explanation", c.explanation)) if t)
+                        out.append(f"- **Claim {c.number} {head}.** Measured: {_md(c.measured) or 'nothing'}.{extra}")
+                if any(c.needs_explanation for c in e.claims):
+                    out.append("")
+            else:
+                out += ["*No claims recorded.*", ""]
+            out += ["#### Time-averaged RMSE per estimator", ""]
+            if not e.rmse_tables:
+                out += ["*No estimator summaries recorded.*", ""]
+            for t in e.rmse_tables:
+                out += [f"*{_md(t.label)}*", ""]
+                lows = [t.lowest(j) for j in range(t.components)]
+                rows = []
+                for key, vals, nees_v in t.rows:
+                    row = [f"`{_md(key)}`"]
+                    for j in range(t.components):
+                        v = vals[j] if j < len(vals) else None
+                        cell = _md(_num(v))
+                        if _finite(v) and v == lows[j] and len(t.rows) > 1:
+                            cell = f"**{cell}**"
+                        row.append(cell)
+                    if t.has_nees:
+                        row.append(_md(_num(nees_v)))
+                    rows.append(row)
+                head = ["estimator"] + [f"x{j + 1}" for j in range(t.components)] + (["NEES (avg)"] if t.has_nees
+                                                                                      else [])
+                out += _md_table(head, rows, right=set(range(1, len(head))))
+    return "\n".join(out).rstrip("\n") + "\n"
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def write_report(results_dir: str | os.PathLike) -> tuple[Path, Path]:
+    """Write ``results_dir/index.html`` and ``results_dir/REPORT.md`` from every ``*/metrics.json``.
+
+    Parameters
+    ----------
+    results_dir : path
+        The ``--out`` folder of ``tobitkf reproduce`` (one sub-folder per experiment).
+
+    Returns
+    -------
+    index_html, report_md : Path
+        The two files written (atomically).
+
+    Raises
+    ------
+    ValidationError
+        If ``results_dir`` is not a directory.
+    """
+    root = Path(results_dir)
+    experiments, problems = collect_results(root)
+    index = atomic_write_text(root / "index.html", render_html(experiments, problems))
+    md = atomic_write_text(root / "REPORT.md", render_markdown(experiments, problems))
+    return index, md
