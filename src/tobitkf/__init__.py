@@ -19,6 +19,8 @@ Public API (stable):
   measurements, sensor failures) and :func:`protocol_covariance_bounds` (Geng et al.).
 - :class:`DelayFadingSystem`, :func:`chain_lmmse` and relatives: optimal linear filter, predictor
   and smoothers for time-delay systems with fading measurements (Li et al. 2018).
+- :mod:`tobitkf.control` -- LQR/LQE/LQG via python-control, closed loops with (Tobit) Kalman observers,
+  Tobit Jacobians and a stability certificate, censoring-limit control; :class:`MultiTargetTracker`.
 - :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
   :func:`write_report` -- the reproduction report.
 """
@@ -45,6 +47,9 @@ from .models_delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPr
 from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
 from .report import write_report
+from .tracking import MultiTargetTracker
+from . import control
+from .control import certify_tkf_stability, simulate_closed_loop, tobit_lqe
 from . import metrics
 
 __version__ = "0.1.0"
@@ -60,5 +65,6 @@ __all__ = [
     "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
     "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
     "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
+    "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "MultiTargetTracker",
     "__version__",
 ]
