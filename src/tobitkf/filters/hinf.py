@@ -1375,8 +1375,6 @@ def wang2010_model(**overrides: Any) -> RossModel:
     return RossModel.create(**kw)
 
 
-#: The printed design of Section 4 (γ = 1.5). Note (spec A8, §6 F5): the printed triple
-#: (P, A_f, B_f) does not satisfy Theorem 2 for any γ; treat gains and P as separate data.
 WANG2010_PAPER = {
     "gamma": 1.5,
     "Af": np.array([[0.2165, 0.0014, 0.0081], [-0.0004, 0.1459, -0.0010], [0.0548, 0.0060, 0.1954]]),
@@ -1390,6 +1388,8 @@ WANG2010_PAPER = {
     "rho": 0.2228,
     "x0": np.array([0.3, 0.3, 0.1]),
 }
+"""The printed design of Section 4 (γ = 1.5). Note (spec A8, §6 F5): the printed triple
+(P, A_f, B_f) does not satisfy Theorem 2 for any γ; treat gains and P as separate data."""
 
 
 def wang2010_disturbances(steps: int) -> tuple[np.ndarray, np.ndarray]:
