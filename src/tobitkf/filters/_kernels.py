@@ -43,14 +43,22 @@ _NARROW = 1.0    # as tobitkf.censored._NARROW
 _INF = math.inf
 
 
-@njit(cache=True, inline="always")
-def _ndtr(x):
-    """Standard normal cdf, the cephes algorithm of scipy.special.ndtr (erf centre, erfc tails)."""
+@njit(cache=True)
+def _ndtr_pair(x):
+    """``(Phi(x), Phi(-x))`` from one erf/erfc call, each bit-identical to the cephes algorithm of
+    scipy.special.ndtr (``0.5 + 0.5 erf(x/sqrt2)`` in the centre, ``0.5 erfc(|x|/sqrt2)`` in the tails)."""
+    if x == _INF:
+        return 1.0, 0.0
+    if x == -_INF:
+        return 0.0, 1.0
     z = x * _SQRT1_2
     if abs(z) < _SQRT1_2:
-        return 0.5 + 0.5 * math.erf(z)
+        h = 0.5 * math.erf(z)
+        return 0.5 + h, 0.5 - h
     y = 0.5 * math.erfc(abs(z))
-    return 1.0 - y if z > 0 else y
+    if z > 0:
+        return 1.0 - y, y
+    return y, 1.0 - y
 
 
 @njit(cache=True)
@@ -63,8 +71,8 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     """
     a = -_INF if lo == -_INF else (lo - mu) / sd
     b = _INF if hi == _INF else (hi - mu) / sd
-    p_lo = _ndtr(a)
-    p_hi = _ndtr(-b)
+    p_lo, q_a = _ndtr_pair(a)      # Phi(a), Phi(-a)
+    q_b, p_hi = _ndtr_pair(b)      # Phi(b), Phi(-b)
     if (a > _TAIL) or (b < -_TAIL) or (b - a < _NARROW):
         # window in a tail or narrow: shifted coordinates u = z - a2, window mirrored to the
         # upper tail, density exp(-a2 u - u^2/2) on [0, min(w, umax)], 64-node Gauss-Legendre
@@ -94,9 +102,9 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     else:
         # gamma = Phi(b) - Phi(a), subtracting the small tail probabilities
         if a > 0:
-            gam = _ndtr(-a) - p_hi
+            gam = q_a - p_hi
         elif b < 0:
-            gam = _ndtr(b) - p_lo
+            gam = q_b - p_lo
         else:
             gam = 1.0 - p_lo - p_hi
         phi_a = 0.0
@@ -149,7 +157,7 @@ def censored_moments_array(mu, sd, lo, hi, glx, glw):
 BLOCK = 32
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _symmetrize(P, nb):
     n = P.shape[0]
     for i in range(n):
@@ -160,7 +168,7 @@ def _symmetrize(P, nb):
                 P[j, i, b] = v
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _predict(A, Qd, x, P, xp, Pp, AP, nb):
     r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)` (Miller (2.3), (3.20)–(3.21))."""
     n = A.shape[0]
@@ -192,7 +200,7 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
     _symmetrize(Pp, nb)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _solve_gain(Ree, Rxe, ok, K, W):
     r"""One run: :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column), as
     :func:`~tobitkf.filters._common.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
@@ -238,7 +246,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
             K[i, j] = W[j, i]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
     r"""Block gain and mean update: :math:`K = R_{xe}R_{ee}^{-1}` (masked), :math:`\hat x = \bar x + Ke`.
 
@@ -271,7 +279,7 @@ def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
                 x[i, b] += K[i, l, b] * e[l, b]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
     r""":math:`P = \mathrm{sym}(\bar P - K R_{xe}^T)`, or the Joseph form
     :math:`(I-KH)\bar P(I-KH)^T + K\,\mathrm{noise}\,K^T` (``noise`` (m, m, BLOCK))."""
@@ -318,7 +326,7 @@ def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
     _symmetrize(P, nb)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _load(x0, P0, r0, nb, x, P):
     n = x.shape[0]
     for b in range(nb):
@@ -328,7 +336,7 @@ def _load(x0, P0, r0, nb, x, P):
                 P[i, j, b] = P0[r0 + b, i, j]
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True)
 def _store(xv, Pv, r0, t, nb, mean_out, cov_out):
     n = xv.shape[0]
     for b in range(nb):
