@@ -64,7 +64,7 @@ def three_state():
                            P0=0.1 * np.eye(3))
 
 
-def data(system, cens, runs=6, steps=60, seed=0):
+def data(system, cens, runs=6, steps=150, seed=0):
     return tk.simulate(system, steps, runs, censoring=cens, seed=seed).y
 
 
@@ -246,7 +246,7 @@ def test_tkf_kernel_many_runs_crosses_blocks():
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_kf_kernel_equals_numpy(cu):
     sys_ = three_state()
-    y = data(sys_, tk.Censoring(), runs=2 * _kernels.BLOCK + 3, steps=40)
+    y = data(sys_, tk.Censoring(), runs=2 * _kernels.BLOCK + 3, steps=2 * _kernels.CHUNK + 7)
     a = kalman_filter(sys_, y, covariance_update=cu, backend="numba")
     b = kalman_filter(sys_, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)

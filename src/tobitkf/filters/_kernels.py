@@ -155,6 +155,10 @@ def censored_moments_array(mu, sd, lo, hi, glx, glw):
 # vectorises the dense algebra over b.
 
 BLOCK = 32
+CHUNK = 64
+# Outputs are staged for CHUNK steps of a block and then written run by run: writing
+# every step straight into (N, T, ...) arrays touches BLOCK rows T*n*8 bytes apart,
+# which for long records alias in the cache and miss the TLB on every store.
 
 
 @njit(cache=True)
@@ -337,13 +341,24 @@ def _load(x0, P0, r0, nb, x, P):
 
 
 @njit(cache=True)
-def _store(xv, Pv, r0, t, nb, mean_out, cov_out):
+def _stage(xv, Pv, tt, nb, mbuf, cbuf):
+    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``."""
     n = xv.shape[0]
     for b in range(nb):
         for i in range(n):
-            mean_out[r0 + b, t, i] = xv[i, b]
+            mbuf[b, tt, i] = xv[i, b]
             for j in range(n):
-                cov_out[r0 + b, t, i, j] = Pv[i, j, b]
+                cbuf[b, tt, i, j] = Pv[i, j, b]
+
+
+@njit(cache=True)
+def _flush(buf, out, r0, t0, nb, cnt):
+    """Write ``cnt`` staged steps of ``nb`` runs to ``out[r0 + b, t0:t0 + cnt]`` (contiguous per run)."""
+    for b in range(nb):
+        dst = out[r0 + b, t0:t0 + cnt].reshape(-1)
+        src = buf[b, :cnt].reshape(-1)
+        for k in range(src.shape[0]):
+            dst[k] = src[k]
 
 
 # --- the Tobit Kalman filter -----------------------------------------------------------------
@@ -381,12 +396,17 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
     buf = np.empty((2, glx.shape[0]))
+    S = CHUNK
+    s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
+    s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
+    s_pu, s_ey = np.empty((B, S, m)), np.empty((B, S, m))
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
         for t in range(T):
+            tt = t % S
             _predict(A, Qd, x, P, xp, Pp, AP, nb)
-            _store(xp, Pp, r0, t, nb, pmeans, pcovs)
+            _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
             # channel statistics at the prior (Assumption A1, (3.35)); (3.37), (3.8), (3.41)
             for l in range(m):
                 for b in range(nb):
@@ -404,8 +424,8 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                         v = g * (st[5] + (st[4] - mu) ** 2)
                     noise[l, l, b] = v
                     e[l, b] = y[r0 + b, t, l] - st[6]
-                    pu[r0 + b, t, l] = g
-                    ey[r0 + b, t, l] = st[6]
+                    s_pu[b, tt, l] = g
+                    s_ey[b, tt, l] = st[6]
             # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
             for l in range(m):
                 for j in range(n):
@@ -441,7 +461,15 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                             H[l, j, b] = C[l, j] * gam[l, b] if good else 0.0
             _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs)
             _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
-            _store(x, P, r0, t, nb, means, covs)
+            _stage(x, P, tt, nb, s_mean, s_cov)
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_cov, covs, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
+                _flush(s_pu, pu, r0, t0, nb, tt + 1)
+                _flush(s_ey, ey, r0, t0, nb, tt + 1)
 
 
 # --- the Kalman filter ---------------------------------------------------------------------
@@ -484,12 +512,16 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
     oks = np.empty(m, dtype=np.bool_)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
+    S = CHUNK
+    s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
+    s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
     for r0 in range(0, runs, B):
         nb = min(B, runs - r0)
         _load(x0, P0, r0, nb, x, P)
         for t in range(T):
+            tt = t % S
             _predict(A, Qd, x, P, xp, Pp, AP, nb)
-            _store(xp, Pp, r0, t, nb, pmeans, pcovs)
+            _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
             # Ree = C Pbar C^T + R, Rxe = Pbar C^T, e = y - C xbar  (2.4)–(2.5)
             for l in range(m):
                 for j in range(n):
@@ -532,7 +564,13 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
                     for l in range(m):
                         Kall[t, i, l] = K[i, l, 0]
             _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
-            _store(x, P, r0, t, nb, means, covs)
+            _stage(x, P, tt, nb, s_mean, s_cov)
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_cov, covs, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
     if shared:
         # means of the other runs with the shared gains (the covariance does not depend on y)
         xs = np.empty(n)
