@@ -100,7 +100,8 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
         K = R_{xe} R_{ee}^{-1}, \qquad \hat x = \bar x + K e, \qquad P = \bar P - K R_{xe}^T
 
     (Miller (3.32), (3.22), (3.42) corrected as in (3.55)). Channels where
-    ``valid`` is False (missing, dropped, or with :math:`R_{ee,ll} = 0`) are removed
+    ``valid`` is False (missing, dropped, or with :math:`R_{ee,ll} = 0`, which includes a
+    subnormal :math:`R_{ee,ll}` such as :math:`\gamma^2 C\bar P C^T` after γ underflowed) are removed
     from the update exactly: their rows and columns of :math:`R_{ee}` are replaced
     by the identity and their gain columns are zero.
 
@@ -118,7 +119,9 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
     """
     m = Ree.shape[-1]
     diag = np.diagonal(Ree, axis1=-2, axis2=-1)
-    degenerate = ~(diag > 0)
+    # a subnormal diagonal (e.g. a TKF channel 40 sigma into the censored side) counts as 0:
+    # LAPACK's solve takes its reciprocal, which overflows and turns the whole gain into NaN
+    degenerate = ~(diag > np.finfo(np.float64).tiny)
     if valid is None and not degenerate.any():
         if m == 1:
             K = Rxe / Ree
