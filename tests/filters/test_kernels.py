@@ -241,6 +241,27 @@ def test_tkf_kernel_many_runs_crosses_blocks():
     assert_results_equal(a, b)
 
 
+def test_tkf_subnormal_channel_is_skipped_in_both_paths():
+    """A channel 38 sigma into its censored side: gamma ~ 1e-315, R_ee ~ 1e-319 (subnormal).
+
+    Before gain_update treated a subnormal R_ee as 0 the numpy path returned NaN here
+    (LAPACK's reciprocal pivot overflows). Both paths now drop the channel, which
+    carries no information: the update equals the one-channel TKF on channel 0."""
+    sys2 = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0], [0.3, 1.0]], Q=np.zeros((2, 2)), R=np.diag([0.1, 0.2]),
+                           x0=[3.8, -18.4], P0=[[0.044, -0.033], [-0.033, 0.233]])
+    cens = tk.Censoring(lower=[0.0, -0.3], upper=[np.inf, 0.5])
+    y = np.array([[[0.19, -0.3]]])
+    sys1 = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0]], Q=np.zeros((2, 2)), R=[[0.1]], x0=[3.8, -18.4],
+                           P0=[[0.044, -0.033], [-0.033, 0.233]])
+    one = tobit_kalman_filter(sys1, tk.Censoring(lower=0.0), y[..., :1], noise_term="total_variance",
+                              backend="numpy")
+    for be in ("numpy", "numba"):
+        out = tobit_kalman_filter(sys2, cens, y, noise_term="total_variance", backend=be)
+        assert out.extras["p_uncensored"][0, 0, 1] < 1e-300
+        assert_same(out.mean, one.mean, 1e-14)
+        assert_same(out.cov, one.cov, 1e-14)
+
+
 # --- the Kalman filter -------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cu", ["standard", "joseph"])

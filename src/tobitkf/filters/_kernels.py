@@ -41,6 +41,7 @@ _SQRT1_2 = math.sqrt(0.5)
 _TAIL = 4.0      # as tobitkf.censored._TAIL
 _NARROW = 1.0    # as tobitkf.censored._NARROW
 _INF = math.inf
+_TINY = float(np.finfo(np.float64).tiny)   # R_ee diagonals not above this count as 0 (as gain_update)
 
 
 @njit(cache=True)
@@ -452,7 +453,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                     Ree[l, l, b] += noise[l, l, b]
             for l in range(m):
                 for b in range(nb):
-                    good = (Ree[l, l, b] > 0) and not math.isnan(e[l, b])
+                    good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
                     ok[l, b] = good
                     if not good:
                         e[l, b] = 0.0
@@ -552,7 +553,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
                     e[l, b] = y[r0 + b, t, l] - s
             for l in range(m):
                 for b in range(nb):
-                    good = (Ree[l, l, b] > 0) and not skip[r0 + b, t, l]
+                    good = (Ree[l, l, b] > _TINY) and not skip[r0 + b, t, l]
                     ok[l, b] = good
                     if not good:
                         e[l, b] = 0.0
