@@ -80,7 +80,7 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
         flip = a < -b
         a2 = -b if flip else a
         b2 = -a if flip else b
-        umax = -a2 + math.sqrt(a2 * a2 + 80.0)
+        umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
         half = 0.5 * min(b2 - a2, umax)
         i0 = 0.0
         i1 = 0.0

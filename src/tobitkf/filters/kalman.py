@@ -188,22 +188,20 @@ class DroppingKalmanFilter:
     rtol : float, default 1e-12
         Relative tolerance of the detection.
     covariance_update : {"standard", "joseph"}
-    backend : {"auto", "numpy", "numba"}, default "auto"
-        Implementation of the time loop; see :func:`kalman_filter`.
     """
 
     def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12,
-                 covariance_update: str = "standard", backend: str = "auto"):
+                 covariance_update: str = "standard"):
         if not isinstance(system, LinearSystem):
             raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
         if not isinstance(censoring, Censoring):
             raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
         censoring.check(system.m)
-        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
+        check_keywords({"covariance_update": covariance_update}, _OPTIONS)
         if not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
         self.system, self.censoring, self.rtol = system, censoring, float(rtol)
-        self.covariance_update, self.backend = covariance_update, backend
+        self.covariance_update = covariance_update
 
     def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
         """Filter ``y`` (..., T, m), skipping censored readings; see :func:`kalman_filter`."""
@@ -211,7 +209,7 @@ class DroppingKalmanFilter:
         self.censoring.check_measurements(y2)
         at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol)
         out = kalman_filter(self.system, y2, u=u, skip=at_lo | at_hi, covariance_update=self.covariance_update,
-                            x0=x0, P0=P0, backend=self.backend)
+                            x0=x0, P0=P0)
         T, n = y2.shape[1], self.system.n
         return FilterResult(mean=out.mean.reshape(batch + (T, n)), cov=out.cov.reshape(batch + (T, n, n)),
                             pred_mean=out.pred_mean.reshape(batch + (T, n)),
