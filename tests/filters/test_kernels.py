@@ -110,6 +110,21 @@ def test_stats_match_in_the_tails(dist, kind):
         assert np.all(np.isfinite(got[i]))
 
 
+def test_stats_quadrature_dense_grid():
+    """The quadrature branch (kernel's own vectorised exp) over a dense grid of tail depths and widths."""
+    a = np.geomspace(4.01, 1e3, 150)       # beyond _TAIL = 4: the quadrature branch
+    w = np.geomspace(1e-3, 50.0, 150)
+    A, W = (v.ravel() for v in np.meshgrid(a, w))
+    mu, sd = np.zeros(A.size), np.ones(A.size)
+    for lo, hi in ((A, A + W), (-A - W, -A), (A, np.full(A.size, np.inf)), (W - 0.9, W - 0.4)):
+        ref = censored_moments(mu, sd, lo, hi)
+        got = kernel_moments(mu, sd, lo, hi)
+        # p_uncensored = exp(-a^2/2 - log sqrt(2 pi) + log I0): one ulp of an argument near -745
+        # is 1.1e-13 relative in the result, whichever exp computes it
+        for i, rtol in ((2, 2.5e-13), (3, 2e-14), (5, 2e-14)):     # p_uncensored, inverse_mills, truncated_var
+            np.testing.assert_allclose(got[i], ref[i], rtol=rtol, atol=0, err_msg=ref._fields[i])
+
+
 def test_stats_against_60_digit_vectors():
     """No less accurate than censored_moments on the mpmath vectors (shared/vectors)."""
     if not VECTORS.exists():
