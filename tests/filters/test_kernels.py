@@ -324,6 +324,16 @@ def test_kf_kernel_degenerate_channel_is_skipped():
     assert np.all(a.mean == 0.0)
 
 
+def test_kf_kernel_singular_innovation_covariance_raises_like_numpy():
+    """Two identical noise-free channels: R_ee singular with a positive diagonal."""
+    sys_ = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0], [1.0, 0.0]], Q=0.1 * np.eye(2), R=np.zeros((2, 2)),
+                           x0=[0.0, 0.0], P0=np.eye(2))
+    y = np.zeros((2, 3, 2))
+    for be in ("numpy", "numba"):
+        with pytest.raises(np.linalg.LinAlgError, match="Singular matrix"):
+            kalman_filter(sys_, y, backend=be)
+
+
 # --- dispatch -----------------------------------------------------------------------------------
 
 class _Trap:

@@ -256,6 +256,8 @@ def _solve_gain(Ree, Rxe, ok, K, W):
                 t = W[c, i]
                 W[c, i] = W[p, i]
                 W[p, i] = t
+        if Ree[c, c] == 0.0:
+            raise np.linalg.LinAlgError("Singular matrix")   # as numpy.linalg.solve
         for r in range(c + 1, m):
             f = Ree[r, c] / Ree[c, c]
             for j in range(c, m):
