@@ -44,7 +44,7 @@ _INF = math.inf
 _TINY = float(np.finfo(np.float64).tiny)   # R_ee diagonals not above this count as 0 (as gain_update)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _ndtr_pair(x):
     """``(Phi(x), Phi(-x))`` from one erf/erfc call, each bit-identical to the cephes algorithm of
     scipy.special.ndtr (``0.5 + 0.5 erf(x/sqrt2)`` in the centre, ``0.5 erfc(|x|/sqrt2)`` in the tails)."""
@@ -74,7 +74,7 @@ _POW2_OFF = 64
 _POW2 = 2.0 ** np.arange(-_POW2_OFF, 2, dtype=np.float64)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     """Censored-normal statistics of one channel, as :func:`tobitkf.censored.censored_moments`.
 
@@ -159,7 +159,7 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     return p_lo, p_hi, gam, lam, tmean, tvar, cmean, cvar
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def censored_moments_array(mu, sd, lo, hi, glx, glw):
     """:func:`censored_stats` over 1-d arrays of equal length; returns an (8, K) array (testing aid)."""
     out = np.empty((8, mu.shape[0]))
@@ -184,7 +184,7 @@ CHUNK = 64
 # which for long records alias in the cache and miss the TLB on every store.
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _symmetrize(P, nb):
     n = P.shape[0]
     for i in range(n):
@@ -195,7 +195,7 @@ def _symmetrize(P, nb):
                 P[j, i, b] = v
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _predict(A, Qd, x, P, xp, Pp, AP, nb):
     r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)` (Miller (2.3), (3.20)–(3.21))."""
     n = A.shape[0]
@@ -227,7 +227,7 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
     _symmetrize(Pp, nb)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _solve_gain(Ree, Rxe, ok, K, W):
     r"""One run: :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column), as
     :func:`~tobitkf.filters._common.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
@@ -275,7 +275,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
             K[i, j] = W[j, i]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
     r"""Block gain and mean update: :math:`K = R_{xe}R_{ee}^{-1}` (masked), :math:`\hat x = \bar x + Ke`.
 
@@ -308,7 +308,7 @@ def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
                 x[i, b] += K[i, l, b] * e[l, b]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
     r""":math:`P = \mathrm{sym}(\bar P - K R_{xe}^T)`, or the Joseph form
     :math:`(I-KH)\bar P(I-KH)^T + K\,\mathrm{noise}\,K^T` (``noise`` (m, m, BLOCK))."""
@@ -355,7 +355,7 @@ def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
     _symmetrize(P, nb)
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _load(x0, P0, r0, nb, x, P):
     n = x.shape[0]
     for b in range(nb):
@@ -365,7 +365,7 @@ def _load(x0, P0, r0, nb, x, P):
                 P[i, j, b] = P0[r0 + b, i, j]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _stage(xv, Pv, tt, nb, mbuf, cbuf):
     """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``."""
     n = xv.shape[0]
@@ -376,7 +376,7 @@ def _stage(xv, Pv, tt, nb, mbuf, cbuf):
                 cbuf[b, tt, i, j] = Pv[i, j, b]
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _flush(buf, out, r0, t0, nb, cnt):
     """Write ``cnt`` staged steps of ``nb`` runs to ``out[r0 + b, t0:t0 + cnt]`` (contiguous per run)."""
     for b in range(nb):
@@ -388,7 +388,7 @@ def _flush(buf, out, r0, t0, nb, cnt):
 
 # --- the Tobit Kalman filter -----------------------------------------------------------------
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                means, covs, pmeans, pcovs, pu, ey):
     """TKF over ``N`` runs of ``T`` steps; fills the ``(N, T, ...)`` output arrays in place.
@@ -499,7 +499,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
 
 # --- the Kalman filter ---------------------------------------------------------------------
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
     """KF over ``N`` runs; fills the outputs in place.
 
