@@ -303,6 +303,20 @@ def test_tkf_kernel_random_systems(seed):
             assert_results_equal(a, b)
 
 
+def test_tkf_kernel_threads_give_the_same_results():
+    """The kernels release the GIL; concurrent calls must not share scratch state."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    ys = [data(sys_, cens, runs=40, steps=150, seed=s) for s in range(4)]
+    serial = [tobit_kalman_filter(sys_, cens, y, backend="numba").mean for y in ys]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        threaded = list(pool.map(lambda y: tobit_kalman_filter(sys_, cens, y, backend="numba").mean, ys))
+    for a, b in zip(threaded, serial):
+        np.testing.assert_array_equal(a, b)
+
+
 # --- the Kalman filter -------------------------------------------------------------------------
 
 @pytest.mark.parametrize("cu", ["standard", "joseph"])

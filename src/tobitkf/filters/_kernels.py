@@ -18,7 +18,9 @@ censoring limits (constant or ``(T, m)``), NaN (missing) measurements, every
 
 The loop runs over runs (outer) and time (inner) with the per-run state in small
 scratch arrays, writing straight into the preallocated ``(N, T, ...)`` outputs.
-Functions are compiled on first use and cached on disk (``cache=True``).
+Functions are compiled on first use and cached on disk (``cache=True``). The kernels
+release the GIL (``nogil=True``), so threads (e.g. a threaded Dask scheduler) can run
+several filters at once.
 
 Symbols: ``gam`` = E(p) = γ (P(uncensored)), ``lam`` = inverse Mills ratio λ,
 ``Ruu`` = the noise term :math:`R_{uu}` of (3.40), ``Rxe``/``Ree`` of (3.39)/(3.40).
@@ -388,7 +390,7 @@ def _flush(buf, out, r0, t0, nb, cnt):
 
 # --- the Tobit Kalman filter -----------------------------------------------------------------
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                means, covs, pmeans, pcovs, pu, ey):
     """TKF over ``N`` runs of ``T`` steps; fills the ``(N, T, ...)`` output arrays in place.
@@ -499,7 +501,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
 
 # --- the Kalman filter ---------------------------------------------------------------------
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
     """KF over ``N`` runs; fills the outputs in place.
 
