@@ -11,14 +11,16 @@ formulas in the central region; 64-node Gauss–Legendre quadrature in shifted
 coordinates when the uncensored window lies beyond 4σ in a tail or is narrower than
 1σ). Results agree with the numpy path to rounding (tested to 1e-12).
 
-Covered cases (the dispatchers in ``kalman.py`` / ``tobit.py`` decide, see
-:func:`kernel_gap`): time-invariant A, C, Q, R (and B), no control input; any
+Covered cases (the dispatchers in ``kalman.py`` / ``tobit.py`` decide, with
+:func:`tobitkf.filters._backend.system_gap`): time-invariant A, C, Q, R (and B), no control input; any
 censoring limits (constant or ``(T, m)``), NaN (missing) measurements, every
 ``noise_term`` and both ``covariance_update`` forms. Everything else runs on numpy.
 
-The loop runs over runs (outer) and time (inner) with the per-run state in small
-scratch arrays, writing straight into the preallocated ``(N, T, ...)`` outputs.
-Functions are compiled on first use and cached on disk (``cache=True``). The kernels
+Runs are processed in blocks of :data:`BLOCK` (outer loop) over time (inner loop), the
+block's state in structure-of-arrays scratch (innermost loops over the runs of the
+block, which are independent: one run alone is a latency-bound chain), and the outputs
+staged for :data:`CHUNK` steps before they are written run by run into the
+preallocated ``(N, T, ...)`` arrays. Functions are compiled on first use and cached on disk (``cache=True``). The kernels
 release the GIL (``nogil=True``), so threads (e.g. a threaded Dask scheduler) can run
 several filters at once.
 
@@ -33,23 +35,23 @@ import math
 import numpy as np
 from numba import njit
 
+from ..censored import _GL_W, _GL_X, _NARROW, _TAIL
+
 __all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "NOISE_CODES", "GL_X", "GL_W"]
 
 NOISE_CODES = {"dissertation": 0, "total_variance": 1, "exact_pv": 2}
-GL_X, GL_W = np.polynomial.legendre.leggauss(64)
+GL_X, GL_W = _GL_X, _GL_W      # the quadrature of censored_moments (passed to the kernels)
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
-_TAIL = 4.0      # as tobitkf.censored._TAIL
-_NARROW = 1.0    # as tobitkf.censored._NARROW
 _INF = math.inf
 _TINY = float(np.finfo(np.float64).tiny)   # R_ee diagonals not above this count as 0 (as gain_update)
 
 
 @njit(cache=True, error_model="numpy")
 def _ndtr_pair(x):
-    """``(Phi(x), Phi(-x))`` from one erf/erfc call, each bit-identical to the cephes algorithm of
-    scipy.special.ndtr (``0.5 + 0.5 erf(x/sqrt2)`` in the centre, ``0.5 erfc(|x|/sqrt2)`` in the tails)."""
+    """``(Phi(x), Phi(-x))`` from one erf/erfc call, by the cephes algorithm of scipy.special.ndtr
+    (``0.5 + 0.5 erf(x/sqrt2)`` in the centre, ``0.5 erfc(|x|/sqrt2)`` in the tails, accurate in both)."""
     if x == _INF:
         return 1.0, 0.0
     if x == -_INF:
