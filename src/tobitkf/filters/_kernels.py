@@ -20,9 +20,9 @@ Runs are processed in blocks of :data:`BLOCK` (outer loop) over time (inner loop
 block's state in structure-of-arrays scratch (innermost loops over the runs of the
 block, which are independent: one run alone is a latency-bound chain), and the outputs
 staged for :data:`CHUNK` steps before they are written run by run into the
-preallocated ``(N, T, ...)`` arrays. Functions are compiled on first use and cached on disk (``cache=True``). The kernels
-release the GIL (``nogil=True``), so threads (e.g. a threaded Dask scheduler) can run
-several filters at once.
+preallocated ``(N, T, ...)`` arrays. Functions are compiled on first use and cached on
+disk (``cache=True``). The kernels release the GIL (``nogil=True``), so threads (e.g. a
+threaded Dask scheduler) can run several filters at once.
 
 Symbols: ``gam`` = E(p) = γ (P(uncensored)), ``lam`` = inverse Mills ratio λ,
 ``Ruu`` = the noise term :math:`R_{uu}` of (3.40), ``Rxe``/``Ree`` of (3.39)/(3.40).
