@@ -63,12 +63,12 @@ _PROB_TOL = 1e-9
 PREHISTORY = ("prior", "hold", "zero")
 
 
-#: The example's base law (labelled :math:`\Lambda_2` in Fig. 8): mean 0.9, variance 0.065.
 LAMBDA_BASE = PMF([0.0, 0.5, 1.0], [0.05, 0.10, 0.85])
-#: Fig. 8's :math:`\Lambda_1`: mean 0.6, variance 0.215 (35 % complete outages).
+r"""The example's base law (labelled :math:`\Lambda_2` in Fig. 8): mean 0.9, variance 0.065."""
 LAMBDA_1 = PMF([0.0, 0.5, 1.0], [0.35, 0.10, 0.55])
-#: No failures: :math:`\Lambda \equiv 1`.
+r"""Fig. 8's :math:`\Lambda_1`: mean 0.6, variance 0.215 (35 % complete outages)."""
 NO_FAILURE = Constant(1.0)
+r"""No failures: :math:`\Lambda \equiv 1`."""
 
 
 def check_failure_law(law: Any, name: str = "failures", *, unit_interval: bool = True) -> Any:

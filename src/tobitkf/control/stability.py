@@ -54,12 +54,12 @@ __all__ = ["tobit_jacobian", "tobit_error_jacobian", "mean_observer_map", "disse
            "certify_tkf_stability", "StabilityCertificate", "mean_field_error", "COUNTEREXAMPLE",
            "closed_loop_jacobian", "fixed_gain_tobit_observer"]
 
-#: Spec 001b §1.3: A and A − LC Schur (ρ = 0.875, 0.916) but ρ(A − 0.25 LC) = 1.084.
 COUNTEREXAMPLE = {
     "A": np.array([[-2.19, 1.0, 0.0], [-1.748, 0.0, 1.0], [-0.482, 0.0, 0.0]]),
     "L": np.array([[-2.48], [-1.448], [-1.232]]),
     "C": np.array([[1.0, 0.0, 0.0]]),
 }
+"""Spec 001b §1.3: A and A − LC Schur (ρ = 0.875, 0.916) but ρ(A − 0.25 LC) = 1.084."""
 
 
 def _expected(C, x, sigma, lower, upper):

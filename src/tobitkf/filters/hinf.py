@@ -96,33 +96,18 @@ SOLVERS = ("CLARABEL", "SCS")
 class RossModel:
     r"""Plant (1) with sector bound (4), ROSS sensors (2) and the error output of (6).
 
-    Parameters
-    ----------
-    B : (n, p) array_like
-        Disturbance input of the plant.
-    M : (r, n) array_like
-        Output to be estimated, :math:`z = Mx` (the filter output is :math:`M\hat x`).
-    U1, U2 : (n, n) array_like
-        Sector bounds of (4); :math:`U_1-U_2` must be symmetric positive definite.
-    C : (m, n) array_like
-        Stacked sensor rows :math:`C_i`.
-    D : (m,) array_like
-        Noise gains :math:`D_i` (D_v = diag{D_i}).
-    mu, nu : (m,) array_like
-        Saturation / arrival probabilities (see :class:`RandomSaturation`).
-    level : float or (m,) array_like, default 1.0
-        Saturation levels u_i (paper: 1).
-    f : callable, optional
-        Batched nonlinearity ``f(x) -> (..., n)`` for ``x`` of shape (..., n); needed only to
-        simulate. The LMIs use only U1, U2.
+    Build it with :meth:`create` (validated); the fields below are the checked arrays.
 
-    Raises
-    ------
-    ShapeError
-        A matrix does not conform.
-    ValidationError
-        Sector bounds in the wrong order (U1-U2 not positive definite or not symmetric),
-        probabilities outside [0, 1], levels <= 0, non-finite entries.
+    Attributes
+    ----------
+    B, M, U1, U2, C : ndarray
+        As the parameters of :meth:`create`.
+    D : (m,) ndarray
+        Noise gains :math:`D_i`.
+    channel : RandomSaturation
+        The sensor channel built from ``mu``, ``nu``, ``level``.
+    f : callable or None
+        The plant nonlinearity (needed only to simulate).
     """
 
     B: np.ndarray
@@ -137,7 +122,36 @@ class RossModel:
     @classmethod
     def create(cls, *, B: Any, M: Any, U1: Any, U2: Any, C: Any, D: Any, mu: Any, nu: Any,
                level: Any = 1.0, f: Callable[[np.ndarray], np.ndarray] | None = None) -> RossModel:
-        """Validated constructor (use this, not the dataclass initializer)."""
+        r"""Validated constructor (use this, not the dataclass initializer).
+
+        Parameters
+        ----------
+        B : (n, p) array_like
+            Disturbance input of the plant.
+        M : (r, n) array_like
+            Output to be estimated, :math:`z = Mx` (the filter output is :math:`M\hat x`).
+        U1, U2 : (n, n) array_like
+            Sector bounds of (4); :math:`U_1-U_2` must be symmetric positive definite.
+        C : (m, n) array_like
+            Stacked sensor rows :math:`C_i`.
+        D : (m,) array_like
+            Noise gains :math:`D_i` (D_v = diag{D_i}).
+        mu, nu : (m,) array_like
+            Saturation / arrival probabilities (see :class:`RandomSaturation`).
+        level : float or (m,) array_like, default 1.0
+            Saturation levels u_i (paper: 1).
+        f : callable, optional
+            Batched nonlinearity ``f(x) -> (..., n)`` for ``x`` of shape (..., n); needed only to
+            simulate. The LMIs use only U1, U2.
+
+        Raises
+        ------
+        ShapeError
+            A matrix does not conform.
+        ValidationError
+            Sector bounds in the wrong order (U1-U2 not positive definite or not symmetric),
+            probabilities outside [0, 1], levels <= 0, non-finite entries.
+        """
         B = as_float_array(B, "B", ndim=2)
         n, p = B.shape
         M = as_float_array(M, "M", ndim=2)
@@ -1376,8 +1390,6 @@ def wang2010_model(**overrides: Any) -> RossModel:
     return RossModel.create(**kw)
 
 
-#: The printed design of Section 4 (γ = 1.5). Note (spec A8, §6 F5): the printed triple
-#: (P, A_f, B_f) does not satisfy Theorem 2 for any γ; treat gains and P as separate data.
 WANG2010_PAPER = {
     "gamma": 1.5,
     "Af": np.array([[0.2165, 0.0014, 0.0081], [-0.0004, 0.1459, -0.0010], [0.0548, 0.0060, 0.1954]]),
@@ -1391,6 +1403,8 @@ WANG2010_PAPER = {
     "rho": 0.2228,
     "x0": np.array([0.3, 0.3, 0.1]),
 }
+"""The printed design of Section 4 (γ = 1.5). Note (spec A8, §6 F5): the printed triple
+(P, A_f, B_f) does not satisfy Theorem 2 for any γ; treat gains and P as separate data."""
 
 
 def wang2010_disturbances(steps: int) -> tuple[np.ndarray, np.ndarray]:

@@ -35,16 +35,18 @@ import numpy as np
 from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
+from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
                       prepare_measurements)
 
 __all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter"]
 
-_OPTIONS = {"covariance_update": ("standard", "joseph")}
+_OPTIONS = {"covariance_update": ("standard", "joseph"), "backend": BACKENDS}
 
 
 def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarray | None = None,
-                  covariance_update: str = "standard", x0: Any = None, P0: Any = None) -> FilterResult:
+                  covariance_update: str = "standard", x0: Any = None, P0: Any = None,
+                  backend: str = "auto") -> FilterResult:
     r"""Run the Kalman filter (Miller (2.3)–(2.6)) over a batch of records.
 
     Parameters
@@ -63,6 +65,13 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
         better conditioned.
     x0, P0 : array_like, optional
         Override the system's prior (``(..., n)``, ``(..., n, n)``).
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        Implementation of the time loop (same results to rounding, tested to 1e-12).
+        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
+        covers time-invariant A, B, C, Q, R without control input (missing samples,
+        ``skip``, per-run priors and both covariance updates included); ``"numpy"`` the
+        vectorised reference path, which covers everything; ``"auto"`` the kernel when
+        numba is installed and the case is covered, else numpy.
 
     Returns
     -------
@@ -74,9 +83,12 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
     Raises
     ------
     ShapeError, ValidationError
-        On malformed ``y``, ``u``, ``skip`` or an unknown option.
+        On malformed ``y``, ``u``, ``skip`` or an unknown option; ``backend="numba"`` for a
+        case the kernel does not cover.
+    ImportError
+        ``backend="numba"`` without numba installed.
     """
-    check_keywords({"covariance_update": covariance_update}, _OPTIONS)
+    check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
     y2, batch = prepare_measurements(y, system.m)
     N, T, m = y2.shape
     n = system.n
@@ -97,22 +109,28 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
     covs = np.empty((P.shape[0], T, n, n))
     pcovs = np.empty_like(covs)
     joseph = covariance_update == "joseph"
-    for k in range(1, T + 1):
-        uk = None if u2 is None else u2[:, k - 1]
-        bx, dy = system.input_effect(k, uk)
-        x, P = predict(x, P, system.transition(k - 1), system.process_cov(k - 1), bx)
-        pmeans[:, k - 1], pcovs[:, k - 1] = x, P
-        C, R = system.measurement(k), system.measurement_cov(k)
-        CP = C @ P
-        Ree = CP @ C.T + R
-        Rxe = np.swapaxes(CP, -1, -2)
-        innov = y2[:, k - 1] - x @ C.T - dy
-        valid = ~missing[:, k - 1] if per_run else None
-        if joseph:
-            x, P, _ = gain_update(x, P, np.nan_to_num(innov), Rxe, Ree, valid, H=C[None], noise=R[None])
-        else:
-            x, P, _ = gain_update(x, P, np.nan_to_num(innov), Rxe, Ree, valid)
-        means[:, k - 1], covs[:, k - 1] = x, P
+    if use_kernel(backend, system_gap(system, u), "the Kalman filter"):
+        c64 = np.ascontiguousarray
+        kernels().kf_kernel(c64(y2), c64(missing), c64(system.transition(0), dtype=float),
+                            c64(system.process_cov(0), dtype=float), c64(system.measurement(1), dtype=float),
+                            c64(system.measurement_cov(1), dtype=float), x, P, joseph, means, covs, pmeans, pcovs)
+    else:
+        for k in range(1, T + 1):
+            uk = None if u2 is None else u2[:, k - 1]
+            bx, dy = system.input_effect(k, uk)
+            x, P = predict(x, P, system.transition(k - 1), system.process_cov(k - 1), bx)
+            pmeans[:, k - 1], pcovs[:, k - 1] = x, P
+            C, R = system.measurement(k), system.measurement_cov(k)
+            CP = C @ P
+            Ree = CP @ C.T + R
+            Rxe = np.swapaxes(CP, -1, -2)
+            innov = y2[:, k - 1] - x @ C.T - dy
+            valid = ~missing[:, k - 1] if per_run else None
+            if joseph:
+                x, P, _ = gain_update(x, P, np.nan_to_num(innov), Rxe, Ree, valid, H=C[None], noise=R[None])
+            else:
+                x, P, _ = gain_update(x, P, np.nan_to_num(innov), Rxe, Ree, valid)
+            means[:, k - 1], covs[:, k - 1] = x, P
     if not per_run:
         covs = np.broadcast_to(covs, (N, T, n, n))
         pcovs = np.broadcast_to(pcovs, (N, T, n, n))
@@ -129,6 +147,8 @@ class KalmanFilter:
         The model.
     covariance_update : {"standard", "joseph"}, default "standard"
         See :func:`kalman_filter`.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        Implementation of the time loop; see :func:`kalman_filter`.
 
     Examples
     --------
@@ -139,16 +159,18 @@ class KalmanFilter:
     (1.0, 0.5)
     """
 
-    def __init__(self, system: LinearSystem, *, covariance_update: str = "standard"):
+    def __init__(self, system: LinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
         if not isinstance(system, LinearSystem):
             raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-        check_keywords({"covariance_update": covariance_update}, _OPTIONS)
+        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         self.system = system
         self.covariance_update = covariance_update
+        self.backend = backend
 
     def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
         """Filter measurements ``y`` (..., T, m); see :func:`kalman_filter`."""
-        return kalman_filter(self.system, y, u=u, covariance_update=self.covariance_update, x0=x0, P0=P0)
+        return kalman_filter(self.system, y, u=u, covariance_update=self.covariance_update, x0=x0, P0=P0,
+                             backend=self.backend)
 
 
 class DroppingKalmanFilter:

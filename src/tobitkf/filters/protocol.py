@@ -394,13 +394,15 @@ class ProtocolTobitKalmanFilter:
     P0_aug : array_like, optional
         :math:`M_0`.
 
-    See :func:`protocol_tobit_kalman_filter` for the equations and the deviations from the
-    source. :meth:`baseline` builds the paper's comparison filter PBTKF (spec §2.5).
-
     Raises
     ------
     ValidationError
         Unknown option or wrong argument types.
+
+    Notes
+    -----
+    See :func:`protocol_tobit_kalman_filter` for the equations and the deviations from the
+    source. :meth:`baseline` builds the paper's comparison filter PBTKF (spec §2.5).
     """
 
     def __init__(self, system: LinearSystem, channel: ProtocolChannel, *, failure_term: str = "variance",
