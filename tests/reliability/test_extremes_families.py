@@ -159,9 +159,16 @@ def test_huge_prior_with_near_singular_R_each_alone_is_fine():
             assert_healthy(out.mean, out.cov, out.pred_cov)
 
 
-@pytest.mark.xfail(strict=True, reason="P0/R = 1e20 with an unseen direction: needs a square-root/UD form "
-                                       "(not implemented); plain and Joseph forms both lose PSD")
-@pytest.mark.parametrize("form", ["standard", "joseph"])
+_NEEDS_SQRT = "P0/R = 1e20 with an unseen direction: needs a square-root/UD form (not implemented)"
+
+
+@pytest.mark.parametrize("form", [
+    pytest.param("standard", marks=pytest.mark.xfail(strict=True, reason=_NEEDS_SQRT + "; the plain form stays "
+                                                                         "indefinite (-3 x scale)")),
+    # the Joseph form is at rounding level here (-6e-3 x its own scale, within 1e-9 of the prior's
+    # scale as measured today; it moves with any change of rounding): not strict
+    pytest.param("joseph", marks=pytest.mark.xfail(strict=False, reason=_NEEDS_SQRT)),
+])
 def test_huge_prior_with_near_singular_R_together_needs_square_root_form(form):
     s, data = _hard_case()
     out = tk.KalmanFilter(s, covariance_update=form).filter(data.y)
