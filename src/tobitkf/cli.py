@@ -67,6 +67,14 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
     return final
 
 
+def check_out_dir(out: Path) -> None:
+    """Refuse an ``--out`` that exists and is not a folder (before any work is done)."""
+    from ._validation import ValidationError
+
+    if out.exists() and not out.is_dir():
+        raise ValidationError(f"--out: expected a folder, got the file {out}")
+
+
 def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
     """True when ``out/exp_id`` holds a readable metrics.json of the same runs, seed and
     package version whose figures all exist (what ``reproduce --resume`` skips)."""
@@ -102,6 +110,7 @@ def reproduce(
 
     try:
         ids = [e.id for e in all_experiments()] if experiment == "all" else [get(experiment).id]
+        check_out_dir(out)
     except ValidationError as exc:
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from None
@@ -155,6 +164,7 @@ def sweep(
 
     try:
         spec = load_sweep(file)
+        check_out_dir(out)
     except ValidationError as exc:
         console.print(f"[red]error:[/red] {exc}")
         raise typer.Exit(2) from None

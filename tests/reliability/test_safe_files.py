@@ -148,3 +148,17 @@ def test_no_module_evaluates_text(tmp_path):
                 if bad in code and "literal_eval" not in code and "np.exec" not in code:
                     offenders.append(f"{f.relative_to(src)}: {line.strip()}")
     assert not offenders, offenders
+
+
+@pytest.mark.parametrize("command", [["reproduce", "miller-brownian", "--runs", "2"], ["sweep", "SWEEPFILE"]])
+def test_out_that_is_a_file_is_refused_before_any_work(tmp_path, command):
+    from typer.testing import CliRunner
+
+    f = tmp_path / "sweep.toml"
+    f.write_text(sweep_text())
+    target = tmp_path / "not_a_dir"
+    target.write_text("keep")
+    args = [str(f) if a == "SWEEPFILE" else a for a in command] + ["--out", str(target)]
+    res = CliRunner().invoke(cli.app, args)
+    assert res.exit_code == 2 and "--out: expected a folder" in res.output
+    assert target.read_text() == "keep"
