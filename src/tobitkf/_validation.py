@@ -90,10 +90,11 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
     if mat.ndim < 2 or mat.shape[-1] != mat.shape[-2]:
         raise ShapeError(f"{name}: expected a square matrix (..., n, n), got shape {mat.shape}")
     scale = max(float(np.abs(mat).max(initial=0.0)), np.finfo(float).tiny)
-    asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
+    with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
+        asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
     if asym > rtol * scale:
         raise ValidationError(f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}")
-    eig = np.linalg.eigvalsh(0.5 * (mat + np.swapaxes(mat, -1, -2)))
+    eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
     lo = float(eig.min(initial=np.inf))
     if strict and lo <= 0:
         raise ValidationError(f"{name}: expected a positive definite matrix, smallest eigenvalue {lo:.3g}")
