@@ -228,7 +228,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         for key, est in ests.items():
             if not isinstance(est, dict) or "type" not in est:
                 raise _fail(text, f"estimators.{key}", "expected a table with a 'type'")
-            if est["type"] not in ESTIMATOR_TYPES:
+            if not isinstance(est["type"], str) or est["type"] not in ESTIMATOR_TYPES:
                 raise _fail(text, f"estimators.{key}.type",
                             f"unknown estimator type {est['type']!r}; expected one of {', '.join(ESTIMATOR_TYPES)}")
             for opt in est:
