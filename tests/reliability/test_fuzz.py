@@ -395,3 +395,64 @@ def test_closed_loop_valid_inputs_are_healthy(sys_, observer, xi, limit, steps, 
     if ok.any():
         assert_healthy(res.estimate[ok], res.cov[ok])
         assert np.all(np.isfinite(res.x[ok])) and np.all(np.isfinite(res.u[ok]))
+
+
+# ---------------------------------------------------------------------------------------
+# sweep files: random edits of a valid file either load or raise SweepFileError
+# ---------------------------------------------------------------------------------------
+SWEEP_TEXT = """[sweep]
+runs = 20
+steps = 5
+seed = 0
+block_runs = 10
+[model]
+A = [[0.9]]
+C = [[1.0]]
+Q = [[0.04]]
+R = [[0.01]]
+x0 = [0.0]
+P0 = [[0.2]]
+[censoring]
+lower = 0.0
+upper = inf
+[estimators.tkf]
+type = "TobitKalmanFilter"
+noise_term = "dissertation"
+[estimators.kf]
+type = "KalmanFilter"
+[grid]
+"censoring.lower" = [-0.1, 0.1]
+""".splitlines()
+TOML_VALUES = ["0", "-1", "1.5", "nan", "inf", "-inf", '"x"', '"../x"', "true", "[]", "[[]]", "[1, 2]", "[[1.0, 2.0]]",
+               "[[-1.0]]", "[[1e308]]", '["a"]', "{a = 1}", '"__import__(\'os\')"', "9999999999999999999", "[[0.0]]",
+               '"KalmanFilter"', '"joseph"', "[[1.0], [2.0]]", "1979-05-27"]
+
+
+@given(st.lists(st.tuples(st.integers(0, len(SWEEP_TEXT) - 1), st.sampled_from(["value", "delete", "key", "dup"]),
+                          st.sampled_from(TOML_VALUES), st.text(alphabet="abcxyzAQR_.", min_size=1, max_size=6)),
+                min_size=1, max_size=3))
+def test_edited_sweep_files_load_or_raise_sweep_file_error(edits):
+    from tobitkf.sweep import SweepFileError, parse_sweep
+
+    lines = list(SWEEP_TEXT)
+    for i, kind, value, word in edits:
+        i = min(i, len(lines) - 1)
+        line = lines[i]
+        if kind == "delete":
+            lines.pop(i)
+        elif kind == "dup":
+            lines.insert(i, line)
+        elif "=" in line and kind == "value":
+            lines[i] = line.split("=", 1)[0] + "= " + value
+        elif "=" in line:
+            lines[i] = f'"{word}" =' + line.split("=", 1)[1]
+        if not lines:
+            lines = ["[sweep]"]
+    text = "\n".join(lines) + "\n"
+    with no_hang():
+        try:
+            spec = parse_sweep(text, name="fz")
+        except SweepFileError as exc:
+            assert str(exc).startswith("sweep file: ")
+            return
+    assert spec.runs >= 1 and spec.steps >= 1 and spec.name == "fz"
