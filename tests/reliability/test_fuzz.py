@@ -456,3 +456,24 @@ def test_edited_sweep_files_load_or_raise_sweep_file_error(edits):
             assert str(exc).startswith("sweep file: ")
             return
     assert spec.runs >= 1 and spec.steps >= 1 and spec.name == "fz"
+
+
+@given(st.text(min_size=1, max_size=12).filter(lambda s: s.strip() and not s.startswith("-")),
+       st.integers(-5, 0), st.text(alphabet="0123456789-x.", min_size=1, max_size=4))
+def test_reproduce_refuses_unknown_ids_and_bad_options(tmp_path_factory, exp_id, runs, seed):
+    from typer.testing import CliRunner
+
+    from tobitkf import cli
+    from tobitkf.experiments import all_experiments
+
+    assume(exp_id not in {e.id for e in all_experiments()} and exp_id != "all")
+    out = tmp_path_factory.mktemp("rep")
+    runner = CliRunner()
+    res = runner.invoke(cli.app, ["reproduce", exp_id, "--out", str(out)])
+    assert res.exit_code == 2 and "unknown id" in res.output
+    res = runner.invoke(cli.app, ["reproduce", "miller-brownian", "--runs", str(runs), "--out", str(out)])
+    assert res.exit_code == 2 and "--runs" in res.output
+    if not seed.lstrip("-").isdigit():
+        res = runner.invoke(cli.app, ["reproduce", "miller-brownian", "--seed", seed, "--out", str(out)])
+        assert res.exit_code == 2 and "--seed" in res.output
+    assert list(out.iterdir()) == []                 # nothing written for a refused command
