@@ -244,6 +244,16 @@ def _solve_gain(Ree, Rxe, ok, K, W):
     for j in range(m):
         for i in range(n):
             W[j, i] = Rxe[i, j] if ok[j] else 0.0
+    # scale Ree to unit diagonal (as _common._gain): channels whose variances differ by ~1e77
+    # otherwise give gain entries wrong by ~1e54 and a Joseph covariance of ~1e33
+    d = np.empty(m)
+    for i in range(m):
+        d[i] = 1.0 / np.sqrt(Ree[i, i]) if Ree[i, i] > 0.0 else 1.0
+    for i in range(m):
+        for j in range(m):
+            Ree[i, j] *= d[i] * d[j]
+        for k in range(n):
+            W[i, k] *= d[i]
     for c in range(m):
         p = c
         best = abs(Ree[c, c])
@@ -276,7 +286,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
             W[c, i] = s / Ree[c, c]
     for i in range(n):
         for j in range(m):
-            K[i, j] = W[j, i]
+            K[i, j] = W[j, i] * d[j]
 
 
 @njit(cache=True, error_model="numpy")
