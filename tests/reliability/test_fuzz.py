@@ -120,13 +120,15 @@ def scenarios(draw, **kw):
 # valid inputs: finite, symmetric, PSD
 # ---------------------------------------------------------------------------------------
 @given(scenarios(), st.sampled_from(["standard", "joseph"]),
-       st.sampled_from(["dissertation", "total_variance", "exact_pv"]))
-def test_core_filters_valid_inputs_are_healthy(scn, form, noise_term):
+       st.sampled_from(["dissertation", "total_variance", "exact_pv"]), st.sampled_from(["auto", "numpy"]))
+def test_core_filters_valid_inputs_are_healthy(scn, form, noise_term, backend):
+    """``auto`` is the compiled kernel when numba is installed, ``numpy`` the reference path."""
     sys_, cens, data = scn
     with no_hang():
-        for out in (tk.KalmanFilter(sys_, covariance_update=form).filter(data.y),
+        for out in (tk.KalmanFilter(sys_, covariance_update=form, backend=backend).filter(data.y),
                     tk.DroppingKalmanFilter(sys_, cens, covariance_update=form).filter(data.y),
-                    tk.TobitKalmanFilter(sys_, cens, noise_term=noise_term, covariance_update=form).filter(data.y)):
+                    tk.TobitKalmanFilter(sys_, cens, noise_term=noise_term, covariance_update=form,
+                                         backend=backend).filter(data.y)):
             assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
             assert_healthy(out.pred_mean, out.pred_cov)
 
