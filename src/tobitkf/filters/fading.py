@@ -182,7 +182,7 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
     xi = np.zeros((N, nxi))
     xi[:, :n] = x_init
     P = np.zeros((N, nxi, nxi))
-    P[:, :n, :n] = P_init
+    P[:, :n, :n] = 0.5 * (P_init + np.swapaxes(P_init, -1, -2))   # exactly symmetric (the prediction relies on it)
 
     stale = tobit and p_uncensored_mode == "eq6_stale"
     if stale:   # C_j x̂_{j|j-1}, j = 0..T, with x̂_{0|-1} := x̄_0 (spec §4.2 Step 3)
@@ -209,7 +209,6 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         aug["gain"] = np.empty((N, T, nxi, m))
         aug["innovation_cov"] = np.empty((N, T, m, m))
     diag = np.arange(m)
-    blocks = np.arange(L + 1)
 
     for k in range(1, T + 1):
         A, Qd = system.transition(k - 1), system.process_cov(k - 1)
@@ -219,13 +218,17 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         xi_p = np.empty_like(xi)
         xi_p[:, :n] = xi[:, :n] @ A.T + bx
         xi_p[:, n:] = xi[:, :nxi - n]
+        # P symmetric: its first block column P[:, :, :n] is (block row 0)^T, so
+        # X = P[:, :, :n] A^T = (A P[:, :n, :])^T is one GEMM over the stacked rows
+        # instead of a batched matmul of tiny matrices; A P00 A^T likewise from X's top block
+        X = (P[:, :, :n].reshape(-1, n) @ A.T).reshape(N, nxi, n)                 # (N, nxi, n)
         P_p = np.empty_like(P)
-        AP0 = A @ P[:, :n, :]                                    # (N, n, nxi)
-        P_p[:, :n, :n] = AP0[:, :, :n] @ A.T + Qd
-        P_p[:, :n, n:] = AP0[:, :, :nxi - n]
-        P_p[:, n:, :n] = np.swapaxes(P_p[:, :n, n:], -1, -2)
+        top = (np.swapaxes(X[:, :n], -1, -2).reshape(-1, n) @ A.T).reshape(N, n, n) + Qd
+        P_p[:, :n, :n] = 0.5 * (top + np.swapaxes(top, -1, -2))
+        P_p[:, n:, :n] = X[:, :nxi - n]
+        P_p[:, :n, n:] = np.swapaxes(X[:, :nxi - n], -1, -2)
+        # only the top block can be asymmetric (rounding); the copied blocks mirror exactly
         P_p[:, n:, n:] = P[:, :nxi - n, :nxi - n]
-        P_p = 0.5 * (P_p + np.swapaxes(P_p, -1, -2))
         pmeans[:, k - 1], pcovs[:, k - 1] = xi_p[:, :n], P_p[:, :n, :n]          # (27)-(28)
 
         H = augmented_measurement_matrix(system, fading, k)                     # (m, nxi)
@@ -284,8 +287,8 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         means[:, k - 1], covs[:, k - 1] = xi[:, :n], P[:, :n, :n]                # (29)-(30)
         if keep_smoothed:
             sm_mean[:, k - 1] = xi.reshape(N, L + 1, n)
-            P5 = P.reshape(N, L + 1, n, L + 1, n)
-            sm_cov[:, k - 1] = np.moveaxis(P5[:, blocks, :, blocks, :], 0, 1)
+            for s in range(L + 1):   # diagonal blocks by slicing (a fancy-index gather costs 5x more)
+                sm_cov[:, k - 1, s] = P[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
             if k <= L:   # blocks s > k stand for x_{k-s}, k-s < 0: not defined
                 sm_mean[:, k - 1, k + 1:] = np.nan
                 sm_cov[:, k - 1, k + 1:] = np.nan
