@@ -63,3 +63,51 @@ def test_fading_smoothed_blocks_are_the_diagonal_blocks():
         assert np.array_equal(sc[:, defined, s], blk[:, defined])
         assert np.isnan(sc[:, ~defined, s]).all()
     assert np.array_equal(res.cov, ac[:, :, :2, :2])
+
+
+def test_shift_predict_equals_dense_block_shift():
+    from tobitkf.filters._shift import shift_predict
+
+    rng = np.random.default_rng(11)
+    N, n, blocks = 9, 3, 4
+    nxi = n * blocks
+    B = rng.standard_normal((N, nxi, nxi))
+    P = B @ np.swapaxes(B, -1, -2)
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    xi = rng.standard_normal((N, nxi))
+    A = rng.standard_normal((n, n))
+    Qd = np.eye(n) * 0.3
+    bx = rng.standard_normal((N, n))
+    Aa = np.zeros((nxi, nxi))
+    Aa[:n, :n] = A
+    Aa[n:, :-n] = np.eye(nxi - n)
+    Qa = np.zeros((nxi, nxi))
+    Qa[:n, :n] = Qd
+    xp, Pp = shift_predict(xi, P, A, Qd, bx)
+    dense = Aa @ P @ Aa.T + Qa
+    np.testing.assert_allclose(Pp, 0.5 * (dense + np.swapaxes(dense, -1, -2)), rtol=1e-13, atol=1e-12)
+    assert np.array_equal(Pp, np.swapaxes(Pp, -1, -2))
+    np.testing.assert_allclose(xp, xi @ Aa.T + np.pad(bx, ((0, 0), (0, nxi - n))), rtol=1e-14, atol=1e-14)
+    assert np.array_equal(xp[:, n:], xi[:, :-n])
+
+
+def test_protocol_prediction_equals_dense_augmented_recursion():
+    from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
+    from tobitkf.filters.protocol import FAILURE_TERMS, augmented_transition, protocol_tobit_kalman_filter
+
+    w = 0.052 * np.pi
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    sys_ = tk.LinearSystem(A=A, C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
+    ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    y = ch.simulate(sys_, 25, 30, seed=2).y
+    Aa = augmented_transition(A, 2)
+    Qa = np.zeros((6, 6))
+    Qa[:2, :2] = sys_.process_cov(0)
+    for mode in FAILURE_TERMS:
+        res = protocol_tobit_kalman_filter(sys_, ch, y, failure_term=mode, keep_augmented=True)
+        ex = res.extras
+        for k in range(1, 25):
+            dense = Aa @ ex["aug_cov"][:, k - 1] @ Aa.T + Qa
+            np.testing.assert_allclose(ex["aug_pred_cov"][:, k], 0.5 * (dense + np.swapaxes(dense, -1, -2)),
+                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose(ex["aug_pred_mean"][:, k], ex["aug_mean"][:, k - 1] @ Aa.T, rtol=0, atol=1e-12)

@@ -95,6 +95,7 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models import LinearSystem
 from ._common import FilterResult, check_keywords, check_prior, gain_update, prepare_inputs, prepare_measurements
+from ._shift import shift_predict
 from .kalman import KalmanFilter
 from .tobit import TobitKalmanFilter
 
@@ -214,21 +215,9 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         A, Qd = system.transition(k - 1), system.process_cov(k - 1)
         uk = None if u2 is None else u2[:, k - 1]
         bx, dy = system.input_effect(k, uk)
-        # (17)-(18) with the shift structure of the augmented A: O(n nxi^2) instead of O(nxi^3)
-        xi_p = np.empty_like(xi)
-        xi_p[:, :n] = xi[:, :n] @ A.T + bx
-        xi_p[:, n:] = xi[:, :nxi - n]
-        # P symmetric: its first block column P[:, :, :n] is (block row 0)^T, so
-        # X = P[:, :, :n] A^T = (A P[:, :n, :])^T is one GEMM over the stacked rows
-        # instead of a batched matmul of tiny matrices; A P00 A^T likewise from X's top block
-        X = (P[:, :, :n].reshape(-1, n) @ A.T).reshape(N, nxi, n)                 # (N, nxi, n)
-        P_p = np.empty_like(P)
-        top = (np.swapaxes(X[:, :n], -1, -2).reshape(-1, n) @ A.T).reshape(N, n, n) + Qd
-        P_p[:, :n, :n] = 0.5 * (top + np.swapaxes(top, -1, -2))
-        P_p[:, n:, :n] = X[:, :nxi - n]
-        P_p[:, :n, n:] = np.swapaxes(X[:, :nxi - n], -1, -2)
-        # only the top block can be asymmetric (rounding); the copied blocks mirror exactly
-        P_p[:, n:, n:] = P[:, :nxi - n, :nxi - n]
+        # (17)-(18) with the shift structure of the augmented A: O(n nxi^2) instead of O(nxi^3),
+        # as GEMMs over the stacked runs
+        xi_p, P_p = shift_predict(xi, P, A, Qd, bx)
         pmeans[:, k - 1], pcovs[:, k - 1] = xi_p[:, :n], P_p[:, :n, :n]          # (27)-(28)
 
         H = augmented_measurement_matrix(system, fading, k)                     # (m, nxi)

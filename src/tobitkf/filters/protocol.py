@@ -67,6 +67,7 @@ from ..censored import censored_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models import LinearSystem
 from ._common import FilterResult, check_keywords, prepare_measurements, symmetrize
+from ._shift import shift_predict
 
 __all__ = ["ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "baseline_channel",
            "protocol_covariance_bounds", "CovarianceBounds", "augmented_transition", "noise_input",
@@ -310,7 +311,7 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     nxi = n * (ell + 1)
     xi0, M0 = _initial(system, ell, prehistory_mean, P0_aug)
     xi = np.broadcast_to(xi0, (N, nxi)).copy()
-    P = np.broadcast_to(M0, (N, nxi, nxi)).copy()
+    P = np.broadcast_to(symmetrize(M0), (N, nxi, nxi)).copy()   # exactly symmetric (shift_predict needs it)
     X = M0 + np.outer(xi0, xi0) if failure_term == "lmmse_unconditional" else None
     Bn = noise_input(n, ell)
     lam_mean, lam_var = channel.failure_mean, channel.failure_variance
@@ -330,8 +331,9 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         if not fixed:
             Aa = augmented_transition(system.transition(k - 1), ell)
             BQB = Bn @ system.process_cov(k - 1) @ Bn.T
-        xi = xi @ Aa.T                                                      # (17)
-        P = symmetrize(Aa @ P @ Aa.T + BQB)                                 # (18)
+        # (17)-(18): Aa is the block shift of (10) and BQB lives in its top block, so the
+        # prediction is block copies and two GEMMs over the stacked runs (== sym(Aa P Aa^T + BQB))
+        xi, P = shift_predict(xi, P, Aa[:n, :n], BQB[:n, :n])
         if X is not None:
             X = Aa @ X @ Aa.T + BQB
         out["aug_pred_mean"][:, k - 1] = xi
