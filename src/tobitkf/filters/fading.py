@@ -194,21 +194,23 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         cxxc = np.zeros((N, T + 1, m))
         cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Cs[0], mom_cov, Cs[0]) + (mom_mean @ Cs[0].T) ** 2
 
-    means = np.empty((N, T, n))
-    covs = np.empty((N, T, n, n))
-    pmeans = np.empty((N, T, n))
-    pcovs = np.empty((N, T, n, n))
+    # outputs stored time-major (T, N, ...): each step writes one contiguous block instead of N
+    # strided pieces; returned as (N, T, ...) views
+    means = np.empty((T, N, n))
+    covs = np.empty((T, N, n, n))
+    pmeans = np.empty((T, N, n))
+    pcovs = np.empty((T, N, n, n))
     if keep_smoothed:
-        sm_mean = np.empty((N, T, L + 1, n))
-        sm_cov = np.empty((N, T, L + 1, n, n))
-    pu = np.empty((N, T, m))
-    ey = np.empty((N, T, m))
-    lam_out = np.empty((N, T, m))
+        sm_mean = np.empty((T, N, L + 1, n))
+        sm_cov = np.empty((T, N, L + 1, n, n))
+    pu = np.empty((T, N, m))
+    ey = np.empty((T, N, m))
+    lam_out = np.empty((T, N, m))
     if keep_augmented:
-        aug = {k: np.empty((N, T, nxi)) for k in ("aug_mean", "aug_pred_mean")}
-        aug.update({k: np.empty((N, T, nxi, nxi)) for k in ("aug_cov", "aug_pred_cov")})
-        aug["gain"] = np.empty((N, T, nxi, m))
-        aug["innovation_cov"] = np.empty((N, T, m, m))
+        aug = {k: np.empty((T, N, nxi)) for k in ("aug_mean", "aug_pred_mean")}
+        aug.update({k: np.empty((T, N, nxi, nxi)) for k in ("aug_cov", "aug_pred_cov")})
+        aug["gain"] = np.empty((T, N, nxi, m))
+        aug["innovation_cov"] = np.empty((T, N, m, m))
     diag = np.arange(m)
 
     for k in range(1, T + 1):
@@ -218,7 +220,7 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         # (17)-(18) with the shift structure of the augmented A: O(n nxi^2) instead of O(nxi^3),
         # as GEMMs over the stacked runs
         xi_p, P_p = shift_predict(xi, P, A, Qd, bx)
-        pmeans[:, k - 1], pcovs[:, k - 1] = xi_p[:, :n], P_p[:, :n, :n]          # (27)-(28)
+        pmeans[k - 1], pcovs[k - 1] = xi_p[:, :n], P_p[:, :n, :n]          # (27)-(28)
 
         H = augmented_measurement_matrix(system, fading, k)                     # (m, nxi)
         chi = xi_p @ H.T + dy                                                    # Lemma 1 at the prediction
@@ -273,30 +275,30 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         else:                                                                    # (20') P - K S K^T
             xi, P, K = gain_update(xi_p, P_p, innov, Rxe, Ree, valid)
 
-        means[:, k - 1], covs[:, k - 1] = xi[:, :n], P[:, :n, :n]                # (29)-(30)
+        means[k - 1], covs[k - 1] = xi[:, :n], P[:, :n, :n]                # (29)-(30)
         if keep_smoothed:
-            sm_mean[:, k - 1] = xi.reshape(N, L + 1, n)
+            sm_mean[k - 1] = xi.reshape(N, L + 1, n)
             for s in range(L + 1):   # diagonal blocks by slicing (a fancy-index gather costs 5x more)
-                sm_cov[:, k - 1, s] = P[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
+                sm_cov[k - 1, :, s] = P[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
             if k <= L:   # blocks s > k stand for x_{k-s}, k-s < 0: not defined
-                sm_mean[:, k - 1, k + 1:] = np.nan
-                sm_cov[:, k - 1, k + 1:] = np.nan
-        pu[:, k - 1], ey[:, k - 1], lam_out[:, k - 1] = gam, yhat, lam
+                sm_mean[k - 1, :, k + 1:] = np.nan
+                sm_cov[k - 1, :, k + 1:] = np.nan
+        pu[k - 1], ey[k - 1], lam_out[k - 1] = gam, yhat, lam
         if keep_augmented:
-            aug["aug_mean"][:, k - 1], aug["aug_cov"][:, k - 1] = xi, P
-            aug["aug_pred_mean"][:, k - 1], aug["aug_pred_cov"][:, k - 1] = xi_p, P_p
-            aug["gain"][:, k - 1], aug["innovation_cov"][:, k - 1] = K, Ree
+            aug["aug_mean"][k - 1], aug["aug_cov"][k - 1] = xi, P
+            aug["aug_pred_mean"][k - 1], aug["aug_pred_cov"][k - 1] = xi_p, P_p
+            aug["gain"][k - 1], aug["innovation_cov"][k - 1] = K, Ree
 
-    extras = {"p_uncensored": pu.reshape(batch + (T, m)), "expected_y": ey.reshape(batch + (T, m)),
-              "inverse_mills": lam_out.reshape(batch + (T, m))}
+    def out(arr: np.ndarray) -> np.ndarray:   # (T, N, ...) time-major store -> batch + (T, ...) view
+        return np.moveaxis(arr, 0, 1).reshape(batch + (T,) + arr.shape[2:])
+
+    extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam_out)}
     if keep_smoothed:
-        extras["smoothed_mean"] = sm_mean.reshape(batch + (T, L + 1, n))
-        extras["smoothed_cov"] = sm_cov.reshape(batch + (T, L + 1, n, n))
+        extras["smoothed_mean"] = out(sm_mean)
+        extras["smoothed_cov"] = out(sm_cov)
     if keep_augmented:
-        extras.update({key: val.reshape(batch + val.shape[1:]) for key, val in aug.items()})
-    return FilterResult(mean=means.reshape(batch + (T, n)), cov=covs.reshape(batch + (T, n, n)),
-                        pred_mean=pmeans.reshape(batch + (T, n)), pred_cov=pcovs.reshape(batch + (T, n, n)),
-                        extras=extras)
+        extras.update({key: out(val) for key, val in aug.items()})
+    return FilterResult(mean=out(means), cov=out(covs), pred_mean=out(pmeans), pred_cov=out(pcovs), extras=extras)
 
 
 def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, y: Any, *,
