@@ -316,14 +316,16 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     Bn = noise_input(n, ell)
     lam_mean, lam_var = channel.failure_mean, channel.failure_variance
     sched = channel.schedule.scheduled(T)
-    out = {key: np.empty((N, T, nxi)) for key in ("aug_mean", "aug_pred_mean")}
+    # outputs stored time-major (T, N, ...): each step writes one contiguous block; returned as
+    # (N, T, ...) views
+    out = {key: np.empty((T, N, nxi)) for key in ("aug_mean", "aug_pred_mean")}
     if keep_augmented:
-        out.update({key: np.empty((N, T, nxi, nxi)) for key in ("aug_cov", "aug_pred_cov")})
-    cov = np.empty((N, T, n, n))
-    pcov = np.empty((N, T, n, n))
+        out.update({key: np.empty((T, N, nxi, nxi)) for key in ("aug_cov", "aug_pred_cov")})
+    cov = np.empty((T, N, n, n))
+    pcov = np.empty((T, N, n, n))
     info_keys = ("theta_bar", "inverse_mills", "trunc_var_factor", "expected_y", "innovation", "innovation_var",
                  "p_uncensored")
-    info_out = {key: np.empty((N, T)) for key in info_keys}
+    info_out = {key: np.empty((T, N)) for key in info_keys}
     fixed = not (system.A.varying or system.Q.varying or (system.B is not None and system.B.varying))
     if fixed:
         Aa, BQB = augmented_transition(system.transition(0), ell), Bn @ system.process_cov(0) @ Bn.T
@@ -336,31 +338,31 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         xi, P = shift_predict(xi, P, Aa[:n, :n], BQB[:n, :n])
         if X is not None:
             X = Aa @ X @ Aa.T + BQB
-        out["aug_pred_mean"][:, k - 1] = xi
-        pcov[:, k - 1] = P[:, :n, :n]
+        out["aug_pred_mean"][k - 1] = xi
+        pcov[k - 1] = P[:, :n, :n]
         if keep_augmented:
-            out["aug_pred_cov"][:, k - 1] = P
+            out["aug_pred_cov"][k - 1] = P
         h = int(sched[k - 1]) - 1
         C_row, r = _sensor_stats(system, k, h)
         Cc = stacked_measurement(C_row, ell)
         xi, P, info = protocol_update(xi, P, y2[:, k - 1, 0], gam[:, k - 1], Cc, r, tau, float(lam_mean[h]),
                                       float(lam_var[h]), failure_term=failure_term, second_moment=X,
                                       covariance_update=covariance_update)
-        out["aug_mean"][:, k - 1] = xi
-        cov[:, k - 1] = P[:, :n, :n]                                        # (25)
+        out["aug_mean"][k - 1] = xi
+        cov[k - 1] = P[:, :n, :n]                                        # (25)
         if keep_augmented:
-            out["aug_cov"][:, k - 1] = P
+            out["aug_cov"][k - 1] = P
         for key in info_keys:
-            info_out[key][:, k - 1] = info[key]
-    extras: dict[str, Any] = {key: val.reshape(batch + val.shape[1:]) for key, val in out.items()}
-    extras.update({key: val.reshape(batch + (T,)) for key, val in info_out.items()})
+            info_out[key][k - 1] = info[key]
+    def runs_first(arr: np.ndarray) -> np.ndarray:   # (T, N, ...) -> batch + (T, ...) view
+        return np.moveaxis(arr, 0, 1).reshape(batch + (T,) + arr.shape[2:])
+
+    extras: dict[str, Any] = {key: runs_first(val) for key, val in out.items()}
+    extras.update({key: runs_first(val) for key, val in info_out.items()})
     extras["uncensored"] = gam.reshape(batch + (T,))
     extras["scheduled"] = sched
-    mean = out["aug_mean"][..., :n]
-    pmean = out["aug_pred_mean"][..., :n]
-    return FilterResult(mean=mean.reshape(batch + (T, n)), cov=cov.reshape(batch + (T, n, n)),
-                        pred_mean=pmean.reshape(batch + (T, n)), pred_cov=pcov.reshape(batch + (T, n, n)),
-                        extras=extras)
+    return FilterResult(mean=extras["aug_mean"][..., :n], cov=runs_first(cov),
+                        pred_mean=extras["aug_pred_mean"][..., :n], pred_cov=runs_first(pcov), extras=extras)
 
 
 def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
