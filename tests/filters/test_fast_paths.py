@@ -111,3 +111,30 @@ def test_protocol_prediction_equals_dense_augmented_recursion():
             np.testing.assert_allclose(ex["aug_pred_cov"][:, k], 0.5 * (dense + np.swapaxes(dense, -1, -2)),
                                        rtol=0, atol=1e-12)
             np.testing.assert_allclose(ex["aug_pred_mean"][:, k], ex["aug_mean"][:, k - 1] @ Aa.T, rtol=0, atol=1e-12)
+
+
+def test_protocol_joseph_rank_one_equals_dense_joseph():
+    """protocol_update's Joseph form (rank-one factors applied in turn) == the dense product to 1e-12."""
+    from tobitkf.filters.protocol import protocol_update
+
+    rng = np.random.default_rng(4)
+    N, nxi = 50, 6
+    B = rng.standard_normal((N, nxi, nxi))
+    P = B @ np.swapaxes(B, -1, -2)
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    xi = rng.standard_normal((N, nxi))
+    Cc = np.tile([1.0, 0.5], 3)
+    y = np.abs(rng.standard_normal(N)) + 0.1
+    gam = np.ones(N, dtype=bool)
+    for mode in ("variance", "literal", "second_moment"):
+        _, P_new, info = protocol_update(xi, P, y, gam, Cc, 1.0, 0.0, 0.5, 0.25, failure_term=mode)
+        H = 0.5 * Cc
+        PH = P @ H
+        S = info["innovation_var"]
+        K = PH / S[:, None]
+        extra = S - PH @ H                   # F + noise of (24)
+        IKH = np.eye(nxi) - K[:, :, None] * H
+        dense = IKH @ P @ np.swapaxes(IKH, -1, -2) + extra[:, None, None] * (K[:, :, None] * K[:, None, :])
+        np.testing.assert_allclose(P_new, 0.5 * (dense + np.swapaxes(dense, -1, -2)), rtol=0,
+                                   atol=1e-12 * np.abs(dense).max())
+        assert np.array_equal(P_new, np.swapaxes(P_new, -1, -2))

@@ -193,8 +193,12 @@ def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamm
     e = y - yhat
     xi_up = xi_pred + K * e[:, None]                            # (19)
     if covariance_update == "joseph":
-        IKH = np.eye(H.size) - K[:, :, None] * H[None, None, :]
-        P_up = IKH @ P_pred @ np.swapaxes(IKH, -1, -2) + (F + noise)[:, None, None] * (K[:, :, None] * K[:, None, :])
+        # (I - K H^T) P (I - H K^T) + (F + noise) K K^T, applying the rank-one factors in turn:
+        # M = P - K (H^T P) with H^T P = PH^T (P symmetric), then M (I - H K^T) = M - (M H) K^T;
+        # outer products and one GEMV over the stacked rows instead of two batched matmuls
+        M = P_pred - K[:, :, None] * PH[:, None, :]
+        MH = (M.reshape(-1, H.size) @ H).reshape(K.shape)
+        P_up = M - (MH - (F + noise)[:, None] * K)[:, :, None] * K[:, None, :]
     else:
         P_up = P_pred - K[:, :, None] * PH[:, None, :]          # (20)
     g = np.asarray(gamma, dtype=bool)
