@@ -138,3 +138,35 @@ def test_protocol_joseph_rank_one_equals_dense_joseph():
         np.testing.assert_allclose(P_new, 0.5 * (dense + np.swapaxes(dense, -1, -2)), rtol=0,
                                    atol=1e-12 * np.abs(dense).max())
         assert np.array_equal(P_new, np.swapaxes(P_new, -1, -2))
+
+
+def test_fading_scalar_joseph_equals_gain_update():
+    """m = 1 fast path == gain_update(H=G, noise=N): x, K bit for bit, P to 1e-12; masks and degenerate R_ee."""
+    from tobitkf.filters._common import gain_update
+    from tobitkf.filters.fading import _joseph_scalar_update
+
+    rng = np.random.default_rng(8)
+    N, nxi = 40, 6
+    B = rng.standard_normal((N, nxi, nxi))
+    P = B @ np.swapaxes(B, -1, -2)
+    P = 0.5 * (P + np.swapaxes(P, -1, -2))
+    x = rng.standard_normal((N, nxi))
+    H0 = rng.standard_normal(nxi)
+    gam = rng.uniform(0.0, 1.0, N)
+    gam[:3] = 0.0                                   # G = 0: R_ee = noise
+    noise = rng.uniform(0.1, 1.0, N)
+    noise[:2] = 0.0                                 # R_ee = 0: degenerate, channel dropped
+    noise[2] = 1e-310                               # subnormal R_ee: dropped as in gain_update
+    G = gam[:, None, None] * H0
+    Rxe = P @ np.swapaxes(G, -1, -2)
+    Ree = G @ Rxe + noise[:, None, None]
+    innov = rng.standard_normal((N, 1))
+    for valid in (None, rng.uniform(size=(N, 1)) > 0.3):
+        x1, P1, K1 = _joseph_scalar_update(x, P, innov, Rxe, Ree, valid, H0, gam, noise)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x2, P2, K2 = gain_update(x, P, innov, Rxe, Ree, valid, H=G, noise=noise[:, None, None])
+        assert np.array_equal(K1, K2) and np.array_equal(x1, x2)
+        np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
+        assert np.array_equal(P1, np.swapaxes(P1, -1, -2))
+        dropped = ~(Ree[:, 0, 0] > np.finfo(float).tiny) if valid is None else ~(valid[:, 0] & (Ree[:, 0, 0] > 1e-300))
+        assert np.array_equal(P1[dropped], P[dropped])
