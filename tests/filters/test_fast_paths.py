@@ -42,6 +42,8 @@ def test_fading_prediction_equals_dense_augmented_recursion():
         H = augmented_measurement_matrix(sys_, fad, k + 1)
         G = ex["p_uncensored"][:, k, :, None] * H
         K = ex["gain"][:, k]
+        Rxe = ex["aug_pred_cov"][:, k] @ np.swapaxes(G, -1, -2)                     # (24), dense
+        np.testing.assert_allclose(K, Rxe / ex["innovation_cov"][:, k], rtol=1e-12, atol=1e-15)
         noise = ex["innovation_cov"][:, k] - G @ ex["aug_pred_cov"][:, k] @ np.swapaxes(G, -1, -2)
         IKG = np.eye(nxi) - K @ G
         joseph = IKG @ ex["aug_pred_cov"][:, k] @ np.swapaxes(IKG, -1, -2) + K @ noise @ np.swapaxes(K, -1, -2)

@@ -289,8 +289,12 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
             noise = noise + gam**2 * Dk
 
         G = gam[:, :, None] * H                                                  # (N, m, nxi)
-        Rxe = P_p @ np.swapaxes(G, -1, -2)                                       # (24)
-        Ree = G @ Rxe                                                            # (25)
+        if m == 1:   # (24)-(25) as GEMVs over the stacked runs (H is common to all runs)
+            Rxe = gam[:, :, None] * (P_p.reshape(-1, nxi) @ H[0]).reshape(N, nxi, 1)
+            Ree = (gam * (Rxe[:, :, 0] @ H[0])[:, None])[:, :, None]
+        else:
+            Rxe = P_p @ np.swapaxes(G, -1, -2)                                   # (24)
+            Ree = G @ Rxe                                                        # (25)
         Ree[:, diag, diag] += noise
         innov = y2[:, k - 1] - yhat
         missing = np.isnan(innov)
