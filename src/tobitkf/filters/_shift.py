@@ -13,7 +13,8 @@ import numpy as np
 
 
 def shift_predict(xi: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any = 0.0):
-    r""":math:`\bar\xi = \mathcal A\xi + [b; 0]`, :math:`\bar P = \mathrm{sym}(\mathcal A P\mathcal A^T + \mathcal BQ\mathcal B^T)`.
+    r""":math:`\bar\xi = \mathcal A\xi + [b; 0]`,
+    :math:`\bar P = \mathrm{sym}(\mathcal A P\mathcal A^T + \mathcal BQ\mathcal B^T)`.
 
     ``xi`` (N, nxi), ``P`` (N, nxi, nxi) **exactly symmetric**, ``A`` and ``Qd`` (n, n), nxi a
     multiple of n. O(N n nxi^2) copies and two GEMMs over the stacked runs instead of two
