@@ -453,3 +453,30 @@ def test_backend_option_is_checked():
         tk.KalmanFilter(sys_, backend="jax")
     with pytest.raises(ValidationError, match="backend: expected one of"):
         tobit_kalman_filter(sys_, cens, np.zeros((3, 1)), backend="NUMBA")
+
+
+def test_threaded_kernel_is_bit_identical_to_one_thread():
+    """Runs are independent and the kernel releases the GIL: any split gives the same bits."""
+    pytest.importorskip("numba")
+    import tobitkf as tk
+
+    w = 0.05
+    sys_ = tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]],
+                           Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    cens = tk.Censoring(lower=0.0, upper=2.0)
+    data = tk.simulate(sys_, 40, 1500, censoring=cens, seed=3)
+    one = tk.TobitKalmanFilter(sys_, cens, backend="numba", threads=1).filter(data.y)
+    for threads in (2, 5):
+        many = tk.TobitKalmanFilter(sys_, cens, backend="numba", threads=threads).filter(data.y)
+        np.testing.assert_array_equal(one.mean, many.mean)
+        np.testing.assert_array_equal(one.cov, many.cov)
+        np.testing.assert_array_equal(one.extras["p_uncensored"], many.extras["p_uncensored"])
+
+
+@pytest.mark.parametrize("threads", [0, -1, 1.5, True, "2"])
+def test_threads_option_is_checked(threads):
+    import tobitkf as tk
+
+    sys_ = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.1]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
+    with pytest.raises(tk.ValidationError, match="threads"):
+        tk.TobitKalmanFilter(sys_, tk.Censoring(lower=0.0), threads=threads)

@@ -321,7 +321,8 @@ def _plot_steady_state(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax[0, 0].legend(fontsize=7, ncol=2)
     ax[1, 0].plot(k, d["truth"], **style("truth"))
     ax[1, 0].plot(k, d["sstkf"], **style("sstkf"))
-    ax[1, 0].plot(k, d["tkf"], **style("tkf"), alpha=0.7)
+    ax[1, 0].plot(k, d["tkf"], **{**style("tkf"), "label": "full TKF (3.55) with the same controlled limit"},
+                  alpha=0.7)
     ax[1, 0].set_ylabel("x1")
     ax[1, 0].set_xlabel("k")
     ax[1, 0].legend(fontsize=7)

@@ -95,6 +95,7 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models import LinearSystem
 from ._common import FilterResult, check_keywords, check_prior, gain_update, prepare_inputs, prepare_measurements
+from ._shift import shift_predict
 from .kalman import KalmanFilter
 from .tobit import TobitKalmanFilter
 
@@ -151,6 +152,35 @@ def _limit_terms(p: np.ndarray, limit: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(limit), p * np.where(np.isfinite(limit), limit, 0.0), 0.0)
 
 
+def _joseph_scalar_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray, Ree: np.ndarray,
+                          valid: np.ndarray | None, H0: np.ndarray, gam: np.ndarray, noise: np.ndarray):
+    r"""What :func:`gain_update` with ``H=G, noise=N`` returns for one channel (m = 1), faster.
+
+    :math:`K = R_{xe}/R_{ee}` (zero where the channel is missing or :math:`R_{ee}` is not above the
+    smallest normal number, as in :func:`gain_update`), :math:`x + Ke`, and the Joseph form
+    :math:`(I - KG)P(I - KG)^T + KNK^T` with :math:`G = \gamma H_0`, ``H0`` (n_xi,) common to all runs
+    and ``P`` exactly symmetric: the rank-one factors are applied in turn,
+    :math:`M = P - K(GP)` with :math:`GP = \gamma(PH_0)^T`, then :math:`M(I - G^TK^T) = M - \gamma(MH_0)K^T`:
+    outer products and GEMVs over the stacked runs instead of batched (n_xi x n_xi) matmuls.
+    ``x`` and ``K`` are bit-identical to :func:`gain_update`'s, ``P`` equal to rounding (tested).
+    ``x`` (N, n_xi), ``P`` (N, n_xi, n_xi), ``innov`` (N, 1), ``Rxe`` (N, n_xi, 1), ``Ree`` (N, 1, 1),
+    ``valid`` (N, 1) or None, ``gam`` and ``noise`` (N,).
+    """
+    N, nxi = x.shape
+    ree = Ree[:, 0, 0]
+    ok = ree > np.finfo(np.float64).tiny
+    if valid is not None:
+        ok &= valid[:, 0]
+    K = Rxe * ok[:, None, None] / np.where(ok, ree, 1.0)[:, None, None]
+    x_new = x + np.einsum("...ij,...j->...i", K, np.where(ok[:, None], innov, 0.0))
+    k = K[:, :, 0]
+    PG = gam[:, None] * (P.reshape(-1, nxi) @ H0).reshape(N, nxi)
+    M = P - k[:, :, None] * PG[:, None, :]
+    MG = gam[:, None] * (M.reshape(-1, nxi) @ H0).reshape(N, nxi)
+    P_new = M - (MG - noise[:, None] * k)[:, :, None] * k[:, None, :]
+    return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2)), K
+
+
 def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, y: Any, *, u: Any, tobit: bool,
          p_uncensored_mode: str, fading_variance_term: bool, exact_tobit_variance: bool,
          covariance_update: str, x0: Any, P0: Any, keep_augmented: bool, check_limits: bool,
@@ -182,7 +212,7 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
     xi = np.zeros((N, nxi))
     xi[:, :n] = x_init
     P = np.zeros((N, nxi, nxi))
-    P[:, :n, :n] = P_init
+    P[:, :n, :n] = 0.5 * (P_init + np.swapaxes(P_init, -1, -2))   # exactly symmetric (the prediction relies on it)
 
     stale = tobit and p_uncensored_mode == "eq6_stale"
     if stale:   # C_j x̂_{j|j-1}, j = 0..T, with x̂_{0|-1} := x̄_0 (spec §4.2 Step 3)
@@ -193,40 +223,33 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
         cxxc = np.zeros((N, T + 1, m))
         cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Cs[0], mom_cov, Cs[0]) + (mom_mean @ Cs[0].T) ** 2
 
-    means = np.empty((N, T, n))
-    covs = np.empty((N, T, n, n))
-    pmeans = np.empty((N, T, n))
-    pcovs = np.empty((N, T, n, n))
+    # outputs stored time-major (T, N, ...): each step writes one contiguous block instead of N
+    # strided pieces; returned as (N, T, ...) views
+    means = np.empty((T, N, n))
+    covs = np.empty((T, N, n, n))
+    pmeans = np.empty((T, N, n))
+    pcovs = np.empty((T, N, n, n))
     if keep_smoothed:
-        sm_mean = np.empty((N, T, L + 1, n))
-        sm_cov = np.empty((N, T, L + 1, n, n))
-    pu = np.empty((N, T, m))
-    ey = np.empty((N, T, m))
-    lam_out = np.empty((N, T, m))
+        sm_mean = np.empty((T, N, L + 1, n))
+        sm_cov = np.empty((T, N, L + 1, n, n))
+    pu = np.empty((T, N, m))
+    ey = np.empty((T, N, m))
+    lam_out = np.empty((T, N, m))
     if keep_augmented:
-        aug = {k: np.empty((N, T, nxi)) for k in ("aug_mean", "aug_pred_mean")}
-        aug.update({k: np.empty((N, T, nxi, nxi)) for k in ("aug_cov", "aug_pred_cov")})
-        aug["gain"] = np.empty((N, T, nxi, m))
-        aug["innovation_cov"] = np.empty((N, T, m, m))
+        aug = {k: np.empty((T, N, nxi)) for k in ("aug_mean", "aug_pred_mean")}
+        aug.update({k: np.empty((T, N, nxi, nxi)) for k in ("aug_cov", "aug_pred_cov")})
+        aug["gain"] = np.empty((T, N, nxi, m))
+        aug["innovation_cov"] = np.empty((T, N, m, m))
     diag = np.arange(m)
-    blocks = np.arange(L + 1)
 
     for k in range(1, T + 1):
         A, Qd = system.transition(k - 1), system.process_cov(k - 1)
         uk = None if u2 is None else u2[:, k - 1]
         bx, dy = system.input_effect(k, uk)
-        # (17)-(18) with the shift structure of the augmented A: O(n nxi^2) instead of O(nxi^3)
-        xi_p = np.empty_like(xi)
-        xi_p[:, :n] = xi[:, :n] @ A.T + bx
-        xi_p[:, n:] = xi[:, :nxi - n]
-        P_p = np.empty_like(P)
-        AP0 = A @ P[:, :n, :]                                    # (N, n, nxi)
-        P_p[:, :n, :n] = AP0[:, :, :n] @ A.T + Qd
-        P_p[:, :n, n:] = AP0[:, :, :nxi - n]
-        P_p[:, n:, :n] = np.swapaxes(P_p[:, :n, n:], -1, -2)
-        P_p[:, n:, n:] = P[:, :nxi - n, :nxi - n]
-        P_p = 0.5 * (P_p + np.swapaxes(P_p, -1, -2))
-        pmeans[:, k - 1], pcovs[:, k - 1] = xi_p[:, :n], P_p[:, :n, :n]          # (27)-(28)
+        # (17)-(18) with the shift structure of the augmented A: O(n nxi^2) instead of O(nxi^3),
+        # as GEMMs over the stacked runs
+        xi_p, P_p = shift_predict(xi, P, A, Qd, bx)
+        pmeans[k - 1], pcovs[k - 1] = xi_p[:, :n], P_p[:, :n, :n]                 # (27)-(28)
 
         H = augmented_measurement_matrix(system, fading, k)                     # (m, nxi)
         chi = xi_p @ H.T + dy                                                    # Lemma 1 at the prediction
@@ -266,45 +289,51 @@ def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, 
             noise = noise + gam**2 * Dk
 
         G = gam[:, :, None] * H                                                  # (N, m, nxi)
-        Rxe = P_p @ np.swapaxes(G, -1, -2)                                       # (24)
-        Ree = G @ Rxe                                                            # (25)
+        if m == 1:   # (24)-(25) as GEMVs over the stacked runs (H is common to all runs)
+            Rxe = gam[:, :, None] * (P_p.reshape(-1, nxi) @ H[0]).reshape(N, nxi, 1)
+            Ree = (gam * (Rxe[:, :, 0] @ H[0])[:, None])[:, :, None]
+        else:
+            Rxe = P_p @ np.swapaxes(G, -1, -2)                                   # (24)
+            Ree = G @ Rxe                                                        # (25)
         Ree[:, diag, diag] += noise
         innov = y2[:, k - 1] - yhat
         missing = np.isnan(innov)
         valid = ~missing if missing.any() else None
         if valid is not None:
             innov = np.where(missing, 0.0, innov)
-        if covariance_update == "joseph":                                         # (20') Joseph form
+        if covariance_update == "joseph" and m == 1:                              # (20'), one channel
+            xi, P, K = _joseph_scalar_update(xi_p, P_p, innov, Rxe, Ree, valid, H[0], gam[:, 0], noise[:, 0])
+        elif covariance_update == "joseph":                                       # (20') Joseph form
             Nmat = np.zeros((N, m, m))
             Nmat[:, diag, diag] = noise
             xi, P, K = gain_update(xi_p, P_p, innov, Rxe, Ree, valid, H=G, noise=Nmat)
         else:                                                                    # (20') P - K S K^T
             xi, P, K = gain_update(xi_p, P_p, innov, Rxe, Ree, valid)
 
-        means[:, k - 1], covs[:, k - 1] = xi[:, :n], P[:, :n, :n]                # (29)-(30)
+        means[k - 1], covs[k - 1] = xi[:, :n], P[:, :n, :n]                       # (29)-(30)
         if keep_smoothed:
-            sm_mean[:, k - 1] = xi.reshape(N, L + 1, n)
-            P5 = P.reshape(N, L + 1, n, L + 1, n)
-            sm_cov[:, k - 1] = np.moveaxis(P5[:, blocks, :, blocks, :], 0, 1)
+            sm_mean[k - 1] = xi.reshape(N, L + 1, n)
+            for s in range(L + 1):   # diagonal blocks by slicing (a fancy-index gather costs 5x more)
+                sm_cov[k - 1, :, s] = P[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
             if k <= L:   # blocks s > k stand for x_{k-s}, k-s < 0: not defined
-                sm_mean[:, k - 1, k + 1:] = np.nan
-                sm_cov[:, k - 1, k + 1:] = np.nan
-        pu[:, k - 1], ey[:, k - 1], lam_out[:, k - 1] = gam, yhat, lam
+                sm_mean[k - 1, :, k + 1:] = np.nan
+                sm_cov[k - 1, :, k + 1:] = np.nan
+        pu[k - 1], ey[k - 1], lam_out[k - 1] = gam, yhat, lam
         if keep_augmented:
-            aug["aug_mean"][:, k - 1], aug["aug_cov"][:, k - 1] = xi, P
-            aug["aug_pred_mean"][:, k - 1], aug["aug_pred_cov"][:, k - 1] = xi_p, P_p
-            aug["gain"][:, k - 1], aug["innovation_cov"][:, k - 1] = K, Ree
+            aug["aug_mean"][k - 1], aug["aug_cov"][k - 1] = xi, P
+            aug["aug_pred_mean"][k - 1], aug["aug_pred_cov"][k - 1] = xi_p, P_p
+            aug["gain"][k - 1], aug["innovation_cov"][k - 1] = K, Ree
 
-    extras = {"p_uncensored": pu.reshape(batch + (T, m)), "expected_y": ey.reshape(batch + (T, m)),
-              "inverse_mills": lam_out.reshape(batch + (T, m))}
+    def out(arr: np.ndarray) -> np.ndarray:   # (T, N, ...) time-major store -> batch + (T, ...) view
+        return np.moveaxis(arr, 0, 1).reshape(batch + (T,) + arr.shape[2:])
+
+    extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam_out)}
     if keep_smoothed:
-        extras["smoothed_mean"] = sm_mean.reshape(batch + (T, L + 1, n))
-        extras["smoothed_cov"] = sm_cov.reshape(batch + (T, L + 1, n, n))
+        extras["smoothed_mean"] = out(sm_mean)
+        extras["smoothed_cov"] = out(sm_cov)
     if keep_augmented:
-        extras.update({key: val.reshape(batch + val.shape[1:]) for key, val in aug.items()})
-    return FilterResult(mean=means.reshape(batch + (T, n)), cov=covs.reshape(batch + (T, n, n)),
-                        pred_mean=pmeans.reshape(batch + (T, n)), pred_cov=pcovs.reshape(batch + (T, n, n)),
-                        extras=extras)
+        extras.update({key: out(val) for key, val in aug.items()})
+    return FilterResult(mean=out(means), cov=out(covs), pred_mean=out(pmeans), pred_cov=out(pcovs), extras=extras)
 
 
 def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, y: Any, *,

@@ -67,6 +67,7 @@ from ..censored import censored_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models import LinearSystem
 from ._common import FilterResult, check_keywords, prepare_measurements, symmetrize
+from ._shift import shift_predict
 
 __all__ = ["ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "baseline_channel",
            "protocol_covariance_bounds", "CovarianceBounds", "augmented_transition", "noise_input",
@@ -200,8 +201,12 @@ def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamm
     e = y - yhat
     xi_up = xi_pred + K * e[:, None]                            # (19)
     if covariance_update == "joseph":
-        IKH = np.eye(H.size) - K[:, :, None] * H[None, None, :]
-        P_up = IKH @ P_pred @ np.swapaxes(IKH, -1, -2) + (F + noise)[:, None, None] * (K[:, :, None] * K[:, None, :])
+        # (I - K H^T) P (I - H K^T) + (F + noise) K K^T, applying the rank-one factors in turn:
+        # M = P - K (H^T P) with H^T P = PH^T (P symmetric), then M (I - H K^T) = M - (M H) K^T;
+        # outer products and one GEMV over the stacked rows instead of two batched matmuls
+        M = P_pred - K[:, :, None] * PH[:, None, :]
+        MH = (M.reshape(-1, H.size) @ H).reshape(K.shape)
+        P_up = M - (MH - (F + noise)[:, None] * K)[:, :, None] * K[:, None, :]
     else:
         P_up = P_pred - K[:, :, None] * PH[:, None, :]          # (20)
     g = np.asarray(gamma, dtype=bool)
@@ -318,19 +323,21 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     nxi = n * (ell + 1)
     xi0, M0 = _initial(system, ell, prehistory_mean, P0_aug)
     xi = np.broadcast_to(xi0, (N, nxi)).copy()
-    P = np.broadcast_to(M0, (N, nxi, nxi)).copy()
+    P = np.broadcast_to(symmetrize(M0), (N, nxi, nxi)).copy()   # exactly symmetric (shift_predict needs it)
     X = M0 + np.outer(xi0, xi0) if failure_term == "lmmse_unconditional" else None
     Bn = noise_input(n, ell)
     lam_mean, lam_var = channel.failure_mean, channel.failure_variance
     sched = channel.schedule.scheduled(T)
-    out = {key: np.empty((N, T, nxi)) for key in ("aug_mean", "aug_pred_mean")}
+    # outputs stored time-major (T, N, ...): each step writes one contiguous block; returned as
+    # (N, T, ...) views
+    out = {key: np.empty((T, N, nxi)) for key in ("aug_mean", "aug_pred_mean")}
     if keep_augmented:
-        out.update({key: np.empty((N, T, nxi, nxi)) for key in ("aug_cov", "aug_pred_cov")})
-    cov = np.empty((N, T, n, n))
-    pcov = np.empty((N, T, n, n))
+        out.update({key: np.empty((T, N, nxi, nxi)) for key in ("aug_cov", "aug_pred_cov")})
+    cov = np.empty((T, N, n, n))
+    pcov = np.empty((T, N, n, n))
     info_keys = ("theta_bar", "inverse_mills", "trunc_var_factor", "expected_y", "innovation", "innovation_var",
                  "p_uncensored")
-    info_out = {key: np.empty((N, T)) for key in info_keys}
+    info_out = {key: np.empty((T, N)) for key in info_keys}
     fixed = not (system.A.varying or system.Q.varying or (system.B is not None and system.B.varying))
     if fixed:
         Aa, BQB = augmented_transition(system.transition(0), ell), Bn @ system.process_cov(0) @ Bn.T
@@ -338,35 +345,36 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         if not fixed:
             Aa = augmented_transition(system.transition(k - 1), ell)
             BQB = Bn @ system.process_cov(k - 1) @ Bn.T
-        xi = xi @ Aa.T                                                      # (17)
-        P = symmetrize(Aa @ P @ Aa.T + BQB)                                 # (18)
+        # (17)-(18): Aa is the block shift of (10) and BQB lives in its top block, so the
+        # prediction is block copies and two GEMMs over the stacked runs (== sym(Aa P Aa^T + BQB))
+        xi, P = shift_predict(xi, P, Aa[:n, :n], BQB[:n, :n])
         if X is not None:
             X = Aa @ X @ Aa.T + BQB
-        out["aug_pred_mean"][:, k - 1] = xi
-        pcov[:, k - 1] = P[:, :n, :n]
+        out["aug_pred_mean"][k - 1] = xi
+        pcov[k - 1] = P[:, :n, :n]
         if keep_augmented:
-            out["aug_pred_cov"][:, k - 1] = P
+            out["aug_pred_cov"][k - 1] = P
         h = int(sched[k - 1]) - 1
         C_row, r = _sensor_stats(system, k, h)
         Cc = stacked_measurement(C_row, ell)
         xi, P, info = protocol_update(xi, P, y2[:, k - 1, 0], gam[:, k - 1], Cc, r, tau, float(lam_mean[h]),
                                       float(lam_var[h]), failure_term=failure_term, second_moment=X,
                                       covariance_update=covariance_update)
-        out["aug_mean"][:, k - 1] = xi
-        cov[:, k - 1] = P[:, :n, :n]                                        # (25)
+        out["aug_mean"][k - 1] = xi
+        cov[k - 1] = P[:, :n, :n]                                        # (25)
         if keep_augmented:
-            out["aug_cov"][:, k - 1] = P
+            out["aug_cov"][k - 1] = P
         for key in info_keys:
-            info_out[key][:, k - 1] = info[key]
-    extras: dict[str, Any] = {key: val.reshape(batch + val.shape[1:]) for key, val in out.items()}
-    extras.update({key: val.reshape(batch + (T,)) for key, val in info_out.items()})
+            info_out[key][k - 1] = info[key]
+    def runs_first(arr: np.ndarray) -> np.ndarray:   # (T, N, ...) -> batch + (T, ...) view
+        return np.moveaxis(arr, 0, 1).reshape(batch + (T,) + arr.shape[2:])
+
+    extras: dict[str, Any] = {key: runs_first(val) for key, val in out.items()}
+    extras.update({key: runs_first(val) for key, val in info_out.items()})
     extras["uncensored"] = gam.reshape(batch + (T,))
     extras["scheduled"] = sched
-    mean = out["aug_mean"][..., :n]
-    pmean = out["aug_pred_mean"][..., :n]
-    return FilterResult(mean=mean.reshape(batch + (T, n)), cov=cov.reshape(batch + (T, n, n)),
-                        pred_mean=pmean.reshape(batch + (T, n)), pred_cov=pcov.reshape(batch + (T, n, n)),
-                        extras=extras)
+    return FilterResult(mean=extras["aug_mean"][..., :n], cov=runs_first(cov),
+                        pred_mean=extras["aug_pred_mean"][..., :n], pred_cov=runs_first(pcov), extras=extras)
 
 
 def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
