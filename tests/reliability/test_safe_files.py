@@ -162,3 +162,17 @@ def test_out_that_is_a_file_is_refused_before_any_work(tmp_path, command):
     res = CliRunner().invoke(cli.app, args)
     assert res.exit_code == 2 and "--out: expected a folder" in res.output
     assert target.read_text() == "keep"
+
+
+def test_unknown_experiment_settings_are_refused_by_name(tmp_path):
+    from tobitkf.sweep import parse_sweep as ps
+
+    head = '[sweep]\nruns = 2\nseed = 0\nexperiment = "{exp}"\n'
+    with pytest.raises(SweepFileError, match=r"settings\.bogus \(line 6\): unknown setting of miller-oscillator"):
+        ps(head.format(exp="miller-oscillator") + "[settings]\nbogus = 1\n")
+    with pytest.raises(SweepFileError, match=r"grid\.settings\.omegax"):
+        ps(head.format(exp="miller-oscillator") + '[grid]\n"settings.omegax" = [1, 2]\n')
+    # an experiment taking **overrides checks its own settings when run: a named error, not a TypeError
+    spec = ps(head.format(exp="geng-protocol-window") + "[settings]\nbogus = 1\n")
+    with pytest.raises(tk.ValidationError, match=r"^settings: .*bogus"):
+        run_sweep(spec, tmp_path)

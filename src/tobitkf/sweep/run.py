@@ -79,7 +79,10 @@ def _experiment_point(spec: SweepSpec, point: dict[str, Any]) -> tuple[list[str]
     from ..experiments import get
 
     r = spec.resolved(point)
-    res = get(spec.experiment).run(runs=spec.runs, seed=spec.seed, **r["settings"])
+    try:
+        res = get(spec.experiment).run(runs=spec.runs, seed=spec.seed, **r["settings"])
+    except TypeError as exc:   # an experiment taking **overrides refuses an unknown setting this way
+        raise ValidationError(f"settings: {spec.experiment} refused the settings {r['settings']}: {exc}") from None
     est = res.metrics.get("estimators")
     if not est:
         raise ValidationError(f"sweep.experiment: {spec.experiment!r} reports no top-level 'estimators' block "

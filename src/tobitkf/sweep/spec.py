@@ -168,6 +168,16 @@ def _int(text: str, table: dict, key: str, dotted: str, *, default: int | None =
     return val
 
 
+def _setting_names(run) -> set[str] | None:
+    """Keyword settings an experiment's ``run`` accepts (None when it takes ``**overrides``)."""
+    import inspect
+
+    params = inspect.signature(run).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return {p.name for p in params if p.kind is inspect.Parameter.KEYWORD_ONLY} - {"runs", "seed", "progress"}
+
+
 def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     """Parse and validate the text of a sweep file."""
     try:
@@ -203,9 +213,17 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         if not isinstance(experiment, str):
             raise _fail(text, "sweep.experiment", f"expected an experiment id, got {experiment!r}")
         try:
-            get(experiment)
+            exp = get(experiment)
         except ValidationError as exc:
             raise _fail(text, "sweep.experiment", str(exc)) from None
+        if not isinstance(settings, dict):
+            raise _fail(text, "settings", "expected a table of the experiment's settings")
+        known = _setting_names(exp.run)
+        grid_settings = [k.split(".", 1)[1] for k in doc.get("grid", {}) if k.startswith("settings.")]
+        for key in list(settings) + grid_settings:
+            if known is not None and key not in known:
+                where = f"settings.{key}" if key in settings else f"grid.settings.{key}"
+                raise _fail(text, where, f"unknown setting of {experiment}; known: {', '.join(sorted(known))}")
         for tbl in ("model", "censoring", "estimators"):
             if tbl in doc:
                 raise _fail(text, tbl, "not allowed together with sweep.experiment (use [settings])")
