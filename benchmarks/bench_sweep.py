@@ -24,7 +24,7 @@ runs = {runs}
 steps = {steps}
 seed = 0
 block_runs = {block}
-chunk_blocks = 1
+chunk_blocks = 5
 
 [model]
 A = [[0.99875, -0.04998], [0.04998, 0.99875]]
@@ -60,7 +60,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true")
     args = ap.parse_args()
-    speed_runs, steps, block = (200_000, 100, 10_000) if not args.smoke else (4_000, 20, 1_000)
+    speed_runs, steps, block = (600_000, 100, 2_000) if not args.smoke else (4_000, 20, 1_000)
     mem_runs = [10_000, 100_000, 1_000_000] if not args.smoke else [2_000, 4_000]
     results = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -15,6 +15,7 @@ grow with the run count.
 from __future__ import annotations
 
 import time
+from functools import lru_cache
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -97,11 +98,17 @@ def _experiment_point(spec: SweepSpec, point: dict[str, Any]) -> tuple[list[str]
     return keys, stats
 
 
-def run_task(spec_text: str, name: str, point_index: int, blocks: list[int]) -> list[tuple[int, dict]]:
-    """A unit of work for a worker: some blocks of one grid point (top-level so Dask can pickle it)."""
+@lru_cache(maxsize=4)
+def _parsed(spec_text: str, name: str) -> SweepSpec:
+    """The validated sweep, parsed once per worker process (validation builds every grid point)."""
     from .spec import parse_sweep
 
-    spec = parse_sweep(spec_text, name=name)
+    return parse_sweep(spec_text, name=name)
+
+
+def run_task(spec_text: str, name: str, point_index: int, blocks: list[int]) -> list[tuple[int, dict]]:
+    """A unit of work for a worker: some blocks of one grid point (top-level so Dask can pickle it)."""
+    spec = _parsed(spec_text, name)
     point = spec.points()[point_index]
     sizes = spec.block_sizes()
     if spec.experiment is not None:
