@@ -26,14 +26,15 @@ def new_figure(rows: int = 1, cols: int = 1, *, width: float = 7.0, height: floa
     return fig, axes
 
 
-def save(fig, outdir: Path, name: str) -> Path:
-    """Save ``fig`` as ``outdir/name`` atomically and close it."""
+def save(fig, outdir: Path, name: str, *, dpi: float = 110, tight: bool = True) -> Path:
+    """Save ``fig`` as ``outdir/name`` atomically (after ``tight_layout`` unless ``tight=False``) and close it."""
     import matplotlib.pyplot as plt
 
     from ._io import atomic_savefig
 
-    fig.tight_layout()
-    path = atomic_savefig(fig, Path(outdir) / name, dpi=110)
+    if tight:
+        fig.tight_layout()
+    path = atomic_savefig(fig, Path(outdir) / name, dpi=dpi)
     plt.close(fig)
     return path
 

@@ -46,6 +46,7 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
 from ..filters.fading import fading_estimators
 from ..models import LinearSystem
+from ..plotting import save
 from ..simulate import simulate
 from . import ExperimentResult, register, setting
 
@@ -202,7 +203,6 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
 def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
-    from .._io import atomic_savefig
 
     d = result.data
     paths = []
@@ -216,8 +216,7 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("k")
     fig.suptitle("Geng et al. 2017, Fig. 1: one realisation (oscillator, L = 2)")
-    paths.append(atomic_savefig(fig, outdir / "fig1_realisation.png"))
-    plt.close(fig)
+    paths.append(save(fig, outdir, "fig1_realisation.png", dpi=100, tight=False))
 
     fig, axes = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     for j, ax in enumerate(axes):
@@ -228,15 +227,13 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("k")
     fig.suptitle(f"Geng et al. 2017, Fig. 2: RMSE over k ({d['runs']} runs)")
-    paths.append(atomic_savefig(fig, outdir / "fig2_rmse.png"))
-    plt.close(fig)
+    paths.append(save(fig, outdir, "fig2_rmse.png", dpi=100, tight=False))
     return paths
 
 
 def _plot_radar(result: ExperimentResult, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
-    from .._io import atomic_savefig
 
     d = result.data
     k = np.arange(1, d["x"].shape[0])
@@ -250,8 +247,7 @@ def _plot_radar(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax.legend(fontsize=8)
     ax.set_title(f"Geng et al. 2017, Fig. 3: radar RMSE1 ({d['runs']} runs)\n"
                  "model parameters RECONSTRUCTED (missing in the source; spec §5.2)", fontsize=10)
-    path = atomic_savefig(fig, outdir / "fig3_radar_rmse1.png")
-    plt.close(fig)
+    path = save(fig, outdir, "fig3_radar_rmse1.png", dpi=100, tight=False)
     return [path]
 
 

@@ -38,10 +38,10 @@ from typing import Any
 import numpy as np
 
 from .. import metrics as mt
-from .._io import atomic_savefig
 from ..channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
 from ..filters.protocol import (FAILURE_TERMS, ProtocolTobitKalmanFilter, protocol_covariance_bounds)
 from ..models import LinearSystem
+from ..plotting import save
 from . import ExperimentResult, register, setting
 
 SOURCE = "Geng, Wang, Zou et al.: protocol-based Tobit Kalman filter (integral measurements, sensor failures)"
@@ -175,14 +175,6 @@ def _fig(nrows: int = 1, ncols: int = 1, **kw):
     return plt.subplots(nrows, ncols, figsize=(6.4 * ncols, 3.6 * nrows), squeeze=False, **kw)
 
 
-def _save(fig, path: Path) -> Path:
-    import matplotlib.pyplot as plt
-
-    fig.tight_layout()
-    out = atomic_savefig(fig, path, dpi=110)
-    plt.close(fig)
-    return out
-
 
 def _plot_rmse(result: ExperimentResult, outdir: Path, keys: list[str], name: str, title: str) -> Path:
     fig, ax = _fig(1, 2)
@@ -195,7 +187,7 @@ def _plot_rmse(result: ExperimentResult, outdir: Path, keys: list[str], name: st
     for j in range(2):
         ax[0, j].set(xlabel="k", ylabel=f"RMSE{j + 1}", yscale="log", title=title)
         ax[0, j].legend(fontsize=7)
-    return _save(fig, outdir / name)
+    return save(fig, outdir, name)
 
 
 # --- Figs. 2-3 --------------------------------------------------------------------------------
@@ -209,7 +201,7 @@ def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
         ax[0, j].plot(k[1:], d["pbtkf"][:, j], "r:", label="pbtkf")
         ax[0, j].set(xlabel="k", ylabel=f"x{j + 1}", title="Fig. 2: one run (undamped)")
         ax[0, j].legend(fontsize=7)
-    paths = [_save(fig, outdir / "fig2_tracking.png")]
+    paths = [save(fig, outdir, "fig2_tracking.png")]
     paths.append(_plot_rmse(result, outdir, ["pbtkf-imsf", "pbtkf", "pbtkf-imsf-second-moment"], "fig3_rmse.png",
                             "Fig. 3: RMSE, 1000 runs"))
     return paths
@@ -253,7 +245,7 @@ def _plot_mect(result: ExperimentResult, outdir: Path) -> list[Path]:
             ax[0, i].plot(np.arange(1, v.size + 1), np.log10(v), label=key)
         ax[0, i].set(xlabel="k", ylabel=f"log10 MECT ({which.split('_')[1]})", title="Fig. 4 (damped)")
         ax[0, i].legend(fontsize=7)
-    return [_save(fig, outdir / "fig4_mect.png")]
+    return [save(fig, outdir, "fig4_mect.png")]
 
 
 @register("geng-protocol-mect", title="Mean trace of the covariance, PBTKF-IMSF vs PBTKF, damped (Fig. 4)",
@@ -329,7 +321,7 @@ def _plot_bounds(result: ExperimentResult, outdir: Path) -> list[Path]:
         ax[0, i].plot(k, np.log10(m["trace_upper_paper_literal"]), "r:", label="(28) literal")
         ax[0, i].set(xlabel="k", title=f"Fig. 5 bounds ({case})")
         ax[0, i].legend(fontsize=7)
-    return [_save(fig, outdir / "fig5_bounds.png")]
+    return [save(fig, outdir, "fig5_bounds.png")]
 
 
 @register("geng-protocol-bounds", title="Upper and lower bounds on the expected prior covariance (Fig. 5)",

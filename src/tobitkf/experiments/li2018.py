@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from .._io import atomic_savefig
+from ..plotting import save
 from ..filters.delay import augmented_lmmse, chain_lmmse
 from ..metrics import summarize
 from ..models_delay import paper_example, paper_prior, simulate_delay
@@ -204,8 +204,7 @@ def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
     axes[-1].set_xlabel("t")
     fig.suptitle(f"Li et al. 2018 Fig. 1: tracking (S = {d['S']:g}, inferred; one run)")
     path = outdir / "fig1_tracking.png"
-    atomic_savefig(fig, path)
-    plt.close(fig)
+    save(fig, path.parent, path.name, dpi=100, tight=False)
     return [path]
 
 
@@ -256,8 +255,7 @@ def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
             ax.legend(fontsize=7)
         fig.suptitle(f"Li et al. 2018 Fig. 2: filter error variance, S = {s:g}")
         path = outdir / f"fig2_fading_S{s:g}.png"
-        atomic_savefig(fig, path)
-        plt.close(fig)
+        save(fig, path.parent, path.name, dpi=100, tight=False)
         paths.append(path)
     return paths
 
@@ -313,8 +311,7 @@ def _plot_tables(result: ExperimentResult, outdir: Path) -> list[Path]:
             ax.legend(fontsize=8)
         fig.suptitle(f"Li et al. 2018 Fig. {fig_no}: {which} (S = {d['S']:g}; naive-kf is a stand-in for [28])")
         path = outdir / f"fig{fig_no}_{which}_mse.png"
-        atomic_savefig(fig, path)
-        plt.close(fig)
+        save(fig, path.parent, path.name, dpi=100, tight=False)
         paths.append(path)
     return paths
 

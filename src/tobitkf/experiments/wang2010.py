@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 
 from .. import metrics as mx
-from .._io import atomic_savefig
 from ..filters import hinf as H
+from ..plotting import save
 from . import ExperimentResult, register, setting
 
 __all__ = ["design_experiment", "simulation_experiment"]
@@ -101,9 +101,7 @@ def _plot_design(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax.set_xlabel("certified γ (Theorem 2 certificate, re-verified in numpy)")
     ax.set_title("Wang et al. example: certified γ per design (lower is better)", fontsize=9)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    path = atomic_savefig(fig, Path(outdir) / "wang2010_design_gamma.png", dpi=120)
-    plt.close(fig)
+    path = save(fig, outdir, "wang2010_design_gamma.png", dpi=120)
     return [path]
 
 
@@ -229,9 +227,7 @@ def _plot_simulation(result: ExperimentResult, outdir: Path) -> list[Path]:
         ax.set_ylabel(f"z̃_{j + 1}")
         ax.set_title(f"Fig. {j + 1}: filtering error z̃_{j + 1}", fontsize=9)
         ax.legend(fontsize=7, ncol=2)
-        fig.tight_layout()
-        paths.append(atomic_savefig(fig, Path(outdir) / f"wang2010_fig{j + 1}_error_z{j + 1}.png", dpi=120))
-        plt.close(fig)
+        paths.append(save(fig, outdir, f"wang2010_fig{j + 1}_error_z{j + 1}.png", dpi=120))
     fig, axes = plt.subplots(3, 1, figsize=(7, 6.5), sharex=True)
     for i in range(3):
         axes[i].plot(k, d["x"][:, i], "k", lw=1.2, label="x")
@@ -241,9 +237,7 @@ def _plot_simulation(result: ExperimentResult, outdir: Path) -> list[Path]:
     axes[0].legend(fontsize=7, ncol=4)
     axes[0].set_title("states and estimates (one run)", fontsize=9)
     axes[-1].set_xlabel("k")
-    fig.tight_layout()
-    paths.append(atomic_savefig(fig, Path(outdir) / "wang2010_states.png", dpi=120))
-    plt.close(fig)
+    paths.append(save(fig, outdir, "wang2010_states.png", dpi=120))
     fig, ax = plt.subplots(figsize=(7, 3.2))
     for key in _KEYS:
         ax.semilogy(k, d["ratio"][key], color=colors[key], label=key)
@@ -252,9 +246,7 @@ def _plot_simulation(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax.set_ylabel("ηᵀPη / ρ")
     ax.set_title("one run: the certificate covers only ηᵀPη/ρ <= 1 (spec A10)", fontsize=9)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    paths.append(atomic_savefig(fig, Path(outdir) / "wang2010_ellipsoid.png", dpi=120))
-    plt.close(fig)
+    paths.append(save(fig, outdir, "wang2010_ellipsoid.png", dpi=120))
     return paths
 
 
