@@ -35,7 +35,7 @@ Code names -> paper symbols: ``A`` A, ``A_mult`` A_i, ``q_mult`` Q_{ζ_i}, ``H``
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np

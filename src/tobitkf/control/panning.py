@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtri
 
-from .._validation import ValidationError, check_option
+from .._validation import ValidationError
 from ..censored import censored_moments
 from ..filters._common import check_prior, predict
 from ..filters.tobit import _sigma_of, tobit_update

@@ -30,7 +30,6 @@ from ..control.lqg import discretize, dlqe, dlqr, lqe, lqr, tobit_lqe
 from ..control.plants import dc_motor_position, dc_motor_speed, scalar_example
 from ..control.stability import (dissertation_jacobian_5_56, fixed_gain_tobit_observer, mean_field_error,
                                  tobit_jacobian)
-from ..filters.kalman import KalmanFilter
 from ..filters.tobit import TobitKalmanFilter
 from ..models import LinearSystem
 from ..plotting import new_figure, save

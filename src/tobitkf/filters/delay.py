@@ -410,7 +410,7 @@ def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> I
     y2, batch = _prepare(system, prior, y)
     _require_chain(system, prior)
     N, T, _ = y2.shape
-    d, n = system.d, system.n
+    d = system.d
     res = _chain_core(system, prior, y2, decorrelation="optimal", lags=(), horizons=(), point=None, keep_rts=True)
     rts, xb, Pb = res[5], res[6], res[7]
     xs: dict[int, np.ndarray] = {}

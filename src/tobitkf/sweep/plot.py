@@ -4,8 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from ..plotting import new_figure, save
 
 __all__ = ["plot_result"]
