@@ -34,23 +34,18 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 import tobitkf as tk  # noqa: E402
+from _timing import best_time  # noqa: E402
 
 TARGET = 1e6
 
 
 def cpu_time(fn, repeat: int) -> float:
     """Best CPU time of ``repeat`` calls (robust on a machine shared with other jobs)."""
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - t0)
-    return max(best, 1e-9)
+    return best_time(fn, repeat, cpu=True)
 
 
 def filterpy_rate(F, Q, Hs, R, x0, P0, y, runs: int, repeat: int) -> float | None:

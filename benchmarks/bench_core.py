@@ -17,11 +17,11 @@ The single-run numpy rows time 10^4 steps (their cost per step is constant).
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
 import tobitkf as tk
+from _timing import best_time
 from tobitkf.filters._backend import numba_available
 
 
@@ -29,15 +29,6 @@ def make_system() -> tk.LinearSystem:
     w = 0.05
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     return tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
-
-
-def best_of(fn, repeat: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
 
 
 def filterpy_runs(sys_: tk.LinearSystem, y: np.ndarray) -> None:
@@ -78,9 +69,9 @@ def main() -> None:
     rows = []
     import filterpy.kalman  # noqa: F401  (import outside the timings)
     import pykalman  # noqa: F401
-    t_fp = best_of(lambda: filterpy_runs(sys_, y[:peer_runs]), repeat) / (peer_runs * steps)
+    t_fp = best_time(lambda: filterpy_runs(sys_, y[:peer_runs]), repeat) / (peer_runs * steps)
     rows.append(("filterpy KalmanFilter (looped)", 1.0 / t_fp))
-    t_pk = best_of(lambda: pykalman_runs(sys_, y[:peer_runs]), repeat) / (peer_runs * steps)
+    t_pk = best_time(lambda: pykalman_runs(sys_, y[:peer_runs]), repeat) / (peer_runs * steps)
     rows.append(("pykalman KalmanFilter.filter (looped)", 1.0 / t_pk))
     backends = ["numpy"] + (["numba"] if numba_available() else [])
     if "numba" in backends:     # compile (or load the cached machine code) outside the timings
@@ -88,9 +79,9 @@ def main() -> None:
         tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y[:2, :5])
     rates = {}
     for be in backends:
-        t_kf = best_of(lambda: tk.KalmanFilter(sys_, backend=be).filter(y), repeat) / (runs * steps)
+        t_kf = best_time(lambda: tk.KalmanFilter(sys_, backend=be).filter(y), repeat) / (runs * steps)
         rows.append((f"tobitkf KalmanFilter (batched, {be})", 1.0 / t_kf))
-        t_tkf = best_of(lambda: tk.TobitKalmanFilter(sys_, cens, backend=be).filter(y), repeat) / (runs * steps)
+        t_tkf = best_time(lambda: tk.TobitKalmanFilter(sys_, cens, backend=be).filter(y), repeat) / (runs * steps)
         rows.append((f"tobitkf TobitKalmanFilter (batched, {be})", 1.0 / t_tkf))
         rates[be] = 1.0 / t_tkf
     for name, rate in rows:
@@ -99,14 +90,14 @@ def main() -> None:
     long = tk.simulate(sys_, long_steps, 1, censoring=cens, seed=1).y
     short = long[:, :min(long_steps, 10_000)]
     print(f"(b) one run x {long_steps} steps: microseconds per step")
-    t_fp1 = best_of(lambda: filterpy_runs(sys_, long), 1) / long_steps
-    t_pk1 = best_of(lambda: pykalman_runs(sys_, long), 1) / long_steps
+    t_fp1 = best_time(lambda: filterpy_runs(sys_, long), 1) / long_steps
+    t_pk1 = best_time(lambda: pykalman_runs(sys_, long), 1) / long_steps
     rows = [("filterpy KalmanFilter", t_fp1), ("pykalman KalmanFilter.filter", t_pk1)]
     lat = {}
     for be in backends:
         rec = long if be == "numba" else short
-        t_kf1 = best_of(lambda: tk.KalmanFilter(sys_, backend=be).filter(rec), repeat) / rec.shape[1]
-        t_tkf1 = best_of(lambda: tk.TobitKalmanFilter(sys_, cens, backend=be).filter(rec), repeat) / rec.shape[1]
+        t_kf1 = best_time(lambda: tk.KalmanFilter(sys_, backend=be).filter(rec), repeat) / rec.shape[1]
+        t_tkf1 = best_time(lambda: tk.TobitKalmanFilter(sys_, cens, backend=be).filter(rec), repeat) / rec.shape[1]
         rows += [(f"tobitkf KalmanFilter ({be})", t_kf1), (f"tobitkf TobitKalmanFilter ({be})", t_tkf1)]
         lat[be] = t_tkf1
     for name, t in rows:

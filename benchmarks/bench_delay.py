@@ -11,10 +11,10 @@ Run by hand:  PYTHONPATH=src python benchmarks/bench_delay.py [--smoke] [--runs 
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
+from _timing import best_time
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.models_delay import DelayFadingSystem, FadingPMF, HistoryPrior, paper_example, paper_prior, simulate_delay
 
@@ -30,12 +30,7 @@ def random_model(n: int, d: int, seed: int = 0) -> tuple[DelayFadingSystem, Hist
 
 
 def per_step(fn, y, repeat: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn(y)
-        best = min(best, time.perf_counter() - t0)
-    return best / y.shape[-2]
+    return best_time(lambda: fn(y), repeat) / y.shape[-2]
 
 
 def main() -> None:

@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 import tobitkf as tk
+from _timing import best_time
 from tobitkf.channels.fading import RiceFading
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter, augmented_measurement_matrix
 
@@ -38,12 +39,7 @@ def oscillator() -> tk.LinearSystem:
 
 def timed(fn, repeat: int) -> float:
     """Best CPU time (``process_time``) of ``repeat`` calls: robust on a machine shared with other jobs."""
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - t0)
-    return best
+    return best_time(fn, repeat, cpu=True)
 
 
 def filterpy_loop(system, fading, y, runs: int) -> float | None:

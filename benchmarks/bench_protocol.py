@@ -15,11 +15,11 @@ integral window ell = 2 (augmented state of size 6), failure law {0, 0.5, 1}, ta
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 
 import tobitkf as tk
+from _timing import best_time
 from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
 from tobitkf.filters.protocol import (FAILURE_TERMS, augmented_transition, noise_input,
                                       protocol_covariance_bounds, protocol_tobit_kalman_filter,
@@ -31,15 +31,6 @@ def make_problem():
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     sys_ = tk.LinearSystem(A=A, C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
     return sys_, ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
-
-
-def best_of(fn, repeat: int) -> float:
-    best = np.inf
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
 
 
 def filterpy_runs(sys_, ch, y: np.ndarray) -> None:
@@ -70,20 +61,20 @@ def main() -> None:
     sys_, ch = make_problem()
     y = ch.simulate(sys_, steps, runs, seed=0).y
     print(f"(a) {runs} runs x {steps} steps, n_xi=6, censored fraction {np.mean(y <= 0):.2f}")
-    t_fp = best_of(lambda: filterpy_runs(sys_, ch, y[:peer_runs]), repeat) / (peer_runs * steps)
+    t_fp = best_time(lambda: filterpy_runs(sys_, ch, y[:peer_runs]), repeat) / (peer_runs * steps)
     rows = [("filterpy KalmanFilter, augmented (looped)", 1.0 / t_fp)]
     for mode in FAILURE_TERMS:
-        t = best_of(lambda: protocol_tobit_kalman_filter(sys_, ch, y, failure_term=mode), repeat) / (runs * steps)
+        t = best_time(lambda: protocol_tobit_kalman_filter(sys_, ch, y, failure_term=mode), repeat) / (runs * steps)
         rows.append((f"tobitkf PBTKF-IMSF {mode} (batched)", 1.0 / t))
     for name, rate in rows:
         print(f"  {name:44s} {rate:12.4g} run-steps/s   x{rate * t_fp:8.2f} filterpy")
-    t_b = best_of(lambda: protocol_covariance_bounds(sys_, ch, steps), repeat)
+    t_b = best_time(lambda: protocol_covariance_bounds(sys_, ch, steps), repeat)
     print(f"  bounds recursion (analytic gamma, {steps} steps): {t_b * 1e3:.1f} ms")
 
     long = ch.simulate(sys_, long_steps, 1, seed=1).y
     print(f"(b) one run x {long_steps} steps: microseconds per step")
-    t_fp1 = best_of(lambda: filterpy_runs(sys_, ch, long), 1) / long_steps
-    t_1 = best_of(lambda: protocol_tobit_kalman_filter(sys_, ch, long), 1) / long_steps
+    t_fp1 = best_time(lambda: filterpy_runs(sys_, ch, long), 1) / long_steps
+    t_1 = best_time(lambda: protocol_tobit_kalman_filter(sys_, ch, long), 1) / long_steps
     for name, t in (("filterpy KalmanFilter, augmented", t_fp1), ("tobitkf PBTKF-IMSF variance", t_1)):
         print(f"  {name:44s} {t * 1e6:10.2f} us/step   filterpy/this = {t_fp1 / t:6.2f}")
 
