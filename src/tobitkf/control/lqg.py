@@ -34,7 +34,6 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_option
-from ..censored import censored_moments
 
 __all__ = ["RegulatorGain", "EstimatorGain", "lqr", "dlqr", "lqe", "dlqe", "tobit_lqe", "controlled_noise",
            "reference_gain", "equilibrium", "is_stable", "uncontrollable_modes", "unobservable_modes",
@@ -356,26 +355,20 @@ def dlqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
 def controlled_noise(xi_uncensored: Any, sigma: Any) -> tuple[np.ndarray, np.ndarray]:
     r"""Constant Tobit statistics under a controlled limit (3.56): :math:`(\hat\lambda, \upsilon)`.
 
-    :math:`\hat\lambda = \phi(a)/\Xi` (the right-censoring IMR) and :math:`\upsilon` the truncated
-    variance, both from :func:`tobitkf.censored_moments` at :math:`\mu = 0`, upper limit
-    :math:`\sigma\Phi^{-1}(\Xi)`.
+    :math:`\hat\lambda = \phi(a)/\Xi` (the right-censoring IMR) and
+    :math:`\upsilon = \sigma^2(1 - a\hat\lambda - \hat\lambda^2)`, :math:`a = \Phi^{-1}(\Xi)`;
+    the two entries of :func:`tobitkf.filters.steady_state.controlled_limit_statistics` a control
+    design needs.
 
     Raises
     ------
     ValidationError
         If some Ξ is outside the open interval (0, 1) or σ <= 0.
     """
-    from scipy.special import ndtri
+    from ..filters.steady_state import controlled_limit_statistics
 
-    xi = as_float_array(xi_uncensored, "xi_uncensored")
-    if np.any((xi <= 0) | (xi >= 1)):
-        raise ValidationError(f"xi_uncensored: expected probabilities in the open interval (0, 1), got {xi}")
-    sig = as_float_array(sigma, "sigma")
-    if np.any(sig <= 0):
-        raise ValidationError(f"sigma: expected standard deviations > 0, got {sig}")
-    xi, sig = np.broadcast_arrays(xi, sig)
-    st = censored_moments(0.0, sig, -np.inf, sig * ndtri(xi))
-    return -st.inverse_mills, st.truncated_var
+    _, lam, upsilon, _ = controlled_limit_statistics(xi_uncensored, sigma)
+    return np.broadcast_arrays(lam, upsilon)
 
 
 def tobit_lqe(A: Any, G: Any, C: Any, W: Any, sigma: Any, xi_uncensored: Any, *,
