@@ -18,6 +18,7 @@ __all__ = [
     "ValidationError",
     "as_float_array",
     "check_finite",
+    "check_instance",
     "check_option",
     "check_psd",
     "check_probability",
@@ -60,6 +61,13 @@ def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_i
         raise ValidationError(f"{name}: expected finite numbers, found NaN")
     if not allow_inf and np.isinf(arr).any():
         raise ValidationError(f"{name}: expected finite numbers, found inf")
+
+
+def check_instance(value: Any, cls: type, name: str) -> None:
+    """Raise :class:`ValidationError` naming ``name`` unless ``value`` is a ``cls``."""
+    if not isinstance(value, cls):
+        article = "an" if cls.__name__[:1].lower() in "aeiou" else "a"
+        raise ValidationError(f"{name}: expected {article} {cls.__name__}, got {type(value).__name__}")
 
 
 def check_option(value: Any, name: str, allowed: Iterable[Any]) -> Any:

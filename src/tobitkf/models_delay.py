@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import ShapeError, ValidationError, as_float_array, check_probability, check_psd
+from ._validation import ShapeError, ValidationError, as_float_array, check_instance, check_probability, check_psd
 from .channels.laws import PMF
 from .simulate import SimulationData, _check_count, as_generator, psd_sqrt
 
@@ -469,8 +469,7 @@ class DelayFadingSystem:
 
     def check_prior(self, prior: Any) -> HistoryPrior:
         """Raise unless ``prior`` is a HistoryPrior for this n and d (d+1 lags)."""
-        if not isinstance(prior, HistoryPrior):
-            raise ValidationError(f"prior: expected a HistoryPrior, got {type(prior).__name__}")
+        check_instance(prior, HistoryPrior, "prior")
         if prior.n != self.n:
             raise ShapeError(f"prior: expected states of dimension n={self.n}, got {prior.n}")
         if prior.d != self.d:
@@ -514,8 +513,7 @@ def simulate_delay(system: DelayFadingSystem, prior: HistoryPrior, steps: int, r
     ValidationError
         Bad ``steps``/``runs``/``seed`` or a prior of the wrong length (argument ``prior``).
     """
-    if not isinstance(system, DelayFadingSystem):
-        raise ValidationError(f"system: expected a DelayFadingSystem, got {type(system).__name__}")
+    check_instance(system, DelayFadingSystem, "system")
     prior = system.check_prior(prior)
     T = _check_count(steps, "steps")
     N = _check_count(runs, "runs")

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import ShapeError, ValidationError
+from ._validation import ShapeError, ValidationError, check_instance
 from .channels.censoring import Censoring
 from .models import LinearSystem
 
@@ -140,14 +140,12 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Cens
     >>> data.x.shape, data.y.shape, bool((data.y >= 0).all())
     ((3, 6, 1), (3, 5, 1), True)
     """
-    if not isinstance(system, LinearSystem):
-        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
+    check_instance(system, LinearSystem, "system")
     steps = _check_count(steps, "steps")
     runs = _check_count(runs, "runs")
     system.check_horizon(steps)  # also validates callables over the horizon
     if censoring is not None:
-        if not isinstance(censoring, Censoring):
-            raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
+        check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m, steps)
     if measurement is not None and not callable(getattr(measurement, "draw", None)):
         raise ValidationError(f"measurement: expected an object with a draw(rng, x, system, noise, inputs) method, "

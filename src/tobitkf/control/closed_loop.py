@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
 from ..filters._common import check_prior, gain_update, predict
 from ..filters.tobit import NOISE_TERMS, _sigma_of, tobit_update
@@ -165,8 +165,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     check_option(observer, "observer", OBSERVERS)
     check_option(side, "side", ("upper", "lower"))
     check_option(noise_term, "noise_term", NOISE_TERMS)
-    if not isinstance(plant, LinearSystem):
-        raise ValidationError(f"plant: expected a LinearSystem, got {type(plant).__name__}")
+    check_instance(plant, LinearSystem, "plant")
     if plant.Bu is None:
         raise ValidationError("plant: the closed loop needs a control input matrix Bu")
     if not plant.time_invariant or plant.Bu.varying:

@@ -44,7 +44,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance
 from ..models_delay import DelayFadingSystem, HistoryPrior
 from ._common import check_keywords, symmetrize
 
@@ -127,8 +127,7 @@ class IntervalSmoothing:
 # --------------------------------------------------------------------------- shared pieces
 
 def _prepare(system: Any, prior: Any, y: Any) -> tuple[np.ndarray, tuple[int, ...]]:
-    if not isinstance(system, DelayFadingSystem):
-        raise ValidationError(f"system: expected a DelayFadingSystem, got {type(system).__name__}")
+    check_instance(system, DelayFadingSystem, "system")
     system.check_prior(prior)
     arr = as_float_array(y, "y")
     if arr.ndim < 2 or arr.shape[-1] != system.m:
@@ -779,8 +778,7 @@ class ChainLMMSE:
 
     def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal"):
         check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
-        if not isinstance(system, DelayFadingSystem):
-            raise ValidationError(f"system: expected a DelayFadingSystem, got {type(system).__name__}")
+        check_instance(system, DelayFadingSystem, "system")
         system.check_prior(prior)
         _require_chain(system, prior)
         self.system, self.prior, self.decorrelation = system, prior, decorrelation
@@ -800,8 +798,7 @@ class AugmentedLMMSE:
     """Algorithm A as an object; see :func:`augmented_lmmse`."""
 
     def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, window: int | None = None):
-        if not isinstance(system, DelayFadingSystem):
-            raise ValidationError(f"system: expected a DelayFadingSystem, got {type(system).__name__}")
+        check_instance(system, DelayFadingSystem, "system")
         system.check_prior(prior)
         self.system, self.prior, self.window = system, prior, window
 
@@ -814,8 +811,7 @@ class ReorganizedInnovationLMMSE:
 
     def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal"):
         check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
-        if not isinstance(system, DelayFadingSystem):
-            raise ValidationError(f"system: expected a DelayFadingSystem, got {type(system).__name__}")
+        check_instance(system, DelayFadingSystem, "system")
         system.check_prior(prior)
         self.system, self.prior, self.decorrelation = system, prior, decorrelation
 

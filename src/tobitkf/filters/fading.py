@@ -89,7 +89,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
@@ -136,14 +136,11 @@ def _sigma_of(R: np.ndarray, name: str) -> np.ndarray:
 
 
 def _check_parts(system: Any, fading: Any, censoring: Any) -> None:
-    if not isinstance(system, LinearSystem):
-        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-    if not isinstance(fading, RiceFading):
-        raise ValidationError(f"fading: expected a RiceFading, got {type(fading).__name__}")
+    check_instance(system, LinearSystem, "system")
+    check_instance(fading, RiceFading, "fading")
     fading.check(system.m)
     if censoring is not None:
-        if not isinstance(censoring, Censoring):
-            raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
+        check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m)
 
 

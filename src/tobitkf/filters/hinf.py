@@ -72,7 +72,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.saturation import RandomSaturation, saturate
 from ..simulate import as_generator
 
@@ -1262,8 +1262,7 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     ------
     ValidationError, ShapeError
     """
-    if not isinstance(model, RossModel):
-        raise ValidationError(f"model: expected a RossModel, got {type(model).__name__}")
+    check_instance(model, RossModel, "model")
     if model.f is None:
         raise ValidationError("model.f: expected the plant nonlinearity to simulate, got None")
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:

@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
@@ -160,8 +160,7 @@ class KalmanFilter:
     """
 
     def __init__(self, system: LinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
-        if not isinstance(system, LinearSystem):
-            raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
+        check_instance(system, LinearSystem, "system")
         check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         self.system = system
         self.covariance_update = covariance_update
@@ -192,10 +191,8 @@ class DroppingKalmanFilter:
 
     def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12,
                  covariance_update: str = "standard"):
-        if not isinstance(system, LinearSystem):
-            raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-        if not isinstance(censoring, Censoring):
-            raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
+        check_instance(system, LinearSystem, "system")
+        check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m)
         check_keywords({"covariance_update": covariance_update}, _OPTIONS)
         if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:

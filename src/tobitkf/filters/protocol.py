@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_psd
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_psd
 from ..censored import censored_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models import LinearSystem
@@ -145,10 +145,8 @@ def _failure_term(mode: str, Cc: np.ndarray, P_pred: np.ndarray, xi_pred: np.nda
 
 
 def _check_parts(system: Any, channel: Any) -> None:
-    if not isinstance(system, LinearSystem):
-        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-    if not isinstance(channel, ProtocolChannel):
-        raise ValidationError(f"channel: expected a ProtocolChannel, got {type(channel).__name__}")
+    check_instance(system, LinearSystem, "system")
+    check_instance(channel, ProtocolChannel, "channel")
     channel.check_system(system)
 
 
@@ -295,10 +293,8 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     """
     check_keywords({"failure_term": failure_term, "prehistory_mean": prehistory_mean,
                     "covariance_update": covariance_update}, _OPTIONS)
-    if not isinstance(system, LinearSystem):
-        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-    if not isinstance(channel, ProtocolChannel):
-        raise ValidationError(f"channel: expected a ProtocolChannel, got {type(channel).__name__}")
+    check_instance(system, LinearSystem, "system")
+    check_instance(channel, ProtocolChannel, "channel")
     _check_parts(system, channel)
     arr = as_float_array(y, "y", allow_nan=False)
     if arr.ndim == 1:                                   # one record (T,)
@@ -417,10 +413,8 @@ class ProtocolTobitKalmanFilter:
                  prehistory_mean: str = "repeat", covariance_update: str = "joseph", P0_aug: Any = None):
         check_keywords({"failure_term": failure_term, "prehistory_mean": prehistory_mean,
                         "covariance_update": covariance_update}, _OPTIONS)
-        if not isinstance(system, LinearSystem):
-            raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-        if not isinstance(channel, ProtocolChannel):
-            raise ValidationError(f"channel: expected a ProtocolChannel, got {type(channel).__name__}")
+        check_instance(system, LinearSystem, "system")
+        check_instance(channel, ProtocolChannel, "channel")
         channel.check_system(system)
         self.system, self.channel = system, channel
         self.options = {"failure_term": failure_term, "prehistory_mean": prehistory_mean,

@@ -52,7 +52,7 @@ import numpy as np
 from scipy.linalg import solve_discrete_are
 from scipy.special import ndtri
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
 from ._common import FilterResult, prepare_inputs, prepare_measurements
@@ -174,8 +174,7 @@ class SteadyStateTobitKalmanFilter:
     """
 
     def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper"):
-        if not isinstance(system, LinearSystem):
-            raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
+        check_instance(system, LinearSystem, "system")
         check_option(side, "side", ("upper", "lower"))
         if not system.time_invariant:
             raise ValidationError("system: the steady-state TKF needs a time-invariant model (constant A, C, Q, R)")
@@ -290,8 +289,7 @@ def tobit_kalman_filter_controlled(system: LinearSystem, xi_uncensored: Any, y_l
     from ._common import check_prior, predict
     from .tobit import tobit_update
 
-    if not isinstance(system, LinearSystem):
-        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
+    check_instance(system, LinearSystem, "system")
     check_option(side, "side", ("upper", "lower"))
     y2, batch = prepare_measurements(y_latent, system.m, "y_latent")
     N, T, m = y2.shape

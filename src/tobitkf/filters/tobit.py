@@ -50,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
@@ -287,10 +287,8 @@ class TobitKalmanFilter:
 
     def __init__(self, system: LinearSystem, censoring: Censoring, *, noise_term: str = "dissertation",
                  covariance_update: str = "standard", backend: str = "auto", threads: int | None = None):
-        if not isinstance(system, LinearSystem):
-            raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-        if not isinstance(censoring, Censoring):
-            raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
+        check_instance(system, LinearSystem, "system")
+        check_instance(censoring, Censoring, "censoring")
         check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
                        _OPTIONS)
         censoring.check(system.m)
