@@ -10,7 +10,7 @@ import pytest
 
 from tobitkf import ShapeError
 from tobitkf._io import to_jsonable
-from tobitkf.metrics import align_truth, bias, nees, rmse, summarize
+from tobitkf.metrics import align_truth, bias, nees, nees_terms, rmse, summarize
 
 
 def _case():
@@ -102,3 +102,37 @@ def test_shape_mismatch():
         rmse(truth[:, :, :1], est)
     with pytest.raises(ShapeError, match="truth: shape"):
         bias(truth[:, :1], est)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+@pytest.mark.parametrize("shared", [False, True])
+def test_nees_terms_compiled_equals_numpy_solve(n, shared, monkeypatch):
+    """The numba kernel and numpy.linalg.solve give the same e^T P^-1 e (to rounding), with the
+    covariance per run and step or shared by the runs ((T, n, n), broadcast)."""
+    pytest.importorskip("numba")
+    import tobitkf.filters._backend as backend
+
+    rng = np.random.default_rng(n)
+    N, T = 50, 7
+    L = rng.standard_normal((T if shared else N * T, n, n))
+    cov = (L @ L.transpose(0, 2, 1) + 0.1 * np.eye(n)).reshape(((T,) if shared else (N, T)) + (n, n))
+    err = rng.standard_normal((N, T, n))
+    fast = nees_terms(err, cov)
+    monkeypatch.setattr(backend, "numba_available", lambda: False)
+    ref = nees_terms(err, cov)
+    direct = np.einsum("...i,...i->...", err, np.linalg.solve(np.broadcast_to(cov, (N, T, n, n)), err[..., None])[..., 0])
+    np.testing.assert_allclose(fast, direct, rtol=1e-10)
+    np.testing.assert_allclose(ref, direct, rtol=1e-12)
+
+
+def test_nees_terms_singular_is_inf_for_that_term_on_both_paths(monkeypatch):
+    import tobitkf.filters._backend as backend
+
+    err = np.array([[[1.0, 2.0], [1.0, 0.0]]])
+    cov = np.array([[[[2.0, 0.0], [0.0, 4.0]], [[1.0, 1.0], [1.0, 1.0]]]])    # the second is singular
+    for available in (True, False):
+        if available and not backend.numba_available():
+            continue
+        monkeypatch.setattr(backend, "numba_available", lambda a=available: a)
+        val = nees_terms(err, cov)
+        assert val[0, 0] == pytest.approx(1.0 / 2.0 + 4.0 / 4.0) and np.isinf(val[0, 1])

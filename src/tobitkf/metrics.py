@@ -20,7 +20,7 @@ import numpy as np
 
 from ._validation import ShapeError, ValidationError
 
-__all__ = ["rmse", "bias", "nees", "summarize", "align_truth"]
+__all__ = ["rmse", "bias", "nees", "nees_terms", "summarize", "align_truth"]
 
 
 def align_truth(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
@@ -49,17 +49,31 @@ def bias(truth: Any, estimate: Any) -> np.ndarray:
     return np.mean(est - align_truth(truth, est), axis=0)
 
 
-def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
-    """Per-step average normalized estimation error squared over runs: ``(T,)``.
+def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    r"""Per-run, per-step :math:`e^T P^{-1} e` for errors ``(..., n)`` and covariances ``(..., n, n)``.
 
-    Uses a linear solve per run and step; singular covariances give ``inf``.
+    ``cov`` broadcasts against ``err`` (a covariance shared by the runs may omit the run axis).
+    A linear solve per run and step (never an inverse); a singular covariance gives ``inf`` for
+    its own term only. Uses the compiled kernel
+    :func:`tobitkf.filters._kernels.nees_terms` when numba is installed and ``cov``'s leading
+    shape is a trailing part of ``err``'s, else ``numpy.linalg.solve``; both agree to rounding.
     """
-    est = np.asarray(estimate, dtype=float)
-    err = est - align_truth(truth, est)
+    err = np.asarray(err, dtype=float)
     cov = np.asarray(cov, dtype=float)
+    n = err.shape[-1]
+    lead, clead = err.shape[:-1], cov.shape[:-2]
+    if cov.shape[-2:] == (n, n) and len(clead) <= len(lead) and lead[len(lead) - len(clead):] == clead:
+        from .filters._backend import numba_available
+
+        if numba_available():
+            from .filters._kernels import nees_terms as kernel
+
+            out = np.empty(int(np.prod(lead)))
+            kernel(np.ascontiguousarray(err.reshape(-1, n)), np.ascontiguousarray(cov.reshape(-1, n, n)), out)
+            return out.reshape(lead)
     try:
         sol = np.linalg.solve(cov, err[..., None])[..., 0]
-        val = np.einsum("...i,...i->...", err, sol)
+        return np.einsum("...i,...i->...", err, sol)
     except np.linalg.LinAlgError:
         # one singular matrix makes the batched solve fail for all: redo per run and step
         covb = np.broadcast_to(cov, err.shape + err.shape[-1:])
@@ -69,7 +83,17 @@ def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
                 val[idx] = err[idx] @ np.linalg.solve(covb[idx], err[idx])
             except np.linalg.LinAlgError:
                 val[idx] = np.inf
-    return np.mean(val, axis=0)
+        return val
+
+
+def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
+    """Per-step average normalized estimation error squared over runs: ``(T,)``.
+
+    Uses a linear solve per run and step (:func:`nees_terms`); singular covariances give ``inf``.
+    """
+    est = np.asarray(estimate, dtype=float)
+    err = est - align_truth(truth, est)
+    return np.mean(nees_terms(err, cov), axis=0)
 
 
 def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 0) -> dict[str, Any]:

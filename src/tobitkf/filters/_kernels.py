@@ -1,4 +1,4 @@
-r"""Compiled (numba) time loops of the Kalman filter and the Tobit Kalman filter.
+r"""Compiled (numba) time loops of the Kalman filter and the Tobit Kalman filter (and the NEES terms).
 
 These kernels are an *implementation* of the numpy reference paths in
 :mod:`tobitkf.filters.kalman` and :mod:`tobitkf.filters.tobit`, not a second
@@ -37,7 +37,8 @@ from numba import njit
 
 from ..censored import _GL_W, _GL_X, _NARROW, _TAIL
 
-__all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "NOISE_CODES", "GL_X", "GL_W"]
+__all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "nees_terms", "NOISE_CODES", "GL_X",
+           "GL_W"]
 
 NOISE_CODES = {"dissertation": 0, "total_variance": 1, "exact_pv": 2}
 GL_X, GL_W = _GL_X, _GL_W      # the quadrature of censored_moments (passed to the kernels)
@@ -636,3 +637,59 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
                         s += Kall[t, i, l] * es[l]
                     xs[i] = xps[i] + s
                     means[r, t, i] = xs[i]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def nees_terms(err, cov, out):
+    r""":math:`e_k^T P_k^{-1} e_k` for ``err`` (K, n) and ``cov`` (Kc, n, n), run ``k`` using
+    ``cov[k % Kc]`` (a covariance shared by the runs broadcasts this way); written to ``out`` (K,).
+
+    The compiled form of :func:`tobitkf.metrics.nees`: Gaussian elimination with partial
+    pivoting per matrix, like LAPACK gesv behind ``numpy.linalg.solve``, so a matrix with an
+    exactly zero pivot (singular) gives ``inf`` for its own term only."""
+    K, n = err.shape
+    Kc = cov.shape[0]
+    M = np.empty((n, n))
+    v = np.empty(n)
+    for k in range(K):
+        c0 = k % Kc
+        for i in range(n):
+            v[i] = err[k, i]
+            for j in range(n):
+                M[i, j] = cov[c0, i, j]
+        singular = False
+        for c in range(n):
+            p = c
+            best = abs(M[c, c])
+            for r in range(c + 1, n):
+                if abs(M[r, c]) > best:
+                    best = abs(M[r, c])
+                    p = r
+            if p != c:
+                for j in range(n):
+                    t = M[c, j]
+                    M[c, j] = M[p, j]
+                    M[p, j] = t
+                t = v[c]
+                v[c] = v[p]
+                v[p] = t
+            if M[c, c] == 0.0:
+                singular = True
+                break
+            for r in range(c + 1, n):
+                f = M[r, c] / M[c, c]
+                for j in range(c, n):
+                    M[r, j] -= f * M[c, j]
+                v[r] -= f * v[c]
+        if singular:
+            out[k] = _INF
+            continue
+        for c in range(n - 1, -1, -1):
+            s = v[c]
+            for j in range(c + 1, n):
+                s -= M[c, j] * v[j]
+            v[c] = s / M[c, c]
+        s = 0.0
+        for i in range(n):
+            s += err[k, i] * v[i]
+        out[k] = s
