@@ -212,20 +212,21 @@ type = "TobitKalmanFilter"
 def test_sweep_block_interrupted_before_its_done_flag_is_recomputed(tmp_path, monkeypatch):
     spec = parse_sweep(SWEEP, name="s")
     ref = load_result(run_sweep(spec, tmp_path / "ref"))
-    real = sweep_store.write_block
+    real = sweep_store.write_blocks
     count = []
 
-    def dies_mid_block(g, point, block, stats):
-        count.append(block)
-        if len(count) == 2:                       # second block: data written, flag not
-            g["sum_err"][point, block] = stats["sum_err"] + 1e6
+    def dies_mid_block(g, point, results):
+        count.append(point)
+        if len(count) == 2:                       # second task: data written, flags not
+            b, stats = results[0]
+            g["stats"][point, b] = 1e6
             raise KeyboardInterrupt
-        return real(g, point, block, stats)
+        return real(g, point, results)
 
-    monkeypatch.setattr(sweep_run, "write_block", dies_mid_block)
+    monkeypatch.setattr(sweep_run, "write_blocks", dies_mid_block)
     with pytest.raises(KeyboardInterrupt):
         run_sweep(spec, tmp_path / "cut")
-    monkeypatch.setattr(sweep_run, "write_block", real)
+    monkeypatch.setattr(sweep_run, "write_blocks", real)
     with pytest.raises(tk.ValidationError, match="not finished"):
         load_result(tmp_path / "cut" / "s.zarr")
     resumed = load_result(run_sweep(spec, tmp_path / "cut"))

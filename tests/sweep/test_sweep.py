@@ -61,16 +61,21 @@ def test_reduction_equals_direct_computation(tmp_path):
     for lower in (-0.2, 0.1):
         cens = tk.Censoring(lower=lower)
         errs = {"kf": [], "tkf": []}
+        var = {"kf": [], "tkf": []}
         for b in range(3):
             d = tk.simulate(sys_, 30, 20, censoring=cens, seed=np.random.SeedSequence(3, spawn_key=(b,)))
-            errs["kf"].append(tk.KalmanFilter(sys_).filter(d.y).mean - d.x[:, 1:])
-            errs["tkf"].append(tk.TobitKalmanFilter(sys_, cens).filter(d.y).mean - d.x[:, 1:])
+            for key, f in (("kf", tk.KalmanFilter(sys_)), ("tkf", tk.TobitKalmanFilter(sys_, cens))):
+                out = f.filter(d.y)
+                errs[key].append(out.mean - d.x[:, 1:])
+                var[key].append(out.cov[..., 0, 0])
         for key, e in errs.items():
             e = np.concatenate(e)
-            got = ds["rmse"].sel({"censoring.lower": lower, "estimator": key}).values
-            np.testing.assert_allclose(got, np.sqrt((e**2).mean(axis=0)), rtol=1e-12)
-            np.testing.assert_allclose(ds["bias"].sel({"censoring.lower": lower, "estimator": key}).values,
-                                       e.mean(axis=0), rtol=1e-10, atol=1e-15)
+            sel = {"censoring.lower": lower, "estimator": key}
+            np.testing.assert_allclose(ds["rmse"].sel(sel).values, np.sqrt((e**2).mean(axis=0)), rtol=1e-12)
+            np.testing.assert_allclose(ds["bias"].sel(sel).values, e.mean(axis=0), rtol=1e-10, atol=1e-15)
+            # n = 1: e^T P^-1 e is e^2 / P, no solve needed
+            np.testing.assert_allclose(ds["nees"].sel(sel).values,
+                                       (e[..., 0] ** 2 / np.concatenate(var[key])).mean(axis=0), rtol=1e-12)
     assert ds.attrs["sweep"].startswith("\n[sweep]") and ds.attrs["package_version"] == tk.__version__
 
 
@@ -91,6 +96,18 @@ def test_resume_after_partial_run_is_identical(tmp_path):
     with pytest.raises(tk.ValidationError, match="not finished"):
         load_result(part)
     run_sweep(spec(chunk=1), tmp_path / "part")
+    resumed = arrays(part)
+    for name in full:
+        np.testing.assert_array_equal(full[name], resumed[name])
+
+
+def test_resume_with_other_task_size_writes_into_part_chunks(tmp_path):
+    """The store's zarr chunks hold ``chunk_blocks`` blocks (7 here); resuming with tasks of 2 blocks
+    writes into part-filled chunks and must neither lose nor duplicate a block."""
+    full = arrays(run_sweep(spec(chunk=7), tmp_path / "full"))
+    part = run_sweep(spec(chunk=7), tmp_path / "part", max_tasks=1)       # point 0 done, point 1 empty
+    run_sweep(spec(chunk=2), tmp_path / "part", max_tasks=2)               # blocks 0-3 of point 1
+    run_sweep(spec(chunk=3), tmp_path / "part")                            # blocks 4-6
     resumed = arrays(part)
     for name in full:
         np.testing.assert_array_equal(full[name], resumed[name])
