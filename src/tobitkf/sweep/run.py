@@ -122,7 +122,7 @@ def _client(scheduler: str, workers: int):
 
         # Dask starts its workers with MALLOC_TRIM_THRESHOLD_=65536, which makes glibc hand every
         # freed block back to the kernel at once; a block's ~30 MB of simulated data and filter
-        # outputs is then page-faulted in afresh for every block (measured: 25 % more time per
+        # outputs is then page-faulted in afresh for every block (measured: 20–40 % more time per
         # block in the worker). A worker of ours holds one task's blocks at a time, so keeping
         # glibc's default lets it reuse that memory instead.
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
