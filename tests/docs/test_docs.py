@@ -34,3 +34,52 @@ def test_docs_site_builds_strict(tmp_path):
                          capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
     assert (tmp_path / "site" / "api" / "filters" / "index.html").exists()
+    # the docstrings' reST math, tables and roles reach the API pages converted, none raw
+    for page in (tmp_path / "site" / "api").glob("*/index.html"):
+        html = page.read_text(encoding="utf-8")
+        for raw in (":math:", ".. math::", ":func:", ":class:", "=========="):
+            assert raw not in html, f"{page.parent.name}: raw reST {raw!r} on the page"
+    filters = (tmp_path / "site" / "api" / "filters" / "index.html").read_text(encoding="utf-8")
+    assert filters.count('class="arithmatex"') > 20
+
+
+def _rest():
+    pytest.importorskip("griffe")
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("griffe_rest", ROOT / "docs" / "griffe_rest.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_rest_simple_table_with_header_and_continuation_lines():
+    text = ("Keys:\n\n"
+            "=====  ==============\n"
+            "key    meaning\n"
+            "=====  ==============\n"
+            "``a``  first line\n"
+            "       and its rest\n"
+            "``b``  x | y\n"
+            "=====  ==============\n\n"
+            "After.")
+    assert _rest().convert(text).splitlines() == [
+        "Keys:", "", "", "| key | meaning |", "|---|---|", "| ``a`` | first line and its rest |",
+        "| ``b`` | x \\| y |", "", "", "After."]
+
+
+def test_rest_table_without_header_gets_an_empty_one():
+    text = "==  ==\n1   2\n3   4\n==  ==\n"
+    assert _rest().convert(text).splitlines()[1:5] == ["|  |  |", "|---|---|", "| 1 | 2 |", "| 3 | 4 |"]
+
+
+def test_rest_math_roles_blocks_and_cross_references():
+    conv = _rest().convert
+    assert conv("so :math:`x_k^T P` holds") == "so \\(x_k^T P\\) holds"
+    assert conv(":func:`~tobitkf.metrics.nees` and :class:`tobitkf.LinearSystem`") == \
+        "`nees` and `tobitkf.LinearSystem`"
+    plain = conv("Text:\n\n.. math::\n\n    y = Cx + v\n\nMore.").splitlines()
+    assert plain[plain.index("\\["):plain.index("\\]") + 1] == ["\\[", "y = Cx + v", "\\]"]
+    aligned = conv(".. math::\n    :label: eq1\n\n    a &= b \\\\\n    c &= d\n").splitlines()
+    assert aligned[aligned.index("\\[") + 1:aligned.index("\\]")] == [
+        "\\begin{aligned}", "a &= b \\\\", "c &= d", "\\end{aligned}"]
