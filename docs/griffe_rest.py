@@ -5,9 +5,9 @@ The docstrings are written for both ``help()`` and Sphinx-style readers, so they
 cross-reference roles (``:func:`...```). mkdocstrings renders docstrings as Markdown, where
 these come out as raw text. This extension rewrites each docstring before it is parsed:
 
-* ``:math:`x``` -> ``\\(x\\)`` and a ``.. math::`` block -> ``\\[ ... \\]`` (an ``aligned``
+* ``:math:`x``` -> ``\\(x\\)`` and a ``.. math::`` block -> ``\\[ ... \\]`` (a ``split``
   environment when the block uses ``&`` or ``\\\\``, as Sphinx does), both rendered by
-  ``pymdownx.arithmatex`` and MathJax;
+  ``pymdownx.arithmatex`` and turned into MathML by ``docs/hooks/mathml.py``;
 * a simple table -> a Markdown table (continuation lines, whose first column is blank, are
   joined to the row above);
 * ``:func:`~a.b.c``` and the other roles -> a code span (``c`` with ``~``, else ``a.b.c``).
@@ -53,7 +53,7 @@ def _math_blocks(lines: list[str]) -> list[str]:
         body = [b for b in body if not b.startswith(":")]   # directive options (:label:, :nowrap:)
         tex = "\n".join(b for b in body if b)
         if "&" in tex or "\\\\" in tex:
-            tex = "\\begin{aligned}\n" + tex + "\n\\end{aligned}"
+            tex = "\\begin{split}\n" + tex + "\n\\end{split}"
         out.extend(["", f"{indent}\\[", *[indent + t for t in tex.splitlines()], f"{indent}\\]", ""])
     return out
 
