@@ -233,6 +233,45 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
 
 
 @njit(cache=True, error_model="numpy")
+def _gauss_solve(M, W):
+    """Solve ``M X = W`` in place (``W`` (m, r) becomes X; ``M`` (m, m) is overwritten) by Gaussian
+    elimination with partial pivoting, like LAPACK gesv behind ``numpy.linalg.solve``. Returns
+    False, leaving both half-eliminated, when a pivot is exactly zero (a singular ``M``)."""
+    m, r = W.shape
+    for c in range(m):
+        p = c
+        best = abs(M[c, c])
+        for q in range(c + 1, m):
+            if abs(M[q, c]) > best:
+                best = abs(M[q, c])
+                p = q
+        if p != c:
+            for j in range(m):
+                t = M[c, j]
+                M[c, j] = M[p, j]
+                M[p, j] = t
+            for i in range(r):
+                t = W[c, i]
+                W[c, i] = W[p, i]
+                W[p, i] = t
+        if M[c, c] == 0.0:
+            return False
+        for q in range(c + 1, m):
+            f = M[q, c] / M[c, c]
+            for j in range(c, m):
+                M[q, j] -= f * M[c, j]
+            for i in range(r):
+                W[q, i] -= f * W[c, i]
+    for c in range(m - 1, -1, -1):
+        for i in range(r):
+            t = W[c, i]
+            for j in range(c + 1, m):
+                t -= M[c, j] * W[j, i]
+            W[c, i] = t / M[c, c]
+    return True
+
+
+@njit(cache=True, error_model="numpy")
 def _solve_gain(Ree, Rxe, ok, K, W):
     r"""One run: :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column), as
     :func:`~tobitkf.filters._common.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
@@ -255,36 +294,8 @@ def _solve_gain(Ree, Rxe, ok, K, W):
             Ree[i, j] *= d[i] * d[j]
         for k in range(n):
             W[i, k] *= d[i]
-    for c in range(m):
-        p = c
-        best = abs(Ree[c, c])
-        for r in range(c + 1, m):
-            if abs(Ree[r, c]) > best:
-                best = abs(Ree[r, c])
-                p = r
-        if p != c:
-            for j in range(m):
-                t = Ree[c, j]
-                Ree[c, j] = Ree[p, j]
-                Ree[p, j] = t
-            for i in range(n):
-                t = W[c, i]
-                W[c, i] = W[p, i]
-                W[p, i] = t
-        if Ree[c, c] == 0.0:
-            raise np.linalg.LinAlgError("Singular matrix")   # as numpy.linalg.solve
-        for r in range(c + 1, m):
-            f = Ree[r, c] / Ree[c, c]
-            for j in range(c, m):
-                Ree[r, j] -= f * Ree[c, j]
-            for i in range(n):
-                W[r, i] -= f * W[c, i]
-    for c in range(m - 1, -1, -1):
-        for i in range(n):
-            s = W[c, i]
-            for j in range(c + 1, m):
-                s -= Ree[c, j] * W[j, i]
-            W[c, i] = s / Ree[c, c]
+    if not _gauss_solve(Ree, W):
+        raise np.linalg.LinAlgError("Singular matrix")   # as numpy.linalg.solve
     for i in range(n):
         for j in range(m):
             K[i, j] = W[j, i] * d[j]
@@ -644,52 +655,23 @@ def nees_terms(err, cov, out):
     r""":math:`e_k^T P_k^{-1} e_k` for ``err`` (K, n) and ``cov`` (Kc, n, n), run ``k`` using
     ``cov[k % Kc]`` (a covariance shared by the runs broadcasts this way); written to ``out`` (K,).
 
-    The compiled form of :func:`tobitkf.metrics.nees`: Gaussian elimination with partial
-    pivoting per matrix, like LAPACK gesv behind ``numpy.linalg.solve``, so a matrix with an
-    exactly zero pivot (singular) gives ``inf`` for its own term only."""
+    The compiled form of :func:`tobitkf.metrics.nees_terms`: one :func:`_gauss_solve` per matrix
+    (as ``numpy.linalg.solve``), so a matrix with an exactly zero pivot (singular) gives ``inf``
+    for its own term only."""
     K, n = err.shape
     Kc = cov.shape[0]
     M = np.empty((n, n))
-    v = np.empty(n)
+    v = np.empty((n, 1))
     for k in range(K):
         c0 = k % Kc
         for i in range(n):
-            v[i] = err[k, i]
+            v[i, 0] = err[k, i]
             for j in range(n):
                 M[i, j] = cov[c0, i, j]
-        singular = False
-        for c in range(n):
-            p = c
-            best = abs(M[c, c])
-            for r in range(c + 1, n):
-                if abs(M[r, c]) > best:
-                    best = abs(M[r, c])
-                    p = r
-            if p != c:
-                for j in range(n):
-                    t = M[c, j]
-                    M[c, j] = M[p, j]
-                    M[p, j] = t
-                t = v[c]
-                v[c] = v[p]
-                v[p] = t
-            if M[c, c] == 0.0:
-                singular = True
-                break
-            for r in range(c + 1, n):
-                f = M[r, c] / M[c, c]
-                for j in range(c, n):
-                    M[r, j] -= f * M[c, j]
-                v[r] -= f * v[c]
-        if singular:
+        if not _gauss_solve(M, v):
             out[k] = _INF
             continue
-        for c in range(n - 1, -1, -1):
-            s = v[c]
-            for j in range(c + 1, n):
-                s -= M[c, j] * v[j]
-            v[c] = s / M[c, c]
         s = 0.0
         for i in range(n):
-            s += err[k, i] * v[i]
+            s += err[k, i] * v[i, 0]
         out[k] = s
