@@ -179,6 +179,21 @@ steps = 50
                                np.asarray(ref.metrics["estimators"]["tkf"]["rmse"]), rtol=1e-12)
 
 
+def test_grid_that_changes_the_horizon_is_refused_with_the_reason(tmp_path):
+    """One store has one time axis: a grid over an experiment's horizon cannot share it, and the
+    error says so instead of failing inside zarr."""
+    text = """
+[sweep]
+experiment = "miller-brownian"
+runs = 4
+seed = 2
+[grid]
+"settings.steps" = [20, 30]
+"""
+    with pytest.raises(tk.ValidationError, match="change the horizon.*one sweep per value"):
+        run_sweep(parse_sweep(text, name="h"), tmp_path)
+
+
 @pytest.mark.parametrize("text, match", [
     ("not toml = = 1", "not valid TOML"),
     ("[model]\nA=[[1.0]]", "missing the \\[sweep\\] table"),

@@ -64,7 +64,10 @@ def pack(stats: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]]) -> np
     for name, shape in shapes.items():
         a = np.asarray(stats[name], dtype=float)
         if a.shape != shape:
-            raise ValueError(f"sweep block statistic {name}: shape {a.shape}, expected {shape}")
+            raise ValidationError(
+                f"sweep: a grid point gave {name} of shape {a.shape}, but the store holds {shape} (estimators, "
+                "time, state/channel), set by the first grid point; grid values that change the horizon or the "
+                "state dimension cannot share one store: run one sweep per value")
         parts.append(a.ravel())
     return np.concatenate(parts)
 
