@@ -160,23 +160,42 @@ def test_plot_writes_both_figures(tmp_path):
     assert all(p.stat().st_size > 2000 for p in paths)
 
 
-def test_experiment_mode_stores_the_experiment_rmse(tmp_path):
+def test_experiment_mode_combines_blocks_of_the_experiment(tmp_path):
+    """Experiment mode in blocks: block b runs the experiment with the documented integer seed
+    (the first 63 bits of SeedSequence(seed, spawn_key=(b,))'s state) and the blocks' RMSE, bias
+    and NEES combine as sums; computed here from direct runs of the experiment."""
     text = """
 [sweep]
 experiment = "miller-brownian"
 runs = 6
 seed = 2
+block_runs = {block}
+chunk_blocks = {chunk}
 [settings]
 steps = 50
 [grid]
 "settings.sigma" = [0.05, 0.1]
 """
-    ds = load_result(run_sweep(parse_sweep(text, name="exp"), tmp_path))
+    ds = load_result(run_sweep(parse_sweep(text.format(block=3, chunk=1), name="exp"), tmp_path / "a"))
     from tobitkf.experiments import get
 
-    ref = get("miller-brownian").run(runs=6, seed=2, steps=50, sigma=0.1)
-    np.testing.assert_allclose(ds["rmse"].sel({"settings.sigma": 0.1, "estimator": "tkf"}).values,
-                               np.asarray(ref.metrics["estimators"]["tkf"]["rmse"]), rtol=1e-12)
+    parts = []
+    for b in range(2):
+        seed = int(np.random.SeedSequence(2, spawn_key=(b,)).generate_state(1, np.uint64)[0]) >> 1
+        parts.append(get("miller-brownian").run(runs=3, seed=seed, steps=50, sigma=0.1).metrics["estimators"]["tkf"])
+    rmse = np.sqrt(sum(3 * np.asarray(p["rmse"]) ** 2 for p in parts) / 6)
+    bias = sum(3 * np.asarray(p["bias"]) for p in parts) / 6
+    sel = {"settings.sigma": 0.1, "estimator": "tkf"}
+    np.testing.assert_allclose(ds["rmse"].sel(sel).values, rmse, rtol=1e-12)
+    np.testing.assert_allclose(ds["bias"].sel(sel).values, bias, rtol=1e-12, atol=1e-15)
+    assert int(ds["runs"].sel({"settings.sigma": 0.1})) == 6
+    # the same blocks in one task per grid point, and resumed after one task: identical numbers
+    one = load_result(run_sweep(parse_sweep(text.format(block=3, chunk=2), name="exp"), tmp_path / "b"))
+    run_sweep(parse_sweep(text.format(block=3, chunk=1), name="exp"), tmp_path / "c", max_tasks=2)
+    resumed = load_result(run_sweep(parse_sweep(text.format(block=3, chunk=1), name="exp"), tmp_path / "c"))
+    for name in ds.data_vars:
+        np.testing.assert_array_equal(ds[name].values, one[name].values)
+        np.testing.assert_array_equal(ds[name].values, resumed[name].values)
 
 
 def test_grid_that_changes_the_horizon_is_refused_with_the_reason(tmp_path):

@@ -27,7 +27,7 @@ from ..metrics import nees_terms
 from .spec import SweepSpec
 from .store import open_store, reduce_store, write_blocks
 
-__all__ = ["build_point", "run_block", "run_sweep"]
+__all__ = ["build_point", "run_block", "run_sweep", "experiment_seed"]
 
 
 def build_point(spec: SweepSpec, point: dict[str, Any]):
@@ -72,12 +72,21 @@ def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int) -> 
             "censored": (at_lo | at_hi).sum(axis=0).astype(float), "count": np.int64(runs)}
 
 
-def _experiment_point(spec: SweepSpec, point: dict[str, Any]) -> tuple[list[str], dict[str, np.ndarray]]:
+def experiment_seed(seed: int, block: int) -> int:
+    """The integer seed of block ``block`` of an experiment sweep: the first 63 bits of the
+    state of ``SeedSequence(seed, spawn_key=(block,))`` (the block's seed in model mode).
+    Experiments take integer seeds (they combine them with scenario indices)."""
+    return int(np.random.SeedSequence(seed, spawn_key=(block,)).generate_state(1, np.uint64)[0] >> np.uint64(1))
+
+
+def _experiment_block(spec: SweepSpec, point: dict[str, Any], block: int,
+                      runs: int) -> tuple[list[str], dict[str, np.ndarray]]:
+    """Run the experiment for one block and turn its per-step RMSE, bias and NEES into sums."""
     from ..experiments import get
 
     r = spec.resolved(point)
     try:
-        res = get(spec.experiment).run(runs=spec.runs, seed=spec.seed, **r["settings"])
+        res = get(spec.experiment).run(runs=runs, seed=experiment_seed(spec.seed, block), **r["settings"])
     except TypeError as exc:   # an experiment taking **overrides refuses an unknown setting this way
         raise ValidationError(f"settings: {spec.experiment} refused the settings {r['settings']}: {exc}") from None
     est = res.metrics.get("estimators")
@@ -85,7 +94,6 @@ def _experiment_point(spec: SweepSpec, point: dict[str, Any]) -> tuple[list[str]
         raise ValidationError(f"sweep.experiment: {spec.experiment!r} reports no top-level 'estimators' block "
                               "and cannot be swept")
     keys = list(est)
-    runs = spec.runs
     rmse = np.stack([np.asarray(est[k]["rmse"], dtype=float) for k in keys])
     bias = np.stack([np.asarray(est[k]["bias"], dtype=float) for k in keys])
     nees = np.stack([np.asarray(est[k].get("nees", np.full(rmse.shape[1], np.nan)), dtype=float) for k in keys])
@@ -108,7 +116,7 @@ def run_task(spec_text: str, name: str, point_index: int, blocks: list[int]) -> 
     point = spec.points()[point_index]
     sizes = spec.block_sizes()
     if spec.experiment is not None:
-        return [(0, _experiment_point(spec, point)[1])]
+        return [(b, _experiment_block(spec, point, b, sizes[b])[1]) for b in blocks]
     return [(b, run_block(spec, point, b, sizes[b])) for b in blocks]
 
 
@@ -157,12 +165,14 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     out.mkdir(parents=True, exist_ok=True)
     path = safe_child(out, f"{spec.name}.zarr")
     points = spec.points()
-    if spec.experiment is not None:
-        keys, first = _experiment_point(spec, points[0])
+    if spec.experiment is not None and path.exists():
+        g = open_store(path, spec, [], 0, 1, 0)        # resuming: the store knows its shapes
+    elif spec.experiment is not None:
+        # the first block tells the store its shapes (estimators, horizon, state)
+        keys, first = _experiment_block(spec, points[0], 0, spec.block_sizes()[0])
         steps, n = first["sum_sq"].shape[1:]
         g = open_store(path, spec, keys, n, 1, steps)
-        if not g["done"][0, 0]:
-            write_blocks(g, 0, [(0, first)])
+        write_blocks(g, 0, [(0, first)])
     else:
         sys_, _, ests = build_point(spec, points[0])
         g = open_store(path, spec, list(ests), sys_.n, sys_.m, spec.steps)

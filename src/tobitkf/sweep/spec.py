@@ -34,7 +34,11 @@ plus a parameter grid, the run count, the horizon and a seed::
 
 Experiment mode: ``[sweep] experiment = "miller-oscillator"``, optional ``[settings]``
 (keyword overrides of the experiment's ``run``), and grid keys ``"settings.<name>"``.
-Each grid point then runs the experiment once with all runs (no run blocks).
+The runs are split into blocks as in model mode: block ``b`` of a grid point runs the
+experiment with ``block_runs`` runs and the integer seed :func:`tobitkf.sweep.run.experiment_seed`
+``(seed, b)``, and its per-step RMSE, bias and NEES are turned back into sums (RMSE² × runs,
+...), so experiment sweeps stream, resume and parallelise like model sweeps. Use
+``block_runs = runs`` to run the experiment once per grid point.
 
 Errors name the key and the line of the file (:class:`SweepFileError`).
 """
@@ -116,14 +120,11 @@ class SweepSpec:
 
     @property
     def blocks(self) -> int:
-        """Number of run blocks per grid point (experiment mode: 1)."""
-        if self.experiment is not None:
-            return 1
+        """Number of run blocks per grid point."""
         return -(-self.runs // self.block_runs)
 
     def block_sizes(self) -> list[int]:
-        if self.experiment is not None:
-            return [self.runs]
+        """Runs in each block: ``block_runs``, the last one the rest."""
         full, rest = divmod(self.runs, self.block_runs)
         return [self.block_runs] * full + ([rest] if rest else [])
 
