@@ -7,7 +7,8 @@
   printed with the speed-up of the best times (target >= 1.6x on 2 cores). A ``local``
   run of the same file gives the in-process reference.
 * Memory: peak resident memory of a ``local`` sweep process for growing run counts
-  (target: flat; 10^6 runs of the core TKF with T = 100 within 2 GB).
+  (target: flat; 10^6 runs of the core TKF with T = 100 within 2 GB), and of an experiment
+  sweep (the fading TKF example in blocks of 1000 runs) for 2000 and 20000 runs.
 
 Run by hand: ``python benchmarks/bench_sweep.py``; CI: ``--smoke``.
 """
@@ -46,6 +47,14 @@ lower = 0.0
 type = "TobitKalmanFilter"
 """
 
+EXPERIMENT_SWEEP = """
+[sweep]
+experiment = "geng2017-oscillator"
+runs = {runs}
+seed = 0
+block_runs = {block}
+"""
+
 _PEAK = """
 import resource, sys
 from tobitkf.sweep import load_sweep, run_sweep
@@ -69,6 +78,7 @@ def main() -> None:
     speed_runs, steps, block = (1_000_000, 100, 2_000) if not args.smoke else (4_000, 20, 1_000)
     repeat = args.repeat if not args.smoke else 1
     mem_runs = [10_000, 100_000, 1_000_000] if not args.smoke else [2_000, 4_000]
+    exp_runs = [2_000, 20_000] if not args.smoke else [20, 40]
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -96,6 +106,15 @@ def main() -> None:
             print(f"local, {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
                   f"{runs * steps / t:,.0f} run-steps/s")
         results["peak_rss_mb"] = mem
+        # experiment mode streams too: the fading TKF experiment in blocks of 1000 runs
+        exp_mem = {}
+        for runs in exp_runs:
+            g = tmp / f"exp{runs}.toml"
+            g.write_text(EXPERIMENT_SWEEP.format(runs=runs, block=min(1_000, runs)))
+            t, peak = run(g, tmp / f"e{runs}", "local", 1)
+            exp_mem[runs] = peak
+            print(f"local, experiment geng2017-oscillator, {runs:>6} runs: {t:6.1f} s, peak RSS {peak:7.1f} MB")
+        results["experiment_peak_rss_mb"] = exp_mem
     print(json.dumps(results))
 
 
