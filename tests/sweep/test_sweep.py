@@ -89,6 +89,23 @@ def test_chunking_and_dask_give_identical_statistics(tmp_path):
         np.testing.assert_array_equal(one[name], dask[name])
 
 
+def test_scheduler_address_runs_on_an_existing_cluster(tmp_path):
+    """``--scheduler ADDRESS``: the same file on a cluster started elsewhere gives the same numbers."""
+    distributed = pytest.importorskip("distributed")
+    ref = arrays(run_sweep(spec(chunk=2), tmp_path / "ref"))
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
+                                  dashboard_address=None) as cluster:
+        got = arrays(run_sweep(spec(chunk=2), tmp_path / "addr", scheduler=cluster.scheduler_address))
+    for name in ref:
+        np.testing.assert_array_equal(ref[name], got[name])
+
+
+def test_unreachable_scheduler_fails_before_any_work(tmp_path):
+    with pytest.raises(tk.ValidationError, match="--scheduler: cannot connect .*'nonsense'"):
+        run_sweep(spec(), tmp_path, scheduler="nonsense")
+    assert not (tmp_path / "t.zarr").exists()
+
+
 def test_resume_after_partial_run_is_identical(tmp_path):
     full = arrays(run_sweep(spec(chunk=1), tmp_path / "full"))
     part = run_sweep(spec(chunk=1), tmp_path / "part", max_tasks=5)

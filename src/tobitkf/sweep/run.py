@@ -136,7 +136,12 @@ def _client(scheduler: str, workers: int):
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
         return Client(cluster), cluster
-    return Client(scheduler), None
+    try:
+        return Client(scheduler), None
+    except (OSError, ValueError, TypeError) as exc:   # unreachable, timed out, or not an address
+        raise ValidationError(f"--scheduler: cannot connect to a Dask scheduler at {scheduler!r} ({exc}); expected "
+                              "'local', 'processes' or the address of a running scheduler, e.g. "
+                              "tcp://host:8786") from None
 
 
 def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", workers: int = 2,
@@ -165,6 +170,21 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     out.mkdir(parents=True, exist_ok=True)
     path = safe_child(out, f"{spec.name}.zarr")
     points = spec.points()
+    # connect first: a wrong address fails before any work is done
+    client, cluster = _client(scheduler, workers) if scheduler != "local" else (None, None)
+    try:
+        _run(spec, path, points, client, progress, max_tasks)
+    finally:
+        if client is not None:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    return path
+
+
+def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, progress, max_tasks) -> None:
+    """Create or reopen the store, run the missing blocks (in-process when ``client`` is None)
+    and write the summary once every block is done."""
     if spec.experiment is not None and path.exists():
         g = open_store(path, spec, [], 0, 1, 0)        # resuming: the store knows its shapes
     elif spec.experiment is not None:
@@ -201,24 +221,17 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
 
     if progress is not None:
         progress(finished, total, 0.0)
-    if scheduler == "local":
+    if client is None:
         for p, blocks in tasks:
             record(p, run_task(spec.text, spec.name, p, blocks))
     else:
         from distributed import as_completed
 
-        client, cluster = _client(scheduler, workers)
-        try:
-            futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
-            for fut in as_completed(futs):
-                record(futs[fut], fut.result())
-        finally:
-            client.close()
-            if cluster is not None:
-                cluster.close()
+        futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
+        for fut in as_completed(futs):
+            record(futs[fut], fut.result())
     if bool(g["done"][:].all()):
         _write_summary(path, reduce_store(g))
-    return path
 
 
 def _write_summary(path: Path, ds) -> None:
