@@ -177,6 +177,26 @@ def test_plot_writes_both_figures(tmp_path):
     assert all(p.stat().st_size > 2000 for p in paths)
 
 
+@pytest.mark.parametrize("lowers, panels, curves", [
+    ([-0.2, 0.0, 0.1], 3, 2),                  # a column per grid point, a curve per estimator
+    ([-0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3], 2, 7),   # > 6 points: a column per estimator, a curve per point
+])
+def test_rmse_over_time_layout(tmp_path, monkeypatch, lowers, panels, curves):
+    import tobitkf.sweep.plot as sp
+
+    text = BASE.format(runs=20, steps=10, block=20, chunk=1).replace(
+        '"censoring.lower" = [-0.2, 0.1]', f'"censoring.lower" = {lowers}')
+    path = run_sweep(parse_sweep(text, name="t"), tmp_path)
+    figs = {}
+    monkeypatch.setattr(sp, "save", lambda fig, outdir, name: figs.setdefault(name, fig) and Path(outdir) / name)
+    plot_result(path, tmp_path / "figs")
+    axes = figs["rmse_over_time.png"].axes
+    assert len(axes) == panels                 # one state component (n = 1): one row
+    assert all(len(ax.lines) == curves for ax in axes)
+    # the estimators' curves share the y scale of their row
+    assert len({ax.get_ylim() for ax in axes}) == 1
+
+
 def test_experiment_mode_combines_blocks_of_the_experiment(tmp_path):
     """Experiment mode in blocks: block b runs the experiment with the documented integer seed
     (the first 63 bits of SeedSequence(seed, spawn_key=(b,))'s state) and the blocks' RMSE, bias

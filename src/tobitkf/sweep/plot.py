@@ -8,6 +8,12 @@ from ..plotting import new_figure, save
 
 __all__ = ["plot_result"]
 
+_MAX_POINT_COLUMNS = 6
+
+
+def _as_tuple(value) -> tuple:
+    return value if isinstance(value, tuple) else (value,)
+
 
 def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path]:
     """Draw ``rmse_over_time.png`` and ``rmse_vs_<param>.png`` for a finished sweep store.
@@ -25,18 +31,32 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
     grid_dims = [d for d in ds["rmse"].dims if d not in ("estimator", "time", "state")]
     stacked = ds["rmse"].stack(point=grid_dims) if grid_dims else ds["rmse"].expand_dims(point=[0])
     ests, n = list(ds["estimator"].values), ds.sizes["state"]
+    points = stacked.sizes["point"]
     paths = []
-    fig, axes = new_figure(n, len(ests), width=4.2 * len(ests), height=2.8)
-    for j, est in enumerate(ests):
-        for i in range(n):
-            ax = axes[i, j]
-            for p in range(stacked.sizes["point"]):
-                label = str(stacked["point"].values[p]) if grid_dims else None
-                ax.plot(ds["time"].values, stacked.sel(estimator=est).isel(point=p, state=i).values, lw=0.9, label=label)
-            ax.set_title(f"{est}: RMSE of x{i + 1}", fontsize=9)
-            ax.set_xlabel("k")
-            if grid_dims and stacked.sizes["point"] <= 8:
-                ax.legend(fontsize=6, title=", ".join(grid_dims), title_fontsize=6)
+    t = ds["time"].values
+    if points <= _MAX_POINT_COLUMNS:
+        # rows: state components; columns: grid points; curves: estimators (the comparison a
+        # study is after), on a common y scale per row
+        fig, axes = new_figure(n, points, width=max(5.0, 4.2 * points), height=2.8, sharey="row")
+        for p in range(points):
+            title = ", ".join(f"{d} = {v}" for d, v in zip(grid_dims, _as_tuple(stacked["point"].values[p])))
+            for i in range(n):
+                ax = axes[i, p]
+                for est in ests:
+                    ax.plot(t, stacked.sel(estimator=est).isel(point=p, state=i).values, lw=0.9, label=str(est))
+                ax.set_title(f"RMSE of x{i + 1}" + (f" ({title})" if title else ""), fontsize=9)
+                ax.set_xlabel("k")
+                ax.legend(fontsize=7)
+    else:
+        # many grid points: one column per estimator, one curve per grid point
+        fig, axes = new_figure(n, len(ests), width=4.2 * len(ests), height=2.8, sharey="row")
+        for j, est in enumerate(ests):
+            for i in range(n):
+                ax = axes[i, j]
+                for p in range(points):
+                    ax.plot(t, stacked.sel(estimator=est).isel(point=p, state=i).values, lw=0.7)
+                ax.set_title(f"{est}: RMSE of x{i + 1}, {points} grid points", fontsize=9)
+                ax.set_xlabel("k")
     paths.append(save(fig, outdir, "rmse_over_time.png"))
     avg = ds["rmse"].mean("time")
     for dim in grid_dims:
