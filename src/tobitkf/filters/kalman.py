@@ -35,13 +35,14 @@ import numpy as np
 from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
-from ._backend import BACKENDS, kernels, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements)
+                      prepare_measurements, process_root, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
 
 __all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter"]
 
-_OPTIONS = {"covariance_update": ("standard", "joseph"), "backend": BACKENDS}
+COVARIANCE_UPDATES = ("standard", "joseph", "square_root")
+_OPTIONS = {"covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
 
 
 def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarray | None = None,
@@ -89,6 +90,7 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
         ``backend="numba"`` without numba installed.
     """
     check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
+    form_gap = check_square_root(backend, covariance_update, "the Kalman filter")
     y2, batch = prepare_measurements(y, system.m)
     N, T, m = y2.shape
     n = system.n
@@ -109,11 +111,13 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
     covs = np.empty((P.shape[0], T, n, n))
     pcovs = np.empty_like(covs)
     joseph = covariance_update == "joseph"
-    if use_kernel(backend, system_gap(system, u), "the Kalman filter"):
+    if use_kernel(backend, form_gap or system_gap(system, u), "the Kalman filter"):
         c64 = np.ascontiguousarray
         kernels().kf_kernel(c64(y2), c64(missing), c64(system.transition(0), dtype=float),
                             c64(system.process_cov(0), dtype=float), c64(system.measurement(1), dtype=float),
                             c64(system.measurement_cov(1), dtype=float), x, P, joseph, means, covs, pmeans, pcovs)
+    elif covariance_update == "square_root":
+        _sqrt_loop(system, y2, u2, missing if per_run else None, x, P, means, covs, pmeans, pcovs)
     else:
         for k in range(1, T + 1):
             uk = None if u2 is None else u2[:, k - 1]
@@ -136,6 +140,32 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
         pcovs = np.broadcast_to(pcovs, (N, T, n, n))
     return FilterResult(mean=means.reshape(batch + (T, n)), cov=covs.reshape(batch + (T, n, n)),
                         pred_mean=pmeans.reshape(batch + (T, n)), pred_cov=pcovs.reshape(batch + (T, n, n)))
+
+
+def _sqrt_loop(system: LinearSystem, y2: np.ndarray, u2: np.ndarray | None, missing: np.ndarray | None,
+               x: np.ndarray, P: np.ndarray, means: np.ndarray, covs: np.ndarray, pmeans: np.ndarray,
+               pcovs: np.ndarray) -> None:
+    """Time loop of the square-root form (:func:`~tobitkf.filters._common.sqrt_predict`,
+    :func:`~tobitkf.filters._common.sqrt_update`), filling the output arrays in place.
+
+    ``missing`` (N, T, m) or None when no sample is skipped (then P, S are shared, (1, n, n)).
+    """
+    T = y2.shape[1]
+    S = psd_sqrt(P)
+    q_fixed = not system.Q.varying and (system.B is None or not system.B.varying)
+    G = process_root(system, 0) if q_fixed else None
+    R_root = None if system.R.varying else psd_sqrt(system.measurement_cov(1))
+    for k in range(1, T + 1):
+        uk = None if u2 is None else u2[:, k - 1]
+        bx, dy = system.input_effect(k, uk)
+        x, S = sqrt_predict(x, S, system.transition(k - 1), G if q_fixed else process_root(system, k - 1), bx)
+        pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
+        C, R = system.measurement(k), system.measurement_cov(k)
+        innov = y2[:, k - 1] - x @ C.T - dy
+        valid = None if missing is None else ~missing[:, k - 1]
+        root = psd_sqrt(R) if R_root is None else R_root
+        x, P, S, _ = sqrt_update(x, S, np.nan_to_num(innov), C[None], R[None], valid, R_root=root[None])
+        means[:, k - 1], covs[:, k - 1] = x, P
 
 
 class KalmanFilter:
@@ -162,6 +192,7 @@ class KalmanFilter:
     def __init__(self, system: LinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
         check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
+        check_square_root(backend, covariance_update, "the Kalman filter")
         self.system = system
         self.covariance_update = covariance_update
         self.backend = backend

@@ -54,14 +54,15 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
-from ._backend import BACKENDS, check_threads, kernels, run_split, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements)
+                      prepare_measurements, process_root, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
 
 __all__ = ["tobit_update", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
 
 NOISE_TERMS = ("dissertation", "total_variance", "exact_pv")
-_OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": ("standard", "joseph"), "backend": BACKENDS}
+COVARIANCE_UPDATES = ("standard", "joseph", "square_root")
+_OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
 
 
 def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
@@ -93,15 +94,11 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     -------
     x : (N, n) ; P : (N, n, n) ; stats : CensoredMoments of the channels at the prior
     """
-    mu = x_pred @ C.T + dy
-    st = censored_moments(mu, sigma, lower, upper)
-    gam = st.p_uncensored
-    if noise_term == "dissertation":
-        Ruu = st.truncated_var
-    elif noise_term == "total_variance":
-        Ruu = st.censored_var
-    else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
-        Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
+    if covariance_update == "square_root":
+        x, P, _, st = _tobit_sqrt_update(x_pred, psd_sqrt(P_pred), y, C, sigma, lower, upper, dy=dy,
+                                         noise_term=noise_term)
+        return x, P, st
+    mu, st, gam, Ruu = _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term)
     N, m, n = P_pred.shape[0], C.shape[0], C.shape[1]
     # C Psi for every run as one GEMM over the stacked columns (a batched matmul of tiny
     # matrices is several times slower); CP is (N, m, n)
@@ -122,6 +119,41 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     else:
         x, P, _ = gain_update(x_pred, P_pred, innov, Rxe, Ree, valid)
     return x, P, st
+
+
+def _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term):
+    """Latent means, censored moments, E(p) and the noise term R_uu (diagonal, >= 0) at the prior."""
+    mu = x_pred @ C.T + dy
+    st = censored_moments(mu, sigma, lower, upper)
+    gam = st.p_uncensored
+    if noise_term == "dissertation":
+        Ruu = st.truncated_var
+    elif noise_term == "total_variance":
+        Ruu = st.censored_var
+    else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
+        Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
+    return mu, st, gam, Ruu
+
+
+def _tobit_sqrt_update(x_pred: np.ndarray, S_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
+                       lower: np.ndarray, upper: np.ndarray, *, dy: Any = 0.0, noise_term: str = "dissertation"):
+    r"""The Tobit update in square-root form: a Kalman update with :math:`H = E(\mathbf p)C`, noise
+    :math:`R_{uu}`, prior factor ``S_pred`` (N, n, n) (:math:`\bar\Psi = \bar S\bar S^T`).
+
+    Returns x (N, n), Ψ (N, n, n), the new factor S (N, n, n) and the channel statistics.
+    """
+    mu, st, gam, Ruu = _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term)
+    m = C.shape[0]
+    innov = y - st.censored_mean
+    missing = np.isnan(innov)
+    valid = ~missing if missing.any() else None
+    innov = np.where(missing, 0.0, innov) if valid is not None else innov
+    H = C[None] * gam[:, :, None]                   # E(p) C, (N, m, n)
+    Ruu = np.maximum(Ruu, 0.0)                      # a variance (>= 0 as computed; kept explicit)
+    noise = Ruu[:, :, None] * np.eye(m)
+    root = np.sqrt(Ruu)[:, :, None] * np.eye(m)
+    x, P, S, _ = sqrt_update(x_pred, S_pred, innov, H, noise, valid, R_root=root)
+    return x, P, S, st
 
 
 def _sigma_of(R: np.ndarray, name: str = "R") -> np.ndarray:
@@ -201,6 +233,7 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     """
     check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
                    _OPTIONS)
+    form_gap = check_square_root(backend, covariance_update, "the Tobit Kalman filter")
     y2, batch = prepare_measurements(y, system.m)
     N, T, m = y2.shape
     n = system.n
@@ -218,7 +251,7 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     ey = np.empty((N, T, m))
     sigma = None if system.R.varying else _sigma_of(system.measurement_cov(1))
     lo_all, hi_all = censoring.all_limits(T, m)
-    if use_kernel(backend, system_gap(system, u), "the Tobit Kalman filter"):
+    if use_kernel(backend, form_gap or system_gap(system, u), "the Tobit Kalman filter"):
         kern = kernels()
         c64 = np.ascontiguousarray
         yc, A, Qd = c64(y2), c64(system.transition(0), dtype=float), c64(system.process_cov(0), dtype=float)
@@ -230,6 +263,20 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
                             means[a:b], covs[a:b], pmeans[a:b], pcovs[a:b], pu[a:b], ey[a:b])
 
         run_split(work, N, check_threads(threads))
+    elif covariance_update == "square_root":
+        S = psd_sqrt(P)
+        q_fixed = not system.Q.varying and (system.B is None or not system.B.varying)
+        G = process_root(system, 0) if q_fixed else None
+        for k in range(1, T + 1):
+            uk = None if u2 is None else u2[:, k - 1]
+            bx, dy = system.input_effect(k, uk)
+            x, S = sqrt_predict(x, S, system.transition(k - 1), G if q_fixed else process_root(system, k - 1), bx)
+            pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
+            sig = sigma if sigma is not None else _sigma_of(system.measurement_cov(k), f"R({k})")
+            x, P, S, st = _tobit_sqrt_update(x, S, y2[:, k - 1], system.measurement(k), sig, lo_all[k - 1],
+                                             hi_all[k - 1], dy=dy, noise_term=noise_term)
+            means[:, k - 1], covs[:, k - 1] = x, P
+            pu[:, k - 1], ey[:, k - 1] = st.p_uncensored, st.censored_mean
     else:
         for k in range(1, T + 1):
             uk = None if u2 is None else u2[:, k - 1]
@@ -291,6 +338,7 @@ class TobitKalmanFilter:
         check_instance(censoring, Censoring, "censoring")
         check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
                        _OPTIONS)
+        check_square_root(backend, covariance_update, "the Tobit Kalman filter")
         censoring.check(system.m)
         if not system.R.varying:
             _sigma_of(system.measurement_cov(1))
