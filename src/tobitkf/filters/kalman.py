@@ -23,6 +23,15 @@ output index k-1 holds x̂_{k|k}, P_{k|k}.
 NaN measurements are treated as missing samples: the channel is skipped in that
 step, exactly as a dropped packet.
 
+Covariance forms [non-source]: ``covariance_update="standard"`` is (2.6),
+``"joseph"`` the Joseph form, and ``"square_root"`` propagates a factor S with
+P = S Sᵀ through QR factorizations (the array form of the Kalman filter; Kaminski, Bryson
+& Schmidt 1971; Bierman 1977; Grewal & Andrews, *Kalman Filtering*, ch. on
+implementation methods). It is not in the sources; it keeps P positive semidefinite by
+construction where the other two lose it (a huge prior with a near-singular R, see
+``docs/reliability.md``), costs about 4-6 times the standard form, and runs on the numpy
+path only.
+
 Symbols: ``mean`` = x̂, ``cov`` = P, ``pred_mean`` = x̄, ``pred_cov`` = P̄.
 """
 
@@ -60,19 +69,22 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
         Control inputs u_1..u_T.
     skip : (..., T, m) bool array, optional
         Channels to leave out of the update (e.g. censored readings).
-    covariance_update : {"standard", "joseph"}
+    covariance_update : {"standard", "joseph", "square_root"}
         ``"standard"`` is (2.6) :math:`(I-KC)\bar P`; ``"joseph"`` uses
         :math:`(I-KC)\bar P(I-KC)^T + KRK^T`, equal in exact arithmetic and
-        better conditioned.
+        better conditioned. ``"square_root"`` (not in the source; a standard numerical
+        device, see Notes) carries a factor :math:`S` with :math:`P = SS^T` and stays
+        positive semidefinite by construction; numpy path only.
     x0, P0 : array_like, optional
         Override the system's prior (``(..., n)``, ``(..., n, n)``).
     backend : {"auto", "numpy", "numba"}, default "auto"
         Implementation of the time loop (same results to rounding, tested to 1e-12).
         ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
         covers time-invariant A, B, C, Q, R without control input (missing samples,
-        ``skip``, per-run priors and both covariance updates included); ``"numpy"`` the
-        vectorised reference path, which covers everything; ``"auto"`` the kernel when
-        numba is installed and the case is covered, else numpy.
+        ``skip``, per-run priors and the standard and Joseph updates included, not the
+        square-root form); ``"numpy"`` the vectorised reference path, which covers
+        everything; ``"auto"`` the kernel when numba is installed and the case is covered,
+        else numpy (always numpy for ``covariance_update="square_root"``).
 
     Returns
     -------
@@ -85,9 +97,36 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
     ------
     ShapeError, ValidationError
         On malformed ``y``, ``u``, ``skip`` or an unknown option; ``backend="numba"`` for a
-        case the kernel does not cover.
+        case the kernel does not cover (including ``covariance_update="square_root"``).
     ImportError
         ``backend="numba"`` without numba installed.
+
+    Notes
+    -----
+    Square-root form (``covariance_update="square_root"``). With :math:`P = SS^T`,
+    :math:`Q_d = BQB^T = GG^T` (a Cholesky factor, or an eigen-decomposition root when Q is
+    only semidefinite) and :math:`R = R^{1/2}R^{1/2\,T}`, each step takes two QR
+    factorizations, batched over the runs:
+
+    .. math::
+
+        \begin{bmatrix} S^TA^T \\ G^T \end{bmatrix} = \mathcal Q_1 U, \quad \bar S = U^T;
+        \qquad
+        \begin{bmatrix} R^{1/2\,T} & 0 \\ \bar S^TC^T & \bar S^T \end{bmatrix}
+        = \mathcal Q_2 \begin{bmatrix} U_{11} & U_{12} \\ 0 & U_{22} \end{bmatrix}
+
+    Comparing :math:`M^TM = U^TU`: :math:`\bar P = \bar S\bar S^T`,
+    :math:`U_{11}^TU_{11} = C\bar PC^T + R`, :math:`U_{12}^TU_{11} = \bar PC^T` and
+    :math:`U_{22}^TU_{22} = \bar P - K C \bar P`, so the gain is
+    :math:`K = U_{12}^TU_{11}^{-T}` (a triangular solve) and :math:`S = U_{22}^T`. The
+    outputs are the covariances :math:`P = SS^T`, not the factors. A missing or skipped
+    channel gets a zero row of C and a unit noise decoupled from the others, which leaves it
+    out exactly (zero gain column), as in the other forms. Cost: a QR of an
+    :math:`(m+n)\times(m+n)` and of a :math:`(n+q)\times n` matrix per run and step; measured on
+    the numpy path (n = 2, m = 1, 10^4 runs of 100 steps, 2-core machine): 0.70 s against
+    0.12 s for the standard and 0.26 s for the Joseph form. The form is not in the source; it is the
+    array (QR) form of the square-root filter of Kaminski, Bryson & Schmidt (1971), Bierman
+    (1977) and Grewal & Andrews (*Kalman Filtering: Theory and Practice*).
     """
     check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
     form_gap = check_square_root(backend, covariance_update, "the Kalman filter")
@@ -175,10 +214,12 @@ class KalmanFilter:
     ----------
     system : LinearSystem
         The model.
-    covariance_update : {"standard", "joseph"}, default "standard"
-        See :func:`kalman_filter`.
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        See :func:`kalman_filter`; ``"square_root"`` (a factor :math:`S`, :math:`P = SS^T`,
+        from QR factorizations) stays positive semidefinite where the other two fail.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        Implementation of the time loop; see :func:`kalman_filter`.
+        Implementation of the time loop; see :func:`kalman_filter`. ``"numba"`` has no
+        square-root form and is refused with ``covariance_update="square_root"``.
 
     Examples
     --------
@@ -217,7 +258,8 @@ class DroppingKalmanFilter:
         The limits used to detect censored readings.
     rtol : float, default 1e-12
         Relative tolerance of the detection.
-    covariance_update : {"standard", "joseph"}
+    covariance_update : {"standard", "joseph", "square_root"}
+        See :func:`kalman_filter`.
     """
 
     def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12,

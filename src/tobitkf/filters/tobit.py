@@ -37,6 +37,15 @@ Deviations from the source
   like γ, so the gain grows like a²/σ²; a reading that then comes back uncensored can throw
   the estimate far off (seen on 4 of 12 random stable systems within 60 steps). The
   dissertation's term and ``"exact_pv"`` do not have this failure.
+* ``covariance_update="square_root"`` [non-source numerical device]: the update above is a
+  Kalman update with measurement matrix :math:`H = E(\mathbf p)C` and noise
+  :math:`R_{uu}`, since :math:`R_{xe} = \bar\Psi H^T` and
+  :math:`R_{ee} = H\bar\Psi H^T + R_{uu}` (3.39)–(3.40). :math:`R_{uu}` is diagonal and
+  nonnegative for each noise term (a truncated variance, :math:`\mathrm{Var}[y]`, or
+  :math:`E[pv^2] = \gamma(V_{tr} + (m_{tr}-\mu)^2)`), so all three take the square-root
+  (QR array) form of :func:`tobitkf.filters.kalman.kalman_filter` with
+  :math:`R^{1/2} = \mathrm{diag}(\sqrt{R_{uu}})`; (3.55) is then
+  :math:`\Psi = \bar\Psi - KH\bar\Psi = SS^T`, positive semidefinite by construction.
 * The right-censoring formulas of (3.54) are garbled in the source (pdf for cdf, no T
   term); the general two-sided statistics of :mod:`tobitkf.censored` reduce to the
   corrected (3.54) (spec A-3.3).
@@ -87,8 +96,12 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
         Feed-through :math:`D u_k` added to the latent mean.
     noise_term : {"dissertation", "total_variance", "exact_pv"}
         See the module docstring.
-    covariance_update : {"standard", "joseph"}
-        ``"joseph"``: :math:`(I-KE(p)C)\bar\Psi(\cdot)^T + KR_{uu}K^T`.
+    covariance_update : {"standard", "joseph", "square_root"}
+        ``"joseph"``: :math:`(I-KE(p)C)\bar\Psi(\cdot)^T + KR_{uu}K^T`. ``"square_root"``:
+        the QR array form with :math:`H = E(p)C` and noise :math:`R_{uu}` (see
+        :func:`tobit_kalman_filter`); here the factor of ``P_pred`` is computed afresh
+        (Cholesky, or eigen-decomposition if it is singular), so a filter that keeps the
+        factor between steps (:func:`tobit_kalman_filter`) gains more.
 
     Returns
     -------
@@ -185,7 +198,12 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         Control inputs.
     noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
         The measurement-noise term :math:`R_{uu}` (see the module docstring).
-    covariance_update : {"standard", "joseph"}, default "standard"
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        ``"standard"`` is (3.55); ``"joseph"`` the algebraically equal Joseph form;
+        ``"square_root"`` (not in the source) carries a factor :math:`S`,
+        :math:`\Psi = SS^T`, through QR factorizations and stays positive semidefinite by
+        construction (see Notes); it is available with every ``noise_term`` and runs on the
+        numpy path only.
     x0, P0 : array_like, optional
         Override the system's prior.
     check_limits : bool, default True
@@ -194,9 +212,10 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         Implementation of the time loop (same results to rounding, tested to 1e-12).
         ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
         covers time-invariant A, B, C, Q, R without control input (any limits, NaN
-        samples, noise term and covariance update); ``"numpy"`` the vectorised reference
-        path, which covers everything; ``"auto"`` the kernel when numba is installed and
-        the case is covered, else numpy.
+        samples and noise term; the standard and Joseph updates, not the square-root
+        form); ``"numpy"`` the vectorised reference path, which covers everything;
+        ``"auto"`` the kernel when numba is installed and the case is covered, else numpy
+        (always numpy for ``covariance_update="square_root"``).
     threads : int, optional
         Threads over which the compiled kernel splits the runs (it releases the GIL; the
         result is identical bit for bit). Default: ``TOBITKF_NUM_THREADS``, else
@@ -213,11 +232,37 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     ------
     ValidationError
         Non-diagonal R, a reading outside its limits, an unknown option, or
-        ``backend="numba"`` for a case the kernel does not cover.
+        ``backend="numba"`` for a case the kernel does not cover (including
+        ``covariance_update="square_root"``).
     ImportError
         ``backend="numba"`` without numba installed.
     ShapeError
         Malformed ``y``, ``u`` or limits.
+
+    Notes
+    -----
+    Square-root form. The Tobit update is a Kalman update with :math:`H = E(\mathbf p)C`
+    and noise :math:`R_{uu}`: :math:`R_{xe} = \bar\Psi H^T`,
+    :math:`R_{ee} = H\bar\Psi H^T + R_{uu}` ((3.39)–(3.40)), with :math:`R_{uu}` diagonal
+    and nonnegative for each of the three noise terms (they differ only in its diagonal).
+    With :math:`\bar\Psi = \bar S\bar S^T` the QR factorization
+
+    .. math::
+
+        \begin{bmatrix} R_{uu}^{1/2} & 0 \\ \bar S^TC^TE(\mathbf p) & \bar S^T \end{bmatrix}
+        = \mathcal Q \begin{bmatrix} U_{11} & U_{12} \\ 0 & U_{22} \end{bmatrix}
+
+    gives :math:`U_{11}^TU_{11} = R_{ee}`, :math:`K = R_{xe}R_{ee}^{-1} = U_{12}^TU_{11}^{-T}`
+    and :math:`\Psi = \bar\Psi - KR_{xe}^T = U_{22}^TU_{22}`, so the new factor is
+    :math:`S = U_{22}^T`; the time update is the QR of
+    :math:`[\,S^TA^T;\ G^T\,]` with :math:`GG^T = BQB^T`. Missing and degenerate channels
+    (:math:`R_{ee,ll}` not above the smallest normal number) are left out exactly as in the
+    other forms. The channel statistics are the same as in the other forms (at the prior
+    mean), so in exact arithmetic the three forms give the same filter. The form is not in
+    the source: it is the array form of the square-root filter (Kaminski, Bryson & Schmidt
+    1971; Bierman 1977; Grewal & Andrews, *Kalman Filtering: Theory and Practice*). Cost on
+    the numpy path (n = 2, m = 1, 10^4 runs of 100 steps): 0.83 s against 0.19 s for the
+    standard form.
 
     Examples
     --------
@@ -306,11 +351,14 @@ class TobitKalmanFilter:
     noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
         :math:`R_{uu}` in (3.40): the dissertation's truncated variance (3.41) with (3.11),
         or one of the exact alternatives of spec A-3.2 (non-dissertation).
-    covariance_update : {"standard", "joseph"}, default "standard"
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
         ``"standard"`` is (3.55) :math:`(I - KE(p)C)\bar\Psi`; ``"joseph"`` the
-        algebraically equal Joseph form.
+        algebraically equal Joseph form; ``"square_root"`` [non-source] propagates a factor
+        :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
+        construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
     backend : {"auto", "numpy", "numba"}, default "auto"
         Compiled kernel or numpy reference path; see :func:`tobit_kalman_filter`.
+        ``"numba"`` has no square-root form and is refused with ``covariance_update="square_root"``.
     threads : int, optional
         Threads for the compiled kernel; see :func:`tobit_kalman_filter`.
 
