@@ -99,9 +99,9 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     covariance_update : {"standard", "joseph", "square_root"}
         ``"joseph"``: :math:`(I-KE(p)C)\bar\Psi(\cdot)^T + KR_{uu}K^T`. ``"square_root"``:
         the QR array form with :math:`H = E(p)C` and noise :math:`R_{uu}` (see
-        :func:`tobit_kalman_filter`); here the factor of ``P_pred`` is computed afresh
-        (Cholesky, or eigen-decomposition if it is singular), so a filter that keeps the
-        factor between steps (:func:`tobit_kalman_filter`) gains more.
+        :func:`tobit_kalman_filter`). Here the factor of ``P_pred`` is computed afresh
+        (Cholesky, or eigen-decomposition if it is singular), which cannot restore accuracy
+        already lost in ``P_pred``; :func:`tobit_kalman_filter` keeps the factor between steps.
 
     Returns
     -------
