@@ -271,7 +271,7 @@ def test_kf_input_validation():
         kf.filter(np.zeros(5))
     with pytest.raises(ValidationError, match="y: expected finite numbers, found inf"):
         kf.filter(np.full((5, 2), np.inf))
-    with pytest.raises(ValidationError, match="covariance_update: expected one of 'standard', 'joseph', got 'fast'"):
+    with pytest.raises(ValidationError, match="covariance_update: expected one of 'standard', 'joseph', 'square_root', got 'fast'"):
         KalmanFilter(sys, covariance_update="fast")
     with pytest.raises(ValidationError, match="system: expected a LinearSystem, got dict"):
         KalmanFilter({})

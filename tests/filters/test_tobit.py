@@ -477,8 +477,9 @@ def test_tkf_input_validation():
         TobitKalmanFilter(tv_bad, cens).filter(np.ones((3, 2)))
     with pytest.raises(ValidationError, match="noise_term: expected one of 'dissertation', 'total_variance', 'exact_pv'"):
         TobitKalmanFilter(sys, cens, noise_term="exact")
-    with pytest.raises(ValidationError, match="covariance_update: expected one of"):
-        TobitKalmanFilter(sys, cens, covariance_update="square_root")
+    with pytest.raises(ValidationError, match="covariance_update: expected one of 'standard', 'joseph', "
+                                              "'square_root', got 'cholesky'"):
+        TobitKalmanFilter(sys, cens, covariance_update="cholesky")
     with pytest.raises(ValidationError, match="censoring: expected a Censoring, got tuple"):
         TobitKalmanFilter(sys, (0.0, np.inf))
     with pytest.raises(ValidationError, match="system: expected a LinearSystem"):

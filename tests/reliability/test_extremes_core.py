@@ -33,7 +33,7 @@ CASES = {
 
 
 @pytest.mark.parametrize("case", list(CASES))
-@pytest.mark.parametrize("update", ["standard", "joseph"])
+@pytest.mark.parametrize("update", ["standard", "joseph", "square_root"])
 def test_kf_and_tkf_stay_finite_symmetric_psd(case, update):
     sys_ = oscillator(**CASES[case])
     for cens in (tk.Censoring(lower=0.0), tk.Censoring(lower=-1.0, upper=1.0)):

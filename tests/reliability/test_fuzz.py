@@ -119,7 +119,7 @@ def scenarios(draw, **kw):
 # ---------------------------------------------------------------------------------------
 # valid inputs: finite, symmetric, PSD
 # ---------------------------------------------------------------------------------------
-@given(scenarios(), st.sampled_from(["standard", "joseph"]),
+@given(scenarios(), st.sampled_from(["standard", "joseph", "square_root"]),
        st.sampled_from(["dissertation", "total_variance", "exact_pv"]), st.sampled_from(["auto", "numpy"]))
 def test_core_filters_valid_inputs_are_healthy(scn, form, noise_term, backend):
     """``auto`` is the compiled kernel when numba is installed, ``numpy`` the reference path."""
@@ -335,7 +335,8 @@ def test_unknown_option_values_and_keywords_are_refused(scn, kind, word):
     sys_, cens, _ = scn
     option = {"KF": "covariance_update", "DKF": "covariance_update", "TKF": "noise_term",
               "FTKF": "p_uncensored_mode", "FKF": "covariance_update"}[kind]
-    assume(word not in ("standard", "joseph", "dissertation", "total_variance", "exact_pv", "augmented", "eq6_stale"))
+    assume(word not in ("standard", "joseph", "square_root", "dissertation", "total_variance", "exact_pv",
+                        "augmented", "eq6_stale"))
     cls = {"KF": tk.KalmanFilter, "DKF": tk.DroppingKalmanFilter, "TKF": tk.TobitKalmanFilter,
            "FTKF": FadingTobitKalmanFilter, "FKF": FadingKalmanFilter}[kind]
     pos = {"KF": (sys_,), "DKF": (sys_, cens), "TKF": (sys_, cens), "FTKF": (sys_, RiceFading(0, [1.0]), cens),

@@ -15,7 +15,7 @@ from types import ModuleType
 from .._validation import ValidationError
 
 __all__ = ["BACKENDS", "numba_available", "kernels", "use_kernel", "system_gap", "default_threads", "check_threads",
-           "run_split"]
+           "run_split", "check_square_root"]
 
 BACKENDS = ("auto", "numpy", "numba")
 
@@ -71,6 +71,25 @@ def use_kernel(backend: str, gap: str | None, what: str) -> bool:
                                   "use backend='auto' or 'numpy'")
         return True
     return gap is None and numba_available()
+
+
+def check_square_root(backend: str, covariance_update: str, what: str) -> str | None:
+    """Refuse ``backend="numba"`` with ``covariance_update="square_root"`` (the kernels have no
+    square-root form); return the reason the kernel cannot run that form (for :func:`use_kernel`'s
+    ``gap``), or None for the other forms.
+
+    Raises
+    ------
+    ValidationError
+        ``backend="numba"`` together with ``covariance_update="square_root"``.
+    """
+    if covariance_update != "square_root":
+        return None
+    if backend == "numba":
+        raise ValidationError(f"backend: the numba kernel of {what} has no square-root form, so "
+                              "covariance_update='square_root' needs backend='auto' or 'numpy' "
+                              "(or use covariance_update='standard' or 'joseph' with 'numba')")
+    return "covariance_update='square_root'"
 
 
 def default_threads() -> int:

@@ -37,6 +37,15 @@ Deviations from the source
   like γ, so the gain grows like a²/σ²; a reading that then comes back uncensored can throw
   the estimate far off (seen on 4 of 12 random stable systems within 60 steps). The
   dissertation's term and ``"exact_pv"`` do not have this failure.
+* ``covariance_update="square_root"`` [non-source numerical device]: the update above is a
+  Kalman update with measurement matrix :math:`H = E(\mathbf p)C` and noise
+  :math:`R_{uu}`, since :math:`R_{xe} = \bar\Psi H^T` and
+  :math:`R_{ee} = H\bar\Psi H^T + R_{uu}` (3.39)–(3.40). :math:`R_{uu}` is diagonal and
+  nonnegative for each noise term (a truncated variance, :math:`\mathrm{Var}[y]`, or
+  :math:`E[pv^2] = \gamma(V_{tr} + (m_{tr}-\mu)^2)`), so all three take the square-root
+  (QR array) form of :func:`tobitkf.filters.kalman.kalman_filter` with
+  :math:`R^{1/2} = \mathrm{diag}(\sqrt{R_{uu}})`; (3.55) is then
+  :math:`\Psi = \bar\Psi - KH\bar\Psi = SS^T`, positive semidefinite by construction.
 * The right-censoring formulas of (3.54) are garbled in the source (pdf for cdf, no T
   term); the general two-sided statistics of :mod:`tobitkf.censored` reduce to the
   corrected (3.54) (spec A-3.3).
@@ -54,14 +63,15 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models import LinearSystem
-from ._backend import BACKENDS, check_threads, kernels, run_split, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements)
+                      prepare_measurements, process_root, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
 
 __all__ = ["tobit_update", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
 
 NOISE_TERMS = ("dissertation", "total_variance", "exact_pv")
-_OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": ("standard", "joseph"), "backend": BACKENDS}
+COVARIANCE_UPDATES = ("standard", "joseph", "square_root")
+_OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
 
 
 def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
@@ -86,22 +96,22 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
         Feed-through :math:`D u_k` added to the latent mean.
     noise_term : {"dissertation", "total_variance", "exact_pv"}
         See the module docstring.
-    covariance_update : {"standard", "joseph"}
-        ``"joseph"``: :math:`(I-KE(p)C)\bar\Psi(\cdot)^T + KR_{uu}K^T`.
+    covariance_update : {"standard", "joseph", "square_root"}
+        ``"joseph"``: :math:`(I-KE(p)C)\bar\Psi(\cdot)^T + KR_{uu}K^T`. ``"square_root"``:
+        the QR array form with :math:`H = E(p)C` and noise :math:`R_{uu}` (see
+        :func:`tobit_kalman_filter`). Here the factor of ``P_pred`` is computed afresh
+        (Cholesky, or eigen-decomposition if it is singular), which cannot restore accuracy
+        already lost in ``P_pred``; :func:`tobit_kalman_filter` keeps the factor between steps.
 
     Returns
     -------
     x : (N, n) ; P : (N, n, n) ; stats : CensoredMoments of the channels at the prior
     """
-    mu = x_pred @ C.T + dy
-    st = censored_moments(mu, sigma, lower, upper)
-    gam = st.p_uncensored
-    if noise_term == "dissertation":
-        Ruu = st.truncated_var
-    elif noise_term == "total_variance":
-        Ruu = st.censored_var
-    else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
-        Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
+    if covariance_update == "square_root":
+        x, P, _, st = _tobit_sqrt_update(x_pred, psd_sqrt(P_pred), y, C, sigma, lower, upper, dy=dy,
+                                         noise_term=noise_term)
+        return x, P, st
+    mu, st, gam, Ruu = _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term)
     N, m, n = P_pred.shape[0], C.shape[0], C.shape[1]
     # C Psi for every run as one GEMM over the stacked columns (a batched matmul of tiny
     # matrices is several times slower); CP is (N, m, n)
@@ -122,6 +132,41 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     else:
         x, P, _ = gain_update(x_pred, P_pred, innov, Rxe, Ree, valid)
     return x, P, st
+
+
+def _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term):
+    """Latent means, censored moments, E(p) and the noise term R_uu (diagonal, >= 0) at the prior."""
+    mu = x_pred @ C.T + dy
+    st = censored_moments(mu, sigma, lower, upper)
+    gam = st.p_uncensored
+    if noise_term == "dissertation":
+        Ruu = st.truncated_var
+    elif noise_term == "total_variance":
+        Ruu = st.censored_var
+    else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
+        Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
+    return mu, st, gam, Ruu
+
+
+def _tobit_sqrt_update(x_pred: np.ndarray, S_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
+                       lower: np.ndarray, upper: np.ndarray, *, dy: Any = 0.0, noise_term: str = "dissertation"):
+    r"""The Tobit update in square-root form: a Kalman update with :math:`H = E(\mathbf p)C`, noise
+    :math:`R_{uu}`, prior factor ``S_pred`` (N, n, n) (:math:`\bar\Psi = \bar S\bar S^T`).
+
+    Returns x (N, n), Ψ (N, n, n), the new factor S (N, n, n) and the channel statistics.
+    """
+    mu, st, gam, Ruu = _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term)
+    m = C.shape[0]
+    innov = y - st.censored_mean
+    missing = np.isnan(innov)
+    valid = ~missing if missing.any() else None
+    innov = np.where(missing, 0.0, innov) if valid is not None else innov
+    H = C[None] * gam[:, :, None]                   # E(p) C, (N, m, n)
+    Ruu = np.maximum(Ruu, 0.0)                      # a variance (>= 0 as computed; kept explicit)
+    noise = Ruu[:, :, None] * np.eye(m)
+    root = np.sqrt(Ruu)[:, :, None] * np.eye(m)
+    x, P, S, _ = sqrt_update(x_pred, S_pred, innov, H, noise, valid, R_root=root)
+    return x, P, S, st
 
 
 def _sigma_of(R: np.ndarray, name: str = "R") -> np.ndarray:
@@ -153,7 +198,12 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         Control inputs.
     noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
         The measurement-noise term :math:`R_{uu}` (see the module docstring).
-    covariance_update : {"standard", "joseph"}, default "standard"
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        ``"standard"`` is (3.55); ``"joseph"`` the algebraically equal Joseph form;
+        ``"square_root"`` (not in the source) carries a factor :math:`S`,
+        :math:`\Psi = SS^T`, through QR factorizations and stays positive semidefinite by
+        construction (see Notes); it is available with every ``noise_term`` and runs on the
+        numpy path only.
     x0, P0 : array_like, optional
         Override the system's prior.
     check_limits : bool, default True
@@ -162,9 +212,10 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         Implementation of the time loop (same results to rounding, tested to 1e-12).
         ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
         covers time-invariant A, B, C, Q, R without control input (any limits, NaN
-        samples, noise term and covariance update); ``"numpy"`` the vectorised reference
-        path, which covers everything; ``"auto"`` the kernel when numba is installed and
-        the case is covered, else numpy.
+        samples and noise term; the standard and Joseph updates, not the square-root
+        form); ``"numpy"`` the vectorised reference path, which covers everything;
+        ``"auto"`` the kernel when numba is installed and the case is covered, else numpy
+        (always numpy for ``covariance_update="square_root"``).
     threads : int, optional
         Threads over which the compiled kernel splits the runs (it releases the GIL; the
         result is identical bit for bit). Default: ``TOBITKF_NUM_THREADS``, else
@@ -181,11 +232,37 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     ------
     ValidationError
         Non-diagonal R, a reading outside its limits, an unknown option, or
-        ``backend="numba"`` for a case the kernel does not cover.
+        ``backend="numba"`` for a case the kernel does not cover (including
+        ``covariance_update="square_root"``).
     ImportError
         ``backend="numba"`` without numba installed.
     ShapeError
         Malformed ``y``, ``u`` or limits.
+
+    Notes
+    -----
+    Square-root form. The Tobit update is a Kalman update with :math:`H = E(\mathbf p)C`
+    and noise :math:`R_{uu}`: :math:`R_{xe} = \bar\Psi H^T`,
+    :math:`R_{ee} = H\bar\Psi H^T + R_{uu}` ((3.39)–(3.40)), with :math:`R_{uu}` diagonal
+    and nonnegative for each of the three noise terms (they differ only in its diagonal).
+    With :math:`\bar\Psi = \bar S\bar S^T` the QR factorization
+
+    .. math::
+
+        \begin{bmatrix} R_{uu}^{1/2} & 0 \\ \bar S^TC^TE(\mathbf p) & \bar S^T \end{bmatrix}
+        = \mathcal Q \begin{bmatrix} U_{11} & U_{12} \\ 0 & U_{22} \end{bmatrix}
+
+    gives :math:`U_{11}^TU_{11} = R_{ee}`, :math:`K = R_{xe}R_{ee}^{-1} = U_{12}^TU_{11}^{-T}`
+    and :math:`\Psi = \bar\Psi - KR_{xe}^T = U_{22}^TU_{22}`, so the new factor is
+    :math:`S = U_{22}^T`; the time update is the QR of
+    :math:`[\,S^TA^T;\ G^T\,]` with :math:`GG^T = BQB^T`. Missing and degenerate channels
+    (:math:`R_{ee,ll}` not above the smallest normal number) are left out exactly as in the
+    other forms. The channel statistics are the same as in the other forms (at the prior
+    mean), so in exact arithmetic the three forms give the same filter. The form is not in
+    the source: it is the array form of the square-root filter (Kaminski, Bryson & Schmidt
+    1971; Bierman 1977; Grewal & Andrews, *Kalman Filtering: Theory and Practice*). Cost on
+    the numpy path (n = 2, m = 1, 10^4 runs of 100 steps): 0.83 s against 0.19 s for the
+    standard form.
 
     Examples
     --------
@@ -201,6 +278,7 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     """
     check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
                    _OPTIONS)
+    form_gap = check_square_root(backend, covariance_update, "the Tobit Kalman filter")
     y2, batch = prepare_measurements(y, system.m)
     N, T, m = y2.shape
     n = system.n
@@ -218,7 +296,7 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     ey = np.empty((N, T, m))
     sigma = None if system.R.varying else _sigma_of(system.measurement_cov(1))
     lo_all, hi_all = censoring.all_limits(T, m)
-    if use_kernel(backend, system_gap(system, u), "the Tobit Kalman filter"):
+    if use_kernel(backend, form_gap or system_gap(system, u), "the Tobit Kalman filter"):
         kern = kernels()
         c64 = np.ascontiguousarray
         yc, A, Qd = c64(y2), c64(system.transition(0), dtype=float), c64(system.process_cov(0), dtype=float)
@@ -230,6 +308,20 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
                             means[a:b], covs[a:b], pmeans[a:b], pcovs[a:b], pu[a:b], ey[a:b])
 
         run_split(work, N, check_threads(threads))
+    elif covariance_update == "square_root":
+        S = psd_sqrt(P)
+        q_fixed = not system.Q.varying and (system.B is None or not system.B.varying)
+        G = process_root(system, 0) if q_fixed else None
+        for k in range(1, T + 1):
+            uk = None if u2 is None else u2[:, k - 1]
+            bx, dy = system.input_effect(k, uk)
+            x, S = sqrt_predict(x, S, system.transition(k - 1), G if q_fixed else process_root(system, k - 1), bx)
+            pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
+            sig = sigma if sigma is not None else _sigma_of(system.measurement_cov(k), f"R({k})")
+            x, P, S, st = _tobit_sqrt_update(x, S, y2[:, k - 1], system.measurement(k), sig, lo_all[k - 1],
+                                             hi_all[k - 1], dy=dy, noise_term=noise_term)
+            means[:, k - 1], covs[:, k - 1] = x, P
+            pu[:, k - 1], ey[:, k - 1] = st.p_uncensored, st.censored_mean
     else:
         for k in range(1, T + 1):
             uk = None if u2 is None else u2[:, k - 1]
@@ -259,11 +351,14 @@ class TobitKalmanFilter:
     noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
         :math:`R_{uu}` in (3.40): the dissertation's truncated variance (3.41) with (3.11),
         or one of the exact alternatives of spec A-3.2 (non-dissertation).
-    covariance_update : {"standard", "joseph"}, default "standard"
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
         ``"standard"`` is (3.55) :math:`(I - KE(p)C)\bar\Psi`; ``"joseph"`` the
-        algebraically equal Joseph form.
+        algebraically equal Joseph form; ``"square_root"`` [non-source] propagates a factor
+        :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
+        construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
     backend : {"auto", "numpy", "numba"}, default "auto"
         Compiled kernel or numpy reference path; see :func:`tobit_kalman_filter`.
+        ``"numba"`` has no square-root form and is refused with ``covariance_update="square_root"``.
     threads : int, optional
         Threads for the compiled kernel; see :func:`tobit_kalman_filter`.
 
@@ -291,6 +386,7 @@ class TobitKalmanFilter:
         check_instance(censoring, Censoring, "censoring")
         check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
                        _OPTIONS)
+        check_square_root(backend, covariance_update, "the Tobit Kalman filter")
         censoring.check(system.m)
         if not system.R.varying:
             _sigma_of(system.measurement_cov(1))
