@@ -537,6 +537,9 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
     N, T, m = y.shape
     n = A.shape[0]
     shared = covs.shape[0] == 1 and N > 1
+    # The block scratch is allocated here as in tkf_kernel, not by a shared helper: arrays
+    # returned from a helper's tuple cost 25 % per step in a single run (0.57 -> 0.72 us for
+    # the KF, measured), LLVM no longer knowing that they are fresh and unaliased.
     B = BLOCK
     x = np.empty((n, B))
     P = np.empty((n, n, B))
