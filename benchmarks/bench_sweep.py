@@ -88,7 +88,7 @@ def main() -> None:
         for i in range(repeat):
             for w in (1, 2):
                 times[w].append(run(f, tmp / f"w{w}-{i}", "processes", w)[0])
-        t_local, _ = run(f, tmp / "local", "local", 1)
+        t_local, _ = run(f, tmp / "local", "local", 2)
         t1, t2 = min(times[1]), min(times[2])
         results["dask_processes"] = {"runs": speed_runs, "steps": steps, "one_worker_s": times[1],
                                      "two_workers_s": times[2], "local_s": t_local, "speedup_best": t1 / t2}
@@ -96,14 +96,14 @@ def main() -> None:
               f"1 worker best {t1:.1f} s (median {statistics.median(times[1]):.1f}), "
               f"2 workers best {t2:.1f} s (median {statistics.median(times[2]):.1f}), speed-up x{t1 / t2:.2f} "
               f"(medians x{statistics.median(times[1]) / statistics.median(times[2]):.2f}); "
-              f"local (in-process) {t_local:.1f} s")
+              f"local (in-process, 2 threads) {t_local:.1f} s")
         mem = {}
         for runs in mem_runs:
             g = tmp / f"mem{runs}.toml"
             g.write_text(SWEEP.format(runs=runs, steps=steps, block=min(block, runs)))
-            t, peak = run(g, tmp / f"m{runs}", "local", 1)
+            t, peak = run(g, tmp / f"m{runs}", "local", 2)
             mem[runs] = peak
-            print(f"local, {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
+            print(f"local (2 threads), {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
                   f"{runs * steps / t:,.0f} run-steps/s")
         results["peak_rss_mb"] = mem
         # experiment mode streams too: the fading TKF experiment in blocks of 1000 runs

@@ -156,7 +156,8 @@ def sweep(
     file: Annotated[Path, typer.Argument(help="sweep file (TOML)")],
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results/sweeps"),
     scheduler: Annotated[str, typer.Option("--scheduler", help="local | processes | a Dask scheduler address")] = "local",
-    workers: Annotated[int, typer.Option("--workers", min=1, help="worker processes for --scheduler processes")] = 2,
+    workers: Annotated[Optional[int], typer.Option(
+        "--workers", min=1, help="threads (local) or worker processes (processes); default: the CPUs")] = None,
 ) -> None:
     """Run (or resume) a Monte Carlo sweep; results go to OUT/<name>.zarr."""
     from ._validation import ValidationError

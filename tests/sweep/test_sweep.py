@@ -80,12 +80,14 @@ def test_reduction_equals_direct_computation(tmp_path):
 
 
 def test_chunking_and_dask_give_identical_statistics(tmp_path):
-    one = arrays(run_sweep(spec(chunk=7), tmp_path / "one"))           # 1 task per grid point
-    seven = arrays(run_sweep(spec(chunk=1), tmp_path / "seven"))       # 7 tasks per grid point
+    one = arrays(run_sweep(spec(chunk=7), tmp_path / "one", workers=1))     # 1 task per grid point
+    seven = arrays(run_sweep(spec(chunk=1), tmp_path / "seven", workers=1)) # 7 tasks per grid point
+    threads = arrays(run_sweep(spec(chunk=1), tmp_path / "threads", workers=3))   # 3 threads in-process
     pytest.importorskip("distributed")
     dask = arrays(run_sweep(spec(chunk=2), tmp_path / "dask", scheduler="processes", workers=2))
     for name in one:
         np.testing.assert_array_equal(one[name], seven[name])
+        np.testing.assert_array_equal(one[name], threads[name])
         np.testing.assert_array_equal(one[name], dask[name])
 
 

@@ -30,8 +30,11 @@ from .store import open_store, reduce_store, write_blocks
 __all__ = ["build_point", "run_block", "run_sweep", "experiment_seed"]
 
 
-def build_point(spec: SweepSpec, point: dict[str, Any]):
-    """System, censoring and estimator objects of one grid point (model mode)."""
+def build_point(spec: SweepSpec, point: dict[str, Any], *, threads: int | None = None):
+    """System, censoring and estimator objects of one grid point (model mode).
+
+    ``threads`` is passed to the estimators that split their runs over threads (the TKF's
+    compiled kernel); None keeps their default."""
     from ..channels.censoring import Censoring
     from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
     from ..filters.tobit import TobitKalmanFilter
@@ -49,15 +52,16 @@ def build_point(spec: SweepSpec, point: dict[str, Any]):
         elif est["type"] == "DroppingKalmanFilter":
             estimators[key] = DroppingKalmanFilter(sys_, cens, **opts)
         else:
-            estimators[key] = TobitKalmanFilter(sys_, cens, **opts)
+            estimators[key] = TobitKalmanFilter(sys_, cens, threads=threads, **opts)
     return sys_, cens, estimators
 
 
-def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int) -> dict[str, np.ndarray]:
+def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int, *,
+              threads: int | None = None) -> dict[str, np.ndarray]:
     """Simulate ``runs`` runs of block ``block`` and return its sufficient statistics."""
     from ..simulate import simulate
 
-    sys_, cens, estimators = build_point(spec, point)
+    sys_, cens, estimators = build_point(spec, point, threads=threads)
     data = simulate(sys_, spec.steps, runs, censoring=cens, seed=np.random.SeedSequence(spec.seed, spawn_key=(block,)))
     truth = data.x[:, 1:]
     s_err, s_sq, s_nees = [], [], []
@@ -110,14 +114,18 @@ def _parsed(spec_text: str, name: str) -> SweepSpec:
     return parse_sweep(spec_text, name=name)
 
 
-def run_task(spec_text: str, name: str, point_index: int, blocks: list[int]) -> list[tuple[int, dict]]:
-    """A unit of work for a worker: some blocks of one grid point (top-level so Dask can pickle it)."""
+def run_task(spec_text: str, name: str, point_index: int, blocks: list[int],
+             threads: int | None = None) -> list[tuple[int, dict]]:
+    """A unit of work for a worker: some blocks of one grid point (top-level so Dask can pickle it).
+
+    ``threads``: threads of the filters inside a block (None: their default, which is 1 in a
+    Dask worker, where Dask sets OMP_NUM_THREADS=1)."""
     spec = _parsed(spec_text, name)
     point = spec.points()[point_index]
     sizes = spec.block_sizes()
     if spec.experiment is not None:
         return [(b, _experiment_block(spec, point, b, sizes[b])[1]) for b in blocks]
-    return [(b, run_block(spec, point, b, sizes[b])) for b in blocks]
+    return [(b, run_block(spec, point, b, sizes[b], threads=threads)) for b in blocks]
 
 
 def _client(scheduler: str, workers: int):
@@ -144,7 +152,7 @@ def _client(scheduler: str, workers: int):
                               "tcp://host:8786") from None
 
 
-def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", workers: int = 2,
+def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", workers: int | None = None,
               progress: Callable[[int, int, float], None] | None = None, max_tasks: int | None = None):
     """Run (or resume) a sweep and return the path of its store.
 
@@ -156,6 +164,13 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     scheduler : {"local", "processes"} or a Dask scheduler address
         ``local`` runs in this process; ``processes`` starts a ``distributed.LocalCluster``
         with ``workers`` single-threaded worker processes; an address connects to a cluster.
+    workers : int, optional
+        ``local``: threads that run tasks side by side in this process (model mode; the
+        compiled filters and numpy's random generator release the GIL), each block's filters
+        then single-threaded; an experiment sweep runs its tasks one after the other.
+        ``processes``: worker processes. Default: :func:`~tobitkf.filters._backend.default_threads`
+        (``TOBITKF_NUM_THREADS``, else ``OMP_NUM_THREADS``, else the number of CPUs). Ignored
+        for a scheduler address (the cluster has its workers).
     progress : callable(done_blocks, total_blocks, runs_per_second), optional
     max_tasks : int, optional
         Stop after this many tasks (used to test resumption).
@@ -171,9 +186,12 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     path = safe_child(out, f"{spec.name}.zarr")
     points = spec.points()
     # connect first: a wrong address fails before any work is done
+    from ..filters._backend import check_threads
+
+    workers = check_threads(workers)
     client, cluster = _client(scheduler, workers) if scheduler != "local" else (None, None)
     try:
-        _run(spec, path, points, client, progress, max_tasks)
+        _run(spec, path, points, client, progress, max_tasks, workers)
     finally:
         if client is not None:
             client.close()
@@ -182,9 +200,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     return path
 
 
-def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, progress, max_tasks) -> None:
-    """Create or reopen the store, run the missing blocks (in-process when ``client`` is None)
-    and write the summary once every block is done."""
+def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, progress, max_tasks,
+         threads: int) -> None:
+    """Create or reopen the store, run the missing blocks (in-process, on ``threads`` threads,
+    when ``client`` is None) and write the summary once every block is done."""
     if spec.experiment is not None and path.exists():
         g = open_store(path, spec, [], 0, 1, 0)        # resuming: the store knows its shapes
     elif spec.experiment is not None:
@@ -221,9 +240,19 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
 
     if progress is not None:
         progress(finished, total, 0.0)
-    if client is None:
+    if client is None and (threads == 1 or spec.experiment is not None or len(tasks) < 2):
         for p, blocks in tasks:
             record(p, run_task(spec.text, spec.name, p, blocks))
+    elif client is None:
+        from concurrent.futures import ThreadPoolExecutor, as_completed as done_first
+
+        pool = ThreadPoolExecutor(max_workers=threads)
+        try:
+            futs = {pool.submit(run_task, spec.text, spec.name, p, blocks, 1): p for p, blocks in tasks}
+            for fut in done_first(futs):
+                record(futs[fut], fut.result())
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
     else:
         from distributed import as_completed
 
