@@ -136,3 +136,16 @@ def test_nees_terms_singular_is_inf_for_that_term_on_both_paths(monkeypatch):
         monkeypatch.setattr(backend, "numba_available", lambda a=available: a)
         val = nees_terms(err, cov)
         assert val[0, 0] == pytest.approx(1.0 / 2.0 + 4.0 / 4.0) and np.isinf(val[0, 1])
+
+
+def test_nees_terms_of_a_broadcast_covariance_equals_the_materialized_one():
+    """The KF returns a covariance shared by the runs as a broadcast view (run-axis stride 0);
+    nees_terms reads it once instead of copying it per run, with the same values."""
+    rng = np.random.default_rng(3)
+    N, T, n = 40, 6, 2
+    L = rng.standard_normal((T, n, n))
+    P = L @ L.transpose(0, 2, 1) + 0.5 * np.eye(n)
+    err = rng.standard_normal((N, T, n))
+    view = np.broadcast_to(P, (N, T, n, n))
+    assert view.strides[0] == 0
+    np.testing.assert_allclose(nees_terms(err, view), nees_terms(err, np.array(view)), rtol=1e-14)

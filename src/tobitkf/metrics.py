@@ -60,6 +60,8 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """
     err = np.asarray(err, dtype=float)
     cov = np.asarray(cov, dtype=float)
+    while cov.ndim > 2 and cov.strides[0] == 0:    # a covariance shared by the runs, broadcast
+        cov = cov[0]                                # (as the KF returns it): keep one copy
     n = err.shape[-1]
     lead, clead = err.shape[:-1], cov.shape[:-2]
     if cov.shape[-2:] == (n, n) and len(clead) <= len(lead) and lead[len(lead) - len(clead):] == clead:
