@@ -177,7 +177,15 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
 
     Returns
     -------
-    Path of the store; the reduced Dataset is written to its ``summary`` group when complete.
+    Path
+        The store; the reduced Dataset is written to its ``summary`` group when every block is done.
+
+    Raises
+    ------
+    ValidationError
+        A store of a different sweep at ``out``, an unreachable scheduler, an experiment that
+        refuses the settings or reports no estimators, or a grid point whose statistics do
+        not fit the store (e.g. a grid over the horizon).
     """
     from .._io import safe_child
 
