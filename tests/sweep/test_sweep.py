@@ -102,6 +102,12 @@ def test_scheduler_address_runs_on_an_existing_cluster(tmp_path):
         np.testing.assert_array_equal(ref[name], got[name])
 
 
+@pytest.mark.parametrize("workers", [0, -1, 1.5, True, "2"])
+def test_bad_worker_count_is_refused_by_name(tmp_path, workers):
+    with pytest.raises(tk.ValidationError, match="workers: expected a positive integer"):
+        run_sweep(spec(), tmp_path, workers=workers)
+
+
 def test_unreachable_scheduler_fails_before_any_work(tmp_path):
     with pytest.raises(tk.ValidationError, match="--scheduler: cannot connect .*'nonsense'"):
         run_sweep(spec(), tmp_path, scheduler="nonsense")
