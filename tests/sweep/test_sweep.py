@@ -105,7 +105,8 @@ def test_scheduler_address_runs_on_an_existing_cluster(tmp_path):
 @pytest.mark.parametrize("workers", [0, -1, 1.5, True, "2"])
 def test_bad_worker_count_is_refused_by_name(tmp_path, workers):
     with pytest.raises(tk.ValidationError, match="workers: expected a positive integer"):
-        run_sweep(spec(), tmp_path, workers=workers)
+        run_sweep(spec(), tmp_path / "out", workers=workers)
+    assert not (tmp_path / "out").exists()
 
 
 def test_unreachable_scheduler_fails_before_any_work(tmp_path):

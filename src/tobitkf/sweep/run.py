@@ -188,18 +188,17 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
         not fit the store (e.g. a grid over the horizon).
     """
     from .._io import safe_child
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    path = safe_child(out, f"{spec.name}.zarr")
-    points = spec.points()
-    # connect first: a wrong address fails before any work is done
     from ..filters._backend import default_threads
 
     if workers is None:
         workers = default_threads()
     elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValidationError(f"workers: expected a positive integer or None, got {workers!r}")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    path = safe_child(out, f"{spec.name}.zarr")
+    points = spec.points()
+    # connect first: a wrong address fails before any work is done
     client, cluster = _client(scheduler, workers) if scheduler != "local" else (None, None)
     try:
         _run(spec, path, points, client, progress, max_tasks, workers)
