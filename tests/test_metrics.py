@@ -149,3 +149,14 @@ def test_nees_terms_of_a_broadcast_covariance_equals_the_materialized_one():
     view = np.broadcast_to(P, (N, T, n, n))
     assert view.strides[0] == 0
     np.testing.assert_allclose(nees_terms(err, view), nees_terms(err, np.array(view)), rtol=1e-14)
+
+
+@pytest.mark.parametrize("err_shape, cov_shape", [
+    ((4, 3, 2), (4, 3, 3, 3)),     # covariance of another dimension
+    ((4, 3, 2), (4, 3, 2)),        # not square
+    ((4, 3, 2), (5, 3, 2, 2)),     # runs do not broadcast
+    ((4, 3, 2), (2,)),             # not a matrix at all
+])
+def test_nees_terms_bad_shapes_raise_shape_error(err_shape, cov_shape):
+    with pytest.raises(ShapeError, match="cov: "):
+        nees_terms(np.zeros(err_shape), np.ones(cov_shape))

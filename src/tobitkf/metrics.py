@@ -57,12 +57,25 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     its own term only. Uses the compiled kernel
     :func:`tobitkf.filters._kernels.nees_terms` when numba is installed and ``cov``'s leading
     shape is a trailing part of ``err``'s, else ``numpy.linalg.solve``; both agree to rounding.
+
+    Raises
+    ------
+    ShapeError
+        ``cov`` is not ``(..., n, n)`` for errors of dimension n, or does not broadcast
+        against ``err``.
     """
     err = np.asarray(err, dtype=float)
     cov = np.asarray(cov, dtype=float)
+    n = err.shape[-1] if err.ndim else 0
+    if err.ndim < 1 or cov.ndim < 2 or cov.shape[-2:] != (n, n):
+        raise ShapeError(f"cov: expected (..., {n}, {n}) for errors of shape {err.shape}, got {cov.shape}")
+    try:
+        np.broadcast_shapes(err.shape[:-1], cov.shape[:-2])
+    except ValueError:
+        raise ShapeError(f"cov: leading shape {cov.shape[:-2]} does not broadcast against the errors' "
+                         f"{err.shape[:-1]}") from None
     while cov.ndim > 2 and cov.strides[0] == 0:    # a covariance shared by the runs, broadcast
         cov = cov[0]                                # (as the KF returns it): keep one copy
-    n = err.shape[-1]
     lead, clead = err.shape[:-1], cov.shape[:-2]
     if cov.shape[-2:] == (n, n) and len(clead) <= len(lead) and lead[len(lead) - len(clead):] == clead:
         from .filters._backend import numba_available

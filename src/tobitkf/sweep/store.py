@@ -59,7 +59,13 @@ def layout(estimators: int, steps: int, n: int, m: int) -> dict[str, tuple[int, 
 
 
 def pack(stats: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]]) -> np.ndarray:
-    """One block's statistics as a flat vector (checked against ``shapes``)."""
+    """One block's statistics as a flat vector (checked against ``shapes``).
+
+    Raises
+    ------
+    ValidationError
+        A statistic whose shape differs from the store's (a grid point that changes the
+        horizon, the state dimension or the estimators)."""
     parts = []
     for name, shape in shapes.items():
         a = np.asarray(stats[name], dtype=float)
