@@ -10,7 +10,7 @@ import numpy as np
 from .._validation import ShapeError, ValidationError, as_float_array, check_psd
 
 __all__ = ["FilterResult", "prepare_measurements", "gain_update", "symmetrize", "predict", "psd_sqrt", "sqrt_predict",
-           "sqrt_update", "process_root"]
+           "sqrt_update", "process_roots"]
 
 
 @dataclass(frozen=True)
@@ -211,14 +211,20 @@ def sqrt_predict(x: np.ndarray, S: np.ndarray, A: np.ndarray, Qroot: np.ndarray,
     return xp, np.swapaxes(U, -1, -2)
 
 
-def process_root(system, k: int) -> np.ndarray:
-    r"""A root :math:`G` (n, q) of the process-noise covariance: :math:`GG^T = B_kQ_kB_k^T`.
+def process_roots(system):
+    r"""The roots :math:`G_k` (n, q), :math:`G_kG_k^T = B_kQ_kB_k^T`, of the process noise, as a function of k.
 
     :math:`B_k Q_k^{1/2}` with :math:`Q_k^{1/2}` from :func:`psd_sqrt` (so a singular Q,
-    e.g. one with zero rows, is fine).
+    e.g. one with zero rows, is fine); factored once when Q and B do not vary with k.
     """
-    root = psd_sqrt(system.Q.at(k))
-    return root if system.B is None else system.B.at(k) @ root
+    def root(k: int) -> np.ndarray:
+        r = psd_sqrt(system.Q.at(k))
+        return r if system.B is None else system.B.at(k) @ r
+
+    if not system.Q.varying and (system.B is None or not system.B.varying):
+        fixed = root(0)
+        return lambda k: fixed
+    return root
 
 
 def _solve_upper(U: np.ndarray, B: np.ndarray) -> np.ndarray:

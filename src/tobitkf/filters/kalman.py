@@ -46,7 +46,7 @@ from ..channels.censoring import Censoring
 from ..models import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements, process_root, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
+                      prepare_measurements, process_roots, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
 
 __all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter"]
 
@@ -191,13 +191,12 @@ def _sqrt_loop(system: LinearSystem, y2: np.ndarray, u2: np.ndarray | None, miss
     """
     T = y2.shape[1]
     S = psd_sqrt(P)
-    q_fixed = not system.Q.varying and (system.B is None or not system.B.varying)
-    G = process_root(system, 0) if q_fixed else None
+    G = process_roots(system)
     R_root = None if system.R.varying else psd_sqrt(system.measurement_cov(1))
     for k in range(1, T + 1):
         uk = None if u2 is None else u2[:, k - 1]
         bx, dy = system.input_effect(k, uk)
-        x, S = sqrt_predict(x, S, system.transition(k - 1), G if q_fixed else process_root(system, k - 1), bx)
+        x, S = sqrt_predict(x, S, system.transition(k - 1), G(k - 1), bx)
         pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
         C, R = system.measurement(k), system.measurement_cov(k)
         innov = y2[:, k - 1] - x @ C.T - dy

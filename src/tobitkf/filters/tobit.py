@@ -65,7 +65,7 @@ from ..channels.censoring import Censoring
 from ..models import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements, process_root, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
+                      prepare_measurements, process_roots, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
 
 __all__ = ["tobit_update", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
 
@@ -310,12 +310,11 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         run_split(work, N, check_threads(threads))
     elif covariance_update == "square_root":
         S = psd_sqrt(P)
-        q_fixed = not system.Q.varying and (system.B is None or not system.B.varying)
-        G = process_root(system, 0) if q_fixed else None
+        G = process_roots(system)
         for k in range(1, T + 1):
             uk = None if u2 is None else u2[:, k - 1]
             bx, dy = system.input_effect(k, uk)
-            x, S = sqrt_predict(x, S, system.transition(k - 1), G if q_fixed else process_root(system, k - 1), bx)
+            x, S = sqrt_predict(x, S, system.transition(k - 1), G(k - 1), bx)
             pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
             sig = sigma if sigma is not None else _sigma_of(system.measurement_cov(k), f"R({k})")
             x, P, S, st = _tobit_sqrt_update(x, S, y2[:, k - 1], system.measurement(k), sig, lo_all[k - 1],
