@@ -118,7 +118,7 @@ def bench_protocol(tab, runs, steps, peer, repeat):
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     sys_ = tk.LinearSystem(A=A, C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
     ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
-    y = ch.simulate(sys_, steps, runs, seed=0).y
+    y = tk.simulate(sys_, steps, runs, seed=0, channel=ch).y
     ell = 2
     F = augmented_transition(A, ell)
     B = noise_input(2, ell)
@@ -132,7 +132,8 @@ def bench_protocol(tab, runs, steps, peer, repeat):
 
 def bench_delay(tab, runs, steps, peer, repeat):
     from tobitkf.filters.delay import _augmented_matrices, augmented_lmmse, chain_lmmse, reorganized_lmmse
-    from tobitkf.models_delay import paper_example, paper_prior, simulate_delay
+    from tobitkf.models.delay import paper_example, paper_prior
+    from tobitkf.simulate.delay import simulate_delay
 
     d = 3
     sys_, prior = paper_example(S=0.3, d=d), paper_prior(d)
@@ -150,8 +151,10 @@ def bench_delay(tab, runs, steps, peer, repeat):
 
 
 def bench_hinf(tab, runs, steps, peer, repeat):
-    from tobitkf.filters.hinf import WANG2010_PAPER, RegionalHinfFilter, simulate_ross, wang2010_disturbances, \
-        wang2010_model
+    from tobitkf.design.hinf import WANG2010_PAPER
+    from tobitkf.filters.hinf import RegionalHinfFilter
+    from tobitkf.models.ross import wang2010_model
+    from tobitkf.simulate.ross import simulate_ross, wang2010_disturbances
 
     model = wang2010_model()
     w, v = wang2010_disturbances(steps)

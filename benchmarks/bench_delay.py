@@ -16,7 +16,8 @@ import numpy as np
 
 from _timing import best_time
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
-from tobitkf.models_delay import DelayFadingSystem, FadingPMF, HistoryPrior, paper_example, paper_prior, simulate_delay
+from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior, paper_example, paper_prior
+from tobitkf.simulate.delay import simulate_delay
 
 
 def random_model(n: int, d: int, seed: int = 0) -> tuple[DelayFadingSystem, HistoryPrior]:

@@ -59,7 +59,7 @@ def main() -> None:
     if args.smoke:
         runs, steps, long_steps, peer_runs, repeat = (200, 50, 500, 2, 1)
     sys_, ch = make_problem()
-    y = ch.simulate(sys_, steps, runs, seed=0).y
+    y = tk.simulate(sys_, steps, runs, seed=0, channel=ch).y
     print(f"(a) {runs} runs x {steps} steps, n_xi=6, censored fraction {np.mean(y <= 0):.2f}")
     t_fp = best_time(lambda: filterpy_runs(sys_, ch, y[:peer_runs]), repeat) / (peer_runs * steps)
     rows = [("filterpy KalmanFilter, augmented (looped)", 1.0 / t_fp)]
@@ -71,7 +71,7 @@ def main() -> None:
     t_b = best_time(lambda: protocol_covariance_bounds(sys_, ch, steps), repeat)
     print(f"  bounds recursion (analytic gamma, {steps} steps): {t_b * 1e3:.1f} ms")
 
-    long = ch.simulate(sys_, long_steps, 1, seed=1).y
+    long = tk.simulate(sys_, long_steps, 1, seed=1, channel=ch).y
     print(f"(b) one run x {long_steps} steps: microseconds per step")
     t_fp1 = best_time(lambda: filterpy_runs(sys_, ch, long), 1) / long_steps
     t_1 = best_time(lambda: protocol_tobit_kalman_filter(sys_, ch, long), 1) / long_steps

@@ -23,7 +23,8 @@ from tobitkf.filters.delay import chain_lmmse
 from tobitkf.filters.fading import FadingTobitKalmanFilter
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
-from tobitkf.models_delay import paper_example, paper_prior, simulate_delay
+from tobitkf.models.delay import paper_example, paper_prior
+from tobitkf.simulate.delay import simulate_delay
 
 
 def oscillator() -> tk.LinearSystem:
@@ -90,7 +91,7 @@ def cases(steps: int):
 
     def ptkf():
         ch = ProtocolChannel(1, window=1, threshold=0.0)
-        d = ch.simulate(s, steps, 1, seed=11)
+        d = tk.simulate(s, steps, 1, seed=11, channel=ch)
         o = ProtocolTobitKalmanFilter(s, ch).filter(d.y)
         return o.mean, o.cov, d.x[:, 1:]
 

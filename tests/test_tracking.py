@@ -5,7 +5,7 @@ import pytest
 
 from tobitkf import KalmanFilter, LinearSystem
 from tobitkf._validation import ShapeError, ValidationError
-from tobitkf.tracking import MultiTargetTracker, constant_velocity_pixel_model
+from tobitkf.filters.tracking import MultiTargetTracker, constant_velocity_pixel_model
 
 
 def test_identity_kept_with_spurious_detections_and_shuffling():

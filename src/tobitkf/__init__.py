@@ -37,17 +37,19 @@ from .channels import laws
 from .channels.fading import RiceFading
 from .channels.saturation import RandomSaturation
 from .filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter, fading_kalman_filter, fading_tobit_kalman_filter
-from .filters.hinf import RegionalHinfFilter, RossModel
-from .filters.hinf import analyze as hinf_analyze
-from .filters.hinf import design as hinf_design
-from .filters.hinf import verify as hinf_verify
+from .filters.hinf import RegionalHinfFilter
+from .models.ross import RossModel
+from .design.hinf import analyze as hinf_analyze
+from .design.hinf import design as hinf_design
+from .design.hinf import verify as hinf_verify
 from .filters.delay import (AugmentedLMMSE, ChainLMMSE, DelayEstimates, ReorganizedInnovationLMMSE, augmented_lmmse,
                             chain_lmmse, reorganized_lmmse, smooth_interval, smooth_point)
-from .models_delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, simulate_delay
+from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
+from .simulate.delay import simulate_delay
 from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
 from .report import write_report
-from .tracking import MultiTargetTracker
+from .filters.tracking import MultiTargetTracker
 from . import control
 from .control import certify_tkf_stability, simulate_closed_loop, tobit_lqe
 from . import metrics

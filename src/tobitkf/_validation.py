@@ -14,6 +14,8 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "as_generator",
+    "check_count",
     "ShapeError",
     "ValidationError",
     "as_float_array",
@@ -184,3 +186,24 @@ class TimeSequence:
                 mat = self.at(k)
                 check_finite(mat, f"{self.name}({k})")
                 self._check(mat, f"{self.name}({k})")
+
+
+def check_count(value: Any, name: str) -> int:
+    """A positive integer count (``steps``, ``runs``, ...); booleans and floats are refused."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ValidationError(f"{name}: expected a positive integer, got {value!r}")
+    if value < 1:
+        raise ValidationError(f"{name}: expected a positive integer, got {value}")
+    return int(value)
+
+
+def as_generator(seed: Any) -> np.random.Generator:
+    """A ``numpy.random.Generator`` from an int, a SeedSequence or a Generator (an explicit seed)."""
+    if isinstance(seed, np.random.Generator):
+        return seed
+    if seed is None:
+        raise ValidationError("seed: expected an int, SeedSequence or Generator (an explicit seed), got None")
+    try:
+        return np.random.default_rng(seed)
+    except (TypeError, ValueError) as exc:
+        raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} ({exc})") from None

@@ -55,7 +55,7 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     ``cov`` broadcasts against ``err`` (a covariance shared by the runs may omit the run axis).
     A linear solve per run and step (never an inverse); a singular covariance gives ``inf`` for
     its own term only. Uses the compiled kernel
-    :func:`tobitkf.filters._kernels.nees_terms` when numba is installed and ``cov``'s leading
+    :func:`tobitkf._linalg_kernels.nees_terms` when numba is installed and ``cov``'s leading
     shape is a trailing part of ``err``'s, else ``numpy.linalg.solve``; both agree to rounding.
 
     Raises
@@ -78,10 +78,10 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
         cov = cov[0]                                # (as the KF returns it): keep one copy
     lead, clead = err.shape[:-1], cov.shape[:-2]
     if cov.shape[-2:] == (n, n) and len(clead) <= len(lead) and lead[len(lead) - len(clead):] == clead:
-        from .filters._backend import numba_available
+        from ._compiled import numba_available
 
         if numba_available():
-            from .filters._kernels import nees_terms as kernel
+            from ._linalg_kernels import nees_terms as kernel
 
             out = np.empty(int(np.prod(lead)))
             kernel(np.ascontiguousarray(err.reshape(-1, n)), np.ascontiguousarray(cov.reshape(-1, n, n)), out)

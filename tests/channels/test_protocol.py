@@ -156,7 +156,7 @@ def test_bad_window(window):
 def test_simulated_measurements_follow_eq_2_to_7():
     sys_ = example_system()
     ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
-    d = ch.simulate(sys_, 30, 5, seed=11)
+    d = tk.simulate(sys_, 30, 5, seed=11, channel=ch)
     assert d.y.shape == (5, 30, 1) and d.y_latent.shape == (5, 30, 2)
     lam, past = d.extras["failure_gain"], d.extras["prehistory"]
     assert lam.shape == (5, 30, 2) and past.shape == (5, 2, 2)
@@ -180,7 +180,7 @@ def test_sensor_noise_has_the_sensor_variance():
     # R = diag(1, 2): the residual of sensor 2 has variance 2 (Monte Carlo, 4 standard errors)
     sys_ = example_system()
     ch = ProtocolChannel(2, window=0)
-    d = ch.simulate(sys_, 20, 2000, seed=2)
+    d = tk.simulate(sys_, 20, 2000, seed=2, channel=ch)
     v = d.y_latent - d.x[:, 1:]
     var = v.reshape(-1, 2).var(0)
     n = v.shape[0] * v.shape[1]
@@ -189,16 +189,16 @@ def test_sensor_noise_has_the_sensor_variance():
 
 def test_prehistory_options():
     sys_ = example_system()
-    d = ProtocolChannel(2, window=3, prehistory="hold").simulate(sys_, 5, 3, seed=0)
+    d = tk.simulate(sys_, 5, 3, seed=0, channel=ProtocolChannel(2, window=3, prehistory="hold"))
     np.testing.assert_array_equal(d.extras["prehistory"], np.repeat(d.x[:, :1], 3, axis=1))
-    d = ProtocolChannel(2, window=3, prehistory="zero").simulate(sys_, 5, 3, seed=0)
+    d = tk.simulate(sys_, 5, 3, seed=0, channel=ProtocolChannel(2, window=3, prehistory="zero"))
     assert (d.extras["prehistory"] == 0).all()
 
 
 def test_common_random_numbers_across_scenarios():
     sys_ = example_system()
-    a = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0).simulate(sys_, 20, 4, seed=5)
-    b = ProtocolChannel(2, window=2, failures=LAMBDA_1, threshold=-5.0).simulate(sys_, 20, 4, seed=5)
+    a = tk.simulate(sys_, 20, 4, seed=5, channel=ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0))
+    b = tk.simulate(sys_, 20, 4, seed=5, channel=ProtocolChannel(2, window=2, failures=LAMBDA_1, threshold=-5.0))
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.extras["prehistory"], b.extras["prehistory"])
     assert (b.extras["failure_gain"] <= a.extras["failure_gain"]).all()
@@ -221,4 +221,4 @@ def test_channel_bad_input(kwargs, match):
 
 def test_channel_needs_one_row_per_sensor():
     with pytest.raises(ValueError, match="p=3 rows"):
-        ProtocolChannel(3).simulate(example_system(), 5, 1, seed=0)
+        tk.simulate(example_system(), 5, 1, seed=0, channel=ProtocolChannel(3))

@@ -42,7 +42,7 @@ def test_experiment_keys_and_shapes(exp_id):
 def test_experiment_uses_the_library_filter_on_common_random_numbers():
     res = get("geng-protocol-tracking").run(runs=15, seed=4, steps=25)
     sys_, ch = example_system(False), example_channel()
-    d = ch.simulate(sys_, 25, 15, seed=4)
+    d = tk.simulate(sys_, 25, 15, seed=4, channel=ch)
     for key, flt in (("pbtkf-imsf", ProtocolTobitKalmanFilter(sys_, ch)),
                      ("pbtkf", ProtocolTobitKalmanFilter.baseline(sys_, ch))):
         want = tk.metrics.rmse(d.x, flt.filter(d.y).mean)

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 
 from tobitkf.filters.delay import (AugmentedLMMSE, ChainLMMSE, ReorganizedInnovationLMMSE, augmented_lmmse,
                                    chain_lmmse, reorganized_lmmse, second_moments, smooth_interval, smooth_point)
-from tobitkf.models_delay import (DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, full_states,
-                                  paper_example, paper_prior, simulate_delay)
+from tobitkf.models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, paper_example, paper_prior
+from tobitkf.simulate.delay import full_states, simulate_delay
 
 TOL = 1e-10
 

@@ -101,7 +101,7 @@ def test_protocol_prediction_equals_dense_augmented_recursion():
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     sys_ = tk.LinearSystem(A=A, C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
     ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
-    y = ch.simulate(sys_, 25, 30, seed=2).y
+    y = tk.simulate(sys_, 25, 30, seed=2, channel=ch).y
     Aa = augmented_transition(A, 2)
     Qa = np.zeros((6, 6))
     Qa[:2, :2] = sys_.process_cov(0)
@@ -198,7 +198,7 @@ def test_time_major_outputs_keep_batch_layout():
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     sp = tk.LinearSystem(A=A, C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
     ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
-    yp = ch.simulate(sp, 9, 6, seed=1).y
+    yp = tk.simulate(sp, 9, 6, seed=1, channel=ch).y
     flat = protocol_tobit_kalman_filter(sp, ch, yp)
     nest = protocol_tobit_kalman_filter(sp, ch, yp.reshape((2, 3) + yp.shape[1:]))
     for name in ("mean", "cov", "pred_mean", "pred_cov"):

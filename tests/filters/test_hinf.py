@@ -15,14 +15,17 @@ from hypothesis import strategies as st
 
 from tobitkf._validation import ShapeError, ValidationError
 from tobitkf.channels.saturation import RandomSaturation, saturate
-from tobitkf.filters import hinf as H
+from tobitkf.design import hinf as H
+from tobitkf.filters import hinf as F
+from tobitkf.models import ross as M
+from tobitkf.simulate import ross as S
 
 PAPER = H.WANG2010_PAPER
 
 
 @pytest.fixture(scope="module")
 def model():
-    return H.wang2010_model()
+    return M.wang2010_model()
 
 
 @pytest.fixture(scope="module")
@@ -84,8 +87,8 @@ def test_augmented_system_6_matches_direct_simulation(model):
     Af, Bf = rng.normal(scale=0.3, size=(3, 3)), rng.normal(scale=0.3, size=(3, 2))
     T = 15
     w, v = rng.normal(size=(T, 1)), rng.normal(size=(T, 2))
-    sim = H.simulate_ross(model, T, 4, x0=rng.normal(size=(4, 3)), w=w, v=v, seed=3)
-    xh = H.hinf_filter(Af, Bf, model.M, sim.y).mean
+    sim = S.simulate_ross(model, T, 4, x0=rng.normal(size=(4, 3)), w=w, v=v, seed=3)
+    xh = F.hinf_filter(Af, Bf, model.M, sim.y).mean
     eta = np.concatenate([sim.x, xh], axis=-1)
     for k in range(T):
         nxt = H.augmented_step(model, Af, Bf, eta[:, k], w[k], v[k], sim.alpha[:, k], sim.beta[:, k])
@@ -201,7 +204,7 @@ def test_channel_special_cases(model, mu, nu, expect):
     rng = np.random.default_rng(8)
     T = 10
     v = rng.normal(size=(T, 2))
-    sim = H.simulate_ross(m2, T, 3, x0=[2.0, -1.5, 0.5], v=v, seed=9)
+    sim = S.simulate_ross(m2, T, 3, x0=[2.0, -1.5, 0.5], v=v, seed=9)
     cx = sim.x[:, :-1] @ m2.C.T
     ref = {"linear": cx, "saturated": np.clip(cx, -1, 1), "missing": 0 * cx}[expect] + v
     np.testing.assert_allclose(sim.y, ref, atol=1e-14)
@@ -209,14 +212,14 @@ def test_channel_special_cases(model, mu, nu, expect):
 
 
 def test_simulation_is_seeded_and_batched(model):
-    w, v = H.wang2010_disturbances(20)
-    a = H.simulate_ross(model, 20, 5, x0=PAPER["x0"], w=w, v=v, seed=11)
-    b = H.simulate_ross(model, 20, 5, x0=PAPER["x0"], w=w, v=v, seed=11)
+    w, v = S.wang2010_disturbances(20)
+    a = S.simulate_ross(model, 20, 5, x0=PAPER["x0"], w=w, v=v, seed=11)
+    b = S.simulate_ross(model, 20, 5, x0=PAPER["x0"], w=w, v=v, seed=11)
     np.testing.assert_array_equal(a.y, b.y)
     assert a.x.shape == (5, 21, 3) and a.y.shape == (5, 20, 2) and a.z.shape == (5, 21, 2)
-    out = H.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y)
+    out = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y)
     for r in range(5):
-        one = H.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y[r])
+        one = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y[r])
         np.testing.assert_allclose(one.mean, out.mean[r], atol=1e-15)
     assert out.mean.shape == (5, 21, 3)
 
@@ -226,19 +229,19 @@ def test_simulation_is_seeded_and_batched(model):
 # --------------------------------------------------------------------------------------------
 def test_bad_inputs(model):
     with pytest.raises(ValidationError, match=r"mu: expected probabilities in \[0, 1\]"):
-        H.wang2010_model(mu=[1.2, 0.5])
+        M.wang2010_model(mu=[1.2, 0.5])
     with pytest.raises(ValidationError, match=r"nu: expected probabilities"):
         RandomSaturation([0.5], [-0.1])
     with pytest.raises(ValidationError, match="level: expected saturation levels > 0"):
-        H.wang2010_model(level=0.0)
+        M.wang2010_model(level=0.0)
     with pytest.raises(ValidationError, match="bounds look swapped"):
-        H.wang2010_model(U1=model.U2, U2=model.U1)
+        M.wang2010_model(U1=model.U2, U2=model.U1)
     with pytest.raises(ValidationError, match="U1 - U2 symmetric"):
-        H.wang2010_model(U1=model.U1 + np.triu(np.ones((3, 3)), 1))
+        M.wang2010_model(U1=model.U1 + np.triu(np.ones((3, 3)), 1))
     with pytest.raises(ShapeError, match=r"C: expected \(m, n\)"):
-        H.wang2010_model(C=np.ones((2, 4)))
+        M.wang2010_model(C=np.ones((2, 4)))
     with pytest.raises(ShapeError, match="mu, nu: expected length m=2"):
-        H.wang2010_model(mu=[0.5], nu=[0.5])
+        M.wang2010_model(mu=[0.5], nu=[0.5])
     with pytest.raises(ShapeError, match=r"Af: expected shape \(3, 3\)"):
         H.analyze(model, np.zeros((2, 2)), np.zeros((3, 2)))
     with pytest.raises(ShapeError, match=r"Bf: expected shape \(3, 2\)"):
@@ -252,11 +255,11 @@ def test_bad_inputs(model):
     with pytest.raises(ValidationError, match="rho: expected a positive value together with a fixed P"):
         H.analyze(model, PAPER["Af"], PAPER["Bf"], rho=0.2)
     with pytest.raises(ShapeError, match=r"w: expected \(5, 1\)"):
-        H.simulate_ross(model, 5, 1, w=np.zeros((4, 1)))
+        S.simulate_ross(model, 5, 1, w=np.zeros((4, 1)))
     with pytest.raises(ValidationError, match="steps: expected a positive integer"):
-        H.simulate_ross(model, 0)
+        S.simulate_ross(model, 0)
     with pytest.raises(ValidationError, match="model.f: expected"):
-        H.simulate_ross(H.wang2010_model(f=None), 5)
+        S.simulate_ross(M.wang2010_model(f=None), 5)
 
 
 def test_infeasible_problem_returns_no_gains(model):
@@ -264,7 +267,7 @@ def test_infeasible_problem_returns_no_gains(model):
     assert cert.status == "infeasible" and not cert.ok
     assert cert.Af is None and cert.Bf is None and cert.P is None
     with pytest.raises(ValidationError, match="expected a solved and verified design"):
-        H.RegionalHinfFilter.from_certificate(cert, model)
+        F.RegionalHinfFilter.from_certificate(cert, model)
 
 
 def test_rejected_when_recheck_fails(model, monkeypatch):
@@ -356,7 +359,7 @@ def test_printed_triple_theorem1_holds_theorem2_fails(model):
 def test_narrower_sector_does_not_increase_gamma(model, th3_min):
     A0 = (model.U1 + model.U2) / 2
     U = model.U1 - model.U2
-    narrow = H.wang2010_model(U1=A0 + 0.25 * U, U2=A0 - 0.25 * U)
+    narrow = M.wang2010_model(U1=A0 + 0.25 * U, U2=A0 - 0.25 * U)
     c = H.design(narrow, objective="min_gamma")
     assert c.ok and c.gamma <= th3_min.gamma + 1e-4
 
@@ -364,7 +367,7 @@ def test_narrower_sector_does_not_increase_gamma(model, th3_min):
 @pytest.mark.parametrize("mu,nu,D", [(0.0, 1.0, 1.0), (1.0, 0.5, 1.0), (0.0, 0.6, 1.0), (0.0, 0.0, 1.0),
                                      (0.7, 0.7, 0.1)])
 def test_theorem3_special_cases_all_give_the_zero_filter_gamma(mu, nu, D, zero_gamma):
-    m2 = H.wang2010_model(mu=[mu, mu], nu=[nu, nu], D=[D, D])
+    m2 = M.wang2010_model(mu=[mu, mu], nu=[nu, nu], D=[D, D])
     c = H.design(m2, objective="min_gamma")
     assert c.ok and abs(c.gamma - zero_gamma.gamma) < 2e-3        # F3: independent of the sensors
 
@@ -404,8 +407,8 @@ def _inside_scale(model, cert, w, v, runs, seed):
     lo, hi = 0.0, 1.0
     for _ in range(20):
         s = 0.5 * (lo + hi)
-        sim = H.simulate_ross(model, w.shape[0], runs, w=s * w, v=s * v, seed=seed)
-        xh = H.hinf_filter(cert.Af, cert.Bf, model.M, sim.y).mean
+        sim = S.simulate_ross(model, w.shape[0], runs, w=s * w, v=s * v, seed=seed)
+        xh = F.hinf_filter(cert.Af, cert.Bf, model.M, sim.y).mean
         eta = np.concatenate([sim.x, xh], axis=-1)
         peak = np.einsum("...i,ij,...j->...", eta, cert.P, eta).max() / cert.rho
         lo, hi = (s, hi) if peak <= 1 else (lo, s)
@@ -417,14 +420,14 @@ def test_empirical_l2_gain_below_certified_gamma(model, improved, th3_feasible, 
     cert = improved if which == "improved" else th3_feasible
     T, runs = 60, 400
     k = np.arange(T)
-    cases = [H.wang2010_disturbances(T),
+    cases = [S.wang2010_disturbances(T),
              (np.cos(np.pi * k)[:, None] * np.exp(-0.05 * k)[:, None], np.zeros((T, 2))),   # ω = π
              (np.zeros((T, 1)), np.stack([np.cos(np.pi * k), np.cos(2 * k)], -1) * np.exp(-0.05 * k)[:, None])]
     for w, v in cases:
         s = _inside_scale(model, cert, w, v, 50, 21)
         assert s > 0
-        sim = H.simulate_ross(model, T, runs, w=s * w, v=s * v, seed=22)
-        xh = H.hinf_filter(cert.Af, cert.Bf, model.M, sim.y).mean
+        sim = S.simulate_ross(model, T, runs, w=s * w, v=s * v, seed=22)
+        xh = F.hinf_filter(cert.Af, cert.Bf, model.M, sim.y).mean
         err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
         ratio = np.sqrt(err / sim.disturbance_energy[0])
         assert ratio < cert.gamma, (ratio, cert.gamma)
@@ -433,11 +436,11 @@ def test_empirical_l2_gain_below_certified_gamma(model, improved, th3_feasible, 
 def test_dissipation_with_nonzero_initial_state_A9(model, improved):
     c = improved
     T, runs = 60, 400
-    w, v = H.wang2010_disturbances(T)
+    w, v = S.wang2010_disturbances(T)
     x0 = 0.3 * np.sqrt(c.rho) * np.array([1.0, 0.0, 0.0]) / np.sqrt(c.P[0, 0])
     s = 0.05
-    sim = H.simulate_ross(model, T, runs, x0=x0, w=s * w, v=s * v, seed=23)
-    xh = H.hinf_filter(c.Af, c.Bf, model.M, sim.y).mean
+    sim = S.simulate_ross(model, T, runs, x0=x0, w=s * w, v=s * v, seed=23)
+    xh = F.hinf_filter(c.Af, c.Bf, model.M, sim.y).mean
     eta = np.concatenate([sim.x, xh], axis=-1)
     assert np.einsum("...i,ij,...j->...", eta, c.P, eta).max() <= c.rho
     err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
@@ -455,8 +458,8 @@ def test_mean_square_stability_inside_omega(model, th3_feasible):
     L = np.linalg.cholesky(c.P)
     eta0 = np.sqrt(c.rho) * np.linalg.solve(L.T, u)                # η0^T P η0 = ρ
     runs, T = 1000, 25
-    sim = H.simulate_ross(model, T, runs, x0=eta0[:3], seed=31)
-    xh = H.hinf_filter(c.Af, c.Bf, model.M, sim.y, xhat0=eta0[3:]).mean
+    sim = S.simulate_ross(model, T, runs, x0=eta0[:3], seed=31)
+    xh = F.hinf_filter(c.Af, c.Bf, model.M, sim.y, xhat0=eta0[3:]).mean
     eta = np.concatenate([sim.x, xh], axis=-1)
     V = np.einsum("...i,ij,...j->...", eta, c.P, eta).mean(0)
     np.testing.assert_allclose(V[0], c.rho, rtol=1e-9)
@@ -466,17 +469,17 @@ def test_mean_square_stability_inside_omega(model, th3_feasible):
 def test_paper_scenario_smoke_values(model):
     """Spec §5.3.3 (loose tolerances; these are the spec's reproduction numbers, not paper facts)."""
     T, runs = 100, 2000
-    w, v = H.wang2010_disturbances(T)
+    w, v = S.wang2010_disturbances(T)
     for x0, paper_ref, zero_ref in ((PAPER["x0"], 0.158, 0.177), (np.zeros(3), 0.114, 0.135)):
-        sim = H.simulate_ross(model, T, runs, x0=x0, w=w, v=v, seed=40)
+        sim = S.simulate_ross(model, T, runs, x0=x0, w=w, v=v, seed=40)
         assert abs(sim.disturbance_energy[0] - 19.86) < 0.01
         for Af, Bf, ref in ((PAPER["Af"], PAPER["Bf"], paper_ref), (np.zeros((3, 3)), np.zeros((3, 2)), zero_ref)):
-            xh = H.hinf_filter(Af, Bf, model.M, sim.y).mean
+            xh = F.hinf_filter(Af, Bf, model.M, sim.y).mean
             err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
             assert abs(err - ref) < 0.006, (err, ref)
     # η^T P η leaves Ω at k = 2 (spec F7: peak 1.43 at k = 2 with the printed P)
-    sim = H.simulate_ross(model, T, 1, x0=PAPER["x0"], w=w, v=v, seed=41)
-    xh = H.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, sim.y).mean
+    sim = S.simulate_ross(model, T, 1, x0=PAPER["x0"], w=w, v=v, seed=41)
+    xh = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, sim.y).mean
     eta = np.concatenate([sim.x, xh], axis=-1)[0]
     V = np.einsum("ki,ij,kj->k", eta, PAPER["P"], eta)
     assert V[0] <= PAPER["rho"] and V.max() > PAPER["rho"] and V.argmax() == 2
@@ -519,7 +522,7 @@ _prob = st.sampled_from([0.0, 1.0]) | st.floats(0.0, 1.0)
 @settings(max_examples=30, deadline=None)
 @given(mu1=_prob, mu2=_prob, nu1=_prob, nu2=_prob, seed=st.integers(0, 2 ** 16))
 def test_expectation_identity_for_any_probabilities(mu1, mu2, nu1, nu2, seed):
-    model = H.wang2010_model(mu=[mu1, mu2], nu=[nu1, nu2])
+    model = M.wang2010_model(mu=[mu1, mu2], nu=[nu1, nu2])
     rng = np.random.default_rng(seed)
     Af, Bf = rng.normal(size=(3, 3)), rng.normal(size=(3, 2))
     L = rng.normal(size=(6, 6))

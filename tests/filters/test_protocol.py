@@ -214,7 +214,7 @@ def test_R2_augmented_filter_equals_batch_gaussian_posterior(ell):
     T = 9
     sys_ = random_system(rng, n=2, p=2, T=T, varying=True)
     ch = ProtocolChannel(2, window=ell, threshold=-np.inf)
-    y = ch.simulate(sys_, T, 1, seed=ell).y[0, :, 0]
+    y = tk.simulate(sys_, T, 1, seed=ell, channel=ch).y[0, :, 0]
     r = protocol_tobit_kalman_filter(sys_, ch, y, keep_augmented=True)
     m, P = batch_posterior(sys_, ch, y, T)
     np.testing.assert_allclose(r.extras["aug_mean"], m, rtol=0, atol=1e-9)
@@ -228,7 +228,7 @@ def test_R3_tobit_with_known_indicator_explicit_formulas():
                            x0=[1.0, 0.0], P0=np.eye(2))
     tau = 0.8
     ch = ProtocolChannel(1, window=0, threshold=tau)
-    y = ch.simulate(sys_, T, 1, seed=3).y[0, :, 0]
+    y = tk.simulate(sys_, T, 1, seed=3, channel=ch).y[0, :, 0]
     assert 3 < (y == tau).sum() < T - 3
     r = protocol_tobit_kalman_filter(sys_, ch, y)
     A, C, Q, R = sys_.transition(0), sys_.measurement(1)[0], sys_.process_cov(0), 0.7
@@ -251,7 +251,7 @@ def test_R4_failures_only_lmmse_is_exact():
     # tau = -inf, random gains, lmmse_unconditional: the computed covariance is the true MSE
     sys_, ch = example(), example_channel(threshold=-np.inf)
     M = 2000
-    d = ch.simulate(sys_, 60, M, seed=21)
+    d = tk.simulate(sys_, 60, M, seed=21, channel=ch)
     r = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term="lmmse_unconditional")
     err2 = ((d.x[:, 1:] - r.mean) ** 2).sum(-1)
     tr = np.trace(r.cov[0], axis1=-2, axis2=-1)                 # deterministic: the same for every run
@@ -264,7 +264,7 @@ def test_R4_failures_only_lmmse_is_exact():
 def test_R5_modes_coincide_without_gain_variance():
     sys_ = example()
     ch = example_channel(failures=Constant(0.7))
-    d = ch.simulate(sys_, 30, 6, seed=1)
+    d = tk.simulate(sys_, 30, 6, seed=1, channel=ch)
     ref = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term="variance")
     for mode in ("second_moment", "lmmse_unconditional"):
         r = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=mode)
@@ -275,7 +275,7 @@ def test_R5_modes_coincide_without_gain_variance():
 # --- §5.1 items 5-6: censored step and structure -----------------------------------------------------
 def test_censored_step_leaves_estimate_and_covariance_bit_exactly_unchanged():
     sys_, ch = example(), example_channel()
-    d = ch.simulate(sys_, 40, 8, seed=2)
+    d = tk.simulate(sys_, 40, 8, seed=2, channel=ch)
     gam = d.extras["uncensored"].copy()
     gam[:, 5] = False                                          # also: a value above tau declared censored
     y = d.y.copy()
@@ -290,7 +290,7 @@ def test_censored_step_leaves_estimate_and_covariance_bit_exactly_unchanged():
 @pytest.mark.parametrize("mode", FAILURE_TERMS)
 def test_structural_invariants(mode):
     sys_, ch = example(), example_channel()
-    d = ch.simulate(sys_, 30, 5, seed=9)
+    d = tk.simulate(sys_, 30, 5, seed=9, channel=ch)
     r = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=mode, keep_augmented=True)
     P, Pm, xi, xim = (r.extras[k] for k in ("aug_cov", "aug_pred_cov", "aug_mean", "aug_pred_mean"))
     n = 2
@@ -313,7 +313,7 @@ def test_structural_invariants(mode):
 
 def test_batched_equals_per_run():
     sys_, ch = example(), example_channel()
-    d = ch.simulate(sys_, 25, 4, seed=3)
+    d = tk.simulate(sys_, 25, 4, seed=3, channel=ch)
     r = protocol_tobit_kalman_filter(sys_, ch, d.y.reshape(2, 2, 25, 1))
     assert r.mean.shape == (2, 2, 25, 2) and r.extras["uncensored"].shape == (2, 2, 25)
     for i in range(4):
@@ -335,7 +335,7 @@ def test_prehistory_mean_option():
 
 def test_baseline_is_the_misspecified_filter():
     sys_, ch = example(), example_channel()
-    d = ch.simulate(sys_, 20, 3, seed=0)
+    d = tk.simulate(sys_, 20, 3, seed=0, channel=ch)
     a = ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y)
     b = protocol_tobit_kalman_filter(sys_, ProtocolChannel(2, window=0, threshold=0.0), d.y)
     np.testing.assert_array_equal(a.mean, b.mean)
@@ -349,7 +349,7 @@ def test_property_covariances_psd_and_shrinking(ell, p, tau, seed, mode):
     rng = np.random.default_rng(seed)
     sys_ = random_system(rng, n=2, p=p, T=12)
     ch = ProtocolChannel(p, window=ell, failures=LAMBDA_BASE, threshold=tau)
-    d = ch.simulate(sys_, 12, 3, seed=seed)
+    d = tk.simulate(sys_, 12, 3, seed=seed, channel=ch)
     r = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=mode, keep_augmented=True)
     P, Pm = r.extras["aug_cov"], r.extras["aug_pred_cov"]
     scale = np.abs(Pm).max()
@@ -387,7 +387,7 @@ def mc_runs():
     out = {}
     for damped in (False, True):
         sys_, ch = example(damped), example_channel()
-        d = ch.simulate(sys_, 100, 600, seed=100 + damped)
+        d = tk.simulate(sys_, 100, 600, seed=100 + damped, channel=ch)
         out[damped] = (sys_, ch, d, {m: protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=m)
                                      for m in ("variance", "second_moment")},
                        ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y))
@@ -458,7 +458,7 @@ def test_mc_fig6_threshold_ordering_damped():
     out = []
     for tau in (0.0, -5.0):
         ch = example_channel(threshold=tau)
-        d = ch.simulate(sys_, 100, M, seed=31)
+        d = tk.simulate(sys_, 100, M, seed=31, channel=ch)
         out.append(tk.metrics.rmse(d.x, protocol_tobit_kalman_filter(sys_, ch, d.y).mean).mean())
     assert out[1] < out[0]
 
@@ -469,7 +469,7 @@ def test_mc_fig8_failure_ordering_is_opposite_to_the_text():
     out = []
     for law in (LAMBDA_1, LAMBDA_BASE):
         ch = example_channel(failures=law)
-        d = ch.simulate(sys_, 100, 400, seed=41)
+        d = tk.simulate(sys_, 100, 400, seed=41, channel=ch)
         out.append(tk.metrics.rmse(d.x, protocol_tobit_kalman_filter(sys_, ch, d.y).mean).mean())
     assert out[0] > out[1]
 

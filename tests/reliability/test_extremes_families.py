@@ -22,10 +22,14 @@ from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
-from tobitkf.filters.hinf import WANG2010_PAPER, hinf_filter, simulate_ross, wang2010_disturbances, wang2010_model
+from tobitkf.design.hinf import WANG2010_PAPER
+from tobitkf.filters.hinf import hinf_filter
+from tobitkf.simulate.ross import simulate_ross, wang2010_disturbances
+from tobitkf.models.ross import wang2010_model
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
-from tobitkf.models_delay import DelayFadingSystem, FadingPMF, HistoryPrior, simulate_delay
+from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior
+from tobitkf.simulate.delay import simulate_delay
 
 
 def assert_healthy(mean, cov, pred_cov=None, tol=1e-9):

@@ -28,10 +28,12 @@ from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.channels.saturation import RandomSaturation
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
-from tobitkf.filters.hinf import RossModel, hinf_filter, simulate_ross
+from tobitkf.models.ross import RossModel
+from tobitkf.filters.hinf import hinf_filter
+from tobitkf.simulate.ross import simulate_ross
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
-from tobitkf.models_delay import DelayFadingSystem, FadingPMF, HistoryPrior
+from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior
 
 TIME_LIMIT = 30.0  # seconds per example: far above any legitimate example here (< 1 s)
 
@@ -170,7 +172,7 @@ def test_steady_state_filters_valid_inputs_are_healthy(sys_, xi, side, steps, se
 def test_protocol_filter_valid_inputs_are_healthy(sys_, window, tau, steps, seed, term, form):
     ch = ProtocolChannel(sys_.m, window=window, threshold=tau,
                          failures=tk.laws.PMF([0.0, 0.5, 1.0], [0.1, 0.2, 0.7]))
-    data = ch.simulate(sys_, steps, 2, seed=seed)
+    data = tk.simulate(sys_, steps, 2, seed=seed, channel=ch)
     with no_hang():
         out = ProtocolTobitKalmanFilter(sys_, ch, failure_term=term, covariance_update=form).filter(data.y)
     assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
@@ -194,7 +196,7 @@ def delay_models(draw):
 
 @given(delay_models(), st.integers(1, 12), st.integers(0, 2**31))
 def test_delay_filters_valid_inputs_are_healthy(model, steps, seed):
-    from tobitkf.models_delay import simulate_delay
+    from tobitkf.simulate.delay import simulate_delay
 
     sys_, prior = model
     data = simulate_delay(sys_, prior, steps, 2, seed=seed)

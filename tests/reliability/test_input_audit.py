@@ -17,13 +17,17 @@ from tobitkf.channels.laws import PMF, Gaussian, Uniform
 from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.channels.saturation import RandomSaturation
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
-from tobitkf.filters.hinf import WANG2010_PAPER, RegionalHinfFilter, hinf_filter, simulate_ross, wang2010_model
+from tobitkf.design.hinf import WANG2010_PAPER
+from tobitkf.filters.hinf import RegionalHinfFilter, hinf_filter
+from tobitkf.simulate.ross import simulate_ross
+from tobitkf.models.ross import wang2010_model
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
-from tobitkf.models_delay import DelayFadingSystem, HistoryPrior, paper_example, paper_prior, simulate_delay
+from tobitkf.models.delay import DelayFadingSystem, HistoryPrior, paper_example, paper_prior
+from tobitkf.simulate.delay import simulate_delay
 from tobitkf.filters.delay import chain_lmmse, augmented_lmmse
 from tobitkf.control import certify_tkf_stability, dlqr, quadratic_cost, reference_gain, simulate_closed_loop, tobit_lqe
-from tobitkf.tracking import MultiTargetTracker
+from tobitkf.filters.tracking import MultiTargetTracker
 
 GOOD = dict(A=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
 

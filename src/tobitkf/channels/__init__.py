@@ -1,11 +1,15 @@
 """What happens between the sensor and the estimator, as small composable pieces.
 
-One description of a channel serves both the simulator (which draws it) and the
-estimator (which knows its statistics). Core piece: :class:`Censoring`.
-Channel modules of the other estimator families live beside it
-(``fading.py``, ``protocol.py``, ...).
+One description of a channel serves both the simulator (which draws it) and the estimator (which
+knows its statistics): every piece implements :class:`~tobitkf.channels.base.Channel`
+(:mod:`tobitkf.channels.base`). Pieces: :class:`Censoring` (Tobit limits, :mod:`.censoring`),
+:class:`~tobitkf.channels.fading.RiceFading` (:mod:`.fading`),
+:class:`~tobitkf.channels.protocol.ProtocolChannel` (:mod:`.protocol`),
+:class:`~tobitkf.channels.saturation.RandomSaturation` (:mod:`.saturation`), and the coefficient
+laws of :mod:`.laws`.
 """
 
+from .base import Channel
 from .censoring import Censoring, multi_region
 
-__all__ = ["Censoring", "multi_region"]
+__all__ = ["Channel", "Censoring", "multi_region"]

@@ -25,11 +25,12 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array
+from .base import Channel
 
 __all__ = ["Censoring", "multi_region"]
 
 
-class Censoring:
+class Censoring(Channel):
     """Per-channel censoring limits, constant or time-varying.
 
     Parameters
@@ -83,8 +84,11 @@ class Censoring:
         """Number of steps of time-varying limits, else None."""
         return self.lower.shape[0] if self.time_varying else None
 
-    def check(self, m: int, steps: int | None = None) -> None:
-        """Raise :class:`ShapeError` unless the limits fit ``m`` channels and ``steps`` steps."""
+    def check(self, m: Any, steps: int | None = None) -> None:
+        """Raise :class:`ShapeError` unless the limits fit ``m`` channels (or a system with ``m``
+        outputs) and ``steps`` steps."""
+        if not isinstance(m, (int, np.integer)):
+            m = m.m
         if self.channels is not None and self.channels not in (1, m):
             raise ShapeError(f"censoring limits: expected {m} channel(s) to match the system, got {self.channels}")
         if steps is not None and self.time_varying and self.steps < steps:
@@ -118,6 +122,10 @@ class Censoring:
         else:
             lo, hi = self.limits(k)
         return np.minimum(np.maximum(y_latent, lo), hi)
+
+    def censor(self, y_latent: np.ndarray) -> np.ndarray:
+        """:meth:`clip` of a whole record ``(..., T, m)`` (the :class:`~tobitkf.channels.base.Channel` stage)."""
+        return self.clip(y_latent)
 
     def censored_mask(self, y: np.ndarray, *, rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
         """Masks ``(at_lower, at_upper)`` of a record ``(..., T, m)`` reading exactly at a limit.
@@ -184,8 +192,6 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
     ShapeError
         If ``regions`` does not list one entry per output or R is time-varying.
     """
-    from ..models import LinearSystem
-
     if len(regions) != system.m:
         raise ShapeError(f"regions: expected one list of windows per output ({system.m}), got {len(regions)}")
     if system.C.varying or system.R.varying:
@@ -219,6 +225,8 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
         D_st = lambda k, f=D.fn: np.asarray(f(k), dtype=float)[idx]  # noqa: E731  (one row per sensor)
     else:
         D_st = D.array[..., idx, :]
-    stacked = LinearSystem(A=same(system.A), C=np.array(rows), Q=same(system.Q), R=np.diag(var),
+    # the stacked model is of the system's own class (a LinearSystem), built without importing the
+    # models layer, which itself uses channel pieces
+    stacked = type(system)(A=same(system.A), C=np.array(rows), Q=same(system.Q), R=np.diag(var),
                            x0=system.x0, P0=system.P0, B=same(system.B), Bu=same(system.Bu), D=D_st)
     return stacked, Censoring(lower=np.array(lo, dtype=float), upper=np.array(hi, dtype=float))

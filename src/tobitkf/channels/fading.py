@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError
+from .base import Channel
 from .laws import CoefficientLaw, Gaussian, as_law
 
 __all__ = ["RiceFading", "FadingMeasurement", "measurement_matrix_at"]
@@ -64,7 +65,7 @@ def measurement_matrix_at(system, j: int) -> np.ndarray:
     return system.C.at(1)
 
 
-class RiceFading:
+class RiceFading(Channel):
     r"""L-th order Rice fading channel with random coefficients (source (2), Assumption 2).
 
     Parameters
@@ -111,8 +112,10 @@ class RiceFading:
         """Number of channels fixed by the law, or None when shared by all channels."""
         return self.coefficients.shape[1] if len(self.coefficients.shape) == 2 else None
 
-    def check(self, m: int) -> None:
-        """Raise :class:`ShapeError` unless the law fits ``m`` channels."""
+    def check(self, m: Any, steps: int | None = None) -> None:
+        """Raise :class:`ShapeError` unless the law fits ``m`` channels (or a system with ``m`` outputs)."""
+        if not isinstance(m, (int, np.integer)):
+            m = m.m
         if self.channels is not None and self.channels != m:
             raise ShapeError(f"coefficients: law has {self.channels} channels, the system has m={m}")
 

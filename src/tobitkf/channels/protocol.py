@@ -29,9 +29,9 @@ Model of what reaches the estimator (paper equations (2)–(7)), sensors m = 1..
 
 Composition with the core simulator (:func:`tobitkf.simulate`): the sensors are the
 ``p`` rows of the system's ``C`` and the diagonal of its ``R`` (so ``system.m = p``);
-:class:`ProtocolChannel` is both the ``measurement`` model (draws Λ and the
-pre-history, returns every sensor's :math:`z_{m,k}`) and the ``post`` piece (keeps
-the scheduled sensor), and :meth:`ProtocolChannel.simulate` wires them up.
+:class:`ProtocolChannel` is a :class:`~tobitkf.channels.base.Channel` at all three stages:
+it draws every sensor's :math:`z_{m,k}` (Λ and the pre-history), censors at τ, and keeps the
+scheduled sensor; ``tk.simulate(system, T, N, channel=ch, seed=s)`` draws it.
 The result's ``y`` is ``(N, T, 1)`` (the scalar :math:`y_k`), ``y_latent`` is
 ``(N, T, p)`` (every :math:`z_{m,k}`), and ``extras`` holds ``failure_gain``
 (N, T, p), ``prehistory`` (N, ℓ, n) = :math:`x_{-1},\dots,x_{-\ell}`, ``scheduled``
@@ -52,7 +52,9 @@ from typing import Any
 
 import numpy as np
 
+from .._linalg import eigh_sqrt
 from .._validation import ShapeError, ValidationError, as_float_array
+from .base import Channel
 from .censoring import Censoring
 from .laws import PMF, Constant, Gaussian
 
@@ -235,7 +237,7 @@ class RoundRobin:
         return f"RoundRobin(sensors={self.sensors}, order={self.order.tolist()})"
 
 
-class ProtocolChannel:
+class ProtocolChannel(Channel):
     r"""Integral measurement + sensor failures + Round-Robin + Tobit censoring (eqs. (2)–(7)).
 
     The one description the simulator draws from and the estimator
@@ -350,9 +352,7 @@ class ProtocolChannel:
             lam = np.stack([np.asarray(law.sample(rng, (N, T)), dtype=float) for law in self.laws], axis=-1)
         ell = self.window
         if self.prehistory == "prior":
-            from ..simulate import psd_sqrt
-
-            L = psd_sqrt(system.P0)
+            L = eigh_sqrt(system.P0)
             past = system.x0 + rng.standard_normal((N, ell, n)) @ L.T
         elif self.prehistory == "hold":
             past = np.repeat(x[:, :1], ell, axis=1)
@@ -365,7 +365,16 @@ class ProtocolChannel:
         else:
             clean = s @ system.measurement(1).T
         z = lam * clean + noise
-        return z, {"failure_gain": lam, "prehistory": past}
+        return z, {"failure_gain": lam, "prehistory": past, "y_transmitted": self.schedule.select(z)}
+
+    def check(self, system: Any, steps: int | None = None) -> None:
+        """The :class:`~tobitkf.channels.base.Channel` check: :meth:`check_system`."""
+        self.check_system(system)
+
+    def censor(self, y_latent: np.ndarray) -> np.ndarray:
+        r"""(4) applied to every sensor's reading: :math:`\max(z, \tau)` (element-wise, so censoring then
+        scheduling equals scheduling then censoring)."""
+        return np.maximum(y_latent, self.threshold)
 
     def apply(self, rng: np.random.Generator, y: np.ndarray, extras: dict) -> np.ndarray:
         """Round-Robin, zero-input: keep the scheduled sensor's (censored) reading, (N, T, 1)."""
@@ -373,18 +382,6 @@ class ProtocolChannel:
         extras["scheduled"] = self.schedule.scheduled(y.shape[-2])
         extras["uncensored"] = out[..., 0] > self.threshold
         return out
-
-    def simulate(self, system: Any, steps: int, runs: int = 1, *, seed: Any = 0):
-        """Draw truth and received measurements with :func:`tobitkf.simulate`.
-
-        Returns a :class:`~tobitkf.SimulationData` whose ``y`` is (N, T, 1); see the module docstring.
-        """
-        from ..simulate import simulate
-
-        self.check_system(system)
-        data = simulate(system, steps, runs, censoring=self.censoring, measurement=self, post=[self], seed=seed)
-        data.extras["y_transmitted"] = self.schedule.select(data.y_latent)
-        return data
 
     def __repr__(self) -> str:
         return (f"ProtocolChannel(sensors={self.sensors}, window={self.window}, failures={list(self.laws)}, "

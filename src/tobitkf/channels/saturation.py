@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_probability
+from .base import Channel
 
 __all__ = ["RandomSaturation", "saturate"]
 
@@ -48,7 +49,7 @@ def saturate(v: Any, level: Any = 1.0) -> np.ndarray:
     return np.clip(v, -level, level)
 
 
-class RandomSaturation:
+class RandomSaturation(Channel):
     """The ROSS + missing-measurement sensor channel of eq. (2).
 
     Parameters
@@ -87,6 +88,12 @@ class RandomSaturation:
     def m(self) -> int:
         """Number of sensors."""
         return self.mu.shape[0]
+
+    def check(self, system: Any, steps: int | None = None) -> None:
+        """Raise :class:`ShapeError` unless the system has m outputs (one per sensor)."""
+        m = system if isinstance(system, (int, np.integer)) else system.m
+        if m != self.m:
+            raise ShapeError(f"system: expected {self.m} measurement channels (length of mu), got {m}")
 
     # --- statistics (spec §1.6) ---------------------------------------------------
     @property

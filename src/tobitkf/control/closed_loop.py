@@ -49,8 +49,9 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..filters._common import check_prior, gain_update, predict
 from ..filters.tobit import NOISE_TERMS, _sigma_of, tobit_update
-from ..models import LinearSystem
-from ..simulate import _check_count, as_generator, psd_sqrt
+from ..models.linear import LinearSystem
+from .._linalg import eigh_sqrt as psd_sqrt
+from .._validation import as_generator, check_count
 from .lqg import controlled_noise, reference_gain
 
 __all__ = ["ClosedLoopResult", "simulate_closed_loop", "OBSERVERS", "quadratic_cost"]
@@ -170,7 +171,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         raise ValidationError("plant: the closed loop needs a control input matrix Bu")
     if not plant.time_invariant or plant.Bu.varying:
         raise ValidationError("plant: simulate_closed_loop needs a time-invariant plant")
-    steps, runs = _check_count(steps, "steps"), _check_count(runs, "runs")
+    steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
     n, m, p = plant.n, plant.m, plant.p
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
     D = None if plant.D is None else plant.D.at(1)

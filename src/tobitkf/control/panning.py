@@ -36,7 +36,7 @@ from .._validation import ValidationError
 from ..censored import censored_moments
 from ..filters._common import check_prior, predict
 from ..filters.tobit import _sigma_of, tobit_update
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 
 __all__ = ["keep_in_view_limit", "centred_window", "imr_panning_step", "covariance_panning_step",
            "dissertation_variance_6_61", "MovingWindowResult", "moving_window_tkf", "constant_velocity"]

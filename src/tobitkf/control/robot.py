@@ -41,7 +41,7 @@ import numpy as np
 from .._validation import ValidationError, check_option
 from ..filters._common import gain_update, predict
 from ..filters.tobit import tobit_update
-from ..simulate import as_generator
+from .._validation import as_generator
 from .lqg import dlqr, reference_gain
 
 __all__ = ["RobotSetup", "robot_setup", "simulate_robot", "RobotResult", "trilaterate", "TRANSMITTERS"]

@@ -45,9 +45,9 @@ from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
 from ..filters.fading import fading_estimators
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ..plotting import save
-from ..simulate import simulate
+from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 
 __all__ = ["oscillator_settings", "radar_settings", "run_oscillator", "run_radar", "build"]

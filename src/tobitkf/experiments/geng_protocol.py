@@ -40,8 +40,9 @@ import numpy as np
 from .. import metrics as mt
 from ..channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
 from ..filters.protocol import (FAILURE_TERMS, ProtocolTobitKalmanFilter, protocol_covariance_bounds)
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ..plotting import save
+from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 
 SOURCE = "Geng, Wang, Zou et al.: protocol-based Tobit Kalman filter (integral measurements, sensor failures)"
@@ -89,7 +90,7 @@ def _base_settings(runs: int, seed: int, steps: int, failure_term: str, damped: 
 def _run(system: LinearSystem, channel: ProtocolChannel, runs: int, seed: int, steps: int, *,
          modes: tuple[str, ...] = ("variance",), baseline: bool = True) -> dict[str, Any]:
     """Simulate once and run the filters on the same data; returns data and per-estimator results."""
-    data = channel.simulate(system, steps, runs, seed=seed)
+    data = simulate(system, steps, runs, channel=channel, seed=seed)
     out: dict[str, Any] = {"data": data, "filters": {}}
     for mode in modes:
         out["filters"][mode] = ProtocolTobitKalmanFilter(system, channel, failure_term=mode).filter(data.y)

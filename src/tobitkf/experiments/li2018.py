@@ -29,7 +29,8 @@ import numpy as np
 from ..plotting import save
 from ..filters.delay import augmented_lmmse, chain_lmmse
 from ..metrics import summarize
-from ..models_delay import paper_example, paper_prior, simulate_delay
+from ..models.delay import paper_example, paper_prior
+from ..simulate.delay import simulate_delay
 from . import ExperimentResult, register, setting
 
 _SOURCE = "Li, Li & Wang 2018: optimal linear estimators for time-delay systems with fading measurements"

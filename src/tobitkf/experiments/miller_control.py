@@ -31,9 +31,9 @@ from ..control.plants import dc_motor_position, dc_motor_speed, scalar_example
 from ..control.stability import (dissertation_jacobian_5_56, fixed_gain_tobit_observer, mean_field_error,
                                  tobit_jacobian)
 from ..filters.tobit import TobitKalmanFilter
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ..plotting import new_figure, save
-from ..simulate import simulate
+from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 
 __all__ = ["jacobian_scalar", "dc_motor_speed_exp", "dc_motor_position_exp", "closed_loop", "steady_state_lqg"]

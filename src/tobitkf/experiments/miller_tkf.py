@@ -26,9 +26,9 @@ from ..channels.censoring import Censoring
 from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from ..filters.tobit import TobitKalmanFilter
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ..plotting import new_figure, plot_rmse_over_time, save, style
-from ..simulate import simulate
+from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 
 __all__ = ["constant", "brownian", "oscillator", "steady_state"]

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from ..filters.kalman import KalmanFilter
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ..plotting import new_figure, save
-from ..tracking import MultiTargetTracker, constant_velocity_pixel_model
+from ..filters.tracking import MultiTargetTracker, constant_velocity_pixel_model
 from . import ExperimentResult, register, setting
 
 __all__ = ["tracker"]

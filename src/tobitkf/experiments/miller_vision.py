@@ -24,9 +24,9 @@ from ..control.panning import (centred_window, constant_velocity, covariance_pan
                                keep_in_view_limit, moving_window_tkf)
 from ..filters.kalman import KalmanFilter
 from ..filters.tobit import TobitKalmanFilter
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ..plotting import new_figure, save
-from ..simulate import simulate
+from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 
 __all__ = ["multi_region_exp", "fov", "panning"]

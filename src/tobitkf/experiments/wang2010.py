@@ -20,7 +20,10 @@ from typing import Any
 import numpy as np
 
 from .. import metrics as mx
-from ..filters import hinf as H
+from ..design import hinf as D
+from ..filters import hinf as F
+from ..models.ross import RossModel, wang2010_model
+from ..simulate.ross import RossSimulation, simulate_ross, wang2010_disturbances
 from ..plotting import save
 from . import ExperimentResult, register, setting
 
@@ -58,26 +61,26 @@ def _settings(steps: int | None = None) -> dict[str, Any]:
     return out
 
 
-def _designs(model: H.RossModel) -> dict[str, H.HinfCertificate]:
-    return {"theorem3": H.design(model),
-            "theorem3-min": H.design(model, objective="min_gamma"),
-            "improved": H.design(model, method="coupled", objective="min_gamma")}
+def _designs(model: RossModel) -> dict[str, D.HinfCertificate]:
+    return {"theorem3": D.design(model),
+            "theorem3-min": D.design(model, objective="min_gamma"),
+            "improved": D.design(model, method="coupled", objective="min_gamma")}
 
 
-def _certificate_dict(c: H.HinfCertificate) -> dict[str, Any]:
+def _certificate_dict(c: D.HinfCertificate) -> dict[str, Any]:
     return c.summary()
 
 
-def _run_filters(model: H.RossModel, gains: dict[str, tuple[np.ndarray, np.ndarray]], sim: H.RossSimulation):
-    return {k: H.hinf_filter(Af, Bf, model.M, sim.y) for k, (Af, Bf) in gains.items()}
+def _run_filters(model: RossModel, gains: dict[str, tuple[np.ndarray, np.ndarray]], sim: RossSimulation):
+    return {k: F.hinf_filter(Af, Bf, model.M, sim.y) for k, (Af, Bf) in gains.items()}
 
 
-def _err_energy(sim: H.RossSimulation, out: H.HinfFilterResult) -> np.ndarray:
+def _err_energy(sim: RossSimulation, out: F.HinfFilterResult) -> np.ndarray:
     """Σ_k ‖z̃_k‖² per run."""
     return ((sim.z - out.z) ** 2).sum(axis=(-1, -2))
 
 
-def _peak_ratio(sim: H.RossSimulation, out: H.HinfFilterResult, P: np.ndarray, rho: float) -> np.ndarray:
+def _peak_ratio(sim: RossSimulation, out: F.HinfFilterResult, P: np.ndarray, rho: float) -> np.ndarray:
     eta = np.concatenate([sim.x, out.mean], axis=-1)
     return np.einsum("...i,ij,...j->...", eta, P, eta) / rho                 # (N, T+1)
 
@@ -114,34 +117,34 @@ def design_experiment(*, runs: int = 500, seed: int = 0, progress=None, steps: i
     RMSE of z required in ``metrics["estimators"]``. About 10 LMI solves, each < 1 s.
     """
     progress = progress or _noop
-    model = H.wang2010_model()
-    paper = H.WANG2010_PAPER
+    model = wang2010_model()
+    paper = D.WANG2010_PAPER
     P, rho = paper["P"], paper["rho"]
     res: dict[str, Any] = {}
-    th3 = H.design(model)
-    th3_scs = H.design(model, solver="SCS", fallback=None)
-    th3_min = H.design(model, objective="min_gamma")
-    zero = H.zero_filter_gamma(model)
-    zero_full = H.zero_filter_gamma(model, lyapunov="full")
+    th3 = D.design(model)
+    th3_scs = D.design(model, solver="SCS", fallback=None)
+    th3_min = D.design(model, objective="min_gamma")
+    zero = D.zero_filter_gamma(model)
+    zero_full = D.zero_filter_gamma(model, lyapunov="full")
     progress(0.3)
-    printed_gains = H.analyze(model, paper["Af"], paper["Bf"])
-    printed_P = H.design(model, objective="min_gamma", fixed_Q=(P[:3, :3], P[3:, 3:]))
-    triple_t1 = H.analyze(model, paper["Af"], paper["Bf"], theorem=1, P=P, rho=rho, objective="max_margin")
-    triple_t2 = H.analyze(model, paper["Af"], paper["Bf"], theorem=2, P=P, rho=rho, objective="max_margin",
+    printed_gains = D.analyze(model, paper["Af"], paper["Bf"])
+    printed_P = D.design(model, objective="min_gamma", fixed_Q=(P[:3, :3], P[3:, 3:]))
+    triple_t1 = D.analyze(model, paper["Af"], paper["Bf"], theorem=1, P=P, rho=rho, objective="max_margin")
+    triple_t2 = D.analyze(model, paper["Af"], paper["Bf"], theorem=2, P=P, rho=rho, objective="max_margin",
                           gamma=1.5)
     progress(0.5)
-    improved = H.design(model, method="coupled", objective="min_gamma")
-    improved_exact = H.design(model, method="coupled", objective="min_gamma", covariance="exact")
-    iterate = H.design(model, method="iterate", objective="min_gamma")
-    improved_15 = H.design(model, method="coupled", gamma=1.5)
-    improved_block = (H.analyze(model, improved.Af, improved.Bf, lyapunov="block") if improved.ok else None)
+    improved = D.design(model, method="coupled", objective="min_gamma")
+    improved_exact = D.design(model, method="coupled", objective="min_gamma", covariance="exact")
+    iterate = D.design(model, method="iterate", objective="min_gamma")
+    improved_15 = D.design(model, method="coupled", gamma=1.5)
+    improved_block = (D.analyze(model, improved.Af, improved.Bf, lyapunov="block") if improved.ok else None)
     variants = {}
     for name, kw in {"mu=0,nu=1 (linear sensors)": dict(mu=[0, 0], nu=[1, 1]),
                      "mu=0,nu=0 (noise only)": dict(mu=[0, 0], nu=[0, 0]),
                      "mu=1 (always saturated)": dict(mu=[1, 1])}.items():
-        mv = H.wang2010_model(**kw)
-        variants[name] = {"theorem3_min_gamma": H.design(mv, objective="min_gamma").gamma,
-                          "improved_min_gamma": H.design(mv, method="coupled", objective="min_gamma").gamma}
+        mv = wang2010_model(**kw)
+        variants[name] = {"theorem3_min_gamma": D.design(mv, objective="min_gamma").gamma,
+                          "improved_min_gamma": D.design(mv, method="coupled", objective="min_gamma").gamma}
     progress(0.8)
     res["printed"] = {"gamma": 1.5, "Af": paper["Af"], "Bf": paper["Bf"], "P": P, "rho": rho,
                       "x0_in_Omega": float(paper["x0"] @ P[:3, :3] @ paper["x0"]),
@@ -164,8 +167,8 @@ def design_experiment(*, runs: int = 500, seed: int = 0, progress=None, steps: i
     res["sensor_variants"] = variants
 
     # Monte Carlo with the paper's disturbances for the RMSE of z (per estimator)
-    w, v = H.wang2010_disturbances(steps)
-    sim = H.simulate_ross(model, steps, runs, x0=paper["x0"], w=w, v=v, seed=seed)
+    w, v = wang2010_disturbances(steps)
+    sim = simulate_ross(model, steps, runs, x0=paper["x0"], w=w, v=v, seed=seed)
     gains = {"paper-gains": (paper["Af"], paper["Bf"]), "theorem3": (th3.Af, th3.Bf),
              "improved": (improved.Af, improved.Bf)}
     outs = _run_filters(model, gains, sim)
@@ -255,8 +258,8 @@ def _inside_scale(model, gains, P, rho, w, v, seed) -> float:
     lo, hi = 0.0, 1.0
     for _ in range(16):
         s = 0.5 * (lo + hi)
-        sim = H.simulate_ross(model, w.shape[0], 200, w=s * w, v=s * v, seed=seed)
-        out = H.hinf_filter(*gains, model.M, sim.y)
+        sim = simulate_ross(model, w.shape[0], 200, w=s * w, v=s * v, seed=seed)
+        out = F.hinf_filter(*gains, model.M, sim.y)
         lo, hi = (s, hi) if _peak_ratio(sim, out, P, rho).max() <= 1 else (lo, s)
     return lo
 
@@ -272,41 +275,41 @@ def simulation_experiment(*, runs: int = 2000, seed: int = 0, progress=None, ste
     stays in Ω — the only case the certificate covers. Takes a few seconds.
     """
     progress = progress or _noop
-    model = H.wang2010_model()
-    paper = H.WANG2010_PAPER
-    th3 = H.design(model)
-    improved = H.design(model, method="coupled", objective="min_gamma")
-    printed_gains = H.analyze(model, paper["Af"], paper["Bf"])
+    model = wang2010_model()
+    paper = D.WANG2010_PAPER
+    th3 = D.design(model)
+    improved = D.design(model, method="coupled", objective="min_gamma")
+    printed_gains = D.analyze(model, paper["Af"], paper["Bf"])
     progress(0.2)
     certs = {"paper-gains": (paper["Af"], paper["Bf"], paper["P"], paper["rho"], printed_gains.gamma,
                              "printed P, rho (printed triple fails Th.2, spec A8); gamma: Th.2 with P free"),
              "theorem3": (th3.Af, th3.Bf, th3.P, th3.rho, th3.gamma, "Theorem 3 at gamma = 1.5"),
              "improved": (improved.Af, improved.Bf, improved.P, improved.rho, improved.gamma,
                           "coupled Lyapunov matrix, min gamma (not in the paper)")}
-    w, v = H.wang2010_disturbances(steps)
+    w, v = wang2010_disturbances(steps)
     k = np.arange(steps)
     worst_w = (np.cos(np.pi * k) * np.exp(-0.05 * k))[:, None]
-    sim_x0 = H.simulate_ross(model, steps, runs, x0=paper["x0"], w=w, v=v, seed=seed)
-    sim_zero = H.simulate_ross(model, steps, runs, w=w, v=v, seed=seed + 1)
+    sim_x0 = simulate_ross(model, steps, runs, x0=paper["x0"], w=w, v=v, seed=seed)
+    sim_zero = simulate_ross(model, steps, runs, w=w, v=v, seed=seed + 1)
     energy = float(sim_x0.disturbance_energy[0])
     per: dict[str, Any] = {}
     estimators = {}
     data: dict[str, Any] = {"z": sim_x0.z[0], "x": sim_x0.x[0], "zhat": {}, "xhat": {}, "mean_err": {}, "ratio": {}}
     claims = []
     for i, (key, (Af, Bf, P, rho, gamma, note)) in enumerate(certs.items()):
-        o_x0 = H.hinf_filter(Af, Bf, model.M, sim_x0.y)
-        o_zero = H.hinf_filter(Af, Bf, model.M, sim_zero.y)
+        o_x0 = F.hinf_filter(Af, Bf, model.M, sim_x0.y)
+        o_zero = F.hinf_filter(Af, Bf, model.M, sim_zero.y)
         e_x0 = float(_err_energy(sim_x0, o_x0).mean())
         e_zero = float(_err_energy(sim_zero, o_zero).mean())
         ratio = _peak_ratio(sim_x0, o_x0, P, rho)
         eta0 = np.concatenate([paper["x0"], np.zeros(3)])
         s = _inside_scale(model, (Af, Bf), P, rho, w, v, seed + 2)
-        sim_in = H.simulate_ross(model, steps, runs, w=s * w, v=s * v, seed=seed + 3)
-        gain_in = float(np.sqrt(_err_energy(sim_in, H.hinf_filter(Af, Bf, model.M, sim_in.y)).mean()
+        sim_in = simulate_ross(model, steps, runs, w=s * w, v=s * v, seed=seed + 3)
+        gain_in = float(np.sqrt(_err_energy(sim_in, F.hinf_filter(Af, Bf, model.M, sim_in.y)).mean()
                                 / max(sim_in.disturbance_energy[0], 1e-300))) if s > 0 else None
         s_w = _inside_scale(model, (Af, Bf), P, rho, worst_w, np.zeros((steps, 2)), seed + 4)
-        sim_w = H.simulate_ross(model, steps, runs, w=s_w * worst_w, seed=seed + 5)
-        gain_w = float(np.sqrt(_err_energy(sim_w, H.hinf_filter(Af, Bf, model.M, sim_w.y)).mean()
+        sim_w = simulate_ross(model, steps, runs, w=s_w * worst_w, seed=seed + 5)
+        gain_w = float(np.sqrt(_err_energy(sim_w, F.hinf_filter(Af, Bf, model.M, sim_w.y)).mean()
                                / max(sim_w.disturbance_energy[0], 1e-300))) if s_w > 0 else None
         per[key] = {
             "note": note, "certified_gamma": gamma, "rho": rho,

@@ -4,7 +4,7 @@
 when numba imports and the case is covered, else numpy; ``"numpy"`` always runs the
 reference path; ``"numba"`` insists on the kernel and raises if it cannot be used.
 numba is imported lazily, on the first filter call that may use it, so ``import
-tobitkf`` does not pay for it.
+tobitkf`` does not pay for it (:mod:`tobitkf._compiled` answers whether it can be).
 """
 
 from __future__ import annotations
@@ -12,6 +12,7 @@ from __future__ import annotations
 from functools import lru_cache
 from types import ModuleType
 
+from .._compiled import check_threads, default_threads, run_split
 from .._validation import ValidationError
 
 __all__ = ["BACKENDS", "numba_available", "kernels", "use_kernel", "system_gap", "default_threads", "check_threads",
@@ -30,7 +31,7 @@ def _load() -> ModuleType | None:
 
 
 def numba_available() -> bool:
-    """True when numba imports (the kernels can be compiled)."""
+    """True when the filters' kernels can be compiled (numba imports)."""
     return _load() is not None
 
 
@@ -90,42 +91,3 @@ def check_square_root(backend: str, covariance_update: str, what: str) -> str | 
                               "covariance_update='square_root' needs backend='auto' or 'numpy' "
                               "(or use covariance_update='standard' or 'joseph' with 'numba')")
     return "covariance_update='square_root'"
-
-
-def default_threads() -> int:
-    """Threads for the compiled kernels: ``TOBITKF_NUM_THREADS``, else ``OMP_NUM_THREADS``
-    (Dask sets it to 1 in its workers), else the number of CPUs."""
-    import os
-
-    for var in ("TOBITKF_NUM_THREADS", "OMP_NUM_THREADS"):
-        val = os.environ.get(var, "")
-        if val.isdigit() and int(val) >= 1:
-            return int(val)
-    return os.cpu_count() or 1
-
-
-def check_threads(threads) -> int:
-    """Validate a ``threads`` option (None = :func:`default_threads`)."""
-    if threads is None:
-        return default_threads()
-    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
-        raise ValidationError(f"threads: expected a positive integer or None, got {threads!r}")
-    return threads
-
-
-def run_split(work, runs: int, threads: int, *, min_runs: int = 256) -> None:
-    """Call ``work(a, b)`` on disjoint slices of the runs, in threads when worthwhile.
-
-    The kernels release the GIL and runs are independent, so the result is the same
-    bit for bit whatever the split; slices smaller than ``min_runs`` are not split.
-    """
-    parts = max(1, min(threads, runs // min_runs))
-    if parts == 1:
-        work(0, runs)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    edges = [runs * i // parts for i in range(parts + 1)]
-    with ThreadPoolExecutor(max_workers=parts) as pool:
-        for fut in [pool.submit(work, a, b) for a, b in zip(edges[:-1], edges[1:])]:
-            fut.result()

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from .._linalg import psd_sqrt, symmetrize
 from .._validation import ShapeError, ValidationError, as_float_array, check_psd
 
 __all__ = ["FilterResult", "prepare_measurements", "gain_update", "symmetrize", "predict", "psd_sqrt", "sqrt_predict",
@@ -74,11 +75,6 @@ def prepare_inputs(system, u: Any, runs: int, steps: int) -> np.ndarray | None:
     if flat.shape[0] != runs:
         raise ShapeError(f"u: expected (T, p) or the batch shape of y, got {arr.shape}")
     return flat
-
-
-def symmetrize(P: np.ndarray) -> np.ndarray:
-    """0.5 (P + P^T) over the last two axes."""
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any = 0.0):
@@ -171,22 +167,6 @@ def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray
         IKH = np.eye(n) - K @ H
         P_new = IKH @ P @ np.swapaxes(IKH, -1, -2) + K @ noise @ np.swapaxes(K, -1, -2)
     return x_new, symmetrize(P_new), K
-
-
-def psd_sqrt(M: np.ndarray) -> np.ndarray:
-    r"""A square root :math:`L` with :math:`LL^T = M` of PSD matrices ``M`` (..., k, k).
-
-    The lower Cholesky factor when every matrix of the batch is numerically positive
-    definite; otherwise (a singular Q with zero rows, P0 = 0, ...) the eigen-decomposition
-    root :math:`V\,\mathrm{diag}(\sqrt{\max(w, 0)})` of the symmetric part, which is not
-    triangular (none of its users needs that) and sets rounding-negative eigenvalues to 0.
-    """
-    M = np.asarray(M, dtype=float)
-    try:
-        return np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        w, V = np.linalg.eigh(symmetrize(M))
-        return V * np.sqrt(np.maximum(w, 0.0))[..., None, :]
 
 
 def sqrt_predict(x: np.ndarray, S: np.ndarray, A: np.ndarray, Qroot: np.ndarray, bx: Any = 0.0):

@@ -2,7 +2,7 @@ r"""Optimal linear filter, predictor and smoothers for pure-delay systems with f
 
 Source: Y. Li, J. Li, X. Wang (2018), "Optimal linear estimators for time-delay systems with
 fading measurements and correlated noises" (seed 002; spec ``002_timedelay_fading.md`` §2).
-Model (1)–(3) in :mod:`tobitkf.models_delay`. All estimators are the affine LMMSE
+Model (1)–(3) in :mod:`tobitkf.models.delay`. All estimators are the affine LMMSE
 (projection on span{1, y(0..t)}) for the equivalent second-order model (spec §1.6):
 
 .. math::
@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance
-from ..models_delay import DelayFadingSystem, HistoryPrior
+from ..models.delay import DelayFadingSystem, HistoryPrior
 from ._common import check_keywords, symmetrize
 
 __all__ = ["DelayEstimates", "IntervalSmoothing", "chain_lmmse", "augmented_lmmse", "reorganized_lmmse",
@@ -60,7 +60,7 @@ _ERRATA = ("E5", "E6", "E7")
 class DelayEstimates:
     """Estimates of the delay system, index t = measurement time (y(0) at index 0).
 
-    Truth alignment with :func:`~tobitkf.models_delay.simulate_delay` output: ``mean`` lines up
+    Truth alignment with :func:`~tobitkf.simulate.delay.simulate_delay` output: ``mean`` lines up
     with ``data.x[:, :T]`` (x(t)), ``pred_mean`` with ``data.x[:, 1:]`` (x(t+1), which is what
     :func:`tobitkf.metrics.summarize` does with a (N, T+1, n) truth), ``measured_mean`` with
     ``full_states(data)[:, :T]`` (x(t-d)).

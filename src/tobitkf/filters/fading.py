@@ -93,7 +93,7 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ._common import FilterResult, check_keywords, check_prior, gain_update, prepare_inputs, prepare_measurements
 from ._shift import shift_predict
 from .kalman import KalmanFilter

@@ -43,7 +43,7 @@ import numpy as np
 
 from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
                       prepare_measurements, process_roots, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)

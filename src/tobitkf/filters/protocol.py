@@ -65,7 +65,7 @@ from scipy.special import ndtr
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_psd
 from ..censored import censored_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ._common import FilterResult, check_keywords, prepare_measurements, symmetrize
 from ._shift import shift_predict
 

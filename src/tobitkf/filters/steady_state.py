@@ -54,7 +54,7 @@ from scipy.special import ndtri
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
-from ..models import LinearSystem
+from ..models.linear import LinearSystem
 from ._common import FilterResult, prepare_inputs, prepare_measurements
 from .tobit import _sigma_of
 

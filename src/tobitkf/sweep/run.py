@@ -24,42 +24,17 @@ import numpy as np
 
 from .._validation import ValidationError
 from ..metrics import nees_terms
+from .build import build_point
 from .spec import SweepSpec
 from .store import open_store, reduce_store, write_blocks
 
 __all__ = ["build_point", "run_block", "run_sweep", "experiment_seed"]
 
 
-def build_point(spec: SweepSpec, point: dict[str, Any], *, threads: int | None = None):
-    """System, censoring and estimator objects of one grid point (model mode).
-
-    ``threads`` is passed to the estimators that split their runs over threads (the TKF's
-    compiled kernel); None keeps their default."""
-    from ..channels.censoring import Censoring
-    from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
-    from ..filters.tobit import TobitKalmanFilter
-    from ..models import LinearSystem
-
-    r = spec.resolved(point)
-    sys_ = LinearSystem(**r["model"])
-    cens = Censoring(**r["censoring"])
-    cens.check(sys_.m, spec.steps)
-    estimators = {}
-    for key, est in r["estimators"].items():
-        opts = {k: v for k, v in est.items() if k != "type"}
-        if est["type"] == "KalmanFilter":
-            estimators[key] = KalmanFilter(sys_, **opts)
-        elif est["type"] == "DroppingKalmanFilter":
-            estimators[key] = DroppingKalmanFilter(sys_, cens, **opts)
-        else:
-            estimators[key] = TobitKalmanFilter(sys_, cens, threads=threads, **opts)
-    return sys_, cens, estimators
-
-
 def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int, *,
               threads: int | None = None) -> dict[str, np.ndarray]:
     """Simulate ``runs`` runs of block ``block`` and return its sufficient statistics."""
-    from ..simulate import simulate
+    from ..simulate.core import simulate
 
     sys_, cens, estimators = build_point(spec, point, threads=threads)
     data = simulate(sys_, spec.steps, runs, censoring=cens, seed=np.random.SeedSequence(spec.seed, spawn_key=(block,)))
@@ -188,7 +163,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
         not fit the store (e.g. a grid over the horizon).
     """
     from .._io import safe_child
-    from ..filters._backend import default_threads
+    from .._compiled import default_threads
 
     if workers is None:
         workers = default_threads()

@@ -283,7 +283,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     # build the base model and every grid point once, so that a bad matrix or limit fails on
     # load (naming the key that holds it), not mid-sweep
     if experiment is None:
-        from .run import build_point
+        from .build import build_point
 
         try:
             build_point(spec, {})

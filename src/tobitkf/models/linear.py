@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import ShapeError, TimeSequence, as_float_array, check_psd
+from .._validation import ShapeError, TimeSequence, as_float_array, check_psd
 
 __all__ = ["LinearSystem"]
 

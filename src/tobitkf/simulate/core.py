@@ -30,9 +30,11 @@ from typing import Any
 
 import numpy as np
 
-from ._validation import ShapeError, ValidationError, check_instance
-from .channels.censoring import Censoring
-from .models import LinearSystem
+from .._linalg import eigh_sqrt as psd_sqrt
+from .._validation import ShapeError, ValidationError, as_generator, check_count, check_instance
+from ..channels.base import Channel
+from ..channels.censoring import Censoring
+from ..models.linear import LinearSystem
 
 __all__ = ["SimulationData", "simulate", "as_generator", "psd_sqrt"]
 
@@ -70,35 +72,9 @@ class SimulationData:
         return self.y.shape[1]
 
 
-def as_generator(seed: Any) -> np.random.Generator:
-    """A ``numpy.random.Generator`` from an int, a SeedSequence or a Generator."""
-    if isinstance(seed, np.random.Generator):
-        return seed
-    if seed is None:
-        raise ValidationError("seed: expected an int, SeedSequence or Generator (an explicit seed), got None")
-    try:
-        return np.random.default_rng(seed)
-    except (TypeError, ValueError) as exc:
-        raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} ({exc})") from None
-
-
-def psd_sqrt(cov: np.ndarray) -> np.ndarray:
-    """A square root S with S S^T = cov for a symmetric PSD ``cov`` (..., n, n), singular allowed."""
-    w, V = np.linalg.eigh(0.5 * (cov + np.swapaxes(cov, -1, -2)))
-    return V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]
-
-
-def _check_count(value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise ValidationError(f"{name}: expected a positive integer, got {value!r}")
-    if value < 1:
-        raise ValidationError(f"{name}: expected a positive integer, got {value}")
-    return int(value)
-
-
-def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Censoring | None = None,
-             measurement: Any = None, post: Sequence[Any] = (), inputs: Any = None,
-             seed: Any = 0) -> SimulationData:
+def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channel | Sequence[Channel] | None = None,
+             censoring: Censoring | None = None, measurement: Any = None, post: Sequence[Any] = (),
+             inputs: Any = None, seed: Any = 0) -> SimulationData:
     """Draw truth and censored measurements for many runs at once.
 
     Parameters
@@ -109,6 +85,13 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Cens
         Horizon T (number of measurements).
     runs : int, default 1
         Number of independent Monte Carlo runs N.
+    channel : Channel or sequence of Channel, optional
+        The channel pieces between sensor and estimator (:class:`~tobitkf.channels.base.Channel`:
+        :class:`~tobitkf.Censoring`, :class:`~tobitkf.RiceFading`, :class:`~tobitkf.ProtocolChannel`,
+        :class:`~tobitkf.RandomSaturation`), applied stage by stage: the one piece that draws the
+        reading (at most one), then every piece's censoring, then every piece's post-censoring step,
+        each in the order given. ``censoring``, ``measurement`` and ``post`` below are the same
+        stages named one by one; they run before the ``channel`` pieces of the same stage.
     censoring : Censoring, optional
         Limits applied to the latent measurements; default: none.
     measurement : object, optional
@@ -141,8 +124,8 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Cens
     ((3, 6, 1), (3, 5, 1), True)
     """
     check_instance(system, LinearSystem, "system")
-    steps = _check_count(steps, "steps")
-    runs = _check_count(runs, "runs")
+    steps = check_count(steps, "steps")
+    runs = check_count(runs, "runs")
     system.check_horizon(steps)  # also validates callables over the horizon
     if censoring is not None:
         check_instance(censoring, Censoring, "censoring")
@@ -157,6 +140,16 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Cens
         if not callable(getattr(piece, "apply", None)):
             raise ValidationError(f"post[{i}]: expected an object with an apply(rng, y, extras) method, "
                                   f"got {type(piece).__name__}")
+    pieces = () if channel is None else (tuple(channel) if isinstance(channel, (list, tuple)) else (channel,))
+    for i, piece in enumerate(pieces):
+        check_instance(piece, Channel, f"channel[{i}]" if len(pieces) > 1 else "channel")
+        piece.check(system, steps)
+    drawers = [p for p in pieces if p.measures]
+    if len(drawers) + (measurement is not None) > 1:
+        raise ValidationError("channel: at most one piece may draw the reading (measurement=, or one channel "
+                              f"with a draw stage), got {len(drawers) + (measurement is not None)}")
+    if drawers:
+        measurement = drawers[0]
     u = system.check_inputs(inputs, steps, "inputs")
     if u is not None:
         u = np.broadcast_to(u, (runs, steps, system.p)) if u.ndim == 2 else u
@@ -207,6 +200,10 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, censoring: Cens
             raise ShapeError(f"measurement: draw() returned shape {y_latent.shape}, expected {(runs, steps, m)}")
         extras = dict(extras)
     y = y_latent if censoring is None else censoring.clip(y_latent)
+    for piece in pieces:
+        y = piece.censor(y)
     for piece in post:
+        y = piece.apply(rng, y, extras)
+    for piece in pieces:
         y = piece.apply(rng, y, extras)
     return SimulationData(x=x, y=y, y_latent=y_latent, u=u, extras=extras)

@@ -1,0 +1,85 @@
+r"""Compiled (numba) dense linear algebra shared by the filters' kernels and the metrics.
+
+:func:`gauss_solve` is Gaussian elimination with partial pivoting (what LAPACK's gesv behind
+``numpy.linalg.solve`` does), written once and called by the TKF's gain solve
+(:mod:`tobitkf.filters._kernels`) and by :func:`nees_terms` (:func:`tobitkf.metrics.nees_terms`).
+Compiled on first use and cached on disk; importing this module imports numba.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+__all__ = ["gauss_solve", "nees_terms"]
+
+_INF = math.inf
+
+
+@njit(cache=True, error_model="numpy")
+def gauss_solve(M, W):
+    """Solve ``M X = W`` in place (``W`` (m, r) becomes X; ``M`` (m, m) is overwritten) by Gaussian
+    elimination with partial pivoting, like LAPACK gesv behind ``numpy.linalg.solve``. Returns
+    False, leaving both half-eliminated, when a pivot is exactly zero (a singular ``M``)."""
+    m, r = W.shape
+    for c in range(m):
+        p = c
+        best = abs(M[c, c])
+        for q in range(c + 1, m):
+            if abs(M[q, c]) > best:
+                best = abs(M[q, c])
+                p = q
+        if p != c:
+            for j in range(m):
+                t = M[c, j]
+                M[c, j] = M[p, j]
+                M[p, j] = t
+            for i in range(r):
+                t = W[c, i]
+                W[c, i] = W[p, i]
+                W[p, i] = t
+        if M[c, c] == 0.0:
+            return False
+        for q in range(c + 1, m):
+            f = M[q, c] / M[c, c]
+            for j in range(c, m):
+                M[q, j] -= f * M[c, j]
+            for i in range(r):
+                W[q, i] -= f * W[c, i]
+    for c in range(m - 1, -1, -1):
+        for i in range(r):
+            t = W[c, i]
+            for j in range(c + 1, m):
+                t -= M[c, j] * W[j, i]
+            W[c, i] = t / M[c, c]
+    return True
+
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def nees_terms(err, cov, out):
+    r""":math:`e_k^T P_k^{-1} e_k` for ``err`` (K, n) and ``cov`` (Kc, n, n), run ``k`` using
+    ``cov[k % Kc]`` (a covariance shared by the runs broadcasts this way); written to ``out`` (K,).
+
+    The compiled form of :func:`tobitkf.metrics.nees_terms`: one :func:`gauss_solve` per matrix
+    (as ``numpy.linalg.solve``), so a matrix with an exactly zero pivot (singular) gives ``inf``
+    for its own term only."""
+    K, n = err.shape
+    Kc = cov.shape[0]
+    M = np.empty((n, n))
+    v = np.empty((n, 1))
+    for k in range(K):
+        c0 = k % Kc
+        for i in range(n):
+            v[i, 0] = err[k, i]
+            for j in range(n):
+                M[i, j] = cov[c0, i, j]
+        if not gauss_solve(M, v):
+            out[k] = _INF
+            continue
+        s = 0.0
+        for i in range(n):
+            s += err[k, i] * v[i, 0]
+        out[k] = s

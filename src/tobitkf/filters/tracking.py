@@ -1,0 +1,171 @@
+r"""Multi-target tracker for similar targets that leave an imager's field of view (Miller 2015 §2.2).
+
+Source: Miller (2015) §2.2, (2.8)–(2.17), Table 2.1; spec 001a §2.3 and ambiguities A-2.1–A-2.7.
+
+N identical-looking points are tracked by N independent Kalman filters (run here as one batch over
+targets) with the constant-velocity model (2.8), (2.10)–(2.11):
+
+.. math::
+
+    x_i = [x, \Delta x, y, \Delta y]^T, \quad x_i(k|k-1) = Ax_i(k-1|k-1) + Bu_i(k), \quad y_i = Cx_i + v
+
+Per frame: predict; associate the unordered detections M with the estimates Y by
+
+1. the first map :math:`j(i) = \arg\min_j\|y_i - m_j\|` (not injective);
+2. the second map: among the estimates that chose the same :math:`m_j`, only the closest keeps it
+   (A-2.5; ``second_map="mutual"`` requires mutual nearest neighbours instead);
+3. the gate (2.12)–(2.13): keep the pair only if :math:`\|y_i - m_j\| < T_i = T_o + \alpha O_i(k)`,
+   O_i the number of consecutive occluded frames before this one (A-2.6);
+
+matched targets get the KF update, unmatched ones keep the prediction (2.14); during the warm-up
+(A-2.4: a fixed number of frames) the association uses each target's previous measurement instead of
+its prediction. Occluded-target feedback (2.15)–(2.17): :math:`B = \mathrm{diag}(\mu, 1, \mu, 1)` and, for an
+occluded target i, :math:`u_i = \overline{x_n}_{n\ \text{visible}} - x_i` (posteriors and visibility of the
+previous frame), which pulls its velocity to the mean velocity of the visible targets.
+
+Deviations from the source (A-2.1, A-2.2): the printed (2.16) has the opposite sign
+(:math:`x_i - \bar x`), averages over all other targets and applies :math:`\epsilon_i = 1` to targets *in*
+the frame, which contradicts the prose ("the error between the occluded state and the mean of the
+non-occluded states", used "only when i is occluded"). ``feedback="printed"`` keeps the printed form.
+Q, R, P_0, T_o, α, μ are not given (A-2.3); the defaults are the spec's.
+
+Time convention: frame 0 initialises the filters from the supplied locations (one-to-one, fixing the
+identities); frames 1..T are tracked; output index k-1 holds frame k.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
+from ._common import gain_update, predict
+
+__all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
+
+
+def constant_velocity_pixel_model() -> tuple[np.ndarray, np.ndarray]:
+    """A (4, 4) and C (2, 4) of (2.10)–(2.11): per-frame constant velocity in pixels."""
+    A = np.kron(np.eye(2), [[1.0, 1.0], [0.0, 1.0]])
+    C = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
+    return A, C
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """``mean`` (T, N, 4) posteriors, ``cov`` (T, N, 4, 4), ``assignment`` (T, N) index of the matched detection
+    in each frame (-1: occluded / missing), ``occluded_frames`` (T, N) the O_i(k) used by the gate."""
+
+    mean: np.ndarray
+    cov: np.ndarray
+    assignment: np.ndarray
+    occluded_frames: np.ndarray
+
+
+class MultiTargetTracker:
+    """Tracker of §2.2 (see the module docstring).
+
+    Parameters
+    ----------
+    Q : (4, 4) array_like, default 0.01 I
+    R : (2, 2) array_like, default I (px²)
+    P0 : (4, 4) array_like, default diag(1, 10, 1, 10)
+    gate0 : float, default 10 (px)   :math:`T_o`
+    gate_slope : float, default 2 (px/frame)   :math:`\\alpha`
+    mu : float, default 0   position weight in B
+    warmup : int, default 5   frames associated against the previous measurements
+    feedback : {"corrected", "printed", "off"}, default "corrected"
+    second_map : {"closest", "mutual"}, default "closest"
+    gate : bool, default True   (False: no gating, for the comparison of Exp. 3)
+
+    Raises
+    ------
+    ValidationError
+        Negative gate, unknown options.
+    """
+
+    def __init__(self, *, Q: Any = None, R: Any = None, P0: Any = None, gate0: float = 10.0, gate_slope: float = 2.0,
+                 mu: float = 0.0, warmup: int = 5, feedback: str = "corrected", second_map: str = "closest",
+                 gate: bool = True):
+        check_option(feedback, "feedback", ("corrected", "printed", "off"))
+        check_option(second_map, "second_map", ("closest", "mutual"))
+        if gate0 <= 0 or gate_slope < 0:
+            raise ValidationError(f"gate0/gate_slope: expected gate0 > 0 and gate_slope >= 0, got {gate0}, {gate_slope}")
+        if warmup < 0:
+            raise ValidationError(f"warmup: expected a non-negative number of frames, got {warmup}")
+        self.A, self.C = constant_velocity_pixel_model()
+        self.Q = 0.01 * np.eye(4) if Q is None else as_float_array(Q, "Q")
+        self.R = np.eye(2) if R is None else as_float_array(R, "R")
+        self.P0 = np.diag([1.0, 10.0, 1.0, 10.0]) if P0 is None else as_float_array(P0, "P0")
+        for name, M, k in (("Q", self.Q, 4), ("R", self.R, 2), ("P0", self.P0, 4)):
+            if M.shape != (k, k):
+                raise ShapeError(f"{name}: expected shape ({k}, {k}), got {M.shape}")
+            check_psd(M, name, strict=(name == "R"))
+        self.B = np.diag([mu, 1.0, mu, 1.0])
+        self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
+        self.feedback, self.second_map, self.gate = feedback, second_map, gate
+
+    def _feedback(self, x: np.ndarray, visible: np.ndarray) -> np.ndarray:
+        N = x.shape[0]
+        u = np.zeros_like(x)
+        if self.feedback == "off" or N < 2:
+            return u
+        if self.feedback == "printed":
+            # (2.16)-(2.17) as printed: own minus mean of all others, applied to targets in the frame
+            others = (x.sum(axis=0) - x) / (N - 1)
+            return (x - others) * visible[:, None]
+        if not visible.any():
+            return u
+        for i in np.flatnonzero(~visible):
+            vis = visible.copy()
+            vis[i] = False
+            if vis.any():
+                u[i] = x[vis].mean(axis=0) - x[i]
+        return u
+
+    def track(self, initial: Any, detections: Sequence[Any]) -> TrackResult:
+        """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
+        of unordered points (L_k may be 0)."""
+        init = as_float_array(initial, "initial")
+        if init.ndim != 2 or init.shape[1] != 2:
+            raise ShapeError(f"initial: expected (N, 2) target locations, got {init.shape}")
+        N = init.shape[0]
+        x = np.zeros((N, 4))
+        x[:, 0], x[:, 2] = init[:, 0], init[:, 1]
+        P = np.broadcast_to(self.P0, (N, 4, 4)).copy()
+        T = len(detections)
+        means, covs = np.empty((T, N, 4)), np.empty((T, N, 4, 4))
+        assign = np.full((T, N), -1)
+        occl = np.zeros((T, N), dtype=int)
+        O = np.zeros(N, dtype=int)
+        visible = np.ones(N, dtype=bool)
+        last_meas = init.copy()
+        for k in range(T):
+            M = np.asarray(detections[k], dtype=float).reshape(-1, 2)
+            u = self._feedback(x, visible)
+            x, P = predict(x, P, self.A, self.Q, u @ self.B.T)
+            ref = last_meas if k < self.warmup else x @ self.C.T
+            occl[k] = O
+            match = np.full(N, -1)
+            if len(M):
+                D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)     # (N, L)
+                first = np.argmin(D, axis=1)
+                dist = D[np.arange(N), first]
+                for j in np.unique(first):
+                    choosers = np.flatnonzero(first == j)
+                    best = choosers[np.argmin(dist[choosers])]
+                    if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
+                        continue
+                    if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
+                        match[best] = j
+            visible = match >= 0
+            z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
+            CP = self.C @ P
+            valid = np.repeat(visible[:, None], 2, axis=1)
+            x, P, _ = gain_update(x, P, z - x @ self.C.T, np.swapaxes(CP, -1, -2), CP @ self.C.T + self.R, valid)
+            last_meas = np.where(visible[:, None], z, last_meas)
+            O = np.where(visible, 0, O + 1)
+            means[k], covs[k], assign[k] = x, P, match
+        return TrackResult(means, covs, assign, occl)
