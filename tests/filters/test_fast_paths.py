@@ -68,7 +68,7 @@ def test_fading_smoothed_blocks_are_the_diagonal_blocks():
 
 
 def test_shift_predict_equals_dense_block_shift():
-    from tobitkf.filters._shift import shift_predict
+    from tobitkf.filters.core import shift_predict
 
     rng = np.random.default_rng(11)
     N, n, blocks = 9, 3, 4

@@ -102,11 +102,11 @@ class Censoring(Channel):
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
 
-    def all_limits(self, steps: int, m: int) -> tuple[np.ndarray, np.ndarray]:
-        """Limits broadcast to ``(T, m)`` for k = 1..T."""
-        self.check(m, steps)
-        lo = self.lower[:steps] if self.time_varying else self.lower
-        hi = self.upper[:steps] if self.time_varying else self.upper
+    def all_limits(self, steps: int, m: int, *, start: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Limits broadcast to ``(T, m)`` for k = start..start+T-1 (default k = 1..T)."""
+        self.check(m, start - 1 + steps)
+        lo = self.lower[start - 1:start - 1 + steps] if self.time_varying else self.lower
+        hi = self.upper[start - 1:start - 1 + steps] if self.time_varying else self.upper
         return (np.broadcast_to(lo, (steps, m)).copy(), np.broadcast_to(hi, (steps, m)).copy())
 
     def clip(self, y_latent: np.ndarray, k: int | None = None) -> np.ndarray:
@@ -127,23 +127,23 @@ class Censoring(Channel):
         """:meth:`clip` of a whole record ``(..., T, m)`` (the :class:`~tobitkf.channels.base.Channel` stage)."""
         return self.clip(y_latent)
 
-    def censored_mask(self, y: np.ndarray, *, rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    def censored_mask(self, y: np.ndarray, *, rtol: float = 1e-12, start: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Masks ``(at_lower, at_upper)`` of a record ``(..., T, m)`` reading exactly at a limit.
 
         A reading counts as censored when it is within ``rtol * max(1, |limit|)`` of the limit
-        (spec 001a §3.5: "detect censoring as y <= T + tol" [non-source]).
+        (spec 001a §3.5: "detect censoring as y <= T + tol" [non-source]). Row 0 is time ``start``.
         """
         steps, m = y.shape[-2:]
-        lo, hi = self.all_limits(steps, m)
+        lo, hi = self.all_limits(steps, m, start=start)
         with np.errstate(invalid="ignore"):
             at_lo = np.isfinite(lo) & (y <= lo + rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0))))
             at_hi = np.isfinite(hi) & (y >= hi - rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0))))
         return at_lo, at_hi
 
-    def check_measurements(self, y: np.ndarray, name: str = "y", *, rtol: float = 1e-9) -> None:
-        """Raise :class:`ValidationError` if a (non-NaN) reading lies outside its limits."""
+    def check_measurements(self, y: np.ndarray, name: str = "y", *, rtol: float = 1e-9, start: int = 1) -> None:
+        """Raise :class:`ValidationError` if a (non-NaN) reading lies outside its limits (row 0 is time ``start``)."""
         steps, m = y.shape[-2:]
-        lo, hi = self.all_limits(steps, m)
+        lo, hi = self.all_limits(steps, m, start=start)
         tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
         tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
         with np.errstate(invalid="ignore"):

@@ -95,7 +95,7 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._common import FilterResult, check_keywords, check_prior, gain_update, prepare_inputs, prepare_measurements
-from ._shift import shift_predict
+from .core import shift_predict
 from .kalman import KalmanFilter
 from .tobit import TobitKalmanFilter
 

@@ -67,7 +67,7 @@ from ..censored import censored_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._common import FilterResult, check_keywords, prepare_measurements, symmetrize
-from ._shift import shift_predict
+from .core import shift_predict
 
 __all__ = ["ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "baseline_channel",
            "protocol_covariance_bounds", "CovarianceBounds", "augmented_transition", "noise_input",
