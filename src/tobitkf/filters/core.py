@@ -242,6 +242,11 @@ class MeasurementPrediction:
     gain : (n_x, m) ndarray or None
         A fixed gain (steady-state filters): :math:`\hat x = \bar x + K(y - \hat y)` and the
         covariance is the transition's fixed one.
+    retained : (N, m) ndarray or None
+        Diagonal variance :math:`V` the reading leaves in the channel (an assumed-density update of a
+        censored reading: the variance of the latent reading given that it was censored). The
+        posterior covariance gains :math:`KVK^T` in every form: :math:`P = \bar P - K(R_{ee} - V)K^T`.
+        None means 0 (the reading removes the whole innovation variance).
     extras : dict
         Per-step quantities the family reports (N, ...).
     """
@@ -253,6 +258,7 @@ class MeasurementPrediction:
     valid: np.ndarray | None = None
     observed: np.ndarray | None = None
     gain: np.ndarray | None = None
+    retained: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
 
 
@@ -581,7 +587,7 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
       stacked runs instead of dense (n_x × n_x) products; equal to rounding, tested);
     * ``"square_root"``: the QR array form of :func:`sqrt_update` on the factor ``S``;
 
-    or, with a fixed gain (``mp.gain``), :math:`\hat x = \bar x + K(y - \hat y)` and the covariance
+    plus :math:`KVK^T` when the family retains a variance V (``mp.retained``); or, with a fixed gain (``mp.gain``), :math:`\hat x = \bar x + K(y - \hat y)` and the covariance
     unchanged.
 
     Parameters
@@ -616,6 +622,13 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
             R = noise
             root = None
         xn, Pn, Sn, K = sqrt_update(x, S, innov, H, R, valid, R_root=root)
+        if mp.retained is not None:
+            # P + K V K^T as the factor of [S, K V^{1/2}]: one more QR, PSD by construction
+            KV = K * np.sqrt(np.maximum(mp.retained, 0.0))[..., None, :]
+            Sb = np.broadcast_to(Sn, KV.shape[:-2] + Sn.shape[-2:])
+            U = np.linalg.qr(np.concatenate([np.swapaxes(Sb, -1, -2), np.swapaxes(KV, -1, -2)], axis=-2), mode="r")
+            Sn = np.swapaxes(U, -1, -2)
+            Pn = symmetrize(Sn @ np.swapaxes(Sn, -1, -2))
         return xn, Pn, Sn, K, None
     Rxe, Ree, _ = _moments(P, mp)
     K, e, ok = _solve(Rxe, Ree, innov, valid)
@@ -630,6 +643,8 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
         noise = mp.noise
         KN = K * noise[..., None, :] if noise.ndim == K.ndim - 1 else K @ noise
         M = M - (MH - KN) @ np.swapaxes(K, -1, -2)
+    if mp.retained is not None:
+        M = M + (K * mp.retained[..., None, :]) @ np.swapaxes(K, -1, -2)
     return x_new, symmetrize(M), None, K, Ree
 
 
@@ -795,19 +810,16 @@ class _Recorder:
 
 # --------------------------------------------------------------------------- the estimator base and the loop
 
-class GaussianFilter:
-    r"""Base of every Gaussian-update family: the online API and the one time loop.
+class Estimator:
+    r"""Base of every estimator: the online API (:meth:`init`, :meth:`step`) and the one time loop
+    (:meth:`_run`, behind each family's ``filter``).
 
-    A family implements three hooks on arrays (batched over N runs, no validation inside):
-
-    * ``_initial(N, x0, P0)`` → ``(x, P, carry)``: the prior;
-    * ``_transition(k, u, carry)`` → :class:`Transition` from k-1 to k;
-    * ``_measurement(k, x̄, P̄, y, u, carry, **step_options)`` → ``(MeasurementPrediction, carry)``;
-
-    and optionally ``_extras(k, x̄, P̄, x, P, mp, K, Ree)`` for per-step quantities that need the
-    posterior. Everything else (the predict, the update in each covariance form, the masking, the
-    divergence check, the recording of outputs, :meth:`init`, :meth:`predict`, :meth:`update`,
-    :meth:`step` and :meth:`filter`) is shared.
+    An estimator implements ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)`` (the prior) and
+    ``_step_arrays(k, x, P, S, carry, y, u, options)`` → ``(x, P, S, carry, x̄, P̄, extras)`` (one
+    reading, batched over N runs, no validation inside). :class:`GaussianFilter` implements the
+    second from three smaller hooks shared by every Gaussian-update family; estimators that are not
+    Gaussian updates (the particle filter, the H∞ filter, the tracker) implement it directly and get
+    the same ``init``/``step``/``filter`` and the same recorded outputs.
     """
 
     #: dimension of the reported state (set by the family)
@@ -819,23 +831,12 @@ class GaussianFilter:
     #: covariance form
     covariance_update: str = "standard"
     #: name used in messages
-    _name: str = "filter"
+    _name: str = "estimator"
     #: per-step options ``step``/``update`` accept (e.g. ``lower``/``upper`` for a steered limit)
     _step_options: tuple[str, ...] = ()
 
-    # ---- hooks (families) -------------------------------------------------------------
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):   # pragma: no cover - abstract
         raise NotImplementedError
-
-    def _transition(self, k: int, u: np.ndarray | None, carry: Mapping[str, Any]) -> Transition:  # pragma: no cover
-        raise NotImplementedError
-
-    def _measurement(self, k: int, xp: np.ndarray, Pp: np.ndarray, y: np.ndarray, u: np.ndarray | None,
-                     carry: Mapping[str, Any], **options: Any):   # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def _extras(self, k: int, xp, Pp, x, P, mp: MeasurementPrediction, K, Ree) -> dict[str, Any] | None:
-        return mp.extras
 
     def _check_record(self, y2: np.ndarray, u2: np.ndarray | None, k0: int) -> None:
         """Checks of a whole record at the boundary (limits, horizon); families extend."""
@@ -852,15 +853,6 @@ class GaussianFilter:
     def _fast_step(self, state: FilterState, y: np.ndarray, u, options) -> FilterState | None:
         """A compiled single step, or None (the numpy step runs)."""
         return None
-
-    # ---- shared ----------------------------------------------------------------------
-    def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
-        """One predict + update on arrays: returns ``(x, P, S, carry, x̄, P̄, extras)``."""
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        mp, carry = self._measurement(k, xp, Pp, y, u, carry, **(options or {}))
-        xn, Pn, Sn, K, Ree = measurement_update(xp, Pp, Sp, y, mp, self.covariance_update)
-        return xn, Pn, Sn, carry, xp, Pp, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree)
 
     def init(self, batch_shape: Any = (), *, x0: Any = None, P0: Any = None) -> FilterState:
         """The prior as a :class:`FilterState` for ``batch_shape`` runs (``()`` for one run).
@@ -933,35 +925,6 @@ class GaussianFilter:
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
 
-    def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
-        """The time update alone: the prediction :math:`\\hat x_{k+1|k}`, :math:`P_{k+1|k}` as a state
-        whose ``k`` is the predicted time (pass it to :meth:`update` with that time's reading)."""
-        state = self._check_state(state)
-        uk = self._step_input(state, u)
-        k = state.k + 1
-        tr = self._transition(k, uk, state.carry)
-        xp, Pp, Sp = time_update(state.x, state.P, state.S, tr, self.covariance_update)
-        carry = dict(state.carry)
-        carry["_predicted"] = True
-        if uk is not None:
-            carry["_u"] = uk
-        return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
-
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
-        yk = self._reading(state, y)
-        opts = self._prepare_step_options(state, self._check_options(options))
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        uk = state.carry.get("_u")
-        mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
-        x, P, S, _, _ = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
-        x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
-
     def _run(self, y: Any, u: Any = None, x0: Any = None, P0: Any = None, *, outputs: Any = "all",
              state: FilterState | None = None, step_options: Sequence[Mapping[str, Any]] | None = None,
              name: str = "y") -> FilterResult:
@@ -1002,6 +965,74 @@ class GaussianFilter:
 
     def _prepare_record(self, y: Any, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
         return prepare_measurements(y, self.m, name)
+
+    def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):   # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+class GaussianFilter(Estimator):
+    r"""Base of every Gaussian-update family: the shared predict and update behind the online API.
+
+    A family implements three hooks on arrays (batched over N runs, no validation inside):
+
+    * ``_initial(N, x0, P0)`` → ``(x, P, carry)``: the prior;
+    * ``_transition(k, u, carry)`` → :class:`Transition` from k-1 to k;
+    * ``_measurement(k, x̄, P̄, y, u, carry, **step_options)`` → ``(MeasurementPrediction, carry)``;
+
+    and optionally ``_extras(k, x̄, P̄, x, P, mp, K, Ree)`` for per-step quantities that need the
+    posterior. Everything else (the predict, the update in each covariance form, the masking, the
+    divergence check, the recording of outputs, :meth:`init`, :meth:`predict`, :meth:`update`,
+    :meth:`step` and :meth:`filter`) is shared.
+    """
+
+    _name = "filter"
+
+    def _transition(self, k: int, u: np.ndarray | None, carry: Mapping[str, Any]) -> Transition:  # pragma: no cover
+        raise NotImplementedError
+
+    def _measurement(self, k: int, xp: np.ndarray, Pp: np.ndarray, y: np.ndarray, u: np.ndarray | None,
+                     carry: Mapping[str, Any], **options: Any):   # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _extras(self, k: int, xp, Pp, x, P, mp: MeasurementPrediction, K, Ree) -> dict[str, Any] | None:
+        return mp.extras
+
+    def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
+        """One predict + update on arrays: returns ``(x, P, S, carry, x̄, P̄, extras)``."""
+        tr = self._transition(k, u, carry)
+        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
+        mp, carry = self._measurement(k, xp, Pp, y, u, carry, **(options or {}))
+        xn, Pn, Sn, K, Ree = measurement_update(xp, Pp, Sp, y, mp, self.covariance_update)
+        return xn, Pn, Sn, carry, xp, Pp, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree)
+
+    def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
+        """The time update alone: the prediction :math:`\\hat x_{k+1|k}`, :math:`P_{k+1|k}` as a state
+        whose ``k`` is the predicted time (pass it to :meth:`update` with that time's reading)."""
+        state = self._check_state(state)
+        uk = self._step_input(state, u)
+        k = state.k + 1
+        tr = self._transition(k, uk, state.carry)
+        xp, Pp, Sp = time_update(state.x, state.P, state.S, tr, self.covariance_update)
+        carry = dict(state.carry)
+        carry["_predicted"] = True
+        if uk is not None:
+            carry["_u"] = uk
+        return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
+
+    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
+        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
+        state = self._check_state(state)
+        if not state.carry.get("_predicted"):
+            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
+                                  "filtered one")
+        yk = self._reading(state, y)
+        opts = self._prepare_step_options(state, self._check_options(options))
+        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
+        uk = state.carry.get("_u")
+        mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
+        x, P, S, _, _ = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
+        x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
+        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
 
 
 def _check_batch(batch_shape: Any) -> tuple[int, ...]:
