@@ -82,7 +82,48 @@ def case_tkf_tv(batch, rng, backend="numpy", form="standard"):
     return tk.TobitKalmanFilter(sys_, cens, backend=backend, covariance_update=form), y, u
 
 
-CASES = {"kf": case_kf, "kf-inputs-tv": case_kf_inputs_tv, "dkf": case_dkf, "tkf": case_tkf, "tkf-tv": case_tkf_tv}
+def case_sstkf(batch, rng, backend="numpy", form="standard"):
+    sys_ = oscillator(Bu=[[0.0], [1.0]])
+    est = tk.SteadyStateTobitKalmanFilter(sys_, 0.7)
+    N = int(np.prod(batch)) if batch else 1
+    u = 0.1 * rng.standard_normal(batch + (10, 1))
+    d = tk.simulate(sys_, 10, N, inputs=u.reshape(N, 10, 1), seed=6)
+    y = est.filter_controlled(d.y_latent, u=u.reshape(N, 10, 1)).extras["y"].reshape(batch + (10, 1))
+    return est, y, u
+
+
+def case_fading(batch, rng, backend="numpy", form="joseph"):
+    from tobitkf.channels.fading import RiceFading
+
+    T = 12
+    sys_ = oscillator(Bu=[[0.0], [1.0]], C=lambda k: np.array([[1.0, 0.01 * k]]))
+    fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
+    cens = tk.Censoring(lower=0.0)
+    N = int(np.prod(batch)) if batch else 1
+    u = 0.1 * rng.standard_normal(batch + (T, 1))
+    d = tk.simulate(sys_, T, N, censoring=cens, measurement=fad, inputs=u.reshape(N, T, 1), seed=11)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 1))
+    est = tk.FadingTobitKalmanFilter(sys_, fad, cens, covariance_update=form, p_uncensored_mode="eq6_stale",
+                                     fading_variance_term=True)
+    return est, y, u
+
+
+def case_protocol(batch, rng, backend="numpy", form="joseph"):
+    from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
+
+    T = 12
+    w = 0.052 * np.pi
+    sys_ = tk.LinearSystem(A=lambda k: np.array([[np.cos(w), -np.sin(w)], [np.sin(w), 0.99 * np.cos(w)]]),
+                           C=np.eye(2), Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5]), x0=[5.0, 0.0], P0=np.eye(2))
+    ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    N = int(np.prod(batch)) if batch else 1
+    d = tk.simulate(sys_, T, N, channel=ch, seed=12)
+    est = tk.ProtocolTobitKalmanFilter(sys_, ch, covariance_update=form, failure_term="second_moment")
+    return est, d.y.reshape(batch + (T, 1)), None
+
+
+CASES = {"kf": case_kf, "kf-inputs-tv": case_kf_inputs_tv, "dkf": case_dkf, "tkf": case_tkf, "tkf-tv": case_tkf_tv,
+         "sstkf": case_sstkf, "fading": case_fading, "protocol": case_protocol}
 BATCHES = [(), (5,), (2, 3)]
 
 
@@ -150,7 +191,7 @@ def test_compiled_step_equals_numpy_step(name):
     np.testing.assert_allclose(c_nb, c_np, rtol=0, atol=TOL)
 
 
-@pytest.mark.parametrize("name", ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv"])
+@pytest.mark.parametrize("name", ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv", "fading", "protocol"])
 def test_square_root_form_equals_standard(name):
     rng = np.random.default_rng(3)
     std, y, u = CASES[name]((4,), rng)
@@ -228,3 +269,38 @@ def test_outputs_on_request():
         np.testing.assert_allclose(last.final.mean, full.mean[:, -1], rtol=0, atol=TOL)
     with pytest.raises(tk.ValidationError, match="outputs: expected 'all', 'last' or names"):
         tkf.filter(d.y, outputs="covariance")
+
+
+def test_steady_state_latent_step_equals_filter_controlled():
+    sys_ = oscillator()
+    est = tk.SteadyStateTobitKalmanFilter(sys_, 0.6, side="lower")
+    d = tk.simulate(sys_, 12, 4, seed=9)
+    ref = est.filter_controlled(d.y_latent)
+    state = est.init((4,))
+    for k in range(12):
+        state = est.step(state, d.y_latent[:, k], latent=True)
+        np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
+    np.testing.assert_array_equal(state.cov, np.broadcast_to(est.cov, (4, 2, 2)))
+
+
+def test_controlled_full_tkf_step_equals_its_filter():
+    sys_ = oscillator()
+    est = tk.filters.steady_state.ControlledLimitTobitKalmanFilter(sys_, 0.7)
+    d = tk.simulate(sys_, 10, 3, seed=10)
+    ref = tk.tobit_kalman_filter_controlled(sys_, 0.7, d.y_latent)
+    state = est.init((3,))
+    for k in range(10):
+        state = est.step(state, d.y_latent[:, k])
+        np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
+        np.testing.assert_allclose(state.cov, ref.cov[:, k], rtol=0, atol=TOL)
+
+
+def test_steady_state_inverse_mills_has_the_sign_of_censored_moments():
+    sys_ = oscillator()
+    for side in ("upper", "lower"):
+        est = tk.SteadyStateTobitKalmanFilter(sys_, 0.5, side=side)
+        lim = est.limit(np.zeros(1))
+        lo, hi = (-np.inf, lim) if side == "upper" else (lim, np.inf)
+        st = tk.censored_moments(0.0, est.sigma, lo, hi)
+        np.testing.assert_allclose(est.inverse_mills, st.inverse_mills, rtol=1e-12)
+        np.testing.assert_allclose(est.lambda_hat, np.sqrt(2 / np.pi), rtol=1e-12)   # phi(0) / 0.5

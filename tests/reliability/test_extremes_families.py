@@ -259,6 +259,34 @@ def test_square_root_form_matches_a_60_digit_reference_on_the_hard_case():
             assert (np.abs(old.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() > 1e-3
 
 
+def test_square_root_form_of_the_augmented_families_on_the_hard_case():
+    """The fading filter (L = 0, unit gain: the KF) and the protocol filter (one sensor, no window, no
+    failures: the KF) in square-root form match the same 60-digit reference to 1e-6 and stay PSD on the
+    hard case (P0 = 1e8 I, R = 1e-12 I), where their Joseph form fails the same criterion (tolerances as
+    above)."""
+    from tobitkf.channels.fading import RiceFading
+    from tobitkf.channels.protocol import ProtocolChannel
+
+    s, data = _hard_case()
+    s1 = tk.LinearSystem(A=s.A.array, C=s.C.array[:1], Q=s.Q.array, R=s.R.array[:1, :1], x0=s.x0, P0=s.P0)
+    y1 = data.y[..., :1]
+    cases = [(s, data.y, lambda f: FadingTobitKalmanFilter(s, RiceFading(0, [1.0]), None, covariance_update=f)),
+             (s1, y1, lambda f: tk.ProtocolTobitKalmanFilter(s1, ProtocolChannel(1), covariance_update=f))]
+    for sys_, y, make in cases:
+        for r in range(y.shape[0]):
+            mean, cov, pcov = _decimal_kf(sys_, y[r])
+            out = make("square_root").filter(y[r])
+            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6
+            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
+                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6
+                eig = np.linalg.eigvalsh(got)
+                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2)))
+            old = make("joseph").filter(y[r])
+            bad_mean = (np.abs(old.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() > 1e-3
+            bad_psd = np.linalg.eigvalsh(old.cov).min() < -1e-12 * np.abs(old.cov).max()
+            assert bad_mean or bad_psd
+
+
 def test_square_root_tobit_filter_on_the_hard_case_with_limits():
     """The TKF in square-root form stays healthy on the hard case with active two-sided limits."""
     s, data = _hard_case()

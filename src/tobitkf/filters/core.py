@@ -242,6 +242,8 @@ class MeasurementPrediction:
     gain : (n_x, m) ndarray or None
         A fixed gain (steady-state filters): :math:`\hat x = \bar x + K(y - \hat y)` and the
         covariance is the transition's fixed one.
+    posterior_cov : (N or 1, n_x, n_x) ndarray or None
+        With a fixed ``gain``: the (constant) covariance after the update.
     retained : (N, m) ndarray or None
         Diagonal variance :math:`V` the reading leaves in the channel (an assumed-density update of a
         censored reading: the variance of the latent reading given that it was censored). The
@@ -258,6 +260,7 @@ class MeasurementPrediction:
     valid: np.ndarray | None = None
     observed: np.ndarray | None = None
     gain: np.ndarray | None = None
+    posterior_cov: np.ndarray | None = None
     retained: np.ndarray | None = None
     extras: dict[str, Any] = field(default_factory=dict)
 
@@ -609,7 +612,7 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
         innov = np.where(missing, 0.0, innov)
     if mp.gain is not None:
         e = innov if valid is None else np.where(valid, innov, 0.0)
-        return x + e @ mp.gain.T, P, S, mp.gain, None
+        return x + e @ mp.gain.T, (P if mp.posterior_cov is None else mp.posterior_cov), S, mp.gain, None
     if form == "square_root":
         H = mp.H0[None] if mp.scale is None else mp.H0[None] * mp.scale[:, :, None]
         noise = mp.noise
@@ -838,7 +841,7 @@ class Estimator:
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):   # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _check_record(self, y2: np.ndarray, u2: np.ndarray | None, k0: int) -> None:
+    def _check_record(self, y2: np.ndarray, u2: np.ndarray | None, k0: int, name: str = "y") -> None:
         """Checks of a whole record at the boundary (limits, horizon); families extend."""
 
     def _prepare_inputs(self, u: Any, N: int, T: int, batch: tuple[int, ...]) -> np.ndarray | None:
@@ -926,9 +929,11 @@ class Estimator:
         return options
 
     def _run(self, y: Any, u: Any = None, x0: Any = None, P0: Any = None, *, outputs: Any = "all",
-             state: FilterState | None = None, step_options: Sequence[Mapping[str, Any]] | None = None,
-             name: str = "y") -> FilterResult:
-        """The one time loop: validate once, then :meth:`_step_arrays` for each reading."""
+             state: FilterState | None = None, step_options: Mapping[str, Any] | None = None,
+             step_data: Mapping[str, np.ndarray] | None = None, name: str = "y") -> FilterResult:
+        """The one time loop: validate once, then :meth:`_step_arrays` for each reading (with the same
+        ``step_options`` at every step, e.g. ``latent=True`` for a sensor that censors in the loop, and
+        row ``i`` of each ``step_data`` array (N, T, ...), e.g. a censoring indicator)."""
         want = parse_outputs(outputs)
         y2, batch = self._prepare_record(y, name)
         N, T, _ = y2.shape
@@ -941,7 +946,7 @@ class Estimator:
         else:
             state = self.init(batch, x0=x0, P0=P0)
         u2 = self._prepare_inputs(u, N, T, batch)
-        self._check_record(y2, u2, state.k)
+        self._check_record(y2, u2, state.k, name)
         fast = self._fast_filter(y2, u2, state, want, batch)
         if fast is not None:
             return fast
@@ -950,8 +955,12 @@ class Estimator:
         first_bad = None
         for i in range(T):
             k = state.k + i + 1
+            opts = step_options
+            if step_data:
+                opts = dict(step_options or {})
+                opts.update({key: val[:, i] for key, val in step_data.items()})
             x, P, S, carry, xp, Pp, extras = self._step_arrays(k, x, P, S, carry, y2[:, i],
-                                                               None if u2 is None else u2[:, i], None)
+                                                               None if u2 is None else u2[:, i], opts)
             if first_bad is None:
                 first_bad = _first_nonfinite(P if S is None else S, k)
             if first_bad is not None:
@@ -979,8 +988,8 @@ class GaussianFilter(Estimator):
     * ``_transition(k, u, carry)`` → :class:`Transition` from k-1 to k;
     * ``_measurement(k, x̄, P̄, y, u, carry, **step_options)`` → ``(MeasurementPrediction, carry)``;
 
-    and optionally ``_extras(k, x̄, P̄, x, P, mp, K, Ree)`` for per-step quantities that need the
-    posterior. Everything else (the predict, the update in each covariance form, the masking, the
+    and optionally ``_extras(k, x̄, P̄, x, P, mp, K, Ree, options)`` for per-step quantities that need
+    the posterior. Everything else (the predict, the update in each covariance form, the masking, the
     divergence check, the recording of outputs, :meth:`init`, :meth:`predict`, :meth:`update`,
     :meth:`step` and :meth:`filter`) is shared.
     """
@@ -994,7 +1003,7 @@ class GaussianFilter(Estimator):
                      carry: Mapping[str, Any], **options: Any):   # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _extras(self, k: int, xp, Pp, x, P, mp: MeasurementPrediction, K, Ree) -> dict[str, Any] | None:
+    def _extras(self, k: int, xp, Pp, x, P, mp: MeasurementPrediction, K, Ree, options) -> dict[str, Any] | None:
         return mp.extras
 
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
@@ -1003,7 +1012,7 @@ class GaussianFilter(Estimator):
         xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
         mp, carry = self._measurement(k, xp, Pp, y, u, carry, **(options or {}))
         xn, Pn, Sn, K, Ree = measurement_update(xp, Pp, Sp, y, mp, self.covariance_update)
-        return xn, Pn, Sn, carry, xp, Pp, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree)
+        return xn, Pn, Sn, carry, xp, Pp, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree, options or {})
 
     def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
         """The time update alone: the prediction :math:`\\hat x_{k+1|k}`, :math:`P_{k+1|k}` as a state

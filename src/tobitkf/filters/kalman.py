@@ -106,7 +106,7 @@ class LinearGaussianFamily(GaussianFilter):
             raise ShapeError(f"u: expected one input of shape {want} (batch_shape + (p,)), got {arr.shape}") from None
         return arr.reshape(state.runs, sys_.p)
 
-    def _check_record(self, y2: np.ndarray, u2, k0: int) -> None:
+    def _check_record(self, y2: np.ndarray, u2, k0: int, name: str = "y") -> None:
         self.system.check_horizon(k0 + y2.shape[1])
 
 
@@ -366,9 +366,9 @@ class DroppingKalmanFilter(KalmanFilter):
         return MeasurementPrediction(expected=mp.expected, H0=mp.H0, noise=mp.noise, valid=~dropped,
                                      extras={"censored": dropped}), carry
 
-    def _check_record(self, y2, u2, k0):
-        super()._check_record(y2, u2, k0)
-        self.censoring.check_measurements(y2, start=k0 + 1)
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
+        self.censoring.check_measurements(y2, name, start=k0 + 1)
 
     def _fast_filter(self, y2, u2, state, want, batch):
         if not self._kernel_ok(u2):

@@ -156,13 +156,15 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     return x, P, censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
-def _sigma_of(R: np.ndarray, name: str = "R") -> np.ndarray:
+def _sigma_of(R: np.ndarray, name: str = "R", *, who: str = "the Tobit Kalman filter",
+              why: str = "Miller Assumption A2, (3.36)", positive: str | None = None) -> np.ndarray:
+    """Channel standard deviations of a diagonal R, refusing a correlated or singular one (naming ``who``)."""
     off = R - np.diag(np.diagonal(R))
-    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
-        raise ValidationError(f"{name}: the Tobit Kalman filter needs a diagonal R (Miller Assumption A2, (3.36))")
+    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
+        raise ValidationError(f"{name}: {who} needs a diagonal R ({why})")
     d = np.diagonal(R)
     if np.any(d <= 0):
-        raise ValidationError(f"{name}: the Tobit Kalman filter needs positive measurement variances, got {d}")
+        raise ValidationError(f"{name}: {positive or who + ' needs positive measurement variances'}, got {d}")
     return np.sqrt(d)
 
 
@@ -257,11 +259,11 @@ class TobitKalmanFilter(LinearGaussianFamily):
                                dy=self._feedthrough(k, u), noise_term=self.noise_term)
         return mp, carry
 
-    def _check_record(self, y2, u2, k0):
-        super()._check_record(y2, u2, k0)
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
         self.censoring.check(self.m, k0 + y2.shape[1])
         if self.check_limits:
-            self.censoring.check_measurements(y2, start=k0 + 1)
+            self.censoring.check_measurements(y2, name, start=k0 + 1)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         out = {}
