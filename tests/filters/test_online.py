@@ -122,8 +122,37 @@ def case_protocol(batch, rng, backend="numpy", form="joseph"):
     return est, d.y.reshape(batch + (T, 1)), None
 
 
+def _delay(batch, rng, cls, **kw):
+    from tobitkf.models.delay import paper_example, paper_prior
+    from tobitkf.simulate.delay import simulate_delay
+
+    sys_, prior = paper_example(), paper_prior()
+    N = int(np.prod(batch)) if batch else 1
+    y = simulate_delay(sys_, prior, 14, N, seed=13).y.reshape(batch + (14, 1))
+    return cls(sys_, prior, **kw), y, None
+
+
+def case_delay_chain(batch, rng, backend="numpy", form="standard"):
+    from tobitkf.filters.delay import ChainLMMSE
+
+    return _delay(batch, rng, ChainLMMSE)
+
+
+def case_delay_augmented(batch, rng, backend="numpy", form="standard"):
+    from tobitkf.filters.delay import AugmentedLMMSE
+
+    return _delay(batch, rng, AugmentedLMMSE, window=5)
+
+
+def case_delay_reorganized(batch, rng, backend="numpy", form="standard"):
+    from tobitkf.filters.delay import ReorganizedInnovationLMMSE
+
+    return _delay(batch, rng, ReorganizedInnovationLMMSE, warmup=3)
+
+
 CASES = {"kf": case_kf, "kf-inputs-tv": case_kf_inputs_tv, "dkf": case_dkf, "tkf": case_tkf, "tkf-tv": case_tkf_tv,
-         "sstkf": case_sstkf, "fading": case_fading, "protocol": case_protocol}
+         "sstkf": case_sstkf, "fading": case_fading, "protocol": case_protocol, "delay-chain": case_delay_chain,
+         "delay-augmented": case_delay_augmented, "delay-reorganized": case_delay_reorganized}
 BATCHES = [(), (5,), (2, 3)]
 
 
@@ -150,10 +179,11 @@ def test_step_loop_equals_filter(name, batch):
     T = y.shape[-2]
     res = filter_of(est, y, u)
     state, means, covs = run_steps(est, y, u, batch, T)
-    assert res.mean.shape == batch + (T, est.n) and res.times.tolist() == list(range(1, T + 1))
+    k0 = est.k0                      # the prior's time index: 0, or -1 for the delay family (y(0) first)
+    assert res.mean.shape == batch + (T, est.n) and res.times.tolist() == list(range(k0 + 1, k0 + T + 1))
     np.testing.assert_allclose(means, res.mean, rtol=0, atol=TOL)
     np.testing.assert_allclose(covs, res.cov, rtol=0, atol=TOL)
-    assert state.k == T and res.final.k == T
+    assert state.k == k0 + T and res.final.k == k0 + T
     np.testing.assert_allclose(state.mean, res.final.mean, rtol=0, atol=TOL)
 
 
@@ -166,7 +196,7 @@ def test_pickled_state_resumes_identically(name):
     half = T // 2
     state, _, _ = run_steps(est, y[..., :half, :], None if u is None else u[..., :half, :], batch, half)
     revived = pickle.loads(pickle.dumps(state))
-    assert isinstance(revived, FilterState) and revived.k == half
+    assert isinstance(revived, FilterState) and revived.k == est.k0 + half
     a, ma, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half, start=state)
     b, mb, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half,
                          start=revived)
@@ -175,7 +205,7 @@ def test_pickled_state_resumes_identically(name):
     # filter() continues from a state too, and the two halves make the whole record
     whole = filter_of(est, y, u)
     second = est.filter(y[..., half:, :], state=revived, **({} if u is None else {"u": u[..., half:, :]}))
-    assert second.times.tolist() == list(range(half + 1, T + 1))
+    assert second.times.tolist() == list(range(est.k0 + half + 1, est.k0 + T + 1))
     np.testing.assert_allclose(second.mean, whole.mean[..., half:, :], rtol=0, atol=TOL)
 
 

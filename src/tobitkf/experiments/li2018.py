@@ -120,7 +120,7 @@ def _steady_state(q_values=Q_VALUES, S_values=S_VALUES, horizon: int = 600) -> l
             r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((horizon, 1)))
             ref = REFERENCE.get((q, S))
             row = {"q": q, "S": S, "P_filter_diag": np.diagonal(r.cov[-1]),
-                   "P_measured_diag": np.diagonal(r.measured_cov[-1]), "Q_eps": float(r.innovation_cov[-1, 0, 0])}
+                   "P_measured_diag": np.diagonal(r.extras["measured_cov"][-1]), "Q_eps": float(r.extras["innovation_cov"][-1, 0, 0])}
             if ref is not None:
                 row.update({"reference_P_filter_diag": ref[0], "reference_P_measured_diag": ref[1],
                             "reference_Q_eps": ref[2]})
@@ -139,10 +139,10 @@ def _run_S(S: float, q: float, runs: int, steps: int, seed: int, keys: tuple[str
     truth_f, truth_p = data.x[:, :steps], data.x[:, 1:]
     per = {}
     for key, r in est.items():
-        per[key] = {"filter": _mse(r.mean - truth_f), "predictor": _mse(r.pred_mean - truth_p),
+        per[key] = {"filter": _mse(r.mean - truth_f), "predictor": _mse(r.extras["next_mean"] - truth_p),
                     "filter_summary": summarize(truth_f, r.mean, r.cov[0] if r.cov.ndim == 4 else r.cov, skip=10),
                     "P_filter_diag": np.diagonal(r.cov[0], axis1=-2, axis2=-1),
-                    "P_pred_diag": np.diagonal(r.pred_cov[0], axis1=-2, axis2=-1)}
+                    "P_pred_diag": np.diagonal(r.extras["next_cov"][0], axis1=-2, axis2=-1)}
     return data, est, per
 
 
@@ -177,7 +177,7 @@ def _chain_vs_augmented(data_keep) -> float:
     for data, est in data_keep.values():
         if "augmented" in est:
             worst = max(worst, float(np.abs(est["chain"].mean - est["augmented"].mean).max()),
-                        float(np.abs(est["chain"].pred_mean - est["augmented"].pred_mean).max()))
+                        float(np.abs(est["chain"].extras["next_mean"] - est["augmented"].extras["next_mean"]).max()))
     return worst
 
 
@@ -185,7 +185,7 @@ def _filter_is_predictor(data_keep) -> float:
     worst = 0.0
     for data, est in data_keep.values():
         r = est["chain"]
-        worst = max(worst, float(np.abs(r.mean[:, 1:] - r.pred_mean[:, :-1]).max()))
+        worst = max(worst, float(np.abs(r.mean[:, 1:] - r.extras["next_mean"][:, :-1]).max()))
     return worst
 
 
@@ -225,8 +225,8 @@ def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: i
     claims = [
         {"claim": "the filter has good tracking performance (Fig. 1)",
          "measured": f"S={headline:g}: steady ensemble MSE of x̂(t|t) = {np.round(per['chain']['filter']['per_step'][50:].mean(0), 4).tolist()} "
-                     f"vs Var x = {np.round(np.diagonal(est['chain'].second_moment[-1]), 3).tolist()}; MSE/P = {np.round(ratio, 3).tolist()}",
-         "holds": bool(np.all(per["chain"]["filter"]["per_step"][50:].mean(0) < 0.1 * np.diagonal(est["chain"].second_moment[-1])))},
+                     f"vs Var x = {np.round(np.diagonal(est['chain'].extras['second_moment'][-1]), 3).tolist()}; MSE/P = {np.round(ratio, 3).tolist()}",
+         "holds": bool(np.all(per["chain"]["filter"]["per_step"][50:].mean(0) < 0.1 * np.diagonal(est["chain"].extras["second_moment"][-1])))},
         {"claim": "the estimator is optimal (equals the LMMSE of the augmented system)",
          "measured": f"max |chain - augmented| = {worst:.2e}", "holds": worst < 1e-9},
         {"claim": "x̂(t|t) of Theorem 1 is a filter that uses y(t) (spec §0 finds it equals x̂(t|t-1) for d >= 1)",
@@ -337,7 +337,7 @@ def run_tables(*, runs: int, seed: int, progress=None, S: Any = None, steps: int
                                      "unknown (spec §3.5); compare qualitatively",
                "mse": _metrics_block(by, 1.0, S_values), "steady_state": _steady_state((1.0,), S_values)}
     data, est = keep[1.0]
-    shift = float(np.abs(est["chain"].mean[:, 1:] - est["chain"].pred_mean[:, :-1]).max())
+    shift = float(np.abs(est["chain"].mean[:, 1:] - est["chain"].extras["next_mean"][:, :-1]).max())
     beats = all(np.all(by[(1.0, s)]["chain"][w]["running_avg"][-1] < by[(1.0, s)]["naive-kf"][w]["running_avg"][-1])
                 for s in S_values if s > 0 for w in ("filter", "predictor"))
     head = by[(1.0, headline)]

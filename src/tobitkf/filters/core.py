@@ -806,7 +806,8 @@ class _Recorder:
 
     def result(self, runs: int, times: np.ndarray, final: FilterState | None) -> FilterResult:
         a = {k: self._out(v, runs) for k, v in self.arrays.items()}
-        extras = {k: self._out(v, runs) if v.ndim >= 2 and v.shape[1] == runs else v for k, v in self.extras.items()}
+        extras = {k: self._out(v, runs) if v.ndim >= 2 and v.shape[1] in (1, runs) else v
+                  for k, v in self.extras.items()}
         return FilterResult(mean=a.get("mean"), cov=a.get("cov"), pred_mean=a.get("pred_mean"),
                             pred_cov=a.get("pred_cov"), extras=extras, times=times, var=a.get("var"), final=final)
 
