@@ -95,6 +95,9 @@ class FilterState:
     carry : mapping
         Family-specific arrays carried from step to step (stale predictions, second moments,
         pending inputs, a generator's state); read-only by convention.
+    extras : mapping
+        The per-step quantities of the last step (what ``filter`` records in ``extras``, for the
+        runs in the flat layout (N, ...)), e.g. ``p_uncensored``; empty for a prior.
     """
 
     k: int
@@ -104,6 +107,7 @@ class FilterState:
     n: int
     S: np.ndarray | None = None
     carry: Mapping[str, Any] = field(default_factory=dict)
+    extras: Mapping[str, Any] = field(default_factory=dict)
 
     @property
     def mean(self) -> np.ndarray:
@@ -781,7 +785,7 @@ class _Recorder:
         n, w = self.n, self.want
         if "mean" in w:
             self._put(self.arrays, "mean", i, x[:, :n])
-        if "pred_mean" in w:
+        if "pred_mean" in w and xp is not None:
             self._put(self.arrays, "pred_mean", i, xp[:, :n])
         for key, cov in (("cov", P), ("pred_cov", Pp)):
             if key in w and cov is not None:
@@ -922,9 +926,10 @@ class Estimator:
         if fast is not None:
             return fast
         k = state.k + 1
-        x, P, S, carry, _, _, _ = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
+        x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
         x, carry = _divergence_check(self._name, x, P if S is None else S, k, self.covariance_update, carry)
-        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry,
+                           extras=extras or {})
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
@@ -1040,9 +1045,11 @@ class GaussianFilter(Estimator):
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
         uk = state.carry.get("_u")
         mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
-        x, P, S, _, _ = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
+        x, P, S, K, Ree = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
         x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+        extras = self._extras(state.k, state.x, state.P, x, P, mp, K, Ree, opts)
+        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry,
+                           extras=extras or {})
 
 
 def _check_batch(batch_shape: Any) -> tuple[int, ...]:

@@ -306,7 +306,9 @@ class TobitKalmanFilter(LinearGaussianFamily):
         if self.check_limits:
             self.censoring.check_measurements(y[:, None], start=state.k + 1)
         lo, hi = self.censoring.all_limits(1, self.m, start=state.k + 1)
-        return _tkf_kernel_run(self, y[:, None], lo, hi, state, frozenset(), state.batch_shape).final
+        res = _tkf_kernel_run(self, y[:, None], lo, hi, state, frozenset({"extras"}), state.batch_shape)
+        extras = {key: val.reshape(state.runs, 1, self.m)[:, 0] for key, val in res.extras.items()}
+        return res.final.replace(extras=extras)
 
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing).
