@@ -926,7 +926,8 @@ class Estimator:
         if fast is not None:
             return fast
         k = state.k + 1
-        x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
+        with np.errstate(over="ignore", invalid="ignore"):   # an overflow is detected and reported below
+            x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
         x, carry = _divergence_check(self._name, x, P if S is None else S, k, self.covariance_update, carry)
         return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry,
                            extras=extras or {})
@@ -958,6 +959,10 @@ class Estimator:
             return fast
         rec = _Recorder(want, T, batch, self.n)
         x, P, S, carry = state.x, state.P, state.S, state.carry
+        with np.errstate(over="ignore", invalid="ignore"):   # an overflow is detected and reported below
+            return self._loop(rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T)
+
+    def _loop(self, rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T):
         first_bad = None
         for i in range(T):
             k = state.k + i + 1
@@ -1044,8 +1049,9 @@ class GaussianFilter(Estimator):
         opts = self._prepare_step_options(state, self._check_options(options))
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
         uk = state.carry.get("_u")
-        mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
-        x, P, S, K, Ree = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
+        with np.errstate(over="ignore", invalid="ignore"):   # an overflow is detected and reported below
+            mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
+            x, P, S, K, Ree = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
         x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
         extras = self._extras(state.k, state.x, state.P, x, P, mp, K, Ree, opts)
         return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry,
@@ -1092,7 +1098,7 @@ def _divergence_warning(name: str, k: int, form: str) -> None:
               "covariance_update='square_root', which keeps the factor finite far longer")
     warnings.warn(f"{name}: the covariance stopped being finite at step k={k} (overflow: an unstable model "
                   f"predicted without readings for too long); the means of the affected runs are NaN from there "
-                  f"on. Remedy: {remedy}", RuntimeWarning, stacklevel=4)
+                  f"on. Remedy: {remedy}", RuntimeWarning, stacklevel=5)
 
 
 def _divergence_check(name: str, x: np.ndarray, P: np.ndarray | None, k: int, form: str, carry: Mapping[str, Any]):

@@ -163,13 +163,14 @@ class KalmanFilter(LinearGaussianFamily):
     def _fast_filter(self, y2, u2, state, want, batch):
         if not self._kernel_ok(u2):
             return None
-        return _kf_kernel_run(self, y2, np.isnan(y2), state, want, batch)
+        return _finite_or_none(_kf_kernel_run(self, y2, np.isnan(y2), state, want, batch))
 
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u):
             return None
-        res = _kf_kernel_run(self, y[:, None], np.isnan(y[:, None]), state, frozenset(), state.batch_shape)
-        return res.final
+        res = _finite_or_none(_kf_kernel_run(self, y[:, None], np.isnan(y[:, None]), state, frozenset(),
+                                             state.batch_shape))
+        return None if res is None else res.final
 
     def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
                state: FilterState | None = None) -> FilterResult:
@@ -180,6 +181,14 @@ class KalmanFilter(LinearGaussianFamily):
         (e.g. ``result.final``) instead of the prior.
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+def _finite_or_none(res: FilterResult) -> FilterResult | None:
+    """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
+    the call, which makes the affected means NaN from the first bad step and warns (the kernels would
+    skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
+    P = res.final.P
+    return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
 
 
 def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):
@@ -375,7 +384,9 @@ class DroppingKalmanFilter(KalmanFilter):
             return None
         at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol, start=state.k + 1)
         dropped = at_lo | at_hi
-        res = _kf_kernel_run(self, y2, np.isnan(y2) | dropped, state, want, batch)
+        res = _finite_or_none(_kf_kernel_run(self, y2, np.isnan(y2) | dropped, state, want, batch))
+        if res is None:
+            return None
         extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
         return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=extras,
                             times=res.times, var=res.var, final=res.final)
@@ -384,4 +395,6 @@ class DroppingKalmanFilter(KalmanFilter):
         if not self._kernel_ok(u):
             return None
         missing = np.isnan(y) | self._dropped(y, state.k + 1)
-        return _kf_kernel_run(self, y[:, None], missing[:, None], state, frozenset(), state.batch_shape).final
+        res = _finite_or_none(_kf_kernel_run(self, y[:, None], missing[:, None], state, frozenset(),
+                                             state.batch_shape))
+        return None if res is None else res.final

@@ -72,7 +72,7 @@ from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
 from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
                    measurement_update, psd_sqrt)
-from .kalman import LinearGaussianFamily
+from .kalman import LinearGaussianFamily, _finite_or_none
 
 __all__ = ["tobit_update", "tobit_measurement", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
 
@@ -298,7 +298,7 @@ class TobitKalmanFilter(LinearGaussianFamily):
         if not self._kernel_ok(u2):
             return None
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1)
-        return _tkf_kernel_run(self, y2, lo, hi, state, want, batch)
+        return _finite_or_none(_tkf_kernel_run(self, y2, lo, hi, state, want, batch))
 
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u) or options:
@@ -306,7 +306,10 @@ class TobitKalmanFilter(LinearGaussianFamily):
         if self.check_limits:
             self.censoring.check_measurements(y[:, None], start=state.k + 1)
         lo, hi = self.censoring.all_limits(1, self.m, start=state.k + 1)
-        res = _tkf_kernel_run(self, y[:, None], lo, hi, state, frozenset({"extras"}), state.batch_shape)
+        res = _finite_or_none(_tkf_kernel_run(self, y[:, None], lo, hi, state, frozenset({"extras"}),
+                                              state.batch_shape))
+        if res is None:
+            return None
         extras = {key: val.reshape(state.runs, 1, self.m)[:, 0] for key, val in res.extras.items()}
         return res.final.replace(extras=extras)
 
