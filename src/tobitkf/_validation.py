@@ -39,6 +39,15 @@ class ShapeError(ValidationError):
 def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = None,
                    allow_nan: bool = False, allow_inf: bool = False) -> np.ndarray:
     """Convert ``value`` to a float64 array and check dimension and finiteness."""
+    if type(value) is np.ndarray and value.dtype == np.float64:   # already numbers: no conversion to check
+        arr = value
+        if ndim is not None:
+            allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+            if arr.ndim not in allowed:
+                raise ShapeError(f"{name}: expected {' or '.join(str(a) for a in allowed)} dimension(s), "
+                                 f"got shape {arr.shape}")
+        check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
+        return arr
     try:
         with warnings.catch_warnings():
             # complex input: numpy would drop the imaginary part with only a warning

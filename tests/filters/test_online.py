@@ -334,3 +334,39 @@ def test_steady_state_inverse_mills_has_the_sign_of_censored_moments():
         st = tk.censored_moments(0.0, est.sigma, lo, hi)
         np.testing.assert_allclose(est.inverse_mills, st.inverse_mills, rtol=1e-12)
         np.testing.assert_allclose(est.lambda_hat, np.sqrt(2 / np.pi), rtol=1e-12)   # phi(0) / 0.5
+
+
+# --- property: batched = per run = step by step, on random models ---------------------------------
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(1, 3), m=st.integers(1, 2), seed=st.integers(0, 2**31 - 1), family=st.sampled_from(
+    ["kf", "tkf", "dkf", "tkf-sqrt", "tkf-joseph"]))
+def test_batched_equals_per_run_equals_step_by_step(n, m, seed, family):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    A *= 0.95 / max(1e-9, np.abs(np.linalg.eigvals(A)).max())
+    G = rng.normal(size=(n, n))
+    sys_ = tk.LinearSystem(A=A, C=rng.normal(size=(m, n)), Q=G @ G.T / n + 0.01 * np.eye(n),
+                           R=np.diag(rng.uniform(0.05, 1.0, m)), x0=rng.normal(size=n), P0=np.eye(n))
+    lower = rng.normal(size=m) * 0.5
+    cens = tk.Censoring(lower=lower)
+    d = tk.simulate(sys_, 8, 3, censoring=cens, seed=seed)
+    y = with_gaps(d.y, rng, 0.15)
+    make = {"kf": lambda: tk.KalmanFilter(sys_, backend="numpy"),
+            "dkf": lambda: tk.DroppingKalmanFilter(sys_, cens, backend="numpy"),
+            "tkf": lambda: tk.TobitKalmanFilter(sys_, cens, backend="numpy"),
+            "tkf-sqrt": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="square_root"),
+            "tkf-joseph": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="joseph", backend="numpy")}[family]
+    est = make()
+    batch = est.filter(y)
+    for r in range(3):
+        one = est.filter(y[r])
+        np.testing.assert_allclose(one.mean, batch.mean[r], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(one.cov, batch.cov[r], rtol=1e-10, atol=1e-12)
+    state = est.init((3,))
+    for k in range(8):
+        state = est.step(state, y[:, k])
+    np.testing.assert_allclose(state.mean, batch.mean[:, -1], rtol=0, atol=1e-12)

@@ -154,6 +154,26 @@ class Censoring(Channel):
             raise ValidationError(f"{name}: measurement {y[idx]:.6g} at index {idx} lies outside its censoring "
                                   f"limits [{lo[t, ch]:.6g}, {hi[t, ch]:.6g}]")
 
+    def check_reading(self, y: np.ndarray, k: int, name: str = "y", *, rtol: float = 1e-9) -> None:
+        """Raise :class:`ValidationError` if a (non-NaN) reading ``y`` (..., m) of step ``k`` lies outside its
+        limits (the one-step form of :meth:`check_measurements`, for online filtering)."""
+        cached = self.__dict__.get("_bounds") if not self.time_varying and rtol == 1e-9 else None
+        if cached is None:
+            lo, hi = self.limits(k)
+            tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
+            tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
+            cached = (lo - tol_lo, hi + tol_hi, lo, hi)
+            if not self.time_varying and rtol == 1e-9:
+                self._bounds = cached          # constant limits: the tolerance band is computed once
+        lo_b, hi_b, lo, hi = cached
+        bad = (y < lo_b) | (y > hi_b)           # NaN (a missing reading) compares False
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            ch = idx[-1]
+            lo_b, hi_b = np.broadcast_to(lo, y.shape[-1:]), np.broadcast_to(hi, y.shape[-1:])
+            raise ValidationError(f"{name}: measurement {y[idx]:.6g} at step k={k}, channel {ch} lies outside its "
+                                  f"censoring limits [{lo_b[ch]:.6g}, {hi_b[ch]:.6g}]")
+
     def __repr__(self) -> str:
         def fmt(v):
             return np.array2string(v, threshold=6) if v.ndim else str(float(v))

@@ -401,7 +401,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     """
     N, T, m = y.shape
     n = A.shape[0]
-    B = BLOCK
+    B = min(BLOCK, max(N, 1))     # a single run (the online step) allocates a single column
     x = np.empty((n, B))
     P = np.empty((n, n, B))
     xp = np.empty((n, B))
@@ -424,7 +424,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
     buf = np.empty((2, glx.shape[0]))
-    S = CHUNK
+    S = min(CHUNK, max(T, 1))     # and a single step one staging slot
     s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
     s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
     s_pu, s_ey = np.empty((B, S, m)), np.empty((B, S, m))
@@ -519,7 +519,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     # The block scratch is allocated here as in tkf_kernel, not by a shared helper: arrays
     # returned from a helper's tuple cost 25 % per step in a single run (0.57 -> 0.72 us for
     # the KF, measured), LLVM no longer knowing that they are fresh and unaliased.
-    B = BLOCK
+    B = min(BLOCK, max(N, 1))     # a single run (the online step) allocates a single column
     x = np.empty((n, B))
     P = np.empty((n, n, B))
     xp = np.empty((n, B))
@@ -545,7 +545,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     oks = np.empty(m, dtype=np.bool_)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
-    S = CHUNK
+    S = min(CHUNK, max(T, 1))     # and a single step one staging slot
     s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
     s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
     for r0 in range(0, runs, B):

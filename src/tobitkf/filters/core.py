@@ -42,6 +42,7 @@ Time convention of the package families (the delay and H∞ families keep their 
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
@@ -127,7 +128,7 @@ class FilterState:
     @property
     def runs(self) -> int:
         """Number of runs N = prod(batch_shape)."""
-        return int(np.prod(self.batch_shape, dtype=int))
+        return math.prod(self.batch_shape)
 
     @property
     def aug_mean(self) -> np.ndarray:
@@ -892,8 +893,6 @@ class Estimator:
         arr = as_float_array(y, name, allow_nan=True)
         want = state.batch_shape + (self.m,)
         if arr.shape != want:
-            if arr.shape == (self.m,) * (len(want) > 0) + () and False:  # pragma: no cover
-                pass
             try:
                 arr = np.broadcast_to(arr, want)
             except ValueError:
@@ -922,6 +921,7 @@ class Estimator:
         yk = self._reading(state, y)
         uk = self._step_input(state, u)
         opts = self._prepare_step_options(state, self._check_options(options))
+        self._check_reading(state, yk, opts)
         fast = self._fast_step(state, yk, uk, opts)
         if fast is not None:
             return fast
@@ -934,6 +934,9 @@ class Estimator:
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
+
+    def _check_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
+        """Checks of one reading (N, m) of ``step`` beyond its shape (e.g. within the censoring limits)."""
 
     def _run(self, y: Any, u: Any = None, x0: Any = None, P0: Any = None, *, outputs: Any = "all",
              state: FilterState | None = None, step_options: Mapping[str, Any] | None = None,

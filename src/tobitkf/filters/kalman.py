@@ -157,6 +157,12 @@ class KalmanFilter(LinearGaussianFamily):
 
     # ---- the compiled path ------------------------------------------------------------
     def _kernel_ok(self, u) -> bool:
+        if u is None:
+            if not hasattr(self, "_kernel_static"):     # the system and options do not change: decide once
+                self._kernel_static = use_kernel(self.backend, check_square_root(
+                    self.backend, self.covariance_update, "the Kalman filter") or system_gap(self.system, None),
+                    "the Kalman filter")
+            return self._kernel_static
         gap = check_square_root(self.backend, self.covariance_update, "the Kalman filter") or system_gap(self.system, u)
         return use_kernel(self.backend, gap, "the Kalman filter")
 
@@ -168,9 +174,7 @@ class KalmanFilter(LinearGaussianFamily):
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u):
             return None
-        res = _finite_or_none(_kf_kernel_run(self, y[:, None], np.isnan(y[:, None]), state, frozenset(),
-                                             state.batch_shape))
-        return None if res is None else res.final
+        return _kf_kernel_step(self, y, np.isnan(y), state)
 
     def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
                state: FilterState | None = None) -> FilterResult:
@@ -189,6 +193,49 @@ def _finite_or_none(res: FilterResult) -> FilterResult | None:
     skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
     P = res.final.P
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
+
+
+def _kernel_matrices(est) -> tuple[np.ndarray, ...]:
+    """A, B Q B^T, C, R of a time-invariant system as contiguous float64 (computed once per estimator)."""
+    mats = est.__dict__.get("_kernel_mats")
+    if mats is None:
+        sys_ = est.system
+        c64 = np.ascontiguousarray
+        mats = est._kernel_mats = (c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float),
+                                   c64(sys_.measurement(1), dtype=float), c64(sys_.measurement_cov(1), dtype=float))
+    return mats
+
+
+_EMPTY: dict[tuple, np.ndarray] = {}
+
+
+def _empty(shape: tuple) -> np.ndarray:
+    """A cached zero-size output (an output the kernel is not asked to write)."""
+    arr = _EMPTY.get(shape)
+    if arr is None:
+        arr = _EMPTY[shape] = np.empty(shape)
+    return arr
+
+
+def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state: FilterState) -> FilterState | None:
+    """One online step through the compiled kernel (T = 1, no per-step outputs); None when it diverged."""
+    N, m = y.shape
+    n = est.n
+    P = state.P
+    per_run = P.shape[0] != 1 or bool(missing.any())
+    if per_run and P.shape[0] != N:
+        P = np.broadcast_to(P, (N, n, n))
+    P = np.ascontiguousarray(P, dtype=float)
+    Pn = P.shape[0]
+    x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
+    A, Qd, C, R = _kernel_matrices(est)
+    e_m, e_c = _empty((N, 0, n)), _empty((Pn, 0, n, n))
+    kernels().kf_kernel(np.ascontiguousarray(y.reshape(N, 1, m)), missing.reshape(N, 1, m), A, Qd, C, R,
+                        np.ascontiguousarray(state.x, dtype=float), P, est.covariance_update == "joseph",
+                        e_m, e_c, e_m, e_c, x_last, P_last)
+    if not np.isfinite(P_last).all():
+        return None
+    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry)
 
 
 def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):
@@ -394,7 +441,4 @@ class DroppingKalmanFilter(KalmanFilter):
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u):
             return None
-        missing = np.isnan(y) | self._dropped(y, state.k + 1)
-        res = _finite_or_none(_kf_kernel_run(self, y[:, None], missing[:, None], state, frozenset(),
-                                             state.batch_shape))
-        return None if res is None else res.final
+        return _kf_kernel_step(self, y, np.isnan(y) | self._dropped(y, state.k + 1), state)

@@ -72,7 +72,7 @@ from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
 from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
                    measurement_update, psd_sqrt)
-from .kalman import LinearGaussianFamily, _finite_or_none
+from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices
 
 __all__ = ["tobit_update", "tobit_measurement", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
 
@@ -284,12 +284,14 @@ class TobitKalmanFilter(LinearGaussianFamily):
             out = {"lower": lo, "upper": hi}
         return out
 
-    def _reading(self, state, y, name="y"):
-        arr = super()._reading(state, y, name)
-        return arr
-
     # ---- the compiled path ------------------------------------------------------------
     def _kernel_ok(self, u) -> bool:
+        if u is None:
+            if not hasattr(self, "_kernel_static"):     # the system and options do not change: decide once
+                self._kernel_static = use_kernel(self.backend, check_square_root(
+                    self.backend, self.covariance_update, "the Tobit Kalman filter") or system_gap(self.system, None),
+                    "the Tobit Kalman filter")
+            return self._kernel_static
         gap = check_square_root(self.backend, self.covariance_update, "the Tobit Kalman filter") or \
             system_gap(self.system, u)
         return use_kernel(self.backend, gap, "the Tobit Kalman filter")
@@ -301,33 +303,56 @@ class TobitKalmanFilter(LinearGaussianFamily):
         return _finite_or_none(_tkf_kernel_run(self, y2, lo, hi, state, want, batch))
 
     def _fast_step(self, state, y, u, options):
-        if not self._kernel_ok(u) or options:
+        if options or not self._kernel_ok(u):
             return None
-        if self.check_limits:
-            self.censoring.check_measurements(y[:, None], start=state.k + 1)
-        lo, hi = self.censoring.all_limits(1, self.m, start=state.k + 1)
-        res = _finite_or_none(_tkf_kernel_run(self, y[:, None], lo, hi, state, frozenset({"extras"}),
-                                              state.batch_shape))
-        if res is None:
-            return None
-        extras = {key: val.reshape(state.runs, 1, self.m)[:, 0] for key, val in res.extras.items()}
-        return res.final.replace(extras=extras)
+        return _tkf_kernel_step(self, y, state)
 
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing).
 
         ``lower``/``upper`` (keyword, (m,) or ``batch_shape + (m,)``) replace this step's limits.
         """
-        if self.check_limits and not options:
-            st = self._check_state(state)
-            yk = self._reading(st, y)
-            self.censoring.check_measurements(yk[:, None], start=st.k + 1)
         return super().step(state, y, u=u, **options)
+
+    def _check_reading(self, state, y, options):
+        if self.check_limits and not options:
+            self.censoring.check_reading(y, state.k + 1)
 
     def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
                state: FilterState | None = None) -> FilterResult:
         """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`."""
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) -> FilterState | None:
+    """One online step through the compiled kernel (T = 1); None when the covariance stopped being finite."""
+    N, m = y.shape
+    n = est.n
+    kern = kernels()
+    cens = est.censoring
+    lims = None if cens.time_varying else est.__dict__.get("_kernel_limits")
+    if lims is None:
+        lo, hi = cens.limits(state.k + 1)
+        lims = (np.ascontiguousarray(np.broadcast_to(lo, (1, m)), dtype=float),
+                np.ascontiguousarray(np.broadcast_to(hi, (1, m)), dtype=float))
+        if not cens.time_varying:
+            est._kernel_limits = lims          # constant limits: converted once
+    lo, hi = lims
+    P = state.P
+    if P.shape[0] != N:
+        P = np.broadcast_to(P, (N, n, n))
+    A, Qd, C, _ = _kernel_matrices(est)
+    x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
+    pu, ey = np.empty((N, 1, m)), np.empty((N, 1, m))
+    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
+    kern.tkf_kernel(np.ascontiguousarray(y.reshape(N, 1, m)), A, Qd, C, est._sigma, lo, hi,
+                    np.ascontiguousarray(state.x, dtype=float), np.ascontiguousarray(P, dtype=float),
+                    kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph", kern.GL_X, kern.GL_W,
+                    e_m, e_c, e_m, e_c, pu, ey, x_last, P_last)
+    if not np.isfinite(P_last).all():
+        return None
+    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry,
+                       extras={"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]})
 
 
 def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want, batch) -> FilterResult:
@@ -356,7 +381,10 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
         kern.tkf_kernel(yc[a:b], A, Qd, C, sig, lo, hi, x[a:b], P[a:b], code, joseph, kern.GL_X, kern.GL_W,
                         means[a:b], covs[a:b], pmeans[a:b], pcovs[a:b], pu[a:b], ey[a:b], x_last[a:b], P_last[a:b])
 
-    run_split(work, N, check_threads(est.threads))
+    if N < 256:                       # one thread: not worth a pool (and no thread-count lookup per step)
+        work(0, N)
+    else:
+        run_split(work, N, check_threads(est.threads))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
 
     def out(a):
