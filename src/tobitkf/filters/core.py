@@ -658,10 +658,11 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
 
 # --------------------------------------------------------------------------- boundary checks
 
-def prepare_measurements(y: Any, m: int, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
+def prepare_measurements(y: Any, m: int, name: str = "y", *, allow_nan: bool = True
+                         ) -> tuple[np.ndarray, tuple[int, ...]]:
     """Validate ``y`` of shape ``(..., T, m)`` and flatten the batch axes.
 
-    NaN entries are allowed (missing samples); infinities are not.
+    NaN entries are allowed (missing samples) unless ``allow_nan`` is False; infinities are not.
 
     Returns
     -------
@@ -669,7 +670,7 @@ def prepare_measurements(y: Any, m: int, name: str = "y") -> tuple[np.ndarray, t
     batch_shape : tuple
         The leading shape to restore on outputs (``()`` for a single ``(T, m)`` record).
     """
-    arr = as_float_array(y, name, allow_nan=True)
+    arr = as_float_array(y, name, allow_nan=allow_nan)
     if arr.ndim < 2:
         raise ShapeError(f"{name}: expected (..., T, {m}) (for one scalar channel pass y[:, None]), got shape {arr.shape}")
     if arr.shape[-1] != m:
@@ -843,6 +844,9 @@ class Estimator:
     _name: str = "estimator"
     #: per-step options ``step``/``update`` accept (e.g. ``lower``/``upper`` for a steered limit)
     _step_options: tuple[str, ...] = ()
+    #: whether a reading may be NaN (missing); False for the estimators whose covariances do not depend
+    #: on the data (the delay family) or that have no update to skip (the H-infinity filter)
+    _allow_missing: bool = True
 
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):   # pragma: no cover - abstract
         raise NotImplementedError
@@ -890,7 +894,7 @@ class Estimator:
         return self.n
 
     def _reading(self, state: FilterState, y: Any, name: str = "y") -> np.ndarray:
-        arr = as_float_array(y, name, allow_nan=True)
+        arr = as_float_array(y, name, allow_nan=self._allow_missing)
         want = state.batch_shape + (self.m,)
         if arr.shape != want:
             try:
@@ -987,7 +991,7 @@ class Estimator:
         return rec.result(N, times, final)
 
     def _prepare_record(self, y: Any, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
-        return prepare_measurements(y, self.m, name)
+        return prepare_measurements(y, self.m, name, allow_nan=self._allow_missing)
 
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):   # pragma: no cover - abstract
         raise NotImplementedError

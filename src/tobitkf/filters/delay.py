@@ -163,6 +163,7 @@ class _DelayEstimator(Estimator):
     (``prior=``, the family's own prior object) and the assembly of the per-step outputs."""
 
     k0 = -1
+    _allow_missing = False
 
     def _setup(self, system: Any, prior: Any) -> None:
         check_instance(system, DelayFadingSystem, "system")
@@ -183,24 +184,6 @@ class _DelayEstimator(Estimator):
                                   "prior=HistoryPrior(...) instead")
         # the family's prior object travels to _initial in the place of x0
         return Estimator.init(self, batch_shape, x0=self._the_prior(prior))
-
-    def _prepare_record(self, y: Any, name: str = "y"):
-        arr = as_float_array(y, name)
-        if arr.ndim < 2 or arr.shape[-1] != self.m:
-            raise ShapeError(f"{name}: expected (..., T, {self.m}), got shape {arr.shape}")
-        if arr.shape[-2] < 1:
-            raise ShapeError(f"{name}: expected at least one time step, got shape {arr.shape}")
-        return arr.reshape((-1,) + arr.shape[-2:]), arr.shape[:-2]
-
-    def _reading(self, state, y, name="y"):
-        arr = as_float_array(y, name)
-        want = state.batch_shape + (self.m,)
-        try:
-            arr = np.broadcast_to(arr, want)
-        except ValueError:
-            raise ShapeError(f"{name}: expected one reading of shape {want} (batch_shape + (m,)), got "
-                             f"{arr.shape}") from None
-        return arr.reshape(state.runs, self.m)
 
     def _run_delay(self, y: Any, prior: Any, state: FilterState | None, outputs: Any, options: dict[str, Any]):
         if state is None:

@@ -73,6 +73,7 @@ class RegionalHinfFilter(Estimator):
     """
 
     _name = "RegionalHinfFilter"
+    _allow_missing = False
 
     def __init__(self, Af: Any, Bf: Any, M: Any):
         self.Af = as_float_array(Af, "Af", ndim=2)
@@ -105,24 +106,6 @@ class RegionalHinfFilter(Estimator):
         except ValueError:
             raise ShapeError(f"x0: expected ({n},) or the batch shape + ({n},), got {x.shape}") from None
         return x, None, {}
-
-    def _prepare_record(self, y, name="y"):
-        arr = as_float_array(y, name)
-        if arr.ndim < 2 or arr.shape[-1] != self.m:
-            raise ShapeError(f"{name}: expected (..., T, {self.m}), got {arr.shape}")
-        if arr.shape[-2] < 1:
-            raise ShapeError(f"{name}: expected at least one time step, got shape {arr.shape}")
-        return arr.reshape((-1,) + arr.shape[-2:]), arr.shape[:-2]
-
-    def _reading(self, state, y, name="y"):
-        arr = as_float_array(y, name)
-        want = state.batch_shape + (self.m,)
-        try:
-            arr = np.broadcast_to(arr, want)
-        except ValueError:
-            raise ShapeError(f"{name}: expected one reading of shape {want} (batch_shape + (m,)), got "
-                             f"{arr.shape}") from None
-        return arr.reshape(state.runs, self.m)
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         x_new = x @ self.Af.T + y @ self.Bf.T                                 # (5)

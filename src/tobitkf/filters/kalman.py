@@ -46,7 +46,7 @@ import numpy as np
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
 from .core import (COVARIANCE_FORMS, FilterResult, FilterState, GaussianFilter, MeasurementPrediction, Transition,
                    check_keywords, check_prior, prepare_inputs, process_roots)
 
@@ -157,14 +157,7 @@ class KalmanFilter(LinearGaussianFamily):
 
     # ---- the compiled path ------------------------------------------------------------
     def _kernel_ok(self, u) -> bool:
-        if u is None:
-            if not hasattr(self, "_kernel_static"):     # the system and options do not change: decide once
-                self._kernel_static = use_kernel(self.backend, check_square_root(
-                    self.backend, self.covariance_update, "the Kalman filter") or system_gap(self.system, None),
-                    "the Kalman filter")
-            return self._kernel_static
-        gap = check_square_root(self.backend, self.covariance_update, "the Kalman filter") or system_gap(self.system, u)
-        return use_kernel(self.backend, gap, "the Kalman filter")
+        return kernel_ok(self, u, "the Kalman filter")
 
     def _fast_filter(self, y2, u2, state, want, batch):
         if not self._kernel_ok(u2):

@@ -69,7 +69,7 @@ from .._validation import ValidationError, as_float_array, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
 from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
                    measurement_update, psd_sqrt)
 from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices
@@ -286,15 +286,7 @@ class TobitKalmanFilter(LinearGaussianFamily):
 
     # ---- the compiled path ------------------------------------------------------------
     def _kernel_ok(self, u) -> bool:
-        if u is None:
-            if not hasattr(self, "_kernel_static"):     # the system and options do not change: decide once
-                self._kernel_static = use_kernel(self.backend, check_square_root(
-                    self.backend, self.covariance_update, "the Tobit Kalman filter") or system_gap(self.system, None),
-                    "the Tobit Kalman filter")
-            return self._kernel_static
-        gap = check_square_root(self.backend, self.covariance_update, "the Tobit Kalman filter") or \
-            system_gap(self.system, u)
-        return use_kernel(self.backend, gap, "the Tobit Kalman filter")
+        return kernel_ok(self, u, "the Tobit Kalman filter")
 
     def _fast_filter(self, y2, u2, state, want, batch):
         if not self._kernel_ok(u2):
