@@ -370,3 +370,29 @@ def test_batched_equals_per_run_equals_step_by_step(n, m, seed, family):
     for k in range(8):
         state = est.step(state, y[:, k])
     np.testing.assert_allclose(state.mean, batch.mean[:, -1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("form", ["predictor", "filter"])
+def test_estimators_without_covariance_step_like_their_filter(form):
+    """The fixed-gain Tobit observer (Miller (5.2)) and the H-infinity filter: no covariance, same API."""
+    from tobitkf.filters.fixed_gain import FixedGainTobitObserver
+
+    rng = np.random.default_rng(14)
+    y = np.maximum(rng.normal(size=(4, 20, 1)), -0.3)
+    obs = FixedGainTobitObserver([[0.9]], [[0.4]], [[1.0]], 0.5, -0.3, form=form)
+    res = obs.filter(y)
+    assert res.cov is None and res.times.tolist() == list(range(1, 21))
+    state = obs.init((4,))
+    for k in range(20):
+        state = obs.step(state, y[:, k])
+        np.testing.assert_allclose(state.mean, res.mean[:, k], rtol=0, atol=TOL)
+    revived = pickle.loads(pickle.dumps(state))
+    assert revived.k == 20 and revived.cov is None
+    with pytest.raises(tk.ValidationError, match="y: expected finite numbers, found NaN"):
+        obs.step(state, np.full((4, 1), np.nan))
+    hinf = tk.RegionalHinfFilter([[0.5, 0.1], [0.0, 0.8]], [[1.0], [0.2]], [[1.0, 0.0]])
+    r = hinf.filter(y)
+    s = hinf.init((4,))
+    for k in range(20):
+        s = hinf.step(s, y[:, k])
+    np.testing.assert_allclose(s.mean, r.mean[:, -1], rtol=0, atol=TOL)
