@@ -589,3 +589,13 @@ def test_bad_input():
         chain_lmmse(sys, prior, y, lags=(7,), decorrelation="paper")
     with pytest.raises(ValueError, match="q_mult"):
         sys.replace(q_mult=None)
+
+
+@pytest.mark.parametrize("form", ["joseph", "square_root"])
+def test_augmented_covariance_forms_equal_the_standard_form(form):
+    rng = np.random.default_rng(31)
+    sys, prior = random_system(rng, 2, 1, 2), random_prior(rng, 2, 2, correlated=True)
+    data = simulate_delay(sys, prior, 25, 3, seed=4)
+    a = AugmentedLMMSE(sys, prior).filter(data.y)
+    b = AugmentedLMMSE(sys, prior, covariance_update=form).filter(data.y)
+    assert_same(a, b, tol=1e-9)

@@ -47,8 +47,8 @@ import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance
 from ..models.delay import DelayFadingSystem, HistoryPrior
-from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, check_keywords, measurement_update, \
-    predict, symmetrize
+from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, \
+    measurement_update, predict, symmetrize, time_update
 
 __all__ = ["DelayEstimates", "IntervalSmoothing", "chain_lmmse", "augmented_lmmse", "reorganized_lmmse",
            "smooth_interval", "smooth_point", "second_moments", "ChainLMMSE", "AugmentedLMMSE",
@@ -528,27 +528,30 @@ def _augmented_matrices(system: DelayFadingSystem, W: int):
 
 
 
-def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t):
+def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None):
     """One reading of Algorithm A: the shared update of X(t|t-1) with y(t) and the decorrelated prediction.
 
     Update: H_eff = γ̄𝔥, noise R = σ²𝔥Λ_X𝔥^T + Q_v (the shared :func:`measurement_update`). Prediction:
     X(t+1|t) = Ā X(t|t) + J y(t), Ā = 𝔄 - γ̄J𝔥, J = 𝔊S R^{-1}, covariance Ā P Ā^T + Q_u - J R J^T, which
     equals the textbook predictor with same-time correlated noises (gain (γ̄𝔄P𝔥^T + 𝔊S)Q_ε^{-1}).
-    Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1))``.
+    ``form`` is the covariance form of the shared update and predict (with the factor ``S`` for
+    ``"square_root"``). Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1), S(t|t), S(t+1|t))``.
     """
     AA, Ai, G, HH = mats
     gb, s2 = system.gamma_mean(t), system.gamma_var(t)
     R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
     mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
-    Xf, Pf, _, K, Qe = measurement_update(X, P, None, y, mp, "standard")
+    Xf, Pf, Sf, K, Qe = measurement_update(X, P, S, y, mp, form)
+    if Qe is None:                        # the square-root form does not form Q_ε
+        Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + R)
     eps = y - mp.expected
     q = system.q_mult(t)
     Qu = G @ system.Qw @ G.T + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
     J = np.linalg.solve(R, (G @ system.S).T).T                # 𝔊 S R^{-1} (R symmetric)
     Abar = AA - gb * (J @ HH)
-    Xp, Pp = predict(Xf, Pf, Abar, symmetrize(Qu - J @ R @ J.T), y @ J.T)
+    Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
     LamX = symmetrize(AA @ LamX @ AA.T + Qu)
-    return Xf, Pf, Xp, Pp, K, eps, Qe, LamX
+    return Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp
 
 
 def _blk(M: np.ndarray, i: int, j: int | None, n: int) -> np.ndarray:
@@ -569,12 +572,20 @@ class AugmentedLMMSE(_DelayEstimator):
         Any joint prior of x(0), ..., x(-d).
     window : int >= d, optional
         W; default d.
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        The covariance form of the shared update and predict; ``"square_root"`` carries a factor of the
+        augmented covariance (not in the source; the chain and reorganized algorithms have their own
+        covariance recursions for the older elements and keep the standard form).
     """
 
     _name = "AugmentedLMMSE"
     _step_options = ("lags",)
 
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, window: int | None = None):
+    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, window: int | None = None,
+                 covariance_update: str = "standard"):
+        check_keywords({"covariance_update": covariance_update},
+                       {"covariance_update": ("standard", "joseph", "square_root")})
+        self.covariance_update = covariance_update
         self._setup(system, prior)
         d = system.d
         W = d if window is None else window
@@ -599,10 +610,11 @@ class AugmentedLMMSE(_DelayEstimator):
         lags = (options or {}).get("lags", ())
         n, d = self.n, self.system.d
         if "next" in carry:
-            Xpr, Ppr = carry["next"]
+            Xpr, Ppr, Spr = carry["next"]
         else:
-            Xpr, Ppr = x, P
-        Xf, Pf, Xp, Pp, K, eps, Qe, LamX = _aug_step(self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t)
+            Xpr, Ppr, Spr = x, P, S
+        Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t,
+                                                            self.covariance_update, Spr)
         N = x.shape[0]
         extras = {"measured_mean": _blk(Xf, d, None, n), "measured_cov": _blk(Pf, d, d, n),
                   "next_mean": _blk(Xp, 0, None, n), "next_cov": _blk(Pp, 0, 0, n), "innovation": eps,
@@ -611,8 +623,8 @@ class AugmentedLMMSE(_DelayEstimator):
         for L in lags:
             extras[f"lag{L}_mean"] = _blk(Xf, L, None, n) if t - L >= -d else nan_m
             extras[f"lag{L}_cov"] = _blk(Pf, L, L, n) if t - L >= -d else nan_P
-        new = {"LamX": LamX, "next": (Xp, Pp), "lam": {t + 1: LamX[:n, :n]}}
-        return Xf, Pf, None, new, Xpr, Ppr, extras
+        new = {"LamX": LamX, "next": (Xp, Pp, Sp), "lam": {t + 1: LamX[:n, :n]}}
+        return Xf, Pf, Sf, new, Xpr, Ppr, extras
 
     def _prepare_step_options(self, state, options):
         lags = _check_lags(options.get("lags", ()), "lags", 0)
@@ -624,7 +636,7 @@ class AugmentedLMMSE(_DelayEstimator):
                state: FilterState | None = None) -> FilterResult:
         """Run Algorithm A over ``y`` (..., T, m); see :func:`augmented_lmmse`."""
         res = self._run_delay(y, prior, state, outputs, self._prepare_step_options(None, {"lags": lags}))
-        Xp, Pp = res.final.carry["next"]
+        Xp, Pp, _ = res.final.carry["next"]
         batch = np.shape(y)[:-2]
         res.extras["final_mean"] = Xp.reshape(batch + Xp.shape[1:])
         res.extras["final_cov"] = Pp[0]
@@ -794,7 +806,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         if t < c["t0"]:
             # warm-up by Algorithm A, from which every stored Ψ, gain and covariance is read
             Xa, Pa, LamX = c["aug"]
-            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX = _aug_step(sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX, y, t)
+            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX,
+                                                                      y, t)
             Pprior = Pa[0]
             PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
             xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
