@@ -83,7 +83,25 @@ def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = 
     Integer, float, read-only, strided, masked and pandas input is accepted; text (also numeric
     text such as ``"0.5"``), booleans and complex values are refused, naming ``name``.
     """
-    if not (isinstance(value, np.ndarray) and value.dtype.kind in "fiu"):   # the common case needs no scan
+    if type(value) is np.ndarray and value.dtype == np.float64:          # the common case: nothing to convert
+        arr = value
+    elif isinstance(value, float) or (isinstance(value, int) and not isinstance(value, bool) and
+                                      -2**1023 < value < 2**1023):
+        arr = np.asarray(value, dtype=float)
+    else:
+        arr = _convert(value, name)
+    if ndim is not None:
+        allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
+        if arr.ndim not in allowed:
+            raise ShapeError(f"{name}: expected {' or '.join(str(a) for a in allowed)} dimension(s), "
+                             f"got shape {arr.shape}")
+    check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
+    return arr
+
+
+def _convert(value: Any, name: str) -> np.ndarray:
+    """float64 array of anything but a float64 array: text, booleans and complex values refused."""
+    if not (isinstance(value, np.ndarray) and value.dtype.kind in "fiu"):
         if not isinstance(value, (list, tuple, str, bytes, bool, np.generic, np.ndarray, int, float)):
             try:            # pandas, masked arrays, array-likes: look at what they hold
                 value = np.asarray(value)
@@ -98,18 +116,11 @@ def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = 
         with warnings.catch_warnings():
             # complex input: numpy would drop the imaginary part with only a warning
             warnings.simplefilter("error", np.exceptions.ComplexWarning)
-            arr = np.asarray(value, dtype=float)
+            return np.asarray(value, dtype=float)
     except np.exceptions.ComplexWarning:
         raise ValidationError(f"{name}: expected real numbers, got complex values") from None
     except (TypeError, ValueError, OverflowError, RecursionError) as exc:
         raise ValidationError(f"{name}: expected an array of numbers, got {type(value).__name__} ({exc})") from None
-    if ndim is not None:
-        allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
-        if arr.ndim not in allowed:
-            raise ShapeError(f"{name}: expected {' or '.join(str(a) for a in allowed)} dimension(s), "
-                             f"got shape {arr.shape}")
-    check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
-    return arr
 
 
 def as_float(value: Any, name: str, *, low: float | None = None, high: float | None = None,
@@ -250,7 +261,13 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
     """
     if mat.ndim < 2 or mat.shape[-1] != mat.shape[-2]:
         raise ShapeError(f"{name}: expected a square matrix (..., n, n), got shape {mat.shape}")
-    scale = max(float(np.abs(mat).max(initial=0.0)), np.finfo(float).tiny)
+    tiny = np.finfo(float).tiny
+    diag = np.abs(np.diagonal(mat, axis1=-2, axis2=-1))
+    sub = (diag > 0) & (diag < tiny)
+    if sub.any():   # e.g. R = 1e-320: 1/R overflows, a NEES of such a filter is inf
+        raise ValidationError(f"{name}: expected variances of 0 or at least {tiny:.3g} on the diagonal, got "
+                              f"{float(diag[sub][0]):.3g} (a subnormal number, without the precision a variance needs)")
+    scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
     with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
         asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
     if asym > rtol * scale:

@@ -40,7 +40,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
+from .._validation import (ShapeError, ValidationError, as_float, as_float_array, check_bool, check_int,
+                           check_option, check_psd)
 from ._common import gain_update, predict
 
 __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
@@ -64,6 +65,18 @@ class TrackResult:
     occluded_frames: np.ndarray
 
 
+def _frame(points: Any, k: int) -> np.ndarray:
+    """Detections of frame k+1 as (L, 2): finite pixel coordinates; (2,) is one point, an empty array none."""
+    M = as_float_array(points, f"detections[{k}]")
+    if M.size == 0:
+        return np.zeros((0, 2))
+    if M.shape == (2,):
+        return M[None, :]
+    if M.ndim != 2 or M.shape[1] != 2:
+        raise ShapeError(f"detections[{k}]: expected (L, 2) points (x, y), got shape {M.shape}")
+    return M
+
+
 class MultiTargetTracker:
     """Tracker of §2.2 (see the module docstring).
 
@@ -83,7 +96,11 @@ class MultiTargetTracker:
     Raises
     ------
     ValidationError
-        Negative gate, unknown options.
+        A gate0 <= 0, a negative gate_slope, NaN/inf/text/booleans for a number, a warm-up that is
+        not an integer >= 0, ``gate`` not a bool, unknown options; in :meth:`track`, NaN, inf or
+        text in a detection frame.
+    ShapeError
+        A detection frame that is not (L, 2).
     """
 
     def __init__(self, *, Q: Any = None, R: Any = None, P0: Any = None, gate0: float = 10.0, gate_slope: float = 2.0,
@@ -91,10 +108,11 @@ class MultiTargetTracker:
                  gate: bool = True):
         check_option(feedback, "feedback", ("corrected", "printed", "off"))
         check_option(second_map, "second_map", ("closest", "mutual"))
-        if gate0 <= 0 or gate_slope < 0:
-            raise ValidationError(f"gate0/gate_slope: expected gate0 > 0 and gate_slope >= 0, got {gate0}, {gate_slope}")
-        if warmup < 0:
-            raise ValidationError(f"warmup: expected a non-negative number of frames, got {warmup}")
+        gate0 = as_float(gate0, "gate0", low=0.0, low_open=True)
+        gate_slope = as_float(gate_slope, "gate_slope", low=0.0)
+        mu = as_float(mu, "mu")
+        warmup = check_int(warmup, "warmup", minimum=0)
+        gate = check_bool(gate, "gate")
         self.A, self.C = constant_velocity_pixel_model()
         self.Q = 0.01 * np.eye(4) if Q is None else as_float_array(Q, "Q")
         self.R = np.eye(2) if R is None else as_float_array(R, "R")
@@ -129,8 +147,12 @@ class MultiTargetTracker:
         """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
         of unordered points (L_k may be 0)."""
         init = as_float_array(initial, "initial")
-        if init.ndim != 2 or init.shape[1] != 2:
+        if init.ndim != 2 or init.shape[1] != 2 or init.shape[0] < 1:
             raise ShapeError(f"initial: expected (N, 2) target locations, got {init.shape}")
+        if isinstance(detections, (str, bytes)) or not hasattr(detections, "__len__") or \
+                not hasattr(detections, "__getitem__"):
+            raise ValidationError(f"detections: expected a sequence of (L_k, 2) arrays, one per frame, got "
+                                  f"{type(detections).__name__}")
         N = init.shape[0]
         x = np.zeros((N, 4))
         x[:, 0], x[:, 2] = init[:, 0], init[:, 1]
@@ -142,8 +164,9 @@ class MultiTargetTracker:
         O = np.zeros(N, dtype=int)
         visible = np.ones(N, dtype=bool)
         last_meas = init.copy()
+        frames = [_frame(detections[k], k) for k in range(T)]     # all checked before the first frame
         for k in range(T):
-            M = np.asarray(detections[k], dtype=float).reshape(-1, 2)
+            M = frames[k]
             u = self._feedback(x, visible)
             x, P = predict(x, P, self.A, self.Q, u @ self.B.T)
             ref = last_meas if k < self.warmup else x @ self.C.T
