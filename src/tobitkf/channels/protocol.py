@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt
-from .._validation import ShapeError, ValidationError, as_float_array
+from .._validation import ShapeError, ValidationError, as_float_array, check_memory
 from .base import Channel
 from .censoring import Censoring
 from .laws import PMF, Constant, Gaussian
@@ -148,6 +148,10 @@ class IntegralMeasurement:
         if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 0:
             raise ValidationError(f"window: expected an integer ell >= 0, got {window!r}")
         self.window = int(window)
+        # the filter's augmented covariance is (n(ell+1))^2 floats, at least (ell+1)^2 for n = 1
+        check_memory(8 * (self.window + 1) ** 2, "window",
+                     f"an integral window of {self.window} steps (the augmented covariance, at least "
+                     f"{self.window + 1} x {self.window + 1})")
 
     def window_sum(self, x: np.ndarray, prehistory: np.ndarray) -> np.ndarray:
         r""":math:`\sum_{s=0}^{\ell} x_{k-s}` for k = 1..T.
@@ -331,7 +335,12 @@ class ProtocolChannel(Channel):
         return ProtocolChannel(sensors, **kw)
 
     def check_system(self, system: Any) -> None:
-        """Raise unless the system has one measurement row per sensor and a diagonal R."""
+        """Raise unless the system has one measurement row per sensor and a diagonal R, and the
+        augmented covariance of the window fits in memory."""
+        if hasattr(system, "n"):
+            size = system.n * (self.window + 1)
+            check_memory(8 * size * size, "window", f"an integral window of {self.window} steps with n = {system.n} "
+                                                    f"(the augmented covariance, {size} x {size})")
         if system.m != self.sensors:
             raise ShapeError(f"system: expected C with p={self.sensors} rows (one per sensor), got m={system.m}")
 

@@ -51,7 +51,7 @@ from ..filters._common import check_prior, gain_update, predict
 from ..filters.tobit import NOISE_TERMS, _sigma_of, tobit_update
 from ..models.linear import LinearSystem
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import as_generator, check_count
+from .._validation import as_generator, check_count, check_memory
 from .lqg import controlled_noise, reference_gain
 
 __all__ = ["ClosedLoopResult", "simulate_closed_loop", "OBSERVERS", "quadratic_cost"]
@@ -173,6 +173,8 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         raise ValidationError("plant: simulate_closed_loop needs a time-invariant plant")
     steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
     n, m, p = plant.n, plant.m, plant.p
+    check_memory(8 * runs * (steps + 1) * (4 * n + n * n + 3 * m + p), "runs/steps",
+                 f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)")
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
     D = None if plant.D is None else plant.D.at(1)
     Qd, R = plant.process_cov(0), plant.measurement_cov(1)
@@ -234,6 +236,8 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
                              (("x0", (runs, n)), ("w", (runs, steps, n)), ("v", (runs, steps, m))))
         except KeyError as exc:
             raise ValidationError(f"noise: expected keys 'x0', 'w', 'v', missing {exc}") from None
+        except ValidationError:          # NaN, inf or text in noise['w'] ...: named by as_float_array
+            raise
         except ValueError:
             raise ShapeError(f"noise: expected x0 ({runs}, {n}), w ({runs}, {steps}, {n}), v ({runs}, {steps}, {m}), got "
                              f"{[np.shape(noise[k]) for k in ('x0', 'w', 'v')]}") from None
