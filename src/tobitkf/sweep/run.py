@@ -26,7 +26,7 @@ from .._validation import ValidationError
 from ..metrics import nees_terms
 from .build import build_point
 from .spec import SweepSpec
-from .store import open_store, reduce_store, write_blocks
+from .store import _read, check_resumable, open_store, reduce_store, write_blocks
 
 __all__ = ["build_point", "run_block", "run_sweep", "experiment_seed"]
 
@@ -162,7 +162,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
         refuses the settings or reports no estimators, or a grid point whose statistics do
         not fit the store (e.g. a grid over the horizon).
     """
-    from .._io import safe_child
+    from .._io import check_writable_dir, safe_child
     from .._compiled import default_threads
 
     if workers is None:
@@ -170,8 +170,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValidationError(f"workers: expected a positive integer or None, got {workers!r}")
     out = Path(out)
+    check_writable_dir(out, "--out")
     out.mkdir(parents=True, exist_ok=True)
     path = safe_child(out, f"{spec.name}.zarr")
+    check_resumable(path, spec)     # a file in the way, a damaged or foreign store: refused before any work
     points = spec.points()
     # connect first: a wrong address fails before any work is done
     client, cluster = _client(scheduler, workers) if scheduler != "local" else (None, None)
@@ -199,8 +201,10 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         write_blocks(g, 0, [(0, first)])
     else:
         sys_, _, ests = build_point(spec, points[0])
+        if client is None and threads > 1:      # blocks computed side by side in this process
+            spec.check_size(sys_.n, sys_.m, sys_.q, len(ests), parallel=min(threads, len(points) * spec.blocks))
         g = open_store(path, spec, list(ests), sys_.n, sys_.m, spec.steps)
-    done = g["done"][:]
+    done = _read(g, "done")
     tasks = []
     for p in range(len(points)):
         todo = [b for b in range(spec.blocks) if not done[p, b]]
@@ -244,7 +248,7 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
         for fut in as_completed(futs):
             record(futs[fut], fut.result())
-    if bool(g["done"][:].all()):
+    if bool(_read(g, "done").all()):
         _write_summary(path, reduce_store(g))
 
 
