@@ -186,7 +186,9 @@ def memory_limit() -> int:
     return int(total)
 
 
-def _bytes(n: float) -> str:
+def _bytes(n: int) -> str:
+    if n >= 10**21:                     # beyond any unit (and beyond float range for huge counts)
+        return f"about 10^{len(str(int(n))) - 1} bytes"
     for unit, size in (("EB", 1e18), ("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
         if n >= size:
             return f"{n / size:.3g} {unit}"
@@ -374,6 +376,9 @@ def as_generator(seed: Any) -> np.random.Generator:
         return seed
     if seed is None:
         raise ValidationError("seed: expected an int, SeedSequence or Generator (an explicit seed), got None")
+    if isinstance(seed, (bool, np.bool_, str, bytes, float, np.floating)):
+        raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} "
+                              f"({type(seed).__name__})")
     try:
         return np.random.default_rng(seed)
     except (TypeError, ValueError) as exc:

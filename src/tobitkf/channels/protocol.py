@@ -209,8 +209,11 @@ class RoundRobin:
         if isinstance(sensors, bool) or not isinstance(sensors, (int, np.integer)) or sensors < 1:
             raise ValidationError(f"sensors: expected an integer p >= 1, got {sensors!r}")
         self.sensors = int(sensors)
+        check_memory(8 * self.sensors, "sensors", f"{self.sensors} sensors")
         if order is None:
             order = range(1, self.sensors + 1)
+        if isinstance(order, (str, bytes)) or not hasattr(order, "__iter__"):
+            raise ValidationError(f"order: expected a non-empty sequence of integer sensor numbers, got {order!r}")
         arr = np.asarray(list(order))
         if arr.ndim != 1 or arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
             raise ValidationError(f"order: expected a non-empty sequence of integer sensor numbers, got {order!r}")

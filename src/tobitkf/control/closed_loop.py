@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
+from .._validation import ShapeError, ValidationError, as_float, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
 from ..filters._common import check_prior, gain_update, predict
 from ..filters.tobit import NOISE_TERMS, _sigma_of, tobit_update
@@ -161,8 +161,10 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     ShapeError
         Non-conforming K, Nbar, Cz or reference.
     """
-    if not (isinstance(divergence_bound, (int, float, np.integer, np.floating)) and divergence_bound > 0):
-        raise ValidationError(f"divergence_bound: expected a positive number, got {divergence_bound!r}")
+    try:
+        divergence_bound = as_float(divergence_bound, "divergence_bound", low=0.0, low_open=True)
+    except ValidationError:
+        raise ValidationError(f"divergence_bound: expected a positive number, got {divergence_bound!r:.40}") from None
     check_option(observer, "observer", OBSERVERS)
     check_option(side, "side", ("upper", "lower"))
     check_option(noise_term, "noise_term", NOISE_TERMS)
@@ -198,7 +200,10 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         if xi_uncensored is None:
             raise ValidationError(f"xi_uncensored: observer {observer!r} needs the target probability of an "
                                   "uncensored reading, in (0, 1)")
-        xi = np.broadcast_to(as_float_array(xi_uncensored, "xi_uncensored"), (m,)).copy()
+        xi = as_float_array(xi_uncensored, "xi_uncensored")
+        if xi.size not in (1, m):
+            raise ShapeError(f"xi_uncensored: expected a scalar or ({m},), got shape {xi.shape}")
+        xi = np.broadcast_to(xi.reshape(-1), (m,)).copy()
         controlled_noise(xi, sigma)                        # raises for xi outside (0, 1)
         from scipy.special import ndtri
 

@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_probability, check_psd
+from .._validation import (ShapeError, ValidationError, as_float_array, check_instance, check_memory,
+                           check_probability, check_psd)
 from ..channels.laws import PMF
 
 __all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "paper_example", "paper_prior",
@@ -528,4 +529,6 @@ def paper_example(S: float = 0.3, *, q: float = 1.0, d: int = 3) -> DelayFadingS
 
 def paper_prior(d: int = 3, cov: float = 0.01) -> HistoryPrior:
     """x(-k) ~ (0, 0.01 I) uncorrelated, k = 0..d (spec §4 item 1; P(0|0) = 0.01 I in the source)."""
-    return HistoryPrior.repeated(np.zeros(2), cov * np.eye(2), d)
+    d = _check_delay(d)
+    check_memory(8 * (2 * (d + 1)) ** 2, "d", f"a history of {d + 1} lags (its joint covariance)")
+    return HistoryPrior.repeated(np.zeros(2), as_float_array(cov, "cov", ndim=0) * np.eye(2), d)

@@ -25,9 +25,12 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
     matplotlib.use("Agg")
     from .store import load_result
 
+    from .._io import check_writable_dir
+
     path = Path(path)
     ds = load_result(path)
     outdir = Path(outdir) if outdir is not None else path.parent / f"{path.stem}_plots"
+    check_writable_dir(outdir, "--out")
     grid_dims = [d for d in ds["rmse"].dims if d not in ("estimator", "time", "state")]
     stacked = ds["rmse"].stack(point=grid_dims) if grid_dims else ds["rmse"].expand_dims(point=[0])
     ests, n = list(ds["estimator"].values), ds.sizes["state"]
