@@ -19,6 +19,9 @@ __all__ = ["atomic_write_text", "atomic_write_json", "atomic_savefig", "to_jsona
            "replace_dir", "check_writable_dir", "check_replaceable"]
 
 _NAME_MAX = 255          # bytes of one path component on the usual file systems (ext4, xfs, APFS, NTFS)
+FIGURE_SOFTWARE = "tobitkf (matplotlib)"
+# figures tobitkf wrote: its own marker, or (written before the marker) matplotlib's default Software chunk
+FIGURE_MARKERS = (b"Software\x00tobitkf", b"Software\x00Matplotlib version")
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -74,6 +77,8 @@ def atomic_savefig(fig, path: str | os.PathLike, **kwargs) -> Path:
     """Save a matplotlib figure atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".png":     # the marker check_replaceable looks for (PNG tEXt "Software")
+        kwargs.setdefault("metadata", {"Software": FIGURE_SOFTWARE})
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:

@@ -133,6 +133,7 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
         if progress is not None:
             progress.update(task, completed=min(max(done, 0.0), 1.0))
 
+    check_experiment_folder(out, exp_id)
     t0 = time.perf_counter()
     result = exp.run(runs=n_runs, seed=seed, progress=report)
     elapsed = time.perf_counter() - t0
@@ -157,6 +158,31 @@ def check_out_dir(out: Path, name: str = "--out") -> None:
     from ._io import check_writable_dir
 
     check_writable_dir(out, name)
+
+
+def check_experiment_folder(out: Path, exp_id: str) -> None:
+    """Refuse to replace ``out/exp_id`` unless it is missing, empty, or a result tobitkf wrote
+    (a ``metrics.json`` with that id): the folder is swapped out whole."""
+    import json
+
+    from ._io import safe_child
+    from ._validation import ValidationError
+
+    folder = safe_child(out, exp_id)
+    if not (folder.exists() or folder.is_symlink()):
+        return
+    if not folder.is_dir():
+        raise ValidationError(f"--out: {folder} is a file, not a result folder of {exp_id}; move it away or "
+                              "choose another --out")
+    if not any(folder.iterdir()):
+        return
+    try:
+        meta = json.loads((folder / "metrics.json").read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError):
+        meta = None
+    if not (isinstance(meta, dict) and meta.get("id") == exp_id):
+        raise ValidationError(f"--out: {folder} holds files tobitkf did not write (no metrics.json of {exp_id}); "
+                              "it would be replaced: move it away or choose another --out")
 
 
 def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
@@ -199,6 +225,8 @@ def reproduce(
     check_int(seed, "--seed", minimum=0)
     check_out_dir(out)
     check_report_targets(out)
+    for exp_id in ids:
+        check_experiment_folder(out, exp_id)
     columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, console=console, transient=False, disable=not console.is_terminal) as progress:
         overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None

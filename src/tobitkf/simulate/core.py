@@ -228,6 +228,6 @@ def _hook_output(value: Any, name: str, shape: tuple[int, ...], *, exact: bool =
     scheduler forwards one sensor), unless ``exact``."""
     arr = as_float_array(value, name, allow_nan=True)
     if arr.ndim != 3 or arr.shape[:2] != shape[:2] or arr.shape[2] < 1 or (exact and arr.shape != shape):
-        want = shape if exact else (*shape[:2], "channels")
+        want = str(shape) if exact else f"({shape[0]}, {shape[1]}, channels)"
         raise ShapeError(f"{name} returned shape {arr.shape}, expected {want} (runs, steps, channels)")
     return arr

@@ -103,6 +103,35 @@ def run_task(spec_text: str, name: str, point_index: int, blocks: list[int],
     return [(b, run_block(spec, point, b, sizes[b], threads=threads)) for b in blocks]
 
 
+def _probe(scheduler: str, timeout: float = 5.0) -> None:
+    """Refuse at once a TCP scheduler address where nothing listens (Dask's Client would retry
+    for its whole connect timeout, 30 s, before giving up)."""
+    from urllib.parse import urlsplit
+
+    if not isinstance(scheduler, str) or not scheduler:
+        raise ValidationError(f"--scheduler: expected 'local', 'processes' or a scheduler address, got {scheduler!r}")
+    address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
+    try:
+        parts = urlsplit(address)
+        host, port = parts.hostname, parts.port
+    except ValueError as exc:               # a port that is not a number or out of range
+        raise ValidationError(f"--scheduler: {scheduler!r} is not a scheduler address ({exc}); expected "
+                              "'local', 'processes' or e.g. tcp://host:8786") from None
+    if parts.scheme not in ("tcp", "tls") or not host or port is None:
+        return                              # other protocols (inproc, ucx, ws): left to Dask
+    import socket
+
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except ConnectionRefusedError:
+        raise ValidationError(f"--scheduler: connection refused at {host}:{port} (no Dask scheduler listens "
+                              "there); start one or use --scheduler local") from None
+    except socket.gaierror as exc:
+        raise ValidationError(f"--scheduler: unknown host {host!r} ({exc.strerror})") from None
+    except OSError:
+        return                              # a timeout or a filtered port: Dask's own error follows
+
+
 def _client(scheduler: str, workers: int):
     try:
         from distributed import Client, LocalCluster
@@ -119,6 +148,7 @@ def _client(scheduler: str, workers: int):
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
         return Client(cluster), cluster
+    _probe(scheduler)
     try:
         return Client(scheduler), None
     except (OSError, ValueError, TypeError) as exc:   # unreachable, timed out, or not an address

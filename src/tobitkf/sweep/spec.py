@@ -256,6 +256,8 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     except RecursionError:
         raise SweepFileError(f"sweep file: arrays or tables nested too deeply to read (at most {MAX_DEPTH} "
                              "levels)") from None
+    except ValueError as exc:       # e.g. an integer of more than 4300 digits
+        raise SweepFileError(f"sweep file: not valid TOML: {' '.join(str(exc).split())[:200]}") from None
     depth, where = _depth(doc, MAX_DEPTH)
     if depth > MAX_DEPTH:
         raise _fail(text, where, f"nested more than {MAX_DEPTH} levels deep; a sweep file needs at most a few")

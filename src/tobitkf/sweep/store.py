@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ValidationError, check_memory
 from .spec import SweepSpec, jsonable_grid, scalar_axis
 
 __all__ = ["open_store", "write_blocks", "reduce_store", "load_result", "layout", "pack", "unpack",
@@ -55,6 +55,9 @@ __all__ = ["open_store", "write_blocks", "reduce_store", "load_result", "layout"
 _ATTRS: dict[str, type | tuple[type, ...]] = {
     "sweep": str, "canonical": str, "package_version": str, "estimators": list, "grid": dict, "n": int, "m": int,
     "steps": int, "runs": int, "seed": int, "block_runs": int, "name": str, "experiment": str, "layout": dict}
+
+
+_MAX_CHUNKS = 10**6     # tobitkf writes one chunk per task; far more means a damaged chunk grid
 
 
 def _damaged(path: Path, what: str, exc: BaseException | None = None) -> ValidationError:
@@ -141,9 +144,23 @@ def read_store(path: Path, *, mode: str = "r", name: str = "result"):
         if arr.ndim != ndim or np.dtype(arr.dtype).kind != kind:
             raise _damaged(path, f"the array {name!r} has shape {arr.shape} and type {arr.dtype}")
     stats_shape, done_shape = g["stats"].shape, g["done"].shape
-    if stats_shape[:2] != done_shape or stats_shape[0] != P or stats_shape[2] != size:
+    B = -(-attrs["runs"] // attrs["block_runs"]) if attrs["block_runs"] > 0 and attrs["runs"] > 0 else -1
+    if stats_shape[:2] != done_shape or stats_shape[0] != P or stats_shape[2] != size or done_shape[1] != B:
         raise _damaged(path, f"the arrays have shapes {stats_shape} (stats) and {done_shape} (done), expected "
-                             f"({P}, blocks, {size}) and ({P}, blocks)")
+                             f"({P}, {B}, {size}) and ({P}, {B})")
+    for name in ("stats", "done"):
+        arr = g[name]
+        try:
+            chunks = int(np.prod([-(-s // max(int(c), 1)) for s, c in zip(arr.shape, arr.chunks)], dtype=object))
+        except Exception as exc:  # noqa: BLE001 - a chunk grid zarr cannot describe
+            raise _damaged(path, f"the array {name!r} has no regular chunk grid", exc) from None
+        if chunks > _MAX_CHUNKS:
+            raise _damaged(path, f"the array {name!r} is split into {chunks} chunks (more than {_MAX_CHUNKS})")
+    try:
+        check_memory(int(np.prod(stats_shape, dtype=object)) * 8 + int(np.prod(done_shape, dtype=object)), name,
+                     f"reading the sweep store {path}")
+    except ValidationError as exc:
+        raise _damaged(path, str(exc).split(": ", 1)[1]) from None
     return g
 
 
