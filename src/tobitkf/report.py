@@ -309,6 +309,8 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
     for folder in folders:
         mfile = folder / "metrics.json"
         if not mfile.is_file():
+            if mfile.exists() or mfile.is_symlink():        # a folder, a broken link, a device
+                problems.append(f"{_printable(folder.name)}/metrics.json is not a regular file; experiment skipped")
             continue
         if not _is_utf8(folder.name):
             problems.append(f"{_printable(folder.name)}/metrics.json: the folder name is not UTF-8; experiment skipped")

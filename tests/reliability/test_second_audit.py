@@ -598,10 +598,14 @@ def test_reports_written_before_the_marker_are_still_replaced(tmp_path):
     (b'{"id": "e", "estimators": {"kf": {"rmse_time_avg": [' + b"9" * 400 + b"]}}}", r"an integer of 400 digits"),
     (b'{"id": "e\xff"}', r"not UTF-8 text"),
     (b'[1, 2]', r"not a JSON object"),
+    (None, r"not a regular file"),
 ])
 def test_report_reads_hostile_metrics_as_listed_problems(tmp_path, content, problem):
     (tmp_path / "bad").mkdir()
-    (tmp_path / "bad" / "metrics.json").write_bytes(content)
+    if content is None:
+        (tmp_path / "bad" / "metrics.json").mkdir()           # a folder where the file should be
+    else:
+        (tmp_path / "bad" / "metrics.json").write_bytes(content)
     (tmp_path / "ok").mkdir()
     (tmp_path / "ok" / "metrics.json").write_text(json.dumps({"id": "ok", "title": "\ud800 lone surrogate"}))
     with no_hang():
