@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["atomic_write_text", "atomic_write_json", "atomic_savefig", "to_jsonable", "safe_child", "staging_dir",
-           "replace_dir", "check_writable_dir", "check_replaceable"]
+           "replace_dir", "check_writable_dir", "check_replaceable", "as_path"]
 
 _NAME_MAX = 255          # bytes of one path component on the usual file systems (ext4, xfs, APFS, NTFS)
 FIGURE_SOFTWARE = "tobitkf (matplotlib)"
@@ -148,6 +148,18 @@ def replace_dir(stage: str | os.PathLike, final: str | os.PathLike) -> Path:
     return final
 
 
+def as_path(value: Any, name: str) -> Path:
+    """A path from a ``str`` or ``os.PathLike``; anything else, or a NUL byte in it, is refused by name."""
+    from ._validation import ValidationError
+
+    if isinstance(value, bool) or not isinstance(value, (str, os.PathLike)):
+        raise ValidationError(f"{name}: expected a path (str or os.PathLike), got {type(value).__name__}")
+    path = Path(value)
+    if "\x00" in str(path):
+        raise ValidationError(f"{name}: a path cannot contain a NUL character, got {str(path)!r:.80}")
+    return path
+
+
 def check_writable_dir(path: str | os.PathLike, name: str) -> Path:
     """Refuse a folder that cannot be used for output, before any work is done.
 
@@ -162,7 +174,7 @@ def check_writable_dir(path: str | os.PathLike, name: str) -> Path:
     """
     from ._validation import ValidationError
 
-    path = Path(path)
+    path = as_path(path, name)
     for part in path.parts:
         if len(os.fsencode(part)) > _NAME_MAX:
             raise ValidationError(f"{name}: the folder name {part[:40]!r}... is {len(os.fsencode(part))} bytes long, "

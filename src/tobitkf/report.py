@@ -298,7 +298,9 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
     ValidationError
         If ``results_dir`` is not a directory.
     """
-    root = Path(results_dir)
+    from ._io import as_path
+
+    root = as_path(results_dir, "results_dir")
     if not root.is_dir():
         raise ValidationError(f"results_dir: expected a directory of experiment results, got {str(root)!r}")
     experiments, problems, taken = [], [], set()
@@ -388,9 +390,9 @@ def check_report_targets(results_dir: str | os.PathLike) -> None:
     ValidationError
         Naming the file.
     """
-    from ._io import check_replaceable
+    from ._io import as_path, check_replaceable
 
-    root = Path(results_dir)
+    root = as_path(results_dir, "results_dir")
     for fname, markers in _MARKERS.items():
         check_replaceable(root / fname, fname, markers)
 
@@ -777,7 +779,9 @@ def write_report(results_dir: str | os.PathLike) -> tuple[Path, Path]:
         If ``results_dir`` is not a directory, or an ``index.html``/``REPORT.md`` in it was not
         written by tobitkf (it is never replaced).
     """
-    root = Path(results_dir)
+    from ._io import as_path
+
+    root = as_path(results_dir, "results_dir")
     experiments, problems = collect_results(root)
     check_report_targets(root)
     # lone surrogates (from JSON escapes) cannot be written as UTF-8: shown as U+FFFD instead

@@ -422,6 +422,12 @@ def test_hinf_design_numeric_options_are_checked(kwargs, pattern):
     (lambda m: tk.multi_region(SYS, [[(0.0, 1.0)]], noise_var=[["x"]]), r"^noise_var\[0\]\[0\]"),
     (lambda m: RoundRobin(2, order=5), r"^order: expected a non-empty sequence"),
     (lambda m: tk.simulate(SYS, 3, 1, seed=True), r"^seed: expected an int"),
+    (lambda m: tk.write_report(123), r"^results_dir: expected a path"),
+    (lambda m: tk.write_report("a\x00b"), r"^results_dir: a path cannot contain a NUL"),
+    (lambda m: load_sweep(None), r"^sweep file: expected a path"),
+    (lambda m: load_result(1), r"^result: expected a path"),
+    (lambda m: run_sweep("spec", "out"), r"^spec: expected a SweepSpec"),
+    (lambda m: parse_sweep(b"[sweep]"), r"^sweep file: expected the text"),
 ])
 def test_wrong_types_are_named(call, pattern):
     with pytest.raises(ValidationError, match=pattern):

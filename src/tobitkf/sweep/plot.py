@@ -29,11 +29,11 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
     matplotlib.use("Agg")
     from .store import load_result
 
-    from .._io import FIGURE_MARKERS, check_replaceable, check_writable_dir
+    from .._io import FIGURE_MARKERS, as_path, check_replaceable, check_writable_dir
 
-    path = Path(path)
+    path = as_path(path, "result")
     ds = load_result(path)
-    outdir = Path(outdir) if outdir is not None else path.parent / f"{path.stem}_plots"
+    outdir = as_path(outdir, "--out") if outdir is not None else path.parent / f"{path.stem}_plots"
     check_writable_dir(outdir, "--out")
     grid_dims = [d for d in ds["rmse"].dims if d not in ("estimator", "time", "state")]
     names = ["rmse_over_time.png"] + [f"rmse_vs_{_safe(d)}.png" for d in grid_dims]

@@ -195,6 +195,10 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     from .._io import check_writable_dir, safe_child
     from .._compiled import default_threads
 
+    from .._validation import check_instance
+    from .spec import SweepSpec
+
+    check_instance(spec, SweepSpec, "spec")
     if workers is None:
         workers = default_threads()
     elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:

@@ -396,7 +396,9 @@ def load_sweep(path: str | Path) -> SweepSpec:
         The file cannot be read, is not a regular file, is larger than 16 MiB, is not UTF-8
         text, or its content is refused (:func:`parse_sweep`).
     """
-    path = Path(path)
+    from .._io import as_path
+
+    path = as_path(path, "sweep file")
     try:
         if path.exists() and not path.is_file():
             raise SweepFileError(f"sweep file: {path} is {'a folder' if path.is_dir() else 'not a regular file'}; "

@@ -110,7 +110,9 @@ def read_store(path: Path, *, mode: str = "r", name: str = "result"):
     """
     import zarr
 
-    path = Path(path)
+    from .._io import as_path
+
+    path = as_path(path, name)
     check_store_path(path, name)
     if not (path / "zarr.json").is_file():
         raise ValidationError(f"{name}: {path} is not a sweep store (no zarr.json)")
@@ -328,7 +330,7 @@ def reduce_store(g):
 
 def load_result(path: str | Path):
     """Open a finished sweep store and return its reduced :class:`xarray.Dataset`."""
-    g = read_store(Path(path), mode="r")
+    g = read_store(path, mode="r")
     try:
         return reduce_store(g)
     except ValidationError:
