@@ -16,7 +16,12 @@ from typing import Any
 import numpy as np
 
 __all__ = ["atomic_write_text", "atomic_write_json", "atomic_savefig", "to_jsonable", "safe_child", "staging_dir",
-           "replace_dir"]
+           "replace_dir", "check_writable_dir", "check_replaceable", "as_path"]
+
+_NAME_MAX = 255          # bytes of one path component on the usual file systems (ext4, xfs, APFS, NTFS)
+FIGURE_SOFTWARE = "tobitkf (matplotlib)"
+# figures tobitkf wrote: its own marker, or (written before the marker) matplotlib's default Software chunk
+FIGURE_MARKERS = (b"Software\x00tobitkf", b"Software\x00Matplotlib version")
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -72,6 +77,8 @@ def atomic_savefig(fig, path: str | os.PathLike, **kwargs) -> Path:
     """Save a matplotlib figure atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    if path.suffix.lower() == ".png":     # the marker check_replaceable looks for (PNG tEXt "Software")
+        kwargs.setdefault("metadata", {"Software": FIGURE_SOFTWARE})
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
     try:
@@ -139,3 +146,83 @@ def replace_dir(stage: str | os.PathLike, final: str | os.PathLike) -> Path:
     if aside is not None:
         shutil.rmtree(aside, ignore_errors=True)
     return final
+
+
+def as_path(value: Any, name: str) -> Path:
+    """A path from a ``str`` or ``os.PathLike``; anything else, or a NUL byte in it, is refused by name."""
+    from ._validation import ValidationError
+
+    if isinstance(value, bool) or not isinstance(value, (str, os.PathLike)):
+        raise ValidationError(f"{name}: expected a path (str or os.PathLike), got {type(value).__name__}")
+    path = Path(value)
+    if "\x00" in str(path):
+        raise ValidationError(f"{name}: a path cannot contain a NUL character, got {str(path)!r:.80}")
+    return path
+
+
+def check_writable_dir(path: str | os.PathLike, name: str) -> Path:
+    """Refuse a folder that cannot be used for output, before any work is done.
+
+    Refused: an existing file (or a broken link) at ``path``; a path below a file (``a_file/sub``,
+    which would fail with NotADirectoryError only when the first file is written); an existing
+    ancestor without write permission; a component longer than the file system allows.
+
+    Raises
+    ------
+    ValidationError
+        Naming ``name`` (e.g. ``--out``), the path and the reason.
+    """
+    from ._validation import ValidationError
+
+    path = as_path(path, name)
+    for part in path.parts:
+        if len(os.fsencode(part)) > _NAME_MAX:
+            raise ValidationError(f"{name}: the folder name {part[:40]!r}... is {len(os.fsencode(part))} bytes long, "
+                                  f"more than the {_NAME_MAX} a file system allows")
+    if path.exists() or path.is_symlink():
+        if not path.is_dir():
+            raise ValidationError(f"{name}: expected a folder, got the file {path}")
+        target = path
+    else:
+        target = path.parent
+        while not (target.exists() or target.is_symlink()) and target != target.parent:
+            target = target.parent
+        if not target.is_dir():
+            raise ValidationError(f"{name}: {path} cannot be created: {target} is a file, not a folder")
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise ValidationError(f"{name}: no permission to write in {target}")
+    return path
+
+
+def check_replaceable(path: str | os.PathLike, name: str, markers: tuple[bytes, ...]) -> None:
+    """Refuse to replace a file that tobitkf did not write.
+
+    ``path`` may be missing (nothing to lose) or a regular file whose first or last 64 KiB hold one
+    of ``markers`` (the marker tobitkf writes into its own files). Anything else (a file of the
+    user's, a folder, a device) is refused, so an atomic rename never destroys it.
+
+    Raises
+    ------
+    ValidationError
+        Naming ``name``, the path and what to do.
+    """
+    from ._validation import ValidationError
+
+    path = Path(path)
+    if not (path.exists() or path.is_symlink()):
+        return
+    if path.is_dir():
+        raise ValidationError(f"{name}: {path} is a folder; expected a file written by tobitkf (move it away)")
+    if not path.is_file():
+        raise ValidationError(f"{name}: {path} is not a regular file; refusing to replace it (move it away)")
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(65536)
+            if len(head) == 65536:
+                fh.seek(max(fh.seek(0, os.SEEK_END) - 65536, 65536))
+                head += fh.read(65536)
+    except OSError as exc:
+        raise ValidationError(f"{name}: cannot read {path} to check that tobitkf wrote it ({exc.strerror})") from None
+    if not any(m in head for m in markers):
+        raise ValidationError(f"{name}: {path} was not written by tobitkf; refusing to replace it (move it away or "
+                              "choose another folder)")

@@ -7,6 +7,7 @@ boundary (constructors, ``filter``, ``simulate``), never inside a time loop.
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -14,7 +15,12 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "as_float",
     "as_generator",
+    "check_bool",
+    "check_int",
+    "check_memory",
+    "memory_limit",
     "check_count",
     "ShapeError",
     "ValidationError",
@@ -36,24 +42,54 @@ class ShapeError(ValidationError):
     """A public argument has the wrong shape."""
 
 
+_MAX_NESTING = 64  # numpy's own limit on dimensions; deeper lists cannot be arrays
+_COMPLEX = "complex"
+
+
+def _not_a_number(value: Any) -> str | None:
+    """Describe the first entry of ``value`` that is text, a boolean or nested too deep, else None.
+
+    Text and booleans convert silently to floats (``"0.5"`` -> 0.5, ``True`` -> 1.0), so a typo in a
+    file or a flag passed in a number's place would be taken as a number; integers stay accepted.
+    Nested lists are walked without recursion (a list holding itself stops at the depth limit).
+    """
+    stack = [(value, 0)]
+    while stack:
+        v, depth = stack.pop()
+        if isinstance(v, (str, bytes)):
+            return f"{type(v).__name__} ({v!r:.40}; text is not a number)"
+        if isinstance(v, (bool, np.bool_)):
+            return f"bool ({v!r}; a boolean is not a number)"
+        if isinstance(v, (complex, np.complexfloating)):
+            return _COMPLEX
+        if isinstance(v, (list, tuple)):
+            if depth >= _MAX_NESTING:
+                return f"{type(value).__name__} nested deeper than {_MAX_NESTING} levels"
+            stack.extend((x, depth + 1) for x in v)
+        elif isinstance(v, np.ndarray):
+            if v.dtype.kind == "b":
+                return "booleans (an array of True/False is not an array of numbers)"
+            if v.dtype.kind in ("U", "S"):
+                return "text (an array of strings is not an array of numbers)"
+            if v.dtype.kind == "O" and depth < _MAX_NESTING:
+                stack.extend((x, depth + 1) for x in v.ravel().tolist())
+    return None
+
+
 def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = None,
                    allow_nan: bool = False, allow_inf: bool = False) -> np.ndarray:
-    """Convert ``value`` to a float64 array and check dimension and finiteness."""
-    if type(value) is np.ndarray and value.dtype == np.float64:   # already numbers: no conversion to check
-        return _checked(value, name, ndim, allow_nan, allow_inf)
-    try:
-        with warnings.catch_warnings():
-            # complex input: numpy would drop the imaginary part with only a warning
-            warnings.simplefilter("error", np.exceptions.ComplexWarning)
-            arr = np.asarray(value, dtype=float)
-    except np.exceptions.ComplexWarning:
-        raise ValidationError(f"{name}: expected real numbers, got complex values") from None
-    except (TypeError, ValueError) as exc:
-        raise ValidationError(f"{name}: expected an array of numbers, got {type(value).__name__} ({exc})") from None
-    return _checked(arr, name, ndim, allow_nan, allow_inf)
+    """Convert ``value`` to a float64 array and check dimension and finiteness.
 
-
-def _checked(arr: np.ndarray, name: str, ndim, allow_nan: bool, allow_inf: bool) -> np.ndarray:
+    Integer, float, read-only, strided, masked and pandas input is accepted; text (also numeric
+    text such as ``"0.5"``), booleans and complex values are refused, naming ``name``.
+    """
+    if type(value) is np.ndarray and value.dtype == np.float64:          # the common case: nothing to convert
+        arr = value
+    elif isinstance(value, float) or (isinstance(value, int) and not isinstance(value, bool) and
+                                      -2**1023 < value < 2**1023):
+        arr = np.asarray(value, dtype=float)
+    else:
+        arr = _convert(value, name)
     if ndim is not None:
         allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if arr.ndim not in allowed:
@@ -61,6 +97,114 @@ def _checked(arr: np.ndarray, name: str, ndim, allow_nan: bool, allow_inf: bool)
                              f"got shape {arr.shape}")
     check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
     return arr
+
+
+def _convert(value: Any, name: str) -> np.ndarray:
+    """float64 array of anything but a float64 array: text, booleans and complex values refused."""
+    if not (isinstance(value, np.ndarray) and value.dtype.kind in "fiu"):
+        if not isinstance(value, (list, tuple, str, bytes, bool, np.generic, np.ndarray, int, float)):
+            try:            # pandas, masked arrays, array-likes: look at what they hold
+                value = np.asarray(value)
+            except Exception:   # noqa: BLE001 - whatever it is, the conversion below names it
+                pass
+        bad = _not_a_number(value)
+        if bad is _COMPLEX:
+            raise ValidationError(f"{name}: expected real numbers, got complex values")
+        if bad is not None:
+            raise ValidationError(f"{name}: expected an array of numbers, got {bad}")
+    try:
+        with warnings.catch_warnings():
+            # complex input: numpy would drop the imaginary part with only a warning
+            warnings.simplefilter("error", np.exceptions.ComplexWarning)
+            return np.asarray(value, dtype=float)
+    except np.exceptions.ComplexWarning:
+        raise ValidationError(f"{name}: expected real numbers, got complex values") from None
+    except (TypeError, ValueError, OverflowError, RecursionError) as exc:
+        raise ValidationError(f"{name}: expected an array of numbers, got {type(value).__name__} ({exc})") from None
+
+
+def as_float(value: Any, name: str, *, low: float | None = None, high: float | None = None,
+             low_open: bool = False, high_open: bool = False, allow_inf: bool = False) -> float:
+    """A real number (not text, not a boolean, not NaN; inf only if ``allow_inf``) within the bounds.
+
+    ``low``/``high`` are inclusive unless ``low_open``/``high_open``. The message names ``name``,
+    the interval and the value found.
+    """
+    arr = as_float_array(value, name, allow_inf=allow_inf)
+    if arr.ndim != 0:
+        raise ShapeError(f"{name}: expected a single number, got shape {arr.shape}")
+    x = float(arr)
+    below = low is not None and (x <= low if low_open else x < low)
+    above = high is not None and (x >= high if high_open else x > high)
+    if below or above:
+        lo_s = "-inf" if low is None else f"{low:g}"
+        hi_s = "inf" if high is None else f"{high:g}"
+        interval = ("(" if low_open or low is None else "[") + f"{lo_s}, {hi_s}" + (")" if high_open or high is None
+                                                                                 else "]")
+        raise ValidationError(f"{name}: expected a number in {interval}, got {value!r}")
+    return x
+
+
+def check_int(value: Any, name: str, *, minimum: int = 0, maximum: int | None = None) -> int:
+    """An integer ``minimum <= value <= maximum`` (Python or numpy); booleans, floats (also 2.0),
+    text, NaN and inf are refused."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValidationError(f"{name}: expected an integer >= {minimum}, got {value!r} ({type(value).__name__})")
+    if value < minimum or (maximum is not None and value > maximum):
+        bound = f"in [{minimum}, {maximum}]" if maximum is not None else f">= {minimum}"
+        raise ValidationError(f"{name}: expected an integer {bound}, got {value}")
+    return int(value)
+
+
+def check_bool(value: Any, name: str) -> bool:
+    """``True`` or ``False`` (also numpy's); 0/1, 1.0 and text such as ``"yes"`` are refused."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValidationError(f"{name}: expected True or False, got {value!r} ({type(value).__name__})")
+    return bool(value)
+
+
+def memory_limit() -> int:
+    """Bytes one result may take: ``TOBITKF_MEMORY_LIMIT`` if set, else the machine's physical memory
+    (or the container's limit when it is smaller)."""
+    env = os.environ.get("TOBITKF_MEMORY_LIMIT")
+    if env:
+        try:
+            return max(int(float(env)), 1)
+        except ValueError:
+            raise ValidationError(f"TOBITKF_MEMORY_LIMIT: expected a number of bytes, got {env!r}") from None
+    try:
+        total = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        total = 2**40
+    try:
+        with open("/sys/fs/cgroup/memory.max", encoding="ascii") as fh:
+            cg = fh.read().strip()
+        if cg.isdigit():
+            total = min(total, int(cg))
+    except OSError:
+        pass
+    return int(total)
+
+
+def _bytes(n: int) -> str:
+    if n >= 10**21:                     # beyond any unit (and beyond float range for huge counts)
+        return f"about 10^{len(str(int(n))) - 1} bytes"
+    for unit, size in (("EB", 1e18), ("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{int(n)} bytes"
+
+
+def check_memory(nbytes: int, name: str, what: str) -> None:
+    """Refuse, before anything is allocated, a request whose arrays cannot fit in memory.
+
+    ``nbytes`` is computed with Python integers (no overflow); the message names ``name``, the
+    arrays (``what``) and both sizes.
+    """
+    limit = memory_limit()
+    if nbytes > limit:
+        raise ValidationError(f"{name}: {what} would need {_bytes(nbytes)}, more than the {_bytes(limit)} of memory "
+                              "available (set TOBITKF_MEMORY_LIMIT to change the limit)")
 
 
 def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_inf: bool = False) -> None:
@@ -78,10 +222,24 @@ def check_instance(value: Any, cls: type, name: str) -> None:
         raise ValidationError(f"{name}: expected {article} {cls.__name__}, got {type(value).__name__}")
 
 
+def _same_option(value: Any, option: Any) -> bool:
+    """``value == option`` of the same kind: ``1.0`` is not ``True``, ``True`` is not ``1``, ``"1"`` is not ``1``."""
+    if isinstance(option, (bool, np.bool_)) or isinstance(value, (bool, np.bool_)):
+        return isinstance(value, (bool, np.bool_)) and isinstance(option, (bool, np.bool_)) and bool(value) == bool(option)
+    if isinstance(option, str) or isinstance(value, str):
+        return isinstance(value, str) and isinstance(option, str) and value == option
+    if isinstance(option, (int, np.integer)) and not isinstance(value, (int, np.integer)):
+        return False                        # 2.0 is not the option 2 (nor 2.5 rounded to it)
+    try:
+        return bool(value == option)
+    except (TypeError, ValueError):         # arrays and other things that are no option
+        return False
+
+
 def check_option(value: Any, name: str, allowed: Iterable[Any]) -> Any:
-    """Raise unless ``value`` is one of ``allowed``; return it."""
+    """Raise unless ``value`` is one of ``allowed`` (of the same kind: ``1.0`` is not ``True``); return it."""
     allowed = tuple(allowed)
-    if value not in allowed:
+    if not any(_same_option(value, a) for a in allowed):
         raise ValidationError(f"{name}: expected one of {', '.join(repr(a) for a in allowed)}, got {value!r}")
     return value
 
@@ -105,7 +263,13 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
     """
     if mat.ndim < 2 or mat.shape[-1] != mat.shape[-2]:
         raise ShapeError(f"{name}: expected a square matrix (..., n, n), got shape {mat.shape}")
-    scale = max(float(np.abs(mat).max(initial=0.0)), np.finfo(float).tiny)
+    tiny = np.finfo(float).tiny
+    diag = np.abs(np.diagonal(mat, axis1=-2, axis2=-1))
+    sub = (diag > 0) & (diag < tiny)
+    if sub.any():   # e.g. R = 1e-320: 1/R overflows, a NEES of such a filter is inf
+        raise ValidationError(f"{name}: expected variances of 0 or at least {tiny:.3g} on the diagonal, got "
+                              f"{float(diag[sub][0]):.3g} (a subnormal number, without the precision a variance needs)")
+    scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
     with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
         asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
     if asym > rtol * scale:
@@ -168,7 +332,10 @@ class TimeSequence:
     def at(self, k: int) -> np.ndarray:
         """The matrix at paper time ``k``."""
         if self.fn is not None:
-            mat = np.asarray(self.fn(k), dtype=float)
+            mat = self.fn(k)
+            if not (isinstance(mat, np.ndarray) and mat.dtype == np.float64):
+                # text, booleans or complex values at a later k: refused by name, never dropped
+                mat = as_float_array(mat, f"{self.name}({k})", allow_nan=True, allow_inf=True)
             if mat.shape != self.core_shape:
                 raise ShapeError(f"{self.name}({k}): expected shape {self.core_shape}, got {mat.shape}")
             return mat
@@ -209,6 +376,9 @@ def as_generator(seed: Any) -> np.random.Generator:
         return seed
     if seed is None:
         raise ValidationError("seed: expected an int, SeedSequence or Generator (an explicit seed), got None")
+    if isinstance(seed, (bool, np.bool_, str, bytes, float, np.floating)):
+        raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} "
+                              f"({type(seed).__name__})")
     try:
         return np.random.default_rng(seed)
     except (TypeError, ValueError) as exc:

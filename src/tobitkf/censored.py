@@ -124,7 +124,10 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
     Raises
     ------
     ValidationError
-        If ``std <= 0`` or some ``lower >= upper``.
+        If ``mean`` is NaN or infinite, ``std`` is not a finite number > 0, a limit is NaN, some
+        ``lower >= upper``, or an argument holds text or booleans.
+    ShapeError
+        If the arguments do not broadcast.
 
     Notes
     -----
@@ -140,13 +143,21 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
     >>> round(float(m.p_uncensored), 5), round(float(m.censored_mean), 5)
     (0.15866, 0.00833)
     """
-    from ._validation import ValidationError
+    from ._validation import ShapeError, ValidationError, as_float_array
 
-    mu, sd, lo, hi = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (mean, std, lower, upper)))
+    args = (as_float_array(mean, "mean"), as_float_array(std, "std", allow_nan=True, allow_inf=True),
+            as_float_array(lower, "lower", allow_inf=True), as_float_array(upper, "upper", allow_inf=True))
+    try:
+        mu, sd, lo, hi = np.broadcast_arrays(*args)
+    except ValueError:
+        raise ShapeError("mean/std/lower/upper: shapes " + ", ".join(str(a.shape) for a in args) +
+                         " do not broadcast") from None
     shape = mu.shape
     mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     if np.any(~(sd > 0)):
         raise ValidationError("std: expected standard deviations > 0")
+    if np.isinf(sd).any():
+        raise ValidationError("std: expected finite standard deviations, found inf")
     if np.any(~(lo < hi)):
         raise ValidationError("lower/upper: expected lower < upper for every channel")
     a, b = standardized_limits(mu, sd, lo, hi)

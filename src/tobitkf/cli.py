@@ -7,20 +7,103 @@ everything in ``DIR``: ``DIR/index.html`` and ``DIR/REPORT.md`` (see :mod:`tobit
 
 from __future__ import annotations
 
+import functools
+import os
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, Any, Optional
 
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+try:                                   # typer >= 0.20 carries its own copy of click
+    from typer._click import exceptions as _click_errors
+except ImportError:                    # pragma: no cover - older typer uses click itself
+    from click import exceptions as _click_errors
+
+_ClickException = _click_errors.ClickException
+_NoArgsIsHelpError = getattr(_click_errors, "NoArgsIsHelpError", None) or type("_Never", (Exception,), {})
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def fail(message: str, code: int = 2) -> None:
+    """Print ``error: MESSAGE`` as one line on stderr (no markup, no wrapping) and exit with ``code``."""
+    typer.echo(f"error: {_one_line(message)}", err=True)
+    raise typer.Exit(code)
+
+
+def _describe(exc: BaseException) -> str:
+    """One line naming the problem of an exception that reached the command line."""
+    from ._validation import ValidationError
+
+    if isinstance(exc, ValidationError):
+        return str(exc)
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        return f"{where}{exc.strerror or exc}" + (f" (errno {exc.errno})" if exc.errno else "")
+    if isinstance(exc, MemoryError):
+        return "out of memory (" + (str(exc) or "an array did not fit") + "); use fewer runs or steps"
+    if isinstance(exc, RecursionError):
+        return "input nested too deeply to read"
+    if isinstance(exc, UnicodeError):
+        return f"not UTF-8 text ({exc})"
+    return f"unexpected {type(exc).__name__}: {exc} (this is a bug in tobitkf; please report it)"
+
+
+def cli_errors(command: Callable[..., Any]) -> Callable[..., Any]:
+    """Every error that reaches a command becomes exit code 2 and one line naming the problem.
+
+    Input errors (:class:`~tobitkf.ValidationError`), file errors (``OSError``), memory, recursion
+    and decoding errors, and anything unexpected: never a traceback (set ``TOBITKF_DEBUG=1`` to
+    see one). Ctrl-C stays an interruption (exit 130).
+    """
+    @functools.wraps(command)
+    def run(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return command(*args, **kwargs)
+        except (typer.Exit, typer.Abort, _ClickException, KeyboardInterrupt):
+            raise
+        except Exception as exc:  # noqa: BLE001 - the command line's promise: one line, exit 2
+            if os.environ.get("TOBITKF_DEBUG"):
+                raise
+            fail(_describe(exc))
+    return run
+
+
+class _Group(typer.core.TyperGroup):
+    """The command group; usage errors (unknown option, a value click cannot parse or out of
+    range) are one line too, ``error: Invalid value for '--seed': ...``, exit code 2."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode, **extra)
+        try:
+            rv = super().main(args, prog_name, complete_var, False, **extra)
+        except _NoArgsIsHelpError as exc:
+            typer.echo(exc.ctx.get_help() if exc.ctx is not None else exc.format_message(), err=True)
+            sys.exit(exc.exit_code)
+        except _ClickException as exc:
+            typer.echo(f"error: {_one_line(exc.format_message())}", err=True)
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            typer.echo("error: aborted", err=True)
+            sys.exit(1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, cls=_Group,
                   help="Estimation from censored, fading, delayed and scheduled measurements.")
 console = Console(stderr=True)
 
 
 @app.command("list")
+@cli_errors
 def list_cmd() -> None:
     """List every experiment, one line each: id, default run count, title."""
     from .experiments import all_experiments
@@ -50,6 +133,7 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
         if progress is not None:
             progress.update(task, completed=min(max(done, 0.0), 1.0))
 
+    check_experiment_folder(out, exp_id)
     t0 = time.perf_counter()
     result = exp.run(runs=n_runs, seed=seed, progress=report)
     elapsed = time.perf_counter() - t0
@@ -67,12 +151,38 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
     return final
 
 
-def check_out_dir(out: Path) -> None:
-    """Refuse an ``--out`` that exists and is not a folder (before any work is done)."""
+def check_out_dir(out: Path, name: str = "--out") -> None:
+    """Refuse, before any work is done, an ``--out`` that cannot become a writable folder: an
+    existing file, a path below a file (``a_file/sub``), a folder without write permission, or a
+    name too long for the file system."""
+    from ._io import check_writable_dir
+
+    check_writable_dir(out, name)
+
+
+def check_experiment_folder(out: Path, exp_id: str) -> None:
+    """Refuse to replace ``out/exp_id`` unless it is missing, empty, or a result tobitkf wrote
+    (a ``metrics.json`` with that id): the folder is swapped out whole."""
+    import json
+
+    from ._io import safe_child
     from ._validation import ValidationError
 
-    if out.exists() and not out.is_dir():
-        raise ValidationError(f"--out: expected a folder, got the file {out}")
+    folder = safe_child(out, exp_id)
+    if not (folder.exists() or folder.is_symlink()):
+        return
+    if not folder.is_dir():
+        raise ValidationError(f"--out: {folder} is a file, not a result folder of {exp_id}; move it away or "
+                              "choose another --out")
+    if not any(folder.iterdir()):
+        return
+    try:
+        meta = json.loads((folder / "metrics.json").read_bytes().decode("utf-8"))
+    except (OSError, ValueError, RecursionError):
+        meta = None
+    if not (isinstance(meta, dict) and meta.get("id") == exp_id):
+        raise ValidationError(f"--out: {folder} holds files tobitkf did not write (no metrics.json of {exp_id}); "
+                              "it would be replaced: move it away or choose another --out")
 
 
 def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
@@ -96,6 +206,7 @@ def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
 
 
 @app.command()
+@cli_errors
 def reproduce(
     experiment: Annotated[str, typer.Argument(help="experiment id, or 'all'")],
     runs: Annotated[Optional[int], typer.Option("--runs", min=1, help="Monte Carlo runs (default: the experiment's)")] = None,
@@ -105,26 +216,28 @@ def reproduce(
                                          "for the same runs, seed and package version")] = False,
 ) -> None:
     """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html."""
-    from ._validation import ValidationError
+    from ._validation import check_int
     from .experiments import all_experiments, get
+    from .report import check_report_targets
 
-    try:
-        ids = [e.id for e in all_experiments()] if experiment == "all" else [get(experiment).id]
-        check_out_dir(out)
-    except ValidationError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(2) from None
+    # everything that can be refused is refused before the first experiment runs
+    ids = [e.id for e in all_experiments()] if experiment == "all" else [get(experiment).id]
+    check_int(seed, "--seed", minimum=0)
+    check_out_dir(out)
+    check_report_targets(out)
+    for exp_id in ids:
+        check_experiment_folder(out, exp_id)
     columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=console, transient=False) as progress:
+    with Progress(*columns, console=console, transient=False, disable=not console.is_terminal) as progress:
         overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None
         for exp_id in ids:
             if resume and is_complete(out, exp_id, runs=runs, seed=seed):
-                console.print(f"kept {out / exp_id} (complete, --resume)")
+                console.print(f"kept {out / exp_id} (complete, --resume)", markup=False, highlight=False, soft_wrap=True)
                 if overall is not None:
                     progress.advance(overall)
                 continue
             outdir = run_experiment(exp_id, runs=runs, seed=seed, out=out, progress=progress)
-            console.print(f"wrote {outdir}")
+            console.print(f"wrote {outdir}", markup=False, highlight=False, soft_wrap=True)
             if overall is not None:
                 progress.advance(overall)
     _write_report(out)
@@ -134,24 +247,20 @@ def _write_report(out: Path) -> None:
     from .report import write_report
 
     index, md = write_report(out)
-    console.print(f"wrote {index} and {md}")
+    console.print(f"wrote {index} and {md}", markup=False, highlight=False, soft_wrap=True)
 
 
 @app.command()
+@cli_errors
 def report(
     results: Annotated[Path, typer.Argument(help="folder written by 'reproduce' (one sub-folder per experiment)")],
 ) -> None:
     """Write RESULTS/index.html and RESULTS/REPORT.md from every RESULTS/*/metrics.json."""
-    from ._validation import ValidationError
-
-    try:
-        _write_report(results)
-    except ValidationError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(2) from None
+    _write_report(results)
 
 
 @app.command()
+@cli_errors
 def sweep(
     file: Annotated[Path, typer.Argument(help="sweep file (TOML)")],
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results/sweeps"),
@@ -160,47 +269,38 @@ def sweep(
         "--workers", min=1, help="threads (local) or worker processes (processes); default: the CPUs")] = None,
 ) -> None:
     """Run (or resume) a Monte Carlo sweep; results go to OUT/<name>.zarr."""
-    from ._validation import ValidationError
     from .sweep import load_sweep, run_sweep
+    from .sweep.store import check_resumable
 
-    try:
-        spec = load_sweep(file)
-        check_out_dir(out)
-    except ValidationError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(2) from None
+    spec = load_sweep(file)
+    check_out_dir(out)
+    check_resumable(out / f"{spec.name}.zarr", spec)     # a file in the way, a damaged or foreign store
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
                TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=console) as progress:
+    with Progress(*columns, console=console, disable=not console.is_terminal) as progress:
         task = progress.add_task(f"{spec.name}: blocks", total=None, rate="")
 
         def report(done: int, total: int, rate: float) -> None:
             progress.update(task, completed=done, total=total, rate=f"{rate:,.0f} runs/s" if rate else "")
 
-        try:
-            path = run_sweep(spec, out, scheduler=scheduler, workers=workers, progress=report)
-        except ValidationError as exc:
-            console.print(f"[red]error:[/red] {exc}")
-            raise typer.Exit(2) from None
-    console.print(f"wrote {path}")
+        path = run_sweep(spec, out, scheduler=scheduler, workers=workers, progress=report)
+    console.print(f"wrote {path}", markup=False, highlight=False, soft_wrap=True)
 
 
 @app.command()
+@cli_errors
 def plot(
     result: Annotated[Path, typer.Argument(help="a sweep store (DIR/<name>.zarr)")],
     out: Annotated[Optional[Path], typer.Option("--out", help="figure folder (default: next to the store)")] = None,
 ) -> None:
     """Draw RMSE-over-time and RMSE-versus-parameter figures from a stored sweep."""
-    from ._validation import ValidationError
     from .sweep import plot_result
 
-    try:
-        paths = plot_result(result, out)
-    except ValidationError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(2) from None
+    if out is not None:
+        check_out_dir(out)
+    paths = plot_result(result, out)
     for p in paths:
-        console.print(f"wrote {p}")
+        console.print(f"wrote {p}", markup=False, highlight=False, soft_wrap=True)
 
 
 def main() -> None:  # pragma: no cover - console entry point

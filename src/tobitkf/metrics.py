@@ -143,12 +143,39 @@ def nees(truth: Any, estimate: Any, cov: Any = None, *, times: Any = None) -> np
 
     Uses a linear solve per run and step (:func:`nees_terms`); singular covariances give ``inf``.
     ``estimate`` as in :func:`rmse` (a FilterResult brings its own ``cov``).
+
+    Raises
+    ------
+    ValidationError
+        A covariance that is not symmetric positive semi-definite (its NEES would be negative or
+        meaningless), naming the first (run, step) where it is not.
     """
     est, cov, times = _unpack(estimate, cov, times)
     if cov is None:
         raise ValidationError("cov: expected the estimates' covariances (..., T, n, n)")
     err = est - align_truth(truth, est, times)
+    _check_psd_each(np.asarray(cov, dtype=float), "cov")
     return np.mean(nees_terms(err, cov), axis=0)
+
+
+def _check_psd_each(cov: np.ndarray, name: str, rtol: float = 1e-9) -> None:
+    """Raise naming the first index of ``cov`` (..., n, n) that is not symmetric PSD."""
+    if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2] or not np.all(np.isfinite(cov)):
+        return                                  # shapes are nees_terms' to refuse; NaN stays NaN
+    lead = 0
+    while cov.ndim > 2 and cov.strides[0] == 0:   # a covariance shared by the runs: check the one copy
+        cov = cov[0]
+        lead += 1
+    scale = np.maximum(np.abs(cov).max(axis=(-1, -2)), np.finfo(float).tiny)
+    asym = np.abs(cov - np.swapaxes(cov, -1, -2)).max(axis=(-1, -2))
+    low = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, -1, -2))).min(axis=-1)
+    bad = (asym > rtol * scale) | (low < -rtol * scale)
+    if np.any(bad):
+        idx = (0,) * lead + tuple(int(i) for i in np.argwhere(bad)[0])
+        what = "not symmetric" if np.any(asym > rtol * scale) and asym[tuple(idx[lead:])] > rtol * scale[tuple(idx[lead:])] \
+            else f"indefinite (smallest eigenvalue {low[tuple(idx[lead:])]:.3g})"
+        raise ValidationError(f"{name}: expected symmetric positive semi-definite covariances, the one at index {idx} "
+                              f"is {what}")
 
 
 def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 0, times: Any = None) -> dict[str, Any]:

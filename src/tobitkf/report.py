@@ -41,7 +41,19 @@ from urllib.parse import quote
 from ._io import atomic_write_text
 from ._validation import ValidationError
 
-__all__ = ["write_report", "collect_results", "render_html", "render_markdown", "ExperimentReport"]
+__all__ = ["write_report", "collect_results", "render_html", "render_markdown", "ExperimentReport",
+           "check_report_targets"]
+
+# Every report carries a marker so that a rerun replaces only files tobitkf wrote
+# (:func:`check_report_targets`); the last two are the signatures of reports written before the marker.
+_HTML_MARKER = '<meta name="generator" content="tobitkf report">'
+_MD_MARKER = '[//]: # "generator: tobitkf report (rewritten by tobitkf report; edits are lost)"'  # invisible
+_MARKERS = {"index.html": (_HTML_MARKER.encode(), b'<meta charset="utf-8">\n<meta name="viewport" content="width=device-'
+                                                  b'width, initial-scale=1">\n<title>tobitkf results</title>'),
+            "REPORT.md": (_MD_MARKER.encode(), b"# tobitkf results\n\nExperiments: ")}
+_MAX_METRICS_BYTES = 64 * 2**20   # a metrics.json larger than this is not one tobitkf wrote
+_MAX_DEPTH = 100                  # nesting levels of a metrics.json (tobitkf writes fewer than 10)
+_MAX_INT_DIGITS = 300             # integers beyond the float range cannot be formatted as numbers
 
 _META_KEYS = {"id", "title", "source", "runs", "seed", "package_version", "elapsed_seconds", "settings",
               "claims", "figures"}
@@ -286,27 +298,103 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
     ValidationError
         If ``results_dir`` is not a directory.
     """
-    root = Path(results_dir)
+    from ._io import as_path
+
+    root = as_path(results_dir, "results_dir")
     if not root.is_dir():
         raise ValidationError(f"results_dir: expected a directory of experiment results, got {str(root)!r}")
     experiments, problems, taken = [], [], set()
-    for folder in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+    try:
+        folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
+    except OSError as exc:
+        raise ValidationError(f"results_dir: cannot list {str(root)!r} ({exc.strerror})") from None
+    for folder in folders:
         mfile = folder / "metrics.json"
         if not mfile.is_file():
+            if mfile.exists() or mfile.is_symlink():        # a folder, a broken link, a device
+                problems.append(f"{_printable(folder.name)}/metrics.json is not a regular file; experiment skipped")
             continue
-        try:
-            metrics = json.loads(mfile.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            problems.append(f"{folder.name}/metrics.json could not be read ({exc}); experiment skipped")
+        if not _is_utf8(folder.name):
+            problems.append(f"{_printable(folder.name)}/metrics.json: the folder name is not UTF-8; experiment skipped")
             continue
-        if not isinstance(metrics, dict):
-            problems.append(f"{folder.name}/metrics.json is not a JSON object; experiment skipped")
+        metrics, why = _load_metrics(mfile)
+        if why:
+            problems.append(f"{folder.name}/metrics.json {why}; experiment skipped")
             continue
         exp = _read_experiment(folder, metrics, taken)
         experiments.append(exp)
         problems.extend(exp.problems)
     experiments.sort(key=lambda e: (e.source.lower(), e.id))
     return experiments, problems
+
+
+def _is_utf8(name: str) -> bool:
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:        # undecodable bytes of the file name (surrogate escapes)
+        return False
+    return True
+
+
+def _printable(name: str) -> str:
+    return name.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+
+
+def _bounded_int(digits: str) -> int:
+    if len(digits.lstrip("-")) > _MAX_INT_DIGITS:
+        raise ValueError(f"an integer of {len(digits.lstrip('-'))} digits (at most {_MAX_INT_DIGITS} are read)")
+    return int(digits)
+
+
+def _depth(obj: Any, limit: int) -> int:
+    """Nesting depth of lists/dicts in ``obj``, counted without recursion, up to ``limit + 1``."""
+    deepest, stack = 0, [(obj, 1)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, (dict, list)):
+            deepest = max(deepest, d)
+            if d > limit:
+                return d
+            stack.extend((x, d + 1) for x in (v.values() if isinstance(v, dict) else v))
+    return deepest
+
+
+def _load_metrics(mfile: Path) -> tuple[dict | None, str]:
+    """The JSON object of ``mfile``, or None and the reason it cannot be shown (never raises)."""
+    try:
+        size = mfile.stat().st_size
+        if size > _MAX_METRICS_BYTES:
+            return None, f"is {size / 2**20:.0f} MiB, more than the {_MAX_METRICS_BYTES // 2**20} MiB read"
+        metrics = json.loads(mfile.read_bytes().decode("utf-8"), parse_int=_bounded_int)
+    except OSError as exc:
+        return None, f"could not be read ({exc.strerror})"
+    except UnicodeDecodeError as exc:
+        return None, f"could not be read (not UTF-8 text: {exc.reason} at byte {exc.start})"
+    except RecursionError:
+        return None, "could not be read (nested too deeply)"
+    except ValueError as exc:         # JSONDecodeError, and the integers refused by _bounded_int
+        return None, f"could not be read ({exc})"
+    if not isinstance(metrics, dict):
+        return None, "is not a JSON object"
+    if _depth(metrics, _MAX_DEPTH) > _MAX_DEPTH:
+        return None, f"nests lists/objects deeper than {_MAX_DEPTH} levels"
+    return metrics, ""
+
+
+def check_report_targets(results_dir: str | os.PathLike) -> None:
+    """Refuse, before anything is written, to replace an ``index.html`` or ``REPORT.md`` in
+    ``results_dir`` that tobitkf did not write (no report marker), or that is a folder.
+
+    Raises
+    ------
+    ValidationError
+        Naming the file.
+    """
+    from ._io import as_path, check_replaceable
+
+    root = as_path(results_dir, "results_dir")
+    for fname, markers in _MARKERS.items():
+        check_replaceable(root / fname, fname, markers)
 
 
 def _by_source(experiments: list[ExperimentReport]) -> list[tuple[str, str, list[ExperimentReport]]]:
@@ -534,7 +622,7 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
     """The whole ``index.html`` page as a string (self-contained, no scripts)."""
     held, failed, unchecked = _totals(experiments)
     groups = _by_source(experiments)
-    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
+    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">', _HTML_MARKER,
            '<meta name="viewport" content="width=device-width, initial-scale=1">',
            f"<title>{_e(title)}</title>", f"<style>{_CSS}</style>", "</head>", "<body>", '<main id="top">',
            f"<h1>{_e(title)}</h1>",
@@ -582,9 +670,11 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
 
 
 def _md(s: Any) -> str:
-    """Text safe inside a Markdown table cell: no line breaks, pipes and '<' escaped."""
+    """Text safe inside a Markdown table cell: no line breaks; pipes, '<', backticks and square
+    brackets escaped (so text from a metrics.json cannot form a link or embed a remote image)."""
     s = " ".join(str(s).split())
-    return s.replace("\\", "\\\\").replace("|", "\\|").replace("<", "\\<").replace("`", "\\`")
+    return (s.replace("\\", "\\\\").replace("|", "\\|").replace("<", "\\<").replace("`", "\\`")
+            .replace("[", "\\[").replace("]", "\\]"))
 
 
 def _md_table(head: list[str], rows: list[list[str]], right: set[int] = frozenset()) -> list[str]:
@@ -664,7 +754,7 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                 head = ["estimator"] + [f"x{j + 1}" for j in range(t.components)] + (["NEES (avg)"] if t.has_nees
                                                                                       else [])
                 out += _md_table(head, rows, right=set(range(1, len(head))))
-    return "\n".join(out).rstrip("\n") + "\n"
+    return "\n".join(out).rstrip("\n") + "\n\n" + _MD_MARKER + "\n"
 
 
 # --------------------------------------------------------------------------- entry point
@@ -686,10 +776,17 @@ def write_report(results_dir: str | os.PathLike) -> tuple[Path, Path]:
     Raises
     ------
     ValidationError
-        If ``results_dir`` is not a directory.
+        If ``results_dir`` is not a directory, or an ``index.html``/``REPORT.md`` in it was not
+        written by tobitkf (it is never replaced).
     """
-    root = Path(results_dir)
+    from ._io import as_path
+
+    root = as_path(results_dir, "results_dir")
     experiments, problems = collect_results(root)
-    index = atomic_write_text(root / "index.html", render_html(experiments, problems))
-    md = atomic_write_text(root / "REPORT.md", render_markdown(experiments, problems))
+    check_report_targets(root)
+    # lone surrogates (from JSON escapes) cannot be written as UTF-8: shown as U+FFFD instead
+    html_text = render_html(experiments, problems).encode("utf-8", "replace").decode("utf-8")
+    md_text = render_markdown(experiments, problems).encode("utf-8", "replace").decode("utf-8")
+    index = atomic_write_text(root / "index.html", html_text)
+    md = atomic_write_text(root / "REPORT.md", md_text)
     return index, md

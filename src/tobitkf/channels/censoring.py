@@ -212,6 +212,15 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
     ShapeError
         If ``regions`` does not list one entry per output or R is time-varying.
     """
+    if not all(hasattr(system, a) for a in ("m", "C", "R", "A", "Q", "x0", "P0")) or not hasattr(system.C, "varying"):
+        raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
+    if isinstance(regions, (str, bytes)) or not isinstance(regions, Sequence) or \
+            any(isinstance(w, (str, bytes)) or not isinstance(w, Sequence) for w in regions):
+        raise ValidationError("regions: expected one sequence of (lower, upper) windows per output, got "
+                              f"{type(regions).__name__} {regions!r:.60}")
+    if noise_var is not None and (isinstance(noise_var, (str, bytes)) or not isinstance(noise_var, Sequence) or
+                                  any(isinstance(v, (str, bytes)) or not isinstance(v, Sequence) for v in noise_var)):
+        raise ValidationError(f"noise_var: expected one sequence of variances per output, got {noise_var!r:.60}")
     if len(regions) != system.m:
         raise ShapeError(f"regions: expected one list of windows per output ({system.m}), got {len(regions)}")
     if system.C.varying or system.R.varying:
@@ -226,13 +235,19 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
         if len(wins) == 0:
             raise ShapeError(f"regions[{i}]: expected at least one (lower, upper) window")
         for j, win in enumerate(wins):
-            if len(win) != 2:
-                raise ShapeError(f"regions[{i}][{j}]: expected a (lower, upper) pair, got {win!r}")
+            if isinstance(win, (str, bytes)) or not hasattr(win, "__len__") or len(win) != 2:
+                raise ShapeError(f"regions[{i}][{j}]: expected a (lower, upper) pair, got {win!r:.60}")
             rows.append(C[i])
             out_idx.append(i)
-            var.append(R[i, i] if noise_var is None else noise_var[i][j])
-            lo.append(win[0])
-            hi.append(win[1])
+            if noise_var is None:
+                var.append(R[i, i])
+            else:
+                nv = float(as_float_array(noise_var[i][j], f"noise_var[{i}][{j}]", ndim=0))
+                if nv < 0:
+                    raise ValidationError(f"noise_var[{i}][{j}]: expected a variance >= 0, got {nv}")
+                var.append(nv)
+            lo.append(as_float_array(win[0], f"regions[{i}][{j}][0]", ndim=0, allow_inf=True))
+            hi.append(as_float_array(win[1], f"regions[{i}][{j}][1]", ndim=0, allow_inf=True))
 
     def same(ts):
         return None if ts is None else (ts.array if ts.fn is None else ts.fn)

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt
-from .._validation import ShapeError, ValidationError, as_float_array
+from .._validation import ShapeError, ValidationError, as_float_array, check_memory
 from .base import Channel
 from .censoring import Censoring
 from .laws import PMF, Constant, Gaussian
@@ -149,6 +149,10 @@ class IntegralMeasurement:
         if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 0:
             raise ValidationError(f"window: expected an integer ell >= 0, got {window!r}")
         self.window = int(window)
+        # the filter's augmented covariance is (n(ell+1))^2 floats, at least (ell+1)^2 for n = 1
+        check_memory(8 * (self.window + 1) ** 2, "window",
+                     f"an integral window of {self.window} steps (the augmented covariance, at least "
+                     f"{self.window + 1} x {self.window + 1})")
 
     def window_sum(self, x: np.ndarray, prehistory: np.ndarray) -> np.ndarray:
         r""":math:`\sum_{s=0}^{\ell} x_{k-s}` for k = 1..T.
@@ -206,8 +210,11 @@ class RoundRobin:
         if isinstance(sensors, bool) or not isinstance(sensors, (int, np.integer)) or sensors < 1:
             raise ValidationError(f"sensors: expected an integer p >= 1, got {sensors!r}")
         self.sensors = int(sensors)
+        check_memory(8 * self.sensors, "sensors", f"{self.sensors} sensors")
         if order is None:
             order = range(1, self.sensors + 1)
+        if isinstance(order, (str, bytes)) or not hasattr(order, "__iter__"):
+            raise ValidationError(f"order: expected a non-empty sequence of integer sensor numbers, got {order!r}")
         arr = np.asarray(list(order))
         if arr.ndim != 1 or arr.size == 0 or not np.issubdtype(arr.dtype, np.integer):
             raise ValidationError(f"order: expected a non-empty sequence of integer sensor numbers, got {order!r}")
@@ -332,7 +339,12 @@ class ProtocolChannel(Channel):
         return ProtocolChannel(sensors, **kw)
 
     def check_system(self, system: Any) -> None:
-        """Raise unless the system has one measurement row per sensor and a diagonal R."""
+        """Raise unless the system has one measurement row per sensor and a diagonal R, and the
+        augmented covariance of the window fits in memory."""
+        if hasattr(system, "n"):
+            size = system.n * (self.window + 1)
+            check_memory(8 * size * size, "window", f"an integral window of {self.window} steps with n = {system.n} "
+                                                    f"(the augmented covariance, {size} x {size})")
         if system.m != self.sensors:
             raise ShapeError(f"system: expected C with p={self.sensors} rows (one per sensor), got m={system.m}")
 

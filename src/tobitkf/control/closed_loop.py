@@ -46,14 +46,14 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
+from .._validation import ShapeError, ValidationError, as_float, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
 from ..filters.kalman import KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter
 from ..filters.tobit import NOISE_TERMS, TobitKalmanFilter, _sigma_of
 from ..models.linear import LinearSystem
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import as_generator, check_count
+from .._validation import as_generator, check_count, check_memory
 from .lqg import controlled_noise, reference_gain
 
 __all__ = ["ClosedLoopResult", "simulate_closed_loop", "OBSERVERS", "quadratic_cost"]
@@ -163,8 +163,10 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     ShapeError
         Non-conforming K, Nbar, Cz or reference.
     """
-    if not (isinstance(divergence_bound, (int, float, np.integer, np.floating)) and divergence_bound > 0):
-        raise ValidationError(f"divergence_bound: expected a positive number, got {divergence_bound!r}")
+    try:
+        divergence_bound = as_float(divergence_bound, "divergence_bound", low=0.0, low_open=True)
+    except ValidationError:
+        raise ValidationError(f"divergence_bound: expected a positive number, got {divergence_bound!r:.40}") from None
     check_option(observer, "observer", OBSERVERS)
     check_option(side, "side", ("upper", "lower"))
     check_option(noise_term, "noise_term", NOISE_TERMS)
@@ -175,6 +177,8 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         raise ValidationError("plant: simulate_closed_loop needs a time-invariant plant")
     steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
     n, m, p = plant.n, plant.m, plant.p
+    check_memory(8 * runs * (steps + 1) * (4 * n + n * n + 3 * m + p), "runs/steps",
+                 f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)")
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
     D = None if plant.D is None else plant.D.at(1)
     Qd, R = plant.process_cov(0), plant.measurement_cov(1)
@@ -198,7 +202,10 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         if xi_uncensored is None:
             raise ValidationError(f"xi_uncensored: observer {observer!r} needs the target probability of an "
                                   "uncensored reading, in (0, 1)")
-        xi = np.broadcast_to(as_float_array(xi_uncensored, "xi_uncensored"), (m,)).copy()
+        xi = as_float_array(xi_uncensored, "xi_uncensored")
+        if xi.size not in (1, m):
+            raise ShapeError(f"xi_uncensored: expected a scalar or ({m},), got shape {xi.shape}")
+        xi = np.broadcast_to(xi.reshape(-1), (m,)).copy()
         controlled_noise(xi, sigma)                        # raises for xi outside (0, 1)
         from scipy.special import ndtri
 
@@ -238,6 +245,8 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
                              (("x0", (runs, n)), ("w", (runs, steps, n)), ("v", (runs, steps, m))))
         except KeyError as exc:
             raise ValidationError(f"noise: expected keys 'x0', 'w', 'v', missing {exc}") from None
+        except ValidationError:          # NaN, inf or text in noise['w'] ...: named by as_float_array
+            raise
         except ValueError:
             raise ShapeError(f"noise: expected x0 ({runs}, {n}), w ({runs}, {steps}, {n}), v ({runs}, {steps}, {m}), got "
                              f"{[np.shape(noise[k]) for k in ('x0', 'w', 'v')]}") from None

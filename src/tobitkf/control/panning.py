@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtri
 
-from .._validation import ValidationError
+from .._validation import ValidationError, as_float, as_float_array, check_int
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..filters.tobit import TobitKalmanFilter
@@ -46,6 +46,9 @@ def constant_velocity(dt: float, sigma_q: float, sigma_r: Any, *, targets: int =
                       x0: Any = None, P0: Any = None) -> LinearSystem:
     r"""Constant-velocity targets (6.64)–(6.66): state [x_p, x_v] per target, G = [Δ²/2, Δ]σ_q, each target
     position seen by ``cameras`` channels with noise std ``sigma_r``."""
+    dt = as_float(dt, "dt", low=0.0, low_open=True)
+    sigma_q = as_float(sigma_q, "sigma_q", low=0.0)
+    targets, cameras = check_int(targets, "targets", minimum=1), check_int(cameras, "cameras", minimum=1)
     A1 = np.array([[1.0, dt], [0.0, 1.0]])
     G1 = np.array([[dt**2 / 2], [dt]])
     A = np.kron(np.eye(targets), A1)
@@ -53,7 +56,10 @@ def constant_velocity(dt: float, sigma_q: float, sigma_r: Any, *, targets: int =
     C1 = np.kron(np.eye(targets), [[1.0, 0.0]])
     C = np.vstack([C1] * cameras)
     m = C.shape[0]
-    sr = np.broadcast_to(np.asarray(sigma_r, dtype=float), (m,))
+    sr = as_float_array(sigma_r, "sigma_r")
+    if sr.size not in (1, m) or (sr <= 0).any():
+        raise ValidationError(f"sigma_r: expected one positive noise std or {m}, got {sr}")
+    sr = np.broadcast_to(sr.reshape(-1), (m,))
     n = 2 * targets
     return LinearSystem(A=A, C=C, Q=np.eye(targets) * sigma_q**2, R=np.diag(sr**2), B=G,
                         x0=np.zeros(n) if x0 is None else x0, P0=np.eye(n) if P0 is None else P0)
@@ -66,8 +72,9 @@ def keep_in_view_limit(prior_measurement: Any, sigma: Any, upper0: float, *, wid
     ``prior_var`` (:math:`C\bar\Psi C^T`) switches s from σ (printed) to :math:`\sqrt{\sigma^2 + C\bar\Psi C^T}`
     (spec A39). Returns (lower, upper) with the shape of ``prior_measurement``.
     """
-    if not 0 < probability < 1:
-        raise ValidationError(f"probability: expected a value in (0, 1), got {probability}")
+    probability = as_float(probability, "probability", low=0.0, high=1.0, low_open=True, high_open=True)
+    width = as_float(width, "width", low=0.0, low_open=True)
+    upper0 = as_float(upper0, "upper0")
     mu = np.asarray(prior_measurement, dtype=float)
     s = np.asarray(sigma, dtype=float) if prior_var is None else np.sqrt(np.asarray(sigma, dtype=float) ** 2 + prior_var)
     upper = np.maximum(upper0, mu + s * ndtri(probability))

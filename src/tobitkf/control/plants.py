@@ -27,6 +27,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._validation import as_float
+
 __all__ = ["ContinuousPlant", "DC_MOTOR", "dc_motor_speed", "dc_motor_position", "scalar_example"]
 
 DC_MOTOR = {"b": 3.5077e-6, "j": 4.2937e-5, "k": 9.73e-3, "r": 4.27, "l": 0.288e-6,
@@ -47,7 +49,7 @@ class ContinuousPlant(NamedTuple):
 
 def dc_motor_speed(*, k: float = DC_MOTOR["k"]) -> ContinuousPlant:
     """DC-motor speed model (5.59) with the corrections of the module docstring; ``k=9.37e-3`` gives the printed typo."""
-    p = dict(DC_MOTOR, k=k)
+    p = dict(DC_MOTOR, k=as_float(k, "k", low=0.0, low_open=True))
     A = np.array([[-p["b"] / p["j"], p["k"] / p["j"]], [-p["k"] / p["l"], -p["r"] / p["l"]]])
     G = np.array([[0.0], [1.0 / p["l"]]])
     C = np.array([[1.0, 0.0]])

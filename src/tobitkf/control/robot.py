@@ -38,12 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError, check_option
+from .._validation import as_float, as_generator, check_count, check_memory, check_option
 from ..channels.censoring import Censoring
 from ..filters.kalman import KalmanFilter
 from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
-from .._validation import as_generator
 from .lqg import dlqr, reference_gain
 
 __all__ = ["RobotSetup", "robot_setup", "simulate_robot", "RobotResult", "trilaterate", "TRANSMITTERS"]
@@ -77,6 +76,10 @@ def robot_setup(*, dt: float = 0.1, mass: float = 1.0, alpha: float = 6.0, sigma
                 input_matrix: str = "force") -> RobotSetup:
     """Build the §6.3 problem; ``input_matrix="printed"`` uses the printed B_p (raises: not stabilizable)."""
     check_option(input_matrix, "input_matrix", ("force", "printed"))
+    dt, mass, alpha, sigma_q, sigma_r, sigma_rss = (as_float(v, name, low=0.0, low_open=True) for v, name in (
+        (dt, "dt"), (mass, "mass"), (alpha, "alpha"), (sigma_q, "sigma_q"), (sigma_r, "sigma_r"),
+        (sigma_rss, "sigma_rss")))
+    limit, weight = as_float(limit, "limit"), as_float(weight, "weight", low=0.0, low_open=True)
     A1 = np.array([[1.0, dt], [0.0, 1.0]])
     Ap = np.kron(np.eye(2), A1)
     Gp = np.kron(np.eye(2), [[dt**2 / (2 * mass)], [dt / mass]])
@@ -136,8 +139,10 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
         Unknown ``feedback``, non-positive radius or steps.
     """
     check_option(feedback, "feedback", ("tkf", "kf"))
-    if not radius > 0 or steps < 1 or runs < 1:
-        raise ValidationError(f"radius, steps, runs: expected positive values, got {radius}, {steps}, {runs}")
+    radius = as_float(radius, "radius", low=0.0, low_open=True)
+    steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
+    check_memory(8 * runs * (steps + 1) * 31, "runs/steps",
+                 f"{runs} runs x {steps} steps of the robot (states, two observers, readings, noises)")
     s = setup
     rng = as_generator(seed)
     tx = s.transmitters

@@ -46,7 +46,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_memory, check_option
 from ..censored import censored_moments
 from ..filters.fixed_gain import FixedGainTobitObserver
 from .lqg import DOMAINS
@@ -213,6 +213,7 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str = "dt", grid: i
     check_option(domain, "domain", DOMAINS)
     if isinstance(grid, bool) or not isinstance(grid, (int, np.integer)) or grid < 0:
         raise ValidationError(f"grid: expected a non-negative integer, got {grid!r}")
+    check_memory(8 * int(grid), "grid", f"a grid of {grid} points")
     A, L, C = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (L, "L"), (C, "C")))
     n, m = A.shape[0], C.shape[0]
     if A.shape != (n, n) or L.shape != (n, m) or C.shape != (m, n):

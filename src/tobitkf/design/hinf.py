@@ -72,7 +72,8 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
+from .._validation import (ShapeError, ValidationError, as_float, as_float_array, check_bool, check_instance,
+                           check_int, check_option)
 from ..channels.saturation import saturate
 from ..models.ross import RossModel
 
@@ -88,7 +89,16 @@ COVARIANCES = ("paper", "exact")
 SOLVERS = ("CLARABEL", "SCS")
 
 
+def _number(value: Any, name: str, *, positive: bool = False, nonnegative: bool = False,
+            optional: bool = False) -> float | None:
+    """A finite real number (None allowed if ``optional``): text, booleans, NaN and inf are refused by name."""
+    if value is None and optional:
+        return None
+    return as_float(value, name, low=0.0 if (positive or nonnegative) else None, low_open=positive)
+
+
 def _check_gains(model: RossModel, Af: Any, Bf: Any) -> tuple[np.ndarray, np.ndarray]:
+    check_instance(model, RossModel, "model")
     n, m = model.n, model.m
     Af = as_float_array(Af, "Af", ndim=2)
     Bf = as_float_array(Bf, "Bf", ndim=2)
@@ -234,9 +244,13 @@ def psi_matrix(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: fl
     check_option(covariance, "covariance", COVARIANCES)
     Af, Bf = _check_gains(model, Af, Bf)
     P = _check_P(model, P)
+    eps1, eps2, gamma = _number(eps1, "eps1"), _number(eps2, "eps2"), _number(gamma, "gamma", optional=True)
     n, m, p = model.n, model.m, model.p
     N = 3 * n + 2 * m + p
-    Lam = np.asarray(Lambda, dtype=float).reshape(m)
+    Lam = as_float_array(Lambda, "Lambda")
+    if Lam.size != m:
+        raise ShapeError(f"Lambda: expected {m} values (one per sensor), got shape {Lam.shape}")
+    Lam = Lam.reshape(m)
     A = _mean_map(model, Af, Bf)
     rs, rc = _selectors(model)
     cols = np.vstack([np.zeros((n, m)), Bf])
@@ -415,6 +429,12 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
     """
     Af, Bf = _check_gains(model, Af, Bf)
     P = _check_P(model, P)
+    eps1, eps2 = _number(eps1, "eps1"), _number(eps2, "eps2")
+    gamma = _number(gamma, "gamma", optional=True)
+    pi, rho = _number(pi, "pi", optional=True), _number(rho, "rho", optional=True)
+    region_tol = _number(region_tol, "region_tol", nonnegative=True)
+    block_diagonal = check_bool(block_diagonal, "block_diagonal")
+    Lambda = as_float_array(Lambda, "Lambda")
     n, m = model.n, model.m
     reasons: list[str] = []
     Ps = 0.5 * (P + P.T)
@@ -594,8 +614,13 @@ def _check_common(objective: str, gamma: float | None, solver: str, fallback: st
         check_option(fallback, "fallback", SOLVERS)
     check_option(covariance, "covariance", COVARIANCES)
     if objective == "feasibility":
-        if gamma is None or not np.isfinite(gamma) or gamma <= 0:
-            raise ValidationError(f"gamma: expected a positive number for objective='feasibility', got {gamma!r}")
+        try:
+            _number(gamma, "gamma", positive=True)
+        except ValidationError:
+            raise ValidationError(f"gamma: expected a positive number for objective='feasibility', "
+                                  f"got {gamma!r}") from None
+    elif gamma is not None:
+        _number(gamma, "gamma", positive=True)
 
 
 # ---------------------------------------------------------------------------------------
@@ -647,7 +672,12 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     ValidationError, ShapeError
         Bad options, shapes, a non-positive γ for a feasibility problem.
     """
+    check_instance(model, RossModel, "model")
     check_option(theorem, "theorem", (1, 2))
+    margin = _number(margin, "margin", positive=True)
+    bound = _number(bound, "bound", positive=True, optional=True)
+    if rho is not None:
+        rho = _number(rho, "rho")
     if objective is None:
         objective = "feasibility" if theorem == 1 else "min_gamma"
     check_option(lyapunov, "lyapunov", ("block", "full"))
@@ -942,8 +972,17 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     Deviation from the source: with ``method="theorem3"`` the certificate can never beat the zero
     filter (spec §6 F3); ``"coupled"`` couples x and x̂ in P and can.
     """
+    check_instance(model, RossModel, "model")
     check_option(method, "method", METHODS)
     _check_common(objective, gamma, solver, fallback, covariance)
+    margin = _number(margin, "margin", positive=True)
+    bound = _number(bound, "bound", positive=True, optional=True)
+    iterations = check_int(iterations, "iterations", minimum=0)
+    tol = _number(tol, "tol", nonnegative=True)
+    retries = check_int(retries, "retries", minimum=0)
+    if fixed_Q is not None and (isinstance(fixed_Q, (str, bytes)) or not hasattr(fixed_Q, "__len__")
+                                or len(fixed_Q) != 2):
+        raise ValidationError(f"fixed_Q: expected a pair (Q1, Q2) of matrices, got {type(fixed_Q).__name__}")
     if method == "theorem3" and covariance != "paper":
         raise ValidationError("covariance: Theorem 3 is the paper's LMI and uses bound (14); "
                               "covariance='exact' is only available for method='coupled' or 'iterate'")

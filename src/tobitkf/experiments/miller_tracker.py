@@ -78,6 +78,11 @@ def _plot_tracker(result: ExperimentResult, outdir: Path) -> list[Path]:
           source="Miller 2015: Estimation and Control with Censored Data (dissertation)", plot=_plot_tracker, default_runs=10)
 def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult:
     """The three experiments of §2.2.4 (see the module docstring)."""
+    from .._validation import check_count, check_memory
+
+    runs = check_count(runs, "runs")
+    # per-run results of the three experiments (swaps, errors, re-associations: ~200 bytes a run)
+    check_memory(200 * runs, "runs", f"{runs} tracker runs (the results of each are kept)")
     progress = progress or _noop
     rng = np.random.default_rng(seed)
     metrics: dict = {"runs": runs}

@@ -50,7 +50,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
-from .._validation import ShapeError, ValidationError, as_float_array, check_psd
+from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
 
 __all__ = ["FilterResult", "FilterState", "Transition", "MeasurementPrediction", "predict", "shift_predict",
            "sqrt_predict", "time_update", "gain_update", "sqrt_update", "measurement_update", "GaussianFilter",
@@ -729,8 +729,7 @@ def check_keywords(options: dict[str, Any], allowed: dict[str, tuple]) -> None:
     for key, value in options.items():
         if key not in allowed:
             raise TypeError(f"unexpected keyword argument {key!r}")
-        if value not in allowed[key]:
-            raise ValidationError(f"{key}: expected one of {', '.join(repr(a) for a in allowed[key])}, got {value!r}")
+        check_option(value, key, allowed[key])      # of the same kind: 1.0 is not True
 
 
 def process_roots(system):

@@ -47,7 +47,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
+from .._validation import (ShapeError, ValidationError, as_float, as_float_array, check_bool, check_int,
+                           check_option, check_psd)
 from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, Transition, measurement_update, \
     time_update
 
@@ -91,7 +92,11 @@ class MultiTargetTracker(Estimator):
     Raises
     ------
     ValidationError
-        Negative gate, unknown options.
+        A gate0 <= 0, a negative gate_slope, NaN/inf/text/booleans for a number, a warm-up that is
+        not an integer >= 0, ``gate`` not a bool, unknown options; in :meth:`filter`, :meth:`step` and
+        :meth:`track`, NaN, inf or text in a detection frame.
+    ShapeError
+        A detection frame that is not (L, 2).
     """
 
     _name = "MultiTargetTracker"
@@ -102,10 +107,11 @@ class MultiTargetTracker(Estimator):
                  gate: bool = True):
         check_option(feedback, "feedback", ("corrected", "printed", "off"))
         check_option(second_map, "second_map", ("closest", "mutual"))
-        if gate0 <= 0 or gate_slope < 0:
-            raise ValidationError(f"gate0/gate_slope: expected gate0 > 0 and gate_slope >= 0, got {gate0}, {gate_slope}")
-        if warmup < 0:
-            raise ValidationError(f"warmup: expected a non-negative number of frames, got {warmup}")
+        gate0 = as_float(gate0, "gate0", low=0.0, low_open=True)
+        gate_slope = as_float(gate_slope, "gate_slope", low=0.0)
+        mu = as_float(mu, "mu")
+        warmup = check_int(warmup, "warmup", minimum=0)
+        gate = check_bool(gate, "gate")
         self.A, self.C = constant_velocity_pixel_model()
         self.Q = 0.01 * np.eye(4) if Q is None else as_float_array(Q, "Q")
         self.R = np.eye(2) if R is None else as_float_array(R, "R")
@@ -142,7 +148,7 @@ class MultiTargetTracker(Estimator):
         if initial is None:
             raise ValidationError("initial: expected the (N, 2) target locations of frame 0")
         init = as_float_array(initial, "initial")
-        if init.ndim != 2 or init.shape[1] != 2:
+        if init.ndim != 2 or init.shape[1] != 2 or init.shape[0] < 1:
             raise ShapeError(f"initial: expected (N, 2) target locations, got {init.shape}")
         N = init.shape[0]
         x = np.zeros((N, 4))
@@ -152,12 +158,15 @@ class MultiTargetTracker(Estimator):
         return FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, carry=carry)
 
     def _frame(self, frame: Any, name: str = "detections") -> np.ndarray:
-        M = as_float_array(frame, name, allow_nan=True)
+        """One frame as (L, 2) finite pixel coordinates; (2,) is one point, an empty array none."""
+        M = as_float_array(frame, name)
         if M.size == 0:
             return np.zeros((0, 2))
+        if M.shape == (2,):
+            return M[None, :]
         if M.ndim != 2 or M.shape[-1] != 2:
-            raise ShapeError(f"{name}: expected (L, 2) detections (x, y per row), got shape {M.shape}")
-        return M[~np.isnan(M).any(axis=1)]
+            raise ShapeError(f"{name}: expected (L, 2) points (x, y), got shape {M.shape}")
+        return M
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         frame = options["frame"]
@@ -208,7 +217,11 @@ class MultiTargetTracker(Estimator):
         elif initial is not None:
             raise ValidationError("state: give either a state to continue from or the initial locations, not both")
         state = self._check_state(state)
-        frames = [self._frame(f, f"detections[{i}]") for i, f in enumerate(detections)]
+        if isinstance(detections, (str, bytes)) or not hasattr(detections, "__len__") or \
+                not hasattr(detections, "__getitem__"):
+            raise ValidationError(f"detections: expected a sequence of (L_k, 2) arrays, one per frame, got "
+                                  f"{type(detections).__name__}")
+        frames = [self._frame(detections[i], f"detections[{i}]") for i in range(len(detections))]
         T = len(frames)
         if T == 0:
             raise ShapeError("detections: expected at least one frame")

@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_probability, check_psd
+from .._validation import (ShapeError, ValidationError, as_float_array, check_instance, check_memory,
+                           check_probability, check_psd)
 from ..channels.laws import PMF
 
 __all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "paper_example", "paper_prior",
@@ -130,7 +131,7 @@ class FadingMoments:
 
 def _scalar_schedule(value: Any, name: str) -> Callable[[int], float]:
     if callable(value):
-        return lambda t: float(value(t))
+        return lambda t: float(as_float_array(value(t), f"{name}({t})", ndim=0))
     arr = as_float_array(value, name, ndim=(0, 1))
     if arr.ndim == 0:
         c = float(arr)
@@ -169,15 +170,29 @@ class _FadingSchedule:
         return isinstance(self.source, FadingMoments) or (callable(self.source) and not _is_law(self.source))
 
     def mean_at(self, t: int) -> float:
-        return self.source.mean_at(t) if self._law is None else float(self._law(t).mean)
+        if self._law is None:
+            return self.source.mean_at(t)
+        return float(as_float_array(self._law_at(t).mean, f"fading({t}).mean", ndim=0))
 
     def variance_at(self, t: int) -> float:
-        return self.source.variance_at(t) if self._law is None else float(self._law(t).variance)
+        if self._law is None:
+            return self.source.variance_at(t)
+        v = float(as_float_array(self._law_at(t).variance, f"fading({t}).variance", ndim=0))
+        if v < 0:
+            raise ValidationError(f"fading({t}).variance: expected a non-negative fading variance, got {v}")
+        return v
+
+    def _law_at(self, t: int) -> Any:
+        law = self._law(t)
+        if not _is_law(law):
+            raise ValidationError(f"fading({t}): a callable must return a law with mean, variance and "
+                                  f"sample(rng, shape) for each t, got {type(law).__name__}")
+        return law
 
     def sample_at(self, rng: np.random.Generator, t: int, shape: Any) -> np.ndarray:
         if self._law is None:
             return self.source.sample_at(rng, t, shape)
-        return np.asarray(self._law(t).sample(rng, shape), dtype=float)
+        return as_float_array(self._law_at(t).sample(rng, shape), f"fading({t}).sample")
 
 
 def _is_law(obj: Any) -> bool:
@@ -208,12 +223,27 @@ class HistoryPrior:
     Stored as a joint mean ``mean`` (d+1, n) (row k is :math:`\bar x(-k)`) and a joint
     covariance ``cov`` (n(d+1), n(d+1)) in the same block order. Build it with
     :meth:`uncorrelated` (the default reading: one independent prior per lag),
-    :meth:`joint` or :meth:`constant` (x(-k) ≡ x(0), fully correlated).
+    :meth:`joint` or :meth:`constant` (x(-k) ≡ x(0), fully correlated); built directly, the
+    same checks apply.
+
+    Raises
+    ------
+    ValidationError
+        NaN, inf or text in ``mean``/``cov``, or ``cov`` not symmetric PSD.
+    ShapeError
+        ``mean`` not (d+1, n), or ``cov`` not (n(d+1), n(d+1)).
     """
 
-    def __init__(self, mean: np.ndarray, cov: np.ndarray):
-        self.mean = mean
-        self.cov = cov
+    def __init__(self, mean: Any, cov: Any):
+        mu = as_float_array(mean, "mean", ndim=2)
+        P = as_float_array(cov, "cov", ndim=2)
+        if mu.shape[0] < 1 or mu.shape[1] < 1:
+            raise ShapeError(f"mean: expected (d+1, n) with d >= 0 and n >= 1, got shape {mu.shape}")
+        if P.shape != (mu.size, mu.size):
+            raise ShapeError(f"cov: expected shape {(mu.size, mu.size)} for a mean of shape {mu.shape}, got {P.shape}")
+        check_psd(P, "cov")
+        self.mean = mu.copy()
+        self.cov = P.copy()
 
     @property
     def d(self) -> int:
@@ -402,7 +432,7 @@ class DelayFadingSystem:
             return lambda t: np.zeros(0)
         if callable(q):
             def at(t: int) -> np.ndarray:
-                val = np.asarray(q(t), dtype=float).reshape(-1)
+                val = as_float_array(q(t), f"q_mult({t})").reshape(-1)      # NaN, inf, text: refused by name
                 if val.shape != (h,) or (val < 0).any():
                     raise ValidationError(f"q_mult({t}): expected {h} non-negative variances, got {val}")
                 return val
@@ -499,4 +529,6 @@ def paper_example(S: float = 0.3, *, q: float = 1.0, d: int = 3) -> DelayFadingS
 
 def paper_prior(d: int = 3, cov: float = 0.01) -> HistoryPrior:
     """x(-k) ~ (0, 0.01 I) uncorrelated, k = 0..d (spec §4 item 1; P(0|0) = 0.01 I in the source)."""
-    return HistoryPrior.repeated(np.zeros(2), cov * np.eye(2), d)
+    d = _check_delay(d)
+    check_memory(8 * (2 * (d + 1)) ** 2, "d", f"a history of {d + 1} lags (its joint covariance)")
+    return HistoryPrior.repeated(np.zeros(2), as_float_array(cov, "cov", ndim=0) * np.eye(2), d)

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import ShapeError, ValidationError, as_generator, check_count, check_instance
+from .._validation import (ShapeError, ValidationError, as_float_array, as_generator, check_count,
+                           check_instance, check_memory)
 from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -126,6 +127,9 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channe
     check_instance(system, LinearSystem, "system")
     steps = check_count(steps, "steps")
     runs = check_count(runs, "runs")
+    # refused before anything is allocated (or a callable evaluated over a huge horizon)
+    check_memory(8 * runs * (steps + 1) * (2 * system.n + system.q + 3 * system.m + (system.p or 0)), "runs/steps",
+                 f"{runs} runs x {steps} steps (n = {system.n}, m = {system.m}: states, noises, readings)")
     system.check_horizon(steps)  # also validates callables over the horizon
     if censoring is not None:
         check_instance(censoring, Censoring, "censoring")
@@ -194,16 +198,36 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channe
         if u is not None and system.D is not None:
             y_latent += np.stack([u[:, k - 1] @ system.D.at(k).T for k in range(1, steps + 1)], axis=1)
     else:
-        y_latent, extras = measurement.draw(rng, x, system, v, u)
-        y_latent = np.asarray(y_latent, dtype=float)
-        if y_latent.shape != (runs, steps, m):
-            raise ShapeError(f"measurement: draw() returned shape {y_latent.shape}, expected {(runs, steps, m)}")
-        extras = dict(extras)
+        drawn = measurement.draw(rng, x, system, v, u)
+        hook = "channel" if drawers else "measurement"
+        if not (isinstance(drawn, tuple) and len(drawn) == 2):
+            raise ValidationError(f"{hook}: draw() must return (y_latent, extras), got {type(drawn).__name__}")
+        y_latent = _hook_output(drawn[0], f"{hook}: draw()", (runs, steps, m), exact=True)
+        try:
+            extras = dict(drawn[1])
+        except (TypeError, ValueError):
+            raise ValidationError(f"{hook}: draw() must return a dict of extras, got "
+                                  f"{type(drawn[1]).__name__}") from None
     y = y_latent if censoring is None else censoring.clip(y_latent)
-    for piece in pieces:
-        y = piece.censor(y)
-    for piece in post:
-        y = piece.apply(rng, y, extras)
-    for piece in pieces:
-        y = piece.apply(rng, y, extras)
+    for i, piece in enumerate(pieces):
+        y = _hook_output(piece.censor(y), f"{_label(pieces, i)}: censor()", (runs, steps, m))
+    for i, piece in enumerate(post):
+        y = _hook_output(piece.apply(rng, y, extras), f"post[{i}]: apply()", (runs, steps, m))
+    for i, piece in enumerate(pieces):
+        y = _hook_output(piece.apply(rng, y, extras), f"{_label(pieces, i)}: apply()", (runs, steps, m))
     return SimulationData(x=x, y=y, y_latent=y_latent, u=u, extras=extras)
+
+
+def _label(pieces: tuple, i: int) -> str:
+    return f"channel[{i}]" if len(pieces) > 1 else "channel"
+
+
+def _hook_output(value: Any, name: str, shape: tuple[int, ...], *, exact: bool = False) -> np.ndarray:
+    """What a channel piece or hook returned: real numbers (NaN = a missing reading) of shape
+    ``(runs, steps, channels)``; the channel count may change after the reading is drawn (a
+    scheduler forwards one sensor), unless ``exact``."""
+    arr = as_float_array(value, name, allow_nan=True)
+    if arr.ndim != 3 or arr.shape[:2] != shape[:2] or arr.shape[2] < 1 or (exact and arr.shape != shape):
+        want = str(shape) if exact else f"({shape[0]}, {shape[1]}, channels)"
+        raise ShapeError(f"{name} returned shape {arr.shape}, expected {want} (runs, steps, channels)")
+    return arr

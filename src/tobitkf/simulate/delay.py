@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import as_generator, check_count, check_instance
+from .._validation import as_generator, check_count, check_instance, check_memory
 from ..models.delay import DelayFadingSystem, HistoryPrior
 from .core import SimulationData
 
@@ -56,8 +56,10 @@ def simulate_delay(system: DelayFadingSystem, prior: HistoryPrior, steps: int, r
     prior = system.check_prior(prior)
     T = check_count(steps, "steps")
     N = check_count(runs, "runs")
-    rng = as_generator(seed)
     n, m, p, h, d = system.n, system.m, system.p, system.h, system.d
+    check_memory(8 * N * (T + d + 1) * (2 * n + 2 * m + p + h + 1), "runs/steps",
+                 f"{N} runs x {T} steps (n = {n}, m = {m}, d = {d}: states, noises, readings)")
+    rng = as_generator(seed)
     full = np.empty((N, T + d + 1, n))                 # index j + d holds x(j), j = -d..T
     X0 = prior.mean.reshape(-1) + rng.standard_normal((N, n * (d + 1))) @ psd_sqrt(prior.cov).T
     for k in range(d + 1):

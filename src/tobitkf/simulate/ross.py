@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, as_generator, check_instance
+from .._validation import ShapeError, ValidationError, as_float_array, as_generator, check_instance, check_memory
 from ..models.ross import RossModel
 
 __all__ = ["RossSimulation", "simulate_ross", "wang2010_disturbances"]
@@ -106,6 +106,8 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValidationError(f"runs: expected a positive integer, got {runs!r}")
     n, m, p = model.n, model.m, model.p
+    check_memory(8 * runs * (steps + 1) * (2 * n + 5 * m + p), "runs/steps",
+                 f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, readings, disturbances, modes)")
     x0a = np.zeros(n) if x0 is None else as_float_array(x0, "x0", ndim=(1, 2))
     if x0a.shape[-1] != n or (x0a.ndim == 2 and x0a.shape[0] != runs):
         raise ShapeError(f"x0: expected ({n},) or ({runs}, {n}), got {x0a.shape}")

@@ -11,6 +11,10 @@ __all__ = ["plot_result"]
 _MAX_POINT_COLUMNS = 6
 
 
+def _safe(dim: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in dim)
+
+
 def _as_tuple(value) -> tuple:
     return value if isinstance(value, tuple) else (value,)
 
@@ -25,10 +29,16 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
     matplotlib.use("Agg")
     from .store import load_result
 
-    path = Path(path)
+    from .._io import FIGURE_MARKERS, as_path, check_replaceable, check_writable_dir
+
+    path = as_path(path, "result")
     ds = load_result(path)
-    outdir = Path(outdir) if outdir is not None else path.parent / f"{path.stem}_plots"
+    outdir = as_path(outdir, "--out") if outdir is not None else path.parent / f"{path.stem}_plots"
+    check_writable_dir(outdir, "--out")
     grid_dims = [d for d in ds["rmse"].dims if d not in ("estimator", "time", "state")]
+    names = ["rmse_over_time.png"] + [f"rmse_vs_{_safe(d)}.png" for d in grid_dims]
+    for name in names:               # a figure of the same name tobitkf did not draw is never replaced
+        check_replaceable(outdir / name, "--out", FIGURE_MARKERS)
     stacked = ds["rmse"].stack(point=grid_dims) if grid_dims else ds["rmse"].expand_dims(point=[0])
     ests, n = list(ds["estimator"].values), ds.sizes["state"]
     points = stacked.sizes["point"]
@@ -72,6 +82,5 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
             ax.set_xlabel(dim)
             ax.set_ylabel(f"time-averaged RMSE of x{i + 1}")
             ax.legend(fontsize=7)
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in dim)
-        paths.append(save(fig, outdir, f"rmse_vs_{safe}.png"))
+        paths.append(save(fig, outdir, f"rmse_vs_{_safe(dim)}.png"))
     return paths

@@ -26,7 +26,7 @@ from .._validation import ValidationError
 from ..metrics import nees_terms
 from .build import build_point
 from .spec import SweepSpec
-from .store import open_store, reduce_store, write_blocks
+from .store import _read, check_resumable, open_store, reduce_store, write_blocks
 
 __all__ = ["build_point", "run_block", "run_sweep", "experiment_seed"]
 
@@ -102,6 +102,35 @@ def run_task(spec_text: str, name: str, point_index: int, blocks: list[int],
     return [(b, run_block(spec, point, b, sizes[b], threads=threads)) for b in blocks]
 
 
+def _probe(scheduler: str, timeout: float = 5.0) -> None:
+    """Refuse at once a TCP scheduler address where nothing listens (Dask's Client would retry
+    for its whole connect timeout, 30 s, before giving up)."""
+    from urllib.parse import urlsplit
+
+    if not isinstance(scheduler, str) or not scheduler:
+        raise ValidationError(f"--scheduler: expected 'local', 'processes' or a scheduler address, got {scheduler!r}")
+    address = scheduler if "://" in scheduler else f"tcp://{scheduler}"
+    try:
+        parts = urlsplit(address)
+        host, port = parts.hostname, parts.port
+    except ValueError as exc:               # a port that is not a number or out of range
+        raise ValidationError(f"--scheduler: {scheduler!r} is not a scheduler address ({exc}); expected "
+                              "'local', 'processes' or e.g. tcp://host:8786") from None
+    if parts.scheme not in ("tcp", "tls") or not host or port is None:
+        return                              # other protocols (inproc, ucx, ws): left to Dask
+    import socket
+
+    try:
+        socket.create_connection((host, port), timeout=timeout).close()
+    except ConnectionRefusedError:
+        raise ValidationError(f"--scheduler: connection refused at {host}:{port} (no Dask scheduler listens "
+                              "there); start one or use --scheduler local") from None
+    except socket.gaierror as exc:
+        raise ValidationError(f"--scheduler: unknown host {host!r} ({exc.strerror})") from None
+    except OSError:
+        return                              # a timeout or a filtered port: Dask's own error follows
+
+
 def _client(scheduler: str, workers: int):
     try:
         from distributed import Client, LocalCluster
@@ -118,6 +147,7 @@ def _client(scheduler: str, workers: int):
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
             cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
         return Client(cluster), cluster
+    _probe(scheduler)
     try:
         return Client(scheduler), None
     except (OSError, ValueError, TypeError) as exc:   # unreachable, timed out, or not an address
@@ -161,16 +191,22 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
         refuses the settings or reports no estimators, or a grid point whose statistics do
         not fit the store (e.g. a grid over the horizon).
     """
-    from .._io import safe_child
+    from .._io import check_writable_dir, safe_child
     from .._compiled import default_threads
 
+    from .._validation import check_instance
+    from .spec import SweepSpec
+
+    check_instance(spec, SweepSpec, "spec")
     if workers is None:
         workers = default_threads()
     elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValidationError(f"workers: expected a positive integer or None, got {workers!r}")
     out = Path(out)
+    check_writable_dir(out, "--out")
     out.mkdir(parents=True, exist_ok=True)
     path = safe_child(out, f"{spec.name}.zarr")
+    check_resumable(path, spec)     # a file in the way, a damaged or foreign store: refused before any work
     points = spec.points()
     # connect first: a wrong address fails before any work is done
     client, cluster = _client(scheduler, workers) if scheduler != "local" else (None, None)
@@ -198,8 +234,11 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         write_blocks(g, 0, [(0, first)])
     else:
         pt = build_point(spec, points[0])
+        if client is None and threads > 1:      # blocks computed side by side in this process
+            spec.check_size(pt.system.n, pt.reading_width, pt.system.q, len(pt.estimators),
+                            parallel=min(threads, len(points) * spec.blocks))
         g = open_store(path, spec, list(pt.estimators), pt.system.n, pt.reading_width, spec.steps)
-    done = g["done"][:]
+    done = _read(g, "done")
     tasks = []
     for p in range(len(points)):
         todo = [b for b in range(spec.blocks) if not done[p, b]]
@@ -243,7 +282,7 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
         for fut in as_completed(futs):
             record(futs[fut], fut.result())
-    if bool(g["done"][:].all()):
+    if bool(_read(g, "done").all()):
         _write_summary(path, reduce_store(g))
 
 

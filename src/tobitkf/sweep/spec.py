@@ -92,6 +92,39 @@ class SweepFileError(ValidationError):
     """A sweep file is malformed; the message names the key and its line."""
 
 
+MAX_FILE_BYTES = 16 * 2**20   # a sweep file is a few kB; this bounds what is read
+MAX_DEPTH = 16                # tables/arrays nested deeper than this are no sweep (a grid of time-varying
+                              # matrices needs 5 levels)
+MAX_GRID_POINTS = 10_000      # every point is built once on load; more would take minutes to check
+MAX_NAME_BYTES = 200          # of the store's name, leaving room for ".zarr", "_plots" and temporary suffixes
+
+
+def _depth(obj: Any, limit: int) -> tuple[int, str]:
+    """Deepest nesting of tables/arrays below the top level (counted without recursion) and the
+    top-level key where it is; stops beyond ``limit``."""
+    deepest, where = 0, ""
+    stack = [(v, 1, k) for k, v in obj.items()] if isinstance(obj, dict) else []
+    while stack:
+        v, d, top = stack.pop()
+        if isinstance(v, (dict, list)):
+            if d > deepest:
+                deepest, where = d, top
+            if d > limit:
+                break
+            stack.extend((x, d + 1, top) for x in (v.values() if isinstance(v, dict) else v))
+    return deepest, where
+
+
+def _check_name(text: str, key: str, sname: Any) -> None:
+    if (not isinstance(sname, str) or not sname or any(c in sname for c in "/\\") or sname.startswith(".")
+            or not sname.isprintable()):
+        raise _fail(text, key, f"expected a plain file name, got {sname!r}")
+    size = len(sname.encode("utf-8", "surrogatepass"))
+    if size > MAX_NAME_BYTES:
+        raise _fail(text, key, f"expected a name of at most {MAX_NAME_BYTES} bytes (it names the store folder), "
+                               f"got {size} bytes ({sname[:20]!r}...)")
+
+
 def _line_of(text: str, dotted: str) -> int | None:
     """1-based line where ``dotted`` (``section.key`` or ``section``) is defined, if found."""
     parts = dotted.split(".")
@@ -169,6 +202,39 @@ class SweepSpec:
             target[parts[-1]] = value
         return out
 
+    def check_size(self, n: int | None, m: int | None, q: int | None, estimators: int | None, *,
+                   parallel: int = 1) -> None:
+        """Refuse, before anything is stored or run, a sweep whose arrays cannot fit in memory:
+        the ``done`` flags of every block, and (model mode, where the sizes are known) one block's
+        simulated data and filter output (times ``parallel`` blocks computed side by side), and the
+        statistics the reduction reads at once.
+
+        Raises
+        ------
+        SweepFileError
+            Naming ``sweep.runs``/``sweep.steps``/``sweep.block_runs`` and the sizes.
+        """
+        from .._validation import check_memory
+
+        points = int(np.prod(self.grid_shape, dtype=object)) if self.grid else 1
+        blocks = points * self.blocks
+        try:
+            check_memory(blocks, "sweep.runs", f"{self.runs} runs in blocks of {self.block_runs} at {points} grid "
+                                               f"point(s) ({blocks} blocks; one flag each)")
+            if n is None:
+                return
+            R, T = self.block_runs, self.steps
+            check_memory(8 * parallel * R * (T + 1) * (n + q + 3 * m + 3 * n + n * n), "sweep.steps",
+                         ("one block" if parallel == 1 else f"{parallel} blocks side by side (workers)") +
+                         f" of {R} runs (sweep.block_runs) x {T} steps (n = {n}, m = {m}: simulated data "
+                         "and one filter's means and covariances)")
+            stats = estimators * T * (2 * n + 1) + T * m + 1
+            check_memory(8 * blocks * stats, "sweep.steps", f"the statistics of {blocks} blocks x {T} steps, read "
+                                                            "at once to reduce the sweep")
+        except ValidationError as exc:
+            key = str(exc).split(":", 1)[0]
+            raise _fail(self.text, key, str(exc).split(": ", 1)[1]) from None
+
     def canonical(self) -> str:
         """A canonical JSON form of everything that determines the numbers (used to refuse
         resuming a store made by a different sweep)."""
@@ -187,7 +253,7 @@ def _int(text: str, table: dict, key: str, dotted: str, *, default: int | None =
         return default
     val = table[key]
     if isinstance(val, bool) or not isinstance(val, int) or val < minimum:
-        raise _fail(text, dotted, f"expected an integer >= {minimum}, got {val!r}")
+        raise _fail(text, dotted, f"expected an integer >= {minimum}, got {val!r:.60}")
     return val
 
 
@@ -203,10 +269,20 @@ def _setting_names(run) -> set[str] | None:
 
 def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     """Parse and validate the text of a sweep file."""
+    if not isinstance(text, str):
+        raise SweepFileError(f"sweep file: expected the text of a sweep file, got {type(text).__name__}")
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise SweepFileError(f"sweep file: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise SweepFileError(f"sweep file: arrays or tables nested too deeply to read (at most {MAX_DEPTH} "
+                             "levels)") from None
+    except ValueError as exc:       # e.g. an integer of more than 4300 digits
+        raise SweepFileError(f"sweep file: not valid TOML: {' '.join(str(exc).split())[:200]}") from None
+    depth, where = _depth(doc, MAX_DEPTH)
+    if depth > MAX_DEPTH:
+        raise _fail(text, where, f"nested more than {MAX_DEPTH} levels deep; a sweep file needs at most a few")
     for key in doc:
         if key not in _TOP:
             raise _fail(text, key, f"unknown table; expected one of {', '.join(sorted(_TOP))}")
@@ -223,9 +299,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     chunk_blocks = _int(text, sw, "chunk_blocks", "sweep.chunk_blocks", default=max(1, 10_000 // block_runs))
     experiment = sw.get("experiment")
     sname = sw.get("name", name)
-    if (not isinstance(sname, str) or not sname or any(c in sname for c in "/\\") or sname.startswith(".")
-            or not sname.isprintable()):
-        raise _fail(text, "sweep.name", f"expected a plain file name, got {sname!r}")
+    _check_name(text, "sweep.name", sname)
     model = doc.get("model", {})
     cens = doc.get("censoring", {})
     ests = doc.get("estimators", {})
@@ -293,6 +367,14 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
                                 f"unknown option for {est['type']}; expected one of "
                                 f"{', '.join(ESTIMATOR_TYPES[est['type']]) or 'none'}")
     grid = doc.get("grid", {})
+    if not isinstance(grid, dict):
+        raise _fail(text, "grid", "expected a table of dotted keys and lists of values")
+    points = 1
+    for values in grid.values():
+        points *= len(values) if isinstance(values, list) else 1
+    if points > MAX_GRID_POINTS:
+        raise _fail(text, "grid", f"{points} grid points, more than the {MAX_GRID_POINTS} one sweep may have "
+                                  "(split it into several sweeps)")
     for key, values in grid.items():
         if not isinstance(values, list) or not values:
             raise _fail(text, f"grid.{key}", "expected a non-empty list of values")
@@ -327,7 +409,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         from .build import build_point
 
         try:
-            build_point(spec, {})
+            sys0, _, ests0 = build_point(spec, {})
         except ValidationError as exc:
             arg = str(exc).split(":", 1)[0].split("(")[0].strip()
             est_key = next((f"estimators.{k}.{arg}" for k, e in ests.items() if arg in e), None)
@@ -341,17 +423,45 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             except ValidationError as exc:
                 key = next(iter(point))
                 raise _fail(text, f"grid.{key}", f"invalid at grid point {point}: {exc}") from None
+        spec.check_size(sys0.n, sys0.m, sys0.q, len(ests0))
+    else:
+        spec.check_size(None, None, None, None)
     return spec
 
 
 def load_sweep(path: str | Path) -> SweepSpec:
-    """Read and validate a sweep file."""
-    path = Path(path)
+    """Read and validate a sweep file.
+
+    Raises
+    ------
+    SweepFileError
+        The file cannot be read, is not a regular file, is larger than 16 MiB, is not UTF-8
+        text, or its content is refused (:func:`parse_sweep`).
+    """
+    from .._io import as_path
+
+    path = as_path(path, "sweep file")
     try:
-        text = path.read_text(encoding="utf-8")
+        if path.exists() and not path.is_file():
+            raise SweepFileError(f"sweep file: {path} is {'a folder' if path.is_dir() else 'not a regular file'}; "
+                                 "expected a TOML file")
+        size = path.stat().st_size
+        if size > MAX_FILE_BYTES:
+            raise SweepFileError(f"sweep file: {path} is {size / 2**20:.0f} MiB, more than the "
+                                 f"{MAX_FILE_BYTES // 2**20} MiB a sweep file may have")
+        raw = path.read_bytes()
     except OSError as exc:
-        raise SweepFileError(f"sweep file: cannot read {path}: {exc}") from None
-    return parse_sweep(text, name=path.stem)
+        raise SweepFileError(f"sweep file: cannot read {path}: {exc.strerror or exc}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        raise SweepFileError(f"sweep file: {path} is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
+                             "save it as UTF-8") from None
+    name = path.stem
+    if len(name.encode("utf-8", "surrogateescape")) > MAX_NAME_BYTES or not name.isprintable():
+        name = "sweep"        # the file name is only the default store name; a [sweep] name = "..." wins
+    return parse_sweep(text, name=name)
 
 
 def jsonable_grid(grid: dict[str, list[Any]]) -> dict[str, list[Any]]:

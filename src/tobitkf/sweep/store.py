@@ -45,10 +45,139 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ValidationError, check_memory
 from .spec import SweepSpec, jsonable_grid, scalar_axis
 
-__all__ = ["open_store", "write_blocks", "reduce_store", "load_result", "layout", "pack", "unpack"]
+__all__ = ["open_store", "write_blocks", "reduce_store", "load_result", "layout", "pack", "unpack",
+           "check_store_path", "check_resumable", "read_store"]
+
+# attributes every store has, with their JSON types (checked when a store is reopened or read)
+_ATTRS: dict[str, type | tuple[type, ...]] = {
+    "sweep": str, "canonical": str, "package_version": str, "estimators": list, "grid": dict, "n": int, "m": int,
+    "steps": int, "runs": int, "seed": int, "block_runs": int, "name": str, "experiment": str, "layout": dict}
+
+
+_MAX_CHUNKS = 10**6     # tobitkf writes one chunk per task; far more means a damaged chunk grid
+
+
+def _damaged(path: Path, what: str, exc: BaseException | None = None) -> ValidationError:
+    detail = f" ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})" if exc is not None else ""
+    return ValidationError(f"sweep store: {path} is damaged or not a sweep store: {what}{detail}; "
+                           "delete it and run the sweep again")
+
+
+def check_store_path(path: Path, name: str = "--out") -> None:
+    """Refuse a store path that exists but is not a folder (a file, a broken link), before any work."""
+    path = Path(path)
+    if (path.exists() or path.is_symlink()) and not path.is_dir():
+        if name == "--out":
+            raise ValidationError(f"--out: {path} exists and is not a sweep store folder (a file of that name is "
+                                  "in the way); move it away or choose another output directory")
+        raise ValidationError(f"{name}: {path} is a file, not a sweep store (a folder DIR/<name>.zarr)")
+
+
+def check_resumable(path: Path, spec: SweepSpec) -> None:
+    """Refuse, before any work, an existing ``path`` that a run of ``spec`` cannot resume: a file
+    in the way, a damaged store, a store of another sweep or of another package version."""
+    from .. import __version__
+
+    path = Path(path)
+    check_store_path(path)
+    if not path.exists():
+        return
+    g = read_store(path, mode="r", name="--out")
+    if g.attrs["canonical"] != spec.canonical():
+        raise ValidationError(f"--out: {path} holds a different sweep; choose another output directory "
+                              "or delete it to start over")
+    if g.attrs["package_version"] != __version__:
+        raise ValidationError(f"--out: {path} was written by tobitkf {g.attrs['package_version']!r}, this is "
+                              f"{__version__!r}; blocks of different versions are not mixed: delete the store "
+                              "to start over or choose another output directory")
+    P = int(np.prod(spec.grid_shape, dtype=object)) if spec.grid else 1
+    if g["done"].shape != (P, spec.blocks):
+        raise _damaged(path, f"it holds {g['done'].shape} blocks, the sweep has ({P}, {spec.blocks})")
+
+
+def read_store(path: Path, *, mode: str = "r", name: str = "result"):
+    """Open an existing store and check its structure: the group, its attributes (names and
+    types) and the two arrays (shapes and types) as :func:`open_store` wrote them.
+
+    Raises
+    ------
+    ValidationError
+        ``sweep store: PATH is damaged or not a sweep store: ...`` for garbage metadata, a missing
+        attribute or array, an array where the group should be, or shapes that disagree.
+    """
+    import zarr
+
+    from .._io import as_path
+
+    path = as_path(path, name)
+    check_store_path(path, name)
+    if not (path / "zarr.json").is_file():
+        raise ValidationError(f"{name}: {path} is not a sweep store (no zarr.json)")
+    try:
+        g = zarr.open_group(str(path), mode=mode)
+        attrs = dict(g.attrs)
+    except Exception as exc:  # noqa: BLE001 - zarr raises JSON, key, value and its own errors for damage
+        raise _damaged(path, "its zarr.json cannot be read as a group", exc) from None
+    for key, typ in _ATTRS.items():
+        if key not in attrs:
+            raise _damaged(path, f"the attribute {key!r} is missing")
+        if not isinstance(attrs[key], typ) or isinstance(attrs[key], bool):
+            raise _damaged(path, f"the attribute {key!r} is a {type(attrs[key]).__name__}, expected {typ.__name__}")
+    try:
+        shapes = {k: tuple(int(d) for d in v) for k, v in attrs["layout"].items()}
+    except (TypeError, ValueError) as exc:
+        raise _damaged(path, "the attribute 'layout' does not hold shapes", exc) from None
+    if list(shapes) != list(layout(1, 1, 1, 1)) or any(d < 0 for sh in shapes.values() for d in sh):
+        raise _damaged(path, f"the attribute 'layout' names {list(shapes)}, expected {list(layout(1, 1, 1, 1))}")
+    if not all(isinstance(v, list) and v for v in attrs["grid"].values()):
+        raise _damaged(path, "the attribute 'grid' does not hold a list of values per key")
+    P = int(np.prod([len(v) for v in attrs["grid"].values()], dtype=object)) if attrs["grid"] else 1
+    size = sum(int(np.prod(sh, dtype=object)) for sh in shapes.values())
+    for name, ndim, kind in (("stats", 3, "f"), ("done", 2, "b")):
+        try:
+            arr = g[name]
+        except Exception as exc:  # noqa: BLE001 - KeyError for a missing array, zarr errors for garbage
+            raise _damaged(path, f"the array {name!r} is missing or unreadable", exc) from None
+        if not isinstance(arr, zarr.Array):
+            raise _damaged(path, f"{name!r} is a group, expected an array")
+        if arr.ndim != ndim or np.dtype(arr.dtype).kind != kind:
+            raise _damaged(path, f"the array {name!r} has shape {arr.shape} and type {arr.dtype}")
+    stats_shape, done_shape = g["stats"].shape, g["done"].shape
+    B = -(-attrs["runs"] // attrs["block_runs"]) if attrs["block_runs"] > 0 and attrs["runs"] > 0 else -1
+    if stats_shape[:2] != done_shape or stats_shape[0] != P or stats_shape[2] != size or done_shape[1] != B:
+        raise _damaged(path, f"the arrays have shapes {stats_shape} (stats) and {done_shape} (done), expected "
+                             f"({P}, {B}, {size}) and ({P}, {B})")
+    for name in ("stats", "done"):
+        arr = g[name]
+        try:
+            chunks = int(np.prod([-(-s // max(int(c), 1)) for s, c in zip(arr.shape, arr.chunks)], dtype=object))
+        except Exception as exc:  # noqa: BLE001 - a chunk grid zarr cannot describe
+            raise _damaged(path, f"the array {name!r} has no regular chunk grid", exc) from None
+        if chunks > _MAX_CHUNKS:
+            raise _damaged(path, f"the array {name!r} is split into {chunks} chunks (more than {_MAX_CHUNKS})")
+    try:
+        check_memory(int(np.prod(stats_shape, dtype=object)) * 8 + int(np.prod(done_shape, dtype=object)), name,
+                     f"reading the sweep store {path}")
+    except ValidationError as exc:
+        raise _damaged(path, str(exc).split(": ", 1)[1]) from None
+    return g
+
+
+def _where(g) -> Path:
+    """The folder of an open store (for messages)."""
+    return Path(str(g.store_path).removeprefix("file://"))
+
+
+def _read(g, name: str) -> np.ndarray:
+    """All of one array, a damaged chunk turned into a named error."""
+    try:
+        return g[name][:]
+    except Exception as exc:  # noqa: BLE001 - codecs raise many kinds of errors for a corrupt chunk
+        raise _damaged(_where(g), f"the array {name!r} cannot be read "
+                       "(a corrupt chunk)", exc) from None
 
 
 
@@ -96,15 +225,15 @@ def open_store(path: Path, spec: SweepSpec, estimators: list[str], n: int, m: in
     from .. import __version__
 
     P, B, E = int(np.prod(spec.grid_shape)) if spec.grid else 1, spec.blocks, len(estimators)
-    if path.exists():
-        g = zarr.open_group(str(path), mode="a")
-        if g.attrs.get("canonical") != spec.canonical():
-            raise ValidationError(f"--out: {path} holds a different sweep; choose another output directory "
-                                  "or delete it to start over")
-        return g
-    tmp = path.with_name(path.name + ".creating")
-    if tmp.exists():
-        shutil.rmtree(tmp)
+    if path.exists() or path.is_symlink():
+        check_resumable(path, spec)
+        return read_store(path, mode="a", name="--out")
+    # built under a hidden name of its own (never a name a user's file could have), then renamed
+    for old in path.parent.glob(f".{path.name}.creating-*"):
+        shutil.rmtree(old, ignore_errors=True)
+    import uuid
+
+    tmp = path.with_name(f".{path.name}.creating-{os.getpid()}-{uuid.uuid4().hex[:8]}")
     g = zarr.open_group(str(tmp), mode="w")
     shapes = layout(E, steps, n, m)
     size = sum(int(np.prod(s)) for s in shapes.values())
@@ -138,10 +267,16 @@ def write_blocks(g, point: int, results: list[tuple[int, dict[str, np.ndarray]]]
             runs[-1].append((b, stats))
         else:
             runs.append([(b, stats)])
-    for run in runs:
-        g["stats"][point, run[0][0]:run[-1][0] + 1] = np.stack([pack(st, shapes) for _, st in run])
-    for run in runs:
-        g["done"][point, run[0][0]:run[-1][0] + 1] = True
+    packed = [np.stack([pack(st, shapes) for _, st in run]) for run in runs]
+    try:
+        for run, vec in zip(runs, packed):
+            g["stats"][point, run[0][0]:run[-1][0] + 1] = vec
+        for run in runs:
+            g["done"][point, run[0][0]:run[-1][0] + 1] = True
+    except OSError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a partial chunk is read before it is written: damage shows here
+        raise _damaged(_where(g), "a chunk cannot be updated", exc) from None
 
 
 def reduce_store(g):
@@ -152,15 +287,17 @@ def reduce_store(g):
     """
     import xarray as xr
 
-    done = g["done"][:]
+    done = _read(g, "done")
     if not done.all():
         raise ValidationError(f"sweep store: {int((~done).sum())} of {done.size} blocks are not finished; "
                               "rerun the sweep to complete it")
     attrs = dict(g.attrs)
     grid = attrs["grid"]
     shape = tuple(len(v) for v in grid.values())
-    sums = unpack(g["stats"][:].sum(axis=1), _shapes(g))     # blocks summed in order: (P, ...)
+    sums = unpack(_read(g, "stats").sum(axis=1), _shapes(g))     # blocks summed in order: (P, ...)
     total = sums["count"]                                      # (P,)
+    if not (np.all(np.isfinite(total)) and np.all(total >= 1)):
+        raise _damaged(_where(g), f"its run counts are {total[:4]}")
     s_err = sums["sum_err"] / total[:, None, None, None]
     s_sq = sums["sum_sq"] / total[:, None, None, None]
     s_nees = sums["sum_nees"] / total[:, None, None]
@@ -193,9 +330,10 @@ def reduce_store(g):
 
 def load_result(path: str | Path):
     """Open a finished sweep store and return its reduced :class:`xarray.Dataset`."""
-    import zarr
-
-    path = Path(path)
-    if not (path / "zarr.json").exists():
-        raise ValidationError(f"result: {path} is not a sweep store (no zarr.json)")
-    return reduce_store(zarr.open_group(str(path), mode="r"))
+    g = read_store(path, mode="r")
+    try:
+        return reduce_store(g)
+    except ValidationError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError) as exc:   # attributes that disagree with the arrays
+        raise _damaged(Path(path), "its attributes do not match its arrays", exc) from None
