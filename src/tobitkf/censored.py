@@ -152,14 +152,26 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
     except ValueError:
         raise ShapeError("mean/std/lower/upper: shapes " + ", ".join(str(a.shape) for a in args) +
                          " do not broadcast") from None
-    shape = mu.shape
-    mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     if np.any(~(sd > 0)):
         raise ValidationError("std: expected standard deviations > 0")
     if np.isinf(sd).any():
         raise ValidationError("std: expected finite standard deviations, found inf")
     if np.any(~(lo < hi)):
         raise ValidationError("lower/upper: expected lower < upper for every channel")
+    return unchecked_moments(mu, sd, lo, hi)
+
+
+def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
+    """:func:`censored_moments` without its input checks, for the filters' inner loop.
+
+    The filters have checked their limits and noise once at the boundary; what reaches them
+    per step is a predicted mean and standard deviation, which are NaN exactly when a run's
+    covariance has overflowed. The loop then poisons that run and warns once; here NaN
+    simply propagates (instead of raising mid-loop and losing the healthy runs).
+    """
+    mu, sd, lo, hi = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (mean, std, lower, upper)))
+    shape = mu.shape
+    mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     a, b = standardized_limits(mu, sd, lo, hi)
 
     p_lo = ndtr(a)

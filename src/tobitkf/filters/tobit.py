@@ -66,7 +66,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ValidationError, as_float_array, check_instance
-from ..censored import censored_moments
+from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
@@ -104,7 +104,7 @@ def tobit_measurement(x_pred: np.ndarray, C: np.ndarray, sigma: np.ndarray, lowe
     x_pred : (N, n) ; C : (m, n) ; sigma : (m,) ; lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
     """
     mu = x_pred @ C.T + dy
-    st = censored_moments(mu, sigma, lower, upper)
+    st = unchecked_moments(mu, sigma, lower, upper)
     gam = st.p_uncensored
     if noise_term == "dissertation":
         Ruu = st.truncated_var
@@ -153,7 +153,7 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     mp = tobit_measurement(x_pred, C, sigma, lower, upper, dy=dy, noise_term=noise_term)
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P, _, _, _ = measurement_update(x_pred, P_pred, S, y, mp, covariance_update)
-    return x, P, censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
+    return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
 def _sigma_of(R: np.ndarray, name: str = "R", *, who: str = "the Tobit Kalman filter",
