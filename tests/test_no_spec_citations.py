@@ -82,3 +82,26 @@ def test_no_spec_citation_in_docs(path):
 ])
 def test_the_pattern_finds_citations_and_only_them(text, cited):
     assert bool(hits(text)) is cited
+
+
+def test_every_test_named_in_docs_sources_exists():
+    """docs/sources names the test of each deviation; a renamed or deleted test must not leave a dead name."""
+    missing = []
+    for page in sorted((ROOT / "docs" / "sources").glob("*.md")):
+        for path, name in re.findall(r"`(tests/[\w/]+\.py)::(\w+)`", page.read_text(encoding="utf-8")):
+            f = ROOT / path
+            if not f.is_file() or not re.search(rf"^\s*def {name}\b", f.read_text(encoding="utf-8"), re.M):
+                missing.append(f"{page.name}: {path}::{name}")
+    assert not missing, "\n".join(missing)
+
+
+def test_every_deviation_id_cited_in_src_has_an_anchor():
+    """An ID such as MB-09 cited in the code or the report must exist on its docs/sources page."""
+    anchors = set()
+    for page in (ROOT / "docs" / "sources").glob("*.md"):
+        anchors |= {a.upper() for a in re.findall(r"\{#([a-z]{2}-[a-z0-9]+)\}", page.read_text(encoding="utf-8"))}
+    cited = set()
+    for path in SRC.rglob("*.py"):
+        cited |= set(re.findall(r"\b(M[AB]-(?:\d{2}|F\d)|G[FP]-(?:\d{2}|F\d)|LD-(?:\d{2}|E\d)|WH-(?:\d{2}|F\d))\b",
+                                path.read_text(encoding="utf-8")))
+    assert cited and not cited - anchors, sorted(cited - anchors)

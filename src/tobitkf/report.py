@@ -50,6 +50,9 @@ __all__ = ["write_report", "collect_results", "render_html", "render_markdown", 
 
 _META_KEYS = {"id", "title", "source", "runs", "seed", "package_version", "elapsed_seconds", "settings",
               "claims", "figures", "figure_captions", "report_tables"}
+_RMSE_DEFINITION = ("The mean over steps of the per-step RMSE (the root of the mean over runs of the squared error "
+                    "at each step); a claim that uses another RMSE (e.g. over runs and steps together) says so in "
+                    "its quantity.")
 _VALUE_LIMIT = 240  # characters of a parameter value shown before "…"
 _VERDICT = {True: ("held", "✓", "held"), False: ("failed", "✗", "not held"), None: ("na", "–", "n/a")}
 
@@ -609,6 +612,7 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
         out.append("<h4>The source's tables and ours</h4>")
         out.extend(_html_source_tables(e))
     out.append("<h4>Time-averaged RMSE per estimator</h4>")
+    out.append(f'<p class="meta">{_e(_RMSE_DEFINITION)}</p>')
     out.extend(_html_rmse(e))
     out.append('<p class="top"><a href="#top">↑ top</a></p></section>')
     return out
@@ -749,7 +753,7 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                                      right=set(range(1, len(t.columns))))
                     if t.note:
                         out += [_md(t.note), ""]
-            out += ["#### Time-averaged RMSE per estimator", ""]
+            out += ["#### Time-averaged RMSE per estimator", "", _md(_RMSE_DEFINITION), ""]
             if not e.rmse_tables:
                 out += ["*No estimator summaries recorded.*", ""]
             for t in e.rmse_tables:

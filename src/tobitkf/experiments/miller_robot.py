@@ -46,7 +46,8 @@ def _plot_robot(result: ExperimentResult, outdir: Path) -> list[Path]:
         a.legend(fontsize=6, loc="upper right")
         t = np.arange(1, d["rss"].shape[0] + 1) * 0.1
         for j in range(d["rss"].shape[1]):
-            ax[0, 1].plot(t, d["rss"][:, j], lw=0.7, label=f"transmitter {j + 1} at {tuple(d['tx'][j])}")
+            tx = d["tx"][j]
+            ax[0, 1].plot(t, d["rss"][:, j], lw=0.7, label=f"transmitter {j + 1} at ({tx[0]:g}, {tx[1]:g})")
         ax[0, 1].axhline(-90, color="r", lw=0.6, ls=":", label="censoring limit -90 dBm")
         ax[0, 1].set_title("Fig 6.7: received signal strength (run 1)", fontsize=9)
         ax[0, 1].set_xlabel("t [s]")

@@ -515,23 +515,23 @@ def panning(*, runs: int = 20, seed: int = 0, progress=None, dt: float = 0.1, si
         explanation="the law's two-target form (MB-38) balances the two differences P_i - P_ref,i against each other; "
                     "it does not bound their sum, so both variances can grow together while the window drifts"))
     progress(0.8)
-    # (6.75)-type covariance feedback, one target (Fig 6.35)
+    # covariance feedback, one target (Fig 6.35; the single-target law is not printed, MB-38)
     Pref1 = np.array([2.0])
     width1 = 20.0
 
-    def law75(k, xbar, Pbar, mem):
+    def law_single(k, xbar, Pbar, mem):
         Th = mem.get("Th", np.full(xbar.shape[0], width1 / 2))
         Th = covariance_panning_step(Th, Pbar[:, :1, 0], Pref1, xbar[:, :1], 5.0, width=width1)
         mem["Th"] = Th
         return (Th - width1)[:, None], Th[:, None]
-    sim, res = run("covariance-single-6.75", sys1, 600, law75, "Fig 6.35: covariance feedback, one target",
+    sim, res = run("covariance-single", sys1, 600, law_single, "Fig 6.35: covariance feedback, one target",
                    rng_seq[3])
-    data["covariance-single-6.75"]["caption"] = (
+    data["covariance-single"]["caption"] = (
         "Fig 6.35 (covariance feedback, one target): P_ref = 2 is set above the uncensored variance, so the target "
         "may leave the window and stay censored until its position variance reaches P_ref; then the window moves "
         "toward it. Left, truth, estimate and window; right, the position variance against P_ref (dotted).")
-    data["covariance-single-6.75"]["P_ref"] = Pref1
-    s3 = scen["covariance-single-6.75"]
+    data["covariance-single"]["P_ref"] = Pref1
+    s3 = scen["covariance-single"]
     P1 = np.median(res.cov[:, 100:, 0, 0], axis=0)
     s3["max_median_P_after_frame_100"] = float(P1.max())
     claims.append(CL.claim(
