@@ -62,8 +62,8 @@ def test_t13_marginal_plant_setpoint_inside_censored_region(position, T, P11):
     assert abs(th_kf.mean() - 1.0) > 1.0
     # the TKF covariance at the end against the modified DARE at Xi = Phi((T - r)/sigma) (6.21)
     p = dc_motor_position()
-    pred = tobit_dlqe(plant.transition(0), None, p.C, plant.process_cov(0), V=[[0.05**2]], xi_uncensored=ndtr((T - 1.0) / 0.05),
-                     domain="dt").cov[0, 0]
+    pred = tobit_dlqe(plant.transition(0), None, p.C, plant.process_cov(0), V=[[0.05**2]],
+                      xi_uncensored=ndtr((T - 1.0) / 0.05)).cov[0, 0]
     assert pred == pytest.approx(P11, rel=2e-3)
     assert tkf.cov[:, -1, 0, 0] == pytest.approx(pred, rel=0.02)
     assert not tkf.diverged.any()

@@ -87,8 +87,8 @@ class CoefficientLaw:
 class Gaussian(CoefficientLaw):
     r"""Independent Gaussian coefficients :math:`\vartheta \sim N(\bar\vartheta, \tilde\vartheta)`.
 
-    The law of the Rice fading coefficients in Geng et al. 2017, Assumption 2
-    (Assumption 2 of Geng et al. 2017): mean and **variance** (not standard deviation, docs/sources GF-08). No clipping
+    The law of the Rice fading coefficients in Geng et al. 2017, Assumption 2: mean and **variance**
+    (not standard deviation, docs/sources GF-08). No clipping
     to [0, 1] is done.
 
     Parameters
