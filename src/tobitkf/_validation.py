@@ -39,6 +39,8 @@ class ShapeError(ValidationError):
 def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = None,
                    allow_nan: bool = False, allow_inf: bool = False) -> np.ndarray:
     """Convert ``value`` to a float64 array and check dimension and finiteness."""
+    if type(value) is np.ndarray and value.dtype == np.float64:   # already numbers: no conversion to check
+        return _checked(value, name, ndim, allow_nan, allow_inf)
     try:
         with warnings.catch_warnings():
             # complex input: numpy would drop the imaginary part with only a warning
@@ -48,6 +50,10 @@ def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = 
         raise ValidationError(f"{name}: expected real numbers, got complex values") from None
     except (TypeError, ValueError) as exc:
         raise ValidationError(f"{name}: expected an array of numbers, got {type(value).__name__} ({exc})") from None
+    return _checked(arr, name, ndim, allow_nan, allow_inf)
+
+
+def _checked(arr: np.ndarray, name: str, ndim, allow_nan: bool, allow_inf: bool) -> np.ndarray:
     if ndim is not None:
         allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if arr.ndim not in allowed:

@@ -10,6 +10,12 @@ For truth :math:`x^{(i)}_k` and estimates :math:`\hat x^{(i)}_k`, i = 1..N runs:
 
 The time average of the RMSE is :math:`\frac1T\sum_k \mathrm{RMSE}_k(j)` (the
 convention of the sources' "RMSE over k" plots averaged over the horizon).
+
+Alignment: every function takes the estimate as an array or as an estimator's
+:class:`~tobitkf.filters.core.FilterResult`, whose ``times`` say which time each row estimates, so
+the truth (``(N, K, n)`` holding the states at times 0, 1, ..., as every simulator returns them) is
+read at exactly those times: ``truth[:, result.times]``. With a bare array and no ``times``, a truth
+with one row more than the estimate is taken to start at x_0 (the package convention).
 """
 
 from __future__ import annotations
@@ -23,9 +29,37 @@ from ._validation import ShapeError, ValidationError
 __all__ = ["rmse", "bias", "nees", "nees_terms", "summarize", "align_truth"]
 
 
-def align_truth(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
-    """Drop x_0 from a ``(N, T+1, n)`` truth so it lines up with ``(N, T, n)`` estimates."""
+def _unpack(estimate: Any, cov: Any = None, times: Any = None):
+    """(mean, cov, times) of a FilterResult, or the arrays as given."""
+    if hasattr(estimate, "mean") and hasattr(estimate, "times") and not isinstance(estimate, np.ndarray):
+        return (np.asarray(estimate.mean, dtype=float), estimate.cov if cov is None else cov,
+                estimate.times if times is None else times)
+    return np.asarray(estimate, dtype=float), cov, times
+
+
+def align_truth(truth: np.ndarray, estimate: np.ndarray, times: Any = None) -> np.ndarray:
+    """The truth at the estimate's rows: ``truth[..., times, :]`` when ``times`` are given (the time of
+    each row, e.g. ``FilterResult.times``); otherwise drop x_0 from a ``(N, T+1, n)`` truth so it lines
+    up with ``(N, T, n)`` estimates.
+
+    Raises
+    ------
+    ShapeError
+        Estimates without a run axis, truth that does not cover the times, or shapes that do not match.
+    """
     truth = np.asarray(truth, dtype=float)
+    if times is not None:
+        t = np.asarray(times, dtype=int)
+        if t.ndim != 1 or t.shape[0] != estimate.shape[-2]:
+            raise ShapeError(f"times: expected one time per row of the estimates ({estimate.shape[-2]}), got "
+                             f"{t.shape}")
+        if t.min(initial=0) < 0 or t.max(initial=0) >= truth.shape[-2]:
+            raise ShapeError(f"truth: holds times 0..{truth.shape[-2] - 1}, the estimates need {t.min()}..{t.max()} "
+                             "(for the delay family, whose first reading is y(0), the truth starts at x(0))")
+        truth = truth[..., t, :]
+        if truth.shape[-2:] != estimate.shape[-2:]:
+            raise ShapeError(f"truth: shape {truth.shape} does not match estimates {estimate.shape}")
+        return truth
     if estimate.ndim < 3:
         raise ShapeError(f"estimate: expected (N, T, n) with runs on the first axis (one run: add a leading "
                          f"axis), got shape {estimate.shape}")
@@ -36,17 +70,20 @@ def align_truth(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
     return truth
 
 
-def rmse(truth: Any, estimate: Any) -> np.ndarray:
-    """Per-step RMSE over runs (axis 0) of each state component: ``(T, n)``."""
-    est = np.asarray(estimate, dtype=float)
-    err = est - align_truth(truth, est)
+def rmse(truth: Any, estimate: Any, *, times: Any = None) -> np.ndarray:
+    """Per-step RMSE over runs (axis 0) of each state component: ``(T, n)``.
+
+    ``estimate`` is an array ``(N, T, n)`` or a :class:`~tobitkf.filters.core.FilterResult` (aligned by
+    its ``times``)."""
+    est, _, times = _unpack(estimate, times=times)
+    err = est - align_truth(truth, est, times)
     return np.sqrt(np.mean(err**2, axis=0))
 
 
-def bias(truth: Any, estimate: Any) -> np.ndarray:
-    """Per-step mean error over runs: ``(T, n)``."""
-    est = np.asarray(estimate, dtype=float)
-    return np.mean(est - align_truth(truth, est), axis=0)
+def bias(truth: Any, estimate: Any, *, times: Any = None) -> np.ndarray:
+    """Per-step mean error over runs: ``(T, n)`` (``estimate`` as in :func:`rmse`)."""
+    est, _, times = _unpack(estimate, times=times)
+    return np.mean(est - align_truth(truth, est, times), axis=0)
 
 
 def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -101,33 +138,41 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
         return val
 
 
-def nees(truth: Any, estimate: Any, cov: Any) -> np.ndarray:
+def nees(truth: Any, estimate: Any, cov: Any = None, *, times: Any = None) -> np.ndarray:
     """Per-step average normalized estimation error squared over runs: ``(T,)``.
 
     Uses a linear solve per run and step (:func:`nees_terms`); singular covariances give ``inf``.
+    ``estimate`` as in :func:`rmse` (a FilterResult brings its own ``cov``).
     """
-    est = np.asarray(estimate, dtype=float)
-    err = est - align_truth(truth, est)
+    est, cov, times = _unpack(estimate, cov, times)
+    if cov is None:
+        raise ValidationError("cov: expected the estimates' covariances (..., T, n, n)")
+    err = est - align_truth(truth, est, times)
     return np.mean(nees_terms(err, cov), axis=0)
 
 
-def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 0) -> dict[str, Any]:
+def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 0, times: Any = None) -> dict[str, Any]:
     """RMSE per step and component, its time average, bias and (if ``cov``) NEES, as a JSON-able dict.
 
-    ``skip`` leaves the first steps out of the time averages (not out of the per-step arrays).
+    ``estimate`` is an array or a :class:`~tobitkf.filters.core.FilterResult` (aligned by its ``times``;
+    its ``cov`` is used for the NEES unless ``cov`` is given). ``skip`` leaves the first steps out of
+    the time averages (not out of the per-step arrays).
     """
-    r = rmse(truth, estimate)
+    estimate, res_cov, times = _unpack(estimate, None, times)
+    if cov is None:
+        cov = res_cov
+    r = rmse(truth, estimate, times=times)
     if isinstance(skip, bool) or not isinstance(skip, (int, np.integer)) or not 0 <= skip < r.shape[0]:
         raise ValidationError(f"skip: expected an integer in [0, {r.shape[0]}) (steps to leave out of the "
                               f"time averages), got {skip!r}")
     out = {
         "rmse": r,
         "rmse_time_avg": r[skip:].mean(axis=0),
-        "bias": bias(truth, estimate),
-        "bias_time_avg": bias(truth, estimate)[skip:].mean(axis=0),
+        "bias": bias(truth, estimate, times=times),
+        "bias_time_avg": bias(truth, estimate, times=times)[skip:].mean(axis=0),
     }
     if cov is not None:
-        ne = nees(truth, estimate, cov)
+        ne = nees(truth, estimate, cov, times=times)
         out["nees"] = ne
         out["nees_time_avg"] = float(np.mean(ne[skip:]))
     return out

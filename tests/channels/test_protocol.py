@@ -172,7 +172,7 @@ def test_simulated_measurements_follow_eq_2_to_7():
         np.testing.assert_allclose(d.extras["y_transmitted"][:, k - 1, 0], ybar, rtol=0, atol=1e-12)
         np.testing.assert_allclose(d.y[:, k - 1, 0], np.maximum(ybar, 0.0), rtol=0, atol=1e-12)
         np.testing.assert_array_equal(d.y[:, k - 1, 0], np.maximum(d.extras["y_transmitted"][:, k - 1, 0], 0.0))
-    np.testing.assert_array_equal(d.extras["uncensored"], d.extras["y_transmitted"][..., 0] > 0)
+    np.testing.assert_array_equal(d.extras["uncensored"], d.extras["y_transmitted"] > 0)
     assert d.extras["scheduled"].tolist() == [1, 2] * 15
 
 

@@ -48,10 +48,15 @@ def random_prior(rng, n, d, *, correlated=False):
     return HistoryPrior.uncorrelated(means, covs)
 
 
-def assert_same(r1, r2, fields=("mean", "cov", "pred_mean", "pred_cov", "measured_mean", "measured_cov",
-                                "innovation", "innovation_cov"), tol=TOL):
+def field(r, f):
+    """A result's field or extra (the delay family's x̂(t+1|t) is ``extras["next_mean"]``)."""
+    return getattr(r, f) if f in ("mean", "cov", "pred_mean", "pred_cov") else r.extras[f]
+
+
+def assert_same(r1, r2, fields=("mean", "cov", "pred_mean", "pred_cov", "next_mean", "next_cov", "measured_mean",
+                                "measured_cov", "innovation", "innovation_cov"), tol=TOL):
     for f in fields:
-        np.testing.assert_allclose(getattr(r1, f), getattr(r2, f), atol=tol, rtol=0, err_msg=f)
+        np.testing.assert_allclose(field(r1, f), field(r2, f), atol=tol, rtol=0, err_msg=f)
 
 
 def correlated_kf(A, H, GQG, GS, Qv, x0, P0, ys):
@@ -87,9 +92,9 @@ def test_chain_equals_augmented(d, n, m):
     a = augmented_lmmse(sys, prior, data.y, window=max(lags), lags=lags)
     assert_same(c, a)
     for L in lags:
-        np.testing.assert_allclose(c.lagged[L][0], a.lagged[L][0], atol=TOL, rtol=0)
-        np.testing.assert_allclose(c.lagged[L][1], a.lagged[L][1], atol=TOL, rtol=0)
-    np.testing.assert_allclose(c.second_moment, a.second_moment, atol=TOL, rtol=0)
+        np.testing.assert_allclose(c.extras["lagged"][L][0], a.extras["lagged"][L][0], atol=TOL, rtol=0)
+        np.testing.assert_allclose(c.extras["lagged"][L][1], a.extras["lagged"][L][1], atol=TOL, rtol=0)
+    np.testing.assert_allclose(c.extras["second_moment"], a.extras["second_moment"], atol=TOL, rtol=0)
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -114,10 +119,10 @@ def test_reorganized_equals_augmented_with_correlated_prior(d):
     D = reorganized_lmmse(sys, prior, data.y)
     A = augmented_lmmse(sys, prior, data.y, lags=(d - 1,))
     assert_same(D, A)
-    np.testing.assert_allclose(D.lagged[d - 1][0], A.lagged[d - 1][0], atol=TOL, rtol=0)
-    np.testing.assert_allclose(D.lagged[d - 1][1], A.lagged[d - 1][1], atol=TOL, rtol=0)
+    np.testing.assert_allclose(D.extras["lagged"][d - 1][0], A.extras["lagged"][d - 1][0], atol=TOL, rtol=0)
+    np.testing.assert_allclose(D.extras["lagged"][d - 1][1], A.extras["lagged"][d - 1][1], atol=TOL, rtol=0)
     # the prior really is correlated: the filter gain is not zero (Ψ ≠ 0)
-    assert np.abs(D.mean[..., 1:, :] - D.pred_mean[..., :-1, :]).max() > 1e-4
+    assert np.abs(D.mean[..., 1:, :] - D.extras["next_mean"][..., :-1, :]).max() > 1e-4
 
 
 def test_reorganized_general_random_prior_and_late_warmup():
@@ -184,10 +189,10 @@ def test_filter_equals_predictor_with_uncorrelated_history(d):
     sys = paper_example(S=0.3, d=d)
     data = simulate_delay(sys, paper_prior(d), 30, 4, seed=d)
     r = chain_lmmse(sys, paper_prior(d), data.y, lags=(d - 1,))
-    np.testing.assert_array_equal(r.mean[:, 1:], r.pred_mean[:, :-1])
-    np.testing.assert_array_equal(r.cov[:, 1:], r.pred_cov[:, :-1])
+    np.testing.assert_array_equal(r.mean[:, 1:], r.extras["next_mean"][:, :-1])
+    np.testing.assert_array_equal(r.cov[:, 1:], r.extras["next_cov"][:, :-1])
     # the paper's smoother x̂(t-d+1|t) is the one-step prediction x̂(t-d+1|t-d)
-    np.testing.assert_array_equal(r.lagged[d - 1][0][:, d:], r.pred_mean[:, :-d])
+    np.testing.assert_array_equal(r.extras["lagged"][d - 1][0][:, d:], r.extras["next_mean"][:, :-d])
 
 
 def test_filter_gain_vanishes_with_constant_history():
@@ -196,7 +201,7 @@ def test_filter_gain_vanishes_with_constant_history():
     prior = HistoryPrior.constant(np.zeros(2), 0.01 * np.eye(2), d)
     data = simulate_delay(sys, prior, 60, 200, seed=1)
     r = augmented_lmmse(sys, prior, data.y)
-    diff = np.sqrt(np.mean((r.mean[:, 1:] - r.pred_mean[:, :-1]) ** 2, axis=(0, 2)))  # index t-1 <-> time t
+    diff = np.sqrt(np.mean((r.mean[:, 1:] - r.extras["next_mean"][:, :-1]) ** 2, axis=(0, 2)))  # index t-1 <-> time t
     assert diff[0] > 1e-4                      # t = 1: nonzero gain
     assert diff[40:].max() < 1e-6              # then the gain dies out
 
@@ -248,8 +253,8 @@ def test_d0_no_fading_is_correlated_kf(S):
         ref = correlated_kf(sys.A, sys.H, sys.GQG, sys.GS, sys.Qv, [0.3, -0.2], [[0.5, 0.1], [0.1, 0.4]], data.y[run])
         np.testing.assert_allclose(r.mean[run], [o[0] for o in ref], atol=TOL)
         np.testing.assert_allclose(r.cov[run], [o[1] for o in ref], atol=TOL)
-        np.testing.assert_allclose(r.pred_mean[run], [o[2] for o in ref], atol=TOL)
-        np.testing.assert_allclose(r.pred_cov[run], [o[3] for o in ref], atol=TOL)
+        np.testing.assert_allclose(r.extras["next_mean"][run], [o[2] for o in ref], atol=TOL)
+        np.testing.assert_allclose(r.extras["next_cov"][run], [o[3] for o in ref], atol=TOL)
 
 
 def test_d0_uncorrelated_matches_filterpy():
@@ -278,9 +283,9 @@ def test_no_fading_delay_is_interleaved_kfs():
         times = list(range(rr, T, d + 1))
         ref = correlated_kf(sys.A, sys.H, sys.GQG, sys.GS, sys.Qv, prior.block_mean(d - rr), prior.block_cov(d - rr),
                             data.y[0, times])
-        np.testing.assert_allclose(r.measured_mean[times], [o[0] for o in ref], atol=TOL)
-        np.testing.assert_allclose(r.measured_cov[times], [o[1] for o in ref], atol=TOL)
-        np.testing.assert_allclose(r.pred_mean[times], [o[2] for o in ref], atol=TOL)
+        np.testing.assert_allclose(r.extras["measured_mean"][times], [o[0] for o in ref], atol=TOL)
+        np.testing.assert_allclose(r.extras["measured_cov"][times], [o[1] for o in ref], atol=TOL)
+        np.testing.assert_allclose(r.extras["next_mean"][times], [o[2] for o in ref], atol=TOL)
 
 
 def test_bernoulli_fading_is_nahi_lmmse():
@@ -320,7 +325,7 @@ def test_paper_decorrelation_same_in_chain_and_reorganized():
     data = simulate_delay(sys, paper_prior(), 40, 2, seed=17)
     c = chain_lmmse(sys, paper_prior(), data.y, decorrelation="paper")
     assert_same(reorganized_lmmse(sys, paper_prior(), data.y, decorrelation="paper"), c)
-    assert np.abs(c.pred_cov - chain_lmmse(sys, paper_prior(), data.y).pred_cov).max() > 1e-3
+    assert np.abs(c.extras["next_cov"] - chain_lmmse(sys, paper_prior(), data.y).extras["next_cov"]).max() > 1e-3
 
 
 def test_paper_decorrelation_is_worse_and_overconfident():
@@ -331,16 +336,16 @@ def test_paper_decorrelation_is_worse_and_overconfident():
     opt = chain_lmmse(sys, prior, data.y)
     pap = chain_lmmse(sys, prior, data.y, decorrelation="paper")
     truth = data.x[:, 1:]
-    mse_opt = np.mean((opt.pred_mean - truth)[:, 60:] ** 2, axis=(0, 1))
-    mse_pap = np.mean((pap.pred_mean - truth)[:, 60:] ** 2, axis=(0, 1))
+    mse_opt = np.mean((opt.extras["next_mean"] - truth)[:, 60:] ** 2, axis=(0, 1))
+    mse_pap = np.mean((pap.extras["next_mean"] - truth)[:, 60:] ** 2, axis=(0, 1))
     assert np.all(mse_pap > 1.1 * mse_opt)
     # at t = 119 P(t+1|t) is the spec's 0.2689, 0.1850; the paper mode claims 0.3178, 0.2578
-    np.testing.assert_allclose(np.diagonal(opt.pred_cov[0, 119]), [0.2689, 0.1850], atol=6e-5)
-    np.testing.assert_allclose(np.diagonal(pap.pred_cov[0, 119]), [0.3178, 0.2578], atol=6e-5)
+    np.testing.assert_allclose(np.diagonal(opt.extras["next_cov"][0, 119]), [0.2689, 0.1850], atol=6e-5)
+    np.testing.assert_allclose(np.diagonal(pap.extras["next_cov"][0, 119]), [0.3178, 0.2578], atol=6e-5)
     # ... and its claimed covariance is too small: the true MSE of the constant-J predictor exceeds it
-    assert np.all(mse_pap > 1.04 * np.diagonal(pap.pred_cov[0, 60:], axis1=-2, axis2=-1).mean(axis=0))
+    assert np.all(mse_pap > 1.04 * np.diagonal(pap.extras["next_cov"][0, 60:], axis1=-2, axis2=-1).mean(axis=0))
     # the optimal predictor's MSE matches its covariance (5 % at 1500 runs, pooled)
-    np.testing.assert_allclose(mse_opt, np.diagonal(opt.pred_cov[0, 60:], axis1=-2, axis2=-1).mean(axis=0), rtol=0.05)
+    np.testing.assert_allclose(mse_opt, np.diagonal(opt.extras["next_cov"][0, 60:], axis1=-2, axis2=-1).mean(axis=0), rtol=0.05)
 
 
 # ----------------------------------------------------------------------------- §5 item 16: singular S
@@ -353,7 +358,7 @@ def test_singular_cross_covariance_runs_and_stays_psd():
     np.testing.assert_allclose(data.extras["w"], data.extras["v"], atol=1e-12)   # w ≡ v at S = sqrt(Qw Qv)
     for r in (chain_lmmse(sys, prior, data.y), augmented_lmmse(sys, prior, data.y),
               reorganized_lmmse(sys, prior, data.y)):
-        for P in (r.cov, r.pred_cov, r.measured_cov):
+        for P in (r.cov, r.extras["next_cov"], r.extras["measured_cov"]):
             assert np.isfinite(P).all() and np.linalg.eigvalsh(P).min() > -1e-12
     sm = smooth_interval(sys, prior, data.y)
     assert np.isfinite(sm.mean).all() and np.linalg.eigvalsh(sm.cov).min() > -1e-12
@@ -374,8 +379,8 @@ def test_k_step_prediction_equals_uninformative_measurements():
     r = chain_lmmse(base, paper_prior(d), data.y, horizons=range(1, kmax + 1))
     b = chain_lmmse(blind, paper_prior(d), data.y)
     for k in range(1, kmax + 1):
-        np.testing.assert_allclose(r.ahead[k][0][:, t_cut], b.pred_mean[:, t_cut + k - 1], atol=TOL)
-        np.testing.assert_allclose(r.ahead[k][1][0, t_cut], b.pred_cov[0, t_cut + k - 1], atol=TOL)
+        np.testing.assert_allclose(r.extras["ahead"][k][0][:, t_cut], b.extras["next_mean"][:, t_cut + k - 1], atol=TOL)
+        np.testing.assert_allclose(r.extras["ahead"][k][1][0, t_cut], b.extras["next_cov"][0, t_cut + k - 1], atol=TOL)
 
 
 # ----------------------------------------------------------------------------- batch, classes
@@ -389,7 +394,7 @@ def test_batched_equals_per_run_and_classes():
     for i in range(4):
         one = chain_lmmse(sys, prior, data.y[i], lags=(5,))
         np.testing.assert_allclose(batch.mean.reshape(4, 20, 2)[i], one.mean, atol=0)
-        np.testing.assert_allclose(batch.lagged[5][0].reshape(4, 20, 2)[i], one.lagged[5][0], atol=0)
+        np.testing.assert_allclose(batch.extras["lagged"][5][0].reshape(4, 20, 2)[i], one.extras["lagged"][5][0], atol=0)
     assert_same(AugmentedLMMSE(sys, prior).filter(data.y), ReorganizedInnovationLMMSE(sys, prior).filter(data.y))
 
 
@@ -410,19 +415,19 @@ def test_monte_carlo_consistency(S, q):
     r = chain_lmmse(sys, prior, data.y, horizons=(3,))
     full = full_states(data)          # index j + d
     checks = [
-        (r.pred_mean - data.x[:, 1:], r.pred_cov[0]),
-        (r.measured_mean - full[:, :T], r.measured_cov[0]),
-        (r.ahead[3][0][:, :-2] - data.x[:, 3:T + 1], r.ahead[3][1][0, :-2]),
+        (r.extras["next_mean"] - data.x[:, 1:], r.extras["next_cov"][0]),
+        (r.extras["measured_mean"] - full[:, :T], r.extras["measured_cov"][0]),
+        (r.extras["ahead"][3][0][:, :-2] - data.x[:, 3:T + 1], r.extras["ahead"][3][1][0, :-2]),
     ]
     for err, P in checks:
         ratio, se = _pooled_ratio(err[:, 10:], P[10:])
         assert abs(ratio - 1) < 5 * se + 1e-3, (ratio, se)
     # normalized innovation E[ε^T Q_ε^{-1} ε] ≈ m
-    nis = np.einsum("rti,tij,rtj->rt", r.innovation, np.linalg.inv(r.innovation_cov[0]), r.innovation).mean(axis=1)
+    nis = np.einsum("rti,tij,rtj->rt", r.extras["innovation"], np.linalg.inv(r.extras["innovation_cov"][0]), r.extras["innovation"]).mean(axis=1)
     assert abs(nis.mean() - 1) < 5 * nis.std(ddof=1) / np.sqrt(R)
     # Λ(t) against the empirical E[x x^T] at the last step (sample variance for the tolerance)
     xx = data.x[:, T, 0] ** 2
-    assert abs(xx.mean() - r.second_moment[T, 0, 0]) < 5 * xx.std(ddof=1) / np.sqrt(R)
+    assert abs(xx.mean() - r.extras["second_moment"][T, 0, 0]) < 5 * xx.std(ddof=1) / np.sqrt(R)
 
 
 def test_simulator_noise_cross_covariance():
@@ -454,16 +459,16 @@ def test_loewner_orderings():
     # same target, more data: P(j|N) <= P(j|j+d) <= P(j|j-1); P(t-d|t) <= P(t-d|t-1)
     for j in range(0, T - d):
         PN = sm.cov[j + d]
-        Pjd = r.measured_cov[j + d]
-        Ppred = r.pred_cov[j - 1] if j >= 1 else prior.block_cov(0)
+        Pjd = r.extras["measured_cov"][j + d]
+        Ppred = r.extras["next_cov"][j - 1] if j >= 1 else prior.block_cov(0)
         assert _loewner_ge(Pjd, PN) and _loewner_ge(Ppred, Pjd)
     for t in range(4 * d + 3, T):
         # x(t-L) for growing t, fixed element j = t - L: more data can only help
         for L in range(0, 3 * d + 2):
-            assert _loewner_ge(r.lagged[L][1][t - 1], r.lagged[L + 1][1][t])
+            assert _loewner_ge(r.extras["lagged"][L][1][t - 1], r.extras["lagged"][L + 1][1][t])
     # different targets, steady state: P(t+1|t) <= P(t+k|t)
     for k in (2, 3, 5):
-        assert _loewner_ge(r.ahead[k][1][-1], r.ahead[1][1][-1])
+        assert _loewner_ge(r.extras["ahead"][k][1][-1], r.extras["ahead"][1][1][-1])
 
 
 @pytest.mark.parametrize("q,S,filt,meas,Qe", [
@@ -481,14 +486,14 @@ def test_steady_state_reference_table(q, S, filt, meas, Qe):
     """Spec §3.3 (independent prototype): steady-state values to 4 decimals."""
     r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((600, 1)))
     np.testing.assert_allclose(np.diagonal(r.cov[-1]), filt, atol=5e-5)
-    np.testing.assert_allclose(np.diagonal(r.measured_cov[-1]), meas, atol=5e-5)
-    np.testing.assert_allclose(r.innovation_cov[-1, 0, 0], Qe, atol=5e-5)
+    np.testing.assert_allclose(np.diagonal(r.extras["measured_cov"][-1]), meas, atol=5e-5)
+    np.testing.assert_allclose(r.extras["innovation_cov"][-1, 0, 0], Qe, atol=5e-5)
 
 
 def test_transient_reference_values():
     r = chain_lmmse(paper_example(S=0.3), paper_prior(), np.zeros((151, 1)))
     np.testing.assert_allclose(np.diagonal(r.cov[0]), [0.01, 0.01], atol=5e-6)
-    np.testing.assert_allclose(np.diagonal(r.pred_cov[0]), [0.00101, 0.00243], atol=5e-6)
+    np.testing.assert_allclose(np.diagonal(r.extras["next_cov"][0]), [0.00101, 0.00243], atol=5e-6)
     for t, ref in [(25, (0.01770, 0.00874)), (50, (0.02237, 0.01181)), (100, (0.02382, 0.01274)),
                    (150, (0.02391, 0.01280))]:
         np.testing.assert_allclose(np.diagonal(r.cov[t]), ref, atol=5e-6)
@@ -501,7 +506,7 @@ def test_steady_state_does_not_depend_on_delay():
         res[d] = r
     for d in (1, 3, 6):
         np.testing.assert_allclose(res[d].cov[-1], res[1].cov[-1], atol=1e-9)
-        np.testing.assert_allclose(res[d].measured_cov[-1], res[0].cov[-1], atol=1e-9)
+        np.testing.assert_allclose(res[d].extras["measured_cov"][-1], res[0].cov[-1], atol=1e-9)
     np.testing.assert_allclose(np.diagonal(res[3].cov[-1]), [0.02392, 0.01280], atol=5e-6)
 
 
@@ -524,8 +529,8 @@ def test_extra_lag_reduces_to_plain_kf_when_pure_markov():
     HH = np.array([[0.0, 0.0, 1.0, 0.0]])
     GQG = np.zeros((4, 4)); GQG[:2, :2] = 0.1 * np.eye(2)
     ref = correlated_kf(AA, HH, GQG, np.zeros((4, 1)), np.array([[0.2]]), np.zeros(4), np.eye(4), data.y[0])
-    np.testing.assert_allclose(r.pred_mean, [o[2][:2] for o in ref], atol=TOL)
-    np.testing.assert_allclose(r.measured_cov, [o[1][2:, 2:] for o in ref], atol=TOL)
+    np.testing.assert_allclose(r.extras["next_mean"], [o[2][:2] for o in ref], atol=TOL)
+    np.testing.assert_allclose(r.extras["measured_cov"], [o[1][2:, 2:] for o in ref], atol=TOL)
     with pytest.raises(ValueError, match="system"):
         chain_lmmse(sys, prior, data.y[0])
 
@@ -584,3 +589,13 @@ def test_bad_input():
         chain_lmmse(sys, prior, y, lags=(7,), decorrelation="paper")
     with pytest.raises(ValueError, match="q_mult"):
         sys.replace(q_mult=None)
+
+
+@pytest.mark.parametrize("form", ["joseph", "square_root"])
+def test_augmented_covariance_forms_equal_the_standard_form(form):
+    rng = np.random.default_rng(31)
+    sys, prior = random_system(rng, 2, 1, 2), random_prior(rng, 2, 2, correlated=True)
+    data = simulate_delay(sys, prior, 25, 3, seed=4)
+    a = AugmentedLMMSE(sys, prior).filter(data.y)
+    b = AugmentedLMMSE(sys, prior, covariance_update=form).filter(data.y)
+    assert_same(a, b, tol=1e-9)

@@ -4,6 +4,7 @@ dense formulas, step by step, on recorded intermediate quantities."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 import tobitkf as tk
 from tobitkf.channels.fading import RiceFading
@@ -68,7 +69,7 @@ def test_fading_smoothed_blocks_are_the_diagonal_blocks():
 
 
 def test_shift_predict_equals_dense_block_shift():
-    from tobitkf.filters._shift import shift_predict
+    from tobitkf.filters.core import shift_predict
 
     rng = np.random.default_rng(11)
     N, n, blocks = 9, 3, 4
@@ -142,10 +143,12 @@ def test_protocol_joseph_rank_one_equals_dense_joseph():
         assert np.array_equal(P_new, np.swapaxes(P_new, -1, -2))
 
 
-def test_fading_scalar_joseph_equals_gain_update():
-    """m = 1 fast path == gain_update(H=G, noise=N): x, K bit for bit, P to 1e-12; masks and degenerate R_ee."""
-    from tobitkf.filters._common import gain_update
-    from tobitkf.filters.fading import _joseph_scalar_update
+@pytest.mark.parametrize("m", [1, 3])
+def test_shared_joseph_update_equals_dense_gain_update(m):
+    """The shared Joseph update (rank-m products, H = diag(scale) H0) == gain_update(H=G, noise=N) with the
+    dense (I-KH)P(I-KH)^T + KNK^T: x, K and P to 1e-12; masks and degenerate R_ee (the former
+    m = 1 fast path of the fading filter, now the one update of every family)."""
+    from tobitkf.filters.core import MeasurementPrediction, gain_update, measurement_update
 
     rng = np.random.default_rng(8)
     N, nxi = 40, 6
@@ -153,24 +156,29 @@ def test_fading_scalar_joseph_equals_gain_update():
     P = B @ np.swapaxes(B, -1, -2)
     P = 0.5 * (P + np.swapaxes(P, -1, -2))
     x = rng.standard_normal((N, nxi))
-    H0 = rng.standard_normal(nxi)
-    gam = rng.uniform(0.0, 1.0, N)
+    H0 = rng.standard_normal((m, nxi))
+    gam = rng.uniform(0.0, 1.0, (N, m))
     gam[:3] = 0.0                                   # G = 0: R_ee = noise
-    noise = rng.uniform(0.1, 1.0, N)
+    noise = rng.uniform(0.1, 1.0, (N, m))
     noise[:2] = 0.0                                 # R_ee = 0: degenerate, channel dropped
     noise[2] = 1e-310                               # subnormal R_ee: dropped as in gain_update
-    G = gam[:, None, None] * H0
+    G = gam[:, :, None] * H0
     Rxe = P @ np.swapaxes(G, -1, -2)
-    Ree = G @ Rxe + noise[:, None, None]
-    innov = rng.standard_normal((N, 1))
-    for valid in (None, rng.uniform(size=(N, 1)) > 0.3):
-        x1, P1, K1 = _joseph_scalar_update(x, P, innov, Rxe, Ree, valid, H0, gam, noise)
+    Ree = G @ Rxe + noise[:, :, None] * np.eye(m)
+    yhat = rng.standard_normal((N, m))
+    y = yhat + rng.standard_normal((N, m))
+    for valid in (None, rng.uniform(size=(N, m)) > 0.3):
+        mp = MeasurementPrediction(expected=yhat, H0=H0, scale=gam, noise=noise, valid=valid)
+        x1, P1, _, K1, _ = measurement_update(x, P, None, y, mp, "joseph")
         with np.errstate(divide="ignore", invalid="ignore"):
-            x2, P2, K2 = gain_update(x, P, innov, Rxe, Ree, valid, H=G, noise=noise[:, None, None])
-        assert np.array_equal(K1, K2) and np.array_equal(x1, x2)
+            x2, P2, K2 = gain_update(x, P, y - yhat, Rxe, Ree, valid, H=G, noise=noise[:, :, None] * np.eye(m))
+        # the moments come from GEMMs over the stacked runs here, from batched matmuls there: rounding
+        np.testing.assert_allclose(K1, K2, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(x1, x2, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(P1, P2, rtol=0, atol=1e-12 * np.abs(P2).max())
         assert np.array_equal(P1, np.swapaxes(P1, -1, -2))
-        dropped = ~(Ree[:, 0, 0] > np.finfo(float).tiny) if valid is None else ~(valid[:, 0] & (Ree[:, 0, 0] > 1e-300))
+        ok = Ree[:, np.arange(m), np.arange(m)] > 1e-300
+        dropped = ~ok.any(axis=1) if valid is None else ~(valid & ok).any(axis=1)
         assert np.array_equal(P1[dropped], P[dropped])
 
 

@@ -20,6 +20,13 @@ from tobitkf.filters import hinf as F
 from tobitkf.models import ross as M
 from tobitkf.simulate import ross as S
 
+
+def trajectory(Af, Bf, M, y, x0=None):
+    """x̂_0..x̂_T of the filter (5) through its estimator API (rows x̂_1..x̂_T) plus the prior x̂_0."""
+    out = F.RegionalHinfFilter(Af, Bf, M).filter(y, x0=x0)
+    first = np.broadcast_to(np.zeros(np.shape(Af)[0]) if x0 is None else x0, out.mean.shape[:-2] + (1, out.mean.shape[-1]))
+    return np.concatenate([first, out.mean], axis=-2)
+
 PAPER = H.WANG2010_PAPER
 
 
@@ -88,7 +95,7 @@ def test_augmented_system_6_matches_direct_simulation(model):
     T = 15
     w, v = rng.normal(size=(T, 1)), rng.normal(size=(T, 2))
     sim = S.simulate_ross(model, T, 4, x0=rng.normal(size=(4, 3)), w=w, v=v, seed=3)
-    xh = F.hinf_filter(Af, Bf, model.M, sim.y).mean
+    xh = trajectory(Af, Bf, model.M, sim.y)
     eta = np.concatenate([sim.x, xh], axis=-1)
     for k in range(T):
         nxt = H.augmented_step(model, Af, Bf, eta[:, k], w[k], v[k], sim.alpha[:, k], sim.beta[:, k])
@@ -217,11 +224,25 @@ def test_simulation_is_seeded_and_batched(model):
     b = S.simulate_ross(model, 20, 5, x0=PAPER["x0"], w=w, v=v, seed=11)
     np.testing.assert_array_equal(a.y, b.y)
     assert a.x.shape == (5, 21, 3) and a.y.shape == (5, 20, 2) and a.z.shape == (5, 21, 2)
-    out = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y)
+    out = F.RegionalHinfFilter(PAPER["Af"], PAPER["Bf"], model.M).filter(a.y)
     for r in range(5):
-        one = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y[r])
+        one = F.RegionalHinfFilter(PAPER["Af"], PAPER["Bf"], model.M).filter(a.y[r])
         np.testing.assert_allclose(one.mean, out.mean[r], atol=1e-15)
-    assert out.mean.shape == (5, 21, 3)
+    assert out.mean.shape == (5, 20, 3) and out.times.tolist() == list(range(1, 21))
+    np.testing.assert_allclose(out.extras["z"], out.mean @ model.M.T, atol=1e-15)
+
+
+def test_deprecated_hinf_filter_keeps_the_old_layout():
+    """hinf_filter(...) warns and still returns x̂_0..x̂_T (T+1 rows), equal to the estimator's rows."""
+    model = M.wang2010_model()
+    w, v = S.wang2010_disturbances(15)
+    a = S.simulate_ross(model, 15, 3, x0=PAPER["x0"], w=w, v=v, seed=2)
+    with pytest.warns(DeprecationWarning, match="use RegionalHinfFilter"):
+        old = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y, xhat0=[0.1, 0.0, 0.2])
+    np.testing.assert_array_equal(old.mean, trajectory(PAPER["Af"], PAPER["Bf"], model.M, a.y, x0=[0.1, 0.0, 0.2]))
+    with pytest.warns(DeprecationWarning, match="use filter\\(y, x0=...\\)"):
+        pos = F.RegionalHinfFilter(PAPER["Af"], PAPER["Bf"], model.M).filter(a.y, [0.1, 0.0, 0.2])
+    np.testing.assert_array_equal(pos.mean, old.mean[:, 1:])
 
 
 # --------------------------------------------------------------------------------------------
@@ -408,7 +429,7 @@ def _inside_scale(model, cert, w, v, runs, seed):
     for _ in range(20):
         s = 0.5 * (lo + hi)
         sim = S.simulate_ross(model, w.shape[0], runs, w=s * w, v=s * v, seed=seed)
-        xh = F.hinf_filter(cert.Af, cert.Bf, model.M, sim.y).mean
+        xh = trajectory(cert.Af, cert.Bf, model.M, sim.y)
         eta = np.concatenate([sim.x, xh], axis=-1)
         peak = np.einsum("...i,ij,...j->...", eta, cert.P, eta).max() / cert.rho
         lo, hi = (s, hi) if peak <= 1 else (lo, s)
@@ -427,7 +448,7 @@ def test_empirical_l2_gain_below_certified_gamma(model, improved, th3_feasible, 
         s = _inside_scale(model, cert, w, v, 50, 21)
         assert s > 0
         sim = S.simulate_ross(model, T, runs, w=s * w, v=s * v, seed=22)
-        xh = F.hinf_filter(cert.Af, cert.Bf, model.M, sim.y).mean
+        xh = trajectory(cert.Af, cert.Bf, model.M, sim.y)
         err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
         ratio = np.sqrt(err / sim.disturbance_energy[0])
         assert ratio < cert.gamma, (ratio, cert.gamma)
@@ -440,7 +461,7 @@ def test_dissipation_with_nonzero_initial_state_A9(model, improved):
     x0 = 0.3 * np.sqrt(c.rho) * np.array([1.0, 0.0, 0.0]) / np.sqrt(c.P[0, 0])
     s = 0.05
     sim = S.simulate_ross(model, T, runs, x0=x0, w=s * w, v=s * v, seed=23)
-    xh = F.hinf_filter(c.Af, c.Bf, model.M, sim.y).mean
+    xh = trajectory(c.Af, c.Bf, model.M, sim.y)
     eta = np.concatenate([sim.x, xh], axis=-1)
     assert np.einsum("...i,ij,...j->...", eta, c.P, eta).max() <= c.rho
     err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
@@ -459,7 +480,7 @@ def test_mean_square_stability_inside_omega(model, th3_feasible):
     eta0 = np.sqrt(c.rho) * np.linalg.solve(L.T, u)                # η0^T P η0 = ρ
     runs, T = 1000, 25
     sim = S.simulate_ross(model, T, runs, x0=eta0[:3], seed=31)
-    xh = F.hinf_filter(c.Af, c.Bf, model.M, sim.y, xhat0=eta0[3:]).mean
+    xh = trajectory(c.Af, c.Bf, model.M, sim.y, x0=eta0[3:])
     eta = np.concatenate([sim.x, xh], axis=-1)
     V = np.einsum("...i,ij,...j->...", eta, c.P, eta).mean(0)
     np.testing.assert_allclose(V[0], c.rho, rtol=1e-9)
@@ -474,12 +495,12 @@ def test_paper_scenario_smoke_values(model):
         sim = S.simulate_ross(model, T, runs, x0=x0, w=w, v=v, seed=40)
         assert abs(sim.disturbance_energy[0] - 19.86) < 0.01
         for Af, Bf, ref in ((PAPER["Af"], PAPER["Bf"], paper_ref), (np.zeros((3, 3)), np.zeros((3, 2)), zero_ref)):
-            xh = F.hinf_filter(Af, Bf, model.M, sim.y).mean
+            xh = trajectory(Af, Bf, model.M, sim.y)
             err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
             assert abs(err - ref) < 0.006, (err, ref)
     # η^T P η leaves Ω at k = 2 (spec F7: peak 1.43 at k = 2 with the printed P)
     sim = S.simulate_ross(model, T, 1, x0=PAPER["x0"], w=w, v=v, seed=41)
-    xh = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, sim.y).mean
+    xh = trajectory(PAPER["Af"], PAPER["Bf"], model.M, sim.y)
     eta = np.concatenate([sim.x, xh], axis=-1)[0]
     V = np.einsum("ki,ij,kj->k", eta, PAPER["P"], eta)
     assert V[0] <= PAPER["rho"] and V.max() > PAPER["rho"] and V.argmax() == 2

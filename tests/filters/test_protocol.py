@@ -214,9 +214,9 @@ def test_R2_augmented_filter_equals_batch_gaussian_posterior(ell):
     T = 9
     sys_ = random_system(rng, n=2, p=2, T=T, varying=True)
     ch = ProtocolChannel(2, window=ell, threshold=-np.inf)
-    y = tk.simulate(sys_, T, 1, seed=ell, channel=ch).y[0, :, 0]
+    y = tk.simulate(sys_, T, 1, seed=ell, channel=ch).y[0]
     r = protocol_tobit_kalman_filter(sys_, ch, y, keep_augmented=True)
-    m, P = batch_posterior(sys_, ch, y, T)
+    m, P = batch_posterior(sys_, ch, y[:, 0], T)
     np.testing.assert_allclose(r.extras["aug_mean"], m, rtol=0, atol=1e-9)
     np.testing.assert_allclose(r.extras["aug_cov"], P, rtol=0, atol=1e-9)
 
@@ -230,7 +230,7 @@ def test_R3_tobit_with_known_indicator_explicit_formulas():
     ch = ProtocolChannel(1, window=0, threshold=tau)
     y = tk.simulate(sys_, T, 1, seed=3, channel=ch).y[0, :, 0]
     assert 3 < (y == tau).sum() < T - 3
-    r = protocol_tobit_kalman_filter(sys_, ch, y)
+    r = protocol_tobit_kalman_filter(sys_, ch, y[:, None])
     A, C, Q, R = sys_.transition(0), sys_.measurement(1)[0], sys_.process_cov(0), 0.7
     x, P = sys_.x0.copy(), sys_.P0.copy()
     for k in range(T):
@@ -276,11 +276,12 @@ def test_R5_modes_coincide_without_gain_variance():
 def test_censored_step_leaves_estimate_and_covariance_bit_exactly_unchanged():
     sys_, ch = example(), example_channel()
     d = tk.simulate(sys_, 40, 8, seed=2, channel=ch)
-    gam = d.extras["uncensored"].copy()
+    gam = d.extras["uncensored"].copy()                       # (N, T, 1), laid out like y
     gam[:, 5] = False                                          # also: a value above tau declared censored
     y = d.y.copy()
     y[:, 5] = 123.0
     r = protocol_tobit_kalman_filter(sys_, ch, y, uncensored=gam, keep_augmented=True)
+    gam = gam[..., 0]
     assert (~gam).sum() > 20
     np.testing.assert_array_equal(r.extras["aug_mean"][~gam], r.extras["aug_pred_mean"][~gam])
     np.testing.assert_array_equal(r.extras["aug_cov"][~gam], r.extras["aug_pred_cov"][~gam])
@@ -322,11 +323,11 @@ def test_batched_equals_per_run():
         np.testing.assert_allclose(r.cov.reshape(4, 25, 2, 2)[i], one.cov, rtol=0, atol=1e-13)
 
 
-def test_prehistory_mean_option():
+def test_prehistory_prior_option():
     sys_, ch = example(), example_channel()
     y = np.array([[12.0]])
     rep = protocol_tobit_kalman_filter(sys_, ch, y)
-    zero = protocol_tobit_kalman_filter(sys_, ch, y, prehistory_mean="zero")
+    zero = protocol_tobit_kalman_filter(sys_, ch, y, prehistory_prior="zero_mean")
     np.testing.assert_allclose(rep.extras["aug_pred_mean"][0], np.r_[ROT @ [5, 0], 5, 0, 5, 0], atol=1e-15)
     np.testing.assert_allclose(zero.extras["aug_pred_mean"][0], np.r_[ROT @ [5, 0], 5, 0, 0, 0], atol=1e-15)
     # the smaller predicted integral makes the zero-mean prior move the estimate up more
@@ -418,7 +419,7 @@ def test_mc_bounds_hold_at_every_k(mc_runs, damped):
 def test_mc_uncensored_frequency_matches_analytic(mc_runs, damped):
     sys_, ch, d, res, _ = mc_runs[damped]
     g = analytic_p_uncensored(sys_, ch, 100)
-    freq = d.extras["uncensored"].mean(0)
+    freq = d.extras["uncensored"][..., 0].mean(0)
     M = d.y.shape[0]
     # 4 binomial standard deviations at each of 100 steps: family-wise false alarm < 1 %
     assert (np.abs(freq - g) <= 4 * np.sqrt(g * (1 - g) / M) + 1e-12).all()
@@ -531,3 +532,21 @@ def test_bound_phi_upper_mean_trajectory_is_tighter():
     a = protocol_covariance_bounds(sys_, ch, 60)
     b = protocol_covariance_bounds(sys_, ch, 60, phi_upper="mean_trajectory")
     assert (np.trace(b.upper, axis1=1, axis2=2) <= np.trace(a.upper, axis1=1, axis2=2) + 1e-12).all()
+
+
+def test_pre_0_2_spellings_still_work_with_a_deprecation_warning():
+    """prehistory_mean=, a (T,) record and a (..., T) indicator: same numbers as the new spellings."""
+    sys_, ch = example(), example_channel()
+    d = tk.simulate(sys_, 12, 3, seed=4, channel=ch)
+    new = protocol_tobit_kalman_filter(sys_, ch, d.y, uncensored=d.extras["uncensored"], prehistory_prior="zero_mean")
+    with pytest.warns(DeprecationWarning, match="prehistory_prior='zero_mean'"):
+        old = protocol_tobit_kalman_filter(sys_, ch, d.y, prehistory_mean="zero")
+    np.testing.assert_array_equal(old.mean, new.mean)
+    with pytest.warns(DeprecationWarning, match=r"lay it out like y, \(\.\.\., T, 1\)"):
+        old = protocol_tobit_kalman_filter(sys_, ch, d.y, uncensored=d.extras["uncensored"][..., 0],
+                                           prehistory_prior="zero_mean")
+    np.testing.assert_array_equal(old.mean, new.mean)
+    with pytest.warns(DeprecationWarning, match=r"a \(T,\) record is deprecated"):
+        one = protocol_tobit_kalman_filter(sys_, ch, d.y[0, :, 0], prehistory_prior="zero_mean")
+    np.testing.assert_array_equal(one.mean, protocol_tobit_kalman_filter(sys_, ch, d.y[0],
+                                                                         prehistory_prior="zero_mean").mean)

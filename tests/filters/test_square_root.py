@@ -247,13 +247,21 @@ def test_unknown_form_lists_the_allowed_values():
         tk.DroppingKalmanFilter(s, tk.Censoring(), covariance_update="sqrt")
 
 
-def test_filters_without_the_form_refuse_it():
-    """Filters with their own update (Rice fading, protocol) do not silently accept it."""
+def test_every_gaussian_family_has_the_square_root_form():
+    """The fading and protocol filters (their own update before the shared core) take the form too,
+    equal to their Joseph default to rounding (a convention change: they used to refuse it)."""
     s = random_system(2, 1, seed=0, diagonal_R=True)
-    msg = "covariance_update: expected one of 'joseph', 'standard', got 'square_root'"
-    with pytest.raises(ValidationError, match=msg):
-        FadingTobitKalmanFilter(s, RiceFading(0, [1.0]), tk.Censoring(), covariance_update="square_root")
-    with pytest.raises(ValidationError, match=msg):
-        FadingKalmanFilter(s, RiceFading(0, [1.0]), covariance_update="square_root")
-    with pytest.raises(ValidationError, match=msg):
-        ProtocolTobitKalmanFilter(s, ProtocolChannel(1), covariance_update="square_root")
+    fad = RiceFading.gaussian(1, [0.9, 0.5], [0.01, 0.02])
+    cens = tk.Censoring(lower=-0.5)
+    y = tk.simulate(s, 25, 6, censoring=cens, measurement=fad, seed=3).y
+    for make in (lambda f: FadingTobitKalmanFilter(s, fad, cens, covariance_update=f),
+                 lambda f: FadingKalmanFilter(s, fad, covariance_update=f)):
+        a, b = make("joseph").filter(y), make("square_root").filter(y)
+        assert_rel(b.mean, a.mean)
+        assert_rel(b.cov, a.cov)
+    ch = ProtocolChannel(1, window=2, threshold=-0.5)
+    yp = tk.simulate(s, 25, 6, channel=ch, seed=4).y
+    a = ProtocolTobitKalmanFilter(s, ch).filter(yp)
+    b = ProtocolTobitKalmanFilter(s, ch, covariance_update="square_root").filter(yp)
+    assert_rel(b.mean, a.mean)
+    assert_rel(b.cov, a.cov)

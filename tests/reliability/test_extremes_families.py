@@ -23,7 +23,7 @@ from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.design.hinf import WANG2010_PAPER
-from tobitkf.filters.hinf import hinf_filter
+from tobitkf.filters.hinf import RegionalHinfFilter
 from tobitkf.simulate.ross import simulate_ross, wang2010_disturbances
 from tobitkf.models.ross import wang2010_model
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
@@ -139,9 +139,9 @@ def test_hinf_filter_paper_gains_long_and_huge_inputs_stay_finite():
     model = wang2010_model()
     w, v = wang2010_disturbances(10_000)
     sim = simulate_ross(model, 10_000, 2, x0=WANG2010_PAPER["x0"], w=w, v=v, seed=0)
-    out = hinf_filter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M, sim.y)
+    out = RegionalHinfFilter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M).filter(sim.y)
     assert np.all(np.isfinite(out.mean)) and np.abs(out.mean).max() < 10
-    big = hinf_filter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M, np.full((50, 2), 1e150))
+    big = RegionalHinfFilter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M).filter(np.full((50, 2), 1e150))
     assert np.all(np.isfinite(big.mean)) and np.abs(big.mean).max() < 1e150
 
 
@@ -257,6 +257,34 @@ def test_square_root_form_matches_a_60_digit_reference_on_the_hard_case():
         for form in ("standard", "joseph"):    # the criterion fails the forms that lose PSD here
             old = tk.KalmanFilter(s, covariance_update=form).filter(data.y[r])
             assert (np.abs(old.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() > 1e-3
+
+
+def test_square_root_form_of_the_augmented_families_on_the_hard_case():
+    """The fading filter (L = 0, unit gain: the KF) and the protocol filter (one sensor, no window, no
+    failures: the KF) in square-root form match the same 60-digit reference to 1e-6 and stay PSD on the
+    hard case (P0 = 1e8 I, R = 1e-12 I), where their Joseph form fails the same criterion (tolerances as
+    above)."""
+    from tobitkf.channels.fading import RiceFading
+    from tobitkf.channels.protocol import ProtocolChannel
+
+    s, data = _hard_case()
+    s1 = tk.LinearSystem(A=s.A.array, C=s.C.array[:1], Q=s.Q.array, R=s.R.array[:1, :1], x0=s.x0, P0=s.P0)
+    y1 = data.y[..., :1]
+    cases = [(s, data.y, lambda f: FadingTobitKalmanFilter(s, RiceFading(0, [1.0]), None, covariance_update=f)),
+             (s1, y1, lambda f: tk.ProtocolTobitKalmanFilter(s1, ProtocolChannel(1), covariance_update=f))]
+    for sys_, y, make in cases:
+        for r in range(y.shape[0]):
+            mean, cov, pcov = _decimal_kf(sys_, y[r])
+            out = make("square_root").filter(y[r])
+            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6
+            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
+                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6
+                eig = np.linalg.eigvalsh(got)
+                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2)))
+            old = make("joseph").filter(y[r])
+            bad_mean = (np.abs(old.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() > 1e-3
+            bad_psd = np.linalg.eigvalsh(old.cov).min() < -1e-12 * np.abs(old.cov).max()
+            assert bad_mean or bad_psd
 
 
 def test_square_root_tobit_filter_on_the_hard_case_with_limits():

@@ -29,7 +29,7 @@ from tobitkf.channels.saturation import RandomSaturation
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.models.ross import RossModel
-from tobitkf.filters.hinf import hinf_filter
+from tobitkf.filters.hinf import RegionalHinfFilter
 from tobitkf.simulate.ross import simulate_ross
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
@@ -218,8 +218,8 @@ def test_hinf_filter_and_ross_simulation_are_finite(n, m, seed, mu, nu, steps):
                              f=lambda x: 0.3 * np.tanh(x))
     with no_hang():
         sim = simulate_ross(model, steps, 2, x0=rng.normal(size=n), w=rng.normal(size=(steps, 1)), seed=seed)
-        out = hinf_filter(Af, rng.normal(size=(n, m)), model.M, sim.y)
-    assert np.all(np.isfinite(sim.x)) and np.all(np.isfinite(out.mean)) and np.all(np.isfinite(out.z))
+        out = RegionalHinfFilter(Af, rng.normal(size=(n, m)), model.M).filter(sim.y)
+    assert np.all(np.isfinite(sim.x)) and np.all(np.isfinite(out.mean)) and np.all(np.isfinite(out.extras["z"]))
 
 
 # ---------------------------------------------------------------------------------------

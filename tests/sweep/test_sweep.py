@@ -310,3 +310,133 @@ def test_cli_sweep_and_plot(tmp_path):
     bad.write_text("[sweep]\nruns = -1\nsteps = 2\nseed = 0\n")
     res = runner.invoke(app, ["sweep", str(bad)])
     assert res.exit_code == 2 and "sweep.runs" in res.output
+
+
+# --- every family on a linear model, from the estimator registry --------------------------------
+FAMILIES = """
+[sweep]
+runs = 40
+steps = 15
+seed = 5
+block_runs = 20
+
+[model]
+A = [[0.95, 0.1], [0.0, 0.9]]
+C = [[1.0, 0.0]]
+Q = [[0.01, 0.0], [0.0, 0.01]]
+R = [[0.05]]
+x0 = [1.0, 0.0]
+P0 = [[0.5, 0.0], [0.0, 0.5]]
+
+[censoring]
+lower = 0.2
+
+[fading]
+order = 1
+mean = [0.9, 0.4]
+variance = [0.01, 0.02]
+
+[estimators.tkf-fm]
+type = "FadingTobitKalmanFilter"
+p_uncensored_mode = "eq6_stale"
+
+[estimators.kf-fm]
+type = "FadingKalmanFilter"
+
+[estimators.sstkf]
+type = "SteadyStateTobitKalmanFilter"
+xi_uncensored = 0.8
+
+[grid]
+"fading.variance" = [[0.0, 0.0], [0.01, 0.02]]
+"""
+
+PROTOCOL = """
+[sweep]
+runs = 30
+steps = 12
+seed = 6
+block_runs = 10
+
+[model]
+A = [[0.98, -0.16], [0.16, 0.98]]
+C = [[1.0, 0.0], [0.0, 1.0]]
+Q = [[0.0025, 0.0], [0.0, 0.0025]]
+R = [[1.0, 0.0], [0.0, 0.5]]
+x0 = [5.0, 0.0]
+P0 = [[1.0, 0.0], [0.0, 1.0]]
+
+[protocol]
+window = 2
+threshold = 0.0
+failures = "base"
+
+[estimators.pbtkf-imsf]
+type = "ProtocolTobitKalmanFilter"
+failure_term = "second_moment"
+
+[estimators.pbtkf]
+type = "ProtocolBaselineTobitKalmanFilter"
+
+[grid]
+"protocol.window" = [1, 2]
+"""
+
+
+def _direct_rmse(make_data, estimators, blocks, seed):
+    """RMSE per step of each estimator from the documented block seeds, filtered directly."""
+    errs = {k: [] for k in estimators}
+    for b in range(blocks):
+        d = make_data(np.random.SeedSequence(seed, spawn_key=(b,)))
+        for key, run in estimators.items():
+            out = run(d)
+            errs[key].append(out.mean - d.x[:, 1:])
+    return {k: np.sqrt((np.concatenate(e) ** 2).mean(axis=0)) for k, e in errs.items()}
+
+
+def test_fading_and_steady_state_families_sweep_like_a_direct_run(tmp_path):
+    from tobitkf.channels.fading import RiceFading
+
+    ds = load_result(run_sweep(parse_sweep(FAMILIES, name="fam"), tmp_path))
+    sys_ = tk.LinearSystem(A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.05]], x0=[1.0, 0.0],
+                           P0=0.5 * np.eye(2))
+    cens = tk.Censoring(lower=0.2)
+    for i, var in enumerate(([0.0, 0.0], [0.01, 0.02])):
+        fad = RiceFading.gaussian(1, [0.9, 0.4], var)
+        ref = _direct_rmse(lambda seed: tk.simulate(sys_, 15, 20, channel=[fad, cens], seed=seed), {
+            "tkf-fm": lambda d: tk.FadingTobitKalmanFilter(sys_, fad, cens, p_uncensored_mode="eq6_stale").filter(d.y),
+            "kf-fm": lambda d: tk.FadingKalmanFilter(sys_, fad).filter(d.y),
+            "sstkf": lambda d: tk.SteadyStateTobitKalmanFilter(sys_, 0.8).filter_controlled(d.y_latent)}, 2, 5)
+        for key, r in ref.items():
+            got = ds["rmse"].isel({"fading.variance": i}).sel(estimator=key).values
+            np.testing.assert_allclose(got, r, rtol=1e-12)
+
+
+def test_protocol_family_sweeps_like_a_direct_run(tmp_path):
+    from tobitkf.channels.protocol import LAMBDA_BASE
+
+    ds = load_result(run_sweep(parse_sweep(PROTOCOL, name="prot"), tmp_path))
+    sys_ = tk.LinearSystem(A=[[0.98, -0.16], [0.16, 0.98]], C=np.eye(2), Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5]),
+                           x0=[5.0, 0.0], P0=np.eye(2))
+    assert ds["censored_fraction"].shape == (2, 12, 1)          # one scalar reading per step
+    for ell in (1, 2):
+        ch = tk.ProtocolChannel(2, window=ell, threshold=0.0, failures=LAMBDA_BASE)
+        ref = _direct_rmse(lambda seed: tk.simulate(sys_, 12, 10, channel=ch, seed=seed), {
+            "pbtkf-imsf": lambda d: tk.ProtocolTobitKalmanFilter(sys_, ch, failure_term="second_moment").filter(d.y),
+            "pbtkf": lambda d: tk.ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y)}, 3, 6)
+        for key, r in ref.items():
+            np.testing.assert_allclose(ds["rmse"].sel({"protocol.window": ell, "estimator": key}).values, r, rtol=1e-12)
+
+
+@pytest.mark.parametrize("text, match", [
+    (FAMILIES.replace('type = "FadingKalmanFilter"', 'type = "ChainLMMSE"'),
+     "ChainLMMSE is not a family on a linear model"),
+    (FAMILIES.replace("[fading]\norder = 1\n", "[fading]\n"), "order: the \\[fading\\] channel needs its order L"),
+    (FAMILIES.replace("xi_uncensored = 0.8\n", ""), "xi_uncensored: SteadyStateTobitKalmanFilter needs this option"),
+    (PROTOCOL.replace("[protocol]", "[censoring]\nlower = 0.0\n\n[protocol]"), "drop \\[censoring\\]"),
+    (PROTOCOL.replace('failures = "base"', 'failures = "often"'), "failures: expected 'none', 'base', 'lambda1'"),
+    (FAMILIES.replace('"fading.variance"', '"fading.speed"'), "expected a key of the file's \\[fading\\] table"),
+])
+def test_channel_sections_are_checked_on_load(text, match):
+    with pytest.raises(SweepFileError, match=match):
+        parse_sweep(text, name="bad")

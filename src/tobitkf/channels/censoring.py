@@ -102,11 +102,11 @@ class Censoring(Channel):
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
 
-    def all_limits(self, steps: int, m: int) -> tuple[np.ndarray, np.ndarray]:
-        """Limits broadcast to ``(T, m)`` for k = 1..T."""
-        self.check(m, steps)
-        lo = self.lower[:steps] if self.time_varying else self.lower
-        hi = self.upper[:steps] if self.time_varying else self.upper
+    def all_limits(self, steps: int, m: int, *, start: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Limits broadcast to ``(T, m)`` for k = start..start+T-1 (default k = 1..T)."""
+        self.check(m, start - 1 + steps)
+        lo = self.lower[start - 1:start - 1 + steps] if self.time_varying else self.lower
+        hi = self.upper[start - 1:start - 1 + steps] if self.time_varying else self.upper
         return (np.broadcast_to(lo, (steps, m)).copy(), np.broadcast_to(hi, (steps, m)).copy())
 
     def clip(self, y_latent: np.ndarray, k: int | None = None) -> np.ndarray:
@@ -127,23 +127,23 @@ class Censoring(Channel):
         """:meth:`clip` of a whole record ``(..., T, m)`` (the :class:`~tobitkf.channels.base.Channel` stage)."""
         return self.clip(y_latent)
 
-    def censored_mask(self, y: np.ndarray, *, rtol: float = 1e-12) -> tuple[np.ndarray, np.ndarray]:
+    def censored_mask(self, y: np.ndarray, *, rtol: float = 1e-12, start: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Masks ``(at_lower, at_upper)`` of a record ``(..., T, m)`` reading exactly at a limit.
 
         A reading counts as censored when it is within ``rtol * max(1, |limit|)`` of the limit
-        (ours, not in the source: a reading within ``tol`` of a limit counts as censored).
+        (ours, not in the source: a reading within ``tol`` of a limit counts as censored). Row 0 is time ``start``.
         """
         steps, m = y.shape[-2:]
-        lo, hi = self.all_limits(steps, m)
+        lo, hi = self.all_limits(steps, m, start=start)
         with np.errstate(invalid="ignore"):
             at_lo = np.isfinite(lo) & (y <= lo + rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0))))
             at_hi = np.isfinite(hi) & (y >= hi - rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0))))
         return at_lo, at_hi
 
-    def check_measurements(self, y: np.ndarray, name: str = "y", *, rtol: float = 1e-9) -> None:
-        """Raise :class:`ValidationError` if a (non-NaN) reading lies outside its limits."""
+    def check_measurements(self, y: np.ndarray, name: str = "y", *, rtol: float = 1e-9, start: int = 1) -> None:
+        """Raise :class:`ValidationError` if a (non-NaN) reading lies outside its limits (row 0 is time ``start``)."""
         steps, m = y.shape[-2:]
-        lo, hi = self.all_limits(steps, m)
+        lo, hi = self.all_limits(steps, m, start=start)
         tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
         tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
         with np.errstate(invalid="ignore"):
@@ -153,6 +153,26 @@ class Censoring(Channel):
             t, ch = idx[-2], idx[-1]
             raise ValidationError(f"{name}: measurement {y[idx]:.6g} at index {idx} lies outside its censoring "
                                   f"limits [{lo[t, ch]:.6g}, {hi[t, ch]:.6g}]")
+
+    def check_reading(self, y: np.ndarray, k: int, name: str = "y", *, rtol: float = 1e-9) -> None:
+        """Raise :class:`ValidationError` if a (non-NaN) reading ``y`` (..., m) of step ``k`` lies outside its
+        limits (the one-step form of :meth:`check_measurements`, for online filtering)."""
+        cached = self.__dict__.get("_bounds") if not self.time_varying and rtol == 1e-9 else None
+        if cached is None:
+            lo, hi = self.limits(k)
+            tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
+            tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
+            cached = (lo - tol_lo, hi + tol_hi, lo, hi)
+            if not self.time_varying and rtol == 1e-9:
+                self._bounds = cached          # constant limits: the tolerance band is computed once
+        lo_b, hi_b, lo, hi = cached
+        bad = (y < lo_b) | (y > hi_b)           # NaN (a missing reading) compares False
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            ch = idx[-1]
+            lo_b, hi_b = np.broadcast_to(lo, y.shape[-1:]), np.broadcast_to(hi, y.shape[-1:])
+            raise ValidationError(f"{name}: measurement {y[idx]:.6g} at step k={k}, channel {ch} lies outside its "
+                                  f"censoring limits [{lo_b[ch]:.6g}, {hi_b[ch]:.6g}]")
 
     def __repr__(self) -> str:
         def fmt(v):

@@ -35,7 +35,8 @@ The result's ``y`` is ``(N, T, 1)`` (the scalar :math:`y_k`), ``y_latent`` is
 ``(N, T, p)`` (every :math:`z_{m,k}`), and ``extras`` holds ``failure_gain``
 (N, T, p), ``prehistory`` (N, ℓ, n) = :math:`x_{-1},\dots,x_{-\ell}`, ``scheduled``
 (T,) (1-based :math:`\bar h_k`), ``y_transmitted`` (N, T, 1) = :math:`\bar y_k` and
-``uncensored`` (N, T) = :math:`\gamma_k`.
+``uncensored`` (N, T, 1) = :math:`\gamma_k` (laid out like ``y``, so that it can be passed to the
+filter's ``uncensored=``).
 
 Time convention: :math:`x_0` is the prior state; :math:`y_1` is stored at index 0.
 The pre-history :math:`x_{-1..-\ell}` is drawn from the filter prior (not stated in the source, GP-08).
@@ -379,7 +380,7 @@ class ProtocolChannel(Channel):
         """Round-Robin, zero-input: keep the scheduled sensor's (censored) reading, (N, T, 1)."""
         out = self.schedule.select(y)
         extras["scheduled"] = self.schedule.scheduled(y.shape[-2])
-        extras["uncensored"] = out[..., 0] > self.threshold
+        extras["uncensored"] = out > self.threshold            # (N, T, 1), laid out like y
         return out
 
     def __repr__(self) -> str:

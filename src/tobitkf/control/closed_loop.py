@@ -12,16 +12,17 @@ Loop, for k = 1..T (package time convention: x_0 ~ N(x0, P0), y_1 at index 0):
     \bar x_k &= A\hat x_{k-1|k-1} + B^u u_k \quad\text{(the input applied over (k-1, k], spec §0.2 [R])} \\
     y_k &= \mathrm{clip}(y^*_k, l_k, h_k), \qquad \hat x_{k|k} = \text{observer update}(\bar x_k, y_k)
 
-Observers (``observer=``), each calling the filters' own step functions:
+Observers (``observer=``), each an estimator driven through its public online API
+(``predict(state, u=u_k)``, then ``update(pred, y_k, ...)``), as a user would drive it:
 
 ==============  ===============================================================================
-``"kf"``        Kalman filter that treats censored readings as ordinary ones (the text's KF-LQG);
-                :func:`~tobitkf.filters._common.predict` + :func:`~tobitkf.filters._common.gain_update`
-``"tkf"``       time-varying Tobit KF (3.55) at the fixed limits of ``censoring``;
-                :func:`~tobitkf.filters.tobit.tobit_update`
-``"tkf-moving"`` the same TKF, with the sensor limit set from its prior by (3.56) (γ̂ ≡ Ξ)
-``"sstkf"``     steady-state TKF (fixed gain K∞ of the modified DARE, moving limit (3.56)),
-                :class:`~tobitkf.filters.steady_state.SteadyStateTobitKalmanFilter`
+``"kf"``        :class:`~tobitkf.KalmanFilter`, treating censored readings as ordinary ones (the
+                text's KF-LQG)
+``"tkf"``       :class:`~tobitkf.TobitKalmanFilter` (3.55) at the fixed limits of ``censoring``
+``"tkf-moving"`` the same TKF, with the sensor limit set from its prior by (3.56) (γ̂ ≡ Ξ), passed to
+                ``update(..., lower=, upper=)``
+``"sstkf"``     :class:`~tobitkf.filters.steady_state.SteadyStateTobitKalmanFilter` (fixed gain K∞ of the
+                modified DARE, moving limit (3.56))
 ==============  ===============================================================================
 
 The random draws (x_0, then w, then v) come from one generator in a fixed order, so the same seed
@@ -47,8 +48,9 @@ import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
-from ..filters._common import check_prior, gain_update, predict
-from ..filters.tobit import NOISE_TERMS, _sigma_of, tobit_update
+from ..filters.kalman import KalmanFilter
+from ..filters.steady_state import SteadyStateTobitKalmanFilter
+from ..filters.tobit import NOISE_TERMS, TobitKalmanFilter, _sigma_of
 from ..models.linear import LinearSystem
 from .._linalg import eigh_sqrt as psd_sqrt
 from .._validation import as_generator, check_count
@@ -141,7 +143,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     x0_estimate, P0_estimate : array_like, optional
         Observer prior (default the plant's x0, P0); the truth draws x_0 ~ N(x0, P0).
     noise_term : str
-        Tobit noise term, passed to :func:`~tobitkf.filters.tobit.tobit_update`.
+        Tobit noise term of the TKF observers (see :class:`~tobitkf.TobitKalmanFilter`).
     divergence_bound : float, default 1e8
         Runs whose |x| or |x̂| exceed it are frozen and flagged.
     noise : dict, optional
@@ -209,11 +211,13 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     if not isinstance(cens, Censoring):
         raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
     cens.check(m, steps)
-    sst = None
-    if observer == "sstkf":
-        from ..filters.steady_state import SteadyStateTobitKalmanFilter
-
-        sst = SteadyStateTobitKalmanFilter(plant, xi, side=side)
+    if observer == "kf":
+        obs = KalmanFilter(plant, backend="numpy")
+    elif observer == "sstkf":
+        obs = SteadyStateTobitKalmanFilter(plant, xi, side=side)
+    else:
+        obs = TobitKalmanFilter(plant, Censoring() if moving else cens, noise_term=noise_term, backend="numpy",
+                                check_limits=False)
 
     x = np.empty((runs, steps + 1, n))
     if noise is None:
@@ -238,9 +242,12 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
             raise ShapeError(f"noise: expected x0 ({runs}, {n}), w ({runs}, {steps}, {n}), v ({runs}, {steps}, {m}), got "
                              f"{[np.shape(noise[k]) for k in ('x0', 'w', 'v')]}") from None
 
-    xh, P = check_prior(plant, x0_estimate, P0_estimate, runs)
-    if sst is not None:
-        P = np.broadcast_to(sst.cov, (runs, n, n))
+    if observer == "sstkf":
+        if P0_estimate is not None:
+            raise ValidationError("P0_estimate: the steady-state observer has the constant covariance Psi_inf")
+        state = obs.init((runs,), x0=x0_estimate)
+    else:
+        state = obs.init((runs,), x0=x0_estimate, P0=P0_estimate)
     out = {name: np.empty((runs, steps) + shape) for name, shape in
            (("estimate", (n,)), ("pred", (n,)), ("cov", (n, n)), ("u", (p,)), ("y", (m,)), ("ylat", (m,)),
             ("lower", (m,)), ("upper", (m,)), ("gamma", (m,)))}
@@ -248,42 +255,45 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     diverged_step = np.full(runs, -1)
     inf = np.full((runs, m), np.inf)
     for k in range(1, steps + 1):
+        xh = state.mean
         uk = r[k - 1] @ Nbar.T - xh @ K.T
         xk = x[:, k - 1] @ A.T + uk @ Bu.T + w[:, k - 1]
         dy = 0.0 if D is None else uk @ D.T
         ylat = xk @ C.T + dy + v[:, k - 1]
-        bx = uk @ Bu.T
-        if sst is None:
-            xbar, Pbar = predict(xh, P, A, Qd, bx)
-        else:
-            xbar, Pbar = xh @ A.T + bx, P
+        pred = obs.predict(state, u=uk)                     # x̄_k = A x̂_{k-1|k-1} + B^u u_k
+        xbar = pred.mean
         if moving:
             lim = xbar @ C.T + dy + shift
             lo, hi = (-inf, lim) if side == "upper" else (lim, inf)
         else:
             l0, h0 = cens.limits(k)
             lo, hi = np.broadcast_to(l0, (runs, m)), np.broadcast_to(h0, (runs, m))
-        yk = np.minimum(np.maximum(ylat, lo), hi)
+        yk = np.minimum(np.maximum(ylat, lo), hi)           # the sensor
         if observer == "kf":
-            CP = C @ Pbar
-            xnew, Pnew, _ = gain_update(xbar, Pbar, yk - xbar @ C.T - dy, np.swapaxes(CP, -1, -2), CP @ C.T + R)
+            new = obs.update(pred, yk)
             gam = np.ones((runs, m))
         elif observer == "sstkf":
-            xnew = xbar + (yk - sst.expected_measurement(xbar @ C.T + dy)) @ sst.gain.T
-            Pnew = P
+            new = obs.update(pred, yk)
             gam = np.broadcast_to(xi, (runs, m))
         else:
-            xnew, Pnew, st = tobit_update(xbar, Pbar, yk, C, sigma, lo, hi, dy=dy, noise_term=noise_term)
-            gam = st.p_uncensored
+            new = obs.update(pred, yk, lower=lo, upper=hi)
+            gam = new.extras["p_uncensored"]
+        xnew = new.mean
         bad = alive & ~(np.all(np.abs(xk) < divergence_bound, axis=1) & np.all(np.abs(xnew) < divergence_bound, axis=1))
         if bad.any():
             diverged_step[bad] = k
             alive &= ~bad
         keep = alive[:, None]
         x[:, k] = np.where(keep, xk, x[:, k - 1])
-        xh = np.where(keep, xnew, xh)
-        P = np.where(keep[:, :, None], Pnew, P) if sst is None else P
-        out["estimate"][:, k - 1], out["pred"][:, k - 1], out["cov"][:, k - 1] = xh, np.where(keep, xbar, xh), P
+        if keep.all():
+            state = new
+        else:   # a diverged run is frozen at its last estimate
+            P_new = new.P if new.P.shape[0] == runs else np.broadcast_to(new.P, (runs,) + new.P.shape[1:])
+            P_old = state.P if state.P.shape[0] == runs else np.broadcast_to(state.P, (runs,) + state.P.shape[1:])
+            state = new.replace(x=np.where(keep, new.x, state.x),
+                                P=P_new if observer == "sstkf" else np.where(keep[:, :, None], P_new, P_old))
+        out["estimate"][:, k - 1], out["pred"][:, k - 1] = state.mean, np.where(keep, xbar, state.mean)
+        out["cov"][:, k - 1] = state.cov
         out["u"][:, k - 1] = np.where(keep, uk, 0.0)
         out["y"][:, k - 1], out["ylat"][:, k - 1] = yk, ylat
         out["lower"][:, k - 1], out["upper"][:, k - 1], out["gamma"][:, k - 1] = lo, hi, gam

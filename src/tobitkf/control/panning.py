@@ -34,8 +34,8 @@ from scipy.special import ndtri
 
 from .._validation import ValidationError
 from ..censored import censored_moments
-from ..filters._common import check_prior, predict
-from ..filters.tobit import _sigma_of, tobit_update
+from ..channels.censoring import Censoring
+from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
 
 __all__ = ["keep_in_view_limit", "centred_window", "imr_panning_step", "covariance_panning_step",
@@ -153,10 +153,10 @@ def moving_window_tkf(system: LinearSystem, y_latent: Any,
                       x0: Any = None, P0: Any = None) -> MovingWindowResult:
     r"""Run the TKF while a control law moves the sensor's censoring window each step.
 
-    At step k: predict (:func:`~tobitkf.filters._common.predict`); ``law(k, xbar, Pbar, memory)``
+    At step k, through the TKF's public online API: ``predict``; ``law(k, xbar, Pbar, memory)``
     returns the window ``(lower, upper)`` (N, m) set from the prior (``memory`` is a dict the law may
     use to keep its own state, e.g. the previous T_h); the latent reading is clipped there (the
-    sensor); then :func:`~tobitkf.filters.tobit.tobit_update`.
+    sensor); then ``update(pred, y_k, lower=, upper=)`` of a :class:`~tobitkf.TobitKalmanFilter`.
 
     Parameters
     ----------
@@ -170,19 +170,18 @@ def moving_window_tkf(system: LinearSystem, y_latent: Any,
         raise ValidationError(f"y_latent: expected (N, T, {system.m}), got {y_latent.shape}")
     N, T, m = y_latent.shape
     n = system.n
-    sigma = _sigma_of(system.measurement_cov(1))
-    A, C, Qd = system.transition(0), system.measurement(1), system.process_cov(0)
-    x, P = check_prior(system, x0, P0, N)
+    tkf = TobitKalmanFilter(system, Censoring(), backend="numpy", check_limits=False)
+    state = tkf.init((N,), x0=x0, P0=P0)
     out = {k: np.empty((N, T) + s) for k, s in (("mean", (n,)), ("cov", (n, n)), ("lower", (m,)), ("upper", (m,)),
                                                   ("y", (m,)), ("gamma", (m,)))}
     memory: dict = {}
     for k in range(1, T + 1):
-        x, P = predict(x, P, A, Qd)
-        lo, hi = law(k, x, P, memory)
+        pred = tkf.predict(state)
+        lo, hi = law(k, pred.mean, np.broadcast_to(pred.cov, (N, n, n)), memory)
         lo, hi = np.broadcast_to(lo, (N, m)), np.broadcast_to(hi, (N, m))
         yk = np.minimum(np.maximum(y_latent[:, k - 1], lo), hi)
-        x, P, st = tobit_update(x, P, yk, C, sigma, lo, hi)
-        out["mean"][:, k - 1], out["cov"][:, k - 1] = x, P
+        state = tkf.update(pred, yk, lower=lo, upper=hi)
+        out["mean"][:, k - 1], out["cov"][:, k - 1] = state.mean, state.cov
         out["lower"][:, k - 1], out["upper"][:, k - 1], out["y"][:, k - 1] = lo, hi, yk
-        out["gamma"][:, k - 1] = st.p_uncensored
+        out["gamma"][:, k - 1] = state.extras["p_uncensored"]
     return MovingWindowResult(out["mean"], out["cov"], out["lower"], out["upper"], out["y"], out["gamma"])

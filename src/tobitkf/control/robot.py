@@ -39,8 +39,10 @@ from typing import Any
 import numpy as np
 
 from .._validation import ValidationError, check_option
-from ..filters._common import gain_update, predict
-from ..filters.tobit import tobit_update
+from ..channels.censoring import Censoring
+from ..filters.kalman import KalmanFilter
+from ..filters.tobit import TobitKalmanFilter
+from ..models.linear import LinearSystem
 from .._validation import as_generator
 from .lqg import dlqr, reference_gain
 
@@ -123,9 +125,10 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
 
     Both filters use the same 7-state model (4 robot states + 3 log-ranges), inputs
     :math:`[U_p, U_d]`, measurement :math:`Z` of (6.44); the KF treats censored RSS values as ordinary readings.
-    Each step: predict (:func:`~tobitkf.filters._common.predict`), pseudo-measurement from the a-priori
-    ranges, then :func:`~tobitkf.filters.tobit.tobit_update` (TKF) or
-    :func:`~tobitkf.filters._common.gain_update` (KF).
+    Each step, through the estimators' public online API: ``predict(state, u=b_k)`` with the input
+    effect :math:`b_k = [B_pu_k;\ \log_{10}\beta_k]` on a model whose input matrix is the identity,
+    pseudo-measurement from the a-priori ranges, then ``update`` of the
+    :class:`~tobitkf.TobitKalmanFilter` (censored RSS channels) or the :class:`~tobitkf.KalmanFilter`.
 
     Raises
     ------
@@ -160,11 +163,14 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
 
     x = np.zeros((runs, steps + 1, 4))
     l0 = np.log10(dist(np.zeros(2)))
-    est = {}
-    for key in ("tkf", "kf"):
-        xh = np.zeros((runs, n))
-        xh[:, 4:] = l0
-        est[key] = [xh, np.broadcast_to(P0 * np.eye(n), (runs, n, n)).copy(), np.empty((runs, steps, n))]
+    x0 = np.zeros(n)
+    x0[4:] = l0
+    model = LinearSystem(A=A, C=C, Q=Qd, R=R, x0=x0, P0=P0 * np.eye(n), Bu=np.eye(n))
+    filters = {"tkf": TobitKalmanFilter(model, Censoring(lower=lower, upper=upper), backend="numpy",
+                                        check_limits=False),
+               "kf": KalmanFilter(model, backend="numpy")}
+    states = {key: f.init((runs,)) for key, f in filters.items()}
+    stores = {key: np.empty((runs, steps, n)) for key in filters}
     rss_out = np.empty((runs, steps, 3))
     cens = np.empty((runs, steps, 3), dtype=bool)
     w = rng.standard_normal((runs, steps, 2)) * s.sigma_q
@@ -172,33 +178,32 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
     vls = rng.standard_normal((runs, steps, 2)) * s.sigma_r
     alive = np.ones(runs, dtype=bool)
     for k in range(1, steps + 1):
-        xf = est[feedback][0]
+        xf = states[feedback].mean
         u = ref[k - 1] @ s.Nbar.T - xf[:, :4] @ s.K.T
         xnew = x[:, k - 1] @ s.Ap.T + u @ s.Bp.T + w[:, k - 1] @ s.Gp.T
         alive &= np.all(np.abs(xnew) < divergence_bound, axis=1) & np.all(
-            np.abs(est["tkf"][0][:, :4]) < divergence_bound, axis=1) & np.all(np.abs(est["kf"][0][:, :4]) < divergence_bound,
-                                                                            axis=1)
+            np.abs(states["tkf"].mean[:, :4]) < divergence_bound, axis=1) & np.all(
+            np.abs(states["kf"].mean[:, :4]) < divergence_bound, axis=1)
         x[:, k] = np.where(alive[:, None], xnew, x[:, k - 1])
         rss_lat = -10 * s.alpha * np.log10(dist(x[:, k, [0, 2]])) + v[:, k - 1]
         rss = np.maximum(rss_lat, s.limit)
         rss_out[:, k - 1], cens[:, k - 1] = rss, rss_lat <= s.limit
-        for key, (xh, P, store) in est.items():
+        for key, f in filters.items():
+            st = states[key]
+            xh = st.mean
             pos = xh[:, [0, 2]]
             pos_next = pos + s.dt * xh[:, [1, 3]]                        # (6.31)
             ud = np.log10(dist(pos_next) / dist(pos))                    # log10 beta, (6.33) corrected
             if half_log:
                 ud = 0.5 * ud
-            bx = np.concatenate([u @ s.Bp.T, ud], axis=1)
-            xb, Pb = predict(xh, P, A, Qd, bx)
-            ls = trilaterate(10.0 ** np.clip(xb[:, 4:], -6.0, 6.0), tx) + vls[:, k - 1]    # pseudo-measurement from the prior ranges
-            z = np.concatenate([ls, rss], axis=1)
-            if key == "tkf":
-                xh, P, _ = tobit_update(xb, Pb, z, C, sig, lower, upper)
-            else:
-                CP = C @ Pb
-                xh, P, _ = gain_update(xb, Pb, z - xb @ C.T, np.swapaxes(CP, -1, -2), CP @ C.T + R)
-            xh = np.where(alive[:, None], xh, est[key][0])
-            P = np.where(alive[:, None, None], P, est[key][1])
-            store[:, k - 1] = xh
-            est[key][0], est[key][1] = xh, P
-    return RobotResult(x, est["tkf"][2], est["kf"][2], rss_out, cens, ref, feedback, ~alive)
+            pred = f.predict(st, u=np.concatenate([u @ s.Bp.T, ud], axis=1))
+            ls = trilaterate(10.0 ** np.clip(pred.mean[:, 4:], -6.0, 6.0), tx) + vls[:, k - 1]   # pseudo-measurement
+            new = f.update(pred, np.concatenate([ls, rss], axis=1))
+            if not alive.all():   # a diverged run is frozen at its last estimate
+                P_old = np.broadcast_to(st.P, (runs,) + st.P.shape[1:])
+                P_new = np.broadcast_to(new.P, (runs,) + new.P.shape[1:])
+                new = new.replace(x=np.where(alive[:, None], new.x, st.x),
+                                  P=np.where(alive[:, None, None], P_new, P_old))
+            states[key] = new
+            stores[key][:, k - 1] = new.mean
+    return RobotResult(x, stores["tkf"], stores["kf"], rss_out, cens, ref, feedback, ~alive)

@@ -53,6 +53,7 @@ from scipy.special import ndtr
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_option
 from ..censored import censored_moments
+from ..filters.fixed_gain import FixedGainTobitObserver
 from .lqg import DOMAINS
 
 __all__ = ["tobit_jacobian", "tobit_error_jacobian", "mean_observer_map", "dissertation_jacobian_5_56",
@@ -317,23 +318,11 @@ def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower:
     k-1 holds x̂_{k|k} (x̂_0 = ``xhat0``); with L = K_f this is the predictor form with L_p = AK_f.
     ``gain_form="linear"`` replaces E[ŷ] by Cx̂: the uncompensated LQG observer of Fig 5.11.
 
-    Returns ``(..., T, n)``.
+    Returns ``(..., T, n)``. The observer is
+    :class:`~tobitkf.filters.fixed_gain.FixedGainTobitObserver` (online ``init``/``step`` too).
     """
-    check_option(gain_form, "gain_form", ("tobit", "linear"))
-    check_option(form, "form", ("predictor", "filter"))
-    A, L, C = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (L, "L"), (C, "C")))
+    obs = FixedGainTobitObserver(A, L, C, sigma, lower, upper, gain_form=gain_form, form=form)
     y = as_float_array(y, "y")    # NaN refused: the fixed-gain observer cannot skip a sample
-    n = A.shape[0]
-    if y.ndim < 2 or y.shape[-1] != C.shape[0]:
-        raise ShapeError(f"y: expected (..., T, {C.shape[0]}), got shape {y.shape}")
-    xh = np.zeros(y.shape[:-2] + (n,)) if xhat0 is None else np.broadcast_to(
-        np.asarray(xhat0, dtype=float), y.shape[:-2] + (n,)).copy()
-    out = np.empty(y.shape[:-1] + (n,))
-    for k in range(y.shape[-2]):
-        if form == "filter":
-            xh = xh @ A.T
-        ey = _expected(C, xh, sigma, lower, upper)[0] if gain_form == "tobit" else xh @ C.T
-        innov = (y[..., k, :] - ey) @ L.T
-        xh = xh @ A.T + innov if form == "predictor" else xh + innov
-        out[..., k, :] = xh
-    return out
+    if y.ndim < 2 or y.shape[-1] != obs.m:
+        raise ShapeError(f"y: expected (..., T, {obs.m}), got shape {y.shape}")
+    return obs.filter(y, x0=xhat0, outputs="mean").mean

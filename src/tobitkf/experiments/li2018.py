@@ -123,7 +123,7 @@ def _steady_state(q_values=Q_VALUES, S_values=S_VALUES, horizon: int = 600) -> l
             r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((horizon, 1)))
             ref = REFERENCE.get((q, S))
             row = {"q": q, "S": S, "P_filter_diag": np.diagonal(r.cov[-1]),
-                   "P_measured_diag": np.diagonal(r.measured_cov[-1]), "Q_eps": float(r.innovation_cov[-1, 0, 0])}
+                   "P_measured_diag": np.diagonal(r.extras["measured_cov"][-1]), "Q_eps": float(r.extras["innovation_cov"][-1, 0, 0])}
             if ref is not None:
                 row.update({"reference_P_filter_diag": ref[0], "reference_P_measured_diag": ref[1],
                             "reference_Q_eps": ref[2]})
@@ -142,11 +142,11 @@ def _run_S(S: float, q: float, runs: int, steps: int, seed: int, keys: tuple[str
     truth_f, truth_p = data.x[:, :steps], data.x[:, 1:]
     per = {}
     for key, r in est.items():
-        per[key] = {"filter": _mse(r.mean - truth_f), "predictor": _mse(r.pred_mean - truth_p),
-                    "filter_err2": (r.mean - truth_f) ** 2, "predictor_err2": (r.pred_mean - truth_p) ** 2,
+        per[key] = {"filter": _mse(r.mean - truth_f), "predictor": _mse(r.extras["next_mean"] - truth_p),
+                    "filter_err2": (r.mean - truth_f) ** 2, "predictor_err2": (r.extras["next_mean"] - truth_p) ** 2,
                     "filter_summary": summarize(truth_f, r.mean, r.cov[0] if r.cov.ndim == 4 else r.cov, skip=10),
                     "P_filter_diag": np.diagonal(r.cov[0], axis1=-2, axis2=-1),
-                    "P_pred_diag": np.diagonal(r.pred_cov[0], axis1=-2, axis2=-1)}
+                    "P_pred_diag": np.diagonal(r.extras["next_cov"][0], axis1=-2, axis2=-1)}
     return data, est, per
 
 
@@ -181,7 +181,7 @@ def _chain_vs_augmented(data_keep) -> float:
     for data, est in data_keep.values():
         if "augmented" in est:
             worst = max(worst, float(np.abs(est["chain"].mean - est["augmented"].mean).max()),
-                        float(np.abs(est["chain"].pred_mean - est["augmented"].pred_mean).max()))
+                        float(np.abs(est["chain"].extras["next_mean"] - est["augmented"].extras["next_mean"]).max()))
     return worst
 
 
@@ -189,7 +189,7 @@ def _filter_is_predictor(data_keep) -> float:
     worst = 0.0
     for data, est in data_keep.values():
         r = est["chain"]
-        worst = max(worst, float(np.abs(r.mean[:, 1:] - r.pred_mean[:, :-1]).max()))
+        worst = max(worst, float(np.abs(r.mean[:, 1:] - r.extras["next_mean"][:, :-1]).max()))
     return worst
 
 
@@ -230,7 +230,7 @@ def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: i
     worst = _chain_vs_augmented(keep)
     e2 = per["chain"]["filter_err2"][:, 50:]                      # (N, T-50, n)
     mse_ss, mse_se = CL.mean_se(e2.mean(axis=1))
-    var_x = np.diagonal(est["chain"].second_moment[-1])
+    var_x = np.diagonal(est["chain"].extras["second_moment"][-1])
     shift = _filter_is_predictor(keep)
     claims = [
         CL.at_most("Fig. 1: the filter has good tracking performance",
@@ -366,7 +366,7 @@ def run_tables(*, runs: int, seed: int, progress=None, S: Any = None, steps: int
                                      "unknown (LD-01, LD-03, LD-10); compare qualitatively",
                "mse": _metrics_block(by, 1.0, S_values), "steady_state": _steady_state((1.0,), S_values)}
     data, est = keep[1.0]
-    shift = float(np.abs(est["chain"].mean[:, 1:] - est["chain"].pred_mean[:, :-1]).max())
+    shift = float(np.abs(est["chain"].mean[:, 1:] - est["chain"].extras["next_mean"][:, :-1]).max())
     head = by[(1.0, headline)]
     last = steps - 1
 

@@ -485,7 +485,7 @@ def steady_state(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 
         unc, unc_se = CL.mean_se(unc_runs)
         cov_gap = float(np.abs(o_full.cov[:, -1] - ss.cov).max())
         pu_gap = float(np.abs(o_full.extras["p_uncensored"] - xi).max())
-        per_xi[str(xi)] = {"upsilon": ss.upsilon, "inverse_mills": ss.inverse_mills, "gain": ss.gain,
+        per_xi[str(xi)] = {"upsilon": ss.upsilon, "lambda_hat": ss.lambda_hat, "gain": ss.gain,
                            "dare_posterior_cov": ss.cov, "dare_prior_cov": ss.prior_cov,
                            "realised_uncensored_fraction": float(unc), "realised_uncensored_fraction_se": float(unc_se),
                            "full_tkf_cov_minus_dare_at_T": cov_gap, "full_tkf_max_abs_Ep_minus_xi": pu_gap}

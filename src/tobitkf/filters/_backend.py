@@ -15,8 +15,8 @@ from types import ModuleType
 from .._compiled import check_threads, default_threads, run_split
 from .._validation import ValidationError
 
-__all__ = ["BACKENDS", "numba_available", "kernels", "use_kernel", "system_gap", "default_threads", "check_threads",
-           "run_split", "check_square_root"]
+__all__ = ["BACKENDS", "numba_available", "kernels", "use_kernel", "kernel_ok", "system_gap", "default_threads",
+           "check_threads", "run_split", "check_square_root"]
 
 BACKENDS = ("auto", "numpy", "numba")
 
@@ -72,6 +72,19 @@ def use_kernel(backend: str, gap: str | None, what: str) -> bool:
                                   "use backend='auto' or 'numpy'")
         return True
     return gap is None and numba_available()
+
+
+def kernel_ok(est, u, what: str) -> bool:
+    """Whether ``est`` (a KF or TKF) runs its compiled kernel for input ``u``: decided once per estimator
+    for the case without input (its system and options do not change), else afresh."""
+    if u is None:
+        cached = est.__dict__.get("_kernel_static")
+        if cached is None:
+            cached = est._kernel_static = use_kernel(est.backend, check_square_root(
+                est.backend, est.covariance_update, what) or system_gap(est.system, None), what)
+        return cached
+    return use_kernel(est.backend, check_square_root(est.backend, est.covariance_update, what) or
+                      system_gap(est.system, u), what)
 
 
 def check_square_root(backend: str, covariance_update: str, what: str) -> str | None:

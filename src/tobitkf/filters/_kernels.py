@@ -365,7 +365,10 @@ def _stage(xv, Pv, tt, nb, mbuf, cbuf):
 
 @njit(cache=True, error_model="numpy")
 def _flush(buf, out, r0, t0, nb, cnt):
-    """Write ``cnt`` staged steps of ``nb`` runs to ``out[r0 + b, t0:t0 + cnt]`` (contiguous per run)."""
+    """Write ``cnt`` staged steps of ``nb`` runs to ``out[r0 + b, t0:t0 + cnt]`` (contiguous per run).
+    An output with no time axis (``out.shape[1] == 0``) was not requested and is skipped."""
+    if out.shape[1] == 0:
+        return
     for b in range(nb):
         dst = out[r0 + b, t0:t0 + cnt].reshape(-1)
         src = buf[b, :cnt].reshape(-1)
@@ -373,19 +376,32 @@ def _flush(buf, out, r0, t0, nb, cnt):
             dst[k] = src[k]
 
 
+@njit(cache=True, error_model="numpy")
+def _store_last(xv, Pv, r0, nb, x_last, P_last):
+    """The block's state after its last step into ``x_last[r0 + b]``, ``P_last[r0 + b]``."""
+    n = xv.shape[0]
+    for b in range(nb):
+        for i in range(n):
+            x_last[r0 + b, i] = xv[i, b]
+            for j in range(n):
+                P_last[r0 + b, i, j] = Pv[i, j, b]
+
+
 # --- the Tobit Kalman filter -----------------------------------------------------------------
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
-               means, covs, pmeans, pcovs, pu, ey):
+               means, covs, pmeans, pcovs, pu, ey, x_last, P_last):
     """TKF over ``N`` runs of ``T`` steps; fills the ``(N, T, ...)`` output arrays in place.
 
     ``y`` (N, T, m) (NaN = missing), ``A``/``Qd`` (n, n), ``C`` (m, n), ``sigma`` (m,),
     ``lo``/``hi`` (T, m), ``x0`` (N, n), ``P0`` (N, n, n), ``noise_code`` from :data:`NOISE_CODES`.
+    An output of shape ``(N, 0, ...)`` is not written (not requested); ``x_last`` (N, n) and
+    ``P_last`` (N, n, n) receive the state after the last step.
     """
     N, T, m = y.shape
     n = A.shape[0]
-    B = BLOCK
+    B = min(BLOCK, max(N, 1))     # a single run (the online step) allocates a single column
     x = np.empty((n, B))
     P = np.empty((n, n, B))
     xp = np.empty((n, B))
@@ -408,7 +424,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
     buf = np.empty((2, glx.shape[0]))
-    S = CHUNK
+    S = min(CHUNK, max(T, 1))     # and a single step one staging slot
     s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
     s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
     s_pu, s_ey = np.empty((B, S, m)), np.empty((B, S, m))
@@ -482,13 +498,15 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                 _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
                 _flush(s_pu, pu, r0, t0, nb, tt + 1)
                 _flush(s_ey, ey, r0, t0, nb, tt + 1)
+        _store_last(x, P, r0, nb, x_last, P_last)
 
 
 # --- the Kalman filter ---------------------------------------------------------------------
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
-    """KF over ``N`` runs; fills the outputs in place.
+def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, x_last, P_last):
+    """KF over ``N`` runs; fills the outputs in place (an output of shape ``(N, 0, ...)`` is not
+    written); ``x_last`` (N, n) and ``P_last`` (N or 1, n, n) receive the state after the last step.
 
     ``skip`` (N, T, m) bool marks channels left out (with NaN in ``y``). When ``covs``
     has one run and ``N > 1`` (shared covariance: no channel skipped, common prior) the
@@ -501,7 +519,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
     # The block scratch is allocated here as in tkf_kernel, not by a shared helper: arrays
     # returned from a helper's tuple cost 25 % per step in a single run (0.57 -> 0.72 us for
     # the KF, measured), LLVM no longer knowing that they are fresh and unaliased.
-    B = BLOCK
+    B = min(BLOCK, max(N, 1))     # a single run (the online step) allocates a single column
     x = np.empty((n, B))
     P = np.empty((n, n, B))
     xp = np.empty((n, B))
@@ -527,7 +545,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
     oks = np.empty(m, dtype=np.bool_)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
-    S = CHUNK
+    S = min(CHUNK, max(T, 1))     # and a single step one staging slot
     s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
     s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
     for r0 in range(0, runs, B):
@@ -586,6 +604,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
                 _flush(s_cov, covs, r0, t0, nb, tt + 1)
                 _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
                 _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
+        _store_last(x, P, r0, nb, x_last, P_last)
     if shared:
         # means of the other runs with the shared gains (the covariance does not depend on y)
         xs = np.empty(n)
@@ -600,7 +619,8 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
                     for j in range(n):
                         s += A[i, j] * xs[j]
                     xps[i] = s
-                    pmeans[r, t, i] = s
+                    if pmeans.shape[1] > 0:
+                        pmeans[r, t, i] = s
                 for l in range(m):
                     s = 0.0
                     for j in range(n):
@@ -611,4 +631,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs):
                     for l in range(m):
                         s += Kall[t, i, l] * es[l]
                     xs[i] = xps[i] + s
-                    means[r, t, i] = xs[i]
+                    if means.shape[1] > 0:
+                        means[r, t, i] = xs[i]
+            for i in range(n):
+                x_last[r, i] = xs[i]

@@ -39,14 +39,16 @@ Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected E2); ``decorrelation`` J (8
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import warnings
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance
 from ..models.delay import DelayFadingSystem, HistoryPrior
-from ._common import check_keywords, symmetrize
+from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, \
+    measurement_update, predict, symmetrize, time_update
 
 __all__ = ["DelayEstimates", "IntervalSmoothing", "chain_lmmse", "augmented_lmmse", "reorganized_lmmse",
            "smooth_interval", "smooth_point", "second_moments", "ChainLMMSE", "AugmentedLMMSE",
@@ -55,56 +57,9 @@ __all__ = ["DelayEstimates", "IntervalSmoothing", "chain_lmmse", "augmented_lmms
 _DECORRELATION = ("optimal", "paper")
 _ERRATA = ("E5", "E6", "E7")
 
-
-@dataclass(frozen=True)
-class DelayEstimates:
-    """Estimates of the delay system, index t = measurement time (y(0) at index 0).
-
-    Truth alignment with :func:`~tobitkf.simulate.delay.simulate_delay` output: ``mean`` lines up
-    with ``data.x[:, :T]`` (x(t)), ``pred_mean`` with ``data.x[:, 1:]`` (x(t+1), which is what
-    :func:`tobitkf.metrics.summarize` does with a (N, T+1, n) truth), ``measured_mean`` with
-    ``full_states(data)[:, :T]`` (x(t-d)).
-
-    Attributes
-    ----------
-    mean, cov : (..., T, n), (..., T, n, n)
-        Filter x̂(t|t), P(t|t) (Theorem 1). For d >= 1 and an uncorrelated history it equals
-        the one-step prediction x̂(t|t-1); y(t) does not change it.
-    pred_mean, pred_cov : (..., T, n), (..., T, n, n)
-        One-step predictor x̂(t+1|t), P(t+1|t) (Theorem 2); changed by y(t).
-    measured_mean, measured_cov : (..., T, n), (..., T, n, n)
-        Delayed filter x̂(t-d|t), P(t-d|t): the element y(t) measures; changed by y(t).
-    innovation : (..., T, m)
-        ε(t) = y(t) - γ̄(t) H x̂(t-d|t-1).
-    innovation_cov : (..., T, m, m)
-        Q_ε(t).
-    second_moment : (T+1, n, n)
-        Λ(t) = E[x(t)x(t)^T], t = 0..T.
-    lagged : dict {L: (mean, cov)}
-        Fixed-lag smoother x̂(t-L|t) (NaN where t-L < -d). Changed by y(t) only when
-        L = d or t-L is in the chain of x(t-d) (L ≡ d mod d+1).
-    ahead : dict {k: (mean, cov)}
-        k-step predictor x̂(t+k|t); changed by y(t) only through x̂(t+1|t) and x̂(t-d|t).
-    point : dict or None
-        Fixed-point smoother ``{"j": j0, "mean", "cov"}``: x̂(j0|t) (NaN while x(j0) does not
-        exist yet, t + 1 < j0); changed only at t = j0 + d + k(d+1).
-    extras : dict
-        Algorithm-specific quantities (e.g. ``smoother`` for Algorithm D: x̂(t-d+1|t)).
-    """
-
-    mean: np.ndarray
-    cov: np.ndarray
-    pred_mean: np.ndarray
-    pred_cov: np.ndarray
-    measured_mean: np.ndarray
-    measured_cov: np.ndarray
-    innovation: np.ndarray
-    innovation_cov: np.ndarray
-    second_moment: np.ndarray
-    lagged: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    ahead: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    point: dict[str, Any] | None = None
-    extras: dict[str, Any] = field(default_factory=dict)
+#: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
+#: (``DelayEstimates`` is kept as its name for one release).
+DelayEstimates = FilterResult
 
 
 @dataclass(frozen=True)
@@ -126,17 +81,6 @@ class IntervalSmoothing:
 
 # --------------------------------------------------------------------------- shared pieces
 
-def _prepare(system: Any, prior: Any, y: Any) -> tuple[np.ndarray, tuple[int, ...]]:
-    check_instance(system, DelayFadingSystem, "system")
-    system.check_prior(prior)
-    arr = as_float_array(y, "y")
-    if arr.ndim < 2 or arr.shape[-1] != system.m:
-        raise ShapeError(f"y: expected (..., T, {system.m}), got shape {arr.shape}")
-    if arr.shape[-2] < 1:
-        raise ShapeError(f"y: expected at least one time step, got shape {arr.shape}")
-    return arr.reshape((-1,) + arr.shape[-2:]), arr.shape[:-2]
-
-
 def _check_lags(lags: Any, name: str, minimum: int) -> tuple[int, ...]:
     out = []
     for L in tuple(lags):
@@ -144,6 +88,7 @@ def _check_lags(lags: Any, name: str, minimum: int) -> tuple[int, ...]:
             raise ValidationError(f"{name}: expected integers >= {minimum}, got {L!r}")
         out.append(int(L))
     return tuple(sorted(set(out)))
+
 
 
 def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) -> dict[int, np.ndarray]:
@@ -164,6 +109,7 @@ def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) ->
         L = lam[t - d]
         lam[t + 1] = symmetrize(system.A @ L @ system.A.T + system.process_cov(t, L))
     return lam
+
 
 
 def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode: str):
@@ -190,124 +136,248 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
     return J, Abar, symmetrize(Sigma)
 
 
-def _ro(arr: np.ndarray, batch: tuple[int, ...]) -> np.ndarray:
-    """Broadcast a shared (T, ...) covariance array over the batch shape, read-only."""
-    out = np.broadcast_to(arr, batch + arr.shape)
-    return out
-
-
-def _shape_mean(arr: np.ndarray, batch: tuple[int, ...]) -> np.ndarray:
-    return arr.reshape(batch + arr.shape[1:])
-
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
     """Σ_i q_i A_i Λ A_i^T with matmuls (einsum over four indices would be O(N^4))."""
     return np.sum(q[:, None, None] * (Ai @ Lam @ np.swapaxes(Ai, -1, -2)), axis=0)
 
 
-def _gain(D: np.ndarray, HtQi: np.ndarray, gb: float) -> np.ndarray:
-    return gb * (D @ HtQi)
+
+def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray], last: int) -> dict[int, np.ndarray]:
+    """Λ(j) up to j = ``last`` from the stored ones (the corrected recursion (E2)); a new dict."""
+    d = system.d
+    top = max(lam)
+    if top >= last:
+        return lam
+    lam = dict(lam)
+    for t in range(top, last):
+        L = lam[t - d]
+        lam[t + 1] = symmetrize(system.A @ L @ system.A.T + system.process_cov(t, L))
+    return lam
+
+
+class _DelayEstimator(Estimator):
+    """What the three delay algorithms share: the source's time index (y(0) first, measuring x(-d); the
+    prior is the history x(0), ..., x(-d), ``state.k = -1``), the check of the readings (finite: the
+    covariances do not depend on the data, so a reading cannot be skipped), the prior override
+    (``prior=``, the family's own prior object) and the assembly of the per-step outputs."""
+
+    k0 = -1
+    _allow_missing = False
+
+    def _setup(self, system: Any, prior: Any) -> None:
+        check_instance(system, DelayFadingSystem, "system")
+        self.prior = system.check_prior(prior)
+        self.system = system
+        self.n, self.m = system.n, system.m
+
+    def _the_prior(self, prior: Any) -> HistoryPrior:
+        return self.prior if prior is None else self.system.check_prior(prior)
+
+    def init(self, batch_shape: Any = (), *, prior: Any = None, x0: Any = None, P0: Any = None) -> FilterState:
+        """The prior history x(0), ..., x(-d) as a state (``state.k = -1``: no reading yet).
+
+        ``prior`` (a :class:`~tobitkf.models.delay.HistoryPrior`) overrides the estimator's.
+        """
+        if x0 is not None or P0 is not None:
+            raise ValidationError("x0/P0: the delay family's prior is the history x(0), ..., x(-d); pass "
+                                  "prior=HistoryPrior(...) instead")
+        # the family's prior object travels to _initial in the place of x0
+        return Estimator.init(self, batch_shape, x0=self._the_prior(prior))
+
+    def _run_delay(self, y: Any, prior: Any, state: FilterState | None, outputs: Any, options: dict[str, Any]):
+        if state is None:
+            state = self.init(np.shape(y)[:-2] if np.ndim(y) >= 2 else (), prior=prior)
+        elif prior is not None:
+            raise ValidationError("state: give either a state to continue from or a prior, not both")
+        res = self._run(y, outputs=outputs, state=state, step_options=options)
+        return _group_extras(res)
+
+
+def _group_extras(res: FilterResult) -> FilterResult:
+    """Per-step lag/horizon/point outputs (``lag3_mean`` ...) into the dicts ``lagged``, ``ahead``, ``point``."""
+    ex = dict(res.extras)
+    lagged, ahead, point = {}, {}, None
+    for key in [k for k in ex if k.startswith("lag") and k.endswith("_mean")]:
+        L = int(key[3:-5])
+        lagged[L] = (ex.pop(key), ex.pop(f"lag{L}_cov"))
+    for key in [k for k in ex if k.startswith("ahead") and k.endswith("_mean")]:
+        k = int(key[5:-5])
+        ahead[k] = (ex.pop(key), ex.pop(f"ahead{k}_cov"))
+    if "point_mean" in ex:
+        point = {"j": int(res.final.carry["point"]), "mean": ex.pop("point_mean"), "cov": ex.pop("point_cov")}
+    if "_lam" in ex:
+        lam = np.asarray(ex.pop("_lam"))
+        lam = lam.reshape((-1,) + lam.shape[-3:])[0]            # shared by the runs: (T, n, n)
+        ex["second_moment"] = np.concatenate([np.asarray(lam), res.final.carry["lam"][res.final.k + 1][None]])
+    if lagged:
+        ex["lagged"] = dict(sorted(lagged.items()))
+    if ahead:
+        ex["ahead"] = dict(sorted(ahead.items()))
+    if point is not None:
+        ex["point"] = point
+    return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=ex,
+                        times=res.times, var=res.var, final=res.final)
+
+
+def _stack_blocks(blocks: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(blocks, axis=-1)
+
+
+def _blockdiag(blocks: list[np.ndarray]) -> np.ndarray:
+    n = blocks[0].shape[-1]
+    k = len(blocks)
+    out = np.zeros((1, k * n, k * n))
+    for i, B in enumerate(blocks):
+        out[0, i * n:(i + 1) * n, i * n:(i + 1) * n] = B
+    return out
 
 
 # --------------------------------------------------------------------------- Algorithm C
 
-def _chain_core(system: DelayFadingSystem, prior: HistoryPrior, y: np.ndarray, *, decorrelation: str,
-                lags: tuple[int, ...], horizons: tuple[int, ...], point: int | None, keep_rts: bool):
-    N, T, m = y.shape
-    n, d = system.n, system.d
-    A, H, GS = system.A, system.H, system.GS
-    kmax = max((1,) + horizons)
-    lam = second_moments(system, prior, T + kmax - 1)
-    xb: dict[int, np.ndarray] = {}
-    Pb: dict[int, np.ndarray] = {}
-    D: dict[int, np.ndarray] = {}
-    rts: dict[str, dict[int, np.ndarray]] = {k: {} for k in ("xupd", "Pupd", "Cx", "xpred", "Ppred")}
-    for k in range(d + 1):
-        xb[-k] = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
-        Pb[-k] = prior.block_cov(k).copy()
-        D[-k] = Pb[-k]
-        if keep_rts:
-            rts["xpred"][-k], rts["Ppred"][-k] = xb[-k], Pb[-k]
-    keep = max((d,) + lags)
-    nan_m, nan_P = np.full((N, n), np.nan), np.full((n, n), np.nan)
-    out = {k: [] for k in ("x", "P", "xp", "Pp", "xm", "Pm", "eps", "Qe")}
-    lag_out = {L: ([], []) for L in lags}
-    ahead_out = {k: ([], []) for k in horizons}
-    point_out = ([], [])
-    for t in range(T):
+class ChainLMMSE(_DelayEstimator):
+    r"""Algorithm C, the chain-decoupled exact LMMSE (see :func:`chain_lmmse`), as an estimator.
+
+    Validates once; ``filter(y, lags=..., horizons=..., fixed_point=...)``, ``smooth``, ``smooth_point``;
+    online ``init()``/``step(state, y_t)`` (one reading y(t) per step, ``state.k`` = t). The state's
+    ``mean``/``cov`` are x̂(t|t), P(t|t); its internal vector stacks the window x̂(t|t), ..., x̂(t-d|t).
+
+    Parameters
+    ----------
+    system : DelayFadingSystem
+        Pure-delay model (no ``extra_lags``).
+    prior : HistoryPrior
+        Uncorrelated prior of x(0), ..., x(-d).
+    decorrelation : {"optimal", "paper"}, default "optimal"
+        See :func:`chain_lmmse`.
+    """
+
+    _name = "ChainLMMSE"
+    _step_options = ("lags", "horizons", "point", "keep_rts")
+
+    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal"):
+        check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
+        self._setup(system, prior)
+        _require_chain(system, self.prior)
+        self.decorrelation = decorrelation
+        self._GS = system.GS
+
+    def _state_dim(self) -> int:
+        return self.n * (self.system.d + 1)
+
+    def _initial(self, N, prior, P0, batch):
+        _require_chain(self.system, prior)
+        d, n = self.system.d, self.n
+        xb, Pb, D, lam = {}, {}, {}, {}
+        for k in range(d + 1):
+            xb[-k] = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
+            Pb[-k] = prior.block_cov(k)[None].copy()
+            D[-k] = Pb[-k]
+            mu = prior.block_mean(k)
+            lam[-k] = prior.block_cov(k) + np.outer(mu, mu)
+        x = _stack_blocks([xb[-k] for k in range(d + 1)])
+        P = _blockdiag([Pb[-k][0] for k in range(d + 1)])
+        return x, P, {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
+
+    def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
+        options = options or {}
+        sys_ = self.system
+        d, n = sys_.d, self.n
+        lags, horizons = options.get("lags", ()), options.get("horizons", ())
+        point, keep_rts = options.get("point"), options.get("keep_rts", False)
+        xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
+        lam = _extend_second_moments(sys_, carry["lam"], t + max((1,) + tuple(horizons)))
         e = t - d
-        gb = system.gamma_mean(t)
-        xm, Pm, Le = xb[e], Pb[e], lam[e]
-        R = system.fading_noise_cov(t, Le)                      # step 2: R = Q_v + σ² H Λ H^T
-        Qe = symmetrize(gb * gb * (H @ Pm @ H.T) + R)           # step 3 / (15)
-        eps = y[:, t] - gb * (xm @ H.T)                         # step 4 / (14)
-        HtQi = np.linalg.solve(Qe, H).T                         # H^T Q_ε^{-1}
-        Ke = _gain(Pm, HtQi, gb)                                # step 5 / (46), (51)
-        for a in [a for a in D if a <= e and (e - a) % (d + 1) == 0]:
-            Ka = Ke if a == e else _gain(D[a], HtQi, gb)       # rule (M): K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1}
+        gb = sys_.gamma_mean(t)
+        H, A, GS = sys_.H, sys_.A, self._GS
+        # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
+        R = sys_.fading_noise_cov(t, lam[e])                     # R = Q_v + σ² H Λ H^T
+        mp = MeasurementPrediction(expected=gb * (xb[e] @ H.T), H0=gb * H, noise=R[None])
+        xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
+        eps = y - mp.expected
+        HtQi = np.linalg.solve(Qe[0], H).T                      # H^T Q_ε^{-1}
+        # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1}
+        for a in [a for a in D if a < e and (e - a) % (d + 1) == 0]:
+            Ka = gb * (D[a][0] @ HtQi)
             xb[a] = xb[a] + eps @ Ka.T
             Pb[a] = symmetrize(Pb[a] - Ka @ Qe @ Ka.T)
             # rules (M), (T): Φ_t(a, t+1) = [Φ_{t-1}(a, e) - K_a Q_ε K_e^T] A^T - K_a S^T Γ^T
-            D[a] = (D[a] - Ka @ Qe @ Ke.T) @ A.T - Ka @ GS.T
+            D[a] = (D[a] - Ka @ Qe @ Ke[0].T) @ A.T - Ka @ GS.T
+        D[e] = (D[e] - Ke @ Qe @ np.swapaxes(Ke, -1, -2)) @ A.T - Ke @ GS.T
+        xb[e], Pb[e] = xe, Pe
+        # the one-step prediction x̂(t+1|t) by the shared predict, decorrelated: Ā(t) x̂(t-d|t) + J(t) y(t),
+        # Ā P Ā^T + Σ(t) (corrected (52); "paper": the source's constant J of (8))
+        J, Abar, Sigma = _decorrelation(sys_, t, lam[e], self.decorrelation)
+        xn, Pn = predict(xe, Pe, Abar, Sigma, y @ J.T)
+        xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
+        N = x.shape[0]
+        extras = {"measured_mean": xe, "measured_cov": Pe, "next_mean": xn, "next_cov": Pn, "innovation": eps,
+                  "innovation_cov": Qe, "_lam": lam[t][None]}
         if keep_rts:
-            rts["xupd"][e], rts["Pupd"][e], rts["Cx"][e] = xb[e], Pb[e], D[e]
-        if decorrelation == "optimal":
-            Lg = gb * (A @ Pm @ H.T) + GS                       # step 8
-            LQi = np.linalg.solve(Qe, Lg.T).T
-            xn = xm @ A.T + eps @ LQi.T                         # step 9
-            Pn = A @ Pm @ A.T + system.process_cov(t, Le) - LQi @ Lg.T   # step 10
-        else:
-            # Source (50), (52) with the constant J = Γ S Q_v^{-1} of (8): not orthogonal to y(t)
-            # when σ² > 0 and S ≠ 0 (erratum E3), so suboptimal and its P is not the true error covariance.
-            J, Abar, Sigma = _decorrelation(system, t, Le, "paper")
-            xn = xb[e] @ Abar.T + y[:, t] @ J.T
-            Pn = Abar @ Pb[e] @ Abar.T + Sigma
-        xb[t + 1], Pb[t + 1] = xn, symmetrize(Pn)
-        D[t + 1] = Pb[t + 1]
-        if keep_rts:
-            rts["xpred"][t + 1], rts["Ppred"][t + 1] = xb[t + 1], Pb[t + 1]
-        out["x"].append(xb[t]); out["P"].append(Pb[t])
-        out["xp"].append(xb[t + 1]); out["Pp"].append(Pb[t + 1])
-        out["xm"].append(xb[e]); out["Pm"].append(Pb[e])
-        out["eps"].append(eps); out["Qe"].append(Qe)
+            extras.update(rts_xupd=xe, rts_Pupd=Pe, rts_Cx=D[e], rts_xpred=xn, rts_Ppred=Pn)
+        nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
             j = t - L
-            lag_out[L][0].append(xb[j] if j >= -d else nan_m)
-            lag_out[L][1].append(Pb[j] if j >= -d else nan_P)
+            extras[f"lag{L}_mean"] = xb[j] if j >= -d else nan_m
+            extras[f"lag{L}_cov"] = Pb[j] if j >= -d else nan_P
         if horizons:
             tmp: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-            for k in range(2, kmax + 1):
-                j = t + k
+            for kk in range(2, max(horizons) + 1):
+                j = t + kk
                 src = j - d - 1
                 xs, Ps = (xb[src], Pb[src]) if src <= t + 1 else tmp[src]
-                # k-step predictor: no ΓS term for k >= 2 (spec §2.3)
-                tmp[j] = (xs @ A.T, symmetrize(A @ Ps @ A.T + system.process_cov(j - 1, lam[src])))
-            for k in horizons:
-                xk, Pk = (xb[t + 1], Pb[t + 1]) if k == 1 else tmp[t + k]
-                ahead_out[k][0].append(xk); ahead_out[k][1].append(Pk)
+                # k-step predictor: no ΓS term for k >= 2
+                tmp[j] = (xs @ A.T, symmetrize(A @ Ps @ A.T + sys_.process_cov(j - 1, lam[src])))
+            for kk in horizons:
+                xk, Pk = (xn, Pn) if kk == 1 else tmp[t + kk]
+                extras[f"ahead{kk}_mean"], extras[f"ahead{kk}_cov"] = xk, Pk
         if point is not None:
-            point_out[0].append(xb[point] if point in xb else nan_m)
-            point_out[1].append(Pb[point] if point in Pb else nan_P)
+            extras["point_mean"] = xb[point] if point in xb else nan_m
+            extras["point_cov"] = Pb[point] if point in Pb else nan_P
+        x_new = _stack_blocks([xb[t - k] for k in range(d + 1)])
+        P_new = _blockdiag([Pb[t - k][0] for k in range(d + 1)])
+        keep = max((d,) + tuple(lags))
         for j in [j for j in xb if j < t + 1 - keep and j != point]:
             del xb[j], Pb[j], D[j]
-    return out, lag_out, ahead_out, point_out, lam, rts, xb, Pb
+        for j in [j for j in lam if j < t + 1 - keep - d - 1]:
+            del lam[j]
+        new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
+        if point is not None:
+            new["point"] = point
+        # the window before this reading: x̂(t|t-1), x̂(t-1|t-1), ..., x̂(t-d|t-1)
+        xp = _stack_blocks([carry["xb"][t - k] for k in range(d + 1)])
+        Pp = _blockdiag([carry["Pb"][t - k][0] for k in range(d + 1)])
+        return x_new, P_new, None, new, xp, Pp, extras
 
+    def _checked_options(self, lags, horizons, fixed_point):
+        lags = _check_lags(lags, "lags", 0)
+        horizons = _check_lags(horizons, "horizons", 1)
+        d = self.system.d
+        if fixed_point is not None:
+            if isinstance(fixed_point, bool) or not isinstance(fixed_point, (int, np.integer)) or fixed_point < -d:
+                raise ValidationError(f"fixed_point: expected an integer element time >= -d = {-d}, got "
+                                      f"{fixed_point!r}")
+            fixed_point = int(fixed_point)
+        if self.decorrelation == "paper" and (fixed_point is not None or any(L > 2 * d for L in lags)):
+            raise ValidationError("decorrelation: smoothing beyond lag 2d (lags > 2d, fixed_point) needs "
+                                  "decorrelation='optimal'; the constant-J covariances are not error covariances")
+        return {"lags": lags, "horizons": horizons, "point": fixed_point}
 
-def _assemble(out, lag_out, ahead_out, point_out, point, lam, T, batch, extras=None) -> DelayEstimates:
-    def means(lst):
-        return _shape_mean(np.stack(lst, axis=1), batch)
+    def _prepare_step_options(self, state, options):
+        return self._checked_options(options.get("lags", ()), options.get("horizons", ()), options.get("point"))
 
-    def covs(lst):
-        return _ro(np.stack(lst, axis=0), batch)
+    def filter(self, y: Any, *, lags: Any = (), horizons: Any = (), fixed_point: int | None = None,
+               prior: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+        """Run Algorithm C over ``y`` (..., T, m); see :func:`chain_lmmse`."""
+        return self._run_delay(y, prior, state, outputs, self._checked_options(lags, horizons, fixed_point))
 
-    return DelayEstimates(
-        mean=means(out["x"]), cov=covs(out["P"]), pred_mean=means(out["xp"]), pred_cov=covs(out["Pp"]),
-        measured_mean=means(out["xm"]), measured_cov=covs(out["Pm"]), innovation=means(out["eps"]),
-        innovation_cov=covs(out["Qe"]), second_moment=np.stack([lam[t] for t in range(T + 1)]),
-        lagged={L: (means(v[0]), covs(v[1])) for L, v in lag_out.items()},
-        ahead={k: (means(v[0]), covs(v[1])) for k, v in ahead_out.items()},
-        point=None if point is None else {"j": point, "mean": means(point_out[0]), "cov": covs(point_out[1])},
-        extras=extras or {})
+    def smooth(self, y: Any) -> IntervalSmoothing:
+        """Fixed-interval smoother; see :func:`smooth_interval`."""
+        return smooth_interval(self.system, self.prior, y)
+
+    def smooth_point(self, y: Any, j0: int):
+        """Fixed-point smoother; see :func:`smooth_point`."""
+        return smooth_point(self.system, self.prior, y, j0)
 
 
 def chain_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decorrelation: str = "optimal",
@@ -365,23 +435,8 @@ def chain_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decor
     with y(t) when σ² > 0 and S ≠ 0). With S = 0 or σ² = 0 both modes coincide. The state
     second moment uses the corrected recursion (E2) in both modes.
     """
-    check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
-    y2, batch = _prepare(system, prior, y)
-    _require_chain(system, prior)
-    lags = _check_lags(lags, "lags", 0)
-    horizons = _check_lags(horizons, "horizons", 1)
-    d = system.d
-    if fixed_point is not None:
-        if isinstance(fixed_point, bool) or not isinstance(fixed_point, (int, np.integer)) or fixed_point < -d:
-            raise ValidationError(f"fixed_point: expected an integer element time >= -d = {-d}, got {fixed_point!r}")
-        fixed_point = int(fixed_point)
-    if decorrelation == "paper" and (fixed_point is not None or any(L > 2 * d for L in lags)):
-        raise ValidationError("decorrelation: smoothing beyond lag 2d (lags > 2d, fixed_point) needs "
-                              "decorrelation='optimal'; the constant-J covariances are not error covariances")
-    res = _chain_core(system, prior, y2, decorrelation=decorrelation, lags=lags, horizons=horizons,
-                      point=fixed_point, keep_rts=False)
-    out, lag_out, ahead_out, point_out, lam = res[:5]
-    return _assemble(out, lag_out, ahead_out, point_out, fixed_point, lam, y2.shape[1], batch)
+    est = ChainLMMSE(system, prior, decorrelation=decorrelation)
+    return est.filter(y, lags=lags, horizons=horizons, fixed_point=fixed_point)
 
 
 def _require_chain(system: DelayFadingSystem, prior: HistoryPrior) -> None:
@@ -390,6 +445,7 @@ def _require_chain(system: DelayFadingSystem, prior: HistoryPrior) -> None:
     if not prior.is_uncorrelated:
         raise ValidationError("prior: Algorithm C needs mutually uncorrelated x(0), ..., x(-d) (the chains must be "
                               "independent); use augmented_lmmse or reorganized_lmmse for a correlated prior")
+
 
 
 def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> IntervalSmoothing:
@@ -406,38 +462,49 @@ def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> I
     Same requirements as :func:`chain_lmmse`. ``P(j+d+1|j+d)`` is solved against; if it is
     singular the pseudo-inverse is used.
     """
-    y2, batch = _prepare(system, prior, y)
-    _require_chain(system, prior)
-    N, T, _ = y2.shape
-    d = system.d
-    res = _chain_core(system, prior, y2, decorrelation="optimal", lags=(), horizons=(), point=None, keep_rts=True)
-    rts, xb, Pb = res[5], res[6], res[7]
+    est = ChainLMMSE(system, prior)
+    res = est._run(y, outputs=("extras",), state=est.init(np.shape(y)[:-2]), step_options={"keep_rts": True})
+    ex = res.extras
+    final = res.final.carry
+    batch = np.shape(y)[:-2]
+    N = int(np.prod(batch, dtype=int))
+    T, d, n = np.shape(y)[-2], system.d, system.n
+
+    def runs(a):        # batch + (T, ...) -> (N, T, ...)
+        return np.asarray(a).reshape((N,) + np.shape(a)[len(batch):])
+
+    xupd, Pupd, Cx = runs(ex["rts_xupd"]), np.asarray(ex["rts_Pupd"]), np.asarray(ex["rts_Cx"])
+    xpred, Ppred = runs(ex["rts_xpred"]), np.asarray(ex["rts_Ppred"])
+    Pupd, Cx, Ppred = (a.reshape((-1,) + a.shape[-3:])[0] if a.ndim > 3 else a for a in (Pupd, Cx, Ppred))
+    # element j is measured at t = j + d (index j + d), and x(j+d+1) is predicted at that step
     xs: dict[int, np.ndarray] = {}
     Ps: dict[int, np.ndarray] = {}
     for j in range(max(T - d, -d), T + 1):
-        xs[j], Ps[j] = xb[j], Pb[j]
+        xs[j], Ps[j] = final["xb"][j], final["Pb"][j][0]
     for j in range(T - 1 - d, -d - 1, -1):
+        t = j + d
         nxt = j + d + 1
-        Pp = rts["Ppred"][nxt]
+        Pp = Ppred[t]
         try:
-            G = np.linalg.solve(Pp.T, rts["Cx"][j].T).T
+            G = np.linalg.solve(Pp.T, Cx[t].T).T
         except np.linalg.LinAlgError:
-            G = rts["Cx"][j] @ np.linalg.pinv(Pp)
-        xs[j] = rts["xupd"][j] + (xs[nxt] - rts["xpred"][nxt]) @ G.T
-        Ps[j] = symmetrize(rts["Pupd"][j] + G @ (Ps[nxt] - Pp) @ G.T)
+            G = Cx[t] @ np.linalg.pinv(Pp)
+        xs[j] = xupd[:, t] + (xs[nxt] - xpred[:, t]) @ G.T
+        Ps[j] = symmetrize(Pupd[t] + G @ (Ps[nxt] - Pp) @ G.T)
     times = np.arange(-d, T + 1)
     mean = np.stack([xs[j] for j in times], axis=1)
     cov = np.stack([Ps[j] for j in times], axis=0)
-    return IntervalSmoothing(times=times, mean=_shape_mean(mean, batch), cov=_ro(cov, batch))
+    return IntervalSmoothing(times=times, mean=mean.reshape(batch + mean.shape[1:]),
+                             cov=np.broadcast_to(cov, batch + cov.shape))
 
 
 def smooth_point(system: DelayFadingSystem, prior: HistoryPrior, y: Any, j0: int) -> tuple[np.ndarray, np.ndarray]:
-    """Fixed-point smoother x̂(j0|t), P(j0|t) for t = 0..T-1 (spec §2.3); see :func:`chain_lmmse`.
+    """Fixed-point smoother x̂(j0|t), P(j0|t) for t = 0..T-1; see :func:`chain_lmmse`.
 
     Returns ``(mean (..., T, n), cov (..., T, n, n))``, NaN while t + 1 < j0.
     """
     res = chain_lmmse(system, prior, y, fixed_point=j0)
-    return res.point["mean"], res.point["cov"]
+    return res.extras["point"]["mean"], res.extras["point"]["cov"]
 
 
 # --------------------------------------------------------------------------- Algorithm A
@@ -460,43 +527,121 @@ def _augmented_matrices(system: DelayFadingSystem, W: int):
     return AA, Ai, G, HH
 
 
-def _augmented_core(system: DelayFadingSystem, prior: HistoryPrior, y: np.ndarray, W: int, record: bool = False):
-    N, T, m = y.shape
-    n, d = system.n, system.d
-    AA, Ai, G, HH = _augmented_matrices(system, W)
-    NN = n * (W + 1)
-    m0 = np.zeros(NN)
-    m0[:n * (d + 1)] = prior.mean.reshape(-1)
-    P = np.zeros((NN, NN))
-    P[:n * (d + 1), :n * (d + 1)] = prior.cov          # blocks beyond d: x(-k), k > d, do not exist (held at 0)
-    LamX = P + np.outer(m0, m0)
-    X = np.broadcast_to(m0, (N, NN)).copy()
-    GQG, GS = G @ system.Qw @ G.T, G @ system.S
-    rec = []
-    for t in range(T):
-        gb, s2 = system.gamma_mean(t), system.gamma_var(t)
-        Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + s2 * (HH @ LamX @ HH.T) + system.Qv)
-        eps = y[:, t] - gb * (X @ HH.T)
-        HtQi = np.linalg.solve(Qe, HH).T
-        K = gb * (P @ HtQi)
-        Xf = X + eps @ K.T
-        Pf = symmetrize(P - K @ Qe @ K.T)
-        q = system.q_mult(t)
-        Qu = GQG + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
-        Lg = gb * (AA @ P @ HH.T) + GS
-        LQi = np.linalg.solve(Qe, Lg.T).T
-        Xp = X @ AA.T + eps @ LQi.T
-        Pp = symmetrize(AA @ P @ AA.T + Qu - LQi @ Lg.T)
-        rec.append((Xf, Pf, Xp, Pp, K, eps, Qe, P) if record else (Xf, Pf, Xp, Pp, eps, Qe))
-        LamX = symmetrize(AA @ LamX @ AA.T + Qu)
-        X, P = Xp, Pp
-    return rec, LamX
+
+def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None):
+    """One reading of Algorithm A: the shared update of X(t|t-1) with y(t) and the decorrelated prediction.
+
+    Update: H_eff = γ̄𝔥, noise R = σ²𝔥Λ_X𝔥^T + Q_v (the shared :func:`measurement_update`). Prediction:
+    X(t+1|t) = Ā X(t|t) + J y(t), Ā = 𝔄 - γ̄J𝔥, J = 𝔊S R^{-1}, covariance Ā P Ā^T + Q_u - J R J^T, which
+    equals the textbook predictor with same-time correlated noises (gain (γ̄𝔄P𝔥^T + 𝔊S)Q_ε^{-1}).
+    ``form`` is the covariance form of the shared update and predict (with the factor ``S`` for
+    ``"square_root"``). Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1), S(t|t), S(t+1|t))``.
+    """
+    AA, Ai, G, HH = mats
+    gb, s2 = system.gamma_mean(t), system.gamma_var(t)
+    R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
+    mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
+    Xf, Pf, Sf, K, Qe = measurement_update(X, P, S, y, mp, form)
+    if Qe is None:                        # the square-root form does not form Q_ε
+        Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + R)
+    eps = y - mp.expected
+    q = system.q_mult(t)
+    Qu = G @ system.Qw @ G.T + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
+    J = np.linalg.solve(R, (G @ system.S).T).T                # 𝔊 S R^{-1} (R symmetric)
+    Abar = AA - gb * (J @ HH)
+    Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
+    LamX = symmetrize(AA @ LamX @ AA.T + Qu)
+    return Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp
 
 
 def _blk(M: np.ndarray, i: int, j: int | None, n: int) -> np.ndarray:
     if j is None:
         return M[..., i * n:(i + 1) * n]
     return M[..., i * n:(i + 1) * n, j * n:(j + 1) * n]
+
+
+class AugmentedLMMSE(_DelayEstimator):
+    """Algorithm A, the dense augmented LMMSE (see :func:`augmented_lmmse`), as an estimator.
+
+    Online ``init()``/``step(state, y_t)``; the state's internal vector is X̂(t|t) = x̂(t..t-W|t).
+
+    Parameters
+    ----------
+    system : DelayFadingSystem
+    prior : HistoryPrior
+        Any joint prior of x(0), ..., x(-d).
+    window : int >= d, optional
+        W; default d.
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        The covariance form of the shared update and predict; ``"square_root"`` carries a factor of the
+        augmented covariance (not in the source; the chain and reorganized algorithms have their own
+        covariance recursions for the older elements and keep the standard form).
+    """
+
+    _name = "AugmentedLMMSE"
+    _step_options = ("lags",)
+
+    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, window: int | None = None,
+                 covariance_update: str = "standard"):
+        check_keywords({"covariance_update": covariance_update},
+                       {"covariance_update": ("standard", "joseph", "square_root")})
+        self.covariance_update = covariance_update
+        self._setup(system, prior)
+        d = system.d
+        W = d if window is None else window
+        if isinstance(W, bool) or not isinstance(W, (int, np.integer)) or W < d:
+            raise ValidationError(f"window: expected an integer >= d = {d}, got {window!r}")
+        self.window = int(W)
+        self._mats = _augmented_matrices(system, self.window)
+
+    def _state_dim(self) -> int:
+        return self.n * (self.window + 1)
+
+    def _initial(self, N, prior, P0, batch):
+        n, d, W = self.n, self.system.d, self.window
+        NN = n * (W + 1)
+        m0 = np.zeros(NN)
+        m0[:n * (d + 1)] = prior.mean.reshape(-1)
+        P = np.zeros((NN, NN))
+        P[:n * (d + 1), :n * (d + 1)] = prior.cov          # blocks beyond d: x(-k), k > d, do not exist (held at 0)
+        return np.broadcast_to(m0, (N, NN)).copy(), P[None], {"LamX": P + np.outer(m0, m0)}
+
+    def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
+        lags = (options or {}).get("lags", ())
+        n, d = self.n, self.system.d
+        if "next" in carry:
+            Xpr, Ppr, Spr = carry["next"]
+        else:
+            Xpr, Ppr, Spr = x, P, S
+        Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t,
+                                                            self.covariance_update, Spr)
+        N = x.shape[0]
+        extras = {"measured_mean": _blk(Xf, d, None, n), "measured_cov": _blk(Pf, d, d, n),
+                  "next_mean": _blk(Xp, 0, None, n), "next_cov": _blk(Pp, 0, 0, n), "innovation": eps,
+                  "innovation_cov": Qe, "_lam": carry["LamX"][:n, :n][None]}
+        nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
+        for L in lags:
+            extras[f"lag{L}_mean"] = _blk(Xf, L, None, n) if t - L >= -d else nan_m
+            extras[f"lag{L}_cov"] = _blk(Pf, L, L, n) if t - L >= -d else nan_P
+        new = {"LamX": LamX, "next": (Xp, Pp, Sp), "lam": {t + 1: LamX[:n, :n]}}
+        return Xf, Pf, Sf, new, Xpr, Ppr, extras
+
+    def _prepare_step_options(self, state, options):
+        lags = _check_lags(options.get("lags", ()), "lags", 0)
+        if any(L > self.window for L in lags):
+            raise ValidationError(f"lags: expected lags <= window W = {self.window}, got {max(lags)}")
+        return {"lags": lags}
+
+    def filter(self, y: Any, *, lags: Any = (), prior: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
+        """Run Algorithm A over ``y`` (..., T, m); see :func:`augmented_lmmse`."""
+        res = self._run_delay(y, prior, state, outputs, self._prepare_step_options(None, {"lags": lags}))
+        Xp, Pp, _ = res.final.carry["next"]
+        batch = np.shape(y)[:-2]
+        res.extras["final_mean"] = Xp.reshape(batch + Xp.shape[1:])
+        res.extras["final_cov"] = Pp[0]
+        res.extras["window"] = self.window
+        return res
 
 
 def augmented_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, window: int | None = None,
@@ -537,26 +682,7 @@ def augmented_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, w
     ValidationError
         ``window`` < d or a lag outside [0, W].
     """
-    y2, batch = _prepare(system, prior, y)
-    d, n = system.d, system.n
-    W = d if window is None else window
-    if isinstance(W, bool) or not isinstance(W, (int, np.integer)) or W < d:
-        raise ValidationError(f"window: expected an integer >= d = {d}, got {window!r}")
-    lags = _check_lags(lags, "lags", 0)
-    if any(L > W for L in lags):
-        raise ValidationError(f"lags: expected lags <= window W = {W}, got {max(lags)}")
-    rec, _ = _augmented_core(system, prior, y2, int(W))
-    T = y2.shape[1]
-    lam = _augmented_second_moments(system, prior, T)
-    out = {"x": [_blk(r[0], 0, None, n) for r in rec], "P": [_blk(r[1], 0, 0, n) for r in rec],
-           "xp": [_blk(r[2], 0, None, n) for r in rec], "Pp": [_blk(r[3], 0, 0, n) for r in rec],
-           "xm": [_blk(r[0], d, None, n) for r in rec], "Pm": [_blk(r[1], d, d, n) for r in rec],
-           "eps": [r[4] for r in rec], "Qe": [r[5] for r in rec]}
-    nan_m, nan_P = np.full((y2.shape[0], n), np.nan), np.full((n, n), np.nan)
-    lag_out = {L: ([_blk(r[0], L, None, n) if t - L >= -d else nan_m for t, r in enumerate(rec)],
-                   [_blk(r[1], L, L, n) if t - L >= -d else nan_P for t, r in enumerate(rec)]) for L in lags}
-    extras = {"final_mean": _shape_mean(rec[-1][2], batch), "final_cov": rec[-1][3], "window": int(W)}
-    return _assemble(out, lag_out, {}, ([], []), None, lam, T, batch, extras)
+    return AugmentedLMMSE(system, prior, window=window).filter(y, lags=lags)
 
 
 def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T: int) -> dict[int, np.ndarray]:
@@ -576,7 +702,207 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
     return lam
 
 
+
 # --------------------------------------------------------------------------- Algorithm D
+
+class ReorganizedInnovationLMMSE(_DelayEstimator):
+    """Algorithm D, the source's reorganized-innovation estimator (see :func:`reorganized_lmmse`).
+
+    Online ``init()``/``step(state, y_t)``: the state's mean/cov are x̂(t|t), P(t|t); the recursions'
+    gains, Ψ and the smoother outputs they need are carried in the state (pruned to the last 2d+2
+    times). The steps before ``warmup`` run Algorithm A, as in :func:`reorganized_lmmse`. The
+    reorganized recursions are the source's algorithm, kept as its faithful (corrected) reference:
+    they are not a Gaussian update of one state, so only its delayed-filter update and predictor
+    correspond to the shared core's (Algorithms C and A use it).
+
+    Parameters
+    ----------
+    system : DelayFadingSystem
+    prior : HistoryPrior
+    decorrelation : {"optimal", "paper"}, default "optimal"
+    warmup : int, optional
+    reinsert_errata : iterable of {"E5", "E6", "E7"}
+        See :func:`reorganized_lmmse`.
+    """
+
+    _name = "ReorganizedInnovationLMMSE"
+
+    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal",
+                 warmup: int | None = None, reinsert_errata: Any = ()):
+        check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
+        errata = frozenset(reinsert_errata)
+        bad = errata - set(_ERRATA)
+        if bad:
+            raise ValidationError(f"reinsert_errata: expected a subset of {_ERRATA}, got {sorted(bad)}")
+        self._setup(system, prior)
+        if not system.is_pure_delay:
+            raise ValidationError("system: Algorithm D needs the pure-delay model (no extra_lags); use augmented_lmmse")
+        self.decorrelation, self.errata, self.warmup_arg = decorrelation, errata, warmup
+        self._t0(self.prior)
+        if system.d == 0:
+            self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
+
+    def _t0(self, prior: HistoryPrior) -> int:
+        d = self.system.d
+        zero_init = prior.is_uncorrelated
+        t0 = (0 if zero_init else 2 * d + 1) if self.warmup_arg is None else self.warmup_arg
+        lowest = 0 if zero_init else 2 * d + 1
+        if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < lowest:
+            raise ValidationError(f"warmup: expected an integer >= {lowest} "
+                                  f"({'uncorrelated' if zero_init else 'correlated'} prior; 2d+1 = {2 * d + 1}), "
+                                  f"got {self.warmup_arg!r}")
+        return int(t0)
+
+    def _initial(self, N, prior, P0, batch):
+        sys_ = self.system
+        d, n = sys_.d, self.n
+        if d == 0:
+            x, P, carry = self._chain._initial(N, prior, P0, batch)
+            return x, P, {"chain": carry}
+        t0 = self._t0(prior)
+        xf, Pf, xsm, Psm = {}, {}, {}, {}
+        lam = {}
+        # Exact initialization from an uncorrelated prior: every Ψ and every gain K(a|s), s ≠ a+d, is zero;
+        # the elements x(-k) keep their prior until measured.
+        for k in range(d + 1):
+            mu = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
+            xf[-k], Pf[-k] = mu, prior.block_cov(k)            # x̂(-k|-k) = prior (no data before t = 0)
+            m0 = prior.block_mean(k)
+            lam[-k] = prior.block_cov(k) + np.outer(m0, m0)
+        xsm[-1], Psm[-1] = xf[-d], Pf[-d]                      # x̂(-d|-1)
+        carry = {"xf": xf, "Pf": Pf, "xsm": xsm, "Psm": Psm, "xm": {}, "Pmeas": {}, "xp": {0: xf[0]},
+                 "Pp": {0: Pf[0]}, "Psi": {}, "K": {}, "eps": {}, "Qe": {}, "Pm": {}, "lam": lam, "t0": t0}
+        if t0 > 0:
+            aug = AugmentedLMMSE(sys_, prior, window=d)
+            Xa, Pa, ca = aug._initial(N, prior, None, batch)
+            carry["aug"] = (Xa, Pa, ca["LamX"])
+        return xf[0], Pf[0][None], carry
+
+    def _state_dim(self) -> int:
+        return self.n
+
+    def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
+        sys_ = self.system
+        d, n, m = sys_.d, self.n, self.m
+        if d == 0:
+            xn, Pn, Sn, cn, xp, Pp, ex = self._chain._step_arrays(t, x, P, S, carry["chain"], y, u, {"lags": (0,)})
+            return xn, Pn, Sn, {"chain": cn}, xp, Pp, ex
+        c = {k: (dict(v) if isinstance(v, dict) else v) for k, v in carry.items()}
+        xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
+        Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
+        lam = c["lam"] = _extend_second_moments(sys_, c["lam"], t + 1)
+        H = sys_.H
+        zero_nn, zero_nm = np.zeros((n, n)), np.zeros((n, m))
+        errata = self.errata
+        gbar = sys_.gamma_mean
+
+        def gk(s: int) -> float:          # γ̄(s); no measurement (and a zero gain) before s = 0
+            return gbar(s) if s >= 0 else 0.0
+
+        def decor(s: int):
+            return _decorrelation(sys_, s, lam[s - d], self.decorrelation)
+
+        xpred, Ppred = xp[t], Pp[t]
+        if t < c["t0"]:
+            # warm-up by Algorithm A, from which every stored Ψ, gain and covariance is read
+            Xa, Pa, LamX = c["aug"]
+            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX,
+                                                                      y, t)
+            Pprior = Pa[0]
+            PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
+            xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
+            xsm[t], Psm[t] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
+            xm[t], Pmeas[t] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
+            xp[t + 1], Pp[t + 1] = _blk(Xp_, 0, None, n), _blk(PpA, 0, 0, n)
+            Pm[t] = _blk(Pprior, d, d, n)                       # P(t-d|t-1)
+            for k in range(d + 1):
+                K[(t - k, t)] = _blk(KA.T, k, None, n).T        # K(t-k|t): rows of block k
+            eps[t], Qe[t] = e_t, Q_t
+            # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
+            for j, Pj in ((t, Pprior), (t + 1, PpA)):
+                for i in range(1, d + 1):
+                    Psi[(i, j + i - 1)] = _blk(Pj, d, d - i, n)
+            c["aug"] = (Xp_, PpA[None], LamX)
+        else:
+            c.pop("aug", None)
+            gb = gbar(t)
+            # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
+            xmp, Pmp = xsm[t - 1], Psm[t - 1]
+            Pm[t] = Pmp
+            Q = symmetrize(gb * gb * (H @ Pmp @ H.T) + sys_.fading_noise_cov(t, lam[t - d]))
+            e_t = y - gb * (xmp @ H.T)
+            eps[t], Qe[t] = e_t, Q
+            HtQi = np.linalg.solve(Q, H).T
+            # (b) filter, (35)-(38) shifted by one
+            Psd = Psi.get((d, t + d - 1), zero_nn)
+            Kf = gb * (Psd.T @ HtQi)
+            K[(t, t)] = Kf
+            xf[t] = xp[t] + e_t @ Kf.T
+            Pf[t] = symmetrize(Pp[t] - gb * (Kf @ H @ Psd))
+            # (c) Ψ_i(t), i = d-1..1, corrected (58)
+            # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
+            # gains of not-yet-measured elements vanish; times < 0 carry no measurement.
+            Abar_td = decor(t - d)[1] if t - d >= 0 else sys_.A
+            for i in range(d - 1, 0, -1):
+                a = t - d - i + 1
+                a5 = a - 1 if "E5" in errata else a          # source (30)/(58) print K(t-d-i|t-d) (E5)
+                psi_dt = Psi.get((d, t), zero_nn)
+                psi_d = psi_dt.T if "E6" in errata else psi_dt   # source prints Ψ_d(t)^T (E6)
+                val = (Psi.get((d - i + 1, t - i), zero_nn).T
+                       - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))) @ Abar_td.T
+                val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
+                top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (E7)
+                for j in range(0, top + 1):
+                    s = t - i - j
+                    val = val - gk(s) * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
+                Psi[(i, t)] = val
+            # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
+            a = t - d + 1
+            xs_, Ps_ = xf[a], Pf[a]
+            for i in range(1, d):
+                s = t - i + 1
+                if s < 0:
+                    continue
+                Ks = gbar(s) * (Psi[(i, t)].T @ np.linalg.solve(Qe[s], H).T)
+                K[(a, s)] = Ks
+                xs_ = xs_ + eps[s] @ Ks.T
+                Ps_ = Ps_ - gbar(s) * (Ks @ H @ Psi[(i, t)])
+            xsm[t], Psm[t] = xs_, symmetrize(Ps_)
+            # (e) delayed filter and predictor (50)-(52)
+            Ke = gb * (Pmp @ HtQi)
+            K[(t - d, t)] = Ke
+            xm[t] = xmp + e_t @ Ke.T
+            Pmeas[t] = symmetrize(Pmp - gb * (Ke @ H @ Pmp))
+            J, Abar, Sigma = decor(t)
+            xp[t + 1] = xm[t] @ Abar.T + y @ J.T
+            Pp[t + 1] = symmetrize(Abar @ Pmeas[t] @ Abar.T + Sigma)
+            # (f) corrected (39)
+            psi1 = Psi.get((1, t), zero_nn)
+            Psi[(d, t + d)] = (Abar @ (psi1 - gb * (Ke @ H @ psi1))).T
+        extras = {"measured_mean": xm[t], "measured_cov": Pmeas[t][None], "next_mean": xp[t + 1],
+                  "next_cov": Pp[t + 1][None], "innovation": eps[t], "innovation_cov": Qe[t][None],
+                  f"lag{d - 1}_mean": xsm[t], f"lag{d - 1}_cov": Psm[t][None], "_lam": lam[t][None]}
+        # drop what is no longer needed (the recursions read back at most 2d+1 steps)
+        old = t - 2 * d - 2
+        for key in [k for k in Psi if k[1] < t - 2 * d - 1]:
+            del Psi[key]
+        for key in [k for k in K if k[1] < t - 2 * d - 1]:
+            del K[key]
+        for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam):
+            for key in [k for k in dct if k < old]:
+                del dct[key]
+        return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras
+
+    def filter(self, y: Any, *, prior: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
+        """Run Algorithm D over ``y`` (..., T, m); see :func:`reorganized_lmmse`."""
+        if self.system.d == 0:
+            res = self._chain.filter(y, lags=(0,), prior=prior, outputs=outputs, state=state)
+            return res
+        res = self._run_delay(y, prior, state, outputs, {})
+        res.extras["warmup"] = int(res.final.carry["t0"])
+        return res
+
 
 def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decorrelation: str = "optimal",
                       warmup: int | None = None, reinsert_errata: Any = ()) -> DelayEstimates:
@@ -637,183 +963,6 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     J(t) corrected (E3) unless ``decorrelation="paper"``; streaming order (a)–(g) (spec §4 item 13).
     The cost is O(d²) per step, not independent of d as the source claims.
     """
-    check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
-    errata = frozenset(reinsert_errata)
-    bad = errata - set(_ERRATA)
-    if bad:
-        raise ValidationError(f"reinsert_errata: expected a subset of {_ERRATA}, got {sorted(bad)}")
-    y2, batch = _prepare(system, prior, y)
-    if not system.is_pure_delay:
-        raise ValidationError("system: Algorithm D needs the pure-delay model (no extra_lags); use augmented_lmmse")
-    d, n = system.d, system.n
-    if d == 0:
-        if not prior.is_uncorrelated:  # pragma: no cover - a single block is always uncorrelated
-            raise ValidationError("prior: unexpected correlated prior for d = 0")
-        return chain_lmmse(system, prior, y, decorrelation=decorrelation, lags=(max(d - 1, 0),))
-    zero_init = prior.is_uncorrelated
-    t0 = (0 if zero_init else 2 * d + 1) if warmup is None else warmup
-    lowest = 0 if zero_init else 2 * d + 1
-    if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < lowest:
-        raise ValidationError(f"warmup: expected an integer >= {lowest} ({'uncorrelated' if zero_init else 'correlated'} "
-                              f"prior; 2d+1 = {2 * d + 1}), got {warmup!r}")
-    N, T, m = y2.shape
-    H = system.H
-    lam = second_moments(system, prior, T)
-    t_init = min(t0, T)
-    rec, _ = _augmented_core(system, prior, y2[:, :t_init], d, record=True) if t_init > 0 else ([], None)
-
-    xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = {}, {}, {}, {}, {}, {}, {}, {}
-    Psi: dict[tuple[int, int], np.ndarray] = {}
-    K: dict[tuple[int, int], np.ndarray] = {}
-    eps, Qe, Pm = {}, {}, {}
-    zero_nn, zero_nm = np.zeros((n, n)), np.zeros((n, m))
-    # Exact initialization from an uncorrelated prior (spec §2.5): every Ψ and every gain
-    # K(a|s), s ≠ a+d, is zero; the elements x(-k) keep their prior until measured.
-    for k in range(d + 1):
-        mu = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
-        xf[-k], Pf[-k] = mu, prior.block_cov(k)            # x̂(-k|-k) = prior (no data before t = 0)
-    xp[0], Pp[0] = xf[0], Pf[0]
-    xsm[-1], Psm[-1] = xf[-d], Pf[-d]                      # x̂(-d|-1)
-    for t, (Xf, PfA, Xp, PpA, KA, e_t, Q_t, Pprior) in enumerate(rec):
-        xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
-        xsm[t], Psm[t] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
-        xm[t], Pmeas[t] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
-        xp[t + 1], Pp[t + 1] = _blk(Xp, 0, None, n), _blk(PpA, 0, 0, n)
-        Pm[t] = _blk(Pprior, d, d, n)                       # P(t-d|t-1)
-        for k in range(d + 1):
-            K[(t - k, t)] = _blk(KA.T, k, None, n).T        # K(t-k|t): rows of block k
-        eps[t], Qe[t] = e_t, Q_t
-        # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
-        for j, Pj in ((t, Pprior), (t + 1, PpA)):
-            for i in range(1, d + 1):
-                Psi[(i, j + i - 1)] = _blk(Pj, d, d - i, n)
-
-    gbar = system.gamma_mean
-    Jc: dict[int, tuple] = {}
-
-    def gk(s: int) -> float:          # γ̄(s); no measurement (and a zero gain) before s = 0
-        return gbar(s) if s >= 0 else 0.0
-
-    def decor(s: int):
-        if s not in Jc:
-            Jc[s] = _decorrelation(system, s, lam[s - d], decorrelation)
-        return Jc[s]
-
-    for t in range(t_init, T):
-        gb = gbar(t)
-        # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
-        xmp, Pmp = xsm[t - 1], Psm[t - 1]
-        Pm[t] = Pmp
-        Q = symmetrize(gb * gb * (H @ Pmp @ H.T) + system.fading_noise_cov(t, lam[t - d]))
-        e_t = y2[:, t] - gb * (xmp @ H.T)
-        eps[t], Qe[t] = e_t, Q
-        HtQi = np.linalg.solve(Q, H).T
-        # (b) filter, (35)-(38) shifted by one
-        Psd = Psi.get((d, t + d - 1), zero_nn)
-        Kf = gb * (Psd.T @ HtQi)
-        K[(t, t)] = Kf
-        xf[t] = xp[t] + e_t @ Kf.T
-        Pf[t] = symmetrize(Pp[t] - gb * (Kf @ H @ Psd))
-        # (c) Ψ_i(t), i = d-1..1, corrected (58)
-        # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
-        # gains of not-yet-measured elements vanish; times < 0 carry no measurement.
-        Abar_td = decor(t - d)[1] if t - d >= 0 else system.A
-        for i in range(d - 1, 0, -1):
-            a = t - d - i + 1
-            a5 = a - 1 if "E5" in errata else a          # source (30)/(58) print K(t-d-i|t-d) (E5)
-            psi_dt = Psi.get((d, t), zero_nn)
-            psi_d = psi_dt.T if "E6" in errata else psi_dt   # source prints Ψ_d(t)^T (E6)
-            val = (Psi.get((d - i + 1, t - i), zero_nn).T
-                   - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))) @ Abar_td.T
-            val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
-            top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (E7)
-            for j in range(0, top + 1):
-                s = t - i - j
-                val = val - gk(s) * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
-            Psi[(i, t)] = val
-        # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
-        a = t - d + 1
-        xs_, Ps_ = xf[a], Pf[a]
-        for i in range(1, d):
-            s = t - i + 1
-            if s < 0:
-                continue
-            Ks = gbar(s) * (Psi[(i, t)].T @ np.linalg.solve(Qe[s], H).T)
-            K[(a, s)] = Ks
-            xs_ = xs_ + eps[s] @ Ks.T
-            Ps_ = Ps_ - gbar(s) * (Ks @ H @ Psi[(i, t)])
-        xsm[t], Psm[t] = xs_, symmetrize(Ps_)
-        # (e) delayed filter and predictor (50)-(52)
-        Ke = gb * (Pmp @ HtQi)
-        K[(t - d, t)] = Ke
-        xm[t] = xmp + e_t @ Ke.T
-        Pmeas[t] = symmetrize(Pmp - gb * (Ke @ H @ Pmp))
-        J, Abar, Sigma = decor(t)
-        xp[t + 1] = xm[t] @ Abar.T + y2[:, t] @ J.T
-        Pp[t + 1] = symmetrize(Abar @ Pmeas[t] @ Abar.T + Sigma)
-        # (f) corrected (39)
-        psi1 = Psi.get((1, t), zero_nn)
-        Psi[(d, t + d)] = (Abar @ (psi1 - gb * (Ke @ H @ psi1))).T
-        # drop what is no longer needed
-        for key in [k for k in Psi if k[1] < t - 2 * d - 1]:
-            del Psi[key]
-        for key in [k for k in K if k[1] < t - 2 * d - 1]:
-            del K[key]
-
-    out = {"x": [xf[t] for t in range(T)], "P": [Pf[t] for t in range(T)],
-           "xp": [xp[t + 1] for t in range(T)], "Pp": [Pp[t + 1] for t in range(T)],
-           "xm": [xm[t] for t in range(T)], "Pm": [Pmeas[t] for t in range(T)],
-           "eps": [eps[t] for t in range(T)], "Qe": [Qe[t] for t in range(T)]}
-    lag_out = {d - 1: ([xsm[t] for t in range(T)], [Psm[t] for t in range(T)])}
-    return _assemble(out, lag_out, {}, ([], []), None, lam, T, batch, {"warmup": int(t0)})
-
-
-# --------------------------------------------------------------------------- thin classes
-
-class ChainLMMSE:
-    """Algorithm C as an object: validates once, then ``filter``, ``smooth``, ``smooth_point``.
-
-    See :func:`chain_lmmse` for the parameters and equations.
-    """
-
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal"):
-        check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
-        check_instance(system, DelayFadingSystem, "system")
-        system.check_prior(prior)
-        _require_chain(system, prior)
-        self.system, self.prior, self.decorrelation = system, prior, decorrelation
-
-    def filter(self, y: Any, *, lags: Any = (), horizons: Any = (), fixed_point: int | None = None) -> DelayEstimates:
-        return chain_lmmse(self.system, self.prior, y, decorrelation=self.decorrelation, lags=lags,
-                           horizons=horizons, fixed_point=fixed_point)
-
-    def smooth(self, y: Any) -> IntervalSmoothing:
-        return smooth_interval(self.system, self.prior, y)
-
-    def smooth_point(self, y: Any, j0: int):
-        return smooth_point(self.system, self.prior, y, j0)
-
-
-class AugmentedLMMSE:
-    """Algorithm A as an object; see :func:`augmented_lmmse`."""
-
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, window: int | None = None):
-        check_instance(system, DelayFadingSystem, "system")
-        system.check_prior(prior)
-        self.system, self.prior, self.window = system, prior, window
-
-    def filter(self, y: Any, *, lags: Any = ()) -> DelayEstimates:
-        return augmented_lmmse(self.system, self.prior, y, window=self.window, lags=lags)
-
-
-class ReorganizedInnovationLMMSE:
-    """Algorithm D as an object; see :func:`reorganized_lmmse`."""
-
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal"):
-        check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
-        check_instance(system, DelayFadingSystem, "system")
-        system.check_prior(prior)
-        self.system, self.prior, self.decorrelation = system, prior, decorrelation
-
-    def filter(self, y: Any) -> DelayEstimates:
-        return reorganized_lmmse(self.system, self.prior, y, decorrelation=self.decorrelation)
+    est = ReorganizedInnovationLMMSE(system, prior, decorrelation=decorrelation, warmup=warmup,
+                                     reinsert_errata=reinsert_errata)
+    return est.filter(y)

@@ -70,6 +70,13 @@ Options (all off by default; "Deviation from the source")
 * ``covariance_update="standard"`` uses :math:`\mathcal P_{k|k-1} - K\Sigma_{\tilde y\tilde y}K^T`
   instead of the Joseph form (equal in exact arithmetic).
 
+In the terms of the shared core (:mod:`tobitkf.filters.core`): the state is the augmented
+:math:`\xi_k`, the transition the block shift of (17)–(18), and the measurement prediction
+:math:`\hat y_{k|k-1}` (21) with :math:`H_0 = H_k = \bar\theta_k\mathcal C_k`, the per-run channel
+scale :math:`\bar\gamma_k` (so that :math:`G_k = \bar\Upsilon_kH_k`) and the diagonal noise
+:math:`N_k`; the shared update in Joseph form is (20'). ``covariance_update="square_root"`` (not in the
+source) is available too.
+
 Upper limits (two-sided censoring) are a non-source extension: all censoring statistics
 come from :func:`tobitkf.censored_moments`, which reduces to Lemma 1 for a lower limit.
 
@@ -89,15 +96,15 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError, check_instance
+from .._validation import check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from ._common import FilterResult, check_keywords, check_prior, gain_update, prepare_inputs, prepare_measurements
-from ._shift import shift_predict
-from .kalman import KalmanFilter
-from .tobit import TobitKalmanFilter
+from .core import (FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior,
+                   symmetrize)
+from .kalman import KalmanFilter, LinearGaussianFamily
+from .tobit import TobitKalmanFilter, _sigma_of as _diagonal_sigma
 
 __all__ = ["fading_tobit_kalman_filter", "FadingTobitKalmanFilter", "fading_kalman_filter",
            "FadingKalmanFilter", "augmented_measurement_matrix", "fading_estimators",
@@ -105,9 +112,10 @@ __all__ = ["fading_tobit_kalman_filter", "FadingTobitKalmanFilter", "fading_kalm
 
 P_UNCENSORED_MODES = ("augmented", "eq6_stale")
 _BOOL = (False, True)
+_FORMS = ("joseph", "standard", "square_root")
 _TOBIT_OPTIONS = {"p_uncensored_mode": P_UNCENSORED_MODES, "fading_variance_term": _BOOL,
-                  "exact_tobit_variance": _BOOL, "covariance_update": ("joseph", "standard")}
-_KF_OPTIONS = {"fading_variance_term": _BOOL, "covariance_update": ("joseph", "standard")}
+                  "exact_tobit_variance": _BOOL, "covariance_update": _FORMS}
+_KF_OPTIONS = {"fading_variance_term": _BOOL, "covariance_update": _FORMS}
 
 
 def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: int) -> np.ndarray:
@@ -125,14 +133,9 @@ def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: in
 
 def _sigma_of(R: np.ndarray, name: str) -> np.ndarray:
     # App. B of the source assumes cov{y^m, y^t} = 0 for m != t: R must be diagonal (A13).
-    off = R - np.diag(np.diagonal(R))
-    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
-        raise ValidationError(f"{name}: the fading Tobit Kalman filter needs a diagonal R "
-                              "(Geng et al. 2017, App. B: uncorrelated channels)")
-    d = np.diagonal(R)
-    if np.any(d <= 0):
-        raise ValidationError(f"{name}: expected positive measurement variances, got {d}")
-    return np.sqrt(d)
+    return _diagonal_sigma(R, name, who="the fading Tobit Kalman filter",
+                           why="Geng et al. 2017, App. B: uncorrelated channels",
+                           positive="expected positive measurement variances")
 
 
 def _check_parts(system: Any, fading: Any, censoring: Any) -> None:
@@ -149,188 +152,263 @@ def _limit_terms(p: np.ndarray, limit: np.ndarray) -> np.ndarray:
     return np.where(np.isfinite(limit), p * np.where(np.isfinite(limit), limit, 0.0), 0.0)
 
 
-def _joseph_scalar_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray, Ree: np.ndarray,
-                          valid: np.ndarray | None, H0: np.ndarray, gam: np.ndarray, noise: np.ndarray):
-    r"""What :func:`gain_update` with ``H=G, noise=N`` returns for one channel (m = 1), faster.
+class _FadingFamily(LinearGaussianFamily):
+    """The augmented fading filter of Table 1; ``tobit=False`` is the fading KF baseline."""
 
-    :math:`K = R_{xe}/R_{ee}` (zero where the channel is missing or :math:`R_{ee}` is not above the
-    smallest normal number, as in :func:`gain_update`), :math:`x + Ke`, and the Joseph form
-    :math:`(I - KG)P(I - KG)^T + KNK^T` with :math:`G = \gamma H_0`, ``H0`` (n_xi,) common to all runs
-    and ``P`` exactly symmetric: the rank-one factors are applied in turn,
-    :math:`M = P - K(GP)` with :math:`GP = \gamma(PH_0)^T`, then :math:`M(I - G^TK^T) = M - \gamma(MH_0)K^T`:
-    outer products and GEMVs over the stacked runs instead of batched (n_xi x n_xi) matmuls.
-    ``x`` and ``K`` are bit-identical to :func:`gain_update`'s, ``P`` equal to rounding (tested).
-    ``x`` (N, n_xi), ``P`` (N, n_xi, n_xi), ``innov`` (N, 1), ``Rxe`` (N, n_xi, 1), ``Ree`` (N, 1, 1),
-    ``valid`` (N, 1) or None, ``gam`` and ``noise`` (N,).
-    """
-    N, nxi = x.shape
-    ree = Ree[:, 0, 0]
-    ok = ree > np.finfo(np.float64).tiny
-    if valid is not None:
-        ok &= valid[:, 0]
-    K = Rxe * ok[:, None, None] / np.where(ok, ree, 1.0)[:, None, None]
-    x_new = x + np.einsum("...ij,...j->...i", K, np.where(ok[:, None], innov, 0.0))
-    k = K[:, :, 0]
-    PG = gam[:, None] * (P.reshape(-1, nxi) @ H0).reshape(N, nxi)
-    M = P - k[:, :, None] * PG[:, None, :]
-    MG = gam[:, None] * (M.reshape(-1, nxi) @ H0).reshape(N, nxi)
-    P_new = M - (MG - noise[:, None] * k)[:, :, None] * k[:, None, :]
-    return x_new, 0.5 * (P_new + np.swapaxes(P_new, -1, -2)), K
+    _step_options = ("keep_smoothed", "keep_augmented")
 
+    def _setup(self, system, fading, censoring, *, tobit, p_uncensored_mode="augmented", fading_variance_term=False,
+               exact_tobit_variance=False, covariance_update="joseph", check_limits=True):
+        _check_parts(system, fading, censoring)
+        if not system.R.varying:
+            _sigma_of(system.measurement_cov(1), "R")
+        self._setup_system(system)
+        self.fading, self.censoring = fading, censoring
+        self._cens = Censoring() if censoring is None else censoring
+        self.tobit = tobit
+        self.p_uncensored_mode = p_uncensored_mode
+        self.fading_variance_term = bool(fading_variance_term)
+        self.exact_tobit_variance = bool(exact_tobit_variance)
+        self.covariance_update = covariance_update
+        self.check_limits = check_limits
+        self.L = fading.order
+        self._nxi = system.n * (self.L + 1)
+        self._thb, self._thv = fading.mean_gains(system.m), fading.var_gains(system.m)
+        self._sigma = None if system.R.varying else _sigma_of(system.measurement_cov(1), "R")
+        self._stale = tobit and p_uncensored_mode == "eq6_stale"
 
-def _run(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, y: Any, *, u: Any, tobit: bool,
-         p_uncensored_mode: str, fading_variance_term: bool, exact_tobit_variance: bool,
-         covariance_update: str, x0: Any, P0: Any, keep_augmented: bool, check_limits: bool,
-         keep_smoothed: bool = True) -> FilterResult:
-    """The time loop shared by the TKF-FM and the fading KF baseline (``tobit=False``)."""
-    _check_parts(system, fading, censoring)
-    y2, batch = prepare_measurements(y, system.m)
-    N, T, m = y2.shape
-    n, L = system.n, fading.order
-    nxi = n * (L + 1)
-    system.check_horizon(T)
-    for part in (system.A, system.C, system.Q, system.R, system.B):
-        if part is not None:
-            part.validate_all(T)
-    if censoring is None:
-        censoring = Censoring()
-    censoring.check(m, T)
-    if tobit and check_limits:
-        censoring.check_measurements(y2)
-    lo_all, hi_all = censoring.all_limits(T, m)
-    u2 = prepare_inputs(system, u, N, T)
-    x_init, P_init = check_prior(system, x0, P0, N)
+    def _state_dim(self) -> int:
+        return self._nxi
 
-    thb, thv = fading.mean_gains(m), fading.var_gains(m)
-    Cs = [measurement_matrix_at(system, j) for j in range(T + 1)]
-    sigma_const = None if system.R.varying else _sigma_of(system.measurement_cov(1), "R")
+    def _initial(self, N, x0, P0, batch):
+        # fixed-size augmentation: xi_0|0 = [x0; 0...], P_0|0 = blkdiag(P0, 0...)  (spec §2, §4.1)
+        n, nxi, m, L = self.n, self._nxi, self.m, self.L
+        x_init, P_init = check_prior(self.system, x0, P0, N, batch)
+        per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
+        if not per_run:
+            P_init = P_init[:1]
+        xi = np.zeros((N, nxi))
+        xi[:, :n] = x_init
+        P = np.zeros((P_init.shape[0], nxi, nxi))
+        P[:, :n, :n] = symmetrize(P_init)   # exactly symmetric (the shift prediction relies on it)
+        carry: dict[str, Any] = {}
+        C0 = measurement_matrix_at(self.system, 0)
+        if self._stale:   # C_j x̂_{j|j-1} for j = k, k-1, ..., k-L, with x̂_{0|-1} := x̄_0 (spec §4.2 Step 3)
+            cx = np.zeros((N, L + 1, m))
+            cx[:, 0] = x_init @ C0.T
+            carry["cx_pred"] = cx
+        if self.fading_variance_term:   # diag(C_j X_j C_j^T), X_j = E[x_j x_j^T] (spec §4.6-1)
+            cxxc = np.zeros((N, L + 1, m))
+            cxxc[:, 0] = np.einsum("ij,njk,ik->ni", C0, np.broadcast_to(P_init, (N, n, n)), C0) + (x_init @ C0.T) ** 2
+            carry.update(mom_mean=x_init.copy(), mom_cov=np.broadcast_to(P_init, (N, n, n)).copy(), cxxc=cxxc)
+        return xi, P, carry
 
-    # fixed-size augmentation: xi_0|0 = [x0; 0...], P_0|0 = blkdiag(P0, 0...)  (spec §2, §4.1)
-    xi = np.zeros((N, nxi))
-    xi[:, :n] = x_init
-    P = np.zeros((N, nxi, nxi))
-    P[:, :n, :n] = 0.5 * (P_init + np.swapaxes(P_init, -1, -2))   # exactly symmetric (the prediction relies on it)
+    def _transition(self, k, u, carry):
+        sys_ = self.system
+        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
+        # (17)-(18) with the shift structure of the augmented A
+        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
+        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, G=G)
 
-    stale = tobit and p_uncensored_mode == "eq6_stale"
-    if stale:   # C_j x̂_{j|j-1}, j = 0..T, with x̂_{0|-1} := x̄_0 (spec §4.2 Step 3)
-        cx_pred = np.zeros((N, T + 1, m))
-        cx_pred[:, 0] = x_init @ Cs[0].T
-    if fading_variance_term:   # diag(C_j X_j C_j^T), X_j = E[x_j x_j^T] (spec §4.6-1)
-        mom_mean, mom_cov = x_init.copy(), P_init.copy()
-        cxxc = np.zeros((N, T + 1, m))
-        cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Cs[0], mom_cov, Cs[0]) + (mom_mean @ Cs[0].T) ** 2
-
-    # outputs stored time-major (T, N, ...): each step writes one contiguous block instead of N
-    # strided pieces; returned as (N, T, ...) views
-    means = np.empty((T, N, n))
-    covs = np.empty((T, N, n, n))
-    pmeans = np.empty((T, N, n))
-    pcovs = np.empty((T, N, n, n))
-    if keep_smoothed:
-        sm_mean = np.empty((T, N, L + 1, n))
-        sm_cov = np.empty((T, N, L + 1, n, n))
-    pu = np.empty((T, N, m))
-    ey = np.empty((T, N, m))
-    lam_out = np.empty((T, N, m))
-    if keep_augmented:
-        aug = {k: np.empty((T, N, nxi)) for k in ("aug_mean", "aug_pred_mean")}
-        aug.update({k: np.empty((T, N, nxi, nxi)) for k in ("aug_cov", "aug_pred_cov")})
-        aug["gain"] = np.empty((T, N, nxi, m))
-        aug["innovation_cov"] = np.empty((T, N, m, m))
-    diag = np.arange(m)
-
-    for k in range(1, T + 1):
-        A, Qd = system.transition(k - 1), system.process_cov(k - 1)
-        uk = None if u2 is None else u2[:, k - 1]
-        bx, dy = system.input_effect(k, uk)
-        # (17)-(18) with the shift structure of the augmented A: O(n nxi^2) instead of O(nxi^3),
-        # as GEMMs over the stacked runs
-        xi_p, P_p = shift_predict(xi, P, A, Qd, bx)
-        pmeans[k - 1], pcovs[k - 1] = xi_p[:, :n], P_p[:, :n, :n]                 # (27)-(28)
-
-        H = augmented_measurement_matrix(system, fading, k)                     # (m, nxi)
-        chi = xi_p @ H.T + dy                                                    # Lemma 1 at the prediction
-        sigma = sigma_const if sigma_const is not None else _sigma_of(system.measurement_cov(k), f"R({k})")
-        lo, hi = lo_all[k - 1], hi_all[k - 1]
-        if stale:
-            cx_pred[:, k] = xi_p[:, :n] @ Cs[k].T
-        if fading_variance_term:
-            mom_mean = mom_mean @ A.T + bx
-            mom_cov = A @ mom_cov @ A.T + Qd
-            cxxc[:, k] = np.einsum("ij,njk,ik->ni", Cs[k], mom_cov, Cs[k]) + (mom_mean @ Cs[k].T) ** 2
-
-        if tobit:
+    def _measurement(self, k, xp, Pp, y, u, carry, **options):
+        sys_, L, m, n = self.system, self.L, self.m, self.n
+        H = augmented_measurement_matrix(sys_, self.fading, k)                 # (m, nxi)
+        dy = self._feedthrough(k, u)
+        chi = xp @ H.T + dy                                                    # Lemma 1 at the prediction
+        sigma = self._sigma if self._sigma is not None else _sigma_of(sys_.measurement_cov(k), f"R({k})")
+        lo, hi = self._cens.limits(k)
+        N = xp.shape[0]
+        carry = dict(carry)
+        top = min(L, k)
+        Ck = measurement_matrix_at(sys_, k)
+        if self._stale:
+            cx = np.empty_like(carry["cx_pred"])
+            cx[:, 1:] = carry["cx_pred"][:, :-1]
+            cx[:, 0] = xp[:, :n] @ Ck.T
+            carry["cx_pred"] = cx
+        if self.fading_variance_term:
+            A, Qd = sys_.transition(k - 1), sys_.process_cov(k - 1)
+            bx = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
+            mom_mean = carry["mom_mean"] @ A.T + bx
+            mom_cov = A @ carry["mom_cov"] @ A.T + Qd
+            cxxc = np.empty_like(carry["cxxc"])
+            cxxc[:, 1:] = carry["cxxc"][:, :-1]
+            cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Ck, mom_cov, Ck) + (mom_mean @ Ck.T) ** 2
+            carry.update(mom_mean=mom_mean, mom_cov=mom_cov, cxxc=cxxc)
+        if self.tobit:
             st = censored_moments(chi, sigma, lo, hi)
-            if stale:   # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}
-                mu = dy + sum(thb[s] * cx_pred[:, k - s] for s in range(min(L, k) + 1))
+            if self._stale:   # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}
+                mu = dy + sum(self._thb[s] * carry["cx_pred"][:, s] for s in range(top + 1))
                 sp = censored_moments(mu, sigma, lo, hi)
                 p_lo, gam, p_hi = sp.p_lower, sp.p_uncensored, sp.p_upper
             else:
                 p_lo, gam, p_hi = st.p_lower, st.p_uncensored, st.p_upper
-            tmean = st.truncated_mean                                            # chi + sigma*lambda (34)
+            tmean = st.truncated_mean                                          # chi + sigma*lambda (34)
             yhat = _limit_terms(p_lo, lo) + gam * tmean + _limit_terms(p_hi, hi)  # (21), (37)
-            if exact_tobit_variance:   # law of total variance (option, spec §4.6-2)
+            if self.exact_tobit_variance:   # law of total variance (option, spec §4.6-2)
                 with np.errstate(invalid="ignore"):
                     noise = (gam * (st.truncated_var + (tmean - yhat) ** 2)
                              + _limit_terms(p_lo, (lo - yhat) ** 2) + _limit_terms(p_hi, (hi - yhat) ** 2))
             else:
-                noise = st.truncated_var                                         # R (1 - psi), (25)-(26), (12)
+                noise = st.truncated_var                                       # R (1 - psi), (25)-(26), (12)
             lam = st.inverse_mills
         else:   # fading means, no censoring handling: gamma = 1, lambda = psi = 0
             gam = np.ones((N, m))
             yhat = chi
             noise = np.broadcast_to(sigma**2, (N, m))
             lam = np.zeros((N, m))
-        if fading_variance_term:
-            Dk = sum(thv[s] * cxxc[:, k - s] for s in range(min(L, k) + 1))
+        if self.fading_variance_term:
+            Dk = sum(self._thv[s] * carry["cxxc"][:, s] for s in range(top + 1))
             noise = noise + gam**2 * Dk
+        mp = MeasurementPrediction(expected=yhat, H0=H, scale=gam, noise=noise,
+                                   extras={"p_uncensored": gam, "expected_y": yhat, "inverse_mills": lam})
+        return mp, carry
 
-        G = gam[:, :, None] * H                                                  # (N, m, nxi)
-        if m == 1:   # (24)-(25) as GEMVs over the stacked runs (H is common to all runs)
-            Rxe = gam[:, :, None] * (P_p.reshape(-1, nxi) @ H[0]).reshape(N, nxi, 1)
-            Ree = (gam * (Rxe[:, :, 0] @ H[0])[:, None])[:, :, None]
-        else:
-            Rxe = P_p @ np.swapaxes(G, -1, -2)                                   # (24)
-            Ree = G @ Rxe                                                        # (25)
-        Ree[:, diag, diag] += noise
-        innov = y2[:, k - 1] - yhat
-        missing = np.isnan(innov)
-        valid = ~missing if missing.any() else None
-        if valid is not None:
-            innov = np.where(missing, 0.0, innov)
-        if covariance_update == "joseph" and m == 1:                              # (20'), one channel
-            xi, P, K = _joseph_scalar_update(xi_p, P_p, innov, Rxe, Ree, valid, H[0], gam[:, 0], noise[:, 0])
-        elif covariance_update == "joseph":                                       # (20') Joseph form
-            Nmat = np.zeros((N, m, m))
-            Nmat[:, diag, diag] = noise
-            xi, P, K = gain_update(xi_p, P_p, innov, Rxe, Ree, valid, H=G, noise=Nmat)
-        else:                                                                    # (20') P - K S K^T
-            xi, P, K = gain_update(xi_p, P_p, innov, Rxe, Ree, valid)
-
-        means[k - 1], covs[k - 1] = xi[:, :n], P[:, :n, :n]                       # (29)-(30)
-        if keep_smoothed:
-            sm_mean[k - 1] = xi.reshape(N, L + 1, n)
+    def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
+        extras = dict(mp.extras)
+        n, L = self.n, self.L
+        N = x.shape[0]
+        if options.get("keep_smoothed", True):
+            sm_mean = x.reshape(N, L + 1, n).copy()
+            Pb = np.broadcast_to(P, (N,) + P.shape[1:])
+            sm_cov = np.empty((N, L + 1, n, n))
             for s in range(L + 1):   # diagonal blocks by slicing (a fancy-index gather costs 5x more)
-                sm_cov[k - 1, :, s] = P[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
+                sm_cov[:, s] = Pb[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
             if k <= L:   # blocks s > k stand for x_{k-s}, k-s < 0: not defined
-                sm_mean[k - 1, :, k + 1:] = np.nan
-                sm_cov[k - 1, :, k + 1:] = np.nan
-        pu[k - 1], ey[k - 1], lam_out[k - 1] = gam, yhat, lam
-        if keep_augmented:
-            aug["aug_mean"][k - 1], aug["aug_cov"][k - 1] = xi, P
-            aug["aug_pred_mean"][k - 1], aug["aug_pred_cov"][k - 1] = xi_p, P_p
-            aug["gain"][k - 1], aug["innovation_cov"][k - 1] = K, Ree
+                sm_mean[:, k + 1:] = np.nan
+                sm_cov[:, k + 1:] = np.nan
+            extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
+        if options.get("keep_augmented", False):
+            extras.update(aug_mean=x, aug_cov=np.broadcast_to(P, (N,) + P.shape[1:]), aug_pred_mean=xp,
+                          aug_pred_cov=np.broadcast_to(Pp, (N,) + Pp.shape[1:]),
+                          gain=np.broadcast_to(K, (N,) + K.shape[1:]),
+                          innovation_cov=None if Ree is None else np.broadcast_to(Ree, (N,) + Ree.shape[1:]))
+            if extras["innovation_cov"] is None:
+                del extras["innovation_cov"]
+        return extras
 
-    def out(arr: np.ndarray) -> np.ndarray:   # (T, N, ...) time-major store -> batch + (T, ...) view
-        return np.moveaxis(arr, 0, 1).reshape(batch + (T,) + arr.shape[2:])
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
+        self._cens.check(self.m, k0 + y2.shape[1])
+        if self.tobit and self.check_limits:
+            self._cens.check_measurements(y2, name, start=k0 + 1)
 
-    extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam_out)}
-    if keep_smoothed:
-        extras["smoothed_mean"] = out(sm_mean)
-        extras["smoothed_cov"] = out(sm_cov)
-    if keep_augmented:
-        extras.update({key: out(val) for key, val in aug.items()})
-    return FilterResult(mean=out(means), cov=out(covs), pred_mean=out(pmeans), pred_cov=out(pcovs), extras=extras)
+    def _prepare_step_options(self, state, options):
+        return {k: bool(v) for k, v in options.items()}
+
+    def _filter(self, y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state):
+        return self._run(y, u, x0, P0, outputs=outputs, state=state,
+                         step_options={"keep_smoothed": keep_smoothed, "keep_augmented": keep_augmented})
+
+
+class FadingTobitKalmanFilter(_FadingFamily):
+    r"""Tobit Kalman filter with L-th order Rice fading measurements (TKF-FM; Geng et al. 2017).
+
+    Parameters
+    ----------
+    system : LinearSystem
+        The state model and the (unfaded) measurement matrix :math:`C_k`; diagonal R.
+    fading : RiceFading
+        The fading channel (order L, coefficient law).
+    censoring : Censoring, optional
+        Censoring limits; default none.
+    p_uncensored_mode : {"augmented", "eq6_stale"}, default "augmented"
+    fading_variance_term : bool, default False
+    exact_tobit_variance : bool, default False
+    covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
+        See :func:`fading_tobit_kalman_filter` and the module docstring ("Deviation from the source");
+        the Joseph form is the default because the source's repaired (20') is stated in it.
+    check_limits : bool, default True
+        Raise if a reading lies outside its censoring limits.
+
+    Raises
+    ------
+    ValidationError
+        Wrong argument types, an unknown option value, non-diagonal R.
+    TypeError
+        An unknown keyword.
+
+    Examples
+    --------
+    The oscillator of the source (Sec. 4.1) with L = 2 fading and censoring at 0:
+
+    >>> import numpy as np, tobitkf as tk
+    >>> from tobitkf.channels.fading import RiceFading
+    >>> w = 0.052 * np.pi
+    >>> sys = tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]],
+    ...                       Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2))
+    >>> fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
+    >>> cens = tk.Censoring(lower=0.0)
+    >>> data = tk.simulate(sys, steps=50, runs=200, censoring=cens, measurement=fad, seed=0)
+    >>> out = FadingTobitKalmanFilter(sys, fad, cens).filter(data.y)
+    >>> out.mean.shape, out.extras["smoothed_mean"].shape       # x̂_{k|k} and x̂_{k-s|k}, s = 0..2
+    ((200, 50, 2), (200, 50, 3, 2))
+    >>> bool(tk.metrics.rmse(data.x, out.mean).mean() < 0.5)
+    True
+
+    Notes
+    -----
+    Cost per step :math:`O((n(L+1))^3 + m^3)` (Remark 10), dominated by the Joseph update;
+    the prediction uses the shift structure of :math:`\mathcal A_k`. The covariance recursion
+    depends on the data (through :math:`\bar\gamma, \lambda, \psi`), so it is run per run.
+    Online use: :meth:`step` (``keep_smoothed``/``keep_augmented`` are filter options only).
+
+    References
+    ----------
+    .. [1] H. Geng, Z. Wang, Y. Liang, Y. Cheng, F. E. Alsaadi, "Tobit Kalman filter with fading
+       measurements", Signal Processing 140 (2017) 60–68.
+    .. [2] B. Allik, C. Miller, M. J. Piovoso, R. Zurakowski, "The Tobit Kalman filter: an estimator
+       for censored measurements", IEEE TCST 24(1) (2016) 365–371.
+    """
+
+    _name = "FadingTobitKalmanFilter"
+
+    def __init__(self, system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None, *,
+                 p_uncensored_mode: str = "augmented", fading_variance_term: bool = False,
+                 exact_tobit_variance: bool = False, covariance_update: str = "joseph", check_limits: bool = True):
+        _check_parts(system, fading, censoring)
+        check_keywords({"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
+                        "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update},
+                       _TOBIT_OPTIONS)
+        self._setup(system, fading, censoring, tobit=True, p_uncensored_mode=p_uncensored_mode,
+                    fading_variance_term=fading_variance_term, exact_tobit_variance=exact_tobit_variance,
+                    covariance_update=covariance_update, check_limits=check_limits)
+        self.options = {"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
+                        "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update}
+
+    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, keep_augmented: bool = False,
+               keep_smoothed: bool = True, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+        """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
+        return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
+
+
+class FadingKalmanFilter(_FadingFamily):
+    r"""Augmented Kalman filter with the fading means, no censoring handling (baseline "kf-fm").
+
+    Parameters
+    ----------
+    system : LinearSystem
+    fading : RiceFading
+    fading_variance_term : bool, default False
+    covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
+        See :func:`fading_kalman_filter`.
+    """
+
+    _name = "FadingKalmanFilter"
+
+    def __init__(self, system: LinearSystem, fading: RiceFading, *, fading_variance_term: bool = False,
+                 covariance_update: str = "joseph"):
+        _check_parts(system, fading, None)
+        check_keywords({"fading_variance_term": fading_variance_term, "covariance_update": covariance_update},
+                       _KF_OPTIONS)
+        self._setup(system, fading, None, tobit=False, fading_variance_term=fading_variance_term,
+                    covariance_update=covariance_update, check_limits=False)
+        self.options = {"fading_variance_term": fading_variance_term, "covariance_update": covariance_update}
+
+    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, keep_augmented: bool = False,
+               keep_smoothed: bool = True, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+        """Filter ``y`` (..., T, m); see :func:`fading_kalman_filter`."""
+        return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
 
 def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, y: Any, *,
@@ -361,8 +439,8 @@ def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censori
         Add the fading-variance term to (25) (module docstring, A4).
     exact_tobit_variance : bool, default False
         Use the exact censored variance instead of (12) in (25) (module docstring, A5).
-    covariance_update : {"joseph", "standard"}, default "joseph"
-        Form of the repaired (20').
+    covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
+        Form of the repaired (20') (``"square_root"``: the QR array form, not in the source).
     x0, P0 : array_like, optional
         Override the system's prior ``(..., n)``, ``(..., n, n)``.
     keep_augmented : bool, default False
@@ -403,13 +481,10 @@ def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censori
     >>> bool(np.allclose(a, tk.KalmanFilter(sys).filter(y).mean, rtol=0, atol=1e-12))
     True
     """
-    check_keywords({"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
-                    "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update},
-                   _TOBIT_OPTIONS)
-    return _run(system, fading, censoring, y, u=u, tobit=True, p_uncensored_mode=p_uncensored_mode,
-                fading_variance_term=bool(fading_variance_term), exact_tobit_variance=bool(exact_tobit_variance),
-                covariance_update=covariance_update, x0=x0, P0=P0, keep_augmented=keep_augmented,
-                check_limits=check_limits, keep_smoothed=keep_smoothed)
+    est = FadingTobitKalmanFilter(system, fading, censoring, p_uncensored_mode=p_uncensored_mode,
+                                  fading_variance_term=fading_variance_term, exact_tobit_variance=exact_tobit_variance,
+                                  covariance_update=covariance_update, check_limits=check_limits)
+    return est.filter(y, u=u, x0=x0, P0=P0, keep_augmented=keep_augmented, keep_smoothed=keep_smoothed)
 
 
 def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u: Any = None,
@@ -426,118 +501,9 @@ def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u:
 
     Parameters and returns as :func:`fading_tobit_kalman_filter` (without censoring options).
     """
-    check_keywords({"fading_variance_term": fading_variance_term, "covariance_update": covariance_update},
-                   _KF_OPTIONS)
-    return _run(system, fading, None, y, u=u, tobit=False, p_uncensored_mode="augmented",
-                fading_variance_term=bool(fading_variance_term), exact_tobit_variance=False,
-                covariance_update=covariance_update, x0=x0, P0=P0, keep_augmented=keep_augmented,
-                check_limits=False, keep_smoothed=keep_smoothed)
-
-
-class FadingTobitKalmanFilter:
-    r"""Tobit Kalman filter with L-th order Rice fading measurements (TKF-FM; Geng et al. 2017).
-
-    Parameters
-    ----------
-    system : LinearSystem
-        The state model and the (unfaded) measurement matrix :math:`C_k`; diagonal R.
-    fading : RiceFading
-        The fading channel (order L, coefficient law).
-    censoring : Censoring, optional
-        Censoring limits; default none.
-    p_uncensored_mode : {"augmented", "eq6_stale"}, default "augmented"
-    fading_variance_term : bool, default False
-    exact_tobit_variance : bool, default False
-    covariance_update : {"joseph", "standard"}, default "joseph"
-        See :func:`fading_tobit_kalman_filter` and the module docstring ("Deviation from the source").
-
-    Raises
-    ------
-    ValidationError
-        Wrong argument types, an unknown option value, non-diagonal R.
-    TypeError
-        An unknown keyword.
-
-    Examples
-    --------
-    The oscillator of the source (Sec. 4.1) with L = 2 fading and censoring at 0:
-
-    >>> import numpy as np, tobitkf as tk
-    >>> from tobitkf.channels.fading import RiceFading
-    >>> w = 0.052 * np.pi
-    >>> sys = tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]],
-    ...                       Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2))
-    >>> fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
-    >>> cens = tk.Censoring(lower=0.0)
-    >>> data = tk.simulate(sys, steps=50, runs=200, censoring=cens, measurement=fad, seed=0)
-    >>> out = FadingTobitKalmanFilter(sys, fad, cens).filter(data.y)
-    >>> out.mean.shape, out.extras["smoothed_mean"].shape       # x̂_{k|k} and x̂_{k-s|k}, s = 0..2
-    ((200, 50, 2), (200, 50, 3, 2))
-    >>> bool(tk.metrics.rmse(data.x, out.mean).mean() < 0.5)
-    True
-
-    Notes
-    -----
-    Cost per step :math:`O((n(L+1))^3 + m^3)` (Remark 10), dominated by the Joseph update;
-    the prediction uses the shift structure of :math:`\mathcal A_k`. The covariance recursion
-    depends on the data (through :math:`\bar\gamma, \lambda, \psi`), so it is run per run.
-
-    References
-    ----------
-    .. [1] H. Geng, Z. Wang, Y. Liang, Y. Cheng, F. E. Alsaadi, "Tobit Kalman filter with fading
-       measurements", Signal Processing 140 (2017) 60–68 (spec ``000_tkf_fading.md``).
-    .. [2] B. Allik, C. Miller, M. J. Piovoso, R. Zurakowski, "The Tobit Kalman filter: an estimator
-       for censored measurements", IEEE TCST 24(1) (2016) 365–371.
-    """
-
-    def __init__(self, system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None, *,
-                 p_uncensored_mode: str = "augmented", fading_variance_term: bool = False,
-                 exact_tobit_variance: bool = False, covariance_update: str = "joseph"):
-        _check_parts(system, fading, censoring)
-        check_keywords({"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
-                        "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update},
-                       _TOBIT_OPTIONS)
-        if not system.R.varying:
-            _sigma_of(system.measurement_cov(1), "R")
-        self.system, self.fading, self.censoring = system, fading, censoring
-        self.options = {"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
-                        "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update}
-
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, keep_augmented: bool = False,
-               keep_smoothed: bool = True) -> FilterResult:
-        """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
-        return fading_tobit_kalman_filter(self.system, self.fading, self.censoring, y, u=u, x0=x0, P0=P0,
-                                          keep_augmented=keep_augmented, keep_smoothed=keep_smoothed,
-                                          **self.options)
-
-
-class FadingKalmanFilter:
-    r"""Augmented Kalman filter with the fading means, no censoring handling (baseline "kf-fm").
-
-    Parameters
-    ----------
-    system : LinearSystem
-    fading : RiceFading
-    fading_variance_term : bool, default False
-    covariance_update : {"joseph", "standard"}, default "joseph"
-        See :func:`fading_kalman_filter`.
-    """
-
-    def __init__(self, system: LinearSystem, fading: RiceFading, *, fading_variance_term: bool = False,
-                 covariance_update: str = "joseph"):
-        _check_parts(system, fading, None)
-        check_keywords({"fading_variance_term": fading_variance_term, "covariance_update": covariance_update},
-                       _KF_OPTIONS)
-        if not system.R.varying:
-            _sigma_of(system.measurement_cov(1), "R")
-        self.system, self.fading = system, fading
-        self.options = {"fading_variance_term": fading_variance_term, "covariance_update": covariance_update}
-
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, keep_augmented: bool = False,
-               keep_smoothed: bool = True) -> FilterResult:
-        """Filter ``y`` (..., T, m); see :func:`fading_kalman_filter`."""
-        return fading_kalman_filter(self.system, self.fading, y, u=u, x0=x0, P0=P0, keep_augmented=keep_augmented,
-                                    keep_smoothed=keep_smoothed, **self.options)
+    est = FadingKalmanFilter(system, fading, fading_variance_term=fading_variance_term,
+                             covariance_update=covariance_update)
+    return est.filter(y, u=u, x0=x0, P0=P0, keep_augmented=keep_augmented, keep_smoothed=keep_smoothed)
 
 
 def fading_estimators(system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None,

@@ -6,11 +6,13 @@ missing measurements", eq. (5) (seed 004). The gains come from the LMI design of
 linear recursion, with no covariance.
 
 Time convention (the source's, forced by (5) being a one-step predictor): ``y[..., k, :]`` is
-:math:`\tilde y_k` for k = 0..T-1 (measured from x_k).
+:math:`\tilde y_k` for k = 0..T-1 (measured from x_k); row k of the result is :math:`\hat x_{k+1}`
+(``times`` = 1..T), and the prior :math:`\hat x_0` is the state at ``k = 0``.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,13 +21,14 @@ import numpy as np
 from .._validation import ShapeError, ValidationError, as_float_array
 from ..design.hinf import HinfCertificate
 from ..models.ross import RossModel
+from .core import Estimator, FilterResult, FilterState
 
 __all__ = ["HinfFilterResult", "hinf_filter", "RegionalHinfFilter"]
 
 
 @dataclass(frozen=True)
 class HinfFilterResult:
-    """Output of the filter (5).
+    """Output of the deprecated :func:`hinf_filter` (pre-0.2 layout, with the initial x̂_0 as row 0).
 
     Attributes
     ----------
@@ -39,41 +42,38 @@ class HinfFilterResult:
     z: np.ndarray
 
 
-def hinf_filter(Af: Any, Bf: Any, M: Any, y: Any, xhat0: Any = None) -> HinfFilterResult:
-    r"""Run :math:`\hat x_{k+1} = A_f\hat x_k + B_f\tilde y_k`, :math:`\hat z_k = M\hat x_k` (5) on ``y`` (..., T, m)."""
-    Af = as_float_array(Af, "Af", ndim=2)
-    Bf = as_float_array(Bf, "Bf", ndim=2)
-    M = as_float_array(M, "M", ndim=2)
-    n = Af.shape[0]
-    if Af.shape != (n, n) or Bf.shape[0] != n or M.shape[1] != n:
-        raise ShapeError(f"Af, Bf, M: expected (n, n), (n, m), (r, n), got {Af.shape}, {Bf.shape}, {M.shape}")
-    y = as_float_array(y, "y")
-    if y.ndim < 2 or y.shape[-1] != Bf.shape[1]:
-        raise ShapeError(f"y: expected (..., T, {Bf.shape[1]}), got {y.shape}")
-    batch, T = y.shape[:-2], y.shape[-2]
-    xh = np.empty(batch + (T + 1, n))
-    if xhat0 is None:
-        xh[..., 0, :] = 0.0
-    else:
-        x0 = as_float_array(xhat0, "xhat0")
-        try:
-            xh[..., 0, :] = x0
-        except ValueError:
-            raise ShapeError(f"xhat0: expected ({n},) or y's batch shape + ({n},), got {x0.shape}") from None
-    for k in range(T):
-        xh[..., k + 1, :] = xh[..., k, :] @ Af.T + y[..., k, :] @ Bf.T
-    return HinfFilterResult(mean=xh, z=xh @ M.T)
+class RegionalHinfFilter(Estimator):
+    r"""The filter (5), :math:`\hat x_{k+1} = A_f\hat x_k + B_f\tilde y_k`, :math:`\hat z_k = M\hat x_k`.
 
-
-class RegionalHinfFilter:
-    """The filter (5) with given gains (thin class over :func:`hinf_filter`).
+    An estimator with the common online API: ``init(batch_shape, x0=...)`` is :math:`\hat x_0`
+    (default 0, ``state.k = 0``); ``step(state, y_k)`` takes :math:`\tilde y_k` and returns
+    :math:`\hat x_{k+1}` (``state.k = k+1``); ``filter(y)`` returns the common :class:`FilterResult`
+    whose row i is :math:`\hat x_{i+1}` from :math:`\tilde y_0..\tilde y_i` (``times`` 1..T),
+    with ``extras["z"]`` the estimated outputs :math:`\hat z_{i+1}`. The filter has no covariance
+    (``cov`` is None) and no prediction separate from its estimate (``pred_mean`` is None).
 
     Parameters
     ----------
     Af : (n, n) array_like
     Bf : (n, m) array_like
     M : (r, n) array_like
+
+    Raises
+    ------
+    ShapeError
+        Gains that do not conform.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> f = tk.RegionalHinfFilter([[0.5]], [[1.0]], [[2.0]])
+    >>> out = f.filter(np.array([[1.0], [0.0]]))
+    >>> out.mean[:, 0].tolist(), out.extras["z"][:, 0].tolist(), out.times.tolist()
+    ([1.0, 0.5], [2.0, 1.0], [1, 2])
     """
+
+    _name = "RegionalHinfFilter"
+    _allow_missing = False
 
     def __init__(self, Af: Any, Bf: Any, M: Any):
         self.Af = as_float_array(Af, "Af", ndim=2)
@@ -83,19 +83,65 @@ class RegionalHinfFilter:
         if self.Af.shape != (n, n) or self.Bf.shape[0] != n or self.M.shape[1] != n:
             raise ShapeError(f"Af, Bf, M: expected (n, n), (n, m), (r, n), got {self.Af.shape}, "
                              f"{self.Bf.shape}, {self.M.shape}")
+        self.n, self.m = n, self.Bf.shape[1]
 
     @classmethod
     def from_certificate(cls, cert: HinfCertificate, model: RossModel) -> RegionalHinfFilter:
-        """Filter from a successful :func:`design`; refuses a failed one."""
+        """Filter from a successful :func:`~tobitkf.design.hinf.design`; refuses a failed one."""
         if not isinstance(cert, HinfCertificate):
             raise ValidationError(f"cert: expected a HinfCertificate from design(), got {type(cert).__name__}")
         if not cert.ok:
             raise ValidationError(f"cert: expected a solved and verified design, got status {cert.status!r}")
         return cls(cert.Af, cert.Bf, model.M)
 
-    def filter(self, y: Any, xhat0: Any = None) -> HinfFilterResult:
-        """Run (5) on ``y`` (..., T, m); see :func:`hinf_filter`."""
-        return hinf_filter(self.Af, self.Bf, self.M, y, xhat0)
+    def _initial(self, N, x0, P0, batch):
+        if P0 is not None:
+            raise ValidationError("P0: the H-infinity filter has no covariance; only x0 can be given")
+        n = self.n
+        if x0 is None:
+            return np.zeros((N, n)), None, {}
+        x = as_float_array(x0, "x0")
+        try:
+            x = np.broadcast_to(x, tuple(batch) + (n,)).reshape(N, n).copy()
+        except ValueError:
+            raise ShapeError(f"x0: expected ({n},) or the batch shape + ({n},), got {x.shape}") from None
+        return x, None, {}
+
+    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
+        x_new = x @ self.Af.T + y @ self.Bf.T                                 # (5)
+        return x_new, None, None, carry, None, None, {"z": x_new @ self.M.T}
+
+    def filter(self, y: Any, xhat0: Any = None, *, x0: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
+        """Run (5) on ``y`` (..., T, m): rows x̂_1..x̂_T, ``extras["z"]`` ẑ_1..ẑ_T, ``times`` 1..T.
+
+        ``x0`` is x̂_0 (default 0); the positional ``xhat0`` is its deprecated spelling.
+        """
+        if xhat0 is not None:
+            warnings.warn("RegionalHinfFilter.filter(y, xhat0) is deprecated: use filter(y, x0=...)",
+                          DeprecationWarning, stacklevel=2)
+            if x0 is not None:
+                raise ValidationError("x0: given twice (x0= and the deprecated positional xhat0)")
+            x0 = xhat0
+        return self._run(y, None, x0, None, outputs=outputs, state=state)
+
+
+def hinf_filter(Af: Any, Bf: Any, M: Any, y: Any, xhat0: Any = None) -> HinfFilterResult:
+    r"""Deprecated: run (5) and return x̂_0..x̂_T in the pre-0.2 layout.
+
+    Use ``RegionalHinfFilter(Af, Bf, M).filter(y, x0=xhat0)``, which returns the common
+    :class:`FilterResult` (rows x̂_1..x̂_T with ``times``, the outputs in ``extras["z"]``).
+    """
+    warnings.warn("hinf_filter(Af, Bf, M, y, xhat0) is deprecated: use RegionalHinfFilter(Af, Bf, M).filter(y, x0=...)",
+                  DeprecationWarning, stacklevel=2)
+    f = RegionalHinfFilter(Af, Bf, M)
+    res = f.filter(y, x0=xhat0, outputs="mean")
+    y2 = as_float_array(y, "y")
+    batch = y2.shape[:-2]
+    x0 = np.zeros(batch + (f.n,)) if xhat0 is None else np.broadcast_to(as_float_array(xhat0, "xhat0"),
+                                                                       batch + (f.n,))
+    mean = np.concatenate([x0[..., None, :], res.mean], axis=-2)
+    return HinfFilterResult(mean=mean, z=mean @ f.M.T)
 
 
 # Names that lived in this module before the layout of 0.2 (design, model, simulator): kept for one

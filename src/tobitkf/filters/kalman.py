@@ -1,7 +1,6 @@
 r"""Batched Kalman filter and the two naive baselines for censored data.
 
-Source: Miller (2015), §2.1.2, (2.3)–(2.6) (spec 001a §2.2); baselines from §1.2
-and §3.3.6 (spec 001a §3.5, "Comparators"):
+Source: Miller (2015), §2.1.2, (2.3)–(2.6); baselines from §1.2 and §3.3.6:
 
 .. math::
 
@@ -9,14 +8,17 @@ and §3.3.6 (spec 001a §3.5, "Comparators"):
     K_k &= \bar P_k C_k^T (C_k\bar P_k C_k^T + R_k)^{-1}, &
     \hat x_k &= \bar x_k + K_k(y_k - C_k\bar x_k - D u_k), \quad P_k = (I - K_kC_k)\bar P_k
 
+In the terms of the shared core (:mod:`tobitkf.filters.core`): the measurement prediction is
+:math:`\hat y = C_k\bar x_k + D_ku_k`, :math:`H_0 = C_k`, no channel scale, noise :math:`R_k`.
+
 Time convention: x_0 ~ N(x0, P0) is the prior; y_1 is stored at index 0;
 output index k-1 holds x̂_{k|k}, P_{k|k}.
 
 * :class:`KalmanFilter` fed censored values treats them as ordinary
   measurements: the dissertation's "standard KF" baseline (biased under censoring).
 * :class:`DroppingKalmanFilter` skips censored readings (x̂ = x̄, P = P̄ for a
-  censored channel): the "intermittent-measurements KF" ([16] in Miller; the
-  spec's "IKF"). Censoring is detected as a reading within a relative tolerance of
+  censored channel): the "intermittent-measurements KF" ([16] in Miller; "IKF" in our
+  experiments). Censoring is detected as a reading within a relative tolerance of
   its limit [non-source]; with vector measurements only the censored rows are
   dropped [non-source].
 
@@ -30,7 +32,7 @@ P = S Sᵀ through QR factorizations (the array form of the Kalman filter; Kamin
 implementation methods). It is not in the sources; it keeps P positive semidefinite by
 construction where the other two lose it (a huge prior with a near-singular R, see
 ``docs/reliability.md``), costs about 4-6 times the standard form, and runs on the numpy
-path only.
+path only. The source prescribes (2.6), so ``"standard"`` is the default.
 
 Symbols: ``mean`` = x̂, ``cov`` = P, ``pred_mean`` = x̄, ``pred_cov`` = P̄.
 """
@@ -41,22 +43,238 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError, check_instance
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
-from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements, process_roots, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
+from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
+from .core import (COVARIANCE_FORMS, FilterResult, FilterState, GaussianFilter, MeasurementPrediction, Transition,
+                   check_keywords, check_prior, prepare_inputs, process_roots)
 
-__all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter"]
+__all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter", "LinearGaussianFamily"]
 
-COVARIANCE_UPDATES = ("standard", "joseph", "square_root")
+COVARIANCE_UPDATES = COVARIANCE_FORMS
 _OPTIONS = {"covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
+
+
+class LinearGaussianFamily(GaussianFilter):
+    """What the families on a :class:`~tobitkf.LinearSystem` share: prior, transition, inputs.
+
+    The prior is the system's :math:`(\\bar x_0, P_0)` or an override; it is shared by the runs (one
+    covariance, leading axis 1) unless given per run. The transition from k-1 to k is
+    :math:`A_{k-1}`, :math:`B_{k-1}Q_{k-1}B_{k-1}^T` and the input offset :math:`B^u_ku_k`.
+    """
+
+    system: LinearSystem
+
+    def _setup_system(self, system: LinearSystem) -> None:
+        self.system = system
+        self.n, self.m = system.n, system.m
+        self._roots = process_roots(system)
+
+    def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):
+        x, P = check_prior(self.system, x0, P0, N, batch)
+        per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
+        if not per_run:
+            P = P[:1].copy()
+        return x, P, {}
+
+    def _transition(self, k: int, u: np.ndarray | None, carry) -> Transition:
+        sys_ = self.system
+        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
+        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
+        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, G=G)
+
+    def _feedthrough(self, k: int, u: np.ndarray | None):
+        if u is None or self.system.D is None:
+            return 0.0
+        return u @ self.system.D.at(k).T
+
+    def _prepare_inputs(self, u: Any, N: int, T: int, batch: tuple[int, ...]) -> np.ndarray | None:
+        return prepare_inputs(self.system, u, N, T)
+
+    def _step_input(self, state: FilterState, u: Any) -> np.ndarray | None:
+        if u is None:
+            return None
+        sys_ = self.system
+        if sys_.p is None:
+            raise ShapeError("u: the system has no control input (give Bu or D)")
+        arr = as_float_array(u, "u")
+        want = state.batch_shape + (sys_.p,)
+        try:
+            arr = np.broadcast_to(arr, want)
+        except ValueError:
+            raise ShapeError(f"u: expected one input of shape {want} (batch_shape + (p,)), got {arr.shape}") from None
+        return arr.reshape(state.runs, sys_.p)
+
+    def _check_record(self, y2: np.ndarray, u2, k0: int, name: str = "y") -> None:
+        self.system.check_horizon(k0 + y2.shape[1])
+
+
+class KalmanFilter(LinearGaussianFamily):
+    """Kalman filter (Miller (2.3)–(2.6)); fed censored data it is the "standard KF" baseline.
+
+    Parameters
+    ----------
+    system : LinearSystem
+        The model.
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        See :func:`kalman_filter`; ``"square_root"`` (a factor :math:`S`, :math:`P = SS^T`,
+        from QR factorizations) stays positive semidefinite where the other two fail.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        Implementation of the time loop; see :func:`kalman_filter`. ``"numba"`` has no
+        square-root form and is refused with ``covariance_update="square_root"``.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    >>> out = tk.KalmanFilter(sys).filter(np.array([[2.0]]))
+    >>> float(out.mean[0, 0]), float(out.cov[0, 0, 0])     # prior and measurement weighted equally
+    (1.0, 0.5)
+
+    Online, one reading at a time (the same numbers):
+
+    >>> kf = tk.KalmanFilter(sys)
+    >>> state = kf.step(kf.init(), [2.0])
+    >>> float(state.mean[0]), float(state.cov[0, 0]), state.k
+    (1.0, 0.5, 1)
+    """
+
+    _name = "KalmanFilter"
+
+    def __init__(self, system: LinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
+        check_instance(system, LinearSystem, "system")
+        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
+        check_square_root(backend, covariance_update, "the Kalman filter")
+        self._setup_system(system)
+        self.covariance_update = covariance_update
+        self.backend = backend
+
+    def _measurement(self, k, xp, Pp, y, u, carry, **options):
+        sys_ = self.system
+        C, R = sys_.measurement(k), sys_.measurement_cov(k)
+        return MeasurementPrediction(expected=xp @ C.T + self._feedthrough(k, u), H0=C, noise=R[None]), carry
+
+    # ---- the compiled path ------------------------------------------------------------
+    def _kernel_ok(self, u) -> bool:
+        return kernel_ok(self, u, "the Kalman filter")
+
+    def _fast_filter(self, y2, u2, state, want, batch):
+        if not self._kernel_ok(u2):
+            return None
+        return _finite_or_none(_kf_kernel_run(self, y2, np.isnan(y2), state, want, batch))
+
+    def _fast_step(self, state, y, u, options):
+        if not self._kernel_ok(u):
+            return None
+        return _kf_kernel_step(self, y, np.isnan(y), state)
+
+    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
+        """Filter measurements ``y`` (..., T, m); see :func:`kalman_filter`.
+
+        ``outputs`` selects what is recorded per step (``"all"``, ``"last"`` or names from
+        ``mean, cov, var, pred_mean, pred_cov, extras``); ``state`` continues from a previous state
+        (e.g. ``result.final``) instead of the prior.
+        """
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+def _finite_or_none(res: FilterResult) -> FilterResult | None:
+    """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
+    the call, which makes the affected means NaN from the first bad step and warns (the kernels would
+    skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
+    P = res.final.P
+    return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
+
+
+def _kernel_matrices(est) -> tuple[np.ndarray, ...]:
+    """A, B Q B^T, C, R of a time-invariant system as contiguous float64 (computed once per estimator)."""
+    mats = est.__dict__.get("_kernel_mats")
+    if mats is None:
+        sys_ = est.system
+        c64 = np.ascontiguousarray
+        mats = est._kernel_mats = (c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float),
+                                   c64(sys_.measurement(1), dtype=float), c64(sys_.measurement_cov(1), dtype=float))
+    return mats
+
+
+_EMPTY: dict[tuple, np.ndarray] = {}
+
+
+def _empty(shape: tuple) -> np.ndarray:
+    """A cached zero-size output (an output the kernel is not asked to write)."""
+    arr = _EMPTY.get(shape)
+    if arr is None:
+        arr = _EMPTY[shape] = np.empty(shape)
+    return arr
+
+
+def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state: FilterState) -> FilterState | None:
+    """One online step through the compiled kernel (T = 1, no per-step outputs); None when it diverged."""
+    N, m = y.shape
+    n = est.n
+    P = state.P
+    per_run = P.shape[0] != 1 or bool(missing.any())
+    if per_run and P.shape[0] != N:
+        P = np.broadcast_to(P, (N, n, n))
+    P = np.ascontiguousarray(P, dtype=float)
+    Pn = P.shape[0]
+    x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
+    A, Qd, C, R = _kernel_matrices(est)
+    e_m, e_c = _empty((N, 0, n)), _empty((Pn, 0, n, n))
+    kernels().kf_kernel(np.ascontiguousarray(y.reshape(N, 1, m)), missing.reshape(N, 1, m), A, Qd, C, R,
+                        np.ascontiguousarray(state.x, dtype=float), P, est.covariance_update == "joseph",
+                        e_m, e_c, e_m, e_c, x_last, P_last)
+    if not np.isfinite(P_last).all():
+        return None
+    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry)
+
+
+def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):
+    """The compiled loop (:func:`tobitkf.filters._kernels.kf_kernel`) from ``state``; outputs on request."""
+    sys_ = est.system
+    N, T, m = y2.shape
+    n = sys_.n
+    x = np.ascontiguousarray(state.x, dtype=float)
+    P = state.P
+    per_run = bool(missing.any()) or P.shape[0] != 1
+    P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
+    Pn = P.shape[0]
+
+    def arr(name, shape, runs):
+        return np.empty((runs, T) + shape) if name in want else np.empty((runs, 0) + shape)
+
+    means, pmeans = arr("mean", (n,), N), arr("pred_mean", (n,), N)
+    need_cov = "cov" in want or "var" in want
+    covs, pcovs = arr("cov", (n, n), Pn) if need_cov else np.empty((Pn, 0, n, n)), arr("pred_cov", (n, n), Pn)
+    x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
+    c64 = np.ascontiguousarray
+    kernels().kf_kernel(c64(y2), c64(missing), c64(sys_.transition(0), dtype=float),
+                        c64(sys_.process_cov(0), dtype=float), c64(sys_.measurement(1), dtype=float),
+                        c64(sys_.measurement_cov(1), dtype=float), x, P, est.covariance_update == "joseph",
+                        means, covs, pmeans, pcovs, x_last, P_last)
+    final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
+
+    def out(a):
+        if a.shape[1] == 0:
+            return None
+        if a.shape[0] == 1 and N != 1:
+            return np.broadcast_to(a[0], batch + a.shape[1:])
+        return a.reshape(batch + a.shape[1:])
+
+    cov = out(covs)
+    var = None
+    if "var" in want and cov is not None:
+        var = np.diagonal(cov, axis1=-2, axis2=-1)
+    return FilterResult(mean=out(means), cov=cov if "cov" in want else None, pred_mean=out(pmeans),
+                        pred_cov=out(pcovs), extras={}, times=np.arange(state.k + 1, state.k + T + 1), var=var,
+                        final=final)
 
 
 def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarray | None = None,
                   covariance_update: str = "standard", x0: Any = None, P0: Any = None,
-                  backend: str = "auto") -> FilterResult:
+                  backend: str = "auto", outputs: Any = "all") -> FilterResult:
     r"""Run the Kalman filter (Miller (2.3)–(2.6)) over a batch of records.
 
     Parameters
@@ -68,7 +286,7 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
     u : (T, p) or (..., T, p) array_like, optional
         Control inputs u_1..u_T.
     skip : (..., T, m) bool array, optional
-        Channels to leave out of the update (e.g. censored readings).
+        Channels to leave out of the update (e.g. censored readings); the same as a NaN reading.
     covariance_update : {"standard", "joseph", "square_root"}
         ``"standard"`` is (2.6) :math:`(I-KC)\bar P`; ``"joseph"`` uses
         :math:`(I-KC)\bar P(I-KC)^T + KRK^T`, equal in exact arithmetic and
@@ -82,16 +300,19 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
         ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
         covers time-invariant A, B, C, Q, R without control input (missing samples,
         ``skip``, per-run priors and the standard and Joseph updates included, not the
-        square-root form); ``"numpy"`` the vectorised reference path, which covers
+        square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers
         everything; ``"auto"`` the kernel when numba is installed and the case is covered,
         else numpy (always numpy for ``covariance_update="square_root"``).
+    outputs : str or sequence of str, default "all"
+        Per-step outputs to record: ``"all"``, ``"last"`` (only ``result.final``), or names from
+        ``mean, cov, var, pred_mean, pred_cov, extras``.
 
     Returns
     -------
     FilterResult
-        ``mean`` (..., T, n), ``cov`` (..., T, n, n), ``pred_mean``, ``pred_cov``.
-        When no sample is skipped the covariances are the same for every run and
-        are returned as read-only broadcast views.
+        ``mean`` (..., T, n), ``cov`` (..., T, n, n), ``pred_mean``, ``pred_cov``, ``times`` = 1..T,
+        ``final`` the state after y_T. When no sample is skipped the covariances are the same for
+        every run and are returned as read-only broadcast views.
 
     Raises
     ------
@@ -128,127 +349,27 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
     array (QR) form of the square-root filter of Kaminski, Bryson & Schmidt (1971), Bierman
     (1977) and Grewal & Andrews (*Kalman Filtering: Theory and Practice*).
     """
-    check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
-    form_gap = check_square_root(backend, covariance_update, "the Kalman filter")
-    y2, batch = prepare_measurements(y, system.m)
-    N, T, m = y2.shape
-    n = system.n
-    system.check_horizon(T)
-    u2 = prepare_inputs(system, u, N, T)
-    missing = np.isnan(y2)
+    est = KalmanFilter(system, covariance_update=covariance_update, backend=backend)
     if skip is not None:
+        arr = np.asarray(y, dtype=float)
         skip = np.asarray(skip, dtype=bool)
-        if skip.shape[-2:] != (T, m):
-            raise ValidationError(f"skip: expected (..., {T}, {m}), got {skip.shape}")
-        missing = missing | np.broadcast_to(skip.reshape((-1, T, m)), (N, T, m))
-    per_run = bool(missing.any()) or x0 is not None and np.ndim(x0) > 1 or P0 is not None and np.ndim(P0) > 2
-    x, P = check_prior(system, x0, P0, N, batch)
-    if not per_run:
-        P = P[:1]
-    means = np.empty((N, T, n))
-    pmeans = np.empty((N, T, n))
-    covs = np.empty((P.shape[0], T, n, n))
-    pcovs = np.empty_like(covs)
-    joseph = covariance_update == "joseph"
-    if use_kernel(backend, form_gap or system_gap(system, u), "the Kalman filter"):
-        c64 = np.ascontiguousarray
-        kernels().kf_kernel(c64(y2), c64(missing), c64(system.transition(0), dtype=float),
-                            c64(system.process_cov(0), dtype=float), c64(system.measurement(1), dtype=float),
-                            c64(system.measurement_cov(1), dtype=float), x, P, joseph, means, covs, pmeans, pcovs)
-    elif covariance_update == "square_root":
-        _sqrt_loop(system, y2, u2, missing if per_run else None, x, P, means, covs, pmeans, pcovs)
-    else:
-        for k in range(1, T + 1):
-            uk = None if u2 is None else u2[:, k - 1]
-            bx, dy = system.input_effect(k, uk)
-            x, P = predict(x, P, system.transition(k - 1), system.process_cov(k - 1), bx)
-            pmeans[:, k - 1], pcovs[:, k - 1] = x, P
-            C, R = system.measurement(k), system.measurement_cov(k)
-            CP = C @ P
-            Ree = CP @ C.T + R
-            Rxe = np.swapaxes(CP, -1, -2)
-            innov = y2[:, k - 1] - x @ C.T - dy
-            valid = ~missing[:, k - 1] if per_run else None
-            if joseph:
-                x, P, _ = gain_update(x, P, np.nan_to_num(innov), Rxe, Ree, valid, H=C[None], noise=R[None])
-            else:
-                x, P, _ = gain_update(x, P, np.nan_to_num(innov), Rxe, Ree, valid)
-            means[:, k - 1], covs[:, k - 1] = x, P
-    if not per_run:
-        covs = np.broadcast_to(covs, (N, T, n, n))
-        pcovs = np.broadcast_to(pcovs, (N, T, n, n))
-    return FilterResult(mean=means.reshape(batch + (T, n)), cov=covs.reshape(batch + (T, n, n)),
-                        pred_mean=pmeans.reshape(batch + (T, n)), pred_cov=pcovs.reshape(batch + (T, n, n)))
+        if arr.ndim < 2 or skip.shape[-2:] != arr.shape[-2:]:
+            raise ValidationError(f"skip: expected (..., {arr.shape[-2] if arr.ndim >= 2 else 'T'}, {system.m}), "
+                                  f"got {skip.shape}")
+        try:
+            y = np.where(np.broadcast_to(skip, arr.shape), np.nan, arr)
+        except ValueError:
+            raise ValidationError(f"skip: expected (..., T, m) matching y {arr.shape}, got {skip.shape}") from None
+    return est.filter(y, u=u, x0=x0, P0=P0, outputs=outputs)
 
 
-def _sqrt_loop(system: LinearSystem, y2: np.ndarray, u2: np.ndarray | None, missing: np.ndarray | None,
-               x: np.ndarray, P: np.ndarray, means: np.ndarray, covs: np.ndarray, pmeans: np.ndarray,
-               pcovs: np.ndarray) -> None:
-    """Time loop of the square-root form (:func:`~tobitkf.filters._common.sqrt_predict`,
-    :func:`~tobitkf.filters._common.sqrt_update`), filling the output arrays in place.
-
-    ``missing`` (N, T, m) or None when no sample is skipped (then P, S are shared, (1, n, n)).
-    """
-    T = y2.shape[1]
-    S = psd_sqrt(P)
-    G = process_roots(system)
-    R_root = None if system.R.varying else psd_sqrt(system.measurement_cov(1))
-    for k in range(1, T + 1):
-        uk = None if u2 is None else u2[:, k - 1]
-        bx, dy = system.input_effect(k, uk)
-        x, S = sqrt_predict(x, S, system.transition(k - 1), G(k - 1), bx)
-        pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
-        C, R = system.measurement(k), system.measurement_cov(k)
-        innov = y2[:, k - 1] - x @ C.T - dy
-        valid = None if missing is None else ~missing[:, k - 1]
-        root = psd_sqrt(R) if R_root is None else R_root
-        x, P, S, _ = sqrt_update(x, S, np.nan_to_num(innov), C[None], R[None], valid, R_root=root[None])
-        means[:, k - 1], covs[:, k - 1] = x, P
-
-
-class KalmanFilter:
-    """Kalman filter (Miller (2.3)–(2.6)); fed censored data it is the "standard KF" baseline.
-
-    Parameters
-    ----------
-    system : LinearSystem
-        The model.
-    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
-        See :func:`kalman_filter`; ``"square_root"`` (a factor :math:`S`, :math:`P = SS^T`,
-        from QR factorizations) stays positive semidefinite where the other two fail.
-    backend : {"auto", "numpy", "numba"}, default "auto"
-        Implementation of the time loop; see :func:`kalman_filter`. ``"numba"`` has no
-        square-root form and is refused with ``covariance_update="square_root"``.
-
-    Examples
-    --------
-    >>> import numpy as np, tobitkf as tk
-    >>> sys = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
-    >>> out = tk.KalmanFilter(sys).filter(np.array([[2.0]]))
-    >>> float(out.mean[0, 0]), float(out.cov[0, 0, 0])     # prior and measurement weighted equally
-    (1.0, 0.5)
-    """
-
-    def __init__(self, system: LinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
-        check_instance(system, LinearSystem, "system")
-        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
-        check_square_root(backend, covariance_update, "the Kalman filter")
-        self.system = system
-        self.covariance_update = covariance_update
-        self.backend = backend
-
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        """Filter measurements ``y`` (..., T, m); see :func:`kalman_filter`."""
-        return kalman_filter(self.system, y, u=u, covariance_update=self.covariance_update, x0=x0, P0=P0,
-                             backend=self.backend)
-
-
-class DroppingKalmanFilter:
-    """Kalman filter that skips censored readings: the spec's "IKF" baseline (Miller §1.2 item 2, §3.3.6).
+class DroppingKalmanFilter(KalmanFilter):
+    """Kalman filter that skips censored readings: the "IKF" baseline (Miller §1.2 item 2, §3.3.6).
 
     A channel whose reading equals its censoring limit (to relative tolerance
     ``rtol``) is left out of that step's update, so a censored step gives
-    x̂ = x̄ and P = P̄ for that channel [non-source detection rule, spec 001a §3.5].
+    x̂ = x̄ and P = P̄ for that channel [non-source detection rule: a reading within
+    ``rtol * max(1, |limit|)`` of its limit counts as censored].
 
     Parameters
     ----------
@@ -259,29 +380,58 @@ class DroppingKalmanFilter:
         Relative tolerance of the detection.
     covariance_update : {"standard", "joseph", "square_root"}
         See :func:`kalman_filter`.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        See :func:`kalman_filter`.
+
+    Notes
+    -----
+    ``filter`` returns ``extras["censored"]`` (..., T, m), the readings that were dropped.
     """
 
+    _name = "DroppingKalmanFilter"
+
     def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12,
-                 covariance_update: str = "standard"):
+                 covariance_update: str = "standard", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m)
-        check_keywords({"covariance_update": covariance_update}, _OPTIONS)
         if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
-        self.system, self.censoring, self.rtol = system, censoring, float(rtol)
-        self.covariance_update = covariance_update
+        super().__init__(system, covariance_update=covariance_update, backend=backend)
+        self.censoring, self.rtol = censoring, float(rtol)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        """Filter ``y`` (..., T, m), skipping censored readings; see :func:`kalman_filter`."""
-        y2, batch = prepare_measurements(y, self.system.m)
-        self.censoring.check_measurements(y2)
-        at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol)
-        T, m = y2.shape[1:]
-        out = kalman_filter(self.system, y2.reshape(batch + (T, m)), u=u, skip=(at_lo | at_hi).reshape(batch + (T, m)),
-                            covariance_update=self.covariance_update, x0=x0, P0=P0)
-        T, n = y2.shape[1], self.system.n
-        return FilterResult(mean=out.mean.reshape(batch + (T, n)), cov=out.cov.reshape(batch + (T, n, n)),
-                            pred_mean=out.pred_mean.reshape(batch + (T, n)),
-                            pred_cov=out.pred_cov.reshape(batch + (T, n, n)),
-                            extras={"censored": (at_lo | at_hi).reshape(batch + (T, self.system.m))})
+    def _dropped(self, y: np.ndarray, k: int) -> np.ndarray:
+        lo, hi = self.censoring.limits(k)
+        lo = np.broadcast_to(lo, y.shape)
+        hi = np.broadcast_to(hi, y.shape)
+        with np.errstate(invalid="ignore"):
+            at_lo = np.isfinite(lo) & (y <= lo + self.rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0))))
+            at_hi = np.isfinite(hi) & (y >= hi - self.rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0))))
+        return at_lo | at_hi
+
+    def _measurement(self, k, xp, Pp, y, u, carry, **options):
+        mp, carry = super()._measurement(k, xp, Pp, y, u, carry)
+        dropped = self._dropped(y, k)
+        return MeasurementPrediction(expected=mp.expected, H0=mp.H0, noise=mp.noise, valid=~dropped,
+                                     extras={"censored": dropped}), carry
+
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
+        self.censoring.check_measurements(y2, name, start=k0 + 1)
+
+    def _fast_filter(self, y2, u2, state, want, batch):
+        if not self._kernel_ok(u2):
+            return None
+        at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol, start=state.k + 1)
+        dropped = at_lo | at_hi
+        res = _finite_or_none(_kf_kernel_run(self, y2, np.isnan(y2) | dropped, state, want, batch))
+        if res is None:
+            return None
+        extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
+        return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=extras,
+                            times=res.times, var=res.var, final=res.final)
+
+    def _fast_step(self, state, y, u, options):
+        if not self._kernel_ok(u):
+            return None
+        return _kf_kernel_step(self, y, np.isnan(y) | self._dropped(y, state.k + 1), state)

@@ -42,10 +42,22 @@ The failure term :math:`F_k` (``failure_term``, spec §2.2 and A1):
 ``"lmmse_unconditional"`` :math:`\check\Lambda_h\,\mathcal C_h\mathfrak X_k\mathcal C_h^T`, :math:`\mathfrak X_k = E[\xi_k\xi_k^T]`
 ========================  ==============================================================
 
+In the terms of the shared core (:mod:`tobitkf.filters.core`): the state is the augmented
+:math:`\xi_k`, the transition the block shift of (17)–(18), and the measurement prediction is
+:math:`\hat y^-_k` of the uncensored branch of (21) with :math:`H_0 = \mathbf H_k`, the noise
+:math:`F_k + \mathcal R_k(1-\varphi_k)` of (24) and the channel taking part only when
+:math:`\gamma_k = 1` (a censored reading leaves the prediction unchanged, bit for bit). The shared
+update in Joseph form is App. D (44); ``"square_root"`` (not in the source) is available too.
+
 Time convention: :math:`x_0 \sim N(\bar x_0, P_0)` with the pre-history
 :math:`x_{-1..-\ell}` independent with the same law (spec A5); no measurement at k = 0;
 ``y`` index k-1 holds :math:`y_k`; output index k-1 holds :math:`\hat x_k` (posterior) and
 ``pred_mean`` :math:`\hat x^-_k`.
+
+Readings: ``y`` is ``(..., T, 1)`` like every estimator's (one scalar per step, the scheduled
+sensor's); ``uncensored`` (the detection device's :math:`\gamma_k`, default ``y > threshold``) is laid
+out like ``y``. The pre-0.2 layouts ``y`` (T,) and ``uncensored`` (..., T) still work, with a
+DeprecationWarning.
 
 Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 ``p_uncensored`` :math:`1-\Phi(\bar\vartheta_k)` (the diagnostic (8), A6), ``theta_bar``
@@ -56,6 +68,7 @@ Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,20 +79,23 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..censored import censored_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
-from ._common import FilterResult, check_keywords, prepare_measurements, symmetrize
-from ._shift import shift_predict
+from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
+from .kalman import LinearGaussianFamily
 
 __all__ = ["ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "baseline_channel",
            "protocol_covariance_bounds", "CovarianceBounds", "augmented_transition", "noise_input",
-           "stacked_measurement", "analytic_p_uncensored", "FAILURE_TERMS", "UPPER_FORMS", "LOWER_FORMS"]
+           "stacked_measurement", "analytic_p_uncensored", "protocol_measurement", "FAILURE_TERMS", "UPPER_FORMS",
+           "LOWER_FORMS", "PREHISTORY_PRIORS"]
 
 FAILURE_TERMS = ("variance", "literal", "second_moment", "lmmse_unconditional")
-PRIOR_MEANS = ("repeat", "zero")
+PREHISTORY_PRIORS = ("x0", "zero_mean")
+PRIOR_MEANS = ("repeat", "zero")          # the pre-0.2 names of PREHISTORY_PRIORS (prehistory_mean=)
+_OLD_PRIOR = {"repeat": "x0", "zero": "zero_mean"}
 UPPER_FORMS = ("expected_riccati", "suboptimal_gain", "paper_literal")
 LOWER_FORMS = ("statement", "paper_proof")
 PHI_UPPER = ("zero", "mean_trajectory")
-_OPTIONS = {"failure_term": FAILURE_TERMS, "prehistory_mean": PRIOR_MEANS,
-            "covariance_update": ("joseph", "standard")}
+_OPTIONS = {"failure_term": FAILURE_TERMS, "prehistory_prior": PREHISTORY_PRIORS,
+            "covariance_update": ("joseph", "standard", "square_root")}
 _TINY = 1e-12
 
 
@@ -106,14 +122,22 @@ def stacked_measurement(C_row: np.ndarray, window: int) -> np.ndarray:
     return np.tile(np.asarray(C_row, dtype=float).reshape(-1), window + 1)
 
 
-def _initial(system: LinearSystem, window: int, prehistory_mean: str, P0_aug: Any):
+def _prehistory_prior(value: str) -> str:
+    """The ``prehistory_prior`` value of a pre-0.2 ``prehistory_mean`` spelling (or itself)."""
+    return _OLD_PRIOR.get(value, value)
+
+
+def _initial(system: LinearSystem, window: int, prehistory_prior: str, P0_aug: Any, x0: Any = None, P0: Any = None):
     n = system.n
-    if prehistory_mean == "repeat":
-        xi0 = np.tile(system.x0, window + 1)
+    prehistory_prior = _prehistory_prior(prehistory_prior)
+    mean = system.x0 if x0 is None else x0
+    cov = system.P0 if P0 is None else P0
+    if prehistory_prior == "x0":
+        xi0 = np.tile(mean, window + 1)
     else:
-        xi0 = np.concatenate([system.x0, np.zeros(n * window)])
+        xi0 = np.concatenate([mean, np.zeros(n * window)])
     if P0_aug is None:
-        M0 = np.kron(np.eye(window + 1), system.P0)
+        M0 = np.kron(np.eye(window + 1), cov)
     else:
         M0 = as_float_array(P0_aug, "P0_aug", ndim=2)
         if M0.shape != (n * (window + 1),) * 2:
@@ -150,79 +174,288 @@ def _check_parts(system: Any, channel: Any) -> None:
     channel.check_system(system)
 
 
-def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamma: np.ndarray, Cc: np.ndarray,
-                    r: float, tau: float, lam_mean: float, lam_var: float, *, failure_term: str = "variance",
-                    second_moment: np.ndarray | None = None, covariance_update: str = "joseph"):
-    r"""One measurement update of Theorem 1, (19)–(24), batched over runs.
+def protocol_measurement(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamma: np.ndarray, Cc: np.ndarray,
+                         r: float, tau: float, lam_mean: float, lam_var: float, *, failure_term: str = "variance",
+                         second_moment: np.ndarray | None = None) -> MeasurementPrediction:
+    r"""The measurement prediction of Theorem 1, (21)–(24), batched over runs.
+
+    With :math:`\mathbf H = \bar\Lambda_h\mathcal C_h`, :math:`\zeta = \mathbf H\hat\xi^-_k`,
+    :math:`\bar\vartheta = (\tau - \zeta)/\sqrt{\mathcal R}` and the Mills ratio
+    :math:`\lambda`: ``expected`` :math:`\zeta + \sqrt{\mathcal R}\lambda` (21) for an uncensored
+    reading, ``H0`` :math:`\mathbf H`, ``noise`` :math:`F_k + \mathcal R(1-\varphi)` (24) with
+    :math:`\mathcal R(1-\varphi)` floored at :math:`10^{-12}\mathcal R`, the reading taking part only
+    when :math:`\gamma_k = 1` (K = 0 otherwise: the prediction is kept, bit for bit).
 
     Parameters
     ----------
-    xi_pred : (N, n_ξ) ndarray
-        :math:`\hat\xi^-_k`.
-    P_pred : (N, n_ξ, n_ξ) ndarray
-        :math:`P^-_k`.
-    y : (N,) ndarray
-        Received :math:`y_k`.
-    gamma : (N,) bool ndarray
-        :math:`\gamma_k` (True = uncensored).
-    Cc : (n_ξ,) ndarray
-        :math:`\mathcal C_{h,k}`.
-    r : float
-        :math:`\mathcal R_k = R_{h,k}`.
-    tau : float
-        Threshold.
-    lam_mean, lam_var : float
-        :math:`\bar\Lambda_h`, :math:`\check\Lambda_h`.
-    failure_term : str
-        See the module docstring.
-    second_moment : (n_ξ, n_ξ) ndarray, optional
-        :math:`\mathfrak X_k` for ``"lmmse_unconditional"``.
-    covariance_update : {"joseph", "standard"}
-        Joseph form of App. D (44) or (20).
-
-    Returns
-    -------
-    xi, P, info (dict of (N,) arrays: theta_bar, inverse_mills, trunc_var_factor, expected_y,
-    innovation, innovation_var)
+    xi_pred : (N, n_ξ) ; P_pred : (N or 1, n_ξ, n_ξ) ; y : (N,) received :math:`y_k` ; gamma : (N,) bool
+    Cc : (n_ξ,) :math:`\mathcal C_{h,k}` ; r : :math:`\mathcal R_k = R_{h,k}` ; tau : threshold
+    lam_mean, lam_var : :math:`\bar\Lambda_h`, :math:`\check\Lambda_h`
+    failure_term : see the module docstring
+    second_moment : (n_ξ, n_ξ), for ``"lmmse_unconditional"``
     """
     H = lam_mean * Cc
     zeta = xi_pred @ H
     sd = np.sqrt(r)
     st = censored_moments(zeta, sd, tau, np.inf)
     lam = st.inverse_mills
-    noise = np.maximum(st.truncated_var, _TINY * r)             # R (1 - phi), floored (spec §2.3)
-    F = _failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, second_moment)
-    PH = P_pred @ H                                             # (N, n_xi)
-    S = PH @ H + F + noise                                      # P_y for gamma = 1 (24)
-    K = PH / S[:, None]                                         # (22) with (23)
+    noise = np.maximum(st.truncated_var, _TINY * r)             # R (1 - phi), floored
+    F = _failure_term(failure_term, Cc, np.broadcast_to(P_pred, (xi_pred.shape[0],) + P_pred.shape[1:]), xi_pred,
+                      lam_mean, lam_var, second_moment)
     yhat = zeta + sd * lam                                      # (21), gamma = 1
-    e = y - yhat
-    xi_up = xi_pred + K * e[:, None]                            # (19)
-    if covariance_update == "joseph":
-        # (I - K H^T) P (I - H K^T) + (F + noise) K K^T, applying the rank-one factors in turn:
-        # M = P - K (H^T P) with H^T P = PH^T (P symmetric), then M (I - H K^T) = M - (M H) K^T;
-        # outer products and one GEMV over the stacked rows instead of two batched matmuls
-        M = P_pred - K[:, :, None] * PH[:, None, :]
-        MH = (M.reshape(-1, H.size) @ H).reshape(K.shape)
-        P_up = M - (MH - (F + noise)[:, None] * K)[:, :, None] * K[:, None, :]
-    else:
-        P_up = P_pred - K[:, :, None] * PH[:, None, :]          # (20)
     g = np.asarray(gamma, dtype=bool)
-    xi = np.where(g[:, None], xi_up, xi_pred)                    # censored step: unchanged, bit-exact
-    P = np.where(g[:, None, None], symmetrize(P_up), P_pred)
     with np.errstate(divide="ignore", invalid="ignore"):
         theta = (tau - zeta) / sd
-    info = {"theta_bar": theta, "inverse_mills": lam, "trunc_var_factor": 1.0 - noise / r,
-            "expected_y": np.where(g, yhat, tau), "innovation": np.where(g, e, 0.0),
-            "innovation_var": np.where(g, S, noise), "p_uncensored": st.p_uncensored}
-    return xi, P, info
+    extras = {"theta_bar": theta, "inverse_mills": lam, "trunc_var_factor": 1.0 - noise / r,
+              "expected_y": np.where(g, yhat, tau), "innovation": np.where(g, y - yhat, 0.0),
+              "p_uncensored": st.p_uncensored, "_noise": noise, "_gamma": g}
+    return MeasurementPrediction(expected=yhat[:, None], H0=H[None, :], noise=(F + noise)[:, None],
+                                 valid=g[:, None], extras=extras)
+
+
+def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamma: np.ndarray, Cc: np.ndarray,
+                    r: float, tau: float, lam_mean: float, lam_var: float, *, failure_term: str = "variance",
+                    second_moment: np.ndarray | None = None, covariance_update: str = "joseph"):
+    r"""One measurement update of Theorem 1, (19)–(24), batched over runs (procedural form).
+
+    :func:`protocol_measurement` followed by the shared :func:`~tobitkf.filters.core.measurement_update`
+    (Joseph form of App. D (44), or (20)).
+
+    Returns
+    -------
+    xi, P, info (dict of (N,) arrays: theta_bar, inverse_mills, trunc_var_factor, expected_y,
+    innovation, innovation_var, p_uncensored)
+    """
+    from .core import measurement_update
+
+    mp = protocol_measurement(xi_pred, P_pred, y, gamma, Cc, r, tau, lam_mean, lam_var, failure_term=failure_term,
+                              second_moment=second_moment)
+    xi, P, _, _, Ree = measurement_update(xi_pred, P_pred, None, y[:, None], mp, covariance_update)
+    return xi, P, _protocol_info(mp, Ree)
+
+
+def _protocol_info(mp: MeasurementPrediction, Ree: np.ndarray | None) -> dict[str, np.ndarray]:
+    info = {k: v for k, v in mp.extras.items() if not k.startswith("_")}
+    g = mp.extras["_gamma"]
+    S = mp.extras["_noise"] if Ree is None else Ree[..., 0, 0]
+    info["innovation_var"] = np.where(g, S, mp.extras["_noise"])
+    return info
+
+
+def _check_parts(system: Any, channel: Any) -> None:
+    check_instance(system, LinearSystem, "system")
+    check_instance(channel, ProtocolChannel, "channel")
+    channel.check_system(system)
+
+
+def _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean):
+    if prehistory_mean is not None:
+        if prehistory_mean not in PRIOR_MEANS:
+            raise ValidationError(f"prehistory_mean: expected one of {', '.join(map(repr, PRIOR_MEANS))}, "
+                                  f"got {prehistory_mean!r}")
+        warnings.warn(f"prehistory_mean={prehistory_mean!r} is deprecated: use "
+                      f"prehistory_prior={_OLD_PRIOR[prehistory_mean]!r} (the prior of x_-1..x_-ell in the filter; "
+                      "the channel's prehistory= says how the simulator draws them)", DeprecationWarning, stacklevel=3)
+        prehistory_prior = _OLD_PRIOR[prehistory_mean]
+    check_keywords({"failure_term": failure_term, "prehistory_prior": prehistory_prior,
+                    "covariance_update": covariance_update}, _OPTIONS)
+    return prehistory_prior
+
+
+class ProtocolTobitKalmanFilter(LinearGaussianFamily):
+    r"""PBTKF-IMSF: Tobit Kalman filter under Round-Robin scheduling, integral measurements
+    and probabilistic sensor failures (Geng et al., Theorems 1–2, Table I).
+
+    Parameters
+    ----------
+    system : LinearSystem
+        Plant; ``C`` has one row per sensor, ``R`` is diagonal.
+    channel : ProtocolChannel
+        The channel the filter assumes.
+    failure_term : {"variance", "literal", "second_moment", "lmmse_unconditional"}, default "variance"
+    prehistory_prior : {"x0", "zero_mean"}, default "x0"
+        The filter's prior of the pre-history :math:`x_{-1..-\ell}`: independent
+        :math:`N(\bar x_0, P_0)` (``"x0"``) or :math:`N(0, P_0)` (``"zero_mean"``). (The channel's
+        ``prehistory`` says how the *simulator* draws them.) ``prehistory_mean="repeat"``/``"zero"`` is
+        the deprecated spelling.
+    covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
+        Joseph form (App. D (44), the source's), (20), or the QR array form (not in the source).
+    P0_aug : array_like, optional
+        :math:`M_0`.
+
+    Raises
+    ------
+    ValidationError
+        Unknown option or wrong argument types.
+
+    Notes
+    -----
+    See :func:`protocol_tobit_kalman_filter` for the equations and the deviations from the
+    source. :meth:`baseline` builds the paper's comparison filter PBTKF. Online use:
+    ``step(state, y_k, uncensored=g_k)`` (``g_k`` defaults to ``y_k > threshold``).
+    """
+
+    _name = "ProtocolTobitKalmanFilter"
+    _step_options = ("uncensored",)
+
+    def __init__(self, system: LinearSystem, channel: ProtocolChannel, *, failure_term: str = "variance",
+                 prehistory_prior: str = "x0", covariance_update: str = "joseph", P0_aug: Any = None,
+                 prehistory_mean: str | None = None, check_limits: bool = True):
+        prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean)
+        _check_parts(system, channel)
+        self._setup_system(system)
+        self.m = 1
+        self.channel = channel
+        self.failure_term, self.prehistory_prior, self.covariance_update = failure_term, prehistory_prior, \
+            covariance_update
+        self.P0_aug = P0_aug
+        self.check_limits = check_limits
+        self._ell = channel.window
+        self._nxi = system.n * (self._ell + 1)
+        _initial(system, self._ell, prehistory_prior, P0_aug)             # validates P0_aug once
+        self._lam_mean, self._lam_var = channel.failure_mean, channel.failure_variance
+        self.options = {"failure_term": failure_term, "prehistory_prior": prehistory_prior,
+                        "covariance_update": covariance_update, "P0_aug": P0_aug}
+
+    @classmethod
+    def baseline(cls, system: LinearSystem, channel: ProtocolChannel, **options: Any) -> ProtocolTobitKalmanFilter:
+        """The PBTKF of the paper's comparisons: this filter with ℓ = 0 and no failures."""
+        return cls(system, baseline_channel(channel), **options)
+
+    def _state_dim(self) -> int:
+        return self._nxi
+
+    def _initial(self, N, x0, P0, batch):
+        n = self.n
+        x0a = None if x0 is None else as_float_array(x0, "x0", ndim=1)
+        P0a = None if P0 is None else as_float_array(P0, "P0", ndim=2)
+        if x0a is not None and x0a.shape != (n,):
+            raise ShapeError(f"x0: expected ({n},) (one prior for every run), got {x0a.shape}")
+        if P0a is not None:
+            if P0a.shape != (n, n):
+                raise ShapeError(f"P0: expected ({n}, {n}), got {P0a.shape}")
+            check_psd(P0a, "P0")
+        xi0, M0 = _initial(self.system, self._ell, self.prehistory_prior, self.P0_aug, x0a, P0a)
+        carry = {}
+        if self.failure_term == "lmmse_unconditional":
+            carry["X"] = M0 + np.outer(xi0, xi0)
+        xi = np.broadcast_to(xi0, (N, self._nxi)).copy()
+        return xi, symmetrize(M0)[None], carry     # exactly symmetric (the shift prediction needs it)
+
+    def _transition(self, k, u, carry):
+        sys_ = self.system
+        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
+        # (17)-(18): the block shift of (10), the noise in its top block
+        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=0.0, shift=True, G=G)
+
+    def _sensor(self, k: int) -> int:
+        order = self.channel.schedule.order
+        return int(order[(k - 1) % order.size]) - 1
+
+    def _measurement(self, k, xp, Pp, y, u, carry, uncensored=None, **_):
+        h = self._sensor(k)
+        C_row, r = _sensor_stats(self.system, k, h)
+        Cc = stacked_measurement(C_row, self._ell)
+        X = None
+        carry = dict(carry)
+        if "X" in carry:
+            Aa = augmented_transition(self.system.transition(k - 1), self._ell)
+            Bn = noise_input(self.n, self._ell)
+            carry["X"] = X = Aa @ carry["X"] @ Aa.T + Bn @ self.system.process_cov(k - 1) @ Bn.T
+        yk = y[:, 0]
+        gam = yk > self.channel.threshold if uncensored is None else uncensored[:, 0]
+        mp = protocol_measurement(xp, Pp, yk, gam, Cc, r, self.channel.threshold, float(self._lam_mean[h]),
+                                  float(self._lam_var[h]), failure_term=self.failure_term, second_moment=X)
+        return mp, carry
+
+    def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
+        info = _protocol_info(mp, Ree)
+        info["aug_mean"], info["aug_pred_mean"] = x, xp
+        info["uncensored"] = mp.extras["_gamma"]
+        if options.get("keep_augmented"):
+            N = x.shape[0]
+            info["aug_cov"] = np.broadcast_to(P, (N,) + P.shape[1:])
+            info["aug_pred_cov"] = np.broadcast_to(Pp, (N,) + Pp.shape[1:])
+        return info
+
+    def _prepare_record(self, y, name="y"):
+        arr = as_float_array(y, name, allow_nan=False)
+        if arr.ndim == 1:                                   # one record (T,): the pre-0.2 layout
+            warnings.warn(f"{name}: a (T,) record is deprecated; pass (..., T, 1) like every estimator "
+                          "(y[:, None] for one record)", DeprecationWarning, stacklevel=4)
+            arr = arr[:, None]
+        elif arr.ndim >= 2 and arr.shape[-1] != 1:
+            raise ShapeError(f"{name}: expected (..., T, 1) received scalars (the scheduled sensor's reading), "
+                             f"got shape {arr.shape}")
+        return super()._prepare_record(arr, name)
+
+    def _check_record(self, y2, u2, k0, name="y"):
+        self.system.check_horizon(k0 + y2.shape[1])
+        tau = self.channel.threshold
+        if self.check_limits and (y2 < tau).any():
+            raise ValidationError(f"{name}: readings below the threshold tau={tau} cannot come from (4), "
+                                  f"found {y2[y2 < tau][:3]}")
+
+    def _prepare_step_options(self, state, options):
+        g = options.get("uncensored")
+        if g is None:
+            return {}
+        arr = np.asarray(g)
+        if arr.dtype != bool:
+            raise ValidationError(f"uncensored: expected booleans (the detection device's gamma_k), got {arr.dtype}")
+        try:
+            arr = np.broadcast_to(arr, state.batch_shape + (1,))
+        except ValueError:
+            raise ShapeError(f"uncensored: expected shape {state.batch_shape + (1,)} (like y), got {arr.shape}") from None
+        return {"uncensored": arr.reshape(state.runs, 1)}
+
+    def _reading(self, state, y, name="y"):
+        arr = super()._reading(state, y, name)
+        if np.isnan(arr).any():
+            raise ValidationError(f"{name}: the protocol TKF takes no missing readings (NaN found)")
+        if self.check_limits and (arr < self.channel.threshold).any():
+            raise ValidationError(f"{name}: readings below the threshold tau={self.channel.threshold} cannot come "
+                                  f"from (4), found {arr[arr < self.channel.threshold][:3]}")
+        return arr
+
+    def filter(self, y: Any, *, uncensored: Any = None, keep_augmented: bool = False, x0: Any = None,
+               P0: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+        """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`."""
+        y2, batch = self._prepare_record(y)
+        N, T, _ = y2.shape
+        step_data = None
+        if uncensored is not None:
+            gam = np.asarray(uncensored)
+            if gam.shape == batch + (T,):
+                warnings.warn("uncensored: a (..., T) array is deprecated; lay it out like y, (..., T, 1)",
+                              DeprecationWarning, stacklevel=2)
+                gam = gam[..., None]
+            if gam.shape != batch + (T, 1):
+                raise ShapeError(f"uncensored: expected shape {batch + (T, 1)} (like y), got {gam.shape}")
+            step_data = {"uncensored": np.asarray(gam, dtype=bool).reshape(N, T, 1)}
+        res = self._run(y2.reshape(batch + (T, 1)), None, x0, P0, outputs=outputs, state=state,
+                        step_options={"keep_augmented": keep_augmented}, step_data=step_data)
+        if res.extras:
+            k0 = res.times[0] - 1
+            res.extras["scheduled"] = self.channel.schedule.scheduled(k0 + T)[k0:]
+        return res
+
+    def bounds(self, steps: int, **options: Any) -> CovarianceBounds:
+        """Upper and lower bounds on :math:`E\\{P_{\\tilde x^-_k}\\}`; see :func:`protocol_covariance_bounds`."""
+        opts = {"failure_term": self.failure_term, "prehistory_prior": self.prehistory_prior, "P0_aug": self.P0_aug}
+        opts.update(options)
+        return protocol_covariance_bounds(self.system, self.channel, steps, **opts)
+
+    def __repr__(self) -> str:
+        opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items() if k != "P0_aug")
+        return f"ProtocolTobitKalmanFilter({self.system!r}, {self.channel!r}, {opts})"
 
 
 def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel, y: Any, *,
                                  uncensored: Any = None, failure_term: str = "variance",
-                                 prehistory_mean: str = "repeat", covariance_update: str = "joseph",
+                                 prehistory_prior: str = "x0", covariance_update: str = "joseph",
                                  P0_aug: Any = None, keep_augmented: bool = False,
-                                 check_limits: bool = True) -> FilterResult:
+                                 check_limits: bool = True, prehistory_mean: str | None = None) -> FilterResult:
     r"""Run the PBTKF-IMSF (Theorem 1, Table I) over a batch of received records.
 
     Parameters
@@ -232,16 +465,18 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         ``R`` (:math:`R_{m,k}` on the diagonal). ``x0``, ``P0`` are :math:`\bar x_0`, :math:`P_0`.
     channel : ProtocolChannel
         Window ℓ, failure laws (only their means and variances are used), schedule, τ.
-    y : (..., T, 1) or (T,) array_like
-        Received scalar measurements :math:`y_1..y_T` (censored readings equal τ).
-    uncensored : (..., T) bool array_like, optional
-        :math:`\gamma_k` from the detection device; default ``y > threshold``.
+    y : (..., T, 1) array_like
+        Received scalar measurements :math:`y_1..y_T` (censored readings equal τ); the pre-0.2 (T,)
+        layout is deprecated.
+    uncensored : (..., T, 1) bool array_like, optional
+        :math:`\gamma_k` from the detection device, laid out like ``y``; default ``y > threshold``.
     failure_term : {"variance", "literal", "second_moment", "lmmse_unconditional"}, default "variance"
         The failure term of (24) (spec §2.2, A1).
-    prehistory_mean : {"repeat", "zero"}, default "repeat"
-        Prior mean of :math:`x_{-1..-\ell}`: :math:`\bar x_0` or 0.
-    covariance_update : {"joseph", "standard"}, default "joseph"
-        Joseph form (App. D (44)) or (20); equal for the optimal gain.
+    prehistory_prior : {"x0", "zero_mean"}, default "x0"
+        Prior of :math:`x_{-1..-\ell}`: :math:`N(\bar x_0, P_0)` or :math:`N(0, P_0)`, independent
+        (``prehistory_mean="repeat"``/``"zero"`` is the deprecated spelling).
+    covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
+        Joseph form (App. D (44)) or (20), equal for the optimal gain; or the QR array form.
     P0_aug : (n_ξ, n_ξ) array_like, optional
         :math:`P_{\tilde\xi_0} = M_0`; default :math:`I_{\ell+1}\otimes P_0` (A5).
     keep_augmented : bool, default False
@@ -255,7 +490,7 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
         ``mean``/``cov`` :math:`\hat x_k, P_{\tilde x_k}` (..., T, n[, n]); ``pred_mean``/``pred_cov``
         the priors. ``extras``: ``aug_mean``, ``aug_pred_mean`` (..., T, n_ξ); ``uncensored``,
         ``p_uncensored``, ``theta_bar``, ``inverse_mills``, ``trunc_var_factor``, ``expected_y``,
-        ``innovation``, ``innovation_var`` (..., T); ``scheduled`` (T,).
+        ``innovation``, ``innovation_var`` (..., T); ``scheduled`` (T,); ``times`` 1..T.
 
     Raises
     ------
@@ -291,155 +526,19 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     >>> bool(np.allclose(a, tk.KalmanFilter(sys).filter(y).mean, rtol=0, atol=1e-12))
     True
     """
-    check_keywords({"failure_term": failure_term, "prehistory_mean": prehistory_mean,
-                    "covariance_update": covariance_update}, _OPTIONS)
-    check_instance(system, LinearSystem, "system")
-    check_instance(channel, ProtocolChannel, "channel")
-    _check_parts(system, channel)
-    arr = as_float_array(y, "y", allow_nan=False)
-    if arr.ndim == 1:                                   # one record (T,)
-        arr = arr[:, None]
-    elif arr.ndim >= 2 and arr.shape[-1] != 1:
-        raise ShapeError(f"y: expected (..., T, 1) received scalars (or one record (T,)), got shape {arr.shape}")
-    y2, batch = prepare_measurements(arr, 1)
-    N, T, _ = y2.shape
-    tau = channel.threshold
-    if check_limits and (y2 < tau).any():
-        raise ValidationError(f"y: readings below the threshold tau={tau} cannot come from (4), "
-                              f"found {y2[y2 < tau][:3]}")
-    if uncensored is None:
-        gam = y2[..., 0] > tau
-    else:
-        gam = np.asarray(uncensored, dtype=bool)
-        if gam.shape != batch + (T,):
-            raise ShapeError(f"uncensored: expected shape {batch + (T,)}, got {gam.shape}")
-        gam = gam.reshape(N, T)
-    system.check_horizon(T)
-    n, ell = system.n, channel.window
-    nxi = n * (ell + 1)
-    xi0, M0 = _initial(system, ell, prehistory_mean, P0_aug)
-    xi = np.broadcast_to(xi0, (N, nxi)).copy()
-    P = np.broadcast_to(symmetrize(M0), (N, nxi, nxi)).copy()   # exactly symmetric (shift_predict needs it)
-    X = M0 + np.outer(xi0, xi0) if failure_term == "lmmse_unconditional" else None
-    Bn = noise_input(n, ell)
-    lam_mean, lam_var = channel.failure_mean, channel.failure_variance
-    sched = channel.schedule.scheduled(T)
-    # outputs stored time-major (T, N, ...): each step writes one contiguous block; returned as
-    # (N, T, ...) views
-    out = {key: np.empty((T, N, nxi)) for key in ("aug_mean", "aug_pred_mean")}
-    if keep_augmented:
-        out.update({key: np.empty((T, N, nxi, nxi)) for key in ("aug_cov", "aug_pred_cov")})
-    cov = np.empty((T, N, n, n))
-    pcov = np.empty((T, N, n, n))
-    info_keys = ("theta_bar", "inverse_mills", "trunc_var_factor", "expected_y", "innovation", "innovation_var",
-                 "p_uncensored")
-    info_out = {key: np.empty((T, N)) for key in info_keys}
-    fixed = not (system.A.varying or system.Q.varying or (system.B is not None and system.B.varying))
-    if fixed:
-        Aa, BQB = augmented_transition(system.transition(0), ell), Bn @ system.process_cov(0) @ Bn.T
-    for k in range(1, T + 1):
-        if not fixed:
-            Aa = augmented_transition(system.transition(k - 1), ell)
-            BQB = Bn @ system.process_cov(k - 1) @ Bn.T
-        # (17)-(18): Aa is the block shift of (10) and BQB lives in its top block, so the
-        # prediction is block copies and two GEMMs over the stacked runs (== sym(Aa P Aa^T + BQB))
-        xi, P = shift_predict(xi, P, Aa[:n, :n], BQB[:n, :n])
-        if X is not None:
-            X = Aa @ X @ Aa.T + BQB
-        out["aug_pred_mean"][k - 1] = xi
-        pcov[k - 1] = P[:, :n, :n]
-        if keep_augmented:
-            out["aug_pred_cov"][k - 1] = P
-        h = int(sched[k - 1]) - 1
-        C_row, r = _sensor_stats(system, k, h)
-        Cc = stacked_measurement(C_row, ell)
-        xi, P, info = protocol_update(xi, P, y2[:, k - 1, 0], gam[:, k - 1], Cc, r, tau, float(lam_mean[h]),
-                                      float(lam_var[h]), failure_term=failure_term, second_moment=X,
-                                      covariance_update=covariance_update)
-        out["aug_mean"][k - 1] = xi
-        cov[k - 1] = P[:, :n, :n]                                        # (25)
-        if keep_augmented:
-            out["aug_cov"][k - 1] = P
-        for key in info_keys:
-            info_out[key][k - 1] = info[key]
-    def runs_first(arr: np.ndarray) -> np.ndarray:   # (T, N, ...) -> batch + (T, ...) view
-        return np.moveaxis(arr, 0, 1).reshape(batch + (T,) + arr.shape[2:])
-
-    extras: dict[str, Any] = {key: runs_first(val) for key, val in out.items()}
-    extras.update({key: runs_first(val) for key, val in info_out.items()})
-    extras["uncensored"] = gam.reshape(batch + (T,))
-    extras["scheduled"] = sched
-    return FilterResult(mean=extras["aug_mean"][..., :n], cov=runs_first(cov),
-                        pred_mean=extras["aug_pred_mean"][..., :n], pred_cov=runs_first(pcov), extras=extras)
+    est = ProtocolTobitKalmanFilter(system, channel, failure_term=failure_term, prehistory_prior=prehistory_prior,
+                                    covariance_update=covariance_update, P0_aug=P0_aug,
+                                    prehistory_mean=prehistory_mean, check_limits=check_limits)
+    return est.filter(y, uncensored=uncensored, keep_augmented=keep_augmented)
 
 
 def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
-    r"""The PBTKF baseline's (mis-specified) channel model, spec §2.5 (A16).
+    r"""The PBTKF baseline's (mis-specified) channel model (A16).
 
     Same schedule and τ, but :math:`\ell_{model} = 0` and no failures
     (:math:`\bar\Lambda \equiv 1`, :math:`\check\Lambda \equiv 0`, so :math:`F_k = 0`).
     """
     return channel.replace(window=0, failures=NO_FAILURE)
-
-
-class ProtocolTobitKalmanFilter:
-    r"""PBTKF-IMSF: Tobit Kalman filter under Round-Robin scheduling, integral measurements
-    and probabilistic sensor failures (Geng et al., Theorems 1–2, Table I).
-
-    Parameters
-    ----------
-    system : LinearSystem
-        Plant; ``C`` has one row per sensor, ``R`` is diagonal.
-    channel : ProtocolChannel
-        The channel the filter assumes.
-    failure_term : {"variance", "literal", "second_moment", "lmmse_unconditional"}, default "variance"
-    prehistory_mean : {"repeat", "zero"}, default "repeat"
-    covariance_update : {"joseph", "standard"}, default "joseph"
-    P0_aug : array_like, optional
-        :math:`M_0`.
-
-    Raises
-    ------
-    ValidationError
-        Unknown option or wrong argument types.
-
-    Notes
-    -----
-    See :func:`protocol_tobit_kalman_filter` for the equations and the deviations from the
-    source. :meth:`baseline` builds the paper's comparison filter PBTKF (spec §2.5).
-    """
-
-    def __init__(self, system: LinearSystem, channel: ProtocolChannel, *, failure_term: str = "variance",
-                 prehistory_mean: str = "repeat", covariance_update: str = "joseph", P0_aug: Any = None):
-        check_keywords({"failure_term": failure_term, "prehistory_mean": prehistory_mean,
-                        "covariance_update": covariance_update}, _OPTIONS)
-        check_instance(system, LinearSystem, "system")
-        check_instance(channel, ProtocolChannel, "channel")
-        channel.check_system(system)
-        self.system, self.channel = system, channel
-        self.options = {"failure_term": failure_term, "prehistory_mean": prehistory_mean,
-                        "covariance_update": covariance_update, "P0_aug": P0_aug}
-
-    @classmethod
-    def baseline(cls, system: LinearSystem, channel: ProtocolChannel, **options: Any) -> ProtocolTobitKalmanFilter:
-        """The PBTKF of the paper's comparisons: this filter with ℓ = 0 and no failures (spec §2.5)."""
-        return cls(system, baseline_channel(channel), **options)
-
-    def filter(self, y: Any, *, uncensored: Any = None, keep_augmented: bool = False) -> FilterResult:
-        """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`."""
-        return protocol_tobit_kalman_filter(self.system, self.channel, y, uncensored=uncensored,
-                                            keep_augmented=keep_augmented, **self.options)
-
-    def bounds(self, steps: int, **options: Any) -> CovarianceBounds:
-        """Upper and lower bounds on :math:`E\\{P_{\\tilde x^-_k}\\}`; see :func:`protocol_covariance_bounds`."""
-        opts = {"failure_term": self.options["failure_term"], "prehistory_mean": self.options["prehistory_mean"],
-                "P0_aug": self.options["P0_aug"]}
-        opts.update(options)
-        return protocol_covariance_bounds(self.system, self.channel, steps, **opts)
-
-    def __repr__(self) -> str:
-        opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items() if k != "P0_aug")
-        return f"ProtocolTobitKalmanFilter({self.system!r}, {self.channel!r}, {opts})"
 
 
 # --- performance bounds (Sec. IV, spec §2.7-2.8) -------------------------------------------
@@ -471,7 +570,8 @@ def _gl_nodes(lo: float, hi: float, n: int = 64):
 
 
 def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps: int, *,
-                          prehistory_mean: str = "repeat", P0_aug: Any = None) -> np.ndarray:
+                          prehistory_prior: str = "x0", P0_aug: Any = None,
+                          prehistory_mean: str | None = None) -> np.ndarray:
     r"""Unconditional :math:`\bar\gamma_k = P(\bar y_k > \tau)` under the true model, k = 1..T (spec §2.8).
 
     .. math::
@@ -490,7 +590,7 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
         For a law that is neither discrete nor uniform (pass γ̄ explicitly then).
     """
     n, ell = system.n, channel.window
-    xi0, M0 = _initial(system, ell, prehistory_mean, P0_aug)
+    xi0, M0 = _initial(system, ell, prehistory_mean or prehistory_prior, P0_aug)
     Bn = noise_input(n, ell)
     nodes = []
     for i, law in enumerate(channel.laws):
@@ -524,8 +624,8 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
 def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, steps: int, *,
                                p_uncensored: Any = "analytic", failure_term: str = "variance",
                                upper_form: str = "expected_riccati", lower_form: str = "statement",
-                               phi_upper: str = "zero", prehistory_mean: str = "repeat",
-                               P0_aug: Any = None) -> CovarianceBounds:
+                               phi_upper: str = "zero", prehistory_prior: str = "x0",
+                               P0_aug: Any = None, prehistory_mean: str | None = None) -> CovarianceBounds:
     r"""Upper and lower bounds on the expected prior covariance (Theorems 3–5, spec §2.7–2.8).
 
     Index convention (A5): :math:`M^u_1 = M^l_1 = P^-_1 = \mathcal A_0M_0\mathcal A_0^T + \mathcal BQ_0\mathcal B^T`;
@@ -559,8 +659,8 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
     phi_upper : {"zero", "mean_trajectory"}, default "zero"
         :math:`\bar\varphi^u_k`: 0 (a guaranteed bound) or φ along the mean trajectory (tighter,
         not guaranteed).
-    prehistory_mean, P0_aug
-        The filter's initialisation.
+    prehistory_prior, P0_aug
+        The filter's initialisation (``prehistory_mean`` is the deprecated spelling).
 
     Returns
     -------
@@ -586,17 +686,19 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
       version :math:`(1-\bar\gamma)\mathcal AM\mathcal A^T + \bar\gamma\mathcal BQ\mathcal B^T` with
       :math:`M^l_0 = 0`, i.e. :math:`M^l_1 = \mathcal BQ_0\mathcal B^T` (looser, also valid).
     """
+    if prehistory_mean is not None:
+        prehistory_prior = _check_options(failure_term, prehistory_prior, "joseph", prehistory_mean)
     check_keywords({"failure_term": failure_term, "upper_form": upper_form, "lower_form": lower_form,
-                    "phi_upper": phi_upper, "prehistory_mean": prehistory_mean},
+                    "phi_upper": phi_upper, "prehistory_prior": prehistory_prior},
                    {"failure_term": FAILURE_TERMS, "upper_form": UPPER_FORMS, "lower_form": LOWER_FORMS,
-                    "phi_upper": PHI_UPPER, "prehistory_mean": PRIOR_MEANS})
+                    "phi_upper": PHI_UPPER, "prehistory_prior": PREHISTORY_PRIORS})
     _check_parts(system, channel)
     if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
         raise ValidationError(f"steps: expected a positive integer, got {steps!r}")
     if isinstance(p_uncensored, str):
         if p_uncensored != "analytic":
             raise ValidationError(f"p_uncensored: expected 'analytic' or numbers in [0, 1], got {p_uncensored!r}")
-        gbar = analytic_p_uncensored(system, channel, steps, prehistory_mean=prehistory_mean, P0_aug=P0_aug)
+        gbar = analytic_p_uncensored(system, channel, steps, prehistory_prior=prehistory_prior, P0_aug=P0_aug)
     else:
         gbar = as_float_array(p_uncensored, "p_uncensored", ndim=(0, 1))
         if gbar.ndim == 1 and gbar.shape != (steps,):
@@ -607,7 +709,7 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
     system.check_horizon(steps)
     n, ell = system.n, channel.window
     nxi = n * (ell + 1)
-    xi0, M0 = _initial(system, ell, prehistory_mean, P0_aug)
+    xi0, M0 = _initial(system, ell, prehistory_prior, P0_aug)
     Bn = noise_input(n, ell)
     lam_mean, lam_var = channel.failure_mean, channel.failure_variance
     sched = channel.schedule.scheduled(steps)

@@ -38,9 +38,17 @@ Deviations from the source
 * (3.54) is garbled (pdf for cdf, no T term); (3.58) and the corrected (3.54) agree (spec A-3.3).
 
 Time convention: x_0 ~ N(x0, P0) prior; y_1 at index 0; output index k-1 holds x̂_{k|k}.
+In the terms of the shared core (:mod:`tobitkf.filters.core`): a fixed gain :math:`K_\infty`,
+expected reading (3.58), and the constant covariances :math:`\bar\Psi_\infty`, :math:`\Psi_\infty`;
+the mean recursion runs through the shared loop. :func:`tobit_kalman_filter_controlled` is the full
+TKF (3.55) whose limit is set from its prior, a :class:`~tobitkf.filters.tobit.TobitKalmanFilter`
+whose measurement model first clips the latent reading at (3.56).
+
 Symbols: ``xi_uncensored`` = Ξ (probability of *not* being censored; 1 − Ξ is the
-censored fraction, spec A-3.11), ``upsilon`` = υ, ``inverse_mills`` = λ̂, ``gain`` = K∞,
-``prior_cov`` = Ψ̄∞, ``cov`` = Ψ∞.
+censored fraction, spec A-3.11), ``upsilon`` = υ, ``lambda_hat`` = λ̂ = φ(α)/Ξ (the source's
+right-censoring inverse Mills ratio, positive), ``inverse_mills`` = the inverse Mills ratio with the
+sign of :attr:`tobitkf.CensoredMoments.inverse_mills` (−λ̂ for right censoring, +λ̂ for left),
+``gain`` = K∞, ``prior_cov`` = Ψ̄∞, ``cov`` = Ψ∞.
 """
 
 from __future__ import annotations
@@ -55,10 +63,12 @@ from scipy.special import ndtri
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._common import FilterResult, prepare_inputs, prepare_measurements
-from .tobit import _sigma_of
+from .core import FilterResult, FilterState, MeasurementPrediction, Transition
+from .kalman import LinearGaussianFamily
+from .tobit import TobitKalmanFilter, _sigma_of, tobit_measurement
 
-__all__ = ["SteadyStateTobitKalmanFilter", "controlled_limit_statistics", "tobit_kalman_filter_controlled"]
+__all__ = ["SteadyStateTobitKalmanFilter", "controlled_limit_statistics", "tobit_kalman_filter_controlled",
+           "ControlledLimitTobitKalmanFilter"]
 
 
 def controlled_limit_statistics(xi_uncensored: Any, sigma: Any):
@@ -73,7 +83,7 @@ def controlled_limit_statistics(xi_uncensored: Any, sigma: Any):
     Returns
     -------
     alpha : :math:`\Phi^{-1}(\Xi)`
-    inverse_mills : :math:`\hat\lambda = \phi(\alpha)/\Xi` (the right-censoring IMR of (3.54))
+    lambda_hat : :math:`\hat\lambda = \phi(\alpha)/\Xi` (the right-censoring IMR of (3.54), positive)
     upsilon : :math:`\sigma^2(1 - \alpha\hat\lambda - \hat\lambda^2)`
     offset : :math:`\sigma[\phi(\alpha) - (1-\Xi)\alpha]`, so that
         :math:`E[y] = C\bar x \mp \text{offset}` (3.58)
@@ -124,18 +134,21 @@ def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ..
     raise ShapeError(f"x0: expected ({n},) or the batch shape of y + ({n},), got {x.shape}")
 
 
-def _warn_if_diverged(means: np.ndarray, name: str) -> None:
+def _warn_if_diverged(means: np.ndarray | None, name: str, k0: int = 0) -> None:
     # the fixed-gain Tobit observer is not globally stable (e.g. A = -1, Xi < 0.5, small sigma: the
     # error grows geometrically and overflows); say so instead of returning NaN silently
+    if means is None:
+        return
     bad = ~np.isfinite(means).all(axis=-1)
     if bad.any():
-        run, step = (int(i) for i in np.argwhere(bad)[0])
-        warnings.warn(f"{name}: the estimate diverged (overflowed to inf/NaN) in run {run} at step k={step + 1}; "
-                      "the fixed-gain Tobit observer is not globally stable for this model and Xi "
-                      "(docs/reliability.md)", RuntimeWarning, stacklevel=3)
+        idx = np.argwhere(bad)[0]
+        run, step = (tuple(int(i) for i in idx[:-1]) or (0,)), int(idx[-1])
+        warnings.warn(f"{name}: the estimate diverged (overflowed to inf/NaN) in run {run[0] if len(run) == 1 else run} "
+                      f"at step k={k0 + step + 1}; the fixed-gain Tobit observer is not globally stable for this "
+                      "model and Xi (docs/reliability.md)", RuntimeWarning, stacklevel=3)
 
 
-class SteadyStateTobitKalmanFilter:
+class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     r"""Fixed-gain Tobit Kalman filter whose sensor limit is steered from the prior (Miller §3.4.2).
 
     Parameters
@@ -145,16 +158,19 @@ class SteadyStateTobitKalmanFilter:
     xi_uncensored : float or (m,) array_like in (0, 1)
         Target probability Ξ of an *uncensored* reading per channel.
     side : {"upper", "lower"}, default "upper"
-        Right censoring (the source's §3.4) or left censoring (spec A-3.11, [non-source]).
+        Right censoring (the source's §3.4) or left censoring ([non-source] extension).
 
     Attributes
     ----------
     gain : (n, m) ndarray
-        :math:`K_\infty`.
+        :math:`K_\infty` (the filter gain: :math:`\hat x = \bar x + K_\infty(y - E[y])`).
     prior_cov, cov : (n, n) ndarray
         :math:`\bar\Psi_\infty` and :math:`\Psi_\infty`.
-    upsilon, inverse_mills, alpha : (m,) ndarray
-        Constant Tobit statistics.
+    upsilon, lambda_hat, alpha : (m,) ndarray
+        Constant Tobit statistics; ``lambda_hat`` = :math:`\hat\lambda = \phi(\alpha)/\Xi`.
+    inverse_mills : (m,) ndarray
+        The inverse Mills ratio at the prior with the sign of :attr:`tobitkf.CensoredMoments.inverse_mills`
+        (:math:`-\hat\lambda` for right censoring, :math:`+\hat\lambda` for left).
 
     Raises
     ------
@@ -162,9 +178,15 @@ class SteadyStateTobitKalmanFilter:
         Ξ outside (0, 1), a time-varying or non-diagonal model, or a modified DARE
         without a stabilizing solution (the message says so).
 
+    Notes
+    -----
+    Online use: :meth:`step` takes the reading censored at the limit :meth:`limit` gives for the
+    state's prediction (the sensor sets it from the filter's prior); ``step(state, y, latent=True)``
+    takes the latent reading and censors it there itself, as :meth:`filter_controlled` does.
+
     Examples
     --------
-    The Ξ = 0.5 noise term is :math:`\sigma^2(1 - 2/\pi)` (spec 001a §3.7 table):
+    The Ξ = 0.5 noise term is :math:`\sigma^2(1 - 2/\pi)` (Miller §3.4.2):
 
     >>> import numpy as np, tobitkf as tk
     >>> sys = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.01]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
@@ -172,6 +194,9 @@ class SteadyStateTobitKalmanFilter:
     >>> bool(np.isclose(f.upsilon[0], 0.1 * (1 - 2 / np.pi)))
     True
     """
+
+    _name = "SteadyStateTobitKalmanFilter"
+    _step_options = ("latent",)
 
     def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper"):
         check_instance(system, LinearSystem, "system")
@@ -181,8 +206,10 @@ class SteadyStateTobitKalmanFilter:
         m = system.m
         sigma = _sigma_of(system.measurement_cov(1))
         xi = _xi_per_channel(xi_uncensored, m)
-        self.alpha, self.inverse_mills, self.upsilon, self._offset = controlled_limit_statistics(xi, sigma)
-        self.system, self.side, self.xi_uncensored, self.sigma = system, side, xi, sigma
+        self.alpha, self.lambda_hat, self.upsilon, self._offset = controlled_limit_statistics(xi, sigma)
+        self.inverse_mills = -self.lambda_hat if side == "upper" else self.lambda_hat.copy()
+        self._setup_system(system)
+        self.side, self.xi_uncensored, self.sigma = side, xi, sigma
         A, C, Q = system.transition(0), system.measurement(1), system.process_cov(0)
         Ct = xi[:, None] * C
         Ups = np.diag(self.upsilon)
@@ -214,7 +241,49 @@ class SteadyStateTobitKalmanFilter:
         """The :class:`Censoring` of one run's record of limits ``(T, m)`` (e.g. ``extras["limits"][i]``)."""
         return Censoring(upper=limits) if self.side == "upper" else Censoring(lower=limits)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None) -> FilterResult:
+    # ---- the family's hooks ------------------------------------------------------------
+    def _initial(self, N, x0, P0, batch):
+        if P0 is not None:
+            raise ValidationError("P0: the steady-state TKF has the constant covariance of the modified DARE; "
+                                  "only x0 can be given")
+        return _initial_mean(self.system, x0, N, batch), self.cov[None].copy(), {}
+
+    def _transition(self, k, u, carry):
+        sys_ = self.system
+        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
+        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, P_fixed=self.prior_cov[None])
+
+    def _measurement(self, k, xp, Pp, y, u, carry, latent=False):
+        ybar = xp @ self.system.measurement(k).T + self._feedthrough(k, u)
+        extras = {}
+        obs = None
+        if latent:
+            lim = self.limit(ybar)
+            # the sensor clips its reading at the limit the filter set
+            obs = np.minimum(y, lim) if self.side == "upper" else np.maximum(y, lim)
+            extras = {"limits": lim, "y": obs}
+        mp = MeasurementPrediction(expected=self.expected_measurement(ybar), H0=self.modified_C,
+                                   noise=np.zeros((1, self.m)), observed=obs, gain=self.gain,
+                                   posterior_cov=self.cov[None], extras=extras)
+        return mp, carry
+
+    def _prepare_step_options(self, state, options):
+        latent = options.get("latent", False)
+        if not isinstance(latent, (bool, np.bool_)):
+            raise ValidationError(f"latent: expected True or False, got {latent!r}")
+        return {"latent": True} if latent else {}
+
+    def _reading(self, state, y, name="y"):
+        arr = super()._reading(state, y, name)
+        _no_missing(arr, name)
+        return arr
+
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
+        _no_missing(y2, name)
+
+    def filter(self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
         r"""Fixed-gain update of measurements censored at the controlled limits.
 
         ``y`` (..., T, m) must have been censored at the limits :meth:`limit` gives for
@@ -225,11 +294,12 @@ class SteadyStateTobitKalmanFilter:
         NaN (a missing sample) is refused with a :class:`ValidationError`: a fixed gain
         cannot skip a sample without making the reported covariance wrong.
         """
-        y2, batch = prepare_measurements(y, self.system.m)
-        _no_missing(y2, "y")
-        return self._run(y2, batch, u, x0, latent=False)
+        res = self._run(y, u, x0, None, outputs=outputs, state=state)
+        _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
+        return res
 
-    def filter_controlled(self, y_latent: Any, *, u: Any = None, x0: Any = None) -> FilterResult:
+    def filter_controlled(self, y_latent: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all",
+                          state: FilterState | None = None) -> FilterResult:
         """Close the loop between sensor and filter: at each step the limit (3.56) is set
         from the filter's prior and the latent reading is censored there (by
         the sensor), then the fixed-gain update runs.
@@ -237,91 +307,69 @@ class SteadyStateTobitKalmanFilter:
         Returns the usual result with extras ``limits`` and ``y`` (..., T, m): the limits
         used and the censored readings the filter received.
         """
-        y2, batch = prepare_measurements(y_latent, self.system.m, "y_latent")
-        _no_missing(y2, "y_latent")
-        return self._run(y2, batch, u, x0, latent=True)
+        res = self._run(y_latent, u, x0, None, outputs=outputs, state=state, name="y_latent",
+                        step_options={"latent": True})
+        _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
+        return res
 
-    def _run(self, y2, batch, u, x0, *, latent: bool) -> FilterResult:
-        sys = self.system
-        N, T, m = y2.shape
-        n = sys.n
-        u2 = prepare_inputs(sys, u, N, T)
-        x = _initial_mean(sys, x0, N, batch)
-        A, C, K = sys.transition(0), sys.measurement(1), self.gain
-        means = np.empty((N, T, n))
-        pmeans = np.empty((N, T, n))
-        limits = np.empty((N, T, m)) if latent else None
-        ys = np.empty((N, T, m)) if latent else None
-        for k in range(1, T + 1):
-            uk = None if u2 is None else u2[:, k - 1]
-            bx, dy = sys.input_effect(k, uk)
-            x = x @ A.T + bx
-            pmeans[:, k - 1] = x
-            ybar = x @ C.T + dy
-            yk = y2[:, k - 1]
-            if latent:
-                lim = self.limit(ybar)
-                # the sensor clips its reading at the limit the filter set
-                yk = np.minimum(yk, lim) if self.side == "upper" else np.maximum(yk, lim)
-                limits[:, k - 1], ys[:, k - 1] = lim, yk
-            x = x + (yk - self.expected_measurement(ybar)) @ K.T
-            means[:, k - 1] = x
-        _warn_if_diverged(means, "SteadyStateTobitKalmanFilter")
-        extras = {} if not latent else {"limits": limits.reshape(batch + (T, m)), "y": ys.reshape(batch + (T, m))}
-        return FilterResult(mean=means.reshape(batch + (T, n)),
-                            cov=np.broadcast_to(self.cov, batch + (T, n, n)),
-                            pred_mean=pmeans.reshape(batch + (T, n)),
-                            pred_cov=np.broadcast_to(self.prior_cov, batch + (T, n, n)), extras=extras)
+
+class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
+    r"""The full TKF (3.55) whose sensor limit is steered by (3.56) from the TKF's own prior.
+
+    At each step the limit :math:`T_k = C\bar x_k + Du_k \pm \sigma\Phi^{-1}(\Xi)` is set, the
+    latent reading is clipped there by the sensor, and the ordinary Tobit update runs; ``filter`` and
+    ``step`` take *latent* readings. Then :math:`E(\mathbf p_k) \equiv \Xi` at every step and the
+    covariance converges to the modified-DARE posterior :math:`\Psi_\infty` of
+    :class:`SteadyStateTobitKalmanFilter` (Miller §3.4.2).
+
+    Parameters
+    ----------
+    system : LinearSystem
+        Time-invariant model with diagonal R.
+    xi_uncensored : float or (m,) array_like in (0, 1)
+    side : {"upper", "lower"}, default "upper"
+    """
+
+    _name = "ControlledLimitTobitKalmanFilter"
+    _step_options = ()
+
+    def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper", **options: Any):
+        check_instance(system, LinearSystem, "system")
+        check_option(side, "side", ("upper", "lower"))
+        super().__init__(system, Censoring(), check_limits=False, **options)
+        sigma = _sigma_of(system.measurement_cov(1))
+        self.alpha = controlled_limit_statistics(_xi_per_channel(xi_uncensored, system.m), sigma)[0]
+        self.side, self.sigma_ = side, sigma
+
+    def _fast_filter(self, *args):
+        return None
+
+    def _fast_step(self, *args):
+        return None
+
+    def _measurement(self, k, xp, Pp, y, u, carry, **options):
+        C = self.system.measurement(k)
+        dy = self._feedthrough(k, u)
+        ybar = xp @ C.T + dy
+        inf = np.full(ybar.shape, np.inf)
+        if self.side == "upper":
+            lim = ybar + self.sigma_ * self.alpha
+            obs, lower, upper = np.minimum(y, lim), -inf, lim
+        else:
+            lim = ybar - self.sigma_ * self.alpha
+            obs, lower, upper = np.maximum(y, lim), lim, inf
+        mp = tobit_measurement(xp, C, self.sigma_, lower, upper, dy=dy, noise_term=self.noise_term)
+        mp = MeasurementPrediction(expected=mp.expected, H0=mp.H0, scale=mp.scale, noise=mp.noise, observed=obs,
+                                   extras={"limits": lim, "y": obs, "p_uncensored": mp.scale})
+        return mp, carry
 
 
 def tobit_kalman_filter_controlled(system: LinearSystem, xi_uncensored: Any, y_latent: Any, *,
                                    side: str = "upper", u: Any = None) -> FilterResult:
     r"""The full TKF (3.55) whose sensor limit is steered by (3.56) from the TKF's own prior.
 
-    At each step the limit :math:`T_k = C\bar x_k + Du_k \pm \sigma\Phi^{-1}(\Xi)` is set, the
-    latent reading is clipped there by the sensor, and the ordinary Tobit update
-    (:func:`~tobitkf.filters.tobit.tobit_update`) runs. Then :math:`E(\mathbf p_k) \equiv \Xi`
-    at every step and the covariance converges to the modified-DARE posterior
-    :math:`\Psi_\infty` of :class:`SteadyStateTobitKalmanFilter` (spec 001a §6 item 4).
-
-    Returns the usual result with extras ``limits``, ``y`` and ``p_uncensored`` (..., T, m).
+    See :class:`ControlledLimitTobitKalmanFilter`; returns the usual result with extras ``limits``,
+    ``y`` and ``p_uncensored`` (..., T, m).
     """
-    from ._common import check_prior, predict
-    from .tobit import tobit_update
-
-    check_instance(system, LinearSystem, "system")
-    check_option(side, "side", ("upper", "lower"))
-    y2, batch = prepare_measurements(y_latent, system.m, "y_latent")
-    N, T, m = y2.shape
-    n = system.n
-    sigma = _sigma_of(system.measurement_cov(1))
-    alpha, _, _, _ = controlled_limit_statistics(_xi_per_channel(xi_uncensored, m), sigma)
-    u2 = prepare_inputs(system, u, N, T)
-    x, P = check_prior(system, None, None, N)
-    out = {name: np.empty((N, T) + shape) for name, shape in
-           (("mean", (n,)), ("cov", (n, n)), ("pred_mean", (n,)), ("pred_cov", (n, n)),
-            ("limits", (m,)), ("y", (m,)), ("p_uncensored", (m,)))}
-    inf = np.full((N, m), np.inf)
-    for k in range(1, T + 1):
-        uk = None if u2 is None else u2[:, k - 1]
-        bx, dy = system.input_effect(k, uk)
-        x, P = predict(x, P, system.transition(k - 1), system.process_cov(k - 1), bx)
-        out["pred_mean"][:, k - 1], out["pred_cov"][:, k - 1] = x, P
-        C = system.measurement(k)
-        ybar = x @ C.T + dy
-        if side == "upper":
-            lim = ybar + sigma * alpha
-            yk = np.minimum(y2[:, k - 1], lim)
-            lower, upper = -inf, lim
-        else:
-            lim = ybar - sigma * alpha
-            yk = np.maximum(y2[:, k - 1], lim)
-            lower, upper = lim, inf
-        x, P, st = tobit_update(x, P, yk, C, sigma, lower, upper, dy=dy)
-        out["mean"][:, k - 1], out["cov"][:, k - 1] = x, P
-        out["limits"][:, k - 1], out["y"][:, k - 1], out["p_uncensored"][:, k - 1] = lim, yk, st.p_uncensored
-    shaped = {k: v.reshape(batch + v.shape[1:]) for k, v in out.items()}
-    return FilterResult(mean=shaped.pop("mean"), cov=shaped.pop("cov"), pred_mean=shaped.pop("pred_mean"),
-                        pred_cov=shaped.pop("pred_cov"), extras=shaped)
-
-
+    est = ControlledLimitTobitKalmanFilter(system, xi_uncensored, side=side, backend="numpy")
+    return est._run(y_latent, u, name="y_latent")

@@ -50,6 +50,12 @@ Deviations from the source
   term); the general two-sided statistics of :mod:`tobitkf.censored` reduce to the
   corrected (3.54) (spec A-3.3).
 
+In the terms of the shared core (:mod:`tobitkf.filters.core`): the measurement prediction is
+:math:`\hat y = E(y)`, :math:`H_0 = C`, the per-run channel scale :math:`E(\mathbf p)` and the
+diagonal noise :math:`R_{uu}`, since :math:`R_{xe} = \bar\Psi (E(\mathbf p)C)^T` and
+:math:`R_{ee} = E(\mathbf p)C\bar\Psi C^TE(\mathbf p) + R_{uu}` ((3.39)–(3.40)). The source
+prescribes (3.55), so ``covariance_update="standard"`` is the default.
+
 Symbols: ``mean`` = x̂, ``cov`` = Ψ, ``p_uncensored`` = E(p) (the sources' γ), ``expected_y`` = E(y).
 """
 
@@ -59,31 +65,69 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError, check_instance
+from .._validation import ValidationError, as_float_array, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, check_threads, kernels, run_split, system_gap, use_kernel
-from ._common import (FilterResult, check_keywords, check_prior, gain_update, predict, prepare_inputs,
-                      prepare_measurements, process_roots, psd_sqrt, sqrt_predict, sqrt_update, symmetrize)
+from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
+from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
+                   measurement_update, psd_sqrt)
+from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices
 
-__all__ = ["tobit_update", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
+__all__ = ["tobit_update", "tobit_measurement", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
 
 NOISE_TERMS = ("dissertation", "total_variance", "exact_pv")
-COVARIANCE_UPDATES = ("standard", "joseph", "square_root")
+COVARIANCE_UPDATES = COVARIANCE_FORMS
 _OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
+
+
+def tobit_measurement(x_pred: np.ndarray, C: np.ndarray, sigma: np.ndarray, lower: Any, upper: Any, *,
+                      dy: Any = 0.0, noise_term: str = "dissertation") -> MeasurementPrediction:
+    r"""The Tobit measurement prediction at the prior (Miller (3.37)–(3.41)), batched over runs.
+
+    All channel statistics at the *prior* mean (Assumption A1, (3.35)): with
+    :math:`\mu = C\bar x + Du`,
+
+    .. math::
+
+        E(\mathbf p) = \mathrm{diag}(\Phi(b) - \Phi(a)), \qquad
+        E(y)_l = \Phi(a_l)\,l(l) + \gamma_l(\mu_l + \sigma_l\lambda_l) + \Phi(-b_l)\,h(l), \qquad
+        R_{uu} = \mathrm{diag}(\ldots)
+
+    and :math:`H = E(\mathbf p)C`: ``expected`` = E(y), ``H0`` = C, ``scale`` = E(p), ``noise`` =
+    :math:`R_{uu}` (the truncated variance (3.41) for ``"dissertation"``, the censored variance for
+    ``"total_variance"``, :math:`E[pv^2] = \gamma(V_{tr} + (m_{tr} - \mu)^2)` for ``"exact_pv"``).
+    ``extras`` hold ``p_uncensored`` and ``expected_y`` (N, m).
+
+    Parameters
+    ----------
+    x_pred : (N, n) ; C : (m, n) ; sigma : (m,) ; lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
+    """
+    mu = x_pred @ C.T + dy
+    st = censored_moments(mu, sigma, lower, upper)
+    gam = st.p_uncensored
+    if noise_term == "dissertation":
+        Ruu = st.truncated_var
+    elif noise_term == "total_variance":
+        Ruu = st.censored_var
+    else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
+        Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
+    return MeasurementPrediction(expected=st.censored_mean, H0=C, scale=gam, noise=Ruu,
+                                 extras={"p_uncensored": gam, "expected_y": st.censored_mean})
 
 
 def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
                  lower: np.ndarray, upper: np.ndarray, *, dy: Any = 0.0, noise_term: str = "dissertation",
                  covariance_update: str = "standard"):
-    r"""One Tobit measurement update (Miller (3.37)–(3.43), (3.55)), batched over runs.
+    r"""One Tobit measurement update (Miller (3.37)–(3.43), (3.55)), batched over runs (procedural form).
+
+    :func:`tobit_measurement` followed by the shared :func:`~tobitkf.filters.core.measurement_update`.
 
     Parameters
     ----------
     x_pred : (N, n) ndarray
         Prior means :math:`\bar x_k`.
-    P_pred : (N, n, n) ndarray
+    P_pred : (N or 1, n, n) ndarray
         Prior covariances :math:`\bar\Psi_k`.
     y : (N, m) ndarray
         Censored measurements; NaN = missing (channel skipped).
@@ -98,91 +142,258 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
         See the module docstring.
     covariance_update : {"standard", "joseph", "square_root"}
         ``"joseph"``: :math:`(I-KE(p)C)\bar\Psi(\cdot)^T + KR_{uu}K^T`. ``"square_root"``:
-        the QR array form with :math:`H = E(p)C` and noise :math:`R_{uu}` (see
-        :func:`tobit_kalman_filter`). Here the factor of ``P_pred`` is computed afresh
-        (Cholesky, or eigen-decomposition if it is singular), which cannot restore accuracy
-        already lost in ``P_pred``; :func:`tobit_kalman_filter` keeps the factor between steps.
+        the QR array form with :math:`H = E(p)C` and noise :math:`R_{uu}`. Here the factor of ``P_pred``
+        is computed afresh (Cholesky, or eigen-decomposition if it is singular), which cannot restore
+        accuracy already lost in ``P_pred``; :class:`TobitKalmanFilter` keeps the factor between steps.
 
     Returns
     -------
     x : (N, n) ; P : (N, n, n) ; stats : CensoredMoments of the channels at the prior
     """
-    if covariance_update == "square_root":
-        x, P, _, st = _tobit_sqrt_update(x_pred, psd_sqrt(P_pred), y, C, sigma, lower, upper, dy=dy,
-                                         noise_term=noise_term)
-        return x, P, st
-    mu, st, gam, Ruu = _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term)
-    N, m, n = P_pred.shape[0], C.shape[0], C.shape[1]
-    # C Psi for every run as one GEMM over the stacked columns (a batched matmul of tiny
-    # matrices is several times slower); CP is (N, m, n)
-    CP = (C @ np.moveaxis(P_pred, 0, 1).reshape(n, N * n)).reshape(m, N, n).transpose(1, 0, 2)
-    Rxe = np.swapaxes(CP, -1, -2) * gam[:, None, :]    # Psi C^T E(p)
-    Ree = (CP.reshape(N * m, n) @ C.T).reshape(N, m, m) * gam[:, :, None] * gam[:, None, :]
-    idx = np.arange(C.shape[0])
-    Ree[:, idx, idx] += Ruu
-    innov = y - st.censored_mean
-    missing = np.isnan(innov)
-    valid = ~missing if missing.any() else None
-    innov = np.where(missing, 0.0, innov) if valid is not None else innov
-    if covariance_update == "joseph":
-        H = C[None] * gam[:, :, None]
-        noise = np.zeros_like(Ree)
-        noise[:, idx, idx] = Ruu
-        x, P, _ = gain_update(x_pred, P_pred, innov, Rxe, Ree, valid, H=H, noise=noise)
-    else:
-        x, P, _ = gain_update(x_pred, P_pred, innov, Rxe, Ree, valid)
-    return x, P, st
+    mp = tobit_measurement(x_pred, C, sigma, lower, upper, dy=dy, noise_term=noise_term)
+    S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
+    x, P, _, _, _ = measurement_update(x_pred, P_pred, S, y, mp, covariance_update)
+    return x, P, censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
-def _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term):
-    """Latent means, censored moments, E(p) and the noise term R_uu (diagonal, >= 0) at the prior."""
-    mu = x_pred @ C.T + dy
-    st = censored_moments(mu, sigma, lower, upper)
-    gam = st.p_uncensored
-    if noise_term == "dissertation":
-        Ruu = st.truncated_var
-    elif noise_term == "total_variance":
-        Ruu = st.censored_var
-    else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
-        Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
-    return mu, st, gam, Ruu
-
-
-def _tobit_sqrt_update(x_pred: np.ndarray, S_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
-                       lower: np.ndarray, upper: np.ndarray, *, dy: Any = 0.0, noise_term: str = "dissertation"):
-    r"""The Tobit update in square-root form: a Kalman update with :math:`H = E(\mathbf p)C`, noise
-    :math:`R_{uu}`, prior factor ``S_pred`` (N, n, n) (:math:`\bar\Psi = \bar S\bar S^T`).
-
-    Returns x (N, n), Ψ (N, n, n), the new factor S (N, n, n) and the channel statistics.
-    """
-    mu, st, gam, Ruu = _channel_statistics(x_pred, C, sigma, lower, upper, dy, noise_term)
-    m = C.shape[0]
-    innov = y - st.censored_mean
-    missing = np.isnan(innov)
-    valid = ~missing if missing.any() else None
-    innov = np.where(missing, 0.0, innov) if valid is not None else innov
-    H = C[None] * gam[:, :, None]                   # E(p) C, (N, m, n)
-    Ruu = np.maximum(Ruu, 0.0)                      # a variance (>= 0 as computed; kept explicit)
-    noise = Ruu[:, :, None] * np.eye(m)
-    root = np.sqrt(Ruu)[:, :, None] * np.eye(m)
-    x, P, S, _ = sqrt_update(x_pred, S_pred, innov, H, noise, valid, R_root=root)
-    return x, P, S, st
-
-
-def _sigma_of(R: np.ndarray, name: str = "R") -> np.ndarray:
+def _sigma_of(R: np.ndarray, name: str = "R", *, who: str = "the Tobit Kalman filter",
+              why: str = "Miller Assumption A2, (3.36)", positive: str | None = None) -> np.ndarray:
+    """Channel standard deviations of a diagonal R, refusing a correlated or singular one (naming ``who``)."""
     off = R - np.diag(np.diagonal(R))
-    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
-        raise ValidationError(f"{name}: the Tobit Kalman filter needs a diagonal R (Miller Assumption A2, (3.36))")
+    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
+        raise ValidationError(f"{name}: {who} needs a diagonal R ({why})")
     d = np.diagonal(R)
     if np.any(d <= 0):
-        raise ValidationError(f"{name}: the Tobit Kalman filter needs positive measurement variances, got {d}")
+        raise ValidationError(f"{name}: {positive or who + ' needs positive measurement variances'}, got {d}")
     return np.sqrt(d)
+
+
+class TobitKalmanFilter(LinearGaussianFamily):
+    r"""Tobit Kalman filter for left, right, two-sided and multi-region censoring (Miller §3.3.4).
+
+    Parameters
+    ----------
+    system : LinearSystem
+        The model; R must be diagonal (Assumption A2, (3.36)).
+    censoring : Censoring
+        The censoring limits (time-varying allowed, Miller §3.4).
+    noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
+        :math:`R_{uu}` in (3.40): the dissertation's truncated variance (3.41) with (3.11),
+        or one of the exact alternatives (non-dissertation; see the module docstring).
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        ``"standard"`` is (3.55) :math:`(I - KE(p)C)\bar\Psi`; ``"joseph"`` the
+        algebraically equal Joseph form; ``"square_root"`` [non-source] propagates a factor
+        :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
+        construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        Compiled kernel or numpy reference path; see :func:`tobit_kalman_filter`.
+        ``"numba"`` has no square-root form and is refused with ``covariance_update="square_root"``.
+    threads : int, optional
+        Threads for the compiled kernel; see :func:`tobit_kalman_filter`.
+    check_limits : bool, default True
+        Raise if a reading lies outside its censoring limits.
+
+    Raises
+    ------
+    ValidationError
+        Non-diagonal or non-positive R, unknown option, wrong argument types.
+
+    Notes
+    -----
+    See :func:`tobit_kalman_filter` and the module docstring for the equations.
+    With the dissertation's noise term the TKF can be *more* confident than the KF
+    when lightly censored (:math:`p_u^2\sigma^2 > V_{tr}` for :math:`a \lesssim -0.6`);
+    ``"total_variance"`` removes this.
+
+    Online use: :meth:`step` (predict + update), or :meth:`predict` and :meth:`update` separately;
+    ``update(state, y, lower=..., upper=...)`` (and ``step``) take this step's limits, (N, m) or
+    (m,), for a sensor whose limit is steered from the prediction (Miller §3.4, Ch. 6).
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    >>> tkf = tk.TobitKalmanFilter(sys, tk.Censoring(lower=0.0))
+    >>> state = tkf.init()
+    >>> for reading in ([0.4], [0.0], [1.1]):          # 0.0: censored at the limit
+    ...     state = tkf.step(state, reading)
+    >>> bool(np.allclose(state.mean, tkf.filter([[0.4], [0.0], [1.1]]).mean[-1], rtol=0, atol=1e-12))
+    True
+
+    References
+    ----------
+    .. [1] C. I. Miller, *Estimation and Control with Censored Data*, PhD thesis,
+       University of Delaware, 2015, §3.3.
+    """
+
+    _name = "TobitKalmanFilter"
+    _step_options = ("lower", "upper")
+
+    def __init__(self, system: LinearSystem, censoring: Censoring, *, noise_term: str = "dissertation",
+                 covariance_update: str = "standard", backend: str = "auto", threads: int | None = None,
+                 check_limits: bool = True):
+        check_instance(system, LinearSystem, "system")
+        check_instance(censoring, Censoring, "censoring")
+        check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
+                       _OPTIONS)
+        check_square_root(backend, covariance_update, "the Tobit Kalman filter")
+        censoring.check(system.m)
+        if not isinstance(check_limits, (bool, np.bool_)):
+            raise ValidationError(f"check_limits: expected True or False, got {check_limits!r}")
+        self._sigma = None if system.R.varying else _sigma_of(system.measurement_cov(1))
+        self._setup_system(system)
+        self.censoring = censoring
+        self.noise_term, self.covariance_update, self.backend = noise_term, covariance_update, backend
+        self.threads = None if threads is None else check_threads(threads)
+        self.check_limits = bool(check_limits)
+
+    def _sigma_at(self, k: int) -> np.ndarray:
+        return self._sigma if self._sigma is not None else _sigma_of(self.system.measurement_cov(k), f"R({k})")
+
+    def _measurement(self, k, xp, Pp, y, u, carry, lower=None, upper=None):
+        if lower is None or upper is None:
+            lo, hi = self.censoring.limits(k)
+            lower = lo if lower is None else lower
+            upper = hi if upper is None else upper
+        mp = tobit_measurement(xp, self.system.measurement(k), self._sigma_at(k), lower, upper,
+                               dy=self._feedthrough(k, u), noise_term=self.noise_term)
+        return mp, carry
+
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
+        self.censoring.check(self.m, k0 + y2.shape[1])
+        if self.check_limits:
+            self.censoring.check_measurements(y2, name, start=k0 + 1)
+
+    def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
+        out = {}
+        for key in ("lower", "upper"):
+            if options.get(key) is not None:
+                arr = as_float_array(options[key], key, allow_inf=True)
+                try:
+                    out[key] = np.broadcast_to(arr, (state.runs, self.m))
+                except ValueError:
+                    raise ValidationError(f"{key}: expected this step's limits of shape ({self.m},) or "
+                                          f"{state.batch_shape + (self.m,)}, got {arr.shape}") from None
+        if out:
+            lo, hi = self.censoring.limits(state.k + (0 if state.carry.get("_predicted") else 1))
+            lo = out.get("lower", np.broadcast_to(lo, (state.runs, self.m)))
+            hi = out.get("upper", np.broadcast_to(hi, (state.runs, self.m)))
+            if not (lo < hi).all():
+                raise ValidationError("lower/upper: expected lower < upper for every channel of this step")
+            out = {"lower": lo, "upper": hi}
+        return out
+
+    # ---- the compiled path ------------------------------------------------------------
+    def _kernel_ok(self, u) -> bool:
+        return kernel_ok(self, u, "the Tobit Kalman filter")
+
+    def _fast_filter(self, y2, u2, state, want, batch):
+        if not self._kernel_ok(u2):
+            return None
+        lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1)
+        return _finite_or_none(_tkf_kernel_run(self, y2, lo, hi, state, want, batch))
+
+    def _fast_step(self, state, y, u, options):
+        if options or not self._kernel_ok(u):
+            return None
+        return _tkf_kernel_step(self, y, state)
+
+    def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
+        """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing).
+
+        ``lower``/``upper`` (keyword, (m,) or ``batch_shape + (m,)``) replace this step's limits.
+        """
+        return super().step(state, y, u=u, **options)
+
+    def _check_reading(self, state, y, options):
+        if self.check_limits and not options:
+            self.censoring.check_reading(y, state.k + 1)
+
+    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
+        """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`."""
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) -> FilterState | None:
+    """One online step through the compiled kernel (T = 1); None when the covariance stopped being finite."""
+    N, m = y.shape
+    n = est.n
+    kern = kernels()
+    cens = est.censoring
+    lims = None if cens.time_varying else est.__dict__.get("_kernel_limits")
+    if lims is None:
+        lo, hi = cens.limits(state.k + 1)
+        lims = (np.ascontiguousarray(np.broadcast_to(lo, (1, m)), dtype=float),
+                np.ascontiguousarray(np.broadcast_to(hi, (1, m)), dtype=float))
+        if not cens.time_varying:
+            est._kernel_limits = lims          # constant limits: converted once
+    lo, hi = lims
+    P = state.P
+    if P.shape[0] != N:
+        P = np.broadcast_to(P, (N, n, n))
+    A, Qd, C, _ = _kernel_matrices(est)
+    x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
+    pu, ey = np.empty((N, 1, m)), np.empty((N, 1, m))
+    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
+    kern.tkf_kernel(np.ascontiguousarray(y.reshape(N, 1, m)), A, Qd, C, est._sigma, lo, hi,
+                    np.ascontiguousarray(state.x, dtype=float), np.ascontiguousarray(P, dtype=float),
+                    kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph", kern.GL_X, kern.GL_W,
+                    e_m, e_c, e_m, e_c, pu, ey, x_last, P_last)
+    if not np.isfinite(P_last).all():
+        return None
+    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry,
+                       extras={"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]})
+
+
+def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want, batch) -> FilterResult:
+    """The compiled loop (:func:`tobitkf.filters._kernels.tkf_kernel`) from ``state``; outputs on request."""
+    sys_ = est.system
+    N, T, m = y2.shape
+    n = sys_.n
+    kern = kernels()
+    c64 = np.ascontiguousarray
+    x = c64(state.x, dtype=float)
+    P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=float)
+
+    def arr(name, shape):
+        return np.empty((N, T) + shape) if name in want else np.empty((N, 0) + shape)
+
+    means, pmeans = arr("mean", (n,)), arr("pred_mean", (n,))
+    covs = np.empty((N, T, n, n)) if ("cov" in want or "var" in want) else np.empty((N, 0, n, n))
+    pcovs = arr("pred_cov", (n, n))
+    pu, ey = arr("extras", (m,)), arr("extras", (m,))
+    x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
+    yc, A, Qd = c64(y2), c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float)
+    C, sig, lo, hi = c64(sys_.measurement(1), dtype=float), c64(est._sigma), c64(lo), c64(hi)
+    code, joseph = kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph"
+
+    def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
+        kern.tkf_kernel(yc[a:b], A, Qd, C, sig, lo, hi, x[a:b], P[a:b], code, joseph, kern.GL_X, kern.GL_W,
+                        means[a:b], covs[a:b], pmeans[a:b], pcovs[a:b], pu[a:b], ey[a:b], x_last[a:b], P_last[a:b])
+
+    if N < 256:                       # one thread: not worth a pool (and no thread-count lookup per step)
+        work(0, N)
+    else:
+        run_split(work, N, check_threads(est.threads))
+    final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
+
+    def out(a):
+        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+
+    cov = out(covs)
+    var = np.diagonal(cov, axis1=-2, axis2=-1) if ("var" in want and cov is not None) else None
+    extras = {"p_uncensored": out(pu), "expected_y": out(ey)} if "extras" in want else {}
+    return FilterResult(mean=out(means), cov=cov if "cov" in want else None, pred_mean=out(pmeans),
+                        pred_cov=out(pcovs), extras=extras, times=np.arange(state.k + 1, state.k + T + 1), var=var,
+                        final=final)
 
 
 def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u: Any = None,
                         noise_term: str = "dissertation", covariance_update: str = "standard",
                         x0: Any = None, P0: Any = None, check_limits: bool = True,
-                        backend: str = "auto", threads: int | None = None) -> FilterResult:
+                        backend: str = "auto", threads: int | None = None, outputs: Any = "all") -> FilterResult:
     r"""Run the Tobit Kalman filter over a batch of censored records.
 
     Parameters
@@ -213,7 +424,7 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
         covers time-invariant A, B, C, Q, R without control input (any limits, NaN
         samples and noise term; the standard and Joseph updates, not the square-root
-        form); ``"numpy"`` the vectorised reference path, which covers everything;
+        form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;
         ``"auto"`` the kernel when numba is installed and the case is covered, else numpy
         (always numpy for ``covariance_update="square_root"``).
     threads : int, optional
@@ -221,12 +432,15 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
         result is identical bit for bit). Default: ``TOBITKF_NUM_THREADS``, else
         ``OMP_NUM_THREADS`` (Dask workers set it to 1), else the number of CPUs. Batches
         below 256 runs per thread are not split. Ignored by the numpy path.
+    outputs : str or sequence of str, default "all"
+        Per-step outputs to record: ``"all"``, ``"last"`` (only ``result.final``), or names from
+        ``mean, cov, var, pred_mean, pred_cov, extras``.
 
     Returns
     -------
     FilterResult
         ``mean`` (..., T, n), ``cov`` (..., T, n, n), ``pred_mean``, ``pred_cov``; extras
-        ``p_uncensored`` and ``expected_y`` (..., T, m) at the prior.
+        ``p_uncensored`` and ``expected_y`` (..., T, m) at the prior; ``times`` = 1..T; ``final``.
 
     Raises
     ------
@@ -276,126 +490,6 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     >>> bool(np.allclose(a, b, rtol=0, atol=1e-12))
     True
     """
-    check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
-                   _OPTIONS)
-    form_gap = check_square_root(backend, covariance_update, "the Tobit Kalman filter")
-    y2, batch = prepare_measurements(y, system.m)
-    N, T, m = y2.shape
-    n = system.n
-    system.check_horizon(T)
-    censoring.check(m, T)
-    if check_limits:
-        censoring.check_measurements(y2)
-    u2 = prepare_inputs(system, u, N, T)
-    x, P = check_prior(system, x0, P0, N, batch)
-    means = np.empty((N, T, n))
-    pmeans = np.empty((N, T, n))
-    covs = np.empty((N, T, n, n))
-    pcovs = np.empty((N, T, n, n))
-    pu = np.empty((N, T, m))
-    ey = np.empty((N, T, m))
-    sigma = None if system.R.varying else _sigma_of(system.measurement_cov(1))
-    lo_all, hi_all = censoring.all_limits(T, m)
-    if use_kernel(backend, form_gap or system_gap(system, u), "the Tobit Kalman filter"):
-        kern = kernels()
-        c64 = np.ascontiguousarray
-        yc, A, Qd = c64(y2), c64(system.transition(0), dtype=float), c64(system.process_cov(0), dtype=float)
-        C, sig, lo, hi = c64(system.measurement(1), dtype=float), c64(sigma), c64(lo_all), c64(hi_all)
-        code, joseph = kern.NOISE_CODES[noise_term], covariance_update == "joseph"
-
-        def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
-            kern.tkf_kernel(yc[a:b], A, Qd, C, sig, lo, hi, x[a:b], P[a:b], code, joseph, kern.GL_X, kern.GL_W,
-                            means[a:b], covs[a:b], pmeans[a:b], pcovs[a:b], pu[a:b], ey[a:b])
-
-        run_split(work, N, check_threads(threads))
-    elif covariance_update == "square_root":
-        S = psd_sqrt(P)
-        G = process_roots(system)
-        for k in range(1, T + 1):
-            uk = None if u2 is None else u2[:, k - 1]
-            bx, dy = system.input_effect(k, uk)
-            x, S = sqrt_predict(x, S, system.transition(k - 1), G(k - 1), bx)
-            pmeans[:, k - 1], pcovs[:, k - 1] = x, symmetrize(S @ np.swapaxes(S, -1, -2))
-            sig = sigma if sigma is not None else _sigma_of(system.measurement_cov(k), f"R({k})")
-            x, P, S, st = _tobit_sqrt_update(x, S, y2[:, k - 1], system.measurement(k), sig, lo_all[k - 1],
-                                             hi_all[k - 1], dy=dy, noise_term=noise_term)
-            means[:, k - 1], covs[:, k - 1] = x, P
-            pu[:, k - 1], ey[:, k - 1] = st.p_uncensored, st.censored_mean
-    else:
-        for k in range(1, T + 1):
-            uk = None if u2 is None else u2[:, k - 1]
-            bx, dy = system.input_effect(k, uk)
-            x, P = predict(x, P, system.transition(k - 1), system.process_cov(k - 1), bx)
-            pmeans[:, k - 1], pcovs[:, k - 1] = x, P
-            sig = sigma if sigma is not None else _sigma_of(system.measurement_cov(k), f"R({k})")
-            x, P, st = tobit_update(x, P, y2[:, k - 1], system.measurement(k), sig, lo_all[k - 1],
-                                    hi_all[k - 1], dy=dy, noise_term=noise_term,
-                                    covariance_update=covariance_update)
-            means[:, k - 1], covs[:, k - 1] = x, P
-            pu[:, k - 1], ey[:, k - 1] = st.p_uncensored, st.censored_mean
-    return FilterResult(mean=means.reshape(batch + (T, n)), cov=covs.reshape(batch + (T, n, n)),
-                        pred_mean=pmeans.reshape(batch + (T, n)), pred_cov=pcovs.reshape(batch + (T, n, n)),
-                        extras={"p_uncensored": pu.reshape(batch + (T, m)), "expected_y": ey.reshape(batch + (T, m))})
-
-
-class TobitKalmanFilter:
-    r"""Tobit Kalman filter for left, right, two-sided and multi-region censoring (Miller §3.3.4).
-
-    Parameters
-    ----------
-    system : LinearSystem
-        The model; R must be diagonal (Assumption A2, (3.36)).
-    censoring : Censoring
-        The censoring limits (time-varying allowed, Miller §3.4).
-    noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
-        :math:`R_{uu}` in (3.40): the dissertation's truncated variance (3.41) with (3.11),
-        or one of the exact alternatives of spec A-3.2 (non-dissertation).
-    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
-        ``"standard"`` is (3.55) :math:`(I - KE(p)C)\bar\Psi`; ``"joseph"`` the
-        algebraically equal Joseph form; ``"square_root"`` [non-source] propagates a factor
-        :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
-        construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
-    backend : {"auto", "numpy", "numba"}, default "auto"
-        Compiled kernel or numpy reference path; see :func:`tobit_kalman_filter`.
-        ``"numba"`` has no square-root form and is refused with ``covariance_update="square_root"``.
-    threads : int, optional
-        Threads for the compiled kernel; see :func:`tobit_kalman_filter`.
-
-    Raises
-    ------
-    ValidationError
-        Non-diagonal or non-positive R, unknown option, wrong argument types.
-
-    Notes
-    -----
-    See :func:`tobit_kalman_filter` and the module docstring for the equations.
-    With the dissertation's noise term the TKF can be *more* confident than the KF
-    when lightly censored (spec A-3.2: :math:`p_u^2\sigma^2 > V_{tr}` for
-    :math:`a \lesssim -0.6`); ``"total_variance"`` removes this.
-
-    References
-    ----------
-    .. [1] C. I. Miller, *Estimation and Control with Censored Data*, PhD thesis,
-       University of Delaware, 2015, §3.3.
-    """
-
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, noise_term: str = "dissertation",
-                 covariance_update: str = "standard", backend: str = "auto", threads: int | None = None):
-        check_instance(system, LinearSystem, "system")
-        check_instance(censoring, Censoring, "censoring")
-        check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
-                       _OPTIONS)
-        check_square_root(backend, covariance_update, "the Tobit Kalman filter")
-        censoring.check(system.m)
-        if not system.R.varying:
-            _sigma_of(system.measurement_cov(1))
-        self.system, self.censoring = system, censoring
-        self.noise_term, self.covariance_update, self.backend = noise_term, covariance_update, backend
-        self.threads = None if threads is None else check_threads(threads)
-
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`."""
-        return tobit_kalman_filter(self.system, self.censoring, y, u=u, noise_term=self.noise_term,
-                                   covariance_update=self.covariance_update, x0=x0, P0=P0, backend=self.backend,
-                                   threads=self.threads)
-
+    est = TobitKalmanFilter(system, censoring, noise_term=noise_term, covariance_update=covariance_update,
+                            backend=backend, threads=threads, check_limits=check_limits)
+    return est.filter(y, u=u, x0=x0, P0=P0, outputs=outputs)

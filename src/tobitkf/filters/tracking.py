@@ -31,6 +31,13 @@ Q, R, P_0, T_o, α, μ are not given (A-2.3); the defaults are the spec's.
 
 Time convention: frame 0 initialises the filters from the supplied locations (one-to-one, fixing the
 identities); frames 1..T are tracked; output index k-1 holds frame k.
+
+On the shared core (:mod:`tobitkf.filters.core`): the targets are the runs of one batch, the predict is
+the shared :func:`~tobitkf.filters.core.time_update` with the feedback input :math:`Bu_i`, and the update
+the shared :func:`~tobitkf.filters.core.measurement_update` with :math:`H_0 = C` and only the matched
+targets taking part. Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)``
+with one frame of unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
+over the same step (one frame per row).
 """
 
 from __future__ import annotations
@@ -41,7 +48,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
-from ._common import gain_update, predict
+from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, Transition, measurement_update, \
+    time_update
 
 __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
 
@@ -64,7 +72,7 @@ class TrackResult:
     occluded_frames: np.ndarray
 
 
-class MultiTargetTracker:
+class MultiTargetTracker(Estimator):
     """Tracker of §2.2 (see the module docstring).
 
     Parameters
@@ -85,6 +93,9 @@ class MultiTargetTracker:
     ValidationError
         Negative gate, unknown options.
     """
+
+    _name = "MultiTargetTracker"
+    n, m = 4, 0
 
     def __init__(self, *, Q: Any = None, R: Any = None, P0: Any = None, gate0: float = 10.0, gate_slope: float = 2.0,
                  mu: float = 0.0, warmup: int = 5, feedback: str = "corrected", second_map: str = "closest",
@@ -125,9 +136,11 @@ class MultiTargetTracker:
                 u[i] = x[vis].mean(axis=0) - x[i]
         return u
 
-    def track(self, initial: Any, detections: Sequence[Any]) -> TrackResult:
-        """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
-        of unordered points (L_k may be 0)."""
+    # ---- the estimator -------------------------------------------------------------------
+    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None, P0: Any = None) -> FilterState:
+        """Frame 0: one filter per target at the supplied locations ``initial`` (N, 2), zero velocity."""
+        if initial is None:
+            raise ValidationError("initial: expected the (N, 2) target locations of frame 0")
         init = as_float_array(initial, "initial")
         if init.ndim != 2 or init.shape[1] != 2:
             raise ShapeError(f"initial: expected (N, 2) target locations, got {init.shape}")
@@ -135,37 +148,84 @@ class MultiTargetTracker:
         x = np.zeros((N, 4))
         x[:, 0], x[:, 2] = init[:, 0], init[:, 1]
         P = np.broadcast_to(self.P0, (N, 4, 4)).copy()
-        T = len(detections)
-        means, covs = np.empty((T, N, 4)), np.empty((T, N, 4, 4))
-        assign = np.full((T, N), -1)
-        occl = np.zeros((T, N), dtype=int)
-        O = np.zeros(N, dtype=int)
-        visible = np.ones(N, dtype=bool)
-        last_meas = init.copy()
-        for k in range(T):
-            M = np.asarray(detections[k], dtype=float).reshape(-1, 2)
-            u = self._feedback(x, visible)
-            x, P = predict(x, P, self.A, self.Q, u @ self.B.T)
-            ref = last_meas if k < self.warmup else x @ self.C.T
-            occl[k] = O
-            match = np.full(N, -1)
-            if len(M):
-                D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)     # (N, L)
-                first = np.argmin(D, axis=1)
-                dist = D[np.arange(N), first]
-                for j in np.unique(first):
-                    choosers = np.flatnonzero(first == j)
-                    best = choosers[np.argmin(dist[choosers])]
-                    if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
-                        continue
-                    if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
-                        match[best] = j
-            visible = match >= 0
-            z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
-            CP = self.C @ P
-            valid = np.repeat(visible[:, None], 2, axis=1)
-            x, P, _ = gain_update(x, P, z - x @ self.C.T, np.swapaxes(CP, -1, -2), CP @ self.C.T + self.R, valid)
-            last_meas = np.where(visible[:, None], z, last_meas)
-            O = np.where(visible, 0, O + 1)
-            means[k], covs[k], assign[k] = x, P, match
-        return TrackResult(means, covs, assign, occl)
+        carry = {"O": np.zeros(N, dtype=int), "visible": np.ones(N, dtype=bool), "last_meas": init.copy()}
+        return FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, carry=carry)
+
+    def _frame(self, frame: Any, name: str = "detections") -> np.ndarray:
+        M = as_float_array(frame, name, allow_nan=True)
+        if M.size == 0:
+            return np.zeros((0, 2))
+        if M.ndim != 2 or M.shape[-1] != 2:
+            raise ShapeError(f"{name}: expected (L, 2) detections (x, y per row), got shape {M.shape}")
+        return M[~np.isnan(M).any(axis=1)]
+
+    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
+        frame = options["frame"]
+        M = frame[~np.isnan(frame).any(axis=-1)] if frame.ndim == 2 else frame[0][~np.isnan(frame[0]).any(axis=-1)]
+        N = x.shape[0]
+        O, visible, last_meas = carry["O"], carry["visible"], carry["last_meas"]
+        uk = self._feedback(x, visible)
+        xp, Pp, _ = time_update(x, P, None, Transition(A=self.A, Qd=self.Q, b=uk @ self.B.T), "standard")
+        ref = last_meas if k - 1 < self.warmup else xp @ self.C.T
+        occluded = O.copy()
+        match = np.full(N, -1)
+        if len(M):
+            D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)     # (N, L)
+            first = np.argmin(D, axis=1)
+            dist = D[np.arange(N), first]
+            for j in np.unique(first):
+                choosers = np.flatnonzero(first == j)
+                best = choosers[np.argmin(dist[choosers])]
+                if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
+                    continue
+                if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
+                    match[best] = j
+        visible = match >= 0
+        z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
+        mp = MeasurementPrediction(expected=xp @ self.C.T, H0=self.C, noise=self.R[None],
+                                   valid=np.repeat(visible[:, None], 2, axis=1))
+        xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+        new = {"O": np.where(visible, 0, O + 1), "visible": visible,
+               "last_meas": np.where(visible[:, None], z, last_meas)}
+        return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
+
+    def step(self, state: FilterState, detections: Any) -> FilterState:
+        """Track one frame of unordered detections (L, 2) (L may be 0)."""
+        state = self._check_state(state)
+        M = self._frame(detections)
+        k = state.k + 1
+        x, P, _, carry, _, _, extras = self._step_arrays(k, state.x, state.P, None, state.carry, None, None,
+                                                         {"frame": M})
+        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=4, carry=carry, extras=extras)
+
+    def filter(self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None,
+               outputs: Any = "all") -> FilterResult:
+        """Track every frame of ``detections`` (a sequence of T arrays (L_k, 2)) from ``initial`` (N, 2)
+        or a ``state``; the common :class:`FilterResult` with the targets as runs: ``mean`` (N, T, 4),
+        ``cov`` (N, T, 4, 4), ``extras`` ``assignment`` and ``occluded_frames`` (N, T), ``times`` 1..T."""
+        if state is None:
+            state = self.init(initial)
+        elif initial is not None:
+            raise ValidationError("state: give either a state to continue from or the initial locations, not both")
+        state = self._check_state(state)
+        frames = [self._frame(f, f"detections[{i}]") for i, f in enumerate(detections)]
+        T = len(frames)
+        if T == 0:
+            raise ShapeError("detections: expected at least one frame")
+        L = max(1, max(len(f) for f in frames))
+        padded = np.full((1, T, L, 2), np.nan)
+        for i, f in enumerate(frames):
+            padded[0, i, :len(f)] = f
+        N = state.runs
+        return self._run(np.zeros((N, T, 0)), outputs=outputs, state=state, step_data={"frame": padded})
+
+    def _prepare_record(self, y, name="y"):
+        # the loop's record is an empty (N, T, 0) placeholder: the frames travel as step data
+        return y, y.shape[:1]
+
+    def track(self, initial: Any, detections: Sequence[Any]) -> TrackResult:
+        """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
+        of unordered points (L_k may be 0). The frame-major layout of :class:`TrackResult`; see :meth:`filter`."""
+        res = self.filter(detections, initial=initial)
+        return TrackResult(np.swapaxes(res.mean, 0, 1), np.swapaxes(res.cov, 0, 1),
+                           np.swapaxes(res.extras["assignment"], 0, 1), np.swapaxes(res.extras["occluded_frames"], 0, 1))

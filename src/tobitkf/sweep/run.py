@@ -36,19 +36,18 @@ def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int, *,
     """Simulate ``runs`` runs of block ``block`` and return its sufficient statistics."""
     from ..simulate.core import simulate
 
-    sys_, cens, estimators = build_point(spec, point, threads=threads)
-    data = simulate(sys_, spec.steps, runs, censoring=cens, seed=np.random.SeedSequence(spec.seed, spawn_key=(block,)))
-    truth = data.x[:, 1:]
+    pt = build_point(spec, point, threads=threads)
+    data = simulate(pt.system, spec.steps, runs, channel=pt.channel(),
+                    seed=np.random.SeedSequence(spec.seed, spawn_key=(block,)))
     s_err, s_sq, s_nees = [], [], []
-    for est in estimators.values():
-        out = est.filter(data.y)
-        err = out.mean - truth
+    for entry, est in pt.estimators.values():
+        out = entry.run(est, data, outputs=("mean", "cov"))
+        err = out.mean - data.x[:, out.times]                 # the truth at the rows' times
         s_err.append(err.sum(axis=0))
         s_sq.append((err**2).sum(axis=0))
         s_nees.append(nees_terms(err, out.cov).sum(axis=0))
-    at_lo, at_hi = cens.censored_mask(data.y)
     return {"sum_err": np.stack(s_err), "sum_sq": np.stack(s_sq), "sum_nees": np.stack(s_nees),
-            "censored": (at_lo | at_hi).sum(axis=0).astype(float), "count": np.int64(runs)}
+            "censored": pt.censored(data.y).sum(axis=0).astype(float), "count": np.int64(runs)}
 
 
 def experiment_seed(seed: int, block: int) -> int:
@@ -198,8 +197,8 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         g = open_store(path, spec, keys, n, 1, steps)
         write_blocks(g, 0, [(0, first)])
     else:
-        sys_, _, ests = build_point(spec, points[0])
-        g = open_store(path, spec, list(ests), sys_.n, sys_.m, spec.steps)
+        pt = build_point(spec, points[0])
+        g = open_store(path, spec, list(pt.estimators), pt.system.n, pt.reading_width, spec.steps)
     done = g["done"][:]
     tasks = []
     for p in range(len(points)):

@@ -32,6 +32,18 @@ plus a parameter grid, the run count, the horizon and a seed::
     [grid]                 # cartesian product; keys are dotted paths into this file
     "censoring.lower" = [-0.5, 0.0, 0.5]
 
+Channel sections (optional; the pieces of :mod:`tobitkf.channels` the data pass and the estimators
+that need them take): ``[fading]`` (``order`` L, the coefficients' ``mean`` and ``variance`` per delay
+s = 0..L (a Gaussian law), or ``low``/``high`` (uniform)) and ``[protocol]`` (``window`` ℓ,
+``threshold`` τ, ``failures`` = ``"none"``, ``"base"`` (the example's Λ on {0, 0.5, 1}, mean 0.9),
+``"lambda1"`` (mean 0.6) or a table ``{values = [...], probs = [...]}``, ``order``, ``prehistory``).
+Estimator types are the registry's families on a linear model (:mod:`tobitkf.filters.registry`):
+``KalmanFilter``, ``DroppingKalmanFilter``, ``TobitKalmanFilter``, ``SteadyStateTobitKalmanFilter``
+(``xi_uncensored = ...``; it reads the latent readings and censors them itself),
+``ControlledLimitTobitKalmanFilter``, ``FadingTobitKalmanFilter``, ``FadingKalmanFilter``
+(need ``[fading]``), ``ProtocolTobitKalmanFilter``, ``ProtocolBaselineTobitKalmanFilter`` (need
+``[protocol]``, which replaces ``[censoring]``).
+
 Experiment mode: ``[sweep] experiment = "miller-oscillator"``, optional ``[settings]``
 (keyword overrides of the experiment's ``run``), and grid keys ``"settings.<name>"``.
 The runs are split into blocks as in model mode: block ``b`` of a grid point runs the
@@ -58,16 +70,22 @@ from .._validation import ValidationError
 
 __all__ = ["SweepFileError", "SweepSpec", "load_sweep", "parse_sweep", "ESTIMATOR_TYPES"]
 
-# estimator types a sweep file may name, with the options each accepts (checked on load)
-ESTIMATOR_TYPES: dict[str, tuple[str, ...]] = {
-    "KalmanFilter": ("covariance_update",),
-    "DroppingKalmanFilter": ("covariance_update", "rtol"),
-    "TobitKalmanFilter": ("noise_term", "covariance_update"),
-}
+def _estimator_types() -> dict[str, tuple[str, ...]]:
+    from ..filters.registry import ENTRIES
+
+    return {name: tuple(e.options) for name, e in ENTRIES.items() if e.model == "linear"}
+
+
+# estimator types a sweep file may name (every registered family on a LinearSystem, tobitkf.filters.registry),
+# with the options each accepts (checked on load)
+ESTIMATOR_TYPES: dict[str, tuple[str, ...]] = _estimator_types()
 _SWEEP_KEYS = {"runs", "steps", "seed", "block_runs", "chunk_blocks", "name", "experiment"}
 _MODEL_KEYS = {"A", "C", "Q", "R", "x0", "P0", "B"}
 _CENS_KEYS = {"lower", "upper"}
-_TOP = {"sweep", "model", "censoring", "estimators", "grid", "settings"}
+# channel sections (tobitkf.channels): the keys each accepts
+_CHANNEL_KEYS = {"fading": {"order", "mean", "variance", "low", "high"},
+                 "protocol": {"window", "threshold", "failures", "order", "prehistory"}}
+_TOP = {"sweep", "model", "censoring", "estimators", "grid", "settings"} | set(_CHANNEL_KEYS)
 
 
 class SweepFileError(ValidationError):
@@ -117,6 +135,7 @@ class SweepSpec:
     estimators: dict[str, dict[str, Any]]
     settings: dict[str, Any]
     grid: dict[str, list[Any]] = field(default_factory=dict)
+    channels: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     @property
     def blocks(self) -> int:
@@ -141,6 +160,7 @@ class SweepSpec:
         """Model, censoring, estimators and settings with a grid point applied."""
         out = {"model": dict(self.model), "censoring": dict(self.censoring),
                "estimators": {k: dict(v) for k, v in self.estimators.items()}, "settings": dict(self.settings)}
+        out.update({k: dict(v) for k, v in self.channels.items()})
         for dotted, value in point.items():
             parts = dotted.split(".")
             target = out[parts[0]]
@@ -152,10 +172,12 @@ class SweepSpec:
     def canonical(self) -> str:
         """A canonical JSON form of everything that determines the numbers (used to refuse
         resuming a store made by a different sweep)."""
-        return json.dumps({"runs": self.runs, "steps": self.steps, "seed": self.seed, "block_runs": self.block_runs,
-                           "experiment": self.experiment, "model": self.model, "censoring": self.censoring,
-                           "estimators": self.estimators, "settings": self.settings, "grid": self.grid},
-                          sort_keys=True, default=str)
+        doc = {"runs": self.runs, "steps": self.steps, "seed": self.seed, "block_runs": self.block_runs,
+               "experiment": self.experiment, "model": self.model, "censoring": self.censoring,
+               "estimators": self.estimators, "settings": self.settings, "grid": self.grid}
+        if self.channels:        # only then: the canonical form of a channel-free sweep is unchanged
+            doc["channels"] = self.channels
+        return json.dumps(doc, sort_keys=True, default=str)
 
 
 def _int(text: str, table: dict, key: str, dotted: str, *, default: int | None = None, minimum: int = 1) -> int:
@@ -225,7 +247,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             if known is not None and key not in known:
                 where = f"settings.{key}" if key in settings else f"grid.settings.{key}"
                 raise _fail(text, where, f"unknown setting of {experiment}; known: {', '.join(sorted(known))}")
-        for tbl in ("model", "censoring", "estimators"):
+        for tbl in ("model", "censoring", "estimators", *_CHANNEL_KEYS):
             if tbl in doc:
                 raise _fail(text, tbl, "not allowed together with sweep.experiment (use [settings])")
     else:
@@ -242,11 +264,26 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         for key in cens:
             if key not in _CENS_KEYS:
                 raise _fail(text, f"censoring.{key}", "unknown key; expected 'lower' or 'upper'")
+        for sec, allowed_keys in _CHANNEL_KEYS.items():
+            tbl = doc.get(sec, {})
+            if not isinstance(tbl, dict):
+                raise _fail(text, sec, "expected a table")
+            for key in tbl:
+                if key not in allowed_keys:
+                    raise _fail(text, f"{sec}.{key}", f"unknown key; expected one of {', '.join(sorted(allowed_keys))}")
+        if "protocol" in doc and cens:
+            raise _fail(text, "censoring", "the [protocol] channel censors at its own threshold; drop [censoring]")
         if not ests:
             raise _fail(text, "estimators", "expected at least one [estimators.<key>] table")
         for key, est in ests.items():
             if not isinstance(est, dict) or "type" not in est:
                 raise _fail(text, f"estimators.{key}", "expected a table with a 'type'")
+            from ..filters.registry import ENTRIES
+
+            if isinstance(est["type"], str) and est["type"] in ENTRIES and est["type"] not in ESTIMATOR_TYPES:
+                raise _fail(text, f"estimators.{key}.type",
+                            f"{est['type']} is not a family on a linear model (its model: "
+                            f"{ENTRIES[est['type']].model}); sweep it through its experiment (sweep.experiment)")
             if not isinstance(est["type"], str) or est["type"] not in ESTIMATOR_TYPES:
                 raise _fail(text, f"estimators.{key}.type",
                             f"unknown estimator type {est['type']!r}; expected one of {', '.join(ESTIMATOR_TYPES)}")
@@ -260,7 +297,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         if not isinstance(values, list) or not values:
             raise _fail(text, f"grid.{key}", "expected a non-empty list of values")
         root = key.split(".")[0]
-        allowed = {"settings"} if experiment is not None else {"model", "censoring", "estimators"}
+        allowed = {"settings"} if experiment is not None else {"model", "censoring", "estimators", *_CHANNEL_KEYS}
         if root not in allowed or "." not in key:
             raise _fail(text, f"grid.{key}", f"grid keys are dotted paths starting with {' or '.join(sorted(allowed))}")
         parts = key.split(".")
@@ -277,9 +314,13 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             raise _fail(text, f"grid.{key}", f"unknown model key; expected one of {', '.join(sorted(_MODEL_KEYS))}")
         elif root == "censoring" and parts[1] not in _CENS_KEYS:
             raise _fail(text, f"grid.{key}", "unknown censoring key; expected 'lower' or 'upper'")
+        elif root in _CHANNEL_KEYS and (root not in doc or parts[1] not in _CHANNEL_KEYS[root]):
+            raise _fail(text, f"grid.{key}", f"expected a key of the file's [{root}] table "
+                                             f"({', '.join(sorted(_CHANNEL_KEYS[root]))})")
     spec = SweepSpec(text=text, name=sname, runs=runs, steps=steps, seed=seed, block_runs=block_runs,
                      chunk_blocks=chunk_blocks, experiment=experiment, model=model, censoring=cens,
-                     estimators=ests, settings=settings, grid=grid)
+                     estimators=ests, settings=settings, grid=grid,
+                     channels={sec: dict(doc[sec]) for sec in _CHANNEL_KEYS if sec in doc})
     # build the base model and every grid point once, so that a bad matrix or limit fails on
     # load (naming the key that holds it), not mid-sweep
     if experiment is None:
@@ -290,8 +331,9 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         except ValidationError as exc:
             arg = str(exc).split(":", 1)[0].split("(")[0].strip()
             est_key = next((f"estimators.{k}.{arg}" for k, e in ests.items() if arg in e), None)
+            chan = next((f"{sec}.{arg}" for sec in _CHANNEL_KEYS if arg in spec.channels.get(sec, {})), None)
             key = f"model.{arg}" if arg in _MODEL_KEYS else ("censoring" if arg.startswith(("lower", "upper", "censoring"))
-                                                              else (est_key or "model"))
+                                                              else (est_key or chan or "model"))
             raise _fail(text, key, str(exc)) from None
         for point in spec.points():
             try:

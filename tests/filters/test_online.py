@@ -1,0 +1,398 @@
+"""The online API of every estimator: the loop over ``step`` equals ``filter``; states pickle and resume.
+
+Each family is a case (``CASES``): a builder of (estimator, readings, inputs) on its paper's example size
+or a small model, with missing readings, control inputs and time-varying matrices where the family takes
+them. Tolerances: 1e-12 absolute on the numpy path (the same arithmetic in a different order of calls at
+most), exact for the resume from a pickled state.
+"""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf.filters.core import FilterState
+
+TOL = 1e-12
+
+
+def oscillator(**kw):
+    w = 0.1
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    base = dict(A=A, C=[[1.0, 0.0]], Q=1e-2 * np.eye(2), R=[[0.04]], x0=[1.0, 0.0], P0=0.5 * np.eye(2))
+    base.update(kw)
+    return tk.LinearSystem(**base)
+
+
+def with_gaps(y, rng, frac=0.1):
+    y = np.array(y, dtype=float, copy=True)
+    y[rng.random(y.shape) < frac] = np.nan
+    return y
+
+
+def case_kf(batch, rng, backend="numpy", form="standard"):
+    sys_ = oscillator()
+    d = tk.simulate(sys_, 12, int(np.prod(batch)) if batch else 1, seed=1)
+    y = with_gaps(d.y, rng).reshape(batch + (12, 1))
+    return tk.KalmanFilter(sys_, backend=backend, covariance_update=form), y, None
+
+
+def case_kf_inputs_tv(batch, rng, backend="numpy", form="standard"):
+    T = 10
+    As = np.stack([np.array([[1.0, 0.1], [0.0, 1.0 - 0.01 * k]]) for k in range(T)])
+    sys_ = tk.LinearSystem(A=As, C=lambda k: np.array([[1.0, 0.1 * k]]), Q=1e-3 * np.eye(2), R=[[0.1]],
+                           x0=[0.0, 1.0], P0=np.eye(2), Bu=[[0.0], [1.0]])
+    N = int(np.prod(batch)) if batch else 1
+    u = rng.standard_normal(batch + (T, 1))
+    d = tk.simulate(sys_, T, N, inputs=u.reshape(N, T, 1), seed=2)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 1))
+    return tk.KalmanFilter(sys_, backend=backend, covariance_update=form), y, u
+
+
+def case_dkf(batch, rng, backend="numpy", form="standard"):
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    d = tk.simulate(sys_, 15, int(np.prod(batch)) if batch else 1, censoring=cens, seed=3)
+    y = with_gaps(d.y, rng).reshape(batch + (15, 1))
+    return tk.DroppingKalmanFilter(sys_, cens, backend=backend, covariance_update=form), y, None
+
+
+def case_tkf(batch, rng, backend="numpy", form="standard"):
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0, upper=1.2)
+    d = tk.simulate(sys_, 15, int(np.prod(batch)) if batch else 1, censoring=cens, seed=4)
+    y = with_gaps(d.y, rng).reshape(batch + (15, 1))
+    return tk.TobitKalmanFilter(sys_, cens, backend=backend, covariance_update=form), y, None
+
+
+def case_tkf_tv(batch, rng, backend="numpy", form="standard"):
+    T = 12
+    lower = np.linspace(-0.5, 0.5, T)[:, None] * np.ones((1, 2))
+    cens = tk.Censoring(lower=lower)
+    sys_ = tk.LinearSystem(A=lambda k: np.array([[0.95, 0.1], [0.0, 0.9 + 0.001 * k]]), C=[[1.0, 0.0], [0.5, 1.0]],
+                           Q=1e-2 * np.eye(2), R=np.diag([0.05, 0.1]), x0=[0.5, 0.2], P0=np.eye(2),
+                           Bu=np.eye(2), D=[[0.0, 0.1], [0.0, 0.0]])
+    N = int(np.prod(batch)) if batch else 1
+    u = 0.1 * rng.standard_normal(batch + (T, 2))
+    d = tk.simulate(sys_, T, N, censoring=cens, inputs=u.reshape(N, T, 2), seed=5)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 2))
+    return tk.TobitKalmanFilter(sys_, cens, backend=backend, covariance_update=form), y, u
+
+
+def case_sstkf(batch, rng, backend="numpy", form="standard"):
+    sys_ = oscillator(Bu=[[0.0], [1.0]])
+    est = tk.SteadyStateTobitKalmanFilter(sys_, 0.7)
+    N = int(np.prod(batch)) if batch else 1
+    u = 0.1 * rng.standard_normal(batch + (10, 1))
+    d = tk.simulate(sys_, 10, N, inputs=u.reshape(N, 10, 1), seed=6)
+    y = est.filter_controlled(d.y_latent, u=u.reshape(N, 10, 1)).extras["y"].reshape(batch + (10, 1))
+    return est, y, u
+
+
+def case_fading(batch, rng, backend="numpy", form="joseph"):
+    from tobitkf.channels.fading import RiceFading
+
+    T = 12
+    sys_ = oscillator(Bu=[[0.0], [1.0]], C=lambda k: np.array([[1.0, 0.01 * k]]))
+    fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
+    cens = tk.Censoring(lower=0.0)
+    N = int(np.prod(batch)) if batch else 1
+    u = 0.1 * rng.standard_normal(batch + (T, 1))
+    d = tk.simulate(sys_, T, N, censoring=cens, measurement=fad, inputs=u.reshape(N, T, 1), seed=11)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 1))
+    est = tk.FadingTobitKalmanFilter(sys_, fad, cens, covariance_update=form, p_uncensored_mode="eq6_stale",
+                                     fading_variance_term=True)
+    return est, y, u
+
+
+def case_protocol(batch, rng, backend="numpy", form="joseph"):
+    from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
+
+    T = 12
+    w = 0.052 * np.pi
+    sys_ = tk.LinearSystem(A=lambda k: np.array([[np.cos(w), -np.sin(w)], [np.sin(w), 0.99 * np.cos(w)]]),
+                           C=np.eye(2), Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5]), x0=[5.0, 0.0], P0=np.eye(2))
+    ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    N = int(np.prod(batch)) if batch else 1
+    d = tk.simulate(sys_, T, N, channel=ch, seed=12)
+    est = tk.ProtocolTobitKalmanFilter(sys_, ch, covariance_update=form, failure_term="second_moment")
+    return est, d.y.reshape(batch + (T, 1)), None
+
+
+def _delay(batch, rng, cls, **kw):
+    from tobitkf.models.delay import paper_example, paper_prior
+    from tobitkf.simulate.delay import simulate_delay
+
+    sys_, prior = paper_example(), paper_prior()
+    N = int(np.prod(batch)) if batch else 1
+    y = simulate_delay(sys_, prior, 14, N, seed=13).y.reshape(batch + (14, 1))
+    return cls(sys_, prior, **kw), y, None
+
+
+def case_delay_chain(batch, rng, backend="numpy", form="standard"):
+    from tobitkf.filters.delay import ChainLMMSE
+
+    return _delay(batch, rng, ChainLMMSE)
+
+
+def case_delay_augmented(batch, rng, backend="numpy", form="standard"):
+    from tobitkf.filters.delay import AugmentedLMMSE
+
+    return _delay(batch, rng, AugmentedLMMSE, window=5)
+
+
+def case_delay_reorganized(batch, rng, backend="numpy", form="standard"):
+    from tobitkf.filters.delay import ReorganizedInnovationLMMSE
+
+    return _delay(batch, rng, ReorganizedInnovationLMMSE, warmup=3)
+
+
+CASES = {"kf": case_kf, "kf-inputs-tv": case_kf_inputs_tv, "dkf": case_dkf, "tkf": case_tkf, "tkf-tv": case_tkf_tv,
+         "sstkf": case_sstkf, "fading": case_fading, "protocol": case_protocol, "delay-chain": case_delay_chain,
+         "delay-augmented": case_delay_augmented, "delay-reorganized": case_delay_reorganized}
+BATCHES = [(), (5,), (2, 3)]
+
+
+def run_steps(est, y, u, batch, T, start=None):
+    state = est.init(batch) if start is None else start
+    means, covs = [], []
+    for k in range(T):
+        uk = None if u is None else u[..., k, :]
+        state = est.step(state, y[..., k, :], u=uk) if uk is not None else est.step(state, y[..., k, :])
+        means.append(state.mean)
+        covs.append(state.cov)
+    return state, np.stack(means, axis=-2), np.stack(covs, axis=-3)
+
+
+def filter_of(est, y, u, **kw):
+    return est.filter(y, u=u, **kw) if u is not None else est.filter(y, **kw)
+
+
+@pytest.mark.parametrize("batch", BATCHES, ids=str)
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_step_loop_equals_filter(name, batch):
+    rng = np.random.default_rng(0)
+    est, y, u = CASES[name](batch, rng)
+    T = y.shape[-2]
+    res = filter_of(est, y, u)
+    state, means, covs = run_steps(est, y, u, batch, T)
+    k0 = est.k0                      # the prior's time index: 0, or -1 for the delay family (y(0) first)
+    assert res.mean.shape == batch + (T, est.n) and res.times.tolist() == list(range(k0 + 1, k0 + T + 1))
+    np.testing.assert_allclose(means, res.mean, rtol=0, atol=TOL)
+    np.testing.assert_allclose(covs, res.cov, rtol=0, atol=TOL)
+    assert state.k == k0 + T and res.final.k == k0 + T
+    np.testing.assert_allclose(state.mean, res.final.mean, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_pickled_state_resumes_identically(name):
+    rng = np.random.default_rng(1)
+    batch = (4,)
+    est, y, u = CASES[name](batch, rng)
+    T = y.shape[-2]
+    half = T // 2
+    state, _, _ = run_steps(est, y[..., :half, :], None if u is None else u[..., :half, :], batch, half)
+    revived = pickle.loads(pickle.dumps(state))
+    assert isinstance(revived, FilterState) and revived.k == est.k0 + half
+    a, ma, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half, start=state)
+    b, mb, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half,
+                         start=revived)
+    np.testing.assert_array_equal(ma, mb)
+    np.testing.assert_array_equal(a.cov, b.cov)
+    # filter() continues from a state too, and the two halves make the whole record
+    whole = filter_of(est, y, u)
+    second = est.filter(y[..., half:, :], state=revived, **({} if u is None else {"u": u[..., half:, :]}))
+    assert second.times.tolist() == list(range(est.k0 + half + 1, est.k0 + T + 1))
+    np.testing.assert_allclose(second.mean, whole.mean[..., half:, :], rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("name", ["kf", "dkf", "tkf"])
+def test_compiled_step_equals_numpy_step(name):
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(2)
+    est_np, y, u = CASES[name]((3,), rng, backend="numpy")
+    est_nb, _, _ = CASES[name]((3,), np.random.default_rng(2), backend="numba")
+    _, m_np, c_np = run_steps(est_np, y, u, (3,), y.shape[-2])
+    _, m_nb, c_nb = run_steps(est_nb, y, u, (3,), y.shape[-2])
+    np.testing.assert_allclose(m_nb, m_np, rtol=0, atol=TOL)
+    np.testing.assert_allclose(c_nb, c_np, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("name", ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv", "fading", "protocol"])
+def test_square_root_form_equals_standard(name):
+    rng = np.random.default_rng(3)
+    std, y, u = CASES[name]((4,), rng)
+    sq, _, _ = CASES[name]((4,), np.random.default_rng(3), form="square_root")
+    a, b = filter_of(std, y, u), filter_of(sq, y, u)
+    np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=1e-10)
+    _, ms, _ = run_steps(sq, y, u, (4,), y.shape[-2])
+    np.testing.assert_allclose(ms, b.mean, rtol=0, atol=TOL)
+
+
+def test_missing_reading_only_predicts():
+    sys_ = oscillator()
+    kf = tk.KalmanFilter(sys_, backend="numpy")
+    s0 = kf.init((2,))
+    s1 = kf.step(s0, [[np.nan], [0.3]])
+    pred = kf.predict(s0)
+    np.testing.assert_array_equal(s1.mean[0], pred.mean[0])
+    np.testing.assert_array_equal(s1.cov[0], pred.cov[0])
+    assert not np.allclose(s1.mean[1], pred.mean[1])
+
+
+def test_predict_then_update_equals_step():
+    sys_ = oscillator()
+    tkf = tk.TobitKalmanFilter(sys_, tk.Censoring(lower=0.0), backend="numpy")
+    s0 = tkf.init((3,))
+    y = np.array([[0.0], [0.4], [1.0]])
+    a = tkf.step(s0, y)
+    b = tkf.update(tkf.predict(s0), y)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.cov, b.cov)
+
+
+def test_steered_limits_in_update_equal_a_filter_with_those_limits():
+    sys_ = oscillator()
+    T = 8
+    lower = np.linspace(-0.2, 0.3, T)[:, None]
+    d = tk.simulate(sys_, T, 3, censoring=tk.Censoring(lower=lower), seed=7)
+    ref = tk.TobitKalmanFilter(sys_, tk.Censoring(lower=lower), backend="numpy").filter(d.y)
+    tkf = tk.TobitKalmanFilter(sys_, tk.Censoring(), backend="numpy")
+    state = tkf.init((3,))
+    for k in range(T):
+        state = tkf.update(tkf.predict(state), d.y[:, k], lower=lower[k])
+        np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
+
+
+def test_bad_state_and_reading_are_refused():
+    sys_ = oscillator()
+    kf = tk.KalmanFilter(sys_)
+    with pytest.raises(tk.ValidationError, match="state: expected a FilterState"):
+        kf.step("prior", [0.0])
+    with pytest.raises(tk.ShapeError, match=r"y: expected one reading of shape \(3, 1\)"):
+        kf.step(kf.init((3,)), np.zeros((2, 1)))
+    with pytest.raises(tk.ValidationError, match="batch_shape: expected a tuple of positive integers"):
+        kf.init((0,))
+    with pytest.raises(TypeError, match="unexpected keyword argument 'lower'"):
+        kf.step(kf.init(), [0.0], lower=0.0)
+    with pytest.raises(tk.ValidationError, match="update\\(\\) needs a predicted state"):
+        kf.update(kf.init(), [0.0])
+
+
+def test_outputs_on_request():
+    sys_ = oscillator()
+    d = tk.simulate(sys_, 20, 50, censoring=tk.Censoring(lower=0.0), seed=8)
+    for backend in ("numpy", "auto"):
+        tkf = tk.TobitKalmanFilter(sys_, tk.Censoring(lower=0.0), backend=backend)
+        full = tkf.filter(d.y)
+        means = tkf.filter(d.y, outputs="mean")
+        assert means.cov is None and means.pred_mean is None and means.pred_cov is None and means.extras == {}
+        np.testing.assert_allclose(means.mean, full.mean, rtol=0, atol=TOL)
+        var = tkf.filter(d.y, outputs=("mean", "var"))
+        np.testing.assert_allclose(var.var, np.diagonal(full.cov, axis1=-2, axis2=-1), rtol=0, atol=TOL)
+        last = tkf.filter(d.y, outputs="last")
+        assert last.mean is None
+        np.testing.assert_allclose(last.final.mean, full.mean[:, -1], rtol=0, atol=TOL)
+    with pytest.raises(tk.ValidationError, match="outputs: expected 'all', 'last' or names"):
+        tkf.filter(d.y, outputs="covariance")
+
+
+def test_steady_state_latent_step_equals_filter_controlled():
+    sys_ = oscillator()
+    est = tk.SteadyStateTobitKalmanFilter(sys_, 0.6, side="lower")
+    d = tk.simulate(sys_, 12, 4, seed=9)
+    ref = est.filter_controlled(d.y_latent)
+    state = est.init((4,))
+    for k in range(12):
+        state = est.step(state, d.y_latent[:, k], latent=True)
+        np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
+    np.testing.assert_array_equal(state.cov, np.broadcast_to(est.cov, (4, 2, 2)))
+
+
+def test_controlled_full_tkf_step_equals_its_filter():
+    sys_ = oscillator()
+    est = tk.filters.steady_state.ControlledLimitTobitKalmanFilter(sys_, 0.7)
+    d = tk.simulate(sys_, 10, 3, seed=10)
+    ref = tk.tobit_kalman_filter_controlled(sys_, 0.7, d.y_latent)
+    state = est.init((3,))
+    for k in range(10):
+        state = est.step(state, d.y_latent[:, k])
+        np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
+        np.testing.assert_allclose(state.cov, ref.cov[:, k], rtol=0, atol=TOL)
+
+
+def test_steady_state_inverse_mills_has_the_sign_of_censored_moments():
+    sys_ = oscillator()
+    for side in ("upper", "lower"):
+        est = tk.SteadyStateTobitKalmanFilter(sys_, 0.5, side=side)
+        lim = est.limit(np.zeros(1))
+        lo, hi = (-np.inf, lim) if side == "upper" else (lim, np.inf)
+        st = tk.censored_moments(0.0, est.sigma, lo, hi)
+        np.testing.assert_allclose(est.inverse_mills, st.inverse_mills, rtol=1e-12)
+        np.testing.assert_allclose(est.lambda_hat, np.sqrt(2 / np.pi), rtol=1e-12)   # phi(0) / 0.5
+
+
+# --- property: batched = per run = step by step, on random models ---------------------------------
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(n=st.integers(1, 3), m=st.integers(1, 2), seed=st.integers(0, 2**31 - 1), family=st.sampled_from(
+    ["kf", "tkf", "dkf", "tkf-sqrt", "tkf-joseph"]))
+def test_batched_equals_per_run_equals_step_by_step(n, m, seed, family):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n, n))
+    A *= 0.95 / max(1e-9, np.abs(np.linalg.eigvals(A)).max())
+    G = rng.normal(size=(n, n))
+    sys_ = tk.LinearSystem(A=A, C=rng.normal(size=(m, n)), Q=G @ G.T / n + 0.01 * np.eye(n),
+                           R=np.diag(rng.uniform(0.05, 1.0, m)), x0=rng.normal(size=n), P0=np.eye(n))
+    lower = rng.normal(size=m) * 0.5
+    cens = tk.Censoring(lower=lower)
+    d = tk.simulate(sys_, 8, 3, censoring=cens, seed=seed)
+    y = with_gaps(d.y, rng, 0.15)
+    make = {"kf": lambda: tk.KalmanFilter(sys_, backend="numpy"),
+            "dkf": lambda: tk.DroppingKalmanFilter(sys_, cens, backend="numpy"),
+            "tkf": lambda: tk.TobitKalmanFilter(sys_, cens, backend="numpy"),
+            "tkf-sqrt": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="square_root"),
+            "tkf-joseph": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="joseph", backend="numpy")}[family]
+    est = make()
+    batch = est.filter(y)
+    for r in range(3):
+        one = est.filter(y[r])
+        np.testing.assert_allclose(one.mean, batch.mean[r], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(one.cov, batch.cov[r], rtol=1e-10, atol=1e-12)
+    state = est.init((3,))
+    for k in range(8):
+        state = est.step(state, y[:, k])
+    np.testing.assert_allclose(state.mean, batch.mean[:, -1], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("form", ["predictor", "filter"])
+def test_estimators_without_covariance_step_like_their_filter(form):
+    """The fixed-gain Tobit observer (Miller (5.2)) and the H-infinity filter: no covariance, same API."""
+    from tobitkf.filters.fixed_gain import FixedGainTobitObserver
+
+    rng = np.random.default_rng(14)
+    y = np.maximum(rng.normal(size=(4, 20, 1)), -0.3)
+    obs = FixedGainTobitObserver([[0.9]], [[0.4]], [[1.0]], 0.5, -0.3, form=form)
+    res = obs.filter(y)
+    assert res.cov is None and res.times.tolist() == list(range(1, 21))
+    state = obs.init((4,))
+    for k in range(20):
+        state = obs.step(state, y[:, k])
+        np.testing.assert_allclose(state.mean, res.mean[:, k], rtol=0, atol=TOL)
+    revived = pickle.loads(pickle.dumps(state))
+    assert revived.k == 20 and revived.cov is None
+    with pytest.raises(tk.ValidationError, match="y: expected finite numbers, found NaN"):
+        obs.step(state, np.full((4, 1), np.nan))
+    hinf = tk.RegionalHinfFilter([[0.5, 0.1], [0.0, 0.8]], [[1.0], [0.2]], [[1.0, 0.0]])
+    r = hinf.filter(y)
+    s = hinf.init((4,))
+    for k in range(20):
+        s = hinf.step(s, y[:, k])
+    np.testing.assert_allclose(s.mean, r.mean[:, -1], rtol=0, atol=TOL)
