@@ -51,7 +51,7 @@ from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bou
 from .report import write_report
 from .filters.tracking import MultiTargetTracker
 from . import control
-from .control import certify_tkf_stability, simulate_closed_loop, tobit_lqe
+from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, tobit_lqe
 from . import metrics
 
 __version__ = "0.1.0"
@@ -67,6 +67,6 @@ __all__ = [
     "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
     "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
     "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
-    "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "MultiTargetTracker",
+    "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "tobit_dlqe", "MultiTargetTracker",
     "__version__",
 ]
