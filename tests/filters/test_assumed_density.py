@@ -175,6 +175,19 @@ def test_adf_time_varying_and_steered_limits_and_multi_region():
     assert np.isfinite(out.mean).all() and out.extras["p_uncensored"].shape == (5, 20, 2)
 
 
+def test_adf_is_near_the_optimum_where_the_tkf_is_not():
+    """On a censored random walk (Miller Example 2, shortened) the ADF tracks the particle filter."""
+    sys_ = tk.LinearSystem(A=[[0.999]], C=[[1.0]], Q=[[0.01]], R=[[0.05 ** 2]], x0=[0.05], P0=[[0.05]])
+    cens = tk.Censoring(lower=0.0)
+    d = tk.simulate(sys_, 300, 60, censoring=cens, seed=5)
+    pf = tk.ParticleFilter(sys_, cens, particles=1000, seed=6).filter(d.y, outputs="mean")
+    r = {k: tk.metrics.rmse(d.x, e.filter(d.y).mean).mean() for k, e in
+         {"adf": tk.AssumedDensityTobitFilter(sys_, cens),
+          "tkf": tk.TobitKalmanFilter(sys_, cens, noise_term="exact_pv")}.items()}
+    r_pf = tk.metrics.rmse(d.x, pf.mean).mean()
+    assert r["adf"] / r_pf < 1.03 and r["tkf"] / r_pf > 1.3
+
+
 # --------------------------------------------------------------------------- the fading ADF
 
 @pytest.mark.parametrize("form", FORMS)
