@@ -21,7 +21,8 @@ Public API (stable):
   and smoothers for time-delay systems with fading measurements (Li et al. 2018).
 - :class:`ParticleFilter` (the Bayes-optimal yardstick for every channel), the assumed-density filters
   :class:`AssumedDensityTobitFilter`, :class:`FadingAssumedDensityFilter`,
-  :class:`ProtocolAssumedDensityFilter`, and :func:`posterior_crlb` (posterior Cramér–Rao bound).
+  :class:`ProtocolAssumedDensityFilter`, :class:`SaturationAssumedDensityFilter`, and
+  :func:`posterior_crlb` (posterior Cramér–Rao bound).
 - :mod:`tobitkf.control` -- LQR/LQE/LQG via python-control, closed loops with (Tobit) Kalman observers,
   Tobit Jacobians and a stability certificate, censoring-limit control; :class:`MultiTargetTracker`.
 - :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
@@ -56,6 +57,7 @@ from .filters.particle import ParticleFilter
 from .filters.assumed_density import AssumedDensityTobitFilter
 from .filters.adf_fading import FadingAssumedDensityFilter
 from .filters.adf_protocol import ProtocolAssumedDensityFilter
+from .filters.adf_saturation import SaturationAssumedDensityFilter
 from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
 from .filters.tracking import MultiTargetTracker
 from . import control
@@ -77,6 +79,6 @@ __all__ = [
     "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
     "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "MultiTargetTracker",
     "ParticleFilter", "AssumedDensityTobitFilter", "FadingAssumedDensityFilter", "ProtocolAssumedDensityFilter",
-    "posterior_crlb", "PosteriorCRLB", "censored_fisher_information",
+    "SaturationAssumedDensityFilter", "posterior_crlb", "PosteriorCRLB", "censored_fisher_information",
     "__version__",
 ]

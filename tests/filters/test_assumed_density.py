@@ -316,6 +316,59 @@ def test_failure_nodes_and_merge():
     np.testing.assert_allclose(S2 @ np.swapaxes(S2, -1, -2), P, atol=1e-12)
 
 
+# --------------------------------------------------------------------------- the saturation ADF
+
+def test_saturation_adf_without_saturation_or_losses_is_the_kalman_filter():
+    sys_ = oscillator(C=np.eye(2), R=np.diag([0.05, 0.1]))
+    d = tk.simulate(sys_, 20, 5, seed=13)
+    y = d.y.copy()
+    y[np.random.default_rng(1).random(y.shape) < 0.1] = np.nan
+    for form in FORMS:
+        kf = tk.KalmanFilter(sys_, backend="numpy", covariance_update=form).filter(y)
+        adf = tk.SaturationAssumedDensityFilter(sys_, tk.RandomSaturation([0.0, 0.0], [1.0, 1.0]),
+                                                covariance_update=form).filter(y)
+        np.testing.assert_allclose(adf.mean, kf.mean, rtol=0, atol=TOL)
+        np.testing.assert_allclose(adf.cov, kf.cov, rtol=0, atol=TOL)
+
+
+@pytest.mark.parametrize("reading", [-0.95, 0.3, 1.02, 2.5])
+def test_saturation_adf_update_equals_quadrature_of_the_mode_mixture(reading):
+    mu, nu, u, r = 0.4, 0.7, 1.0, 0.01
+    xbar, Pbar = np.array([0.6, -0.2]), np.array([[1.0, 0.3], [0.3, 0.5]])
+    sys_ = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0]], Q=np.zeros((2, 2)), R=[[r]], x0=xbar, P0=Pbar)
+    Pi = np.linalg.inv(Pbar)
+
+    def npdf(m):
+        return np.exp(-0.5 * (reading - m) ** 2 / r) / np.sqrt(2 * np.pi * r)
+
+    def logpost(X):
+        d = X - xbar
+        c = X[:, 0]
+        lik = mu * npdf(np.clip(c, -u, u)) + (1 - mu) * nu * npdf(c) + (1 - mu) * (1 - nu) * npdf(0.0)
+        return -0.5 * np.einsum("ni,ij,nj->n", d, Pi, d) + np.log(lik)
+
+    mean, cov = quadrature_moments(logpost, xbar, Pbar, (-u, u), r)
+    for form in FORMS:
+        out = tk.SaturationAssumedDensityFilter(sys_, tk.RandomSaturation([mu], [nu], level=u),
+                                                covariance_update=form).filter(np.array([[reading]]))
+        np.testing.assert_allclose(out.mean[0], mean, rtol=0, atol=2e-6)
+        np.testing.assert_allclose(out.cov[0], cov, rtol=0, atol=2e-6)
+        assert out.extras["mode_posterior"].shape == (1, 1, 3)
+
+
+def test_saturation_adf_is_near_the_optimum_where_the_kalman_filter_is_not():
+    w = 0.1 * np.pi
+    sys_ = tk.LinearSystem(A=0.95 * np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]), C=np.eye(2),
+                           Q=0.1 * np.eye(2), R=0.01 * np.eye(2), x0=[0.0, 0.0], P0=np.eye(2))
+    ch = tk.RandomSaturation([0.7, 0.6], [0.7, 0.75])               # the H-infinity example's probabilities
+    d = tk.simulate(sys_, 40, 60, channel=ch, seed=14)
+    pf = tk.ParticleFilter(sys_, ch, particles=1000, seed=15).filter(d.y, outputs="mean")
+    r_pf = tk.metrics.rmse(d.x, pf.mean).mean()
+    r_adf = tk.metrics.rmse(d.x, tk.SaturationAssumedDensityFilter(sys_, ch).filter(d.y).mean).mean()
+    r_kf = tk.metrics.rmse(d.x, tk.KalmanFilter(sys_).filter(d.y).mean).mean()
+    assert r_adf / r_pf < 1.05 and r_kf / r_pf > 1.5
+
+
 # --------------------------------------------------------------------------- online API and errors
 
 def _cases():
@@ -327,12 +380,16 @@ def _cases():
     pd = tk.simulate(psys, 12, 4, channel=ch, seed=11)
     fad = tk.RiceFading.gaussian(1, [0.9, 0.6], [0.01, 0.01])
     fd = tk.simulate(sys_, 12, 4, censoring=tk.Censoring(lower=0.0), measurement=fad, seed=12)
+    ssys = oscillator(C=np.eye(2), R=np.diag([0.05, 0.1]))
+    ros = tk.RandomSaturation([0.3, 0.2], [0.8, 0.9], level=0.5)
+    sd = tk.simulate(ssys, 12, 4, channel=ros, seed=13)
     out = {}
     for form in FORMS:
         out[f"tobit-{form}"] = (tk.AssumedDensityTobitFilter(sys_, cens, covariance_update=form), d.y)
         out[f"protocol-{form}"] = (tk.ProtocolAssumedDensityFilter(psys, ch, covariance_update=form), pd.y)
         out[f"fading-{form}"] = (tk.FadingAssumedDensityFilter(sys_, fad, tk.Censoring(lower=0.0),
                                                                covariance_update=form), fd.y)
+        out[f"saturation-{form}"] = (tk.SaturationAssumedDensityFilter(ssys, ros, covariance_update=form), sd.y)
     return out
 
 
