@@ -16,19 +16,18 @@ mixture over a discrete channel outcome j with probability :math:`\pi_j`,
     y^*_{k,l} \mid \xi_k, j \sim N(\mu_{jl}(\xi_k), s_{jl}^2(\xi_k)), \qquad
     y_{k,l} = \mathrm{clip}(y^*_{k,l}, l_{k,l}, h_{k,l}),
 
-=====================  ===========================================================  ======================
-channel                :math:`\mu`, :math:`s^2`, outcomes                           state :math:`\xi_k`
-=====================  ===========================================================  ======================
-Censoring (or none)    :math:`C_kx_k + D_ku_k`, :math:`R_{k,ll}`                     :math:`x_k`
-RiceFading, order L    :math:`\sum_{s\le\min(L,k)}\bar\vartheta(s)C_{k-s}x_{k-s}`,  :math:`x_k..x_{k-L}`
-                       :math:`\sum_s\tilde\vartheta(s)(C_{k-s}x_{k-s})^2 + R_{ll}`
-                       (Gaussian coefficients: exact; other laws: drawn)
-ProtocolChannel        :math:`\lambda_j C_{h}\sum_{s=0}^{\ell}x_{k-s}`, :math:`R_{hh}`,  :math:`x_k..x_{k-\ell}`
-                       failure gain :math:`\Lambda = \lambda_j` w.p. :math:`\pi_j`,
-                       sensor :math:`h = \bar h_k` (Round-Robin), :math:`y = \max(z,\tau)`
-RandomSaturation       :math:`\sigma(C_ix_k)`, :math:`C_ix_k`, 0 w.p.                  :math:`x_k`
-                       :math:`\mu_i, (1-\mu_i)\nu_i, (1-\mu_i)(1-\nu_i)`; :math:`R_{ii}`
-=====================  ===========================================================  ======================
+* Censoring (or none), state :math:`x_k`: :math:`\mu = C_kx_k + D_ku_k`, :math:`s^2 = R_{k,ll}`.
+* RiceFading of order L, state :math:`x_k, \dots, x_{k-L}`:
+  :math:`\mu = \sum_{s\le\min(L,k)}\bar\vartheta(s)C_{k-s}x_{k-s}`,
+  :math:`s^2 = \sum_s\tilde\vartheta(s)(C_{k-s}x_{k-s})^2 + R_{ll}` (Gaussian coefficients, exact;
+  other laws: the coefficients are drawn per particle and :math:`s^2 = R_{ll}`).
+* ProtocolChannel, state :math:`x_k, \dots, x_{k-\ell}`: the scheduled sensor :math:`h = \bar h_k`
+  (Round-Robin), :math:`\mu_j = \lambda_jC_h\sum_{s=0}^{\ell}x_{k-s}`, :math:`s^2 = R_{hh}`, the
+  failure gain :math:`\Lambda = \lambda_j` with probability :math:`\pi_j` (a continuous law: drawn per
+  particle), the reading :math:`y = \max(z, \tau)`.
+* RandomSaturation, state :math:`x_k`: per sensor i the modes :math:`\mu = \sigma(C_ix_k)`,
+  :math:`C_ix_k`, 0 with probabilities :math:`\mu_i`, :math:`(1-\mu_i)\nu_i`,
+  :math:`(1-\mu_i)(1-\nu_i)`, :math:`s^2 = R_{ii}`.
 
 (Geng et al. 2017 (2); Geng et al., protocol TKF (2)–(7); Wang, Shen & Liu (2)–(3); Miller (3.18)).
 R must be diagonal with positive entries (the channels' noises are independent).
