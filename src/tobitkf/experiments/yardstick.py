@@ -64,7 +64,6 @@ from ..filters.adf_saturation import SaturationAssumedDensityFilter
 from ..filters.assumed_density import AssumedDensityTobitFilter
 from ..filters.fading import FadingTobitKalmanFilter
 from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
-from ..filters.particle import ParticleFilter
 from ..filters.protocol import ProtocolTobitKalmanFilter
 from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
@@ -72,6 +71,7 @@ from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
+from ._optimum import TOLERANCE, pf_check
 
 __all__ = ["run", "EXAMPLES", "random_stable_system", "optimum_ratios", "ISSUE_TABLE"]
 
@@ -81,7 +81,6 @@ _OWN = {"miller-constant": (200, 1000, 2000), "miller-brownian": (200, 1000, 500
         "miller-oscillator": (100, 2000, 1000), "geng2017-oscillator": (1000, 100, 4000),
         "geng-protocol-tracking": (1000, 100, 2000), "saturation-oscillator": (200, 100, 1000)}  # runs, steps, N_p
 _RANDOM = (200, 200, 1000)
-TOLERANCE = 0.003        # doubling the particles moves the RMSE by less than this (relative)
 TARGET = 1.02            # the issue's target for the assumed-density filter
 ISSUE_TABLE = {"miller-constant": ("tkf-total-variance", [1.08]), "miller-brownian": ("tkf-exact-pv", [2.03]),
                "miller-oscillator": ("tkf-exact-pv", [1.10, 1.07]),
@@ -208,24 +207,6 @@ def optimum_ratios(summaries: dict[str, Any], optimum: str = "pf") -> None:
         summ["ratio_to_optimum"] = (np.asarray(summ["rmse_time_avg"], dtype=float) / ref).tolist()
 
 
-def _pf_check(system, channel, y, x, particles: int, seed: int) -> tuple[dict[str, Any], Any]:
-    """The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data."""
-    runs = []
-    for j, Np in enumerate((particles, 2 * particles)):
-        pf = ParticleFilter(system, channel, particles=Np, seed=np.random.SeedSequence([seed, 7, j]))
-        runs.append(pf.filter(y, outputs=("mean", "var")))
-    small, big = runs
-    r_small = mx.rmse(x, small.mean).mean(0)
-    summ = mx.summarize(x, big.mean)
-    change = np.abs(r_small / np.asarray(summ["rmse_time_avg"]) - 1.0)
-    summ["particles"] = 2 * particles
-    summ["proposal"] = ParticleFilter(system, channel, particles=1).proposal
-    summ["convergence"] = {"particles": [particles, 2 * particles], "rmse_time_avg_half": r_small.tolist(),
-                           "relative_change": change.tolist(), "tolerance": TOLERANCE,
-                           "converged": bool((change < TOLERANCE).all())}
-    return summ, big
-
-
 def _pcrlb_check(system, channel, x, pf_mean) -> dict[str, Any]:
     """The PCRLB (averaged over the true states) and the one-sided 1 % test of PF MSE >= bound per step."""
     b = posterior_crlb(system, channel, truth=x)
@@ -248,7 +229,7 @@ def _evaluate(case: dict[str, Any], particles: int, seed: int, progress, lo: flo
         res = est.filter(sim.y)
         summ[key] = mx.summarize(sim.x, res.mean)
     progress(lo + 0.1 * (hi - lo))
-    summ["pf"], pf_res = _pf_check(case["system"], case["channel"], sim.y, sim.x, particles, seed)
+    summ["pf"], pf_res = pf_check(case["system"], case["channel"], sim.y, sim.x, particles, seed)
     optimum_ratios(summ)
     out["estimators"] = summ
     if case["pcrlb"] is not None:
