@@ -17,7 +17,7 @@ from .. import metrics as mx
 from .._validation import ValidationError
 from ..filters.particle import ParticleFilter
 
-__all__ = ["TOLERANCE", "pf_check", "add_optimum", "check_particles"]
+__all__ = ["TOLERANCE", "pf_check", "add_optimum", "check_particles", "pop_options"]
 
 TOLERANCE = 0.003
 
@@ -27,6 +27,15 @@ def check_particles(value: Any, name: str = "optimum_particles") -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
         raise ValidationError(f"{name}: expected an integer >= 0 (0: no particle filter), got {value!r}")
     return int(value)
+
+
+def pop_options(overrides: dict[str, Any], particles: int, runs: int = 200) -> dict[str, int]:
+    """Take ``optimum_particles`` and ``optimum_runs`` out of an experiment's keyword overrides (checked)."""
+    p = check_particles(overrides.pop("optimum_particles", particles))
+    r = overrides.pop("optimum_runs", runs)
+    if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 1:
+        raise ValidationError(f"optimum_runs: expected a positive integer, got {r!r}")
+    return {"particles": p, "runs": int(r)}
 
 
 def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str, Any], Any]:
@@ -51,10 +60,11 @@ def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str
 
 
 def add_optimum(summaries: dict[str, Any], means: dict[str, np.ndarray], system, channel, y, x, *,
-                particles: int, seed: Any, runs: int = 200) -> None:
-    """Add ``summaries["pf"]`` and every ``summaries[key]["ratio_to_optimum"]`` in place (nothing if particles is 0).
+                particles: int, seed: Any, runs: int = 200, key: str = "pf") -> None:
+    """Add ``summaries[key]`` (the optimum) and ``summaries[k]["ratio_to_optimum"]`` for every k of ``means``,
+    in place (nothing if ``particles`` is 0).
 
-    ``means[key]`` (N, T, n) are the estimators' means on ``y`` (N, T, m), ``x`` (N, T+1, n) the truth;
+    ``means[k]`` (N, T, n) are the estimators' means on ``y`` (N, T, m), ``x`` (N, T+1, n) the truth;
     the particle filter and the ratios use the first ``runs`` runs."""
     if not particles:
         return
@@ -62,8 +72,8 @@ def add_optimum(summaries: dict[str, Any], means: dict[str, np.ndarray], system,
     pf, _ = pf_check(system, channel, y[:r], x[:r], particles, seed)
     pf["ratio_runs"] = r
     ref = np.asarray(pf["rmse_time_avg"], dtype=float)
-    for key, m in means.items():
-        if key in summaries:
-            summaries[key]["ratio_to_optimum"] = (mx.rmse(x[:r], m[:r]).mean(0) / ref).tolist()
+    for k, m in means.items():
+        if k in summaries:
+            summaries[k]["ratio_to_optimum"] = (mx.rmse(x[:r], m[:r]).mean(0) / ref).tolist()
     pf["ratio_to_optimum"] = [1.0] * ref.size
-    summaries["pf"] = pf
+    summaries[key] = pf

@@ -27,9 +27,11 @@ from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
+from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, plot_rmse_over_time, save, style
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
+from ._optimum import add_optimum, check_particles
 
 __all__ = ["constant", "brownian", "oscillator", "steady_state"]
 
@@ -92,20 +94,26 @@ def _seed_int(seed: Any) -> int:
 @register("miller-constant", title="TKF example 1: constant below/above the censoring limit (Figs 3.1-3.2)",
           source=_SOURCE, plot=_plot_constant, default_runs=200)
 def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000, sigma: float = 0.1,
-             limit: float = 0.0, q: float = 1e-14, x0: float = 0.1, p0: float = 0.05) -> ExperimentResult:
+             limit: float = 0.0, q: float = 1e-14, x0: float = 0.1, p0: float = 0.05, optimum_particles: int = 250,
+             optimum_runs: int = 50) -> ExperimentResult:
     """Example 1 (Miller §3.3.6.2): a scalar constant, truth -0.1 and +0.1, left-censored at T.
 
     Source values: Q = 1e-14, σ = 0.1, x0 = 0.1, Ψ0 = 0.05. Not stated (spec A-3.5, labelled
     "default"): T = 0 (left censoring), the horizon 1000. The truth is the constant itself
-    (zero prior spread for the truth); the filters start from x0, Ψ0.
+    (zero prior spread for the truth); the filters start from x0, Ψ0. The optimum (estimator ``pf``,
+    not in the source): a particle filter with ``2 optimum_particles`` particles on the first
+    ``optimum_runs`` runs of each scenario (0 particles: none), every estimator's ``ratio_to_optimum``.
     """
     progress = progress or _noop
+    optimum_particles = check_particles(optimum_particles)
     settings = {
         "A": setting(1.0), "C": setting(1.0), "Q": setting(q), "sigma": setting(sigma, note="std of v; R = sigma^2"),
         "x0_filter": setting(x0), "P0_filter": setting(p0),
         "limit": setting(limit, "default", "left censoring at T = 0 implied, not stated (spec A-3.5)"),
         "steps": setting(steps, "default", "horizon not stated (spec A-3.5)"),
         "truths": setting([-0.1, 0.1]),
+        "optimum": setting({"particles": 2 * optimum_particles, "runs": optimum_runs}, "default",
+                           "particle filter, not in the source (the Bayes-optimal RMSE)"),
     }
     cens = Censoring(lower=limit)
     sys_f = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[x0], P0=[[p0]])
@@ -118,8 +126,11 @@ def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000
         st = censored_moments(truth, sigma, limit, np.inf)
         targets = {"kf": float(st.censored_mean), "ikf": float(st.truncated_mean), "tkf": truth}
         final = {k: o.mean[:, -1, 0] for k, o in outs.items()}
+        summ = _summaries(sim.x, outs)
+        add_optimum(summ, {k: o.mean for k, o in outs.items()}, sys_f, cens, sim.y, sim.x,
+                    particles=optimum_particles, seed=_seed_int(seed) + i, runs=optimum_runs)
         scen[name] = {
-            "estimators": _summaries(sim.x, outs),
+            "estimators": summ,
             "final_mean": {k: float(v.mean()) for k, v in final.items()},
             "final_std": {k: float(v.std(ddof=1)) for k, v in final.items()},
             "analytic_limit": targets,
@@ -173,19 +184,23 @@ def _plot_brownian(result: ExperimentResult, outdir: Path) -> list[Path]:
           plot=_plot_brownian, default_runs=200)
 def brownian(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000, alpha: float = 0.999,
              q: float = 0.01, sigma: float = 0.05, limit: float = 0.0, x0: float = 0.05,
-             p0: float = 0.05) -> ExperimentResult:
+             p0: float = 0.05, optimum_particles: int = 250, optimum_runs: int = 50) -> ExperimentResult:
     """Example 2 (Miller §3.3.6.3): x_k = 0.999 x_{k-1} + η_k, Var η = 0.01, σ = 0.05, left-censored at 0.
 
     (3.45) writes the AR(1) on the latent measurement; it is read as the state (spec A-3.6).
     Horizon not stated: 1000 (the text cites samples 350-400). Truth and filter share the
-    prior x0 = 0.05, Ψ0 = 0.05.
+    prior x0 = 0.05, Ψ0 = 0.05. The optimum (``pf``, not in the source): a particle filter with
+    ``2 optimum_particles`` particles on the first ``optimum_runs`` runs (0 particles: none).
     """
     progress = progress or _noop
+    optimum_particles = check_particles(optimum_particles)
     settings = {
         "A": setting(alpha), "Q": setting(q, note="Var eta = 0.01"), "sigma": setting(sigma),
         "limit": setting(limit), "x0": setting(x0), "P0": setting(p0),
         "model": setting("AR(1) read as the state", "default", "(3.45) is written on y*; spec A-3.6"),
         "steps": setting(steps, "default", "not stated; >= 400 since samples 350-400 are cited"),
+        "optimum": setting({"particles": 2 * optimum_particles, "runs": optimum_runs}, "default",
+                           "particle filter, not in the source (the Bayes-optimal RMSE)"),
     }
     sys_ = LinearSystem(A=[[alpha]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[x0], P0=[[p0]])
     cens = Censoring(lower=limit)
@@ -194,11 +209,13 @@ def brownian(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000
     outs = _run_three(sys_, cens, sim.y)
     progress(0.9)
     est = _summaries(sim.x, outs)
+    add_optimum(est, {k: o.mean for k, o in outs.items()}, sys_, cens, sim.y, sim.x, particles=optimum_particles,
+                seed=_seed_int(seed), runs=optimum_runs)
     var = {k: o.cov[..., 0, 0] for k, o in outs.items()}
     max_var = {k: float(np.median(v.max(axis=1))) for k, v in var.items()}
     censored = sim.y[..., 0] <= limit
     kf_ss = float(var["kf"][0, -1])
-    overall = {k: float(np.sqrt(np.mean(np.asarray(s["rmse"]) ** 2))) for k, s in est.items()}
+    overall = {k: float(np.sqrt(np.mean(np.asarray(s["rmse"]) ** 2))) for k, s in est.items() if k != "pf"}
     on_cens = {k: float(o.mean[..., 0][censored].mean()) for k, o in outs.items()}
     claims = [
         {"claim": "the standard KF's covariance stays at its uncensored steady state (no sign of censoring)",
@@ -252,6 +269,10 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     for comp in (0, 1):
         plot_rmse_over_time(ax[0, comp], result.metrics["estimators"], comp,
                             title=f"RMSE over {result.metrics['runs']} runs, ω = {d['omega']}")
+        if "pcrlb_rmse" in result.metrics:
+            b = np.asarray(result.metrics["pcrlb_rmse"])[:, comp]
+            ax[0, comp].plot(np.arange(1, b.size + 1), b, color="tab:green", lw=0.8, ls=":", label="PCRLB (sqrt)")
+            ax[0, comp].legend(fontsize=7)
     paths.append(save(fig, outdir, "oscillator_rmse.png"))
     return paths
 
@@ -260,14 +281,17 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
           plot=_plot_oscillator, default_runs=100)
 def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 2000, omega: float = 0.05,
                omega_sweep: tuple[float, ...] = (0.01, 0.05, 0.2), q: float = 0.01, r: float = 0.1,
-               limit: float = 0.0, p0: float = 0.05) -> ExperimentResult:
+               limit: float = 0.0, p0: float = 0.05, optimum_particles: int = 250,
+               optimum_runs: int = 50) -> ExperimentResult:
     """Example 3 (Miller §3.3.6.4): (3.46) with α = 1, C = [1 0], Q = 0.01 I, R = 0.1, x0 = 0, Ψ0 = 0.05 I.
 
     ω, T and the horizon are not stated (spec A-3.7): ω = 0.05 rad/sample, T = 0 (left),
     2000 steps, labelled "default". The ranking TKF < IKF < KF is also checked for the
-    ω values of ``omega_sweep``.
+    ω values of ``omega_sweep``. The optimum (``pf``, not in the source, for ``omega`` only): a
+    particle filter with ``2 optimum_particles`` particles on the first ``optimum_runs`` runs.
     """
     progress = progress or _noop
+    optimum_particles = check_particles(optimum_particles)
     settings = {
         "alpha": setting(1.0), "C": setting([[1.0, 0.0]]), "Q": setting(f"{q} I"), "R": setting(r),
         "x0": setting([0.0, 0.0]), "P0": setting(f"{p0} I"),
@@ -275,6 +299,8 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
         "omega_sweep": setting(list(omega_sweep), "default", "spec 001a §6 item 11"),
         "limit": setting(limit, "default", "left censoring at 0 as in Examples 1-2 (spec A-3.7)"),
         "steps": setting(steps, "default", "not stated; >= 1400 since sample 1350 is cited"),
+        "optimum": setting({"particles": 2 * optimum_particles, "runs": optimum_runs}, "default",
+                           "particle filter, not in the source (the Bayes-optimal RMSE), for omega only"),
     }
     cens = Censoring(lower=limit)
     omegas = list(dict.fromkeys([omega, *omega_sweep]))
@@ -287,6 +313,9 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
         summ = _summaries(sim.x, outs)
         sweep[f"omega={om}"] = {k: s["rmse_time_avg"] for k, s in summ.items()}
         if om == omega:
+            add_optimum(summ, {k: o.mean for k, o in outs.items()}, sys_, cens, sim.y, sim.x,
+                        particles=optimum_particles, seed=_seed_int(seed) + i, runs=optimum_runs)
+            pcrlb = np.sqrt(posterior_crlb(sys_, cens, truth=sim.x).var)
             est = summ
             data = {"omega": om, "y": sim.y[0, :, 0], "truth": sim.x[0, 1:],
                     **{k: o.mean[0] for k, o in outs.items()}}
@@ -302,7 +331,7 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
     ikf_bias = float(np.mean(est["ikf"]["bias_time_avg"][0]))
     claims.append({"claim": "the IKF has a positive bias (stray uncensored samples get heavy weight)",
                    "measured": f"IKF time-averaged bias of x1: {ikf_bias:+.3f}", "holds": bool(ikf_bias > 0)})
-    metrics = {"runs": runs, "estimators": est, "rmse_time_avg_by_omega": sweep}
+    metrics = {"runs": runs, "estimators": est, "rmse_time_avg_by_omega": sweep, "pcrlb_rmse": pcrlb}
     return ExperimentResult("miller-oscillator", settings, metrics, data, claims)
 
 
