@@ -290,9 +290,7 @@ class _Linear(_Model):
             mu = mu + b[:, None, :]
         lo, hi = self.limits(k)
         r = _diag_sigma(sys_, k, "censored readings") ** 2
-        Xn, logw, _ = _gaussian_proposal(rng, mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :],
-                                         y, lo, hi)
-        return Xn, logw
+        return _gaussian_proposal(rng, mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :], y, lo, hi)
 
 
 def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
@@ -308,8 +306,7 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
     Returns
     -------
     X : (N, Np, n) the draws ; logw : (N, Np) the log marginal likelihood of the readings under the
-    model (:math:`\prod_l` of the sequential densities or masses) ; ystar : (N, Np, m) the latent
-    readings used (observed or drawn; NaN for a missing channel)
+    model (:math:`\prod_l` of the sequential densities or masses)
     """
     N, Np, n = mu.shape
     m = H.shape[0]
@@ -317,7 +314,6 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
     U = rng.random((N, Np, m))
     eps = rng.standard_normal((N, Np, n))
     logw = np.zeros((N, Np))
-    ystar = np.full((N, Np, m), np.nan)
     per_run = bool((cls == _MISSING).any()) or r.shape[0] != 1
     Sig = np.broadcast_to(Qd, (N if per_run else 1, n, n)).copy()
     off = offset if np.ndim(offset) != 2 else offset[:, None, :]
@@ -352,7 +348,6 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
                 lm = log_ndtr((p - hi[l]) / sd)
                 logw[rows] += lm
                 val[rows] = _truncated_draw(p, sd, lm, U[rows, :, l], +1)
-        ystar[valid, :, l] = val[valid]
         innov = np.where(valid[:, None], val - pred, 0.0)
         gr = np.broadcast_to(g, (N, n)) if g.shape[0] == 1 else g
         mu = mu + innov[..., None] * gr[:, None, :]
@@ -365,7 +360,7 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
         X = mu + _mat(eps, L[0].T)
     else:
         X = mu + np.einsum("rij,rpj->rpi", L, eps)
-    return X, logw, ystar
+    return X, logw
 
 
 class _Fading(_Model):
@@ -400,7 +395,7 @@ class _Fading(_Model):
         n, m = self.n, self.m
         N, Np = X.shape[:2]
         S = min(self.L, k)
-        cx = np.stack([X[..., s * n:(s + 1) * n] @ measurement_matrix_at(self.system, k - s).T
+        cx = np.stack([_mat(X[..., s * n:(s + 1) * n], measurement_matrix_at(self.system, k - s).T)
                        for s in range(S + 1)], axis=2)                     # (N, Np, S+1, m)
         sigma = _diag_sigma(self.system, k, "fading readings")
         if self.gaussian:
@@ -573,7 +568,7 @@ class _Saturation(_Model):
             censoring.check(system.m)
 
     def modes(self, rng, k, X, dy):
-        cx = X @ self.system.measurement(k).T
+        cx = _mat(X, self.system.measurement(k).T)
         sd = _diag_sigma(self.system, k, "saturated readings")
         return [(self.logp[0], saturate(cx, self.channel.level), sd), (self.logp[1], cx, sd),
                 (self.logp[2], np.zeros_like(cx), sd)]
