@@ -123,10 +123,21 @@ class RmseTable:
     label: str
     components: int
     rows: list[tuple[str, list[Any], Any]]  # (estimator key, rmse_time_avg values, nees_time_avg or None)
+    ratios: dict[str, list[Any]] = field(default_factory=dict)  # key -> RMSE / optimum per component
 
     @property
     def has_nees(self) -> bool:
         return any(nees is not None for _, _, nees in self.rows)
+
+    @property
+    def has_ratio(self) -> bool:
+        """True when the block carries the optimum (``ratio_to_optimum``, from a particle filter)."""
+        return bool(self.ratios)
+
+    def ratio_text(self, key: str) -> str:
+        """``RMSE / optimum`` of one estimator, its components joined by " / " ('' if none)."""
+        vals = self.ratios.get(key)
+        return " / ".join(_num(v) for v in vals) if vals else ""
 
     def lowest(self, j: int) -> float | None:
         """Smallest finite value in component column ``j`` (None if there is none)."""
@@ -233,6 +244,7 @@ def _find_estimator_blocks(obj: Any, path: tuple[str, ...] = ()) -> list[tuple[t
 def _rmse_table(path: tuple[str, ...], block: dict) -> RmseTable:
     label = " / ".join(p for p in path if p != "scenarios") or "all runs"
     rows = []
+    ratios: dict[str, list[Any]] = {}
     for key, summ in block.items():
         if not isinstance(summ, dict):
             continue
@@ -244,8 +256,11 @@ def _rmse_table(path: tuple[str, ...], block: dict) -> RmseTable:
         else:
             values = [avg]
         rows.append((str(key), values, summ.get("nees_time_avg")))
+        ratio = summ.get("ratio_to_optimum")
+        if isinstance(ratio, list):
+            ratios[str(key)] = _flatten(ratio)
     comps = max((len(v) for _, v, _ in rows), default=0)
-    return RmseTable(label=label, components=comps, rows=rows)
+    return RmseTable(label=label, components=comps, rows=rows, ratios=ratios)
 
 
 def _flatten(x: Any) -> list[Any]:
@@ -636,7 +651,8 @@ def _html_rmse(e: ExperimentReport) -> list[str]:
         out.append(f"<caption>{_e(t.label)}</caption>")
         heads = "".join(f'<th scope="col" class="num">x{j + 1}</th>' for j in range(t.components))
         nees = '<th scope="col" class="num">NEES (avg)</th>' if t.has_nees else ""
-        out.append(f'<thead><tr><th scope="col">estimator</th>{heads}{nees}</tr></thead><tbody>')
+        ratio = '<th scope="col" class="num">RMSE / optimum</th>' if t.has_ratio else ""
+        out.append(f'<thead><tr><th scope="col">estimator</th>{heads}{nees}{ratio}</tr></thead><tbody>')
         lows = [t.lowest(j) for j in range(t.components)]
         for key, vals, nees_v in t.rows:
             cells = []
@@ -648,10 +664,16 @@ def _html_rmse(e: ExperimentReport) -> list[str]:
                 cells.append(f'<td class="{cls}"{title}>{_e(_num(v))}</td>')
             if t.has_nees:
                 cells.append(f'<td class="num">{_e(_num(nees_v))}</td>')
+            if t.has_ratio:
+                cells.append(f'<td class="num">{_e(t.ratio_text(key))}</td>')
             out.append(f'<tr><th scope="row"><code>{_e(key)}</code></th>{"".join(cells)}</tr>')
         out.append("</tbody></table></div>")
     if any(len(t.rows) > 1 for t in e.rmse_tables):
         out.append('<p class="meta">Bold: the lowest RMSE of that component in the table.</p>')
+    if any(t.has_ratio for t in e.rmse_tables):
+        out.append('<p class="meta">RMSE / optimum: each component\'s time-averaged RMSE over that of the particle '
+                   'filter <code>pf</code> (the Bayes-optimal estimate, not in the sources), on the runs the particle '
+                   'filter used.</p>')
     return out
 
 
@@ -860,9 +882,12 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                         row.append(cell)
                     if t.has_nees:
                         row.append(_md(_num(nees_v)))
+                    if t.has_ratio:
+                        row.append(_md(t.ratio_text(key)))
                     rows.append(row)
                 head = ["estimator"] + [f"x{j + 1}" for j in range(t.components)] + (["NEES (avg)"] if t.has_nees
                                                                                       else [])
+                head += ["RMSE / optimum"] if t.has_ratio else []
                 out += _md_table(head, rows, right=set(range(1, len(head))))
     return "\n".join(out).rstrip("\n") + "\n\n" + _MD_MARKER + "\n"
 

@@ -38,7 +38,7 @@ def test_oscillator_time_averages_near_spec(oscillator):
     np.testing.assert_allclose(r["tkf"]["rmse_time_avg"], [4.62, 4.30], rtol=0.15)
     # about 51 % censored (spec §6); binomial error over 40000 readings is ~0.3 %, runs correlate: 3 %
     assert abs(oscillator.metrics["censored_fraction"] - 0.515) < 0.03
-    assert set(r) == {"tkf-fm", "tkf", "kf", "kf-fm"}
+    assert set(r) == {"tkf-fm", "tkf", "kf", "kf-fm", "pf"}
 
 
 def test_radar_ordering_and_reconstructed_labels(tmp_path):

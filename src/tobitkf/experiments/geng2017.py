@@ -47,10 +47,12 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
 from ..filters.fading import fading_estimators
 from ..models.linear import LinearSystem
+from ..pcrlb import posterior_crlb
 from ..plotting import save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 from . import _claims as CL
+from ._optimum import add_optimum, check_particles
 
 __all__ = ["oscillator_settings", "radar_settings", "run_oscillator", "run_radar", "build"]
 
@@ -65,6 +67,10 @@ def _common_filter_settings() -> dict[str, dict[str, Any]]:
         "p_uncensored_mode": setting("augmented", "default", "GF-03; 'eq6_stale' is (6) literally"),
         "fading_variance_term": setting(False, "default", "option, not in the source (GF-04)"),
         "exact_tobit_variance": setting(False, "default", "option, not in the source (GF-05)"),
+        "optimum_particles": setting(500, "default", "particle filter N_p (the optimum, estimator 'pf', uses 2 N_p; "
+                                     "0: none); not in the source"),
+        "optimum_runs": setting(50, "default", "runs the particle filter and the ratios to it use (the yardstick "
+                                "experiment has the converged optimum on all runs)"),
     }
 
 
@@ -182,6 +188,10 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
         "steps_not_below_beyond_mc_error": [(np.flatnonzero(~below[:, j]) + 1).tolist() for j in range(n_show)],
         "reconstructed_settings": sorted(k for k, s in settings.items() if s["provenance"] == "reconstructed"),
     }
+    add_optimum(summaries, {k: r.mean for k, r in results.items()}, system, [fading, censoring], data.y, data.x,
+                particles=check_particles(settings["optimum_particles"]["value"]), seed=seed,
+                runs=int(settings["optimum_runs"]["value"]))
+    metrics["pcrlb_rmse"] = np.sqrt(posterior_crlb(system, [fading, censoring], truth=data.x).var)
     fm_avg, tkf_avg = summaries["tkf-fm"]["rmse_time_avg"], summaries["tkf"]["rmse_time_avg"]
     names = ["RMSE%d" % (j + 1) for j in range(n_show)]
     avg_txt = ", ".join(f"{nm}: TKF-FM {fm_avg[j]:.3f} vs TKF {tkf_avg[j]:.3f}" for j, nm in enumerate(names))
@@ -223,9 +233,18 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
             note=f"RMSE1 at k = 1, {half}, {steps}: {r_fm[0, 0]:.3g}, {mid:.3g}, {end:.3g}",
             explanation="with the reconstructed parameters (GF-01) the range is a double integrator driven by an AR(1) "
                         "input and both filters' RMSE grows with k (docs/sources GF-F1)"))
-    plot_data = {"rmse": {k: s["rmse"] for k, s in summaries.items()}, "x": data.x[0], "y": data.y[0],
+    plot_data = {"rmse": {k: s["rmse"] for k, s in summaries.items()}, "pcrlb_rmse": metrics["pcrlb_rmse"],
+                 "x": data.x[0], "y": data.y[0],
                  "estimates": {k: results[k].mean[0] for k in ESTIMATOR_KEYS}, "runs": runs}
     return ExperimentResult(id=exp_id, settings=settings, metrics=metrics, data=plot_data, claims=claims)
+
+
+def _optimum_lines(ax, d: dict[str, Any], j: int, k: np.ndarray) -> None:
+    """The optimum (particle filter, when run) and the PCRLB of component j (not in the source)."""
+    if "pf" in d["rmse"]:
+        ax.plot(k, np.asarray(d["rmse"]["pf"])[:, j], "-", color="black", lw=0.8, label="optimum (particle filter)")
+    if "pcrlb_rmse" in d:
+        ax.plot(k, np.asarray(d["pcrlb_rmse"])[:, j], ":", color="tab:green", lw=0.8, label="PCRLB (sqrt)")
 
 
 def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
@@ -254,6 +273,7 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
         for key, style in (("tkf", "--"), ("tkf-fm", "-"), ("kf", ":"), ("kf-fm", "-.")):
             ax.plot(k, d["rmse"][key][:, j], style, color=COLORS[key], label=LABELS[key],
                     alpha=1.0 if key in ("tkf", "tkf-fm") else 0.6)
+        _optimum_lines(ax, d, j, k)
         ax.set_ylabel(f"RMSE{j + 1}")
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("k")
@@ -274,6 +294,7 @@ def _plot_radar(result: ExperimentResult, outdir: Path) -> list[Path]:
     for key, style in (("tkf", "--"), ("tkf-fm", "-"), ("kf", ":"), ("kf-fm", "-.")):
         ax.plot(k, d["rmse"][key][:, 0], style, color=COLORS[key], label=LABELS[key],
                 alpha=1.0 if key in ("tkf", "tkf-fm") else 0.6)
+    _optimum_lines(ax, d, 0, k)
     ax.set_xlabel("k")
     ax.set_ylabel("RMSE1 (range)")
     ax.set_yscale("log")

@@ -47,11 +47,14 @@ from ..plotting import save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 from . import _claims as CL
+from ._optimum import add_optimum, pop_options
 
 SOURCE = "Geng, Wang, Zou et al.: protocol-based Tobit Kalman filter (integral measurements, sensor failures)"
 W = 0.052 * np.pi
 STEPS = 100
 RUNS = 1000
+OPTIMUM_PARTICLES = 500    # N_p of the optimum (a particle filter with 2 N_p particles; not in the source)
+OPTIMUM_RUNS = 50          # the runs it uses (the yardstick experiment has the converged optimum on all runs)
 _MODE_KEYS = {"variance": "variance", "literal": "literal", "second_moment": "second-moment",
               "lmmse_unconditional": "lmmse"}
 
@@ -91,10 +94,13 @@ def _base_settings(runs: int, seed: int, steps: int, failure_term: str, damped: 
 
 
 def _run(system: LinearSystem, channel: ProtocolChannel, runs: int, seed: int, steps: int, *,
-         modes: tuple[str, ...] = ("variance",), baseline: bool = True) -> dict[str, Any]:
-    """Simulate once and run the filters on the same data; returns data and per-estimator results."""
+         modes: tuple[str, ...] = ("variance",), baseline: bool = True,
+         optimum: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Simulate once and run the filters on the same data; returns data and per-estimator results
+    (and what the optimum, a particle filter not in the source, needs: ``optimum`` particles/runs)."""
     data = simulate(system, steps, runs, channel=channel, seed=seed)
-    out: dict[str, Any] = {"data": data, "filters": {}}
+    out: dict[str, Any] = {"data": data, "filters": {}, "system": system, "channel": channel,
+                           "optimum": None if optimum is None else {**optimum, "seed": seed}}
     for mode in modes:
         out["filters"][mode] = ProtocolTobitKalmanFilter(system, channel, failure_term=mode).filter(data.y)
     if baseline:
@@ -136,7 +142,7 @@ def _estimators(run: dict[str, Any], ft: str, suffix: str = "") -> tuple[dict[st
     """Keys: ``pbtkf-imsf<suffix>`` for the chosen failure term ``ft``, ``pbtkf-imsf<suffix>-<mode>``
     for the other modes, ``pbtkf<suffix>`` for the baseline."""
     truth = run["data"].x
-    est, cons = {}, {}
+    est, cons, means = {}, {}, {}
     for mode, res in run["filters"].items():
         if mode == "baseline":
             key = "pbtkf" + suffix
@@ -146,6 +152,11 @@ def _estimators(run: dict[str, Any], ft: str, suffix: str = "") -> tuple[dict[st
             key = f"pbtkf-imsf{suffix}-{_MODE_KEYS[mode]}"
         est[key] = _summ(truth, res)
         cons[key] = _consistency(truth, res)
+        means[key] = res.mean
+    opt = run.get("optimum")
+    if opt:
+        add_optimum(est, means, run["system"], run["channel"], run["data"].y, truth, particles=opt["particles"],
+                    seed=opt["seed"], runs=opt["runs"], key="pf" + suffix)
     return est, cons
 
 
@@ -229,10 +240,10 @@ def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
                   caption="Fig. 2 (undamped oscillator): one run of the true states and the estimates of the "
                           "PBTKF-IMSF and of the baseline PBTKF, which ignores the integral measurements and the "
                           "sensor failures.")]
-    paths.append(_plot_rmse(result, outdir, ["pbtkf-imsf", "pbtkf", "pbtkf-imsf-second-moment"], "fig3_rmse.png",
+    paths.append(_plot_rmse(result, outdir, ["pbtkf-imsf", "pbtkf", "pbtkf-imsf-second-moment", "pf"], "fig3_rmse.png",
                             "Fig. 3: RMSE over runs (undamped)",
                             "Fig. 3 (undamped oscillator): RMSE1 and RMSE2 over k of the PBTKF-IMSF, the baseline "
-                            "PBTKF and, not in the source, the PBTKF-IMSF with the second-moment failure term."))
+                            "PBTKF and, not in the source, the PBTKF-IMSF with the second-moment failure term, and the optimum (particle filter)."))
     return paths
 
 
@@ -240,9 +251,10 @@ def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
           source=SOURCE, plot=_plot_tracking, default_runs=RUNS)
 def tracking(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: Any) -> ExperimentResult:
     """Figs. 2–3: the undamped oscillator; RMSE of PBTKF-IMSF (all failure-term modes) vs PBTKF."""
+    opt = pop_options(overrides, OPTIMUM_PARTICLES, OPTIMUM_RUNS)
     steps, ft = _options(dict(overrides))
     sys_, ch = example_system(False), example_channel()
-    run = _run(sys_, ch, runs, seed, steps, modes=_modes(ft))
+    run = _run(sys_, ch, runs, seed, steps, modes=_modes(ft), optimum=opt)
     _progress(progress, 0.8)
     est, cons = _estimators(run, ft)
     r_i, r_b = np.asarray(est["pbtkf-imsf"]["rmse"]), np.asarray(est["pbtkf"]["rmse"])
@@ -290,9 +302,10 @@ def _plot_mect(result: ExperimentResult, outdir: Path) -> list[Path]:
           source=SOURCE, plot=_plot_mect, default_runs=RUNS)
 def mect(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: Any) -> ExperimentResult:
     """Fig. 4: log10 MECT (prior and posterior) of both filters, damped A."""
+    opt = pop_options(overrides, OPTIMUM_PARTICLES, OPTIMUM_RUNS)
     steps, ft = _options(dict(overrides))
     sys_, ch = example_system(True), example_channel()
-    run = _run(sys_, ch, runs, seed, steps, modes=_modes(ft))
+    run = _run(sys_, ch, runs, seed, steps, modes=_modes(ft), optimum=opt)
     _progress(progress, 0.8)
     est, cons = _estimators(run, ft)
     claims = []
@@ -326,9 +339,10 @@ def mect(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: 
 
 
 # --- Fig. 5 ----------------------------------------------------------------------------------
-def _bounds_case(damped: bool, runs: int, seed: int, steps: int, ft: str) -> tuple[dict[str, Any], Any, dict]:
+def _bounds_case(damped: bool, runs: int, seed: int, steps: int, ft: str,
+                 opt: dict[str, Any] | None = None) -> tuple[dict[str, Any], Any, dict]:
     sys_, ch = example_system(damped), example_channel()
-    run = _run(sys_, ch, runs, seed, steps, modes=(ft,), baseline=False)
+    run = _run(sys_, ch, runs, seed, steps, modes=(ft,), baseline=False, optimum=opt)
     res = run["filters"][ft]
     tr_runs = np.trace(res.pred_cov, axis1=-2, axis2=-1)            # (M, T)
     trN = tr_runs.mean(0)
@@ -359,7 +373,7 @@ def _bounds_case(damped: bool, runs: int, seed: int, steps: int, ft: str) -> tup
         "gamma_max_abs_diff": float(np.abs(freq - b.p_uncensored).max()),
         "at_k100": {"lower": float(tl[-1]), "mc": float(trN[-1]), "upper": float(tu[-1])},
     }
-    return m, run, {"truth": run["data"].x, "res": res}
+    return m, run, {"truth": run["data"].x, "res": res, "run": run}
 
 
 def _plot_bounds(result: ExperimentResult, outdir: Path) -> list[Path]:
@@ -385,15 +399,20 @@ def _plot_bounds(result: ExperimentResult, outdir: Path) -> list[Path]:
           source=SOURCE, plot=_plot_bounds, default_runs=RUNS)
 def bounds(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: Any) -> ExperimentResult:
     """Fig. 5: tr N^l_k <= tr E P^-_k <= tr N^u_k (damped as in the source; undamped as well)."""
+    opt = pop_options(overrides, OPTIMUM_PARTICLES, OPTIMUM_RUNS)
     steps, ft = _options(dict(overrides))
     metrics: dict[str, Any] = {"bounds": {}, "estimators": {}, "consistency": {}}
     claims = []
     for i, damped in enumerate((True, False)):
         case = "damped" if damped else "undamped"
-        m, run, extra = _bounds_case(damped, runs, seed, steps, ft)
+        m, run, extra = _bounds_case(damped, runs, seed, steps, ft, opt)
         metrics["bounds"][case] = m
         suffix = "" if damped else "-undamped"
         metrics["estimators"]["pbtkf-imsf" + suffix] = _summ(extra["truth"], extra["res"])
+        if opt["particles"]:
+            add_optimum(metrics["estimators"], {"pbtkf-imsf" + suffix: extra["res"].mean}, run["system"],
+                        run["channel"], run["data"].y, extra["truth"], particles=opt["particles"], seed=seed,
+                        runs=opt["runs"], key="pf" + suffix)
         metrics["consistency"]["pbtkf-imsf" + suffix] = _consistency(extra["truth"], extra["res"])
         mse = ((extra["truth"][:, 1:] - extra["res"].pred_mean) ** 2).sum(-1).mean(0)
         m["mse_prior_mc"] = mse
@@ -435,6 +454,7 @@ def _variant(exp_id: str, runs: int, seed: int, progress: Any, overrides: dict[s
     ``expect``: "variant_lower" (the paper's claim: the variant has the lower RMSE),
     "base_lower", or "none".
     """
+    opt = pop_options(overrides, OPTIMUM_PARTICLES, OPTIMUM_RUNS)
     steps, ft = _options(dict(overrides))
     est: dict[str, Any] = {}
     cons: dict[str, Any] = {}
@@ -446,7 +466,8 @@ def _variant(exp_id: str, runs: int, seed: int, progress: Any, overrides: dict[s
         tag = "" if damped else "-undamped"
         avgs, errs = {}, {}
         for suffix, kw in variants:
-            run = _run(example_system(damped), example_channel(**kw), runs, seed, steps, modes=_modes(ft))
+            run = _run(example_system(damped), example_channel(**kw), runs, seed, steps, modes=_modes(ft),
+                       optimum=opt)
             errs[suffix] = run["filters"][ft].mean - run["data"].x[:, 1:]
             e, c = _estimators(run, ft, suffix + tag)
             est.update(e)
@@ -509,7 +530,7 @@ def _variant_plot(keys: list[str], name: str, title: str, what: str):
 
 
 @register("geng-protocol-threshold", title="RMSE for threshold tau = 0 vs -5 (Fig. 6)", source=SOURCE,
-          plot=_variant_plot(["pbtkf-imsf", "pbtkf-imsf-tau-5"], "fig6_threshold.png", "Fig. 6",
+          plot=_variant_plot(["pbtkf-imsf", "pbtkf-imsf-tau-5", "pf", "pf-tau-5"], "fig6_threshold.png", "Fig. 6",
                              "the censoring threshold τ = 0 and τ = -5"),
           default_runs=RUNS)
 def threshold(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: Any) -> ExperimentResult:
@@ -520,7 +541,7 @@ def threshold(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overri
 
 
 @register("geng-protocol-window", title="RMSE for integral window ell = 2 vs 5 (Fig. 7)", source=SOURCE,
-          plot=_variant_plot(["pbtkf-imsf", "pbtkf-imsf-ell-5"], "fig7_window.png", "Fig. 7",
+          plot=_variant_plot(["pbtkf-imsf", "pbtkf-imsf-ell-5", "pf", "pf-ell-5"], "fig7_window.png", "Fig. 7",
                              "the integral windows ℓ = 2 and ℓ = 5"), default_runs=RUNS)
 def window(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: Any) -> ExperimentResult:
     """Fig. 7: ℓ = 2 vs ℓ = 5; the source says the curves are intertwined (no ordering asserted)."""
@@ -530,7 +551,7 @@ def window(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides
 
 
 @register("geng-protocol-failures", title="RMSE for failure laws Lambda_1 vs Lambda_2 (Fig. 8)", source=SOURCE,
-          plot=_variant_plot(["pbtkf-imsf", "pbtkf-imsf-lambda-1"], "fig8_failures.png", "Fig. 8",
+          plot=_variant_plot(["pbtkf-imsf", "pbtkf-imsf-lambda-1", "pf", "pf-lambda-1"], "fig8_failures.png", "Fig. 8",
                              "the failure laws Λ₂ (the base law: 5 % outages, mean 0.9) and Λ₁ (35 % outages, mean 0.6)"),
           default_runs=RUNS)
 def failures(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: Any) -> ExperimentResult:

@@ -30,10 +30,12 @@ from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
+from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, plot_rmse_over_time, save, style
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 from . import _claims as CL
+from ._optimum import add_optimum, check_particles
 
 __all__ = ["constant", "brownian", "oscillator", "steady_state"]
 
@@ -104,20 +106,26 @@ def _seed_int(seed: Any) -> int:
 @register("miller-constant", title="TKF example 1: constant below/above the censoring limit (Figs 3.1-3.2)",
           source=_SOURCE, plot=_plot_constant, default_runs=200)
 def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000, sigma: float = 0.1,
-             limit: float = 0.0, q: float = 1e-14, x0: float = 0.1, p0: float = 0.05) -> ExperimentResult:
+             limit: float = 0.0, q: float = 1e-14, x0: float = 0.1, p0: float = 0.05, optimum_particles: int = 250,
+             optimum_runs: int = 50) -> ExperimentResult:
     """Example 1 (Miller §3.3.6.2): a scalar constant, truth -0.1 and +0.1, left-censored at T.
 
     Source values: Q = 1e-14, σ = 0.1, x0 = 0.1, Ψ0 = 0.05. Not stated (docs/sources MA-12,
     labelled "default"): T = 0 (left censoring), the horizon 1000. The truth is the constant itself
-    (zero prior spread for the truth); the filters start from x0, Ψ0.
+    (zero prior spread for the truth); the filters start from x0, Ψ0. The optimum (estimator ``pf``,
+    not in the source): a particle filter with ``2 optimum_particles`` particles on the first
+    ``optimum_runs`` runs of each scenario (0 particles: none), every estimator's ``ratio_to_optimum``.
     """
     progress = progress or _noop
+    optimum_particles = check_particles(optimum_particles)
     settings = {
         "A": setting(1.0), "C": setting(1.0), "Q": setting(q), "sigma": setting(sigma, note="std of v; R = sigma^2"),
         "x0_filter": setting(x0), "P0_filter": setting(p0),
         "limit": setting(limit, "default", "left censoring at T = 0 implied, not stated (MA-12)"),
         "steps": setting(steps, "default", "horizon not stated (MA-12)"),
         "truths": setting([-0.1, 0.1]),
+        "optimum": setting({"particles": 2 * optimum_particles, "runs": optimum_runs}, "default",
+                           "particle filter, not in the source (the Bayes-optimal RMSE)"),
     }
     cens = Censoring(lower=limit)
     sys_f = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[x0], P0=[[p0]])
@@ -130,8 +138,11 @@ def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000
         st = censored_moments(truth, sigma, limit, np.inf)
         targets = {"kf": float(st.censored_mean), "ikf": float(st.truncated_mean), "tkf": truth}
         final = {k: o.mean[:, -1, 0] for k, o in outs.items()}
+        summ = _summaries(sim.x, outs)
+        add_optimum(summ, {k: o.mean for k, o in outs.items()}, sys_f, cens, sim.y, sim.x,
+                    particles=optimum_particles, seed=_seed_int(seed) + i, runs=optimum_runs)
         scen[name] = {
-            "estimators": _summaries(sim.x, outs),
+            "estimators": summ,
             "final_mean": {k: float(v.mean()) for k, v in final.items()},
             "final_std": {k: float(v.std(ddof=1)) for k, v in final.items()},
             "analytic_limit": targets,
@@ -204,21 +215,25 @@ def _plot_brownian(result: ExperimentResult, outdir: Path) -> list[Path]:
           plot=_plot_brownian, default_runs=200)
 def brownian(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000, alpha: float = 0.999,
              q: float = 0.01, sigma: float = 0.05, limit: float = 0.0, x0: float = 0.05,
-             p0: float = 0.05) -> ExperimentResult:
+             p0: float = 0.05, optimum_particles: int = 250, optimum_runs: int = 50) -> ExperimentResult:
     """Example 2 (Miller §3.3.6.3): x_k = 0.999 x_{k-1} + η_k, Var η = 0.01, σ = 0.05, left-censored at 0.
 
     (3.45) writes the AR(1) on the latent measurement; it is read as the state (docs/sources MA-13).
     Horizon not stated: 1000 (the text cites samples 350-400). Truth and filter share the
-    prior x0 = 0.05, Ψ0 = 0.05.
+    prior x0 = 0.05, Ψ0 = 0.05. The optimum (``pf``, not in the source): a particle filter with
+    ``2 optimum_particles`` particles on the first ``optimum_runs`` runs (0 particles: none).
     """
     from scipy.linalg import solve_discrete_are
 
     progress = progress or _noop
+    optimum_particles = check_particles(optimum_particles)
     settings = {
         "A": setting(alpha), "Q": setting(q, note="Var eta = 0.01"), "sigma": setting(sigma),
         "limit": setting(limit), "x0": setting(x0), "P0": setting(p0),
         "model": setting("AR(1) read as the state", "reconstructed", "(3.45) is written on y* (MA-13)"),
         "steps": setting(steps, "default", "not stated; >= 400 since samples 350-400 are cited (MA-13)"),
+        "optimum": setting({"particles": 2 * optimum_particles, "runs": optimum_runs}, "default",
+                           "particle filter, not in the source (the Bayes-optimal RMSE)"),
     }
     sys_ = LinearSystem(A=[[alpha]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[x0], P0=[[p0]])
     cens = Censoring(lower=limit)
@@ -227,6 +242,8 @@ def brownian(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000
     outs = _run_three(sys_, cens, sim.y)
     progress(0.9)
     est = _summaries(sim.x, outs)
+    add_optimum(est, {k: o.mean for k, o in outs.items()}, sys_, cens, sim.y, sim.x, particles=optimum_particles,
+                seed=_seed_int(seed), runs=optimum_runs)
     var = {k: o.cov[..., 0, 0] for k, o in outs.items()}
     per_run_max = {k: v.max(axis=1) for k, v in var.items()}
     max_var = {k: float(np.median(v)) for k, v in per_run_max.items()}
@@ -327,9 +344,14 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     for comp in (0, 1):
         plot_rmse_over_time(ax[0, comp], result.metrics["estimators"], comp,
                             title=f"RMSE over {result.metrics['runs']} runs, ω = {d['omega']}")
+        if "pcrlb_rmse" in result.metrics:
+            b = np.asarray(result.metrics["pcrlb_rmse"])[:, comp]
+            ax[0, comp].plot(np.arange(1, b.size + 1), b, color="tab:green", lw=0.8, ls=":", label="PCRLB (sqrt)")
+            ax[0, comp].legend(fontsize=7)
     paths.append(save(fig, outdir, "oscillator_rmse.png",
                       caption=f"Not in the source: the per-step RMSE of each state over {result.metrics['runs']} "
-                              "runs for the standard KF, the intermittent-measurements KF and the Tobit KF."))
+                              "runs for the standard KF, the intermittent-measurements KF and the Tobit KF, with the "
+                              "optimum (particle filter, where run) and the square root of the posterior Cramér-Rao bound."))
     return paths
 
 
@@ -337,14 +359,17 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
           plot=_plot_oscillator, default_runs=100)
 def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 2000, omega: float = 0.05,
                omega_sweep: tuple[float, ...] = (0.01, 0.05, 0.2), q: float = 0.01, r: float = 0.1,
-               limit: float = 0.0, p0: float = 0.05) -> ExperimentResult:
+               limit: float = 0.0, p0: float = 0.05, optimum_particles: int = 250,
+               optimum_runs: int = 50) -> ExperimentResult:
     """Example 3 (Miller §3.3.6.4): (3.46) with α = 1, C = [1 0], Q = 0.01 I, R = 0.1, x0 = 0, Ψ0 = 0.05 I.
 
     ω, T and the horizon are not stated (docs/sources MA-14): ω = 0.05 rad/sample, T = 0 (left),
     2000 steps, labelled "default". The ranking TKF < IKF < KF is also checked for the
-    ω values of ``omega_sweep``.
+    ω values of ``omega_sweep``. The optimum (``pf``, not in the source, for ``omega`` only): a
+    particle filter with ``2 optimum_particles`` particles on the first ``optimum_runs`` runs.
     """
     progress = progress or _noop
+    optimum_particles = check_particles(optimum_particles)
     settings = {
         "alpha": setting(1.0), "C": setting([[1.0, 0.0]]), "Q": setting(f"{q} I"), "R": setting(r),
         "x0": setting([0.0, 0.0]), "P0": setting(f"{p0} I"),
@@ -352,6 +377,8 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
         "omega_sweep": setting(list(omega_sweep), "default", "ω is free; the ranking is checked over a range (MA-14)"),
         "limit": setting(limit, "default", "left censoring at 0 as in Examples 1-2 (MA-14)"),
         "steps": setting(steps, "default", "not stated; >= 1400 since sample 1350 is cited (MA-14)"),
+        "optimum": setting({"particles": 2 * optimum_particles, "runs": optimum_runs}, "default",
+                           "particle filter, not in the source (the Bayes-optimal RMSE), for omega only"),
     }
     cens = Censoring(lower=limit)
     omegas = list(dict.fromkeys([omega, *omega_sweep]))
@@ -368,6 +395,9 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
         d2, s2 = CL.rmse_difference(err["ikf"], err["kf"])
         checks[f"omega={om}"] = (d1, s1, d2, s2)
         if om == omega:
+            add_optimum(summ, {k: o.mean for k, o in outs.items()}, sys_, cens, sim.y, sim.x,
+                        particles=optimum_particles, seed=_seed_int(seed) + i, runs=optimum_runs)
+            pcrlb = np.sqrt(posterior_crlb(sys_, cens, truth=sim.x).var)
             est = summ
             bias = (outs["ikf"].mean[..., 0] - sim.x[:, 1:, 0]).mean(axis=1)
             data = {"omega": om, "y": sim.y[0, :, 0], "truth": sim.x[0, 1:],
@@ -393,7 +423,7 @@ def oscillator(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 20
                             "uncensored data (§3.3.6.4)",
                             quantity="time-averaged bias of the IKF's x1 estimate (mean over runs)", a=float(b_mean),
                             b=0.0, names=("bias", "zero"), tol=tol, tolerance=tol_text))
-    metrics = {"runs": runs, "estimators": est, "rmse_time_avg_by_omega": sweep}
+    metrics = {"runs": runs, "estimators": est, "rmse_time_avg_by_omega": sweep, "pcrlb_rmse": pcrlb}
     return ExperimentResult("miller-oscillator", settings, metrics, data, claims)
 
 
