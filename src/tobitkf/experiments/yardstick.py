@@ -70,6 +70,7 @@ from ..models.linear import LinearSystem
 from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
+from . import _claims as CL
 from . import ExperimentResult, register, setting
 from ._optimum import TOLERANCE, pf_check
 
@@ -364,29 +365,35 @@ def _table_and_claims(out_ex: dict[str, Any], out_rs: dict[str, Any]):
     adf_all = {r["example"]: r["adf_ratio"] for r in table}
     worst = max(adf_all, key=lambda k: max(adf_all[k])) if adf_all else None
     if worst is not None:
-        claims.append({"claim": f"the assumed-density filter is within {TARGET}x of the optimum on every example "
-                                "and random system (the issue's target)",
-                       "measured": "; ".join(f"{k} {np.round(v, 4).tolist()}" for k, v in adf_all.items())
-                                   + f"; worst {worst} {max(adf_all[worst]):.4f}",
-                       "holds": bool(all(max(v) <= TARGET for v in adf_all.values()))})
+        claims.append(CL.claim(
+            f"(not in the source) the assumed-density filter is within {TARGET}x of the optimum on every example "
+            "and random system (the issue's target)",
+            quantity="per example and component: the ADF's time-averaged RMSE over the particle filter's, same runs",
+            measured="; ".join(f"{k} {CL.fmt(v, 4)}" for k, v in adf_all.items())
+                     + f"; worst {worst} {max(adf_all[worst]):.4f}",
+            test=f"max ratio <= {TARGET}", tolerance="none beyond the target: the ratio is paired (same runs and "
+                                                    "readings); its Monte Carlo error is not propagated, the particle "
+                                                    "filter's own error is bounded by the convergence claim below",
+            holds=bool(all(max(v) <= TARGET for v in adf_all.values()))))
         conv = {r["example"]: r["pf_relative_change"] for r in table}
-        claims.append({"claim": f"the particle filter is converged: doubling the particles moves the time-averaged "
-                                f"RMSE by less than {TOLERANCE:.1%}",
-                       "measured": "; ".join(f"{k} {np.round(np.asarray(v) * 100, 3).tolist()} %" for k, v in conv.items()),
-                       "holds": bool(all(r["pf_converged"] for r in table))})
+        claims.append(CL.claim(
+            f"(not in the source) the particle filter is converged: doubling the particles moves the time-averaged "
+            f"RMSE by less than {TOLERANCE:.1%}",
+            quantity="relative change of the time-averaged RMSE from N_p to 2 N_p particles, per example and component",
+            measured="; ".join(f"{k} {CL.fmt(np.asarray(v) * 100, 3)} %" for k, v in conv.items()),
+            test=f"relative change < {TOLERANCE:.1%} on every example", tolerance=f"{TOLERANCE:.1%} (the check's "
+                                                                             "threshold, same runs and readings)",
+            holds=bool(all(r["pf_converged"] for r in table))))
     for name, ex in list(out_ex.items()) + list(out_rs.items()):
         if "pcrlb" in ex:
             p = ex["pcrlb"]
-            claims.append({"claim": f"{name}: the PCRLB lies below the particle filter's MSE at every step (one-sided "
-                                    "test at 1 % per step)",
-                           "measured": f"below at {p['steps_pcrlb_below_pf_mse']}/{p['steps']} steps",
-                           "holds": p["holds_every_step"]})
-    for r in table:
-        if "issue_ratio" in r:
-            claims.append({"claim": f"{r['example']}: the issue reports {r['issue_best_variant']} at "
-                                    f"{r['issue_ratio']} x optimum",
-                           "measured": f"{np.round(r['measured_ratio_of_issue_variant'], 3).tolist()} x optimum here; "
-                                       f"best existing variant {r['best_existing']} "
-                                       f"{np.round(r['best_existing_ratio'], 3).tolist()}",
-                           "holds": None})
+            claims.append(CL.claim(
+                f"(not in the source) {name}: the PCRLB lies below the particle filter's MSE at every step",
+                quantity="per step: the PCRLB's trace against the particle filter's MSE over the runs",
+                measured=f"below at {p['steps_pcrlb_below_pf_mse']}/{p['steps']} steps",
+                test="at no step is the MSE significantly below the bound", tolerance="one-sided test at the 1 % "
+                                                                                     "level per step (the MSE's "
+                                                                                     "Monte Carlo error)",
+                holds=bool(p["holds_every_step"])))
+    # the issue's own ratios are in the table beside ours (measured on its own runs: shown, not a claim)
     return table, claims

@@ -178,7 +178,7 @@ class FadingAssumedDensityFilter(GaussianFilter):
         x, P, S, _ = self._sequential(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"))
         return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
 
-    def _check_record(self, y2, u2, k0):
+    def _check_record(self, y2, u2, k0, name="y"):
         self.system.check_horizon(k0 + y2.shape[1])
         self.censoring.check(self.m, k0 + y2.shape[1])
         if self.check_limits:

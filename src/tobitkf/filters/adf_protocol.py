@@ -233,7 +233,7 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
         x, P, S, _ = self._mixture(state.k, state.x, state.P, state.S, yk)
         return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
 
-    def _check_record(self, y2, u2, k0):
+    def _check_record(self, y2, u2, k0, name="y"):
         self.system.check_horizon(k0 + y2.shape[1])
         tau = self.channel.threshold
         with np.errstate(invalid="ignore"):

@@ -354,8 +354,8 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             out = {"lower": lo, "upper": hi}
         return out
 
-    def _check_record(self, y2, u2, k0):
-        super()._check_record(y2, u2, k0)
+    def _check_record(self, y2, u2, k0, name="y"):
+        super()._check_record(y2, u2, k0, name)
         self.censoring.check(self.m, k0 + y2.shape[1])
         if self.check_limits:
             self.censoring.check_measurements(y2, start=k0 + 1)

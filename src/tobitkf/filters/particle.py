@@ -742,7 +742,7 @@ class ParticleFilter(Estimator):
     def _state_dim(self) -> int:
         return self.model.nx
 
-    def _check_record(self, y2, u2, k0):
+    def _check_record(self, y2, u2, k0, name="y"):
         self.system.check_horizon(k0 + y2.shape[1])
         self.model.check_record(y2, k0 + 1)
 
