@@ -928,7 +928,12 @@ class Estimator:
     def _run(self, y: Any, u: Any = None, x0: Any = None, P0: Any = None, *, outputs: Any = "all",
              state: FilterState | None = None, step_options: Sequence[Mapping[str, Any]] | None = None,
              name: str = "y") -> FilterResult:
-        """The one time loop: validate once, then :meth:`_step_arrays` for each reading."""
+        """The one time loop: validate once, then :meth:`_step_arrays` for each reading.
+
+        ``step_options`` (one mapping per reading, already prepared as the family's
+        ``_prepare_step_options`` would) is handed to row ``i``'s step, e.g. a per-reading censoring
+        indicator; None gives every step the family's defaults.
+        """
         want = parse_outputs(outputs)
         y2, batch = self._prepare_record(y, name)
         N, T, _ = y2.shape
@@ -951,7 +956,8 @@ class Estimator:
         for i in range(T):
             k = state.k + i + 1
             x, P, S, carry, xp, Pp, extras = self._step_arrays(k, x, P, S, carry, y2[:, i],
-                                                               None if u2 is None else u2[:, i], None)
+                                                               None if u2 is None else u2[:, i],
+                                                               None if step_options is None else step_options[i])
             if first_bad is None:
                 first_bad = _first_nonfinite(P if S is None else S, k)
             if first_bad is not None:
