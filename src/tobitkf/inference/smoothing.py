@@ -27,11 +27,9 @@ Which smoother goes with which filter (:func:`smooth`):
 * ``"tobit"``: the TKF's linearisation :math:`H = E(\mathbf p)C` (Miller (3.39)–(3.40)): the TKF's
   filtered and predicted moments in the same backward pass;
 * ``"adf"``: the assumed-density filter's exact-moment projection (:mod:`tobitkf.inference.adf`) with
-  the Gaussian backward pass, the "ADF-RTS" (assumed-density) smoother;
-* ``"ep"``: expectation propagation (Minka 2001; Heskes & Zoeter 2002): each censored reading's
-  likelihood is replaced by a Gaussian site :math:`N(\tilde y_k; C_lx_k, \tilde r_k)`, refined by
-  moment matching of the tilted marginal against the smoothed cavity, sweep after sweep; the first
-  sweep is the ADF-RTS smoother.
+  the Gaussian backward pass, the "ADF-RTS" (assumed-density) smoother (Deisenroth & Ohlsson 2011's
+  Gaussian smoother with exact moments). For a censored regression with AR errors the exact posterior
+  is :func:`tobitkf.inference.censored_ar.posterior_moments`.
 
 Output: a :class:`~tobitkf.FilterResult` whose ``mean``/``cov`` are :math:`\hat x_{k|T}`,
 :math:`P_{k|T}` (row k-1 for k = 1..T), ``pred_mean``/``pred_cov`` the filter's predictions, and
@@ -56,7 +54,7 @@ from ._common import solve_psd
 
 __all__ = ["rts_smooth", "smooth", "SMOOTHERS", "FixedLagSmoother", "FixedLagState"]
 
-SMOOTHERS = ("kalman", "dropping", "tobit", "adf", "ep")
+SMOOTHERS = ("kalman", "dropping", "tobit", "adf")
 
 
 def _flat(a: np.ndarray | None, N: int, tail: int) -> np.ndarray | None:
@@ -168,7 +166,7 @@ def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] |
                         extras=extras, times=filtered.times, final=filtered.final)
 
 
-def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None, *, noise_floor: float | None = None):
+def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None):
     from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
     from ..filters.tobit import TobitKalmanFilter
     from .adf import ADFilter
@@ -185,8 +183,7 @@ def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None, 
 
 
 def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, censored: Any = None,
-           method: str = "auto", u: Any = None, x0: Any = None, P0: Any = None, sweeps: int = 10,
-           damping: float = 0.5, tol: float = 1e-9) -> FilterResult:
+           method: str = "auto", u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
     r"""Fixed-interval smoothing of readings ``y`` (..., T, m): :math:`\hat x_{k|T}`, :math:`P_{k|T}` and the
     lag-one cross-covariances.
 
@@ -199,21 +196,15 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
     censoring : Censoring, optional
         The limits (needed by every method but ``"kalman"``).
     censored : (..., T, m) bool array_like, optional
-        The recorded censoring indicator (``"dropping"``, ``"adf"`` and ``"ep"``; the TKF's update does
+        The recorded censoring indicator (``"dropping"`` and ``"adf"``; the TKF's update does
         not depend on it, a flagged reading is checked to lie at its limit); default the limit rule.
-    method : {"auto", "kalman", "dropping", "tobit", "adf", "ep"}, default "auto"
+    method : {"auto", "kalman", "dropping", "tobit", "adf"}, default "auto"
         The filter whose smoother runs (module docstring); ``"auto"``: ``"kalman"`` without
         ``censoring``, else ``"adf"``.
     u : (..., T, p) array_like, optional
         Known inputs.
     x0, P0 : array_like, optional
         Override the system's prior.
-    sweeps : int, default 10
-        Maximum EP sweeps (``"ep"``).
-    damping : float in (0, 1], default 0.5
-        EP damping of the site updates (1 = undamped).
-    tol : float, default 1e-9
-        EP stops when no site mean moves by more than ``tol`` (relative to its scale).
 
     Returns
     -------
@@ -223,8 +214,7 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
     Raises
     ------
     ValidationError
-        Unknown method, a censored method without ``censoring``, bad EP settings, and the filters'
-        own input errors.
+        Unknown method, a censored method without ``censoring``, and the filters' own input errors.
 
     Examples
     --------
@@ -244,11 +234,6 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
         raise ValidationError(f"method: expected one of {', '.join(('auto',) + SMOOTHERS)}, got {method!r}")
     if censoring is not None:
         check_instance(censoring, Censoring, "censoring")
-    if method == "ep":
-        from .ep import ep_smooth
-
-        return ep_smooth(system, censoring, y, censored=censored, u=u, x0=x0, P0=P0, sweeps=sweeps,
-                         damping=damping, tol=tol)
     est = _filter_for(system, method, censoring)
     if method == "adf":
         res = est.filter(y, u=u, censored=censored, x0=x0, P0=P0)
