@@ -118,8 +118,8 @@ def _simulate_censored_ar(rng, T, beta, s2, phi, frac):
 
 def test_recovery_of_a_censored_ar1_regression_bias_and_coverage_within_monte_carlo_error():
     """30 replications, T = 250, 40 % left-censored. Each estimate's mean error must lie within 3 Monte
-    Carlo standard errors (sd / sqrt(30)) of zero, and the coverage of the 95 % Wald intervals (140
-    intervals over the 4 parameters... 120) within 3 binomial standard errors of 0.95."""
+    Carlo standard errors (sd / sqrt(30)) of zero, and the coverage of the 95 % Wald intervals (120
+    intervals: 4 parameters x 30 replications) within 3 binomial standard errors of 0.95."""
     rng = np.random.default_rng(2024)
     beta, s2, phi = np.array([1.0, 0.5]), 0.6, 0.7
     truth = np.r_[beta, s2, phi]
@@ -134,7 +134,7 @@ def test_recovery_of_a_censored_ar1_regression_bias_and_coverage_within_monte_ca
     est, cover = np.array(est), np.array(cover)
     err = est.mean(0) - truth
     mcse = est.std(0, ddof=1) / np.sqrt(len(est))
-    assert np.all(np.abs(err) < 3 * mcse + 0.02 * np.abs(truth) * 0), (err, mcse)
+    assert np.all(np.abs(err) < 3 * mcse), (err, mcse)
     n = cover.size
     assert abs(cover.mean() - 0.95) < 3 * np.sqrt(0.95 * 0.05 / n), cover.mean()
 
@@ -167,7 +167,7 @@ def test_em_increases_the_exact_likelihood_and_agrees_with_direct_maximisation()
 def test_em_of_a_and_c_recovers_a_scalar_model_and_reports_standard_errors():
     rng = np.random.default_rng(7)
     system = tk.LinearSystem(A=[[0.85]], C=[[1.0]], Q=[[0.4]], R=[[0.3]], x0=[0.0], P0=[[1.0]])
-    y = tk.simulate(system, steps=1500, runs=1, seed=rng.integers(1 << 30)).y[0]
+    y = tk.simulate(system, steps=800, runs=1, seed=rng.integers(1 << 30)).y[0]
     templ = tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
     f = tk.fit(templ, y, estimate=("A", "Q", "R"), maxiter=1000, tol=1e-11)
     for name, true in (("A[0,0]", 0.85), ("Q[0,0]", 0.4), ("R[0,0]", 0.3)):
