@@ -181,6 +181,20 @@ class KalmanFilter(LinearGaussianFamily):
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
+    def smooth(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+        """Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments, with lag-one
+        cross-covariances; see :func:`tobitkf.inference.rts_smooth`."""
+        from ..inference.smoothing import rts_smooth
+
+        return rts_smooth(self.filter(y, u=u, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
+
+    def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False):
+        """Exact log-likelihood of ``y`` (NaN readings skipped), (...) or (..., T) with ``per_step``; see
+        :func:`tobitkf.inference.kalman_log_likelihood`."""
+        from ..inference.likelihood import kalman_log_likelihood
+
+        return kalman_log_likelihood(self.system, y, u=u, x0=x0, P0=P0, per_step=per_step)
+
 
 def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):
     """The compiled loop (:func:`tobitkf.filters._kernels.kf_kernel`) from ``state``; outputs on request."""
