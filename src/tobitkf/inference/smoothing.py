@@ -52,7 +52,8 @@ from ..filters.core import FilterResult, FilterState, check_prior, prepare_measu
 from ..models.linear import LinearSystem
 from ._common import solve_psd
 
-__all__ = ["rts_smooth", "smooth", "SMOOTHERS", "FixedLagSmoother", "FixedLagState"]
+__all__ = ["rts_smooth", "smooth", "SMOOTHERS", "FixedLagSmoother", "FixedLagState", "dropping_with_indicator",
+           "check_tobit_indicator"]
 
 SMOOTHERS = ("kalman", "dropping", "tobit", "adf")
 
@@ -238,41 +239,71 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
     if method == "adf":
         res = est.filter(y, u=u, censored=censored, x0=x0, P0=P0)
     elif method == "dropping" and censored is not None:
-        res = _dropping_with_indicator(system, censoring, y, censored, u, x0, P0)
+        res = dropping_with_indicator(est, y, censored, u=u, x0=x0, P0=P0)
     else:
         if method == "tobit" and censored is not None:
-            y = _tobit_readings(censoring, y, censored)
+            check_tobit_indicator(censoring, y, censored)
         res = est.filter(y, u=u, x0=x0, P0=P0)
     return rts_smooth(res, system, x0=x0, P0=P0)
 
 
-def _dropping_with_indicator(system, censoring, y, censored, u, x0, P0) -> FilterResult:
-    """The dropping KF with the recorded indicator instead of the limit rule: the KF with flagged readings removed."""
+def dropping_with_indicator(est, y, censored, *, u=None, x0=None, P0=None, outputs="all",
+                            state=None) -> FilterResult:
+    r"""The dropping KF ``est`` with the recorded censoring indicator instead of its limit rule.
+
+    Flagged readings (checked to lie at or beyond a limit, see
+    :func:`~tobitkf.inference._common.censoring_sides`) are left out of the update exactly as missing
+    ones; an unflagged reading at the limit is used. Runs a :class:`~tobitkf.KalmanFilter` with the
+    estimator's options on the readings with the flagged ones set to NaN; ``extras["censored"]`` holds the
+    flags. Called by :meth:`tobitkf.DroppingKalmanFilter.filter` when ``censored`` is given.
+    """
     from ..filters.kalman import KalmanFilter
     from ._common import censoring_sides
 
-    y2, batch = prepare_measurements(y, system.m)
-    lo, hi = censoring.all_limits(y2.shape[1], system.m)
-    c2 = np.broadcast_to(np.asarray(censored), batch + y2.shape[1:]).reshape(y2.shape) if censored is not None else None
-    side = censoring_sides(y2, lo, hi, c2)
+    y2, batch = prepare_measurements(y, est.system.m)
+    k0 = 0 if state is None else state.k
+    lo, hi = est.censoring.all_limits(y2.shape[1], est.system.m, start=k0 + 1)
+    arr = np.asarray(censored)
+    try:
+        c2 = np.broadcast_to(arr, batch + y2.shape[1:]).reshape(y2.shape)
+    except ValueError:
+        from .._validation import ShapeError
+
+        raise ShapeError(f"censored: expected the shape of y {batch + y2.shape[1:]}, got {arr.shape}") from None
+    side = censoring_sides(y2, lo, hi, c2, rtol=est.rtol)
     ym = np.where(side != 0, np.nan, y2).reshape(batch + y2.shape[1:])
-    res = KalmanFilter(system, backend="numpy").filter(ym, u=u, x0=x0, P0=P0)
+    kf = KalmanFilter(est.system, covariance_update=est.covariance_update, backend=est.backend)
+    res = kf.filter(ym, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
     extras = dict(res.extras)
-    extras["censored"] = (side != 0).reshape(batch + y2.shape[1:])
+    if res.mean is not None or outputs == "all" or "extras" in (outputs or ()):
+        extras["censored"] = (side != 0).reshape(batch + y2.shape[1:])
     return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=extras,
                         times=res.times, var=res.var, final=res.final)
 
 
-def _tobit_readings(censoring: Censoring, y: Any, censored: Any) -> np.ndarray:
-    """Check the indicator against the TKF's readings (a flagged reading lies at its limit)."""
+def check_tobit_indicator(censoring: Censoring, y: Any, censored: Any, *, start: int = 1) -> None:
+    r"""Check a recorded indicator against the TKF's readings: a flagged reading must lie at (or beyond) a
+    limit. The TKF's update (Miller (3.37)-(3.41)) is linear in the reading and does not branch on it,
+    so an unflagged reading at the limit needs nothing else. Called by
+    :meth:`tobitkf.TobitKalmanFilter.filter` when ``censored`` is given.
+
+    Raises
+    ------
+    ShapeError, ValidationError
+        See :func:`~tobitkf.inference._common.censoring_sides`.
+    """
     from ._common import censoring_sides
 
     arr = np.asarray(y, dtype=float)
     y2 = arr.reshape((-1,) + arr.shape[-2:])
-    lo, hi = censoring.all_limits(y2.shape[1], y2.shape[2])
-    c2 = np.broadcast_to(np.asarray(censored), arr.shape).reshape(y2.shape)
+    lo, hi = censoring.all_limits(y2.shape[1], y2.shape[2], start=start)
+    try:
+        c2 = np.broadcast_to(np.asarray(censored), arr.shape).reshape(y2.shape)
+    except ValueError:
+        from .._validation import ShapeError
+
+        raise ShapeError(f"censored: expected the shape of y {arr.shape}, got {np.shape(censored)}") from None
     censoring_sides(y2, lo, hi, c2)
-    return arr
 
 
 # --------------------------------------------------------------------------- fixed lag (online)
