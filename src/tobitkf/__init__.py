@@ -23,6 +23,9 @@ Public API (stable):
   Tobit Jacobians and a stability certificate, censoring-limit control; :class:`MultiTargetTracker`.
 - :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
   :func:`write_report` -- the reproduction report.
+- :func:`smooth`, :class:`FixedLagSmoother`, :func:`log_likelihood`, :func:`fit` (with :class:`CensoredAR`),
+  :class:`FitResult`, :func:`load_fit` -- smoothing, likelihood and learning from censored data
+  (:mod:`tobitkf.inference`); :mod:`tobitkf.data` -- real censored data sets.
 """
 
 from ._validation import ShapeError, ValidationError
@@ -53,6 +56,9 @@ from .filters.tracking import MultiTargetTracker
 from . import control
 from .control import certify_tkf_stability, simulate_closed_loop, tobit_lqe
 from . import metrics
+from . import data
+from .inference import (CensoredAR, FitResult, FixedLagSmoother, adf_log_likelihood, fit, kalman_log_likelihood,
+                        load_fit, log_likelihood, smooth)
 
 __version__ = "0.1.0"
 
@@ -68,5 +74,7 @@ __all__ = [
     "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
     "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
     "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "MultiTargetTracker",
+    "smooth", "FixedLagSmoother", "log_likelihood", "kalman_log_likelihood", "adf_log_likelihood", "fit",
+    "FitResult", "load_fit", "CensoredAR", "data",
     "__version__",
 ]
