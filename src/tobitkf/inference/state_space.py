@@ -10,15 +10,15 @@ with the measurement noise, :math:`\tilde x_k = (x_k, v_k)`, :math:`\tilde A = \
 latent reading :math:`y^*_k = \tilde C\tilde x_k + Du_k` (exact, censored or missing alike) has
 posterior moments: exact (Kalman/RTS) without censoring, the assumed-density smoother's
 (:mod:`tobitkf.inference.adf`) with censoring. With :math:`z_k = (x_{k-1}, u_k)`,
-:math:`s_k = (x_k, u_k)` and posterior expectations :math:`\langle\cdot\rangle`, the M-step is
+:math:`s_k = (x_k, u_k)` and :math:`E` the posterior expectation, the M-step is
 
 .. math::
 
-    [A\ B^u] &= \textstyle\sum_k\langle x_kz_k^T\rangle\big(\sum_k\langle z_kz_k^T\rangle\big)^{-1}, &
-    Q &= \tfrac1T\textstyle\sum_k\langle(x_k - [A\ B^u]z_k)(\cdot)^T\rangle, \\
-    [C\ D] &= \textstyle\sum_k\langle y^*_ks_k^T\rangle\big(\sum_k\langle s_ks_k^T\rangle\big)^{-1}, &
-    R &= \tfrac1T\textstyle\sum_k\langle(y^*_k - [C\ D]s_k)(\cdot)^T\rangle, \\
-    \bar x_0 &= \langle x_0\rangle, & P_0 &= \mathrm{Cov}(x_0 \mid y_{1:T}),
+    {[A\ B^u]} &= \sum_k E[x_kz_k^T]\Big(\sum_k E[z_kz_k^T]\Big)^{-1}, &
+    Q &= \frac1T\sum_k E[(x_k - [A\ B^u]z_k)(x_k - [A\ B^u]z_k)^T], \\
+    {[C\ D]} &= \sum_k E[y^*_ks_k^T]\Big(\sum_k E[s_ks_k^T]\Big)^{-1}, &
+    R &= \frac1T\sum_k E[(y^*_k - [C\ D]s_k)(y^*_k - [C\ D]s_k)^T], \\
+    \bar x_0 &= E[x_0], & P_0 &= \mathrm{Cov}(x_0 \mid y_{1:T}),
 
 each only for the matrices in ``estimate`` (the others held; a held block's contribution is
 subtracted before the regression). ``prior="stationary"`` ties :math:`P_0` to the solution of
