@@ -27,6 +27,9 @@ Public API (stable):
   Tobit Jacobians and a stability certificate, censoring-limit control; :class:`MultiTargetTracker`.
 - :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
   :func:`write_report` -- the reproduction report.
+- :func:`smooth`, :class:`FixedLagSmoother`, :func:`log_likelihood`, :func:`fit` (with :class:`CensoredAR`),
+  :class:`FitResult`, :func:`load_fit` -- smoothing, likelihood and learning from censored data
+  (:mod:`tobitkf.inference`); :mod:`tobitkf.data` -- real censored data sets.
 """
 
 from ._validation import ShapeError, ValidationError
@@ -63,6 +66,9 @@ from .filters.tracking import MultiTargetTracker
 from . import control
 from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, tobit_lqe
 from . import metrics
+from . import data
+from .inference import (CensoredAR, FitResult, FixedLagSmoother, adf_log_likelihood, fit, kalman_log_likelihood,
+                        load_fit, log_likelihood, smooth)
 
 __version__ = "0.1.0"
 
@@ -80,5 +86,7 @@ __all__ = [
     "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "tobit_dlqe", "MultiTargetTracker",
     "ParticleFilter", "AssumedDensityTobitFilter", "FadingAssumedDensityFilter", "ProtocolAssumedDensityFilter",
     "SaturationAssumedDensityFilter", "posterior_crlb", "PosteriorCRLB", "censored_fisher_information",
+    "smooth", "FixedLagSmoother", "log_likelihood", "kalman_log_likelihood", "adf_log_likelihood", "fit",
+    "FitResult", "load_fit", "CensoredAR", "data",
     "__version__",
 ]
