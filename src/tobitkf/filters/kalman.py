@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance
+from .._validation import ShapeError, ValidationError, as_float, as_float_array, check_instance
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
@@ -409,10 +409,9 @@ class DroppingKalmanFilter(KalmanFilter):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m)
-        if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
-            raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
+        rtol = as_float(rtol, "rtol", low=0.0)
         super().__init__(system, covariance_update=covariance_update, backend=backend)
-        self.censoring, self.rtol = censoring, float(rtol)
+        self.censoring, self.rtol = censoring, rtol
 
     def _dropped(self, y: np.ndarray, k: int) -> np.ndarray:
         lo, hi = self.censoring.limits(k)

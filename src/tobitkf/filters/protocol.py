@@ -75,7 +75,8 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_psd
+from .._validation import (ShapeError, ValidationError, as_float_array, check_instance, check_int, check_memory,
+                           check_psd)
 from ..censored import unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
@@ -693,8 +694,9 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
                    {"failure_term": FAILURE_TERMS, "upper_form": UPPER_FORMS, "lower_form": LOWER_FORMS,
                     "phi_upper": PHI_UPPER, "prehistory_prior": PREHISTORY_PRIORS})
     _check_parts(system, channel)
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise ValidationError(f"steps: expected a positive integer, got {steps!r}")
+    steps = check_int(steps, "steps", minimum=1)
+    check_memory(8 * 4 * int(steps) * (system.n * (channel.window + 1)) ** 2, "steps",
+                 f"covariance bounds over {steps} steps")
     if isinstance(p_uncensored, str):
         if p_uncensored != "analytic":
             raise ValidationError(f"p_uncensored: expected 'analytic' or numbers in [0, 1], got {p_uncensored!r}")
