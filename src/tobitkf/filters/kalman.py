@@ -409,7 +409,9 @@ class DroppingKalmanFilter(KalmanFilter):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m)
-        rtol = as_float(rtol, "rtol", low=0.0)
+        if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
+            raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
+        rtol = as_float(rtol, "rtol", low=0.0)      # an int beyond float range (10**400) is a named error too
         super().__init__(system, covariance_update=covariance_update, backend=backend)
         self.censoring, self.rtol = censoring, rtol
 
