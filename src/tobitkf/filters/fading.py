@@ -508,9 +508,9 @@ def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u:
 
 def fading_estimators(system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None,
                       **options: Any) -> dict[str, Any]:
-    """The TKF-FM and the baselines, keyed as in the experiments (the source compares with the TKF only; the others
-    are ours, docs/sources GF-17).
+    """The TKF-FM and its baselines, keyed as in the experiments.
 
+    The source compares with the TKF only; the others are ours (docs/sources GF-17).
 
     ``"tkf-fm"`` :class:`FadingTobitKalmanFilter` (``options`` passed on); ``"tkf"`` the
     TKF of Allik et al. [11] on the unfaded model (the source's comparator, mis-modelled
