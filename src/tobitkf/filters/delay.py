@@ -962,7 +962,6 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     Deviations from the source (each a correction of the source: LD-E3 to LD-E7): γ̄, σ² indexed by the
     measurement's own time (LD-E4); Ψ_d(t) untransposed (LD-E6); K(t-d-i+1|t-d) (LD-E5); summation limit
     d-2-i (LD-E7); J(t) corrected (LD-E3) unless ``decorrelation="paper"``; streaming order (a)–(g) (LD-06).
-
     The cost is O(d²) per step, not independent of d as the source claims.
     """
     est = ReorganizedInnovationLMMSE(system, prior, decorrelation=decorrelation, warmup=warmup,

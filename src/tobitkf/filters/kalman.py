@@ -385,7 +385,6 @@ class DroppingKalmanFilter(KalmanFilter):
     x̂ = x̄ and P = P̄ for that channel (ours, not in the source: a reading within
     ``rtol * max(1, |limit|)`` of its limit counts as censored).
 
-
     Parameters
     ----------
     system : LinearSystem

@@ -678,7 +678,6 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
     -----
     Deviations from the source (docs/sources GP-02, GP-04):
 
-
     * (28) uses the random :math:`P_{\xi_k}` in its failure term and never defines
       :math:`\bar\gamma^u, \bar\varphi^u`; the default uses :math:`M^u_k`,
       :math:`\bar\gamma^u = \bar\gamma`, :math:`\bar\varphi^u = 0` and the expected-Riccati

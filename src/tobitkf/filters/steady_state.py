@@ -169,7 +169,6 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     prior_cov, cov : (n, n) ndarray
         :math:`\bar\Psi_\infty` and :math:`\Psi_\infty`; :math:`\Psi_\infty` is not an error bound
         (docs/sources MB-F1).
-
     upsilon, lambda_hat, alpha : (m,) ndarray
         Constant Tobit statistics; ``lambda_hat`` = :math:`\hat\lambda = \phi(\alpha)/\Xi`.
     inverse_mills : (m,) ndarray

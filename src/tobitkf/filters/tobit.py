@@ -184,7 +184,6 @@ class TobitKalmanFilter(LinearGaussianFamily):
     covariance_update : {"standard", "joseph", "square_root"}, default "standard"
         ``"standard"`` is (3.55) :math:`(I - KE(p)C)\bar\Psi`; ``"joseph"`` the
         algebraically equal Joseph form; ``"square_root"`` (ours, not in the source) propagates a factor
-
         :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
         construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
     backend : {"auto", "numpy", "numba"}, default "auto"

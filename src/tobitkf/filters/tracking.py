@@ -30,7 +30,6 @@ the frame, which contradicts the prose ("the error between the occluded state an
 non-occluded states", used "only when i is occluded"). ``feedback="printed"`` keeps the printed form.
 Q, R, P_0, T_o, α, μ are not given (MA-03); the defaults are ours.
 
-
 Time convention: frame 0 initialises the filters from the supplied locations (one-to-one, fixing the
 identities); frames 1..T are tracked; output index k-1 holds frame k.
 
