@@ -36,7 +36,7 @@ import numpy as np
 from numba import njit
 
 from .._linalg_kernels import gauss_solve as _gauss_solve
-from ..censored import _GL_W, _GL_X, _NARROW, _TAIL
+from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
 
 __all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "NOISE_CODES", "GL_X", "GL_W"]
 
@@ -91,12 +91,24 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     b = _INF if hi == _INF else (hi - mu) / sd
     p_lo, q_a = _ndtr_pair(a)      # Phi(a), Phi(-a)
     q_b, p_hi = _ndtr_pair(b)      # Phi(b), Phi(-b)
-    if (a > _TAIL) or (b < -_TAIL) or (b - a < _NARROW):
-        # window in a tail or narrow: shifted coordinates u = z - a2, window mirrored to the
-        # upper tail, density exp(-a2 u - u^2/2) on [0, min(w, umax)], 64-node Gauss-Legendre
-        flip = a < -b
-        a2 = -b if flip else a
-        b2 = -a if flip else b
+    flip = a < -b                  # windows in the lower tail are mirrored to the upper tail
+    a2 = -b if flip else a
+    b2 = -a if flip else b
+    one_sided = b2 == _INF or (b2 - a2) * (b2 + a2) > _FAR
+    if one_sided and a2 > _CF_FROM:
+        # one-sided tail: Laplace's continued fraction for the Mills ratio, evaluated backwards
+        # (s = 2/(x + 3/(x + ...)), t = 1/(x + s), lambda = x + t, Var = t (s - t))
+        s = 0.0
+        for k in range(int(_CF_TERMS / a2) + 6, 1, -1):
+            s = k / (a2 + s)
+        t = 1.0 / (a2 + s)
+        zm = a2 + t
+        zvar = t * (s - t)
+        lam = -zm if flip else zm
+        gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI - math.log(zm))
+    elif (a2 > _TAIL) or (b - a < _NARROW):
+        # window narrow, or two-sided in a tail: shifted coordinates u = z - a2,
+        # density exp(-a2 u - u^2/2) on [0, min(w, umax)], 64-node Gauss-Legendre
         umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
         half = 0.5 * min(b2 - a2, umax)
         pow2 = _POW2
