@@ -245,7 +245,7 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_gain(Ree, Rxe, ok, K, W):
+def _solve_gain(Ree, Rxe, ok, K, W, d):
     r"""One run: :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column), as
     :func:`~tobitkf.filters._common.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
     elimination with partial pivoting, like LAPACK gesv."""
@@ -259,7 +259,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
             W[j, i] = Rxe[i, j] if ok[j] else 0.0
     # scale Ree to unit diagonal (as _common._gain): channels whose variances differ by ~1e77
     # otherwise give gain entries wrong by ~1e54 and a Joseph covariance of ~1e33
-    d = np.empty(m)
+    # (``d`` (m,) is the caller's scratch: nothing is allocated per call)
     for i in range(m):
         d[i] = 1.0 / np.sqrt(Ree[i, i]) if Ree[i, i] > 0.0 else 1.0
     for i in range(m):
@@ -275,7 +275,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
 
 
 @njit(cache=True, error_model="numpy")
-def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
+def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds):
     r"""Block gain and mean update: :math:`K = R_{xe}R_{ee}^{-1}` (masked), :math:`\hat x = \bar x + Ke`.
 
     Masked channels (``ok`` False) get a zero gain column and ``e`` set to 0."""
@@ -295,7 +295,7 @@ def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
             for i in range(n):
                 for j in range(m):
                     Rxs[i, j] = Rxe[i, j, b]
-            _solve_gain(Rs, Rxs, oks, Ks, Ws)
+            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
             for i in range(n):
                 for j in range(m):
                     K[i, j, b] = Ks[i, j]
@@ -366,13 +366,24 @@ def _load(x0, P0, r0, nb, x, P):
 
 @njit(cache=True, error_model="numpy")
 def _stage(xv, Pv, tt, nb, mbuf, cbuf):
-    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``."""
+    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``; a buffer with
+    no runs (``shape[0] == 0``: that output was not requested) is skipped."""
     n = xv.shape[0]
-    for b in range(nb):
-        for i in range(n):
-            mbuf[b, tt, i] = xv[i, b]
-            for j in range(n):
-                cbuf[b, tt, i, j] = Pv[i, j, b]
+    if mbuf.shape[0] > 0:
+        for b in range(nb):
+            for i in range(n):
+                mbuf[b, tt, i] = xv[i, b]
+    if cbuf.shape[0] > 0:
+        for b in range(nb):
+            for i in range(n):
+                for j in range(n):
+                    cbuf[b, tt, i, j] = Pv[i, j, b]
+
+
+@njit(cache=True, error_model="numpy")
+def _rows(out, B):
+    """Rows of the staging buffer of ``out``: ``B``, or 0 when the output is not requested."""
+    return B if out.shape[1] > 0 else 0
 
 
 @njit(cache=True, error_model="numpy")
@@ -435,11 +446,14 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     Ks = np.empty((n, m))
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
+    ds = np.empty(m)
     buf = np.empty((2, glx.shape[0]))
     S = min(CHUNK, max(T, 1))     # and a single step one staging slot
-    s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
-    s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
-    s_pu, s_ey = np.empty((B, S, m)), np.empty((B, S, m))
+    # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
+    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
+    s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
+    s_pu, s_ey = np.empty((_rows(pu, B), S, m)), np.empty((_rows(ey, B), S, m))
+    want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -464,8 +478,10 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                         v = g * (st[5] + (st[4] - mu) ** 2)
                     noise[l, l, b] = v
                     e[l, b] = y[r0 + b, t, l] - st[6]
-                    s_pu[b, tt, l] = g
-                    s_ey[b, tt, l] = st[6]
+                    if want_pu:
+                        s_pu[b, tt, l] = g
+                    if want_ey:
+                        s_ey[b, tt, l] = st[6]
             # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
             for l in range(m):
                 for j in range(n):
@@ -499,7 +515,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                     if joseph:
                         for j in range(n):
                             H[l, j, b] = C[l, j] * gam[l, b] if good else 0.0
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs)
+            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
             _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
@@ -555,11 +571,12 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     Ks = np.empty((n, m))
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
+    ds = np.empty(m)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
     S = min(CHUNK, max(T, 1))     # and a single step one staging slot
-    s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
-    s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
+    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
+    s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
     for r0 in range(0, runs, B):
         nb = min(B, runs - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -603,7 +620,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
                         e[l, b] = 0.0
                     for j in range(n):
                         H[l, j, b] = C[l, j] if good else 0.0
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs)
+            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             if shared:
                 for i in range(n):
                     for l in range(m):
