@@ -26,11 +26,11 @@ mirrored to the upper tail (:math:`[a', b'] = [-b, -a]` when :math:`a < -b`, λ 
 sign). Three routes:
 
 * **one-sided tail** (:math:`b' = \infty`, or the far limit negligible:
-  :math:`b'^2 - a'^2 > 100`, i.e. :math:`\phi(b')/\phi(a') < e^{-50}`) with :math:`a' > 5`:
+  :math:`b'^2 - a'^2 > 100`, i.e. :math:`\phi(b')/\phi(a') < e^{-50}`) with :math:`a' > 4`:
   Laplace's continued fraction for the Mills ratio :math:`R(x) = Q(x)/\phi(x)
   = 1/(x + 1/(x + 2/(x + 3/(x + \dots))))`, evaluated backwards over the levels
   ``int(140/x) + 6`` down to 2 (relative error of the tail :math:`s` and of the variance
-  below 4e-16 for x >= 5, checked against a 40-digit evaluation on a dense grid).
+  below 4e-16 for x >= 4, checked against a 40-digit evaluation on a dense grid).
   With :math:`s = 2/(x + 3/(x + \dots))` and :math:`t = 1/(x + s)`: :math:`\lambda = x + t`
   and :math:`\mathrm{Var}[Z \mid Z > x] = 1 - \lambda(\lambda - x) = t(s - t)` (no
   cancellation), :math:`\gamma = \phi(x)/\lambda` as one ``exp`` (underflows to 0 only
@@ -40,8 +40,8 @@ sign). Three routes:
   :math:`e^{-a' u - u^2/2}` on :math:`[0, \min(w, u_{max})]`, by 64-node Gauss–Legendre
   quadrature with a two-pass variance, and the uncensored probability as
   :math:`\phi(a')` times the quadrature sum;
-* otherwise the direct formulas above (their cancellation in the variance costs at most
-  about :math:`a'^4` ulp, 1.4e-13 relative at the switch :math:`a' = 5`).
+* otherwise the direct formulas above (:math:`a' \le 4`; their cancellation in the variance
+  costs up to a few hundred ulp near the switch).
 
 :mod:`tobitkf.filters._kernels` evaluates the same routes with the same arithmetic. Tail probabilities use ``scipy.special.ndtr`` on the side where they are
 small, so limits 40 (or 1000) standard deviations away give finite, accurate numbers
@@ -61,7 +61,7 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _TAIL = 4.0          # beyond this many sigma the window is treated by quadrature
 _NARROW = 1.0        # windows narrower than this (in sigma) too
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(64)
-_CF_FROM = 5.0       # one-sided windows beyond this many sigma: the continued fraction
+_CF_FROM = 4.0       # one-sided windows beyond this many sigma: the continued fraction
 _FAR = 100.0         # b'^2 - a'^2 above this: the far limit is negligible (phi ratio < e^-50)
 _CF_TERMS = 140.0    # int(_CF_TERMS / x) + 6 terms of the continued fraction at x
 
@@ -220,7 +220,7 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
     with np.errstate(over="ignore", invalid="ignore"):
         one_sided = np.isposinf(b2) | ((b2 - a2) * (b2 + a2) > _FAR)
     tail = one_sided & (a2 > _CF_FROM)
-    hard = ~tail & ((a2 > _TAIL) | ((b - a) < _NARROW))
+    hard = ~tail & ((~one_sided & (a2 > _TAIL)) | ((b - a) < _NARROW))
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (phi_a - phi_b) / gamma
         zvar = 1.0 + (aphi_a - bphi_b) / gamma - lam * lam

@@ -123,14 +123,14 @@ def test_stats_quadrature_dense_grid():
         got = kernel_moments(mu, sd, lo, hi)
         # p_uncensored = exp(-a^2/2 - log sqrt(2 pi) + log I0): one ulp of an argument near -745
         # is 1.1e-13 relative in the result, whichever exp computes it
-        for i, rtol in ((2, 2.5e-13), (3, 2e-14), (5, 2e-14)):     # p_uncensored, inverse_mills, truncated_var
+        for i, rtol in ((2, 2.5e-13), (3, 2e-14), (5, 2e-14)):
             np.testing.assert_allclose(got[i], ref[i], rtol=rtol, atol=0, err_msg=ref._fields[i])
 
 
 def test_stats_one_sided_route_equals_numpy():
-    """The continued-fraction route (one-sided windows beyond 5 sigma, left and right, out to 1e5 sigma,
+    """The continued-fraction route (one-sided windows beyond 4 sigma, left and right, out to 1e5 sigma,
     and two-sided ones whose far limit is negligible) and its switches: kernel == censored_moments."""
-    x = np.concatenate([np.geomspace(4.5, 1e5, 400), [5.0 - 1e-12, 5.0, 5.0 + 1e-12, 40.0, 40.0 + 1e-9]])
+    x = np.concatenate([np.geomspace(3.5, 1e5, 400), [4.0 - 1e-12, 4.0, 4.0 + 1e-12, 40.0, 40.0 + 1e-9]])
     far = np.sqrt(100.0 + x * x)
     mu, sd = np.full(x.size, 0.7), np.full(x.size, 0.2)
     for lo, hi in ((x, np.inf), (-np.inf, -x), (x, far + 1e-9), (x, far - 1e-9), (-far - 1e-9, -x)):
@@ -139,7 +139,11 @@ def test_stats_one_sided_route_equals_numpy():
         ref = censored_moments(mu, sd, lo_, hi_)
         got = kernel_moments(mu, sd, lo_, hi_)
         for i, name in enumerate(ref._fields):
-            np.testing.assert_allclose(got[i], ref[i], rtol=1e-13, atol=1e-300, err_msg=name)
+            # (points at or below 4 take the direct formulas: libm's erfc and cephes' ndtr differ by an
+            # ulp, which the variance's cancellation amplifies a few hundred times)
+            cf = x > 4.0
+            np.testing.assert_allclose(got[i][cf], ref[i][cf], rtol=1e-13, atol=1e-300, err_msg=name)
+            np.testing.assert_allclose(got[i], ref[i], rtol=5e-13, atol=1e-300, err_msg=name)
             assert np.all(np.isfinite(got[i]))
 
 

@@ -80,6 +80,76 @@ _POW2 = 2.0 ** np.arange(-_POW2_OFF, 2, dtype=np.float64)
 
 
 @njit(cache=True, error_model="numpy")
+def _quadrature_moments(a2, b2, glx, glw, buf):
+    """``(E[Z | window], Var[Z | window], P(window))`` of Z ~ N(0, 1) on [a2, b2] (mirrored to the upper
+    tail): 64-node Gauss-Legendre in shifted coordinates u = z - a2, density exp(-a2 u - u^2/2) on
+    [0, min(w, umax)]. Kept out of :func:`censored_stats` so that the common routes stay small."""
+    umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
+    half = 0.5 * min(b2 - a2, umax)
+    pow2 = _POW2
+    top2 = pow2.shape[0] - 1
+    for j in range(glx.shape[0]):
+        u = half * (glx[j] + 1.0)
+        z = -a2 * u - 0.5 * u * u
+        # exp(z), vectorisable (see _POW2)
+        k = math.floor(z * _LOG2E + 0.5)
+        r = (z - k * _LN2_HI) - k * _LN2_LO
+        e = (1.0 + r * (1.0 + r * (1.0 / 2 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120 + r * (
+            1.0 / 720 + r * (1.0 / 5040 + r * (1.0 / 40320 + r * (1.0 / 362880 + r * (
+                1.0 / 3628800 + r * (1.0 / 39916800 + r * (1.0 / 479001600)))))))))))))
+        e *= pow2[min(max(int(k) + _POW2_OFF, 0), top2)]
+        buf[0, j] = u
+        buf[1, j] = glw[j] * half * e
+    i0 = 0.0
+    i1 = 0.0
+    for j in range(glx.shape[0]):
+        i0 += buf[1, j]
+        i1 += buf[1, j] * buf[0, j]
+    umean = i1 / i0
+    i2 = 0.0
+    for j in range(glx.shape[0]):
+        d = buf[0, j] - umean
+        i2 += buf[1, j] * d * d
+    zvar = i2 / i0
+    zm = a2 + umean
+    gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI + math.log(i0))
+    return zm, zvar, gam
+
+
+@njit(cache=True, error_model="numpy")
+def _lower_only(mu, sd, lo):
+    """:func:`censored_stats` for a lower limit alone (the common TKF case): the same routes and the same
+    arithmetic as the general code with ``hi = inf`` (direct formulas, or the continued fraction beyond
+    4 sigma), without the upper limit's terms and branches."""
+    a = (lo - mu) / sd
+    p_lo, q_a = _ndtr_pair(a)
+    if a > _CF_FROM:
+        s = 0.0
+        for k in range(int(_CF_TERMS / a) + 6, 1, -1):
+            s = k / (a + s)
+        t = 1.0 / (a + s)
+        lam = a + t
+        zvar = t * (s - t)
+        gam = math.exp(-0.5 * a * a - _LOG_SQRT_2PI - math.log(lam))
+    else:
+        gam = q_a if a > 0 else 1.0 - p_lo
+        phi_a = math.exp(-0.5 * a * a - _LOG_SQRT_2PI)
+        lam = phi_a / gam
+        zvar = 1.0 + (a * phi_a) / gam - lam * lam
+    gam = min(max(gam, 0.0), 1.0)
+    zvar = max(zvar, 0.0)
+    tmean = mu + sd * lam
+    tvar = sd * sd * zvar
+    cmean = gam * tmean
+    if p_lo > 0:
+        cmean = p_lo * lo + cmean
+    cvar = gam * (tvar + (tmean - cmean) ** 2)
+    if p_lo > 0:
+        cvar += p_lo * (lo - cmean) ** 2
+    return p_lo, 0.0, gam, lam, tmean, tvar, cmean, cvar
+
+
+@njit(cache=True, error_model="numpy")
 def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     """Censored-normal statistics of one channel, as :func:`tobitkf.censored.censored_moments`.
 
@@ -87,6 +157,8 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     Returns ``(p_lower, p_upper, p_uncensored, inverse_mills, truncated_mean,
     truncated_var, censored_mean, censored_var)``.
     """
+    if hi == _INF and lo != -_INF:
+        return _lower_only(mu, sd, lo)
     a = -_INF if lo == -_INF else (lo - mu) / sd
     b = _INF if hi == _INF else (hi - mu) / sd
     p_lo, q_a = _ndtr_pair(a)      # Phi(a), Phi(-a)
@@ -106,39 +178,11 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
         zvar = t * (s - t)
         lam = -zm if flip else zm
         gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI - math.log(zm))
-    elif (a2 > _TAIL) or (b - a < _NARROW):
+    elif (a2 > _TAIL and not one_sided) or (b - a < _NARROW):
         # window narrow, or two-sided in a tail: shifted coordinates u = z - a2,
         # density exp(-a2 u - u^2/2) on [0, min(w, umax)], 64-node Gauss-Legendre
-        umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
-        half = 0.5 * min(b2 - a2, umax)
-        pow2 = _POW2
-        top2 = pow2.shape[0] - 1
-        for j in range(glx.shape[0]):
-            u = half * (glx[j] + 1.0)
-            z = -a2 * u - 0.5 * u * u
-            # exp(z), vectorisable (see _POW2)
-            k = math.floor(z * _LOG2E + 0.5)
-            r = (z - k * _LN2_HI) - k * _LN2_LO
-            e = (1.0 + r * (1.0 + r * (1.0 / 2 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120 + r * (
-                1.0 / 720 + r * (1.0 / 5040 + r * (1.0 / 40320 + r * (1.0 / 362880 + r * (
-                    1.0 / 3628800 + r * (1.0 / 39916800 + r * (1.0 / 479001600)))))))))))))
-            e *= pow2[min(max(int(k) + _POW2_OFF, 0), top2)]
-            buf[0, j] = u
-            buf[1, j] = glw[j] * half * e
-        i0 = 0.0
-        i1 = 0.0
-        for j in range(glx.shape[0]):
-            i0 += buf[1, j]
-            i1 += buf[1, j] * buf[0, j]
-        umean = i1 / i0
-        i2 = 0.0
-        for j in range(glx.shape[0]):
-            d = buf[0, j] - umean
-            i2 += buf[1, j] * d * d
-        zvar = i2 / i0
-        zm = a2 + umean
+        zm, zvar, gam = _quadrature_moments(a2, b2, glx, glw, buf)
         lam = -zm if flip else zm
-        gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI + math.log(i0))
     else:
         # gamma = Phi(b) - Phi(a), subtracting the small tail probabilities
         if a > 0:
