@@ -306,7 +306,10 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
     a.set_xlabel("t")
     a.set_title(f"{s.name}: readings, limit, filtered and smoothed latent series", fontsize=9)
     a.legend(fontsize=7, ncol=3)
-    paths.append(save(fig, outdir, "series.png"))
+    paths.append(save(fig, outdir, "series.png",
+                      caption=f"{s.name} data: the readings, the censored ones at the censoring limit, and the "
+                              "filtered and smoothed latent series of the exact AR(1) fit with a band of two "
+                              "posterior standard deviations (the AR(2) smoothed series dashed, where fitted)."))
 
     fig, ax = new_figure(1, 2, width=11, height=3.5)
     for j, (key, rec) in enumerate(result.metrics["holdout"].items()):
@@ -321,7 +324,10 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
         a.set_xticklabels([_LABELS[k].replace(" ", "\n", 1) for k in ESTIMATORS], fontsize=6)
         a.set_title(f"hold-out {key}: {rec['held_out']} hidden readings", fontsize=9)
         a.legend(fontsize=7)
-    paths.append(save(fig, outdir, "holdout.png"))
+    paths.append(save(fig, outdir, "holdout.png",
+                      caption=f"{s.name} hold-out: the limit moved into the data until 30 % and 50 % of the "
+                              "uncensored readings are censored; RMSE and |bias| of each estimator's smoothed "
+                              "estimate of those hidden, known readings."))
 
     r = d["residuals"]
     fig, ax = new_figure(1, 2, width=9, height=3.2)
@@ -338,7 +344,9 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax[0, 1].axhline(2 / np.sqrt(n), color="r", lw=0.6, ls=":")
     ax[0, 1].axhline(-2 / np.sqrt(n), color="r", lw=0.6, ls=":")
     ax[0, 1].set_title("residual autocorrelation", fontsize=9)
-    paths.append(save(fig, outdir, "residuals.png"))
+    paths.append(save(fig, outdir, "residuals.png",
+                      caption=f"{s.name}, AR(1) fit: randomised quantile residuals against the standard normal "
+                              "(left) and their autocorrelation with the 2/sqrt(n) band (right)."))
     return paths
 
 
