@@ -502,6 +502,29 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         censoring_sides(y2, lo, hi, flags)           # the whole record's checks, with the index of a bad flag
         return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
 
+    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+        r"""The assumed-density (RTS) smoother over this filter's moments, with lag-one cross-covariances;
+        see :func:`tobitkf.inference.rts_smooth` (with ``order="uncensored_first"`` it is
+        ``tk.smooth(..., method="adf")``). Arguments as :meth:`filter`."""
+        from ..inference.smoothing import rts_smooth
+
+        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
+
+    def log_likelihood(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
+                       per_step: bool = False) -> np.ndarray:
+        r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (the ``log_likelihood``
+        extras of :meth:`filter`, see the class Notes), (...) or (..., T) with ``per_step``, shaped as
+        :meth:`tobitkf.KalmanFilter.log_likelihood`. With ``order="uncensored_first"`` it is
+        :func:`tobitkf.inference.adf_log_likelihood`.
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`.
+        """
+        terms = self.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        return terms if per_step else terms.sum(-1)
+
     def __repr__(self) -> str:
         order = "" if self.order == "channels" else f", order={self.order!r}"
         return f"AssumedDensityTobitFilter({self.censoring!r}, covariance_update={self.covariance_update!r}{order})"
