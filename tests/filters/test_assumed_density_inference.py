@@ -102,7 +102,7 @@ def _assert_same(a, ref):
 
 
 @pytest.mark.parametrize("m,r0", [(1, False), (1, True), (2, False), (2, True)])
-@pytest.mark.parametrize("form", ["standard", "joseph"])
+@pytest.mark.parametrize("form", ["standard", "joseph", "square_root"])
 @pytest.mark.parametrize("recorded", [False, True])
 def test_uncensored_first_order_is_the_inference_adf(m, r0, form, recorded):
     system = _system(m, r0)
