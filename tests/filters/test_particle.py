@@ -97,6 +97,34 @@ def test_log_likelihood_estimate_matches_the_kalman_filter():
 
 
 @pytest.mark.parametrize("proposal", ["optimal", "prior"])
+def test_log_likelihood_is_shaped_as_the_kalman_filters_and_unbiased_in_the_likelihood(proposal):
+    """Without censoring the exact value is the Kalman filter's. Shapes: (runs,), (runs, T) with
+    ``per_step``, 0-d for one record, as KalmanFilter.log_likelihood. Accuracy, with tolerances from the
+    particle count and the runs: the likelihood estimate is unbiased, so the ratio exp(ll - exact) has mean
+    1, within 4 standard errors over R independent runs; the error's variance is O(T / N_p), so 4x the
+    particles give about 1/4 of it (sampling spread of two variances over R = 200 runs: about 15 % each)."""
+    sys_ = oscillator()
+    R, T = 200, 20
+    d = tk.simulate(sys_, T, R, seed=5)
+    kf = tk.KalmanFilter(sys_)
+    exact, exact_steps = kf.log_likelihood(d.y), kf.log_likelihood(d.y, per_step=True)
+    var = {}
+    for Np in (250, 1000):
+        pf = ParticleFilter(sys_, particles=Np, proposal=proposal, seed=6)
+        ll, steps = pf.log_likelihood(d.y), pf.log_likelihood(d.y, per_step=True)
+        assert ll.shape == exact.shape == (R,) and steps.shape == exact_steps.shape == (R, T)
+        np.testing.assert_allclose(steps.sum(-1), ll, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(steps, pf.filter(d.y).extras["log_likelihood"])
+        ratio = np.exp(ll - exact)
+        assert abs(ratio.mean() - 1.0) < 4 * ratio.std(ddof=1) / np.sqrt(R), (Np, ratio.mean())
+        var[Np] = np.var(ll - exact, ddof=1)
+    assert 2.0 < var[250] / var[1000] < 8.0, var
+    one = pf.log_likelihood(d.y[0])
+    assert np.ndim(one) == 0 and np.ndim(kf.log_likelihood(d.y[0])) == 0
+    assert abs(float(one) - float(exact[0])) < 6 * np.sqrt(var[1000])
+
+
+@pytest.mark.parametrize("proposal", ["optimal", "prior"])
 def test_equals_a_grid_filter_on_a_censored_random_walk(proposal):
     a, q, r, T, runs = 0.98, 0.05, 0.02, 40, 12
     sys_ = tk.LinearSystem(A=[[a]], C=[[1.0]], Q=[[q]], R=[[r]], x0=[0.3], P0=[[0.5]])

@@ -56,3 +56,15 @@ def test_tobit_filter_checks_the_indicator_smooths_and_gives_the_assumed_density
                                atol=1e-12, rtol=0)
     assert tkf.log_likelihood(y, censored=flags) == pytest.approx(
         float(tk.adf_log_likelihood(sys_, cens, y, censored=flags)), abs=1e-12)
+
+
+def test_assumed_density_filter_smooths_and_gives_its_likelihood_with_the_indicator(case):
+    sys_, cens, y, flags = case
+    adf = tk.AssumedDensityTobitFilter(sys_, cens, order="uncensored_first")
+    ref = tk.smooth(sys_, y, censoring=cens, censored=flags, method="adf")
+    np.testing.assert_allclose(adf.smooth(y, censored=flags).mean, ref.mean, atol=1e-12, rtol=0)
+    assert adf.log_likelihood(y, censored=flags) == pytest.approx(
+        float(tk.adf_log_likelihood(sys_, cens, y, censored=flags)), abs=1e-12)
+    assert adf.log_likelihood(y, per_step=True).shape == (12,)
+    # the indicator decides reading 4 (at the limit, recorded uncensored): a density, not a mass
+    assert adf.log_likelihood(y, censored=flags) != pytest.approx(float(adf.log_likelihood(y)), abs=1e-6)

@@ -11,7 +11,7 @@ from scipy.stats import norm
 
 import tobitkf as tk
 from tobitkf._validation import ShapeError, ValidationError
-from tobitkf.inference.adf import ADFilter, censored_reading_update
+from tobitkf.filters.assumed_density import censored_channel_update
 from tobitkf.inference.censored_ar import (CensoredAR, CensoredARData, _log_likelihood, ar_autocovariance,
                                            ar_state_space, ar_to_pacf, exact_log_likelihood, is_stationary,
                                            pacf_to_ar, plan_grid, posterior_moments)
@@ -22,7 +22,7 @@ def test_adf_update_of_one_censored_reading_equals_the_quadrature_moments_of_the
     m = np.array([0.3, -0.2])
     P = np.array([[1.0, 0.4], [0.4, 0.5]])
     c, r, lim = np.array([1.0, 0.7]), 0.2, 0.1
-    x, Pn, lm = censored_reading_update(m[None], P[None], c, r, 0.0, np.array([lim]), np.array([-1]))
+    x, Pn, _, _, lm = censored_channel_update(m[None], P[None], None, np.array([lim]), c, r, lim, np.inf)
     # exact: p(x | event) ∝ N(x; m, P) Phi((l - c'x)/sqrt(r))
     L = np.linalg.cholesky(P)
     gx, gw = np.polynomial.hermite_e.hermegauss(80)          # Gauss-Hermite (probabilists') in 2-D
@@ -233,27 +233,48 @@ def test_the_indicator_decides_readings_at_the_limit():
     assert CensoredAR(1).log_likelihood(rec, th) < CensoredAR(1).log_likelihood(rule, th)
 
 
+def _adf(system, cens):
+    return tk.AssumedDensityTobitFilter(system, cens, order="uncensored_first")
+
+
 def test_adf_filter_indicator_and_errors():
     sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.5]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
     cens = tk.Censoring(lower=0.0)
     y = np.array([[0.0], [0.4], [0.0]])
-    flagged = ADFilter(sys_, cens).filter(y, censored=[[False], [False], [True]])
-    rule = ADFilter(sys_, cens).filter(y)
+    flagged = _adf(sys_, cens).filter(y, censored=[[False], [False], [True]])
+    rule = _adf(sys_, cens).filter(y)
     assert flagged.extras["side"][:, 0].tolist() == [0, 0, -1]
     assert rule.extras["side"][:, 0].tolist() == [-1, 0, -1]
     # an uncensored reading at the limit is the Kalman update
     kf = tk.KalmanFilter(sys_).filter(y[:1])
     np.testing.assert_allclose(flagged.mean[0], kf.mean[0], atol=1e-12)
     # online steps = the loop
-    est = ADFilter(sys_, cens)
+    est = _adf(sys_, cens)
     st = est.init()
     for i, c in enumerate([False, False, True]):
         st = est.step(st, y[i], censored=[c])
     np.testing.assert_allclose(st.mean, flagged.mean[-1], atol=1e-12)
     with pytest.raises(ShapeError, match="censored"):
-        ADFilter(sys_, cens).filter(y, censored=np.zeros((2, 1), bool))
+        _adf(sys_, cens).filter(y, censored=np.zeros((2, 1), bool))
     with pytest.raises(ValidationError, match="diagonal R"):
-        ADFilter(tk.LinearSystem(A=np.eye(1), C=[[1.0], [1.0]], Q=[[1.0]], R=[[1.0, 0.5], [0.5, 1.0]], x0=[0.0],
-                                 P0=[[1.0]]), tk.Censoring(lower=0.0))
-    with pytest.raises(ValidationError, match="rtol"):
+        _adf(tk.LinearSystem(A=np.eye(1), C=[[1.0], [1.0]], Q=[[1.0]], R=[[1.0, 0.5], [0.5, 1.0]], x0=[0.0],
+                             P0=[[1.0]]), tk.Censoring(lower=0.0))
+    # the adf likelihood sums the filter's per-step terms
+    assert float(tk.adf_log_likelihood(sys_, cens, y, censored=[[False], [False], [True]])) == pytest.approx(
+        float(flagged.extras["log_likelihood"].sum()), abs=1e-12)
+
+
+def test_the_deprecated_adfilter_is_the_assumed_density_filter():
+    from tobitkf.inference import ADFilter
+
+    sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.5]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
+    cens = tk.Censoring(lower=0.0)
+    y = np.array([[0.0], [0.4], [0.0]])
+    with pytest.warns(DeprecationWarning, match="AssumedDensityTobitFilter"):
+        old = ADFilter(sys_, cens)
+    assert isinstance(old, tk.AssumedDensityTobitFilter) and old.order == "uncensored_first"
+    a, b = old.filter(y), _adf(sys_, cens).filter(y)
+    np.testing.assert_array_equal(a.mean, b.mean)
+    np.testing.assert_array_equal(a.extras["log_lik"], b.extras["log_likelihood"])
+    with pytest.warns(DeprecationWarning), pytest.raises(ValidationError, match="rtol"):
         ADFilter(sys_, cens, rtol=-1.0)

@@ -7,7 +7,6 @@ import pytest
 import tobitkf as tk
 from tobitkf._validation import ValidationError
 from tobitkf.inference import FixedLagSmoother, rts_smooth, smooth
-from tobitkf.inference.adf import ADFilter
 
 
 def _model(n=2, seed=0, R=0.3):
@@ -143,7 +142,7 @@ def test_adf_smoother_at_the_last_step_is_the_adf_filter_and_censoring_pulls_bel
     system, rng = _model(seed=4, R=0.05)
     y = np.array([[0.8], [0.0], [0.0], [0.0], [0.9]])        # three readings censored at 0
     cens = tk.Censoring(lower=0.0)
-    f = ADFilter(system, cens).filter(y)
+    f = tk.AssumedDensityTobitFilter(system, cens, order="uncensored_first").filter(y)
     sm = smooth(system, y, censoring=cens, method="adf")
     np.testing.assert_allclose(sm.mean[-1], f.mean[-1], atol=1e-12, rtol=0)
     C = system.C.at(1)
@@ -213,7 +212,8 @@ def test_fixed_lag_runs_the_censored_filters_too():
                              x0=system.x0, P0=system.P0)
     y = np.array([[0.5], [0.0], [0.0], [0.7]])
     cens = tk.Censoring(lower=0.0)
-    run = FixedLagSmoother(ADFilter(system, cens), lag=10).run(y)
+    adf = tk.AssumedDensityTobitFilter(system, cens, order="uncensored_first")
+    run = FixedLagSmoother(adf, lag=10).run(y)
     np.testing.assert_allclose(run.mean, smooth(system, y, censoring=cens, method="adf").mean, atol=1e-10, rtol=0)
 
 

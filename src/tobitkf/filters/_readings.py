@@ -44,7 +44,8 @@ def classify_readings(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
     return cls
 
 
-def censored_log_likelihood(y: Any, mean: Any, std: Any, lower: Any = -np.inf, upper: Any = np.inf) -> np.ndarray:
+def censored_log_likelihood(y: Any, mean: Any, std: Any, lower: Any = -np.inf, upper: Any = np.inf, *,
+                            classes: Any = None) -> np.ndarray:
     r"""Log-likelihood of a censored normal reading, elementwise and safe in the tails.
 
     For :math:`y = \mathrm{clip}(y^*, l, h)`, :math:`y^* \sim N(\mu, \sigma^2)`:
@@ -57,6 +58,10 @@ def censored_log_likelihood(y: Any, mean: Any, std: Any, lower: Any = -np.inf, u
     ----------
     y, mean, std, lower, upper : array_like
         Broadcasting together; ``std > 0``.
+    classes : int array_like, optional
+        The class of each reading (``MISSING``, ``INTERIOR``, ``LOWER``, ``UPPER``), e.g. from a recorded
+        censoring indicator (a reading at the limit recorded as uncensored is ``INTERIOR`` and gets the
+        density); default :func:`classify_readings`.
 
     Returns
     -------
@@ -69,7 +74,7 @@ def censored_log_likelihood(y: Any, mean: Any, std: Any, lower: Any = -np.inf, u
     -804.61
     """
     y, mu, sd, lo, hi = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (y, mean, std, lower, upper)))
-    cls = classify_readings(y, lo, hi)
+    cls = classify_readings(y, lo, hi) if classes is None else np.broadcast_to(classes, y.shape)
     out = np.zeros(y.shape)
     i = cls == _INTERIOR
     z = (y[i] - mu[i]) / sd[i]

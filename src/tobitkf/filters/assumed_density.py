@@ -61,7 +61,7 @@ from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
-                   measurement_update, psd_sqrt, time_update)
+                   measurement_update, prepare_measurements, psd_sqrt, time_update)
 from .kalman import LinearGaussianFamily
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, censored_log_likelihood
 from ._readings import classify_readings as _classify
@@ -69,11 +69,12 @@ from ._readings import classify_readings as _classify
 __all__ = ["AssumedDensityTobitFilter", "censored_reading_moments", "censored_channel_update",
            "assumed_density_update", "merge_gaussians"]
 
-_OPTIONS = {"covariance_update": COVARIANCE_FORMS}
+_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "order": ("channels", "uncensored_first")}
 _TINY = np.finfo(np.float64).tiny
 
 
-def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, lower: Any, upper: Any):
+def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, lower: Any, upper: Any,
+                             cls: np.ndarray | None = None):
     r""":math:`E[y^* \mid \text{obs}]` and :math:`\mathrm{Var}[y^* \mid \text{obs}]` of a latent
     :math:`y^* \sim N(\mu, s^2)` given its censored reading (the table of the module docstring), batched.
 
@@ -81,6 +82,9 @@ def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, l
     ----------
     y, mean, std, lower, upper : (N,) arrays
         Readings (NaN = missing), latent means and standard deviations (> 0), and the limits.
+    cls : (N,) int8 array, optional
+        The class of each reading (as returned below), e.g. from a recorded censoring indicator;
+        default the limit rule of :func:`~tobitkf.filters._readings.classify_readings`.
 
     Returns
     -------
@@ -91,7 +95,7 @@ def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, l
     cls : (N,) int8 ndarray
         0 missing, 1 interior, 2 at the lower limit, 3 at the upper limit.
     """
-    cls = _classify(y, lower, upper)
+    cls = _classify(y, lower, upper) if cls is None else cls
     lo_w = np.where(cls == _UPPER, upper, -np.inf)
     hi_w = np.where(cls == _LOWER, lower, np.inf)
     cens = (cls == _LOWER) | (cls == _UPPER)
@@ -105,7 +109,8 @@ def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, l
 
 
 def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, y: np.ndarray, c: np.ndarray,
-                            r: float, lower: Any, upper: Any, *, dy: Any = 0.0, form: str = "standard"):
+                            r: float, lower: Any, upper: Any, *, dy: Any = 0.0, form: str = "standard",
+                            cls: np.ndarray | None = None):
     r"""The ADF update of one channel (the module docstring's equations), batched over runs.
 
     Parameters
@@ -116,12 +121,21 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
     lower, upper : scalar or (N,) limits
     dy : (N,) or 0, the feed-through D u of the channel
     form : {"standard", "joseph", "square_root"}
+    cls : (N,) int8, optional
+        The class of each reading (missing / interior / lower / upper, see
+        :func:`censored_reading_moments`), e.g. from a recorded indicator; a reading of class missing
+        is skipped whatever its value. Default the limit rule.
 
     Returns
     -------
     x, P, S : the posterior (S None unless ``form="square_root"``)
     p_uncensored : (N,) probability of an uncensored reading under the prior
-    log_likelihood : (N,) log-density (or log-mass) of the reading under the Gaussian prior (0 if missing)
+    log_likelihood : (N,) log-density (or log-mass) of the reading under the Gaussian prior:
+        :math:`\log\phi((y-\mu)/s) - \log s` inside the limits, :math:`\log\Phi((l-\mu)/s)` at l,
+        :math:`\log\Phi((\mu-h)/s)` at h (``log_ndtr``), 0 if missing. A degenerate latent
+        (:math:`s^2` not above the smallest normal number) gives the indicator of the reading: 0 if
+        the point :math:`\mu` agrees with it (equals an interior y, lies beyond the limit of a
+        censored one), else ``-inf``; and no update.
     """
     N = x.shape[0]
     mu = x @ c + dy
@@ -131,11 +145,16 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N,))
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N,))
-    obs, V, cls = censored_reading_moments(y, mu, s, lo, hi)
+    obs, V, cls = censored_reading_moments(y, mu, s, lo, hi, cls)
     valid = ok & (cls != _MISSING)
     a, b = (lo - mu) / s, (hi - mu) / s
     p_unc = np.where(np.isneginf(lo), 1.0, ndtr(-a)) - np.where(np.isposinf(hi), 0.0, ndtr(-b))
-    ll = np.where(valid, censored_log_likelihood(y, mu, s, lo, hi), 0.0)
+    ll = np.where(valid, censored_log_likelihood(y, mu, s, lo, hi, classes=cls), 0.0)
+    degenerate = ~ok & (cls != _MISSING)
+    if degenerate.any():
+        with np.errstate(invalid="ignore"):
+            agrees = np.where(cls == _LOWER, mu <= lo, np.where(cls == _UPPER, mu >= hi, y == mu))
+        ll = np.where(degenerate, np.where(agrees, 0.0, -np.inf), ll)
     if not valid.any():
         return x, P, S, p_unc, ll
     cens = (cls == _LOWER) | (cls == _UPPER)
@@ -217,6 +236,26 @@ def merge_gaussians(weights: np.ndarray, means: np.ndarray, covs: np.ndarray, fa
     return x, 0.5 * (Sm @ U + np.swapaxes(Sm @ U, -1, -2)), Sm
 
 
+def _indicator(censored: Any, shape: tuple[int, ...]) -> np.ndarray:
+    """The recorded indicator as a bool array of ``shape`` (ShapeError / ValidationError naming ``censored``)."""
+    from ..inference._common import _as_indicator
+
+    return np.ascontiguousarray(_as_indicator(censored, shape, "censored"))
+
+
+def _recorded_classes(cls: np.ndarray, flags: np.ndarray, y: np.ndarray, k: int) -> np.ndarray:
+    """Reading classes by the recorded indicator: a flagged reading keeps the limit it lies at (or beyond),
+    an unflagged one at a limit is interior. Raises if a flagged reading is missing or inside its limits."""
+    at_limit = (cls == _LOWER) | (cls == _UPPER)
+    bad = flags & ~at_limit
+    if bad.any():
+        run, l = (int(i) for i in np.argwhere(bad)[0])
+        what = "missing (NaN)" if cls[run, l] == _MISSING else f"{y[run, l]:.6g}, strictly inside its limits"
+        raise ValidationError(f"censored: the reading of channel {l} at time {k} (run {run}) is flagged censored "
+                              f"but {what}")
+    return np.where(at_limit & ~flags, _INTERIOR, cls).astype(np.int8)
+
+
 def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
     off = R - np.diag(np.diagonal(R))
     if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
@@ -243,6 +282,15 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         factor of :math:`P + KVK^T` by one more QR).
     check_limits : bool, default True
         Raise if a reading lies outside its limits.
+    order : {"channels", "uncensored_first"}, default "channels"
+        The sequence of the channel updates within a step. ``"channels"``: channel 1, 2, ..., m.
+        ``"uncensored_first"``: first the readings inside their limits (in channel order; with a
+        diagonal R this is the joint Kalman update, exact), then the censored ones (in channel order).
+        The two agree for m = 1 and whenever no reading is censored. With at most one censored
+        reading in a step, ``"uncensored_first"`` gives the exact moments of
+        :math:`p(x_k \mid y_k, \text{the Gaussian prediction})` (the projection comes last) and
+        its log-likelihood term is :math:`\log N(y_{k,u}; \hat y_u, S_{uu}) + \log\Phi(\pm(\text{limit}
+        - \mu)/s)`; the smoothers, likelihoods and fits of :mod:`tobitkf.inference` use it.
 
     Raises
     ------
@@ -252,10 +300,26 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
     Notes
     -----
     See the module docstring for the equations. Online: :meth:`step`, or :meth:`predict` then
-    :meth:`update`; both take ``lower``/``upper`` for a limit steered from the prediction.
-    Extras: ``p_uncensored`` (..., T, m) and ``log_likelihood`` (..., T), the log-density of the
-    readings under the filter's Gaussian predictions (an approximation of :math:`\log p(y_k\mid
-    y_{1:k-1})`).
+    :meth:`update`; both take ``lower``/``upper`` for a limit steered from the prediction and
+    ``censored`` (``batch_shape + (m,)``) for the recorded indicator of the reading.
+    :meth:`filter` takes the recorded indicator ``censored`` (..., T, m) of the record: a flagged
+    reading must lie at (or beyond) a limit and counts as censored there; an unflagged reading is an
+    exact reading even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data);
+    without it a reading within ``1e-12 max(1, |limit|)`` of a finite limit is censored.
+
+    Extras: ``p_uncensored`` (..., T, m), the probability :math:`\Phi(b) - \Phi(a)` of each channel
+    at the prior it is updated from; ``log_likelihood`` (..., T), the per-step term
+
+    .. math::
+
+        \ell_k = \sum_l \log p(y_k(l) \mid \text{the Gaussian the channel is updated from}),
+
+    the predictive density :math:`\log\phi((y-\mu)/s) - \log s` of a reading inside its limits and
+    the predictive mass :math:`\log\Phi((l-\mu)/s)` / :math:`\log\Phi((\mu-h)/s)` of a reading at
+    a limit (``scipy.special.log_ndtr``, finite far into the tails), 0 for a missing one;
+    :math:`\sum_k \ell_k` is the assumed-density approximation of :math:`\log p(y_{1:T})`
+    (:func:`tobitkf.inference.adf_log_likelihood`), exact for one step from a Gaussian prior;
+    ``side`` (..., T, m) int8, -1 / +1 for a reading censored at the lower / upper limit, 0 otherwise.
 
     Examples
     --------
@@ -277,13 +341,13 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
     """
 
     _name = "AssumedDensityTobitFilter"
-    _step_options = ("lower", "upper")
+    _step_options = ("lower", "upper", "censored")
 
     def __init__(self, system: LinearSystem, censoring: Censoring, *, covariance_update: str = "standard",
-                 check_limits: bool = True):
+                 check_limits: bool = True, order: str = "channels"):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
-        check_keywords({"covariance_update": covariance_update}, _OPTIONS)
+        check_keywords({"covariance_update": covariance_update, "order": order}, _OPTIONS)
         censoring.check(system.m)
         if not isinstance(check_limits, (bool, np.bool_)):
             raise ValidationError(f"check_limits: expected True or False, got {check_limits!r}")
@@ -292,11 +356,12 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         self.censoring = censoring
         self.covariance_update = covariance_update
         self.check_limits = bool(check_limits)
+        self.order = order
 
     def _noise_at(self, k: int) -> np.ndarray:
         return self._r if self._r is not None else _noise_variances(self.system.measurement_cov(k), f"R({k})")
 
-    def _sequential(self, k, xp, Pp, Sp, y, u, lower=None, upper=None):
+    def _sequential(self, k, xp, Pp, Sp, y, u, lower=None, upper=None, censored=None):
         if lower is None or upper is None:
             lo, hi = self.censoring.limits(k)
             lower = lo if lower is None else lower
@@ -304,16 +369,30 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         N, m = y.shape
         lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, m))
         hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, m))
+        cls = _classify(y, lo, hi)
+        if censored is not None:
+            cls = _recorded_classes(cls, censored, y, k)
         C, r = self.system.measurement(k), self._noise_at(k)
         dy = np.broadcast_to(self._feedthrough(k, u), (N, m))
         x, P, S = xp, Pp, Sp
         pu = np.empty((N, m))
         ll = np.zeros(N)
-        for l in range(m):
-            x, P, S, pu[:, l], lll = censored_channel_update(x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l],
-                                                             dy=dy[:, l], form=self.covariance_update)
-            ll += lll
-        return x, P, S, {"p_uncensored": pu, "log_likelihood": ll}
+        if self.order == "channels":
+            passes = [(cls, np.ones((N, m), dtype=bool))]
+        else:
+            inside = cls == _INTERIOR
+            passes = [(np.where(inside, cls, _MISSING), inside), (np.where(inside, _MISSING, cls), ~inside)]
+        for cp, member in passes:
+            for l in range(m):
+                if not member[:, l].any():
+                    continue
+                x, P, S, pul, lll = censored_channel_update(x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l],
+                                                            dy=dy[:, l], form=self.covariance_update,
+                                                            cls=cp[:, l])
+                pu[:, l] = np.where(member[:, l], pul, pu[:, l])
+                ll += lll
+        side = np.where(cls == _LOWER, -1, np.where(cls == _UPPER, 1, 0)).astype(np.int8)
+        return x, P, S, {"p_uncensored": pu, "log_likelihood": ll, "side": side}
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         tr = self._transition(k, u, carry)
@@ -328,7 +407,7 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
                                   "filtered one")
         yk = self._reading(state, y)
-        if self.check_limits and not options:
+        if self.check_limits and options.get("lower") is None and options.get("upper") is None:
             self.censoring.check_measurements(yk[:, None], start=state.k)
         opts = self._prepare_step_options(state, self._check_options(options))
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
@@ -337,6 +416,9 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         out = {}
+        flags = None
+        if options.get("censored") is not None:
+            flags = _indicator(options["censored"], state.batch_shape + (self.m,)).reshape(state.runs, self.m)
         for key in ("lower", "upper"):
             if options.get(key) is not None:
                 arr = as_float_array(options[key], key, allow_inf=True)
@@ -352,6 +434,8 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             if not (lo < hi).all():
                 raise ValidationError("lower/upper: expected lower < upper for every channel of this step")
             out = {"lower": lo, "upper": hi}
+        if flags is not None:
+            out["censored"] = flags
         return out
 
     def _check_record(self, y2, u2, k0, name="y"):
@@ -363,15 +447,23 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing).
 
-        ``lower``/``upper`` (keyword, (m,) or ``batch_shape + (m,)``) replace this step's limits.
+        ``lower``/``upper`` (keyword, (m,) or ``batch_shape + (m,)``) replace this step's limits;
+        ``censored`` (keyword, ``batch_shape + (m,)`` bool) is the recorded indicator of the reading.
+
+        Raises
+        ------
+        ValidationError
+            A reading outside its limits; a flagged reading that is missing or strictly inside them.
+        ShapeError
+            Malformed ``y``, ``u``, limits or indicator.
         """
-        if self.check_limits and not options:
+        if self.check_limits and options.get("lower") is None and options.get("upper") is None:
             st = self._check_state(state)
             self.censoring.check_measurements(self._reading(st, y)[:, None], start=st.k + 1)
         return super().step(state, y, u=u, **options)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
+               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
 
         Parameters
@@ -380,6 +472,9 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             Readings y_1..y_T.
         u : (T, p) or (..., T, p) array_like, optional
             Control inputs u_1..u_T.
+        censored : (..., T, m) bool array_like, optional
+            The censoring indicator recorded with the data (True = censored); default the limit rule.
+            See the class Notes.
         x0, P0 : array_like, optional
             Override the system's prior.
         outputs : str or sequence of str, default "all"
@@ -390,11 +485,46 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         Raises
         ------
         ValidationError
-            A reading outside its limits.
+            A reading outside its limits; ``censored`` not boolean (or 0/1), or flagging a missing
+            reading or one strictly inside its limits.
         ShapeError
-            Malformed ``y``, ``u`` or limits.
+            Malformed ``y``, ``u``, limits or ``censored``.
         """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+        if censored is None:
+            return self._run(y, u, x0, P0, outputs=outputs, state=state)
+        from ..inference._common import censoring_sides
+
+        y2, batch = prepare_measurements(y, self.m)
+        k0 = self.k0 if state is None else state.k
+        self.censoring.check(self.m, k0 + y2.shape[1])
+        lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=k0 + 1)
+        flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
+        censoring_sides(y2, lo, hi, flags)           # the whole record's checks, with the index of a bad flag
+        return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
+
+    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+        r"""The assumed-density (RTS) smoother over this filter's moments, with lag-one cross-covariances;
+        see :func:`tobitkf.inference.rts_smooth` (with ``order="uncensored_first"`` it is
+        ``tk.smooth(..., method="adf")``). Arguments as :meth:`filter`."""
+        from ..inference.smoothing import rts_smooth
+
+        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
+
+    def log_likelihood(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
+                       per_step: bool = False) -> np.ndarray:
+        r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (the ``log_likelihood``
+        extras of :meth:`filter`, see the class Notes), (...) or (..., T) with ``per_step``, shaped as
+        :meth:`tobitkf.KalmanFilter.log_likelihood`. With ``order="uncensored_first"`` it is
+        :func:`tobitkf.inference.adf_log_likelihood`.
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`.
+        """
+        terms = self.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        return terms if per_step else terms.sum(-1)
 
     def __repr__(self) -> str:
-        return f"AssumedDensityTobitFilter({self.censoring!r}, covariance_update={self.covariance_update!r})"
+        order = "" if self.order == "channels" else f", order={self.order!r}"
+        return f"AssumedDensityTobitFilter({self.censoring!r}, covariance_update={self.covariance_update!r}{order})"

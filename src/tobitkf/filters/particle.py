@@ -820,11 +820,46 @@ class ParticleFilter(Estimator):
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None,
-                       state: FilterState | None = None) -> np.ndarray:
-        r"""Estimate of :math:`\log p(y_{1:T})` per run, shape ``batch`` (``()`` for one record).
+                       state: FilterState | None = None, per_step: bool = False) -> np.ndarray:
+        r"""Estimate of :math:`\log p(y_{1:T})` per run, shaped as :meth:`tobitkf.KalmanFilter.log_likelihood`.
 
-        The product over k of the weighted means of the incremental weights (an unbiased estimate of the
-        likelihood; its logarithm is biased low by about half its variance)."""
+        .. math::
+
+            \log\hat p(y_{1:T}) = \sum_{k=1}^T \log\hat p(y_k \mid y_{1:k-1}), \qquad
+            \hat p(y_k \mid y_{1:k-1}) = \sum_{i=1}^{N_p} W_{k-1}^{(i)}\,
+            \frac{p(y_k \mid x_k^{(i)})\,p(x_k^{(i)} \mid x_{k-1}^{(i)})}{q(x_k^{(i)} \mid x_{k-1}^{(i)}, y_k)},
+
+        the weighted mean of the incremental weights (the prior proposal: :math:`p(y_k \mid x_k^{(i)})`;
+        censored readings by their mass, ``log_ndtr``; NaN readings skipped). The product over k is an
+        unbiased estimate of the likelihood (Del Moral 2004; Doucet & Johansen 2011 §4.1); its logarithm
+        is biased low by about half its variance, which is of order :math:`\kappa T/N_p`.
+
+        Parameters
+        ----------
+        y : (..., T, m) array_like
+            Readings; NaN = missing.
+        u, x0, P0 : optional
+            Inputs and a prior override, as :meth:`filter`.
+        state : FilterState, optional
+            Continue from this state: the sum then runs from the state's own start (the estimate of
+            the whole record so far); the per-step terms are those of the new readings.
+        per_step : bool, default False
+            Return the per-step terms :math:`\log\hat p(y_k \mid y_{1:k-1})` (..., T) (the
+            ``log_likelihood`` extras of :meth:`filter`) instead of their sum (...).
+
+        Returns
+        -------
+        ndarray
+            (...) or, with ``per_step``, (..., T); a 0-d value for one (T, m) record. ``-inf`` where no
+            particle explains a reading.
+
+        Raises
+        ------
+        ShapeError, ValidationError
+            As :meth:`filter`.
+        """
+        if per_step:
+            return self._run(y, u, x0, P0, outputs=("extras",), state=state).extras["log_likelihood"]
         res = self._run(y, u, x0, P0, outputs="last", state=state)
         ll = res.final.carry["log_likelihood"]
         return ll.reshape(res.final.batch_shape) if res.final.batch_shape else ll.reshape(())[()]

@@ -3,7 +3,9 @@ r"""Small pure helpers shared by the smoothers, likelihoods and fits (batched ov
 * :func:`censoring_sides`: which readings are censored and at which limit, from an explicit
   indicator or (the default) from the limit rule;
 * :func:`gaussian_log_density`: :math:`\log N(e; 0, S)` over the observed channels only;
-* :func:`solve_psd`: :math:`S^{-1}B` for symmetric PSD :math:`S`, a pseudo-inverse where singular.
+* :func:`solve_psd`: :math:`S^{-1}B` for symmetric PSD :math:`S`, a pseudo-inverse where singular;
+* :func:`assumed_density_filter`: the package's one assumed-density filter as the smoothers,
+  likelihoods and fits run it.
 """
 
 from __future__ import annotations
@@ -14,9 +16,37 @@ import numpy as np
 
 from .._validation import ShapeError, ValidationError
 
-__all__ = ["censoring_sides", "gaussian_log_density", "solve_psd", "LOG_2PI"]
+__all__ = ["censoring_sides", "gaussian_log_density", "solve_psd", "assumed_density_filter", "LOG_2PI"]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+def assumed_density_filter(system, censoring, *, covariance_update: str = "standard"):
+    r"""The :class:`~tobitkf.AssumedDensityTobitFilter` of the smoothers, likelihoods and fits: the
+    uncensored readings of a step first, then the censored ones (``order="uncensored_first"``), so that
+    a step with one censored reading has the exact moments of its posterior under the Gaussian
+    prediction and the exact predictive log-likelihood term
+    :math:`\log N(y_{k,u}; \hat y_u, S_{uu}) + \log\Phi(\pm(\text{limit} - \mu)/s)`.
+
+    Parameters
+    ----------
+    system : LinearSystem
+        R diagonal (channels in sequence); R = 0 allowed.
+    censoring : Censoring
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+
+    Returns
+    -------
+    AssumedDensityTobitFilter
+
+    Raises
+    ------
+    ValidationError
+        The filter's own: non-diagonal or negative R, an unknown option.
+    """
+    from ..filters.assumed_density import AssumedDensityTobitFilter
+
+    return AssumedDensityTobitFilter(system, censoring, covariance_update=covariance_update, order="uncensored_first")
 
 
 def censoring_sides(y: np.ndarray, lower: np.ndarray, upper: np.ndarray, censored: Any = None, *,

@@ -12,7 +12,8 @@ over the readings o present at step k (NaN readings are skipped: integrated out)
 For the linear Gaussian model this is exact (equal to the stacked Gaussian density of all readings,
 tested). With censored readings (:func:`adf_log_likelihood`) each censored reading contributes its
 predictive mass at the limit, :math:`\log\Phi(\pm(\text{limit} - \mu)/s)`, under the assumed-density
-filter's Gaussian prediction (:mod:`tobitkf.inference.adf`); exact for one step, approximate after
+filter's Gaussian prediction (:class:`~tobitkf.AssumedDensityTobitFilter`, its ``log_likelihood``
+extras, the uncensored readings of a step first); exact for one step, approximate after
 several censored steps. Where the approximation is not good enough (long censored runs), the exact
 likelihood of a regression with AR errors is :func:`tobitkf.inference.censored_ar.exact_log_likelihood`.
 
@@ -163,11 +164,12 @@ def adf_log_likelihood(system: LinearSystem, censoring: Censoring, y: Any, *, ce
     >>> bool(np.isclose(tk.adf_log_likelihood(sys, tk.Censoring(lower=0.0), [[0.0]]), np.log(0.5)))
     True
     """
-    from .adf import ADFilter
+    from ._common import assumed_density_filter
 
     check_instance(system, LinearSystem, "system")
-    res = ADFilter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",))
-    terms = res.extras["log_lik"]
+    res = assumed_density_filter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0,
+                                                           outputs=("extras",))
+    terms = res.extras["log_likelihood"]
     return terms if per_step else terms.sum(-1)
 
 

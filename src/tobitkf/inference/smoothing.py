@@ -26,7 +26,8 @@ Which smoother goes with which filter (:func:`smooth`):
 * ``"dropping"``: the KF that drops censored readings;
 * ``"tobit"``: the TKF's linearisation :math:`H = E(\mathbf p)C` (Miller (3.39)–(3.40)): the TKF's
   filtered and predicted moments in the same backward pass;
-* ``"adf"``: the assumed-density filter's exact-moment projection (:mod:`tobitkf.inference.adf`) with
+* ``"adf"``: the assumed-density filter's exact-moment projection (:class:`~tobitkf.AssumedDensityTobitFilter`,
+  the uncensored readings of a step first, :func:`~tobitkf.inference._common.assumed_density_filter`) with
   the Gaussian backward pass, the "ADF-RTS" (assumed-density) smoother (Deisenroth & Ohlsson 2011's
   Gaussian smoother with exact moments). For a censored regression with AR errors the exact posterior
   is :func:`tobitkf.inference.censored_ar.posterior_moments`.
@@ -170,7 +171,7 @@ def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] |
 def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None):
     from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
     from ..filters.tobit import TobitKalmanFilter
-    from .adf import ADFilter
+    from ._common import assumed_density_filter
 
     if method == "kalman":
         return KalmanFilter(system, backend="numpy")
@@ -180,7 +181,7 @@ def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None):
         return DroppingKalmanFilter(system, censoring, backend="numpy")
     if method == "tobit":
         return TobitKalmanFilter(system, censoring, backend="numpy")
-    return ADFilter(system, censoring)
+    return assumed_density_filter(system, censoring)
 
 
 def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, censored: Any = None,
@@ -210,7 +211,8 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
     Returns
     -------
     FilterResult
-        See the module docstring; ``extras["log_lik"]`` (..., T) for ``"adf"``.
+        See the module docstring; for ``"adf"`` also the filter's ``extras["log_likelihood"]`` (..., T)
+        and ``extras["side"]`` (..., T, m).
 
     Raises
     ------

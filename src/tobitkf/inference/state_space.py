@@ -9,8 +9,8 @@ with the measurement noise, :math:`\tilde x_k = (x_k, v_k)`, :math:`\tilde A = \
 :math:`\tilde Q = \mathrm{diag}(Q, R)`, :math:`\tilde C = [C\ I]`, :math:`\tilde R = 0`, so that every
 latent reading :math:`y^*_k = \tilde C\tilde x_k + Du_k` (exact, censored or missing alike) has
 posterior moments: exact (Kalman/RTS) without censoring, the assumed-density smoother's
-(:mod:`tobitkf.inference.adf`) with censoring. With :math:`z_k = (x_{k-1}, u_k)`,
-:math:`s_k = (x_k, u_k)` and :math:`E` the posterior expectation, the M-step is
+(:class:`~tobitkf.AssumedDensityTobitFilter`, uncensored readings first) with censoring. With
+:math:`z_k = (x_{k-1}, u_k)`, :math:`s_k = (x_k, u_k)` and :math:`E` the posterior expectation, the M-step is
 
 .. math::
 
@@ -147,14 +147,15 @@ class StateSpaceModel:
 
     # after the fit ---------------------------------------------------------------------
     def _filter(self, res, system=None):
-        from .adf import ADFilter
+        from ._common import assumed_density_filter
         from ..filters.kalman import KalmanFilter
 
         data = res.data
         system = system or self.fitted
         if self.censoring is None:
             return KalmanFilter(system, backend="numpy").filter(data["y"], u=data.get("u")), None
-        r = ADFilter(system, self.censoring).filter(data["y"], u=data.get("u"), censored=data.get("censored"))
+        r = assumed_density_filter(system, self.censoring).filter(data["y"], u=data.get("u"),
+                                                                  censored=data.get("censored"))
         return r, r.extras["side"]
 
     def smooth(self, res):
@@ -260,7 +261,7 @@ def _augmented(M: dict[str, Any]) -> LinearSystem:
 
 def _e_step(M, y, u, censoring, censored):
     """Posterior moments of the augmented state; returns (stats, loglik)."""
-    from .adf import ADFilter
+    from ._common import assumed_density_filter
     from .smoothing import rts_smooth
     from ..filters.kalman import KalmanFilter
 
@@ -271,8 +272,8 @@ def _e_step(M, y, u, censoring, censored):
 
         ll = float(prediction_log_densities(aug, y, f, u=u).sum())
     else:
-        f = ADFilter(aug, censoring).filter(y, u=u, censored=censored)
-        ll = float(np.sum(f.extras["log_lik"]))
+        f = assumed_density_filter(aug, censoring).filter(y, u=u, censored=censored)
+        ll = float(np.sum(f.extras["log_likelihood"]))
     sm = rts_smooth(f, aug)
     return sm, ll
 
