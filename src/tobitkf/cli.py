@@ -40,10 +40,13 @@ def fail(message: str, code: int = 2) -> None:
 
 def _describe(exc: BaseException) -> str:
     """One line naming the problem of an exception that reached the command line."""
+    from ._extras import missing_extra_message
     from ._validation import ValidationError
 
     if isinstance(exc, ValidationError):
         return str(exc)
+    if isinstance(exc, ImportError) and (message := missing_extra_message(exc)):
+        return message
     if isinstance(exc, OSError):
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         return f"{where}{exc.strerror or exc}" + (f" (errno {exc.errno})" if exc.errno else "")
@@ -116,8 +119,9 @@ def list_cmd() -> None:
 
 def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progress: Progress | None = None) -> Path:
     """Run one experiment and write its metrics.json and figures under ``out/exp_id``."""
-    import matplotlib
+    from ._extras import require
 
+    matplotlib = require("matplotlib", extra="report", feature="the figures of tobitkf reproduce")
     matplotlib.use("Agg")
     from . import __version__
     from ._io import atomic_write_json, replace_dir, safe_child, staging_dir

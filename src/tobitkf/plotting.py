@@ -7,6 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from ._extras import require
+
 __all__ = ["new_figure", "save", "plot_rmse_over_time", "ESTIMATOR_STYLE"]
 
 ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
@@ -20,7 +22,7 @@ ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
 
 def new_figure(rows: int = 1, cols: int = 1, *, width: float = 7.0, height: float = 3.0, **kw):
     """A figure with ``rows x cols`` axes (always a 2-D array of axes)."""
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot")
 
     fig, axes = plt.subplots(rows, cols, figsize=(width, height * rows), squeeze=False, **kw)
     return fig, axes
@@ -28,7 +30,7 @@ def new_figure(rows: int = 1, cols: int = 1, *, width: float = 7.0, height: floa
 
 def save(fig, outdir: Path, name: str, *, dpi: float = 110, tight: bool = True) -> Path:
     """Save ``fig`` as ``outdir/name`` atomically (after ``tight_layout`` unless ``tight=False``) and close it."""
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot")
 
     from ._io import atomic_savefig
 

@@ -33,6 +33,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .._extras import require
 from .._validation import ShapeError, ValidationError, as_float_array, check_option
 
 __all__ = ["RegulatorGain", "EstimatorGain", "lqr", "dlqr", "lqe", "dlqe", "tobit_lqe", "controlled_noise",
@@ -177,7 +178,7 @@ def is_stable(M: Any, *, domain: str = "dt") -> bool:
 
 # --------------------------------------------------------------------------- LQR
 def _lqr(A, B, Q, R, domain: str) -> RegulatorGain:
-    import control
+    control = require("control", extra="control")
 
     check_option(domain, "domain", DOMAINS)
     A = _mat(A, "A", (None, None))
@@ -256,7 +257,7 @@ def dlqr(A: Any, B: Any, Q: Any, R: Any) -> RegulatorGain:
 
 # --------------------------------------------------------------------------- LQE
 def _lqe(A, G, C, W, V, domain: str, *, tag: str = "LQE") -> EstimatorGain:
-    import control
+    control = require("control", extra="control")
 
     check_option(domain, "domain", DOMAINS)
     A = _mat(A, "A", (None, None))

@@ -208,7 +208,10 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str = "dt", grid: i
     ValidationError
         Non-conforming matrices or an unknown domain.
     """
-    import cvxpy as cp
+    from .._extras import require
+
+    cp = require("cvxpy", extra="lmi", feature="the TKF stability certificate")
+    require("clarabel", extra="lmi", feature="the TKF stability certificate")
 
     check_option(domain, "domain", DOMAINS)
     if isinstance(grid, bool) or not isinstance(grid, (int, np.integer)) or grid < 0:

@@ -484,7 +484,13 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
 # cvxpy helpers
 # ---------------------------------------------------------------------------------------
 def _cp():
-    import cvxpy as cp  # imported lazily: the model and simulator do not need it
+    from .._extras import require
+
+    # imported lazily: the model and simulator do not need it; the solvers are checked here too,
+    # so a missing one is named before a design starts
+    cp = require("cvxpy", extra="lmi", feature="the H-infinity LMI design")
+    require("clarabel", extra="lmi", feature="the H-infinity LMI design")
+    require("scs", extra="lmi", feature="the H-infinity LMI design")
     return cp
 
 

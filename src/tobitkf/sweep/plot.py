@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._extras import require
 from ..plotting import new_figure, save
 
 __all__ = ["plot_result"]
@@ -24,7 +25,7 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
 
     Returns the written paths (default folder: ``<store>/../<name>_plots``).
     """
-    import matplotlib
+    matplotlib = require("matplotlib", extra="plot", feature="tobitkf plot")
 
     matplotlib.use("Agg")
     from .store import load_result

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from .._extras import require
 from .._validation import ValidationError
 from ..metrics import nees_terms
 from .build import build_point
@@ -132,12 +133,10 @@ def _probe(scheduler: str, timeout: float = 5.0) -> None:
 
 
 def _client(scheduler: str, workers: int):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise ValidationError("--scheduler: Dask schedulers need 'distributed' (install tobitkf with its dependencies)") from None
+    distributed = require("distributed", extra="sweep", feature="a Dask scheduler (--scheduler)")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler == "processes":
-        import dask
+        dask = require("dask", extra="sweep", feature="a Dask scheduler (--scheduler)")
 
         # Dask starts its workers with MALLOC_TRIM_THRESHOLD_=65536, which makes glibc hand every
         # freed block back to the kernel at once; a block's ~30 MB of simulated data and filter
@@ -277,7 +276,7 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
     else:
-        from distributed import as_completed
+        as_completed = require("distributed", extra="sweep").as_completed
 
         futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
         for fut in as_completed(futs):

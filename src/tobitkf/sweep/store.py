@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from .._extras import require
 from .._validation import ValidationError, check_memory
 from .spec import SweepSpec, jsonable_grid, scalar_axis
 
@@ -108,7 +109,7 @@ def read_store(path: Path, *, mode: str = "r", name: str = "result"):
         ``sweep store: PATH is damaged or not a sweep store: ...`` for garbage metadata, a missing
         attribute or array, an array where the group should be, or shapes that disagree.
     """
-    import zarr
+    zarr = require("zarr", extra="sweep", feature="sweep stores")
 
     from .._io import as_path
 
@@ -220,7 +221,7 @@ def unpack(vec: np.ndarray, shapes: dict[str, tuple[int, ...]]) -> dict[str, np.
 
 def open_store(path: Path, spec: SweepSpec, estimators: list[str], n: int, m: int, steps: int):
     """Create the store, or reopen it to resume; refuse a store made by another sweep."""
-    import zarr
+    zarr = require("zarr", extra="sweep", feature="sweep stores")
 
     from .. import __version__
 
@@ -285,7 +286,7 @@ def reduce_store(g):
     Variables: ``rmse``, ``bias`` (…, estimator, time, state), ``nees`` (…, estimator, time),
     ``censored_fraction`` (…, time, channel), ``runs`` (grid axes).
     """
-    import xarray as xr
+    xr = require("xarray", extra="sweep", feature="sweep results")
 
     done = _read(g, "done")
     if not done.all():
