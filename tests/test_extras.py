@@ -167,3 +167,10 @@ def test_the_core_alone_imports_and_filters():
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == f"ok {tk.__version__}"
 
+
+def test_version_has_one_source():
+    from tobitkf._version import __version__
+
+    assert tk.__version__ == __version__
+    res = CliRunner().invoke(app, ["--version"])
+    assert res.exit_code == 0 and res.output.strip() == f"tobitkf {__version__}"

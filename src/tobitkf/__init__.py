@@ -54,7 +54,7 @@ from . import control
 from .control import certify_tkf_stability, simulate_closed_loop, tobit_lqe
 from . import metrics
 
-__version__ = "0.1.0"
+from ._version import __version__
 
 __all__ = [
     "LinearSystem", "Censoring", "multi_region", "simulate", "SimulationData",

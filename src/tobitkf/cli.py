@@ -105,6 +105,22 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, cls=_Group,
 console = Console(stderr=True)
 
 
+def _show_version(value: bool) -> None:
+    if value:
+        from ._version import __version__
+
+        typer.echo(f"tobitkf {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[bool, typer.Option("--version", callback=_show_version, is_eager=True,
+                                          help="print the package version and exit")] = False,
+) -> None:
+    """Estimation from censored, fading, delayed and scheduled measurements."""
+
+
 @app.command("list")
 @cli_errors
 def list_cmd() -> None:
