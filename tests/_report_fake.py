@@ -19,18 +19,25 @@ from tobitkf._io import atomic_write_json
 SOURCE_A = "Alpha & Beta 2020, Ch. <1>"
 SOURCE_B = "Zeta 2019"
 SCRIPT_CLAIM = "<script>alert('x')</script> the TKF is unbiased"
+CAPTION_A1 = "Fig 3.1: one run of the three filters on censored readings & their mean over runs"
 
 CLAIMS_ALPHA = [
-    {"claim": "TKF RMSE below KF RMSE", "measured": "TKF 0.5 < KF 0.9", "holds": True},
-    {"claim": "the IKF converges to the truth", "measured": "IKF bias 0.13 after 1000 steps", "holds": False,
+    {"claim": "TKF RMSE below KF RMSE", "quantity": "time-averaged RMSE", "measured": "TKF 0.5 < KF 0.9",
+     "test": "KF - TKF > tol", "tolerance": "3 standard errors = 0.02", "holds": True},
+    {"claim": "the IKF converges to the truth", "quantity": "final bias", "measured": "IKF bias 0.13 after 1000 steps",
+     "test": "|bias| <= tol", "tolerance": "3 standard errors = 0.01", "holds": False,
      "explanation": "the source's Fig 3.1 shows the dropping filter's limit, not the truth"},
-    {"claim": "Fig 3.7 matches", "measured": "not compared: the figure has no axis scale", "holds": None,
-     "note": "no numbers in the source"},
-    {"claim": SCRIPT_CLAIM, "measured": "bias 0.2 | 4 s.e. = 0.01", "holds": False},
+    {"claim": "Fig 3.7 matches", "quantity": "none (not measurable)",
+     "measured": "not measurable: the figure has no axis scale", "test": "none", "tolerance": "none", "holds": None,
+     "note": "no numbers in the source", "not_measurable": "the figure has no axis scale"},
+    {"claim": SCRIPT_CLAIM, "quantity": "bias", "measured": "bias 0.2 | 4 s.e. = 0.01", "test": "|bias| <= tol",
+     "tolerance": "0.01", "holds": False},
 ]
 CLAIMS_BETA = [
-    {"claim": "low limit: TKF best", "measured": "0.1 < 0.3", "holds": True},
-    {"claim": "high limit: all filters agree", "measured": "max difference 1e-3", "holds": True},
+    {"claim": "low limit: TKF best", "quantity": "RMSE", "measured": "0.1 < 0.3", "test": "b - a > tol",
+     "tolerance": "0.05", "holds": True},
+    {"claim": "high limit: all filters agree", "quantity": "max difference", "measured": "max difference 1e-3",
+     "test": "difference <= tol", "tolerance": "1e-2", "holds": True},
 ]
 
 
@@ -73,6 +80,10 @@ def build_fake_results(root: Path) -> dict:
         "claims": CLAIMS_ALPHA, "figures": alpha_figs,
         "estimators": {"kf": _summary(rng, 12, 2, 1.0), "tkf": _summary(rng, 12, 2, 0.5)},
         "censored_fraction": 0.4,
+        "figure_captions": {"fig_a1.png": CAPTION_A1},
+        "report_tables": [{"title": "Table 9: printed and ours", "columns": ["row", "t = 1", "t = 2"],
+                           "rows": [["printed", 0.2156, 0.075], ["ours", 0.00933612, 0.0208]],
+                           "note": "not expected to agree"}],
     }
     beta = {
         "id": "fake-beta", "title": "Beta example", "source": SOURCE_B, "runs": 10, "seed": 0,

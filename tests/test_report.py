@@ -160,9 +160,11 @@ def test_claims_table_lists_every_claim_with_symbol_and_word(report, exp_id):
     for row, claim in zip(rows, claims):
         cells = [c for c in row.children if c.tag == "td"]
         assert cells[1].text == claim["claim"]
-        assert cells[2].text == claim["measured"]
-        assert _verdict(claim["holds"]) in cells[3].text  # the word, not only a colour
-        assert {True: "held", False: "failed", None: "unchecked"}[claim["holds"]] in row.classes
+        assert cells[2].text == claim["quantity"]
+        assert cells[3].text == claim["measured"]
+        assert claim["test"] in cells[4].text and claim["tolerance"] in cells[4].text
+        assert _verdict(claim["holds"]) in cells[5].text  # the word, not only a colour
+        assert {True: "held", False: "failed", None: "na"}[claim["holds"]] in row.classes
 
 
 def test_experiment_without_claims_says_so(report):
@@ -202,7 +204,7 @@ def test_summary_counts_match_the_claims_written(report):
     expected = {"experiments": len(report["written"]),
                 "claims held": sum(c["holds"] is True for c in claims),
                 "claims not held": sum(c["holds"] is False for c in claims),
-                "claims unchecked": sum(c["holds"] is None for c in claims)}
+                "claims n/a (not measurable)": sum(c["holds"] is None for c in claims)}
     cards = {}
     for card in report["dom"].iter("div"):
         if "card" in card.classes:
@@ -212,7 +214,8 @@ def test_summary_counts_match_the_claims_written(report):
     assert cards == expected
     md_line = report["md_text"].splitlines()[2]
     assert md_line == (f"Experiments: {expected['experiments']} · claims ✓ held: {expected['claims held']} · "
-                       f"✗ not held: {expected['claims not held']} · n/a unchecked: {expected['claims unchecked']}")
+                       f"✗ not held: {expected['claims not held']} · – n/a (not measurable): "
+                       f"{expected['claims n/a (not measurable)']}")
 
 
 # ------------------------------------------------------------------ escaping and self-containment
@@ -227,7 +230,7 @@ def test_text_is_escaped(report):
     assert not re.search(r"(?<!\\)<", md_text) and "\\<script>" in md_text  # every '<' backslash-escaped
     # a '|' in a cell must not split the Markdown table row
     row = next(line for line in md_text.splitlines() if "4 s.e." in line)
-    assert "bias 0.2 \\| 4 s.e." in row and len(re.findall(r"(?<!\\)\|", row)) == 5
+    assert "bias 0.2 \\| 4 s.e." in row and len(re.findall(r"(?<!\\)\|", row)) == 7
 
 
 def test_html_is_self_contained_and_responsive(report):
@@ -237,10 +240,13 @@ def test_html_is_self_contained_and_responsive(report):
     assert any(m.attrs.get("name") == "viewport" and "width=device-width" in m.attrs["content"]
                for m in dom.iter("meta"))
     assert "@media (max-width:600px)" in html_text
-    # every in-page link points to an element that exists
+    # every in-page link points to an element that exists; the others open a figure of the folder
     for a in dom.iter("a"):
         href = a.attrs["href"]
-        assert href.startswith("#") and dom.find_id(href[1:]) is not None, href
+        if href.startswith("#"):
+            assert dom.find_id(href[1:]) is not None, href
+        else:
+            assert (report["root"] / unquote(href)).is_file() and href.endswith(".png"), href
     ids = [n.attrs["id"] for n in dom.iter() if "id" in n.attrs]
     assert len(ids) == len(set(ids))
 
@@ -418,3 +424,37 @@ def test_cli_reproduce_writes_the_report_of_the_whole_folder(tmp_path, monkeypat
     assert ran == [("fake-beta", 2, 0, tmp_path)]
     md = (tmp_path / "REPORT.md").read_text(encoding="utf-8")
     assert all(f"`{eid}`" in md for eid in ("fake-alpha", "fake-beta", "fake-gamma"))
+
+
+# ------------------------------------------------------------------ captions, links, source tables, n/a
+
+
+def test_figures_have_their_captions_and_link_to_the_full_size_image(report):
+    section = report["dom"].find_id("exp-fake-alpha")
+    figs = [f for f in section.iter("figure")]
+    assert len(figs) == 2
+    cap = next(figs[0].iter("figcaption")).text
+    assert fake.CAPTION_A1 in cap and "fig_a1.png" in cap
+    links = [a.attrs["href"] for a in figs[0].iter("a")]
+    img = next(figs[0].iter("img")).attrs["src"]
+    assert links == [img]
+    assert "fig+a2 (censored).png" in next(figs[1].iter("figcaption")).text     # no caption: the file name
+    md = report["md_text"]
+    assert f"*{fake.CAPTION_A1.replace('&', '&')}* (fig_a1.png)" in md
+
+
+def test_the_source_tables_are_in_both_reports(report):
+    section = report["dom"].find_id("exp-fake-alpha")
+    tables = [t for t in section.iter("table") if "source-table" in t.classes]
+    assert len(tables) == 1 and "Table 9: printed and ours" in tables[0].text
+    assert "0.009336" in tables[0].text and "not expected to agree" in section.text
+    assert "| ours | 0.009336 | 0.0208 |" in report["md_text"]
+
+
+def test_na_claims_say_why_they_cannot_be_measured(report):
+    dom = report["dom"]
+    claims = report["written"]["fake-alpha"]["claims"]
+    na = [i for i, c in enumerate(claims, start=1) if c["holds"] is None]
+    target = dom.find_id(f"exp-fake-alpha-claim-{na[0]}")
+    assert "cannot be measured" in target.text and "the figure has no axis scale" in target.text
+    assert "claims n/a (not measurable)" in dom.text and "unchecked" not in report["html"]

@@ -19,10 +19,17 @@ Public API (stable):
   measurements, sensor failures) and :func:`protocol_covariance_bounds` (Geng et al.).
 - :class:`DelayFadingSystem`, :func:`chain_lmmse` and relatives: optimal linear filter, predictor
   and smoothers for time-delay systems with fading measurements (Li et al. 2018).
+- :class:`ParticleFilter` (the Bayes-optimal yardstick for every channel), the assumed-density filters
+  :class:`AssumedDensityTobitFilter`, :class:`FadingAssumedDensityFilter`,
+  :class:`ProtocolAssumedDensityFilter`, :class:`SaturationAssumedDensityFilter`, and
+  :func:`posterior_crlb` (posterior Cramér–Rao bound).
 - :mod:`tobitkf.control` -- LQR/LQE/LQG via python-control, closed loops with (Tobit) Kalman observers,
   Tobit Jacobians and a stability certificate, censoring-limit control; :class:`MultiTargetTracker`.
 - :mod:`tobitkf.metrics` -- RMSE, bias, NEES; :mod:`tobitkf.sweep` -- Monte Carlo sweeps;
   :func:`write_report` -- the reproduction report.
+- :func:`smooth`, :class:`FixedLagSmoother`, :func:`log_likelihood`, :func:`fit` (with :class:`CensoredAR`),
+  :class:`FitResult`, :func:`load_fit` -- smoothing, likelihood and learning from censored data
+  (:mod:`tobitkf.inference`); :mod:`tobitkf.data` -- real censored data sets.
 """
 
 from ._validation import ShapeError, ValidationError
@@ -49,10 +56,19 @@ from .simulate.delay import simulate_delay
 from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
 from .report import write_report
+from .filters.particle import ParticleFilter
+from .filters.assumed_density import AssumedDensityTobitFilter
+from .filters.adf_fading import FadingAssumedDensityFilter
+from .filters.adf_protocol import ProtocolAssumedDensityFilter
+from .filters.adf_saturation import SaturationAssumedDensityFilter
+from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
 from .filters.tracking import MultiTargetTracker
 from . import control
-from .control import certify_tkf_stability, simulate_closed_loop, tobit_lqe
+from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, tobit_lqe
 from . import metrics
+from . import data
+from .inference import (CensoredAR, FitResult, FixedLagSmoother, adf_log_likelihood, fit, kalman_log_likelihood,
+                        load_fit, log_likelihood, smooth)
 
 from ._version import __version__
 
@@ -67,6 +83,10 @@ __all__ = [
     "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
     "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
     "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
-    "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "MultiTargetTracker",
+    "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "tobit_dlqe", "MultiTargetTracker",
+    "ParticleFilter", "AssumedDensityTobitFilter", "FadingAssumedDensityFilter", "ProtocolAssumedDensityFilter",
+    "SaturationAssumedDensityFilter", "posterior_crlb", "PosteriorCRLB", "censored_fisher_information",
+    "smooth", "FixedLagSmoother", "log_likelihood", "kalman_log_likelihood", "adf_log_likelihood", "fit",
+    "FitResult", "load_fit", "CensoredAR", "data",
     "__version__",
 ]

@@ -4,7 +4,7 @@ For a latent :math:`y^* \sim N(\mu, \sigma^2)` observed through the clip
 :math:`y = \min(\max(y^*, l), h)` (``lower`` = l, ``upper`` = h, either may be
 infinite) let :math:`a = (l-\mu)/\sigma`, :math:`b = (h-\mu)/\sigma`. Then
 (Miller 2015, (3.7)–(3.12) for left censoring, (3.54) for right censoring,
-and the general two-sided form of spec 001a A-3.13 / 001b §2.6):
+and the general two-sided form of Miller §6.6; docs/sources MA-20):
 
 .. math::
 
@@ -57,7 +57,9 @@ class CensoredMoments(NamedTuple):
     p_uncensored: np.ndarray
     """P(lower < y* < upper); the sources' γ (or E(p_k))."""
     inverse_mills: np.ndarray
-    """(φ(a) − φ(b)) / p_uncensored; truncated mean = mean + std * inverse_mills."""
+    """(φ(a) − φ(b)) / p_uncensored; truncated mean = mean + std * inverse_mills. One sign for both sides:
+    positive with only a lower limit (+0.798 at the mean), **negative** with only an upper limit
+    (−0.798 at the mean), where the dissertation's right-censoring λ̂ of (3.54) is its magnitude."""
     truncated_mean: np.ndarray
     """E[y* | uncensored]."""
     truncated_var: np.ndarray
@@ -137,7 +139,7 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
 
     Examples
     --------
-    Truth -0.1, σ = 0.1, left censoring at 0 (Miller Example 1; spec 001a §6 item 6):
+    Truth -0.1, σ = 0.1, left censoring at 0 (Miller Example 1, §3.3.6.2):
 
     >>> m = censored_moments(-0.1, 0.1, 0.0, np.inf)
     >>> round(float(m.p_uncensored), 5), round(float(m.censored_mean), 5)
@@ -152,14 +154,26 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
     except ValueError:
         raise ShapeError("mean/std/lower/upper: shapes " + ", ".join(str(a.shape) for a in args) +
                          " do not broadcast") from None
-    shape = mu.shape
-    mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     if np.any(~(sd > 0)):
         raise ValidationError("std: expected standard deviations > 0")
     if np.isinf(sd).any():
         raise ValidationError("std: expected finite standard deviations, found inf")
     if np.any(~(lo < hi)):
         raise ValidationError("lower/upper: expected lower < upper for every channel")
+    return unchecked_moments(mu, sd, lo, hi)
+
+
+def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
+    """:func:`censored_moments` without its input checks, for the filters' inner loop.
+
+    The filters have checked their limits and noise once at the boundary; what reaches them
+    per step is a predicted mean and standard deviation, which are NaN exactly when a run's
+    covariance has overflowed. The loop then poisons that run and warns once; here NaN
+    simply propagates (instead of raising mid-loop and losing the healthy runs).
+    """
+    mu, sd, lo, hi = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (mean, std, lower, upper)))
+    shape = mu.shape
+    mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     a, b = standardized_limits(mu, sd, lo, hi)
 
     p_lo = ndtr(a)

@@ -1,4 +1,5 @@
-"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``report DIR``, ``sweep FILE``, ``plot RESULT``.
+"""Command line: ``tobitkf list``, ``reproduce ID|all``, ``report DIR``, ``sweep FILE``, ``plot RESULT``,
+``fit FILE.csv --model MODEL.toml``.
 
 ``reproduce`` runs a registered experiment and writes ``DIR/ID/metrics.json`` and
 the experiment's figures (PNG), each file atomically, then (re)writes the report of
@@ -321,6 +322,27 @@ def plot(
     paths = plot_result(result, out)
     for p in paths:
         console.print(f"wrote {p}", markup=False, highlight=False, soft_wrap=True)
+
+
+@app.command()
+def fit(
+    file: Annotated[Path, typer.Argument(help="CSV file with a header row, one row per reading")],
+    model: Annotated[Path, typer.Option("--model", help="model file (TOML): columns and model, see tobitkf.inference.fit_cli")],
+    out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("fit"),
+) -> None:
+    """Fit a model to a censored series: writes OUT/fit.json, summary.txt, series.csv and fit.png."""
+    from ._validation import ValidationError
+    from .inference.fit_cli import run_fit
+
+    try:
+        check_out_dir(out)
+        paths = run_fit(file, model, out, progress=True)
+    except ValidationError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise typer.Exit(2) from None
+    typer.echo((out / "summary.txt").read_text(encoding="utf-8"), nl=False)
+    for p in paths:
+        console.print(f"wrote {p}")
 
 
 def main() -> None:  # pragma: no cover - console entry point

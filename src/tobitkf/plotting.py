@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from pathlib import Path
 from typing import Any
 
@@ -9,13 +11,33 @@ import numpy as np
 
 from ._extras import require
 
-__all__ = ["new_figure", "save", "plot_rmse_over_time", "ESTIMATOR_STYLE"]
+__all__ = ["new_figure", "save", "plot_rmse_over_time", "ESTIMATOR_STYLE", "record_caption", "collect_captions"]
+
+_CAPTIONS: contextvars.ContextVar[dict[str, str] | None] = contextvars.ContextVar("figure_captions", default=None)
+
+
+def record_caption(name: str, caption: str) -> None:
+    """Record the caption of figure ``name`` for the enclosing :func:`collect_captions` (if any)."""
+    captions = _CAPTIONS.get()
+    if captions is not None:
+        captions[name] = " ".join(caption.split())
+
+
+@contextlib.contextmanager
+def collect_captions():
+    """Collect the captions :func:`save` records inside the block: ``with collect_captions() as c: ...``."""
+    captions: dict[str, str] = {}
+    token = _CAPTIONS.set(captions)
+    try:
+        yield captions
+    finally:
+        _CAPTIONS.reset(token)
 
 ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
     "truth": {"color": "black", "lw": 1.2, "label": "truth"},
-    "kf": {"color": "tab:blue", "lw": 1.0, "ls": "--", "label": "KF (censored values as data)"},
-    "ikf": {"color": "tab:orange", "lw": 1.0, "ls": "-.", "label": "IKF (drops censored)"},
-    "tkf": {"color": "tab:red", "lw": 1.2, "label": "TKF"},
+    "kf": {"color": "tab:blue", "lw": 1.0, "ls": "--", "label": "standard KF (censored values as data)"},
+    "ikf": {"color": "tab:orange", "lw": 1.0, "ls": "-.", "label": "intermittent-measurements KF (drops censored)"},
+    "tkf": {"color": "tab:red", "lw": 1.2, "label": "Tobit KF"},
     "sstkf": {"color": "tab:green", "lw": 1.2, "label": "steady-state TKF"},
 }
 
@@ -28,11 +50,18 @@ def new_figure(rows: int = 1, cols: int = 1, *, width: float = 7.0, height: floa
     return fig, axes
 
 
-def save(fig, outdir: Path, name: str, *, dpi: float = 110, tight: bool = True) -> Path:
-    """Save ``fig`` as ``outdir/name`` atomically (after ``tight_layout`` unless ``tight=False``) and close it."""
+def save(fig, outdir: Path, name: str, *, caption: str = "", dpi: float = 110, tight: bool = True) -> Path:
+    """Save ``fig`` as ``outdir/name`` atomically (after ``tight_layout`` unless ``tight=False``) and close it.
+
+    ``caption`` says what the figure shows (which source figure it reproduces, what each curve is);
+    inside a registered experiment's ``plot`` it is recorded for the report.
+    """
     plt = require("matplotlib.pyplot", extra="plot")
 
     from ._io import atomic_savefig
+
+    if caption:
+        record_caption(name, caption)
 
     if tight:
         fig.tight_layout()

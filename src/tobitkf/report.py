@@ -5,12 +5,14 @@ PNG figures. :func:`write_report` reads every such folder and writes
 
 * ``DIR/index.html``: one self-contained page (inline CSS, no scripts, no network),
   readable on a phone. A summary at the top (experiments; claims held / not held /
-  unchecked; links), then one section per source and, in it, each experiment with
-  its figures, its parameters (those not stated by the source are flagged with the
-  reason), the source's claims with the verdict as a symbol *and* a word, and the
+  n/a, i.e. not measurable; links), then one section per source and, in it, each
+  experiment with its figures (each with its caption, linked to the full-size image),
+  its parameters (those not stated by the source are flagged with the reason), the
+  source's claims with their quantity, measured value, test and tolerance and the
+  verdict as a symbol *and* a word, the tables the source prints next to ours, and the
   time-averaged RMSE of each estimator. A claim that does not hold links to an
   explanation: what was measured, the claim's ``note`` and its optional
-  ``explanation``.
+  ``explanation``; an n/a claim says why it cannot be measured.
 * ``DIR/REPORT.md``: the same tables in Markdown, for terminals and diffs.
 
 Both files are written atomically and hold no time stamp, so rerunning the report on
@@ -19,10 +21,13 @@ or a missing figure is listed under "Problems" instead of stopping the report.
 
 Fields read from ``metrics.json`` (all optional but ``id``): ``id``, ``title``,
 ``source``, ``runs``, ``seed``, ``package_version``, ``elapsed_seconds``,
-``settings`` (``{name: {value, provenance, note}}``), ``claims`` (``[{claim,
-measured, holds, note?, explanation?}]``), ``figures`` (file names in the folder) and
-every ``estimators`` block anywhere in the remaining metrics (``{key: {rmse_time_avg,
-nees_time_avg?, ...}}``), e.g. at the top level or under ``scenarios: {name: ...}``.
+``settings`` (``{name: {value, provenance, note}}``), ``claims`` (``[{claim, quantity?,
+measured, test?, tolerance?, holds, note?, explanation?, not_measurable?}]``, the claims
+rule of :mod:`tobitkf.experiments._claims`), ``figures`` (file names in the folder),
+``figure_captions`` (``{file name: caption}``), ``report_tables`` (``[{title, columns,
+rows, note?}]``) and every ``estimators`` block anywhere in the remaining metrics
+(``{key: {rmse_time_avg, nees_time_avg?, ...}}``), e.g. at the top level or under
+``scenarios: {name: ...}``.
 """
 
 from __future__ import annotations
@@ -56,9 +61,12 @@ _MAX_DEPTH = 100                  # nesting levels of a metrics.json (tobitkf wr
 _MAX_INT_DIGITS = 300             # integers beyond the float range cannot be formatted as numbers
 
 _META_KEYS = {"id", "title", "source", "runs", "seed", "package_version", "elapsed_seconds", "settings",
-              "claims", "figures"}
+              "claims", "figures", "figure_captions", "report_tables"}
+_RMSE_DEFINITION = ("The mean over steps of the per-step RMSE (the root of the mean over runs of the squared error "
+                    "at each step); a claim that uses another RMSE (e.g. over runs and steps together) says so in "
+                    "its quantity.")
 _VALUE_LIMIT = 240  # characters of a parameter value shown before "…"
-_VERDICT = {True: ("held", "✓", "held"), False: ("failed", "✗", "not held"), None: ("unchecked", "–", "n/a")}
+_VERDICT = {True: ("held", "✓", "held"), False: ("failed", "✗", "not held"), None: ("na", "–", "n/a")}
 
 
 @dataclass(frozen=True)
@@ -77,7 +85,7 @@ class Setting:
 
 @dataclass(frozen=True)
 class Claim:
-    """One claim row; ``holds`` is True, False or None (not checked)."""
+    """One claim row; ``holds`` is True, False or None (n/a: not measurable)."""
 
     number: int
     claim: str
@@ -86,11 +94,26 @@ class Claim:
     note: str
     explanation: str
     anchor: str
+    quantity: str = ""
+    test: str = ""
+    tolerance: str = ""
+    not_measurable: str = ""
 
     @property
     def needs_explanation(self) -> bool:
-        """Failed claims always get an explanation entry; unchecked ones when there is text to show."""
-        return self.holds is False or (self.holds is None and bool(self.note or self.explanation))
+        """Failed claims always get an explanation entry; n/a ones when there is text to show."""
+        return self.holds is False or (self.holds is None and bool(self.note or self.explanation
+                                                                   or self.not_measurable))
+
+
+@dataclass(frozen=True)
+class SourceTable:
+    """A table the source prints, next to our numbers (``metrics["report_tables"]``)."""
+
+    title: str
+    columns: list[str]
+    rows: list[list[str]]
+    note: str
 
 
 @dataclass(frozen=True)
@@ -100,10 +123,21 @@ class RmseTable:
     label: str
     components: int
     rows: list[tuple[str, list[Any], Any]]  # (estimator key, rmse_time_avg values, nees_time_avg or None)
+    ratios: dict[str, list[Any]] = field(default_factory=dict)  # key -> RMSE / optimum per component
 
     @property
     def has_nees(self) -> bool:
         return any(nees is not None for _, _, nees in self.rows)
+
+    @property
+    def has_ratio(self) -> bool:
+        """True when the block carries the optimum (``ratio_to_optimum``, from a particle filter)."""
+        return bool(self.ratios)
+
+    def ratio_text(self, key: str) -> str:
+        """``RMSE / optimum`` of one estimator, its components joined by " / " ('' if none)."""
+        vals = self.ratios.get(key)
+        return " / ".join(_num(v) for v in vals) if vals else ""
 
     def lowest(self, j: int) -> float | None:
         """Smallest finite value in component column ``j`` (None if there is none)."""
@@ -127,6 +161,8 @@ class ExperimentReport:
     rmse_tables: list[RmseTable]
     problems: list[str] = field(default_factory=list)
     figure_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
+    captions: dict[str, str] = field(default_factory=dict)
+    source_tables: list[SourceTable] = field(default_factory=list)
 
     def count(self, holds: bool | None) -> int:
         return sum(1 for c in self.claims if c.holds is holds)
@@ -208,6 +244,7 @@ def _find_estimator_blocks(obj: Any, path: tuple[str, ...] = ()) -> list[tuple[t
 def _rmse_table(path: tuple[str, ...], block: dict) -> RmseTable:
     label = " / ".join(p for p in path if p != "scenarios") or "all runs"
     rows = []
+    ratios: dict[str, list[Any]] = {}
     for key, summ in block.items():
         if not isinstance(summ, dict):
             continue
@@ -219,8 +256,11 @@ def _rmse_table(path: tuple[str, ...], block: dict) -> RmseTable:
         else:
             values = [avg]
         rows.append((str(key), values, summ.get("nees_time_avg")))
+        ratio = summ.get("ratio_to_optimum")
+        if isinstance(ratio, list):
+            ratios[str(key)] = _flatten(ratio)
     comps = max((len(v) for _, v, _ in rows), default=0)
-    return RmseTable(label=label, components=comps, rows=rows)
+    return RmseTable(label=label, components=comps, rows=rows, ratios=ratios)
 
 
 def _flatten(x: Any) -> list[Any]:
@@ -259,7 +299,9 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
             problems.append(f"{exp_id}: claim {i} has holds={holds!r}; expected true, false or null (shown as n/a)")
         claims.append(Claim(number=i, claim=_text(c.get("claim")), measured=_text(c.get("measured")),
                             holds=holds if isinstance(holds, bool) else None, note=_text(c.get("note")),
-                            explanation=_text(c.get("explanation")), anchor=f"{anchor}-claim-{i}"))
+                            explanation=_text(c.get("explanation")), anchor=f"{anchor}-claim-{i}",
+                            quantity=_text(c.get("quantity")), test=_text(c.get("test")),
+                            tolerance=_text(c.get("tolerance")), not_measurable=_text(c.get("not_measurable"))))
 
     listed = metrics.get("figures")
     if isinstance(listed, list):
@@ -275,12 +317,30 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
         else:
             figures.append(name)
 
+    captions = {}
+    raw_captions = metrics.get("figure_captions") or {}
+    if isinstance(raw_captions, dict):
+        captions = {str(k): _text(v) for k, v in raw_captions.items() if _text(v)}
+    source_tables = []
+    raw_tables = metrics.get("report_tables") or []
+    for j, t in enumerate(raw_tables if isinstance(raw_tables, list) else [], start=1):
+        cols = t.get("columns") if isinstance(t, dict) else None
+        rows = t.get("rows") if isinstance(t, dict) else None
+        if not isinstance(cols, list) or not isinstance(rows, list) or not all(
+                isinstance(r, list) and len(r) == len(cols) for r in rows):
+            problems.append(f"{exp_id}: report table {j} is not {{title, columns, rows}} with rows of equal length; "
+                            "skipped")
+            continue
+        source_tables.append(SourceTable(_text(t.get("title")) or f"table {j}", [_text(c) for c in cols],
+                                         [[_cell(v) for v in r] for r in rows], _text(t.get("note"))))
+
     rest = {k: v for k, v in metrics.items() if k not in _META_KEYS}
     tables = [_rmse_table(p, b) for p, b in _find_estimator_blocks(rest)]
     return ExperimentReport(id=exp_id, title=_text(metrics.get("title")), source=_text(metrics.get("source"))
                             or "unknown source", folder=folder.name, anchor=anchor, meta=meta, settings=settings,
                             claims=claims, figures=figures, rmse_tables=tables, problems=problems,
-                            figure_sizes={f: size for f in figures if (size := _png_size(folder / f))})
+                            figure_sizes={f: size for f in figures if (size := _png_size(folder / f))},
+                            captions=captions, source_tables=source_tables)
 
 
 def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentReport], list[str]]:
@@ -416,6 +476,15 @@ def _num(v: Any) -> str:
     return "—" if v is None else _text(v)
 
 
+def _cell(v: Any) -> str:
+    """A report-table cell: numbers to 4 significant digits, text as it is."""
+    if isinstance(v, bool) or v is None or isinstance(v, str):
+        return "—" if v is None else _text(v)
+    if isinstance(v, (int, float)):
+        return _num(v)
+    return _text(v)
+
+
 # --------------------------------------------------------------------------- HTML
 
 _CSS = """
@@ -447,7 +516,8 @@ padding:.05em .3em;border-radius:4px}
 .figs{display:grid;grid-template-columns:minmax(0,1fr);gap:12px;margin:10px 0}
 figure{margin:0;border:1px solid var(--line);border-radius:8px;padding:6px;background:#fff}
 figure img{display:block;width:100%;height:auto}
-figcaption{font-size:.8rem;color:var(--muted);margin-top:4px;word-break:break-all}
+figcaption{font-size:.85rem;color:var(--fg);margin-top:4px;overflow-wrap:anywhere}
+figcaption .file{color:var(--muted);font-size:.8rem}
 .scroll{overflow-x:auto;-webkit-overflow-scrolling:touch;margin:6px 0 10px}
 table{border-collapse:collapse;width:100%;font-size:.9rem}
 caption{text-align:left;font-weight:600;padding:4px 0;color:var(--muted)}
@@ -467,14 +537,15 @@ tr.failed>:first-child{box-shadow:inset 4px 0 0 var(--bad)}
 border:1px solid transparent}
 .badge.held{background:var(--okbg);color:var(--ok);border-color:#b5dfc2}
 .badge.failed{background:var(--badbg);color:var(--bad);border-color:#f3b9b9}
-.badge.unchecked{background:var(--nabg);color:var(--na);border-color:#d3d8df}
+.badge.na{background:var(--nabg);color:var(--na);border-color:#d3d8df}
 .badge.source{color:var(--muted);font-weight:400;padding-left:0}
 .badge.reconstructed,.badge.default,.badge.unspecified{background:var(--warnbg);color:var(--warn);
 border-color:#f0d48a}
 .why{display:inline-block;margin-top:3px;font-size:.85rem}
 .explain{border-left:4px solid var(--bad);background:var(--badbg);border-radius:0 8px 8px 0;padding:8px 12px;
 margin:8px 0}
-.explain.unchecked{border-left-color:#9aa3ad;background:var(--nabg)}
+.explain.na{border-left-color:#9aa3ad;background:var(--nabg)}
+.how{display:block;color:var(--muted);font-size:.85rem;margin-top:2px}
 .explain p{margin:.25em 0}
 .counts{font-size:.85rem;color:var(--muted);white-space:nowrap}
 .problems{border:1px solid #f0d48a;background:var(--warnbg);border-radius:8px;padding:8px 12px 8px 28px}
@@ -486,9 +557,11 @@ table.settings thead,table.claims thead{display:none}
 table.settings tr,table.claims tr{display:grid;border-bottom:1px solid var(--line);padding:4px 0}
 table.settings th,table.settings td,table.claims td{border:0;padding:2px 6px}
 table.settings tr{grid-template-columns:10.5em minmax(0,1fr)}
-table.claims tr{grid-template-columns:2em 1fr}
+table.claims tr{grid-template-columns:2em minmax(0,1fr)}
 table.claims td:nth-child(n+3){grid-column:2}
-table.claims td:nth-child(3)::before{content:"measured: ";color:var(--muted)}
+table.claims td:nth-child(3)::before{content:"quantity: ";color:var(--muted)}
+table.claims td:nth-child(4)::before{content:"measured: ";color:var(--muted)}
+table.claims td:nth-child(5)::before{content:"test: ";color:var(--muted)}
 table.claims td.num{text-align:left}
 tr.flagged{box-shadow:inset 4px 0 0 #e0a800}tr.failed{box-shadow:inset 4px 0 0 var(--bad)}
 tr.flagged>:first-child,tr.failed>:first-child{box-shadow:none}}
@@ -535,25 +608,32 @@ def _html_claims(e: ExperimentReport) -> list[str]:
         return ['<p class="empty">No claims recorded.</p>']
     out = ['<div class="scroll"><table class="claims">',
            '<thead><tr><th scope="col" class="num">#</th><th scope="col">claim (source)</th>'
-           '<th scope="col">measured</th><th scope="col">holds</th></tr></thead><tbody>']
+           '<th scope="col">quantity</th><th scope="col">measured</th><th scope="col">test (tolerance)</th>'
+           '<th scope="col">holds</th></tr></thead><tbody>']
     for c in e.claims:
         cls = _VERDICT[c.holds][0]
         cell = _badge(c.holds)
         if c.needs_explanation:
-            text = "why it does not hold" if c.holds is False else "why unchecked"
+            text = "why it does not hold" if c.holds is False else "why n/a"
             cell += f'<br><a class="why" href="#{c.anchor}">{text} →</a>'
+        test = _e(c.test or "—") + (f'<span class="how">tolerance: {_e(c.tolerance)}</span>' if c.tolerance else "")
         out.append(f'<tr id="{c.anchor}-row" class="{cls}"><td class="num">{c.number}</td><td>{_e(c.claim)}</td>'
-                   f"<td>{_e(c.measured)}</td><td>{cell}</td></tr>")
+                   f"<td>{_e(c.quantity or '—')}</td><td>{_e(c.measured)}</td><td>{test}</td><td>{cell}</td></tr>")
     out.append("</tbody></table></div>")
     for c in e.claims:
         if not c.needs_explanation:
             continue
-        cls = "explain" if c.holds is False else "explain unchecked"
-        head = "does not hold" if c.holds is False else "was not checked"
+        cls = "explain" if c.holds is False else "explain na"
+        head = "does not hold" if c.holds is False else "cannot be measured"
         out.append(f'<div class="{cls}" id="{c.anchor}"><p><strong>Claim {c.number} {head}:</strong> '
                    f"{_e(c.claim)}</p>")
-        out.append(f"<p><strong>Measured:</strong> {_e(c.measured) or '<span class=empty>nothing recorded</span>'}"
-                   "</p>")
+        if c.holds is None and c.not_measurable:
+            out.append(f"<p><strong>Why n/a:</strong> {_e(c.not_measurable)}</p>")
+        else:
+            out.append(f"<p><strong>Measured:</strong> "
+                       f"{_e(c.measured) or '<span class=empty>nothing recorded</span>'}</p>")
+        if c.test:
+            out.append(f"<p><strong>Test:</strong> {_e(c.test)}; tolerance: {_e(c.tolerance or '—')}</p>")
         if c.note:
             out.append(f"<p><strong>Note:</strong> {_e(c.note)}</p>")
         if c.explanation:
@@ -571,7 +651,8 @@ def _html_rmse(e: ExperimentReport) -> list[str]:
         out.append(f"<caption>{_e(t.label)}</caption>")
         heads = "".join(f'<th scope="col" class="num">x{j + 1}</th>' for j in range(t.components))
         nees = '<th scope="col" class="num">NEES (avg)</th>' if t.has_nees else ""
-        out.append(f'<thead><tr><th scope="col">estimator</th>{heads}{nees}</tr></thead><tbody>')
+        ratio = '<th scope="col" class="num">RMSE / optimum</th>' if t.has_ratio else ""
+        out.append(f'<thead><tr><th scope="col">estimator</th>{heads}{nees}{ratio}</tr></thead><tbody>')
         lows = [t.lowest(j) for j in range(t.components)]
         for key, vals, nees_v in t.rows:
             cells = []
@@ -583,10 +664,31 @@ def _html_rmse(e: ExperimentReport) -> list[str]:
                 cells.append(f'<td class="{cls}"{title}>{_e(_num(v))}</td>')
             if t.has_nees:
                 cells.append(f'<td class="num">{_e(_num(nees_v))}</td>')
+            if t.has_ratio:
+                cells.append(f'<td class="num">{_e(t.ratio_text(key))}</td>')
             out.append(f'<tr><th scope="row"><code>{_e(key)}</code></th>{"".join(cells)}</tr>')
         out.append("</tbody></table></div>")
     if any(len(t.rows) > 1 for t in e.rmse_tables):
         out.append('<p class="meta">Bold: the lowest RMSE of that component in the table.</p>')
+    if any(t.has_ratio for t in e.rmse_tables):
+        out.append('<p class="meta">RMSE / optimum: each component\'s time-averaged RMSE over that of the particle '
+                   'filter <code>pf</code> (the Bayes-optimal estimate, not in the sources), on the runs the particle '
+                   'filter used.</p>')
+    return out
+
+
+def _html_source_tables(e: ExperimentReport) -> list[str]:
+    out = []
+    for t in e.source_tables:
+        out.append('<div class="scroll"><table class="source-table">')
+        out.append(f"<caption>{_e(t.title)}</caption>")
+        out.append("<thead><tr>" + "".join(f'<th scope="col">{_e(c)}</th>' for c in t.columns) + "</tr></thead><tbody>")
+        for r in t.rows:
+            out.append("<tr>" + "".join(f'<td class="{"num" if j else ""}">{_e(v)}</td>' for j, v in enumerate(r))
+                       + "</tr>")
+        out.append("</tbody></table></div>")
+        if t.note:
+            out.append(f'<p class="meta">{_e(t.note)}</p>')
     return out
 
 
@@ -603,8 +705,12 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
             # the CSS (width: 100%; height: auto) scales it to the column
             size = e.figure_sizes.get(name)
             dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
-            out.append(f'<figure><img src="{src}" alt="{_e(e.id)}: {_e(name)}" loading="lazy" decoding="async"'
-                       f"{dims}><figcaption>{_e(name)}</figcaption></figure>")
+            caption = e.captions.get(name, "")
+            text = (f'{_e(caption)} <span class="file">({_e(name)})</span>' if caption
+                    else f'<span class="file">{_e(name)}</span>')
+            alt = f"{_e(e.id)}: {_e(caption or name)}"
+            out.append(f'<figure><a href="{src}"><img src="{src}" alt="{alt}" loading="lazy" decoding="async"'
+                       f"{dims}></a><figcaption>{text}</figcaption></figure>")
         out.append("</div>")
     else:
         out.append('<p class="empty">No figures.</p>')
@@ -612,7 +718,11 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
     out.extend(_html_settings(e))
     out.append("<h4>Claims</h4>")
     out.extend(_html_claims(e))
+    if e.source_tables:
+        out.append("<h4>The source's tables and ours</h4>")
+        out.extend(_html_source_tables(e))
     out.append("<h4>Time-averaged RMSE per estimator</h4>")
+    out.append(f'<p class="meta">{_e(_RMSE_DEFINITION)}</p>')
     out.extend(_html_rmse(e))
     out.append('<p class="top"><a href="#top">↑ top</a></p></section>')
     return out
@@ -620,7 +730,7 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
 
 def render_html(experiments: list[ExperimentReport], problems: list[str], *, title: str = "tobitkf results") -> str:
     """The whole ``index.html`` page as a string (self-contained, no scripts)."""
-    held, failed, unchecked = _totals(experiments)
+    held, failed, na = _totals(experiments)
     groups = _by_source(experiments)
     out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">', _HTML_MARKER,
            '<meta name="viewport" content="width=device-width, initial-scale=1">',
@@ -628,12 +738,15 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
            f"<h1>{_e(title)}</h1>",
            '<p class="lead">The sources\' numerical examples as reproduced by <code>tobitkf reproduce</code>: '
            "figures, parameters (⚑ marks values the source does not state), the source's claims with what "
-           "we measured, and the time-averaged RMSE of each estimator.</p>",
+           "we measured, the test and its tolerance, the source's tables next to ours, and the time-averaged "
+           "RMSE of each estimator. A claim is held or not held when it can be measured; n/a marks what "
+           "cannot be measured. Our deviations from each source are listed, with their IDs, in the "
+           "project's <code>docs/sources/</code> pages.</p>",
            '<div class="cards">',
            f'<div class="card"><b>{len(experiments)}</b>experiments</div>',
            f'<div class="card ok"><b>{held}</b>✓ claims held</div>',
            f'<div class="card bad"><b>{failed}</b>✗ claims not held</div>',
-           f'<div class="card na"><b>{unchecked}</b>– claims unchecked</div>',
+           f'<div class="card na"><b>{na}</b>– claims n/a (not measurable)</div>',
            "</div>"]
     if problems:
         out.append('<h2 id="problems">Problems</h2><ul class="problems">')
@@ -687,10 +800,12 @@ def _md_table(head: list[str], rows: list[list[str]], right: set[int] = frozense
 def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                     title: str = "tobitkf results") -> str:
     """``REPORT.md``: the same tables as the HTML page, in Markdown."""
-    held, failed, unchecked = _totals(experiments)
+    held, failed, na = _totals(experiments)
     out = [f"# {_md(title)}", "",
            f"Experiments: {len(experiments)} · claims ✓ held: {held} · ✗ not held: {failed} · "
-           f"n/a unchecked: {unchecked}", ""]
+           f"– n/a (not measurable): {na}", "",
+           "Each claim states its quantity, its test and its tolerance (three Monte Carlo standard errors for a "
+           "random quantity). Our deviations from each source are listed, with their IDs, in `docs/sources/`.", ""]
     if problems:
         out += ["## Problems", ""] + [f"- {_md(p)}" for p in problems] + [""]
     groups = _by_source(experiments)
@@ -707,7 +822,10 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
             if e.meta:
                 out += [" · ".join(f"{_md(k)}: {_md(v)}" for k, v in e.meta), ""]
             for n in e.figures:  # one paragraph per figure, so each renders on its own line
-                out += [f"![{_md(e.id)}: {_md(n)}]({quote(e.folder)}/{quote(n)})", ""]
+                cap = e.captions.get(n, "")
+                out += [f"![{_md(e.id)}: {_md(cap or n)}]({quote(e.folder)}/{quote(n)})", ""]
+                if cap:
+                    out += [f"*{_md(cap)}* ({_md(n)})", ""]
             out += ["#### Parameters", ""]
             if e.settings:
                 rows = [[f"`{_md(s.name)}`", _md(s.value), ("⚑ " if s.flagged else "") + _md(s.provenance),
@@ -721,19 +839,33 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                 for c in e.claims:
                     _, sym, word = _VERDICT[c.holds]
                     verdict = f"{sym} {word}" + (f" (see note {c.number} below)" if c.needs_explanation else "")
-                    rows.append([str(c.number), _md(c.claim), _md(c.measured), verdict])
-                out += _md_table(["#", "claim (source)", "measured", "holds"], rows, right={0})
+                    test = _md(c.test or "—") + (f" (tolerance: {_md(c.tolerance)})" if c.tolerance else "")
+                    rows.append([str(c.number), _md(c.claim), _md(c.quantity or "—"), _md(c.measured), test, verdict])
+                out += _md_table(["#", "claim (source)", "quantity", "measured", "test (tolerance)", "holds"], rows,
+                                 right={0})
                 for c in e.claims:
                     if c.needs_explanation:
-                        head = "does not hold" if c.holds is False else "was not checked"
+                        if c.holds is False:
+                            lead = f"- **Claim {c.number} does not hold.** Measured: {_md(c.measured) or 'nothing'}."
+                        else:
+                            lead = (f"- **Claim {c.number} cannot be measured.** "
+                                    f"{_md(c.not_measurable or c.measured) or 'no reason recorded'}.")
                         extra = "".join(f" {lbl}: {_md(t)}." for lbl, t in (("Note", c.note),
                                                                              ("Explanation", c.explanation)) if t)
-                        out.append(f"- **Claim {c.number} {head}.** Measured: {_md(c.measured) or 'nothing'}.{extra}")
+                        out.append(lead + extra)
                 if any(c.needs_explanation for c in e.claims):
                     out.append("")
             else:
                 out += ["*No claims recorded.*", ""]
-            out += ["#### Time-averaged RMSE per estimator", ""]
+            if e.source_tables:
+                out += ["#### The source's tables and ours", ""]
+                for t in e.source_tables:
+                    out += [f"*{_md(t.title)}*", ""]
+                    out += _md_table([_md(c) for c in t.columns], [[_md(v) for v in r] for r in t.rows],
+                                     right=set(range(1, len(t.columns))))
+                    if t.note:
+                        out += [_md(t.note), ""]
+            out += ["#### Time-averaged RMSE per estimator", "", _md(_RMSE_DEFINITION), ""]
             if not e.rmse_tables:
                 out += ["*No estimator summaries recorded.*", ""]
             for t in e.rmse_tables:
@@ -750,9 +882,12 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                         row.append(cell)
                     if t.has_nees:
                         row.append(_md(_num(nees_v)))
+                    if t.has_ratio:
+                        row.append(_md(t.ratio_text(key)))
                     rows.append(row)
                 head = ["estimator"] + [f"x{j + 1}" for j in range(t.components)] + (["NEES (avg)"] if t.has_nees
                                                                                       else [])
+                head += ["RMSE / optimum"] if t.has_ratio else []
                 out += _md_table(head, rows, right=set(range(1, len(head))))
     return "\n".join(out).rstrip("\n") + "\n\n" + _MD_MARKER + "\n"
 

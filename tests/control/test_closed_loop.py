@@ -7,7 +7,7 @@ from scipy.special import ndtr, ndtri
 from tobitkf import Censoring, LinearSystem
 from tobitkf._validation import ShapeError, ValidationError
 from tobitkf.control.closed_loop import quadratic_cost, simulate_closed_loop
-from tobitkf.control.lqg import discretize, dlqr, tobit_lqe
+from tobitkf.control.lqg import discretize, dlqr, tobit_dlqe
 from tobitkf.control.plants import dc_motor_position, dc_motor_speed
 
 DT = 0.01
@@ -62,8 +62,8 @@ def test_t13_marginal_plant_setpoint_inside_censored_region(position, T, P11):
     assert abs(th_kf.mean() - 1.0) > 1.0
     # the TKF covariance at the end against the modified DARE at Xi = Phi((T - r)/sigma) (6.21)
     p = dc_motor_position()
-    pred = tobit_lqe(plant.transition(0), None, p.C, plant.process_cov(0), 0.05, ndtr((T - 1.0) / 0.05),
-                     domain="dt").cov[0, 0]
+    pred = tobit_dlqe(plant.transition(0), None, p.C, plant.process_cov(0), V=[[0.05**2]],
+                      xi_uncensored=ndtr((T - 1.0) / 0.05)).cov[0, 0]
     assert pred == pytest.approx(P11, rel=2e-3)
     assert tkf.cov[:, -1, 0, 0] == pytest.approx(pred, rel=0.02)
     assert not tkf.diverged.any()
@@ -87,7 +87,7 @@ def test_t12_moving_limit_gamma_is_xi_and_covariance_converges(position):
                                reference=step_reference(), seed=2)
     assert np.all(res.p_uncensored == pytest.approx(xi, abs=1e-12))
     C, sigma = plant.measurement(1), 0.05
-    g = tobit_lqe(plant.transition(0), None, C, plant.process_cov(0), sigma, xi, domain="dt")
+    g = tobit_dlqe(plant.transition(0), None, C, plant.process_cov(0), V=[[sigma**2]], xi_uncensored=xi)
     assert res.cov[0, -1] == pytest.approx(g.cov, rel=1e-3)
     assert g.cov[0, 0] == pytest.approx(3.0049e-4, rel=1e-3)
     # limit = C xbar + sigma Phi^-1(xi) at every step
@@ -110,7 +110,7 @@ def test_t15_unstable_plant_moving_limit_is_only_locally_stable():
     assert np.all(bad.diverged_step[bad.diverged] > 0)
     # the linearisation A - L Xi C is Schur in both cases
     for xi in (0.5, 0.95):
-        assert np.all(np.abs(tobit_lqe([[1.05]], None, [[1.0]], [[0.01]], 0.1, xi, domain="dt").poles) < 1)
+        assert np.all(np.abs(tobit_dlqe([[1.05]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=xi).poles) < 1)
 
 
 def test_quadratic_cost_and_reference():
@@ -155,7 +155,7 @@ def test_sstkf_loop_uses_the_modified_dare_gain_and_tracks(position):
 
     plant, K = position
     f = SteadyStateTobitKalmanFilter(plant, 0.95)
-    g = tobit_lqe(plant.transition(0), None, plant.measurement(1), plant.process_cov(0), 0.05, 0.95, domain="dt")
+    g = tobit_dlqe(plant.transition(0), None, plant.measurement(1), plant.process_cov(0), V=[[0.05**2]], xi_uncensored=0.95)
     assert f.gain == pytest.approx(g.filter_gain, rel=1e-8)
     assert f.cov == pytest.approx(g.cov, rel=1e-8)
     r = step_reference()

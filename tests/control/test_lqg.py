@@ -8,7 +8,7 @@ from scipy.special import ndtr
 from tobitkf import KalmanFilter, LinearSystem
 from tobitkf._validation import ValidationError
 from tobitkf.control.lqg import (controlled_noise, discretize, dlqe, dlqr, equilibrium, is_stable, lqe, lqr,
-                                 reference_gain, tobit_lqe)
+                                 reference_gain, tobit_dlqe, tobit_lqe)
 from tobitkf.control.plants import dc_motor_position, dc_motor_speed, scalar_example
 
 
@@ -30,7 +30,7 @@ def test_t7_scalar_gain_and_jacobian_eigenvalues():
 
 def test_t7_recomputed_tobit_gain_at_T0():
     s = scalar_example()
-    g = tobit_lqe(s.A, s.G, s.C, s.W, 0.5, 0.5)
+    g = tobit_lqe(s.A, s.G, s.C, s.W, V=[[0.25]], xi_uncensored=0.5)
     # scalar modified CARE: L = P Xi / ups, P solving 2 A P + W - (Xi P)^2/ups = 0
     ups = 0.25 * (1 - 2 / np.pi)
     P = (-0.8 + np.sqrt(0.64 + 0.01 * 0.25 / ups)) * ups / 0.25
@@ -46,7 +46,7 @@ def test_t8_dc_motor_speed_gains():
     assert g.gain[:, 0] == pytest.approx([10.0329, 0.2257], abs=printed(0, 4))
     assert g.gain[:, 0] == pytest.approx([10.0329, 0.2257], rel=1e-3)
     assert np.sort(g.poles.real)[-1] == pytest.approx(-10.631, abs=1e-3)      # A13: the missing number
-    t = tobit_lqe(p.A, p.G, p.C, p.W, 0.05, ndtr(0.0))
+    t = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=ndtr(0.0))
     assert t.noise[0, 0] == pytest.approx(9.0845e-4, rel=1e-4)
     assert t.gain[:, 0] == pytest.approx([16.452, 0.305], abs=printed(0, 3))
     assert t.gain[0, 0] == pytest.approx(16.452, rel=1e-3)
@@ -78,7 +78,7 @@ def test_t9_position_uncensored():
 ])
 def test_t9_position_tobit_gains(T, L_printed, eig_printed):
     p = dc_motor_position()
-    t = tobit_lqe(p.A, p.G, p.C, p.W, 0.05, ndtr(T / 0.05))
+    t = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=ndtr(T / 0.05))
     assert t.gain[:2, 0] == pytest.approx(L_printed[:2], rel=1e-3)
     assert t.gain[2, 0] == pytest.approx(L_printed[2], abs=1e-4)
     # the text prints eig(A - L C) with the Tobit L (A15); the effective poles are eig(A - L Xi C)
@@ -94,7 +94,7 @@ def test_t9_minus_20_degrees_not_reproduced_and_why():
     it comes back only if the truncated variance is replaced by sigma^2, which T = 0, -10 deg rule out."""
     p = dc_motor_position()
     xi = ndtr(-0.349066 / 0.05)
-    t = tobit_lqe(p.A, p.G, p.C, p.W, 0.05, xi)
+    t = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=xi)
     assert t.gain[0, 0] == pytest.approx(131.013, rel=1e-3)
     wrong = lqe(p.A, p.G, xi * p.C, p.W, p.V)
     assert wrong.gain[0, 0] == pytest.approx(17.7467, rel=1e-3)
@@ -131,7 +131,7 @@ def test_dlqe_is_the_limit_of_the_core_kalman_filter():
     out = KalmanFilter(sys).filter(np.zeros((400, 1)))
     assert out.pred_cov[-1] == pytest.approx(g.prior_cov, rel=1e-9)
     assert out.cov[-1] == pytest.approx(g.cov, rel=1e-9)
-    assert g.gain == pytest.approx(A @ g.filter_gain, rel=1e-12)
+    assert g.predictor_gain == pytest.approx(A @ g.filter_gain, rel=1e-12)
     assert g.prior_cov == pytest.approx(solve_discrete_are(A.T, C.T, Q, R), rel=1e-9)
 
 
@@ -166,10 +166,10 @@ def test_reference_gain_and_equilibrium_agree():
     B = np.array([[0.0], [0.1]])
     C = np.array([[1.0, 0.0]])
     K = dlqr(A, B, np.diag([10.0, 0.0]), [[1.0]]).gain
-    N = reference_gain(A, B, C, K)
+    N = reference_gain(A, B, C, K, domain="dt")
     x_ss = np.linalg.solve(np.eye(2) - A + B @ K, B @ N @ [2.0])
     assert C @ x_ss == pytest.approx([2.0], rel=1e-12)
-    xe, ue = equilibrium(A, B, C, [[0.0]], [2.0])
+    xe, ue = equilibrium(A, B, C, [[0.0]], [2.0], domain="dt")
     assert xe == pytest.approx(x_ss, rel=1e-10)
     assert (-K @ xe + N @ [2.0]) == pytest.approx(ue, rel=1e-10, abs=1e-12)
 
@@ -196,7 +196,7 @@ def test_not_detectable_and_unexcited_boundary_mode():
     with pytest.raises(ValidationError, match="not excited by the process noise"):
         dlqe(np.eye(2), [[1.0], [0.0]], np.eye(2), [[1.0]], np.eye(2))
     with pytest.raises(ValidationError, match="Tobit LQE .*not detectable"):
-        tobit_lqe(np.diag([0.5, 1.1]), None, [[1.0, 0.0]], np.eye(2), 0.1, 0.5, domain="dt")
+        tobit_dlqe(np.diag([0.5, 1.1]), None, [[1.0, 0.0]], np.eye(2), V=[[0.01]], xi_uncensored=0.5)
     with pytest.raises(ValidationError, match="not seen by the state weight Q"):
         dlqr(np.diag([1.0, 0.5]), np.eye(2), np.diag([0.0, 1.0]), np.eye(2))
 
@@ -215,7 +215,7 @@ def test_singular_and_indefinite_weights():
 @pytest.mark.parametrize("xi", [0.0, 1.0, -0.1, 1.5])
 def test_xi_outside_open_unit_interval(xi):
     with pytest.raises(ValidationError, match=r"xi_uncensored: expected probabilities in the open interval \(0, 1\)"):
-        tobit_lqe([[-1.0]], None, [[1.0]], [[1.0]], 0.1, xi)
+        tobit_lqe([[-1.0]], None, [[1.0]], [[1.0]], V=[[0.01]], xi_uncensored=xi)
 
 
 def test_untrackable_reference():
@@ -225,10 +225,161 @@ def test_untrackable_reference():
     C = np.array([[0.0, 1.0]])
     K = np.array([[0.1, 0.0]])
     with pytest.raises(ValidationError, match="cannot track the reference.*singular"):
-        reference_gain(A, B, C, K)
+        reference_gain(A, B, C, K, domain="dt")
     with pytest.raises(ValidationError, match="cannot track the reference.*2 tracked outputs but 1 inputs"):
-        reference_gain(A, B, np.eye(2), K)
+        reference_gain(A, B, np.eye(2), K, domain="dt")
     with pytest.raises(ValidationError, match="r: the plant cannot track the reference"):
-        equilibrium(A, B, C, [[0.0]], [1.0])
+        equilibrium(A, B, C, [[0.0]], [1.0], domain="dt")
     with pytest.raises(ValidationError, match="A - B K is not stable"):
-        reference_gain(np.diag([1.5, 0.8]), B, C, K)
+        reference_gain(np.diag([1.5, 0.8]), B, C, K, domain="dt")
+
+
+# ----------------------------------------------------------------- printed digits, Newton refinement
+PRINTED_GAINS = [  # (model, T or None for the uncensored gain, printed entries as printed)
+    (dc_motor_speed, None, ["10.0329", "0.2257"]),                     # (5.61)
+    (dc_motor_speed, 0.0, ["16.452", ".305"]),                          # §5.4.1, T = 0
+    (dc_motor_position, None, ["4.0480", "8.1931", "-0.0187"]),         # (5.67)
+    (dc_motor_position, 0.0, ["7.281", "13.253", "-0.0302"]),           # §5.4.2, T = 0
+    (dc_motor_position, -0.174533, ["73.1575", "0.6447", "-0.0015"]),   # §5.4.2, T = -10 deg
+]
+
+
+def _half_unit(text):
+    decimals = len(text.split(".")[1]) if "." in text else 0
+    return 0.5 * 10.0 ** -decimals
+
+
+def _gain(model, T):
+    p = model()
+    if T is None:
+        return lqe(p.A, p.G, p.C, p.W, p.V).gain
+    return tobit_lqe(p.A, p.G, p.C, p.W, V=p.V, xi_uncensored=ndtr(T / 0.05)).gain
+
+
+@pytest.mark.parametrize("model, T, printed_L", PRINTED_GAINS, ids=lambda v: getattr(v, "__name__", str(v)))
+def test_printed_gains_to_their_printed_digits(model, T, printed_L):
+    """Every printed gain of §5.3.3-§5.4 except the -20 deg one rounds to its printed digits (MB-14)."""
+    L = _gain(model, T)[:, 0]
+    for got, text in zip(L, printed_L):
+        assert abs(got - float(text)) <= _half_unit(text), (got, text)
+
+
+def _decimal_care_gain(A, Q, Ct, V, P0, digits=60, steps=6):
+    """Kalman-Bucy gain of A P + P A' + Q - P Ct' V^-1 Ct P = 0 by Newton-Kleinman in decimal arithmetic."""
+    from decimal import Decimal, localcontext
+
+    n = A.shape[0]
+    with localcontext() as ctx:
+        ctx.prec = digits
+        D = lambda M: [[Decimal(float(v)) for v in row] for row in np.atleast_2d(M)]  # noqa: E731
+        mul = lambda X, Y: [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in range(len(Y[0]))]  # noqa: E731
+                            for i in range(len(X))]
+        tr = lambda X: [list(r) for r in zip(*X)]  # noqa: E731
+        add = lambda X, Y, s=1: [[x + s * y for x, y in zip(r, q)] for r, q in zip(X, Y)]  # noqa: E731
+        Ad, Qd, Cd, P = D(A), D(Q), D(Ct), D(P0)
+        Vinv = Decimal(1) / Decimal(float(V[0, 0]))
+        S = [[v * Vinv for v in row] for row in mul(tr(Cd), Cd)]
+        for _ in range(steps):
+            Ak = add(Ad, mul(P, S), -1)
+            rhs = add(Qd, mul(mul(P, S), P))          # Ak X + X Ak' = -(Q + P S P)
+            # the n^2 x n^2 linear system (I kron Ak + Ak kron I) vec X = -vec rhs, Gaussian elimination
+            N = n * n
+            M = [[Decimal(0)] * (N + 1) for _ in range(N)]
+            for i in range(n):
+                for j in range(n):
+                    r = i * n + j
+                    for k in range(n):
+                        M[r][k * n + j] += Ak[i][k]
+                        M[r][i * n + k] += Ak[j][k]
+                    M[r][N] = -rhs[i][j]
+            for c in range(N):
+                piv = max(range(c, N), key=lambda r: abs(M[r][c]))
+                M[c], M[piv] = M[piv], M[c]
+                for r in range(N):
+                    if r != c and M[r][c] != 0:
+                        f = M[r][c] / M[c][c]
+                        M[r] = [a - f * b for a, b in zip(M[r], M[c])]
+            x = [M[r][N] / M[r][r] for r in range(N)]
+            P = [[x[i * n + j] for j in range(n)] for i in range(n)]
+        L = [[v * Vinv for v in row] for row in mul(P, tr(Cd))]
+        return np.array([[float(v) for v in row] for row in L])
+
+
+def test_newton_refinement_matches_a_60_digit_solution():
+    """The -10 deg Tobit gain: python-control's CARE solution reads 73.157737; one Newton-Kleinman step
+    gives the 60-digit solution 73.157489 (which rounds to the printed 73.1575)."""
+    import control
+
+    p = dc_motor_position()
+    g = tobit_lqe(p.A, p.G, p.C, p.W, V=p.V, xi_uncensored=ndtr(-0.174533 / 0.05))
+    Q = p.G @ p.W @ p.G.T
+    L_raw, P_raw, _ = control.lqe(p.A, p.G, g.measurement, p.W, g.noise)
+    L_ref = _decimal_care_gain(p.A, Q, g.measurement, g.noise, P_raw)
+    assert g.gain[:, 0] == pytest.approx(L_ref[:, 0], rel=1e-9)
+    assert L_ref[0, 0] == pytest.approx(73.157489, abs=1e-6)
+    assert abs(np.asarray(L_raw)[0, 0] - 73.1575) > 5e-5       # the unrefined solve misses the print
+
+
+# ----------------------------------------------------------------- conventions of python-control
+def test_results_unpack_like_python_control():
+    import control
+
+    p = dc_motor_speed()
+    L, P, E = lqe(p.A, p.G, p.C, p.W, p.V)
+    Lc, Pc, Ec = control.lqe(p.A, p.G, p.C, p.W, p.V)
+    np.testing.assert_allclose(L, Lc, rtol=1e-6)
+    np.testing.assert_allclose(P, Pc, rtol=1e-6)
+    np.testing.assert_allclose(np.sort_complex(E), np.sort_complex(Ec), rtol=1e-6)
+    A, C, Q, R = np.array([[1.0, 0.1], [0.0, 0.95]]), np.array([[1.0, 0.0]]), np.diag([1e-3, 1e-2]), [[0.04]]
+    L, P, E = dlqe(A, None, C, Q, R)
+    Lc, Pc, Ec = control.dlqe(A, np.eye(2), C, Q, R)
+    np.testing.assert_allclose(L, Lc, rtol=1e-9)
+    np.testing.assert_allclose(P, Pc, rtol=1e-9)
+    K, S, E = dlqr(A, np.array([[0.0], [1.0]]), np.eye(2), [[1.0]])
+    Kc, Sc, Ec = control.dlqr(A, np.array([[0.0], [1.0]]), np.eye(2), [[1.0]])
+    np.testing.assert_allclose(K, Kc, rtol=1e-9)
+    g = dlqe(A, None, C, Q, R)
+    assert len(g) == 3 and g[0] is g.predictor_gain and g[1] is g.prior_cov and g[2] is g.poles
+
+
+def test_filter_and_predictor_gains_have_their_own_names():
+    A, C, Q, R = np.array([[1.0, 0.1], [0.0, 0.95]]), np.array([[1.0, 0.0]]), np.diag([1e-3, 1e-2]), [[0.04]]
+    g = tobit_dlqe(A, None, C, Q, V=R, xi_uncensored=0.7)
+    Ct = 0.7 * C
+    Kf = g.prior_cov @ Ct.T @ np.linalg.inv(Ct @ g.prior_cov @ Ct.T + g.noise)
+    np.testing.assert_allclose(g.filter_gain, Kf, rtol=1e-12)
+    np.testing.assert_allclose(g.predictor_gain, A @ Kf, rtol=1e-12)
+    with pytest.warns(DeprecationWarning, match="predictor_gain"):
+        old = g.gain                                        # the DT .gain was the predictor gain
+    np.testing.assert_array_equal(old, g.predictor_gain)
+    c = lqe([[-0.8]], None, [[1.0]], [[0.01]], [[0.25]])
+    with pytest.warns(DeprecationWarning, match=r"use \.gain"):
+        np.testing.assert_array_equal(c.filter_gain, c.gain)
+    with pytest.raises(AttributeError, match="one gain"):
+        c.predictor_gain  # noqa: B018
+
+
+def test_tobit_lqe_takes_a_covariance_and_the_old_forms_warn():
+    p = dc_motor_speed()
+    new = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=0.5)
+    with pytest.warns(DeprecationWarning, match=r"V=sigma\*\*2"):
+        old = tobit_lqe(p.A, p.G, p.C, p.W, 0.05, 0.5)
+    np.testing.assert_allclose(old.gain, new.gain, rtol=1e-12)
+    with pytest.warns(DeprecationWarning, match="tobit_dlqe"):
+        via_domain = tobit_lqe([[0.9]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=0.5, domain="dt")
+    direct = tobit_dlqe([[0.9]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=0.5)
+    np.testing.assert_array_equal(via_domain.filter_gain, direct.filter_gain)
+    with pytest.raises(TypeError, match="V="):
+        tobit_lqe(p.A, p.G, p.C, p.W, xi_uncensored=0.5)
+    with pytest.raises(ValidationError, match="diagonal"):
+        tobit_lqe(np.eye(2) * -1, None, np.eye(2), np.eye(2), V=[[1.0, 0.1], [0.1, 1.0]], xi_uncensored=0.5)
+
+
+@pytest.mark.parametrize("call", [
+    lambda: is_stable([[0.5]]),
+    lambda: reference_gain([[0.5]], [[1.0]], [[1.0]], [[0.1]]),
+    lambda: equilibrium([[0.5]], [[1.0]], [[1.0]], [[0.0]], [1.0]),
+])
+def test_an_omitted_time_domain_is_deprecated(call):
+    with pytest.warns(DeprecationWarning, match="domain='dt'"):
+        call()

@@ -92,11 +92,11 @@ def test_t10_counterexample_is_not_certified():
     assert np.max(np.abs(np.linalg.eigvals(c["A"]))) == pytest.approx(0.875, abs=1e-3)
     assert np.max(np.abs(np.linalg.eigvals(c["A"] - c["L"] @ c["C"]))) == pytest.approx(0.916, abs=1e-3)
     assert np.max(np.abs(np.linalg.eigvals(c["A"] - 0.25 * c["L"] @ c["C"]))) == pytest.approx(1.084, abs=1e-3)
-    r = certify_tkf_stability(c["A"], c["L"], c["C"])
+    r = certify_tkf_stability(c["A"], c["L"], c["C"], domain="dt")
     assert not r.certified and "not certified" in r.message
     assert np.all(r.vertex_radius < 1)              # the vertex test alone would pass: (5.23) is false
     assert r.worst_sampled == pytest.approx(1.0895, abs=1e-3) and r.worst_s == pytest.approx(0.33, abs=0.01)
-    lmi_only = certify_tkf_stability(c["A"], c["L"], c["C"], grid=0)
+    lmi_only = certify_tkf_stability(c["A"], c["L"], c["C"], domain="dt", grid=0)
     assert not lmi_only.certified and "no common quadratic Lyapunov" in lmi_only.message
 
 
@@ -104,7 +104,7 @@ def test_t10_counterexample_is_not_certified():
 @given(a=st.floats(-0.95, 0.95), lc=st.floats(-0.95, 0.95))
 def test_t10_scalar_cases_certify(a, lc):
     """Scalar: |A| < 1 and |A - LC| < 1 certify (the polytope is an interval inside (-1, 1))."""
-    r = certify_tkf_stability([[a]], [[a - lc]], [[1.0]])
+    r = certify_tkf_stability([[a]], [[a - lc]], [[1.0]], domain="dt")
     assert r.certified
     P = r.P
     for s in (0.0, 0.3, 1.0):
@@ -118,7 +118,7 @@ def test_certificate_ct_and_two_channels():
     r = certify_tkf_stability(A, L, np.eye(2), domain="ct")
     assert r.certified and r.vertex_radius.shape == (4,)
     with pytest.raises(ValidationError, match="expected"):
-        certify_tkf_stability(A, L, np.eye(3))
+        certify_tkf_stability(A, L, np.eye(3), domain="dt")
 
 
 @pytest.mark.parametrize("T_sigma", [-3.0, 0.0, 3.0])
@@ -126,7 +126,7 @@ def test_t11_mean_field_error_converges_for_certified_gain(T_sigma):
     A = np.array([[0.9, 0.2], [0.0, 0.7]])
     L = np.array([[0.5], [0.1]])
     C = np.array([[1.0, 0.0]])
-    assert certify_tkf_stability(A, L, C).certified
+    assert certify_tkf_stability(A, L, C, domain="dt").certified
     sigma = 0.2
     rng = np.random.default_rng(3)
     e0 = rng.uniform(-10, 10, size=(20, 2)) * sigma
@@ -184,3 +184,30 @@ def test_fixed_gain_filter_form_is_predictor_form_times_A():
     pred = fixed_gain_tobit_observer(A, A @ Kf, C, y, 0.3, -np.inf, 0.2, xhat0=np.zeros(2) @ A.T, form="predictor")
     # predictor x_{k+1|k} = A x_{k|k}, with the filter's prior x_{1|0} = A x_0 = 0 as the predictor's start
     assert pred[:, :] == pytest.approx(filt @ A.T, abs=1e-12)
+
+
+def test_two_output_counterexample_fails_at_n_2():
+    """(5.23) already fails for n = 2 with two outputs (MB-02): A and A - LC are Schur, the vertex with
+    the second output censored is not, so no certificate exists; and one output with n = 2 cannot fail."""
+    from tobitkf.control.stability import COUNTEREXAMPLE_TWO_OUTPUTS
+
+    c = COUNTEREXAMPLE_TWO_OUTPUTS
+    A, L, C = c["A"], c["L"], c["C"]
+    rho = lambda M: max(abs(np.linalg.eigvals(M)))  # noqa: E731
+    assert rho(A) == pytest.approx(0.9) and rho(A - L @ C) < 0.6
+    assert rho(A - L @ np.diag([1.0, 0.0]) @ C) == pytest.approx(1.6)
+    r = certify_tkf_stability(A, L, C, domain="dt")
+    assert not r.certified and "vertex" in r.message
+    rng = np.random.default_rng(3)
+    checked = 0
+    while checked < 200:                           # m = 1, n = 2: the segment A - sLC stays Schur
+        A1, L1, C1 = rng.normal(size=(2, 2)), rng.normal(size=(2, 1)), rng.normal(size=(1, 2))
+        if rho(A1) < 1 and rho(A1 - L1 @ C1) < 1:
+            checked += 1
+            assert max(rho(A1 - s * L1 @ C1) for s in np.linspace(0, 1, 51)) < 1
+
+
+def test_certificate_domain_must_be_given():
+    c = COUNTEREXAMPLE
+    with pytest.warns(DeprecationWarning, match="certify_tkf_stability: pass domain"):
+        certify_tkf_stability(c["A"], c["L"], c["C"])

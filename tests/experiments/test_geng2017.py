@@ -23,7 +23,12 @@ def test_oscillator_ordering_every_k_from_2_both_states(oscillator):
     assert fm.shape == (100, 2)
     assert np.all(fm[1:] < tkf[1:])
     assert oscillator.metrics["tkf_fm_below_tkf_every_k_from_2"] == [True, True]
-    assert all(c["holds"] for c in oscillator.claims)
+    # beyond three Monte Carlo standard errors the RMSE2 ordering is not shown at k = 2, 3 (both filters start
+    # from the same prior, the gap is still small there), so by the claims rule "always smaller" is not held
+    assert oscillator.metrics["tkf_fm_below_tkf_beyond_mc_error_every_k_from_2"] == [True, False]
+    assert oscillator.metrics["steps_not_below_beyond_mc_error"] == [[], [1, 2, 3]]
+    tracks, always = oscillator.claims
+    assert tracks["holds"] is True and always["holds"] is False
 
 
 def test_oscillator_time_averages_near_spec(oscillator):
@@ -33,7 +38,7 @@ def test_oscillator_time_averages_near_spec(oscillator):
     np.testing.assert_allclose(r["tkf"]["rmse_time_avg"], [4.62, 4.30], rtol=0.15)
     # about 51 % censored (spec §6); binomial error over 40000 readings is ~0.3 %, runs correlate: 3 %
     assert abs(oscillator.metrics["censored_fraction"] - 0.515) < 0.03
-    assert set(r) == {"tkf-fm", "tkf", "kf", "kf-fm"}
+    assert set(r) == {"tkf-fm", "tkf", "kf", "kf-fm", "pf"}
 
 
 def test_radar_ordering_and_reconstructed_labels(tmp_path):

@@ -30,5 +30,7 @@ def test_tables_claims_hold_and_one_S_override():
     res = get("li2018-tables").run(runs=30, seed=2, steps=151, S=0.15)
     assert res.metrics["headline_S"] == 0.15
     assert list(res.metrics["tables"]) == ["S=0.15"]
-    assert all(c["holds"] for c in res.claims)
+    # every claim holds but the trend of the source's Tables 1-2 (falling MSE), which ours do not show (LD-10)
+    assert all(c["holds"] for c in res.claims if "falls with t" not in c["claim"])
+    assert [c["holds"] for c in res.claims if "falls with t" in c["claim"]] == [False, False]
     assert len(res.metrics["tables"]["S=0.15"]["chain"]["filter"]["x1"]) == 6

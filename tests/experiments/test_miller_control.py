@@ -70,15 +70,3 @@ def test_t17_mse_decreases_with_the_number_of_sensors():
         mse.append(np.mean((out.mean[..., 0] - sim.x[:, 1:, 0]) ** 2))
     # spec [S]: 0.095, 0.047, 0.029 with SE ~ 0.005
     assert mse[0] > mse[1] + 0.01 and mse[1] > mse[2] + 0.005
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("exp_id", IDS + ["miller-robot", "miller-tracker"])
-def test_every_experiment_runs_small_and_reports_claims(exp_id):
-    result = get(exp_id).run(runs=2, seed=0)
-    assert result.claims and all({"claim", "measured", "holds"} <= set(c) for c in result.claims)
-    for key, est in result.metrics.get("estimators", {}).items():
-        r = np.asarray(est["rmse"])
-        assert r.ndim == 2 and np.allclose(est["rmse_time_avg"], r.mean(axis=0)), key
-    for s in result.settings.values():
-        assert s["provenance"] in ("source", "reconstructed", "default")

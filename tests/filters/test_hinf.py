@@ -554,3 +554,43 @@ def test_expectation_identity_for_any_probabilities(mu1, mu2, nu1, nu2, seed):
     bound = H.expected_lyapunov_next(model, Af, Bf, P, eta, w, v, covariance="paper")
     assert abs(exact - ref) <= 1e-10 * max(1.0, abs(ref))
     assert bound >= exact - 1e-10 * max(1.0, abs(ref))
+
+
+# --------------------------------------------------------------------------------------------
+# verify's rounding margin, the reported slack, iterate without a second solver (WH-22)
+# --------------------------------------------------------------------------------------------
+def test_verify_refuses_a_slack_lost_in_rounding(improved, model):
+    """λmax(Ψ) = -1.1e-11 on a Ψ of norm 67 is within rounding (about 2e-11): not a certificate."""
+    c = improved
+    g_min = c.verification.gamma_min
+    tight = np.sqrt(g_min**2 + 1e-10)
+    v = H.verify(model, c.Af, c.Bf, c.P, c.Lambda, c.eps1, c.eps2, tight, pi=c.pi, rho=c.rho)
+    assert v.max_eig < 0                                      # the old test (λmax < 0) accepted it
+    assert -v.max_eig < v.rounding
+    assert not v.ok and any("beyond rounding" in r for r in v.reasons)
+    roomy = H.verify(model, c.Af, c.Bf, c.P, c.Lambda, c.eps1, c.eps2, np.sqrt(g_min**2 + 1e-6), pi=c.pi, rho=c.rho)
+    assert roomy.ok and roomy.margin > roomy.rounding
+
+
+def test_certificate_reports_the_slack_it_has(improved):
+    v = improved.verification
+    assert v.margin == pytest.approx(-v.max_eig) and v.margin > v.rounding > 0
+    s = improved.summary()
+    assert s["verified_margin"] == v.margin and s["lmi_margin"] == improved.lmi_margin
+    with pytest.warns(DeprecationWarning, match="lmi_margin"):
+        assert improved.margin == improved.lmi_margin
+
+
+def test_iterate_does_not_retry_its_steps_with_a_second_solver(model, monkeypatch):
+    calls = []
+    real = H._solve
+
+    def spy(prob, solver, fallback):
+        calls.append(fallback)
+        return real(prob, solver, fallback)
+
+    monkeypatch.setattr(H, "_solve", spy)
+    it = H.design(model, method="iterate", objective="min_gamma", iterations=2)
+    assert it.ok
+    assert calls[0] == "SCS"                                   # the initial coupled design keeps its fallback
+    assert len(calls) > 1 and all(f is None for f in calls[1:])

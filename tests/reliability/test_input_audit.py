@@ -194,9 +194,9 @@ CASES = [
     ("dlqr R singular", lambda: dlqr(CA, CB, np.eye(2), [[0.0]]), ValidationError, r"^R: .*positive definite"),
     ("dlqr not stabilizable", lambda: dlqr(np.diag([2.0, 0.5]), [[0.0], [1.0]], np.eye(2), [[1.0]]), ValidationError,
      r"stabilizable"),
-    ("tobit_lqe xi length", lambda: tobit_lqe(CA, np.eye(2), [[1.0, 0.0]], np.eye(2), [0.3], [0.5, 0.5]), ShapeError,
+    ("tobit_lqe xi length", lambda: tobit_lqe(CA, np.eye(2), [[1.0, 0.0]], np.eye(2), V=[[0.09]], xi_uncensored=[0.5, 0.5]), ShapeError,
      r"^xi_uncensored"),  # bug (broadcast error)
-    ("reference_gain K shape", lambda: reference_gain(CA, CB, [[1.0, 0.0]], np.ones((2, 2))), ShapeError,
+    ("reference_gain K shape", lambda: reference_gain(CA, CB, [[1.0, 0.0]], np.ones((2, 2)), domain="dt"), ShapeError,
      r"^K: expected shape"),  # bug (matmul error)
     ("closed loop observer", lambda: simulate_closed_loop(PLANT, CK, 5, 2, observer="x"), ValidationError, r"^observer"),
     ("closed loop noise keys", lambda: simulate_closed_loop(PLANT, CK, 5, 2, noise={"x0": np.ones(3)}), ValidationError,
@@ -205,7 +205,7 @@ CASES = [
      ValidationError, r"^divergence_bound"),  # bug (accepted: every run flagged diverged at once)
     ("quadratic_cost Q shape", lambda: quadratic_cost(simulate_closed_loop(PLANT, CK, 5, 2), np.eye(3), [[1.0]]),
      ShapeError, r"^Q, R"),  # bug (broadcast error)
-    ("certify grid", lambda: certify_tkf_stability(CA, 0.5 * np.ones((2, 1)), [[1.0, 0.0]], grid="x"),
+    ("certify grid", lambda: certify_tkf_stability(CA, 0.5 * np.ones((2, 1)), [[1.0, 0.0]], domain="dt", grid="x"),
      ValidationError, r"^grid"),  # bug (TypeError from '>')
     ("tracker Q indefinite", lambda: MultiTargetTracker(Q=-np.eye(4)), ValidationError, r"^Q: .*positive"),  # bug
     ("tracker initial text", lambda: MultiTargetTracker().track("x", []), ValidationError, r"^initial"),  # bug

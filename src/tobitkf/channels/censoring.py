@@ -14,7 +14,7 @@ step and channel (the time-varying limit of Miller §3.4).
 Several censored regions for one output (Miller §6.6, "multi-region TKF") are
 modelled as the dissertation does: the output is measured by several sensors,
 each with its own noise and its own window, stacked as extra channels; see
-:func:`multi_region`. The Tobit update itself is unchanged (spec 001b §2.6).
+:func:`multi_region`. The Tobit update itself is unchanged (Miller §6.6).
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ class Censoring(Channel):
         """Masks ``(at_lower, at_upper)`` of a record ``(..., T, m)`` reading exactly at a limit.
 
         A reading counts as censored when it is within ``rtol * max(1, |limit|)`` of the limit
-        (spec 001a §3.5: "detect censoring as y <= T + tol" [non-source]). Row 0 is time ``start``.
+        (ours, not in the source: a reading within ``tol`` of a limit counts as censored). Row 0 is time ``start``.
         """
         steps, m = y.shape[-2:]
         lo, hi = self.all_limits(steps, m, start=start)

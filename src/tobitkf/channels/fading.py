@@ -1,6 +1,6 @@
-r"""Rice fading channel of order L (Geng et al. 2017, Signal Processing; spec 000 §1.2).
+r"""Rice fading channel of order L (Geng et al. 2017, Signal Processing, (2); deviations: docs/sources/geng2017-fading.md).
 
-Model, (2) of the source (spec 000 §1.2), per channel :math:`m = 1..n_y`:
+Model, (2) of the source, per channel :math:`m = 1..n_y`:
 
 .. math::
 
@@ -9,16 +9,16 @@ Model, (2) of the source (spec 000 §1.2), per channel :math:`m = 1..n_y`:
     \vartheta_k(s) = \mathrm{diag}\{\vartheta^1_k(s), \dots, \vartheta^{n_y}_k(s)\}
 
 The coefficients :math:`\vartheta^m_k(s)` are independent over :math:`(k, s, m)`
-(spec 000 §1.2 [R], A14): a **fresh draw at every reception time k and every delay s**,
+(GF-14): a **fresh draw at every reception time k and every delay s**,
 so the same :math:`x_{k-s}` is weighted by different draws at different times.
 Their law is any :mod:`tobitkf.channels.laws` law: :class:`~tobitkf.channels.laws.Gaussian`
 (mean :math:`\bar\vartheta(s)`, variance :math:`\tilde\vartheta(s)`; the source's
 Assumption 2), :class:`~tobitkf.channels.laws.Uniform` on [a, b] (the source's
-conclusion, A15) or a :class:`~tobitkf.channels.laws.PMF` on a grid. Terms with
-:math:`s > k` do not exist and are zero (the zero padding of spec 000 §2).
+conclusion, GF-15) or a :class:`~tobitkf.channels.laws.PMF` on a grid. Terms with
+:math:`s > k` do not exist and are zero (the zero padding of GF-07).
 The channel composes with censoring: ``simulate`` applies the Tobit limit (3)
-after the fading (spec 000 §1.6), and the censoring indicator is the true mechanism
-(3), not the Bernoulli fiction (4)–(5) (A12).
+after the fading ((3) of the source, GF-12), and the censoring indicator is the true mechanism
+(3), not the Bernoulli fiction (4)–(5) (GF-12).
 
 Time convention (package-wide): ``x`` holds :math:`x_0..x_T` at indices 0..T; the
 measurement :math:`y_k` is stored at index k-1; the drawn coefficients
@@ -30,7 +30,7 @@ This is Rice *channel* fading, not the "fading-memory" covariance inflation of f
 
 ``C_0`` (needed when L >= 1, for the term :math:`\vartheta_k(k) C_0 x_0`) is ``C(0)`` for
 a callable ``C``, the constant ``C`` when constant, and ``C_1`` for a per-step ``(T, m, n)``
-array (which stores :math:`C_1..C_T` only) [non-source convention].
+array (which stores :math:`C_1..C_T` only) (our convention; the source does not say).
 """
 
 from __future__ import annotations

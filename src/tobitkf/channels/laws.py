@@ -1,9 +1,9 @@
 r"""Probability laws of random channel coefficients (fading gains, delays, failures).
 
 Small reusable classes, one per law, shared by the channel pieces of several
-sources: the Rice fading channel of Geng et al. 2017 (spec 000 §1.2, Gaussian
-coefficients; §7 A15, uniform coefficients), and the probability-mass-function
-fading of the time-delay source (spec 002 §1.4).
+sources: the Rice fading channel of Geng et al. 2017 ((2) of the source, Gaussian
+coefficients; its Conclusion, uniform coefficients, GF-15), and the probability-mass-function
+fading of the time-delay source (Li, Li & Wang 2018, Assumption 1).
 
 Every law has a *core shape*: its parameters broadcast together to one array
 shape (for example ``(L+1, m)``, one coefficient per delay ``s`` and channel
@@ -87,9 +87,9 @@ class CoefficientLaw:
 class Gaussian(CoefficientLaw):
     r"""Independent Gaussian coefficients :math:`\vartheta \sim N(\bar\vartheta, \tilde\vartheta)`.
 
-    The law of the Rice fading coefficients in Geng et al. 2017, Assumption 2
-    (spec 000 §1.2): mean and **variance** (not standard deviation). No clipping
-    to [0, 1] is done (spec 000 §1.2 [R]).
+    The law of the Rice fading coefficients in Geng et al. 2017, Assumption 2: mean and **variance**
+    (not standard deviation, docs/sources GF-08). No clipping
+    to [0, 1] is done.
 
     Parameters
     ----------
@@ -148,7 +148,7 @@ class Gaussian(CoefficientLaw):
 class Uniform(CoefficientLaw):
     r"""Independent coefficients uniform on :math:`[a, b]`.
 
-    Geng et al. 2017, Conclusion (spec 000 §7 A15): mean :math:`(a+b)/2`,
+    Geng et al. 2017, Conclusion (docs/sources GF-15): mean :math:`(a+b)/2`,
     variance :math:`(b-a)^2/12`.
 
     Parameters
@@ -206,7 +206,7 @@ class Uniform(CoefficientLaw):
 class PMF(CoefficientLaw):
     r"""Coefficients taking finitely many values: :math:`P(\gamma = \gamma_l) = p_l`.
 
-    Spec 002 §1.4: :math:`\bar\gamma = \sum_l p_l\gamma_l`,
+    Li, Li & Wang 2018, Assumption 1: :math:`\bar\gamma = \sum_l p_l\gamma_l`,
     :math:`E[\gamma^2] = \sum_l p_l\gamma_l^2`, :math:`\sigma^2 = \sum_l p_l(\gamma_l-\bar\gamma)^2`.
     The support lies on the **last** axis; leading axes (if any) form the core
     shape, so one PMF object can hold a different law per delay or channel.

@@ -1,8 +1,7 @@
 r"""Channel pieces of the protocol-based TKF: integral measurements, sensor failures, Round-Robin.
 
 Source: Geng, Wang, Zou, Mousavi, Cheng, "Protocol-Based Tobit Kalman Filter under
-Integral Measurements and Probabilistic Sensor Failures" (seed 003; spec
-``spec/003_protocol_tkf.md`` §1.2–1.4, §3.3).
+Integral Measurements and Probabilistic Sensor Failures" (eqs. (2)–(7); our deviations: docs/sources/geng-protocol.md).
 
 Model of what reaches the estimator (paper equations (2)–(7)), sensors m = 1..p:
 
@@ -22,7 +21,7 @@ Model of what reaches the estimator (paper equations (2)–(7)), sensors m = 1..
   ``variance`` and ``sample(rng, shape)`` (checked by :func:`check_failure_law`).
 * Round-Robin with the **zero-input** strategy (:class:`RoundRobin`): only the
   scheduled sensor's value reaches the estimator; nothing is held (no ZOH).
-  :math:`\delta` is a Kronecker delta (the paper says "Dirac", spec A14).
+  :math:`\delta` is a Kronecker delta (the paper says "Dirac", GP-14).
 * Tobit censoring at the estimator input is the core :class:`~tobitkf.Censoring`
   with ``lower=tau``. Because it is element-wise with one threshold, censoring every
   sensor's reading and then selecting the scheduled one equals (4) exactly.
@@ -40,7 +39,7 @@ The result's ``y`` is ``(N, T, 1)`` (the scalar :math:`y_k`), ``y_latent`` is
 filter's ``uncensored=``).
 
 Time convention: :math:`x_0` is the prior state; :math:`y_1` is stored at index 0.
-The pre-history :math:`x_{-1..-\ell}` is drawn from the filter prior (spec A8 / §3.3).
+The pre-history :math:`x_{-1..-\ell}` is drawn from the filter prior (not stated in the source, GP-08).
 
 Code names -> paper symbols: ``window`` = ℓ, ``failure_gain`` = Λ, ``scheduled`` =
 :math:`\bar h_k`, ``schedule_indicator`` = Γ, ``threshold`` = τ, ``uncensored`` = γ.
@@ -182,7 +181,7 @@ class IntegralMeasurement:
 class RoundRobin:
     r"""Round-Robin protocol with the zero-input strategy.
 
-    :math:`\bar h_k = \mathrm{mod}(k-1, p) + 1` (spec §1.3): sensors 1, 2, ..., p, 1, 2, ...
+    :math:`\bar h_k = \mathrm{mod}(k-1, p) + 1` ((3) of the source): sensors 1, 2, ..., p, 1, 2, ...
     A different cyclic order may be given (``order``); it is repeated with period
     ``len(order)``.
 
@@ -266,7 +265,7 @@ class ProtocolChannel(Channel):
         Cyclic service order (default Round-Robin 1..p).
     prehistory : {"prior", "hold", "zero"}, default "prior"
         How the simulator draws :math:`x_{-1..-\ell}`: iid from the prior
-        :math:`N(\bar x_0, P_0)` (spec §3.3, consistent with the filter's default prior),
+        :math:`N(\bar x_0, P_0)` (GP-08, consistent with the filter's default prior),
         equal to :math:`x_0`, or zero.
 
     Raises

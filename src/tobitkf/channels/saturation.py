@@ -1,7 +1,7 @@
 r"""Randomly occurring sensor saturation (ROSS) with missing measurements.
 
 Source: Wang, Shen, Liu, "H∞ filtering with randomly occurring sensor saturations and
-missing measurements", eqs. (2)–(3) and Remark 2 (spec 004 §1.2, §1.4).
+missing measurements", eqs. (2)–(3) and Remark 2.
 
 For sensor :math:`i = 1..m` at time :math:`k`
 
@@ -13,12 +13,12 @@ with :math:`\sigma(v) = \mathrm{sign}(v)\min\{u_i, |v|\}` (eq. (3) with level :m
 the paper fixes :math:`u_i = 1`), :math:`\alpha_k^i \sim \mathrm{Bernoulli}(\mu_i)`
 (saturation occurs) and :math:`\beta_k^i \sim \mathrm{Bernoulli}(\nu_i)` (measurement
 arrives, given no saturation). All :math:`2m` variables are drawn independently at every
-step (spec A5: independence across i, between α^i and β^i, and in time).
+step (independence across i, between α^i and β^i, and in time: docs/sources WH-05).
 
 Sensor modes (Remark 2): saturated with probability μ_i, normal (linear) with
 probability (1−μ_i)ν_i, missing (noise only) with probability (1−μ_i)(1−ν_i).
 
-Moments used by the LMIs (spec §1.6, symbols under (13)): with
+Moments used by the LMIs (symbols under (13)): with
 :math:`a_i = \alpha^i-\mu_i` and :math:`b_i = (1-\alpha^i)\beta^i-(1-\mu_i)\nu_i`,
 ``var_alpha`` = ϱ_i = E a_i², ``var_beta`` = δ_i = E b_i², ``cov_alpha_beta`` = −ς_i = E a_i b_i
 (``varsigma`` = ς_i).
@@ -42,7 +42,7 @@ __all__ = ["RandomSaturation", "saturate"]
 def saturate(v: Any, level: Any = 1.0) -> np.ndarray:
     r"""Saturation (3): :math:`\sigma(v) = \mathrm{sign}(v)\min\{u, |v|\}` component-wise.
 
-    ``level`` (u) broadcasts against the last axis of ``v``; ``σ(0) = 0`` (spec A15).
+    ``level`` (u) broadcasts against the last axis of ``v``; ``σ(0) = 0`` (WH-15).
     """
     v = np.asarray(v, dtype=float)
     level = np.asarray(level, dtype=float)
@@ -61,7 +61,7 @@ class RandomSaturation(Channel):
     level : float or (m,) array_like, default 1.0
         Saturation levels u_i > 0. The paper uses 1 ("without loss of generality"); a
         level other than 1 is *not* a rescaling of C_i here because the linear branch
-        is unsaturated (spec A13), so the LMIs carry it explicitly.
+        is unsaturated (WH-13), so the LMIs carry it explicitly.
 
     Raises
     ------
@@ -95,7 +95,7 @@ class RandomSaturation(Channel):
         if m != self.m:
             raise ShapeError(f"system: expected {self.m} measurement channels (length of mu), got {m}")
 
-    # --- statistics (spec §1.6) ---------------------------------------------------
+    # --- statistics (under (13)) ---------------------------------------------------
     @property
     def var_alpha(self) -> np.ndarray:
         """ϱ_i = μ_i(1−μ_i) = E(α^i−μ_i)²."""

@@ -2,10 +2,13 @@ r"""LQR, Kalman (LQE) and Tobit-LQE gains, setpoint gains: the control toolkit o
 
 Source: Miller (2015) §4.5 (LQR (4.37)–(4.45), minimum-energy estimation and LQG
 (4.46)–(4.53)), §6.1 (setpoint control (6.4)–(6.11), the :math:`\bar N` form of (6.22),
-(6.45)) and §3.4.2 / §5.3.3 (the "modified ARE" of the steady-state TKF); spec 001a §4,
-001b §0.3, §2.1.
+(6.45)) and §3.4.2 / §5.3.3 (the "modified ARE" of the steady-state TKF, (3.57)). Our
+deviations: docs/sources/miller2015-ch1-4.md (MA-15, MA-21, MA-23) and
+docs/sources/miller2015-ch5-7.md (MB-08, MB-14, MB-15).
 
-Riccati equations (``domain="ct"``: continuous time, Hurwitz; ``"dt"``: discrete, Schur):
+Riccati equations. The name says the time domain, as in python-control: ``lqr``/``lqe``/
+``tobit_lqe`` are continuous-time (CARE, Hurwitz), ``dlqr``/``dlqe``/``tobit_dlqe`` discrete-time
+(DARE, Schur):
 
 .. math::
 
@@ -13,62 +16,210 @@ Riccati equations (``domain="ct"``: continuous time, Hurwitz; ``"dt"``: discrete
     \text{LQR (DARE)}\quad & P = A^TPA - A^TPB(R + B^TPB)^{-1}B^TPA + Q, \quad K = (R + B^TPB)^{-1}B^TPA \\
     \text{LQE (CARE, 4.50–4.53)}\quad & AP + PA^T + GWG^T - PC^TV^{-1}CP = 0, \quad L = PC^TV^{-1} \\
     \text{LQE (DARE)}\quad & \bar P = A\bar PA^T - A\bar PC^T(C\bar PC^T + V)^{-1}C\bar PA^T + GWG^T, \\
-                           & K_f = \bar PC^T(C\bar PC^T + V)^{-1} \text{ (filter form)}, \quad L_p = AK_f \text{ (predictor form)}
+                           & K_f = \bar PC^T(C\bar PC^T + V)^{-1} \text{ (filter gain)}, \quad L_p = AK_f \text{ (predictor gain)}
 
-The *Tobit* LQE (steady-state TKF, (3.57) corrected, spec 001b §0.3) is the LQE for the modified
-pair :math:`(A, \Xi C)` with noise :math:`\Upsilon = \mathrm{diag}(\upsilon_i)`,
-:math:`\upsilon_i = \sigma_i^2(1 - a_i\hat\lambda_i - \hat\lambda_i^2)`, :math:`a_i = \Phi^{-1}(\Xi_i)`;
-every gain printed in Ch. 5 is the CT version of it (Kalman–Bucy, σ's are standard deviations).
+The *Tobit* LQE (steady-state TKF, (3.57) with its spurious second :math:`\bar\Psi` dropped, MA-11)
+is the LQE for the modified pair :math:`(A, \Xi C)` with noise :math:`\Upsilon = \mathrm{diag}(\upsilon_i)`,
+:math:`\upsilon_i = V_{ii}(1 - a_i\hat\lambda_i - \hat\lambda_i^2)`, :math:`a_i = \Phi^{-1}(\Xi_i)`;
+every gain printed in Ch. 5 is the continuous-time version of it (Kalman–Bucy).
 
-Conventions: all weights and noise levels are **covariances** (the dissertation's MEE of
-§4.5.3 uses inverse covariances, spec A-4.3; its "σ_q = .1" is a standard deviation). The LQR
-and Kalman gains come from python-control (``lqr``, ``dlqr``, ``lqe``, ``dlqe``), after our own
-stabilizability / detectability / weight checks, so that a failure names the Riccati equation and
-the reason instead of returning NaN.
+Conventions (as python-control, whose names we mirror):
+
+* every weight and noise level is a **covariance** (``W``, ``V``, ``Q``, ``R``); the dissertation's MEE of
+  §4.5.3 uses inverse covariances and its "σ_q = .1" is a standard deviation (MA-23);
+* results unpack like python-control's: ``K, S, E = lqr(...)``, ``L, P, E = lqe(...)``,
+  ``L, P, E = dlqe(...)`` (``L`` the predictor gain, ``P`` the a-priori Riccati solution), and carry
+  the rest as attributes (:class:`EstimatorGain`);
+* a filter gain and a predictor gain have different names: ``filter_gain`` :math:`K_f` (the gain of
+  :class:`~tobitkf.filters.steady_state.SteadyStateTobitKalmanFilter`, x̂ = x̄ + K_f(y − ŷ)) and
+  ``predictor_gain`` :math:`L_p = AK_f` (x̂_{k+1} = Ax̂_k + L_p(y_k − ŷ_k)); a continuous-time result has
+  only ``gain``;
+* every Riccati solution is refined by Newton steps (Newton–Kleinman for the CARE, Newton–Hewer for the
+  DARE) until its residual stops decreasing: the solvers' own solutions can be off in the 6th digit for
+  the stiff DC motor (the −10° Tobit gain of §5.4.2 read 73.157737 instead of the printed and 50-digit
+  73.1575, MB-14).
+
+The LQR and Kalman gains start from python-control (``lqr``, ``dlqr``, ``lqe``, ``dlqe``), after our own
+stabilizability / detectability / weight checks, so that a failure names the Riccati equation and the
+reason instead of returning NaN.
 """
 
 from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import warnings
+
 import numpy as np
 
 from .._extras import require
 from .._validation import ShapeError, ValidationError, as_float_array, check_option
 
-__all__ = ["RegulatorGain", "EstimatorGain", "lqr", "dlqr", "lqe", "dlqe", "tobit_lqe", "controlled_noise",
-           "reference_gain", "equilibrium", "is_stable", "uncontrollable_modes", "unobservable_modes",
-           "discretize", "DOMAINS"]
+__all__ = ["RegulatorGain", "EstimatorGain", "lqr", "dlqr", "lqe", "dlqe", "tobit_lqe", "tobit_dlqe",
+           "controlled_noise", "reference_gain", "equilibrium", "is_stable", "uncontrollable_modes",
+           "unobservable_modes", "discretize", "DOMAINS", "refine_care", "refine_dare"]
 
 DOMAINS = ("ct", "dt")
 
 
+def _domain(domain: Any, func: str) -> str:
+    """The time domain of ``func``: required; an omitted one is 'dt' for one release, with a warning."""
+    if domain is None:
+        warnings.warn(f"{func}: pass domain='dt' (discrete time) or domain='ct' (continuous time); the implicit "
+                      "default 'dt' is deprecated and will be removed (the control functions differ in their "
+                      "domain, so it must be explicit)", DeprecationWarning, stacklevel=3)
+        return "dt"
+    check_option(domain, "domain", DOMAINS)
+    return domain
+
+
 class RegulatorGain(NamedTuple):
-    """LQR result: ``gain`` K (p, n), Riccati solution ``cost`` P (n, n), closed-loop ``poles`` eig(A − BK)."""
+    """LQR result, unpacking like python-control's ``K, S, E = lqr(...)``: ``gain`` K (p, n), Riccati
+    solution ``cost`` S (n, n), closed-loop ``poles`` E = eig(A − BK)."""
 
     gain: np.ndarray
     cost: np.ndarray
     poles: np.ndarray
 
 
-class EstimatorGain(NamedTuple):
-    r"""LQE result.
+class EstimatorGain:
+    r"""LQE result; unpacks like python-control's ``L, P, E = lqe(...)`` / ``dlqe(...)``.
 
-    ``gain``: the observer gain L with closed-loop matrix A − L C̃ (CT Kalman–Bucy gain, or the DT
-    *predictor* gain :math:`L_p = AK_f`); ``filter_gain``: the DT filter-form gain :math:`K_f`
-    (equal to ``gain`` in CT); ``prior_cov``: the Riccati solution (DT: a-priori :math:`\bar P`);
-    ``cov``: DT a-posteriori :math:`(I - K_f\tilde C)\bar P` (CT: the Riccati solution);
-    ``poles``: eig(A − L C̃); ``measurement``: the C̃ used (ΞC for the Tobit LQE);
-    ``noise``: the measurement covariance used (Υ for the Tobit LQE).
+    Iteration (and indexing) gives the three python-control items: the observer gain L (CT: the
+    Kalman–Bucy gain :math:`L = PC^TV^{-1}`; DT: the *predictor* gain :math:`L_p = AK_f`), the Riccati
+    solution P (DT: the a-priori :math:`\bar P`) and the poles E = eig(A − LC̃). Attributes:
+
+    ``domain``
+        ``"ct"`` or ``"dt"``.
+    ``gain`` (CT only)
+        The Kalman–Bucy gain L.
+    ``predictor_gain``, ``filter_gain`` (DT only)
+        :math:`L_p = AK_f` and :math:`K_f = \bar P\tilde C^T(\tilde C\bar P\tilde C^T + V)^{-1}`.
+    ``prior_cov``
+        The Riccati solution (DT: a-priori :math:`\bar P`).
+    ``cov``
+        DT: the a-posteriori :math:`(I - K_f\tilde C)\bar P`; CT: the Riccati solution.
+    ``poles``
+        eig(A − LC̃) (DT: eig(A − L_pC̃)).
+    ``measurement``, ``noise``
+        The C̃ and the measurement covariance used (ΞC and Υ for the Tobit LQE).
+
+    ``gain`` of a DT result and ``filter_gain`` of a CT result still work for one release, with a
+    ``DeprecationWarning`` (the DT ``gain`` was the predictor gain, while the steady-state TKF's
+    ``gain`` is the filter gain: one name, two quantities).
     """
 
-    gain: np.ndarray
-    filter_gain: np.ndarray
-    prior_cov: np.ndarray
-    cov: np.ndarray
-    poles: np.ndarray
-    measurement: np.ndarray
-    noise: np.ndarray
+    __slots__ = ("domain", "_gain", "_filter_gain", "prior_cov", "cov", "poles", "measurement", "noise")
+
+    def __init__(self, *, domain: str, gain: np.ndarray, filter_gain: np.ndarray | None, prior_cov: np.ndarray,
+                 cov: np.ndarray, poles: np.ndarray, measurement: np.ndarray, noise: np.ndarray):
+        self.domain = domain
+        self._gain, self._filter_gain = gain, filter_gain
+        self.prior_cov, self.cov, self.poles = prior_cov, cov, poles
+        self.measurement, self.noise = measurement, noise
+
+    # python-control's three items
+    def _items(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self._gain, self.prior_cov, self.poles
+
+    def __iter__(self):
+        return iter(self._items())
+
+    def __len__(self) -> int:
+        return 3
+
+    def __getitem__(self, i):
+        return self._items()[i]
+
+    def __repr__(self) -> str:
+        name = "gain" if self.domain == "ct" else "predictor_gain"
+        return f"EstimatorGain(domain={self.domain!r}, {name}={self._gain.tolist()}, poles={self.poles.tolist()})"
+
+    @property
+    def predictor_gain(self) -> np.ndarray:
+        """DT predictor gain :math:`L_p = AK_f` (observer x̂_{k+1} = Ax̂_k + L_p(y_k − C̃x̂_k))."""
+        if self.domain != "dt":
+            raise AttributeError("predictor_gain: a continuous-time result has one gain, .gain (Kalman–Bucy)")
+        return self._gain
+
+    @property
+    def gain(self) -> np.ndarray:
+        """CT Kalman–Bucy gain L (DT results: deprecated alias of :attr:`predictor_gain`)."""
+        if self.domain == "dt":
+            warnings.warn("EstimatorGain.gain of a discrete-time result is the predictor gain A K_f: use "
+                          ".predictor_gain (or .filter_gain for K_f); .gain is deprecated there", DeprecationWarning,
+                          stacklevel=2)
+        return self._gain
+
+    @property
+    def filter_gain(self) -> np.ndarray:
+        """DT filter gain :math:`K_f` (CT results: deprecated alias of :attr:`gain`)."""
+        if self.domain == "ct":
+            warnings.warn("EstimatorGain.filter_gain of a continuous-time result is its only gain: use .gain; "
+                          ".filter_gain is deprecated there", DeprecationWarning, stacklevel=2)
+            return self._gain
+        return self._filter_gain
+
+
+# --------------------------------------------------------------------------- Newton refinement
+def _residual_care(A, P, Q, S):
+    return A.T @ P + P @ A + Q - P @ S @ P
+
+
+def refine_care(A: Any, Q: Any, S: Any, P: Any, *, steps: int = 6) -> np.ndarray:
+    r"""Newton–Kleinman refinement of a solution of :math:`A^TP + PA + Q - PSP = 0` (S = BR^{-1}B^T).
+
+    Each step solves the Lyapunov equation :math:`(A - SP)^T\Delta + \Delta(A - SP) = -\mathcal R(P)` for
+    the correction of the residual :math:`\mathcal R`; steps are taken while the residual decreases
+    (at most ``steps``). The estimator CARE is the dual (A^T, C^TV^{-1}C). Returns the refined P.
+    """
+    from scipy.linalg import solve_continuous_lyapunov
+
+    A, Q, S, P = (np.asarray(v, dtype=float) for v in (A, Q, S, P))
+    res = np.abs(_residual_care(A, P, Q, S)).max()
+    for _ in range(steps):
+        if res == 0:
+            break
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)     # near-singular Lyapunov: judged by the residual
+            D = solve_continuous_lyapunov((A - S @ P).T, -_residual_care(A, P, Q, S))
+        P2 = P + 0.5 * (D + D.T)
+        res2 = np.abs(_residual_care(A, P2, Q, S)).max()
+        if not np.isfinite(res2) or res2 >= res:
+            break
+        P, res = P2, res2
+    return P
+
+
+def _residual_dare(A, B, Q, R, P):
+    G = R + B.T @ P @ B
+    return A.T @ P @ A - A.T @ P @ B @ np.linalg.solve(G, B.T @ P @ A) + Q - P
+
+
+def refine_dare(A: Any, B: Any, Q: Any, R: Any, P: Any, *, steps: int = 6) -> np.ndarray:
+    r"""Newton–Hewer refinement of a solution of :math:`P = A^TPA - A^TPB(R + B^TPB)^{-1}B^TPA + Q`.
+
+    Each step solves :math:`A_k^T\Delta A_k - \Delta = -\mathcal R(P)` with the closed loop
+    :math:`A_k = A - B(R + B^TPB)^{-1}B^TPA`; steps are taken while the residual decreases. The
+    estimator DARE is the dual (A^T, C^T). Returns the refined P.
+    """
+    from scipy.linalg import solve_discrete_lyapunov
+
+    A, B, Q, R, P = (np.asarray(v, dtype=float) for v in (A, B, Q, R, P))
+    res = np.abs(_residual_dare(A, B, Q, R, P)).max()
+    for _ in range(steps):
+        if res == 0:
+            break
+        Ak = A - B @ np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            D = solve_discrete_lyapunov(Ak.T, _residual_dare(A, B, Q, R, P))
+        P2 = P + 0.5 * (D + D.T)
+        res2 = np.abs(_residual_dare(A, B, Q, R, P2)).max()
+        if not np.isfinite(res2) or res2 >= res:
+            break
+        P, res = P2, res2
+    return P
 
 
 # --------------------------------------------------------------------------- checks
@@ -106,15 +257,16 @@ def _on_boundary(ev: np.ndarray, domain: str, tol: float = 1e-9) -> np.ndarray:
     return np.abs(ev.real) <= tol if domain == "ct" else np.abs(np.abs(ev) - 1.0) <= tol
 
 
-def uncontrollable_modes(A: Any, B: Any, *, which: str = "unstable", domain: str = "dt",
+def uncontrollable_modes(A: Any, B: Any, *, which: str = "unstable", domain: str | None = None,
                          rtol: float = 1e-9) -> np.ndarray:
     r"""Eigenvalues λ of A with rank [A − λI, B] < n (PBH test), restricted by ``which``.
 
     ``which``: ``"unstable"`` (the modes that make (A, B) not stabilizable), ``"boundary"``
-    (on the imaginary axis / unit circle) or ``"all"``.
+    (on the imaginary axis / unit circle) or ``"all"``. ``domain`` ("ct" or "dt") is required
+    (omitting it is deprecated; it means "dt" for one release).
     """
     check_option(which, "which", ("unstable", "boundary", "all"))
-    check_option(domain, "domain", DOMAINS)
+    domain = _domain(domain, "uncontrollable_modes")
     A = np.asarray(A, dtype=float)
     B = np.asarray(B, dtype=float)
     n = A.shape[0]
@@ -144,9 +296,10 @@ def uncontrollable_modes(A: Any, B: Any, *, which: str = "unstable", domain: str
     return np.array(out)
 
 
-def unobservable_modes(A: Any, C: Any, *, which: str = "unstable", domain: str = "dt",
+def unobservable_modes(A: Any, C: Any, *, which: str = "unstable", domain: str | None = None,
                        rtol: float = 1e-9) -> np.ndarray:
     """Eigenvalues λ of A with rank [A − λI; C] < n (PBH test); see :func:`uncontrollable_modes`."""
+    domain = _domain(domain, "unobservable_modes")
     return uncontrollable_modes(np.asarray(A, dtype=float).T, np.asarray(C, dtype=float).T, which=which,
                                 domain=domain, rtol=rtol)
 
@@ -169,9 +322,13 @@ def _diagnose(A, B, Wh, domain, first, weight, why, *, observe: bool = False) ->
     return why
 
 
-def is_stable(M: Any, *, domain: str = "dt") -> bool:
-    """True if ``M`` is Hurwitz (``"ct"``: all Re λ < 0) or Schur (``"dt"``: spectral radius < 1); spec A-4.1."""
-    check_option(domain, "domain", DOMAINS)
+def is_stable(M: Any, *, domain: str | None = None) -> bool:
+    """True if ``M`` is Hurwitz (``domain="ct"``: all Re λ < 0) or Schur (``"dt"``: spectral radius < 1).
+
+    The domain is required (the dissertation judges discrete-time systems by the continuous-time test,
+    docs/sources MA-21); omitting it is deprecated and means "dt" for one release.
+    """
+    domain = _domain(domain, "is_stable")
     ev = np.linalg.eigvals(np.asarray(M, dtype=float))
     return bool(np.all(ev.real < 0)) if domain == "ct" else bool(np.all(np.abs(ev) < 1))
 
@@ -195,7 +352,13 @@ def _lqr(A, B, Q, R, domain: str) -> RegulatorGain:
     K = S = None
     try:
         K, S, _ = (control.lqr if domain == "ct" else control.dlqr)(A, B, Q, R)
-        K, S = np.asarray(K, dtype=float), np.asarray(S, dtype=float)
+        S = np.asarray(S, dtype=float)
+        if np.all(np.isfinite(S)):
+            S = (refine_care(A, Q, B @ np.linalg.solve(R, B.T), S) if domain == "ct"
+                 else refine_dare(A, B, Q, R, S))
+            K = (np.linalg.solve(R, B.T @ S) if domain == "ct"
+                 else np.linalg.solve(R + B.T @ S @ B, B.T @ S @ A))
+        K = np.asarray(K, dtype=float)
         ok = bool(np.all(np.isfinite(K)) and np.all(np.isfinite(S)) and is_stable(A - B @ K, domain=domain))
         why = "the solution does not stabilize A - B K"
     except (np.linalg.LinAlgError, ValueError) as exc:
@@ -207,7 +370,7 @@ def _lqr(A, B, Q, R, domain: str) -> RegulatorGain:
 
 
 def lqr(A: Any, B: Any, Q: Any, R: Any) -> RegulatorGain:
-    r"""Continuous-time LQR (Miller (4.39)–(4.41)) via ``control.lqr``.
+    r"""Continuous-time LQR (Miller (4.39)–(4.41)) via ``control.lqr``, Newton–Kleinman refined.
 
     Parameters
     ----------
@@ -221,7 +384,8 @@ def lqr(A: Any, B: Any, Q: Any, R: Any) -> RegulatorGain:
     Returns
     -------
     RegulatorGain
-        ``gain`` K (p, n) with u = −Kx, ``cost`` P, ``poles`` eig(A − BK) (Hurwitz).
+        ``gain`` K (p, n) with u = −Kx, ``cost`` P, ``poles`` eig(A − BK) (Hurwitz); unpacks as
+        ``K, S, E = lqr(...)`` like python-control.
 
     Raises
     ------
@@ -278,7 +442,13 @@ def _lqe(A, G, C, W, V, domain: str, *, tag: str = "LQE") -> EstimatorGain:
             L, P, _ = control.lqe(A, G, C, W, V)
         else:
             L, P, _ = control.dlqe(A, G, C, W, V)     # predictor gain A P C'(C P C' + V)^-1, P a-priori
-        L, P = np.asarray(L, dtype=float), np.asarray(P, dtype=float)
+        P = np.asarray(P, dtype=float)
+        if np.all(np.isfinite(P)):                    # Newton refinement on the dual (A^T, C^T) equation
+            P = (refine_care(A.T, Qd, C.T @ np.linalg.solve(V, C), P) if domain == "ct"
+                 else refine_dare(A.T, C.T, Qd, V, P))
+            L = (P @ C.T @ np.linalg.inv(V) if domain == "ct"
+                 else A @ np.linalg.solve(C @ P @ C.T + V, C @ P).T)
+        L = np.asarray(L, dtype=float)
         ok = bool(np.all(np.isfinite(L)) and np.all(np.isfinite(P)) and is_stable(A - L @ C, domain=domain))
         why = "the solution does not stabilize A - L C"
     except (np.linalg.LinAlgError, ValueError) as exc:
@@ -289,12 +459,15 @@ def _lqe(A, G, C, W, V, domain: str, *, tag: str = "LQE") -> EstimatorGain:
                                           "process noise G W G^T", why, observe=True))
     P = 0.5 * (P + P.T)
     if domain == "ct":
-        return EstimatorGain(L, L, P, P, np.linalg.eigvals(A - L @ C), C, V)
+        L = P @ C.T @ np.linalg.inv(V)
+        return EstimatorGain(domain="ct", gain=L, filter_gain=None, prior_cov=P, cov=P,
+                             poles=np.linalg.eigvals(A - L @ C), measurement=C, noise=V)
     S = C @ P @ C.T + V
     Kf = np.linalg.solve(S, C @ P).T
     post = (np.eye(n) - Kf @ C) @ P
     Lp = A @ Kf
-    return EstimatorGain(Lp, Kf, P, 0.5 * (post + post.T), np.linalg.eigvals(A - Lp @ C), C, V)
+    return EstimatorGain(domain="dt", gain=Lp, filter_gain=Kf, prior_cov=P, cov=0.5 * (post + post.T),
+                         poles=np.linalg.eigvals(A - Lp @ C), measurement=C, noise=V)
 
 
 def lqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
@@ -314,7 +487,8 @@ def lqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
     Returns
     -------
     EstimatorGain
-        ``gain`` L = P C^T V^{-1}; ``poles`` eig(A − LC).
+        Unpacks as ``L, P, E = lqe(...)`` like python-control: ``gain`` L = P C^T V^{-1}, the CARE
+        solution P (``cov``), ``poles`` eig(A − LC). P is Newton–Kleinman refined.
 
     Raises
     ------
@@ -324,30 +498,32 @@ def lqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
 
     Notes
     -----
-    The MEE form (4.50)–(4.51) with weights Q = V^{-1}, R = W^{-1} gives the same L (spec 001a §4.6).
+    The MEE form (4.50)–(4.51) with weights Q = V^{-1}, R = W^{-1} gives the same L (docs/sources MA-23).
 
     Examples
     --------
     The scalar example of §5.3.3 (A = −0.8, σ_q = 0.1, σ = 0.5), printed L = 0.0246:
 
-    >>> round(float(lqe([[-0.8]], None, [[1.0]], [[0.01]], [[0.25]]).gain[0, 0]), 7)
+    >>> L, P, E = lqe([[-0.8]], None, [[1.0]], [[0.01]], [[0.25]])
+    >>> round(float(L[0, 0]), 7)
     0.0246211
     """
     return _lqe(A, G, C, W, V, "ct")
 
 
 def dlqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
-    r"""Discrete-time steady-state Kalman gains via ``control.dlqe`` (DARE).
+    r"""Discrete-time steady-state Kalman gains via ``control.dlqe`` (DARE), Newton–Hewer refined.
 
-    Returns both the predictor gain ``gain`` :math:`L_p = AK_f` (observer
-    :math:`\hat x_{k+1} = A\hat x_k + L_p(y_k - C\hat x_k)`) and the filter gain
-    ``filter_gain`` :math:`K_f = \bar PC^T(C\bar PC^T + V)^{-1}` (spec 001a A-3.8). Parameters
-    and errors as :func:`lqe`.
+    Unpacks as ``L, P, E = dlqe(...)`` like python-control: the predictor gain
+    ``predictor_gain`` :math:`L_p = AK_f` (observer :math:`\hat x_{k+1} = A\hat x_k + L_p(y_k - C\hat x_k)`),
+    the a-priori DARE solution ``prior_cov`` :math:`\bar P` and ``poles`` eig(A − L_pC). The filter gain
+    ``filter_gain`` :math:`K_f = \bar PC^T(C\bar PC^T + V)^{-1}` (x̂ = x̄ + K_f(y − Cx̄)) and the
+    a-posteriori ``cov`` are attributes (docs/sources MA-15). Parameters and errors as :func:`lqe`.
 
     Examples
     --------
-    >>> g = dlqe([[1.0]], None, [[1.0]], [[1.0]], [[1.0]])   # Pbar = golden ratio
-    >>> bool(np.isclose(g.prior_cov[0, 0], 1.6180339887))
+    >>> L, P, E = dlqe([[1.0]], None, [[1.0]], [[1.0]], [[1.0]])   # Pbar = golden ratio
+    >>> bool(np.isclose(P[0, 0], 1.6180339887))
     True
     """
     return _lqe(A, G, C, W, V, "dt")
@@ -356,9 +532,11 @@ def dlqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
 def controlled_noise(xi_uncensored: Any, sigma: Any) -> tuple[np.ndarray, np.ndarray]:
     r"""Constant Tobit statistics under a controlled limit (3.56): :math:`(\hat\lambda, \upsilon)`.
 
-    :math:`\hat\lambda = \phi(a)/\Xi` (the right-censoring IMR) and
-    :math:`\upsilon = \sigma^2(1 - a\hat\lambda - \hat\lambda^2)`, :math:`a = \Phi^{-1}(\Xi)`;
-    the two entries of :func:`tobitkf.filters.steady_state.controlled_limit_statistics` a control
+    :math:`\hat\lambda = \phi(a)/\Xi` (the dissertation's λ̂ of §3.4, positive; for right censoring
+    it is ``-censored_moments(...).inverse_mills``, whose sign convention is the truncated mean
+    μ + σ·inverse_mills) and :math:`\upsilon = \sigma^2(1 - a\hat\lambda - \hat\lambda^2)`,
+    :math:`a = \Phi^{-1}(\Xi)`; ``sigma`` is the measurement-noise **standard deviation** (the name says
+    so). The two entries of :func:`tobitkf.filters.steady_state.controlled_limit_statistics` a control
     design needs.
 
     Raises
@@ -372,58 +550,147 @@ def controlled_noise(xi_uncensored: Any, sigma: Any) -> tuple[np.ndarray, np.nda
     return np.broadcast_arrays(lam, upsilon)
 
 
-def tobit_lqe(A: Any, G: Any, C: Any, W: Any, sigma: Any, xi_uncensored: Any, *,
-              domain: str = "ct") -> EstimatorGain:
-    r"""Steady-state Tobit observer gain: the LQE of :math:`(A, \Xi C)` with noise :math:`\Upsilon` (§0.3 of spec 001b).
+def _tobit_lqe(A, G, C, W, V, xi_uncensored, domain: str) -> EstimatorGain:
+    C = _mat(C, "C", (None, None))
+    m = C.shape[0]
+    V = _mat(V, "V", (m, m))
+    if np.abs(V - np.diag(np.diag(V))).max() > 0:
+        raise ValidationError("V: the Tobit LQE needs a diagonal measurement covariance (the channels are "
+                              "censored one by one)")
+    var = np.diag(V)
+    if np.any(~np.isfinite(var)) or np.any(var <= 0):
+        raise ValidationError(f"V: the measurement variances must be positive and finite, got {var.tolist()}")
+    xi_arr = as_float_array(xi_uncensored, "xi_uncensored")
+    if xi_arr.ndim > 1 or xi_arr.size not in (1, m):
+        raise ShapeError(f"xi_uncensored: expected a scalar or shape ({m},) (one per row of C), "
+                         f"got shape {xi_arr.shape}")
+    xi = np.broadcast_to(xi_arr.reshape(-1), (m,))
+    lam, ups = controlled_noise(xi, np.sqrt(var))
+    return _lqe(A, G, xi[:, None] * C, W, np.diag(ups), domain, tag="Tobit LQE (modified ARE)")
+
+
+def _tobit_arguments(args: tuple, V: Any, xi_uncensored: Any, sigma: Any, func: str) -> tuple[Any, Any]:
+    """The (V, xi) of a Tobit LQE call; the old ``(sigma, xi)`` positional form still works, with a warning."""
+    if len(args) > 2:
+        raise TypeError(f"{func}() takes at most 6 positional arguments ({4 + len(args)} given)")
+    if args or sigma is not None:
+        if V is not None:
+            raise TypeError(f"{func}: give the measurement covariance V or the deprecated sigma, not both")
+        if args:
+            sigma, *rest = args
+            if rest:
+                if xi_uncensored is not None:
+                    raise TypeError(f"{func}: xi_uncensored given twice")
+                xi_uncensored = rest[0]
+        warnings.warn(f"{func}(A, G, C, W, sigma, xi_uncensored) with a standard deviation is deprecated: pass the "
+                      f"measurement covariance by keyword, {func}(A, G, C, W, V=sigma**2, xi_uncensored=xi) "
+                      "(every control function takes covariances)", DeprecationWarning, stacklevel=3)
+        sd = np.atleast_1d(as_float_array(sigma, "sigma"))
+        if sd.ndim != 1 or np.any(sd <= 0):
+            raise ValidationError(f"sigma: expected positive standard deviations, got {sd.tolist()}")
+        V = np.diag(sd**2)
+    if V is None or xi_uncensored is None:
+        raise TypeError(f"{func}: the measurement covariance V= and the probability xi_uncensored= are required")
+    return V, xi_uncensored
+
+
+def tobit_lqe(A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_uncensored: Any = None,
+              domain: str | None = None, sigma: Any = None) -> EstimatorGain:
+    r"""Continuous-time steady-state Tobit observer gain: the Kalman–Bucy LQE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
 
     This is the "modified ARE" of Miller §3.4.2 and §5.3.3–§5.4 ((3.57) without its spurious
-    second :math:`\bar\Psi`). With a fixed limit T and the state held at :math:`x_{eq}`, use
-    :math:`\Xi = \Phi((T - Cx_{eq})/\sigma)` (right censoring), as the text does for the printed
-    Tobit gains of §5.3.3 and §5.4.
+    second :math:`\bar\Psi`, docs/sources MA-11), in continuous time, which is how every Tobit gain
+    printed in Ch. 5 is computed (MB-08). With a fixed limit T and the state held at
+    :math:`x_{eq}`, use :math:`\Xi = \Phi((T - Cx_{eq})/\sigma)` (right censoring), as the text does
+    for the printed gains of §5.3.3 and §5.4. :func:`tobit_dlqe` is the discrete-time version.
 
     Parameters
     ----------
     A, G, C, W : as in :func:`lqe`
-    sigma : float or (m,) array_like
-        Measurement-noise standard deviations (not variances; spec A-12).
-    xi_uncensored : float or (m,) array_like in (0, 1)
+    V : (m, m) array_like, keyword
+        Measurement-noise covariance, diagonal (variances σ_i², as :func:`lqe` takes).
+    xi_uncensored : float or (m,) array_like in (0, 1), keyword
         Probability Ξ of an uncensored reading per channel.
-    domain : {"ct", "dt"}, default "ct"
-        "ct" reproduces the printed gains (Kalman–Bucy, spec A-8); "dt" gives the modified DARE
-        (``filter_gain`` K∞, ``prior_cov`` Ψ̄∞, ``cov`` Ψ∞).
+    domain, sigma
+        Deprecated. ``domain="dt"`` is :func:`tobit_dlqe`; ``sigma`` (a standard deviation, also the
+        old fifth positional argument) is ``V = diag(sigma**2)``. Both work for one release with a
+        ``DeprecationWarning``.
 
     Returns
     -------
     EstimatorGain
-        With ``measurement`` = ΞC and ``noise`` = Υ; ``poles`` = eig(A − LΞC) (the effective
-        observer poles; the text prints eig(A − LC), spec A-15).
+        Unpacks as ``L, P, E``; ``gain`` L = PC̃ᵀΥ⁻¹ with ``measurement`` C̃ = ΞC and ``noise`` Υ;
+        ``poles`` = eig(A − LΞC), the effective observer poles (the text prints eig(A − LC), MB-15).
 
     Raises
     ------
     ValidationError
-        Ξ outside (0, 1), (A, C) not detectable, or a failed Riccati equation (named).
+        Ξ outside (0, 1), a non-diagonal V, (A, C) not detectable, or a failed Riccati equation (named).
+
+    Notes
+    -----
+    The covariance ``cov`` is what the steady-state filter believes under Assumption 1 with the limit
+    steered so that E(p) ≡ Ξ; it is not an upper bound on the actual error, and with a fixed limit
+    and a state away from the design point it can be far too optimistic (docs/sources MB-F1).
 
     Examples
     --------
-    DC-motor speed model, T = 0 (Ξ = 0.5): printed L = [16.452, .305] (spec T8).
+    DC-motor speed model, T = 0 (Ξ = 0.5): printed L = [16.452, .305] (§5.4.1).
+
+    >>> from tobitkf.control.plants import dc_motor_speed
+    >>> p = dc_motor_speed()
+    >>> L, P, E = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=0.5)
+    >>> [round(float(L[0, 0]), 3), round(float(L[1, 0]), 3)]
+    [16.452, 0.305]
     """
-    C = _mat(C, "C", (None, None))
-    xi_arr = as_float_array(xi_uncensored, "xi_uncensored")
-    if xi_arr.ndim > 1 or xi_arr.size not in (1, C.shape[0]):
-        raise ShapeError(f"xi_uncensored: expected a scalar or shape ({C.shape[0]},) (one per row of C), "
-                         f"got shape {xi_arr.shape}")
-    lam, ups = controlled_noise(np.broadcast_to(xi_arr.reshape(-1), (C.shape[0],)),
-                                np.broadcast_to(as_float_array(sigma, "sigma"), (C.shape[0],)))
-    xi = np.broadcast_to(np.asarray(xi_uncensored, dtype=float), (C.shape[0],))
-    return _lqe(A, G, xi[:, None] * C, W, np.diag(ups), domain, tag="Tobit LQE (modified ARE)")
+    V, xi_uncensored = _tobit_arguments(args, V, xi_uncensored, sigma, "tobit_lqe")
+    if domain is not None:
+        check_option(domain, "domain", DOMAINS)
+        if domain == "dt":
+            warnings.warn("tobit_lqe(..., domain='dt') is deprecated: use tobit_dlqe(...) (the name says the time "
+                          "domain, as lqe/dlqe)", DeprecationWarning, stacklevel=2)
+        else:
+            warnings.warn("tobit_lqe(..., domain='ct'): the domain argument is deprecated, tobit_lqe is the "
+                          "continuous-time LQE (tobit_dlqe the discrete-time one)", DeprecationWarning, stacklevel=2)
+        return _tobit_lqe(A, G, C, W, V, xi_uncensored, domain)
+    return _tobit_lqe(A, G, C, W, V, xi_uncensored, "ct")
+
+
+def tobit_dlqe(A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_uncensored: Any = None,
+               sigma: Any = None) -> EstimatorGain:
+    r"""Discrete-time steady-state Tobit observer gains: the DARE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
+
+    The modified DARE of Miller §3.4.2 ((3.57) corrected, docs/sources MA-11): the fixed gain of
+    :class:`~tobitkf.filters.steady_state.SteadyStateTobitKalmanFilter`. Same arguments as
+    :func:`tobit_lqe` (``V`` a diagonal covariance, ``xi_uncensored``; the deprecated ``sigma`` form
+    still works for one release).
+
+    Returns
+    -------
+    EstimatorGain
+        Unpacks as ``L, P, E`` like :func:`dlqe`: ``predictor_gain`` :math:`L_p = AK_\infty`,
+        ``prior_cov`` :math:`\bar\Psi_\infty`, ``poles`` eig(A − L_pΞC); ``filter_gain``
+        :math:`K_\infty` (the steady-state TKF's ``gain``) and ``cov`` :math:`\Psi_\infty` as attributes.
+        Ψ∞ is not an error bound (docs/sources MB-F1).
+
+    Examples
+    --------
+    >>> L, P, E = tobit_dlqe([[0.9]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=0.5)
+    >>> g = tobit_dlqe([[0.9]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=0.5)
+    >>> bool(np.allclose(L, 0.9 * g.filter_gain))
+    True
+    """
+    V, xi_uncensored = _tobit_arguments(args, V, xi_uncensored, sigma, "tobit_dlqe")
+    return _tobit_lqe(A, G, C, W, V, xi_uncensored, "dt")
 
 
 # --------------------------------------------------------------------------- setpoints
-def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str = "dt") -> np.ndarray:
+def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str | None = None) -> np.ndarray:
     r"""Feed-forward :math:`\bar N` for unit DC gain from r to z = C_z x under u = N̄r − Kx (6.22), (6.45).
 
     CT: :math:`\bar N = -[C_z(A - BK)^{-1}B]^{-1}`; DT: :math:`\bar N = [C_z(I - A + BK)^{-1}B]^{-1}`
-    (spec 001b §2.1).
+    (Miller §6.1). ``domain`` ("ct" or "dt") is required; omitting it is deprecated and means "dt"
+    for one release.
 
     Raises
     ------
@@ -431,7 +698,7 @@ def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str = "dt") -> np
         If the DC gain matrix is singular or not square (the plant cannot track the reference:
         a transmission zero at s = 0 / z = 1, or more outputs than inputs), or A − BK is not stable.
     """
-    check_option(domain, "domain", DOMAINS)
+    domain = _domain(domain, "reference_gain")
     A, B, Cz, K = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (B, "B"), (Cz, "Cz"), (K, "K")))
     n = A.shape[0]
     p = B.shape[-1]
@@ -455,18 +722,19 @@ def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str = "dt") -> np
     return np.linalg.inv(dc)
 
 
-def equilibrium(A: Any, B: Any, G: Any, H: Any, r: Any, *, domain: str = "dt") -> tuple[np.ndarray, np.ndarray]:
+def equilibrium(A: Any, B: Any, G: Any, H: Any, r: Any, *, domain: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     r"""Equilibrium :math:`(x_{eq}, u_{eq})` with output :math:`Gx_{eq} + Hu_{eq} = r` (Miller (6.4)–(6.5)).
 
     Solves :math:`[[A - I\,(\text{DT}) \text{ or } A, B], [G, H]]\,[x_{eq}; u_{eq}] = [0; r]` in the
-    least-squares sense and checks that the residual vanishes.
+    least-squares sense and checks that the residual vanishes. ``domain`` ("ct" or "dt") is required
+    (omitting it is deprecated and means "dt" for one release).
 
     Raises
     ------
     ValidationError
         If no equilibrium produces ``r`` (the reference cannot be tracked).
     """
-    check_option(domain, "domain", DOMAINS)
+    domain = _domain(domain, "equilibrium")
     A, B, G, H = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, B, G, H))
     r = np.atleast_1d(np.asarray(r, dtype=float))
     n, p = B.shape
@@ -493,7 +761,7 @@ def discretize(A: Any, B: Any, G: Any, W: Any, dt: float) -> tuple[np.ndarray, n
     :math:`A_d, B_d` come from the matrix exponential of the augmented matrix; :math:`Q_d` from the
     eigendecomposition :math:`A = V\Lambda V^{-1}`,
     :math:`Q_d = V[M_{ij}(e^{(\lambda_i+\bar\lambda_j)\Delta} - 1)/(\lambda_i + \bar\lambda_j)]V^H` with
-    :math:`M = V^{-1}GWG^TV^{-H}` (Van Loan's method overflows for the stiff DC motor, spec 001b §1.6).
+    :math:`M = V^{-1}GWG^TV^{-H}` (Van Loan's method overflows for the stiff DC motor, whose eigenvalues span 0 to −1.5e7).
     A must be diagonalizable.
 
     Returns

@@ -1,7 +1,7 @@
 r"""Censoring-limit control for a panning camera, and a TKF whose sensor window is steered each step.
 
 Source: Miller (2015) §6.7 (airborne imager, saturation limits from the frame edges, (6.64)–(6.76));
-spec 001b §2.7, ambiguities A34, A36–A39.
+our deviations MB-34 and MB-36 to MB-39 of docs/sources/miller2015-ch5-7.md.
 
 A camera's field of view, projected on the ground, is a saturation window
 :math:`[T_l, T_h]` of fixed width (constant altitude, pure translation, fixed focal length). Moving
@@ -9,7 +9,7 @@ the window is moving the censoring limits. The laws below set :math:`T_h` (and
 :math:`T_l = T_h - \text{width}`) from the filter's *prior* (set before the frame is taken):
 
 * keep-in-view rule (6.72): :math:`T_h = \max(T_{h,0},\ C\bar x + s\,\Phi^{-1}(p))`, p = 0.9999,
-  s = σ (as printed) or :math:`\sqrt{\sigma^2 + C\bar\Psi C^T}` (``spread="prior"``, spec A39);
+  s = σ (as printed) or :math:`\sqrt{\sigma^2 + C\bar\Psi C^T}` (``prior_var``, MB-39);
 * centred window (6.73): :math:`T_{h,l} = C\bar x \pm \sigma\Phi^{-1}((1 + ED)/2)`, so that γ = ED and λ = 0;
 * IMR feedback (6.74)–(6.75): :math:`T_h(k) = T_h(k-1) + \kappa\sum_i\lambda_i`, with the
   dissertation's :math:`\lambda_i = (\phi(b_i) - \phi(a_i))/\gamma_i`;
@@ -17,10 +17,10 @@ the window is moving the censoring limits. The laws below set :math:`T_h` (and
   \,\mathrm{sign}(\hat y_1 - \hat y_2)`; single target
   :math:`\kappa\max(0, P_{11} - P_{ref})\,\mathrm{sign}(\hat y - (T_l + T_h)/2)`.
 
-Deviations from the source (spec A37, A38): the printed (6.74) :math:`T_h(k) = T_h(k-1) - K\sum\lambda_i`
+Deviations from the source (MB-37, MB-38): the printed (6.74) :math:`T_h(k) = T_h(k-1) - K\sum\lambda_i`
 with K > 0 moves the window *away* from a target near an edge; the sign is corrected
 (``kappa > 0``). The sign of (6.76) depends on which target is above; the sign(ŷ₁ − ŷ₂) factor is
-added and the single-target law (not printed) is the spec's.
+added and the single-target law (not printed) is ours.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ def keep_in_view_limit(prior_measurement: Any, sigma: Any, upper0: float, *, wid
     r"""Rule (6.72): :math:`T_h = \max(T_{h,0}, C\bar x + s\Phi^{-1}(p))`, :math:`T_l = T_h - \text{width}`.
 
     ``prior_var`` (:math:`C\bar\Psi C^T`) switches s from σ (printed) to :math:`\sqrt{\sigma^2 + C\bar\Psi C^T}`
-    (spec A39). Returns (lower, upper) with the shape of ``prior_measurement``.
+    (MB-39). Returns (lower, upper) with the shape of ``prior_measurement``.
     """
     probability = as_float(probability, "probability", low=0.0, high=1.0, low_open=True, high_open=True)
     width = as_float(width, "width", low=0.0, low_open=True)
@@ -98,7 +98,7 @@ def imr_panning_step(upper: Any, width: float, prior_measurements: Any, sigma: A
     target near the upper edge), i.e. minus :attr:`CensoredMoments.inverse_mills`.
     """
     if kappa < 0:
-        raise ValidationError(f"kappa: expected kappa >= 0 (the printed minus sign moves the window away, spec A37), "
+        raise ValidationError(f"kappa: expected kappa >= 0 (the printed minus sign moves the window away, MB-37), "
                               f"got {kappa}")
     up = np.asarray(upper, dtype=float)
     st = censored_moments(np.asarray(prior_measurements, dtype=float), sigma, (up - width)[..., None], up[..., None])
@@ -107,7 +107,7 @@ def imr_panning_step(upper: Any, width: float, prior_measurements: Any, sigma: A
 
 def covariance_panning_step(upper: Any, P_pos: Any, P_ref: Any, prior_measurements: Any, kappa: float, *,
                             width: float | None = None) -> np.ndarray:
-    r"""Covariance feedback (6.76) with the spec's sign factor.
+    r"""Covariance feedback (6.76) with our sign factor (MB-38).
 
     Two targets: ``P_pos`` (..., 2) = (P11, P33), ``P_ref`` (2,), ``prior_measurements`` (..., 2):
     :math:`T_h + \kappa[(P_{11} - P_{ref,1}) - (P_{33} - P_{ref,2})]\mathrm{sign}(\hat y_1 - \hat y_2)`.
@@ -128,7 +128,7 @@ def covariance_panning_step(upper: Any, P_pos: Any, P_ref: Any, prior_measuremen
 
 
 def dissertation_variance_6_61(mean: Any, sigma: Any, lower: Any, upper: Any) -> np.ndarray:
-    r"""The printed (6.61)/(6.69) truncated variance, **known to be wrong** (spec A34, T20):
+    r"""The printed (6.61)/(6.69) truncated variance, **known to be wrong** (MB-34):
     :math:`\sigma^2(1 - \lambda^2 + \hat y\lambda/\sigma + (T_l\Phi(a) - T_h\Phi(b))/\gamma)`
     (Φ where φ belongs, a missing 1/σ). Kept only as a regression guard; use
     :func:`tobitkf.censored_moments` (the correct V)."""

@@ -1,6 +1,6 @@
 r"""Plants of Miller (2015) Ch. 5–6: DC motor (speed and position), the scalar example.
 
-Source: Miller §5.3.3 (scalar), §5.4.1 (5.58)–(5.61) and §5.4.2 (5.64)–(5.66); spec 001b §1.5–§1.7.
+Source: Miller §5.3.3 (scalar), §5.4.1 (5.58)–(5.61) and §5.4.2 (5.64)–(5.66).
 
 DC motor, state :math:`[\dot\theta, i]` (speed) or :math:`[\theta, \dot\theta, i]` (position):
 
@@ -10,7 +10,7 @@ DC motor, state :math:`[\dot\theta, i]` (speed) or :math:`[\theta, \dot\theta, i
     G = B = \begin{bmatrix} 0 \\ 1/l \end{bmatrix}, \quad C = [1\ 0], \quad
     W = \sigma_q^2, \quad V = \sigma_r^2
 
-Deviations from the source (all needed to reproduce the printed numbers, spec A9–A12, A24):
+Deviations from the source (all needed to reproduce the printed numbers; docs/sources MB-09 to MB-12, MB-24):
 
 * k = 9.73E−3, not the printed 9.37E−3 (a digit transposition; only 9.73E−3 gives the
   printed A and L);
@@ -33,7 +33,7 @@ __all__ = ["ContinuousPlant", "DC_MOTOR", "dc_motor_speed", "dc_motor_position",
 
 DC_MOTOR = {"b": 3.5077e-6, "j": 4.2937e-5, "k": 9.73e-3, "r": 4.27, "l": 0.288e-6,
             "sigma_q": 0.01, "sigma_r": 0.05}
-"""Parameters of §5.4.1 (k corrected to 9.73E-3, spec A9)."""
+"""Parameters of §5.4.1 (k corrected to 9.73E-3, MB-09)."""
 
 
 class ContinuousPlant(NamedTuple):
@@ -68,6 +68,6 @@ def dc_motor_position(*, k: float = DC_MOTOR["k"]) -> ContinuousPlant:
 
 
 def scalar_example() -> ContinuousPlant:
-    """§5.3.3: A = −0.8, C = 1, σ = 0.5, σ_q = 0.1 (standard deviations, spec 001b §1.5)."""
+    """§5.3.3: A = −0.8, C = 1, σ = 0.5, σ_q = 0.1 (standard deviations, MB-12)."""
     one = np.array([[1.0]])
     return ContinuousPlant(np.array([[-0.8]]), one, one, one, np.array([[0.01]]), np.array([[0.25]]))

@@ -1,6 +1,6 @@
 r"""Mobile robot localised by received signal strength (RSS), controlled through a Tobit observer.
 
-Source: Miller (2015) §6.3, (6.22)–(6.44); spec 001b §2.3, ambiguities A25–A31.
+Source: Miller (2015) §6.3, (6.22)–(6.44); our deviations MB-25 to MB-30 of docs/sources/miller2015-ch5-7.md.
 
 Plant (6.22)–(6.25), state :math:`X_p = [x_p, x_v, y_p, y_v]`, a 2-D double integrator:
 
@@ -21,14 +21,14 @@ Deviations and reconstructions (all labelled in the experiment):
 
 * B_p printed as [[1,0],[0,0],[0,1],[0,0]] acts on positions only: (A_p, B_p) is not stabilizable (the
   LQR fails with an error naming the uncontrollable modes). The force input B_p = G_p is used
-  (spec A25); ``input_matrix="printed"`` reproduces the failure.
+  (MB-25); ``input_matrix="printed"`` reproduces the failure.
 * (6.33) sets :math:`U_d = \tfrac12\log_{10}\beta_i` although β already includes the square root; the default is
-  :math:`\log_{10}\beta_i` (spec A28); ``half_log=True`` gives the printed ½.
-* (6.27)'s P_L(d_0) constant is dropped (spec A27): RSS = −60 log₁₀ d + η, so −90 dBm is d = 31.62 m.
+  :math:`\log_{10}\beta_i` (MB-28); ``half_log=True`` gives the printed ½.
+* (6.27)'s P_L(d_0) constant is dropped (MB-27): RSS = −60 log₁₀ d + η, so −90 dBm is d = 31.62 m.
 * Δ, m, horizon, ω and the direction are not given: Δ = 0.1, m = 1, N = 1000, ω = 2π/(NΔ),
-  r(k) = ζ[sin(ωkΔ), cos(ωkΔ)] from (0, ζ) (spec A26). η_RSS = 2 dB, σ_q = 0.1, σ_r = 0.05 are standard
-  deviations; Ψ_0 = 0.1 I (spec A29). The range estimate for the pseudo-measurement is the a-priori
-  ℓ̄ of the current step (spec A30).
+  r(k) = ζ[sin(ωkΔ), cos(ωkΔ)] from (0, ζ) (MB-26). η_RSS = 2 dB, σ_q = 0.1, σ_r = 0.05 are standard
+  deviations; Ψ_0 = 0.1 I (MB-29). The range estimate for the pseudo-measurement is the a-priori
+  ℓ̄ of the current step (MB-30).
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def robot_setup(*, dt: float = 0.1, mass: float = 1.0, alpha: float = 6.0, sigma
     Bp = Gp.copy() if input_matrix == "force" else np.array([[1.0, 0], [0, 0], [0, 1.0], [0, 0]])
     Cp = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
     K = dlqr(Ap, Bp, weight * Cp.T @ Cp, np.eye(2)).gain
-    Nbar = reference_gain(Ap, Bp, Cp, K)
+    Nbar = reference_gain(Ap, Bp, Cp, K, domain="dt")
     eta_d = float(np.log10(1 + sigma_rss / (10 * alpha)))          # (6.37)-(6.40): 0.014240
     return RobotSetup(dt, Ap, Bp, Gp, Cp, K, Nbar, alpha, sigma_q, sigma_r, sigma_rss, eta_d, limit, TRANSMITTERS)
 

@@ -1,6 +1,7 @@
 r"""Stability of the Tobit observer: Jacobians, mean-field error dynamics, a Lyapunov certificate.
 
-Source: Miller (2015) Ch. 5, (5.1)–(5.56); spec 001b §1 and ambiguities A1–A7, A15, A18.
+Source: Miller (2015) Ch. 5, (5.1)–(5.56), Figs 5.1–5.9; our deviations are MB-01 to MB-07,
+MB-15 and MB-18 of docs/sources/miller2015-ch5-7.md.
 
 The fixed-gain Tobit observer in predictor form (5.2), for a channel censored to
 ``[lower, upper]`` (right censoring: ``lower = -inf``, ``upper = T``):
@@ -12,7 +13,7 @@ The fixed-gain Tobit observer in predictor form (5.2), for a channel censored to
 and its mean-field ("noise replaced by its conditional mean", (5.5)–(5.7)) companion
 :math:`x_{k+1} = Ax_k`, :math:`\hat x_{k+1} = A\hat x_k + L(h(x_k) - h(\hat x_k))`.
 
-Key identity (spec §0.1 [X]): :math:`\partial E[y]/\partial\mu = \gamma(\mu) = P(\text{uncensored})`,
+Key identity (ours, not in the source): :math:`\partial E[y]/\partial\mu = \gamma(\mu) = P(\text{uncensored})`,
 so with :math:`\Gamma(x) = \mathrm{diag}_i\,\gamma_i(C_ix)`:
 
 .. math::
@@ -26,16 +27,20 @@ function for the polytope :math:`\{A - LSC : S = \mathrm{diag}(s), s \in [0,1]^m
 :math:`2^m` vertices, therefore certifies global convergence of the mean-field error for *any*
 censoring limits, fixed or moving (:func:`certify_tkf_stability`).
 
-Deviations from the source (spec A1, A2, A4–A7):
+Deviations from the source (docs/sources MB-01, MB-02, MB-04 to MB-07):
 
 * (5.46)–(5.47) differentiate λ wrongly (missing C/σ on λ², sign) and leave φ_x undefined; the
   printed Jacobian (5.56) is kept only as the documented diagnostic
   :func:`dissertation_jacobian_5_56` (it makes J22(T) non-monotone: the "local disturbance near
-  T = 0" of Figs 5.4/5.5 is its artifact). :func:`tobit_jacobian` is the correct one.
-* (5.23)/(5.25) claim every frozen :math:`A - L\gamma C` is stable when A and A − LC are; this is
-  false for n ≥ 3 (:data:`COUNTEREXAMPLE`); the certificate replaces it.
+  T = 0" of Figs 5.4/5.5 is its artifact). :func:`tobit_jacobian` is the correct one (MB-01).
+* (5.23)/(5.25) claim every frozen :math:`A - L\Gamma C`, Γ = diag(γ) ∈ [0, 1]^m, is stable when A and
+  A − LC are (MB-02). It holds for n = 1, and for one output (m = 1) with n = 2 (the characteristic
+  polynomial is affine in γ and the Schur-stable monic quadratics form a convex set); it fails for one
+  output with n = 3 (:data:`COUNTEREXAMPLE`) and already for n = 2 with two outputs
+  (:data:`COUNTEREXAMPLE_TWO_OUTPUTS`, where a vertex Γ = diag(1, 0) is unstable). The certificate
+  replaces it.
 * (5.7)/(5.38) print :math:`-(\gamma + \hat\gamma)T`; the mean map here uses E[y] directly, which
-  is the corrected :math:`-(\gamma - \hat\gamma)T`.
+  is the corrected :math:`-(\gamma - \hat\gamma)T` (MB-04).
 """
 
 from __future__ import annotations
@@ -53,14 +58,22 @@ from .lqg import DOMAINS
 
 __all__ = ["tobit_jacobian", "tobit_error_jacobian", "mean_observer_map", "dissertation_jacobian_5_56",
            "certify_tkf_stability", "StabilityCertificate", "mean_field_error", "COUNTEREXAMPLE",
-           "closed_loop_jacobian", "fixed_gain_tobit_observer"]
+           "COUNTEREXAMPLE_TWO_OUTPUTS", "closed_loop_jacobian", "fixed_gain_tobit_observer"]
 
 COUNTEREXAMPLE = {
     "A": np.array([[-2.19, 1.0, 0.0], [-1.748, 0.0, 1.0], [-0.482, 0.0, 0.0]]),
     "L": np.array([[-2.48], [-1.448], [-1.232]]),
     "C": np.array([[1.0, 0.0, 0.0]]),
 }
-"""Spec 001b §1.3: A and A − LC Schur (ρ = 0.875, 0.916) but ρ(A − 0.25 LC) = 1.084."""
+"""One output, n = 3 (MB-02): A and A − LC Schur (ρ = 0.875, 0.916) but ρ(A − 0.25 LC) = 1.084."""
+
+COUNTEREXAMPLE_TWO_OUTPUTS = {
+    "A": np.array([[0.3, 0.9], [0.6, 0.0]]),
+    "L": np.array([[1.0, 1.0], [-1.0, -0.5]]),
+    "C": np.eye(2),
+}
+"""Two outputs, n = 2 (MB-02): A and A − LC Schur (ρ = 0.9, eigenvalues 0.9, −0.6; ρ = 0.547) but the vertex
+A − L·diag(1, 0)·C (the second output censored, the first not) has the eigenvalues 0.9 and −1.6."""
 
 
 def _expected(C, x, sigma, lower, upper):
@@ -83,7 +96,7 @@ def mean_observer_map(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, low
 
 def tobit_jacobian(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, lower: Any = -np.inf,
                    upper: Any = np.inf) -> np.ndarray:
-    r"""Jacobian of :func:`mean_observer_map` (correct form, spec A1): ``(..., 2n, 2n)``.
+    r"""Jacobian of :func:`mean_observer_map` (correct form, docs/sources MB-01): ``(..., 2n, 2n)``.
 
     .. math:: J = [[A, 0], [L\Gamma(x)C, A - L\Gamma(\hat x)C]], \quad \Gamma = \mathrm{diag}(P(\text{uncensored}))
 
@@ -113,7 +126,7 @@ def tobit_error_jacobian(A: Any, L: Any, C: Any, x: Any, e: Any, sigma: Any, low
     r"""Jacobian in (x, e) coordinates, e = x − x̂ (correct form of (5.50)–(5.54)): ``(..., 2n, 2n)``.
 
     :math:`\partial e^+/\partial x = -L(\Gamma(x) - \Gamma(x - e))C`, :math:`\partial e^+/\partial e = A - L\Gamma(x - e)C`.
-    At e = 0 it has the eigenvalues of :func:`tobit_jacobian` (Fig 5.4 = Fig 5.5, spec §1.5).
+    At e = 0 it has the eigenvalues of :func:`tobit_jacobian` (so Fig 5.4 and Fig 5.5 show the same curve).
     """
     A, L, C = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, L, C))
     x, e = np.asarray(x, dtype=float), np.asarray(e, dtype=float)
@@ -129,7 +142,7 @@ def tobit_error_jacobian(A: Any, L: Any, C: Any, x: Any, e: Any, sigma: Any, low
 
 
 def closed_loop_jacobian(A: Any, B: Any, K: Any, L: Any, C: Any, gamma: Any) -> np.ndarray:
-    r"""Local closed-loop matrix with u = −Kx̂ in (x, e) coordinates at e = 0 (spec §1.5 [X]):
+    r"""Local closed-loop matrix with u = −Kx̂ in (x, e) coordinates at e = 0 (ours, not in the source):
     ``[[A − BK, BK], [0, A − LΓC]]``; its eigenvalues are eig(A − BK) ∪ eig(A − LΓC) (local separation)."""
     A, B, K, L, C = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, B, K, L, C))
     g = np.atleast_1d(np.asarray(gamma, dtype=float))
@@ -141,7 +154,7 @@ def closed_loop_jacobian(A: Any, B: Any, K: Any, L: Any, C: Any, gamma: Any) -> 
 
 
 def dissertation_jacobian_5_56(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: float, T: float) -> np.ndarray:
-    r"""The printed Jacobian (5.45)–(5.47)/(5.56), right censoring at T, **known to be wrong** (spec A1).
+    r"""The printed Jacobian (5.45)–(5.47)/(5.56), right censoring at T, **known to be wrong** (docs/sources MB-01).
 
     .. math::
 
@@ -190,8 +203,8 @@ class StabilityCertificate(NamedTuple):
     message: str
 
 
-def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str = "dt", grid: int = 201) -> StabilityCertificate:
-    r"""Common quadratic Lyapunov certificate for the Tobit observer error (spec 001b §1.3, T10).
+def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str | None = None, grid: int = 201) -> StabilityCertificate:
+    r"""Common quadratic Lyapunov certificate for the Tobit observer error (replaces (5.23)/(5.25), MB-02).
 
     Searches P ⪰ I with :math:`(A - LSC)^TP(A - LSC) - P \preceq -I` (DT) or
     :math:`(A - LSC)^TP + P(A - LSC) \preceq -I` (CT) at all :math:`2^m` vertices
@@ -199,9 +212,13 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str = "dt", grid: i
     :math:`e_{k+1} = (A - L\bar\Gamma_kC)e_k` converges to 0 for any censoring limits and any
     :math:`\bar\Gamma_k \in [0, 1]^m`, and with noise it stays mean-square bounded.
 
-    Returns "not certified" (``certified=False``) for the spec's counterexample
-    (:data:`COUNTEREXAMPLE`): a vertex check alone would pass there. The claim (5.23) of the text
-    holds automatically only for scalar systems and for m = 1 with n ≤ 2.
+    ``domain`` ("dt": L is a predictor gain of x̂_{k+1} = Ax̂_k + L(y_k − E[ŷ_k]); "ct": an observer
+    gain of the continuous-time error) is required; omitting it is deprecated and means "dt" for one
+    release (the Tobit LQE functions differ in their domain, so it must be explicit).
+
+    Returns "not certified" (``certified=False``) for :data:`COUNTEREXAMPLE` (a vertex check alone
+    would pass there) and for :data:`COUNTEREXAMPLE_TWO_OUTPUTS` (an unstable vertex). The claim
+    (5.23) of the text holds automatically only for n = 1, and for m = 1 with n = 2.
 
     Raises
     ------
@@ -213,7 +230,9 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str = "dt", grid: i
     cp = require("cvxpy", extra="lmi", feature="the TKF stability certificate")
     require("clarabel", extra="lmi", feature="the TKF stability certificate")
 
-    check_option(domain, "domain", DOMAINS)
+    from .lqg import _domain
+
+    domain = _domain(domain, "certify_tkf_stability")
     if isinstance(grid, bool) or not isinstance(grid, (int, np.integer)) or grid < 0:
         raise ValidationError(f"grid: expected a non-negative integer, got {grid!r}")
     check_memory(8 * int(grid), "grid", f"a grid of {grid} points")
@@ -276,7 +295,7 @@ def mean_field_error(A: Any, L: Any, C: Any, x0: Any, e0: Any, steps: int, sigma
                      upper: Any = np.inf) -> tuple[np.ndarray, np.ndarray]:
     r"""Noise-free mean-field trajectories of :func:`mean_observer_map` from (x_0, x̂_0 = x_0 − e_0).
 
-    Returns ``x`` and ``e`` of shape (..., steps+1, n). Used for T11 and the bounds of Figs 5.1–5.3
+    Returns ``x`` and ``e`` of shape (..., steps+1, n). Used for the bounds of Figs 5.1–5.3
     (LQG error (A − LC)^k e_0 below, open-loop A^k e_0 above).
     """
     x = np.asarray(x0, dtype=float)

@@ -1,4 +1,4 @@
-r"""Transfer functions of the steady-state TKF-LQG loop (Miller §6.4.1, (6.46)–(6.50); spec 001b §2.4).
+r"""Transfer functions of the steady-state TKF-LQG loop (Miller §6.4.1, (6.46)–(6.50); docs/sources MB-32).
 
 With the censoring limit moved by (5.68) so that :math:`\hat\gamma \equiv \Xi` (``xi_uncensored``),
 the steady-state Tobit observer is linear, and the loop has transfer functions (CT, python-control
@@ -12,9 +12,9 @@ objects):
 
 ``gain="tobit"`` uses the Tobit gain of the modified ARE (6.49), ``gain="uncensored"`` the
 uncensored LQE gain with :math:`\Xi C` (6.50); the text does not say which one Figs 6.14/6.15 use
-(spec A32), so both are offered.
+(MB-32), so both are offered.
 
-Note [X] (spec §2.4): (6.48) is the loop :math:`u = Nr + \hat C(r - y)`, not the observer-based
+Note (ours, MB-32): (6.48) is the loop :math:`u = Nr + \hat C(r - y)`, not the observer-based
 :math:`u = \bar Nr - K\hat x` with the reference entering plant and observer alike; the latter's
 :math:`r \to y` map :math:`C(sI - A + BK)^{-1}B\bar N` does not depend on Ξ or L at all
 (:func:`observer_based_reference_response`).
@@ -41,7 +41,8 @@ def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, x
     ----------
     A, B, G, C, W : plant and process noise (as :func:`~tobitkf.control.lqg.lqe`)
     sigma : float
-        Measurement-noise standard deviation.
+        Measurement-noise standard deviation σ (a standard deviation, as the name says; the gains are
+        computed with the covariance σ²).
     K : (1, n) array_like
         LQR gain.
     xi_uncensored : float in (0, 1]
@@ -63,7 +64,7 @@ def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, x
     xi = float(xi_uncensored)
     V = np.array([[sigma**2]])
     if gain == "tobit" and xi < 1:
-        L = tobit_lqe(A, G, C, W, sigma, xi).gain
+        L = tobit_lqe(A, G, C, W, V=V, xi_uncensored=xi).gain
     else:
         L = lqe(A, G, C, W, V).gain
     Chat = control.ss(A - xi * L @ C - B @ K, L, K, 0)
@@ -81,7 +82,7 @@ def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, x
 
 def observer_based_reference_response(A: Any, B: Any, C: Any, K: Any, Nbar: Any):
     r""":math:`C(sI - A + BK)^{-1}B\bar N`: the r → y map of u = N̄r − Kx̂ with the reference fed to plant and
-    observer alike; independent of the observer gain and of Ξ (spec §2.4 [X])."""
+    observer alike; independent of the observer gain and of Ξ (ours, not in the source: docs/sources MB-32)."""
     control = require("control", extra="control")
 
     A, B, C, K, Nbar = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, B, C, K, Nbar))

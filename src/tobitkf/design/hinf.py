@@ -1,7 +1,8 @@
 r"""Regional H∞ filtering with randomly occurring sensor saturations (ROSS) and missing measurements.
 
 Source: Z. Wang, B. Shen, X. Liu, "H∞ filtering with randomly occurring sensor
-saturations and missing measurements" (seed 004, spec ``004_hinf_ross.md``).
+saturations and missing measurements" (eqs. (1)–(22), Theorems 1–3, Section 4); our deviations
+are listed in docs/sources/wang-hinf.md (WH-01 to WH-22).
 
 Model (eqs. (1)–(7))
 --------------------
@@ -22,7 +23,7 @@ Decomposition used by every condition: :math:`\xi = [x;\hat x; f(x); \sigma(\til
     \qquad c_i = [0;\ B_fe_i],
 
 so :math:`E\{V(\eta_{k+1})\mid\eta_k\} = \xi^T\mathcal A^TP\mathcal A\xi + \sum_i c_i^TPc_i\,
-(\varrho_i\sigma_i^2 - 2\varsigma_i\sigma_iC_ix + \delta_i(C_ix)^2)` (spec §1.6). The paper
+(\varrho_i\sigma_i^2 - 2\varsigma_i\sigma_iC_ix + \delta_i(C_ix)^2)` (ours, checked by enumeration). The paper
 bounds the cross term with (14) (weights ϱ_i+ς_i and δ_i+ς_i); the saturation is replaced by
 the local sector (10) on :math:`\mathcal L(\Lambda\tilde CH) = \{|a_iC_iH\eta|\le u_i\}`.
 
@@ -35,8 +36,7 @@ What is implemented
 * :func:`analyze` — Theorem 1 (eq. (11)–(13), mean-square stability) and Theorem 2
   ((16)–(18), regional H∞) for given :math:`A_f, B_f`, with :math:`P = \mathrm{diag}\{Q_1,Q_2\}`
   (paper) or a full :math:`P` (``lyapunov="full"``, not in the paper).
-* :func:`design` — ``method="theorem3"``: LMIs (19)–(21) with the reconstructed Π_1 of spec
-  §2.3 and recovery (22). ``method="coupled"`` (not in the paper): the Lyapunov matrix
+* :func:`design` — ``method="theorem3"``: LMIs (19)–(21) with the reconstructed Π_1 (WH-03) and recovery (22). ``method="coupled"`` (not in the paper): the Lyapunov matrix
   :math:`P = [[X, -W], [-W, W]]`, i.e. :math:`V = x^T(X-W)x + (x-\hat x)^TW(x-\hat x)`,
   with the linearising change of variables :math:`\hat A = WA_f`, :math:`\hat B = WB_f`.
   ``method="iterate"`` (not in the paper): start from ``coupled`` and alternate a full-P
@@ -44,7 +44,7 @@ What is implemented
 * :func:`verify` — independent numpy re-check of every returned certificate; :func:`design`
   and :func:`analyze` refuse (``status="rejected"``, no gains) anything it does not confirm.
 
-Finding (spec §6 F3, asserted in the tests): with the block-diagonal P of Theorems 2–3 no
+Finding (WH-21, asserted in the tests): with the block-diagonal P of Theorems 2–3 no
 filter can certify a smaller γ than the zero filter :math:`A_f = B_f = 0`, so Theorem 3's
 min-γ design always returns zero gains. The ``coupled`` certificate removes this. On the
 paper's example (Clarabel): Theorem 3 min-γ 1.0519 with A_f = B_f = 0 (= zero filter), printed
@@ -188,7 +188,7 @@ def augmented_step(model: RossModel, Af: Any, Bf: Any, eta: Any, w: Any, v: Any,
 
 def expected_lyapunov_next(model: RossModel, Af: Any, Bf: Any, P: Any, eta: Any, w: Any, v: Any, *,
                            covariance: str = "exact") -> np.ndarray:
-    r""":math:`E\{V(\eta_{k+1})\mid\eta_k\}` for :math:`V(\eta) = \eta^TP\eta` in closed form (spec §1.6).
+    r""":math:`E\{V(\eta_{k+1})\mid\eta_k\}` for :math:`V(\eta) = \eta^TP\eta` in closed form (ours; checked by enumerating the 4^m outcomes).
 
     ``covariance="exact"`` is the exact expectation; ``"paper"`` applies the bound (14) (an upper
     bound). Batched over leading axes of ``eta`` (..., 2n), ``w``, ``v``. Any symmetric P.
@@ -311,14 +311,21 @@ class Verification:
     reasons : list of str
         One line per failed condition (empty when ``ok``).
     max_eig : float
-        Largest eigenvalue of Ψ (or Φ for Theorem 1); must be < 0.
+        Largest eigenvalue of Ψ (or Φ for Theorem 1); must be below ``-rounding``.
     max_eig_region : float
         Largest eigenvalue over the LMIs (20); must be <= 0 (tolerance 1e-9 relative).
     min_eig_P : float
-        Smallest eigenvalue of P; must be > 0.
+        Smallest eigenvalue of P; must be above its rounding margin.
     gamma_min : float or None
         Smallest γ for which Ψ < 0 with this (P, Λ, ε_1, ε_2) (Schur complement on w̄); None for
         Theorem 1 or when the non-w̄ block is not negative definite.
+    margin : float
+        The certificate's actual slack: ``-max_eig`` (how negative definite Ψ is), which can be far
+        smaller than the margin the LMIs asked of the solver.
+    rounding : float
+        The rounding margin the slack must exceed: ``ROUNDING_FACTOR`` × size × machine ε × ‖Ψ‖₂, a
+        bound on the error of the computed eigenvalues of the computed Ψ (a slack below it is lost
+        in rounding and proves nothing).
     """
 
     ok: bool
@@ -327,6 +334,8 @@ class Verification:
     max_eig_region: float
     min_eig_P: float
     gamma_min: float | None
+    margin: float = float("nan")
+    rounding: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -354,7 +363,7 @@ class HinfCertificate:
     rho : float or None
         ρ = ε_2²/π of (22).
     rho_star : float or None
-        The tightest ρ for this Λ (spec A14); ρ* >= ρ.
+        The tightest ρ for this Λ (WH-14); ρ* >= ρ.
     verification : Verification or None
     history : list of float
         γ after each step (``method="iterate"``).
@@ -362,8 +371,9 @@ class HinfCertificate:
         Wall time of the solve(s).
     best_max_eig : float or None
         ``analyze(objective="max_margin")``: the smallest achievable largest eigenvalue of Ψ/Φ.
-    margin : float or None
-        Strictness margin used by the accepted solve.
+    lmi_margin : float or None
+        The strictness margin the accepted solve asked of the solver (strict LMIs as ``<= -lmi_margin I``);
+        the slack the returned certificate actually has is ``verification.margin``.
     """
 
     status: str
@@ -385,7 +395,16 @@ class HinfCertificate:
     history: list[float] = field(default_factory=list)
     seconds: float = 0.0
     best_max_eig: float | None = None
-    margin: float | None = None
+    lmi_margin: float | None = None
+
+    @property
+    def margin(self) -> float | None:
+        """Deprecated: the LMI strictness margin, now :attr:`lmi_margin` (the verified slack is
+        ``verification.margin``)."""
+        warnings.warn("HinfCertificate.margin is deprecated: it is the margin asked of the solver, now .lmi_margin; "
+                      "the slack the certificate actually has is .verification.margin", DeprecationWarning,
+                      stacklevel=2)
+        return self.lmi_margin
 
     @property
     def ok(self) -> bool:
@@ -414,7 +433,23 @@ class HinfCertificate:
                 "max_eig": None if ver is None else ver.max_eig,
                 "gamma_min_for_certificate": None if ver is None else ver.gamma_min,
                 "history": self.history, "seconds": self.seconds, "best_max_eig": self.best_max_eig,
-                "margin": self.margin}
+                "lmi_margin": self.lmi_margin, "verified_margin": None if ver is None else ver.margin,
+                "rounding_margin": None if ver is None else ver.rounding}
+
+
+ROUNDING_FACTOR = 100.0
+"""Safety factor of :func:`rounding_margin` over the backward-error bound of a symmetric eigensolver."""
+
+
+def rounding_margin(M: Any) -> float:
+    r"""What rounding can hide in the eigenvalues of the symmetric matrix ``M`` as computed.
+
+    ``ROUNDING_FACTOR · n · ε · max(1, ‖M‖₂)``: the computed eigenvalues of a symmetric matrix are
+    within about n·ε·‖M‖₂ of those of the matrix itself, and forming M adds errors of the same order.
+    A strict LMI is certified only if its largest eigenvalue is below minus this.
+    """
+    M = np.asarray(M, dtype=float)
+    return float(ROUNDING_FACTOR * M.shape[0] * np.finfo(float).eps * max(1.0, np.linalg.norm(M, 2)))
 
 
 def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float, eps2: float,
@@ -426,6 +461,10 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
     ``block_diagonal``), 0 < a_i < 1 (9), ε_1, ε_2 > 0, λ_max(Ψ) < 0 (17) (Φ (12) if ``gamma`` is
     None), and the region: LMI (20) with ``pi`` (Z = ε_2Λ), and/or
     :math:`\rho a_i^2C_i(P^{-1})_{xx}C_i^T \le u_i^2` with ``rho`` (⇔ Ω(P,ρ) ⊂ ℒ, (11)/(16)).
+
+    The strict inequalities must hold with a margin above rounding (:func:`rounding_margin`): a
+    largest eigenvalue of -1e-13 on a matrix of norm 1e4 proves nothing. The returned
+    ``margin`` is the slack the certificate actually has (docs/sources/wang-hinf.md, WH-22).
     """
     Af, Bf = _check_gains(model, Af, Bf)
     P = _check_P(model, P)
@@ -441,8 +480,9 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
     if np.abs(P - P.T).max() > 1e-9 * max(1.0, np.abs(P).max()):
         reasons.append("P is not symmetric")
     min_eig_P = float(np.linalg.eigvalsh(Ps).min())
-    if min_eig_P <= 0:
-        reasons.append(f"P is not positive definite (smallest eigenvalue {min_eig_P:.3g})")
+    if min_eig_P <= rounding_margin(Ps):
+        reasons.append(f"P is not positive definite beyond rounding (smallest eigenvalue {min_eig_P:.3g}, rounding "
+                       f"margin {rounding_margin(Ps):.1e})")
     if block_diagonal and np.abs(P[:n, n:]).max() > 0:
         reasons.append("P is not block-diagonal (Theorems 1-3 require P = diag{Q1, Q2})")
     Lam = np.asarray(Lambda, dtype=float).reshape(m)
@@ -452,9 +492,11 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
         reasons.append(f"eps1, eps2 must be > 0, got {eps1:.3g}, {eps2:.3g}")
     psi = psi_matrix(model, Af, Bf, Ps, Lam, eps1, eps2, gamma, covariance=covariance)
     max_eig = float(np.linalg.eigvalsh(psi).max())
+    rounding = rounding_margin(psi)
     label = "Phi (12)" if gamma is None else "Psi (17)"
-    if not max_eig < 0:
-        reasons.append(f"{label} is not negative definite (largest eigenvalue {max_eig:.3g})")
+    if not max_eig < -rounding:
+        reasons.append(f"{label} is not negative definite beyond rounding (largest eigenvalue {max_eig:.3g}, "
+                       f"rounding margin {rounding:.1e})")
     max_eig_region = -np.inf
     if pi is not None:
         if not pi > 0:
@@ -477,7 +519,8 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
             S = A22 - A12.T @ np.linalg.solve(A11, A12)
             gamma_min = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (S + S.T)).max(), 0.0)))
     return Verification(ok=not reasons, reasons=reasons, max_eig=max_eig,
-                        max_eig_region=float(max_eig_region), min_eig_P=min_eig_P, gamma_min=gamma_min)
+                        max_eig_region=float(max_eig_region), min_eig_P=min_eig_P, gamma_min=gamma_min,
+                        margin=-max_eig, rounding=rounding)
 
 
 # ---------------------------------------------------------------------------------------
@@ -580,7 +623,7 @@ def _finish(model: RossModel, *, status: str, solver: str, method: str, objectiv
             rho_fixed: float | None, seconds: float, history: list[float] | None = None,
             margin: float | None = None) -> HinfCertificate:
     base = dict(method=method, objective=objective, theorem=theorem, solver=solver, seconds=seconds,
-                history=list(history or []), margin=margin)
+                history=list(history or []), lmi_margin=margin)
     if status not in ("optimal", "optimal_inaccurate"):
         st = "infeasible" if "infeasible" in status else status
         return HinfCertificate(status=st, **base)
@@ -599,12 +642,15 @@ def _finish(model: RossModel, *, status: str, solver: str, method: str, objectiv
             and all(r.startswith("Psi") for r in ver.reasons)):
         # The solver's γ sits on the boundary and rounding in the recovered gains (A_f = W^{-1}Â...)
         # can leave λ_max(Ψ) a hair above 0. Certify the same (P, Λ, ε, gains) at the smallest γ
-        # the numpy check accepts (Schur complement on the w̄ block), slightly inflated.
-        gamma_cert = ver.gamma_min * (1 + 1e-6) + 1e-9
-        ver2 = verify(model, Af, Bf, P, Lam, float(e1), e2v, gamma_cert, pi=piv, rho=rho,
-                      covariance=covariance, block_diagonal=block_diagonal)
-        if ver2.ok:
-            gamma, ver = gamma_cert, ver2
+        # the numpy check accepts (Schur complement on the w̄ block), inflated until the slack is
+        # above rounding (the first inflation that verifies).
+        for inflate in (1e-6, 1e-5, 1e-4, 1e-3):
+            gamma_cert = ver.gamma_min * (1 + inflate) + 1e-9
+            ver2 = verify(model, Af, Bf, P, Lam, float(e1), e2v, gamma_cert, pi=piv, rho=rho,
+                          covariance=covariance, block_diagonal=block_diagonal)
+            if ver2.ok:
+                gamma, ver = gamma_cert, ver2
+                break
     if not ver.ok:
         return HinfCertificate(status="rejected", verification=ver, **base)
     return HinfCertificate(status=status, gamma=gamma, Af=Af, Bf=Bf, P=P, Lambda=Lam, eps1=float(e1),
@@ -661,13 +707,13 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     rho : float, optional
         Fixed ρ (only with a fixed P).
     covariance : {"paper", "exact"}
-        ``"paper"`` uses bound (14); ``"exact"`` the exact Bernoulli covariance (spec A12, not in
+        ``"paper"`` uses bound (14); ``"exact"`` the exact Bernoulli covariance (WH-12, not in
         the paper).
     solver, fallback : {"CLARABEL", "SCS"}
     margin : float
         Strictness margin for the strict inequalities.
     bound : float or None
-        Upper bound on the eigenvalues of P (keeps min-γ solves bounded, spec §2.3 note 4).
+        Upper bound on the eigenvalues of P (keeps min-γ solves bounded, WH-21).
 
     Returns
     -------
@@ -768,7 +814,7 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
 
 def zero_filter_gamma(model: RossModel, *, lyapunov: str = "block", solver: str = "CLARABEL",
                       covariance: str = "paper") -> HinfCertificate:
-    """Theorem 2 min-γ for the zero filter A_f = 0, B_f = 0 (the benchmark of spec §6 F3)."""
+    """Theorem 2 min-γ for the zero filter A_f = 0, B_f = 0 (the benchmark of WH-21)."""
     return analyze(model, np.zeros((model.n, model.n)), np.zeros((model.n, model.m)), theorem=2,
                    objective="min_gamma", lyapunov=lyapunov, solver=solver, covariance=covariance)
 
@@ -778,7 +824,7 @@ def zero_filter_gamma(model: RossModel, *, lyapunov: str = "block", solver: str 
 # ---------------------------------------------------------------------------------------
 def _theorem3_problem(cp, model: RossModel, objective: str, gamma: float | None, margin: float,
                       bound: float | None, Q_fixed: tuple[np.ndarray, np.ndarray] | None):
-    """LMIs (19)–(21) in the paper's layout (Π_1 reconstructed as in spec §2.3)."""
+    """LMIs (19)–(21) in the paper's layout (Π_1 reconstructed, WH-03)."""
     n, m, p = model.n, model.m, model.p
     ch = model.channel
     C, B, M = model.C, model.B, model.M
@@ -954,7 +1000,7 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     bound : float or None
         Eigenvalue bound on the Lyapunov blocks (the min-γ Theorem 3 problem drives Q_2 → ∞).
     fixed_Q : (Q1, Q2), optional
-        Theorem 3 with the Lyapunov blocks fixed (used to test the printed P, spec §5.2.6).
+        Theorem 3 with the Lyapunov blocks fixed (used to test the printed P, WH-08).
     iterations, tol : int, float
         ``"iterate"``: at most ``iterations`` (analysis, synthesis) rounds; stop when γ drops by
         less than ``tol``.
@@ -976,7 +1022,7 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     Notes
     -----
     Deviation from the source: with ``method="theorem3"`` the certificate can never beat the zero
-    filter (spec §6 F3); ``"coupled"`` couples x and x̂ in P and can.
+    filter (WH-21); ``"coupled"`` couples x and x̂ in P and can.
     """
     check_instance(model, RossModel, "model")
     check_option(method, "method", METHODS)
@@ -1070,14 +1116,16 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
     if not best.ok:
         return replace(best, method="iterate", seconds=time.perf_counter() - t0)
     history = [best.gamma]
+    # The improvement steps do not fall back to a second solver: a step that does not solve cleanly
+    # ends the iteration (the fallback spent seconds in SCS without ever improving γ, WH-22).
     for _ in range(iterations):
         ana = analyze(model, best.Af, best.Bf, theorem=2, objective="min_gamma", lyapunov="full",
-                      covariance=covariance, solver=solver, fallback=fallback, margin=margin, bound=bound)
+                      covariance=covariance, solver=solver, fallback=None, margin=margin, bound=bound)
         if ana.ok and ana.gamma < best.gamma:
             best = ana
         v = _synthesis_fixed_P(cp, model, best.P, "min_gamma", None, margin, covariance)
         prob = cp.Problem(cp.Minimize(v["g2"]), v["cons"])
-        status, used = _solve(prob, solver, fallback)
+        status, used = _solve(prob, solver, None)
         if status in ("optimal", "optimal_inaccurate"):
             cand = _finish(model, status=status, solver=used, method="iterate", objective="min_gamma",
                            theorem=2, gamma=float(np.sqrt(max(v["g2"].value, 0.0))), Af=v["Af"].value,
@@ -1120,5 +1168,5 @@ WANG2010_PAPER = {
     "rho": 0.2228,
     "x0": np.array([0.3, 0.3, 0.1]),
 }
-"""The printed design of Section 4 (γ = 1.5). Note (spec A8, §6 F5): the printed triple
+"""The printed design of Section 4 (γ = 1.5). Note (WH-08): the printed triple
 (P, A_f, B_f) does not satisfy Theorem 2 for any γ; treat gains and P as separate data."""

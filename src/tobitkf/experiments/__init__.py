@@ -5,6 +5,12 @@ ExperimentResult`` registered with :func:`register`, plus a ``plot(result, outdi
 function that draws its figures. The CLI only calls them. Every module in this
 package is imported by :func:`all_experiments`, so a new experiment module registers
 itself by being placed here.
+
+Every claim an experiment returns follows the claims rule of :mod:`._claims` (its quantity,
+test and tolerance; n/a only for what cannot be measured); :func:`register` checks it on
+return. Each figure is saved with a caption (:func:`tobitkf.plotting.save`), which the
+registered ``plot`` collects into ``metrics["figure_captions"]``; tables the source prints
+go into ``metrics["report_tables"]`` (see :func:`report_table`), and the report shows both.
 """
 
 from __future__ import annotations
@@ -18,7 +24,7 @@ from typing import Any
 
 from .._validation import ValidationError
 
-__all__ = ["Experiment", "ExperimentResult", "register", "get", "all_experiments", "setting"]
+__all__ = ["Experiment", "ExperimentResult", "register", "get", "all_experiments", "setting", "report_table"]
 
 
 @dataclass
@@ -38,7 +44,9 @@ class ExperimentResult:
     data : dict
         Arrays for plotting (not written to metrics.json).
     claims : list of dict
-        The source's claims checked by this experiment: ``{"claim", "measured", "holds"}``.
+        The source's claims checked by this experiment, each following the claims rule of
+        :mod:`tobitkf.experiments._claims`: ``{"claim", "quantity", "measured", "test",
+        "tolerance", "holds"}`` (+ ``note``, ``explanation``, ``not_measurable``).
     """
 
     id: str
@@ -67,22 +75,57 @@ _DISCOVERED = False
 
 def setting(value: Any, provenance: str = "source", note: str = "") -> dict[str, Any]:
     """A parameter with its provenance: ``"source"`` (stated in the source), ``"reconstructed"``
-    (missing in the source, rebuilt by the spec) or ``"default"`` (not stated; our choice)."""
+    (missing or wrong in the source, rebuilt by us; ``docs/sources/`` says how) or ``"default"``
+    (not stated; our choice)."""
     if provenance not in ("source", "reconstructed", "default"):
         raise ValidationError(f"provenance: expected 'source', 'reconstructed' or 'default', got {provenance!r}")
     return {"value": value, "provenance": provenance, "note": note}
 
 
+def report_table(title: str, columns: list[str], rows: list[list[Any]], note: str = "") -> dict[str, Any]:
+    """A table for the report (``metrics["report_tables"]``): the source's printed numbers next to ours.
+
+    ``rows`` hold plain values (numbers are shown to 4 significant digits); ``note`` says how
+    to read the table (e.g. why the numbers are not expected to agree).
+    """
+    if not columns or any(len(r) != len(columns) for r in rows):
+        raise ValidationError(f"report_table {title!r}: every row needs {len(columns)} cells")
+    return {"title": title, "columns": list(columns), "rows": [list(r) for r in rows], "note": note}
+
+
 def register(id: str, *, title: str, source: str, plot: Callable[[ExperimentResult, Path], list[Path]],
              default_runs: int):
-    """Decorator registering ``run`` under ``id``."""
+    """Decorator registering ``run`` under ``id``.
+
+    The registered (and returned) ``run`` checks the claims of its result against the claims
+    rule (:func:`tobitkf.experiments._claims.check_claims`); the registered ``plot`` stores the
+    figures' captions in ``result.metrics["figure_captions"]``.
+    """
+    import functools
+
+    from ..plotting import collect_captions
+    from ._claims import check_claims
+
+    @functools.wraps(plot)
+    def plot_with_captions(result: ExperimentResult, outdir: Path) -> list[Path]:
+        with collect_captions() as captions:
+            paths = plot(result, outdir)
+        result.metrics["figure_captions"] = {Path(p).name: captions.get(Path(p).name, "") for p in paths}
+        return paths
 
     def deco(run: Callable[..., ExperimentResult]) -> Callable[..., ExperimentResult]:
         if id in _REGISTRY and _REGISTRY[id].module != run.__module__:
             raise ValueError(f"experiment id {id!r} registered twice")
-        _REGISTRY[id] = Experiment(id=id, title=title, source=source, run=run, plot=plot,
+
+        @functools.wraps(run)
+        def checked_run(*args: Any, **kwargs: Any) -> ExperimentResult:
+            result = run(*args, **kwargs)
+            check_claims(result.claims, id)
+            return result
+
+        _REGISTRY[id] = Experiment(id=id, title=title, source=source, run=checked_run, plot=plot_with_captions,
                                    default_runs=default_runs, module=run.__module__)
-        return run
+        return checked_run
 
     return deco
 

@@ -1,22 +1,24 @@
-"""Li, Li & Wang (2018), time-delay systems with fading measurements and correlated noises (seed 002).
+"""Li, Li & Wang (2018), time-delay systems with fading measurements and correlated noises, Sec. 5.
 
-Three experiments reproduce §5 of the source (spec ``002_timedelay_fading.md`` §3):
+Three experiments reproduce the numerical example of the source (our deviations:
+docs/sources/li2018-delay.md):
 
 * ``li2018-tracking``: Fig. 1, true states and the filter x̂(t|t) of one run.
 * ``li2018-fading``: Fig. 2, filter error variances for the pmf variants q = 1, 0.6, 0.3.
 * ``li2018-tables``: Tables 1–2 style running-average MSE of filter x̂(t|t) and predictor
-  x̂(t+1|t), against a labelled stand-in for the baseline of [28] (spec §5 item 14).
+  x̂(t+1|t), against a labelled stand-in for the baseline of [28] (LD-12); the source's tables are
+  printed next to ours in the report.
 
 Each runs for the cross-covariance S in {0, 0.15, 0.3}. The source does not state S; 0.3 =
-sqrt(Q_w Q_v) is inferred from Tables 1–2 (spec §3.5) and is the headline value
+sqrt(Q_w Q_v) is inferred from Tables 1–2 (LD-03) and is the headline value
 (``metrics["estimators"]``). Estimator keys: ``chain`` (Algorithm C, the default), ``augmented``
 (Algorithm A), ``paper-j`` (the source's constant J = ΓSQ_v^{-1}), ``naive-kf`` (stand-in for
 [28]: the same estimator told S = 0 and γ ≡ 1; not the method of [28], which this paper does not
 specify enough to rebuild).
 
-MSE definitions (spec §4 item 16): ``per_step`` is the ensemble mean over runs of the squared
-error at each t; ``running_avg`` is (1/(t+1)) Σ_{s<=t} per_step(s) (the tables' reading inferred
-in spec §3.5). Time index t = 0..T-1 is the measurement time (y(0) measures x(-3)).
+MSE definitions (LD-10): ``per_step`` is the ensemble mean over runs of the squared error at each
+t; ``running_avg`` is (1/(t+1)) Σ_{s<=t} per_step(s) (our reading of the tables). Time index
+t = 0..T-1 is the measurement time (y(0) measures x(-3)).
 """
 
 from __future__ import annotations
@@ -31,7 +33,8 @@ from ..filters.delay import augmented_lmmse, chain_lmmse
 from ..metrics import summarize
 from ..models.delay import paper_example, paper_prior
 from ..simulate.delay import simulate_delay
-from . import ExperimentResult, register, setting
+from . import ExperimentResult, register, report_table, setting
+from . import _claims as CL
 
 _SOURCE = "Li, Li & Wang 2018: optimal linear estimators for time-delay systems with fading measurements"
 
@@ -41,8 +44,8 @@ DEFAULT_S = 0.3
 TABLE_TIMES = (25, 50, 75, 100, 125, 150)
 KEYS = ("chain", "augmented", "paper-j", "naive-kf")
 
-# Spec §3.3 (independent prototype, Algorithm C, prior x(-k) ~ (0, 0.01 I)): steady-state diag
-# P(t|t) = P(t|t-1), diag P(t-d|t) and Q_ε for d = 3.
+# An independent prototype's values (Algorithm C, prior x(-k) ~ (0, 0.01 I), not from the source):
+# steady-state diag P(t|t) = P(t|t-1), diag P(t-d|t) and Q_ε for d = 3.
 REFERENCE = {
     (1.0, 0.0): ((0.44353, 0.36882), (0.11801, 0.09580), 1.16914),
     (1.0, 0.15): ((0.25756, 0.23092), (0.09727, 0.08480), 0.82740),
@@ -75,17 +78,17 @@ def _settings(runs: int, steps: int, seed: int, S_values: tuple[float, ...], ext
         "Qw": setting(0.3), "Qv": setting(0.3), "d": setting(3),
         "fading_pmf": setting({"values": [0.95, 0.98, 1.0], "probs": [0.05, 0.15, 0.8]}),
         "S": setting(list(S_values), "reconstructed",
-                     f"not stated in the source; S = {DEFAULT_S} = sqrt(Qw Qv) inferred from Tables 1-2 (spec §3.5) "
+                     f"not stated in the source; S = {DEFAULT_S} = sqrt(Qw Qv) inferred from Tables 1-2 (LD-03) "
                      "is the headline value; 0 and 0.15 for comparison"),
         "prior": setting("x(-k) ~ (0, 0.01 I), k = 0..3, uncorrelated", "reconstructed",
-                         "source gives x̂(0|0) = 0, P(0|0) = 0.01 I only (spec §4 item 1)"),
-        "true_history": setting("drawn from the prior (Gaussian)", "default", "not stated in the source"),
-        "noise": setting("Gaussian; w = S Qv^-1 v + eta (spec §4 item 3)", "default"),
+                         "source gives x̂(0|0) = 0, P(0|0) = 0.01 I only (LD-01)"),
+        "true_history": setting("drawn from the prior (Gaussian)", "default", "not stated in the source (LD-01)"),
+        "noise": setting("Gaussian; w = S Qv^-1 v + eta", "default", "LD-03"),
         "steps": setting(steps, "source", "t = 0..150 (tables up to t = 150)"),
         "runs": setting(runs, "source" if runs == 150 else "default", "source: 150 Monte Carlo experiments"),
         "seed": setting(seed, "default"),
         "warmup": setting("none: exact initialization from the prior (the source's ε(i) = 0, i <= 2d+1, not used)",
-                          "default", "spec §4 item 12"),
+                          "default", "LD-05"),
     }
     out.update(extra or {})
     return out
@@ -140,6 +143,7 @@ def _run_S(S: float, q: float, runs: int, steps: int, seed: int, keys: tuple[str
     per = {}
     for key, r in est.items():
         per[key] = {"filter": _mse(r.mean - truth_f), "predictor": _mse(r.extras["next_mean"] - truth_p),
+                    "filter_err2": (r.mean - truth_f) ** 2, "predictor_err2": (r.extras["next_mean"] - truth_p) ** 2,
                     "filter_summary": summarize(truth_f, r.mean, r.cov[0] if r.cov.ndim == 4 else r.cov, skip=10),
                     "P_filter_diag": np.diagonal(r.cov[0], axis1=-2, axis2=-1),
                     "P_pred_diag": np.diagonal(r.extras["next_cov"][0], axis1=-2, axis2=-1)}
@@ -205,7 +209,9 @@ def _plot_tracking(result: ExperimentResult, outdir: Path) -> list[Path]:
     axes[-1].set_xlabel("t")
     fig.suptitle(f"Li et al. 2018 Fig. 1: tracking (S = {d['S']:g}, inferred; one run)")
     path = outdir / "fig1_tracking.png"
-    save(fig, path.parent, path.name, dpi=100, tight=False)
+    save(fig, path.parent, path.name, dpi=100, tight=False,
+         caption=f"Fig. 1 (tracking performance of the state filter): one run of the true x1, x2 and the filter "
+                 f"x̂(t|t) (Algorithm C) at S = {d['S']:g}, the cross-covariance inferred from Tables 1-2 (LD-03).")
     return [path]
 
 
@@ -222,15 +228,25 @@ def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: i
                "steady_state": _steady_state((1.0,), S_values)}
     ratio = per["chain"]["filter"]["per_step"][50:].mean(0) / per["chain"]["P_filter_diag"][50:].mean(0)
     worst = _chain_vs_augmented(keep)
+    e2 = per["chain"]["filter_err2"][:, 50:]                      # (N, T-50, n)
+    mse_ss, mse_se = CL.mean_se(e2.mean(axis=1))
+    var_x = np.diagonal(est["chain"].extras["second_moment"][-1])
+    shift = _filter_is_predictor(keep)
     claims = [
-        {"claim": "the filter has good tracking performance (Fig. 1)",
-         "measured": f"S={headline:g}: steady ensemble MSE of x̂(t|t) = {np.round(per['chain']['filter']['per_step'][50:].mean(0), 4).tolist()} "
-                     f"vs Var x = {np.round(np.diagonal(est['chain'].extras['second_moment'][-1]), 3).tolist()}; MSE/P = {np.round(ratio, 3).tolist()}",
-         "holds": bool(np.all(per["chain"]["filter"]["per_step"][50:].mean(0) < 0.1 * np.diagonal(est["chain"].extras["second_moment"][-1])))},
-        {"claim": "the estimator is optimal (equals the LMMSE of the augmented system)",
-         "measured": f"max |chain - augmented| = {worst:.2e}", "holds": worst < 1e-9},
-        {"claim": "x̂(t|t) of Theorem 1 is a filter that uses y(t) (spec §0 finds it equals x̂(t|t-1) for d >= 1)",
-         "measured": f"max |x̂(t|t) - x̂(t|t-1)| = {_filter_is_predictor(keep):.1e}", "holds": False},
+        CL.at_most("Fig. 1: the filter has good tracking performance",
+                  quantity=f"steady ensemble MSE of x̂(t|t), t >= 50, against the state's variance (S = {headline:g})",
+                  value=mse_ss, bound=0.1 * var_x, tol=CL.K_SE * float(np.max(mse_se)),
+                  tolerance=f"'good' read as an MSE below 10 % of the state variance ({CL.fmt(var_x, 3)}), plus "
+                            f"{CL.K_SE:g} standard errors ({CL.fmt(CL.K_SE * np.max(mse_se), 2)}, {runs} runs)",
+                  note=f"MSE over the filter's own P: {CL.fmt(ratio, 3)}"),
+        CL.at_most("Theorems 1-3: the estimator is optimal (it equals the LMMSE of the augmented system)",
+                  quantity="max |chain - augmented| over runs, steps, filter and predictor", value=worst, bound=0.0,
+                  tol=1e-9, tolerance="1e-9 (rounding)"),
+        CL.greater("Theorem 1: x̂(t|t) is a filter that uses the reading y(t)",
+                  quantity="max |x̂(t|t) - x̂(t|t-1)| over runs and steps (d = 3, uncorrelated history)", a=shift,
+                  b=0.0, names=("difference", "zero"), tol=1e-12, tolerance="1e-12 (rounding)",
+                  explanation="the printed model is a pure delay: y(t) measures x(t-d) only, so with an uncorrelated "
+                              "initial history x̂(t|t) equals the one-step prediction (docs/sources LD-02)"),
     ]
     return ExperimentResult("li2018-tracking", _settings(runs, steps, seed, S_values), metrics,
                             data={"x": data.x[0, :steps], "xhat": est["chain"].mean[0], "S": headline}, claims=claims)
@@ -256,7 +272,10 @@ def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
             ax.legend(fontsize=7)
         fig.suptitle(f"Li et al. 2018 Fig. 2: filter error variance, S = {s:g}")
         path = outdir / f"fig2_fading_S{s:g}.png"
-        save(fig, path.parent, path.name, dpi=100, tight=False)
+        save(fig, path.parent, path.name, dpi=100, tight=False,
+             caption=f"Fig. 2 (comparison of the filter's error variances for P(γ(t) = q) = 0.8, q = 0.3, 0.6, 1) at "
+                     f"S = {s:g}: the filter's error variance P(t|t) of x1 (a) and x2 (b), with the Monte Carlo MSE "
+                     "dotted (not in the source).")
         paths.append(path)
     return paths
 
@@ -264,7 +283,7 @@ def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
 @register("li2018-fading", title="Delay system with fading: error variance vs fading level q (Fig. 2)",
           source=_SOURCE, plot=_plot_fading, default_runs=150)
 def run_fading(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
-    """Fig. 2: P(t|t) and Monte Carlo MSE for P(γ = q) = 0.8, q = 1, 0.6, 0.3 (spec §4 item 17)."""
+    """Fig. 2: P(t|t) and Monte Carlo MSE for P(γ = q) = 0.8, q = 1, 0.6, 0.3 (docs/sources LD-11)."""
     S_values, headline, by, keep = _common_run("li2018-fading", runs=runs, seed=seed, progress=progress,
                                                q_values=Q_VALUES, S=S, steps=steps, keys=("chain", "paper-j"))
     metrics = {"estimators": {}, "headline_S": headline, "by_q": {}}
@@ -277,23 +296,30 @@ def run_fading(*, runs: int, seed: int, progress=None, S: Any = None, steps: int
     for s in S_values:
         ss = [by[(q, s)]["chain"]["P_filter_diag"][-1] for q in Q_VALUES]
         ordered[s] = bool(np.all(ss[0] < ss[1]) and np.all(ss[1] < ss[2]))
-    claims = [{"claim": "the filter has the highest accuracy when q = 1 (error variance grows as q falls)",
-               "measured": "; ".join(f"S={s:g}: P(t|t) diag at t=150 for q=1,0.6,0.3 = "
-                                     + ", ".join(str(np.round(by[(q, s)]['chain']['P_filter_diag'][-1], 4).tolist())
-                                                 for q in Q_VALUES) for s in S_values),
-               "holds": all(ordered.values())},
-              {"claim": "steady-state covariances reproduce spec §3.3 (independent prototype) to 4 decimals",
-               "measured": f"{sum(r['matches_4_decimals'] for r in metrics['steady_state'])}/{len(metrics['steady_state'])} rows match",
-               "holds": all(r["matches_4_decimals"] for r in metrics["steady_state"])}]
+    rows_ok = [r["matches_4_decimals"] for r in metrics["steady_state"]]
+    claims = [CL.claim("Fig. 2: the filter has the highest accuracy when q = 1 (the error variance grows as q falls)",
+                      quantity="filter error variance diag P(t|t) at t = 150 for q = 1, 0.6, 0.3, each S",
+                      measured="; ".join(f"S={s:g}: " + ", ".join(CL.fmt(by[(q, s)]['chain']['P_filter_diag'][-1], 4)
+                                                                  for q in Q_VALUES) for s in S_values),
+                      test="P(q=1) < P(q=0.6) < P(q=0.3) for both states and every S",
+                      tolerance="exact (the filter's covariance is deterministic)", holds=all(ordered.values())),
+              CL.claim("(not in the source) the steady-state covariances reproduce an independent prototype's to 4 "
+                      "decimals", quantity="rows of diag P(t|t), diag P(t-d|t) and Q_ε at t = 600 matching",
+                      measured=f"{sum(rows_ok)}/{len(rows_ok)} rows", test="every row",
+                      tolerance="5e-5 absolute per entry (4 decimals)", holds=all(rows_ok))]
     data = {"P": {s: {q: (by[(q, s)]["chain"]["P_filter_diag"], by[(q, s)]["chain"]["filter"]["per_step"])
                       for q in Q_VALUES} for s in S_values}}
     return ExperimentResult("li2018-fading", _settings(runs, steps, seed, S_values,
                                                        {"q": setting(list(Q_VALUES), "reconstructed",
-                                                                     "pmf {0.95: .05, 0.98: .15, q: .8} (spec §4 item 17)")}),
+                                                                     "pmf {0.95: .05, 0.98: .15, q: .8} (LD-11)")}),
                             metrics, data=data, claims=claims)
 
 
 # --------------------------------------------------------------------------- li2018-tables
+
+_TABLE_LABELS = {"chain": "this paper's estimator (Algorithm C)", "augmented": "augmented LMMSE (Algorithm A)",
+                 "paper-j": "paper's constant J (8)", "naive-kf": "stand-in for [28] (S = 0, γ ≡ 1)"}
+
 
 def _plot_tables(result: ExperimentResult, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
@@ -305,14 +331,18 @@ def _plot_tables(result: ExperimentResult, outdir: Path) -> list[Path]:
         for key, curves in d[which].items():
             for i, ax in enumerate(axes):
                 style = {"chain": "-", "augmented": "--", "paper-j": ":", "naive-kf": "-."}.get(key, "-")
-                ax.semilogy(np.arange(1, curves.shape[0] + 1), curves[:, i], style, lw=1.2, label=key)
+                ax.semilogy(np.arange(1, curves.shape[0] + 1), curves[:, i], style, lw=1.2, label=_TABLE_LABELS.get(key, key))
         for i, ax in enumerate(axes):
             ax.set_title(f"x{i + 1}: running-average MSE")
             ax.set_xlabel("t")
             ax.legend(fontsize=8)
         fig.suptitle(f"Li et al. 2018 Fig. {fig_no}: {which} (S = {d['S']:g}; naive-kf is a stand-in for [28])")
         path = outdir / f"fig{fig_no}_{which}_mse.png"
-        save(fig, path.parent, path.name, dpi=100, tight=False)
+        save(fig, path.parent, path.name, dpi=100, tight=False,
+             caption=f"Fig. {fig_no} (MSE of the {which} against [28]'s): the running-average MSE of x1 and x2 over t "
+                     f"at S = {d['S']:g} for our estimators (chain = Algorithm C, augmented = Algorithm A, paper-j = "
+                     "the paper's constant decorrelation J) and the stand-in for [28] (naive-kf: the same estimator "
+                     "told S = 0 and γ ≡ 1, not [28] itself).")
         paths.append(path)
     return paths
 
@@ -323,37 +353,83 @@ def run_tables(*, runs: int, seed: int, progress=None, S: Any = None, steps: int
     """Tables 1–2: running-average MSE at t = 25..150 for filter and predictor, all estimator keys."""
     S_values, headline, by, keep = _common_run("li2018-tables", runs=runs, seed=seed, progress=progress,
                                                q_values=(1.0,), S=S, steps=steps)
-    per = by[(1.0, headline)]
     rows = {}
     for s in S_values:
         rows[f"S={s:g}"] = {
             key: {which: {f"x{i + 1}": [float(v[which]["running_avg"][t, i]) for t in TABLE_TIMES if t < steps]
                           for i in range(2)} for which in ("filter", "predictor")}
             for key, v in by[(1.0, s)].items()}
-    metrics = {"estimators": {k: v["filter_summary"] for k, v in per.items()}, "headline_S": headline,
+    metrics = {"estimators": {k: v["filter_summary"] for k, v in by[(1.0, headline)].items()}, "headline_S": headline,
                "table_times": list(TABLE_TIMES), "tables": rows,
                "source_tables": SOURCE_TABLES,
                "source_tables_note": "not regression targets: the source's S, true initial states and run count are "
-                                     "unknown (spec §3.5); compare qualitatively",
+                                     "unknown (LD-01, LD-03, LD-10); compare qualitatively",
                "mse": _metrics_block(by, 1.0, S_values), "steady_state": _steady_state((1.0,), S_values)}
     data, est = keep[1.0]
     shift = float(np.abs(est["chain"].mean[:, 1:] - est["chain"].extras["next_mean"][:, :-1]).max())
-    beats = all(np.all(by[(1.0, s)]["chain"][w]["running_avg"][-1] < by[(1.0, s)]["naive-kf"][w]["running_avg"][-1])
-                for s in S_values if s > 0 for w in ("filter", "predictor"))
     head = by[(1.0, headline)]
-    claims = [
-        {"claim": "the proposed filter and predictor have lower MSE than [28] (Tables 1-2, Figs. 3-4)",
-         "measured": f"vs the stand-in naive-kf (S = 0, γ ≡ 1; not [28] itself): running-average MSE at t = {steps - 1}, "
-                     f"S={headline:g}: filter chain {np.round(head['chain']['filter']['running_avg'][-1], 4).tolist()} vs naive "
-                     f"{np.round(head['naive-kf']['filter']['running_avg'][-1], 4).tolist()}; predictor chain "
-                     f"{np.round(head['chain']['predictor']['running_avg'][-1], 4).tolist()} vs naive "
-                     f"{np.round(head['naive-kf']['predictor']['running_avg'][-1], 4).tolist()}",
-         "holds": bool(beats)},
-        {"claim": "filter and predictor tables differ by a constant running-sum offset (spec §3.5 inference)",
-         "measured": f"per-step filter errors equal the predictor errors shifted by one step: max |x̂(t|t) - x̂(t|t-1)| = {shift:.1e}",
-         "holds": shift == 0.0},
-    ]
+    last = steps - 1
+
+    def run_avg_se(err2, t):
+        return CL.jackknife_se(err2[:, : t + 1], lambda mm: mm.mean(axis=-2))
+
+    claims = []
+    for which in ("filter", "predictor"):
+        a = head["chain"][which]["running_avg"][last]
+        b = head["naive-kf"][which]["running_avg"][last]
+        g = np.stack([head["chain"][which + "_err2"], head["naive-kf"][which + "_err2"]], axis=1)
+        se = CL.jackknife_se(g, lambda mm: mm[..., 1, :, :].mean(-2) - mm[..., 0, :, :].mean(-2))
+        claims.append(CL.less(f"Table {'1' if which == 'filter' else '2'} and Fig. {'3' if which == 'filter' else '4'}: the "
+                             f"proposed {which} has a lower MSE than [28]'s",
+                             quantity=f"running-average {which} MSE at t = {last} (S = {headline:g}), ours against the "
+                                      "stand-in naive-kf (S = 0, γ ≡ 1; not [28] itself, LD-12)", a=a, b=b,
+                             names=("ours", "stand-in"), tol=CL.K_SE * se,
+                             tolerance=f"{CL.K_SE:g} jackknife standard errors of the paired difference over {runs} runs: "
+                                       f"{CL.fmt(CL.K_SE * se, 2)}"))
+    t0, t1 = TABLE_TIMES[0], min(TABLE_TIMES[-1], last)
+    for which, tab in (("filter", "1"), ("predictor", "2")):
+        e2 = head["chain"][which + "_err2"]
+        g = e2
+        se = CL.jackknife_se(g, lambda mm: mm[..., : t1 + 1, :].mean(-2) - mm[..., : t0 + 1, :].mean(-2))
+        ra = head["chain"][which]["running_avg"]
+        src = (SOURCE_TABLES[f"{which}_x1"][0], SOURCE_TABLES[f"{which}_x1"][-1],
+               SOURCE_TABLES[f"{which}_x2"][0], SOURCE_TABLES[f"{which}_x2"][-1])
+        claims.append(CL.less(
+            f"Table {tab}: the {which} MSE falls with t (x1 from {src[0]} at t = 25 to {src[1]} at t = 150, x2 from "
+            f"{src[2]} to {src[3]})",
+            quantity=f"our running-average {which} MSE (S = {headline:g}) at t = {t1} and at t = {t0}",
+            a=ra[t1], b=ra[t0], names=(f"t = {t1}", f"t = {t0}"), tol=CL.K_SE * se,
+            tolerance=f"{CL.K_SE:g} jackknife standard errors of the change over {runs} runs: {CL.fmt(CL.K_SE * se, 2)}",
+            explanation="a running average of the ensemble MSE falls only if the early errors are larger than the "
+                        "steady ones; with our prior x(-k) ~ (0, 0.01 I) the errors start small and grow to their "
+                        "steady state. The source's decreasing numbers point to a true initial state far from the "
+                        "prior mean, which the paper does not give (docs/sources LD-01, LD-10)"))
+    claims.append(CL.at_most("(our reading of Tables 1-2, LD-10) the filter and predictor tables differ by a constant "
+                            "running-sum offset: the per-step filter errors equal the predictor errors one step later",
+                            quantity="max |x̂(t|t) - x̂(t|t-1)| over runs and steps", value=shift, bound=0.0, tol=0.0,
+                            tolerance="exact (0)"))
+    metrics["report_tables"] = _report_tables(rows, headline, steps)
     plot_data = {"S": headline, "filter": {k: v["filter"]["running_avg"] for k, v in head.items()},
                  "predictor": {k: v["predictor"]["running_avg"] for k, v in head.items()}}
     return ExperimentResult("li2018-tables", _settings(runs, steps, seed, S_values), metrics, data=plot_data,
                             claims=claims)
+
+
+def _report_tables(rows: dict[str, Any], headline: float, steps: int) -> list[dict[str, Any]]:
+    """Tables 1-2 of the source next to ours (running-average MSE at t = 25..150)."""
+    times = [t for t in TABLE_TIMES if t < steps]
+    out = []
+    ours = rows[f"S={headline:g}"]
+    for which, tab in (("filter", "Table 1 (filter x̂(t|t))"), ("predictor", "Table 2 (predictor x̂(t+1|t))")):
+        table_rows = []
+        for comp in ("x1", "x2"):
+            table_rows.append([f"{comp}: this paper (printed)", *SOURCE_TABLES[f"{which}_{comp}"][: len(times)]])
+            table_rows.append([f"{comp}: ours, chain (S = {headline:g})", *ours["chain"][which][comp]])
+            table_rows.append([f"{comp}: [28] (printed)", *SOURCE_TABLES[f"{which}_{comp}_[28]"][: len(times)]])
+            table_rows.append([f"{comp}: ours, stand-in for [28]", *ours["naive-kf"][which][comp]])
+        out.append(report_table(f"{tab}: running-average MSE", ["row"] + [f"t = {t}" for t in times], table_rows,
+                                note="The source's S, true initial states and run count are unknown (LD-01, LD-03, "
+                                     "LD-10), so the numbers are not expected to agree; the source's fall with t, "
+                                     "ours rise to their steady state. The stand-in for [28] is our estimator told "
+                                     "S = 0 and γ ≡ 1, not the method of [28] (LD-12)."))
+    return out

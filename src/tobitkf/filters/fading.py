@@ -97,7 +97,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import check_instance
-from ..censored import censored_moments
+from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
@@ -236,10 +236,10 @@ class _FadingFamily(LinearGaussianFamily):
             cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Ck, mom_cov, Ck) + (mom_mean @ Ck.T) ** 2
             carry.update(mom_mean=mom_mean, mom_cov=mom_cov, cxxc=cxxc)
         if self.tobit:
-            st = censored_moments(chi, sigma, lo, hi)
+            st = unchecked_moments(chi, sigma, lo, hi)
             if self._stale:   # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}
                 mu = dy + sum(self._thb[s] * carry["cx_pred"][:, s] for s in range(top + 1))
-                sp = censored_moments(mu, sigma, lo, hi)
+                sp = unchecked_moments(mu, sigma, lo, hi)
                 p_lo, gam, p_hi = sp.p_lower, sp.p_uncensored, sp.p_upper
             else:
                 p_lo, gam, p_hi = st.p_lower, st.p_uncensored, st.p_upper

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, as_float_array, check_option
-from ..censored import censored_moments
+from ..censored import unchecked_moments
 from .core import Estimator, FilterResult, FilterState
 
 __all__ = ["FixedGainTobitObserver"]
@@ -74,7 +74,7 @@ class FixedGainTobitObserver(Estimator):
     def _expected(self, x: np.ndarray) -> np.ndarray:
         if self.gain_form == "linear":
             return x @ self.C.T
-        return censored_moments(x @ self.C.T, self.sigma, self.lower, self.upper).censored_mean
+        return unchecked_moments(x @ self.C.T, self.sigma, self.lower, self.upper).censored_mean
 
     def _initial(self, N, x0, P0, batch):
         n = self.n

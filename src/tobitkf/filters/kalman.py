@@ -179,6 +179,20 @@ class KalmanFilter(LinearGaussianFamily):
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
+    def smooth(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+        """Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments, with lag-one
+        cross-covariances; see :func:`tobitkf.inference.rts_smooth`."""
+        from ..inference.smoothing import rts_smooth
+
+        return rts_smooth(self.filter(y, u=u, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
+
+    def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False):
+        """Exact log-likelihood of ``y`` (NaN readings skipped), (...) or (..., T) with ``per_step``; see
+        :func:`tobitkf.inference.kalman_log_likelihood`."""
+        from ..inference.likelihood import kalman_log_likelihood
+
+        return kalman_log_likelihood(self.system, y, u=u, x0=x0, P0=P0, per_step=per_step)
+
 
 def _finite_or_none(res: FilterResult) -> FilterResult | None:
     """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
@@ -430,6 +444,24 @@ class DroppingKalmanFilter(KalmanFilter):
         extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
         return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=extras,
                             times=res.times, var=res.var, final=res.final)
+
+    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
+               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+        """Filter ``y`` (..., T, m), dropping the censored readings: by the limit rule, or by the recorded
+        indicator ``censored`` (..., T, m) when given (then an unflagged reading at the limit is used;
+        :func:`tobitkf.inference.smoothing.dropping_with_indicator`)."""
+        if censored is None:
+            return self._run(y, u, x0, P0, outputs=outputs, state=state)
+        from ..inference.smoothing import dropping_with_indicator
+
+        return dropping_with_indicator(self, y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+
+    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+        """RTS smoother over this filter's moments (censored readings dropped); see
+        :func:`tobitkf.inference.rts_smooth`."""
+        from ..inference.smoothing import rts_smooth
+
+        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
 
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u):

@@ -76,7 +76,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_psd
-from ..censored import censored_moments
+from ..censored import unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
@@ -197,7 +197,7 @@ def protocol_measurement(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray,
     H = lam_mean * Cc
     zeta = xi_pred @ H
     sd = np.sqrt(r)
-    st = censored_moments(zeta, sd, tau, np.inf)
+    st = unchecked_moments(zeta, sd, tau, np.inf)
     lam = st.inverse_mills
     noise = np.maximum(st.truncated_var, _TINY * r)             # R (1 - phi), floored
     F = _failure_term(failure_term, Cc, np.broadcast_to(P_pred, (xi_pred.shape[0],) + P_pred.shape[1:]), xi_pred,
@@ -736,7 +736,7 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
         if phi_upper == "zero":
             phi = 0.0
         else:
-            st = censored_moments(H @ mean, np.sqrt(r), tau, np.inf)
+            st = unchecked_moments(H @ mean, np.sqrt(r), tau, np.inf)
             phi = 1.0 - float(st.truncated_var) / r
         g = gbar[k - 1]
         MH = M @ H

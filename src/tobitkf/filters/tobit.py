@@ -66,7 +66,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ValidationError, as_float_array, check_instance
-from ..censored import censored_moments
+from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
@@ -104,7 +104,7 @@ def tobit_measurement(x_pred: np.ndarray, C: np.ndarray, sigma: np.ndarray, lowe
     x_pred : (N, n) ; C : (m, n) ; sigma : (m,) ; lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
     """
     mu = x_pred @ C.T + dy
-    st = censored_moments(mu, sigma, lower, upper)
+    st = unchecked_moments(mu, sigma, lower, upper)
     gam = st.p_uncensored
     if noise_term == "dissertation":
         Ruu = st.truncated_var
@@ -153,7 +153,7 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     mp = tobit_measurement(x_pred, C, sigma, lower, upper, dy=dy, noise_term=noise_term)
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P, _, _, _ = measurement_update(x_pred, P_pred, S, y, mp, covariance_update)
-    return x, P, censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
+    return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
 def _sigma_of(R: np.ndarray, name: str = "R", *, who: str = "the Tobit Kalman filter",
@@ -310,10 +310,34 @@ class TobitKalmanFilter(LinearGaussianFamily):
         if self.check_limits and not options:
             self.censoring.check_reading(y, state.k + 1)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
-        """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`."""
+    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
+               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+        """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`.
+
+        ``censored`` (..., T, m), the recorded indicator, is checked against the readings (a flagged one
+        must lie at its limit); the update (3.37)-(3.41) is linear in the reading and unchanged by it.
+        """
+        if censored is not None:
+            from ..inference.smoothing import check_tobit_indicator
+
+            check_tobit_indicator(self.censoring, y, censored, start=(0 if state is None else state.k) + 1)
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+        r"""RTS smoother over the TKF's moments (its linearisation :math:`H = E(\mathbf p)C`), with lag-one
+        cross-covariances; see :func:`tobitkf.inference.rts_smooth`."""
+        from ..inference.smoothing import rts_smooth
+
+        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
+
+    def log_likelihood(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
+                       per_step: bool = False):
+        """The assumed-density log-likelihood of the model (system and censoring) on ``y``; the TKF's own
+        update defines none. See :func:`tobitkf.inference.adf_log_likelihood`."""
+        from ..inference.likelihood import adf_log_likelihood
+
+        return adf_log_likelihood(self.system, self.censoring, y, censored=censored, u=u, x0=x0, P0=P0,
+                                  per_step=per_step)
 
 
 def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) -> FilterState | None:

@@ -2,7 +2,7 @@ r"""Pure-delay systems with multiplicative noise, fading measurements and correl
 
 Source: Y. Li, J. Li, X. Wang, "Optimal linear estimators for time-delay systems with
 fading measurements and correlated noises", J. Electrical and Computer Engineering
-(Hindawi), 2018 (seed 002; spec ``002_timedelay_fading.md`` §1). The model, eqs. (1)–(3):
+(Hindawi), 2018 (our deviations: docs/sources/li2018-delay.md). The model, eqs. (1)–(3):
 
 .. math::
 
@@ -11,7 +11,7 @@ fading measurements and correlated noises", J. Electrical and Computer Engineeri
     E\begin{bmatrix} w(t)\\ v(t)\end{bmatrix}\begin{bmatrix} w(j)^T & v(j)^T\end{bmatrix}
       = \begin{bmatrix} Q_w & S\\ S^T & Q_v\end{bmatrix}\delta_{tj}.
 
-Assumptions made explicit (spec §1.3, A2'/A3'/A4'): the multiplicative noises
+Assumptions made explicit (LD-01, LD-09): the multiplicative noises
 :math:`\zeta_i(t) \sim N(0, Q_{\zeta_i}(t))` and the fading coefficient :math:`\gamma(t)`
 are independent of each other, of (w, v), of the initial history and over time; the
 estimator knows only the fading mean :math:`\bar\gamma(t)` and variance
@@ -31,7 +31,7 @@ x(t+1) = sum_k A^(k) x(t-k) + multiplicative part + noise. The printed model is
 
 Code names -> paper symbols: ``A`` A, ``A_mult`` A_i, ``q_mult`` Q_{ζ_i}, ``H`` H,
 ``Gamma`` Γ, ``Qw`` Q_w, ``Qv`` Q_v, ``S`` S, ``d`` d, ``fading`` the law of γ(t)
-(``mean`` γ̄, ``variance`` σ²), ``HistoryPrior`` x̄(-k), P(-k) (spec A4').
+(``mean`` γ̄, ``variance`` σ²), ``HistoryPrior`` x̄(-k), P(-k) (LD-01).
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ __all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "p
 # --------------------------------------------------------------------------- fading laws
 
 class FadingPMF(PMF):
-    r"""A scalar fading coefficient with a probability mass function (spec §1.4).
+    r"""A scalar fading coefficient with a probability mass function (Assumption 1 of the source).
 
     :math:`P(\gamma = \gamma_l) = p_l`, :math:`\bar\gamma = \sum_l p_l\gamma_l`,
     :math:`\sigma^2 = \sum_l p_l(\gamma_l - \bar\gamma)^2`.
@@ -218,7 +218,7 @@ _NO_FADING = _NoFading()
 # --------------------------------------------------------------------------- prior
 
 class HistoryPrior:
-    r"""Prior of the initial history X(0) = [x(0); x(-1); ...; x(-d)] (spec A4').
+    r"""Prior of the initial history X(0) = [x(0); x(-1); ...; x(-d)] (LD-01).
 
     Stored as a joint mean ``mean`` (d+1, n) (row k is :math:`\bar x(-k)`) and a joint
     covariance ``cov`` (n(d+1), n(d+1)) in the same block order. Build it with
@@ -476,11 +476,11 @@ class DelayFadingSystem:
         return np.sum(q[:, None, None] * (self.A_mult @ Lam @ np.swapaxes(self.A_mult, -1, -2)), axis=0)
 
     def process_cov(self, t: int, Lam: np.ndarray) -> np.ndarray:
-        r"""Q_u(t) = Σ_i Q_{ζ_i}(t) A_i Λ(t-d) A_i^T + Γ Q_w Γ^T (spec §1.6)."""
+        r"""Q_u(t) = Σ_i Q_{ζ_i}(t) A_i Λ(t-d) A_i^T + Γ Q_w Γ^T (the equivalent second-order model of (1)–(3))."""
         return self.mult_cov(t, Lam) + self.GQG
 
     def fading_noise_cov(self, t: int, Lam: np.ndarray) -> np.ndarray:
-        r"""R(t) = Q_v + σ²(t) H Λ(t-d) H^T (spec §1.5, corrected E3)."""
+        r"""R(t) = Q_v + σ²(t) H Λ(t-d) H^T (the decorrelation corrected, LD-E3)."""
         return self.Qv + self.gamma_var(t) * (self.H @ Lam @ self.H.T)
 
     @property
@@ -512,15 +512,15 @@ class DelayFadingSystem:
 # --------------------------------------------------------------------------- paper example
 
 def paper_fading(q: float = 1.0) -> FadingPMF:
-    """The example's pmf {0.95: 0.05, 0.98: 0.15, q: 0.8} (§5 and Fig. 2; spec §3.1, §4 item 17)."""
+    """The example's pmf {0.95: 0.05, 0.98: 0.15, q: 0.8} (§5 and Fig. 2; LD-11)."""
     return FadingPMF([0.95, 0.98, q], [0.05, 0.15, 0.8])
 
 
 def paper_example(S: float = 0.3, *, q: float = 1.0, d: int = 3) -> DelayFadingSystem:
-    """The numerical example of §5 (spec §3.1).
+    """The numerical example of §5.
 
     ``S`` is not stated in the source; 0.3 = sqrt(Q_w Q_v) is inferred from Tables 1–2
-    (spec §3.5). ``q`` is the Fig. 2 pmf variant (q = 1 is the base case).
+    (LD-03). ``q`` is the Fig. 2 pmf variant (q = 1 is the base case).
     """
     return DelayFadingSystem(
         A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=S, d=d,
@@ -528,7 +528,7 @@ def paper_example(S: float = 0.3, *, q: float = 1.0, d: int = 3) -> DelayFadingS
 
 
 def paper_prior(d: int = 3, cov: float = 0.01) -> HistoryPrior:
-    """x(-k) ~ (0, 0.01 I) uncorrelated, k = 0..d (spec §4 item 1; P(0|0) = 0.01 I in the source)."""
+    """x(-k) ~ (0, 0.01 I) uncorrelated, k = 0..d (LD-01; P(0|0) = 0.01 I in the source)."""
     d = _check_delay(d)
     check_memory(8 * (2 * (d + 1)) ** 2, "d", f"a history of {d + 1} lags (its joint covariance)")
     return HistoryPrior.repeated(np.zeros(2), as_float_array(cov, "cov", ndim=0) * np.eye(2), d)

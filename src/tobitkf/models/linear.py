@@ -9,7 +9,7 @@ The model, with the package-wide time convention (Miller 2015, (2.2) and (3.18))
 
 for :math:`k = 1, \dots, T`. ``x_0`` is the prior; the first measurement is
 :math:`y_1`, stored at array index 0. The control input :math:`u_k` is the
-input applied over the interval (k-1, k] (Miller (3.51), spec 001b §0.2 [R]) and is
+input applied over the interval (k-1, k] (Miller (3.51)) and is
 stored at index k-1 like :math:`y_k`.
 
 Each matrix may be a constant array, an array with a leading time axis, or a

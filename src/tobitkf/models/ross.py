@@ -148,7 +148,7 @@ def _wang2010_f(x: np.ndarray) -> np.ndarray:
 
 
 def wang2010_model(**overrides: Any) -> RossModel:
-    """The example of Section 4 (spec §3); keyword overrides replace any field (mu, nu, D, ...)."""
+    """The example of Section 4 (Section 4 of the source); keyword overrides replace any field (mu, nu, D, ...)."""
     kw = dict(
         B=[[0.5], [0.1], [0.1]],
         M=[[0.2, 0.0, 0.15], [0.0, 0.1, 0.2]],

@@ -24,7 +24,7 @@ def simulate_delay(system: DelayFadingSystem, prior: HistoryPrior, steps: int, r
     r"""Draw truth and fading measurements of the delay system for many runs at once.
 
     The initial history X(0) = [x(0); ...; x(-d)] is Gaussian with the joint prior. For
-    t = 0..T-1 (spec §4 items 3, 15): :math:`\gamma(t)` i.i.d. from the fading law,
+    t = 0..T-1 (docs/sources LD-03, LD-09): :math:`\gamma(t)` i.i.d. from the fading law,
     :math:`\zeta_i(t) \sim N(0, Q_{\zeta_i}(t))`, :math:`v(t) \sim N(0, Q_v)` and
     :math:`w(t) = S Q_v^{-1} v(t) + \eta(t)`, :math:`\eta(t) \sim N(0, Q_w - S Q_v^{-1} S^T)`
     independent of v, so that Cov(w, v) = S and Var w = Q_w even at the singular

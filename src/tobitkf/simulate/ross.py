@@ -71,7 +71,7 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
 
     The disturbances are deterministic l_2 sequences (as in the paper); the randomness is
     the 2m Bernoulli variables per step, drawn independently from ``seed`` (α then β at
-    each step, spec A5).
+    each step, docs/sources WH-05).
 
     Parameters
     ----------

@@ -1,0 +1,90 @@
+"""Assumed-density filters against the filters they improve on: cost per run-step on the same path.
+
+Each pair runs on the same readings, batched over runs, numpy against numpy (the ADF has no compiled
+kernel yet; the TKF's numba kernel is listed for reference): the censored oscillator of Miller
+Example 3 (n = 2, m = 1) and a two-channel version (m = 2, channels in sequence), the fading oscillator
+of Geng et al. 2017 (L = 2) and the protocol example (ell = 2, failures {0, 0.5, 1}). CPU seconds
+(best of ``--repeat``; BLAS held to one thread) per run-step and the ratio ADF / comparator. The issue's
+target: the ADF costs at most 10x the TKF per run-step.
+
+Run by hand::
+
+    PYTHONPATH=src python benchmarks/bench_adf.py            # 10^4 runs x 100 steps, ~1 minute
+    PYTHONPATH=src python benchmarks/bench_adf.py --smoke    # seconds
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import tobitkf as tk  # noqa: E402
+from _timing import best_time  # noqa: E402
+
+TARGET = 10.0
+
+
+def pairs(runs: int, steps: int):
+    c, s = np.cos(0.05), np.sin(0.05)
+    osc = tk.LinearSystem(A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0],
+                          P0=0.05 * np.eye(2))
+    cens = tk.Censoring(lower=0.0)
+    y1 = tk.simulate(osc, steps, runs, censoring=cens, seed=0).y
+    osc2 = tk.LinearSystem(A=[[c, -s], [s, c]], C=[[1.0, 0.0], [0.3, 1.0]], Q=0.01 * np.eye(2), R=np.diag([0.1, 0.2]),
+                           x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    cens2 = tk.Censoring(lower=[0.0, -0.1], upper=[np.inf, 0.5])
+    y2 = tk.simulate(osc2, steps, runs, censoring=cens2, seed=0).y
+    w = 0.052 * np.pi
+    rot = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    fsys = tk.LinearSystem(A=rot, C=[[1.0, 0.0]], Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2))
+    fad = tk.RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
+    fy = tk.simulate(fsys, steps, runs, censoring=cens, measurement=fad, seed=0).y
+    from tobitkf.channels.protocol import LAMBDA_BASE
+
+    psys = tk.LinearSystem(A=rot, C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
+    ch = tk.ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    py = tk.simulate(psys, steps, runs, channel=ch, seed=0).y
+    return [
+        ("censored oscillator m=1", y1, tk.AssumedDensityTobitFilter(osc, cens),
+         {"TKF (numpy)": tk.TobitKalmanFilter(osc, cens, backend="numpy"),
+          "TKF exact_pv (numpy)": tk.TobitKalmanFilter(osc, cens, noise_term="exact_pv", backend="numpy"),
+          "TKF (numba, reference)": tk.TobitKalmanFilter(osc, cens, backend="auto")}),
+        ("two-sided, m=2 in sequence", y2, tk.AssumedDensityTobitFilter(osc2, cens2),
+         {"TKF (numpy)": tk.TobitKalmanFilter(osc2, cens2, backend="numpy")}),
+        ("fading L=2", fy, tk.FadingAssumedDensityFilter(fsys, fad, cens),
+         {"TKF-FM (numpy)": tk.FadingTobitKalmanFilter(fsys, fad, cens)}),
+        ("protocol ell=2", py, tk.ProtocolAssumedDensityFilter(psys, ch),
+         {"PBTKF-IMSF (numpy)": tk.ProtocolTobitKalmanFilter(psys, ch)}),
+    ]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--smoke", action="store_true", help="tiny version (seconds)")
+    parser.add_argument("--runs", type=int, default=10_000)
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--repeat", type=int, default=3)
+    args = parser.parse_args()
+    runs, steps, repeat = (50, 10, 1) if args.smoke else (args.runs, args.steps, args.repeat)
+    print(f"{runs} runs x {steps} steps, CPU time per run-step (BLAS 1 thread)")
+    print(f"{'case':<28}{'estimator':<26}{'us/run-step':>12}{'ADF / it':>10}{'<=10x':>7}")
+    for case, y, adf, others in pairs(runs, steps):
+        for est in (adf, *others.values()):        # warm up (the numba kernel compiles on its first call)
+            est.filter(y[:2, :2])
+        t_adf = best_time(lambda: adf.filter(y), repeat, cpu=True) / (runs * steps)
+        print(f"{case:<28}{type(adf).__name__:<26}{t_adf * 1e6:12.3f}", flush=True)
+        for name, est in others.items():
+            t = best_time(lambda: est.filter(y), repeat, cpu=True) / (runs * steps)
+            ratio = t_adf / t
+            ok = "-" if "reference" in name else ("yes" if ratio <= TARGET else "no")
+            print(f"{'':<28}{name:<26}{t * 1e6:12.3f}{ratio:10.2f}{ok:>7}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

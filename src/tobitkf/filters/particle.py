@@ -1,0 +1,843 @@
+r"""Particle filter: the Bayes-optimal yardstick for every channel of the sources.
+
+Not in the sources; a sequential Monte Carlo (SMC) estimate of the exact posterior
+:math:`p(x_k \mid y_{1:k})` of the package's models, against which the Gaussian approximations
+(TKF, fading TKF, protocol TKF, the assumed-density filters) are measured (Gordon, Salmond & Smith
+1993; Doucet, Godsill & Andrieu 2000; Doucet & Johansen 2011).
+
+Model. The linear Gaussian dynamics of :class:`~tobitkf.LinearSystem`,
+:math:`x_k = A_{k-1}x_{k-1} + B^u_ku_k + w_{k-1}`, :math:`w_{k-1} \sim N(0, B_{k-1}Q_{k-1}B_{k-1}^T)`,
+:math:`x_0 \sim N(\bar x_0, P_0)`, and one channel of :mod:`tobitkf.channels`, each giving, for a
+state (history) :math:`\xi_k`, a *latent* reading that is normal per channel l, possibly as a
+mixture over a discrete channel outcome j with probability :math:`\pi_j`,
+
+.. math::
+
+    y^*_{k,l} \mid \xi_k, j \sim N(\mu_{jl}(\xi_k), s_{jl}^2(\xi_k)), \qquad
+    y_{k,l} = \mathrm{clip}(y^*_{k,l}, l_{k,l}, h_{k,l}),
+
+* Censoring (or none), state :math:`x_k`: :math:`\mu = C_kx_k + D_ku_k`, :math:`s^2 = R_{k,ll}`.
+* RiceFading of order L, state :math:`x_k, \dots, x_{k-L}`:
+  :math:`\mu = \sum_{s\le\min(L,k)}\bar\vartheta(s)C_{k-s}x_{k-s}`,
+  :math:`s^2 = \sum_s\tilde\vartheta(s)(C_{k-s}x_{k-s})^2 + R_{ll}` (Gaussian coefficients, exact;
+  other laws: the coefficients are drawn per particle and :math:`s^2 = R_{ll}`).
+* ProtocolChannel, state :math:`x_k, \dots, x_{k-\ell}`: the scheduled sensor :math:`h = \bar h_k`
+  (Round-Robin), :math:`\mu_j = \lambda_jC_h\sum_{s=0}^{\ell}x_{k-s}`, :math:`s^2 = R_{hh}`, the
+  failure gain :math:`\Lambda = \lambda_j` with probability :math:`\pi_j` (a continuous law: drawn per
+  particle), the reading :math:`y = \max(z, \tau)`.
+* RandomSaturation, state :math:`x_k`: per sensor i the modes :math:`\mu = \sigma(C_ix_k)`,
+  :math:`C_ix_k`, 0 with probabilities :math:`\mu_i`, :math:`(1-\mu_i)\nu_i`,
+  :math:`(1-\mu_i)(1-\nu_i)`, :math:`s^2 = R_{ii}`.
+
+(Geng et al. 2017 (2); Geng et al., protocol TKF (2)–(7); Wang, Shen & Liu (2)–(3); Miller (3.18)).
+R must be diagonal with positive entries (the channels' noises are independent).
+
+Likelihood of one reading (exact; through ``scipy.special.log_ndtr``, finite at 40 σ and beyond):
+
+.. math::
+
+    \log p(y_{k,l} \mid \xi_k) = \log\sum_j \pi_j \begin{cases}
+      \phi\big((y-\mu_j)/s_j\big)/s_j & l < y < h \\
+      \Phi\big((l-\mu_j)/s_j\big) & y = l \text{ (censored below)} \\
+      \Phi\big((\mu_j-h)/s_j\big) & y = h \text{ (censored above)} \end{cases}
+
+and a NaN reading (missing) contributes nothing. Readings within ``1e-12 max(1, |limit|)`` of a
+finite limit count as censored (as :meth:`~tobitkf.Censoring.censored_mask`).
+
+Proposals (``proposal``):
+
+* ``"prior"`` (the bootstrap filter): :math:`\xi_k \sim p(\xi_k \mid \xi_{k-1})`, incremental weight
+  :math:`p(y_k \mid \xi_k)`.
+* ``"optimal"`` (the locally optimal proposal :math:`p(x_k \mid x_{k-1}, y_k)`, Doucet, Godsill &
+  Andrieu 2000, §II.D), where it has a closed form: linear readings with censoring, and the
+  protocol channel with a discrete failure law. The latent reading is sampled with the state: the
+  channels are processed in sequence (diagonal R), each conditioning the Gaussian
+  :math:`p(x_k \mid x_{k-1}, y^*_{k,1..l-1})` on :math:`y^*_{k,l}`; an uncensored channel on its value
+  (weight :math:`N(y; \mu, s^2)`), a censored one on a draw of the latent reading from its truncated
+  normal (weight its mass :math:`\Phi(\cdot)`, the GHK simulator of a multivariate normal
+  probability); the failure outcome j of the protocol channel is drawn from its posterior. For one
+  channel this is exactly :math:`p(x_k \mid x_{k-1}, y_k)` with weight :math:`p(y_k \mid x_{k-1})`.
+* ``"auto"`` (default): ``"optimal"`` where available, else ``"prior"``.
+
+Weights are kept as logarithms, normalized every step; the run's particles are resampled
+(systematic resampling, Kitagawa 1996) when the effective sample size
+:math:`1/\sum_i W_i^2` falls below ``resample_threshold`` times the particle count. The estimate
+of the log-likelihood is :math:`\sum_k \log\sum_i W^i_{k-1}\tilde w^i_k` (unbiased in the
+likelihood, Del Moral 2004).
+
+Time convention (package-wide): :math:`x_0 \sim N(\bar x_0, P_0)` is the prior, :math:`y_1` is at
+index 0, and result row k-1 holds the particle mean and covariance of :math:`p(x_k \mid y_{1:k})`
+(``mean``, ``cov``) and of the prediction :math:`p(x_k \mid y_{1:k-1})` (``pred_mean``,
+``pred_cov``: the linear prediction of the weighted particle moments). The random numbers come
+from one ``numpy.random.Generator`` built from ``seed``; its state travels in the
+:class:`~tobitkf.filters.core.FilterState`, so a pickled state resumes with the same draws.
+
+Symbols: ``particles`` = the number of particles :math:`N_p`, ``ess`` = effective sample size,
+``log_likelihood`` = :math:`\log\hat p(y_k \mid y_{1:k-1})` per step.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy.special import log_ndtr, ndtri_exp
+
+from .._linalg import psd_sqrt, symmetrize
+from .._validation import ValidationError, as_float_array, check_instance
+from ..channels.censoring import Censoring
+from ..channels.fading import RiceFading, measurement_matrix_at
+from ..channels.laws import PMF, Gaussian
+from ..channels.protocol import ProtocolChannel
+from ..channels.saturation import RandomSaturation, saturate
+from ..models.linear import LinearSystem
+from .core import Estimator, FilterResult, FilterState, check_prior, predict, shift_predict
+from ._readings import (_INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood,
+                        classify_readings as _classify)
+from .kalman import LinearGaussianFamily
+
+__all__ = ["ParticleFilter", "PROPOSALS", "systematic_resample", "censored_log_likelihood"]
+
+PROPOSALS = ("auto", "optimal", "prior")
+
+
+# --------------------------------------------------------------------------- pure pieces
+
+def logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
+    """log(sum(exp(a))) along ``axis`` (-inf where every term is -inf); lighter than scipy's for this loop."""
+    m = np.max(a, axis=axis, keepdims=True)
+    m = np.where(np.isfinite(m), m, 0.0)
+    with np.errstate(divide="ignore"):
+        return np.log(np.sum(np.exp(a - m), axis=axis)) + np.squeeze(m, axis=axis)
+
+
+def _mat(X: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """X @ M for particles X (..., k) and a matrix M (k, j), as one GEMM over the stacked rows."""
+    return (X.reshape(-1, X.shape[-1]) @ M).reshape(X.shape[:-1] + M.shape[-1:])
+
+
+def systematic_resample(weights: np.ndarray, u: np.ndarray) -> np.ndarray:
+    r"""Systematic resampling (Kitagawa 1996) of every row of ``weights``, batched.
+
+    Row r draws the indices :math:`i` with :math:`\sum_{j<i} W_j \le (u_r + p)/N_p < \sum_{j\le i} W_j`,
+    :math:`p = 0..N_p-1`: each particle is copied :math:`\lfloor N_pW_i\rfloor` or
+    :math:`\lceil N_pW_i\rceil` times (the lowest-variance of the standard schemes, Douc & Cappé 2005).
+
+    Parameters
+    ----------
+    weights : (M, Np) ndarray
+        Normalized weights (each row sums to 1).
+    u : (M,) ndarray
+        One uniform draw in [0, 1) per row.
+
+    Returns
+    -------
+    (M, Np) int ndarray
+        The ancestor index of each new particle.
+
+    Examples
+    --------
+    >>> systematic_resample(np.array([[0.5, 0.25, 0.25, 0.0]]), np.array([0.5])).tolist()
+    [[0, 0, 1, 2]]
+    """
+    M, Np = weights.shape
+    cw = np.cumsum(weights, axis=1)
+    cw[:, -1] = 1.0
+    rows = np.arange(M)[:, None]
+    pos = (u[:, None] + np.arange(Np)) / Np
+    flat = (cw + rows).ravel()
+    idx = np.searchsorted(flat, (pos + rows).ravel(), side="right").reshape(M, Np) - rows * Np
+    return np.clip(idx, 0, Np - 1)
+
+
+def _truncated_draw(mean: np.ndarray, sd: Any, log_mass: np.ndarray, u: np.ndarray, side: int) -> np.ndarray:
+    r"""A draw of :math:`N(\mu, s^2)` truncated to :math:`(-\infty, l]` (``side=-1``) or :math:`[h, \infty)`
+    (``side=+1``), by inversion in log space: :math:`z = \Phi^{-1}(u\,\Phi(a))` through ``ndtri_exp``
+    (exact far in the tails), with ``log_mass`` :math:`= \log\Phi(a)` the log-mass of the kept side
+    (:math:`a = (l-\mu)/s`, or :math:`(\mu-h)/s` for the upper side, drawn mirrored)."""
+    with np.errstate(divide="ignore"):
+        z = ndtri_exp(np.log(u) + log_mass)
+    return mean + z * sd if side < 0 else mean - z * sd
+
+
+# --------------------------------------------------------------------------- measurement models
+
+class _Model:
+    """What a channel contributes to the particle filter (internal)."""
+
+    nx: int          # state (history) dimension carried by the particles
+    m: int           # reading dimension
+    optimal: bool = False
+    censoring: Censoring | None = None
+
+    def __init__(self, system: LinearSystem):
+        self.system = system
+        self.n = system.n
+
+    # dynamics ---------------------------------------------------------------
+    def initial(self, rng, N, Np, x0, P0) -> np.ndarray:
+        L = psd_sqrt(P0)                                          # (N, n, n)
+        z = rng.standard_normal((N, Np, self.n))
+        return x0[:, None, :] + np.einsum("rij,rpj->rpi", L, z)
+
+    def predict_moments(self, k, x, P, b):
+        A, Qd = self.system.transition(k - 1), self.system.process_cov(k - 1)
+        return predict(x, P, A, Qd, b)
+
+    def propagate(self, rng, k, X, b):
+        """Draw from p(x_k | x_{k-1}) (the bootstrap proposal)."""
+        A, G = self.system.transition(k - 1), self._root(k - 1)
+        Xn = _mat(X, A.T)
+        if not (np.isscalar(b) and b == 0.0):
+            Xn = Xn + b[:, None, :]
+        z = rng.standard_normal(X.shape[:2] + (G.shape[1],))
+        return Xn + _mat(z, G.T)
+
+    def _root(self, k):
+        return psd_sqrt(self.system.process_cov(k))
+
+    # readings ---------------------------------------------------------------
+    def limits(self, k):
+        if self.censoring is None:
+            return np.full(self.m, -np.inf), np.full(self.m, np.inf)
+        lo, hi = self.censoring.limits(k)
+        return np.broadcast_to(lo, (self.m,)), np.broadcast_to(hi, (self.m,))
+
+    def modes(self, rng, k, X, dy):
+        """[(log pi (m,) or scalar, mean (N, Np, m), std broadcastable)]: the latent reading's law."""
+        raise NotImplementedError
+
+    def log_likelihood(self, rng, k, X, y, dy):
+        """log p(y_k | xi_k) for every particle, (N, Np)."""
+        lo, hi = self.limits(k)
+        cls = _classify(y, lo, hi)
+        modes = self.modes(rng, k, X, dy)
+        N, Np = X.shape[:2]
+        out = np.zeros((N, Np))
+        for l in range(self.m):
+            c = cls[:, l]
+            for kind in (_INTERIOR, _LOWER, _UPPER):
+                rows = np.flatnonzero(c == kind)
+                if rows.size == 0:
+                    continue
+                terms = []
+                for logp, mu, sd in modes:
+                    lp = logp if np.ndim(logp) == 0 else logp[l]
+                    if lp == -np.inf:
+                        continue
+                    mu_l = mu[rows, :, l]
+                    sd_l = _pick(sd, rows, l)
+                    if kind == _INTERIOR:
+                        z = (y[rows, l][:, None] - mu_l) / sd_l
+                        t = -0.5 * z * z - np.log(sd_l) - _LOG_SQRT_2PI
+                    elif kind == _LOWER:
+                        t = log_ndtr((lo[l] - mu_l) / sd_l)
+                    else:
+                        t = log_ndtr((mu_l - hi[l]) / sd_l)
+                    terms.append(t + lp)
+                out[rows] += terms[0] if len(terms) == 1 else logsumexp(np.stack(terms), axis=0)
+        return out
+
+    def check_record(self, y2: np.ndarray, start: int) -> None:
+        if self.censoring is not None:
+            self.censoring.check(self.m, start - 1 + y2.shape[1])
+            self.censoring.check_measurements(y2, start=start)
+
+
+def _pick(sd: Any, rows: np.ndarray, l: int):
+    if np.ndim(sd) == 0:
+        return sd
+    if sd.ndim == 1:
+        return sd[l]
+    return sd[rows, :, l]
+
+
+def _diag_sigma(system: LinearSystem, k: int, what: str) -> np.ndarray:
+    R = system.measurement_cov(k)
+    off = R - np.diag(np.diagonal(R))
+    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
+        raise ValidationError(f"R: the particle filter needs a diagonal R (independent channel noises) for {what}")
+    d = np.diagonal(R)
+    if np.any(d <= 0):
+        raise ValidationError(f"R: the particle filter needs positive measurement variances, got {d}")
+    return np.sqrt(d)
+
+
+class _Linear(_Model):
+    """y* = C x + D u + v, optionally censored; closed-form locally optimal proposal."""
+
+    optimal = True
+
+    def __init__(self, system, censoring):
+        super().__init__(system)
+        self.censoring = censoring
+        self.nx, self.m = system.n, system.m
+        if censoring is not None:
+            censoring.check(system.m)
+
+    def modes(self, rng, k, X, dy):
+        C = self.system.measurement(k)
+        mu = _mat(X, C.T)
+        if not (np.isscalar(dy) and dy == 0.0):
+            mu = mu + dy[:, None, :]
+        return [(0.0, mu, _diag_sigma(self.system, k, "censored readings"))]
+
+    def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
+        r"""Draw from p(x_k | x_{k-1}, y_k) channel by channel; returns (X_new, log p(y_k | x_{k-1}))."""
+        sys_ = self.system
+        mu = _mat(X, sys_.transition(k - 1).T)
+        if not (np.isscalar(b) and b == 0.0):
+            mu = mu + b[:, None, :]
+        lo, hi = self.limits(k)
+        r = _diag_sigma(sys_, k, "censored readings") ** 2
+        return _gaussian_proposal(rng, mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :], y, lo, hi)
+
+
+def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
+    r"""Sample :math:`(x_k, y^*_{cens})` from the Gaussian model :math:`x_k \sim N(\mu, Q_d)`,
+    :math:`y^*_l = H_lx_k + o_l + v_l`, :math:`v_l \sim N(0, r_l)`, given the readings, channel by channel
+    (the GHK simulator for censored channels), batched over runs and particles.
+
+    Parameters
+    ----------
+    mu : (N, Np, n) prior means ; Qd : (n, n) ; H : (m, n) ; offset : (N, Np, m), (N, m) or 0
+    r : (N or 1, m) latent noise variances (> 0) ; y : (N, m) ; lo, hi : (m,)
+
+    Returns
+    -------
+    X : (N, Np, n) the draws ; logw : (N, Np) the log marginal likelihood of the readings under the
+    model (:math:`\prod_l` of the sequential densities or masses)
+    """
+    N, Np, n = mu.shape
+    m = H.shape[0]
+    cls = _classify(y, lo, hi)
+    U = rng.random((N, Np, m))
+    eps = rng.standard_normal((N, Np, n))
+    logw = np.zeros((N, Np))
+    per_run = bool((cls == _MISSING).any()) or r.shape[0] != 1
+    Sig = np.broadcast_to(Qd, (N if per_run else 1, n, n)).copy()
+    off = offset if np.ndim(offset) != 2 else offset[:, None, :]
+    for l in range(m):
+        c = H[l]
+        valid = cls[:, l] != _MISSING
+        if not valid.any():
+            continue
+        Sc = Sig @ c                                   # (Ns, n)
+        s2 = Sc @ c + r[:, l]                          # (Ns,)
+        g = Sc / s2[:, None]
+        pred = _mat(mu, c[:, None])[..., 0]
+        if not (np.isscalar(off) and off == 0.0):
+            pred = pred + off[..., l]
+        val = np.zeros((N, Np))
+        sr = np.broadcast_to(np.sqrt(s2), (N,))
+        for kind in (_INTERIOR, _LOWER, _UPPER):
+            rows = np.flatnonzero(cls[:, l] == kind)
+            if rows.size == 0:
+                continue
+            p, sd = pred[rows], sr[rows][:, None]
+            if kind == _INTERIOR:
+                yv = y[rows, l][:, None]
+                z = (yv - p) / sd
+                logw[rows] += -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
+                val[rows] = yv
+            elif kind == _LOWER:
+                lm = log_ndtr((lo[l] - p) / sd)
+                logw[rows] += lm
+                val[rows] = _truncated_draw(p, sd, lm, U[rows, :, l], -1)
+            else:
+                lm = log_ndtr((p - hi[l]) / sd)
+                logw[rows] += lm
+                val[rows] = _truncated_draw(p, sd, lm, U[rows, :, l], +1)
+        innov = np.where(valid[:, None], val - pred, 0.0)
+        gr = np.broadcast_to(g, (N, n)) if g.shape[0] == 1 else g
+        mu = mu + innov[..., None] * gr[:, None, :]
+        upd = s2[:, None, None] * g[:, :, None] * g[:, None, :]
+        if per_run:
+            upd = np.where(valid[:, None, None], upd, 0.0)
+        Sig = symmetrize(Sig - upd)
+    L = psd_sqrt(Sig)
+    if L.shape[0] == 1:
+        X = mu + _mat(eps, L[0].T)
+    else:
+        X = mu + np.einsum("rij,rpj->rpi", L, eps)
+    return X, logw
+
+
+class _Fading(_Model):
+    """Rice fading of order L (Gaussian coefficients marginalized exactly; other laws drawn)."""
+
+    def __init__(self, system, fading, censoring):
+        super().__init__(system)
+        fading.check(system.m)
+        self.fading, self.censoring = fading, censoring
+        self.L = fading.order
+        self.nx, self.m = system.n * (self.L + 1), system.m
+        self.gaussian = isinstance(fading.coefficients, Gaussian)
+        self.mean_g = fading.mean_gains(system.m)          # (L+1, m)
+        self.var_g = fading.var_gains(system.m)
+        if censoring is not None:
+            censoring.check(system.m)
+
+    def initial(self, rng, N, Np, x0, P0):
+        X = np.zeros((N, Np, self.nx))
+        X[..., :self.n] = super().initial(rng, N, Np, x0, P0)
+        return X
+
+    def predict_moments(self, k, x, P, b):
+        return shift_predict(x, P, self.system.transition(k - 1), self.system.process_cov(k - 1), b)
+
+    def propagate(self, rng, k, X, b):
+        n = self.n
+        top = super().propagate(rng, k, X[..., :n], b)
+        return np.concatenate([top, X[..., :self.nx - n]], axis=-1)
+
+    def modes(self, rng, k, X, dy):
+        n, m = self.n, self.m
+        N, Np = X.shape[:2]
+        S = min(self.L, k)
+        cx = np.stack([_mat(X[..., s * n:(s + 1) * n], measurement_matrix_at(self.system, k - s).T)
+                       for s in range(S + 1)], axis=2)                     # (N, Np, S+1, m)
+        sigma = _diag_sigma(self.system, k, "fading readings")
+        if self.gaussian:
+            mu = np.einsum("rpsm,sm->rpm", cx, self.mean_g[:S + 1])
+            var = np.einsum("rpsm,sm->rpm", cx * cx, self.var_g[:S + 1]) + sigma ** 2
+            sd = np.sqrt(var)
+        else:
+            law = self.fading.coefficients
+            theta = law.sample(rng, (N, Np, m)) if law.shape == (self.L + 1,) else law.sample(rng, (N, Np))
+            if law.shape == (self.L + 1,):
+                theta = np.swapaxes(theta, -1, -2)                          # (N, Np, L+1, m)
+            mu = np.einsum("rpsm,rpsm->rpm", cx, theta[:, :, :S + 1])
+            sd = sigma
+        if not (np.isscalar(dy) and dy == 0.0):
+            mu = mu + dy[:, None, :]
+        return [(0.0, mu, sd)]
+
+
+class _Protocol(_Model):
+    """Integral window + failure gains + Round-Robin + censoring at tau (the scheduled sensor's reading)."""
+
+    def __init__(self, system, channel: ProtocolChannel):
+        super().__init__(system)
+        channel.check(system)
+        self.channel = channel
+        self.ell = channel.window
+        self.nx, self.m = system.n * (self.ell + 1), 1
+        self.censoring = Censoring(lower=channel.threshold)
+        self.discrete = []
+        for i, law in enumerate(channel.laws):
+            if isinstance(law, PMF):
+                vals, probs = np.asarray(law.values, float), np.asarray(law.probs, float)
+            elif isinstance(law, Gaussian) and float(law.variance) == 0.0:
+                vals, probs = np.atleast_1d(float(law.mean)), np.ones(1)
+            else:
+                vals = probs = None
+            self.discrete.append(None if vals is None else (vals, probs))
+        self.optimal = all(d is not None for d in self.discrete)
+
+    def sensor(self, k):
+        order = self.channel.schedule.order
+        return int(order[(k - 1) % order.size]) - 1
+
+    def initial(self, rng, N, Np, x0, P0):
+        n, ell = self.n, self.ell
+        X = np.empty((N, Np, self.nx))
+        X[..., :n] = super().initial(rng, N, Np, x0, P0)
+        mode = self.channel.prehistory
+        for s in range(1, ell + 1):
+            if mode == "prior":
+                X[..., s * n:(s + 1) * n] = super().initial(rng, N, Np, x0, P0)
+            elif mode == "hold":
+                X[..., s * n:(s + 1) * n] = X[..., :n]
+            else:
+                X[..., s * n:(s + 1) * n] = 0.0
+        return X
+
+    def predict_moments(self, k, x, P, b):
+        return shift_predict(x, P, self.system.transition(k - 1), self.system.process_cov(k - 1), b)
+
+    def propagate(self, rng, k, X, b):
+        n = self.n
+        top = super().propagate(rng, k, X[..., :n], b)
+        return np.concatenate([top, X[..., :self.nx - n]], axis=-1)
+
+    def _window_row(self, k):
+        h = self.sensor(k)
+        c = self.system.measurement(k)[h]
+        r = _diag_sigma(self.system, k, "the protocol channel")[h] ** 2
+        return h, c, r
+
+    def modes(self, rng, k, X, dy):
+        h, c, r = self._window_row(k)
+        n = self.n
+        win = X[..., :n].copy()
+        for s in range(1, self.ell + 1):
+            win += X[..., s * n:(s + 1) * n]
+        base = (win @ c)[..., None]                                        # (N, Np, 1)
+        sd = np.sqrt(r)
+        d = self.discrete[h]
+        if d is None:
+            lam = np.asarray(self.channel.laws[h].sample(rng, base.shape), dtype=float)
+            return [(0.0, lam * base, sd)]
+        vals, probs = d
+        with np.errstate(divide="ignore"):
+            logp = np.log(probs)
+        return [(logp[j], vals[j] * base, sd) for j in range(vals.size)]
+
+    def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
+        r"""Locally optimal proposal for a discrete failure law.
+
+        Per particle: the outcome j from its posterior :math:`\propto \pi_jp(y \mid \xi_{k-1}, \lambda_j)`, the
+        latent reading z (the reading, or a truncated-normal draw when censored), then
+        :math:`x_k \mid (x_{k-1}, z, \lambda_j)`, drawn by Matheron's rule: a joint prior draw
+        :math:`(\tilde x, \tilde z)` moved by :math:`\tilde x + \mathrm{Cov}(x, z)\mathrm{Var}(z)^{-1}(z - \tilde z)`
+        (exact, no factorization per particle). Weight: :math:`p(y \mid \xi_{k-1}) = \sum_j\pi_j p(y\mid\xi_{k-1},\lambda_j)`."""
+        n, nx = self.n, self.nx
+        sys_ = self.system
+        A, Qd = sys_.transition(k - 1), sys_.process_cov(k - 1)
+        h, c, r = self._window_row(k)
+        vals, probs = self.discrete[h]
+        J = vals.size
+        N, Np = X.shape[:2]
+        mux = _mat(X[..., :n], A.T)
+        if not (np.isscalar(b) and b == 0.0):
+            mux = mux + b[:, None, :]
+        past = np.zeros((N, Np))
+        for s in range(self.ell):
+            past += _mat(X[..., s * n:(s + 1) * n], c[:, None])[..., 0]
+        U = rng.random((N, Np, 2))
+        eps = rng.standard_normal((N, Np, n))
+        vt = rng.standard_normal((N, Np))
+        base = _mat(mux, c[:, None])[..., 0] + past                       # C_h (mean of x_k + past states)
+        tau = self.channel.threshold
+        cls = _classify(y[:, 0], np.full(N, tau), np.full(N, np.inf))
+        Qc = Qd @ c
+        cQc = float(c @ Qc)
+        sds = np.sqrt(vals ** 2 * cQc + r)                                 # (J,)
+        with np.errstate(divide="ignore"):
+            logpi = np.log(probs)
+        inter, lower = np.flatnonzero(cls == _INTERIOR), np.flatnonzero(cls == _LOWER)
+        comps = np.zeros((J, N, Np))
+        for j in range(J):
+            mean = vals[j] * base
+            if inter.size:
+                zz = (y[inter, 0][:, None] - mean[inter]) / sds[j]
+                comps[j, inter] = -0.5 * zz * zz - np.log(sds[j]) - _LOG_SQRT_2PI
+            if lower.size:
+                comps[j, lower] = log_ndtr((tau - mean[lower]) / sds[j])
+            comps[j] += logpi[j]
+        logw = logsumexp(comps, axis=0)                                    # (N, Np)
+        missing = cls == _MISSING
+        logw[missing] = 0.0
+        cum = np.cumsum(np.exp(comps - logw[None]), axis=0)
+        jsel = np.minimum((U[None, ..., 0] >= cum).sum(0), J - 1)          # (N, Np)
+        lam, sd = vals[jsel], sds[jsel]
+        z = np.broadcast_to(y[:, 0][:, None], (N, Np)).copy()
+        if lower.size:
+            lm = np.take_along_axis(comps[:, lower], jsel[lower][None], axis=0)[0] - logpi[jsel[lower]]
+            z[lower] = _truncated_draw(lam[lower] * base[lower], sd[lower], lm, U[lower, :, 1], -1)
+        xt = mux + _mat(eps, psd_sqrt(Qd).T)                               # joint prior draw (x~, z~)
+        zt = lam * (_mat(xt, c[:, None])[..., 0] + past) + np.sqrt(r) * vt
+        gain = np.where(missing[:, None], 0.0, lam / (sd * sd) * (z - zt))
+        Xn = np.empty((N, Np, nx))
+        Xn[..., :n] = xt + gain[..., None] * Qc
+        Xn[..., n:] = X[..., :nx - n]
+        return Xn, logw
+
+    def check_record(self, y2, start):
+        with np.errstate(invalid="ignore"):
+            bad = y2 < self.channel.threshold - _RTOL_LIMIT * max(1.0, abs(self.channel.threshold))
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValidationError(f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold "
+                                  f"tau = {self.channel.threshold:.6g}")
+
+
+class _Saturation(_Model):
+    """Randomly occurring saturation with missing readings: a three-mode mixture per sensor."""
+
+    def __init__(self, system, channel: RandomSaturation, censoring):
+        super().__init__(system)
+        channel.check(system)
+        self.channel, self.censoring = channel, censoring
+        self.nx, self.m = system.n, system.m
+        with np.errstate(divide="ignore"):
+            mu, nu = channel.mu, channel.nu
+            self.logp = (np.log(mu), np.log((1 - mu) * nu), np.log((1 - mu) * (1 - nu)))
+        if censoring is not None:
+            censoring.check(system.m)
+
+    def modes(self, rng, k, X, dy):
+        cx = _mat(X, self.system.measurement(k).T)
+        sd = _diag_sigma(self.system, k, "saturated readings")
+        return [(self.logp[0], saturate(cx, self.channel.level), sd), (self.logp[1], cx, sd),
+                (self.logp[2], np.zeros_like(cx), sd)]
+
+
+def _flatten(channel: Any) -> list:
+    if channel is None:
+        return []
+    if isinstance(channel, (list, tuple)):
+        out = []
+        for c in channel:
+            out.extend(_flatten(c))
+        return out
+    return [channel]
+
+
+def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
+    pieces = _flatten(channel) + ([] if censoring is None else [censoring])
+    known = (Censoring, RiceFading, ProtocolChannel, RandomSaturation)
+    for p in pieces:
+        if not isinstance(p, known):
+            raise ValidationError(f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation "
+                                  f"pieces, got {type(p).__name__}")
+    cens = [p for p in pieces if isinstance(p, Censoring)]
+    drawers = [p for p in pieces if not isinstance(p, Censoring)]
+    if len(cens) > 1:
+        raise ValidationError("censoring: expected at most one Censoring piece (stack several regions as channels, "
+                              "tobitkf.multi_region)")
+    if len(drawers) > 1:
+        raise ValidationError(f"channel: expected at most one reading model, got "
+                              f"{', '.join(type(d).__name__ for d in drawers)}")
+    c = cens[0] if cens else None
+    if not drawers:
+        return _Linear(system, c)
+    d = drawers[0]
+    if isinstance(d, RiceFading):
+        return _Fading(system, d, c)
+    if isinstance(d, ProtocolChannel):
+        if c is not None:
+            raise ValidationError("censoring: the protocol channel carries its own threshold tau; give no Censoring")
+        return _Protocol(system, d)
+    return _Saturation(system, d, c)
+
+
+def _rng_state(seed: Any) -> dict:
+    if isinstance(seed, np.random.Generator):
+        return seed.bit_generator.state
+    if isinstance(seed, bool):
+        raise ValidationError(f"seed: expected an int, SeedSequence, Generator or None, got {seed!r}")
+    try:
+        ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    except (TypeError, ValueError) as exc:
+        raise ValidationError(f"seed: expected an int, SeedSequence, Generator or None, got {seed!r} ({exc})") from None
+    return np.random.PCG64(ss).state
+
+
+def _generator(state: dict) -> np.random.Generator:
+    bg = getattr(np.random, state["bit_generator"])()
+    bg.state = state
+    return np.random.Generator(bg)
+
+
+# --------------------------------------------------------------------------- the estimator
+
+class ParticleFilter(Estimator):
+    r"""Particle filter for the package's models and channels (see the module docstring).
+
+    Batched over runs and particles: the particles of N runs are one ``(N, Np, n_x)`` array; every
+    step is a few array operations over all of them, one generator draws for all runs.
+
+    Parameters
+    ----------
+    system : LinearSystem
+        The dynamics (and C, R, D of the readings). R must be diagonal and positive.
+    channel : Channel or sequence of Channel, optional
+        :class:`~tobitkf.Censoring` (one-, two-sided, time-varying; several regions as stacked
+        channels, :func:`~tobitkf.multi_region`), :class:`~tobitkf.RiceFading` (with a Censoring),
+        :class:`~tobitkf.ProtocolChannel` or :class:`~tobitkf.RandomSaturation` (with a Censoring);
+        None: linear Gaussian readings.
+    censoring : Censoring, optional
+        The censoring, given separately (the same as adding it to ``channel``).
+    particles : int, default 1000
+        Particles per run :math:`N_p`.
+    resample_threshold : float in [0, 1], default 0.5
+        Resample a run when its effective sample size is below this fraction of :math:`N_p`
+        (0: never, 1: every step).
+    proposal : {"auto", "optimal", "prior"}, default "auto"
+        See the module docstring; ``"optimal"`` is refused for channels without a closed form
+        (fading, saturation, protocol with a continuous failure law).
+    seed : int, SeedSequence, Generator or None, default None
+        Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
+        gives the same numbers; None draws fresh entropy once, when the filter is built.
+
+    Raises
+    ------
+    ValidationError
+        Unknown channel pieces, more than one reading model, a non-diagonal or non-positive R, a bad
+        particle count, threshold, proposal or seed.
+
+    Notes
+    -----
+    ``filter`` returns the common :class:`~tobitkf.filters.core.FilterResult`: ``mean``/``cov``
+    the weighted particle moments of :math:`x_k \mid y_{1:k}`, ``pred_mean``/``pred_cov`` their
+    linear prediction, and extras ``ess`` (effective sample size after the reading),
+    ``resampled`` (bool) and ``log_likelihood`` (the step's :math:`\log\hat p(y_k\mid y_{1:k-1})`),
+    each (..., T). :meth:`log_likelihood` sums the last.
+
+    Memory: :math:`O(N N_p n_x)` for the particles, independent of T (``outputs="last"`` records
+    nothing per step). Cost per particle and step: a draw, a matrix-vector product and one
+    ``log_ndtr`` or normal density per channel (see ``benchmarks/bench_particle.py``).
+
+    Examples
+    --------
+    Without censoring the particle filter converges to the Kalman filter:
+
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.1]], R=[[0.2]], x0=[0.0], P0=[[1.0]])
+    >>> data = tk.simulate(sys, 20, 1, seed=1)
+    >>> pf = tk.ParticleFilter(sys, particles=20000, seed=2).filter(data.y)
+    >>> kf = tk.KalmanFilter(sys).filter(data.y)
+    >>> bool(np.abs(pf.mean - kf.mean).max() < 0.02)
+    True
+
+    References
+    ----------
+    .. [1] N. J. Gordon, D. J. Salmond, A. F. M. Smith, Novel approach to nonlinear/non-Gaussian
+       Bayesian state estimation, IEE Proc. F 140(2), 1993.
+    .. [2] A. Doucet, S. Godsill, C. Andrieu, On sequential Monte Carlo sampling methods for Bayesian
+       filtering, Statistics and Computing 10, 2000.
+    .. [3] G. Kitagawa, Monte Carlo filter and smoother for non-Gaussian nonlinear state space models,
+       J. Comput. Graph. Stat. 5(1), 1996.
+    """
+
+    _name = "ParticleFilter"
+    k0 = 0
+
+    def __init__(self, system: LinearSystem, channel: Any = None, *, censoring: Censoring | None = None,
+                 particles: int = 1000, resample_threshold: float = 0.5, proposal: str = "auto", seed: Any = None):
+        check_instance(system, LinearSystem, "system")
+        if censoring is not None:
+            check_instance(censoring, Censoring, "censoring")
+        if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < 1:
+            raise ValidationError(f"particles: expected a positive integer, got {particles!r}")
+        thr = as_float_array(resample_threshold, "resample_threshold", ndim=0)
+        if not 0.0 <= float(thr) <= 1.0:
+            raise ValidationError(f"resample_threshold: expected a fraction in [0, 1], got {float(thr)}")
+        if proposal not in PROPOSALS:
+            raise ValidationError(f"proposal: expected one of {', '.join(map(repr, PROPOSALS))}, got {proposal!r}")
+        self.system = system
+        self.model = _build_model(system, channel, censoring)
+        if proposal == "optimal" and not self.model.optimal:
+            raise ValidationError(f"proposal: 'optimal' has no closed form for {type(self.model).__name__[1:].lower()} "
+                                  "readings (use 'auto' or 'prior')")
+        if not system.R.varying:
+            _diag_sigma(system, 1, "its channels")
+        self.proposal = ("optimal" if self.model.optimal else "prior") if proposal == "auto" else proposal
+        self.particles = int(particles)
+        self.resample_threshold = float(thr)
+        self._rng0 = _rng_state(seed)
+        self.n, self.m = system.n, self.model.m
+
+    # the linear-system boundary checks are those of the Gaussian families
+    _prepare_inputs = LinearGaussianFamily._prepare_inputs
+    _step_input = LinearGaussianFamily._step_input
+
+    def _feedthrough(self, k, u):
+        if u is None or self.system.D is None or isinstance(self.model, (_Protocol, _Saturation)):
+            return 0.0
+        return u @ self.system.D.at(k).T
+
+    def _state_dim(self) -> int:
+        return self.model.nx
+
+    def _check_record(self, y2, u2, k0, name="y"):
+        self.system.check_horizon(k0 + y2.shape[1])
+        self.model.check_record(y2, k0 + 1)
+
+    def _initial(self, N, x0, P0, batch):
+        x, P = check_prior(self.system, x0, P0, N, batch)
+        rng = _generator(dict(self._rng0))
+        X = self.model.initial(rng, N, self.particles, x, P)
+        lw = np.full((N, self.particles), -np.log(self.particles))
+        xm, Pm = _moments(X, np.exp(lw))
+        carry = {"particles": X, "log_weights": lw, "rng": rng.bit_generator.state, "log_likelihood": np.zeros(N)}
+        return xm, Pm, carry
+
+    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
+        rng = _generator(carry["rng"])
+        X, lw = carry["particles"], carry["log_weights"]
+        b = 0.0 if u is None or self.system.Bu is None else u @ self.system.Bu.at(k).T
+        dy = self._feedthrough(k, u)
+        xp, Pp = self.model.predict_moments(k, x, P, b)
+        if self.proposal == "optimal":
+            Xn, inc = self.model.propose(rng, k, X, y, b, dy, xp, Pp)
+        else:
+            Xn = self.model.propagate(rng, k, X, b)
+            inc = self.model.log_likelihood(rng, k, Xn, y, dy)
+        lw_un = lw + inc
+        top = lw_un.max(axis=1)
+        dead = ~np.isfinite(top)
+        if dead.any():          # no particle explains the reading: keep the weights, report -inf
+            lw_un[dead] = lw[dead]
+            top = lw_un.max(axis=1)
+        W = np.exp(lw_un - top[:, None])
+        tot = W.sum(axis=1)
+        W /= tot[:, None]
+        ll_norm = np.log(tot) + top
+        ll = np.where(dead, -np.inf, ll_norm)
+        lw_new = lw_un - ll_norm[:, None]
+        xm, Pm = _moments(Xn, W)
+        ess = 1.0 / np.einsum("rp,rp->r", W, W)
+        ur = rng.random(X.shape[0])
+        res = ess < self.resample_threshold * self.particles
+        if res.any():
+            rows = np.flatnonzero(res)
+            idx = systematic_resample(W[rows], ur[rows])
+            Xn[rows] = np.take_along_axis(Xn[rows], idx[..., None], axis=1)
+            lw_new[rows] = -np.log(self.particles)
+        carry = {"particles": Xn, "log_weights": lw_new, "rng": rng.bit_generator.state,
+                 "log_likelihood": carry["log_likelihood"] + ll}
+        extras = {"ess": ess, "resampled": res, "log_likelihood": ll}
+        return xm, Pm, None, carry, xp, Pp, extras
+
+    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
+               state: FilterState | None = None) -> FilterResult:
+        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
+
+        Parameters
+        ----------
+        y : (..., T, m) array_like
+            Readings y_1..y_T (m = 1 for the protocol channel: the scheduled sensor's reading).
+        u : (T, p) or (..., T, p) array_like, optional
+            Control inputs u_1..u_T.
+        x0, P0 : array_like, optional
+            Override the system's prior (``(..., n)``, ``(..., n, n)``).
+        outputs : str or sequence of str, default "all"
+            Per-step outputs to record: ``"all"``, ``"last"`` or names from
+            ``mean, cov, var, pred_mean, pred_cov, extras``.
+        state : FilterState, optional
+            Continue from this state (e.g. ``result.final``), generator included.
+
+        Raises
+        ------
+        ShapeError
+            Malformed ``y``, ``u`` or prior.
+        ValidationError
+            A reading outside its censoring limits, NaN-free checks of the inputs.
+        """
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+    def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None,
+                       state: FilterState | None = None) -> np.ndarray:
+        r"""Estimate of :math:`\log p(y_{1:T})` per run, shape ``batch`` (``()`` for one record).
+
+        The product over k of the weighted means of the incremental weights (an unbiased estimate of the
+        likelihood; its logarithm is biased low by about half its variance)."""
+        res = self._run(y, u, x0, P0, outputs="last", state=state)
+        ll = res.final.carry["log_likelihood"]
+        return ll.reshape(res.final.batch_shape) if res.final.batch_shape else ll.reshape(())[()]
+
+    def __repr__(self) -> str:
+        return (f"ParticleFilter({type(self.model).__name__[1:].lower()}, particles={self.particles}, "
+                f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})")
+
+
+def _moments(X: np.ndarray, W: np.ndarray):
+    """Weighted mean (N, nx) and covariance (N, nx, nx) of particles X (N, Np, nx) with weights W (N, Np)
+    (two passes: the mean, then the weighted outer products of the deviations, as batched GEMMs)."""
+    mean = (W[:, None, :] @ X)[:, 0]
+    d = X - mean[:, None, :]
+    cov = np.swapaxes(d * W[..., None], 1, 2) @ d
+    return mean, symmetrize(cov)

@@ -1,0 +1,21 @@
+"""Smoothing, likelihood and learning from censored data.
+
+- :func:`smooth` -- fixed-interval smoothers (RTS for the KF; the TKF's linearisation and the
+  assumed-density smoother for censored readings) with lag-one cross-covariances;
+  :class:`FixedLagSmoother` on the online API.
+- :func:`log_likelihood`, :func:`kalman_log_likelihood`, :func:`adf_log_likelihood` -- per run;
+  :func:`~tobitkf.inference.censored_ar.exact_log_likelihood` for a censored regression with AR errors.
+- :func:`fit` with :class:`CensoredAR` (exact ML), a :class:`~tobitkf.LinearSystem` template (EM) or a map
+  theta -> LinearSystem (direct); :class:`FitResult` (estimates, s.e., AIC/BIC, trace, forecasts,
+  residuals, JSON), :func:`load_fit`, :func:`residual_diagnostics`.
+"""
+
+from .adf import ADFilter
+from .censored_ar import CensoredAR, CensoredARData, exact_log_likelihood, posterior_moments
+from .fitting import FitResult, fit, load_fit, residual_diagnostics
+from .likelihood import adf_log_likelihood, kalman_log_likelihood, log_likelihood, prediction_log_densities
+from .smoothing import FixedLagSmoother, FixedLagState, rts_smooth, smooth
+
+__all__ = ["smooth", "rts_smooth", "FixedLagSmoother", "FixedLagState", "log_likelihood", "kalman_log_likelihood",
+           "adf_log_likelihood", "prediction_log_densities", "ADFilter", "CensoredAR", "CensoredARData",
+           "exact_log_likelihood", "posterior_moments", "fit", "FitResult", "load_fit", "residual_diagnostics"]

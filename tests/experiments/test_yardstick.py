@@ -1,0 +1,100 @@
+"""The yardstick experiment (tobitkf.experiments.yardstick): structure, the same data as the experiments,
+the ratios, the convergence check, the figures and the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import tobitkf as tk
+from tobitkf.cli import app
+from tobitkf.experiments import get
+from tobitkf.experiments.yardstick import EXAMPLES, optimum_ratios, random_stable_system
+
+
+@pytest.fixture(scope="module")
+def small():
+    return get("yardstick").run(runs=12, steps=25, random_systems=2, particles=100, seed=3)
+
+
+def test_every_example_and_random_system_has_every_estimator_and_its_ratio(small):
+    m = small.metrics
+    assert list(m["examples"]) == list(EXAMPLES) and list(m["random_systems"]) == ["random-01", "random-02"]
+    for name, ex in list(m["examples"].items()) + list(m["random_systems"].items()):
+        est = ex["estimators"]
+        assert "pf" in est and "adf" in est
+        pf = est["pf"]
+        assert pf["particles"] == 200 and pf["convergence"]["particles"] == [100, 200]
+        assert len(pf["convergence"]["relative_change"]) == len(pf["rmse_time_avg"])
+        np.testing.assert_allclose(pf["ratio_to_optimum"], 1.0)
+        for key, s in est.items():
+            np.testing.assert_allclose(s["ratio_to_optimum"], np.asarray(s["rmse_time_avg"]) / pf["rmse_time_avg"])
+        assert ex["runs"] == 12 and ex["steps"] == 25
+        assert ("pcrlb" in ex) == (name not in ("miller-constant", "geng-protocol-tracking", "saturation-oscillator"))
+    assert {r["example"] for r in m["table"]} == set(EXAMPLES) | {"random-01", "random-02"}
+    assert any("1.02x of the optimum" in c["claim"] for c in small.claims)
+
+
+def test_same_data_as_the_experiments():
+    """miller-brownian and geng2017-oscillator: the yardstick's estimators see the experiments' own readings."""
+    y = get("yardstick").run(runs=8, steps=20, random_systems=0, particles=50, seed=5,
+                             examples=("miller-brownian", "geng2017-oscillator"))
+    b = get("miller-brownian").run(runs=8, seed=5, steps=20)
+    np.testing.assert_allclose(y.metrics["examples"]["miller-brownian"]["estimators"]["tkf"]["rmse"],
+                               b.metrics["estimators"]["tkf"]["rmse"], rtol=1e-12)
+    g = get("geng2017-oscillator").run(runs=8, seed=5, steps=20)
+    np.testing.assert_allclose(y.metrics["examples"]["geng2017-oscillator"]["estimators"]["tkf-fm"]["rmse"],
+                               g.metrics["estimators"]["tkf-fm"]["rmse"], rtol=1e-12)
+
+
+def test_random_systems_censor_30_to_90_percent():
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        sys_, cens, desc = random_stable_system(rng)
+        assert max(abs(np.linalg.eigvals(sys_.A.at(0)))) < 0.99
+        d = tk.simulate(sys_, 200, 100, censoring=cens, seed=1)
+        lo, hi = cens.censored_mask(d.y)
+        frac = (lo | hi).mean(axis=(0, 1))
+        np.testing.assert_allclose(frac, desc["target_censored_fraction"], atol=0.08)
+        assert (0.25 < frac).all() and (frac < 0.95).all()
+
+
+def test_optimum_ratios():
+    s = {"pf": {"rmse_time_avg": [1.0, 2.0]}, "a": {"rmse_time_avg": [1.5, 2.0]}}
+    optimum_ratios(s)
+    assert s["a"]["ratio_to_optimum"] == [1.5, 1.0] and s["pf"]["ratio_to_optimum"] == [1.0, 1.0]
+
+
+def test_bad_settings_are_refused():
+    run = get("yardstick").run
+    with pytest.raises(tk.ValidationError, match="examples: unknown example 'miller-radar'"):
+        run(runs=2, examples=("miller-radar",))
+    with pytest.raises(tk.ValidationError, match="random_systems: expected an integer >= 0"):
+        run(runs=2, random_systems=-1)
+    with pytest.raises(tk.ValidationError, match="particles: expected a positive integer or None"):
+        run(runs=2, particles=0)
+
+
+def test_figures_and_cli(tmp_path, small):
+    paths = get("yardstick").plot(small, tmp_path)
+    names = {p.name for p in paths}
+    assert "ratio_to_optimum.png" in names and "rmse_miller-brownian.png" in names and "rmse_random-02.png" in names
+    runner = CliRunner()
+    res = runner.invoke(app, ["list"])
+    assert res.exit_code == 0 and "yardstick" in res.output
+
+
+def test_metrics_are_json(small):
+    from tobitkf._io import atomic_write_json
+
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as d:
+        p = Path(d) / "m.json"
+        atomic_write_json(p, small.metrics)
+        back = json.loads(p.read_text())
+    assert back["examples"]["miller-oscillator"]["estimators"]["pf"]["convergence"]["tolerance"] == 0.003
