@@ -339,6 +339,7 @@ class TimeSequence:
             if mat.shape != self.core_shape:
                 raise ShapeError(f"{self.name}({k}): expected shape {self.core_shape}, got {mat.shape}")
             return mat
+        assert self.array is not None, "a constant or time-indexed sequence holds its array"
         if self.varying:
             idx = k - self.offset
             if not 0 <= idx < self.array.shape[0]:

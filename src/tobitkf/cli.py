@@ -23,7 +23,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 try:                                   # typer >= 0.20 carries its own copy of click
     from typer._click import exceptions as _click_errors
 except ImportError:                    # pragma: no cover - older typer uses click itself
-    from click import exceptions as _click_errors
+    from click import exceptions as _click_errors  # type: ignore[no-redef]  # the same module, older typer
 
 _ClickException = _click_errors.ClickException
 _NoArgsIsHelpError = getattr(_click_errors, "NoArgsIsHelpError", None) or type("_Never", (Exception,), {})
@@ -151,7 +151,7 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
         task = progress.add_task(exp_id, total=1.0)
 
     def report(done: float) -> None:
-        if progress is not None:
+        if progress is not None and task is not None:
             progress.update(task, completed=min(max(done, 0.0), 1.0))
 
     check_experiment_folder(out, exp_id)

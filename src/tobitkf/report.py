@@ -38,6 +38,7 @@ import math
 import os
 import re
 import struct
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -363,7 +364,8 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
     root = as_path(results_dir, "results_dir")
     if not root.is_dir():
         raise ValidationError(f"results_dir: expected a directory of experiment results, got {str(root)!r}")
-    experiments, problems, taken = [], [], set()
+    experiments, problems = [], []
+    taken: set[str] = set()
     try:
         folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
     except OSError as exc:
@@ -381,6 +383,7 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
         if why:
             problems.append(f"{folder.name}/metrics.json {why}; experiment skipped")
             continue
+        assert metrics is not None, "_load_metrics gives the metrics or the reason"
         exp = _read_experiment(folder, metrics, taken)
         experiments.append(exp)
         problems.extend(exp.problems)
@@ -790,7 +793,7 @@ def _md(s: Any) -> str:
             .replace("[", "\\[").replace("]", "\\]"))
 
 
-def _md_table(head: list[str], rows: list[list[str]], right: set[int] = frozenset()) -> list[str]:
+def _md_table(head: list[str], rows: list[list[str]], right: AbstractSet[int] = frozenset()) -> list[str]:
     align = ["---:" if i in right else "---" for i in range(len(head))]
     out = ["| " + " | ".join(head) + " |", "| " + " | ".join(align) + " |"]
     out.extend("| " + " | ".join(r) + " |" for r in rows)
@@ -868,26 +871,26 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
             out += ["#### Time-averaged RMSE per estimator", "", _md(_RMSE_DEFINITION), ""]
             if not e.rmse_tables:
                 out += ["*No estimator summaries recorded.*", ""]
-            for t in e.rmse_tables:
-                out += [f"*{_md(t.label)}*", ""]
-                lows = [t.lowest(j) for j in range(t.components)]
+            for rt in e.rmse_tables:
+                out += [f"*{_md(rt.label)}*", ""]
+                lows = [rt.lowest(j) for j in range(rt.components)]
                 rows = []
-                for key, vals, nees_v in t.rows:
+                for key, vals, nees_v in rt.rows:
                     row = [f"`{_md(key)}`"]
-                    for j in range(t.components):
+                    for j in range(rt.components):
                         v = vals[j] if j < len(vals) else None
                         cell = _md(_num(v))
-                        if _finite(v) and v == lows[j] and len(t.rows) > 1:
+                        if _finite(v) and v == lows[j] and len(rt.rows) > 1:
                             cell = f"**{cell}**"
                         row.append(cell)
-                    if t.has_nees:
+                    if rt.has_nees:
                         row.append(_md(_num(nees_v)))
-                    if t.has_ratio:
-                        row.append(_md(t.ratio_text(key)))
+                    if rt.has_ratio:
+                        row.append(_md(rt.ratio_text(key)))
                     rows.append(row)
-                head = ["estimator"] + [f"x{j + 1}" for j in range(t.components)] + (["NEES (avg)"] if t.has_nees
+                head = ["estimator"] + [f"x{j + 1}" for j in range(rt.components)] + (["NEES (avg)"] if rt.has_nees
                                                                                       else [])
-                head += ["RMSE / optimum"] if t.has_ratio else []
+                head += ["RMSE / optimum"] if rt.has_ratio else []
                 out += _md_table(head, rows, right=set(range(1, len(head))))
     return "\n".join(out).rstrip("\n") + "\n\n" + _MD_MARKER + "\n"
 

@@ -91,13 +91,16 @@ class Censoring(Channel):
             m = m.m
         if self.channels is not None and self.channels not in (1, m):
             raise ShapeError(f"censoring limits: expected {m} channel(s) to match the system, got {self.channels}")
-        if steps is not None and self.time_varying and self.steps < steps:
+        n_steps = self.steps                     # an int whenever the limits are time-varying
+        if steps is not None and self.time_varying and n_steps is not None and n_steps < steps:
             raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, {steps} needed")
 
     def limits(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)`` for measurement ``y_k`` (k >= 1; array index k-1)."""
         if self.time_varying:
-            if not 1 <= k <= self.steps:
+            n_steps = self.steps
+            assert n_steps is not None, "time-varying limits have a number of steps"
+            if not 1 <= k <= n_steps:
                 raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, step k={k} requested")
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper

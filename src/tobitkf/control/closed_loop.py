@@ -177,6 +177,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         raise ValidationError("plant: simulate_closed_loop needs a time-invariant plant")
     steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
     n, m, p = plant.n, plant.m, plant.p
+    assert p is not None, "a plant with an input matrix (plant.Bu is read above)"
     check_memory(8 * runs * (steps + 1) * (4 * n + n * n + 3 * m + p), "runs/steps",
                  f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)")
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
@@ -218,6 +219,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     if not isinstance(cens, Censoring):
         raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
     cens.check(m, steps)
+    obs: KalmanFilter | SteadyStateTobitKalmanFilter | TobitKalmanFilter
     if observer == "kf":
         obs = KalmanFilter(plant, backend="numpy")
     elif observer == "sstkf":
@@ -297,6 +299,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         if keep.all():
             state = new
         else:   # a diverged run is frozen at its last estimate
+            assert new.P is not None and state.P is not None, "the observers carry their covariance"
             P_new = new.P if new.P.shape[0] == runs else np.broadcast_to(new.P, (runs,) + new.P.shape[1:])
             P_old = state.P if state.P.shape[0] == runs else np.broadcast_to(state.P, (runs,) + state.P.shape[1:])
             state = new.replace(x=np.where(keep, new.x, state.x),

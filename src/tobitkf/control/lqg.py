@@ -158,6 +158,7 @@ class EstimatorGain:
             warnings.warn("EstimatorGain.filter_gain of a continuous-time result is its only gain: use .gain; "
                           ".filter_gain is deprecated there", DeprecationWarning, stacklevel=2)
             return self._gain
+        assert self._filter_gain is not None, "a discrete-time result has its filter gain"
         return self._filter_gain
 
 
@@ -349,7 +350,8 @@ def _lqr(A, B, Q, R, domain: str) -> RegulatorGain:
     eq = "CARE (4.40)" if domain == "ct" else "DARE"
     w, V = np.linalg.eigh(Q)
     Qh = (V * np.sqrt(np.clip(w, 0, None))).T
-    K = S = None
+    K: Any = None
+    S: Any = None
     try:
         K, S, _ = (control.lqr if domain == "ct" else control.dlqr)(A, B, Q, R)
         S = np.asarray(S, dtype=float)
@@ -547,7 +549,8 @@ def controlled_noise(xi_uncensored: Any, sigma: Any) -> tuple[np.ndarray, np.nda
     from ..filters.steady_state import controlled_limit_statistics
 
     _, lam, upsilon, _ = controlled_limit_statistics(xi_uncensored, sigma)
-    return np.broadcast_arrays(lam, upsilon)
+    lam_b, upsilon_b = np.broadcast_arrays(lam, upsilon)
+    return lam_b, upsilon_b
 
 
 def _tobit_lqe(A, G, C, W, V, xi_uncensored, domain: str) -> EstimatorGain:
@@ -743,7 +746,7 @@ def equilibrium(A: Any, B: Any, G: Any, H: Any, r: Any, *, domain: str | None = 
     rhs = np.concatenate([np.zeros(n), r])
     sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
     res = np.linalg.norm(M @ sol - rhs)
-    if res > 1e-8 * max(1.0, np.linalg.norm(rhs)):
+    if res > 1e-8 * max(1.0, float(np.linalg.norm(rhs))):
         raise ValidationError(f"r: the plant cannot track the reference {r.tolist()}: no equilibrium of (6.4) gives "
                               f"this output (residual {res:.3g})")
     return sol[:n], sol[n:]

@@ -184,6 +184,7 @@ def moving_window_tkf(system: LinearSystem, y_latent: Any,
     memory: dict = {}
     for k in range(1, T + 1):
         pred = tkf.predict(state)
+        assert pred.cov is not None, "the TKF carries its covariance"
         lo, hi = law(k, pred.mean, np.broadcast_to(pred.cov, (N, n, n)), memory)
         lo, hi = np.broadcast_to(lo, (N, m)), np.broadcast_to(hi, (N, m))
         yk = np.minimum(np.maximum(y_latent[:, k - 1], lo), hi)

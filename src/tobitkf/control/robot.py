@@ -205,6 +205,7 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
             ls = trilaterate(10.0 ** np.clip(pred.mean[:, 4:], -6.0, 6.0), tx) + vls[:, k - 1]   # pseudo-measurement
             new = f.update(pred, np.concatenate([ls, rss], axis=1))
             if not alive.all():   # a diverged run is frozen at its last estimate
+                assert st.P is not None and new.P is not None, "the robot's filter carries its covariance"
                 P_old = np.broadcast_to(st.P, (runs,) + st.P.shape[1:])
                 P_new = np.broadcast_to(new.P, (runs,) + new.P.shape[1:])
                 new = new.replace(x=np.where(alive[:, None], new.x, st.x),

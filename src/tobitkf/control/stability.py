@@ -329,4 +329,6 @@ def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower:
     y = as_float_array(y, "y")    # NaN refused: the fixed-gain observer cannot skip a sample
     if y.ndim < 2 or y.shape[-1] != obs.m:
         raise ShapeError(f"y: expected (..., T, {obs.m}), got shape {y.shape}")
-    return obs.filter(y, x0=xhat0, outputs="mean").mean
+    mean = obs.filter(y, x0=xhat0, outputs="mean").mean
+    assert mean is not None, "outputs='mean' records the means"
+    return mean

@@ -68,7 +68,7 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
@@ -89,6 +89,12 @@ COVARIANCES = ("paper", "exact")
 SOLVERS = ("CLARABEL", "SCS")
 
 
+@overload
+def _number(value: Any, name: str, *, positive: bool = False, nonnegative: bool = False,
+            optional: Literal[False] = False) -> float: ...
+@overload
+def _number(value: Any, name: str, *, positive: bool = False, nonnegative: bool = False,
+            optional: bool) -> float | None: ...
 def _number(value: Any, name: str, *, positive: bool = False, nonnegative: bool = False,
             optional: bool = False) -> float | None:
     """A finite real number (None allowed if ``optional``): text, booleans, NaN and inf are refused by name."""
@@ -175,7 +181,7 @@ def augmented_step(model: RossModel, Af: Any, Bf: Any, eta: Any, w: Any, v: Any,
     c = x @ model.C.T
     s = saturate(c, ch.level)
     mu, nu = ch.mu, ch.nu
-    fbar_top = model.f(x)
+    fbar_top = model.nonlinearity(x)
     fbar_bot = (c * ((1 - mu) * nu)) @ Bf.T + xh @ Af.T                       # (7): \bar f
     Abar_s = (s * mu) @ Bf.T                                                   # \bar A σ
     Dw_top = np.asarray(w, dtype=float) @ model.B.T                            # \bar D \bar w
@@ -216,7 +222,7 @@ def _mean_only(model: RossModel, Af: np.ndarray, Bf: np.ndarray, eta: np.ndarray
     n = model.n
     x = eta[..., :n]
     c = x @ model.C.T
-    xi = np.concatenate([eta, model.f(x), saturate(c, model.channel.level),
+    xi = np.concatenate([eta, model.nonlinearity(x), saturate(c, model.channel.level),
                          np.broadcast_to(np.asarray(w, float), eta.shape[:-1] + (model.p,)),
                          np.broadcast_to(np.asarray(v, float), eta.shape[:-1] + (model.m,))], axis=-1)
     return xi @ _mean_map(model, Af, Bf).T
@@ -622,7 +628,7 @@ def _finish(model: RossModel, *, status: str, solver: str, method: str, objectiv
             gamma: float | None, Af, Bf, P, z, e1, e2, pi, covariance: str, block_diagonal: bool,
             rho_fixed: float | None, seconds: float, history: list[float] | None = None,
             margin: float | None = None) -> HinfCertificate:
-    base = dict(method=method, objective=objective, theorem=theorem, solver=solver, seconds=seconds,
+    base: dict[str, Any] = dict(method=method, objective=objective, theorem=theorem, solver=solver, seconds=seconds,
                 history=list(history or []), lmi_margin=margin)
     if status not in ("optimal", "optimal_inaccurate"):
         st = "infeasible" if "infeasible" in status else status
@@ -635,7 +641,11 @@ def _finish(model: RossModel, *, status: str, solver: str, method: str, objectiv
         P[:n, n:] = 0.0
         P[n:, :n] = 0.0
     piv = None if pi is None else float(pi)
-    rho = rho_fixed if rho_fixed is not None else (e2v ** 2 / piv)                   # (22)
+    if rho_fixed is not None:
+        rho = rho_fixed
+    else:
+        assert piv is not None, "the region LMI (20) has its variable pi whenever rho is not fixed"
+        rho = e2v ** 2 / piv                                                          # (22)
     ver = verify(model, Af, Bf, P, Lam, float(e1), e2v, gamma, pi=piv, rho=rho, covariance=covariance,
                  block_diagonal=block_diagonal)
     if (not ver.ok and objective == "min_gamma" and ver.gamma_min is not None
@@ -754,7 +764,7 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     z, pi, e1, e2, g2 = _common_vars(cp, model, objective, gamma)
     cons = []
     if P_fixed is not None:
-        Pv = P_fixed
+        Pv: Any = P_fixed          # a constant, or a cvxpy expression below
     elif lyapunov == "block":
         Q1 = cp.Variable((n, n), symmetric=True)
         Q2 = cp.Variable((n, n), symmetric=True)
@@ -1041,11 +1051,11 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     if fixed_Q is not None and method != "theorem3":
         raise ValidationError("fixed_Q: only meaningful for method='theorem3'")
     if objective == "feasibility":
-        gamma = float(gamma)
+        gamma = as_float(gamma, "gamma")
     if not margin > 0:
         raise ValidationError(f"margin: expected a positive number, got {margin!r}")
     t0 = time.perf_counter()
-    cert = None
+    cert: HinfCertificate | None = None
     for attempt in range(retries + 1):
         cert = _design_once(model, method=method, objective=objective, gamma=gamma, covariance=covariance,
                             solver=solver, fallback=fallback, margin=margin * 10 ** attempt, bound=bound,
@@ -1054,6 +1064,7 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
             break
         if cert.status == "optimal_inaccurate" and cert.ok:
             break
+    assert cert is not None, "retries >= 0: at least one attempt"
     return replace(cert, seconds=time.perf_counter() - t0)
 
 
@@ -1105,6 +1116,12 @@ def _design_once(model: RossModel, *, method: str, objective: str, gamma: float 
                    seconds=seconds, margin=margin)
 
 
+def _ok_gamma(cert: HinfCertificate) -> float:
+    """The γ of a certificate that is ok (every verified certificate has one)."""
+    assert cert.gamma is not None, "a verified certificate carries its gamma"
+    return cert.gamma
+
+
 def _iterate(model: RossModel, *, objective: str, gamma: float | None, covariance: str, solver: str,
              fallback: str | None, margin: float, bound: float | None, iterations: int,
              tol: float) -> HinfCertificate:
@@ -1115,14 +1132,15 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
                   fallback=fallback, margin=margin, bound=bound)
     if not best.ok:
         return replace(best, method="iterate", seconds=time.perf_counter() - t0)
-    history = [best.gamma]
+    history = [_ok_gamma(best)]
     # The improvement steps do not fall back to a second solver: a step that does not solve cleanly
     # ends the iteration (the fallback spent seconds in SCS without ever improving γ, WH-22).
     for _ in range(iterations):
         ana = analyze(model, best.Af, best.Bf, theorem=2, objective="min_gamma", lyapunov="full",
                       covariance=covariance, solver=solver, fallback=None, margin=margin, bound=bound)
-        if ana.ok and ana.gamma < best.gamma:
+        if ana.ok and _ok_gamma(ana) < _ok_gamma(best):
             best = ana
+        assert best.P is not None, "a verified certificate carries its P"
         v = _synthesis_fixed_P(cp, model, best.P, "min_gamma", None, margin, covariance)
         prob = cp.Problem(cp.Minimize(v["g2"]), v["cons"])
         status, used = _solve(prob, solver, None)
@@ -1132,10 +1150,10 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
                            Bf=v["Bf"].value, P=best.P.copy(), z=v["z"].value, e1=v["e1"].value,
                            e2=v["e2"].value, pi=v["pi"].value, covariance=covariance, block_diagonal=False,
                            rho_fixed=None, seconds=0.0, margin=margin)
-            improved = cand.ok and cand.gamma < best.gamma - tol
-            if cand.ok and cand.gamma < best.gamma:
+            improved = cand.ok and _ok_gamma(cand) < _ok_gamma(best) - tol
+            if cand.ok and _ok_gamma(cand) < _ok_gamma(best):
                 best = cand
-            history.append(best.gamma)
+            history.append(_ok_gamma(best))
             if not improved:
                 break
         else:
@@ -1143,9 +1161,11 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
     out = replace(best, method="iterate", objective=objective, history=history,
                   seconds=time.perf_counter() - t0)
     if objective == "feasibility":
-        if out.gamma > gamma:
+        assert gamma is not None, "design() makes gamma a number for the feasibility objective"
+        if _ok_gamma(out) > gamma:
             return HinfCertificate(status="infeasible", method="iterate", objective=objective, theorem=2,
                                    solver=out.solver, history=history, seconds=out.seconds)
+        assert out.eps1 is not None and out.eps2 is not None, "a verified certificate carries its multipliers"
         ver = verify(model, out.Af, out.Bf, out.P, out.Lambda, out.eps1, out.eps2, gamma, pi=out.pi,
                      rho=out.rho, covariance=covariance)
         out = replace(out, gamma=gamma, verification=ver)
@@ -1155,7 +1175,7 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
 # ---------------------------------------------------------------------------------------
 # The paper's example (Section 4)
 # ---------------------------------------------------------------------------------------
-WANG2010_PAPER = {
+WANG2010_PAPER: dict[str, Any] = {
     "gamma": 1.5,
     "Af": np.array([[0.2165, 0.0014, 0.0081], [-0.0004, 0.1459, -0.0010], [0.0548, 0.0060, 0.1954]]),
     "Bf": np.array([[0.1035, -0.0096], [0.0, 0.0], [-0.0102, 0.0204]]),

@@ -193,7 +193,7 @@ def at_least(text: str, *, quantity: str, value: Any, bound: Any, tol: float, to
                  explanation=explanation)
 
 
-def less(text: str, *, quantity: str, a: Any, b: Any, tol: float, tolerance: str, names: tuple[str, str] = ("a", "b"),
+def less(text: str, *, quantity: str, a: Any, b: Any, tol: float | np.ndarray, tolerance: str, names: tuple[str, str] = ("a", "b"),
          note: str = "", explanation: str = "", digits: int = 4) -> dict[str, Any]:
     """Claimed ordering ``a < b``: holds iff every ``b - a > tol`` (shown beyond the tolerance)."""
     av, bv = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
@@ -205,7 +205,7 @@ def less(text: str, *, quantity: str, a: Any, b: Any, tol: float, tolerance: str
                  note=note, explanation=explanation)
 
 
-def greater(text: str, *, quantity: str, a: Any, b: Any, tol: float, tolerance: str,
+def greater(text: str, *, quantity: str, a: Any, b: Any, tol: float | np.ndarray, tolerance: str,
             names: tuple[str, str] = ("a", "b"), note: str = "", explanation: str = "",
             digits: int = 4) -> dict[str, Any]:
     """Claimed ordering ``a > b``: holds iff every ``a - b > tol``."""

@@ -40,6 +40,12 @@ _LABELS = {"kf": "KF (censored as data)", "dkf": "dropping KF", "tkf": "TKF (noi
            "adf": "assumed-density smoother", "exact": "exact posterior mean"}
 
 
+def _mean(result: Any) -> np.ndarray:
+    """The smoothed means of a :func:`~tobitkf.inference.smooth` result (always recorded)."""
+    assert result.mean is not None, "smooth() records the smoothed means"
+    return result.mean
+
+
 def _noop(_: float) -> None:
     pass
 
@@ -149,11 +155,11 @@ def _score_holdout(series, X, fraction: float, side: int) -> tuple[dict[str, Any
     sys0 = ar_state_space(beta, s2, phi)
     floor = NOISE_FLOOR * float(ar_autocovariance(phi, s2, 0)[0])
     sys_t = ar_state_space(beta, s2, phi, noise_floor=floor)
-    est = {}
-    est["kf"] = smooth(sys0, y2, u=X, method="kalman").mean[:, 0] + mu
-    est["dkf"] = smooth(sys0, y2, censoring=cens, censored=ind, u=X, method="dropping").mean[:, 0] + mu
-    est["tkf"] = smooth(sys_t, y2, censoring=cens, censored=ind, u=X, method="tobit").mean[:, 0] + mu
-    est["adf"] = smooth(sys0, y2, censoring=cens, censored=ind, u=X, method="adf").mean[:, 0] + mu
+    est: dict[str, Any] = {}
+    est["kf"] = _mean(smooth(sys0, y2, u=X, method="kalman"))[:, 0] + mu
+    est["dkf"] = _mean(smooth(sys0, y2, censoring=cens, censored=ind, u=X, method="dropping"))[:, 0] + mu
+    est["tkf"] = _mean(smooth(sys_t, y2, censoring=cens, censored=ind, u=X, method="tobit"))[:, 0] + mu
+    est["adf"] = _mean(smooth(sys0, y2, censoring=cens, censored=ind, u=X, method="adf"))[:, 0] + mu
     mean, _ = fit.smooth()
     est["exact"] = mean
     H = h["held"]
@@ -185,7 +191,7 @@ def _run(series, X, names: tuple[str, ...], *, side: int, seed: int, progress, m
                                                                    [~series.censored].sum()),
                                         "regressors": list(names)}}
     data_plot: dict[str, Any] = {"series": series, "X": X}
-    fits = {}
+    fits: dict[int, Any] = {}
     steps = len(models) * 2 + len(FRACTIONS) + 1
     done = 0
     for p in models:
@@ -229,7 +235,7 @@ def _run(series, X, names: tuple[str, ...], *, side: int, seed: int, progress, m
         done += 1
         progress(done / steps)
     # claims: the issue's targets this experiment can check by itself
-    claims = []
+    claims: list[dict[str, Any]] = []
     for p in models:
         r = metrics[f"ar{p}"]
         est = ", ".join(f"{k} {v:.4f} ({r['se'][k]:.4f})" for k, v in r["estimates"].items())

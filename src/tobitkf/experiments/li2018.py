@@ -122,6 +122,7 @@ def _steady_state(q_values=Q_VALUES, S_values=S_VALUES, horizon: int = 600) -> l
         for S in S_values:
             r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((horizon, 1)))
             ref = REFERENCE.get((q, S))
+            assert r.cov is not None, "filter() records the covariances by default"
             row = {"q": q, "S": S, "P_filter_diag": np.diagonal(r.cov[-1]),
                    "P_measured_diag": np.diagonal(r.extras["measured_cov"][-1]), "Q_eps": float(r.extras["innovation_cov"][-1, 0, 0])}
             if ref is not None:

@@ -63,11 +63,17 @@ def _motor_plant(model, *, P0: float = 1e-6) -> tuple[LinearSystem, Any]:
     return plant, p
 
 
+def _input_matrix(plant: LinearSystem) -> np.ndarray:
+    """B of a motor plant (every plant here is built with its input matrix)."""
+    assert plant.Bu is not None, "the motor plants have an input matrix"
+    return plant.Bu.at(1)
+
+
 def _motor_lqr(plant: LinearSystem) -> np.ndarray:
     n = plant.n
     Q = np.zeros((n, n))
     Q[0, 0] = 100.0
-    return dlqr(plant.transition(0), plant.Bu.at(1), Q, [[1e-6]]).gain
+    return dlqr(plant.transition(0), _input_matrix(plant), Q, [[1e-6]]).gain
 
 
 _LQR_SETTINGS = {
@@ -279,7 +285,7 @@ _EST_COLORS = {"kf-lqg-observer": "tab:purple", "tkf-fixed-uncensored-gain": "ta
 
 
 def _estimation_runs(plant: LinearSystem, sigma: float, T: float, steps: int, runs: int, seed, xi: float,
-                     xhat0=None) -> tuple[Any, dict[str, np.ndarray], dict[str, np.ndarray]]:
+                     xhat0=None) -> tuple[Any, dict[str, Any], dict[str, Any]]:
     """Open-loop plant, right censoring at T; the estimators of Figs 5.10-5.18 on the same data."""
     cens = Censoring(upper=T)
     sim = simulate(plant, steps, runs, censoring=cens, seed=seed)
@@ -394,7 +400,7 @@ def _better(text: str, err: dict[str, np.ndarray], better: str, worse: str, runs
                             f"{CL.fmt(tol, 3)}")
 
 
-_SPEED_PRINTED = {
+_SPEED_PRINTED: dict[str, dict[str, Any]] = {
     "uncensored": {"L": ["10.0329", "0.2257"], "eig": [-10.631, -1.48264e7]},
     "tobit_T": {"tobit_T0": 0.0},
     "tobit_T0": {"L": ["16.452", ".305"], "eig": None},
@@ -464,7 +470,7 @@ def dc_motor_speed_exp(*, runs: int = 100, seed: int = 0, progress=None, steps: 
     return ExperimentResult("miller-dc-motor-speed", settings, metrics, data, claims)
 
 
-_POS_PRINTED = {
+_POS_PRINTED: dict[str, dict[str, Any]] = {
     "uncensored": {"L": ["4.0480", "8.1931", "-0.0187"],
                    "eig": [-14826388.3725128, [-2.32303105520711, 2.28421305934995], [-2.32303105520711, -2.28421305934995]]},
     "tobit_T": {"tobit_T0": 0.0, "tobit_T-10deg": -0.174533, "tobit_T-20deg": -0.349066},
@@ -667,7 +673,7 @@ def closed_loop_scenario(i: int, runs: int, seed: int) -> tuple[dict, dict, tupl
     K = _motor_lqr(plant)
     r = np.zeros(steps)
     r[(start or 0):] = rv
-    A, B, Cm = plant.transition(0), plant.Bu.at(1), plant.measurement(1)
+    A, B, Cm = plant.transition(0), _input_matrix(plant), plant.measurement(1)
     n = plant.n
     Qw = np.zeros((n, n))
     Qw[0, 0] = 100.0
@@ -683,7 +689,7 @@ def closed_loop_scenario(i: int, runs: int, seed: int) -> tuple[dict, dict, tupl
     P11_pred = (tobit_dlqe(A, None, Cm, plant.process_cov(0), V=[[SIGMA**2]], xi_uncensored=xi_pred).cov[0, 0]
                 if xi_pred is not None and 1e-9 < xi_pred < 1 - 1e-12 else
                 dlqe(A, None, Cm, plant.process_cov(0), plant.measurement_cov(1)).cov[0, 0])
-    scen = {"T": T, "reference": rv, "steps": steps, "P11_modified_DARE": float(P11_pred),
+    scen: dict[str, Any] = {"T": T, "reference": rv, "steps": steps, "P11_modified_DARE": float(P11_pred),
             "controllers": {k: _loop_summary(v, (Qw, [[1e-6]]), x_ref, u_ref, tail) for k, v in res.items()}}
     scen["estimators"] = {k: v["estimation"] for k, v in scen["controllers"].items()}
     data = {"title": title, "T": T, "r": r, "P11_pred": P11_pred,
@@ -880,7 +886,7 @@ def steady_state_lqg(*, runs: int = 40, seed: int = 0, progress=None, ed: float 
     steps = 3000
     r = np.zeros(steps)
     r[400:] = 1.0
-    A, B, Cm = plant.transition(0), plant.Bu.at(1), plant.measurement(1)
+    A, B, Cm = plant.transition(0), _input_matrix(plant), plant.measurement(1)
     Nbar = reference_gain(A, B, Cm, K, domain="dt")
     x_ref = np.linalg.solve(np.eye(3) - A + B @ K, B @ Nbar @ [1.0])
     u_ref = -K @ x_ref + Nbar @ [1.0]
@@ -906,7 +912,9 @@ def steady_state_lqg(*, runs: int = 40, seed: int = 0, progress=None, ed: float 
     t_tf = np.linspace(0, 1.0, 1001)
     w = np.logspace(-1, 4, 200)
     grid = (1.0, 0.9, 0.5, 0.1, 0.01)
-    step, bode, dc = {"tobit": {}, "uncensored": {}}, {"tobit": {}, "uncensored": {}}, {"tobit": {}, "uncensored": {}}
+    step: dict[str, dict[str, Any]] = {"tobit": {}, "uncensored": {}}
+    bode: dict[str, dict[str, Any]] = {"tobit": {}, "uncensored": {}}
+    dc: dict[str, dict[str, Any]] = {"tobit": {}, "uncensored": {}}
     for gain in ("tobit", "uncensored"):
         for xi in grid:
             T_ry, _, _ = tkf_lqg_loop(p.A, p.B, p.G, p.C, p.W, 0.05, Kc, xi, gain=gain)

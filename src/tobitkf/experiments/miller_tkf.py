@@ -129,7 +129,9 @@ def constant(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 1000
     }
     cens = Censoring(lower=limit)
     sys_f = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[x0], P0=[[p0]])
-    scen, data, claims = {}, {}, []
+    scen: dict[str, dict[str, Any]] = {}
+    data: dict[str, Any] = {}
+    claims: list[dict[str, Any]] = []
     for i, truth in enumerate((-0.1, 0.1)):
         name = f"truth{truth:+.1f}"
         sys_t = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[q]], R=[[sigma**2]], x0=[truth], P0=[[0.0]])
@@ -508,6 +510,7 @@ def steady_state(*, runs: int = 200, seed: int = 0, progress=None, steps: int = 
         ss = SteadyStateTobitKalmanFilter(sys_, xi)
         o_ss = ss.filter_controlled(sim.y_latent)
         o_full = tobit_kalman_filter_controlled(sys_, xi, sim.y_latent)
+        assert o_ss.mean is not None and o_full.mean is not None and o_full.cov is not None, "the default outputs"
         est[key] = mx.summarize(sim.x, o_ss.mean, o_ss.cov)
         est[f"tkf-controlled-xi-{xi}"] = mx.summarize(sim.x, o_full.mean, o_full.cov)
         errs[key] = o_ss.mean - sim.x[:, 1:]

@@ -161,6 +161,7 @@ def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult
     A, Cpx = constant_velocity_pixel_model()
     sysk = LinearSystem(A=A, C=Cpx, Q=0.01 * np.eye(4), R=np.eye(2), x0=[100.0, 0, 80.0, 0], P0=np.diag([1.0, 10, 1, 10]))
     kf = KalmanFilter(sysk).filter(meas)
+    assert kf.mean is not None, "filter() records the means by default"
     e_k = np.linalg.norm(kf.mean[:, ::2] - truth3, axis=-1)
     metrics["exp3"] = {"gated_max_error_after_20": float(e_g[20:].max()), "plain_kf_max_error_after_20": float(e_k[20:].max()),
                        "rejected_bad_frames": int((res.assignment[bad, 0] < 0).sum()), "bad_frames": int(bad.sum())}

@@ -102,29 +102,32 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
     two = TobitKalmanFilter(two_sys, two_cens).filter(sim.y)
     one_cens = Censoring(upper=0.0)
     one = TobitKalmanFilter(base, one_cens).filter(sim.y[..., :1])
+    assert two.mean is not None and one.mean is not None, "filter() records the means by default"
     x = sim.x[:, 1:, 0]
     half = {"x>0": x > 0, "x<0": x <= 0}
     e_two, e_one = two.mean[..., 0] - x, one.mean[..., 0] - x
     r_two = {h: CL.rmse_masked(e_two, m) for h, m in half.items()}
     r_one = {h: CL.rmse_masked(e_one, m) for h, m in half.items()}
 
-    ex1 = {"two_sensors": {h: v[0] for h, v in r_two.items()},
+    ex1: dict[str, Any] = {"two_sensors": {h: v[0] for h, v in r_two.items()},
            "right_only": {h: v[0] for h, v in r_one.items()},
            "estimators": {"tkf-two-sensors": mx.summarize(sim.x, two.mean, two.cov),
                           "tkf-right-only": mx.summarize(sim.x, one.mean, one.cov)}}
     progress(0.3)
     # ---- Example 2: N_y identical right-censored sensors
     ny = [1, 2, 4, 8, 16]
-    ex2, ex2_runs = {}, {}
+    ex2: dict[str, list[float]] = {}
+    ex2_runs: dict[str, np.ndarray] = {}
     for sig, sseq in ((0.5, s2), (0.05, s3)):
         sys16 = _brownian(sig, 16)
         sim2 = simulate(sys16, steps, runs, censoring=Censoring(upper=0.0), seed=sseq)
-        per_run = []
+        mse_runs = []
         for n_y in ny:
             sys_n = _brownian(sig, n_y)
             out = TobitKalmanFilter(sys_n, Censoring(upper=0.0)).filter(sim2.y[..., :n_y])
-            per_run.append(((out.mean[..., 0] - sim2.x[:, 1:, 0]) ** 2).mean(axis=1))
-        per_run = np.stack(per_run, axis=1)                                   # (runs, len(ny))
+            assert out.mean is not None, "filter() records the means by default"
+            mse_runs.append(((out.mean[..., 0] - sim2.x[:, 1:, 0]) ** 2).mean(axis=1))
+        per_run = np.stack(mse_runs, axis=1)                                  # (runs, len(ny))
         ex2[str(sig)] = per_run.mean(axis=0).tolist()
         ex2_runs[str(sig)] = per_run
     progress(0.7)
@@ -134,6 +137,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
     sys3, cens3 = multi_region(base3, [windows])
     sim3 = simulate(sys3, steps, runs, censoring=cens3, seed=s4)
     out3 = TobitKalmanFilter(sys3, cens3).filter(sim3.y)
+    assert out3.mean is not None and out3.cov is not None, "filter() records means and covariances by default"
     x3 = sim3.x[:, 1:, 0]
     regions = {"in a window": ((x3 > -1) & (x3 < -0.2)) | ((x3 > 0.2) & (x3 < 1)),
                "between windows": (x3 >= -0.2) & (x3 <= 0.2), "outside both": (x3 <= -1) | (x3 >= 1)}
@@ -145,7 +149,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
         g = np.stack([np.where(msk, e3**2, 0).sum(1), np.where(msk, P3, 0).sum(1)], axis=-1)
         ratio[rname] = float(g[:, 0].sum() / max(g[:, 1].sum(), 1e-300))
         ratio_se[rname] = float(CL.jackknife_se(g, lambda mm: mm[..., 0] / np.maximum(mm[..., 1], 1e-300)))
-    ex3 = {"rmse_by_region": {r: v[0] for r, v in r3.items()},
+    ex3: dict[str, Any] = {"rmse_by_region": {r: v[0] for r, v in r3.items()},
            "mean_P_by_region": {r: float(np.mean(P3[m])) if m.any() else None for r, m in regions.items()},
            "mse_over_mean_P_by_region": ratio,
            "estimators": {"tkf": mx.summarize(sim3.x, out3.mean, out3.cov)}}
@@ -157,6 +161,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
     err_w = {}
     for nt in ("dissertation", "exact_pv"):
         ow = TobitKalmanFilter(sysw, censw, noise_term=nt).filter(simw.y)
+        assert ow.mean is not None, "filter() records the means by default"
         err_w[nt] = ow.mean - simw.x[:, 1:]
         ex3["wide_gap"][nt] = {"rmse": float(np.sqrt(np.mean((ow.mean[..., 0] - simw.x[:, 1:, 0]) ** 2))),
                                "max_abs_estimate": float(np.abs(ow.mean).max())}
@@ -235,7 +240,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
                 "steps": setting(steps, "default"), "N_y": setting(ny, "default"),
                 "windows_ex3": setting(windows, "default", "not given; gap 4 sigma (see the wide-gap claim)"),
                 "P0_ex3": setting(0.01, "default", "x0 = 0 known to 0.1")}
-    metrics = {"runs": runs, "example1": ex1, "example2": {"N_y": ny, "mse": ex2}, "example3": ex3,
+    metrics: dict[str, Any] = {"runs": runs, "example1": ex1, "example2": {"N_y": ny, "mse": ex2}, "example3": ex3,
                "estimators": {**ex1["estimators"], "tkf-two-windows": ex3["estimators"]["tkf"]}}
     data = {"ex1": {"truth": sim.x[0, 1:, 0], "two": two.mean[0, :, 0], "one": one.mean[0, :, 0]},
             "ex2": ex2, "ny": ny,
@@ -289,7 +294,9 @@ def fov(*, runs: int = 50, seed: int = 0, progress=None, dt: float = 0.1, horizo
     [−50, −10] (overlap); Δ = 0.1, σ_q = 0.1, σ_r = 0.5 (our defaults, MB-36)."""
     progress = progress or _noop
     steps = int(round(horizon / dt))
-    scen, data, claims = {}, {}, []
+    scen: dict[str, dict[str, Any]] = {}
+    data: dict[str, Any] = {}
+    claims: list[dict[str, Any]] = []
     for i, (name, left, title) in enumerate((("non-overlapping", (-50.0, -18.0), "Figs 6.23-6.26: gap 13-18 s"),
                                              ("overlapping", (-50.0, -10.0), "Figs 6.27-6.30: overlap"))):
         windows = [(-13.0, 20.0), left]
@@ -298,6 +305,7 @@ def fov(*, runs: int = 50, seed: int = 0, progress=None, dt: float = 0.1, horizo
         sim = simulate(sys, steps, runs, censoring=cens, seed=np.random.SeedSequence([seed, i]))
         tkf = TobitKalmanFilter(sys, cens).filter(sim.y)
         kf = KalmanFilter(sys).filter(sim.y)
+        assert tkf.mean is not None and tkf.cov is not None and kf.mean is not None, "the default outputs"
         A, Qd = sys.transition(0), sys.process_cov(0)
         C1 = sys.measurement(1)[:1]
         dare = {"1 camera": _dare_P(A, C1, Qd, np.array([[0.25]]))[1][0, 0],
@@ -393,7 +401,9 @@ def panning(*, runs: int = 20, seed: int = 0, progress=None, dt: float = 0.1, si
     and −0.02 (target 2), 2000 frames.
     """
     progress = progress or _noop
-    scen, data, claims = {}, {}, []
+    scen: dict[str, dict[str, Any]] = {}
+    data: dict[str, Any] = {}
+    claims: list[dict[str, Any]] = []
     rng_seq = np.random.SeedSequence(seed).spawn(4)
 
     def run(name, sys, steps, law, title, seq, x0f=None):

@@ -85,8 +85,15 @@ class _Trajectory(NamedTuple):
     z: np.ndarray
 
 
+def _arr(a: np.ndarray | None) -> np.ndarray:
+    """An array of a solved certificate (its gains and P are set whenever it solved)."""
+    assert a is not None, "a solved certificate carries its gains"
+    return a
+
+
 def _run_filter(Af: np.ndarray, Bf: np.ndarray, M: np.ndarray, y: np.ndarray) -> _Trajectory:
     out = F.RegionalHinfFilter(Af, Bf, M).filter(y, outputs="mean")        # rows x̂_1..x̂_T
+    assert out.mean is not None, "outputs='mean' records the means"
     mean = np.concatenate([np.zeros(out.mean.shape[:-2] + (1, out.mean.shape[-1])), out.mean], axis=-2)
     return _Trajectory(mean, mean @ np.asarray(M).T)
 
@@ -176,8 +183,9 @@ def design_experiment(*, runs: int = 500, seed: int = 0, progress=None, steps: i
     res["zero_filter_full_P"] = _certificate_dict(zero_full)
     res["printed_gains_theorem2_min_gamma"] = _certificate_dict(printed_gains)
     res["printed_P_theorem3_min_gamma"] = _certificate_dict(printed_P)
-    res["printed_triple_theorem1_best_max_eig"] = (triple_t1.verification.max_eig if triple_t1.ok
-                                                   else triple_t1.best_max_eig)
+    res["printed_triple_theorem1_best_max_eig"] = (
+        triple_t1.verification.max_eig if triple_t1.ok and triple_t1.verification is not None
+        else triple_t1.best_max_eig)
     res["printed_triple_theorem2_gamma1.5"] = {"status": triple_t2.status, "best_max_eig": triple_t2.best_max_eig}
     res["improved_coupled_min_gamma"] = _certificate_dict(improved)
     res["improved_coupled_exact_covariance"] = _certificate_dict(improved_exact)
@@ -209,7 +217,7 @@ def design_experiment(*, runs: int = 500, seed: int = 0, progress=None, steps: i
                 quantity="max |ours - printed| over A_f, B_f and |ρ - 0.2228| (Theorem 3 at γ = 1.5, Clarabel)",
                 measured="not solved" if dev is None else
                 f"A_f {dev['Af']:.2e}, B_f {dev['Bf']:.2e}, ρ {dev['rho']:.4f} (our A_f, B_f are "
-                f"{np.abs(th3.Af).max():.1e}, {np.abs(th3.Bf).max():.1e} in size)",
+                f"{np.abs(_arr(th3.Af)).max():.1e}, {np.abs(_arr(th3.Bf)).max():.1e} in size)",
                 test="every entry within half a unit of the printed 4th decimal", tolerance="5e-5",
                 holds=dev is not None and max(dev.values()) <= 5e-5,
                 explanation="the paper solves a feasibility problem, whose solution is not unique: SeDuMi's interior "
@@ -227,7 +235,7 @@ def design_experiment(*, runs: int = 500, seed: int = 0, progress=None, steps: i
                quantity="min γ certified by Theorem 3 vs by the zero filter A_f = B_f = 0 (Theorem 2)",
                a=th3_min.gamma, b=zg, names=("Theorem 3", "zero filter"), tol=1e-4,
                tolerance="1e-4 (the solvers' accuracy on γ)",
-               note=f"Theorem 3's min-γ gains have size {max(np.abs(th3_min.Af).max(), np.abs(th3_min.Bf).max()):.1e}; "
+               note=f"Theorem 3's min-γ gains have size {max(np.abs(_arr(th3_min.Af)).max(), np.abs(_arr(th3_min.Bf)).max()):.1e}; "
                     f"the printed gains certify {printed_gains.gamma:.4f}",
                explanation="with the block-diagonal Lyapunov matrix of Theorems 2-3 no filter can beat the zero "
                            "filter (docs/sources WH-21)"),
@@ -310,7 +318,8 @@ def _inside_scale(model, gains, P, rho, w, v, seed) -> float:
     for _ in range(16):
         s = 0.5 * (lo + hi)
         sim = simulate_ross(model, w.shape[0], 200, w=s * w, v=s * v, seed=seed)
-        out = _run_filter(*gains, model.M, sim.y)
+        Af, Bf = gains
+        out = _run_filter(Af, Bf, model.M, sim.y)
         lo, hi = (s, hi) if _peak_ratio(sim, out, P, rho).max() <= 1 else (lo, s)
     return lo
 
@@ -332,7 +341,7 @@ def simulation_experiment(*, runs: int = 2000, seed: int = 0, progress=None, ste
     improved = D.design(model, method="coupled", objective="min_gamma")
     printed_gains = D.analyze(model, paper["Af"], paper["Bf"])
     progress(0.2)
-    certs = {"paper-gains": (paper["Af"], paper["Bf"], paper["P"], paper["rho"], printed_gains.gamma,
+    certs: dict[str, tuple[Any, ...]] = {"paper-gains": (paper["Af"], paper["Bf"], paper["P"], paper["rho"], printed_gains.gamma,
                              "printed P, rho (printed triple fails Th.2, WH-08); gamma: Th.2 with P free"),
              "theorem3": (th3.Af, th3.Bf, th3.P, th3.rho, th3.gamma, "Theorem 3 at gamma = 1.5"),
              "improved": (improved.Af, improved.Bf, improved.P, improved.rho, improved.gamma,
@@ -397,7 +406,7 @@ def simulation_experiment(*, runs: int = 2000, seed: int = 0, progress=None, ste
             test="both gains <= γ + tol",
             tolerance=f"{CL.K_SE:g} jackknife standard errors of the gain over {runs} runs "
                       f"({CL.fmt(None if gain_in_se is None else CL.K_SE * gain_in_se, 2)})",
-            holds=bool(gain_in is not None and gain_in <= gamma + CL.K_SE * gain_in_se
+            holds=bool(gain_in is not None and gain_in_se is not None and gain_in <= gamma + CL.K_SE * gain_in_se
                        and (gain_w is None or gain_w <= gamma + CL.K_SE * gain_in_se))))
         progress(0.2 + 0.8 * (i + 1) / len(certs))
     # the zero filter (A_f = B_f = 0): ẑ = 0, z̃ = z; "doing nothing"

@@ -159,10 +159,10 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
     if name == "saturation-oscillator":
         sys_ = LinearSystem(A=_rotation(0.1 * np.pi, 0.95), C=np.eye(2), Q=0.1 * np.eye(2), R=0.01 * np.eye(2),
                             x0=[0.0, 0.0], P0=np.eye(2))
-        ch = RandomSaturation([0.7, 0.6], [0.7, 0.75])
-        sim = simulate(sys_, steps, runs, channel=ch, seed=np.random.SeedSequence([seed, 3]))
-        est = {"kf": KalmanFilter(sys_), "adf": SaturationAssumedDensityFilter(sys_, ch)}
-        return {"system": sys_, "channel": ch, "sim": sim, "estimators": est, "pcrlb": None,
+        sat = RandomSaturation([0.7, 0.6], [0.7, 0.75])
+        sim = simulate(sys_, steps, runs, channel=sat, seed=np.random.SeedSequence([seed, 3]))
+        est = {"kf": KalmanFilter(sys_), "adf": SaturationAssumedDensityFilter(sys_, sat)}
+        return {"system": sys_, "channel": sat, "sim": sim, "estimators": est, "pcrlb": None,
                 "censored": float((sim.extras["alpha"] > 0).mean())}
     raise ValidationError(f"examples: unknown example {name!r}; known: {', '.join(EXAMPLES)}")
 

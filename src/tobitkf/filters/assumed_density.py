@@ -61,7 +61,7 @@ from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
-                   measurement_update, psd_sqrt, time_update)
+                   measurement_update, psd_sqrt, qr_r, time_update)
 from .kalman import LinearGaussianFamily
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, censored_log_likelihood
 from ._readings import classify_readings as _classify
@@ -105,7 +105,7 @@ def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, l
 
 
 def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, y: np.ndarray, c: np.ndarray,
-                            r: float, lower: Any, upper: Any, *, dy: Any = 0.0, form: str = "standard"):
+                            r: float | np.ndarray, lower: Any, upper: Any, *, dy: Any = 0.0, form: str = "standard"):
     r"""The ADF update of one channel (the module docstring's equations), batched over runs.
 
     Parameters
@@ -125,8 +125,8 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
     """
     N = x.shape[0]
     mu = x @ c + dy
-    r = np.asarray(r, dtype=float)
-    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + r, (N,))
+    rv = np.asarray(r, dtype=float)
+    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
     ok = s2 > _TINY
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N,))
@@ -139,7 +139,7 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
     if not valid.any():
         return x, P, S, p_unc, ll
     cens = (cls == _LOWER) | (cls == _UPPER)
-    noise = np.full((1, 1), float(r)) if r.ndim == 0 else np.broadcast_to(r, (N,))[:, None]
+    noise = np.full((1, 1), float(rv)) if rv.ndim == 0 else np.broadcast_to(rv, (N,))[:, None]
     mp = MeasurementPrediction(expected=mu[:, None], H0=c[None, :], noise=noise,
                                observed=np.where(valid, obs, np.nan)[:, None], valid=valid[:, None],
                                retained=V[:, None] if cens.any() else None)
@@ -212,7 +212,7 @@ def merge_gaussians(weights: np.ndarray, means: np.ndarray, covs: np.ndarray, fa
     Fs = np.broadcast_to(factors, (J, N, n, n))
     blocks = np.concatenate([np.swapaxes(sw * Fs, -1, -2), (sw[..., 0] * d)[..., None, :]], axis=-2)  # (J, N, n+1, n)
     M = np.moveaxis(blocks, 0, 1).reshape(N, J * (n + 1), n)
-    U = np.linalg.qr(M, mode="r")
+    U = qr_r(M)
     Sm = np.swapaxes(U, -1, -2)
     return x, 0.5 * (Sm @ U + np.swapaxes(Sm @ U, -1, -2)), Sm
 

@@ -45,7 +45,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence, cast
 
 import numpy as np
 
@@ -346,7 +346,7 @@ def sqrt_predict(x: np.ndarray, S: np.ndarray, A: np.ndarray, Qroot: np.ndarray,
     xp = x @ A.T + bx
     top = np.swapaxes(A @ S, -1, -2)
     bottom = np.broadcast_to(Qroot.T, top.shape[:-2] + Qroot.T.shape)
-    U = np.linalg.qr(np.concatenate([top, bottom], axis=-2), mode="r")
+    U = qr_r(np.concatenate([top, bottom], axis=-2))
     return xp, np.swapaxes(U, -1, -2)
 
 
@@ -359,6 +359,12 @@ def _dense_shift(A: np.ndarray, nx: int, source: int) -> np.ndarray:
     return out
 
 
+def qr_r(M: np.ndarray) -> np.ndarray:
+    """The R factor of the batched QR decomposition of ``M`` (``np.linalg.qr(M, mode="r")``; numpy's type
+    stubs declare a QRResult for every mode)."""
+    return cast(np.ndarray, np.linalg.qr(M, mode="r"))
+
+
 def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: Transition, form: str):
     """The one predict of every Gaussian family: ``(x̄, P̄, S̄)`` from ``(x, P, S)`` and a :class:`Transition`.
 
@@ -368,6 +374,7 @@ def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: T
     if tr.P_fixed is not None:
         return (_shift_mean(x, tr) if tr.shift else x @ tr.A.T + tr.b), tr.P_fixed, None
     if form == "square_root":
+        assert S is not None, "the square-root form carries the factor S"
         nx = x.shape[-1]
         if tr.shift:
             A = _dense_shift(tr.A, nx, tr.source)
@@ -381,6 +388,7 @@ def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: T
             G = tr.G if tr.G is not None else psd_sqrt(tr.Qd)
             xp, Sp = sqrt_predict(x, S, tr.A, G, tr.b)
         return xp, symmetrize(Sp @ np.swapaxes(Sp, -1, -2)), Sp
+    assert P is not None, "the standard and Joseph forms carry P"
     if tr.shift:
         xp, Pp = shift_predict(x, P, tr.A, tr.Qd, tr.b, source=tr.source)
     else:
@@ -551,7 +559,7 @@ def sqrt_update(x: np.ndarray, S: np.ndarray, innov: np.ndarray, H: np.ndarray, 
     M[..., :m, :m] = np.swapaxes(root, -1, -2)
     M[..., m:, :m] = np.swapaxes(HS, -1, -2)
     M[..., m:, m:] = np.swapaxes(S, -1, -2)
-    U = np.linalg.qr(M, mode="r")
+    U = qr_r(M)
     K = np.swapaxes(_solve_upper(U[..., :m, :m], U[..., :m, m:]), -1, -2)
     S_new = np.swapaxes(U[..., m:, m:], -1, -2)
     x_new = x + np.einsum("...ij,...j->...i", K, e)
@@ -629,15 +637,17 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
         else:
             R = noise
             root = None
+        assert S is not None, "the square-root form carries the factor S"
         xn, Pn, Sn, K = sqrt_update(x, S, innov, H, R, valid, R_root=root)
         if mp.retained is not None:
             # P + K V K^T as the factor of [S, K V^{1/2}]: one more QR, PSD by construction
             KV = K * np.sqrt(np.maximum(mp.retained, 0.0))[..., None, :]
             Sb = np.broadcast_to(Sn, KV.shape[:-2] + Sn.shape[-2:])
-            U = np.linalg.qr(np.concatenate([np.swapaxes(Sb, -1, -2), np.swapaxes(KV, -1, -2)], axis=-2), mode="r")
+            U = qr_r(np.concatenate([np.swapaxes(Sb, -1, -2), np.swapaxes(KV, -1, -2)], axis=-2))
             Sn = np.swapaxes(U, -1, -2)
             Pn = symmetrize(Sn @ np.swapaxes(Sn, -1, -2))
         return xn, Pn, Sn, K, None
+    assert P is not None, "the standard and Joseph forms carry P"
     Rxe, Ree, _ = _moments(P, mp)
     K, e, ok = _solve(Rxe, Ree, innov, valid)
     x_new = x + np.einsum("...ij,...j->...i", K, e)
@@ -1016,7 +1026,7 @@ class GaussianFilter(Estimator):
     def _transition(self, k: int, u: np.ndarray | None, carry: Mapping[str, Any]) -> Transition:  # pragma: no cover
         raise NotImplementedError
 
-    def _measurement(self, k: int, xp: np.ndarray, Pp: np.ndarray, y: np.ndarray, u: np.ndarray | None,
+    def _measurement(self, k: int, xp: np.ndarray, Pp: np.ndarray | None, y: np.ndarray, u: np.ndarray | None,
                      carry: Mapping[str, Any], **options: Any):   # pragma: no cover - abstract
         raise NotImplementedError
 

@@ -197,6 +197,7 @@ class _DelayEstimator(Estimator):
 def _group_extras(res: FilterResult) -> FilterResult:
     """Per-step lag/horizon/point outputs (``lag3_mean`` ...) into the dicts ``lagged``, ``ahead``, ``point``."""
     ex = dict(res.extras)
+    assert res.final is not None, "the estimation loop records the final state"
     lagged, ahead, point = {}, {}, None
     for key in [k for k in ex if k.startswith("lag") and k.endswith("_mean")]:
         L = int(key[3:-5])
@@ -465,6 +466,7 @@ def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> I
     est = ChainLMMSE(system, prior)
     res = est._run(y, outputs=("extras",), state=est.init(np.shape(y)[:-2]), step_options={"keep_rts": True})
     ex = res.extras
+    assert res.final is not None, "the estimation loop records the final state"
     final = res.final.carry
     batch = np.shape(y)[:-2]
     N = int(np.prod(batch, dtype=int))

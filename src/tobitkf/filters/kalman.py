@@ -198,7 +198,7 @@ def _finite_or_none(res: FilterResult) -> FilterResult | None:
     """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
     the call, which makes the affected means NaN from the first bad step and warns (the kernels would
     skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
-    P = res.final.P
+    P = None if res.final is None else res.final.P
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
 
 
@@ -229,6 +229,7 @@ def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state
     N, m = y.shape
     n = est.n
     P = state.P
+    assert P is not None, "the compiled kernels run the standard form, which carries P"
     per_run = P.shape[0] != 1 or bool(missing.any())
     if per_run and P.shape[0] != N:
         P = np.broadcast_to(P, (N, n, n))
@@ -252,6 +253,7 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
     n = sys_.n
     x = np.ascontiguousarray(state.x, dtype=float)
     P = state.P
+    assert P is not None, "the compiled kernels run the standard form, which carries P"
     per_run = bool(missing.any()) or P.shape[0] != 1
     P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
     Pn = P.shape[0]

@@ -78,6 +78,7 @@ Symbols: ``particles`` = the number of particles :math:`N_p`, ``ess`` = effectiv
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -425,6 +426,8 @@ class _Protocol(_Model):
         self.nx, self.m = system.n * (self.ell + 1), 1
         self.censoring = Censoring(lower=channel.threshold)
         self.discrete = []
+        vals: np.ndarray | None
+        probs: np.ndarray | None
         for i, law in enumerate(channel.laws):
             if isinstance(law, PMF):
                 vals, probs = np.asarray(law.values, float), np.asarray(law.probs, float)
@@ -613,7 +616,7 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     return _Saturation(system, d, c)
 
 
-def _rng_state(seed: Any) -> dict:
+def _rng_state(seed: Any) -> Mapping[str, Any]:
     if isinstance(seed, np.random.Generator):
         return seed.bit_generator.state
     if isinstance(seed, bool):
@@ -826,6 +829,7 @@ class ParticleFilter(Estimator):
         The product over k of the weighted means of the incremental weights (an unbiased estimate of the
         likelihood; its logarithm is biased low by about half its variance)."""
         res = self._run(y, u, x0, P0, outputs="last", state=state)
+        assert res.final is not None, "the estimation loop records the final state"
         ll = res.final.carry["log_likelihood"]
         return ll.reshape(res.final.batch_shape) if res.final.batch_shape else ll.reshape(())[()]
 

@@ -242,12 +242,6 @@ def _protocol_info(mp: MeasurementPrediction, Ree: np.ndarray | None) -> dict[st
     return info
 
 
-def _check_parts(system: Any, channel: Any) -> None:
-    check_instance(system, LinearSystem, "system")
-    check_instance(channel, ProtocolChannel, "channel")
-    channel.check_system(system)
-
-
 def _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean):
     if prehistory_mean is not None:
         if prehistory_mean not in PRIOR_MEANS:
@@ -436,6 +430,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         res = self._run(y2.reshape(batch + (T, 1)), None, x0, P0, outputs=outputs, state=state,
                         step_options={"keep_augmented": keep_augmented}, step_data=step_data)
         if res.extras:
+            assert res.times is not None, "the estimation loop records the time index"
             k0 = res.times[0] - 1
             res.extras["scheduled"] = self.channel.schedule.scheduled(k0 + T)[k0:]
         return res

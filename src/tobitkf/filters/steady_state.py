@@ -295,6 +295,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         cannot skip a sample without making the reported covariance wrong.
         """
         res = self._run(y, u, x0, None, outputs=outputs, state=state)
+        assert res.times is not None, "the estimation loop records the time index"
         _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
         return res
 
@@ -309,6 +310,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         """
         res = self._run(y_latent, u, x0, None, outputs=outputs, state=state, name="y_latent",
                         step_options={"latent": True})
+        assert res.times is not None, "the estimation loop records the time index"
         _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
         return res
 

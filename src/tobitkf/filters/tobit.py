@@ -227,7 +227,8 @@ class TobitKalmanFilter(LinearGaussianFamily):
     """
 
     _name = "TobitKalmanFilter"
-    _step_options = ("lower", "upper")
+    _step_options: tuple[str, ...] = ("lower", "upper")
+    _kernel_limits: tuple[np.ndarray, np.ndarray]      # constant limits, set on the first kernel call
 
     def __init__(self, system: LinearSystem, censoring: Censoring, *, noise_term: str = "dissertation",
                  covariance_update: str = "standard", backend: str = "auto", threads: int | None = None,
@@ -355,6 +356,7 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
             est._kernel_limits = lims          # constant limits: converted once
     lo, hi = lims
     P = state.P
+    assert P is not None, "the compiled kernels run the standard form, which carries P"
     if P.shape[0] != N:
         P = np.broadcast_to(P, (N, n, n))
     A, Qd, C, _ = _kernel_matrices(est)
@@ -379,7 +381,8 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
     kern = kernels()
     c64 = np.ascontiguousarray
     x = c64(state.x, dtype=float)
-    P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=float)
+    assert state.P is not None, "the compiled kernels run the standard form, which carries P"
+    P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=np.float64)
 
     def arr(name, shape):
         return np.empty((N, T) + shape) if name in want else np.empty((N, 0) + shape)

@@ -143,7 +143,8 @@ class MultiTargetTracker(Estimator):
         return u
 
     # ---- the estimator -------------------------------------------------------------------
-    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None, P0: Any = None) -> FilterState:
+    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None,  # type: ignore[override]  # starts from the initial locations, not a batch shape
+             P0: Any = None) -> FilterState:
         """Frame 0: one filter per target at the supplied locations ``initial`` (N, 2), zero velocity."""
         if initial is None:
             raise ValidationError("initial: expected the (N, 2) target locations of frame 0")
@@ -198,7 +199,7 @@ class MultiTargetTracker(Estimator):
                "last_meas": np.where(visible[:, None], z, last_meas)}
         return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
 
-    def step(self, state: FilterState, detections: Any) -> FilterState:
+    def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame of detections per step
         """Track one frame of unordered detections (L, 2) (L may be 0)."""
         state = self._check_state(state)
         M = self._frame(detections)
@@ -240,5 +241,6 @@ class MultiTargetTracker(Estimator):
         """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
         of unordered points (L_k may be 0). The frame-major layout of :class:`TrackResult`; see :meth:`filter`."""
         res = self.filter(detections, initial=initial)
+        assert res.mean is not None and res.cov is not None, "the tracker records means and covariances"
         return TrackResult(np.swapaxes(res.mean, 0, 1), np.swapaxes(res.cov, 0, 1),
                            np.swapaxes(res.extras["assignment"], 0, 1), np.swapaxes(res.extras["occluded_frames"], 0, 1))

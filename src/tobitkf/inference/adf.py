@@ -222,7 +222,7 @@ class ADFilter(LinearGaussianFamily):
         sys_ = self.system
         C, R = sys_.measurement(k), sys_.measurement_cov(k)
         dy = self._feedthrough(k, u)
-        dy = np.broadcast_to(dy, y.shape) if not np.isscalar(dy) else np.full(y.shape, float(dy))
+        dy = np.broadcast_to(dy, y.shape) if not np.isscalar(dy) else np.full(y.shape, float(dy))  # type: ignore[arg-type]  # a real scalar (isscalar)
         valid = (side == 0) & ~np.isnan(y)
         xn, Pn, ll = uncensored_update(xp, Pp, y, C, R, dy, valid, self.covariance_update)
         if (side != 0).any():

@@ -446,7 +446,7 @@ def _forward(data: CensoredARData, beta, sigma2, phi, plan: GridPlan, keep: bool
     p = phi.size
     preds = ar_predictors(phi, sigma2) if p > 0 else [(np.zeros(0), float(sigma2))]
     z_all, lw_all, start, count = _node_arrays(data, beta, sigma2, phi, plan)
-    la = None
+    la: Any = None                  # log alpha once the first step is done
     zs: list[np.ndarray] = []       # nodes of the axes of la, newest first
     total = 0.0
     kept: list[tuple] | None = [] if keep else None
@@ -461,7 +461,7 @@ def _forward(data: CensoredARData, beta, sigma2, phi, plan: GridPlan, keep: bool
         else:
             lK = None
             if lK is None:
-                mean = 0.0
+                mean: Any = 0.0
                 for i in range(q):
                     shape = [1] * q
                     shape[i] = zs[i].size
@@ -478,14 +478,14 @@ def _forward(data: CensoredARData, beta, sigma2, phi, plan: GridPlan, keep: bool
             return -np.inf, None
         if p == 0:                                     # independent errors: nothing carried
             total += c + float(_lse(new - c, axis=0))
-            if keep:
+            if kept is not None:
                 kept.append((lK, None, new - c, lw, [z]))
             la = None
             continue
         la = new - c
         total += c
         zs = ([z] + zs)[:p]
-        if keep:
+        if kept is not None:
             kept.append((lK, la_prev, la, lw, zs[:]))
     if p == 0:
         return total, kept
@@ -711,9 +711,9 @@ class CensoredAR:
         for name, val in (("nodes", nodes), ("hermite", hermite)):
             if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < (1 if name == "nodes" else 0):
                 raise ValidationError(f"{name}: expected a positive integer, got {val!r}")
-        for name, val in (("span", span), ("panel_sd", panel_sd)):
-            if not (isinstance(val, (int, float, np.floating)) and np.isfinite(val) and val > 0):
-                raise ValidationError(f"{name}: expected a positive number, got {val!r}")
+        for name, num in (("span", span), ("panel_sd", panel_sd)):
+            if not (isinstance(num, (int, float, np.floating)) and np.isfinite(num) and num > 0):
+                raise ValidationError(f"{name}: expected a positive number, got {num!r}")
         self.p = int(p)
         self.nodes, self.span, self.panel_sd, self.hermite = int(nodes), float(span), float(panel_sd), int(hermite)
 
@@ -752,12 +752,12 @@ class CensoredAR:
         beta = np.linalg.lstsq(X, y, rcond=None)[0]
         r = np.full(data.T, np.nan)
         r[ok] = y - X @ beta
-        g = []
+        acov = []
         for k in range(self.p + 1):
             a, b = r[k:], r[:data.T - k]
             both = ~np.isnan(a) & ~np.isnan(b)
-            g.append(float(np.mean(a[both] * b[both])) if both.sum() > 1 else 0.0)
-        g = np.array(g)
+            acov.append(float(np.mean(a[both] * b[both])) if both.sum() > 1 else 0.0)
+        g = np.array(acov)
         g0 = max(g[0], 1e-12)
         if self.p:
             Gm = np.array([[g[abs(i - j)] for j in range(self.p)] for i in range(self.p)])
@@ -1046,7 +1046,7 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
     hi_lim = data.upper[-1] if upper is None else upper
     lo_lim = np.broadcast_to(np.asarray(lo_lim, dtype=float), (steps,))
     hi_lim = np.broadcast_to(np.asarray(hi_lim, dtype=float), (steps,))
-    out = {k: np.empty(steps) for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower",
+    out: dict[str, Any] = {k: np.empty(steps) for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower",
                                          "censored_upper")}
     Ah = np.eye(p)
     vh = 0.0
@@ -1070,6 +1070,6 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
     return out
 
 
-CensoredAR.smooth = _ar_smooth
-CensoredAR.residuals = _ar_residuals
-CensoredAR.forecast = _ar_forecast
+CensoredAR.smooth = _ar_smooth            # type: ignore[attr-defined]  # defined after the class: they use its fit results
+CensoredAR.residuals = _ar_residuals      # type: ignore[attr-defined]  # (as above)
+CensoredAR.forecast = _ar_forecast        # type: ignore[attr-defined]  # (as above)

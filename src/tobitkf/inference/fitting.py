@@ -313,12 +313,12 @@ def residual_diagnostics(r: Any, *, lags: int | None = None, fitted: int = 0) ->
     jb = n / 6.0 * (skew ** 2 + kurt ** 2 / 4.0)
     c = np.where(ok, r - mean, np.nan)
     denom = np.nansum(c * c)
-    rho = []
+    acf = []
     for h in range(1, H + 1):
         a, b = c[h:], c[:-h]
         both = ~np.isnan(a) & ~np.isnan(b)
-        rho.append(float(np.sum(a[both] * b[both]) / denom))
-    rho = np.array(rho)
+        acf.append(float(np.sum(a[both] * b[both]) / denom))
+    rho = np.array(acf)
     Q = float(n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, H + 1))))
     dof = max(H - fitted, 1)
     return {"n": n, "mean": mean, "variance": var, "skewness": skew, "excess_kurtosis": kurt,

@@ -42,7 +42,7 @@ row k holding :math:`J_k` (row 0: :math:`J_0`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, overload
 
 import numpy as np
 
@@ -58,6 +58,10 @@ __all__ = ["rts_smooth", "smooth", "SMOOTHERS", "FixedLagSmoother", "FixedLagSta
 SMOOTHERS = ("kalman", "dropping", "tobit", "adf")
 
 
+@overload
+def _flat(a: np.ndarray, N: int, tail: int) -> np.ndarray: ...
+@overload
+def _flat(a: np.ndarray | None, N: int, tail: int) -> np.ndarray | None: ...
 def _flat(a: np.ndarray | None, N: int, tail: int) -> np.ndarray | None:
     """(batch..., T, *core) -> (N or 1, T, *core) without copying a broadcast shared covariance."""
     if a is None:
@@ -106,6 +110,7 @@ def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] |
     for name in ("mean", "cov", "pred_mean", "pred_cov"):
         if getattr(filtered, name) is None:
             raise ValidationError(f"filtered: the result has no {name!r}; run the filter with outputs='all'")
+    assert filtered.pred_mean is not None and filtered.cov is not None and filtered.pred_cov is not None
     system = transition if isinstance(transition, LinearSystem) else None
     A_of = system.transition if system is not None else transition
     if not callable(A_of):
@@ -242,6 +247,7 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
         res = dropping_with_indicator(est, y, censored, u=u, x0=x0, P0=P0)
     else:
         if method == "tobit" and censored is not None:
+            assert censoring is not None, "_filter_for refuses the tobit method without censoring"
             check_tobit_indicator(censoring, y, censored)
         res = est.filter(y, u=u, x0=x0, P0=P0)
     return rts_smooth(res, system, x0=x0, P0=P0)

@@ -55,6 +55,13 @@ __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
 ESTIMABLE = ("A", "C", "Q", "R", "Bu", "D", "x0", "P0")
 
 
+def _required(system: LinearSystem, name: str) -> np.ndarray:
+    """A matrix every LinearSystem has (A, C, Q, R), constant in time."""
+    value = _const(system, name)
+    assert value is not None, f"a LinearSystem always has {name}"
+    return value
+
+
 def _const(system: LinearSystem, name: str) -> np.ndarray | None:
     ts = getattr(system, name)
     if ts is None:
@@ -66,7 +73,7 @@ def _const(system: LinearSystem, name: str) -> np.ndarray | None:
     return np.array(ts.at(ts.offset), dtype=float)
 
 
-def _matrices(system: LinearSystem) -> dict[str, np.ndarray | None]:
+def _matrices(system: LinearSystem) -> dict[str, Any]:           # name -> array, None for an absent Bu, D
     out = {k: _const(system, k) for k in ("A", "C", "Q", "R", "Bu", "D", "B")}
     if out["B"] is not None:
         out["Q"] = out["B"] @ out["Q"] @ out["B"].T
@@ -75,7 +82,7 @@ def _matrices(system: LinearSystem) -> dict[str, np.ndarray | None]:
     return out
 
 
-def _build(M: dict[str, np.ndarray | None]) -> LinearSystem:
+def _build(M: dict[str, Any]) -> LinearSystem:
     return LinearSystem(A=M["A"], C=M["C"], Q=_sym(M["Q"]), R=_sym(M["R"]), x0=M["x0"], P0=_sym(M["P0"]),
                         Bu=M.get("Bu"), D=M.get("D"))
 
@@ -177,8 +184,9 @@ class StateSpaceModel:
         f, side = self._filter(res)
         y = np.asarray(res.data["y"], dtype=float)
         y = y[:, None] if y.ndim == 1 else y
-        C, R = _const(self.fitted, "C"), _const(self.fitted, "R")
+        C, R = _required(self.fitted, "C"), _required(self.fitted, "R")
         D = _const(self.fitted, "D")
+        assert f.pred_mean is not None and f.pred_cov is not None, "filter() records the predictions by default"
         mean = f.pred_mean @ C.T
         if D is not None and res.data.get("u") is not None:
             mean = mean + np.asarray(res.data["u"]) @ D.T
@@ -206,7 +214,7 @@ class StateSpaceModel:
         x, P = f.final.mean, f.final.cov
         if x.ndim > 1:
             x, P = x.reshape(-1), P.reshape(P.shape[-2:])
-        A, Q, C, R = (_const(self.fitted, k) for k in ("A", "Q", "C", "R"))
+        A, Q, C, R = (_required(self.fitted, k) for k in ("A", "Q", "C", "R"))
         Bu, D = _const(self.fitted, "Bu"), _const(self.fitted, "D")
         if self.fitted.p is not None and X is None:
             raise ValidationError(f"X: expected the future inputs ({steps}, {self.fitted.p})")
@@ -215,7 +223,7 @@ class StateSpaceModel:
             raise ShapeError(f"X: expected the future inputs of shape ({steps}, {self.fitted.p}), got {Uf.shape}")
         m = C.shape[0]
         z = float(ndtri(0.5 + level / 2))
-        out = {k: np.empty((steps, m)) for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower",
+        out: dict[str, Any] = {k: np.empty((steps, m)) for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower",
                                                  "censored_upper")}
         if self.censoring is not None:
             lo_c = self.censoring.lower[-1] if self.censoring.time_varying else self.censoring.lower
@@ -300,7 +308,7 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
     Pys = np.einsum("ij,tjk,lk->til", Ca, P, Ca)
     Eyy = Pys + ys[:, :, None] * ys[:, None, :]
     Eyx = np.einsum("ij,tjk->tik", Ca, P[:, :, :n]) + ys[:, :, None] * xs[:, None, :]
-    new = {k: (None if v is None else np.array(v, dtype=float)) for k, v in M.items()}
+    new: dict[str, Any] = {k: (None if v is None else np.array(v, dtype=float)) for k, v in M.items()}
     # --- transition: [A Bu] from x_k on z = (x_{k-1}, u_k)
     if "A" in estimate or "Bu" in estimate or "Q" in estimate:
         A, Bu = new["A"], new.get("Bu")
@@ -308,7 +316,7 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
             use_u = "Bu" in estimate and u is not None
             Szz = Epp.sum(0)
             Sxz = Exp.sum(0)
-            if use_u:
+            if use_u and u is not None:
                 Szz = np.block([[Szz, (prev[:, :, None] * u[:, None, :]).sum(0)],
                                 [(u[:, :, None] * prev[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)]])
                 Sxz = np.hstack([Sxz, (xs[:, :, None] * u[:, None, :]).sum(0)])
@@ -316,16 +324,17 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
                 Sxz = Sxz - Bu @ (u[:, :, None] * prev[:, None, :]).sum(0)
             if "A" not in estimate:                          # only Bu: regress the residual of A x
                 r = (xs - prev @ A.T)
+                assert u is not None, "estimating Bu needs the inputs (checked by the caller)"
                 Bu = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
             else:
                 W = np.linalg.solve(Szz.T, Sxz.T).T
                 A = W[:, :n]
-                if use_u:
+                if use_u and u is not None:
                     Bu = W[:, n:]
             new["A"], new["Bu"] = A, Bu
         if "Q" in estimate:
             A, Bu = new["A"], new.get("Bu")
-            bu = 0.0 if (Bu is None or u is None) else u @ Bu.T                     # (T, n)
+            bu: Any = 0.0 if (Bu is None or u is None) else u @ Bu.T                # (T, n)
             S = Exx - A @ Exp.transpose(0, 2, 1) - Exp @ A.T + A @ Epp @ A.T
             if not np.isscalar(bu):
                 S = S - bu[:, :, None] * xs[:, None, :] - xs[:, :, None] * bu[:, None, :] \
@@ -339,7 +348,7 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
             use_u = "D" in estimate and u is not None
             Sss = Exx.sum(0)
             Sys = Eyx.sum(0)
-            if use_u:
+            if use_u and u is not None:
                 Sss = np.block([[Sss, (xs[:, :, None] * u[:, None, :]).sum(0)],
                                 [(u[:, :, None] * xs[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)]])
                 Sys = np.hstack([Sys, (ys[:, :, None] * u[:, None, :]).sum(0)])
@@ -347,11 +356,12 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
                 Sys = Sys - D @ (u[:, :, None] * xs[:, None, :]).sum(0)
             if "C" not in estimate:
                 r = ys - xs @ C.T
+                assert u is not None, "estimating D needs the inputs (checked by the caller)"
                 D = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
             else:
                 W = np.linalg.solve(Sss.T, Sys.T).T
                 C = W[:, :n]
-                if use_u:
+                if use_u and u is not None:
                     D = W[:, n:]
             new["C"], new["D"] = C, D
         if "R" in estimate:
@@ -376,8 +386,8 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
 
 # --------------------------------------------------------------------------- parameter vectors for the s.e.
 
-def _free_entries(M: dict[str, Any], estimate) -> list[tuple[str, tuple[int, int] | tuple[int]]]:
-    out = []
+def _free_entries(M: dict[str, Any], estimate) -> list[tuple[str, tuple[int, ...]]]:
+    out: list[tuple[str, tuple[int, ...]]] = []
     for name in ESTIMABLE:
         if name not in estimate or M.get(name) is None:
             continue
@@ -489,8 +499,8 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
         raise ShapeError(f"y: expected one record (T,) or (T, m), got shape {arr.shape}")
     T, m = y2.shape
     if censoring is None and (lower is not None or upper is not None):
-        lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
-        hi = np.inf if upper is None else np.asarray(upper, dtype=float)
+        lo: Any = -np.inf if lower is None else np.asarray(lower, dtype=float)
+        hi: Any = np.inf if upper is None else np.asarray(upper, dtype=float)
         lo = lo[:, None] if np.ndim(lo) == 1 and m == 1 and np.size(lo) == T else lo
         hi = hi[:, None] if np.ndim(hi) == 1 and m == 1 and np.size(hi) == T else hi
         censoring = Censoring(lower=lo, upper=hi)

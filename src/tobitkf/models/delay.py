@@ -149,6 +149,7 @@ class _FadingSchedule:
 
     def __init__(self, fading: Any):
         self.source = fading
+        self._law: Callable[[Any], Any] | None
         if fading is None:
             self._law = lambda t: _NO_FADING
         elif isinstance(fading, FadingMoments):
@@ -183,6 +184,7 @@ class _FadingSchedule:
         return v
 
     def _law_at(self, t: int) -> Any:
+        assert self._law is not None, "moments-only fading (FadingMoments) never asks for a law"
         law = self._law(t)
         if not _is_law(law):
             raise ValidationError(f"fading({t}): a callable must return a law with mean, variance and "

@@ -131,10 +131,17 @@ class RossModel:
         return replace(self, channel=RandomSaturation(ch.mu if mu is None else mu, ch.nu if nu is None else nu,
                                                       ch.level if level is None else level))
 
+    def nonlinearity(self, x: np.ndarray) -> np.ndarray:
+        """:math:`f(x)`; refused by name when the model was built without ``f``."""
+        if self.f is None:
+            raise ValidationError("f: this model has no plant nonlinearity (built with f=None); pass f= to "
+                                  "RossModel.create")
+        return self.f(x)
+
     def sector_value(self, x: Any, fx: Any | None = None) -> np.ndarray:
         """:math:`[f(x)-U_1x]^T[f(x)-U_2x]` for ``x`` (..., n) (<= 0 if (4) holds)."""
         x = np.asarray(x, dtype=float)
-        fx = self.f(x) if fx is None else np.asarray(fx, dtype=float)
+        fx = self.nonlinearity(x) if fx is None else np.asarray(fx, dtype=float)
         return np.einsum("...i,...i->...", fx - x @ self.U1.T, fx - x @ self.U2.T)
 
 
@@ -149,7 +156,7 @@ def _wang2010_f(x: np.ndarray) -> np.ndarray:
 
 def wang2010_model(**overrides: Any) -> RossModel:
     """The example of Section 4 (Section 4 of the source); keyword overrides replace any field (mu, nu, D, ...)."""
-    kw = dict(
+    kw: dict[str, Any] = dict(
         B=[[0.5], [0.1], [0.1]],
         M=[[0.2, 0.0, 0.15], [0.0, 0.1, 0.2]],
         U1=[[-0.5, 0.1, 0.0], [0.0, 0.9, 0.0], [-0.1, 0.0, -0.2]],

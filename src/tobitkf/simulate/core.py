@@ -156,6 +156,7 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channe
         measurement = drawers[0]
     u = system.check_inputs(inputs, steps, "inputs")
     if u is not None:
+        assert system.p is not None, "check_inputs returns inputs only for a system with an input matrix"
         u = np.broadcast_to(u, (runs, steps, system.p)) if u.ndim == 2 else u
         if u.shape[0] != runs:
             raise ShapeError(f"inputs: expected (T, p) or ({runs}, T, p), got {u.shape}")

@@ -48,7 +48,7 @@ class Point:
         return iter((self.system, self.parts.get("censoring"), {k: e for k, (_, e) in self.estimators.items()}))
 
 
-def _law(tbl: dict[str, Any], name: str):
+def _law(tbl: dict[str, Any] | str | None, name: str):
     from ..channels.laws import PMF
 
     if tbl is None or tbl == "none":

@@ -59,11 +59,12 @@ def experiment_seed(seed: int, block: int) -> int:
 
 
 def _experiment_block(spec: SweepSpec, point: dict[str, Any], block: int,
-                      runs: int) -> tuple[list[str], dict[str, np.ndarray]]:
+                      runs: int) -> tuple[list[str], dict[str, Any]]:
     """Run the experiment for one block and turn its per-step RMSE, bias and NEES into sums."""
     from ..experiments import get
 
     r = spec.resolved(point)
+    assert spec.experiment is not None, "an experiment block belongs to an experiment sweep"
     try:
         res = get(spec.experiment).run(runs=runs, seed=experiment_seed(spec.seed, block), **r["settings"])
     except TypeError as exc:   # an experiment taking **overrides refuses an unknown setting this way

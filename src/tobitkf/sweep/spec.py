@@ -223,6 +223,7 @@ class SweepSpec:
                                                f"point(s) ({blocks} blocks; one flag each)")
             if n is None:
                 return
+            assert m is not None and q is not None and estimators is not None, "model mode gives every size"
             R, T = self.block_runs, self.steps
             check_memory(8 * parallel * R * (T + 1) * (n + q + 3 * m + 3 * n + n * n), "sweep.steps",
                          ("one block" if parallel == 1 else f"{parallel} blocks side by side (workers)") +

@@ -53,7 +53,7 @@ __all__ = ["open_store", "write_blocks", "reduce_store", "load_result", "layout"
            "check_store_path", "check_resumable", "read_store"]
 
 # attributes every store has, with their JSON types (checked when a store is reopened or read)
-_ATTRS: dict[str, type | tuple[type, ...]] = {
+_ATTRS: dict[str, type] = {
     "sweep": str, "canonical": str, "package_version": str, "estimators": list, "grid": dict, "n": int, "m": int,
     "steps": int, "runs": int, "seed": int, "block_runs": int, "name": str, "experiment": str, "layout": dict}
 
@@ -99,7 +99,7 @@ def check_resumable(path: Path, spec: SweepSpec) -> None:
         raise _damaged(path, f"it holds {g['done'].shape} blocks, the sweep has ({P}, {spec.blocks})")
 
 
-def read_store(path: Path, *, mode: str = "r", name: str = "result"):
+def read_store(path: str | Path, *, mode: str = "r", name: str = "result"):
     """Open an existing store and check its structure: the group, its attributes (names and
     types) and the two arrays (shapes and types) as :func:`open_store` wrote them.
 
