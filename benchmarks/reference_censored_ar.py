@@ -113,7 +113,7 @@ def trapezoid_loglik(y, side, upper, mu, sigma2, phi, h):
     w_all[[0, -1]] = h / 2
     w_cens = np.where(grid >= c, h, 0.0)
     w_cens[grid == c] = h / 2
-    ll, state, v = 0.0, None, None
+    ll, state, v, zp = 0.0, None, None, 0.0      # zp: the last observed z, read once state == 'point'
     for t in range(y.size):
         obs = not np.isnan(y[t]) and side[t] == 0
         if obs:

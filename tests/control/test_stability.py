@@ -81,7 +81,9 @@ def test_t20_printed_5_56_is_non_monotone_and_differs():
     correct = tobit_jacobian([[-0.8]], [[0.0246]], [[1.0]], [0.0], [0.0], 0.5, -np.inf, 0.25)[1, 1]
     assert abs(vals[2] - correct) > 5e-3
     # and it differs from finite differences of the mean map away from T = Cx
-    f = lambda z: mean_observer_map([[-0.8]], [[0.0246]], [[1.0]], [0.0], z, 0.5, -np.inf, 0.25)[1]
+    def f(z):
+        return mean_observer_map([[-0.8]], [[0.0246]], [[1.0]], [0.0], z, 0.5, -np.inf, 0.25)[1]
+
     assert fd_jacobian(f, [0.0])[0, 0] == pytest.approx(correct, abs=1e-9)
     with pytest.raises(ValidationError, match="m = 1"):
         dissertation_jacobian_5_56(np.eye(2), np.eye(2), np.eye(2), [0, 0], [0, 0], 0.5, 0.0)

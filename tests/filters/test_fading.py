@@ -42,7 +42,7 @@ def _reference(system, thb, lower, y, L, T, *, thv=None, stale=False, exact=Fals
     variance gam R(1-psi) + gam(1-gam)(chi + sig lam - I)^2; ``variance_term`` adds gam^2 D_k.
     Returns per-step x̂_{k|k}, P_{k|k}, ŷ_{k|k-1}, K_k (first n rows) and ξ̂_{k|k}.
     """
-    n, m = system.n, system.m
+    n = system.n
     A, Qd, C = system.A.at(0), system.process_cov(0), system.C.at(1)
     sig = np.sqrt(np.diag(system.R.at(1)))
     xi, P = system.x0.copy(), system.P0.copy()

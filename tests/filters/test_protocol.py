@@ -222,7 +222,6 @@ def test_R2_augmented_filter_equals_batch_gaussian_posterior(ell):
 
 
 def test_R3_tobit_with_known_indicator_explicit_formulas():
-    rng = np.random.default_rng(4)
     T = 25
     sys_ = tk.LinearSystem(A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.5]], Q=0.2 * np.eye(2), R=[[0.7]],
                            x0=[1.0, 0.0], P0=np.eye(2))

@@ -182,7 +182,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
                  f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)")
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
     D = None if plant.D is None else plant.D.at(1)
-    Qd, R = plant.process_cov(0), plant.measurement_cov(1)
+    R = plant.measurement_cov(1)
     K = np.atleast_2d(as_float_array(K, "K"))
     if K.shape != (p, n):
         raise ShapeError(f"K: expected ({p}, {n}), got {K.shape}")

@@ -146,7 +146,6 @@ def _score_holdout(series, X, fraction: float, side: int) -> tuple[dict[str, Any
     h = _holdout(series, X, fraction, side)
     model = CensoredAR(1)
     fit = model.fit(h["y"], X, lower=h["lower"], upper=h["upper"], censored=h["censored"])
-    data = fit.data
     beta, s2, phi = model.split(fit.theta, X.shape[1])
     mu = X @ beta
     cens = Censoring(lower=h["lower"][:, None], upper=h["upper"][:, None])

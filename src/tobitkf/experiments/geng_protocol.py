@@ -485,7 +485,6 @@ def _variant(exp_id: str, runs: int, seed: int, progress: Any, overrides: dict[s
                          "mean_abs_rmse_difference": float(np.abs(rb - rv).mean()),
                          "steps_variant_lower": int((rv < rb).sum())}
         g = np.stack([errs[base] ** 2, errs[var] ** 2], axis=1)
-        diff = float(rb.mean() - rv.mean())
         se = float(CL.jackknife_se(g, lambda mm: np.sqrt(mm[..., 0, :, :]).mean((-2, -1))
                                   - np.sqrt(mm[..., 1, :, :]).mean((-2, -1))))
         tol = CL.K_SE * se

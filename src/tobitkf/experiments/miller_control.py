@@ -189,7 +189,6 @@ def jacobian_scalar(*, runs: int = 1, seed: int = 0, progress=None) -> Experimen
     between = all(np.all(np.abs(v["e"]) >= np.abs(v["lqg"]) - 1e-12) and np.all(np.abs(v["e"]) <= np.abs(v["open"]) + 1e-12)
                   for v in scen.values())
     mono_naive = bool(np.all(np.diff(j_naive) < 0))
-    mono_print = bool(np.all(np.diff(j_print) < 0))
     interior = (T > -0.5) & (T < 0.5)
 
     def extrema(v, mask):

@@ -223,7 +223,6 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
         holds=all(0.5 - CL.K_SE * ratio_se[r] <= ratio[r] <= 2 + CL.K_SE * ratio_se[r] for r in ratio),
         explanation="outside both windows every reading is censored at a window edge and the TKF's covariance keeps "
                     "shrinking (Assumption 1 evaluates γ at the prior mean), so the filter is over-confident there"))
-    dw = float(wide_rmse[0] - narrow_rmse[0])
     tol_w = CL.K_SE * float(np.hypot(wide_se[0], narrow_se[0]))
     claims.append(CL.greater(
         "(not in the source) the multi-region TKF needs the gap between windows to be comparable to σ: with a gap of "

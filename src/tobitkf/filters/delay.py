@@ -470,7 +470,7 @@ def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> I
     final = res.final.carry
     batch = np.shape(y)[:-2]
     N = int(np.prod(batch, dtype=int))
-    T, d, n = np.shape(y)[-2], system.d, system.n
+    T, d = np.shape(y)[-2], system.d
 
     def runs(a):        # batch + (T, ...) -> (N, T, ...)
         return np.asarray(a).reshape((N,) + np.shape(a)[len(batch):])
