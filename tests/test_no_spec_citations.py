@@ -23,13 +23,9 @@ SPEC_CITATION = re.compile(
       | (?-i:(?<![\w\[\]])\[(?:X|R|S|P|D|D\+R|P\ \+\ R)\])""",
     re.X | re.I)
 
-# Rewritten by the lead (estimation core); the mapping to docs/sources is /work/tools/spec_map.md.
-# Remove an entry once its file is converted: the xfail is strict, so a converted file still listed
-# here fails the test.
-SPEC_EXEMPT = {
-    "filters/delay.py", "filters/fading.py", "filters/kalman.py", "filters/protocol.py", "filters/steady_state.py",
-    "filters/tobit.py", "filters/tracking.py", "control/closed_loop.py",
-}
+# Files still citing the specifications (strictly xfailed). Empty: every file under src/ cites the
+# sources and docs/sources; a converted file left listed here fails the test.
+SPEC_EXEMPT: set[str] = set()
 
 
 def hits(text: str) -> list[str]:

@@ -121,6 +121,6 @@ def test_the_report_shows_the_source_tables_of_li2018(tmp_path):
     text = md.read_text(encoding="utf-8")
     assert "Table 1 (filter x̂(t\\|t)): running-average MSE" in text          # '|' escaped in Markdown
     assert "| x1: this paper (printed) | 0.2156 | 0.1196 | 0.0887 | 0.0868 | 0.0784 | 0.075 |" in text
-    assert "[28] (printed) | 1.221 |" in text
+    assert "\\[28\\] (printed) | 1.221 |" in text                        # '[ ]' escaped in Markdown (issue 15)
     assert "Table 1 (filter x̂(t|t))" in index.read_text(encoding="utf-8")
     assert get("li2018-tables").source.startswith("Li, Li & Wang 2018")

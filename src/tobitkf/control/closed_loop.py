@@ -1,7 +1,7 @@
 r"""Closed-loop simulation: plant + censored sensor + (Tobit) Kalman observer + LQR, batched over runs.
 
 Source: Miller (2015) §6.2 (the TKF as observer in LQG, (6.14)–(6.21)), §6.4 (output feedback with
-the steady-state TKF and a moving limit, (6.45)); spec 001b §2.2, §2.4, §0.2.
+the steady-state TKF and a moving limit, (6.45)); our deviations: docs/sources/miller2015-ch5-7.md.
 
 Loop, for k = 1..T (package time convention: x_0 ~ N(x0, P0), y_1 at index 0):
 
@@ -9,7 +9,7 @@ Loop, for k = 1..T (package time convention: x_0 ~ N(x0, P0), y_1 at index 0):
 
     u_k &= \bar N r_k - K\hat x_{k-1|k-1} \qquad (6.22), (6.45) \\
     x_k &= Ax_{k-1} + B^u u_k + w_{k-1}, \qquad y^*_k = Cx_k + Du_k + v_k \\
-    \bar x_k &= A\hat x_{k-1|k-1} + B^u u_k \quad\text{(the input applied over (k-1, k], spec §0.2 [R])} \\
+    \bar x_k &= A\hat x_{k-1|k-1} + B^u u_k \quad\text{(the input applied over (k-1, k], Miller (3.51))} \\
     y_k &= \mathrm{clip}(y^*_k, l_k, h_k), \qquad \hat x_{k|k} = \text{observer update}(\bar x_k, y_k)
 
 Observers (``observer=``), each an estimator driven through its public online API
@@ -27,13 +27,14 @@ Observers (``observer=``), each an estimator driven through its public online AP
 
 The random draws (x_0, then w, then v) come from one generator in a fixed order, so the same seed
 gives the same noise to every observer: with infinite limits ``"kf"`` and ``"tkf"`` produce
-identical trajectories (spec T13).
+identical trajectories (tested in
+``tests/control/test_closed_loop.py::test_t4_infinite_limit_kf_and_tkf_loops_are_identical``).
 
 Deviation from the source: (6.45) writes the idealised observer
 :math:`\hat x_{k+1} = (A - L\gamma C)\hat x_k + Bu_k + L\gamma Cx_k`, which uses the true state and
-cannot be run; the implementable filter form above is used (spec 001b §2.4 [R]). (6.15) prints the
-left-censoring expectation for a right-censored sensor; the expectation always matches the sensor's
-censoring side here (spec A22).
+cannot be run; the implementable filter form above is used (ours, not in the source; docs/sources MB-16,
+MB-23). (6.15) prints the left-censoring expectation for a right-censored sensor; the expectation always
+matches the sensor's censoring side here (docs/sources MB-22).
 
 Divergence: a run whose state or estimate leaves ``divergence_bound`` is frozen at its last value
 and flagged in ``diverged`` / ``diverged_step`` (never a silent NaN or overflow).

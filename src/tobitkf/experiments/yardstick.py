@@ -268,7 +268,12 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
             a.set(xlabel="k", ylabel=f"RMSE of x{j + 1}", yscale="log")
             a.set_title(f"{name}: {ex['censored_fraction']:.0%} censored", fontsize=9)
             a.legend(fontsize=7)
-        paths.append(save(fig, outdir, f"rmse_{name}.png"))
+        paths.append(save(fig, outdir, f"rmse_{name}.png",
+                          caption=f"Not in the sources: {name} ({ex['censored_fraction']:.0%} of readings censored), "
+                                  f"per-step RMSE of each state for the best existing variant ({best}), the "
+                                  "assumed-density filter and the optimum (particle filter)"
+                                  + (", with the square root of the posterior Cramér-Rao bound" if "pcrlb" in ex
+                                     else "") + "."))
     # the table as a chart: mean ratio over components of each example's best existing variant and the ADF
     names = [nm for nm, _ in groups]
     best_r = [float(np.mean(ex["estimators"][_best(ex["estimators"])]["ratio_to_optimum"])) for _, ex in groups]
@@ -283,7 +288,10 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax[0, 0].set_ylabel("RMSE / optimum (mean over components)")
     ax[0, 0].set_yscale("log")
     ax[0, 0].legend(fontsize=7)
-    paths.append(save(fig, outdir, "ratio_to_optimum.png"))
+    paths.append(save(fig, outdir, "ratio_to_optimum.png",
+                      caption="Not in the sources: time-averaged RMSE over the optimum's (mean over the state's "
+                              "components) of the best existing variant and of the assumed-density filter on every "
+                              f"example and random system; the dotted line is the target {TARGET}."))
     return paths
 
 

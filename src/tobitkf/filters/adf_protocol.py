@@ -1,6 +1,6 @@
 r"""Assumed-density filter for the protocol channel: conditioning on the sensor-failure outcome.
 
-Not in the source. Channel of Geng et al., protocol-based TKF ((2)–(7); seed 003, and
+Not in the source. Channel of Geng et al., protocol-based TKF ((2)–(7); docs/sources/geng-protocol.md, and
 :class:`~tobitkf.channels.protocol.ProtocolChannel`): Round-Robin sensor :math:`h = \bar h_k`,
 integral window ℓ, failure gain :math:`\Lambda_{h,k}` with a given law, censoring at τ,
 

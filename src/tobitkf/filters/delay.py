@@ -1,9 +1,10 @@
 r"""Optimal linear filter, predictor and smoothers for pure-delay systems with fading measurements.
 
 Source: Y. Li, J. Li, X. Wang (2018), "Optimal linear estimators for time-delay systems with
-fading measurements and correlated noises" (seed 002; spec ``002_timedelay_fading.md`` §2).
+fading measurements and correlated noises", J. Electrical and Computer Engineering 2018; our deviations:
+docs/sources/li2018-delay.md.
 Model (1)–(3) in :mod:`tobitkf.models.delay`. All estimators are the affine LMMSE
-(projection on span{1, y(0..t)}) for the equivalent second-order model (spec §1.6):
+(projection on span{1, y(0..t)}) for the equivalent second-order model of (1)–(3) (ours):
 
 .. math::
 
@@ -18,12 +19,12 @@ Three exact algorithms (they agree to rounding; tests check it):
 * **A, augmented** (:func:`augmented_lmmse`). Dense LMMSE on X(t) = [x(t); ...; x(t-W)], any
   joint prior, any lag structure; cost O(n³(W+1)³) per step. The reference.
 * **D, reorganized innovation** (:func:`reorganized_lmmse`). The source's Lemmas 1–3 and
-  Theorems 1–3 with errata E3–E7 corrected (spec §2.5), any prior, O(d²) per step.
+  Theorems 1–3 with LD-E3 to LD-E7 corrected, any prior, O(d²) per step.
 
 What a new measurement y(t) changes (d >= 1, uncorrelated history): only the estimate of its
 chain, x̂(t-d|t) and the smoothed estimates of older elements of that chain. The source's
 "filter" x̂(t|t) then equals the one-step prediction x̂(t|t-1) (gain K(t) ≡ 0) and its
-fixed-lag-(d-1) smoother x̂(t-d+1|t) equals x̂(t-d+1|t-d) (spec §0). This is a property of
+fixed-lag-(d-1) smoother x̂(t-d+1|t) equals x̂(t-d+1|t-d) (docs/sources LD-02). This is a property of
 the printed model, not a bug.
 
 Time convention (the source's): y(0) is the first measurement, at index 0, and measures x(-d).
@@ -34,7 +35,7 @@ computed once and broadcast over the runs as read-only views.
 Code names -> paper symbols: ``mean``/``cov`` x̂(t|t), P(t|t) (Theorem 1); ``pred_mean``/``pred_cov``
 x̂(t+1|t), P(t+1|t) (Theorem 2, (50)–(52)); ``measured_mean`` x̂(t-d|t) (Lemma 1, i = 0);
 ``lagged[L]`` x̂(t-L|t) (Theorem 3 is L = d-1); ``innovation`` ε(t) (14); ``innovation_cov``
-Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected E2); ``decorrelation`` J (8).
+Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected: LD-E2); ``decorrelation`` J (8).
 """
 
 from __future__ import annotations
@@ -92,7 +93,7 @@ def _check_lags(lags: Any, name: str, minimum: int) -> tuple[int, ...]:
 
 
 def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) -> dict[int, np.ndarray]:
-    r"""Λ(j) = E[x(j)x(j)^T] for j = -d..``last`` (corrected recursion, erratum E2).
+    r"""Λ(j) = E[x(j)x(j)^T] for j = -d..``last`` (corrected recursion, docs/sources LD-E2).
 
     .. math:: \Lambda(t+1) = A\Lambda(t-d)A^T + \sum_i Q_{\zeta_i}(t)A_i\Lambda(t-d)A_i^T + \Gamma Q_w\Gamma^T,
        \qquad \Lambda(-k) = P(-k) + \bar x(-k)\bar x(-k)^T.
@@ -113,9 +114,9 @@ def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) ->
 
 
 def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode: str):
-    r"""J(s), Ā(s), Σ(s) of the J-form predictor (spec §1.5).
+    r"""J(s), Ā(s), Σ(s) of the J-form predictor ((4)–(12) of the source; docs/sources LD-E1, LD-E3).
 
-    ``"optimal"`` (corrected, E3): :math:`R = Q_v + \sigma^2 H\Lambda H^T`, :math:`J = \Gamma S R^{-1}`,
+    ``"optimal"`` (corrected, LD-E3): :math:`R = Q_v + \sigma^2 H\Lambda H^T`, :math:`J = \Gamma S R^{-1}`,
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SR^{-1}S^T)\Gamma^T`.
     ``"paper"`` ((8), (9), (11)): :math:`J = \Gamma S Q_v^{-1}`,
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SQ_v^{-1}S^T)\Gamma^T + \sigma^2 J H\Lambda H^T J^T`.
@@ -144,7 +145,7 @@ def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
 
 
 def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray], last: int) -> dict[int, np.ndarray]:
-    """Λ(j) up to j = ``last`` from the stored ones (the corrected recursion (E2)); a new dict."""
+    """Λ(j) up to j = ``last`` from the stored ones (the corrected recursion, LD-E2); a new dict."""
     d = system.d
     top = max(lam)
     if top >= last:
@@ -383,7 +384,7 @@ class ChainLMMSE(_DelayEstimator):
 
 def chain_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decorrelation: str = "optimal",
                 lags: Any = (), horizons: Any = (), fixed_point: int | None = None) -> DelayEstimates:
-    r"""Algorithm C: chain-decoupled exact LMMSE filter, predictors and smoothers (spec §2.3).
+    r"""Algorithm C: chain-decoupled exact LMMSE filter, predictors and smoothers (chain decoupling, ours; LD-02).
 
     For each measurement y(t), with j = t - d (the measured element):
 
@@ -432,9 +433,9 @@ def chain_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decor
     Notes
     -----
     Deviation from the source: ``decorrelation="optimal"`` replaces the constant J of (8) by
-    J(t) = ΓS[Q_v + σ²(t)HΛ(t-d)H^T]^{-1} (erratum E3; the source's J leaves Ω(t) correlated
+    J(t) = ΓS[Q_v + σ²(t)HΛ(t-d)H^T]^{-1} (docs/sources LD-E3; the source's J leaves Ω(t) correlated
     with y(t) when σ² > 0 and S ≠ 0). With S = 0 or σ² = 0 both modes coincide. The state
-    second moment uses the corrected recursion (E2) in both modes.
+    second moment uses the corrected recursion (LD-E2) in both modes.
     """
     est = ChainLMMSE(system, prior, decorrelation=decorrelation)
     return est.filter(y, lags=lags, horizons=horizons, fixed_point=fixed_point)
@@ -450,7 +451,7 @@ def _require_chain(system: DelayFadingSystem, prior: HistoryPrior) -> None:
 
 
 def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> IntervalSmoothing:
-    r"""Fixed-interval smoother x̂(j|T-1), j = -d..T: chain RTS in decorrelated form (spec §2.3).
+    r"""Fixed-interval smoother x̂(j|T-1), j = -d..T: chain RTS in decorrelated form (chain decoupling, ours; LD-02).
 
     .. math::
 
@@ -648,7 +649,7 @@ class AugmentedLMMSE(_DelayEstimator):
 
 def augmented_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, window: int | None = None,
                     lags: Any = ()) -> DelayEstimates:
-    r"""Algorithm A: dense LMMSE on the augmented state X(t) = [x(t); ...; x(t-W)] (spec §2.4).
+    r"""Algorithm A: dense LMMSE on the augmented state X(t) = [x(t); ...; x(t-W)] (state augmentation, ours).
 
     .. math::
 
@@ -724,7 +725,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
     decorrelation : {"optimal", "paper"}, default "optimal"
     warmup : int, optional
     reinsert_errata : iterable of {"E5", "E6", "E7"}
-        See :func:`reorganized_lmmse`.
+        The printed LD-E5, LD-E6, LD-E7; see :func:`reorganized_lmmse`.
     """
 
     _name = "ReorganizedInnovationLMMSE"
@@ -847,13 +848,13 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             Abar_td = decor(t - d)[1] if t - d >= 0 else sys_.A
             for i in range(d - 1, 0, -1):
                 a = t - d - i + 1
-                a5 = a - 1 if "E5" in errata else a          # source (30)/(58) print K(t-d-i|t-d) (E5)
+                a5 = a - 1 if "E5" in errata else a          # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
                 psi_dt = Psi.get((d, t), zero_nn)
-                psi_d = psi_dt.T if "E6" in errata else psi_dt   # source prints Ψ_d(t)^T (E6)
+                psi_d = psi_dt.T if "E6" in errata else psi_dt   # source prints Ψ_d(t)^T (LD-E6)
                 val = (Psi.get((d - i + 1, t - i), zero_nn).T
                        - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))) @ Abar_td.T
                 val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
-                top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (E7)
+                top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
                 for j in range(0, top + 1):
                     s = t - i - j
                     val = val - gk(s) * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
@@ -908,7 +909,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
 def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decorrelation: str = "optimal",
                       warmup: int | None = None, reinsert_errata: Any = ()) -> DelayEstimates:
-    r"""Algorithm D: the source's reorganized-innovation estimator, errata corrected (spec §2.5).
+    r"""Algorithm D: the source's reorganized-innovation estimator (Theorems 1–3), LD-E3 to LD-E7 corrected.
 
     Streaming order at time t (Ψ_i(t) := Φ_{t-i}(t-d-i+1, t-d+1), i = 1..d):
 
@@ -925,27 +926,27 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     (d) fixed-lag-(d-1) smoother (55)–(57) for a = t-d+1;
     (e) K(t-d|t) (51), x̂(t-d|t), predictor (50), (52) with Ā(t), J(t), Σ(t);
     (f) Ψ_d(t+d) = {Ā(t)[Ψ_1(t) - γ̄ K(t-d|t) H Ψ_1(t)]}^T (39);
-    (g) Λ(t+1) by the corrected recursion (E2).
+    (g) Λ(t+1) by the corrected recursion (LD-E2).
 
-    Initialization (the source's list is garbled, spec §4 item 12): with a prior uncorrelated
+    Initialization (the source's list is garbled, docs/sources LD-05): with a prior uncorrelated
     across lags, D starts at t = 0 with every Ψ and every gain K(a|s), s ≠ a+d, equal to zero
     (exact). Otherwise the steps t < ``warmup`` (default 2d+1, the source's "ε(i) = 0,
     i = 1..2d+1" range) are computed by Algorithm A, from which every stored Ψ, gain and
-    covariance is read (spec §2.5). For d = 0 this is Algorithm C.
+    covariance is read (LD-05). For d = 0 this is Algorithm C.
 
     Parameters
     ----------
     system, prior, y
         As :func:`augmented_lmmse` (pure-delay model, any joint prior).
     decorrelation : {"optimal", "paper"}
-        J(t) of the corrected E3 or the source's constant J = ΓS Q_v^{-1} (everywhere Ā appears).
+        J(t) corrected (LD-E3) or the source's constant J = ΓS Q_v^{-1} (everywhere Ā appears).
     warmup : int, optional
         First step done by the reorganized recursions; >= 2d+1 for a correlated prior
         (default 2d+1), >= 0 for an uncorrelated one (default 0). The steps before it are
         exact (Algorithm A) in both ``decorrelation`` modes.
     reinsert_errata : iterable of {"E5", "E6", "E7"}
-        For regression tests only: put back the source's printed (30)/(58): ``"E5"`` uses
-        K(t-d-i|t-d) for K(t-d-i+1|t-d), ``"E6"`` the transposed Ψ_d(t)^T, ``"E7"`` the upper
+        For regression tests only: put back the source's printed (30)/(58): ``"E5"`` (LD-E5) uses
+        K(t-d-i|t-d) for K(t-d-i+1|t-d), ``"E6"`` (LD-E6) the transposed Ψ_d(t)^T, ``"E7"`` (LD-E7) the upper
         summation limit d-1-i (double counts the update at t-d+1). Each breaks optimality.
 
     Returns
@@ -960,9 +961,9 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
 
     Notes
     -----
-    Deviations from the source (each an erratum of spec §2.2): γ̄, σ² indexed by the measurement's
-    own time (E4); Ψ_d(t) untransposed (E6); K(t-d-i+1|t-d) (E5); summation limit d-2-i (E7);
-    J(t) corrected (E3) unless ``decorrelation="paper"``; streaming order (a)–(g) (spec §4 item 13).
+    Deviations from the source (each a correction of the source: LD-E3 to LD-E7): γ̄, σ² indexed by the
+    measurement's own time (LD-E4); Ψ_d(t) untransposed (LD-E6); K(t-d-i+1|t-d) (LD-E5); summation limit
+    d-2-i (LD-E7); J(t) corrected (LD-E3) unless ``decorrelation="paper"``; streaming order (a)–(g) (LD-06).
     The cost is O(d²) per step, not independent of d as the source claims.
     """
     est = ReorganizedInnovationLMMSE(system, prior, decorrelation=decorrelation, warmup=warmup,

@@ -1,7 +1,7 @@
 r"""Tobit Kalman filter with Rice fading measurements (TKF-FM) and its baselines.
 
 Source: Geng, Wang, Liang et al., "Tobit Kalman filter with fading measurements",
-*Signal Processing* 2017 (seed ``000_a11dc7eb0f220328``); spec ``000_tkf_fading.md`` §2–4.
+*Signal Processing* 140 (2017) 60–68; our deviations: docs/sources/geng2017-fading.md.
 
 Model ((1)–(3) of the source):
 
@@ -11,7 +11,7 @@ Model ((1)–(3) of the source):
     y^*_k = \sum_{s=0}^{\ell_k}\vartheta_k(s)C_{k-s}x_{k-s} + \upsilon_k, \quad \ell_k = \min\{L,k\} \\
     y_k &= \max(y^*_k, \mathcal I) \quad\text{(element-wise lower censoring)}
 
-Augmented model (7)–(10), **fixed size** :math:`n_\xi = n(L+1)` from k = 0 (spec §2 [R], A7):
+Augmented model (7)–(10), **fixed size** :math:`n_\xi = n(L+1)` from k = 0 (docs/sources GF-07):
 :math:`\xi_k = \mathrm{col}\{x_k, x_{k-1}, \dots, x_{k-L}\}`, the square shift matrix
 :math:`\mathcal A_k` (block row 0 :math:`[A_k, 0, \dots]`, block row i an identity in
 column i-1), :math:`\mathcal B_k = [B_k; 0; \dots]`,
@@ -20,7 +20,7 @@ The blocks for :math:`s > k` are zero-mean, zero-covariance placeholders with ze
 columns in :math:`H_k`; they are never updated, so the filter equals the
 growing-dimension one (tested).
 
-Per step, Table 1 order (spec §4.2), :math:`\sigma_m = \sqrt{R^{mm}_k}`:
+Per step, in the order of Table 1 of the source, :math:`\sigma_m = \sqrt{R^{mm}_k}`:
 
 .. math::
 
@@ -48,25 +48,25 @@ Repairs of the source (unavoidable, always on)
 * (20) is garbled in the source (a stray :math:`\bar\Upsilon_k` and a doubled
   :math:`\Sigma_{\tilde y}^{-1}`; it does not conform). We use the orthogonal-projection
   result the proof appeals to, :math:`\mathcal P_{k|k} = \mathcal P_{k|k-1} - K\Sigma_{\tilde y\tilde y}K^T`
-  (spec A2), in Joseph form by default.
-* Typos read as in spec §7 A11: (17) is the augmented :math:`\mathcal A_{k-1}`; (27) defines
+  (docs/sources GF-02), in Joseph form by default.
+* Typos read as in docs/sources GF-11: (17) is the augmented :math:`\mathcal A_{k-1}`; (27) defines
   :math:`\hat x_{k|k-1}`; :math:`\bar\theta_k` runs over s = 0..ℓ_k.
 * :math:`\bar\gamma` in (6) is written with the letter of the Mills ratio; we call it
-  ``p_uncensored`` and the stale mean of (6) :math:`\hat\mu` (A11b).
+  ``p_uncensored`` and the stale mean of (6) :math:`\hat\mu` (GF-11).
 
 Options (all off by default; "Deviation from the source")
 ---------------------------------------------------------
-* ``p_uncensored_mode``: ``"augmented"`` (default, spec §4.2 Step 3 [R]) evaluates (6) at
+* ``p_uncensored_mode``: ``"augmented"`` (default, docs/sources GF-03) evaluates (6) at
   :math:`\hat\chi_{k|k-1} = H_k\hat\xi_{k|k-1}`, consistent with (21)–(26).
   ``"eq6_stale"`` is (6) literally: :math:`\hat\mu^m = \sum_s \bar\vartheta^m(s)[C_{k-s}\hat x_{k-s|k-s-1}]^m`
-  with the one-step predictions made at earlier steps (:math:`\hat x_{0|-1} := \bar x_0`) (A3).
+  with the one-step predictions made at earlier steps (:math:`\hat x_{0|-1} := \bar x_0`) (GF-03).
 * ``fading_variance_term=True`` adds :math:`\bar\Upsilon_kD_k\bar\Upsilon_k` to :math:`N_k`,
   :math:`D_k^{mm} = \sum_s\tilde\vartheta^m(s)[C_{k-s}X_{k-s}C_{k-s}^T]^{mm}`,
-  :math:`X_{j+1} = A_jX_jA_j^T + B_jQ_jB_j^T`, :math:`X_0 = \bar x_0\bar x_0^T + P_0` (spec §4.6-1, A4;
+  :math:`X_{j+1} = A_jX_jA_j^T + B_jQ_jB_j^T`, :math:`X_0 = \bar x_0\bar x_0^T + P_0` (docs/sources GF-04;
   the source never uses the fading variances, so its filter is over-confident).
 * ``exact_tobit_variance=True`` replaces (12) by the censored variance (law of total
   variance), :math:`N^{mm} = \bar\gamma R^{mm}(1-\psi) + \bar\gamma(1-\bar\gamma)(\hat\chi+\sigma\lambda-\mathcal I)^2`
-  (spec §4.6-2, A5; (12) is the variance of the *uncensored part* only).
+  (docs/sources GF-05; (12) is the variance of the *uncensored part* only).
 * ``covariance_update="standard"`` uses :math:`\mathcal P_{k|k-1} - K\Sigma_{\tilde y\tilde y}K^T`
   instead of the Joseph form (equal in exact arithmetic).
 
@@ -77,11 +77,11 @@ scale :math:`\bar\gamma_k` (so that :math:`G_k = \bar\Upsilon_kH_k`) and the dia
 :math:`N_k`; the shared update in Joseph form is (20'). ``covariance_update="square_root"`` (not in the
 source) is available too.
 
-Upper limits (two-sided censoring) are a non-source extension: all censoring statistics
+Upper limits (two-sided censoring) are ours (not in the source): all censoring statistics
 come from :func:`tobitkf.censored_moments`, which reduces to Lemma 1 for a lower limit.
 
 Time convention: x_0 ~ N(x̄_0, P_0) is the prior; no update at k = 0; y_1 (stored at
-index 0) is the first measurement and mixes x_1 and x_0 when L >= 1 (A10). Output
+index 0) is the first measurement and mixes x_1 and x_0 when L >= 1 (docs/sources GF-10). Output
 index k-1 holds x̂_{k|k}.
 
 Code names -> paper symbols: ``mean`` x̂_{k|k}; ``cov`` P_{k|k}; ``pred_mean`` x̂_{k|k-1};
@@ -119,7 +119,7 @@ _KF_OPTIONS = {"fading_variance_term": _BOOL, "covariance_update": _FORMS}
 
 
 def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: int) -> np.ndarray:
-    r""":math:`H_k = \bar\theta_k\mathcal C_k`, zero-padded to ``(m, n(L+1))`` (spec §2).
+    r""":math:`H_k = \bar\theta_k\mathcal C_k`, zero-padded to ``(m, n(L+1))`` (docs/sources GF-07).
 
     Block s (columns ``s*n:(s+1)*n``) is :math:`\bar\vartheta(s)C_{k-s}` for s <= min(L, k), else 0.
     """
@@ -132,7 +132,7 @@ def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: in
 
 
 def _sigma_of(R: np.ndarray, name: str) -> np.ndarray:
-    # App. B of the source assumes cov{y^m, y^t} = 0 for m != t: R must be diagonal (A13).
+    # App. B of the source assumes cov{y^m, y^t} = 0 for m != t: R must be diagonal (docs/sources GF-13).
     return _diagonal_sigma(R, name, who="the fading Tobit Kalman filter",
                            why="Geng et al. 2017, App. B: uncorrelated channels",
                            positive="expected positive measurement variances")
@@ -181,7 +181,7 @@ class _FadingFamily(LinearGaussianFamily):
         return self._nxi
 
     def _initial(self, N, x0, P0, batch):
-        # fixed-size augmentation: xi_0|0 = [x0; 0...], P_0|0 = blkdiag(P0, 0...)  (spec §2, §4.1)
+        # fixed-size augmentation: xi_0|0 = [x0; 0...], P_0|0 = blkdiag(P0, 0...)  (docs/sources GF-07, GF-10)
         n, nxi, m, L = self.n, self._nxi, self.m, self.L
         x_init, P_init = check_prior(self.system, x0, P0, N, batch)
         per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
@@ -193,11 +193,11 @@ class _FadingFamily(LinearGaussianFamily):
         P[:, :n, :n] = symmetrize(P_init)   # exactly symmetric (the shift prediction relies on it)
         carry: dict[str, Any] = {}
         C0 = measurement_matrix_at(self.system, 0)
-        if self._stale:   # C_j x̂_{j|j-1} for j = k, k-1, ..., k-L, with x̂_{0|-1} := x̄_0 (spec §4.2 Step 3)
+        if self._stale:   # C_j x̂_{j|j-1} for j = k, k-1, ..., k-L, with x̂_{0|-1} := x̄_0 (docs/sources GF-03)
             cx = np.zeros((N, L + 1, m))
             cx[:, 0] = x_init @ C0.T
             carry["cx_pred"] = cx
-        if self.fading_variance_term:   # diag(C_j X_j C_j^T), X_j = E[x_j x_j^T] (spec §4.6-1)
+        if self.fading_variance_term:   # diag(C_j X_j C_j^T), X_j = E[x_j x_j^T] (docs/sources GF-04)
             cxxc = np.zeros((N, L + 1, m))
             cxxc[:, 0] = np.einsum("ij,njk,ik->ni", C0, np.broadcast_to(P_init, (N, n, n)), C0) + (x_init @ C0.T) ** 2
             carry.update(mom_mean=x_init.copy(), mom_cov=np.broadcast_to(P_init, (N, n, n)).copy(), cxxc=cxxc)
@@ -245,7 +245,7 @@ class _FadingFamily(LinearGaussianFamily):
                 p_lo, gam, p_hi = st.p_lower, st.p_uncensored, st.p_upper
             tmean = st.truncated_mean                                          # chi + sigma*lambda (34)
             yhat = _limit_terms(p_lo, lo) + gam * tmean + _limit_terms(p_hi, hi)  # (21), (37)
-            if self.exact_tobit_variance:   # law of total variance (option, spec §4.6-2)
+            if self.exact_tobit_variance:   # law of total variance (option, docs/sources GF-05)
                 with np.errstate(invalid="ignore"):
                     noise = (gam * (st.truncated_var + (tmean - yhat) ** 2)
                              + _limit_terms(p_lo, (lo - yhat) ** 2) + _limit_terms(p_hi, (hi - yhat) ** 2))
@@ -422,7 +422,7 @@ def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censori
     Parameters
     ----------
     system : LinearSystem
-        :math:`A_k, B_k, Q_k, C_k, R_k, \bar x_0, P_0`; R must be diagonal (App. B, A13).
+        :math:`A_k, B_k, Q_k, C_k, R_k, \bar x_0, P_0`; R must be diagonal (App. B, GF-13).
     fading : RiceFading
         Channel order L and the law of :math:`\vartheta(s)`; the filter uses the means
         :math:`\bar\vartheta(s)` (and the variances only with ``fading_variance_term``).
@@ -434,11 +434,11 @@ def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censori
         Control inputs (not in the source; enter the first block through ``Bu`` and the
         measurement unfaded through ``D``).
     p_uncensored_mode : {"augmented", "eq6_stale"}, default "augmented"
-        How :math:`\bar\gamma_k` of (6) is evaluated (module docstring, A3).
+        How :math:`\bar\gamma_k` of (6) is evaluated (module docstring, GF-03).
     fading_variance_term : bool, default False
-        Add the fading-variance term to (25) (module docstring, A4).
+        Add the fading-variance term to (25) (module docstring, GF-04).
     exact_tobit_variance : bool, default False
-        Use the exact censored variance instead of (12) in (25) (module docstring, A5).
+        Use the exact censored variance instead of (12) in (25) (module docstring, GF-05).
     covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
         Form of the repaired (20') (``"square_root"``: the QR array form, not in the source).
     x0, P0 : array_like, optional
@@ -493,7 +493,7 @@ def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u:
                          keep_smoothed: bool = True) -> FilterResult:
     r"""Kalman filter on the augmented model with the fading means and no censoring handling.
 
-    The baseline "KF with fading means" of spec §4.7 [non-source]: the TKF-FM with
+    The baseline "KF with fading means" (ours, not in the source; docs/sources GF-17): the TKF-FM with
     :math:`\bar\gamma \equiv 1`, :math:`\lambda \equiv \psi \equiv 0`, i.e. a Kalman filter with
     :math:`H_k = \bar\theta_k\mathcal C_k` and :math:`R_k`, fed censored readings as if they
     were exact. With ``fading_variance_term=True`` and no censoring it is the LMMSE fading
@@ -508,7 +508,9 @@ def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u:
 
 def fading_estimators(system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None,
                       **options: Any) -> dict[str, Any]:
-    """The TKF-FM and the baselines of spec §4.7, keyed as in the experiments.
+    """The TKF-FM and its baselines, keyed as in the experiments.
+
+    The source compares with the TKF only; the others are ours (docs/sources GF-17).
 
     ``"tkf-fm"`` :class:`FadingTobitKalmanFilter` (``options`` passed on); ``"tkf"`` the
     TKF of Allik et al. [11] on the unfaded model (the source's comparator, mis-modelled

@@ -1,7 +1,7 @@
 r"""The regional H∞ filter (5) of Wang, Shen & Liu: :math:`\hat x_{k+1} = A_f\hat x_k + B_f\tilde y_k`.
 
 Source: Z. Wang, B. Shen, X. Liu, "H∞ filtering with randomly occurring sensor saturations and
-missing measurements", eq. (5) (seed 004). The gains come from the LMI design of
+missing measurements", eq. (5); our deviations: docs/sources/wang-hinf.md. The gains come from the LMI design of
 :mod:`tobitkf.design.hinf` (:func:`~tobitkf.design.hinf.design`); the filter itself is a fixed
 linear recursion, with no covariance.
 

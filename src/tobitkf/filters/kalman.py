@@ -19,13 +19,13 @@ output index k-1 holds x̂_{k|k}, P_{k|k}.
 * :class:`DroppingKalmanFilter` skips censored readings (x̂ = x̄, P = P̄ for a
   censored channel): the "intermittent-measurements KF" ([16] in Miller; "IKF" in our
   experiments). Censoring is detected as a reading within a relative tolerance of
-  its limit [non-source]; with vector measurements only the censored rows are
-  dropped [non-source].
+  its limit (ours, not in the source); with vector measurements only the censored rows are
+  dropped (ours, not in the source).
 
 NaN measurements are treated as missing samples: the channel is skipped in that
 step, exactly as a dropped packet.
 
-Covariance forms [non-source]: ``covariance_update="standard"`` is (2.6),
+Covariance forms (ours, beyond the source's (2.6)): ``covariance_update="standard"`` is (2.6),
 ``"joseph"`` the Joseph form, and ``"square_root"`` propagates a factor S with
 P = S Sᵀ through QR factorizations (the array form of the Kalman filter; Kaminski, Bryson
 & Schmidt 1971; Bierman 1977; Grewal & Andrews, *Kalman Filtering*, ch. on
@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance
+from .._validation import ShapeError, ValidationError, as_float, as_float_array, check_instance
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
@@ -384,8 +384,8 @@ class DroppingKalmanFilter(KalmanFilter):
 
     A channel whose reading equals its censoring limit (to relative tolerance
     ``rtol``) is left out of that step's update, so a censored step gives
-    x̂ = x̄ and P = P̄ for that channel [non-source detection rule: a reading within
-    ``rtol * max(1, |limit|)`` of its limit counts as censored].
+    x̂ = x̄ and P = P̄ for that channel (ours, not in the source: a reading within
+    ``rtol * max(1, |limit|)`` of its limit counts as censored).
 
     Parameters
     ----------
@@ -413,8 +413,9 @@ class DroppingKalmanFilter(KalmanFilter):
         censoring.check(system.m)
         if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
+        rtol = as_float(rtol, "rtol", low=0.0)      # an int beyond float range (10**400) is a named error too
         super().__init__(system, covariance_update=covariance_update, backend=backend)
-        self.censoring, self.rtol = censoring, float(rtol)
+        self.censoring, self.rtol = censoring, rtol
 
     def _dropped(self, y: np.ndarray, k: int) -> np.ndarray:
         lo, hi = self.censoring.limits(k)

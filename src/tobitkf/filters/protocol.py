@@ -1,8 +1,8 @@
 r"""Protocol-based Tobit Kalman filter with integral measurements and sensor failures (PBTKF-IMSF).
 
 Source: Geng, Wang, Zou, Mousavi, Cheng, "Protocol-Based Tobit Kalman Filter under
-Integral Measurements and Probabilistic Sensor Failures", Theorems 1–5 and Table I
-(seed 003; spec ``spec/003_protocol_tkf.md`` §1.8–2.8). Channel:
+Integral Measurements and Probabilistic Sensor Failures", (9)–(30), Theorems 1–5, Table I and Sec. IV;
+our deviations: docs/sources/geng-protocol.md. Channel:
 :class:`tobitkf.channels.protocol.ProtocolChannel`.
 
 Model (augmented form (9)–(10)), :math:`\xi_k = [x_k^T\; x_{k-1}^T \cdots x_{k-\ell}^T]^T`:
@@ -33,7 +33,7 @@ One step (Table I order; :math:`\gamma_k = \mathbb 1[y_k > \tau]` is known to th
 A censored step (:math:`\gamma_k = 0`) gives :math:`K_k = 0` and an innovation
 :math:`\tau - \tau = 0`; the code returns :math:`\hat\xi^-_k, P^-_k` unchanged, bit for bit.
 
-The failure term :math:`F_k` (``failure_term``, spec §2.2 and A1):
+The failure term :math:`F_k` of (24) (``failure_term``, docs/sources GP-01):
 
 ========================  ==============================================================
 ``"variance"`` (default)  :math:`\check\Lambda_h\,\mathcal C_hP^-_k\mathcal C_h^T`
@@ -50,7 +50,7 @@ In the terms of the shared core (:mod:`tobitkf.filters.core`): the state is the 
 update in Joseph form is App. D (44); ``"square_root"`` (not in the source) is available too.
 
 Time convention: :math:`x_0 \sim N(\bar x_0, P_0)` with the pre-history
-:math:`x_{-1..-\ell}` independent with the same law (spec A5); no measurement at k = 0;
+:math:`x_{-1..-\ell}` independent with the same law (docs/sources GP-05); no measurement at k = 0;
 ``y`` index k-1 holds :math:`y_k`; output index k-1 holds :math:`\hat x_k` (posterior) and
 ``pred_mean`` :math:`\hat x^-_k`.
 
@@ -60,7 +60,7 @@ out like ``y``. The pre-0.2 layouts ``y`` (T,) and ``uncensored`` (..., T) still
 DeprecationWarning.
 
 Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
-``p_uncensored`` :math:`1-\Phi(\bar\vartheta_k)` (the diagnostic (8), A6), ``theta_bar``
+``p_uncensored`` :math:`1-\Phi(\bar\vartheta_k)` (the diagnostic (8), GP-06), ``theta_bar``
 :math:`\bar\vartheta_k`, ``inverse_mills`` λ, ``trunc_var_factor`` φ, ``scheduled`` :math:`\bar h_k`,
 ``aug_*`` the ξ-space quantities, ``failure_mean`` :math:`\bar\Lambda`, ``failure_variance``
 :math:`\check\Lambda`.
@@ -75,7 +75,8 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_psd
+from .._validation import (ShapeError, ValidationError, as_float_array, check_instance, check_int, check_memory,
+                           check_psd)
 from ..censored import unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
@@ -157,7 +158,7 @@ def _sensor_stats(system: LinearSystem, k: int, h: int):
 
 def _failure_term(mode: str, Cc: np.ndarray, P_pred: np.ndarray, xi_pred: np.ndarray, lam_mean: float,
                   lam_var: float, X: np.ndarray | None) -> np.ndarray:
-    """F_k of spec §2.2, (N,)."""
+    """F_k, the failure term of (24) (docs/sources GP-01), (N,)."""
     if mode == "lmmse_unconditional":
         return np.full(P_pred.shape[0], lam_var * float(Cc @ X @ Cc))
     CPC = np.einsum("i,nij,j->n", Cc, P_pred, Cc)
@@ -466,14 +467,14 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     uncensored : (..., T, 1) bool array_like, optional
         :math:`\gamma_k` from the detection device, laid out like ``y``; default ``y > threshold``.
     failure_term : {"variance", "literal", "second_moment", "lmmse_unconditional"}, default "variance"
-        The failure term of (24) (spec §2.2, A1).
+        The failure term of (24) (docs/sources GP-01).
     prehistory_prior : {"x0", "zero_mean"}, default "x0"
         Prior of :math:`x_{-1..-\ell}`: :math:`N(\bar x_0, P_0)` or :math:`N(0, P_0)`, independent
         (``prehistory_mean="repeat"``/``"zero"`` is the deprecated spelling).
     covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
         Joseph form (App. D (44)) or (20), equal for the optimal gain; or the QR array form.
     P0_aug : (n_ξ, n_ξ) array_like, optional
-        :math:`P_{\tilde\xi_0} = M_0`; default :math:`I_{\ell+1}\otimes P_0` (A5).
+        :math:`P_{\tilde\xi_0} = M_0`; default :math:`I_{\ell+1}\otimes P_0` (docs/sources GP-05).
     keep_augmented : bool, default False
         Also return the ξ-space covariances ``aug_cov``, ``aug_pred_cov`` (memory: N T n_ξ²).
     check_limits : bool, default True
@@ -496,18 +497,18 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
 
     Notes
     -----
-    Deviations from the source (each an option; defaults follow spec §2.2–2.3):
+    Deviations from the source (each an option; defaults: docs/sources GP-01, GP-05, GP-12):
 
-    * ``failure_term="variance"`` (default) reads the coefficient of the second term of
+    * ``failure_term="variance"`` (default; GP-01) reads the coefficient of the second term of
       (24) as the failure *variance* :math:`\check\Lambda` (the value the example prints,
       0.065); the paper's definition :math:`\tilde\Lambda = \bar\Lambda^2 + \check\Lambda`
       is ``"literal"``, which does not reduce to the Kalman filter without failures (it keeps
       :math:`\mathcal CP\mathcal C^T`). ``"second_moment"`` uses the state second moment that
       the paper's own (35) calls for; ``"lmmse_unconditional"`` the unconditional one
       (exact LMMSE when τ = -inf).
-    * (17) is read with :math:`\mathcal A_{k-1}` (A11); (18) with the posterior :math:`P_{k-1}`.
-    * :math:`\vartheta` is divided by :math:`\sqrt{\mathcal R_k}`, not :math:`\mathcal R_k` (A3).
-    * The censored step is implemented as "unchanged" (K = 0), avoiding 0/0 (spec §2.3).
+    * (17) is read with :math:`\mathcal A_{k-1}` (GP-11); (18) with the posterior :math:`P_{k-1}`.
+    * :math:`\vartheta` is divided by :math:`\sqrt{\mathcal R_k}`, not :math:`\mathcal R_k` (GP-03).
+    * The censored step is implemented as "unchanged" (K = 0), avoiding 0/0 (GP-12).
 
     Examples
     --------
@@ -528,7 +529,7 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
 
 
 def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
-    r"""The PBTKF baseline's (mis-specified) channel model (A16).
+    r"""The PBTKF baseline's (mis-specified) channel model (docs/sources GP-16).
 
     Same schedule and τ, but :math:`\ell_{model} = 0` and no failures
     (:math:`\bar\Lambda \equiv 1`, :math:`\check\Lambda \equiv 0`, so :math:`F_k = 0`).
@@ -536,7 +537,7 @@ def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
     return channel.replace(window=0, failures=NO_FAILURE)
 
 
-# --- performance bounds (Sec. IV, spec §2.7-2.8) -------------------------------------------
+# --- performance bounds (Sec. IV and App. C–D of the source; docs/sources GP-02, GP-04, GP-06) ------------
 @dataclass(frozen=True)
 class CovarianceBounds:
     r"""Bounds :math:`N^l_k \preceq N_k = E\{P_{\tilde x^-_k}\} \preceq N^u_k` (Theorem 5), k = 1..T.
@@ -567,7 +568,7 @@ def _gl_nodes(lo: float, hi: float, n: int = 64):
 def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps: int, *,
                           prehistory_prior: str = "x0", P0_aug: Any = None,
                           prehistory_mean: str | None = None) -> np.ndarray:
-    r"""Unconditional :math:`\bar\gamma_k = P(\bar y_k > \tau)` under the true model, k = 1..T (spec §2.8).
+    r"""Unconditional :math:`\bar\gamma_k = P(\bar y_k > \tau)` under the true model, k = 1..T (docs/sources GP-06).
 
     .. math::
 
@@ -621,9 +622,12 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
                                upper_form: str = "expected_riccati", lower_form: str = "statement",
                                phi_upper: str = "zero", prehistory_prior: str = "x0",
                                P0_aug: Any = None, prehistory_mean: str | None = None) -> CovarianceBounds:
-    r"""Upper and lower bounds on the expected prior covariance (Theorems 3–5, spec §2.7–2.8).
+    r"""Upper and lower bounds on the expected prior covariance (Theorems 3–5 of the source).
 
-    Index convention (A5): :math:`M^u_1 = M^l_1 = P^-_1 = \mathcal A_0M_0\mathcal A_0^T + \mathcal BQ_0\mathcal B^T`;
+
+    Sec. IV and App. C–D of the source; our deviations docs/sources GP-02, GP-04, GP-06. Index convention
+    (docs/sources GP-05): :math:
+`M^u_1 = M^l_1 = P^-_1 = \mathcal A_0M_0\mathcal A_0^T + \mathcal BQ_0\mathcal B^T`;
     then for k = 1..T-1, with step-k quantities (:math:`h = \bar h_k`, :math:`\mathbf H_k`, :math:`\mathcal R_k`,
     :math:`\bar\gamma_k`):
 
@@ -668,7 +672,7 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
 
     Notes
     -----
-    Deviations from the source (spec A2, A4):
+    Deviations from the source (docs/sources GP-02, GP-04):
 
     * (28) uses the random :math:`P_{\xi_k}` in its failure term and never defines
       :math:`\bar\gamma^u, \bar\varphi^u`; the default uses :math:`M^u_k`,
@@ -688,8 +692,9 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
                    {"failure_term": FAILURE_TERMS, "upper_form": UPPER_FORMS, "lower_form": LOWER_FORMS,
                     "phi_upper": PHI_UPPER, "prehistory_prior": PREHISTORY_PRIORS})
     _check_parts(system, channel)
-    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 1:
-        raise ValidationError(f"steps: expected a positive integer, got {steps!r}")
+    steps = check_int(steps, "steps", minimum=1)
+    check_memory(8 * 4 * int(steps) * (system.n * (channel.window + 1)) ** 2, "steps",
+                 f"covariance bounds over {steps} steps")
     if isinstance(p_uncensored, str):
         if p_uncensored != "analytic":
             raise ValidationError(f"p_uncensored: expected 'analytic' or numbers in [0, 1], got {p_uncensored!r}")

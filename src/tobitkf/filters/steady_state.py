@@ -1,6 +1,6 @@
 r"""Steady-state Tobit Kalman filter with a controlled censoring limit.
 
-Source: Miller (2015), §3.4.2, (3.51)–(3.58) (spec 001a §3.7, 001b §0.3).
+Source: Miller (2015), §3.4.2, (3.51)–(3.58); our deviations: docs/sources/miller2015-ch1-4.md.
 
 If the sensor's censoring limit is set from the a-priori estimate (3.56),
 
@@ -31,11 +31,13 @@ filter for the modified pair :math:`(A, \tilde C = \Xi C)` with noise :math:`\Up
 Deviations from the source
 --------------------------
 * (3.57) prints :math:`K = \bar\Psi(\Xi C)^T\bar\Psi(\cdots)^{-1}` with a spurious second
-  :math:`\bar\Psi`; it is dropped (spec A-3.4, an unavoidable repair: the printed form does
+  :math:`\bar\Psi`; it is dropped (docs/sources MA-11, an unavoidable repair: the printed form does
   not conform).
 * (3.61)/(5.68) write the limit with :math:`C\hat x_k`; the a-priori :math:`C\bar x_k` is used,
-  as (3.56) states, since the limit must be set before the measurement arrives (spec A-3.10).
-* (3.54) is garbled (pdf for cdf, no T term); (3.58) and the corrected (3.54) agree (spec A-3.3).
+  as (3.56) states, since the limit must be set before the measurement arrives (docs/sources MA-17).
+* (3.54) is garbled (pdf for cdf, no T term); (3.58) and the corrected (3.54) agree (docs/sources MA-10).
+* :math:`\Psi_\infty` (``cov``) is what the filter believes with :math:`E(\mathbf p) \equiv \Xi`, not an
+  error bound (docs/sources MB-F1).
 
 Time convention: x_0 ~ N(x0, P0) prior; y_1 at index 0; output index k-1 holds x̂_{k|k}.
 In the terms of the shared core (:mod:`tobitkf.filters.core`): a fixed gain :math:`K_\infty`,
@@ -45,7 +47,7 @@ TKF (3.55) whose limit is set from its prior, a :class:`~tobitkf.filters.tobit.T
 whose measurement model first clips the latent reading at (3.56).
 
 Symbols: ``xi_uncensored`` = Ξ (probability of *not* being censored; 1 − Ξ is the
-censored fraction, spec A-3.11), ``upsilon`` = υ, ``lambda_hat`` = λ̂ = φ(α)/Ξ (the source's
+censored fraction, docs/sources MA-18), ``upsilon`` = υ, ``lambda_hat`` = λ̂ = φ(α)/Ξ (the source's
 right-censoring inverse Mills ratio, positive), ``inverse_mills`` = the inverse Mills ratio with the
 sign of :attr:`tobitkf.CensoredMoments.inverse_mills` (−λ̂ for right censoring, +λ̂ for left),
 ``gain`` = K∞, ``prior_cov`` = Ψ̄∞, ``cov`` = Ψ∞.
@@ -158,14 +160,15 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     xi_uncensored : float or (m,) array_like in (0, 1)
         Target probability Ξ of an *uncensored* reading per channel.
     side : {"upper", "lower"}, default "upper"
-        Right censoring (the source's §3.4) or left censoring ([non-source] extension).
+        Right censoring (the source's §3.4) or left censoring (ours, not in the source; docs/sources MA-18).
 
     Attributes
     ----------
     gain : (n, m) ndarray
         :math:`K_\infty` (the filter gain: :math:`\hat x = \bar x + K_\infty(y - E[y])`).
     prior_cov, cov : (n, n) ndarray
-        :math:`\bar\Psi_\infty` and :math:`\Psi_\infty`.
+        :math:`\bar\Psi_\infty` and :math:`\Psi_\infty`; :math:`\Psi_\infty` is not an error bound
+        (docs/sources MB-F1).
     upsilon, lambda_hat, alpha : (m,) ndarray
         Constant Tobit statistics; ``lambda_hat`` = :math:`\hat\lambda = \phi(\alpha)/\Xi`.
     inverse_mills : (m,) ndarray

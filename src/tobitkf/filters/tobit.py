@@ -1,7 +1,8 @@
 r"""The Tobit Kalman filter (TKF): Kalman filtering of censored measurements.
 
-Source: Miller (2015), §3.3.4, (3.18)–(3.43) and (3.55) (spec 001a §3.5, 001b §0.2);
-two-sided and multi-region limits as in spec 001a A-3.13 and 001b §2.6.
+Source: Miller (2015), §3.3.4, (3.18)–(3.43) and (3.55); our deviations: docs/sources/miller2015-ch1-4.md.
+Two-sided limits per channel are ours (not in the source; docs/sources MA-20); the multi-region form is
+Miller §6.6, (6.51)–(6.69) (docs/sources MB-35).
 
 Model: :math:`x_k = A x_{k-1} + w_{k-1}`, :math:`y^*_k = Cx_k + v_k`,
 :math:`y_k(l) = \mathrm{clip}(y^*_k(l), l_k(l), h_k(l))`, with diagonal R (Assumption A2, (3.36)).
@@ -26,9 +27,9 @@ Deviations from the source
 --------------------------
 * (3.42)/(3.43) print the covariance update as :math:`(I_{m\times m} - E(\mathbf p)KC)\Psi`,
   which does not conform when m != n; the code uses the order of (3.55),
-  :math:`(I_n - KE(\mathbf p)C)\bar\Psi` (unavoidable repair, spec A-3.1).
+  :math:`(I_n - KE(\mathbf p)C)\bar\Psi` (unavoidable repair, docs/sources MA-08).
 * The noise term :math:`R_{uu}` of (3.41) is the *truncated* variance, justified in the
-  text by the false identity Var[y|x] = Var[y|y>T] (spec A-3.2). It is the default
+  text by the false identity Var[y|x] = Var[y|y>T] (docs/sources MA-09). It is the default
   (``noise_term="dissertation"``). ``noise_term="total_variance"`` uses the exact
   censored variance Var[y] (the "exact moments" route of later TKF papers) and
   ``noise_term="exact_pv"`` the exact :math:`E[p v^2]`; both are non-dissertation options.
@@ -37,7 +38,7 @@ Deviations from the source
   like γ, so the gain grows like a²/σ²; a reading that then comes back uncensored can throw
   the estimate far off (seen on 4 of 12 random stable systems within 60 steps). The
   dissertation's term and ``"exact_pv"`` do not have this failure.
-* ``covariance_update="square_root"`` [non-source numerical device]: the update above is a
+* ``covariance_update="square_root"`` (a numerical device, ours, not in the source): the update above is a
   Kalman update with measurement matrix :math:`H = E(\mathbf p)C` and noise
   :math:`R_{uu}`, since :math:`R_{xe} = \bar\Psi H^T` and
   :math:`R_{ee} = H\bar\Psi H^T + R_{uu}` (3.39)–(3.40). :math:`R_{uu}` is diagonal and
@@ -48,7 +49,7 @@ Deviations from the source
   :math:`\Psi = \bar\Psi - KH\bar\Psi = SS^T`, positive semidefinite by construction.
 * The right-censoring formulas of (3.54) are garbled in the source (pdf for cdf, no T
   term); the general two-sided statistics of :mod:`tobitkf.censored` reduce to the
-  corrected (3.54) (spec A-3.3).
+  corrected (3.54) (docs/sources MA-10).
 
 In the terms of the shared core (:mod:`tobitkf.filters.core`): the measurement prediction is
 :math:`\hat y = E(y)`, :math:`H_0 = C`, the per-run channel scale :math:`E(\mathbf p)` and the
@@ -182,7 +183,7 @@ class TobitKalmanFilter(LinearGaussianFamily):
         or one of the exact alternatives (non-dissertation; see the module docstring).
     covariance_update : {"standard", "joseph", "square_root"}, default "standard"
         ``"standard"`` is (3.55) :math:`(I - KE(p)C)\bar\Psi`; ``"joseph"`` the
-        algebraically equal Joseph form; ``"square_root"`` [non-source] propagates a factor
+        algebraically equal Joseph form; ``"square_root"`` (ours, not in the source) propagates a factor
         :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
         construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
     backend : {"auto", "numpy", "numba"}, default "auto"

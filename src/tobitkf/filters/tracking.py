@@ -1,6 +1,7 @@
 r"""Multi-target tracker for similar targets that leave an imager's field of view (Miller 2015 §2.2).
 
-Source: Miller (2015) §2.2, (2.8)–(2.17), Table 2.1; spec 001a §2.3 and ambiguities A-2.1–A-2.7.
+Source: Miller (2015) §2.2, (2.8)–(2.17), Table 2.1; our deviations MA-01 to MA-07
+(docs/sources/miller2015-ch1-4.md).
 
 N identical-looking points are tracked by N independent Kalman filters (run here as one batch over
 targets) with the constant-velocity model (2.8), (2.10)–(2.11):
@@ -13,21 +14,21 @@ Per frame: predict; associate the unordered detections M with the estimates Y by
 
 1. the first map :math:`j(i) = \arg\min_j\|y_i - m_j\|` (not injective);
 2. the second map: among the estimates that chose the same :math:`m_j`, only the closest keeps it
-   (A-2.5; ``second_map="mutual"`` requires mutual nearest neighbours instead);
+   (MA-05; ``second_map="mutual"`` requires mutual nearest neighbours instead);
 3. the gate (2.12)–(2.13): keep the pair only if :math:`\|y_i - m_j\| < T_i = T_o + \alpha O_i(k)`,
-   O_i the number of consecutive occluded frames before this one (A-2.6);
+   O_i the number of consecutive occluded frames before this one (MA-06);
 
 matched targets get the KF update, unmatched ones keep the prediction (2.14); during the warm-up
-(A-2.4: a fixed number of frames) the association uses each target's previous measurement instead of
+(MA-04: a fixed number of frames) the association uses each target's previous measurement instead of
 its prediction. Occluded-target feedback (2.15)–(2.17): :math:`B = \mathrm{diag}(\mu, 1, \mu, 1)` and, for an
 occluded target i, :math:`u_i = \overline{x_n}_{n\ \text{visible}} - x_i` (posteriors and visibility of the
 previous frame), which pulls its velocity to the mean velocity of the visible targets.
 
-Deviations from the source (A-2.1, A-2.2): the printed (2.16) has the opposite sign
+Deviations from the source (MA-01, MA-02): the printed (2.16) has the opposite sign
 (:math:`x_i - \bar x`), averages over all other targets and applies :math:`\epsilon_i = 1` to targets *in*
 the frame, which contradicts the prose ("the error between the occluded state and the mean of the
 non-occluded states", used "only when i is occluded"). ``feedback="printed"`` keeps the printed form.
-Q, R, P_0, T_o, α, μ are not given (A-2.3); the defaults are the spec's.
+Q, R, P_0, T_o, α, μ are not given (MA-03); the defaults are ours.
 
 Time convention: frame 0 initialises the filters from the supplied locations (one-to-one, fixing the
 identities); frames 1..T are tracked; output index k-1 holds frame k.

@@ -1,7 +1,7 @@
 r"""The plant of the regional H∞ problem: sector-bounded nonlinearity and ROSS sensors.
 
 Source: Z. Wang, B. Shen, X. Liu, "H∞ filtering with randomly occurring sensor saturations and
-missing measurements", eqs. (1)–(4) (seed 004). Plant :math:`x_{k+1} = f(x_k) + Bw_k`,
+missing measurements", eqs. (1)–(4); our deviations: docs/sources/wang-hinf.md. Plant :math:`x_{k+1} = f(x_k) + Bw_k`,
 :math:`z_k = Mx_k`, sector condition (4) :math:`[f(x)-U_1x]^T[f(x)-U_2x] \le 0`,
 :math:`U_1-U_2 > 0`; sensors (2) through
 :class:`~tobitkf.channels.saturation.RandomSaturation`. The LMI analysis and design are in

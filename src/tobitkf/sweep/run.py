@@ -156,6 +156,10 @@ def _client(scheduler: str, workers: int):
                               "tcp://host:8786") from None
 
 
+MAX_WORKERS = 1024
+"""The most threads or worker processes a sweep starts on one machine."""
+
+
 def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", workers: int | None = None,
               progress: Callable[[int, int, float], None] | None = None, max_tasks: int | None = None):
     """Run (or resume) a sweep and return the path of its store.
@@ -202,6 +206,9 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
         workers = default_threads()
     elif isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValidationError(f"workers: expected a positive integer or None, got {workers!r}")
+    elif workers > MAX_WORKERS:
+        # a typo such as --workers 40000 would start that many threads or processes on one machine
+        raise ValidationError(f"workers: expected at most {MAX_WORKERS} workers on one machine, got {workers}")
     out = Path(out)
     check_writable_dir(out, "--out")
     out.mkdir(parents=True, exist_ok=True)

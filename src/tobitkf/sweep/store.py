@@ -78,7 +78,7 @@ def check_store_path(path: Path, name: str = "--out") -> None:
 
 
 def check_resumable(path: Path, spec: SweepSpec) -> None:
-    """Refuse, before any work, an existing ``path`` that a run of ``spec`` cannot resume: a file
+    """Refuse, before any work, an existing ``path`` that a run of the given sweep cannot resume: a file
     in the way, a damaged store, a store of another sweep or of another package version."""
     from .. import __version__
 
