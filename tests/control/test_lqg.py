@@ -272,8 +272,9 @@ def _decimal_care_gain(A, Q, Ct, V, P0, digits=60, steps=6):
     with localcontext() as ctx:
         ctx.prec = digits
         D = lambda M: [[Decimal(float(v)) for v in row] for row in np.atleast_2d(M)]  # noqa: E731
-        mul = lambda X, Y: [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in range(len(Y[0]))]  # noqa: E731
-                            for i in range(len(X))]
+        def mul(X, Y):
+            return [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in range(len(Y[0]))] for i in range(len(X))]
+
         tr = lambda X: [list(r) for r in zip(*X)]  # noqa: E731
         add = lambda X, Y, s=1: [[x + s * y for x, y in zip(r, q)] for r, q in zip(X, Y)]  # noqa: E731
         Ad, Qd, Cd, P = D(A), D(Q), D(Ct), D(P0)
