@@ -144,8 +144,8 @@ class MultiTargetTracker(Estimator):
         return u
 
     # ---- the estimator -------------------------------------------------------------------
-    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None,  # type: ignore[override]  # starts from the initial locations, not a batch shape
-             P0: Any = None) -> FilterState:
+    # the tracker starts from initial locations and takes one frame of detections per step, not Estimator's arguments
+    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None, P0: Any = None) -> FilterState:  # type: ignore[override]
         """Frame 0: one filter per target at the supplied locations ``initial`` (N, 2), zero velocity."""
         if initial is None:
             raise ValidationError("initial: expected the (N, 2) target locations of frame 0")
@@ -200,7 +200,7 @@ class MultiTargetTracker(Estimator):
                "last_meas": np.where(visible[:, None], z, last_meas)}
         return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
 
-    def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame of detections per step
+    def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
         """Track one frame of unordered detections (L, 2) (L may be 0)."""
         state = self._check_state(state)
         M = self._frame(detections)
