@@ -74,9 +74,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true")
     ap.add_argument("--repeat", type=int, default=3, help="alternating 1-worker/2-worker timings (default 3)")
+    ap.add_argument("--runs", type=int, default=None, help="runs of the speed sweep (default 10^6; 4000 with --smoke)")
+    ap.add_argument("--speed-only", action="store_true", help="skip the memory measurements")
     args = ap.parse_args()
     speed_runs, steps, block = (1_000_000, 100, 2_000) if not args.smoke else (4_000, 20, 1_000)
+    if args.runs is not None:
+        speed_runs = args.runs
     repeat = args.repeat if not args.smoke else 1
+    if args.runs is not None and args.runs < 1:
+        ap.error("--runs: expected a positive run count")
     mem_runs = [10_000, 100_000, 1_000_000] if not args.smoke else [2_000, 4_000]
     exp_runs = [2_000, 20_000] if not args.smoke else [20, 40]
     results = {}
@@ -89,14 +95,20 @@ def main() -> None:
             for w in (1, 2):
                 times[w].append(run(f, tmp / f"w{w}-{i}", "processes", w)[0])
         t_local, _ = run(f, tmp / "local", "local", 2)
+        t_local1, _ = run(f, tmp / "local1", "local", 1)
         t1, t2 = min(times[1]), min(times[2])
         results["dask_processes"] = {"runs": speed_runs, "steps": steps, "one_worker_s": times[1],
-                                     "two_workers_s": times[2], "local_s": t_local, "speedup_best": t1 / t2}
+                                     "two_workers_s": times[2], "local_s": t_local,
+                                     "local_one_thread_s": t_local1, "speedup_best": t1 / t2}
         print(f"Dask processes, {speed_runs} runs x {steps} steps, {repeat} alternating tries: "
               f"1 worker best {t1:.1f} s (median {statistics.median(times[1]):.1f}), "
               f"2 workers best {t2:.1f} s (median {statistics.median(times[2]):.1f}), speed-up x{t1 / t2:.2f} "
               f"(medians x{statistics.median(times[1]) / statistics.median(times[2]):.2f}); "
-              f"local (in-process, 2 threads) {t_local:.1f} s")
+              f"local (in-process) 2 threads {t_local:.1f} s, 1 thread {t_local1:.1f} s; "
+              f"1 worker / local 1 thread = {statistics.median(times[1]) / t_local1:.2f}")
+        if args.speed_only:
+            print(json.dumps(results))
+            return
         mem = {}
         for runs in mem_runs:
             g = tmp / f"mem{runs}.toml"

@@ -432,3 +432,57 @@ def test_broadcasting_shapes():
 def test_invalid_arguments(kwargs, match):
     with pytest.raises(ValidationError, match=match):
         censored_moments(**kwargs)
+
+
+# ---------------------------------------------------------------------------------------------
+# the one-sided tail route (continued fraction) against an independent 40-digit evaluation
+# ---------------------------------------------------------------------------------------------
+def _tail_reference(x: float):
+    """E[Z | Z > x] and Var[Z | Z > x] from 1500 levels of the continued fraction in 40-digit decimals."""
+    from decimal import Decimal, getcontext
+
+    getcontext().prec = 40
+    xd, s = Decimal(x), Decimal(0)
+    for k in range(1500, 1, -1):
+        s = Decimal(k) / (xd + s)
+    t = 1 / (xd + s)
+    return float(xd + t), float(t * (s - t))
+
+
+@pytest.mark.parametrize("x", [4.0 + 1e-9, 5.0, 5.5, 7.0, 12.0, 26.0, 37.5, 40.0, 41.0, 160.0, 1000.0, 1e5])
+@pytest.mark.parametrize("side", ["left", "right"])
+def test_one_sided_tail_route_is_accurate(x, side):
+    """A limit x sigma into the censored side (the continued-fraction route): the inverse Mills ratio
+    and the truncated variance to a few ulp of a 40-digit reference, the uncensored probability to
+    scipy's ndtr where that does not underflow, out to 10^5 sigma."""
+    lam, zvar = _tail_reference(x)
+    sigma, mu = 0.3, 1.0
+    lo, hi = (mu + x * sigma, np.inf) if side == "left" else (-np.inf, mu - x * sigma)
+    got = censored_moments(mu, sigma, lo, hi)
+    sign = 1.0 if side == "left" else -1.0
+    assert float(got.inverse_mills) == pytest.approx(sign * lam, rel=4 * EPS)
+    assert float(got.truncated_var) == pytest.approx(sigma**2 * zvar, rel=8 * EPS)
+    from scipy.special import ndtr
+    ref_gamma = float(ndtr(-x))
+    if ref_gamma > TINY:
+        assert float(got.p_uncensored) == pytest.approx(ref_gamma, rel=1e-13)
+    else:
+        assert 0.0 <= float(got.p_uncensored) <= 1.01 * TINY or ref_gamma == 0.0
+
+
+def test_one_sided_route_is_continuous_at_its_switches():
+    """Across a' = 4 (direct formulas -> continued fraction) and across the far-limit threshold
+    b'^2 - a'^2 = 100 (quadrature -> continued fraction) the statistics do not jump."""
+    eps = 1e-9
+    for lo_a, hi_a in ((4.0 - eps, 4.0 + eps),):
+        a = censored_moments(0.0, 1.0, lo_a, np.inf)
+        b = censored_moments(0.0, 1.0, hi_a, np.inf)
+        for _, attr in FIELDS:
+            assert float(getattr(a, attr)) == pytest.approx(float(getattr(b, attr)), rel=1e-7, abs=1e-300)
+    x = 6.0
+    far = np.sqrt(100.0 + x * x)
+    a = censored_moments(0.0, 1.0, x, far - eps)   # two-sided in the tail: quadrature
+    b = censored_moments(0.0, 1.0, x, far + eps)   # far limit negligible: continued fraction
+    for _, attr in FIELDS:   # (p_upper = Phi(-b) itself moves by b * eps relative)
+        rel = 1e-7 if attr == "p_upper" else 1e-11
+        assert float(getattr(a, attr)) == pytest.approx(float(getattr(b, attr)), rel=rel, abs=1e-300)

@@ -21,13 +21,30 @@ i.e. **minus** the right-censoring "IMR" of (3.54) and (5.4); the truncated mean
 :math:`\mu + \sigma\lambda` in both cases.
 
 Numerics. Direct formulas suffer cancellation or 0/0 when the uncensored window
-lies far in a tail (|a| or |b| beyond a few units) or is narrow. There the
-moments are computed in shifted coordinates :math:`u = z - a` (window mirrored to
-the upper tail), where the density is proportional to
-:math:`e^{-a u - u^2/2}` on :math:`[0, \min(w, u_{max})]`, by 64-node Gauss–Legendre
-quadrature with a two-pass variance, and the uncensored probability as
-:math:`\phi(a)` times the quadrature sum (so it underflows to 0 only when the true
-value does). Tail probabilities use ``scipy.special.ndtr`` on the side where they are
+lies far in a tail (|a| or |b| beyond a few units) or is narrow. The window is first
+mirrored to the upper tail (:math:`[a', b'] = [-b, -a]` when :math:`a < -b`, λ changing
+sign). Three routes:
+
+* **one-sided tail** (:math:`b' = \infty`, or the far limit negligible:
+  :math:`b'^2 - a'^2 > 100`, i.e. :math:`\phi(b')/\phi(a') < e^{-50}`) with :math:`a' > 4`:
+  Laplace's continued fraction for the Mills ratio :math:`R(x) = Q(x)/\phi(x)
+  = 1/(x + 1/(x + 2/(x + 3/(x + \dots))))`, evaluated backwards over the levels
+  ``int(140/x) + 6`` down to 2 (relative error of the tail :math:`s` and of the variance
+  below 4e-16 for x >= 4, checked against a 40-digit evaluation on a dense grid).
+  With :math:`s = 2/(x + 3/(x + \dots))` and :math:`t = 1/(x + s)`: :math:`\lambda = x + t`
+  and :math:`\mathrm{Var}[Z \mid Z > x] = 1 - \lambda(\lambda - x) = t(s - t)` (no
+  cancellation), :math:`\gamma = \phi(x)/\lambda` as one ``exp`` (underflows to 0 only
+  when the true value does). Accurate out to any distance (1000σ and beyond).
+* **narrow or two-sided in a tail** (:math:`b - a < 1`, or :math:`a' > 4` with the far limit
+  not negligible): shifted coordinates :math:`u = z - a'`, where the density is proportional to
+  :math:`e^{-a' u - u^2/2}` on :math:`[0, \min(w, u_{max})]`, by 64-node Gauss–Legendre
+  quadrature with a two-pass variance, and the uncensored probability as
+  :math:`\phi(a')` times the quadrature sum;
+* otherwise the direct formulas above (:math:`a' \le 4`; their cancellation in the variance
+  costs up to a few hundred ulp near the switch).
+
+:mod:`tobitkf.filters._kernels` evaluates the same routes with the same arithmetic.
+Tail probabilities use ``scipy.special.ndtr`` on the side where they are
 small, so limits 40 (or 1000) standard deviations away give finite, accurate numbers
 (checked against 60-digit values in ``shared/vectors``).
 """
@@ -45,6 +62,33 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _TAIL = 4.0          # beyond this many sigma the window is treated by quadrature
 _NARROW = 1.0        # windows narrower than this (in sigma) too
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(64)
+_CF_FROM = 4.0       # one-sided windows beyond this many sigma: the continued fraction
+_FAR = 100.0         # b'^2 - a'^2 above this: the far limit is negligible (phi ratio < e^-50)
+_CF_TERMS = 140.0    # int(_CF_TERMS / x) + 6 terms of the continued fraction at x
+
+
+def _cf_terms(x: np.ndarray) -> np.ndarray:
+    """Number of continued-fraction terms at ``x`` (>= _CF_FROM): relative error < 4e-16."""
+    return (_CF_TERMS / x).astype(np.int64) + 6
+
+
+def _one_sided_tail(x: np.ndarray):
+    r"""Moments of Z ~ N(0,1) given Z > x, for x > _CF_FROM, by Laplace's continued fraction.
+
+    Returns ``(log_gamma, zmean, zvar)``: :math:`\log Q(x)`, :math:`E[Z \mid Z > x] = \lambda`,
+    :math:`\mathrm{Var}[Z \mid Z > x]`. The fraction is evaluated backwards with exactly the
+    arithmetic of the compiled kernel, so both give the same numbers.
+    """
+    nterms = _cf_terms(x)
+    s = np.zeros_like(x)
+    for k in range(int(nterms.max(initial=2)), 1, -1):
+        s = np.where(nterms >= k, k / (x + s), s)
+    t = 1.0 / (x + s)
+    lam = x + t
+    zvar = t * (s - t)
+    with np.errstate(over="ignore"):
+        log_gamma = -0.5 * x * x - _LOG_SQRT_2PI - np.log(lam)
+    return log_gamma, lam, zvar
 
 
 class CensoredMoments(NamedTuple):
@@ -185,17 +229,24 @@ def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
     aphi_a = np.where(np.isfinite(a), a, 0.0) * phi_a
     bphi_b = np.where(np.isfinite(b), b, 0.0) * phi_b
 
-    hard = (a > _TAIL) | (b < -_TAIL) | ((b - a) < _NARROW)
+    flip = a < -b            # mirror windows in the lower tail to the upper tail
+    a2 = np.where(flip, -b, a)
+    b2 = np.where(flip, -a, b)
+    with np.errstate(over="ignore", invalid="ignore"):
+        one_sided = np.isposinf(b2) | ((b2 - a2) * (b2 + a2) > _FAR)
+    tail = one_sided & (a2 > _CF_FROM)
+    hard = ~tail & ((~one_sided & (a2 > _TAIL)) | ((b - a) < _NARROW))
     with np.errstate(divide="ignore", invalid="ignore"):
         lam = (phi_a - phi_b) / gamma
         zvar = 1.0 + (aphi_a - bphi_b) / gamma - lam * lam
+    if np.any(tail):
+        log_g, zm, zv = _one_sided_tail(a2[tail])
+        lam[tail] = np.where(flip[tail], -zm, zm)
+        zvar[tail] = zv
+        gamma[tail] = np.exp(log_g)
     if np.any(hard):
-        ah, bh = a[hard], b[hard]
-        flip = ah < -bh       # mirror windows in the lower tail to the upper tail
-        a2 = np.where(flip, -bh, ah)
-        b2 = np.where(flip, -ah, bh)
-        log_g, zm, zv = _tail_moments(a2, b2)
-        lam[hard] = np.where(flip, -zm, zm)
+        log_g, zm, zv = _tail_moments(a2[hard], b2[hard])
+        lam[hard] = np.where(flip[hard], -zm, zm)
         zvar[hard] = zv
         gamma[hard] = np.exp(log_g)
     gamma = np.clip(gamma, 0.0, 1.0)

@@ -91,7 +91,8 @@ def test_stats_match_censored_moments_random():
 @pytest.mark.parametrize("dist", [4.5, 40.0, 1000.0])
 @pytest.mark.parametrize("kind", ["left", "right", "two_sided", "narrow"])
 def test_stats_match_in_the_tails(dist, kind):
-    """Limits dist standard deviations away on the censored side: the quadrature branch."""
+    """Limits dist standard deviations away on the censored side: the continued-fraction route (one-sided)
+    and the quadrature (two-sided, narrow)."""
     sd = np.array([0.05, 1.0, 3.0])
     mu = np.array([0.0, -2.0, 7.0])
     if kind == "left":       # mean far below a lower limit: almost always censored
@@ -111,7 +112,8 @@ def test_stats_match_in_the_tails(dist, kind):
 
 
 def test_stats_quadrature_dense_grid():
-    """The quadrature branch (kernel's own vectorised exp) over a dense grid of tail depths and widths."""
+    """The tail routes (the quadrature with the kernel's own vectorised exp for two-sided and narrow
+    windows, the continued fraction for one-sided ones) over a dense grid of tail depths and widths."""
     a = np.geomspace(4.01, 1e3, 150)       # beyond _TAIL = 4: the quadrature branch
     w = np.geomspace(1e-3, 50.0, 150)
     A, W = (v.ravel() for v in np.meshgrid(a, w))
@@ -121,8 +123,28 @@ def test_stats_quadrature_dense_grid():
         got = kernel_moments(mu, sd, lo, hi)
         # p_uncensored = exp(-a^2/2 - log sqrt(2 pi) + log I0): one ulp of an argument near -745
         # is 1.1e-13 relative in the result, whichever exp computes it
-        for i, rtol in ((2, 2.5e-13), (3, 2e-14), (5, 2e-14)):     # p_uncensored, inverse_mills, truncated_var
+        for i, rtol in ((2, 2.5e-13), (3, 2e-14), (5, 2e-14)):
             np.testing.assert_allclose(got[i], ref[i], rtol=rtol, atol=0, err_msg=ref._fields[i])
+
+
+def test_stats_one_sided_route_equals_numpy():
+    """The continued-fraction route (one-sided windows beyond 4 sigma, left and right, out to 1e5 sigma,
+    and two-sided ones whose far limit is negligible) and its switches: kernel == censored_moments."""
+    x = np.concatenate([np.geomspace(3.5, 1e5, 400), [4.0 - 1e-12, 4.0, 4.0 + 1e-12, 40.0, 40.0 + 1e-9]])
+    far = np.sqrt(100.0 + x * x)
+    mu, sd = np.full(x.size, 0.7), np.full(x.size, 0.2)
+    for lo, hi in ((x, np.inf), (-np.inf, -x), (x, far + 1e-9), (x, far - 1e-9), (-far - 1e-9, -x)):
+        lo_, hi_ = (np.broadcast_to(v, x.shape) for v in (lo, hi))
+        lo_, hi_ = mu + sd * lo_, mu + sd * hi_
+        ref = censored_moments(mu, sd, lo_, hi_)
+        got = kernel_moments(mu, sd, lo_, hi_)
+        for i, name in enumerate(ref._fields):
+            # (points at or below 4 take the direct formulas: libm's erfc and cephes' ndtr differ by an
+            # ulp, which the variance's cancellation amplifies a few hundred times)
+            cf = x > 4.0
+            np.testing.assert_allclose(got[i][cf], ref[i][cf], rtol=1e-13, atol=1e-300, err_msg=name)
+            np.testing.assert_allclose(got[i], ref[i], rtol=5e-13, atol=1e-300, err_msg=name)
+            assert np.all(np.isfinite(got[i]))
 
 
 def test_stats_against_60_digit_vectors():
@@ -480,3 +502,27 @@ def test_threads_option_is_checked(threads):
     sys_ = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.1]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
     with pytest.raises(tk.ValidationError, match="threads"):
         tk.TobitKalmanFilter(sys_, tk.Censoring(lower=0.0), threads=threads)
+
+
+@pytest.mark.parametrize("outputs", ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), "all"])
+@pytest.mark.parametrize("m", [1, 2])
+def test_kernels_honour_the_output_selection(outputs, m):
+    """Each selection gives, through the kernels, exactly the fields the numpy path gives, equal to 1e-12,
+    and the same final state (the kernels stage and write only what was requested)."""
+    sys_ = oscillator(m=m)
+    cens = tk.Censoring(lower=[0.0] * m)
+    y = data(sys_, cens, runs=40, steps=70)
+    for make in (lambda be: tk.TobitKalmanFilter(sys_, cens, backend=be),
+                 lambda be: tk.KalmanFilter(sys_, backend=be)):
+        a = make("numba").filter(y, outputs=outputs)
+        b = make("numpy").filter(y, outputs=outputs)
+        for f in FIELDS + ("var",):
+            va, vb = getattr(a, f), getattr(b, f)
+            assert (va is None) == (vb is None), f
+            if va is not None:
+                assert_same(va, vb)
+        assert a.extras.keys() == b.extras.keys()
+        for key in a.extras:
+            assert_same(a.extras[key], b.extras[key])
+        assert_same(a.final.x, b.final.x)
+        assert_same(np.broadcast_to(a.final.P, b.final.P.shape), b.final.P)

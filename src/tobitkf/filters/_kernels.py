@@ -36,7 +36,7 @@ import numpy as np
 from numba import njit
 
 from .._linalg_kernels import gauss_solve as _gauss_solve
-from ..censored import _GL_W, _GL_X, _NARROW, _TAIL
+from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
 
 __all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "NOISE_CODES", "GL_X", "GL_W"]
 
@@ -80,6 +80,76 @@ _POW2 = 2.0 ** np.arange(-_POW2_OFF, 2, dtype=np.float64)
 
 
 @njit(cache=True, error_model="numpy")
+def _quadrature_moments(a2, b2, glx, glw, buf):
+    """``(E[Z | window], Var[Z | window], P(window))`` of Z ~ N(0, 1) on [a2, b2] (mirrored to the upper
+    tail): 64-node Gauss-Legendre in shifted coordinates u = z - a2, density exp(-a2 u - u^2/2) on
+    [0, min(w, umax)]. Kept out of :func:`censored_stats` so that the common routes stay small."""
+    umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
+    half = 0.5 * min(b2 - a2, umax)
+    pow2 = _POW2
+    top2 = pow2.shape[0] - 1
+    for j in range(glx.shape[0]):
+        u = half * (glx[j] + 1.0)
+        z = -a2 * u - 0.5 * u * u
+        # exp(z), vectorisable (see _POW2)
+        k = math.floor(z * _LOG2E + 0.5)
+        r = (z - k * _LN2_HI) - k * _LN2_LO
+        e = (1.0 + r * (1.0 + r * (1.0 / 2 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120 + r * (
+            1.0 / 720 + r * (1.0 / 5040 + r * (1.0 / 40320 + r * (1.0 / 362880 + r * (
+                1.0 / 3628800 + r * (1.0 / 39916800 + r * (1.0 / 479001600)))))))))))))
+        e *= pow2[min(max(int(k) + _POW2_OFF, 0), top2)]
+        buf[0, j] = u
+        buf[1, j] = glw[j] * half * e
+    i0 = 0.0
+    i1 = 0.0
+    for j in range(glx.shape[0]):
+        i0 += buf[1, j]
+        i1 += buf[1, j] * buf[0, j]
+    umean = i1 / i0
+    i2 = 0.0
+    for j in range(glx.shape[0]):
+        d = buf[0, j] - umean
+        i2 += buf[1, j] * d * d
+    zvar = i2 / i0
+    zm = a2 + umean
+    gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI + math.log(i0))
+    return zm, zvar, gam
+
+
+@njit(cache=True, error_model="numpy")
+def _lower_only(mu, sd, lo):
+    """:func:`censored_stats` for a lower limit alone (the common TKF case): the same routes and the same
+    arithmetic as the general code with ``hi = inf`` (direct formulas, or the continued fraction beyond
+    4 sigma), without the upper limit's terms and branches."""
+    a = (lo - mu) / sd
+    p_lo, q_a = _ndtr_pair(a)
+    if a > _CF_FROM:
+        s = 0.0
+        for k in range(int(_CF_TERMS / a) + 6, 1, -1):
+            s = k / (a + s)
+        t = 1.0 / (a + s)
+        lam = a + t
+        zvar = t * (s - t)
+        gam = math.exp(-0.5 * a * a - _LOG_SQRT_2PI - math.log(lam))
+    else:
+        gam = q_a if a > 0 else 1.0 - p_lo
+        phi_a = math.exp(-0.5 * a * a - _LOG_SQRT_2PI)
+        lam = phi_a / gam
+        zvar = 1.0 + (a * phi_a) / gam - lam * lam
+    gam = min(max(gam, 0.0), 1.0)
+    zvar = max(zvar, 0.0)
+    tmean = mu + sd * lam
+    tvar = sd * sd * zvar
+    cmean = gam * tmean
+    if p_lo > 0:
+        cmean = p_lo * lo + cmean
+    cvar = gam * (tvar + (tmean - cmean) ** 2)
+    if p_lo > 0:
+        cvar += p_lo * (lo - cmean) ** 2
+    return p_lo, 0.0, gam, lam, tmean, tvar, cmean, cvar
+
+
+@njit(cache=True, error_model="numpy")
 def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     """Censored-normal statistics of one channel, as :func:`tobitkf.censored.censored_moments`.
 
@@ -87,46 +157,32 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     Returns ``(p_lower, p_upper, p_uncensored, inverse_mills, truncated_mean,
     truncated_var, censored_mean, censored_var)``.
     """
+    if hi == _INF and lo != -_INF:
+        return _lower_only(mu, sd, lo)
     a = -_INF if lo == -_INF else (lo - mu) / sd
     b = _INF if hi == _INF else (hi - mu) / sd
     p_lo, q_a = _ndtr_pair(a)      # Phi(a), Phi(-a)
     q_b, p_hi = _ndtr_pair(b)      # Phi(b), Phi(-b)
-    if (a > _TAIL) or (b < -_TAIL) or (b - a < _NARROW):
-        # window in a tail or narrow: shifted coordinates u = z - a2, window mirrored to the
-        # upper tail, density exp(-a2 u - u^2/2) on [0, min(w, umax)], 64-node Gauss-Legendre
-        flip = a < -b
-        a2 = -b if flip else a
-        b2 = -a if flip else b
-        umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
-        half = 0.5 * min(b2 - a2, umax)
-        pow2 = _POW2
-        top2 = pow2.shape[0] - 1
-        for j in range(glx.shape[0]):
-            u = half * (glx[j] + 1.0)
-            z = -a2 * u - 0.5 * u * u
-            # exp(z), vectorisable (see _POW2)
-            k = math.floor(z * _LOG2E + 0.5)
-            r = (z - k * _LN2_HI) - k * _LN2_LO
-            e = (1.0 + r * (1.0 + r * (1.0 / 2 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120 + r * (
-                1.0 / 720 + r * (1.0 / 5040 + r * (1.0 / 40320 + r * (1.0 / 362880 + r * (
-                    1.0 / 3628800 + r * (1.0 / 39916800 + r * (1.0 / 479001600)))))))))))))
-            e *= pow2[min(max(int(k) + _POW2_OFF, 0), top2)]
-            buf[0, j] = u
-            buf[1, j] = glw[j] * half * e
-        i0 = 0.0
-        i1 = 0.0
-        for j in range(glx.shape[0]):
-            i0 += buf[1, j]
-            i1 += buf[1, j] * buf[0, j]
-        umean = i1 / i0
-        i2 = 0.0
-        for j in range(glx.shape[0]):
-            d = buf[0, j] - umean
-            i2 += buf[1, j] * d * d
-        zvar = i2 / i0
-        zm = a2 + umean
+    flip = a < -b                  # windows in the lower tail are mirrored to the upper tail
+    a2 = -b if flip else a
+    b2 = -a if flip else b
+    one_sided = b2 == _INF or (b2 - a2) * (b2 + a2) > _FAR
+    if one_sided and a2 > _CF_FROM:
+        # one-sided tail: Laplace's continued fraction for the Mills ratio, evaluated backwards
+        # (s = 2/(x + 3/(x + ...)), t = 1/(x + s), lambda = x + t, Var = t (s - t))
+        s = 0.0
+        for k in range(int(_CF_TERMS / a2) + 6, 1, -1):
+            s = k / (a2 + s)
+        t = 1.0 / (a2 + s)
+        zm = a2 + t
+        zvar = t * (s - t)
         lam = -zm if flip else zm
-        gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI + math.log(i0))
+        gam = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI - math.log(zm))
+    elif (a2 > _TAIL and not one_sided) or (b - a < _NARROW):
+        # window narrow, or two-sided in a tail: shifted coordinates u = z - a2,
+        # density exp(-a2 u - u^2/2) on [0, min(w, umax)], 64-node Gauss-Legendre
+        zm, zvar, gam = _quadrature_moments(a2, b2, glx, glw, buf)
+        lam = -zm if flip else zm
     else:
         # gamma = Phi(b) - Phi(a), subtracting the small tail probabilities
         if a > 0:
@@ -233,7 +289,7 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _solve_gain(Ree, Rxe, ok, K, W):
+def _solve_gain(Ree, Rxe, ok, K, W, d):
     r"""One run: :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column), as
     :func:`~tobitkf.filters._common.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
     elimination with partial pivoting, like LAPACK gesv."""
@@ -247,7 +303,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
             W[j, i] = Rxe[i, j] if ok[j] else 0.0
     # scale Ree to unit diagonal (as _common._gain): channels whose variances differ by ~1e77
     # otherwise give gain entries wrong by ~1e54 and a Joseph covariance of ~1e33
-    d = np.empty(m)
+    # (``d`` (m,) is the caller's scratch: nothing is allocated per call)
     for i in range(m):
         d[i] = 1.0 / np.sqrt(Ree[i, i]) if Ree[i, i] > 0.0 else 1.0
     for i in range(m):
@@ -263,7 +319,7 @@ def _solve_gain(Ree, Rxe, ok, K, W):
 
 
 @njit(cache=True, error_model="numpy")
-def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
+def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds):
     r"""Block gain and mean update: :math:`K = R_{xe}R_{ee}^{-1}` (masked), :math:`\hat x = \bar x + Ke`.
 
     Masked channels (``ok`` False) get a zero gain column and ``e`` set to 0."""
@@ -283,7 +339,7 @@ def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs):
             for i in range(n):
                 for j in range(m):
                     Rxs[i, j] = Rxe[i, j, b]
-            _solve_gain(Rs, Rxs, oks, Ks, Ws)
+            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
             for i in range(n):
                 for j in range(m):
                     K[i, j, b] = Ks[i, j]
@@ -354,13 +410,24 @@ def _load(x0, P0, r0, nb, x, P):
 
 @njit(cache=True, error_model="numpy")
 def _stage(xv, Pv, tt, nb, mbuf, cbuf):
-    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``."""
+    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``; a buffer with
+    no runs (``shape[0] == 0``: that output was not requested) is skipped."""
     n = xv.shape[0]
-    for b in range(nb):
-        for i in range(n):
-            mbuf[b, tt, i] = xv[i, b]
-            for j in range(n):
-                cbuf[b, tt, i, j] = Pv[i, j, b]
+    if mbuf.shape[0] > 0:
+        for b in range(nb):
+            for i in range(n):
+                mbuf[b, tt, i] = xv[i, b]
+    if cbuf.shape[0] > 0:
+        for b in range(nb):
+            for i in range(n):
+                for j in range(n):
+                    cbuf[b, tt, i, j] = Pv[i, j, b]
+
+
+@njit(cache=True, error_model="numpy")
+def _rows(out, B):
+    """Rows of the staging buffer of ``out``: ``B``, or 0 when the output is not requested."""
+    return B if out.shape[1] > 0 else 0
 
 
 @njit(cache=True, error_model="numpy")
@@ -423,11 +490,14 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     Ks = np.empty((n, m))
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
+    ds = np.empty(m)
     buf = np.empty((2, glx.shape[0]))
     S = min(CHUNK, max(T, 1))     # and a single step one staging slot
-    s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
-    s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
-    s_pu, s_ey = np.empty((B, S, m)), np.empty((B, S, m))
+    # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
+    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
+    s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
+    s_pu, s_ey = np.empty((_rows(pu, B), S, m)), np.empty((_rows(ey, B), S, m))
+    want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -452,8 +522,10 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                         v = g * (st[5] + (st[4] - mu) ** 2)
                     noise[l, l, b] = v
                     e[l, b] = y[r0 + b, t, l] - st[6]
-                    s_pu[b, tt, l] = g
-                    s_ey[b, tt, l] = st[6]
+                    if want_pu:
+                        s_pu[b, tt, l] = g
+                    if want_ey:
+                        s_ey[b, tt, l] = st[6]
             # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
             for l in range(m):
                 for j in range(n):
@@ -487,7 +559,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
                     if joseph:
                         for j in range(n):
                             H[l, j, b] = C[l, j] * gam[l, b] if good else 0.0
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs)
+            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
             _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
@@ -543,11 +615,12 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     Ks = np.empty((n, m))
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
+    ds = np.empty(m)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
     S = min(CHUNK, max(T, 1))     # and a single step one staging slot
-    s_mean, s_pmean = np.empty((B, S, n)), np.empty((B, S, n))
-    s_cov, s_pcov = np.empty((B, S, n, n)), np.empty((B, S, n, n))
+    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
+    s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
     for r0 in range(0, runs, B):
         nb = min(B, runs - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -591,7 +664,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
                         e[l, b] = 0.0
                     for j in range(n):
                         H[l, j, b] = C[l, j] if good else 0.0
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs)
+            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             if shared:
                 for i in range(n):
                     for l in range(m):

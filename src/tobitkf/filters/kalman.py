@@ -263,7 +263,9 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
 
     means, pmeans = arr("mean", (n,), N), arr("pred_mean", (n,), N)
     need_cov = "cov" in want or "var" in want
-    covs, pcovs = arr("cov", (n, n), Pn) if need_cov else np.empty((Pn, 0, n, n)), arr("pred_cov", (n, n), Pn)
+    # (outputs=("var",) needs the covariances too: their diagonals are returned)
+    covs = np.empty((Pn, T, n, n)) if need_cov else np.empty((Pn, 0, n, n))
+    pcovs = arr("pred_cov", (n, n), Pn)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     c64 = np.ascontiguousarray
     kernels().kf_kernel(c64(y2), c64(missing), c64(sys_.transition(0), dtype=float),
