@@ -33,6 +33,7 @@ def collect_captions():
     finally:
         _CAPTIONS.reset(token)
 
+
 ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
     "truth": {"color": "black", "lw": 1.2, "label": "truth"},
     "kf": {"color": "tab:blue", "lw": 1.0, "ls": "--", "label": "standard KF (censored values as data)"},
@@ -78,8 +79,9 @@ def style(key: str) -> dict[str, Any]:
     return st
 
 
-def plot_rmse_over_time(ax, estimators: dict[str, dict[str, Any]], component: int, *, title: str = "",
-                        log: bool = False) -> None:
+def plot_rmse_over_time(
+    ax, estimators: dict[str, dict[str, Any]], component: int, *, title: str = "", log: bool = False
+) -> None:
     """Per-step RMSE of one state component for each estimator."""
     for key, summ in estimators.items():
         r = np.asarray(summ["rmse"])[:, component]

@@ -33,8 +33,19 @@ from .lqg import lqe, tobit_lqe
 __all__ = ["tkf_lqg_loop", "observer_based_reference_response"]
 
 
-def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, xi_uncensored: float, *,
-                 gain: str = "tobit", N: float | None = None):
+def tkf_lqg_loop(
+    A: Any,
+    B: Any,
+    G: Any,
+    C: Any,
+    W: Any,
+    sigma: float,
+    K: Any,
+    xi_uncensored: float,
+    *,
+    gain: str = "tobit",
+    N: float | None = None,
+):
     r"""The r → y transfer function (6.48) of the TKF-LQG loop at censoring level Ξ (CT).
 
     Parameters

@@ -60,14 +60,28 @@ from .._validation import ValidationError, as_float_array, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
-                   measurement_update, psd_sqrt, qr_r, time_update)
-from .kalman import LinearGaussianFamily
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, censored_log_likelihood
 from ._readings import classify_readings as _classify
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    check_keywords,
+    measurement_update,
+    psd_sqrt,
+    qr_r,
+    time_update,
+)
+from .kalman import LinearGaussianFamily
 
-__all__ = ["AssumedDensityTobitFilter", "censored_reading_moments", "censored_channel_update",
-           "assumed_density_update", "merge_gaussians"]
+__all__ = [
+    "AssumedDensityTobitFilter",
+    "censored_reading_moments",
+    "censored_channel_update",
+    "assumed_density_update",
+    "merge_gaussians",
+]
 
 _OPTIONS = {"covariance_update": COVARIANCE_FORMS}
 _TINY = np.finfo(np.float64).tiny
@@ -104,8 +118,19 @@ def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, l
     return obs, V, cls
 
 
-def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, y: np.ndarray, c: np.ndarray,
-                            r: float | np.ndarray, lower: Any, upper: Any, *, dy: Any = 0.0, form: str = "standard"):
+def censored_channel_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    S: np.ndarray | None,
+    y: np.ndarray,
+    c: np.ndarray,
+    r: float | np.ndarray,
+    lower: Any,
+    upper: Any,
+    *,
+    dy: Any = 0.0,
+    form: str = "standard",
+):
     r"""The ADF update of one channel (the module docstring's equations), batched over runs.
 
     Parameters
@@ -140,15 +165,30 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
         return x, P, S, p_unc, ll
     cens = (cls == _LOWER) | (cls == _UPPER)
     noise = np.full((1, 1), float(rv)) if rv.ndim == 0 else np.broadcast_to(rv, (N,))[:, None]
-    mp = MeasurementPrediction(expected=mu[:, None], H0=c[None, :], noise=noise,
-                               observed=np.where(valid, obs, np.nan)[:, None], valid=valid[:, None],
-                               retained=V[:, None] if cens.any() else None)
+    mp = MeasurementPrediction(
+        expected=mu[:, None],
+        H0=c[None, :],
+        noise=noise,
+        observed=np.where(valid, obs, np.nan)[:, None],
+        valid=valid[:, None],
+        retained=V[:, None] if cens.any() else None,
+    )
     xn, Pn, Sn, _, _ = measurement_update(x, P, S, np.where(valid, obs, np.nan)[:, None], mp, form)
     return xn, Pn, Sn, p_unc, ll
 
 
-def assumed_density_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.ndarray, R_diag: Any,
-                           lower: Any, upper: Any, *, dy: Any = 0.0, covariance_update: str = "standard"):
+def assumed_density_update(
+    x_pred: np.ndarray,
+    P_pred: np.ndarray,
+    y: np.ndarray,
+    C: np.ndarray,
+    R_diag: Any,
+    lower: Any,
+    upper: Any,
+    *,
+    dy: Any = 0.0,
+    covariance_update: str = "standard",
+):
     r"""One ADF measurement update of all channels in sequence (procedural form), batched over runs.
 
     Parameters
@@ -180,8 +220,9 @@ def assumed_density_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P = x_pred, P_pred
     for l in range(m):
-        x, P, S, _, _ = censored_channel_update(x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l], dy=d[:, l],
-                                                form=covariance_update)
+        x, P, S, _, _ = censored_channel_update(
+            x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l], dy=d[:, l], form=covariance_update
+        )
     return x, P
 
 
@@ -220,8 +261,9 @@ def merge_gaussians(weights: np.ndarray, means: np.ndarray, covs: np.ndarray, fa
 def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
     off = R - np.diag(np.diagonal(R))
     if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
-        raise ValidationError(f"{name}: the assumed-density filter processes the channels in sequence and needs a "
-                              "diagonal R")
+        raise ValidationError(
+            f"{name}: the assumed-density filter processes the channels in sequence and needs a diagonal R"
+        )
     d = np.diagonal(R).copy()
     if np.any(d < 0):
         raise ValidationError(f"{name}: expected measurement variances >= 0, got {d}")
@@ -279,8 +321,14 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
     _name = "AssumedDensityTobitFilter"
     _step_options = ("lower", "upper")
 
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, covariance_update: str = "standard",
-                 check_limits: bool = True):
+    def __init__(
+        self,
+        system: LinearSystem,
+        censoring: Censoring,
+        *,
+        covariance_update: str = "standard",
+        check_limits: bool = True,
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         check_keywords({"covariance_update": covariance_update}, _OPTIONS)
@@ -310,8 +358,9 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         pu = np.empty((N, m))
         ll = np.zeros(N)
         for l in range(m):
-            x, P, S, pu[:, l], lll = censored_channel_update(x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l],
-                                                             dy=dy[:, l], form=self.covariance_update)
+            x, P, S, pu[:, l], lll = censored_channel_update(
+                x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l], dy=dy[:, l], form=self.covariance_update
+            )
             ll += lll
         return x, P, S, {"p_uncensored": pu, "log_likelihood": ll}
 
@@ -325,8 +374,9 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
         state = self._check_state(state)
         if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
         yk = self._reading(state, y)
         if self.check_limits and not options:
             self.censoring.check_measurements(yk[:, None], start=state.k)
@@ -343,8 +393,10 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
                 try:
                     out[key] = np.broadcast_to(arr, (state.runs, self.m))
                 except ValueError:
-                    raise ValidationError(f"{key}: expected this step's limits of shape ({self.m},) or "
-                                          f"{state.batch_shape + (self.m,)}, got {arr.shape}") from None
+                    raise ValidationError(
+                        f"{key}: expected this step's limits of shape ({self.m},) or "
+                        f"{state.batch_shape + (self.m,)}, got {arr.shape}"
+                    ) from None
         if out:
             lo, hi = self.censoring.limits(state.k + (0 if state.carry.get("_predicted") else 1))
             lo = out.get("lower", np.broadcast_to(lo, (state.runs, self.m)))
@@ -370,8 +422,16 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             self.censoring.check_measurements(self._reading(st, y)[:, None], start=st.k + 1)
         return super().step(state, y, u=u, **options)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
 
         Parameters

@@ -92,9 +92,9 @@ from ..channels.laws import PMF, Gaussian
 from ..channels.protocol import ProtocolChannel
 from ..channels.saturation import RandomSaturation, saturate
 from ..models.linear import LinearSystem
+from ._readings import _INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood
+from ._readings import classify_readings as _classify
 from .core import Estimator, FilterResult, FilterState, check_prior, predict, shift_predict
-from ._readings import (_INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood,
-                        classify_readings as _classify)
 from .kalman import LinearGaussianFamily
 
 __all__ = ["ParticleFilter", "PROPOSALS", "systematic_resample", "censored_log_likelihood"]
@@ -103,6 +103,7 @@ PROPOSALS = ("auto", "optimal", "prior")
 
 
 # --------------------------------------------------------------------------- pure pieces
+
 
 def logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
     """log(sum(exp(a))) along ``axis`` (-inf where every term is -inf); lighter than scipy's for this loop."""
@@ -163,11 +164,12 @@ def _truncated_draw(mean: np.ndarray, sd: Any, log_mass: np.ndarray, u: np.ndarr
 
 # --------------------------------------------------------------------------- measurement models
 
+
 class _Model:
     """What a channel contributes to the particle filter (internal)."""
 
-    nx: int          # state (history) dimension carried by the particles
-    m: int           # reading dimension
+    nx: int  # state (history) dimension carried by the particles
+    m: int  # reading dimension
     optimal: bool = False
     censoring: Censoring | None = None
 
@@ -177,7 +179,7 @@ class _Model:
 
     # dynamics ---------------------------------------------------------------
     def initial(self, rng, N, Np, x0, P0) -> np.ndarray:
-        L = psd_sqrt(P0)                                          # (N, n, n)
+        L = psd_sqrt(P0)  # (N, n, n)
         z = rng.standard_normal((N, Np, self.n))
         return x0[:, None, :] + np.einsum("rij,rpj->rpi", L, z)
 
@@ -323,8 +325,8 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
         valid = cls[:, l] != _MISSING
         if not valid.any():
             continue
-        Sc = Sig @ c                                   # (Ns, n)
-        s2 = Sc @ c + r[:, l]                          # (Ns,)
+        Sc = Sig @ c  # (Ns, n)
+        s2 = Sc @ c + r[:, l]  # (Ns,)
         g = Sc / s2[:, None]
         pred = _mat(mu, c[:, None])[..., 0]
         if not (np.isscalar(off) and off == 0.0):
@@ -374,14 +376,14 @@ class _Fading(_Model):
         self.L = fading.order
         self.nx, self.m = system.n * (self.L + 1), system.m
         self.gaussian = isinstance(fading.coefficients, Gaussian)
-        self.mean_g = fading.mean_gains(system.m)          # (L+1, m)
+        self.mean_g = fading.mean_gains(system.m)  # (L+1, m)
         self.var_g = fading.var_gains(system.m)
         if censoring is not None:
             censoring.check(system.m)
 
     def initial(self, rng, N, Np, x0, P0):
         X = np.zeros((N, Np, self.nx))
-        X[..., :self.n] = super().initial(rng, N, Np, x0, P0)
+        X[..., : self.n] = super().initial(rng, N, Np, x0, P0)
         return X
 
     def predict_moments(self, k, x, P, b):
@@ -390,25 +392,27 @@ class _Fading(_Model):
     def propagate(self, rng, k, X, b):
         n = self.n
         top = super().propagate(rng, k, X[..., :n], b)
-        return np.concatenate([top, X[..., :self.nx - n]], axis=-1)
+        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
 
     def modes(self, rng, k, X, dy):
         n, m = self.n, self.m
         N, Np = X.shape[:2]
         S = min(self.L, k)
-        cx = np.stack([_mat(X[..., s * n:(s + 1) * n], measurement_matrix_at(self.system, k - s).T)
-                       for s in range(S + 1)], axis=2)                     # (N, Np, S+1, m)
+        cx = np.stack(
+            [_mat(X[..., s * n : (s + 1) * n], measurement_matrix_at(self.system, k - s).T) for s in range(S + 1)],
+            axis=2,
+        )  # (N, Np, S+1, m)
         sigma = _diag_sigma(self.system, k, "fading readings")
         if self.gaussian:
-            mu = np.einsum("rpsm,sm->rpm", cx, self.mean_g[:S + 1])
-            var = np.einsum("rpsm,sm->rpm", cx * cx, self.var_g[:S + 1]) + sigma ** 2
+            mu = np.einsum("rpsm,sm->rpm", cx, self.mean_g[: S + 1])
+            var = np.einsum("rpsm,sm->rpm", cx * cx, self.var_g[: S + 1]) + sigma**2
             sd = np.sqrt(var)
         else:
             law = self.fading.coefficients
             theta = law.sample(rng, (N, Np, m)) if law.shape == (self.L + 1,) else law.sample(rng, (N, Np))
             if law.shape == (self.L + 1,):
-                theta = np.swapaxes(theta, -1, -2)                          # (N, Np, L+1, m)
-            mu = np.einsum("rpsm,rpsm->rpm", cx, theta[:, :, :S + 1])
+                theta = np.swapaxes(theta, -1, -2)  # (N, Np, L+1, m)
+            mu = np.einsum("rpsm,rpsm->rpm", cx, theta[:, :, : S + 1])
             sd = sigma
         if not (np.isscalar(dy) and dy == 0.0):
             mu = mu + dy[:, None, :]
@@ -449,11 +453,11 @@ class _Protocol(_Model):
         mode = self.channel.prehistory
         for s in range(1, ell + 1):
             if mode == "prior":
-                X[..., s * n:(s + 1) * n] = super().initial(rng, N, Np, x0, P0)
+                X[..., s * n : (s + 1) * n] = super().initial(rng, N, Np, x0, P0)
             elif mode == "hold":
-                X[..., s * n:(s + 1) * n] = X[..., :n]
+                X[..., s * n : (s + 1) * n] = X[..., :n]
             else:
-                X[..., s * n:(s + 1) * n] = 0.0
+                X[..., s * n : (s + 1) * n] = 0.0
         return X
 
     def predict_moments(self, k, x, P, b):
@@ -462,7 +466,7 @@ class _Protocol(_Model):
     def propagate(self, rng, k, X, b):
         n = self.n
         top = super().propagate(rng, k, X[..., :n], b)
-        return np.concatenate([top, X[..., :self.nx - n]], axis=-1)
+        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
 
     def _window_row(self, k):
         h = self.sensor(k)
@@ -475,8 +479,8 @@ class _Protocol(_Model):
         n = self.n
         win = X[..., :n].copy()
         for s in range(1, self.ell + 1):
-            win += X[..., s * n:(s + 1) * n]
-        base = (win @ c)[..., None]                                        # (N, Np, 1)
+            win += X[..., s * n : (s + 1) * n]
+        base = (win @ c)[..., None]  # (N, Np, 1)
         sd = np.sqrt(r)
         d = self.discrete[h]
         if d is None:
@@ -507,16 +511,16 @@ class _Protocol(_Model):
             mux = mux + b[:, None, :]
         past = np.zeros((N, Np))
         for s in range(self.ell):
-            past += _mat(X[..., s * n:(s + 1) * n], c[:, None])[..., 0]
+            past += _mat(X[..., s * n : (s + 1) * n], c[:, None])[..., 0]
         U = rng.random((N, Np, 2))
         eps = rng.standard_normal((N, Np, n))
         vt = rng.standard_normal((N, Np))
-        base = _mat(mux, c[:, None])[..., 0] + past                       # C_h (mean of x_k + past states)
+        base = _mat(mux, c[:, None])[..., 0] + past  # C_h (mean of x_k + past states)
         tau = self.channel.threshold
         cls = _classify(y[:, 0], np.full(N, tau), np.full(N, np.inf))
         Qc = Qd @ c
         cQc = float(c @ Qc)
-        sds = np.sqrt(vals ** 2 * cQc + r)                                 # (J,)
+        sds = np.sqrt(vals**2 * cQc + r)  # (J,)
         with np.errstate(divide="ignore"):
             logpi = np.log(probs)
         inter, lower = np.flatnonzero(cls == _INTERIOR), np.flatnonzero(cls == _LOWER)
@@ -529,22 +533,22 @@ class _Protocol(_Model):
             if lower.size:
                 comps[j, lower] = log_ndtr((tau - mean[lower]) / sds[j])
             comps[j] += logpi[j]
-        logw = logsumexp(comps, axis=0)                                    # (N, Np)
+        logw = logsumexp(comps, axis=0)  # (N, Np)
         missing = cls == _MISSING
         logw[missing] = 0.0
         cum = np.cumsum(np.exp(comps - logw[None]), axis=0)
-        jsel = np.minimum((U[None, ..., 0] >= cum).sum(0), J - 1)          # (N, Np)
+        jsel = np.minimum((U[None, ..., 0] >= cum).sum(0), J - 1)  # (N, Np)
         lam, sd = vals[jsel], sds[jsel]
         z = np.broadcast_to(y[:, 0][:, None], (N, Np)).copy()
         if lower.size:
             lm = np.take_along_axis(comps[:, lower], jsel[lower][None], axis=0)[0] - logpi[jsel[lower]]
             z[lower] = _truncated_draw(lam[lower] * base[lower], sd[lower], lm, U[lower, :, 1], -1)
-        xt = mux + _mat(eps, psd_sqrt(Qd).T)                               # joint prior draw (x~, z~)
+        xt = mux + _mat(eps, psd_sqrt(Qd).T)  # joint prior draw (x~, z~)
         zt = lam * (_mat(xt, c[:, None])[..., 0] + past) + np.sqrt(r) * vt
         gain = np.where(missing[:, None], 0.0, lam / (sd * sd) * (z - zt))
         Xn = np.empty((N, Np, nx))
         Xn[..., :n] = xt + gain[..., None] * Qc
-        Xn[..., n:] = X[..., :nx - n]
+        Xn[..., n:] = X[..., : nx - n]
         return Xn, logw
 
     def check_record(self, y2, start):
@@ -552,8 +556,10 @@ class _Protocol(_Model):
             bad = y2 < self.channel.threshold - _RTOL_LIMIT * max(1.0, abs(self.channel.threshold))
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValidationError(f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold "
-                                  f"tau = {self.channel.threshold:.6g}")
+            raise ValidationError(
+                f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold "
+                f"tau = {self.channel.threshold:.6g}"
+            )
 
 
 class _Saturation(_Model):
@@ -573,8 +579,11 @@ class _Saturation(_Model):
     def modes(self, rng, k, X, dy):
         cx = _mat(X, self.system.measurement(k).T)
         sd = _diag_sigma(self.system, k, "saturated readings")
-        return [(self.logp[0], saturate(cx, self.channel.level), sd), (self.logp[1], cx, sd),
-                (self.logp[2], np.zeros_like(cx), sd)]
+        return [
+            (self.logp[0], saturate(cx, self.channel.level), sd),
+            (self.logp[1], cx, sd),
+            (self.logp[2], np.zeros_like(cx), sd),
+        ]
 
 
 def _flatten(channel: Any) -> list:
@@ -593,16 +602,20 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     known = (Censoring, RiceFading, ProtocolChannel, RandomSaturation)
     for p in pieces:
         if not isinstance(p, known):
-            raise ValidationError(f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation "
-                                  f"pieces, got {type(p).__name__}")
+            raise ValidationError(
+                f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation "
+                f"pieces, got {type(p).__name__}"
+            )
     cens = [p for p in pieces if isinstance(p, Censoring)]
     drawers = [p for p in pieces if not isinstance(p, Censoring)]
     if len(cens) > 1:
-        raise ValidationError("censoring: expected at most one Censoring piece (stack several regions as channels, "
-                              "tobitkf.multi_region)")
+        raise ValidationError(
+            "censoring: expected at most one Censoring piece (stack several regions as channels, tobitkf.multi_region)"
+        )
     if len(drawers) > 1:
-        raise ValidationError(f"channel: expected at most one reading model, got "
-                              f"{', '.join(type(d).__name__ for d in drawers)}")
+        raise ValidationError(
+            f"channel: expected at most one reading model, got {', '.join(type(d).__name__ for d in drawers)}"
+        )
     c = cens[0] if cens else None
     if not drawers:
         return _Linear(system, c)
@@ -635,6 +648,7 @@ def _generator(state: dict) -> np.random.Generator:
 
 
 # --------------------------------------------------------------------------- the estimator
+
 
 class ParticleFilter(Estimator):
     r"""Particle filter for the package's models and channels (see the module docstring).
@@ -708,8 +722,17 @@ class ParticleFilter(Estimator):
     _name = "ParticleFilter"
     k0 = 0
 
-    def __init__(self, system: LinearSystem, channel: Any = None, *, censoring: Censoring | None = None,
-                 particles: int = 1000, resample_threshold: float = 0.5, proposal: str = "auto", seed: Any = None):
+    def __init__(
+        self,
+        system: LinearSystem,
+        channel: Any = None,
+        *,
+        censoring: Censoring | None = None,
+        particles: int = 1000,
+        resample_threshold: float = 0.5,
+        proposal: str = "auto",
+        seed: Any = None,
+    ):
         check_instance(system, LinearSystem, "system")
         if censoring is not None:
             check_instance(censoring, Censoring, "censoring")
@@ -723,8 +746,10 @@ class ParticleFilter(Estimator):
         self.system = system
         self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:
-            raise ValidationError(f"proposal: 'optimal' has no closed form for {type(self.model).__name__[1:].lower()} "
-                                  "readings (use 'auto' or 'prior')")
+            raise ValidationError(
+                f"proposal: 'optimal' has no closed form for {type(self.model).__name__[1:].lower()} "
+                "readings (use 'auto' or 'prior')"
+            )
         if not system.R.varying:
             _diag_sigma(system, 1, "its channels")
         self.proposal = ("optimal" if self.model.optimal else "prior") if proposal == "auto" else proposal
@@ -772,7 +797,7 @@ class ParticleFilter(Estimator):
         lw_un = lw + inc
         top = lw_un.max(axis=1)
         dead = ~np.isfinite(top)
-        if dead.any():          # no particle explains the reading: keep the weights, report -inf
+        if dead.any():  # no particle explains the reading: keep the weights, report -inf
             lw_un[dead] = lw[dead]
             top = lw_un.max(axis=1)
         W = np.exp(lw_un - top[:, None])
@@ -790,13 +815,25 @@ class ParticleFilter(Estimator):
             idx = systematic_resample(W[rows], ur[rows])
             Xn[rows] = np.take_along_axis(Xn[rows], idx[..., None], axis=1)
             lw_new[rows] = -np.log(self.particles)
-        carry = {"particles": Xn, "log_weights": lw_new, "rng": rng.bit_generator.state,
-                 "log_likelihood": carry["log_likelihood"] + ll}
+        carry = {
+            "particles": Xn,
+            "log_weights": lw_new,
+            "rng": rng.bit_generator.state,
+            "log_likelihood": carry["log_likelihood"] + ll,
+        }
         extras = {"ess": ess, "resampled": res, "log_likelihood": ll}
         return xm, Pm, None, carry, xp, Pp, extras
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
 
         Parameters
@@ -822,8 +859,9 @@ class ParticleFilter(Estimator):
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
-    def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None,
-                       state: FilterState | None = None) -> np.ndarray:
+    def log_likelihood(
+        self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, state: FilterState | None = None
+    ) -> np.ndarray:
         r"""Estimate of :math:`\log p(y_{1:T})` per run, shape ``batch`` (``()`` for one record).
 
         The product over k of the weighted means of the incremental weights (an unbiased estimate of the
@@ -834,8 +872,10 @@ class ParticleFilter(Estimator):
         return ll.reshape(res.final.batch_shape) if res.final.batch_shape else ll.reshape(())[()]
 
     def __repr__(self) -> str:
-        return (f"ParticleFilter({type(self.model).__name__[1:].lower()}, particles={self.particles}, "
-                f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})")
+        return (
+            f"ParticleFilter({type(self.model).__name__[1:].lower()}, particles={self.particles}, "
+            f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})"
+        )
 
 
 def _moments(X: np.ndarray, W: np.ndarray):

@@ -55,7 +55,14 @@ from scipy.special import log_ndtr
 from .._validation import ShapeError, ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
-from ..filters.core import FilterResult, FilterState, MeasurementPrediction, check_keywords, measurement_update, time_update
+from ..filters.core import (
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    check_keywords,
+    measurement_update,
+    time_update,
+)
 from ..filters.kalman import LinearGaussianFamily
 from ..models.linear import LinearSystem
 from ._common import censoring_sides, gaussian_log_density
@@ -65,8 +72,16 @@ __all__ = ["censored_reading_update", "uncensored_update", "ADFilter"]
 _FORMS = ("standard", "joseph")
 
 
-def uncensored_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, C: np.ndarray, R: np.ndarray, dy: Any,
-                      valid: np.ndarray, form: str = "standard"):
+def uncensored_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    y: np.ndarray,
+    C: np.ndarray,
+    R: np.ndarray,
+    dy: Any,
+    valid: np.ndarray,
+    form: str = "standard",
+):
     r"""Kalman update with the valid (uncensored, present) channels and their log predictive density.
 
     Parameters
@@ -89,8 +104,16 @@ def uncensored_update(x: np.ndarray, P: np.ndarray, y: np.ndarray, C: np.ndarray
     return xn, Pn, ll
 
 
-def censored_reading_update(x: np.ndarray, P: np.ndarray, c: np.ndarray, r: float, dy: Any, limit: np.ndarray,
-                            side: np.ndarray, form: str = "standard"):
+def censored_reading_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    c: np.ndarray,
+    r: float,
+    dy: Any,
+    limit: np.ndarray,
+    side: np.ndarray,
+    form: str = "standard",
+):
     r"""Exact-moment update of a Gaussian prior by one scalar reading censored at ``limit``.
 
     The prior :math:`N(\bar x, \bar P)`, the latent :math:`z = c^Tx + d + v`, :math:`v \sim N(0, r)`;
@@ -127,9 +150,14 @@ def censored_reading_update(x: np.ndarray, P: np.ndarray, c: np.ndarray, r: floa
     lo = np.where(side > 0, lim, -np.inf)
     hi = np.where(side < 0, lim, np.inf)
     st = censored_moments(mu, s, np.where(ok, lo, -np.inf), np.where(ok, hi, np.inf))
-    mp = MeasurementPrediction(expected=mu[:, None], H0=c[None, :], noise=np.array([[float(r)]]),
-                               observed=np.where(ok, st.truncated_mean, mu)[:, None],
-                               retained=np.where(ok, st.truncated_var, 0.0)[:, None], valid=ok[:, None])
+    mp = MeasurementPrediction(
+        expected=mu[:, None],
+        H0=c[None, :],
+        noise=np.array([[float(r)]]),
+        observed=np.where(ok, st.truncated_mean, mu)[:, None],
+        retained=np.where(ok, st.truncated_var, 0.0)[:, None],
+        valid=ok[:, None],
+    )
     xn, Pn, _, _, _ = measurement_update(x, P, None, mu[:, None], mp, form)
     return xn, Pn, log_mass
 
@@ -176,8 +204,9 @@ class ADFilter(LinearGaussianFamily):
     _name = "ADFilter"
     _step_options = ("censored",)
 
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12,
-                 covariance_update: str = "standard"):
+    def __init__(
+        self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12, covariance_update: str = "standard"
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         check_keywords({"covariance_update": covariance_update}, {"covariance_update": _FORMS})
@@ -185,11 +214,13 @@ class ADFilter(LinearGaussianFamily):
         if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
         if system.m > 1:
-            for k in ((1,) if not system.R.varying else ()):
+            for k in (1,) if not system.R.varying else ():
                 R = system.measurement_cov(k)
                 if np.abs(R - np.diag(np.diagonal(R))).max() > 0:
-                    raise ValidationError("R: the assumed-density filter updates censored channels one at a time "
-                                          "and needs a diagonal R when m > 1")
+                    raise ValidationError(
+                        "R: the assumed-density filter updates censored channels one at a time "
+                        "and needs a diagonal R when m > 1"
+                    )
         self._setup_system(system)
         self.censoring = censoring
         self.rtol = float(rtol)
@@ -234,8 +265,9 @@ class ADFilter(LinearGaussianFamily):
                 if not (sl != 0).any():
                     continue
                 lim = np.where(sl < 0, lo[:, l], hi[:, l])
-                xn, Pn, lm = censored_reading_update(xn, Pn, C[l], float(R[l, l]), dy[:, l], lim, sl,
-                                                     self.covariance_update)
+                xn, Pn, lm = censored_reading_update(
+                    xn, Pn, C[l], float(R[l, l]), dy[:, l], lim, sl, self.covariance_update
+                )
                 ll = ll + lm
         return xn, Pn, None, carry, xp, Pp, {"log_lik": ll, "side": side}
 
@@ -244,8 +276,17 @@ class ADFilter(LinearGaussianFamily):
         self.censoring.check(self.m, k0 + y2.shape[1])
         self.censoring.check_measurements(y2, start=k0 + 1)
 
-    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
-               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); ``censored`` (..., T, m) the recorded indicator.
 
         Returns a :class:`~tobitkf.FilterResult` with ``extras["log_lik"]`` (..., T) and
