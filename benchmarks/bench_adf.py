@@ -32,12 +32,19 @@ TARGET = 10.0
 
 def pairs(runs: int, steps: int):
     c, s = np.cos(0.05), np.sin(0.05)
-    osc = tk.LinearSystem(A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0],
-                          P0=0.05 * np.eye(2))
+    osc = tk.LinearSystem(
+        A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2)
+    )
     cens = tk.Censoring(lower=0.0)
     y1 = tk.simulate(osc, steps, runs, censoring=cens, seed=0).y
-    osc2 = tk.LinearSystem(A=[[c, -s], [s, c]], C=[[1.0, 0.0], [0.3, 1.0]], Q=0.01 * np.eye(2), R=np.diag([0.1, 0.2]),
-                           x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    osc2 = tk.LinearSystem(
+        A=[[c, -s], [s, c]],
+        C=[[1.0, 0.0], [0.3, 1.0]],
+        Q=0.01 * np.eye(2),
+        R=np.diag([0.1, 0.2]),
+        x0=[0.0, 0.0],
+        P0=0.05 * np.eye(2),
+    )
     cens2 = tk.Censoring(lower=[0.0, -0.1], upper=[np.inf, 0.5])
     y2 = tk.simulate(osc2, steps, runs, censoring=cens2, seed=0).y
     w = 0.052 * np.pi
@@ -51,16 +58,34 @@ def pairs(runs: int, steps: int):
     ch = tk.ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
     py = tk.simulate(psys, steps, runs, channel=ch, seed=0).y
     return [
-        ("censored oscillator m=1", y1, tk.AssumedDensityTobitFilter(osc, cens),
-         {"TKF (numpy)": tk.TobitKalmanFilter(osc, cens, backend="numpy"),
-          "TKF exact_pv (numpy)": tk.TobitKalmanFilter(osc, cens, noise_term="exact_pv", backend="numpy"),
-          "TKF (numba, reference)": tk.TobitKalmanFilter(osc, cens, backend="auto")}),
-        ("two-sided, m=2 in sequence", y2, tk.AssumedDensityTobitFilter(osc2, cens2),
-         {"TKF (numpy)": tk.TobitKalmanFilter(osc2, cens2, backend="numpy")}),
-        ("fading L=2", fy, tk.FadingAssumedDensityFilter(fsys, fad, cens),
-         {"TKF-FM (numpy)": tk.FadingTobitKalmanFilter(fsys, fad, cens)}),
-        ("protocol ell=2", py, tk.ProtocolAssumedDensityFilter(psys, ch),
-         {"PBTKF-IMSF (numpy)": tk.ProtocolTobitKalmanFilter(psys, ch)}),
+        (
+            "censored oscillator m=1",
+            y1,
+            tk.AssumedDensityTobitFilter(osc, cens),
+            {
+                "TKF (numpy)": tk.TobitKalmanFilter(osc, cens, backend="numpy"),
+                "TKF exact_pv (numpy)": tk.TobitKalmanFilter(osc, cens, noise_term="exact_pv", backend="numpy"),
+                "TKF (numba, reference)": tk.TobitKalmanFilter(osc, cens, backend="auto"),
+            },
+        ),
+        (
+            "two-sided, m=2 in sequence",
+            y2,
+            tk.AssumedDensityTobitFilter(osc2, cens2),
+            {"TKF (numpy)": tk.TobitKalmanFilter(osc2, cens2, backend="numpy")},
+        ),
+        (
+            "fading L=2",
+            fy,
+            tk.FadingAssumedDensityFilter(fsys, fad, cens),
+            {"TKF-FM (numpy)": tk.FadingTobitKalmanFilter(fsys, fad, cens)},
+        ),
+        (
+            "protocol ell=2",
+            py,
+            tk.ProtocolAssumedDensityFilter(psys, ch),
+            {"PBTKF-IMSF (numpy)": tk.ProtocolTobitKalmanFilter(psys, ch)},
+        ),
     ]
 
 
@@ -75,7 +100,7 @@ def main() -> None:
     print(f"{runs} runs x {steps} steps, CPU time per run-step (BLAS 1 thread)")
     print(f"{'case':<28}{'estimator':<26}{'us/run-step':>12}{'ADF / it':>10}{'<=10x':>7}")
     for case, y, adf, others in pairs(runs, steps):
-        for est in (adf, *others.values()):        # warm up (the numba kernel compiles on its first call)
+        for est in (adf, *others.values()):  # warm up (the numba kernel compiles on its first call)
             est.filter(y[:2, :2])
         t_adf = best_time(lambda: adf.filter(y), repeat, cpu=True) / (runs * steps)
         print(f"{case:<28}{type(adf).__name__:<26}{t_adf * 1e6:12.3f}", flush=True)

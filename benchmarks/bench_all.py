@@ -53,7 +53,7 @@ def filterpy_rate(F, Q, Hs, R, x0, P0, y, runs: int, repeat: int) -> float | Non
     ``Hs`` is one (m, n) matrix or a list of T of them."""
     try:
         from filterpy.kalman import KalmanFilter as FKF
-    except ImportError:   # pragma: no cover
+    except ImportError:  # pragma: no cover
         return None
     nx, m = F.shape[0], y.shape[-1]
     T = y.shape[1]
@@ -111,8 +111,12 @@ def bench_fading(tab, runs, steps, peer, repeat):
 
 def bench_protocol(tab, runs, steps, peer, repeat):
     from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
-    from tobitkf.filters.protocol import (augmented_transition, noise_input, protocol_tobit_kalman_filter,
-                                          stacked_measurement)
+    from tobitkf.filters.protocol import (
+        augmented_transition,
+        noise_input,
+        protocol_tobit_kalman_filter,
+        stacked_measurement,
+    )
 
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -124,8 +128,9 @@ def bench_protocol(tab, runs, steps, peer, repeat):
     B = noise_input(2, ell)
     sched = ch.schedule.scheduled(steps) - 1
     Hs = [(0.5 * stacked_measurement(sys_.measurement(1)[h], ell))[None, :] for h in sched]
-    fp = filterpy_rate(F, B @ sys_.process_cov(0) @ B.T, Hs, [[1.0]], np.tile(sys_.x0, ell + 1), np.eye(6),
-                       y, peer, repeat)
+    fp = filterpy_rate(
+        F, B @ sys_.process_cov(0) @ B.T, Hs, [[1.0]], np.tile(sys_.x0, ell + 1), np.eye(6), y, peer, repeat
+    )
     t = cpu_time(lambda: protocol_tobit_kalman_filter(sys_, ch, y), repeat)
     tab.add("protocol", "PBTKF-IMSF (variance term)", "n=2 p=2 RR ell=2 (n_xi=6)", runs * steps / t, fp)
 
@@ -139,8 +144,17 @@ def bench_delay(tab, runs, steps, peer, repeat):
     sys_, prior = paper_example(S=0.3, d=d), paper_prior(d)
     y = simulate_delay(sys_, prior, steps, runs, seed=1).y
     AA, _, G, HH = _augmented_matrices(sys_, d)
-    fp = filterpy_rate(AA, G @ np.atleast_2d(sys_.Qw) @ G.T, sys_.gamma_mean(0) * HH, np.atleast_2d(sys_.Qv),
-                       prior.mean.reshape(-1), prior.cov, y, peer, repeat)
+    fp = filterpy_rate(
+        AA,
+        G @ np.atleast_2d(sys_.Qw) @ G.T,
+        sys_.gamma_mean(0) * HH,
+        np.atleast_2d(sys_.Qv),
+        prior.mean.reshape(-1),
+        prior.cov,
+        y,
+        peer,
+        repeat,
+    )
     size = "n=2 m=1 d=3"
     t = cpu_time(lambda: chain_lmmse(sys_, prior, y), repeat)
     tab.add("delay", "Algorithm C (chain_lmmse)", size, runs * steps / t, fp)
@@ -171,8 +185,9 @@ def bench_sstkf(tab, runs, steps, peer, repeat):
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
     ylat = tk.simulate(sys_, steps, runs, seed=0).y_latent
-    fp = filterpy_rate(A, sys_.process_cov(0), sys_.measurement(1), sys_.measurement_cov(1), sys_.x0, sys_.P0,
-                       ylat, peer, repeat)
+    fp = filterpy_rate(
+        A, sys_.process_cov(0), sys_.measurement(1), sys_.measurement_cov(1), sys_.x0, sys_.P0, ylat, peer, repeat
+    )
     ss = SteadyStateTobitKalmanFilter(sys_, 0.95)
     t = cpu_time(lambda: ss.filter_controlled(ylat), repeat)
     tab.add("sstkf", "SteadyStateTKF.filter_controlled", "n=2 m=1", runs * steps / t, fp)
@@ -180,24 +195,43 @@ def bench_sstkf(tab, runs, steps, peer, repeat):
 
 def bench_closed(tab, runs, steps, peer, repeat):
     from tobitkf.control.closed_loop import simulate_closed_loop
-    from tobitkf.experiments.miller_control import _motor_lqr, _motor_plant
     from tobitkf.control.plants import dc_motor_position
+    from tobitkf.experiments.miller_control import _motor_lqr, _motor_plant
 
     plant, _ = _motor_plant(dc_motor_position)
     K = _motor_lqr(plant)
     sim = tk.simulate(plant, steps, min(runs, peer), seed=0)
-    fp = filterpy_rate(plant.transition(0), plant.process_cov(0), plant.measurement(1), plant.measurement_cov(1),
-                       plant.x0, plant.P0, sim.y, peer, repeat)
+    fp = filterpy_rate(
+        plant.transition(0),
+        plant.process_cov(0),
+        plant.measurement(1),
+        plant.measurement_cov(1),
+        plant.x0,
+        plant.P0,
+        sim.y,
+        peer,
+        repeat,
+    )
     C = plant.measurement(1)
     upper = float(np.sqrt(plant.measurement_cov(1)[0, 0]))
-    for obs, kw in (("kf", {}), ("tkf", {"censoring": tk.Censoring(upper=upper)}),
-                    ("tkf-moving", {"xi_uncensored": 0.95}), ("sstkf", {"xi_uncensored": 0.95})):
+    for obs, kw in (
+        ("kf", {}),
+        ("tkf", {"censoring": tk.Censoring(upper=upper)}),
+        ("tkf-moving", {"xi_uncensored": 0.95}),
+        ("sstkf", {"xi_uncensored": 0.95}),
+    ):
         t = cpu_time(lambda: simulate_closed_loop(plant, K, steps, runs, observer=obs, seed=0, **kw), repeat)
         tab.add("closed", f"simulate_closed_loop {obs}", f"n={plant.n} m={C.shape[0]} p=1", runs * steps / t, fp)
 
 
-FAMILIES = {"fading": bench_fading, "protocol": bench_protocol, "delay": bench_delay, "hinf": bench_hinf,
-            "sstkf": bench_sstkf, "closed": bench_closed}
+FAMILIES = {
+    "fading": bench_fading,
+    "protocol": bench_protocol,
+    "delay": bench_delay,
+    "hinf": bench_hinf,
+    "sstkf": bench_sstkf,
+    "closed": bench_closed,
+}
 
 
 def main() -> None:

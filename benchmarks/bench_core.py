@@ -47,9 +47,14 @@ def filterpy_runs(sys_: tk.LinearSystem, y: np.ndarray) -> None:
 def pykalman_runs(sys_: tk.LinearSystem, y: np.ndarray) -> None:
     from pykalman import KalmanFilter as PKF
 
-    pk = PKF(transition_matrices=sys_.transition(0), observation_matrices=sys_.measurement(1),
-             transition_covariance=sys_.process_cov(0), observation_covariance=sys_.measurement_cov(1),
-             initial_state_mean=sys_.x0, initial_state_covariance=sys_.P0)
+    pk = PKF(
+        transition_matrices=sys_.transition(0),
+        observation_matrices=sys_.measurement(1),
+        transition_covariance=sys_.process_cov(0),
+        observation_covariance=sys_.measurement_cov(1),
+        initial_state_mean=sys_.x0,
+        initial_state_covariance=sys_.P0,
+    )
     for run in y:
         pk.filter(run)
 
@@ -69,12 +74,13 @@ def main() -> None:
     rows = []
     import filterpy.kalman  # noqa: F401  (import outside the timings)
     import pykalman  # noqa: F401
+
     t_fp = best_time(lambda: filterpy_runs(sys_, y[:peer_runs]), repeat) / (peer_runs * steps)
     rows.append(("filterpy KalmanFilter (looped)", 1.0 / t_fp))
     t_pk = best_time(lambda: pykalman_runs(sys_, y[:peer_runs]), repeat) / (peer_runs * steps)
     rows.append(("pykalman KalmanFilter.filter (looped)", 1.0 / t_pk))
     backends = ["numpy"] + (["numba"] if numba_available() else [])
-    if "numba" in backends:     # compile (or load the cached machine code) outside the timings
+    if "numba" in backends:  # compile (or load the cached machine code) outside the timings
         tk.KalmanFilter(sys_, backend="numba").filter(y[:2, :5])
         tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y[:2, :5])
     rates = {}
@@ -88,7 +94,7 @@ def main() -> None:
         print(f"  {name:44s} {rate:12.4g} run-steps/s   x{rate * t_fp:8.2f} filterpy")
 
     long = tk.simulate(sys_, long_steps, 1, censoring=cens, seed=1).y
-    short = long[:, :min(long_steps, 10_000)]
+    short = long[:, : min(long_steps, 10_000)]
     print(f"(b) one run x {long_steps} steps: microseconds per step")
     t_fp1 = best_time(lambda: filterpy_runs(sys_, long), 1) / long_steps
     t_pk1 = best_time(lambda: pykalman_runs(sys_, long), 1) / long_steps
@@ -103,8 +109,10 @@ def main() -> None:
     for name, t in rows:
         print(f"  {name:44s} {t * 1e6:10.2f} us/step   filterpy/this = {t_fp1 / t:6.2f}")
     best = "numba" if "numba" in backends else "numpy"
-    print(f"targets (issue): batched TKF >= 30x filterpy: x{rates[best] * t_fp:.1f} ({best}); "
-          f"single-run TKF no slower per step than filterpy: {lat[best] * 1e6:.2f} vs {t_fp1 * 1e6:.2f} us/step")
+    print(
+        f"targets (issue): batched TKF >= 30x filterpy: x{rates[best] * t_fp:.1f} ({best}); "
+        f"single-run TKF no slower per step than filterpy: {lat[best] * 1e6:.2f} vs {t_fp1 * 1e6:.2f} us/step"
+    )
 
 
 if __name__ == "__main__":

@@ -24,9 +24,18 @@ def random_model(n: int, d: int, seed: int = 0) -> tuple[DelayFadingSystem, Hist
     rng = np.random.default_rng(seed)
     A = rng.standard_normal((n, n))
     A *= 0.7 / max(abs(np.linalg.eigvals(A)))
-    sys = DelayFadingSystem(A, rng.standard_normal((1, n)), np.ones((n, 1)), 0.3, 0.3, 0.2, d,
-                            A_mult=0.1 * rng.standard_normal((1, n, n)), q_mult=[0.16],
-                            fading=FadingPMF([0.95, 0.98, 1.0], [0.05, 0.15, 0.8]))
+    sys = DelayFadingSystem(
+        A,
+        rng.standard_normal((1, n)),
+        np.ones((n, 1)),
+        0.3,
+        0.3,
+        0.2,
+        d,
+        A_mult=0.1 * rng.standard_normal((1, n, n)),
+        q_mult=[0.16],
+        fading=FadingPMF([0.95, 0.98, 1.0], [0.05, 0.15, 0.8]),
+    )
     return sys, HistoryPrior.repeated(np.zeros(n), 0.01 * np.eye(n), d)
 
 
@@ -56,14 +65,18 @@ def main() -> None:
             ta = per_step(lambda yy: augmented_lmmse(sys, prior, yy), y, repeat)
             td = per_step(lambda yy: reorganized_lmmse(sys, prior, yy), y, repeat)
             rows.append((d, tc, ta, td))
-            print(f"{d:>4} {tc * 1e6:>10.1f} {ta * 1e6:>10.1f} {td * 1e6:>10.1f} {ta / tc:>7.2f} {td / tc:>7.2f} "
-                  f"{1 / tc:>11.0f}")
+            print(
+                f"{d:>4} {tc * 1e6:>10.1f} {ta * 1e6:>10.1f} {td * 1e6:>10.1f} {ta / tc:>7.2f} {td / tc:>7.2f} "
+                f"{1 / tc:>11.0f}"
+            )
         if len(rows) >= 2:
             dd = np.log([r[0] + 1 for r in rows])
             for name, col in (("C", 1), ("A", 2), ("D", 3)):
                 slope = np.polyfit(dd, np.log([r[col] for r in rows]), 1)[0]
-                print(f"  log-log slope of {name} time vs (d+1): {slope:.2f}"
-                      + ("  (flat = 0)" if name == "C" else "  (dense flops: 3)" if name == "A" else "  (flops: 2)"))
+                print(
+                    f"  log-log slope of {name} time vs (d+1): {slope:.2f}"
+                    + ("  (flat = 0)" if name == "C" else "  (dense flops: 3)" if name == "A" else "  (flops: 2)")
+                )
             c_spread = max(r[1] for r in rows) / min(r[1] for r in rows)
             print(f"  C max/min over d: {c_spread:.2f}")
 

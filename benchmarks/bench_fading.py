@@ -45,14 +45,14 @@ def timed(fn, repeat: int) -> float:
 def filterpy_loop(system, fading, y, runs: int) -> float | None:
     try:
         from filterpy.kalman import KalmanFilter as FPKalman
-    except ImportError:   # pragma: no cover
+    except ImportError:  # pragma: no cover
         return None
     n, L = system.n, fading.order
     nxi = n * (L + 1)
     Aa = np.zeros((nxi, nxi))
     Aa[:n, :n] = system.A.at(0)
     for i in range(1, L + 1):
-        Aa[i * n:(i + 1) * n, (i - 1) * n:i * n] = np.eye(n)
+        Aa[i * n : (i + 1) * n, (i - 1) * n : i * n] = np.eye(n)
     Qa = np.zeros((nxi, nxi))
     Qa[:n, :n] = system.process_cov(0)
     Hs = [augmented_measurement_matrix(system, fading, k) for k in range(1, y.shape[1] + 1)]
@@ -89,8 +89,11 @@ def main() -> None:
     print(f"{'tkf (core)':<16}{0:>3}{2:>6}{work / t_tkf:>14.3g}{1e6 * t_tkf / work:>13.3g}{1.0:>9.2f}")
     sizes, costs = [], []
     for L in args.orders:
-        fad = RiceFading.gaussian(L, MEANS[:L + 1] if L < len(MEANS) else [0.9] * (L + 1),
-                                  VARS[:L + 1] if L < len(VARS) else [0.004] * (L + 1))
+        fad = RiceFading.gaussian(
+            L,
+            MEANS[: L + 1] if L < len(MEANS) else [0.9] * (L + 1),
+            VARS[: L + 1] if L < len(VARS) else [0.004] * (L + 1),
+        )
         y = tk.simulate(system, steps, runs, censoring=cens, measurement=fad, seed=L).y
         t = timed(lambda: FadingTobitKalmanFilter(system, fad, cens).filter(y), repeat)
         t_kf = timed(lambda: FadingKalmanFilter(system, fad).filter(y), repeat)
@@ -104,15 +107,21 @@ def main() -> None:
             t_fp = filterpy_loop(system, fad, y, few)
             if t_fp is not None:
                 per = t_fp / (few * steps)
-                print(f"{'filterpy loop':<16}{L:>3}{nxi:>6}{1 / per:>14.3g}{1e6 * per:>13.3g}{per * work / t_tkf:>9.2f}"
-                      f"   (per-run Python loop, {few} runs; kf-fm is {per * work / t_kf:.0f}x faster)")
+                print(
+                    f"{'filterpy loop':<16}{L:>3}{nxi:>6}{1 / per:>14.3g}{1e6 * per:>13.3g}{per * work / t_tkf:>9.2f}"
+                    f"   (per-run Python loop, {few} runs; kf-fm is {per * work / t_kf:.0f}x faster)"
+                )
     if len(sizes) >= 2:
         slope = np.polyfit(np.log(sizes), np.log(costs), 1)[0]
-        ratios = ", ".join(f"L={L}: {c / costs[0]:.2f}x (cubic law {(s / sizes[0]) ** 3:.0f}x)"
-                           for L, s, c in zip(args.orders, sizes, costs))
+        ratios = ", ".join(
+            f"L={L}: {c / costs[0]:.2f}x (cubic law {(s / sizes[0]) ** 3:.0f}x)"
+            for L, s, c in zip(args.orders, sizes, costs)
+        )
         print(f"cost per run-step relative to L={args.orders[0]}: {ratios}")
-        print(f"log-log slope of cost against n_xi = n(L+1): {slope:.2f} (Remark 10 states O[(n(L+1))^3]; at these "
-              "sizes the batched numpy calls are dominated by per-call overhead and O(n_xi^2) memory traffic)")
+        print(
+            f"log-log slope of cost against n_xi = n(L+1): {slope:.2f} (Remark 10 states O[(n(L+1))^3]; at these "
+            "sizes the batched numpy calls are dominated by per-call overhead and O(n_xi^2) memory traffic)"
+        )
 
 
 if __name__ == "__main__":

@@ -27,9 +27,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _timing import best_time  # noqa: E402
-
 import tobitkf as tk  # noqa: E402
+from _timing import best_time  # noqa: E402
 from tobitkf.data import load_cloud_ceiling, load_phosphorus  # noqa: E402
 from tobitkf.experiments.data_sets import _warm  # noqa: E402
 
@@ -37,8 +36,11 @@ from tobitkf.experiments.data_sets import _warm  # noqa: E402
 def times(repeat: int, smoke: bool) -> dict:
     _warm()
     p, c = load_phosphorus(), load_cloud_ceiling()
-    cases = [("phosphorus", 1, p, p.design("lQ"), 1.0), ("phosphorus", 2, p, p.design("lQ"), 1.0),
-             ("cloud-ceiling", 1, c, c.design(), 10.0)]
+    cases = [
+        ("phosphorus", 1, p, p.design("lQ"), 1.0),
+        ("phosphorus", 2, p, p.design("lQ"), 1.0),
+        ("cloud-ceiling", 1, c, c.design(), 10.0),
+    ]
     if smoke:
         cases = cases[:1]
     out = {}
@@ -51,10 +53,19 @@ def times(repeat: int, smoke: bool) -> dict:
         t = best_time(run, repeat)
         tc = best_time(run, repeat, cpu=True)
         f = res["fit"]
-        out[f"{name}-ar{order}"] = {"seconds": round(t, 3), "cpu_seconds": round(tc, 3), "target_seconds": limit,
-                                    "met": t < limit, "evaluations": f.evaluations, "loglik": f.loglik}
-        print(f"{name} AR({order}): best of {repeat} = {t:.3f} s wall, {tc:.3f} s CPU (target < {limit:g} s), "
-              f"{f.evaluations} likelihood evaluations, loglik {f.loglik:.6f}", flush=True)
+        out[f"{name}-ar{order}"] = {
+            "seconds": round(t, 3),
+            "cpu_seconds": round(tc, 3),
+            "target_seconds": limit,
+            "met": t < limit,
+            "evaluations": f.evaluations,
+            "loglik": f.loglik,
+        }
+        print(
+            f"{name} AR({order}): best of {repeat} = {t:.3f} s wall, {tc:.3f} s CPU (target < {limit:g} s), "
+            f"{f.evaluations} likelihood evaluations, loglik {f.loglik:.6f}",
+            flush=True,
+        )
     return out
 
 
@@ -97,15 +108,29 @@ def recovery(reps: int, steps: int, seed: int) -> dict:
         mcse = est.std(0, ddof=1) / np.sqrt(n)
         cover = (np.abs(est - truth_all) <= 1.959964 * se).mean(0)
         bse = np.sqrt(0.95 * 0.05 / n)
-        rec = {"censored_fraction": frac, "T": steps, "replications": reps, "usable": n,
-               "mean_fit_seconds": round(float(np.mean(secs)), 3), "parameters": {}}
+        rec = {
+            "censored_fraction": frac,
+            "T": steps,
+            "replications": reps,
+            "usable": n,
+            "mean_fit_seconds": round(float(np.mean(secs)), 3),
+            "parameters": {},
+        }
         for i, nm in enumerate(names):
-            rec["parameters"][nm] = {"truth": float(truth_all[i]), "bias": float(bias[i]), "mc_se": float(mcse[i]),
-                                     "bias_in_mc_se": float(bias[i] / mcse[i]), "coverage": float(cover[i]),
-                                     "coverage_binomial_se": float(bse),
-                                     "met": bool(abs(bias[i]) < 3 * mcse[i] and abs(cover[i] - 0.95) < 3 * bse)}
-            print(f"{int(frac * 100)}% censored, {nm}: bias {bias[i]:+.4f} ({bias[i] / mcse[i]:+.2f} MC s.e.), "
-                  f"coverage {cover[i]:.3f} (0.95 +- {3 * bse:.3f})", flush=True)
+            rec["parameters"][nm] = {
+                "truth": float(truth_all[i]),
+                "bias": float(bias[i]),
+                "mc_se": float(mcse[i]),
+                "bias_in_mc_se": float(bias[i] / mcse[i]),
+                "coverage": float(cover[i]),
+                "coverage_binomial_se": float(bse),
+                "met": bool(abs(bias[i]) < 3 * mcse[i] and abs(cover[i] - 0.95) < 3 * bse),
+            }
+            print(
+                f"{int(frac * 100)}% censored, {nm}: bias {bias[i]:+.4f} ({bias[i] / mcse[i]:+.2f} MC s.e.), "
+                f"coverage {cover[i]:.3f} (0.95 +- {3 * bse:.3f})",
+                flush=True,
+            )
         out[f"{int(frac * 100)}%"] = rec
     return out
 

@@ -60,6 +60,7 @@ def _load() -> str:
 
 # ---- peers --------------------------------------------------------------------------------------
 
+
 def filterpy_runs(sys_, y):
     from filterpy.kalman import KalmanFilter as FKF
 
@@ -76,9 +77,14 @@ def filterpy_runs(sys_, y):
 def pykalman_runs(sys_, y):
     from pykalman import KalmanFilter as PKF
 
-    pk = PKF(transition_matrices=sys_.transition(0), observation_matrices=sys_.measurement(1),
-             transition_covariance=sys_.process_cov(0), observation_covariance=sys_.measurement_cov(1),
-             initial_state_mean=sys_.x0, initial_state_covariance=sys_.P0)
+    pk = PKF(
+        transition_matrices=sys_.transition(0),
+        observation_matrices=sys_.measurement(1),
+        transition_covariance=sys_.process_cov(0),
+        observation_covariance=sys_.measurement_cov(1),
+        initial_state_mean=sys_.x0,
+        initial_state_covariance=sys_.P0,
+    )
     for run in y:
         pk.filter(run)
 
@@ -135,6 +141,7 @@ def jax_filters(sys_, lower):
 
 # ---- the benchmark ------------------------------------------------------------------------------
 
+
 def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
     sys_ = make_system()
     lower = 0.0
@@ -145,14 +152,16 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
     st = tk.censored_moments(y[:, :, 0] * 0 + 0.0, 1.0, 0.0, np.inf)  # warm the numpy path's imports
     del st
     pre = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y[: min(runs, 500)], outputs=("pred_mean",))
-    a = (lower - pre.pred_mean[..., 0]) / np.sqrt(0.1)     # the standardized limit the filter uses
-    print(f"\n{runs} runs x {steps} steps, n=2, m=1: censored fraction {np.mean(y <= lower):.2f}, "
-          f"steps with the prior mean > 4 sd below the limit (tail route) ~{np.mean(a > 4):.3f}")
+    a = (lower - pre.pred_mean[..., 0]) / np.sqrt(0.1)  # the standardized limit the filter uses
+    print(
+        f"\n{runs} runs x {steps} steps, n=2, m=1: censored fraction {np.mean(y <= lower):.2f}, "
+        f"steps with the prior mean > 4 sd below the limit (tail route) ~{np.mean(a > 4):.3f}"
+    )
 
     A, Q = np.ascontiguousarray(sys_.transition(0)), np.ascontiguousarray(sys_.process_cov(0))
     C, sig = np.ascontiguousarray(sys_.measurement(1)[0]), float(np.sqrt(sys_.measurement_cov(1)[0, 0]))
     x0, P0 = np.ascontiguousarray(sys_.x0), np.ascontiguousarray(sys_.P0)
-    contestants: dict[str, tuple] = {}    # name -> (fn, run-steps per call)
+    contestants: dict[str, tuple] = {}  # name -> (fn, run-steps per call)
     full = runs * steps
     if numba_available():
         from _fused_tkf import fused_tkf
@@ -162,7 +171,7 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
             fused_tkf(y2, A, Q, C, sig, lower, x0, P0, means, covs)
             return means, covs
 
-        reused = (np.zeros((runs, steps, 2)), np.zeros((runs, steps, 2, 2)))   # touched once, here
+        reused = (np.zeros((runs, steps, 2)), np.zeros((runs, steps, 2, 2)))  # touched once, here
 
         def fused_reused():
             fused_tkf(y2, A, Q, C, sig, lower, x0, P0, *reused)
@@ -178,14 +187,16 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
         contestants["tobitkf KF numba, mean+cov"] = (lambda: kf.filter(y, outputs=("mean", "cov")), full)
     tkf_np = tk.TobitKalmanFilter(sys_, cens, backend="numpy")
     kf_np = tk.KalmanFilter(sys_, backend="numpy")
-    contestants["tobitkf TKF numpy, mean+cov"] = (lambda: tkf_np.filter(y[:sub], outputs=("mean", "cov")),
-                                                  sub * steps)
+    contestants["tobitkf TKF numpy, mean+cov"] = (lambda: tkf_np.filter(y[:sub], outputs=("mean", "cov")), sub * steps)
     contestants["tobitkf KF numpy, mean+cov"] = (lambda: kf_np.filter(y[:sub], outputs=("mean", "cov")), sub * steps)
     contestants["filterpy KalmanFilter (looped)"] = (lambda: filterpy_runs(sys_, y[:peer_runs]), peer_runs * steps)
     try:
         import pykalman  # noqa: F401
-        contestants["pykalman KalmanFilter.filter (looped)"] = (lambda: pykalman_runs(sys_, y[:peer_runs]),
-                                                                peer_runs * steps)
+
+        contestants["pykalman KalmanFilter.filter (looped)"] = (
+            lambda: pykalman_runs(sys_, y[:peer_runs]),
+            peer_runs * steps,
+        )
     except ImportError:
         print("  (pykalman not installed: skipped)")
     jx = jax_filters(sys_, lower)
@@ -197,7 +208,7 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
         contestants["JAX vmap(lax.scan) TKF"] = (lambda: jtkf(yj), full)
         contestants["JAX vmap(lax.scan) KF"] = (lambda: jkf(yj), full)
 
-    for fn, _ in contestants.values():     # compile / warm up outside the timings
+    for fn, _ in contestants.values():  # compile / warm up outside the timings
         fn()
     times: dict[str, list[float]] = {k: [] for k in contestants}
     for _ in range(repeat):
@@ -209,16 +220,20 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
     limit = med.get("hand-fused numba TKF (limit)")
     compute = med.get("hand-fused, outputs reused (compute)")
     jax_tkf = med.get("JAX vmap(lax.scan) TKF")
-    head = (f"  {'':40s} {'ns/run-step':>12s} {'(min-max)':>17s} {'limit/this':>11s} {'compute/this':>13s} "
-            f"{'JAX TKF/this':>13s}")
+    head = (
+        f"  {'':40s} {'ns/run-step':>12s} {'(min-max)':>17s} {'limit/this':>11s} {'compute/this':>13s} "
+        f"{'JAX TKF/this':>13s}"
+    )
     print(head)
 
     def ratio(ref, val, width):
         return f"{ref / val:{width}.2f}" if ref else f"{'-':>{width}s}"
 
     for name, v in times.items():
-        print(f"  {name:40s} {med[name]:12.1f} {f'({min(v):.0f}-{max(v):.0f})':>17s} {ratio(limit, med[name], 11)} "
-              f"{ratio(compute, med[name], 13)} {ratio(jax_tkf, med[name], 13)}")
+        print(
+            f"  {name:40s} {med[name]:12.1f} {f'({min(v):.0f}-{max(v):.0f})':>17s} {ratio(limit, med[name], 11)} "
+            f"{ratio(compute, med[name], 13)} {ratio(jax_tkf, med[name], 13)}"
+        )
 
 
 def main() -> None:

@@ -63,6 +63,7 @@ def main() -> None:
             s = est.init() if state0 is None else state0
             for r in readings:
                 s = est.step(s, r)
+
         return run
 
     from tobitkf.channels.fading import RiceFading
@@ -98,12 +99,18 @@ def main() -> None:
         ("ChainLMMSE (d=3)", online(tk.ChainLMMSE(dsys, dprior)), yd),
         ("AugmentedLMMSE (d=3)", online(tk.AugmentedLMMSE(dsys, dprior)), yd),
         ("ReorganizedInnovationLMMSE (d=3)", online(tk.ReorganizedInnovationLMMSE(dsys, dprior)), yd),
-        ("RegionalHinfFilter (n=3, m=2)",
-         online(tk.RegionalHinfFilter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M)), yh),
-        ("MultiTargetTracker (3 targets)", online(tracker, tracker.init(np.array([[0.0, 0.0], [20.0, 0.0],
-                                                                                  [40.0, 0.0]]))), frames),
+        (
+            "RegionalHinfFilter (n=3, m=2)",
+            online(tk.RegionalHinfFilter(WANG2010_PAPER["Af"], WANG2010_PAPER["Bf"], model.M)),
+            yh,
+        ),
+        (
+            "MultiTargetTracker (3 targets)",
+            online(tracker, tracker.init(np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 0.0]]))),
+            frames,
+        ),
     ]
-    for _, fn, rec in cases:          # compile / warm up outside the timings
+    for _, fn, rec in cases:  # compile / warm up outside the timings
         fn(rec[:5])
     print(f"one run, {steps} readings per loop, median (min..max) over {repeat} loops, microseconds per step")
     ref = None
@@ -115,11 +122,25 @@ def main() -> None:
         ref = med if ref is None else ref
         print(f"  {name:36s} {med:9.2f}  ({ts.min():7.2f}..{ts.max():7.2f})   x{med / ref:6.2f} filterpy")
     kf_tkf = max(results["KalmanFilter"], results["TobitKalmanFilter"]) / ref
-    others = max(v for k, v in results.items() if k not in ("filterpy predict() + update()", "KalmanFilter",
-                                                             "TobitKalmanFilter", "KalmanFilter (numpy)",
-                                                             "TobitKalmanFilter (numpy)")) / ref
-    print(f"targets: KF and TKF step <= 1x filterpy: {kf_tkf:.2f}x ({'met' if kf_tkf <= 1 else 'not met'}); "
-          f"every other family <= 5x: worst {others:.2f}x ({'met' if others <= 5 else 'not met'})")
+    others = (
+        max(
+            v
+            for k, v in results.items()
+            if k
+            not in (
+                "filterpy predict() + update()",
+                "KalmanFilter",
+                "TobitKalmanFilter",
+                "KalmanFilter (numpy)",
+                "TobitKalmanFilter (numpy)",
+            )
+        )
+        / ref
+    )
+    print(
+        f"targets: KF and TKF step <= 1x filterpy: {kf_tkf:.2f}x ({'met' if kf_tkf <= 1 else 'not met'}); "
+        f"every other family <= 5x: worst {others:.2f}x ({'met' if others <= 5 else 'not met'})"
+    )
 
 
 if __name__ == "__main__":

@@ -34,8 +34,9 @@ TARGET = 1e6
 
 def oscillator(omega: float = 0.05) -> tk.LinearSystem:
     c, s = np.cos(omega), np.sin(omega)
-    return tk.LinearSystem(A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0],
-                           P0=0.05 * np.eye(2))
+    return tk.LinearSystem(
+        A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2)
+    )
 
 
 def cases():
@@ -52,8 +53,14 @@ def cases():
     return [
         ("censored oscillator, optimal", "n=2 m=1", sys_, cens, {"censoring": cens}, "optimal"),
         ("censored oscillator, bootstrap", "n=2 m=1", sys_, cens, {"censoring": cens}, "prior"),
-        ("fading L=2, bootstrap", "n_xi=6 m=1", fsys, [fad, tk.Censoring(lower=0.0)],
-         {"censoring": tk.Censoring(lower=0.0), "measurement": fad}, "prior"),
+        (
+            "fading L=2, bootstrap",
+            "n_xi=6 m=1",
+            fsys,
+            [fad, tk.Censoring(lower=0.0)],
+            {"censoring": tk.Censoring(lower=0.0), "measurement": fad},
+            "prior",
+        ),
         ("protocol ell=2, optimal", "n_xi=6 m=1", psys, ch, {"channel": ch}, "optimal"),
     ]
 

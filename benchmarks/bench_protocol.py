@@ -21,9 +21,14 @@ import numpy as np
 import tobitkf as tk
 from _timing import best_time
 from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
-from tobitkf.filters.protocol import (FAILURE_TERMS, augmented_transition, noise_input,
-                                      protocol_covariance_bounds, protocol_tobit_kalman_filter,
-                                      stacked_measurement)
+from tobitkf.filters.protocol import (
+    FAILURE_TERMS,
+    augmented_transition,
+    noise_input,
+    protocol_covariance_bounds,
+    protocol_tobit_kalman_filter,
+    stacked_measurement,
+)
 
 
 def make_problem():

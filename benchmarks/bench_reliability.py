@@ -29,8 +29,14 @@ from tobitkf.simulate.delay import simulate_delay
 
 def oscillator() -> tk.LinearSystem:
     w = 0.05
-    return tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2),
-                           R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    return tk.LinearSystem(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]],
+        C=[[1.0, 0.0]],
+        Q=0.01 * np.eye(2),
+        R=[[0.1]],
+        x0=[0.0, 0.0],
+        P0=0.05 * np.eye(2),
+    )
 
 
 def health(mean, cov, truth) -> dict:
@@ -42,8 +48,13 @@ def health(mean, cov, truth) -> dict:
         eig = np.linalg.eigvalsh(cov)
         worst = float((eig.min(axis=-1) / np.maximum(np.abs(cov).max(axis=(-1, -2)), 1e-300)).min())
     err = float(np.abs(mean - truth).max()) if finite else float("inf")
-    return {"finite": finite, "symmetric": sym, "min_eig_rel": worst, "psd": finite and worst >= -1e-9,
-            "max_abs_error": err}
+    return {
+        "finite": finite,
+        "symmetric": sym,
+        "min_eig_rel": worst,
+        "psd": finite and worst >= -1e-9,
+        "max_abs_error": err,
+    }
 
 
 def cases(steps: int):
@@ -53,7 +64,7 @@ def cases(steps: int):
     def data():
         return tk.simulate(s, steps, 1, censoring=c, seed=11)
 
-    def kf():   # on the latent (uncensored) record: fed censored values the KF is biased by design, and the
+    def kf():  # on the latent (uncensored) record: fed censored values the KF is biased by design, and the
         d = data()  # marginally stable oscillator wanders to |x| ~ 100 over 10^6 steps, so its error grows too
         o = tk.KalmanFilter(s).filter(d.y_latent)
         return o.mean, o.cov, d.x[:, 1:]
@@ -101,8 +112,17 @@ def cases(steps: int):
         o = chain_lmmse(sys_, prior, d.y)
         return o.mean, o.cov, d.x[:, :steps]
 
-    return {"KF": kf, "DKF": dkf, "TKF": tkf, "TKF total_variance+joseph": tkf_joseph_total, "SSTKF": sstkf,
-            "controlled TKF": ctrl, "TKF-FM": ftkf, "PBTKF-IMSF": ptkf, "chain LMMSE (delay)": chain}
+    return {
+        "KF": kf,
+        "DKF": dkf,
+        "TKF": tkf,
+        "TKF total_variance+joseph": tkf_joseph_total,
+        "SSTKF": sstkf,
+        "controlled TKF": ctrl,
+        "TKF-FM": ftkf,
+        "PBTKF-IMSF": ptkf,
+        "chain LMMSE (delay)": chain,
+    }
 
 
 def main() -> None:
@@ -114,8 +134,10 @@ def main() -> None:
     steps = 2000 if args.smoke else args.steps
     only = {o.strip() for o in args.only.split(",") if o.strip()}
     print(f"one run of {steps:,} steps per estimator")
-    print(f"{'estimator':28s} {'steps/s':>10s} {'finite':>7s} {'sym':>5s} {'PSD':>5s} {'min eig/scale':>14s} "
-          f"{'max |err|':>10s}")
+    print(
+        f"{'estimator':28s} {'steps/s':>10s} {'finite':>7s} {'sym':>5s} {'PSD':>5s} {'min eig/scale':>14s} "
+        f"{'max |err|':>10s}"
+    )
     for name, fn in cases(steps).items():
         if only and name not in only:
             continue
@@ -123,8 +145,11 @@ def main() -> None:
         mean, cov, truth = fn()
         dt = time.perf_counter() - t
         h = health(mean, cov, truth)
-        print(f"{name:28s} {steps / dt:10,.0f} {str(h['finite']):>7s} {str(h['symmetric']):>5s} {str(h['psd']):>5s} "
-              f"{h['min_eig_rel']:14.2e} {h['max_abs_error']:10.3g}", flush=True)
+        print(
+            f"{name:28s} {steps / dt:10,.0f} {str(h['finite']):>7s} {str(h['symmetric']):>5s} {str(h['psd']):>5s} "
+            f"{h['min_eig_rel']:14.2e} {h['max_abs_error']:10.3g}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

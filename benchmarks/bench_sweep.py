@@ -65,8 +65,12 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
 
 def run(file: Path, out: Path, scheduler: str, workers: int) -> tuple[float, float]:
     t = time.perf_counter()
-    res = subprocess.run([sys.executable, "-c", _PEAK, str(file), str(out), scheduler, str(workers)],
-                         capture_output=True, text=True, check=True)
+    res = subprocess.run(
+        [sys.executable, "-c", _PEAK, str(file), str(out), scheduler, str(workers)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     return time.perf_counter() - t, float(res.stdout.strip().splitlines()[-1])
 
 
@@ -97,15 +101,23 @@ def main() -> None:
         t_local, _ = run(f, tmp / "local", "local", 2)
         t_local1, _ = run(f, tmp / "local1", "local", 1)
         t1, t2 = min(times[1]), min(times[2])
-        results["dask_processes"] = {"runs": speed_runs, "steps": steps, "one_worker_s": times[1],
-                                     "two_workers_s": times[2], "local_s": t_local,
-                                     "local_one_thread_s": t_local1, "speedup_best": t1 / t2}
-        print(f"Dask processes, {speed_runs} runs x {steps} steps, {repeat} alternating tries: "
-              f"1 worker best {t1:.1f} s (median {statistics.median(times[1]):.1f}), "
-              f"2 workers best {t2:.1f} s (median {statistics.median(times[2]):.1f}), speed-up x{t1 / t2:.2f} "
-              f"(medians x{statistics.median(times[1]) / statistics.median(times[2]):.2f}); "
-              f"local (in-process) 2 threads {t_local:.1f} s, 1 thread {t_local1:.1f} s; "
-              f"1 worker / local 1 thread = {statistics.median(times[1]) / t_local1:.2f}")
+        results["dask_processes"] = {
+            "runs": speed_runs,
+            "steps": steps,
+            "one_worker_s": times[1],
+            "two_workers_s": times[2],
+            "local_s": t_local,
+            "local_one_thread_s": t_local1,
+            "speedup_best": t1 / t2,
+        }
+        print(
+            f"Dask processes, {speed_runs} runs x {steps} steps, {repeat} alternating tries: "
+            f"1 worker best {t1:.1f} s (median {statistics.median(times[1]):.1f}), "
+            f"2 workers best {t2:.1f} s (median {statistics.median(times[2]):.1f}), speed-up x{t1 / t2:.2f} "
+            f"(medians x{statistics.median(times[1]) / statistics.median(times[2]):.2f}); "
+            f"local (in-process) 2 threads {t_local:.1f} s, 1 thread {t_local1:.1f} s; "
+            f"1 worker / local 1 thread = {statistics.median(times[1]) / t_local1:.2f}"
+        )
         if args.speed_only:
             print(json.dumps(results))
             return
@@ -115,8 +127,10 @@ def main() -> None:
             g.write_text(SWEEP.format(runs=runs, steps=steps, block=min(block, runs)))
             t, peak = run(g, tmp / f"m{runs}", "local", 2)
             mem[runs] = peak
-            print(f"local (2 threads), {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
-                  f"{runs * steps / t:,.0f} run-steps/s")
+            print(
+                f"local (2 threads), {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
+                f"{runs * steps / t:,.0f} run-steps/s"
+            )
         results["peak_rss_mb"] = mem
         # experiment mode streams too: the fading TKF experiment in blocks of 1000 runs
         exp_mem = {}

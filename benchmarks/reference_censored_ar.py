@@ -45,7 +45,7 @@ def autocov_ma(phi, sigma2, T, terms=20000):
     for j in range(1, terms):
         for i in range(1, min(p, j) + 1):
             psi[j] += phi[i - 1] * psi[j - i]
-    return np.array([sigma2 * psi[:terms - h] @ psi[h:] for h in range(T)])
+    return np.array([sigma2 * psi[: terms - h] @ psi[h:] for h in range(T)])
 
 
 def blocks(unobs_idx, p):
@@ -92,8 +92,9 @@ def reference_loglik(y, X, lower, upper, side, beta, sigma2, phi, *, seed=1, rel
             s = np.sqrt(S[0, 0])
             P = norm.cdf((hi[0] - m[0]) / s) - norm.cdf((lo[0] - m[0]) / s)
         else:
-            P = mvn.cdf(hi, mean=m, cov=S, lower_limit=lo, maxpts=maxpts_per_dim * len(C), abseps=1e-300,
-                        releps=releps, rng=rng)
+            P = mvn.cdf(
+                hi, mean=m, cov=S, lower_limit=lo, maxpts=maxpts_per_dim * len(C), abseps=1e-300, releps=releps, rng=rng
+            )
         ll += np.log(P)
     return float(ll)
 
@@ -106,14 +107,14 @@ def trapezoid_loglik(y, side, upper, mu, sigma2, phi, h):
     lo = min(np.nanmin(y), c) - 12 * np.sqrt(g0)
     hi = c + 12 * np.sqrt(g0)
     k_lo, k_hi = int(np.floor((lo - c) / h)), int(np.ceil((hi - c) / h))
-    grid = c + h * np.arange(k_lo, k_hi + 1)             # y* nodes; c is the node k = 0
+    grid = c + h * np.arange(k_lo, k_hi + 1)  # y* nodes; c is the node k = 0
     xi = grid - mu
     K = np.exp(-0.5 * (xi[:, None] - phi * xi[None, :]) ** 2 / sigma2) / (s * np.sqrt(2 * np.pi))
     w_all = np.full(grid.size, h)
     w_all[[0, -1]] = h / 2
     w_cens = np.where(grid >= c, h, 0.0)
     w_cens[grid == c] = h / 2
-    ll, state, v = 0.0, None, None
+    ll, state, v, zp = 0.0, None, None, 0.0  # zp: the last observed z, read once state == 'point'
     for t in range(y.size):
         obs = not np.isnan(y[t]) and side[t] == 0
         if obs:
@@ -129,7 +130,7 @@ def trapezoid_loglik(y, side, upper, mu, sigma2, phi, h):
             continue
         w = w_cens if side[t] != 0 else w_all
         if state is None:
-            v = w * np.exp(-0.5 * xi ** 2 / g0) / np.sqrt(2 * np.pi * g0)
+            v = w * np.exp(-0.5 * xi**2 / g0) / np.sqrt(2 * np.pi * g0)
         elif state == "point":
             v = w * np.exp(-0.5 * (xi - phi * zp) ** 2 / sigma2) / (s * np.sqrt(2 * np.pi))
         else:
@@ -147,7 +148,7 @@ def cloud_reference(theta, data, h=0.02):
         return -np.inf
     a = trapezoid_loglik(data.y, data.side, data.upper, mu, s2, phi, 2 * h)
     b = trapezoid_loglik(data.y, data.side, data.upper, mu, s2, phi, h)
-    return (4 * b - a) / 3                                  # Richardson: O(h^4)
+    return (4 * b - a) / 3  # Richardson: O(h^4)
 
 
 def load(name):
@@ -173,7 +174,7 @@ def run(name, p, out):
     th, se = fit.theta, np.array([fit.se[n] for n in fit.names])
 
     def ref(theta, seed=1, **kw):
-        beta, s2, phi = theta[:l], theta[l], theta[l + 1:]
+        beta, s2, phi = theta[:l], theta[l], theta[l + 1 :]
         if s2 <= 0 or (phi.size and np.any(np.abs(np.roots(np.r_[-phi[::-1], 1.0])) <= 1)):
             return -np.inf
         return reference_loglik(data.y, data.X, data.lower, data.upper, data.side, beta, s2, phi, seed=seed, **kw)
@@ -186,11 +187,16 @@ def run(name, p, out):
         f = lambda v: cloud_reference(v, data)  # noqa: E731
         ll_ref_at_fit = f(th)
         extra["richardson_h"] = [0.04, 0.02]
-        extra["trapezoid_h_0.02_unextrapolated"] = trapezoid_loglik(data.y, data.side, data.upper, th[0], th[1],
-                                                                    th[2], 0.02)
+        extra["trapezoid_h_0.02_unextrapolated"] = trapezoid_loglik(
+            data.y, data.side, data.upper, th[0], th[1], th[2], 0.02
+        )
         extra["genz_at_tobitkf"] = ref(th, releps=1e-3, maxpts_per_dim=20000)
-        res = minimize(lambda v: -f(th + v * se), np.ones(th.size), method="Nelder-Mead",
-                       options={"xatol": 1e-5, "fatol": 1e-9, "maxiter": 3000, "maxfev": 6000})
+        res = minimize(
+            lambda v: -f(th + v * se),
+            np.ones(th.size),
+            method="Nelder-Mead",
+            options={"xatol": 1e-5, "fatol": 1e-9, "maxiter": 3000, "maxfev": 6000},
+        )
         th_ref = th + res.x * se
         ll_ref_at_ref = f(th_ref)
         how = f"Nelder-Mead on the trapezoid reference from fit + 1 s.e.: {res.nfev} evaluations, {res.message}"
@@ -212,9 +218,11 @@ def run(name, p, out):
             fm = [f(-E[i]) for i in range(d)]
             for i in range(d):
                 g[i] = (fp[i] - fm[i]) / (2 * hh)
-                H[i, i] = (fp[i] - 2 * f0 + fm[i]) / hh ** 2
+                H[i, i] = (fp[i] - 2 * f0 + fm[i]) / hh**2
                 for j in range(i + 1, d):
-                    H[i, j] = H[j, i] = (f(E[i] + E[j]) - f(E[i] - E[j]) - f(-E[i] + E[j]) + f(-E[i] - E[j])) / (4 * hh * hh)
+                    H[i, j] = H[j, i] = (f(E[i] + E[j]) - f(E[i] - E[j]) - f(-E[i] + E[j]) + f(-E[i] - E[j])) / (
+                        4 * hh * hh
+                    )
             v = -np.linalg.solve(H, g)
             cand = th_ref + v * se
             ll_c = ref(cand)
@@ -224,15 +232,27 @@ def run(name, p, out):
             th_ref, ll_ref_at_ref = cand, ll_c
             if np.max(np.abs(v)) < 0.01:
                 break
-        how = ("Newton iterations on the Genz reference, central differences of step 0.1 s.e., a step kept only "
-               "when it raises the reference log-likelihood; (largest step in s.e., kept): "
-               + ", ".join(f"({a:.3g}, {b})" for a, b in steps))
-    rec = {"data": name, "p": p, "names": fit.names, "tobitkf_estimates": th.tolist(), "tobitkf_se": se.tolist(),
-           "tobitkf_loglik": fit.loglik, "reference_loglik_at_tobitkf": ll_ref_at_fit,
-           "reference_qmc_spread": spread, **extra,
-           "reference_estimates": th_ref.tolist(), "reference_loglik_at_reference": ll_ref_at_ref,
-           "difference_in_se": ((th - th_ref) / se).tolist(), "how": how,
-           "seconds": round(time.perf_counter() - t0, 1)}
+        how = (
+            "Newton iterations on the Genz reference, central differences of step 0.1 s.e., a step kept only "
+            "when it raises the reference log-likelihood; (largest step in s.e., kept): "
+            + ", ".join(f"({a:.3g}, {b})" for a, b in steps)
+        )
+    rec = {
+        "data": name,
+        "p": p,
+        "names": fit.names,
+        "tobitkf_estimates": th.tolist(),
+        "tobitkf_se": se.tolist(),
+        "tobitkf_loglik": fit.loglik,
+        "reference_loglik_at_tobitkf": ll_ref_at_fit,
+        "reference_qmc_spread": spread,
+        **extra,
+        "reference_estimates": th_ref.tolist(),
+        "reference_loglik_at_reference": ll_ref_at_ref,
+        "difference_in_se": ((th - th_ref) / se).tolist(),
+        "how": how,
+        "seconds": round(time.perf_counter() - t0, 1),
+    }
     print(json.dumps(rec, indent=1))
     out.append(rec)
 

@@ -189,16 +189,24 @@ def test_spec_001b_table_2_6(row):
     mu, sigma, lo, hi, gamma, lam, m, V, Ey = row
     got = censored_moments(mu, sigma, lo, hi)
     # tolerance: the table is printed to 6 decimals; allow half a unit plus float noise
-    for val, ref in ((got.p_uncensored, gamma), (-got.inverse_mills, lam), (got.truncated_mean, m),
-                     (got.truncated_var, V), (got.censored_mean, Ey)):
+    for val, ref in (
+        (got.p_uncensored, gamma),
+        (-got.inverse_mills, lam),
+        (got.truncated_mean, m),
+        (got.truncated_var, V),
+        (got.censored_mean, Ey),
+    ):
         assert abs(float(val) - ref) <= _half_ulp_printed(ref) * 1.0001 + 1e-12, (val, ref)
 
 
-@pytest.mark.parametrize("mu,p_u,ey,m_tr,v_tr,epv2", [
-    # spec 001a §6 item 6 (Miller Example 1 channel: sigma = 0.1, left-censored at T = 0)
-    (-0.1, 0.15866, 0.00833, 0.05251, 0.001991, 0.004006),
-    (0.1, 0.84134, 0.10833, 0.12876, 0.006297, 0.005994),
-])
+@pytest.mark.parametrize(
+    "mu,p_u,ey,m_tr,v_tr,epv2",
+    [
+        # spec 001a §6 item 6 (Miller Example 1 channel: sigma = 0.1, left-censored at T = 0)
+        (-0.1, 0.15866, 0.00833, 0.05251, 0.001991, 0.004006),
+        (0.1, 0.84134, 0.10833, 0.12876, 0.006297, 0.005994),
+    ],
+)
 def test_spec_001a_item6_values(mu, p_u, ey, m_tr, v_tr, epv2):
     got = censored_moments(mu, 0.1, 0.0, np.inf)
     assert abs(got.p_uncensored - p_u) <= 0.5e-5
@@ -226,13 +234,16 @@ def test_sign_convention_of_inverse_mills():
 # ---------------------------------------------------------------------------------------------
 # 4. Monte Carlo, 10^6 seeded draws
 # ---------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("mu,sigma,lo,hi", [
-    (-0.1, 0.1, 0.0, np.inf),
-    (0.1, 0.1, 0.0, np.inf),
-    (0.3, 0.5, -1.0, 1.0),
-    (2.0, 0.5, -np.inf, 1.5),
-    (0.0, 2.0, -0.5, 0.25),
-])
+@pytest.mark.parametrize(
+    "mu,sigma,lo,hi",
+    [
+        (-0.1, 0.1, 0.0, np.inf),
+        (0.1, 0.1, 0.0, np.inf),
+        (0.3, 0.5, -1.0, 1.0),
+        (2.0, 0.5, -np.inf, 1.5),
+        (0.0, 2.0, -0.5, 0.25),
+    ],
+)
 def test_monte_carlo_mean_and_variance(mu, sigma, lo, hi):
     n = 1_000_000
     rng = np.random.default_rng(20240611)
@@ -278,7 +289,11 @@ def windows(draw):
     return mu, sigma, lo, hi
 
 
-PROPS = settings(max_examples=int(__import__("os").environ.get("TOBITKF_HYPOTHESIS_EXAMPLES", 150)), deadline=None, suppress_health_check=[HealthCheck.too_slow])
+PROPS = settings(
+    max_examples=int(__import__("os").environ.get("TOBITKF_HYPOTHESIS_EXAMPLES", 150)),
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
 
 
 @PROPS
@@ -361,8 +376,12 @@ def test_limits_40_sigma_away_are_finite(mu, sigma, k):
         assert got.censored_var == pytest.approx(sigma**2, rel=1e-12)
         assert got.truncated_var == pytest.approx(sigma**2, rel=1e-12)
     # all mass censored: E[y] is the limit, the truncated moments stay finite and sit next to it
-    for lo, hi in ((mu + k * sigma, np.inf), (mu + k * sigma, mu + (k + 1) * sigma),
-                   (-np.inf, mu - k * sigma), (mu - (k + 1) * sigma, mu - k * sigma)):
+    for lo, hi in (
+        (mu + k * sigma, np.inf),
+        (mu + k * sigma, mu + (k + 1) * sigma),
+        (-np.inf, mu - k * sigma),
+        (mu - (k + 1) * sigma, mu - k * sigma),
+    ):
         got = censored_moments(mu, sigma, lo, hi)
         vals = np.array([getattr(got, attr) for _, attr in FIELDS], dtype=float)
         assert np.isfinite(vals).all()
@@ -394,8 +413,8 @@ def test_extreme_limits_are_exact_and_quiet(far):
         one = censored_moments(mu, sigma, 0.0, np.inf)
         two = censored_moments(mu, sigma, 0.0, mu + far * sigma)
         both = censored_moments(mu, sigma, mu - far * sigma, mu + far * sigma)
-        up = censored_moments(mu, sigma, mu + far * sigma, np.inf)          # all censored at the lower limit
-        down = censored_moments(mu, sigma, -np.inf, mu - far * sigma)       # all censored at the upper limit
+        up = censored_moments(mu, sigma, mu + far * sigma, np.inf)  # all censored at the lower limit
+        down = censored_moments(mu, sigma, -np.inf, mu - far * sigma)  # all censored at the upper limit
         narrow = censored_moments(mu, sigma, mu + far * sigma, mu + 2 * far * sigma)
     for _, attr in FIELDS:
         assert getattr(two, attr) == pytest.approx(getattr(one, attr), rel=1e-14), attr
@@ -421,14 +440,17 @@ def test_broadcasting_shapes():
     np.testing.assert_array_equal(got.censored_mean[:, 2], mu[:, 2])
 
 
-@pytest.mark.parametrize("kwargs,match", [
-    (dict(mean=0.0, std=0.0, lower=0.0, upper=1.0), "std"),
-    (dict(mean=0.0, std=-1.0, lower=0.0, upper=1.0), "std"),
-    (dict(mean=0.0, std=np.nan, lower=0.0, upper=1.0), "std"),
-    (dict(mean=0.0, std=1.0, lower=1.0, upper=1.0), "lower"),
-    (dict(mean=0.0, std=1.0, lower=2.0, upper=1.0), "lower"),
-    (dict(mean=0.0, std=1.0, lower=np.nan, upper=1.0), "lower"),
-])
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        (dict(mean=0.0, std=0.0, lower=0.0, upper=1.0), "std"),
+        (dict(mean=0.0, std=-1.0, lower=0.0, upper=1.0), "std"),
+        (dict(mean=0.0, std=np.nan, lower=0.0, upper=1.0), "std"),
+        (dict(mean=0.0, std=1.0, lower=1.0, upper=1.0), "lower"),
+        (dict(mean=0.0, std=1.0, lower=2.0, upper=1.0), "lower"),
+        (dict(mean=0.0, std=1.0, lower=np.nan, upper=1.0), "lower"),
+    ],
+)
 def test_invalid_arguments(kwargs, match):
     with pytest.raises(ValidationError, match=match):
         censored_moments(**kwargs)
@@ -463,6 +485,7 @@ def test_one_sided_tail_route_is_accurate(x, side):
     assert float(got.inverse_mills) == pytest.approx(sign * lam, rel=4 * EPS)
     assert float(got.truncated_var) == pytest.approx(sigma**2 * zvar, rel=8 * EPS)
     from scipy.special import ndtr
+
     ref_gamma = float(ndtr(-x))
     if ref_gamma > TINY:
         assert float(got.p_uncensored) == pytest.approx(ref_gamma, rel=1e-13)
@@ -481,8 +504,8 @@ def test_one_sided_route_is_continuous_at_its_switches():
             assert float(getattr(a, attr)) == pytest.approx(float(getattr(b, attr)), rel=1e-7, abs=1e-300)
     x = 6.0
     far = np.sqrt(100.0 + x * x)
-    a = censored_moments(0.0, 1.0, x, far - eps)   # two-sided in the tail: quadrature
-    b = censored_moments(0.0, 1.0, x, far + eps)   # far limit negligible: continued fraction
-    for _, attr in FIELDS:   # (p_upper = Phi(-b) itself moves by b * eps relative)
+    a = censored_moments(0.0, 1.0, x, far - eps)  # two-sided in the tail: quadrature
+    b = censored_moments(0.0, 1.0, x, far + eps)  # far limit negligible: continued fraction
+    for _, attr in FIELDS:  # (p_upper = Phi(-b) itself moves by b * eps relative)
         rel = 1e-7 if attr == "p_upper" else 1e-11
         assert float(getattr(a, attr)) == pytest.approx(float(getattr(b, attr)), rel=rel, abs=1e-300)

@@ -33,6 +33,7 @@ def test_failed_write_keeps_previous_file(tmp_path):
 
 def test_savefig(tmp_path):
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 

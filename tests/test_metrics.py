@@ -15,14 +15,18 @@ from tobitkf.metrics import align_truth, bias, nees, nees_terms, rmse, summarize
 
 def _case():
     # 2 runs, 2 steps, 2 states; truth includes x_0 (T+1 = 3 rows)
-    truth = np.array([
-        [[9.0, 9.0], [0.0, 0.0], [1.0, 1.0]],
-        [[9.0, 9.0], [0.0, 0.0], [1.0, 1.0]],
-    ])
-    est = np.array([
-        [[3.0, 0.0], [1.0, 2.0]],
-        [[-1.0, 0.0], [1.0, 0.0]],
-    ])
+    truth = np.array(
+        [
+            [[9.0, 9.0], [0.0, 0.0], [1.0, 1.0]],
+            [[9.0, 9.0], [0.0, 0.0], [1.0, 1.0]],
+        ]
+    )
+    est = np.array(
+        [
+            [[3.0, 0.0], [1.0, 2.0]],
+            [[-1.0, 0.0], [1.0, 0.0]],
+        ]
+    )
     return truth, est
 
 
@@ -92,8 +96,11 @@ def test_summarize_contents_and_json():
 
 
 def test_to_jsonable_non_finite():
-    assert to_jsonable({"a": np.array([1.0, np.inf, -np.inf, np.nan]), "b": np.int64(3), "c": np.bool_(True)}) == \
-        {"a": [1.0, "inf", "-inf", "nan"], "b": 3, "c": True}
+    assert to_jsonable({"a": np.array([1.0, np.inf, -np.inf, np.nan]), "b": np.int64(3), "c": np.bool_(True)}) == {
+        "a": [1.0, "inf", "-inf", "nan"],
+        "b": 3,
+        "c": True,
+    }
 
 
 def test_shape_mismatch():
@@ -120,7 +127,9 @@ def test_nees_terms_compiled_equals_numpy_solve(n, shared, monkeypatch):
     fast = nees_terms(err, cov)
     monkeypatch.setattr(backend, "numba_available", lambda: False)
     ref = nees_terms(err, cov)
-    direct = np.einsum("...i,...i->...", err, np.linalg.solve(np.broadcast_to(cov, (N, T, n, n)), err[..., None])[..., 0])
+    direct = np.einsum(
+        "...i,...i->...", err, np.linalg.solve(np.broadcast_to(cov, (N, T, n, n)), err[..., None])[..., 0]
+    )
     np.testing.assert_allclose(fast, direct, rtol=1e-10)
     np.testing.assert_allclose(ref, direct, rtol=1e-12)
 
@@ -129,7 +138,7 @@ def test_nees_terms_singular_is_inf_for_that_term_on_both_paths(monkeypatch):
     import tobitkf.filters._backend as backend
 
     err = np.array([[[1.0, 2.0], [1.0, 0.0]]])
-    cov = np.array([[[[2.0, 0.0], [0.0, 4.0]], [[1.0, 1.0], [1.0, 1.0]]]])    # the second is singular
+    cov = np.array([[[[2.0, 0.0], [0.0, 4.0]], [[1.0, 1.0], [1.0, 1.0]]]])  # the second is singular
     for available in (True, False):
         if available and not backend.numba_available():
             continue
@@ -151,12 +160,15 @@ def test_nees_terms_of_a_broadcast_covariance_equals_the_materialized_one():
     np.testing.assert_allclose(nees_terms(err, view), nees_terms(err, np.array(view)), rtol=1e-14)
 
 
-@pytest.mark.parametrize("err_shape, cov_shape", [
-    ((4, 3, 2), (4, 3, 3, 3)),     # covariance of another dimension
-    ((4, 3, 2), (4, 3, 2)),        # not square
-    ((4, 3, 2), (5, 3, 2, 2)),     # runs do not broadcast
-    ((4, 3, 2), (2,)),             # not a matrix at all
-])
+@pytest.mark.parametrize(
+    "err_shape, cov_shape",
+    [
+        ((4, 3, 2), (4, 3, 3, 3)),  # covariance of another dimension
+        ((4, 3, 2), (4, 3, 2)),  # not square
+        ((4, 3, 2), (5, 3, 2, 2)),  # runs do not broadcast
+        ((4, 3, 2), (2,)),  # not a matrix at all
+    ],
+)
 def test_nees_terms_bad_shapes_raise_shape_error(err_shape, cov_shape):
     with pytest.raises(ShapeError, match="cov: "):
         nees_terms(np.zeros(err_shape), np.ones(cov_shape))

@@ -29,8 +29,17 @@ def test_time_index_convention_of_arrays():
     """A, Q, B are indexed A[k] for k = 0..T-1; C, R, Bu, D are indexed C[k-1] for k = 1..T."""
     T = 4
     one = np.array([[1.0]])
-    sys = LinearSystem(A=_tv(T, 1, one), C=_tv(T, 1, one), Q=_tv(T, 1, one), R=_tv(T, 1, one), x0=[0.0],
-                       P0=[[1.0]], B=_tv(T, 1, one), Bu=_tv(T, 1, one), D=_tv(T, 1, one))
+    sys = LinearSystem(
+        A=_tv(T, 1, one),
+        C=_tv(T, 1, one),
+        Q=_tv(T, 1, one),
+        R=_tv(T, 1, one),
+        x0=[0.0],
+        P0=[[1.0]],
+        B=_tv(T, 1, one),
+        Bu=_tv(T, 1, one),
+        D=_tv(T, 1, one),
+    )
     assert not sys.time_invariant and "time-varying" in repr(sys)
     for k in range(T):
         assert sys.transition(k)[0, 0] == k + 1
@@ -39,8 +48,8 @@ def test_time_index_convention_of_arrays():
         assert sys.measurement(k)[0, 0] == k
         assert sys.measurement_cov(k)[0, 0] == k
     bx, dy = sys.input_effect(2, np.array([[1.0], [2.0]]))
-    np.testing.assert_array_equal(bx, [[2.0], [4.0]])   # Bu[k-1] = Bu[1] = 2
-    np.testing.assert_array_equal(dy, [[2.0], [4.0]])   # D[1] = 2
+    np.testing.assert_array_equal(bx, [[2.0], [4.0]])  # Bu[k-1] = Bu[1] = 2
+    np.testing.assert_array_equal(dy, [[2.0], [4.0]])  # D[1] = 2
     with pytest.raises(ShapeError, match=r"A: time-indexed array has 4 steps, step k=4 \(index 4\) requested"):
         sys.transition(4)
     with pytest.raises(ShapeError, match=r"C: time-indexed array has 4 steps, step k=0 \(index -1\) requested"):
@@ -82,8 +91,7 @@ def test_control_input_dimension_from_Bu_or_D():
 
 
 def test_check_inputs_and_horizon():
-    sys = LinearSystem(A=np.stack([np.eye(1)] * 5), C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]],
-                       Bu=[[1.0]])
+    sys = LinearSystem(A=np.stack([np.eye(1)] * 5), C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]], Bu=[[1.0]])
     sys.check_horizon(5)
     with pytest.raises(ShapeError, match="A: time-indexed array has 5 steps, 6 needed"):
         sys.check_horizon(6)

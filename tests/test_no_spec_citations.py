@@ -21,7 +21,8 @@ SPEC_CITATION = re.compile(
                           |tables?\b|reconstruct|defaults?\b|``|/0)|\s+\[)
       | \bspec's\b | \bthe\ spec\b | \bspecifications?\b | \bnon-source\b | spec/0\d\d
       | (?-i:(?<![\w\[\]])\[(?:X|R|S|P|D|D\+R|P\ \+\ R)\])""",
-    re.X | re.I)
+    re.X | re.I,
+)
 
 # Files still citing the specifications (strictly xfailed). Empty: every file under src/ cites the
 # sources and docs/sources; a converted file left listed here fails the test.
@@ -43,8 +44,12 @@ def _py_files():
         rel = path.relative_to(SRC).as_posix()
         marks = []
         if rel in SPEC_EXEMPT:
-            marks = [pytest.mark.xfail(strict=True, reason="rewritten by the lead, who applies /work/tools/spec_map.md "
-                                                           "and then removes this exemption")]
+            marks = [
+                pytest.mark.xfail(
+                    strict=True,
+                    reason="rewritten by the lead, who applies /work/tools/spec_map.md and then removes this exemption",
+                )
+            ]
         params.append(pytest.param(path, id=rel, marks=marks))
     return params
 
@@ -55,27 +60,31 @@ def test_no_spec_citation_in_source(path):
     assert not found, "cite the source and docs/sources instead of the specifications:\n" + "\n".join(found)
 
 
-@pytest.mark.parametrize("path", sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]),
-                         ids=lambda p: p.relative_to(ROOT).as_posix())
+@pytest.mark.parametrize(
+    "path", sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")]), ids=lambda p: p.relative_to(ROOT).as_posix()
+)
 def test_no_spec_citation_in_docs(path):
     found = hits(path.read_text(encoding="utf-8"))
     assert not found, "\n".join(found)
 
 
-@pytest.mark.parametrize("text, cited", [
-    ("the printed 9.37E-3 is a digit transposition (spec A9)", True),
-    ("see spec §5.2 [X]", True),
-    ("spec 001a §3.6", True),
-    ("the spec's defaults", True),
-    ("[non-source] rule", True),
-    ("a [R] recommendation", True),
-    ("spec T17: not monotone", True),
-    ("the printed 9.37E-3 is a digit transposition (docs/sources MB-09)", False),
-    ("See :mod:`tobitkf.sweep.spec` for the file format", False),
-    ("spec = load_sweep(file)", False),
-    ("the spectral radius of A - LC", False),
-    ("xs = [x]; R=[[r]]; name = spec[0]", False),
-])
+@pytest.mark.parametrize(
+    "text, cited",
+    [
+        ("the printed 9.37E-3 is a digit transposition (spec A9)", True),
+        ("see spec §5.2 [X]", True),
+        ("spec 001a §3.6", True),
+        ("the spec's defaults", True),
+        ("[non-source] rule", True),
+        ("a [R] recommendation", True),
+        ("spec T17: not monotone", True),
+        ("the printed 9.37E-3 is a digit transposition (docs/sources MB-09)", False),
+        ("See :mod:`tobitkf.sweep.spec` for the file format", False),
+        ("spec = load_sweep(file)", False),
+        ("the spectral radius of A - LC", False),
+        ("xs = [x]; R=[[r]]; name = spec[0]", False),
+    ],
+)
 def test_the_pattern_finds_citations_and_only_them(text, cited):
     assert bool(hits(text)) is cited
 
@@ -98,6 +107,10 @@ def test_every_deviation_id_cited_in_src_has_an_anchor():
         anchors |= {a.upper() for a in re.findall(r"\{#([a-z]{2}-[a-z0-9]+)\}", page.read_text(encoding="utf-8"))}
     cited = set()
     for path in SRC.rglob("*.py"):
-        cited |= set(re.findall(r"\b(M[AB]-(?:\d{2}|F\d)|G[FP]-(?:\d{2}|F\d)|LD-(?:\d{2}|E\d)|WH-(?:\d{2}|F\d))\b",
-                                path.read_text(encoding="utf-8")))
+        cited |= set(
+            re.findall(
+                r"\b(M[AB]-(?:\d{2}|F\d)|G[FP]-(?:\d{2}|F\d)|LD-(?:\d{2}|E\d)|WH-(?:\d{2}|F\d))\b",
+                path.read_text(encoding="utf-8"),
+            )
+        )
     assert cited and not cited - anchors, sorted(cited - anchors)

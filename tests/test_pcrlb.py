@@ -10,11 +10,12 @@ from scipy import integrate, stats
 import tobitkf as tk
 from tobitkf.pcrlb import censored_fisher_information
 
-Z99 = 2.3263478740408408      # one-sided 1 % point of N(0, 1)
+Z99 = 2.3263478740408408  # one-sided 1 % point of N(0, 1)
 
 
 def _fim_by_quadrature(mu, sd, lo, hi):
     """E[score score^T] in (mu, sigma) with scores of the log-likelihood differentiated numerically."""
+
     def ll(y, m, s):
         if y == lo:
             return stats.norm.logcdf((lo - m) / s)
@@ -25,8 +26,9 @@ def _fim_by_quadrature(mu, sd, lo, hi):
     h = 1e-5
 
     def score(y):
-        return np.array([(ll(y, mu + h, sd) - ll(y, mu - h, sd)) / (2 * h),
-                         (ll(y, mu, sd + h) - ll(y, mu, sd - h)) / (2 * h)])
+        return np.array(
+            [(ll(y, mu + h, sd) - ll(y, mu - h, sd)) / (2 * h), (ll(y, mu, sd + h) - ll(y, mu, sd - h)) / (2 * h)]
+        )
 
     I = np.zeros((2, 2))
     if np.isfinite(lo):
@@ -34,13 +36,25 @@ def _fim_by_quadrature(mu, sd, lo, hi):
     if np.isfinite(hi):
         I += np.outer(score(hi), score(hi)) * stats.norm.sf((hi - mu) / sd)
     for i, j in ((0, 0), (0, 1), (1, 1)):
-        I[i, j] += integrate.quad(lambda y: score(y)[i] * score(y)[j] * stats.norm.pdf(y, mu, sd),
-                                  max(lo, mu - 12 * sd), min(hi, mu + 12 * sd), limit=200)[0]
+        I[i, j] += integrate.quad(
+            lambda y: score(y)[i] * score(y)[j] * stats.norm.pdf(y, mu, sd),
+            max(lo, mu - 12 * sd),
+            min(hi, mu + 12 * sd),
+            limit=200,
+        )[0]
     return I[0, 0], I[0, 1], I[1, 1]
 
 
-@pytest.mark.parametrize("args", [(0.3, 1.2, 0.0, np.inf), (0.3, 1.2, -np.inf, 0.5), (0.3, 0.7, -0.4, 1.0),
-                                  (2.0, 1.0, 0.0, np.inf), (-1.5, 0.5, -np.inf, np.inf)])
+@pytest.mark.parametrize(
+    "args",
+    [
+        (0.3, 1.2, 0.0, np.inf),
+        (0.3, 1.2, -np.inf, 0.5),
+        (0.3, 0.7, -0.4, 1.0),
+        (2.0, 1.0, 0.0, np.inf),
+        (-1.5, 0.5, -np.inf, np.inf),
+    ],
+)
 def test_censored_fisher_information_equals_quadrature(args):
     np.testing.assert_allclose(censored_fisher_information(*args), _fim_by_quadrature(*args), rtol=1e-6, atol=1e-9)
 
@@ -49,7 +63,7 @@ def test_censored_fisher_information_in_the_tails():
     # limit 40 sd below the mean: the normal's information; 40 sd above: nothing left (both finite)
     np.testing.assert_allclose(censored_fisher_information(0.0, 2.0, -80.0, np.inf), [0.25, 0.0, 0.5], atol=1e-15)
     np.testing.assert_allclose(censored_fisher_information(0.0, 1.0, 40.0, np.inf), [0.0, 0.0, 0.0], atol=1e-300)
-    v = censored_fisher_information(0.0, 1.0, 8.0, np.inf)         # the mass beyond 8 sd still informs
+    v = censored_fisher_information(0.0, 1.0, 8.0, np.inf)  # the mass beyond 8 sd still informs
     assert 0 < v[0] < 1e-12 and np.isfinite(v).all()
     with pytest.raises(tk.ValidationError, match="std: expected standard deviations > 0"):
         censored_fisher_information(0.0, 0.0)
@@ -60,8 +74,9 @@ def test_censored_fisher_information_in_the_tails():
 def test_without_censoring_the_bound_is_the_kalman_covariance():
     w = 0.1
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
-    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0], [0.0, 1.0]], Q=1e-2 * np.eye(2), R=np.diag([0.1, 0.3]),
-                           x0=[0.0, 0.0], P0=0.5 * np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=A, C=[[1.0, 0.0], [0.0, 1.0]], Q=1e-2 * np.eye(2), R=np.diag([0.1, 0.3]), x0=[0.0, 0.0], P0=0.5 * np.eye(2)
+    )
     b = tk.posterior_crlb(sys_, steps=30, runs=10)
     kf = tk.KalmanFilter(sys_).filter(np.zeros((30, 2)))
     np.testing.assert_allclose(b.bound, kf.cov, rtol=1e-11, atol=1e-14)
@@ -90,13 +105,19 @@ def test_pcrlb_lies_below_the_particle_filter_mse_on_a_censored_random_walk():
     b = tk.posterior_crlb(sys_, cens, truth=d.x)
     assert _below_every_step(b.var, d.x, pf.mean).all()
     free = tk.posterior_crlb(sys_, truth=d.x)
-    assert (b.var >= free.var - 1e-15).all() and (b.var[5:] > 1.2 * free.var[5:]).any()   # censoring costs
+    assert (b.var >= free.var - 1e-15).all() and (b.var[5:] > 1.2 * free.var[5:]).any()  # censoring costs
 
 
 def test_pcrlb_lies_below_the_particle_filter_mse_with_fading_and_censoring():
     w = 0.052 * np.pi
-    sys_ = tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]],
-                           Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]],
+        C=[[1.0, 0.0]],
+        Q=0.0025 * np.eye(2),
+        R=[[1.0]],
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
+    )
     fad = tk.RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
     cens = tk.Censoring(lower=0.0)
     d = tk.simulate(sys_, 25, 500, censoring=cens, measurement=fad, seed=3)

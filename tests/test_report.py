@@ -97,8 +97,15 @@ def report(tmp_path_factory):
     written = fake.build_fake_results(root)
     index, md = write_report(root)
     html_text = index.read_text(encoding="utf-8")
-    return {"root": root, "written": written, "index": index, "md": md, "html": html_text,
-            "dom": parse(html_text), "md_text": md.read_text(encoding="utf-8")}
+    return {
+        "root": root,
+        "written": written,
+        "index": index,
+        "md": md,
+        "html": html_text,
+        "dom": parse(html_text),
+        "md_text": md.read_text(encoding="utf-8"),
+    }
 
 
 def _rows(table: Node) -> list[Node]:
@@ -129,8 +136,10 @@ def test_every_figure_referenced_exists_and_every_figure_is_shown(report):
         assert img.attrs["loading"] == "lazy" and img.attrs["alt"]
         with open(root / src, "rb") as fh:  # intrinsic size from the PNG header (bytes 16-24, big-endian)
             head = fh.read(24)
-        assert (img.attrs["width"], img.attrs["height"]) == (str(int.from_bytes(head[16:20], "big")),
-                                                             str(int.from_bytes(head[20:24], "big")))
+        assert (img.attrs["width"], img.attrs["height"]) == (
+            str(int.from_bytes(head[16:20], "big")),
+            str(int.from_bytes(head[20:24], "big")),
+        )
     assert "figure img{display:block;width:100%;height:auto}" in report["html"]
     md_links = [unquote(m) for m in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", report["md_text"])]
     assert sorted(md_links) == sorted(expected)
@@ -201,21 +210,25 @@ def test_held_claims_have_no_explanation_link(report):
 
 def test_summary_counts_match_the_claims_written(report):
     claims = [c for m in report["written"].values() for c in m.get("claims", [])]
-    expected = {"experiments": len(report["written"]),
-                "claims held": sum(c["holds"] is True for c in claims),
-                "claims not held": sum(c["holds"] is False for c in claims),
-                "claims n/a (not measurable)": sum(c["holds"] is None for c in claims)}
+    expected = {
+        "experiments": len(report["written"]),
+        "claims held": sum(c["holds"] is True for c in claims),
+        "claims not held": sum(c["holds"] is False for c in claims),
+        "claims n/a (not measurable)": sum(c["holds"] is None for c in claims),
+    }
     cards = {}
     for card in report["dom"].iter("div"):
         if "card" in card.classes:
             number = next(card.iter("b")).text
-            label = card.text[len(number):].strip(" ✓✗–")
+            label = card.text[len(number) :].strip(" ✓✗–")
             cards[label] = int(number)
     assert cards == expected
     md_line = report["md_text"].splitlines()[2]
-    assert md_line == (f"Experiments: {expected['experiments']} · claims ✓ held: {expected['claims held']} · "
-                       f"✗ not held: {expected['claims not held']} · – n/a (not measurable): "
-                       f"{expected['claims n/a (not measurable)']}")
+    assert md_line == (
+        f"Experiments: {expected['experiments']} · claims ✓ held: {expected['claims held']} · "
+        f"✗ not held: {expected['claims not held']} · – n/a (not measurable): "
+        f"{expected['claims n/a (not measurable)']}"
+    )
 
 
 # ------------------------------------------------------------------ escaping and self-containment
@@ -237,8 +250,9 @@ def test_html_is_self_contained_and_responsive(report):
     html_text, dom = report["html"], report["dom"]
     assert not re.search(r"(src|href)\s*=\s*[\"']?\s*(https?:|//|data:|javascript:)", html_text, re.I)
     assert not list(dom.iter("script")) and not list(dom.iter("link"))
-    assert any(m.attrs.get("name") == "viewport" and "width=device-width" in m.attrs["content"]
-               for m in dom.iter("meta"))
+    assert any(
+        m.attrs.get("name") == "viewport" and "width=device-width" in m.attrs["content"] for m in dom.iter("meta")
+    )
     assert "@media (max-width:600px)" in html_text
     # every in-page link points to an element that exists; the others open a figure of the folder
     for a in dom.iter("a"):
@@ -295,9 +309,10 @@ def _rmse_tables(report, exp_id):
 
 
 def test_rmse_table_per_estimator_block_including_nested_scenarios(report):
-    for exp_id, blocks in (("fake-alpha", {"all runs": report["written"]["fake-alpha"]["estimators"]}),
-                           ("fake-beta", {k: v["estimators"]
-                                          for k, v in report["written"]["fake-beta"]["scenarios"].items()})):
+    for exp_id, blocks in (
+        ("fake-alpha", {"all runs": report["written"]["fake-alpha"]["estimators"]}),
+        ("fake-beta", {k: v["estimators"] for k, v in report["written"]["fake-beta"]["scenarios"].items()}),
+    ):
         tables = _rmse_tables(report, exp_id)
         assert [next(t.iter("caption")).text for t in tables] == list(blocks)
         for table, est in zip(tables, blocks.values()):
@@ -314,8 +329,9 @@ def test_rmse_lowest_value_per_component_is_bold(report):
     est = report["written"]["fake-beta"]["scenarios"]["low"]["estimators"]
     best = min(est, key=lambda k: float(np.ravel(est[k]["rmse_time_avg"])[0]))
     table = _rmse_tables(report, "fake-beta")[0]
-    bold = [next(r.iter("code")).text for r in _rows(table)
-            if any("best" in c.classes for c in r.children if c.tag == "td")]
+    bold = [
+        next(r.iter("code")).text for r in _rows(table) if any("best" in c.classes for c in r.children if c.tag == "td")
+    ]
     assert bold == [best]
     md_row = next(line for line in report["md_text"].splitlines() if line.startswith(f"| `{best}` | **"))
     assert md_row
@@ -438,7 +454,7 @@ def test_figures_have_their_captions_and_link_to_the_full_size_image(report):
     links = [a.attrs["href"] for a in figs[0].iter("a")]
     img = next(figs[0].iter("img")).attrs["src"]
     assert links == [img]
-    assert "fig+a2 (censored).png" in next(figs[1].iter("figcaption")).text     # no caption: the file name
+    assert "fig+a2 (censored).png" in next(figs[1].iter("figcaption")).text  # no caption: the file name
     md = report["md_text"]
     assert f"*{fake.CAPTION_A1.replace('&', '&')}* (fig_a1.png)" in md
 

@@ -32,10 +32,24 @@ _spec = importlib.util.spec_from_file_location("_report_fake", Path(__file__).wi
 fake = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(fake)
 
-CHROMIUM = next((p for p in (os.environ.get("CHROMIUM"), shutil.which("chromium"), shutil.which("chromium-browser"),
-                             shutil.which("google-chrome")) if p), None)
-pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="headless browser test: no chromium binary found "
-                                "(install it with `apt-get install -y chromium`, or set $CHROMIUM)")
+CHROMIUM = next(
+    (
+        p
+        for p in (
+            os.environ.get("CHROMIUM"),
+            shutil.which("chromium"),
+            shutil.which("chromium-browser"),
+            shutil.which("google-chrome"),
+        )
+        if p
+    ),
+    None,
+)
+pytestmark = pytest.mark.skipif(
+    CHROMIUM is None,
+    reason="headless browser test: no chromium binary found "
+    "(install it with `apt-get install -y chromium`, or set $CHROMIUM)",
+)
 
 BROKEN = "no-such-figure.png"
 PROBE = """<script>
@@ -54,11 +68,24 @@ window.addEventListener("load", function () {
 
 
 def _chromium(tmp_path: Path, *args: str, width: int, height: int) -> subprocess.CompletedProcess:
-    cmd = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-           "--disable-dev-shm-usage", "--hide-scrollbars", "--force-device-scale-factor=1",
-           f"--user-data-dir={tmp_path / 'chromium-profile'}", f"--window-size={width},{height}",
-           "--virtual-time-budget=5000", *args]
+    cmd = [
+        CHROMIUM,
+        "--headless",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-quic",
+        "--no-first-run",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--disable-sync",
+        "--disable-dev-shm-usage",
+        "--hide-scrollbars",
+        "--force-device-scale-factor=1",
+        f"--user-data-dir={tmp_path / 'chromium-profile'}",
+        f"--window-size={width},{height}",
+        "--virtual-time-budget=5000",
+        *args,
+    ]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
 
 
@@ -75,8 +102,7 @@ def _probe(tmp_path: Path, root: Path, *, width: int) -> dict:
         probe_file.unlink()
     m = re.search(r'<pre id="probe">(.*?)</pre>', res.stdout, re.S)
     assert m, f"probe did not run; chromium exit {res.returncode}, stderr tail: {res.stderr[-600:]}"
-    return json.loads(m.group(1).replace("&quot;", '"').replace("&amp;", "&").replace("&lt;", "<")
-                      .replace("&gt;", ">"))
+    return json.loads(m.group(1).replace("&quot;", '"').replace("&amp;", "&").replace("&lt;", "<").replace("&gt;", ">"))
 
 
 @pytest.fixture(scope="module")
@@ -105,8 +131,9 @@ def _shot_dir() -> Path:
     return Path(env) if env else Path(__file__).resolve().parents[1] / "results"
 
 
-@pytest.mark.parametrize(("name", "width", "height"), [("report_screenshot.png", 1200, 2600),
-                                                       ("report_screenshot_phone.png", 412, 2600)])
+@pytest.mark.parametrize(
+    ("name", "width", "height"), [("report_screenshot.png", 1200, 2600), ("report_screenshot_phone.png", 412, 2600)]
+)
 def test_screenshot_renders(tmp_path, results, name, width, height):
     import matplotlib.image as mpimg
 

@@ -31,8 +31,14 @@ def _check_moments(samples, mean, cov, what):
 
 def _system(**kw):
     A = np.array([[0.9, 0.2], [-0.1, 0.8]])
-    base = dict(A=A, C=[[1.0, 0.5], [0.0, 1.0]], Q=[[0.3, 0.1], [0.1, 0.2]], R=[[0.5, 0.2], [0.2, 0.4]],
-                x0=[1.0, -2.0], P0=[[1.0, 0.3], [0.3, 0.5]])
+    base = dict(
+        A=A,
+        C=[[1.0, 0.5], [0.0, 1.0]],
+        Q=[[0.3, 0.1], [0.1, 0.2]],
+        R=[[0.5, 0.2], [0.2, 0.4]],
+        x0=[1.0, -2.0],
+        P0=[[1.0, 0.3], [0.3, 0.5]],
+    )
     base.update(kw)
     return LinearSystem(**base)
 
@@ -186,8 +192,9 @@ def test_custom_measurement_and_post_pieces():
             return out
 
     sys = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.01]], R=[[0.01]], x0=[1.0], P0=[[0.0]])
-    data = simulate(sys, steps=6, runs=3, measurement=Scaled(), post=[DropEven()], seed=1,
-                    censoring=Censoring(upper=1.2))
+    data = simulate(
+        sys, steps=6, runs=3, measurement=Scaled(), post=[DropEven()], seed=1, censoring=Censoring(upper=1.2)
+    )
     assert data.extras["theta"].shape == (3, 6, 1) and data.extras["dropped"] is True
     assert np.isnan(data.y[:, ::2]).all()
     np.testing.assert_array_equal(data.y[:, 1::2], np.minimum(data.y_latent[:, 1::2], 1.2))
@@ -212,17 +219,20 @@ def test_psd_sqrt_and_generator():
         as_generator("x")
 
 
-@pytest.mark.parametrize("kwargs,exc,match", [
-    (dict(steps=0), ValidationError, "steps: expected a positive integer, got 0"),
-    (dict(steps=2.5), ValidationError, "steps: expected a positive integer, got 2.5"),
-    (dict(steps=True), ValidationError, "steps: expected a positive integer, got True"),
-    (dict(steps=3, runs=-1), ValidationError, "runs: expected a positive integer, got -1"),
-    (dict(steps=3, seed=None), ValidationError, "seed: expected an int"),
-    (dict(steps=3, censoring=(0.0, 1.0)), ValidationError, "censoring: expected a Censoring, got tuple"),
-    (dict(steps=3, censoring=Censoring(lower=[0.0, 0.0, 0.0])), ShapeError, "censoring limits: expected 2 channel"),
-    (dict(steps=3, censoring=Censoring(lower=np.zeros((2, 2)))), ShapeError, "time-varying limits have 2 steps, 3"),
-    (dict(steps=3, inputs=np.zeros((3, 1))), ShapeError, "inputs: the system has no control input"),
-])
+@pytest.mark.parametrize(
+    "kwargs,exc,match",
+    [
+        (dict(steps=0), ValidationError, "steps: expected a positive integer, got 0"),
+        (dict(steps=2.5), ValidationError, "steps: expected a positive integer, got 2.5"),
+        (dict(steps=True), ValidationError, "steps: expected a positive integer, got True"),
+        (dict(steps=3, runs=-1), ValidationError, "runs: expected a positive integer, got -1"),
+        (dict(steps=3, seed=None), ValidationError, "seed: expected an int"),
+        (dict(steps=3, censoring=(0.0, 1.0)), ValidationError, "censoring: expected a Censoring, got tuple"),
+        (dict(steps=3, censoring=Censoring(lower=[0.0, 0.0, 0.0])), ShapeError, "censoring limits: expected 2 channel"),
+        (dict(steps=3, censoring=Censoring(lower=np.zeros((2, 2)))), ShapeError, "time-varying limits have 2 steps, 3"),
+        (dict(steps=3, inputs=np.zeros((3, 1))), ShapeError, "inputs: the system has no control input"),
+    ],
+)
 def test_simulate_validation(kwargs, exc, match):
     with pytest.raises(exc, match=match):
         simulate(_system(), **kwargs)
@@ -242,7 +252,8 @@ def test_simulate_validation_inputs_and_horizon():
     bad_q = LinearSystem(A=np.eye(1), C=np.eye(1), Q=lambda k: np.array([[1.0 - k]]), R=np.eye(1), x0=[0], P0=np.eye(1))
     with pytest.raises(ValidationError, match=r"Q\(2\): expected a positive semi-definite matrix"):
         simulate(bad_q, steps=3)
-    nan_c = LinearSystem(A=np.eye(1), C=lambda k: np.array([[np.nan if k == 2 else 1.0]]), Q=np.eye(1), R=np.eye(1),
-                         x0=[0], P0=np.eye(1))
+    nan_c = LinearSystem(
+        A=np.eye(1), C=lambda k: np.array([[np.nan if k == 2 else 1.0]]), Q=np.eye(1), R=np.eye(1), x0=[0], P0=np.eye(1)
+    )
     with pytest.raises(ValidationError, match=r"C\(2\): expected finite numbers, found NaN"):
         simulate(nan_c, steps=3)

@@ -63,11 +63,12 @@ def test_gate_rejects_wrong_measurements_where_the_kf_follows_them():
     assert np.all(res.assignment[40:43, 0] == -1)
     assert np.abs(res.mean[20:, 0, ::2] - truth[20:]).max() < 0.05
     A, C = constant_velocity_pixel_model()
-    kf = KalmanFilter(LinearSystem(A=A, C=C, Q=0.01 * np.eye(4), R=np.eye(2), x0=[100.0, 0, 80.0, 0],
-                                   P0=np.diag([1.0, 10, 1, 10]))).filter(meas)
+    kf = KalmanFilter(
+        LinearSystem(A=A, C=C, Q=0.01 * np.eye(4), R=np.eye(2), x0=[100.0, 0, 80.0, 0], P0=np.diag([1.0, 10, 1, 10]))
+    ).filter(meas)
     assert np.abs(kf.mean[40:45, ::2] - truth[40:45]).max() > 50
     ungated = MultiTargetTracker(gate=False).track(truth[:1] - 1.0, [m[None] for m in meas])
-    assert ungated.mean[:, 0, ::2] == pytest.approx(kf.mean[:, ::2], abs=1e-9)   # no gate, no feedback: a KF
+    assert ungated.mean[:, 0, ::2] == pytest.approx(kf.mean[:, ::2], abs=1e-9)  # no gate, no feedback: a KF
 
 
 def test_bad_input():

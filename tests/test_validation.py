@@ -10,10 +10,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tobitkf import (Censoring, DroppingKalmanFilter, KalmanFilter, LinearSystem, ShapeError, TobitKalmanFilter,
-                     ValidationError)
-from tobitkf._validation import (TimeSequence, as_float_array, check_finite, check_option, check_probability,
-                                 check_psd)
+from tobitkf import (
+    Censoring,
+    DroppingKalmanFilter,
+    KalmanFilter,
+    LinearSystem,
+    ShapeError,
+    TobitKalmanFilter,
+    ValidationError,
+)
+from tobitkf._validation import TimeSequence, as_float_array, check_finite, check_option, check_probability, check_psd
 
 
 def test_error_hierarchy():
@@ -49,11 +55,20 @@ def test_check_option():
         check_option("c", "mode", ("a", "b"))
 
 
-@pytest.mark.parametrize("value,kw,ok", [
-    (0.0, {}, True), (1.0, {}, True), (0.5, {}, True), (-0.1, {}, False), (1.1, {}, False),
-    (0.0, {"open_low": True}, False), (1.0, {"open_high": True}, False), ([0.2, 0.9], {}, True),
-    ([0.2, 1.9], {}, False),
-])
+@pytest.mark.parametrize(
+    "value,kw,ok",
+    [
+        (0.0, {}, True),
+        (1.0, {}, True),
+        (0.5, {}, True),
+        (-0.1, {}, False),
+        (1.1, {}, False),
+        (0.0, {"open_low": True}, False),
+        (1.0, {"open_high": True}, False),
+        ([0.2, 0.9], {}, True),
+        ([0.2, 1.9], {}, False),
+    ],
+)
 def test_check_probability(value, kw, ok):
     if ok:
         check_probability(value, "p", **kw)
@@ -66,8 +81,8 @@ def test_check_probability(value, kw, ok):
 
 def test_check_psd():
     check_psd(np.eye(2), "P")
-    check_psd(np.zeros((2, 2)), "P")                       # PSD, singular
-    check_psd(np.stack([np.eye(2), 2 * np.eye(2)]), "P")   # batched
+    check_psd(np.zeros((2, 2)), "P")  # PSD, singular
+    check_psd(np.stack([np.eye(2), 2 * np.eye(2)]), "P")  # batched
     with pytest.raises(ValidationError, match="P: expected a symmetric matrix"):
         check_psd(np.array([[1.0, 0.5], [0.0, 1.0]]), "P")
     with pytest.raises(ValidationError, match="P: expected a positive semi-definite matrix, smallest eigenvalue -1"):
@@ -111,33 +126,36 @@ def test_time_sequence():
 GOOD = dict(A=np.eye(2), C=np.ones((1, 2)), Q=np.eye(2), R=np.eye(1), x0=np.zeros(2), P0=np.eye(2))
 
 
-@pytest.mark.parametrize("change,exc,match", [
-    (dict(A=np.ones((2, 3))), ShapeError, r"A: expected a square \(n, n\) matrix, got \(2, 3\)"),
-    (dict(A=np.ones(2)), ShapeError, r"A: expected 2 or 3 dimension"),
-    (dict(A=[[1.0, np.nan], [0.0, 1.0]]), ValidationError, "A: expected finite numbers, found NaN"),
-    (dict(A=lambda k: np.full((2, 2), np.inf)), ValidationError, r"A\(0\): expected finite numbers, found inf"),
-    (dict(C=np.ones((1, 3))), ShapeError, r"C: expected \(m, 2\) to match A of size n=2, got \(1, 3\)"),
-    (dict(C=[[np.inf, 0.0]]), ValidationError, "C: expected finite numbers, found inf"),
-    (dict(R=np.eye(2)), ShapeError, r"R: expected \(1, 1\) to match C with m=1 rows, got \(2, 2\)"),
-    (dict(R=[[-1.0]]), ValidationError, "R: expected a positive semi-definite matrix"),
-    (dict(R=[[np.nan]]), ValidationError, "R: expected finite numbers, found NaN"),
-    (dict(Q=np.eye(3)), ShapeError, r"Q: expected \(2, 2\) \(q = n\), got \(3, 3\)"),
-    (dict(Q=[[1.0, 0.5], [0.0, 1.0]]), ValidationError, "Q: expected a symmetric matrix"),
-    (dict(Q=[[1.0, 2.0], [2.0, 1.0]]), ValidationError, "Q: expected a positive semi-definite matrix"),
-    (dict(Q=np.stack([np.eye(2), -np.eye(2)])), ValidationError, "Q: expected a positive semi-definite"),
-    (dict(B=np.ones((3, 1))), ShapeError, r"B: expected \(2, q\), got \(3, 1\)"),
-    (dict(B=np.ones((2, 1))), ShapeError, r"Q: expected \(1, 1\) \(q = columns of B\), got \(2, 2\)"),
-    (dict(Bu=np.ones((3, 1))), ShapeError, r"Bu: expected \(2, p\), got \(3, 1\)"),
-    (dict(Bu=np.ones((2, 1)), D=np.ones((1, 2))), ShapeError, r"D: expected \(1, 1\), got \(1, 2\)"),
-    (dict(D=np.ones((2, 1))), ShapeError, r"D: expected \(1, p\), got \(2, 1\)"),
-    (dict(x0=np.zeros(3)), ShapeError, r"x0: expected shape \(2,\), got \(3,\)"),
-    (dict(x0=np.zeros((2, 1))), ShapeError, r"x0: expected 1 dimension"),
-    (dict(x0=[0.0, np.nan]), ValidationError, "x0: expected finite numbers, found NaN"),
-    (dict(P0=np.eye(3)), ShapeError, r"P0: expected shape \(2, 2\), got \(3, 3\)"),
-    (dict(P0=[[1.0, 0.0], [0.0, -1.0]]), ValidationError, "P0: expected a positive semi-definite matrix"),
-    (dict(P0=[[1.0, 0.2], [0.1, 1.0]]), ValidationError, "P0: expected a symmetric matrix"),
-    (dict(P0=[[np.nan, 0.0], [0.0, 1.0]]), ValidationError, "P0: expected finite numbers, found NaN"),
-])
+@pytest.mark.parametrize(
+    "change,exc,match",
+    [
+        (dict(A=np.ones((2, 3))), ShapeError, r"A: expected a square \(n, n\) matrix, got \(2, 3\)"),
+        (dict(A=np.ones(2)), ShapeError, r"A: expected 2 or 3 dimension"),
+        (dict(A=[[1.0, np.nan], [0.0, 1.0]]), ValidationError, "A: expected finite numbers, found NaN"),
+        (dict(A=lambda k: np.full((2, 2), np.inf)), ValidationError, r"A\(0\): expected finite numbers, found inf"),
+        (dict(C=np.ones((1, 3))), ShapeError, r"C: expected \(m, 2\) to match A of size n=2, got \(1, 3\)"),
+        (dict(C=[[np.inf, 0.0]]), ValidationError, "C: expected finite numbers, found inf"),
+        (dict(R=np.eye(2)), ShapeError, r"R: expected \(1, 1\) to match C with m=1 rows, got \(2, 2\)"),
+        (dict(R=[[-1.0]]), ValidationError, "R: expected a positive semi-definite matrix"),
+        (dict(R=[[np.nan]]), ValidationError, "R: expected finite numbers, found NaN"),
+        (dict(Q=np.eye(3)), ShapeError, r"Q: expected \(2, 2\) \(q = n\), got \(3, 3\)"),
+        (dict(Q=[[1.0, 0.5], [0.0, 1.0]]), ValidationError, "Q: expected a symmetric matrix"),
+        (dict(Q=[[1.0, 2.0], [2.0, 1.0]]), ValidationError, "Q: expected a positive semi-definite matrix"),
+        (dict(Q=np.stack([np.eye(2), -np.eye(2)])), ValidationError, "Q: expected a positive semi-definite"),
+        (dict(B=np.ones((3, 1))), ShapeError, r"B: expected \(2, q\), got \(3, 1\)"),
+        (dict(B=np.ones((2, 1))), ShapeError, r"Q: expected \(1, 1\) \(q = columns of B\), got \(2, 2\)"),
+        (dict(Bu=np.ones((3, 1))), ShapeError, r"Bu: expected \(2, p\), got \(3, 1\)"),
+        (dict(Bu=np.ones((2, 1)), D=np.ones((1, 2))), ShapeError, r"D: expected \(1, 1\), got \(1, 2\)"),
+        (dict(D=np.ones((2, 1))), ShapeError, r"D: expected \(1, p\), got \(2, 1\)"),
+        (dict(x0=np.zeros(3)), ShapeError, r"x0: expected shape \(2,\), got \(3,\)"),
+        (dict(x0=np.zeros((2, 1))), ShapeError, r"x0: expected 1 dimension"),
+        (dict(x0=[0.0, np.nan]), ValidationError, "x0: expected finite numbers, found NaN"),
+        (dict(P0=np.eye(3)), ShapeError, r"P0: expected shape \(2, 2\), got \(3, 3\)"),
+        (dict(P0=[[1.0, 0.0], [0.0, -1.0]]), ValidationError, "P0: expected a positive semi-definite matrix"),
+        (dict(P0=[[1.0, 0.2], [0.1, 1.0]]), ValidationError, "P0: expected a symmetric matrix"),
+        (dict(P0=[[np.nan, 0.0], [0.0, 1.0]]), ValidationError, "P0: expected finite numbers, found NaN"),
+    ],
+)
 def test_linear_system_rejects(change, exc, match):
     with pytest.raises(exc, match=match):
         LinearSystem(**{**GOOD, **change})

@@ -32,61 +32,146 @@ Public API (stable):
   (:mod:`tobitkf.inference`); :mod:`tobitkf.data` -- real censored data sets.
 """
 
+from . import control, data, metrics
 from ._validation import ShapeError, ValidationError
+from ._version import __version__
 from .censored import CensoredMoments, censored_moments
-from .channels import Censoring, multi_region
-from .filters import (DroppingKalmanFilter, FilterResult, KalmanFilter, TobitKalmanFilter, kalman_filter,
-                      tobit_kalman_filter)
-from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
-from .models import LinearSystem
-from .simulate import SimulationData, simulate
-from .channels import laws
+from .channels import Censoring, laws, multi_region
 from .channels.fading import RiceFading
+from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .channels.saturation import RandomSaturation
-from .filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter, fading_kalman_filter, fading_tobit_kalman_filter
-from .filters.hinf import RegionalHinfFilter
-from .models.ross import RossModel
+from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, tobit_lqe
 from .design.hinf import analyze as hinf_analyze
 from .design.hinf import design as hinf_design
 from .design.hinf import verify as hinf_verify
-from .filters.delay import (AugmentedLMMSE, ChainLMMSE, DelayEstimates, ReorganizedInnovationLMMSE, augmented_lmmse,
-                            chain_lmmse, reorganized_lmmse, smooth_interval, smooth_point)
-from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
-from .simulate.delay import simulate_delay
-from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
-from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
-from .report import write_report
-from .filters.particle import ParticleFilter
-from .filters.assumed_density import AssumedDensityTobitFilter
+from .filters import (
+    DroppingKalmanFilter,
+    FilterResult,
+    KalmanFilter,
+    TobitKalmanFilter,
+    kalman_filter,
+    tobit_kalman_filter,
+)
 from .filters.adf_fading import FadingAssumedDensityFilter
 from .filters.adf_protocol import ProtocolAssumedDensityFilter
 from .filters.adf_saturation import SaturationAssumedDensityFilter
-from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
+from .filters.assumed_density import AssumedDensityTobitFilter
+from .filters.delay import (
+    AugmentedLMMSE,
+    ChainLMMSE,
+    DelayEstimates,
+    ReorganizedInnovationLMMSE,
+    augmented_lmmse,
+    chain_lmmse,
+    reorganized_lmmse,
+    smooth_interval,
+    smooth_point,
+)
+from .filters.fading import (
+    FadingKalmanFilter,
+    FadingTobitKalmanFilter,
+    fading_kalman_filter,
+    fading_tobit_kalman_filter,
+)
+from .filters.hinf import RegionalHinfFilter
+from .filters.particle import ParticleFilter
+from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
+from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .filters.tracking import MultiTargetTracker
-from . import control
-from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, tobit_lqe
-from . import metrics
-from . import data
-from .inference import (CensoredAR, FitResult, FixedLagSmoother, adf_log_likelihood, fit, kalman_log_likelihood,
-                        load_fit, log_likelihood, smooth)
-
-__version__ = "0.1.0"
+from .inference import (
+    CensoredAR,
+    FitResult,
+    FixedLagSmoother,
+    adf_log_likelihood,
+    fit,
+    kalman_log_likelihood,
+    load_fit,
+    log_likelihood,
+    smooth,
+)
+from .models import LinearSystem
+from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
+from .models.ross import RossModel
+from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
+from .report import write_report
+from .simulate import SimulationData, simulate
+from .simulate.delay import simulate_delay
 
 __all__ = [
-    "LinearSystem", "Censoring", "multi_region", "simulate", "SimulationData",
-    "KalmanFilter", "DroppingKalmanFilter", "TobitKalmanFilter", "kalman_filter", "tobit_kalman_filter",
-    "SteadyStateTobitKalmanFilter", "tobit_kalman_filter_controlled",
-    "FilterResult", "censored_moments", "CensoredMoments", "metrics", "ShapeError", "ValidationError",
-    "laws", "RiceFading", "FadingTobitKalmanFilter", "FadingKalmanFilter", "fading_tobit_kalman_filter",
-    "fading_kalman_filter", "RandomSaturation", "RossModel", "RegionalHinfFilter", "hinf_design", "hinf_analyze",
-    "hinf_verify", "DelayFadingSystem", "HistoryPrior", "FadingPMF", "FadingMoments", "simulate_delay",
-    "chain_lmmse", "augmented_lmmse", "reorganized_lmmse", "smooth_interval", "smooth_point", "ChainLMMSE",
-    "AugmentedLMMSE", "ReorganizedInnovationLMMSE", "DelayEstimates", "ProtocolChannel", "RoundRobin", "IntegralMeasurement",
-    "ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "protocol_covariance_bounds", "write_report",
-    "control", "simulate_closed_loop", "certify_tkf_stability", "tobit_lqe", "tobit_dlqe", "MultiTargetTracker",
-    "ParticleFilter", "AssumedDensityTobitFilter", "FadingAssumedDensityFilter", "ProtocolAssumedDensityFilter",
-    "SaturationAssumedDensityFilter", "posterior_crlb", "PosteriorCRLB", "censored_fisher_information",
-    "smooth", "FixedLagSmoother", "log_likelihood", "kalman_log_likelihood", "adf_log_likelihood", "fit",
-    "FitResult", "load_fit", "CensoredAR", "data",
+    "LinearSystem",
+    "Censoring",
+    "multi_region",
+    "simulate",
+    "SimulationData",
+    "KalmanFilter",
+    "DroppingKalmanFilter",
+    "TobitKalmanFilter",
+    "kalman_filter",
+    "tobit_kalman_filter",
+    "SteadyStateTobitKalmanFilter",
+    "tobit_kalman_filter_controlled",
+    "FilterResult",
+    "censored_moments",
+    "CensoredMoments",
+    "metrics",
+    "ShapeError",
+    "ValidationError",
+    "laws",
+    "RiceFading",
+    "FadingTobitKalmanFilter",
+    "FadingKalmanFilter",
+    "fading_tobit_kalman_filter",
+    "fading_kalman_filter",
+    "RandomSaturation",
+    "RossModel",
+    "RegionalHinfFilter",
+    "hinf_design",
+    "hinf_analyze",
+    "hinf_verify",
+    "DelayFadingSystem",
+    "HistoryPrior",
+    "FadingPMF",
+    "FadingMoments",
+    "simulate_delay",
+    "chain_lmmse",
+    "augmented_lmmse",
+    "reorganized_lmmse",
+    "smooth_interval",
+    "smooth_point",
+    "ChainLMMSE",
+    "AugmentedLMMSE",
+    "ReorganizedInnovationLMMSE",
+    "DelayEstimates",
+    "ProtocolChannel",
+    "RoundRobin",
+    "IntegralMeasurement",
+    "ProtocolTobitKalmanFilter",
+    "protocol_tobit_kalman_filter",
+    "protocol_covariance_bounds",
+    "write_report",
+    "control",
+    "simulate_closed_loop",
+    "certify_tkf_stability",
+    "tobit_lqe",
+    "tobit_dlqe",
+    "MultiTargetTracker",
+    "ParticleFilter",
+    "AssumedDensityTobitFilter",
+    "FadingAssumedDensityFilter",
+    "ProtocolAssumedDensityFilter",
+    "SaturationAssumedDensityFilter",
+    "posterior_crlb",
+    "PosteriorCRLB",
+    "censored_fisher_information",
+    "smooth",
+    "FixedLagSmoother",
+    "log_likelihood",
+    "kalman_log_likelihood",
+    "adf_log_likelihood",
+    "fit",
+    "FitResult",
+    "load_fit",
+    "CensoredAR",
+    "data",
     "__version__",
 ]

@@ -15,10 +15,20 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["atomic_write_text", "atomic_write_json", "atomic_savefig", "to_jsonable", "safe_child", "staging_dir",
-           "replace_dir", "check_writable_dir", "check_replaceable", "as_path"]
+__all__ = [
+    "atomic_write_text",
+    "atomic_write_json",
+    "atomic_savefig",
+    "to_jsonable",
+    "safe_child",
+    "staging_dir",
+    "replace_dir",
+    "check_writable_dir",
+    "check_replaceable",
+    "as_path",
+]
 
-_NAME_MAX = 255          # bytes of one path component on the usual file systems (ext4, xfs, APFS, NTFS)
+_NAME_MAX = 255  # bytes of one path component on the usual file systems (ext4, xfs, APFS, NTFS)
 FIGURE_SOFTWARE = "tobitkf (matplotlib)"
 # figures tobitkf wrote: its own marker, or (written before the marker) matplotlib's default Software chunk
 FIGURE_MARKERS = (b"Software\x00tobitkf", b"Software\x00Matplotlib version")
@@ -77,7 +87,7 @@ def atomic_savefig(fig, path: str | os.PathLike, **kwargs) -> Path:
     """Save a matplotlib figure atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".png":     # the marker check_replaceable looks for (PNG tEXt "Software")
+    if path.suffix.lower() == ".png":  # the marker check_replaceable looks for (PNG tEXt "Software")
         kwargs.setdefault("metadata", {"Software": FIGURE_SOFTWARE})
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
@@ -177,8 +187,10 @@ def check_writable_dir(path: str | os.PathLike, name: str) -> Path:
     path = as_path(path, name)
     for part in path.parts:
         if len(os.fsencode(part)) > _NAME_MAX:
-            raise ValidationError(f"{name}: the folder name {part[:40]!r}... is {len(os.fsencode(part))} bytes long, "
-                                  f"more than the {_NAME_MAX} a file system allows")
+            raise ValidationError(
+                f"{name}: the folder name {part[:40]!r}... is {len(os.fsencode(part))} bytes long, "
+                f"more than the {_NAME_MAX} a file system allows"
+            )
     if path.exists() or path.is_symlink():
         if not path.is_dir():
             raise ValidationError(f"{name}: expected a folder, got the file {path}")
@@ -224,5 +236,6 @@ def check_replaceable(path: str | os.PathLike, name: str, markers: tuple[bytes, 
     except OSError as exc:
         raise ValidationError(f"{name}: cannot read {path} to check that tobitkf wrote it ({exc.strerror})") from None
     if not any(m in head for m in markers):
-        raise ValidationError(f"{name}: {path} was not written by tobitkf; refusing to replace it (move it away or "
-                              "choose another folder)")
+        raise ValidationError(
+            f"{name}: {path} was not written by tobitkf; refusing to replace it (move it away or choose another folder)"
+        )

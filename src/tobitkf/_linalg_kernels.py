@@ -57,7 +57,6 @@ def gauss_solve(M, W):
     return True
 
 
-
 @njit(cache=True, error_model="numpy", nogil=True)
 def nees_terms(err, cov, out):
     r""":math:`e_k^T P_k^{-1} e_k` for ``err`` (K, n) and ``cov`` (Kc, n, n), run ``k`` using

@@ -76,25 +76,28 @@ def _not_a_number(value: Any) -> str | None:
     return None
 
 
-def as_float_array(value: Any, name: str, *, ndim: int | Iterable[int] | None = None,
-                   allow_nan: bool = False, allow_inf: bool = False) -> np.ndarray:
+def as_float_array(
+    value: Any, name: str, *, ndim: int | Iterable[int] | None = None, allow_nan: bool = False, allow_inf: bool = False
+) -> np.ndarray:
     """Convert ``value`` to a float64 array and check dimension and finiteness.
 
     Integer, float, read-only, strided, masked and pandas input is accepted; text (also numeric
     text such as ``"0.5"``), booleans and complex values are refused, naming ``name``.
     """
-    if type(value) is np.ndarray and value.dtype == np.float64:          # the common case: nothing to convert
+    if type(value) is np.ndarray and value.dtype == np.float64:  # the common case: nothing to convert
         arr = value
-    elif isinstance(value, float) or (isinstance(value, int) and not isinstance(value, bool) and
-                                      -2**1023 < value < 2**1023):
+    elif isinstance(value, float) or (
+        isinstance(value, int) and not isinstance(value, bool) and -(2**1023) < value < 2**1023
+    ):
         arr = np.asarray(value, dtype=float)
     else:
         arr = _convert(value, name)
     if ndim is not None:
         allowed = (ndim,) if isinstance(ndim, int) else tuple(ndim)
         if arr.ndim not in allowed:
-            raise ShapeError(f"{name}: expected {' or '.join(str(a) for a in allowed)} dimension(s), "
-                             f"got shape {arr.shape}")
+            raise ShapeError(
+                f"{name}: expected {' or '.join(str(a) for a in allowed)} dimension(s), got shape {arr.shape}"
+            )
     check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
     return arr
 
@@ -103,9 +106,9 @@ def _convert(value: Any, name: str) -> np.ndarray:
     """float64 array of anything but a float64 array: text, booleans and complex values refused."""
     if not (isinstance(value, np.ndarray) and value.dtype.kind in "fiu"):
         if not isinstance(value, (list, tuple, str, bytes, bool, np.generic, np.ndarray, int, float)):
-            try:            # pandas, masked arrays, array-likes: look at what they hold
+            try:  # pandas, masked arrays, array-likes: look at what they hold
                 value = np.asarray(value)
-            except Exception:   # noqa: BLE001 - whatever it is, the conversion below names it
+            except Exception:  # noqa: BLE001 - whatever it is, the conversion below names it
                 pass
         bad = _not_a_number(value)
         if bad is _COMPLEX:
@@ -123,8 +126,16 @@ def _convert(value: Any, name: str) -> np.ndarray:
         raise ValidationError(f"{name}: expected an array of numbers, got {type(value).__name__} ({exc})") from None
 
 
-def as_float(value: Any, name: str, *, low: float | None = None, high: float | None = None,
-             low_open: bool = False, high_open: bool = False, allow_inf: bool = False) -> float:
+def as_float(
+    value: Any,
+    name: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    allow_inf: bool = False,
+) -> float:
     """A real number (not text, not a boolean, not NaN; inf only if ``allow_inf``) within the bounds.
 
     ``low``/``high`` are inclusive unless ``low_open``/``high_open``. The message names ``name``,
@@ -139,8 +150,9 @@ def as_float(value: Any, name: str, *, low: float | None = None, high: float | N
     if below or above:
         lo_s = "-inf" if low is None else f"{low:g}"
         hi_s = "inf" if high is None else f"{high:g}"
-        interval = ("(" if low_open or low is None else "[") + f"{lo_s}, {hi_s}" + (")" if high_open or high is None
-                                                                                 else "]")
+        interval = (
+            ("(" if low_open or low is None else "[") + f"{lo_s}, {hi_s}" + (")" if high_open or high is None else "]")
+        )
         raise ValidationError(f"{name}: expected a number in {interval}, got {value!r}")
     return x
 
@@ -187,7 +199,7 @@ def memory_limit() -> int:
 
 
 def _bytes(n: int) -> str:
-    if n >= 10**21:                     # beyond any unit (and beyond float range for huge counts)
+    if n >= 10**21:  # beyond any unit (and beyond float range for huge counts)
         return f"about 10^{len(str(int(n))) - 1} bytes"
     for unit, size in (("EB", 1e18), ("PB", 1e15), ("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
         if n >= size:
@@ -203,8 +215,10 @@ def check_memory(nbytes: int, name: str, what: str) -> None:
     """
     limit = memory_limit()
     if nbytes > limit:
-        raise ValidationError(f"{name}: {what} would need {_bytes(nbytes)}, more than the {_bytes(limit)} of memory "
-                              "available (set TOBITKF_MEMORY_LIMIT to change the limit)")
+        raise ValidationError(
+            f"{name}: {what} would need {_bytes(nbytes)}, more than the {_bytes(limit)} of memory "
+            "available (set TOBITKF_MEMORY_LIMIT to change the limit)"
+        )
 
 
 def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_inf: bool = False) -> None:
@@ -225,14 +239,16 @@ def check_instance(value: Any, cls: type, name: str) -> None:
 def _same_option(value: Any, option: Any) -> bool:
     """``value == option`` of the same kind: ``1.0`` is not ``True``, ``True`` is not ``1``, ``"1"`` is not ``1``."""
     if isinstance(option, (bool, np.bool_)) or isinstance(value, (bool, np.bool_)):
-        return isinstance(value, (bool, np.bool_)) and isinstance(option, (bool, np.bool_)) and bool(value) == bool(option)
+        return (
+            isinstance(value, (bool, np.bool_)) and isinstance(option, (bool, np.bool_)) and bool(value) == bool(option)
+        )
     if isinstance(option, str) or isinstance(value, str):
         return isinstance(value, str) and isinstance(option, str) and value == option
     if isinstance(option, (int, np.integer)) and not isinstance(value, (int, np.integer)):
-        return False                        # 2.0 is not the option 2 (nor 2.5 rounded to it)
+        return False  # 2.0 is not the option 2 (nor 2.5 rounded to it)
     try:
         return bool(value == option)
-    except (TypeError, ValueError):         # arrays and other things that are no option
+    except (TypeError, ValueError):  # arrays and other things that are no option
         return False
 
 
@@ -251,7 +267,9 @@ def check_probability(value: Any, name: str, *, open_low: bool = False, open_hig
     hi_bad = arr >= 1 if open_high else arr > 1
     if (lo_bad | hi_bad).any():
         interval = ("(" if open_low else "[") + "0, 1" + (")" if open_high else "]")
-        raise ValidationError(f"{name}: expected probabilities in {interval}, got {arr.ravel()[(lo_bad | hi_bad).ravel()][:3]}")
+        raise ValidationError(
+            f"{name}: expected probabilities in {interval}, got {arr.ravel()[(lo_bad | hi_bad).ravel()][:3]}"
+        )
     return arr
 
 
@@ -266,14 +284,18 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
     tiny = np.finfo(float).tiny
     diag = np.abs(np.diagonal(mat, axis1=-2, axis2=-1))
     sub = (diag > 0) & (diag < tiny)
-    if sub.any():   # e.g. R = 1e-320: 1/R overflows, a NEES of such a filter is inf
-        raise ValidationError(f"{name}: expected variances of 0 or at least {tiny:.3g} on the diagonal, got "
-                              f"{float(diag[sub][0]):.3g} (a subnormal number, without the precision a variance needs)")
+    if sub.any():  # e.g. R = 1e-320: 1/R overflows, a NEES of such a filter is inf
+        raise ValidationError(
+            f"{name}: expected variances of 0 or at least {tiny:.3g} on the diagonal, got "
+            f"{float(diag[sub][0]):.3g} (a subnormal number, without the precision a variance needs)"
+        )
     scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
     with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
         asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
     if asym > rtol * scale:
-        raise ValidationError(f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}")
+        raise ValidationError(
+            f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
+        )
     eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
     lo = float(eig.min(initial=np.inf))
     if strict and lo <= 0:
@@ -298,8 +320,9 @@ class TimeSequence:
         first use is at k = 0; 1 for C, R whose first use is y_1).
     """
 
-    def __init__(self, value: Any, name: str, *, core_ndim: int = 2, offset: int = 0,
-                 psd: bool = False, strict_psd: bool = False):
+    def __init__(
+        self, value: Any, name: str, *, core_ndim: int = 2, offset: int = 0, psd: bool = False, strict_psd: bool = False
+    ):
         self.name = name
         self.offset = offset
         self.core_ndim = core_ndim
@@ -339,11 +362,14 @@ class TimeSequence:
             if mat.shape != self.core_shape:
                 raise ShapeError(f"{self.name}({k}): expected shape {self.core_shape}, got {mat.shape}")
             return mat
+        assert self.array is not None, "a constant or time-indexed sequence holds its array"
         if self.varying:
             idx = k - self.offset
             if not 0 <= idx < self.array.shape[0]:
-                raise ShapeError(f"{self.name}: time-indexed array has {self.array.shape[0]} steps, "
-                                 f"step k={k} (index {idx}) requested")
+                raise ShapeError(
+                    f"{self.name}: time-indexed array has {self.array.shape[0]} steps, "
+                    f"step k={k} (index {idx}) requested"
+                )
             return self.array[idx]
         return self.array
 
@@ -377,8 +403,7 @@ def as_generator(seed: Any) -> np.random.Generator:
     if seed is None:
         raise ValidationError("seed: expected an int, SeedSequence or Generator (an explicit seed), got None")
     if isinstance(seed, (bool, np.bool_, str, bytes, float, np.floating)):
-        raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} "
-                              f"({type(seed).__name__})")
+        raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} ({type(seed).__name__})")
     try:
         return np.random.default_rng(seed)
     except (TypeError, ValueError) as exc:

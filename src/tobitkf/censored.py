@@ -59,12 +59,12 @@ from scipy.special import ndtr
 __all__ = ["CensoredMoments", "censored_moments", "standardized_limits"]
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
-_TAIL = 4.0          # beyond this many sigma the window is treated by quadrature
-_NARROW = 1.0        # windows narrower than this (in sigma) too
+_TAIL = 4.0  # beyond this many sigma the window is treated by quadrature
+_NARROW = 1.0  # windows narrower than this (in sigma) too
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(64)
-_CF_FROM = 4.0       # one-sided windows beyond this many sigma: the continued fraction
-_FAR = 100.0         # b'^2 - a'^2 above this: the far limit is negligible (phi ratio < e^-50)
-_CF_TERMS = 140.0    # int(_CF_TERMS / x) + 6 terms of the continued fraction at x
+_CF_FROM = 4.0  # one-sided windows beyond this many sigma: the continued fraction
+_FAR = 100.0  # b'^2 - a'^2 above this: the far limit is negligible (phi ratio < e^-50)
+_CF_TERMS = 140.0  # int(_CF_TERMS / x) + 6 terms of the continued fraction at x
 
 
 def _cf_terms(x: np.ndarray) -> np.ndarray:
@@ -138,8 +138,8 @@ def _tail_moments(a: np.ndarray, b: np.ndarray):
     umax = 80.0 / (a + np.hypot(a, np.sqrt(80.0)))
     top = np.minimum(w, umax)
     half = 0.5 * top[..., None]
-    u = half * (_GL_X + 1.0)                         # (..., 64) nodes on [0, top]
-    dens = np.exp(-a[..., None] * u - 0.5 * u * u)   # phi(a+u)/phi(a)
+    u = half * (_GL_X + 1.0)  # (..., 64) nodes on [0, top]
+    dens = np.exp(-a[..., None] * u - 0.5 * u * u)  # phi(a+u)/phi(a)
     wt = _GL_W * half * dens
     i0 = wt.sum(-1)
     umean = (wt * u).sum(-1) / i0
@@ -191,13 +191,18 @@ def censored_moments(mean, std, lower, upper) -> CensoredMoments:
     """
     from ._validation import ShapeError, ValidationError, as_float_array
 
-    args = (as_float_array(mean, "mean"), as_float_array(std, "std", allow_nan=True, allow_inf=True),
-            as_float_array(lower, "lower", allow_inf=True), as_float_array(upper, "upper", allow_inf=True))
+    args = (
+        as_float_array(mean, "mean"),
+        as_float_array(std, "std", allow_nan=True, allow_inf=True),
+        as_float_array(lower, "lower", allow_inf=True),
+        as_float_array(upper, "upper", allow_inf=True),
+    )
     try:
         mu, sd, lo, hi = np.broadcast_arrays(*args)
     except ValueError:
-        raise ShapeError("mean/std/lower/upper: shapes " + ", ".join(str(a.shape) for a in args) +
-                         " do not broadcast") from None
+        raise ShapeError(
+            "mean/std/lower/upper: shapes " + ", ".join(str(a.shape) for a in args) + " do not broadcast"
+        ) from None
     if np.any(~(sd > 0)):
         raise ValidationError("std: expected standard deviations > 0")
     if np.isinf(sd).any():
@@ -229,7 +234,7 @@ def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
     aphi_a = np.where(np.isfinite(a), a, 0.0) * phi_a
     bphi_b = np.where(np.isfinite(b), b, 0.0) * phi_b
 
-    flip = a < -b            # mirror windows in the lower tail to the upper tail
+    flip = a < -b  # mirror windows in the lower tail to the upper tail
     a2 = np.where(flip, -b, a)
     b2 = np.where(flip, -a, b)
     with np.errstate(over="ignore", invalid="ignore"):

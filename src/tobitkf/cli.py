@@ -20,10 +20,10 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
-try:                                   # typer >= 0.20 carries its own copy of click
+try:  # typer >= 0.20 carries its own copy of click
     from typer._click import exceptions as _click_errors
-except ImportError:                    # pragma: no cover - older typer uses click itself
-    from click import exceptions as _click_errors
+except ImportError:  # pragma: no cover - older typer uses click itself
+    from click import exceptions as _click_errors  # type: ignore[no-redef]  # the same module, older typer
 
 _ClickException = _click_errors.ClickException
 _NoArgsIsHelpError = getattr(_click_errors, "NoArgsIsHelpError", None) or type("_Never", (Exception,), {})
@@ -41,10 +41,13 @@ def fail(message: str, code: int = 2) -> None:
 
 def _describe(exc: BaseException) -> str:
     """One line naming the problem of an exception that reached the command line."""
+    from ._extras import missing_extra_message
     from ._validation import ValidationError
 
     if isinstance(exc, ValidationError):
         return str(exc)
+    if isinstance(exc, ImportError) and (message := missing_extra_message(exc)):
+        return message
     if isinstance(exc, OSError):
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         return f"{where}{exc.strerror or exc}" + (f" (errno {exc.errno})" if exc.errno else "")
@@ -64,6 +67,7 @@ def cli_errors(command: Callable[..., Any]) -> Callable[..., Any]:
     and decoding errors, and anything unexpected: never a traceback (set ``TOBITKF_DEBUG=1`` to
     see one). Ctrl-C stays an interruption (exit 130).
     """
+
     @functools.wraps(command)
     def run(*args: Any, **kwargs: Any) -> Any:
         try:
@@ -74,6 +78,7 @@ def cli_errors(command: Callable[..., Any]) -> Callable[..., Any]:
             if os.environ.get("TOBITKF_DEBUG"):
                 raise
             fail(_describe(exc))
+
     return run
 
 
@@ -98,9 +103,31 @@ class _Group(typer.core.TyperGroup):
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, cls=_Group,
-                  help="Estimation from censored, fading, delayed and scheduled measurements.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    cls=_Group,
+    help="Estimation from censored, fading, delayed and scheduled measurements.",
+)
 console = Console(stderr=True)
+
+
+def _show_version(value: bool) -> None:
+    if value:
+        from ._version import __version__
+
+        typer.echo(f"tobitkf {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[
+        bool,
+        typer.Option("--version", callback=_show_version, is_eager=True, help="print the package version and exit"),
+    ] = False,
+) -> None:
+    """Estimation from censored, fading, delayed and scheduled measurements."""
 
 
 @app.command("list")
@@ -117,8 +144,9 @@ def list_cmd() -> None:
 
 def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progress: Progress | None = None) -> Path:
     """Run one experiment and write its metrics.json and figures under ``out/exp_id``."""
-    import matplotlib
+    from ._extras import require
 
+    matplotlib = require("matplotlib", extra="report", feature="the figures of tobitkf reproduce")
     matplotlib.use("Agg")
     from . import __version__
     from ._io import atomic_write_json, replace_dir, safe_child, staging_dir
@@ -131,7 +159,7 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
         task = progress.add_task(exp_id, total=1.0)
 
     def report(done: float) -> None:
-        if progress is not None:
+        if progress is not None and task is not None:
             progress.update(task, completed=min(max(done, 0.0), 1.0))
 
     check_experiment_folder(out, exp_id)
@@ -141,12 +169,22 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
     final = safe_child(out, exp_id)
     outdir = staging_dir(final)  # built whole beside the previous result, then swapped in
     figures = exp.plot(result, outdir)
-    atomic_write_json(outdir / "metrics.json", {
-        "id": exp.id, "title": exp.title, "source": exp.source, "runs": n_runs, "seed": seed,
-        "package_version": __version__, "elapsed_seconds": round(elapsed, 3),
-        "settings": result.settings, "claims": result.claims, "figures": [Path(f).name for f in figures],
-        **result.metrics,
-    })
+    atomic_write_json(
+        outdir / "metrics.json",
+        {
+            "id": exp.id,
+            "title": exp.title,
+            "source": exp.source,
+            "runs": n_runs,
+            "seed": seed,
+            "package_version": __version__,
+            "elapsed_seconds": round(elapsed, 3),
+            "settings": result.settings,
+            "claims": result.claims,
+            "figures": [Path(f).name for f in figures],
+            **result.metrics,
+        },
+    )
     replace_dir(outdir, final)
     report(1.0)
     return final
@@ -173,8 +211,9 @@ def check_experiment_folder(out: Path, exp_id: str) -> None:
     if not (folder.exists() or folder.is_symlink()):
         return
     if not folder.is_dir():
-        raise ValidationError(f"--out: {folder} is a file, not a result folder of {exp_id}; move it away or "
-                              "choose another --out")
+        raise ValidationError(
+            f"--out: {folder} is a file, not a result folder of {exp_id}; move it away or choose another --out"
+        )
     if not any(folder.iterdir()):
         return
     try:
@@ -182,8 +221,10 @@ def check_experiment_folder(out: Path, exp_id: str) -> None:
     except (OSError, ValueError, RecursionError):
         meta = None
     if not (isinstance(meta, dict) and meta.get("id") == exp_id):
-        raise ValidationError(f"--out: {folder} holds files tobitkf did not write (no metrics.json of {exp_id}); "
-                              "it would be replaced: move it away or choose another --out")
+        raise ValidationError(
+            f"--out: {folder} holds files tobitkf did not write (no metrics.json of {exp_id}); "
+            "it would be replaced: move it away or choose another --out"
+        )
 
 
 def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
@@ -200,21 +241,32 @@ def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
     except (OSError, ValueError):
         return False
     n_runs = get(exp_id).default_runs if runs is None else runs
-    return (isinstance(meta, dict) and meta.get("runs") == n_runs and meta.get("seed") == seed
-            and meta.get("package_version") == __version__
-            and isinstance(meta.get("figures", []), list)
-            and all(isinstance(f, str) and Path(f).name == f and (folder / f).is_file() for f in meta.get("figures", [])))
+    return (
+        isinstance(meta, dict)
+        and meta.get("runs") == n_runs
+        and meta.get("seed") == seed
+        and meta.get("package_version") == __version__
+        and isinstance(meta.get("figures", []), list)
+        and all(isinstance(f, str) and Path(f).name == f and (folder / f).is_file() for f in meta.get("figures", []))
+    )
 
 
 @app.command()
 @cli_errors
 def reproduce(
     experiment: Annotated[str, typer.Argument(help="experiment id, or 'all'")],
-    runs: Annotated[Optional[int], typer.Option("--runs", min=1, help="Monte Carlo runs (default: the experiment's)")] = None,
+    runs: Annotated[
+        Optional[int], typer.Option("--runs", min=1, help="Monte Carlo runs (default: the experiment's)")
+    ] = None,
     seed: Annotated[int, typer.Option("--seed", help="random seed")] = 0,
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results"),
-    resume: Annotated[bool, typer.Option("--resume", help="skip experiments whose OUT/ID/metrics.json is complete "
-                                         "for the same runs, seed and package version")] = False,
+    resume: Annotated[
+        bool,
+        typer.Option(
+            "--resume",
+            help="skip experiments whose OUT/ID/metrics.json is complete for the same runs, seed and package version",
+        ),
+    ] = False,
 ) -> None:
     """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html."""
     from ._validation import check_int
@@ -233,7 +285,9 @@ def reproduce(
         overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None
         for exp_id in ids:
             if resume and is_complete(out, exp_id, runs=runs, seed=seed):
-                console.print(f"kept {out / exp_id} (complete, --resume)", markup=False, highlight=False, soft_wrap=True)
+                console.print(
+                    f"kept {out / exp_id} (complete, --resume)", markup=False, highlight=False, soft_wrap=True
+                )
                 if overall is not None:
                     progress.advance(overall)
                 continue
@@ -265,9 +319,13 @@ def report(
 def sweep(
     file: Annotated[Path, typer.Argument(help="sweep file (TOML)")],
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("results/sweeps"),
-    scheduler: Annotated[str, typer.Option("--scheduler", help="local | processes | a Dask scheduler address")] = "local",
-    workers: Annotated[Optional[int], typer.Option(
-        "--workers", min=1, help="threads (local) or worker processes (processes); default: the CPUs")] = None,
+    scheduler: Annotated[
+        str, typer.Option("--scheduler", help="local | processes | a Dask scheduler address")
+    ] = "local",
+    workers: Annotated[
+        Optional[int],
+        typer.Option("--workers", min=1, help="threads (local) or worker processes (processes); default: the CPUs"),
+    ] = None,
 ) -> None:
     """Run (or resume) a Monte Carlo sweep; results go to OUT/<name>.zarr."""
     from .sweep import load_sweep, run_sweep
@@ -275,9 +333,15 @@ def sweep(
 
     spec = load_sweep(file)
     check_out_dir(out)
-    check_resumable(out / f"{spec.name}.zarr", spec)     # a file in the way, a damaged or foreign store
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[rate]}"),
-               TimeElapsedColumn(), TimeRemainingColumn())
+    check_resumable(out / f"{spec.name}.zarr", spec)  # a file in the way, a damaged or foreign store
+    columns = (
+        TextColumn("{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
     with Progress(*columns, console=console, disable=not console.is_terminal) as progress:
         task = progress.add_task(f"{spec.name}: blocks", total=None, rate="")
 
@@ -307,7 +371,9 @@ def plot(
 @app.command()
 def fit(
     file: Annotated[Path, typer.Argument(help="CSV file with a header row, one row per reading")],
-    model: Annotated[Path, typer.Option("--model", help="model file (TOML): columns and model, see tobitkf.inference.fit_cli")],
+    model: Annotated[
+        Path, typer.Option("--model", help="model file (TOML): columns and model, see tobitkf.inference.fit_cli")
+    ],
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("fit"),
 ) -> None:
     """Fit a model to a censored series: writes OUT/fit.json, summary.txt, series.csv and fit.png."""

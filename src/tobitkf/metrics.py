@@ -32,8 +32,11 @@ __all__ = ["rmse", "bias", "nees", "nees_terms", "summarize", "align_truth"]
 def _unpack(estimate: Any, cov: Any = None, times: Any = None):
     """(mean, cov, times) of a FilterResult, or the arrays as given."""
     if hasattr(estimate, "mean") and hasattr(estimate, "times") and not isinstance(estimate, np.ndarray):
-        return (np.asarray(estimate.mean, dtype=float), estimate.cov if cov is None else cov,
-                estimate.times if times is None else times)
+        return (
+            np.asarray(estimate.mean, dtype=float),
+            estimate.cov if cov is None else cov,
+            estimate.times if times is None else times,
+        )
     return np.asarray(estimate, dtype=float), cov, times
 
 
@@ -51,18 +54,21 @@ def align_truth(truth: np.ndarray, estimate: np.ndarray, times: Any = None) -> n
     if times is not None:
         t = np.asarray(times, dtype=int)
         if t.ndim != 1 or t.shape[0] != estimate.shape[-2]:
-            raise ShapeError(f"times: expected one time per row of the estimates ({estimate.shape[-2]}), got "
-                             f"{t.shape}")
+            raise ShapeError(f"times: expected one time per row of the estimates ({estimate.shape[-2]}), got {t.shape}")
         if t.min(initial=0) < 0 or t.max(initial=0) >= truth.shape[-2]:
-            raise ShapeError(f"truth: holds times 0..{truth.shape[-2] - 1}, the estimates need {t.min()}..{t.max()} "
-                             "(for the delay family, whose first reading is y(0), the truth starts at x(0))")
+            raise ShapeError(
+                f"truth: holds times 0..{truth.shape[-2] - 1}, the estimates need {t.min()}..{t.max()} "
+                "(for the delay family, whose first reading is y(0), the truth starts at x(0))"
+            )
         truth = truth[..., t, :]
         if truth.shape[-2:] != estimate.shape[-2:]:
             raise ShapeError(f"truth: shape {truth.shape} does not match estimates {estimate.shape}")
         return truth
     if estimate.ndim < 3:
-        raise ShapeError(f"estimate: expected (N, T, n) with runs on the first axis (one run: add a leading "
-                         f"axis), got shape {estimate.shape}")
+        raise ShapeError(
+            f"estimate: expected (N, T, n) with runs on the first axis (one run: add a leading "
+            f"axis), got shape {estimate.shape}"
+        )
     if truth.shape[-2] == estimate.shape[-2] + 1:
         truth = truth[..., 1:, :]
     if truth.shape[-2:] != estimate.shape[-2:]:
@@ -109,12 +115,13 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     try:
         np.broadcast_shapes(err.shape[:-1], cov.shape[:-2])
     except ValueError:
-        raise ShapeError(f"cov: leading shape {cov.shape[:-2]} does not broadcast against the errors' "
-                         f"{err.shape[:-1]}") from None
-    while cov.ndim > 2 and cov.strides[0] == 0:    # a covariance shared by the runs, broadcast
-        cov = cov[0]                                # (as the KF returns it): keep one copy
+        raise ShapeError(
+            f"cov: leading shape {cov.shape[:-2]} does not broadcast against the errors' {err.shape[:-1]}"
+        ) from None
+    while cov.ndim > 2 and cov.strides[0] == 0:  # a covariance shared by the runs, broadcast
+        cov = cov[0]  # (as the KF returns it): keep one copy
     lead, clead = err.shape[:-1], cov.shape[:-2]
-    if cov.shape[-2:] == (n, n) and len(clead) <= len(lead) and lead[len(lead) - len(clead):] == clead:
+    if cov.shape[-2:] == (n, n) and len(clead) <= len(lead) and lead[len(lead) - len(clead) :] == clead:
         from ._compiled import numba_available
 
         if numba_available():
@@ -161,9 +168,9 @@ def nees(truth: Any, estimate: Any, cov: Any = None, *, times: Any = None) -> np
 def _check_psd_each(cov: np.ndarray, name: str, rtol: float = 1e-9) -> None:
     """Raise naming the first index of ``cov`` (..., n, n) that is not symmetric PSD."""
     if cov.ndim < 2 or cov.shape[-1] != cov.shape[-2] or not np.all(np.isfinite(cov)):
-        return                                  # shapes are nees_terms' to refuse; NaN stays NaN
+        return  # shapes are nees_terms' to refuse; NaN stays NaN
     lead = 0
-    while cov.ndim > 2 and cov.strides[0] == 0:   # a covariance shared by the runs: check the one copy
+    while cov.ndim > 2 and cov.strides[0] == 0:  # a covariance shared by the runs: check the one copy
         cov = cov[0]
         lead += 1
     scale = np.maximum(np.abs(cov).max(axis=(-1, -2)), np.finfo(float).tiny)
@@ -172,10 +179,14 @@ def _check_psd_each(cov: np.ndarray, name: str, rtol: float = 1e-9) -> None:
     bad = (asym > rtol * scale) | (low < -rtol * scale)
     if np.any(bad):
         idx = (0,) * lead + tuple(int(i) for i in np.argwhere(bad)[0])
-        what = "not symmetric" if np.any(asym > rtol * scale) and asym[tuple(idx[lead:])] > rtol * scale[tuple(idx[lead:])] \
+        what = (
+            "not symmetric"
+            if np.any(asym > rtol * scale) and asym[tuple(idx[lead:])] > rtol * scale[tuple(idx[lead:])]
             else f"indefinite (smallest eigenvalue {low[tuple(idx[lead:])]:.3g})"
-        raise ValidationError(f"{name}: expected symmetric positive semi-definite covariances, the one at index {idx} "
-                              f"is {what}")
+        )
+        raise ValidationError(
+            f"{name}: expected symmetric positive semi-definite covariances, the one at index {idx} is {what}"
+        )
 
 
 def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 0, times: Any = None) -> dict[str, Any]:
@@ -190,8 +201,9 @@ def summarize(truth: Any, estimate: Any, cov: Any | None = None, *, skip: int = 
         cov = res_cov
     r = rmse(truth, estimate, times=times)
     if isinstance(skip, bool) or not isinstance(skip, (int, np.integer)) or not 0 <= skip < r.shape[0]:
-        raise ValidationError(f"skip: expected an integer in [0, {r.shape[0]}) (steps to leave out of the "
-                              f"time averages), got {skip!r}")
+        raise ValidationError(
+            f"skip: expected an integer in [0, {r.shape[0]}) (steps to leave out of the time averages), got {skip!r}"
+        )
     out = {
         "rmse": r,
         "rmse_time_avg": r[skip:].mean(axis=0),

@@ -3,9 +3,32 @@
 
 import warnings
 
-from .models.delay import (DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, paper_example,  # noqa: F401
-                           paper_fading, paper_prior)
-from .simulate.delay import full_states, simulate_delay  # noqa: F401
+from .models.delay import (
+    DelayFadingSystem,
+    FadingMoments,
+    FadingPMF,
+    HistoryPrior,
+    paper_example,
+    paper_fading,
+    paper_prior,
+)
+from .simulate.delay import full_states, simulate_delay
 
-warnings.warn("tobitkf.models_delay is deprecated: import from tobitkf.models.delay (the model) and "
-              "tobitkf.simulate.delay (simulate_delay, full_states)", DeprecationWarning, stacklevel=2)
+__all__ = [
+    "DelayFadingSystem",
+    "FadingMoments",
+    "FadingPMF",
+    "HistoryPrior",
+    "paper_example",
+    "paper_fading",
+    "paper_prior",
+    "full_states",
+    "simulate_delay",
+]
+
+warnings.warn(
+    "tobitkf.models_delay is deprecated: import from tobitkf.models.delay (the model) and "
+    "tobitkf.simulate.delay (simulate_delay, full_states)",
+    DeprecationWarning,
+    stacklevel=2,
+)

@@ -78,7 +78,7 @@ def _phi_terms(z: np.ndarray):
     fin = np.isfinite(z)
     zf = np.where(fin, z, 0.0)
     ph = np.where(fin, np.exp(-0.5 * zf * zf - _LOG_SQRT_2PI), 0.0)
-    return ph, zf * ph, zf * zf * ph, zf ** 3 * ph
+    return ph, zf * ph, zf * zf * ph, zf**3 * ph
 
 
 def censored_fisher_information(mean: Any, std: Any, lower: Any = -np.inf, upper: Any = np.inf):
@@ -165,8 +165,10 @@ def _split(channel: Any, censoring: Any):
     other = [p for p in pieces if not isinstance(p, (Censoring, RiceFading))]
     if other or len(cens) > 1 or len(fad) > 1:
         names = ", ".join(type(p).__name__ for p in pieces)
-        raise ValidationError(f"channel: the PCRLB covers censored linear readings and Rice fading (at most one "
-                              f"Censoring and one RiceFading), got {names}")
+        raise ValidationError(
+            f"channel: the PCRLB covers censored linear readings and Rice fading (at most one "
+            f"Censoring and one RiceFading), got {names}"
+        )
     return (cens[0] if cens else None), (fad[0] if fad else None)
 
 
@@ -178,8 +180,16 @@ def _sigmas(system: LinearSystem, k: int) -> np.ndarray:
     return np.sqrt(np.diagonal(R))
 
 
-def posterior_crlb(system: LinearSystem, channel: Any = None, *, censoring: Censoring | None = None,
-                   truth: Any = None, steps: int | None = None, runs: int = 2000, seed: Any = 0) -> PosteriorCRLB:
+def posterior_crlb(
+    system: LinearSystem,
+    channel: Any = None,
+    *,
+    censoring: Censoring | None = None,
+    truth: Any = None,
+    steps: int | None = None,
+    runs: int = 2000,
+    seed: Any = 0,
+) -> PosteriorCRLB:
     r"""Posterior Cramér–Rao bound (Tichavský–Muravchik–Nehorai recursion) for censored or fading readings.
 
     Parameters
@@ -237,8 +247,9 @@ def posterior_crlb(system: LinearSystem, channel: Any = None, *, censoring: Cens
     if fad is not None:
         fad.check(system.m)
         if not isinstance(fad.coefficients, Gaussian):
-            raise ValidationError("channel: the fading PCRLB needs Gaussian coefficients (the reading is then normal "
-                                  "given the states)")
+            raise ValidationError(
+                "channel: the fading PCRLB needs Gaussian coefficients (the reading is then normal given the states)"
+            )
     if cens is not None:
         cens.check(system.m)
     if truth is None:
@@ -246,6 +257,7 @@ def posterior_crlb(system: LinearSystem, channel: Any = None, *, censoring: Cens
             raise ValidationError("steps: give the horizon T (or the true trajectories as truth)")
         T = check_count(steps, "steps")
         from .simulate.core import simulate
+
         X = simulate(system, T, check_count(runs, "runs"), seed=seed).x
     else:
         X = as_float_array(truth, "truth", ndim=3)
@@ -266,16 +278,16 @@ def posterior_crlb(system: LinearSystem, channel: Any = None, *, censoring: Cens
         Bp = np.zeros((nx, nx))
         Bp[:n, :n] = A @ B[:n, :n] @ A.T + Qd
         if nx > n:
-            Bp[n:, :n] = B[:nx - n, :n] @ A.T
+            Bp[n:, :n] = B[: nx - n, :n] @ A.T
             Bp[:n, n:] = Bp[n:, :n].T
-            Bp[n:, n:] = B[:nx - n, :nx - n]
+            Bp[n:, n:] = B[: nx - n, : nx - n]
         sig = _sigmas(system, k)
         lo, hi = (np.full(m, -np.inf), np.full(m, np.inf)) if cens is None else cens.limits(k)
         lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
         J = np.zeros((nx, nx))
         if fad is None:
             C = system.measurement(k)
-            mu = X[:, k] @ C.T                                                  # (N, m)
+            mu = X[:, k] @ C.T  # (N, m)
             Imm, _, _ = censored_fisher_information(mu, sig, lo, hi)
             J = (C.T * Imm.mean(0)) @ C
         else:
@@ -283,19 +295,28 @@ def posterior_crlb(system: LinearSystem, channel: Any = None, *, censoring: Cens
             Cs = [measurement_matrix_at(system, k - s) for s in range(S_ + 1)]
             for l in range(m):
                 H = np.zeros(nx)
-                cx = np.stack([X[:, k - s] @ Cs[s][l] for s in range(S_ + 1)], axis=1)   # (N, S+1)
+                cx = np.stack([X[:, k - s] @ Cs[s][l] for s in range(S_ + 1)], axis=1)  # (N, S+1)
                 for s in range(S_ + 1):
-                    H[s * n:(s + 1) * n] = mg[s, l] * Cs[s][l]
-                mu = cx @ mg[:S_ + 1, l]
-                sd = np.sqrt((cx * cx) @ vg[:S_ + 1, l] + sig[l] ** 2)
+                    H[s * n : (s + 1) * n] = mg[s, l] * Cs[s][l]
+                mu = cx @ mg[: S_ + 1, l]
+                sd = np.sqrt((cx * cx) @ vg[: S_ + 1, l] + sig[l] ** 2)
                 Imm, Ims, Iss = censored_fisher_information(mu, sd, lo[l], hi[l])
-                G = np.zeros((X.shape[0], nx))                                  # grad sigma per run
+                G = np.zeros((X.shape[0], nx))  # grad sigma per run
                 for s in range(S_ + 1):
-                    G[:, s * n:(s + 1) * n] = (vg[s, l] * cx[:, s] / sd)[:, None] * Cs[s][l]
+                    G[:, s * n : (s + 1) * n] = (vg[s, l] * cx[:, s] / sd)[:, None] * Cs[s][l]
                 HG = (Ims[:, None] * G).mean(0)
-                J += Imm.mean() * np.outer(H, H) + np.outer(H, HG) + np.outer(HG, H) + \
-                    (G * Iss[:, None]).T @ G / X.shape[0]
+                J += (
+                    Imm.mean() * np.outer(H, H)
+                    + np.outer(H, HG)
+                    + np.outer(HG, H)
+                    + (G * Iss[:, None]).T @ G / X.shape[0]
+                )
         B = symmetrize(np.linalg.solve(np.eye(nx) + Bp @ J, Bp))
         bounds[k - 1], infos[k - 1] = B, J
-    return PosteriorCRLB(bound=bounds[:, :n, :n].copy(), var=np.diagonal(bounds[:, :n, :n], axis1=1, axis2=2).copy(),
-                         aug_bound=bounds, information=infos, times=np.arange(1, T + 1))
+    return PosteriorCRLB(
+        bound=bounds[:, :n, :n].copy(),
+        var=np.diagonal(bounds[:, :n, :n], axis1=1, axis2=2).copy(),
+        aug_bound=bounds,
+        information=infos,
+        times=np.arange(1, T + 1),
+    )

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from ._extras import require
+
 __all__ = ["new_figure", "save", "plot_rmse_over_time", "ESTIMATOR_STYLE", "record_caption", "collect_captions"]
 
 _CAPTIONS: contextvars.ContextVar[dict[str, str] | None] = contextvars.ContextVar("figure_captions", default=None)
@@ -31,6 +33,7 @@ def collect_captions():
     finally:
         _CAPTIONS.reset(token)
 
+
 ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
     "truth": {"color": "black", "lw": 1.2, "label": "truth"},
     "kf": {"color": "tab:blue", "lw": 1.0, "ls": "--", "label": "standard KF (censored values as data)"},
@@ -42,7 +45,7 @@ ESTIMATOR_STYLE: dict[str, dict[str, Any]] = {
 
 def new_figure(rows: int = 1, cols: int = 1, *, width: float = 7.0, height: float = 3.0, **kw):
     """A figure with ``rows x cols`` axes (always a 2-D array of axes)."""
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot")
 
     fig, axes = plt.subplots(rows, cols, figsize=(width, height * rows), squeeze=False, **kw)
     return fig, axes
@@ -54,7 +57,7 @@ def save(fig, outdir: Path, name: str, *, caption: str = "", dpi: float = 110, t
     ``caption`` says what the figure shows (which source figure it reproduces, what each curve is);
     inside a registered experiment's ``plot`` it is recorded for the report.
     """
-    import matplotlib.pyplot as plt
+    plt = require("matplotlib.pyplot", extra="plot")
 
     from ._io import atomic_savefig
 
@@ -76,8 +79,9 @@ def style(key: str) -> dict[str, Any]:
     return st
 
 
-def plot_rmse_over_time(ax, estimators: dict[str, dict[str, Any]], component: int, *, title: str = "",
-                        log: bool = False) -> None:
+def plot_rmse_over_time(
+    ax, estimators: dict[str, dict[str, Any]], component: int, *, title: str = "", log: bool = False
+) -> None:
     """Per-step RMSE of one state component for each estimator."""
     for key, summ in estimators.items():
         r = np.asarray(summ["rmse"])[:, component]

@@ -38,6 +38,7 @@ import math
 import os
 import re
 import struct
+from collections.abc import Set as AbstractSet
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,25 +47,50 @@ from urllib.parse import quote
 from ._io import atomic_write_text
 from ._validation import ValidationError
 
-__all__ = ["write_report", "collect_results", "render_html", "render_markdown", "ExperimentReport",
-           "check_report_targets"]
+__all__ = [
+    "write_report",
+    "collect_results",
+    "render_html",
+    "render_markdown",
+    "ExperimentReport",
+    "check_report_targets",
+]
 
 # Every report carries a marker so that a rerun replaces only files tobitkf wrote
 # (:func:`check_report_targets`); the last two are the signatures of reports written before the marker.
 _HTML_MARKER = '<meta name="generator" content="tobitkf report">'
 _MD_MARKER = '[//]: # "generator: tobitkf report (rewritten by tobitkf report; edits are lost)"'  # invisible
-_MARKERS = {"index.html": (_HTML_MARKER.encode(), b'<meta charset="utf-8">\n<meta name="viewport" content="width=device-'
-                                                  b'width, initial-scale=1">\n<title>tobitkf results</title>'),
-            "REPORT.md": (_MD_MARKER.encode(), b"# tobitkf results\n\nExperiments: ")}
-_MAX_METRICS_BYTES = 64 * 2**20   # a metrics.json larger than this is not one tobitkf wrote
-_MAX_DEPTH = 100                  # nesting levels of a metrics.json (tobitkf writes fewer than 10)
-_MAX_INT_DIGITS = 300             # integers beyond the float range cannot be formatted as numbers
+_MARKERS = {
+    "index.html": (
+        _HTML_MARKER.encode(),
+        b'<meta charset="utf-8">\n<meta name="viewport" content="width=device-'
+        b'width, initial-scale=1">\n<title>tobitkf results</title>',
+    ),
+    "REPORT.md": (_MD_MARKER.encode(), b"# tobitkf results\n\nExperiments: "),
+}
+_MAX_METRICS_BYTES = 64 * 2**20  # a metrics.json larger than this is not one tobitkf wrote
+_MAX_DEPTH = 100  # nesting levels of a metrics.json (tobitkf writes fewer than 10)
+_MAX_INT_DIGITS = 300  # integers beyond the float range cannot be formatted as numbers
 
-_META_KEYS = {"id", "title", "source", "runs", "seed", "package_version", "elapsed_seconds", "settings",
-              "claims", "figures", "figure_captions", "report_tables"}
-_RMSE_DEFINITION = ("The mean over steps of the per-step RMSE (the root of the mean over runs of the squared error "
-                    "at each step); a claim that uses another RMSE (e.g. over runs and steps together) says so in "
-                    "its quantity.")
+_META_KEYS = {
+    "id",
+    "title",
+    "source",
+    "runs",
+    "seed",
+    "package_version",
+    "elapsed_seconds",
+    "settings",
+    "claims",
+    "figures",
+    "figure_captions",
+    "report_tables",
+}
+_RMSE_DEFINITION = (
+    "The mean over steps of the per-step RMSE (the root of the mean over runs of the squared error "
+    "at each step); a claim that uses another RMSE (e.g. over runs and steps together) says so in "
+    "its quantity."
+)
 _VALUE_LIMIT = 240  # characters of a parameter value shown before "…"
 _VERDICT = {True: ("held", "✓", "held"), False: ("failed", "✗", "not held"), None: ("na", "–", "n/a")}
 
@@ -102,8 +128,9 @@ class Claim:
     @property
     def needs_explanation(self) -> bool:
         """Failed claims always get an explanation entry; n/a ones when there is text to show."""
-        return self.holds is False or (self.holds is None and bool(self.note or self.explanation
-                                                                   or self.not_measurable))
+        return self.holds is False or (
+            self.holds is None and bool(self.note or self.explanation or self.not_measurable)
+        )
 
 
 @dataclass(frozen=True)
@@ -274,8 +301,12 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
     anchor = _slug(exp_id, taken, "exp-")
     problems = []
     meta = []
-    for key, label in (("runs", "runs"), ("seed", "seed"), ("package_version", "tobitkf"),
-                       ("elapsed_seconds", "time (s)")):
+    for key, label in (
+        ("runs", "runs"),
+        ("seed", "seed"),
+        ("package_version", "tobitkf"),
+        ("elapsed_seconds", "time (s)"),
+    ):
         if metrics.get(key) is not None:
             meta.append((label, _format_value(metrics[key])))
 
@@ -284,8 +315,14 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
     if isinstance(raw_settings, dict):
         for name, s in raw_settings.items():
             if isinstance(s, dict) and "value" in s:
-                settings.append(Setting(str(name), _format_value(s.get("value")),
-                                        _text(s.get("provenance")) or "unspecified", _text(s.get("note"))))
+                settings.append(
+                    Setting(
+                        str(name),
+                        _format_value(s.get("value")),
+                        _text(s.get("provenance")) or "unspecified",
+                        _text(s.get("note")),
+                    )
+                )
             else:
                 settings.append(Setting(str(name), _format_value(s), "unspecified", ""))
 
@@ -297,11 +334,21 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
         holds = c.get("holds")
         if holds is not None and not isinstance(holds, bool):
             problems.append(f"{exp_id}: claim {i} has holds={holds!r}; expected true, false or null (shown as n/a)")
-        claims.append(Claim(number=i, claim=_text(c.get("claim")), measured=_text(c.get("measured")),
-                            holds=holds if isinstance(holds, bool) else None, note=_text(c.get("note")),
-                            explanation=_text(c.get("explanation")), anchor=f"{anchor}-claim-{i}",
-                            quantity=_text(c.get("quantity")), test=_text(c.get("test")),
-                            tolerance=_text(c.get("tolerance")), not_measurable=_text(c.get("not_measurable"))))
+        claims.append(
+            Claim(
+                number=i,
+                claim=_text(c.get("claim")),
+                measured=_text(c.get("measured")),
+                holds=holds if isinstance(holds, bool) else None,
+                note=_text(c.get("note")),
+                explanation=_text(c.get("explanation")),
+                anchor=f"{anchor}-claim-{i}",
+                quantity=_text(c.get("quantity")),
+                test=_text(c.get("test")),
+                tolerance=_text(c.get("tolerance")),
+                not_measurable=_text(c.get("not_measurable")),
+            )
+        )
 
     listed = metrics.get("figures")
     if isinstance(listed, list):
@@ -326,21 +373,42 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
     for j, t in enumerate(raw_tables if isinstance(raw_tables, list) else [], start=1):
         cols = t.get("columns") if isinstance(t, dict) else None
         rows = t.get("rows") if isinstance(t, dict) else None
-        if not isinstance(cols, list) or not isinstance(rows, list) or not all(
-                isinstance(r, list) and len(r) == len(cols) for r in rows):
-            problems.append(f"{exp_id}: report table {j} is not {{title, columns, rows}} with rows of equal length; "
-                            "skipped")
+        if (
+            not isinstance(cols, list)
+            or not isinstance(rows, list)
+            or not all(isinstance(r, list) and len(r) == len(cols) for r in rows)
+        ):
+            problems.append(
+                f"{exp_id}: report table {j} is not {{title, columns, rows}} with rows of equal length; skipped"
+            )
             continue
-        source_tables.append(SourceTable(_text(t.get("title")) or f"table {j}", [_text(c) for c in cols],
-                                         [[_cell(v) for v in r] for r in rows], _text(t.get("note"))))
+        source_tables.append(
+            SourceTable(
+                _text(t.get("title")) or f"table {j}",
+                [_text(c) for c in cols],
+                [[_cell(v) for v in r] for r in rows],
+                _text(t.get("note")),
+            )
+        )
 
     rest = {k: v for k, v in metrics.items() if k not in _META_KEYS}
     tables = [_rmse_table(p, b) for p, b in _find_estimator_blocks(rest)]
-    return ExperimentReport(id=exp_id, title=_text(metrics.get("title")), source=_text(metrics.get("source"))
-                            or "unknown source", folder=folder.name, anchor=anchor, meta=meta, settings=settings,
-                            claims=claims, figures=figures, rmse_tables=tables, problems=problems,
-                            figure_sizes={f: size for f in figures if (size := _png_size(folder / f))},
-                            captions=captions, source_tables=source_tables)
+    return ExperimentReport(
+        id=exp_id,
+        title=_text(metrics.get("title")),
+        source=_text(metrics.get("source")) or "unknown source",
+        folder=folder.name,
+        anchor=anchor,
+        meta=meta,
+        settings=settings,
+        claims=claims,
+        figures=figures,
+        rmse_tables=tables,
+        problems=problems,
+        figure_sizes={f: size for f in figures if (size := _png_size(folder / f))},
+        captions=captions,
+        source_tables=source_tables,
+    )
 
 
 def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentReport], list[str]]:
@@ -363,7 +431,8 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
     root = as_path(results_dir, "results_dir")
     if not root.is_dir():
         raise ValidationError(f"results_dir: expected a directory of experiment results, got {str(root)!r}")
-    experiments, problems, taken = [], [], set()
+    experiments, problems = [], []
+    taken: set[str] = set()
     try:
         folders = sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith("."))
     except OSError as exc:
@@ -371,7 +440,7 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
     for folder in folders:
         mfile = folder / "metrics.json"
         if not mfile.is_file():
-            if mfile.exists() or mfile.is_symlink():        # a folder, a broken link, a device
+            if mfile.exists() or mfile.is_symlink():  # a folder, a broken link, a device
                 problems.append(f"{_printable(folder.name)}/metrics.json is not a regular file; experiment skipped")
             continue
         if not _is_utf8(folder.name):
@@ -381,6 +450,7 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
         if why:
             problems.append(f"{folder.name}/metrics.json {why}; experiment skipped")
             continue
+        assert metrics is not None, "_load_metrics gives the metrics or the reason"
         exp = _read_experiment(folder, metrics, taken)
         experiments.append(exp)
         problems.extend(exp.problems)
@@ -391,7 +461,7 @@ def collect_results(results_dir: str | os.PathLike) -> tuple[list[ExperimentRepo
 def _is_utf8(name: str) -> bool:
     try:
         name.encode("utf-8")
-    except UnicodeEncodeError:        # undecodable bytes of the file name (surrogate escapes)
+    except UnicodeEncodeError:  # undecodable bytes of the file name (surrogate escapes)
         return False
     return True
 
@@ -432,7 +502,7 @@ def _load_metrics(mfile: Path) -> tuple[dict | None, str]:
         return None, f"could not be read (not UTF-8 text: {exc.reason} at byte {exc.start})"
     except RecursionError:
         return None, "could not be read (nested too deeply)"
-    except ValueError as exc:         # JSONDecodeError, and the integers refused by _bounded_int
+    except ValueError as exc:  # JSONDecodeError, and the integers refused by _bounded_int
         return None, f"could not be read ({exc})"
     if not isinstance(metrics, dict):
         return None, "is not a JSON object"
@@ -466,8 +536,11 @@ def _by_source(experiments: list[ExperimentReport]) -> list[tuple[str, str, list
 
 
 def _totals(experiments: list[ExperimentReport]) -> tuple[int, int, int]:
-    return (sum(e.count(True) for e in experiments), sum(e.count(False) for e in experiments),
-            sum(e.count(None) for e in experiments))
+    return (
+        sum(e.count(True) for e in experiments),
+        sum(e.count(False) for e in experiments),
+        sum(e.count(None) for e in experiments),
+    )
 
 
 def _num(v: Any) -> str:
@@ -579,16 +652,17 @@ def _badge(holds: bool | None) -> str:
 
 
 def _html_counts(e: ExperimentReport) -> str:
-    return (f'<span class="counts">{e.count(True)} ✓ held · {e.count(False)} ✗ not held · '
-            f'{e.count(None)} n/a</span>')
+    return f'<span class="counts">{e.count(True)} ✓ held · {e.count(False)} ✗ not held · {e.count(None)} n/a</span>'
 
 
 def _html_settings(e: ExperimentReport) -> list[str]:
     if not e.settings:
         return ['<p class="empty">No parameters recorded.</p>']
-    out = ['<div class="scroll"><table class="settings">',
-           '<thead><tr><th scope="col">parameter</th><th scope="col">value</th><th scope="col">provenance</th>'
-           '<th scope="col">note / reason</th></tr></thead><tbody>']
+    out = [
+        '<div class="scroll"><table class="settings">',
+        '<thead><tr><th scope="col">parameter</th><th scope="col">value</th><th scope="col">provenance</th>'
+        '<th scope="col">note / reason</th></tr></thead><tbody>',
+    ]
     for s in e.settings:
         cls = ' class="flagged"' if s.flagged else ""
         prov = _e(s.provenance)
@@ -597,8 +671,10 @@ def _html_settings(e: ExperimentReport) -> list[str]:
             note = '<span class="empty">no reason given</span>'
         else:
             note = _e(s.note)
-        out.append(f'<tr{cls}><th scope="row"><code>{_e(s.name)}</code></th><td class="val">{_e(s.value)}</td>'
-                   f"<td>{badge}</td><td>{note}</td></tr>")
+        out.append(
+            f'<tr{cls}><th scope="row"><code>{_e(s.name)}</code></th><td class="val">{_e(s.value)}</td>'
+            f"<td>{badge}</td><td>{note}</td></tr>"
+        )
     out.append("</tbody></table></div>")
     return out
 
@@ -606,10 +682,12 @@ def _html_settings(e: ExperimentReport) -> list[str]:
 def _html_claims(e: ExperimentReport) -> list[str]:
     if not e.claims:
         return ['<p class="empty">No claims recorded.</p>']
-    out = ['<div class="scroll"><table class="claims">',
-           '<thead><tr><th scope="col" class="num">#</th><th scope="col">claim (source)</th>'
-           '<th scope="col">quantity</th><th scope="col">measured</th><th scope="col">test (tolerance)</th>'
-           '<th scope="col">holds</th></tr></thead><tbody>']
+    out = [
+        '<div class="scroll"><table class="claims">',
+        '<thead><tr><th scope="col" class="num">#</th><th scope="col">claim (source)</th>'
+        '<th scope="col">quantity</th><th scope="col">measured</th><th scope="col">test (tolerance)</th>'
+        '<th scope="col">holds</th></tr></thead><tbody>',
+    ]
     for c in e.claims:
         cls = _VERDICT[c.holds][0]
         cell = _badge(c.holds)
@@ -617,21 +695,23 @@ def _html_claims(e: ExperimentReport) -> list[str]:
             text = "why it does not hold" if c.holds is False else "why n/a"
             cell += f'<br><a class="why" href="#{c.anchor}">{text} →</a>'
         test = _e(c.test or "—") + (f'<span class="how">tolerance: {_e(c.tolerance)}</span>' if c.tolerance else "")
-        out.append(f'<tr id="{c.anchor}-row" class="{cls}"><td class="num">{c.number}</td><td>{_e(c.claim)}</td>'
-                   f"<td>{_e(c.quantity or '—')}</td><td>{_e(c.measured)}</td><td>{test}</td><td>{cell}</td></tr>")
+        out.append(
+            f'<tr id="{c.anchor}-row" class="{cls}"><td class="num">{c.number}</td><td>{_e(c.claim)}</td>'
+            f"<td>{_e(c.quantity or '—')}</td><td>{_e(c.measured)}</td><td>{test}</td><td>{cell}</td></tr>"
+        )
     out.append("</tbody></table></div>")
     for c in e.claims:
         if not c.needs_explanation:
             continue
         cls = "explain" if c.holds is False else "explain na"
         head = "does not hold" if c.holds is False else "cannot be measured"
-        out.append(f'<div class="{cls}" id="{c.anchor}"><p><strong>Claim {c.number} {head}:</strong> '
-                   f"{_e(c.claim)}</p>")
+        out.append(f'<div class="{cls}" id="{c.anchor}"><p><strong>Claim {c.number} {head}:</strong> {_e(c.claim)}</p>')
         if c.holds is None and c.not_measurable:
             out.append(f"<p><strong>Why n/a:</strong> {_e(c.not_measurable)}</p>")
         else:
-            out.append(f"<p><strong>Measured:</strong> "
-                       f"{_e(c.measured) or '<span class=empty>nothing recorded</span>'}</p>")
+            out.append(
+                f"<p><strong>Measured:</strong> {_e(c.measured) or '<span class=empty>nothing recorded</span>'}</p>"
+            )
         if c.test:
             out.append(f"<p><strong>Test:</strong> {_e(c.test)}; tolerance: {_e(c.tolerance or '—')}</p>")
         if c.note:
@@ -671,9 +751,11 @@ def _html_rmse(e: ExperimentReport) -> list[str]:
     if any(len(t.rows) > 1 for t in e.rmse_tables):
         out.append('<p class="meta">Bold: the lowest RMSE of that component in the table.</p>')
     if any(t.has_ratio for t in e.rmse_tables):
-        out.append('<p class="meta">RMSE / optimum: each component\'s time-averaged RMSE over that of the particle '
-                   'filter <code>pf</code> (the Bayes-optimal estimate, not in the sources), on the runs the particle '
-                   'filter used.</p>')
+        out.append(
+            '<p class="meta">RMSE / optimum: each component\'s time-averaged RMSE over that of the particle '
+            "filter <code>pf</code> (the Bayes-optimal estimate, not in the sources), on the runs the particle "
+            "filter used.</p>"
+        )
     return out
 
 
@@ -684,8 +766,9 @@ def _html_source_tables(e: ExperimentReport) -> list[str]:
         out.append(f"<caption>{_e(t.title)}</caption>")
         out.append("<thead><tr>" + "".join(f'<th scope="col">{_e(c)}</th>' for c in t.columns) + "</tr></thead><tbody>")
         for r in t.rows:
-            out.append("<tr>" + "".join(f'<td class="{"num" if j else ""}">{_e(v)}</td>' for j, v in enumerate(r))
-                       + "</tr>")
+            out.append(
+                "<tr>" + "".join(f'<td class="{"num" if j else ""}">{_e(v)}</td>' for j, v in enumerate(r)) + "</tr>"
+            )
         out.append("</tbody></table></div>")
         if t.note:
             out.append(f'<p class="meta">{_e(t.note)}</p>')
@@ -693,8 +776,10 @@ def _html_source_tables(e: ExperimentReport) -> list[str]:
 
 
 def _html_experiment(e: ExperimentReport) -> list[str]:
-    out = [f'<section class="exp" id="{e.anchor}" aria-labelledby="{e.anchor}-h">',
-           f'<h3 id="{e.anchor}-h"><code>{_e(e.id)}</code>{" — " + _e(e.title) if e.title else ""}</h3>']
+    out = [
+        f'<section class="exp" id="{e.anchor}" aria-labelledby="{e.anchor}-h">',
+        f'<h3 id="{e.anchor}-h"><code>{_e(e.id)}</code>{" — " + _e(e.title) if e.title else ""}</h3>',
+    ]
     meta = " ".join(f"<span>{_e(k)}: <b>{_e(v)}</b></span>" for k, v in e.meta)
     out.append(f'<p class="meta">{meta} <span>claims: {_html_counts(e)}</span></p>')
     if e.figures:
@@ -706,11 +791,16 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
             size = e.figure_sizes.get(name)
             dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
             caption = e.captions.get(name, "")
-            text = (f'{_e(caption)} <span class="file">({_e(name)})</span>' if caption
-                    else f'<span class="file">{_e(name)}</span>')
+            text = (
+                f'{_e(caption)} <span class="file">({_e(name)})</span>'
+                if caption
+                else f'<span class="file">{_e(name)}</span>'
+            )
             alt = f"{_e(e.id)}: {_e(caption or name)}"
-            out.append(f'<figure><a href="{src}"><img src="{src}" alt="{alt}" loading="lazy" decoding="async"'
-                       f"{dims}></a><figcaption>{text}</figcaption></figure>")
+            out.append(
+                f'<figure><a href="{src}"><img src="{src}" alt="{alt}" loading="lazy" decoding="async"'
+                f"{dims}></a><figcaption>{text}</figcaption></figure>"
+            )
         out.append("</div>")
     else:
         out.append('<p class="empty">No figures.</p>')
@@ -732,22 +822,32 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
     """The whole ``index.html`` page as a string (self-contained, no scripts)."""
     held, failed, na = _totals(experiments)
     groups = _by_source(experiments)
-    out = ["<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">', _HTML_MARKER,
-           '<meta name="viewport" content="width=device-width, initial-scale=1">',
-           f"<title>{_e(title)}</title>", f"<style>{_CSS}</style>", "</head>", "<body>", '<main id="top">',
-           f"<h1>{_e(title)}</h1>",
-           '<p class="lead">The sources\' numerical examples as reproduced by <code>tobitkf reproduce</code>: '
-           "figures, parameters (⚑ marks values the source does not state), the source's claims with what "
-           "we measured, the test and its tolerance, the source's tables next to ours, and the time-averaged "
-           "RMSE of each estimator. A claim is held or not held when it can be measured; n/a marks what "
-           "cannot be measured. Our deviations from each source are listed, with their IDs, in the "
-           "project's <code>docs/sources/</code> pages.</p>",
-           '<div class="cards">',
-           f'<div class="card"><b>{len(experiments)}</b>experiments</div>',
-           f'<div class="card ok"><b>{held}</b>✓ claims held</div>',
-           f'<div class="card bad"><b>{failed}</b>✗ claims not held</div>',
-           f'<div class="card na"><b>{na}</b>– claims n/a (not measurable)</div>',
-           "</div>"]
+    out = [
+        "<!DOCTYPE html>",
+        '<html lang="en">',
+        "<head>",
+        '<meta charset="utf-8">',
+        _HTML_MARKER,
+        '<meta name="viewport" content="width=device-width, initial-scale=1">',
+        f"<title>{_e(title)}</title>",
+        f"<style>{_CSS}</style>",
+        "</head>",
+        "<body>",
+        '<main id="top">',
+        f"<h1>{_e(title)}</h1>",
+        '<p class="lead">The sources\' numerical examples as reproduced by <code>tobitkf reproduce</code>: '
+        "figures, parameters (⚑ marks values the source does not state), the source's claims with what "
+        "we measured, the test and its tolerance, the source's tables next to ours, and the time-averaged "
+        "RMSE of each estimator. A claim is held or not held when it can be measured; n/a marks what "
+        "cannot be measured. Our deviations from each source are listed, with their IDs, in the "
+        "project's <code>docs/sources/</code> pages.</p>",
+        '<div class="cards">',
+        f'<div class="card"><b>{len(experiments)}</b>experiments</div>',
+        f'<div class="card ok"><b>{held}</b>✓ claims held</div>',
+        f'<div class="card bad"><b>{failed}</b>✗ claims not held</div>',
+        f'<div class="card na"><b>{na}</b>– claims n/a (not measurable)</div>',
+        "</div>",
+    ]
     if problems:
         out.append('<h2 id="problems">Problems</h2><ul class="problems">')
         out.extend(f"<li>{_e(p)}</li>" for p in problems)
@@ -757,8 +857,9 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
         for e in experiments:
             for c in e.claims:
                 if c.holds is False:
-                    out.append(f'<li><a href="#{c.anchor}"><code>{_e(e.id)}</code> claim {c.number}</a>: '
-                               f"{_e(c.claim)}</li>")
+                    out.append(
+                        f'<li><a href="#{c.anchor}"><code>{_e(e.id)}</code> claim {c.number}</a>: {_e(c.claim)}</li>'
+                    )
         out.append("</ul>")
     out.append('<h2 id="contents">Contents</h2>')
     if not experiments:
@@ -786,34 +887,46 @@ def _md(s: Any) -> str:
     """Text safe inside a Markdown table cell: no line breaks; pipes, '<', backticks and square
     brackets escaped (so text from a metrics.json cannot form a link or embed a remote image)."""
     s = " ".join(str(s).split())
-    return (s.replace("\\", "\\\\").replace("|", "\\|").replace("<", "\\<").replace("`", "\\`")
-            .replace("[", "\\[").replace("]", "\\]"))
+    return (
+        s.replace("\\", "\\\\")
+        .replace("|", "\\|")
+        .replace("<", "\\<")
+        .replace("`", "\\`")
+        .replace("[", "\\[")
+        .replace("]", "\\]")
+    )
 
 
-def _md_table(head: list[str], rows: list[list[str]], right: set[int] = frozenset()) -> list[str]:
+def _md_table(head: list[str], rows: list[list[str]], right: AbstractSet[int] = frozenset()) -> list[str]:
     align = ["---:" if i in right else "---" for i in range(len(head))]
     out = ["| " + " | ".join(head) + " |", "| " + " | ".join(align) + " |"]
     out.extend("| " + " | ".join(r) + " |" for r in rows)
     return out + [""]
 
 
-def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
-                    title: str = "tobitkf results") -> str:
+def render_markdown(experiments: list[ExperimentReport], problems: list[str], *, title: str = "tobitkf results") -> str:
     """``REPORT.md``: the same tables as the HTML page, in Markdown."""
     held, failed, na = _totals(experiments)
-    out = [f"# {_md(title)}", "",
-           f"Experiments: {len(experiments)} · claims ✓ held: {held} · ✗ not held: {failed} · "
-           f"– n/a (not measurable): {na}", "",
-           "Each claim states its quantity, its test and its tolerance (three Monte Carlo standard errors for a "
-           "random quantity). Our deviations from each source are listed, with their IDs, in `docs/sources/`.", ""]
+    out = [
+        f"# {_md(title)}",
+        "",
+        f"Experiments: {len(experiments)} · claims ✓ held: {held} · ✗ not held: {failed} · "
+        f"– n/a (not measurable): {na}",
+        "",
+        "Each claim states its quantity, its test and its tolerance (three Monte Carlo standard errors for a "
+        "random quantity). Our deviations from each source are listed, with their IDs, in `docs/sources/`.",
+        "",
+    ]
     if problems:
         out += ["## Problems", ""] + [f"- {_md(p)}" for p in problems] + [""]
     groups = _by_source(experiments)
     out += ["## Contents", ""]
     for src, _, exps in groups:
         out.append(f"- {_md(src)}")
-        out.extend(f"  - `{_md(e.id)}` {_md(e.title)} ({e.count(True)} ✓, {e.count(False)} ✗, "
-                   f"{e.count(None)} n/a)" for e in exps)
+        out.extend(
+            f"  - `{_md(e.id)}` {_md(e.title)} ({e.count(True)} ✓, {e.count(False)} ✗, {e.count(None)} n/a)"
+            for e in exps
+        )
     out.append("")
     for src, _, exps in groups:
         out += [f"## {_md(src)}", ""]
@@ -828,8 +941,15 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                     out += [f"*{_md(cap)}* ({_md(n)})", ""]
             out += ["#### Parameters", ""]
             if e.settings:
-                rows = [[f"`{_md(s.name)}`", _md(s.value), ("⚑ " if s.flagged else "") + _md(s.provenance),
-                         _md(s.note) if (s.note or not s.flagged) else "*no reason given*"] for s in e.settings]
+                rows = [
+                    [
+                        f"`{_md(s.name)}`",
+                        _md(s.value),
+                        ("⚑ " if s.flagged else "") + _md(s.provenance),
+                        _md(s.note) if (s.note or not s.flagged) else "*no reason given*",
+                    ]
+                    for s in e.settings
+                ]
                 out += _md_table(["parameter", "value", "provenance", "note / reason"], rows)
             else:
                 out += ["*No parameters recorded.*", ""]
@@ -841,17 +961,21 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                     verdict = f"{sym} {word}" + (f" (see note {c.number} below)" if c.needs_explanation else "")
                     test = _md(c.test or "—") + (f" (tolerance: {_md(c.tolerance)})" if c.tolerance else "")
                     rows.append([str(c.number), _md(c.claim), _md(c.quantity or "—"), _md(c.measured), test, verdict])
-                out += _md_table(["#", "claim (source)", "quantity", "measured", "test (tolerance)", "holds"], rows,
-                                 right={0})
+                out += _md_table(
+                    ["#", "claim (source)", "quantity", "measured", "test (tolerance)", "holds"], rows, right={0}
+                )
                 for c in e.claims:
                     if c.needs_explanation:
                         if c.holds is False:
                             lead = f"- **Claim {c.number} does not hold.** Measured: {_md(c.measured) or 'nothing'}."
                         else:
-                            lead = (f"- **Claim {c.number} cannot be measured.** "
-                                    f"{_md(c.not_measurable or c.measured) or 'no reason recorded'}.")
-                        extra = "".join(f" {lbl}: {_md(t)}." for lbl, t in (("Note", c.note),
-                                                                             ("Explanation", c.explanation)) if t)
+                            lead = (
+                                f"- **Claim {c.number} cannot be measured.** "
+                                f"{_md(c.not_measurable or c.measured) or 'no reason recorded'}."
+                            )
+                        extra = "".join(
+                            f" {lbl}: {_md(t)}." for lbl, t in (("Note", c.note), ("Explanation", c.explanation)) if t
+                        )
                         out.append(lead + extra)
                 if any(c.needs_explanation for c in e.claims):
                     out.append("")
@@ -861,33 +985,39 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                 out += ["#### The source's tables and ours", ""]
                 for t in e.source_tables:
                     out += [f"*{_md(t.title)}*", ""]
-                    out += _md_table([_md(c) for c in t.columns], [[_md(v) for v in r] for r in t.rows],
-                                     right=set(range(1, len(t.columns))))
+                    out += _md_table(
+                        [_md(c) for c in t.columns],
+                        [[_md(v) for v in r] for r in t.rows],
+                        right=set(range(1, len(t.columns))),
+                    )
                     if t.note:
                         out += [_md(t.note), ""]
             out += ["#### Time-averaged RMSE per estimator", "", _md(_RMSE_DEFINITION), ""]
             if not e.rmse_tables:
                 out += ["*No estimator summaries recorded.*", ""]
-            for t in e.rmse_tables:
-                out += [f"*{_md(t.label)}*", ""]
-                lows = [t.lowest(j) for j in range(t.components)]
+            for rt in e.rmse_tables:
+                out += [f"*{_md(rt.label)}*", ""]
+                lows = [rt.lowest(j) for j in range(rt.components)]
                 rows = []
-                for key, vals, nees_v in t.rows:
+                for key, vals, nees_v in rt.rows:
                     row = [f"`{_md(key)}`"]
-                    for j in range(t.components):
+                    for j in range(rt.components):
                         v = vals[j] if j < len(vals) else None
                         cell = _md(_num(v))
-                        if _finite(v) and v == lows[j] and len(t.rows) > 1:
+                        if _finite(v) and v == lows[j] and len(rt.rows) > 1:
                             cell = f"**{cell}**"
                         row.append(cell)
-                    if t.has_nees:
+                    if rt.has_nees:
                         row.append(_md(_num(nees_v)))
-                    if t.has_ratio:
-                        row.append(_md(t.ratio_text(key)))
+                    if rt.has_ratio:
+                        row.append(_md(rt.ratio_text(key)))
                     rows.append(row)
-                head = ["estimator"] + [f"x{j + 1}" for j in range(t.components)] + (["NEES (avg)"] if t.has_nees
-                                                                                      else [])
-                head += ["RMSE / optimum"] if t.has_ratio else []
+                head = (
+                    ["estimator"]
+                    + [f"x{j + 1}" for j in range(rt.components)]
+                    + (["NEES (avg)"] if rt.has_nees else [])
+                )
+                head += ["RMSE / optimum"] if rt.has_ratio else []
                 out += _md_table(head, rows, right=set(range(1, len(head))))
     return "\n".join(out).rstrip("\n") + "\n\n" + _MD_MARKER + "\n"
 

@@ -5,5 +5,4 @@ import warnings
 
 from .filters.tracking import MultiTargetTracker, TrackResult, constant_velocity_pixel_model  # noqa: F401
 
-warnings.warn("tobitkf.tracking is deprecated: import from tobitkf.filters.tracking", DeprecationWarning,
-              stacklevel=2)
+warnings.warn("tobitkf.tracking is deprecated: import from tobitkf.filters.tracking", DeprecationWarning, stacklevel=2)

@@ -10,8 +10,7 @@ from tobitkf import Censoring, LinearSystem, ShapeError, ValidationError, multi_
 
 def _sys(m=1, R=None):
     C = np.ones((m, 1))
-    return LinearSystem(A=[[0.99]], C=C, Q=[[0.01]], R=np.eye(m) * 0.0025 if R is None else R, x0=[0.0],
-                        P0=[[1.0]])
+    return LinearSystem(A=[[0.99]], C=C, Q=[[0.01]], R=np.eye(m) * 0.0025 if R is None else R, x0=[0.0], P0=[[1.0]])
 
 
 def test_clip_follows_table_1_1():
@@ -114,17 +113,20 @@ def test_check_channel_and_step_counts():
         Censoring(lower=np.zeros((3, 1))).check(1, 5)
 
 
-@pytest.mark.parametrize("kwargs,exc,match", [
-    (dict(lower=1.0, upper=1.0), ValidationError, "lower/upper: expected lower < upper"),
-    (dict(lower=[0.0, 2.0], upper=[1.0, 1.0]), ValidationError, r"lower < upper.*index \(1,\)"),
-    (dict(lower=np.nan), ValidationError, "lower: expected finite numbers, found NaN"),
-    (dict(upper=[0.0, np.nan]), ValidationError, "upper: expected finite numbers, found NaN"),
-    (dict(lower=np.inf), ValidationError, r"lower: \+inf is not a valid lower limit"),
-    (dict(upper=-np.inf), ValidationError, "upper: -inf is not a valid upper limit"),
-    (dict(lower=[0.0, 1.0], upper=[1.0, 2.0, 3.0]), ShapeError, "lower/upper: shapes"),
-    (dict(lower=np.zeros((2, 2, 2))), ShapeError, "lower: expected 0 or 1 or 2 dimension"),
-    (dict(lower="abc"), ValidationError, "lower: expected an array of numbers"),
-])
+@pytest.mark.parametrize(
+    "kwargs,exc,match",
+    [
+        (dict(lower=1.0, upper=1.0), ValidationError, "lower/upper: expected lower < upper"),
+        (dict(lower=[0.0, 2.0], upper=[1.0, 1.0]), ValidationError, r"lower < upper.*index \(1,\)"),
+        (dict(lower=np.nan), ValidationError, "lower: expected finite numbers, found NaN"),
+        (dict(upper=[0.0, np.nan]), ValidationError, "upper: expected finite numbers, found NaN"),
+        (dict(lower=np.inf), ValidationError, r"lower: \+inf is not a valid lower limit"),
+        (dict(upper=-np.inf), ValidationError, "upper: -inf is not a valid upper limit"),
+        (dict(lower=[0.0, 1.0], upper=[1.0, 2.0, 3.0]), ShapeError, "lower/upper: shapes"),
+        (dict(lower=np.zeros((2, 2, 2))), ShapeError, "lower: expected 0 or 1 or 2 dimension"),
+        (dict(lower="abc"), ValidationError, "lower: expected an array of numbers"),
+    ],
+)
 def test_constructor_validation(kwargs, exc, match):
     with pytest.raises(exc, match=match):
         Censoring(**kwargs)
@@ -154,8 +156,9 @@ def test_multi_region_stacks_sensors():
 
 
 def test_multi_region_several_outputs_and_noise():
-    base = LinearSystem(A=np.eye(2), C=[[1.0, 0.0], [0.0, 2.0]], Q=np.eye(2) * 0.01, R=np.diag([0.1, 0.2]),
-                        x0=[0.0, 0.0], P0=np.eye(2))
+    base = LinearSystem(
+        A=np.eye(2), C=[[1.0, 0.0], [0.0, 2.0]], Q=np.eye(2) * 0.01, R=np.diag([0.1, 0.2]), x0=[0.0, 0.0], P0=np.eye(2)
+    )
     regions = [[(-1.0, 1.0), (2.0, 3.0), (-np.inf, -2.0)], [(0.0, np.inf)]]
     stacked, cens = multi_region(base, regions, noise_var=[[0.1, 0.3, 0.5], [0.7]])
     assert stacked.m == 4
@@ -170,16 +173,25 @@ def test_multi_region_several_outputs_and_noise():
 
 
 def test_multi_region_keeps_noise_input_matrix():
-    base = LinearSystem(A=[[1.0, 1.0], [0.0, 1.0]], C=[[1.0, 0.0]], Q=[[0.04]], R=[[1.0]], x0=[0, 0],
-                        P0=np.eye(2), B=[[0.5], [1.0]])
+    base = LinearSystem(
+        A=[[1.0, 1.0], [0.0, 1.0]], C=[[1.0, 0.0]], Q=[[0.04]], R=[[1.0]], x0=[0, 0], P0=np.eye(2), B=[[0.5], [1.0]]
+    )
     stacked, _ = multi_region(base, [[(-np.inf, 0.0), (0.0, np.inf)]])
     np.testing.assert_allclose(stacked.process_cov(0), base.process_cov(0), rtol=0, atol=0)
 
 
 def test_multi_region_keeps_control_inputs():
     """The stacked model keeps Bu, and D gets one row per sensor like C (a controlled plant stays controlled)."""
-    base = LinearSystem(A=[[1.0, 0.1], [0.0, 1.0]], C=[[1.0, 0.0], [0.0, 1.0]], Q=0.01 * np.eye(2),
-                        R=np.diag([0.1, 0.2]), x0=[0, 0], P0=np.eye(2), Bu=[[0.0], [0.1]], D=[[0.5], [-1.0]])
+    base = LinearSystem(
+        A=[[1.0, 0.1], [0.0, 1.0]],
+        C=[[1.0, 0.0], [0.0, 1.0]],
+        Q=0.01 * np.eye(2),
+        R=np.diag([0.1, 0.2]),
+        x0=[0, 0],
+        P0=np.eye(2),
+        Bu=[[0.0], [0.1]],
+        D=[[0.5], [-1.0]],
+    )
     stacked, _ = multi_region(base, [[(-np.inf, 0.0), (0.0, np.inf)], [(-1.0, 1.0)]])
     assert stacked.p == 1
     np.testing.assert_array_equal(stacked.Bu.at(1), [[0.0], [0.1]])
@@ -192,11 +204,14 @@ def test_multi_region_keeps_control_inputs():
     assert st2.p == 1 and st2.D is None
 
 
-@pytest.mark.parametrize("regions,match", [
-    ([], r"regions: expected one list of windows per output \(1\)"),
-    ([[]], r"regions\[0\]: expected at least one"),
-    ([[(0.0,)]], r"regions\[0\]\[0\]: expected a \(lower, upper\) pair"),
-])
+@pytest.mark.parametrize(
+    "regions,match",
+    [
+        ([], r"regions: expected one list of windows per output \(1\)"),
+        ([[]], r"regions\[0\]: expected at least one"),
+        ([[(0.0,)]], r"regions\[0\]\[0\]: expected a \(lower, upper\) pair"),
+    ],
+)
 def test_multi_region_validation(regions, match):
     with pytest.raises(ShapeError, match=match):
         multi_region(_sys(), regions)

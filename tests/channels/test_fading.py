@@ -60,14 +60,13 @@ def test_draw_time_varying_C_and_two_channels():
     noise = np.zeros((3, T, 2))
     y, ex = fad.draw(np.random.default_rng(2), x, sys, noise)
     # C_0 := C_1 for per-step arrays (module docstring)
-    np.testing.assert_allclose(y, _loop_oracle(x, ex["fading"], lambda j: Cs[max(j, 1) - 1], noise, 1),
-                               atol=1e-13)
+    np.testing.assert_allclose(y, _loop_oracle(x, ex["fading"], lambda j: Cs[max(j, 1) - 1], noise, 1), atol=1e-13)
     np.testing.assert_array_equal(measurement_matrix_at(sys, 0), Cs[0])
 
 
 def test_fresh_draw_per_k_and_s_and_channel():
     fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
-    th = fad.sample(np.random.default_rng(0), 1, 200, 2)[0, 2:]          # (198, 3, 2), all s present
+    th = fad.sample(np.random.default_rng(0), 1, 200, 2)[0, 2:]  # (198, 3, 2), all s present
     assert len(np.unique(th)) == th.size
     # independence over channels and delays: sample correlation ~ 0 within 5/sqrt(n)
     c = np.corrcoef(th[:, 0, 0], th[:, 0, 1])[0, 1]
@@ -119,7 +118,7 @@ def test_bad_order_names_argument(order):
 
 def test_bad_coefficients_name_argument():
     with pytest.raises(ShapeError, match="coefficients"):
-        RiceFading(2, Gaussian([0.9, 0.8], [0.01, 0.01]))            # length L+1 = 3 expected
+        RiceFading(2, Gaussian([0.9, 0.8], [0.01, 0.01]))  # length L+1 = 3 expected
     with pytest.raises(ValidationError, match="variance"):
         RiceFading.gaussian(1, [0.9, 0.8], [0.01, -0.01])
     with pytest.raises(ValidationError, match="probs"):

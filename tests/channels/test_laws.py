@@ -41,11 +41,14 @@ def test_pmf_batched_laws_and_indexing():
     np.testing.assert_allclose(law[1].mean, 2.75)
 
 
-@pytest.mark.parametrize("law", [
-    Gaussian([1.0, -2.0], [0.25, 4.0]),
-    Uniform([0.0, 0.5], [1.0, 0.9]),
-    PMF([[0.1, 0.5, 0.9], [0.0, 1.0, 2.0]], [[0.2, 0.3, 0.5], [0.6, 0.3, 0.1]]),
-])
+@pytest.mark.parametrize(
+    "law",
+    [
+        Gaussian([1.0, -2.0], [0.25, 4.0]),
+        Uniform([0.0, 0.5], [1.0, 0.9]),
+        PMF([[0.1, 0.5, 0.9], [0.0, 1.0, 2.0]], [[0.2, 0.3, 0.5], [0.6, 0.3, 0.1]]),
+    ],
+)
 def test_sample_moments_match_within_monte_carlo_error(law):
     n = 200_000
     draws = law.sample(np.random.default_rng(42), n)

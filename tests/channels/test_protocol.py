@@ -2,20 +2,29 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import tobitkf as tk
 from tobitkf.channels.laws import PMF, Constant, Gaussian, Uniform
-from tobitkf.channels.protocol import (LAMBDA_1, LAMBDA_BASE, NO_FAILURE, IntegralMeasurement, ProtocolChannel,
-                                       RoundRobin, check_failure_law)
+from tobitkf.channels.protocol import (
+    LAMBDA_1,
+    LAMBDA_BASE,
+    NO_FAILURE,
+    IntegralMeasurement,
+    ProtocolChannel,
+    RoundRobin,
+    check_failure_law,
+)
 
 
 def example_system(A=None, p=2):
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]) if A is None else A
     C = np.eye(2) if p == 2 else np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])[:p]
-    return tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag(np.arange(1.0, p + 1)), x0=[5.0, 0.0],
-                           P0=np.eye(2))
+    return tk.LinearSystem(
+        A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag(np.arange(1.0, p + 1)), x0=[5.0, 0.0], P0=np.eye(2)
+    )
 
 
 # --- failure laws ------------------------------------------------------------------------
@@ -46,10 +55,13 @@ def test_laws_share_random_numbers():
     assert (b <= a).all() and (b < a).any()
 
 
-@pytest.mark.parametrize("values, probs, match", [
-    ([0.0, 1.0], [0.5, 0.6], "sum"),
-    ([0.0, 1.0], [-0.1, 1.1], ">= 0"),
-])
+@pytest.mark.parametrize(
+    "values, probs, match",
+    [
+        ([0.0, 1.0], [0.5, 0.6], "sum"),
+        ([0.0, 1.0], [-0.1, 1.1], ">= 0"),
+    ],
+)
 def test_bad_failure_law_probabilities(values, probs, match):
     with pytest.raises(ValueError, match=match):
         ProtocolChannel(2, failures=PMF(values, probs))
@@ -92,14 +104,17 @@ def test_check_failure_law_accepts_any_law_with_mean_and_variance():
     assert ch.failure_mean.tolist() == [0.8, 0.8] and ch.failure_variance.tolist() == [0.01, 0.01]
 
 
-@pytest.mark.parametrize("law, match", [
-    (_MomentLaw(0.5, 0.3), "mean\\(1-mean\\)"),
-    (_MomentLaw(1.5, 0.0), r"\[0, 1\]"),
-    (_MomentLaw(0.5, -0.1), "variance >= 0"),
-    (Uniform(0.5, 1.5), r"\[0, 1\]"),
-    (Gaussian(0.9, 0.01), "Gaussian gain"),
-    (object(), "no 'mean'"),
-])
+@pytest.mark.parametrize(
+    "law, match",
+    [
+        (_MomentLaw(0.5, 0.3), "mean\\(1-mean\\)"),
+        (_MomentLaw(1.5, 0.0), r"\[0, 1\]"),
+        (_MomentLaw(0.5, -0.1), "variance >= 0"),
+        (Uniform(0.5, 1.5), r"\[0, 1\]"),
+        (Gaussian(0.9, 0.01), "Gaussian gain"),
+        (object(), "no 'mean'"),
+    ],
+)
 def test_check_failure_law_rejects(law, match):
     with pytest.raises(ValueError, match=match):
         check_failure_law(law)
@@ -121,11 +136,17 @@ def test_round_robin_select_is_zero_input_sum():
     np.testing.assert_array_equal(RoundRobin(3).select(z)[..., 0], (G * z).sum(-1))
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"sensors": 0}, "p >= 1"), ({"sensors": -2}, "p >= 1"), ({"sensors": 1.5}, "p >= 1"),
-    ({"sensors": 2, "order": [1, 3]}, "names sensor 3"), ({"sensors": 2, "order": [0, 1]}, "names sensor 0"),
-    ({"sensors": 2, "order": []}, "non-empty"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"sensors": 0}, "p >= 1"),
+        ({"sensors": -2}, "p >= 1"),
+        ({"sensors": 1.5}, "p >= 1"),
+        ({"sensors": 2, "order": [1, 3]}, "names sensor 3"),
+        ({"sensors": 2, "order": [0, 1]}, "names sensor 0"),
+        ({"sensors": 2, "order": []}, "non-empty"),
+    ],
+)
 def test_round_robin_bad_input(kwargs, match):
     with pytest.raises(ValueError, match=match):
         RoundRobin(**kwargs)
@@ -137,7 +158,7 @@ def test_round_robin_bad_input(kwargs, match):
 def test_window_sum_matches_naive_loop(ell, T, seed):
     rng = np.random.default_rng(seed)
     x = rng.normal(size=(2, T + 1, 3))
-    past = rng.normal(size=(2, ell, 3))                      # past[:, s-1] = x_{-s}
+    past = rng.normal(size=(2, ell, 3))  # past[:, s-1] = x_{-s}
 
     def state(k):
         return x[:, k] if k >= 0 else past[:, -k - 1]
@@ -160,13 +181,13 @@ def test_simulated_measurements_follow_eq_2_to_7():
     assert d.y.shape == (5, 30, 1) and d.y_latent.shape == (5, 30, 2)
     lam, past = d.extras["failure_gain"], d.extras["prehistory"]
     assert lam.shape == (5, 30, 2) and past.shape == (5, 2, 2)
-    states = np.concatenate([past[:, ::-1], d.x], axis=1)      # x_{-2}..x_T
+    states = np.concatenate([past[:, ::-1], d.x], axis=1)  # x_{-2}..x_T
     # v_{m,k} recovered from the latent readings of both sensors must be the same draw for
     # every scheduled/unscheduled sensor: rebuild y from (2)-(4) with them
     h = np.array([0, 1] * 15)
     for k in range(1, 31):
-        s = states[:, k: k + 3].sum(1)                       # x_{k-2}+x_{k-1}+x_k
-        clean = lam[:, k - 1] * s                            # C = I: sensor m sees component m
+        s = states[:, k : k + 3].sum(1)  # x_{k-2}+x_{k-1}+x_k
+        clean = lam[:, k - 1] * s  # C = I: sensor m sees component m
         v = d.y_latent[:, k - 1] - clean
         ybar = clean[:, h[k - 1]] + v[:, h[k - 1]]
         np.testing.assert_allclose(d.extras["y_transmitted"][:, k - 1, 0], ybar, rtol=0, atol=1e-12)
@@ -204,15 +225,18 @@ def test_common_random_numbers_across_scenarios():
     assert (b.extras["failure_gain"] <= a.extras["failure_gain"]).all()
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"sensors": 0}, "p >= 1"),
-    ({"sensors": 2, "window": -1}, "ell >= 0"),
-    ({"sensors": 2, "failures": [LAMBDA_BASE]}, "one law or 2 laws"),
-    ({"sensors": 2, "threshold": np.inf}, "censor every"),
-    ({"sensors": 2, "threshold": np.nan}, "NaN"),
-    ({"sensors": 2, "prehistory": "random"}, "prehistory"),
-    ({"sensors": 2, "order": [1, 2, 5]}, "names sensor 5"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"sensors": 0}, "p >= 1"),
+        ({"sensors": 2, "window": -1}, "ell >= 0"),
+        ({"sensors": 2, "failures": [LAMBDA_BASE]}, "one law or 2 laws"),
+        ({"sensors": 2, "threshold": np.inf}, "censor every"),
+        ({"sensors": 2, "threshold": np.nan}, "NaN"),
+        ({"sensors": 2, "prehistory": "random"}, "prehistory"),
+        ({"sensors": 2, "order": [1, 2, 5]}, "names sensor 5"),
+    ],
+)
 def test_channel_bad_input(kwargs, match):
     sensors = kwargs.pop("sensors")
     with pytest.raises(ValueError, match=match):

@@ -10,14 +10,15 @@ from tobitkf.simulate import simulate
 
 
 def test_core_simulate_hook_reproduces_eq2():
-    sys_ = LinearSystem(A=np.eye(2) * 0.9, C=[[1.0, 0.0], [1.0, 1.0]], Q=np.eye(2), R=np.eye(2) * 0.01,
-                        x0=[3.0, -2.0], P0=np.eye(2))
+    sys_ = LinearSystem(
+        A=np.eye(2) * 0.9, C=[[1.0, 0.0], [1.0, 1.0]], Q=np.eye(2), R=np.eye(2) * 0.01, x0=[3.0, -2.0], P0=np.eye(2)
+    )
     ch = RandomSaturation([0.5, 0.2], [0.6, 0.9], level=[1.0, 2.0])
     data = simulate(sys_, 30, 7, measurement=ch, seed=3)
     a, b = data.extras["alpha"], data.extras["beta"]
     cx = data.x[:, 1:] @ np.array([[1.0, 0.0], [1.0, 1.0]]).T
     v = data.y_latent - (a * np.clip(cx, [-1, -2], [1, 2]) + (1 - a) * b * cx)
-    assert np.abs(v).max() < 1.0                     # what is left is the Gaussian noise (std 0.1)
+    assert np.abs(v).max() < 1.0  # what is left is the Gaussian noise (std 0.1)
     missing = (a == 0) & (b == 0)
     assert missing.any()
     np.testing.assert_allclose(np.std(v), 0.1, rtol=0.2)

@@ -62,8 +62,9 @@ def test_t13_marginal_plant_setpoint_inside_censored_region(position, T, P11):
     assert abs(th_kf.mean() - 1.0) > 1.0
     # the TKF covariance at the end against the modified DARE at Xi = Phi((T - r)/sigma) (6.21)
     p = dc_motor_position()
-    pred = tobit_dlqe(plant.transition(0), None, p.C, plant.process_cov(0), V=[[0.05**2]],
-                      xi_uncensored=ndtr((T - 1.0) / 0.05)).cov[0, 0]
+    pred = tobit_dlqe(
+        plant.transition(0), None, p.C, plant.process_cov(0), V=[[0.05**2]], xi_uncensored=ndtr((T - 1.0) / 0.05)
+    ).cov[0, 0]
     assert pred == pytest.approx(P11, rel=2e-3)
     assert tkf.cov[:, -1, 0, 0] == pytest.approx(pred, rel=0.02)
     assert not tkf.diverged.any()
@@ -77,14 +78,15 @@ def test_t14_stable_plant_tkf_bias_much_smaller_than_kf(speed, T):
     m_kf = kf.x[:, 1000:, 0].mean(axis=1)
     m_tkf = tkf.x[:, 1000:, 0].mean(axis=1)
     assert np.all(np.abs(m_tkf) < 0.2 * np.abs(m_kf))
-    assert np.all(m_kf > 0)       # the KF's bias toward the limit drives theta-dot up (Fig 6.1)
+    assert np.all(m_kf > 0)  # the KF's bias toward the limit drives theta-dot up (Fig 6.1)
 
 
 def test_t12_moving_limit_gamma_is_xi_and_covariance_converges(position):
     plant, K = position
     xi = 0.95
-    res = simulate_closed_loop(plant, K, 3000, 5, observer="tkf-moving", xi_uncensored=xi,
-                               reference=step_reference(), seed=2)
+    res = simulate_closed_loop(
+        plant, K, 3000, 5, observer="tkf-moving", xi_uncensored=xi, reference=step_reference(), seed=2
+    )
     assert np.all(res.p_uncensored == pytest.approx(xi, abs=1e-12))
     C, sigma = plant.measurement(1), 0.05
     g = tobit_dlqe(plant.transition(0), None, C, plant.process_cov(0), V=[[sigma**2]], xi_uncensored=xi)
@@ -142,8 +144,9 @@ def test_bad_input(position):
     with pytest.raises(ValidationError, match="needs a control input matrix Bu"):
         simulate_closed_loop(nou, [[0.1]], 10)
     with pytest.raises(ValidationError, match="cannot track the reference"):
-        zero = LinearSystem(A=np.diag([0.5, 0.8]), C=[[0.0, 1.0]], Q=np.eye(2), R=[[1.0]], x0=[0, 0],
-                            P0=np.eye(2), Bu=[[1.0], [0.0]])
+        zero = LinearSystem(
+            A=np.diag([0.5, 0.8]), C=[[0.0, 1.0]], Q=np.eye(2), R=[[1.0]], x0=[0, 0], P0=np.eye(2), Bu=[[1.0], [0.0]]
+        )
         simulate_closed_loop(zero, [[0.1, 0.0]], 10, reference=1.0)
     with pytest.raises(ShapeError, match="reference"):
         simulate_closed_loop(plant, K, 10, reference=np.ones((3, 2)))
@@ -155,7 +158,9 @@ def test_sstkf_loop_uses_the_modified_dare_gain_and_tracks(position):
 
     plant, K = position
     f = SteadyStateTobitKalmanFilter(plant, 0.95)
-    g = tobit_dlqe(plant.transition(0), None, plant.measurement(1), plant.process_cov(0), V=[[0.05**2]], xi_uncensored=0.95)
+    g = tobit_dlqe(
+        plant.transition(0), None, plant.measurement(1), plant.process_cov(0), V=[[0.05**2]], xi_uncensored=0.95
+    )
     assert f.gain == pytest.approx(g.filter_gain, rel=1e-8)
     assert f.cov == pytest.approx(g.cov, rel=1e-8)
     r = step_reference()
@@ -164,7 +169,7 @@ def test_sstkf_loop_uses_the_modified_dare_gain_and_tracks(position):
     assert np.all(np.abs(ss.x[:, -1000:, 0].mean(axis=1) - 1.0) < 0.02)
     err_ss = np.sqrt(np.mean((ss.estimate[:, -1000:, 0] - ss.x[:, -1000:, 0]) ** 2))
     err_kf = np.sqrt(np.mean((kf.estimate[:, -1000:, 0] - kf.x[:, -1000:, 0]) ** 2))
-    assert err_ss < 1.25 * err_kf         # "degradation is minimal" (spec [S]: 0.020 vs 0.020)
+    assert err_ss < 1.25 * err_kf  # "degradation is minimal" (spec [S]: 0.020 vs 0.020)
     assert np.all(ss.cov == f.cov)
 
 
@@ -176,22 +181,30 @@ def test_t15_with_the_steady_state_observer():
     assert not ok.diverged.any() and bad.diverged.sum() >= 7
 
 
-@pytest.mark.parametrize("observer, kw", [("kf", {"censoring": Censoring(upper=0.02)}),
-                                          ("tkf", {"censoring": Censoring(upper=0.02)}),
-                                          ("tkf-moving", {"xi_uncensored": 0.7}),
-                                          ("sstkf", {"xi_uncensored": 0.7})])
+@pytest.mark.parametrize(
+    "observer, kw",
+    [
+        ("kf", {"censoring": Censoring(upper=0.02)}),
+        ("tkf", {"censoring": Censoring(upper=0.02)}),
+        ("tkf-moving", {"xi_uncensored": 0.7}),
+        ("sstkf", {"xi_uncensored": 0.7}),
+    ],
+)
 def test_batched_equals_per_run(speed, observer, kw):
     plant, K = speed
     rng = np.random.default_rng(9)
     N, T = 3, 150
-    noise = {"x0": rng.standard_normal((N, 2)) * 1e-3,
-             "w": rng.standard_normal((N, T, 2)) @ np.linalg.cholesky(plant.process_cov(0) + 1e-30 * np.eye(2)).T,
-             "v": rng.standard_normal((N, T, 1)) * 0.05}
+    noise = {
+        "x0": rng.standard_normal((N, 2)) * 1e-3,
+        "w": rng.standard_normal((N, T, 2)) @ np.linalg.cholesky(plant.process_cov(0) + 1e-30 * np.eye(2)).T,
+        "v": rng.standard_normal((N, T, 1)) * 0.05,
+    }
     r = np.full(T, 0.05)
     batch = simulate_closed_loop(plant, K, T, N, observer=observer, reference=r, noise=noise, **kw)
     for i in range(N):
-        one = simulate_closed_loop(plant, K, T, 1, observer=observer, reference=r,
-                                   noise={k: v[i:i + 1] for k, v in noise.items()}, **kw)
+        one = simulate_closed_loop(
+            plant, K, T, 1, observer=observer, reference=r, noise={k: v[i : i + 1] for k, v in noise.items()}, **kw
+        )
         assert one.x[0] == pytest.approx(batch.x[i], rel=1e-12, abs=1e-15)
         assert one.estimate[0] == pytest.approx(batch.estimate[i], rel=1e-12, abs=1e-15)
     with pytest.raises(ShapeError, match="noise"):

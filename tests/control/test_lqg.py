@@ -7,8 +7,19 @@ from scipy.special import ndtr
 
 from tobitkf import KalmanFilter, LinearSystem
 from tobitkf._validation import ValidationError
-from tobitkf.control.lqg import (controlled_noise, discretize, dlqe, dlqr, equilibrium, is_stable, lqe, lqr,
-                                 reference_gain, tobit_dlqe, tobit_lqe)
+from tobitkf.control.lqg import (
+    controlled_noise,
+    discretize,
+    dlqe,
+    dlqr,
+    equilibrium,
+    is_stable,
+    lqe,
+    lqr,
+    reference_gain,
+    tobit_dlqe,
+    tobit_lqe,
+)
 from tobitkf.control.plants import dc_motor_position, dc_motor_speed, scalar_example
 
 
@@ -22,7 +33,7 @@ def test_t7_scalar_gain_and_jacobian_eigenvalues():
     s = scalar_example()
     g = lqe(s.A, s.G, s.C, s.W, s.V)
     # printed L = 0.0246 (4 decimals); closed form of the scalar CARE: L = (A + sqrt(A^2 + W/V)) (R=V)
-    closed = (-0.8 + np.sqrt(0.64 + 0.01 / 0.25))
+    closed = -0.8 + np.sqrt(0.64 + 0.01 / 0.25)
     assert g.gain[0, 0] == pytest.approx(closed, rel=1e-10)
     assert g.gain[0, 0] == pytest.approx(0.0246, abs=printed(0.0246, 4))
     assert np.sort(np.r_[s.A.ravel(), g.poles.real]) == pytest.approx([-0.824621, -0.8], abs=1e-6)
@@ -45,7 +56,7 @@ def test_t8_dc_motor_speed_gains():
     g = lqe(p.A, p.G, p.C, p.W, p.V)
     assert g.gain[:, 0] == pytest.approx([10.0329, 0.2257], abs=printed(0, 4))
     assert g.gain[:, 0] == pytest.approx([10.0329, 0.2257], rel=1e-3)
-    assert np.sort(g.poles.real)[-1] == pytest.approx(-10.631, abs=1e-3)      # A13: the missing number
+    assert np.sort(g.poles.real)[-1] == pytest.approx(-10.631, abs=1e-3)  # A13: the missing number
     t = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=ndtr(0.0))
     assert t.noise[0, 0] == pytest.approx(9.0845e-4, rel=1e-4)
     assert t.gain[:, 0] == pytest.approx([16.452, 0.305], abs=printed(0, 3))
@@ -68,14 +79,18 @@ def test_t9_position_uncensored():
     assert ev[0].real == pytest.approx(-14826388.3725128, rel=1e-9)
     assert ev[1].real == pytest.approx(-2.32303105520711, rel=1e-6)
     assert abs(ev[1].imag) == pytest.approx(2.28421305934995, rel=1e-6)
-    assert np.sort(np.linalg.eigvals(p.A).real) == pytest.approx([-14826388.3725128, -0.598070200532675, 0.0],
-                                                                 rel=1e-9, abs=1e-9)
+    assert np.sort(np.linalg.eigvals(p.A).real) == pytest.approx(
+        [-14826388.3725128, -0.598070200532675, 0.0], rel=1e-9, abs=1e-9
+    )
 
 
-@pytest.mark.parametrize("T, L_printed, eig_printed", [
-    (0.0, [7.281, 13.253, -0.0302], [-3.9395245780726]),
-    (-0.174533, [73.1575, 0.6447, -0.0015], [-73.1486, -0.6070]),
-])
+@pytest.mark.parametrize(
+    "T, L_printed, eig_printed",
+    [
+        (0.0, [7.281, 13.253, -0.0302], [-3.9395245780726]),
+        (-0.174533, [73.1575, 0.6447, -0.0015], [-73.1486, -0.6070]),
+    ],
+)
 def test_t9_position_tobit_gains(T, L_printed, eig_printed):
     p = dc_motor_position()
     t = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=ndtr(T / 0.05))
@@ -84,9 +99,9 @@ def test_t9_position_tobit_gains(T, L_printed, eig_printed):
     # the text prints eig(A - L C) with the Tobit L (A15); the effective poles are eig(A - L Xi C)
     ev = np.linalg.eigvals(p.A - t.gain @ p.C)
     slow = np.sort(ev.real[ev.real > -1e6])
-    assert sorted(slow)[:len(eig_printed)] == pytest.approx(sorted(eig_printed), rel=1e-3)
+    assert sorted(slow)[: len(eig_printed)] == pytest.approx(sorted(eig_printed), rel=1e-3)
     eff = np.sort(t.poles.real[t.poles.real > -1e6])
-    assert np.all(eff >= slow.min() - 1e-9)       # the Xi factor moves poles toward eig(A)
+    assert np.all(eff >= slow.min() - 1e-9)  # the Xi factor moves poles toward eig(A)
 
 
 def test_t9_minus_20_degrees_not_reproduced_and_why():
@@ -135,9 +150,16 @@ def test_dlqe_is_the_limit_of_the_core_kalman_filter():
     assert g.prior_cov == pytest.approx(solve_discrete_are(A.T, C.T, Q, R), rel=1e-9)
 
 
-@pytest.mark.parametrize("xi, a, lam, ups", [
-    (0.33, -0.439913, 1.097420, 0.278438), (0.5, 0.0, 0.797885, 0.363380), (0.8, 0.841621, 0.349952, 0.583006),
-    (0.95, 1.644854, 0.108564, 0.809642), (0.9999, 3.719016, 3.96e-4, 0.998528)])
+@pytest.mark.parametrize(
+    "xi, a, lam, ups",
+    [
+        (0.33, -0.439913, 1.097420, 0.278438),
+        (0.5, 0.0, 0.797885, 0.363380),
+        (0.8, 0.841621, 0.349952, 0.583006),
+        (0.95, 1.644854, 0.108564, 0.809642),
+        (0.9999, 3.719016, 3.96e-4, 0.998528),
+    ],
+)
 def test_controlled_noise_table(xi, a, lam, ups):
     lam_hat, upsilon = controlled_noise(xi, 2.0)
     assert lam_hat == pytest.approx(lam, rel=2e-3 if xi > 0.999 else 1e-5)
@@ -236,17 +258,17 @@ def test_untrackable_reference():
 
 # ----------------------------------------------------------------- printed digits, Newton refinement
 PRINTED_GAINS = [  # (model, T or None for the uncensored gain, printed entries as printed)
-    (dc_motor_speed, None, ["10.0329", "0.2257"]),                     # (5.61)
-    (dc_motor_speed, 0.0, ["16.452", ".305"]),                          # §5.4.1, T = 0
-    (dc_motor_position, None, ["4.0480", "8.1931", "-0.0187"]),         # (5.67)
-    (dc_motor_position, 0.0, ["7.281", "13.253", "-0.0302"]),           # §5.4.2, T = 0
-    (dc_motor_position, -0.174533, ["73.1575", "0.6447", "-0.0015"]),   # §5.4.2, T = -10 deg
+    (dc_motor_speed, None, ["10.0329", "0.2257"]),  # (5.61)
+    (dc_motor_speed, 0.0, ["16.452", ".305"]),  # §5.4.1, T = 0
+    (dc_motor_position, None, ["4.0480", "8.1931", "-0.0187"]),  # (5.67)
+    (dc_motor_position, 0.0, ["7.281", "13.253", "-0.0302"]),  # §5.4.2, T = 0
+    (dc_motor_position, -0.174533, ["73.1575", "0.6447", "-0.0015"]),  # §5.4.2, T = -10 deg
 ]
 
 
 def _half_unit(text):
     decimals = len(text.split(".")[1]) if "." in text else 0
-    return 0.5 * 10.0 ** -decimals
+    return 0.5 * 10.0**-decimals
 
 
 def _gain(model, T):
@@ -272,8 +294,10 @@ def _decimal_care_gain(A, Q, Ct, V, P0, digits=60, steps=6):
     with localcontext() as ctx:
         ctx.prec = digits
         D = lambda M: [[Decimal(float(v)) for v in row] for row in np.atleast_2d(M)]  # noqa: E731
-        mul = lambda X, Y: [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in range(len(Y[0]))]  # noqa: E731
-                            for i in range(len(X))]
+
+        def mul(X, Y):
+            return [[sum(X[i][k] * Y[k][j] for k in range(len(Y))) for j in range(len(Y[0]))] for i in range(len(X))]
+
         tr = lambda X: [list(r) for r in zip(*X)]  # noqa: E731
         add = lambda X, Y, s=1: [[x + s * y for x, y in zip(r, q)] for r, q in zip(X, Y)]  # noqa: E731
         Ad, Qd, Cd, P = D(A), D(Q), D(Ct), D(P0)
@@ -281,7 +305,7 @@ def _decimal_care_gain(A, Q, Ct, V, P0, digits=60, steps=6):
         S = [[v * Vinv for v in row] for row in mul(tr(Cd), Cd)]
         for _ in range(steps):
             Ak = add(Ad, mul(P, S), -1)
-            rhs = add(Qd, mul(mul(P, S), P))          # Ak X + X Ak' = -(Q + P S P)
+            rhs = add(Qd, mul(mul(P, S), P))  # Ak X + X Ak' = -(Q + P S P)
             # the n^2 x n^2 linear system (I kron Ak + Ak kron I) vec X = -vec rhs, Gaussian elimination
             N = n * n
             M = [[Decimal(0)] * (N + 1) for _ in range(N)]
@@ -317,7 +341,7 @@ def test_newton_refinement_matches_a_60_digit_solution():
     L_ref = _decimal_care_gain(p.A, Q, g.measurement, g.noise, P_raw)
     assert g.gain[:, 0] == pytest.approx(L_ref[:, 0], rel=1e-9)
     assert L_ref[0, 0] == pytest.approx(73.157489, abs=1e-6)
-    assert abs(np.asarray(L_raw)[0, 0] - 73.1575) > 5e-5       # the unrefined solve misses the print
+    assert abs(np.asarray(L_raw)[0, 0] - 73.1575) > 5e-5  # the unrefined solve misses the print
 
 
 # ----------------------------------------------------------------- conventions of python-control
@@ -350,7 +374,7 @@ def test_filter_and_predictor_gains_have_their_own_names():
     np.testing.assert_allclose(g.filter_gain, Kf, rtol=1e-12)
     np.testing.assert_allclose(g.predictor_gain, A @ Kf, rtol=1e-12)
     with pytest.warns(DeprecationWarning, match="predictor_gain"):
-        old = g.gain                                        # the DT .gain was the predictor gain
+        old = g.gain  # the DT .gain was the predictor gain
     np.testing.assert_array_equal(old, g.predictor_gain)
     c = lqe([[-0.8]], None, [[1.0]], [[0.01]], [[0.25]])
     with pytest.warns(DeprecationWarning, match=r"use \.gain"):
@@ -375,11 +399,14 @@ def test_tobit_lqe_takes_a_covariance_and_the_old_forms_warn():
         tobit_lqe(np.eye(2) * -1, None, np.eye(2), np.eye(2), V=[[1.0, 0.1], [0.1, 1.0]], xi_uncensored=0.5)
 
 
-@pytest.mark.parametrize("call", [
-    lambda: is_stable([[0.5]]),
-    lambda: reference_gain([[0.5]], [[1.0]], [[1.0]], [[0.1]]),
-    lambda: equilibrium([[0.5]], [[1.0]], [[1.0]], [[0.0]], [1.0]),
-])
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda: is_stable([[0.5]]),
+        lambda: reference_gain([[0.5]], [[1.0]], [[1.0]], [[0.1]]),
+        lambda: equilibrium([[0.5]], [[1.0]], [[1.0]], [[0.0]], [1.0]),
+    ],
+)
 def test_an_omitted_time_domain_is_deprecated(call):
     with pytest.warns(DeprecationWarning, match="domain='dt'"):
         call()

@@ -7,9 +7,15 @@ from scipy.stats import truncnorm
 
 from tobitkf import censored_moments, simulate
 from tobitkf._validation import ValidationError
-from tobitkf.control.panning import (centred_window, constant_velocity, covariance_panning_step,
-                                     dissertation_variance_6_61, imr_panning_step, keep_in_view_limit,
-                                     moving_window_tkf)
+from tobitkf.control.panning import (
+    centred_window,
+    constant_velocity,
+    covariance_panning_step,
+    dissertation_variance_6_61,
+    imr_panning_step,
+    keep_in_view_limit,
+    moving_window_tkf,
+)
 
 
 def test_t20_printed_6_61_variance_differs_from_truncnorm():
@@ -28,7 +34,9 @@ def test_t19_centred_window_gives_gamma_ed_and_zero_imr():
     assert st.p_uncensored == pytest.approx(0.8, abs=1e-12)
     assert st.inverse_mills == pytest.approx(0.0, abs=1e-12)
     z = ndtri(0.9)
-    assert st.truncated_var == pytest.approx(0.16 * (1 - 2 * z * np.exp(-z * z / 2) / np.sqrt(2 * np.pi) / 0.8), rel=1e-9)
+    assert st.truncated_var == pytest.approx(
+        0.16 * (1 - 2 * z * np.exp(-z * z / 2) / np.sqrt(2 * np.pi) / 0.8), rel=1e-9
+    )
     with pytest.raises(ValidationError, match="ed: expected"):
         centred_window(mu, 0.4, 1.0)
 
@@ -57,9 +65,9 @@ def test_t19_keep_in_view_in_a_loop():
 
 def test_t19_imr_law_moves_the_window_toward_the_target():
     Th = np.array([10.0])
-    new = imr_panning_step(Th, 20.0, np.array([[10.0 - 0.25]]), 0.5, 0.2)     # target at T_h - 0.5 sigma
+    new = imr_panning_step(Th, 20.0, np.array([[10.0 - 0.25]]), 0.5, 0.2)  # target at T_h - 0.5 sigma
     assert new[0] > Th[0]
-    new = imr_panning_step(Th, 20.0, np.array([[-10.0 + 0.25]]), 0.5, 0.2)    # near the lower edge
+    new = imr_panning_step(Th, 20.0, np.array([[-10.0 + 0.25]]), 0.5, 0.2)  # near the lower edge
     assert new[0] < Th[0]
     centred = imr_panning_step(Th, 20.0, np.array([[0.0]]), 0.5, 0.2)
     assert centred[0] == pytest.approx(10.0, abs=1e-12)
@@ -69,7 +77,7 @@ def test_t19_imr_law_moves_the_window_toward_the_target():
 
 def test_covariance_law_signs():
     up = covariance_panning_step(10.0, np.array([2.0, 0.5]), np.array([0.5, 0.5]), np.array([12.0, 0.0]), 1.0)
-    assert up == pytest.approx(11.5)                     # target 1 (above) uncertain: move up
+    assert up == pytest.approx(11.5)  # target 1 (above) uncertain: move up
     down = covariance_panning_step(10.0, np.array([2.0, 0.5]), np.array([0.5, 0.5]), np.array([-12.0, 0.0]), 1.0)
     assert down == pytest.approx(8.5)
     single = covariance_panning_step(10.0, np.array([1.5]), np.array([0.5]), np.array([12.0]), 2.0, width=20.0)
@@ -84,7 +92,9 @@ def test_moving_window_with_infinite_window_is_the_kalman_filter():
 
     sys = constant_velocity(0.1, 0.1, 0.5, cameras=2)
     sim = simulate(sys, 50, 2, seed=1)
-    res = moving_window_tkf(sys, sim.y_latent, lambda k, xb, Pb, mem: (np.full((2, 2), -np.inf), np.full((2, 2), np.inf)))
+    res = moving_window_tkf(
+        sys, sim.y_latent, lambda k, xb, Pb, mem: (np.full((2, 2), -np.inf), np.full((2, 2), np.inf))
+    )
     kf = KalmanFilter(sys).filter(sim.y_latent)
     assert res.mean == pytest.approx(kf.mean, abs=1e-12)
     with pytest.raises(ValidationError, match="y_latent"):

@@ -6,11 +6,19 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from tobitkf._validation import ValidationError
-from tobitkf.control.stability import (COUNTEREXAMPLE, certify_tkf_stability, closed_loop_jacobian,
-                                       dissertation_jacobian_5_56, fixed_gain_tobit_observer, mean_field_error,
-                                       mean_observer_map, tobit_error_jacobian, tobit_jacobian)
+from tobitkf.control.stability import (
+    COUNTEREXAMPLE,
+    certify_tkf_stability,
+    closed_loop_jacobian,
+    dissertation_jacobian_5_56,
+    fixed_gain_tobit_observer,
+    mean_field_error,
+    mean_observer_map,
+    tobit_error_jacobian,
+    tobit_jacobian,
+)
 
-L_SCALAR = 0.024621130625   # CT Kalman-Bucy gain of §5.3.3 (test_lqg T7)
+L_SCALAR = 0.024621130625  # CT Kalman-Bucy gain of §5.3.3 (test_lqg T7)
 
 
 def fd_jacobian(f, z, h=1e-6):
@@ -23,12 +31,15 @@ def fd_jacobian(f, z, h=1e-6):
     return np.stack(cols, axis=-1)
 
 
-@pytest.mark.parametrize("lower, upper", [
-    ([-np.inf, -np.inf], [0.2, 0.5]),          # right
-    ([-0.3, 0.1], [np.inf, np.inf]),           # left
-    ([-0.4, -1.0], [0.5, 0.3]),                # saturation
-    ([-np.inf, 0.0], [0.0, np.inf]),           # multi-region example 1 (one right, one left)
-])
+@pytest.mark.parametrize(
+    "lower, upper",
+    [
+        ([-np.inf, -np.inf], [0.2, 0.5]),  # right
+        ([-0.3, 0.1], [np.inf, np.inf]),  # left
+        ([-0.4, -1.0], [0.5, 0.3]),  # saturation
+        ([-np.inf, 0.0], [0.0, np.inf]),  # multi-region example 1 (one right, one left)
+    ],
+)
 def test_t6_jacobian_equals_finite_differences(lower, upper):
     rng = np.random.default_rng(1)
     A = rng.standard_normal((3, 3)) * 0.4
@@ -49,7 +60,7 @@ def test_t6_jacobian_equals_finite_differences(lower, upper):
         ref = np.sort_complex(np.concatenate([np.linalg.eigvals(A), np.linalg.eigvals(J[3:, 3:])]))
         assert ev == pytest.approx(ref, abs=1e-9)
 
-        def g(z):      # error coordinates (x, e)
+        def g(z):  # error coordinates (x, e)
             a, b = mean_observer_map(A, L, C, z[:3], z[:3] - z[3:], sigma, lower, upper)
             return np.concatenate([a, a - b])
 
@@ -68,20 +79,25 @@ def test_t7_correct_j22_is_monotone_between_uncensored_and_open_loop():
     assert np.all(np.diff(j22) < 0)
     assert np.all((j22 >= -0.8 - L_SCALAR - 1e-12) & (j22 <= -0.8))
     # the spec's table with the rounded L = 0.0246: T = -1, 0, 0.5, 1
-    tab = [tobit_jacobian([[-0.8]], [[0.0246]], [[1.0]], [0.0], [0.0], 0.5, -np.inf, t)[1, 1] for t in (-1, 0, .5, 1)]
+    tab = [tobit_jacobian([[-0.8]], [[0.0246]], [[1.0]], [0.0], [0.0], 0.5, -np.inf, t)[1, 1] for t in (-1, 0, 0.5, 1)]
     assert tab == pytest.approx([-0.80056, -0.81230, -0.82070, -0.82404], abs=1e-5)
 
 
 def test_t20_printed_5_56_is_non_monotone_and_differs():
     """The printed Jacobian reproduces the spec's 'local disturbance' table; kept as a documented wrong formula."""
-    vals = [dissertation_jacobian_5_56([[-0.8]], [[0.0246]], [[1.0]], [0.0], [0.0], 0.5, t)[1, 1]
-            for t in (-0.25, 0.0, 0.25, 0.5)]
+    vals = [
+        dissertation_jacobian_5_56([[-0.8]], [[0.0246]], [[1.0]], [0.0], [0.0], 0.5, t)[1, 1]
+        for t in (-0.25, 0.0, 0.25, 0.5)
+    ]
     assert vals == pytest.approx([-0.81409, -0.81230, -0.81051, -0.81177], abs=1e-5)
     assert not (np.all(np.diff(vals) < 0) or np.all(np.diff(vals) > 0))
     correct = tobit_jacobian([[-0.8]], [[0.0246]], [[1.0]], [0.0], [0.0], 0.5, -np.inf, 0.25)[1, 1]
     assert abs(vals[2] - correct) > 5e-3
+
     # and it differs from finite differences of the mean map away from T = Cx
-    f = lambda z: mean_observer_map([[-0.8]], [[0.0246]], [[1.0]], [0.0], z, 0.5, -np.inf, 0.25)[1]
+    def f(z):
+        return mean_observer_map([[-0.8]], [[0.0246]], [[1.0]], [0.0], z, 0.5, -np.inf, 0.25)[1]
+
     assert fd_jacobian(f, [0.0])[0, 0] == pytest.approx(correct, abs=1e-9)
     with pytest.raises(ValidationError, match="m = 1"):
         dissertation_jacobian_5_56(np.eye(2), np.eye(2), np.eye(2), [0, 0], [0, 0], 0.5, 0.0)
@@ -94,7 +110,7 @@ def test_t10_counterexample_is_not_certified():
     assert np.max(np.abs(np.linalg.eigvals(c["A"] - 0.25 * c["L"] @ c["C"]))) == pytest.approx(1.084, abs=1e-3)
     r = certify_tkf_stability(c["A"], c["L"], c["C"], domain="dt")
     assert not r.certified and "not certified" in r.message
-    assert np.all(r.vertex_radius < 1)              # the vertex test alone would pass: (5.23) is false
+    assert np.all(r.vertex_radius < 1)  # the vertex test alone would pass: (5.23) is false
     assert r.worst_sampled == pytest.approx(1.0895, abs=1e-3) and r.worst_s == pytest.approx(0.33, abs=0.01)
     lmi_only = certify_tkf_stability(c["A"], c["L"], c["C"], domain="dt", grid=0)
     assert not lmi_only.certified and "no common quadratic Lyapunov" in lmi_only.message
@@ -141,7 +157,7 @@ def test_t11_scalar_error_between_lqg_and_open_loop_bounds():
     for e0 in (2.0, -2.0, 0.7):
         _, e = mean_field_error([[A]], [[L]], [[1.0]], [0.3], [e0], 60, 0.1, -np.inf, 0.0)
         lower = np.abs((A - L) ** k * e0)
-        upper = np.abs(A ** k * e0)
+        upper = np.abs(A**k * e0)
         err = np.abs(e[:, 0])
         assert np.all(err >= lower - 1e-12) and np.all(err <= upper + 1e-12)
 
@@ -150,7 +166,7 @@ def test_counterexample_mean_field_does_not_converge_at_25_percent():
     """Spec note 8: fixed T at 25 % uncensored, A Schur, but the mean error never converges."""
     c = COUNTEREXAMPLE
     sigma = 1.0
-    T = sigma * -0.6744897501960817       # Phi(T/sigma) = 0.25 at x = 0
+    T = sigma * -0.6744897501960817  # Phi(T/sigma) = 0.25 at x = 0
     _, e = mean_field_error(c["A"], c["L"], c["C"], np.zeros(3), [1e-6, 0, 0], 3000, sigma, -np.inf, T)
     assert np.abs(e[-200:]).max() > 1.0
 
@@ -200,7 +216,7 @@ def test_two_output_counterexample_fails_at_n_2():
     assert not r.certified and "vertex" in r.message
     rng = np.random.default_rng(3)
     checked = 0
-    while checked < 200:                           # m = 1, n = 2: the segment A - sLC stays Schur
+    while checked < 200:  # m = 1, n = 2: the segment A - sLC stays Schur
         A1, L1, C1 = rng.normal(size=(2, 2)), rng.normal(size=(2, 1)), rng.normal(size=(1, 2))
         if rho(A1) < 1 and rho(A1 - L1 @ C1) < 1:
             checked += 1

@@ -32,8 +32,13 @@ def test_docs_site_builds_strict(tmp_path):
     pytest.importorskip("mkdocstrings")
     exe = shutil.which("mkdocs") or str(Path(sys.executable).with_name("mkdocs"))
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    res = subprocess.run([exe, "build", "--strict", "--site-dir", str(tmp_path / "site")], cwd=ROOT,
-                         capture_output=True, text=True, env=env)
+    res = subprocess.run(
+        [exe, "build", "--strict", "--site-dir", str(tmp_path / "site")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     site = tmp_path / "site"
     assert (site / "api" / "filters" / "index.html").exists()
@@ -43,8 +48,15 @@ def test_docs_site_builds_strict(tmp_path):
         assert 'class="highlight"' in html and '<span class="n">' in html, page.stem
         assert "output-label" in html or "_executed/" in html, page.stem
     figures = sorted(p.name for p in (site / "_executed").glob("*.png"))
-    assert {f.split("-")[0] for f in figures} >= {"tobit", "fading", "protocol", "delay", "hinf", "control",
-                                                  "steady_state"}
+    assert {f.split("-")[0] for f in figures} >= {
+        "tobit",
+        "fading",
+        "protocol",
+        "delay",
+        "hinf",
+        "control",
+        "steady_state",
+    }
     tobit = (site / "tutorials" / "tobit" / "index.html").read_text(encoding="utf-8")
     assert '<figure class="executed"><a href="../../_executed/tobit-1.png">' in tobit
     assert "<figcaption>Miller Fig 3.1" in tobit
@@ -60,7 +72,7 @@ def test_docs_site_builds_strict(tmp_path):
         for raw in (":math:", ".. math::", ":func:", ":class:", "=========="):
             assert raw not in html, f"{page.parent.name}: raw reST {raw!r} on the page"
     filters = (tmp_path / "site" / "api" / "filters" / "index.html").read_text(encoding="utf-8")
-    assert filters.count("<math ") > 20 and 'class="arithmatex"' not in filters   # all converted to MathML
+    assert filters.count("<math ") > 20 and 'class="arithmatex"' not in filters  # all converted to MathML
 
 
 def _rest():
@@ -74,18 +86,29 @@ def _rest():
 
 
 def test_rest_simple_table_with_header_and_continuation_lines():
-    text = ("Keys:\n\n"
-            "=====  ==============\n"
-            "key    meaning\n"
-            "=====  ==============\n"
-            "``a``  first line\n"
-            "       and its rest\n"
-            "``b``  x | y\n"
-            "=====  ==============\n\n"
-            "After.")
+    text = (
+        "Keys:\n\n"
+        "=====  ==============\n"
+        "key    meaning\n"
+        "=====  ==============\n"
+        "``a``  first line\n"
+        "       and its rest\n"
+        "``b``  x | y\n"
+        "=====  ==============\n\n"
+        "After."
+    )
     assert _rest().convert(text).splitlines() == [
-        "Keys:", "", "", "| key | meaning |", "|---|---|", "| ``a`` | first line and its rest |",
-        "| ``b`` | x \\| y |", "", "", "After."]
+        "Keys:",
+        "",
+        "",
+        "| key | meaning |",
+        "|---|---|",
+        "| ``a`` | first line and its rest |",
+        "| ``b`` | x \\| y |",
+        "",
+        "",
+        "After.",
+    ]
 
 
 def test_rest_table_without_header_gets_an_empty_one():
@@ -96,10 +119,15 @@ def test_rest_table_without_header_gets_an_empty_one():
 def test_rest_math_roles_blocks_and_cross_references():
     conv = _rest().convert
     assert conv("so :math:`x_k^T P` holds") == "so \\(x_k^T P\\) holds"
-    assert conv(":func:`~tobitkf.metrics.nees` and :class:`tobitkf.LinearSystem`") == \
-        "`nees` and `tobitkf.LinearSystem`"
+    assert (
+        conv(":func:`~tobitkf.metrics.nees` and :class:`tobitkf.LinearSystem`") == "`nees` and `tobitkf.LinearSystem`"
+    )
     plain = conv("Text:\n\n.. math::\n\n    y = Cx + v\n\nMore.").splitlines()
-    assert plain[plain.index("\\["):plain.index("\\]") + 1] == ["\\[", "y = Cx + v", "\\]"]
+    assert plain[plain.index("\\[") : plain.index("\\]") + 1] == ["\\[", "y = Cx + v", "\\]"]
     aligned = conv(".. math::\n    :label: eq1\n\n    a &= b \\\\\n    c &= d\n").splitlines()
-    assert aligned[aligned.index("\\[") + 1:aligned.index("\\]")] == [
-        "\\begin{split}", "a &= b \\\\", "c &= d", "\\end{split}"]
+    assert aligned[aligned.index("\\[") + 1 : aligned.index("\\]")] == [
+        "\\begin{split}",
+        "a &= b \\\\",
+        "c &= d",
+        "\\end{split}",
+    ]

@@ -27,11 +27,11 @@ def test_a_claim_without_its_quantity_test_or_tolerance_is_refused():
 
 def test_na_only_with_a_reason_and_a_measured_claim_is_held_or_not():
     with pytest.raises(CL.ClaimError, match="reason"):
-        CL.check_claim({"claim": "x", "quantity": "q", "measured": "m", "test": "t", "tolerance": "tol",
-                        "holds": None})
+        CL.check_claim({"claim": "x", "quantity": "q", "measured": "m", "test": "t", "tolerance": "tol", "holds": None})
     with pytest.raises(CL.ClaimError, match="True, False or None"):
-        CL.check_claim({"claim": "x", "quantity": "q", "measured": "m", "test": "t", "tolerance": "tol",
-                        "holds": "yes"})
+        CL.check_claim(
+            {"claim": "x", "quantity": "q", "measured": "m", "test": "t", "tolerance": "tol", "holds": "yes"}
+        )
     na = CL.not_measurable("Fig 9 matches", reason="the figure is missing from the source")
     assert na["holds"] is None and "missing" in na["measured"]
 
@@ -119,8 +119,8 @@ def test_the_report_shows_the_source_tables_of_li2018(tmp_path):
     run_experiment("li2018-tables", runs=4, seed=0, out=tmp_path)
     index, md = write_report(tmp_path)
     text = md.read_text(encoding="utf-8")
-    assert "Table 1 (filter x̂(t\\|t)): running-average MSE" in text          # '|' escaped in Markdown
+    assert "Table 1 (filter x̂(t\\|t)): running-average MSE" in text  # '|' escaped in Markdown
     assert "| x1: this paper (printed) | 0.2156 | 0.1196 | 0.0887 | 0.0868 | 0.0784 | 0.075 |" in text
-    assert "\\[28\\] (printed) | 1.221 |" in text                        # '[ ]' escaped in Markdown (issue 15)
+    assert "\\[28\\] (printed) | 1.221 |" in text  # '[ ]' escaped in Markdown (issue 15)
     assert "Table 1 (filter x̂(t|t))" in index.read_text(encoding="utf-8")
     assert get("li2018-tables").source.startswith("Li, Li & Wang 2018")

@@ -18,14 +18,17 @@ def test_holdout_moves_the_limit_into_the_data(frac):
         present = ~np.isnan(s.y) & ~s.censored
         n = int(present.sum())
         # readings are rounded: ties can make the target unreachable; the closest count is taken
-        counts = np.searchsorted(np.sort(np.where(side < 0, s.y - s.lower, s.upper - s.y)[present]),
-                                 np.sort(np.where(side < 0, s.y - s.lower, s.upper - s.y)[present]), side="right")
+        counts = np.searchsorted(
+            np.sort(np.where(side < 0, s.y - s.lower, s.upper - s.y)[present]),
+            np.sort(np.where(side < 0, s.y - s.lower, s.upper - s.y)[present]),
+            side="right",
+        )
         assert abs(h["held"].sum() - frac * n) == np.min(np.abs(counts - frac * n))
         assert h["fraction"] == pytest.approx(h["held"].sum() / n)
         assert not np.any(h["held"] & ~present)
         assert np.all(h["censored"] == (s.censored | h["held"]))
         lim = h["lower"] if side < 0 else h["upper"]
-        np.testing.assert_array_equal(h["y"][h["censored"]], lim[h["censored"]])   # censored at the moved limit
+        np.testing.assert_array_equal(h["y"][h["censored"]], lim[h["censored"]])  # censored at the moved limit
         np.testing.assert_array_equal(h["truth"][present], s.y[present])
         kept = present & ~h["held"]
         assert np.all((h["y"][kept] > lim[kept]) if side < 0 else (h["y"][kept] < lim[kept]))
@@ -38,8 +41,10 @@ def phosphorus_result():
 
 def test_phosphorus_metrics_hold_the_fields_the_issue_names(phosphorus_result):
     m = phosphorus_result.metrics
-    for model, names in (("ar1", {"beta0", "beta1", "sigma2", "phi1"}),
-                         ("ar2", {"beta0", "beta1", "sigma2", "phi1", "phi2"})):
+    for model, names in (
+        ("ar1", {"beta0", "beta1", "sigma2", "phi1"}),
+        ("ar2", {"beta0", "beta1", "sigma2", "phi1", "phi2"}),
+    ):
         rec = m[model]
         assert set(rec["estimates"]) == names and set(rec["se"]) == names
         assert all(v > 0 for v in rec["se"].values())
@@ -48,12 +53,12 @@ def test_phosphorus_metrics_hold_the_fields_the_issue_names(phosphorus_result):
         assert rec["bic"] == pytest.approx(-2 * rec["loglik"] + k * np.log(174))
         assert rec["fit_seconds"] > 0 and rec["converged"]
         assert abs(rec["quadrature_check"]["difference"]) < 1e-6
-    assert m["ar2"]["loglik"] >= m["ar1"]["loglik"]          # nested models
+    assert m["ar2"]["loglik"] >= m["ar1"]["loglik"]  # nested models
     for key in ("30%", "50%"):
         h = m["holdout"][key]
         assert set(h["estimators"]) == set(ESTIMATORS)
         assert all(np.isfinite(v["rmse"]) and np.isfinite(v["bias"]) for v in h["estimators"].values())
-    json.dumps(m)                                           # JSON-able as written
+    json.dumps(m)  # JSON-able as written
 
 
 def test_phosphorus_figures(phosphorus_result, tmp_path):

@@ -13,8 +13,13 @@ from tobitkf.experiments.geng_protocol import example_channel, example_system
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 
 IDS = {
-    "geng-protocol-tracking": ["pbtkf-imsf", "pbtkf", "pbtkf-imsf-second-moment", "pbtkf-imsf-literal",
-                               "pbtkf-imsf-lmmse"],
+    "geng-protocol-tracking": [
+        "pbtkf-imsf",
+        "pbtkf",
+        "pbtkf-imsf-second-moment",
+        "pbtkf-imsf-literal",
+        "pbtkf-imsf-lmmse",
+    ],
     "geng-protocol-mect": ["pbtkf-imsf", "pbtkf"],
     "geng-protocol-bounds": ["pbtkf-imsf", "pbtkf-imsf-undamped"],
     "geng-protocol-threshold": ["pbtkf-imsf", "pbtkf-imsf-tau-5", "pbtkf", "pbtkf-tau-5", "pbtkf-imsf-tau-5-undamped"],
@@ -34,18 +39,22 @@ def test_experiment_keys_and_shapes(exp_id):
         np.testing.assert_allclose(est[key]["rmse_time_avg"], np.asarray(est[key]["rmse"]).mean(0))
         cons = res.metrics["consistency"][key]
         assert cons["mse_over_trace_posterior"] == pytest.approx(
-            cons["mse_posterior_time_avg"] / cons["trace_posterior_time_avg"])
-    assert res.claims and all({"claim", "quantity", "measured", "test", "tolerance", "holds"} <= set(c)
-                              for c in res.claims)
-    assert res.settings["steps"]["provenance"] == "default"          # not stated in the source (GP-08)
+            cons["mse_posterior_time_avg"] / cons["trace_posterior_time_avg"]
+        )
+    assert res.claims and all(
+        {"claim", "quantity", "measured", "test", "tolerance", "holds"} <= set(c) for c in res.claims
+    )
+    assert res.settings["steps"]["provenance"] == "default"  # not stated in the source (GP-08)
 
 
 def test_experiment_uses_the_library_filter_on_common_random_numbers():
     res = get("geng-protocol-tracking").run(runs=15, seed=4, steps=25)
     sys_, ch = example_system(False), example_channel()
     d = tk.simulate(sys_, 25, 15, seed=4, channel=ch)
-    for key, flt in (("pbtkf-imsf", ProtocolTobitKalmanFilter(sys_, ch)),
-                     ("pbtkf", ProtocolTobitKalmanFilter.baseline(sys_, ch))):
+    for key, flt in (
+        ("pbtkf-imsf", ProtocolTobitKalmanFilter(sys_, ch)),
+        ("pbtkf", ProtocolTobitKalmanFilter.baseline(sys_, ch)),
+    ):
         want = tk.metrics.rmse(d.x, flt.filter(d.y).mean)
         np.testing.assert_array_equal(res.metrics["estimators"][key]["rmse"], want)
 
@@ -73,8 +82,9 @@ def test_failures_experiment_reports_the_source_claim_as_not_holding():
 
 def test_cli_reproduce_bounds_writes_metrics_and_figures(tmp_path):
     runner = CliRunner()
-    res = runner.invoke(app, ["reproduce", "geng-protocol-bounds", "--runs", "40", "--seed", "2",
-                              "--out", str(tmp_path)])
+    res = runner.invoke(
+        app, ["reproduce", "geng-protocol-bounds", "--runs", "40", "--seed", "2", "--out", str(tmp_path)]
+    )
     assert res.exit_code == 0, res.output
     out = tmp_path / "geng-protocol-bounds"
     m = json.loads((out / "metrics.json").read_text())

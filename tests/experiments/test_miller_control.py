@@ -10,8 +10,16 @@ from tobitkf import Censoring, LinearSystem, TobitKalmanFilter, multi_region, si
 from tobitkf.cli import app
 from tobitkf.experiments import all_experiments, get
 
-IDS = ["miller-jacobian-scalar", "miller-dc-motor-speed", "miller-dc-motor-position", "miller-closed-loop",
-       "miller-steady-state-lqg", "miller-multi-region", "miller-fov", "miller-panning"]
+IDS = [
+    "miller-jacobian-scalar",
+    "miller-dc-motor-speed",
+    "miller-dc-motor-position",
+    "miller-closed-loop",
+    "miller-steady-state-lqg",
+    "miller-multi-region",
+    "miller-fov",
+    "miller-panning",
+]
 
 
 def test_registry_has_the_chapter_5_6_experiments():
@@ -43,8 +51,14 @@ def test_t18_fov_covariances_against_the_riccati_values():
 
 
 def _brownian(sigma, channels=1):
-    return LinearSystem(A=[[0.99]], C=np.ones((channels, 1)), Q=[[0.01]], R=np.eye(channels) * sigma**2, x0=[0.0],
-                        P0=[[0.01 / (1 - 0.99**2)]])
+    return LinearSystem(
+        A=[[0.99]],
+        C=np.ones((channels, 1)),
+        Q=[[0.01]],
+        R=np.eye(channels) * sigma**2,
+        x0=[0.0],
+        P0=[[0.01 / (1 - 0.99**2)]],
+    )
 
 
 def test_t16_two_sided_sensors_see_both_half_spaces():
@@ -58,7 +72,7 @@ def test_t16_two_sided_sensors_see_both_half_spaces():
     r = lambda est, m: np.sqrt(np.mean((est[m] - x[m]) ** 2))  # noqa: E731
     assert r(two, pos) == pytest.approx(r(two, neg), rel=0.2)
     assert r(two, pos) < 0.07
-    assert r(one, pos) > 5 * r(one, neg)           # right-censored sensor alone: blind above 0 (0.64 vs 0.069)
+    assert r(one, pos) > 5 * r(one, neg)  # right-censored sensor alone: blind above 0 (0.64 vs 0.069)
 
 
 def test_t17_mse_decreases_with_the_number_of_sensors():

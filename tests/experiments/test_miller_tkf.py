@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from tobitkf._validation import ValidationError
 from tobitkf.cli import app
 from tobitkf.experiments import all_experiments, get
-from tobitkf._validation import ValidationError
 
 MILLER = ["miller-brownian", "miller-constant", "miller-oscillator", "miller-steady-state"]
 

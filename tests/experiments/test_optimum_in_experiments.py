@@ -9,10 +9,16 @@ import pytest
 import tobitkf as tk
 from tobitkf.experiments import get
 
-CASES = {"miller-constant": dict(steps=30), "miller-brownian": dict(steps=30),
-         "miller-oscillator": dict(steps=30, omega_sweep=(0.05,)), "geng2017-oscillator": dict(steps=20),
-         "geng2017-radar": dict(steps=15), "geng-protocol-tracking": dict(steps=20),
-         "geng-protocol-bounds": dict(steps=15), "geng-protocol-threshold": dict(steps=15)}
+CASES = {
+    "miller-constant": dict(steps=30),
+    "miller-brownian": dict(steps=30),
+    "miller-oscillator": dict(steps=30, omega_sweep=(0.05,)),
+    "geng2017-oscillator": dict(steps=20),
+    "geng2017-radar": dict(steps=15),
+    "geng-protocol-tracking": dict(steps=20),
+    "geng-protocol-bounds": dict(steps=15),
+    "geng-protocol-threshold": dict(steps=15),
+}
 
 
 def _blocks(metrics):
@@ -40,8 +46,9 @@ def test_pf_and_ratios_are_in_the_metrics(exp_id):
 def test_the_ratio_is_taken_on_the_same_runs():
     res = get("miller-brownian").run(runs=12, seed=2, steps=30, optimum_particles=40, optimum_runs=12)
     est = res.metrics["estimators"]
-    np.testing.assert_allclose(est["tkf"]["ratio_to_optimum"],
-                               np.asarray(est["tkf"]["rmse_time_avg"]) / est["pf"]["rmse_time_avg"])
+    np.testing.assert_allclose(
+        est["tkf"]["ratio_to_optimum"], np.asarray(est["tkf"]["rmse_time_avg"]) / est["pf"]["rmse_time_avg"]
+    )
 
 
 def test_no_particle_filter_on_request_and_bad_counts_refused():

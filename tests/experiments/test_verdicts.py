@@ -9,8 +9,16 @@ was n/a). Run sizes are reduced; every verdict below is far from its tolerance a
 import numpy as np
 import pytest
 
-from tobitkf.experiments import geng2017, geng_protocol, li2018, miller_control, miller_robot, miller_tkf
-from tobitkf.experiments import miller_vision, wang2010
+from tobitkf.experiments import (
+    geng2017,
+    geng_protocol,
+    li2018,
+    miller_control,
+    miller_robot,
+    miller_tkf,
+    miller_vision,
+    wang2010,
+)
 
 
 def _find(claims, *words):
@@ -25,7 +33,7 @@ def test_multi_region_covariance_is_overconfident_outside_the_windows():
     c = _find(r.claims, "Example 3", "covariance reflects")
     assert c["holds"] is False
     ratio = r.metrics["example3"]["mse_over_mean_P_by_region"]
-    assert ratio["outside both"] > 4            # about 10x over-confident there
+    assert ratio["outside both"] > 4  # about 10x over-confident there
     assert "outside both" in c["measured"]
 
 
@@ -34,7 +42,7 @@ def test_panning_covariance_feedback_judged_over_frames_500_to_2000():
     r = miller_vision.panning(runs=6, seed=0)
     c = _find(r.claims, "Figs 6.36-6.37")
     assert c["holds"] is False
-    assert max(r.metrics["scenarios"]["covariance-6.76"]["max_median_P_frames_500_2000"]) > 1.0   # 2 P_ref
+    assert max(r.metrics["scenarios"]["covariance-6.76"]["max_median_P_frames_500_2000"]) > 1.0  # 2 P_ref
 
 
 def _closed_loop(names, runs):

@@ -40,14 +40,21 @@ def test_every_example_and_random_system_has_every_estimator_and_its_ratio(small
 
 def test_same_data_as_the_experiments():
     """miller-brownian and geng2017-oscillator: the yardstick's estimators see the experiments' own readings."""
-    y = get("yardstick").run(runs=8, steps=20, random_systems=0, particles=50, seed=5,
-                             examples=("miller-brownian", "geng2017-oscillator"))
+    y = get("yardstick").run(
+        runs=8, steps=20, random_systems=0, particles=50, seed=5, examples=("miller-brownian", "geng2017-oscillator")
+    )
     b = get("miller-brownian").run(runs=8, seed=5, steps=20)
-    np.testing.assert_allclose(y.metrics["examples"]["miller-brownian"]["estimators"]["tkf"]["rmse"],
-                               b.metrics["estimators"]["tkf"]["rmse"], rtol=1e-12)
+    np.testing.assert_allclose(
+        y.metrics["examples"]["miller-brownian"]["estimators"]["tkf"]["rmse"],
+        b.metrics["estimators"]["tkf"]["rmse"],
+        rtol=1e-12,
+    )
     g = get("geng2017-oscillator").run(runs=8, seed=5, steps=20)
-    np.testing.assert_allclose(y.metrics["examples"]["geng2017-oscillator"]["estimators"]["tkf-fm"]["rmse"],
-                               g.metrics["estimators"]["tkf-fm"]["rmse"], rtol=1e-12)
+    np.testing.assert_allclose(
+        y.metrics["examples"]["geng2017-oscillator"]["estimators"]["tkf-fm"]["rmse"],
+        g.metrics["estimators"]["tkf-fm"]["rmse"],
+        rtol=1e-12,
+    )
 
 
 def test_random_systems_censor_30_to_90_percent():
@@ -88,10 +95,10 @@ def test_figures_and_cli(tmp_path, small):
 
 
 def test_metrics_are_json(small):
-    from tobitkf._io import atomic_write_json
-
     import tempfile
     from pathlib import Path
+
+    from tobitkf._io import atomic_write_json
 
     with tempfile.TemporaryDirectory() as d:
         p = Path(d) / "m.json"

@@ -49,7 +49,7 @@ def quadrature_moments(logpost, xbar, Pbar, limits, r):
     st, se = np.sqrt(Pbar[0, 0]), np.sqrt(Pbar[1, 1] - beta * Pbar[1, 0])
     eb = xbar[1] - beta * xbar[0]
 
-    def lp_t(t):                       # log-posterior of t (e at its prior mean: the t-marginal up to a constant)
+    def lp_t(t):  # log-posterior of t (e at its prior mean: the t-marginal up to a constant)
         return logpost(np.stack([t, eb + beta * t], -1))
 
     walls = [np.linspace(lim - 14 * np.sqrt(r), lim + 14 * np.sqrt(r), 2001) for lim in limits if np.isfinite(lim)]
@@ -58,7 +58,7 @@ def quadrature_moments(logpost, xbar, Pbar, limits, r):
     fine = np.linspace(mode - 0.1 * st, mode + 0.1 * st, 2001)
     mode = fine[np.argmax(lp_t(fine))]
     h = 1e-3 * st
-    curv = -(lp_t(np.array([mode + h])) - 2 * lp_t(np.array([mode])) + lp_t(np.array([mode - h])))[0] / h ** 2
+    curv = -(lp_t(np.array([mode + h])) - 2 * lp_t(np.array([mode])) + lp_t(np.array([mode - h])))[0] / h**2
     sp = 1 / np.sqrt(max(curv, 1e-12))
     t = np.unique(np.concatenate([t0, np.linspace(mode - 14 * sp, mode + 14 * sp, 2001)]))
     e = np.linspace(eb - 14 * se, eb + 14 * se, 201)
@@ -85,10 +85,12 @@ def tobit_logpost(xbar, Pbar, c, r, y, lo, hi):
         if y >= hi:
             return lp + log_ndtr((mu - hi) / sd)
         return lp - 0.5 * (y - mu) ** 2 / r
+
     return f
 
 
 # --------------------------------------------------------------------------- the Tobit ADF
+
 
 @pytest.mark.parametrize("form", FORMS)
 def test_adf_reduces_to_the_kalman_filter_with_infinite_limits(form):
@@ -109,8 +111,8 @@ CASES = {  # prior mean, reading, limits: (x̄, y, lower, upper)
     "two-sided-low": ([0.4, -0.2], -0.3, -0.3, 0.9),
     "two-sided-high": ([0.4, -0.2], 0.9, -0.3, 0.9),
     "interior": ([0.4, -0.2], 0.55, -0.3, 0.9),
-    "lower-40-sigma-deep": ([40.0, 0.0], 0.0, 0.0, np.inf),       # censored 40 sigma below the prediction
-    "lower-40-sigma-likely": ([-40.0, 0.0], 0.0, 0.0, np.inf),    # censored, the prediction 40 sigma inside
+    "lower-40-sigma-deep": ([40.0, 0.0], 0.0, 0.0, np.inf),  # censored 40 sigma below the prediction
+    "lower-40-sigma-likely": ([-40.0, 0.0], 0.0, 0.0, np.inf),  # censored, the prediction 40 sigma inside
     "upper-40-sigma-deep": ([-40.0, 0.0], 0.0, -np.inf, 0.0),
 }
 
@@ -125,11 +127,12 @@ def test_adf_update_equals_quadrature_of_the_posterior_moments(name):
     mean, cov = quadrature_moments(tobit_logpost(xbar, Pbar, c, r, y, lo, hi), xbar, Pbar, (lo, hi), r)
     scale = np.sqrt(np.diagonal(cov))
     for form in FORMS:
-        x, P = assumed_density_update(xbar[None], Pbar[None], np.array([[y]]), c[None], [r], [lo], [hi],
-                                      covariance_update=form)
+        x, P = assumed_density_update(
+            xbar[None], Pbar[None], np.array([[y]]), c[None], [r], [lo], [hi], covariance_update=form
+        )
         np.testing.assert_allclose(x[0], mean, rtol=0, atol=1e-6 * (np.abs(mean).max() + s))
         np.testing.assert_allclose(P[0], cov, rtol=0, atol=1e-6 * np.outer(scale, scale).max() + 1e-12)
-    if "40-sigma-deep" in name:          # the reading moved the estimate 40 prior sd, to the limit
+    if "40-sigma-deep" in name:  # the reading moved the estimate 40 prior sd, to the limit
         assert abs(x[0, 0] - (lo if np.isfinite(lo) else hi)) < 0.1
 
 
@@ -177,18 +180,23 @@ def test_adf_time_varying_and_steered_limits_and_multi_region():
 
 def test_adf_is_near_the_optimum_where_the_tkf_is_not():
     """On a censored random walk (Miller Example 2, shortened) the ADF tracks the particle filter."""
-    sys_ = tk.LinearSystem(A=[[0.999]], C=[[1.0]], Q=[[0.01]], R=[[0.05 ** 2]], x0=[0.05], P0=[[0.05]])
+    sys_ = tk.LinearSystem(A=[[0.999]], C=[[1.0]], Q=[[0.01]], R=[[0.05**2]], x0=[0.05], P0=[[0.05]])
     cens = tk.Censoring(lower=0.0)
     d = tk.simulate(sys_, 300, 60, censoring=cens, seed=5)
     pf = tk.ParticleFilter(sys_, cens, particles=1000, seed=6).filter(d.y, outputs="mean")
-    r = {k: tk.metrics.rmse(d.x, e.filter(d.y).mean).mean() for k, e in
-         {"adf": tk.AssumedDensityTobitFilter(sys_, cens),
-          "tkf": tk.TobitKalmanFilter(sys_, cens, noise_term="exact_pv")}.items()}
+    r = {
+        k: tk.metrics.rmse(d.x, e.filter(d.y).mean).mean()
+        for k, e in {
+            "adf": tk.AssumedDensityTobitFilter(sys_, cens),
+            "tkf": tk.TobitKalmanFilter(sys_, cens, noise_term="exact_pv"),
+        }.items()
+    }
     r_pf = tk.metrics.rmse(d.x, pf.mean).mean()
     assert r["adf"] / r_pf < 1.03 and r["tkf"] / r_pf > 1.3
 
 
 # --------------------------------------------------------------------------- the fading ADF
+
 
 @pytest.mark.parametrize("form", FORMS)
 def test_fading_adf_with_deterministic_gains_is_the_augmented_kalman_filter(form):
@@ -220,8 +228,14 @@ def test_fading_adf_with_deterministic_gains_is_the_augmented_kalman_filter(form
 
 def test_fading_adf_is_at_least_as_good_as_the_tkf_fm():
     w = 0.052 * np.pi
-    sys_ = tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]],
-                           Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]],
+        C=[[1.0, 0.0]],
+        Q=0.0025 * np.eye(2),
+        R=[[1.0]],
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
+    )
     fad = tk.RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
     cens = tk.Censoring(lower=0.0)
     d = tk.simulate(sys_, 60, 200, censoring=cens, measurement=fad, seed=8)
@@ -231,6 +245,7 @@ def test_fading_adf_is_at_least_as_good_as_the_tkf_fm():
 
 
 # --------------------------------------------------------------------------- the protocol ADF
+
 
 def test_protocol_adf_without_failures_or_censoring_is_the_augmented_kalman_filter():
     sys_ = oscillator(C=np.eye(2), R=np.diag([0.1, 0.2]))
@@ -244,12 +259,19 @@ def test_protocol_adf_without_failures_or_censoring_is_the_augmented_kalman_filt
         Aa[n:, :-n] = np.eye(n * ell)
         Qa = np.zeros((nx, nx))
         Qa[:n, :n] = 1e-2 * np.eye(2)
-        blocks = {"prior": np.eye(ell + 1), "hold": np.ones((ell + 1, ell + 1)),
-                  "zero": np.diag([1.0] + [0.0] * ell)}[mode]
+        blocks = {"prior": np.eye(ell + 1), "hold": np.ones((ell + 1, ell + 1)), "zero": np.diag([1.0] + [0.0] * ell)}[
+            mode
+        ]
         P0 = np.kron(blocks, 0.5 * np.eye(2))
         x0 = np.zeros(nx)
-        aug = tk.LinearSystem(A=Aa, C=lambda k: np.tile(np.eye(2)[(k - 1) % 2], ell + 1)[None],
-                              Q=Qa, R=lambda k: np.array([[[0.1, 0.2][(k - 1) % 2]]]), x0=x0, P0=P0)
+        aug = tk.LinearSystem(
+            A=Aa,
+            C=lambda k: np.tile(np.eye(2)[(k - 1) % 2], ell + 1)[None],
+            Q=Qa,
+            R=lambda k: np.array([[[0.1, 0.2][(k - 1) % 2]]]),
+            x0=x0,
+            P0=P0,
+        )
         kf = tk.KalmanFilter(aug, backend="numpy").filter(d.y)
         adf = tk.ProtocolAssumedDensityFilter(sys_, ch).filter(d.y)
         np.testing.assert_allclose(adf.mean, kf.mean[..., :n], rtol=0, atol=1e-10)
@@ -260,8 +282,14 @@ def test_protocol_adf_without_failures_or_censoring_is_the_augmented_kalman_filt
 def test_protocol_adf_update_equals_quadrature_of_the_mixture_posterior(reading):
     """One step, window 0 (the state is x): prior times sum_j pi_j L_j(x) integrated numerically."""
     law = PMF([0.0, 0.5, 1.0], [0.05, 0.10, 0.85])
-    sys_ = tk.LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.zeros((2, 2)), R=np.diag([0.04, 0.04]),
-                           x0=[0.4, -0.3], P0=[[1.0, 0.3], [0.3, 0.5]])
+    sys_ = tk.LinearSystem(
+        A=np.eye(2),
+        C=np.eye(2),
+        Q=np.zeros((2, 2)),
+        R=np.diag([0.04, 0.04]),
+        x0=[0.4, -0.3],
+        P0=[[1.0, 0.3], [0.3, 0.5]],
+    )
     ch = tk.ProtocolChannel(2, window=0, failures=law, threshold=0.0)
     for form in FORMS:
         out = tk.ProtocolAssumedDensityFilter(sys_, ch, covariance_update=form).filter(np.array([[reading]]))
@@ -293,12 +321,14 @@ def test_protocol_adf_update_equals_quadrature_of_the_mixture_posterior(reading)
         post = out.extras["failure_posterior"][0]
         assert post.shape == (3,) and post.sum() == pytest.approx(1.0)
         if reading == 3.0:
-            assert post[2] > 0.99            # a large reading comes from a healthy sensor
+            assert post[2] > 0.99  # a large reading comes from a healthy sensor
 
 
 def test_failure_nodes_and_merge():
     v, p = failure_nodes(Uniform(0.2, 0.8), 8)
-    assert p.sum() == pytest.approx(1.0) and (p @ v) == pytest.approx(0.5) and (p @ (v - 0.5) ** 2) == pytest.approx(0.03)
+    assert (
+        p.sum() == pytest.approx(1.0) and (p @ v) == pytest.approx(0.5) and (p @ (v - 0.5) ** 2) == pytest.approx(0.03)
+    )
     v, p = failure_nodes(tk.channels.laws.Constant(1.0))
     assert v.tolist() == [1.0] and p.tolist() == [1.0]
     with pytest.raises(tk.ValidationError, match="needs a PMF, constant or Uniform failure law"):
@@ -318,6 +348,7 @@ def test_failure_nodes_and_merge():
 
 # --------------------------------------------------------------------------- the saturation ADF
 
+
 def test_saturation_adf_without_saturation_or_losses_is_the_kalman_filter():
     sys_ = oscillator(C=np.eye(2), R=np.diag([0.05, 0.1]))
     d = tk.simulate(sys_, 20, 5, seed=13)
@@ -325,8 +356,9 @@ def test_saturation_adf_without_saturation_or_losses_is_the_kalman_filter():
     y[np.random.default_rng(1).random(y.shape) < 0.1] = np.nan
     for form in FORMS:
         kf = tk.KalmanFilter(sys_, backend="numpy", covariance_update=form).filter(y)
-        adf = tk.SaturationAssumedDensityFilter(sys_, tk.RandomSaturation([0.0, 0.0], [1.0, 1.0]),
-                                                covariance_update=form).filter(y)
+        adf = tk.SaturationAssumedDensityFilter(
+            sys_, tk.RandomSaturation([0.0, 0.0], [1.0, 1.0]), covariance_update=form
+        ).filter(y)
         np.testing.assert_allclose(adf.mean, kf.mean, rtol=0, atol=TOL)
         np.testing.assert_allclose(adf.cov, kf.cov, rtol=0, atol=TOL)
 
@@ -349,8 +381,9 @@ def test_saturation_adf_update_equals_quadrature_of_the_mode_mixture(reading):
 
     mean, cov = quadrature_moments(logpost, xbar, Pbar, (-u, u), r)
     for form in FORMS:
-        out = tk.SaturationAssumedDensityFilter(sys_, tk.RandomSaturation([mu], [nu], level=u),
-                                                covariance_update=form).filter(np.array([[reading]]))
+        out = tk.SaturationAssumedDensityFilter(
+            sys_, tk.RandomSaturation([mu], [nu], level=u), covariance_update=form
+        ).filter(np.array([[reading]]))
         np.testing.assert_allclose(out.mean[0], mean, rtol=0, atol=2e-6)
         np.testing.assert_allclose(out.cov[0], cov, rtol=0, atol=2e-6)
         assert out.extras["mode_posterior"].shape == (1, 1, 3)
@@ -358,9 +391,15 @@ def test_saturation_adf_update_equals_quadrature_of_the_mode_mixture(reading):
 
 def test_saturation_adf_is_near_the_optimum_where_the_kalman_filter_is_not():
     w = 0.1 * np.pi
-    sys_ = tk.LinearSystem(A=0.95 * np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]), C=np.eye(2),
-                           Q=0.1 * np.eye(2), R=0.01 * np.eye(2), x0=[0.0, 0.0], P0=np.eye(2))
-    ch = tk.RandomSaturation([0.7, 0.6], [0.7, 0.75])               # the H-infinity example's probabilities
+    sys_ = tk.LinearSystem(
+        A=0.95 * np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]),
+        C=np.eye(2),
+        Q=0.1 * np.eye(2),
+        R=0.01 * np.eye(2),
+        x0=[0.0, 0.0],
+        P0=np.eye(2),
+    )
+    ch = tk.RandomSaturation([0.7, 0.6], [0.7, 0.75])  # the H-infinity example's probabilities
     d = tk.simulate(sys_, 40, 60, channel=ch, seed=14)
     pf = tk.ParticleFilter(sys_, ch, particles=1000, seed=15).filter(d.y, outputs="mean")
     r_pf = tk.metrics.rmse(d.x, pf.mean).mean()
@@ -370,6 +409,7 @@ def test_saturation_adf_is_near_the_optimum_where_the_kalman_filter_is_not():
 
 
 # --------------------------------------------------------------------------- online API and errors
+
 
 def _cases():
     sys_ = oscillator()
@@ -387,8 +427,10 @@ def _cases():
     for form in FORMS:
         out[f"tobit-{form}"] = (tk.AssumedDensityTobitFilter(sys_, cens, covariance_update=form), d.y)
         out[f"protocol-{form}"] = (tk.ProtocolAssumedDensityFilter(psys, ch, covariance_update=form), pd.y)
-        out[f"fading-{form}"] = (tk.FadingAssumedDensityFilter(sys_, fad, tk.Censoring(lower=0.0),
-                                                               covariance_update=form), fd.y)
+        out[f"fading-{form}"] = (
+            tk.FadingAssumedDensityFilter(sys_, fad, tk.Censoring(lower=0.0), covariance_update=form),
+            fd.y,
+        )
         out[f"saturation-{form}"] = (tk.SaturationAssumedDensityFilter(ssys, ros, covariance_update=form), sd.y)
     return out
 

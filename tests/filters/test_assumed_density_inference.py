@@ -18,8 +18,9 @@ def _system(m: int, r0: bool = False):
     A = np.array([[0.9, 0.2], [-0.1, 0.8]])
     C = np.array([[1.0, 0.3], [0.2, -1.0]])[:m]
     R = np.diag([0.0 if r0 else 0.2, 0.1][:m])
-    return tk.LinearSystem(A=A, C=C, Q=0.3 * np.eye(2), R=R, x0=[0.1, -0.2], P0=np.eye(2),
-                           Bu=[[0.5], [0.0]], D=np.full((m, 1), 0.2))
+    return tk.LinearSystem(
+        A=A, C=C, Q=0.3 * np.eye(2), R=R, x0=[0.1, -0.2], P0=np.eye(2), Bu=[[0.5], [0.0]], D=np.full((m, 1), 0.2)
+    )
 
 
 def _case(m: int, seed: int, runs: int = 3, T: int = 9):
@@ -31,9 +32,9 @@ def _case(m: int, seed: int, runs: int = 3, T: int = 9):
     ystar = rng.normal(0.2, 1.0, size=(runs, T, m))
     y = np.clip(ystar, lo, hi)
     flags = (y <= lo) | (y >= hi)
-    y[0, 2, 0] = lo[2, 0]                     # at the limit, recorded as uncensored
+    y[0, 2, 0] = lo[2, 0]  # at the limit, recorded as uncensored
     flags[0, 2, 0] = False
-    y[1, 4, :] = np.nan                       # a missing step
+    y[1, 4, :] = np.nan  # a missing step
     flags[1, 4, :] = False
     y[2, 6, m - 1] = np.nan
     flags[2, 6, m - 1] = False
@@ -53,8 +54,17 @@ def _reference_adf(system, cens, y, u, flags=None):
     Bu, D = system.Bu.at(1), system.D.at(1)
     runs, T, m = y.shape
     n = A.shape[0]
-    out = {k: np.zeros((runs, T) + sh) for k, sh in (("mean", (n,)), ("cov", (n, n)), ("pred_mean", (n,)),
-                                                      ("pred_cov", (n, n)), ("log_lik", ()), ("side", (m,)))}
+    out = {
+        k: np.zeros((runs, T) + sh)
+        for k, sh in (
+            ("mean", (n,)),
+            ("cov", (n, n)),
+            ("pred_mean", (n,)),
+            ("pred_cov", (n, n)),
+            ("log_lik", ()),
+            ("side", (m,)),
+        )
+    }
     for i in range(runs):
         x, P = np.asarray(system.x0, float), np.asarray(system.P0, float)
         for t in range(T):
@@ -111,7 +121,7 @@ def test_uncensored_first_order_is_the_inference_adf(m, r0, form, recorded):
     new = tk.AssumedDensityTobitFilter(system, cens, covariance_update=form, order="uncensored_first")
     got = new.filter(y, u=u, **kw)
     _assert_same(got, _reference_adf(system, cens, y, u, flags if recorded else None))
-    if recorded:                              # the reading at the limit recorded as uncensored is a density
+    if recorded:  # the reading at the limit recorded as uncensored is a density
         assert got.extras["side"][0, 2, 0] == 0
         assert new.filter(y, u=u).extras["side"][0, 2, 0] == -1
 
@@ -135,8 +145,7 @@ def test_steps_with_the_indicator_equal_the_loop():
     for i in range(y.shape[1]):
         st = est.step(st, y[:, i], u=u[i], censored=flags[:, i])
         np.testing.assert_allclose(st.mean, full.mean[:, i], atol=TOL, rtol=0)
-        np.testing.assert_allclose(st.extras["log_likelihood"], full.extras["log_likelihood"][:, i], atol=TOL,
-                                   rtol=0)
+        np.testing.assert_allclose(st.extras["log_likelihood"], full.extras["log_likelihood"][:, i], atol=TOL, rtol=0)
     # predict + update with the indicator is the step
     st0 = est.init((3,))
     s1 = est.update(est.predict(st0, u=u[0]), y[:, 0], censored=flags[:, 0])
@@ -178,8 +187,12 @@ def test_log_likelihood_of_one_step_is_the_censored_normal_likelihood():
     mu, s = 0.32, np.sqrt(0.64 * 1.2 + 0.8)
     cens = tk.Censoring(lower=0.0, upper=1.5)
     est = tk.AssumedDensityTobitFilter(sys_, cens)
-    for yv, want in ((0.7, norm.logpdf(0.7, mu, s)), (0.0, norm.logcdf(-mu / s)), (1.5, norm.logsf((1.5 - mu) / s)),
-                     (np.nan, 0.0)):
+    for yv, want in (
+        (0.7, norm.logpdf(0.7, mu, s)),
+        (0.0, norm.logcdf(-mu / s)),
+        (1.5, norm.logsf((1.5 - mu) / s)),
+        (np.nan, 0.0),
+    ):
         got = est.filter([[yv]]).extras["log_likelihood"][0]
         assert abs(got - want) < 1e-12
     # recorded as uncensored at the limit: the density there
@@ -187,6 +200,6 @@ def test_log_likelihood_of_one_step_is_the_censored_normal_likelihood():
     assert abs(got - norm.logpdf(0.0, mu, s)) < 1e-12
     from scipy.special import log_ndtr
 
-    lim = mu - 40 * s                        # 40 sigma into the lower tail: log Phi(-40), finite
+    lim = mu - 40 * s  # 40 sigma into the lower tail: log Phi(-40), finite
     far = tk.AssumedDensityTobitFilter(sys_, tk.Censoring(lower=lim)).filter([[lim]])
     assert abs(far.extras["log_likelihood"][0] - float(log_ndtr(-40.0))) < 1e-9

@@ -8,8 +8,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from tobitkf.filters.delay import (AugmentedLMMSE, ChainLMMSE, ReorganizedInnovationLMMSE, augmented_lmmse,
-                                   chain_lmmse, reorganized_lmmse, second_moments, smooth_interval, smooth_point)
+from tobitkf.filters.delay import (
+    AugmentedLMMSE,
+    ChainLMMSE,
+    ReorganizedInnovationLMMSE,
+    augmented_lmmse,
+    chain_lmmse,
+    reorganized_lmmse,
+    second_moments,
+    smooth_interval,
+    smooth_point,
+)
 from tobitkf.models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, paper_example, paper_prior
 from tobitkf.simulate.delay import full_states, simulate_delay
 
@@ -53,8 +62,23 @@ def field(r, f):
     return getattr(r, f) if f in ("mean", "cov", "pred_mean", "pred_cov") else r.extras[f]
 
 
-def assert_same(r1, r2, fields=("mean", "cov", "pred_mean", "pred_cov", "next_mean", "next_cov", "measured_mean",
-                                "measured_cov", "innovation", "innovation_cov"), tol=TOL):
+def assert_same(
+    r1,
+    r2,
+    fields=(
+        "mean",
+        "cov",
+        "pred_mean",
+        "pred_cov",
+        "next_mean",
+        "next_cov",
+        "measured_mean",
+        "measured_cov",
+        "innovation",
+        "innovation_cov",
+    ),
+    tol=TOL,
+):
     for f in fields:
         np.testing.assert_allclose(field(r1, f), field(r2, f), atol=tol, rtol=0, err_msg=f)
 
@@ -81,6 +105,7 @@ def correlated_kf(A, H, GQG, GS, Qv, x0, P0, ys):
 
 # ----------------------------------------------------------------------------- §5 item 1: C ≡ A
 
+
 @pytest.mark.parametrize("d,n,m", [(0, 1, 1), (1, 2, 1), (2, 2, 2), (3, 4, 1), (7, 2, 2), (3, 1, 2)])
 def test_chain_equals_augmented(d, n, m):
     rng = np.random.default_rng(100 + 7 * d + n + m)
@@ -98,8 +123,13 @@ def test_chain_equals_augmented(d, n, m):
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**31 - 1), d=st.integers(0, 4), n=st.integers(1, 3), m=st.integers(1, 2),
-       s_scale=st.sampled_from([0.0, 0.5, 0.999]))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    d=st.integers(0, 4),
+    n=st.integers(1, 3),
+    m=st.integers(1, 2),
+    s_scale=st.sampled_from([0.0, 0.5, 0.999]),
+)
 def test_chain_equals_augmented_property(seed, d, n, m, s_scale):
     rng = np.random.default_rng(seed)
     sys = random_system(rng, n, m, d, S_scale=s_scale)
@@ -109,6 +139,7 @@ def test_chain_equals_augmented_property(seed, d, n, m, s_scale):
 
 
 # ----------------------------------------------------------------------------- §5 item 2: D ≡ A, errata guards
+
 
 @pytest.mark.parametrize("d", [1, 2, 3, 5])
 def test_reorganized_equals_augmented_with_correlated_prior(d):
@@ -165,6 +196,7 @@ def test_printed_psi_recursion_is_not_optimal(erratum):
 
 # ----------------------------------------------------------------------------- §5 item 15: time-varying pmf
 
+
 def test_time_varying_fading_all_algorithms_agree():
     d, T = 2, 40
     laws = [FadingPMF([0.2, 1.0], [0.5 + 0.4 * np.sin(t), 0.5 - 0.4 * np.sin(t)]) for t in range(T)]
@@ -184,6 +216,7 @@ def test_time_varying_fading_all_algorithms_agree():
 
 # ----------------------------------------------------------------------------- §5 item 3: filter ≡ predictor
 
+
 @pytest.mark.parametrize("d", [1, 3])
 def test_filter_equals_predictor_with_uncorrelated_history(d):
     sys = paper_example(S=0.3, d=d)
@@ -202,11 +235,12 @@ def test_filter_gain_vanishes_with_constant_history():
     data = simulate_delay(sys, prior, 60, 200, seed=1)
     r = augmented_lmmse(sys, prior, data.y)
     diff = np.sqrt(np.mean((r.mean[:, 1:] - r.extras["next_mean"][:, :-1]) ** 2, axis=(0, 2)))  # index t-1 <-> time t
-    assert diff[0] > 1e-4                      # t = 1: nonzero gain
-    assert diff[40:].max() < 1e-6              # then the gain dies out
+    assert diff[0] > 1e-4  # t = 1: nonzero gain
+    assert diff[40:].max() < 1e-6  # then the gain dies out
 
 
 # ----------------------------------------------------------------------------- §5 item 4: RTS, fixed point
+
 
 @pytest.mark.parametrize("d", [0, 1, 3])
 def test_interval_smoother_equals_big_window_augmentation(d):
@@ -218,11 +252,12 @@ def test_interval_smoother_equals_big_window_augmentation(d):
     sm = smooth_interval(sys, prior, data.y)
     big = augmented_lmmse(sys, prior, data.y, window=T + d)
     n = 2
-    for idx, j in enumerate(sm.times):       # block k of X̂(T|T-1) is x(T-k)
+    for idx, j in enumerate(sm.times):  # block k of X̂(T|T-1) is x(T-k)
         k = T - j
-        np.testing.assert_allclose(sm.mean[:, idx], big.extras["final_mean"][:, k * n:(k + 1) * n], atol=TOL, rtol=0)
-        np.testing.assert_allclose(sm.cov[0, idx], big.extras["final_cov"][k * n:(k + 1) * n, k * n:(k + 1) * n],
-                                   atol=TOL, rtol=0)
+        np.testing.assert_allclose(sm.mean[:, idx], big.extras["final_mean"][:, k * n : (k + 1) * n], atol=TOL, rtol=0)
+        np.testing.assert_allclose(
+            sm.cov[0, idx], big.extras["final_cov"][k * n : (k + 1) * n, k * n : (k + 1) * n], atol=TOL, rtol=0
+        )
 
 
 @pytest.mark.parametrize("j0", [-2, 0, 5, 13])
@@ -236,11 +271,14 @@ def test_fixed_point_smoother_equals_rts(j0):
     np.testing.assert_allclose(mean[:, -1], sm.mean[:, idx], atol=TOL, rtol=0)
     np.testing.assert_allclose(cov[0, -1], sm.cov[0, idx], atol=TOL, rtol=0)
     # it changes only at t = j0 + d + k(d+1)
-    changes = [t for t in range(1, 30) if np.isfinite(mean[0, t - 1, 0]) and np.abs(mean[:, t] - mean[:, t - 1]).max() > 0]
+    changes = [
+        t for t in range(1, 30) if np.isfinite(mean[0, t - 1, 0]) and np.abs(mean[:, t] - mean[:, t - 1]).max() > 0
+    ]
     assert all((t - j0 - 3) % 4 == 0 and t >= j0 + 3 for t in changes) and changes
 
 
 # ----------------------------------------------------------------------------- §5 item 5, 6, 7: reductions
+
 
 @pytest.mark.parametrize("S", [0.0, 0.2])
 def test_d0_no_fading_is_correlated_kf(S):
@@ -259,12 +297,21 @@ def test_d0_no_fading_is_correlated_kf(S):
 
 def test_d0_uncorrelated_matches_filterpy():
     filterpy = pytest.importorskip("filterpy.kalman")
-    sys = DelayFadingSystem([[0.9, 0.2], [0.0, 0.7]], [[1.0, 0.5]], np.eye(2), 0.2 * np.eye(2), 0.3, np.zeros((2, 1)), 0)
+    sys = DelayFadingSystem(
+        [[0.9, 0.2], [0.0, 0.7]], [[1.0, 0.5]], np.eye(2), 0.2 * np.eye(2), 0.3, np.zeros((2, 1)), 0
+    )
     prior = HistoryPrior.uncorrelated([[0.3, -0.2]], [np.eye(2)])
     data = simulate_delay(sys, prior, 20, 1, seed=2)
     r = chain_lmmse(sys, prior, data.y[0])
     kf = filterpy.KalmanFilter(dim_x=2, dim_z=1)
-    kf.x, kf.P, kf.F, kf.H, kf.Q, kf.R = np.array([0.3, -0.2]), np.eye(2), sys.A, sys.H, 0.2 * np.eye(2), np.array([[0.3]])
+    kf.x, kf.P, kf.F, kf.H, kf.Q, kf.R = (
+        np.array([0.3, -0.2]),
+        np.eye(2),
+        sys.A,
+        sys.H,
+        0.2 * np.eye(2),
+        np.array([[0.3]]),
+    )
     for t in range(20):
         kf.update(data.y[0, t])
         np.testing.assert_allclose(r.mean[t], kf.x, atol=1e-10)
@@ -279,10 +326,11 @@ def test_no_fading_delay_is_interleaved_kfs():
     prior = random_prior(rng, 2, d)
     data = simulate_delay(sys, prior, T, 1, seed=rng)
     r = chain_lmmse(sys, prior, data.y[0])
-    for rr in range(d + 1):          # chain of x(rr - d): measured at times rr, rr + d + 1, ...
+    for rr in range(d + 1):  # chain of x(rr - d): measured at times rr, rr + d + 1, ...
         times = list(range(rr, T, d + 1))
-        ref = correlated_kf(sys.A, sys.H, sys.GQG, sys.GS, sys.Qv, prior.block_mean(d - rr), prior.block_cov(d - rr),
-                            data.y[0, times])
+        ref = correlated_kf(
+            sys.A, sys.H, sys.GQG, sys.GS, sys.Qv, prior.block_mean(d - rr), prior.block_cov(d - rr), data.y[0, times]
+        )
         np.testing.assert_allclose(r.extras["measured_mean"][times], [o[0] for o in ref], atol=TOL)
         np.testing.assert_allclose(r.extras["measured_cov"][times], [o[1] for o in ref], atol=TOL)
         np.testing.assert_allclose(r.extras["next_mean"][times], [o[2] for o in ref], atol=TOL)
@@ -309,14 +357,15 @@ def test_bernoulli_fading_is_nahi_lmmse():
 
 # ----------------------------------------------------------------------------- §5 item 8, 12: paper decorrelation
 
+
 @pytest.mark.parametrize("case", ["S=0", "sigma2=0"])
 def test_paper_decorrelation_equals_optimal_in_degenerate_cases(case):
-    sys = paper_example(S=0.0, q=0.3) if case == "S=0" else paper_example(S=0.2).replace(
-        fading=FadingPMF([0.9], [1.0]))
+    sys = paper_example(S=0.0, q=0.3) if case == "S=0" else paper_example(S=0.2).replace(fading=FadingPMF([0.9], [1.0]))
     data = simulate_delay(sys, paper_prior(), 40, 2, seed=6)
     assert_same(chain_lmmse(sys, paper_prior(), data.y, decorrelation="paper"), chain_lmmse(sys, paper_prior(), data.y))
-    assert_same(reorganized_lmmse(sys, paper_prior(), data.y, decorrelation="paper"),
-                chain_lmmse(sys, paper_prior(), data.y))
+    assert_same(
+        reorganized_lmmse(sys, paper_prior(), data.y, decorrelation="paper"), chain_lmmse(sys, paper_prior(), data.y)
+    )
 
 
 def test_paper_decorrelation_same_in_chain_and_reorganized():
@@ -345,19 +394,25 @@ def test_paper_decorrelation_is_worse_and_overconfident():
     # ... and its claimed covariance is too small: the true MSE of the constant-J predictor exceeds it
     assert np.all(mse_pap > 1.04 * np.diagonal(pap.extras["next_cov"][0, 60:], axis1=-2, axis2=-1).mean(axis=0))
     # the optimal predictor's MSE matches its covariance (5 % at 1500 runs, pooled)
-    np.testing.assert_allclose(mse_opt, np.diagonal(opt.extras["next_cov"][0, 60:], axis1=-2, axis2=-1).mean(axis=0), rtol=0.05)
+    np.testing.assert_allclose(
+        mse_opt, np.diagonal(opt.extras["next_cov"][0, 60:], axis1=-2, axis2=-1).mean(axis=0), rtol=0.05
+    )
 
 
 # ----------------------------------------------------------------------------- §5 item 16: singular S
+
 
 def test_singular_cross_covariance_runs_and_stays_psd():
     sys = paper_example(S=np.sqrt(0.3 * 0.3))
     assert np.allclose(sys.eta_cov, 0)
     prior = paper_prior()
     data = simulate_delay(sys, prior, 100, 3, seed=8)
-    np.testing.assert_allclose(data.extras["w"], data.extras["v"], atol=1e-12)   # w ≡ v at S = sqrt(Qw Qv)
-    for r in (chain_lmmse(sys, prior, data.y), augmented_lmmse(sys, prior, data.y),
-              reorganized_lmmse(sys, prior, data.y)):
+    np.testing.assert_allclose(data.extras["w"], data.extras["v"], atol=1e-12)  # w ≡ v at S = sqrt(Qw Qv)
+    for r in (
+        chain_lmmse(sys, prior, data.y),
+        augmented_lmmse(sys, prior, data.y),
+        reorganized_lmmse(sys, prior, data.y),
+    ):
         for P in (r.cov, r.extras["next_cov"], r.extras["measured_cov"]):
             assert np.isfinite(P).all() and np.linalg.eigvalsh(P).min() > -1e-12
     sm = smooth_interval(sys, prior, data.y)
@@ -365,6 +420,7 @@ def test_singular_cross_covariance_runs_and_stays_psd():
 
 
 # ----------------------------------------------------------------------------- k-step prediction
+
 
 def test_k_step_prediction_equals_uninformative_measurements():
     """With S = 0, a measurement with γ̄ = σ² = 0 carries no information: x̂(t+k|t) is the
@@ -385,6 +441,7 @@ def test_k_step_prediction_equals_uninformative_measurements():
 
 # ----------------------------------------------------------------------------- batch, classes
 
+
 def test_batched_equals_per_run_and_classes():
     sys = paper_example(S=0.15, q=0.6)
     prior = paper_prior()
@@ -394,11 +451,14 @@ def test_batched_equals_per_run_and_classes():
     for i in range(4):
         one = chain_lmmse(sys, prior, data.y[i], lags=(5,))
         np.testing.assert_allclose(batch.mean.reshape(4, 20, 2)[i], one.mean, atol=0)
-        np.testing.assert_allclose(batch.extras["lagged"][5][0].reshape(4, 20, 2)[i], one.extras["lagged"][5][0], atol=0)
+        np.testing.assert_allclose(
+            batch.extras["lagged"][5][0].reshape(4, 20, 2)[i], one.extras["lagged"][5][0], atol=0
+        )
     assert_same(AugmentedLMMSE(sys, prior).filter(data.y), ReorganizedInnovationLMMSE(sys, prior).filter(data.y))
 
 
 # ----------------------------------------------------------------------------- §5 item 9: Monte Carlo
+
 
 def _pooled_ratio(err, P):
     """Pooled ratio of Σ_t e_t^T e_t to Σ_t tr P_t and its standard error across runs."""
@@ -413,17 +473,19 @@ def test_monte_carlo_consistency(S, q):
     prior = paper_prior(d)
     data = simulate_delay(sys, prior, T, R, seed=13)
     r = chain_lmmse(sys, prior, data.y, horizons=(3,))
-    full = full_states(data)          # index j + d
+    full = full_states(data)  # index j + d
     checks = [
         (r.extras["next_mean"] - data.x[:, 1:], r.extras["next_cov"][0]),
         (r.extras["measured_mean"] - full[:, :T], r.extras["measured_cov"][0]),
-        (r.extras["ahead"][3][0][:, :-2] - data.x[:, 3:T + 1], r.extras["ahead"][3][1][0, :-2]),
+        (r.extras["ahead"][3][0][:, :-2] - data.x[:, 3 : T + 1], r.extras["ahead"][3][1][0, :-2]),
     ]
     for err, P in checks:
         ratio, se = _pooled_ratio(err[:, 10:], P[10:])
         assert abs(ratio - 1) < 5 * se + 1e-3, (ratio, se)
     # normalized innovation E[ε^T Q_ε^{-1} ε] ≈ m
-    nis = np.einsum("rti,tij,rtj->rt", r.extras["innovation"], np.linalg.inv(r.extras["innovation_cov"][0]), r.extras["innovation"]).mean(axis=1)
+    nis = np.einsum(
+        "rti,tij,rtj->rt", r.extras["innovation"], np.linalg.inv(r.extras["innovation_cov"][0]), r.extras["innovation"]
+    ).mean(axis=1)
     assert abs(nis.mean() - 1) < 5 * nis.std(ddof=1) / np.sqrt(R)
     # Λ(t) against the empirical E[x x^T] at the last step (sample variance for the tolerance)
     xx = data.x[:, T, 0] ** 2
@@ -443,6 +505,7 @@ def test_simulator_noise_cross_covariance():
 
 
 # ----------------------------------------------------------------------------- §5 item 10, 11, §3.3
+
 
 def _loewner_ge(P1, P2, tol=1e-12):
     """P1 >= P2 in the Loewner order (all eigenvalues of the difference >= -tol)."""
@@ -471,17 +534,20 @@ def test_loewner_orderings():
         assert _loewner_ge(r.extras["ahead"][k][1][-1], r.extras["ahead"][1][1][-1])
 
 
-@pytest.mark.parametrize("q,S,filt,meas,Qe", [
-    (1, 0, (0.44353, 0.36882), (0.11801, 0.09580), 1.16914),
-    (1, 0.15, (0.25756, 0.23092), (0.09727, 0.08480), 0.82740),
-    (1, 0.3, (0.02392, 0.01280), (0.02179, 0.01159), 0.33376),
-    (0.6, 0, (0.57373, 0.43490), (0.25384, 0.19023), 0.86117),
-    (0.6, 0.15, (0.34009, 0.26973), (0.19367, 0.15170), 0.66981),
-    (0.6, 0.3, (0.08623, 0.06528), (0.07316, 0.05501), 0.44593),
-    (0.3, 0, (0.85194, 0.57367), (0.56674, 0.38009), 0.82107),
-    (0.3, 0.15, (0.55728, 0.38345), (0.41892, 0.28708), 0.72656),
-    (0.3, 0.3, (0.24812, 0.17011), (0.21677, 0.14821), 0.62389),
-])
+@pytest.mark.parametrize(
+    "q,S,filt,meas,Qe",
+    [
+        (1, 0, (0.44353, 0.36882), (0.11801, 0.09580), 1.16914),
+        (1, 0.15, (0.25756, 0.23092), (0.09727, 0.08480), 0.82740),
+        (1, 0.3, (0.02392, 0.01280), (0.02179, 0.01159), 0.33376),
+        (0.6, 0, (0.57373, 0.43490), (0.25384, 0.19023), 0.86117),
+        (0.6, 0.15, (0.34009, 0.26973), (0.19367, 0.15170), 0.66981),
+        (0.6, 0.3, (0.08623, 0.06528), (0.07316, 0.05501), 0.44593),
+        (0.3, 0, (0.85194, 0.57367), (0.56674, 0.38009), 0.82107),
+        (0.3, 0.15, (0.55728, 0.38345), (0.41892, 0.28708), 0.72656),
+        (0.3, 0.3, (0.24812, 0.17011), (0.21677, 0.14821), 0.62389),
+    ],
+)
 def test_steady_state_reference_table(q, S, filt, meas, Qe):
     """Spec §3.3 (independent prototype): steady-state values to 4 decimals."""
     r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((600, 1)))
@@ -494,8 +560,12 @@ def test_transient_reference_values():
     r = chain_lmmse(paper_example(S=0.3), paper_prior(), np.zeros((151, 1)))
     np.testing.assert_allclose(np.diagonal(r.cov[0]), [0.01, 0.01], atol=5e-6)
     np.testing.assert_allclose(np.diagonal(r.extras["next_cov"][0]), [0.00101, 0.00243], atol=5e-6)
-    for t, ref in [(25, (0.01770, 0.00874)), (50, (0.02237, 0.01181)), (100, (0.02382, 0.01274)),
-                   (150, (0.02391, 0.01280))]:
+    for t, ref in [
+        (25, (0.01770, 0.00874)),
+        (50, (0.02237, 0.01181)),
+        (100, (0.02382, 0.01274)),
+        (150, (0.02391, 0.01280)),
+    ]:
         np.testing.assert_allclose(np.diagonal(r.cov[t]), ref, atol=5e-6)
 
 
@@ -517,17 +587,20 @@ def test_second_moment_stationary_value():
 
 # ----------------------------------------------------------------------------- extra lags (generic engine)
 
+
 def test_extra_lag_reduces_to_plain_kf_when_pure_markov():
     """x(t+1) = A0 x(t) with d = 1 measured as y(t) = H x(t-1): augmentation equals a KF on [x(t); x(t-1)]."""
     A0 = np.array([[0.9, 0.1], [0.0, 0.8]])
-    sys = DelayFadingSystem(np.zeros((2, 2)), [[1.0, 0.0]], np.eye(2), 0.1 * np.eye(2), 0.2, np.zeros((2, 1)), 1,
-                            extra_lags={0: A0})
+    sys = DelayFadingSystem(
+        np.zeros((2, 2)), [[1.0, 0.0]], np.eye(2), 0.1 * np.eye(2), 0.2, np.zeros((2, 1)), 1, extra_lags={0: A0}
+    )
     prior = HistoryPrior.uncorrelated(np.zeros((2, 2)), [np.eye(2), np.eye(2)])
     data = simulate_delay(sys, prior, 20, 1, seed=15)
     r = augmented_lmmse(sys, prior, data.y[0])
     AA = np.block([[A0, np.zeros((2, 2))], [np.eye(2), np.zeros((2, 2))]])
     HH = np.array([[0.0, 0.0, 1.0, 0.0]])
-    GQG = np.zeros((4, 4)); GQG[:2, :2] = 0.1 * np.eye(2)
+    GQG = np.zeros((4, 4))
+    GQG[:2, :2] = 0.1 * np.eye(2)
     ref = correlated_kf(AA, HH, GQG, np.zeros((4, 1)), np.array([[0.2]]), np.zeros(4), np.eye(4), data.y[0])
     np.testing.assert_allclose(r.extras["next_mean"], [o[2][:2] for o in ref], atol=TOL)
     np.testing.assert_allclose(r.extras["measured_cov"], [o[1][2:, 2:] for o in ref], atol=TOL)
@@ -537,6 +610,7 @@ def test_extra_lag_reduces_to_plain_kf_when_pure_markov():
 
 def test_shared_pmf_law_is_accepted_as_fading():
     from tobitkf.channels.laws import PMF
+
     sys = paper_example(S=0.2, q=0.6)
     shared = sys.replace(fading=PMF([0.95, 0.98, 0.6], [0.05, 0.15, 0.8]))
     data = simulate_delay(sys, paper_prior(), 30, 2, seed=16)
@@ -546,6 +620,7 @@ def test_shared_pmf_law_is_accepted_as_fading():
 
 
 # ----------------------------------------------------------------------------- bad input
+
 
 def test_bad_input():
     sys = paper_example()

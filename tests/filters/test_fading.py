@@ -15,8 +15,14 @@ from scipy import special, stats
 import tobitkf as tk
 from tobitkf._validation import ValidationError
 from tobitkf.channels.fading import RiceFading
-from tobitkf.filters.fading import (FadingKalmanFilter, FadingTobitKalmanFilter, augmented_measurement_matrix,
-                                    fading_estimators, fading_kalman_filter, fading_tobit_kalman_filter)
+from tobitkf.filters.fading import (
+    FadingKalmanFilter,
+    FadingTobitKalmanFilter,
+    augmented_measurement_matrix,
+    fading_estimators,
+    fading_kalman_filter,
+    fading_tobit_kalman_filter,
+)
 
 MEANS = [0.95, 0.75, 0.85]
 VARS = [0.0081, 0.0064, 0.0049]
@@ -25,8 +31,9 @@ VARS = [0.0081, 0.0064, 0.0049]
 def oscillator(P0=None):
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
-    return tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0],
-                           P0=np.eye(2) if P0 is None else P0)
+    return tk.LinearSystem(
+        A=A, C=[[1.0, 0.0]], Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2) if P0 is None else P0
+    )
 
 
 def data(system, fading, steps=40, runs=3, lower=0.0, seed=0):
@@ -42,53 +49,57 @@ def _reference(system, thb, lower, y, L, T, *, thv=None, stale=False, exact=Fals
     variance gam R(1-psi) + gam(1-gam)(chi + sig lam - I)^2; ``variance_term`` adds gam^2 D_k.
     Returns per-step x̂_{k|k}, P_{k|k}, ŷ_{k|k-1}, K_k (first n rows) and ξ̂_{k|k}.
     """
-    n, m = system.n, system.m
+    n = system.n
     A, Qd, C = system.A.at(0), system.process_cov(0), system.C.at(1)
     sig = np.sqrt(np.diag(system.R.at(1)))
     xi, P = system.x0.copy(), system.P0.copy()
-    x_pred_hist = [system.x0.copy()]                          # x̂_{j|j-1}, j = 0, 1, ...
-    X = [np.outer(system.x0, system.x0) + system.P0]         # X_j = E[x_j x_j^T]
+    x_pred_hist = [system.x0.copy()]  # x̂_{j|j-1}, j = 0, 1, ...
+    X = [np.outer(system.x0, system.x0) + system.P0]  # X_j = E[x_j x_j^T]
     out = {"x": [], "P": [], "yhat": [], "K": [], "xi": []}
     for k in range(1, T + 1):
         l_prev, l_k = min(L, k - 1), min(L, k)
-        Aa = np.zeros((n * (l_k + 1), n * (l_prev + 1)))     # (7): tall while k <= L
+        Aa = np.zeros((n * (l_k + 1), n * (l_prev + 1)))  # (7): tall while k <= L
         Aa[:n, :n] = A
         for i in range(1, l_k + 1):
-            Aa[i * n:(i + 1) * n, (i - 1) * n:i * n] = np.eye(n)
+            Aa[i * n : (i + 1) * n, (i - 1) * n : i * n] = np.eye(n)
         Ba = np.zeros((n * (l_k + 1), n))
         Ba[:n] = np.eye(n)
-        xi = Aa @ xi                                         # (17)
-        P = Aa @ P @ Aa.T + Ba @ Qd @ Ba.T                   # (18)
+        xi = Aa @ xi  # (17)
+        P = Aa @ P @ Aa.T + Ba @ Qd @ Ba.T  # (18)
         x_pred_hist.append(xi[:n].copy())
         X.append(A @ X[-1] @ A.T + Qd)
         H = np.hstack([thb[s][:, None] * C for s in range(l_k + 1)])
         chi = H @ xi
         z = (lower - chi) / sig
-        lam = stats.norm.pdf(z) / stats.norm.sf(z)           # (14)
-        psi = lam * (lam - z)                                # (13)
+        lam = stats.norm.pdf(z) / stats.norm.sf(z)  # (14)
+        psi = lam * (lam - z)  # (13)
         if stale:
             mu = sum(thb[s] * (C @ x_pred_hist[k - s]) for s in range(l_k + 1))
-            gam = stats.norm.cdf((mu - lower) / sig)         # (6) as printed
+            gam = stats.norm.cdf((mu - lower) / sig)  # (6) as printed
         else:
-            gam = stats.norm.cdf((chi - lower) / sig)        # (6) at the augmented prediction
-        yhat = gam * (chi + sig * lam) + (1 - gam) * lower   # (21)
-        noise = sig**2 * (1 - psi)                           # (25)-(26)
+            gam = stats.norm.cdf((chi - lower) / sig)  # (6) at the augmented prediction
+        yhat = gam * (chi + sig * lam) + (1 - gam) * lower  # (21)
+        noise = sig**2 * (1 - psi)  # (25)-(26)
         if exact:
             noise = gam * noise + gam * (1 - gam) * (chi + sig * lam - lower) ** 2
         if variance_term:
             noise = noise + gam**2 * sum(thv[s] * np.diag(C @ X[k - s] @ C.T) for s in range(l_k + 1))
         G = gam[:, None] * H
-        Sxy = P @ G.T                                        # (24)
-        Syy = G @ P @ G.T + np.diag(noise)                   # (25)
-        K = np.linalg.solve(Syy.T, Sxy.T).T                  # (23)
-        xi = xi + K @ (y[k - 1] - yhat)                      # (19)
-        P = P - K @ Syy @ K.T                                # (20')
-        out["x"].append(xi[:n].copy()); out["P"].append(P[:n, :n].copy())
-        out["yhat"].append(yhat); out["K"].append(K[:n].copy()); out["xi"].append(xi.copy())
+        Sxy = P @ G.T  # (24)
+        Syy = G @ P @ G.T + np.diag(noise)  # (25)
+        K = np.linalg.solve(Syy.T, Sxy.T).T  # (23)
+        xi = xi + K @ (y[k - 1] - yhat)  # (19)
+        P = P - K @ Syy @ K.T  # (20')
+        out["x"].append(xi[:n].copy())
+        out["P"].append(P[:n, :n].copy())
+        out["yhat"].append(yhat)
+        out["K"].append(K[:n].copy())
+        out["xi"].append(xi.copy())
     return out
 
 
 # --- exact reductions (spec §8 items 1-5), 1e-10 on the same data --------------------------------------------
+
 
 @pytest.mark.parametrize("upper", [np.inf, 3.0])
 def test_L0_unit_mean_equals_core_tkf(upper):
@@ -109,7 +120,7 @@ def test_L0_unit_mean_equals_core_tkf(upper):
 def test_matches_independent_growing_reference_including_k_below_L(L):
     # covers item 1 (L=0: the Allik TKF written independently, incl. ŷ and K) and item 4 (fixed size = growing)
     sys = oscillator()
-    fad = RiceFading.gaussian(L, MEANS[:L + 1], VARS[:L + 1])
+    fad = RiceFading.gaussian(L, MEANS[: L + 1], VARS[: L + 1])
     d, cens = data(sys, fad, steps=30, runs=2, seed=3)
     out = FadingTobitKalmanFilter(sys, fad, cens).filter(d.y, keep_augmented=True)
     n = 2
@@ -119,31 +130,42 @@ def test_matches_independent_growing_reference_including_k_below_L(L):
         np.testing.assert_allclose(out.cov[r], ref["P"], rtol=0, atol=1e-10)
         np.testing.assert_allclose(out.extras["expected_y"][r], ref["yhat"], rtol=0, atol=1e-10)
         np.testing.assert_allclose(out.extras["gain"][r, :, :n], ref["K"], rtol=0, atol=1e-10)
-        for k in range(1, 31):   # the fixed-size state holds the growing one, padded with exact zeros
+        for k in range(1, 31):  # the fixed-size state holds the growing one, padded with exact zeros
             size = n * (min(L, k) + 1)
             np.testing.assert_allclose(out.extras["aug_mean"][r, k - 1, :size], ref["xi"][k - 1], rtol=0, atol=1e-10)
             assert np.all(out.extras["aug_mean"][r, k - 1, size:] == 0.0)
             assert np.all(out.extras["aug_cov"][r, k - 1, size:, :] == 0.0)
 
 
-@pytest.mark.parametrize("options", [
-    {"p_uncensored_mode": "eq6_stale"},
-    {"exact_tobit_variance": True},
-    {"fading_variance_term": True},
-    {"p_uncensored_mode": "eq6_stale", "exact_tobit_variance": True, "fading_variance_term": True},
-])
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"p_uncensored_mode": "eq6_stale"},
+        {"exact_tobit_variance": True},
+        {"fading_variance_term": True},
+        {"p_uncensored_mode": "eq6_stale", "exact_tobit_variance": True, "fading_variance_term": True},
+    ],
+)
 def test_options_match_independent_reference(options):
     sys = oscillator()
     fad = RiceFading.gaussian(2, MEANS, VARS)
     d, cens = data(sys, fad, steps=30, runs=2, seed=9)
     out = FadingTobitKalmanFilter(sys, fad, cens, **options).filter(d.y)
     base = FadingTobitKalmanFilter(sys, fad, cens).filter(d.y)
-    assert np.abs(out.mean - base.mean).max() > 1e-6          # each option changes the estimates
+    assert np.abs(out.mean - base.mean).max() > 1e-6  # each option changes the estimates
     for r in range(2):
-        ref = _reference(sys, fad.mean_gains(1), 0.0, d.y[r], 2, 30, thv=fad.var_gains(1),
-                         stale=options.get("p_uncensored_mode") == "eq6_stale",
-                         exact=options.get("exact_tobit_variance", False),
-                         variance_term=options.get("fading_variance_term", False))
+        ref = _reference(
+            sys,
+            fad.mean_gains(1),
+            0.0,
+            d.y[r],
+            2,
+            30,
+            thv=fad.var_gains(1),
+            stale=options.get("p_uncensored_mode") == "eq6_stale",
+            exact=options.get("exact_tobit_variance", False),
+            variance_term=options.get("fading_variance_term", False),
+        )
         np.testing.assert_allclose(out.mean[r], ref["x"], rtol=0, atol=1e-10)
         np.testing.assert_allclose(out.cov[r], ref["P"], rtol=0, atol=1e-10)
         np.testing.assert_allclose(out.extras["expected_y"][r], ref["yhat"], rtol=0, atol=1e-10)
@@ -154,8 +176,9 @@ def test_inputs_and_time_varying_C_reduce_to_core_tkf():
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     Cs = np.stack([[[1.0 + 0.02 * k, 0.1]] for k in range(1, T + 1)])
-    sys = tk.LinearSystem(A=A, C=Cs, Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2),
-                          Bu=[[0.0], [1.0]], D=[[0.3]])
+    sys = tk.LinearSystem(
+        A=A, C=Cs, Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2), Bu=[[0.0], [1.0]], D=[[0.3]]
+    )
     u = np.random.default_rng(0).normal(size=(3, T, 1))
     fad = RiceFading(0, [1.0])
     cens = tk.Censoring(lower=0.0)
@@ -173,7 +196,7 @@ def _augmented_system(sys, fad, T):
     Aa = np.zeros((nxi, nxi))
     Aa[:n, :n] = sys.A.at(0)
     for i in range(1, L + 1):
-        Aa[i * n:(i + 1) * n, (i - 1) * n:i * n] = np.eye(n)
+        Aa[i * n : (i + 1) * n, (i - 1) * n : i * n] = np.eye(n)
     Qa = np.zeros((nxi, nxi))
     Qa[:n, :n] = sys.process_cov(0)
     x0 = np.zeros(nxi)
@@ -187,7 +210,7 @@ def _augmented_system(sys, fad, T):
 @pytest.mark.parametrize("lower", [None, -1e6])
 def test_no_censoring_equals_augmented_kalman_filter(lower):
     sys = oscillator()
-    fad = RiceFading.gaussian(2, MEANS, 0.0)     # no fading variance: the exact optimal KF
+    fad = RiceFading.gaussian(2, MEANS, 0.0)  # no fading variance: the exact optimal KF
     T = 40
     d = tk.simulate(sys, T, 3, measurement=fad, seed=5)
     cens = None if lower is None else tk.Censoring(lower=lower)
@@ -296,13 +319,15 @@ def test_joseph_equals_standard_update():
 
 # --- formulas (items 6-7) ------------------------------------------------------------------------------------
 
+
 def _one_step(chi, sigma=1.3, lower=0.2, P0=0.5, **options):
     """Run one step of a scalar L=0 model whose predicted channel output is ``chi`` (one run per value)."""
     chi = np.atleast_1d(np.asarray(chi, dtype=float))
     sys = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[sigma**2]], x0=[0.0], P0=[[P0]])
     y = np.full((chi.size, 1, 1), lower + 1.0)
-    out = fading_tobit_kalman_filter(sys, RiceFading(0, [1.0]), tk.Censoring(lower=lower), y,
-                                     x0=chi[:, None], keep_augmented=True, **options)
+    out = fading_tobit_kalman_filter(
+        sys, RiceFading(0, [1.0]), tk.Censoring(lower=lower), y, x0=chi[:, None], keep_augmented=True, **options
+    )
     gam = out.extras["p_uncensored"][:, 0, 0]
     noise = out.extras["innovation_cov"][:, 0, 0, 0] - gam**2 * P0
     return out, gam, noise
@@ -315,11 +340,12 @@ def test_lemma1_against_truncnorm():
     a = (lower - chi) / sigma
     tn = stats.truncnorm(a, np.inf, loc=chi, scale=sigma)
     lam = out.extras["inverse_mills"][:, 0, 0]
-    np.testing.assert_allclose(chi + sigma * lam, tn.mean(), rtol=1e-10)            # (34)
-    np.testing.assert_allclose(noise, tn.var(), rtol=1e-9)                          # (12): R(1-psi)
-    np.testing.assert_allclose(gam, stats.norm.sf(a), rtol=1e-12)                   # (33), (6)
-    np.testing.assert_allclose(out.extras["expected_y"][:, 0, 0],
-                               gam * tn.mean() + (1 - gam) * lower, rtol=1e-10)     # (11), (37)
+    np.testing.assert_allclose(chi + sigma * lam, tn.mean(), rtol=1e-10)  # (34)
+    np.testing.assert_allclose(noise, tn.var(), rtol=1e-9)  # (12): R(1-psi)
+    np.testing.assert_allclose(gam, stats.norm.sf(a), rtol=1e-12)  # (33), (6)
+    np.testing.assert_allclose(
+        out.extras["expected_y"][:, 0, 0], gam * tn.mean() + (1 - gam) * lower, rtol=1e-10
+    )  # (11), (37)
 
 
 def test_tobit_mean_eq11_against_monte_carlo():
@@ -345,7 +371,7 @@ def test_inverse_mills_stable_far_in_the_tail(z):
     sigma, lower = 1.0, 0.0
     out, gam, noise = _one_step(lower - z * sigma, sigma, lower)
     lam = out.extras["inverse_mills"][0, 0, 0]
-    expected = np.sqrt(2 / np.pi) / special.erfcx(z / np.sqrt(2))                  # independent form
+    expected = np.sqrt(2 / np.pi) / special.erfcx(z / np.sqrt(2))  # independent form
     np.testing.assert_allclose(lam, expected, rtol=1e-12)
     assert abs(lam - (z + 1 / z)) < 2 / z**3 + 1e-12
     # 1 - psi = Var of the standardized truncated normal: scipy's truncnorm where it is accurate (z <= 10),
@@ -378,7 +404,7 @@ def test_yhat_above_limit_and_probabilities_in_range():
 def test_property_yhat_above_limit_gamma_and_psi_in_range(chi, sigma, lower):
     out, gam, noise = _one_step(chi, sigma, lower)
     yhat = out.extras["expected_y"][0, 0, 0]
-    assert yhat >= lower - 1e-12 * max(1.0, abs(lower))                  # §4.4: ŷ >= I
+    assert yhat >= lower - 1e-12 * max(1.0, abs(lower))  # §4.4: ŷ >= I
     assert 0.0 <= gam[0] <= 1.0
     # 0 <= psi < 1  <=>  0 < R(1 - psi) <= R
     assert 0.0 < noise[0] <= sigma**2 * (1 + 1e-12)
@@ -386,6 +412,7 @@ def test_property_yhat_above_limit_gamma_and_psi_in_range(chi, sigma, lower):
 
 
 # --- invariants (items 8-9) ----------------------------------------------------------------------------------
+
 
 def test_covariance_invariants_every_step():
     sys = oscillator()
@@ -402,11 +429,16 @@ def test_covariance_invariants_every_step():
     np.testing.assert_array_equal(Pf[..., :2, :2], out.cov)
     # shift structure: block (i, i) of P_{k|k-1} = block (i-1, i-1) of P_{k-1|k-1}
     for i in (1, 2):
-        np.testing.assert_allclose(Pp[:, 1:, 2 * i:2 * i + 2, 2 * i:2 * i + 2],
-                                   Pf[:, :-1, 2 * i - 2:2 * i, 2 * i - 2:2 * i], rtol=0, atol=1e-14)
+        np.testing.assert_allclose(
+            Pp[:, 1:, 2 * i : 2 * i + 2, 2 * i : 2 * i + 2],
+            Pf[:, :-1, 2 * i - 2 : 2 * i, 2 * i - 2 : 2 * i],
+            rtol=0,
+            atol=1e-14,
+        )
 
 
 # --- options: what each one changes --------------------------------------------------------------------------
+
 
 def test_eq6_stale_equal_at_k1_then_differs_slightly():
     sys = oscillator()
@@ -418,7 +450,7 @@ def test_eq6_stale_equal_at_k1_then_differs_slightly():
     np.testing.assert_allclose(a.mean[:, 0], b.mean[:, 0], rtol=0, atol=1e-12)
     assert np.abs(a.extras["p_uncensored"] - b.extras["p_uncensored"]).max() > 1e-4
     ra, rb = tk.metrics.rmse(d.x, a.mean).mean(0), tk.metrics.rmse(d.x, b.mean).mean(0)
-    np.testing.assert_allclose(ra, rb, rtol=0.01)     # spec §6: under 0.1 % at M = 1000
+    np.testing.assert_allclose(ra, rb, rtol=0.01)  # spec §6: under 0.1 % at M = 1000
 
 
 def test_fading_variance_term_adds_gamma2_D():
@@ -433,8 +465,9 @@ def test_fading_variance_term_adds_gamma2_D():
     X1 = A @ X0 @ A.T + sys.process_cov(0)
     D = VARS[0] * X1[0, 0] + VARS[1] * X0[0, 0]
     gam = base.extras["p_uncensored"][:, 0, 0]
-    np.testing.assert_allclose(var.extras["innovation_cov"][:, 0, 0, 0] - base.extras["innovation_cov"][:, 0, 0, 0],
-                               gam**2 * D, rtol=1e-12)
+    np.testing.assert_allclose(
+        var.extras["innovation_cov"][:, 0, 0, 0] - base.extras["innovation_cov"][:, 0, 0, 0], gam**2 * D, rtol=1e-12
+    )
     # with zero fading variance the option changes nothing
     fad0 = RiceFading.gaussian(2, MEANS, 0.0)
     a = FadingTobitKalmanFilter(sys, fad0, cens).filter(d.y)
@@ -480,6 +513,7 @@ def test_estimator_set_keys():
 
 # --- bad input ------------------------------------------------------------------------------------------------
 
+
 def test_bad_input_names_the_argument():
     sys = oscillator()
     fad = RiceFading.gaussian(2, MEANS, VARS)
@@ -501,7 +535,9 @@ def test_bad_input_names_the_argument():
     with pytest.raises(tk.ShapeError, match="coefficients"):
         FadingTobitKalmanFilter(sys, RiceFading(0, tk.channels.laws.Gaussian([[1.0, 1.0]], 0.0)), cens)
     with pytest.raises(ValidationError, match="R"):
-        sys2 = tk.LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=[[1.0, 0.5], [0.5, 1.0]], x0=[0, 0], P0=np.eye(2))
+        sys2 = tk.LinearSystem(
+            A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=[[1.0, 0.5], [0.5, 1.0]], x0=[0, 0], P0=np.eye(2)
+        )
         FadingTobitKalmanFilter(sys2, RiceFading(0, [1.0]), None)
     with pytest.raises(ValidationError, match="y"):
         FadingTobitKalmanFilter(sys, fad, cens).filter(-np.ones((5, 1)))

@@ -51,15 +51,17 @@ def test_item11_plain_tkf_ratio_band():
     assert np.all((ratio > 0.98) & (ratio < 1.10)), ratio
 
 
-@pytest.mark.parametrize("lower, variance_term, expected", [
-    (0.0, False, (1.14, 1.11)),      # full paper model: over-confident (spec A4)
-    (0.0, True, (1.02, 1.01)),       # with the fading-variance option
-    (-np.inf, False, (1.15, 1.11)),  # no censoring, fading variance > 0, paper filter
-    (-np.inf, True, (1.005, 1.008)),  # the same with the option (the LMMSE fading filter)
-])
+@pytest.mark.parametrize(
+    "lower, variance_term, expected",
+    [
+        (0.0, False, (1.14, 1.11)),  # full paper model: over-confident (spec A4)
+        (0.0, True, (1.02, 1.01)),  # with the fading-variance option
+        (-np.inf, False, (1.15, 1.11)),  # no censoring, fading variance > 0, paper filter
+        (-np.inf, True, (1.005, 1.008)),  # the same with the option (the LMMSE fading filter)
+    ],
+)
 def test_item12_fading_model_ratio_bands(lower, variance_term, expected):
-    ratio, _, _ = _ratio(RiceFading.gaussian(2, MEANS, VARS), lower, seed=103,
-                         fading_variance_term=variance_term)
+    ratio, _, _ = _ratio(RiceFading.gaussian(2, MEANS, VARS), lower, seed=103, fading_variance_term=variance_term)
     np.testing.assert_allclose(ratio, expected, atol=0.05)
 
 

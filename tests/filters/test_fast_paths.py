@@ -14,8 +14,9 @@ from tobitkf.filters.fading import FadingTobitKalmanFilter, augmented_measuremen
 def _oscillator(P0=None):
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
-    return tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0],
-                           P0=np.eye(2) if P0 is None else P0)
+    return tk.LinearSystem(
+        A=A, C=[[1.0, 0.0]], Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2) if P0 is None else P0
+    )
 
 
 def test_fading_prediction_equals_dense_augmented_recursion():
@@ -29,7 +30,7 @@ def test_fading_prediction_equals_dense_augmented_recursion():
     n, nxi = 2, 6
     Aa = np.zeros((nxi, nxi))
     Aa[:n, :n] = sys_.transition(0)
-    Aa[n:, :nxi - n] = np.eye(nxi - n)
+    Aa[n:, : nxi - n] = np.eye(nxi - n)
     Qa = np.zeros((nxi, nxi))
     Qa[:n, :n] = sys_.process_cov(0)
     P = np.zeros((40, nxi, nxi))
@@ -43,13 +44,14 @@ def test_fading_prediction_equals_dense_augmented_recursion():
         H = augmented_measurement_matrix(sys_, fad, k + 1)
         G = ex["p_uncensored"][:, k, :, None] * H
         K = ex["gain"][:, k]
-        Rxe = ex["aug_pred_cov"][:, k] @ np.swapaxes(G, -1, -2)                     # (24), dense
+        Rxe = ex["aug_pred_cov"][:, k] @ np.swapaxes(G, -1, -2)  # (24), dense
         np.testing.assert_allclose(K, Rxe / ex["innovation_cov"][:, k], rtol=1e-12, atol=1e-15)
         noise = ex["innovation_cov"][:, k] - G @ ex["aug_pred_cov"][:, k] @ np.swapaxes(G, -1, -2)
         IKG = np.eye(nxi) - K @ G
         joseph = IKG @ ex["aug_pred_cov"][:, k] @ np.swapaxes(IKG, -1, -2) + K @ noise @ np.swapaxes(K, -1, -2)
-        np.testing.assert_allclose(ex["aug_cov"][:, k], 0.5 * (joseph + np.swapaxes(joseph, -1, -2)),
-                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            ex["aug_cov"][:, k], 0.5 * (joseph + np.swapaxes(joseph, -1, -2)), rtol=0, atol=1e-12
+        )
         P = ex["aug_cov"][:, k]
 
 
@@ -61,8 +63,8 @@ def test_fading_smoothed_blocks_are_the_diagonal_blocks():
     res = FadingTobitKalmanFilter(sys_, fad, cens).filter(y, keep_augmented=True)
     ac, sc = res.extras["aug_cov"], res.extras["smoothed_cov"]
     for s in range(3):
-        blk = ac[:, :, 2 * s:2 * s + 2, 2 * s:2 * s + 2]
-        defined = np.arange(12) + 1 >= s          # block s at step k is x_{k-s}: defined for k >= s
+        blk = ac[:, :, 2 * s : 2 * s + 2, 2 * s : 2 * s + 2]
+        defined = np.arange(12) + 1 >= s  # block s at step k is x_{k-s}: defined for k >= s
         assert np.array_equal(sc[:, defined, s], blk[:, defined])
         assert np.isnan(sc[:, ~defined, s]).all()
     assert np.array_equal(res.cov, ac[:, :, :2, :2])
@@ -111,8 +113,9 @@ def test_protocol_prediction_equals_dense_augmented_recursion():
         ex = res.extras
         for k in range(1, 25):
             dense = Aa @ ex["aug_cov"][:, k - 1] @ Aa.T + Qa
-            np.testing.assert_allclose(ex["aug_pred_cov"][:, k], 0.5 * (dense + np.swapaxes(dense, -1, -2)),
-                                       rtol=0, atol=1e-12)
+            np.testing.assert_allclose(
+                ex["aug_pred_cov"][:, k], 0.5 * (dense + np.swapaxes(dense, -1, -2)), rtol=0, atol=1e-12
+            )
             np.testing.assert_allclose(ex["aug_pred_mean"][:, k], ex["aug_mean"][:, k - 1] @ Aa.T, rtol=0, atol=1e-12)
 
 
@@ -135,11 +138,12 @@ def test_protocol_joseph_rank_one_equals_dense_joseph():
         PH = P @ H
         S = info["innovation_var"]
         K = PH / S[:, None]
-        extra = S - PH @ H                   # F + noise of (24)
+        extra = S - PH @ H  # F + noise of (24)
         IKH = np.eye(nxi) - K[:, :, None] * H
         dense = IKH @ P @ np.swapaxes(IKH, -1, -2) + extra[:, None, None] * (K[:, :, None] * K[:, None, :])
-        np.testing.assert_allclose(P_new, 0.5 * (dense + np.swapaxes(dense, -1, -2)), rtol=0,
-                                   atol=1e-12 * np.abs(dense).max())
+        np.testing.assert_allclose(
+            P_new, 0.5 * (dense + np.swapaxes(dense, -1, -2)), rtol=0, atol=1e-12 * np.abs(dense).max()
+        )
         assert np.array_equal(P_new, np.swapaxes(P_new, -1, -2))
 
 
@@ -158,10 +162,10 @@ def test_shared_joseph_update_equals_dense_gain_update(m):
     x = rng.standard_normal((N, nxi))
     H0 = rng.standard_normal((m, nxi))
     gam = rng.uniform(0.0, 1.0, (N, m))
-    gam[:3] = 0.0                                   # G = 0: R_ee = noise
+    gam[:3] = 0.0  # G = 0: R_ee = noise
     noise = rng.uniform(0.1, 1.0, (N, m))
-    noise[:2] = 0.0                                 # R_ee = 0: degenerate, channel dropped
-    noise[2] = 1e-310                               # subnormal R_ee: dropped as in gain_update
+    noise[:2] = 0.0  # R_ee = 0: degenerate, channel dropped
+    noise[2] = 1e-310  # subnormal R_ee: dropped as in gain_update
     G = gam[:, :, None] * H0
     Rxe = P @ np.swapaxes(G, -1, -2)
     Ree = G @ Rxe + noise[:, :, None] * np.eye(m)

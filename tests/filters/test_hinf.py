@@ -24,8 +24,11 @@ from tobitkf.simulate import ross as S
 def trajectory(Af, Bf, M, y, x0=None):
     """x̂_0..x̂_T of the filter (5) through its estimator API (rows x̂_1..x̂_T) plus the prior x̂_0."""
     out = F.RegionalHinfFilter(Af, Bf, M).filter(y, x0=x0)
-    first = np.broadcast_to(np.zeros(np.shape(Af)[0]) if x0 is None else x0, out.mean.shape[:-2] + (1, out.mean.shape[-1]))
+    first = np.broadcast_to(
+        np.zeros(np.shape(Af)[0]) if x0 is None else x0, out.mean.shape[:-2] + (1, out.mean.shape[-1])
+    )
     return np.concatenate([first, out.mean], axis=-2)
+
 
 PAPER = H.WANG2010_PAPER
 
@@ -37,7 +40,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def th3_feasible(model):
-    return H.design(model)                                   # paper: γ = 1.5, feasibility
+    return H.design(model)  # paper: γ = 1.5, feasibility
 
 
 @pytest.fixture(scope="module")
@@ -80,12 +83,13 @@ def test_example_sector_condition_4(model):
     e3 = np.eye(3)[2]
     # |x3 sin x1 / sqrt(x1^2+x2^2+20)| <= |x3|/sqrt(20) and (U1+U2)/2 is the linear part of f
     assert np.linalg.eigvalsh(U @ U / 4 - 0.05 * np.outer(e3, e3)).min() > 3e-4
-    np.testing.assert_allclose((model.U1 + model.U2) / 2,
-                               [[-0.7, 0.05, 0.05], [-0.05, 0.85, 0], [-0.05, 0, -0.475]], atol=1e-15)
+    np.testing.assert_allclose(
+        (model.U1 + model.U2) / 2, [[-0.7, 0.05, 0.05], [-0.05, 0.85, 0], [-0.05, 0, -0.475]], atol=1e-15
+    )
     rng = np.random.default_rng(1)
     for scale in (0.1, 1.0, 10.0, 100.0):
         x = rng.normal(scale=scale, size=(20000, 3))
-        ratio = model.sector_value(x) / (x ** 2).sum(-1)
+        ratio = model.sector_value(x) / (x**2).sum(-1)
         assert ratio.max() < 0
 
 
@@ -106,8 +110,8 @@ def _enumerate_expectation(model, Af, Bf, P, eta, w, v):
     ch = model.channel
     total = 0.0
     for bits in itertools.product([0, 1], repeat=2 * model.m):
-        a = np.array(bits[:model.m], float)
-        b = np.array(bits[model.m:], float)
+        a = np.array(bits[: model.m], float)
+        b = np.array(bits[model.m :], float)
         prob = np.prod(np.where(a == 1, ch.mu, 1 - ch.mu)) * np.prod(np.where(b == 1, ch.nu, 1 - ch.nu))
         nxt = H.augmented_step(model, Af, Bf, eta, w, v, a, b)
         total += prob * nxt @ P @ nxt
@@ -119,13 +123,13 @@ def test_expected_lyapunov_increment_matches_enumeration(model, seed):
     rng = np.random.default_rng(seed)
     Af, Bf = rng.normal(size=(3, 3)), rng.normal(size=(3, 2))
     L = rng.normal(size=(6, 6))
-    P = L @ L.T + np.eye(6)                            # full P: the formula holds for any P
+    P = L @ L.T + np.eye(6)  # full P: the formula holds for any P
     eta, w, v = _random_eta(rng, 3, 2.0), rng.normal(size=1), rng.normal(size=2)
     ref = _enumerate_expectation(model, Af, Bf, P, eta, w, v)
     exact = H.expected_lyapunov_next(model, Af, Bf, P, eta, w, v, covariance="exact")
     assert abs(exact - ref) <= 1e-10 * max(1.0, abs(ref))
     bound = H.expected_lyapunov_next(model, Af, Bf, P, eta, w, v, covariance="paper")
-    assert bound >= exact - 1e-12                      # (14) is an upper bound
+    assert bound >= exact - 1e-12  # (14) is an upper bound
 
 
 def test_psi_is_the_dissipation_quadratic_form(model):
@@ -142,9 +146,14 @@ def test_psi_is_the_dissipation_quadratic_form(model):
         c = model.C @ x
         s = saturate(c)
         xi = np.concatenate([eta, model.f(x), s, w, v])
-        rhs = (_enumerate_expectation(model, Af, Bf, P, eta, w, v) - eta @ P @ eta
-               + np.sum((model.M @ (x - xh)) ** 2) - g ** 2 * (w @ w + v @ v)
-               - e1 * model.sector_value(x) - e2 * (s - Lam * c) @ (s - c))
+        rhs = (
+            _enumerate_expectation(model, Af, Bf, P, eta, w, v)
+            - eta @ P @ eta
+            + np.sum((model.M @ (x - xh)) ** 2)
+            - g**2 * (w @ w + v @ v)
+            - e1 * model.sector_value(x)
+            - e2 * (s - Lam * c) @ (s - c)
+        )
         assert abs(xi @ psi @ xi - rhs) <= 1e-10 * max(1.0, abs(rhs))
 
 
@@ -169,18 +178,27 @@ def test_block_diagonal_psi_equals_paper_layout_17(model):
     U2t = -Hm.T @ (model.U1.T + model.U2.T) / 2
     V1 = Hm.T @ C.T @ np.diag(Lam) @ C @ Hm
     V2 = -Hm.T @ C.T @ (np.diag(Lam) + np.eye(m)) / 2
-    Y11 = (F.T @ Q2 @ F + sum(dv[i] * BQB[i, i] * Hm.T @ np.outer(C[i], C[i]) @ Hm for i in range(m))
-           - P + Mb.T @ Mb - e1 * U1t - e2 * V1)
+    Y11 = (
+        F.T @ Q2 @ F
+        + sum(dv[i] * BQB[i, i] * Hm.T @ np.outer(C[i], C[i]) @ Hm for i in range(m))
+        - P
+        + Mb.T @ Mb
+        - e1 * U1t
+        - e2 * V1
+    )
     Y33 = La @ BQB @ La - e2 * np.eye(m) + np.diag(ra * np.diag(BQB))
     B1 = np.hstack([B, np.zeros((n, m))])
     B2 = np.hstack([np.zeros((n, p)), Bf @ D])
     Daug = np.block([[B, np.zeros((n, m))], [np.zeros((n, p)), Bf @ D]])
-    Y44 = -g ** 2 * np.eye(p + m) + Daug.T @ P @ Daug
-    ref = np.block([
-        [Y11, -e1 * U2t, F.T @ Q2 @ Bf @ La - e2 * V2, F.T @ Q2 @ B2],
-        [(-e1 * U2t).T, Q1 - e1 * np.eye(n), np.zeros((n, m)), Q1 @ B1],
-        [(F.T @ Q2 @ Bf @ La - e2 * V2).T, np.zeros((m, n)), Y33, La @ Bf.T @ Q2 @ B2],
-        [(F.T @ Q2 @ B2).T, (Q1 @ B1).T, (La @ Bf.T @ Q2 @ B2).T, Y44]])
+    Y44 = -(g**2) * np.eye(p + m) + Daug.T @ P @ Daug
+    ref = np.block(
+        [
+            [Y11, -e1 * U2t, F.T @ Q2 @ Bf @ La - e2 * V2, F.T @ Q2 @ B2],
+            [(-e1 * U2t).T, Q1 - e1 * np.eye(n), np.zeros((n, m)), Q1 @ B1],
+            [(F.T @ Q2 @ Bf @ La - e2 * V2).T, np.zeros((m, n)), Y33, La @ Bf.T @ Q2 @ B2],
+            [(F.T @ Q2 @ B2).T, (Q1 @ B1).T, (La @ Bf.T @ Q2 @ B2).T, Y44],
+        ]
+    )
     ours = H.psi_matrix(model, Af, Bf, P, Lam, e1, e2, g)
     np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-12)
 
@@ -190,22 +208,24 @@ def test_bernoulli_mode_frequencies(model):
     a, b = ch.draw_modes(np.random.default_rng(7), (200000,))
     n = a.shape[0]
     probs = ch.mode_probabilities()
-    for mode, freq in (("saturated", a.mean(0)), ("normal", ((1 - a) * b).mean(0)),
-                       ("missing", ((1 - a) * (1 - b)).mean(0))):
+    for mode, freq in (
+        ("saturated", a.mean(0)),
+        ("normal", ((1 - a) * b).mean(0)),
+        ("missing", ((1 - a) * (1 - b)).mean(0)),
+    ):
         se = np.sqrt(probs[mode] * (1 - probs[mode]) / n)
         assert (np.abs(freq - probs[mode]) <= 6 * se).all(), mode
     # moments of §1.6
     am, bm = a - ch.mu, (1 - a) * b - (1 - ch.mu) * ch.nu
-    np.testing.assert_allclose((am ** 2).mean(0), ch.var_alpha, atol=6e-3)
-    np.testing.assert_allclose((bm ** 2).mean(0), ch.var_beta, atol=6e-3)
+    np.testing.assert_allclose((am**2).mean(0), ch.var_alpha, atol=6e-3)
+    np.testing.assert_allclose((bm**2).mean(0), ch.var_beta, atol=6e-3)
     np.testing.assert_allclose((am * bm).mean(0), -ch.varsigma, atol=6e-3)
     np.testing.assert_allclose(ch.var_alpha, [0.21, 0.24])
     np.testing.assert_allclose(ch.var_beta, [0.1659, 0.21])
     np.testing.assert_allclose(ch.varsigma, [0.147, 0.18])
 
 
-@pytest.mark.parametrize("mu,nu,expect", [
-    (0.0, 1.0, "linear"), (1.0, 0.3, "saturated"), (0.0, 0.0, "missing")])
+@pytest.mark.parametrize("mu,nu,expect", [(0.0, 1.0, "linear"), (1.0, 0.3, "saturated"), (0.0, 0.0, "missing")])
 def test_channel_special_cases(model, mu, nu, expect):
     m2 = model.with_channel(mu=[mu, mu], nu=[nu, nu])
     rng = np.random.default_rng(8)
@@ -284,7 +304,7 @@ def test_bad_inputs(model):
 
 
 def test_infeasible_problem_returns_no_gains(model):
-    cert = H.design(model, gamma=0.2)                  # below the zero-filter bound: infeasible
+    cert = H.design(model, gamma=0.2)  # below the zero-filter bound: infeasible
     assert cert.status == "infeasible" and not cert.ok
     assert cert.Af is None and cert.Bf is None and cert.P is None
     with pytest.raises(ValidationError, match="expected a solved and verified design"):
@@ -296,8 +316,14 @@ def test_rejected_when_recheck_fails(model, monkeypatch):
 
     def failing(*args, **kwargs):
         v = real(*args, **kwargs)
-        return H.Verification(ok=False, reasons=["forced failure"], max_eig=v.max_eig,
-                              max_eig_region=v.max_eig_region, min_eig_P=v.min_eig_P, gamma_min=None)
+        return H.Verification(
+            ok=False,
+            reasons=["forced failure"],
+            max_eig=v.max_eig,
+            max_eig_region=v.max_eig_region,
+            min_eig_P=v.min_eig_P,
+            gamma_min=None,
+        )
 
     monkeypatch.setattr(H, "verify", failing)
     cert = H.design(model)
@@ -324,12 +350,12 @@ def test_theorem3_feasible_at_paper_gamma_and_rechecked(th3_feasible, model):
     c = th3_feasible
     assert c.status == "optimal" and c.ok and c.gamma == 1.5
     assert c.verification.ok and c.verification.max_eig < 0
-    assert np.abs(c.P[:3, 3:]).max() == 0                         # P = diag{Q1, Q2}
+    assert np.abs(c.P[:3, 3:]).max() == 0  # P = diag{Q1, Q2}
     # Ω(P,ρ) ⊂ ℒ by the closed form ρ a_i² C_i Q1^{-1} C_i^T <= 1, and ρ* >= ρ
     g = np.einsum("ij,jk,ik->i", model.C, np.linalg.inv(c.Q1), model.C)
-    assert (c.rho * c.Lambda ** 2 * g <= 1 + 1e-7).all()
+    assert (c.rho * c.Lambda**2 * g <= 1 + 1e-7).all()
     assert c.rho_star >= c.rho * (1 - 1e-9)
-    np.testing.assert_allclose(c.rho_star, 1 / np.max(c.Lambda ** 2 * g), rtol=1e-12)
+    np.testing.assert_allclose(c.rho_star, 1 / np.max(c.Lambda**2 * g), rtol=1e-12)
 
 
 def test_theorem3_feasible_with_scs(model):
@@ -339,7 +365,7 @@ def test_theorem3_feasible_with_scs(model):
 
 def test_theorem3_min_gamma_is_the_zero_filter(th3_min, zero_gamma):
     c = th3_min
-    assert c.ok and abs(c.gamma - 1.05189) < 5e-3                 # spec F2 / verifier 1.0518935
+    assert c.ok and abs(c.gamma - 1.05189) < 5e-3  # spec F2 / verifier 1.0518935
     assert np.abs(c.Af).max() < 1e-6 and np.abs(c.Bf).max() < 1e-6
     # spec F3: structural fact about this theorem, asserted
     assert zero_gamma.ok and abs(c.gamma - zero_gamma.gamma) < 1e-3
@@ -352,21 +378,32 @@ def test_zero_filter_dominance_certificate_transfer(model):
     assert cert.ok
     Q2 = 1e4 * np.eye(3)
     P0 = np.block([[cert.Q1, np.zeros((3, 3))], [np.zeros((3, 3)), Q2]])
-    zero = H.verify(model, np.zeros((3, 3)), np.zeros((3, 2)), P0, cert.Lambda, cert.eps1, cert.eps2, 1.5,
-                    pi=cert.pi, rho=cert.rho, block_diagonal=True)
+    zero = H.verify(
+        model,
+        np.zeros((3, 3)),
+        np.zeros((3, 2)),
+        P0,
+        cert.Lambda,
+        cert.eps1,
+        cert.eps2,
+        1.5,
+        pi=cert.pi,
+        rho=cert.rho,
+        block_diagonal=True,
+    )
     assert zero.ok
 
 
 def test_printed_gains_theorem2(model):
-    c = H.analyze(model, PAPER["Af"], PAPER["Bf"])                 # P free, block-diagonal
-    assert c.ok and abs(c.gamma - 1.1607) < 5e-3                   # spec F4 / verifier 1.160728
-    assert c.gamma > 1.0519                                        # F3: worse than the zero filter
+    c = H.analyze(model, PAPER["Af"], PAPER["Bf"])  # P free, block-diagonal
+    assert c.ok and abs(c.gamma - 1.1607) < 5e-3  # spec F4 / verifier 1.160728
+    assert c.gamma > 1.0519  # F3: worse than the zero filter
 
 
 def test_printed_P_theorem3(model):
     P = PAPER["P"]
     c = H.design(model, objective="min_gamma", fixed_Q=(P[:3, :3], P[3:, 3:]))
-    assert c.ok and abs(c.gamma - 1.2988) < 5e-3                   # spec F5
+    assert c.ok and abs(c.gamma - 1.2988) < 5e-3  # spec F5
 
 
 def test_printed_triple_theorem1_holds_theorem2_fails(model):
@@ -385,12 +422,13 @@ def test_narrower_sector_does_not_increase_gamma(model, th3_min):
     assert c.ok and c.gamma <= th3_min.gamma + 1e-4
 
 
-@pytest.mark.parametrize("mu,nu,D", [(0.0, 1.0, 1.0), (1.0, 0.5, 1.0), (0.0, 0.6, 1.0), (0.0, 0.0, 1.0),
-                                     (0.7, 0.7, 0.1)])
+@pytest.mark.parametrize(
+    "mu,nu,D", [(0.0, 1.0, 1.0), (1.0, 0.5, 1.0), (0.0, 0.6, 1.0), (0.0, 0.0, 1.0), (0.7, 0.7, 0.1)]
+)
 def test_theorem3_special_cases_all_give_the_zero_filter_gamma(mu, nu, D, zero_gamma):
     m2 = M.wang2010_model(mu=[mu, mu], nu=[nu, nu], D=[D, D])
     c = H.design(m2, objective="min_gamma")
-    assert c.ok and abs(c.gamma - zero_gamma.gamma) < 2e-3        # F3: independent of the sensors
+    assert c.ok and abs(c.gamma - zero_gamma.gamma) < 2e-3  # F3: independent of the sensors
 
 
 # --------------------------------------------------------------------------------------------
@@ -399,8 +437,8 @@ def test_theorem3_special_cases_all_give_the_zero_filter_gamma(mu, nu, D, zero_g
 def test_improved_design_beats_the_zero_filter(improved, zero_gamma, model):
     c = improved
     assert c.ok and c.verification.ok
-    assert c.gamma < zero_gamma.gamma - 0.5                       # 0.444 vs 1.052
-    assert np.abs(c.P[:3, 3:]).max() > 1e-3                       # the coupling is what helps
+    assert c.gamma < zero_gamma.gamma - 0.5  # 0.444 vs 1.052
+    assert np.abs(c.P[:3, 3:]).max() > 1e-3  # the coupling is what helps
     # independent numpy re-check from scratch, at the certified γ
     v = H.verify(model, c.Af, c.Bf, c.P, c.Lambda, c.eps1, c.eps2, c.gamma, pi=c.pi, rho=c.rho)
     assert v.ok and v.gamma_min <= c.gamma
@@ -414,13 +452,15 @@ def test_improved_design_beats_the_zero_filter(improved, zero_gamma, model):
 
 def test_exact_covariance_option_changes_gamma(model, improved):
     ex = H.design(model, method="coupled", objective="min_gamma", covariance="exact")
-    assert ex.ok and ex.gamma < improved.gamma - 0.05              # bound (14) costs γ
-    v = H.verify(model, ex.Af, ex.Bf, ex.P, ex.Lambda, ex.eps1, ex.eps2, ex.gamma, pi=ex.pi, rho=ex.rho,
-                 covariance="exact")
+    assert ex.ok and ex.gamma < improved.gamma - 0.05  # bound (14) costs γ
+    v = H.verify(
+        model, ex.Af, ex.Bf, ex.P, ex.Lambda, ex.eps1, ex.eps2, ex.gamma, pi=ex.pi, rho=ex.rho, covariance="exact"
+    )
     assert v.ok
-    vp = H.verify(model, ex.Af, ex.Bf, ex.P, ex.Lambda, ex.eps1, ex.eps2, ex.gamma, pi=ex.pi, rho=ex.rho,
-                  covariance="paper")
-    assert not vp.ok                                              # not a paper (14) certificate
+    vp = H.verify(
+        model, ex.Af, ex.Bf, ex.P, ex.Lambda, ex.eps1, ex.eps2, ex.gamma, pi=ex.pi, rho=ex.rho, covariance="paper"
+    )
+    assert not vp.ok  # not a paper (14) certificate
 
 
 def _inside_scale(model, cert, w, v, runs, seed):
@@ -441,9 +481,11 @@ def test_empirical_l2_gain_below_certified_gamma(model, improved, th3_feasible, 
     cert = improved if which == "improved" else th3_feasible
     T, runs = 60, 400
     k = np.arange(T)
-    cases = [S.wang2010_disturbances(T),
-             (np.cos(np.pi * k)[:, None] * np.exp(-0.05 * k)[:, None], np.zeros((T, 2))),   # ω = π
-             (np.zeros((T, 1)), np.stack([np.cos(np.pi * k), np.cos(2 * k)], -1) * np.exp(-0.05 * k)[:, None])]
+    cases = [
+        S.wang2010_disturbances(T),
+        (np.cos(np.pi * k)[:, None] * np.exp(-0.05 * k)[:, None], np.zeros((T, 2))),  # ω = π
+        (np.zeros((T, 1)), np.stack([np.cos(np.pi * k), np.cos(2 * k)], -1) * np.exp(-0.05 * k)[:, None]),
+    ]
     for w, v in cases:
         s = _inside_scale(model, cert, w, v, 50, 21)
         assert s > 0
@@ -465,7 +507,7 @@ def test_dissipation_with_nonzero_initial_state_A9(model, improved):
     eta = np.concatenate([sim.x, xh], axis=-1)
     assert np.einsum("...i,ij,...j->...", eta, c.P, eta).max() <= c.rho
     err = ((sim.z - xh @ model.M.T) ** 2).sum(-1).mean(0).sum()
-    assert err <= c.gamma ** 2 * sim.disturbance_energy[0] + eta[0, 0] @ c.P @ eta[0, 0]
+    assert err <= c.gamma**2 * sim.disturbance_energy[0] + eta[0, 0] @ c.P @ eta[0, 0]
 
 
 # --------------------------------------------------------------------------------------------
@@ -477,7 +519,7 @@ def test_mean_square_stability_inside_omega(model, th3_feasible):
     u = rng.normal(size=6)
     u /= np.linalg.norm(u)
     L = np.linalg.cholesky(c.P)
-    eta0 = np.sqrt(c.rho) * np.linalg.solve(L.T, u)                # η0^T P η0 = ρ
+    eta0 = np.sqrt(c.rho) * np.linalg.solve(L.T, u)  # η0^T P η0 = ρ
     runs, T = 1000, 25
     sim = S.simulate_ross(model, T, runs, x0=eta0[:3], seed=31)
     xh = trajectory(c.Af, c.Bf, model.M, sim.y, x0=eta0[3:])
@@ -533,15 +575,15 @@ def test_saturation_level_extension_A13(model):
     c = H.design(m2)
     assert c.ok
     g = np.einsum("ij,jk,ik->i", m2.C, np.linalg.inv(c.Q1), m2.C)
-    assert (c.rho * c.Lambda ** 2 * g <= np.array([4.0, 0.25]) * (1 + 1e-7)).all()
-    np.testing.assert_allclose(c.rho_star, np.min(np.array([4.0, 0.25]) / (c.Lambda ** 2 * g)), rtol=1e-12)
+    assert (c.rho * c.Lambda**2 * g <= np.array([4.0, 0.25]) * (1 + 1e-7)).all()
+    np.testing.assert_allclose(c.rho_star, np.min(np.array([4.0, 0.25]) / (c.Lambda**2 * g)), rtol=1e-12)
 
 
 _prob = st.sampled_from([0.0, 1.0]) | st.floats(0.0, 1.0)
 
 
 @settings(max_examples=30, deadline=None)
-@given(mu1=_prob, mu2=_prob, nu1=_prob, nu2=_prob, seed=st.integers(0, 2 ** 16))
+@given(mu1=_prob, mu2=_prob, nu1=_prob, nu2=_prob, seed=st.integers(0, 2**16))
 def test_expectation_identity_for_any_probabilities(mu1, mu2, nu1, nu2, seed):
     model = M.wang2010_model(mu=[mu1, mu2], nu=[nu1, nu2])
     rng = np.random.default_rng(seed)
@@ -565,7 +607,7 @@ def test_verify_refuses_a_slack_lost_in_rounding(improved, model):
     g_min = c.verification.gamma_min
     tight = np.sqrt(g_min**2 + 1e-10)
     v = H.verify(model, c.Af, c.Bf, c.P, c.Lambda, c.eps1, c.eps2, tight, pi=c.pi, rho=c.rho)
-    assert v.max_eig < 0                                      # the old test (λmax < 0) accepted it
+    assert v.max_eig < 0  # the old test (λmax < 0) accepted it
     assert -v.max_eig < v.rounding
     assert not v.ok and any("beyond rounding" in r for r in v.reasons)
     roomy = H.verify(model, c.Af, c.Bf, c.P, c.Lambda, c.eps1, c.eps2, np.sqrt(g_min**2 + 1e-6), pi=c.pi, rho=c.rho)
@@ -592,5 +634,5 @@ def test_iterate_does_not_retry_its_steps_with_a_second_solver(model, monkeypatc
     monkeypatch.setattr(H, "_solve", spy)
     it = H.design(model, method="iterate", objective="min_gamma", iterations=2)
     assert it.ok
-    assert calls[0] == "SCS"                                   # the initial coupled design keeps its fallback
+    assert calls[0] == "SCS"  # the initial coupled design keeps its fallback
     assert len(calls) > 1 and all(f is None for f in calls[1:])

@@ -10,8 +10,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tobitkf import (Censoring, DroppingKalmanFilter, KalmanFilter, LinearSystem, ShapeError, ValidationError,
-                     kalman_filter, simulate)
+from tobitkf import (
+    Censoring,
+    DroppingKalmanFilter,
+    KalmanFilter,
+    LinearSystem,
+    ShapeError,
+    ValidationError,
+    kalman_filter,
+    simulate,
+)
 
 ATOL = 1e-12
 
@@ -70,12 +78,15 @@ def test_scalar_closed_form():
     assert out.pred_mean[0, 0] == 0.0 and out.pred_cov[0, 0, 0] == 1.0
 
 
-@pytest.mark.parametrize("P0,update,tol", [
-    (1e4, "standard", 1e-9),
-    # with a nearly flat prior the standard form (I - KC)P cancels catastrophically
-    # (1e12 - 0.99999999999996e12); the Joseph form keeps the posterior accurate
-    (1e12, "joseph", 1e-9),
-])
+@pytest.mark.parametrize(
+    "P0,update,tol",
+    [
+        (1e4, "standard", 1e-9),
+        # with a nearly flat prior the standard form (I - KC)P cancels catastrophically
+        # (1e12 - 0.99999999999996e12); the Joseph form keeps the posterior accurate
+        (1e12, "joseph", 1e-9),
+    ],
+)
 def test_scalar_random_constant_is_running_average(P0, update, tol):
     """Random constant, Q = 0, flat prior: the KF estimate is the running average, variance R/k."""
     R = 0.04
@@ -127,8 +138,19 @@ def test_control_inputs_and_noise_input_matrix():
     data = simulate(sys, steps=T, runs=3, inputs=u, seed=2)
     out = KalmanFilter(sys).filter(data.y, u=u)
     for i in range(3):
-        ref = reference_kf(const(A), const([[1.0, 0.0]]), const([[0.02]]), const([[0.1]]), sys.x0, sys.P0,
-                           data.y[i], Bu=const(Bu), D=const(D), u=u, G=const(G))
+        ref = reference_kf(
+            const(A),
+            const([[1.0, 0.0]]),
+            const([[0.02]]),
+            const([[0.1]]),
+            sys.x0,
+            sys.P0,
+            data.y[i],
+            Bu=const(Bu),
+            D=const(D),
+            u=u,
+            G=const(G),
+        )
         _assert_close(out.mean[i], ref[0])
         _assert_close(out.cov[i], ref[1])
     # per-run inputs (N, T, p) equal the shared (T, p) input when they are the same
@@ -167,8 +189,8 @@ def test_nan_is_a_skipped_channel():
     sys, (A, C, Q, R) = _cv_system()
     data = simulate(sys, steps=30, runs=2, seed=4)
     y = data.y.copy()
-    y[0, 3, 0] = np.nan          # one channel missing
-    y[0, 7, :] = np.nan          # the whole step missing: pure prediction
+    y[0, 3, 0] = np.nan  # one channel missing
+    y[0, 7, :] = np.nan  # the whole step missing: pure prediction
     y[1, 12, 1] = np.nan
     out = KalmanFilter(sys).filter(y)
     for i in range(2):
@@ -271,7 +293,9 @@ def test_kf_input_validation():
         kf.filter(np.zeros(5))
     with pytest.raises(ValidationError, match="y: expected finite numbers, found inf"):
         kf.filter(np.full((5, 2), np.inf))
-    with pytest.raises(ValidationError, match="covariance_update: expected one of 'standard', 'joseph', 'square_root', got 'fast'"):
+    with pytest.raises(
+        ValidationError, match="covariance_update: expected one of 'standard', 'joseph', 'square_root', got 'fast'"
+    ):
         KalmanFilter(sys, covariance_update="fast")
     with pytest.raises(ValidationError, match="system: expected a LinearSystem, got dict"):
         KalmanFilter({})
@@ -282,8 +306,9 @@ def test_kf_input_validation():
     with pytest.raises(ShapeError, match="x0/P0"):
         kf.filter(np.zeros((5, 2)), x0=np.zeros(3))
     with pytest.raises(ShapeError, match="A: time-indexed array has 3 steps, 5 needed"):
-        KalmanFilter(LinearSystem(A=np.stack([np.eye(2)] * 3), C=np.eye(2), Q=np.eye(2), R=np.eye(2),
-                                  x0=[0, 0], P0=np.eye(2))).filter(np.zeros((5, 2)))
+        KalmanFilter(
+            LinearSystem(A=np.stack([np.eye(2)] * 3), C=np.eye(2), Q=np.eye(2), R=np.eye(2), x0=[0, 0], P0=np.eye(2))
+        ).filter(np.zeros((5, 2)))
 
 
 def test_dropping_kf_input_validation():
@@ -332,11 +357,18 @@ def test_prior_override_with_multi_axis_batch(which):
 
 def test_callable_matrices_are_validated_over_the_horizon():
     """A callable returning NaN or a non-PSD covariance at a later step is rejected, as in simulate."""
-    bad_r = LinearSystem(A=np.eye(1), C=np.eye(1), Q=np.eye(1), R=lambda k: np.array([[1.0 - 0.5 * k]]),
-                         x0=[0.0], P0=np.eye(1))
+    bad_r = LinearSystem(
+        A=np.eye(1), C=np.eye(1), Q=np.eye(1), R=lambda k: np.array([[1.0 - 0.5 * k]]), x0=[0.0], P0=np.eye(1)
+    )
     with pytest.raises(ValidationError, match=r"R\(3\): expected a positive semi-definite matrix"):
         KalmanFilter(bad_r).filter(np.zeros((4, 1)))
-    nan_a = LinearSystem(A=lambda k: np.array([[np.nan if k == 2 else 1.0]]), C=np.eye(1), Q=np.eye(1), R=np.eye(1),
-                         x0=[0.0], P0=np.eye(1))
+    nan_a = LinearSystem(
+        A=lambda k: np.array([[np.nan if k == 2 else 1.0]]),
+        C=np.eye(1),
+        Q=np.eye(1),
+        R=np.eye(1),
+        x0=[0.0],
+        P0=np.eye(1),
+    )
     with pytest.raises(ValidationError, match=r"A\(2\): expected finite numbers, found NaN"):
         KalmanFilter(nan_a).filter(np.zeros((4, 1)))

@@ -60,8 +60,9 @@ def oscillator(m=1, r=0.1):
 def three_state():
     A = [[0.9, 0.1, 0.0], [0.0, 0.95, 0.2], [0.05, 0.0, 0.8]]
     C = [[1.0, 0.0, 0.5], [0.0, 1.0, 0.0]]
-    return tk.LinearSystem(A=A, C=C, Q=0.02 * np.eye(3), R=np.diag([0.05, 0.2]), x0=[0.5, 0.0, -0.2],
-                           P0=0.1 * np.eye(3))
+    return tk.LinearSystem(
+        A=A, C=C, Q=0.02 * np.eye(3), R=np.diag([0.05, 0.2]), x0=[0.5, 0.0, -0.2], P0=0.1 * np.eye(3)
+    )
 
 
 def data(system, cens, runs=6, steps=150, seed=0):
@@ -69,6 +70,7 @@ def data(system, cens, runs=6, steps=150, seed=0):
 
 
 # --- censored-normal statistics -------------------------------------------------------------
+
 
 def test_stats_match_censored_moments_random():
     rng = np.random.default_rng(0)
@@ -84,8 +86,9 @@ def test_stats_match_censored_moments_random():
     # switch to quadrature (cancellation in 1 + (a phi(a) - b phi(b))/gamma - lambda^2)
     scale = np.maximum(np.maximum(np.abs(mu), sd), 1.0)
     for i, name in enumerate(ref._fields):
-        np.testing.assert_allclose(got[i], ref[i], rtol=1e-11, atol=1e-13 * scale.max() if i > 2 else 1e-300,
-                                   err_msg=name)
+        np.testing.assert_allclose(
+            got[i], ref[i], rtol=1e-11, atol=1e-13 * scale.max() if i > 2 else 1e-300, err_msg=name
+        )
 
 
 @pytest.mark.parametrize("dist", [4.5, 40.0, 1000.0])
@@ -95,13 +98,13 @@ def test_stats_match_in_the_tails(dist, kind):
     and the quadrature (two-sided, narrow)."""
     sd = np.array([0.05, 1.0, 3.0])
     mu = np.array([0.0, -2.0, 7.0])
-    if kind == "left":       # mean far below a lower limit: almost always censored
+    if kind == "left":  # mean far below a lower limit: almost always censored
         lo, hi = mu + dist * sd, np.full(3, np.inf)
     elif kind == "right":
         lo, hi = np.full(3, -np.inf), mu - dist * sd
     elif kind == "two_sided":
         lo, hi = mu - (dist + 2.0) * sd, mu - dist * sd
-    else:                    # narrow window straddling the mean, and far away
+    else:  # narrow window straddling the mean, and far away
         lo, hi = mu + (dist - 0.25) * sd * (dist > 5), mu + (dist + 0.25) * sd * (dist > 5) + 0.5 * sd
     ref = censored_moments(mu, sd, lo, hi)
     got = kernel_moments(mu, sd, lo, hi)
@@ -114,7 +117,7 @@ def test_stats_match_in_the_tails(dist, kind):
 def test_stats_quadrature_dense_grid():
     """The tail routes (the quadrature with the kernel's own vectorised exp for two-sided and narrow
     windows, the continued fraction for one-sided ones) over a dense grid of tail depths and widths."""
-    a = np.geomspace(4.01, 1e3, 150)       # beyond _TAIL = 4: the quadrature branch
+    a = np.geomspace(4.01, 1e3, 150)  # beyond _TAIL = 4: the quadrature branch
     w = np.geomspace(1e-3, 50.0, 150)
     A, W = (v.ravel() for v in np.meshgrid(a, w))
     mu, sd = np.zeros(A.size), np.ones(A.size)
@@ -152,8 +155,16 @@ def test_stats_against_60_digit_vectors():
     if not VECTORS.exists():
         pytest.skip("shared vectors not available")
     cases = json.loads(VECTORS.read_text())["cases"]
-    keys = ("p_lower", "p_upper", "p_uncensored", "inverse_mills", "truncated_mean", "truncated_variance",
-            "censored_mean", "censored_variance")
+    keys = (
+        "p_lower",
+        "p_upper",
+        "p_uncensored",
+        "inverse_mills",
+        "truncated_mean",
+        "truncated_variance",
+        "censored_mean",
+        "censored_variance",
+    )
     mu, sd, lo, hi = (np.array([float(c[k]) for c in cases]) for k in ("mu", "sigma", "lower", "upper"))
     exact = np.array([[float(c[k]) for c in cases] for k in keys])
     ref = np.array(censored_moments(mu, sd, lo, hi))
@@ -167,8 +178,13 @@ def test_stats_against_60_digit_vectors():
 
 
 @settings(max_examples=60, deadline=None)
-@given(mu=st.floats(-1e3, 1e3), sd=st.floats(1e-3, 1e2), lo=st.floats(-50, 50), width=st.floats(1e-3, 100),
-       sides=st.sampled_from(["left", "right", "both"]))
+@given(
+    mu=st.floats(-1e3, 1e3),
+    sd=st.floats(1e-3, 1e2),
+    lo=st.floats(-50, 50),
+    width=st.floats(1e-3, 100),
+    sides=st.sampled_from(["left", "right", "both"]),
+)
 def test_stats_property(mu, sd, lo, width, sides):
     lo_, hi_ = lo * sd + mu, (lo + width) * sd + mu
     if sides == "left":
@@ -180,7 +196,7 @@ def test_stats_property(mu, sd, lo, width, sides):
     ref = np.array(censored_moments(mu, sd, lo_, hi_)).ravel()
     got = kernel_moments(mu, sd, lo_, hi_).ravel()
     lim = max(abs(v) for v in (lo_, hi_) if np.isfinite(v))
-    loc = abs(mu) + sd + lim                   # scale of the means; its square of the variances
+    loc = abs(mu) + sd + lim  # scale of the means; its square of the variances
     scale = np.array([1.0, 1.0, 1.0, 1.0 + lim / sd, loc, loc * loc, loc, loc * loc])
     assert np.all(np.abs(got - ref) <= 1e-10 * np.abs(ref) + 1e-12 * scale), (got, ref)
 
@@ -225,8 +241,8 @@ def test_tkf_kernel_joseph_nan_batch_shape_and_single_run():
     sys_ = oscillator(m=2)
     cens = tk.Censoring(lower=[0.0, -0.2], upper=[np.inf, 0.4])
     y = data(sys_, cens, runs=6, steps=40, seed=1)
-    y[np.random.default_rng(2).random(y.shape) < 0.15] = np.nan     # missing samples
-    y = y.reshape(2, 3, 40, 2)                                       # batch shape (2, 3)
+    y[np.random.default_rng(2).random(y.shape) < 0.15] = np.nan  # missing samples
+    y = y.reshape(2, 3, 40, 2)  # batch shape (2, 3)
     for cu in ("standard", "joseph"):
         a = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numba")
         b = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numpy")
@@ -284,14 +300,25 @@ def test_tkf_subnormal_channel_is_skipped_in_both_paths():
     Before gain_update treated a subnormal R_ee as 0 the numpy path returned NaN here
     (LAPACK's reciprocal pivot overflows). Both paths now drop the channel, which
     carries no information: the update equals the one-channel TKF on channel 0."""
-    sys2 = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0], [0.3, 1.0]], Q=np.zeros((2, 2)), R=np.diag([0.1, 0.2]),
-                           x0=[3.8, -18.4], P0=[[0.044, -0.033], [-0.033, 0.233]])
+    sys2 = tk.LinearSystem(
+        A=np.eye(2),
+        C=[[1.0, 0.0], [0.3, 1.0]],
+        Q=np.zeros((2, 2)),
+        R=np.diag([0.1, 0.2]),
+        x0=[3.8, -18.4],
+        P0=[[0.044, -0.033], [-0.033, 0.233]],
+    )
     cens = tk.Censoring(lower=[0.0, -0.3], upper=[np.inf, 0.5])
     y = np.array([[[0.19, -0.3]]])
-    sys1 = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0]], Q=np.zeros((2, 2)), R=[[0.1]], x0=[3.8, -18.4],
-                           P0=[[0.044, -0.033], [-0.033, 0.233]])
-    one = tobit_kalman_filter(sys1, tk.Censoring(lower=0.0), y[..., :1], noise_term="total_variance",
-                              backend="numpy")
+    sys1 = tk.LinearSystem(
+        A=np.eye(2),
+        C=[[1.0, 0.0]],
+        Q=np.zeros((2, 2)),
+        R=[[0.1]],
+        x0=[3.8, -18.4],
+        P0=[[0.044, -0.033], [-0.033, 0.233]],
+    )
+    one = tobit_kalman_filter(sys1, tk.Censoring(lower=0.0), y[..., :1], noise_term="total_variance", backend="numpy")
     for be in ("numpy", "numba"):
         out = tobit_kalman_filter(sys2, cens, y, noise_term="total_variance", backend=be)
         assert out.extras["p_uncensored"][0, 0, 1] < 1e-300
@@ -306,9 +333,14 @@ def test_tkf_kernel_random_systems(seed):
     n, m = rng.integers(1, 4, size=2)
     A = rng.normal(size=(n, n))
     A *= 0.95 / max(1e-9, np.max(np.abs(np.linalg.eigvals(A))))
-    sys_ = tk.LinearSystem(A=A, C=rng.normal(size=(m, n)), Q=np.diag(rng.uniform(0.01, 0.1, n)),
-                           R=np.diag(rng.uniform(0.05, 0.5, m)), x0=rng.normal(size=n),
-                           P0=np.eye(n) * rng.uniform(0.1, 1.0))
+    sys_ = tk.LinearSystem(
+        A=A,
+        C=rng.normal(size=(m, n)),
+        Q=np.diag(rng.uniform(0.01, 0.1, n)),
+        R=np.diag(rng.uniform(0.05, 0.5, m)),
+        x0=rng.normal(size=n),
+        P0=np.eye(n) * rng.uniform(0.1, 1.0),
+    )
     lo = np.where(rng.random(m) < 0.5, -np.inf, rng.normal(0, 0.5, m))
     hi = np.where(rng.random(m) < 0.5, np.inf, np.where(np.isfinite(lo), lo, -0.5) + rng.uniform(0.5, 2, m))
     cens = tk.Censoring(lower=lo, upper=hi)
@@ -341,6 +373,7 @@ def test_tkf_kernel_threads_give_the_same_results():
 
 # --- the Kalman filter -------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_kf_kernel_equals_numpy(cu):
     sys_ = three_state()
@@ -348,7 +381,7 @@ def test_kf_kernel_equals_numpy(cu):
     a = kalman_filter(sys_, y, covariance_update=cu, backend="numba")
     b = kalman_filter(sys_, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)
-    assert not a.cov.flags.writeable     # shared covariance returned as a broadcast view, as numpy
+    assert not a.cov.flags.writeable  # shared covariance returned as a broadcast view, as numpy
     ynan = y.copy()
     ynan[np.random.default_rng(1).random(y.shape) < 0.2] = np.nan
     a = kalman_filter(sys_, ynan, covariance_update=cu, backend="numba")
@@ -371,14 +404,15 @@ def test_kf_kernel_per_run_prior_and_dropping_filter():
     a = kalman_filter(sys_, y, skip=skip, backend="numba")
     b = kalman_filter(sys_, y, skip=skip, backend="numpy")
     assert_results_equal(a, b)
-    drop = tk.DroppingKalmanFilter(sys_, cens).filter(y)          # "auto": the kernel
+    drop = tk.DroppingKalmanFilter(sys_, cens).filter(y)  # "auto": the kernel
     assert_same(drop.mean, b.mean)
 
 
 def test_kf_kernel_degenerate_channel_is_skipped():
     """R = 0 and P0 = 0 on the measured direction: Ree = 0 at the first step, no update (as numpy)."""
-    sys_ = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0]], Q=np.diag([0.0, 0.1]), R=[[0.0]], x0=[0.0, 0.0],
-                           P0=np.diag([0.0, 1.0]))
+    sys_ = tk.LinearSystem(
+        A=np.eye(2), C=[[1.0, 0.0]], Q=np.diag([0.0, 0.1]), R=[[0.0]], x0=[0.0, 0.0], P0=np.diag([0.0, 1.0])
+    )
     y = np.random.default_rng(0).normal(size=(3, 5, 1))
     a = kalman_filter(sys_, y, backend="numba")
     b = kalman_filter(sys_, y, backend="numpy")
@@ -388,8 +422,9 @@ def test_kf_kernel_degenerate_channel_is_skipped():
 
 def test_kf_kernel_singular_innovation_covariance_raises_like_numpy():
     """Two identical noise-free channels: R_ee singular with a positive diagonal."""
-    sys_ = tk.LinearSystem(A=np.eye(2), C=[[1.0, 0.0], [1.0, 0.0]], Q=0.1 * np.eye(2), R=np.zeros((2, 2)),
-                           x0=[0.0, 0.0], P0=np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=np.eye(2), C=[[1.0, 0.0], [1.0, 0.0]], Q=0.1 * np.eye(2), R=np.zeros((2, 2)), x0=[0.0, 0.0], P0=np.eye(2)
+    )
     y = np.zeros((2, 3, 2))
     for be in ("numpy", "numba"):
         with pytest.raises(np.linalg.LinAlgError, match="Singular matrix"):
@@ -397,6 +432,7 @@ def test_kf_kernel_singular_innovation_covariance_raises_like_numpy():
 
 
 # --- dispatch -----------------------------------------------------------------------------------
+
 
 class _Trap:
     """Stands in for the kernel module: any use of a kernel fails the test."""
@@ -417,7 +453,7 @@ def test_auto_uses_the_kernel_when_covered(monkeypatch):
         tk.TobitKalmanFilter(sys_, cens).filter(y)
     with pytest.raises(AssertionError, match="kernel kf_kernel used"):
         tk.KalmanFilter(sys_).filter(y)
-    tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y)    # numpy never touches it
+    tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y)  # numpy never touches it
 
 
 def _time_varying():
@@ -427,8 +463,15 @@ def _time_varying():
 
 
 def _with_input():
-    return tk.LinearSystem(A=oscillator().transition(0), C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]],
-                           x0=[0.3, 0.0], P0=0.05 * np.eye(2), Bu=[[0.1], [0.0]])
+    return tk.LinearSystem(
+        A=oscillator().transition(0),
+        C=[[1.0, 0.0]],
+        Q=0.01 * np.eye(2),
+        R=[[0.1]],
+        x0=[0.3, 0.0],
+        P0=0.05 * np.eye(2),
+        Bu=[[0.1], [0.0]],
+    )
 
 
 @pytest.mark.parametrize("which", ["time_varying", "input"])
@@ -441,8 +484,9 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     y = data(oscillator(), cens, runs=2, steps=20)
     ref_t = tobit_kalman_filter(sys_, cens, y, u=u, backend="numpy")
     ref_k = kalman_filter(sys_, y, u=u, backend="numpy")
-    with pytest.raises(ValidationError, match=f"backend: the numba kernel of the Tobit Kalman filter does not "
-                                              f"cover {match}"):
+    with pytest.raises(
+        ValidationError, match=f"backend: the numba kernel of the Tobit Kalman filter does not cover {match}"
+    ):
         tobit_kalman_filter(sys_, cens, y, u=u, backend="numba")
     with pytest.raises(ValidationError, match=f"does not cover {match}"):
         kalman_filter(sys_, y, u=u, backend="numba")
@@ -461,7 +505,7 @@ def test_without_numba(monkeypatch):
         tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y)
     with pytest.raises(ImportError, match="needs the numba package"):
         tk.KalmanFilter(sys_, backend="numba").filter(y)
-    auto = tk.TobitKalmanFilter(sys_, cens).filter(y)             # auto runs numpy
+    auto = tk.TobitKalmanFilter(sys_, cens).filter(y)  # auto runs numpy
     ref = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y)
     assert_results_equal(auto, ref, 0.0)
 
@@ -483,8 +527,14 @@ def test_threaded_kernel_is_bit_identical_to_one_thread():
     import tobitkf as tk
 
     w = 0.05
-    sys_ = tk.LinearSystem(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]],
-                           Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]],
+        C=[[1.0, 0.0]],
+        Q=0.01 * np.eye(2),
+        R=[[0.1]],
+        x0=[0.0, 0.0],
+        P0=0.05 * np.eye(2),
+    )
     cens = tk.Censoring(lower=0.0, upper=2.0)
     data = tk.simulate(sys_, 40, 1500, censoring=cens, seed=3)
     one = tk.TobitKalmanFilter(sys_, cens, backend="numba", threads=1).filter(data.y)
@@ -512,8 +562,7 @@ def test_kernels_honour_the_output_selection(outputs, m):
     sys_ = oscillator(m=m)
     cens = tk.Censoring(lower=[0.0] * m)
     y = data(sys_, cens, runs=40, steps=70)
-    for make in (lambda be: tk.TobitKalmanFilter(sys_, cens, backend=be),
-                 lambda be: tk.KalmanFilter(sys_, backend=be)):
+    for make in (lambda be: tk.TobitKalmanFilter(sys_, cens, backend=be), lambda be: tk.KalmanFilter(sys_, backend=be)):
         a = make("numba").filter(y, outputs=outputs)
         b = make("numpy").filter(y, outputs=outputs)
         for f in FIELDS + ("var",):

@@ -43,8 +43,15 @@ def case_kf(batch, rng, backend="numpy", form="standard"):
 def case_kf_inputs_tv(batch, rng, backend="numpy", form="standard"):
     T = 10
     As = np.stack([np.array([[1.0, 0.1], [0.0, 1.0 - 0.01 * k]]) for k in range(T)])
-    sys_ = tk.LinearSystem(A=As, C=lambda k: np.array([[1.0, 0.1 * k]]), Q=1e-3 * np.eye(2), R=[[0.1]],
-                           x0=[0.0, 1.0], P0=np.eye(2), Bu=[[0.0], [1.0]])
+    sys_ = tk.LinearSystem(
+        A=As,
+        C=lambda k: np.array([[1.0, 0.1 * k]]),
+        Q=1e-3 * np.eye(2),
+        R=[[0.1]],
+        x0=[0.0, 1.0],
+        P0=np.eye(2),
+        Bu=[[0.0], [1.0]],
+    )
     N = int(np.prod(batch)) if batch else 1
     u = rng.standard_normal(batch + (T, 1))
     d = tk.simulate(sys_, T, N, inputs=u.reshape(N, T, 1), seed=2)
@@ -72,9 +79,16 @@ def case_tkf_tv(batch, rng, backend="numpy", form="standard"):
     T = 12
     lower = np.linspace(-0.5, 0.5, T)[:, None] * np.ones((1, 2))
     cens = tk.Censoring(lower=lower)
-    sys_ = tk.LinearSystem(A=lambda k: np.array([[0.95, 0.1], [0.0, 0.9 + 0.001 * k]]), C=[[1.0, 0.0], [0.5, 1.0]],
-                           Q=1e-2 * np.eye(2), R=np.diag([0.05, 0.1]), x0=[0.5, 0.2], P0=np.eye(2),
-                           Bu=np.eye(2), D=[[0.0, 0.1], [0.0, 0.0]])
+    sys_ = tk.LinearSystem(
+        A=lambda k: np.array([[0.95, 0.1], [0.0, 0.9 + 0.001 * k]]),
+        C=[[1.0, 0.0], [0.5, 1.0]],
+        Q=1e-2 * np.eye(2),
+        R=np.diag([0.05, 0.1]),
+        x0=[0.5, 0.2],
+        P0=np.eye(2),
+        Bu=np.eye(2),
+        D=[[0.0, 0.1], [0.0, 0.0]],
+    )
     N = int(np.prod(batch)) if batch else 1
     u = 0.1 * rng.standard_normal(batch + (T, 2))
     d = tk.simulate(sys_, T, N, censoring=cens, inputs=u.reshape(N, T, 2), seed=5)
@@ -103,8 +117,9 @@ def case_fading(batch, rng, backend="numpy", form="joseph"):
     u = 0.1 * rng.standard_normal(batch + (T, 1))
     d = tk.simulate(sys_, T, N, censoring=cens, measurement=fad, inputs=u.reshape(N, T, 1), seed=11)
     y = with_gaps(d.y, rng).reshape(batch + (T, 1))
-    est = tk.FadingTobitKalmanFilter(sys_, fad, cens, covariance_update=form, p_uncensored_mode="eq6_stale",
-                                     fading_variance_term=True)
+    est = tk.FadingTobitKalmanFilter(
+        sys_, fad, cens, covariance_update=form, p_uncensored_mode="eq6_stale", fading_variance_term=True
+    )
     return est, y, u
 
 
@@ -113,8 +128,14 @@ def case_protocol(batch, rng, backend="numpy", form="joseph"):
 
     T = 12
     w = 0.052 * np.pi
-    sys_ = tk.LinearSystem(A=lambda k: np.array([[np.cos(w), -np.sin(w)], [np.sin(w), 0.99 * np.cos(w)]]),
-                           C=np.eye(2), Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5]), x0=[5.0, 0.0], P0=np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=lambda k: np.array([[np.cos(w), -np.sin(w)], [np.sin(w), 0.99 * np.cos(w)]]),
+        C=np.eye(2),
+        Q=0.0025 * np.eye(2),
+        R=np.diag([1.0, 0.5]),
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
+    )
     ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
     N = int(np.prod(batch)) if batch else 1
     d = tk.simulate(sys_, T, N, channel=ch, seed=12)
@@ -150,9 +171,19 @@ def case_delay_reorganized(batch, rng, backend="numpy", form="standard"):
     return _delay(batch, rng, ReorganizedInnovationLMMSE, warmup=3)
 
 
-CASES = {"kf": case_kf, "kf-inputs-tv": case_kf_inputs_tv, "dkf": case_dkf, "tkf": case_tkf, "tkf-tv": case_tkf_tv,
-         "sstkf": case_sstkf, "fading": case_fading, "protocol": case_protocol, "delay-chain": case_delay_chain,
-         "delay-augmented": case_delay_augmented, "delay-reorganized": case_delay_reorganized}
+CASES = {
+    "kf": case_kf,
+    "kf-inputs-tv": case_kf_inputs_tv,
+    "dkf": case_dkf,
+    "tkf": case_tkf,
+    "tkf-tv": case_tkf_tv,
+    "sstkf": case_sstkf,
+    "fading": case_fading,
+    "protocol": case_protocol,
+    "delay-chain": case_delay_chain,
+    "delay-augmented": case_delay_augmented,
+    "delay-reorganized": case_delay_reorganized,
+}
 BATCHES = [(), (5,), (2, 3)]
 
 
@@ -179,7 +210,7 @@ def test_step_loop_equals_filter(name, batch):
     T = y.shape[-2]
     res = filter_of(est, y, u)
     state, means, covs = run_steps(est, y, u, batch, T)
-    k0 = est.k0                      # the prior's time index: 0, or -1 for the delay family (y(0) first)
+    k0 = est.k0  # the prior's time index: 0, or -1 for the delay family (y(0) first)
     assert res.mean.shape == batch + (T, est.n) and res.times.tolist() == list(range(k0 + 1, k0 + T + 1))
     np.testing.assert_allclose(means, res.mean, rtol=0, atol=TOL)
     np.testing.assert_allclose(covs, res.cov, rtol=0, atol=TOL)
@@ -198,8 +229,7 @@ def test_pickled_state_resumes_identically(name):
     revived = pickle.loads(pickle.dumps(state))
     assert isinstance(revived, FilterState) and revived.k == est.k0 + half
     a, ma, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half, start=state)
-    b, mb, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half,
-                         start=revived)
+    b, mb, _ = run_steps(est, y[..., half:, :], None if u is None else u[..., half:, :], batch, T - half, start=revived)
     np.testing.assert_array_equal(ma, mb)
     np.testing.assert_array_equal(a.cov, b.cov)
     # filter() continues from a state too, and the two halves make the whole record
@@ -333,7 +363,7 @@ def test_steady_state_inverse_mills_has_the_sign_of_censored_moments():
         lo, hi = (-np.inf, lim) if side == "upper" else (lim, np.inf)
         st = tk.censored_moments(0.0, est.sigma, lo, hi)
         np.testing.assert_allclose(est.inverse_mills, st.inverse_mills, rtol=1e-12)
-        np.testing.assert_allclose(est.lambda_hat, np.sqrt(2 / np.pi), rtol=1e-12)   # phi(0) / 0.5
+        np.testing.assert_allclose(est.lambda_hat, np.sqrt(2 / np.pi), rtol=1e-12)  # phi(0) / 0.5
 
 
 # --- property: batched = per run = step by step, on random models ---------------------------------
@@ -342,24 +372,36 @@ from hypothesis import strategies as st  # noqa: E402
 
 
 @settings(deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(n=st.integers(1, 3), m=st.integers(1, 2), seed=st.integers(0, 2**31 - 1), family=st.sampled_from(
-    ["kf", "tkf", "dkf", "tkf-sqrt", "tkf-joseph"]))
+@given(
+    n=st.integers(1, 3),
+    m=st.integers(1, 2),
+    seed=st.integers(0, 2**31 - 1),
+    family=st.sampled_from(["kf", "tkf", "dkf", "tkf-sqrt", "tkf-joseph"]),
+)
 def test_batched_equals_per_run_equals_step_by_step(n, m, seed, family):
     rng = np.random.default_rng(seed)
     A = rng.normal(size=(n, n))
     A *= 0.95 / max(1e-9, np.abs(np.linalg.eigvals(A)).max())
     G = rng.normal(size=(n, n))
-    sys_ = tk.LinearSystem(A=A, C=rng.normal(size=(m, n)), Q=G @ G.T / n + 0.01 * np.eye(n),
-                           R=np.diag(rng.uniform(0.05, 1.0, m)), x0=rng.normal(size=n), P0=np.eye(n))
+    sys_ = tk.LinearSystem(
+        A=A,
+        C=rng.normal(size=(m, n)),
+        Q=G @ G.T / n + 0.01 * np.eye(n),
+        R=np.diag(rng.uniform(0.05, 1.0, m)),
+        x0=rng.normal(size=n),
+        P0=np.eye(n),
+    )
     lower = rng.normal(size=m) * 0.5
     cens = tk.Censoring(lower=lower)
     d = tk.simulate(sys_, 8, 3, censoring=cens, seed=seed)
     y = with_gaps(d.y, rng, 0.15)
-    make = {"kf": lambda: tk.KalmanFilter(sys_, backend="numpy"),
-            "dkf": lambda: tk.DroppingKalmanFilter(sys_, cens, backend="numpy"),
-            "tkf": lambda: tk.TobitKalmanFilter(sys_, cens, backend="numpy"),
-            "tkf-sqrt": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="square_root"),
-            "tkf-joseph": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="joseph", backend="numpy")}[family]
+    make = {
+        "kf": lambda: tk.KalmanFilter(sys_, backend="numpy"),
+        "dkf": lambda: tk.DroppingKalmanFilter(sys_, cens, backend="numpy"),
+        "tkf": lambda: tk.TobitKalmanFilter(sys_, cens, backend="numpy"),
+        "tkf-sqrt": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="square_root"),
+        "tkf-joseph": lambda: tk.TobitKalmanFilter(sys_, cens, covariance_update="joseph", backend="numpy"),
+    }[family]
     est = make()
     batch = est.filter(y)
     for r in range(3):

@@ -37,7 +37,7 @@ def z2(mean, ref_mean, ref_var, Np):
 def grid_filter(a, q, c, r, x0, p0, y, lower, upper, grid):
     """Exact (to the grid) Bayes filter of a scalar x_k = a x_{k-1} + w, y = clip(c x + v, lower, upper)."""
     dx = grid[1] - grid[0]
-    K = np.exp(-0.5 * (grid[:, None] - a * grid[None, :]) ** 2 / q)     # p(x' | x), unnormalized in x'
+    K = np.exp(-0.5 * (grid[:, None] - a * grid[None, :]) ** 2 / q)  # p(x' | x), unnormalized in x'
     K /= K.sum(0, keepdims=True)
     post = np.exp(-0.5 * (grid - x0) ** 2 / p0)
     post /= post.sum()
@@ -64,12 +64,13 @@ def grid_filter(a, q, c, r, x0, p0, y, lower, upper, grid):
 
 # --------------------------------------------------------------------------- oracles
 
+
 @pytest.mark.parametrize("proposal", ["optimal", "prior"])
 def test_converges_to_the_kalman_filter_without_censoring(proposal):
     sys_ = oscillator(C=[[1.0, 0.0], [0.3, 1.0]], R=np.diag([0.1, 0.2]))
     d = tk.simulate(sys_, 25, 40, seed=1)
     y = d.y.copy()
-    y[np.random.default_rng(0).random(y.shape) < 0.1] = np.nan        # missing readings too
+    y[np.random.default_rng(0).random(y.shape) < 0.1] = np.nan  # missing readings too
     kf = tk.KalmanFilter(sys_).filter(y)
     var = np.diagonal(kf.cov, axis1=-2, axis2=-1)
     errs = {}
@@ -138,8 +139,12 @@ def test_equals_a_grid_filter_on_a_censored_random_walk(proposal):
     for i in range(runs):
         m, v = grid_filter(a, q, 1.0, r, 0.3, 0.5, d.y[i, :, 0], 0.0, 1.2, grid)
         z.append(z2(pf.mean[i, :, 0], m, v, Np))
-        np.testing.assert_allclose(pf.var[i, :, 0] if pf.var is not None else pf.cov[i, :, 0, 0], v,
-                                   rtol=6 * np.sqrt(2 * KAPPA / Np) + 0.02, atol=1e-4)
+        np.testing.assert_allclose(
+            pf.var[i, :, 0] if pf.var is not None else pf.cov[i, :, 0, 0],
+            v,
+            rtol=6 * np.sqrt(2 * KAPPA / Np) + 0.02,
+            atol=1e-4,
+        )
     assert np.mean(z) < KAPPA
 
 
@@ -155,6 +160,7 @@ def test_deep_tail_reading_is_finite():
 
 # --------------------------------------------------------------------------- every channel
 
+
 def test_two_sided_time_varying_multi_region_proposals_agree():
     sys_ = oscillator(C=[[1.0, 0.0], [0.5, 1.0]], R=np.diag([0.05, 0.1]))
     T = 20
@@ -166,7 +172,7 @@ def test_two_sided_time_varying_multi_region_proposals_agree():
     a = ParticleFilter(sys_, cens, particles=Np, proposal="optimal", seed=8).filter(d.y)
     b = ParticleFilter(sys_, cens, particles=Np, proposal="prior", seed=9).filter(d.y)
     var = np.diagonal(a.cov, axis1=-2, axis2=-1)
-    assert z2(a.mean, b.mean, var, Np / 2).mean() < KAPPA          # two independent estimates
+    assert z2(a.mean, b.mean, var, Np / 2).mean() < KAPPA  # two independent estimates
     # several regions of one output as stacked sensors (Miller §6.6)
     stacked, mr = tk.multi_region(oscillator(), [[(-np.inf, 0.0), (0.0, np.inf)]])
     d2 = tk.simulate(stacked, T, 20, censoring=mr, seed=10)
@@ -177,9 +183,9 @@ def test_two_sided_time_varying_multi_region_proposals_agree():
 
 def test_fading_with_deterministic_gains_is_the_augmented_kalman_filter():
     sys_ = oscillator()
-    fad = tk.RiceFading(1, [0.9, 0.6])                # no variance: linear in (x_k, x_{k-1})
+    fad = tk.RiceFading(1, [0.9, 0.6])  # no variance: linear in (x_k, x_{k-1})
     d = tk.simulate(sys_, 25, 30, measurement=fad, seed=13)
-    exact = tk.FadingAssumedDensityFilter(sys_, fad).filter(d.y)   # = the KF of the augmented model
+    exact = tk.FadingAssumedDensityFilter(sys_, fad).filter(d.y)  # = the KF of the augmented model
     Np = 2000
     pf = ParticleFilter(sys_, fad, particles=Np, seed=14).filter(d.y)
     assert pf.mean.shape == (30, 25, 2)
@@ -238,7 +244,7 @@ def test_protocol_with_failures_and_censoring_proposals_agree(law):
 
 def test_random_saturation_reduces_to_the_kalman_filter_and_weights_the_modes():
     sys_ = oscillator(C=[[1.0, 0.0], [0.0, 1.0]], R=np.diag([0.05, 0.05]))
-    lin = tk.RandomSaturation(mu=[0.0, 0.0], nu=[1.0, 1.0])              # never saturated, never missing
+    lin = tk.RandomSaturation(mu=[0.0, 0.0], nu=[1.0, 1.0])  # never saturated, never missing
     d = tk.simulate(sys_, 20, 30, channel=lin, seed=23)
     kf = tk.KalmanFilter(sys_).filter(d.y)
     Np = 2000
@@ -257,12 +263,14 @@ def test_random_saturation_reduces_to_the_kalman_filter_and_weights_the_modes():
     want = np.zeros(4)
     for i, j in np.ndindex(4, 2):
         c = X[0, i, j]
-        want[i] += np.log(0.3 * npdf(y[0, j], np.clip(c, -0.5, 0.5)) + 0.7 * 0.8 * npdf(y[0, j], c)
-                          + 0.7 * 0.2 * npdf(y[0, j], 0.0))
+        want[i] += np.log(
+            0.3 * npdf(y[0, j], np.clip(c, -0.5, 0.5)) + 0.7 * 0.8 * npdf(y[0, j], c) + 0.7 * 0.2 * npdf(y[0, j], 0.0)
+        )
     np.testing.assert_allclose(got[0], want, rtol=1e-12)
 
 
 # --------------------------------------------------------------------------- pure pieces
+
 
 def _log_tail(x):
     """log Phi(-x) for large x by the asymptotic series (error below 1e-14 relative for x >= 40)."""
@@ -271,10 +279,12 @@ def _log_tail(x):
 
 
 def test_censored_log_likelihood_cases_and_tails():
-    got = censored_log_likelihood([0.0, 0.5, 1.0, np.nan, 0.0], [40.0, 0.0, -40.0, 0.0, -40.0], 1.0,
-                                  lower=0.0, upper=1.0)
-    np.testing.assert_allclose(got[:4], [_log_tail(40.0), -0.5 * 0.25 - 0.5 * np.log(2 * np.pi), _log_tail(41.0),
-                                         0.0], rtol=1e-12)
+    got = censored_log_likelihood(
+        [0.0, 0.5, 1.0, np.nan, 0.0], [40.0, 0.0, -40.0, 0.0, -40.0], 1.0, lower=0.0, upper=1.0
+    )
+    np.testing.assert_allclose(
+        got[:4], [_log_tail(40.0), -0.5 * 0.25 - 0.5 * np.log(2 * np.pi), _log_tail(41.0), 0.0], rtol=1e-12
+    )
     assert got[4] == pytest.approx(0.0, abs=1e-300)
 
 
@@ -289,6 +299,7 @@ def test_systematic_resampling_copies_floor_or_ceil_times():
 
 
 # --------------------------------------------------------------------------- online API
+
 
 def _run_steps(est, y, batch, start=None):
     state = est.init(batch) if start is None else start
@@ -341,11 +352,12 @@ def test_reproducible_from_a_seed():
     c = ParticleFilter(sys_, cens, particles=100, seed=6).filter(d.y).mean
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
-    pf = ParticleFilter(sys_, cens, particles=100)               # fresh entropy once: filter() repeats
+    pf = ParticleFilter(sys_, cens, particles=100)  # fresh entropy once: filter() repeats
     np.testing.assert_array_equal(pf.filter(d.y).mean, pf.filter(d.y).mean)
     g = ParticleFilter(sys_, cens, particles=100, seed=np.random.default_rng(7)).filter(d.y).mean
-    np.testing.assert_array_equal(g, ParticleFilter(sys_, cens, particles=100,
-                                                    seed=np.random.default_rng(7)).filter(d.y).mean)
+    np.testing.assert_array_equal(
+        g, ParticleFilter(sys_, cens, particles=100, seed=np.random.default_rng(7)).filter(d.y).mean
+    )
 
 
 def test_outputs_on_request_and_resampling_extras():
@@ -353,7 +365,7 @@ def test_outputs_on_request_and_resampling_extras():
     d = tk.simulate(sys_, 15, 6, censoring=cens, seed=8)
     pf = ParticleFilter(sys_, cens, particles=300, resample_threshold=1.0, seed=9)
     full = pf.filter(d.y)
-    assert full.extras["resampled"].all()                       # threshold 1: every step
+    assert full.extras["resampled"].all()  # threshold 1: every step
     last = pf.filter(d.y, outputs="last")
     assert last.mean is None
     np.testing.assert_array_equal(last.final.mean, full.mean[:, -1])
@@ -363,6 +375,7 @@ def test_outputs_on_request_and_resampling_extras():
 
 
 # --------------------------------------------------------------------------- errors
+
 
 def test_bad_arguments_are_refused():
     sys_ = oscillator()

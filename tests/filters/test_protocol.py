@@ -2,15 +2,23 @@
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.stats import norm
 
 import tobitkf as tk
 from tobitkf.channels.laws import Constant, Uniform
 from tobitkf.channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
-from tobitkf.filters.protocol import (FAILURE_TERMS, ProtocolTobitKalmanFilter, analytic_p_uncensored,
-                                      augmented_transition, noise_input, protocol_covariance_bounds,
-                                      protocol_tobit_kalman_filter, stacked_measurement)
+from tobitkf.filters.protocol import (
+    FAILURE_TERMS,
+    ProtocolTobitKalmanFilter,
+    analytic_p_uncensored,
+    augmented_transition,
+    noise_input,
+    protocol_covariance_bounds,
+    protocol_tobit_kalman_filter,
+    stacked_measurement,
+)
 
 W = 0.052 * np.pi
 ROT = np.array([[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]])
@@ -34,20 +42,40 @@ def printed(value, decimals):
 
 # --- §5.1 item 4: deterministic fixtures ----------------------------------------------------------
 FIXTURES = {  # mode: x1, (trP-_1, trP_1), x2, (trP-_2, trP_2), x3, trP_3, P_y at k = 1
-    "variance": ([4.451884, 0.773814], (2.005, 1.402357), [4.209122, 1.755206], (1.407357, 0.576613),
-                 [3.867620, 2.416397], 0.581613, 5.353888),
-    "literal": ([4.658702, 0.790724], (2.005, 1.661185), [4.441005, 1.677854], (1.666185, 1.212130),
-                [4.108996, 2.377787], 1.217130, 9.384344),
-    "second_moment": ([4.803544, 0.802566], (2.005, 1.842452), [4.566755, 1.810621], (1.847452, 1.051151),
-                      [4.211479, 2.529238], 1.056151, 19.849364),
+    "variance": (
+        [4.451884, 0.773814],
+        (2.005, 1.402357),
+        [4.209122, 1.755206],
+        (1.407357, 0.576613),
+        [3.867620, 2.416397],
+        0.581613,
+        5.353888,
+    ),
+    "literal": (
+        [4.658702, 0.790724],
+        (2.005, 1.661185),
+        [4.441005, 1.677854],
+        (1.666185, 1.212130),
+        [4.108996, 2.377787],
+        1.217130,
+        9.384344,
+    ),
+    "second_moment": (
+        [4.803544, 0.802566],
+        (2.005, 1.842452),
+        [4.566755, 1.810621],
+        (1.847452, 1.051151),
+        [4.211479, 2.529238],
+        1.056151,
+        19.849364,
+    ),
 }
 
 
 @pytest.mark.parametrize("mode", list(FIXTURES))
 def test_spec_fixtures_k1_to_3(mode):
     x1, tr1, x2, tr2, x3, tr3, Py = FIXTURES[mode]
-    r = protocol_tobit_kalman_filter(example(), example_channel(), np.array([[12.0], [3.0], [0.0]]),
-                                     failure_term=mode)
+    r = protocol_tobit_kalman_filter(example(), example_channel(), np.array([[12.0], [3.0], [0.0]]), failure_term=mode)
     np.testing.assert_allclose(r.extras["aug_pred_mean"][0], [4.933430, 0.813186, 5, 0, 5, 0], atol=5e-7)
     assert r.extras["innovation_var"][0] == pytest.approx(Py, abs=printed(Py, 6))
     for k, x in ((0, x1), (1, x2), (2, x3)):
@@ -119,11 +147,21 @@ def test_analytic_p_uncensored_uniform_law_by_quadrature():
 
 # --- §5.2 reductions ----------------------------------------------------------------------------------
 def random_system(rng, n=2, p=1, T=10, varying=False):
-    A = rng.normal(size=(T, n, n)) * 0.4 + np.eye(n) * 0.7 if varying else rng.normal(size=(n, n)) * 0.3 + 0.8 * np.eye(n)
+    A = (
+        rng.normal(size=(T, n, n)) * 0.4 + np.eye(n) * 0.7
+        if varying
+        else rng.normal(size=(n, n)) * 0.3 + 0.8 * np.eye(n)
+    )
     C = rng.normal(size=(p, n))
     L = rng.normal(size=(n, n))
-    return tk.LinearSystem(A=A, C=C, Q=0.1 * L @ L.T + 0.05 * np.eye(n), R=np.diag(rng.uniform(0.5, 2.0, p)),
-                           x0=rng.normal(size=n), P0=np.eye(n) * 1.5)
+    return tk.LinearSystem(
+        A=A,
+        C=C,
+        Q=0.1 * L @ L.T + 0.05 * np.eye(n),
+        R=np.diag(rng.uniform(0.5, 2.0, p)),
+        x0=rng.normal(size=n),
+        P0=np.eye(n) * 1.5,
+    )
 
 
 @pytest.mark.parametrize("update", ["joseph", "standard"])
@@ -148,8 +186,14 @@ def test_R1_round_robin_equals_time_varying_kalman_filter():
     h = ch.schedule.scheduled(T) - 1
     C = sys_.measurement(1)
     R = sys_.measurement_cov(1)
-    kf_sys = tk.LinearSystem(A=sys_.transition(0), C=C[h][:, None, :], Q=sys_.process_cov(0),
-                             R=R[h, h][:, None, None], x0=sys_.x0, P0=sys_.P0)
+    kf_sys = tk.LinearSystem(
+        A=sys_.transition(0),
+        C=C[h][:, None, :],
+        Q=sys_.process_cov(0),
+        R=R[h, h][:, None, None],
+        x0=sys_.x0,
+        P0=sys_.P0,
+    )
     a = protocol_tobit_kalman_filter(sys_, ch, y)
     b = tk.KalmanFilter(kf_sys).filter(y)
     np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-12)
@@ -178,18 +222,18 @@ def batch_posterior(sys_, ch, y, T):
     h = ch.schedule.scheduled(T) - 1
     for k in range(T):
         i = n * (ell + 1) + n * k
-        cov_u[i: i + n, i: i + n] = sys_.process_cov(k)
+        cov_u[i : i + n, i : i + n] = sys_.process_cov(k)
         j = n * (ell + 1) + n * T + k
         cov_u[j, j] = sys_.measurement_cov(k + 1)[h[k], h[k]]
     S = {}
-    for s in range(ell + 1):          # x_{-s} = block (ell - s)
+    for s in range(ell + 1):  # x_{-s} = block (ell - s)
         M = np.zeros((n, nu))
-        M[:, n * (ell - s): n * (ell - s + 1)] = np.eye(n)
+        M[:, n * (ell - s) : n * (ell - s + 1)] = np.eye(n)
         S[-s] = M
     for k in range(1, T + 1):
         M = np.zeros((n, nu))
         i = n * (ell + 1) + n * (k - 1)
-        M[:, i: i + n] = np.eye(n)
+        M[:, i : i + n] = np.eye(n)
         S[k] = sys_.transition(k - 1) @ S[k - 1] + M
     Y = np.zeros((T, nu))
     for k in range(1, T + 1):
@@ -222,10 +266,10 @@ def test_R2_augmented_filter_equals_batch_gaussian_posterior(ell):
 
 
 def test_R3_tobit_with_known_indicator_explicit_formulas():
-    rng = np.random.default_rng(4)
     T = 25
-    sys_ = tk.LinearSystem(A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.5]], Q=0.2 * np.eye(2), R=[[0.7]],
-                           x0=[1.0, 0.0], P0=np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.5]], Q=0.2 * np.eye(2), R=[[0.7]], x0=[1.0, 0.0], P0=np.eye(2)
+    )
     tau = 0.8
     ch = ProtocolChannel(1, window=0, threshold=tau)
     y = tk.simulate(sys_, T, 1, seed=3, channel=ch).y[0, :, 0]
@@ -254,7 +298,7 @@ def test_R4_failures_only_lmmse_is_exact():
     d = tk.simulate(sys_, 60, M, seed=21, channel=ch)
     r = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term="lmmse_unconditional")
     err2 = ((d.x[:, 1:] - r.mean) ** 2).sum(-1)
-    tr = np.trace(r.cov[0], axis1=-2, axis2=-1)                 # deterministic: the same for every run
+    tr = np.trace(r.cov[0], axis1=-2, axis2=-1)  # deterministic: the same for every run
     np.testing.assert_allclose(np.trace(r.cov, axis1=-2, axis2=-1), np.broadcast_to(tr, (M, 60)), rtol=1e-12)
     for k in (1, 5, 20, 60):
         se = err2[:, k - 1].std(ddof=1) / np.sqrt(M)
@@ -276,8 +320,8 @@ def test_R5_modes_coincide_without_gain_variance():
 def test_censored_step_leaves_estimate_and_covariance_bit_exactly_unchanged():
     sys_, ch = example(), example_channel()
     d = tk.simulate(sys_, 40, 8, seed=2, channel=ch)
-    gam = d.extras["uncensored"].copy()                       # (N, T, 1), laid out like y
-    gam[:, 5] = False                                          # also: a value above tau declared censored
+    gam = d.extras["uncensored"].copy()  # (N, T, 1), laid out like y
+    gam[:, 5] = False  # also: a value above tau declared censored
     y = d.y.copy()
     y[:, 5] = 123.0
     r = protocol_tobit_kalman_filter(sys_, ch, y, uncensored=gam, keep_augmented=True)
@@ -304,8 +348,12 @@ def test_structural_invariants(mode):
     assert np.linalg.eigvalsh(P).min() > -1e-12
     assert np.linalg.eigvalsh(Pm - P).min() > -1e-12
     # undamped rotation: tr(Pi P^-_{k+1} Pi^T) = tr(Pi P_k Pi^T) + 0.005
-    np.testing.assert_allclose(np.trace(r.pred_cov[:, 1:], axis1=-2, axis2=-1),
-                               np.trace(r.cov[:, :-1], axis1=-2, axis2=-1) + 0.005, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.trace(r.pred_cov[:, 1:], axis1=-2, axis2=-1),
+        np.trace(r.cov[:, :-1], axis1=-2, axis2=-1) + 0.005,
+        rtol=0,
+        atol=1e-12,
+    )
     # Joseph form equals the standard form
     s = protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=mode, covariance_update="standard")
     np.testing.assert_allclose(s.cov, r.cov, rtol=0, atol=1e-10)
@@ -344,8 +392,13 @@ def test_baseline_is_the_misspecified_filter():
 
 
 @settings(max_examples=20, deadline=None)
-@given(ell=st.integers(0, 3), p=st.integers(1, 3), tau=st.floats(-3, 3), seed=st.integers(0, 10_000),
-       mode=st.sampled_from(FAILURE_TERMS))
+@given(
+    ell=st.integers(0, 3),
+    p=st.integers(1, 3),
+    tau=st.floats(-3, 3),
+    seed=st.integers(0, 10_000),
+    mode=st.sampled_from(FAILURE_TERMS),
+)
 def test_property_covariances_psd_and_shrinking(ell, p, tau, seed, mode):
     rng = np.random.default_rng(seed)
     sys_ = random_system(rng, n=2, p=p, T=12)
@@ -368,8 +421,8 @@ def test_bound_orderings(damped):
     proof = protocol_covariance_bounds(sys_, ch, 100, lower_form="paper_proof")
     np.testing.assert_array_equal(b.upper[0], b.lower[0])
     assert np.linalg.eigvalsh(b.upper - b.lower).min() > -1e-12
-    assert np.linalg.eigvalsh(sub.upper_aug - b.upper_aug).min() > -1e-12     # suboptimal gain is looser
-    assert np.linalg.eigvalsh(b.lower_aug - proof.lower_aug).min() > -1e-12   # the proof's version is looser
+    assert np.linalg.eigvalsh(sub.upper_aug - b.upper_aug).min() > -1e-12  # suboptimal gain is looser
+    assert np.linalg.eigvalsh(b.lower_aug - proof.lower_aug).min() > -1e-12  # the proof's version is looser
     np.testing.assert_allclose(proof.lower[0], 0.0025 * np.eye(2))
 
 
@@ -389,9 +442,13 @@ def mc_runs():
     for damped in (False, True):
         sys_, ch = example(damped), example_channel()
         d = tk.simulate(sys_, 100, 600, seed=100 + damped, channel=ch)
-        out[damped] = (sys_, ch, d, {m: protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=m)
-                                     for m in ("variance", "second_moment")},
-                       ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y))
+        out[damped] = (
+            sys_,
+            ch,
+            d,
+            {m: protocol_tobit_kalman_filter(sys_, ch, d.y, failure_term=m) for m in ("variance", "second_moment")},
+            ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y),
+        )
     return out
 
 
@@ -437,7 +494,7 @@ def test_mc_fig4_mect_ordering_damped(mc_runs):
     a = np.trace(res["variance"].pred_cov, axis1=-2, axis2=-1).mean(0)
     b = np.trace(base.pred_cov, axis1=-2, axis2=-1).mean(0)
     assert (a[1:] < b[1:]).mean() >= 0.95
-    assert a[0] == pytest.approx(b[0], rel=1e-12)        # equal at k = 1 (both P^-_1 = A P0 A' + Q)
+    assert a[0] == pytest.approx(b[0], rel=1e-12)  # equal at k = 1 (both P^-_1 = A P0 A' + Q)
 
 
 @pytest.mark.parametrize("damped", [False, True])
@@ -501,14 +558,17 @@ def test_bad_options_and_input():
         protocol_covariance_bounds(sys_, ch, 10, gamma=0.5)
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"p_uncensored": 1.5}, r"\[0, 1\]"),
-    ({"p_uncensored": np.full(9, 0.5)}, r"shape \(10,\)"),
-    ({"p_uncensored": "paper_eq8"}, "analytic"),
-    ({"upper_form": "paper"}, "upper_form"),
-    ({"lower_form": "proof"}, "lower_form"),
-    ({"phi_upper": "one"}, "phi_upper"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"p_uncensored": 1.5}, r"\[0, 1\]"),
+        ({"p_uncensored": np.full(9, 0.5)}, r"shape \(10,\)"),
+        ({"p_uncensored": "paper_eq8"}, "analytic"),
+        ({"upper_form": "paper"}, "upper_form"),
+        ({"lower_form": "proof"}, "lower_form"),
+        ({"phi_upper": "one"}, "phi_upper"),
+    ],
+)
 def test_bounds_bad_input(kwargs, match):
     with pytest.raises(ValueError, match=match):
         protocol_covariance_bounds(example(), example_channel(), 10, **kwargs)
@@ -543,10 +603,12 @@ def test_pre_0_2_spellings_still_work_with_a_deprecation_warning():
         old = protocol_tobit_kalman_filter(sys_, ch, d.y, prehistory_mean="zero")
     np.testing.assert_array_equal(old.mean, new.mean)
     with pytest.warns(DeprecationWarning, match=r"lay it out like y, \(\.\.\., T, 1\)"):
-        old = protocol_tobit_kalman_filter(sys_, ch, d.y, uncensored=d.extras["uncensored"][..., 0],
-                                           prehistory_prior="zero_mean")
+        old = protocol_tobit_kalman_filter(
+            sys_, ch, d.y, uncensored=d.extras["uncensored"][..., 0], prehistory_prior="zero_mean"
+        )
     np.testing.assert_array_equal(old.mean, new.mean)
     with pytest.warns(DeprecationWarning, match=r"a \(T,\) record is deprecated"):
         one = protocol_tobit_kalman_filter(sys_, ch, d.y[0, :, 0], prehistory_prior="zero_mean")
-    np.testing.assert_array_equal(one.mean, protocol_tobit_kalman_filter(sys_, ch, d.y[0],
-                                                                         prehistory_prior="zero_mean").mean)
+    np.testing.assert_array_equal(
+        one.mean, protocol_tobit_kalman_filter(sys_, ch, d.y[0], prehistory_prior="zero_mean").mean
+    )

@@ -69,7 +69,7 @@ def assert_same_filter(a, b, rtol=RTOL):
 @pytest.mark.parametrize("n", [1, 2, 4])
 @pytest.mark.parametrize("m", [1, 3])
 def test_kf_square_root_equals_standard(n, m):
-    s = random_system(n, m, seed=10 * n + m, diagonal_R=False)   # the KF allows correlated R
+    s = random_system(n, m, seed=10 * n + m, diagonal_R=False)  # the KF allows correlated R
     data = tk.simulate(s, 30, 5, seed=n + m)
     for y in (data.y, with_gaps(data.y, seed=m)):
         ref = tk.KalmanFilter(s, backend="numpy").filter(y)
@@ -84,7 +84,7 @@ def test_kf_square_root_equals_standard(n, m):
 @pytest.mark.parametrize("m", [1, 3])
 def test_tkf_square_root_equals_standard(noise_term, n, m):
     s = random_system(n, m, seed=10 * n + m, diagonal_R=True)
-    cens = tk.Censoring(lower=-0.5, upper=0.8)                   # two-sided, both limits active
+    cens = tk.Censoring(lower=-0.5, upper=0.8)  # two-sided, both limits active
     data = tk.simulate(s, 30, 5, censoring=cens, seed=n + m)
     lo, hi = cens.censored_mask(data.y)
     assert lo.any() and hi.any()
@@ -105,9 +105,10 @@ def test_time_varying_system_with_inputs_noise_input_and_singular_noise():
     C = rng.normal(size=(T, m, n))
     R = np.array([np.diag(rng.uniform(0.2, 1.0, size=m)) for _ in range(T)])
     B = rng.normal(size=(n, 2))
-    Q = np.diag([0.3, 0.0])                                      # singular: Cholesky fails
-    s = tk.LinearSystem(A=A, C=C, Q=Q, R=R, B=B, Bu=np.ones((n, 1)), D=0.5 * np.ones((m, 1)),
-                        x0=np.zeros(n), P0=np.zeros((n, n)))
+    Q = np.diag([0.3, 0.0])  # singular: Cholesky fails
+    s = tk.LinearSystem(
+        A=A, C=C, Q=Q, R=R, B=B, Bu=np.ones((n, 1)), D=0.5 * np.ones((m, 1)), x0=np.zeros(n), P0=np.zeros((n, n))
+    )
     u = rng.normal(size=(T, 1))
     y = with_gaps(rng.normal(size=(4, T, m)), seed=1)
     ref = kalman_filter(s, y, u=u, backend="numpy")
@@ -138,8 +139,9 @@ def test_tobit_update_square_root_equals_standard():
     sigma = np.sqrt(np.diagonal(s.R.array))
     for nt in NOISE_TERMS:
         a = tobit_update(x, P, y, s.C.array, sigma, np.full(3, -0.4), np.full(3, 0.6), noise_term=nt)
-        b = tobit_update(x, P, y, s.C.array, sigma, np.full(3, -0.4), np.full(3, 0.6), noise_term=nt,
-                         covariance_update="square_root")
+        b = tobit_update(
+            x, P, y, s.C.array, sigma, np.full(3, -0.4), np.full(3, 0.6), noise_term=nt, covariance_update="square_root"
+        )
         assert_rel(b[0], a[0])
         assert_rel(b[1], a[1])
 
@@ -150,7 +152,7 @@ def test_sqrt_predict_and_update_identities():
     N, n, m = 5, 3, 2
     S = np.tril(rng.normal(size=(N, n, n)))
     A = rng.normal(size=(n, n))
-    Groot = rng.normal(size=(n, 2))                              # rank-2 noise
+    Groot = rng.normal(size=(n, 2))  # rank-2 noise
     _, Sp = sqrt_predict(np.zeros((N, n)), S, A, Groot)
     P = S @ np.swapaxes(S, -1, -2)
     np.testing.assert_allclose(Sp @ np.swapaxes(Sp, -1, -2), A @ P @ A.T + Groot @ Groot.T, rtol=1e-12, atol=1e-12)
@@ -197,7 +199,7 @@ def test_batched_equals_each_run_alone(which):
     cens = tk.Censoring(lower=-0.3, upper=1.0)
     data = tk.simulate(s, 30, 4, censoring=cens, seed=9)
     y = with_gaps(data.y, seed=3)
-    y[0] = data.y[0]                                             # a run without gaps (the shared-P path alone)
+    y[0] = data.y[0]  # a run without gaps (the shared-P path alone)
     if which == "kf":
         run, rtol = (lambda yy: tk.KalmanFilter(s, covariance_update="square_root").filter(yy)), 1e-12
     else:
@@ -228,9 +230,10 @@ def test_numba_backend_refuses_square_root():
 def test_auto_backend_runs_the_numpy_square_root_path():
     s = random_system(2, 2, seed=2, diagonal_R=True)
     y = tk.simulate(s, 20, 3, seed=0).y
-    for make in (lambda b: tk.KalmanFilter(s, covariance_update="square_root", backend=b),
-                 lambda b: tk.TobitKalmanFilter(s, tk.Censoring(upper=0.5), covariance_update="square_root",
-                                                backend=b)):
+    for make in (
+        lambda b: tk.KalmanFilter(s, covariance_update="square_root", backend=b),
+        lambda b: tk.TobitKalmanFilter(s, tk.Censoring(upper=0.5), covariance_update="square_root", backend=b),
+    ):
         a, b = make("auto").filter(np.minimum(y, 0.5)), make("numpy").filter(np.minimum(y, 0.5))
         np.testing.assert_array_equal(a.mean, b.mean)
         np.testing.assert_array_equal(a.cov, b.cov)
@@ -254,8 +257,10 @@ def test_every_gaussian_family_has_the_square_root_form():
     fad = RiceFading.gaussian(1, [0.9, 0.5], [0.01, 0.02])
     cens = tk.Censoring(lower=-0.5)
     y = tk.simulate(s, 25, 6, censoring=cens, measurement=fad, seed=3).y
-    for make in (lambda f: FadingTobitKalmanFilter(s, fad, cens, covariance_update=f),
-                 lambda f: FadingKalmanFilter(s, fad, covariance_update=f)):
+    for make in (
+        lambda f: FadingTobitKalmanFilter(s, fad, cens, covariance_update=f),
+        lambda f: FadingKalmanFilter(s, fad, covariance_update=f),
+    ):
         a, b = make("joseph").filter(y), make("square_root").filter(y)
         assert_rel(b.mean, a.mean)
         assert_rel(b.cov, a.cov)

@@ -5,23 +5,30 @@ import pytest
 from scipy.stats import norm
 
 import tobitkf as tk
-from tobitkf.filters.steady_state import (SteadyStateTobitKalmanFilter, controlled_limit_statistics,
-                                          tobit_kalman_filter_controlled)
+from tobitkf.filters.steady_state import (
+    SteadyStateTobitKalmanFilter,
+    controlled_limit_statistics,
+    tobit_kalman_filter_controlled,
+)
 
 
 def oscillator(omega=0.05):
     c, s = np.cos(omega), np.sin(omega)
-    return tk.LinearSystem(A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]],
-                           x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    return tk.LinearSystem(
+        A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2)
+    )
 
 
 # spec 001b §0.3 table ([S] prototype, 6 digits), independent of this code
-@pytest.mark.parametrize("xi, alpha, lam, ups", [
-    (0.33, -0.439913, 1.097420, 0.278438),
-    (0.5, 0.0, 0.797885, 0.363380),
-    (0.8, 0.841621, 0.349952, 0.583006),
-    (0.95, 1.644854, 0.108564, 0.809642),
-])
+@pytest.mark.parametrize(
+    "xi, alpha, lam, ups",
+    [
+        (0.33, -0.439913, 1.097420, 0.278438),
+        (0.5, 0.0, 0.797885, 0.363380),
+        (0.8, 0.841621, 0.349952, 0.583006),
+        (0.95, 1.644854, 0.108564, 0.809642),
+    ],
+)
 def test_constant_statistics_match_spec_table(xi, alpha, lam, ups):
     a, l, u, _ = controlled_limit_statistics(xi, 1.0)
     assert a == pytest.approx(alpha, abs=2e-6)
@@ -72,8 +79,14 @@ def test_fixed_gain_filter_equals_full_tkf_once_converged():
     sys0 = oscillator()
     psi_inf = SteadyStateTobitKalmanFilter(sys0, 0.9).cov
     # prior covariance Ψ∞ makes every prior covariance of the full TKF exactly Ψ̄∞
-    sys_ = tk.LinearSystem(A=sys0.transition(0), C=sys0.measurement(1), Q=sys0.process_cov(0),
-                           R=sys0.measurement_cov(1), x0=[0.3, -0.2], P0=psi_inf)
+    sys_ = tk.LinearSystem(
+        A=sys0.transition(0),
+        C=sys0.measurement(1),
+        Q=sys0.process_cov(0),
+        R=sys0.measurement_cov(1),
+        x0=[0.3, -0.2],
+        P0=psi_inf,
+    )
     f = SteadyStateTobitKalmanFilter(sys_, 0.9)
     data = tk.simulate(sys_, 200, 4, seed=2)
     a = f.filter_controlled(data.y_latent)
@@ -84,8 +97,14 @@ def test_fixed_gain_filter_equals_full_tkf_once_converged():
 
 def test_lower_side_mirrors_upper():
     sys_ = oscillator()
-    neg = tk.LinearSystem(A=sys_.transition(0), C=-sys_.measurement(1), Q=sys_.process_cov(0),
-                          R=sys_.measurement_cov(1), x0=sys_.x0, P0=sys_.P0)
+    neg = tk.LinearSystem(
+        A=sys_.transition(0),
+        C=-sys_.measurement(1),
+        Q=sys_.process_cov(0),
+        R=sys_.measurement_cov(1),
+        x0=sys_.x0,
+        P0=sys_.P0,
+    )
     data = tk.simulate(sys_, 150, 3, seed=7)
     up = SteadyStateTobitKalmanFilter(sys_, 0.7).filter_controlled(data.y_latent)
     lo = SteadyStateTobitKalmanFilter(neg, 0.7, side="lower").filter_controlled(-data.y_latent)

@@ -17,8 +17,18 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from tobitkf import (Censoring, DroppingKalmanFilter, KalmanFilter, LinearSystem, ShapeError, TobitKalmanFilter,
-                     ValidationError, multi_region, simulate, tobit_kalman_filter)
+from tobitkf import (
+    Censoring,
+    DroppingKalmanFilter,
+    KalmanFilter,
+    LinearSystem,
+    ShapeError,
+    TobitKalmanFilter,
+    ValidationError,
+    multi_region,
+    simulate,
+    tobit_kalman_filter,
+)
 from tobitkf.filters.tobit import tobit_update
 
 ATOL = 1e-12
@@ -135,8 +145,9 @@ def test_time_varying_R_and_A():
     x, P = sys.x0.copy(), sys.P0.copy()
     lo, hi = cens.all_limits(T, 2)
     for k in range(1, T + 1):
-        m, c = reference_tkf(A_arr[k - 1], C, 0.02 * np.eye(2), R_fn(k), x, P, data.y[0, k - 1:k], lo[k - 1:k],
-                             hi[k - 1:k])
+        m, c = reference_tkf(
+            A_arr[k - 1], C, 0.02 * np.eye(2), R_fn(k), x, P, data.y[0, k - 1 : k], lo[k - 1 : k], hi[k - 1 : k]
+        )
         x, P = m[0], c[0]
         _assert_close(out.mean[k - 1], x, atol=1e-9)
         _assert_close(out.cov[k - 1], P, atol=1e-9)
@@ -149,11 +160,25 @@ def _kf_cases():
     osc, _ = _oscillator()
     scalar = LinearSystem(A=[[0.999]], C=[[1.0]], Q=[[0.01]], R=[[0.0025]], x0=[0.05], P0=[[0.05]])
     T = 30
-    tv = LinearSystem(A=np.stack([np.array([[1.0, 0.05 * (1 + k % 3)], [0.0, 0.97]]) for k in range(T)]),
-                      C=[[1.0, 0.0], [1.0, 1.0]], Q=0.01 * np.eye(2), R=np.diag([0.2, 0.4]), x0=[0.0, 1.0],
-                      P0=np.eye(2))
-    ctrl = LinearSystem(A=[[1.0, 0.1], [0.0, 1.0]], C=[[1.0, 0.0], [0.0, 1.0]], Q=[[0.004]], R=np.diag([0.05, 0.1]),
-                        x0=[0.0, 0.0], P0=np.eye(2), B=[[0.005], [0.1]], Bu=[[0.005], [0.1]], D=[[0.3], [0.0]])
+    tv = LinearSystem(
+        A=np.stack([np.array([[1.0, 0.05 * (1 + k % 3)], [0.0, 0.97]]) for k in range(T)]),
+        C=[[1.0, 0.0], [1.0, 1.0]],
+        Q=0.01 * np.eye(2),
+        R=np.diag([0.2, 0.4]),
+        x0=[0.0, 1.0],
+        P0=np.eye(2),
+    )
+    ctrl = LinearSystem(
+        A=[[1.0, 0.1], [0.0, 1.0]],
+        C=[[1.0, 0.0], [0.0, 1.0]],
+        Q=[[0.004]],
+        R=np.diag([0.05, 0.1]),
+        x0=[0.0, 0.0],
+        P0=np.eye(2),
+        B=[[0.005], [0.1]],
+        Bu=[[0.005], [0.1]],
+        D=[[0.3], [0.0]],
+    )
     return [("scalar", scalar), ("n2m2", osc), ("time_varying_A", tv), ("control", ctrl)]
 
 
@@ -248,8 +273,8 @@ def test_feedthrough_identity():
     cens = Censoring(lower=lo, upper=hi)
     data = simulate(sys_d, steps=T, runs=3, censoring=cens, inputs=u, seed=23)
     a = TobitKalmanFilter(sys_d, cens).filter(data.y, u=u)
-    du = u @ D.T                                           # (T, m)
-    shifted = Censoring(lower=lo - du, upper=hi - du)      # time-varying limits
+    du = u @ D.T  # (T, m)
+    shifted = Censoring(lower=lo - du, upper=hi - du)  # time-varying limits
     b = TobitKalmanFilter(sys_0, shifted).filter(data.y - du)
     _assert_close(a.mean, b.mean)
     _assert_close(a.cov, b.cov)
@@ -370,16 +395,18 @@ def test_noise_term_direction_at_a_minus_one():
         P = TobitKalmanFilter(sys, Censoring(lower=lower), noise_term=term).filter(y).cov[0, 0, 0]
         assert P == pytest.approx(Pbar - (g * Pbar) ** 2 / (g**2 * Pbar + V), rel=1e-12)
         post[term] = P
-    assert post["dissertation"] < kf            # over-confident
-    assert post["total_variance"] > kf          # the option removes the quirk
+    assert post["dissertation"] < kf  # over-confident
+    assert post["total_variance"] > kf  # the option removes the quirk
     assert post["exact_pv"] < post["dissertation"]  # E[p v^2] = s^2 (g + a phi(a)) < V_tr here
 
 
 def test_noise_term_options_agree_without_censoring():
     sys, _ = _oscillator()
     y = simulate(sys, steps=10, runs=2, seed=0).y
-    outs = [TobitKalmanFilter(sys, Censoring(), noise_term=t).filter(y) for t in
-            ("dissertation", "total_variance", "exact_pv")]
+    outs = [
+        TobitKalmanFilter(sys, Censoring(), noise_term=t).filter(y)
+        for t in ("dissertation", "total_variance", "exact_pv")
+    ]
     for o in outs[1:]:
         _assert_close(o.mean, outs[0].mean)
         _assert_close(o.cov, outs[0].cov)
@@ -397,8 +424,17 @@ def test_multi_region_example_1_against_reference():
     out = TobitKalmanFilter(stacked, cens).filter(data.y)
     lo, hi = cens.all_limits(60, 2)
     for i in range(2):
-        ref = reference_tkf(np.array([[0.99]]), np.ones((2, 1)), np.array([[0.01]]), np.diag([0.0025, 0.0025]),
-                            base.x0, base.P0, data.y[i], lo, hi)
+        ref = reference_tkf(
+            np.array([[0.99]]),
+            np.ones((2, 1)),
+            np.array([[0.01]]),
+            np.diag([0.0025, 0.0025]),
+            base.x0,
+            base.P0,
+            data.y[i],
+            lo,
+            hi,
+        )
         _assert_close(out.mean[i], ref[0], atol=1e-9)
         _assert_close(out.cov[i], ref[1], atol=1e-9)
 
@@ -418,10 +454,13 @@ def test_multi_region_uncensored_sensors_fuse_like_averaging():
 # ---------------------------------------------------------------------------------------------
 # Miller Example 1 (§3.6; spec 001a §6 item 9): KF -> E[y], IKF -> E[y | y > 0], TKF -> truth
 # ---------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("truth,kf_target,ikf_target,tkf_tol", [
-    (-0.1, 0.00833, 0.05251, 0.01),
-    (0.1, 0.10833, 0.12876, 0.005),
-])
+@pytest.mark.parametrize(
+    "truth,kf_target,ikf_target,tkf_tol",
+    [
+        (-0.1, 0.00833, 0.05251, 0.01),
+        (0.1, 0.10833, 0.12876, 0.005),
+    ],
+)
 def test_example_1_limits(truth, kf_target, ikf_target, tkf_tol):
     steps, runs = 1000, 150
     sim = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[1e-14]], R=[[0.01]], x0=[truth], P0=[[0.0]])
@@ -455,8 +494,15 @@ def test_tobit_update_one_step_matches_filter():
     cens = Censoring(lower=[0.0, -0.5], upper=[np.inf, 0.5])
     data = simulate(sys, steps=3, runs=4, censoring=cens, seed=9)
     out = TobitKalmanFilter(sys, cens, backend="numpy").filter(data.y)  # the numpy path calls tobit_update itself
-    x, P, st = tobit_update(out.pred_mean[:, 1], out.pred_cov[:, 1], data.y[:, 1], C, np.sqrt(np.diag(R)),
-                            np.array([0.0, -0.5]), np.array([np.inf, 0.5]))
+    x, P, st = tobit_update(
+        out.pred_mean[:, 1],
+        out.pred_cov[:, 1],
+        data.y[:, 1],
+        C,
+        np.sqrt(np.diag(R)),
+        np.array([0.0, -0.5]),
+        np.array([np.inf, 0.5]),
+    )
     _assert_close(x, out.mean[:, 1], atol=0)
     _assert_close(P, out.cov[:, 1], atol=0)
     _assert_close(st.p_uncensored, out.extras["p_uncensored"][:, 1], atol=0)
@@ -466,19 +512,31 @@ def test_tkf_input_validation():
     sys, _ = _oscillator()
     cens = Censoring(lower=0.0)
     with pytest.raises(ValidationError, match=r"R: the Tobit Kalman filter needs a diagonal R"):
-        TobitKalmanFilter(LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=[[1.0, 0.3], [0.3, 1.0]],
-                                       x0=[0, 0], P0=np.eye(2)), cens)
+        TobitKalmanFilter(
+            LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=[[1.0, 0.3], [0.3, 1.0]], x0=[0, 0], P0=np.eye(2)),
+            cens,
+        )
     with pytest.raises(ValidationError, match=r"R: the Tobit Kalman filter needs positive measurement variances"):
-        TobitKalmanFilter(LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=np.diag([1.0, 0.0]),
-                                       x0=[0, 0], P0=np.eye(2)), cens)
-    tv_bad = LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=lambda k: np.array([[1.0, 0.1 * (k - 1)], [0.1 * (k - 1), 1.0]]),
-                          x0=[0, 0], P0=np.eye(2))
+        TobitKalmanFilter(
+            LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=np.diag([1.0, 0.0]), x0=[0, 0], P0=np.eye(2)), cens
+        )
+    tv_bad = LinearSystem(
+        A=np.eye(2),
+        C=np.eye(2),
+        Q=np.eye(2),
+        R=lambda k: np.array([[1.0, 0.1 * (k - 1)], [0.1 * (k - 1), 1.0]]),
+        x0=[0, 0],
+        P0=np.eye(2),
+    )
     with pytest.raises(ValidationError, match=r"R\(2\): the Tobit Kalman filter needs a diagonal R"):
         TobitKalmanFilter(tv_bad, cens).filter(np.ones((3, 2)))
-    with pytest.raises(ValidationError, match="noise_term: expected one of 'dissertation', 'total_variance', 'exact_pv'"):
+    with pytest.raises(
+        ValidationError, match="noise_term: expected one of 'dissertation', 'total_variance', 'exact_pv'"
+    ):
         TobitKalmanFilter(sys, cens, noise_term="exact")
-    with pytest.raises(ValidationError, match="covariance_update: expected one of 'standard', 'joseph', "
-                                              "'square_root', got 'cholesky'"):
+    with pytest.raises(
+        ValidationError, match="covariance_update: expected one of 'standard', 'joseph', 'square_root', got 'cholesky'"
+    ):
         TobitKalmanFilter(sys, cens, covariance_update="cholesky")
     with pytest.raises(ValidationError, match="censoring: expected a Censoring, got tuple"):
         TobitKalmanFilter(sys, (0.0, np.inf))
@@ -517,8 +575,9 @@ def test_prior_override_with_multi_axis_batch():
 
 
 def test_callable_covariance_validated_over_the_horizon():
-    sys = LinearSystem(A=np.eye(1), C=np.eye(1), Q=lambda k: np.array([[0.1 - 0.05 * k]]), R=np.eye(1),
-                       x0=[0.0], P0=np.eye(1))
+    sys = LinearSystem(
+        A=np.eye(1), C=np.eye(1), Q=lambda k: np.array([[0.1 - 0.05 * k]]), R=np.eye(1), x0=[0.0], P0=np.eye(1)
+    )
     with pytest.raises(ValidationError, match=r"Q\(3\): expected a positive semi-definite matrix"):
         TobitKalmanFilter(sys, Censoring(lower=-1.0)).filter(np.zeros((5, 1)))
 
@@ -536,7 +595,7 @@ def test_callable_measurement_matrix():
     x, P = sys.x0.copy(), sys.P0.copy()
     lo, hi = cens.all_limits(T, 2)
     for k in range(1, T + 1):
-        m, c = reference_tkf(A, C_fn(k), Q, R, x, P, data.y[0, k - 1:k], lo[k - 1:k], hi[k - 1:k])
+        m, c = reference_tkf(A, C_fn(k), Q, R, x, P, data.y[0, k - 1 : k], lo[k - 1 : k], hi[k - 1 : k])
         x, P = m[0], c[0]
         _assert_close(out.mean[k - 1], x, atol=1e-9)
         _assert_close(out.cov[k - 1], P, atol=1e-9)

@@ -5,8 +5,14 @@ import importlib
 
 import pytest
 
-MODULES = ["tobitkf.data", "tobitkf.inference.adf", "tobitkf.inference.smoothing", "tobitkf.inference.likelihood",
-           "tobitkf.inference.censored_ar", "tobitkf.inference.fitting"]
+MODULES = [
+    "tobitkf.data",
+    "tobitkf.inference.adf",
+    "tobitkf.inference.smoothing",
+    "tobitkf.inference.likelihood",
+    "tobitkf.inference.censored_ar",
+    "tobitkf.inference.fitting",
+]
 
 
 @pytest.mark.parametrize("name", MODULES)

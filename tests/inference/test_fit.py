@@ -47,7 +47,10 @@ def test_fit_save_and_load_roundtrip_plain_json(phos_fit, tmp_path):
     np.testing.assert_array_equal(back.theta, phos_fit.theta)
     np.testing.assert_allclose(back.cov, phos_fit.cov, rtol=0, atol=0)
     assert back.loglik == phos_fit.loglik and back.aic == phos_fit.aic
-    a, b = back.forecast(3, X=np.c_[np.ones(3), np.full(3, 6.0)]), phos_fit.forecast(3, X=np.c_[np.ones(3), np.full(3, 6.0)])
+    a, b = (
+        back.forecast(3, X=np.c_[np.ones(3), np.full(3, 6.0)]),
+        phos_fit.forecast(3, X=np.c_[np.ones(3), np.full(3, 6.0)]),
+    )
     np.testing.assert_allclose(a["mean"], b["mean"], rtol=0, atol=0)
     with pytest.raises(ValidationError, match="data"):
         load_fit(path).forecast(2)
@@ -64,7 +67,7 @@ def test_forecasts_with_intervals_and_the_censored_reading(phos_fit):
     # far ahead: the stationary regression mean and variance
     b0, b1, s2, phi = (phos_fit.params[k] for k in ("beta0", "beta1", "sigma2", "phi1"))
     assert abs(fc["mean"][-1] - (b0 + b1 * 6.5)) < 1e-6
-    assert abs(fc["sd"][-1] ** 2 - s2 / (1 - phi ** 2)) < 1e-6
+    assert abs(fc["sd"][-1] ** 2 - s2 / (1 - phi**2)) < 1e-6
     from scipy.stats import norm
 
     half = norm.ppf(0.95) * fc["sd"][-1]
@@ -154,7 +157,7 @@ def test_em_increases_the_exact_likelihood_and_agrees_with_direct_maximisation()
     templ = tk.LinearSystem(A=[[0.8]], C=[[1.0]], Q=[[2.0]], R=[[2.0]], x0=[0.0], P0=[[1.0]])
     em = tk.fit(templ, y, estimate=("Q", "R"), maxiter=1000, tol=1e-11)
     ll = np.array([e["loglik"] for e in em.trace])
-    assert np.all(np.diff(ll) > -1e-8)                        # EM never decreases the exact likelihood
+    assert np.all(np.diff(ll) > -1e-8)  # EM never decreases the exact likelihood
     assert em.converged and em.method == "em" and em.likelihood == "kalman"
     direct = tk.fit(templ, y, estimate=("Q", "R"), method="direct")
     assert abs(em.loglik - direct.loglik) < 1e-5
@@ -195,24 +198,27 @@ def test_censored_state_space_fit_with_the_assumed_density_likelihood_and_a_stat
     lim = float(np.quantile(y, 0.35))
     yc = np.maximum(y, lim)
     templ = tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[1.0]], R=[[0.5]], x0=[0.0], P0=[[1.0]])
-    em = tk.fit(templ, yc, lower=lim, estimate=("A", "Q", "R"), prior="stationary", maxiter=25, tol=1e-9,
-                standard_errors=False)
+    em = tk.fit(
+        templ, yc, lower=lim, estimate=("A", "Q", "R"), prior="stationary", maxiter=25, tol=1e-9, standard_errors=False
+    )
     assert em.likelihood == "adf" and len(em.trace) == 25
     S = em.system()
     A, Q = S.A.at(0)[0, 0], S.Q.at(0)[0, 0]
-    assert abs(S.P0[0, 0] - Q / (1 - A * A)) < 1e-10                  # the stationary prior, tied to A and Q
+    assert abs(S.P0[0, 0] - Q / (1 - A * A)) < 1e-10  # the stationary prior, tied to A and Q
     ll = np.array([e["loglik"] for e in em.trace])
-    assert ll[-1] > ll[0] + 10 and np.all(np.diff(ll[5:]) > 0)      # the ADF likelihood climbs (not guaranteed)
+    assert ll[-1] > ll[0] + 10 and np.all(np.diff(ll[5:]) > 0)  # the ADF likelihood climbs (not guaranteed)
     # direct maximisation of the same assumed-density likelihood does at least as well
-    direct = tk.fit(templ, yc, lower=lim, estimate=("A", "Q", "R"), prior="stationary", method="direct",
-                    standard_errors=False)
+    direct = tk.fit(
+        templ, yc, lower=lim, estimate=("A", "Q", "R"), prior="stationary", method="direct", standard_errors=False
+    )
     assert direct.converged and direct.loglik >= em.loglik - 1e-6
 
 
 def test_state_space_fit_save_load_forecast_and_residuals(tmp_path):
     system, y = _lgssm(seed=13, T=120)
-    templ = tk.LinearSystem(A=system.A.at(0), C=system.C.at(1), Q=np.eye(2) * 0.5, R=[[0.5]], x0=np.zeros(2),
-                            P0=np.eye(2))
+    templ = tk.LinearSystem(
+        A=system.A.at(0), C=system.C.at(1), Q=np.eye(2) * 0.5, R=[[0.5]], x0=np.zeros(2), P0=np.eye(2)
+    )
     f = tk.fit(templ, y, estimate=("R",), maxiter=100)
     back = load_fit(f.save(tmp_path / "ss.json"), data=f.data)
     np.testing.assert_allclose(back.system().R.at(1), f.system().R.at(1), rtol=0, atol=0)
@@ -236,8 +242,9 @@ def test_fit_errors_name_the_argument():
         tk.fit(lambda th: 3.0, y, theta0=[0.0])
     with pytest.raises(ValidationError, match="template has no D"):
         tk.fit(system, y, estimate=("D",))
-    withD = tk.LinearSystem(A=system.A.at(0), C=system.C.at(1), Q=system.Q.at(0), R=system.R.at(1), x0=system.x0,
-                            P0=system.P0, D=[[0.1]])
+    withD = tk.LinearSystem(
+        A=system.A.at(0), C=system.C.at(1), Q=system.Q.at(0), R=system.R.at(1), x0=system.x0, P0=system.P0, D=[[0.1]]
+    )
     with pytest.raises(ValidationError, match="u: estimating"):
         tk.fit(withD, y, estimate=("D",))
     with pytest.raises(ValidationError, match="p"):

@@ -54,22 +54,27 @@ def test_fit_command_a_state_space_model_by_em(tmp_path):
     y[5] = np.nan
     csv.write_text("y\n" + "\n".join("" if np.isnan(v) else repr(float(v)) for v in y) + "\n")
     model = tmp_path / "m.toml"
-    model.write_text('[data]\ny = "y"\nintercept = false\n[model]\nkind = "state_space"\nA = [[0.8]]\nC = [[1.0]]\n'
-                     'Q = [[1.0]]\nR = [[1.0]]\nx0 = [0.0]\nP0 = [[1.0]]\nestimate = ["Q", "R"]\nmaxiter = 200\n')
+    model.write_text(
+        '[data]\ny = "y"\nintercept = false\n[model]\nkind = "state_space"\nA = [[0.8]]\nC = [[1.0]]\n'
+        'Q = [[1.0]]\nR = [[1.0]]\nx0 = [0.0]\nP0 = [[1.0]]\nestimate = ["Q", "R"]\nmaxiter = 200\n'
+    )
     res = CliRunner().invoke(app, ["fit", str(csv), "--model", str(model), "--out", str(tmp_path / "o")])
     assert res.exit_code == 0, res.output
     rec = json.loads((tmp_path / "o" / "fit.json").read_text())
     assert rec["method"] == "em" and rec["model"]["kind"] == "state_space"
 
 
-@pytest.mark.parametrize("text,match", [
-    ('[data]\ny = "nope"\n', "column 'nope'"),
-    ('[data]\nx = "lP"\n', "unknown key 'x'"),
-    ('[data]\n', "needs y"),
-    ('[data]\ny = "lP"\n[model]\nkind = "nn"\n', "unknown model kind"),
-    ('[data\n', "not valid TOML"),
-    ('[data]\ny = "lP"\nlower = [1]\n', "lower must be"),
-])
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ('[data]\ny = "nope"\n', "column 'nope'"),
+        ('[data]\nx = "lP"\n', "unknown key 'x'"),
+        ("[data]\n", "needs y"),
+        ('[data]\ny = "lP"\n[model]\nkind = "nn"\n', "unknown model kind"),
+        ("[data\n", "not valid TOML"),
+        ('[data]\ny = "lP"\nlower = [1]\n', "lower must be"),
+    ],
+)
 def test_fit_command_errors_name_the_key(tmp_path, text, match):
     model = tmp_path / "m.toml"
     model.write_text(text)
@@ -81,7 +86,7 @@ def test_fit_command_errors_name_the_key(tmp_path, text, match):
 def test_shipped_data_sets_and_their_provenance():
     p = load_phosphorus()
     assert (p.steps, int(p.censored.sum()), int(p.missing.sum())) == (181, 28, 7)
-    np.testing.assert_array_equal(p.y[p.censored], p.lower[p.censored])   # censored readings hold their limit
+    np.testing.assert_array_equal(p.y[p.censored], p.lower[p.censored])  # censored readings hold their limit
     assert set(np.round(np.exp(np.unique(p.lower)), 6)) == {0.02, 0.05, 0.1}
     assert p.design("lQ").shape == (181, 2)
     c = load_cloud_ceiling()

@@ -12,9 +12,19 @@ from scipy.stats import norm
 import tobitkf as tk
 from tobitkf._validation import ShapeError, ValidationError
 from tobitkf.filters.assumed_density import censored_channel_update
-from tobitkf.inference.censored_ar import (CensoredAR, CensoredARData, _log_likelihood, ar_autocovariance,
-                                           ar_state_space, ar_to_pacf, exact_log_likelihood, is_stationary,
-                                           pacf_to_ar, plan_grid, posterior_moments)
+from tobitkf.inference.censored_ar import (
+    CensoredAR,
+    CensoredARData,
+    _log_likelihood,
+    ar_autocovariance,
+    ar_state_space,
+    ar_to_pacf,
+    exact_log_likelihood,
+    is_stationary,
+    pacf_to_ar,
+    plan_grid,
+    posterior_moments,
+)
 
 
 def test_adf_update_of_one_censored_reading_equals_the_quadrature_moments_of_the_posterior():
@@ -25,7 +35,7 @@ def test_adf_update_of_one_censored_reading_equals_the_quadrature_moments_of_the
     x, Pn, _, _, lm = censored_channel_update(m[None], P[None], None, np.array([lim]), c, r, lim, np.inf)
     # exact: p(x | event) ∝ N(x; m, P) Phi((l - c'x)/sqrt(r))
     L = np.linalg.cholesky(P)
-    gx, gw = np.polynomial.hermite_e.hermegauss(80)          # Gauss-Hermite (probabilists') in 2-D
+    gx, gw = np.polynomial.hermite_e.hermegauss(80)  # Gauss-Hermite (probabilists') in 2-D
     W = np.outer(gw, gw) / (2 * np.pi)
     Z = np.stack(np.meshgrid(gx, gx, indexing="ij"), -1).reshape(-1, 2)
     X = m + Z @ L.T
@@ -65,10 +75,13 @@ def _ar1_exact_T3(y, cens_mask, lim, phi, s2):
     return p1 + np.log(val)
 
 
-@pytest.mark.parametrize("y,cens,measured", [
-    ([0.2, 0.0, 0.0], [False, True, True], 3.67e-3),      # two censored readings at the end
-    ([0.2, 0.0, 0.5], [False, True, False], -2.36e-2),    # a censored reading, then an exact one
-])
+@pytest.mark.parametrize(
+    "y,cens,measured",
+    [
+        ([0.2, 0.0, 0.0], [False, True, True], 3.67e-3),  # two censored readings at the end
+        ([0.2, 0.0, 0.5], [False, True, False], -2.36e-2),  # a censored reading, then an exact one
+    ],
+)
 def test_adf_error_on_a_censored_ar1_with_three_steps_against_exact_quadrature(y, cens, measured):
     """Stationary AR(1), phi = 0.8, sigma2 = 1, left-censored at 0, R = 0, T = 3. The ADF log-likelihood
     minus the exact one (nested scipy quadrature): +3.67e-3 and -2.36e-2 (the ``measured`` column). The
@@ -78,8 +91,9 @@ def test_adf_error_on_a_censored_ar1_with_three_steps_against_exact_quadrature(y
     y, cens = np.array(y), np.array(cens)
     exact_nquad = _ar1_exact_T3(y, cens, 0.0, phi, s2)
     exact_grid = exact_log_likelihood(CensoredARData.build(y, lower=0.0), [0.0], s2, [phi])
-    adf = float(tk.adf_log_likelihood(ar_state_space([0.0], s2, [phi]), tk.Censoring(lower=0.0), y[:, None],
-                                      u=np.ones((3, 1))))
+    adf = float(
+        tk.adf_log_likelihood(ar_state_space([0.0], s2, [phi]), tk.Censoring(lower=0.0), y[:, None], u=np.ones((3, 1)))
+    )
     assert abs(exact_grid - exact_nquad) < 1e-9
     assert abs((adf - exact_nquad) - measured) < 1e-4
 
@@ -124,10 +138,12 @@ def test_exact_censored_likelihood_equals_genz_box_probabilities(phi, side):
     cm, cc = W @ y[o], G[np.ix_(c, c)] - W @ G[np.ix_(o, c)]
     bound = np.full(c.sum(), lim)
     sgn = 1.0 if side < 0 else -1.0
-    Ps = [mvn.cdf(sgn * bound, mean=sgn * cm, cov=cc, abseps=1e-13, releps=1e-8, maxpts=10 ** 6, rng=seed)
-          for seed in (1, 2, 3, 4)]
+    Ps = [
+        mvn.cdf(sgn * bound, mean=sgn * cm, cov=cc, abseps=1e-13, releps=1e-8, maxpts=10**6, rng=seed)
+        for seed in (1, 2, 3, 4)
+    ]
     P = float(np.mean(Ps))
-    qmc_err = float(np.std(Ps, ddof=1) / np.sqrt(len(Ps)) / P)     # relative s.e. of the QMC estimate
+    qmc_err = float(np.std(Ps, ddof=1) / np.sqrt(len(Ps)) / P)  # relative s.e. of the QMC estimate
     ref = mvn(cov=G[np.ix_(o, o)]).logpdf(y[o]) + np.log(P)
     # 6 standard errors of the QMC estimate of log P (the quadrature's own error is below 1e-9 here)
     assert abs(exact_log_likelihood(d, [0.0], 1.0, phi) - ref) < 6 * qmc_err + 1e-9
@@ -154,8 +170,11 @@ def test_exact_likelihood_on_the_real_data_has_converged_in_the_quadrature(name,
     s = load_phosphorus() if name == "phosphorus" else load_cloud_ceiling()
     X = s.design("lQ") if name == "phosphorus" else s.design()
     d = CensoredARData.build(s.y, X, s.lower, s.upper, s.censored)
-    th = {("phosphorus", 1): [-4.83, 0.425, 0.311, 0.091], ("phosphorus", 2): [-4.85, 0.429, 0.308, 0.075, 0.118],
-          ("cloud", 1): [4.40, 1.057, 0.876]}[(name, p)]
+    th = {
+        ("phosphorus", 1): [-4.83, 0.425, 0.311, 0.091],
+        ("phosphorus", 2): [-4.85, 0.429, 0.308, 0.075, 0.118],
+        ("cloud", 1): [4.40, 1.057, 0.876],
+    }[(name, p)]
     a = CensoredAR(p).log_likelihood(d, th)
     b = CensoredAR(p, nodes=12, span=10.0, panel_sd=1.0, hermite=24).log_likelihood(d, th)
     assert abs(a - b) < 1e-6
@@ -172,7 +191,7 @@ def test_posterior_moments_equal_brute_force_quadrature():
     s = np.sqrt(s2)
     sb = s / np.sqrt(1 + phi * phi)
 
-    def inner(a, k):                       # int_{b<=0} b^k N(b; phi a) N(y4; phi b) db, k = 0, 1
+    def inner(a, k):  # int_{b<=0} b^k N(b; phi a) N(y4; phi b) db, k = 0, 1
         mb = phi * (a + y4) / (1 + phi * phi)
         c = norm.pdf(y4, phi * phi * a, s * np.sqrt(1 + phi * phi))
         z = -mb / sb
@@ -183,7 +202,7 @@ def test_posterior_moments_equal_brute_force_quadrature():
     Z = q(lambda a: pa(a) * inner(a, 0))
     m2 = q(lambda a: a * pa(a) * inner(a, 0)) / Z
     m3 = q(lambda a: pa(a) * inner(a, 1)) / Z
-    v2 = q(lambda a: a * a * pa(a) * inner(a, 0)) / Z - m2 ** 2
+    v2 = q(lambda a: a * a * pa(a) * inner(a, 0)) / Z - m2**2
     np.testing.assert_allclose(post.mean, [0.5, m2, m3, y4], atol=1e-9)
     assert abs(post.var[1] - v2) < 1e-9
     assert post.var[0] == 0.0 and post.var[3] == 0.0
@@ -257,11 +276,14 @@ def test_adf_filter_indicator_and_errors():
     with pytest.raises(ShapeError, match="censored"):
         _adf(sys_, cens).filter(y, censored=np.zeros((2, 1), bool))
     with pytest.raises(ValidationError, match="diagonal R"):
-        _adf(tk.LinearSystem(A=np.eye(1), C=[[1.0], [1.0]], Q=[[1.0]], R=[[1.0, 0.5], [0.5, 1.0]], x0=[0.0],
-                             P0=[[1.0]]), tk.Censoring(lower=0.0))
+        _adf(
+            tk.LinearSystem(A=np.eye(1), C=[[1.0], [1.0]], Q=[[1.0]], R=[[1.0, 0.5], [0.5, 1.0]], x0=[0.0], P0=[[1.0]]),
+            tk.Censoring(lower=0.0),
+        )
     # the adf likelihood sums the filter's per-step terms
     assert float(tk.adf_log_likelihood(sys_, cens, y, censored=[[False], [False], [True]])) == pytest.approx(
-        float(flagged.extras["log_likelihood"].sum()), abs=1e-12)
+        float(flagged.extras["log_likelihood"].sum()), abs=1e-12
+    )
 
 
 def test_the_deprecated_adfilter_is_the_assumed_density_filter():

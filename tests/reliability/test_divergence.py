@@ -43,18 +43,18 @@ def test_overflow_warns_once_and_gives_nan_never_a_finite_wrong_mean(name, backe
         out = est.filter(y)
     assert len([w for w in rec if "stopped being finite" in str(w.message)]) == 1
     k = int(str(rec[0].message).split("k=")[1].split(" ")[0])
-    assert 800 < k < 950                                     # 2.25^k * P0 passes 1.8e308 near k = 875
+    assert 800 < k < 950  # 2.25^k * P0 passes 1.8e308 near k = 875
     bad = ~np.isfinite(out.mean[0, :, 0])
-    assert bad[k - 1:].all() and not bad[:k - 1].any()       # NaN from the first bad step, finite before
+    assert bad[k - 1 :].all() and not bad[: k - 1].any()  # NaN from the first bad step, finite before
     healthy = out.mean[1]
-    assert np.isfinite(healthy).all() and abs(healthy[-1, 0] - 1.5e5) < 1e4   # the other run is untouched
+    assert np.isfinite(healthy).all() and abs(healthy[-1, 0] - 1.5e5) < 1e4  # the other run is untouched
 
 
 @pytest.mark.parametrize("name", sorted(MAKERS))
 def test_square_root_form_stays_finite_and_returns_to_the_readings(name):
     out = MAKERS[name]("numpy", "square_root").filter(record())
     assert np.isfinite(out.mean).all()
-    assert np.isfinite(out.final.S).all() and np.abs(out.final.S).max() < 1e3   # small again after the readings
+    assert np.isfinite(out.final.S).all() and np.abs(out.final.S).max() < 1e3  # small again after the readings
     # after the readings return, the lost run agrees with the run that never lost them
     np.testing.assert_allclose(out.mean[0, -1], out.mean[1, -1], rtol=1e-6)
 

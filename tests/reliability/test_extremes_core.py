@@ -17,8 +17,14 @@ def assert_healthy(out, tol=1e-9):
 
 def oscillator(**kw):
     w = 0.05
-    args = dict(A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2),
-                R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    args = dict(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]],
+        C=[[1.0, 0.0]],
+        Q=0.01 * np.eye(2),
+        R=[[0.1]],
+        x0=[0.0, 0.0],
+        P0=0.05 * np.eye(2),
+    )
     args.update(kw)
     return tk.LinearSystem(**args)
 
@@ -52,10 +58,10 @@ def test_limits_far_inside_and_outside_the_predicted_mean(shift):
     y = np.full((4, T, 1), max(shift, 0.0) if shift > 0 else 0.5)
     out = tk.TobitKalmanFilter(sys_, cens).filter(y)
     assert_healthy(out)
-    if shift > 0:   # every reading censored far above the prediction: the update changes nothing
+    if shift > 0:  # every reading censored far above the prediction: the update changes nothing
         np.testing.assert_allclose(out.mean, 0.0, atol=1e-12)
         np.testing.assert_allclose(out.cov[0, :, 0, 0], 1.0 + 0.01 * np.arange(1, T + 1), rtol=1e-12)
-    else:           # limit far below: the TKF is the KF
+    else:  # limit far below: the TKF is the KF
         kf = tk.KalmanFilter(sys_).filter(y)
         np.testing.assert_allclose(out.mean, kf.mean, atol=1e-12)
 

@@ -20,16 +20,16 @@ import pytest
 import tobitkf as tk
 from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
+from tobitkf.design.hinf import WANG2010_PAPER
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
-from tobitkf.design.hinf import WANG2010_PAPER
 from tobitkf.filters.hinf import RegionalHinfFilter
-from tobitkf.simulate.ross import simulate_ross, wang2010_disturbances
-from tobitkf.models.ross import wang2010_model
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior
+from tobitkf.models.ross import wang2010_model
 from tobitkf.simulate.delay import simulate_delay
+from tobitkf.simulate.ross import simulate_ross, wang2010_disturbances
 
 
 def assert_healthy(mean, cov, pred_cov=None, tol=1e-9):
@@ -45,8 +45,14 @@ def assert_healthy(mean, cov, pred_cov=None, tol=1e-9):
 
 
 W = 0.05
-BASE = dict(A=[[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]],
-            x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+BASE = dict(
+    A=[[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]],
+    C=[[1.0, 0.0]],
+    Q=0.01 * np.eye(2),
+    R=[[0.1]],
+    x0=[0.0, 0.0],
+    P0=0.05 * np.eye(2),
+)
 CASES = {
     "P0 huge (1e8)": dict(P0=1e8 * np.eye(2)),
     "P0 tiny (1e-12)": dict(P0=1e-12 * np.eye(2)),
@@ -58,7 +64,7 @@ CASES = {
 }
 NOMINAL = tk.LinearSystem(**BASE)
 CENS = tk.Censoring(lower=0.0)
-DATA = tk.simulate(NOMINAL, 150, 4, censoring=CENS, seed=3)   # data from the nominal model
+DATA = tk.simulate(NOMINAL, 150, 4, censoring=CENS, seed=3)  # data from the nominal model
 
 
 def system(case):
@@ -70,7 +76,8 @@ def system(case):
 def test_fading_filters_extremes(case, form):
     s = system(case)
     out = FadingTobitKalmanFilter(s, RiceFading(2, [0.95, 0.75, 0.85]), CENS, covariance_update=form).filter(
-        DATA.y, keep_smoothed=False)
+        DATA.y, keep_smoothed=False
+    )
     assert_healthy(out.mean, out.cov, out.pred_cov)
     out = FadingKalmanFilter(s, RiceFading(1, [0.9, 0.5]), covariance_update=form).filter(DATA.y, keep_smoothed=False)
     assert_healthy(out.mean, out.cov, out.pred_cov)
@@ -106,31 +113,45 @@ def test_limits_40_sigma_from_the_prediction_all_families(shift):
     kf = tk.KalmanFilter(s).filter(y)
     for out in (fad, prot):
         assert_healthy(out.mean, out.cov, out.pred_cov)
-        if shift > 0:   # every reading censored 40 sigma above the prediction: nothing learnt
+        if shift > 0:  # every reading censored 40 sigma above the prediction: nothing learnt
             np.testing.assert_allclose(out.mean, 0.0, atol=1e-12)
             np.testing.assert_allclose(out.cov[0, :, 0, 0], 1.0 + 0.01 * np.arange(1, T + 1), rtol=1e-12)
-        else:           # limit 40 sigma below: the Kalman filter
+        else:  # limit 40 sigma below: the Kalman filter
             np.testing.assert_allclose(out.mean, kf.mean, atol=1e-10)
 
 
 DELAY_CASES = {
-    "nominal": {}, "Qw near singular": dict(Qw=1e-12, S=np.sqrt(1e-12 * 0.3)), "Qv near singular": dict(Qv=1e-12, S=0.0),
-    "S at the singular bound": dict(S=np.sqrt(0.3 * 0.3)), "ill-conditioned A": dict(A=[[1.0, 1e4], [0.0, 1.0]]),
+    "nominal": {},
+    "Qw near singular": dict(Qw=1e-12, S=np.sqrt(1e-12 * 0.3)),
+    "Qv near singular": dict(Qv=1e-12, S=0.0),
+    "S at the singular bound": dict(S=np.sqrt(0.3 * 0.3)),
+    "ill-conditioned A": dict(A=[[1.0, 1e4], [0.0, 1.0]]),
 }
 
 
 @pytest.mark.parametrize("case", list(DELAY_CASES))
 @pytest.mark.parametrize("prior_var", [1e8, 1e-12])
 def test_delay_filters_extremes(case, prior_var):
-    kw = dict(A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=0.3, d=2,
-              fading=FadingPMF([0.95, 0.98, 1.0], [0.05, 0.15, 0.8]))
+    kw = dict(
+        A=[[0.4, 0.7], [0.2, 0.6]],
+        H=[[0.5, 1.0]],
+        Gamma=[[1.0], [1.0]],
+        Qw=0.3,
+        Qv=0.3,
+        S=0.3,
+        d=2,
+        fading=FadingPMF([0.95, 0.98, 1.0], [0.05, 0.15, 0.8]),
+    )
     kw.update(DELAY_CASES[case])
     sys_ = DelayFadingSystem(**kw)
     truth_sys = DelayFadingSystem(**{**kw, "A": [[0.4, 0.7], [0.2, 0.6]]})
     prior = HistoryPrior.repeated(np.zeros(2), prior_var * np.eye(2), 2)
     data = simulate_delay(truth_sys, HistoryPrior.repeated(np.zeros(2), np.eye(2), 2), 60, 3, seed=1)
-    for est in (chain_lmmse(sys_, prior, data.y), augmented_lmmse(sys_, prior, data.y),
-                reorganized_lmmse(sys_, prior, data.y)):
+    for est in (
+        chain_lmmse(sys_, prior, data.y),
+        augmented_lmmse(sys_, prior, data.y),
+        reorganized_lmmse(sys_, prior, data.y),
+    ):
         assert_healthy(est.mean, est.cov, est.pred_cov)
 
 
@@ -156,9 +177,10 @@ def _hard_case():
 
 def test_huge_prior_with_near_singular_R_each_alone_is_fine():
     s, data = _hard_case()
-    for kw in (dict(R=1e-2 * np.eye(2)), dict(P0=np.eye(3))):   # either extreme alone
-        s1 = tk.LinearSystem(A=s.A.array, C=s.C.array, Q=s.Q.array, R=kw.get("R", s.R.array), x0=s.x0,
-                             P0=kw.get("P0", s.P0))
+    for kw in (dict(R=1e-2 * np.eye(2)), dict(P0=np.eye(3))):  # either extreme alone
+        s1 = tk.LinearSystem(
+            A=s.A.array, C=s.C.array, Q=s.Q.array, R=kw.get("R", s.R.array), x0=s.x0, P0=kw.get("P0", s.P0)
+        )
         for form in ("standard", "joseph"):
             out = tk.KalmanFilter(s1, covariance_update=form).filter(data.y)
             assert_healthy(out.mean, out.cov, out.pred_cov)
@@ -167,14 +189,19 @@ def test_huge_prior_with_near_singular_R_each_alone_is_fine():
 _NEEDS_SQRT = "P0/R = 1e20 with an unseen direction: needs the square-root form (covariance_update='square_root')"
 
 
-@pytest.mark.parametrize("form", [
-    pytest.param("standard", marks=pytest.mark.xfail(strict=True, reason=_NEEDS_SQRT + "; the plain form stays "
-                                                                         "indefinite (-3 x scale)")),
-    # the Joseph form is at rounding level here (-6e-3 x its own scale, within 1e-9 of the prior's
-    # scale as measured today; it moves with any change of rounding): not strict
-    pytest.param("joseph", marks=pytest.mark.xfail(strict=False, reason=_NEEDS_SQRT)),
-    "square_root",
-])
+@pytest.mark.parametrize(
+    "form",
+    [
+        pytest.param(
+            "standard",
+            marks=pytest.mark.xfail(strict=True, reason=_NEEDS_SQRT + "; the plain form stays indefinite (-3 x scale)"),
+        ),
+        # the Joseph form is at rounding level here (-6e-3 x its own scale, within 1e-9 of the prior's
+        # scale as measured today; it moves with any change of rounding): not strict
+        pytest.param("joseph", marks=pytest.mark.xfail(strict=False, reason=_NEEDS_SQRT)),
+        "square_root",
+    ],
+)
 def test_huge_prior_with_near_singular_R_together_needs_square_root_form(form):
     s, data = _hard_case()
     out = tk.KalmanFilter(s, covariance_update=form).filter(data.y)
@@ -191,8 +218,10 @@ def _decimal_kf(s, y):
         return [[Decimal(float(v)) for v in row] for row in np.atleast_2d(a)]
 
     def mul(X, Y):
-        return [[sum((X[i][k] * Y[k][j] for k in range(len(Y))), Decimal(0)) for j in range(len(Y[0]))]
-                for i in range(len(X))]
+        return [
+            [sum((X[i][k] * Y[k][j] for k in range(len(Y))), Decimal(0)) for j in range(len(Y[0]))]
+            for i in range(len(X))
+        ]
 
     def tr(X):
         return [list(r) for r in zip(*X)]
@@ -200,7 +229,7 @@ def _decimal_kf(s, y):
     def add(X, Y, sign=1):
         return [[a + sign * b for a, b in zip(r, q)] for r, q in zip(X, Y)]
 
-    def solve(M, B):   # Gauss-Jordan with partial pivoting, M (m, m), B (m, r)
+    def solve(M, B):  # Gauss-Jordan with partial pivoting, M (m, m), B (m, r)
         m = len(M)
         W = [list(M[i]) + list(B[i]) for i in range(m)]
         for c in range(m):
@@ -222,7 +251,7 @@ def _decimal_kf(s, y):
             P = add(mul(mul(A, P), tr(A)), Q)
             pcovs.append([[float(v) for v in r] for r in P])
             PCt = mul(P, tr(C))
-            K = tr(solve(add(mul(C, PCt), R), tr(PCt)))          # P C^T Ree^{-1} (Ree symmetric)
+            K = tr(solve(add(mul(C, PCt), R), tr(PCt)))  # P C^T Ree^{-1} (Ree symmetric)
             x = add(x, mul(K, add([[Decimal(float(v))] for v in yk], mul(C, x), -1)))
             P = add(P, mul(K, tr(PCt)), -1)
             means.append([float(v[0]) for v in x])
@@ -244,8 +273,10 @@ def test_square_root_form_matches_a_60_digit_reference_on_the_hard_case():
     tkf_batch = tk.TobitKalmanFilter(s, tk.Censoring(), covariance_update="square_root").filter(data.y)
     for r in range(data.y.shape[0]):
         mean, cov, pcov = _decimal_kf(s, data.y[r])
-        for out in (tk.KalmanFilter(s, covariance_update="square_root").filter(data.y[r]),
-                    tk.TobitKalmanFilter(s, tk.Censoring(), covariance_update="square_root").filter(data.y[r])):
+        for out in (
+            tk.KalmanFilter(s, covariance_update="square_root").filter(data.y[r]),
+            tk.TobitKalmanFilter(s, tk.Censoring(), covariance_update="square_root").filter(data.y[r]),
+        ):
             err = np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)
             assert err.max() <= 1e-6, err.max()
             for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
@@ -254,7 +285,7 @@ def test_square_root_form_matches_a_60_digit_reference_on_the_hard_case():
                 eig = np.linalg.eigvalsh(got)
                 assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2)))
         np.testing.assert_allclose(tkf_batch.mean[r], mean, rtol=0, atol=1e-6 * np.abs(mean).max())
-        for form in ("standard", "joseph"):    # the criterion fails the forms that lose PSD here
+        for form in ("standard", "joseph"):  # the criterion fails the forms that lose PSD here
             old = tk.KalmanFilter(s, covariance_update=form).filter(data.y[r])
             assert (np.abs(old.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() > 1e-3
 
@@ -270,8 +301,10 @@ def test_square_root_form_of_the_augmented_families_on_the_hard_case():
     s, data = _hard_case()
     s1 = tk.LinearSystem(A=s.A.array, C=s.C.array[:1], Q=s.Q.array, R=s.R.array[:1, :1], x0=s.x0, P0=s.P0)
     y1 = data.y[..., :1]
-    cases = [(s, data.y, lambda f: FadingTobitKalmanFilter(s, RiceFading(0, [1.0]), None, covariance_update=f)),
-             (s1, y1, lambda f: tk.ProtocolTobitKalmanFilter(s1, ProtocolChannel(1), covariance_update=f))]
+    cases = [
+        (s, data.y, lambda f: FadingTobitKalmanFilter(s, RiceFading(0, [1.0]), None, covariance_update=f)),
+        (s1, y1, lambda f: tk.ProtocolTobitKalmanFilter(s1, ProtocolChannel(1), covariance_update=f)),
+    ]
     for sys_, y, make in cases:
         for r in range(y.shape[0]):
             mean, cov, pcov = _decimal_kf(sys_, y[r])
@@ -306,7 +339,7 @@ def test_diverging_fixed_gain_tobit_observer_warns_instead_of_returning_nan_sile
     with np.errstate(over="ignore", invalid="ignore"), pytest.warns(RuntimeWarning, match="diverged .* run 0 at step"):
         out = SteadyStateTobitKalmanFilter(s, 0.1).filter_controlled(d.y_latent)
     assert not np.isfinite(out.mean).all()
-    with np.errstate(over="ignore", invalid="ignore"):   # Xi = 0.5: stable on the same data, no warning
+    with np.errstate(over="ignore", invalid="ignore"):  # Xi = 0.5: stable on the same data, no warning
         import warnings
 
         with warnings.catch_warnings():

@@ -22,18 +22,18 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 import tobitkf as tk
-from tobitkf import ShapeError, ValidationError
+from tobitkf import ValidationError
 from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.channels.saturation import RandomSaturation
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
-from tobitkf.models.ross import RossModel
 from tobitkf.filters.hinf import RegionalHinfFilter
-from tobitkf.simulate.ross import simulate_ross
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior
+from tobitkf.models.ross import RossModel
+from tobitkf.simulate.ross import simulate_ross
 
 TIME_LIMIT = 30.0  # seconds per example: far above any legitimate example here (< 1 s)
 
@@ -41,6 +41,7 @@ TIME_LIMIT = 30.0  # seconds per example: far above any legitimate example here 
 @contextlib.contextmanager
 def no_hang(seconds: float = TIME_LIMIT):
     """Fail (instead of hanging) when the body runs longer than ``seconds``."""
+
     def on_alarm(signum, frame):
         raise TimeoutError(f"example ran longer than {seconds} s")
 
@@ -71,7 +72,7 @@ def assert_healthy(mean, cov, ref_scale=None, tol=1e-9):
 # strategies
 # ---------------------------------------------------------------------------------------
 def log_uniform(lo, hi):
-    return st.floats(np.log10(lo), np.log10(hi)).map(lambda e: 10.0 ** e)
+    return st.floats(np.log10(lo), np.log10(hi)).map(lambda e: 10.0**e)
 
 
 @st.composite
@@ -121,41 +122,68 @@ def scenarios(draw, **kw):
 # ---------------------------------------------------------------------------------------
 # valid inputs: finite, symmetric, PSD
 # ---------------------------------------------------------------------------------------
-@given(scenarios(), st.sampled_from(["standard", "joseph", "square_root"]),
-       st.sampled_from(["dissertation", "total_variance", "exact_pv"]), st.sampled_from(["auto", "numpy"]))
+@given(
+    scenarios(),
+    st.sampled_from(["standard", "joseph", "square_root"]),
+    st.sampled_from(["dissertation", "total_variance", "exact_pv"]),
+    st.sampled_from(["auto", "numpy"]),
+)
 def test_core_filters_valid_inputs_are_healthy(scn, form, noise_term, backend):
     """``auto`` is the compiled kernel when numba is installed, ``numpy`` the reference path."""
     sys_, cens, data = scn
     with no_hang():
-        for out in (tk.KalmanFilter(sys_, covariance_update=form, backend=backend).filter(data.y),
-                    tk.DroppingKalmanFilter(sys_, cens, covariance_update=form).filter(data.y),
-                    tk.TobitKalmanFilter(sys_, cens, noise_term=noise_term, covariance_update=form,
-                                         backend=backend).filter(data.y)):
+        for out in (
+            tk.KalmanFilter(sys_, covariance_update=form, backend=backend).filter(data.y),
+            tk.DroppingKalmanFilter(sys_, cens, covariance_update=form).filter(data.y),
+            tk.TobitKalmanFilter(sys_, cens, noise_term=noise_term, covariance_update=form, backend=backend).filter(
+                data.y
+            ),
+        ):
             assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
             assert_healthy(out.pred_mean, out.pred_cov)
 
 
-@given(scenarios(m_max=2, n_max=2), st.integers(0, 2), st.sampled_from(["joseph", "standard"]),
-       st.sampled_from(["augmented", "eq6_stale"]), st.booleans(), st.booleans())
+@given(
+    scenarios(m_max=2, n_max=2),
+    st.integers(0, 2),
+    st.sampled_from(["joseph", "standard"]),
+    st.sampled_from(["augmented", "eq6_stale"]),
+    st.booleans(),
+    st.booleans(),
+)
 def test_fading_filters_valid_inputs_are_healthy(scn, order, form, mode, fvt, exact):
     sys_, cens, data = scn
     rng = np.random.default_rng(order)
     fad = RiceFading.gaussian(order, rng.uniform(0.2, 1.0, order + 1), rng.uniform(0.0, 0.05, order + 1))
     y = data.y  # measurements from the unfaded model: a mis-specified but valid record
     with no_hang():
-        out = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update=form, p_uncensored_mode=mode,
-                                      fading_variance_term=fvt, exact_tobit_variance=exact).filter(y, keep_smoothed=False)
+        out = FadingTobitKalmanFilter(
+            sys_,
+            fad,
+            cens,
+            covariance_update=form,
+            p_uncensored_mode=mode,
+            fading_variance_term=fvt,
+            exact_tobit_variance=exact,
+        ).filter(y, keep_smoothed=False)
         assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
-        out = FadingKalmanFilter(sys_, fad, covariance_update=form, fading_variance_term=fvt).filter(y, keep_smoothed=False)
+        out = FadingKalmanFilter(sys_, fad, covariance_update=form, fading_variance_term=fvt).filter(
+            y, keep_smoothed=False
+        )
         assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
 
 
-@given(models(m_max=2, n_max=2), st.floats(0.05, 0.95), st.sampled_from(["upper", "lower"]), st.integers(1, 15),
-       st.integers(0, 2**31))
+@given(
+    models(m_max=2, n_max=2),
+    st.floats(0.05, 0.95),
+    st.sampled_from(["upper", "lower"]),
+    st.integers(1, 15),
+    st.integers(0, 2**31),
+)
 def test_steady_state_filters_valid_inputs_are_healthy(sys_, xi, side, steps, seed):
     try:
         f = SteadyStateTobitKalmanFilter(sys_, xi, side=side)
-    except ValidationError as exc:      # no stabilizing DARE solution: refused with a clear message
+    except ValidationError as exc:  # no stabilizing DARE solution: refused with a clear message
         assert "DARE" in str(exc)
         return
     data = tk.simulate(sys_, steps, 2, seed=seed)
@@ -166,12 +194,17 @@ def test_steady_state_filters_valid_inputs_are_healthy(sys_, xi, side, steps, se
         assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
 
 
-@given(models(m_max=3, n_max=2), st.integers(0, 2), st.floats(-1.0, 1.0), st.integers(1, 15), st.integers(0, 2**31),
-       st.sampled_from(["variance", "literal", "second_moment", "lmmse_unconditional"]),
-       st.sampled_from(["joseph", "standard"]))
+@given(
+    models(m_max=3, n_max=2),
+    st.integers(0, 2),
+    st.floats(-1.0, 1.0),
+    st.integers(1, 15),
+    st.integers(0, 2**31),
+    st.sampled_from(["variance", "literal", "second_moment", "lmmse_unconditional"]),
+    st.sampled_from(["joseph", "standard"]),
+)
 def test_protocol_filter_valid_inputs_are_healthy(sys_, window, tau, steps, seed, term, form):
-    ch = ProtocolChannel(sys_.m, window=window, threshold=tau,
-                         failures=tk.laws.PMF([0.0, 0.5, 1.0], [0.1, 0.2, 0.7]))
+    ch = ProtocolChannel(sys_.m, window=window, threshold=tau, failures=tk.laws.PMF([0.0, 0.5, 1.0], [0.1, 0.2, 0.7]))
     data = tk.simulate(sys_, steps, 2, seed=seed, channel=ch)
     with no_hang():
         out = ProtocolTobitKalmanFilter(sys_, ch, failure_term=term, covariance_update=form).filter(data.y)
@@ -188,8 +221,9 @@ def delay_models(draw):
     Qw, Qv = draw(log_uniform(1e-4, 1.0)), draw(log_uniform(1e-3, 1.0))
     S = draw(st.floats(-1.0, 1.0)) * np.sqrt(Qw * Qv)
     fading = draw(st.sampled_from([None, FadingPMF([0.0, 0.5, 1.0], [0.1, 0.2, 0.7])]))
-    sys_ = DelayFadingSystem(A=A, H=rng.normal(size=(1, n)), Gamma=rng.normal(size=(n, 1)), Qw=Qw, Qv=Qv, S=S, d=d,
-                             fading=fading)
+    sys_ = DelayFadingSystem(
+        A=A, H=rng.normal(size=(1, n)), Gamma=rng.normal(size=(n, 1)), Qw=Qw, Qv=Qv, S=S, d=d, fading=fading
+    )
     prior = HistoryPrior.repeated(rng.normal(size=n), draw(log_uniform(1e-4, 10.0)) * np.eye(n), d)
     return sys_, prior
 
@@ -201,21 +235,38 @@ def test_delay_filters_valid_inputs_are_healthy(model, steps, seed):
     sys_, prior = model
     data = simulate_delay(sys_, prior, steps, 2, seed=seed)
     with no_hang():
-        for est in (chain_lmmse(sys_, prior, data.y), augmented_lmmse(sys_, prior, data.y),
-                    reorganized_lmmse(sys_, prior, data.y)):
+        for est in (
+            chain_lmmse(sys_, prior, data.y),
+            augmented_lmmse(sys_, prior, data.y),
+            reorganized_lmmse(sys_, prior, data.y),
+        ):
             assert_healthy(est.mean, est.cov, np.abs(est.pred_cov).max(axis=(-1, -2)))
 
 
-@given(st.integers(1, 3), st.integers(1, 2), st.integers(0, 2**32 - 1), st.floats(0.0, 1.0), st.floats(0.0, 1.0),
-       st.integers(1, 20))
+@given(
+    st.integers(1, 3),
+    st.integers(1, 2),
+    st.integers(0, 2**32 - 1),
+    st.floats(0.0, 1.0),
+    st.floats(0.0, 1.0),
+    st.integers(1, 20),
+)
 def test_hinf_filter_and_ross_simulation_are_finite(n, m, seed, mu, nu, steps):
     rng = np.random.default_rng(seed)
     Af = rng.normal(size=(n, n))
     Af *= 0.9 / max(np.abs(np.linalg.eigvals(Af)).max(), 1e-12)
     U1 = -0.2 * np.eye(n)
-    model = RossModel.create(B=rng.normal(size=(n, 1)), M=rng.normal(size=(1, n)), U1=0.5 * np.eye(n), U2=U1,
-                             C=rng.normal(size=(m, n)), D=np.ones(m), mu=[mu] * m, nu=[nu] * m,
-                             f=lambda x: 0.3 * np.tanh(x))
+    model = RossModel.create(
+        B=rng.normal(size=(n, 1)),
+        M=rng.normal(size=(1, n)),
+        U1=0.5 * np.eye(n),
+        U2=U1,
+        C=rng.normal(size=(m, n)),
+        D=np.ones(m),
+        mu=[mu] * m,
+        nu=[nu] * m,
+        f=lambda x: 0.3 * np.tanh(x),
+    )
     with no_hang():
         sim = simulate_ross(model, steps, 2, x0=rng.normal(size=n), w=rng.normal(size=(steps, 1)), seed=seed)
         out = RegionalHinfFilter(Af, rng.normal(size=(n, m)), model.M).filter(sim.y)
@@ -232,8 +283,12 @@ def test_nan_sample_is_skipped_like_a_dropped_packet(scn, data_):
     k = data_.draw(st.integers(0, T - 1))
     y = data.y.copy()
     y[:, k, 0] = np.nan
-    filters = [tk.KalmanFilter(sys_), tk.DroppingKalmanFilter(sys_, cens), tk.TobitKalmanFilter(sys_, cens),
-               FadingTobitKalmanFilter(sys_, RiceFading(0, [1.0]), cens)]
+    filters = [
+        tk.KalmanFilter(sys_),
+        tk.DroppingKalmanFilter(sys_, cens),
+        tk.TobitKalmanFilter(sys_, cens),
+        FadingTobitKalmanFilter(sys_, RiceFading(0, [1.0]), cens),
+    ]
     with no_hang():
         for f in filters:
             out = f.filter(y)
@@ -243,8 +298,9 @@ def test_nan_sample_is_skipped_like_a_dropped_packet(scn, data_):
     # the KF with a NaN equals the KF told to skip that sample (a dropped packet)
     filled = np.where(np.isnan(y), 0.0, y)
     skip = np.isnan(y)
-    np.testing.assert_allclose(tk.kalman_filter(sys_, y).mean, tk.kalman_filter(sys_, filled, skip=skip).mean,
-                               rtol=0, atol=0)
+    np.testing.assert_allclose(
+        tk.kalman_filter(sys_, y).mean, tk.kalman_filter(sys_, filled, skip=skip).mean, rtol=0, atol=0
+    )
 
 
 @given(scenarios(), st.data())
@@ -256,8 +312,11 @@ def test_reading_outside_the_limits_is_refused(scn, data_):
     t, ch = finite[data_.draw(st.integers(0, len(finite) - 1))]
     y = data.y.copy()
     y[0, t, ch] = (lo[t, ch] - 1.0 - abs(lo[t, ch])) if np.isfinite(lo[t, ch]) else (hi[t, ch] + 1.0 + abs(hi[t, ch]))
-    for f in (tk.TobitKalmanFilter(sys_, cens), tk.DroppingKalmanFilter(sys_, cens),
-              FadingTobitKalmanFilter(sys_, RiceFading(0, [1.0]), cens)):
+    for f in (
+        tk.TobitKalmanFilter(sys_, cens),
+        tk.DroppingKalmanFilter(sys_, cens),
+        FadingTobitKalmanFilter(sys_, RiceFading(0, [1.0]), cens),
+    ):
         with pytest.raises(ValidationError, match=r"^y: measurement .* outside its censoring limits"):
             f.filter(y)
 
@@ -286,18 +345,22 @@ def corrupt(value, how, rng):
         v = v.copy()
         v[0, -1] += 1.0 + abs(v[0, -1])
         if v.shape[0] == 1:
-            v = np.array([[1.0, 2.0], [0.0, 1.0]])   # also the wrong shape for n = 1: refused either way
+            v = np.array([[1.0, 2.0], [0.0, 1.0]])  # also the wrong shape for n = 1: refused either way
     return v
 
 
-@given(models(), st.sampled_from(ARGS),
-       st.sampled_from(["nan", "inf", "shape", "ndim", "text", "indefinite", "asymmetric"]), st.integers(0, 2**31))
+@given(
+    models(),
+    st.sampled_from(ARGS),
+    st.sampled_from(["nan", "inf", "shape", "ndim", "text", "indefinite", "asymmetric"]),
+    st.integers(0, 2**31),
+)
 def test_corrupted_model_argument_is_refused_by_name(sys_, arg, how, seed):
     if how in ("indefinite", "asymmetric") and arg not in ("Q", "R", "P0"):
         how = "nan"
     args = {"A": sys_.A.array, "C": sys_.C.array, "Q": sys_.Q.array, "R": sys_.R.array, "x0": sys_.x0, "P0": sys_.P0}
     args[arg] = corrupt(args[arg], how, np.random.default_rng(seed))
-    with pytest.raises(ValidationError) as info:   # ShapeError is a ValidationError
+    with pytest.raises(ValidationError) as info:  # ShapeError is a ValidationError
         tk.LinearSystem(**args)
     named = str(info.value).split(":", 1)[0]
     # the corrupted argument, or (for shape errors detected by conformity) the one it must match
@@ -308,26 +371,34 @@ FILTER_KINDS = ["KF", "DKF", "TKF", "FTKF", "FKF", "PTKF"]
 
 
 def make_filter(kind, sys_, cens):
-    return {"KF": lambda: tk.KalmanFilter(sys_), "DKF": lambda: tk.DroppingKalmanFilter(sys_, cens),
-            "TKF": lambda: tk.TobitKalmanFilter(sys_, cens),
-            "FTKF": lambda: FadingTobitKalmanFilter(sys_, RiceFading(1, [0.9, 0.4]), cens),
-            "FKF": lambda: FadingKalmanFilter(sys_, RiceFading(1, [0.9, 0.4])),
-            "PTKF": lambda: ProtocolTobitKalmanFilter(sys_, ProtocolChannel(sys_.m))}[kind]()
+    return {
+        "KF": lambda: tk.KalmanFilter(sys_),
+        "DKF": lambda: tk.DroppingKalmanFilter(sys_, cens),
+        "TKF": lambda: tk.TobitKalmanFilter(sys_, cens),
+        "FTKF": lambda: FadingTobitKalmanFilter(sys_, RiceFading(1, [0.9, 0.4]), cens),
+        "FKF": lambda: FadingKalmanFilter(sys_, RiceFading(1, [0.9, 0.4])),
+        "PTKF": lambda: ProtocolTobitKalmanFilter(sys_, ProtocolChannel(sys_.m)),
+    }[kind]()
 
 
-@given(scenarios(), st.sampled_from(FILTER_KINDS),
-       st.sampled_from(["inf", "text", "channels", "ndim1", "empty", "ragged", "complex"]))
+@given(
+    scenarios(),
+    st.sampled_from(FILTER_KINDS),
+    st.sampled_from(["inf", "text", "channels", "ndim1", "empty", "ragged", "complex"]),
+)
 def test_corrupted_measurements_are_refused_by_name(scn, kind, how):
     sys_, cens, data = scn
     f = make_filter(kind, sys_, cens)
     y = data.y.copy() if kind != "PTKF" else data.y[..., :1].copy()
-    bad = {"inf": lambda: np.where(np.arange(y.size).reshape(y.shape) == 0, np.inf, y),
-           "text": lambda: "y",
-           "channels": lambda: np.concatenate([y, y], axis=-1),
-           "ndim1": lambda: y.reshape(-1)[:0] if kind == "PTKF" else y.reshape(-1),
-           "empty": lambda: y[:, :0],
-           "ragged": lambda: [[1.0], [1.0, 2.0]],
-           "complex": lambda: y * (1 + 1j)}[how]()
+    bad = {
+        "inf": lambda: np.where(np.arange(y.size).reshape(y.shape) == 0, np.inf, y),
+        "text": lambda: "y",
+        "channels": lambda: np.concatenate([y, y], axis=-1),
+        "ndim1": lambda: y.reshape(-1)[:0] if kind == "PTKF" else y.reshape(-1),
+        "empty": lambda: y[:, :0],
+        "ragged": lambda: [[1.0], [1.0, 2.0]],
+        "complex": lambda: y * (1 + 1j),
+    }[how]()
     with pytest.raises(ValidationError, match=r"^y"):
         f.filter(bad)
 
@@ -335,14 +406,40 @@ def test_corrupted_measurements_are_refused_by_name(scn, kind, how):
 @given(scenarios(), st.sampled_from(FILTER_KINDS[:5]), st.text(min_size=1, max_size=8))
 def test_unknown_option_values_and_keywords_are_refused(scn, kind, word):
     sys_, cens, _ = scn
-    option = {"KF": "covariance_update", "DKF": "covariance_update", "TKF": "noise_term",
-              "FTKF": "p_uncensored_mode", "FKF": "covariance_update"}[kind]
-    assume(word not in ("standard", "joseph", "square_root", "dissertation", "total_variance", "exact_pv",
-                        "augmented", "eq6_stale"))
-    cls = {"KF": tk.KalmanFilter, "DKF": tk.DroppingKalmanFilter, "TKF": tk.TobitKalmanFilter,
-           "FTKF": FadingTobitKalmanFilter, "FKF": FadingKalmanFilter}[kind]
-    pos = {"KF": (sys_,), "DKF": (sys_, cens), "TKF": (sys_, cens), "FTKF": (sys_, RiceFading(0, [1.0]), cens),
-           "FKF": (sys_, RiceFading(0, [1.0]))}[kind]
+    option = {
+        "KF": "covariance_update",
+        "DKF": "covariance_update",
+        "TKF": "noise_term",
+        "FTKF": "p_uncensored_mode",
+        "FKF": "covariance_update",
+    }[kind]
+    assume(
+        word
+        not in (
+            "standard",
+            "joseph",
+            "square_root",
+            "dissertation",
+            "total_variance",
+            "exact_pv",
+            "augmented",
+            "eq6_stale",
+        )
+    )
+    cls = {
+        "KF": tk.KalmanFilter,
+        "DKF": tk.DroppingKalmanFilter,
+        "TKF": tk.TobitKalmanFilter,
+        "FTKF": FadingTobitKalmanFilter,
+        "FKF": FadingKalmanFilter,
+    }[kind]
+    pos = {
+        "KF": (sys_,),
+        "DKF": (sys_, cens),
+        "TKF": (sys_, cens),
+        "FTKF": (sys_, RiceFading(0, [1.0]), cens),
+        "FKF": (sys_, RiceFading(0, [1.0])),
+    }[kind]
     with pytest.raises(ValidationError, match=f"^{option}: expected one of"):
         cls(*pos, **{option: word})
     with pytest.raises(TypeError):
@@ -372,8 +469,14 @@ def test_probabilities_any_values(mu, nu):
             RandomSaturation(mu, [nu] * len(mu))
 
 
-@given(models(m_max=2, n_max=3), st.sampled_from(["kf", "tkf", "tkf-moving", "sstkf"]), st.floats(0.1, 0.9),
-       st.floats(-1.0, 1.0), st.integers(1, 15), st.integers(0, 2**31))
+@given(
+    models(m_max=2, n_max=3),
+    st.sampled_from(["kf", "tkf", "tkf-moving", "sstkf"]),
+    st.floats(0.1, 0.9),
+    st.floats(-1.0, 1.0),
+    st.integers(1, 15),
+    st.integers(0, 2**31),
+)
 def test_closed_loop_valid_inputs_are_healthy(sys_, observer, xi, limit, steps, seed):
     from tobitkf.control import dlqr, simulate_closed_loop
 
@@ -383,14 +486,14 @@ def test_closed_loop_valid_inputs_are_healthy(sys_, observer, xi, limit, steps, 
     plant = tk.LinearSystem(A=A, C=sys_.C.array, Q=sys_.Q.array, R=sys_.R.array, x0=sys_.x0, P0=sys_.P0, Bu=Bu)
     try:
         K = dlqr(A, Bu, np.eye(sys_.n), [[1.0]]).gain
-    except ValidationError as exc:      # not stabilizable: refused by name
+    except ValidationError as exc:  # not stabilizable: refused by name
         assert "stabiliz" in str(exc)
         return
     kw = {"censoring": tk.Censoring(upper=limit)} if observer in ("kf", "tkf") else {"xi_uncensored": xi}
     try:
         with no_hang():
             res = simulate_closed_loop(plant, K, steps, 2, observer=observer, seed=seed, **kw)
-    except ValidationError as exc:      # steady-state observer without a stabilizing DARE solution
+    except ValidationError as exc:  # steady-state observer without a stabilizing DARE solution
         assert "DARE" in str(exc) or "ARE" in str(exc)
         return
     # a diverged run is flagged, never silent (the moving-limit TKF with small Xi can diverge: see
@@ -428,14 +531,46 @@ type = "KalmanFilter"
 [grid]
 "censoring.lower" = [-0.1, 0.1]
 """.splitlines()
-TOML_VALUES = ["0", "-1", "1.5", "nan", "inf", "-inf", '"x"', '"../x"', "true", "[]", "[[]]", "[1, 2]", "[[1.0, 2.0]]",
-               "[[-1.0]]", "[[1e308]]", '["a"]', "{a = 1}", '"__import__(\'os\')"', "9999999999999999999", "[[0.0]]",
-               '"KalmanFilter"', '"joseph"', "[[1.0], [2.0]]", "1979-05-27"]
+TOML_VALUES = [
+    "0",
+    "-1",
+    "1.5",
+    "nan",
+    "inf",
+    "-inf",
+    '"x"',
+    '"../x"',
+    "true",
+    "[]",
+    "[[]]",
+    "[1, 2]",
+    "[[1.0, 2.0]]",
+    "[[-1.0]]",
+    "[[1e308]]",
+    '["a"]',
+    "{a = 1}",
+    "\"__import__('os')\"",
+    "9999999999999999999",
+    "[[0.0]]",
+    '"KalmanFilter"',
+    '"joseph"',
+    "[[1.0], [2.0]]",
+    "1979-05-27",
+]
 
 
-@given(st.lists(st.tuples(st.integers(0, len(SWEEP_TEXT) - 1), st.sampled_from(["value", "delete", "key", "dup"]),
-                          st.sampled_from(TOML_VALUES), st.text(alphabet="abcxyzAQR_.", min_size=1, max_size=6)),
-                min_size=1, max_size=3))
+@given(
+    st.lists(
+        st.tuples(
+            st.integers(0, len(SWEEP_TEXT) - 1),
+            st.sampled_from(["value", "delete", "key", "dup"]),
+            st.sampled_from(TOML_VALUES),
+            st.text(alphabet="abcxyzAQR_.", min_size=1, max_size=6),
+        ),
+        min_size=1,
+        max_size=3,
+    )
+)
 def test_edited_sweep_files_load_or_raise_sweep_file_error(edits):
     from tobitkf.sweep import SweepFileError, parse_sweep
 
@@ -463,8 +598,11 @@ def test_edited_sweep_files_load_or_raise_sweep_file_error(edits):
     assert spec.runs >= 1 and spec.steps >= 1 and spec.name == "fz"
 
 
-@given(st.text(min_size=1, max_size=12).filter(lambda s: s.strip() and not s.startswith("-")),
-       st.integers(-5, 0), st.text(alphabet="0123456789-x.", min_size=1, max_size=4))
+@given(
+    st.text(min_size=1, max_size=12).filter(lambda s: s.strip() and not s.startswith("-")),
+    st.integers(-5, 0),
+    st.text(alphabet="0123456789-x.", min_size=1, max_size=4),
+)
 def test_reproduce_refuses_unknown_ids_and_bad_options(tmp_path_factory, exp_id, runs, seed):
     from typer.testing import CliRunner
 
@@ -478,7 +616,7 @@ def test_reproduce_refuses_unknown_ids_and_bad_options(tmp_path_factory, exp_id,
     assert res.exit_code == 2 and "unknown id" in res.output
     res = runner.invoke(cli.app, ["reproduce", "miller-brownian", "--runs", str(runs), "--out", str(out)])
     assert res.exit_code == 2 and "--runs" in res.output
-    if "x" in seed:                                  # (click itself reads "0.0" as 0)
+    if "x" in seed:  # (click itself reads "0.0" as 0)
         res = runner.invoke(cli.app, ["reproduce", "miller-brownian", "--seed", seed, "--out", str(out)])
         assert res.exit_code == 2 and "--seed" in res.output
-    assert list(out.iterdir()) == []                 # nothing written for a refused command
+    assert list(out.iterdir()) == []  # nothing written for a refused command

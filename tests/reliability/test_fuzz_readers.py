@@ -65,8 +65,9 @@ type = "TobitKalmanFilter"
 "censoring.lower" = [-0.1, 0.1]
 """
 # hypothesis: the fixtures below are built once per module and only read by the examples
-FUZZ = settings(suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow,
-                                       HealthCheck.data_too_large])
+FUZZ = settings(
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large]
+)
 
 
 @contextlib.contextmanager
@@ -94,12 +95,14 @@ def check_cli_result(res) -> None:
 
 
 def _fast_run(*, runs, seed, progress=None):
-    return ExperimentResult(id="fz-fast", settings={"runs": runs}, metrics={"estimators": {"kf": {
-        "rmse_time_avg": [0.1 * runs]}}})
+    return ExperimentResult(
+        id="fz-fast", settings={"runs": runs}, metrics={"estimators": {"kf": {"rmse_time_avg": [0.1 * runs]}}}
+    )
 
 
-FAST = Experiment(id="fz-fast", title="fast", source="fuzz", run=_fast_run, plot=lambda r, d: [], default_runs=1,
-                  module=__name__)
+FAST = Experiment(
+    id="fz-fast", title="fast", source="fuzz", run=_fast_run, plot=lambda r, d: [], default_runs=1, module=__name__
+)
 
 
 @pytest.fixture(scope="module")
@@ -121,13 +124,29 @@ def world(tmp_path_factory):
 
 def _paths(world):
     r = world["root"]
-    return st.sampled_from([r / "a_file", r / "a_file" / "sub", r / "dir", r / "missing", r / "sweep.toml",
-                            r / "bad.toml", r / "foreign", world["store"], world["damaged"], r / ("n" * 300),
-                            Path(""), r / "dir" / "new"])
+    return st.sampled_from(
+        [
+            r / "a_file",
+            r / "a_file" / "sub",
+            r / "dir",
+            r / "missing",
+            r / "sweep.toml",
+            r / "bad.toml",
+            r / "foreign",
+            world["store"],
+            world["damaged"],
+            r / ("n" * 300),
+            Path(""),
+            r / "dir" / "new",
+        ]
+    )
 
 
-VALUES = st.one_of(st.integers(-3, 5).map(str), st.sampled_from(["", "nan", "1e3", "10" * 12, "-1", "abc", "0x10"]),
-                   st.text(alphabet="abc-_/.0123456789", max_size=8))
+VALUES = st.one_of(
+    st.integers(-3, 5).map(str),
+    st.sampled_from(["", "nan", "1e3", "10" * 12, "-1", "abc", "0x10"]),
+    st.text(alphabet="abc-_/.0123456789", max_size=8),
+)
 
 
 @st.composite
@@ -138,8 +157,11 @@ def command_lines(draw, world):
         args.append(str(draw(_paths(world))))
     if cmd == "reproduce":
         args.append(draw(st.sampled_from(["fz-fast", "no-such-id", "", "../x"])))
-    options = {"reproduce": ["--runs", "--seed", "--out", "--resume", "--bogus"],
-               "sweep": ["--out", "--workers", "--scheduler"], "plot": ["--out"]}.get(cmd, [])
+    options = {
+        "reproduce": ["--runs", "--seed", "--out", "--resume", "--bogus"],
+        "sweep": ["--out", "--workers", "--scheduler"],
+        "plot": ["--out"],
+    }.get(cmd, [])
     for opt in draw(st.lists(st.sampled_from(options), max_size=3, unique=True)) if options else []:
         if opt == "--resume":
             args.append(opt)
@@ -159,7 +181,7 @@ def test_random_command_lines_exit_0_or_2_with_one_line(world, data):
     # outputs go to a fresh folder per example unless the command line names one
     if "--out" not in args and args[0] in ("reproduce", "sweep"):
         args += ["--out", tempfile.mkdtemp(dir=world["root"])]
-    cwd = world["root"] / "cwd"          # an empty path means the working folder: keep that one in tmp
+    cwd = world["root"] / "cwd"  # an empty path means the working folder: keep that one in tmp
     cwd.mkdir(exist_ok=True)
     with mock.patch.dict(_REGISTRY, {"fz-fast": FAST}), no_hang(), contextlib.chdir(cwd):
         res = CliRunner().invoke(cli.app, args)
@@ -181,14 +203,17 @@ def sweep_bytes(draw):
             data[pos:pos] = draw(st.binary(min_size=1, max_size=8))
         elif kind == "overwrite":
             blob = draw(st.binary(min_size=1, max_size=8))
-            data[pos:pos + len(blob)] = blob
+            data[pos : pos + len(blob)] = blob
         elif kind == "nest":
             depth = draw(st.sampled_from([2, 17, 64, 1000, 5000]))
             data = bytearray(bytes(data).replace(b"[[0.9]]", b"[" * depth + b"0.9" + b"]" * depth, 1))
         elif kind == "value":
             key = draw(st.sampled_from([b"runs = 20", b"steps = 4", b"block_runs = 10", b"R = [[0.01]]"]))
-            val = draw(st.sampled_from([b"10" * 20, b"1e-320", b"true", b'"0.5"', b"-1", b"inf", b"[[true]]",
-                                        b"nan", b"9" * 5000]))
+            val = draw(
+                st.sampled_from(
+                    [b"10" * 20, b"1e-320", b"true", b'"0.5"', b"-1", b"inf", b"[[true]]", b"nan", b"9" * 5000]
+                )
+            )
             data = bytearray(bytes(data).replace(key, key.split(b"=")[0] + b"= " + val, 1))
         else:
             del data[pos:]
@@ -212,12 +237,35 @@ def test_random_sweep_file_bytes_load_or_raise_sweep_file_error(tmp_path_factory
 # ---------------------------------------------------------------------------------------------
 # metrics.json read by the report
 # ---------------------------------------------------------------------------------------------
-SCALARS = st.one_of(st.none(), st.booleans(), st.integers(-10**600, 10**600), st.floats(allow_nan=True),
-                    st.text(max_size=20), st.sampled_from(["\ud800", "![x](https://e.x/p.png)", "<script>", "|"]))
-JSON = st.recursive(SCALARS, lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner,
-                                                                                         max_size=4), max_leaves=20)
-KEYS = st.sampled_from(["id", "title", "source", "runs", "seed", "settings", "claims", "figures", "estimators",
-                        "scenarios", "package_version", "elapsed_seconds"])
+SCALARS = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**600), 10**600),
+    st.floats(allow_nan=True),
+    st.text(max_size=20),
+    st.sampled_from(["\ud800", "![x](https://e.x/p.png)", "<script>", "|"]),
+)
+JSON = st.recursive(
+    SCALARS,
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4),
+    max_leaves=20,
+)
+KEYS = st.sampled_from(
+    [
+        "id",
+        "title",
+        "source",
+        "runs",
+        "seed",
+        "settings",
+        "claims",
+        "figures",
+        "estimators",
+        "scenarios",
+        "package_version",
+        "elapsed_seconds",
+    ]
+)
 
 
 @st.composite
@@ -234,8 +282,11 @@ def metrics_files(draw):
     if draw(st.booleans()):
         doc["estimators"] = {"kf": {"rmse_time_avg": draw(JSON), "nees_time_avg": draw(SCALARS)}}
     if draw(st.booleans()):
-        doc["claims"] = draw(st.lists(st.dictionaries(st.sampled_from(["claim", "measured", "holds", "note"]),
-                                                       JSON, max_size=4), max_size=3))
+        doc["claims"] = draw(
+            st.lists(
+                st.dictionaries(st.sampled_from(["claim", "measured", "holds", "note"]), JSON, max_size=4), max_size=3
+            )
+        )
     return json.dumps(doc).encode("utf-8", "surrogatepass")
 
 
@@ -251,12 +302,12 @@ def test_random_metrics_files_are_reported_or_listed_as_problems(tmp_path_factor
         res = CliRunner().invoke(cli.app, ["report", str(root)])
     check_cli_result(res)
     assert res.exit_code == 0
-    html_text, md_text = index.read_bytes().decode("utf-8"), md.read_bytes().decode("utf-8")   # valid UTF-8
+    html_text, md_text = index.read_bytes().decode("utf-8"), md.read_bytes().decode("utf-8")  # valid UTF-8
     assert 'content="tobitkf report"' in html_text and "generator: tobitkf report" in md_text
     from tobitkf.report import collect_results
 
     experiments, problems = collect_results(root)
-    for i in range(len(files)):       # every folder: an experiment or a listed problem
+    for i in range(len(files)):  # every folder: an experiment or a listed problem
         assert any(e.folder == f"e{i}" for e in experiments) or any(p.startswith(f"e{i}/") for p in problems)
 
 
@@ -269,8 +320,15 @@ def store(tmp_path_factory):
     return run_sweep(spec, tmp_path_factory.mktemp("good")), spec
 
 
-JSON_VALUES = st.one_of(st.none(), st.booleans(), st.integers(-3, 10**6), st.text(max_size=5),
-                        st.lists(st.integers(-1, 30), max_size=4), st.just({}), st.floats(allow_nan=True))
+JSON_VALUES = st.one_of(
+    st.none(),
+    st.booleans(),
+    st.integers(-3, 10**6),
+    st.text(max_size=5),
+    st.lists(st.integers(-1, 30), max_size=4),
+    st.just({}),
+    st.floats(allow_nan=True),
+)
 
 
 def _edit_json(doc, path_choice: int, value, delete: bool):
@@ -294,10 +352,20 @@ def _edit_json(doc, path_choice: int, value, delete: bool):
 
 @st.composite
 def damages(draw):
-    return draw(st.lists(st.tuples(st.integers(0, 10**6), st.sampled_from(["truncate", "garbage", "delete", "json",
-                                                                          "json", "json", "dir_to_file"]),
-                                   st.integers(0, 10**6), JSON_VALUES, st.booleans(), st.binary(max_size=16)),
-                         min_size=1, max_size=3))
+    return draw(
+        st.lists(
+            st.tuples(
+                st.integers(0, 10**6),
+                st.sampled_from(["truncate", "garbage", "delete", "json", "json", "json", "dir_to_file"]),
+                st.integers(0, 10**6),
+                JSON_VALUES,
+                st.booleans(),
+                st.binary(max_size=16),
+            ),
+            min_size=1,
+            max_size=3,
+        )
+    )
 
 
 def _damage(path: Path, plan) -> None:
@@ -341,7 +409,7 @@ def test_randomly_damaged_stores_are_read_or_refused_by_name(store, tmp_path_fac
         else:
             assert set(ds.data_vars) >= {"rmse", "bias", "nees"}
         try:
-            check_resumable(path, spec)             # what a rerun does first
+            check_resumable(path, spec)  # what a rerun does first
         except tk.ValidationError:
             pass
         check_cli_result(CliRunner().invoke(cli.app, ["plot", str(path), "--out", str(out / "plots")]))

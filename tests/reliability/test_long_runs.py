@@ -24,10 +24,24 @@ def _bench():
     return mod
 
 
-NAMES = ["KF", "DKF", "TKF", pytest.param("TKF total_variance+joseph", marks=pytest.mark.xfail(
-    strict=True, reason="measured: finite, symmetric, PSD, but |error| reaches 158 over 10^6 steps: an uncensored "
-                        "reading where p_uncensored ~ 0 meets Ree ~ Var[y] ~ 0 (docs/reliability.md)")),
-         "SSTKF", "controlled TKF", "TKF-FM", "PBTKF-IMSF", "chain LMMSE (delay)"]
+NAMES = [
+    "KF",
+    "DKF",
+    "TKF",
+    pytest.param(
+        "TKF total_variance+joseph",
+        marks=pytest.mark.xfail(
+            strict=True,
+            reason="measured: finite, symmetric, PSD, but |error| reaches 158 over 10^6 steps: an uncensored "
+            "reading where p_uncensored ~ 0 meets Ree ~ Var[y] ~ 0 (docs/reliability.md)",
+        ),
+    ),
+    "SSTKF",
+    "controlled TKF",
+    "TKF-FM",
+    "PBTKF-IMSF",
+    "chain LMMSE (delay)",
+]
 
 
 @pytest.fixture

@@ -21,8 +21,10 @@ import pytest  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 import tobitkf as tk  # noqa: E402
-from tobitkf import _io  # noqa: E402
-from tobitkf import cli  # noqa: E402
+from tobitkf import (
+    _io,  # noqa: E402
+    cli,  # noqa: E402
+)
 from tobitkf.experiments import _REGISTRY, Experiment, ExperimentResult  # noqa: E402
 from tobitkf.sweep import load_result, parse_sweep, run_sweep  # noqa: E402
 from tobitkf.sweep import run as sweep_run  # noqa: E402
@@ -53,7 +55,7 @@ def test_interrupted_savefig_keeps_the_old_figure(tmp_path, monkeypatch):
     old = path.read_bytes()
 
     def half_write(self, fname, *args, **kwargs):
-        Path(fname).write_bytes(b"\x89PNG half")   # a truncated file, then the interruption
+        Path(fname).write_bytes(b"\x89PNG half")  # a truncated file, then the interruption
         raise KeyboardInterrupt
 
     monkeypatch.setattr(type(fig), "savefig", half_write)
@@ -70,7 +72,7 @@ def test_result_files_get_the_ordinary_umask_mode(tmp_path):
         p = _io.atomic_write_text(tmp_path / "x.txt", "x")
     finally:
         os.umask(mask)
-    assert stat.S_IMODE(p.stat().st_mode) == 0o644   # mkstemp alone would give 0o600
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644  # mkstemp alone would give 0o600
 
 
 # --- reproduce: folder swap and --resume ------------------------------------------------
@@ -82,8 +84,12 @@ def _dummy_run(*, runs, seed, progress=None, **kw):
     rng = np.random.default_rng(seed)
     truth = rng.normal(size=(runs, 5, 1))
     est = truth + rng.normal(size=truth.shape)
-    return ExperimentResult(id="rel-dummy", settings={}, metrics={"estimators": {"e": tk.metrics.summarize(truth, est)}},
-                            data={"seed": seed})
+    return ExperimentResult(
+        id="rel-dummy",
+        settings={},
+        metrics={"estimators": {"e": tk.metrics.summarize(truth, est)}},
+        data={"seed": seed},
+    )
 
 
 def _dummy_plot(result, outdir):
@@ -98,8 +104,9 @@ def _dummy_plot(result, outdir):
 @pytest.fixture
 def dummy(monkeypatch):
     CALLS.clear()
-    exp = Experiment(id="rel-dummy", title="dummy", source="test", run=_dummy_run, plot=_dummy_plot, default_runs=3,
-                     module=__name__)
+    exp = Experiment(
+        id="rel-dummy", title="dummy", source="test", run=_dummy_run, plot=_dummy_plot, default_runs=3, module=__name__
+    )
     monkeypatch.setitem(_REGISTRY, "rel-dummy", exp)
     return exp
 
@@ -114,19 +121,19 @@ def test_reproduce_interrupted_after_a_figure_keeps_the_previous_result(tmp_path
 
     def plot_then_die(result, outdir):
         fig, ax = plt.subplots()
-        _io.atomic_savefig(fig, Path(outdir) / "a.png")   # a new figure is written...
+        _io.atomic_savefig(fig, Path(outdir) / "a.png")  # a new figure is written...
         plt.close(fig)
-        raise KeyboardInterrupt                           # ...then the run is interrupted
+        raise KeyboardInterrupt  # ...then the run is interrupted
 
     monkeypatch.setitem(_REGISTRY, "rel-dummy", Experiment(**{**dummy.__dict__, "plot": plot_then_die}))
     with pytest.raises(KeyboardInterrupt):
         cli.run_experiment("rel-dummy", runs=3, seed=2, out=tmp_path)
-    assert snapshot(tmp_path / "rel-dummy") == before          # old figures and metrics, unmixed
+    assert snapshot(tmp_path / "rel-dummy") == before  # old figures and metrics, unmixed
     assert json.loads(before["metrics.json"])["seed"] == 1
     visible = [p.name for p in tmp_path.iterdir() if not p.name.startswith(".")]
     assert visible == ["rel-dummy"]
 
-    monkeypatch.setitem(_REGISTRY, "rel-dummy", dummy)          # the rerun completes and cleans up
+    monkeypatch.setitem(_REGISTRY, "rel-dummy", dummy)  # the rerun completes and cleans up
     cli.run_experiment("rel-dummy", runs=3, seed=2, out=tmp_path)
     assert json.loads((tmp_path / "rel-dummy" / "metrics.json").read_text())["seed"] == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["rel-dummy"]
@@ -148,8 +155,8 @@ def test_interruption_between_the_two_renames_is_repaired(tmp_path, dummy, monke
     with pytest.raises(KeyboardInterrupt):
         _io.replace_dir(_io.staging_dir(tmp_path / "rel-dummy"), tmp_path / "rel-dummy")
     monkeypatch.setattr(_io.os, "replace", real_replace)
-    assert not (tmp_path / "rel-dummy").exists()               # the old result was moved aside...
-    _io.staging_dir(tmp_path / "rel-dummy")                    # ...and the next run puts it back first
+    assert not (tmp_path / "rel-dummy").exists()  # the old result was moved aside...
+    _io.staging_dir(tmp_path / "rel-dummy")  # ...and the next run puts it back first
     assert snapshot(tmp_path / "rel-dummy") == before
 
 
@@ -158,18 +165,20 @@ def test_resume_skips_complete_experiments_only(tmp_path, dummy):
     res = runner.invoke(cli.app, ["reproduce", "rel-dummy", "--runs", "3", "--seed", "5", "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
     assert CALLS == [(3, 5)]
-    res = runner.invoke(cli.app, ["reproduce", "rel-dummy", "--runs", "3", "--seed", "5", "--out", str(tmp_path),
-                                  "--resume"])
-    assert res.exit_code == 0 and CALLS == [(3, 5)]             # complete: kept
+    res = runner.invoke(
+        cli.app, ["reproduce", "rel-dummy", "--runs", "3", "--seed", "5", "--out", str(tmp_path), "--resume"]
+    )
+    assert res.exit_code == 0 and CALLS == [(3, 5)]  # complete: kept
     assert cli.is_complete(tmp_path, "rel-dummy", runs=3, seed=5)
-    assert not cli.is_complete(tmp_path, "rel-dummy", runs=4, seed=5)     # other run count
-    assert not cli.is_complete(tmp_path, "rel-dummy", runs=3, seed=6)     # other seed
-    assert cli.is_complete(tmp_path, "rel-dummy", runs=None, seed=5)      # default run count (3) is the same
-    (tmp_path / "rel-dummy" / "b.png").unlink()                           # a figure lost: incomplete
+    assert not cli.is_complete(tmp_path, "rel-dummy", runs=4, seed=5)  # other run count
+    assert not cli.is_complete(tmp_path, "rel-dummy", runs=3, seed=6)  # other seed
+    assert cli.is_complete(tmp_path, "rel-dummy", runs=None, seed=5)  # default run count (3) is the same
+    (tmp_path / "rel-dummy" / "b.png").unlink()  # a figure lost: incomplete
     assert not cli.is_complete(tmp_path, "rel-dummy", runs=3, seed=5)
-    res = runner.invoke(cli.app, ["reproduce", "rel-dummy", "--runs", "3", "--seed", "5", "--out", str(tmp_path),
-                                  "--resume"])
-    assert res.exit_code == 0 and CALLS == [(3, 5), (3, 5)]     # rerun completes it
+    res = runner.invoke(
+        cli.app, ["reproduce", "rel-dummy", "--runs", "3", "--seed", "5", "--out", str(tmp_path), "--resume"]
+    )
+    assert res.exit_code == 0 and CALLS == [(3, 5), (3, 5)]  # rerun completes it
     assert (tmp_path / "rel-dummy" / "b.png").exists()
 
 
@@ -217,7 +226,7 @@ def test_sweep_block_interrupted_before_its_done_flag_is_recomputed(tmp_path, mo
 
     def dies_mid_block(g, point, results):
         count.append(point)
-        if len(count) == 2:                       # second task: data written, flags not
+        if len(count) == 2:  # second task: data written, flags not
             b, stats = results[0]
             g["stats"][point, b] = 1e6
             raise KeyboardInterrupt
@@ -245,7 +254,7 @@ def test_sweep_interrupted_while_replacing_its_summary_is_completed_by_a_rerun(t
 
     monkeypatch.setattr(Path, "rename", dies)
     with pytest.raises(KeyboardInterrupt):
-        run_sweep(spec, tmp_path)                 # all blocks done: only the summary is rewritten
+        run_sweep(spec, tmp_path)  # all blocks done: only the summary is rewritten
     monkeypatch.setattr(Path, "rename", real_rename)
     run_sweep(spec, tmp_path)
     assert (path / "summary").exists()

@@ -54,21 +54,24 @@ def no_eval(monkeypatch):
 
         def refuse(source, *args, _real=real, **kwargs):
             text = source.decode(errors="replace") if isinstance(source, bytes) else source
-            if isinstance(text, str) and any(m in text for m in MARKERS):   # sweep-file text turned into code
+            if isinstance(text, str) and any(m in text for m in MARKERS):  # sweep-file text turned into code
                 raise AssertionError(f"sweep file text was evaluated: {text!r:.80}")
-            return _real(source, *args, **kwargs)      # imports, namedtuple: not ours
+            return _real(source, *args, **kwargs)  # imports, namedtuple: not ours
 
         monkeypatch.setattr(builtins, name, refuse)
 
 
-@pytest.mark.parametrize("text, key", [
-    (sweep_text(A='"__import__(\'os\').system(\'touch PWNED\')"'), r"model\.A"),
-    (sweep_text(etype='"os.system"'), r"estimators\.tkf\.type"),
-    (sweep_text(etype='"__import__"'), r"estimators\.tkf\.type"),
-    (sweep_text(grid='[grid]\n"model.A" = ["open(\'PWNED\', \'w\')"]'), r"grid\.model\.A"),
-    (sweep_text(grid='[grid]\n"model.__class__" = [1]'), r"grid\.model\.__class__"),
-    (sweep_text(grid='[grid]\n"estimators.tkf.__init__" = [1]'), r"grid\.estimators\.tkf\.__init__"),
-])
+@pytest.mark.parametrize(
+    "text, key",
+    [
+        (sweep_text(A="\"__import__('os').system('touch PWNED')\""), r"model\.A"),
+        (sweep_text(etype='"os.system"'), r"estimators\.tkf\.type"),
+        (sweep_text(etype='"__import__"'), r"estimators\.tkf\.type"),
+        (sweep_text(grid="[grid]\n\"model.A\" = [\"open('PWNED', 'w')\"]"), r"grid\.model\.A"),
+        (sweep_text(grid='[grid]\n"model.__class__" = [1]'), r"grid\.model\.__class__"),
+        (sweep_text(grid='[grid]\n"estimators.tkf.__init__" = [1]'), r"grid\.estimators\.tkf\.__init__"),
+    ],
+)
 def test_code_in_a_sweep_file_is_data_and_refused(tmp_path, monkeypatch, no_eval, text, key):
     monkeypatch.chdir(tmp_path)
     with pytest.raises(SweepFileError, match=key):

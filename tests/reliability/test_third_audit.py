@@ -26,9 +26,8 @@ def test_protocol_bounds_steps_is_a_named_error(steps):
 
 def test_sweep_workers_are_capped():
     from tobitkf.sweep.run import MAX_WORKERS, run_sweep
-
     from tobitkf.sweep.spec import SweepSpec
 
-    spec = object.__new__(SweepSpec)            # the workers check comes before anything reads the spec
+    spec = object.__new__(SweepSpec)  # the workers check comes before anything reads the spec
     with pytest.raises(ValidationError, match="workers"):
         run_sweep(spec, "unused", workers=MAX_WORKERS + 1)

@@ -74,15 +74,16 @@ def test_reduction_equals_direct_computation(tmp_path):
             np.testing.assert_allclose(ds["rmse"].sel(sel).values, np.sqrt((e**2).mean(axis=0)), rtol=1e-12)
             np.testing.assert_allclose(ds["bias"].sel(sel).values, e.mean(axis=0), rtol=1e-10, atol=1e-15)
             # n = 1: e^T P^-1 e is e^2 / P, no solve needed
-            np.testing.assert_allclose(ds["nees"].sel(sel).values,
-                                       (e[..., 0] ** 2 / np.concatenate(var[key])).mean(axis=0), rtol=1e-12)
+            np.testing.assert_allclose(
+                ds["nees"].sel(sel).values, (e[..., 0] ** 2 / np.concatenate(var[key])).mean(axis=0), rtol=1e-12
+            )
     assert ds.attrs["sweep"].startswith("\n[sweep]") and ds.attrs["package_version"] == tk.__version__
 
 
 def test_chunking_and_dask_give_identical_statistics(tmp_path):
-    one = arrays(run_sweep(spec(chunk=7), tmp_path / "one", workers=1))     # 1 task per grid point
-    seven = arrays(run_sweep(spec(chunk=1), tmp_path / "seven", workers=1)) # 7 tasks per grid point
-    threads = arrays(run_sweep(spec(chunk=1), tmp_path / "threads", workers=3))   # 3 threads in-process
+    one = arrays(run_sweep(spec(chunk=7), tmp_path / "one", workers=1))  # 1 task per grid point
+    seven = arrays(run_sweep(spec(chunk=1), tmp_path / "seven", workers=1))  # 7 tasks per grid point
+    threads = arrays(run_sweep(spec(chunk=1), tmp_path / "threads", workers=3))  # 3 threads in-process
     pytest.importorskip("distributed")
     dask = arrays(run_sweep(spec(chunk=2), tmp_path / "dask", scheduler="processes", workers=2))
     for name in one:
@@ -95,8 +96,9 @@ def test_scheduler_address_runs_on_an_existing_cluster(tmp_path):
     """``--scheduler ADDRESS``: the same file on a cluster started elsewhere gives the same numbers."""
     distributed = pytest.importorskip("distributed")
     ref = arrays(run_sweep(spec(chunk=2), tmp_path / "ref"))
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False,
-                                  dashboard_address=None) as cluster:
+    with distributed.LocalCluster(
+        n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+    ) as cluster:
         got = arrays(run_sweep(spec(chunk=2), tmp_path / "addr", scheduler=cluster.scheduler_address))
     for name in ref:
         np.testing.assert_array_equal(ref[name], got[name])
@@ -131,9 +133,9 @@ def test_resume_with_other_task_size_writes_into_part_chunks(tmp_path):
     """The store's zarr chunks hold ``chunk_blocks`` blocks (7 here); resuming with tasks of 2 blocks
     writes into part-filled chunks and must neither lose nor duplicate a block."""
     full = arrays(run_sweep(spec(chunk=7), tmp_path / "full"))
-    part = run_sweep(spec(chunk=7), tmp_path / "part", max_tasks=1)       # point 0 done, point 1 empty
-    run_sweep(spec(chunk=2), tmp_path / "part", max_tasks=2)               # blocks 0-3 of point 1
-    run_sweep(spec(chunk=3), tmp_path / "part")                            # blocks 4-6
+    part = run_sweep(spec(chunk=7), tmp_path / "part", max_tasks=1)  # point 0 done, point 1 empty
+    run_sweep(spec(chunk=2), tmp_path / "part", max_tasks=2)  # blocks 0-3 of point 1
+    run_sweep(spec(chunk=3), tmp_path / "part")  # blocks 4-6
     resumed = arrays(part)
     for name in full:
         np.testing.assert_array_equal(full[name], resumed[name])
@@ -186,21 +188,25 @@ def test_plot_writes_both_figures(tmp_path):
     assert all(p.stat().st_size > 2000 for p in paths)
 
 
-@pytest.mark.parametrize("lowers, panels, curves", [
-    ([-0.2, 0.0, 0.1], 3, 2),                  # a column per grid point, a curve per estimator
-    ([-0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3], 2, 7),   # > 6 points: a column per estimator, a curve per point
-])
+@pytest.mark.parametrize(
+    "lowers, panels, curves",
+    [
+        ([-0.2, 0.0, 0.1], 3, 2),  # a column per grid point, a curve per estimator
+        ([-0.3, -0.2, -0.1, 0.0, 0.1, 0.2, 0.3], 2, 7),  # > 6 points: a column per estimator, a curve per point
+    ],
+)
 def test_rmse_over_time_layout(tmp_path, monkeypatch, lowers, panels, curves):
     import tobitkf.sweep.plot as sp
 
     text = BASE.format(runs=20, steps=10, block=20, chunk=1).replace(
-        '"censoring.lower" = [-0.2, 0.1]', f'"censoring.lower" = {lowers}')
+        '"censoring.lower" = [-0.2, 0.1]', f'"censoring.lower" = {lowers}'
+    )
     path = run_sweep(parse_sweep(text, name="t"), tmp_path)
     figs = {}
     monkeypatch.setattr(sp, "save", lambda fig, outdir, name: figs.setdefault(name, fig) and Path(outdir) / name)
     plot_result(path, tmp_path / "figs")
     axes = figs["rmse_over_time.png"].axes
-    assert len(axes) == panels                 # one state component (n = 1): one row
+    assert len(axes) == panels  # one state component (n = 1): one row
     assert all(len(ax.lines) == curves for ax in axes)
     # the estimators' curves share the y scale of their row
     assert len({ax.get_ylim() for ax in axes}) == 1
@@ -259,14 +265,17 @@ seed = 2
         run_sweep(parse_sweep(text, name="h"), tmp_path)
 
 
-@pytest.mark.parametrize("text, match", [
-    ("not toml = = 1", "not valid TOML"),
-    ("[model]\nA=[[1.0]]", "missing the \\[sweep\\] table"),
-    ("[sweep]\nruns = 0\nsteps = 5\nseed = 0", "sweep.runs \\(line 2\\): expected an integer >= 1"),
-    ("[sweep]\nruns = 5\nsteps = 5\nseed = 0\nrun = 3", "sweep.run \\(line 5\\): unknown key"),
-    ("[sweep]\nruns = 5\nsteps = 5", "missing required key 'seed'"),
-    ("[sweep]\nruns = 5\nsteps = 5\nseed = 0\n[modle]\nA = 1", "modle \\(line 5\\): unknown table"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("not toml = = 1", "not valid TOML"),
+        ("[model]\nA=[[1.0]]", "missing the \\[sweep\\] table"),
+        ("[sweep]\nruns = 0\nsteps = 5\nseed = 0", "sweep.runs \\(line 2\\): expected an integer >= 1"),
+        ("[sweep]\nruns = 5\nsteps = 5\nseed = 0\nrun = 3", "sweep.run \\(line 5\\): unknown key"),
+        ("[sweep]\nruns = 5\nsteps = 5", "missing required key 'seed'"),
+        ("[sweep]\nruns = 5\nsteps = 5\nseed = 0\n[modle]\nA = 1", "modle \\(line 5\\): unknown table"),
+    ],
+)
 def test_sweep_file_errors_name_key_and_line(text, match):
     with pytest.raises(SweepFileError, match=match):
         parse_sweep(text)
@@ -276,18 +285,29 @@ def _with(old, new):
     return BASE.format(runs=10, steps=5, block=5, chunk=1).replace(old, new)
 
 
-@pytest.mark.parametrize("old, new, match", [
-    ('type = "KalmanFilter"', 'type = "Kalman"', "estimators.kf.type \\(line \\d+\\): unknown estimator type"),
-    ('type = "TobitKalmanFilter"', 'type = "TobitKalmanFilter"\nnoise = 1', "estimators.tkf.noise \\(line \\d+\\): unknown option"),
-    ('"censoring.lower" = [-0.2, 0.1]', '"censoring.lower" = []', "grid.censoring.lower \\(line \\d+\\): expected a non-empty list"),
-    ('"censoring.lower" = [-0.2, 0.1]', '"sweep.seed" = [1, 2]', "grid keys are dotted paths"),
-    ('"censoring.lower" = [-0.2, 0.1]', '"censoring.lower" = [0.0, inf]', "invalid at grid point .*lower"),
-    ("Q = [[0.04]]", "Q = [[-0.04]]", "model.Q \\(line \\d+\\): Q: expected a positive semi-definite"),
-    ("x0 = [0.0]\n", "", "missing required key 'x0'"),
-    ("[censoring]\nlower = 0.0", "[censoring]\nlow = 0.0", "censoring.low \\(line \\d+\\): unknown key"),
-    ("[sweep]", "[sweep]\nname = \"../escape\"", "sweep.name .*plain file name"),
-    ("[sweep]", "[sweep]\nexperiment = \"nope\"", "unknown id"),
-])
+@pytest.mark.parametrize(
+    "old, new, match",
+    [
+        ('type = "KalmanFilter"', 'type = "Kalman"', "estimators.kf.type \\(line \\d+\\): unknown estimator type"),
+        (
+            'type = "TobitKalmanFilter"',
+            'type = "TobitKalmanFilter"\nnoise = 1',
+            "estimators.tkf.noise \\(line \\d+\\): unknown option",
+        ),
+        (
+            '"censoring.lower" = [-0.2, 0.1]',
+            '"censoring.lower" = []',
+            "grid.censoring.lower \\(line \\d+\\): expected a non-empty list",
+        ),
+        ('"censoring.lower" = [-0.2, 0.1]', '"sweep.seed" = [1, 2]', "grid keys are dotted paths"),
+        ('"censoring.lower" = [-0.2, 0.1]', '"censoring.lower" = [0.0, inf]', "invalid at grid point .*lower"),
+        ("Q = [[0.04]]", "Q = [[-0.04]]", "model.Q \\(line \\d+\\): Q: expected a positive semi-definite"),
+        ("x0 = [0.0]\n", "", "missing required key 'x0'"),
+        ("[censoring]\nlower = 0.0", "[censoring]\nlow = 0.0", "censoring.low \\(line \\d+\\): unknown key"),
+        ("[sweep]", '[sweep]\nname = "../escape"', "sweep.name .*plain file name"),
+        ("[sweep]", '[sweep]\nexperiment = "nope"', "unknown id"),
+    ],
+)
 def test_sweep_content_errors(old, new, match):
     with pytest.raises(SweepFileError, match=match):
         parse_sweep(_with(old, new))
@@ -398,15 +418,24 @@ def test_fading_and_steady_state_families_sweep_like_a_direct_run(tmp_path):
     from tobitkf.channels.fading import RiceFading
 
     ds = load_result(run_sweep(parse_sweep(FAMILIES, name="fam"), tmp_path))
-    sys_ = tk.LinearSystem(A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.05]], x0=[1.0, 0.0],
-                           P0=0.5 * np.eye(2))
+    sys_ = tk.LinearSystem(
+        A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.05]], x0=[1.0, 0.0], P0=0.5 * np.eye(2)
+    )
     cens = tk.Censoring(lower=0.2)
     for i, var in enumerate(([0.0, 0.0], [0.01, 0.02])):
         fad = RiceFading.gaussian(1, [0.9, 0.4], var)
-        ref = _direct_rmse(lambda seed: tk.simulate(sys_, 15, 20, channel=[fad, cens], seed=seed), {
-            "tkf-fm": lambda d: tk.FadingTobitKalmanFilter(sys_, fad, cens, p_uncensored_mode="eq6_stale").filter(d.y),
-            "kf-fm": lambda d: tk.FadingKalmanFilter(sys_, fad).filter(d.y),
-            "sstkf": lambda d: tk.SteadyStateTobitKalmanFilter(sys_, 0.8).filter_controlled(d.y_latent)}, 2, 5)
+        ref = _direct_rmse(
+            lambda seed: tk.simulate(sys_, 15, 20, channel=[fad, cens], seed=seed),
+            {
+                "tkf-fm": lambda d: tk.FadingTobitKalmanFilter(sys_, fad, cens, p_uncensored_mode="eq6_stale").filter(
+                    d.y
+                ),
+                "kf-fm": lambda d: tk.FadingKalmanFilter(sys_, fad).filter(d.y),
+                "sstkf": lambda d: tk.SteadyStateTobitKalmanFilter(sys_, 0.8).filter_controlled(d.y_latent),
+            },
+            2,
+            5,
+        )
         for key, r in ref.items():
             got = ds["rmse"].isel({"fading.variance": i}).sel(estimator=key).values
             np.testing.assert_allclose(got, r, rtol=1e-12)
@@ -416,27 +445,49 @@ def test_protocol_family_sweeps_like_a_direct_run(tmp_path):
     from tobitkf.channels.protocol import LAMBDA_BASE
 
     ds = load_result(run_sweep(parse_sweep(PROTOCOL, name="prot"), tmp_path))
-    sys_ = tk.LinearSystem(A=[[0.98, -0.16], [0.16, 0.98]], C=np.eye(2), Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5]),
-                           x0=[5.0, 0.0], P0=np.eye(2))
-    assert ds["censored_fraction"].shape == (2, 12, 1)          # one scalar reading per step
+    sys_ = tk.LinearSystem(
+        A=[[0.98, -0.16], [0.16, 0.98]],
+        C=np.eye(2),
+        Q=0.0025 * np.eye(2),
+        R=np.diag([1.0, 0.5]),
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
+    )
+    assert ds["censored_fraction"].shape == (2, 12, 1)  # one scalar reading per step
     for ell in (1, 2):
         ch = tk.ProtocolChannel(2, window=ell, threshold=0.0, failures=LAMBDA_BASE)
-        ref = _direct_rmse(lambda seed: tk.simulate(sys_, 12, 10, channel=ch, seed=seed), {
-            "pbtkf-imsf": lambda d: tk.ProtocolTobitKalmanFilter(sys_, ch, failure_term="second_moment").filter(d.y),
-            "pbtkf": lambda d: tk.ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y)}, 3, 6)
+        ref = _direct_rmse(
+            lambda seed: tk.simulate(sys_, 12, 10, channel=ch, seed=seed),
+            {
+                "pbtkf-imsf": lambda d: tk.ProtocolTobitKalmanFilter(sys_, ch, failure_term="second_moment").filter(
+                    d.y
+                ),
+                "pbtkf": lambda d: tk.ProtocolTobitKalmanFilter.baseline(sys_, ch).filter(d.y),
+            },
+            3,
+            6,
+        )
         for key, r in ref.items():
             np.testing.assert_allclose(ds["rmse"].sel({"protocol.window": ell, "estimator": key}).values, r, rtol=1e-12)
 
 
-@pytest.mark.parametrize("text, match", [
-    (FAMILIES.replace('type = "FadingKalmanFilter"', 'type = "ChainLMMSE"'),
-     "ChainLMMSE is not a family on a linear model"),
-    (FAMILIES.replace("[fading]\norder = 1\n", "[fading]\n"), "order: the \\[fading\\] channel needs its order L"),
-    (FAMILIES.replace("xi_uncensored = 0.8\n", ""), "xi_uncensored: SteadyStateTobitKalmanFilter needs this option"),
-    (PROTOCOL.replace("[protocol]", "[censoring]\nlower = 0.0\n\n[protocol]"), "drop \\[censoring\\]"),
-    (PROTOCOL.replace('failures = "base"', 'failures = "often"'), "failures: expected 'none', 'base', 'lambda1'"),
-    (FAMILIES.replace('"fading.variance"', '"fading.speed"'), "expected a key of the file's \\[fading\\] table"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        (
+            FAMILIES.replace('type = "FadingKalmanFilter"', 'type = "ChainLMMSE"'),
+            "ChainLMMSE is not a family on a linear model",
+        ),
+        (FAMILIES.replace("[fading]\norder = 1\n", "[fading]\n"), "order: the \\[fading\\] channel needs its order L"),
+        (
+            FAMILIES.replace("xi_uncensored = 0.8\n", ""),
+            "xi_uncensored: SteadyStateTobitKalmanFilter needs this option",
+        ),
+        (PROTOCOL.replace("[protocol]", "[censoring]\nlower = 0.0\n\n[protocol]"), "drop \\[censoring\\]"),
+        (PROTOCOL.replace('failures = "base"', 'failures = "often"'), "failures: expected 'none', 'base', 'lambda1'"),
+        (FAMILIES.replace('"fading.variance"', '"fading.speed"'), "expected a key of the file's \\[fading\\] table"),
+    ],
+)
 def test_channel_sections_are_checked_on_load(text, match):
     with pytest.raises(SweepFileError, match=match):
         parse_sweep(text, name="bad")

@@ -39,8 +39,9 @@ class Channel:
     def check(self, system: Any, steps: int | None = None) -> None:
         """Raise unless the channel fits ``system`` (and a horizon of ``steps``); default: always fits."""
 
-    def draw(self, rng: np.random.Generator, x: np.ndarray, system: Any, noise: np.ndarray,
-             inputs: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
+    def draw(
+        self, rng: np.random.Generator, x: np.ndarray, system: Any, noise: np.ndarray, inputs: np.ndarray | None = None
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]] | None:
         """The latent readings ``(N, T, m)`` and the channel's draws; ``None``: the plain linear reading."""
         return None
 

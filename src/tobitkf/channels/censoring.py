@@ -68,8 +68,10 @@ class Censoring(Channel):
         bad = ~(lo_b < hi_b)
         if bad.any():
             idx = np.argwhere(bad)[0] if bad.ndim else ()
-            raise ValidationError(f"lower/upper: expected lower < upper, got lower={lo_b[tuple(idx)]} "
-                                  f">= upper={hi_b[tuple(idx)]} at index {tuple(int(i) for i in idx)}")
+            raise ValidationError(
+                f"lower/upper: expected lower < upper, got lower={lo_b[tuple(idx)]} "
+                f">= upper={hi_b[tuple(idx)]} at index {tuple(int(i) for i in idx)}"
+            )
         self.lower = np.array(lo_b)
         self.upper = np.array(hi_b)
         self.time_varying = self.lower.ndim == 2
@@ -91,13 +93,16 @@ class Censoring(Channel):
             m = m.m
         if self.channels is not None and self.channels not in (1, m):
             raise ShapeError(f"censoring limits: expected {m} channel(s) to match the system, got {self.channels}")
-        if steps is not None and self.time_varying and self.steps < steps:
+        n_steps = self.steps  # an int whenever the limits are time-varying
+        if steps is not None and self.time_varying and n_steps is not None and n_steps < steps:
             raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, {steps} needed")
 
     def limits(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)`` for measurement ``y_k`` (k >= 1; array index k-1)."""
         if self.time_varying:
-            if not 1 <= k <= self.steps:
+            n_steps = self.steps
+            assert n_steps is not None, "time-varying limits have a number of steps"
+            if not 1 <= k <= n_steps:
                 raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, step k={k} requested")
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
@@ -105,8 +110,8 @@ class Censoring(Channel):
     def all_limits(self, steps: int, m: int, *, start: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Limits broadcast to ``(T, m)`` for k = start..start+T-1 (default k = 1..T)."""
         self.check(m, start - 1 + steps)
-        lo = self.lower[start - 1:start - 1 + steps] if self.time_varying else self.lower
-        hi = self.upper[start - 1:start - 1 + steps] if self.time_varying else self.upper
+        lo = self.lower[start - 1 : start - 1 + steps] if self.time_varying else self.lower
+        hi = self.upper[start - 1 : start - 1 + steps] if self.time_varying else self.upper
         return (np.broadcast_to(lo, (steps, m)).copy(), np.broadcast_to(hi, (steps, m)).copy())
 
     def clip(self, y_latent: np.ndarray, k: int | None = None) -> np.ndarray:
@@ -151,8 +156,10 @@ class Censoring(Channel):
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             t, ch = idx[-2], idx[-1]
-            raise ValidationError(f"{name}: measurement {y[idx]:.6g} at index {idx} lies outside its censoring "
-                                  f"limits [{lo[t, ch]:.6g}, {hi[t, ch]:.6g}]")
+            raise ValidationError(
+                f"{name}: measurement {y[idx]:.6g} at index {idx} lies outside its censoring "
+                f"limits [{lo[t, ch]:.6g}, {hi[t, ch]:.6g}]"
+            )
 
     def check_reading(self, y: np.ndarray, k: int, name: str = "y", *, rtol: float = 1e-9) -> None:
         """Raise :class:`ValidationError` if a (non-NaN) reading ``y`` (..., m) of step ``k`` lies outside its
@@ -164,24 +171,28 @@ class Censoring(Channel):
             tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
             cached = (lo - tol_lo, hi + tol_hi, lo, hi)
             if not self.time_varying and rtol == 1e-9:
-                self._bounds = cached          # constant limits: the tolerance band is computed once
+                self._bounds = cached  # constant limits: the tolerance band is computed once
         lo_b, hi_b, lo, hi = cached
-        bad = (y < lo_b) | (y > hi_b)           # NaN (a missing reading) compares False
+        bad = (y < lo_b) | (y > hi_b)  # NaN (a missing reading) compares False
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             ch = idx[-1]
             lo_b, hi_b = np.broadcast_to(lo, y.shape[-1:]), np.broadcast_to(hi, y.shape[-1:])
-            raise ValidationError(f"{name}: measurement {y[idx]:.6g} at step k={k}, channel {ch} lies outside its "
-                                  f"censoring limits [{lo_b[ch]:.6g}, {hi_b[ch]:.6g}]")
+            raise ValidationError(
+                f"{name}: measurement {y[idx]:.6g} at step k={k}, channel {ch} lies outside its "
+                f"censoring limits [{lo_b[ch]:.6g}, {hi_b[ch]:.6g}]"
+            )
 
     def __repr__(self) -> str:
         def fmt(v):
             return np.array2string(v, threshold=6) if v.ndim else str(float(v))
+
         return f"Censoring(lower={fmt(self.lower)}, upper={fmt(self.upper)})"
 
 
-def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
-                 noise_var: Sequence[Sequence[float]] | None = None):
+def multi_region(
+    system, regions: Sequence[Sequence[tuple[float, float]]], *, noise_var: Sequence[Sequence[float]] | None = None
+):
     r"""Model several censored regions of each output as stacked sensors (Miller §6.6).
 
     Output ``i`` (row ``C_i``) is observed by ``len(regions[i])`` sensors; sensor ``j``
@@ -214,22 +225,33 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
     """
     if not all(hasattr(system, a) for a in ("m", "C", "R", "A", "Q", "x0", "P0")) or not hasattr(system.C, "varying"):
         raise ValidationError(f"system: expected a LinearSystem, got {type(system).__name__}")
-    if isinstance(regions, (str, bytes)) or not isinstance(regions, Sequence) or \
-            any(isinstance(w, (str, bytes)) or not isinstance(w, Sequence) for w in regions):
-        raise ValidationError("regions: expected one sequence of (lower, upper) windows per output, got "
-                              f"{type(regions).__name__} {regions!r:.60}")
-    if noise_var is not None and (isinstance(noise_var, (str, bytes)) or not isinstance(noise_var, Sequence) or
-                                  any(isinstance(v, (str, bytes)) or not isinstance(v, Sequence) for v in noise_var)):
+    if (
+        isinstance(regions, (str, bytes))
+        or not isinstance(regions, Sequence)
+        or any(isinstance(w, (str, bytes)) or not isinstance(w, Sequence) for w in regions)
+    ):
+        raise ValidationError(
+            "regions: expected one sequence of (lower, upper) windows per output, got "
+            f"{type(regions).__name__} {regions!r:.60}"
+        )
+    if noise_var is not None and (
+        isinstance(noise_var, (str, bytes))
+        or not isinstance(noise_var, Sequence)
+        or any(isinstance(v, (str, bytes)) or not isinstance(v, Sequence) for v in noise_var)
+    ):
         raise ValidationError(f"noise_var: expected one sequence of variances per output, got {noise_var!r:.60}")
     if len(regions) != system.m:
         raise ShapeError(f"regions: expected one list of windows per output ({system.m}), got {len(regions)}")
     if system.C.varying or system.R.varying:
         raise ShapeError("system: multi_region needs time-invariant C and R")
     C, R = system.C.at(1), system.R.at(1)
-    if noise_var is not None and (len(noise_var) != len(regions)
-                                  or any(len(nv) != len(w) for nv, w in zip(noise_var, regions))):
-        raise ShapeError("noise_var: expected one variance per window, laid out like regions "
-                         f"({[len(w) for w in regions]} per output), got {[len(nv) for nv in noise_var]}")
+    if noise_var is not None and (
+        len(noise_var) != len(regions) or any(len(nv) != len(w) for nv, w in zip(noise_var, regions))
+    ):
+        raise ShapeError(
+            "noise_var: expected one variance per window, laid out like regions "
+            f"({[len(w) for w in regions]} per output), got {[len(nv) for nv in noise_var]}"
+        )
     rows, var, lo, hi, out_idx = [], [], [], [], []
     for i, wins in enumerate(regions):
         if len(wins) == 0:
@@ -262,6 +284,15 @@ def multi_region(system, regions: Sequence[Sequence[tuple[float, float]]], *,
         D_st = D.array[..., idx, :]
     # the stacked model is of the system's own class (a LinearSystem), built without importing the
     # models layer, which itself uses channel pieces
-    stacked = type(system)(A=same(system.A), C=np.array(rows), Q=same(system.Q), R=np.diag(var),
-                           x0=system.x0, P0=system.P0, B=same(system.B), Bu=same(system.Bu), D=D_st)
+    stacked = type(system)(
+        A=same(system.A),
+        C=np.array(rows),
+        Q=same(system.Q),
+        R=np.diag(var),
+        x0=system.x0,
+        P0=system.P0,
+        B=same(system.B),
+        Bu=same(system.Bu),
+        D=D_st,
+    )
     return stacked, Censoring(lower=np.array(lo, dtype=float), upper=np.array(hi, dtype=float))

@@ -98,8 +98,10 @@ class RiceFading(Channel):
         self.order = _check_order(order)
         law = as_law(coefficients, "coefficients")
         if law.shape[:1] != (self.order + 1,) or len(law.shape) > 2:
-            raise ShapeError(f"coefficients: expected a law of shape ({self.order + 1},) or ({self.order + 1}, m) "
-                             f"for order L={self.order}, got shape {law.shape}")
+            raise ShapeError(
+                f"coefficients: expected a law of shape ({self.order + 1},) or ({self.order + 1}, m) "
+                f"for order L={self.order}, got shape {law.shape}"
+            )
         self.coefficients: CoefficientLaw = law
 
     @classmethod
@@ -140,12 +142,13 @@ class RiceFading(Channel):
         else:
             theta = law.sample(rng, (runs, steps))
         theta = np.array(theta, dtype=float)
-        for s in range(1, self.order + 1):           # zero padding: no term s > k (k = 1..s-1)
+        for s in range(1, self.order + 1):  # zero padding: no term s > k (k = 1..s-1)
             theta[:, : min(s - 1, steps), s, :] = 0.0
         return theta
 
-    def draw(self, rng: np.random.Generator, x: np.ndarray, system, noise: np.ndarray,
-             inputs: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def draw(
+        self, rng: np.random.Generator, x: np.ndarray, system, noise: np.ndarray, inputs: np.ndarray | None = None
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         r"""Latent measurements :math:`y^*_k` of (2) for a batch of state trajectories.
 
         The hook called by :func:`tobitkf.simulate` (``measurement=``).
@@ -174,13 +177,13 @@ class RiceFading(Channel):
         if system.C.varying:
             cx = np.stack([x[:, j] @ measurement_matrix_at(system, j).T for j in range(T + 1)], axis=1)
         else:
-            cx = x @ measurement_matrix_at(system, 0).T                      # (N, T+1, m): C_j x_j
+            cx = x @ measurement_matrix_at(system, 0).T  # (N, T+1, m): C_j x_j
         y = np.array(noise, dtype=float, copy=True)
         for s in range(self.order + 1):
-            k0 = max(s, 1)                                              # first k with a term s
+            k0 = max(s, 1)  # first k with a term s
             if k0 > T:
                 break
-            y[:, k0 - 1:] += theta[:, k0 - 1:, s] * cx[:, k0 - s:T + 1 - s]
+            y[:, k0 - 1 :] += theta[:, k0 - 1 :, s] * cx[:, k0 - s : T + 1 - s]
         if inputs is not None and system.D is not None:
             y += np.stack([inputs[:, k - 1] @ system.D.at(k).T for k in range(1, T + 1)], axis=1)
         return y, {"fading": theta}

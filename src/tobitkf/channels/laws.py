@@ -177,8 +177,9 @@ class Uniform(CoefficientLaw):
         except ValueError:
             raise ShapeError(f"low/high: shapes {lo.shape} and {hi.shape} do not broadcast") from None
         if (lo > hi).any():
-            raise ValidationError(f"low/high: expected low <= high, got low={lo[lo > hi].ravel()[:3]} "
-                                  f"> high={hi[lo > hi].ravel()[:3]}")
+            raise ValidationError(
+                f"low/high: expected low <= high, got low={lo[lo > hi].ravel()[:3]} > high={hi[lo > hi].ravel()[:3]}"
+            )
         self.low, self.high = np.array(lo), np.array(hi)
         self.shape = self.low.shape
 
@@ -243,14 +244,16 @@ class PMF(CoefficientLaw):
         if p.ndim == 0:
             raise ShapeError("probs: expected an array (..., K) of probabilities, got a scalar")
         if val.shape[-1] != p.shape[-1]:
-            raise ShapeError(f"probs: expected the same length K={val.shape[-1]} as values on the last axis, "
-                             f"got {p.shape[-1]}")
+            raise ShapeError(
+                f"probs: expected the same length K={val.shape[-1]} as values on the last axis, got {p.shape[-1]}"
+            )
         if (p < 0).any():
             raise ValidationError(f"probs: expected probabilities >= 0, got {p[p < 0].ravel()[:3]}")
         total = p.sum(-1)
         if (np.abs(total - 1.0) > _PROB_TOL).any():
-            raise ValidationError(f"probs: expected probabilities summing to 1 along the last axis, "
-                                  f"got sums {np.ravel(total)[:3]}")
+            raise ValidationError(
+                f"probs: expected probabilities summing to 1 along the last axis, got sums {np.ravel(total)[:3]}"
+            )
         try:
             val, p = np.broadcast_arrays(val, p)
         except ValueError:
@@ -272,7 +275,7 @@ class PMF(CoefficientLaw):
         rng = _check_rng(rng)
         u = rng.random(_shape_tuple(shape) + self.shape)
         idx = (u[..., None] >= self._cdf).sum(-1)
-        idx = np.minimum(idx, self.values.shape[-1] - 1)     # u within rounding of 1
+        idx = np.minimum(idx, self.values.shape[-1] - 1)  # u within rounding of 1
         vals = np.broadcast_to(self.values, u.shape + self.values.shape[-1:])
         return np.take_along_axis(vals, idx[..., None], axis=-1)[..., 0]
 

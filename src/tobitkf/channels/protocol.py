@@ -58,8 +58,16 @@ from .base import Channel
 from .censoring import Censoring
 from .laws import PMF, Constant, Gaussian
 
-__all__ = ["check_failure_law", "IntegralMeasurement", "RoundRobin", "ProtocolChannel",
-           "LAMBDA_BASE", "LAMBDA_1", "NO_FAILURE", "PREHISTORY"]
+__all__ = [
+    "check_failure_law",
+    "IntegralMeasurement",
+    "RoundRobin",
+    "ProtocolChannel",
+    "LAMBDA_BASE",
+    "LAMBDA_1",
+    "NO_FAILURE",
+    "PREHISTORY",
+]
 
 _PROB_TOL = 1e-9
 PREHISTORY = ("prior", "hold", "zero")
@@ -90,13 +98,17 @@ def check_failure_law(law: Any, name: str = "failures", *, unit_interval: bool =
     """
     for attr in ("mean", "variance", "sample"):
         if not hasattr(law, attr):
-            raise ValidationError(f"{name}: expected a law with mean, variance and sample(rng, shape); "
-                                  f"{type(law).__name__} has no {attr!r}")
+            raise ValidationError(
+                f"{name}: expected a law with mean, variance and sample(rng, shape); "
+                f"{type(law).__name__} has no {attr!r}"
+            )
     mean = np.asarray(law.mean, dtype=float)
     var = np.asarray(law.variance, dtype=float)
     if isinstance(law, Gaussian) and unit_interval and float(var) > 0:
-        raise ValidationError(f"{name}: a Gaussian gain with positive variance leaves [0, 1] (Assumption 2); "
-                              "use a PMF or Uniform law, or any law supported in [0, 1]")
+        raise ValidationError(
+            f"{name}: a Gaussian gain with positive variance leaves [0, 1] (Assumption 2); "
+            "use a PMF or Uniform law, or any law supported in [0, 1]"
+        )
     if mean.shape != () or var.shape != ():
         raise ShapeError(f"{name}: expected a law of one scalar gain, got mean of shape {mean.shape}")
     if not (np.isfinite(mean) and np.isfinite(var)) or var < 0:
@@ -114,11 +126,14 @@ def check_failure_law(law: Any, name: str = "failures", *, unit_interval: bool =
         else:
             lo = hi = float(mean)
             if var > mean * (1 - mean) + 1e-12:
-                raise ValidationError(f"{name}: variance {float(var):.6g} exceeds mean(1-mean) = "
-                                      f"{float(mean * (1 - mean)):.6g}, impossible for a gain in [0, 1]")
+                raise ValidationError(
+                    f"{name}: variance {float(var):.6g} exceeds mean(1-mean) = "
+                    f"{float(mean * (1 - mean)):.6g}, impossible for a gain in [0, 1]"
+                )
         if lo < 0 or hi > 1:
-            raise ValidationError(f"{name}: a failure gain must take values in [0, 1] (Assumption 2), "
-                                  f"got support [{lo}, {hi}]")
+            raise ValidationError(
+                f"{name}: a failure gain must take values in [0, 1] (Assumption 2), got support [{lo}, {hi}]"
+            )
     return law
 
 
@@ -149,9 +164,12 @@ class IntegralMeasurement:
             raise ValidationError(f"window: expected an integer ell >= 0, got {window!r}")
         self.window = int(window)
         # the filter's augmented covariance is (n(ell+1))^2 floats, at least (ell+1)^2 for n = 1
-        check_memory(8 * (self.window + 1) ** 2, "window",
-                     f"an integral window of {self.window} steps (the augmented covariance, at least "
-                     f"{self.window + 1} x {self.window + 1})")
+        check_memory(
+            8 * (self.window + 1) ** 2,
+            "window",
+            f"an integral window of {self.window} steps (the augmented covariance, at least "
+            f"{self.window + 1} x {self.window + 1})",
+        )
 
     def window_sum(self, x: np.ndarray, prehistory: np.ndarray) -> np.ndarray:
         r""":math:`\sum_{s=0}^{\ell} x_{k-s}` for k = 1..T.
@@ -170,11 +188,11 @@ class IntegralMeasurement:
         ell = self.window
         if prehistory.shape[-2] != ell:
             raise ShapeError(f"prehistory: expected {ell} past states, got shape {prehistory.shape}")
-        full = np.concatenate([prehistory[:, ::-1], x], axis=1)     # x_{-ell} .. x_T; x_k at k + ell
+        full = np.concatenate([prehistory[:, ::-1], x], axis=1)  # x_{-ell} .. x_T; x_k at k + ell
         T = x.shape[1] - 1
-        out = full[:, ell + 1: ell + 1 + T].copy()                  # s = 0: x_1..x_T
+        out = full[:, ell + 1 : ell + 1 + T].copy()  # s = 0: x_1..x_T
         for s in range(1, ell + 1):
-            out += full[:, ell + 1 - s: ell + 1 - s + T]
+            out += full[:, ell + 1 - s : ell + 1 - s + T]
         return out
 
 
@@ -281,8 +299,16 @@ class ProtocolChannel(Channel):
     ([0.9, 0.9], [0.065, 0.065])
     """
 
-    def __init__(self, sensors: int, *, window: int = 0, failures: Any = None, threshold: float = -np.inf,
-                 order: Sequence[int] | None = None, prehistory: str = "prior"):
+    def __init__(
+        self,
+        sensors: int,
+        *,
+        window: int = 0,
+        failures: Any = None,
+        threshold: float = -np.inf,
+        order: Sequence[int] | None = None,
+        prehistory: str = "prior",
+    ):
         self.schedule = RoundRobin(sensors, order)
         self.integral = IntegralMeasurement(window)
         p = self.schedule.sensors
@@ -330,9 +356,14 @@ class ProtocolChannel(Channel):
 
     def replace(self, **changes: Any) -> ProtocolChannel:
         """A copy with some settings changed (``window``, ``failures``, ``threshold``, ...)."""
-        kw = dict(sensors=self.sensors, window=self.window,
-                  failures=self.laws[0] if self.shared_law else list(self.laws),
-                  threshold=self.threshold, order=self.schedule.order.tolist(), prehistory=self.prehistory)
+        kw = dict(
+            sensors=self.sensors,
+            window=self.window,
+            failures=self.laws[0] if self.shared_law else list(self.laws),
+            threshold=self.threshold,
+            order=self.schedule.order.tolist(),
+            prehistory=self.prehistory,
+        )
         kw.update(changes)
         sensors = kw.pop("sensors")
         return ProtocolChannel(sensors, **kw)
@@ -342,8 +373,12 @@ class ProtocolChannel(Channel):
         augmented covariance of the window fits in memory."""
         if hasattr(system, "n"):
             size = system.n * (self.window + 1)
-            check_memory(8 * size * size, "window", f"an integral window of {self.window} steps with n = {system.n} "
-                                                    f"(the augmented covariance, {size} x {size})")
+            check_memory(
+                8 * size * size,
+                "window",
+                f"an integral window of {self.window} steps with n = {system.n} "
+                f"(the augmented covariance, {size} x {size})",
+            )
         if system.m != self.sensors:
             raise ShapeError(f"system: expected C with p={self.sensors} rows (one per sensor), got m={system.m}")
 
@@ -370,9 +405,9 @@ class ProtocolChannel(Channel):
             past = np.repeat(x[:, :1], ell, axis=1)
         else:
             past = np.zeros((N, ell, n))
-        s = self.integral.window_sum(x, past)                       # (N, T, n)
+        s = self.integral.window_sum(x, past)  # (N, T, n)
         if system.C.varying:
-            Cs = np.stack([system.measurement(k) for k in range(1, T + 1)])   # (T, p, n)
+            Cs = np.stack([system.measurement(k) for k in range(1, T + 1)])  # (T, p, n)
             clean = np.einsum("tpn,btn->btp", Cs, s)
         else:
             clean = s @ system.measurement(1).T
@@ -392,9 +427,11 @@ class ProtocolChannel(Channel):
         """Round-Robin, zero-input: keep the scheduled sensor's (censored) reading, (N, T, 1)."""
         out = self.schedule.select(y)
         extras["scheduled"] = self.schedule.scheduled(y.shape[-2])
-        extras["uncensored"] = out > self.threshold            # (N, T, 1), laid out like y
+        extras["uncensored"] = out > self.threshold  # (N, T, 1), laid out like y
         return out
 
     def __repr__(self) -> str:
-        return (f"ProtocolChannel(sensors={self.sensors}, window={self.window}, failures={list(self.laws)}, "
-                f"threshold={self.threshold}, prehistory={self.prehistory!r})")
+        return (
+            f"ProtocolChannel(sensors={self.sensors}, window={self.window}, failures={list(self.laws)}, "
+            f"threshold={self.threshold}, prehistory={self.prehistory!r})"
+        )

@@ -114,8 +114,11 @@ class RandomSaturation(Channel):
 
     def mode_probabilities(self) -> dict[str, np.ndarray]:
         """Remark 2: probabilities of the saturated, normal and missing modes, each (m,)."""
-        return {"saturated": self.mu.copy(), "normal": (1 - self.mu) * self.nu,
-                "missing": (1 - self.mu) * (1 - self.nu)}
+        return {
+            "saturated": self.mu.copy(),
+            "normal": (1 - self.mu) * self.nu,
+            "missing": (1 - self.mu) * (1 - self.nu),
+        }
 
     # --- drawing and applying -------------------------------------------------------
     def draw_modes(self, rng: np.random.Generator, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
@@ -137,8 +140,9 @@ class RandomSaturation(Channel):
         beta = np.asarray(beta, dtype=float)
         return alpha * saturate(cx, self.level) + (1 - alpha) * beta * cx + noise
 
-    def draw(self, rng: np.random.Generator, x: np.ndarray, system: Any, noise: np.ndarray,
-             inputs: Any = None) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    def draw(
+        self, rng: np.random.Generator, x: np.ndarray, system: Any, noise: np.ndarray, inputs: Any = None
+    ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """Measurement-model hook of :func:`tobitkf.simulate`: eq. (2) on a linear system.
 
         ``x`` is (N, T+1, n), ``noise`` the (N, T, m) draw of v_k; returns y_1..y_T and the

@@ -47,14 +47,23 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float, as_float_array, check_instance, check_option
+from .._linalg import eigh_sqrt as psd_sqrt
+from .._validation import (
+    ShapeError,
+    ValidationError,
+    as_float,
+    as_float_array,
+    as_generator,
+    check_count,
+    check_instance,
+    check_memory,
+    check_option,
+)
 from ..channels.censoring import Censoring
 from ..filters.kalman import KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter
 from ..filters.tobit import NOISE_TERMS, TobitKalmanFilter, _sigma_of
 from ..models.linear import LinearSystem
-from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import as_generator, check_count, check_memory
 from .lqg import controlled_noise, reference_gain
 
 __all__ = ["ClosedLoopResult", "simulate_closed_loop", "OBSERVERS", "quadratic_cost"]
@@ -110,11 +119,26 @@ def _reference(reference: Any, steps: int, nr: int) -> np.ndarray:
     return r
 
 
-def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1, *, observer: str = "tkf",
-                         censoring: Censoring | None = None, xi_uncensored: Any = None, side: str = "upper",
-                         reference: Any = 0.0, Nbar: Any = None, Cz: Any = None, seed: Any = 0,
-                         x0_estimate: Any = None, P0_estimate: Any = None, noise_term: str = "dissertation",
-                         divergence_bound: float = 1e8, noise: dict | None = None) -> ClosedLoopResult:
+def simulate_closed_loop(
+    plant: LinearSystem,
+    K: Any,
+    steps: int,
+    runs: int = 1,
+    *,
+    observer: str = "tkf",
+    censoring: Censoring | None = None,
+    xi_uncensored: Any = None,
+    side: str = "upper",
+    reference: Any = 0.0,
+    Nbar: Any = None,
+    Cz: Any = None,
+    seed: Any = 0,
+    x0_estimate: Any = None,
+    P0_estimate: Any = None,
+    noise_term: str = "dissertation",
+    divergence_bound: float = 1e8,
+    noise: dict | None = None,
+) -> ClosedLoopResult:
     r"""Simulate the LQG loop with a (Tobit) Kalman observer over many runs at once.
 
     Parameters
@@ -178,11 +202,15 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         raise ValidationError("plant: simulate_closed_loop needs a time-invariant plant")
     steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
     n, m, p = plant.n, plant.m, plant.p
-    check_memory(8 * runs * (steps + 1) * (4 * n + n * n + 3 * m + p), "runs/steps",
-                 f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)")
+    assert p is not None, "a plant with an input matrix (plant.Bu is read above)"
+    check_memory(
+        8 * runs * (steps + 1) * (4 * n + n * n + 3 * m + p),
+        "runs/steps",
+        f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)",
+    )
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
     D = None if plant.D is None else plant.D.at(1)
-    Qd, R = plant.process_cov(0), plant.measurement_cov(1)
+    R = plant.measurement_cov(1)
     K = np.atleast_2d(as_float_array(K, "K"))
     if K.shape != (p, n):
         raise ShapeError(f"K: expected ({p}, {n}), got {K.shape}")
@@ -201,13 +229,14 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     moving = observer in ("tkf-moving", "sstkf")
     if moving:
         if xi_uncensored is None:
-            raise ValidationError(f"xi_uncensored: observer {observer!r} needs the target probability of an "
-                                  "uncensored reading, in (0, 1)")
+            raise ValidationError(
+                f"xi_uncensored: observer {observer!r} needs the target probability of an uncensored reading, in (0, 1)"
+            )
         xi = as_float_array(xi_uncensored, "xi_uncensored")
         if xi.size not in (1, m):
             raise ShapeError(f"xi_uncensored: expected a scalar or ({m},), got shape {xi.shape}")
         xi = np.broadcast_to(xi.reshape(-1), (m,)).copy()
-        controlled_noise(xi, sigma)                        # raises for xi outside (0, 1)
+        controlled_noise(xi, sigma)  # raises for xi outside (0, 1)
         from scipy.special import ndtri
 
         shift = sigma * ndtri(xi) * (1.0 if side == "upper" else -1.0)
@@ -219,13 +248,15 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
     if not isinstance(cens, Censoring):
         raise ValidationError(f"censoring: expected a Censoring, got {type(censoring).__name__}")
     cens.check(m, steps)
+    obs: KalmanFilter | SteadyStateTobitKalmanFilter | TobitKalmanFilter
     if observer == "kf":
         obs = KalmanFilter(plant, backend="numpy")
     elif observer == "sstkf":
         obs = SteadyStateTobitKalmanFilter(plant, xi, side=side)
     else:
-        obs = TobitKalmanFilter(plant, Censoring() if moving else cens, noise_term=noise_term, backend="numpy",
-                                check_limits=False)
+        obs = TobitKalmanFilter(
+            plant, Censoring() if moving else cens, noise_term=noise_term, backend="numpy", check_limits=False
+        )
 
     x = np.empty((runs, steps + 1, n))
     if noise is None:
@@ -242,15 +273,19 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         if missing:
             raise ValidationError(f"noise: expected keys 'x0', 'w', 'v' (a dict), missing {', '.join(missing)}")
         try:
-            x[:, 0], w, v = (np.broadcast_to(as_float_array(noise[key], f"noise[{key!r}]"), shape) for key, shape in
-                             (("x0", (runs, n)), ("w", (runs, steps, n)), ("v", (runs, steps, m))))
+            x[:, 0], w, v = (
+                np.broadcast_to(as_float_array(noise[key], f"noise[{key!r}]"), shape)
+                for key, shape in (("x0", (runs, n)), ("w", (runs, steps, n)), ("v", (runs, steps, m)))
+            )
         except KeyError as exc:
             raise ValidationError(f"noise: expected keys 'x0', 'w', 'v', missing {exc}") from None
-        except ValidationError:          # NaN, inf or text in noise['w'] ...: named by as_float_array
+        except ValidationError:  # NaN, inf or text in noise['w'] ...: named by as_float_array
             raise
         except ValueError:
-            raise ShapeError(f"noise: expected x0 ({runs}, {n}), w ({runs}, {steps}, {n}), v ({runs}, {steps}, {m}), got "
-                             f"{[np.shape(noise[k]) for k in ('x0', 'w', 'v')]}") from None
+            raise ShapeError(
+                f"noise: expected x0 ({runs}, {n}), w ({runs}, {steps}, {n}), v ({runs}, {steps}, {m}), got "
+                f"{[np.shape(noise[k]) for k in ('x0', 'w', 'v')]}"
+            ) from None
 
     if observer == "sstkf":
         if P0_estimate is not None:
@@ -258,9 +293,20 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         state = obs.init((runs,), x0=x0_estimate)
     else:
         state = obs.init((runs,), x0=x0_estimate, P0=P0_estimate)
-    out = {name: np.empty((runs, steps) + shape) for name, shape in
-           (("estimate", (n,)), ("pred", (n,)), ("cov", (n, n)), ("u", (p,)), ("y", (m,)), ("ylat", (m,)),
-            ("lower", (m,)), ("upper", (m,)), ("gamma", (m,)))}
+    out = {
+        name: np.empty((runs, steps) + shape)
+        for name, shape in (
+            ("estimate", (n,)),
+            ("pred", (n,)),
+            ("cov", (n, n)),
+            ("u", (p,)),
+            ("y", (m,)),
+            ("ylat", (m,)),
+            ("lower", (m,)),
+            ("upper", (m,)),
+            ("gamma", (m,)),
+        )
+    }
     alive = np.ones(runs, dtype=bool)
     diverged_step = np.full(runs, -1)
     inf = np.full((runs, m), np.inf)
@@ -270,7 +316,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         xk = x[:, k - 1] @ A.T + uk @ Bu.T + w[:, k - 1]
         dy = 0.0 if D is None else uk @ D.T
         ylat = xk @ C.T + dy + v[:, k - 1]
-        pred = obs.predict(state, u=uk)                     # x̄_k = A x̂_{k-1|k-1} + B^u u_k
+        pred = obs.predict(state, u=uk)  # x̄_k = A x̂_{k-1|k-1} + B^u u_k
         xbar = pred.mean
         if moving:
             lim = xbar @ C.T + dy + shift
@@ -278,7 +324,7 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         else:
             l0, h0 = cens.limits(k)
             lo, hi = np.broadcast_to(l0, (runs, m)), np.broadcast_to(h0, (runs, m))
-        yk = np.minimum(np.maximum(ylat, lo), hi)           # the sensor
+        yk = np.minimum(np.maximum(ylat, lo), hi)  # the sensor
         if observer == "kf":
             new = obs.update(pred, yk)
             gam = np.ones((runs, m))
@@ -297,24 +343,39 @@ def simulate_closed_loop(plant: LinearSystem, K: Any, steps: int, runs: int = 1,
         x[:, k] = np.where(keep, xk, x[:, k - 1])
         if keep.all():
             state = new
-        else:   # a diverged run is frozen at its last estimate
+        else:  # a diverged run is frozen at its last estimate
+            assert new.P is not None and state.P is not None, "the observers carry their covariance"
             P_new = new.P if new.P.shape[0] == runs else np.broadcast_to(new.P, (runs,) + new.P.shape[1:])
             P_old = state.P if state.P.shape[0] == runs else np.broadcast_to(state.P, (runs,) + state.P.shape[1:])
-            state = new.replace(x=np.where(keep, new.x, state.x),
-                                P=P_new if observer == "sstkf" else np.where(keep[:, :, None], P_new, P_old))
+            state = new.replace(
+                x=np.where(keep, new.x, state.x),
+                P=P_new if observer == "sstkf" else np.where(keep[:, :, None], P_new, P_old),
+            )
         out["estimate"][:, k - 1], out["pred"][:, k - 1] = state.mean, np.where(keep, xbar, state.mean)
         out["cov"][:, k - 1] = state.cov
         out["u"][:, k - 1] = np.where(keep, uk, 0.0)
         out["y"][:, k - 1], out["ylat"][:, k - 1] = yk, ylat
         out["lower"][:, k - 1], out["upper"][:, k - 1], out["gamma"][:, k - 1] = lo, hi, gam
-    return ClosedLoopResult(x=x, estimate=out["estimate"], pred_estimate=out["pred"], cov=out["cov"], u=out["u"],
-                            y=out["y"], y_latent=out["ylat"], lower=out["lower"], upper=out["upper"],
-                            p_uncensored=out["gamma"], reference=r, diverged=diverged_step >= 0,
-                            diverged_step=diverged_step)
+    return ClosedLoopResult(
+        x=x,
+        estimate=out["estimate"],
+        pred_estimate=out["pred"],
+        cov=out["cov"],
+        u=out["u"],
+        y=out["y"],
+        y_latent=out["ylat"],
+        lower=out["lower"],
+        upper=out["upper"],
+        p_uncensored=out["gamma"],
+        reference=r,
+        diverged=diverged_step >= 0,
+        diverged_step=diverged_step,
+    )
 
 
-def quadratic_cost(result: ClosedLoopResult, Q: Any, R: Any, x_ref: Any = None, u_ref: Any = None, *,
-                   skip: int = 0) -> np.ndarray:
+def quadratic_cost(
+    result: ClosedLoopResult, Q: Any, R: Any, x_ref: Any = None, u_ref: Any = None, *, skip: int = 0
+) -> np.ndarray:
     r"""Average LQ cost per run, :math:`\frac1{T'}\sum_k (x_k - x_{ref})^TQ(x_k - x_{ref}) + (u_k - u_{ref})^TR(u_k - u_{ref})`.
 
     ``x_ref`` (n,) / (T, n) and ``u_ref`` (p,) / (T, p) default to 0; ``skip`` drops the first steps.

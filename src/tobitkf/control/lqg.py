@@ -46,17 +46,34 @@ reason instead of returning NaN.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple
-
 import warnings
+from typing import Any, NamedTuple
 
 import numpy as np
 
+from .._extras import require
 from .._validation import ShapeError, ValidationError, as_float_array, check_option
 
-__all__ = ["RegulatorGain", "EstimatorGain", "lqr", "dlqr", "lqe", "dlqe", "tobit_lqe", "tobit_dlqe",
-           "controlled_noise", "reference_gain", "equilibrium", "is_stable", "uncontrollable_modes",
-           "unobservable_modes", "discretize", "DOMAINS", "refine_care", "refine_dare"]
+__all__ = [
+    "RegulatorGain",
+    "EstimatorGain",
+    "lqr",
+    "dlqr",
+    "lqe",
+    "dlqe",
+    "tobit_lqe",
+    "tobit_dlqe",
+    "controlled_noise",
+    "reference_gain",
+    "equilibrium",
+    "is_stable",
+    "uncontrollable_modes",
+    "unobservable_modes",
+    "discretize",
+    "DOMAINS",
+    "refine_care",
+    "refine_dare",
+]
 
 DOMAINS = ("ct", "dt")
 
@@ -64,9 +81,13 @@ DOMAINS = ("ct", "dt")
 def _domain(domain: Any, func: str) -> str:
     """The time domain of ``func``: required; an omitted one is 'dt' for one release, with a warning."""
     if domain is None:
-        warnings.warn(f"{func}: pass domain='dt' (discrete time) or domain='ct' (continuous time); the implicit "
-                      "default 'dt' is deprecated and will be removed (the control functions differ in their "
-                      "domain, so it must be explicit)", DeprecationWarning, stacklevel=3)
+        warnings.warn(
+            f"{func}: pass domain='dt' (discrete time) or domain='ct' (continuous time); the implicit "
+            "default 'dt' is deprecated and will be removed (the control functions differ in their "
+            "domain, so it must be explicit)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
         return "dt"
     check_option(domain, "domain", DOMAINS)
     return domain
@@ -110,8 +131,18 @@ class EstimatorGain:
 
     __slots__ = ("domain", "_gain", "_filter_gain", "prior_cov", "cov", "poles", "measurement", "noise")
 
-    def __init__(self, *, domain: str, gain: np.ndarray, filter_gain: np.ndarray | None, prior_cov: np.ndarray,
-                 cov: np.ndarray, poles: np.ndarray, measurement: np.ndarray, noise: np.ndarray):
+    def __init__(
+        self,
+        *,
+        domain: str,
+        gain: np.ndarray,
+        filter_gain: np.ndarray | None,
+        prior_cov: np.ndarray,
+        cov: np.ndarray,
+        poles: np.ndarray,
+        measurement: np.ndarray,
+        noise: np.ndarray,
+    ):
         self.domain = domain
         self._gain, self._filter_gain = gain, filter_gain
         self.prior_cov, self.cov, self.poles = prior_cov, cov, poles
@@ -145,18 +176,26 @@ class EstimatorGain:
     def gain(self) -> np.ndarray:
         """CT Kalman–Bucy gain L (DT results: deprecated alias of :attr:`predictor_gain`)."""
         if self.domain == "dt":
-            warnings.warn("EstimatorGain.gain of a discrete-time result is the predictor gain A K_f: use "
-                          ".predictor_gain (or .filter_gain for K_f); .gain is deprecated there", DeprecationWarning,
-                          stacklevel=2)
+            warnings.warn(
+                "EstimatorGain.gain of a discrete-time result is the predictor gain A K_f: use "
+                ".predictor_gain (or .filter_gain for K_f); .gain is deprecated there",
+                DeprecationWarning,
+                stacklevel=2,
+            )
         return self._gain
 
     @property
     def filter_gain(self) -> np.ndarray:
         """DT filter gain :math:`K_f` (CT results: deprecated alias of :attr:`gain`)."""
         if self.domain == "ct":
-            warnings.warn("EstimatorGain.filter_gain of a continuous-time result is its only gain: use .gain; "
-                          ".filter_gain is deprecated there", DeprecationWarning, stacklevel=2)
+            warnings.warn(
+                "EstimatorGain.filter_gain of a continuous-time result is its only gain: use .gain; "
+                ".filter_gain is deprecated there",
+                DeprecationWarning,
+                stacklevel=2,
+            )
             return self._gain
+        assert self._filter_gain is not None, "a discrete-time result has its filter gain"
         return self._filter_gain
 
 
@@ -180,7 +219,7 @@ def refine_care(A: Any, Q: Any, S: Any, P: Any, *, steps: int = 6) -> np.ndarray
         if res == 0:
             break
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)     # near-singular Lyapunov: judged by the residual
+            warnings.simplefilter("ignore", RuntimeWarning)  # near-singular Lyapunov: judged by the residual
             D = solve_continuous_lyapunov((A - S @ P).T, -_residual_care(A, P, Q, S))
         P2 = P + 0.5 * (D + D.T)
         res2 = np.abs(_residual_care(A, P2, Q, S)).max()
@@ -241,8 +280,10 @@ def _weight(value: Any, name: str, size: int, *, definite: bool, what: str) -> n
     ev = np.linalg.eigvalsh(0.5 * (W + W.T))
     scale = max(1.0, np.abs(ev).max())
     if definite and ev.min() <= 1e-14 * scale:
-        raise ValidationError(f"{name}: the {what} must be positive definite (smallest eigenvalue {ev.min():.3g}); "
-                              "a singular weight makes the Riccati gain undefined")
+        raise ValidationError(
+            f"{name}: the {what} must be positive definite (smallest eigenvalue {ev.min():.3g}); "
+            "a singular weight makes the Riccati gain undefined"
+        )
     if not definite and ev.min() < -1e-10 * scale:
         raise ValidationError(f"{name}: the {what} must be positive semi-definite (smallest eigenvalue {ev.min():.3g})")
     return 0.5 * (W + W.T)
@@ -256,8 +297,9 @@ def _on_boundary(ev: np.ndarray, domain: str, tol: float = 1e-9) -> np.ndarray:
     return np.abs(ev.real) <= tol if domain == "ct" else np.abs(np.abs(ev) - 1.0) <= tol
 
 
-def uncontrollable_modes(A: Any, B: Any, *, which: str = "unstable", domain: str | None = None,
-                         rtol: float = 1e-9) -> np.ndarray:
+def uncontrollable_modes(
+    A: Any, B: Any, *, which: str = "unstable", domain: str | None = None, rtol: float = 1e-9
+) -> np.ndarray:
     r"""Eigenvalues λ of A with rank [A − λI, B] < n (PBH test), restricted by ``which``.
 
     ``which``: ``"unstable"`` (the modes that make (A, B) not stabilizable), ``"boundary"``
@@ -295,17 +337,20 @@ def uncontrollable_modes(A: Any, B: Any, *, which: str = "unstable", domain: str
     return np.array(out)
 
 
-def unobservable_modes(A: Any, C: Any, *, which: str = "unstable", domain: str | None = None,
-                       rtol: float = 1e-9) -> np.ndarray:
+def unobservable_modes(
+    A: Any, C: Any, *, which: str = "unstable", domain: str | None = None, rtol: float = 1e-9
+) -> np.ndarray:
     """Eigenvalues λ of A with rank [A − λI; C] < n (PBH test); see :func:`uncontrollable_modes`."""
     domain = _domain(domain, "unobservable_modes")
-    return uncontrollable_modes(np.asarray(A, dtype=float).T, np.asarray(C, dtype=float).T, which=which,
-                                domain=domain, rtol=rtol)
+    return uncontrollable_modes(
+        np.asarray(A, dtype=float).T, np.asarray(C, dtype=float).T, which=which, domain=domain, rtol=rtol
+    )
 
 
 def _fmt(ev: np.ndarray) -> str:
-    return ", ".join(f"{complex(v).real:.4g}" + (f"{complex(v).imag:+.4g}j" if abs(complex(v).imag) > 1e-12 else "")
-                     for v in ev)
+    return ", ".join(
+        f"{complex(v).real:.4g}" + (f"{complex(v).imag:+.4g}j" if abs(complex(v).imag) > 1e-12 else "") for v in ev
+    )
 
 
 def _diagnose(A, B, Wh, domain, first, weight, why, *, observe: bool = False) -> str:
@@ -316,8 +361,11 @@ def _diagnose(A, B, Wh, domain, first, weight, why, *, observe: bool = False) ->
         return f"{first}; {kind} unstable mode(s) {_fmt(bad)}"
     bad = unobservable_modes(A, Wh, which="boundary", domain=domain)
     if bad.size:
-        return (f"mode(s) {_fmt(bad)} on the stability boundary are not "
-                + ("excited by the " if observe else "seen by the ") + weight)
+        return (
+            f"mode(s) {_fmt(bad)} on the stability boundary are not "
+            + ("excited by the " if observe else "seen by the ")
+            + weight
+        )
     return why
 
 
@@ -334,7 +382,7 @@ def is_stable(M: Any, *, domain: str | None = None) -> bool:
 
 # --------------------------------------------------------------------------- LQR
 def _lqr(A, B, Q, R, domain: str) -> RegulatorGain:
-    import control
+    control = require("control", extra="control")
 
     check_option(domain, "domain", DOMAINS)
     A = _mat(A, "A", (None, None))
@@ -348,23 +396,24 @@ def _lqr(A, B, Q, R, domain: str) -> RegulatorGain:
     eq = "CARE (4.40)" if domain == "ct" else "DARE"
     w, V = np.linalg.eigh(Q)
     Qh = (V * np.sqrt(np.clip(w, 0, None))).T
-    K = S = None
+    K: Any = None
+    S: Any = None
     try:
         K, S, _ = (control.lqr if domain == "ct" else control.dlqr)(A, B, Q, R)
         S = np.asarray(S, dtype=float)
         if np.all(np.isfinite(S)):
-            S = (refine_care(A, Q, B @ np.linalg.solve(R, B.T), S) if domain == "ct"
-                 else refine_dare(A, B, Q, R, S))
-            K = (np.linalg.solve(R, B.T @ S) if domain == "ct"
-                 else np.linalg.solve(R + B.T @ S @ B, B.T @ S @ A))
+            S = refine_care(A, Q, B @ np.linalg.solve(R, B.T), S) if domain == "ct" else refine_dare(A, B, Q, R, S)
+            K = np.linalg.solve(R, B.T @ S) if domain == "ct" else np.linalg.solve(R + B.T @ S @ B, B.T @ S @ A)
         K = np.asarray(K, dtype=float)
         ok = bool(np.all(np.isfinite(K)) and np.all(np.isfinite(S)) and is_stable(A - B @ K, domain=domain))
         why = "the solution does not stabilize A - B K"
     except (np.linalg.LinAlgError, ValueError) as exc:
         ok, why = False, str(exc)
     if not ok:
-        raise ValidationError(f"LQR {eq} has no stabilizing solution: "
-                              + _diagnose(A, B, Qh, domain, "(A, B) is not stabilizable", "state weight Q", why))
+        raise ValidationError(
+            f"LQR {eq} has no stabilizing solution: "
+            + _diagnose(A, B, Qh, domain, "(A, B) is not stabilizable", "state weight Q", why)
+        )
     return RegulatorGain(K, 0.5 * (S + S.T), np.linalg.eigvals(A - B @ K))
 
 
@@ -420,7 +469,7 @@ def dlqr(A: Any, B: Any, Q: Any, R: Any) -> RegulatorGain:
 
 # --------------------------------------------------------------------------- LQE
 def _lqe(A, G, C, W, V, domain: str, *, tag: str = "LQE") -> EstimatorGain:
-    import control
+    control = require("control", extra="control")
 
     check_option(domain, "domain", DOMAINS)
     A = _mat(A, "A", (None, None))
@@ -440,33 +489,52 @@ def _lqe(A, G, C, W, V, domain: str, *, tag: str = "LQE") -> EstimatorGain:
         if domain == "ct":
             L, P, _ = control.lqe(A, G, C, W, V)
         else:
-            L, P, _ = control.dlqe(A, G, C, W, V)     # predictor gain A P C'(C P C' + V)^-1, P a-priori
+            L, P, _ = control.dlqe(A, G, C, W, V)  # predictor gain A P C'(C P C' + V)^-1, P a-priori
         P = np.asarray(P, dtype=float)
-        if np.all(np.isfinite(P)):                    # Newton refinement on the dual (A^T, C^T) equation
-            P = (refine_care(A.T, Qd, C.T @ np.linalg.solve(V, C), P) if domain == "ct"
-                 else refine_dare(A.T, C.T, Qd, V, P))
-            L = (P @ C.T @ np.linalg.inv(V) if domain == "ct"
-                 else A @ np.linalg.solve(C @ P @ C.T + V, C @ P).T)
+        if np.all(np.isfinite(P)):  # Newton refinement on the dual (A^T, C^T) equation
+            P = (
+                refine_care(A.T, Qd, C.T @ np.linalg.solve(V, C), P)
+                if domain == "ct"
+                else refine_dare(A.T, C.T, Qd, V, P)
+            )
+            L = P @ C.T @ np.linalg.inv(V) if domain == "ct" else A @ np.linalg.solve(C @ P @ C.T + V, C @ P).T
         L = np.asarray(L, dtype=float)
         ok = bool(np.all(np.isfinite(L)) and np.all(np.isfinite(P)) and is_stable(A - L @ C, domain=domain))
         why = "the solution does not stabilize A - L C"
     except (np.linalg.LinAlgError, ValueError) as exc:
         ok, why = False, str(exc)
     if not ok:
-        raise ValidationError(f"{tag} {eq} has no stabilizing solution: "
-                              + _diagnose(A.T, C.T, Gh.T, domain, "(A, C) is not detectable",
-                                          "process noise G W G^T", why, observe=True))
+        raise ValidationError(
+            f"{tag} {eq} has no stabilizing solution: "
+            + _diagnose(A.T, C.T, Gh.T, domain, "(A, C) is not detectable", "process noise G W G^T", why, observe=True)
+        )
     P = 0.5 * (P + P.T)
     if domain == "ct":
         L = P @ C.T @ np.linalg.inv(V)
-        return EstimatorGain(domain="ct", gain=L, filter_gain=None, prior_cov=P, cov=P,
-                             poles=np.linalg.eigvals(A - L @ C), measurement=C, noise=V)
+        return EstimatorGain(
+            domain="ct",
+            gain=L,
+            filter_gain=None,
+            prior_cov=P,
+            cov=P,
+            poles=np.linalg.eigvals(A - L @ C),
+            measurement=C,
+            noise=V,
+        )
     S = C @ P @ C.T + V
     Kf = np.linalg.solve(S, C @ P).T
     post = (np.eye(n) - Kf @ C) @ P
     Lp = A @ Kf
-    return EstimatorGain(domain="dt", gain=Lp, filter_gain=Kf, prior_cov=P, cov=0.5 * (post + post.T),
-                         poles=np.linalg.eigvals(A - Lp @ C), measurement=C, noise=V)
+    return EstimatorGain(
+        domain="dt",
+        gain=Lp,
+        filter_gain=Kf,
+        prior_cov=P,
+        cov=0.5 * (post + post.T),
+        poles=np.linalg.eigvals(A - Lp @ C),
+        measurement=C,
+        noise=V,
+    )
 
 
 def lqe(A: Any, G: Any, C: Any, W: Any, V: Any) -> EstimatorGain:
@@ -546,7 +614,8 @@ def controlled_noise(xi_uncensored: Any, sigma: Any) -> tuple[np.ndarray, np.nda
     from ..filters.steady_state import controlled_limit_statistics
 
     _, lam, upsilon, _ = controlled_limit_statistics(xi_uncensored, sigma)
-    return np.broadcast_arrays(lam, upsilon)
+    lam_b, upsilon_b = np.broadcast_arrays(lam, upsilon)
+    return lam_b, upsilon_b
 
 
 def _tobit_lqe(A, G, C, W, V, xi_uncensored, domain: str) -> EstimatorGain:
@@ -554,15 +623,17 @@ def _tobit_lqe(A, G, C, W, V, xi_uncensored, domain: str) -> EstimatorGain:
     m = C.shape[0]
     V = _mat(V, "V", (m, m))
     if np.abs(V - np.diag(np.diag(V))).max() > 0:
-        raise ValidationError("V: the Tobit LQE needs a diagonal measurement covariance (the channels are "
-                              "censored one by one)")
+        raise ValidationError(
+            "V: the Tobit LQE needs a diagonal measurement covariance (the channels are censored one by one)"
+        )
     var = np.diag(V)
     if np.any(~np.isfinite(var)) or np.any(var <= 0):
         raise ValidationError(f"V: the measurement variances must be positive and finite, got {var.tolist()}")
     xi_arr = as_float_array(xi_uncensored, "xi_uncensored")
     if xi_arr.ndim > 1 or xi_arr.size not in (1, m):
-        raise ShapeError(f"xi_uncensored: expected a scalar or shape ({m},) (one per row of C), "
-                         f"got shape {xi_arr.shape}")
+        raise ShapeError(
+            f"xi_uncensored: expected a scalar or shape ({m},) (one per row of C), got shape {xi_arr.shape}"
+        )
     xi = np.broadcast_to(xi_arr.reshape(-1), (m,))
     lam, ups = controlled_noise(xi, np.sqrt(var))
     return _lqe(A, G, xi[:, None] * C, W, np.diag(ups), domain, tag="Tobit LQE (modified ARE)")
@@ -581,9 +652,13 @@ def _tobit_arguments(args: tuple, V: Any, xi_uncensored: Any, sigma: Any, func: 
                 if xi_uncensored is not None:
                     raise TypeError(f"{func}: xi_uncensored given twice")
                 xi_uncensored = rest[0]
-        warnings.warn(f"{func}(A, G, C, W, sigma, xi_uncensored) with a standard deviation is deprecated: pass the "
-                      f"measurement covariance by keyword, {func}(A, G, C, W, V=sigma**2, xi_uncensored=xi) "
-                      "(every control function takes covariances)", DeprecationWarning, stacklevel=3)
+        warnings.warn(
+            f"{func}(A, G, C, W, sigma, xi_uncensored) with a standard deviation is deprecated: pass the "
+            f"measurement covariance by keyword, {func}(A, G, C, W, V=sigma**2, xi_uncensored=xi) "
+            "(every control function takes covariances)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
         sd = np.atleast_1d(as_float_array(sigma, "sigma"))
         if sd.ndim != 1 or np.any(sd <= 0):
             raise ValidationError(f"sigma: expected positive standard deviations, got {sd.tolist()}")
@@ -593,8 +668,17 @@ def _tobit_arguments(args: tuple, V: Any, xi_uncensored: Any, sigma: Any, func: 
     return V, xi_uncensored
 
 
-def tobit_lqe(A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_uncensored: Any = None,
-              domain: str | None = None, sigma: Any = None) -> EstimatorGain:
+def tobit_lqe(
+    A: Any,
+    G: Any,
+    C: Any,
+    W: Any,
+    *args: Any,
+    V: Any = None,
+    xi_uncensored: Any = None,
+    domain: str | None = None,
+    sigma: Any = None,
+) -> EstimatorGain:
     r"""Continuous-time steady-state Tobit observer gain: the Kalman–Bucy LQE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
 
     This is the "modified ARE" of Miller §3.4.2 and §5.3.3–§5.4 ((3.57) without its spurious
@@ -646,17 +730,26 @@ def tobit_lqe(A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_unce
     if domain is not None:
         check_option(domain, "domain", DOMAINS)
         if domain == "dt":
-            warnings.warn("tobit_lqe(..., domain='dt') is deprecated: use tobit_dlqe(...) (the name says the time "
-                          "domain, as lqe/dlqe)", DeprecationWarning, stacklevel=2)
+            warnings.warn(
+                "tobit_lqe(..., domain='dt') is deprecated: use tobit_dlqe(...) (the name says the time "
+                "domain, as lqe/dlqe)",
+                DeprecationWarning,
+                stacklevel=2,
+            )
         else:
-            warnings.warn("tobit_lqe(..., domain='ct'): the domain argument is deprecated, tobit_lqe is the "
-                          "continuous-time LQE (tobit_dlqe the discrete-time one)", DeprecationWarning, stacklevel=2)
+            warnings.warn(
+                "tobit_lqe(..., domain='ct'): the domain argument is deprecated, tobit_lqe is the "
+                "continuous-time LQE (tobit_dlqe the discrete-time one)",
+                DeprecationWarning,
+                stacklevel=2,
+            )
         return _tobit_lqe(A, G, C, W, V, xi_uncensored, domain)
     return _tobit_lqe(A, G, C, W, V, xi_uncensored, "ct")
 
 
-def tobit_dlqe(A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_uncensored: Any = None,
-               sigma: Any = None) -> EstimatorGain:
+def tobit_dlqe(
+    A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_uncensored: Any = None, sigma: Any = None
+) -> EstimatorGain:
     r"""Discrete-time steady-state Tobit observer gains: the DARE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
 
     The modified DARE of Miller §3.4.2 ((3.57) corrected, docs/sources MA-11): the fixed gain of
@@ -712,12 +805,16 @@ def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str | None = None
     M = -Acl if domain == "ct" else np.eye(n) - Acl
     dc = Cz @ np.linalg.solve(M, B)
     if dc.shape[0] != dc.shape[1]:
-        raise ValidationError(f"Cz: the plant cannot track the reference: {dc.shape[0]} tracked outputs but "
-                              f"{dc.shape[1]} inputs (the DC gain must be square)")
+        raise ValidationError(
+            f"Cz: the plant cannot track the reference: {dc.shape[0]} tracked outputs but "
+            f"{dc.shape[1]} inputs (the DC gain must be square)"
+        )
     if np.linalg.cond(dc) > 1e12:
-        raise ValidationError("Cz: the plant cannot track the reference: the closed-loop DC gain "
-                              f"C_z({'-(A-BK)' if domain == 'ct' else 'I-A+BK'})^-1 B is singular "
-                              "(a transmission zero at " + ("s = 0)" if domain == "ct" else "z = 1)"))
+        raise ValidationError(
+            "Cz: the plant cannot track the reference: the closed-loop DC gain "
+            f"C_z({'-(A-BK)' if domain == 'ct' else 'I-A+BK'})^-1 B is singular "
+            "(a transmission zero at " + ("s = 0)" if domain == "ct" else "z = 1)")
+        )
     return np.linalg.inv(dc)
 
 
@@ -742,9 +839,11 @@ def equilibrium(A: Any, B: Any, G: Any, H: Any, r: Any, *, domain: str | None = 
     rhs = np.concatenate([np.zeros(n), r])
     sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
     res = np.linalg.norm(M @ sol - rhs)
-    if res > 1e-8 * max(1.0, np.linalg.norm(rhs)):
-        raise ValidationError(f"r: the plant cannot track the reference {r.tolist()}: no equilibrium of (6.4) gives "
-                              f"this output (residual {res:.3g})")
+    if res > 1e-8 * max(1.0, float(np.linalg.norm(rhs))):
+        raise ValidationError(
+            f"r: the plant cannot track the reference {r.tolist()}: no equilibrium of (6.4) gives "
+            f"this output (residual {res:.3g})"
+        )
     return sol[:n], sol[n:]
 
 

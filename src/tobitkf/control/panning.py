@@ -38,12 +38,21 @@ from ..channels.censoring import Censoring
 from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
 
-__all__ = ["keep_in_view_limit", "centred_window", "imr_panning_step", "covariance_panning_step",
-           "dissertation_variance_6_61", "MovingWindowResult", "moving_window_tkf", "constant_velocity"]
+__all__ = [
+    "keep_in_view_limit",
+    "centred_window",
+    "imr_panning_step",
+    "covariance_panning_step",
+    "dissertation_variance_6_61",
+    "MovingWindowResult",
+    "moving_window_tkf",
+    "constant_velocity",
+]
 
 
-def constant_velocity(dt: float, sigma_q: float, sigma_r: Any, *, targets: int = 1, cameras: int = 1,
-                      x0: Any = None, P0: Any = None) -> LinearSystem:
+def constant_velocity(
+    dt: float, sigma_q: float, sigma_r: Any, *, targets: int = 1, cameras: int = 1, x0: Any = None, P0: Any = None
+) -> LinearSystem:
     r"""Constant-velocity targets (6.64)–(6.66): state [x_p, x_v] per target, G = [Δ²/2, Δ]σ_q, each target
     position seen by ``cameras`` channels with noise std ``sigma_r``."""
     dt = as_float(dt, "dt", low=0.0, low_open=True)
@@ -61,12 +70,26 @@ def constant_velocity(dt: float, sigma_q: float, sigma_r: Any, *, targets: int =
         raise ValidationError(f"sigma_r: expected one positive noise std or {m}, got {sr}")
     sr = np.broadcast_to(sr.reshape(-1), (m,))
     n = 2 * targets
-    return LinearSystem(A=A, C=C, Q=np.eye(targets) * sigma_q**2, R=np.diag(sr**2), B=G,
-                        x0=np.zeros(n) if x0 is None else x0, P0=np.eye(n) if P0 is None else P0)
+    return LinearSystem(
+        A=A,
+        C=C,
+        Q=np.eye(targets) * sigma_q**2,
+        R=np.diag(sr**2),
+        B=G,
+        x0=np.zeros(n) if x0 is None else x0,
+        P0=np.eye(n) if P0 is None else P0,
+    )
 
 
-def keep_in_view_limit(prior_measurement: Any, sigma: Any, upper0: float, *, width: float = 50.0,
-                       probability: float = 0.9999, prior_var: Any = None) -> tuple[np.ndarray, np.ndarray]:
+def keep_in_view_limit(
+    prior_measurement: Any,
+    sigma: Any,
+    upper0: float,
+    *,
+    width: float = 50.0,
+    probability: float = 0.9999,
+    prior_var: Any = None,
+) -> tuple[np.ndarray, np.ndarray]:
     r"""Rule (6.72): :math:`T_h = \max(T_{h,0}, C\bar x + s\Phi^{-1}(p))`, :math:`T_l = T_h - \text{width}`.
 
     ``prior_var`` (:math:`C\bar\Psi C^T`) switches s from σ (printed) to :math:`\sqrt{\sigma^2 + C\bar\Psi C^T}`
@@ -76,7 +99,11 @@ def keep_in_view_limit(prior_measurement: Any, sigma: Any, upper0: float, *, wid
     width = as_float(width, "width", low=0.0, low_open=True)
     upper0 = as_float(upper0, "upper0")
     mu = np.asarray(prior_measurement, dtype=float)
-    s = np.asarray(sigma, dtype=float) if prior_var is None else np.sqrt(np.asarray(sigma, dtype=float) ** 2 + prior_var)
+    s = (
+        np.asarray(sigma, dtype=float)
+        if prior_var is None
+        else np.sqrt(np.asarray(sigma, dtype=float) ** 2 + prior_var)
+    )
     upper = np.maximum(upper0, mu + s * ndtri(probability))
     return upper - width, upper
 
@@ -98,15 +125,17 @@ def imr_panning_step(upper: Any, width: float, prior_measurements: Any, sigma: A
     target near the upper edge), i.e. minus :attr:`CensoredMoments.inverse_mills`.
     """
     if kappa < 0:
-        raise ValidationError(f"kappa: expected kappa >= 0 (the printed minus sign moves the window away, MB-37), "
-                              f"got {kappa}")
+        raise ValidationError(
+            f"kappa: expected kappa >= 0 (the printed minus sign moves the window away, MB-37), got {kappa}"
+        )
     up = np.asarray(upper, dtype=float)
     st = censored_moments(np.asarray(prior_measurements, dtype=float), sigma, (up - width)[..., None], up[..., None])
     return up + kappa * np.sum(-st.inverse_mills, axis=-1)
 
 
-def covariance_panning_step(upper: Any, P_pos: Any, P_ref: Any, prior_measurements: Any, kappa: float, *,
-                            width: float | None = None) -> np.ndarray:
+def covariance_panning_step(
+    upper: Any, P_pos: Any, P_ref: Any, prior_measurements: Any, kappa: float, *, width: float | None = None
+) -> np.ndarray:
     r"""Covariance feedback (6.76) with our sign factor (MB-38).
 
     Two targets: ``P_pos`` (..., 2) = (P11, P33), ``P_ref`` (2,), ``prior_measurements`` (..., 2):
@@ -155,9 +184,14 @@ class MovingWindowResult:
     p_uncensored: np.ndarray
 
 
-def moving_window_tkf(system: LinearSystem, y_latent: Any,
-                      law: Callable[[int, np.ndarray, np.ndarray, dict], tuple[np.ndarray, np.ndarray]], *,
-                      x0: Any = None, P0: Any = None) -> MovingWindowResult:
+def moving_window_tkf(
+    system: LinearSystem,
+    y_latent: Any,
+    law: Callable[[int, np.ndarray, np.ndarray, dict], tuple[np.ndarray, np.ndarray]],
+    *,
+    x0: Any = None,
+    P0: Any = None,
+) -> MovingWindowResult:
     r"""Run the TKF while a control law moves the sensor's censoring window each step.
 
     At step k, through the TKF's public online API: ``predict``; ``law(k, xbar, Pbar, memory)``
@@ -179,11 +213,14 @@ def moving_window_tkf(system: LinearSystem, y_latent: Any,
     n = system.n
     tkf = TobitKalmanFilter(system, Censoring(), backend="numpy", check_limits=False)
     state = tkf.init((N,), x0=x0, P0=P0)
-    out = {k: np.empty((N, T) + s) for k, s in (("mean", (n,)), ("cov", (n, n)), ("lower", (m,)), ("upper", (m,)),
-                                                  ("y", (m,)), ("gamma", (m,)))}
+    out = {
+        k: np.empty((N, T) + s)
+        for k, s in (("mean", (n,)), ("cov", (n, n)), ("lower", (m,)), ("upper", (m,)), ("y", (m,)), ("gamma", (m,)))
+    }
     memory: dict = {}
     for k in range(1, T + 1):
         pred = tkf.predict(state)
+        assert pred.cov is not None, "the TKF carries its covariance"
         lo, hi = law(k, pred.mean, np.broadcast_to(pred.cov, (N, n, n)), memory)
         lo, hi = np.broadcast_to(lo, (N, m)), np.broadcast_to(hi, (N, m))
         yk = np.minimum(np.maximum(y_latent[:, k - 1], lo), hi)

@@ -31,8 +31,7 @@ from .._validation import as_float
 
 __all__ = ["ContinuousPlant", "DC_MOTOR", "dc_motor_speed", "dc_motor_position", "scalar_example"]
 
-DC_MOTOR = {"b": 3.5077e-6, "j": 4.2937e-5, "k": 9.73e-3, "r": 4.27, "l": 0.288e-6,
-            "sigma_q": 0.01, "sigma_r": 0.05}
+DC_MOTOR = {"b": 3.5077e-6, "j": 4.2937e-5, "k": 9.73e-3, "r": 4.27, "l": 0.288e-6, "sigma_q": 0.01, "sigma_r": 0.05}
 """Parameters of §5.4.1 (k corrected to 9.73E-3, MB-09)."""
 
 

@@ -71,14 +71,31 @@ class RobotSetup:
     transmitters: np.ndarray
 
 
-def robot_setup(*, dt: float = 0.1, mass: float = 1.0, alpha: float = 6.0, sigma_q: float = 0.1, sigma_r: float = 0.05,
-                sigma_rss: float = 2.0, limit: float = -90.0, weight: float = 1000.0,
-                input_matrix: str = "force") -> RobotSetup:
+def robot_setup(
+    *,
+    dt: float = 0.1,
+    mass: float = 1.0,
+    alpha: float = 6.0,
+    sigma_q: float = 0.1,
+    sigma_r: float = 0.05,
+    sigma_rss: float = 2.0,
+    limit: float = -90.0,
+    weight: float = 1000.0,
+    input_matrix: str = "force",
+) -> RobotSetup:
     """Build the §6.3 problem; ``input_matrix="printed"`` uses the printed B_p (raises: not stabilizable)."""
     check_option(input_matrix, "input_matrix", ("force", "printed"))
-    dt, mass, alpha, sigma_q, sigma_r, sigma_rss = (as_float(v, name, low=0.0, low_open=True) for v, name in (
-        (dt, "dt"), (mass, "mass"), (alpha, "alpha"), (sigma_q, "sigma_q"), (sigma_r, "sigma_r"),
-        (sigma_rss, "sigma_rss")))
+    dt, mass, alpha, sigma_q, sigma_r, sigma_rss = (
+        as_float(v, name, low=0.0, low_open=True)
+        for v, name in (
+            (dt, "dt"),
+            (mass, "mass"),
+            (alpha, "alpha"),
+            (sigma_q, "sigma_q"),
+            (sigma_r, "sigma_r"),
+            (sigma_rss, "sigma_rss"),
+        )
+    )
     limit, weight = as_float(limit, "limit"), as_float(weight, "weight", low=0.0, low_open=True)
     A1 = np.array([[1.0, dt], [0.0, 1.0]])
     Ap = np.kron(np.eye(2), A1)
@@ -87,7 +104,7 @@ def robot_setup(*, dt: float = 0.1, mass: float = 1.0, alpha: float = 6.0, sigma
     Cp = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0]])
     K = dlqr(Ap, Bp, weight * Cp.T @ Cp, np.eye(2)).gain
     Nbar = reference_gain(Ap, Bp, Cp, K, domain="dt")
-    eta_d = float(np.log10(1 + sigma_rss / (10 * alpha)))          # (6.37)-(6.40): 0.014240
+    eta_d = float(np.log10(1 + sigma_rss / (10 * alpha)))  # (6.37)-(6.40): 0.014240
     return RobotSetup(dt, Ap, Bp, Gp, Cp, K, Nbar, alpha, sigma_q, sigma_r, sigma_rss, eta_d, limit, TRANSMITTERS)
 
 
@@ -121,9 +138,18 @@ class RobotResult:
     diverged: np.ndarray
 
 
-def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000, runs: int = 1, seed: Any = 0,
-                   feedback: str = "tkf", half_log: bool = False, P0: float = 0.1,
-                   divergence_bound: float = 1e5) -> RobotResult:
+def simulate_robot(
+    setup: RobotSetup,
+    *,
+    radius: float = 27.0,
+    steps: int = 1000,
+    runs: int = 1,
+    seed: Any = 0,
+    feedback: str = "tkf",
+    half_log: bool = False,
+    P0: float = 0.1,
+    divergence_bound: float = 1e5,
+) -> RobotResult:
     r"""Simulate the §6.3 loop: TKF and KF run side by side, one of them (``feedback``) drives the robot.
 
     Both filters use the same 7-state model (4 robot states + 3 log-ranges), inputs
@@ -141,8 +167,11 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
     check_option(feedback, "feedback", ("tkf", "kf"))
     radius = as_float(radius, "radius", low=0.0, low_open=True)
     steps, runs = check_count(steps, "steps"), check_count(runs, "runs")
-    check_memory(8 * runs * (steps + 1) * 31, "runs/steps",
-                 f"{runs} runs x {steps} steps of the robot (states, two observers, readings, noises)")
+    check_memory(
+        8 * runs * (steps + 1) * 31,
+        "runs/steps",
+        f"{runs} runs x {steps} steps of the robot (states, two observers, readings, noises)",
+    )
     s = setup
     rng = as_generator(seed)
     tx = s.transmitters
@@ -171,9 +200,10 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
     x0 = np.zeros(n)
     x0[4:] = l0
     model = LinearSystem(A=A, C=C, Q=Qd, R=R, x0=x0, P0=P0 * np.eye(n), Bu=np.eye(n))
-    filters = {"tkf": TobitKalmanFilter(model, Censoring(lower=lower, upper=upper), backend="numpy",
-                                        check_limits=False),
-               "kf": KalmanFilter(model, backend="numpy")}
+    filters = {
+        "tkf": TobitKalmanFilter(model, Censoring(lower=lower, upper=upper), backend="numpy", check_limits=False),
+        "kf": KalmanFilter(model, backend="numpy"),
+    }
     states = {key: f.init((runs,)) for key, f in filters.items()}
     stores = {key: np.empty((runs, steps, n)) for key in filters}
     rss_out = np.empty((runs, steps, 3))
@@ -186,9 +216,11 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
         xf = states[feedback].mean
         u = ref[k - 1] @ s.Nbar.T - xf[:, :4] @ s.K.T
         xnew = x[:, k - 1] @ s.Ap.T + u @ s.Bp.T + w[:, k - 1] @ s.Gp.T
-        alive &= np.all(np.abs(xnew) < divergence_bound, axis=1) & np.all(
-            np.abs(states["tkf"].mean[:, :4]) < divergence_bound, axis=1) & np.all(
-            np.abs(states["kf"].mean[:, :4]) < divergence_bound, axis=1)
+        alive &= (
+            np.all(np.abs(xnew) < divergence_bound, axis=1)
+            & np.all(np.abs(states["tkf"].mean[:, :4]) < divergence_bound, axis=1)
+            & np.all(np.abs(states["kf"].mean[:, :4]) < divergence_bound, axis=1)
+        )
         x[:, k] = np.where(alive[:, None], xnew, x[:, k - 1])
         rss_lat = -10 * s.alpha * np.log10(dist(x[:, k, [0, 2]])) + v[:, k - 1]
         rss = np.maximum(rss_lat, s.limit)
@@ -197,18 +229,20 @@ def simulate_robot(setup: RobotSetup, *, radius: float = 27.0, steps: int = 1000
             st = states[key]
             xh = st.mean
             pos = xh[:, [0, 2]]
-            pos_next = pos + s.dt * xh[:, [1, 3]]                        # (6.31)
-            ud = np.log10(dist(pos_next) / dist(pos))                    # log10 beta, (6.33) corrected
+            pos_next = pos + s.dt * xh[:, [1, 3]]  # (6.31)
+            ud = np.log10(dist(pos_next) / dist(pos))  # log10 beta, (6.33) corrected
             if half_log:
                 ud = 0.5 * ud
             pred = f.predict(st, u=np.concatenate([u @ s.Bp.T, ud], axis=1))
-            ls = trilaterate(10.0 ** np.clip(pred.mean[:, 4:], -6.0, 6.0), tx) + vls[:, k - 1]   # pseudo-measurement
+            ls = trilaterate(10.0 ** np.clip(pred.mean[:, 4:], -6.0, 6.0), tx) + vls[:, k - 1]  # pseudo-measurement
             new = f.update(pred, np.concatenate([ls, rss], axis=1))
-            if not alive.all():   # a diverged run is frozen at its last estimate
+            if not alive.all():  # a diverged run is frozen at its last estimate
+                assert st.P is not None and new.P is not None, "the robot's filter carries its covariance"
                 P_old = np.broadcast_to(st.P, (runs,) + st.P.shape[1:])
                 P_new = np.broadcast_to(new.P, (runs,) + new.P.shape[1:])
-                new = new.replace(x=np.where(alive[:, None], new.x, st.x),
-                                  P=np.where(alive[:, None, None], P_new, P_old))
+                new = new.replace(
+                    x=np.where(alive[:, None], new.x, st.x), P=np.where(alive[:, None, None], P_new, P_old)
+                )
             states[key] = new
             stores[key][:, k - 1] = new.mean
     return RobotResult(x, stores["tkf"], stores["kf"], rss_out, cens, ref, feedback, ~alive)

@@ -51,14 +51,23 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_memory, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_memory
 from ..censored import censored_moments
 from ..filters.fixed_gain import FixedGainTobitObserver
-from .lqg import DOMAINS
 
-__all__ = ["tobit_jacobian", "tobit_error_jacobian", "mean_observer_map", "dissertation_jacobian_5_56",
-           "certify_tkf_stability", "StabilityCertificate", "mean_field_error", "COUNTEREXAMPLE",
-           "COUNTEREXAMPLE_TWO_OUTPUTS", "closed_loop_jacobian", "fixed_gain_tobit_observer"]
+__all__ = [
+    "tobit_jacobian",
+    "tobit_error_jacobian",
+    "mean_observer_map",
+    "dissertation_jacobian_5_56",
+    "certify_tkf_stability",
+    "StabilityCertificate",
+    "mean_field_error",
+    "COUNTEREXAMPLE",
+    "COUNTEREXAMPLE_TWO_OUTPUTS",
+    "closed_loop_jacobian",
+    "fixed_gain_tobit_observer",
+]
 
 COUNTEREXAMPLE = {
     "A": np.array([[-2.19, 1.0, 0.0], [-1.748, 0.0, 1.0], [-0.482, 0.0, 0.0]]),
@@ -81,8 +90,9 @@ def _expected(C, x, sigma, lower, upper):
     return st.censored_mean, st.p_uncensored
 
 
-def mean_observer_map(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, lower: Any = -np.inf,
-                      upper: Any = np.inf) -> tuple[np.ndarray, np.ndarray]:
+def mean_observer_map(
+    A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, lower: Any = -np.inf, upper: Any = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
     r"""Mean-field map (5.6)/(5.7): :math:`(x, \hat x) \mapsto (Ax,\ A\hat x + L(E[y](x) - E[\hat y](\hat x)))`.
 
     ``x``, ``xhat`` (..., n); ``sigma``, ``lower``, ``upper`` (m,) or scalars. Returns (x⁺, x̂⁺).
@@ -94,8 +104,9 @@ def mean_observer_map(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, low
     return x @ A.T, xhat @ A.T + (ey - eyh) @ L.T
 
 
-def tobit_jacobian(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, lower: Any = -np.inf,
-                   upper: Any = np.inf) -> np.ndarray:
+def tobit_jacobian(
+    A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, lower: Any = -np.inf, upper: Any = np.inf
+) -> np.ndarray:
     r"""Jacobian of :func:`mean_observer_map` (correct form, docs/sources MB-01): ``(..., 2n, 2n)``.
 
     .. math:: J = [[A, 0], [L\Gamma(x)C, A - L\Gamma(\hat x)C]], \quad \Gamma = \mathrm{diag}(P(\text{uncensored}))
@@ -121,8 +132,9 @@ def tobit_jacobian(A: Any, L: Any, C: Any, x: Any, xhat: Any, sigma: Any, lower:
     return J
 
 
-def tobit_error_jacobian(A: Any, L: Any, C: Any, x: Any, e: Any, sigma: Any, lower: Any = -np.inf,
-                         upper: Any = np.inf) -> np.ndarray:
+def tobit_error_jacobian(
+    A: Any, L: Any, C: Any, x: Any, e: Any, sigma: Any, lower: Any = -np.inf, upper: Any = np.inf
+) -> np.ndarray:
     r"""Jacobian in (x, e) coordinates, e = x − x̂ (correct form of (5.50)–(5.54)): ``(..., 2n, 2n)``.
 
     :math:`\partial e^+/\partial x = -L(\Gamma(x) - \Gamma(x - e))C`, :math:`\partial e^+/\partial e = A - L\Gamma(x - e)C`.
@@ -203,7 +215,9 @@ class StabilityCertificate(NamedTuple):
     message: str
 
 
-def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str | None = None, grid: int = 201) -> StabilityCertificate:
+def certify_tkf_stability(
+    A: Any, L: Any, C: Any, *, domain: str | None = None, grid: int = 201
+) -> StabilityCertificate:
     r"""Common quadratic Lyapunov certificate for the Tobit observer error (replaces (5.23)/(5.25), MB-02).
 
     Searches P ⪰ I with :math:`(A - LSC)^TP(A - LSC) - P \preceq -I` (DT) or
@@ -225,7 +239,10 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str | None = None, 
     ValidationError
         Non-conforming matrices or an unknown domain.
     """
-    import cvxpy as cp
+    from .._extras import require
+
+    cp = require("cvxpy", extra="lmi", feature="the TKF stability certificate")
+    require("clarabel", extra="lmi", feature="the TKF stability certificate")
 
     from .lqg import _domain
 
@@ -250,12 +267,24 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str | None = None, 
     worst = int(np.argmax(samp))
     limit = 1.0 if domain == "dt" else 0.0
     if np.any(vr >= limit):
-        return StabilityCertificate(False, None, vr, float(samp[worst]), float(ss[worst]),
-                                    "not certified: a vertex A - L S C is itself unstable")
+        return StabilityCertificate(
+            False,
+            None,
+            vr,
+            float(samp[worst]),
+            float(ss[worst]),
+            "not certified: a vertex A - L S C is itself unstable",
+        )
     if grid > 0 and samp[worst] >= limit:
-        return StabilityCertificate(False, None, vr, float(samp[worst]), float(ss[worst]),
-                                    f"not certified: A - s L C is unstable at s = {ss[worst]:.3f} "
-                                    f"({'spectral radius' if domain == 'dt' else 'max real part'} {samp[worst]:.4f})")
+        return StabilityCertificate(
+            False,
+            None,
+            vr,
+            float(samp[worst]),
+            float(ss[worst]),
+            f"not certified: A - s L C is unstable at s = {ss[worst]:.3f} "
+            f"({'spectral radius' if domain == 'dt' else 'max real part'} {samp[worst]:.4f})",
+        )
     # scale to keep the LMI well conditioned
     scale = max(1.0, np.abs(A).max())
     P = cp.Variable((n, n), symmetric=True)
@@ -282,14 +311,27 @@ def certify_tkf_stability(A: Any, L: Any, C: Any, *, domain: str | None = None, 
             S = Mn.T @ Pv @ Mn - Pv if domain == "dt" else Mn.T @ Pv + Pv @ Mn
             ok &= np.linalg.eigvalsh(0.5 * (S + S.T)).max() < 0
         if ok:
-            return StabilityCertificate(True, Pv, vr, float(samp[worst]), float(ss[worst]),
-                                        f"certified: common quadratic Lyapunov function over {len(verts)} vertices")
-    return StabilityCertificate(False, None, vr, float(samp[worst]), float(ss[worst]),
-                                f"not certified: no common quadratic Lyapunov function (solver status {status})")
+            return StabilityCertificate(
+                True,
+                Pv,
+                vr,
+                float(samp[worst]),
+                float(ss[worst]),
+                f"certified: common quadratic Lyapunov function over {len(verts)} vertices",
+            )
+    return StabilityCertificate(
+        False,
+        None,
+        vr,
+        float(samp[worst]),
+        float(ss[worst]),
+        f"not certified: no common quadratic Lyapunov function (solver status {status})",
+    )
 
 
-def mean_field_error(A: Any, L: Any, C: Any, x0: Any, e0: Any, steps: int, sigma: Any, lower: Any = -np.inf,
-                     upper: Any = np.inf) -> tuple[np.ndarray, np.ndarray]:
+def mean_field_error(
+    A: Any, L: Any, C: Any, x0: Any, e0: Any, steps: int, sigma: Any, lower: Any = -np.inf, upper: Any = np.inf
+) -> tuple[np.ndarray, np.ndarray]:
     r"""Noise-free mean-field trajectories of :func:`mean_observer_map` from (x_0, x̂_0 = x_0 − e_0).
 
     Returns ``x`` and ``e`` of shape (..., steps+1, n). Used for the bounds of Figs 5.1–5.3
@@ -307,9 +349,19 @@ def mean_field_error(A: Any, L: Any, C: Any, x0: Any, e0: Any, steps: int, sigma
     return np.stack(xs, axis=-2), np.stack(es, axis=-2)
 
 
-def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower: Any = -np.inf,
-                              upper: Any = np.inf, *, xhat0: Any = None, gain_form: str = "tobit",
-                              form: str = "predictor") -> np.ndarray:
+def fixed_gain_tobit_observer(
+    A: Any,
+    L: Any,
+    C: Any,
+    y: Any,
+    sigma: Any,
+    lower: Any = -np.inf,
+    upper: Any = np.inf,
+    *,
+    xhat0: Any = None,
+    gain_form: str = "tobit",
+    form: str = "predictor",
+) -> np.ndarray:
     r"""The fixed-gain observer of Ch. 5 (5.2), batched over runs.
 
     ``form="predictor"`` (5.2): :math:`\hat x_{k+1} = A\hat x_k + L(y_k - E[\hat y_k])`, ``y`` holds
@@ -323,7 +375,9 @@ def fixed_gain_tobit_observer(A: Any, L: Any, C: Any, y: Any, sigma: Any, lower:
     :class:`~tobitkf.filters.fixed_gain.FixedGainTobitObserver` (online ``init``/``step`` too).
     """
     obs = FixedGainTobitObserver(A, L, C, sigma, lower, upper, gain_form=gain_form, form=form)
-    y = as_float_array(y, "y")    # NaN refused: the fixed-gain observer cannot skip a sample
+    y = as_float_array(y, "y")  # NaN refused: the fixed-gain observer cannot skip a sample
     if y.ndim < 2 or y.shape[-1] != obs.m:
         raise ShapeError(f"y: expected (..., T, {obs.m}), got shape {y.shape}")
-    return obs.filter(y, x0=xhat0, outputs="mean").mean
+    mean = obs.filter(y, x0=xhat0, outputs="mean").mean
+    assert mean is not None, "outputs='mean' records the means"
+    return mean

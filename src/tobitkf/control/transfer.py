@@ -26,14 +26,26 @@ from typing import Any
 
 import numpy as np
 
+from .._extras import require
 from .._validation import check_option
 from .lqg import lqe, tobit_lqe
 
 __all__ = ["tkf_lqg_loop", "observer_based_reference_response"]
 
 
-def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, xi_uncensored: float, *,
-                 gain: str = "tobit", N: float | None = None):
+def tkf_lqg_loop(
+    A: Any,
+    B: Any,
+    G: Any,
+    C: Any,
+    W: Any,
+    sigma: float,
+    K: Any,
+    xi_uncensored: float,
+    *,
+    gain: str = "tobit",
+    N: float | None = None,
+):
     r"""The r → y transfer function (6.48) of the TKF-LQG loop at censoring level Ξ (CT).
 
     Parameters
@@ -56,7 +68,7 @@ def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, x
     -------
     (T_ry, C_hat, P_hat) : control.StateSpace objects
     """
-    import control
+    control = require("control", extra="control")
 
     check_option(gain, "gain", ("tobit", "uncensored"))
     A, B, C, K = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, B, C, K))
@@ -82,7 +94,7 @@ def tkf_lqg_loop(A: Any, B: Any, G: Any, C: Any, W: Any, sigma: float, K: Any, x
 def observer_based_reference_response(A: Any, B: Any, C: Any, K: Any, Nbar: Any):
     r""":math:`C(sI - A + BK)^{-1}B\bar N`: the r → y map of u = N̄r − Kx̂ with the reference fed to plant and
     observer alike; independent of the observer gain and of Ξ (ours, not in the source: docs/sources MB-32)."""
-    import control
+    control = require("control", extra="control")
 
     A, B, C, K, Nbar = (np.atleast_2d(np.asarray(v, dtype=float)) for v in (A, B, C, K, Nbar))
     return control.ss(A - B @ K, B @ Nbar, C, 0)

@@ -123,14 +123,21 @@ def load_phosphorus() -> CensoredSeries:
     y = np.array([_num(r["lP"]) for r in rows])
     cens = np.array([r["cc"].strip() == "1" for r in rows]) & ~np.isnan(y)
     lcl = np.array([_num(r["lcl"]) for r in rows])
-    for i in range(lcl.size):                      # missing months have no limit: carry the last one
+    for i in range(lcl.size):  # missing months have no limit: carry the last one
         if np.isnan(lcl[i]):
             lcl[i] = lcl[i - 1] if i > 0 else -np.inf
     lq = np.array([_num(r["lQ"]) for r in rows])
-    return CensoredSeries(name="phosphorus", y=y, censored=cens, lower=lcl, upper=np.full(y.size, np.inf),
-                          covariates={"lQ": lq}, time=np.array([r["time"] for r in rows]),
-                          description="log phosphorus concentration, West Fork Cedar River at Finchford (Iowa DNR, "
-                                      "USGS discharge), monthly 1998-10..2013-10, left-censored at the detection limit")
+    return CensoredSeries(
+        name="phosphorus",
+        y=y,
+        censored=cens,
+        lower=lcl,
+        upper=np.full(y.size, np.inf),
+        covariates={"lQ": lq},
+        time=np.array([r["time"] for r in rows]),
+        description="log phosphorus concentration, West Fork Cedar River at Finchford (Iowa DNR, "
+        "USGS discharge), monthly 1998-10..2013-10, left-censored at the detection limit",
+    )
 
 
 def load_cloud_ceiling() -> CensoredSeries:
@@ -151,9 +158,14 @@ def load_cloud_ceiling() -> CensoredSeries:
     y = np.array([_num(r["y"]) for r in rows])
     cens = np.array([r["cc"].strip() == "1" for r in rows]) & ~np.isnan(y)
     limit = float(np.log(120.0))
-    return CensoredSeries(name="cloud-ceiling", y=y, censored=cens, lower=np.full(y.size, -np.inf),
-                          upper=np.full(y.size, limit), covariates={},
-                          time=np.array([r["t"] for r in rows]),
-                          description="log cloud ceiling (hundreds of feet), San Francisco, hourly, March 1989 (NCAR), "
-                                      "right-censored at log(120)")
-
+    return CensoredSeries(
+        name="cloud-ceiling",
+        y=y,
+        censored=cens,
+        lower=np.full(y.size, -np.inf),
+        upper=np.full(y.size, limit),
+        covariates={},
+        time=np.array([r["t"] for r in rows]),
+        description="log cloud ceiling (hundreds of feet), San Francisco, hourly, March 1989 (NCAR), "
+        "right-censored at log(120)",
+    )

@@ -66,21 +66,38 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
-from .._validation import (ShapeError, ValidationError, as_float, as_float_array, check_bool, check_instance,
-                           check_int, check_option)
+from .._validation import (
+    ShapeError,
+    ValidationError,
+    as_float,
+    as_float_array,
+    check_bool,
+    check_instance,
+    check_int,
+    check_option,
+)
 from ..channels.saturation import saturate
 from ..models.ross import RossModel
 
 __all__ = [
-    "HinfCertificate", "Verification", "augmented_step", "expected_lyapunov_next",
-    "psi_matrix", "verify", "analyze", "design", "zero_filter_gamma",
-    "WANG2010_PAPER", "METHODS", "OBJECTIVES", "COVARIANCES",
+    "HinfCertificate",
+    "Verification",
+    "augmented_step",
+    "expected_lyapunov_next",
+    "psi_matrix",
+    "verify",
+    "analyze",
+    "design",
+    "zero_filter_gamma",
+    "WANG2010_PAPER",
+    "METHODS",
+    "OBJECTIVES",
+    "COVARIANCES",
 ]
 
 METHODS = ("theorem3", "coupled", "iterate")
@@ -89,8 +106,17 @@ COVARIANCES = ("paper", "exact")
 SOLVERS = ("CLARABEL", "SCS")
 
 
-def _number(value: Any, name: str, *, positive: bool = False, nonnegative: bool = False,
-            optional: bool = False) -> float | None:
+@overload
+def _number(
+    value: Any, name: str, *, positive: bool = False, nonnegative: bool = False, optional: Literal[False] = False
+) -> float: ...
+@overload
+def _number(
+    value: Any, name: str, *, positive: bool = False, nonnegative: bool = False, optional: bool
+) -> float | None: ...
+def _number(
+    value: Any, name: str, *, positive: bool = False, nonnegative: bool = False, optional: bool = False
+) -> float | None:
     """A finite real number (None allowed if ``optional``): text, booleans, NaN and inf are refused by name."""
     if value is None and optional:
         return None
@@ -124,7 +150,7 @@ def _mean_map(model: RossModel, Af: np.ndarray, Bf: np.ndarray) -> np.ndarray:
     r""":math:`\mathcal A` (2n × N): mean of η_{k+1} as a linear map of ξ (eqs. (6)–(7))."""
     n, m, p = model.n, model.m, model.p
     ch = model.channel
-    G = Bf @ np.diag((1 - ch.mu) * ch.nu) @ model.C          # B_f (I - Λα) Λβ C
+    G = Bf @ np.diag((1 - ch.mu) * ch.nu) @ model.C  # B_f (I - Λα) Λβ C
     top = np.hstack([np.zeros((n, 2 * n)), np.eye(n), np.zeros((n, m)), model.B, np.zeros((n, m))])
     bot = np.hstack([G, Af, np.zeros((n, n)), Bf * ch.mu, np.zeros((n, p)), Bf * model.D])
     return np.vstack([top, bot])
@@ -135,7 +161,7 @@ def _selectors(model: RossModel) -> tuple[np.ndarray, np.ndarray]:
     n, m, p = model.n, model.m, model.p
     N = 3 * n + 2 * m + p
     rs = np.zeros((m, N))
-    rs[:, 3 * n:3 * n + m] = np.eye(m)
+    rs[:, 3 * n : 3 * n + m] = np.eye(m)
     rc = np.zeros((m, N))
     rc[:, :n] = model.C
     return rs, rc
@@ -148,13 +174,12 @@ def _weights(model: RossModel, covariance: str) -> np.ndarray:
     K = np.zeros((model.m, 2, 2))
     if covariance == "exact":
         K[:, 0, 0], K[:, 1, 1], K[:, 0, 1], K[:, 1, 0] = rho, dlt, -vsg, -vsg
-    else:                                                       # bound (14)
+    else:  # bound (14)
         K[:, 0, 0], K[:, 1, 1] = rho + vsg, dlt + vsg
     return K
 
 
-def augmented_step(model: RossModel, Af: Any, Bf: Any, eta: Any, w: Any, v: Any, alpha: Any,
-                   beta: Any) -> np.ndarray:
+def augmented_step(model: RossModel, Af: Any, Bf: Any, eta: Any, w: Any, v: Any, alpha: Any, beta: Any) -> np.ndarray:
     r"""One step of the augmented system (6), batched over leading axes.
 
     .. math::
@@ -175,19 +200,20 @@ def augmented_step(model: RossModel, Af: Any, Bf: Any, eta: Any, w: Any, v: Any,
     c = x @ model.C.T
     s = saturate(c, ch.level)
     mu, nu = ch.mu, ch.nu
-    fbar_top = model.f(x)
-    fbar_bot = (c * ((1 - mu) * nu)) @ Bf.T + xh @ Af.T                       # (7): \bar f
-    Abar_s = (s * mu) @ Bf.T                                                   # \bar A σ
-    Dw_top = np.asarray(w, dtype=float) @ model.B.T                            # \bar D \bar w
+    fbar_top = model.nonlinearity(x)
+    fbar_bot = (c * ((1 - mu) * nu)) @ Bf.T + xh @ Af.T  # (7): \bar f
+    Abar_s = (s * mu) @ Bf.T  # \bar A σ
+    Dw_top = np.asarray(w, dtype=float) @ model.B.T  # \bar D \bar w
     Dw_bot = (np.asarray(v, dtype=float) * model.D) @ Bf.T
     a = np.asarray(alpha, dtype=float) - mu
     b = (1 - np.asarray(alpha, dtype=float)) * np.asarray(beta, dtype=float) - (1 - mu) * nu
-    rand = (a * s + b * c) @ Bf.T                                              # Σ_i (...) \bar B_i (...)
+    rand = (a * s + b * c) @ Bf.T  # Σ_i (...) \bar B_i (...)
     return np.concatenate([fbar_top + Dw_top, fbar_bot + Abar_s + Dw_bot + rand], axis=-1)
 
 
-def expected_lyapunov_next(model: RossModel, Af: Any, Bf: Any, P: Any, eta: Any, w: Any, v: Any, *,
-                           covariance: str = "exact") -> np.ndarray:
+def expected_lyapunov_next(
+    model: RossModel, Af: Any, Bf: Any, P: Any, eta: Any, w: Any, v: Any, *, covariance: str = "exact"
+) -> np.ndarray:
     r""":math:`E\{V(\eta_{k+1})\mid\eta_k\}` for :math:`V(\eta) = \eta^TP\eta` in closed form (ours; checked by enumerating the 4^m outcomes).
 
     ``covariance="exact"`` is the exact expectation; ``"paper"`` applies the bound (14) (an upper
@@ -204,10 +230,11 @@ def expected_lyapunov_next(model: RossModel, Af: Any, Bf: Any, P: Any, eta: Any,
     if model.f is None:
         raise ValidationError("model.f: expected the plant nonlinearity, got None")
     mean = _mean_only(model, Af, Bf, eta, w, v)
-    Pb = np.einsum("ji,jk,ki->i", np.vstack([np.zeros((n, model.m)), Bf]), P,
-                   np.vstack([np.zeros((n, model.m)), Bf]))                    # c_i^T P c_i
+    Pb = np.einsum(
+        "ji,jk,ki->i", np.vstack([np.zeros((n, model.m)), Bf]), P, np.vstack([np.zeros((n, model.m)), Bf])
+    )  # c_i^T P c_i
     K = _weights(model, covariance)
-    sv = np.stack([s, c], axis=-1)                                             # (..., m, 2)
+    sv = np.stack([s, c], axis=-1)  # (..., m, 2)
     quad = np.einsum("...ia,iab,...ib->...i", sv, K, sv)
     return np.einsum("...i,ij,...j->...", mean, P, mean) + quad @ Pb
 
@@ -216,17 +243,34 @@ def _mean_only(model: RossModel, Af: np.ndarray, Bf: np.ndarray, eta: np.ndarray
     n = model.n
     x = eta[..., :n]
     c = x @ model.C.T
-    xi = np.concatenate([eta, model.f(x), saturate(c, model.channel.level),
-                         np.broadcast_to(np.asarray(w, float), eta.shape[:-1] + (model.p,)),
-                         np.broadcast_to(np.asarray(v, float), eta.shape[:-1] + (model.m,))], axis=-1)
+    xi = np.concatenate(
+        [
+            eta,
+            model.nonlinearity(x),
+            saturate(c, model.channel.level),
+            np.broadcast_to(np.asarray(w, float), eta.shape[:-1] + (model.p,)),
+            np.broadcast_to(np.asarray(v, float), eta.shape[:-1] + (model.m,)),
+        ],
+        axis=-1,
+    )
     return xi @ _mean_map(model, Af, Bf).T
 
 
 # ---------------------------------------------------------------------------------------
 # The quadratic form Ψ (17) / Φ (12) for any P, in numpy (the independent re-check)
 # ---------------------------------------------------------------------------------------
-def psi_matrix(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float, eps2: float,
-               gamma: float | None = None, *, covariance: str = "paper") -> np.ndarray:
+def psi_matrix(
+    model: RossModel,
+    Af: Any,
+    Bf: Any,
+    P: Any,
+    Lambda: Any,
+    eps1: float,
+    eps2: float,
+    gamma: float | None = None,
+    *,
+    covariance: str = "paper",
+) -> np.ndarray:
     r"""Matrix of the dissipation inequality in :math:`\xi = [x;\hat x;f;\sigma;w;\tilde v]`.
 
     .. math::
@@ -260,11 +304,15 @@ def psi_matrix(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: fl
     for i in range(m):
         R = np.vstack([rs[i], rc[i]])
         psi += wts[i] * R.T @ K[i] @ R
-    psi[:2 * n, :2 * n] -= P
+    psi[: 2 * n, : 2 * n] -= P
     Mbar = np.zeros((model.r, N))
-    Mbar[:, :n], Mbar[:, n:2 * n] = model.M, -model.M
-    Lf1 = np.zeros((n, N)); Lf1[:, :n] = -model.U1; Lf1[:, 2 * n:3 * n] = np.eye(n)
-    Lf2 = np.zeros((n, N)); Lf2[:, :n] = -model.U2; Lf2[:, 2 * n:3 * n] = np.eye(n)
+    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
+    Lf1 = np.zeros((n, N))
+    Lf1[:, :n] = -model.U1
+    Lf1[:, 2 * n : 3 * n] = np.eye(n)
+    Lf2 = np.zeros((n, N))
+    Lf2[:, :n] = -model.U2
+    Lf2[:, 2 * n : 3 * n] = np.eye(n)
     Ls1 = -Lam[:, None] * rc + rs
     Ls2 = -rc + rs
     psi -= eps1 * 0.5 * (Lf1.T @ Lf2 + Lf2.T @ Lf1)
@@ -273,7 +321,7 @@ def psi_matrix(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: fl
         keep = 3 * n + m
         return 0.5 * (psi[:keep, :keep] + psi[:keep, :keep].T)
     psi += Mbar.T @ Mbar
-    psi[3 * n + m:, 3 * n + m:] -= gamma ** 2 * np.eye(p + m)
+    psi[3 * n + m :, 3 * n + m :] -= gamma**2 * np.eye(p + m)
     return 0.5 * (psi + psi.T)
 
 
@@ -292,9 +340,9 @@ def _rho_star(model: RossModel, P: np.ndarray, Lambda: np.ndarray) -> float:
     """Largest ρ with Ω(P,ρ) ⊂ ℒ(ΛC̃H): min_i u_i² / (a_i² C_i (P^{-1})_{xx} C_i^T)."""
     n = model.n
     Pinv_xx = np.linalg.solve(P, np.eye(2 * n))[:n, :n]
-    g = np.einsum("ij,jk,ik->i", model.C, Pinv_xx, model.C) * Lambda ** 2
+    g = np.einsum("ij,jk,ik->i", model.C, Pinv_xx, model.C) * Lambda**2
     with np.errstate(divide="ignore"):
-        return float(np.min(model.channel.level ** 2 / g))
+        return float(np.min(model.channel.level**2 / g))
 
 
 # ---------------------------------------------------------------------------------------
@@ -401,9 +449,12 @@ class HinfCertificate:
     def margin(self) -> float | None:
         """Deprecated: the LMI strictness margin, now :attr:`lmi_margin` (the verified slack is
         ``verification.margin``)."""
-        warnings.warn("HinfCertificate.margin is deprecated: it is the margin asked of the solver, now .lmi_margin; "
-                      "the slack the certificate actually has is .verification.margin", DeprecationWarning,
-                      stacklevel=2)
+        warnings.warn(
+            "HinfCertificate.margin is deprecated: it is the margin asked of the solver, now .lmi_margin; "
+            "the slack the certificate actually has is .verification.margin",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         return self.lmi_margin
 
     @property
@@ -419,22 +470,38 @@ class HinfCertificate:
     @property
     def Q2(self) -> np.ndarray | None:
         """Lower-right n×n block of P."""
-        return None if self.P is None else self.P[self.P.shape[0] // 2:, self.P.shape[0] // 2:]
+        return None if self.P is None else self.P[self.P.shape[0] // 2 :, self.P.shape[0] // 2 :]
 
     def summary(self) -> dict[str, Any]:
         """JSON-able summary."""
         ver = self.verification
-        return {"status": self.status, "method": self.method, "objective": self.objective,
-                "theorem": self.theorem, "solver": self.solver, "gamma": self.gamma,
-                "Af": self.Af, "Bf": self.Bf, "P": self.P, "Lambda": self.Lambda, "eps1": self.eps1,
-                "eps2": self.eps2, "pi": self.pi, "rho": self.rho, "rho_star": self.rho_star,
-                "verified": None if ver is None else ver.ok,
-                "verification_reasons": None if ver is None else ver.reasons,
-                "max_eig": None if ver is None else ver.max_eig,
-                "gamma_min_for_certificate": None if ver is None else ver.gamma_min,
-                "history": self.history, "seconds": self.seconds, "best_max_eig": self.best_max_eig,
-                "lmi_margin": self.lmi_margin, "verified_margin": None if ver is None else ver.margin,
-                "rounding_margin": None if ver is None else ver.rounding}
+        return {
+            "status": self.status,
+            "method": self.method,
+            "objective": self.objective,
+            "theorem": self.theorem,
+            "solver": self.solver,
+            "gamma": self.gamma,
+            "Af": self.Af,
+            "Bf": self.Bf,
+            "P": self.P,
+            "Lambda": self.Lambda,
+            "eps1": self.eps1,
+            "eps2": self.eps2,
+            "pi": self.pi,
+            "rho": self.rho,
+            "rho_star": self.rho_star,
+            "verified": None if ver is None else ver.ok,
+            "verification_reasons": None if ver is None else ver.reasons,
+            "max_eig": None if ver is None else ver.max_eig,
+            "gamma_min_for_certificate": None if ver is None else ver.gamma_min,
+            "history": self.history,
+            "seconds": self.seconds,
+            "best_max_eig": self.best_max_eig,
+            "lmi_margin": self.lmi_margin,
+            "verified_margin": None if ver is None else ver.margin,
+            "rounding_margin": None if ver is None else ver.rounding,
+        }
 
 
 ROUNDING_FACTOR = 100.0
@@ -452,9 +519,22 @@ def rounding_margin(M: Any) -> float:
     return float(ROUNDING_FACTOR * M.shape[0] * np.finfo(float).eps * max(1.0, np.linalg.norm(M, 2)))
 
 
-def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float, eps2: float,
-           gamma: float | None, *, pi: float | None = None, rho: float | None = None,
-           covariance: str = "paper", block_diagonal: bool = False, region_tol: float = 1e-9) -> Verification:
+def verify(
+    model: RossModel,
+    Af: Any,
+    Bf: Any,
+    P: Any,
+    Lambda: Any,
+    eps1: float,
+    eps2: float,
+    gamma: float | None,
+    *,
+    pi: float | None = None,
+    rho: float | None = None,
+    covariance: str = "paper",
+    block_diagonal: bool = False,
+    region_tol: float = 1e-9,
+) -> Verification:
     r"""Independent numpy re-check of a Theorem 1/2 certificate.
 
     Checks, from the definitions (not the LMI layout): P > 0 (and block-diagonal if
@@ -481,8 +561,10 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
         reasons.append("P is not symmetric")
     min_eig_P = float(np.linalg.eigvalsh(Ps).min())
     if min_eig_P <= rounding_margin(Ps):
-        reasons.append(f"P is not positive definite beyond rounding (smallest eigenvalue {min_eig_P:.3g}, rounding "
-                       f"margin {rounding_margin(Ps):.1e})")
+        reasons.append(
+            f"P is not positive definite beyond rounding (smallest eigenvalue {min_eig_P:.3g}, rounding "
+            f"margin {rounding_margin(Ps):.1e})"
+        )
     if block_diagonal and np.abs(P[:n, n:]).max() > 0:
         reasons.append("P is not block-diagonal (Theorems 1-3 require P = diag{Q1, Q2})")
     Lam = np.asarray(Lambda, dtype=float).reshape(m)
@@ -495,8 +577,10 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
     rounding = rounding_margin(psi)
     label = "Phi (12)" if gamma is None else "Psi (17)"
     if not max_eig < -rounding:
-        reasons.append(f"{label} is not negative definite beyond rounding (largest eigenvalue {max_eig:.3g}, "
-                       f"rounding margin {rounding:.1e})")
+        reasons.append(
+            f"{label} is not negative definite beyond rounding (largest eigenvalue {max_eig:.3g}, "
+            f"rounding margin {rounding:.1e})"
+        )
     max_eig_region = -np.inf
     if pi is not None:
         if not pi > 0:
@@ -518,16 +602,29 @@ def verify(model: RossModel, Af: Any, Bf: Any, P: Any, Lambda: Any, eps1: float,
         if np.linalg.eigvalsh(A11).max() < 0:
             S = A22 - A12.T @ np.linalg.solve(A11, A12)
             gamma_min = float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (S + S.T)).max(), 0.0)))
-    return Verification(ok=not reasons, reasons=reasons, max_eig=max_eig,
-                        max_eig_region=float(max_eig_region), min_eig_P=min_eig_P, gamma_min=gamma_min,
-                        margin=-max_eig, rounding=rounding)
+    return Verification(
+        ok=not reasons,
+        reasons=reasons,
+        max_eig=max_eig,
+        max_eig_region=float(max_eig_region),
+        min_eig_P=min_eig_P,
+        gamma_min=gamma_min,
+        margin=-max_eig,
+        rounding=rounding,
+    )
 
 
 # ---------------------------------------------------------------------------------------
 # cvxpy helpers
 # ---------------------------------------------------------------------------------------
 def _cp():
-    import cvxpy as cp  # imported lazily: the model and simulator do not need it
+    from .._extras import require
+
+    # imported lazily: the model and simulator do not need it; the solvers are checked here too,
+    # so a missing one is named before a design starts
+    cp = require("cvxpy", extra="lmi", feature="the H-infinity LMI design")
+    require("clarabel", extra="lmi", feature="the H-infinity LMI design")
+    require("scs", extra="lmi", feature="the H-infinity LMI design")
     return cp
 
 
@@ -561,9 +658,13 @@ def _sector_f_terms(cp, model: RossModel, eps1, N: int):
     n = model.n
     Ut1 = (model.U1.T @ model.U2 + model.U2.T @ model.U1) / 2
     Us = (model.U1 + model.U2).T / 2
-    E = np.zeros((N, N)); E[:n, :n] = -Ut1
-    F = np.zeros((N, N)); F[:n, 2 * n:3 * n] = Us; F[2 * n:3 * n, :n] = Us.T
-    G = np.zeros((N, N)); G[2 * n:3 * n, 2 * n:3 * n] = -np.eye(n)
+    E = np.zeros((N, N))
+    E[:n, :n] = -Ut1
+    F = np.zeros((N, N))
+    F[:n, 2 * n : 3 * n] = Us
+    F[2 * n : 3 * n, :n] = Us.T
+    G = np.zeros((N, N))
+    G[2 * n : 3 * n, 2 * n : 3 * n] = -np.eye(n)
     return eps1 * (E + F + G)
 
 
@@ -573,7 +674,7 @@ def _sector_sigma_terms(cp, model: RossModel, z, eps2, N: int):
     C = model.C
     out = 0
     for i in range(m):
-        Exs = np.zeros((N, N))                       # x-σ_i coupling C_i^T/2 (symmetric)
+        Exs = np.zeros((N, N))  # x-σ_i coupling C_i^T/2 (symmetric)
         Exs[:n, 3 * n + i] = C[i] / 2
         Exs[3 * n + i, :n] = C[i] / 2
         Exx = np.zeros((N, N))
@@ -588,14 +689,15 @@ def _common_vars(cp, model: RossModel, objective: str, gamma: float | None):
     m = model.m
     z = cp.Variable(m)
     pi, e1, e2 = cp.Variable(), cp.Variable(), cp.Variable()
-    g2 = cp.Variable() if objective == "min_gamma" else (0.0 if gamma is None else gamma ** 2)
+    g2 = cp.Variable() if objective == "min_gamma" else (0.0 if gamma is None else gamma**2)
     return z, pi, e1, e2, g2
 
 
-def _region_constraints(cp, model: RossModel, P, z, pi, e2, margin: float, rho: float | None = None,
-                        P_fixed: np.ndarray | None = None):
+def _region_constraints(
+    cp, model: RossModel, P, z, pi, e2, margin: float, rho: float | None = None, P_fixed: np.ndarray | None = None
+):
     n, m = model.n, model.m
-    cons = [z >= margin, e2 - z >= margin, e2 >= margin]                 # (19)
+    cons = [z >= margin, e2 - z >= margin, e2 >= margin]  # (19)
     if rho is not None and P_fixed is not None:
         # fixed P and ρ: a_i² ρ C_i (P^{-1})_xx C_i^T <= u_i²  <=>  z_i sqrt(ρ g_i) <= u_i ε_2
         Pinv_xx = np.linalg.solve(P_fixed, np.eye(2 * n))[:n, :n]
@@ -604,20 +706,47 @@ def _region_constraints(cp, model: RossModel, P, z, pi, e2, margin: float, rho: 
             cons.append(z[i] * np.sqrt(rho * g[i]) <= model.channel.level[i] * e2)
         return cons
     cons.append(pi >= margin)
-    for i in range(m):                                                     # (20)
+    for i in range(m):  # (20)
         h = np.concatenate([model.C[i], np.zeros(n)])[:, None]
-        blk = cp.bmat([[-P, z[i] * h], [z[i] * h.T, cp.reshape(-model.channel.level[i] ** 2 * pi, (1, 1),
-                                                                 order="C")]])
+        blk = cp.bmat(
+            [[-P, z[i] * h], [z[i] * h.T, cp.reshape(-(model.channel.level[i] ** 2) * pi, (1, 1), order="C")]]
+        )
         cons.append(_sym(cp, blk) << 0)
     return cons
 
 
-def _finish(model: RossModel, *, status: str, solver: str, method: str, objective: str, theorem: int,
-            gamma: float | None, Af, Bf, P, z, e1, e2, pi, covariance: str, block_diagonal: bool,
-            rho_fixed: float | None, seconds: float, history: list[float] | None = None,
-            margin: float | None = None) -> HinfCertificate:
-    base = dict(method=method, objective=objective, theorem=theorem, solver=solver, seconds=seconds,
-                history=list(history or []), lmi_margin=margin)
+def _finish(
+    model: RossModel,
+    *,
+    status: str,
+    solver: str,
+    method: str,
+    objective: str,
+    theorem: int,
+    gamma: float | None,
+    Af,
+    Bf,
+    P,
+    z,
+    e1,
+    e2,
+    pi,
+    covariance: str,
+    block_diagonal: bool,
+    rho_fixed: float | None,
+    seconds: float,
+    history: list[float] | None = None,
+    margin: float | None = None,
+) -> HinfCertificate:
+    base: dict[str, Any] = dict(
+        method=method,
+        objective=objective,
+        theorem=theorem,
+        solver=solver,
+        seconds=seconds,
+        history=list(history or []),
+        lmi_margin=margin,
+    )
     if status not in ("optimal", "optimal_inaccurate"):
         st = "infeasible" if "infeasible" in status else status
         return HinfCertificate(status=st, **base)
@@ -629,31 +758,74 @@ def _finish(model: RossModel, *, status: str, solver: str, method: str, objectiv
         P[:n, n:] = 0.0
         P[n:, :n] = 0.0
     piv = None if pi is None else float(pi)
-    rho = rho_fixed if rho_fixed is not None else (e2v ** 2 / piv)                   # (22)
-    ver = verify(model, Af, Bf, P, Lam, float(e1), e2v, gamma, pi=piv, rho=rho, covariance=covariance,
-                 block_diagonal=block_diagonal)
-    if (not ver.ok and objective == "min_gamma" and ver.gamma_min is not None
-            and all(r.startswith("Psi") for r in ver.reasons)):
+    if rho_fixed is not None:
+        rho = rho_fixed
+    else:
+        assert piv is not None, "the region LMI (20) has its variable pi whenever rho is not fixed"
+        rho = e2v**2 / piv  # (22)
+    ver = verify(
+        model,
+        Af,
+        Bf,
+        P,
+        Lam,
+        float(e1),
+        e2v,
+        gamma,
+        pi=piv,
+        rho=rho,
+        covariance=covariance,
+        block_diagonal=block_diagonal,
+    )
+    if (
+        not ver.ok
+        and objective == "min_gamma"
+        and ver.gamma_min is not None
+        and all(r.startswith("Psi") for r in ver.reasons)
+    ):
         # The solver's γ sits on the boundary and rounding in the recovered gains (A_f = W^{-1}Â...)
         # can leave λ_max(Ψ) a hair above 0. Certify the same (P, Λ, ε, gains) at the smallest γ
         # the numpy check accepts (Schur complement on the w̄ block), inflated until the slack is
         # above rounding (the first inflation that verifies).
         for inflate in (1e-6, 1e-5, 1e-4, 1e-3):
             gamma_cert = ver.gamma_min * (1 + inflate) + 1e-9
-            ver2 = verify(model, Af, Bf, P, Lam, float(e1), e2v, gamma_cert, pi=piv, rho=rho,
-                          covariance=covariance, block_diagonal=block_diagonal)
+            ver2 = verify(
+                model,
+                Af,
+                Bf,
+                P,
+                Lam,
+                float(e1),
+                e2v,
+                gamma_cert,
+                pi=piv,
+                rho=rho,
+                covariance=covariance,
+                block_diagonal=block_diagonal,
+            )
             if ver2.ok:
                 gamma, ver = gamma_cert, ver2
                 break
     if not ver.ok:
         return HinfCertificate(status="rejected", verification=ver, **base)
-    return HinfCertificate(status=status, gamma=gamma, Af=Af, Bf=Bf, P=P, Lambda=Lam, eps1=float(e1),
-                           eps2=e2v, pi=piv, rho=rho, rho_star=_rho_star(model, P, Lam), verification=ver,
-                           **base)
+    return HinfCertificate(
+        status=status,
+        gamma=gamma,
+        Af=Af,
+        Bf=Bf,
+        P=P,
+        Lambda=Lam,
+        eps1=float(e1),
+        eps2=e2v,
+        pi=piv,
+        rho=rho,
+        rho_star=_rho_star(model, P, Lam),
+        verification=ver,
+        **base,
+    )
 
 
-def _check_common(objective: str, gamma: float | None, solver: str, fallback: str | None,
-                  covariance: str) -> None:
+def _check_common(objective: str, gamma: float | None, solver: str, fallback: str | None, covariance: str) -> None:
     check_option(objective, "objective", OBJECTIVES)
     check_option(solver, "solver", SOLVERS)
     if fallback is not None:
@@ -663,8 +835,9 @@ def _check_common(objective: str, gamma: float | None, solver: str, fallback: st
         try:
             _number(gamma, "gamma", positive=True)
         except ValidationError:
-            raise ValidationError(f"gamma: expected a positive number for objective='feasibility', "
-                                  f"got {gamma!r}") from None
+            raise ValidationError(
+                f"gamma: expected a positive number for objective='feasibility', got {gamma!r}"
+            ) from None
     elif gamma is not None:
         _number(gamma, "gamma", positive=True)
 
@@ -672,10 +845,23 @@ def _check_common(objective: str, gamma: float | None, solver: str, fallback: st
 # ---------------------------------------------------------------------------------------
 # Theorems 1-2: analysis for given gains
 # ---------------------------------------------------------------------------------------
-def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: str | None = None,
-            gamma: float | None = None, lyapunov: str = "block", P: Any = None, rho: float | None = None,
-            covariance: str = "paper", solver: str = "CLARABEL", fallback: str | None = "SCS",
-            margin: float = 1e-6, bound: float | None = 1e4) -> HinfCertificate:
+def analyze(
+    model: RossModel,
+    Af: Any,
+    Bf: Any,
+    *,
+    theorem: int = 2,
+    objective: str | None = None,
+    gamma: float | None = None,
+    lyapunov: str = "block",
+    P: Any = None,
+    rho: float | None = None,
+    covariance: str = "paper",
+    solver: str = "CLARABEL",
+    fallback: str | None = "SCS",
+    margin: float = 1e-6,
+    bound: float | None = 1e4,
+) -> HinfCertificate:
     r"""Theorem 1 (``theorem=1``, (11)–(13)) or Theorem 2 (``theorem=2``, (16)–(18)) for given gains.
 
     Solves for P, Z = ε_2Λ, ε_1, ε_2, π (and γ² for ``objective="min_gamma"``); Ψ is linear in
@@ -739,8 +925,10 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     Af, Bf = _check_gains(model, Af, Bf)
     P_fixed = None if P is None else _check_P(model, P)
     if rho is not None and (P_fixed is None or not rho > 0):
-        raise ValidationError(f"rho: expected a positive value together with a fixed P, got rho={rho!r}, "
-                              f"P {'given' if P_fixed is not None else 'not given'}")
+        raise ValidationError(
+            f"rho: expected a positive value together with a fixed P, got rho={rho!r}, "
+            f"P {'given' if P_fixed is not None else 'not given'}"
+        )
     cp = _cp()
     t0 = time.perf_counter()
     n, m, p = model.n, model.m, model.p
@@ -748,7 +936,7 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     z, pi, e1, e2, g2 = _common_vars(cp, model, objective, gamma)
     cons = []
     if P_fixed is not None:
-        Pv = P_fixed
+        Pv: Any = P_fixed  # a constant, or a cvxpy expression below
     elif lyapunov == "block":
         Q1 = cp.Variable((n, n), symmetric=True)
         Q2 = cp.Variable((n, n), symmetric=True)
@@ -767,7 +955,8 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
     for i in range(m):
         R = np.vstack([rs[i], rc[i]])
         psi = psi + (cols[:, i] @ Pv @ cols[:, i]) * (R.T @ K[i] @ R)
-    Eeta = np.zeros((2 * n, N)); Eeta[:, :2 * n] = np.eye(2 * n)
+    Eeta = np.zeros((2 * n, N))
+    Eeta[:, : 2 * n] = np.eye(2 * n)
     psi = psi - Eeta.T @ Pv @ Eeta + _sector_f_terms(cp, model, e1, N) + _sector_sigma_terms(cp, model, z, e2, N)
     cons += [e1 >= margin]
     rho_region = rho if P_fixed is not None else None
@@ -776,8 +965,10 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
         keep = 3 * n + m
         psi = psi[:keep, :keep]
     else:
-        Mbar = np.zeros((model.r, N)); Mbar[:, :n], Mbar[:, n:2 * n] = model.M, -model.M
-        J = np.zeros((N, N)); J[3 * n + m:, 3 * n + m:] = np.eye(p + m)
+        Mbar = np.zeros((model.r, N))
+        Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
+        J = np.zeros((N, N))
+        J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
         psi = psi + Mbar.T @ Mbar - g2 * J
     if objective == "max_margin":
         t_eig = cp.Variable()
@@ -788,36 +979,72 @@ def analyze(model: RossModel, Af: Any, Bf: Any, *, theorem: int = 2, objective: 
         prob = cp.Problem(cp.Minimize(g2 if objective == "min_gamma" else 0), cons)
     status, used = _solve(prob, solver, fallback)
     seconds = time.perf_counter() - t0
-    best_eig = (float(t_eig.value) if objective == "max_margin" and status in ("optimal", "optimal_inaccurate")
-                else None)
+    best_eig = float(t_eig.value) if objective == "max_margin" and status in ("optimal", "optimal_inaccurate") else None
     if best_eig is not None and best_eig >= 0:
-        return HinfCertificate(status="infeasible", method="analysis", objective=objective, theorem=theorem,
-                               solver=used, best_max_eig=best_eig, seconds=seconds)
+        return HinfCertificate(
+            status="infeasible",
+            method="analysis",
+            objective=objective,
+            theorem=theorem,
+            solver=used,
+            best_max_eig=best_eig,
+            seconds=seconds,
+        )
     ok = status in ("optimal", "optimal_inaccurate")
     gam = (float(np.sqrt(max(g2.value, 0.0))) if objective == "min_gamma" else gamma) if ok and theorem == 2 else gamma
     Pval = (P_fixed if P_fixed is not None else Pv.value) if ok else None
-    cert = _finish(model, status=status, solver=used, method="analysis", objective=objective, theorem=theorem,
-                   gamma=gam, Af=Af, Bf=Bf, P=None if Pval is None else np.array(Pval, dtype=float),
-                   z=None if not ok else z.value, e1=None if not ok else e1.value,
-                   e2=None if not ok else e2.value,
-                   pi=None if (not ok or rho_region is not None) else pi.value, covariance=covariance,
-                   block_diagonal=(lyapunov == "block" and P_fixed is None), rho_fixed=rho_region,
-                   seconds=seconds, margin=margin)
+    cert = _finish(
+        model,
+        status=status,
+        solver=used,
+        method="analysis",
+        objective=objective,
+        theorem=theorem,
+        gamma=gam,
+        Af=Af,
+        Bf=Bf,
+        P=None if Pval is None else np.array(Pval, dtype=float),
+        z=None if not ok else z.value,
+        e1=None if not ok else e1.value,
+        e2=None if not ok else e2.value,
+        pi=None if (not ok or rho_region is not None) else pi.value,
+        covariance=covariance,
+        block_diagonal=(lyapunov == "block" and P_fixed is None),
+        rho_fixed=rho_region,
+        seconds=seconds,
+        margin=margin,
+    )
     return replace(cert, best_max_eig=best_eig)
 
 
-def zero_filter_gamma(model: RossModel, *, lyapunov: str = "block", solver: str = "CLARABEL",
-                      covariance: str = "paper") -> HinfCertificate:
+def zero_filter_gamma(
+    model: RossModel, *, lyapunov: str = "block", solver: str = "CLARABEL", covariance: str = "paper"
+) -> HinfCertificate:
     """Theorem 2 min-γ for the zero filter A_f = 0, B_f = 0 (the benchmark of WH-21)."""
-    return analyze(model, np.zeros((model.n, model.n)), np.zeros((model.n, model.m)), theorem=2,
-                   objective="min_gamma", lyapunov=lyapunov, solver=solver, covariance=covariance)
+    return analyze(
+        model,
+        np.zeros((model.n, model.n)),
+        np.zeros((model.n, model.m)),
+        theorem=2,
+        objective="min_gamma",
+        lyapunov=lyapunov,
+        solver=solver,
+        covariance=covariance,
+    )
 
 
 # ---------------------------------------------------------------------------------------
 # Theorem 3 and the improved designs
 # ---------------------------------------------------------------------------------------
-def _theorem3_problem(cp, model: RossModel, objective: str, gamma: float | None, margin: float,
-                      bound: float | None, Q_fixed: tuple[np.ndarray, np.ndarray] | None):
+def _theorem3_problem(
+    cp,
+    model: RossModel,
+    objective: str,
+    gamma: float | None,
+    margin: float,
+    bound: float | None,
+    Q_fixed: tuple[np.ndarray, np.ndarray] | None,
+):
     """LMIs (19)–(21) in the paper's layout (Π_1 reconstructed, WH-03)."""
     n, m, p = model.n, model.m, model.p
     ch = model.channel
@@ -837,42 +1064,50 @@ def _theorem3_problem(cp, model: RossModel, objective: str, gamma: float | None,
     Y = cp.Variable((n, m))
     P = cp.bmat([[Q1, O((n, n))], [O((n, n)), Q2]])
     cons += [e1 >= margin]
-    cons += _region_constraints(cp, model, P, z, pi, e2, margin)             # (19), (20)
+    cons += _region_constraints(cp, model, P, z, pi, e2, margin)  # (19), (20)
     H = np.hstack([np.eye(n), O((n, n))])
     Mb = np.hstack([M, -M])
-    Ut1 = H.T @ (model.U1.T @ model.U2 + model.U2.T @ model.U1) @ H / 2      # (13)
+    Ut1 = H.T @ (model.U1.T @ model.U2 + model.U2.T @ model.U1) @ H / 2  # (13)
     Ut2 = -H.T @ (model.U1.T + model.U2.T) / 2
     Zm = cp.diag(z)
     Sigma = -P + Mb.T @ Mb - e1 * Ut1 - H.T @ C.T @ Zm @ C @ H
     c13 = H.T @ C.T @ (Zm + e2 * np.eye(m)) / 2
-    Pi1 = cp.bmat([
-        [Sigma, -e1 * Ut2, c13, O((2 * n, p)), O((2 * n, m))],
-        [-e1 * Ut2.T, Q1 - e1 * np.eye(n), O((n, m)), Q1 @ B, O((n, m))],
-        [c13.T, O((m, n)), -e2 * np.eye(m), O((m, p)), O((m, m))],
-        [O((p, 2 * n)), B.T @ Q1, O((p, m)), -g2 * np.eye(p) + B.T @ Q1 @ B, O((p, m))],
-        [O((m, 2 * n)), O((m, n)), O((m, m)), O((m, p)), -g2 * np.eye(m)]])
+    Pi1 = cp.bmat(
+        [
+            [Sigma, -e1 * Ut2, c13, O((2 * n, p)), O((2 * n, m))],
+            [-e1 * Ut2.T, Q1 - e1 * np.eye(n), O((n, m)), Q1 @ B, O((n, m))],
+            [c13.T, O((m, n)), -e2 * np.eye(m), O((m, p)), O((m, m))],
+            [O((p, 2 * n)), B.T @ Q1, O((p, m)), -g2 * np.eye(p) + B.T @ Q1 @ B, O((p, m))],
+            [O((m, 2 * n)), O((m, n)), O((m, m)), O((m, p)), -g2 * np.eye(m)],
+        ]
+    )
     La, Lb, Dv = np.diag(ch.mu), np.diag(ch.nu), np.diag(model.D)
-    FY = cp.hstack([Y @ (np.eye(m) - La) @ Lb @ C, X])                       # \tilde F with Y, X
+    FY = cp.hstack([Y @ (np.eye(m) - La) @ Lb @ C, X])  # \tilde F with Y, X
     Pi2 = cp.hstack([FY, O((n, n)), Y @ La, O((n, p)), Y @ Dv]).T
-    a1 = np.sqrt(ch.var_beta + ch.varsigma)                                   # √(δ_i+ς_i)
-    a2 = np.sqrt(ch.var_alpha + ch.varsigma)                                  # √(ϱ_i+ς_i)
+    a1 = np.sqrt(ch.var_beta + ch.varsigma)  # √(δ_i+ς_i)
+    a2 = np.sqrt(ch.var_alpha + ch.varsigma)  # √(ϱ_i+ς_i)
     E = [np.diag(np.eye(m)[i]) for i in range(m)]
-    S1 = cp.vstack([a1[i] * Y @ E[i] for i in range(m)])                     # S_1^Y (nm × m)
+    S1 = cp.vstack([a1[i] * Y @ E[i] for i in range(m)])  # S_1^Y (nm × m)
     S2 = cp.vstack([a2[i] * Y @ E[i] for i in range(m)])
     Pi3 = cp.hstack([S1 @ C @ H, O((n * m, n)), O((n * m, m)), O((n * m, p)), O((n * m, m))]).T
     Pi4 = cp.hstack([O((n * m, 2 * n)), O((n * m, n)), S2, O((n * m, p)), O((n * m, m))]).T
     Q2t = cp.bmat([[Q2 if i == j else O((n, n)) for j in range(m)] for i in range(m)])
-    big = cp.bmat([[Pi1, Pi2, Pi3, Pi4],
-                   [Pi2.T, -Q2, O((n, n * m)), O((n, n * m))],
-                   [Pi3.T, O((n * m, n)), -Q2t, O((n * m, n * m))],
-                   [Pi4.T, O((n * m, n)), O((n * m, n * m)), -Q2t]])
+    big = cp.bmat(
+        [
+            [Pi1, Pi2, Pi3, Pi4],
+            [Pi2.T, -Q2, O((n, n * m)), O((n, n * m))],
+            [Pi3.T, O((n * m, n)), -Q2t, O((n * m, n * m))],
+            [Pi4.T, O((n * m, n)), O((n * m, n * m)), -Q2t],
+        ]
+    )
     size = 3 * n + 2 * m + p + n + 2 * n * m
-    cons.append(_sym(cp, big) << -margin * np.eye(size))                       # (21)
+    cons.append(_sym(cp, big) << -margin * np.eye(size))  # (21)
     return dict(cons=cons, g2=g2, z=z, pi=pi, e1=e1, e2=e2, Q1=Q1, Q2=Q2, X=X, Y=Y)
 
 
-def _coupled_problem(cp, model: RossModel, objective: str, gamma: float | None, margin: float,
-                     bound: float | None, covariance: str):
+def _coupled_problem(
+    cp, model: RossModel, objective: str, gamma: float | None, margin: float, bound: float | None, covariance: str
+):
     r"""Improved design (not in the paper): :math:`P = [[X, -W], [-W, W]]`, :math:`\hat A = WA_f`,
     :math:`\hat B = WB_f`.
 
@@ -896,20 +1131,30 @@ def _coupled_problem(cp, model: RossModel, objective: str, gamma: float | None, 
     cons += _region_constraints(cp, model, P, z, pi, e2, margin)
     R1 = np.hstack([np.zeros((n, 2 * n)), np.eye(n), np.zeros((n, m)), model.B, np.zeros((n, m))])
     G = np.diag((1 - ch.mu) * ch.nu) @ model.C
-    WR2 = cp.hstack([Bh @ G, Ah, np.zeros((n, n)), Bh @ np.diag(ch.mu), np.zeros((n, p)),
-                     Bh @ np.diag(model.D)])
-    Eeta = np.zeros((2 * n, N)); Eeta[:, :2 * n] = np.eye(2 * n)
-    Mbar = np.zeros((model.r, N)); Mbar[:, :n], Mbar[:, n:2 * n] = model.M, -model.M
-    J = np.zeros((N, N)); J[3 * n + m:, 3 * n + m:] = np.eye(p + m)
-    base = (R1.T @ X @ R1 - R1.T @ WR2 - WR2.T @ R1 - Eeta.T @ P @ Eeta + Mbar.T @ Mbar
-            + _sector_f_terms(cp, model, e1, N) + _sector_sigma_terms(cp, model, z, e2, N) - g2 * J)
+    WR2 = cp.hstack([Bh @ G, Ah, np.zeros((n, n)), Bh @ np.diag(ch.mu), np.zeros((n, p)), Bh @ np.diag(model.D)])
+    Eeta = np.zeros((2 * n, N))
+    Eeta[:, : 2 * n] = np.eye(2 * n)
+    Mbar = np.zeros((model.r, N))
+    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
+    J = np.zeros((N, N))
+    J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
+    base = (
+        R1.T @ X @ R1
+        - R1.T @ WR2
+        - WR2.T @ R1
+        - Eeta.T @ P @ Eeta
+        + Mbar.T @ Mbar
+        + _sector_f_terms(cp, model, e1, N)
+        + _sector_sigma_terms(cp, model, z, e2, N)
+        - g2 * J
+    )
     rs, rc = _selectors(model)
     K = _weights(model, covariance)
     rows = [WR2]
     for i in range(m):
-        L = _psd_factor(K[i])                                                  # K_i = L L^T
+        L = _psd_factor(K[i])  # K_i = L L^T
         for j in range(2):
-            coef = L[0, j] * rs[i] + L[1, j] * rc[i]                           # (N,)
+            coef = L[0, j] * rs[i] + L[1, j] * rc[i]  # (N,)
             if np.abs(coef).max() > 0:
                 rows.append(cp.reshape(Bh[:, i], (n, 1), order="C") @ coef[None, :])
     k = len(rows)
@@ -927,8 +1172,9 @@ def _psd_factor(K: np.ndarray) -> np.ndarray:
     return V * np.sqrt(np.clip(lam, 0.0, None))
 
 
-def _synthesis_fixed_P(cp, model: RossModel, P: np.ndarray, objective: str, gamma: float | None,
-                       margin: float, covariance: str):
+def _synthesis_fixed_P(
+    cp, model: RossModel, P: np.ndarray, objective: str, gamma: float | None, margin: float, covariance: str
+):
     """Gains for a fixed (full) P: Ψ is quadratic in (A_f, B_f) only through 𝒜^TP𝒜 and c_i^TPc_i;
     a Schur complement with P makes it linear."""
     n, m, p = model.n, model.m, model.p
@@ -940,12 +1186,20 @@ def _synthesis_fixed_P(cp, model: RossModel, P: np.ndarray, objective: str, gamm
     G = np.diag((1 - ch.mu) * ch.nu) @ model.C
     R1 = np.hstack([np.zeros((n, 2 * n)), np.eye(n), np.zeros((n, m)), model.B, np.zeros((n, m))])
     R2 = cp.hstack([Bf @ G, Af, np.zeros((n, n)), Bf @ np.diag(ch.mu), np.zeros((n, p)), Bf @ np.diag(model.D)])
-    A = cp.vstack([R1, R2])                                                   # (2n, N)
-    Eeta = np.zeros((2 * n, N)); Eeta[:, :2 * n] = np.eye(2 * n)
-    Mbar = np.zeros((model.r, N)); Mbar[:, :n], Mbar[:, n:2 * n] = model.M, -model.M
-    J = np.zeros((N, N)); J[3 * n + m:, 3 * n + m:] = np.eye(p + m)
-    base = (-Eeta.T @ P @ Eeta + Mbar.T @ Mbar + _sector_f_terms(cp, model, e1, N)
-            + _sector_sigma_terms(cp, model, z, e2, N) - g2 * J)
+    A = cp.vstack([R1, R2])  # (2n, N)
+    Eeta = np.zeros((2 * n, N))
+    Eeta[:, : 2 * n] = np.eye(2 * n)
+    Mbar = np.zeros((model.r, N))
+    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
+    J = np.zeros((N, N))
+    J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
+    base = (
+        -Eeta.T @ P @ Eeta
+        + Mbar.T @ Mbar
+        + _sector_f_terms(cp, model, e1, N)
+        + _sector_sigma_terms(cp, model, z, e2, N)
+        - g2 * J
+    )
     rs, rc = _selectors(model)
     K = _weights(model, covariance)
     rows = [P @ A]
@@ -966,11 +1220,22 @@ def _synthesis_fixed_P(cp, model: RossModel, P: np.ndarray, objective: str, gamm
     return dict(cons=cons, g2=g2, z=z, pi=pi, e1=e1, e2=e2, Af=Af, Bf=Bf)
 
 
-def design(model: RossModel, *, method: str = "theorem3", objective: str = "feasibility",
-           gamma: float | None = 1.5, covariance: str = "paper", solver: str = "CLARABEL",
-           fallback: str | None = "SCS", margin: float = 1e-6, bound: float | None = 1e4,
-           fixed_Q: tuple[Any, Any] | None = None, iterations: int = 4, tol: float = 1e-4,
-           retries: int = 2) -> HinfCertificate:
+def design(
+    model: RossModel,
+    *,
+    method: str = "theorem3",
+    objective: str = "feasibility",
+    gamma: float | None = 1.5,
+    covariance: str = "paper",
+    solver: str = "CLARABEL",
+    fallback: str | None = "SCS",
+    margin: float = 1e-6,
+    bound: float | None = 1e4,
+    fixed_Q: tuple[Any, Any] | None = None,
+    iterations: int = 4,
+    tol: float = 1e-4,
+    retries: int = 2,
+) -> HinfCertificate:
     r"""Design A_f, B_f of the filter (5) with a regional H∞ certificate.
 
     Parameters
@@ -1026,40 +1291,77 @@ def design(model: RossModel, *, method: str = "theorem3", objective: str = "feas
     iterations = check_int(iterations, "iterations", minimum=0)
     tol = _number(tol, "tol", nonnegative=True)
     retries = check_int(retries, "retries", minimum=0)
-    if fixed_Q is not None and (isinstance(fixed_Q, (str, bytes)) or not hasattr(fixed_Q, "__len__")
-                                or len(fixed_Q) != 2):
+    if fixed_Q is not None and (
+        isinstance(fixed_Q, (str, bytes)) or not hasattr(fixed_Q, "__len__") or len(fixed_Q) != 2
+    ):
         raise ValidationError(f"fixed_Q: expected a pair (Q1, Q2) of matrices, got {type(fixed_Q).__name__}")
     if method == "theorem3" and covariance != "paper":
-        raise ValidationError("covariance: Theorem 3 is the paper's LMI and uses bound (14); "
-                              "covariance='exact' is only available for method='coupled' or 'iterate'")
+        raise ValidationError(
+            "covariance: Theorem 3 is the paper's LMI and uses bound (14); "
+            "covariance='exact' is only available for method='coupled' or 'iterate'"
+        )
     if fixed_Q is not None and method != "theorem3":
         raise ValidationError("fixed_Q: only meaningful for method='theorem3'")
     if objective == "feasibility":
-        gamma = float(gamma)
+        gamma = as_float(gamma, "gamma")
     if not margin > 0:
         raise ValidationError(f"margin: expected a positive number, got {margin!r}")
     t0 = time.perf_counter()
-    cert = None
+    cert: HinfCertificate | None = None
     for attempt in range(retries + 1):
-        cert = _design_once(model, method=method, objective=objective, gamma=gamma, covariance=covariance,
-                            solver=solver, fallback=fallback, margin=margin * 10 ** attempt, bound=bound,
-                            fixed_Q=fixed_Q, iterations=iterations, tol=tol)
+        cert = _design_once(
+            model,
+            method=method,
+            objective=objective,
+            gamma=gamma,
+            covariance=covariance,
+            solver=solver,
+            fallback=fallback,
+            margin=margin * 10**attempt,
+            bound=bound,
+            fixed_Q=fixed_Q,
+            iterations=iterations,
+            tol=tol,
+        )
         if cert.status not in ("rejected", "optimal_inaccurate") and not cert.status.startswith("solver_error"):
             break
         if cert.status == "optimal_inaccurate" and cert.ok:
             break
+    assert cert is not None, "retries >= 0: at least one attempt"
     return replace(cert, seconds=time.perf_counter() - t0)
 
 
-def _design_once(model: RossModel, *, method: str, objective: str, gamma: float | None, covariance: str,
-                 solver: str, fallback: str | None, margin: float, bound: float | None,
-                 fixed_Q: tuple[Any, Any] | None, iterations: int, tol: float) -> HinfCertificate:
+def _design_once(
+    model: RossModel,
+    *,
+    method: str,
+    objective: str,
+    gamma: float | None,
+    covariance: str,
+    solver: str,
+    fallback: str | None,
+    margin: float,
+    bound: float | None,
+    fixed_Q: tuple[Any, Any] | None,
+    iterations: int,
+    tol: float,
+) -> HinfCertificate:
     cp = _cp()
     n = model.n
     t0 = time.perf_counter()
     if method == "iterate":
-        return _iterate(model, objective=objective, gamma=gamma, covariance=covariance, solver=solver,
-                        fallback=fallback, margin=margin, bound=bound, iterations=iterations, tol=tol)
+        return _iterate(
+            model,
+            objective=objective,
+            gamma=gamma,
+            covariance=covariance,
+            solver=solver,
+            fallback=fallback,
+            margin=margin,
+            bound=bound,
+            iterations=iterations,
+            tol=tol,
+        )
     if method == "theorem3":
         Qf = None
         if fixed_Q is not None:
@@ -1075,15 +1377,32 @@ def _design_once(model: RossModel, *, method: str, objective: str, gamma: float 
     seconds = time.perf_counter() - t0
     ok = status in ("optimal", "optimal_inaccurate")
     if not ok:
-        return _finish(model, status=status, solver=used, method=method, objective=objective, theorem=2,
-                       gamma=None, Af=None, Bf=None, P=None, z=None, e1=None, e2=None, pi=None,
-                       covariance=covariance, block_diagonal=False, rho_fixed=None, seconds=seconds,
-                       margin=margin)
+        return _finish(
+            model,
+            status=status,
+            solver=used,
+            method=method,
+            objective=objective,
+            theorem=2,
+            gamma=None,
+            Af=None,
+            Bf=None,
+            P=None,
+            z=None,
+            e1=None,
+            e2=None,
+            pi=None,
+            covariance=covariance,
+            block_diagonal=False,
+            rho_fixed=None,
+            seconds=seconds,
+            margin=margin,
+        )
     gam = float(np.sqrt(max(v["g2"].value, 0.0))) if objective == "min_gamma" else gamma
     if method == "theorem3":
         Q1 = Qf[0] if Qf is not None else v["Q1"].value
         Q2 = Qf[1] if Qf is not None else v["Q2"].value
-        Af = np.linalg.solve(Q2, v["X"].value)                                   # (22)
+        Af = np.linalg.solve(Q2, v["X"].value)  # (22)
         Bf = np.linalg.solve(Q2, v["Y"].value)
         P = np.block([[Q1, np.zeros((n, n))], [np.zeros((n, n)), Q2]])
         blockdiag = True
@@ -1093,55 +1412,143 @@ def _design_once(model: RossModel, *, method: str, objective: str, gamma: float 
         Bf = np.linalg.solve(W, v["Bh"].value)
         P = np.array(v["P"].value, dtype=float)
         blockdiag = False
-    return _finish(model, status=status, solver=used, method=method, objective=objective, theorem=2,
-                   gamma=gam, Af=Af, Bf=Bf, P=P, z=v["z"].value, e1=v["e1"].value, e2=v["e2"].value,
-                   pi=v["pi"].value, covariance=covariance, block_diagonal=blockdiag, rho_fixed=None,
-                   seconds=seconds, margin=margin)
+    return _finish(
+        model,
+        status=status,
+        solver=used,
+        method=method,
+        objective=objective,
+        theorem=2,
+        gamma=gam,
+        Af=Af,
+        Bf=Bf,
+        P=P,
+        z=v["z"].value,
+        e1=v["e1"].value,
+        e2=v["e2"].value,
+        pi=v["pi"].value,
+        covariance=covariance,
+        block_diagonal=blockdiag,
+        rho_fixed=None,
+        seconds=seconds,
+        margin=margin,
+    )
 
 
-def _iterate(model: RossModel, *, objective: str, gamma: float | None, covariance: str, solver: str,
-             fallback: str | None, margin: float, bound: float | None, iterations: int,
-             tol: float) -> HinfCertificate:
+def _ok_gamma(cert: HinfCertificate) -> float:
+    """The γ of a certificate that is ok (every verified certificate has one)."""
+    assert cert.gamma is not None, "a verified certificate carries its gamma"
+    return cert.gamma
+
+
+def _iterate(
+    model: RossModel,
+    *,
+    objective: str,
+    gamma: float | None,
+    covariance: str,
+    solver: str,
+    fallback: str | None,
+    margin: float,
+    bound: float | None,
+    iterations: int,
+    tol: float,
+) -> HinfCertificate:
     """Coupled design, then alternate full-P analysis (gains fixed) and synthesis (P fixed)."""
     cp = _cp()
     t0 = time.perf_counter()
-    best = design(model, method="coupled", objective="min_gamma", covariance=covariance, solver=solver,
-                  fallback=fallback, margin=margin, bound=bound)
+    best = design(
+        model,
+        method="coupled",
+        objective="min_gamma",
+        covariance=covariance,
+        solver=solver,
+        fallback=fallback,
+        margin=margin,
+        bound=bound,
+    )
     if not best.ok:
         return replace(best, method="iterate", seconds=time.perf_counter() - t0)
-    history = [best.gamma]
+    history = [_ok_gamma(best)]
     # The improvement steps do not fall back to a second solver: a step that does not solve cleanly
     # ends the iteration (the fallback spent seconds in SCS without ever improving γ, WH-22).
     for _ in range(iterations):
-        ana = analyze(model, best.Af, best.Bf, theorem=2, objective="min_gamma", lyapunov="full",
-                      covariance=covariance, solver=solver, fallback=None, margin=margin, bound=bound)
-        if ana.ok and ana.gamma < best.gamma:
+        ana = analyze(
+            model,
+            best.Af,
+            best.Bf,
+            theorem=2,
+            objective="min_gamma",
+            lyapunov="full",
+            covariance=covariance,
+            solver=solver,
+            fallback=None,
+            margin=margin,
+            bound=bound,
+        )
+        if ana.ok and _ok_gamma(ana) < _ok_gamma(best):
             best = ana
+        assert best.P is not None, "a verified certificate carries its P"
         v = _synthesis_fixed_P(cp, model, best.P, "min_gamma", None, margin, covariance)
         prob = cp.Problem(cp.Minimize(v["g2"]), v["cons"])
         status, used = _solve(prob, solver, None)
         if status in ("optimal", "optimal_inaccurate"):
-            cand = _finish(model, status=status, solver=used, method="iterate", objective="min_gamma",
-                           theorem=2, gamma=float(np.sqrt(max(v["g2"].value, 0.0))), Af=v["Af"].value,
-                           Bf=v["Bf"].value, P=best.P.copy(), z=v["z"].value, e1=v["e1"].value,
-                           e2=v["e2"].value, pi=v["pi"].value, covariance=covariance, block_diagonal=False,
-                           rho_fixed=None, seconds=0.0, margin=margin)
-            improved = cand.ok and cand.gamma < best.gamma - tol
-            if cand.ok and cand.gamma < best.gamma:
+            cand = _finish(
+                model,
+                status=status,
+                solver=used,
+                method="iterate",
+                objective="min_gamma",
+                theorem=2,
+                gamma=float(np.sqrt(max(v["g2"].value, 0.0))),
+                Af=v["Af"].value,
+                Bf=v["Bf"].value,
+                P=best.P.copy(),
+                z=v["z"].value,
+                e1=v["e1"].value,
+                e2=v["e2"].value,
+                pi=v["pi"].value,
+                covariance=covariance,
+                block_diagonal=False,
+                rho_fixed=None,
+                seconds=0.0,
+                margin=margin,
+            )
+            improved = cand.ok and _ok_gamma(cand) < _ok_gamma(best) - tol
+            if cand.ok and _ok_gamma(cand) < _ok_gamma(best):
                 best = cand
-            history.append(best.gamma)
+            history.append(_ok_gamma(best))
             if not improved:
                 break
         else:
             break
-    out = replace(best, method="iterate", objective=objective, history=history,
-                  seconds=time.perf_counter() - t0)
+    out = replace(best, method="iterate", objective=objective, history=history, seconds=time.perf_counter() - t0)
     if objective == "feasibility":
-        if out.gamma > gamma:
-            return HinfCertificate(status="infeasible", method="iterate", objective=objective, theorem=2,
-                                   solver=out.solver, history=history, seconds=out.seconds)
-        ver = verify(model, out.Af, out.Bf, out.P, out.Lambda, out.eps1, out.eps2, gamma, pi=out.pi,
-                     rho=out.rho, covariance=covariance)
+        assert gamma is not None, "design() makes gamma a number for the feasibility objective"
+        if _ok_gamma(out) > gamma:
+            return HinfCertificate(
+                status="infeasible",
+                method="iterate",
+                objective=objective,
+                theorem=2,
+                solver=out.solver,
+                history=history,
+                seconds=out.seconds,
+            )
+        assert out.eps1 is not None and out.eps2 is not None, "a verified certificate carries its multipliers"
+        ver = verify(
+            model,
+            out.Af,
+            out.Bf,
+            out.P,
+            out.Lambda,
+            out.eps1,
+            out.eps2,
+            gamma,
+            pi=out.pi,
+            rho=out.rho,
+            covariance=covariance,
+        )
         out = replace(out, gamma=gamma, verification=ver)
     return out
 
@@ -1149,16 +1556,21 @@ def _iterate(model: RossModel, *, objective: str, gamma: float | None, covarianc
 # ---------------------------------------------------------------------------------------
 # The paper's example (Section 4)
 # ---------------------------------------------------------------------------------------
-WANG2010_PAPER = {
+WANG2010_PAPER: dict[str, Any] = {
     "gamma": 1.5,
     "Af": np.array([[0.2165, 0.0014, 0.0081], [-0.0004, 0.1459, -0.0010], [0.0548, 0.0060, 0.1954]]),
     "Bf": np.array([[0.1035, -0.0096], [0.0, 0.0], [-0.0102, 0.0204]]),
-    "P": np.array([[1.0895, -0.0362, -0.3883, 0, 0, 0],
-                   [-0.0362, 1.1292, 0.0189, 0, 0, 0],
-                   [-0.3883, 0.0189, 2.7617, 0, 0, 0],
-                   [0, 0, 0, 9.1896, 0.0019, -0.4682],
-                   [0, 0, 0, 0.0019, 4.5653, 0.0041],
-                   [0, 0, 0, -0.4682, 0.0041, 5.1266]], dtype=float),
+    "P": np.array(
+        [
+            [1.0895, -0.0362, -0.3883, 0, 0, 0],
+            [-0.0362, 1.1292, 0.0189, 0, 0, 0],
+            [-0.3883, 0.0189, 2.7617, 0, 0, 0],
+            [0, 0, 0, 9.1896, 0.0019, -0.4682],
+            [0, 0, 0, 0.0019, 4.5653, 0.0041],
+            [0, 0, 0, -0.4682, 0.0041, 5.1266],
+        ],
+        dtype=float,
+    ),
     "rho": 0.2228,
     "x0": np.array([0.3, 0.3, 0.1]),
 }

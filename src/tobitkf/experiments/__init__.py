@@ -93,8 +93,9 @@ def report_table(title: str, columns: list[str], rows: list[list[Any]], note: st
     return {"title": title, "columns": list(columns), "rows": [list(r) for r in rows], "note": note}
 
 
-def register(id: str, *, title: str, source: str, plot: Callable[[ExperimentResult, Path], list[Path]],
-             default_runs: int):
+def register(
+    id: str, *, title: str, source: str, plot: Callable[[ExperimentResult, Path], list[Path]], default_runs: int
+):
     """Decorator registering ``run`` under ``id``.
 
     The registered (and returned) ``run`` checks the claims of its result against the claims
@@ -123,8 +124,15 @@ def register(id: str, *, title: str, source: str, plot: Callable[[ExperimentResu
             check_claims(result.claims, id)
             return result
 
-        _REGISTRY[id] = Experiment(id=id, title=title, source=source, run=checked_run, plot=plot_with_captions,
-                                   default_runs=default_runs, module=run.__module__)
+        _REGISTRY[id] = Experiment(
+            id=id,
+            title=title,
+            source=source,
+            run=checked_run,
+            plot=plot_with_captions,
+            default_runs=default_runs,
+            module=run.__module__,
+        )
         return checked_run
 
     return deco

@@ -43,9 +43,29 @@ import numpy as np
 
 from .._validation import ValidationError
 
-__all__ = ["K_SE", "ClaimError", "claim", "close", "at_most", "at_least", "less", "greater", "not_measurable",
-           "check_claim", "check_claims", "mean_se", "jackknife_se", "fmt", "mc_tolerance", "rmse_time_avg",
-           "rmse_whole_run", "rmse_difference", "half_unit", "matches_print", "rmse_masked"]
+__all__ = [
+    "K_SE",
+    "ClaimError",
+    "claim",
+    "close",
+    "at_most",
+    "at_least",
+    "less",
+    "greater",
+    "not_measurable",
+    "check_claim",
+    "check_claims",
+    "mean_se",
+    "jackknife_se",
+    "fmt",
+    "mc_tolerance",
+    "rmse_time_avg",
+    "rmse_whole_run",
+    "rmse_difference",
+    "half_unit",
+    "matches_print",
+    "rmse_masked",
+]
 
 K_SE = 3.0
 """Tolerance of a Monte Carlo quantity, in standard errors (two-sided, about 99.7 %)."""
@@ -131,7 +151,7 @@ def rmse_whole_run(err: Any, skip: int = 0) -> tuple[np.ndarray, np.ndarray]:
 def rmse_difference(err_a: Any, err_b: Any, skip: int = 0, whole_run: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """``RMSE(b) − RMSE(a)`` per component (time-averaged per-step RMSE, or whole-run RMSE) on the
     same runs, and its jackknife standard error (paired: common random numbers cancel)."""
-    g = np.stack([_err2(err_a, skip), _err2(err_b, skip)], axis=1)      # (N, 2, T, n)
+    g = np.stack([_err2(err_a, skip), _err2(err_b, skip)], axis=1)  # (N, 2, T, n)
 
     def stat(m):
         r = np.sqrt(m.mean(axis=-2)) if whole_run else np.sqrt(m).mean(axis=-2)
@@ -152,11 +172,26 @@ def _verdict(holds: Any) -> bool:
     raise ClaimError(f"holds: a measured claim is held (True) or not held (False), got {holds!r}")
 
 
-def claim(text: str, *, quantity: str, measured: Any, test: str, tolerance: str, holds: Any, note: str = "",
-          explanation: str = "") -> dict[str, Any]:
+def claim(
+    text: str,
+    *,
+    quantity: str,
+    measured: Any,
+    test: str,
+    tolerance: str,
+    holds: Any,
+    note: str = "",
+    explanation: str = "",
+) -> dict[str, Any]:
     """A measured claim with an explicit test and tolerance (the general form)."""
-    out = {"claim": text, "quantity": quantity, "measured": measured if isinstance(measured, str) else fmt(measured),
-           "test": test, "tolerance": tolerance, "holds": _verdict(holds)}
+    out = {
+        "claim": text,
+        "quantity": quantity,
+        "measured": measured if isinstance(measured, str) else fmt(measured),
+        "test": test,
+        "tolerance": tolerance,
+        "holds": _verdict(holds),
+    }
     if note:
         out["note"] = note
     if explanation:
@@ -164,53 +199,140 @@ def claim(text: str, *, quantity: str, measured: Any, test: str, tolerance: str,
     return check_claim(out)
 
 
-def close(text: str, *, quantity: str, value: Any, target: Any, tol: float, tolerance: str, note: str = "",
-          explanation: str = "", digits: int = 4) -> dict[str, Any]:
+def close(
+    text: str,
+    *,
+    quantity: str,
+    value: Any,
+    target: Any,
+    tol: float,
+    tolerance: str,
+    note: str = "",
+    explanation: str = "",
+    digits: int = 4,
+) -> dict[str, Any]:
     """Claimed equality: holds iff every ``|value - target| <= tol``."""
     v, t = np.asarray(value, dtype=float), np.asarray(target, dtype=float)
     dev = float(np.max(np.abs(v - t)))
-    return claim(text, quantity=quantity, measured=f"{fmt(v, digits)} (target {fmt(t, digits)}; deviation "
-                                                    f"{fmt(dev, 3)})",
-                 test="|quantity - target| <= tol", tolerance=tolerance, holds=bool(dev <= tol), note=note,
-                 explanation=explanation)
+    return claim(
+        text,
+        quantity=quantity,
+        measured=f"{fmt(v, digits)} (target {fmt(t, digits)}; deviation {fmt(dev, 3)})",
+        test="|quantity - target| <= tol",
+        tolerance=tolerance,
+        holds=bool(dev <= tol),
+        note=note,
+        explanation=explanation,
+    )
 
 
-def at_most(text: str, *, quantity: str, value: Any, bound: Any, tol: float, tolerance: str, note: str = "",
-            explanation: str = "", digits: int = 4) -> dict[str, Any]:
+def at_most(
+    text: str,
+    *,
+    quantity: str,
+    value: Any,
+    bound: Any,
+    tol: float,
+    tolerance: str,
+    note: str = "",
+    explanation: str = "",
+    digits: int = 4,
+) -> dict[str, Any]:
     """Claimed upper bound: holds iff every ``value <= bound + tol``."""
     v, b = np.asarray(value, dtype=float), np.asarray(bound, dtype=float)
-    return claim(text, quantity=quantity, measured=f"{fmt(v, digits)} (bound {fmt(b, digits)})",
-                 test="quantity <= bound + tol", tolerance=tolerance, holds=bool(np.all(v <= b + tol)), note=note,
-                 explanation=explanation)
+    return claim(
+        text,
+        quantity=quantity,
+        measured=f"{fmt(v, digits)} (bound {fmt(b, digits)})",
+        test="quantity <= bound + tol",
+        tolerance=tolerance,
+        holds=bool(np.all(v <= b + tol)),
+        note=note,
+        explanation=explanation,
+    )
 
 
-def at_least(text: str, *, quantity: str, value: Any, bound: Any, tol: float, tolerance: str, note: str = "",
-             explanation: str = "", digits: int = 4) -> dict[str, Any]:
+def at_least(
+    text: str,
+    *,
+    quantity: str,
+    value: Any,
+    bound: Any,
+    tol: float,
+    tolerance: str,
+    note: str = "",
+    explanation: str = "",
+    digits: int = 4,
+) -> dict[str, Any]:
     """Claimed lower bound: holds iff every ``value >= bound - tol``."""
     v, b = np.asarray(value, dtype=float), np.asarray(bound, dtype=float)
-    return claim(text, quantity=quantity, measured=f"{fmt(v, digits)} (bound {fmt(b, digits)})",
-                 test="quantity >= bound - tol", tolerance=tolerance, holds=bool(np.all(v >= b - tol)), note=note,
-                 explanation=explanation)
+    return claim(
+        text,
+        quantity=quantity,
+        measured=f"{fmt(v, digits)} (bound {fmt(b, digits)})",
+        test="quantity >= bound - tol",
+        tolerance=tolerance,
+        holds=bool(np.all(v >= b - tol)),
+        note=note,
+        explanation=explanation,
+    )
 
 
-def less(text: str, *, quantity: str, a: Any, b: Any, tol: float, tolerance: str, names: tuple[str, str] = ("a", "b"),
-         note: str = "", explanation: str = "", digits: int = 4) -> dict[str, Any]:
+def less(
+    text: str,
+    *,
+    quantity: str,
+    a: Any,
+    b: Any,
+    tol: float | np.ndarray,
+    tolerance: str,
+    names: tuple[str, str] = ("a", "b"),
+    note: str = "",
+    explanation: str = "",
+    digits: int = 4,
+) -> dict[str, Any]:
     """Claimed ordering ``a < b``: holds iff every ``b - a > tol`` (shown beyond the tolerance)."""
     av, bv = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
     margin = bv - av
-    return claim(text, quantity=quantity,
-                 measured=f"{names[0]} {fmt(av, digits)}, {names[1]} {fmt(bv, digits)} (margin {names[1]} - "
-                          f"{names[0]} = {fmt(margin, 3)})",
-                 test=f"{names[1]} - {names[0]} > tol", tolerance=tolerance, holds=bool(np.all(margin > tol)),
-                 note=note, explanation=explanation)
+    return claim(
+        text,
+        quantity=quantity,
+        measured=f"{names[0]} {fmt(av, digits)}, {names[1]} {fmt(bv, digits)} (margin {names[1]} - "
+        f"{names[0]} = {fmt(margin, 3)})",
+        test=f"{names[1]} - {names[0]} > tol",
+        tolerance=tolerance,
+        holds=bool(np.all(margin > tol)),
+        note=note,
+        explanation=explanation,
+    )
 
 
-def greater(text: str, *, quantity: str, a: Any, b: Any, tol: float, tolerance: str,
-            names: tuple[str, str] = ("a", "b"), note: str = "", explanation: str = "",
-            digits: int = 4) -> dict[str, Any]:
+def greater(
+    text: str,
+    *,
+    quantity: str,
+    a: Any,
+    b: Any,
+    tol: float | np.ndarray,
+    tolerance: str,
+    names: tuple[str, str] = ("a", "b"),
+    note: str = "",
+    explanation: str = "",
+    digits: int = 4,
+) -> dict[str, Any]:
     """Claimed ordering ``a > b``: holds iff every ``a - b > tol``."""
-    out = less(text, quantity=quantity, a=b, b=a, tol=tol, tolerance=tolerance, names=(names[1], names[0]),
-               note=note, explanation=explanation, digits=digits)
+    out = less(
+        text,
+        quantity=quantity,
+        a=b,
+        b=a,
+        tol=tol,
+        tolerance=tolerance,
+        names=(names[1], names[0]),
+        note=note,
+        explanation=explanation,
+        digits=digits,
+    )
     return out
 
 
@@ -223,25 +345,32 @@ def half_unit(printed: str) -> float:
     return 0.5 * 10.0 ** (-decimals + (int(exp) if exp else 0))
 
 
-def matches_print(text: str, *, quantity: str, value: Any, printed: list[str], note: str = "",
-                  explanation: str = "", digits: int = 8) -> dict[str, Any]:
+def matches_print(
+    text: str, *, quantity: str, value: Any, printed: list[str], note: str = "", explanation: str = "", digits: int = 8
+) -> dict[str, Any]:
     """Claimed printed numbers: holds iff every value rounds to its printed digits
     (``|value - printed| <= half a unit of the last printed digit``)."""
     v = np.atleast_1d(np.asarray(value, dtype=float))
     want = np.array([float(p.replace("−", "-").replace(" ", "")) for p in printed])
     tol = np.array([half_unit(p) for p in printed])
     ok = np.abs(v - want) <= tol * (1 + 1e-9)
-    return claim(text, quantity=quantity, measured=f"{fmt(v, digits)} (printed [{', '.join(printed)}])",
-                 test="|computed - printed| <= half a unit of the last printed digit, every entry",
-                 tolerance="per entry: " + ", ".join(fmt(t, 1) for t in tol), holds=bool(ok.all()), note=note,
-                 explanation=explanation)
+    return claim(
+        text,
+        quantity=quantity,
+        measured=f"{fmt(v, digits)} (printed [{', '.join(printed)}])",
+        test="|computed - printed| <= half a unit of the last printed digit, every entry",
+        tolerance="per entry: " + ", ".join(fmt(t, 1) for t in tol),
+        holds=bool(ok.all()),
+        note=note,
+        explanation=explanation,
+    )
 
 
 def rmse_masked(err: Any, mask: Any) -> tuple[float, float]:
     """RMSE over the samples selected by ``mask`` (``(N, T)``, pooled over runs) and its jackknife
     standard error over the runs. ``err`` is ``(N, T)``."""
     e, m = np.asarray(err, dtype=float), np.asarray(mask, dtype=bool)
-    g = np.stack([np.where(m, e**2, 0.0).sum(axis=1), m.sum(axis=1).astype(float)], axis=-1)   # (N, 2)
+    g = np.stack([np.where(m, e**2, 0.0).sum(axis=1), m.sum(axis=1).astype(float)], axis=-1)  # (N, 2)
 
     def stat(mm):
         return np.sqrt(mm[..., 0] / np.maximum(mm[..., 1], 1e-300))
@@ -251,8 +380,15 @@ def rmse_masked(err: Any, mask: Any) -> tuple[float, float]:
 
 def not_measurable(text: str, *, reason: str, note: str = "") -> dict[str, Any]:
     """A claim that cannot be measured here (n/a), with the reason."""
-    out = {"claim": text, "quantity": "none (not measurable)", "measured": "not measurable: " + reason,
-           "test": "none", "tolerance": "none", "holds": None, "not_measurable": reason}
+    out = {
+        "claim": text,
+        "quantity": "none (not measurable)",
+        "measured": "not measurable: " + reason,
+        "test": "none",
+        "tolerance": "none",
+        "holds": None,
+        "not_measurable": reason,
+    }
     if note:
         out["note"] = note
     return check_claim(out)

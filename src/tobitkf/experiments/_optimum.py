@@ -53,14 +53,29 @@ def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str
     change = np.abs(r_small / np.asarray(summ["rmse_time_avg"]) - 1.0)
     summ["particles"] = 2 * particles
     summ["proposal"] = ParticleFilter(system, channel, particles=1).proposal
-    summ["convergence"] = {"particles": [particles, 2 * particles], "rmse_time_avg_half": r_small.tolist(),
-                           "relative_change": change.tolist(), "tolerance": TOLERANCE,
-                           "converged": bool((change < TOLERANCE).all())}
+    summ["convergence"] = {
+        "particles": [particles, 2 * particles],
+        "rmse_time_avg_half": r_small.tolist(),
+        "relative_change": change.tolist(),
+        "tolerance": TOLERANCE,
+        "converged": bool((change < TOLERANCE).all()),
+    }
     return summ, big
 
 
-def add_optimum(summaries: dict[str, Any], means: dict[str, np.ndarray], system, channel, y, x, *,
-                particles: int, seed: Any, runs: int = 200, key: str = "pf") -> None:
+def add_optimum(
+    summaries: dict[str, Any],
+    means: dict[str, np.ndarray],
+    system,
+    channel,
+    y,
+    x,
+    *,
+    particles: int,
+    seed: Any,
+    runs: int = 200,
+    key: str = "pf",
+) -> None:
     """Add ``summaries[key]`` (the optimum) and ``summaries[k]["ratio_to_optimum"]`` for every k of ``means``,
     in place (nothing if ``particles`` is 0).
 

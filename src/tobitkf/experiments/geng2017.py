@@ -67,10 +67,15 @@ def _common_filter_settings() -> dict[str, dict[str, Any]]:
         "p_uncensored_mode": setting("augmented", "default", "GF-03; 'eq6_stale' is (6) literally"),
         "fading_variance_term": setting(False, "default", "option, not in the source (GF-04)"),
         "exact_tobit_variance": setting(False, "default", "option, not in the source (GF-05)"),
-        "optimum_particles": setting(500, "default", "particle filter N_p (the optimum, estimator 'pf', uses 2 N_p; "
-                                     "0: none); not in the source"),
-        "optimum_runs": setting(50, "default", "runs the particle filter and the ratios to it use (the yardstick "
-                                "experiment has the converged optimum on all runs)"),
+        "optimum_particles": setting(
+            500, "default", "particle filter N_p (the optimum, estimator 'pf', uses 2 N_p; 0: none); not in the source"
+        ),
+        "optimum_runs": setting(
+            50,
+            "default",
+            "runs the particle filter and the ratios to it use (the yardstick "
+            "experiment has the converged optimum on all runs)",
+        ),
     }
 
 
@@ -86,8 +91,9 @@ def oscillator_settings() -> dict[str, dict[str, Any]]:
         "lower": setting(0.0, "source", "censoring threshold I (lower)"),
         "order": setting(2, "source", "fading order L"),
         "fading_means": setting([0.95, 0.75, 0.85], "source"),
-        "fading_variances": setting([0.0081, 0.0064, 0.0049], "source",
-                                    "printed with the mean symbol; Assumption 2 says variances (GF-08)"),
+        "fading_variances": setting(
+            [0.0081, 0.0064, 0.0049], "source", "printed with the mean symbol; Assumption 2 says variances (GF-08)"
+        ),
         "steps": setting(100, "default", "horizon N not stated in the source (GF-09)"),
     }
     s.update(_common_filter_settings())
@@ -102,8 +108,9 @@ def radar_settings() -> dict[str, dict[str, Any]]:
         "sampling_period": setting(1.0, "source", "T = 1 s"),
         "rho1": setting(0.4, "source", "manoeuvre correlation, range channel"),
         "rho2": setting(0.5, "source", "manoeuvre correlation, bearing channel"),
-        "measure": setting("range", "reconstructed",
-                           rec + "; 'range' C = [1 0 0 0 0 0] (default) or 'range-bearing' (also row e4)"),
+        "measure": setting(
+            "range", "reconstructed", rec + "; 'range' C = [1 0 0 0 0 0] (default) or 'range-bearing' (also row e4)"
+        ),
         "Q": setting([[0.0025, 0.0], [0.0, 0.0025]], "reconstructed", same + "; B = [e3 e6]"),
         "R_var": setting(1.0, "reconstructed", same + "; R = R_var I"),
         "lower": setting(0.0, "reconstructed", same),
@@ -122,8 +129,11 @@ def _apply_overrides(settings: dict[str, dict[str, Any]], overrides: dict[str, A
     for key, value in overrides.items():
         if key not in settings:
             raise ValidationError(f"{key}: unknown setting of {exp_id}; known: {', '.join(sorted(settings))}")
-        settings[key] = {**settings[key], "value": value,
-                         "note": (settings[key]["note"] + "; " if settings[key]["note"] else "") + "overridden"}
+        settings[key] = {
+            **settings[key],
+            "value": value,
+            "note": (settings[key]["note"] + "; " if settings[key]["note"] else "") + "overridden",
+        }
 
 
 def build(exp_id: str, settings: dict[str, dict[str, Any]]) -> tuple[LinearSystem, RiceFading, Censoring]:
@@ -135,8 +145,17 @@ def build(exp_id: str, settings: dict[str, dict[str, Any]]) -> tuple[LinearSyste
         system = LinearSystem(A=A, C=v["C"], Q=v["Q"], R=v["R"], x0=v["x0"], P0=v["P0"])
     else:
         T, r1, r2 = float(v["sampling_period"]), float(v["rho1"]), float(v["rho2"])
-        A = np.array([[1, T, 0, 0, 0, 0], [0, 1, 1, 0, 0, 0], [0, 0, r1, 0, 0, 0],
-                      [0, 0, 0, 1, T, 0], [0, 0, 0, 0, 1, 1], [0, 0, 0, 0, 0, r2]], dtype=float)
+        A = np.array(
+            [
+                [1, T, 0, 0, 0, 0],
+                [0, 1, 1, 0, 0, 0],
+                [0, 0, r1, 0, 0, 0],
+                [0, 0, 0, 1, T, 0],
+                [0, 0, 0, 0, 1, 1],
+                [0, 0, 0, 0, 0, r2],
+            ],
+            dtype=float,
+        )
         B = np.zeros((6, 2))
         B[2, 0] = B[5, 1] = 1.0
         if v["measure"] == "range":
@@ -146,8 +165,9 @@ def build(exp_id: str, settings: dict[str, dict[str, Any]]) -> tuple[LinearSyste
         else:
             raise ValidationError(f"measure: expected 'range' or 'range-bearing', got {v['measure']!r}")
         m = C.shape[0]
-        system = LinearSystem(A=A, C=C, Q=v["Q"], R=float(v["R_var"]) * np.eye(m), x0=v["x0"],
-                              P0=float(v["P0_var"]) * np.eye(6), B=B)
+        system = LinearSystem(
+            A=A, C=C, Q=v["Q"], R=float(v["R_var"]) * np.eye(m), x0=v["x0"], P0=float(v["P0_var"]) * np.eye(6), B=B
+        )
     fading = RiceFading.gaussian(v["order"], v["fading_means"], v["fading_variances"])
     return system, fading, Censoring(lower=v["lower"])
 
@@ -168,15 +188,15 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
         if progress:
             progress(0.1 + 0.85 * (i + 1) / len(ESTIMATOR_KEYS))
     r_fm, r_tkf = summaries["tkf-fm"]["rmse"], summaries["tkf"]["rmse"]
-    n_show = 2 if exp_id == "geng2017-oscillator" else 1           # Fig. 2: RMSE1, RMSE2; Fig. 3: RMSE1
+    n_show = 2 if exp_id == "geng2017-oscillator" else 1  # Fig. 2: RMSE1, RMSE2; Fig. 3: RMSE1
     e_fm = results["tkf-fm"].mean[..., :n_show] - data.x[:, 1:, :n_show]
     e_tkf = results["tkf"].mean[..., :n_show] - data.x[:, 1:, :n_show]
-    g = np.stack([e_fm ** 2, e_tkf ** 2], axis=1)                    # (N, 2, T, n_show)
+    g = np.stack([e_fm**2, e_tkf**2], axis=1)  # (N, 2, T, n_show)
     step_se = CL.jackknife_se(g, lambda mm: np.sqrt(mm[..., 1, :, :]) - np.sqrt(mm[..., 0, :, :]))
     margin = np.asarray(r_tkf)[:, :n_show] - np.asarray(r_fm)[:, :n_show]
-    below = margin > CL.K_SE * step_se                               # (T, n_show): shown below at step k
+    below = margin > CL.K_SE * step_se  # (T, n_show): shown below at step k
     below_k2 = below[1:].all(axis=0)
-    point = margin > 0                                                # below at step k (point estimates)
+    point = margin > 0  # below at step k (point estimates)
     censored = float(censoring.censored_mask(data.y)[0].mean())
     metrics = {
         "estimators": summaries,
@@ -188,54 +208,93 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
         "steps_not_below_beyond_mc_error": [(np.flatnonzero(~below[:, j]) + 1).tolist() for j in range(n_show)],
         "reconstructed_settings": sorted(k for k, s in settings.items() if s["provenance"] == "reconstructed"),
     }
-    add_optimum(summaries, {k: r.mean for k, r in results.items()}, system, [fading, censoring], data.y, data.x,
-                particles=check_particles(settings["optimum_particles"]["value"]), seed=seed,
-                runs=int(settings["optimum_runs"]["value"]))
+    add_optimum(
+        summaries,
+        {k: r.mean for k, r in results.items()},
+        system,
+        [fading, censoring],
+        data.y,
+        data.x,
+        particles=check_particles(settings["optimum_particles"]["value"]),
+        seed=seed,
+        runs=int(settings["optimum_runs"]["value"]),
+    )
     metrics["pcrlb_rmse"] = np.sqrt(posterior_crlb(system, [fading, censoring], truth=data.x).var)
     fm_avg, tkf_avg = summaries["tkf-fm"]["rmse_time_avg"], summaries["tkf"]["rmse_time_avg"]
     names = ["RMSE%d" % (j + 1) for j in range(n_show)]
     avg_txt = ", ".join(f"{nm}: TKF-FM {fm_avg[j]:.3f} vs TKF {tkf_avg[j]:.3f}" for j, nm in enumerate(names))
     claims = [
-        CL.claim("The RMSE of the TKF-FM is always smaller than that of the TKF" + (" (Fig. 2)" if n_show == 2
-                                                                                 else " (Fig. 3)"),
-                quantity=f"steps k = 2..{steps} at which RMSE_TKF(k) - RMSE_TKF-FM(k) exceeds its tolerance, per "
-                         f"state ({', '.join(names)})",
-                measured=f"{[int(b) for b in below[1:].sum(axis=0)]} of {steps - 1}; at k = 1 as well: "
-                         f"{below[0].tolist()}; time averages {avg_txt}",
-                test="at every k >= 2 (at k = 1 x2 is not yet observed and the two filters tie)",
-                tolerance=f"{CL.K_SE:g} jackknife standard errors of the paired per-step difference, {runs} runs",
-                holds=bool(below_k2.all()),
-                explanation="; ".join(f"{names[j]} at k = {k}: TKF-FM {r_fm[k - 1, j]:.4f} vs TKF {r_tkf[k - 1, j]:.4f} "
-                                      f"(margin {margin[k - 1, j]:.4f} < tolerance {CL.K_SE * step_se[k - 1, j]:.4f})"
-                                      for j in range(n_show) for k in np.flatnonzero(~below[1:, j]) + 2)
-                + (": the ordering is not shown beyond the Monte Carlo error at these steps (x2 has barely been "
-                   "observed yet)" if not below_k2.all() else "")),
+        CL.claim(
+            "The RMSE of the TKF-FM is always smaller than that of the TKF"
+            + (" (Fig. 2)" if n_show == 2 else " (Fig. 3)"),
+            quantity=f"steps k = 2..{steps} at which RMSE_TKF(k) - RMSE_TKF-FM(k) exceeds its tolerance, per "
+            f"state ({', '.join(names)})",
+            measured=f"{[int(b) for b in below[1:].sum(axis=0)]} of {steps - 1}; at k = 1 as well: "
+            f"{below[0].tolist()}; time averages {avg_txt}",
+            test="at every k >= 2 (at k = 1 x2 is not yet observed and the two filters tie)",
+            tolerance=f"{CL.K_SE:g} jackknife standard errors of the paired per-step difference, {runs} runs",
+            holds=bool(below_k2.all()),
+            explanation="; ".join(
+                f"{names[j]} at k = {k}: TKF-FM {r_fm[k - 1, j]:.4f} vs TKF {r_tkf[k - 1, j]:.4f} "
+                f"(margin {margin[k - 1, j]:.4f} < tolerance {CL.K_SE * step_se[k - 1, j]:.4f})"
+                for j in range(n_show)
+                for k in np.flatnonzero(~below[1:, j]) + 2
+            )
+            + (
+                ": the ordering is not shown beyond the Monte Carlo error at these steps (x2 has barely been "
+                "observed yet)"
+                if not below_k2.all()
+                else ""
+            ),
+        ),
     ]
     if exp_id == "geng2017-oscillator":
         d, se = CL.rmse_difference(e_fm, e_tkf)
-        claims.insert(0, CL.less(
-            "The TKF-FM tracks the true states while the TKF leads to significant deviations (Fig. 1)",
-            quantity="time-averaged RMSE of x1 and x2", a=fm_avg[:2], b=tkf_avg[:2], names=("TKF-FM", "TKF"),
-            tol=CL.K_SE * se, tolerance=f"{CL.K_SE:g} jackknife standard errors of the paired differences over {runs} "
-                                      f"runs: {CL.fmt(CL.K_SE * se, 2)}",
-            note=f"{100 * censored:.0f} % of the readings of run 0 are censored"))
+        claims.insert(
+            0,
+            CL.less(
+                "The TKF-FM tracks the true states while the TKF leads to significant deviations (Fig. 1)",
+                quantity="time-averaged RMSE of x1 and x2",
+                a=fm_avg[:2],
+                b=tkf_avg[:2],
+                names=("TKF-FM", "TKF"),
+                tol=CL.K_SE * se,
+                tolerance=f"{CL.K_SE:g} jackknife standard errors of the paired differences over {runs} "
+                f"runs: {CL.fmt(CL.K_SE * se, 2)}",
+                note=f"{100 * censored:.0f} % of the readings of run 0 are censored",
+            ),
+        )
     else:
         half = steps // 2
         mid, end = float(r_fm[half - 1, 0]), float(r_fm[-1, 0])
-        level_se = float(CL.jackknife_se(e_fm[:, [half - 1, steps - 1], 0] ** 2,
-                                        lambda mm: np.sqrt(mm[..., 1]) / np.sqrt(mm[..., 0])))
-        claims.append(CL.at_most(
-            "Sec. 4.2: the TKF-FM's RMSE does not degrade to zero but to a certain small value (fading loses "
-            "information): it levels off", quantity=f"RMSE1 of the TKF-FM at k = {steps} over RMSE1 at k = {half}",
-            value=end / mid, bound=1.1, tol=CL.K_SE * level_se,
-            tolerance=f"'levels off' read as growing by at most 10 % over the second half, plus {CL.K_SE:g} jackknife "
-                      f"standard errors ({CL.fmt(CL.K_SE * level_se, 2)})",
-            note=f"RMSE1 at k = 1, {half}, {steps}: {r_fm[0, 0]:.3g}, {mid:.3g}, {end:.3g}",
-            explanation="with the reconstructed parameters (GF-01) the range is a double integrator driven by an AR(1) "
-                        "input and both filters' RMSE grows with k (docs/sources GF-F1)"))
-    plot_data = {"rmse": {k: s["rmse"] for k, s in summaries.items()}, "pcrlb_rmse": metrics["pcrlb_rmse"],
-                 "x": data.x[0], "y": data.y[0],
-                 "estimates": {k: results[k].mean[0] for k in ESTIMATOR_KEYS}, "runs": runs}
+        level_se = float(
+            CL.jackknife_se(
+                e_fm[:, [half - 1, steps - 1], 0] ** 2, lambda mm: np.sqrt(mm[..., 1]) / np.sqrt(mm[..., 0])
+            )
+        )
+        claims.append(
+            CL.at_most(
+                "Sec. 4.2: the TKF-FM's RMSE does not degrade to zero but to a certain small value (fading loses "
+                "information): it levels off",
+                quantity=f"RMSE1 of the TKF-FM at k = {steps} over RMSE1 at k = {half}",
+                value=end / mid,
+                bound=1.1,
+                tol=CL.K_SE * level_se,
+                tolerance=f"'levels off' read as growing by at most 10 % over the second half, plus {CL.K_SE:g} jackknife "
+                f"standard errors ({CL.fmt(CL.K_SE * level_se, 2)})",
+                note=f"RMSE1 at k = 1, {half}, {steps}: {r_fm[0, 0]:.3g}, {mid:.3g}, {end:.3g}",
+                explanation="with the reconstructed parameters (GF-01) the range is a double integrator driven by an AR(1) "
+                "input and both filters' RMSE grows with k (docs/sources GF-F1)",
+            )
+        )
+    plot_data = {
+        "rmse": {k: s["rmse"] for k, s in summaries.items()},
+        "pcrlb_rmse": metrics["pcrlb_rmse"],
+        "x": data.x[0],
+        "y": data.y[0],
+        "estimates": {k: results[k].mean[0] for k in ESTIMATOR_KEYS},
+        "runs": runs,
+    }
     return ExperimentResult(id=exp_id, settings=settings, metrics=metrics, data=plot_data, claims=claims)
 
 
@@ -250,7 +309,6 @@ def _optimum_lines(ax, d: dict[str, Any], j: int, k: np.ndarray) -> None:
 def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
-
     d = result.data
     paths = []
     k = np.arange(1, d["x"].shape[0])
@@ -263,52 +321,93 @@ def _plot_oscillator(result: ExperimentResult, outdir: Path) -> list[Path]:
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("k")
     fig.suptitle("Geng et al. 2017, Fig. 1: one realisation (oscillator, L = 2)")
-    paths.append(save(fig, outdir, "fig1_realisation.png", dpi=100, tight=False,
-                      caption="Fig. 1 (roll-rate oscillator, L = 2 fading): one realisation of the true states x1, x2 "
-                              "and the estimates of the TKF-FM and of the TKF of Allik et al. 2016, which ignores "
-                              "the fading."))
+    paths.append(
+        save(
+            fig,
+            outdir,
+            "fig1_realisation.png",
+            dpi=100,
+            tight=False,
+            caption="Fig. 1 (roll-rate oscillator, L = 2 fading): one realisation of the true states x1, x2 "
+            "and the estimates of the TKF-FM and of the TKF of Allik et al. 2016, which ignores "
+            "the fading.",
+        )
+    )
 
     fig, axes = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
     for j, ax in enumerate(axes):
         for key, style in (("tkf", "--"), ("tkf-fm", "-"), ("kf", ":"), ("kf-fm", "-.")):
-            ax.plot(k, d["rmse"][key][:, j], style, color=COLORS[key], label=LABELS[key],
-                    alpha=1.0 if key in ("tkf", "tkf-fm") else 0.6)
+            ax.plot(
+                k,
+                d["rmse"][key][:, j],
+                style,
+                color=COLORS[key],
+                label=LABELS[key],
+                alpha=1.0 if key in ("tkf", "tkf-fm") else 0.6,
+            )
         _optimum_lines(ax, d, j, k)
         ax.set_ylabel(f"RMSE{j + 1}")
     axes[0].legend(loc="upper right", fontsize=8)
     axes[-1].set_xlabel("k")
     fig.suptitle(f"Geng et al. 2017, Fig. 2: RMSE over k ({d['runs']} runs)")
-    paths.append(save(fig, outdir, "fig2_rmse.png", dpi=100, tight=False,
-                      caption=f"Fig. 2: RMSE1 and RMSE2 over k ({d['runs']} runs) of the TKF-FM and the TKF; the KF "
-                              "and the KF with fading means are not in the source (faded lines)."))
+    paths.append(
+        save(
+            fig,
+            outdir,
+            "fig2_rmse.png",
+            dpi=100,
+            tight=False,
+            caption=f"Fig. 2: RMSE1 and RMSE2 over k ({d['runs']} runs) of the TKF-FM and the TKF; the KF "
+            "and the KF with fading means are not in the source (faded lines).",
+        )
+    )
     return paths
 
 
 def _plot_radar(result: ExperimentResult, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
-
     d = result.data
     k = np.arange(1, d["x"].shape[0])
     fig, ax = plt.subplots(figsize=(7, 4))
     for key, style in (("tkf", "--"), ("tkf-fm", "-"), ("kf", ":"), ("kf-fm", "-.")):
-        ax.plot(k, d["rmse"][key][:, 0], style, color=COLORS[key], label=LABELS[key],
-                alpha=1.0 if key in ("tkf", "tkf-fm") else 0.6)
+        ax.plot(
+            k,
+            d["rmse"][key][:, 0],
+            style,
+            color=COLORS[key],
+            label=LABELS[key],
+            alpha=1.0 if key in ("tkf", "tkf-fm") else 0.6,
+        )
     _optimum_lines(ax, d, 0, k)
     ax.set_xlabel("k")
     ax.set_ylabel("RMSE1 (range)")
     ax.set_yscale("log")
     ax.legend(fontsize=8)
-    ax.set_title(f"Geng et al. 2017, Fig. 3: radar RMSE1 ({d['runs']} runs)\n"
-                 "model parameters RECONSTRUCTED (missing in the source; GF-01)", fontsize=10)
-    path = save(fig, outdir, "fig3_radar_rmse1.png", dpi=100, tight=False,
-                caption=f"Fig. 3 (radar tracking): RMSE1 (range) over k ({d['runs']} runs) of the TKF-FM and the TKF, "
-                        "with the model parameters reconstructed: the source's parameter block is missing (GF-01).")
+    ax.set_title(
+        f"Geng et al. 2017, Fig. 3: radar RMSE1 ({d['runs']} runs)\n"
+        "model parameters RECONSTRUCTED (missing in the source; GF-01)",
+        fontsize=10,
+    )
+    path = save(
+        fig,
+        outdir,
+        "fig3_radar_rmse1.png",
+        dpi=100,
+        tight=False,
+        caption=f"Fig. 3 (radar tracking): RMSE1 (range) over k ({d['runs']} runs) of the TKF-FM and the TKF, "
+        "with the model parameters reconstructed: the source's parameter block is missing (GF-01).",
+    )
     return [path]
 
 
-@register("geng2017-oscillator", title="TKF with fading measurements: roll-rate oscillator (Figs. 1-2)",
-          source="Geng, Wang et al. 2017: Tobit Kalman filter with fading measurements", plot=_plot_oscillator, default_runs=1000)
+@register(
+    "geng2017-oscillator",
+    title="TKF with fading measurements: roll-rate oscillator (Figs. 1-2)",
+    source="Geng, Wang et al. 2017: Tobit Kalman filter with fading measurements",
+    plot=_plot_oscillator,
+    default_runs=1000,
+)
 def run_oscillator(*, runs: int = 1000, seed: int = 0, progress=None, **overrides: Any) -> ExperimentResult:
     """Oscillator example (Sec. 4.1): M = 1000 runs (source), N = 100 steps (default); see module docstring.
 
@@ -319,8 +418,13 @@ def run_oscillator(*, runs: int = 1000, seed: int = 0, progress=None, **override
     return _run("geng2017-oscillator", settings, runs=runs, seed=seed, progress=progress)
 
 
-@register("geng2017-radar", title="TKF with fading measurements: radar tracking, RECONSTRUCTED parameters (Fig. 3)",
-          source="Geng, Wang et al. 2017: Tobit Kalman filter with fading measurements", plot=_plot_radar, default_runs=1000)
+@register(
+    "geng2017-radar",
+    title="TKF with fading measurements: radar tracking, RECONSTRUCTED parameters (Fig. 3)",
+    source="Geng, Wang et al. 2017: Tobit Kalman filter with fading measurements",
+    plot=_plot_radar,
+    default_runs=1000,
+)
 def run_radar(*, runs: int = 1000, seed: int = 0, progress=None, **overrides: Any) -> ExperimentResult:
     """Radar example (Sec. 4.2) with our reconstructed parameters (GF-01); see the module docstring.
 

@@ -70,23 +70,37 @@ from ..models.linear import LinearSystem
 from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
-from . import _claims as CL
 from . import ExperimentResult, register, setting
+from . import _claims as CL
 from ._optimum import TOLERANCE, pf_check
 
 __all__ = ["run", "EXAMPLES", "random_stable_system", "optimum_ratios", "ISSUE_TABLE"]
 
-EXAMPLES = ("miller-constant", "miller-brownian", "miller-oscillator", "geng2017-oscillator", "geng-protocol-tracking",
-            "saturation-oscillator")
-_OWN = {"miller-constant": (200, 1000, 2000), "miller-brownian": (200, 1000, 500),
-        "miller-oscillator": (100, 2000, 1000), "geng2017-oscillator": (1000, 100, 4000),
-        "geng-protocol-tracking": (1000, 100, 2000), "saturation-oscillator": (200, 100, 1000)}  # runs, steps, N_p
+EXAMPLES = (
+    "miller-constant",
+    "miller-brownian",
+    "miller-oscillator",
+    "geng2017-oscillator",
+    "geng-protocol-tracking",
+    "saturation-oscillator",
+)
+_OWN = {
+    "miller-constant": (200, 1000, 2000),
+    "miller-brownian": (200, 1000, 500),
+    "miller-oscillator": (100, 2000, 1000),
+    "geng2017-oscillator": (1000, 100, 4000),
+    "geng-protocol-tracking": (1000, 100, 2000),
+    "saturation-oscillator": (200, 100, 1000),
+}  # runs, steps, N_p
 _RANDOM = (200, 200, 1000)
-TARGET = 1.02            # the issue's target for the assumed-density filter
-ISSUE_TABLE = {"miller-constant": ("tkf-total-variance", [1.08]), "miller-brownian": ("tkf-exact-pv", [2.03]),
-               "miller-oscillator": ("tkf-exact-pv", [1.10, 1.07]),
-               "geng2017-oscillator": ("tkf-fm-both", [1.02, 1.01]),
-               "geng-protocol-tracking": ("pbtkf-imsf-second-moment", [1.52, 1.49])}
+TARGET = 1.02  # the issue's target for the assumed-density filter
+ISSUE_TABLE = {
+    "miller-constant": ("tkf-total-variance", [1.08]),
+    "miller-brownian": ("tkf-exact-pv", [2.03]),
+    "miller-oscillator": ("tkf-exact-pv", [1.10, 1.07]),
+    "geng2017-oscillator": ("tkf-fm-both", [1.02, 1.01]),
+    "geng-protocol-tracking": ("pbtkf-imsf-second-moment", [1.52, 1.49]),
+}
 """The issue's "best variant today" and its RMSE / optimum per component, for comparison."""
 
 
@@ -100,10 +114,14 @@ def _rotation(omega: float, alpha: float = 1.0) -> np.ndarray:
 
 
 def _censoring_estimators(sys_: LinearSystem, cens: Censoring) -> dict[str, Any]:
-    return {"kf": KalmanFilter(sys_), "ikf": DroppingKalmanFilter(sys_, cens), "tkf": TobitKalmanFilter(sys_, cens),
-            "tkf-total-variance": TobitKalmanFilter(sys_, cens, noise_term="total_variance"),
-            "tkf-exact-pv": TobitKalmanFilter(sys_, cens, noise_term="exact_pv"),
-            "adf": AssumedDensityTobitFilter(sys_, cens)}
+    return {
+        "kf": KalmanFilter(sys_),
+        "ikf": DroppingKalmanFilter(sys_, cens),
+        "tkf": TobitKalmanFilter(sys_, cens),
+        "tkf-total-variance": TobitKalmanFilter(sys_, cens, noise_term="total_variance"),
+        "tkf-exact-pv": TobitKalmanFilter(sys_, cens, noise_term="exact_pv"),
+        "adf": AssumedDensityTobitFilter(sys_, cens),
+    }
 
 
 def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
@@ -113,57 +131,105 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
         sys_f = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[1e-14]], R=[[0.01]], x0=[0.1], P0=[[0.05]])
         sys_t = LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[1e-14]], R=[[0.01]], x0=[-0.1], P0=[[0.0]])
         sim = simulate(sys_t, steps, runs, censoring=cens, seed=np.random.SeedSequence([seed, 0]))
-        return {"system": sys_f, "channel": cens, "sim": sim, "estimators": _censoring_estimators(sys_f, cens),
-                "pcrlb": None, "censored": float((sim.y <= 0.0).mean())}
+        return {
+            "system": sys_f,
+            "channel": cens,
+            "sim": sim,
+            "estimators": _censoring_estimators(sys_f, cens),
+            "pcrlb": None,
+            "censored": float((sim.y <= 0.0).mean()),
+        }
     if name == "miller-brownian":
         cens = Censoring(lower=0.0)
-        sys_ = LinearSystem(A=[[0.999]], C=[[1.0]], Q=[[0.01]], R=[[0.05 ** 2]], x0=[0.05], P0=[[0.05]])
+        sys_ = LinearSystem(A=[[0.999]], C=[[1.0]], Q=[[0.01]], R=[[0.05**2]], x0=[0.05], P0=[[0.05]])
         sim = simulate(sys_, steps, runs, censoring=cens, seed=seed)
-        return {"system": sys_, "channel": cens, "sim": sim, "estimators": _censoring_estimators(sys_, cens),
-                "pcrlb": cens, "censored": float((sim.y <= 0.0).mean())}
+        return {
+            "system": sys_,
+            "channel": cens,
+            "sim": sim,
+            "estimators": _censoring_estimators(sys_, cens),
+            "pcrlb": cens,
+            "censored": float((sim.y <= 0.0).mean()),
+        }
     if name == "miller-oscillator":
         cens = Censoring(lower=0.0)
-        sys_ = LinearSystem(A=_rotation(0.05), C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0],
-                            P0=0.05 * np.eye(2))
+        sys_ = LinearSystem(
+            A=_rotation(0.05), C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2)
+        )
         sim = simulate(sys_, steps, runs, censoring=cens, seed=np.random.SeedSequence([seed, 0]))
-        return {"system": sys_, "channel": cens, "sim": sim, "estimators": _censoring_estimators(sys_, cens),
-                "pcrlb": cens, "censored": float((sim.y <= 0.0).mean())}
+        return {
+            "system": sys_,
+            "channel": cens,
+            "sim": sim,
+            "estimators": _censoring_estimators(sys_, cens),
+            "pcrlb": cens,
+            "censored": float((sim.y <= 0.0).mean()),
+        }
     if name == "geng2017-oscillator":
         from . import geng2017
 
         settings = geng2017.oscillator_settings()
         sys_, fading, cens = geng2017.build("geng2017-oscillator", settings)
         sim = simulate(sys_, steps, runs, censoring=cens, measurement=fading, seed=seed)
-        est = {"tkf-fm": FadingTobitKalmanFilter(sys_, fading, cens),
-               "tkf-fm-fading-variance": FadingTobitKalmanFilter(sys_, fading, cens, fading_variance_term=True),
-               "tkf-fm-exact-variance": FadingTobitKalmanFilter(sys_, fading, cens, exact_tobit_variance=True),
-               "tkf-fm-both": FadingTobitKalmanFilter(sys_, fading, cens, fading_variance_term=True,
-                                                     exact_tobit_variance=True),
-               "tkf": TobitKalmanFilter(sys_, cens),
-               "adf": FadingAssumedDensityFilter(sys_, fading, cens)}
-        return {"system": sys_, "channel": [fading, cens], "sim": sim, "estimators": est, "pcrlb": [fading, cens],
-                "censored": float(cens.censored_mask(sim.y)[0].mean())}
+        est = {
+            "tkf-fm": FadingTobitKalmanFilter(sys_, fading, cens),
+            "tkf-fm-fading-variance": FadingTobitKalmanFilter(sys_, fading, cens, fading_variance_term=True),
+            "tkf-fm-exact-variance": FadingTobitKalmanFilter(sys_, fading, cens, exact_tobit_variance=True),
+            "tkf-fm-both": FadingTobitKalmanFilter(
+                sys_, fading, cens, fading_variance_term=True, exact_tobit_variance=True
+            ),
+            "tkf": TobitKalmanFilter(sys_, cens),
+            "adf": FadingAssumedDensityFilter(sys_, fading, cens),
+        }
+        return {
+            "system": sys_,
+            "channel": [fading, cens],
+            "sim": sim,
+            "estimators": est,
+            "pcrlb": [fading, cens],
+            "censored": float(cens.censored_mask(sim.y)[0].mean()),
+        }
     if name == "geng-protocol-tracking":
         from . import geng_protocol
 
         sys_, ch = geng_protocol.example_system(False), geng_protocol.example_channel()
         sim = simulate(sys_, steps, runs, channel=ch, seed=seed)
-        est = {"pbtkf-imsf": ProtocolTobitKalmanFilter(sys_, ch),
-               "pbtkf-imsf-second-moment": ProtocolTobitKalmanFilter(sys_, ch, failure_term="second_moment"),
-               "pbtkf-imsf-literal": ProtocolTobitKalmanFilter(sys_, ch, failure_term="literal"),
-               "pbtkf-imsf-lmmse": ProtocolTobitKalmanFilter(sys_, ch, failure_term="lmmse_unconditional"),
-               "pbtkf": ProtocolTobitKalmanFilter.baseline(sys_, ch),
-               "adf": ProtocolAssumedDensityFilter(sys_, ch)}
-        return {"system": sys_, "channel": ch, "sim": sim, "estimators": est, "pcrlb": None,
-                "censored": float((sim.y <= ch.threshold).mean())}
+        est = {
+            "pbtkf-imsf": ProtocolTobitKalmanFilter(sys_, ch),
+            "pbtkf-imsf-second-moment": ProtocolTobitKalmanFilter(sys_, ch, failure_term="second_moment"),
+            "pbtkf-imsf-literal": ProtocolTobitKalmanFilter(sys_, ch, failure_term="literal"),
+            "pbtkf-imsf-lmmse": ProtocolTobitKalmanFilter(sys_, ch, failure_term="lmmse_unconditional"),
+            "pbtkf": ProtocolTobitKalmanFilter.baseline(sys_, ch),
+            "adf": ProtocolAssumedDensityFilter(sys_, ch),
+        }
+        return {
+            "system": sys_,
+            "channel": ch,
+            "sim": sim,
+            "estimators": est,
+            "pcrlb": None,
+            "censored": float((sim.y <= ch.threshold).mean()),
+        }
     if name == "saturation-oscillator":
-        sys_ = LinearSystem(A=_rotation(0.1 * np.pi, 0.95), C=np.eye(2), Q=0.1 * np.eye(2), R=0.01 * np.eye(2),
-                            x0=[0.0, 0.0], P0=np.eye(2))
-        ch = RandomSaturation([0.7, 0.6], [0.7, 0.75])
-        sim = simulate(sys_, steps, runs, channel=ch, seed=np.random.SeedSequence([seed, 3]))
-        est = {"kf": KalmanFilter(sys_), "adf": SaturationAssumedDensityFilter(sys_, ch)}
-        return {"system": sys_, "channel": ch, "sim": sim, "estimators": est, "pcrlb": None,
-                "censored": float((sim.extras["alpha"] > 0).mean())}
+        sys_ = LinearSystem(
+            A=_rotation(0.1 * np.pi, 0.95),
+            C=np.eye(2),
+            Q=0.1 * np.eye(2),
+            R=0.01 * np.eye(2),
+            x0=[0.0, 0.0],
+            P0=np.eye(2),
+        )
+        sat = RandomSaturation([0.7, 0.6], [0.7, 0.75])
+        sim = simulate(sys_, steps, runs, channel=sat, seed=np.random.SeedSequence([seed, 3]))
+        est = {"kf": KalmanFilter(sys_), "adf": SaturationAssumedDensityFilter(sys_, sat)}
+        return {
+            "system": sys_,
+            "channel": sat,
+            "sim": sim,
+            "estimators": est,
+            "pcrlb": None,
+            "censored": float((sim.extras["alpha"] > 0).mean()),
+        }
     raise ValidationError(f"examples: unknown example {name!r}; known: {', '.join(EXAMPLES)}")
 
 
@@ -196,8 +262,15 @@ def random_stable_system(rng: np.random.Generator) -> tuple[LinearSystem, Censor
     lo = np.where(upper_side, -np.inf, sd * ndtri(frac))
     hi = np.where(upper_side, sd * ndtri(1 - frac), np.inf)
     sys_ = LinearSystem(A=A, C=C, Q=q * np.eye(n), R=R, x0=np.zeros(n), P0=Sig)
-    desc = {"n": n, "m": m, "spectral_radius": rho, "q": q, "R": np.diagonal(R).tolist(),
-            "target_censored_fraction": frac.tolist(), "side": ["upper" if u else "lower" for u in upper_side]}
+    desc = {
+        "n": n,
+        "m": m,
+        "spectral_radius": rho,
+        "q": q,
+        "R": np.diagonal(R).tolist(),
+        "target_censored_fraction": frac.tolist(),
+        "side": ["upper" if u else "lower" for u in upper_side],
+    }
     return sys_, Censoring(lower=lo, upper=hi), desc
 
 
@@ -211,20 +284,29 @@ def optimum_ratios(summaries: dict[str, Any], optimum: str = "pf") -> None:
 def _pcrlb_check(system, channel, x, pf_mean) -> dict[str, Any]:
     """The PCRLB (averaged over the true states) and the one-sided 1 % test of PF MSE >= bound per step."""
     b = posterior_crlb(system, channel, truth=x)
-    err2 = (pf_mean - x[:, 1:]) ** 2                                  # (N, T, n)
+    err2 = (pf_mean - x[:, 1:]) ** 2  # (N, T, n)
     mse = err2.mean(0)
     se = err2.std(0, ddof=1) / np.sqrt(err2.shape[0])
-    z99 = 2.3263478740408408                                           # one-sided 1 % point of N(0, 1)
+    z99 = 2.3263478740408408  # one-sided 1 % point of N(0, 1)
     below = mse + z99 * se >= b.var
-    return {"var": b.var, "rmse_bound": np.sqrt(b.var), "pf_mse": mse, "pf_mse_stderr": se,
-            "steps_pcrlb_below_pf_mse": below.all(axis=1).tolist().count(True), "steps": int(mse.shape[0]),
-            "holds_every_step": bool(below.all())}
+    return {
+        "var": b.var,
+        "rmse_bound": np.sqrt(b.var),
+        "pf_mse": mse,
+        "pf_mse_stderr": se,
+        "steps_pcrlb_below_pf_mse": below.all(axis=1).tolist().count(True),
+        "steps": int(mse.shape[0]),
+        "holds_every_step": bool(below.all()),
+    }
 
 
 def _evaluate(case: dict[str, Any], particles: int, seed: int, progress, lo: float, hi: float) -> dict[str, Any]:
     sim = case["sim"]
-    out: dict[str, Any] = {"censored_fraction": case["censored"], "runs": int(sim.x.shape[0]),
-                           "steps": int(sim.y.shape[1])}
+    out: dict[str, Any] = {
+        "censored_fraction": case["censored"],
+        "runs": int(sim.x.shape[0]),
+        "steps": int(sim.y.shape[1]),
+    }
     summ = {}
     for key, est in case["estimators"].items():
         res = est.filter(sim.y)
@@ -255,25 +337,43 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
         for j in range(n):
             a = ax[0, j]
             k = np.arange(1, np.asarray(summ["pf"]["rmse"]).shape[0] + 1)
-            for key, st in ((best, {"color": "tab:red", "lw": 1.0}), ("adf", {"color": "tab:blue", "lw": 1.0}),
-                            ("pf", {"color": "black", "lw": 1.2, "ls": "--"})):
+            for key, st in (
+                (best, {"color": "tab:red", "lw": 1.0}),
+                ("adf", {"color": "tab:blue", "lw": 1.0}),
+                ("pf", {"color": "black", "lw": 1.2, "ls": "--"}),
+            ):
                 r = np.asarray(summ[key]["rmse"])[:, j]
                 ratio = summ[key]["ratio_to_optimum"][j]
-                label = "optimum (PF, %d particles)" % summ["pf"]["particles"] if key == "pf" else \
-                    f"{key} ({ratio:.3f} x optimum)"
+                label = (
+                    "optimum (PF, %d particles)" % summ["pf"]["particles"]
+                    if key == "pf"
+                    else f"{key} ({ratio:.3f} x optimum)"
+                )
                 a.plot(k, r, label=label, **st)
             if "pcrlb" in ex:
-                a.plot(k, np.asarray(ex["pcrlb"]["rmse_bound"])[:, j], color="tab:green", lw=1.0, ls=":",
-                       label="PCRLB (sqrt)")
+                a.plot(
+                    k,
+                    np.asarray(ex["pcrlb"]["rmse_bound"])[:, j],
+                    color="tab:green",
+                    lw=1.0,
+                    ls=":",
+                    label="PCRLB (sqrt)",
+                )
             a.set(xlabel="k", ylabel=f"RMSE of x{j + 1}", yscale="log")
             a.set_title(f"{name}: {ex['censored_fraction']:.0%} censored", fontsize=9)
             a.legend(fontsize=7)
-        paths.append(save(fig, outdir, f"rmse_{name}.png",
-                          caption=f"Not in the sources: {name} ({ex['censored_fraction']:.0%} of readings censored), "
-                                  f"per-step RMSE of each state for the best existing variant ({best}), the "
-                                  "assumed-density filter and the optimum (particle filter)"
-                                  + (", with the square root of the posterior Cramér-Rao bound" if "pcrlb" in ex
-                                     else "") + "."))
+        paths.append(
+            save(
+                fig,
+                outdir,
+                f"rmse_{name}.png",
+                caption=f"Not in the sources: {name} ({ex['censored_fraction']:.0%} of readings censored), "
+                f"per-step RMSE of each state for the best existing variant ({best}), the "
+                "assumed-density filter and the optimum (particle filter)"
+                + (", with the square root of the posterior Cramér-Rao bound" if "pcrlb" in ex else "")
+                + ".",
+            )
+        )
     # the table as a chart: mean ratio over components of each example's best existing variant and the ADF
     names = [nm for nm, _ in groups]
     best_r = [float(np.mean(ex["estimators"][_best(ex["estimators"])]["ratio_to_optimum"])) for _, ex in groups]
@@ -288,18 +388,36 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
     ax[0, 0].set_ylabel("RMSE / optimum (mean over components)")
     ax[0, 0].set_yscale("log")
     ax[0, 0].legend(fontsize=7)
-    paths.append(save(fig, outdir, "ratio_to_optimum.png",
-                      caption="Not in the sources: time-averaged RMSE over the optimum's (mean over the state's "
-                              "components) of the best existing variant and of the assumed-density filter on every "
-                              f"example and random system; the dotted line is the target {TARGET}."))
+    paths.append(
+        save(
+            fig,
+            outdir,
+            "ratio_to_optimum.png",
+            caption="Not in the sources: time-averaged RMSE over the optimum's (mean over the state's "
+            "components) of the best existing variant and of the assumed-density filter on every "
+            f"example and random system; the dotted line is the target {TARGET}.",
+        )
+    )
     return paths
 
 
-@register("yardstick", title="The Bayesian yardstick: RMSE / optimum of every estimator (particle filter)",
-          source="tobitkf (not in the sources): particle filter and posterior Cramér-Rao bound", plot=_plot,
-          default_runs=1000)
-def run(*, runs: int = 1000, seed: int = 0, progress=None, examples: Any = EXAMPLES, random_systems: int = 10,
-        steps: int | None = None, particles: int | None = None) -> ExperimentResult:
+@register(
+    "yardstick",
+    title="The Bayesian yardstick: RMSE / optimum of every estimator (particle filter)",
+    source="tobitkf (not in the sources): particle filter and posterior Cramér-Rao bound",
+    plot=_plot,
+    default_runs=1000,
+)
+def run(
+    *,
+    runs: int = 1000,
+    seed: int = 0,
+    progress=None,
+    examples: Any = EXAMPLES,
+    random_systems: int = 10,
+    steps: int | None = None,
+    particles: int | None = None,
+) -> ExperimentResult:
     """The yardstick (module docstring): ratios to the optimum on the examples and on random systems.
 
     ``runs`` caps every example's run count (the default 1000 leaves each its own: 200, 200, 100, 1000,
@@ -323,9 +441,11 @@ def run(*, runs: int = 1000, seed: int = 0, progress=None, examples: Any = EXAMP
         "random_systems": setting(int(random_systems), "default", "n in {2,3}, m in {1,2}, 30-90 % censored"),
         "runs_cap": setting(runs, "default", "each example's own run count when smaller"),
         "steps_cap": setting(steps, "default", "None: each example's own horizon"),
-        "particles": setting(particles if particles is not None else
-                             {**{k: v[2] for k, v in _OWN.items()}, "random": _RANDOM[2]}, "default",
-                             "base N_p; the optimum uses 2 N_p, the convergence check N_p"),
+        "particles": setting(
+            particles if particles is not None else {**{k: v[2] for k, v in _OWN.items()}, "random": _RANDOM[2]},
+            "default",
+            "base N_p; the optimum uses 2 N_p, the convergence check N_p",
+        ),
         "convergence_tolerance": setting(TOLERANCE, "default", "the issue: doubling moves the RMSE < 0.3 %"),
         "target": setting(TARGET, "default", "the issue's target for the assumed-density filter"),
     }
@@ -345,8 +465,14 @@ def run(*, runs: int = 1000, seed: int = 0, progress=None, examples: Any = EXAMP
         T = t0 if steps is None else min(steps, t0)
         sim = simulate(sys_, T, min(runs, r0), censoring=cens, seed=np.random.SeedSequence([seed, 2000 + i]))
         at_lo, at_hi = cens.censored_mask(sim.y)
-        case = {"system": sys_, "channel": cens, "sim": sim, "estimators": _censoring_estimators(sys_, cens),
-                "pcrlb": cens, "censored": float((at_lo | at_hi).mean())}
+        case = {
+            "system": sys_,
+            "channel": cens,
+            "sim": sim,
+            "estimators": _censoring_estimators(sys_, cens),
+            "pcrlb": cens,
+            "censored": float((at_lo | at_hi).mean()),
+        }
         ev = _evaluate(case, particles or p0, seed, progress, done / total, (done + 1) / total)
         ev["system"] = desc
         out_rs[f"random-{i + 1:02d}"] = ev
@@ -361,10 +487,16 @@ def _table_and_claims(out_ex: dict[str, Any], out_rs: dict[str, Any]):
     for name, ex in list(out_ex.items()) + list(out_rs.items()):
         summ = ex["estimators"]
         best = _best(summ)
-        row = {"example": name, "censored_fraction": ex["censored_fraction"], "best_existing": best,
-               "best_existing_ratio": summ[best]["ratio_to_optimum"], "adf_ratio": summ["adf"]["ratio_to_optimum"],
-               "pf_particles": summ["pf"]["particles"], "pf_converged": summ["pf"]["convergence"]["converged"],
-               "pf_relative_change": summ["pf"]["convergence"]["relative_change"]}
+        row = {
+            "example": name,
+            "censored_fraction": ex["censored_fraction"],
+            "best_existing": best,
+            "best_existing_ratio": summ[best]["ratio_to_optimum"],
+            "adf_ratio": summ["adf"]["ratio_to_optimum"],
+            "pf_particles": summ["pf"]["particles"],
+            "pf_converged": summ["pf"]["convergence"]["converged"],
+            "pf_relative_change": summ["pf"]["convergence"]["relative_change"],
+        }
         if name in ISSUE_TABLE:
             key, vals = ISSUE_TABLE[name]
             row["issue_best_variant"], row["issue_ratio"] = key, vals
@@ -373,35 +505,44 @@ def _table_and_claims(out_ex: dict[str, Any], out_rs: dict[str, Any]):
     adf_all = {r["example"]: r["adf_ratio"] for r in table}
     worst = max(adf_all, key=lambda k: max(adf_all[k])) if adf_all else None
     if worst is not None:
-        claims.append(CL.claim(
-            f"(not in the source) the assumed-density filter is within {TARGET}x of the optimum on every example "
-            "and random system (the issue's target)",
-            quantity="per example and component: the ADF's time-averaged RMSE over the particle filter's, same runs",
-            measured="; ".join(f"{k} {CL.fmt(v, 4)}" for k, v in adf_all.items())
-                     + f"; worst {worst} {max(adf_all[worst]):.4f}",
-            test=f"max ratio <= {TARGET}", tolerance="none beyond the target: the ratio is paired (same runs and "
-                                                    "readings); its Monte Carlo error is not propagated, the particle "
-                                                    "filter's own error is bounded by the convergence claim below",
-            holds=bool(all(max(v) <= TARGET for v in adf_all.values()))))
+        claims.append(
+            CL.claim(
+                f"(not in the source) the assumed-density filter is within {TARGET}x of the optimum on every example "
+                "and random system (the issue's target)",
+                quantity="per example and component: the ADF's time-averaged RMSE over the particle filter's, same runs",
+                measured="; ".join(f"{k} {CL.fmt(v, 4)}" for k, v in adf_all.items())
+                + f"; worst {worst} {max(adf_all[worst]):.4f}",
+                test=f"max ratio <= {TARGET}",
+                tolerance="none beyond the target: the ratio is paired (same runs and "
+                "readings); its Monte Carlo error is not propagated, the particle "
+                "filter's own error is bounded by the convergence claim below",
+                holds=bool(all(max(v) <= TARGET for v in adf_all.values())),
+            )
+        )
         conv = {r["example"]: r["pf_relative_change"] for r in table}
-        claims.append(CL.claim(
-            f"(not in the source) the particle filter is converged: doubling the particles moves the time-averaged "
-            f"RMSE by less than {TOLERANCE:.1%}",
-            quantity="relative change of the time-averaged RMSE from N_p to 2 N_p particles, per example and component",
-            measured="; ".join(f"{k} {CL.fmt(np.asarray(v) * 100, 3)} %" for k, v in conv.items()),
-            test=f"relative change < {TOLERANCE:.1%} on every example", tolerance=f"{TOLERANCE:.1%} (the check's "
-                                                                             "threshold, same runs and readings)",
-            holds=bool(all(r["pf_converged"] for r in table))))
+        claims.append(
+            CL.claim(
+                f"(not in the source) the particle filter is converged: doubling the particles moves the time-averaged "
+                f"RMSE by less than {TOLERANCE:.1%}",
+                quantity="relative change of the time-averaged RMSE from N_p to 2 N_p particles, per example and component",
+                measured="; ".join(f"{k} {CL.fmt(np.asarray(v) * 100, 3)} %" for k, v in conv.items()),
+                test=f"relative change < {TOLERANCE:.1%} on every example",
+                tolerance=f"{TOLERANCE:.1%} (the check's threshold, same runs and readings)",
+                holds=bool(all(r["pf_converged"] for r in table)),
+            )
+        )
     for name, ex in list(out_ex.items()) + list(out_rs.items()):
         if "pcrlb" in ex:
             p = ex["pcrlb"]
-            claims.append(CL.claim(
-                f"(not in the source) {name}: the PCRLB lies below the particle filter's MSE at every step",
-                quantity="per step: the PCRLB's trace against the particle filter's MSE over the runs",
-                measured=f"below at {p['steps_pcrlb_below_pf_mse']}/{p['steps']} steps",
-                test="at no step is the MSE significantly below the bound", tolerance="one-sided test at the 1 % "
-                                                                                     "level per step (the MSE's "
-                                                                                     "Monte Carlo error)",
-                holds=bool(p["holds_every_step"])))
+            claims.append(
+                CL.claim(
+                    f"(not in the source) {name}: the PCRLB lies below the particle filter's MSE at every step",
+                    quantity="per step: the PCRLB's trace against the particle filter's MSE over the runs",
+                    measured=f"below at {p['steps_pcrlb_below_pf_mse']}/{p['steps']} steps",
+                    test="at no step is the MSE significantly below the bound",
+                    tolerance="one-sided test at the 1 % level per step (the MSE's Monte Carlo error)",
+                    holds=bool(p["holds_every_step"]),
+                )
+            )
     # the issue's own ratios are in the table beside ours (measured on its own runs: shown, not a claim)
     return table, claims

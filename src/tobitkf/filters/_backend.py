@@ -15,8 +15,18 @@ from types import ModuleType
 from .._compiled import check_threads, default_threads, run_split
 from .._validation import ValidationError
 
-__all__ = ["BACKENDS", "numba_available", "kernels", "use_kernel", "kernel_ok", "system_gap", "default_threads",
-           "check_threads", "run_split", "check_square_root"]
+__all__ = [
+    "BACKENDS",
+    "numba_available",
+    "kernels",
+    "use_kernel",
+    "kernel_ok",
+    "system_gap",
+    "default_threads",
+    "check_threads",
+    "run_split",
+    "check_square_root",
+]
 
 BACKENDS = ("auto", "numpy", "numba")
 
@@ -39,8 +49,7 @@ def kernels() -> ModuleType:
     """The :mod:`tobitkf.filters._kernels` module (imports numba)."""
     mod = _load()
     if mod is None:
-        raise ImportError("backend='numba' needs the numba package (pip install numba); "
-                          "use backend='auto' or 'numpy'")
+        raise ImportError("backend='numba' needs the numba package (pip install numba); use backend='auto' or 'numpy'")
     return mod
 
 
@@ -68,8 +77,9 @@ def use_kernel(backend: str, gap: str | None, what: str) -> bool:
     if backend == "numba":
         kernels()
         if gap is not None:
-            raise ValidationError(f"backend: the numba kernel of {what} does not cover {gap}; "
-                                  "use backend='auto' or 'numpy'")
+            raise ValidationError(
+                f"backend: the numba kernel of {what} does not cover {gap}; use backend='auto' or 'numpy'"
+            )
         return True
     return gap is None and numba_available()
 
@@ -80,11 +90,15 @@ def kernel_ok(est, u, what: str) -> bool:
     if u is None:
         cached = est.__dict__.get("_kernel_static")
         if cached is None:
-            cached = est._kernel_static = use_kernel(est.backend, check_square_root(
-                est.backend, est.covariance_update, what) or system_gap(est.system, None), what)
+            cached = est._kernel_static = use_kernel(
+                est.backend,
+                check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, None),
+                what,
+            )
         return cached
-    return use_kernel(est.backend, check_square_root(est.backend, est.covariance_update, what) or
-                      system_gap(est.system, u), what)
+    return use_kernel(
+        est.backend, check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, u), what
+    )
 
 
 def check_square_root(backend: str, covariance_update: str, what: str) -> str | None:
@@ -100,7 +114,9 @@ def check_square_root(backend: str, covariance_update: str, what: str) -> str | 
     if covariance_update != "square_root":
         return None
     if backend == "numba":
-        raise ValidationError(f"backend: the numba kernel of {what} has no square-root form, so "
-                              "covariance_update='square_root' needs backend='auto' or 'numpy' "
-                              "(or use covariance_update='standard' or 'joseph' with 'numba')")
+        raise ValidationError(
+            f"backend: the numba kernel of {what} has no square-root form, so "
+            "covariance_update='square_root' needs backend='auto' or 'numpy' "
+            "(or use covariance_update='standard' or 'joseph' with 'numba')"
+        )
     return "covariance_update='square_root'"

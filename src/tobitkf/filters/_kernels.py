@@ -41,12 +41,12 @@ from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
 __all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "NOISE_CODES", "GL_X", "GL_W"]
 
 NOISE_CODES = {"dissertation": 0, "total_variance": 1, "exact_pv": 2}
-GL_X, GL_W = _GL_X, _GL_W      # the quadrature of censored_moments (passed to the kernels)
+GL_X, GL_W = _GL_X, _GL_W  # the quadrature of censored_moments (passed to the kernels)
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
 _INF = math.inf
-_TINY = float(np.finfo(np.float64).tiny)   # R_ee diagonals not above this count as 0 (as gain_update)
+_TINY = float(np.finfo(np.float64).tiny)  # R_ee diagonals not above this count as 0 (as gain_update)
 
 
 @njit(cache=True, error_model="numpy")
@@ -73,7 +73,7 @@ def _ndtr_pair(x):
 # exponents -a2 u - u^2/2 lie in [-40.2, 0.125] (a2 >= -1/2 and the cut at density e^-40),
 # so k in [-59, 0]; the table spans [-64, 1] and the index is clamped.
 _LOG2E = 1.4426950408889634
-_LN2_HI = 6.93147180369123816490e-01   # fdlibm's split of ln 2: k * _LN2_HI is exact
+_LN2_HI = 6.93147180369123816490e-01  # fdlibm's split of ln 2: k * _LN2_HI is exact
 _LN2_LO = 1.90821492927058770002e-10
 _POW2_OFF = 64
 _POW2 = 2.0 ** np.arange(-_POW2_OFF, 2, dtype=np.float64)
@@ -84,7 +84,7 @@ def _quadrature_moments(a2, b2, glx, glw, buf):
     """``(E[Z | window], Var[Z | window], P(window))`` of Z ~ N(0, 1) on [a2, b2] (mirrored to the upper
     tail): 64-node Gauss-Legendre in shifted coordinates u = z - a2, density exp(-a2 u - u^2/2) on
     [0, min(w, umax)]. Kept out of :func:`censored_stats` so that the common routes stay small."""
-    umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))   # -a2 + sqrt(a2^2 + 80), no cancellation
+    umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))  # -a2 + sqrt(a2^2 + 80), no cancellation
     half = 0.5 * min(b2 - a2, umax)
     pow2 = _POW2
     top2 = pow2.shape[0] - 1
@@ -94,9 +94,42 @@ def _quadrature_moments(a2, b2, glx, glw, buf):
         # exp(z), vectorisable (see _POW2)
         k = math.floor(z * _LOG2E + 0.5)
         r = (z - k * _LN2_HI) - k * _LN2_LO
-        e = (1.0 + r * (1.0 + r * (1.0 / 2 + r * (1.0 / 6 + r * (1.0 / 24 + r * (1.0 / 120 + r * (
-            1.0 / 720 + r * (1.0 / 5040 + r * (1.0 / 40320 + r * (1.0 / 362880 + r * (
-                1.0 / 3628800 + r * (1.0 / 39916800 + r * (1.0 / 479001600)))))))))))))
+        e = 1.0 + r * (
+            1.0
+            + r
+            * (
+                1.0 / 2
+                + r
+                * (
+                    1.0 / 6
+                    + r
+                    * (
+                        1.0 / 24
+                        + r
+                        * (
+                            1.0 / 120
+                            + r
+                            * (
+                                1.0 / 720
+                                + r
+                                * (
+                                    1.0 / 5040
+                                    + r
+                                    * (
+                                        1.0 / 40320
+                                        + r
+                                        * (
+                                            1.0 / 362880
+                                            + r * (1.0 / 3628800 + r * (1.0 / 39916800 + r * (1.0 / 479001600)))
+                                        )
+                                    )
+                                )
+                            )
+                        )
+                    )
+                )
+            )
+        )
         e *= pow2[min(max(int(k) + _POW2_OFF, 0), top2)]
         buf[0, j] = u
         buf[1, j] = glw[j] * half * e
@@ -161,9 +194,9 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
         return _lower_only(mu, sd, lo)
     a = -_INF if lo == -_INF else (lo - mu) / sd
     b = _INF if hi == _INF else (hi - mu) / sd
-    p_lo, q_a = _ndtr_pair(a)      # Phi(a), Phi(-a)
-    q_b, p_hi = _ndtr_pair(b)      # Phi(b), Phi(-b)
-    flip = a < -b                  # windows in the lower tail are mirrored to the upper tail
+    p_lo, q_a = _ndtr_pair(a)  # Phi(a), Phi(-a)
+    q_b, p_hi = _ndtr_pair(b)  # Phi(b), Phi(-b)
+    flip = a < -b  # windows in the lower tail are mirrored to the upper tail
     a2 = -b if flip else a
     b2 = -a if flip else b
     one_sided = b2 == _INF or (b2 - a2) * (b2 + a2) > _FAR
@@ -312,7 +345,7 @@ def _solve_gain(Ree, Rxe, ok, K, W, d):
         for k in range(n):
             W[i, k] *= d[i]
     if not _gauss_solve(Ree, W):
-        raise np.linalg.LinAlgError("Singular matrix")   # as numpy.linalg.solve
+        raise np.linalg.LinAlgError("Singular matrix")  # as numpy.linalg.solve
     for i in range(n):
         for j in range(m):
             K[i, j] = W[j, i] * d[j]
@@ -437,7 +470,7 @@ def _flush(buf, out, r0, t0, nb, cnt):
     if out.shape[1] == 0:
         return
     for b in range(nb):
-        dst = out[r0 + b, t0:t0 + cnt].reshape(-1)
+        dst = out[r0 + b, t0 : t0 + cnt].reshape(-1)
         src = buf[b, :cnt].reshape(-1)
         for k in range(src.shape[0]):
             dst[k] = src[k]
@@ -456,9 +489,11 @@ def _store_last(xv, Pv, r0, nb, x_last, P_last):
 
 # --- the Tobit Kalman filter -----------------------------------------------------------------
 
+
 @njit(cache=True, error_model="numpy", nogil=True)
-def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
-               means, covs, pmeans, pcovs, pu, ey, x_last, P_last):
+def tkf_kernel(
+    y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw, means, covs, pmeans, pcovs, pu, ey, x_last, P_last
+):
     """TKF over ``N`` runs of ``T`` steps; fills the ``(N, T, ...)`` output arrays in place.
 
     ``y`` (N, T, m) (NaN = missing), ``A``/``Qd`` (n, n), ``C`` (m, n), ``sigma`` (m,),
@@ -468,7 +503,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     """
     N, T, m = y.shape
     n = A.shape[0]
-    B = min(BLOCK, max(N, 1))     # a single run (the online step) allocates a single column
+    B = min(BLOCK, max(N, 1))  # a single run (the online step) allocates a single column
     x = np.empty((n, B))
     P = np.empty((n, n, B))
     xp = np.empty((n, B))
@@ -492,7 +527,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
     oks = np.empty(m, dtype=np.bool_)
     ds = np.empty(m)
     buf = np.empty((2, glx.shape[0]))
-    S = min(CHUNK, max(T, 1))     # and a single step one staging slot
+    S = min(CHUNK, max(T, 1))  # and a single step one staging slot
     # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
     s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
     s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
@@ -575,6 +610,7 @@ def tkf_kernel(y, A, Qd, C, sigma, lo, hi, x0, P0, noise_code, joseph, glx, glw,
 
 # --- the Kalman filter ---------------------------------------------------------------------
 
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, x_last, P_last):
     """KF over ``N`` runs; fills the outputs in place (an output of shape ``(N, 0, ...)`` is not
@@ -591,7 +627,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     # The block scratch is allocated here as in tkf_kernel, not by a shared helper: arrays
     # returned from a helper's tuple cost 25 % per step in a single run (0.57 -> 0.72 us for
     # the KF, measured), LLVM no longer knowing that they are fresh and unaliased.
-    B = min(BLOCK, max(N, 1))     # a single run (the online step) allocates a single column
+    B = min(BLOCK, max(N, 1))  # a single run (the online step) allocates a single column
     x = np.empty((n, B))
     P = np.empty((n, n, B))
     xp = np.empty((n, B))
@@ -618,7 +654,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     ds = np.empty(m)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
-    S = min(CHUNK, max(T, 1))     # and a single step one staging slot
+    S = min(CHUNK, max(T, 1))  # and a single step one staging slot
     s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
     s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
     for r0 in range(0, runs, B):

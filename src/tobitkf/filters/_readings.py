@@ -44,8 +44,9 @@ def classify_readings(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarr
     return cls
 
 
-def censored_log_likelihood(y: Any, mean: Any, std: Any, lower: Any = -np.inf, upper: Any = np.inf, *,
-                            classes: Any = None) -> np.ndarray:
+def censored_log_likelihood(
+    y: Any, mean: Any, std: Any, lower: Any = -np.inf, upper: Any = np.inf, *, classes: Any = None
+) -> np.ndarray:
     r"""Log-likelihood of a censored normal reading, elementwise and safe in the tails.
 
     For :math:`y = \mathrm{clip}(y^*, l, h)`, :math:`y^* \sim N(\mu, \sigma^2)`:

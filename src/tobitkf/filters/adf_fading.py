@@ -41,8 +41,17 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from .assumed_density import _noise_variances, censored_channel_update
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, GaussianFilter, Transition, check_keywords,
-                   check_prior, process_roots, time_update)
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    GaussianFilter,
+    Transition,
+    check_keywords,
+    check_prior,
+    process_roots,
+    time_update,
+)
 from .kalman import LinearGaussianFamily
 
 __all__ = ["FadingAssumedDensityFilter"]
@@ -91,8 +100,15 @@ class FadingAssumedDensityFilter(GaussianFilter):
 
     _name = "FadingAssumedDensityFilter"
 
-    def __init__(self, system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None, *,
-                 covariance_update: str = "standard", check_limits: bool = True):
+    def __init__(
+        self,
+        system: LinearSystem,
+        fading: RiceFading,
+        censoring: Censoring | None = None,
+        *,
+        covariance_update: str = "standard",
+        check_limits: bool = True,
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(fading, RiceFading, "fading")
         if censoring is not None:
@@ -124,9 +140,9 @@ class FadingAssumedDensityFilter(GaussianFilter):
         if not per_run:
             P = P[:1]
         xi = np.zeros((N, self.nx))
-        xi[:, :self.n] = x
+        xi[:, : self.n] = x
         M = np.zeros((P.shape[0], self.nx, self.nx))
-        M[:, :self.n, :self.n] = 0.5 * (P + np.swapaxes(P, -1, -2))
+        M[:, : self.n, : self.n] = 0.5 * (P + np.swapaxes(P, -1, -2))
         return xi, M, {}
 
     def _transition(self, k, u, carry) -> Transition:
@@ -151,12 +167,15 @@ class FadingAssumedDensityFilter(GaussianFilter):
             var = np.full(N, r[l])
             for s in range(S_ + 1):
                 c = Cs[s][l]
-                H[s * n:(s + 1) * n] = self.mean_g[s, l] * c
+                H[s * n : (s + 1) * n] = self.mean_g[s, l] * c
                 if self.var_g[s, l] > 0:
                     blk = slice(s * n, (s + 1) * n)
-                    var = var + self.var_g[s, l] * (np.einsum("rij,i,j->r", P[:, blk, blk], c, c) + (x[:, blk] @ c) ** 2)
-            x, P, S, pu[:, l], lll = censored_channel_update(x, P, S, y[:, l], H, var, lo[l], hi[l], dy=dy[:, l],
-                                                             form=self.covariance_update)
+                    var = var + self.var_g[s, l] * (
+                        np.einsum("rij,i,j->r", P[:, blk, blk], c, c) + (x[:, blk] @ c) ** 2
+                    )
+            x, P, S, pu[:, l], lll = censored_channel_update(
+                x, P, S, y[:, l], H, var, lo[l], hi[l], dy=dy[:, l], form=self.covariance_update
+            )
             ll += lll
         return x, P, S, {"p_uncensored": pu, "log_likelihood": ll}
 
@@ -170,8 +189,9 @@ class FadingAssumedDensityFilter(GaussianFilter):
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
         state = self._check_state(state)
         if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
         yk = self._reading(state, y)
         self._check_options(options)
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
@@ -184,8 +204,16 @@ class FadingAssumedDensityFilter(GaussianFilter):
         if self.check_limits:
             self.censoring.check_measurements(y2, start=k0 + 1)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter censored fading readings ``y`` (..., T, m); NaN = missing.
 
         Parameters

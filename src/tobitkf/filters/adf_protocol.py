@@ -49,8 +49,17 @@ from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
 from .assumed_density import censored_channel_update, merge_gaussians
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, GaussianFilter, Transition, check_keywords,
-                   check_prior, process_roots, time_update)
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    GaussianFilter,
+    Transition,
+    check_keywords,
+    check_prior,
+    process_roots,
+    time_update,
+)
 from .kalman import LinearGaussianFamily
 
 __all__ = ["ProtocolAssumedDensityFilter", "failure_nodes"]
@@ -78,8 +87,10 @@ def failure_nodes(law: Any, nodes: int = 16) -> tuple[np.ndarray, np.ndarray]:
         x, w = np.polynomial.legendre.leggauss(nodes)
         lo, hi = float(law.low), float(law.high)
         return lo + (hi - lo) * (x + 1) / 2, w / 2
-    raise ValidationError(f"failures: the assumed-density protocol filter needs a PMF, constant or Uniform failure "
-                          f"law, got {type(law).__name__}")
+    raise ValidationError(
+        f"failures: the assumed-density protocol filter needs a PMF, constant or Uniform failure "
+        f"law, got {type(law).__name__}"
+    )
 
 
 class ProtocolAssumedDensityFilter(GaussianFilter):
@@ -126,8 +137,9 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
 
     _name = "ProtocolAssumedDensityFilter"
 
-    def __init__(self, system: LinearSystem, channel: ProtocolChannel, *, covariance_update: str = "standard",
-                 nodes: int = 16):
+    def __init__(
+        self, system: LinearSystem, channel: ProtocolChannel, *, covariance_update: str = "standard", nodes: int = 16
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(channel, ProtocolChannel, "channel")
         check_keywords({"covariance_update": covariance_update}, _OPTIONS)
@@ -167,10 +179,10 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
         M = np.zeros((P.shape[0], self.nx, self.nx))
         for s in range(ell + 1):
             if s == 0 or mode != "zero":
-                xi[:, s * n:(s + 1) * n] = x
+                xi[:, s * n : (s + 1) * n] = x
             for t in range(ell + 1):
                 if (s == t and (s == 0 or mode != "zero")) or mode == "hold":
-                    M[:, s * n:(s + 1) * n, t * n:(t + 1) * n] = P
+                    M[:, s * n : (s + 1) * n, t * n : (t + 1) * n] = P
         return xi, M, {}
 
     def _transition(self, k, u, carry) -> Transition:
@@ -190,29 +202,34 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
         tau = self.channel.threshold
         xs, Ps, Ss, lls, pus = [], [], [], [], []
         for lam in vals:
-            x_j, P_j, S_j, pu, ll = censored_channel_update(xp, Pp, Sp, yk, lam * Cc, r, tau, np.inf,
-                                                            form=self.covariance_update)
+            x_j, P_j, S_j, pu, ll = censored_channel_update(
+                xp, Pp, Sp, yk, lam * Cc, r, tau, np.inf, form=self.covariance_update
+            )
             xs.append(x_j)
             Ps.append(np.broadcast_to(P_j, (N,) + P_j.shape[1:]))
             Ss.append(None if S_j is None else np.broadcast_to(S_j, (N,) + S_j.shape[1:]))
             lls.append(ll)
             pus.append(pu)
         with np.errstate(divide="ignore"):
-            logw = np.log(probs)[:, None] + np.stack(lls)                  # (J, N)
+            logw = np.log(probs)[:, None] + np.stack(lls)  # (J, N)
         top = logw.max(0)
         w = np.exp(logw - top)
         tot = w.sum(0)
         w /= tot
-        x, P, S = merge_gaussians(w, np.stack(xs), np.stack(Ps),
-                                  None if self.covariance_update != "square_root" else np.stack(Ss))
+        x, P, S = merge_gaussians(
+            w, np.stack(xs), np.stack(Ps), None if self.covariance_update != "square_root" else np.stack(Ss)
+        )
         missing = np.isnan(yk)
-        if missing.any():        # a missing reading leaves the prior exactly
+        if missing.any():  # a missing reading leaves the prior exactly
             x = np.where(missing[:, None], xp, x)
             P = np.where(missing[:, None, None], Pp, P)
             if S is not None:
                 S = np.where(missing[:, None, None], Sp, S)
-        extras = {"failure_posterior": w.T.copy(), "p_uncensored": probs @ np.stack(pus),
-                  "log_likelihood": np.where(missing, 0.0, np.log(tot) + top)}
+        extras = {
+            "failure_posterior": w.T.copy(),
+            "p_uncensored": probs @ np.stack(pus),
+            "log_likelihood": np.where(missing, 0.0, np.log(tot) + top),
+        }
         return x, P, S, extras
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
@@ -225,8 +242,9 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
         state = self._check_state(state)
         if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
         yk = self._reading(state, y)
         self._check_options(options)
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
@@ -240,11 +258,20 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
             bad = y2 < tau - 1e-12 * max(1.0, abs(tau))
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValidationError(f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold "
-                                  f"tau = {tau:.6g}")
+            raise ValidationError(
+                f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold tau = {tau:.6g}"
+            )
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter the scheduled sensors' readings ``y`` (..., T, 1); NaN = missing.
 
         Parameters

@@ -50,8 +50,15 @@ from ..censored import censored_moments
 from ..channels.saturation import RandomSaturation
 from ..models.linear import LinearSystem
 from .assumed_density import merge_gaussians
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
-                   measurement_update, time_update)
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    check_keywords,
+    measurement_update,
+    time_update,
+)
 from .kalman import LinearGaussianFamily
 
 __all__ = ["SaturationAssumedDensityFilter", "saturated_reading_moments"]
@@ -84,15 +91,19 @@ def saturated_reading_moments(y: np.ndarray, mean: np.ndarray, var: np.ndarray, 
     """
     s = np.sqrt(var)
     u = float(level)
-    low = censored_moments(mean, s, -np.inf, -u)                    # the piece c <= -u
-    high = censored_moments(mean, s, u, np.inf)                     # the piece c >= u
+    low = censored_moments(mean, s, -np.inf, -u)  # the piece c <= -u
+    high = censored_moments(mean, s, u, np.inf)  # the piece c >= u
     g = var / (var + r)
     mid_m, mid_v = mean + g * (y - mean), var * r / (var + r)
-    mid = censored_moments(mid_m, np.sqrt(mid_v), -u, u)            # |c| < u, given the reading
+    mid = censored_moments(mid_m, np.sqrt(mid_v), -u, u)  # |c| < u, given the reading
     with np.errstate(divide="ignore"):
-        logs = np.stack([log_ndtr((-u - mean) / s) + _lognorm(y, -u, r),
-                         _lognorm(y, mean, var + r) + np.log(mid.p_uncensored),
-                         log_ndtr((mean - u) / s) + _lognorm(y, u, r)])
+        logs = np.stack(
+            [
+                log_ndtr((-u - mean) / s) + _lognorm(y, -u, r),
+                _lognorm(y, mean, var + r) + np.log(mid.p_uncensored),
+                log_ndtr((mean - u) / s) + _lognorm(y, u, r),
+            ]
+        )
     ms = np.stack([low.truncated_mean, mid.truncated_mean, high.truncated_mean])
     vs = np.stack([low.truncated_var, mid.truncated_var, high.truncated_var])
     top = logs.max(0)
@@ -181,25 +192,34 @@ class SaturationAssumedDensityFilter(LinearGaussianFamily):
             vs = np.where(ok, var, 1.0)
             # saturated mode
             l1, pm, pv = saturated_reading_moments(yz, mu_c, vs, ri, float(self.channel.level[i]))
-            sat = MeasurementPrediction(expected=mu_c[:, None], H0=c[None], noise=np.zeros((1, 1)),
-                                        observed=np.where(ok & ~miss, pm, np.nan)[:, None], retained=pv[:, None])
+            sat = MeasurementPrediction(
+                expected=mu_c[:, None],
+                H0=c[None],
+                noise=np.zeros((1, 1)),
+                observed=np.where(ok & ~miss, pm, np.nan)[:, None],
+                retained=pv[:, None],
+            )
             x1, P1, S1, _, _ = measurement_update(x, P, S, yz[:, None], sat, form)
             # linear mode: the Kalman update
-            lin = MeasurementPrediction(expected=mu_c[:, None], H0=c[None], noise=np.full((1, 1), ri),
-                                        valid=~miss[:, None])
+            lin = MeasurementPrediction(
+                expected=mu_c[:, None], H0=c[None], noise=np.full((1, 1), ri), valid=~miss[:, None]
+            )
             x2, P2, S2, _, _ = measurement_update(x, P, S, yz[:, None], lin, form)
             l2 = _lognorm(yz, mu_c, var + ri)
             l3 = _lognorm(yz, 0.0, ri)
             l1 = np.where(ok, l1, _lognorm(yz, np.clip(mu_c, -self.channel.level[i], self.channel.level[i]), ri))
-            logs = self._logp[i][:, None] + np.stack([l1, l2, l3])           # (3, N)
+            logs = self._logp[i][:, None] + np.stack([l1, l2, l3])  # (3, N)
             top = logs.max(0)
             w = np.exp(logs - top)
             tot = w.sum(0)
             w /= tot
             Ns = (N,) + P.shape[1:]
             covs = np.stack([np.broadcast_to(P1, Ns), np.broadcast_to(P2, Ns), np.broadcast_to(P, Ns)])
-            facs = None if S is None else np.stack([np.broadcast_to(S1, Ns), np.broadcast_to(S2, Ns),
-                                                    np.broadcast_to(S, Ns)])
+            facs = (
+                None
+                if S is None
+                else np.stack([np.broadcast_to(S1, Ns), np.broadcast_to(S2, Ns), np.broadcast_to(S, Ns)])
+            )
             xm, Pm, Sm = merge_gaussians(w, np.stack([x1, x2, x]), covs, facs)
             if miss.any():
                 xm = np.where(miss[:, None], x, xm)
@@ -221,16 +241,25 @@ class SaturationAssumedDensityFilter(LinearGaussianFamily):
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
         state = self._check_state(state)
         if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
         yk = self._reading(state, y)
         self._check_options(options)
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
         x, P, S, _ = self._sequential(state.k, state.x, state.P, state.S, yk)
         return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter the sensors' readings ``y`` (..., T, m); NaN = missing.
 
         Parameters

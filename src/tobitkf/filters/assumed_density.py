@@ -60,21 +60,36 @@ from .._validation import ValidationError, as_float_array, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
-                   measurement_update, prepare_measurements, psd_sqrt, time_update)
-from .kalman import LinearGaussianFamily
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, censored_log_likelihood
 from ._readings import classify_readings as _classify
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    check_keywords,
+    measurement_update,
+    prepare_measurements,
+    psd_sqrt,
+    time_update,
+)
+from .kalman import LinearGaussianFamily
 
-__all__ = ["AssumedDensityTobitFilter", "censored_reading_moments", "censored_channel_update",
-           "assumed_density_update", "merge_gaussians"]
+__all__ = [
+    "AssumedDensityTobitFilter",
+    "censored_reading_moments",
+    "censored_channel_update",
+    "assumed_density_update",
+    "merge_gaussians",
+]
 
 _OPTIONS = {"covariance_update": COVARIANCE_FORMS, "order": ("channels", "uncensored_first")}
 _TINY = np.finfo(np.float64).tiny
 
 
-def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, lower: Any, upper: Any,
-                             cls: np.ndarray | None = None):
+def censored_reading_moments(
+    y: np.ndarray, mean: np.ndarray, std: np.ndarray, lower: Any, upper: Any, cls: np.ndarray | None = None
+):
     r""":math:`E[y^* \mid \text{obs}]` and :math:`\mathrm{Var}[y^* \mid \text{obs}]` of a latent
     :math:`y^* \sim N(\mu, s^2)` given its censored reading (the table of the module docstring), batched.
 
@@ -108,9 +123,20 @@ def censored_reading_moments(y: np.ndarray, mean: np.ndarray, std: np.ndarray, l
     return obs, V, cls
 
 
-def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, y: np.ndarray, c: np.ndarray,
-                            r: float, lower: Any, upper: Any, *, dy: Any = 0.0, form: str = "standard",
-                            cls: np.ndarray | None = None):
+def censored_channel_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    S: np.ndarray | None,
+    y: np.ndarray,
+    c: np.ndarray,
+    r: float,
+    lower: Any,
+    upper: Any,
+    *,
+    dy: Any = 0.0,
+    form: str = "standard",
+    cls: np.ndarray | None = None,
+):
     r"""The ADF update of one channel (the module docstring's equations), batched over runs.
 
     Parameters
@@ -139,8 +165,8 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
     """
     N = x.shape[0]
     mu = x @ c + dy
-    r = np.asarray(r, dtype=float)
-    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + r, (N,))
+    rv = np.asarray(r, dtype=float)
+    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
     ok = s2 > _TINY
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N,))
@@ -158,16 +184,31 @@ def censored_channel_update(x: np.ndarray, P: np.ndarray, S: np.ndarray | None, 
     if not valid.any():
         return x, P, S, p_unc, ll
     cens = (cls == _LOWER) | (cls == _UPPER)
-    noise = np.full((1, 1), float(r)) if r.ndim == 0 else np.broadcast_to(r, (N,))[:, None]
-    mp = MeasurementPrediction(expected=mu[:, None], H0=c[None, :], noise=noise,
-                               observed=np.where(valid, obs, np.nan)[:, None], valid=valid[:, None],
-                               retained=V[:, None] if cens.any() else None)
+    noise = np.full((1, 1), float(rv)) if rv.ndim == 0 else np.broadcast_to(rv, (N,))[:, None]
+    mp = MeasurementPrediction(
+        expected=mu[:, None],
+        H0=c[None, :],
+        noise=noise,
+        observed=np.where(valid, obs, np.nan)[:, None],
+        valid=valid[:, None],
+        retained=V[:, None] if cens.any() else None,
+    )
     xn, Pn, Sn, _, _ = measurement_update(x, P, S, np.where(valid, obs, np.nan)[:, None], mp, form)
     return xn, Pn, Sn, p_unc, ll
 
 
-def assumed_density_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.ndarray, R_diag: Any,
-                           lower: Any, upper: Any, *, dy: Any = 0.0, covariance_update: str = "standard"):
+def assumed_density_update(
+    x_pred: np.ndarray,
+    P_pred: np.ndarray,
+    y: np.ndarray,
+    C: np.ndarray,
+    R_diag: Any,
+    lower: Any,
+    upper: Any,
+    *,
+    dy: Any = 0.0,
+    covariance_update: str = "standard",
+):
     r"""One ADF measurement update of all channels in sequence (procedural form), batched over runs.
 
     Parameters
@@ -199,8 +240,9 @@ def assumed_density_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P = x_pred, P_pred
     for l in range(m):
-        x, P, S, _, _ = censored_channel_update(x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l], dy=d[:, l],
-                                                form=covariance_update)
+        x, P, S, _, _ = censored_channel_update(
+            x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l], dy=d[:, l], form=covariance_update
+        )
     return x, P
 
 
@@ -251,16 +293,18 @@ def _recorded_classes(cls: np.ndarray, flags: np.ndarray, y: np.ndarray, k: int)
     if bad.any():
         run, l = (int(i) for i in np.argwhere(bad)[0])
         what = "missing (NaN)" if cls[run, l] == _MISSING else f"{y[run, l]:.6g}, strictly inside its limits"
-        raise ValidationError(f"censored: the reading of channel {l} at time {k} (run {run}) is flagged censored "
-                              f"but {what}")
+        raise ValidationError(
+            f"censored: the reading of channel {l} at time {k} (run {run}) is flagged censored but {what}"
+        )
     return np.where(at_limit & ~flags, _INTERIOR, cls).astype(np.int8)
 
 
 def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
     off = R - np.diag(np.diagonal(R))
     if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
-        raise ValidationError(f"{name}: the assumed-density filter processes the channels in sequence and needs a "
-                              "diagonal R")
+        raise ValidationError(
+            f"{name}: the assumed-density filter processes the channels in sequence and needs a diagonal R"
+        )
     d = np.diagonal(R).copy()
     if np.any(d < 0):
         raise ValidationError(f"{name}: expected measurement variances >= 0, got {d}")
@@ -343,8 +387,15 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
     _name = "AssumedDensityTobitFilter"
     _step_options = ("lower", "upper", "censored")
 
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, covariance_update: str = "standard",
-                 check_limits: bool = True, order: str = "channels"):
+    def __init__(
+        self,
+        system: LinearSystem,
+        censoring: Censoring,
+        *,
+        covariance_update: str = "standard",
+        check_limits: bool = True,
+        order: str = "channels",
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         check_keywords({"covariance_update": covariance_update, "order": order}, _OPTIONS)
@@ -386,9 +437,19 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             for l in range(m):
                 if not member[:, l].any():
                     continue
-                x, P, S, pul, lll = censored_channel_update(x, P, S, y[:, l], C[l], r[l], lo[:, l], hi[:, l],
-                                                            dy=dy[:, l], form=self.covariance_update,
-                                                            cls=cp[:, l])
+                x, P, S, pul, lll = censored_channel_update(
+                    x,
+                    P,
+                    S,
+                    y[:, l],
+                    C[l],
+                    r[l],
+                    lo[:, l],
+                    hi[:, l],
+                    dy=dy[:, l],
+                    form=self.covariance_update,
+                    cls=cp[:, l],
+                )
                 pu[:, l] = np.where(member[:, l], pul, pu[:, l])
                 ll += lll
         side = np.where(cls == _LOWER, -1, np.where(cls == _UPPER, 1, 0)).astype(np.int8)
@@ -404,8 +465,9 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
         state = self._check_state(state)
         if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
         yk = self._reading(state, y)
         if self.check_limits and options.get("lower") is None and options.get("upper") is None:
             self.censoring.check_measurements(yk[:, None], start=state.k)
@@ -425,8 +487,10 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
                 try:
                     out[key] = np.broadcast_to(arr, (state.runs, self.m))
                 except ValueError:
-                    raise ValidationError(f"{key}: expected this step's limits of shape ({self.m},) or "
-                                          f"{state.batch_shape + (self.m,)}, got {arr.shape}") from None
+                    raise ValidationError(
+                        f"{key}: expected this step's limits of shape ({self.m},) or "
+                        f"{state.batch_shape + (self.m,)}, got {arr.shape}"
+                    ) from None
         if out:
             lo, hi = self.censoring.limits(state.k + (0 if state.carry.get("_predicted") else 1))
             lo = out.get("lower", np.broadcast_to(lo, (state.runs, self.m)))
@@ -462,8 +526,17 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
             self.censoring.check_measurements(self._reading(st, y)[:, None], start=st.k + 1)
         return super().step(state, y, u=u, **options)
 
-    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
-               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
 
         Parameters
@@ -499,7 +572,7 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         self.censoring.check(self.m, k0 + y2.shape[1])
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=k0 + 1)
         flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
-        censoring_sides(y2, lo, hi, flags)           # the whole record's checks, with the index of a bad flag
+        censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
         return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
 
     def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
@@ -510,8 +583,9 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
 
         return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
 
-    def log_likelihood(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
-                       per_step: bool = False) -> np.ndarray:
+    def log_likelihood(
+        self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+    ) -> np.ndarray:
         r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (the ``log_likelihood``
         extras of :meth:`filter`, see the class Notes), (...) or (..., T) with ``per_step``, shaped as
         :meth:`tobitkf.KalmanFilter.log_likelihood`. With ``order="uncensored_first"`` it is

@@ -45,28 +45,58 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, cast
 
 import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
 from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
 
-__all__ = ["FilterResult", "FilterState", "Transition", "MeasurementPrediction", "predict", "shift_predict",
-           "sqrt_predict", "time_update", "gain_update", "sqrt_update", "measurement_update", "GaussianFilter",
-           "COVARIANCE_FORMS", "OUTPUTS", "parse_outputs", "prepare_measurements", "prepare_inputs", "check_prior",
-           "check_keywords", "process_roots", "psd_sqrt", "symmetrize"]
+__all__ = [
+    "FilterResult",
+    "FilterState",
+    "Transition",
+    "MeasurementPrediction",
+    "predict",
+    "shift_predict",
+    "sqrt_predict",
+    "time_update",
+    "gain_update",
+    "sqrt_update",
+    "measurement_update",
+    "GaussianFilter",
+    "COVARIANCE_FORMS",
+    "OUTPUTS",
+    "parse_outputs",
+    "prepare_measurements",
+    "prepare_inputs",
+    "check_prior",
+    "check_keywords",
+    "process_roots",
+    "psd_sqrt",
+    "symmetrize",
+]
 
 COVARIANCE_FORMS = ("standard", "joseph", "square_root")
 OUTPUTS = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
 _TINY = np.finfo(np.float64).tiny
 
 # fields of the pre-0.2 result types (DelayEstimates, HinfFilterResult) now in FilterResult.extras
-_OLD_FIELDS = ("measured_mean", "measured_cov", "innovation", "innovation_cov", "second_moment", "lagged", "ahead",
-               "point", "z")
+_OLD_FIELDS = (
+    "measured_mean",
+    "measured_cov",
+    "innovation",
+    "innovation_cov",
+    "second_moment",
+    "lagged",
+    "ahead",
+    "point",
+    "z",
+)
 
 
 # --------------------------------------------------------------------------- state and result
+
 
 @dataclass(frozen=True, eq=False)
 class FilterState:
@@ -113,14 +143,14 @@ class FilterState:
     @property
     def mean(self) -> np.ndarray:
         """:math:`\\hat x_{k|k}`, shape ``batch_shape + (n,)``."""
-        return self.x[:, :self.n].reshape(self.batch_shape + (self.n,))
+        return self.x[:, : self.n].reshape(self.batch_shape + (self.n,))
 
     @property
     def cov(self) -> np.ndarray | None:
         """:math:`P_{k|k}`, shape ``batch_shape + (n, n)`` (a read-only broadcast view when shared)."""
         if self.P is None:
             return None
-        P = self.P[:, :self.n, :self.n]
+        P = self.P[:, : self.n, : self.n]
         if P.shape[0] == 1 and self.runs != 1:
             return np.broadcast_to(P[0], self.batch_shape + (self.n, self.n))
         return P.reshape(self.batch_shape + (self.n, self.n))
@@ -196,13 +226,18 @@ class FilterResult:
         if name in _OLD_FIELDS:
             extras = object.__getattribute__(self, "extras")
             if name in extras:
-                warnings.warn(f"FilterResult.{name} is deprecated: use result.extras[{name!r}] (the delay and H-infinity "
-                              "families now return the common FilterResult)", DeprecationWarning, stacklevel=2)
+                warnings.warn(
+                    f"FilterResult.{name} is deprecated: use result.extras[{name!r}] (the delay and H-infinity "
+                    "families now return the common FilterResult)",
+                    DeprecationWarning,
+                    stacklevel=2,
+                )
                 return extras[name]
         raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
 
 # --------------------------------------------------------------------------- what a family contributes
+
 
 @dataclass(frozen=True, eq=False)
 class Transition:
@@ -272,6 +307,7 @@ class MeasurementPrediction:
 
 # --------------------------------------------------------------------------- the one predict
 
+
 def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any = 0.0):
     r"""Time update :math:`\bar x = A\hat x + B^u u`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)`
     (Miller (2.3), (3.20)–(3.21)), batched.
@@ -292,8 +328,7 @@ def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any
     return xp, symmetrize(Pp)
 
 
-def shift_predict(xi: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any = 0.0, *,
-                  source: int = 0):
+def shift_predict(xi: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any = 0.0, *, source: int = 0):
     r"""Time update of a state augmented with its own past (block-shift transition), batched.
 
     :math:`\xi = \mathrm{col}\{\xi_0, \dots, \xi_L\}` (blocks of size n); the transition puts
@@ -316,15 +351,15 @@ def shift_predict(xi: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, 
     s0, s1 = source * n, (source + 1) * n
     xi_p = np.empty_like(xi)
     xi_p[:, :n] = xi[:, s0:s1] @ A.T + bx
-    xi_p[:, n:] = xi[:, :nxi - n]
+    xi_p[:, n:] = xi[:, : nxi - n]
     Np = P.shape[0]
-    X = (P[:, :, s0:s1].reshape(-1, n) @ A.T).reshape(Np, nxi, n)          # P[:, :, s] A^T = (A P[:, s, :])^T
+    X = (P[:, :, s0:s1].reshape(-1, n) @ A.T).reshape(Np, nxi, n)  # P[:, :, s] A^T = (A P[:, s, :])^T
     P_p = np.empty_like(P)
     top = (np.swapaxes(X[:, s0:s1], -1, -2).reshape(-1, n) @ A.T).reshape(Np, n, n) + Qd
     P_p[:, :n, :n] = 0.5 * (top + np.swapaxes(top, -1, -2))
-    P_p[:, n:, :n] = X[:, :nxi - n]
-    P_p[:, :n, n:] = np.swapaxes(X[:, :nxi - n], -1, -2)
-    P_p[:, n:, n:] = P[:, :nxi - n, :nxi - n]
+    P_p[:, n:, :n] = X[:, : nxi - n]
+    P_p[:, :n, n:] = np.swapaxes(X[:, : nxi - n], -1, -2)
+    P_p[:, n:, n:] = P[:, : nxi - n, : nxi - n]
     return xi_p, P_p
 
 
@@ -346,7 +381,7 @@ def sqrt_predict(x: np.ndarray, S: np.ndarray, A: np.ndarray, Qroot: np.ndarray,
     xp = x @ A.T + bx
     top = np.swapaxes(A @ S, -1, -2)
     bottom = np.broadcast_to(Qroot.T, top.shape[:-2] + Qroot.T.shape)
-    U = np.linalg.qr(np.concatenate([top, bottom], axis=-2), mode="r")
+    U = qr_r(np.concatenate([top, bottom], axis=-2))
     return xp, np.swapaxes(U, -1, -2)
 
 
@@ -354,9 +389,15 @@ def _dense_shift(A: np.ndarray, nx: int, source: int) -> np.ndarray:
     """The (n_x, n_x) block-shift matrix with A acting on block ``source`` (square-root form)."""
     n = A.shape[-1]
     out = np.zeros((nx, nx))
-    out[:n, source * n:(source + 1) * n] = A
-    out[n:, :nx - n] = np.eye(nx - n)
+    out[:n, source * n : (source + 1) * n] = A
+    out[n:, : nx - n] = np.eye(nx - n)
     return out
+
+
+def qr_r(M: np.ndarray) -> np.ndarray:
+    """The R factor of the batched QR decomposition of ``M`` (``np.linalg.qr(M, mode="r")``; numpy's type
+    stubs declare a QRResult for every mode)."""
+    return cast(np.ndarray, np.linalg.qr(M, mode="r"))
 
 
 def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: Transition, form: str):
@@ -368,19 +409,21 @@ def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: T
     if tr.P_fixed is not None:
         return (_shift_mean(x, tr) if tr.shift else x @ tr.A.T + tr.b), tr.P_fixed, None
     if form == "square_root":
+        assert S is not None, "the square-root form carries the factor S"
         nx = x.shape[-1]
         if tr.shift:
             A = _dense_shift(tr.A, nx, tr.source)
             G = tr.G if tr.G is not None else psd_sqrt(tr.Qd)
             Gd = np.zeros((nx, G.shape[-1]))
-            Gd[:G.shape[0]] = G
+            Gd[: G.shape[0]] = G
             xp, Sp = sqrt_predict(x, S, A, Gd, 0.0)
             if not (np.isscalar(tr.b) and tr.b == 0.0):
-                xp[:, :tr.A.shape[-1]] += tr.b
+                xp[:, : tr.A.shape[-1]] += tr.b
         else:
             G = tr.G if tr.G is not None else psd_sqrt(tr.Qd)
             xp, Sp = sqrt_predict(x, S, tr.A, G, tr.b)
         return xp, symmetrize(Sp @ np.swapaxes(Sp, -1, -2)), Sp
+    assert P is not None, "the standard and Joseph forms carry P"
     if tr.shift:
         xp, Pp = shift_predict(x, P, tr.A, tr.Qd, tr.b, source=tr.source)
     else:
@@ -391,12 +434,13 @@ def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: T
 def _shift_mean(x: np.ndarray, tr: Transition) -> np.ndarray:
     n = tr.A.shape[-1]
     out = np.empty_like(x)
-    out[:, :n] = x[:, tr.source * n:(tr.source + 1) * n] @ tr.A.T + tr.b
-    out[:, n:] = x[:, :x.shape[-1] - n]
+    out[:, :n] = x[:, tr.source * n : (tr.source + 1) * n] @ tr.A.T + tr.b
+    out[:, n:] = x[:, : x.shape[-1] - n]
     return out
 
 
 # --------------------------------------------------------------------------- the one measurement update
+
 
 def _gain(Rxe: np.ndarray, Ree: np.ndarray) -> np.ndarray:
     """K = Rxe Ree^{-1} for m > 1, solved with Ree scaled to unit diagonal.
@@ -412,9 +456,17 @@ def _gain(Rxe: np.ndarray, Ree: np.ndarray) -> np.ndarray:
     return np.swapaxes(np.linalg.solve(scaled, np.swapaxes(Rxe * d[..., None, :], -1, -2)), -1, -2) * d[..., None, :]
 
 
-def gain_update(x: np.ndarray, P: np.ndarray, innov: np.ndarray, Rxe: np.ndarray, Ree: np.ndarray,
-                valid: np.ndarray | None = None, *, H: np.ndarray | None = None,
-                noise: np.ndarray | None = None):
+def gain_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    innov: np.ndarray,
+    Rxe: np.ndarray,
+    Ree: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    H: np.ndarray | None = None,
+    noise: np.ndarray | None = None,
+):
     r"""Linear MMSE measurement update from its moments, batched, with per-run channel masks.
 
     .. math::
@@ -482,13 +534,21 @@ def _solve_upper(U: np.ndarray, B: np.ndarray) -> np.ndarray:
     m = U.shape[-1]
     X = np.empty(np.broadcast_shapes(U.shape[:-2], B.shape[:-2]) + B.shape[-2:])
     for i in range(m - 1, -1, -1):
-        acc = B[..., i, :] - np.einsum("...j,...jr->...r", U[..., i, i + 1:], X[..., i + 1:, :])
+        acc = B[..., i, :] - np.einsum("...j,...jr->...r", U[..., i, i + 1 :], X[..., i + 1 :, :])
         X[..., i, :] = acc / U[..., i, i, None]
     return X
 
 
-def sqrt_update(x: np.ndarray, S: np.ndarray, innov: np.ndarray, H: np.ndarray, R: np.ndarray,
-                valid: np.ndarray | None = None, *, R_root: np.ndarray | None = None):
+def sqrt_update(
+    x: np.ndarray,
+    S: np.ndarray,
+    innov: np.ndarray,
+    H: np.ndarray,
+    R: np.ndarray,
+    valid: np.ndarray | None = None,
+    *,
+    R_root: np.ndarray | None = None,
+):
     r"""Square-root (array) form of the Kalman measurement update, batched, with per-run channel masks.
 
     With the prior factor :math:`\bar P = \bar S\bar S^T` and :math:`R = R^{1/2}R^{1/2\,T}`,
@@ -551,7 +611,7 @@ def sqrt_update(x: np.ndarray, S: np.ndarray, innov: np.ndarray, H: np.ndarray, 
     M[..., :m, :m] = np.swapaxes(root, -1, -2)
     M[..., m:, :m] = np.swapaxes(HS, -1, -2)
     M[..., m:, m:] = np.swapaxes(S, -1, -2)
-    U = np.linalg.qr(M, mode="r")
+    U = qr_r(M)
     K = np.swapaxes(_solve_upper(U[..., :m, :m], U[..., :m, m:]), -1, -2)
     S_new = np.swapaxes(U[..., m:, m:], -1, -2)
     x_new = x + np.einsum("...ij,...j->...i", K, e)
@@ -573,15 +633,21 @@ def _moments(P: np.ndarray, mp: MeasurementPrediction):
         Rxe = PH * s[:, None, :]
         Ree = HPH * s[:, :, None] * s[:, None, :]
     noise = mp.noise
-    if noise.ndim == Ree.ndim - 1:          # diagonal noise (N or 1, m)
+    if noise.ndim == Ree.ndim - 1:  # diagonal noise (N or 1, m)
         Ree = Ree + noise[..., :, None] * np.eye(m)
     else:
         Ree = Ree + noise
     return Rxe, Ree, PH
 
 
-def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, y: np.ndarray,
-                       mp: MeasurementPrediction, form: str = "standard"):
+def measurement_update(
+    x: np.ndarray,
+    P: np.ndarray | None,
+    S: np.ndarray | None,
+    y: np.ndarray,
+    mp: MeasurementPrediction,
+    form: str = "standard",
+):
     r"""The one measurement update of every Gaussian family, in the covariance form ``form``.
 
     Computes :math:`R_{xe} = \bar PH^T`, :math:`R_{ee} = H\bar PH^T + N` from the family's
@@ -629,15 +695,17 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
         else:
             R = noise
             root = None
+        assert S is not None, "the square-root form carries the factor S"
         xn, Pn, Sn, K = sqrt_update(x, S, innov, H, R, valid, R_root=root)
         if mp.retained is not None:
             # P + K V K^T as the factor of [S, K V^{1/2}]: one more QR, PSD by construction
             KV = K * np.sqrt(np.maximum(mp.retained, 0.0))[..., None, :]
             Sb = np.broadcast_to(Sn, KV.shape[:-2] + Sn.shape[-2:])
-            U = np.linalg.qr(np.concatenate([np.swapaxes(Sb, -1, -2), np.swapaxes(KV, -1, -2)], axis=-2), mode="r")
+            U = qr_r(np.concatenate([np.swapaxes(Sb, -1, -2), np.swapaxes(KV, -1, -2)], axis=-2))
             Sn = np.swapaxes(U, -1, -2)
             Pn = symmetrize(Sn @ np.swapaxes(Sn, -1, -2))
         return xn, Pn, Sn, K, None
+    assert P is not None, "the standard and Joseph forms carry P"
     Rxe, Ree, _ = _moments(P, mp)
     K, e, ok = _solve(Rxe, Ree, innov, valid)
     x_new = x + np.einsum("...ij,...j->...i", K, e)
@@ -645,7 +713,7 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
     if form == "joseph":
         nx = x.shape[-1]
         Nk = K.shape[0]
-        MH = (M.reshape(Nk * nx, nx) @ mp.H0.T).reshape(Nk, nx, -1)       # M H0^T
+        MH = (M.reshape(Nk * nx, nx) @ mp.H0.T).reshape(Nk, nx, -1)  # M H0^T
         if mp.scale is not None:
             MH = MH * mp.scale[:, None, :]
         noise = mp.noise
@@ -658,8 +726,10 @@ def measurement_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None
 
 # --------------------------------------------------------------------------- boundary checks
 
-def prepare_measurements(y: Any, m: int, name: str = "y", *, allow_nan: bool = True
-                         ) -> tuple[np.ndarray, tuple[int, ...]]:
+
+def prepare_measurements(
+    y: Any, m: int, name: str = "y", *, allow_nan: bool = True
+) -> tuple[np.ndarray, tuple[int, ...]]:
     """Validate ``y`` of shape ``(..., T, m)`` and flatten the batch axes.
 
     NaN entries are allowed (missing samples) unless ``allow_nan`` is False; infinities are not.
@@ -672,7 +742,9 @@ def prepare_measurements(y: Any, m: int, name: str = "y", *, allow_nan: bool = T
     """
     arr = as_float_array(y, name, allow_nan=allow_nan)
     if arr.ndim < 2:
-        raise ShapeError(f"{name}: expected (..., T, {m}) (for one scalar channel pass y[:, None]), got shape {arr.shape}")
+        raise ShapeError(
+            f"{name}: expected (..., T, {m}) (for one scalar channel pass y[:, None]), got shape {arr.shape}"
+        )
     if arr.shape[-1] != m:
         raise ShapeError(f"{name}: expected last axis of length m={m} (measurement channels), got shape {arr.shape}")
     if arr.shape[-2] < 1:
@@ -729,7 +801,7 @@ def check_keywords(options: dict[str, Any], allowed: dict[str, tuple]) -> None:
     for key, value in options.items():
         if key not in allowed:
             raise TypeError(f"unexpected keyword argument {key!r}")
-        check_option(value, key, allowed[key])      # of the same kind: 1.0 is not True
+        check_option(value, key, allowed[key])  # of the same kind: 1.0 is not True
 
 
 def process_roots(system):
@@ -738,6 +810,7 @@ def process_roots(system):
     :math:`B_k Q_k^{1/2}` with :math:`Q_k^{1/2}` from :func:`psd_sqrt` (so a singular Q,
     e.g. one with zero rows, is fine); factored once when Q and B do not vary with k.
     """
+
     def root(k: int) -> np.ndarray:
         r = psd_sqrt(system.Q.at(k))
         return r if system.B is None else system.B.at(k) @ r
@@ -748,8 +821,8 @@ def process_roots(system):
     return root
 
 
-
 # --------------------------------------------------------------------------- outputs
+
 
 def parse_outputs(outputs: Any) -> frozenset[str]:
     """The per-step outputs a ``filter`` call records: ``"all"`` (default: mean, cov, pred_mean,
@@ -805,19 +878,29 @@ class _Recorder:
                 self._put(self.extras, key, i, val)
 
     def _out(self, arr: np.ndarray, runs: int) -> np.ndarray:
-        if arr.shape[1] == 1 and runs != 1:          # shared by the runs: one copy, broadcast read-only
+        if arr.shape[1] == 1 and runs != 1:  # shared by the runs: one copy, broadcast read-only
             return np.broadcast_to(np.moveaxis(arr, 0, 1)[0], self.batch + arr.shape[:1] + arr.shape[2:])
         return np.moveaxis(arr, 0, 1).reshape(self.batch + arr.shape[:1] + arr.shape[2:])
 
     def result(self, runs: int, times: np.ndarray, final: FilterState | None) -> FilterResult:
         a = {k: self._out(v, runs) for k, v in self.arrays.items()}
-        extras = {k: self._out(v, runs) if v.ndim >= 2 and v.shape[1] in (1, runs) else v
-                  for k, v in self.extras.items()}
-        return FilterResult(mean=a.get("mean"), cov=a.get("cov"), pred_mean=a.get("pred_mean"),
-                            pred_cov=a.get("pred_cov"), extras=extras, times=times, var=a.get("var"), final=final)
+        extras = {
+            k: self._out(v, runs) if v.ndim >= 2 and v.shape[1] in (1, runs) else v for k, v in self.extras.items()
+        }
+        return FilterResult(
+            mean=a.get("mean"),
+            cov=a.get("cov"),
+            pred_mean=a.get("pred_mean"),
+            pred_cov=a.get("pred_cov"),
+            extras=extras,
+            times=times,
+            var=a.get("var"),
+            final=final,
+        )
 
 
 # --------------------------------------------------------------------------- the estimator base and the loop
+
 
 class Estimator:
     r"""Base of every estimator: the online API (:meth:`init`, :meth:`step`) and the one time loop
@@ -847,7 +930,7 @@ class Estimator:
     #: on the data (the delay family) or that have no update to skip (the H-infinity filter)
     _allow_missing: bool = True
 
-    def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):   # pragma: no cover - abstract
+    def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def _check_record(self, y2: np.ndarray, u2: np.ndarray | None, k0: int, name: str = "y") -> None:
@@ -883,8 +966,10 @@ class Estimator:
         if not isinstance(state, FilterState):
             raise ValidationError(f"state: expected a FilterState (from init() or step()), got {type(state).__name__}")
         if state.x.shape[-1] != self._state_dim():
-            raise ShapeError(f"state: expected a state of dimension {self._state_dim()} for this {self._name}, "
-                             f"got {state.x.shape[-1]}")
+            raise ShapeError(
+                f"state: expected a state of dimension {self._state_dim()} for this {self._name}, "
+                f"got {state.x.shape[-1]}"
+            )
         if self.covariance_update == "square_root" and state.S is None and state.P is not None:
             state = state.replace(S=psd_sqrt(state.P))
         return state
@@ -899,8 +984,9 @@ class Estimator:
             try:
                 arr = np.broadcast_to(arr, want)
             except ValueError:
-                raise ShapeError(f"{name}: expected one reading of shape {want} (batch_shape + (m,)), got "
-                                 f"{arr.shape}") from None
+                raise ShapeError(
+                    f"{name}: expected one reading of shape {want} (batch_shape + (m,)), got {arr.shape}"
+                ) from None
         return arr.reshape(state.runs, self.m)
 
     def _step_input(self, state: FilterState, u: Any) -> np.ndarray | None:
@@ -929,11 +1015,12 @@ class Estimator:
         if fast is not None:
             return fast
         k = state.k + 1
-        with np.errstate(over="ignore", invalid="ignore"):   # an overflow is detected and reported below
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
         x, carry = _divergence_check(self._name, x, P if S is None else S, k, self.covariance_update, carry)
-        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry,
-                           extras=extras or {})
+        return FilterState(
+            k=k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
+        )
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
@@ -941,9 +1028,19 @@ class Estimator:
     def _check_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
         """Checks of one reading (N, m) of ``step`` beyond its shape (e.g. within the censoring limits)."""
 
-    def _run(self, y: Any, u: Any = None, x0: Any = None, P0: Any = None, *, outputs: Any = "all",
-             state: FilterState | None = None, step_options: Mapping[str, Any] | None = None,
-             step_data: Mapping[str, np.ndarray] | None = None, name: str = "y") -> FilterResult:
+    def _run(
+        self,
+        y: Any,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        *,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+        step_options: Mapping[str, Any] | None = None,
+        step_data: Mapping[str, np.ndarray] | None = None,
+        name: str = "y",
+    ) -> FilterResult:
         """The one time loop: validate once, then :meth:`_step_arrays` for each reading (with the same
         ``step_options`` at every step, e.g. ``latent=True`` for a sensor that censors in the loop, and
         row ``i`` of each ``step_data`` array (N, T, ...), e.g. a censoring indicator)."""
@@ -965,7 +1062,7 @@ class Estimator:
             return fast
         rec = _Recorder(want, T, batch, self.n)
         x, P, S, carry = state.x, state.P, state.S, state.carry
-        with np.errstate(over="ignore", invalid="ignore"):   # an overflow is detected and reported below
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             return self._loop(rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T)
 
     def _loop(self, rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T):
@@ -976,8 +1073,9 @@ class Estimator:
             if step_data:
                 opts = dict(step_options or {})
                 opts.update({key: val[:, i] for key, val in step_data.items()})
-            x, P, S, carry, xp, Pp, extras = self._step_arrays(k, x, P, S, carry, y2[:, i],
-                                                               None if u2 is None else u2[:, i], opts)
+            x, P, S, carry, xp, Pp, extras = self._step_arrays(
+                k, x, P, S, carry, y2[:, i], None if u2 is None else u2[:, i], opts
+            )
             if first_bad is None:
                 first_bad = _first_nonfinite(P if S is None else S, k)
             if first_bad is not None:
@@ -992,7 +1090,7 @@ class Estimator:
     def _prepare_record(self, y: Any, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
         return prepare_measurements(y, self.m, name, allow_nan=self._allow_missing)
 
-    def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):   # pragma: no cover - abstract
+    def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):  # pragma: no cover - abstract
         raise NotImplementedError
 
 
@@ -1016,8 +1114,16 @@ class GaussianFilter(Estimator):
     def _transition(self, k: int, u: np.ndarray | None, carry: Mapping[str, Any]) -> Transition:  # pragma: no cover
         raise NotImplementedError
 
-    def _measurement(self, k: int, xp: np.ndarray, Pp: np.ndarray, y: np.ndarray, u: np.ndarray | None,
-                     carry: Mapping[str, Any], **options: Any):   # pragma: no cover - abstract
+    def _measurement(
+        self,
+        k: int,
+        xp: np.ndarray,
+        Pp: np.ndarray | None,
+        y: np.ndarray,
+        u: np.ndarray | None,
+        carry: Mapping[str, Any],
+        **options: Any,
+    ):  # pragma: no cover - abstract
         raise NotImplementedError
 
     def _extras(self, k: int, xp, Pp, x, P, mp: MeasurementPrediction, K, Ree, options) -> dict[str, Any] | None:
@@ -1049,19 +1155,21 @@ class GaussianFilter(Estimator):
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
         state = self._check_state(state)
         if not state.carry.get("_predicted"):
-            raise ValidationError("state: update() needs a predicted state (from predict()); use step() for a "
-                                  "filtered one")
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
         yk = self._reading(state, y)
         opts = self._prepare_step_options(state, self._check_options(options))
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
         uk = state.carry.get("_u")
-        with np.errstate(over="ignore", invalid="ignore"):   # an overflow is detected and reported below
+        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
             x, P, S, K, Ree = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
         x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
         extras = self._extras(state.k, state.x, state.P, x, P, mp, K, Ree, opts)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry,
-                           extras=extras or {})
+        return FilterState(
+            k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
+        )
 
 
 def _check_batch(batch_shape: Any) -> tuple[int, ...]:
@@ -1100,11 +1208,18 @@ def _poison_diverged(x: np.ndarray, P: np.ndarray | None) -> np.ndarray:
 
 
 def _divergence_warning(name: str, k: int, form: str) -> None:
-    remedy = ("a bounded horizon or a stabilizable model" if form == "square_root" else
-              "covariance_update='square_root', which keeps the factor finite far longer")
-    warnings.warn(f"{name}: the covariance stopped being finite at step k={k} (overflow: an unstable model "
-                  f"predicted without readings for too long); the means of the affected runs are NaN from there "
-                  f"on. Remedy: {remedy}", RuntimeWarning, stacklevel=5)
+    remedy = (
+        "a bounded horizon or a stabilizable model"
+        if form == "square_root"
+        else "covariance_update='square_root', which keeps the factor finite far longer"
+    )
+    warnings.warn(
+        f"{name}: the covariance stopped being finite at step k={k} (overflow: an unstable model "
+        f"predicted without readings for too long); the means of the affected runs are NaN from there "
+        f"on. Remedy: {remedy}",
+        RuntimeWarning,
+        stacklevel=5,
+    )
 
 
 def _divergence_check(name: str, x: np.ndarray, P: np.ndarray | None, k: int, form: str, carry: Mapping[str, Any]):

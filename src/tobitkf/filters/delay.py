@@ -40,20 +40,39 @@ Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected: LD-E2); ``decorrelation`` 
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance
+from .._validation import ValidationError, check_instance
 from ..models.delay import DelayFadingSystem, HistoryPrior
-from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, \
-    measurement_update, predict, symmetrize, time_update
+from .core import (
+    Estimator,
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    Transition,
+    check_keywords,
+    measurement_update,
+    predict,
+    symmetrize,
+    time_update,
+)
 
-__all__ = ["DelayEstimates", "IntervalSmoothing", "chain_lmmse", "augmented_lmmse", "reorganized_lmmse",
-           "smooth_interval", "smooth_point", "second_moments", "ChainLMMSE", "AugmentedLMMSE",
-           "ReorganizedInnovationLMMSE"]
+__all__ = [
+    "DelayEstimates",
+    "IntervalSmoothing",
+    "chain_lmmse",
+    "augmented_lmmse",
+    "reorganized_lmmse",
+    "smooth_interval",
+    "smooth_point",
+    "second_moments",
+    "ChainLMMSE",
+    "AugmentedLMMSE",
+    "ReorganizedInnovationLMMSE",
+]
 
 _DECORRELATION = ("optimal", "paper")
 _ERRATA = ("E5", "E6", "E7")
@@ -82,6 +101,7 @@ class IntervalSmoothing:
 
 # --------------------------------------------------------------------------- shared pieces
 
+
 def _check_lags(lags: Any, name: str, minimum: int) -> tuple[int, ...]:
     out = []
     for L in tuple(lags):
@@ -89,7 +109,6 @@ def _check_lags(lags: Any, name: str, minimum: int) -> tuple[int, ...]:
             raise ValidationError(f"{name}: expected integers >= {minimum}, got {L!r}")
         out.append(int(L))
     return tuple(sorted(set(out)))
-
 
 
 def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) -> dict[int, np.ndarray]:
@@ -110,7 +129,6 @@ def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) ->
         L = lam[t - d]
         lam[t + 1] = symmetrize(system.A @ L @ system.A.T + system.process_cov(t, L))
     return lam
-
 
 
 def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode: str):
@@ -137,11 +155,9 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
     return J, Abar, symmetrize(Sigma)
 
 
-
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
     """Σ_i q_i A_i Λ A_i^T with matmuls (einsum over four indices would be O(N^4))."""
     return np.sum(q[:, None, None] * (Ai @ Lam @ np.swapaxes(Ai, -1, -2)), axis=0)
-
 
 
 def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray], last: int) -> dict[int, np.ndarray]:
@@ -181,8 +197,9 @@ class _DelayEstimator(Estimator):
         ``prior`` (a :class:`~tobitkf.models.delay.HistoryPrior`) overrides the estimator's.
         """
         if x0 is not None or P0 is not None:
-            raise ValidationError("x0/P0: the delay family's prior is the history x(0), ..., x(-d); pass "
-                                  "prior=HistoryPrior(...) instead")
+            raise ValidationError(
+                "x0/P0: the delay family's prior is the history x(0), ..., x(-d); pass prior=HistoryPrior(...) instead"
+            )
         # the family's prior object travels to _initial in the place of x0
         return Estimator.init(self, batch_shape, x0=self._the_prior(prior))
 
@@ -198,6 +215,7 @@ class _DelayEstimator(Estimator):
 def _group_extras(res: FilterResult) -> FilterResult:
     """Per-step lag/horizon/point outputs (``lag3_mean`` ...) into the dicts ``lagged``, ``ahead``, ``point``."""
     ex = dict(res.extras)
+    assert res.final is not None, "the estimation loop records the final state"
     lagged, ahead, point = {}, {}, None
     for key in [k for k in ex if k.startswith("lag") and k.endswith("_mean")]:
         L = int(key[3:-5])
@@ -209,7 +227,7 @@ def _group_extras(res: FilterResult) -> FilterResult:
         point = {"j": int(res.final.carry["point"]), "mean": ex.pop("point_mean"), "cov": ex.pop("point_cov")}
     if "_lam" in ex:
         lam = np.asarray(ex.pop("_lam"))
-        lam = lam.reshape((-1,) + lam.shape[-3:])[0]            # shared by the runs: (T, n, n)
+        lam = lam.reshape((-1,) + lam.shape[-3:])[0]  # shared by the runs: (T, n, n)
         ex["second_moment"] = np.concatenate([np.asarray(lam), res.final.carry["lam"][res.final.k + 1][None]])
     if lagged:
         ex["lagged"] = dict(sorted(lagged.items()))
@@ -217,8 +235,16 @@ def _group_extras(res: FilterResult) -> FilterResult:
         ex["ahead"] = dict(sorted(ahead.items()))
     if point is not None:
         ex["point"] = point
-    return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=ex,
-                        times=res.times, var=res.var, final=res.final)
+    return FilterResult(
+        mean=res.mean,
+        cov=res.cov,
+        pred_mean=res.pred_mean,
+        pred_cov=res.pred_cov,
+        extras=ex,
+        times=res.times,
+        var=res.var,
+        final=res.final,
+    )
 
 
 def _stack_blocks(blocks: list[np.ndarray]) -> np.ndarray:
@@ -230,11 +256,12 @@ def _blockdiag(blocks: list[np.ndarray]) -> np.ndarray:
     k = len(blocks)
     out = np.zeros((1, k * n, k * n))
     for i, B in enumerate(blocks):
-        out[0, i * n:(i + 1) * n, i * n:(i + 1) * n] = B
+        out[0, i * n : (i + 1) * n, i * n : (i + 1) * n] = B
     return out
 
 
 # --------------------------------------------------------------------------- Algorithm C
+
 
 class ChainLMMSE(_DelayEstimator):
     r"""Algorithm C, the chain-decoupled exact LMMSE (see :func:`chain_lmmse`), as an estimator.
@@ -292,11 +319,11 @@ class ChainLMMSE(_DelayEstimator):
         gb = sys_.gamma_mean(t)
         H, A, GS = sys_.H, sys_.A, self._GS
         # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
-        R = sys_.fading_noise_cov(t, lam[e])                     # R = Q_v + σ² H Λ H^T
+        R = sys_.fading_noise_cov(t, lam[e])  # R = Q_v + σ² H Λ H^T
         mp = MeasurementPrediction(expected=gb * (xb[e] @ H.T), H0=gb * H, noise=R[None])
         xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
         eps = y - mp.expected
-        HtQi = np.linalg.solve(Qe[0], H).T                      # H^T Q_ε^{-1}
+        HtQi = np.linalg.solve(Qe[0], H).T  # H^T Q_ε^{-1}
         # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1}
         for a in [a for a in D if a < e and (e - a) % (d + 1) == 0]:
             Ka = gb * (D[a][0] @ HtQi)
@@ -312,8 +339,15 @@ class ChainLMMSE(_DelayEstimator):
         xn, Pn = predict(xe, Pe, Abar, Sigma, y @ J.T)
         xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
         N = x.shape[0]
-        extras = {"measured_mean": xe, "measured_cov": Pe, "next_mean": xn, "next_cov": Pn, "innovation": eps,
-                  "innovation_cov": Qe, "_lam": lam[t][None]}
+        extras = {
+            "measured_mean": xe,
+            "measured_cov": Pe,
+            "next_mean": xn,
+            "next_cov": Pn,
+            "innovation": eps,
+            "innovation_cov": Qe,
+            "_lam": lam[t][None],
+        }
         if keep_rts:
             extras.update(rts_xupd=xe, rts_Pupd=Pe, rts_Cx=D[e], rts_xpred=xn, rts_Ppred=Pn)
         nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
@@ -356,19 +390,31 @@ class ChainLMMSE(_DelayEstimator):
         d = self.system.d
         if fixed_point is not None:
             if isinstance(fixed_point, bool) or not isinstance(fixed_point, (int, np.integer)) or fixed_point < -d:
-                raise ValidationError(f"fixed_point: expected an integer element time >= -d = {-d}, got "
-                                      f"{fixed_point!r}")
+                raise ValidationError(
+                    f"fixed_point: expected an integer element time >= -d = {-d}, got {fixed_point!r}"
+                )
             fixed_point = int(fixed_point)
         if self.decorrelation == "paper" and (fixed_point is not None or any(L > 2 * d for L in lags)):
-            raise ValidationError("decorrelation: smoothing beyond lag 2d (lags > 2d, fixed_point) needs "
-                                  "decorrelation='optimal'; the constant-J covariances are not error covariances")
+            raise ValidationError(
+                "decorrelation: smoothing beyond lag 2d (lags > 2d, fixed_point) needs "
+                "decorrelation='optimal'; the constant-J covariances are not error covariances"
+            )
         return {"lags": lags, "horizons": horizons, "point": fixed_point}
 
     def _prepare_step_options(self, state, options):
         return self._checked_options(options.get("lags", ()), options.get("horizons", ()), options.get("point"))
 
-    def filter(self, y: Any, *, lags: Any = (), horizons: Any = (), fixed_point: int | None = None,
-               prior: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        lags: Any = (),
+        horizons: Any = (),
+        fixed_point: int | None = None,
+        prior: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Run Algorithm C over ``y`` (..., T, m); see :func:`chain_lmmse`."""
         return self._run_delay(y, prior, state, outputs, self._checked_options(lags, horizons, fixed_point))
 
@@ -381,8 +427,16 @@ class ChainLMMSE(_DelayEstimator):
         return smooth_point(self.system, self.prior, y, j0)
 
 
-def chain_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decorrelation: str = "optimal",
-                lags: Any = (), horizons: Any = (), fixed_point: int | None = None) -> DelayEstimates:
+def chain_lmmse(
+    system: DelayFadingSystem,
+    prior: HistoryPrior,
+    y: Any,
+    *,
+    decorrelation: str = "optimal",
+    lags: Any = (),
+    horizons: Any = (),
+    fixed_point: int | None = None,
+) -> DelayEstimates:
     r"""Algorithm C: chain-decoupled exact LMMSE filter, predictors and smoothers (chain decoupling, ours; LD-02).
 
     For each measurement y(t), with j = t - d (the measured element):
@@ -444,9 +498,10 @@ def _require_chain(system: DelayFadingSystem, prior: HistoryPrior) -> None:
     if not system.is_pure_delay:
         raise ValidationError("system: Algorithm C needs the pure-delay model (no extra_lags); use augmented_lmmse")
     if not prior.is_uncorrelated:
-        raise ValidationError("prior: Algorithm C needs mutually uncorrelated x(0), ..., x(-d) (the chains must be "
-                              "independent); use augmented_lmmse or reorganized_lmmse for a correlated prior")
-
+        raise ValidationError(
+            "prior: Algorithm C needs mutually uncorrelated x(0), ..., x(-d) (the chains must be "
+            "independent); use augmented_lmmse or reorganized_lmmse for a correlated prior"
+        )
 
 
 def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> IntervalSmoothing:
@@ -466,13 +521,14 @@ def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> I
     est = ChainLMMSE(system, prior)
     res = est._run(y, outputs=("extras",), state=est.init(np.shape(y)[:-2]), step_options={"keep_rts": True})
     ex = res.extras
+    assert res.final is not None, "the estimation loop records the final state"
     final = res.final.carry
     batch = np.shape(y)[:-2]
     N = int(np.prod(batch, dtype=int))
-    T, d, n = np.shape(y)[-2], system.d, system.n
+    T, d = np.shape(y)[-2], system.d
 
-    def runs(a):        # batch + (T, ...) -> (N, T, ...)
-        return np.asarray(a).reshape((N,) + np.shape(a)[len(batch):])
+    def runs(a):  # batch + (T, ...) -> (N, T, ...)
+        return np.asarray(a).reshape((N,) + np.shape(a)[len(batch) :])
 
     xupd, Pupd, Cx = runs(ex["rts_xupd"]), np.asarray(ex["rts_Pupd"]), np.asarray(ex["rts_Cx"])
     xpred, Ppred = runs(ex["rts_xpred"]), np.asarray(ex["rts_Ppred"])
@@ -495,8 +551,9 @@ def smooth_interval(system: DelayFadingSystem, prior: HistoryPrior, y: Any) -> I
     times = np.arange(-d, T + 1)
     mean = np.stack([xs[j] for j in times], axis=1)
     cov = np.stack([Ps[j] for j in times], axis=0)
-    return IntervalSmoothing(times=times, mean=mean.reshape(batch + mean.shape[1:]),
-                             cov=np.broadcast_to(cov, batch + cov.shape))
+    return IntervalSmoothing(
+        times=times, mean=mean.reshape(batch + mean.shape[1:]), cov=np.broadcast_to(cov, batch + cov.shape)
+    )
 
 
 def smooth_point(system: DelayFadingSystem, prior: HistoryPrior, y: Any, j0: int) -> tuple[np.ndarray, np.ndarray]:
@@ -510,23 +567,23 @@ def smooth_point(system: DelayFadingSystem, prior: HistoryPrior, y: Any, j0: int
 
 # --------------------------------------------------------------------------- Algorithm A
 
+
 def _augmented_matrices(system: DelayFadingSystem, W: int):
     n, m, p, h, d = system.n, system.m, system.p, system.h, system.d
     B = W + 1
     NN = n * B
     AA = np.zeros((NN, NN))
     for lag, mat in system.lags.items():
-        AA[:n, lag * n:(lag + 1) * n] += mat
+        AA[:n, lag * n : (lag + 1) * n] += mat
     for k in range(W):
-        AA[(k + 1) * n:(k + 2) * n, k * n:(k + 1) * n] = np.eye(n)
+        AA[(k + 1) * n : (k + 2) * n, k * n : (k + 1) * n] = np.eye(n)
     Ai = np.zeros((h, NN, NN))
-    Ai[:, :n, d * n:(d + 1) * n] = system.A_mult
+    Ai[:, :n, d * n : (d + 1) * n] = system.A_mult
     G = np.zeros((NN, p))
     G[:n] = system.Gamma
     HH = np.zeros((m, NN))
-    HH[:, d * n:(d + 1) * n] = system.H
+    HH[:, d * n : (d + 1) * n] = system.H
     return AA, Ai, G, HH
-
 
 
 def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None):
@@ -543,12 +600,12 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
     R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
     mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
     Xf, Pf, Sf, K, Qe = measurement_update(X, P, S, y, mp, form)
-    if Qe is None:                        # the square-root form does not form Q_ε
+    if Qe is None:  # the square-root form does not form Q_ε
         Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + R)
     eps = y - mp.expected
     q = system.q_mult(t)
     Qu = G @ system.Qw @ G.T + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
-    J = np.linalg.solve(R, (G @ system.S).T).T                # 𝔊 S R^{-1} (R symmetric)
+    J = np.linalg.solve(R, (G @ system.S).T).T  # 𝔊 S R^{-1} (R symmetric)
     Abar = AA - gb * (J @ HH)
     Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
     LamX = symmetrize(AA @ LamX @ AA.T + Qu)
@@ -557,8 +614,8 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
 
 def _blk(M: np.ndarray, i: int, j: int | None, n: int) -> np.ndarray:
     if j is None:
-        return M[..., i * n:(i + 1) * n]
-    return M[..., i * n:(i + 1) * n, j * n:(j + 1) * n]
+        return M[..., i * n : (i + 1) * n]
+    return M[..., i * n : (i + 1) * n, j * n : (j + 1) * n]
 
 
 class AugmentedLMMSE(_DelayEstimator):
@@ -582,10 +639,17 @@ class AugmentedLMMSE(_DelayEstimator):
     _name = "AugmentedLMMSE"
     _step_options = ("lags",)
 
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, window: int | None = None,
-                 covariance_update: str = "standard"):
-        check_keywords({"covariance_update": covariance_update},
-                       {"covariance_update": ("standard", "joseph", "square_root")})
+    def __init__(
+        self,
+        system: DelayFadingSystem,
+        prior: HistoryPrior,
+        *,
+        window: int | None = None,
+        covariance_update: str = "standard",
+    ):
+        check_keywords(
+            {"covariance_update": covariance_update}, {"covariance_update": ("standard", "joseph", "square_root")}
+        )
         self.covariance_update = covariance_update
         self._setup(system, prior)
         d = system.d
@@ -602,9 +666,9 @@ class AugmentedLMMSE(_DelayEstimator):
         n, d, W = self.n, self.system.d, self.window
         NN = n * (W + 1)
         m0 = np.zeros(NN)
-        m0[:n * (d + 1)] = prior.mean.reshape(-1)
+        m0[: n * (d + 1)] = prior.mean.reshape(-1)
         P = np.zeros((NN, NN))
-        P[:n * (d + 1), :n * (d + 1)] = prior.cov          # blocks beyond d: x(-k), k > d, do not exist (held at 0)
+        P[: n * (d + 1), : n * (d + 1)] = prior.cov  # blocks beyond d: x(-k), k > d, do not exist (held at 0)
         return np.broadcast_to(m0, (N, NN)).copy(), P[None], {"LamX": P + np.outer(m0, m0)}
 
     def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
@@ -614,12 +678,19 @@ class AugmentedLMMSE(_DelayEstimator):
             Xpr, Ppr, Spr = carry["next"]
         else:
             Xpr, Ppr, Spr = x, P, S
-        Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t,
-                                                            self.covariance_update, Spr)
+        Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(
+            self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, self.covariance_update, Spr
+        )
         N = x.shape[0]
-        extras = {"measured_mean": _blk(Xf, d, None, n), "measured_cov": _blk(Pf, d, d, n),
-                  "next_mean": _blk(Xp, 0, None, n), "next_cov": _blk(Pp, 0, 0, n), "innovation": eps,
-                  "innovation_cov": Qe, "_lam": carry["LamX"][:n, :n][None]}
+        extras = {
+            "measured_mean": _blk(Xf, d, None, n),
+            "measured_cov": _blk(Pf, d, d, n),
+            "next_mean": _blk(Xp, 0, None, n),
+            "next_cov": _blk(Pp, 0, 0, n),
+            "innovation": eps,
+            "innovation_cov": Qe,
+            "_lam": carry["LamX"][:n, :n][None],
+        }
         nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
             extras[f"lag{L}_mean"] = _blk(Xf, L, None, n) if t - L >= -d else nan_m
@@ -633,8 +704,9 @@ class AugmentedLMMSE(_DelayEstimator):
             raise ValidationError(f"lags: expected lags <= window W = {self.window}, got {max(lags)}")
         return {"lags": lags}
 
-    def filter(self, y: Any, *, lags: Any = (), prior: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self, y: Any, *, lags: Any = (), prior: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         """Run Algorithm A over ``y`` (..., T, m); see :func:`augmented_lmmse`."""
         res = self._run_delay(y, prior, state, outputs, self._prepare_step_options(None, {"lags": lags}))
         Xp, Pp, _ = res.final.carry["next"]
@@ -645,8 +717,9 @@ class AugmentedLMMSE(_DelayEstimator):
         return res
 
 
-def augmented_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, window: int | None = None,
-                    lags: Any = ()) -> DelayEstimates:
+def augmented_lmmse(
+    system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, window: int | None = None, lags: Any = ()
+) -> DelayEstimates:
     r"""Algorithm A: dense LMMSE on the augmented state X(t) = [x(t); ...; x(t-W)] (state augmentation, ours).
 
     .. math::
@@ -703,8 +776,8 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
     return lam
 
 
-
 # --------------------------------------------------------------------------- Algorithm D
+
 
 class ReorganizedInnovationLMMSE(_DelayEstimator):
     """Algorithm D, the source's reorganized-innovation estimator (see :func:`reorganized_lmmse`).
@@ -728,8 +801,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     _name = "ReorganizedInnovationLMMSE"
 
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal",
-                 warmup: int | None = None, reinsert_errata: Any = ()):
+    def __init__(
+        self,
+        system: DelayFadingSystem,
+        prior: HistoryPrior,
+        *,
+        decorrelation: str = "optimal",
+        warmup: int | None = None,
+        reinsert_errata: Any = (),
+    ):
         check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
         errata = frozenset(reinsert_errata)
         bad = errata - set(_ERRATA)
@@ -749,9 +829,11 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         t0 = (0 if zero_init else 2 * d + 1) if self.warmup_arg is None else self.warmup_arg
         lowest = 0 if zero_init else 2 * d + 1
         if isinstance(t0, bool) or not isinstance(t0, (int, np.integer)) or t0 < lowest:
-            raise ValidationError(f"warmup: expected an integer >= {lowest} "
-                                  f"({'uncorrelated' if zero_init else 'correlated'} prior; 2d+1 = {2 * d + 1}), "
-                                  f"got {self.warmup_arg!r}")
+            raise ValidationError(
+                f"warmup: expected an integer >= {lowest} "
+                f"({'uncorrelated' if zero_init else 'correlated'} prior; 2d+1 = {2 * d + 1}), "
+                f"got {self.warmup_arg!r}"
+            )
         return int(t0)
 
     def _initial(self, N, prior, P0, batch):
@@ -767,12 +849,27 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         # the elements x(-k) keep their prior until measured.
         for k in range(d + 1):
             mu = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
-            xf[-k], Pf[-k] = mu, prior.block_cov(k)            # x̂(-k|-k) = prior (no data before t = 0)
+            xf[-k], Pf[-k] = mu, prior.block_cov(k)  # x̂(-k|-k) = prior (no data before t = 0)
             m0 = prior.block_mean(k)
             lam[-k] = prior.block_cov(k) + np.outer(m0, m0)
-        xsm[-1], Psm[-1] = xf[-d], Pf[-d]                      # x̂(-d|-1)
-        carry = {"xf": xf, "Pf": Pf, "xsm": xsm, "Psm": Psm, "xm": {}, "Pmeas": {}, "xp": {0: xf[0]},
-                 "Pp": {0: Pf[0]}, "Psi": {}, "K": {}, "eps": {}, "Qe": {}, "Pm": {}, "lam": lam, "t0": t0}
+        xsm[-1], Psm[-1] = xf[-d], Pf[-d]  # x̂(-d|-1)
+        carry = {
+            "xf": xf,
+            "Pf": Pf,
+            "xsm": xsm,
+            "Psm": Psm,
+            "xm": {},
+            "Pmeas": {},
+            "xp": {0: xf[0]},
+            "Pp": {0: Pf[0]},
+            "Psi": {},
+            "K": {},
+            "eps": {},
+            "Qe": {},
+            "Pm": {},
+            "lam": lam,
+            "t0": t0,
+        }
         if t0 > 0:
             aug = AugmentedLMMSE(sys_, prior, window=d)
             Xa, Pa, ca = aug._initial(N, prior, None, batch)
@@ -797,7 +894,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         errata = self.errata
         gbar = sys_.gamma_mean
 
-        def gk(s: int) -> float:          # γ̄(s); no measurement (and a zero gain) before s = 0
+        def gk(s: int) -> float:  # γ̄(s); no measurement (and a zero gain) before s = 0
             return gbar(s) if s >= 0 else 0.0
 
         def decor(s: int):
@@ -807,17 +904,18 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         if t < c["t0"]:
             # warm-up by Algorithm A, from which every stored Ψ, gain and covariance is read
             Xa, Pa, LamX = c["aug"]
-            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX,
-                                                                      y, t)
+            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(
+                sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX, y, t
+            )
             Pprior = Pa[0]
             PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
             xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
             xsm[t], Psm[t] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
             xm[t], Pmeas[t] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
             xp[t + 1], Pp[t + 1] = _blk(Xp_, 0, None, n), _blk(PpA, 0, 0, n)
-            Pm[t] = _blk(Pprior, d, d, n)                       # P(t-d|t-1)
+            Pm[t] = _blk(Pprior, d, d, n)  # P(t-d|t-1)
             for k in range(d + 1):
-                K[(t - k, t)] = _blk(KA.T, k, None, n).T        # K(t-k|t): rows of block k
+                K[(t - k, t)] = _blk(KA.T, k, None, n).T  # K(t-k|t): rows of block k
             eps[t], Qe[t] = e_t, Q_t
             # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
             for j, Pj in ((t, Pprior), (t + 1, PpA)):
@@ -846,11 +944,13 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             Abar_td = decor(t - d)[1] if t - d >= 0 else sys_.A
             for i in range(d - 1, 0, -1):
                 a = t - d - i + 1
-                a5 = a - 1 if "E5" in errata else a          # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
+                a5 = a - 1 if "E5" in errata else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
                 psi_dt = Psi.get((d, t), zero_nn)
-                psi_d = psi_dt.T if "E6" in errata else psi_dt   # source prints Ψ_d(t)^T (LD-E6)
-                val = (Psi.get((d - i + 1, t - i), zero_nn).T
-                       - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))) @ Abar_td.T
+                psi_d = psi_dt.T if "E6" in errata else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
+                val = (
+                    Psi.get((d - i + 1, t - i), zero_nn).T
+                    - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))
+                ) @ Abar_td.T
                 val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
                 top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
                 for j in range(0, top + 1):
@@ -880,9 +980,17 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             # (f) corrected (39)
             psi1 = Psi.get((1, t), zero_nn)
             Psi[(d, t + d)] = (Abar @ (psi1 - gb * (Ke @ H @ psi1))).T
-        extras = {"measured_mean": xm[t], "measured_cov": Pmeas[t][None], "next_mean": xp[t + 1],
-                  "next_cov": Pp[t + 1][None], "innovation": eps[t], "innovation_cov": Qe[t][None],
-                  f"lag{d - 1}_mean": xsm[t], f"lag{d - 1}_cov": Psm[t][None], "_lam": lam[t][None]}
+        extras = {
+            "measured_mean": xm[t],
+            "measured_cov": Pmeas[t][None],
+            "next_mean": xp[t + 1],
+            "next_cov": Pp[t + 1][None],
+            "innovation": eps[t],
+            "innovation_cov": Qe[t][None],
+            f"lag{d - 1}_mean": xsm[t],
+            f"lag{d - 1}_cov": Psm[t][None],
+            "_lam": lam[t][None],
+        }
         # drop what is no longer needed (the recursions read back at most 2d+1 steps)
         old = t - 2 * d - 2
         for key in [k for k in Psi if k[1] < t - 2 * d - 1]:
@@ -894,8 +1002,9 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 del dct[key]
         return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras
 
-    def filter(self, y: Any, *, prior: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self, y: Any, *, prior: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         """Run Algorithm D over ``y`` (..., T, m); see :func:`reorganized_lmmse`."""
         if self.system.d == 0:
             res = self._chain.filter(y, lags=(0,), prior=prior, outputs=outputs, state=state)
@@ -905,8 +1014,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         return res
 
 
-def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, decorrelation: str = "optimal",
-                      warmup: int | None = None, reinsert_errata: Any = ()) -> DelayEstimates:
+def reorganized_lmmse(
+    system: DelayFadingSystem,
+    prior: HistoryPrior,
+    y: Any,
+    *,
+    decorrelation: str = "optimal",
+    warmup: int | None = None,
+    reinsert_errata: Any = (),
+) -> DelayEstimates:
     r"""Algorithm D: the source's reorganized-innovation estimator (Theorems 1–3), LD-E3 to LD-E7 corrected.
 
     Streaming order at time t (Ψ_i(t) := Φ_{t-i}(t-d-i+1, t-d+1), i = 1..d):
@@ -964,6 +1080,7 @@ def reorganized_lmmse(system: DelayFadingSystem, prior: HistoryPrior, y: Any, *,
     d-2-i (LD-E7); J(t) corrected (LD-E3) unless ``decorrelation="paper"``; streaming order (a)–(g) (LD-06).
     The cost is O(d²) per step, not independent of d as the source claims.
     """
-    est = ReorganizedInnovationLMMSE(system, prior, decorrelation=decorrelation, warmup=warmup,
-                                     reinsert_errata=reinsert_errata)
+    est = ReorganizedInnovationLMMSE(
+        system, prior, decorrelation=decorrelation, warmup=warmup, reinsert_errata=reinsert_errata
+    )
     return est.filter(y)

@@ -101,20 +101,30 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from .core import (FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior,
-                   symmetrize)
+from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
 from .kalman import KalmanFilter, LinearGaussianFamily
-from .tobit import TobitKalmanFilter, _sigma_of as _diagonal_sigma
+from .tobit import TobitKalmanFilter
+from .tobit import _sigma_of as _diagonal_sigma
 
-__all__ = ["fading_tobit_kalman_filter", "FadingTobitKalmanFilter", "fading_kalman_filter",
-           "FadingKalmanFilter", "augmented_measurement_matrix", "fading_estimators",
-           "P_UNCENSORED_MODES"]
+__all__ = [
+    "fading_tobit_kalman_filter",
+    "FadingTobitKalmanFilter",
+    "fading_kalman_filter",
+    "FadingKalmanFilter",
+    "augmented_measurement_matrix",
+    "fading_estimators",
+    "P_UNCENSORED_MODES",
+]
 
 P_UNCENSORED_MODES = ("augmented", "eq6_stale")
 _BOOL = (False, True)
 _FORMS = ("joseph", "standard", "square_root")
-_TOBIT_OPTIONS = {"p_uncensored_mode": P_UNCENSORED_MODES, "fading_variance_term": _BOOL,
-                  "exact_tobit_variance": _BOOL, "covariance_update": _FORMS}
+_TOBIT_OPTIONS = {
+    "p_uncensored_mode": P_UNCENSORED_MODES,
+    "fading_variance_term": _BOOL,
+    "exact_tobit_variance": _BOOL,
+    "covariance_update": _FORMS,
+}
 _KF_OPTIONS = {"fading_variance_term": _BOOL, "covariance_update": _FORMS}
 
 
@@ -127,15 +137,19 @@ def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: in
     thb = fading.mean_gains(m)
     H = np.zeros((m, n * (L + 1)))
     for s in range(min(L, k) + 1):
-        H[:, s * n:(s + 1) * n] = thb[s][:, None] * measurement_matrix_at(system, k - s)
+        H[:, s * n : (s + 1) * n] = thb[s][:, None] * measurement_matrix_at(system, k - s)
     return H
 
 
 def _sigma_of(R: np.ndarray, name: str) -> np.ndarray:
     # App. B of the source assumes cov{y^m, y^t} = 0 for m != t: R must be diagonal (docs/sources GF-13).
-    return _diagonal_sigma(R, name, who="the fading Tobit Kalman filter",
-                           why="Geng et al. 2017, App. B: uncorrelated channels",
-                           positive="expected positive measurement variances")
+    return _diagonal_sigma(
+        R,
+        name,
+        who="the fading Tobit Kalman filter",
+        why="Geng et al. 2017, App. B: uncorrelated channels",
+        positive="expected positive measurement variances",
+    )
 
 
 def _check_parts(system: Any, fading: Any, censoring: Any) -> None:
@@ -157,8 +171,19 @@ class _FadingFamily(LinearGaussianFamily):
 
     _step_options = ("keep_smoothed", "keep_augmented")
 
-    def _setup(self, system, fading, censoring, *, tobit, p_uncensored_mode="augmented", fading_variance_term=False,
-               exact_tobit_variance=False, covariance_update="joseph", check_limits=True):
+    def _setup(
+        self,
+        system,
+        fading,
+        censoring,
+        *,
+        tobit,
+        p_uncensored_mode="augmented",
+        fading_variance_term=False,
+        exact_tobit_variance=False,
+        covariance_update="joseph",
+        check_limits=True,
+    ):
         _check_parts(system, fading, censoring)
         if not system.R.varying:
             _sigma_of(system.measurement_cov(1), "R")
@@ -190,14 +215,14 @@ class _FadingFamily(LinearGaussianFamily):
         xi = np.zeros((N, nxi))
         xi[:, :n] = x_init
         P = np.zeros((P_init.shape[0], nxi, nxi))
-        P[:, :n, :n] = symmetrize(P_init)   # exactly symmetric (the shift prediction relies on it)
+        P[:, :n, :n] = symmetrize(P_init)  # exactly symmetric (the shift prediction relies on it)
         carry: dict[str, Any] = {}
         C0 = measurement_matrix_at(self.system, 0)
-        if self._stale:   # C_j x̂_{j|j-1} for j = k, k-1, ..., k-L, with x̂_{0|-1} := x̄_0 (docs/sources GF-03)
+        if self._stale:  # C_j x̂_{j|j-1} for j = k, k-1, ..., k-L, with x̂_{0|-1} := x̄_0 (docs/sources GF-03)
             cx = np.zeros((N, L + 1, m))
             cx[:, 0] = x_init @ C0.T
             carry["cx_pred"] = cx
-        if self.fading_variance_term:   # diag(C_j X_j C_j^T), X_j = E[x_j x_j^T] (docs/sources GF-04)
+        if self.fading_variance_term:  # diag(C_j X_j C_j^T), X_j = E[x_j x_j^T] (docs/sources GF-04)
             cxxc = np.zeros((N, L + 1, m))
             cxxc[:, 0] = np.einsum("ij,njk,ik->ni", C0, np.broadcast_to(P_init, (N, n, n)), C0) + (x_init @ C0.T) ** 2
             carry.update(mom_mean=x_init.copy(), mom_cov=np.broadcast_to(P_init, (N, n, n)).copy(), cxxc=cxxc)
@@ -212,9 +237,9 @@ class _FadingFamily(LinearGaussianFamily):
 
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
         sys_, L, m, n = self.system, self.L, self.m, self.n
-        H = augmented_measurement_matrix(sys_, self.fading, k)                 # (m, nxi)
+        H = augmented_measurement_matrix(sys_, self.fading, k)  # (m, nxi)
         dy = self._feedthrough(k, u)
-        chi = xp @ H.T + dy                                                    # Lemma 1 at the prediction
+        chi = xp @ H.T + dy  # Lemma 1 at the prediction
         sigma = self._sigma if self._sigma is not None else _sigma_of(sys_.measurement_cov(k), f"R({k})")
         lo, hi = self._cens.limits(k)
         N = xp.shape[0]
@@ -237,22 +262,25 @@ class _FadingFamily(LinearGaussianFamily):
             carry.update(mom_mean=mom_mean, mom_cov=mom_cov, cxxc=cxxc)
         if self.tobit:
             st = unchecked_moments(chi, sigma, lo, hi)
-            if self._stale:   # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}
+            if self._stale:  # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}
                 mu = dy + sum(self._thb[s] * carry["cx_pred"][:, s] for s in range(top + 1))
                 sp = unchecked_moments(mu, sigma, lo, hi)
                 p_lo, gam, p_hi = sp.p_lower, sp.p_uncensored, sp.p_upper
             else:
                 p_lo, gam, p_hi = st.p_lower, st.p_uncensored, st.p_upper
-            tmean = st.truncated_mean                                          # chi + sigma*lambda (34)
+            tmean = st.truncated_mean  # chi + sigma*lambda (34)
             yhat = _limit_terms(p_lo, lo) + gam * tmean + _limit_terms(p_hi, hi)  # (21), (37)
-            if self.exact_tobit_variance:   # law of total variance (option, docs/sources GF-05)
+            if self.exact_tobit_variance:  # law of total variance (option, docs/sources GF-05)
                 with np.errstate(invalid="ignore"):
-                    noise = (gam * (st.truncated_var + (tmean - yhat) ** 2)
-                             + _limit_terms(p_lo, (lo - yhat) ** 2) + _limit_terms(p_hi, (hi - yhat) ** 2))
+                    noise = (
+                        gam * (st.truncated_var + (tmean - yhat) ** 2)
+                        + _limit_terms(p_lo, (lo - yhat) ** 2)
+                        + _limit_terms(p_hi, (hi - yhat) ** 2)
+                    )
             else:
-                noise = st.truncated_var                                       # R (1 - psi), (25)-(26), (12)
+                noise = st.truncated_var  # R (1 - psi), (25)-(26), (12)
             lam = st.inverse_mills
-        else:   # fading means, no censoring handling: gamma = 1, lambda = psi = 0
+        else:  # fading means, no censoring handling: gamma = 1, lambda = psi = 0
             gam = np.ones((N, m))
             yhat = chi
             noise = np.broadcast_to(sigma**2, (N, m))
@@ -260,8 +288,13 @@ class _FadingFamily(LinearGaussianFamily):
         if self.fading_variance_term:
             Dk = sum(self._thv[s] * carry["cxxc"][:, s] for s in range(top + 1))
             noise = noise + gam**2 * Dk
-        mp = MeasurementPrediction(expected=yhat, H0=H, scale=gam, noise=noise,
-                                   extras={"p_uncensored": gam, "expected_y": yhat, "inverse_mills": lam})
+        mp = MeasurementPrediction(
+            expected=yhat,
+            H0=H,
+            scale=gam,
+            noise=noise,
+            extras={"p_uncensored": gam, "expected_y": yhat, "inverse_mills": lam},
+        )
         return mp, carry
 
     def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
@@ -272,17 +305,21 @@ class _FadingFamily(LinearGaussianFamily):
             sm_mean = x.reshape(N, L + 1, n).copy()
             Pb = np.broadcast_to(P, (N,) + P.shape[1:])
             sm_cov = np.empty((N, L + 1, n, n))
-            for s in range(L + 1):   # diagonal blocks by slicing (a fancy-index gather costs 5x more)
-                sm_cov[:, s] = Pb[:, s * n:(s + 1) * n, s * n:(s + 1) * n]
-            if k <= L:   # blocks s > k stand for x_{k-s}, k-s < 0: not defined
-                sm_mean[:, k + 1:] = np.nan
-                sm_cov[:, k + 1:] = np.nan
+            for s in range(L + 1):  # diagonal blocks by slicing (a fancy-index gather costs 5x more)
+                sm_cov[:, s] = Pb[:, s * n : (s + 1) * n, s * n : (s + 1) * n]
+            if k <= L:  # blocks s > k stand for x_{k-s}, k-s < 0: not defined
+                sm_mean[:, k + 1 :] = np.nan
+                sm_cov[:, k + 1 :] = np.nan
             extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
         if options.get("keep_augmented", False):
-            extras.update(aug_mean=x, aug_cov=np.broadcast_to(P, (N,) + P.shape[1:]), aug_pred_mean=xp,
-                          aug_pred_cov=np.broadcast_to(Pp, (N,) + Pp.shape[1:]),
-                          gain=np.broadcast_to(K, (N,) + K.shape[1:]),
-                          innovation_cov=None if Ree is None else np.broadcast_to(Ree, (N,) + Ree.shape[1:]))
+            extras.update(
+                aug_mean=x,
+                aug_cov=np.broadcast_to(P, (N,) + P.shape[1:]),
+                aug_pred_mean=xp,
+                aug_pred_cov=np.broadcast_to(Pp, (N,) + Pp.shape[1:]),
+                gain=np.broadcast_to(K, (N,) + K.shape[1:]),
+                innovation_cov=None if Ree is None else np.broadcast_to(Ree, (N,) + Ree.shape[1:]),
+            )
             if extras["innovation_cov"] is None:
                 del extras["innovation_cov"]
         return extras
@@ -297,8 +334,15 @@ class _FadingFamily(LinearGaussianFamily):
         return {k: bool(v) for k, v in options.items()}
 
     def _filter(self, y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state):
-        return self._run(y, u, x0, P0, outputs=outputs, state=state,
-                         step_options={"keep_smoothed": keep_smoothed, "keep_augmented": keep_augmented})
+        return self._run(
+            y,
+            u,
+            x0,
+            P0,
+            outputs=outputs,
+            state=state,
+            step_options={"keep_smoothed": keep_smoothed, "keep_augmented": keep_augmented},
+        )
 
 
 class FadingTobitKalmanFilter(_FadingFamily):
@@ -363,21 +407,58 @@ class FadingTobitKalmanFilter(_FadingFamily):
 
     _name = "FadingTobitKalmanFilter"
 
-    def __init__(self, system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None, *,
-                 p_uncensored_mode: str = "augmented", fading_variance_term: bool = False,
-                 exact_tobit_variance: bool = False, covariance_update: str = "joseph", check_limits: bool = True):
+    def __init__(
+        self,
+        system: LinearSystem,
+        fading: RiceFading,
+        censoring: Censoring | None = None,
+        *,
+        p_uncensored_mode: str = "augmented",
+        fading_variance_term: bool = False,
+        exact_tobit_variance: bool = False,
+        covariance_update: str = "joseph",
+        check_limits: bool = True,
+    ):
         _check_parts(system, fading, censoring)
-        check_keywords({"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
-                        "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update},
-                       _TOBIT_OPTIONS)
-        self._setup(system, fading, censoring, tobit=True, p_uncensored_mode=p_uncensored_mode,
-                    fading_variance_term=fading_variance_term, exact_tobit_variance=exact_tobit_variance,
-                    covariance_update=covariance_update, check_limits=check_limits)
-        self.options = {"p_uncensored_mode": p_uncensored_mode, "fading_variance_term": fading_variance_term,
-                        "exact_tobit_variance": exact_tobit_variance, "covariance_update": covariance_update}
+        check_keywords(
+            {
+                "p_uncensored_mode": p_uncensored_mode,
+                "fading_variance_term": fading_variance_term,
+                "exact_tobit_variance": exact_tobit_variance,
+                "covariance_update": covariance_update,
+            },
+            _TOBIT_OPTIONS,
+        )
+        self._setup(
+            system,
+            fading,
+            censoring,
+            tobit=True,
+            p_uncensored_mode=p_uncensored_mode,
+            fading_variance_term=fading_variance_term,
+            exact_tobit_variance=exact_tobit_variance,
+            covariance_update=covariance_update,
+            check_limits=check_limits,
+        )
+        self.options = {
+            "p_uncensored_mode": p_uncensored_mode,
+            "fading_variance_term": fading_variance_term,
+            "exact_tobit_variance": exact_tobit_variance,
+            "covariance_update": covariance_update,
+        }
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, keep_augmented: bool = False,
-               keep_smoothed: bool = True, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        keep_augmented: bool = False,
+        keep_smoothed: bool = True,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
@@ -396,27 +477,62 @@ class FadingKalmanFilter(_FadingFamily):
 
     _name = "FadingKalmanFilter"
 
-    def __init__(self, system: LinearSystem, fading: RiceFading, *, fading_variance_term: bool = False,
-                 covariance_update: str = "joseph"):
+    def __init__(
+        self,
+        system: LinearSystem,
+        fading: RiceFading,
+        *,
+        fading_variance_term: bool = False,
+        covariance_update: str = "joseph",
+    ):
         _check_parts(system, fading, None)
-        check_keywords({"fading_variance_term": fading_variance_term, "covariance_update": covariance_update},
-                       _KF_OPTIONS)
-        self._setup(system, fading, None, tobit=False, fading_variance_term=fading_variance_term,
-                    covariance_update=covariance_update, check_limits=False)
+        check_keywords(
+            {"fading_variance_term": fading_variance_term, "covariance_update": covariance_update}, _KF_OPTIONS
+        )
+        self._setup(
+            system,
+            fading,
+            None,
+            tobit=False,
+            fading_variance_term=fading_variance_term,
+            covariance_update=covariance_update,
+            check_limits=False,
+        )
         self.options = {"fading_variance_term": fading_variance_term, "covariance_update": covariance_update}
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, keep_augmented: bool = False,
-               keep_smoothed: bool = True, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        keep_augmented: bool = False,
+        keep_smoothed: bool = True,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter ``y`` (..., T, m); see :func:`fading_kalman_filter`."""
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
 
-def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censoring: Censoring | None, y: Any, *,
-                               u: Any = None, p_uncensored_mode: str = "augmented",
-                               fading_variance_term: bool = False, exact_tobit_variance: bool = False,
-                               covariance_update: str = "joseph", x0: Any = None, P0: Any = None,
-                               keep_augmented: bool = False, keep_smoothed: bool = True,
-                               check_limits: bool = True) -> FilterResult:
+def fading_tobit_kalman_filter(
+    system: LinearSystem,
+    fading: RiceFading,
+    censoring: Censoring | None,
+    y: Any,
+    *,
+    u: Any = None,
+    p_uncensored_mode: str = "augmented",
+    fading_variance_term: bool = False,
+    exact_tobit_variance: bool = False,
+    covariance_update: str = "joseph",
+    x0: Any = None,
+    P0: Any = None,
+    keep_augmented: bool = False,
+    keep_smoothed: bool = True,
+    check_limits: bool = True,
+) -> FilterResult:
     r"""Run the Tobit Kalman filter with fading measurements (Theorems 1–2, Table 1) over a batch.
 
     Parameters
@@ -481,16 +597,32 @@ def fading_tobit_kalman_filter(system: LinearSystem, fading: RiceFading, censori
     >>> bool(np.allclose(a, tk.KalmanFilter(sys).filter(y).mean, rtol=0, atol=1e-12))
     True
     """
-    est = FadingTobitKalmanFilter(system, fading, censoring, p_uncensored_mode=p_uncensored_mode,
-                                  fading_variance_term=fading_variance_term, exact_tobit_variance=exact_tobit_variance,
-                                  covariance_update=covariance_update, check_limits=check_limits)
+    est = FadingTobitKalmanFilter(
+        system,
+        fading,
+        censoring,
+        p_uncensored_mode=p_uncensored_mode,
+        fading_variance_term=fading_variance_term,
+        exact_tobit_variance=exact_tobit_variance,
+        covariance_update=covariance_update,
+        check_limits=check_limits,
+    )
     return est.filter(y, u=u, x0=x0, P0=P0, keep_augmented=keep_augmented, keep_smoothed=keep_smoothed)
 
 
-def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u: Any = None,
-                         fading_variance_term: bool = False, covariance_update: str = "joseph",
-                         x0: Any = None, P0: Any = None, keep_augmented: bool = False,
-                         keep_smoothed: bool = True) -> FilterResult:
+def fading_kalman_filter(
+    system: LinearSystem,
+    fading: RiceFading,
+    y: Any,
+    *,
+    u: Any = None,
+    fading_variance_term: bool = False,
+    covariance_update: str = "joseph",
+    x0: Any = None,
+    P0: Any = None,
+    keep_augmented: bool = False,
+    keep_smoothed: bool = True,
+) -> FilterResult:
     r"""Kalman filter on the augmented model with the fading means and no censoring handling.
 
     The baseline "KF with fading means" (ours, not in the source; docs/sources GF-17): the TKF-FM with
@@ -501,13 +633,15 @@ def fading_kalman_filter(system: LinearSystem, fading: RiceFading, y: Any, *, u:
 
     Parameters and returns as :func:`fading_tobit_kalman_filter` (without censoring options).
     """
-    est = FadingKalmanFilter(system, fading, fading_variance_term=fading_variance_term,
-                             covariance_update=covariance_update)
+    est = FadingKalmanFilter(
+        system, fading, fading_variance_term=fading_variance_term, covariance_update=covariance_update
+    )
     return est.filter(y, u=u, x0=x0, P0=P0, keep_augmented=keep_augmented, keep_smoothed=keep_smoothed)
 
 
-def fading_estimators(system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None,
-                      **options: Any) -> dict[str, Any]:
+def fading_estimators(
+    system: LinearSystem, fading: RiceFading, censoring: Censoring | None = None, **options: Any
+) -> dict[str, Any]:
     """The TKF-FM and its baselines, keyed as in the experiments.
 
     The source compares with the TKF only; the others are ours (docs/sources GF-17).
@@ -517,7 +651,9 @@ def fading_estimators(system: LinearSystem, fading: RiceFading, censoring: Censo
     on fading data); ``"kf"`` the plain Kalman filter; ``"kf-fm"`` :class:`FadingKalmanFilter`.
     """
     cens = Censoring() if censoring is None else censoring
-    return {"tkf-fm": FadingTobitKalmanFilter(system, fading, censoring, **options),
-            "tkf": TobitKalmanFilter(system, cens),
-            "kf": KalmanFilter(system),
-            "kf-fm": FadingKalmanFilter(system, fading)}
+    return {
+        "tkf-fm": FadingTobitKalmanFilter(system, fading, censoring, **options),
+        "tkf": TobitKalmanFilter(system, cens),
+        "kf": KalmanFilter(system),
+        "kf-fm": FadingKalmanFilter(system, fading),
+    }

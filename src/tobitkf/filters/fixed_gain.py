@@ -56,15 +56,26 @@ class FixedGainTobitObserver(Estimator):
     _name = "FixedGainTobitObserver"
     _allow_missing = False
 
-    def __init__(self, A: Any, L: Any, C: Any, sigma: Any, lower: Any = -np.inf, upper: Any = np.inf, *,
-                 gain_form: str = "tobit", form: str = "predictor"):
+    def __init__(
+        self,
+        A: Any,
+        L: Any,
+        C: Any,
+        sigma: Any,
+        lower: Any = -np.inf,
+        upper: Any = np.inf,
+        *,
+        gain_form: str = "tobit",
+        form: str = "predictor",
+    ):
         check_option(gain_form, "gain_form", ("tobit", "linear"))
         check_option(form, "form", ("predictor", "filter"))
         self.A, self.L, self.C = (np.atleast_2d(as_float_array(v, name)) for v, name in ((A, "A"), (L, "L"), (C, "C")))
         n, m = self.A.shape[0], self.C.shape[0]
         if self.A.shape != (n, n) or self.L.shape != (n, m) or self.C.shape[1] != n:
-            raise ShapeError(f"A, L, C: expected (n, n), (n, m), (m, n), got {self.A.shape}, {self.L.shape}, "
-                             f"{self.C.shape}")
+            raise ShapeError(
+                f"A, L, C: expected (n, n), (n, m), (m, n), got {self.A.shape}, {self.L.shape}, {self.C.shape}"
+            )
         self.sigma = as_float_array(sigma, "sigma")
         self.lower = as_float_array(lower, "lower", allow_inf=True)
         self.upper = as_float_array(upper, "upper", allow_inf=True)

@@ -81,8 +81,9 @@ class RegionalHinfFilter(Estimator):
         self.M = as_float_array(M, "M", ndim=2)
         n = self.Af.shape[0]
         if self.Af.shape != (n, n) or self.Bf.shape[0] != n or self.M.shape[1] != n:
-            raise ShapeError(f"Af, Bf, M: expected (n, n), (n, m), (r, n), got {self.Af.shape}, "
-                             f"{self.Bf.shape}, {self.M.shape}")
+            raise ShapeError(
+                f"Af, Bf, M: expected (n, n), (n, m), (r, n), got {self.Af.shape}, {self.Bf.shape}, {self.M.shape}"
+            )
         self.n, self.m = n, self.Bf.shape[1]
 
     @classmethod
@@ -108,18 +109,22 @@ class RegionalHinfFilter(Estimator):
         return x, None, {}
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        x_new = x @ self.Af.T + y @ self.Bf.T                                 # (5)
+        x_new = x @ self.Af.T + y @ self.Bf.T  # (5)
         return x_new, None, None, carry, None, None, {"z": x_new @ self.M.T}
 
-    def filter(self, y: Any, xhat0: Any = None, *, x0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self, y: Any, xhat0: Any = None, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         """Run (5) on ``y`` (..., T, m): rows x̂_1..x̂_T, ``extras["z"]`` ẑ_1..ẑ_T, ``times`` 1..T.
 
         ``x0`` is x̂_0 (default 0); the positional ``xhat0`` is its deprecated spelling.
         """
         if xhat0 is not None:
-            warnings.warn("RegionalHinfFilter.filter(y, xhat0) is deprecated: use filter(y, x0=...)",
-                          DeprecationWarning, stacklevel=2)
+            warnings.warn(
+                "RegionalHinfFilter.filter(y, xhat0) is deprecated: use filter(y, x0=...)",
+                DeprecationWarning,
+                stacklevel=2,
+            )
             if x0 is not None:
                 raise ValidationError("x0: given twice (x0= and the deprecated positional xhat0)")
             x0 = xhat0
@@ -132,26 +137,45 @@ def hinf_filter(Af: Any, Bf: Any, M: Any, y: Any, xhat0: Any = None) -> HinfFilt
     Use ``RegionalHinfFilter(Af, Bf, M).filter(y, x0=xhat0)``, which returns the common
     :class:`FilterResult` (rows x̂_1..x̂_T with ``times``, the outputs in ``extras["z"]``).
     """
-    warnings.warn("hinf_filter(Af, Bf, M, y, xhat0) is deprecated: use RegionalHinfFilter(Af, Bf, M).filter(y, x0=...)",
-                  DeprecationWarning, stacklevel=2)
+    warnings.warn(
+        "hinf_filter(Af, Bf, M, y, xhat0) is deprecated: use RegionalHinfFilter(Af, Bf, M).filter(y, x0=...)",
+        DeprecationWarning,
+        stacklevel=2,
+    )
     f = RegionalHinfFilter(Af, Bf, M)
     res = f.filter(y, x0=xhat0, outputs="mean")
     y2 = as_float_array(y, "y")
     batch = y2.shape[:-2]
-    x0 = np.zeros(batch + (f.n,)) if xhat0 is None else np.broadcast_to(as_float_array(xhat0, "xhat0"),
-                                                                       batch + (f.n,))
+    x0 = np.zeros(batch + (f.n,)) if xhat0 is None else np.broadcast_to(as_float_array(xhat0, "xhat0"), batch + (f.n,))
     mean = np.concatenate([x0[..., None, :], res.mean], axis=-2)
     return HinfFilterResult(mean=mean, z=mean @ f.M.T)
 
 
 # Names that lived in this module before the layout of 0.2 (design, model, simulator): kept for one
 # release, with a DeprecationWarning naming the new home.
-_MOVED_TO_DESIGN = ("HinfCertificate", "Verification", "augmented_step", "expected_lyapunov_next", "psi_matrix",
-                    "verify", "analyze", "design", "zero_filter_gamma", "WANG2010_PAPER", "METHODS", "OBJECTIVES",
-                    "COVARIANCES", "SOLVERS")
-_MOVED_ELSEWHERE = {"RossModel": "tobitkf.models.ross", "wang2010_model": "tobitkf.models.ross",
-                    "RossSimulation": "tobitkf.simulate.ross", "simulate_ross": "tobitkf.simulate.ross",
-                    "wang2010_disturbances": "tobitkf.simulate.ross"}
+_MOVED_TO_DESIGN = (
+    "HinfCertificate",
+    "Verification",
+    "augmented_step",
+    "expected_lyapunov_next",
+    "psi_matrix",
+    "verify",
+    "analyze",
+    "design",
+    "zero_filter_gamma",
+    "WANG2010_PAPER",
+    "METHODS",
+    "OBJECTIVES",
+    "COVARIANCES",
+    "SOLVERS",
+)
+_MOVED_ELSEWHERE = {
+    "RossModel": "tobitkf.models.ross",
+    "wang2010_model": "tobitkf.models.ross",
+    "RossSimulation": "tobitkf.simulate.ross",
+    "simulate_ross": "tobitkf.simulate.ross",
+    "wang2010_disturbances": "tobitkf.simulate.ross",
+}
 
 
 def __getattr__(name: str):
@@ -160,12 +184,20 @@ def __getattr__(name: str):
     if name in _MOVED_TO_DESIGN:
         from ..design import hinf as _design
 
-        warnings.warn(f"tobitkf.filters.hinf.{name} moved to tobitkf.design.hinf.{name}; the old name will be "
-                      "removed in the next release", DeprecationWarning, stacklevel=2)
+        warnings.warn(
+            f"tobitkf.filters.hinf.{name} moved to tobitkf.design.hinf.{name}; the old name will be "
+            "removed in the next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         return getattr(_design, name)
     if name == "RossModel":
-        warnings.warn("tobitkf.filters.hinf.RossModel moved to tobitkf.models.ross.RossModel (also tk.RossModel); "
-                      "the old name will be removed in the next release", DeprecationWarning, stacklevel=2)
+        warnings.warn(
+            "tobitkf.filters.hinf.RossModel moved to tobitkf.models.ross.RossModel (also tk.RossModel); "
+            "the old name will be removed in the next release",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         return RossModel
     if name in _MOVED_ELSEWHERE:
         raise AttributeError(f"tobitkf.filters.hinf.{name} moved to {_MOVED_ELSEWHERE[name]}.{name}")

@@ -47,8 +47,18 @@ from .._validation import ShapeError, ValidationError, as_float, as_float_array,
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, GaussianFilter, MeasurementPrediction, Transition,
-                   check_keywords, check_prior, prepare_inputs, process_roots)
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    GaussianFilter,
+    MeasurementPrediction,
+    Transition,
+    check_keywords,
+    check_prior,
+    prepare_inputs,
+    process_roots,
+)
 
 __all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter", "LinearGaussianFamily"]
 
@@ -169,8 +179,16 @@ class KalmanFilter(LinearGaussianFamily):
             return None
         return _kf_kernel_step(self, y, np.isnan(y), state)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter measurements ``y`` (..., T, m); see :func:`kalman_filter`.
 
         ``outputs`` selects what is recorded per step (``"all"``, ``"last"`` or names from
@@ -198,7 +216,7 @@ def _finite_or_none(res: FilterResult) -> FilterResult | None:
     """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
     the call, which makes the affected means NaN from the first bad step and warns (the kernels would
     skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
-    P = res.final.P
+    P = None if res.final is None else res.final.P
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
 
 
@@ -208,8 +226,12 @@ def _kernel_matrices(est) -> tuple[np.ndarray, ...]:
     if mats is None:
         sys_ = est.system
         c64 = np.ascontiguousarray
-        mats = est._kernel_mats = (c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float),
-                                   c64(sys_.measurement(1), dtype=float), c64(sys_.measurement_cov(1), dtype=float))
+        mats = est._kernel_mats = (
+            c64(sys_.transition(0), dtype=float),
+            c64(sys_.process_cov(0), dtype=float),
+            c64(sys_.measurement(1), dtype=float),
+            c64(sys_.measurement_cov(1), dtype=float),
+        )
     return mats
 
 
@@ -229,6 +251,7 @@ def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state
     N, m = y.shape
     n = est.n
     P = state.P
+    assert P is not None, "the compiled kernels run the standard form, which carries P"
     per_run = P.shape[0] != 1 or bool(missing.any())
     if per_run and P.shape[0] != N:
         P = np.broadcast_to(P, (N, n, n))
@@ -237,9 +260,23 @@ def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     A, Qd, C, R = _kernel_matrices(est)
     e_m, e_c = _empty((N, 0, n)), _empty((Pn, 0, n, n))
-    kernels().kf_kernel(np.ascontiguousarray(y.reshape(N, 1, m)), missing.reshape(N, 1, m), A, Qd, C, R,
-                        np.ascontiguousarray(state.x, dtype=float), P, est.covariance_update == "joseph",
-                        e_m, e_c, e_m, e_c, x_last, P_last)
+    kernels().kf_kernel(
+        np.ascontiguousarray(y.reshape(N, 1, m)),
+        missing.reshape(N, 1, m),
+        A,
+        Qd,
+        C,
+        R,
+        np.ascontiguousarray(state.x, dtype=float),
+        P,
+        est.covariance_update == "joseph",
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        x_last,
+        P_last,
+    )
     if not np.isfinite(P_last).all():
         return None
     return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry)
@@ -252,6 +289,7 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
     n = sys_.n
     x = np.ascontiguousarray(state.x, dtype=float)
     P = state.P
+    assert P is not None, "the compiled kernels run the standard form, which carries P"
     per_run = bool(missing.any()) or P.shape[0] != 1
     P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
     Pn = P.shape[0]
@@ -266,10 +304,23 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
     pcovs = arr("pred_cov", (n, n), Pn)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     c64 = np.ascontiguousarray
-    kernels().kf_kernel(c64(y2), c64(missing), c64(sys_.transition(0), dtype=float),
-                        c64(sys_.process_cov(0), dtype=float), c64(sys_.measurement(1), dtype=float),
-                        c64(sys_.measurement_cov(1), dtype=float), x, P, est.covariance_update == "joseph",
-                        means, covs, pmeans, pcovs, x_last, P_last)
+    kernels().kf_kernel(
+        c64(y2),
+        c64(missing),
+        c64(sys_.transition(0), dtype=float),
+        c64(sys_.process_cov(0), dtype=float),
+        c64(sys_.measurement(1), dtype=float),
+        c64(sys_.measurement_cov(1), dtype=float),
+        x,
+        P,
+        est.covariance_update == "joseph",
+        means,
+        covs,
+        pmeans,
+        pcovs,
+        x_last,
+        P_last,
+    )
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
 
     def out(a):
@@ -283,14 +334,30 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
     var = None
     if "var" in want and cov is not None:
         var = np.diagonal(cov, axis1=-2, axis2=-1)
-    return FilterResult(mean=out(means), cov=cov if "cov" in want else None, pred_mean=out(pmeans),
-                        pred_cov=out(pcovs), extras={}, times=np.arange(state.k + 1, state.k + T + 1), var=var,
-                        final=final)
+    return FilterResult(
+        mean=out(means),
+        cov=cov if "cov" in want else None,
+        pred_mean=out(pmeans),
+        pred_cov=out(pcovs),
+        extras={},
+        times=np.arange(state.k + 1, state.k + T + 1),
+        var=var,
+        final=final,
+    )
 
 
-def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarray | None = None,
-                  covariance_update: str = "standard", x0: Any = None, P0: Any = None,
-                  backend: str = "auto", outputs: Any = "all") -> FilterResult:
+def kalman_filter(
+    system: LinearSystem,
+    y: Any,
+    *,
+    u: Any = None,
+    skip: np.ndarray | None = None,
+    covariance_update: str = "standard",
+    x0: Any = None,
+    P0: Any = None,
+    backend: str = "auto",
+    outputs: Any = "all",
+) -> FilterResult:
     r"""Run the Kalman filter (Miller (2.3)–(2.6)) over a batch of records.
 
     Parameters
@@ -370,8 +437,9 @@ def kalman_filter(system: LinearSystem, y: Any, *, u: Any = None, skip: np.ndarr
         arr = np.asarray(y, dtype=float)
         skip = np.asarray(skip, dtype=bool)
         if arr.ndim < 2 or skip.shape[-2:] != arr.shape[-2:]:
-            raise ValidationError(f"skip: expected (..., {arr.shape[-2] if arr.ndim >= 2 else 'T'}, {system.m}), "
-                                  f"got {skip.shape}")
+            raise ValidationError(
+                f"skip: expected (..., {arr.shape[-2] if arr.ndim >= 2 else 'T'}, {system.m}), got {skip.shape}"
+            )
         try:
             y = np.where(np.broadcast_to(skip, arr.shape), np.nan, arr)
         except ValueError:
@@ -406,14 +474,21 @@ class DroppingKalmanFilter(KalmanFilter):
 
     _name = "DroppingKalmanFilter"
 
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = 1e-12,
-                 covariance_update: str = "standard", backend: str = "auto"):
+    def __init__(
+        self,
+        system: LinearSystem,
+        censoring: Censoring,
+        *,
+        rtol: float = 1e-12,
+        covariance_update: str = "standard",
+        backend: str = "auto",
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m)
         if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or not rtol >= 0:
             raise ValidationError(f"rtol: expected a non-negative tolerance, got {rtol!r}")
-        rtol = as_float(rtol, "rtol", low=0.0)      # an int beyond float range (10**400) is a named error too
+        rtol = as_float(rtol, "rtol", low=0.0)  # an int beyond float range (10**400) is a named error too
         super().__init__(system, covariance_update=covariance_update, backend=backend)
         self.censoring, self.rtol = censoring, rtol
 
@@ -429,8 +504,9 @@ class DroppingKalmanFilter(KalmanFilter):
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
         mp, carry = super()._measurement(k, xp, Pp, y, u, carry)
         dropped = self._dropped(y, k)
-        return MeasurementPrediction(expected=mp.expected, H0=mp.H0, noise=mp.noise, valid=~dropped,
-                                     extras={"censored": dropped}), carry
+        return MeasurementPrediction(
+            expected=mp.expected, H0=mp.H0, noise=mp.noise, valid=~dropped, extras={"censored": dropped}
+        ), carry
 
     def _check_record(self, y2, u2, k0, name="y"):
         super()._check_record(y2, u2, k0, name)
@@ -445,11 +521,28 @@ class DroppingKalmanFilter(KalmanFilter):
         if res is None:
             return None
         extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
-        return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=extras,
-                            times=res.times, var=res.var, final=res.final)
+        return FilterResult(
+            mean=res.mean,
+            cov=res.cov,
+            pred_mean=res.pred_mean,
+            pred_cov=res.pred_cov,
+            extras=extras,
+            times=res.times,
+            var=res.var,
+            final=res.final,
+        )
 
-    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
-               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter ``y`` (..., T, m), dropping the censored readings: by the limit rule, or by the recorded
         indicator ``censored`` (..., T, m) when given (then an unflagged reading at the limit is used;
         :func:`tobitkf.inference.smoothing.dropping_with_indicator`)."""

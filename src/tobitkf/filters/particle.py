@@ -91,9 +91,9 @@ from ..channels.laws import PMF, Gaussian
 from ..channels.protocol import ProtocolChannel
 from ..channels.saturation import RandomSaturation, saturate
 from ..models.linear import LinearSystem
+from ._readings import _INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood
+from ._readings import classify_readings as _classify
 from .core import Estimator, FilterResult, FilterState, check_prior, predict, shift_predict
-from ._readings import (_INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood,
-                        classify_readings as _classify)
 from .kalman import LinearGaussianFamily
 
 __all__ = ["ParticleFilter", "PROPOSALS", "systematic_resample", "censored_log_likelihood"]
@@ -102,6 +102,7 @@ PROPOSALS = ("auto", "optimal", "prior")
 
 
 # --------------------------------------------------------------------------- pure pieces
+
 
 def logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
     """log(sum(exp(a))) along ``axis`` (-inf where every term is -inf); lighter than scipy's for this loop."""
@@ -162,11 +163,12 @@ def _truncated_draw(mean: np.ndarray, sd: Any, log_mass: np.ndarray, u: np.ndarr
 
 # --------------------------------------------------------------------------- measurement models
 
+
 class _Model:
     """What a channel contributes to the particle filter (internal)."""
 
-    nx: int          # state (history) dimension carried by the particles
-    m: int           # reading dimension
+    nx: int  # state (history) dimension carried by the particles
+    m: int  # reading dimension
     optimal: bool = False
     censoring: Censoring | None = None
 
@@ -176,7 +178,7 @@ class _Model:
 
     # dynamics ---------------------------------------------------------------
     def initial(self, rng, N, Np, x0, P0) -> np.ndarray:
-        L = psd_sqrt(P0)                                          # (N, n, n)
+        L = psd_sqrt(P0)  # (N, n, n)
         z = rng.standard_normal((N, Np, self.n))
         return x0[:, None, :] + np.einsum("rij,rpj->rpi", L, z)
 
@@ -322,8 +324,8 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
         valid = cls[:, l] != _MISSING
         if not valid.any():
             continue
-        Sc = Sig @ c                                   # (Ns, n)
-        s2 = Sc @ c + r[:, l]                          # (Ns,)
+        Sc = Sig @ c  # (Ns, n)
+        s2 = Sc @ c + r[:, l]  # (Ns,)
         g = Sc / s2[:, None]
         pred = _mat(mu, c[:, None])[..., 0]
         if not (np.isscalar(off) and off == 0.0):
@@ -373,14 +375,14 @@ class _Fading(_Model):
         self.L = fading.order
         self.nx, self.m = system.n * (self.L + 1), system.m
         self.gaussian = isinstance(fading.coefficients, Gaussian)
-        self.mean_g = fading.mean_gains(system.m)          # (L+1, m)
+        self.mean_g = fading.mean_gains(system.m)  # (L+1, m)
         self.var_g = fading.var_gains(system.m)
         if censoring is not None:
             censoring.check(system.m)
 
     def initial(self, rng, N, Np, x0, P0):
         X = np.zeros((N, Np, self.nx))
-        X[..., :self.n] = super().initial(rng, N, Np, x0, P0)
+        X[..., : self.n] = super().initial(rng, N, Np, x0, P0)
         return X
 
     def predict_moments(self, k, x, P, b):
@@ -389,25 +391,27 @@ class _Fading(_Model):
     def propagate(self, rng, k, X, b):
         n = self.n
         top = super().propagate(rng, k, X[..., :n], b)
-        return np.concatenate([top, X[..., :self.nx - n]], axis=-1)
+        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
 
     def modes(self, rng, k, X, dy):
         n, m = self.n, self.m
         N, Np = X.shape[:2]
         S = min(self.L, k)
-        cx = np.stack([_mat(X[..., s * n:(s + 1) * n], measurement_matrix_at(self.system, k - s).T)
-                       for s in range(S + 1)], axis=2)                     # (N, Np, S+1, m)
+        cx = np.stack(
+            [_mat(X[..., s * n : (s + 1) * n], measurement_matrix_at(self.system, k - s).T) for s in range(S + 1)],
+            axis=2,
+        )  # (N, Np, S+1, m)
         sigma = _diag_sigma(self.system, k, "fading readings")
         if self.gaussian:
-            mu = np.einsum("rpsm,sm->rpm", cx, self.mean_g[:S + 1])
-            var = np.einsum("rpsm,sm->rpm", cx * cx, self.var_g[:S + 1]) + sigma ** 2
+            mu = np.einsum("rpsm,sm->rpm", cx, self.mean_g[: S + 1])
+            var = np.einsum("rpsm,sm->rpm", cx * cx, self.var_g[: S + 1]) + sigma**2
             sd = np.sqrt(var)
         else:
             law = self.fading.coefficients
             theta = law.sample(rng, (N, Np, m)) if law.shape == (self.L + 1,) else law.sample(rng, (N, Np))
             if law.shape == (self.L + 1,):
-                theta = np.swapaxes(theta, -1, -2)                          # (N, Np, L+1, m)
-            mu = np.einsum("rpsm,rpsm->rpm", cx, theta[:, :, :S + 1])
+                theta = np.swapaxes(theta, -1, -2)  # (N, Np, L+1, m)
+            mu = np.einsum("rpsm,rpsm->rpm", cx, theta[:, :, : S + 1])
             sd = sigma
         if not (np.isscalar(dy) and dy == 0.0):
             mu = mu + dy[:, None, :]
@@ -424,15 +428,14 @@ class _Protocol(_Model):
         self.ell = channel.window
         self.nx, self.m = system.n * (self.ell + 1), 1
         self.censoring = Censoring(lower=channel.threshold)
-        self.discrete = []
+        self.discrete: list[tuple[np.ndarray, np.ndarray] | None] = []
         for i, law in enumerate(channel.laws):
             if isinstance(law, PMF):
-                vals, probs = np.asarray(law.values, float), np.asarray(law.probs, float)
+                self.discrete.append((np.asarray(law.values, float), np.asarray(law.probs, float)))
             elif isinstance(law, Gaussian) and float(law.variance) == 0.0:
-                vals, probs = np.atleast_1d(float(law.mean)), np.ones(1)
+                self.discrete.append((np.atleast_1d(float(law.mean)), np.ones(1)))
             else:
-                vals = probs = None
-            self.discrete.append(None if vals is None else (vals, probs))
+                self.discrete.append(None)
         self.optimal = all(d is not None for d in self.discrete)
 
     def sensor(self, k):
@@ -446,11 +449,11 @@ class _Protocol(_Model):
         mode = self.channel.prehistory
         for s in range(1, ell + 1):
             if mode == "prior":
-                X[..., s * n:(s + 1) * n] = super().initial(rng, N, Np, x0, P0)
+                X[..., s * n : (s + 1) * n] = super().initial(rng, N, Np, x0, P0)
             elif mode == "hold":
-                X[..., s * n:(s + 1) * n] = X[..., :n]
+                X[..., s * n : (s + 1) * n] = X[..., :n]
             else:
-                X[..., s * n:(s + 1) * n] = 0.0
+                X[..., s * n : (s + 1) * n] = 0.0
         return X
 
     def predict_moments(self, k, x, P, b):
@@ -459,7 +462,7 @@ class _Protocol(_Model):
     def propagate(self, rng, k, X, b):
         n = self.n
         top = super().propagate(rng, k, X[..., :n], b)
-        return np.concatenate([top, X[..., :self.nx - n]], axis=-1)
+        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
 
     def _window_row(self, k):
         h = self.sensor(k)
@@ -472,8 +475,8 @@ class _Protocol(_Model):
         n = self.n
         win = X[..., :n].copy()
         for s in range(1, self.ell + 1):
-            win += X[..., s * n:(s + 1) * n]
-        base = (win @ c)[..., None]                                        # (N, Np, 1)
+            win += X[..., s * n : (s + 1) * n]
+        base = (win @ c)[..., None]  # (N, Np, 1)
         sd = np.sqrt(r)
         d = self.discrete[h]
         if d is None:
@@ -504,16 +507,16 @@ class _Protocol(_Model):
             mux = mux + b[:, None, :]
         past = np.zeros((N, Np))
         for s in range(self.ell):
-            past += _mat(X[..., s * n:(s + 1) * n], c[:, None])[..., 0]
+            past += _mat(X[..., s * n : (s + 1) * n], c[:, None])[..., 0]
         U = rng.random((N, Np, 2))
         eps = rng.standard_normal((N, Np, n))
         vt = rng.standard_normal((N, Np))
-        base = _mat(mux, c[:, None])[..., 0] + past                       # C_h (mean of x_k + past states)
+        base = _mat(mux, c[:, None])[..., 0] + past  # C_h (mean of x_k + past states)
         tau = self.channel.threshold
         cls = _classify(y[:, 0], np.full(N, tau), np.full(N, np.inf))
         Qc = Qd @ c
         cQc = float(c @ Qc)
-        sds = np.sqrt(vals ** 2 * cQc + r)                                 # (J,)
+        sds = np.sqrt(vals**2 * cQc + r)  # (J,)
         with np.errstate(divide="ignore"):
             logpi = np.log(probs)
         inter, lower = np.flatnonzero(cls == _INTERIOR), np.flatnonzero(cls == _LOWER)
@@ -526,22 +529,22 @@ class _Protocol(_Model):
             if lower.size:
                 comps[j, lower] = log_ndtr((tau - mean[lower]) / sds[j])
             comps[j] += logpi[j]
-        logw = logsumexp(comps, axis=0)                                    # (N, Np)
+        logw = logsumexp(comps, axis=0)  # (N, Np)
         missing = cls == _MISSING
         logw[missing] = 0.0
         cum = np.cumsum(np.exp(comps - logw[None]), axis=0)
-        jsel = np.minimum((U[None, ..., 0] >= cum).sum(0), J - 1)          # (N, Np)
+        jsel = np.minimum((U[None, ..., 0] >= cum).sum(0), J - 1)  # (N, Np)
         lam, sd = vals[jsel], sds[jsel]
         z = np.broadcast_to(y[:, 0][:, None], (N, Np)).copy()
         if lower.size:
             lm = np.take_along_axis(comps[:, lower], jsel[lower][None], axis=0)[0] - logpi[jsel[lower]]
             z[lower] = _truncated_draw(lam[lower] * base[lower], sd[lower], lm, U[lower, :, 1], -1)
-        xt = mux + _mat(eps, psd_sqrt(Qd).T)                               # joint prior draw (x~, z~)
+        xt = mux + _mat(eps, psd_sqrt(Qd).T)  # joint prior draw (x~, z~)
         zt = lam * (_mat(xt, c[:, None])[..., 0] + past) + np.sqrt(r) * vt
         gain = np.where(missing[:, None], 0.0, lam / (sd * sd) * (z - zt))
         Xn = np.empty((N, Np, nx))
         Xn[..., :n] = xt + gain[..., None] * Qc
-        Xn[..., n:] = X[..., :nx - n]
+        Xn[..., n:] = X[..., : nx - n]
         return Xn, logw
 
     def check_record(self, y2, start):
@@ -549,8 +552,10 @@ class _Protocol(_Model):
             bad = y2 < self.channel.threshold - _RTOL_LIMIT * max(1.0, abs(self.channel.threshold))
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValidationError(f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold "
-                                  f"tau = {self.channel.threshold:.6g}")
+            raise ValidationError(
+                f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold "
+                f"tau = {self.channel.threshold:.6g}"
+            )
 
 
 class _Saturation(_Model):
@@ -570,8 +575,11 @@ class _Saturation(_Model):
     def modes(self, rng, k, X, dy):
         cx = _mat(X, self.system.measurement(k).T)
         sd = _diag_sigma(self.system, k, "saturated readings")
-        return [(self.logp[0], saturate(cx, self.channel.level), sd), (self.logp[1], cx, sd),
-                (self.logp[2], np.zeros_like(cx), sd)]
+        return [
+            (self.logp[0], saturate(cx, self.channel.level), sd),
+            (self.logp[1], cx, sd),
+            (self.logp[2], np.zeros_like(cx), sd),
+        ]
 
 
 def _flatten(channel: Any) -> list:
@@ -590,16 +598,20 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     known = (Censoring, RiceFading, ProtocolChannel, RandomSaturation)
     for p in pieces:
         if not isinstance(p, known):
-            raise ValidationError(f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation "
-                                  f"pieces, got {type(p).__name__}")
+            raise ValidationError(
+                f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation "
+                f"pieces, got {type(p).__name__}"
+            )
     cens = [p for p in pieces if isinstance(p, Censoring)]
     drawers = [p for p in pieces if not isinstance(p, Censoring)]
     if len(cens) > 1:
-        raise ValidationError("censoring: expected at most one Censoring piece (stack several regions as channels, "
-                              "tobitkf.multi_region)")
+        raise ValidationError(
+            "censoring: expected at most one Censoring piece (stack several regions as channels, tobitkf.multi_region)"
+        )
     if len(drawers) > 1:
-        raise ValidationError(f"channel: expected at most one reading model, got "
-                              f"{', '.join(type(d).__name__ for d in drawers)}")
+        raise ValidationError(
+            f"channel: expected at most one reading model, got {', '.join(type(d).__name__ for d in drawers)}"
+        )
     c = cens[0] if cens else None
     if not drawers:
         return _Linear(system, c)
@@ -613,7 +625,7 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     return _Saturation(system, d, c)
 
 
-def _rng_state(seed: Any) -> dict:
+def _rng_state(seed: Any) -> Any:
     if isinstance(seed, np.random.Generator):
         return seed.bit_generator.state
     if isinstance(seed, bool):
@@ -632,6 +644,7 @@ def _generator(state: dict) -> np.random.Generator:
 
 
 # --------------------------------------------------------------------------- the estimator
+
 
 class ParticleFilter(Estimator):
     r"""Particle filter for the package's models and channels (see the module docstring).
@@ -705,8 +718,17 @@ class ParticleFilter(Estimator):
     _name = "ParticleFilter"
     k0 = 0
 
-    def __init__(self, system: LinearSystem, channel: Any = None, *, censoring: Censoring | None = None,
-                 particles: int = 1000, resample_threshold: float = 0.5, proposal: str = "auto", seed: Any = None):
+    def __init__(
+        self,
+        system: LinearSystem,
+        channel: Any = None,
+        *,
+        censoring: Censoring | None = None,
+        particles: int = 1000,
+        resample_threshold: float = 0.5,
+        proposal: str = "auto",
+        seed: Any = None,
+    ):
         check_instance(system, LinearSystem, "system")
         if censoring is not None:
             check_instance(censoring, Censoring, "censoring")
@@ -720,8 +742,10 @@ class ParticleFilter(Estimator):
         self.system = system
         self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:
-            raise ValidationError(f"proposal: 'optimal' has no closed form for {type(self.model).__name__[1:].lower()} "
-                                  "readings (use 'auto' or 'prior')")
+            raise ValidationError(
+                f"proposal: 'optimal' has no closed form for {type(self.model).__name__[1:].lower()} "
+                "readings (use 'auto' or 'prior')"
+            )
         if not system.R.varying:
             _diag_sigma(system, 1, "its channels")
         self.proposal = ("optimal" if self.model.optimal else "prior") if proposal == "auto" else proposal
@@ -769,7 +793,7 @@ class ParticleFilter(Estimator):
         lw_un = lw + inc
         top = lw_un.max(axis=1)
         dead = ~np.isfinite(top)
-        if dead.any():          # no particle explains the reading: keep the weights, report -inf
+        if dead.any():  # no particle explains the reading: keep the weights, report -inf
             lw_un[dead] = lw[dead]
             top = lw_un.max(axis=1)
         W = np.exp(lw_un - top[:, None])
@@ -787,13 +811,25 @@ class ParticleFilter(Estimator):
             idx = systematic_resample(W[rows], ur[rows])
             Xn[rows] = np.take_along_axis(Xn[rows], idx[..., None], axis=1)
             lw_new[rows] = -np.log(self.particles)
-        carry = {"particles": Xn, "log_weights": lw_new, "rng": rng.bit_generator.state,
-                 "log_likelihood": carry["log_likelihood"] + ll}
+        carry = {
+            "particles": Xn,
+            "log_weights": lw_new,
+            "rng": rng.bit_generator.state,
+            "log_likelihood": carry["log_likelihood"] + ll,
+        }
         extras = {"ess": ess, "resampled": res, "log_likelihood": ll}
         return xm, Pm, None, carry, xp, Pp, extras
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
 
         Parameters
@@ -819,8 +855,16 @@ class ParticleFilter(Estimator):
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
-    def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None,
-                       state: FilterState | None = None, per_step: bool = False) -> np.ndarray:
+    def log_likelihood(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        state: FilterState | None = None,
+        per_step: bool = False,
+    ) -> np.ndarray:
         r"""Estimate of :math:`\log p(y_{1:T})` per run, shaped as :meth:`tobitkf.KalmanFilter.log_likelihood`.
 
         .. math::
@@ -861,12 +905,16 @@ class ParticleFilter(Estimator):
         if per_step:
             return self._run(y, u, x0, P0, outputs=("extras",), state=state).extras["log_likelihood"]
         res = self._run(y, u, x0, P0, outputs="last", state=state)
-        ll = res.final.carry["log_likelihood"]
-        return ll.reshape(res.final.batch_shape) if res.final.batch_shape else ll.reshape(())[()]
+        final = res.final
+        assert final is not None  # outputs="last" always records the final state
+        ll = final.carry["log_likelihood"]
+        return ll.reshape(final.batch_shape) if final.batch_shape else ll.reshape(())[()]
 
     def __repr__(self) -> str:
-        return (f"ParticleFilter({type(self.model).__name__[1:].lower()}, particles={self.particles}, "
-                f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})")
+        return (
+            f"ParticleFilter({type(self.model).__name__[1:].lower()}, particles={self.particles}, "
+            f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})"
+        )
 
 
 def _moments(X: np.ndarray, W: np.ndarray):

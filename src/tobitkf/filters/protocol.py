@@ -75,28 +75,50 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import (ShapeError, ValidationError, as_float_array, check_instance, check_int, check_memory,
-                           check_psd)
+from .._validation import (
+    ShapeError,
+    ValidationError,
+    as_float_array,
+    check_instance,
+    check_int,
+    check_memory,
+    check_psd,
+)
 from ..censored import unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
 from .kalman import LinearGaussianFamily
 
-__all__ = ["ProtocolTobitKalmanFilter", "protocol_tobit_kalman_filter", "baseline_channel",
-           "protocol_covariance_bounds", "CovarianceBounds", "augmented_transition", "noise_input",
-           "stacked_measurement", "analytic_p_uncensored", "protocol_measurement", "FAILURE_TERMS", "UPPER_FORMS",
-           "LOWER_FORMS", "PREHISTORY_PRIORS"]
+__all__ = [
+    "ProtocolTobitKalmanFilter",
+    "protocol_tobit_kalman_filter",
+    "baseline_channel",
+    "protocol_covariance_bounds",
+    "CovarianceBounds",
+    "augmented_transition",
+    "noise_input",
+    "stacked_measurement",
+    "analytic_p_uncensored",
+    "protocol_measurement",
+    "FAILURE_TERMS",
+    "UPPER_FORMS",
+    "LOWER_FORMS",
+    "PREHISTORY_PRIORS",
+]
 
 FAILURE_TERMS = ("variance", "literal", "second_moment", "lmmse_unconditional")
 PREHISTORY_PRIORS = ("x0", "zero_mean")
-PRIOR_MEANS = ("repeat", "zero")          # the pre-0.2 names of PREHISTORY_PRIORS (prehistory_mean=)
+PRIOR_MEANS = ("repeat", "zero")  # the pre-0.2 names of PREHISTORY_PRIORS (prehistory_mean=)
 _OLD_PRIOR = {"repeat": "x0", "zero": "zero_mean"}
 UPPER_FORMS = ("expected_riccati", "suboptimal_gain", "paper_literal")
 LOWER_FORMS = ("statement", "paper_proof")
 PHI_UPPER = ("zero", "mean_trajectory")
-_OPTIONS = {"failure_term": FAILURE_TERMS, "prehistory_prior": PREHISTORY_PRIORS,
-            "covariance_update": ("joseph", "standard", "square_root")}
+_OPTIONS = {
+    "failure_term": FAILURE_TERMS,
+    "prehistory_prior": PREHISTORY_PRIORS,
+    "covariance_update": ("joseph", "standard", "square_root"),
+}
 _TINY = 1e-12
 
 
@@ -156,8 +178,15 @@ def _sensor_stats(system: LinearSystem, k: int, h: int):
     return C[h], r
 
 
-def _failure_term(mode: str, Cc: np.ndarray, P_pred: np.ndarray, xi_pred: np.ndarray, lam_mean: float,
-                  lam_var: float, X: np.ndarray | None) -> np.ndarray:
+def _failure_term(
+    mode: str,
+    Cc: np.ndarray,
+    P_pred: np.ndarray,
+    xi_pred: np.ndarray,
+    lam_mean: float,
+    lam_var: float,
+    X: np.ndarray | None,
+) -> np.ndarray:
     """F_k, the failure term of (24) (docs/sources GP-01), (N,)."""
     if mode == "lmmse_unconditional":
         return np.full(P_pred.shape[0], lam_var * float(Cc @ X @ Cc))
@@ -166,7 +195,7 @@ def _failure_term(mode: str, Cc: np.ndarray, P_pred: np.ndarray, xi_pred: np.nda
         return lam_var * CPC
     if mode == "literal":
         return (lam_mean**2 + lam_var) * CPC
-    return lam_var * (CPC + (xi_pred @ Cc) ** 2)            # second_moment
+    return lam_var * (CPC + (xi_pred @ Cc) ** 2)  # second_moment
 
 
 def _check_parts(system: Any, channel: Any) -> None:
@@ -175,9 +204,20 @@ def _check_parts(system: Any, channel: Any) -> None:
     channel.check_system(system)
 
 
-def protocol_measurement(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamma: np.ndarray, Cc: np.ndarray,
-                         r: float, tau: float, lam_mean: float, lam_var: float, *, failure_term: str = "variance",
-                         second_moment: np.ndarray | None = None) -> MeasurementPrediction:
+def protocol_measurement(
+    xi_pred: np.ndarray,
+    P_pred: np.ndarray,
+    y: np.ndarray,
+    gamma: np.ndarray,
+    Cc: np.ndarray,
+    r: float,
+    tau: float,
+    lam_mean: float,
+    lam_var: float,
+    *,
+    failure_term: str = "variance",
+    second_moment: np.ndarray | None = None,
+) -> MeasurementPrediction:
     r"""The measurement prediction of Theorem 1, (21)–(24), batched over runs.
 
     With :math:`\mathbf H = \bar\Lambda_h\mathcal C_h`, :math:`\zeta = \mathbf H\hat\xi^-_k`,
@@ -200,23 +240,50 @@ def protocol_measurement(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray,
     sd = np.sqrt(r)
     st = unchecked_moments(zeta, sd, tau, np.inf)
     lam = st.inverse_mills
-    noise = np.maximum(st.truncated_var, _TINY * r)             # R (1 - phi), floored
-    F = _failure_term(failure_term, Cc, np.broadcast_to(P_pred, (xi_pred.shape[0],) + P_pred.shape[1:]), xi_pred,
-                      lam_mean, lam_var, second_moment)
-    yhat = zeta + sd * lam                                      # (21), gamma = 1
+    noise = np.maximum(st.truncated_var, _TINY * r)  # R (1 - phi), floored
+    F = _failure_term(
+        failure_term,
+        Cc,
+        np.broadcast_to(P_pred, (xi_pred.shape[0],) + P_pred.shape[1:]),
+        xi_pred,
+        lam_mean,
+        lam_var,
+        second_moment,
+    )
+    yhat = zeta + sd * lam  # (21), gamma = 1
     g = np.asarray(gamma, dtype=bool)
     with np.errstate(divide="ignore", invalid="ignore"):
         theta = (tau - zeta) / sd
-    extras = {"theta_bar": theta, "inverse_mills": lam, "trunc_var_factor": 1.0 - noise / r,
-              "expected_y": np.where(g, yhat, tau), "innovation": np.where(g, y - yhat, 0.0),
-              "p_uncensored": st.p_uncensored, "_noise": noise, "_gamma": g}
-    return MeasurementPrediction(expected=yhat[:, None], H0=H[None, :], noise=(F + noise)[:, None],
-                                 valid=g[:, None], extras=extras)
+    extras = {
+        "theta_bar": theta,
+        "inverse_mills": lam,
+        "trunc_var_factor": 1.0 - noise / r,
+        "expected_y": np.where(g, yhat, tau),
+        "innovation": np.where(g, y - yhat, 0.0),
+        "p_uncensored": st.p_uncensored,
+        "_noise": noise,
+        "_gamma": g,
+    }
+    return MeasurementPrediction(
+        expected=yhat[:, None], H0=H[None, :], noise=(F + noise)[:, None], valid=g[:, None], extras=extras
+    )
 
 
-def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamma: np.ndarray, Cc: np.ndarray,
-                    r: float, tau: float, lam_mean: float, lam_var: float, *, failure_term: str = "variance",
-                    second_moment: np.ndarray | None = None, covariance_update: str = "joseph"):
+def protocol_update(
+    xi_pred: np.ndarray,
+    P_pred: np.ndarray,
+    y: np.ndarray,
+    gamma: np.ndarray,
+    Cc: np.ndarray,
+    r: float,
+    tau: float,
+    lam_mean: float,
+    lam_var: float,
+    *,
+    failure_term: str = "variance",
+    second_moment: np.ndarray | None = None,
+    covariance_update: str = "joseph",
+):
     r"""One measurement update of Theorem 1, (19)–(24), batched over runs (procedural form).
 
     :func:`protocol_measurement` followed by the shared :func:`~tobitkf.filters.core.measurement_update`
@@ -229,8 +296,9 @@ def protocol_update(xi_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, gamm
     """
     from .core import measurement_update
 
-    mp = protocol_measurement(xi_pred, P_pred, y, gamma, Cc, r, tau, lam_mean, lam_var, failure_term=failure_term,
-                              second_moment=second_moment)
+    mp = protocol_measurement(
+        xi_pred, P_pred, y, gamma, Cc, r, tau, lam_mean, lam_var, failure_term=failure_term, second_moment=second_moment
+    )
     xi, P, _, _, Ree = measurement_update(xi_pred, P_pred, None, y[:, None], mp, covariance_update)
     return xi, P, _protocol_info(mp, Ree)
 
@@ -243,23 +311,24 @@ def _protocol_info(mp: MeasurementPrediction, Ree: np.ndarray | None) -> dict[st
     return info
 
 
-def _check_parts(system: Any, channel: Any) -> None:
-    check_instance(system, LinearSystem, "system")
-    check_instance(channel, ProtocolChannel, "channel")
-    channel.check_system(system)
-
-
 def _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean):
     if prehistory_mean is not None:
         if prehistory_mean not in PRIOR_MEANS:
-            raise ValidationError(f"prehistory_mean: expected one of {', '.join(map(repr, PRIOR_MEANS))}, "
-                                  f"got {prehistory_mean!r}")
-        warnings.warn(f"prehistory_mean={prehistory_mean!r} is deprecated: use "
-                      f"prehistory_prior={_OLD_PRIOR[prehistory_mean]!r} (the prior of x_-1..x_-ell in the filter; "
-                      "the channel's prehistory= says how the simulator draws them)", DeprecationWarning, stacklevel=3)
+            raise ValidationError(
+                f"prehistory_mean: expected one of {', '.join(map(repr, PRIOR_MEANS))}, got {prehistory_mean!r}"
+            )
+        warnings.warn(
+            f"prehistory_mean={prehistory_mean!r} is deprecated: use "
+            f"prehistory_prior={_OLD_PRIOR[prehistory_mean]!r} (the prior of x_-1..x_-ell in the filter; "
+            "the channel's prehistory= says how the simulator draws them)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
         prehistory_prior = _OLD_PRIOR[prehistory_mean]
-    check_keywords({"failure_term": failure_term, "prehistory_prior": prehistory_prior,
-                    "covariance_update": covariance_update}, _OPTIONS)
+    check_keywords(
+        {"failure_term": failure_term, "prehistory_prior": prehistory_prior, "covariance_update": covariance_update},
+        _OPTIONS,
+    )
     return prehistory_prior
 
 
@@ -299,24 +368,40 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     _name = "ProtocolTobitKalmanFilter"
     _step_options = ("uncensored",)
 
-    def __init__(self, system: LinearSystem, channel: ProtocolChannel, *, failure_term: str = "variance",
-                 prehistory_prior: str = "x0", covariance_update: str = "joseph", P0_aug: Any = None,
-                 prehistory_mean: str | None = None, check_limits: bool = True):
+    def __init__(
+        self,
+        system: LinearSystem,
+        channel: ProtocolChannel,
+        *,
+        failure_term: str = "variance",
+        prehistory_prior: str = "x0",
+        covariance_update: str = "joseph",
+        P0_aug: Any = None,
+        prehistory_mean: str | None = None,
+        check_limits: bool = True,
+    ):
         prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean)
         _check_parts(system, channel)
         self._setup_system(system)
         self.m = 1
         self.channel = channel
-        self.failure_term, self.prehistory_prior, self.covariance_update = failure_term, prehistory_prior, \
-            covariance_update
+        self.failure_term, self.prehistory_prior, self.covariance_update = (
+            failure_term,
+            prehistory_prior,
+            covariance_update,
+        )
         self.P0_aug = P0_aug
         self.check_limits = check_limits
         self._ell = channel.window
         self._nxi = system.n * (self._ell + 1)
-        _initial(system, self._ell, prehistory_prior, P0_aug)             # validates P0_aug once
+        _initial(system, self._ell, prehistory_prior, P0_aug)  # validates P0_aug once
         self._lam_mean, self._lam_var = channel.failure_mean, channel.failure_variance
-        self.options = {"failure_term": failure_term, "prehistory_prior": prehistory_prior,
-                        "covariance_update": covariance_update, "P0_aug": P0_aug}
+        self.options = {
+            "failure_term": failure_term,
+            "prehistory_prior": prehistory_prior,
+            "covariance_update": covariance_update,
+            "P0_aug": P0_aug,
+        }
 
     @classmethod
     def baseline(cls, system: LinearSystem, channel: ProtocolChannel, **options: Any) -> ProtocolTobitKalmanFilter:
@@ -341,7 +426,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         if self.failure_term == "lmmse_unconditional":
             carry["X"] = M0 + np.outer(xi0, xi0)
         xi = np.broadcast_to(xi0, (N, self._nxi)).copy()
-        return xi, symmetrize(M0)[None], carry     # exactly symmetric (the shift prediction needs it)
+        return xi, symmetrize(M0)[None], carry  # exactly symmetric (the shift prediction needs it)
 
     def _transition(self, k, u, carry):
         sys_ = self.system
@@ -365,8 +450,19 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             carry["X"] = X = Aa @ carry["X"] @ Aa.T + Bn @ self.system.process_cov(k - 1) @ Bn.T
         yk = y[:, 0]
         gam = yk > self.channel.threshold if uncensored is None else uncensored[:, 0]
-        mp = protocol_measurement(xp, Pp, yk, gam, Cc, r, self.channel.threshold, float(self._lam_mean[h]),
-                                  float(self._lam_var[h]), failure_term=self.failure_term, second_moment=X)
+        mp = protocol_measurement(
+            xp,
+            Pp,
+            yk,
+            gam,
+            Cc,
+            r,
+            self.channel.threshold,
+            float(self._lam_mean[h]),
+            float(self._lam_var[h]),
+            failure_term=self.failure_term,
+            second_moment=X,
+        )
         return mp, carry
 
     def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
@@ -381,21 +477,27 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     def _prepare_record(self, y, name="y"):
         arr = as_float_array(y, name, allow_nan=False)
-        if arr.ndim == 1:                                   # one record (T,): the pre-0.2 layout
-            warnings.warn(f"{name}: a (T,) record is deprecated; pass (..., T, 1) like every estimator "
-                          "(y[:, None] for one record)", DeprecationWarning, stacklevel=4)
+        if arr.ndim == 1:  # one record (T,): the pre-0.2 layout
+            warnings.warn(
+                f"{name}: a (T,) record is deprecated; pass (..., T, 1) like every estimator "
+                "(y[:, None] for one record)",
+                DeprecationWarning,
+                stacklevel=4,
+            )
             arr = arr[:, None]
         elif arr.ndim >= 2 and arr.shape[-1] != 1:
-            raise ShapeError(f"{name}: expected (..., T, 1) received scalars (the scheduled sensor's reading), "
-                             f"got shape {arr.shape}")
+            raise ShapeError(
+                f"{name}: expected (..., T, 1) received scalars (the scheduled sensor's reading), got shape {arr.shape}"
+            )
         return super()._prepare_record(arr, name)
 
     def _check_record(self, y2, u2, k0, name="y"):
         self.system.check_horizon(k0 + y2.shape[1])
         tau = self.channel.threshold
         if self.check_limits and (y2 < tau).any():
-            raise ValidationError(f"{name}: readings below the threshold tau={tau} cannot come from (4), "
-                                  f"found {y2[y2 < tau][:3]}")
+            raise ValidationError(
+                f"{name}: readings below the threshold tau={tau} cannot come from (4), found {y2[y2 < tau][:3]}"
+            )
 
     def _prepare_step_options(self, state, options):
         g = options.get("uncensored")
@@ -407,7 +509,9 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         try:
             arr = np.broadcast_to(arr, state.batch_shape + (1,))
         except ValueError:
-            raise ShapeError(f"uncensored: expected shape {state.batch_shape + (1,)} (like y), got {arr.shape}") from None
+            raise ShapeError(
+                f"uncensored: expected shape {state.batch_shape + (1,)} (like y), got {arr.shape}"
+            ) from None
         return {"uncensored": arr.reshape(state.runs, 1)}
 
     def _reading(self, state, y, name="y"):
@@ -415,12 +519,23 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         if np.isnan(arr).any():
             raise ValidationError(f"{name}: the protocol TKF takes no missing readings (NaN found)")
         if self.check_limits and (arr < self.channel.threshold).any():
-            raise ValidationError(f"{name}: readings below the threshold tau={self.channel.threshold} cannot come "
-                                  f"from (4), found {arr[arr < self.channel.threshold][:3]}")
+            raise ValidationError(
+                f"{name}: readings below the threshold tau={self.channel.threshold} cannot come "
+                f"from (4), found {arr[arr < self.channel.threshold][:3]}"
+            )
         return arr
 
-    def filter(self, y: Any, *, uncensored: Any = None, keep_augmented: bool = False, x0: Any = None,
-               P0: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        uncensored: Any = None,
+        keep_augmented: bool = False,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`."""
         y2, batch = self._prepare_record(y)
         N, T, _ = y2.shape
@@ -428,15 +543,27 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         if uncensored is not None:
             gam = np.asarray(uncensored)
             if gam.shape == batch + (T,):
-                warnings.warn("uncensored: a (..., T) array is deprecated; lay it out like y, (..., T, 1)",
-                              DeprecationWarning, stacklevel=2)
+                warnings.warn(
+                    "uncensored: a (..., T) array is deprecated; lay it out like y, (..., T, 1)",
+                    DeprecationWarning,
+                    stacklevel=2,
+                )
                 gam = gam[..., None]
             if gam.shape != batch + (T, 1):
                 raise ShapeError(f"uncensored: expected shape {batch + (T, 1)} (like y), got {gam.shape}")
             step_data = {"uncensored": np.asarray(gam, dtype=bool).reshape(N, T, 1)}
-        res = self._run(y2.reshape(batch + (T, 1)), None, x0, P0, outputs=outputs, state=state,
-                        step_options={"keep_augmented": keep_augmented}, step_data=step_data)
+        res = self._run(
+            y2.reshape(batch + (T, 1)),
+            None,
+            x0,
+            P0,
+            outputs=outputs,
+            state=state,
+            step_options={"keep_augmented": keep_augmented},
+            step_data=step_data,
+        )
         if res.extras:
+            assert res.times is not None, "the estimation loop records the time index"
             k0 = res.times[0] - 1
             res.extras["scheduled"] = self.channel.schedule.scheduled(k0 + T)[k0:]
         return res
@@ -452,11 +579,20 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return f"ProtocolTobitKalmanFilter({self.system!r}, {self.channel!r}, {opts})"
 
 
-def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel, y: Any, *,
-                                 uncensored: Any = None, failure_term: str = "variance",
-                                 prehistory_prior: str = "x0", covariance_update: str = "joseph",
-                                 P0_aug: Any = None, keep_augmented: bool = False,
-                                 check_limits: bool = True, prehistory_mean: str | None = None) -> FilterResult:
+def protocol_tobit_kalman_filter(
+    system: LinearSystem,
+    channel: ProtocolChannel,
+    y: Any,
+    *,
+    uncensored: Any = None,
+    failure_term: str = "variance",
+    prehistory_prior: str = "x0",
+    covariance_update: str = "joseph",
+    P0_aug: Any = None,
+    keep_augmented: bool = False,
+    check_limits: bool = True,
+    prehistory_mean: str | None = None,
+) -> FilterResult:
     r"""Run the PBTKF-IMSF (Theorem 1, Table I) over a batch of received records.
 
     Parameters
@@ -527,9 +663,16 @@ def protocol_tobit_kalman_filter(system: LinearSystem, channel: ProtocolChannel,
     >>> bool(np.allclose(a, tk.KalmanFilter(sys).filter(y).mean, rtol=0, atol=1e-12))
     True
     """
-    est = ProtocolTobitKalmanFilter(system, channel, failure_term=failure_term, prehistory_prior=prehistory_prior,
-                                    covariance_update=covariance_update, P0_aug=P0_aug,
-                                    prehistory_mean=prehistory_mean, check_limits=check_limits)
+    est = ProtocolTobitKalmanFilter(
+        system,
+        channel,
+        failure_term=failure_term,
+        prehistory_prior=prehistory_prior,
+        covariance_update=covariance_update,
+        P0_aug=P0_aug,
+        prehistory_mean=prehistory_mean,
+        check_limits=check_limits,
+    )
     return est.filter(y, uncensored=uncensored, keep_augmented=keep_augmented)
 
 
@@ -570,9 +713,15 @@ def _gl_nodes(lo: float, hi: float, n: int = 64):
     return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * w
 
 
-def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps: int, *,
-                          prehistory_prior: str = "x0", P0_aug: Any = None,
-                          prehistory_mean: str | None = None) -> np.ndarray:
+def analytic_p_uncensored(
+    system: LinearSystem,
+    channel: ProtocolChannel,
+    steps: int,
+    *,
+    prehistory_prior: str = "x0",
+    P0_aug: Any = None,
+    prehistory_mean: str | None = None,
+) -> np.ndarray:
     r"""Unconditional :math:`\bar\gamma_k = P(\bar y_k > \tau)` under the true model, k = 1..T (docs/sources GP-06).
 
     .. math::
@@ -603,8 +752,10 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
         elif float(law.variance) == 0.0:
             nodes.append((np.array([float(law.mean)]), np.array([1.0])))
         else:
-            raise ValidationError(f"failures[{i}]: the analytic p_uncensored needs a discrete (values/probs) or "
-                                  f"uniform (low/high) law, got {type(law).__name__}; pass p_uncensored explicitly")
+            raise ValidationError(
+                f"failures[{i}]: the analytic p_uncensored needs a discrete (values/probs) or "
+                f"uniform (low/high) law, got {type(law).__name__}; pass p_uncensored explicitly"
+            )
     sched = channel.schedule.scheduled(steps)
     m, S = xi0, M0
     out = np.empty(steps)
@@ -622,11 +773,20 @@ def analytic_p_uncensored(system: LinearSystem, channel: ProtocolChannel, steps:
     return out
 
 
-def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, steps: int, *,
-                               p_uncensored: Any = "analytic", failure_term: str = "variance",
-                               upper_form: str = "expected_riccati", lower_form: str = "statement",
-                               phi_upper: str = "zero", prehistory_prior: str = "x0",
-                               P0_aug: Any = None, prehistory_mean: str | None = None) -> CovarianceBounds:
+def protocol_covariance_bounds(
+    system: LinearSystem,
+    channel: ProtocolChannel,
+    steps: int,
+    *,
+    p_uncensored: Any = "analytic",
+    failure_term: str = "variance",
+    upper_form: str = "expected_riccati",
+    lower_form: str = "statement",
+    phi_upper: str = "zero",
+    prehistory_prior: str = "x0",
+    P0_aug: Any = None,
+    prehistory_mean: str | None = None,
+) -> CovarianceBounds:
     r"""Upper and lower bounds on the expected prior covariance (Theorems 3–5 of the source).
 
 
@@ -692,14 +852,27 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
     """
     if prehistory_mean is not None:
         prehistory_prior = _check_options(failure_term, prehistory_prior, "joseph", prehistory_mean)
-    check_keywords({"failure_term": failure_term, "upper_form": upper_form, "lower_form": lower_form,
-                    "phi_upper": phi_upper, "prehistory_prior": prehistory_prior},
-                   {"failure_term": FAILURE_TERMS, "upper_form": UPPER_FORMS, "lower_form": LOWER_FORMS,
-                    "phi_upper": PHI_UPPER, "prehistory_prior": PREHISTORY_PRIORS})
+    check_keywords(
+        {
+            "failure_term": failure_term,
+            "upper_form": upper_form,
+            "lower_form": lower_form,
+            "phi_upper": phi_upper,
+            "prehistory_prior": prehistory_prior,
+        },
+        {
+            "failure_term": FAILURE_TERMS,
+            "upper_form": UPPER_FORMS,
+            "lower_form": LOWER_FORMS,
+            "phi_upper": PHI_UPPER,
+            "prehistory_prior": PREHISTORY_PRIORS,
+        },
+    )
     _check_parts(system, channel)
     steps = check_int(steps, "steps", minimum=1)
-    check_memory(8 * 4 * int(steps) * (system.n * (channel.window + 1)) ** 2, "steps",
-                 f"covariance bounds over {steps} steps")
+    check_memory(
+        8 * 4 * int(steps) * (system.n * (channel.window + 1)) ** 2, "steps", f"covariance bounds over {steps} steps"
+    )
     if isinstance(p_uncensored, str):
         if p_uncensored != "analytic":
             raise ValidationError(f"p_uncensored: expected 'analytic' or numbers in [0, 1], got {p_uncensored!r}")
@@ -709,7 +882,9 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
         if gbar.ndim == 1 and gbar.shape != (steps,):
             raise ShapeError(f"p_uncensored: expected a scalar or shape ({steps},), got {gbar.shape}")
         if ((gbar < 0) | (gbar > 1)).any():
-            raise ValidationError(f"p_uncensored: expected probabilities in [0, 1], got {gbar[(gbar < 0) | (gbar > 1)][:3]}")
+            raise ValidationError(
+                f"p_uncensored: expected probabilities in [0, 1], got {gbar[(gbar < 0) | (gbar > 1)][:3]}"
+            )
         gbar = np.broadcast_to(gbar, (steps,)).astype(float)
     system.check_horizon(steps)
     n, ell = system.n, channel.window
@@ -725,7 +900,7 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
     BQB0 = Bn @ system.process_cov(0) @ Bn.T
     Mu[0] = symmetrize(A0 @ M0 @ A0.T + BQB0)
     Ml[0] = Mu[0] if lower_form == "statement" else BQB0
-    mean, X = A0 @ xi0, Mu[0] + np.outer(A0 @ xi0, A0 @ xi0)     # unconditional moments at k = 1
+    mean, X = A0 @ xi0, Mu[0] + np.outer(A0 @ xi0, A0 @ xi0)  # unconditional moments at k = 1
     for k in range(1, steps):
         h = int(sched[k - 1]) - 1
         C_row, r = _sensor_stats(system, k, h)
@@ -760,5 +935,10 @@ def protocol_covariance_bounds(system: LinearSystem, channel: ProtocolChannel, s
         Ml[k] = symmetrize((1 - g) * (Aa @ Ml[k - 1] @ Aa.T) + low_noise)
         mean = Aa @ mean
         X = Aa @ X @ Aa.T + BQB
-    return CovarianceBounds(upper=Mu[:, :n, :n].copy(), lower=Ml[:, :n, :n].copy(), upper_aug=Mu, lower_aug=Ml,
-                            p_uncensored=np.asarray(gbar, dtype=float))
+    return CovarianceBounds(
+        upper=Mu[:, :n, :n].copy(),
+        lower=Ml[:, :n, :n].copy(),
+        upper_aug=Mu,
+        lower_aug=Ml,
+        p_uncensored=np.asarray(gbar, dtype=float),
+    )

@@ -54,8 +54,9 @@ class Entry:
         options = dict(options or {})
         for key in options:
             if key not in self.options:
-                raise ValidationError(f"{key}: not an option of {self.name}; expected one of "
-                                      f"{', '.join(sorted(self.options)) or 'none'}")
+                raise ValidationError(
+                    f"{key}: not an option of {self.name}; expected one of {', '.join(sorted(self.options)) or 'none'}"
+                )
         for key in self.required:
             if key not in options:
                 raise ValidationError(f"{key}: {self.name} needs this option")
@@ -67,8 +68,11 @@ class Entry:
     def run(self, estimator: Any, data: Any, **kwargs: Any) -> Any:
         """Filter the simulated ``data`` (:class:`~tobitkf.SimulationData`) with what the entry reads."""
         if self.reads == "latent":
-            return estimator.filter_controlled(data.y_latent, **kwargs) if hasattr(estimator, "filter_controlled") \
+            return (
+                estimator.filter_controlled(data.y_latent, **kwargs)
+                if hasattr(estimator, "filter_controlled")
                 else estimator.filter(data.y_latent, **kwargs)
+            )
         return estimator.filter(data.y, **kwargs)
 
 
@@ -153,46 +157,134 @@ def _tracker(system, parts, o):
 
 
 _ENTRY_LIST = [
-    Entry("KalmanFilter", "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)", _kf,
-          options={"covariance_update": _FORMS, "backend": ("auto", "numpy", "numba")}),
-    Entry("DroppingKalmanFilter", "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)", _dkf,
-          needs=("censoring",), options={"covariance_update": _FORMS, "rtol": float}),
-    Entry("TobitKalmanFilter", "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)", _tkf,
-          needs=("censoring",), options={"noise_term": ("dissertation", "total_variance", "exact_pv"),
-                                          "covariance_update": _FORMS, "threads": int}),
-    Entry("SteadyStateTobitKalmanFilter", "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
-          _sstkf, options={"xi_uncensored": float, "side": ("upper", "lower")}, required=("xi_uncensored",),
-          reads="latent"),
-    Entry("ControlledLimitTobitKalmanFilter", "full TKF with the steered limit of (3.56) (Miller §3.4)", _cltkf,
-          options={"xi_uncensored": float, "side": ("upper", "lower"),
-                   "noise_term": ("dissertation", "total_variance", "exact_pv")},
-          required=("xi_uncensored",), reads="latent"),
-    Entry("FadingTobitKalmanFilter", "TKF with L-th order Rice fading (Geng et al. 2017)", _ftkf,
-          needs=("fading",), options={"p_uncensored_mode": ("augmented", "eq6_stale"),
-                                       "fading_variance_term": (False, True), "exact_tobit_variance": (False, True),
-                                       "covariance_update": ("joseph", "standard", "square_root")}),
-    Entry("FadingKalmanFilter", "augmented KF with the fading means, no censoring handling (Geng et al. 2017)", _fkf,
-          needs=("fading",), options={"fading_variance_term": (False, True),
-                                       "covariance_update": ("joseph", "standard", "square_root")}),
-    Entry("ProtocolTobitKalmanFilter", "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
-          _ptkf, needs=("protocol",),
-          options={"failure_term": ("variance", "literal", "second_moment", "lmmse_unconditional"),
-                   "prehistory_prior": ("x0", "zero_mean"), "covariance_update": ("joseph", "standard", "square_root")}),
-    Entry("ProtocolBaselineTobitKalmanFilter", "the protocol paper's PBTKF baseline: no window, no failures modelled",
-          _pbtkf, needs=("protocol",), options={"covariance_update": ("joseph", "standard", "square_root")}),
-    Entry("ChainLMMSE", "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
-          _delay("ChainLMMSE"), needs=("prior",), options={"decorrelation": ("optimal", "paper")}, model="delay"),
-    Entry("AugmentedLMMSE", "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)", _delay("AugmentedLMMSE"),
-          needs=("prior",), options={"window": int}, model="delay"),
-    Entry("ReorganizedInnovationLMMSE", "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
-          _delay("ReorganizedInnovationLMMSE"), needs=("prior",), options={"decorrelation": ("optimal", "paper")},
-          model="delay"),
-    Entry("RegionalHinfFilter", "regional H-infinity filter with given gains (Wang, Shen & Liu)", _hinf,
-          options={"Af": list, "Bf": list}, required=("Af", "Bf"), model="ross"),
-    Entry("MultiTargetTracker", "multi-target tracker leaving a field of view (Miller §2.2)", _tracker,
-          options={"gate0": float, "gate_slope": float, "mu": float, "warmup": int,
-                   "feedback": ("corrected", "printed", "off"), "second_map": ("closest", "mutual"),
-                   "gate": (False, True)}, model="frames"),
+    Entry(
+        "KalmanFilter",
+        "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
+        _kf,
+        options={"covariance_update": _FORMS, "backend": ("auto", "numpy", "numba")},
+    ),
+    Entry(
+        "DroppingKalmanFilter",
+        "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
+        _dkf,
+        needs=("censoring",),
+        options={"covariance_update": _FORMS, "rtol": float},
+    ),
+    Entry(
+        "TobitKalmanFilter",
+        "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
+        _tkf,
+        needs=("censoring",),
+        options={
+            "noise_term": ("dissertation", "total_variance", "exact_pv"),
+            "covariance_update": _FORMS,
+            "threads": int,
+        },
+    ),
+    Entry(
+        "SteadyStateTobitKalmanFilter",
+        "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
+        _sstkf,
+        options={"xi_uncensored": float, "side": ("upper", "lower")},
+        required=("xi_uncensored",),
+        reads="latent",
+    ),
+    Entry(
+        "ControlledLimitTobitKalmanFilter",
+        "full TKF with the steered limit of (3.56) (Miller §3.4)",
+        _cltkf,
+        options={
+            "xi_uncensored": float,
+            "side": ("upper", "lower"),
+            "noise_term": ("dissertation", "total_variance", "exact_pv"),
+        },
+        required=("xi_uncensored",),
+        reads="latent",
+    ),
+    Entry(
+        "FadingTobitKalmanFilter",
+        "TKF with L-th order Rice fading (Geng et al. 2017)",
+        _ftkf,
+        needs=("fading",),
+        options={
+            "p_uncensored_mode": ("augmented", "eq6_stale"),
+            "fading_variance_term": (False, True),
+            "exact_tobit_variance": (False, True),
+            "covariance_update": ("joseph", "standard", "square_root"),
+        },
+    ),
+    Entry(
+        "FadingKalmanFilter",
+        "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
+        _fkf,
+        needs=("fading",),
+        options={"fading_variance_term": (False, True), "covariance_update": ("joseph", "standard", "square_root")},
+    ),
+    Entry(
+        "ProtocolTobitKalmanFilter",
+        "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
+        _ptkf,
+        needs=("protocol",),
+        options={
+            "failure_term": ("variance", "literal", "second_moment", "lmmse_unconditional"),
+            "prehistory_prior": ("x0", "zero_mean"),
+            "covariance_update": ("joseph", "standard", "square_root"),
+        },
+    ),
+    Entry(
+        "ProtocolBaselineTobitKalmanFilter",
+        "the protocol paper's PBTKF baseline: no window, no failures modelled",
+        _pbtkf,
+        needs=("protocol",),
+        options={"covariance_update": ("joseph", "standard", "square_root")},
+    ),
+    Entry(
+        "ChainLMMSE",
+        "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
+        _delay("ChainLMMSE"),
+        needs=("prior",),
+        options={"decorrelation": ("optimal", "paper")},
+        model="delay",
+    ),
+    Entry(
+        "AugmentedLMMSE",
+        "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
+        _delay("AugmentedLMMSE"),
+        needs=("prior",),
+        options={"window": int},
+        model="delay",
+    ),
+    Entry(
+        "ReorganizedInnovationLMMSE",
+        "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
+        _delay("ReorganizedInnovationLMMSE"),
+        needs=("prior",),
+        options={"decorrelation": ("optimal", "paper")},
+        model="delay",
+    ),
+    Entry(
+        "RegionalHinfFilter",
+        "regional H-infinity filter with given gains (Wang, Shen & Liu)",
+        _hinf,
+        options={"Af": list, "Bf": list},
+        required=("Af", "Bf"),
+        model="ross",
+    ),
+    Entry(
+        "MultiTargetTracker",
+        "multi-target tracker leaving a field of view (Miller §2.2)",
+        _tracker,
+        options={
+            "gate0": float,
+            "gate_slope": float,
+            "mu": float,
+            "warmup": int,
+            "feedback": ("corrected", "printed", "off"),
+            "second_map": ("closest", "mutual"),
+            "gate": (False, True),
+        },
+        model="frames",
+    ),
 ]
 
 ENTRIES: dict[str, Entry] = {e.name: e for e in _ENTRY_LIST}

@@ -69,8 +69,12 @@ from .core import FilterResult, FilterState, MeasurementPrediction, Transition
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, _sigma_of, tobit_measurement
 
-__all__ = ["SteadyStateTobitKalmanFilter", "controlled_limit_statistics", "tobit_kalman_filter_controlled",
-           "ControlledLimitTobitKalmanFilter"]
+__all__ = [
+    "SteadyStateTobitKalmanFilter",
+    "controlled_limit_statistics",
+    "tobit_kalman_filter_controlled",
+    "ControlledLimitTobitKalmanFilter",
+]
 
 
 def controlled_limit_statistics(xi_uncensored: Any, sigma: Any):
@@ -121,8 +125,10 @@ def _no_missing(y2: np.ndarray, name: str) -> None:
     # the gain and the reported covariance are the constant steady-state ones: a skipped
     # (missing) sample would make the reported covariance wrong, so NaN is refused
     if np.isnan(y2).any():
-        raise ValidationError(f"{name}: the steady-state TKF has a fixed gain and cannot skip missing samples "
-                              "(NaN found); use TobitKalmanFilter for records with gaps")
+        raise ValidationError(
+            f"{name}: the steady-state TKF has a fixed gain and cannot skip missing samples "
+            "(NaN found); use TobitKalmanFilter for records with gaps"
+        )
 
 
 def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ...]) -> np.ndarray:
@@ -145,9 +151,13 @@ def _warn_if_diverged(means: np.ndarray | None, name: str, k0: int = 0) -> None:
     if bad.any():
         idx = np.argwhere(bad)[0]
         run, step = (tuple(int(i) for i in idx[:-1]) or (0,)), int(idx[-1])
-        warnings.warn(f"{name}: the estimate diverged (overflowed to inf/NaN) in run {run[0] if len(run) == 1 else run} "
-                      f"at step k={k0 + step + 1}; the fixed-gain Tobit observer is not globally stable for this "
-                      "model and Xi (docs/reliability.md)", RuntimeWarning, stacklevel=3)
+        warnings.warn(
+            f"{name}: the estimate diverged (overflowed to inf/NaN) in run {run[0] if len(run) == 1 else run} "
+            f"at step k={k0 + step + 1}; the fixed-gain Tobit observer is not globally stable for this "
+            "model and Xi (docs/reliability.md)",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
 class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
@@ -221,7 +231,8 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         except (np.linalg.LinAlgError, ValueError) as exc:
             raise ValidationError(
                 "modified DARE (3.57) for (A, Xi C, Q, upsilon) has no stabilizing solution: "
-                f"check that (A, sqrt(Q)) is stabilizable and (A, C) detectable ({exc})") from None
+                f"check that (A, sqrt(Q)) is stabilizable and (A, C) detectable ({exc})"
+            ) from None
         if not np.all(np.isfinite(Pbar)):
             raise ValidationError("modified DARE (3.57) returned a non-finite solution")
         S = Ct @ Pbar @ Ct.T + Ups
@@ -247,8 +258,9 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     # ---- the family's hooks ------------------------------------------------------------
     def _initial(self, N, x0, P0, batch):
         if P0 is not None:
-            raise ValidationError("P0: the steady-state TKF has the constant covariance of the modified DARE; "
-                                  "only x0 can be given")
+            raise ValidationError(
+                "P0: the steady-state TKF has the constant covariance of the modified DARE; only x0 can be given"
+            )
         return _initial_mean(self.system, x0, N, batch), self.cov[None].copy(), {}
 
     def _transition(self, k, u, carry):
@@ -265,9 +277,15 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
             # the sensor clips its reading at the limit the filter set
             obs = np.minimum(y, lim) if self.side == "upper" else np.maximum(y, lim)
             extras = {"limits": lim, "y": obs}
-        mp = MeasurementPrediction(expected=self.expected_measurement(ybar), H0=self.modified_C,
-                                   noise=np.zeros((1, self.m)), observed=obs, gain=self.gain,
-                                   posterior_cov=self.cov[None], extras=extras)
+        mp = MeasurementPrediction(
+            expected=self.expected_measurement(ybar),
+            H0=self.modified_C,
+            noise=np.zeros((1, self.m)),
+            observed=obs,
+            gain=self.gain,
+            posterior_cov=self.cov[None],
+            extras=extras,
+        )
         return mp, carry
 
     def _prepare_step_options(self, state, options):
@@ -285,8 +303,9 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         super()._check_record(y2, u2, k0, name)
         _no_missing(y2, name)
 
-    def filter(self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all",
-               state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         r"""Fixed-gain update of measurements censored at the controlled limits.
 
         ``y`` (..., T, m) must have been censored at the limits :meth:`limit` gives for
@@ -298,11 +317,13 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         cannot skip a sample without making the reported covariance wrong.
         """
         res = self._run(y, u, x0, None, outputs=outputs, state=state)
+        assert res.times is not None, "the estimation loop records the time index"
         _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
         return res
 
-    def filter_controlled(self, y_latent: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all",
-                          state: FilterState | None = None) -> FilterResult:
+    def filter_controlled(
+        self, y_latent: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         """Close the loop between sensor and filter: at each step the limit (3.56) is set
         from the filter's prior and the latent reading is censored there (by
         the sensor), then the fixed-gain update runs.
@@ -310,8 +331,10 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         Returns the usual result with extras ``limits`` and ``y`` (..., T, m): the limits
         used and the censored readings the filter received.
         """
-        res = self._run(y_latent, u, x0, None, outputs=outputs, state=state, name="y_latent",
-                        step_options={"latent": True})
+        res = self._run(
+            y_latent, u, x0, None, outputs=outputs, state=state, name="y_latent", step_options={"latent": True}
+        )
+        assert res.times is not None, "the estimation loop records the time index"
         _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
         return res
 
@@ -362,13 +385,20 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
             lim = ybar - self.sigma_ * self.alpha
             obs, lower, upper = np.maximum(y, lim), lim, inf
         mp = tobit_measurement(xp, C, self.sigma_, lower, upper, dy=dy, noise_term=self.noise_term)
-        mp = MeasurementPrediction(expected=mp.expected, H0=mp.H0, scale=mp.scale, noise=mp.noise, observed=obs,
-                                   extras={"limits": lim, "y": obs, "p_uncensored": mp.scale})
+        mp = MeasurementPrediction(
+            expected=mp.expected,
+            H0=mp.H0,
+            scale=mp.scale,
+            noise=mp.noise,
+            observed=obs,
+            extras={"limits": lim, "y": obs, "p_uncensored": mp.scale},
+        )
         return mp, carry
 
 
-def tobit_kalman_filter_controlled(system: LinearSystem, xi_uncensored: Any, y_latent: Any, *,
-                                   side: str = "upper", u: Any = None) -> FilterResult:
+def tobit_kalman_filter_controlled(
+    system: LinearSystem, xi_uncensored: Any, y_latent: Any, *, side: str = "upper", u: Any = None
+) -> FilterResult:
     r"""The full TKF (3.55) whose sensor limit is steered by (3.56) from the TKF's own prior.
 
     See :class:`ControlledLimitTobitKalmanFilter`; returns the usual result with extras ``limits``,

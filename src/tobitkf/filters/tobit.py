@@ -71,8 +71,15 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
-from .core import (COVARIANCE_FORMS, FilterResult, FilterState, MeasurementPrediction, check_keywords,
-                   measurement_update, psd_sqrt)
+from .core import (
+    COVARIANCE_FORMS,
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    check_keywords,
+    measurement_update,
+    psd_sqrt,
+)
 from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices
 
 __all__ = ["tobit_update", "tobit_measurement", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
@@ -82,8 +89,16 @@ COVARIANCE_UPDATES = COVARIANCE_FORMS
 _OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
 
 
-def tobit_measurement(x_pred: np.ndarray, C: np.ndarray, sigma: np.ndarray, lower: Any, upper: Any, *,
-                      dy: Any = 0.0, noise_term: str = "dissertation") -> MeasurementPrediction:
+def tobit_measurement(
+    x_pred: np.ndarray,
+    C: np.ndarray,
+    sigma: np.ndarray,
+    lower: Any,
+    upper: Any,
+    *,
+    dy: Any = 0.0,
+    noise_term: str = "dissertation",
+) -> MeasurementPrediction:
     r"""The Tobit measurement prediction at the prior (Miller (3.37)–(3.41)), batched over runs.
 
     All channel statistics at the *prior* mean (Assumption A1, (3.35)): with
@@ -113,13 +128,28 @@ def tobit_measurement(x_pred: np.ndarray, C: np.ndarray, sigma: np.ndarray, lowe
         Ruu = st.censored_var
     else:  # exact_pv: E[p v^2] = gamma (Var_tr + (m_tr - mu)^2)
         Ruu = gam * (st.truncated_var + (st.truncated_mean - mu) ** 2)
-    return MeasurementPrediction(expected=st.censored_mean, H0=C, scale=gam, noise=Ruu,
-                                 extras={"p_uncensored": gam, "expected_y": st.censored_mean})
+    return MeasurementPrediction(
+        expected=st.censored_mean,
+        H0=C,
+        scale=gam,
+        noise=Ruu,
+        extras={"p_uncensored": gam, "expected_y": st.censored_mean},
+    )
 
 
-def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.ndarray, sigma: np.ndarray,
-                 lower: np.ndarray, upper: np.ndarray, *, dy: Any = 0.0, noise_term: str = "dissertation",
-                 covariance_update: str = "standard"):
+def tobit_update(
+    x_pred: np.ndarray,
+    P_pred: np.ndarray,
+    y: np.ndarray,
+    C: np.ndarray,
+    sigma: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    *,
+    dy: Any = 0.0,
+    noise_term: str = "dissertation",
+    covariance_update: str = "standard",
+):
     r"""One Tobit measurement update (Miller (3.37)–(3.43), (3.55)), batched over runs (procedural form).
 
     :func:`tobit_measurement` followed by the shared :func:`~tobitkf.filters.core.measurement_update`.
@@ -157,8 +187,14 @@ def tobit_update(x_pred: np.ndarray, P_pred: np.ndarray, y: np.ndarray, C: np.nd
     return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
-def _sigma_of(R: np.ndarray, name: str = "R", *, who: str = "the Tobit Kalman filter",
-              why: str = "Miller Assumption A2, (3.36)", positive: str | None = None) -> np.ndarray:
+def _sigma_of(
+    R: np.ndarray,
+    name: str = "R",
+    *,
+    who: str = "the Tobit Kalman filter",
+    why: str = "Miller Assumption A2, (3.36)",
+    positive: str | None = None,
+) -> np.ndarray:
     """Channel standard deviations of a diagonal R, refusing a correlated or singular one (naming ``who``)."""
     off = R - np.diag(np.diagonal(R))
     if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
@@ -228,15 +264,23 @@ class TobitKalmanFilter(LinearGaussianFamily):
     """
 
     _name = "TobitKalmanFilter"
-    _step_options = ("lower", "upper")
+    _step_options: tuple[str, ...] = ("lower", "upper")
+    _kernel_limits: tuple[np.ndarray, np.ndarray]  # constant limits, set on the first kernel call
 
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, noise_term: str = "dissertation",
-                 covariance_update: str = "standard", backend: str = "auto", threads: int | None = None,
-                 check_limits: bool = True):
+    def __init__(
+        self,
+        system: LinearSystem,
+        censoring: Censoring,
+        *,
+        noise_term: str = "dissertation",
+        covariance_update: str = "standard",
+        backend: str = "auto",
+        threads: int | None = None,
+        check_limits: bool = True,
+    ):
         check_instance(system, LinearSystem, "system")
         check_instance(censoring, Censoring, "censoring")
-        check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend},
-                       _OPTIONS)
+        check_keywords({"noise_term": noise_term, "covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         check_square_root(backend, covariance_update, "the Tobit Kalman filter")
         censoring.check(system.m)
         if not isinstance(check_limits, (bool, np.bool_)):
@@ -256,8 +300,15 @@ class TobitKalmanFilter(LinearGaussianFamily):
             lo, hi = self.censoring.limits(k)
             lower = lo if lower is None else lower
             upper = hi if upper is None else upper
-        mp = tobit_measurement(xp, self.system.measurement(k), self._sigma_at(k), lower, upper,
-                               dy=self._feedthrough(k, u), noise_term=self.noise_term)
+        mp = tobit_measurement(
+            xp,
+            self.system.measurement(k),
+            self._sigma_at(k),
+            lower,
+            upper,
+            dy=self._feedthrough(k, u),
+            noise_term=self.noise_term,
+        )
         return mp, carry
 
     def _check_record(self, y2, u2, k0, name="y"):
@@ -274,8 +325,10 @@ class TobitKalmanFilter(LinearGaussianFamily):
                 try:
                     out[key] = np.broadcast_to(arr, (state.runs, self.m))
                 except ValueError:
-                    raise ValidationError(f"{key}: expected this step's limits of shape ({self.m},) or "
-                                          f"{state.batch_shape + (self.m,)}, got {arr.shape}") from None
+                    raise ValidationError(
+                        f"{key}: expected this step's limits of shape ({self.m},) or "
+                        f"{state.batch_shape + (self.m,)}, got {arr.shape}"
+                    ) from None
         if out:
             lo, hi = self.censoring.limits(state.k + (0 if state.carry.get("_predicted") else 1))
             lo = out.get("lower", np.broadcast_to(lo, (state.runs, self.m)))
@@ -311,8 +364,17 @@ class TobitKalmanFilter(LinearGaussianFamily):
         if self.check_limits and not options:
             self.censoring.check_reading(y, state.k + 1)
 
-    def filter(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
-               outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
         """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`.
 
         ``censored`` (..., T, m), the recorded indicator, is checked against the readings (a flagged one
@@ -331,14 +393,16 @@ class TobitKalmanFilter(LinearGaussianFamily):
 
         return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
 
-    def log_likelihood(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None,
-                       per_step: bool = False):
+    def log_likelihood(
+        self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+    ):
         """The assumed-density log-likelihood of the model (system and censoring) on ``y``; the TKF's own
         update defines none. See :func:`tobitkf.inference.adf_log_likelihood`."""
         from ..inference.likelihood import adf_log_likelihood
 
-        return adf_log_likelihood(self.system, self.censoring, y, censored=censored, u=u, x0=x0, P0=P0,
-                                  per_step=per_step)
+        return adf_log_likelihood(
+            self.system, self.censoring, y, censored=censored, u=u, x0=x0, P0=P0, per_step=per_step
+        )
 
 
 def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) -> FilterState | None:
@@ -350,26 +414,55 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
     lims = None if cens.time_varying else est.__dict__.get("_kernel_limits")
     if lims is None:
         lo, hi = cens.limits(state.k + 1)
-        lims = (np.ascontiguousarray(np.broadcast_to(lo, (1, m)), dtype=float),
-                np.ascontiguousarray(np.broadcast_to(hi, (1, m)), dtype=float))
+        lims = (
+            np.ascontiguousarray(np.broadcast_to(lo, (1, m)), dtype=float),
+            np.ascontiguousarray(np.broadcast_to(hi, (1, m)), dtype=float),
+        )
         if not cens.time_varying:
-            est._kernel_limits = lims          # constant limits: converted once
+            est._kernel_limits = lims  # constant limits: converted once
     lo, hi = lims
     P = state.P
+    assert P is not None, "the compiled kernels run the standard form, which carries P"
     if P.shape[0] != N:
         P = np.broadcast_to(P, (N, n, n))
     A, Qd, C, _ = _kernel_matrices(est)
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
     pu, ey = np.empty((N, 1, m)), np.empty((N, 1, m))
     e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
-    kern.tkf_kernel(np.ascontiguousarray(y.reshape(N, 1, m)), A, Qd, C, est._sigma, lo, hi,
-                    np.ascontiguousarray(state.x, dtype=float), np.ascontiguousarray(P, dtype=float),
-                    kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph", kern.GL_X, kern.GL_W,
-                    e_m, e_c, e_m, e_c, pu, ey, x_last, P_last)
+    kern.tkf_kernel(
+        np.ascontiguousarray(y.reshape(N, 1, m)),
+        A,
+        Qd,
+        C,
+        est._sigma,
+        lo,
+        hi,
+        np.ascontiguousarray(state.x, dtype=float),
+        np.ascontiguousarray(P, dtype=float),
+        kern.NOISE_CODES[est.noise_term],
+        est.covariance_update == "joseph",
+        kern.GL_X,
+        kern.GL_W,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        pu,
+        ey,
+        x_last,
+        P_last,
+    )
     if not np.isfinite(P_last).all():
         return None
-    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry,
-                       extras={"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]})
+    return FilterState(
+        k=state.k + 1,
+        batch_shape=state.batch_shape,
+        x=x_last,
+        P=P_last,
+        n=n,
+        carry=state.carry,
+        extras={"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]},
+    )
 
 
 def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want, batch) -> FilterResult:
@@ -380,7 +473,8 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
     kern = kernels()
     c64 = np.ascontiguousarray
     x = c64(state.x, dtype=float)
-    P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=float)
+    assert state.P is not None, "the compiled kernels run the standard form, which carries P"
+    P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=np.float64)
 
     def arr(name, shape):
         return np.empty((N, T) + shape) if name in want else np.empty((N, 0) + shape)
@@ -395,10 +489,31 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
     code, joseph = kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph"
 
     def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
-        kern.tkf_kernel(yc[a:b], A, Qd, C, sig, lo, hi, x[a:b], P[a:b], code, joseph, kern.GL_X, kern.GL_W,
-                        means[a:b], covs[a:b], pmeans[a:b], pcovs[a:b], pu[a:b], ey[a:b], x_last[a:b], P_last[a:b])
+        kern.tkf_kernel(
+            yc[a:b],
+            A,
+            Qd,
+            C,
+            sig,
+            lo,
+            hi,
+            x[a:b],
+            P[a:b],
+            code,
+            joseph,
+            kern.GL_X,
+            kern.GL_W,
+            means[a:b],
+            covs[a:b],
+            pmeans[a:b],
+            pcovs[a:b],
+            pu[a:b],
+            ey[a:b],
+            x_last[a:b],
+            P_last[a:b],
+        )
 
-    if N < 256:                       # one thread: not worth a pool (and no thread-count lookup per step)
+    if N < 256:  # one thread: not worth a pool (and no thread-count lookup per step)
         work(0, N)
     else:
         run_split(work, N, check_threads(est.threads))
@@ -410,15 +525,33 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
     cov = out(covs)
     var = np.diagonal(cov, axis1=-2, axis2=-1) if ("var" in want and cov is not None) else None
     extras = {"p_uncensored": out(pu), "expected_y": out(ey)} if "extras" in want else {}
-    return FilterResult(mean=out(means), cov=cov if "cov" in want else None, pred_mean=out(pmeans),
-                        pred_cov=out(pcovs), extras=extras, times=np.arange(state.k + 1, state.k + T + 1), var=var,
-                        final=final)
+    return FilterResult(
+        mean=out(means),
+        cov=cov if "cov" in want else None,
+        pred_mean=out(pmeans),
+        pred_cov=out(pcovs),
+        extras=extras,
+        times=np.arange(state.k + 1, state.k + T + 1),
+        var=var,
+        final=final,
+    )
 
 
-def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u: Any = None,
-                        noise_term: str = "dissertation", covariance_update: str = "standard",
-                        x0: Any = None, P0: Any = None, check_limits: bool = True,
-                        backend: str = "auto", threads: int | None = None, outputs: Any = "all") -> FilterResult:
+def tobit_kalman_filter(
+    system: LinearSystem,
+    censoring: Censoring,
+    y: Any,
+    *,
+    u: Any = None,
+    noise_term: str = "dissertation",
+    covariance_update: str = "standard",
+    x0: Any = None,
+    P0: Any = None,
+    check_limits: bool = True,
+    backend: str = "auto",
+    threads: int | None = None,
+    outputs: Any = "all",
+) -> FilterResult:
     r"""Run the Tobit Kalman filter over a batch of censored records.
 
     Parameters
@@ -515,6 +648,13 @@ def tobit_kalman_filter(system: LinearSystem, censoring: Censoring, y: Any, *, u
     >>> bool(np.allclose(a, b, rtol=0, atol=1e-12))
     True
     """
-    est = TobitKalmanFilter(system, censoring, noise_term=noise_term, covariance_update=covariance_update,
-                            backend=backend, threads=threads, check_limits=check_limits)
+    est = TobitKalmanFilter(
+        system,
+        censoring,
+        noise_term=noise_term,
+        covariance_update=covariance_update,
+        backend=backend,
+        threads=threads,
+        check_limits=check_limits,
+    )
     return est.filter(y, u=u, x0=x0, P0=P0, outputs=outputs)

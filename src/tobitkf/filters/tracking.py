@@ -48,10 +48,25 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from .._validation import (ShapeError, ValidationError, as_float, as_float_array, check_bool, check_int,
-                           check_option, check_psd)
-from .core import Estimator, FilterResult, FilterState, MeasurementPrediction, Transition, measurement_update, \
-    time_update
+from .._validation import (
+    ShapeError,
+    ValidationError,
+    as_float,
+    as_float_array,
+    check_bool,
+    check_int,
+    check_option,
+    check_psd,
+)
+from .core import (
+    Estimator,
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    Transition,
+    measurement_update,
+    time_update,
+)
 
 __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
 
@@ -103,9 +118,20 @@ class MultiTargetTracker(Estimator):
     _name = "MultiTargetTracker"
     n, m = 4, 0
 
-    def __init__(self, *, Q: Any = None, R: Any = None, P0: Any = None, gate0: float = 10.0, gate_slope: float = 2.0,
-                 mu: float = 0.0, warmup: int = 5, feedback: str = "corrected", second_map: str = "closest",
-                 gate: bool = True):
+    def __init__(
+        self,
+        *,
+        Q: Any = None,
+        R: Any = None,
+        P0: Any = None,
+        gate0: float = 10.0,
+        gate_slope: float = 2.0,
+        mu: float = 0.0,
+        warmup: int = 5,
+        feedback: str = "corrected",
+        second_map: str = "closest",
+        gate: bool = True,
+    ):
         check_option(feedback, "feedback", ("corrected", "printed", "off"))
         check_option(second_map, "second_map", ("closest", "mutual"))
         gate0 = as_float(gate0, "gate0", low=0.0, low_open=True)
@@ -144,7 +170,8 @@ class MultiTargetTracker(Estimator):
         return u
 
     # ---- the estimator -------------------------------------------------------------------
-    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None, P0: Any = None) -> FilterState:
+    # the tracker starts from initial locations and takes one frame of detections per step, not Estimator's arguments
+    def init(self, initial: Any = None, *, batch_shape: Any = None, x0: Any = None, P0: Any = None) -> FilterState:  # type: ignore[override]
         """Frame 0: one filter per target at the supplied locations ``initial`` (N, 2), zero velocity."""
         if initial is None:
             raise ValidationError("initial: expected the (N, 2) target locations of frame 0")
@@ -180,7 +207,7 @@ class MultiTargetTracker(Estimator):
         occluded = O.copy()
         match = np.full(N, -1)
         if len(M):
-            D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)     # (N, L)
+            D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)  # (N, L)
             first = np.argmin(D, axis=1)
             dist = D[np.arange(N), first]
             for j in np.unique(first):
@@ -192,24 +219,30 @@ class MultiTargetTracker(Estimator):
                     match[best] = j
         visible = match >= 0
         z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
-        mp = MeasurementPrediction(expected=xp @ self.C.T, H0=self.C, noise=self.R[None],
-                                   valid=np.repeat(visible[:, None], 2, axis=1))
+        mp = MeasurementPrediction(
+            expected=xp @ self.C.T, H0=self.C, noise=self.R[None], valid=np.repeat(visible[:, None], 2, axis=1)
+        )
         xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
-        new = {"O": np.where(visible, 0, O + 1), "visible": visible,
-               "last_meas": np.where(visible[:, None], z, last_meas)}
+        new = {
+            "O": np.where(visible, 0, O + 1),
+            "visible": visible,
+            "last_meas": np.where(visible[:, None], z, last_meas),
+        }
         return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
 
-    def step(self, state: FilterState, detections: Any) -> FilterState:
+    def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
         """Track one frame of unordered detections (L, 2) (L may be 0)."""
         state = self._check_state(state)
         M = self._frame(detections)
         k = state.k + 1
-        x, P, _, carry, _, _, extras = self._step_arrays(k, state.x, state.P, None, state.carry, None, None,
-                                                         {"frame": M})
+        x, P, _, carry, _, _, extras = self._step_arrays(
+            k, state.x, state.P, None, state.carry, None, None, {"frame": M}
+        )
         return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=4, carry=carry, extras=extras)
 
-    def filter(self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None,
-               outputs: Any = "all") -> FilterResult:
+    def filter(
+        self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None, outputs: Any = "all"
+    ) -> FilterResult:
         """Track every frame of ``detections`` (a sequence of T arrays (L_k, 2)) from ``initial`` (N, 2)
         or a ``state``; the common :class:`FilterResult` with the targets as runs: ``mean`` (N, T, 4),
         ``cov`` (N, T, 4, 4), ``extras`` ``assignment`` and ``occluded_frames`` (N, T), ``times`` 1..T."""
@@ -218,10 +251,14 @@ class MultiTargetTracker(Estimator):
         elif initial is not None:
             raise ValidationError("state: give either a state to continue from or the initial locations, not both")
         state = self._check_state(state)
-        if isinstance(detections, (str, bytes)) or not hasattr(detections, "__len__") or \
-                not hasattr(detections, "__getitem__"):
-            raise ValidationError(f"detections: expected a sequence of (L_k, 2) arrays, one per frame, got "
-                                  f"{type(detections).__name__}")
+        if (
+            isinstance(detections, (str, bytes))
+            or not hasattr(detections, "__len__")
+            or not hasattr(detections, "__getitem__")
+        ):
+            raise ValidationError(
+                f"detections: expected a sequence of (L_k, 2) arrays, one per frame, got {type(detections).__name__}"
+            )
         frames = [self._frame(detections[i], f"detections[{i}]") for i in range(len(detections))]
         T = len(frames)
         if T == 0:
@@ -229,7 +266,7 @@ class MultiTargetTracker(Estimator):
         L = max(1, max(len(f) for f in frames))
         padded = np.full((1, T, L, 2), np.nan)
         for i, f in enumerate(frames):
-            padded[0, i, :len(f)] = f
+            padded[0, i, : len(f)] = f
         N = state.runs
         return self._run(np.zeros((N, T, 0)), outputs=outputs, state=state, step_data={"frame": padded})
 
@@ -241,5 +278,10 @@ class MultiTargetTracker(Estimator):
         """Track from ``initial`` (N, 2) locations at frame 0 through ``detections``: a sequence of T arrays (L_k, 2)
         of unordered points (L_k may be 0). The frame-major layout of :class:`TrackResult`; see :meth:`filter`."""
         res = self.filter(detections, initial=initial)
-        return TrackResult(np.swapaxes(res.mean, 0, 1), np.swapaxes(res.cov, 0, 1),
-                           np.swapaxes(res.extras["assignment"], 0, 1), np.swapaxes(res.extras["occluded_frames"], 0, 1))
+        assert res.mean is not None and res.cov is not None, "the tracker records means and covariances"
+        return TrackResult(
+            np.swapaxes(res.mean, 0, 1),
+            np.swapaxes(res.cov, 0, 1),
+            np.swapaxes(res.extras["assignment"], 0, 1),
+            np.swapaxes(res.extras["occluded_frames"], 0, 1),
+        )

@@ -16,6 +16,22 @@ from .fitting import FitResult, fit, load_fit, residual_diagnostics
 from .likelihood import adf_log_likelihood, kalman_log_likelihood, log_likelihood, prediction_log_densities
 from .smoothing import FixedLagSmoother, FixedLagState, rts_smooth, smooth
 
-__all__ = ["smooth", "rts_smooth", "FixedLagSmoother", "FixedLagState", "log_likelihood", "kalman_log_likelihood",
-           "adf_log_likelihood", "prediction_log_densities", "ADFilter", "CensoredAR", "CensoredARData",
-           "exact_log_likelihood", "posterior_moments", "fit", "FitResult", "load_fit", "residual_diagnostics"]
+__all__ = [
+    "smooth",
+    "rts_smooth",
+    "FixedLagSmoother",
+    "FixedLagState",
+    "log_likelihood",
+    "kalman_log_likelihood",
+    "adf_log_likelihood",
+    "prediction_log_densities",
+    "ADFilter",
+    "CensoredAR",
+    "CensoredARData",
+    "exact_log_likelihood",
+    "posterior_moments",
+    "fit",
+    "FitResult",
+    "load_fit",
+    "residual_diagnostics",
+]

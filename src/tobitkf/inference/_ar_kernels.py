@@ -78,7 +78,7 @@ def forward_ar1(z, lw, start, count, a, v):  # pragma: no cover - compiled
                 zj = z[st + j]
                 m = -np.inf
                 s = 0.0
-                for i in range(Mp):                  # one-pass log-sum-exp
+                for i in range(Mp):  # one-pass log-sum-exp
                     if la[i] == -np.inf:
                         continue
                     d = zj - at * z[sp + i]
@@ -221,8 +221,8 @@ def forward_ar2(z, lw, start, count, a1, a2, v):  # pragma: no cover - compiled
     for j in range(M0):
         la[j, 0] = new[j, 0] - c
     total += c
-    M1, s1 = M0, s0          # nodes of step t-1 (axis 0 of la)
-    M2, s2 = 1, -1           # nodes of step t-2 (axis 1); -1: a dummy axis of one node
+    M1, s1 = M0, s0  # nodes of step t-1 (axis 0 of la)
+    M2, s2 = 1, -1  # nodes of step t-2 (axis 1); -1: a dummy axis of one node
     for t in range(1, T):
         st, M = start[t], count[t]
         b1, b2, vt = a1[t], a2[t], v[t]
@@ -238,7 +238,7 @@ def forward_ar2(z, lw, start, count, a1, a2, v):  # pragma: no cover - compiled
             for i in range(M1):
                 if new[j, i] > c:
                     c = new[j, i]
-        if done and not c > -600.0:          # the product underflowed: redo in the log domain
+        if done and not c > -600.0:  # the product underflowed: redo in the log domain
             _step_ar2_direct(z, lw, st, M, s1, M1, s2, M2, la, b1, b2, vt, new)
             c = -np.inf
             for j in range(M):

@@ -49,8 +49,15 @@ def assumed_density_filter(system, censoring, *, covariance_update: str = "stand
     return AssumedDensityTobitFilter(system, censoring, covariance_update=covariance_update, order="uncensored_first")
 
 
-def censoring_sides(y: np.ndarray, lower: np.ndarray, upper: np.ndarray, censored: Any = None, *,
-                    rtol: float = 1e-12, name: str = "censored") -> np.ndarray:
+def censoring_sides(
+    y: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    censored: Any = None,
+    *,
+    rtol: float = 1e-12,
+    name: str = "censored",
+) -> np.ndarray:
     r"""Side of each reading: 0 uncensored (or missing), -1 censored at ``lower``, +1 at ``upper``.
 
     Parameters
@@ -96,8 +103,10 @@ def censoring_sides(y: np.ndarray, lower: np.ndarray, upper: np.ndarray, censore
         bad = flag & ~(at_lo | at_hi)
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
-            raise ValidationError(f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but lies strictly "
-                                  f"inside its limits [{lo[idx]:.6g}, {hi[idx]:.6g}]")
+            raise ValidationError(
+                f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but lies strictly "
+                f"inside its limits [{lo[idx]:.6g}, {hi[idx]:.6g}]"
+            )
     side = np.zeros(y.shape, dtype=np.int8)
     side[flag & at_lo] = -1
     side[flag & ~at_lo & at_hi] = 1

@@ -43,8 +43,9 @@ def forward_gradient(f: Callable[[np.ndarray], float], x: np.ndarray, fx: float,
     return g
 
 
-def central_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, step: float = 1e-4,
-                    f0: float | None = None) -> np.ndarray:
+def central_hessian(
+    f: Callable[[np.ndarray], float], x: np.ndarray, step: float = 1e-4, f0: float | None = None
+) -> np.ndarray:
     r"""Central-difference Hessian: :math:`(f(x+h_i) - 2f(x) + f(x-h_i))/h_i^2` on the diagonal and the
     four-point rule off it; :math:`1 + 2d + 2d(d-1)` evaluations, error :math:`O(h^2)`."""
     x = np.asarray(x, dtype=float)
@@ -69,8 +70,9 @@ def central_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, step: float
     return H
 
 
-def forward_hessian(f: Callable[[np.ndarray], float], x: np.ndarray, step: float = 1e-4,
-                    f0: float | None = None) -> np.ndarray:
+def forward_hessian(
+    f: Callable[[np.ndarray], float], x: np.ndarray, step: float = 1e-4, f0: float | None = None
+) -> np.ndarray:
     r"""Forward-difference Hessian, :math:`H_{ij} \approx (f(x + h_ie_i + h_je_j) - f(x + h_ie_i) - f(x + h_je_j)
     + f(x))/(h_ih_j)`: :math:`1 + d + d(d+1)/2` evaluations (21 for d = 5, against 51 for
     :func:`central_hessian`), error :math:`O(h)` plus rounding :math:`O(\epsilon|f|/h^2)`; with
@@ -102,10 +104,18 @@ class Outcome:
     trace: list[dict[str, Any]] = field(default_factory=list)
 
 
-def maximize(f: Callable[[np.ndarray], float], x0: np.ndarray, *, gtol: float = 1e-3, maxiter: int = 200,
-             step: float | None = None, difference: str = "forward",
-             progress: Callable[[dict[str, Any]], None] | None = None,
-             label: Callable[[np.ndarray], dict[str, Any]] | None = None, iteration0: int = 0) -> Outcome:
+def maximize(
+    f: Callable[[np.ndarray], float],
+    x0: np.ndarray,
+    *,
+    gtol: float = 1e-3,
+    maxiter: int = 200,
+    step: float | None = None,
+    difference: str = "forward",
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    label: Callable[[np.ndarray], dict[str, Any]] | None = None,
+    iteration0: int = 0,
+) -> Outcome:
     r"""Maximise ``f`` by BFGS (scipy.optimize.minimize) with finite-difference gradients.
 
     Forward differences (d evaluations per gradient, the value at x reused) are the default; their
@@ -160,14 +170,30 @@ def maximize(f: Callable[[np.ndarray], float], x0: np.ndarray, *, gtol: float = 
 
     def cb(intermediate_result):
         x = np.asarray(intermediate_result.x, dtype=float)
-        entry = {"iteration": iteration0 + len(trace) + 1, "loglik": float(-intermediate_result.fun),
-                 "params": label(x) if label is not None else x.tolist(),
-                 "seconds": round(time.perf_counter() - t0, 4)}
+        entry = {
+            "iteration": iteration0 + len(trace) + 1,
+            "loglik": float(-intermediate_result.fun),
+            "params": label(x) if label is not None else x.tolist(),
+            "seconds": round(time.perf_counter() - t0, 4),
+        }
         trace.append(entry)
         if progress is not None:
             progress(entry)
 
-    res = minimize(neg, np.asarray(x0, dtype=float), jac=grad, method="BFGS", callback=cb,
-                   options={"gtol": gtol, "maxiter": maxiter})
-    return Outcome(x=np.asarray(res.x, dtype=float), value=float(-res.fun), converged=bool(res.success),
-                   message=str(res.message), iterations=int(res.nit), evaluations=count[0], trace=trace)
+    res = minimize(
+        neg,
+        np.asarray(x0, dtype=float),
+        jac=grad,
+        method="BFGS",
+        callback=cb,
+        options={"gtol": gtol, "maxiter": maxiter},
+    )
+    return Outcome(
+        x=np.asarray(res.x, dtype=float),
+        value=float(-res.fun),
+        converged=bool(res.success),
+        message=str(res.message),
+        iterations=int(res.nit),
+        evaluations=count[0],
+        trace=trace,
+    )

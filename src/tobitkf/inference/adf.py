@@ -66,11 +66,15 @@ class ADFilter(AssumedDensityTobitFilter):
 
     _name = "ADFilter"
 
-    def __init__(self, system: LinearSystem, censoring: Censoring, *, rtol: float = _RTOL,
-                 covariance_update: str = "standard"):
-        warnings.warn("tobitkf.inference.ADFilter is deprecated; use tobitkf.AssumedDensityTobitFilter(system, "
-                      "censoring, order='uncensored_first') (its extras['log_likelihood'] is the old 'log_lik')",
-                      DeprecationWarning, stacklevel=2)
+    def __init__(
+        self, system: LinearSystem, censoring: Censoring, *, rtol: float = _RTOL, covariance_update: str = "standard"
+    ):
+        warnings.warn(
+            "tobitkf.inference.ADFilter is deprecated; use tobitkf.AssumedDensityTobitFilter(system, "
+            "censoring, order='uncensored_first') (its extras['log_likelihood'] is the old 'log_lik')",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         if isinstance(rtol, bool) or not isinstance(rtol, (int, float, np.floating)) or rtol != _RTOL:
             raise ValidationError(f"rtol: the limit rule's tolerance is fixed at {_RTOL:g}, got {rtol!r}")
         super().__init__(system, censoring, covariance_update=covariance_update, order="uncensored_first")

@@ -60,8 +60,20 @@ from .._validation import ShapeError, ValidationError, as_float_array
 from ._common import LOG_2PI, censoring_sides
 from ._optimize import central_gradient, forward_hessian, maximize
 
-__all__ = ["CensoredARData", "GridPlan", "ar_autocovariance", "ar_predictors", "pacf_to_ar", "ar_to_pacf",
-           "is_stationary", "exact_log_likelihood", "posterior_moments", "plan_grid", "ar_state_space", "CensoredAR"]
+__all__ = [
+    "CensoredARData",
+    "GridPlan",
+    "ar_autocovariance",
+    "ar_predictors",
+    "pacf_to_ar",
+    "ar_to_pacf",
+    "is_stationary",
+    "exact_log_likelihood",
+    "posterior_moments",
+    "plan_grid",
+    "ar_state_space",
+    "CensoredAR",
+]
 
 _GL_CACHE: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 #: default quadrature: Gauss-Legendre nodes per panel, cut in standard deviations, panel width in sd
@@ -83,6 +95,7 @@ def _gauss_legendre(G: int):
 
 # --------------------------------------------------------------------------- AR algebra
 
+
 def pacf_to_ar(r: Any) -> np.ndarray:
     r"""AR coefficients :math:`\phi` from partial autocorrelations :math:`r_k \in (-1, 1)` (stationary by construction).
 
@@ -93,7 +106,7 @@ def pacf_to_ar(r: Any) -> np.ndarray:
     phi = np.zeros(0)
     for k, rk in enumerate(r, start=1):
         new = np.empty(k)
-        new[:k - 1] = phi - rk * phi[::-1]
+        new[: k - 1] = phi - rk * phi[::-1]
         new[k - 1] = rk
         phi = new
     return phi
@@ -110,7 +123,7 @@ def ar_to_pacf(phi: Any) -> np.ndarray:
             raise ValidationError(f"phi: expected stationary AR coefficients, got {phi.tolist()}")
         r[k - 1] = rk
         if k > 1:
-            phi = (phi[:k - 1] + rk * phi[:k - 1][::-1]) / (1.0 - rk * rk)
+            phi = (phi[: k - 1] + rk * phi[: k - 1][::-1]) / (1.0 - rk * rk)
     return r
 
 
@@ -126,7 +139,7 @@ def is_stationary(phi: Any) -> bool:
         if not abs(rk) < 1.0:
             return False
         if k > 1:
-            phi = (phi[:k - 1] + rk * phi[:k - 1][::-1]) / (1.0 - rk * rk)
+            phi = (phi[: k - 1] + rk * phi[: k - 1][::-1]) / (1.0 - rk * rk)
         k -= 1
     return True
 
@@ -149,10 +162,10 @@ def ar_autocovariance(phi: Any, sigma2: float, lags: int) -> np.ndarray:
     rhs[0] = sigma2
     g = np.linalg.solve(M, rhs)
     out = np.empty(max(lags, p) + 1)
-    out[:p + 1] = g
+    out[: p + 1] = g
     for k in range(p + 1, out.size):
-        out[k] = phi @ out[k - 1::-1][:p]
-    return out[:lags + 1]
+        out[k] = phi @ out[k - 1 :: -1][:p]
+    return out[: lags + 1]
 
 
 def ar_predictors(phi: Any, sigma2: float) -> list[tuple[np.ndarray, float]]:
@@ -169,7 +182,7 @@ def ar_predictors(phi: Any, sigma2: float) -> list[tuple[np.ndarray, float]]:
             out.append((np.zeros(0), float(g[0])))
             continue
         Gm = np.array([[g[abs(i - j)] for j in range(q)] for i in range(q)])
-        rhs = g[1:q + 1]
+        rhs = g[1 : q + 1]
         a = np.linalg.solve(Gm, rhs)
         out.append((a, float(g[0] - a @ rhs)))
     out.append((phi.copy(), float(sigma2)))
@@ -177,6 +190,7 @@ def ar_predictors(phi: Any, sigma2: float) -> list[tuple[np.ndarray, float]]:
 
 
 # --------------------------------------------------------------------------- data
+
 
 @dataclass(frozen=True, eq=False)
 class CensoredARData:
@@ -208,8 +222,9 @@ class CensoredARData:
     side: np.ndarray
 
     @classmethod
-    def build(cls, y: Any, X: Any = None, lower: Any = -np.inf, upper: Any = np.inf, censored: Any = None,
-              rtol: float = 1e-12) -> CensoredARData:
+    def build(
+        cls, y: Any, X: Any = None, lower: Any = -np.inf, upper: Any = np.inf, censored: Any = None, rtol: float = 1e-12
+    ) -> CensoredARData:
         y = as_float_array(y, "y", ndim=1, allow_nan=True)
         T = y.size
         if T < 1:
@@ -219,23 +234,38 @@ class CensoredARData:
             X = X[:, None]
         if X.shape[0] != T:
             raise ShapeError(f"X: expected {T} rows (one per reading), got shape {X.shape}")
-        lo = np.broadcast_to(as_float_array(lower, "lower", ndim=(0, 1), allow_inf=True), (T,)).copy() \
-            if np.ndim(lower) == 0 or np.shape(lower) == (T,) else None
-        hi = np.broadcast_to(as_float_array(upper, "upper", ndim=(0, 1), allow_inf=True), (T,)).copy() \
-            if np.ndim(upper) == 0 or np.shape(upper) == (T,) else None
+        lo = (
+            np.broadcast_to(as_float_array(lower, "lower", ndim=(0, 1), allow_inf=True), (T,)).copy()
+            if np.ndim(lower) == 0 or np.shape(lower) == (T,)
+            else None
+        )
+        hi = (
+            np.broadcast_to(as_float_array(upper, "upper", ndim=(0, 1), allow_inf=True), (T,)).copy()
+            if np.ndim(upper) == 0 or np.shape(upper) == (T,)
+            else None
+        )
         if lo is None or hi is None:
-            raise ShapeError(f"lower/upper: expected scalars or ({T},) arrays, got {np.shape(lower)} and {np.shape(upper)}")
+            raise ShapeError(
+                f"lower/upper: expected scalars or ({T},) arrays, got {np.shape(lower)} and {np.shape(upper)}"
+            )
         if not (lo < hi).all():
             raise ValidationError("lower/upper: expected lower < upper for every reading")
         with np.errstate(invalid="ignore"):
-            bad = (y < lo - 1e-9 * np.maximum(1, np.abs(np.where(np.isfinite(lo), lo, 0)))) | \
-                  (y > hi + 1e-9 * np.maximum(1, np.abs(np.where(np.isfinite(hi), hi, 0))))
+            bad = (y < lo - 1e-9 * np.maximum(1, np.abs(np.where(np.isfinite(lo), lo, 0)))) | (
+                y > hi + 1e-9 * np.maximum(1, np.abs(np.where(np.isfinite(hi), hi, 0)))
+            )
         if bad.any():
             i = int(np.argmax(bad))
-            raise ValidationError(f"y: reading {y[i]:.6g} at index {i} lies outside its limits [{lo[i]:.6g}, {hi[i]:.6g}]")
-        side = censoring_sides(y[:, None], lo[:, None], hi[:, None], None if censored is None else
-                               np.asarray(censored).reshape(-1, 1) if np.size(censored) == T else censored,
-                               rtol=rtol)[:, 0]
+            raise ValidationError(
+                f"y: reading {y[i]:.6g} at index {i} lies outside its limits [{lo[i]:.6g}, {hi[i]:.6g}]"
+            )
+        side = censoring_sides(
+            y[:, None],
+            lo[:, None],
+            hi[:, None],
+            None if censored is None else np.asarray(censored).reshape(-1, 1) if np.size(censored) == T else censored,
+            rtol=rtol,
+        )[:, 0]
         return cls(y=y, X=X, lower=lo, upper=hi, side=side)
 
     @property
@@ -249,6 +279,7 @@ class CensoredARData:
 
 
 # --------------------------------------------------------------------------- the grid
+
 
 @dataclass(frozen=True)
 class GridPlan:
@@ -292,11 +323,23 @@ def _structure(data: CensoredARData, p: int):
         obs = data.observed
         out = []
         for s, e in _runs(data):
-            anc = np.array([t for t in range(max(0, s - p), s) if obs[t]] +
-                           [t for t in range(e, min(data.T, e + p)) if obs[t]], dtype=int)
+            anc = np.array(
+                [t for t in range(max(0, s - p), s) if obs[t]] + [t for t in range(e, min(data.T, e + p)) if obs[t]],
+                dtype=int,
+            )
             run = np.arange(s, e)
-            out.append((s, e, run, anc, np.abs(np.subtract.outer(run, run)), np.abs(np.subtract.outer(anc, anc)),
-                        np.abs(np.subtract.outer(run, anc)), not (data.side[s:e] != 0).any()))
+            out.append(
+                (
+                    s,
+                    e,
+                    run,
+                    anc,
+                    np.abs(np.subtract.outer(run, run)),
+                    np.abs(np.subtract.outer(anc, anc)),
+                    np.abs(np.subtract.outer(run, anc)),
+                    not (data.side[s:e] != 0).any(),
+                )
+            )
         cache[p] = out
     return cache[p]
 
@@ -347,8 +390,17 @@ def _intervals(data: CensoredARData, beta, sigma2, phi, span: float):
     return m, sd, lo, hi, width, pure
 
 
-def plan_grid(data: CensoredARData, beta, sigma2, phi, *, nodes: int = NODES, span: float = SPAN,
-              panel_sd: float = PANEL_SD, hermite: int = HERMITE) -> GridPlan:
+def plan_grid(
+    data: CensoredARData,
+    beta,
+    sigma2,
+    phi,
+    *,
+    nodes: int = NODES,
+    span: float = SPAN,
+    panel_sd: float = PANEL_SD,
+    hermite: int = HERMITE,
+) -> GridPlan:
     """The quadrature of every step at these parameters: Gauss-Legendre panels no wider than ``panel_sd``
     times the step's width scale (see :func:`_intervals`) for censored steps; ``hermite``
     Gauss-Hermite nodes on the Gaussian conditional for the steps of runs of missing readings only
@@ -408,6 +460,7 @@ def _node_arrays(data: CensoredARData, beta, sigma2, phi, plan: GridPlan):
 
 # --------------------------------------------------------------------------- recursion
 
+
 class Posterior(NamedTuple):
     """Posterior moments of the AR errors (:func:`posterior_moments`)."""
 
@@ -446,14 +499,14 @@ def _forward(data: CensoredARData, beta, sigma2, phi, plan: GridPlan, keep: bool
     p = phi.size
     preds = ar_predictors(phi, sigma2) if p > 0 else [(np.zeros(0), float(sigma2))]
     z_all, lw_all, start, count = _node_arrays(data, beta, sigma2, phi, plan)
-    la = None
-    zs: list[np.ndarray] = []       # nodes of the axes of la, newest first
+    la: Any = None  # log alpha once the first step is done
+    zs: list[np.ndarray] = []  # nodes of the axes of la, newest first
     total = 0.0
     kept: list[tuple] | None = [] if keep else None
     for t in range(data.T):
         a, v = preds[min(t, p)]
-        z, lw = z_all[start[t]:start[t] + count[t]], lw_all[start[t]:start[t] + count[t]]
-        q = a.size                  # earlier values the transition uses (= axes of la)
+        z, lw = z_all[start[t] : start[t] + count[t]], lw_all[start[t] : start[t] + count[t]]
+        q = a.size  # earlier values the transition uses (= axes of la)
         if q == 0:
             lK = -0.5 * (LOG_2PI + np.log(v) + z * z / v)
             new = lw + lK
@@ -461,7 +514,7 @@ def _forward(data: CensoredARData, beta, sigma2, phi, plan: GridPlan, keep: bool
         else:
             lK = None
             if lK is None:
-                mean = 0.0
+                mean: Any = 0.0
                 for i in range(q):
                     shape = [1] * q
                     shape[i] = zs[i].size
@@ -470,22 +523,22 @@ def _forward(data: CensoredARData, beta, sigma2, phi, plan: GridPlan, keep: bool
                 lK = -0.5 * (LOG_2PI + np.log(v) + d * d / v)
             new = lK + la[None]
             if q == p:
-                new = _lse(new, axis=-1)              # integrate out xi_{t-p}
+                new = _lse(new, axis=-1)  # integrate out xi_{t-p}
             new = new + lw.reshape((-1,) + (1,) * (new.ndim - 1))
             la_prev = la
         c = float(np.max(new))
         if not np.isfinite(c):
             return -np.inf, None
-        if p == 0:                                     # independent errors: nothing carried
+        if p == 0:  # independent errors: nothing carried
             total += c + float(_lse(new - c, axis=0))
-            if keep:
+            if kept is not None:
                 kept.append((lK, None, new - c, lw, [z]))
             la = None
             continue
         la = new - c
         total += c
         zs = ([z] + zs)[:p]
-        if keep:
+        if kept is not None:
             kept.append((lK, la_prev, la, lw, zs[:]))
     if p == 0:
         return total, kept
@@ -507,18 +560,27 @@ def _log_likelihood(data, beta, sigma2, phi, plan: GridPlan, backend: str = "aut
         for t in range(min(p, T)):
             at, vt = preds[t]
             a[t] = 0.0
-            a[t, :at.size] = at
+            a[t, : at.size] = at
             v[t] = vt
         if p == 1:
             return float(K.forward_ar1(z, lw, start, count, np.ascontiguousarray(a[:, 0]), v))
-        return float(K.forward_ar2(z, lw, start, count, np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
-                                   v))
+        return float(
+            K.forward_ar2(z, lw, start, count, np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]), v)
+        )
     ll, _ = _forward(data, beta, sigma2, phi, plan)
     return float(ll)
 
 
-def exact_log_likelihood(data: CensoredARData, beta: Any, sigma2: float, phi: Any, *, plan: GridPlan | None = None,
-                         nodes: int = NODES, span: float = SPAN) -> float:
+def exact_log_likelihood(
+    data: CensoredARData,
+    beta: Any,
+    sigma2: float,
+    phi: Any,
+    *,
+    plan: GridPlan | None = None,
+    nodes: int = NODES,
+    span: float = SPAN,
+) -> float:
     r"""The exact log-likelihood (to quadrature accuracy) of the censored regression with AR(p) errors.
 
     Parameters
@@ -565,8 +627,16 @@ def exact_log_likelihood(data: CensoredARData, beta: Any, sigma2: float, phi: An
     return float(_log_likelihood(data, beta, sigma2, phi, plan))
 
 
-def posterior_moments(data: CensoredARData, beta: Any, sigma2: float, phi: Any, *, plan: GridPlan | None = None,
-                      nodes: int = NODES, span: float = SPAN):
+def posterior_moments(
+    data: CensoredARData,
+    beta: Any,
+    sigma2: float,
+    phi: Any,
+    *,
+    plan: GridPlan | None = None,
+    nodes: int = NODES,
+    span: float = SPAN,
+):
     r"""Exact (to quadrature) posterior mean and variance of every :math:`\xi_t` given all the data.
 
     Forward–backward on the quadrature nodes of :func:`exact_log_likelihood`: the backward message
@@ -599,7 +669,7 @@ def posterior_moments(data: CensoredARData, beta: Any, sigma2: float, phi: Any, 
         w /= w.sum()
         fmean[t] = w @ z
         fvar[t] = max(w @ (z - fmean[t]) ** 2, 0.0)
-    lb = np.zeros_like(kept[-1][2])          # log beta_T over the axes of la_T
+    lb = np.zeros_like(kept[-1][2])  # log beta_T over the axes of la_T
     for t in range(T - 1, -1, -1):
         lK_t, la_prev, la_t, lw_t, zs_t = kept[t]
         post = la_t + lb
@@ -613,7 +683,7 @@ def posterior_moments(data: CensoredARData, beta: Any, sigma2: float, phi: Any, 
         if t == 0:
             break
         # backward message to t-1: lb_{t-1}(axes of la_{t-1}) = lse over xi_t of lK + lw + lb_t
-        if p == 0:                       # independent errors: the steps do not talk to each other
+        if p == 0:  # independent errors: the steps do not talk to each other
             lb = np.zeros_like(kept[t - 1][2])
             continue
         q = lK_t.ndim - 1
@@ -630,6 +700,7 @@ def posterior_moments(data: CensoredARData, beta: Any, sigma2: float, phi: Any, 
 
 
 # --------------------------------------------------------------------------- state-space form
+
 
 def ar_state_space(beta: Any, sigma2: float, phi: Any, *, noise_floor: float = 0.0):
     r"""The model as a :class:`~tobitkf.LinearSystem` for the package's filters and smoothers.
@@ -649,22 +720,24 @@ def ar_state_space(beta: Any, sigma2: float, phi: Any, *, noise_floor: float = 0
     phi = np.asarray(phi, dtype=float).ravel()
     p = max(phi.size, 1)
     ph = np.zeros(p)
-    ph[:phi.size] = phi
+    ph[: phi.size] = phi
     A = np.zeros((p, p))
     A[0] = ph
     if p > 1:
         A[1:, :-1] = np.eye(p - 1)
-    g = ar_autocovariance(ph[:phi.size], sigma2, p)
+    g = ar_autocovariance(ph[: phi.size], sigma2, p)
     G = np.array([[g[abs(i - j)] for j in range(p)] for i in range(p)])
     B = np.zeros((p, 1))
     B[0, 0] = 1.0
     C = np.zeros((1, p))
     C[0, 0] = 1.0
-    return LinearSystem(A=A, C=C, Q=[[float(sigma2)]], R=[[float(noise_floor)]], x0=np.zeros(p), P0=G, B=B,
-                        D=beta[None, :])
+    return LinearSystem(
+        A=A, C=C, Q=[[float(sigma2)]], R=[[float(noise_floor)]], x0=np.zeros(p), P0=G, B=B, D=beta[None, :]
+    )
 
 
 # --------------------------------------------------------------------------- the model template
+
 
 class CensoredAR:
     r"""Template of the censored regression with AR(p) errors, fitted by exact maximum likelihood.
@@ -704,16 +777,17 @@ class CensoredAR:
 
     kind = "censored_ar"
 
-    def __init__(self, p: int = 1, *, nodes: int = NODES, span: float = SPAN, panel_sd: float = PANEL_SD,
-                 hermite: int = HERMITE):
+    def __init__(
+        self, p: int = 1, *, nodes: int = NODES, span: float = SPAN, panel_sd: float = PANEL_SD, hermite: int = HERMITE
+    ):
         if isinstance(p, bool) or not isinstance(p, (int, np.integer)) or p < 0:
             raise ValidationError(f"p: expected an AR order >= 0, got {p!r}")
         for name, val in (("nodes", nodes), ("hermite", hermite)):
             if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < (1 if name == "nodes" else 0):
                 raise ValidationError(f"{name}: expected a positive integer, got {val!r}")
-        for name, val in (("span", span), ("panel_sd", panel_sd)):
-            if not (isinstance(val, (int, float, np.floating)) and np.isfinite(val) and val > 0):
-                raise ValidationError(f"{name}: expected a positive number, got {val!r}")
+        for name, num in (("span", span), ("panel_sd", panel_sd)):
+            if not (isinstance(num, (int, float, np.floating)) and np.isfinite(num) and num > 0):
+                raise ValidationError(f"{name}: expected a positive number, got {num!r}")
         self.p = int(p)
         self.nodes, self.span, self.panel_sd, self.hermite = int(nodes), float(span), float(panel_sd), int(hermite)
 
@@ -721,8 +795,13 @@ class CensoredAR:
         return f"CensoredAR(p={self.p})"
 
     def _coarse(self) -> CensoredAR:
-        return CensoredAR(self.p, nodes=max(4, self.nodes - 2), span=self.span, panel_sd=self.panel_sd * 4 / 3,
-                          hermite=max(8, self.hermite - 4))
+        return CensoredAR(
+            self.p,
+            nodes=max(4, self.nodes - 2),
+            span=self.span,
+            panel_sd=self.panel_sd * 4 / 3,
+            hermite=max(8, self.hermite - 4),
+        )
 
     # parameters -------------------------------------------------------------------
     def names(self, l: int) -> list[str]:
@@ -732,7 +811,7 @@ class CensoredAR:
     def split(self, theta: np.ndarray, l: int):
         """``(beta, sigma2, phi)`` from the natural parameter vector."""
         theta = np.asarray(theta, dtype=float)
-        return theta[:l], float(theta[l]), theta[l + 1:]
+        return theta[:l], float(theta[l]), theta[l + 1 :]
 
     def _to_free(self, theta, l):
         beta, s2, phi = self.split(theta, l)
@@ -741,7 +820,7 @@ class CensoredAR:
 
     def _from_free(self, u, l):
         u = np.asarray(u, dtype=float)
-        phi = pacf_to_ar(np.tanh(u[l + 1:])) if self.p else np.zeros(0)
+        phi = pacf_to_ar(np.tanh(u[l + 1 :])) if self.p else np.zeros(0)
         return np.concatenate([u[:l], [np.exp(u[l])], phi])
 
     def start(self, data: CensoredARData) -> np.ndarray:
@@ -752,12 +831,12 @@ class CensoredAR:
         beta = np.linalg.lstsq(X, y, rcond=None)[0]
         r = np.full(data.T, np.nan)
         r[ok] = y - X @ beta
-        g = []
+        acov = []
         for k in range(self.p + 1):
-            a, b = r[k:], r[:data.T - k]
+            a, b = r[k:], r[: data.T - k]
             both = ~np.isnan(a) & ~np.isnan(b)
-            g.append(float(np.mean(a[both] * b[both])) if both.sum() > 1 else 0.0)
-        g = np.array(g)
+            acov.append(float(np.mean(a[both] * b[both])) if both.sum() > 1 else 0.0)
+        g = np.array(acov)
         g0 = max(g[0], 1e-12)
         if self.p:
             Gm = np.array([[g[abs(i - j)] for j in range(self.p)] for i in range(self.p)])
@@ -774,8 +853,9 @@ class CensoredAR:
     # likelihood --------------------------------------------------------------------
     def plan(self, data: CensoredARData, theta) -> GridPlan:
         beta, s2, phi = self.split(theta, data.X.shape[1])
-        return plan_grid(data, beta, s2, phi, nodes=self.nodes, span=self.span, panel_sd=self.panel_sd,
-                         hermite=self.hermite)
+        return plan_grid(
+            data, beta, s2, phi, nodes=self.nodes, span=self.span, panel_sd=self.panel_sd, hermite=self.hermite
+        )
 
     def log_likelihood(self, data: CensoredARData, theta, plan: GridPlan | None = None) -> float:
         """Exact log-likelihood at the natural parameters ``theta`` (``-inf`` outside the parameter space)."""
@@ -786,9 +866,22 @@ class CensoredAR:
             plan = self.plan(data, theta)
         return _log_likelihood(data, beta, s2, phi, plan)
 
-    def fit(self, y: Any, X: Any = None, *, lower: Any = -np.inf, upper: Any = np.inf, censored: Any = None,
-            start: Any = None, maxiter: int = 200, gtol: float = 1e-3, passes: int = 3, standard_errors: bool = True,
-            coarse: bool = True, progress: Any = None):
+    def fit(
+        self,
+        y: Any,
+        X: Any = None,
+        *,
+        lower: Any = -np.inf,
+        upper: Any = np.inf,
+        censored: Any = None,
+        start: Any = None,
+        maxiter: int = 200,
+        gtol: float = 1e-3,
+        passes: int = 3,
+        standard_errors: bool = True,
+        coarse: bool = True,
+        progress: Any = None,
+    ):
         r"""Exact maximum-likelihood fit (direct maximisation, BFGS on unconstrained parameters).
 
         The free parameters are :math:`\beta`, :math:`\log\sigma^2` and the Fisher transforms of the
@@ -840,8 +933,10 @@ class CensoredAR:
         if theta.size != len(names):
             raise ShapeError(f"start: expected {len(names)} values ({', '.join(names)}), got {theta.size}")
         if not np.isfinite(self.log_likelihood(data, theta)):
-            raise ValidationError("start: the log-likelihood is -inf there (sigma2 <= 0, a non-stationary phi, or "
-                                  "readings of zero probability)")
+            raise ValidationError(
+                "start: the log-likelihood is -inf there (sigma2 <= 0, a non-stationary phi, or "
+                "readings of zero probability)"
+            )
         cb, close = _progress_callback(progress, f"fit {self!r}")
         trace: list[dict[str, Any]] = []
         converged, message, evals = False, "", 0
@@ -852,10 +947,15 @@ class CensoredAR:
             u = self._to_free(theta, l)
             for _ in range(max(1, passes)):
                 plan = search.plan(data, self._from_free(u, l))
-                out = maximize(lambda v: search.log_likelihood(data, self._from_free(v, l), plan), u, gtol=gtol,
-                               maxiter=maxiter, progress=cb,
-                               label=lambda v: dict(zip(names, self._from_free(v, l).tolist())),
-                               iteration0=len(trace))
+                out = maximize(
+                    lambda v: search.log_likelihood(data, self._from_free(v, l), plan),
+                    u,
+                    gtol=gtol,
+                    maxiter=maxiter,
+                    progress=cb,
+                    label=lambda v: dict(zip(names, self._from_free(v, l).tolist())),
+                    iteration0=len(trace),
+                )
                 trace += out.trace
                 evals += out.evaluations
                 u = out.x
@@ -882,9 +982,10 @@ class CensoredAR:
             evals += 1 + theta.size + theta.size * (theta.size + 1) // 2
             cov = _inverse_information(H)
         if coarse:
-            for _ in range(3):                     # Newton polish on the default rule
-                g = np.array([(f(theta + e) - ll) / e[i] for i, e in
-                              enumerate(np.diag(1e-7 * np.maximum(1.0, np.abs(theta))))])
+            for _ in range(3):  # Newton polish on the default rule
+                g = np.array(
+                    [(f(theta + e) - ll) / e[i] for i, e in enumerate(np.diag(1e-7 * np.maximum(1.0, np.abs(theta))))]
+                )
                 evals += theta.size
                 if cov is None or not np.all(np.isfinite(cov)):
                     break
@@ -901,18 +1002,38 @@ class CensoredAR:
                 if not (np.isfinite(new_ll) and new_ll >= ll - 1e-9):
                     break
                 theta, ll = new_theta, new_ll
-                trace.append({"iteration": len(trace) + 1, "loglik": float(ll),
-                              "params": dict(zip(names, theta.tolist())), "polish": True,
-                              "seconds": round(time.perf_counter() - t0, 4)})
+                trace.append(
+                    {
+                        "iteration": len(trace) + 1,
+                        "loglik": float(ll),
+                        "params": dict(zip(names, theta.tolist())),
+                        "polish": True,
+                        "seconds": round(time.perf_counter() - t0, 4),
+                    }
+                )
                 if np.max(np.abs(step) / se_) < 1e-3:
                     break
             if not standard_errors:
                 cov = None
         k = len(names)
         n = int((~np.isnan(data.y)).sum())
-        return FitResult(model=self, names=names, theta=theta, cov=cov, loglik=ll, n_obs=n, n_params=k,
-                         method="direct", likelihood="exact", converged=converged, message=message, trace=trace,
-                         fit_seconds=time.perf_counter() - t0, evaluations=evals, data=data)
+        return FitResult(
+            model=self,
+            names=names,
+            theta=theta,
+            cov=cov,
+            loglik=ll,
+            n_obs=n,
+            n_params=k,
+            method="direct",
+            likelihood="exact",
+            converged=converged,
+            message=message,
+            trace=trace,
+            fit_seconds=time.perf_counter() - t0,
+            evaluations=evals,
+            data=data,
+        )
 
     # what a user does after a fit -----------------------------------------------------
     def system(self, theta, l: int):
@@ -921,8 +1042,14 @@ class CensoredAR:
         return ar_state_space(beta, s2, phi)
 
     def to_spec(self) -> dict[str, Any]:
-        return {"kind": self.kind, "p": self.p, "nodes": self.nodes, "span": self.span, "panel_sd": self.panel_sd,
-                "hermite": self.hermite}
+        return {
+            "kind": self.kind,
+            "p": self.p,
+            "nodes": self.nodes,
+            "span": self.span,
+            "panel_sd": self.panel_sd,
+            "hermite": self.hermite,
+        }
 
 
 def _inverse_information(H: np.ndarray) -> np.ndarray | None:
@@ -1025,7 +1152,7 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
             raise ShapeError(f"X: expected the future regressors of shape ({steps}, {l}), got {Xf.shape}")
     p = max(phi.size, 1)
     ph = np.zeros(p)
-    ph[:phi.size] = phi
+    ph[: phi.size] = phi
     A = np.zeros((p, p))
     A[0] = ph
     if p > 1:
@@ -1036,7 +1163,7 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
         w = np.ones(1)
     else:
         grids = np.meshgrid(*zsT, indexing="ij")
-        states = np.stack([g.ravel() for g in grids], axis=-1)        # (K, q) newest first
+        states = np.stack([g.ravel() for g in grids], axis=-1)  # (K, q) newest first
         if states.shape[1] < p:
             states = np.concatenate([states, np.zeros((states.shape[0], p - states.shape[1]))], axis=1)
         w = wT.ravel()
@@ -1046,14 +1173,16 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
     hi_lim = data.upper[-1] if upper is None else upper
     lo_lim = np.broadcast_to(np.asarray(lo_lim, dtype=float), (steps,))
     hi_lim = np.broadcast_to(np.asarray(hi_lim, dtype=float), (steps,))
-    out = {k: np.empty(steps) for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower",
-                                         "censored_upper")}
+    out: dict[str, Any] = {
+        k: np.empty(steps)
+        for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower", "censored_upper")
+    }
     Ah = np.eye(p)
     vh = 0.0
     from ..censored import censored_moments
 
     for h in range(steps):
-        vh = vh + s2 * (Ah[0, 0] ** 2)            # sum_{j<h+1} (e1' A^j e1)^2 sigma^2
+        vh = vh + s2 * (Ah[0, 0] ** 2)  # sum_{j<h+1} (e1' A^j e1)^2 sigma^2
         Ah = A @ Ah
         m = states @ Ah[0] + Xf[h] @ beta
         mean = float(w @ m)
@@ -1070,6 +1199,6 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
     return out
 
 
-CensoredAR.smooth = _ar_smooth
-CensoredAR.residuals = _ar_residuals
-CensoredAR.forecast = _ar_forecast
+CensoredAR.smooth = _ar_smooth  # type: ignore[attr-defined]  # defined after the class: they use its fit results
+CensoredAR.residuals = _ar_residuals  # type: ignore[attr-defined]  # (as above)
+CensoredAR.forecast = _ar_forecast  # type: ignore[attr-defined]  # (as above)

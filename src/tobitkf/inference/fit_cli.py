@@ -62,7 +62,7 @@ def read_spec(path: Path) -> dict[str, Any]:
     if bad:
         raise ValidationError(f"--model: unknown section [{bad[0]}]; expected [data] and [model]")
     if "y" not in spec.get("data", {}):
-        raise ValidationError("--model: [data] needs y = \"<column of the readings>\"")
+        raise ValidationError('--model: [data] needs y = "<column of the readings>"')
     return spec
 
 
@@ -80,8 +80,9 @@ def read_columns(path: Path) -> dict[str, list[str]]:
 
 def _column(cols: dict[str, list[str]], name: str, what: str) -> np.ndarray:
     if name not in cols:
-        raise ValidationError(f"--model: {what} names the column {name!r}, which FILE does not have "
-                              f"(columns: {', '.join(cols)})")
+        raise ValidationError(
+            f"--model: {what} names the column {name!r}, which FILE does not have (columns: {', '.join(cols)})"
+        )
     out = []
     for i, v in enumerate(cols[name]):
         v = v.strip()
@@ -152,7 +153,7 @@ def run_fit(csv_path: str | Path, model_path: str | Path, out: str | Path, *, pr
     if not isinstance(regs, list) or not all(isinstance(r, str) for r in regs):
         raise ValidationError("--model: regressors must be a list of column names")
     X_cols = ([np.ones(T)] if dspec.get("intercept", True) else []) + [_column(cols, r, "regressors") for r in regs]
-    for r, c in zip(regs, X_cols[-len(regs):] if regs else []):
+    for r, c in zip(regs, X_cols[-len(regs) :] if regs else []):
         if np.isnan(c).any():
             raise ValidationError(f"FILE: regressor column {r!r} has missing values")
     X = np.column_stack(X_cols) if X_cols else None
@@ -163,8 +164,15 @@ def run_fit(csv_path: str | Path, model_path: str | Path, out: str | Path, *, pr
         p = mspec.get("p", 1)
         if X is None:
             raise ValidationError("--model: the censored AR model needs an intercept or regressors")
-        res = fit(CensoredAR(int(p) if isinstance(p, int) else p), y, X=X, lower=lower, upper=upper, censored=censored,
-                  progress=progress)
+        res = fit(
+            CensoredAR(int(p) if isinstance(p, int) else p),
+            y,
+            X=X,
+            lower=lower,
+            upper=upper,
+            censored=censored,
+            progress=progress,
+        )
         names = ["intercept"] * bool(dspec.get("intercept", True)) + regs
     elif kind == "state_space":
         need = [k for k in ("A", "C", "Q", "R", "x0", "P0") if k not in mspec]
@@ -174,9 +182,17 @@ def run_fit(csv_path: str | Path, model_path: str | Path, out: str | Path, *, pr
         cens = None
         if np.isfinite(lower).any() or np.isfinite(upper).any():
             cens = Censoring(lower=lower[:, None], upper=upper[:, None])
-        res = fit(templ, y, censoring=cens, censored=None if censored is None else censored[:, None],
-                  estimate=mspec.get("estimate"), method=mspec.get("method", "auto"),
-                  prior=mspec.get("prior", "given"), maxiter=int(mspec.get("maxiter", 500)), progress=progress)
+        res = fit(
+            templ,
+            y,
+            censoring=cens,
+            censored=None if censored is None else censored[:, None],
+            estimate=mspec.get("estimate"),
+            method=mspec.get("method", "auto"),
+            prior=mspec.get("prior", "given"),
+            maxiter=int(mspec.get("maxiter", 500)),
+            progress=progress,
+        )
         names = []
     else:
         raise ValidationError(f"--model: unknown model kind {kind!r}; expected 'censored_ar' or 'state_space'")
@@ -188,22 +204,33 @@ def run_fit(csv_path: str | Path, model_path: str | Path, out: str | Path, *, pr
     mean, var = res.smooth()
     mean = np.asarray(mean).reshape(T, -1)[:, 0]
     sd = np.sqrt(np.maximum(np.asarray(var).reshape(T, -1)[:, 0], 0.0))
-    side = (res.data.side if hasattr(res.data, "side") else None)
+    side = res.data.side if hasattr(res.data, "side") else None
     flags = (side != 0) if side is not None else (censored if censored is not None else np.zeros(T, bool))
     label = cols[dspec["time"]] if dspec.get("time") in cols else [str(i + 1) for i in range(T)]
     lines = ["time,y,censored,lower,upper,smoothed,smoothed_sd"]
     for i in range(T):
-        lines.append(",".join([label[i], "" if np.isnan(y[i]) else repr(float(y[i])), str(int(flags[i])),
-                               repr(float(lower[i])), repr(float(upper[i])), repr(float(mean[i])),
-                               repr(float(sd[i]))]))
+        lines.append(
+            ",".join(
+                [
+                    label[i],
+                    "" if np.isnan(y[i]) else repr(float(y[i])),
+                    str(int(flags[i])),
+                    repr(float(lower[i])),
+                    repr(float(upper[i])),
+                    repr(float(mean[i])),
+                    repr(float(sd[i])),
+                ]
+            )
+        )
     paths.append(atomic_write_text(out / "series.csv", "\n".join(lines) + "\n"))
     paths.append(_figure(out, y, flags, lower, upper, mean, sd, res))
     return paths
 
 
 def _figure(out: Path, y, flags, lower, upper, mean, sd, res) -> Path:
-    import matplotlib
+    from .._extras import require
 
+    matplotlib = require("matplotlib", extra="plot", feature="the figure of tobitkf fit")
     matplotlib.use("Agg")
     from ..plotting import new_figure, save
 

@@ -55,8 +55,10 @@ def _progress_callback(progress: Any, title: str):
         status.start()
 
         def cb(entry: dict[str, Any]) -> None:
-            status.update(f"{title}: iteration {entry['iteration']}, log-likelihood {entry['loglik']:.6f}, "
-                          f"{entry.get('seconds', 0):.1f} s")
+            status.update(
+                f"{title}: iteration {entry['iteration']}, log-likelihood {entry['loglik']:.6f}, "
+                f"{entry.get('seconds', 0):.1f} s"
+            )
 
         return cb, status.stop
     raise ValidationError(f"progress: expected None, True or a callable, got {progress!r}")
@@ -138,14 +140,19 @@ class FitResult:
 
     def summary(self) -> str:
         """A plain-text table of the estimates and criteria."""
-        lines = [f"{self.model!r}: {self.method} maximum likelihood ({self.likelihood} likelihood), "
-                 f"{'converged' if self.converged else 'NOT converged'} in {len(self.trace)} iterations, "
-                 f"{self.fit_seconds:.2f} s", f"{'parameter':<12}{'estimate':>14}{'s.e.':>12}"]
+        lines = [
+            f"{self.model!r}: {self.method} maximum likelihood ({self.likelihood} likelihood), "
+            f"{'converged' if self.converged else 'NOT converged'} in {len(self.trace)} iterations, "
+            f"{self.fit_seconds:.2f} s",
+            f"{'parameter':<12}{'estimate':>14}{'s.e.':>12}",
+        ]
         se = self.se
         for n, v in self.params.items():
             lines.append(f"{n:<12}{v:>14.6f}{se[n]:>12.6f}")
-        lines.append(f"log-likelihood {self.loglik:.6f}   AIC {self.aic:.4f}   BIC {self.bic:.4f}   "
-                     f"n = {self.n_obs}, k = {self.n_params}")
+        lines.append(
+            f"log-likelihood {self.loglik:.6f}   AIC {self.aic:.4f}   BIC {self.bic:.4f}   "
+            f"n = {self.n_obs}, k = {self.n_params}"
+        )
         return "\n".join(lines)
 
     # after the fit ------------------------------------------------------------------
@@ -191,8 +198,11 @@ class FitResult:
 
     def diagnostics(self, *, seed: int = 0, lags: int | None = None) -> dict[str, Any]:
         """:func:`residual_diagnostics` of :meth:`residuals`."""
-        return residual_diagnostics(self.residuals(seed=seed), lags=lags, fitted=self.n_params - _regressors(self) - 1
-                                    if self.model.kind == "censored_ar" else 0)
+        return residual_diagnostics(
+            self.residuals(seed=seed),
+            lags=lags,
+            fitted=self.n_params - _regressors(self) - 1 if self.model.kind == "censored_ar" else 0,
+        )
 
     def _need_data(self) -> None:
         if self.data is None:
@@ -201,14 +211,28 @@ class FitResult:
     # saving -------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         """A plain JSON-able record (no data)."""
-        return {"format": _FORMAT, "version": _VERSION, "model": self.model.to_spec(), "names": list(self.names),
-                "estimates": self.params, "se": self.se,
-                "cov": None if self.cov is None else np.where(np.isfinite(self.cov), self.cov, np.nan).tolist(),
-                "loglik": self.loglik, "aic": self.aic, "bic": self.bic, "n_obs": self.n_obs,
-                "n_params": self.n_params, "method": self.method, "likelihood": self.likelihood,
-                "converged": self.converged, "message": self.message, "trace": self.trace,
-                "fit_seconds": self.fit_seconds, "evaluations": self.evaluations,
-                "extra": _jsonable(self.extra)}
+        return {
+            "format": _FORMAT,
+            "version": _VERSION,
+            "model": self.model.to_spec(),
+            "names": list(self.names),
+            "estimates": self.params,
+            "se": self.se,
+            "cov": None if self.cov is None else np.where(np.isfinite(self.cov), self.cov, np.nan).tolist(),
+            "loglik": self.loglik,
+            "aic": self.aic,
+            "bic": self.bic,
+            "n_obs": self.n_obs,
+            "n_params": self.n_params,
+            "method": self.method,
+            "likelihood": self.likelihood,
+            "converged": self.converged,
+            "message": self.message,
+            "trace": self.trace,
+            "fit_seconds": self.fit_seconds,
+            "evaluations": self.evaluations,
+            "extra": _jsonable(self.extra),
+        }
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write :meth:`to_dict` as JSON (NaN written as null) atomically; returns the path."""
@@ -259,18 +283,34 @@ def load_fit(path: str | os.PathLike, *, data: Any = None) -> FitResult:
     model = _model_from_spec(rec["model"])
     names = list(rec["names"])
     theta = np.array([rec["estimates"][n] for n in names], dtype=float)
-    cov = None if rec.get("cov") is None else np.array([[np.nan if v is None else v for v in row]
-                                                        for row in rec["cov"]], dtype=float)
+    cov = (
+        None
+        if rec.get("cov") is None
+        else np.array([[np.nan if v is None else v for v in row] for row in rec["cov"]], dtype=float)
+    )
     if data is not None and model.kind == "censored_ar":
         from .censored_ar import CensoredARData
 
         if not isinstance(data, CensoredARData):
             raise ValidationError("data: expected the CensoredARData the model was fitted to")
-    return FitResult(model=model, names=names, theta=theta, cov=cov, loglik=float(rec["loglik"]),
-                     n_obs=int(rec["n_obs"]), n_params=int(rec["n_params"]), method=rec["method"],
-                     likelihood=rec["likelihood"], converged=bool(rec["converged"]), message=rec.get("message", ""),
-                     trace=rec.get("trace", []), fit_seconds=float(rec.get("fit_seconds", 0.0)),
-                     evaluations=int(rec.get("evaluations", 0)), data=data, extra=rec.get("extra", {}))
+    return FitResult(
+        model=model,
+        names=names,
+        theta=theta,
+        cov=cov,
+        loglik=float(rec["loglik"]),
+        n_obs=int(rec["n_obs"]),
+        n_params=int(rec["n_params"]),
+        method=rec["method"],
+        likelihood=rec["likelihood"],
+        converged=bool(rec["converged"]),
+        message=rec.get("message", ""),
+        trace=rec.get("trace", []),
+        fit_seconds=float(rec.get("fit_seconds", 0.0)),
+        evaluations=int(rec.get("evaluations", 0)),
+        data=data,
+        extra=rec.get("extra", {}),
+    )
 
 
 def _model_from_spec(spec: dict[str, Any]):
@@ -278,8 +318,13 @@ def _model_from_spec(spec: dict[str, Any]):
     if kind == "censored_ar":
         from .censored_ar import CensoredAR
 
-        return CensoredAR(int(spec["p"]), nodes=int(spec["nodes"]), span=float(spec["span"]),
-                          panel_sd=float(spec["panel_sd"]), hermite=int(spec["hermite"]))
+        return CensoredAR(
+            int(spec["p"]),
+            nodes=int(spec["nodes"]),
+            span=float(spec["span"]),
+            panel_sd=float(spec["panel_sd"]),
+            hermite=int(spec["hermite"]),
+        )
     if kind == "state_space":
         from .state_space import StateSpaceModel
 
@@ -310,25 +355,50 @@ def residual_diagnostics(r: Any, *, lags: int | None = None, fitted: int = 0) ->
     H = int(lags) if lags is not None else int(min(10, max(1, n // 5)))
     mean, var = float(x.mean()), float(x.var(ddof=1))
     skew, kurt = float(stats.skew(x)), float(stats.kurtosis(x))
-    jb = n / 6.0 * (skew ** 2 + kurt ** 2 / 4.0)
+    jb = n / 6.0 * (skew**2 + kurt**2 / 4.0)
     c = np.where(ok, r - mean, np.nan)
     denom = np.nansum(c * c)
-    rho = []
+    acf = []
     for h in range(1, H + 1):
         a, b = c[h:], c[:-h]
         both = ~np.isnan(a) & ~np.isnan(b)
-        rho.append(float(np.sum(a[both] * b[both]) / denom))
-    rho = np.array(rho)
-    Q = float(n * (n + 2) * np.sum(rho ** 2 / (n - np.arange(1, H + 1))))
+        acf.append(float(np.sum(a[both] * b[both]) / denom))
+    rho = np.array(acf)
+    Q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, H + 1))))
     dof = max(H - fitted, 1)
-    return {"n": n, "mean": mean, "variance": var, "skewness": skew, "excess_kurtosis": kurt,
-            "jarque_bera": jb, "jarque_bera_p": float(stats.chi2.sf(jb, 2)), "ljung_box": Q, "ljung_box_lags": H,
-            "ljung_box_dof": dof, "ljung_box_p": float(stats.chi2.sf(Q, dof)), "autocorrelation": rho.tolist()}
+    return {
+        "n": n,
+        "mean": mean,
+        "variance": var,
+        "skewness": skew,
+        "excess_kurtosis": kurt,
+        "jarque_bera": jb,
+        "jarque_bera_p": float(stats.chi2.sf(jb, 2)),
+        "ljung_box": Q,
+        "ljung_box_lags": H,
+        "ljung_box_dof": dof,
+        "ljung_box_p": float(stats.chi2.sf(Q, dof)),
+        "autocorrelation": rho.tolist(),
+    }
 
 
-def fit(model: Any, y: Any, *, X: Any = None, u: Any = None, censoring: Any = None, censored: Any = None,
-        lower: Any = None, upper: Any = None, estimate: Any = None, theta0: Any = None, method: str = "auto",
-        likelihood: str = "auto", progress: Any = None, **options: Any) -> FitResult:
+def fit(
+    model: Any,
+    y: Any,
+    *,
+    X: Any = None,
+    u: Any = None,
+    censoring: Any = None,
+    censored: Any = None,
+    lower: Any = None,
+    upper: Any = None,
+    estimate: Any = None,
+    theta0: Any = None,
+    method: str = "auto",
+    likelihood: str = "auto",
+    progress: Any = None,
+    **options: Any,
+) -> FitResult:
     r"""Fit a model to (censored) readings: exact ML, EM or direct maximisation (module docstring).
 
     Parameters
@@ -394,11 +464,24 @@ def fit(model: Any, y: Any, *, X: Any = None, u: Any = None, censoring: Any = No
     from .state_space import fit_state_space
 
     if isinstance(model, LinearSystem) or callable(model):
-        return fit_state_space(model, y, u=u, censoring=censoring, censored=censored, lower=lower, upper=upper,
-                               estimate=estimate, theta0=theta0, method=method, likelihood=likelihood,
-                               progress=progress, **options)
-    raise ValidationError(f"model: expected a CensoredAR, a LinearSystem or a callable theta -> LinearSystem, "
-                          f"got {type(model).__name__}")
+        return fit_state_space(
+            model,
+            y,
+            u=u,
+            censoring=censoring,
+            censored=censored,
+            lower=lower,
+            upper=upper,
+            estimate=estimate,
+            theta0=theta0,
+            method=method,
+            likelihood=likelihood,
+            progress=progress,
+            **options,
+        )
+    raise ValidationError(
+        f"model: expected a CensoredAR, a LinearSystem or a callable theta -> LinearSystem, got {type(model).__name__}"
+    )
 
 
 def _limits_1d(censoring, lower, upper):

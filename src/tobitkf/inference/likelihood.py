@@ -32,8 +32,7 @@ from ..filters.core import FilterResult, prepare_inputs, prepare_measurements
 from ..models.linear import LinearSystem
 from ._common import gaussian_log_density
 
-__all__ = ["kalman_log_likelihood", "adf_log_likelihood", "log_likelihood", "prediction_log_densities",
-           "LIKELIHOODS"]
+__all__ = ["kalman_log_likelihood", "adf_log_likelihood", "log_likelihood", "prediction_log_densities", "LIKELIHOODS"]
 
 LIKELIHOODS = ("kalman", "adf")
 
@@ -65,7 +64,7 @@ def prediction_log_densities(system: LinearSystem, y: Any, result: FilterResult,
     u2 = prepare_inputs(system, u, N, T)
     out = np.empty((N, T))
     fixed = not (system.C.varying or system.R.varying) and (u2 is None or system.D is None or not system.D.varying)
-    if fixed:                                   # every step at once: one batched density over (N, T)
+    if fixed:  # every step at once: one batched density over (N, T)
         C, R = system.measurement(1), system.measurement_cov(1)
         yhat = xp @ C.T
         if u2 is not None and system.D is not None:
@@ -86,8 +85,9 @@ def prediction_log_densities(system: LinearSystem, y: Any, result: FilterResult,
     return out.reshape(batch + (T,))
 
 
-def kalman_log_likelihood(system: LinearSystem, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None,
-                          per_step: bool = False) -> np.ndarray:
+def kalman_log_likelihood(
+    system: LinearSystem, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+) -> np.ndarray:
     r"""Exact log-likelihood :math:`\log p(y_{1:T})` of the linear Gaussian model (NaN readings skipped).
 
     Parameters
@@ -128,8 +128,17 @@ def kalman_log_likelihood(system: LinearSystem, y: Any, *, u: Any = None, x0: An
     return terms if per_step else terms.sum(-1)
 
 
-def adf_log_likelihood(system: LinearSystem, censoring: Censoring, y: Any, *, censored: Any = None, u: Any = None,
-                       x0: Any = None, P0: Any = None, per_step: bool = False) -> np.ndarray:
+def adf_log_likelihood(
+    system: LinearSystem,
+    censoring: Censoring,
+    y: Any,
+    *,
+    censored: Any = None,
+    u: Any = None,
+    x0: Any = None,
+    P0: Any = None,
+    per_step: bool = False,
+) -> np.ndarray:
     r"""Assumed-density log-likelihood of censored readings (see the module docstring).
 
     Parameters
@@ -167,15 +176,23 @@ def adf_log_likelihood(system: LinearSystem, censoring: Censoring, y: Any, *, ce
     from ._common import assumed_density_filter
 
     check_instance(system, LinearSystem, "system")
-    res = assumed_density_filter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0,
-                                                           outputs=("extras",))
+    res = assumed_density_filter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",))
     terms = res.extras["log_likelihood"]
     return terms if per_step else terms.sum(-1)
 
 
-def log_likelihood(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, censored: Any = None,
-                   method: str = "auto", u: Any = None, x0: Any = None, P0: Any = None,
-                   per_step: bool = False) -> np.ndarray:
+def log_likelihood(
+    system: LinearSystem,
+    y: Any,
+    *,
+    censoring: Censoring | None = None,
+    censored: Any = None,
+    method: str = "auto",
+    u: Any = None,
+    x0: Any = None,
+    P0: Any = None,
+    per_step: bool = False,
+) -> np.ndarray:
     r"""Log-likelihood of readings ``y`` under ``system`` (and ``censoring``).
 
     Parameters

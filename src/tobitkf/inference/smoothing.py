@@ -43,7 +43,7 @@ row k holding :math:`J_k` (row 0: :math:`J_0`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, overload
 
 import numpy as np
 
@@ -53,29 +53,46 @@ from ..filters.core import FilterResult, FilterState, check_prior, prepare_measu
 from ..models.linear import LinearSystem
 from ._common import solve_psd
 
-__all__ = ["rts_smooth", "smooth", "SMOOTHERS", "FixedLagSmoother", "FixedLagState", "dropping_with_indicator",
-           "check_tobit_indicator"]
+__all__ = [
+    "rts_smooth",
+    "smooth",
+    "SMOOTHERS",
+    "FixedLagSmoother",
+    "FixedLagState",
+    "dropping_with_indicator",
+    "check_tobit_indicator",
+]
 
 SMOOTHERS = ("kalman", "dropping", "tobit", "adf")
 
 
+@overload
+def _flat(a: np.ndarray, N: int, tail: int) -> np.ndarray: ...
+@overload
+def _flat(a: np.ndarray | None, N: int, tail: int) -> np.ndarray | None: ...
 def _flat(a: np.ndarray | None, N: int, tail: int) -> np.ndarray | None:
     """(batch..., T, *core) -> (N or 1, T, *core) without copying a broadcast shared covariance."""
     if a is None:
         return None
     a = np.asarray(a)
-    core = a.shape[a.ndim - tail:]
-    lead = a.shape[:a.ndim - tail]
-    if len(lead) == 1:                                  # one run: (T, ...)
+    core = a.shape[a.ndim - tail :]
+    lead = a.shape[: a.ndim - tail]
+    if len(lead) == 1:  # one run: (T, ...)
         return a[None]
-    strides = a.strides[:len(lead) - 1]
-    if N > 1 and all(s == 0 for s in strides):          # one covariance shared by every run
+    strides = a.strides[: len(lead) - 1]
+    if N > 1 and all(s == 0 for s in strides):  # one covariance shared by every run
         return a[(0,) * (len(lead) - 1)][None]
     return a.reshape((N,) + lead[-1:] + core)
 
 
-def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] | LinearSystem, *,
-               x0: Any = None, P0: Any = None, k0: int = 0) -> FilterResult:
+def rts_smooth(
+    filtered: FilterResult,
+    transition: Callable[[int], np.ndarray] | LinearSystem,
+    *,
+    x0: Any = None,
+    P0: Any = None,
+    k0: int = 0,
+) -> FilterResult:
     r"""The RTS backward pass over a Gaussian filter's result (see the module docstring).
 
     Parameters
@@ -107,6 +124,7 @@ def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] |
     for name in ("mean", "cov", "pred_mean", "pred_cov"):
         if getattr(filtered, name) is None:
             raise ValidationError(f"filtered: the result has no {name!r}; run the filter with outputs='all'")
+    assert filtered.pred_mean is not None and filtered.cov is not None and filtered.pred_cov is not None
     system = transition if isinstance(transition, LinearSystem) else None
     A_of = system.transition if system is not None else transition
     if not callable(A_of):
@@ -137,14 +155,14 @@ def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] |
     xs[:, -1] = xf[:, -1]
     Ps[:, -1] = Pf[:, -1]
     for i in range(T - 1, -1, -1):
-        A = np.asarray(A_of(k0 + i), dtype=float)           # x_{k0+i+1} = A x_{k0+i}
+        A = np.asarray(A_of(k0 + i), dtype=float)  # x_{k0+i+1} = A x_{k0+i}
         if i > 0:
             xfi, Pfi = xf[:, i - 1], Pf[:, i - 1]
         else:
             xfi, Pfi = xa, Pa
         Ppi = Pp[:, i]
         Jt = solve_psd(np.broadcast_to(Ppi, (max(Ppi.shape[0], Pfi.shape[0]),) + Ppi.shape[1:]), A @ Pfi)
-        J = np.swapaxes(Jt, -1, -2)                          # (Nc, n, n)
+        J = np.swapaxes(Jt, -1, -2)  # (Nc, n, n)
         gain[:, i] = J
         xn = xfi + np.einsum("...ij,...j->...i", J, xs[:, i] - xp[:, i])
         Pn = Pfi + J @ (Ps[:, i] - Ppi) @ Jt
@@ -162,10 +180,25 @@ def rts_smooth(filtered: FilterResult, transition: Callable[[int], np.ndarray] |
         return a.reshape(batch + a.shape[1:])
 
     extras = dict(filtered.extras)
-    extras.update({"cross_cov": out(cross, 3), "gain": out(gain, 3), "initial_mean": out(x_init, 1),
-                   "initial_cov": out(P_init, 2), "filtered_mean": filtered.mean, "filtered_cov": filtered.cov})
-    return FilterResult(mean=out(xs, 2), cov=out(Ps, 3), pred_mean=filtered.pred_mean, pred_cov=filtered.pred_cov,
-                        extras=extras, times=filtered.times, final=filtered.final)
+    extras.update(
+        {
+            "cross_cov": out(cross, 3),
+            "gain": out(gain, 3),
+            "initial_mean": out(x_init, 1),
+            "initial_cov": out(P_init, 2),
+            "filtered_mean": filtered.mean,
+            "filtered_cov": filtered.cov,
+        }
+    )
+    return FilterResult(
+        mean=out(xs, 2),
+        cov=out(Ps, 3),
+        pred_mean=filtered.pred_mean,
+        pred_cov=filtered.pred_cov,
+        extras=extras,
+        times=filtered.times,
+        final=filtered.final,
+    )
 
 
 def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None):
@@ -184,8 +217,17 @@ def _filter_for(system: LinearSystem, method: str, censoring: Censoring | None):
     return assumed_density_filter(system, censoring)
 
 
-def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, censored: Any = None,
-           method: str = "auto", u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+def smooth(
+    system: LinearSystem,
+    y: Any,
+    *,
+    censoring: Censoring | None = None,
+    censored: Any = None,
+    method: str = "auto",
+    u: Any = None,
+    x0: Any = None,
+    P0: Any = None,
+) -> FilterResult:
     r"""Fixed-interval smoothing of readings ``y`` (..., T, m): :math:`\hat x_{k|T}`, :math:`P_{k|T}` and the
     lag-one cross-covariances.
 
@@ -244,13 +286,13 @@ def smooth(system: LinearSystem, y: Any, *, censoring: Censoring | None = None, 
         res = dropping_with_indicator(est, y, censored, u=u, x0=x0, P0=P0)
     else:
         if method == "tobit" and censored is not None:
+            assert censoring is not None, "_filter_for refuses the tobit method without censoring"
             check_tobit_indicator(censoring, y, censored)
         res = est.filter(y, u=u, x0=x0, P0=P0)
     return rts_smooth(res, system, x0=x0, P0=P0)
 
 
-def dropping_with_indicator(est, y, censored, *, u=None, x0=None, P0=None, outputs="all",
-                            state=None) -> FilterResult:
+def dropping_with_indicator(est, y, censored, *, u=None, x0=None, P0=None, outputs="all", state=None) -> FilterResult:
     r"""The dropping KF ``est`` with the recorded censoring indicator instead of its limit rule.
 
     Flagged readings (checked to lie at or beyond a limit, see
@@ -279,8 +321,16 @@ def dropping_with_indicator(est, y, censored, *, u=None, x0=None, P0=None, outpu
     extras = dict(res.extras)
     if res.mean is not None or outputs == "all" or "extras" in (outputs or ()):
         extras["censored"] = (side != 0).reshape(batch + y2.shape[1:])
-    return FilterResult(mean=res.mean, cov=res.cov, pred_mean=res.pred_mean, pred_cov=res.pred_cov, extras=extras,
-                        times=res.times, var=res.var, final=res.final)
+    return FilterResult(
+        mean=res.mean,
+        cov=res.cov,
+        pred_mean=res.pred_mean,
+        pred_cov=res.pred_cov,
+        extras=extras,
+        times=res.times,
+        var=res.var,
+        final=res.final,
+    )
 
 
 def check_tobit_indicator(censoring: Censoring, y: Any, censored: Any, *, start: int = 1) -> None:
@@ -309,6 +359,7 @@ def check_tobit_indicator(censoring: Censoring, y: Any, censored: Any, *, start:
 
 
 # --------------------------------------------------------------------------- fixed lag (online)
+
 
 @dataclass(frozen=True, eq=False)
 class FixedLagState:
@@ -381,11 +432,13 @@ class FixedLagSmoother:
     def step(self, state: FixedLagState, y: Any, *, u: Any = None, **options: Any) -> FixedLagState:
         """One reading: the filter's prediction and step, the window advanced (``options`` go to the step)."""
         if not isinstance(state, FixedLagState):
-            raise ValidationError(f"state: expected a FixedLagState (from init() or step()), got {type(state).__name__}")
+            raise ValidationError(
+                f"state: expected a FixedLagState (from init() or step()), got {type(state).__name__}"
+            )
         pred = self.estimator.predict(state.filter_state, u=u)
         new = self.estimator.step(state.filter_state, y, u=u, **options)
         window = state.window + ((new.k, new.x, new.P, pred.x, pred.P),)
-        return FixedLagState(filter_state=new, window=window[-(self.lag + 1):])
+        return FixedLagState(filter_state=new, window=window[-(self.lag + 1) :])
 
     def _window_pass(self, win: tuple) -> list[tuple[int, np.ndarray, np.ndarray]]:
         """RTS over the window: ``(k, x_{k|K}, P_{k|K})`` for every step of it, newest first."""
@@ -433,5 +486,12 @@ class FixedLagSmoother:
         for k, x, P in self._window_pass(st.window):
             if k >= 1:
                 mean[k - 1], cov[k - 1] = self._shape(st.filter_state, x, P)
-        return FilterResult(mean=mean, cov=cov, pred_mean=None, pred_cov=None, extras={"lag": self.lag},
-                            times=np.arange(1, T + 1), final=st.filter_state)
+        return FilterResult(
+            mean=mean,
+            cov=cov,
+            pred_mean=None,
+            pred_cov=None,
+            extras={"lag": self.lag},
+            times=np.arange(1, T + 1),
+            final=st.filter_state,
+        )

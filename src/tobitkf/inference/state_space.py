@@ -55,6 +55,13 @@ __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
 ESTIMABLE = ("A", "C", "Q", "R", "Bu", "D", "x0", "P0")
 
 
+def _required(system: LinearSystem, name: str) -> np.ndarray:
+    """A matrix every LinearSystem has (A, C, Q, R), constant in time."""
+    value = _const(system, name)
+    assert value is not None, f"a LinearSystem always has {name}"
+    return value
+
+
 def _const(system: LinearSystem, name: str) -> np.ndarray | None:
     ts = getattr(system, name)
     if ts is None:
@@ -66,7 +73,7 @@ def _const(system: LinearSystem, name: str) -> np.ndarray | None:
     return np.array(ts.at(ts.offset), dtype=float)
 
 
-def _matrices(system: LinearSystem) -> dict[str, np.ndarray | None]:
+def _matrices(system: LinearSystem) -> dict[str, Any]:  # name -> array, None for an absent Bu, D
     out = {k: _const(system, k) for k in ("A", "C", "Q", "R", "Bu", "D", "B")}
     if out["B"] is not None:
         out["Q"] = out["B"] @ out["Q"] @ out["B"].T
@@ -75,9 +82,10 @@ def _matrices(system: LinearSystem) -> dict[str, np.ndarray | None]:
     return out
 
 
-def _build(M: dict[str, np.ndarray | None]) -> LinearSystem:
-    return LinearSystem(A=M["A"], C=M["C"], Q=_sym(M["Q"]), R=_sym(M["R"]), x0=M["x0"], P0=_sym(M["P0"]),
-                        Bu=M.get("Bu"), D=M.get("D"))
+def _build(M: dict[str, Any]) -> LinearSystem:
+    return LinearSystem(
+        A=M["A"], C=M["C"], Q=_sym(M["Q"]), R=_sym(M["R"]), x0=M["x0"], P0=_sym(M["P0"]), Bu=M.get("Bu"), D=M.get("D")
+    )
 
 
 def _sym(P):
@@ -106,8 +114,14 @@ class StateSpaceModel:
 
     kind = "state_space"
 
-    def __init__(self, system: LinearSystem, censoring: Censoring | None = None, estimate: tuple[str, ...] = (),
-                 prior: str = "given", diagonal_R: bool = False):
+    def __init__(
+        self,
+        system: LinearSystem,
+        censoring: Censoring | None = None,
+        estimate: tuple[str, ...] = (),
+        prior: str = "given",
+        diagonal_R: bool = False,
+    ):
         self.fitted, self.censoring, self.estimate = system, censoring, tuple(estimate)
         self.prior, self.diagonal_R = prior, diagonal_R
 
@@ -119,43 +133,65 @@ class StateSpaceModel:
 
     def to_spec(self) -> dict[str, Any]:
         M = _matrices(self.fitted)
-        spec = {"kind": self.kind, "estimate": list(self.estimate), "prior": self.prior,
-                "diagonal_R": self.diagonal_R,
-                "system": {k: (None if v is None else np.asarray(v).tolist()) for k, v in M.items() if k != "B"}}
+        spec = {
+            "kind": self.kind,
+            "estimate": list(self.estimate),
+            "prior": self.prior,
+            "diagonal_R": self.diagonal_R,
+            "system": {k: (None if v is None else np.asarray(v).tolist()) for k, v in M.items() if k != "B"},
+        }
         if self.censoring is not None:
-            spec["censoring"] = {"lower": np.where(np.isfinite(self.censoring.lower), self.censoring.lower,
-                                                   np.nan).tolist(),
-                                 "upper": np.where(np.isfinite(self.censoring.upper), self.censoring.upper,
-                                                   np.nan).tolist()}
+            spec["censoring"] = {
+                "lower": np.where(np.isfinite(self.censoring.lower), self.censoring.lower, np.nan).tolist(),
+                "upper": np.where(np.isfinite(self.censoring.upper), self.censoring.upper, np.nan).tolist(),
+            }
         return spec
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> StateSpaceModel:
         S = spec["system"]
-        M = {k: (None if S.get(k) is None else np.array(S[k], dtype=float)) for k in ("A", "C", "Q", "R", "Bu", "D",
-                                                                                       "x0", "P0")}
+        M = {
+            k: (None if S.get(k) is None else np.array(S[k], dtype=float))
+            for k in ("A", "C", "Q", "R", "Bu", "D", "x0", "P0")
+        }
         cens = None
         if spec.get("censoring"):
-            lo = np.array([[-np.inf if v is None or v != v else v for v in np.atleast_1d(r)] for r in
-                           np.atleast_2d(np.array(spec["censoring"]["lower"], dtype=object))], dtype=float)
-            hi = np.array([[np.inf if v is None or v != v else v for v in np.atleast_1d(r)] for r in
-                           np.atleast_2d(np.array(spec["censoring"]["upper"], dtype=object))], dtype=float)
+            lo = np.array(
+                [
+                    [-np.inf if v is None or v != v else v for v in np.atleast_1d(r)]
+                    for r in np.atleast_2d(np.array(spec["censoring"]["lower"], dtype=object))
+                ],
+                dtype=float,
+            )
+            hi = np.array(
+                [
+                    [np.inf if v is None or v != v else v for v in np.atleast_1d(r)]
+                    for r in np.atleast_2d(np.array(spec["censoring"]["upper"], dtype=object))
+                ],
+                dtype=float,
+            )
             shape = np.shape(spec["censoring"]["lower"])
             cens = Censoring(lower=lo.reshape(shape), upper=hi.reshape(shape))
-        return cls(_build(M), cens, tuple(spec.get("estimate", ())), spec.get("prior", "given"),
-                   bool(spec.get("diagonal_R", False)))
+        return cls(
+            _build(M),
+            cens,
+            tuple(spec.get("estimate", ())),
+            spec.get("prior", "given"),
+            bool(spec.get("diagonal_R", False)),
+        )
 
     # after the fit ---------------------------------------------------------------------
     def _filter(self, res, system=None):
-        from ._common import assumed_density_filter
         from ..filters.kalman import KalmanFilter
+        from ._common import assumed_density_filter
 
         data = res.data
         system = system or self.fitted
         if self.censoring is None:
             return KalmanFilter(system, backend="numpy").filter(data["y"], u=data.get("u")), None
-        r = assumed_density_filter(system, self.censoring).filter(data["y"], u=data.get("u"),
-                                                                  censored=data.get("censored"))
+        r = assumed_density_filter(system, self.censoring).filter(
+            data["y"], u=data.get("u"), censored=data.get("censored")
+        )
         return r, r.extras["side"]
 
     def smooth(self, res):
@@ -178,8 +214,9 @@ class StateSpaceModel:
         f, side = self._filter(res)
         y = np.asarray(res.data["y"], dtype=float)
         y = y[:, None] if y.ndim == 1 else y
-        C, R = _const(self.fitted, "C"), _const(self.fitted, "R")
+        C, R = _required(self.fitted, "C"), _required(self.fitted, "R")
         D = _const(self.fitted, "D")
+        assert f.pred_mean is not None and f.pred_cov is not None, "filter() records the predictions by default"
         mean = f.pred_mean @ C.T
         if D is not None and res.data.get("u") is not None:
             mean = mean + np.asarray(res.data["u"]) @ D.T
@@ -207,7 +244,7 @@ class StateSpaceModel:
         x, P = f.final.mean, f.final.cov
         if x.ndim > 1:
             x, P = x.reshape(-1), P.reshape(P.shape[-2:])
-        A, Q, C, R = (_const(self.fitted, k) for k in ("A", "Q", "C", "R"))
+        A, Q, C, R = (_required(self.fitted, k) for k in ("A", "Q", "C", "R"))
         Bu, D = _const(self.fitted, "Bu"), _const(self.fitted, "D")
         if self.fitted.p is not None and X is None:
             raise ValidationError(f"X: expected the future inputs ({steps}, {self.fitted.p})")
@@ -216,8 +253,10 @@ class StateSpaceModel:
             raise ShapeError(f"X: expected the future inputs of shape ({steps}, {self.fitted.p}), got {Uf.shape}")
         m = C.shape[0]
         z = float(ndtri(0.5 + level / 2))
-        out = {k: np.empty((steps, m)) for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower",
-                                                 "censored_upper")}
+        out: dict[str, Any] = {
+            k: np.empty((steps, m))
+            for k in ("mean", "sd", "lower", "upper", "censored_mean", "censored_lower", "censored_upper")
+        }
         if self.censoring is not None:
             lo_c = self.censoring.lower[-1] if self.censoring.time_varying else self.censoring.lower
             hi_c = self.censoring.upper[-1] if self.censoring.time_varying else self.censoring.upper
@@ -242,6 +281,7 @@ class StateSpaceModel:
 
 # --------------------------------------------------------------------------- EM
 
+
 def _augmented(M: dict[str, Any]) -> LinearSystem:
     """The system with the state augmented by the measurement noise (module docstring)."""
     A, C, Q, R = M["A"], M["C"], M["Q"], M["R"]
@@ -261,9 +301,9 @@ def _augmented(M: dict[str, Any]) -> LinearSystem:
 
 def _e_step(M, y, u, censoring, censored):
     """Posterior moments of the augmented state; returns (stats, loglik)."""
+    from ..filters.kalman import KalmanFilter
     from ._common import assumed_density_filter
     from .smoothing import rts_smooth
-    from ..filters.kalman import KalmanFilter
 
     aug = _augmented(M)
     if censoring is None:
@@ -278,13 +318,21 @@ def _e_step(M, y, u, censoring, censored):
     return sm, ll
 
 
-def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, censored, estimate: tuple[str, ...],
-            prior: str = "given", diagonal_R: bool = False):
+def em_step(
+    M: dict[str, Any],
+    y: np.ndarray,
+    u: np.ndarray | None,
+    censoring,
+    censored,
+    estimate: tuple[str, ...],
+    prior: str = "given",
+    diagonal_R: bool = False,
+):
     """One EM iteration: E-step at ``M`` (a dict of matrices), M-step for ``estimate``; returns (new M, loglik at M)."""
     sm, ll = _e_step(M, y, u, censoring, censored)
     n, m = M["A"].shape[0], M["C"].shape[0]
     T = y.shape[0]
-    X = np.asarray(sm.mean)                       # (T, n + m)
+    X = np.asarray(sm.mean)  # (T, n + m)
     P = np.broadcast_to(sm.cov, (T,) + sm.cov.shape[-2:])
     cross = np.broadcast_to(sm.extras["cross_cov"], (T,) + sm.cov.shape[-2:])
     x_init, P_init = np.asarray(sm.extras["initial_mean"]), np.asarray(sm.extras["initial_cov"])
@@ -293,15 +341,15 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
     prev = np.vstack([x_init[None, :n], xs[:-1]])
     Pprev = np.concatenate([P_init[None, :n, :n], P[:-1, :n, :n]])
     Epp = Pprev + prev[:, :, None] * prev[:, None, :]
-    Exp = cross[:, :n, :n] + xs[:, :, None] * prev[:, None, :]        # E[x_k x_{k-1}^T]
+    Exp = cross[:, :n, :n] + xs[:, :, None] * prev[:, None, :]  # E[x_k x_{k-1}^T]
     # latent readings y* = [C I] x_aug + D u
     Ca = np.hstack([M["C"], np.eye(m)])
     Du = 0.0 if (u is None or M.get("D") is None) else u @ M["D"].T
-    ys = X @ Ca.T + Du                                                 # (T, m)
+    ys = X @ Ca.T + Du  # (T, m)
     Pys = np.einsum("ij,tjk,lk->til", Ca, P, Ca)
     Eyy = Pys + ys[:, :, None] * ys[:, None, :]
     Eyx = np.einsum("ij,tjk->tik", Ca, P[:, :, :n]) + ys[:, :, None] * xs[:, None, :]
-    new = {k: (None if v is None else np.array(v, dtype=float)) for k, v in M.items()}
+    new: dict[str, Any] = {k: (None if v is None else np.array(v, dtype=float)) for k, v in M.items()}
     # --- transition: [A Bu] from x_k on z = (x_{k-1}, u_k)
     if "A" in estimate or "Bu" in estimate or "Q" in estimate:
         A, Bu = new["A"], new.get("Bu")
@@ -309,29 +357,39 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
             use_u = "Bu" in estimate and u is not None
             Szz = Epp.sum(0)
             Sxz = Exp.sum(0)
-            if use_u:
-                Szz = np.block([[Szz, (prev[:, :, None] * u[:, None, :]).sum(0)],
-                                [(u[:, :, None] * prev[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)]])
+            if use_u and u is not None:
+                Szz = np.block(
+                    [
+                        [Szz, (prev[:, :, None] * u[:, None, :]).sum(0)],
+                        [(u[:, :, None] * prev[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)],
+                    ]
+                )
                 Sxz = np.hstack([Sxz, (xs[:, :, None] * u[:, None, :]).sum(0)])
-            elif Bu is not None and u is not None:          # held input matrix: subtract its effect
+            elif Bu is not None and u is not None:  # held input matrix: subtract its effect
                 Sxz = Sxz - Bu @ (u[:, :, None] * prev[:, None, :]).sum(0)
-            if "A" not in estimate:                          # only Bu: regress the residual of A x
-                r = (xs - prev @ A.T)
+            if "A" not in estimate:  # only Bu: regress the residual of A x
+                r = xs - prev @ A.T
+                assert u is not None, "estimating Bu needs the inputs (checked by the caller)"
                 Bu = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
             else:
                 W = np.linalg.solve(Szz.T, Sxz.T).T
                 A = W[:, :n]
-                if use_u:
+                if use_u and u is not None:
                     Bu = W[:, n:]
             new["A"], new["Bu"] = A, Bu
         if "Q" in estimate:
             A, Bu = new["A"], new.get("Bu")
-            bu = 0.0 if (Bu is None or u is None) else u @ Bu.T                     # (T, n)
+            bu: Any = 0.0 if (Bu is None or u is None) else u @ Bu.T  # (T, n)
             S = Exx - A @ Exp.transpose(0, 2, 1) - Exp @ A.T + A @ Epp @ A.T
             if not np.isscalar(bu):
-                S = S - bu[:, :, None] * xs[:, None, :] - xs[:, :, None] * bu[:, None, :] \
-                    + (bu[:, :, None] * (prev @ A.T)[:, None, :]) + ((prev @ A.T)[:, :, None] * bu[:, None, :]) \
+                S = (
+                    S
+                    - bu[:, :, None] * xs[:, None, :]
+                    - xs[:, :, None] * bu[:, None, :]
+                    + (bu[:, :, None] * (prev @ A.T)[:, None, :])
+                    + ((prev @ A.T)[:, :, None] * bu[:, None, :])
                     + bu[:, :, None] * bu[:, None, :]
+                )
             new["Q"] = _sym(S.mean(0))
     # --- measurement: [C D] from y* on s = (x_k, u_k)
     if "C" in estimate or "D" in estimate or "R" in estimate:
@@ -340,28 +398,38 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
             use_u = "D" in estimate and u is not None
             Sss = Exx.sum(0)
             Sys = Eyx.sum(0)
-            if use_u:
-                Sss = np.block([[Sss, (xs[:, :, None] * u[:, None, :]).sum(0)],
-                                [(u[:, :, None] * xs[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)]])
+            if use_u and u is not None:
+                Sss = np.block(
+                    [
+                        [Sss, (xs[:, :, None] * u[:, None, :]).sum(0)],
+                        [(u[:, :, None] * xs[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)],
+                    ]
+                )
                 Sys = np.hstack([Sys, (ys[:, :, None] * u[:, None, :]).sum(0)])
             elif D is not None and u is not None:
                 Sys = Sys - D @ (u[:, :, None] * xs[:, None, :]).sum(0)
             if "C" not in estimate:
                 r = ys - xs @ C.T
+                assert u is not None, "estimating D needs the inputs (checked by the caller)"
                 D = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
             else:
                 W = np.linalg.solve(Sss.T, Sys.T).T
                 C = W[:, :n]
-                if use_u:
+                if use_u and u is not None:
                     D = W[:, n:]
             new["C"], new["D"] = C, D
         if "R" in estimate:
             C, D = new["C"], new.get("D")
             du = np.zeros_like(ys) if (D is None or u is None) else u @ D.T
             S = Eyy - np.einsum("tij,kj->tik", Eyx, C) - np.einsum("ij,tkj->tik", C, Eyx) + C @ Exx @ C.T
-            S = S - du[:, :, None] * ys[:, None, :] - ys[:, :, None] * du[:, None, :] \
-                + du[:, :, None] * (xs @ C.T)[:, None, :] + (xs @ C.T)[:, :, None] * du[:, None, :] \
+            S = (
+                S
+                - du[:, :, None] * ys[:, None, :]
+                - ys[:, :, None] * du[:, None, :]
+                + du[:, :, None] * (xs @ C.T)[:, None, :]
+                + (xs @ C.T)[:, :, None] * du[:, None, :]
                 + du[:, :, None] * du[:, None, :]
+            )
             R = _sym(S.mean(0))
             if diagonal_R:
                 R = np.diag(np.maximum(np.diagonal(R), 0.0))
@@ -377,8 +445,9 @@ def em_step(M: dict[str, Any], y: np.ndarray, u: np.ndarray | None, censoring, c
 
 # --------------------------------------------------------------------------- parameter vectors for the s.e.
 
-def _free_entries(M: dict[str, Any], estimate) -> list[tuple[str, tuple[int, int] | tuple[int]]]:
-    out = []
+
+def _free_entries(M: dict[str, Any], estimate) -> list[tuple[str, tuple[int, ...]]]:
+    out: list[tuple[str, tuple[int, ...]]] = []
     for name in ESTIMABLE:
         if name not in estimate or M.get(name) is None:
             continue
@@ -433,15 +502,15 @@ def _free_unpack(M, names, u):
         if n in _COVS:
             k = shape[0]
             L = np.zeros((k, k))
-            L[np.diag_indices(k)] = np.exp(u[i:i + k])
+            L[np.diag_indices(k)] = np.exp(u[i : i + k])
             i += k
             nl = k * (k - 1) // 2
-            L[np.tril_indices(k, -1)] = u[i:i + nl]
+            L[np.tril_indices(k, -1)] = u[i : i + nl]
             i += nl
             out[n] = L @ L.T
         else:
             size = int(np.prod(shape))
-            out[n] = np.asarray(u[i:i + size]).reshape(shape)
+            out[n] = np.asarray(u[i : i + size]).reshape(shape)
             i += size
     return out
 
@@ -451,6 +520,7 @@ def _entry_name(n, idx):
 
 
 # --------------------------------------------------------------------------- the fit
+
 
 def _loglik(system: LinearSystem, y, u, censoring, censored) -> float:
     from .likelihood import adf_log_likelihood, kalman_log_likelihood
@@ -475,11 +545,28 @@ def _confirm(f, out, gtol):
     return False, out.message
 
 
-def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring | None = None, censored: Any = None,
-                    lower: Any = None, upper: Any = None, estimate: Any = None, theta0: Any = None,
-                    method: str = "auto", likelihood: str = "auto", progress: Any = None, maxiter: int = 500,
-                    tol: float = 1e-7, prior: str = "given", diagonal_R: bool | None = None,
-                    standard_errors: bool = True, names: Any = None, gtol: float = 1e-3):
+def fit_state_space(
+    model: Any,
+    y: Any,
+    *,
+    u: Any = None,
+    censoring: Censoring | None = None,
+    censored: Any = None,
+    lower: Any = None,
+    upper: Any = None,
+    estimate: Any = None,
+    theta0: Any = None,
+    method: str = "auto",
+    likelihood: str = "auto",
+    progress: Any = None,
+    maxiter: int = 500,
+    tol: float = 1e-7,
+    prior: str = "given",
+    diagonal_R: bool | None = None,
+    standard_errors: bool = True,
+    names: Any = None,
+    gtol: float = 1e-3,
+):
     """State-space fits (module docstring); called by :func:`tobitkf.fit`."""
     from .fitting import FitResult, _progress_callback
 
@@ -490,8 +577,8 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
         raise ShapeError(f"y: expected one record (T,) or (T, m), got shape {arr.shape}")
     T, m = y2.shape
     if censoring is None and (lower is not None or upper is not None):
-        lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
-        hi = np.inf if upper is None else np.asarray(upper, dtype=float)
+        lo: Any = -np.inf if lower is None else np.asarray(lower, dtype=float)
+        hi: Any = np.inf if upper is None else np.asarray(upper, dtype=float)
         lo = lo[:, None] if np.ndim(lo) == 1 and m == 1 and np.size(lo) == T else lo
         hi = hi[:, None] if np.ndim(hi) == 1 and m == 1 and np.size(hi) == T else hi
         censoring = Censoring(lower=lo, upper=hi)
@@ -509,7 +596,7 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
     if censoring is not None:
         censoring.check(m, T)
         lo_, hi_ = censoring.all_limits(T, m)
-        censoring_sides(y2, lo_, hi_, c2)            # validates the indicator
+        censoring_sides(y2, lo_, hi_, c2)  # validates the indicator
     u2 = None if u is None else as_float_array(u, "u", ndim=2)
     if u2 is not None and u2.shape[0] != T:
         raise ShapeError(f"u: expected {T} rows (one per reading), got {u2.shape}")
@@ -548,8 +635,9 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
         if not np.isfinite(ll_of(th0)):
             raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
         try:
-            out = maximize(ll_of, th0, gtol=gtol, maxiter=maxiter, progress=cb,
-                           label=lambda v: dict(zip(names, v.tolist())))
+            out = maximize(
+                ll_of, th0, gtol=gtol, maxiter=maxiter, progress=cb, label=lambda v: dict(zip(names, v.tolist()))
+            )
         finally:
             close()
         th = out.x
@@ -561,10 +649,24 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
 
             cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
         fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
-        return FitResult(model=fitted, names=names, theta=th, cov=cov, loglik=ll, n_obs=int((~np.isnan(y2)).sum()),
-                         n_params=th.size, method="direct", likelihood=lik_name, converged=out.converged,
-                         message=out.message, trace=out.trace, fit_seconds=time.perf_counter() - t0,
-                         evaluations=out.evaluations, data=data, extra={"theta_map": True})
+        return FitResult(
+            model=fitted,
+            names=names,
+            theta=th,
+            cov=cov,
+            loglik=ll,
+            n_obs=int((~np.isnan(y2)).sum()),
+            n_params=th.size,
+            method="direct",
+            likelihood=lik_name,
+            converged=out.converged,
+            message=out.message,
+            trace=out.trace,
+            fit_seconds=time.perf_counter() - t0,
+            evaluations=out.evaluations,
+            data=data,
+            extra={"theta_map": True},
+        )
 
     if not isinstance(model, LinearSystem):
         raise ValidationError(f"model: expected a LinearSystem template, got {type(model).__name__}")
@@ -601,8 +703,14 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
             return _loglik(sysv, y2, u2, censoring, c2)
 
         try:
-            out = maximize(ll_free, _free_pack(M, free_names), gtol=gtol, maxiter=maxiter, progress=cb,
-                           label=lambda w: dict(zip(enames, _vec(_free_unpack(M, free_names, w), entries).tolist())))
+            out = maximize(
+                ll_free,
+                _free_pack(M, free_names),
+                gtol=gtol,
+                maxiter=maxiter,
+                progress=cb,
+                label=lambda w: dict(zip(enames, _vec(_free_unpack(M, free_names, w), entries).tolist())),
+            )
         finally:
             close()
         M = _free_unpack(M, free_names, out.x)
@@ -621,6 +729,7 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
                 return _loglik(_build(Mv), y2, u2, censoring, c2)
             except ValidationError:
                 return -np.inf
+
         trace, converged, message, evals = out.trace, out.converged, out.message, out.evaluations
         converged, message = _confirm(ll_free, out, gtol)
     else:
@@ -632,8 +741,12 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
             for it in range(1, maxiter + 1):
                 M_new, ll = em_step(M, y2, u2, censoring, c2, estimate, prior, diagonal_R)
                 evals += 1
-                entry = {"iteration": it, "loglik": ll, "params": dict(zip(enames, _vec(M, entries).tolist())),
-                         "seconds": round(time.perf_counter() - t0, 4)}
+                entry = {
+                    "iteration": it,
+                    "loglik": ll,
+                    "params": dict(zip(enames, _vec(M, entries).tolist())),
+                    "seconds": round(time.perf_counter() - t0, 4),
+                }
                 trace.append(entry)
                 if cb is not None:
                     cb(entry)
@@ -656,6 +769,7 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
                 return _loglik(_build(Mv), y2, u2, censoring, c2)
             except ValidationError:
                 return -np.inf
+
         v = _vec(M, entries)
     system = _build(M)
     ll = _loglik(system, y2, u2, censoring, c2)
@@ -665,7 +779,20 @@ def fit_state_space(model: Any, y: Any, *, u: Any = None, censoring: Censoring |
 
         cov = _inverse_information(central_hessian(it_ll, v, f0=ll))
     fitted = StateSpaceModel(system, censoring, estimate, prior, diagonal_R)
-    return FitResult(model=fitted, names=enames, theta=v, cov=cov, loglik=ll, n_obs=int((~np.isnan(y2)).sum()),
-                     n_params=len(entries), method="em" if method != "direct" else "direct", likelihood=lik_name,
-                     converged=converged, message=message, trace=trace, fit_seconds=time.perf_counter() - t0,
-                     evaluations=evals, data=data)
+    return FitResult(
+        model=fitted,
+        names=enames,
+        theta=v,
+        cov=cov,
+        loglik=ll,
+        n_obs=int((~np.isnan(y2)).sum()),
+        n_params=len(entries),
+        method="em" if method != "direct" else "direct",
+        likelihood=lik_name,
+        converged=converged,
+        message=message,
+        trace=trace,
+        fit_seconds=time.perf_counter() - t0,
+        evaluations=evals,
+        data=data,
+    )

@@ -12,5 +12,15 @@ from .delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, pa
 from .linear import LinearSystem
 from .ross import RossModel, wang2010_model
 
-__all__ = ["LinearSystem", "DelayFadingSystem", "HistoryPrior", "FadingPMF", "FadingMoments", "paper_example",
-           "paper_prior", "paper_fading", "RossModel", "wang2010_model"]
+__all__ = [
+    "LinearSystem",
+    "DelayFadingSystem",
+    "HistoryPrior",
+    "FadingPMF",
+    "FadingMoments",
+    "paper_example",
+    "paper_prior",
+    "paper_fading",
+    "RossModel",
+    "wang2010_model",
+]

@@ -41,16 +41,30 @@ from typing import Any
 
 import numpy as np
 
-from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import (ShapeError, ValidationError, as_float_array, check_instance, check_memory,
-                           check_probability, check_psd)
+from .._validation import (
+    ShapeError,
+    ValidationError,
+    as_float_array,
+    check_instance,
+    check_memory,
+    check_probability,
+    check_psd,
+)
 from ..channels.laws import PMF
 
-__all__ = ["FadingPMF", "FadingMoments", "HistoryPrior", "DelayFadingSystem", "paper_example", "paper_prior",
-           "paper_fading"]
+__all__ = [
+    "FadingPMF",
+    "FadingMoments",
+    "HistoryPrior",
+    "DelayFadingSystem",
+    "paper_example",
+    "paper_prior",
+    "paper_fading",
+]
 
 
 # --------------------------------------------------------------------------- fading laws
+
 
 class FadingPMF(PMF):
     r"""A scalar fading coefficient with a probability mass function (Assumption 1 of the source).
@@ -87,7 +101,9 @@ class FadingPMF(PMF):
         v = as_float_array(values, "values", ndim=1)
         p = as_float_array(probs, "probs", ndim=1)
         if v.shape != p.shape or v.size == 0:
-            raise ShapeError(f"values/probs: expected two non-empty (L,) arrays of equal length, got {v.shape} and {p.shape}")
+            raise ShapeError(
+                f"values/probs: expected two non-empty (L,) arrays of equal length, got {v.shape} and {p.shape}"
+            )
         check_probability(p, "probs")
         if ((v < 0) | (v > 1)).any():
             raise ValidationError(f"values: expected fading values in [0, 1], got {v[(v < 0) | (v > 1)][:3]}")
@@ -141,6 +157,7 @@ def _scalar_schedule(value: Any, name: str) -> Callable[[int], float]:
         if not 0 <= t < arr.shape[0]:
             raise ShapeError(f"{name}: time-indexed array has {arr.shape[0]} steps, t={t} requested")
         return float(arr[t])
+
     return at
 
 
@@ -149,6 +166,7 @@ class _FadingSchedule:
 
     def __init__(self, fading: Any):
         self.source = fading
+        self._law: Callable[[Any], Any] | None
         if fading is None:
             self._law = lambda t: _NO_FADING
         elif isinstance(fading, FadingMoments):
@@ -158,12 +176,16 @@ class _FadingSchedule:
         elif callable(fading):
             first = fading(0)
             if not _is_law(first):
-                raise ValidationError("fading: a callable must return a law with mean, variance and sample(rng, shape) "
-                                      f"for each t, got {type(first).__name__}")
+                raise ValidationError(
+                    "fading: a callable must return a law with mean, variance and sample(rng, shape) "
+                    f"for each t, got {type(first).__name__}"
+                )
             self._law = fading
         else:
-            raise ValidationError("fading: expected None, a law (mean, variance, sample), a callable t -> law or "
-                                  f"FadingMoments, got {type(fading).__name__}")
+            raise ValidationError(
+                "fading: expected None, a law (mean, variance, sample), a callable t -> law or "
+                f"FadingMoments, got {type(fading).__name__}"
+            )
 
     @property
     def varying(self) -> bool:
@@ -183,10 +205,13 @@ class _FadingSchedule:
         return v
 
     def _law_at(self, t: int) -> Any:
+        assert self._law is not None, "moments-only fading (FadingMoments) never asks for a law"
         law = self._law(t)
         if not _is_law(law):
-            raise ValidationError(f"fading({t}): a callable must return a law with mean, variance and "
-                                  f"sample(rng, shape) for each t, got {type(law).__name__}")
+            raise ValidationError(
+                f"fading({t}): a callable must return a law with mean, variance and "
+                f"sample(rng, shape) for each t, got {type(law).__name__}"
+            )
         return law
 
     def sample_at(self, rng: np.random.Generator, t: int, shape: Any) -> np.ndarray:
@@ -199,7 +224,9 @@ def _is_law(obj: Any) -> bool:
     if not all(hasattr(obj, a) for a in ("mean", "variance", "sample")) or callable(getattr(obj, "mean")):
         return False
     if np.shape(obj.mean) != ():
-        raise ValidationError(f"fading: expected a scalar law (one coefficient γ(t)), got core shape {np.shape(obj.mean)}")
+        raise ValidationError(
+            f"fading: expected a scalar law (one coefficient γ(t)), got core shape {np.shape(obj.mean)}"
+        )
     return True
 
 
@@ -216,6 +243,7 @@ _NO_FADING = _NoFading()
 
 
 # --------------------------------------------------------------------------- prior
+
 
 class HistoryPrior:
     r"""Prior of the initial history X(0) = [x(0); x(-1); ...; x(-d)] (LD-01).
@@ -259,12 +287,14 @@ class HistoryPrior:
         mu = as_float_array(means, "means", ndim=2)
         P = as_float_array(covs, "covs", ndim=3)
         if P.shape != (mu.shape[0], mu.shape[1], mu.shape[1]):
-            raise ShapeError(f"covs: expected shape {(mu.shape[0], mu.shape[1], mu.shape[1])} to match means {mu.shape}, got {P.shape}")
+            raise ShapeError(
+                f"covs: expected shape {(mu.shape[0], mu.shape[1], mu.shape[1])} to match means {mu.shape}, got {P.shape}"
+            )
         check_psd(P, "covs")
         n, b = mu.shape[1], mu.shape[0]
         big = np.zeros((n * b, n * b))
         for k in range(b):
-            big[k * n:(k + 1) * n, k * n:(k + 1) * n] = P[k]
+            big[k * n : (k + 1) * n, k * n : (k + 1) * n] = P[k]
         return cls(mu.copy(), big)
 
     @classmethod
@@ -292,7 +322,11 @@ class HistoryPrior:
         d = _check_delay(d)
         mu = as_float_array(mean, "mean", ndim=1)
         P = as_float_array(cov, "cov", ndim=2)
-        J = np.broadcast_to(as_float_array(jitter, "jitter"), P.shape) if np.ndim(jitter) < 2 else as_float_array(jitter, "jitter", ndim=2)
+        J = (
+            np.broadcast_to(as_float_array(jitter, "jitter"), P.shape)
+            if np.ndim(jitter) < 2
+            else as_float_array(jitter, "jitter", ndim=2)
+        )
         big = np.kron(np.ones((d + 1, d + 1)), P) + np.kron(np.eye(d + 1), J)
         return cls.joint(np.tile(mu, (d + 1, 1)), big)
 
@@ -304,7 +338,7 @@ class HistoryPrior:
         """Cov(x(-k), x(-l)) (l defaults to k)."""
         n = self.n
         l = k if l is None else l
-        return self.cov[k * n:(k + 1) * n, l * n:(l + 1) * n]
+        return self.cov[k * n : (k + 1) * n, l * n : (l + 1) * n]
 
     @property
     def is_uncorrelated(self) -> bool:
@@ -322,6 +356,7 @@ def _check_delay(d: Any) -> int:
 
 
 # --------------------------------------------------------------------------- system
+
 
 class DelayFadingSystem:
     r"""The pure-delay system (1)–(3) with multiplicative noise, fading and correlated noises.
@@ -362,8 +397,21 @@ class DelayFadingSystem:
         On non-conforming shapes.
     """
 
-    def __init__(self, A: Any, H: Any, Gamma: Any, Qw: Any, Qv: Any, S: Any, d: int, *,
-                 A_mult: Any = None, q_mult: Any = None, fading: Any = None, extra_lags: dict | None = None):
+    def __init__(
+        self,
+        A: Any,
+        H: Any,
+        Gamma: Any,
+        Qw: Any,
+        Qv: Any,
+        S: Any,
+        d: int,
+        *,
+        A_mult: Any = None,
+        q_mult: Any = None,
+        fading: Any = None,
+        extra_lags: dict | None = None,
+    ):
         self.d = _check_delay(d)
         self.A = as_float_array(A, "A", ndim=2)
         n = self.A.shape[0]
@@ -390,14 +438,16 @@ class DelayFadingSystem:
             raise ShapeError(f"S: expected ({p}, {m}) (p x m), got {self.S.shape}")
         check_psd(self.Qw, "Qw")
         check_psd(self.Qv, "Qv", strict=True)
-        self.S_Qv_inv = np.linalg.solve(self.Qv, self.S.T).T          # S Qv^{-1}  (p, m)
-        eta = self.Qw - self.S_Qv_inv @ self.S.T                       # Qw - S Qv^{-1} S^T
+        self.S_Qv_inv = np.linalg.solve(self.Qv, self.S.T).T  # S Qv^{-1}  (p, m)
+        eta = self.Qw - self.S_Qv_inv @ self.S.T  # Qw - S Qv^{-1} S^T
         eta = 0.5 * (eta + eta.T)
         scale = max(float(np.abs(self.Qw).max()), float(np.abs(self.Qv).max()), np.finfo(float).tiny)
         lo = float(np.linalg.eigvalsh(eta).min())
         if lo < -1e-9 * scale:
-            raise ValidationError(f"S: the joint noise covariance [[Qw, S], [S^T, Qv]] is indefinite "
-                                  f"(Qw - S Qv^-1 S^T has eigenvalue {lo:.3g}); need |S| <= sqrt(Qw Qv)")
+            raise ValidationError(
+                f"S: the joint noise covariance [[Qw, S], [S^T, Qv]] is indefinite "
+                f"(Qw - S Qv^-1 S^T has eigenvalue {lo:.3g}); need |S| <= sqrt(Qw Qv)"
+            )
         self.eta_cov = eta
         if A_mult is None:
             self.A_mult = np.zeros((0, n, n))
@@ -421,21 +471,34 @@ class DelayFadingSystem:
                 raise ShapeError(f"extra_lags[{lag}]: expected ({n}, {n}), got {mat.shape}")
             self.lags[int(lag)] = self.lags.get(int(lag), 0.0) + mat
         self.n, self.m, self.p, self.h = n, m, p, h
-        self.GS = self.Gamma @ self.S                      # Γ S   (n, m)
-        self.GQG = self.Gamma @ self.Qw @ self.Gamma.T     # Γ Q_w Γ^T
-        self._init_args = dict(A=A, H=H, Gamma=Gamma, Qw=Qw, Qv=Qv, S=S, d=d, A_mult=A_mult, q_mult=q_mult,
-                               fading=fading, extra_lags=extra_lags)
+        self.GS = self.Gamma @ self.S  # Γ S   (n, m)
+        self.GQG = self.Gamma @ self.Qw @ self.Gamma.T  # Γ Q_w Γ^T
+        self._init_args = dict(
+            A=A,
+            H=H,
+            Gamma=Gamma,
+            Qw=Qw,
+            Qv=Qv,
+            S=S,
+            d=d,
+            A_mult=A_mult,
+            q_mult=q_mult,
+            fading=fading,
+            extra_lags=extra_lags,
+        )
 
     @staticmethod
     def _q_schedule(q: Any, h: int) -> Callable[[int], np.ndarray]:
         if h == 0:
             return lambda t: np.zeros(0)
         if callable(q):
+
             def at(t: int) -> np.ndarray:
-                val = as_float_array(q(t), f"q_mult({t})").reshape(-1)      # NaN, inf, text: refused by name
+                val = as_float_array(q(t), f"q_mult({t})").reshape(-1)  # NaN, inf, text: refused by name
                 if val.shape != (h,) or (val < 0).any():
                     raise ValidationError(f"q_mult({t}): expected {h} non-negative variances, got {val}")
                 return val
+
             at(0)
             return at
         arr = as_float_array(q, "q_mult", ndim=(0, 1, 2))
@@ -453,6 +516,7 @@ class DelayFadingSystem:
             if not 0 <= t < arr.shape[0]:
                 raise ShapeError(f"q_mult: time-indexed array has {arr.shape[0]} steps, t={t} requested")
             return arr[t]
+
         return at2
 
     # ----- accessors (all by the paper's time t of the noise / measurement)
@@ -504,12 +568,14 @@ class DelayFadingSystem:
         if prior.n != self.n:
             raise ShapeError(f"prior: expected states of dimension n={self.n}, got {prior.n}")
         if prior.d != self.d:
-            raise ValidationError(f"prior: expected a history of d+1={self.d + 1} lags x(0)..x(-{self.d}), "
-                                  f"got {prior.d + 1}")
+            raise ValidationError(
+                f"prior: expected a history of d+1={self.d + 1} lags x(0)..x(-{self.d}), got {prior.d + 1}"
+            )
         return prior
 
 
 # --------------------------------------------------------------------------- paper example
+
 
 def paper_fading(q: float = 1.0) -> FadingPMF:
     """The example's pmf {0.95: 0.05, 0.98: 0.15, q: 0.8} (§5 and Fig. 2; LD-11)."""
@@ -523,8 +589,17 @@ def paper_example(S: float = 0.3, *, q: float = 1.0, d: int = 3) -> DelayFadingS
     (LD-03). ``q`` is the Fig. 2 pmf variant (q = 1 is the base case).
     """
     return DelayFadingSystem(
-        A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=S, d=d,
-        A_mult=[[[0.1, 0.2], [0.2, -0.1]]], q_mult=[0.16], fading=paper_fading(q))
+        A=[[0.4, 0.7], [0.2, 0.6]],
+        H=[[0.5, 1.0]],
+        Gamma=[[1.0], [1.0]],
+        Qw=0.3,
+        Qv=0.3,
+        S=S,
+        d=d,
+        A_mult=[[[0.1, 0.2], [0.2, -0.1]]],
+        q_mult=[0.16],
+        fading=paper_fading(q),
+    )
 
 
 def paper_prior(d: int = 3, cov: float = 0.01) -> HistoryPrior:

@@ -74,8 +74,9 @@ class LinearSystem:
     (1, 1)
     """
 
-    def __init__(self, A: Any, C: Any, Q: Any, R: Any, x0: Any, P0: Any, *, B: Any = None,
-                 Bu: Any = None, D: Any = None):
+    def __init__(
+        self, A: Any, C: Any, Q: Any, R: Any, x0: Any, P0: Any, *, B: Any = None, Bu: Any = None, D: Any = None
+    ):
         self.A = TimeSequence(A, "A", offset=0)
         self.C = TimeSequence(C, "C", offset=1)
         self.Q = TimeSequence(Q, "Q", offset=0, psd=True)
@@ -93,8 +94,9 @@ class LinearSystem:
         if self.B is not None and self.B.core_shape[0] != n:
             raise ShapeError(f"B: expected ({n}, q), got {self.B.core_shape}")
         if self.Q.core_shape != (q, q):
-            raise ShapeError(f"Q: expected ({q}, {q}) (q = {'columns of B' if B is not None else 'n'}), "
-                             f"got {self.Q.core_shape}")
+            raise ShapeError(
+                f"Q: expected ({q}, {q}) (q = {'columns of B' if B is not None else 'n'}), got {self.Q.core_shape}"
+            )
         self.Bu = None if Bu is None else TimeSequence(Bu, "Bu", offset=1)
         self.D = None if D is None else TimeSequence(D, "D", offset=1)
         p = None

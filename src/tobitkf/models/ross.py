@@ -51,8 +51,20 @@ class RossModel:
     f: Callable[[np.ndarray], np.ndarray] | None = None
 
     @classmethod
-    def create(cls, *, B: Any, M: Any, U1: Any, U2: Any, C: Any, D: Any, mu: Any, nu: Any,
-               level: Any = 1.0, f: Callable[[np.ndarray], np.ndarray] | None = None) -> RossModel:
+    def create(
+        cls,
+        *,
+        B: Any,
+        M: Any,
+        U1: Any,
+        U2: Any,
+        C: Any,
+        D: Any,
+        mu: Any,
+        nu: Any,
+        level: Any = 1.0,
+        f: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> RossModel:
         r"""Validated constructor (use this, not the dataclass initializer).
 
         Parameters
@@ -99,8 +111,9 @@ class RossModel:
         eig = np.linalg.eigvalsh(0.5 * (U + U.T))
         if eig.min() <= 0:
             hint = " (the bounds look swapped: U2 - U1 is positive definite)" if eig.max() < 0 else ""
-            raise ValidationError(f"U1, U2: expected U1 - U2 positive definite (Assumption 1), smallest "
-                                  f"eigenvalue {eig.min():.3g}{hint}")
+            raise ValidationError(
+                f"U1, U2: expected U1 - U2 positive definite (Assumption 1), smallest eigenvalue {eig.min():.3g}{hint}"
+            )
         C = as_float_array(C, "C", ndim=2)
         if C.shape[1] != n:
             raise ShapeError(f"C: expected (m, n) with n={n}, got shape {C.shape}")
@@ -128,13 +141,25 @@ class RossModel:
     def with_channel(self, mu: Any = None, nu: Any = None, level: Any = None) -> RossModel:
         """A copy with other probabilities / levels (validated)."""
         ch = self.channel
-        return replace(self, channel=RandomSaturation(ch.mu if mu is None else mu, ch.nu if nu is None else nu,
-                                                      ch.level if level is None else level))
+        return replace(
+            self,
+            channel=RandomSaturation(
+                ch.mu if mu is None else mu, ch.nu if nu is None else nu, ch.level if level is None else level
+            ),
+        )
+
+    def nonlinearity(self, x: np.ndarray) -> np.ndarray:
+        """:math:`f(x)`; refused by name when the model was built without ``f``."""
+        if self.f is None:
+            raise ValidationError(
+                "f: this model has no plant nonlinearity (built with f=None); pass f= to RossModel.create"
+            )
+        return self.f(x)
 
     def sector_value(self, x: Any, fx: Any | None = None) -> np.ndarray:
         """:math:`[f(x)-U_1x]^T[f(x)-U_2x]` for ``x`` (..., n) (<= 0 if (4) holds)."""
         x = np.asarray(x, dtype=float)
-        fx = self.f(x) if fx is None else np.asarray(fx, dtype=float)
+        fx = self.nonlinearity(x) if fx is None else np.asarray(fx, dtype=float)
         return np.einsum("...i,...i->...", fx - x @ self.U1.T, fx - x @ self.U2.T)
 
 
@@ -142,19 +167,29 @@ class RossModel:
 def _wang2010_f(x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, dtype=float)
     x1, x2, x3 = x[..., 0], x[..., 1], x[..., 2]
-    return np.stack([-0.7 * x1 + 0.05 * x2 + 0.05 * x3,
-                     -0.05 * x1 + 0.85 * x2,
-                     -0.05 * x1 - 0.475 * x3 + x3 * np.sin(x1) / np.sqrt(x1 ** 2 + x2 ** 2 + 20.0)], axis=-1)
+    return np.stack(
+        [
+            -0.7 * x1 + 0.05 * x2 + 0.05 * x3,
+            -0.05 * x1 + 0.85 * x2,
+            -0.05 * x1 - 0.475 * x3 + x3 * np.sin(x1) / np.sqrt(x1**2 + x2**2 + 20.0),
+        ],
+        axis=-1,
+    )
 
 
 def wang2010_model(**overrides: Any) -> RossModel:
     """The example of Section 4 (Section 4 of the source); keyword overrides replace any field (mu, nu, D, ...)."""
-    kw = dict(
+    kw: dict[str, Any] = dict(
         B=[[0.5], [0.1], [0.1]],
         M=[[0.2, 0.0, 0.15], [0.0, 0.1, 0.2]],
         U1=[[-0.5, 0.1, 0.0], [0.0, 0.9, 0.0], [-0.1, 0.0, -0.2]],
         U2=[[-0.9, 0.0, 0.1], [-0.1, 0.8, 0.0], [0.0, 0.0, -0.75]],
-        C=[[1.0, 0.0, 1.0], [1.0, 1.0, 0.0]], D=[1.0, 1.0], mu=[0.7, 0.6], nu=[0.7, 0.75], level=1.0,
-        f=_wang2010_f)
+        C=[[1.0, 0.0, 1.0], [1.0, 1.0, 0.0]],
+        D=[1.0, 1.0],
+        mu=[0.7, 0.6],
+        nu=[0.7, 0.75],
+        level=1.0,
+        f=_wang2010_f,
+    )
     kw.update(overrides)
     return RossModel.create(**kw)

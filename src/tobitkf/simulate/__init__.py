@@ -10,5 +10,14 @@ from .core import SimulationData, as_generator, psd_sqrt, simulate
 from .delay import full_states, simulate_delay
 from .ross import RossSimulation, simulate_ross, wang2010_disturbances
 
-__all__ = ["SimulationData", "simulate", "as_generator", "psd_sqrt", "simulate_delay", "full_states",
-           "RossSimulation", "simulate_ross", "wang2010_disturbances"]
+__all__ = [
+    "SimulationData",
+    "simulate",
+    "as_generator",
+    "psd_sqrt",
+    "simulate_delay",
+    "full_states",
+    "RossSimulation",
+    "simulate_ross",
+    "wang2010_disturbances",
+]

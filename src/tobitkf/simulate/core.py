@@ -31,8 +31,15 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
-from .._validation import (ShapeError, ValidationError, as_float_array, as_generator, check_count,
-                           check_instance, check_memory)
+from .._validation import (
+    ShapeError,
+    ValidationError,
+    as_float_array,
+    as_generator,
+    check_count,
+    check_instance,
+    check_memory,
+)
 from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -73,9 +80,18 @@ class SimulationData:
         return self.y.shape[1]
 
 
-def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channel | Sequence[Channel] | None = None,
-             censoring: Censoring | None = None, measurement: Any = None, post: Sequence[Any] = (),
-             inputs: Any = None, seed: Any = 0) -> SimulationData:
+def simulate(
+    system: LinearSystem,
+    steps: int,
+    runs: int = 1,
+    *,
+    channel: Channel | Sequence[Channel] | None = None,
+    censoring: Censoring | None = None,
+    measurement: Any = None,
+    post: Sequence[Any] = (),
+    inputs: Any = None,
+    seed: Any = 0,
+) -> SimulationData:
     """Draw truth and censored measurements for many runs at once.
 
     Parameters
@@ -128,34 +144,43 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channe
     steps = check_count(steps, "steps")
     runs = check_count(runs, "runs")
     # refused before anything is allocated (or a callable evaluated over a huge horizon)
-    check_memory(8 * runs * (steps + 1) * (2 * system.n + system.q + 3 * system.m + (system.p or 0)), "runs/steps",
-                 f"{runs} runs x {steps} steps (n = {system.n}, m = {system.m}: states, noises, readings)")
+    check_memory(
+        8 * runs * (steps + 1) * (2 * system.n + system.q + 3 * system.m + (system.p or 0)),
+        "runs/steps",
+        f"{runs} runs x {steps} steps (n = {system.n}, m = {system.m}: states, noises, readings)",
+    )
     system.check_horizon(steps)  # also validates callables over the horizon
     if censoring is not None:
         check_instance(censoring, Censoring, "censoring")
         censoring.check(system.m, steps)
     if measurement is not None and not callable(getattr(measurement, "draw", None)):
-        raise ValidationError(f"measurement: expected an object with a draw(rng, x, system, noise, inputs) method, "
-                              f"got {type(measurement).__name__}")
+        raise ValidationError(
+            f"measurement: expected an object with a draw(rng, x, system, noise, inputs) method, "
+            f"got {type(measurement).__name__}"
+        )
     if isinstance(post, (str, bytes)) or not hasattr(post, "__iter__"):
         raise ValidationError(f"post: expected a sequence of channel pieces, got {type(post).__name__}")
     post = tuple(post)
     for i, piece in enumerate(post):
         if not callable(getattr(piece, "apply", None)):
-            raise ValidationError(f"post[{i}]: expected an object with an apply(rng, y, extras) method, "
-                                  f"got {type(piece).__name__}")
+            raise ValidationError(
+                f"post[{i}]: expected an object with an apply(rng, y, extras) method, got {type(piece).__name__}"
+            )
     pieces = () if channel is None else (tuple(channel) if isinstance(channel, (list, tuple)) else (channel,))
     for i, piece in enumerate(pieces):
         check_instance(piece, Channel, f"channel[{i}]" if len(pieces) > 1 else "channel")
         piece.check(system, steps)
     drawers = [p for p in pieces if p.measures]
     if len(drawers) + (measurement is not None) > 1:
-        raise ValidationError("channel: at most one piece may draw the reading (measurement=, or one channel "
-                              f"with a draw stage), got {len(drawers) + (measurement is not None)}")
+        raise ValidationError(
+            "channel: at most one piece may draw the reading (measurement=, or one channel "
+            f"with a draw stage), got {len(drawers) + (measurement is not None)}"
+        )
     if drawers:
         measurement = drawers[0]
     u = system.check_inputs(inputs, steps, "inputs")
     if u is not None:
+        assert system.p is not None, "check_inputs returns inputs only for a system with an input matrix"
         u = np.broadcast_to(u, (runs, steps, system.p)) if u.ndim == 2 else u
         if u.shape[0] != runs:
             raise ShapeError(f"inputs: expected (T, p) or ({runs}, T, p), got {u.shape}")
@@ -206,8 +231,9 @@ def simulate(system: LinearSystem, steps: int, runs: int = 1, *, channel: Channe
         try:
             extras = dict(drawn[1])
         except (TypeError, ValueError):
-            raise ValidationError(f"{hook}: draw() must return a dict of extras, got "
-                                  f"{type(drawn[1]).__name__}") from None
+            raise ValidationError(
+                f"{hook}: draw() must return a dict of extras, got {type(drawn[1]).__name__}"
+            ) from None
     y = y_latent if censoring is None else censoring.clip(y_latent)
     for i, piece in enumerate(pieces):
         y = _hook_output(piece.censor(y), f"{_label(pieces, i)}: censor()", (runs, steps, m))

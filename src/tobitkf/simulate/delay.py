@@ -19,8 +19,9 @@ from .core import SimulationData
 __all__ = ["simulate_delay", "full_states"]
 
 
-def simulate_delay(system: DelayFadingSystem, prior: HistoryPrior, steps: int, runs: int = 1, *,
-                   seed: Any = 0) -> SimulationData:
+def simulate_delay(
+    system: DelayFadingSystem, prior: HistoryPrior, steps: int, runs: int = 1, *, seed: Any = 0
+) -> SimulationData:
     r"""Draw truth and fading measurements of the delay system for many runs at once.
 
     The initial history X(0) = [x(0); ...; x(-d)] is Gaussian with the joint prior. For
@@ -57,13 +58,16 @@ def simulate_delay(system: DelayFadingSystem, prior: HistoryPrior, steps: int, r
     T = check_count(steps, "steps")
     N = check_count(runs, "runs")
     n, m, p, h, d = system.n, system.m, system.p, system.h, system.d
-    check_memory(8 * N * (T + d + 1) * (2 * n + 2 * m + p + h + 1), "runs/steps",
-                 f"{N} runs x {T} steps (n = {n}, m = {m}, d = {d}: states, noises, readings)")
+    check_memory(
+        8 * N * (T + d + 1) * (2 * n + 2 * m + p + h + 1),
+        "runs/steps",
+        f"{N} runs x {T} steps (n = {n}, m = {m}, d = {d}: states, noises, readings)",
+    )
     rng = as_generator(seed)
-    full = np.empty((N, T + d + 1, n))                 # index j + d holds x(j), j = -d..T
+    full = np.empty((N, T + d + 1, n))  # index j + d holds x(j), j = -d..T
     X0 = prior.mean.reshape(-1) + rng.standard_normal((N, n * (d + 1))) @ psd_sqrt(prior.cov).T
     for k in range(d + 1):
-        full[:, d - k] = X0[:, k * n:(k + 1) * n]
+        full[:, d - k] = X0[:, k * n : (k + 1) * n]
     v = rng.standard_normal((N, T, m)) @ psd_sqrt(system.Qv).T
     eta = rng.standard_normal((N, T, p)) @ psd_sqrt(system.eta_cov).T
     w = v @ system.S_Qv_inv.T + eta
@@ -73,7 +77,7 @@ def simulate_delay(system: DelayFadingSystem, prior: HistoryPrior, steps: int, r
     for t in range(T):
         gamma[:, t] = system.fading.sample_at(rng, t, (N,))
         zeta[:, t] *= np.sqrt(system.q_mult(t))
-        xd = full[:, t]                                # x(t-d) at index t-d+d
+        xd = full[:, t]  # x(t-d) at index t-d+d
         y[:, t] = gamma[:, t, None] * (xd @ system.H.T) + v[:, t]
         nxt = w[:, t] @ system.Gamma.T
         for lag, mat in system.lags.items():

@@ -48,7 +48,7 @@ class RossSimulation:
     @property
     def disturbance_energy(self) -> np.ndarray:
         """Σ_k ‖w̄_k‖² per run, (N,)."""
-        return (self.w ** 2).sum(axis=(1, 2)) + (self.v ** 2).sum(axis=(1, 2))
+        return (self.w**2).sum(axis=(1, 2)) + (self.v**2).sum(axis=(1, 2))
 
 
 def _sequence(value: Any, name: str, runs: int, steps: int, dim: int) -> np.ndarray:
@@ -65,8 +65,9 @@ def _sequence(value: Any, name: str, runs: int, steps: int, dim: int) -> np.ndar
     return np.broadcast_to(arr, (runs, steps, dim)).copy()
 
 
-def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None, w: Any = None,
-                  v: Any = None, seed: Any = None) -> RossSimulation:
+def simulate_ross(
+    model: RossModel, steps: int, runs: int = 1, *, x0: Any = None, w: Any = None, v: Any = None, seed: Any = None
+) -> RossSimulation:
     r"""Simulate the plant (1) and the ROSS sensors (2) for many runs at once.
 
     The disturbances are deterministic l_2 sequences (as in the paper); the randomness is
@@ -106,8 +107,11 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise ValidationError(f"runs: expected a positive integer, got {runs!r}")
     n, m, p = model.n, model.m, model.p
-    check_memory(8 * runs * (steps + 1) * (2 * n + 5 * m + p), "runs/steps",
-                 f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, readings, disturbances, modes)")
+    check_memory(
+        8 * runs * (steps + 1) * (2 * n + 5 * m + p),
+        "runs/steps",
+        f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, readings, disturbances, modes)",
+    )
     x0a = np.zeros(n) if x0 is None else as_float_array(x0, "x0", ndim=(1, 2))
     if x0a.shape[-1] != n or (x0a.ndim == 2 and x0a.shape[0] != runs):
         raise ShapeError(f"x0: expected ({n},) or ({runs}, {n}), got {x0a.shape}")
@@ -123,8 +127,8 @@ def simulate_ross(model: RossModel, steps: int, runs: int = 1, *, x0: Any = None
     for k in range(steps):
         a, b = ch.draw_modes(rng, (runs,))
         alpha[:, k], beta[:, k] = a, b
-        y[:, k] = ch.measure(x[:, k] @ model.C.T, a, b, vs[:, k] * model.D)        # (2)
-        x[:, k + 1] = model.f(x[:, k]) + ws[:, k] @ model.B.T                      # (1)
+        y[:, k] = ch.measure(x[:, k] @ model.C.T, a, b, vs[:, k] * model.D)  # (2)
+        x[:, k + 1] = model.f(x[:, k]) + ws[:, k] @ model.B.T  # (1)
     return RossSimulation(x=x, y=y, z=x @ model.M.T, alpha=alpha, beta=beta, w=ws, v=vs)
 
 

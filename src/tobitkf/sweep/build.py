@@ -48,7 +48,7 @@ class Point:
         return iter((self.system, self.parts.get("censoring"), {k: e for k, (_, e) in self.estimators.items()}))
 
 
-def _law(tbl: dict[str, Any], name: str):
+def _law(tbl: dict[str, Any] | str | None, name: str):
     from ..channels.laws import PMF
 
     if tbl is None or tbl == "none":
@@ -58,7 +58,9 @@ def _law(tbl: dict[str, Any], name: str):
 
         laws = {"base": LAMBDA_BASE, "lambda1": LAMBDA_1}
         if tbl not in laws:
-            raise ValidationError(f"{name}: expected 'none', 'base', 'lambda1' or a table {{values, probs}}, got {tbl!r}")
+            raise ValidationError(
+                f"{name}: expected 'none', 'base', 'lambda1' or a table {{values, probs}}, got {tbl!r}"
+            )
         return laws[tbl]
     if not isinstance(tbl, dict) or set(tbl) != {"values", "probs"}:
         raise ValidationError(f"{name}: expected a table with 'values' and 'probs', got {tbl!r}")
@@ -117,13 +119,15 @@ def build_point(spec: Any, point: dict[str, Any], *, threads: int | None = None)
     for key, est in r["estimators"].items():
         entry = get(est["type"])
         if entry.model != "linear":
-            raise ValidationError(f"type: {entry.name} is not a family on a linear model; sweep it through its "
-                                  "experiment (sweep.experiment)")
+            raise ValidationError(
+                f"type: {entry.name} is not a family on a linear model; sweep it through its "
+                "experiment (sweep.experiment)"
+            )
         opts = {k: v for k, v in est.items() if k != "type"}
         if threads is not None and entry.name == "TobitKalmanFilter":
             opts["threads"] = threads
         try:
             estimators[key] = (entry, entry.build(sys_, parts, opts))
-        except TypeError as exc:           # an option of the wrong kind for the class
+        except TypeError as exc:  # an option of the wrong kind for the class
             raise ValidationError(f"{next(iter(opts), 'type')}: {exc}") from None
     return Point(sys_, parts, estimators)

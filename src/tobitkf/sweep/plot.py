@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._extras import require
 from ..plotting import new_figure, save
 
 __all__ = ["plot_result"]
@@ -24,12 +25,11 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
 
     Returns the written paths (default folder: ``<store>/../<name>_plots``).
     """
-    import matplotlib
+    matplotlib = require("matplotlib", extra="plot", feature="tobitkf plot")
 
     matplotlib.use("Agg")
-    from .store import load_result
-
     from .._io import FIGURE_MARKERS, as_path, check_replaceable, check_writable_dir
+    from .store import load_result
 
     path = as_path(path, "result")
     ds = load_result(path)
@@ -37,7 +37,7 @@ def plot_result(path: str | Path, outdir: str | Path | None = None) -> list[Path
     check_writable_dir(outdir, "--out")
     grid_dims = [d for d in ds["rmse"].dims if d not in ("estimator", "time", "state")]
     names = ["rmse_over_time.png"] + [f"rmse_vs_{_safe(d)}.png" for d in grid_dims]
-    for name in names:               # a figure of the same name tobitkf did not draw is never replaced
+    for name in names:  # a figure of the same name tobitkf did not draw is never replaced
         check_replaceable(outdir / name, "--out", FIGURE_MARKERS)
     stacked = ds["rmse"].stack(point=grid_dims) if grid_dims else ds["rmse"].expand_dims(point=[0])
     ests, n = list(ds["estimator"].values), ds.sizes["state"]

@@ -15,13 +15,14 @@ grow with the run count.
 from __future__ import annotations
 
 import time
-from functools import lru_cache
 from collections.abc import Callable
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .._extras import require
 from .._validation import ValidationError
 from ..metrics import nees_terms
 from .build import build_point
@@ -31,23 +32,30 @@ from .store import _read, check_resumable, open_store, reduce_store, write_block
 __all__ = ["build_point", "run_block", "run_sweep", "experiment_seed"]
 
 
-def run_block(spec: SweepSpec, point: dict[str, Any], block: int, runs: int, *,
-              threads: int | None = None) -> dict[str, np.ndarray]:
+def run_block(
+    spec: SweepSpec, point: dict[str, Any], block: int, runs: int, *, threads: int | None = None
+) -> dict[str, np.ndarray]:
     """Simulate ``runs`` runs of block ``block`` and return its sufficient statistics."""
     from ..simulate.core import simulate
 
     pt = build_point(spec, point, threads=threads)
-    data = simulate(pt.system, spec.steps, runs, channel=pt.channel(),
-                    seed=np.random.SeedSequence(spec.seed, spawn_key=(block,)))
+    data = simulate(
+        pt.system, spec.steps, runs, channel=pt.channel(), seed=np.random.SeedSequence(spec.seed, spawn_key=(block,))
+    )
     s_err, s_sq, s_nees = [], [], []
     for entry, est in pt.estimators.values():
         out = entry.run(est, data, outputs=("mean", "cov"))
-        err = out.mean - data.x[:, out.times]                 # the truth at the rows' times
+        err = out.mean - data.x[:, out.times]  # the truth at the rows' times
         s_err.append(err.sum(axis=0))
         s_sq.append((err**2).sum(axis=0))
         s_nees.append(nees_terms(err, out.cov).sum(axis=0))
-    return {"sum_err": np.stack(s_err), "sum_sq": np.stack(s_sq), "sum_nees": np.stack(s_nees),
-            "censored": pt.censored(data.y).sum(axis=0).astype(float), "count": np.int64(runs)}
+    return {
+        "sum_err": np.stack(s_err),
+        "sum_sq": np.stack(s_sq),
+        "sum_nees": np.stack(s_nees),
+        "censored": pt.censored(data.y).sum(axis=0).astype(float),
+        "count": np.int64(runs),
+    }
 
 
 def experiment_seed(seed: int, block: int) -> int:
@@ -57,26 +65,34 @@ def experiment_seed(seed: int, block: int) -> int:
     return int(np.random.SeedSequence(seed, spawn_key=(block,)).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
-def _experiment_block(spec: SweepSpec, point: dict[str, Any], block: int,
-                      runs: int) -> tuple[list[str], dict[str, np.ndarray]]:
+def _experiment_block(
+    spec: SweepSpec, point: dict[str, Any], block: int, runs: int
+) -> tuple[list[str], dict[str, Any]]:
     """Run the experiment for one block and turn its per-step RMSE, bias and NEES into sums."""
     from ..experiments import get
 
     r = spec.resolved(point)
+    assert spec.experiment is not None, "an experiment block belongs to an experiment sweep"
     try:
         res = get(spec.experiment).run(runs=runs, seed=experiment_seed(spec.seed, block), **r["settings"])
-    except TypeError as exc:   # an experiment taking **overrides refuses an unknown setting this way
+    except TypeError as exc:  # an experiment taking **overrides refuses an unknown setting this way
         raise ValidationError(f"settings: {spec.experiment} refused the settings {r['settings']}: {exc}") from None
     est = res.metrics.get("estimators")
     if not est:
-        raise ValidationError(f"sweep.experiment: {spec.experiment!r} reports no top-level 'estimators' block "
-                              "and cannot be swept")
+        raise ValidationError(
+            f"sweep.experiment: {spec.experiment!r} reports no top-level 'estimators' block and cannot be swept"
+        )
     keys = list(est)
     rmse = np.stack([np.asarray(est[k]["rmse"], dtype=float) for k in keys])
     bias = np.stack([np.asarray(est[k]["bias"], dtype=float) for k in keys])
     nees = np.stack([np.asarray(est[k].get("nees", np.full(rmse.shape[1], np.nan)), dtype=float) for k in keys])
-    stats = {"sum_err": bias * runs, "sum_sq": rmse**2 * runs, "sum_nees": nees * runs,
-             "censored": np.zeros((rmse.shape[1], 1)), "count": np.int64(runs)}
+    stats = {
+        "sum_err": bias * runs,
+        "sum_sq": rmse**2 * runs,
+        "sum_nees": nees * runs,
+        "censored": np.zeros((rmse.shape[1], 1)),
+        "count": np.int64(runs),
+    }
     return keys, stats
 
 
@@ -88,8 +104,9 @@ def _parsed(spec_text: str, name: str) -> SweepSpec:
     return parse_sweep(spec_text, name=name)
 
 
-def run_task(spec_text: str, name: str, point_index: int, blocks: list[int],
-             threads: int | None = None) -> list[tuple[int, dict]]:
+def run_task(
+    spec_text: str, name: str, point_index: int, blocks: list[int], threads: int | None = None
+) -> list[tuple[int, dict]]:
     """A unit of work for a worker: some blocks of one grid point (top-level so Dask can pickle it).
 
     ``threads``: threads of the filters inside a block (None: their default, which is 1 in a
@@ -113,31 +130,33 @@ def _probe(scheduler: str, timeout: float = 5.0) -> None:
     try:
         parts = urlsplit(address)
         host, port = parts.hostname, parts.port
-    except ValueError as exc:               # a port that is not a number or out of range
-        raise ValidationError(f"--scheduler: {scheduler!r} is not a scheduler address ({exc}); expected "
-                              "'local', 'processes' or e.g. tcp://host:8786") from None
+    except ValueError as exc:  # a port that is not a number or out of range
+        raise ValidationError(
+            f"--scheduler: {scheduler!r} is not a scheduler address ({exc}); expected "
+            "'local', 'processes' or e.g. tcp://host:8786"
+        ) from None
     if parts.scheme not in ("tcp", "tls") or not host or port is None:
-        return                              # other protocols (inproc, ucx, ws): left to Dask
+        return  # other protocols (inproc, ucx, ws): left to Dask
     import socket
 
     try:
         socket.create_connection((host, port), timeout=timeout).close()
     except ConnectionRefusedError:
-        raise ValidationError(f"--scheduler: connection refused at {host}:{port} (no Dask scheduler listens "
-                              "there); start one or use --scheduler local") from None
+        raise ValidationError(
+            f"--scheduler: connection refused at {host}:{port} (no Dask scheduler listens "
+            "there); start one or use --scheduler local"
+        ) from None
     except socket.gaierror as exc:
         raise ValidationError(f"--scheduler: unknown host {host!r} ({exc.strerror})") from None
     except OSError:
-        return                              # a timeout or a filtered port: Dask's own error follows
+        return  # a timeout or a filtered port: Dask's own error follows
 
 
 def _client(scheduler: str, workers: int):
-    try:
-        from distributed import Client, LocalCluster
-    except ImportError:
-        raise ValidationError("--scheduler: Dask schedulers need 'distributed' (install tobitkf with its dependencies)") from None
+    distributed = require("distributed", extra="sweep", feature="a Dask scheduler (--scheduler)")
+    Client, LocalCluster = distributed.Client, distributed.LocalCluster
     if scheduler == "processes":
-        import dask
+        dask = require("dask", extra="sweep", feature="a Dask scheduler (--scheduler)")
 
         # Dask starts its workers with MALLOC_TRIM_THRESHOLD_=65536, which makes glibc hand every
         # freed block back to the kernel at once; a block's ~30 MB of simulated data and filter
@@ -150,18 +169,27 @@ def _client(scheduler: str, workers: int):
     _probe(scheduler)
     try:
         return Client(scheduler), None
-    except (OSError, ValueError, TypeError) as exc:   # unreachable, timed out, or not an address
-        raise ValidationError(f"--scheduler: cannot connect to a Dask scheduler at {scheduler!r} ({exc}); expected "
-                              "'local', 'processes' or the address of a running scheduler, e.g. "
-                              "tcp://host:8786") from None
+    except (OSError, ValueError, TypeError) as exc:  # unreachable, timed out, or not an address
+        raise ValidationError(
+            f"--scheduler: cannot connect to a Dask scheduler at {scheduler!r} ({exc}); expected "
+            "'local', 'processes' or the address of a running scheduler, e.g. "
+            "tcp://host:8786"
+        ) from None
 
 
 MAX_WORKERS = 1024
 """The most threads or worker processes a sweep starts on one machine."""
 
 
-def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", workers: int | None = None,
-              progress: Callable[[int, int, float], None] | None = None, max_tasks: int | None = None):
+def run_sweep(
+    spec: SweepSpec,
+    out: str | Path,
+    *,
+    scheduler: str = "local",
+    workers: int | None = None,
+    progress: Callable[[int, int, float], None] | None = None,
+    max_tasks: int | None = None,
+):
     """Run (or resume) a sweep and return the path of its store.
 
     Parameters
@@ -195,9 +223,8 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
         refuses the settings or reports no estimators, or a grid point whose statistics do
         not fit the store (e.g. a grid over the horizon).
     """
-    from .._io import check_writable_dir, safe_child
     from .._compiled import default_threads
-
+    from .._io import check_writable_dir, safe_child
     from .._validation import check_instance
     from .spec import SweepSpec
 
@@ -213,7 +240,7 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     check_writable_dir(out, "--out")
     out.mkdir(parents=True, exist_ok=True)
     path = safe_child(out, f"{spec.name}.zarr")
-    check_resumable(path, spec)     # a file in the way, a damaged or foreign store: refused before any work
+    check_resumable(path, spec)  # a file in the way, a damaged or foreign store: refused before any work
     points = spec.points()
     # connect first: a wrong address fails before any work is done
     client, cluster = _client(scheduler, workers) if scheduler != "local" else (None, None)
@@ -227,12 +254,11 @@ def run_sweep(spec: SweepSpec, out: str | Path, *, scheduler: str = "local", wor
     return path
 
 
-def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, progress, max_tasks,
-         threads: int) -> None:
+def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, progress, max_tasks, threads: int) -> None:
     """Create or reopen the store, run the missing blocks (in-process, on ``threads`` threads,
     when ``client`` is None) and write the summary once every block is done."""
     if spec.experiment is not None and path.exists():
-        g = open_store(path, spec, [], 0, 1, 0)        # resuming: the store knows its shapes
+        g = open_store(path, spec, [], 0, 1, 0)  # resuming: the store knows its shapes
     elif spec.experiment is not None:
         # the first block tells the store its shapes (estimators, horizon, state)
         keys, first = _experiment_block(spec, points[0], 0, spec.block_sizes()[0])
@@ -241,16 +267,21 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         write_blocks(g, 0, [(0, first)])
     else:
         pt = build_point(spec, points[0])
-        if client is None and threads > 1:      # blocks computed side by side in this process
-            spec.check_size(pt.system.n, pt.reading_width, pt.system.q, len(pt.estimators),
-                            parallel=min(threads, len(points) * spec.blocks))
+        if client is None and threads > 1:  # blocks computed side by side in this process
+            spec.check_size(
+                pt.system.n,
+                pt.reading_width,
+                pt.system.q,
+                len(pt.estimators),
+                parallel=min(threads, len(points) * spec.blocks),
+            )
         g = open_store(path, spec, list(pt.estimators), pt.system.n, pt.reading_width, spec.steps)
     done = _read(g, "done")
     tasks = []
     for p in range(len(points)):
         todo = [b for b in range(spec.blocks) if not done[p, b]]
         for i in range(0, len(todo), spec.chunk_blocks):
-            tasks.append((p, todo[i:i + spec.chunk_blocks]))
+            tasks.append((p, todo[i : i + spec.chunk_blocks]))
     if max_tasks is not None:
         tasks = tasks[:max_tasks]
     total = int(done.size)
@@ -274,7 +305,8 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         for p, blocks in tasks:
             record(p, run_task(spec.text, spec.name, p, blocks))
     elif client is None:
-        from concurrent.futures import ThreadPoolExecutor, as_completed as done_first
+        from concurrent.futures import ThreadPoolExecutor
+        from concurrent.futures import as_completed as done_first
 
         pool = ThreadPoolExecutor(max_workers=threads)
         try:
@@ -284,7 +316,7 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
     else:
-        from distributed import as_completed
+        as_completed = require("distributed", extra="sweep").as_completed
 
         futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
         for fut in as_completed(futs):

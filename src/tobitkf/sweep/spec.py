@@ -70,6 +70,7 @@ from .._validation import ValidationError
 
 __all__ = ["SweepFileError", "SweepSpec", "load_sweep", "parse_sweep", "ESTIMATOR_TYPES"]
 
+
 def _estimator_types() -> dict[str, tuple[str, ...]]:
     from ..filters.registry import ENTRIES
 
@@ -83,8 +84,10 @@ _SWEEP_KEYS = {"runs", "steps", "seed", "block_runs", "chunk_blocks", "name", "e
 _MODEL_KEYS = {"A", "C", "Q", "R", "x0", "P0", "B"}
 _CENS_KEYS = {"lower", "upper"}
 # channel sections (tobitkf.channels): the keys each accepts
-_CHANNEL_KEYS = {"fading": {"order", "mean", "variance", "low", "high"},
-                 "protocol": {"window", "threshold", "failures", "order", "prehistory"}}
+_CHANNEL_KEYS = {
+    "fading": {"order", "mean", "variance", "low", "high"},
+    "protocol": {"window", "threshold", "failures", "order", "prehistory"},
+}
 _TOP = {"sweep", "model", "censoring", "estimators", "grid", "settings"} | set(_CHANNEL_KEYS)
 
 
@@ -92,11 +95,11 @@ class SweepFileError(ValidationError):
     """A sweep file is malformed; the message names the key and its line."""
 
 
-MAX_FILE_BYTES = 16 * 2**20   # a sweep file is a few kB; this bounds what is read
-MAX_DEPTH = 16                # tables/arrays nested deeper than this are no sweep (a grid of time-varying
-                              # matrices needs 5 levels)
-MAX_GRID_POINTS = 10_000      # every point is built once on load; more would take minutes to check
-MAX_NAME_BYTES = 200          # of the store's name, leaving room for ".zarr", "_plots" and temporary suffixes
+MAX_FILE_BYTES = 16 * 2**20  # a sweep file is a few kB; this bounds what is read
+MAX_DEPTH = 16  # tables/arrays nested deeper than this are no sweep (a grid of time-varying
+# matrices needs 5 levels)
+MAX_GRID_POINTS = 10_000  # every point is built once on load; more would take minutes to check
+MAX_NAME_BYTES = 200  # of the store's name, leaving room for ".zarr", "_plots" and temporary suffixes
 
 
 def _depth(obj: Any, limit: int) -> tuple[int, str]:
@@ -116,13 +119,22 @@ def _depth(obj: Any, limit: int) -> tuple[int, str]:
 
 
 def _check_name(text: str, key: str, sname: Any) -> None:
-    if (not isinstance(sname, str) or not sname or any(c in sname for c in "/\\") or sname.startswith(".")
-            or not sname.isprintable()):
+    if (
+        not isinstance(sname, str)
+        or not sname
+        or any(c in sname for c in "/\\")
+        or sname.startswith(".")
+        or not sname.isprintable()
+    ):
         raise _fail(text, key, f"expected a plain file name, got {sname!r}")
     size = len(sname.encode("utf-8", "surrogatepass"))
     if size > MAX_NAME_BYTES:
-        raise _fail(text, key, f"expected a name of at most {MAX_NAME_BYTES} bytes (it names the store folder), "
-                               f"got {size} bytes ({sname[:20]!r}...)")
+        raise _fail(
+            text,
+            key,
+            f"expected a name of at most {MAX_NAME_BYTES} bytes (it names the store folder), "
+            f"got {size} bytes ({sname[:20]!r}...)",
+        )
 
 
 def _line_of(text: str, dotted: str) -> int | None:
@@ -139,8 +151,11 @@ def _line_of(text: str, dotted: str) -> int | None:
             continue
         if "=" in line:
             lhs = line.split("=", 1)[0].strip().strip('"')
-            if (current == section and lhs == key) or (current == "" and lhs == dotted) or \
-                    (current == parts[0] and lhs == ".".join(parts[1:])):
+            if (
+                (current == section and lhs == key)
+                or (current == "" and lhs == dotted)
+                or (current == parts[0] and lhs == ".".join(parts[1:]))
+            ):
                 return i
     return None
 
@@ -191,8 +206,12 @@ class SweepSpec:
 
     def resolved(self, point: dict[str, Any]) -> dict[str, Any]:
         """Model, censoring, estimators and settings with a grid point applied."""
-        out = {"model": dict(self.model), "censoring": dict(self.censoring),
-               "estimators": {k: dict(v) for k, v in self.estimators.items()}, "settings": dict(self.settings)}
+        out = {
+            "model": dict(self.model),
+            "censoring": dict(self.censoring),
+            "estimators": {k: dict(v) for k, v in self.estimators.items()},
+            "settings": dict(self.settings),
+        }
         out.update({k: dict(v) for k, v in self.channels.items()})
         for dotted, value in point.items():
             parts = dotted.split(".")
@@ -202,8 +221,9 @@ class SweepSpec:
             target[parts[-1]] = value
         return out
 
-    def check_size(self, n: int | None, m: int | None, q: int | None, estimators: int | None, *,
-                   parallel: int = 1) -> None:
+    def check_size(
+        self, n: int | None, m: int | None, q: int | None, estimators: int | None, *, parallel: int = 1
+    ) -> None:
         """Refuse, before anything is stored or run, a sweep whose arrays cannot fit in memory:
         the ``done`` flags of every block, and (model mode, where the sizes are known) one block's
         simulated data and filter output (times ``parallel`` blocks computed side by side), and the
@@ -219,18 +239,29 @@ class SweepSpec:
         points = int(np.prod(self.grid_shape, dtype=object)) if self.grid else 1
         blocks = points * self.blocks
         try:
-            check_memory(blocks, "sweep.runs", f"{self.runs} runs in blocks of {self.block_runs} at {points} grid "
-                                               f"point(s) ({blocks} blocks; one flag each)")
+            check_memory(
+                blocks,
+                "sweep.runs",
+                f"{self.runs} runs in blocks of {self.block_runs} at {points} grid "
+                f"point(s) ({blocks} blocks; one flag each)",
+            )
             if n is None:
                 return
+            assert m is not None and q is not None and estimators is not None, "model mode gives every size"
             R, T = self.block_runs, self.steps
-            check_memory(8 * parallel * R * (T + 1) * (n + q + 3 * m + 3 * n + n * n), "sweep.steps",
-                         ("one block" if parallel == 1 else f"{parallel} blocks side by side (workers)") +
-                         f" of {R} runs (sweep.block_runs) x {T} steps (n = {n}, m = {m}: simulated data "
-                         "and one filter's means and covariances)")
+            check_memory(
+                8 * parallel * R * (T + 1) * (n + q + 3 * m + 3 * n + n * n),
+                "sweep.steps",
+                ("one block" if parallel == 1 else f"{parallel} blocks side by side (workers)")
+                + f" of {R} runs (sweep.block_runs) x {T} steps (n = {n}, m = {m}: simulated data "
+                "and one filter's means and covariances)",
+            )
             stats = estimators * T * (2 * n + 1) + T * m + 1
-            check_memory(8 * blocks * stats, "sweep.steps", f"the statistics of {blocks} blocks x {T} steps, read "
-                                                            "at once to reduce the sweep")
+            check_memory(
+                8 * blocks * stats,
+                "sweep.steps",
+                f"the statistics of {blocks} blocks x {T} steps, read at once to reduce the sweep",
+            )
         except ValidationError as exc:
             key = str(exc).split(":", 1)[0]
             raise _fail(self.text, key, str(exc).split(": ", 1)[1]) from None
@@ -238,10 +269,19 @@ class SweepSpec:
     def canonical(self) -> str:
         """A canonical JSON form of everything that determines the numbers (used to refuse
         resuming a store made by a different sweep)."""
-        doc = {"runs": self.runs, "steps": self.steps, "seed": self.seed, "block_runs": self.block_runs,
-               "experiment": self.experiment, "model": self.model, "censoring": self.censoring,
-               "estimators": self.estimators, "settings": self.settings, "grid": self.grid}
-        if self.channels:        # only then: the canonical form of a channel-free sweep is unchanged
+        doc = {
+            "runs": self.runs,
+            "steps": self.steps,
+            "seed": self.seed,
+            "block_runs": self.block_runs,
+            "experiment": self.experiment,
+            "model": self.model,
+            "censoring": self.censoring,
+            "estimators": self.estimators,
+            "settings": self.settings,
+            "grid": self.grid,
+        }
+        if self.channels:  # only then: the canonical form of a channel-free sweep is unchanged
             doc["channels"] = self.channels
         return json.dumps(doc, sort_keys=True, default=str)
 
@@ -276,9 +316,10 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     except tomllib.TOMLDecodeError as exc:
         raise SweepFileError(f"sweep file: not valid TOML: {exc}") from None
     except RecursionError:
-        raise SweepFileError(f"sweep file: arrays or tables nested too deeply to read (at most {MAX_DEPTH} "
-                             "levels)") from None
-    except ValueError as exc:       # e.g. an integer of more than 4300 digits
+        raise SweepFileError(
+            f"sweep file: arrays or tables nested too deeply to read (at most {MAX_DEPTH} levels)"
+        ) from None
+    except ValueError as exc:  # e.g. an integer of more than 4300 digits
         raise SweepFileError(f"sweep file: not valid TOML: {' '.join(str(exc).split())[:200]}") from None
     depth, where = _depth(doc, MAX_DEPTH)
     if depth > MAX_DEPTH:
@@ -355,17 +396,26 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             from ..filters.registry import ENTRIES
 
             if isinstance(est["type"], str) and est["type"] in ENTRIES and est["type"] not in ESTIMATOR_TYPES:
-                raise _fail(text, f"estimators.{key}.type",
-                            f"{est['type']} is not a family on a linear model (its model: "
-                            f"{ENTRIES[est['type']].model}); sweep it through its experiment (sweep.experiment)")
+                raise _fail(
+                    text,
+                    f"estimators.{key}.type",
+                    f"{est['type']} is not a family on a linear model (its model: "
+                    f"{ENTRIES[est['type']].model}); sweep it through its experiment (sweep.experiment)",
+                )
             if not isinstance(est["type"], str) or est["type"] not in ESTIMATOR_TYPES:
-                raise _fail(text, f"estimators.{key}.type",
-                            f"unknown estimator type {est['type']!r}; expected one of {', '.join(ESTIMATOR_TYPES)}")
+                raise _fail(
+                    text,
+                    f"estimators.{key}.type",
+                    f"unknown estimator type {est['type']!r}; expected one of {', '.join(ESTIMATOR_TYPES)}",
+                )
             for opt in est:
                 if opt != "type" and opt not in ESTIMATOR_TYPES[est["type"]]:
-                    raise _fail(text, f"estimators.{key}.{opt}",
-                                f"unknown option for {est['type']}; expected one of "
-                                f"{', '.join(ESTIMATOR_TYPES[est['type']]) or 'none'}")
+                    raise _fail(
+                        text,
+                        f"estimators.{key}.{opt}",
+                        f"unknown option for {est['type']}; expected one of "
+                        f"{', '.join(ESTIMATOR_TYPES[est['type']]) or 'none'}",
+                    )
     grid = doc.get("grid", {})
     if not isinstance(grid, dict):
         raise _fail(text, "grid", "expected a table of dotted keys and lists of values")
@@ -373,8 +423,11 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     for values in grid.values():
         points *= len(values) if isinstance(values, list) else 1
     if points > MAX_GRID_POINTS:
-        raise _fail(text, "grid", f"{points} grid points, more than the {MAX_GRID_POINTS} one sweep may have "
-                                  "(split it into several sweeps)")
+        raise _fail(
+            text,
+            "grid",
+            f"{points} grid points, more than the {MAX_GRID_POINTS} one sweep may have (split it into several sweeps)",
+        )
     for key, values in grid.items():
         if not isinstance(values, list) or not values:
             raise _fail(text, f"grid.{key}", "expected a non-empty list of values")
@@ -388,8 +441,11 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
                 raise _fail(text, f"grid.{key}", "expected 'estimators.<key>.<option>' naming a listed estimator")
             opts = ESTIMATOR_TYPES[ests[parts[1]]["type"]]
             if parts[2] not in opts:
-                raise _fail(text, f"grid.{key}", f"unknown option for {ests[parts[1]]['type']}; expected one of "
-                                                 f"{', '.join(opts) or 'none'}")
+                raise _fail(
+                    text,
+                    f"grid.{key}",
+                    f"unknown option for {ests[parts[1]]['type']}; expected one of {', '.join(opts) or 'none'}",
+                )
         elif len(parts) != 2:
             raise _fail(text, f"grid.{key}", f"expected '{root}.<key>' (one level deep)")
         elif root == "model" and parts[1] not in _MODEL_KEYS:
@@ -397,12 +453,27 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         elif root == "censoring" and parts[1] not in _CENS_KEYS:
             raise _fail(text, f"grid.{key}", "unknown censoring key; expected 'lower' or 'upper'")
         elif root in _CHANNEL_KEYS and (root not in doc or parts[1] not in _CHANNEL_KEYS[root]):
-            raise _fail(text, f"grid.{key}", f"expected a key of the file's [{root}] table "
-                                             f"({', '.join(sorted(_CHANNEL_KEYS[root]))})")
-    spec = SweepSpec(text=text, name=sname, runs=runs, steps=steps, seed=seed, block_runs=block_runs,
-                     chunk_blocks=chunk_blocks, experiment=experiment, model=model, censoring=cens,
-                     estimators=ests, settings=settings, grid=grid,
-                     channels={sec: dict(doc[sec]) for sec in _CHANNEL_KEYS if sec in doc})
+            raise _fail(
+                text,
+                f"grid.{key}",
+                f"expected a key of the file's [{root}] table ({', '.join(sorted(_CHANNEL_KEYS[root]))})",
+            )
+    spec = SweepSpec(
+        text=text,
+        name=sname,
+        runs=runs,
+        steps=steps,
+        seed=seed,
+        block_runs=block_runs,
+        chunk_blocks=chunk_blocks,
+        experiment=experiment,
+        model=model,
+        censoring=cens,
+        estimators=ests,
+        settings=settings,
+        grid=grid,
+        channels={sec: dict(doc[sec]) for sec in _CHANNEL_KEYS if sec in doc},
+    )
     # build the base model and every grid point once, so that a bad matrix or limit fails on
     # load (naming the key that holds it), not mid-sweep
     if experiment is None:
@@ -414,8 +485,11 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             arg = str(exc).split(":", 1)[0].split("(")[0].strip()
             est_key = next((f"estimators.{k}.{arg}" for k, e in ests.items() if arg in e), None)
             chan = next((f"{sec}.{arg}" for sec in _CHANNEL_KEYS if arg in spec.channels.get(sec, {})), None)
-            key = f"model.{arg}" if arg in _MODEL_KEYS else ("censoring" if arg.startswith(("lower", "upper", "censoring"))
-                                                              else (est_key or chan or "model"))
+            key = (
+                f"model.{arg}"
+                if arg in _MODEL_KEYS
+                else ("censoring" if arg.startswith(("lower", "upper", "censoring")) else (est_key or chan or "model"))
+            )
             raise _fail(text, key, str(exc)) from None
         for point in spec.points():
             try:
@@ -443,24 +517,28 @@ def load_sweep(path: str | Path) -> SweepSpec:
     path = as_path(path, "sweep file")
     try:
         if path.exists() and not path.is_file():
-            raise SweepFileError(f"sweep file: {path} is {'a folder' if path.is_dir() else 'not a regular file'}; "
-                                 "expected a TOML file")
+            raise SweepFileError(
+                f"sweep file: {path} is {'a folder' if path.is_dir() else 'not a regular file'}; expected a TOML file"
+            )
         size = path.stat().st_size
         if size > MAX_FILE_BYTES:
-            raise SweepFileError(f"sweep file: {path} is {size / 2**20:.0f} MiB, more than the "
-                                 f"{MAX_FILE_BYTES // 2**20} MiB a sweep file may have")
+            raise SweepFileError(
+                f"sweep file: {path} is {size / 2**20:.0f} MiB, more than the "
+                f"{MAX_FILE_BYTES // 2**20} MiB a sweep file may have"
+            )
         raw = path.read_bytes()
     except OSError as exc:
         raise SweepFileError(f"sweep file: cannot read {path}: {exc.strerror or exc}") from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        line = raw[:exc.start].count(b"\n") + 1
-        raise SweepFileError(f"sweep file: {path} is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); "
-                             "save it as UTF-8") from None
+        line = raw[: exc.start].count(b"\n") + 1
+        raise SweepFileError(
+            f"sweep file: {path} is not UTF-8 text (byte 0x{raw[exc.start]:02x} on line {line}); save it as UTF-8"
+        ) from None
     name = path.stem
     if len(name.encode("utf-8", "surrogateescape")) > MAX_NAME_BYTES or not name.isprintable():
-        name = "sweep"        # the file name is only the default store name; a [sweep] name = "..." wins
+        name = "sweep"  # the file name is only the default store name; a [sweep] name = "..." wins
     return parse_sweep(text, name=name)
 
 

@@ -45,25 +45,50 @@ from typing import Any
 
 import numpy as np
 
+from .._extras import require
 from .._validation import ValidationError, check_memory
 from .spec import SweepSpec, jsonable_grid, scalar_axis
 
-__all__ = ["open_store", "write_blocks", "reduce_store", "load_result", "layout", "pack", "unpack",
-           "check_store_path", "check_resumable", "read_store"]
+__all__ = [
+    "open_store",
+    "write_blocks",
+    "reduce_store",
+    "load_result",
+    "layout",
+    "pack",
+    "unpack",
+    "check_store_path",
+    "check_resumable",
+    "read_store",
+]
 
 # attributes every store has, with their JSON types (checked when a store is reopened or read)
-_ATTRS: dict[str, type | tuple[type, ...]] = {
-    "sweep": str, "canonical": str, "package_version": str, "estimators": list, "grid": dict, "n": int, "m": int,
-    "steps": int, "runs": int, "seed": int, "block_runs": int, "name": str, "experiment": str, "layout": dict}
+_ATTRS: dict[str, type] = {
+    "sweep": str,
+    "canonical": str,
+    "package_version": str,
+    "estimators": list,
+    "grid": dict,
+    "n": int,
+    "m": int,
+    "steps": int,
+    "runs": int,
+    "seed": int,
+    "block_runs": int,
+    "name": str,
+    "experiment": str,
+    "layout": dict,
+}
 
 
-_MAX_CHUNKS = 10**6     # tobitkf writes one chunk per task; far more means a damaged chunk grid
+_MAX_CHUNKS = 10**6  # tobitkf writes one chunk per task; far more means a damaged chunk grid
 
 
 def _damaged(path: Path, what: str, exc: BaseException | None = None) -> ValidationError:
     detail = f" ({type(exc).__name__}: {' '.join(str(exc).split())[:200]})" if exc is not None else ""
-    return ValidationError(f"sweep store: {path} is damaged or not a sweep store: {what}{detail}; "
-                           "delete it and run the sweep again")
+    return ValidationError(
+        f"sweep store: {path} is damaged or not a sweep store: {what}{detail}; delete it and run the sweep again"
+    )
 
 
 def check_store_path(path: Path, name: str = "--out") -> None:
@@ -71,8 +96,10 @@ def check_store_path(path: Path, name: str = "--out") -> None:
     path = Path(path)
     if (path.exists() or path.is_symlink()) and not path.is_dir():
         if name == "--out":
-            raise ValidationError(f"--out: {path} exists and is not a sweep store folder (a file of that name is "
-                                  "in the way); move it away or choose another output directory")
+            raise ValidationError(
+                f"--out: {path} exists and is not a sweep store folder (a file of that name is "
+                "in the way); move it away or choose another output directory"
+            )
         raise ValidationError(f"{name}: {path} is a file, not a sweep store (a folder DIR/<name>.zarr)")
 
 
@@ -87,18 +114,21 @@ def check_resumable(path: Path, spec: SweepSpec) -> None:
         return
     g = read_store(path, mode="r", name="--out")
     if g.attrs["canonical"] != spec.canonical():
-        raise ValidationError(f"--out: {path} holds a different sweep; choose another output directory "
-                              "or delete it to start over")
+        raise ValidationError(
+            f"--out: {path} holds a different sweep; choose another output directory or delete it to start over"
+        )
     if g.attrs["package_version"] != __version__:
-        raise ValidationError(f"--out: {path} was written by tobitkf {g.attrs['package_version']!r}, this is "
-                              f"{__version__!r}; blocks of different versions are not mixed: delete the store "
-                              "to start over or choose another output directory")
+        raise ValidationError(
+            f"--out: {path} was written by tobitkf {g.attrs['package_version']!r}, this is "
+            f"{__version__!r}; blocks of different versions are not mixed: delete the store "
+            "to start over or choose another output directory"
+        )
     P = int(np.prod(spec.grid_shape, dtype=object)) if spec.grid else 1
     if g["done"].shape != (P, spec.blocks):
         raise _damaged(path, f"it holds {g['done'].shape} blocks, the sweep has ({P}, {spec.blocks})")
 
 
-def read_store(path: Path, *, mode: str = "r", name: str = "result"):
+def read_store(path: str | Path, *, mode: str = "r", name: str = "result"):
     """Open an existing store and check its structure: the group, its attributes (names and
     types) and the two arrays (shapes and types) as :func:`open_store` wrote them.
 
@@ -108,7 +138,7 @@ def read_store(path: Path, *, mode: str = "r", name: str = "result"):
         ``sweep store: PATH is damaged or not a sweep store: ...`` for garbage metadata, a missing
         attribute or array, an array where the group should be, or shapes that disagree.
     """
-    import zarr
+    zarr = require("zarr", extra="sweep", feature="sweep stores")
 
     from .._io import as_path
 
@@ -148,8 +178,11 @@ def read_store(path: Path, *, mode: str = "r", name: str = "result"):
     stats_shape, done_shape = g["stats"].shape, g["done"].shape
     B = -(-attrs["runs"] // attrs["block_runs"]) if attrs["block_runs"] > 0 and attrs["runs"] > 0 else -1
     if stats_shape[:2] != done_shape or stats_shape[0] != P or stats_shape[2] != size or done_shape[1] != B:
-        raise _damaged(path, f"the arrays have shapes {stats_shape} (stats) and {done_shape} (done), expected "
-                             f"({P}, {B}, {size}) and ({P}, {B})")
+        raise _damaged(
+            path,
+            f"the arrays have shapes {stats_shape} (stats) and {done_shape} (done), expected "
+            f"({P}, {B}, {size}) and ({P}, {B})",
+        )
     for name in ("stats", "done"):
         arr = g[name]
         try:
@@ -159,8 +192,11 @@ def read_store(path: Path, *, mode: str = "r", name: str = "result"):
         if chunks > _MAX_CHUNKS:
             raise _damaged(path, f"the array {name!r} is split into {chunks} chunks (more than {_MAX_CHUNKS})")
     try:
-        check_memory(int(np.prod(stats_shape, dtype=object)) * 8 + int(np.prod(done_shape, dtype=object)), name,
-                     f"reading the sweep store {path}")
+        check_memory(
+            int(np.prod(stats_shape, dtype=object)) * 8 + int(np.prod(done_shape, dtype=object)),
+            name,
+            f"reading the sweep store {path}",
+        )
     except ValidationError as exc:
         raise _damaged(path, str(exc).split(": ", 1)[1]) from None
     return g
@@ -176,15 +212,18 @@ def _read(g, name: str) -> np.ndarray:
     try:
         return g[name][:]
     except Exception as exc:  # noqa: BLE001 - codecs raise many kinds of errors for a corrupt chunk
-        raise _damaged(_where(g), f"the array {name!r} cannot be read "
-                       "(a corrupt chunk)", exc) from None
-
+        raise _damaged(_where(g), f"the array {name!r} cannot be read (a corrupt chunk)", exc) from None
 
 
 def layout(estimators: int, steps: int, n: int, m: int) -> dict[str, tuple[int, ...]]:
     """Shapes of the statistics of one block, in packing order."""
-    return {"sum_err": (estimators, steps, n), "sum_sq": (estimators, steps, n), "sum_nees": (estimators, steps),
-            "censored": (steps, m), "count": ()}
+    return {
+        "sum_err": (estimators, steps, n),
+        "sum_sq": (estimators, steps, n),
+        "sum_nees": (estimators, steps),
+        "censored": (steps, m),
+        "count": (),
+    }
 
 
 def pack(stats: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]]) -> np.ndarray:
@@ -202,7 +241,8 @@ def pack(stats: dict[str, np.ndarray], shapes: dict[str, tuple[int, ...]]) -> np
             raise ValidationError(
                 f"sweep: a grid point gave {name} of shape {a.shape}, but the store holds {shape} (estimators, "
                 "time, state/channel), set by the first grid point; grid values that change the horizon or the "
-                "state dimension cannot share one store: run one sweep per value")
+                "state dimension cannot share one store: run one sweep per value"
+            )
         parts.append(a.ravel())
     return np.concatenate(parts)
 
@@ -213,14 +253,14 @@ def unpack(vec: np.ndarray, shapes: dict[str, tuple[int, ...]]) -> dict[str, np.
     lead = vec.shape[:-1]
     for name, shape in shapes.items():
         size = int(np.prod(shape))
-        out[name] = vec[..., i:i + size].reshape(lead + tuple(shape))
+        out[name] = vec[..., i : i + size].reshape(lead + tuple(shape))
         i += size
     return out
 
 
 def open_store(path: Path, spec: SweepSpec, estimators: list[str], n: int, m: int, steps: int):
     """Create the store, or reopen it to resume; refuse a store made by another sweep."""
-    import zarr
+    zarr = require("zarr", extra="sweep", feature="sweep stores")
 
     from .. import __version__
 
@@ -240,11 +280,24 @@ def open_store(path: Path, spec: SweepSpec, estimators: list[str], n: int, m: in
     per_chunk = max(1, min(spec.chunk_blocks, B))
     g.create_array("stats", shape=(P, B, size), chunks=(1, per_chunk, size), dtype="f8", fill_value=0.0)
     g.create_array("done", shape=(P, B), chunks=(1, per_chunk), dtype="bool", fill_value=False)
-    g.attrs.update({"sweep": spec.text, "canonical": spec.canonical(), "package_version": __version__,
-                    "estimators": estimators, "grid": jsonable_grid(spec.grid), "n": n, "m": m, "steps": steps,
-                    "runs": spec.runs, "seed": spec.seed, "block_runs": spec.block_runs, "name": spec.name,
-                    "experiment": spec.experiment or "",
-                    "layout": {k: list(v) for k, v in shapes.items()}})
+    g.attrs.update(
+        {
+            "sweep": spec.text,
+            "canonical": spec.canonical(),
+            "package_version": __version__,
+            "estimators": estimators,
+            "grid": jsonable_grid(spec.grid),
+            "n": n,
+            "m": m,
+            "steps": steps,
+            "runs": spec.runs,
+            "seed": spec.seed,
+            "block_runs": spec.block_runs,
+            "name": spec.name,
+            "experiment": spec.experiment or "",
+            "layout": {k: list(v) for k, v in shapes.items()},
+        }
+    )
     os.replace(tmp, path)  # the store appears whole or not at all
     return zarr.open_group(str(path), mode="a")
 
@@ -270,9 +323,9 @@ def write_blocks(g, point: int, results: list[tuple[int, dict[str, np.ndarray]]]
     packed = [np.stack([pack(st, shapes) for _, st in run]) for run in runs]
     try:
         for run, vec in zip(runs, packed):
-            g["stats"][point, run[0][0]:run[-1][0] + 1] = vec
+            g["stats"][point, run[0][0] : run[-1][0] + 1] = vec
         for run in runs:
-            g["done"][point, run[0][0]:run[-1][0] + 1] = True
+            g["done"][point, run[0][0] : run[-1][0] + 1] = True
     except OSError:
         raise
     except Exception as exc:  # noqa: BLE001 - a partial chunk is read before it is written: damage shows here
@@ -285,17 +338,18 @@ def reduce_store(g):
     Variables: ``rmse``, ``bias`` (…, estimator, time, state), ``nees`` (…, estimator, time),
     ``censored_fraction`` (…, time, channel), ``runs`` (grid axes).
     """
-    import xarray as xr
+    xr = require("xarray", extra="sweep", feature="sweep results")
 
     done = _read(g, "done")
     if not done.all():
-        raise ValidationError(f"sweep store: {int((~done).sum())} of {done.size} blocks are not finished; "
-                              "rerun the sweep to complete it")
+        raise ValidationError(
+            f"sweep store: {int((~done).sum())} of {done.size} blocks are not finished; rerun the sweep to complete it"
+        )
     attrs = dict(g.attrs)
     grid = attrs["grid"]
     shape = tuple(len(v) for v in grid.values())
-    sums = unpack(_read(g, "stats").sum(axis=1), _shapes(g))     # blocks summed in order: (P, ...)
-    total = sums["count"]                                      # (P,)
+    sums = unpack(_read(g, "stats").sum(axis=1), _shapes(g))  # blocks summed in order: (P, ...)
+    total = sums["count"]  # (P,)
     if not (np.all(np.isfinite(total)) and np.all(total >= 1)):
         raise _damaged(_where(g), f"its run counts are {total[:4]}")
     s_err = sums["sum_err"] / total[:, None, None, None]
@@ -322,8 +376,13 @@ def reduce_store(g):
             "runs": (dims, total.reshape(shape) if dims else total.reshape(())),
         },
         coords=coords,
-        attrs={"sweep": attrs["sweep"], "package_version": attrs["package_version"],
-               "grid": json.dumps(grid), "seed": attrs["seed"], "name": attrs["name"]},
+        attrs={
+            "sweep": attrs["sweep"],
+            "package_version": attrs["package_version"],
+            "grid": json.dumps(grid),
+            "seed": attrs["seed"],
+            "name": attrs["name"],
+        },
     )
     return ds
 
@@ -335,5 +394,5 @@ def load_result(path: str | Path):
         return reduce_store(g)
     except ValidationError:
         raise
-    except (KeyError, TypeError, ValueError, IndexError) as exc:   # attributes that disagree with the arrays
+    except (KeyError, TypeError, ValueError, IndexError) as exc:  # attributes that disagree with the arrays
         raise _damaged(Path(path), "its attributes do not match its arrays", exc) from None
