@@ -791,8 +791,8 @@ def protocol_covariance_bounds(
 
 
     Sec. IV and App. C–D of the source; our deviations docs/sources GP-02, GP-04, GP-06. Index convention
-    (docs/sources GP-05): :math:
-`M^u_1 = M^l_1 = P^-_1 = \mathcal A_0M_0\mathcal A_0^T + \mathcal BQ_0\mathcal B^T`;
+    (docs/sources GP-05):
+    :math:`M^u_1 = M^l_1 = P^-_1 = \mathcal A_0M_0\mathcal A_0^T + \mathcal BQ_0\mathcal B^T`;
     then for k = 1..T-1, with step-k quantities (:math:`h = \bar h_k`, :math:`\mathbf H_k`, :math:`\mathcal R_k`,
     :math:`\bar\gamma_k`):
 
