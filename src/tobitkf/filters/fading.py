@@ -711,18 +711,16 @@ def _fading_kernel_gap(est: FadingTobitKalmanFilter, u) -> str | None:
 
 
 def _fading_kernel_matrices(est: FadingTobitKalmanFilter) -> tuple[np.ndarray, ...]:
-    """Augmented A, B Q B^T (nxi, nxi) and the stack H_0..H_L (L+1, m, nxi), computed once per estimator."""
+    """A, B Q B^T (n, n) and the stack H_0..H_L (L+1, m, nxi), computed once per estimator."""
     mats = est.__dict__.get("_kernel_mats")
     if mats is None:
-        sys_, n, L, nxi = est.system, est.n, est.L, est._nxi
-        A = np.zeros((nxi, nxi))
-        A[:n, :n] = sys_.transition(0)
-        for i in range(1, L + 1):
-            A[i * n : (i + 1) * n, (i - 1) * n : i * n] = np.eye(n)
-        Qd = np.zeros((nxi, nxi))
-        Qd[:n, :n] = sys_.process_cov(0)
-        Hs = np.stack([augmented_measurement_matrix(sys_, est.fading, j) for j in range(L + 1)])
-        mats = est._kernel_mats = (A, Qd, np.ascontiguousarray(Hs, dtype=float))
+        sys_, c64 = est.system, np.ascontiguousarray
+        Hs = np.stack([augmented_measurement_matrix(sys_, est.fading, j) for j in range(est.L + 1)])
+        mats = est._kernel_mats = (
+            c64(sys_.transition(0), dtype=float),
+            c64(sys_.process_cov(0), dtype=float),
+            c64(Hs, dtype=float),
+        )
     return mats
 
 
