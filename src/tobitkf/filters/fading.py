@@ -411,6 +411,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
     """
 
     _name = "FadingTobitKalmanFilter"
+    _kernel_mats: tuple[np.ndarray, ...]  # A, Qd, H_0..H_L of the kernel, set on its first call
 
     def __init__(
         self,
