@@ -12,7 +12,10 @@ Prints, for the oscillator model of the source (n = 2, m = 1, censoring at 0):
   O[(n(L+1))^3] of Remark 10 (the prediction here uses the shift structure of the augmented
   A, so only the Joseph update and the batched solves are cubic);
 * a per-run Python loop with filterpy's KalmanFilter on the augmented model (no censoring
-  handling, so the work of kf-fm) when filterpy is installed, as the "write it by hand" reference.
+  handling, so the work of kf-fm) when filterpy is installed, as the "write it by hand" reference;
+* the compiled (numba) TKF-FM against its numpy path at the size of the geng2017 experiment
+  (M = 1000 runs, 100 steps, L = 2; ``--smoke``: 200 runs, 20 steps) for each covered option set,
+  and the time per step of one run through ``filter`` (``--single-steps`` steps).
 """
 
 from __future__ import annotations
@@ -70,13 +73,52 @@ def filterpy_loop(system, fading, y, runs: int) -> float | None:
     return time.process_time() - t0
 
 
+def compiled_vs_numpy(system: tk.LinearSystem, runs: int, steps: int, single: int, repeat: int) -> None:
+    """Compiled (numba) TKF-FM against its numpy path (L = 2, censoring at 0), and one run's time per step."""
+    from tobitkf.filters._backend import numba_available
+
+    if not numba_available():
+        print("compiled TKF-FM: numba not installed, skipped")
+        return
+    cens = tk.Censoring(lower=0.0)
+    fad = RiceFading.gaussian(2, MEANS[:3], VARS[:3])
+    y = tk.simulate(system, steps, runs, censoring=cens, measurement=fad, seed=1).y
+    y1 = tk.simulate(system, single, 1, censoring=cens, measurement=fad, seed=2).y[0]
+    print(f"compiled TKF-FM (L=2, n_xi=6) vs numpy, {runs} runs x {steps} steps, best CPU time of {repeat}")
+    print(f"{'options':<34}{'numpy s':>9}{'numba s':>9}{'ratio':>8}{'1 run us/step':>15}")
+    for opts in ({}, {"exact_tobit_variance": True}, {"covariance_update": "standard"}):
+        fn = FadingTobitKalmanFilter(system, fad, cens, backend="numpy", **opts)
+        fc = FadingTobitKalmanFilter(system, fad, cens, backend="numba", **opts)
+        fc.filter(y[:2, :3])  # compile (or load the cache) outside the timing
+        t_np = timed(lambda: fn.filter(y), repeat)  # noqa: B023
+        t_nb = timed(lambda: fc.filter(y), max(repeat, 3))  # noqa: B023
+        t_1 = timed(lambda: fc.filter(y1), max(repeat, 3))  # noqa: B023
+        label = ", ".join(f"{k}={v}" for k, v in opts.items()) or "default (joseph, eq. (12))"
+        print(f"{label:<34}{t_np:>9.3g}{t_nb:>9.3g}{t_np / t_nb:>8.1f}{1e6 * t_1 / single:>15.3g}")
+    fn = FadingTobitKalmanFilter(system, fad, cens, backend="numpy")
+    fc = FadingTobitKalmanFilter(system, fad, cens, backend="numba")
+    t_np = timed(lambda: fn.filter(y, outputs=("mean",)), repeat)
+    t_m = timed(lambda: fc.filter(y, outputs=("mean",)), max(repeat, 3))
+    t_1m = timed(lambda: fc.filter(y1, outputs=("mean",)), max(repeat, 3))
+    print(f"{'default, outputs=(mean,)':<34}{t_np:>9.3g}{t_m:>9.3g}{t_np / t_m:>8.1f}{1e6 * t_1m / single:>15.3g}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--smoke", action="store_true", help="tiny version: 200 runs, 20 steps")
     parser.add_argument("--runs", type=int, default=10_000)
     parser.add_argument("--steps", type=int, default=50)
     parser.add_argument("--orders", type=int, nargs="+", default=[0, 2, 5])
+    parser.add_argument("--compiled-runs", type=int, default=1000, help="runs of the compiled/numpy comparison")
+    parser.add_argument("--compiled-steps", type=int, default=100, help="steps of the compiled/numpy comparison")
+    parser.add_argument("--single-steps", type=int, default=2000, help="steps of the one-run timing")
+    parser.add_argument("--compiled-only", action="store_true", help="only the compiled/numpy comparison")
     args = parser.parse_args()
+    if args.smoke:
+        args.compiled_runs, args.compiled_steps, args.single_steps = 200, 20, 500
+    compiled_vs_numpy(oscillator(), args.compiled_runs, args.compiled_steps, args.single_steps, 1 if args.smoke else 3)
+    if args.compiled_only:
+        return
     runs, steps, repeat = (200, 20, 1) if args.smoke else (args.runs, args.steps, 3)
     system = oscillator()
     cens = tk.Censoring(lower=0.0)
@@ -84,6 +126,7 @@ def main() -> None:
     print(f"{'estimator':<16}{'L':>3}{'n_xi':>6}{'run-steps/s':>14}{'us/run-step':>13}{'vs TKF':>9}")
     fad0 = RiceFading.gaussian(0, [1.0], 0.0)
     y0 = tk.simulate(system, steps, runs, censoring=cens, measurement=fad0, seed=0).y
+    tk.TobitKalmanFilter(system, cens).filter(y0[:2, :3])  # compile (or load) the kernel outside the timing
     t_tkf = timed(lambda: tk.TobitKalmanFilter(system, cens).filter(y0), repeat)
     work = runs * steps
     print(f"{'tkf (core)':<16}{0:>3}{2:>6}{work / t_tkf:>14.3g}{1e6 * t_tkf / work:>13.3g}{1.0:>9.2f}")

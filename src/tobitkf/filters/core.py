@@ -945,6 +945,11 @@ class Estimator:
         """A compiled implementation of the loop, or None (the numpy loop runs)."""
         return None
 
+    def _fast_filter_with(self, y2, u2, state: FilterState, want: frozenset[str], batch, step_options):
+        """:meth:`_fast_filter` for a loop run with ``step_options`` (a family whose kernel depends on
+        them overrides this; by default they are not looked at)."""
+        return self._fast_filter(y2, u2, state, want, batch)
+
     def _fast_step(self, state: FilterState, y: np.ndarray, u, options) -> FilterState | None:
         """A compiled single step, or None (the numpy step runs)."""
         return None
@@ -1057,7 +1062,7 @@ class Estimator:
             state = self.init(batch, x0=x0, P0=P0)
         u2 = self._prepare_inputs(u, N, T, batch)
         self._check_record(y2, u2, state.k, name)
-        fast = self._fast_filter(y2, u2, state, want, batch)
+        fast = self._fast_filter_with(y2, u2, state, want, batch, step_options)
         if fast is not None:
             return fast
         rec = _Recorder(want, T, batch, self.n)

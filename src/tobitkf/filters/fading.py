@@ -101,8 +101,9 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
-from .kalman import KalmanFilter, LinearGaussianFamily
+from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none
 from .tobit import TobitKalmanFilter
 from .tobit import _sigma_of as _diagonal_sigma
 
@@ -124,6 +125,7 @@ _TOBIT_OPTIONS = {
     "fading_variance_term": _BOOL,
     "exact_tobit_variance": _BOOL,
     "covariance_update": _FORMS,
+    "backend": BACKENDS,
 }
 _KF_OPTIONS = {"fading_variance_term": _BOOL, "covariance_update": _FORMS}
 
@@ -364,6 +366,9 @@ class FadingTobitKalmanFilter(_FadingFamily):
         the Joseph form is the default because the source's repaired (20') is stated in it.
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        ``filter`` through the compiled kernel of :mod:`tobitkf.filters._kernels_fading` or the numpy
+        reference path; see :func:`fading_tobit_kalman_filter`.
 
     Raises
     ------
@@ -406,6 +411,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
     """
 
     _name = "FadingTobitKalmanFilter"
+    _kernel_mats: tuple[np.ndarray, ...]  # A, Qd, H_0..H_L of the kernel, set on its first call
 
     def __init__(
         self,
@@ -418,6 +424,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
         exact_tobit_variance: bool = False,
         covariance_update: str = "joseph",
         check_limits: bool = True,
+        backend: str = "auto",
     ):
         _check_parts(system, fading, censoring)
         check_keywords(
@@ -426,9 +433,12 @@ class FadingTobitKalmanFilter(_FadingFamily):
                 "fading_variance_term": fading_variance_term,
                 "exact_tobit_variance": exact_tobit_variance,
                 "covariance_update": covariance_update,
+                "backend": backend,
             },
             _TOBIT_OPTIONS,
         )
+        check_square_root(backend, covariance_update, "the fading Tobit Kalman filter")
+        self.backend = backend
         self._setup(
             system,
             fading,
@@ -461,6 +471,22 @@ class FadingTobitKalmanFilter(_FadingFamily):
     ) -> FilterResult:
         """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
+
+    # ---- the compiled path (batched ``filter`` only; ``step`` runs numpy) ----------------------
+    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+        what = "the fading Tobit Kalman filter"
+        gap = None
+        if step_options.get("keep_augmented"):
+            gap = "keep_augmented=True"
+        if u2 is None and gap is None:
+            ok = self.__dict__.get("_kernel_static")
+            if ok is None:
+                ok = self._kernel_static = use_kernel(self.backend, _fading_kernel_gap(self, None), what)
+        else:
+            ok = use_kernel(self.backend, gap or _fading_kernel_gap(self, u2), what)
+        if not ok:
+            return None
+        return _finite_or_none(_fading_kernel_run(self, y2, state, want, batch, bool(step_options["keep_smoothed"])))
 
 
 class FadingKalmanFilter(_FadingFamily):
@@ -532,6 +558,7 @@ def fading_tobit_kalman_filter(
     keep_augmented: bool = False,
     keep_smoothed: bool = True,
     check_limits: bool = True,
+    backend: str = "auto",
 ) -> FilterResult:
     r"""Run the Tobit Kalman filter with fading measurements (Theorems 1–2, Table 1) over a batch.
 
@@ -567,6 +594,12 @@ def fading_tobit_kalman_filter(
         large Monte Carlo runs and changes nothing else.
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        ``"numba"`` runs the compiled loop of :mod:`tobitkf.filters._kernels_fading` (equal to the
+        numpy path to rounding; it covers a time-invariant system without input,
+        ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, the Joseph and standard
+        forms, ``keep_augmented=False``) and raises for another case; ``"auto"`` uses it when numba is
+        installed and the case is covered, else numpy; ``"numpy"`` always runs the reference path.
 
     Returns
     -------
@@ -581,7 +614,10 @@ def fading_tobit_kalman_filter(
     Raises
     ------
     ValidationError
-        Non-diagonal R, an unknown option, a reading outside the limits, wrong types.
+        Non-diagonal R, an unknown option, a reading outside the limits, wrong types;
+        ``backend="numba"`` for a case the kernel does not cover.
+    ImportError
+        ``backend="numba"`` without numba installed.
     ShapeError
         Malformed ``y``, ``u``, limits, or a fading law that does not fit m channels.
 
@@ -606,6 +642,7 @@ def fading_tobit_kalman_filter(
         exact_tobit_variance=exact_tobit_variance,
         covariance_update=covariance_update,
         check_limits=check_limits,
+        backend=backend,
     )
     return est.filter(y, u=u, x0=x0, P0=P0, keep_augmented=keep_augmented, keep_smoothed=keep_smoothed)
 
@@ -657,3 +694,106 @@ def fading_estimators(
         "kf": KalmanFilter(system),
         "kf-fm": FadingKalmanFilter(system, fading),
     }
+
+
+# --------------------------------------------------------------------------- the compiled path
+
+
+def _fading_kernel_gap(est: FadingTobitKalmanFilter, u) -> str | None:
+    """Why :func:`tobitkf.filters._kernels_fading.fading_tkf_kernel` cannot run ``est`` on input ``u``
+    (None when it can); ``keep_augmented`` is checked by the caller."""
+    gap = check_square_root(est.backend, est.covariance_update, "the fading Tobit Kalman filter")
+    gap = gap or system_gap(est.system, u)
+    if gap is None and est.p_uncensored_mode != "augmented":
+        gap = f"p_uncensored_mode={est.p_uncensored_mode!r}"
+    if gap is None and est.fading_variance_term:
+        gap = "fading_variance_term=True"
+    return gap
+
+
+def _fading_kernel_matrices(est: FadingTobitKalmanFilter) -> tuple[np.ndarray, ...]:
+    """A, B Q B^T (n, n) and the stack H_0..H_L (L+1, m, nxi), computed once per estimator."""
+    mats = est.__dict__.get("_kernel_mats")
+    if mats is None:
+        sys_, c64 = est.system, np.ascontiguousarray
+        Hs = np.stack([augmented_measurement_matrix(sys_, est.fading, j) for j in range(est.L + 1)])
+        mats = est._kernel_mats = (
+            c64(sys_.transition(0), dtype=float),
+            c64(sys_.process_cov(0), dtype=float),
+            c64(Hs, dtype=float),
+        )
+    return mats
+
+
+def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, want, batch, keep_smoothed):
+    """The compiled loop from ``state`` (augmented x, P); outputs on request, as the numpy path's."""
+    from . import _kernels_fading
+
+    kern = kernels()
+    N, T, m = y2.shape
+    n, L, nxi = est.n, est.L, est._nxi
+    c64 = np.ascontiguousarray
+    A, Qd, Hs = _fading_kernel_matrices(est)
+    lo, hi = est._cens.all_limits(T, m, start=state.k + 1)
+    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
+    x = c64(state.x, dtype=float)
+    P = c64(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float)
+
+    def arr(on, shape):
+        return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
+
+    ext = "extras" in want
+    means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
+    covs, pcovs = arr("cov" in want or "var" in want, (n, n)), arr("pred_cov" in want, (n, n))
+    pu, ey, lam = arr(ext, (m,)), arr(ext, (m,)), arr(ext, (m,))
+    sm_mean, sm_cov = arr(ext and keep_smoothed, (L + 1, n)), arr(ext and keep_smoothed, (L + 1, n, n))
+    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
+    _kernels_fading.fading_tkf_kernel(
+        c64(y2, dtype=float),
+        A,
+        Qd,
+        Hs,
+        c64(est._sigma, dtype=float),
+        c64(lo, dtype=float),
+        c64(hi, dtype=float),
+        x,
+        P,
+        state.k,
+        n,
+        est.exact_tobit_variance,
+        est.covariance_update == "joseph",
+        kern.GL_X,
+        kern.GL_W,
+        means,
+        covs,
+        pmeans,
+        pcovs,
+        pu,
+        ey,
+        lam,
+        sm_mean,
+        sm_cov,
+        x_last,
+        P_last,
+    )
+
+    def out(a):
+        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+
+    cov = out(covs)
+    extras: dict[str, Any] = {}
+    if ext:
+        extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam)}
+        if keep_smoothed:
+            extras.update(smoothed_mean=out(sm_mean), smoothed_cov=out(sm_cov))
+    final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
+    return FilterResult(
+        mean=out(means),
+        cov=cov if "cov" in want else None,
+        pred_mean=out(pmeans),
+        pred_cov=out(pcovs),
+        extras=extras,
+        times=np.arange(state.k + 1, state.k + T + 1),
+        var=None if "var" not in want or cov is None else np.diagonal(cov, axis1=-2, axis2=-1),
+        final=final,
+    )

@@ -1,0 +1,305 @@
+r"""Compiled (numba) time loop of the Tobit Kalman filter with Rice fading measurements (TKF-FM).
+
+An *implementation* of the numpy reference path of
+:class:`tobitkf.filters.fading.FadingTobitKalmanFilter` (Geng et al. 2017, Table 1, with the
+repaired (20')), not a second algorithm: the augmented state
+:math:`\xi_k = \mathrm{col}\{x_k, \dots, x_{k-L}\}` of fixed size :math:`n_\xi = n(L+1)`, the
+predict (17)–(18) with the block-shift structure of :math:`\mathcal A` (as
+:func:`tobitkf.filters.core.shift_predict`), the measurement matrix :math:`H_k = \bar\theta_k\mathcal C_k` (its blocks
+:math:`s > k` zero, so ``H`` is indexed by :math:`\min(k, L)`), the censored statistics at
+:math:`\hat\chi = H_k\hat\xi_{k|k-1}` (Lemma 1), :math:`\hat y` (21), the gain scale
+:math:`\bar\Upsilon_k` (so :math:`G_k = \bar\Upsilon_kH_k`), the noise :math:`N_k` = the truncated
+variance (12) or, with ``exact_tobit_variance``, the censored variance, and the update in the
+Joseph or the standard form, both in the rank-m arithmetic of the shared numpy update.
+
+Everything that is not specific to the fading model is shared with the TKF kernel of
+:mod:`tobitkf.filters._kernels`: the censored-normal statistics (continued-fraction tails,
+quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block predict, the masked gain
+(missing or degenerate channels get a zero gain column) and the covariance update.
+
+Covered (the dispatcher in ``fading.py`` decides): time-invariant A, B, Q, C, R, no control input,
+``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, both ``exact_tobit_variance``
+values, ``covariance_update`` ``"joseph"`` and ``"standard"``, any limits (constant or (T, m), one-
+or two-sided), NaN readings, ``keep_smoothed`` either way, ``keep_augmented=False``. Everything
+else runs on numpy.
+
+Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block of runs and written
+run by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
+``(N, 0, ...)`` is not requested: it gets no staging and is not written.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ._kernels import _TINY, BLOCK, CHUNK, _flush, _gain, _load, _rows, _store_last, _symmetrize, censored_stats
+
+__all__ = ["fading_tkf_kernel", "shift_predict_block", "update_cov_block"]
+
+
+@njit(cache=True, error_model="numpy")
+def shift_predict_block(A, Qd, x, P, xp, Pp, X, nb):
+    r"""Block-shift time update of a block of runs, as :func:`tobitkf.filters.core.shift_predict` (source 0):
+    :math:`\bar\xi = [A\xi_0; \xi_0; \dots; \xi_{L-1}]`, :math:`X = P_{:,0}A^T`,
+    :math:`\bar P_{00} = \mathrm{sym}(X_0^TA^T + Q_d)`, :math:`\bar P_{i+1,0} = X_i`,
+    :math:`\bar P_{i+1,j+1} = P_{ij}`. ``A``, ``Qd`` (n, n); ``x`` (nxi, B), ``P`` (nxi, nxi, B)
+    exactly symmetric; ``X`` (nxi, n, B) scratch. O(n n_xi^2) instead of O(n_xi^3)."""
+    nxi, n = x.shape[0], A.shape[0]
+    for i in range(n):
+        for b in range(nb):
+            xp[i, b] = 0.0
+        for k in range(n):
+            a = A[i, k]
+            for b in range(nb):
+                xp[i, b] += a * x[k, b]
+    for i in range(n, nxi):
+        for b in range(nb):
+            xp[i, b] = x[i - n, b]
+    for i in range(nxi):
+        for j in range(n):
+            for b in range(nb):
+                X[i, j, b] = 0.0
+            for k in range(n):
+                a = A[j, k]
+                for b in range(nb):
+                    X[i, j, b] += P[i, k, b] * a
+    for i in range(n):
+        for j in range(n):
+            for b in range(nb):
+                Pp[i, j, b] = 0.0
+            for k in range(n):
+                a = A[j, k]
+                for b in range(nb):
+                    Pp[i, j, b] += X[k, i, b] * a
+            q = Qd[i, j]
+            for b in range(nb):
+                Pp[i, j, b] += q
+    for i in range(n):
+        for j in range(i + 1, n):
+            for b in range(nb):
+                v = 0.5 * (Pp[i, j, b] + Pp[j, i, b])
+                Pp[i, j, b] = v
+                Pp[j, i, b] = v
+    for i in range(n, nxi):
+        for j in range(n):
+            for b in range(nb):
+                v = X[i - n, j, b]
+                Pp[i, j, b] = v
+                Pp[j, i, b] = v
+        for j in range(n, nxi):
+            for b in range(nb):
+                Pp[i, j, b] = P[i - n, j - n, b]
+
+
+@njit(cache=True, error_model="numpy")
+def update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
+    r"""Covariance update of a block of runs, as the shared numpy update of :mod:`tobitkf.filters.core`:
+    :math:`M = \bar P - KR_{xe}^T`; standard form :math:`P = \mathrm{sym}(M)`; Joseph form
+    :math:`(I-KG)\bar P(I-KG)^T + KNK^T` applied as :math:`P = \mathrm{sym}(M - (MG^T - KN)K^T)`,
+    :math:`G = \mathrm{diag}(\gamma)C` (rank-m products, O(n_\xi^2 m)). ``C`` (m, nxi), ``gam`` (m, B),
+    ``noise`` (m, m, B) (its diagonal is N), ``MH`` (nxi, m, B) scratch."""
+    nxi, m = K.shape[0], K.shape[1]
+    for i in range(nxi):
+        for j in range(nxi):
+            for b in range(nb):
+                P[i, j, b] = Pp[i, j, b]
+            for l in range(m):
+                for b in range(nb):
+                    P[i, j, b] -= K[i, l, b] * Rxe[j, l, b]
+    if joseph:
+        for i in range(nxi):
+            for l in range(m):
+                for b in range(nb):
+                    MH[i, l, b] = 0.0
+                for k in range(nxi):
+                    c = C[l, k]
+                    if c != 0.0:
+                        for b in range(nb):
+                            MH[i, l, b] += P[i, k, b] * c
+                for b in range(nb):
+                    MH[i, l, b] = MH[i, l, b] * gam[l, b] - K[i, l, b] * noise[l, l, b]
+        for i in range(nxi):
+            for j in range(nxi):
+                for l in range(m):
+                    for b in range(nb):
+                        P[i, j, b] -= MH[i, l, b] * K[j, l, b]
+    _symmetrize(P, nb)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def fading_tkf_kernel(
+    y,
+    A,
+    Qd,
+    Hs,
+    sigma,
+    lo,
+    hi,
+    x0,
+    P0,
+    k0,
+    n,
+    exact,
+    joseph,
+    glx,
+    glw,
+    means,
+    covs,
+    pmeans,
+    pcovs,
+    pu,
+    ey,
+    lam_out,
+    sm_mean,
+    sm_cov,
+    x_last,
+    P_last,
+):
+    """TKF-FM over ``N`` runs of ``T`` steps from the augmented state ``x0`` (N, nxi), ``P0`` (N, nxi, nxi).
+
+    ``y`` (N, T, m) (NaN = missing) holds the readings of steps ``k0 + 1 .. k0 + T``; ``A``/``Qd``
+    (n, n) the transition and process covariance of the top block; ``Hs`` (L+1, m, nxi) with
+    ``Hs[j] = H_j`` (block s zero for s > j), step k using ``Hs[min(k, L)]``; ``sigma`` (m,);
+    ``lo``/``hi`` (T, m); ``n`` the size of one block; ``exact`` selects the censored variance as
+    :math:`N_k`. Outputs: ``means``/``pmeans`` (N, T, n), ``covs``/``pcovs`` (N, T, n, n) (block 0),
+    ``pu``/``ey``/``lam_out`` (N, T, m), ``sm_mean`` (N, T, L+1, n), ``sm_cov`` (N, T, L+1, n, n)
+    (NaN for the blocks s > k); each of shape ``(N, 0, ...)`` when not requested. ``x_last``
+    (N, nxi) and ``P_last`` (N, nxi, nxi) receive the state after the last step.
+    """
+    N, T, m = y.shape
+    nxi = Hs.shape[2]
+    L = Hs.shape[0] - 1
+    B = min(BLOCK, max(N, 1))
+    x = np.empty((nxi, B))
+    P = np.empty((nxi, nxi, B))
+    xp = np.empty((nxi, B))
+    Pp = np.empty((nxi, nxi, B))
+    X = np.empty((nxi, A.shape[0], B))
+    MH = np.empty((nxi, m, B))
+    CP = np.empty((m, nxi, B))
+    Rxe = np.empty((nxi, m, B))
+    Ree = np.empty((m, m, B))
+    K = np.empty((nxi, m, B))
+    noise = np.zeros((m, m, B))
+    gam = np.empty((m, B))
+    e = np.empty((m, B))
+    ok = np.empty((m, B), dtype=np.bool_)
+    Rs = np.empty((m, m))
+    Ws = np.empty((m, nxi))
+    Ks = np.empty((nxi, m))
+    Rxs = np.empty((nxi, m))
+    oks = np.empty(m, dtype=np.bool_)
+    ds = np.empty(m)
+    buf = np.empty((2, glx.shape[0]))
+    want_m, want_c, want_pm, want_pc = means.shape[1] > 0, covs.shape[1] > 0, pmeans.shape[1] > 0, pcovs.shape[1] > 0
+    want_x, want_sm, want_sc = pu.shape[1] > 0, sm_mean.shape[1] > 0, sm_cov.shape[1] > 0
+    # outputs staged for S steps, then written run by run (contiguous), as in the TKF kernel
+    S = min(CHUNK, max(T, 1))
+    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
+    s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
+    s_pu, s_ey, s_lam = (
+        np.empty((_rows(pu, B), S, m)),
+        np.empty((_rows(ey, B), S, m)),
+        np.empty((_rows(lam_out, B), S, m)),
+    )
+    s_smm, s_smc = np.empty((_rows(sm_mean, B), S, L + 1, n)), np.empty((_rows(sm_cov, B), S, L + 1, n, n))
+    for r0 in range(0, N, B):
+        nb = min(B, N - r0)
+        _load(x0, P0, r0, nb, x, P)
+        for t in range(T):
+            k = k0 + t + 1
+            tt = t % S
+            C = Hs[min(k, L)]
+            shift_predict_block(A, Qd, x, P, xp, Pp, X, nb)  # (17)-(18)
+            if want_pm:
+                for b in range(nb):
+                    for i in range(n):
+                        s_pmean[b, tt, i] = xp[i, b]
+            if want_pc:
+                for b in range(nb):
+                    for i in range(n):
+                        for j in range(n):
+                            s_pcov[b, tt, i, j] = Pp[i, j, b]
+            # Lemma 1 at chi = H_k xi_{k|k-1}; (6), (21), (12) or the censored variance
+            for l in range(m):
+                for b in range(nb):
+                    mu = 0.0
+                    for j in range(nxi):
+                        mu += xp[j, b] * C[l, j]
+                    st = censored_stats(mu, sigma[l], lo[t, l], hi[t, l], glx, glw, buf)
+                    g = st[2]
+                    gam[l, b] = g
+                    noise[l, l, b] = st[7] if exact else st[5]
+                    e[l, b] = y[r0 + b, t, l] - st[6]
+                    if want_x:
+                        s_pu[b, tt, l] = g
+                        s_ey[b, tt, l] = st[6]
+                        s_lam[b, tt, l] = st[3]
+            # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
+            for l in range(m):
+                for j in range(nxi):
+                    for b in range(nb):
+                        CP[l, j, b] = 0.0
+                    for q in range(nxi):
+                        c = C[l, q]
+                        if c != 0.0:
+                            for b in range(nb):
+                                CP[l, j, b] += c * Pp[q, j, b]
+            for l in range(m):
+                for j in range(nxi):
+                    for b in range(nb):
+                        Rxe[j, l, b] = CP[l, j, b] * gam[l, b]
+                for q in range(m):
+                    for b in range(nb):
+                        Ree[l, q, b] = 0.0
+                    for j in range(nxi):
+                        c = C[q, j]
+                        for b in range(nb):
+                            Ree[l, q, b] += CP[l, j, b] * c
+                    for b in range(nb):
+                        Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
+                for b in range(nb):
+                    Ree[l, l, b] += noise[l, l, b]
+            for l in range(m):
+                for b in range(nb):
+                    good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
+                    ok[l, b] = good
+                    if not good:
+                        e[l, b] = 0.0
+            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)  # (23), (19)
+            update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
+            if want_m:
+                for b in range(nb):
+                    for i in range(n):
+                        s_mean[b, tt, i] = x[i, b]
+            if want_c:
+                for b in range(nb):
+                    for i in range(n):
+                        for j in range(n):
+                            s_cov[b, tt, i, j] = P[i, j, b]
+            if want_sm:
+                for b in range(nb):
+                    for s in range(L + 1):
+                        for i in range(n):
+                            s_smm[b, tt, s, i] = x[s * n + i, b] if s <= k else np.nan
+            if want_sc:
+                for b in range(nb):
+                    for s in range(L + 1):
+                        for i in range(n):
+                            for j in range(n):
+                                s_smc[b, tt, s, i, j] = P[s * n + i, s * n + j, b] if s <= k else np.nan
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_cov, covs, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
+                _flush(s_pu, pu, r0, t0, nb, tt + 1)
+                _flush(s_ey, ey, r0, t0, nb, tt + 1)
+                _flush(s_lam, lam_out, r0, t0, nb, tt + 1)
+                _flush(s_smm, sm_mean, r0, t0, nb, tt + 1)
+                _flush(s_smc, sm_cov, r0, t0, nb, tt + 1)
+        _store_last(x, P, r0, nb, x_last, P_last)

@@ -1,0 +1,271 @@
+"""The numba kernel of the fading TKF (Geng et al. 2017) against its numpy reference path.
+
+The numpy path is the reference (tests/filters/test_fading.py checks it against the source); the
+kernel must reproduce it to rounding (1e-12) in every case it covers, and every other case must run
+on numpy (``backend="auto"``) or be refused (``backend="numba"``).
+"""
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf._validation import ValidationError
+from tobitkf.channels.fading import RiceFading
+from tobitkf.filters import _backend
+from tobitkf.filters.fading import FadingTobitKalmanFilter, fading_tobit_kalman_filter
+
+pytest.importorskip("numba")
+from tobitkf.filters import _kernels_fading  # noqa: E402
+
+FIELDS = ("mean", "cov", "pred_mean", "pred_cov", "var")
+
+
+def assert_same(a, b, rtol=1e-12):
+    """Equal to rounding relative to the array's scale; NaN exactly where the reference has NaN."""
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    scale = max(1.0, float(np.nanmax(np.abs(b)))) if np.isfinite(b).any() else 1.0
+    np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * scale)
+
+
+def assert_results_equal(r1, r2, rtol=1e-12):
+    for f in FIELDS:
+        va, vb = getattr(r1, f), getattr(r2, f)
+        assert (va is None) == (vb is None), f
+        if va is not None:
+            assert_same(va, vb, rtol)
+    assert r1.extras.keys() == r2.extras.keys()
+    for key in r1.extras:
+        assert_same(r1.extras[key], r2.extras[key], rtol)
+    assert r1.final.k == r2.final.k
+    assert_same(r1.final.x, r2.final.x, rtol)
+    assert_same(np.broadcast_to(r1.final.P, r2.final.P.shape), r2.final.P, rtol)
+
+
+def oscillator(m=1):
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    C = [[1.0, 0.0]] if m == 1 else [[1.0, 0.0], [0.4, 1.0]]
+    return tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5][:m]), x0=[5.0, 0.0], P0=np.eye(2))
+
+
+def fading(L):
+    return RiceFading.gaussian(L, [0.95, 0.75, 0.85][: L + 1], [0.0081, 0.0064, 0.0049][: L + 1])
+
+
+def data(sys_, fad, cens, runs, steps, seed=0, missing=0.1):
+    y = tk.simulate(sys_, steps=steps, runs=runs, censoring=cens, measurement=fad, seed=seed).y
+    if missing:
+        rng = np.random.default_rng(seed + 1)
+        y = np.where(rng.random(y.shape) < missing, np.nan, y)
+    return y
+
+
+def both(sys_, fad, cens, y, **kw):
+    filt = {k: kw.pop(k) for k in ("outputs", "keep_smoothed", "state", "x0", "P0") if k in kw}
+    a = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **kw).filter(y, **filt)
+    b = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", **kw).filter(y, **filt)
+    return a, b
+
+
+@pytest.mark.parametrize("exact", [False, True])
+@pytest.mark.parametrize("form", ["joseph", "standard"])
+@pytest.mark.parametrize("sides", ["lower", "two_sided", "upper"])
+@pytest.mark.parametrize("m", [1, 2])
+def test_kernel_equals_numpy(exact, form, sides, m):
+    sys_ = oscillator(m)
+    # limits the signal (amplitude ~5) crosses; with [0, 3] for two channels nearly every reading is censored
+    # and the numpy path itself turns a 1e-15 change of x0 into 5e-9 in the means (ill-conditioned, measured)
+    lim = {
+        "lower": {"lower": [0.0] * m},
+        "upper": {"upper": [2.5] * m},
+        "two_sided": {"lower": [-2.0] * m, "upper": [2.5] * m},
+    }
+    cens = tk.Censoring(**lim[sides])
+    fad = fading(2)
+    y = data(sys_, fad, cens, runs=40, steps=30)
+    a, b = both(sys_, fad, cens, y, exact_tobit_variance=exact, covariance_update=form)
+    assert_results_equal(a, b)
+
+
+@pytest.mark.parametrize("L", [0, 1, 2])
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3)])
+def test_kernel_batch_shapes_and_orders(L, shape):
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    fad = fading(L)
+    runs = int(np.prod(shape, dtype=int))
+    y = data(sys_, fad, cens, runs=runs, steps=12).reshape(shape + (12, 1))
+    a, b = both(sys_, fad, cens, y)
+    assert a.mean.shape == shape + (12, 2)
+    assert a.extras["smoothed_mean"].shape == shape + (12, L + 1, 2)
+    assert_results_equal(a, b)
+
+
+@pytest.mark.parametrize("dist", [8.0, 40.0])
+@pytest.mark.parametrize("where", ["below", "above"])
+def test_kernel_limits_far_in_the_tails(dist, where):
+    """Limits +-dist sigma from every prediction: the continued-fraction and quadrature routes of the
+    shared censored statistics, and channels that are almost surely censored or uncensored."""
+    sys_ = oscillator()
+    fad = fading(2)
+    lo = -dist if where == "below" else 5.0 + dist
+    cens = tk.Censoring(lower=lo, upper=lo + 0.5 if where == "above" else np.inf)
+    y = np.clip(
+        data(sys_, fad, tk.Censoring(), runs=6, steps=20, missing=0.0), lo, lo + 0.5 if where == "above" else None
+    )
+    a, b = both(sys_, fad, cens, y, check_limits=False, exact_tobit_variance=True)
+    assert_results_equal(a, b)
+
+
+def test_kernel_time_varying_limits_continued_state_and_per_run_prior():
+    """(T, m) limits, a per-run prior and a continuation from result.final across k <= L (the H_k of
+    the first L steps) and beyond."""
+    sys_ = oscillator(2)
+    fad = fading(2)
+    T = 16
+    rng = np.random.default_rng(4)
+    cens = tk.Censoring(lower=rng.uniform(-1.0, 0.5, (T, 2)), upper=rng.uniform(3.0, 5.0, (T, 2)))
+    y = data(sys_, fad, cens, runs=7, steps=T)
+    x0 = rng.normal(0.0, 1.0, (7, 2)) + [5.0, 0.0]
+    P0 = np.broadcast_to(np.eye(2), (7, 2, 2)) * rng.uniform(0.5, 2.0, (7, 1, 1))
+    for split in (1, 2, 5):
+        fk = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
+        fn = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
+        a1, b1 = fk.filter(y[:, :split], x0=x0, P0=P0), fn.filter(y[:, :split], x0=x0, P0=P0)
+        assert_results_equal(a1, b1)
+        a2, b2 = fk.filter(y[:, split:], state=a1.final), fn.filter(y[:, split:], state=b1.final)
+        assert_results_equal(a2, b2)
+        whole = fn.filter(y, x0=x0, P0=P0)
+        assert_same(a2.mean, whole.mean[:, split:])
+
+
+def test_kernel_many_runs_cross_blocks():
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    fad = fading(2)
+    y = data(sys_, fad, cens, runs=70, steps=10)  # 70 = 2 full blocks of 32 and one of 6
+    assert_results_equal(*both(sys_, fad, cens, y))
+
+
+@pytest.mark.parametrize("outputs", ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), "all"])
+@pytest.mark.parametrize("keep_smoothed", [True, False])
+def test_kernel_honours_the_output_selection(outputs, keep_smoothed):
+    sys_ = oscillator(2)
+    cens = tk.Censoring(lower=[0.0, -0.5])
+    fad = fading(2)
+    y = data(sys_, fad, cens, runs=9, steps=15)
+    a, b = both(sys_, fad, cens, y, outputs=outputs, keep_smoothed=keep_smoothed)
+    assert_results_equal(a, b)
+
+
+# --- dispatch -----------------------------------------------------------------------------------
+
+
+def _raise(*args):
+    raise AssertionError("fading kernel used")
+
+
+def test_auto_uses_the_kernel_when_covered(monkeypatch):
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    fad = fading(2)
+    y = data(sys_, fad, cens, runs=2, steps=5)
+    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    with pytest.raises(AssertionError, match="fading kernel used"):
+        FadingTobitKalmanFilter(sys_, fad, cens).filter(y)
+    with pytest.raises(AssertionError, match="fading kernel used"):
+        fading_tobit_kalman_filter(sys_, fad, cens, y, exact_tobit_variance=True, covariance_update="standard")
+    FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy").filter(y)  # numpy never touches it
+
+
+def _time_varying():
+    sys_ = oscillator()
+    return tk.LinearSystem(
+        A=np.stack([sys_.transition(0)] * 20),
+        C=[[1.0, 0.0]],
+        Q=0.0025 * np.eye(2),
+        R=[[1.0]],
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
+    )
+
+
+def _with_input():
+    sys_ = oscillator()
+    return tk.LinearSystem(
+        A=sys_.transition(0),
+        C=[[1.0, 0.0]],
+        Q=0.0025 * np.eye(2),
+        R=[[1.0]],
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
+        Bu=[[0.1], [0.0]],
+    )
+
+
+CASES = {
+    "eq6_stale": ({"p_uncensored_mode": "eq6_stale"}, {}, "p_uncensored_mode='eq6_stale'"),
+    "fading_variance": ({"fading_variance_term": True}, {}, "fading_variance_term=True"),
+    "keep_augmented": ({}, {"keep_augmented": True}, "keep_augmented=True"),
+    "time_varying": ({}, {}, "time-varying"),
+    "input": ({}, {"u": np.ones((20, 1))}, "control inputs"),
+}
+
+
+@pytest.mark.parametrize("which", sorted(CASES))
+def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
+    opts, call, match = CASES[which]
+    sys_ = {"time_varying": _time_varying(), "input": _with_input()}.get(which, oscillator())
+    cens = tk.Censoring(lower=0.0)
+    fad = fading(2)
+    y = data(oscillator(), fad, cens, runs=2, steps=20)
+    ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", **opts).filter(y, **call)
+    with pytest.raises(ValidationError, match=f"numba kernel of the fading Tobit Kalman filter does not cover {match}"):
+        FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **opts).filter(y, **call)
+    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    auto = FadingTobitKalmanFilter(sys_, fad, cens, **opts).filter(y, **call)
+    assert_results_equal(auto, ref, 0.0)
+
+
+def test_square_root_form_falls_back_or_is_refused(monkeypatch):
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    fad = fading(1)
+    y = data(sys_, fad, cens, runs=2, steps=10)
+    with pytest.raises(ValidationError, match="no square-root form"):
+        FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root", backend="numba")
+    ref = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root", backend="numpy").filter(y)
+    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    auto = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root").filter(y)
+    assert_same(auto.mean, ref.mean, 0.0)
+
+
+def test_without_numba(monkeypatch):
+    monkeypatch.setattr(_backend, "_load", lambda: None)
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    fad = fading(2)
+    y = data(sys_, fad, cens, runs=2, steps=10)
+    with pytest.raises(ImportError, match="needs the numba package"):
+        FadingTobitKalmanFilter(sys_, fad, cens, backend="numba").filter(y)
+    auto = FadingTobitKalmanFilter(sys_, fad, cens).filter(y)
+    assert_results_equal(auto, FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy").filter(y), 0.0)
+
+
+def test_backend_option_is_checked():
+    with pytest.raises(ValidationError, match="backend: expected one of 'auto', 'numpy', 'numba', got 'cuda'"):
+        FadingTobitKalmanFilter(oscillator(), fading(1), tk.Censoring(lower=0.0), backend="cuda")
+
+
+def test_divergence_reruns_on_numpy():
+    """A non-finite covariance from the kernel: the call reruns on numpy, which warns (as the TKF kernel)."""
+    sys_ = tk.LinearSystem(A=[[1e200]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    fad = RiceFading(0, [1.0])
+    y = np.zeros((2, 4, 1))
+    with pytest.warns(RuntimeWarning):
+        out = FadingTobitKalmanFilter(sys_, fad, tk.Censoring(lower=-1.0)).filter(y)
+    ref = FadingTobitKalmanFilter(sys_, fad, tk.Censoring(lower=-1.0), backend="numpy")
+    with pytest.warns(RuntimeWarning):
+        assert_same(out.mean, ref.filter(y).mean, 0.0)
