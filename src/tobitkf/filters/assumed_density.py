@@ -60,7 +60,7 @@ from .._validation import ValidationError, as_float_array, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, censored_log_likelihood
+from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, _as_indicator, censored_log_likelihood, censoring_sides
 from ._readings import classify_readings as _classify
 from .core import (
     COVARIANCE_FORMS,
@@ -74,6 +74,7 @@ from .core import (
     time_update,
 )
 from .kalman import LinearGaussianFamily
+from .smoothing import SmoothingMethods
 
 __all__ = [
     "AssumedDensityTobitFilter",
@@ -280,8 +281,6 @@ def merge_gaussians(weights: np.ndarray, means: np.ndarray, covs: np.ndarray, fa
 
 def _indicator(censored: Any, shape: tuple[int, ...]) -> np.ndarray:
     """The recorded indicator as a bool array of ``shape`` (ShapeError / ValidationError naming ``censored``)."""
-    from ..inference._common import _as_indicator
-
     return np.ascontiguousarray(_as_indicator(censored, shape, "censored"))
 
 
@@ -311,7 +310,7 @@ def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
     return d
 
 
-class AssumedDensityTobitFilter(LinearGaussianFamily):
+class AssumedDensityTobitFilter(SmoothingMethods, LinearGaussianFamily):
     r"""Assumed-density filter for censored readings: exact posterior moments, Kalman cost.
 
     Parameters
@@ -565,8 +564,6 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         """
         if censored is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
-        from ..inference._common import censoring_sides
-
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])
@@ -575,30 +572,36 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
         return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
 
-    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        r"""The assumed-density (RTS) smoother over this filter's moments, with lag-one cross-covariances;
-        see :func:`tobitkf.inference.rts_smooth` (with ``order="uncensored_first"`` it is
-        ``tk.smooth(..., method="adf")``). Arguments as :meth:`filter`."""
-        from ..inference.smoothing import rts_smooth
-
-        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
-
-    def log_likelihood(
-        self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
-    ) -> np.ndarray:
-        r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (the ``log_likelihood``
-        extras of :meth:`filter`, see the class Notes), (...) or (..., T) with ``per_step``, shaped as
-        :meth:`tobitkf.KalmanFilter.log_likelihood`. With ``order="uncensored_first"`` it is
-        :func:`tobitkf.inference.adf_log_likelihood`.
-
-        Raises
-        ------
-        ValidationError, ShapeError
-            As :meth:`filter`.
-        """
-        terms = self.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
-        return terms if per_step else terms.sum(-1)
+    def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
+        """The ``log_likelihood`` extras of :meth:`filter` (..., T): the terms of :meth:`log_likelihood`."""
+        return self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",), **recorded).extras["log_likelihood"]
 
     def __repr__(self) -> str:
         order = "" if self.order == "channels" else f", order={self.order!r}"
         return f"AssumedDensityTobitFilter({self.censoring!r}, covariance_update={self.covariance_update!r}{order})"
+
+
+def assumed_density_filter(system, censoring, *, covariance_update: str = "standard"):
+    r"""The :class:`AssumedDensityTobitFilter` of the smoothers, likelihoods and fits: the
+    uncensored readings of a step first, then the censored ones (``order="uncensored_first"``), so that
+    a step with one censored reading has the exact moments of its posterior under the Gaussian
+    prediction and the exact predictive log-likelihood term
+    :math:`\log N(y_{k,u}; \hat y_u, S_{uu}) + \log\Phi(\pm(\text{limit} - \mu)/s)`.
+
+    Parameters
+    ----------
+    system : LinearSystem
+        R diagonal (channels in sequence); R = 0 allowed.
+    censoring : Censoring
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+
+    Returns
+    -------
+    AssumedDensityTobitFilter
+
+    Raises
+    ------
+    ValidationError
+        The filter's own: non-diagonal or negative R, an unknown option.
+    """
+    return AssumedDensityTobitFilter(system, censoring, covariance_update=covariance_update, order="uncensored_first")

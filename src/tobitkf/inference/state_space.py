@@ -49,6 +49,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
 from ._optimize import central_hessian, maximize
+from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
 
@@ -568,8 +569,6 @@ def fit_state_space(
     gtol: float = 1e-3,
 ):
     """State-space fits (module docstring); called by :func:`tobitkf.fit`."""
-    from .fitting import FitResult, _progress_callback
-
     t0 = time.perf_counter()
     arr = as_float_array(y, "y", allow_nan=True)
     y2 = arr[:, None] if arr.ndim == 1 else arr
@@ -645,8 +644,6 @@ def fit_state_space(
         ll = ll_of(th)
         cov = None
         if standard_errors:
-            from .censored_ar import _inverse_information
-
             cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
         fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
         return FitResult(
@@ -775,8 +772,6 @@ def fit_state_space(
     ll = _loglik(system, y2, u2, censoring, c2)
     cov = None
     if standard_errors and entries:
-        from .censored_ar import _inverse_information
-
         cov = _inverse_information(central_hessian(it_ll, v, f0=ll))
     fitted = StateSpaceModel(system, censoring, estimate, prior, diagonal_R)
     return FitResult(
