@@ -66,6 +66,7 @@ from .core import (
     COVARIANCE_FORMS,
     FilterResult,
     FilterState,
+    GaussianFilter,
     MeasurementPrediction,
     check_keywords,
     measurement_update,
@@ -78,6 +79,7 @@ from .smoothing import SmoothingMethods
 
 __all__ = [
     "AssumedDensityTobitFilter",
+    "AssumedDensityFamily",
     "censored_reading_moments",
     "censored_channel_update",
     "assumed_density_update",
@@ -310,7 +312,83 @@ def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
     return d
 
 
-class AssumedDensityTobitFilter(SmoothingMethods, LinearGaussianFamily):
+class AssumedDensityFamily(GaussianFilter):
+    r"""What the assumed-density families share: the predict + update of :meth:`step`, :meth:`update` and
+    :meth:`filter` around a family's own projection.
+
+    A family's measurement update is no linear (Kalman) update but the projection of the exact
+    posterior onto a Gaussian (moment matching): ``_project(k, x̄, P̄, S̄, y, u, **step_options)`` →
+    ``(x, P, S, extras)`` on arrays (N runs, no validation inside), with ``S`` the square-root factor
+    (None unless ``covariance_update="square_root"``). The time update is :func:`~tobitkf.filters.core.time_update`
+    of the family's ``_transition``. Taken by :class:`AssumedDensityTobitFilter`,
+    :class:`~tobitkf.filters.adf_fading.FadingAssumedDensityFilter`,
+    :class:`~tobitkf.filters.adf_protocol.ProtocolAssumedDensityFilter` and
+    :class:`~tobitkf.filters.adf_saturation.SaturationAssumedDensityFilter`.
+    """
+
+    def _project(self, k, xp, Pp, Sp, y, u, **options):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
+        tr = self._transition(k, u, carry)
+        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
+        xn, Pn, Sn, extras = self._project(k, xp, Pp, Sp, y, u, **(options or {}))
+        return xn, Pn, Sn, carry, xp, Pp, extras
+
+    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: dict[str, Any]) -> None:
+        """Checks of :meth:`update`'s reading (N, m) beyond its shape; none unless a family adds them."""
+
+    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
+        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
+        state = self._check_state(state)
+        if not state.carry.get("_predicted"):
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
+        yk = self._reading(state, y)
+        self._check_update_reading(state, yk, options)
+        opts = self._prepare_step_options(state, self._check_options(options))
+        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
+        x, P, S, _ = self._project(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"), **opts)
+        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
+        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
+
+        Parameters
+        ----------
+        y : (..., T, m) array_like
+            Readings y_1..y_T.
+        u : (T, p) or (..., T, p) array_like, optional
+            Control inputs (through ``Bu``).
+        x0, P0 : array_like, optional
+            Override the system's prior of :math:`x_0` (and of a delayed family's pre-history blocks).
+        outputs : str or sequence of str, default "all"
+            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
+        state : FilterState, optional
+            Continue from this state.
+
+        Raises
+        ------
+        ValidationError
+            A reading the family's channel cannot give (outside the censoring limits, below a
+            protocol's threshold τ).
+        ShapeError
+            Malformed ``y`` or ``u``.
+        """
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for censored readings: exact posterior moments, Kalman cost.
 
     Parameters
@@ -454,26 +532,12 @@ class AssumedDensityTobitFilter(SmoothingMethods, LinearGaussianFamily):
         side = np.where(cls == _LOWER, -1, np.where(cls == _UPPER, 1, 0)).astype(np.int8)
         return x, P, S, {"p_uncensored": pu, "log_likelihood": ll, "side": side}
 
-    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        xn, Pn, Sn, extras = self._sequential(k, xp, Pp, Sp, y, u, **(options or {}))
-        return xn, Pn, Sn, carry, xp, Pp, extras
+    def _project(self, k, xp, Pp, Sp, y, u, **options):
+        return self._sequential(k, xp, Pp, Sp, y, u, **options)
 
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError(
-                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
-            )
-        yk = self._reading(state, y)
+    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: dict[str, Any]) -> None:
         if self.check_limits and options.get("lower") is None and options.get("upper") is None:
-            self.censoring.check_measurements(yk[:, None], start=state.k)
-        opts = self._prepare_step_options(state, self._check_options(options))
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        x, P, S, _ = self._sequential(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"), **opts)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+            self.censoring.check_measurements(y[:, None], start=state.k)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         out = {}
@@ -536,23 +600,14 @@ class AssumedDensityTobitFilter(SmoothingMethods, LinearGaussianFamily):
         outputs: Any = "all",
         state: FilterState | None = None,
     ) -> FilterResult:
-        """Filter censored readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
+        """Filter censored readings ``y`` (..., T, m); NaN = missing: :meth:`AssumedDensityFamily.filter`
+        (its parameters) with the recorded indicator.
 
         Parameters
         ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T.
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs u_1..u_T.
         censored : (..., T, m) bool array_like, optional
             The censoring indicator recorded with the data (True = censored); default the limit rule.
             See the class Notes.
-        x0, P0 : array_like, optional
-            Override the system's prior.
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
 
         Raises
         ------
