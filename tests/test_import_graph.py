@@ -115,3 +115,28 @@ def test_filters_never_import_the_inference():
         if t.startswith(f"{PACKAGE}.inference")
     )
     assert bad == []
+
+
+def test_names_handed_on_are_the_same_objects():
+    """What moved below the inference keeps its old public paths, as the very same objects."""
+    import tobitkf as tk
+    from tobitkf import inference
+    from tobitkf.filters import assumed_density, kalman, likelihood, smoothing, tobit
+    from tobitkf.inference import _common, _results, fitting
+    from tobitkf.inference import likelihood as inf_likelihood
+    from tobitkf.inference import smoothing as inf_smoothing
+
+    assert inference.rts_smooth is inf_smoothing.rts_smooth is smoothing.rts_smooth
+    assert inference.prediction_log_densities is inf_likelihood.prediction_log_densities
+    assert inf_likelihood.prediction_log_densities is likelihood.prediction_log_densities
+    assert inf_smoothing.dropping_with_indicator is kalman.dropping_with_indicator
+    assert inf_smoothing.check_tobit_indicator is tobit.check_tobit_indicator
+    assert _common.assumed_density_filter is assumed_density.assumed_density_filter
+    assert _common.gaussian_log_density is likelihood.gaussian_log_density
+    assert _common.solve_psd is smoothing.solve_psd
+    assert inference.FitResult is fitting.FitResult is _results.FitResult
+    assert inference.residual_diagnostics is _results.residual_diagnostics
+    assert tk.smooth is inference.smooth and tk.log_likelihood is inference.log_likelihood
+    for cls in (tk.KalmanFilter, tk.DroppingKalmanFilter, tk.TobitKalmanFilter, tk.AssumedDensityTobitFilter):
+        assert cls.smooth is smoothing.SmoothingMethods.smooth
+        assert cls.log_likelihood is smoothing.SmoothingMethods.log_likelihood

@@ -27,7 +27,7 @@ per-step terms (:meth:`SmoothingMethods._log_likelihood_terms`, which each filte
 entry points (:func:`tobitkf.smooth`, :func:`tobitkf.log_likelihood`) live in :mod:`tobitkf.inference`,
 which builds on this module: the imports run one way, the filters below the inference.
 
-Output: a :class:`~tobitkf.FilterResult` whose ``mean``/``cov`` are :math:`\hat x_{k|T}`,
+Output of :func:`rts_smooth`: a :class:`~tobitkf.FilterResult` whose ``mean``/``cov`` are :math:`\hat x_{k|T}`,
 :math:`P_{k|T}` (row k-1 for k = 1..T), ``pred_mean``/``pred_cov`` the filter's predictions, and
 ``extras``: ``cross_cov`` (..., T, n, n), row k-1 holding :math:`P_{k,k-1|T}` (row 0:
 :math:`\mathrm{Cov}(x_1, x_0 \mid y_{1:T})`); ``initial_mean`` (..., n) and ``initial_cov`` (..., n, n),

@@ -1,24 +1,10 @@
 r"""Fixed-interval (Rauch–Tung–Striebel) and fixed-lag smoothing on the estimation core.
 
-Model: the package's :class:`~tobitkf.LinearSystem`,
-:math:`x_k = A_{k-1}x_{k-1} + B^u_ku_k + w_{k-1}`, :math:`w_{k-1} \sim N(0, B Q B^T)`, prior
-:math:`x_0 \sim N(\bar x_0, P_0)`, readings :math:`y_1..y_T` (row k-1).
-
-The RTS backward pass (Rauch, Tung & Striebel 1965; Särkkä 2013, Theorem 8.2) runs on any Gaussian
-filter's filtered and predicted moments, :math:`\hat x_{k|k}, P_{k|k}` and
-:math:`\bar x_{k+1|k}, \bar P_{k+1|k}`:
-
-.. math::
-
-    J_k &= P_{k|k}A_k^T\bar P_{k+1|k}^{-1} \\
-    \hat x_{k|T} &= \hat x_{k|k} + J_k(\hat x_{k+1|T} - \bar x_{k+1|k}) \\
-    P_{k|T} &= P_{k|k} + J_k(P_{k+1|T} - \bar P_{k+1|k})J_k^T \\
-    P_{k+1,k|T} &= \mathrm{Cov}(x_{k+1}, x_k \mid y_{1:T}) = P_{k+1|T}J_k^T
-
-for k = T-1, ..., 0 (k = 0 is the prior: :math:`\hat x_{0|0} = \bar x_0`, :math:`P_{0|0} = P_0`). A
-singular :math:`\bar P_{k+1|k}` (a singular Q after an exact reading, R = 0) takes the pseudo-inverse
-(:func:`~tobitkf.filters.smoothing.solve_psd`); the pass itself is
-:func:`~tobitkf.filters.smoothing.rts_smooth`, defined with the filters that take it.
+Model: the package's :class:`~tobitkf.LinearSystem`, readings :math:`y_1..y_T` (row k-1). The
+Rauch–Tung–Striebel backward pass over a Gaussian filter's filtered and predicted moments, with its
+equations, is :func:`~tobitkf.filters.smoothing.rts_smooth`, defined with the filters that take it
+(their ``smooth`` method); this module runs it for a model (:func:`smooth`) and online
+(:class:`FixedLagSmoother`).
 
 Which smoother goes with which filter (:func:`smooth`):
 
@@ -33,12 +19,9 @@ Which smoother goes with which filter (:func:`smooth`):
   Gaussian smoother with exact moments). For a censored regression with AR errors the exact posterior
   is :func:`tobitkf.inference.censored_ar.posterior_moments`.
 
-Output: a :class:`~tobitkf.FilterResult` whose ``mean``/``cov`` are :math:`\hat x_{k|T}`,
-:math:`P_{k|T}` (row k-1 for k = 1..T), ``pred_mean``/``pred_cov`` the filter's predictions, and
-``extras``: ``cross_cov`` (..., T, n, n), row k-1 holding :math:`P_{k,k-1|T}` (row 0:
-:math:`\mathrm{Cov}(x_1, x_0 \mid y_{1:T})`); ``initial_mean`` (..., n) and ``initial_cov`` (..., n, n),
-:math:`\hat x_{0|T}`, :math:`P_{0|T}`; ``filtered_mean``, ``filtered_cov``; ``gain`` (..., T, n, n),
-row k holding :math:`J_k` (row 0: :math:`J_0`).
+Output: the :class:`~tobitkf.FilterResult` of :func:`~tobitkf.filters.smoothing.rts_smooth` (smoothed moments,
+``extras`` with the lag-one ``cross_cov``, ``initial_mean``/``initial_cov``, ``filtered_mean``/``filtered_cov``
+and the gains ``gain``).
 """
 
 from __future__ import annotations
