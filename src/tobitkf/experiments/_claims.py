@@ -292,33 +292,10 @@ def less(
     )
 
 
-def greater(
-    text: str,
-    *,
-    quantity: str,
-    a: Any,
-    b: Any,
-    tol: float | np.ndarray,
-    tolerance: str,
-    names: tuple[str, str] = ("a", "b"),
-    note: str = "",
-    explanation: str = "",
-    digits: int = 4,
-) -> dict[str, Any]:
-    """Claimed ordering ``a > b``: holds iff every ``a - b > tol``."""
-    out = less(
-        text,
-        quantity=quantity,
-        a=b,
-        b=a,
-        tol=tol,
-        tolerance=tolerance,
-        names=(names[1], names[0]),
-        note=note,
-        explanation=explanation,
-        digits=digits,
-    )
-    return out
+def greater(text: str, *, a: Any, b: Any, names: tuple[str, str] = ("a", "b"), **fields: Any) -> dict[str, Any]:
+    """Claimed ordering ``a > b``: holds iff every ``a - b > tol``; :func:`less` with the two sides swapped
+    (``fields`` as there)."""
+    return less(text, a=b, b=a, names=(names[1], names[0]), **fields)
 
 
 def half_unit(printed: str) -> float:
