@@ -1,4 +1,4 @@
-"""The docstring examples of tobitkf.inference and tobitkf.data run and hold."""
+"""The docstring examples of tobitkf.inference, tobitkf.data and the filters' smoothing and likelihood modules run and hold."""
 
 import doctest
 import importlib
@@ -12,6 +12,9 @@ MODULES = [
     "tobitkf.inference.likelihood",
     "tobitkf.inference.censored_ar",
     "tobitkf.inference.fitting",
+    "tobitkf.inference._results",
+    "tobitkf.filters.smoothing",
+    "tobitkf.filters.likelihood",
 ]
 
 

@@ -13,9 +13,6 @@ Example counts come from the hypothesis profile (tests/conftest.py): ``ci`` 25 p
 
 from __future__ import annotations
 
-import contextlib
-import signal
-
 import numpy as np
 import pytest
 from hypothesis import assume, given
@@ -35,23 +32,9 @@ from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior
 from tobitkf.models.ross import RossModel
 from tobitkf.simulate.ross import simulate_ross
 
+from ._guards import no_hang
+
 TIME_LIMIT = 30.0  # seconds per example: far above any legitimate example here (< 1 s)
-
-
-@contextlib.contextmanager
-def no_hang(seconds: float = TIME_LIMIT):
-    """Fail (instead of hanging) when the body runs longer than ``seconds``."""
-
-    def on_alarm(signum, frame):
-        raise TimeoutError(f"example ran longer than {seconds} s")
-
-    old = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def assert_healthy(mean, cov, ref_scale=None, tol=1e-9):
@@ -131,7 +114,7 @@ def scenarios(draw, **kw):
 def test_core_filters_valid_inputs_are_healthy(scn, form, noise_term, backend):
     """``auto`` is the compiled kernel when numba is installed, ``numpy`` the reference path."""
     sys_, cens, data = scn
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         for out in (
             tk.KalmanFilter(sys_, covariance_update=form, backend=backend).filter(data.y),
             tk.DroppingKalmanFilter(sys_, cens, covariance_update=form).filter(data.y),
@@ -156,7 +139,7 @@ def test_fading_filters_valid_inputs_are_healthy(scn, order, form, mode, fvt, ex
     rng = np.random.default_rng(order)
     fad = RiceFading.gaussian(order, rng.uniform(0.2, 1.0, order + 1), rng.uniform(0.0, 0.05, order + 1))
     y = data.y  # measurements from the unfaded model: a mis-specified but valid record
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         out = FadingTobitKalmanFilter(
             sys_,
             fad,
@@ -187,7 +170,7 @@ def test_steady_state_filters_valid_inputs_are_healthy(sys_, xi, side, steps, se
         assert "DARE" in str(exc)
         return
     data = tk.simulate(sys_, steps, 2, seed=seed)
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         out = f.filter_controlled(data.y_latent)
         assert_healthy(out.mean, out.cov)
         out = tobit_kalman_filter_controlled(sys_, xi, data.y_latent, side=side)
@@ -206,7 +189,7 @@ def test_steady_state_filters_valid_inputs_are_healthy(sys_, xi, side, steps, se
 def test_protocol_filter_valid_inputs_are_healthy(sys_, window, tau, steps, seed, term, form):
     ch = ProtocolChannel(sys_.m, window=window, threshold=tau, failures=tk.laws.PMF([0.0, 0.5, 1.0], [0.1, 0.2, 0.7]))
     data = tk.simulate(sys_, steps, 2, seed=seed, channel=ch)
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         out = ProtocolTobitKalmanFilter(sys_, ch, failure_term=term, covariance_update=form).filter(data.y)
     assert_healthy(out.mean, out.cov, np.abs(out.pred_cov).max(axis=(-1, -2)))
 
@@ -234,7 +217,7 @@ def test_delay_filters_valid_inputs_are_healthy(model, steps, seed):
 
     sys_, prior = model
     data = simulate_delay(sys_, prior, steps, 2, seed=seed)
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         for est in (
             chain_lmmse(sys_, prior, data.y),
             augmented_lmmse(sys_, prior, data.y),
@@ -267,7 +250,7 @@ def test_hinf_filter_and_ross_simulation_are_finite(n, m, seed, mu, nu, steps):
         nu=[nu] * m,
         f=lambda x: 0.3 * np.tanh(x),
     )
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         sim = simulate_ross(model, steps, 2, x0=rng.normal(size=n), w=rng.normal(size=(steps, 1)), seed=seed)
         out = RegionalHinfFilter(Af, rng.normal(size=(n, m)), model.M).filter(sim.y)
     assert np.all(np.isfinite(sim.x)) and np.all(np.isfinite(out.mean)) and np.all(np.isfinite(out.extras["z"]))
@@ -289,7 +272,7 @@ def test_nan_sample_is_skipped_like_a_dropped_packet(scn, data_):
         tk.TobitKalmanFilter(sys_, cens),
         FadingTobitKalmanFilter(sys_, RiceFading(0, [1.0]), cens),
     ]
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         for f in filters:
             out = f.filter(y)
             np.testing.assert_array_equal(out.mean[:, k], out.pred_mean[:, k])
@@ -491,7 +474,7 @@ def test_closed_loop_valid_inputs_are_healthy(sys_, observer, xi, limit, steps, 
         return
     kw = {"censoring": tk.Censoring(upper=limit)} if observer in ("kf", "tkf") else {"xi_uncensored": xi}
     try:
-        with no_hang():
+        with no_hang(TIME_LIMIT):
             res = simulate_closed_loop(plant, K, steps, 2, observer=observer, seed=seed, **kw)
     except ValidationError as exc:  # steady-state observer without a stabilizing DARE solution
         assert "DARE" in str(exc) or "ARE" in str(exc)
@@ -589,7 +572,7 @@ def test_edited_sweep_files_load_or_raise_sweep_file_error(edits):
         if not lines:
             lines = ["[sweep]"]
     text = "\n".join(lines) + "\n"
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         try:
             spec = parse_sweep(text, name="fz")
         except SweepFileError as exc:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
-import signal
 import tempfile
 from pathlib import Path
 from unittest import mock
@@ -42,6 +41,8 @@ from tobitkf.experiments import _REGISTRY, Experiment, ExperimentResult  # noqa:
 from tobitkf.sweep import SweepFileError, load_result, parse_sweep, run_sweep  # noqa: E402
 from tobitkf.sweep.spec import load_sweep  # noqa: E402
 from tobitkf.sweep.store import check_resumable  # noqa: E402
+
+from ._guards import no_hang  # noqa: E402
 
 TIME_LIMIT = 60.0
 SWEEP = """[sweep]
@@ -68,20 +69,6 @@ type = "TobitKalmanFilter"
 FUZZ = settings(
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow, HealthCheck.data_too_large]
 )
-
-
-@contextlib.contextmanager
-def no_hang(seconds: float = TIME_LIMIT):
-    def on_alarm(signum, frame):
-        raise TimeoutError(f"example ran longer than {seconds} s")
-
-    old = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def check_cli_result(res) -> None:
@@ -183,7 +170,7 @@ def test_random_command_lines_exit_0_or_2_with_one_line(world, data):
         args += ["--out", tempfile.mkdtemp(dir=world["root"])]
     cwd = world["root"] / "cwd"  # an empty path means the working folder: keep that one in tmp
     cwd.mkdir(exist_ok=True)
-    with mock.patch.dict(_REGISTRY, {"fz-fast": FAST}), no_hang(), contextlib.chdir(cwd):
+    with mock.patch.dict(_REGISTRY, {"fz-fast": FAST}), no_hang(TIME_LIMIT), contextlib.chdir(cwd):
         res = CliRunner().invoke(cli.app, args)
     check_cli_result(res)
     assert (world["root"] / "a_file").read_text() == "keep"
@@ -225,7 +212,7 @@ def sweep_bytes(draw):
 def test_random_sweep_file_bytes_load_or_raise_sweep_file_error(tmp_path_factory, content):
     f = tmp_path_factory.mktemp("sw") / "fz.toml"
     f.write_bytes(content)
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         try:
             spec = load_sweep(f)
         except SweepFileError as exc:
@@ -297,7 +284,7 @@ def test_random_metrics_files_are_reported_or_listed_as_problems(tmp_path_factor
     for i, content in enumerate(files):
         (root / f"e{i}").mkdir()
         (root / f"e{i}" / "metrics.json").write_bytes(content)
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         index, md = tk.write_report(root)
         res = CliRunner().invoke(cli.app, ["report", str(root)])
     check_cli_result(res)
@@ -401,7 +388,7 @@ def test_randomly_damaged_stores_are_read_or_refused_by_name(store, tmp_path_fac
     path = out / "st.zarr"
     shutil.copytree(good, path)
     _damage(path, plan)
-    with no_hang():
+    with no_hang(TIME_LIMIT):
         try:
             ds = load_result(path)
         except tk.ValidationError as exc:

@@ -8,10 +8,8 @@ Every test here failed before the fixes (the class it names was the defect).
 
 from __future__ import annotations
 
-import contextlib
 import json
 import shutil
-import signal
 import socket
 from pathlib import Path
 
@@ -38,6 +36,8 @@ from tobitkf.simulate.delay import simulate_delay  # noqa: E402
 from tobitkf.simulate.ross import simulate_ross  # noqa: E402
 from tobitkf.sweep import SweepFileError, load_result, parse_sweep, run_sweep  # noqa: E402
 from tobitkf.sweep.spec import load_sweep  # noqa: E402
+
+from ._guards import no_hang  # noqa: E402
 
 GOOD = dict(A=[[0.9]], C=[[1.0]], Q=[[0.01]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
 SYS = tk.LinearSystem(**GOOD)
@@ -69,22 +69,6 @@ type = "TobitKalmanFilter"
 
 def sweep_text(runs=20, steps=5, extra="", A="[[0.9]]", R="[[0.01]]", tail=""):
     return SWEEP.format(runs=runs, steps=steps, extra=extra, A=A, R=R, tail=tail)
-
-
-@contextlib.contextmanager
-def no_hang(seconds: float = 30.0):
-    """Fail instead of hanging (the unfixed code spent minutes on some of these inputs)."""
-
-    def on_alarm(signum, frame):
-        raise TimeoutError(f"ran longer than {seconds} s")
-
-    old = signal.signal(signal.SIGALRM, on_alarm)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def invoke(args):

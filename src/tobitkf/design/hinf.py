@@ -305,8 +305,7 @@ def psi_matrix(
         R = np.vstack([rs[i], rc[i]])
         psi += wts[i] * R.T @ K[i] @ R
     psi[: 2 * n, : 2 * n] -= P
-    Mbar = np.zeros((model.r, N))
-    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
+    Mbar = _error_map(model, N)
     Lf1 = np.zeros((n, N))
     Lf1[:, :n] = -model.U1
     Lf1[:, 2 * n : 3 * n] = np.eye(n)
@@ -715,6 +714,11 @@ def _region_constraints(
     return cons
 
 
+def _multipliers(v: dict[str, Any]) -> dict[str, Any]:
+    """The S-procedure multipliers of a solved LMI problem ``v`` (its ``z``, ``e1``, ``e2``, ``pi``) for :func:`_finish`."""
+    return {name: v[name].value for name in ("z", "e1", "e2", "pi")}
+
+
 def _finish(
     model: RossModel,
     *,
@@ -723,18 +727,18 @@ def _finish(
     method: str,
     objective: str,
     theorem: int,
-    gamma: float | None,
-    Af,
-    Bf,
-    P,
-    z,
-    e1,
-    e2,
-    pi,
     covariance: str,
-    block_diagonal: bool,
-    rho_fixed: float | None,
     seconds: float,
+    gamma: float | None = None,
+    Af=None,
+    Bf=None,
+    P=None,
+    z=None,
+    e1=None,
+    e2=None,
+    pi=None,
+    block_diagonal: bool = False,
+    rho_fixed: float | None = None,
     history: list[float] | None = None,
     margin: float | None = None,
 ) -> HinfCertificate:
@@ -955,8 +959,7 @@ def analyze(
     for i in range(m):
         R = np.vstack([rs[i], rc[i]])
         psi = psi + (cols[:, i] @ Pv @ cols[:, i]) * (R.T @ K[i] @ R)
-    Eeta = np.zeros((2 * n, N))
-    Eeta[:, : 2 * n] = np.eye(2 * n)
+    Eeta = _eta_rows(n, N)
     psi = psi - Eeta.T @ Pv @ Eeta + _sector_f_terms(cp, model, e1, N) + _sector_sigma_terms(cp, model, z, e2, N)
     cons += [e1 >= margin]
     rho_region = rho if P_fixed is not None else None
@@ -965,10 +968,8 @@ def analyze(
         keep = 3 * n + m
         psi = psi[:keep, :keep]
     else:
-        Mbar = np.zeros((model.r, N))
-        Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
-        J = np.zeros((N, N))
-        J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
+        Mbar = _error_map(model, N)
+        J = _disturbance_block(model, N)
         psi = psi + Mbar.T @ Mbar - g2 * J
     if objective == "max_margin":
         t_eig = cp.Variable()
@@ -1129,15 +1130,12 @@ def _coupled_problem(
     if bound is not None:
         cons.append(X << bound * np.eye(n))
     cons += _region_constraints(cp, model, P, z, pi, e2, margin)
-    R1 = np.hstack([np.zeros((n, 2 * n)), np.eye(n), np.zeros((n, m)), model.B, np.zeros((n, m))])
-    G = np.diag((1 - ch.mu) * ch.nu) @ model.C
+    R1 = _plant_rows(model)
+    G = _mean_gain(model)
     WR2 = cp.hstack([Bh @ G, Ah, np.zeros((n, n)), Bh @ np.diag(ch.mu), np.zeros((n, p)), Bh @ np.diag(model.D)])
-    Eeta = np.zeros((2 * n, N))
-    Eeta[:, : 2 * n] = np.eye(2 * n)
-    Mbar = np.zeros((model.r, N))
-    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
-    J = np.zeros((N, N))
-    J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
+    Eeta = _eta_rows(n, N)
+    Mbar = _error_map(model, N)
+    J = _disturbance_block(model, N)
     base = (
         R1.T @ X @ R1
         - R1.T @ WR2
@@ -1148,15 +1146,9 @@ def _coupled_problem(
         + _sector_sigma_terms(cp, model, z, e2, N)
         - g2 * J
     )
-    rs, rc = _selectors(model)
-    K = _weights(model, covariance)
     rows = [WR2]
-    for i in range(m):
-        L = _psd_factor(K[i])  # K_i = L L^T
-        for j in range(2):
-            coef = L[0, j] * rs[i] + L[1, j] * rc[i]  # (N,)
-            if np.abs(coef).max() > 0:
-                rows.append(cp.reshape(Bh[:, i], (n, 1), order="C") @ coef[None, :])
+    for i, coef in _noise_directions(model, covariance):
+        rows.append(cp.reshape(Bh[:, i], (n, 1), order="C") @ coef[None, :])
     k = len(rows)
     blocks = [[base] + [r.T for r in rows]]
     for a in range(k):
@@ -1164,6 +1156,54 @@ def _coupled_problem(
     big = cp.bmat(blocks)
     cons.append(_sym(cp, big) << -margin * np.eye(N + k * n))
     return dict(cons=cons, g2=g2, z=z, pi=pi, e1=e1, e2=e2, X=X, W=W, Ah=Ah, Bh=Bh, P=P)
+
+
+def _plant_rows(model: RossModel) -> np.ndarray:
+    """The plant's block row of the stacked map on ξ = (x, x_f, η, …): ``[0 0 I 0 B 0]`` (n, N)."""
+    n, m = model.n, model.m
+    return np.hstack([np.zeros((n, 2 * n)), np.eye(n), np.zeros((n, m)), model.B, np.zeros((n, m))])
+
+
+def _mean_gain(model: RossModel) -> np.ndarray:
+    """The saturation channel's mean gain on the state, :math:`\operatorname{diag}((1 - μ)ν) C` (m, n)."""
+    ch = model.channel
+    return np.diag((1 - ch.mu) * ch.nu) @ model.C
+
+
+def _eta_rows(n: int, N: int) -> np.ndarray:
+    """The selector of the stacked state (x, x_f) from the LMI's vector (2n, N)."""
+    Eeta = np.zeros((2 * n, N))
+    Eeta[:, : 2 * n] = np.eye(2 * n)
+    return Eeta
+
+
+def _error_map(model: RossModel, N: int) -> np.ndarray:
+    """The estimation error's output map :math:`\bar M = [M\ -M\ 0]` (r, N)."""
+    n = model.n
+    Mbar = np.zeros((model.r, N))
+    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
+    return Mbar
+
+
+def _disturbance_block(model: RossModel, N: int) -> np.ndarray:
+    """The selector J of the disturbance entries (the last p + m) of the LMI's vector, (N, N)."""
+    n, m, p = model.n, model.m, model.p
+    J = np.zeros((N, N))
+    J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
+    return J
+
+
+def _noise_directions(model: RossModel, covariance: str):
+    """``(i, coef)`` for each nonzero direction of channel i's multiplicative noise: with
+    :math:`K_i = LL^T` (:func:`_psd_factor`), ``coef = L[0, j] rs_i + L[1, j] rc_i`` (N,), j = 0, 1."""
+    rs, rc = _selectors(model)
+    K = _weights(model, covariance)
+    for i in range(model.m):
+        L = _psd_factor(K[i])  # K_i = L L^T
+        for j in range(2):
+            coef = L[0, j] * rs[i] + L[1, j] * rc[i]  # (N,)
+            if np.abs(coef).max() > 0:
+                yield i, coef
 
 
 def _psd_factor(K: np.ndarray) -> np.ndarray:
@@ -1183,16 +1223,13 @@ def _synthesis_fixed_P(
     z, pi, e1, e2, g2 = _common_vars(cp, model, objective, gamma)
     Af = cp.Variable((n, n))
     Bf = cp.Variable((n, m))
-    G = np.diag((1 - ch.mu) * ch.nu) @ model.C
-    R1 = np.hstack([np.zeros((n, 2 * n)), np.eye(n), np.zeros((n, m)), model.B, np.zeros((n, m))])
+    G = _mean_gain(model)
+    R1 = _plant_rows(model)
     R2 = cp.hstack([Bf @ G, Af, np.zeros((n, n)), Bf @ np.diag(ch.mu), np.zeros((n, p)), Bf @ np.diag(model.D)])
     A = cp.vstack([R1, R2])  # (2n, N)
-    Eeta = np.zeros((2 * n, N))
-    Eeta[:, : 2 * n] = np.eye(2 * n)
-    Mbar = np.zeros((model.r, N))
-    Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M
-    J = np.zeros((N, N))
-    J[3 * n + m :, 3 * n + m :] = np.eye(p + m)
+    Eeta = _eta_rows(n, N)
+    Mbar = _error_map(model, N)
+    J = _disturbance_block(model, N)
     base = (
         -Eeta.T @ P @ Eeta
         + Mbar.T @ Mbar
@@ -1200,16 +1237,10 @@ def _synthesis_fixed_P(
         + _sector_sigma_terms(cp, model, z, e2, N)
         - g2 * J
     )
-    rs, rc = _selectors(model)
-    K = _weights(model, covariance)
     rows = [P @ A]
-    for i in range(m):
-        L = _psd_factor(K[i])
-        for j in range(2):
-            coef = L[0, j] * rs[i] + L[1, j] * rc[i]
-            if np.abs(coef).max() > 0:
-                col = cp.vstack([np.zeros((n, 1)), cp.reshape(Bf[:, i], (n, 1), order="C")])
-                rows.append(P @ col @ coef[None, :])
+    for i, coef in _noise_directions(model, covariance):
+        col = cp.vstack([np.zeros((n, 1)), cp.reshape(Bf[:, i], (n, 1), order="C")])
+        rows.append(P @ col @ coef[None, :])
     k = len(rows)
     blocks = [[base] + [r.T for r in rows]]
     for a in range(k):
@@ -1384,17 +1415,7 @@ def _design_once(
             method=method,
             objective=objective,
             theorem=2,
-            gamma=None,
-            Af=None,
-            Bf=None,
-            P=None,
-            z=None,
-            e1=None,
-            e2=None,
-            pi=None,
             covariance=covariance,
-            block_diagonal=False,
-            rho_fixed=None,
             seconds=seconds,
             margin=margin,
         )
@@ -1423,13 +1444,9 @@ def _design_once(
         Af=Af,
         Bf=Bf,
         P=P,
-        z=v["z"].value,
-        e1=v["e1"].value,
-        e2=v["e2"].value,
-        pi=v["pi"].value,
+        **_multipliers(v),
         covariance=covariance,
         block_diagonal=blockdiag,
-        rho_fixed=None,
         seconds=seconds,
         margin=margin,
     )
@@ -1504,13 +1521,8 @@ def _iterate(
                 Af=v["Af"].value,
                 Bf=v["Bf"].value,
                 P=best.P.copy(),
-                z=v["z"].value,
-                e1=v["e1"].value,
-                e2=v["e2"].value,
-                pi=v["pi"].value,
+                **_multipliers(v),
                 covariance=covariance,
-                block_diagonal=False,
-                rho_fixed=None,
                 seconds=0.0,
                 margin=margin,
             )

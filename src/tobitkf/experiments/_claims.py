@@ -226,53 +226,38 @@ def close(
     )
 
 
-def at_most(
+def at_most(text: str, *, value: Any, bound: Any, tol: float, **fields: Any) -> dict[str, Any]:
+    """Claimed upper bound: holds iff every ``value <= bound + tol``; ``fields`` as :func:`_bound`."""
+    return _bound(text, value, bound, tol, upper=True, **fields)
+
+
+def at_least(text: str, *, value: Any, bound: Any, tol: float, **fields: Any) -> dict[str, Any]:
+    """Claimed lower bound: holds iff every ``value >= bound - tol``; ``fields`` as :func:`_bound`."""
+    return _bound(text, value, bound, tol, upper=False, **fields)
+
+
+def _bound(
     text: str,
-    *,
-    quantity: str,
     value: Any,
     bound: Any,
     tol: float,
+    *,
+    upper: bool,
+    quantity: str,
     tolerance: str,
     note: str = "",
     explanation: str = "",
     digits: int = 4,
 ) -> dict[str, Any]:
-    """Claimed upper bound: holds iff every ``value <= bound + tol``."""
+    """A claimed bound on ``value`` (upper: ``value <= bound + tol``, else ``value >= bound - tol``), every entry."""
     v, b = np.asarray(value, dtype=float), np.asarray(bound, dtype=float)
     return claim(
         text,
         quantity=quantity,
         measured=f"{fmt(v, digits)} (bound {fmt(b, digits)})",
-        test="quantity <= bound + tol",
+        test="quantity <= bound + tol" if upper else "quantity >= bound - tol",
         tolerance=tolerance,
-        holds=bool(np.all(v <= b + tol)),
-        note=note,
-        explanation=explanation,
-    )
-
-
-def at_least(
-    text: str,
-    *,
-    quantity: str,
-    value: Any,
-    bound: Any,
-    tol: float,
-    tolerance: str,
-    note: str = "",
-    explanation: str = "",
-    digits: int = 4,
-) -> dict[str, Any]:
-    """Claimed lower bound: holds iff every ``value >= bound - tol``."""
-    v, b = np.asarray(value, dtype=float), np.asarray(bound, dtype=float)
-    return claim(
-        text,
-        quantity=quantity,
-        measured=f"{fmt(v, digits)} (bound {fmt(b, digits)})",
-        test="quantity >= bound - tol",
-        tolerance=tolerance,
-        holds=bool(np.all(v >= b - tol)),
+        holds=bool(np.all(v <= b + tol) if upper else np.all(v >= b - tol)),
         note=note,
         explanation=explanation,
     )
@@ -307,33 +292,10 @@ def less(
     )
 
 
-def greater(
-    text: str,
-    *,
-    quantity: str,
-    a: Any,
-    b: Any,
-    tol: float | np.ndarray,
-    tolerance: str,
-    names: tuple[str, str] = ("a", "b"),
-    note: str = "",
-    explanation: str = "",
-    digits: int = 4,
-) -> dict[str, Any]:
-    """Claimed ordering ``a > b``: holds iff every ``a - b > tol``."""
-    out = less(
-        text,
-        quantity=quantity,
-        a=b,
-        b=a,
-        tol=tol,
-        tolerance=tolerance,
-        names=(names[1], names[0]),
-        note=note,
-        explanation=explanation,
-        digits=digits,
-    )
-    return out
+def greater(text: str, *, a: Any, b: Any, names: tuple[str, str] = ("a", "b"), **fields: Any) -> dict[str, Any]:
+    """Claimed ordering ``a > b``: holds iff every ``a - b > tol``; :func:`less` with the two sides swapped
+    (``fields`` as there)."""
+    return less(text, a=b, b=a, names=(names[1], names[0]), **fields)
 
 
 def half_unit(printed: str) -> float:

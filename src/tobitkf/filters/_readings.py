@@ -12,7 +12,9 @@ from typing import Any
 import numpy as np
 from scipy.special import log_ndtr
 
-__all__ = ["classify_readings", "censored_log_likelihood", "MISSING", "INTERIOR", "LOWER", "UPPER"]
+from .._validation import ShapeError, ValidationError
+
+__all__ = ["classify_readings", "censored_log_likelihood", "censoring_sides", "MISSING", "INTERIOR", "LOWER", "UPPER"]
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _RTOL_LIMIT = 1e-12
@@ -85,3 +87,79 @@ def censored_log_likelihood(
     i = cls == _UPPER
     out[i] = log_ndtr((mu[i] - hi[i]) / sd[i])
     return out
+
+
+def censoring_sides(
+    y: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    censored: Any = None,
+    *,
+    rtol: float = 1e-12,
+    name: str = "censored",
+) -> np.ndarray:
+    r"""Side of each reading: 0 uncensored (or missing), -1 censored at ``lower``, +1 at ``upper``.
+
+    Parameters
+    ----------
+    y : (..., T, m) ndarray
+        Readings; NaN = missing (side 0).
+    lower, upper : broadcastable to y
+        The limits of each reading.
+    censored : (..., T, m) bool array_like, optional
+        The censoring indicator recorded with the data. Default: the limit rule, a reading within
+        ``rtol * max(1, |limit|)`` of a finite limit is censored (as
+        :meth:`~tobitkf.Censoring.censored_mask`). With an indicator, a flagged reading is censored at
+        the limit it lies at or beyond (within the same tolerance); an unflagged reading is
+        uncensored even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data).
+
+    Returns
+    -------
+    (..., T, m) int8 ndarray
+
+    Raises
+    ------
+    ShapeError
+        ``censored`` does not have the shape of ``y``.
+    ValidationError
+        ``censored`` is not boolean (or 0/1), or flags a missing reading or one strictly inside its
+        limits.
+    """
+    lo = np.broadcast_to(lower, y.shape)
+    hi = np.broadcast_to(upper, y.shape)
+    tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
+    tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
+    with np.errstate(invalid="ignore"):
+        at_lo = np.isfinite(lo) & (y <= lo + tol_lo)
+        at_hi = np.isfinite(hi) & (y >= hi - tol_hi)
+    if censored is None:
+        flag = at_lo | at_hi
+    else:
+        flag = _as_indicator(censored, y.shape, name)
+        bad = flag & np.isnan(y)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValidationError(f"{name}: reading at index {idx} is flagged censored but missing (NaN)")
+        bad = flag & ~(at_lo | at_hi)
+        if bad.any():
+            idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise ValidationError(
+                f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but lies strictly "
+                f"inside its limits [{lo[idx]:.6g}, {hi[idx]:.6g}]"
+            )
+    side = np.zeros(y.shape, dtype=np.int8)
+    side[flag & at_lo] = -1
+    side[flag & ~at_lo & at_hi] = 1
+    return side
+
+
+def _as_indicator(censored: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+    arr = np.asarray(censored)
+    if arr.dtype != bool:
+        if not np.issubdtype(arr.dtype, np.number) or not np.isin(arr, (0, 1)).all():
+            raise ValidationError(f"{name}: expected a boolean indicator (True = censored) or 0/1 values")
+        arr = arr.astype(bool)
+    try:
+        return np.broadcast_to(arr, shape)
+    except ValueError:
+        raise ShapeError(f"{name}: expected the shape of y {shape}, got {arr.shape}") from None

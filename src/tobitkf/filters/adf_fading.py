@@ -32,25 +32,19 @@ result row k-1 holds :math:`\hat x_{k|k}` (the top block).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from .assumed_density import _noise_variances, censored_channel_update
+from .assumed_density import AssumedDensityFamily, _noise_variances, censored_channel_update
 from .core import (
     COVARIANCE_FORMS,
-    FilterResult,
-    FilterState,
-    GaussianFilter,
     Transition,
     check_keywords,
     check_prior,
     process_roots,
-    time_update,
 )
 from .kalman import LinearGaussianFamily
 
@@ -59,7 +53,7 @@ __all__ = ["FadingAssumedDensityFilter"]
 _OPTIONS = {"covariance_update": COVARIANCE_FORMS}
 
 
-class FadingAssumedDensityFilter(GaussianFilter):
+class FadingAssumedDensityFilter(AssumedDensityFamily):
     r"""Assumed-density filter for censored readings through a Rice fading channel (module docstring).
 
     Parameters
@@ -151,7 +145,7 @@ class FadingAssumedDensityFilter(GaussianFilter):
         G = self._roots(k - 1) if self.covariance_update == "square_root" else None
         return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
 
-    def _sequential(self, k, xp, Pp, Sp, y, u):
+    def _project(self, k, xp, Pp, Sp, y, u):
         n, m = self.n, self.m
         N = xp.shape[0]
         S_ = min(self.L, k)
@@ -179,64 +173,11 @@ class FadingAssumedDensityFilter(GaussianFilter):
             ll += lll
         return x, P, S, {"p_uncensored": pu, "log_likelihood": ll}
 
-    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        xn, Pn, Sn, extras = self._sequential(k, xp, Pp, Sp, y, u)
-        return xn, Pn, Sn, carry, xp, Pp, extras
-
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError(
-                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
-            )
-        yk = self._reading(state, y)
-        self._check_options(options)
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        x, P, S, _ = self._sequential(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"))
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
-
     def _check_record(self, y2, u2, k0, name="y"):
         self.system.check_horizon(k0 + y2.shape[1])
         self.censoring.check(self.m, k0 + y2.shape[1])
         if self.check_limits:
             self.censoring.check_measurements(y2, start=k0 + 1)
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter censored fading readings ``y`` (..., T, m); NaN = missing.
-
-        Parameters
-        ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T.
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs.
-        x0, P0 : array_like, optional
-            Override the system's prior of :math:`x_0`.
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
-
-        Raises
-        ------
-        ValidationError
-            A reading outside its limits.
-        ShapeError
-            Malformed ``y`` or ``u``.
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def __repr__(self) -> str:
         return f"FadingAssumedDensityFilter({self.fading!r}, {self.censoring!r})"

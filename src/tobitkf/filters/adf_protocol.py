@@ -48,17 +48,13 @@ from .._validation import ValidationError, check_instance
 from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
-from .assumed_density import censored_channel_update, merge_gaussians
+from .assumed_density import AssumedDensityFamily, censored_channel_update, merge_gaussians
 from .core import (
     COVARIANCE_FORMS,
-    FilterResult,
-    FilterState,
-    GaussianFilter,
     Transition,
     check_keywords,
     check_prior,
     process_roots,
-    time_update,
 )
 from .kalman import LinearGaussianFamily
 
@@ -93,7 +89,7 @@ def failure_nodes(law: Any, nodes: int = 16) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-class ProtocolAssumedDensityFilter(GaussianFilter):
+class ProtocolAssumedDensityFilter(AssumedDensityFamily):
     r"""Protocol-channel filter that conditions on the failure outcome (see the module docstring).
 
     Parameters
@@ -191,7 +187,7 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
         G = self._roots(k - 1) if self.covariance_update == "square_root" else None
         return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
 
-    def _mixture(self, k, xp, Pp, Sp, y):
+    def _project(self, k, xp, Pp, Sp, y, u=None):
         order = self.channel.schedule.order
         h = int(order[(k - 1) % order.size]) - 1
         Cc = np.tile(self.system.measurement(k)[h], self.ell + 1)
@@ -232,25 +228,6 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
         }
         return x, P, S, extras
 
-    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        xn, Pn, Sn, extras = self._mixture(k, xp, Pp, Sp, y)
-        return xn, Pn, Sn, carry, xp, Pp, extras
-
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError(
-                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
-            )
-        yk = self._reading(state, y)
-        self._check_options(options)
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        x, P, S, _ = self._mixture(state.k, state.x, state.P, state.S, yk)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
-
     def _check_record(self, y2, u2, k0, name="y"):
         self.system.check_horizon(k0 + y2.shape[1])
         tau = self.channel.threshold
@@ -261,40 +238,6 @@ class ProtocolAssumedDensityFilter(GaussianFilter):
             raise ValidationError(
                 f"y: reading {y2[idx]:.6g} at index {idx} lies below the protocol threshold tau = {tau:.6g}"
             )
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the scheduled sensors' readings ``y`` (..., T, 1); NaN = missing.
-
-        Parameters
-        ----------
-        y : (..., T, 1) array_like
-            The readings :math:`y_1..y_T` (censored at τ).
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs (through ``Bu``).
-        x0, P0 : array_like, optional
-            Override the system's prior of :math:`x_0` (and of the pre-history blocks).
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
-
-        Raises
-        ------
-        ValidationError
-            A reading below τ.
-        ShapeError
-            Malformed ``y`` or ``u``.
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def __repr__(self) -> str:
         return f"ProtocolAssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"

@@ -40,8 +40,6 @@ k-1 holds :math:`\hat x_{k|k}`.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 from scipy.special import log_ndtr
 
@@ -49,15 +47,12 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.saturation import RandomSaturation
 from ..models.linear import LinearSystem
-from .assumed_density import merge_gaussians
+from .assumed_density import AssumedDensityFamily, merge_gaussians
 from .core import (
     COVARIANCE_FORMS,
-    FilterResult,
-    FilterState,
     MeasurementPrediction,
     check_keywords,
     measurement_update,
-    time_update,
 )
 from .kalman import LinearGaussianFamily
 
@@ -115,7 +110,7 @@ def saturated_reading_moments(y: np.ndarray, mean: np.ndarray, var: np.ndarray, 
     return np.log(tot) + top, pm, np.maximum(pv, 0.0)
 
 
-class SaturationAssumedDensityFilter(LinearGaussianFamily):
+class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for random saturation with missing readings (see the module docstring).
 
     Parameters
@@ -175,7 +170,7 @@ class SaturationAssumedDensityFilter(LinearGaussianFamily):
             raise ValidationError(f"R({k}): the saturation filter needs a diagonal R with positive sensor variances")
         return np.diagonal(R)
 
-    def _sequential(self, k, xp, Pp, Sp, y):
+    def _project(self, k, xp, Pp, Sp, y, u=None):
         C, r = self.system.measurement(k), self._variances(k)
         N, m = y.shape
         x, P, S = xp, Pp, Sp
@@ -230,57 +225,6 @@ class SaturationAssumedDensityFilter(LinearGaussianFamily):
             post[:, i] = np.where(miss[:, None], np.exp(self._logp[i]), w.T)
             ll += np.where(miss, 0.0, np.log(tot) + top)
         return x, P, S, {"mode_posterior": post, "log_likelihood": ll}
-
-    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        xn, Pn, Sn, extras = self._sequential(k, xp, Pp, Sp, y)
-        return xn, Pn, Sn, carry, xp, Pp, extras
-
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError(
-                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
-            )
-        yk = self._reading(state, y)
-        self._check_options(options)
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        x, P, S, _ = self._sequential(state.k, state.x, state.P, state.S, yk)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the sensors' readings ``y`` (..., T, m); NaN = missing.
-
-        Parameters
-        ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T.
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs (through ``Bu``).
-        x0, P0 : array_like, optional
-            Override the system's prior.
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
-
-        Raises
-        ------
-        ShapeError
-            Malformed ``y`` or ``u``.
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def __repr__(self) -> str:
         return f"SaturationAssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"

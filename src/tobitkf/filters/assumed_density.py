@@ -60,12 +60,13 @@ from .._validation import ValidationError, as_float_array, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, censored_log_likelihood
+from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, _as_indicator, censored_log_likelihood, censoring_sides
 from ._readings import classify_readings as _classify
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
     FilterState,
+    GaussianFilter,
     MeasurementPrediction,
     check_keywords,
     measurement_update,
@@ -74,9 +75,11 @@ from .core import (
     time_update,
 )
 from .kalman import LinearGaussianFamily
+from .smoothing import SmoothingMethods
 
 __all__ = [
     "AssumedDensityTobitFilter",
+    "AssumedDensityFamily",
     "censored_reading_moments",
     "censored_channel_update",
     "assumed_density_update",
@@ -280,8 +283,6 @@ def merge_gaussians(weights: np.ndarray, means: np.ndarray, covs: np.ndarray, fa
 
 def _indicator(censored: Any, shape: tuple[int, ...]) -> np.ndarray:
     """The recorded indicator as a bool array of ``shape`` (ShapeError / ValidationError naming ``censored``)."""
-    from ..inference._common import _as_indicator
-
     return np.ascontiguousarray(_as_indicator(censored, shape, "censored"))
 
 
@@ -311,7 +312,83 @@ def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
     return d
 
 
-class AssumedDensityTobitFilter(LinearGaussianFamily):
+class AssumedDensityFamily(GaussianFilter):
+    r"""What the assumed-density families share: the predict + update of :meth:`step`, :meth:`update` and
+    :meth:`filter` around a family's own projection.
+
+    A family's measurement update is no linear (Kalman) update but the projection of the exact
+    posterior onto a Gaussian (moment matching): ``_project(k, x̄, P̄, S̄, y, u, **step_options)`` →
+    ``(x, P, S, extras)`` on arrays (N runs, no validation inside), with ``S`` the square-root factor
+    (None unless ``covariance_update="square_root"``). The time update is :func:`~tobitkf.filters.core.time_update`
+    of the family's ``_transition``. Taken by :class:`AssumedDensityTobitFilter`,
+    :class:`~tobitkf.filters.adf_fading.FadingAssumedDensityFilter`,
+    :class:`~tobitkf.filters.adf_protocol.ProtocolAssumedDensityFilter` and
+    :class:`~tobitkf.filters.adf_saturation.SaturationAssumedDensityFilter`.
+    """
+
+    def _project(self, k, xp, Pp, Sp, y, u, **options):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
+        tr = self._transition(k, u, carry)
+        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
+        xn, Pn, Sn, extras = self._project(k, xp, Pp, Sp, y, u, **(options or {}))
+        return xn, Pn, Sn, carry, xp, Pp, extras
+
+    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: dict[str, Any]) -> None:
+        """Checks of :meth:`update`'s reading (N, m) beyond its shape; none unless a family adds them."""
+
+    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
+        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
+        state = self._check_state(state)
+        if not state.carry.get("_predicted"):
+            raise ValidationError(
+                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
+            )
+        yk = self._reading(state, y)
+        self._check_update_reading(state, yk, options)
+        opts = self._prepare_step_options(state, self._check_options(options))
+        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
+        x, P, S, _ = self._project(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"), **opts)
+        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
+        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
+
+        Parameters
+        ----------
+        y : (..., T, m) array_like
+            Readings y_1..y_T.
+        u : (T, p) or (..., T, p) array_like, optional
+            Control inputs (through ``Bu``).
+        x0, P0 : array_like, optional
+            Override the system's prior of :math:`x_0` (and of a delayed family's pre-history blocks).
+        outputs : str or sequence of str, default "all"
+            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
+        state : FilterState, optional
+            Continue from this state.
+
+        Raises
+        ------
+        ValidationError
+            A reading the family's channel cannot give (outside the censoring limits, below a
+            protocol's threshold τ).
+        ShapeError
+            Malformed ``y`` or ``u``.
+        """
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for censored readings: exact posterior moments, Kalman cost.
 
     Parameters
@@ -455,26 +532,12 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         side = np.where(cls == _LOWER, -1, np.where(cls == _UPPER, 1, 0)).astype(np.int8)
         return x, P, S, {"p_uncensored": pu, "log_likelihood": ll, "side": side}
 
-    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        xn, Pn, Sn, extras = self._sequential(k, xp, Pp, Sp, y, u, **(options or {}))
-        return xn, Pn, Sn, carry, xp, Pp, extras
+    def _project(self, k, xp, Pp, Sp, y, u, **options):
+        return self._sequential(k, xp, Pp, Sp, y, u, **options)
 
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError(
-                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
-            )
-        yk = self._reading(state, y)
+    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: dict[str, Any]) -> None:
         if self.check_limits and options.get("lower") is None and options.get("upper") is None:
-            self.censoring.check_measurements(yk[:, None], start=state.k)
-        opts = self._prepare_step_options(state, self._check_options(options))
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        x, P, S, _ = self._sequential(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"), **opts)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+            self.censoring.check_measurements(y[:, None], start=state.k)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         out = {}
@@ -537,23 +600,14 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         outputs: Any = "all",
         state: FilterState | None = None,
     ) -> FilterResult:
-        """Filter censored readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
+        """Filter censored readings ``y`` (..., T, m); NaN = missing: :meth:`AssumedDensityFamily.filter`
+        (its parameters) with the recorded indicator.
 
         Parameters
         ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T.
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs u_1..u_T.
         censored : (..., T, m) bool array_like, optional
             The censoring indicator recorded with the data (True = censored); default the limit rule.
             See the class Notes.
-        x0, P0 : array_like, optional
-            Override the system's prior.
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
 
         Raises
         ------
@@ -565,8 +619,6 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         """
         if censored is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
-        from ..inference._common import censoring_sides
-
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])
@@ -575,30 +627,36 @@ class AssumedDensityTobitFilter(LinearGaussianFamily):
         censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
         return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
 
-    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        r"""The assumed-density (RTS) smoother over this filter's moments, with lag-one cross-covariances;
-        see :func:`tobitkf.inference.rts_smooth` (with ``order="uncensored_first"`` it is
-        ``tk.smooth(..., method="adf")``). Arguments as :meth:`filter`."""
-        from ..inference.smoothing import rts_smooth
-
-        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
-
-    def log_likelihood(
-        self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
-    ) -> np.ndarray:
-        r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (the ``log_likelihood``
-        extras of :meth:`filter`, see the class Notes), (...) or (..., T) with ``per_step``, shaped as
-        :meth:`tobitkf.KalmanFilter.log_likelihood`. With ``order="uncensored_first"`` it is
-        :func:`tobitkf.inference.adf_log_likelihood`.
-
-        Raises
-        ------
-        ValidationError, ShapeError
-            As :meth:`filter`.
-        """
-        terms = self.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
-        return terms if per_step else terms.sum(-1)
+    def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
+        """The ``log_likelihood`` extras of :meth:`filter` (..., T): the terms of :meth:`log_likelihood`."""
+        return self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",), **recorded).extras["log_likelihood"]
 
     def __repr__(self) -> str:
         order = "" if self.order == "channels" else f", order={self.order!r}"
         return f"AssumedDensityTobitFilter({self.censoring!r}, covariance_update={self.covariance_update!r}{order})"
+
+
+def assumed_density_filter(system, censoring, *, covariance_update: str = "standard"):
+    r"""The :class:`AssumedDensityTobitFilter` of the smoothers, likelihoods and fits: the
+    uncensored readings of a step first, then the censored ones (``order="uncensored_first"``), so that
+    a step with one censored reading has the exact moments of its posterior under the Gaussian
+    prediction and the exact predictive log-likelihood term
+    :math:`\log N(y_{k,u}; \hat y_u, S_{uu}) + \log\Phi(\pm(\text{limit} - \mu)/s)`.
+
+    Parameters
+    ----------
+    system : LinearSystem
+        R diagonal (channels in sequence); R = 0 allowed.
+    censoring : Censoring
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+
+    Returns
+    -------
+    AssumedDensityTobitFilter
+
+    Raises
+    ------
+    ValidationError
+        The filter's own: non-diagonal or negative R, an unknown option.
+    """
+    return AssumedDensityTobitFilter(system, censoring, covariance_update=covariance_update, order="uncensored_first")

@@ -47,6 +47,7 @@ from .._validation import ShapeError, ValidationError, as_float, as_float_array,
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
+from ._readings import censoring_sides
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
@@ -57,10 +58,13 @@ from .core import (
     check_keywords,
     check_prior,
     prepare_inputs,
+    prepare_measurements,
     process_roots,
 )
+from .likelihood import prediction_log_densities
+from .smoothing import SmoothingMethods
 
-__all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter", "LinearGaussianFamily"]
+__all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter", "LinearGaussianFamily", "dropping_with_indicator"]
 
 COVARIANCE_UPDATES = COVARIANCE_FORMS
 _OPTIONS = {"covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
@@ -120,7 +124,7 @@ class LinearGaussianFamily(GaussianFilter):
         self.system.check_horizon(k0 + y2.shape[1])
 
 
-class KalmanFilter(LinearGaussianFamily):
+class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
     """Kalman filter (Miller (2.3)–(2.6)); fed censored data it is the "standard KF" baseline.
 
     Parameters
@@ -197,19 +201,11 @@ class KalmanFilter(LinearGaussianFamily):
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
-    def smooth(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        """Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments, with lag-one
-        cross-covariances; see :func:`tobitkf.inference.rts_smooth`."""
-        from ..inference.smoothing import rts_smooth
-
-        return rts_smooth(self.filter(y, u=u, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
-
-    def log_likelihood(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False):
-        """Exact log-likelihood of ``y`` (NaN readings skipped), (...) or (..., T) with ``per_step``; see
-        :func:`tobitkf.inference.kalman_log_likelihood`."""
-        from ..inference.likelihood import kalman_log_likelihood
-
-        return kalman_log_likelihood(self.system, y, u=u, x0=x0, P0=P0, per_step=per_step)
+    def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
+        """Exact prediction-error terms (..., T) of ``y`` under the linear Gaussian model (NaN readings skipped),
+        from a plain :class:`KalmanFilter` of the system (also for the dropping KF: the model's likelihood)."""
+        res = KalmanFilter(self.system).filter(y, u=u, x0=x0, P0=P0, outputs=("pred_mean", "pred_cov"), **recorded)
+        return prediction_log_densities(self.system, y, res, u=u)
 
 
 def _finite_or_none(res: FilterResult) -> FilterResult | None:
@@ -545,21 +541,58 @@ class DroppingKalmanFilter(KalmanFilter):
     ) -> FilterResult:
         """Filter ``y`` (..., T, m), dropping the censored readings: by the limit rule, or by the recorded
         indicator ``censored`` (..., T, m) when given (then an unflagged reading at the limit is used;
-        :func:`tobitkf.inference.smoothing.dropping_with_indicator`)."""
+        :func:`dropping_with_indicator`)."""
         if censored is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
-        from ..inference.smoothing import dropping_with_indicator
-
         return dropping_with_indicator(self, y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
-
-    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        """RTS smoother over this filter's moments (censored readings dropped); see
-        :func:`tobitkf.inference.rts_smooth`."""
-        from ..inference.smoothing import rts_smooth
-
-        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
 
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u):
             return None
         return _kf_kernel_step(self, y, np.isnan(y) | self._dropped(y, state.k + 1), state)
+
+
+def dropping_with_indicator(
+    est: DroppingKalmanFilter,
+    y: Any,
+    censored: Any,
+    *,
+    u: Any = None,
+    x0: Any = None,
+    P0: Any = None,
+    outputs: Any = "all",
+    state: FilterState | None = None,
+) -> FilterResult:
+    r"""The dropping KF ``est`` with the recorded censoring indicator instead of its limit rule.
+
+    Flagged readings (checked to lie at or beyond a limit, see
+    :func:`~tobitkf.filters._readings.censoring_sides`) are left out of the update exactly as missing
+    ones; an unflagged reading at the limit is used. Runs a :class:`~tobitkf.KalmanFilter` with the
+    estimator's options on the readings with the flagged ones set to NaN; ``extras["censored"]`` holds the
+    flags. Called by :meth:`tobitkf.DroppingKalmanFilter.filter` when ``censored`` is given.
+    """
+    y2, batch = prepare_measurements(y, est.system.m)
+    k0 = 0 if state is None else state.k
+    lo, hi = est.censoring.all_limits(y2.shape[1], est.system.m, start=k0 + 1)
+    arr = np.asarray(censored)
+    try:
+        c2 = np.broadcast_to(arr, batch + y2.shape[1:]).reshape(y2.shape)
+    except ValueError:
+        raise ShapeError(f"censored: expected the shape of y {batch + y2.shape[1:]}, got {arr.shape}") from None
+    side = censoring_sides(y2, lo, hi, c2, rtol=est.rtol)
+    ym = np.where(side != 0, np.nan, y2).reshape(batch + y2.shape[1:])
+    kf = KalmanFilter(est.system, covariance_update=est.covariance_update, backend=est.backend)
+    res = kf.filter(ym, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+    extras = dict(res.extras)
+    if res.mean is not None or outputs == "all" or "extras" in (outputs or ()):
+        extras["censored"] = (side != 0).reshape(batch + y2.shape[1:])
+    return FilterResult(
+        mean=res.mean,
+        cov=res.cov,
+        pred_mean=res.pred_mean,
+        pred_cov=res.pred_cov,
+        extras=extras,
+        times=res.times,
+        var=res.var,
+        final=res.final,
+    )

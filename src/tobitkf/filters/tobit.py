@@ -66,11 +66,13 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError, as_float_array, check_instance
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance
 from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
+from ._readings import censoring_sides
+from .assumed_density import assumed_density_filter
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
@@ -81,8 +83,16 @@ from .core import (
     psd_sqrt,
 )
 from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices
+from .smoothing import SmoothingMethods
 
-__all__ = ["tobit_update", "tobit_measurement", "tobit_kalman_filter", "TobitKalmanFilter", "NOISE_TERMS"]
+__all__ = [
+    "tobit_update",
+    "tobit_measurement",
+    "tobit_kalman_filter",
+    "TobitKalmanFilter",
+    "NOISE_TERMS",
+    "check_tobit_indicator",
+]
 
 NOISE_TERMS = ("dissertation", "total_variance", "exact_pv")
 COVARIANCE_UPDATES = COVARIANCE_FORMS
@@ -205,7 +215,7 @@ def _sigma_of(
     return np.sqrt(d)
 
 
-class TobitKalmanFilter(LinearGaussianFamily):
+class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
     r"""Tobit Kalman filter for left, right, two-sided and multi-region censoring (Miller §3.3.4).
 
     Parameters
@@ -381,28 +391,14 @@ class TobitKalmanFilter(LinearGaussianFamily):
         must lie at its limit); the update (3.37)-(3.41) is linear in the reading and unchanged by it.
         """
         if censored is not None:
-            from ..inference.smoothing import check_tobit_indicator
-
             check_tobit_indicator(self.censoring, y, censored, start=(0 if state is None else state.k) + 1)
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
-    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
-        r"""RTS smoother over the TKF's moments (its linearisation :math:`H = E(\mathbf p)C`), with lag-one
-        cross-covariances; see :func:`tobitkf.inference.rts_smooth`."""
-        from ..inference.smoothing import rts_smooth
-
-        return rts_smooth(self.filter(y, u=u, censored=censored, x0=x0, P0=P0), self.system, x0=x0, P0=P0)
-
-    def log_likelihood(
-        self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
-    ):
-        """The assumed-density log-likelihood of the model (system and censoring) on ``y``; the TKF's own
-        update defines none. See :func:`tobitkf.inference.adf_log_likelihood`."""
-        from ..inference.likelihood import adf_log_likelihood
-
-        return adf_log_likelihood(
-            self.system, self.censoring, y, censored=censored, u=u, x0=x0, P0=P0, per_step=per_step
-        )
+    def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
+        """The TKF's update defines no likelihood: the assumed-density terms (..., T) of its model (system and
+        censoring), :func:`tobitkf.inference.adf_log_likelihood`."""
+        adf = assumed_density_filter(self.system, self.censoring)
+        return adf._log_likelihood_terms(y, u=u, x0=x0, P0=P0, **recorded)
 
 
 def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) -> FilterState | None:
@@ -658,3 +654,24 @@ def tobit_kalman_filter(
         check_limits=check_limits,
     )
     return est.filter(y, u=u, x0=x0, P0=P0, outputs=outputs)
+
+
+def check_tobit_indicator(censoring: Censoring, y: Any, censored: Any, *, start: int = 1) -> None:
+    r"""Check a recorded indicator against the TKF's readings: a flagged reading must lie at (or beyond) a
+    limit. The TKF's update (Miller (3.37)-(3.41)) is linear in the reading and does not branch on it,
+    so an unflagged reading at the limit needs nothing else. Called by
+    :meth:`tobitkf.TobitKalmanFilter.filter` when ``censored`` is given.
+
+    Raises
+    ------
+    ShapeError, ValidationError
+        See :func:`~tobitkf.filters._readings.censoring_sides`.
+    """
+    arr = np.asarray(y, dtype=float)
+    y2 = arr.reshape((-1,) + arr.shape[-2:])
+    lo, hi = censoring.all_limits(y2.shape[1], y2.shape[2], start=start)
+    try:
+        c2 = np.broadcast_to(np.asarray(censored), arr.shape).reshape(y2.shape)
+    except ValueError:
+        raise ShapeError(f"censored: expected the shape of y {arr.shape}, got {np.shape(censored)}") from None
+    censoring_sides(y2, lo, hi, c2)

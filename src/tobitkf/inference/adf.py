@@ -3,7 +3,7 @@ r"""Deprecated: the inference package's own assumed-density filter, now :class:`
 The smoothers, likelihoods and fits of :mod:`tobitkf.inference` were written before the package had
 its assumed-density filter and carried a small exact-moment ADF of their own. The project keeps what
 two families share once: they now run :class:`~tobitkf.AssumedDensityTobitFilter` with
-``order="uncensored_first"`` (:func:`~tobitkf.inference._common.assumed_density_filter`), which gives
+``order="uncensored_first"`` (:func:`~tobitkf.filters.assumed_density.assumed_density_filter`), which gives
 the same moments and log-likelihood terms (tested to 1e-12 against the old algorithm written out):
 the uncensored readings of a step jointly (the Kalman update), then each censored reading in
 channel order,

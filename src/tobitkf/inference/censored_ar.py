@@ -59,6 +59,7 @@ from .._compiled import numba_available
 from .._validation import ShapeError, ValidationError, as_float_array
 from ._common import LOG_2PI, censoring_sides
 from ._optimize import central_gradient, forward_hessian, maximize
+from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = [
     "CensoredARData",
@@ -923,8 +924,6 @@ class CensoredAR:
         ValidationError, ShapeError
             Bad data (see :class:`CensoredARData`) or a start outside the parameter space.
         """
-        from .fitting import FitResult, _progress_callback
-
         t0 = time.perf_counter()
         data = CensoredARData.build(y, X, lower, upper, censored)
         l = data.X.shape[1]
@@ -1050,16 +1049,6 @@ class CensoredAR:
             "panel_sd": self.panel_sd,
             "hermite": self.hermite,
         }
-
-
-def _inverse_information(H: np.ndarray) -> np.ndarray | None:
-    """The inverse of the observed information -H, or an all-NaN matrix when -H is not positive definite."""
-    info = -0.5 * (H + H.T)
-    try:
-        np.linalg.cholesky(info)
-    except np.linalg.LinAlgError:
-        return np.full(info.shape, np.nan)
-    return np.linalg.inv(info)
 
 
 def _predictive_mixtures(data: CensoredARData, beta, sigma2, phi, plan: GridPlan):

@@ -134,8 +134,9 @@ def run_fit(csv_path: str | Path, model_path: str | Path, out: str | Path, *, pr
     ValidationError
         Unreadable or inconsistent inputs (each message names the file and the key or column).
     """
-    from .. import Censoring, LinearSystem
     from .._io import atomic_write_text
+    from ..channels.censoring import Censoring
+    from ..models.linear import LinearSystem
     from .censored_ar import CensoredAR
     from .fitting import fit
 

@@ -28,61 +28,14 @@ import numpy as np
 
 from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
-from ..filters.core import FilterResult, prepare_inputs, prepare_measurements
+from ..filters.assumed_density import assumed_density_filter
+from ..filters.kalman import KalmanFilter
+from ..filters.likelihood import prediction_log_densities
 from ..models.linear import LinearSystem
-from ._common import gaussian_log_density
 
 __all__ = ["kalman_log_likelihood", "adf_log_likelihood", "log_likelihood", "prediction_log_densities", "LIKELIHOODS"]
 
 LIKELIHOODS = ("kalman", "adf")
-
-
-def prediction_log_densities(system: LinearSystem, y: Any, result: FilterResult, *, u: Any = None) -> np.ndarray:
-    r"""Per-step :math:`\log N(y_{k,o}; C\bar x_{k|k-1} + Du_k, C\bar P_{k|k-1}C^T + R)` from a filter's predictions.
-
-    Parameters
-    ----------
-    system : LinearSystem
-    y : (..., T, m) array_like
-        The readings the filter ran on (NaN = missing, skipped).
-    result : FilterResult
-        With ``pred_mean`` (..., T, n) and ``pred_cov``.
-    u : (..., T, p) array_like, optional
-
-    Returns
-    -------
-    (..., T) ndarray
-    """
-    y2, batch = prepare_measurements(y, system.m)
-    N, T, m = y2.shape
-    if result.pred_mean is None or result.pred_cov is None:
-        raise ValidationError("result: needs pred_mean and pred_cov (run the filter with outputs='all')")
-    from .smoothing import _flat
-
-    xp = _flat(result.pred_mean, N, 1)
-    Pp = _flat(result.pred_cov, N, 2)
-    u2 = prepare_inputs(system, u, N, T)
-    out = np.empty((N, T))
-    fixed = not (system.C.varying or system.R.varying) and (u2 is None or system.D is None or not system.D.varying)
-    if fixed:  # every step at once: one batched density over (N, T)
-        C, R = system.measurement(1), system.measurement_cov(1)
-        yhat = xp @ C.T
-        if u2 is not None and system.D is not None:
-            yhat = yhat + u2 @ system.D.at(1).T
-        S = np.einsum("ij,...jk,lk->...il", C, Pp, C) + R
-        S = np.broadcast_to(S, (N, T, m, m)).reshape(N * T, m, m)
-        e = (y2 - yhat).reshape(N * T, m)
-        out = gaussian_log_density(e, S, ~np.isnan(y2).reshape(N * T, m)).reshape(N, T)
-        return out.reshape(batch + (T,))
-    for i in range(T):
-        k = int(result.times[i]) if result.times is not None else i + 1
-        C, R = system.measurement(k), system.measurement_cov(k)
-        yhat = xp[:, i] @ C.T
-        if u2 is not None and system.D is not None:
-            yhat = yhat + u2[:, i] @ system.D.at(k).T
-        S = C @ Pp[:, i] @ C.T + R
-        out[:, i] = gaussian_log_density(y2[:, i] - yhat, S, ~np.isnan(y2[:, i]))
-    return out.reshape(batch + (T,))
 
 
 def kalman_log_likelihood(
@@ -120,8 +73,6 @@ def kalman_log_likelihood(
     >>> bool(np.isclose(ll, -0.5 * (np.log(2 * np.pi * 2) + 0.25 / 2)))
     True
     """
-    from ..filters.kalman import KalmanFilter
-
     check_instance(system, LinearSystem, "system")
     res = KalmanFilter(system).filter(y, u=u, x0=x0, P0=P0, outputs=("pred_mean", "pred_cov"))
     terms = prediction_log_densities(system, y, res, u=u)
@@ -173,8 +124,6 @@ def adf_log_likelihood(
     >>> bool(np.isclose(tk.adf_log_likelihood(sys, tk.Censoring(lower=0.0), [[0.0]]), np.log(0.5)))
     True
     """
-    from ._common import assumed_density_filter
-
     check_instance(system, LinearSystem, "system")
     res = assumed_density_filter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",))
     terms = res.extras["log_likelihood"]

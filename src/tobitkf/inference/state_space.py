@@ -49,6 +49,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
 from ._optimize import central_hessian, maximize
+from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
 
@@ -318,6 +319,56 @@ def _e_step(M, y, u, censoring, censored):
     return sm, ll
 
 
+def _regression(Ezz, Etz, t, z, u, G, H, fit_G: bool, fit_H: bool):
+    r"""Closed-form M-step of a regression :math:`t_k = G z_k + H u_k + e_k` on smoothed moments.
+
+    ``Ezz`` (T, q, q) :math:`E[z_kz_k^T]`, ``Etz`` (T, r, q) :math:`E[t_kz_k^T]`, ``t`` (T, r) and ``z``
+    (T, q) their means, ``u`` (T, p) or None the inputs; ``G`` (r, q) and ``H`` (r, p) or None the
+    current values. Both fitted: :math:`[G\ H] = (\sum E[t s^T])(\sum E[s s^T])^{-1}` with
+    :math:`s = (z, u)`; ``G`` alone: the same with the held ``H``'s part taken off :math:`\sum E[tz^T]`;
+    ``H`` alone: the least squares of :math:`t - Gz` on u. The transition (t = x_k, z = x_{k-1},
+    :math:`[A\ B^u]`) and the measurement (t = y*_k, z = x_k, :math:`[C\ D]`) both use it. Returns (G, H).
+    """
+    q = z.shape[1]
+    use_u = fit_H and u is not None
+    Szz = Ezz.sum(0)
+    Stz = Etz.sum(0)
+    if use_u and u is not None:
+        Szz = np.block(
+            [
+                [Szz, (z[:, :, None] * u[:, None, :]).sum(0)],
+                [(u[:, :, None] * z[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)],
+            ]
+        )
+        Stz = np.hstack([Stz, (t[:, :, None] * u[:, None, :]).sum(0)])
+    elif H is not None and u is not None:  # held input matrix: subtract its effect
+        Stz = Stz - H @ (u[:, :, None] * z[:, None, :]).sum(0)
+    if not fit_G:  # only H: regress the residual of G z
+        r = t - z @ G.T
+        assert u is not None, "estimating an input matrix needs the inputs (checked by the caller)"
+        H = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
+    else:
+        W = np.linalg.solve(Szz.T, Stz.T).T
+        G = W[:, :q]
+        if use_u and u is not None:
+            H = W[:, q:]
+    return G, H
+
+
+def _less_inputs(S, d, t, f):
+    r""":math:`E[(t - f - d)(t - f - d)^T]` from ``S`` = :math:`E[(t - f)(t - f)^T]` (T, r, r) and a known
+    input term ``d`` (T, r): the noise covariance's terms of :math:`d = Hu` (``t`` the target's mean, ``f`` its
+    fitted mean :math:`Gz`)."""
+    return (
+        S
+        - d[:, :, None] * t[:, None, :]
+        - t[:, :, None] * d[:, None, :]
+        + d[:, :, None] * f[:, None, :]
+        + f[:, :, None] * d[:, None, :]
+        + d[:, :, None] * d[:, None, :]
+    )
+
+
 def em_step(
     M: dict[str, Any],
     y: np.ndarray,
@@ -351,89 +402,27 @@ def em_step(
     Eyx = np.einsum("ij,tjk->tik", Ca, P[:, :, :n]) + ys[:, :, None] * xs[:, None, :]
     new: dict[str, Any] = {k: (None if v is None else np.array(v, dtype=float)) for k, v in M.items()}
     # --- transition: [A Bu] from x_k on z = (x_{k-1}, u_k)
-    if "A" in estimate or "Bu" in estimate or "Q" in estimate:
+    if "A" in estimate or "Bu" in estimate:
+        new["A"], new["Bu"] = _regression(
+            Epp, Exp, xs, prev, u, new["A"], new.get("Bu"), "A" in estimate, "Bu" in estimate
+        )
+    if "Q" in estimate:
         A, Bu = new["A"], new.get("Bu")
-        if "A" in estimate or "Bu" in estimate:
-            use_u = "Bu" in estimate and u is not None
-            Szz = Epp.sum(0)
-            Sxz = Exp.sum(0)
-            if use_u and u is not None:
-                Szz = np.block(
-                    [
-                        [Szz, (prev[:, :, None] * u[:, None, :]).sum(0)],
-                        [(u[:, :, None] * prev[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)],
-                    ]
-                )
-                Sxz = np.hstack([Sxz, (xs[:, :, None] * u[:, None, :]).sum(0)])
-            elif Bu is not None and u is not None:  # held input matrix: subtract its effect
-                Sxz = Sxz - Bu @ (u[:, :, None] * prev[:, None, :]).sum(0)
-            if "A" not in estimate:  # only Bu: regress the residual of A x
-                r = xs - prev @ A.T
-                assert u is not None, "estimating Bu needs the inputs (checked by the caller)"
-                Bu = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
-            else:
-                W = np.linalg.solve(Szz.T, Sxz.T).T
-                A = W[:, :n]
-                if use_u and u is not None:
-                    Bu = W[:, n:]
-            new["A"], new["Bu"] = A, Bu
-        if "Q" in estimate:
-            A, Bu = new["A"], new.get("Bu")
-            bu: Any = 0.0 if (Bu is None or u is None) else u @ Bu.T  # (T, n)
-            S = Exx - A @ Exp.transpose(0, 2, 1) - Exp @ A.T + A @ Epp @ A.T
-            if not np.isscalar(bu):
-                S = (
-                    S
-                    - bu[:, :, None] * xs[:, None, :]
-                    - xs[:, :, None] * bu[:, None, :]
-                    + (bu[:, :, None] * (prev @ A.T)[:, None, :])
-                    + ((prev @ A.T)[:, :, None] * bu[:, None, :])
-                    + bu[:, :, None] * bu[:, None, :]
-                )
-            new["Q"] = _sym(S.mean(0))
+        S = Exx - A @ Exp.transpose(0, 2, 1) - Exp @ A.T + A @ Epp @ A.T
+        if Bu is not None and u is not None:
+            S = _less_inputs(S, u @ Bu.T, xs, prev @ A.T)
+        new["Q"] = _sym(S.mean(0))
     # --- measurement: [C D] from y* on s = (x_k, u_k)
-    if "C" in estimate or "D" in estimate or "R" in estimate:
+    if "C" in estimate or "D" in estimate:
+        new["C"], new["D"] = _regression(Exx, Eyx, ys, xs, u, new["C"], new.get("D"), "C" in estimate, "D" in estimate)
+    if "R" in estimate:
         C, D = new["C"], new.get("D")
-        if "C" in estimate or "D" in estimate:
-            use_u = "D" in estimate and u is not None
-            Sss = Exx.sum(0)
-            Sys = Eyx.sum(0)
-            if use_u and u is not None:
-                Sss = np.block(
-                    [
-                        [Sss, (xs[:, :, None] * u[:, None, :]).sum(0)],
-                        [(u[:, :, None] * xs[:, None, :]).sum(0), (u[:, :, None] * u[:, None, :]).sum(0)],
-                    ]
-                )
-                Sys = np.hstack([Sys, (ys[:, :, None] * u[:, None, :]).sum(0)])
-            elif D is not None and u is not None:
-                Sys = Sys - D @ (u[:, :, None] * xs[:, None, :]).sum(0)
-            if "C" not in estimate:
-                r = ys - xs @ C.T
-                assert u is not None, "estimating D needs the inputs (checked by the caller)"
-                D = np.linalg.solve((u[:, :, None] * u[:, None, :]).sum(0), (u[:, :, None] * r[:, None, :]).sum(0)).T
-            else:
-                W = np.linalg.solve(Sss.T, Sys.T).T
-                C = W[:, :n]
-                if use_u and u is not None:
-                    D = W[:, n:]
-            new["C"], new["D"] = C, D
-        if "R" in estimate:
-            C, D = new["C"], new.get("D")
-            du = np.zeros_like(ys) if (D is None or u is None) else u @ D.T
-            S = Eyy - np.einsum("tij,kj->tik", Eyx, C) - np.einsum("ij,tkj->tik", C, Eyx) + C @ Exx @ C.T
-            S = (
-                S
-                - du[:, :, None] * ys[:, None, :]
-                - ys[:, :, None] * du[:, None, :]
-                + du[:, :, None] * (xs @ C.T)[:, None, :]
-                + (xs @ C.T)[:, :, None] * du[:, None, :]
-                + du[:, :, None] * du[:, None, :]
-            )
-            R = _sym(S.mean(0))
-            if diagonal_R:
-                R = np.diag(np.maximum(np.diagonal(R), 0.0))
-            new["R"] = R
+        du = np.zeros_like(ys) if (D is None or u is None) else u @ D.T
+        S = Eyy - np.einsum("tij,kj->tik", Eyx, C) - np.einsum("ij,tkj->tik", C, Eyx) + C @ Exx @ C.T
+        R = _sym(_less_inputs(S, du, ys, xs @ C.T).mean(0))
+        if diagonal_R:
+            R = np.diag(np.maximum(np.diagonal(R), 0.0))
+        new["R"] = R
     if "x0" in estimate:
         new["x0"] = x_init[:n].copy()
     if "P0" in estimate and prior != "stationary":
@@ -568,8 +557,6 @@ def fit_state_space(
     gtol: float = 1e-3,
 ):
     """State-space fits (module docstring); called by :func:`tobitkf.fit`."""
-    from .fitting import FitResult, _progress_callback
-
     t0 = time.perf_counter()
     arr = as_float_array(y, "y", allow_nan=True)
     y2 = arr[:, None] if arr.ndim == 1 else arr
@@ -645,8 +632,6 @@ def fit_state_space(
         ll = ll_of(th)
         cov = None
         if standard_errors:
-            from .censored_ar import _inverse_information
-
             cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
         fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
         return FitResult(
@@ -718,18 +703,6 @@ def fit_state_space(
             M["P0"] = _stationary_cov(M["A"], M["Q"])
         v = _vec(M, entries)
 
-        def it_ll(vv):
-            Mv = _with(M, entries, vv)
-            if prior == "stationary":
-                try:
-                    Mv["P0"] = _stationary_cov(Mv["A"], Mv["Q"])
-                except (ValidationError, np.linalg.LinAlgError):
-                    return -np.inf
-            try:
-                return _loglik(_build(Mv), y2, u2, censoring, c2)
-            except ValidationError:
-                return -np.inf
-
         trace, converged, message, evals = out.trace, out.converged, out.message, out.evaluations
         converged, message = _confirm(ll_free, out, gtol)
     else:
@@ -758,25 +731,24 @@ def fit_state_space(
         finally:
             close()
 
-        def it_ll(v):
-            Mv = _with(M, entries, v)
-            if prior == "stationary":
-                try:
-                    Mv["P0"] = _stationary_cov(Mv["A"], Mv["Q"])
-                except (ValidationError, np.linalg.LinAlgError):
-                    return -np.inf
-            try:
-                return _loglik(_build(Mv), y2, u2, censoring, c2)
-            except ValidationError:
-                return -np.inf
-
         v = _vec(M, entries)
+
+    def it_ll(vv):  # the log-likelihood in the estimated entries at the fit, for the observed information
+        Mv = _with(M, entries, vv)
+        if prior == "stationary":
+            try:
+                Mv["P0"] = _stationary_cov(Mv["A"], Mv["Q"])
+            except (ValidationError, np.linalg.LinAlgError):
+                return -np.inf
+        try:
+            return _loglik(_build(Mv), y2, u2, censoring, c2)
+        except ValidationError:
+            return -np.inf
+
     system = _build(M)
     ll = _loglik(system, y2, u2, censoring, c2)
     cov = None
     if standard_errors and entries:
-        from .censored_ar import _inverse_information
-
         cov = _inverse_information(central_hessian(it_ll, v, f0=ll))
     fitted = StateSpaceModel(system, censoring, estimate, prior, diagonal_R)
     return FitResult(
