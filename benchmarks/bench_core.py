@@ -11,12 +11,21 @@ Prints run-steps/second and ratios to filterpy measured in the same process, for
 tobitkf backends: ``numpy`` (the vectorised reference path) and ``numba`` (the compiled
 kernels of ``tobitkf.filters._kernels``, compiled before timing; skipped without numba).
 The single-run numpy rows time 10^4 steps (their cost per step is constant).
+
+(c) TKF at n = 16, m = 8 (a random stable system, left-censored at 0 in every channel, 10^3 runs
+    x 100 steps): the compiled kernel (``threads=1``) against the numpy path, median of
+    ``repeat`` interleaved calls (min-max), all outputs and means only (issue 19: at least 3x).
+
 ``--smoke`` runs a tiny version (CI). Run by hand:  python benchmarks/bench_core.py
+(``--only-m8`` runs (c) alone).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import statistics
+import time
 
 import numpy as np
 
@@ -59,10 +68,51 @@ def pykalman_runs(sys_: tk.LinearSystem, y: np.ndarray) -> None:
         pk.filter(run)
 
 
+def random_system(n: int, m: int, seed: int = 0) -> tk.LinearSystem:
+    """Stable random model: A = 0.95 x orthogonal, C rows of unit scale, R = 0.1 I."""
+    rng = np.random.default_rng(seed)
+    Qo, _ = np.linalg.qr(rng.standard_normal((n, n)))
+    C = rng.standard_normal((m, n)) / np.sqrt(n)
+    return tk.LinearSystem(A=0.95 * Qo, C=C, Q=0.05 * np.eye(n), R=0.1 * np.eye(m), x0=np.zeros(n), P0=np.eye(n))
+
+
+def multichannel(smoke: bool) -> None:
+    """(c): TKF n = 16, m = 8, compiled against numpy, median of interleaved repeats."""
+    runs, steps, repeat = (50, 20, 3) if smoke else (1000, 100, 5)
+    sys_, cens = random_system(16, 8), tk.Censoring(lower=0.0)
+    y = tk.simulate(sys_, steps, runs, censoring=cens, seed=1).y
+    print(
+        f"(c) TKF n=16, m=8: {runs} runs x {steps} steps, censored fraction {np.mean(y <= 0):.2f}, "
+        f"median of {repeat} (min-max), ns per run-step; load {os.getloadavg()[0]:.2f}"
+    )
+    if not numba_available():
+        print("  numba not installed: skipped")
+        return
+    for outputs in ("all", "mean"):
+        ests = {be: tk.TobitKalmanFilter(sys_, cens, backend=be, threads=1) for be in ("numba", "numpy")}
+        times: dict[str, list[float]] = {be: [] for be in ests}
+        for est in ests.values():
+            est.filter(y[:2, :3])  # compile / warm up outside the timings
+        for _ in range(repeat):
+            for be, est in ests.items():
+                t0 = time.perf_counter()
+                est.filter(y, outputs=outputs)
+                times[be].append((time.perf_counter() - t0) / (runs * steps) * 1e9)
+        med = {be: statistics.median(ts) for be, ts in times.items()}
+        for be, ts in times.items():
+            print(f"  outputs={outputs:4s} {be:6s} {med[be]:10.0f} ({min(ts):.0f}-{max(ts):.0f})")
+        print(f"  outputs={outputs:4s} compiled is x{med['numpy'] / med['numba']:.2f} the numpy path (target >= 3)")
+    print(f"  load after {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
+    ap.add_argument("--only-m8", action="store_true", help="only (c), the n = 16, m = 8 TKF")
     args = ap.parse_args()
+    if args.only_m8:
+        multichannel(args.smoke)
+        return
     runs, steps, long_steps, peer_runs, repeat = (10_000, 1_000, 100_000, 20, 2)
     if args.smoke:
         runs, steps, long_steps, peer_runs, repeat = (200, 50, 2_000, 2, 1)
@@ -113,6 +163,7 @@ def main() -> None:
         f"targets (issue): batched TKF >= 30x filterpy: x{rates[best] * t_fp:.1f} ({best}); "
         f"single-run TKF no slower per step than filterpy: {lat[best] * 1e6:.2f} vs {t_fp1 * 1e6:.2f} us/step"
     )
+    multichannel(args.smoke)
 
 
 if __name__ == "__main__":

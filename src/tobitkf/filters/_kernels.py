@@ -290,6 +290,18 @@ def _symmetrize(P, nb):
 
 
 @njit(cache=True, error_model="numpy")
+def _mirror(P, nb):
+    """Copy the upper triangle of the block's ``P[i, j, b]`` onto the lower (the products below
+    compute only ``j >= i`` of a symmetric result: half the work of the full product and
+    :func:`_symmetrize`, equal to it to rounding)."""
+    n = P.shape[0]
+    for i in range(n):
+        for j in range(i + 1, n):
+            for b in range(nb):
+                P[j, i, b] = P[i, j, b]
+
+
+@njit(cache=True, error_model="numpy")
 def _predict(A, Qd, x, P, xp, Pp, AP, nb):
     r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)` (Miller (2.3), (3.20)–(3.21))."""
     n = A.shape[0]
@@ -308,17 +320,17 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
                 for b in range(nb):
                     AP[i, j, b] += a * P[k, j, b]
     for i in range(n):
-        for j in range(n):
+        for j in range(i, n):
             for b in range(nb):
                 Pp[i, j, b] = 0.0
             for k in range(n):
                 a = A[j, k]
                 for b in range(nb):
                     Pp[i, j, b] += AP[i, k, b] * a
-            q = Qd[i, j]
+            q = 0.5 * (Qd[i, j] + Qd[j, i])
             for b in range(nb):
                 Pp[i, j, b] += q
-    _symmetrize(Pp, nb)
+    _mirror(Pp, nb)
 
 
 @njit(cache=True, error_model="numpy")
@@ -385,13 +397,94 @@ def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds):
 
 
 @njit(cache=True, error_model="numpy")
+def _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, W, d, bad, Rs, Ws, Ks, oks, Rxs, ds):
+    r"""Block gain and mean update for ``m > 1``, vectorised over the runs of the block:
+    :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column, ``e`` set to 0),
+    :math:`\hat x = \bar x + Ke`; the result of :func:`_gain`, without copying each run out.
+
+    With :math:`D = \mathrm{diag}(R_{ee})^{-1/2}` (as :func:`_solve_gain`), the unit-diagonal
+    :math:`S = D R_{ee} D` is symmetric positive definite, so Gaussian elimination *without*
+    pivoting is stable on it: :math:`S\,Z = D R_{xe}^T` is solved in place for all runs of the
+    block at once (innermost loops over the runs: no dependency, vectorised), and
+    :math:`K = (DZ)^T`. ``Ree`` is left unchanged (``Rw`` (m, m, B) holds the elimination,
+    ``W`` (m, n, B) the right-hand sides, ``d`` (m, B) the scaling, ``bad`` (B,) the flags). A run
+    whose pivot is not positive (a singular or non-finite :math:`R_{ee}`) is solved again by
+    :func:`_solve_gain` (partial pivoting, raising like ``numpy.linalg.solve``), so the block path
+    changes nothing but the speed. Allocates nothing; ``Rs``, ``Ws``, ``Ks``, ``oks``, ``Rxs``,
+    ``ds`` are :func:`_gain`'s per-run scratch for that fallback.
+    """
+    n, m = Rxe.shape[0], Rxe.shape[1]
+    for i in range(m):
+        for b in range(nb):
+            v = Ree[i, i, b]
+            d[i, b] = 1.0 / math.sqrt(v) if (ok[i, b] and v > 0.0) else 1.0
+    for i in range(m):
+        for j in range(m):
+            for b in range(nb):
+                if ok[i, b] and ok[j, b]:
+                    Rw[i, j, b] = Ree[i, j, b] * d[i, b] * d[j, b]
+                else:
+                    Rw[i, j, b] = 1.0 if i == j else 0.0
+        for k in range(n):
+            for b in range(nb):
+                W[i, k, b] = Rxe[k, i, b] * d[i, b] if ok[i, b] else 0.0
+    for b in range(nb):
+        bad[b] = False
+    for c in range(m):
+        for b in range(nb):
+            if not Rw[c, c, b] > 0.0:  # also NaN
+                bad[b] = True
+                Rw[c, c, b] = 1.0  # keeps the other runs' arithmetic finite; this run is redone
+        for q in range(c + 1, m):
+            for b in range(nb):
+                Rw[q, c, b] = Rw[q, c, b] / Rw[c, c, b]  # the multiplier, stored below the diagonal
+            for j in range(c + 1, m):
+                for b in range(nb):
+                    Rw[q, j, b] -= Rw[q, c, b] * Rw[c, j, b]
+            for k in range(n):
+                for b in range(nb):
+                    W[q, k, b] -= Rw[q, c, b] * W[c, k, b]
+    for c in range(m - 1, -1, -1):
+        for j in range(c + 1, m):
+            for k in range(n):
+                for b in range(nb):
+                    W[c, k, b] -= Rw[c, j, b] * W[j, k, b]
+        for k in range(n):
+            for b in range(nb):
+                W[c, k, b] = W[c, k, b] / Rw[c, c, b]
+    for i in range(n):
+        for j in range(m):
+            for b in range(nb):
+                K[i, j, b] = W[j, i, b] * d[j, b]
+    for b in range(nb):
+        if bad[b]:
+            for i in range(m):
+                oks[i] = ok[i, b]
+                for j in range(m):
+                    Rs[i, j] = Ree[i, j, b]
+            for i in range(n):
+                for j in range(m):
+                    Rxs[i, j] = Rxe[i, j, b]
+            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
+            for i in range(n):
+                for j in range(m):
+                    K[i, j, b] = Ks[i, j]
+    for i in range(n):
+        for b in range(nb):
+            x[i, b] = xp[i, b]
+        for l in range(m):
+            for b in range(nb):
+                x[i, b] += K[i, l, b] * e[l, b]
+
+
+@njit(cache=True, error_model="numpy")
 def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
     r""":math:`P = \mathrm{sym}(\bar P - K R_{xe}^T)`, or the Joseph form
     :math:`(I-KH)\bar P(I-KH)^T + K\,\mathrm{noise}\,K^T` (``noise`` (m, m, BLOCK))."""
     n, m = K.shape[0], K.shape[1]
     if not joseph:
         for i in range(n):
-            for j in range(n):
+            for j in range(i, n):
                 for b in range(nb):
                     P[i, j, b] = 0.0
                 for k in range(m):
@@ -418,7 +511,7 @@ def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
                     for b in range(nb):
                         T1[i, j, b] += IKH[i, k, b] * Pp[k, j, b]
         for i in range(n):
-            for j in range(n):
+            for j in range(i, n):
                 for b in range(nb):
                     P[i, j, b] = 0.0
                 for k in range(n):
@@ -428,7 +521,7 @@ def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
                     for q in range(m):
                         for b in range(nb):
                             P[i, j, b] += K[i, q, b] * noise[q, k, b] * K[j, k, b]
-    _symmetrize(P, nb)
+    _mirror(P, nb)
 
 
 @njit(cache=True, error_model="numpy")
@@ -526,6 +619,10 @@ def tkf_kernel(
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
     ds = np.empty(m)
+    Rw = np.empty((m, m, B) if m > 1 else (0, 0, 0))  # _gain_block's scratch (m > 1)
+    Wb = np.empty((m, n, B) if m > 1 else (0, 0, 0))
+    db = np.empty((m, B) if m > 1 else (0, 0))
+    bad = np.empty(B if m > 1 else 0, dtype=np.bool_)
     buf = np.empty((2, glx.shape[0]))
     S = min(CHUNK, max(T, 1))  # and a single step one staging slot
     # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
@@ -594,7 +691,10 @@ def tkf_kernel(
                     if joseph:
                         for j in range(n):
                             H[l, j, b] = C[l, j] * gam[l, b] if good else 0.0
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
+            if m > 1:
+                _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+            else:
+                _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
             _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
@@ -652,6 +752,10 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     Rxs = np.empty((n, m))
     oks = np.empty(m, dtype=np.bool_)
     ds = np.empty(m)
+    Rw = np.empty((m, m, B) if m > 1 else (0, 0, 0))  # _gain_block's scratch (m > 1)
+    Wb = np.empty((m, n, B) if m > 1 else (0, 0, 0))
+    db = np.empty((m, B) if m > 1 else (0, 0))
+    bad = np.empty(B if m > 1 else 0, dtype=np.bool_)
     Kall = np.empty((T if shared else 0, n, m))
     runs = 1 if shared else N
     S = min(CHUNK, max(T, 1))  # and a single step one staging slot
@@ -700,7 +804,10 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
                         e[l, b] = 0.0
                     for j in range(n):
                         H[l, j, b] = C[l, j] if good else 0.0
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
+            if m > 1:
+                _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+            else:
+                _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             if shared:
                 for i in range(n):
                     for l in range(m):
