@@ -438,10 +438,23 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         order = self.channel.schedule.order
         return int(order[(k - 1) % order.size]) - 1
 
+    def _sensor_terms(self, k: int, h: int) -> tuple[np.ndarray, float]:
+        r""":math:`\mathcal C_{h,k}` and :math:`\mathcal R_k` of sensor h; for a constant C and R computed
+        (and checked) once per sensor and kept, instead of at every step."""
+        sys_ = self.system
+        constant = not (sys_.C.varying or sys_.R.varying)
+        cache = self.__dict__.setdefault("_sensor_cache", {}) if constant else None
+        if cache is not None and h in cache:
+            return cache[h]
+        C_row, r = _sensor_stats(sys_, k, h)
+        terms = (stacked_measurement(C_row, self._ell), r)
+        if cache is not None:
+            cache[h] = terms
+        return terms
+
     def _measurement(self, k, xp, Pp, y, u, carry, uncensored=None, **_):
         h = self._sensor(k)
-        C_row, r = _sensor_stats(self.system, k, h)
-        Cc = stacked_measurement(C_row, self._ell)
+        Cc, r = self._sensor_terms(k, h)
         X = None
         carry = dict(carry)
         if "X" in carry:
