@@ -51,6 +51,7 @@ small, so limits 40 (or 1000) standard deviations away give finite, accurate num
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import NamedTuple
 
@@ -223,13 +224,15 @@ def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
     simply propagates (instead of raising mid-loop and losing the healthy runs).
     """
     args = [np.asarray(v, dtype=float) for v in (mean, std, lower, upper)]
-    shape = np.broadcast_shapes(*(v.shape for v in args))
+    shape = max((v.shape for v in args), key=len)
     size = math.prod(shape)
-    if size <= _SMALL:
-        flat = [v.ravel().tolist() if v.size == size else np.broadcast_to(v, shape).ravel().tolist() for v in args]
+    if size <= _SMALL and all(shape[len(shape) - v.ndim :] == v.shape for v in args):
+        # every argument's shape a trailing part of the largest: broadcasting repeats its entries
+        flat = [v.ravel().tolist() * (size // max(v.size, 1)) for v in args]
         rows = [_small_moments(*vals) for vals in zip(*flat)]
         if all(r is not None for r in rows):
-            return CensoredMoments(*(np.array(col).reshape(shape) for col in zip(*rows)))
+            cols = np.fromiter(itertools.chain.from_iterable(zip(*rows)), float, 8 * size)  # type: ignore[arg-type]
+            return CensoredMoments(*cols.reshape((8,) + shape))
     mu, sd, lo, hi = np.broadcast_arrays(*args)
     mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     a, b = standardized_limits(mu, sd, lo, hi)

@@ -187,10 +187,11 @@ def _failure_term(
     lam_var: float,
     X: np.ndarray | None,
 ) -> np.ndarray:
-    """F_k, the failure term of (24) (docs/sources GP-01), (N,)."""
+    """F_k, the failure term of (24) (docs/sources GP-01), (N,) or (1,) (a covariance shared by the runs;
+    it broadcasts)."""
     if mode == "lmmse_unconditional":
         return np.full(P_pred.shape[0], lam_var * float(Cc @ X @ Cc))
-    CPC = np.einsum("i,nij,j->n", Cc, P_pred, Cc)
+    CPC = (P_pred @ Cc) @ Cc  # (N or 1,): C P C^T of each run's covariance, P_pred never broadcast
     if mode == "variance":
         return lam_var * CPC
     if mode == "literal":
@@ -244,7 +245,7 @@ def protocol_measurement(
     F = _failure_term(
         failure_term,
         Cc,
-        np.broadcast_to(P_pred, (xi_pred.shape[0],) + P_pred.shape[1:]),
+        P_pred,
         xi_pred,
         lam_mean,
         lam_var,
