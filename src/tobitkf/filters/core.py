@@ -513,6 +513,8 @@ def _solve(Rxe: np.ndarray, Ree: np.ndarray, innov: np.ndarray, valid: np.ndarra
     # a subnormal diagonal (e.g. a TKF channel 40 sigma into the censored side) counts as 0:
     # LAPACK's solve takes its reciprocal, which overflows and turns the whole gain into NaN
     degenerate = ~(diag > _TINY)
+    if valid is not None and valid.all():
+        valid = None  # every channel takes part: the unmasked solve gives the same gain
     if valid is None and not degenerate.any():
         K = Rxe / Ree if m == 1 else _gain(Rxe, Ree)
         return K, innov, None

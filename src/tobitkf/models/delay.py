@@ -552,6 +552,9 @@ class DelayFadingSystem:
         q = self.q_mult(t)
         if q.size == 0:
             return np.zeros_like(Lam)
+        if q.size == 1:  # one multiplicative noise (the paper's example): the sum of one term, unbatched
+            Ai = self.A_mult[0]
+            return q[0] * (Ai @ Lam @ Ai.T)
         return np.sum(q[:, None, None] * (self.A_mult @ Lam @ np.swapaxes(self.A_mult, -1, -2)), axis=0)
 
     def process_cov(self, t: int, Lam: np.ndarray) -> np.ndarray:
