@@ -165,6 +165,8 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
     """Σ_i q_i A_i Λ A_i^T with matmuls (einsum over four indices would be O(N^4))."""
+    if q.size == 1:  # the sum of one term, unbatched
+        return q[0] * (Ai[0] @ Lam @ Ai[0].T)
     return np.sum(q[:, None, None] * (Ai @ Lam @ np.swapaxes(Ai, -1, -2)), axis=0)
 
 
