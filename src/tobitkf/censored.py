@@ -231,7 +231,7 @@ def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
         flat = [v.ravel().tolist() * (size // max(v.size, 1)) for v in args]
         rows = [_small_moments(*vals) for vals in zip(*flat)]
         if all(r is not None for r in rows):
-            cols = np.fromiter(itertools.chain.from_iterable(zip(*rows)), float, 8 * size)  # type: ignore[arg-type]
+            cols = np.fromiter(itertools.chain.from_iterable(zip(*rows)), float, 8 * size)
             return CensoredMoments(*cols.reshape((8,) + shape))
     mu, sd, lo, hi = np.broadcast_arrays(*args)
     mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
