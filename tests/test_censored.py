@@ -509,3 +509,31 @@ def test_one_sided_route_is_continuous_at_its_switches():
     for _, attr in FIELDS:  # (p_upper = Phi(-b) itself moves by b * eps relative)
         rel = 1e-7 if attr == "p_upper" else 1e-11
         assert float(getattr(a, attr)) == pytest.approx(float(getattr(b, attr)), rel=rel, abs=1e-300)
+
+
+def test_small_path_equals_the_array_path():
+    """Up to 4 entries take the per-entry route on Python floats (the online step of one run); more take the
+    array code. Both evaluate the same routes, so they agree to a few ulp on every route: direct, continued
+    fraction (one-sided far tail), quadrature (narrow or two-sided in a tail), mirrored windows, infinite
+    limits. A NaN mean (a diverged run) falls back to the array code and propagates NaN."""
+    from tobitkf.censored import unchecked_moments
+
+    rng = np.random.default_rng(11)
+    n = 4000
+    mu = rng.normal(size=n) * rng.choice([0.1, 1.0, 5.0, 30.0, 1000.0], size=n)
+    sd = np.exp(rng.normal(size=n))
+    lo = np.where(rng.random(n) < 0.3, -np.inf, 3.0 * rng.normal(size=n))
+    hi = np.where(rng.random(n) < 0.4, np.inf, lo + np.exp(2.0 * rng.normal(size=n)))
+    hi = np.where(np.isinf(lo) & np.isinf(hi), 1.0, hi)
+    whole = unchecked_moments(mu, sd, lo, hi)  # n > 4: the array code
+    a, b = (lo - mu) / sd, (hi - mu) / sd
+    aa = np.minimum(np.abs(a), np.abs(b))
+    assert (aa > 4).sum() > 100 and ((b - a) < 1).sum() > 100  # the tail routes are exercised
+    for i in range(0, n, 2):  # pairs: the small path on (2,) inputs
+        part = unchecked_moments(mu[i : i + 2], sd[i : i + 2], lo[i : i + 2], hi[i : i + 2])
+        for got, ref in zip(part, whole):
+            np.testing.assert_allclose(got, ref[i : i + 2], rtol=1e-13, atol=1e-300)
+    nan = unchecked_moments(np.array([np.nan, 0.0]), 1.0, 0.0, np.inf)
+    assert np.isnan(nan.censored_mean[0]) and nan.censored_mean[1] == pytest.approx(
+        1.0 / math.sqrt(2.0 * math.pi)
+    )  # E[max(Z, 0)] = phi(0)

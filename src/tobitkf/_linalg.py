@@ -15,7 +15,7 @@ __all__ = ["symmetrize", "psd_sqrt", "eigh_sqrt"]
 
 def symmetrize(P: np.ndarray) -> np.ndarray:
     """0.5 (P + P^T) over the last two axes."""
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
+    return 0.5 * (P + P.swapaxes(-1, -2))
 
 
 def psd_sqrt(M: np.ndarray) -> np.ndarray:

@@ -51,6 +51,8 @@ small, so limits 40 (or 1000) standard deviations away give finite, accurate num
 
 from __future__ import annotations
 
+import itertools
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -65,6 +67,7 @@ _GL_X, _GL_W = np.polynomial.legendre.leggauss(64)
 _CF_FROM = 4.0  # one-sided windows beyond this many sigma: the continued fraction
 _FAR = 100.0  # b'^2 - a'^2 above this: the far limit is negligible (phi ratio < e^-50)
 _CF_TERMS = 140.0  # int(_CF_TERMS / x) + 6 terms of the continued fraction at x
+_SMALL = 4  # at most this many entries: the route of each is taken on Python floats (_small_moments)
 
 
 def _cf_terms(x: np.ndarray) -> np.ndarray:
@@ -220,8 +223,17 @@ def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
     covariance has overflowed. The loop then poisons that run and warns once; here NaN
     simply propagates (instead of raising mid-loop and losing the healthy runs).
     """
-    mu, sd, lo, hi = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (mean, std, lower, upper)))
-    shape = mu.shape
+    args = [np.asarray(v, dtype=float) for v in (mean, std, lower, upper)]
+    shape = max((v.shape for v in args), key=len)
+    size = math.prod(shape)
+    if size <= _SMALL and all(shape[len(shape) - v.ndim :] == v.shape for v in args):
+        # every argument's shape a trailing part of the largest: broadcasting repeats its entries
+        flat = [v.ravel().tolist() * (size // max(v.size, 1)) for v in args]
+        rows = [_small_moments(*vals) for vals in zip(*flat)]
+        if all(r is not None for r in rows):
+            cols = np.fromiter(itertools.chain.from_iterable(zip(*rows)), float, 8 * size)
+            return CensoredMoments(*cols.reshape((8,) + shape))
+    mu, sd, lo, hi = np.broadcast_arrays(*args)
     mu, sd, lo, hi = (np.ravel(v) for v in (mu, sd, lo, hi))
     a, b = standardized_limits(mu, sd, lo, hi)
 
@@ -267,3 +279,68 @@ def unchecked_moments(mean, std, lower, upper) -> CensoredMoments:
         d_hi = np.where(p_hi > 0, np.where(np.isfinite(hi), hi, 0.0) - cmean, 0.0)
     cvar = gamma * (tvar + (tmean - cmean) ** 2) + p_lo * d_lo**2 + p_hi * d_hi**2
     return CensoredMoments(*(np.reshape(v, shape) for v in (p_lo, p_hi, gamma, lam, tmean, tvar, cmean, cvar)))
+
+
+def _small_moments(mu: float, sd: float, lo: float, hi: float) -> tuple[float, ...] | None:
+    """:func:`unchecked_moments` of one entry on Python floats, or None when it needs the array code.
+
+    The same routes with the same arithmetic as the array code (each entry takes only its own route
+    instead of every route being evaluated and masked), for the online step of one run, where the
+    array code's fixed cost of some sixty tiny numpy operations is most of the step. Entries with a NaN
+    or infinite mean, a standard deviation that is not a finite number > 0, a NaN limit or
+    ``lower >= upper`` return None (the array code handles them, propagating NaN). The quadrature route
+    (narrow or two-sided windows in a tail) calls the array helper on the one entry. Transcendental
+    functions come from :mod:`math` instead of numpy, so results can differ from the array code by an
+    ulp or so (tested to 1e-13 relative).
+    """
+    if not (math.isfinite(mu) and math.isfinite(sd) and sd > 0.0 and lo < hi):
+        return None
+    a = -math.inf if lo == -math.inf else (lo - mu) / sd
+    b = math.inf if hi == math.inf else (hi - mu) / sd
+    p_lo = float(ndtr(a))
+    p_hi = float(ndtr(-b))
+    if a > 0:
+        gamma = float(ndtr(-a)) - p_hi
+    elif b < 0:
+        gamma = float(ndtr(b)) - p_lo
+    else:
+        gamma = 1.0 - p_lo - p_hi
+    fin_a, fin_b = math.isfinite(a), math.isfinite(b)
+    phi_a = math.exp(-0.5 * a * a - _LOG_SQRT_2PI) if fin_a else 0.0
+    phi_b = math.exp(-0.5 * b * b - _LOG_SQRT_2PI) if fin_b else 0.0
+    flip = a < -b
+    a2, b2 = (-b, -a) if flip else (a, b)
+    one_sided = b2 == math.inf or (b2 - a2) * (b2 + a2) > _FAR
+    if one_sided and a2 > _CF_FROM:  # Laplace's continued fraction, as _one_sided_tail
+        s = 0.0
+        for k in range(int(_CF_TERMS / a2) + 6, 1, -1):
+            s = k / (a2 + s)
+        t = 1.0 / (a2 + s)
+        zm = a2 + t
+        zvar = t * (s - t)
+        lam = -zm if flip else zm
+        gamma = math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI - math.log(zm))
+    elif (not one_sided and a2 > _TAIL) or (b - a) < _NARROW:  # quadrature, as _tail_moments
+        log_g, zm_a, zv_a = _tail_moments(np.array([a2]), np.array([b2]))
+        lam = -float(zm_a[0]) if flip else float(zm_a[0])
+        zvar = float(zv_a[0])
+        gamma = math.exp(float(log_g[0]))
+    else:
+        if not gamma > 0.0:
+            return None
+        lam = (phi_a - phi_b) / gamma
+        zvar = 1.0 + ((a * phi_a if fin_a else 0.0) - (b * phi_b if fin_b else 0.0)) / gamma - lam * lam
+    gamma = min(max(gamma, 0.0), 1.0)
+    zvar = max(zvar, 0.0)
+    tmean = mu + sd * lam
+    tvar = sd * sd * zvar
+    lo_f = lo if math.isfinite(lo) else 0.0
+    hi_f = hi if math.isfinite(hi) else 0.0
+    lo_term = p_lo * lo_f if p_lo > 0 else 0.0
+    hi_term = p_hi * hi_f if p_hi > 0 else 0.0
+    cmean = lo_term + gamma * tmean + hi_term
+    d_lo = lo_f - cmean if p_lo > 0 else 0.0
+    d_hi = hi_f - cmean if p_hi > 0 else 0.0
+    dm = tmean - cmean
+    cvar = gamma * (tvar + dm * dm) + p_lo * d_lo * d_lo + p_hi * d_hi * d_hi
+    return p_lo, p_hi, gamma, lam, tmean, tvar, cmean, cvar

@@ -131,6 +131,14 @@ def second_moments(system: DelayFadingSystem, prior: HistoryPrior, last: int) ->
     return lam
 
 
+def _solve_small(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """X with A X = B; for a 1 x 1 A (one measurement channel, the papers' examples) the division it is,
+    without LAPACK's call overhead (the online step of one run solves several of these per reading)."""
+    if A.shape == (1, 1):
+        return B / A[0, 0]
+    return np.linalg.solve(A, B)
+
+
 def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode: str):
     r"""J(s), Ā(s), Σ(s) of the J-form predictor ((4)–(12) of the source; docs/sources LD-E1, LD-E3).
 
@@ -145,7 +153,7 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
     mult = system.mult_cov(s, Lam_meas)
     if mode == "optimal":
         R = system.Qv + s2 * HLH
-        SRinv = np.linalg.solve(R, system.S.T).T
+        SRinv = _solve_small(R, system.S.T).T
         J = system.Gamma @ SRinv
         Sigma = mult + system.Gamma @ (system.Qw - SRinv @ system.S.T) @ system.Gamma.T
     else:
@@ -157,6 +165,8 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
     """Σ_i q_i A_i Λ A_i^T with matmuls (einsum over four indices would be O(N^4))."""
+    if q.size == 1:  # the sum of one term, unbatched
+        return q[0] * (Ai[0] @ Lam @ Ai[0].T)
     return np.sum(q[:, None, None] * (Ai @ Lam @ np.swapaxes(Ai, -1, -2)), axis=0)
 
 
@@ -323,7 +333,7 @@ class ChainLMMSE(_DelayEstimator):
         mp = MeasurementPrediction(expected=gb * (xb[e] @ H.T), H0=gb * H, noise=R[None])
         xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
         eps = y - mp.expected
-        HtQi = np.linalg.solve(Qe[0], H).T  # H^T Q_ε^{-1}
+        HtQi = _solve_small(Qe[0], H).T  # H^T Q_ε^{-1}
         # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1}
         for a in [a for a in D if a < e and (e - a) % (d + 1) == 0]:
             Ka = gb * (D[a][0] @ HtQi)
@@ -605,7 +615,7 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
     eps = y - mp.expected
     q = system.q_mult(t)
     Qu = G @ system.Qw @ G.T + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
-    J = np.linalg.solve(R, (G @ system.S).T).T  # 𝔊 S R^{-1} (R symmetric)
+    J = _solve_small(R, (G @ system.S).T).T  # 𝔊 S R^{-1} (R symmetric)
     Abar = AA - gb * (J @ HH)
     Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
     LamX = symmetrize(AA @ LamX @ AA.T + Qu)
@@ -897,8 +907,20 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         def gk(s: int) -> float:  # γ̄(s); no measurement (and a zero gain) before s = 0
             return gbar(s) if s >= 0 else 0.0
 
+        # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
+        # in the carry with the other per-time quantities
+        dec = c["decor"] = dict(c.get("decor", {}))
+        hq = c["HtQi"] = dict(c.get("HtQi", {}))
+
         def decor(s: int):
-            return _decorrelation(sys_, s, lam[s - d], self.decorrelation)
+            if s not in dec:
+                dec[s] = _decorrelation(sys_, s, lam[s - d], self.decorrelation)
+            return dec[s]
+
+        def htqi(s: int) -> np.ndarray:
+            if s not in hq:
+                hq[s] = _solve_small(Qe[s], H).T
+            return hq[s]
 
         xpred, Ppred = xp[t], Pp[t]
         if t < c["t0"]:
@@ -931,7 +953,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             Q = symmetrize(gb * gb * (H @ Pmp @ H.T) + sys_.fading_noise_cov(t, lam[t - d]))
             e_t = y - gb * (xmp @ H.T)
             eps[t], Qe[t] = e_t, Q
-            HtQi = np.linalg.solve(Q, H).T
+            HtQi = htqi(t)
             # (b) filter, (35)-(38) shifted by one
             Psd = Psi.get((d, t + d - 1), zero_nn)
             Kf = gb * (Psd.T @ HtQi)
@@ -964,7 +986,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 s = t - i + 1
                 if s < 0:
                     continue
-                Ks = gbar(s) * (Psi[(i, t)].T @ np.linalg.solve(Qe[s], H).T)
+                Ks = gbar(s) * (Psi[(i, t)].T @ htqi(s))
                 K[(a, s)] = Ks
                 xs_ = xs_ + eps[s] @ Ks.T
                 Ps_ = Ps_ - gbar(s) * (Ks @ H @ Psi[(i, t)])
@@ -997,7 +1019,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             del Psi[key]
         for key in [k for k in K if k[1] < t - 2 * d - 1]:
             del K[key]
-        for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam):
+        for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam, dec, hq):
             for key in [k for k in dct if k < old]:
                 del dct[key]
         return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras

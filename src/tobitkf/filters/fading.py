@@ -165,7 +165,12 @@ def _check_parts(system: Any, fading: Any, censoring: Any) -> None:
 
 def _limit_terms(p: np.ndarray, limit: np.ndarray) -> np.ndarray:
     """``p * limit`` with 0 where the limit is infinite (and so p = 0)."""
-    return np.where(np.isfinite(limit), p * np.where(np.isfinite(limit), limit, 0.0), 0.0)
+    finite = np.isfinite(limit)
+    if finite.all():  # the same numbers with fewer operations (the online step of one run)
+        return p * limit
+    if not finite.any():
+        return np.zeros(np.broadcast_shapes(np.shape(p), np.shape(limit)))
+    return np.where(finite, p * np.where(finite, limit, 0.0), 0.0)
 
 
 class _FadingFamily(LinearGaussianFamily):
@@ -230,6 +235,18 @@ class _FadingFamily(LinearGaussianFamily):
             carry.update(mom_mean=x_init.copy(), mom_cov=np.broadcast_to(P_init, (N, n, n)).copy(), cxxc=cxxc)
         return xi, P, carry
 
+    def _augmented_H(self, k: int) -> np.ndarray:
+        """:func:`augmented_measurement_matrix` at k; for a constant C it is the same for every k > L:
+        built once and kept (read-only) instead of at every step."""
+        if self.system.C.varying or k <= self.L:
+            return augmented_measurement_matrix(self.system, self.fading, k)
+        H = self.__dict__.get("_H_steady")
+        if H is None:
+            H = augmented_measurement_matrix(self.system, self.fading, k)
+            H.setflags(write=False)
+            self._H_steady = H
+        return H
+
     def _transition(self, k, u, carry):
         sys_ = self.system
         b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
@@ -239,7 +256,7 @@ class _FadingFamily(LinearGaussianFamily):
 
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
         sys_, L, m, n = self.system, self.L, self.m, self.n
-        H = augmented_measurement_matrix(sys_, self.fading, k)  # (m, nxi)
+        H = self._augmented_H(k)  # (m, nxi)
         dy = self._feedthrough(k, u)
         chi = xp @ H.T + dy  # Lemma 1 at the prediction
         sigma = self._sigma if self._sigma is not None else _sigma_of(sys_.measurement_cov(k), f"R({k})")

@@ -187,10 +187,11 @@ def _failure_term(
     lam_var: float,
     X: np.ndarray | None,
 ) -> np.ndarray:
-    """F_k, the failure term of (24) (docs/sources GP-01), (N,)."""
+    """F_k, the failure term of (24) (docs/sources GP-01), (N,) or (1,) (a covariance shared by the runs;
+    it broadcasts)."""
     if mode == "lmmse_unconditional":
         return np.full(P_pred.shape[0], lam_var * float(Cc @ X @ Cc))
-    CPC = np.einsum("i,nij,j->n", Cc, P_pred, Cc)
+    CPC = (P_pred @ Cc) @ Cc  # (N or 1,): C P C^T of each run's covariance, P_pred never broadcast
     if mode == "variance":
         return lam_var * CPC
     if mode == "literal":
@@ -244,7 +245,7 @@ def protocol_measurement(
     F = _failure_term(
         failure_term,
         Cc,
-        np.broadcast_to(P_pred, (xi_pred.shape[0],) + P_pred.shape[1:]),
+        P_pred,
         xi_pred,
         lam_mean,
         lam_var,
@@ -438,10 +439,23 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         order = self.channel.schedule.order
         return int(order[(k - 1) % order.size]) - 1
 
+    def _sensor_terms(self, k: int, h: int) -> tuple[np.ndarray, float]:
+        r""":math:`\mathcal C_{h,k}` and :math:`\mathcal R_k` of sensor h; for a constant C and R computed
+        (and checked) once per sensor and kept, instead of at every step."""
+        sys_ = self.system
+        constant = not (sys_.C.varying or sys_.R.varying)
+        cache = self.__dict__.setdefault("_sensor_cache", {}) if constant else None
+        if cache is not None and h in cache:
+            return cache[h]
+        C_row, r = _sensor_stats(sys_, k, h)
+        terms = (stacked_measurement(C_row, self._ell), r)
+        if cache is not None:
+            cache[h] = terms
+        return terms
+
     def _measurement(self, k, xp, Pp, y, u, carry, uncensored=None, **_):
         h = self._sensor(k)
-        C_row, r = _sensor_stats(self.system, k, h)
-        Cc = stacked_measurement(C_row, self._ell)
+        Cc, r = self._sensor_terms(k, h)
         X = None
         carry = dict(carry)
         if "X" in carry:

@@ -196,6 +196,21 @@ class MultiTargetTracker(Estimator):
             raise ShapeError(f"{name}: expected (L, 2) points (x, y), got shape {M.shape}")
         return M
 
+    def _associate(self, D: list[list[float]], O: list[int], match: np.ndarray) -> None:
+        r"""The nearest-neighbour assignment on finite distances D (N, L) as lists: each target's
+        nearest detection, the closest of the targets choosing one detection wins it (the first on a
+        tie, as argmin), within the gate :math:`T_o + \alpha O`. Python loops over a few targets cost
+        far less than the numpy calls per detection they replace; ``match`` (N,) is filled in place."""
+        N, L = len(D), len(D[0])
+        first = [min(range(L), key=row.__getitem__) for row in D]
+        dist = [D[i][first[i]] for i in range(N)]
+        for j in sorted(set(first)):
+            best = min((i for i in range(N) if first[i] == j), key=dist.__getitem__)
+            if self.second_map == "mutual" and min(range(N), key=lambda i: D[i][j]) != best:
+                continue
+            if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
+                match[best] = j
+
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         frame = options["frame"]
         M = frame[~np.isnan(frame).any(axis=-1)] if frame.ndim == 2 else frame[0][~np.isnan(frame[0]).any(axis=-1)]
@@ -208,15 +223,18 @@ class MultiTargetTracker(Estimator):
         match = np.full(N, -1)
         if len(M):
             D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)  # (N, L)
-            first = np.argmin(D, axis=1)
-            dist = D[np.arange(N), first]
-            for j in np.unique(first):
-                choosers = np.flatnonzero(first == j)
-                best = choosers[np.argmin(dist[choosers])]
-                if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
-                    continue
-                if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
-                    match[best] = j
+            if np.isfinite(D).all():
+                self._associate(D.tolist(), O.tolist(), match)
+            else:  # a diverged track (NaN distances): numpy's argmin rules for NaN
+                first = np.argmin(D, axis=1)
+                dist = D[np.arange(N), first]
+                for j in np.unique(first):
+                    choosers = np.flatnonzero(first == j)
+                    best = choosers[np.argmin(dist[choosers])]
+                    if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
+                        continue
+                    if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
+                        match[best] = j
         visible = match >= 0
         z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
         mp = MeasurementPrediction(

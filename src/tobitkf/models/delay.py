@@ -186,17 +186,32 @@ class _FadingSchedule:
                 "fading: expected None, a law (mean, variance, sample), a callable t -> law or "
                 f"FadingMoments, got {type(fading).__name__}"
             )
+        # a law that does not change with t (none, or one law object): its two moments validated once here,
+        # not at every step of an estimator (the online step of one run asks for them at every reading)
+        self._const: tuple[float, float] | None = None
+        if fading is None or (not isinstance(fading, FadingMoments) and _is_law(fading)):
+            self._const = (self._checked_mean(0), self._checked_variance(0))
 
     @property
     def varying(self) -> bool:
         return isinstance(self.source, FadingMoments) or (callable(self.source) and not _is_law(self.source))
 
     def mean_at(self, t: int) -> float:
+        if self._const is not None:
+            return self._const[0]
+        return self._checked_mean(t)
+
+    def variance_at(self, t: int) -> float:
+        if self._const is not None:
+            return self._const[1]
+        return self._checked_variance(t)
+
+    def _checked_mean(self, t: int) -> float:
         if self._law is None:
             return self.source.mean_at(t)
         return float(as_float_array(self._law_at(t).mean, f"fading({t}).mean", ndim=0))
 
-    def variance_at(self, t: int) -> float:
+    def _checked_variance(self, t: int) -> float:
         if self._law is None:
             return self.source.variance_at(t)
         v = float(as_float_array(self._law_at(t).variance, f"fading({t}).variance", ndim=0))
@@ -537,6 +552,9 @@ class DelayFadingSystem:
         q = self.q_mult(t)
         if q.size == 0:
             return np.zeros_like(Lam)
+        if q.size == 1:  # one multiplicative noise (the paper's example): the sum of one term, unbatched
+            Ai = self.A_mult[0]
+            return q[0] * (Ai @ Lam @ Ai.T)
         return np.sum(q[:, None, None] * (self.A_mult @ Lam @ np.swapaxes(self.A_mult, -1, -2)), axis=0)
 
     def process_cov(self, t: int, Lam: np.ndarray) -> np.ndarray:
