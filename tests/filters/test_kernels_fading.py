@@ -269,3 +269,55 @@ def test_divergence_reruns_on_numpy():
     ref = FadingTobitKalmanFilter(sys_, fad, tk.Censoring(lower=-1.0), backend="numpy")
     with pytest.warns(RuntimeWarning):
         assert_same(out.mean, ref.filter(y).mean, 0.0)
+
+
+def _stream(est, y, shape, resume_at=None):
+    """Step through y (shape + (T, m)) one reading at a time; optionally pickle the state at
+    ``resume_at`` and go on from the copy."""
+    import pickle
+
+    st, states = est.init(batch_shape=shape), []
+    for k in range(y.shape[-2]):
+        st = est.step(st, y[..., k, :])
+        if k == resume_at:
+            st = pickle.loads(pickle.dumps(st))
+        states.append(st)
+    return states
+
+
+@pytest.mark.parametrize("shape", [(), (3,), (2, 2)])
+@pytest.mark.parametrize("exact", [False, True])
+def test_online_step_runs_the_kernel_and_equals_numpy(shape, exact, monkeypatch):
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=4.0, upper=6.0)
+    fad = fading(2)
+    runs = int(np.prod(shape, dtype=int))
+    y = data(sys_, fad, cens, runs=runs, steps=25, missing=0.15).reshape(shape + (25, 1))
+    fast = _stream(FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", exact_tobit_variance=exact), y, shape, 9)
+    ref = _stream(FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", exact_tobit_variance=exact), y, shape, 9)
+    for a, b in zip(fast, ref):
+        assert a.k == b.k and a.batch_shape == b.batch_shape
+        assert_same(a.x, b.x)
+        assert_same(np.broadcast_to(a.P, b.P.shape), b.P)
+        assert a.extras.keys() == b.extras.keys()
+        for key in b.extras:
+            assert_same(a.extras[key], b.extras[key])
+    # the stream equals the batched filter's rows, and the step really runs the kernel
+    res = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", exact_tobit_variance=exact).filter(y)
+    assert_same(np.stack([s.mean for s in fast], axis=-2), res.mean)
+    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    est = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", exact_tobit_variance=exact)
+    with pytest.raises(AssertionError, match="fading kernel used"):
+        est.step(est.init(batch_shape=shape), y[..., 0, :])
+
+
+def test_online_step_with_input_runs_numpy(monkeypatch):
+    sys_, cens, fad = _with_input(), tk.Censoring(lower=0.0), fading(2)
+    y = data(oscillator(), fad, cens, runs=1, steps=6)[0]
+    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    auto = FadingTobitKalmanFilter(sys_, fad, cens)
+    ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
+    sa, sb = auto.init(), ref.init()
+    for k in range(6):
+        sa, sb = auto.step(sa, y[k], u=[1.0]), ref.step(sb, y[k], u=[1.0])
+        np.testing.assert_array_equal(sa.x, sb.x)

@@ -1165,7 +1165,7 @@ def _plant_rows(model: RossModel) -> np.ndarray:
 
 
 def _mean_gain(model: RossModel) -> np.ndarray:
-    """The saturation channel's mean gain on the state, :math:`\operatorname{diag}((1 - μ)ν) C` (m, n)."""
+    r"""The saturation channel's mean gain on the state, :math:`\operatorname{diag}((1 - μ)ν) C` (m, n)."""
     ch = model.channel
     return np.diag((1 - ch.mu) * ch.nu) @ model.C
 
@@ -1178,7 +1178,7 @@ def _eta_rows(n: int, N: int) -> np.ndarray:
 
 
 def _error_map(model: RossModel, N: int) -> np.ndarray:
-    """The estimation error's output map :math:`\bar M = [M\ -M\ 0]` (r, N)."""
+    r"""The estimation error's output map :math:`\bar M = [M\ -M\ 0]` (r, N)."""
     n = model.n
     Mbar = np.zeros((model.r, N))
     Mbar[:, :n], Mbar[:, n : 2 * n] = model.M, -model.M

@@ -128,6 +128,7 @@ _TOBIT_OPTIONS = {
     "backend": BACKENDS,
 }
 _KF_OPTIONS = {"fading_variance_term": _BOOL, "covariance_update": _FORMS}
+_STEP_OUTPUTS = frozenset({"extras"})  # what a compiled online step needs from the loop: the step's extras
 
 
 def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: int) -> np.ndarray:
@@ -504,6 +505,27 @@ class FadingTobitKalmanFilter(_FadingFamily):
         if not ok:
             return None
         return _finite_or_none(_fading_kernel_run(self, y2, state, want, batch, bool(step_options["keep_smoothed"])))
+
+    def _fast_step(self, state, y, u, options):
+        """One online step through the compiled loop (T = 1), with the numpy step's extras; None (the
+        numpy step runs) where the kernel does not cover the case or the covariance stopped being finite."""
+        opts = {"keep_smoothed": options.get("keep_smoothed", True), "keep_augmented": options.get("keep_augmented")}
+        N = y.shape[0]
+        u2 = None if u is None else u.reshape(N, 1, -1)
+        res = self._fast_filter_with(y.reshape(N, 1, self.m), u2, state, _STEP_OUTPUTS, (N,), opts)
+        if res is None:
+            return None
+        extras = {key: val[:, 0] for key, val in res.extras.items()}
+        assert res.final is not None
+        return FilterState(
+            k=state.k + 1,
+            batch_shape=state.batch_shape,
+            x=res.final.x,
+            P=res.final.P,
+            n=self.n,
+            carry=state.carry,
+            extras=extras,
+        )
 
 
 class FadingKalmanFilter(_FadingFamily):
