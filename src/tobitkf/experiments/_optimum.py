@@ -118,8 +118,9 @@ def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str
     small, big = results
     r_small = mx.rmse(x, small.mean).mean(0)
     summ = mx.summarize(x, big.mean)
-    truth = mx.align_truth(x, small.mean)
-    conv = convergence((small.mean - truth) ** 2, (big.mean - truth) ** 2)
+    m_small, m_big = np.asarray(small.mean), np.asarray(big.mean)
+    truth = mx.align_truth(x, m_small)
+    conv = convergence((m_small - truth) ** 2, (m_big - truth) ** 2)
     summ["particles"] = 2 * particles
     summ["proposal"] = ParticleFilter(system, channel, particles=1).proposal
     summ["convergence"] = {"particles": [particles, 2 * particles], "rmse_time_avg_half": r_small.tolist(), **conv}
