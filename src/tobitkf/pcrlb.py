@@ -327,11 +327,14 @@ def bound_test(err2: Any, bound: Any, level: float = 0.01) -> dict[str, Any]:
 
     Per step and component, the one-sided p-value of the lower-tail inequality for a mean of
     nonnegative variables (:math:`X = e^2 \ge 0`: :math:`P(\bar X \le \mu - t) \le
-    \exp(-Nt^2 / (2E[X^2]))`), with the sample second moment :math:`\overline{X^2}` for :math:`E[X^2]`:
+    \exp(-Nt^2 / (2E[X^2]))`), with the sample second moment :math:`\overline{X^2}` for :math:`E[X^2]`,
+    floored at :math:`B^2` (under the null :math:`E[X^2] \ge (E X)^2 \ge B^2`; without the floor a few
+    runs that happen to be small make the plug-in small, and at N = 12 a nominal 1 % rejects 4.6 %):
 
     .. math::
 
-        p_{k,i} = \exp\bigl(-N\,(B_{k,i} - \overline{e^2}_{k,i})_+^2 / (2\,\overline{e^4}_{k,i})\bigr).
+        p_{k,i} = \exp\bigl(-N\,(B_{k,i} - \overline{e^2}_{k,i})_+^2 /
+        (2\max(\overline{e^4}_{k,i}, B_{k,i}^2))\bigr).
 
     The normal approximation of the t statistic is not used: the squared errors are skewed
     (chi-square-like), low sample means come with low sample variances, and at N = 200 a nominal 1 %
@@ -339,7 +342,7 @@ def bound_test(err2: Any, bound: Any, level: float = 0.01) -> dict[str, Any]:
     :math:`K = Tn` p-values is tested by Holm's step-down procedure at ``level`` (family-wise, valid
     for any dependence between steps, which is strong: the steps share the runs). The verdict holds
     when Holm rejects nothing (:math:`\min p > \alpha / K`). The errors' tails beyond what the runs
-    show are not covered (a heavy-tailed error law makes the plug-in second moment small).
+    show are not covered: with Student-t(5) errors at N = 200 a nominal 1 % rejects 1.6 %.
 
     Also reported: the time-averaged test, per run :math:`s_r = \operatorname{mean}_{k,i} e^2_{r,k,i}/B_{k,i}`
     (independent over runs, nearly normal mean), one-sided p-value of :math:`E[s] \ge 1`.
@@ -364,7 +367,7 @@ def bound_test(err2: Any, bound: Any, level: float = 0.01) -> dict[str, Any]:
     B = np.asarray(bound, dtype=float)
     N = e2.shape[0]
     m = e2.mean(0)
-    m2 = (e2 * e2).mean(0)
+    m2 = np.maximum((e2 * e2).mean(0), B * B)  # under the null E[X^2] >= (E X)^2 >= B^2
     with np.errstate(divide="ignore", invalid="ignore"):
         expo = np.where(m < B, N * (B - m) ** 2 / (2.0 * m2), 0.0)
     p = np.exp(-np.nan_to_num(expo, nan=np.inf))
