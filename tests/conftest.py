@@ -33,6 +33,7 @@ HEAVY = (
     "tests/inference/test_fit.py::test_recovery_of_a_censored_ar1_regression",
     "tests/control/test_closed_loop.py::test_t15_unstable_plant_moving_limit_is_only_locally_stable",
     "tests/reliability/test_fuzz_readers.py::test_randomly_damaged_stores",
+    "tests/experiments/test_yardstick.py::test_figures_and_cli",
 )
 
 

@@ -59,7 +59,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.special import log_ndtr, ndtr
+from scipy.special import log_ndtr, ndtr, ndtri
 
 from ._linalg import symmetrize
 from ._validation import ShapeError, ValidationError, as_float_array, check_count, check_instance
@@ -68,7 +68,7 @@ from .channels.fading import RiceFading, measurement_matrix_at
 from .channels.laws import Gaussian
 from .models.linear import LinearSystem
 
-__all__ = ["censored_fisher_information", "posterior_crlb", "PosteriorCRLB"]
+__all__ = ["censored_fisher_information", "posterior_crlb", "PosteriorCRLB", "bound_test"]
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 
@@ -320,3 +320,78 @@ def posterior_crlb(
         information=infos,
         times=np.arange(1, T + 1),
     )
+
+
+def bound_test(err2: Any, bound: Any, level: float = 0.01) -> dict[str, Any]:
+    r"""Calibrated test of :math:`E[e_{k,i}^2] \ge B_{k,i}` at every step k and component i (e.g. a PCRLB).
+
+    Per step and component, the one-sided p-value of the lower-tail inequality for a mean of
+    nonnegative variables (:math:`X = e^2 \ge 0`: :math:`P(\bar X \le \mu - t) \le
+    \exp(-Nt^2 / (2E[X^2]))`), with the sample second moment :math:`\overline{X^2}` for :math:`E[X^2]`,
+    floored at :math:`B^2` (under the null :math:`E[X^2] \ge (E X)^2 \ge B^2`; without the floor a few
+    runs that happen to be small make the plug-in small, and at N = 12 a nominal 1 % rejects 4.6 %):
+
+    .. math::
+
+        p_{k,i} = \exp\bigl(-N\,(B_{k,i} - \overline{e^2}_{k,i})_+^2 /
+        (2\max(\overline{e^4}_{k,i}, B_{k,i}^2))\bigr).
+
+    The normal approximation of the t statistic is not used: the squared errors are skewed
+    (chi-square-like), low sample means come with low sample variances, and at N = 200 a nominal 1 %
+    test rejects about 2.5 % of true nulls with Gaussian errors (more with heavier tails). The family of
+    :math:`K = Tn` p-values is tested by Holm's step-down procedure at ``level`` (family-wise, valid
+    for any dependence between steps, which is strong: the steps share the runs). The verdict holds
+    when Holm rejects nothing (:math:`\min p > \alpha / K`). The errors' tails beyond what the runs
+    show are not covered: with Student-t(5) errors at N = 200 a nominal 1 % rejects 1.6 %.
+
+    Also reported: the time-averaged test, per run :math:`s_r = \operatorname{mean}_{k,i} e^2_{r,k,i}/B_{k,i}`
+    (independent over runs, nearly normal mean), one-sided p-value of :math:`E[s] \ge 1`.
+
+    Parameters
+    ----------
+    err2 : (N, T, n) array_like
+        Squared errors over N >= 2 runs.
+    bound : (T, n) array_like
+        The lower bound per step and component, > 0.
+    level : float
+        The family-wise level.
+
+    Returns
+    -------
+    dict
+        ``p`` (T, n), ``rejected`` (T, n) Holm's rejections, ``steps_rejected``, ``holds``,
+        ``naive_steps_rejected`` (the per-step normal test at ``level``, for comparison),
+        ``mean_ratio`` (mean of :math:`s_r`), ``mean_ratio_stderr``, ``mean_ratio_p``.
+    """
+    e2 = np.asarray(err2, dtype=float)
+    B = np.asarray(bound, dtype=float)
+    N = e2.shape[0]
+    m = e2.mean(0)
+    m2 = np.maximum((e2 * e2).mean(0), B * B)  # under the null E[X^2] >= (E X)^2 >= B^2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        expo = np.where(m < B, N * (B - m) ** 2 / (2.0 * m2), 0.0)
+    p = np.exp(-np.nan_to_num(expo, nan=np.inf))
+    flat = p.ravel()
+    K = flat.size
+    order = np.argsort(flat, kind="stable")
+    thresh = level / (K - np.arange(K))
+    ok = flat[order] <= thresh
+    n_rej = K if ok.all() else int(np.argmin(ok))
+    rej = np.zeros(K, dtype=bool)
+    rej[order[:n_rej]] = True
+    rej = rej.reshape(p.shape)
+    se = e2.std(0, ddof=1) / np.sqrt(N)
+    naive = m + float(ndtri(1.0 - level)) * se < B
+    s = (e2 / B).reshape(N, -1).mean(1)
+    s_se = float(s.std(ddof=1) / np.sqrt(N))
+    return {
+        "p": p,
+        "rejected": rej,
+        "steps_rejected": int(rej.any(axis=-1).sum()) if rej.ndim > 1 else int(rej.sum()),
+        "holds": bool(n_rej == 0),
+        "level": level,
+        "naive_steps_rejected": int(naive.any(axis=-1).sum()) if naive.ndim > 1 else int(naive.sum()),
+        "mean_ratio": float(s.mean()),
+        "mean_ratio_stderr": s_se,
+        "mean_ratio_p": float(ndtr((s.mean() - 1.0) / s_se)) if s_se > 0 else float(s.mean() >= 1.0),
+    }

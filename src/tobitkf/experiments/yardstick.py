@@ -36,9 +36,13 @@ no place in a Bayes comparison); and the assumed-density filter of each family, 
 :class:`~tobitkf.ProtocolAssumedDensityFilter`, :class:`~tobitkf.SaturationAssumedDensityFilter`).
 
 The optimum (key ``pf``): the particle filter with ``2 N_p`` particles; the convergence check runs it
-with ``N_p`` as well on the same data and reports the relative change of the time-averaged RMSE
-(``converged`` when below 0.3 % for every component). ``N_p`` per example: 2000, 500, 1000, 4000,
-2000, 1000, and 1000 for the random systems (``particles`` replaces them all). The saturation
+with ``N_p`` as well on the same data and reports the relative change of the time-averaged RMSE with its
+jackknife standard error over runs (``converged`` when the change is not significantly above 0.3 % for
+any component, one-sided at 1 %; ``resolved`` when the check's error is small enough to see 0.3 %;
+:func:`~tobitkf.experiments._optimum.convergence`). The PCRLB claim is Holm's family-wise 1 % test over
+steps and components (:func:`~tobitkf.pcrlb.bound_test`; a per-step normal test at 1 % rejects true
+nulls several times too often here: skewed squared errors, hundreds of dependent steps). ``N_p`` per example: 2000, 500, 1000, 4000,
+2000, 4000, and 1000 for the random systems (``particles`` replaces them all). The saturation
 example's "censored_fraction" is the fraction of saturated readings.
 
 Runtime: about half an hour on one core at the default run counts (some 5e9 particle-steps);
@@ -67,12 +71,12 @@ from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
 from ..filters.protocol import ProtocolTobitKalmanFilter
 from ..filters.tobit import TobitKalmanFilter
 from ..models.linear import LinearSystem
-from ..pcrlb import posterior_crlb
+from ..pcrlb import bound_test, posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 from . import _claims as CL
-from ._optimum import TOLERANCE, pf_check
+from ._optimum import LEVEL, TOLERANCE, pf_check
 
 __all__ = ["run", "EXAMPLES", "random_stable_system", "optimum_ratios", "ISSUE_TABLE"]
 
@@ -90,7 +94,7 @@ _OWN = {
     "miller-oscillator": (100, 2000, 1000),
     "geng2017-oscillator": (1000, 100, 4000),
     "geng-protocol-tracking": (1000, 100, 2000),
-    "saturation-oscillator": (200, 100, 1000),
+    "saturation-oscillator": (200, 100, 4000),  # bootstrap proposal: at 1000 doubling moved the RMSE 0.7 %
 }  # runs, steps, N_p
 _RANDOM = (200, 200, 1000)
 TARGET = 1.02  # the issue's target for the assumed-density filter
@@ -282,21 +286,26 @@ def optimum_ratios(summaries: dict[str, Any], optimum: str = "pf") -> None:
 
 
 def _pcrlb_check(system, channel, x, pf_mean) -> dict[str, Any]:
-    """The PCRLB (averaged over the true states) and the one-sided 1 % test of PF MSE >= bound per step."""
+    """The PCRLB (averaged over the true states) and the calibrated test of PF MSE >= bound at every step
+    (:func:`~tobitkf.pcrlb.bound_test`: Holm at 1 % family-wise over steps and components)."""
     b = posterior_crlb(system, channel, truth=x)
     err2 = (pf_mean - x[:, 1:]) ** 2  # (N, T, n)
+    t = bound_test(err2, b.var, LEVEL)
     mse = err2.mean(0)
-    se = err2.std(0, ddof=1) / np.sqrt(err2.shape[0])
-    z99 = 2.3263478740408408  # one-sided 1 % point of N(0, 1)
-    below = mse + z99 * se >= b.var
     return {
         "var": b.var,
         "rmse_bound": np.sqrt(b.var),
         "pf_mse": mse,
-        "pf_mse_stderr": se,
-        "steps_pcrlb_below_pf_mse": below.all(axis=1).tolist().count(True),
+        "pf_mse_stderr": err2.std(0, ddof=1) / np.sqrt(err2.shape[0]),
+        "p": t["p"],
+        "steps_rejected": t["steps_rejected"],
+        "naive_steps_rejected": t["naive_steps_rejected"],
+        "mse_over_bound_mean": t["mean_ratio"],
+        "mse_over_bound_stderr": t["mean_ratio_stderr"],
+        "mse_over_bound_p": t["mean_ratio_p"],
+        "level": LEVEL,
         "steps": int(mse.shape[0]),
-        "holds_every_step": bool(below.all()),
+        "holds_every_step": t["holds"],
     }
 
 
@@ -496,6 +505,8 @@ def _table_and_claims(out_ex: dict[str, Any], out_rs: dict[str, Any]):
             "pf_particles": summ["pf"]["particles"],
             "pf_converged": summ["pf"]["convergence"]["converged"],
             "pf_relative_change": summ["pf"]["convergence"]["relative_change"],
+            "pf_change_stderr": summ["pf"]["convergence"]["stderr"],
+            "pf_convergence_resolved": summ["pf"]["convergence"]["resolved"],
         }
         if name in ISSUE_TABLE:
             key, vals = ISSUE_TABLE[name]
@@ -519,15 +530,25 @@ def _table_and_claims(out_ex: dict[str, Any], out_rs: dict[str, Any]):
                 holds=bool(all(max(v) <= TARGET for v in adf_all.values())),
             )
         )
-        conv = {r["example"]: r["pf_relative_change"] for r in table}
+        unresolved = [r["example"] for r in table if not r["pf_convergence_resolved"]]
         claims.append(
             CL.claim(
                 f"(not in the source) the particle filter is converged: doubling the particles moves the time-averaged "
                 f"RMSE by less than {TOLERANCE:.1%}",
-                quantity="relative change of the time-averaged RMSE from N_p to 2 N_p particles, per example and component",
-                measured="; ".join(f"{k} {CL.fmt(np.asarray(v) * 100, 3)} %" for k, v in conv.items()),
-                test=f"relative change < {TOLERANCE:.1%} on every example",
-                tolerance=f"{TOLERANCE:.1%} (the check's threshold, same runs and readings)",
+                quantity="relative change of the time-averaged RMSE from N_p to 2 N_p particles, per example and "
+                "component (± its jackknife standard error over runs)",
+                measured="; ".join(
+                    f"{r['example']} "
+                    + ", ".join(
+                        f"{c * 100:.3g} ± {e * 100:.2g}" for c, e in zip(r["pf_relative_change"], r["pf_change_stderr"])
+                    )
+                    + " %"
+                    for r in table
+                )
+                + (f"; too noisy to resolve {TOLERANCE:.1%}: {', '.join(unresolved)}" if unresolved else ""),
+                test=f"|change| not significantly above {TOLERANCE:.1%} on every example and component",
+                tolerance=f"one-sided test at the {LEVEL:.0%} level (Bonferroni over the components): |change| - z se "
+                f"< {TOLERANCE:.1%}, se the jackknife over runs (the error of both particle clouds and of the runs)",
                 holds=bool(all(r["pf_converged"] for r in table)),
             )
         )
@@ -537,10 +558,14 @@ def _table_and_claims(out_ex: dict[str, Any], out_rs: dict[str, Any]):
             claims.append(
                 CL.claim(
                     f"(not in the source) {name}: the PCRLB lies below the particle filter's MSE at every step",
-                    quantity="per step: the PCRLB's trace against the particle filter's MSE over the runs",
-                    measured=f"below at {p['steps_pcrlb_below_pf_mse']}/{p['steps']} steps",
-                    test="at no step is the MSE significantly below the bound",
-                    tolerance="one-sided test at the 1 % level per step (the MSE's Monte Carlo error)",
+                    quantity="per step and component: the PCRLB against the particle filter's MSE over the runs "
+                    "(and the mean over runs of the time-averaged MSE / bound)",
+                    measured=f"Holm rejects {p['steps_rejected']}/{p['steps']} steps "
+                    f"(the uncorrected normal test at 1 %: {p['naive_steps_rejected']}); MSE / bound averaged "
+                    f"{p['mse_over_bound_mean']:.4f} ± {p['mse_over_bound_stderr']:.4f}",
+                    test="Holm's procedure rejects no step",
+                    tolerance=f"family-wise {LEVEL:.0%} over steps and components (valid for dependent steps); "
+                    "per-step p-values from the lower-tail bound for a mean of squared errors",
                     holds=bool(p["holds_every_step"]),
                 )
             )
