@@ -20,9 +20,12 @@ Covered (the dispatcher in ``steady_state.py`` decides): no control input (the m
 time-invariant by construction), both sides, censored and latent readings. NaN readings are refused
 by the estimator before either path runs.
 
-Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block of runs and written
-run by run with the TKF kernel's :func:`~tobitkf.filters._kernels._flush`; an output of shape
-``(N, 0, ...)`` is not requested: it gets no staging and is not written.
+Runs are taken in blocks of :data:`~tobitkf.filters._kernels.BLOCK`, state (n, B), every inner loop
+over the block and branch-free (the side and ``latent`` tests are hoisted out of it), so the
+compiler vectorises across runs; outputs are written straight into the ``(N, T, ...)`` arrays (with no
+covariance there is nothing worth staging). Measured at n = 2, m = 1 without outputs: one run at a
+time (latency-bound) ~27 ns per run-step, blocks with the branches inside ~25 ns, this form ~8 ns.
+An output of shape ``(N, 0, ...)`` is not requested and is not written.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import BLOCK, CHUNK, _flush, _rows
+from ._kernels import BLOCK
 
 __all__ = ["steady_tkf_kernel"]
 
@@ -52,9 +55,7 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
     x = np.empty((n, B))
     xp = np.empty((n, B))
     e = np.empty((m, B))
-    S = min(CHUNK, max(T, 1))
-    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
-    s_lim, s_y = np.empty((_rows(lim_out, B), S, m)), np.empty((_rows(y_out, B), S, m))
+    yb = np.empty(B)
     want_m, want_pm, want_x = means.shape[1] > 0, pmeans.shape[1] > 0, lim_out.shape[1] > 0
     sgn = -1.0 if upper else 1.0
     for r0 in range(0, N, B):
@@ -63,7 +64,6 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
             for i in range(n):
                 x[i, b] = x0[r0 + b, i]
         for t in range(T):
-            tt = t % S
             for i in range(n):  # x_bar = A x
                 for b in range(nb):
                     xp[i, b] = 0.0
@@ -73,20 +73,28 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                         xp[i, b] += a * x[j, b]
             for l in range(m):
                 for b in range(nb):
-                    ybar = 0.0
-                    for j in range(n):
-                        ybar += C[l, j] * xp[j, b]
-                    obs = y[r0 + b, t, l]
-                    if latent:
-                        lim = ybar - sgn * shift[l]  # (3.56)
-                        if upper:
-                            obs = min(obs, lim)
-                        else:
-                            obs = max(obs, lim)
-                        if want_x:
-                            s_lim[b, tt, l] = lim
-                            s_y[b, tt, l] = obs
-                    e[l, b] = obs - (ybar + sgn * offset[l])  # y - E[y] (3.58)
+                    yb[b] = 0.0
+                for j in range(n):
+                    c = C[l, j]
+                    for b in range(nb):
+                        yb[b] += c * xp[j, b]
+                for b in range(nb):
+                    e[l, b] = y[r0 + b, t, l]
+                if latent:  # the sensor's clip at the limit (3.56)
+                    sh = sgn * shift[l]
+                    if upper:
+                        for b in range(nb):
+                            e[l, b] = min(e[l, b], yb[b] - sh)
+                    else:
+                        for b in range(nb):
+                            e[l, b] = max(e[l, b], yb[b] - sh)
+                    if want_x:
+                        for b in range(nb):
+                            lim_out[r0 + b, t, l] = yb[b] - sh
+                            y_out[r0 + b, t, l] = e[l, b]
+                off = sgn * offset[l]
+                for b in range(nb):
+                    e[l, b] = e[l, b] - (yb[b] + off)  # y - E[y] (3.58)
             for i in range(n):  # x = x_bar + K e
                 for b in range(nb):
                     x[i, b] = xp[i, b]
@@ -97,17 +105,11 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
             if want_pm:
                 for b in range(nb):
                     for i in range(n):
-                        s_pmean[b, tt, i] = xp[i, b]
+                        pmeans[r0 + b, t, i] = xp[i, b]
             if want_m:
                 for b in range(nb):
                     for i in range(n):
-                        s_mean[b, tt, i] = x[i, b]
-            if tt == S - 1 or t == T - 1:
-                t0 = t - tt
-                _flush(s_mean, means, r0, t0, nb, tt + 1)
-                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
-                _flush(s_lim, lim_out, r0, t0, nb, tt + 1)
-                _flush(s_y, y_out, r0, t0, nb, tt + 1)
+                        means[r0 + b, t, i] = x[i, b]
         for b in range(nb):
             for i in range(n):
                 x_last[r0 + b, i] = x[i, b]
