@@ -22,10 +22,11 @@ by the estimator before either path runs.
 
 Runs are taken in blocks of :data:`~tobitkf.filters._kernels.BLOCK`, state (n, B), every inner loop
 over the block and branch-free (the side and ``latent`` tests are hoisted out of it), so the
-compiler vectorises across runs; outputs are written straight into the ``(N, T, ...)`` arrays (with no
-covariance there is nothing worth staging). Measured at n = 2, m = 1 without outputs: one run at a
-time (latency-bound) ~27 ns per run-step, blocks with the branches inside ~25 ns, this form ~8 ns.
-An output of shape ``(N, 0, ...)`` is not requested and is not written.
+compiler vectorises across runs. Measured at n = 2, m = 1 without outputs: one run at a time
+(latency-bound) ~27 ns per run-step, blocks with the branches inside ~25 ns, this form ~8 ns.
+Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block and written run by
+run with the TKF kernel's :func:`~tobitkf.filters._kernels._flush` (contiguous); an output of shape
+``(N, 0, ...)`` is not requested: it gets no staging and is not written.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import BLOCK
+from ._kernels import BLOCK, CHUNK, _flush, _rows
 
 __all__ = ["steady_tkf_kernel"]
 
@@ -56,6 +57,9 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
     xp = np.empty((n, B))
     e = np.empty((m, B))
     yb = np.empty(B)
+    S = min(CHUNK, max(T, 1))  # outputs staged for S steps, then written run by run (contiguous)
+    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
+    s_lim, s_y = np.empty((_rows(lim_out, B), S, m)), np.empty((_rows(y_out, B), S, m))
     want_m, want_pm, want_x = means.shape[1] > 0, pmeans.shape[1] > 0, lim_out.shape[1] > 0
     sgn = -1.0 if upper else 1.0
     for r0 in range(0, N, B):
@@ -64,6 +68,7 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
             for i in range(n):
                 x[i, b] = x0[r0 + b, i]
         for t in range(T):
+            tt = t % S
             for i in range(n):  # x_bar = A x
                 for b in range(nb):
                     xp[i, b] = 0.0
@@ -90,8 +95,8 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                             e[l, b] = max(e[l, b], yb[b] - sh)
                     if want_x:
                         for b in range(nb):
-                            lim_out[r0 + b, t, l] = yb[b] - sh
-                            y_out[r0 + b, t, l] = e[l, b]
+                            s_lim[b, tt, l] = yb[b] - sh
+                            s_y[b, tt, l] = e[l, b]
                 off = sgn * offset[l]
                 for b in range(nb):
                     e[l, b] = e[l, b] - (yb[b] + off)  # y - E[y] (3.58)
@@ -105,11 +110,17 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
             if want_pm:
                 for b in range(nb):
                     for i in range(n):
-                        pmeans[r0 + b, t, i] = xp[i, b]
+                        s_pmean[b, tt, i] = xp[i, b]
             if want_m:
                 for b in range(nb):
                     for i in range(n):
-                        means[r0 + b, t, i] = x[i, b]
+                        s_mean[b, tt, i] = x[i, b]
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_lim, lim_out, r0, t0, nb, tt + 1)
+                _flush(s_y, y_out, r0, t0, nb, tt + 1)
         for b in range(nb):
             for i in range(n):
                 x_last[r0 + b, i] = x[i, b]
