@@ -65,6 +65,7 @@ from scipy.special import ndtri
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, _sigma_of, tobit_measurement
@@ -145,8 +146,8 @@ def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ..
 def _warn_if_diverged(means: np.ndarray | None, name: str, k0: int = 0) -> None:
     # the fixed-gain Tobit observer is not globally stable (e.g. A = -1, Xi < 0.5, small sigma: the
     # error grows geometrically and overflows); say so instead of returning NaN silently
-    if means is None:
-        return
+    if means is None or np.isfinite(means.reshape(-1) if means.flags.c_contiguous else means).all():
+        return  # the common case, without the (N, T) mask (it cost ~25 ns per run-step at n = 2)
     bad = ~np.isfinite(means).all(axis=-1)
     if bad.any():
         idx = np.argwhere(bad)[0]
@@ -171,6 +172,11 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         Target probability Ξ of an *uncensored* reading per channel.
     side : {"upper", "lower"}, default "upper"
         Right censoring (the source's §3.4) or left censoring (ours, not in the source; docs/sources MA-18).
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        ``filter`` and ``filter_controlled`` through the compiled loop of
+        :mod:`tobitkf.filters._kernels_steady` (equal to the numpy path to rounding; it covers every
+        case without a control input ``u``) or the numpy reference path. ``"numba"`` raises for a
+        case the kernel does not cover; ``"auto"`` then runs numpy. ``step`` always runs numpy.
 
     Attributes
     ----------
@@ -189,7 +195,10 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     ------
     ValidationError
         Ξ outside (0, 1), a time-varying or non-diagonal model, or a modified DARE
-        without a stabilizing solution (the message says so).
+        without a stabilizing solution (the message says so); ``backend="numba"`` with a control
+        input (raised by ``filter``).
+    ImportError
+        ``backend="numba"`` without numba installed (raised by ``filter``).
 
     Notes
     -----
@@ -209,11 +218,14 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     """
 
     _name = "SteadyStateTobitKalmanFilter"
+    _kernel_mats: tuple[np.ndarray, ...]  # A, C, K, offset, shift of the kernel, set on its first call
     _step_options = ("latent",)
 
-    def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper"):
+    def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
         check_option(side, "side", ("upper", "lower"))
+        check_option(backend, "backend", BACKENDS)
+        self.backend = backend
         if not system.time_invariant:
             raise ValidationError("system: the steady-state TKF needs a time-invariant model (constant A, C, Q, R)")
         m = system.m
@@ -303,6 +315,12 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         super()._check_record(y2, u2, k0, name)
         _no_missing(y2, name)
 
+    # ---- the compiled path (batched ``filter``/``filter_controlled`` only; ``step`` runs numpy) ------
+    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+        if not use_kernel(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
+            return None
+        return _steady_kernel_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
+
     def filter(
         self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
@@ -368,6 +386,9 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
         self.side, self.sigma_ = side, sigma
 
     def _fast_filter(self, *args):
+        # the TKF kernel takes the limits as data; here they are set from the prior inside the loop, so
+        # there is no compiled path: numpy under "auto", a refusal under "numba" (not a silent numpy run)
+        use_kernel(self.backend, "a limit set from the filter's prior (3.56)", "the controlled-limit TKF")
         return None
 
     def _fast_step(self, *args):
@@ -406,3 +427,73 @@ def tobit_kalman_filter_controlled(
     """
     est = ControlledLimitTobitKalmanFilter(system, xi_uncensored, side=side, backend="numpy")
     return est._run(y_latent, u, name="y_latent")
+
+
+# --------------------------------------------------------------------------- the compiled path
+
+
+def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, want, batch, latent: bool):
+    """The compiled mean loop from ``state``; the constant covariances and the outputs as the numpy path
+    returns them (one covariance shared by N > 1 runs is a read-only broadcast view)."""
+    from . import _kernels_steady
+
+    N, T, m = y2.shape
+    n = est.n
+    c64 = np.ascontiguousarray
+    mats = est.__dict__.get("_kernel_mats")
+    if mats is None:
+        sys_ = est.system
+        mats = est._kernel_mats = (
+            c64(sys_.transition(0), dtype=float),
+            c64(sys_.measurement(1), dtype=float),
+            c64(est.gain, dtype=float),
+            c64(est._offset, dtype=float),
+            c64(est.sigma * est.alpha, dtype=float),
+        )
+    A, C, K, offset, shift = mats
+
+    def arr(on, shape):
+        return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
+
+    ext = "extras" in want and latent
+    means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
+    lim, yo = arr(ext, (m,)), arr(ext, (m,))
+    x_last = np.empty((N, n))
+    _kernels_steady.steady_tkf_kernel(
+        c64(y2, dtype=float),
+        A,
+        C,
+        K,
+        offset,
+        shift,
+        est.side == "upper",
+        latent,
+        c64(state.x, dtype=float),
+        means,
+        pmeans,
+        lim,
+        yo,
+        x_last,
+    )
+
+    def out(a):
+        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+
+    def const(key, P):
+        # the numpy loop stores a covariance shared by the runs once and broadcasts it (a copy for one run)
+        if key not in want:
+            return None
+        one = np.broadcast_to(P, (T,) + P.shape)
+        return np.broadcast_to(one, batch + one.shape) if N != 1 else one.copy().reshape(batch + one.shape)
+
+    final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=est.cov[None], n=n, carry=state.carry)
+    return FilterResult(
+        mean=out(means),
+        cov=const("cov", est.cov),
+        pred_mean=out(pmeans),
+        pred_cov=const("pred_cov", est.prior_cov),
+        extras={"limits": out(lim), "y": out(yo)} if ext else {},
+        times=np.arange(state.k + 1, state.k + T + 1),
+        var=const("var", np.diagonal(est.cov).copy()),
+        final=final,
+    )
