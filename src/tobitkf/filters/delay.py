@@ -76,6 +76,25 @@ __all__ = [
 
 _DECORRELATION = ("optimal", "paper")
 _ERRATA = ("E5", "E6", "E7")
+#: the per-time dicts of Algorithm D's carry (each step copies these and adds to / prunes them)
+_REORG_DICTS = (
+    "xf",
+    "Pf",
+    "xsm",
+    "Psm",
+    "xm",
+    "Pmeas",
+    "xp",
+    "Pp",
+    "Psi",
+    "K",
+    "eps",
+    "Qe",
+    "Pm",
+    "lam",
+    "decor",
+    "HtQi",
+)
 
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
 #: (``DelayEstimates`` is kept as its name for one release).
@@ -830,6 +849,11 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             raise ValidationError("system: Algorithm D needs the pure-delay model (no extra_lags); use augmented_lmmse")
         self.decorrelation, self.errata, self.warmup_arg = decorrelation, errata, warmup
         self._t0(self.prior)
+        # constants of every step (read-only: the zero blocks stand for the Ψ and gains that vanish)
+        self._HT = system.H.T
+        self._zero_nn, self._zero_nm = np.zeros((self.n, self.n)), np.zeros((self.n, self.m))
+        self._zero_nn.flags.writeable = False
+        self._zero_nm.flags.writeable = False
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
 
@@ -891,36 +915,31 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
         sys_ = self.system
-        d, n, m = sys_.d, self.n, self.m
+        d, n = sys_.d, self.n
         if d == 0:
             xn, Pn, Sn, cn, xp, Pp, ex = self._chain._step_arrays(t, x, P, S, carry["chain"], y, u, {"lags": (0,)})
             return xn, Pn, Sn, {"chain": cn}, xp, Pp, ex
-        c = {k: (dict(v) if isinstance(v, dict) else v) for k, v in carry.items()}
+        # a new carry: only its per-time dicts are mutated below, so only they are copied (the caller's
+        # state stays unchanged); "decor"/"HtQi" are absent from the initial carry
+        c = dict(carry)
+        for key in _REORG_DICTS:
+            c[key] = dict(carry[key]) if key in carry else {}
         xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
         Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
-        lam = c["lam"] = _extend_second_moments(sys_, c["lam"], t + 1)
-        H = sys_.H
-        zero_nn, zero_nm = np.zeros((n, n)), np.zeros((n, m))
-        errata = self.errata
-        gbar = sys_.gamma_mean
-
-        def gk(s: int) -> float:  # γ̄(s); no measurement (and a zero gain) before s = 0
-            return gbar(s) if s >= 0 else 0.0
-
         # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
         # in the carry with the other per-time quantities
-        dec = c["decor"] = dict(c.get("decor", {}))
-        hq = c["HtQi"] = dict(c.get("HtQi", {}))
-
-        def decor(s: int):
-            if s not in dec:
-                dec[s] = _decorrelation(sys_, s, lam[s - d], self.decorrelation)
-            return dec[s]
-
-        def htqi(s: int) -> np.ndarray:
-            if s not in hq:
-                hq[s] = _solve_small(Qe[s], H).T
-            return hq[s]
+        dec, hq = c["decor"], c["HtQi"]
+        lam = c["lam"]
+        A = sys_.A
+        for s_ in range(max(lam), t + 1):  # Λ up to t+1, the corrected recursion (LD-E2), as _extend_second_moments
+            L_ = lam[s_ - d]
+            Lq = A @ L_ @ A.T + sys_.process_cov(s_, L_)
+            lam[s_ + 1] = 0.5 * (Lq + Lq.T)
+        H, HT = sys_.H, self._HT
+        zero_nn, zero_nm = self._zero_nn, self._zero_nm
+        errata = self.errata
+        gbar = sys_.gamma_mean
+        mode = self.decorrelation
 
         xpred, Ppred = xp[t], Pp[t]
         if t < c["t0"]:
@@ -950,34 +969,45 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
             xmp, Pmp = xsm[t - 1], Psm[t - 1]
             Pm[t] = Pmp
-            Q = symmetrize(gb * gb * (H @ Pmp @ H.T) + sys_.fading_noise_cov(t, lam[t - d]))
-            e_t = y - gb * (xmp @ H.T)
+            Q = gb * gb * (H @ Pmp @ HT) + sys_.fading_noise_cov(t, lam[t - d])
+            Q = 0.5 * (Q + Q.T)
+            e_t = y - gb * (xmp @ HT)
             eps[t], Qe[t] = e_t, Q
-            HtQi = htqi(t)
+            HtQi = hq[t] = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
             # (b) filter, (35)-(38) shifted by one
             Psd = Psi.get((d, t + d - 1), zero_nn)
             Kf = gb * (Psd.T @ HtQi)
             K[(t, t)] = Kf
             xf[t] = xp[t] + e_t @ Kf.T
-            Pf[t] = symmetrize(Pp[t] - gb * (Kf @ H @ Psd))
+            Pq = Pp[t] - gb * (Kf @ H @ Psd)
+            Pf[t] = 0.5 * (Pq + Pq.T)
             # (c) Ψ_i(t), i = d-1..1, corrected (58)
             # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
-            # gains of not-yet-measured elements vanish; times < 0 carry no measurement.
-            Abar_td = decor(t - d)[1] if t - d >= 0 else sys_.A
+            # gains of not-yet-measured elements vanish; times < 0 carry no measurement (γ̄ = 0 there).
+            if t - d >= 0:
+                if t - d not in dec:
+                    dec[t - d] = _decorrelation(sys_, t - d, lam[t - 2 * d], mode)
+                AbarT_td = dec[t - d][1].T
+                g_md = gbar(t - d)
+            else:
+                AbarT_td, g_md = A.T, 0.0
+            g_md1 = gbar(t - d + 1) if t - d + 1 >= 0 else 0.0
+            e5, e6, e7 = "E5" in errata, "E6" in errata, "E7" in errata
+            psi_dt = Psi.get((d, t), zero_nn)
+            psi_d = psi_dt.T if e6 else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
+            Pm_td = Pm.get(t - d, zero_nn)
             for i in range(d - 1, 0, -1):
                 a = t - d - i + 1
-                a5 = a - 1 if "E5" in errata else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
-                psi_dt = Psi.get((d, t), zero_nn)
-                psi_d = psi_dt.T if "E6" in errata else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
+                a5 = a - 1 if e5 else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
                 val = (
-                    Psi.get((d - i + 1, t - i), zero_nn).T
-                    - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))
-                ) @ Abar_td.T
-                val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
-                top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
+                    Psi.get((d - i + 1, t - i), zero_nn).T - g_md * (K.get((a5, t - d), zero_nm) @ H @ Pm_td)
+                ) @ AbarT_td
+                val = val - g_md1 * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
+                top = d - 1 - i if e7 else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
                 for j in range(0, top + 1):
                     s = t - i - j
-                    val = val - gk(s) * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
+                    g_s = gbar(s) if s >= 0 else 0.0
+                    val = val - g_s * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
                 Psi[(i, t)] = val
             # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
             a = t - d + 1
@@ -986,22 +1016,31 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 s = t - i + 1
                 if s < 0:
                     continue
-                Ks = gbar(s) * (Psi[(i, t)].T @ htqi(s))
+                g_s = gbar(s)
+                psi_i = Psi[(i, t)]
+                if s not in hq:  # a warm-up step's (Algorithm A) reading
+                    hq[s] = _solve_small(Qe[s], H).T
+                Ks = g_s * (psi_i.T @ hq[s])
                 K[(a, s)] = Ks
                 xs_ = xs_ + eps[s] @ Ks.T
-                Ps_ = Ps_ - gbar(s) * (Ks @ H @ Psi[(i, t)])
-            xsm[t], Psm[t] = xs_, symmetrize(Ps_)
+                Ps_ = Ps_ - g_s * (Ks @ H @ psi_i)
+            xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
             # (e) delayed filter and predictor (50)-(52)
             Ke = gb * (Pmp @ HtQi)
             K[(t - d, t)] = Ke
             xm[t] = xmp + e_t @ Ke.T
-            Pmeas[t] = symmetrize(Pmp - gb * (Ke @ H @ Pmp))
-            J, Abar, Sigma = decor(t)
+            KeH = Ke @ H
+            Pq = Pmp - gb * (KeH @ Pmp)
+            Pmeas[t] = 0.5 * (Pq + Pq.T)
+            if t not in dec:
+                dec[t] = _decorrelation(sys_, t, lam[t - d], mode)
+            J, Abar, Sigma = dec[t]
             xp[t + 1] = xm[t] @ Abar.T + y @ J.T
-            Pp[t + 1] = symmetrize(Abar @ Pmeas[t] @ Abar.T + Sigma)
+            Pq = Abar @ Pmeas[t] @ Abar.T + Sigma
+            Pp[t + 1] = 0.5 * (Pq + Pq.T)
             # (f) corrected (39)
             psi1 = Psi.get((1, t), zero_nn)
-            Psi[(d, t + d)] = (Abar @ (psi1 - gb * (Ke @ H @ psi1))).T
+            Psi[(d, t + d)] = (Abar @ (psi1 - gb * (KeH @ psi1))).T
         extras = {
             "measured_mean": xm[t],
             "measured_cov": Pmeas[t][None],
@@ -1013,15 +1052,16 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             f"lag{d - 1}_cov": Psm[t][None],
             "_lam": lam[t][None],
         }
-        # drop what is no longer needed (the recursions read back at most 2d+1 steps)
+        # drop what is no longer needed (the recursions read back at most 2d+1 steps). Every key is a
+        # time >= t - d when stored and each step drops those below t - 2d - 2, so exactly the keys of
+        # one time go: Ψ_i(old), i = 1..d, the gains K(a|old), a = old-d..old, and time old - 1 elsewhere
         old = t - 2 * d - 2
-        for key in [k for k in Psi if k[1] < t - 2 * d - 1]:
-            del Psi[key]
-        for key in [k for k in K if k[1] < t - 2 * d - 1]:
-            del K[key]
+        for i in range(1, d + 1):
+            Psi.pop((i, old), None)
+        for a in range(old - d, old + 1):
+            K.pop((a, old), None)
         for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam, dec, hq):
-            for key in [k for k in dct if k < old]:
-                del dct[key]
+            dct.pop(old - 1, None)
         return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras
 
     def filter(
