@@ -167,19 +167,21 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SQ_v^{-1}S^T)\Gamma^T + \sigma^2 J H\Lambda H^T J^T`.
     Both use Ā = A - γ̄ J H.
     """
+    # Λ is one (n, n) block here: ndarray.dot, bitwise the products of @ at a fraction of its call overhead
     gb, s2 = system.gamma_mean(s), system.gamma_var(s)
-    HLH = system.H @ Lam_meas @ system.H.T
+    H, G = system.H, system.Gamma
+    HLH = H.dot(Lam_meas).dot(H.T)
     mult = system.mult_cov(s, Lam_meas)
     if mode == "optimal":
         R = system.Qv + s2 * HLH
         SRinv = _solve_small(R, system.S.T).T
-        J = system.Gamma @ SRinv
-        Sigma = mult + system.Gamma @ (system.Qw - SRinv @ system.S.T) @ system.Gamma.T
+        J = G.dot(SRinv)
+        Sigma = mult + G.dot(system.Qw - SRinv.dot(system.S.T)).dot(G.T)
     else:
-        J = system.Gamma @ system.S_Qv_inv
-        Sigma = mult + system.Gamma @ system.eta_cov @ system.Gamma.T + s2 * (J @ HLH @ J.T)
-    Abar = system.A - gb * (J @ system.H)
-    return J, Abar, symmetrize(Sigma)
+        J = G.dot(system.S_Qv_inv)
+        Sigma = mult + G.dot(system.eta_cov).dot(G.T) + s2 * J.dot(HLH).dot(J.T)
+    Abar = system.A - gb * J.dot(H)
+    return J, Abar, 0.5 * (Sigma + Sigma.T)
 
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
@@ -196,9 +198,11 @@ def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray]
     if top >= last:
         return lam
     lam = dict(lam)
+    A = system.A
     for t in range(top, last):
         L = lam[t - d]
-        lam[t + 1] = symmetrize(system.A @ L @ system.A.T + system.process_cov(t, L))
+        Lq = A.dot(L).dot(A.T) + system.process_cov(t, L)
+        lam[t + 1] = 0.5 * (Lq + Lq.T)
     return lam
 
 
@@ -349,7 +353,7 @@ class ChainLMMSE(_DelayEstimator):
         H, A, GS = sys_.H, sys_.A, self._GS
         # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
         R = sys_.fading_noise_cov(t, lam[e])  # R = Q_v + σ² H Λ H^T
-        mp = MeasurementPrediction(expected=gb * (xb[e] @ H.T), H0=gb * H, noise=R[None])
+        mp = MeasurementPrediction(expected=gb * xb[e].dot(H.T), H0=gb * H, noise=R[None])
         xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
         eps = y - mp.expected
         HtQi = _solve_small(Qe[0], H).T  # H^T Q_ε^{-1}
@@ -365,7 +369,7 @@ class ChainLMMSE(_DelayEstimator):
         # the one-step prediction x̂(t+1|t) by the shared predict, decorrelated: Ā(t) x̂(t-d|t) + J(t) y(t),
         # Ā P Ā^T + Σ(t) (corrected (52); "paper": the source's constant J of (8))
         J, Abar, Sigma = _decorrelation(sys_, t, lam[e], self.decorrelation)
-        xn, Pn = predict(xe, Pe, Abar, Sigma, y @ J.T)
+        xn, Pn = predict(xe, Pe, Abar, Sigma, y.dot(J.T))
         xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
         N = x.shape[0]
         extras = {
@@ -379,7 +383,8 @@ class ChainLMMSE(_DelayEstimator):
         }
         if keep_rts:
             extras.update(rts_xupd=xe, rts_Pupd=Pe, rts_Cx=D[e], rts_xpred=xn, rts_Ppred=Pn)
-        nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
+        if lags or point is not None:  # the NaN rows of elements before x(-d)
+            nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
             j = t - L
             extras[f"lag{L}_mean"] = xb[j] if j >= -d else nan_m
@@ -933,7 +938,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         A = sys_.A
         for s_ in range(max(lam), t + 1):  # Λ up to t+1, the corrected recursion (LD-E2), as _extend_second_moments
             L_ = lam[s_ - d]
-            Lq = A @ L_ @ A.T + sys_.process_cov(s_, L_)
+            Lq = A.dot(L_).dot(A.T) + sys_.process_cov(s_, L_)
             lam[s_ + 1] = 0.5 * (Lq + Lq.T)
         H, HT = sys_.H, self._HT
         zero_nn, zero_nm = self._zero_nn, self._zero_nm
@@ -965,21 +970,22 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             c["aug"] = (Xp_, PpA[None], LamX)
         else:
             c.pop("aug", None)
+            # ndarray.dot on these 2-D blocks: bitwise the products of @ (checked), at a fraction of its call overhead
             gb = gbar(t)
             # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
             xmp, Pmp = xsm[t - 1], Psm[t - 1]
             Pm[t] = Pmp
-            Q = gb * gb * (H @ Pmp @ HT) + sys_.fading_noise_cov(t, lam[t - d])
+            Q = gb * gb * (H.dot(Pmp).dot(HT)) + sys_.fading_noise_cov(t, lam[t - d])
             Q = 0.5 * (Q + Q.T)
-            e_t = y - gb * (xmp @ HT)
+            e_t = y - gb * (xmp.dot(HT))
             eps[t], Qe[t] = e_t, Q
             HtQi = hq[t] = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
             # (b) filter, (35)-(38) shifted by one
             Psd = Psi.get((d, t + d - 1), zero_nn)
-            Kf = gb * (Psd.T @ HtQi)
+            Kf = gb * (Psd.T.dot(HtQi))
             K[(t, t)] = Kf
-            xf[t] = xp[t] + e_t @ Kf.T
-            Pq = Pp[t] - gb * (Kf @ H @ Psd)
+            xf[t] = xp[t] + e_t.dot(Kf.T)
+            Pq = Pp[t] - gb * (Kf.dot(H).dot(Psd))
             Pf[t] = 0.5 * (Pq + Pq.T)
             # (c) Ψ_i(t), i = d-1..1, corrected (58)
             # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
@@ -1000,14 +1006,14 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 a = t - d - i + 1
                 a5 = a - 1 if e5 else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
                 val = (
-                    Psi.get((d - i + 1, t - i), zero_nn).T - g_md * (K.get((a5, t - d), zero_nm) @ H @ Pm_td)
-                ) @ AbarT_td
-                val = val - g_md1 * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
+                    Psi.get((d - i + 1, t - i), zero_nn).T - g_md * (K.get((a5, t - d), zero_nm).dot(H).dot(Pm_td))
+                ).dot(AbarT_td)
+                val = val - g_md1 * (K.get((a, t - d + 1), zero_nm).dot(H).dot(psi_d))
                 top = d - 1 - i if e7 else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
                 for j in range(0, top + 1):
                     s = t - i - j
                     g_s = gbar(s) if s >= 0 else 0.0
-                    val = val - g_s * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
+                    val = val - g_s * (K.get((a, s), zero_nm).dot(H).dot(Psi.get((i + j + 1, t), zero_nn)))
                 Psi[(i, t)] = val
             # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
             a = t - d + 1
@@ -1020,27 +1026,27 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 psi_i = Psi[(i, t)]
                 if s not in hq:  # a warm-up step's (Algorithm A) reading
                     hq[s] = _solve_small(Qe[s], H).T
-                Ks = g_s * (psi_i.T @ hq[s])
+                Ks = g_s * (psi_i.T.dot(hq[s]))
                 K[(a, s)] = Ks
-                xs_ = xs_ + eps[s] @ Ks.T
-                Ps_ = Ps_ - g_s * (Ks @ H @ psi_i)
+                xs_ = xs_ + eps[s].dot(Ks.T)
+                Ps_ = Ps_ - g_s * (Ks.dot(H).dot(psi_i))
             xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
             # (e) delayed filter and predictor (50)-(52)
-            Ke = gb * (Pmp @ HtQi)
+            Ke = gb * (Pmp.dot(HtQi))
             K[(t - d, t)] = Ke
-            xm[t] = xmp + e_t @ Ke.T
-            KeH = Ke @ H
-            Pq = Pmp - gb * (KeH @ Pmp)
+            xm[t] = xmp + e_t.dot(Ke.T)
+            KeH = Ke.dot(H)
+            Pq = Pmp - gb * (KeH.dot(Pmp))
             Pmeas[t] = 0.5 * (Pq + Pq.T)
             if t not in dec:
                 dec[t] = _decorrelation(sys_, t, lam[t - d], mode)
             J, Abar, Sigma = dec[t]
-            xp[t + 1] = xm[t] @ Abar.T + y @ J.T
-            Pq = Abar @ Pmeas[t] @ Abar.T + Sigma
+            xp[t + 1] = xm[t].dot(Abar.T) + y.dot(J.T)
+            Pq = Abar.dot(Pmeas[t]).dot(Abar.T) + Sigma
             Pp[t + 1] = 0.5 * (Pq + Pq.T)
             # (f) corrected (39)
             psi1 = Psi.get((1, t), zero_nn)
-            Psi[(d, t + d)] = (Abar @ (psi1 - gb * (KeH @ psi1))).T
+            Psi[(d, t + d)] = Abar.dot(psi1 - gb * KeH.dot(psi1)).T
         extras = {
             "measured_mean": xm[t],
             "measured_cov": Pmeas[t][None],
