@@ -88,6 +88,7 @@ _REORG_DICTS = (
     "Pp",
     "Psi",
     "K",
+    "KH",
     "eps",
     "Qe",
     "Pm",
@@ -857,8 +858,9 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         # constants of every step (read-only: the zero blocks stand for the Ψ and gains that vanish)
         self._HT = system.H.T
         self._zero_nn, self._zero_nm = np.zeros((self.n, self.n)), np.zeros((self.n, self.m))
-        self._zero_nn.flags.writeable = False
-        self._zero_nm.flags.writeable = False
+        self._zero_nH = self._zero_nm.dot(system.H)  # the product a vanishing gain K(a|s) H stands for
+        for z in (self._zero_nn, self._zero_nm, self._zero_nH):
+            z.flags.writeable = False
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
 
@@ -931,6 +933,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             c[key] = dict(carry[key]) if key in carry else {}
         xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
         Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
+        # K(a|s) H of the reorganized steps' gains, formed with each gain and read again in (c) at later steps
+        KH = c["KH"]
         # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
         # in the carry with the other per-time quantities
         dec, hq = c["decor"], c["HtQi"]
@@ -941,7 +945,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             Lq = A.dot(L_).dot(A.T) + sys_.process_cov(s_, L_)
             lam[s_ + 1] = 0.5 * (Lq + Lq.T)
         H, HT = sys_.H, self._HT
-        zero_nn, zero_nm = self._zero_nn, self._zero_nm
+        zero_nn = self._zero_nn
         errata = self.errata
         gbar = sys_.gamma_mean
         mode = self.decorrelation
@@ -984,8 +988,9 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             Psd = Psi.get((d, t + d - 1), zero_nn)
             Kf = gb * (Psd.T.dot(HtQi))
             K[(t, t)] = Kf
+            KH[(t, t)] = KfH = Kf.dot(H)
             xf[t] = xp[t] + e_t.dot(Kf.T)
-            Pq = Pp[t] - gb * (Kf.dot(H).dot(Psd))
+            Pq = Pp[t] - gb * (KfH.dot(Psd))
             Pf[t] = 0.5 * (Pq + Pq.T)
             # (c) Ψ_i(t), i = d-1..1, corrected (58)
             # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
@@ -1002,18 +1007,23 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             psi_dt = Psi.get((d, t), zero_nn)
             psi_d = psi_dt.T if e6 else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
             Pm_td = Pm.get(t - d, zero_nn)
+            zero_nH = self._zero_nH
+
+            def kh(key: tuple[int, int]) -> np.ndarray:  # K(a|s) H; a warm-up (Algorithm A) gain's on first use
+                if key in KH:
+                    return KH[key]
+                return K[key].dot(H) if key in K else zero_nH
+
             for i in range(d - 1, 0, -1):
                 a = t - d - i + 1
                 a5 = a - 1 if e5 else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
-                val = (
-                    Psi.get((d - i + 1, t - i), zero_nn).T - g_md * (K.get((a5, t - d), zero_nm).dot(H).dot(Pm_td))
-                ).dot(AbarT_td)
-                val = val - g_md1 * (K.get((a, t - d + 1), zero_nm).dot(H).dot(psi_d))
+                val = (Psi.get((d - i + 1, t - i), zero_nn).T - g_md * kh((a5, t - d)).dot(Pm_td)).dot(AbarT_td)
+                val = val - g_md1 * kh((a, t - d + 1)).dot(psi_d)
                 top = d - 1 - i if e7 else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
                 for j in range(0, top + 1):
                     s = t - i - j
                     g_s = gbar(s) if s >= 0 else 0.0
-                    val = val - g_s * (K.get((a, s), zero_nm).dot(H).dot(Psi.get((i + j + 1, t), zero_nn)))
+                    val = val - g_s * kh((a, s)).dot(Psi.get((i + j + 1, t), zero_nn))
                 Psi[(i, t)] = val
             # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
             a = t - d + 1
@@ -1028,14 +1038,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                     hq[s] = _solve_small(Qe[s], H).T
                 Ks = g_s * (psi_i.T.dot(hq[s]))
                 K[(a, s)] = Ks
+                KH[(a, s)] = KsH = Ks.dot(H)
                 xs_ = xs_ + eps[s].dot(Ks.T)
-                Ps_ = Ps_ - g_s * (Ks.dot(H).dot(psi_i))
+                Ps_ = Ps_ - g_s * (KsH.dot(psi_i))
             xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
             # (e) delayed filter and predictor (50)-(52)
             Ke = gb * (Pmp.dot(HtQi))
             K[(t - d, t)] = Ke
             xm[t] = xmp + e_t.dot(Ke.T)
-            KeH = Ke.dot(H)
+            KH[(t - d, t)] = KeH = Ke.dot(H)
             Pq = Pmp - gb * (KeH.dot(Pmp))
             Pmeas[t] = 0.5 * (Pq + Pq.T)
             if t not in dec:
@@ -1066,6 +1077,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             Psi.pop((i, old), None)
         for a in range(old - d, old + 1):
             K.pop((a, old), None)
+            KH.pop((a, old), None)
         for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam, dec, hq):
             dct.pop(old - 1, None)
         return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras
