@@ -437,6 +437,8 @@ class ChainLMMSE(_DelayEstimator):
         return {"lags": lags, "horizons": horizons, "point": fixed_point}
 
     def _prepare_step_options(self, state, options):
+        if not options:  # the plain online step: nothing to check
+            return {"lags": (), "horizons": (), "point": None}
         return self._checked_options(options.get("lags", ()), options.get("horizons", ()), options.get("point"))
 
     def filter(
