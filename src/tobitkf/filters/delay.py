@@ -76,6 +76,26 @@ __all__ = [
 
 _DECORRELATION = ("optimal", "paper")
 _ERRATA = ("E5", "E6", "E7")
+#: the per-time dicts of Algorithm D's carry (each step copies these and adds to / prunes them)
+_REORG_DICTS = (
+    "xf",
+    "Pf",
+    "xsm",
+    "Psm",
+    "xm",
+    "Pmeas",
+    "xp",
+    "Pp",
+    "Psi",
+    "K",
+    "KH",
+    "eps",
+    "Qe",
+    "Pm",
+    "lam",
+    "decor",
+    "HtQi",
+)
 
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
 #: (``DelayEstimates`` is kept as its name for one release).
@@ -148,19 +168,21 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SQ_v^{-1}S^T)\Gamma^T + \sigma^2 J H\Lambda H^T J^T`.
     Both use Ā = A - γ̄ J H.
     """
+    # Λ is one (n, n) block here: ndarray.dot, bitwise the products of @ at a fraction of its call overhead
     gb, s2 = system.gamma_mean(s), system.gamma_var(s)
-    HLH = system.H @ Lam_meas @ system.H.T
+    H, G = system.H, system.Gamma
+    HLH = H.dot(Lam_meas).dot(H.T)
     mult = system.mult_cov(s, Lam_meas)
     if mode == "optimal":
         R = system.Qv + s2 * HLH
         SRinv = _solve_small(R, system.S.T).T
-        J = system.Gamma @ SRinv
-        Sigma = mult + system.Gamma @ (system.Qw - SRinv @ system.S.T) @ system.Gamma.T
+        J = G.dot(SRinv)
+        Sigma = mult + G.dot(system.Qw - SRinv.dot(system.S.T)).dot(G.T)
     else:
-        J = system.Gamma @ system.S_Qv_inv
-        Sigma = mult + system.Gamma @ system.eta_cov @ system.Gamma.T + s2 * (J @ HLH @ J.T)
-    Abar = system.A - gb * (J @ system.H)
-    return J, Abar, symmetrize(Sigma)
+        J = G.dot(system.S_Qv_inv)
+        Sigma = mult + G.dot(system.eta_cov).dot(G.T) + s2 * J.dot(HLH).dot(J.T)
+    Abar = system.A - gb * J.dot(H)
+    return J, Abar, 0.5 * (Sigma + Sigma.T)
 
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
@@ -177,9 +199,11 @@ def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray]
     if top >= last:
         return lam
     lam = dict(lam)
+    A = system.A
     for t in range(top, last):
         L = lam[t - d]
-        lam[t + 1] = symmetrize(system.A @ L @ system.A.T + system.process_cov(t, L))
+        Lq = A.dot(L).dot(A.T) + system.process_cov(t, L)
+        lam[t + 1] = 0.5 * (Lq + Lq.T)
     return lam
 
 
@@ -330,7 +354,7 @@ class ChainLMMSE(_DelayEstimator):
         H, A, GS = sys_.H, sys_.A, self._GS
         # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
         R = sys_.fading_noise_cov(t, lam[e])  # R = Q_v + σ² H Λ H^T
-        mp = MeasurementPrediction(expected=gb * (xb[e] @ H.T), H0=gb * H, noise=R[None])
+        mp = MeasurementPrediction(expected=gb * xb[e].dot(H.T), H0=gb * H, noise=R[None])
         xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
         eps = y - mp.expected
         HtQi = _solve_small(Qe[0], H).T  # H^T Q_ε^{-1}
@@ -346,7 +370,7 @@ class ChainLMMSE(_DelayEstimator):
         # the one-step prediction x̂(t+1|t) by the shared predict, decorrelated: Ā(t) x̂(t-d|t) + J(t) y(t),
         # Ā P Ā^T + Σ(t) (corrected (52); "paper": the source's constant J of (8))
         J, Abar, Sigma = _decorrelation(sys_, t, lam[e], self.decorrelation)
-        xn, Pn = predict(xe, Pe, Abar, Sigma, y @ J.T)
+        xn, Pn = predict(xe, Pe, Abar, Sigma, y.dot(J.T))
         xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
         N = x.shape[0]
         extras = {
@@ -360,7 +384,8 @@ class ChainLMMSE(_DelayEstimator):
         }
         if keep_rts:
             extras.update(rts_xupd=xe, rts_Pupd=Pe, rts_Cx=D[e], rts_xpred=xn, rts_Ppred=Pn)
-        nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
+        if lags or point is not None:  # the NaN rows of elements before x(-d)
+            nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
             j = t - L
             extras[f"lag{L}_mean"] = xb[j] if j >= -d else nan_m
@@ -412,6 +437,8 @@ class ChainLMMSE(_DelayEstimator):
         return {"lags": lags, "horizons": horizons, "point": fixed_point}
 
     def _prepare_step_options(self, state, options):
+        if not options:  # the plain online step: nothing to check
+            return {"lags": (), "horizons": (), "point": None}
         return self._checked_options(options.get("lags", ()), options.get("horizons", ()), options.get("point"))
 
     def filter(
@@ -830,6 +857,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             raise ValidationError("system: Algorithm D needs the pure-delay model (no extra_lags); use augmented_lmmse")
         self.decorrelation, self.errata, self.warmup_arg = decorrelation, errata, warmup
         self._t0(self.prior)
+        # constants of every step (read-only: the zero blocks stand for the Ψ and gains that vanish)
+        self._HT = system.H.T
+        self._zero_nn, self._zero_nm = np.zeros((self.n, self.n)), np.zeros((self.n, self.m))
+        self._zero_nH = self._zero_nm.dot(system.H)  # the product a vanishing gain K(a|s) H stands for
+        for z in (self._zero_nn, self._zero_nm, self._zero_nH):
+            z.flags.writeable = False
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
 
@@ -891,36 +924,33 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
         sys_ = self.system
-        d, n, m = sys_.d, self.n, self.m
+        d, n = sys_.d, self.n
         if d == 0:
             xn, Pn, Sn, cn, xp, Pp, ex = self._chain._step_arrays(t, x, P, S, carry["chain"], y, u, {"lags": (0,)})
             return xn, Pn, Sn, {"chain": cn}, xp, Pp, ex
-        c = {k: (dict(v) if isinstance(v, dict) else v) for k, v in carry.items()}
+        # a new carry: only its per-time dicts are mutated below, so only they are copied (the caller's
+        # state stays unchanged); "decor"/"HtQi" are absent from the initial carry
+        c = dict(carry)
+        for key in _REORG_DICTS:
+            c[key] = dict(carry[key]) if key in carry else {}
         xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
         Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
-        lam = c["lam"] = _extend_second_moments(sys_, c["lam"], t + 1)
-        H = sys_.H
-        zero_nn, zero_nm = np.zeros((n, n)), np.zeros((n, m))
-        errata = self.errata
-        gbar = sys_.gamma_mean
-
-        def gk(s: int) -> float:  # γ̄(s); no measurement (and a zero gain) before s = 0
-            return gbar(s) if s >= 0 else 0.0
-
+        # K(a|s) H of the reorganized steps' gains, formed with each gain and read again in (c) at later steps
+        KH = c["KH"]
         # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
         # in the carry with the other per-time quantities
-        dec = c["decor"] = dict(c.get("decor", {}))
-        hq = c["HtQi"] = dict(c.get("HtQi", {}))
-
-        def decor(s: int):
-            if s not in dec:
-                dec[s] = _decorrelation(sys_, s, lam[s - d], self.decorrelation)
-            return dec[s]
-
-        def htqi(s: int) -> np.ndarray:
-            if s not in hq:
-                hq[s] = _solve_small(Qe[s], H).T
-            return hq[s]
+        dec, hq = c["decor"], c["HtQi"]
+        lam = c["lam"]
+        A = sys_.A
+        for s_ in range(max(lam), t + 1):  # Λ up to t+1, the corrected recursion (LD-E2), as _extend_second_moments
+            L_ = lam[s_ - d]
+            Lq = A.dot(L_).dot(A.T) + sys_.process_cov(s_, L_)
+            lam[s_ + 1] = 0.5 * (Lq + Lq.T)
+        H, HT = sys_.H, self._HT
+        zero_nn = self._zero_nn
+        errata = self.errata
+        gbar = sys_.gamma_mean
+        mode = self.decorrelation
 
         xpred, Ppred = xp[t], Pp[t]
         if t < c["t0"]:
@@ -946,38 +976,56 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             c["aug"] = (Xp_, PpA[None], LamX)
         else:
             c.pop("aug", None)
+            # ndarray.dot on these 2-D blocks: bitwise the products of @ (checked), at a fraction of its call overhead
             gb = gbar(t)
             # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
             xmp, Pmp = xsm[t - 1], Psm[t - 1]
             Pm[t] = Pmp
-            Q = symmetrize(gb * gb * (H @ Pmp @ H.T) + sys_.fading_noise_cov(t, lam[t - d]))
-            e_t = y - gb * (xmp @ H.T)
+            Q = gb * gb * (H.dot(Pmp).dot(HT)) + sys_.fading_noise_cov(t, lam[t - d])
+            Q = 0.5 * (Q + Q.T)
+            e_t = y - gb * (xmp.dot(HT))
             eps[t], Qe[t] = e_t, Q
-            HtQi = htqi(t)
+            HtQi = hq[t] = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
             # (b) filter, (35)-(38) shifted by one
             Psd = Psi.get((d, t + d - 1), zero_nn)
-            Kf = gb * (Psd.T @ HtQi)
+            Kf = gb * (Psd.T.dot(HtQi))
             K[(t, t)] = Kf
-            xf[t] = xp[t] + e_t @ Kf.T
-            Pf[t] = symmetrize(Pp[t] - gb * (Kf @ H @ Psd))
+            KH[(t, t)] = KfH = Kf.dot(H)
+            xf[t] = xp[t] + e_t.dot(Kf.T)
+            Pq = Pp[t] - gb * (KfH.dot(Psd))
+            Pf[t] = 0.5 * (Pq + Pq.T)
             # (c) Ψ_i(t), i = d-1..1, corrected (58)
             # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
-            # gains of not-yet-measured elements vanish; times < 0 carry no measurement.
-            Abar_td = decor(t - d)[1] if t - d >= 0 else sys_.A
+            # gains of not-yet-measured elements vanish; times < 0 carry no measurement (γ̄ = 0 there).
+            if t - d >= 0:
+                if t - d not in dec:
+                    dec[t - d] = _decorrelation(sys_, t - d, lam[t - 2 * d], mode)
+                AbarT_td = dec[t - d][1].T
+                g_md = gbar(t - d)
+            else:
+                AbarT_td, g_md = A.T, 0.0
+            g_md1 = gbar(t - d + 1) if t - d + 1 >= 0 else 0.0
+            e5, e6, e7 = "E5" in errata, "E6" in errata, "E7" in errata
+            psi_dt = Psi.get((d, t), zero_nn)
+            psi_d = psi_dt.T if e6 else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
+            Pm_td = Pm.get(t - d, zero_nn)
+            zero_nH = self._zero_nH
+
+            def kh(key: tuple[int, int]) -> np.ndarray:  # K(a|s) H; a warm-up (Algorithm A) gain's on first use
+                if key in KH:
+                    return KH[key]
+                return K[key].dot(H) if key in K else zero_nH
+
             for i in range(d - 1, 0, -1):
                 a = t - d - i + 1
-                a5 = a - 1 if "E5" in errata else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
-                psi_dt = Psi.get((d, t), zero_nn)
-                psi_d = psi_dt.T if "E6" in errata else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
-                val = (
-                    Psi.get((d - i + 1, t - i), zero_nn).T
-                    - gk(t - d) * (K.get((a5, t - d), zero_nm) @ H @ Pm.get(t - d, zero_nn))
-                ) @ Abar_td.T
-                val = val - gk(t - d + 1) * (K.get((a, t - d + 1), zero_nm) @ H @ psi_d)
-                top = d - 1 - i if "E7" in errata else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
+                a5 = a - 1 if e5 else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
+                val = (Psi.get((d - i + 1, t - i), zero_nn).T - g_md * kh((a5, t - d)).dot(Pm_td)).dot(AbarT_td)
+                val = val - g_md1 * kh((a, t - d + 1)).dot(psi_d)
+                top = d - 1 - i if e7 else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
                 for j in range(0, top + 1):
                     s = t - i - j
-                    val = val - gk(s) * (K.get((a, s), zero_nm) @ H @ Psi.get((i + j + 1, t), zero_nn))
+                    g_s = gbar(s) if s >= 0 else 0.0
+                    val = val - g_s * kh((a, s)).dot(Psi.get((i + j + 1, t), zero_nn))
                 Psi[(i, t)] = val
             # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
             a = t - d + 1
@@ -986,22 +1034,32 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 s = t - i + 1
                 if s < 0:
                     continue
-                Ks = gbar(s) * (Psi[(i, t)].T @ htqi(s))
+                g_s = gbar(s)
+                psi_i = Psi[(i, t)]
+                if s not in hq:  # a warm-up step's (Algorithm A) reading
+                    hq[s] = _solve_small(Qe[s], H).T
+                Ks = g_s * (psi_i.T.dot(hq[s]))
                 K[(a, s)] = Ks
-                xs_ = xs_ + eps[s] @ Ks.T
-                Ps_ = Ps_ - gbar(s) * (Ks @ H @ Psi[(i, t)])
-            xsm[t], Psm[t] = xs_, symmetrize(Ps_)
+                KH[(a, s)] = KsH = Ks.dot(H)
+                xs_ = xs_ + eps[s].dot(Ks.T)
+                Ps_ = Ps_ - g_s * (KsH.dot(psi_i))
+            xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
             # (e) delayed filter and predictor (50)-(52)
-            Ke = gb * (Pmp @ HtQi)
+            Ke = gb * (Pmp.dot(HtQi))
             K[(t - d, t)] = Ke
-            xm[t] = xmp + e_t @ Ke.T
-            Pmeas[t] = symmetrize(Pmp - gb * (Ke @ H @ Pmp))
-            J, Abar, Sigma = decor(t)
-            xp[t + 1] = xm[t] @ Abar.T + y @ J.T
-            Pp[t + 1] = symmetrize(Abar @ Pmeas[t] @ Abar.T + Sigma)
+            xm[t] = xmp + e_t.dot(Ke.T)
+            KH[(t - d, t)] = KeH = Ke.dot(H)
+            Pq = Pmp - gb * (KeH.dot(Pmp))
+            Pmeas[t] = 0.5 * (Pq + Pq.T)
+            if t not in dec:
+                dec[t] = _decorrelation(sys_, t, lam[t - d], mode)
+            J, Abar, Sigma = dec[t]
+            xp[t + 1] = xm[t].dot(Abar.T) + y.dot(J.T)
+            Pq = Abar.dot(Pmeas[t]).dot(Abar.T) + Sigma
+            Pp[t + 1] = 0.5 * (Pq + Pq.T)
             # (f) corrected (39)
             psi1 = Psi.get((1, t), zero_nn)
-            Psi[(d, t + d)] = (Abar @ (psi1 - gb * (Ke @ H @ psi1))).T
+            Psi[(d, t + d)] = Abar.dot(psi1 - gb * KeH.dot(psi1)).T
         extras = {
             "measured_mean": xm[t],
             "measured_cov": Pmeas[t][None],
@@ -1013,15 +1071,17 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             f"lag{d - 1}_cov": Psm[t][None],
             "_lam": lam[t][None],
         }
-        # drop what is no longer needed (the recursions read back at most 2d+1 steps)
+        # drop what is no longer needed (the recursions read back at most 2d+1 steps). Every key is a
+        # time >= t - d when stored and each step drops those below t - 2d - 2, so exactly the keys of
+        # one time go: Ψ_i(old), i = 1..d, the gains K(a|old), a = old-d..old, and time old - 1 elsewhere
         old = t - 2 * d - 2
-        for key in [k for k in Psi if k[1] < t - 2 * d - 1]:
-            del Psi[key]
-        for key in [k for k in K if k[1] < t - 2 * d - 1]:
-            del K[key]
+        for i in range(1, d + 1):
+            Psi.pop((i, old), None)
+        for a in range(old - d, old + 1):
+            K.pop((a, old), None)
+            KH.pop((a, old), None)
         for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam, dec, hq):
-            for key in [k for k in dct if k < old]:
-                del dct[key]
+            dct.pop(old - 1, None)
         return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras
 
     def filter(
