@@ -150,6 +150,7 @@ class MultiTargetTracker(Estimator):
         self.B = np.diag([mu, 1.0, mu, 1.0])
         self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
         self.feedback, self.second_map, self.gate = feedback, second_map, gate
+        self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
         self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0)  # the predict of a frame without feedback
 
     def _input_free(self, N: int, visible: np.ndarray) -> bool:
@@ -250,16 +251,16 @@ class MultiTargetTracker(Estimator):
                     if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
                         match[best] = j
         visible = match >= 0
-        z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
-        mp = MeasurementPrediction(
-            expected=Cx, H0=self.C, noise=self.R[None], valid=np.repeat(visible[:, None], 2, axis=1)
-        )
+        if visible.all():  # every target matched: the masks below select everything (the same numbers)
+            z = M[match]
+            valid, new_O, new_last = None, np.zeros_like(O), z
+        else:
+            z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
+            valid = np.repeat(visible[:, None], 2, axis=1)
+            new_O, new_last = np.where(visible, 0, O + 1), np.where(visible[:, None], z, last_meas)
+        mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
         xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
-        new = {
-            "O": np.where(visible, 0, O + 1),
-            "visible": visible,
-            "last_meas": np.where(visible[:, None], z, last_meas),
-        }
+        new = {"O": new_O, "visible": visible, "last_meas": new_last}
         return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
 
     def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
