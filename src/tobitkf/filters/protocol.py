@@ -68,6 +68,7 @@ Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass
 from typing import Any
@@ -84,7 +85,7 @@ from .._validation import (
     check_memory,
     check_psd,
 )
-from ..censored import unchecked_moments
+from ..censored import CensoredMoments, _small_moments, unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
@@ -237,24 +238,33 @@ def protocol_measurement(
     second_moment : (n_ξ, n_ξ), for ``"lmmse_unconditional"``
     """
     H = lam_mean * Cc
+    return _prediction(
+        xi_pred, P_pred, y, gamma, Cc, r, np.sqrt(r), H, H[None, :], tau, lam_mean, lam_var, failure_term, second_moment
+    )
+
+
+def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term, X):
+    """:func:`protocol_measurement` with the per-sensor constants ``sd`` = sqrt(r), ``H`` = lam_mean Cc and
+    ``H0`` = H[None, :] given (the filter computes them once per sensor)."""
     zeta = xi_pred @ H
-    sd = np.sqrt(r)
-    st = unchecked_moments(zeta, sd, tau, np.inf)
+    st = None
+    if zeta.shape == (1,):
+        # one run (the online step): the scalar route of unchecked_moments called directly, the same numbers
+        row = _small_moments(float(zeta[0]), float(sd), float(tau), math.inf)
+        if row is not None:
+            st = CensoredMoments(*np.array(row).reshape(8, 1))
+    if st is None:
+        st = unchecked_moments(zeta, sd, tau, np.inf)
     lam = st.inverse_mills
     noise = np.maximum(st.truncated_var, _TINY * r)  # R (1 - phi), floored
-    F = _failure_term(
-        failure_term,
-        Cc,
-        P_pred,
-        xi_pred,
-        lam_mean,
-        lam_var,
-        second_moment,
-    )
+    F = _failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, X)
     yhat = zeta + sd * lam  # (21), gamma = 1
-    g = np.asarray(gamma, dtype=bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    g = gamma if isinstance(gamma, np.ndarray) and gamma.dtype == bool else np.asarray(gamma, dtype=bool)
+    if math.isfinite(tau):  # tau - zeta cannot be inf - inf; sd > 0, so no division by zero
         theta = (tau - zeta) / sd
+    else:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            theta = (tau - zeta) / sd
     extras = {
         "theta_bar": theta,
         "inverse_mills": lam,
@@ -266,7 +276,7 @@ def protocol_measurement(
         "_gamma": g,
     }
     return MeasurementPrediction(
-        expected=yhat[:, None], H0=H[None, :], noise=(F + noise)[:, None], valid=g[:, None], extras=extras
+        expected=yhat[:, None], H0=H0, noise=(F + noise)[:, None], valid=g[:, None], extras=extras
     )
 
 
@@ -397,6 +407,11 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         self._nxi = system.n * (self._ell + 1)
         _initial(system, self._ell, prehistory_prior, P0_aug)  # validates P0_aug once
         self._lam_mean, self._lam_var = channel.failure_mean, channel.failure_variance
+        self._tau = float(channel.threshold)
+        self._order = tuple(int(o) - 1 for o in np.asarray(channel.schedule.order).ravel())
+        self._constant_C = not (system.C.varying or system.R.varying)
+        self._constant_AQ = not (system.A.varying or system.Q.varying or (system.B is not None and system.B.varying))
+        self._transition_cache: Transition | None = None
         self.options = {
             "failure_term": failure_term,
             "prehistory_prior": prehistory_prior,
@@ -430,14 +445,19 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return xi, symmetrize(M0)[None], carry  # exactly symmetric (the shift prediction needs it)
 
     def _transition(self, k, u, carry):
+        if self._transition_cache is not None:  # a constant A and Q: built once
+            return self._transition_cache
         sys_ = self.system
         G = self._roots(k - 1) if self.covariance_update == "square_root" else None
         # (17)-(18): the block shift of (10), the noise in its top block
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=0.0, shift=True, G=G)
+        tr = Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=0.0, shift=True, G=G)
+        if self._constant_AQ:
+            self._transition_cache = tr
+        return tr
 
     def _sensor(self, k: int) -> int:
-        order = self.channel.schedule.order
-        return int(order[(k - 1) % order.size]) - 1
+        order = self._order
+        return order[(k - 1) % len(order)]
 
     def _sensor_terms(self, k: int, h: int) -> tuple[np.ndarray, float]:
         r""":math:`\mathcal C_{h,k}` and :math:`\mathcal R_k` of sensor h; for a constant C and R computed
@@ -453,30 +473,36 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             cache[h] = terms
         return terms
 
+    def _step_terms(self, k: int, h: int) -> tuple:
+        """``(Cc, r, sqrt(r), H, H[None, :], lam_mean, lam_var)`` of sensor h at step k; for a constant C and R
+        computed once per sensor and kept (the constants of :func:`protocol_measurement`)."""
+        cache = self.__dict__.setdefault("_terms_cache", {}) if self._constant_C else None
+        if cache is not None and h in cache:
+            return cache[h]
+        Cc, r = self._sensor_terms(k, h)
+        lam_mean, lam_var = float(self._lam_mean[h]), float(self._lam_var[h])
+        H = lam_mean * Cc
+        H0 = H[None, :]
+        for a in (Cc, H, H0):
+            a.flags.writeable = False  # shared by every step's prediction
+        terms = (Cc, r, np.sqrt(r), H, H0, lam_mean, lam_var)
+        if cache is not None:
+            cache[h] = terms
+        return terms
+
     def _measurement(self, k, xp, Pp, y, u, carry, uncensored=None, **_):
         h = self._sensor(k)
-        Cc, r = self._sensor_terms(k, h)
+        Cc, r, sd, H, H0, lam_mean, lam_var = self._step_terms(k, h)
         X = None
-        carry = dict(carry)
         if "X" in carry:
+            carry = dict(carry)
             Aa = augmented_transition(self.system.transition(k - 1), self._ell)
             Bn = noise_input(self.n, self._ell)
             carry["X"] = X = Aa @ carry["X"] @ Aa.T + Bn @ self.system.process_cov(k - 1) @ Bn.T
         yk = y[:, 0]
-        gam = yk > self.channel.threshold if uncensored is None else uncensored[:, 0]
-        mp = protocol_measurement(
-            xp,
-            Pp,
-            yk,
-            gam,
-            Cc,
-            r,
-            self.channel.threshold,
-            float(self._lam_mean[h]),
-            float(self._lam_var[h]),
-            failure_term=self.failure_term,
-            second_moment=X,
-        )
+        tau = self._tau
+        gam = yk > tau if uncensored is None else uncensored[:, 0]
+        mp = _prediction(xp, Pp, yk, gam, Cc, r, sd, H, H0, tau, lam_mean, lam_var, self.failure_term, X)
         return mp, carry
 
     def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
@@ -530,6 +556,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     def _reading(self, state, y, name="y"):
         arr = super()._reading(state, y, name)
+        if (arr >= self._tau).all():  # the common case in one comparison: no NaN, none below tau
+            return arr
         if np.isnan(arr).any():
             raise ValidationError(f"{name}: the protocol TKF takes no missing readings (NaN found)")
         if self.check_limits and (arr < self.channel.threshold).any():

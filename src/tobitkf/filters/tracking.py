@@ -150,6 +150,13 @@ class MultiTargetTracker(Estimator):
         self.B = np.diag([mu, 1.0, mu, 1.0])
         self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
         self.feedback, self.second_map, self.gate = feedback, second_map, gate
+        self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
+        self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0)  # the predict of a frame without feedback
+
+    def _input_free(self, N: int, visible: np.ndarray) -> bool:
+        """True when :meth:`_feedback` is zero for every target (no feedback, one target, or every target
+        visible in the corrected form): the predict then adds nothing (x + 0 is x)."""
+        return self.feedback == "off" or N < 2 or (self.feedback == "corrected" and bool(visible.all()))
 
     def _feedback(self, x: np.ndarray, visible: np.ndarray) -> np.ndarray:
         N = x.shape[0]
@@ -213,16 +220,24 @@ class MultiTargetTracker(Estimator):
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         frame = options["frame"]
-        M = frame[~np.isnan(frame).any(axis=-1)] if frame.ndim == 2 else frame[0][~np.isnan(frame[0]).any(axis=-1)]
+        if options.get("finite"):  # one frame from step(), already checked finite by _frame
+            M = frame
+        else:  # a row of filter()'s NaN-padded frames
+            M = frame[~np.isnan(frame).any(axis=-1)] if frame.ndim == 2 else frame[0][~np.isnan(frame[0]).any(axis=-1)]
         N = x.shape[0]
         O, visible, last_meas = carry["O"], carry["visible"], carry["last_meas"]
-        uk = self._feedback(x, visible)
-        xp, Pp, _ = time_update(x, P, None, Transition(A=self.A, Qd=self.Q, b=uk @ self.B.T), "standard")
-        ref = last_meas if k - 1 < self.warmup else xp @ self.C.T
+        if self._input_free(N, visible):
+            tr = self._no_input
+        else:
+            tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self.B.T)
+        xp, Pp, _ = time_update(x, P, None, tr, "standard")
+        Cx = xp @ self.C.T  # the predicted positions
+        ref = last_meas if k - 1 < self.warmup else Cx
         occluded = O.copy()
         match = np.full(N, -1)
         if len(M):
-            D = np.linalg.norm(ref[:, None, :] - M[None, :, :], axis=-1)  # (N, L)
+            d = ref[:, None, :] - M[None, :, :]
+            D = np.sqrt(np.add.reduce(d * d, axis=-1))  # (N, L): np.linalg.norm(d, axis=-1), without its wrapper
             if np.isfinite(D).all():
                 self._associate(D.tolist(), O.tolist(), match)
             else:  # a diverged track (NaN distances): numpy's argmin rules for NaN
@@ -236,16 +251,16 @@ class MultiTargetTracker(Estimator):
                     if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
                         match[best] = j
         visible = match >= 0
-        z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
-        mp = MeasurementPrediction(
-            expected=xp @ self.C.T, H0=self.C, noise=self.R[None], valid=np.repeat(visible[:, None], 2, axis=1)
-        )
+        if visible.all():  # every target matched: the masks below select everything (the same numbers)
+            z = M[match]
+            valid, new_O, new_last = None, np.zeros_like(O), z
+        else:
+            z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
+            valid = np.repeat(visible[:, None], 2, axis=1)
+            new_O, new_last = np.where(visible, 0, O + 1), np.where(visible[:, None], z, last_meas)
+        mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
         xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
-        new = {
-            "O": np.where(visible, 0, O + 1),
-            "visible": visible,
-            "last_meas": np.where(visible[:, None], z, last_meas),
-        }
+        new = {"O": new_O, "visible": visible, "last_meas": new_last}
         return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
 
     def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
@@ -254,7 +269,7 @@ class MultiTargetTracker(Estimator):
         M = self._frame(detections)
         k = state.k + 1
         x, P, _, carry, _, _, extras = self._step_arrays(
-            k, state.x, state.P, None, state.carry, None, None, {"frame": M}
+            k, state.x, state.P, None, state.carry, None, None, {"frame": M, "finite": True}
         )
         return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=4, carry=carry, extras=extras)
 
