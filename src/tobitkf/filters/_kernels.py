@@ -478,6 +478,48 @@ def _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, W, d, bad, Rs, Ws, Ks, oks, R
 
 
 @njit(cache=True, error_model="numpy")
+def _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
+    r"""The moments of a scaled update for a block of runs (the runs on the last axis):
+    :math:`R_{xe} = \bar P C^T \Gamma`, :math:`R_{ee} = \Gamma C \bar P C^T \Gamma + N` with
+    :math:`\Gamma = \mathrm{diag}(\gamma)` (for the TKF (3.39), (3.40); for the fading TKF (24)-(26) with
+    C the augmented measurement matrix, whose zero entries are skipped). A channel takes part
+    (``ok``) when its innovation variance is positive and its innovation ``e`` not NaN; the
+    innovation of one that does not is set to 0. Writes ``CP`` (m, dim, nb), ``Rxe``, ``Ree``,
+    ``ok``, ``e`` in place."""
+    m, dim = C.shape
+    for l in range(m):
+        for j in range(dim):
+            for b in range(nb):
+                CP[l, j, b] = 0.0
+            for k in range(dim):
+                c = C[l, k]
+                if c != 0.0:
+                    for b in range(nb):
+                        CP[l, j, b] += c * Pp[k, j, b]
+    for l in range(m):
+        for j in range(dim):
+            for b in range(nb):
+                Rxe[j, l, b] = CP[l, j, b] * gam[l, b]
+        for q in range(m):
+            for b in range(nb):
+                Ree[l, q, b] = 0.0
+            for k in range(dim):
+                c = C[q, k]
+                for b in range(nb):
+                    Ree[l, q, b] += CP[l, k, b] * c
+            for b in range(nb):
+                Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
+        for b in range(nb):
+            Ree[l, l, b] += noise[l, l, b]
+    for l in range(m):
+        for b in range(nb):
+            good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
+            ok[l, b] = good
+            if not good:
+                e[l, b] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
     r""":math:`P = \mathrm{sym}(\bar P - K R_{xe}^T)`, or the Joseph form
     :math:`(I-KH)\bar P(I-KH)^T + K\,\mathrm{noise}\,K^T` (``noise`` (m, m, BLOCK))."""
@@ -659,38 +701,12 @@ def tkf_kernel(
                     if want_ey:
                         s_ey[b, tt, l] = st[6]
             # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
-            for l in range(m):
-                for j in range(n):
+            _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
+            if joseph:
+                for l in range(m):
                     for b in range(nb):
-                        CP[l, j, b] = 0.0
-                    for k in range(n):
-                        c = C[l, k]
-                        for b in range(nb):
-                            CP[l, j, b] += c * Pp[k, j, b]
-            for l in range(m):
-                for j in range(n):
-                    for b in range(nb):
-                        Rxe[j, l, b] = CP[l, j, b] * gam[l, b]
-                for q in range(m):
-                    for b in range(nb):
-                        Ree[l, q, b] = 0.0
-                    for k in range(n):
-                        c = C[q, k]
-                        for b in range(nb):
-                            Ree[l, q, b] += CP[l, k, b] * c
-                    for b in range(nb):
-                        Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
-                for b in range(nb):
-                    Ree[l, l, b] += noise[l, l, b]
-            for l in range(m):
-                for b in range(nb):
-                    good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
-                    ok[l, b] = good
-                    if not good:
-                        e[l, b] = 0.0
-                    if joseph:
                         for j in range(n):
-                            H[l, j, b] = C[l, j] * gam[l, b] if good else 0.0
+                            H[l, j, b] = C[l, j] * gam[l, b] if ok[l, b] else 0.0
             if m > 1:
                 _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
             else:

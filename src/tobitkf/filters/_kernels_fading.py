@@ -30,12 +30,21 @@ run by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); 
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
 
-from ._kernels import _TINY, BLOCK, CHUNK, _flush, _gain, _load, _rows, _store_last, _symmetrize, censored_stats
+from ._kernels import (
+    BLOCK,
+    CHUNK,
+    _flush,
+    _gain,
+    _innovation_moments,
+    _load,
+    _rows,
+    _store_last,
+    _symmetrize,
+    censored_stats,
+)
 
 __all__ = ["fading_tkf_kernel", "shift_predict_block", "update_cov_block"]
 
@@ -239,36 +248,7 @@ def fading_tkf_kernel(
                         s_ey[b, tt, l] = st[6]
                         s_lam[b, tt, l] = st[3]
             # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
-            for l in range(m):
-                for j in range(nxi):
-                    for b in range(nb):
-                        CP[l, j, b] = 0.0
-                    for q in range(nxi):
-                        c = C[l, q]
-                        if c != 0.0:
-                            for b in range(nb):
-                                CP[l, j, b] += c * Pp[q, j, b]
-            for l in range(m):
-                for j in range(nxi):
-                    for b in range(nb):
-                        Rxe[j, l, b] = CP[l, j, b] * gam[l, b]
-                for q in range(m):
-                    for b in range(nb):
-                        Ree[l, q, b] = 0.0
-                    for j in range(nxi):
-                        c = C[q, j]
-                        for b in range(nb):
-                            Ree[l, q, b] += CP[l, j, b] * c
-                    for b in range(nb):
-                        Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
-                for b in range(nb):
-                    Ree[l, l, b] += noise[l, l, b]
-            for l in range(m):
-                for b in range(nb):
-                    good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
-                    ok[l, b] = good
-                    if not good:
-                        e[l, b] = 0.0
+            _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
             _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)  # (23), (19)
             update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
             if want_m:
