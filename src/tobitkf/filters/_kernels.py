@@ -364,6 +364,36 @@ def _solve_gain(Ree, Rxe, ok, K, W, d):
 
 
 @njit(cache=True, error_model="numpy")
+def _gain_of_run(Rxe, Ree, ok, K, b, Rs, Ws, Ks, oks, Rxs, ds):
+    """The masked gain of run ``b`` of a block by :func:`_solve_gain` (partial pivoting), copied out
+    into the scratch ``Rs``, ``Rxs``, ``oks`` and back into ``K[:, :, b]``."""
+    n, m = Rxe.shape[0], Rxe.shape[1]
+    for i in range(m):
+        oks[i] = ok[i, b]
+        for j in range(m):
+            Rs[i, j] = Ree[i, j, b]
+    for i in range(n):
+        for j in range(m):
+            Rxs[i, j] = Rxe[i, j, b]
+    _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
+    for i in range(n):
+        for j in range(m):
+            K[i, j, b] = Ks[i, j]
+
+
+@njit(cache=True, error_model="numpy")
+def _mean_update(K, e, xp, x, nb):
+    r""":math:`\hat x = \bar x + K e` for a block of runs (the runs on the last axis)."""
+    n, m = K.shape[0], K.shape[1]
+    for i in range(n):
+        for b in range(nb):
+            x[i, b] = xp[i, b]
+        for l in range(m):
+            for b in range(nb):
+                x[i, b] += K[i, l, b] * e[l, b]
+
+
+@njit(cache=True, error_model="numpy")
 def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds):
     r"""Block gain and mean update: :math:`K = R_{xe}R_{ee}^{-1}` (masked), :math:`\hat x = \bar x + Ke`.
 
@@ -377,23 +407,8 @@ def _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds):
                 K[i, 0, b] = (Rxe[i, 0, b] if good else 0.0) / r
     else:
         for b in range(nb):
-            for i in range(m):
-                oks[i] = ok[i, b]
-                for j in range(m):
-                    Rs[i, j] = Ree[i, j, b]
-            for i in range(n):
-                for j in range(m):
-                    Rxs[i, j] = Rxe[i, j, b]
-            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
-            for i in range(n):
-                for j in range(m):
-                    K[i, j, b] = Ks[i, j]
-    for i in range(n):
-        for b in range(nb):
-            x[i, b] = xp[i, b]
-        for l in range(m):
-            for b in range(nb):
-                x[i, b] += K[i, l, b] * e[l, b]
+            _gain_of_run(Rxe, Ree, ok, K, b, Rs, Ws, Ks, oks, Rxs, ds)
+    _mean_update(K, e, xp, x, nb)
 
 
 @njit(cache=True, error_model="numpy")
@@ -458,23 +473,8 @@ def _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, W, d, bad, Rs, Ws, Ks, oks, R
                 K[i, j, b] = W[j, i, b] * d[j, b]
     for b in range(nb):
         if bad[b]:
-            for i in range(m):
-                oks[i] = ok[i, b]
-                for j in range(m):
-                    Rs[i, j] = Ree[i, j, b]
-            for i in range(n):
-                for j in range(m):
-                    Rxs[i, j] = Rxe[i, j, b]
-            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
-            for i in range(n):
-                for j in range(m):
-                    K[i, j, b] = Ks[i, j]
-    for i in range(n):
-        for b in range(nb):
-            x[i, b] = xp[i, b]
-        for l in range(m):
-            for b in range(nb):
-                x[i, b] += K[i, l, b] * e[l, b]
+            _gain_of_run(Rxe, Ree, ok, K, b, Rs, Ws, Ks, oks, Rxs, ds)
+    _mean_update(K, e, xp, x, nb)
 
 
 @njit(cache=True, error_model="numpy")
