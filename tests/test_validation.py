@@ -212,3 +212,45 @@ def test_filter_inputs_batch_mismatch():
         KalmanFilter(sys).filter(np.zeros((3, 4, 1)), u=np.zeros((2, 4, 1)))
     with pytest.raises(ShapeError, match=r"u: expected \(\.\.\., 4, 1\)"):
         TobitKalmanFilter(sys, Censoring()).filter(np.zeros((4, 1)), u=np.zeros((5, 1)))
+
+
+@pytest.mark.parametrize("size", [1, 2, 4, 5, 9])
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf, None])
+def test_check_finite_small_and_large_arrays_agree(size, bad):
+    """Up to 4 entries take a Python-float route (the online step's reading); the verdict and the message
+    are those of the array route."""
+    arr = np.arange(float(size))
+    if bad is not None:
+        arr[-1] = bad
+    for allow_nan in (False, True):
+        for allow_inf in (False, True):
+            expect = None
+            if bad is not None and np.isnan(bad) and not allow_nan:
+                expect = "found NaN"
+            elif bad is not None and np.isinf(bad) and not allow_inf:
+                expect = "found inf"
+            if expect is None:
+                check_finite(arr, "y", allow_nan=allow_nan, allow_inf=allow_inf)
+            else:
+                with pytest.raises(ValidationError, match=f"y: expected finite numbers, {expect}"):
+                    check_finite(arr, "y", allow_nan=allow_nan, allow_inf=allow_inf)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 2), (2, 2), (3, 2)])
+def test_check_reading_float_route_agrees(shape):
+    """One reading of up to 4 entries is checked on Python floats: same verdict and message as the arrays."""
+    import tobitkf as tk
+
+    m = shape[-1]
+    cens = tk.Censoring(lower=[0.0] * m, upper=[1.0] * m)
+    ok = np.full(shape, 0.5)
+    ok[0, 0] = np.nan  # missing: not checked
+    cens.check_reading(ok, 3)
+    cens.check_reading(ok, 3)  # the cached bounds
+    for value in (-1e-3, 1.0 + 1e-3):
+        bad = np.full(shape, 0.5)
+        bad[-1, -1] = value
+        with pytest.raises(ValidationError, match=f"channel {m - 1} lies outside its censoring limits"):
+            cens.check_reading(bad, 3)
+    edge = np.full(shape, 1.0 + 1e-10)  # inside the tolerance band of the limit
+    cens.check_reading(edge, 3)

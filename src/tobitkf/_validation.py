@@ -7,6 +7,7 @@ boundary (constructors, ``filter``, ``simulate``), never inside a time loop.
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from collections.abc import Callable, Iterable
@@ -223,6 +224,13 @@ def check_memory(nbytes: int, name: str, what: str) -> None:
 
 def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_inf: bool = False) -> None:
     """Raise if ``arr`` holds NaN (unless allowed) or +-inf (unless allowed)."""
+    if arr.size <= 4 and arr.dtype == np.float64:  # one reading of an online step: Python floats, same verdict
+        vals = arr.ravel().tolist()
+        if not allow_nan and any(v != v for v in vals):
+            raise ValidationError(f"{name}: expected finite numbers, found NaN")
+        if not allow_inf and any(v in (math.inf, -math.inf) for v in vals):
+            raise ValidationError(f"{name}: expected finite numbers, found inf")
+        return
     if not allow_nan and np.isnan(arr).any():
         raise ValidationError(f"{name}: expected finite numbers, found NaN")
     if not allow_inf and np.isinf(arr).any():

@@ -472,7 +472,7 @@ def test_fading_variance_term_adds_gamma2_D():
     fad0 = RiceFading.gaussian(2, MEANS, 0.0)
     # (both on the numpy path: the option is not compiled, and the kernel equals numpy to rounding only)
     a = FadingTobitKalmanFilter(sys, fad0, cens, backend="numpy").filter(d.y)
-    b = FadingTobitKalmanFilter(sys, fad0, cens, fading_variance_term=True).filter(d.y)
+    b = FadingTobitKalmanFilter(sys, fad0, cens, fading_variance_term=True, backend="numpy").filter(d.y)
     np.testing.assert_array_equal(a.mean, b.mean)
 
 

@@ -491,8 +491,9 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     with pytest.raises(ValidationError, match=f"does not cover {match}"):
         kalman_filter(sys_, y, u=u, backend="numba")
     monkeypatch.setattr(_backend, "_load", lambda: _Trap())
-    assert_results_equal(tobit_kalman_filter(sys_, cens, y, u=u), ref_t, 0.0)
-    assert_results_equal(kalman_filter(sys_, y, u=u), ref_k, 0.0)
+    # not the block kernel (the trap), but the compiled shared step around the numpy moments: equal to rounding
+    assert_results_equal(tobit_kalman_filter(sys_, cens, y, u=u), ref_t, 1e-12)
+    assert_results_equal(kalman_filter(sys_, y, u=u), ref_k, 1e-12)
 
 
 def test_without_numba(monkeypatch):

@@ -226,7 +226,8 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
         FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **opts).filter(y, **call)
     monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
     auto = FadingTobitKalmanFilter(sys_, fad, cens, **opts).filter(y, **call)
-    assert_results_equal(auto, ref, 0.0)
+    # not the fading kernel (it raises), but the compiled shared step around the numpy moments: equal to rounding
+    assert_results_equal(auto, ref, 1e-12)
 
 
 def test_square_root_form_falls_back_or_is_refused(monkeypatch):
@@ -320,4 +321,4 @@ def test_online_step_with_input_runs_numpy(monkeypatch):
     sa, sb = auto.init(), ref.init()
     for k in range(6):
         sa, sb = auto.step(sa, y[k], u=[1.0]), ref.step(sb, y[k], u=[1.0])
-        np.testing.assert_array_equal(sa.x, sb.x)
+        np.testing.assert_allclose(sa.x, sb.x, rtol=0, atol=1e-12)  # the compiled shared step: equal to rounding

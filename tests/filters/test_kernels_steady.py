@@ -206,4 +206,4 @@ def test_controlled_limit_tkf_has_no_kernel():
         ControlledLimitTobitKalmanFilter(sys_, 0.7, backend="numba").filter(y)
     auto = ControlledLimitTobitKalmanFilter(sys_, 0.7).filter(y)
     ref = ControlledLimitTobitKalmanFilter(sys_, 0.7, backend="numpy").filter(y)
-    assert_results_equal(auto, ref, 0.0)
+    assert_results_equal(auto, ref, 1e-12)  # the compiled shared step around the numpy moments

@@ -45,6 +45,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any, Mapping, cast
 
 import numpy as np
@@ -400,12 +401,21 @@ def qr_r(M: np.ndarray) -> np.ndarray:
     return cast(np.ndarray, np.linalg.qr(M, mode="r"))
 
 
-def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: Transition, form: str):
+def time_update(
+    x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: Transition, form: str, *, compiled: bool = False
+):
     """The one predict of every Gaussian family: ``(x̄, P̄, S̄)`` from ``(x, P, S)`` and a :class:`Transition`.
 
     ``form`` is the covariance form (``"standard"``/``"joseph"`` propagate P, ``"square_root"`` S
-    and P = S S^T). A fixed covariance (``tr.P_fixed``) is returned as is.
+    and P = S S^T). A fixed covariance (``tr.P_fixed``) is returned as is. ``compiled=True`` runs the
+    compiled form (:func:`tobitkf.filters._kernels_core.time_update_runs`, equal to rounding) when numba
+    imports and the case is covered (standard or Joseph form, one covariance per run), else this numpy code.
     """
+    if compiled and P is not None and _compiled_covers(x, P, form) and tr.P_fixed is None:
+        kern = _core_kernels()
+        if kern is not None:
+            xp, Pp = _compiled_time_update(kern, x, P, tr)
+            return xp, Pp, None
     if tr.P_fixed is not None:
         return (_shift_mean(x, tr) if tr.shift else x @ tr.A.T + tr.b), tr.P_fixed, None
     if form == "square_root":
@@ -429,6 +439,98 @@ def time_update(x: np.ndarray, P: np.ndarray | None, S: np.ndarray | None, tr: T
     else:
         xp, Pp = predict(x, P, tr.A, tr.Qd, tr.b)
     return xp, Pp, None
+
+
+def _core_kernels():
+    """The compiled shared step (:mod:`tobitkf.filters._kernels_core`), or None when the filters' kernels
+    cannot be compiled (:func:`tobitkf.filters._backend.numba_available`)."""
+    from . import _backend
+
+    return _load_core() if _backend.numba_available() else None
+
+
+@lru_cache(maxsize=1)
+def _load_core():
+    try:
+        from . import _kernels_core
+    except ImportError:
+        return None
+    return _kernels_core
+
+
+def _compiled_covers(x: np.ndarray, P: np.ndarray | None, form: str) -> bool:
+    """Whether the compiled shared step covers this case: the standard or Joseph form with one covariance
+    per run (a covariance shared by the runs, P (1, n, n) for N > 1, stays on numpy, which keeps it shared)."""
+    return form != "square_root" and P is not None and P.ndim == 3 and P.shape[0] == x.shape[0]
+
+
+def _f64(a: Any) -> np.ndarray:
+    """``a`` as a C-contiguous, writeable float64 array: the one array type the compiled step is compiled for
+    (a read-only or strided input would compile another specialization, tens of seconds on a loaded machine)."""
+    arr = np.ascontiguousarray(a, dtype=np.float64)
+    return arr if arr.flags.writeable else arr.copy()
+
+
+def _compiled_time_update(kern, x: np.ndarray, P: np.ndarray, tr: Transition):
+    N, nx = x.shape
+    A = _f64(tr.A)
+    n = A.shape[0]
+    b = tr.b
+    if isinstance(b, np.ndarray) and b.ndim == 2:
+        bvec = _f64(b)
+    else:
+        bvec = np.zeros((1, n)) if (np.isscalar(b) and b == 0.0) else _f64(np.broadcast_to(b, (1, n)))
+    xp, Pp = np.empty((N, nx)), np.empty((N, nx, nx))
+    kern.time_update_runs(_f64(x), _f64(P), A, _f64(tr.Qd), bvec, int(tr.source) if tr.shift else 0, xp, Pp)
+    return xp, Pp
+
+
+_ONES: dict[int, np.ndarray] = {}
+_NO_ROWS: dict[tuple[int, str], np.ndarray] = {}
+
+
+def _compiled_measurement_update(kern, x: np.ndarray, P: np.ndarray, innov, valid, mp: MeasurementPrediction, joseph):
+    N, nx = x.shape
+    m = mp.H0.shape[0]
+    if mp.scale is None:
+        scale = _ONES.get(m)
+        if scale is None:
+            scale = _ONES[m] = np.ones((1, m))
+    else:
+        scale = _f64(mp.scale).reshape(-1, m)
+    noise = _f64(mp.noise)
+    diag = noise.ndim == 2
+    if diag:
+        noise = noise.reshape(noise.shape[0], m, 1)
+    valid = _no_rows(m, "b") if valid is None else np.ascontiguousarray(valid, dtype=np.bool_)
+    retained = _no_rows(m, "f") if mp.retained is None else _f64(mp.retained).reshape(-1, m)
+    xn, Pn = np.empty((N, nx)), np.empty((N, nx, nx))
+    K, Ree = np.empty((N, nx, m)), np.empty((N, m, m))
+    kern.measurement_update_runs(
+        _f64(x),
+        _f64(P),
+        _f64(innov),
+        valid,
+        _f64(mp.H0),
+        scale,
+        noise,
+        bool(diag),
+        retained,
+        bool(joseph),
+        xn,
+        Pn,
+        K,
+        Ree,
+    )
+    return xn, Pn, None, K, Ree
+
+
+def _no_rows(m: int, kind: str) -> np.ndarray:
+    """An empty (0, m) array (bool for ``kind`` "b"): the kernels' "not given"."""
+    arr = _NO_ROWS.get((m, kind))
+    if arr is None:
+        arr = _NO_ROWS[(m, kind)] = np.empty((0, m), dtype=bool if kind == "b" else np.float64)
+    return arr
 
 
 def _shift_mean(x: np.ndarray, tr: Transition) -> np.ndarray:
@@ -649,6 +751,8 @@ def measurement_update(
     y: np.ndarray,
     mp: MeasurementPrediction,
     form: str = "standard",
+    *,
+    compiled: bool = False,
 ):
     r"""The one measurement update of every Gaussian family, in the covariance form ``form``.
 
@@ -671,6 +775,10 @@ def measurement_update(
     x : (N, n_x) ; P : (N or 1, n_x, n_x) ; S : (N or 1, n_x, n_x) or None ; y : (N, m)
     mp : MeasurementPrediction
     form : {"standard", "joseph", "square_root"}
+    compiled : bool, default False
+        Run the compiled form (:func:`tobitkf.filters._kernels_core.measurement_update_runs`, equal to
+        rounding) when numba imports and the case is covered (the standard or Joseph form, one covariance
+        per run, no fixed gain), else this numpy code.
 
     Returns
     -------
@@ -686,6 +794,11 @@ def measurement_update(
     if mp.gain is not None:
         e = innov if valid is None else np.where(valid, innov, 0.0)
         return x + e @ mp.gain.T, (P if mp.posterior_cov is None else mp.posterior_cov), S, mp.gain, None
+    if compiled and _compiled_covers(x, P, form) and mp.H0.ndim == 2:
+        kern = _core_kernels()
+        if kern is not None:
+            assert P is not None
+            return _compiled_measurement_update(kern, x, P, innov, valid, mp, form == "joseph")
     if form == "square_root":
         H = mp.H0[None] if mp.scale is None else mp.H0[None] * mp.scale[:, :, None]
         noise = mp.noise
@@ -956,6 +1069,15 @@ class Estimator:
         them overrides this; by default they are not looked at)."""
         return self._fast_filter(y2, u2, state, want, batch)
 
+    def _compiled_core(self) -> bool:
+        """Whether the shared predict and update run compiled (:mod:`tobitkf.filters._kernels_core`):
+        numba imports and the estimator's ``backend`` (``"auto"`` for the families without the option) is not
+        ``"numpy"``. Decided once per estimator."""
+        cached = self.__dict__.get("_core_compiled")
+        if cached is None:
+            cached = self._core_compiled = getattr(self, "backend", "auto") != "numpy" and _core_kernels() is not None
+        return cached
+
     def _fast_step(self, state: FilterState, y: np.ndarray, u, options) -> FilterState | None:
         """A compiled single step, or None (the numpy step runs)."""
         return None
@@ -1143,9 +1265,10 @@ class GaussianFilter(Estimator):
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
         """One predict + update on arrays: returns ``(x, P, S, carry, x̄, P̄, extras)``."""
         tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
+        fast = self._compiled_core()
+        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update, compiled=fast)
         mp, carry = self._measurement(k, xp, Pp, y, u, carry, **(options or {}))
-        xn, Pn, Sn, K, Ree = measurement_update(xp, Pp, Sp, y, mp, self.covariance_update)
+        xn, Pn, Sn, K, Ree = measurement_update(xp, Pp, Sp, y, mp, self.covariance_update, compiled=fast)
         return xn, Pn, Sn, carry, xp, Pp, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree, options or {})
 
     def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
@@ -1155,7 +1278,7 @@ class GaussianFilter(Estimator):
         uk = self._step_input(state, u)
         k = state.k + 1
         tr = self._transition(k, uk, state.carry)
-        xp, Pp, Sp = time_update(state.x, state.P, state.S, tr, self.covariance_update)
+        xp, Pp, Sp = time_update(state.x, state.P, state.S, tr, self.covariance_update, compiled=self._compiled_core())
         carry = dict(state.carry)
         carry["_predicted"] = True
         if uk is not None:
@@ -1175,7 +1298,9 @@ class GaussianFilter(Estimator):
         uk = state.carry.get("_u")
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
-            x, P, S, K, Ree = measurement_update(state.x, state.P, state.S, yk, mp, self.covariance_update)
+            x, P, S, K, Ree = measurement_update(
+                state.x, state.P, state.S, yk, mp, self.covariance_update, compiled=self._compiled_core()
+            )
         x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
         extras = self._extras(state.k, state.x, state.P, x, P, mp, K, Ree, opts)
         return FilterState(

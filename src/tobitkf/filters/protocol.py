@@ -83,11 +83,13 @@ from .._validation import (
     check_instance,
     check_int,
     check_memory,
+    check_option,
     check_psd,
 )
-from ..censored import CensoredMoments, _small_moments, unchecked_moments
+from ..censored import _small_moments, unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS, kernels
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
 from .kalman import LinearGaussianFamily
 
@@ -246,15 +248,12 @@ def protocol_measurement(
 def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term, X):
     """:func:`protocol_measurement` with the per-sensor constants ``sd`` = sqrt(r), ``H`` = lam_mean Cc and
     ``H0`` = H[None, :] given (the filter computes them once per sensor)."""
+    if xi_pred.shape[0] == 1 and failure_term != "lmmse_unconditional":
+        one = _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term)
+        if one is not None:
+            return one
     zeta = xi_pred @ H
-    st = None
-    if zeta.shape == (1,):
-        # one run (the online step): the scalar route of unchecked_moments called directly, the same numbers
-        row = _small_moments(float(zeta[0]), float(sd), float(tau), math.inf)
-        if row is not None:
-            st = CensoredMoments(*np.array(row).reshape(8, 1))
-    if st is None:
-        st = unchecked_moments(zeta, sd, tau, np.inf)
+    st = unchecked_moments(zeta, sd, tau, np.inf)
     lam = st.inverse_mills
     noise = np.maximum(st.truncated_var, _TINY * r)  # R (1 - phi), floored
     F = _failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, X)
@@ -277,6 +276,43 @@ def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_
     }
     return MeasurementPrediction(
         expected=yhat[:, None], H0=H0, noise=(F + noise)[:, None], valid=g[:, None], extras=extras
+    )
+
+
+def _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term):
+    """:func:`_prediction` of one run (the online step) on Python floats: the same equations (21)-(24) in the
+    same order, the censored moments from the scalar route of :func:`~tobitkf.censored.unchecked_moments`
+    (tested equal to the array route to 1e-13). None when that route does not apply (the array code runs)."""
+    xi = xi_pred[0]
+    zeta = float(xi @ H)
+    row = _small_moments(zeta, float(sd), float(tau), math.inf)
+    if row is None:
+        return None
+    gam_u, lam, tvar = row[2], row[3], row[5]
+    noise = max(tvar, _TINY * r)  # R (1 - phi), floored
+    CPC = float((P_pred[0] @ Cc) @ Cc)
+    if failure_term == "variance":
+        F = lam_var * CPC
+    elif failure_term == "literal":
+        F = (lam_mean**2 + lam_var) * CPC
+    else:  # second_moment
+        F = lam_var * (CPC + float(xi @ Cc) ** 2)
+    yhat = zeta + sd * lam  # (21), gamma = 1
+    g = bool(np.asarray(gamma).reshape(-1)[0])
+    theta = (tau - zeta) / sd if math.isfinite(tau) else math.copysign(math.inf, tau)
+    y0 = float(y[0])
+    extras = {
+        "theta_bar": np.array([theta]),
+        "inverse_mills": np.array([lam]),
+        "trunc_var_factor": np.array([1.0 - noise / r]),
+        "expected_y": np.array([yhat if g else tau]),
+        "innovation": np.array([y0 - yhat if g else 0.0]),
+        "p_uncensored": np.array([gam_u]),
+        "_noise": np.array([noise]),
+        "_gamma": np.array([g]),
+    }
+    return MeasurementPrediction(
+        expected=np.array([[yhat]]), H0=H0, noise=np.array([[F + noise]]), valid=np.array([[g]]), extras=extras
     )
 
 
@@ -363,11 +399,18 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         Joseph form (App. D (44), the source's), (20), or the QR array form (not in the source).
     P0_aug : array_like, optional
         :math:`M_0`.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        The shared predict and update (standard and Joseph forms) compiled
+        (:mod:`tobitkf.filters._kernels_core`, equal to the numpy path to rounding) when numba imports
+        (``"auto"``), always (``"numba"``), or the numpy reference path (``"numpy"``). The moments (21)-(24)
+        are computed in numpy either way.
 
     Raises
     ------
     ValidationError
         Unknown option or wrong argument types.
+    ImportError
+        ``backend="numba"`` without numba installed.
 
     Notes
     -----
@@ -390,8 +433,13 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         P0_aug: Any = None,
         prehistory_mean: str | None = None,
         check_limits: bool = True,
+        backend: str = "auto",
     ):
         prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean)
+        check_option(backend, "backend", BACKENDS)
+        if backend == "numba":
+            kernels()  # raises ImportError without numba
+        self.backend = backend
         _check_parts(system, channel)
         self._setup_system(system)
         self.m = 1
