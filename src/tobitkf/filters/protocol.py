@@ -86,7 +86,7 @@ from .._validation import (
     check_option,
     check_psd,
 )
-from ..censored import _small_moments, unchecked_moments
+from ..censored import CensoredMoments, _small_moments, unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels
@@ -245,15 +245,31 @@ def protocol_measurement(
     )
 
 
-def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term, X):
+def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term, X, compiled=False):
     """:func:`protocol_measurement` with the per-sensor constants ``sd`` = sqrt(r), ``H`` = lam_mean Cc and
-    ``H0`` = H[None, :] given (the filter computes them once per sensor)."""
+    ``H0`` = H[None, :] given (the filter computes them once per sensor). ``compiled``: the censored moments of
+    several runs from the compiled statistics of the TKF kernel
+    (:func:`tobitkf.filters._kernels.censored_moments_array`, equal to :func:`~tobitkf.censored.unchecked_moments`
+    to rounding) instead of the array code."""
     if xi_pred.shape[0] == 1 and failure_term != "lmmse_unconditional":
         one = _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term)
         if one is not None:
             return one
     zeta = xi_pred @ H
-    st = unchecked_moments(zeta, sd, tau, np.inf)
+    if compiled and np.isfinite(zeta).all():
+        kern = kernels()
+        K = zeta.shape[0]
+        rows = kern.censored_moments_array(
+            np.ascontiguousarray(zeta, dtype=float),
+            np.full(K, float(sd)),
+            np.full(K, float(tau)),
+            np.full(K, math.inf),
+            kern.GL_X,
+            kern.GL_W,
+        )
+        st = CensoredMoments(*rows)
+    else:
+        st = unchecked_moments(zeta, sd, tau, np.inf)
     lam = st.inverse_mills
     noise = np.maximum(st.truncated_var, _TINY * r)  # R (1 - phi), floored
     F = _failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, X)
@@ -402,8 +418,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     backend : {"auto", "numpy", "numba"}, default "auto"
         The shared predict and update (standard and Joseph forms) compiled
         (:mod:`tobitkf.filters._kernels_core`, equal to the numpy path to rounding) when numba imports
-        (``"auto"``), always (``"numba"``), or the numpy reference path (``"numpy"``). The moments (21)-(24)
-        are computed in numpy either way.
+        (``"auto"``), always (``"numba"``), or the numpy reference path (``"numpy"``); with the compiled step
+        the censored moments of (21)-(24) of a batch come from the TKF kernel's compiled statistics.
 
     Raises
     ------
@@ -550,7 +566,9 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         yk = y[:, 0]
         tau = self._tau
         gam = yk > tau if uncensored is None else uncensored[:, 0]
-        mp = _prediction(xp, Pp, yk, gam, Cc, r, sd, H, H0, tau, lam_mean, lam_var, self.failure_term, X)
+        mp = _prediction(
+            xp, Pp, yk, gam, Cc, r, sd, H, H0, tau, lam_mean, lam_var, self.failure_term, X, self._compiled_core()
+        )
         return mp, carry
 
     def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
