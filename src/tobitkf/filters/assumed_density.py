@@ -51,7 +51,7 @@ its (sequential) prior, ``log_likelihood`` = :math:`\sum_l \log p(y_k(l) \mid \t
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 from scipy.special import ndtr
@@ -72,7 +72,6 @@ from .core import (
     measurement_update,
     prepare_measurements,
     psd_sqrt,
-    time_update,
 )
 from .kalman import LinearGaussianFamily
 from .smoothing import SmoothingMethods
@@ -319,8 +318,9 @@ class AssumedDensityFamily(GaussianFilter):
     A family's measurement update is no linear (Kalman) update but the projection of the exact
     posterior onto a Gaussian (moment matching): ``_project(k, x̄, P̄, S̄, y, u, **step_options)`` →
     ``(x, P, S, extras)`` on arrays (N runs, no validation inside), with ``S`` the square-root factor
-    (None unless ``covariance_update="square_root"``). The time update is :func:`~tobitkf.filters.core.time_update`
-    of the family's ``_transition``. Taken by :class:`AssumedDensityTobitFilter`,
+    (None unless ``covariance_update="square_root"``). It replaces the Kalman-type update of
+    :class:`~tobitkf.filters.core.GaussianFilter` (the ``_update_arrays`` hook); the time update, :meth:`step`,
+    :meth:`predict` and :meth:`update` are the shared ones. Taken by :class:`AssumedDensityTobitFilter`,
     :class:`~tobitkf.filters.adf_fading.FadingAssumedDensityFilter`,
     :class:`~tobitkf.filters.adf_protocol.ProtocolAssumedDensityFilter` and
     :class:`~tobitkf.filters.adf_saturation.SaturationAssumedDensityFilter`.
@@ -329,28 +329,9 @@ class AssumedDensityFamily(GaussianFilter):
     def _project(self, k, xp, Pp, Sp, y, u, **options):  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        tr = self._transition(k, u, carry)
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update)
-        xn, Pn, Sn, extras = self._project(k, xp, Pp, Sp, y, u, **(options or {}))
-        return xn, Pn, Sn, carry, xp, Pp, extras
-
-    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: dict[str, Any]) -> None:
-        """Checks of :meth:`update`'s reading (N, m) beyond its shape; none unless a family adds them."""
-
-    def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
-        """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
-        if not state.carry.get("_predicted"):
-            raise ValidationError(
-                "state: update() needs a predicted state (from predict()); use step() for a filtered one"
-            )
-        yk = self._reading(state, y)
-        self._check_update_reading(state, yk, options)
-        opts = self._prepare_step_options(state, self._check_options(options))
-        carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
-        x, P, S, _ = self._project(state.k, state.x, state.P, state.S, yk, state.carry.get("_u"), **opts)
-        return FilterState(k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry)
+    def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
+        xn, Pn, Sn, extras = self._project(k, xp, Pp, Sp, y, u, **options)
+        return xn, Pn, Sn, carry, extras
 
     def filter(
         self,
@@ -535,7 +516,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
     def _project(self, k, xp, Pp, Sp, y, u, **options):
         return self._sequential(k, xp, Pp, Sp, y, u, **options)
 
-    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: dict[str, Any]) -> None:
+    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
         if self.check_limits and options.get("lower") is None and options.get("upper") is None:
             self.censoring.check_measurements(y[:, None], start=state.k)
 

@@ -1262,14 +1262,24 @@ class GaussianFilter(Estimator):
     def _extras(self, k: int, xp, Pp, x, P, mp: MeasurementPrediction, K, Ree, options) -> dict[str, Any] | None:
         return mp.extras
 
+    def _update_arrays(self, k: int, xp, Pp, Sp, y, u, carry, options):
+        """The measurement update on arrays: ``(x, P, S, carry, extras)`` from the prediction. The Kalman-type
+        update of :meth:`_measurement`'s moments; an assumed-density family replaces it by its projection."""
+        mp, carry = self._measurement(k, xp, Pp, y, u, carry, **options)
+        xn, Pn, Sn, K, Ree = measurement_update(
+            xp, Pp, Sp, y, mp, self.covariance_update, compiled=self._compiled_core()
+        )
+        return xn, Pn, Sn, carry, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree, options)
+
+    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
+        """Checks of :meth:`update`'s reading (N, m) beyond its shape; none unless a family adds them."""
+
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
         """One predict + update on arrays: returns ``(x, P, S, carry, x̄, P̄, extras)``."""
         tr = self._transition(k, u, carry)
-        fast = self._compiled_core()
-        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update, compiled=fast)
-        mp, carry = self._measurement(k, xp, Pp, y, u, carry, **(options or {}))
-        xn, Pn, Sn, K, Ree = measurement_update(xp, Pp, Sp, y, mp, self.covariance_update, compiled=fast)
-        return xn, Pn, Sn, carry, xp, Pp, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree, options or {})
+        xp, Pp, Sp = time_update(x, P, S, tr, self.covariance_update, compiled=self._compiled_core())
+        xn, Pn, Sn, carry, extras = self._update_arrays(k, xp, Pp, Sp, y, u, carry, options or {})
+        return xn, Pn, Sn, carry, xp, Pp, extras
 
     def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
         """The time update alone: the prediction :math:`\\hat x_{k+1|k}`, :math:`P_{k+1|k}` as a state
@@ -1293,16 +1303,13 @@ class GaussianFilter(Estimator):
                 "state: update() needs a predicted state (from predict()); use step() for a filtered one"
             )
         yk = self._reading(state, y)
+        self._check_update_reading(state, yk, options)
         opts = self._prepare_step_options(state, self._check_options(options))
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
         uk = state.carry.get("_u")
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
-            mp, carry = self._measurement(state.k, state.x, state.P, yk, uk, carry, **opts)
-            x, P, S, K, Ree = measurement_update(
-                state.x, state.P, state.S, yk, mp, self.covariance_update, compiled=self._compiled_core()
-            )
+            x, P, S, carry, extras = self._update_arrays(state.k, state.x, state.P, state.S, yk, uk, carry, opts)
         x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
-        extras = self._extras(state.k, state.x, state.P, x, P, mp, K, Ree, opts)
         return FilterState(
             k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
         )
