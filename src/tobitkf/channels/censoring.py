@@ -173,14 +173,14 @@ class Censoring(Channel):
             if not self.time_varying and rtol == 1e-9:
                 self._bounds = cached  # constant limits: the tolerance band is computed once
         lo_b, hi_b, lo, hi = cached
-        if y.size <= 4 and np.ndim(lo_b) <= 1 and np.ndim(hi_b) <= 1:  # one reading: Python floats, same verdict
-            m = y.shape[-1]
-            lists = self.__dict__.get("_bound_lists") if cached is self.__dict__.get("_bounds") else None
-            if lists is None or len(lists[0]) != m:
-                lists = (np.broadcast_to(lo_b, (m,)).tolist(), np.broadcast_to(hi_b, (m,)).tolist())
+        m = y.shape[-1]
+        if y.size <= 4:  # one reading: Python floats, same verdict
+            lists = self.__dict__.get("_bound_lists")
+            if lists is None or lists[0] is not cached or len(lists[1]) != m:
+                lists = (cached, np.broadcast_to(lo_b, (m,)).tolist(), np.broadcast_to(hi_b, (m,)).tolist())
                 if cached is self.__dict__.get("_bounds"):
-                    self._bound_lists = lists
-            lo_l, hi_l = lists
+                    self._bound_lists = lists  # the constant band as lists, made once
+            _, lo_l, hi_l = lists
             if not any(v < lo_l[i] or v > hi_l[i] for row in y.reshape(-1, m).tolist() for i, v in enumerate(row)):
                 return  # NaN (a missing reading) compares False
         bad = (y < lo_b) | (y > hi_b)  # NaN (a missing reading) compares False

@@ -62,6 +62,8 @@ Symbols: ``mean`` = x̂, ``cov`` = Ψ, ``p_uncensored`` = E(p) (the sources' γ)
 
 from __future__ import annotations
 
+import math
+
 from typing import Any
 
 import numpy as np
@@ -448,7 +450,7 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
         x_last,
         P_last,
     )
-    if not np.isfinite(P_last).all():
+    if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None
     return FilterState(
         k=state.k + 1,
