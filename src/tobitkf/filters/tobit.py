@@ -63,7 +63,6 @@ Symbols: ``mean`` = x̂, ``cov`` = Ψ, ``p_uncensored`` = E(p) (the sources' γ)
 from __future__ import annotations
 
 import math
-
 from typing import Any
 
 import numpy as np
