@@ -1,9 +1,9 @@
 """The compiled shared step (filters/_kernels_core.py) equals the numpy shared step (filters/core.py).
 
 Each case is run twice through the public functions, ``compiled=False`` (the numpy reference) and
-``compiled=True``, on random inputs that reach every branch: the plain and the block-shift predict (source
-0 and a pure delay), an input offset, one run and more runs than a kernel block (BLOCK = 32), one and
-several channels, the standard and Joseph forms, a diagonal and a full noise term, a per-run channel scale,
+``compiled=True``, on random inputs that reach every branch: the plain and the block-shift predict
+(source 0; a pure delay, source > 0, runs on numpy), an input offset, one run and more runs than a
+kernel block (BLOCK = 32), one and several channels, the standard and Joseph forms, a diagonal and a full noise term, a per-run channel scale,
 family masks, missing readings, a degenerate innovation variance and a retained variance.
 """
 

@@ -7,9 +7,11 @@ term, per-run channel scale, the masking rule, a retained variance) for N runs w
 each. They are an *implementation* of those numpy functions, not a second algorithm, and are built
 from the blocks of the TKF kernel (:mod:`tobitkf.filters._kernels`): the innovation moments
 (:func:`~tobitkf.filters._kernels._innovation_moments`), the masked gain and mean update
-(``_gain`` for one channel, the block solve ``_gain_block`` for several) and the covariance update
-(``_cov_update``); only the block-shift predict is new here. Results agree with the numpy path to
-rounding (tested to 1e-12).
+(``_gain`` for one channel, the block solve ``_gain_block`` for several), the covariance update
+(``_cov_update``), and the fading kernel's block-shift predict
+(:func:`~tobitkf.filters._kernels_fading.shift_predict_block`, the augmentation of the fading and
+protocol families; a pure-delay shift, ``source`` > 0, stays on numpy). Results agree with the numpy
+path to rounding (tested to 1e-12).
 
 Every Gaussian-update family whose online ``step`` (or Python time loop) runs the numpy step gets
 this path when numba imports and its ``backend`` is not ``"numpy"``: one call per predict and one
@@ -24,69 +26,18 @@ import numpy as np
 from numba import njit
 
 from ._kernels import BLOCK, _cov_update, _gain, _gain_block, _innovation_moments
+from ._kernels_fading import shift_predict_block
 
 __all__ = ["time_update_runs", "measurement_update_runs"]
 
 
 @njit(cache=True, error_model="numpy")
-def _shift_predict_block(A, Qd, source, xs, Ps, xp, Pp, X, nb):
-    r"""Block-shift predict of a block of runs (runs on the last axis), as
-    :func:`~tobitkf.filters.core.shift_predict`:
-    :math:`\bar\xi = [A\xi_s;\ \xi_0;\ \dots;\ \xi_{L-1}]`,
-    :math:`\bar P_{00} = \mathrm{sym}(AP_{ss}A^T) + \mathrm{sym}(Q_d)`, :math:`\bar P_{0,j+1} = AP_{s,j}`,
-    :math:`\bar P_{i+1,j+1} = P_{ij}`. With one block (n_x = n, ``source`` 0) it is the plain predict
-    :math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(APA^T + Q_d)`. The input offset b is added by the
-    caller. ``X`` (n_x, n, B) is scratch: :math:`X = P_{:,s}A^T`."""
-    n = A.shape[0]
-    nx = xs.shape[0]
-    s0 = source * n
-    for i in range(n):
-        for b in range(nb):
-            xp[i, b] = 0.0
-        for k in range(n):
-            a = A[i, k]
-            for b in range(nb):
-                xp[i, b] += a * xs[s0 + k, b]
-    for i in range(n, nx):
-        for b in range(nb):
-            xp[i, b] = xs[i - n, b]
-    for i in range(nx):
-        for j in range(n):
-            for b in range(nb):
-                X[i, j, b] = 0.0
-            for l in range(n):
-                a = A[j, l]
-                for b in range(nb):
-                    X[i, j, b] += Ps[i, s0 + l, b] * a
-    # top block T = A X[s]: T_ij = sum_l A_il X[s0 + l, j]; stored symmetrized, plus sym(Qd)
-    for i in range(n):
-        for j in range(i, n):
-            q = 0.5 * (Qd[i, j] + Qd[j, i])
-            for b in range(nb):
-                tij = 0.0
-                tji = 0.0
-                for l in range(n):
-                    tij += A[i, l] * X[s0 + l, j, b]
-                    tji += A[j, l] * X[s0 + l, i, b]
-                v = 0.5 * (tij + tji) + q
-                Pp[i, j, b] = v
-                Pp[j, i, b] = v
-    for i in range(nx - n):
-        for j in range(n):
-            for b in range(nb):
-                v = X[i, j, b]
-                Pp[n + i, j, b] = v
-                Pp[j, n + i, b] = v
-        for j in range(nx - n):
-            for b in range(nb):
-                Pp[n + i, n + j, b] = Ps[i, j, b]
-
-
-@njit(cache=True, error_model="numpy")
-def time_update_runs(x, P, A, Qd, bvec, source, xp_out, Pp_out):
-    r"""The predict of N runs: ``x`` (N, n_x), ``P`` (N, n_x, n_x), ``A`` (n, n) acting on block ``source``
-    (n = n_x, ``source`` 0: the plain predict), ``Qd`` (n, n), ``bvec`` (1 or N, n) the offset of the top
-    block; writes ``xp_out`` (N, n_x), ``Pp_out`` (N, n_x, n_x)."""
+def time_update_runs(x, P, A, Qd, bvec, xp_out, Pp_out):
+    r"""The predict of N runs by the fading kernel's block-shift predict
+    (:func:`~tobitkf.filters._kernels_fading.shift_predict_block`): ``x`` (N, n_x), ``P`` (N, n_x, n_x)
+    exactly symmetric, ``A`` (n, n) acting on the top block (n = n_x: the plain predict
+    :math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(APA^T + Q_d)`), ``Qd`` (n, n), ``bvec`` (1 or N, n)
+    the offset of the top block; writes ``xp_out`` (N, n_x), ``Pp_out`` (N, n_x, n_x)."""
     N, nx = x.shape
     n = A.shape[0]
     B = min(BLOCK, N)
@@ -103,7 +54,7 @@ def time_update_runs(x, P, A, Qd, bvec, source, xp_out, Pp_out):
                 xs[i, b] = x[r0 + b, i]
                 for j in range(nx):
                     Ps[i, j, b] = P[r0 + b, i, j]
-        _shift_predict_block(A, Qd, source, xs, Ps, xp, Pp, X, nb)
+        shift_predict_block(A, Qd, xs, Ps, xp, Pp, X, nb)
         for b in range(nb):
             rb = 0 if one_b else r0 + b
             for i in range(nx):

@@ -411,7 +411,7 @@ def time_update(
     compiled form (:func:`tobitkf.filters._kernels_core.time_update_runs`, equal to rounding) when numba
     imports and the case is covered (standard or Joseph form, one covariance per run), else this numpy code.
     """
-    if compiled and P is not None and _compiled_covers(x, P, form) and tr.P_fixed is None:
+    if compiled and P is not None and _compiled_covers(x, P, form) and tr.P_fixed is None and tr.source == 0:
         kern = _core_kernels()
         if kern is not None:
             xp, Pp = _compiled_time_update(kern, x, P, tr)
@@ -481,7 +481,7 @@ def _compiled_time_update(kern, x: np.ndarray, P: np.ndarray, tr: Transition):
     else:
         bvec = np.zeros((1, n)) if (np.isscalar(b) and b == 0.0) else _f64(np.broadcast_to(b, (1, n)))
     xp, Pp = np.empty((N, nx)), np.empty((N, nx, nx))
-    kern.time_update_runs(_f64(x), _f64(P), A, _f64(tr.Qd), bvec, int(tr.source) if tr.shift else 0, xp, Pp)
+    kern.time_update_runs(_f64(x), _f64(P), A, _f64(tr.Qd), bvec, xp, Pp)
     return xp, Pp
 
 
