@@ -76,6 +76,13 @@ __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
 _FEW_PAIRS = 24
 
 
+def _constant(M: np.ndarray) -> np.ndarray:
+    """A private read-only float copy of a model matrix."""
+    c = np.array(M, dtype=float)
+    c.setflags(write=False)
+    return c
+
+
 def constant_velocity_pixel_model() -> tuple[np.ndarray, np.ndarray]:
     """A (4, 4) and C (2, 4) of (2.10)–(2.11): per-frame constant velocity in pixels."""
     A = np.kron(np.eye(2), [[1.0, 1.0], [0.0, 1.0]])
@@ -153,12 +160,19 @@ class MultiTargetTracker(Estimator):
                 raise ShapeError(f"{name}: expected shape ({k}, {k}), got {M.shape}")
             check_psd(M, name, strict=(name == "R"))
         self.B = np.diag([mu, 1.0, mu, 1.0])
+        # the tracker's constants as private read-only copies: the predict below is memoized on them
+        self.A, self.C, self.Q, self.R, self.P0, self.B = map(
+            _constant, (self.A, self.C, self.Q, self.R, self.P0, self.B)
+        )
         self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
         self.feedback, self.second_map, self.gate = feedback, second_map, gate
         self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
         self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0)  # the predict of a frame without feedback
         self._feedback_free = feedback == "off"
         self._BT, self._CT = self.B.T, self.C.T
+        # (P.shape, P's bytes, P̄ = sym(A P A^T + Q), the input-free Transition with P_fixed = P̄ or None):
+        # the last covariance predict, reused when the next one starts from the same P bit for bit
+        self._last_predict: tuple | None = None
 
     def _feedback(self, x: np.ndarray, visible: np.ndarray) -> np.ndarray:
         N = x.shape[0]
@@ -279,11 +293,28 @@ class MultiTargetTracker(Estimator):
         O, visible, last_meas = carry["O"], carry["visible"], carry["last_meas"]
         # the feedback input is zero for every target without feedback, for one target, or with every
         # target visible in the corrected form: the predict then adds nothing (x + 0 is x)
-        if self._feedback_free or N < 2 or (self.feedback == "corrected" and all(visible.tolist())):
-            tr = self._no_input
+        input_free = self._feedback_free or N < 2 or (self.feedback == "corrected" and all(visible.tolist()))
+        # P̄ does not depend on the data: once the covariance stops changing (the Riccati recursion at
+        # its fixed point in floating point) every frame predicts the same P̄ from the same P, and the
+        # predict of the last frame is passed on as the Transition's fixed covariance (the mean is
+        # still A x + b, the same expression)
+        key, last = P.tobytes(), self._last_predict
+        if last is not None and last[0] == P.shape and last[1] == key:
+            if input_free:
+                if last[3] is None:
+                    last = self._last_predict = last[:3] + (Transition(A=self.A, Qd=self.Q, b=0.0, P_fixed=last[2]),)
+                tr = last[3]
+            else:
+                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT, P_fixed=last[2])
+            xp, Pp, _ = time_update(x, P, None, tr, "standard")
         else:
-            tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT)
-        xp, Pp, _ = time_update(x, P, None, tr, "standard")
+            if input_free:
+                tr = self._no_input
+            else:
+                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT)
+            xp, Pp, _ = time_update(x, P, None, tr, "standard")
+            Pp.setflags(write=False)  # shared by the frames that reuse it
+            self._last_predict = (P.shape, key, Pp, None)
         Cx = xp @ self._CT  # the predicted positions
         ref = last_meas if k - 1 < self.warmup else Cx
         Ol = O.tolist()
