@@ -36,8 +36,13 @@ identities); frames 1..T are tracked; output index k-1 holds frame k.
 On the shared core (:mod:`tobitkf.filters.core`): the targets are the runs of one batch, the predict is
 the shared :func:`~tobitkf.filters.core.time_update` with the feedback input :math:`Bu_i`, and the update
 the shared :func:`~tobitkf.filters.core.measurement_update` with :math:`H_0 = C` and only the matched
-targets taking part. Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)``
-with one frame of unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
+targets taking part. The covariance recursion does not depend on the detections, only on which
+targets are matched: the targets share one covariance (``state.P`` (1, 4, 4)) until a frame misses
+one of them, and a predict that starts from the covariance of the previous predict, bit for bit
+(the recursion at its floating-point fixed point), reuses its :math:`\bar P`.
+
+Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)`` with one frame of
+unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
 over the same step (one frame per row).
 """
 
@@ -116,6 +121,9 @@ class MultiTargetTracker(Estimator):
     feedback : {"corrected", "printed", "off"}, default "corrected"
     second_map : {"closest", "mutual"}, default "closest"
     gate : bool, default True   (False: no gating, for the comparison of Exp. 3)
+
+    The model matrices are kept as read-only copies (attributes ``A``, ``C``, ``Q``, ``R``, ``P0``,
+    ``B``): the steps reuse what was computed from them.
 
     Raises
     ------
