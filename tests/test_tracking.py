@@ -192,3 +192,15 @@ def test_reused_predict_equals_a_fresh_predict():
             assert np.array_equal(a, b) and np.array_equal(a, m)
         if not kw:  # the case does reach the fixed point (the printed feedback loses the targets)
             assert np.array_equal(reused[1][-1], reused[1][-2])
+
+
+def test_frame_check_of_a_float_array():
+    tr = MultiTargetTracker()
+    s = tr.init([[0.0, 0.0]])
+    big = np.full((2, 2), 1e308)  # finite points whose sum overflows: accepted
+    assert tr.step(s, big).extras["assignment"].tolist() == [-1]
+    for bad, word in ((np.array([[np.nan, 0.0]]), "NaN"), (np.array([[np.inf, 0.0]]), "inf")):
+        with pytest.raises(ValidationError, match=f"detections: .*{word}"):
+            tr.step(s, bad)
+    with pytest.raises(ShapeError, match="detections"):
+        tr.step(s, np.zeros((2, 3)))

@@ -334,7 +334,7 @@ class MultiTargetTracker(Estimator):
         assignment = np.array(match, dtype=int)
         if -1 not in match:  # every target matched: the masks below would select everything (the same numbers)
             z = M.take(assignment, axis=0)
-            valid, visible, new_O, new_last = None, np.ones(N, dtype=bool), np.zeros(N, dtype=O.dtype), z
+            valid, visible, new_O, new_last = None, np.array([True] * N), np.zeros(N, dtype=O.dtype), z
         else:
             visible = assignment >= 0
             z = np.where(visible[:, None], M[np.maximum(assignment, 0)] if len(M) else 0.0, 0.0)
