@@ -169,29 +169,52 @@ def test_list_association_equals_the_numpy_argmin_route(kw):
     assert MultiTargetTracker()._associate_nonfinite(D, np.zeros(3, dtype=int)) == [-1, -1, 1]
 
 
-def test_reused_predict_equals_a_fresh_predict():
-    # the covariance predict is reused when a frame starts from the same P bit for bit (all targets
-    # matched long enough for the recursion to stop changing); clearing the memo before every step,
-    # or interleaving another run on the same tracker, gives the same numbers
+_BLOCK_Q = np.kron(np.eye(2), [[0.02, 0.005], [0.005, 0.01]])
+
+
+@pytest.mark.parametrize(
+    "kw, fixed_gain",
+    [
+        ({}, True),
+        ({"Q": _BLOCK_Q, "R": np.diag([2.0, 0.5])}, True),  # decoupled x/y: one nonzero per gain row
+        ({"R": [[1.0, 0.4], [0.4, 0.8]]}, False),  # coupled channels: the full update every frame
+        ({"feedback": "printed", "mu": 0.5}, None),
+    ],
+)
+def test_reused_predict_and_update_equal_fresh_ones(kw, fixed_gain, monkeypatch):
+    # the covariance predict (and, for a decoupled model, the gain and posterior covariance) are
+    # reused when a frame starts from the same P bit for bit (all targets matched long enough for
+    # the recursion to stop changing); clearing the memos before every step, or interleaving another
+    # run on the same tracker, gives the same numbers
+    import tobitkf.filters.tracking as trk
+
     c = np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 0.0]])
     frames = np.random.default_rng(5).normal(size=(200, 3, 2)) * 0.5 + c
     start, other = _clutter_case(seed=7, N=3, T=200)
-    for kw in ({}, {"feedback": "printed", "mu": 0.5}):
-        tr = MultiTargetTracker(**kw)
-        reused = _run_steps(tr, tr.init(c), frames)
-        fresh, s = [], tr.init(c)
-        for f in frames:
-            tr._last_predict = None
-            s = tr.step(s, f)
-            fresh.append((s.mean, np.array(s.cov), s.extras["assignment"], s.extras["occluded_frames"]))
-        s, s2, mixed = tr.init(c), tr.init(start), []
-        for f, g in zip(frames, other):
-            s, s2 = tr.step(s, f), tr.step(s2, g)
-            mixed.append((s.mean, np.array(s.cov), s.extras["assignment"], s.extras["occluded_frames"]))
-        for a, b, m in zip(reused, [np.array(v) for v in zip(*fresh)], [np.array(v) for v in zip(*mixed)]):
-            assert np.array_equal(a, b) and np.array_equal(a, m)
-        if not kw:  # the case does reach the fixed point (the printed feedback loses the targets)
-            assert np.array_equal(reused[1][-1], reused[1][-2])
+    tr = MultiTargetTracker(**kw)
+    gains = []
+    update = trk.measurement_update
+
+    def counting(x, P, S, y, mp, form):
+        gains.append(mp.gain is not None)
+        return update(x, P, S, y, mp, form)
+
+    monkeypatch.setattr(trk, "measurement_update", counting)
+    reused = _run_steps(tr, tr.init(c), frames)
+    if fixed_gain is not None:
+        assert np.array_equal(reused[1][-1], reused[1][-2])  # the case does reach the fixed point
+        assert any(gains) == fixed_gain
+    fresh, s = [], tr.init(c)
+    for f in frames:
+        tr._last_predict = tr._last_update = None
+        s = tr.step(s, f)
+        fresh.append((s.mean, np.array(s.cov), s.extras["assignment"], s.extras["occluded_frames"]))
+    s, s2, mixed = tr.init(c), tr.init(start), []
+    for f, g in zip(frames, other):
+        s, s2 = tr.step(s, f), tr.step(s2, g)
+        mixed.append((s.mean, np.array(s.cov), s.extras["assignment"], s.extras["occluded_frames"]))
+    for a, b, m in zip(reused, [np.array(v) for v in zip(*fresh)], [np.array(v) for v in zip(*mixed)]):
+        assert np.array_equal(a, b) and np.array_equal(a, m)
 
 
 def test_frame_check_of_a_float_array():

@@ -39,7 +39,10 @@ the shared :func:`~tobitkf.filters.core.measurement_update` with :math:`H_0 = C`
 targets taking part. The covariance recursion does not depend on the detections, only on which
 targets are matched: the targets share one covariance (``state.P`` (1, 4, 4)) until a frame misses
 one of them, and a predict that starts from the covariance of the previous predict, bit for bit
-(the recursion at its floating-point fixed point), reuses its :math:`\bar P`.
+(the recursion at its floating-point fixed point), reuses its :math:`\bar P`; with every target
+matched, it also reuses the gain K and posterior P of the update from that :math:`\bar P` (core's
+fixed-gain route, :math:`\hat x = \bar x + K(y - C\bar x)`) when K has at most one nonzero per row
+(the decoupled x/y model of the defaults), where that product is rounded exactly as in the full update.
 
 Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)`` with one frame of
 unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
@@ -181,6 +184,8 @@ class MultiTargetTracker(Estimator):
         # (P.shape, P's bytes, P̄ = sym(A P A^T + Q), the input-free Transition with P_fixed = P̄ or None):
         # the last covariance predict, reused when the next one starts from the same P bit for bit
         self._last_predict: tuple | None = None
+        # (that P̄, the gain K (4, 2) and the posterior P computed from it): the last update of a reused P̄
+        self._last_update: tuple | None = None
 
     def _feedback(self, x: np.ndarray, visible: np.ndarray) -> np.ndarray:
         N = x.shape[0]
@@ -307,7 +312,8 @@ class MultiTargetTracker(Estimator):
         # predict of the last frame is passed on as the Transition's fixed covariance (the mean is
         # still A x + b, the same expression)
         key, last = P.tobytes(), self._last_predict
-        if last is not None and last[0] == P.shape and last[1] == key:
+        reused = last is not None and last[0] == P.shape and last[1] == key
+        if reused:
             if input_free:
                 if last[3] is None:
                     last = self._last_predict = last[:3] + (Transition(A=self.A, Qd=self.Q, b=0.0, P_fixed=last[2]),)
@@ -326,6 +332,7 @@ class MultiTargetTracker(Estimator):
         Cx = xp @ self._CT  # the predicted positions
         ref = last_meas if k - 1 < self.warmup else Cx
         Ol = O.tolist()
+        finite = False
         if len(M):
             D, finite = self._distances(ref, M)
             match = self._associate(D, Ol) if finite else self._associate_nonfinite(np.array(D), O)
@@ -342,8 +349,22 @@ class MultiTargetTracker(Estimator):
             new_O, new_last = np.where(visible, 0, O + 1), np.where(visible[:, None], z, last_meas)
         # a covariance shared by the targets (P (1, 4, 4)) stays shared while every target is matched;
         # the first frame that misses one makes the update return one covariance per target
-        mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
-        xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+        last_up = self._last_update
+        if valid is None and finite and ref is Cx and last_up is not None and last_up[0] is Pp:
+            # the reused P̄ with every target matched and finite predicted positions: the gain K and the
+            # posterior P of the last such update, as a fixed gain (x = x̄ + K e); taken only for a gain
+            # with at most one nonzero per row (the default decoupled x/y model), where K e is one
+            # rounded product per component in any order of summation, the same numbers as the full update
+            mp = MeasurementPrediction(
+                expected=Cx, H0=self.C, noise=self._R1, gain=last_up[1], posterior_cov=last_up[2]
+            )
+            xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+        else:
+            mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
+            xn, Pn, _, K, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+            if reused and valid is None and K.shape[0] == 1 and int((K[0] != 0).sum(axis=1).max()) <= 1:
+                Pn.setflags(write=False)  # shared by the frames that reuse it
+                self._last_update = (Pp, K[0], Pn)
         new = {"O": new_O, "visible": visible, "last_meas": new_last}
         return xn, Pn, None, new, xp, Pp, {"assignment": assignment, "occluded_frames": O.copy()}
 
