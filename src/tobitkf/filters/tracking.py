@@ -36,14 +36,23 @@ identities); frames 1..T are tracked; output index k-1 holds frame k.
 On the shared core (:mod:`tobitkf.filters.core`): the targets are the runs of one batch, the predict is
 the shared :func:`~tobitkf.filters.core.time_update` with the feedback input :math:`Bu_i`, and the update
 the shared :func:`~tobitkf.filters.core.measurement_update` with :math:`H_0 = C` and only the matched
-targets taking part. Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)``
-with one frame of unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
+targets taking part. The covariance recursion does not depend on the detections, only on which
+targets are matched: the targets share one covariance (``state.P`` (1, 4, 4)) until a frame misses
+one of them, and a predict that starts from the covariance of the previous predict, bit for bit
+(the recursion at its floating-point fixed point), reuses its :math:`\bar P`; with every target
+matched, it also reuses the gain K and posterior P of the update from that :math:`\bar P` (core's
+fixed-gain route, :math:`\hat x = \bar x + K(y - C\bar x)`) when K has at most one nonzero per row
+(the decoupled x/y model of the defaults), where that product is rounded exactly as in the full update.
+
+Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)`` with one frame of
+unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
 over the same step (one frame per row).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -54,6 +63,7 @@ from .._validation import (
     as_float,
     as_float_array,
     check_bool,
+    check_finite,
     check_int,
     check_option,
     check_psd,
@@ -69,6 +79,16 @@ from .core import (
 )
 
 __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
+
+#: up to this many target-detection pairs the distances are computed in Python floats
+_FEW_PAIRS = 24
+
+
+def _constant(M: np.ndarray) -> np.ndarray:
+    """A private read-only float copy of a model matrix."""
+    c = np.array(M, dtype=float)
+    c.setflags(write=False)
+    return c
 
 
 def constant_velocity_pixel_model() -> tuple[np.ndarray, np.ndarray]:
@@ -104,6 +124,9 @@ class MultiTargetTracker(Estimator):
     feedback : {"corrected", "printed", "off"}, default "corrected"
     second_map : {"closest", "mutual"}, default "closest"
     gate : bool, default True   (False: no gating, for the comparison of Exp. 3)
+
+    The model matrices are kept as read-only copies (attributes ``A``, ``C``, ``Q``, ``R``, ``P0``,
+    ``B``): the steps reuse what was computed from them.
 
     Raises
     ------
@@ -148,15 +171,21 @@ class MultiTargetTracker(Estimator):
                 raise ShapeError(f"{name}: expected shape ({k}, {k}), got {M.shape}")
             check_psd(M, name, strict=(name == "R"))
         self.B = np.diag([mu, 1.0, mu, 1.0])
+        # the tracker's constants as private read-only copies: the predict below is memoized on them
+        self.A, self.C, self.Q, self.R, self.P0, self.B = map(
+            _constant, (self.A, self.C, self.Q, self.R, self.P0, self.B)
+        )
         self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
         self.feedback, self.second_map, self.gate = feedback, second_map, gate
         self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
         self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0)  # the predict of a frame without feedback
-
-    def _input_free(self, N: int, visible: np.ndarray) -> bool:
-        """True when :meth:`_feedback` is zero for every target (no feedback, one target, or every target
-        visible in the corrected form): the predict then adds nothing (x + 0 is x)."""
-        return self.feedback == "off" or N < 2 or (self.feedback == "corrected" and bool(visible.all()))
+        self._feedback_free = feedback == "off"
+        self._BT, self._CT = self.B.T, self.C.T
+        # (P.shape, P's bytes, P̄ = sym(A P A^T + Q), the input-free Transition with P_fixed = P̄ or None):
+        # the last covariance predict, reused when the next one starts from the same P bit for bit
+        self._last_predict: tuple | None = None
+        # (that P̄, the gain K (4, 2) and the posterior P computed from it): the last update of a reused P̄
+        self._last_update: tuple | None = None
 
     def _feedback(self, x: np.ndarray, visible: np.ndarray) -> np.ndarray:
         N = x.shape[0]
@@ -188,12 +217,17 @@ class MultiTargetTracker(Estimator):
         N = init.shape[0]
         x = np.zeros((N, 4))
         x[:, 0], x[:, 2] = init[:, 0], init[:, 1]
-        P = np.broadcast_to(self.P0, (N, 4, 4)).copy()
+        P = self.P0[None].copy()  # one covariance shared by the targets until one of them misses a frame
         carry = {"O": np.zeros(N, dtype=int), "visible": np.ones(N, dtype=bool), "last_meas": init.copy()}
         return FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, carry=carry)
 
     def _frame(self, frame: Any, name: str = "detections") -> np.ndarray:
         """One frame as (L, 2) finite pixel coordinates; (2,) is one point, an empty array none."""
+        if type(frame) is np.ndarray and frame.dtype == np.float64 and frame.ndim == 2 and frame.shape[1] == 2:
+            # the common case, a float (L, 2) array: one finiteness pass (check_finite names the culprit)
+            if not np.isfinite(frame).all():
+                check_finite(frame, name)
+            return frame if frame.size else np.zeros((0, 2))
         M = as_float_array(frame, name)
         if M.size == 0:
             return np.zeros((0, 2))
@@ -203,65 +237,136 @@ class MultiTargetTracker(Estimator):
             raise ShapeError(f"{name}: expected (L, 2) points (x, y), got shape {M.shape}")
         return M
 
-    def _associate(self, D: list[list[float]], O: list[int], match: np.ndarray) -> None:
+    def _distances(self, ref: np.ndarray, M: np.ndarray) -> tuple[list[list[float]], bool]:
+        r"""The distances :math:`D_{ij} = \|y_i - m_j\|` (N, L) as lists, and whether they are all finite.
+
+        A few pairs are computed in Python floats, many with one array expression; both evaluate
+        :math:`\sqrt{d_x d_x + d_y d_y}` with the same IEEE operations, so the numbers are the same."""
+        if len(ref) * len(M) <= _FEW_PAIRS:
+            pts = M.tolist()
+            D = []
+            for rx, ry in ref.tolist():
+                row = []
+                for mx, my in pts:
+                    dx, dy = rx - mx, ry - my
+                    row.append(math.sqrt(dx * dx + dy * dy))
+                D.append(row)
+            # a sum is finite only if every term is (an overflowing sum takes the general route, which is exact too)
+            return D, math.isfinite(sum(map(sum, D)))
+        d = ref[:, None, :] - M[None, :, :]
+        Da = np.sqrt(np.add.reduce(d * d, axis=-1))  # (N, L): np.linalg.norm(d, axis=-1), without its wrapper
+        return Da.tolist(), bool(np.isfinite(Da).all())
+
+    def _associate(self, D: list[list[float]], O: list[int]) -> list[int]:
         r"""The nearest-neighbour assignment on finite distances D (N, L) as lists: each target's
-        nearest detection, the closest of the targets choosing one detection wins it (the first on a
-        tie, as argmin), within the gate :math:`T_o + \alpha O`. Python loops over a few targets cost
-        far less than the numpy calls per detection they replace; ``match`` (N,) is filled in place."""
-        N, L = len(D), len(D[0])
-        first = [min(range(L), key=row.__getitem__) for row in D]
-        dist = [D[i][first[i]] for i in range(N)]
-        for j in sorted(set(first)):
-            best = min((i for i in range(N) if first[i] == j), key=dist.__getitem__)
-            if self.second_map == "mutual" and min(range(N), key=lambda i: D[i][j]) != best:
+        nearest detection :math:`j(i)`, the closest of the targets choosing one detection wins it (the
+        first on a tie, as argmin), within the gate :math:`\|y_i - m_j\| < T_o + \alpha O_i`. Python
+        loops over a few targets cost far less than the numpy calls per detection they replace.
+        Returns ``match`` (N,): the matched detection of each target, -1 for none."""
+        N = len(D)
+        first = [row.index(min(row)) for row in D]  # argmin: the first of equal minima
+        winner: dict[int, int] = {}
+        for i, j in enumerate(first):
+            w = winner.get(j)
+            if w is None or D[i][j] < D[w][j]:  # a later chooser wins only when strictly closer
+                winner[j] = i
+        match = [-1] * N
+        mutual, gated, T0, alpha = self.second_map == "mutual", self.gate, self.gate0, self.gate_slope
+        for j, i in winner.items():
+            if mutual:
+                col = [row[j] for row in D]
+                if col.index(min(col)) != i:
+                    continue
+            if not gated or D[i][j] < T0 + alpha * O[i]:
+                match[i] = j
+        return match
+
+    def _associate_nonfinite(self, D: np.ndarray, O: np.ndarray) -> list[int]:
+        """:meth:`_associate` for distances with NaN or inf (a diverged track): numpy's argmin rules for NaN."""
+        N = D.shape[0]
+        match = [-1] * N
+        first = np.argmin(D, axis=1)
+        dist = D[np.arange(N), first]
+        for j in np.unique(first):
+            choosers = np.flatnonzero(first == j)
+            best = choosers[np.argmin(dist[choosers])]
+            if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
                 continue
             if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
-                match[best] = j
+                match[int(best)] = int(j)
+        return match
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         frame = options["frame"]
         if options.get("finite"):  # one frame from step(), already checked finite by _frame
             M = frame
-        else:  # a row of filter()'s NaN-padded frames
-            M = frame[~np.isnan(frame).any(axis=-1)] if frame.ndim == 2 else frame[0][~np.isnan(frame[0]).any(axis=-1)]
+        else:  # a row (1, L, 2) of filter()'s padded frames: its first `count` points are the frame
+            M = frame[0, : int(options["count"][0])]
         N = x.shape[0]
         O, visible, last_meas = carry["O"], carry["visible"], carry["last_meas"]
-        if self._input_free(N, visible):
-            tr = self._no_input
+        # the feedback input is zero for every target without feedback, for one target, or with every
+        # target visible in the corrected form: the predict then adds nothing (x + 0 is x)
+        input_free = self._feedback_free or N < 2 or (self.feedback == "corrected" and all(visible.tolist()))
+        # P̄ does not depend on the data: once the covariance stops changing (the Riccati recursion at
+        # its fixed point in floating point) every frame predicts the same P̄ from the same P, and the
+        # predict of the last frame is passed on as the Transition's fixed covariance (the mean is
+        # still A x + b, the same expression)
+        key, last = P.tobytes(), self._last_predict
+        reused = last is not None and last[0] == P.shape and last[1] == key
+        if reused:
+            if input_free:
+                if last[3] is None:
+                    last = self._last_predict = last[:3] + (Transition(A=self.A, Qd=self.Q, b=0.0, P_fixed=last[2]),)
+                tr = last[3]
+            else:
+                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT, P_fixed=last[2])
+            xp, Pp, _ = time_update(x, P, None, tr, "standard")
         else:
-            tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self.B.T)
-        xp, Pp, _ = time_update(x, P, None, tr, "standard")
-        Cx = xp @ self.C.T  # the predicted positions
+            if input_free:
+                tr = self._no_input
+            else:
+                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT)
+            xp, Pp, _ = time_update(x, P, None, tr, "standard")
+            Pp.setflags(write=False)  # shared by the frames that reuse it
+            self._last_predict = (P.shape, key, Pp, None)
+        Cx = xp @ self._CT  # the predicted positions
         ref = last_meas if k - 1 < self.warmup else Cx
-        occluded = O.copy()
-        match = np.full(N, -1)
+        Ol = O.tolist()
+        finite = False
         if len(M):
-            d = ref[:, None, :] - M[None, :, :]
-            D = np.sqrt(np.add.reduce(d * d, axis=-1))  # (N, L): np.linalg.norm(d, axis=-1), without its wrapper
-            if np.isfinite(D).all():
-                self._associate(D.tolist(), O.tolist(), match)
-            else:  # a diverged track (NaN distances): numpy's argmin rules for NaN
-                first = np.argmin(D, axis=1)
-                dist = D[np.arange(N), first]
-                for j in np.unique(first):
-                    choosers = np.flatnonzero(first == j)
-                    best = choosers[np.argmin(dist[choosers])]
-                    if self.second_map == "mutual" and np.argmin(D[:, j]) != best:
-                        continue
-                    if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
-                        match[best] = j
-        visible = match >= 0
-        if visible.all():  # every target matched: the masks below select everything (the same numbers)
-            z = M[match]
-            valid, new_O, new_last = None, np.zeros_like(O), z
+            D, finite = self._distances(ref, M)
+            match = self._associate(D, Ol) if finite else self._associate_nonfinite(np.array(D), O)
         else:
-            z = np.where(visible[:, None], M[np.maximum(match, 0)] if len(M) else 0.0, 0.0)
+            match = [-1] * N
+        assignment = np.array(match, dtype=int)
+        if -1 not in match:  # every target matched: the masks below would select everything (the same numbers)
+            z = M.take(assignment, axis=0)
+            valid, visible, new_O, new_last = None, np.array([True] * N), np.zeros(N, dtype=O.dtype), z
+        else:
+            visible = assignment >= 0
+            z = np.where(visible[:, None], M[np.maximum(assignment, 0)] if len(M) else 0.0, 0.0)
             valid = np.repeat(visible[:, None], 2, axis=1)
             new_O, new_last = np.where(visible, 0, O + 1), np.where(visible[:, None], z, last_meas)
-        mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
-        xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+        # a covariance shared by the targets (P (1, 4, 4)) stays shared while every target is matched;
+        # the first frame that misses one makes the update return one covariance per target
+        last_up = self._last_update
+        if valid is None and finite and ref is Cx and last_up is not None and last_up[0] is Pp:
+            # the reused P̄ with every target matched and finite predicted positions: the gain K and the
+            # posterior P of the last such update, as a fixed gain (x = x̄ + K e); taken only for a gain
+            # with at most one nonzero per row (the default decoupled x/y model), where K e is one
+            # rounded product per component in any order of summation, the same numbers as the full update
+            mp = MeasurementPrediction(
+                expected=Cx, H0=self.C, noise=self._R1, gain=last_up[1], posterior_cov=last_up[2]
+            )
+            xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+        else:
+            mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
+            xn, Pn, _, K, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+            if reused and valid is None and K.shape[0] == 1 and int((K[0] != 0).sum(axis=1).max()) <= 1:
+                Pn.setflags(write=False)  # shared by the frames that reuse it
+                self._last_update = (Pp, K[0], Pn)
         new = {"O": new_O, "visible": visible, "last_meas": new_last}
-        return xn, Pn, None, new, xp, Pp, {"assignment": match, "occluded_frames": occluded}
+        return xn, Pn, None, new, xp, Pp, {"assignment": assignment, "occluded_frames": O.copy()}
 
     def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
         """Track one frame of unordered detections (L, 2) (L may be 0)."""
@@ -301,7 +406,16 @@ class MultiTargetTracker(Estimator):
         for i, f in enumerate(frames):
             padded[0, i, : len(f)] = f
         N = state.runs
-        return self._run(np.zeros((N, T, 0)), outputs=outputs, state=state, step_data={"frame": padded})
+        counts = np.array([[len(f) for f in frames]])
+        res = self._run(np.zeros((N, T, 0)), outputs=outputs, state=state, step_data={"frame": padded, "count": counts})
+        # a covariance the targets shared throughout comes back as a read-only broadcast view: the
+        # tracker's results stay ordinary (N, T, ...) arrays
+        full: dict[str, Any] = {
+            key: np.array(val)
+            for key in ("cov", "pred_cov", "var")
+            if (val := getattr(res, key)) is not None and not val.flags.writeable
+        }
+        return replace(res, **full) if full else res
 
     def _prepare_record(self, y, name="y"):
         # the loop's record is an empty (N, T, 0) placeholder: the frames travel as step data
