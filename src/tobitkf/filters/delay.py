@@ -159,22 +159,35 @@ def _solve_small(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.linalg.solve(A, B)
 
 
-def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode: str):
+def _decorrelation(
+    system: DelayFadingSystem,
+    s: int,
+    Lam_meas: np.ndarray,
+    mode: str,
+    *,
+    HLH: np.ndarray | None = None,
+    mult: np.ndarray | None = None,
+    R: np.ndarray | None = None,
+):
     r"""J(s), Ā(s), Σ(s) of the J-form predictor ((4)–(12) of the source; docs/sources LD-E1, LD-E3).
 
     ``"optimal"`` (corrected, LD-E3): :math:`R = Q_v + \sigma^2 H\Lambda H^T`, :math:`J = \Gamma S R^{-1}`,
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SR^{-1}S^T)\Gamma^T`.
     ``"paper"`` ((8), (9), (11)): :math:`J = \Gamma S Q_v^{-1}`,
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SQ_v^{-1}S^T)\Gamma^T + \sigma^2 J H\Lambda H^T J^T`.
-    Both use Ā = A - γ̄ J H.
+    Both use Ā = A - γ̄ J H. ``HLH`` = :math:`H\Lambda H^T`, ``mult`` = :math:`\sum_i Q_{\zeta_i}(s) A_i\Lambda A_i^T`
+    and ``R`` may be passed when the caller has them (:func:`_moments_at`; the same numbers, not recomputed).
     """
     # Λ is one (n, n) block here: ndarray.dot, bitwise the products of @ at a fraction of its call overhead
     gb, s2 = system.gamma_mean(s), system.gamma_var(s)
     H, G = system.H, system.Gamma
-    HLH = H.dot(Lam_meas).dot(H.T)
-    mult = system.mult_cov(s, Lam_meas)
+    if HLH is None:
+        HLH = H.dot(Lam_meas).dot(H.T)
+    if mult is None:
+        mult = system.mult_cov(s, Lam_meas)
     if mode == "optimal":
-        R = system.Qv + s2 * HLH
+        if R is None:
+            R = system.Qv + s2 * HLH
         SRinv = _solve_small(R, system.S.T).T
         J = G.dot(SRinv)
         Sigma = mult + G.dot(system.Qw - SRinv.dot(system.S.T)).dot(G.T)
@@ -183,6 +196,28 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
         Sigma = mult + G.dot(system.eta_cov).dot(G.T) + s2 * J.dot(HLH).dot(J.T)
     Abar = system.A - gb * J.dot(H)
     return J, Abar, 0.5 * (Sigma + Sigma.T)
+
+
+def _moments_at(system: DelayFadingSystem, t: int, Lam: np.ndarray, mode: str):
+    r"""What time t needs of the second moment Λ(t-d) = ``Lam`` (shared by Algorithms C and D), each formed once:
+
+    .. math::
+
+        R(t) = Q_v + \sigma^2(t) H\Lambda(t-d)H^T, \qquad
+        \Lambda(t+1) = \mathrm{sym}(A\Lambda(t-d)A^T + Q_u(t)) \ \text{(corrected recursion, LD-E2)},
+
+    with :math:`Q_u(t) = \sum_i Q_{\zeta_i}(t)A_i\Lambda(t-d)A_i^T + \Gamma Q_w\Gamma^T` and J(t), Ā(t), Σ(t) of
+    :func:`_decorrelation` (whose :math:`H\Lambda H^T` and multiplicative term are the same numbers). The values
+    are bitwise those of ``fading_noise_cov``, :func:`_extend_second_moments` and :func:`_decorrelation` called
+    separately. Returns ``(R (m, m), (J, Ā, Σ), Λ(t+1) (n, n))``.
+    """
+    A, H = system.A, system.H
+    HLH = H.dot(Lam).dot(H.T)
+    R = system.Qv + system.gamma_var(t) * HLH
+    mult = system.mult_cov(t, Lam)
+    Lq = A.dot(Lam).dot(A.T) + (mult + system.GQG)
+    dec = _decorrelation(system, t, Lam, mode, HLH=HLH, mult=mult, R=R)
+    return R, dec, 0.5 * (Lq + Lq.T)
 
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
@@ -348,28 +383,36 @@ class ChainLMMSE(_DelayEstimator):
         lags, horizons = options.get("lags", ()), options.get("horizons", ())
         point, keep_rts = options.get("point"), options.get("keep_rts", False)
         xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
-        lam = _extend_second_moments(sys_, carry["lam"], t + max((1,) + tuple(horizons)))
         e = t - d
+        # what time t needs of Λ(t-d), each formed once: R(t) = Q_v + σ² H Λ H^T, J(t), Ā(t), Σ(t) and Λ(t+1)
+        lam = dict(carry["lam"])
+        R, (J, Abar, Sigma), lam[t + 1] = _moments_at(sys_, t, lam[e], self.decorrelation)
+        if horizons and max(horizons) > 1:
+            lam = _extend_second_moments(sys_, lam, t + max(horizons))
         gb = sys_.gamma_mean(t)
         H, A, GS = sys_.H, sys_.A, self._GS
         # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
-        R = sys_.fading_noise_cov(t, lam[e])  # R = Q_v + σ² H Λ H^T
         mp = MeasurementPrediction(expected=gb * xb[e].dot(H.T), H0=gb * H, noise=R[None])
         xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
         eps = y - mp.expected
-        HtQi = _solve_small(Qe[0], H).T  # H^T Q_ε^{-1}
-        # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1}
-        for a in [a for a in D if a < e and (e - a) % (d + 1) == 0]:
+        # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1} (kept only for
+        # lags > d or a fixed point: the plain step has none)
+        older = [a for a in D if a < e and (e - a) % (d + 1) == 0]
+        HtQi = _solve_small(Qe[0], H).T if older else None  # H^T Q_ε^{-1}
+        for a in older:
             Ka = gb * (D[a][0] @ HtQi)
             xb[a] = xb[a] + eps @ Ka.T
             Pb[a] = symmetrize(Pb[a] - Ka @ Qe @ Ka.T)
             # rules (M), (T): Φ_t(a, t+1) = [Φ_{t-1}(a, e) - K_a Q_ε K_e^T] A^T - K_a S^T Γ^T
             D[a] = (D[a] - Ka @ Qe @ Ke[0].T) @ A.T - Ka @ GS.T
-        D[e] = (D[e] - Ke @ Qe @ np.swapaxes(Ke, -1, -2)) @ A.T - Ke @ GS.T
+        if Ke.shape[0] == 1:  # one gain (the covariances are shared by the runs): 2-D products, the same numbers
+            K0 = Ke[0]
+            D[e] = ((D[e][0] - K0.dot(Qe[0]).dot(K0.T)).dot(A.T) - K0.dot(GS.T))[None]
+        else:
+            D[e] = (D[e] - Ke @ Qe @ np.swapaxes(Ke, -1, -2)) @ A.T - Ke @ GS.T
         xb[e], Pb[e] = xe, Pe
         # the one-step prediction x̂(t+1|t) by the shared predict, decorrelated: Ā(t) x̂(t-d|t) + J(t) y(t),
         # Ā P Ā^T + Σ(t) (corrected (52); "paper": the source's constant J of (8))
-        J, Abar, Sigma = _decorrelation(sys_, t, lam[e], self.decorrelation)
         xn, Pn = predict(xe, Pe, Abar, Sigma, y.dot(J.T))
         xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
         N = x.shape[0]
@@ -404,8 +447,13 @@ class ChainLMMSE(_DelayEstimator):
         if point is not None:
             extras["point_mean"] = xb[point] if point in xb else nan_m
             extras["point_cov"] = Pb[point] if point in Pb else nan_P
-        x_new = _stack_blocks([xb[t - k] for k in range(d + 1)])
-        P_new = _blockdiag([Pb[t - k][0] for k in range(d + 1)])
+        # the window before this reading, x̂(t|t-1), x̂(t-1|t-1), ..., x̂(t-d|t-1), and after it: only the
+        # measured element's block (the last) has changed
+        xp = _stack_blocks([carry["xb"][t - k] for k in range(d + 1)])
+        Pp = _blockdiag([carry["Pb"][t - k][0] for k in range(d + 1)])
+        x_new, P_new = xp.copy(), Pp.copy()
+        x_new[:, d * n :] = xe
+        P_new[0, d * n :, d * n :] = Pe[0]
         keep = max((d,) + tuple(lags))
         for j in [j for j in xb if j < t + 1 - keep and j != point]:
             del xb[j], Pb[j], D[j]
@@ -414,9 +462,6 @@ class ChainLMMSE(_DelayEstimator):
         new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
         if point is not None:
             new["point"] = point
-        # the window before this reading: x̂(t|t-1), x̂(t-1|t-1), ..., x̂(t-d|t-1)
-        xp = _stack_blocks([carry["xb"][t - k] for k in range(d + 1)])
-        Pp = _blockdiag([carry["Pb"][t - k][0] for k in range(d + 1)])
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _checked_options(self, lags, horizons, fixed_point):
@@ -942,15 +987,19 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         dec, hq = c["decor"], c["HtQi"]
         lam = c["lam"]
         A = sys_.A
-        for s_ in range(max(lam), t + 1):  # Λ up to t+1, the corrected recursion (LD-E2), as _extend_second_moments
+        mode = self.decorrelation
+        for s_ in range(max(lam), t):  # Λ up to t (a carry that lags behind), the corrected recursion (LD-E2)
             L_ = lam[s_ - d]
             Lq = A.dot(L_).dot(A.T) + sys_.process_cov(s_, L_)
             lam[s_ + 1] = 0.5 * (Lq + Lq.T)
+        # what time t needs of Λ(t-d), each formed once: R(t) of (15), J(t), Ā(t), Σ(t) of (50)-(52), Λ(t+1) (LD-E2)
+        R_t, dec_t, lam[t + 1] = _moments_at(sys_, t, lam[t - d], mode)
+        if t not in dec:
+            dec[t] = dec_t
         H, HT = sys_.H, self._HT
         zero_nn = self._zero_nn
         errata = self.errata
         gbar = sys_.gamma_mean
-        mode = self.decorrelation
 
         xpred, Ppred = xp[t], Pp[t]
         if t < c["t0"]:
@@ -981,7 +1030,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
             xmp, Pmp = xsm[t - 1], Psm[t - 1]
             Pm[t] = Pmp
-            Q = gb * gb * (H.dot(Pmp).dot(HT)) + sys_.fading_noise_cov(t, lam[t - d])
+            Q = gb * gb * (H.dot(Pmp).dot(HT)) + R_t  # R(t) = Q_v + σ² H Λ(t-d) H^T
             Q = 0.5 * (Q + Q.T)
             e_t = y - gb * (xmp.dot(HT))
             eps[t], Qe[t] = e_t, Q
@@ -1051,8 +1100,6 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             KH[(t - d, t)] = KeH = Ke.dot(H)
             Pq = Pmp - gb * (KeH.dot(Pmp))
             Pmeas[t] = 0.5 * (Pq + Pq.T)
-            if t not in dec:
-                dec[t] = _decorrelation(sys_, t, lam[t - d], mode)
             J, Abar, Sigma = dec[t]
             xp[t + 1] = xm[t].dot(Abar.T) + y.dot(J.T)
             Pq = Abar.dot(Pmeas[t]).dot(Abar.T) + Sigma
