@@ -665,7 +665,8 @@ def _augmented_matrices(system: DelayFadingSystem, W: int):
     G[:n] = system.Gamma
     HH = np.zeros((m, NN))
     HH[:, d * n : (d + 1) * n] = system.H
-    return AA, Ai, G, HH
+    # the constants of every step of _aug_step: 𝔊 Q_w 𝔊^T and (𝔊 S)^T (formed as it forms them)
+    return AA, Ai, G, HH, G @ system.Qw @ G.T, (G @ system.S).T
 
 
 def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None):
@@ -677,7 +678,7 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
     ``form`` is the covariance form of the shared update and predict (with the factor ``S`` for
     ``"square_root"``). Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1), S(t|t), S(t+1|t))``.
     """
-    AA, Ai, G, HH = mats
+    AA, Ai, G, HH, GQG, GS_T = mats
     gb, s2 = system.gamma_mean(t), system.gamma_var(t)
     R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
     mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
@@ -686,8 +687,8 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
         Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + R)
     eps = y - mp.expected
     q = system.q_mult(t)
-    Qu = G @ system.Qw @ G.T + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
-    J = _solve_small(R, (G @ system.S).T).T  # 𝔊 S R^{-1} (R symmetric)
+    Qu = GQG + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
+    J = _solve_small(R, GS_T).T  # 𝔊 S R^{-1} (R symmetric)
     Abar = AA - gb * (J @ HH)
     Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
     LamX = symmetrize(AA @ LamX @ AA.T + Qu)
@@ -773,7 +774,8 @@ class AugmentedLMMSE(_DelayEstimator):
             "innovation_cov": Qe,
             "_lam": carry["LamX"][:n, :n][None],
         }
-        nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
+        if lags:  # the NaN rows of elements before x(-d)
+            nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
             extras[f"lag{L}_mean"] = _blk(Xf, L, None, n) if t - L >= -d else nan_m
             extras[f"lag{L}_cov"] = _blk(Pf, L, L, n) if t - L >= -d else nan_P
@@ -846,7 +848,7 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
         return second_moments(system, prior, T)
     # generic lags: propagate the joint second moment of [x(t); ...; x(t-d)]
     n, d = system.n, system.d
-    AA, Ai, G, _ = _augmented_matrices(system, d)
+    AA, Ai, G, *_ = _augmented_matrices(system, d)
     m0 = prior.mean.reshape(-1)
     LamX = prior.cov + np.outer(m0, m0)
     lam = {0: LamX[:n, :n]}
@@ -910,6 +912,13 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             z.flags.writeable = False
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
+
+    def _warmup_matrices(self):
+        """The augmented matrices of the warm-up steps (Algorithm A, W = d), formed on first use."""
+        mats = self.__dict__.get("_aug_mats")
+        if mats is None:
+            mats = self._aug_mats = _augmented_matrices(self.system, self.system.d)
+        return mats
 
     def _t0(self, prior: HistoryPrior) -> int:
         d = self.system.d
@@ -1005,9 +1014,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         if t < c["t0"]:
             # warm-up by Algorithm A, from which every stored Ψ, gain and covariance is read
             Xa, Pa, LamX = c["aug"]
-            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(
-                sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX, y, t
-            )
+            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, self._warmup_matrices(), Xa, Pa, LamX, y, t)
             Pprior = Pa[0]
             PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
             xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
