@@ -912,6 +912,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             z.flags.writeable = False
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
+        # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
+        self._g_const = None if system.fading.varying else system.gamma_mean(0)
+
+    def _gbar(self, s: int) -> float:
+        """γ̄(s) (one call, not two, when the fading law does not change with s)."""
+        return self._g_const if self._g_const is not None else self.system.gamma_mean(s)
 
     def _warmup_matrices(self):
         """The augmented matrices of the warm-up steps (Algorithm A, W = d), formed on first use."""
@@ -1008,7 +1014,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         H, HT = sys_.H, self._HT
         zero_nn = self._zero_nn
         errata = self.errata
-        gbar = sys_.gamma_mean
+        gbar = self._gbar
 
         xpred, Ppred = xp[t], Pp[t]
         if t < c["t0"]:
@@ -1038,7 +1044,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             xmp, Pmp = xsm[t - 1], Psm[t - 1]
             Pm[t] = Pmp
             Q = gb * gb * (H.dot(Pmp).dot(HT)) + R_t  # R(t) = Q_v + σ² H Λ(t-d) H^T
-            Q = 0.5 * (Q + Q.T)
+            if Q.shape[0] > 1:  # a 1 x 1 Q_ε is its own symmetric part (0.5 (q + q) = q exactly)
+                Q = 0.5 * (Q + Q.T)
             e_t = y - gb * (xmp.dot(HT))
             eps[t], Qe[t] = e_t, Q
             HtQi = hq[t] = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
