@@ -996,6 +996,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
         Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
         # K(a|s) H of the reorganized steps' gains, formed with each gain and read again in (c) at later steps
+        # (the gains K(a|s) themselves are kept only for the warm-up's, whose K H is formed on first use)
         KH = c["KH"]
         # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
         # in the carry with the other per-time quantities
@@ -1052,7 +1053,6 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             # (b) filter, (35)-(38) shifted by one
             Psd = Psi.get((d, t + d - 1), zero_nn)
             Kf = gb * (Psd.T.dot(HtQi))
-            K[(t, t)] = Kf
             KH[(t, t)] = KfH = Kf.dot(H)
             xf[t] = xp[t] + e_t.dot(Kf.T)
             Pq = Pp[t] - gb * (KfH.dot(Psd))
@@ -1102,14 +1102,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 if s not in hq:  # a warm-up step's (Algorithm A) reading
                     hq[s] = _solve_small(Qe[s], H).T
                 Ks = g_s * (psi_i.T.dot(hq[s]))
-                K[(a, s)] = Ks
                 KH[(a, s)] = KsH = Ks.dot(H)
                 xs_ = xs_ + eps[s].dot(Ks.T)
                 Ps_ = Ps_ - g_s * (KsH.dot(psi_i))
             xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
             # (e) delayed filter and predictor (50)-(52)
             Ke = gb * (Pmp.dot(HtQi))
-            K[(t - d, t)] = Ke
             xm[t] = xmp + e_t.dot(Ke.T)
             KH[(t - d, t)] = KeH = Ke.dot(H)
             Pq = Pmp - gb * (KeH.dot(Pmp))
