@@ -159,22 +159,35 @@ def _solve_small(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return np.linalg.solve(A, B)
 
 
-def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode: str):
+def _decorrelation(
+    system: DelayFadingSystem,
+    s: int,
+    Lam_meas: np.ndarray,
+    mode: str,
+    *,
+    HLH: np.ndarray | None = None,
+    mult: np.ndarray | None = None,
+    R: np.ndarray | None = None,
+):
     r"""J(s), Ā(s), Σ(s) of the J-form predictor ((4)–(12) of the source; docs/sources LD-E1, LD-E3).
 
     ``"optimal"`` (corrected, LD-E3): :math:`R = Q_v + \sigma^2 H\Lambda H^T`, :math:`J = \Gamma S R^{-1}`,
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SR^{-1}S^T)\Gamma^T`.
     ``"paper"`` ((8), (9), (11)): :math:`J = \Gamma S Q_v^{-1}`,
     :math:`\Sigma = \sum_i Q_{\zeta_i} A_i\Lambda A_i^T + \Gamma(Q_w - SQ_v^{-1}S^T)\Gamma^T + \sigma^2 J H\Lambda H^T J^T`.
-    Both use Ā = A - γ̄ J H.
+    Both use Ā = A - γ̄ J H. ``HLH`` = :math:`H\Lambda H^T`, ``mult`` = :math:`\sum_i Q_{\zeta_i}(s) A_i\Lambda A_i^T`
+    and ``R`` may be passed when the caller has them (:func:`_moments_at`; the same numbers, not recomputed).
     """
     # Λ is one (n, n) block here: ndarray.dot, bitwise the products of @ at a fraction of its call overhead
     gb, s2 = system.gamma_mean(s), system.gamma_var(s)
     H, G = system.H, system.Gamma
-    HLH = H.dot(Lam_meas).dot(H.T)
-    mult = system.mult_cov(s, Lam_meas)
+    if HLH is None:
+        HLH = H.dot(Lam_meas).dot(H.T)
+    if mult is None:
+        mult = system.mult_cov(s, Lam_meas)
     if mode == "optimal":
-        R = system.Qv + s2 * HLH
+        if R is None:
+            R = system.Qv + s2 * HLH
         SRinv = _solve_small(R, system.S.T).T
         J = G.dot(SRinv)
         Sigma = mult + G.dot(system.Qw - SRinv.dot(system.S.T)).dot(G.T)
@@ -183,6 +196,28 @@ def _decorrelation(system: DelayFadingSystem, s: int, Lam_meas: np.ndarray, mode
         Sigma = mult + G.dot(system.eta_cov).dot(G.T) + s2 * J.dot(HLH).dot(J.T)
     Abar = system.A - gb * J.dot(H)
     return J, Abar, 0.5 * (Sigma + Sigma.T)
+
+
+def _moments_at(system: DelayFadingSystem, t: int, Lam: np.ndarray, mode: str):
+    r"""What time t needs of the second moment Λ(t-d) = ``Lam`` (shared by Algorithms C and D), each formed once:
+
+    .. math::
+
+        R(t) = Q_v + \sigma^2(t) H\Lambda(t-d)H^T, \qquad
+        \Lambda(t+1) = \mathrm{sym}(A\Lambda(t-d)A^T + Q_u(t)) \ \text{(corrected recursion, LD-E2)},
+
+    with :math:`Q_u(t) = \sum_i Q_{\zeta_i}(t)A_i\Lambda(t-d)A_i^T + \Gamma Q_w\Gamma^T` and J(t), Ā(t), Σ(t) of
+    :func:`_decorrelation` (whose :math:`H\Lambda H^T` and multiplicative term are the same numbers). The values
+    are bitwise those of ``fading_noise_cov``, :func:`_extend_second_moments` and :func:`_decorrelation` called
+    separately. Returns ``(R (m, m), (J, Ā, Σ), Λ(t+1) (n, n))``.
+    """
+    A, H = system.A, system.H
+    HLH = H.dot(Lam).dot(H.T)
+    R = system.Qv + system.gamma_var(t) * HLH
+    mult = system.mult_cov(t, Lam)
+    Lq = A.dot(Lam).dot(A.T) + (mult + system.GQG)
+    dec = _decorrelation(system, t, Lam, mode, HLH=HLH, mult=mult, R=R)
+    return R, dec, 0.5 * (Lq + Lq.T)
 
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
@@ -348,28 +383,36 @@ class ChainLMMSE(_DelayEstimator):
         lags, horizons = options.get("lags", ()), options.get("horizons", ())
         point, keep_rts = options.get("point"), options.get("keep_rts", False)
         xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
-        lam = _extend_second_moments(sys_, carry["lam"], t + max((1,) + tuple(horizons)))
         e = t - d
+        # what time t needs of Λ(t-d), each formed once: R(t) = Q_v + σ² H Λ H^T, J(t), Ā(t), Σ(t) and Λ(t+1)
+        lam = dict(carry["lam"])
+        R, (J, Abar, Sigma), lam[t + 1] = _moments_at(sys_, t, lam[e], self.decorrelation)
+        if horizons and max(horizons) > 1:
+            lam = _extend_second_moments(sys_, lam, t + max(horizons))
         gb = sys_.gamma_mean(t)
         H, A, GS = sys_.H, sys_.A, self._GS
         # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
-        R = sys_.fading_noise_cov(t, lam[e])  # R = Q_v + σ² H Λ H^T
         mp = MeasurementPrediction(expected=gb * xb[e].dot(H.T), H0=gb * H, noise=R[None])
         xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
         eps = y - mp.expected
-        HtQi = _solve_small(Qe[0], H).T  # H^T Q_ε^{-1}
-        # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1}
-        for a in [a for a in D if a < e and (e - a) % (d + 1) == 0]:
+        # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1} (kept only for
+        # lags > d or a fixed point: the plain step has none)
+        older = [a for a in D if a < e and (e - a) % (d + 1) == 0]
+        HtQi = _solve_small(Qe[0], H).T if older else None  # H^T Q_ε^{-1}
+        for a in older:
             Ka = gb * (D[a][0] @ HtQi)
             xb[a] = xb[a] + eps @ Ka.T
             Pb[a] = symmetrize(Pb[a] - Ka @ Qe @ Ka.T)
             # rules (M), (T): Φ_t(a, t+1) = [Φ_{t-1}(a, e) - K_a Q_ε K_e^T] A^T - K_a S^T Γ^T
             D[a] = (D[a] - Ka @ Qe @ Ke[0].T) @ A.T - Ka @ GS.T
-        D[e] = (D[e] - Ke @ Qe @ np.swapaxes(Ke, -1, -2)) @ A.T - Ke @ GS.T
+        if Ke.shape[0] == 1:  # one gain (the covariances are shared by the runs): 2-D products, the same numbers
+            K0 = Ke[0]
+            D[e] = ((D[e][0] - K0.dot(Qe[0]).dot(K0.T)).dot(A.T) - K0.dot(GS.T))[None]
+        else:
+            D[e] = (D[e] - Ke @ Qe @ np.swapaxes(Ke, -1, -2)) @ A.T - Ke @ GS.T
         xb[e], Pb[e] = xe, Pe
         # the one-step prediction x̂(t+1|t) by the shared predict, decorrelated: Ā(t) x̂(t-d|t) + J(t) y(t),
         # Ā P Ā^T + Σ(t) (corrected (52); "paper": the source's constant J of (8))
-        J, Abar, Sigma = _decorrelation(sys_, t, lam[e], self.decorrelation)
         xn, Pn = predict(xe, Pe, Abar, Sigma, y.dot(J.T))
         xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
         N = x.shape[0]
@@ -404,8 +447,13 @@ class ChainLMMSE(_DelayEstimator):
         if point is not None:
             extras["point_mean"] = xb[point] if point in xb else nan_m
             extras["point_cov"] = Pb[point] if point in Pb else nan_P
-        x_new = _stack_blocks([xb[t - k] for k in range(d + 1)])
-        P_new = _blockdiag([Pb[t - k][0] for k in range(d + 1)])
+        # the window before this reading, x̂(t|t-1), x̂(t-1|t-1), ..., x̂(t-d|t-1), and after it: only the
+        # measured element's block (the last) has changed
+        xp = _stack_blocks([carry["xb"][t - k] for k in range(d + 1)])
+        Pp = _blockdiag([carry["Pb"][t - k][0] for k in range(d + 1)])
+        x_new, P_new = xp.copy(), Pp.copy()
+        x_new[:, d * n :] = xe
+        P_new[0, d * n :, d * n :] = Pe[0]
         keep = max((d,) + tuple(lags))
         for j in [j for j in xb if j < t + 1 - keep and j != point]:
             del xb[j], Pb[j], D[j]
@@ -414,9 +462,6 @@ class ChainLMMSE(_DelayEstimator):
         new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
         if point is not None:
             new["point"] = point
-        # the window before this reading: x̂(t|t-1), x̂(t-1|t-1), ..., x̂(t-d|t-1)
-        xp = _stack_blocks([carry["xb"][t - k] for k in range(d + 1)])
-        Pp = _blockdiag([carry["Pb"][t - k][0] for k in range(d + 1)])
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _checked_options(self, lags, horizons, fixed_point):
@@ -620,7 +665,8 @@ def _augmented_matrices(system: DelayFadingSystem, W: int):
     G[:n] = system.Gamma
     HH = np.zeros((m, NN))
     HH[:, d * n : (d + 1) * n] = system.H
-    return AA, Ai, G, HH
+    # the constants of every step of _aug_step: 𝔊 Q_w 𝔊^T and (𝔊 S)^T (formed as it forms them)
+    return AA, Ai, G, HH, G @ system.Qw @ G.T, (G @ system.S).T
 
 
 def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None):
@@ -632,7 +678,7 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
     ``form`` is the covariance form of the shared update and predict (with the factor ``S`` for
     ``"square_root"``). Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1), S(t|t), S(t+1|t))``.
     """
-    AA, Ai, G, HH = mats
+    AA, Ai, G, HH, GQG, GS_T = mats
     gb, s2 = system.gamma_mean(t), system.gamma_var(t)
     R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
     mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
@@ -641,8 +687,8 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
         Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + R)
     eps = y - mp.expected
     q = system.q_mult(t)
-    Qu = G @ system.Qw @ G.T + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
-    J = _solve_small(R, (G @ system.S).T).T  # 𝔊 S R^{-1} (R symmetric)
+    Qu = GQG + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
+    J = _solve_small(R, GS_T).T  # 𝔊 S R^{-1} (R symmetric)
     Abar = AA - gb * (J @ HH)
     Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
     LamX = symmetrize(AA @ LamX @ AA.T + Qu)
@@ -728,7 +774,8 @@ class AugmentedLMMSE(_DelayEstimator):
             "innovation_cov": Qe,
             "_lam": carry["LamX"][:n, :n][None],
         }
-        nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
+        if lags:  # the NaN rows of elements before x(-d)
+            nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
             extras[f"lag{L}_mean"] = _blk(Xf, L, None, n) if t - L >= -d else nan_m
             extras[f"lag{L}_cov"] = _blk(Pf, L, L, n) if t - L >= -d else nan_P
@@ -801,7 +848,7 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
         return second_moments(system, prior, T)
     # generic lags: propagate the joint second moment of [x(t); ...; x(t-d)]
     n, d = system.n, system.d
-    AA, Ai, G, _ = _augmented_matrices(system, d)
+    AA, Ai, G, *_ = _augmented_matrices(system, d)
     m0 = prior.mean.reshape(-1)
     LamX = prior.cov + np.outer(m0, m0)
     lam = {0: LamX[:n, :n]}
@@ -865,6 +912,19 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             z.flags.writeable = False
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
+        # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
+        self._g_const = None if system.fading.varying else system.gamma_mean(0)
+
+    def _gbar(self, s: int) -> float:
+        """γ̄(s) (one call, not two, when the fading law does not change with s)."""
+        return self._g_const if self._g_const is not None else self.system.gamma_mean(s)
+
+    def _warmup_matrices(self):
+        """The augmented matrices of the warm-up steps (Algorithm A, W = d), formed on first use."""
+        mats = self.__dict__.get("_aug_mats")
+        if mats is None:
+            mats = self._aug_mats = _augmented_matrices(self.system, self.system.d)
+        return mats
 
     def _t0(self, prior: HistoryPrior) -> int:
         d = self.system.d
@@ -936,29 +996,32 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
         Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
         # K(a|s) H of the reorganized steps' gains, formed with each gain and read again in (c) at later steps
+        # (the gains K(a|s) themselves are kept only for the warm-up's, whose K H is formed on first use)
         KH = c["KH"]
         # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
         # in the carry with the other per-time quantities
         dec, hq = c["decor"], c["HtQi"]
         lam = c["lam"]
         A = sys_.A
-        for s_ in range(max(lam), t + 1):  # Λ up to t+1, the corrected recursion (LD-E2), as _extend_second_moments
+        mode = self.decorrelation
+        for s_ in range(max(lam), t):  # Λ up to t (a carry that lags behind), the corrected recursion (LD-E2)
             L_ = lam[s_ - d]
             Lq = A.dot(L_).dot(A.T) + sys_.process_cov(s_, L_)
             lam[s_ + 1] = 0.5 * (Lq + Lq.T)
+        # what time t needs of Λ(t-d), each formed once: R(t) of (15), J(t), Ā(t), Σ(t) of (50)-(52), Λ(t+1) (LD-E2)
+        R_t, dec_t, lam[t + 1] = _moments_at(sys_, t, lam[t - d], mode)
+        if t not in dec:
+            dec[t] = dec_t
         H, HT = sys_.H, self._HT
         zero_nn = self._zero_nn
         errata = self.errata
-        gbar = sys_.gamma_mean
-        mode = self.decorrelation
+        gbar = self._gbar
 
         xpred, Ppred = xp[t], Pp[t]
         if t < c["t0"]:
             # warm-up by Algorithm A, from which every stored Ψ, gain and covariance is read
             Xa, Pa, LamX = c["aug"]
-            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(
-                sys_, _augmented_matrices(sys_, d), Xa, Pa, LamX, y, t
-            )
+            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, self._warmup_matrices(), Xa, Pa, LamX, y, t)
             Pprior = Pa[0]
             PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
             xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
@@ -981,15 +1044,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
             xmp, Pmp = xsm[t - 1], Psm[t - 1]
             Pm[t] = Pmp
-            Q = gb * gb * (H.dot(Pmp).dot(HT)) + sys_.fading_noise_cov(t, lam[t - d])
-            Q = 0.5 * (Q + Q.T)
+            Q = gb * gb * (H.dot(Pmp).dot(HT)) + R_t  # R(t) = Q_v + σ² H Λ(t-d) H^T
+            if Q.shape[0] > 1:  # a 1 x 1 Q_ε is its own symmetric part (0.5 (q + q) = q exactly)
+                Q = 0.5 * (Q + Q.T)
             e_t = y - gb * (xmp.dot(HT))
             eps[t], Qe[t] = e_t, Q
             HtQi = hq[t] = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
             # (b) filter, (35)-(38) shifted by one
             Psd = Psi.get((d, t + d - 1), zero_nn)
             Kf = gb * (Psd.T.dot(HtQi))
-            K[(t, t)] = Kf
             KH[(t, t)] = KfH = Kf.dot(H)
             xf[t] = xp[t] + e_t.dot(Kf.T)
             Pq = Pp[t] - gb * (KfH.dot(Psd))
@@ -1039,20 +1102,16 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
                 if s not in hq:  # a warm-up step's (Algorithm A) reading
                     hq[s] = _solve_small(Qe[s], H).T
                 Ks = g_s * (psi_i.T.dot(hq[s]))
-                K[(a, s)] = Ks
                 KH[(a, s)] = KsH = Ks.dot(H)
                 xs_ = xs_ + eps[s].dot(Ks.T)
                 Ps_ = Ps_ - g_s * (KsH.dot(psi_i))
             xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
             # (e) delayed filter and predictor (50)-(52)
             Ke = gb * (Pmp.dot(HtQi))
-            K[(t - d, t)] = Ke
             xm[t] = xmp + e_t.dot(Ke.T)
             KH[(t - d, t)] = KeH = Ke.dot(H)
             Pq = Pmp - gb * (KeH.dot(Pmp))
             Pmeas[t] = 0.5 * (Pq + Pq.T)
-            if t not in dec:
-                dec[t] = _decorrelation(sys_, t, lam[t - d], mode)
             J, Abar, Sigma = dec[t]
             xp[t + 1] = xm[t].dot(Abar.T) + y.dot(J.T)
             Pq = Abar.dot(Pmeas[t]).dot(Abar.T) + Sigma
