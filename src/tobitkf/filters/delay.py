@@ -55,7 +55,6 @@ from .core import (
     Transition,
     check_keywords,
     measurement_update,
-    predict,
     symmetrize,
     time_update,
 )
@@ -393,7 +392,8 @@ class ChainLMMSE(_DelayEstimator):
         H, A, GS = sys_.H, sys_.A, self._GS
         # the update of the measured element x(t-d): the shared update with H_eff = γ̄H, noise R(t) (14)-(15), (46)
         mp = MeasurementPrediction(expected=gb * xb[e].dot(H.T), H0=gb * H, noise=R[None])
-        xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard")
+        fast = self._compiled_core()  # one run: the compiled shared step (a shared covariance stays on numpy)
+        xe, Pe, _, Ke, Qe = measurement_update(xb[e], Pb[e], None, y, mp, "standard", compiled=fast)
         eps = y - mp.expected
         # rule (M): older elements a of the same chain, K(a|t) = γ̄ Φ(a, t-d) H^T Q_ε^{-1} (kept only for
         # lags > d or a fixed point: the plain step has none)
@@ -413,7 +413,7 @@ class ChainLMMSE(_DelayEstimator):
         xb[e], Pb[e] = xe, Pe
         # the one-step prediction x̂(t+1|t) by the shared predict, decorrelated: Ā(t) x̂(t-d|t) + J(t) y(t),
         # Ā P Ā^T + Σ(t) (corrected (52); "paper": the source's constant J of (8))
-        xn, Pn = predict(xe, Pe, Abar, Sigma, y.dot(J.T))
+        xn, Pn, _ = time_update(xe, Pe, None, Transition(A=Abar, Qd=Sigma, b=y.dot(J.T)), "standard", compiled=fast)
         xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
         N = x.shape[0]
         extras = {
@@ -669,20 +669,22 @@ def _augmented_matrices(system: DelayFadingSystem, W: int):
     return AA, Ai, G, HH, G @ system.Qw @ G.T, (G @ system.S).T
 
 
-def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None):
+def _aug_step(
+    system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "standard", S=None, compiled: bool = False
+):
     """One reading of Algorithm A: the shared update of X(t|t-1) with y(t) and the decorrelated prediction.
 
     Update: H_eff = γ̄𝔥, noise R = σ²𝔥Λ_X𝔥^T + Q_v (the shared :func:`measurement_update`). Prediction:
     X(t+1|t) = Ā X(t|t) + J y(t), Ā = 𝔄 - γ̄J𝔥, J = 𝔊S R^{-1}, covariance Ā P Ā^T + Q_u - J R J^T, which
     equals the textbook predictor with same-time correlated noises (gain (γ̄𝔄P𝔥^T + 𝔊S)Q_ε^{-1}).
     ``form`` is the covariance form of the shared update and predict (with the factor ``S`` for
-    ``"square_root"``). Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1), S(t|t), S(t+1|t))``.
+    ``"square_root"``); ``compiled`` runs them compiled where covered (one covariance per run). Returns ``(X(t|t), P(t|t), X(t+1|t), P(t+1|t), K, ε, Q_ε, Λ_X(t+1), S(t|t), S(t+1|t))``.
     """
     AA, Ai, G, HH, GQG, GS_T = mats
     gb, s2 = system.gamma_mean(t), system.gamma_var(t)
     R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
     mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
-    Xf, Pf, Sf, K, Qe = measurement_update(X, P, S, y, mp, form)
+    Xf, Pf, Sf, K, Qe = measurement_update(X, P, S, y, mp, form, compiled=compiled)
     if Qe is None:  # the square-root form does not form Q_ε
         Qe = symmetrize(gb * gb * (HH @ P @ HH.T) + R)
     eps = y - mp.expected
@@ -690,7 +692,8 @@ def _aug_step(system: DelayFadingSystem, mats, X, P, LamX, y, t, form: str = "st
     Qu = GQG + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
     J = _solve_small(R, GS_T).T  # 𝔊 S R^{-1} (R symmetric)
     Abar = AA - gb * (J @ HH)
-    Xp, Pp, Sp = time_update(Xf, Pf, Sf, Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T), form)
+    tr = Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T)
+    Xp, Pp, Sp = time_update(Xf, Pf, Sf, tr, form, compiled=compiled)
     LamX = symmetrize(AA @ LamX @ AA.T + Qu)
     return Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp
 
@@ -762,7 +765,7 @@ class AugmentedLMMSE(_DelayEstimator):
         else:
             Xpr, Ppr, Spr = x, P, S
         Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(
-            self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, self.covariance_update, Spr
+            self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, self.covariance_update, Spr, self._compiled_core()
         )
         N = x.shape[0]
         extras = {
