@@ -14,8 +14,10 @@ Joseph or the standard form, both in the rank-m arithmetic of the shared numpy u
 
 Everything that is not specific to the fading model is shared with the TKF kernel of
 :mod:`tobitkf.filters._kernels`: the censored-normal statistics (continued-fraction tails,
-quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block predict, the masked gain
-(missing or degenerate channels get a zero gain column) and the covariance update.
+quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block scratch, the moments of the
+scaled update and the masked gain (missing or degenerate channels get a zero gain column): for m > 1
+the block solve :func:`~tobitkf.filters._kernels._gain_block` over all runs of a block at once, as in
+the TKF kernel.
 
 Covered (the dispatcher in ``fading.py`` decides): time-invariant A, B, Q, C, R, no control input,
 ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, both ``exact_tobit_variance``
@@ -37,6 +39,7 @@ from ._kernels import (
     _block_dims,
     _flush,
     _gain,
+    _gain_block,
     _innovation_moments,
     _load,
     _mean_scratch,
@@ -187,7 +190,7 @@ def fading_tkf_kernel(
     blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0], False)
     P, Pp, X, CP, Rxe, Ree, K, _h, MH, noise, _ikh, _t1, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
-    _rw, _wb, _db, _bad = solve  # (the block solve, used for m > 1 by the TKF kernel)
+    Rw, Wb, db, bad = solve
     want_m, want_c, want_pm, want_pc = means.shape[1] > 0, covs.shape[1] > 0, pmeans.shape[1] > 0, pcovs.shape[1] > 0
     want_x, want_sm, want_sc = pu.shape[1] > 0, sm_mean.shape[1] > 0, sm_cov.shape[1] > 0
     # outputs staged for S steps, then written run by run (contiguous), as in the TKF kernel
@@ -233,7 +236,10 @@ def fading_tkf_kernel(
                         s_lam[b, tt, l] = st[3]
             # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
             _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)  # (23), (19)
+            if m > 1:  # (23), (19)
+                _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+            else:
+                _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
             if want_m:
                 for b in range(nb):
