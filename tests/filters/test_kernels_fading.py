@@ -149,6 +149,24 @@ def test_kernel_many_runs_cross_blocks():
     assert_results_equal(*both(sys_, fad, cens, y))
 
 
+@pytest.mark.parametrize("form", ["joseph", "standard"])
+def test_kernel_block_gain_solve_three_channels(form):
+    """m = 3: the block gain solve (elimination over the runs of a block, without pivoting on the
+    unit-diagonal R_ee) with a partly missing channel (its gain column zeroed on those steps) and a
+    channel whose readings are all missing, over two blocks of runs; equal to numpy to rounding."""
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    C = [[1.0, 0.0], [0.4, 1.0], [-0.3, 0.8]]
+    sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 0.3]), x0=[5.0, 0.0], P0=np.eye(2))
+    cens = tk.Censoring(lower=[0.0, -1.0, -np.inf], upper=[np.inf, 3.0, 2.0])
+    fad = fading(1)
+    y = data(sys_, fad, cens, runs=40, steps=25)  # 40 runs: a full block of 32 and a partial one
+    y[:, ::4, 1] = np.nan
+    y[5, :, 2] = np.nan
+    a, b = both(sys_, fad, cens, y, covariance_update=form)
+    assert_results_equal(a, b)
+
+
 @pytest.mark.parametrize("outputs", ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), "all"])
 @pytest.mark.parametrize("keep_smoothed", [True, False])
 def test_kernel_honours_the_output_selection(outputs, keep_smoothed):

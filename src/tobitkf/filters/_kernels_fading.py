@@ -14,8 +14,10 @@ Joseph or the standard form, both in the rank-m arithmetic of the shared numpy u
 
 Everything that is not specific to the fading model is shared with the TKF kernel of
 :mod:`tobitkf.filters._kernels`: the censored-normal statistics (continued-fraction tails,
-quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block predict, the masked gain
-(missing or degenerate channels get a zero gain column) and the covariance update.
+quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block scratch, the moments of the
+scaled update and the masked gain (missing or degenerate channels get a zero gain column): for m > 1
+the block solve :func:`~tobitkf.filters._kernels._gain_block` over all runs of a block at once, as in
+the TKF kernel.
 
 Covered (the dispatcher in ``fading.py`` decides): time-invariant A, B, Q, C, R, no control input,
 ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, both ``exact_tobit_variance``
@@ -34,15 +36,17 @@ import numpy as np
 from numba import njit
 
 from ._kernels import (
-    BLOCK,
-    CHUNK,
+    _block_dims,
     _flush,
     _gain,
+    _gain_block,
     _innovation_moments,
     _load,
-    _rows,
+    _mean_scratch,
+    _stage_shape,
     _store_last,
     _symmetrize,
+    _update_scratch,
     censored_stats,
 )
 
@@ -181,40 +185,23 @@ def fading_tkf_kernel(
     N, T, m = y.shape
     nxi = Hs.shape[2]
     L = Hs.shape[0] - 1
-    B = min(BLOCK, max(N, 1))
-    x = np.empty((nxi, B))
-    P = np.empty((nxi, nxi, B))
-    xp = np.empty((nxi, B))
-    Pp = np.empty((nxi, nxi, B))
-    X = np.empty((nxi, A.shape[0], B))
-    MH = np.empty((nxi, m, B))
-    CP = np.empty((m, nxi, B))
-    Rxe = np.empty((nxi, m, B))
-    Ree = np.empty((m, m, B))
-    K = np.empty((nxi, m, B))
-    noise = np.zeros((m, m, B))
-    gam = np.empty((m, B))
-    e = np.empty((m, B))
-    ok = np.empty((m, B), dtype=np.bool_)
-    Rs = np.empty((m, m))
-    Ws = np.empty((m, nxi))
-    Ks = np.empty((nxi, m))
-    Rxs = np.empty((nxi, m))
-    oks = np.empty(m, dtype=np.bool_)
-    ds = np.empty(m)
-    buf = np.empty((2, glx.shape[0]))
+    B, S = _block_dims(N, T)
+    x, xp, e, _yb = _mean_scratch(nxi, m, B)
+    blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0], False)
+    P, Pp, X, CP, Rxe, Ree, K, _h, MH, noise, _ikh, _t1, gam, ok = blk
+    Rs, Ws, Ks, oks, Rxs, ds = run
+    Rw, Wb, db, bad = solve
     want_m, want_c, want_pm, want_pc = means.shape[1] > 0, covs.shape[1] > 0, pmeans.shape[1] > 0, pcovs.shape[1] > 0
     want_x, want_sm, want_sc = pu.shape[1] > 0, sm_mean.shape[1] > 0, sm_cov.shape[1] > 0
     # outputs staged for S steps, then written run by run (contiguous), as in the TKF kernel
-    S = min(CHUNK, max(T, 1))
-    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
-    s_cov, s_pcov = np.empty((_rows(covs, B), S, n, n)), np.empty((_rows(pcovs, B), S, n, n))
+    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
+    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
     s_pu, s_ey, s_lam = (
-        np.empty((_rows(pu, B), S, m)),
-        np.empty((_rows(ey, B), S, m)),
-        np.empty((_rows(lam_out, B), S, m)),
+        np.empty(_stage_shape(pu, B, S)),
+        np.empty(_stage_shape(ey, B, S)),
+        np.empty(_stage_shape(lam_out, B, S)),
     )
-    s_smm, s_smc = np.empty((_rows(sm_mean, B), S, L + 1, n)), np.empty((_rows(sm_cov, B), S, L + 1, n, n))
+    s_smm, s_smc = np.empty(_stage_shape(sm_mean, B, S)), np.empty(_stage_shape(sm_cov, B, S))
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -249,7 +236,10 @@ def fading_tkf_kernel(
                         s_lam[b, tt, l] = st[3]
             # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
             _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
-            _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)  # (23), (19)
+            if m > 1:  # (23), (19)
+                _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+            else:
+                _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
             if want_m:
                 for b in range(nb):

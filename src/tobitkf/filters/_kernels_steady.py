@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import BLOCK, CHUNK, _flush, _rows
+from ._kernels import _block_dims, _flush, _mean_scratch, _stage_shape
 
 __all__ = ["steady_tkf_kernel"]
 
@@ -52,14 +52,10 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
     """
     N, T, m = y.shape
     n = A.shape[0]
-    B = min(BLOCK, max(N, 1))
-    x = np.empty((n, B))
-    xp = np.empty((n, B))
-    e = np.empty((m, B))
-    yb = np.empty(B)
-    S = min(CHUNK, max(T, 1))  # outputs staged for S steps, then written run by run (contiguous)
-    s_mean, s_pmean = np.empty((_rows(means, B), S, n)), np.empty((_rows(pmeans, B), S, n))
-    s_lim, s_y = np.empty((_rows(lim_out, B), S, m)), np.empty((_rows(y_out, B), S, m))
+    B, S = _block_dims(N, T)  # outputs staged for S steps, then written run by run (contiguous)
+    x, xp, e, ybar = _mean_scratch(n, m, B)
+    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
+    s_lim, s_y = np.empty(_stage_shape(lim_out, B, S)), np.empty(_stage_shape(y_out, B, S))
     want_m, want_pm, want_x = means.shape[1] > 0, pmeans.shape[1] > 0, lim_out.shape[1] > 0
     sgn = -1.0 if upper else 1.0
     for r0 in range(0, N, B):
@@ -78,28 +74,28 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                         xp[i, b] += a * x[j, b]
             for l in range(m):
                 for b in range(nb):
-                    yb[b] = 0.0
+                    ybar[l, b] = 0.0
                 for j in range(n):
                     c = C[l, j]
                     for b in range(nb):
-                        yb[b] += c * xp[j, b]
+                        ybar[l, b] += c * xp[j, b]
                 for b in range(nb):
                     e[l, b] = y[r0 + b, t, l]
                 if latent:  # the sensor's clip at the limit (3.56)
                     sh = sgn * shift[l]
                     if upper:
                         for b in range(nb):
-                            e[l, b] = min(e[l, b], yb[b] - sh)
+                            e[l, b] = min(e[l, b], ybar[l, b] - sh)
                     else:
                         for b in range(nb):
-                            e[l, b] = max(e[l, b], yb[b] - sh)
+                            e[l, b] = max(e[l, b], ybar[l, b] - sh)
                     if want_x:
                         for b in range(nb):
-                            s_lim[b, tt, l] = yb[b] - sh
+                            s_lim[b, tt, l] = ybar[l, b] - sh
                             s_y[b, tt, l] = e[l, b]
                 off = sgn * offset[l]
                 for b in range(nb):
-                    e[l, b] = e[l, b] - (yb[b] + off)  # y - E[y] (3.58)
+                    e[l, b] = e[l, b] - (ybar[l, b] + off)  # y - E[y] (3.58)
             for i in range(n):  # x = x_bar + K e
                 for b in range(nb):
                     x[i, b] = xp[i, b]
