@@ -1332,6 +1332,8 @@ def _first_nonfinite(P: np.ndarray | None, k: int) -> int | None:
     if P is None:
         return None
     d = P.diagonal(0, -2, -1)
+    if d.size <= 16:  # one run of a small state (the online step): Python floats, the same verdict
+        return None if all(map(math.isfinite, d.ravel().tolist())) else k
     if np.isfinite(d).all():
         return None
     return k
