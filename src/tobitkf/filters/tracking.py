@@ -125,9 +125,6 @@ class MultiTargetTracker(Estimator):
     second_map : {"closest", "mutual"}, default "closest"
     gate : bool, default True   (False: no gating, for the comparison of Exp. 3)
 
-    The model matrices are kept as read-only copies (attributes ``A``, ``C``, ``Q``, ``R``, ``P0``,
-    ``B``): the steps reuse what was computed from them.
-
     Raises
     ------
     ValidationError
@@ -136,6 +133,11 @@ class MultiTargetTracker(Estimator):
         :meth:`track`, NaN, inf or text in a detection frame.
     ShapeError
         A detection frame that is not (L, 2).
+
+    Notes
+    -----
+    The model matrices are kept as read-only copies (attributes ``A``, ``C``, ``Q``, ``R``, ``P0``,
+    ``B``): the steps reuse what was computed from them.
     """
 
     _name = "MultiTargetTracker"
