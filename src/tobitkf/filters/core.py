@@ -52,6 +52,7 @@ import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
 from .._validation import ShapeError, ValidationError, as_float_array, check_option, check_psd
+from . import _backend
 
 __all__ = [
     "FilterResult",
@@ -444,8 +445,6 @@ def time_update(
 def _core_kernels():
     """The compiled shared step (:mod:`tobitkf.filters._kernels_core`), or None when the filters' kernels
     cannot be compiled (:func:`tobitkf.filters._backend.numba_available`)."""
-    from . import _backend
-
     return _load_core() if _backend.numba_available() else None
 
 
