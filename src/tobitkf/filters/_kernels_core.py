@@ -17,7 +17,8 @@ Every Gaussian-update family whose online ``step`` (or Python time loop) runs th
 this path when numba imports and its ``backend`` is not ``"numpy"``: one call per predict and one
 per update instead of about forty small numpy operations, which is what one run of one reading
 costs on the numpy path. Runs are processed in blocks of :data:`~tobitkf.filters._kernels.BLOCK`,
-copied into structure-of-arrays scratch (runs on the last axis, as in the TKF kernel) and back.
+copied into structure-of-arrays scratch from the kernels' shared allocators (runs on the last axis, as
+in the TKF kernel) and back.
 """
 
 from __future__ import annotations
@@ -25,7 +26,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import BLOCK, _cov_update, _gain, _gain_block, _innovation_moments
+from ._kernels import (
+    BLOCK,
+    _cov_update,
+    _gain,
+    _gain_block,
+    _innovation_moments,
+    _load,
+    _mean_scratch,
+    _store_last,
+    _update_scratch,
+)
 from ._kernels_fading import shift_predict_block
 
 __all__ = ["time_update_runs", "measurement_update_runs"]
@@ -49,18 +60,13 @@ def time_update_runs(x, P, A, Qd, bvec, xp_out, Pp_out):
     one_b = bvec.shape[0] == 1
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
-        for b in range(nb):
-            for i in range(nx):
-                xs[i, b] = x[r0 + b, i]
-                for j in range(nx):
-                    Ps[i, j, b] = P[r0 + b, i, j]
+        _load(x, P, r0, nb, xs, Ps)
         shift_predict_block(A, Qd, xs, Ps, xp, Pp, X, nb)
+        _store_last(xp, Pp, r0, nb, xp_out, Pp_out)
         for b in range(nb):
             rb = 0 if one_b else r0 + b
-            for i in range(nx):
-                xp_out[r0 + b, i] = xp[i, b] + (bvec[rb, i] if i < n else 0.0)
-                for j in range(nx):
-                    Pp_out[r0 + b, i, j] = Pp[i, j, b]
+            for i in range(n):
+                xp_out[r0 + b, i] += bvec[rb, i]
 
 
 @njit(cache=True, error_model="numpy")
@@ -80,71 +86,23 @@ def measurement_update_runs(
     N, nx = x.shape
     m = H0.shape[0]
     B = min(BLOCK, N)
-    nj = nx if joseph else 0
-    # one allocation for the block's scratch, carved into views (runs on the last axis)
-    buf = np.empty(
-        B * (2 * nx + 2 * nx * nx + 3 * m + 2 * m * m + 3 * m * nx + nx * m + 2 * nj * nj + m * m + m * nx + m)
-    )
-    o = 0
-    xp = buf[o : o + nx * B].reshape((nx, B))
-    o += nx * B
-    xn = buf[o : o + nx * B].reshape((nx, B))
-    o += nx * B
-    Pp = buf[o : o + nx * nx * B].reshape((nx, nx, B))
-    o += nx * nx * B
-    Pn = buf[o : o + nx * nx * B].reshape((nx, nx, B))
-    o += nx * nx * B
-    gam = buf[o : o + m * B].reshape((m, B))
-    o += m * B
-    e = buf[o : o + m * B].reshape((m, B))
-    o += m * B
-    d = buf[o : o + m * B].reshape((m, B))
-    o += m * B
-    nz = buf[o : o + m * m * B].reshape((m, m, B))
-    o += m * m * B
-    Ree = buf[o : o + m * m * B].reshape((m, m, B))
-    o += m * m * B
-    H = buf[o : o + m * nx * B].reshape((m, nx, B))
-    o += m * nx * B
-    CP = buf[o : o + m * nx * B].reshape((m, nx, B))
-    o += m * nx * B
-    W = buf[o : o + m * nx * B].reshape((m, nx, B))
-    o += m * nx * B
-    Rxe = buf[o : o + nx * m * B].reshape((nx, m, B))
-    o += nx * m * B
-    K = buf[o : o + nx * m * B].reshape((nx, m, B))
-    o += nx * m * B
-    IKH = buf[o : o + nj * nj * B].reshape((nj, nj, B))
-    o += nj * nj * B
-    T1 = buf[o : o + nj * nj * B].reshape((nj, nj, B))
-    o += nj * nj * B
-    Rw = buf[o : o + m * m * B].reshape((m, m, B))
-    o += m * m * B
-    flags = np.empty((m + 1) * B + m, dtype=np.bool_)
-    ok = flags[: m * B].reshape((m, B))
-    bad = flags[m * B : (m + 1) * B]
-    oks = flags[(m + 1) * B :]
-    # the per-run scratch of the pivoted fallback solve
-    one = np.empty(m * m + 2 * m * nx + nx * m + m)
-    Rs = one[: m * m].reshape((m, m))
-    Ws = one[m * m : m * m + m * nx].reshape((m, nx))
-    Ks = one[m * m + m * nx : m * m + m * nx + nx * m].reshape((nx, m))
-    Rxs = one[m * m + m * nx + nx * m : m * m + 2 * m * nx + nx * m].reshape((nx, m))
-    ds = one[m * m + 2 * m * nx + nx * m :]
+    # the block scratch from the kernels' shared allocators (the dense Joseph scratch of _cov_update)
+    xn, xp, e, _ = _mean_scratch(nx, m, B)
+    blk, run, solve, _ = _update_scratch(nx, nx, m, B, 0, True)
+    Pn, Pp, _, CP, Rxe, Ree, K, H, _, nz, IKH, T1, gam, ok = blk
+    Rs, Ws, Ks, oks, Rxs, ds = run
+    Rw, W, d, bad = solve
     one_s = scale.shape[0] == 1
     one_n = noise.shape[0] == 1
     nr = retained.shape[0]
     masked = valid.shape[0] > 0
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
+        _load(x, P, r0, nb, xp, Pp)
         for b in range(nb):
             r = r0 + b
             rs = 0 if one_s else r
             rn = 0 if one_n else r
-            for i in range(nx):
-                xp[i, b] = x[r, i]
-                for j in range(nx):
-                    Pp[i, j, b] = P[r, i, j]
             for l in range(m):
                 s = scale[rs, l]
                 gam[l, b] = s
@@ -179,12 +137,10 @@ def measurement_update_runs(
                         Pn[i, j, b] += acc
                         if j != i:
                             Pn[j, i, b] += acc
+        _store_last(xn, Pn, r0, nb, x_out, P_out)
         for b in range(nb):
             r = r0 + b
             for i in range(nx):
-                x_out[r, i] = xn[i, b]
-                for j in range(nx):
-                    P_out[r, i, j] = Pn[i, j, b]
                 for l in range(m):
                     K_out[r, i, l] = K[i, l, b]
             for l in range(m):
