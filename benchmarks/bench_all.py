@@ -146,7 +146,7 @@ def bench_delay(tab, runs, steps, peer, repeat):
     d = 3
     sys_, prior = paper_example(S=0.3, d=d), paper_prior(d)
     y = simulate_delay(sys_, prior, steps, runs, seed=1).y
-    AA, _, G, HH = _augmented_matrices(sys_, d)
+    AA, _, G, HH, *_ = _augmented_matrices(sys_, d)
     fp = filterpy_rate(
         AA,
         G @ np.atleast_2d(sys_.Qw) @ G.T,
