@@ -306,13 +306,7 @@ def _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, 
         return None
     gam_u, lam, tvar = row[2], row[3], row[5]
     noise = max(tvar, _TINY * r)  # R (1 - phi), floored
-    CPC = float((P_pred[0] @ Cc) @ Cc)
-    if failure_term == "variance":
-        F = lam_var * CPC
-    elif failure_term == "literal":
-        F = (lam_mean**2 + lam_var) * CPC
-    else:  # second_moment
-        F = lam_var * (CPC + float(xi @ Cc) ** 2)
+    F = float(_failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, None)[0])  # (24), one formula
     yhat = zeta + sd * lam  # (21), gamma = 1
     g = bool(np.asarray(gamma).reshape(-1)[0])
     theta = (tau - zeta) / sd if math.isfinite(tau) else math.copysign(math.inf, tau)
