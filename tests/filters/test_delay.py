@@ -8,6 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tobitkf._validation import ValidationError
 from tobitkf.filters.delay import (
     AugmentedLMMSE,
     ChainLMMSE,
@@ -674,3 +675,88 @@ def test_augmented_covariance_forms_equal_the_standard_form(form):
     a = AugmentedLMMSE(sys, prior).filter(data.y)
     b = AugmentedLMMSE(sys, prior, covariance_update=form).filter(data.y)
     assert_same(a, b, tol=1e-9)
+
+
+# ---------------------------------------------------------------- Algorithm D's compiled covariance step
+
+_KERNEL_FIELDS = ("mean", "cov", "pred_mean", "pred_cov", "measured_mean", "measured_cov", "next_mean", "next_cov")
+
+
+def _uncorrelated(d):
+    return HistoryPrior.uncorrelated([np.full(2, 0.1 * k) for k in range(d + 1)], [np.eye(2) * 0.01] * (d + 1))
+
+
+def _assert_close_rel(r1, r2, fields=_KERNEL_FIELDS, tol=1e-12):
+    for f in fields:
+        a, b = np.asarray(field(r1, f)), np.asarray(field(r2, f))
+        assert a.shape == b.shape, f
+        np.testing.assert_allclose(a, b, rtol=tol, atol=tol * max(1.0, float(np.abs(b).max())), err_msg=f)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 4])
+@pytest.mark.parametrize("prior_kind", ["paper", "uncorrelated"])
+@pytest.mark.parametrize("mode", ["optimal", "paper"])
+@pytest.mark.parametrize("errata", [(), ("E5",), ("E6",), ("E7",), ("E5", "E6", "E7")])
+def test_reorganized_compiled_equals_numpy(d, prior_kind, mode, errata):
+    pytest.importorskip("numba")
+    sys_ = paper_example(d=d)
+    prior = paper_prior(d=d) if prior_kind == "paper" else _uncorrelated(d)
+    y = simulate_delay(sys_, prior, 40, 3, seed=d).y
+    opts = dict(decorrelation=mode, reinsert_errata=errata)
+    ref = ReorganizedInnovationLMMSE(sys_, prior, backend="numpy", **opts).filter(y)
+    fast = ReorganizedInnovationLMMSE(sys_, prior, backend="numba", **opts).filter(y)
+    _assert_close_rel(fast, ref)
+    for L in ref.extras["lagged"]:
+        for a, b in zip(fast.extras["lagged"][L], ref.extras["lagged"][L]):
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(fast.extras["second_moment"], ref.extras["second_moment"], rtol=1e-12)
+
+
+def test_reorganized_compiled_errata_reach_the_kernel():
+    """Each re-inserted erratum changes the compiled result (the flags are not ignored by the kernel)."""
+    pytest.importorskip("numba")
+    # the case of test_printed_psi_recursion_is_not_optimal, where each erratum changes the result
+    sys_ = paper_example(S=0.2, q=0.3, d=3)
+    prior = HistoryPrior.constant(np.zeros(2), [[1.0, 0.3], [0.3, 0.8]], 3, jitter=0.01)
+    y = simulate_delay(sys_, prior, 40, 2, seed=3).y
+    base = ReorganizedInnovationLMMSE(sys_, prior, backend="numba").filter(y)
+    for err in ("E5", "E6", "E7"):
+        bad = ReorganizedInnovationLMMSE(sys_, prior, backend="numba", reinsert_errata=[err]).filter(y)
+        ref = ReorganizedInnovationLMMSE(sys_, prior, backend="numpy", reinsert_errata=[err]).filter(y)
+        assert np.abs(bad.mean - base.mean).max() > 1e-5, err
+        _assert_close_rel(bad, ref)
+
+
+@pytest.mark.parametrize("batch", [(), (3,), (2, 2)])
+def test_reorganized_compiled_step_loop_equals_filter_and_resumes(batch):
+    pytest.importorskip("numba")
+    import pickle
+
+    sys_, prior = paper_example(d=3), paper_prior(d=3)
+    T = 30
+    y = simulate_delay(sys_, prior, T, int(np.prod(batch, dtype=int)), seed=5).y.reshape(batch + (T, sys_.m))
+    est = ReorganizedInnovationLMMSE(sys_, prior, backend="numba")
+    res = est.filter(y)
+    s = est.init(batch_shape=batch)
+    for k in range(T):
+        if k == 17:  # checkpoint mid-run and resume from the copy
+            s = pickle.loads(pickle.dumps(s))
+        s = est.step(s, y[..., k, :])
+    np.testing.assert_array_equal(s.mean, res.mean[..., -1, :])
+    np.testing.assert_array_equal(np.broadcast_to(s.cov, res.cov[..., -1, :, :].shape), res.cov[..., -1, :, :])
+    # a numpy-path estimator continues a compiled state (one carry layout for both)
+    half = est.filter(y[..., :12, :])
+    rest = ReorganizedInnovationLMMSE(sys_, prior, backend="numpy").filter(y[..., 12:, :], state=half.final)
+    np.testing.assert_allclose(rest.mean, res.mean[..., 12:, :], rtol=1e-12, atol=1e-12)
+
+
+def test_reorganized_compiled_refuses_varying_laws():
+    pytest.importorskip("numba")
+    sys_ = paper_example(d=2).replace(fading=FadingMoments(np.linspace(0.5, 0.9, 50), 0.01))
+    prior = paper_prior(d=2)
+    with pytest.raises(ValidationError, match="change with t"):
+        ReorganizedInnovationLMMSE(sys_, prior, backend="numba")
+    y = simulate_delay(sys_, prior, 20, 2, seed=0).y
+    a = ReorganizedInnovationLMMSE(sys_, prior).filter(y)  # "auto" runs the numpy step
+    b = ReorganizedInnovationLMMSE(sys_, prior, backend="numpy").filter(y)
+    np.testing.assert_array_equal(a.mean, b.mean)

@@ -47,6 +47,7 @@ import numpy as np
 
 from .._validation import ValidationError, check_instance
 from ..models.delay import DelayFadingSystem, HistoryPrior
+from ._backend import BACKENDS, use_kernel
 from .core import (
     Estimator,
     FilterResult,
@@ -75,26 +76,51 @@ __all__ = [
 
 _DECORRELATION = ("optimal", "paper")
 _ERRATA = ("E5", "E6", "E7")
-#: the per-time dicts of Algorithm D's carry (each step copies these and adds to / prunes them)
-_REORG_DICTS = (
-    "xf",
-    "Pf",
-    "xsm",
-    "Psm",
-    "xm",
-    "Pmeas",
-    "xp",
-    "Pp",
-    "Psi",
-    "K",
-    "KH",
-    "eps",
-    "Qe",
-    "Pm",
-    "lam",
-    "decor",
-    "HtQi",
-)
+#: the per-time dicts of Algorithm D's carry: the (batched) means; each step copies these and adds to / prunes
+#: them (its data-independent quantities are in one ring buffer, :func:`_ring_layout`)
+_REORG_DICTS = ("xf", "xsm", "xm", "xp", "eps")
+
+# Algorithm D keeps its data-independent quantities of the last W = 4d+4 times in one flat ring buffer
+# (time τ in slot τ mod W), copied once per step: Ψ_i(τ) and K(a|τ)H (by offset τ-a = 0..d), P(τ|τ),
+# the smoother's P(τ-d+1|τ), P(τ-d|τ), P(τ|τ-1), P(τ-d|τ-1), Λ(τ), J(τ), Ā(τ), Σ(τ), Q_ε(τ); then the gains
+# of the last step, K(t|t), K(t-d+1|t-i+1) (i = 1..d-1) and K(t-d|t), which the means read. The numpy step
+# and the compiled step (:mod:`tobitkf.filters._kernels_delay`) read and write the same layout.
+_RING_FIELDS = ("psi", "kh", "pf", "psm", "pmeas", "pp", "pm", "lam", "abar", "sig", "j", "qe", "kf", "ks", "ke")
+
+
+def _ring_layout(d: int, n: int, m: int) -> tuple[int, dict[str, tuple[int, tuple[int, ...]]]]:
+    """Ring size W and the (offset, shape) of every field of the flat buffer."""
+    W = 4 * d + 4
+    shapes = {
+        "psi": (W, d + 1, n, n),
+        "kh": (W, d + 1, n, n),
+        "pf": (W, n, n),
+        "psm": (W, n, n),
+        "pmeas": (W, n, n),
+        "pp": (W, n, n),
+        "pm": (W, n, n),
+        "lam": (W, n, n),
+        "abar": (W, n, n),
+        "sig": (W, n, n),
+        "j": (W, n, m),
+        "qe": (W, m, m),
+        "kf": (n, m),
+        "ks": (max(d - 1, 1), n, m),
+        "ke": (n, m),
+    }
+    out, off = {}, 0
+    for name in _RING_FIELDS:
+        size = int(np.prod(shapes[name]))
+        out[name] = (off, shapes[name])
+        off += size
+    out["size"] = (off, ())
+    return W, out
+
+
+def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
+    """The fields of a flat ring buffer as views."""
+    return {k: buf[o : o + int(np.prod(s))].reshape(s) for k, (o, s) in layout.items() if k != "size"}
+
 
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
 #: (``DelayEstimates`` is kept as its name for one release).
@@ -896,8 +922,11 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         decorrelation: str = "optimal",
         warmup: int | None = None,
         reinsert_errata: Any = (),
+        backend: str = "auto",
     ):
-        check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
+        check_keywords(
+            {"decorrelation": decorrelation, "backend": backend}, {"decorrelation": _DECORRELATION, "backend": BACKENDS}
+        )
         errata = frozenset(reinsert_errata)
         bad = errata - set(_ERRATA)
         if bad:
@@ -907,16 +936,36 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             raise ValidationError("system: Algorithm D needs the pure-delay model (no extra_lags); use augmented_lmmse")
         self.decorrelation, self.errata, self.warmup_arg = decorrelation, errata, warmup
         self._t0(self.prior)
-        # constants of every step (read-only: the zero blocks stand for the Ψ and gains that vanish)
         self._HT = system.H.T
-        self._zero_nn, self._zero_nm = np.zeros((self.n, self.n)), np.zeros((self.n, self.m))
-        self._zero_nH = self._zero_nm.dot(system.H)  # the product a vanishing gain K(a|s) H stands for
-        for z in (self._zero_nn, self._zero_nm, self._zero_nH):
-            z.flags.writeable = False
+        self.backend = backend
+        gap = None
+        if system.fading.varying or not system.q_constant:
+            gap = "fading or multiplicative-noise laws that change with t"
+        self._kernel, self._kernel_args = None, ()
+        # d = 0 is Algorithm C (its chain's own step)
+        if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
+            self._kernel, self._kernel_args = self._compiled_step()
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
         # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
+
+    def _compiled_step(self):
+        """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
+        constant arguments after ``(ring, t)``."""
+        from ._kernels_delay import reorg_cov_step
+
+        sys_ = self.system
+        W, layout = _ring_layout(sys_.d, self.n, self.m)
+        offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
+        c = np.ascontiguousarray
+        q = sys_.q_mult(0) if sys_.h else np.zeros(0)
+        args = (offs,)
+        args += (sys_.d, W, c(sys_.A), c(sys_.H), c(sys_.Qv), c(sys_.Gamma), c(sys_.S), c(sys_.Qw), c(sys_.GQG))
+        args += (c(sys_.A_mult), c(q, dtype=float), c(sys_.S_Qv_inv), c(sys_.eta_cov))
+        args += (float(sys_.gamma_mean(0)), float(sys_.gamma_var(0)), self.decorrelation == "optimal")
+        args += ("E5" in self.errata, "E6" in self.errata, "E7" in self.errata)
+        return reorg_cov_step, args
 
     def _gbar(self, s: int) -> float:
         """γ̄(s) (one call, not two, when the fading law does not change with s)."""
@@ -949,202 +998,213 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             x, P, carry = self._chain._initial(N, prior, P0, batch)
             return x, P, {"chain": carry}
         t0 = self._t0(prior)
-        xf, Pf, xsm, Psm = {}, {}, {}, {}
-        lam = {}
-        # Exact initialization from an uncorrelated prior: every Ψ and every gain K(a|s), s ≠ a+d, is zero;
-        # the elements x(-k) keep their prior until measured.
+        W, layout = self._layout
+        ring = np.zeros(layout["size"][0])
+        R = _ring_views(ring, layout)
+        xf, xsm = {}, {}
+        # Exact initialization from an uncorrelated prior: every Ψ and every gain K(a|s), s ≠ a+d, is zero
+        # (the ring's zeros); the elements x(-k) keep their prior until measured.
         for k in range(d + 1):
-            mu = np.broadcast_to(prior.block_mean(k), (N, n)).copy()
-            xf[-k], Pf[-k] = mu, prior.block_cov(k)  # x̂(-k|-k) = prior (no data before t = 0)
+            xf[-k] = np.broadcast_to(prior.block_mean(k), (N, n)).copy()  # x̂(-k|-k) = prior (no data before t = 0)
             m0 = prior.block_mean(k)
-            lam[-k] = prior.block_cov(k) + np.outer(m0, m0)
-        xsm[-1], Psm[-1] = xf[-d], Pf[-d]  # x̂(-d|-1)
-        carry = {
-            "xf": xf,
-            "Pf": Pf,
-            "xsm": xsm,
-            "Psm": Psm,
-            "xm": {},
-            "Pmeas": {},
-            "xp": {0: xf[0]},
-            "Pp": {0: Pf[0]},
-            "Psi": {},
-            "K": {},
-            "eps": {},
-            "Qe": {},
-            "Pm": {},
-            "lam": lam,
-            "t0": t0,
-        }
+            R["pf"][-k % W] = prior.block_cov(k)
+            R["lam"][-k % W] = prior.block_cov(k) + np.outer(m0, m0)
+        xsm[-1] = xf[-d]  # x̂(-d|-1)
+        R["psm"][-1 % W] = R["pf"][-d % W]
+        R["pp"][0] = R["pf"][0]
+        carry = {"xf": xf, "xsm": xsm, "xm": {}, "xp": {0: xf[0]}, "eps": {}, "ring": ring, "t0": t0}
         if t0 > 0:
             aug = AugmentedLMMSE(sys_, prior, window=d)
             Xa, Pa, ca = aug._initial(N, prior, None, batch)
             carry["aug"] = (Xa, Pa, ca["LamX"])
-        return xf[0], Pf[0][None], carry
+        return xf[0], R["pf"][0][None].copy(), carry
+
+    @property
+    def _layout(self):
+        """(W, field offsets) of the ring buffer (:func:`_ring_layout`), formed once."""
+        lay = self.__dict__.get("_ring_lay")
+        if lay is None:
+            lay = self._ring_lay = _ring_layout(self.system.d, self.n, self.m)
+        return lay
 
     def _state_dim(self) -> int:
         return self.n
 
     def _step_arrays(self, t, x, P, S, carry, y, u, options=None):
         sys_ = self.system
-        d, n = sys_.d, self.n
+        d = sys_.d
         if d == 0:
             xn, Pn, Sn, cn, xp, Pp, ex = self._chain._step_arrays(t, x, P, S, carry["chain"], y, u, {"lags": (0,)})
             return xn, Pn, Sn, {"chain": cn}, xp, Pp, ex
-        # a new carry: only its per-time dicts are mutated below, so only they are copied (the caller's
-        # state stays unchanged); "decor"/"HtQi" are absent from the initial carry
+        # a new carry: the ring buffer is copied once (the caller's state stays unchanged), the per-time
+        # dicts of the (batched) means are copied and grown
         c = dict(carry)
         for key in _REORG_DICTS:
-            c[key] = dict(carry[key]) if key in carry else {}
-        xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp = (c[k] for k in ("xf", "Pf", "xsm", "Psm", "xm", "Pmeas", "xp", "Pp"))
-        Psi, K, eps, Qe, Pm = c["Psi"], c["K"], c["eps"], c["Qe"], c["Pm"]
-        # K(a|s) H of the reorganized steps' gains, formed with each gain and read again in (c) at later steps
-        # (the gains K(a|s) themselves are kept only for the warm-up's, whose K H is formed on first use)
-        KH = c["KH"]
-        # J, Ā, Σ of time s and H^T Q_ε(s)^{-1} are read again at later steps: computed once each, kept
-        # in the carry with the other per-time quantities
-        dec, hq = c["decor"], c["HtQi"]
-        lam = c["lam"]
-        A = sys_.A
-        mode = self.decorrelation
-        for s_ in range(max(lam), t):  # Λ up to t (a carry that lags behind), the corrected recursion (LD-E2)
-            L_ = lam[s_ - d]
-            Lq = A.dot(L_).dot(A.T) + sys_.process_cov(s_, L_)
-            lam[s_ + 1] = 0.5 * (Lq + Lq.T)
-        # what time t needs of Λ(t-d), each formed once: R(t) of (15), J(t), Ā(t), Σ(t) of (50)-(52), Λ(t+1) (LD-E2)
-        R_t, dec_t, lam[t + 1] = _moments_at(sys_, t, lam[t - d], mode)
-        if t not in dec:
-            dec[t] = dec_t
-        H, HT = sys_.H, self._HT
-        zero_nn = self._zero_nn
-        errata = self.errata
-        gbar = self._gbar
-
-        xpred, Ppred = xp[t], Pp[t]
+            c[key] = dict(carry[key])
+        xf, xsm, xm, xp, eps = (c[k] for k in _REORG_DICTS)
+        W, layout = self._layout
+        ring = c["ring"] = carry["ring"].copy()
+        R = _ring_views(ring, layout)
+        xpred = xp[t]
         if t < c["t0"]:
-            # warm-up by Algorithm A, from which every stored Ψ, gain and covariance is read
-            Xa, Pa, LamX = c["aug"]
-            Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, self._warmup_matrices(), Xa, Pa, LamX, y, t)
-            Pprior = Pa[0]
-            PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
-            xf[t], Pf[t] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
-            xsm[t], Psm[t] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
-            xm[t], Pmeas[t] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
-            xp[t + 1], Pp[t + 1] = _blk(Xp_, 0, None, n), _blk(PpA, 0, 0, n)
-            Pm[t] = _blk(Pprior, d, d, n)  # P(t-d|t-1)
-            for k in range(d + 1):
-                K[(t - k, t)] = _blk(KA.T, k, None, n).T  # K(t-k|t): rows of block k
-            eps[t], Qe[t] = e_t, Q_t
-            # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
-            for j, Pj in ((t, Pprior), (t + 1, PpA)):
-                for i in range(1, d + 1):
-                    Psi[(i, j + i - 1)] = _blk(Pj, d, d - i, n)
-            c["aug"] = (Xp_, PpA[None], LamX)
+            self._warmup_step(t, y, c, R)
+        elif self._kernel is not None:
+            self._kernel(ring, t, *self._kernel_args)
+            self._means_step(t, y, xf, xsm, xm, xp, eps, R)
         else:
-            c.pop("aug", None)
-            # ndarray.dot on these 2-D blocks: bitwise the products of @ (checked), at a fraction of its call overhead
-            gb = gbar(t)
-            # (a) innovation (14), (15); x̂(t-d|t-1) is last step's smoother output x̂(t-d+1|t) shifted
-            xmp, Pmp = xsm[t - 1], Psm[t - 1]
-            Pm[t] = Pmp
-            Q = gb * gb * (H.dot(Pmp).dot(HT)) + R_t  # R(t) = Q_v + σ² H Λ(t-d) H^T
-            if Q.shape[0] > 1:  # a 1 x 1 Q_ε is its own symmetric part (0.5 (q + q) = q exactly)
-                Q = 0.5 * (Q + Q.T)
-            e_t = y - gb * (xmp.dot(HT))
-            eps[t], Qe[t] = e_t, Q
-            HtQi = hq[t] = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
-            # (b) filter, (35)-(38) shifted by one
-            Psd = Psi.get((d, t + d - 1), zero_nn)
-            Kf = gb * (Psd.T.dot(HtQi))
-            KH[(t, t)] = KfH = Kf.dot(H)
-            xf[t] = xp[t] + e_t.dot(Kf.T)
-            Pq = Pp[t] - gb * (KfH.dot(Psd))
-            Pf[t] = 0.5 * (Pq + Pq.T)
-            # (c) Ψ_i(t), i = d-1..1, corrected (58)
-            # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
-            # gains of not-yet-measured elements vanish; times < 0 carry no measurement (γ̄ = 0 there).
-            if t - d >= 0:
-                if t - d not in dec:
-                    dec[t - d] = _decorrelation(sys_, t - d, lam[t - 2 * d], mode)
-                AbarT_td = dec[t - d][1].T
-                g_md = gbar(t - d)
-            else:
-                AbarT_td, g_md = A.T, 0.0
-            g_md1 = gbar(t - d + 1) if t - d + 1 >= 0 else 0.0
-            e5, e6, e7 = "E5" in errata, "E6" in errata, "E7" in errata
-            psi_dt = Psi.get((d, t), zero_nn)
-            psi_d = psi_dt.T if e6 else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
-            Pm_td = Pm.get(t - d, zero_nn)
-            zero_nH = self._zero_nH
-
-            def kh(key: tuple[int, int]) -> np.ndarray:  # K(a|s) H; a warm-up (Algorithm A) gain's on first use
-                if key in KH:
-                    return KH[key]
-                return K[key].dot(H) if key in K else zero_nH
-
-            for i in range(d - 1, 0, -1):
-                a = t - d - i + 1
-                a5 = a - 1 if e5 else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
-                val = (Psi.get((d - i + 1, t - i), zero_nn).T - g_md * kh((a5, t - d)).dot(Pm_td)).dot(AbarT_td)
-                val = val - g_md1 * kh((a, t - d + 1)).dot(psi_d)
-                top = d - 1 - i if e7 else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
-                for j in range(0, top + 1):
-                    s = t - i - j
-                    g_s = gbar(s) if s >= 0 else 0.0
-                    val = val - g_s * kh((a, s)).dot(Psi.get((i + j + 1, t), zero_nn))
-                Psi[(i, t)] = val
-            # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
-            a = t - d + 1
-            xs_, Ps_ = xf[a], Pf[a]
-            for i in range(1, d):
-                s = t - i + 1
-                if s < 0:
-                    continue
-                g_s = gbar(s)
-                psi_i = Psi[(i, t)]
-                if s not in hq:  # a warm-up step's (Algorithm A) reading
-                    hq[s] = _solve_small(Qe[s], H).T
-                Ks = g_s * (psi_i.T.dot(hq[s]))
-                KH[(a, s)] = KsH = Ks.dot(H)
-                xs_ = xs_ + eps[s].dot(Ks.T)
-                Ps_ = Ps_ - g_s * (KsH.dot(psi_i))
-            xsm[t], Psm[t] = xs_, 0.5 * (Ps_ + Ps_.T)
-            # (e) delayed filter and predictor (50)-(52)
-            Ke = gb * (Pmp.dot(HtQi))
-            xm[t] = xmp + e_t.dot(Ke.T)
-            KH[(t - d, t)] = KeH = Ke.dot(H)
-            Pq = Pmp - gb * (KeH.dot(Pmp))
-            Pmeas[t] = 0.5 * (Pq + Pq.T)
-            J, Abar, Sigma = dec[t]
-            xp[t + 1] = xm[t].dot(Abar.T) + y.dot(J.T)
-            Pq = Abar.dot(Pmeas[t]).dot(Abar.T) + Sigma
-            Pp[t + 1] = 0.5 * (Pq + Pq.T)
-            # (f) corrected (39)
-            psi1 = Psi.get((1, t), zero_nn)
-            Psi[(d, t + d)] = Abar.dot(psi1 - gb * KeH.dot(psi1)).T
+            self._cov_step(t, R)
+            self._means_step(t, y, xf, xsm, xm, xp, eps, R)
+        s1 = (t + 1) % W
+        st = t % W
         extras = {
             "measured_mean": xm[t],
-            "measured_cov": Pmeas[t][None],
+            "measured_cov": R["pmeas"][st][None],
             "next_mean": xp[t + 1],
-            "next_cov": Pp[t + 1][None],
+            "next_cov": R["pp"][s1][None],
             "innovation": eps[t],
-            "innovation_cov": Qe[t][None],
+            "innovation_cov": R["qe"][st][None],
             f"lag{d - 1}_mean": xsm[t],
-            f"lag{d - 1}_cov": Psm[t][None],
-            "_lam": lam[t][None],
+            f"lag{d - 1}_cov": R["psm"][st][None],
+            "_lam": R["lam"][st][None],
         }
-        # drop what is no longer needed (the recursions read back at most 2d+1 steps). Every key is a
-        # time >= t - d when stored and each step drops those below t - 2d - 2, so exactly the keys of
-        # one time go: Ψ_i(old), i = 1..d, the gains K(a|old), a = old-d..old, and time old - 1 elsewhere
+        c["lam"] = {t + 1: R["lam"][s1]}  # Λ(t+1), read by the result assembly (_group_extras)
+        # drop what is no longer needed (the recursions read back at most 2d+1 steps): the ring's Ψ_i(old)
+        # and K(a|old)H are zeroed (a vanishing Ψ or gain reads as zero), the means of time old - 1 go
         old = t - 2 * d - 2
-        for i in range(1, d + 1):
-            Psi.pop((i, old), None)
-        for a in range(old - d, old + 1):
-            K.pop((a, old), None)
-            KH.pop((a, old), None)
-        for dct in (xf, Pf, xsm, Psm, xm, Pmeas, xp, Pp, eps, Qe, Pm, lam, dec, hq):
+        R["psi"][old % W] = 0.0
+        R["kh"][old % W] = 0.0
+        for dct in (xf, xsm, xm, xp, eps):
             dct.pop(old - 1, None)
-        return xf[t], Pf[t][None], None, c, xpred, Ppred[None], extras
+        return xf[t], R["pf"][st][None], None, c, xpred, R["pp"][st][None], extras
+
+    def _warmup_step(self, t, y, c, R):
+        """A step t < warmup by Algorithm A, from which every stored Ψ, gain and covariance is read (LD-05)."""
+        sys_ = self.system
+        d, n = sys_.d, self.n
+        W = self._layout[0]
+        st = t % W
+        _, dec, R["lam"][(t + 1) % W] = _moments_at(sys_, t, R["lam"][(t - d) % W], self.decorrelation)
+        R["j"][st], R["abar"][st], R["sig"][st] = dec
+        Xa, Pa, LamX = c["aug"]
+        Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, self._warmup_matrices(), Xa, Pa, LamX, y, t)
+        Pprior = Pa[0]
+        PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
+        c["xf"][t], R["pf"][st] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
+        c["xsm"][t], R["psm"][st] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
+        c["xm"][t], R["pmeas"][st] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
+        c["xp"][t + 1], R["pp"][(t + 1) % W] = _blk(Xp_, 0, None, n), _blk(PpA, 0, 0, n)
+        R["pm"][st] = _blk(Pprior, d, d, n)  # P(t-d|t-1)
+        for k in range(d + 1):
+            R["kh"][st, k] = _blk(KA.T, k, None, n).T.dot(sys_.H)  # K(t-k|t) H: K(t-k|t) the rows of block k
+        c["eps"][t], R["qe"][st] = e_t, Q_t
+        # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
+        for j, Pj in ((t, Pprior), (t + 1, PpA)):
+            for i in range(1, d + 1):
+                R["psi"][(j + i - 1) % W, i] = _blk(Pj, d, d - i, n)
+        c["aug"] = (Xp_, PpA[None], LamX)
+        if t + 1 == c["t0"]:
+            del c["aug"]
+
+    def _cov_step(self, t, R):
+        """The data-independent part of a reorganized step t >= warmup on the ring (numpy reference of
+        :func:`tobitkf.filters._kernels_delay.reorg_cov_step`): (a)–(f) of :func:`reorganized_lmmse`
+        without the means, and Λ(t+1) (LD-E2); the gains the means read go to the ring's ``kf``, ``ks``,
+        ``ke``."""
+        sys_ = self.system
+        d = sys_.d
+        W = self._layout[0]
+        H, HT, A = sys_.H, self._HT, sys_.A
+        gbar = self._gbar
+        psi, kh = R["psi"], R["kh"]
+        st = t % W
+        # what time t needs of Λ(t-d), each formed once: R(t) of (15), J(t), Ā(t), Σ(t) of (50)-(52), Λ(t+1) (LD-E2)
+        R_t, dec, R["lam"][(t + 1) % W] = _moments_at(sys_, t, R["lam"][(t - d) % W], self.decorrelation)
+        R["j"][st], R["abar"][st], R["sig"][st] = dec
+        errata = self.errata
+        # ndarray.dot on these 2-D blocks: bitwise the products of @ (checked), at a fraction of its call overhead
+        gb = gbar(t)
+        # (a) innovation covariance (15); P(t-d|t-1) is last step's smoother covariance P(t-d+1|t) shifted
+        Pmp = R["psm"][(t - 1) % W]
+        R["pm"][st] = Pmp
+        Q = gb * gb * (H.dot(Pmp).dot(HT)) + R_t  # R(t) = Q_v + σ² H Λ(t-d) H^T
+        if Q.shape[0] > 1:  # a 1 x 1 Q_ε is its own symmetric part (0.5 (q + q) = q exactly)
+            Q = 0.5 * (Q + Q.T)
+        R["qe"][st] = Q
+        HtQi = _solve_small(Q, H).T  # H^T Q_ε(t)^{-1}
+        # (b) filter, (35)-(38) shifted by one
+        Psd = psi[(t + d - 1) % W, d]
+        Kf = R["kf"][...] = gb * (Psd.T.dot(HtQi))
+        kh[st, 0] = KfH = Kf.dot(H)
+        Pq = R["pp"][st] - gb * (KfH.dot(Psd))
+        R["pf"][st] = 0.5 * (Pq + Pq.T)
+        # (c) Ψ_i(t), i = d-1..1, corrected (58)
+        # Before t = d (zero initialization only) the terms below are all zero: Ψ and the
+        # gains of not-yet-measured elements vanish; times < 0 carry no measurement (γ̄ = 0 there).
+        if t - d >= 0:
+            AbarT_td = R["abar"][(t - d) % W].T
+            g_md = gbar(t - d)
+        else:
+            AbarT_td, g_md = A.T, 0.0
+        g_md1 = gbar(t - d + 1) if t - d + 1 >= 0 else 0.0
+        e5, e6, e7 = "E5" in errata, "E6" in errata, "E7" in errata
+        psi_dt = psi[st, d]
+        psi_d = psi_dt.T if e6 else psi_dt  # source prints Ψ_d(t)^T (LD-E6)
+        Pm_td = R["pm"][(t - d) % W]  # zero before t = d (no reading of x(t-2d) yet)
+        for i in range(d - 1, 0, -1):
+            a = t - d - i + 1
+            a5 = a - 1 if e5 else a  # source (30)/(58) print K(t-d-i|t-d) (LD-E5)
+            # K(a|s)H sits at offset s - a of time s
+            val = (psi[(t - i) % W, d - i + 1].T - g_md * kh[(t - d) % W, t - d - a5].dot(Pm_td)).dot(AbarT_td)
+            val = val - g_md1 * kh[(t - d + 1) % W, t - d + 1 - a].dot(psi_d)
+            top = d - 1 - i if e7 else d - 2 - i  # source's limit d-1-i double counts (LD-E7)
+            for j in range(0, top + 1):
+                s = t - i - j
+                g_s = gbar(s) if s >= 0 else 0.0
+                val = val - g_s * kh[s % W, s - a].dot(psi[st, i + j + 1])
+            psi[st, i] = val
+        # (d) fixed-lag d-1 smoother (55)-(57), a = t-d+1
+        a = t - d + 1
+        Ps_ = R["pf"][a % W]
+        for i in range(1, d):
+            s = t - i + 1
+            if s < 0:
+                continue
+            g_s = gbar(s)
+            psi_i = psi[st, i]
+            Ks = R["ks"][i - 1] = g_s * (psi_i.T.dot(_solve_small(R["qe"][s % W], H).T))
+            kh[s % W, s - a] = KsH = Ks.dot(H)
+            Ps_ = Ps_ - g_s * (KsH.dot(psi_i))
+        R["psm"][st] = 0.5 * (Ps_ + Ps_.T)
+        # (e) delayed filter and predictor (50)-(52)
+        Ke = R["ke"][...] = gb * (Pmp.dot(HtQi))
+        kh[st, d] = KeH = Ke.dot(H)
+        Pq = Pmp - gb * (KeH.dot(Pmp))
+        Pmeas = R["pmeas"][st] = 0.5 * (Pq + Pq.T)
+        Abar = R["abar"][st]
+        Pq = Abar.dot(Pmeas).dot(Abar.T) + R["sig"][st]
+        R["pp"][(t + 1) % W] = 0.5 * (Pq + Pq.T)
+        # (f) corrected (39)
+        psi1 = psi[st, 1]
+        psi[(t + d) % W, d] = Abar.dot(psi1 - gb * KeH.dot(psi1)).T
+
+    def _means_step(self, t, y, xf, xsm, xm, xp, eps, R):
+        """The means of a reorganized step t >= warmup from the gains of :meth:`_cov_step`: ε(t) (14), the
+        filter (35), the fixed-lag smoother (55), the delayed filter (51) and the predictor (50)."""
+        d = self.system.d
+        W = self._layout[0]
+        gb = self._gbar(t)
+        xmp = xsm[t - 1]  # x̂(t-d|t-1): last step's smoother output x̂(t-d+1|t) shifted
+        e_t = eps[t] = y - gb * (xmp.dot(self._HT))
+        xf[t] = xp[t] + e_t.dot(R["kf"].T)
+        xs_ = xf[t - d + 1]
+        for i in range(1, d):
+            s = t - i + 1
+            if s >= 0:
+                xs_ = xs_ + eps[s].dot(R["ks"][i - 1].T)
+        xsm[t] = xs_
+        xm[t] = xmp + e_t.dot(R["ke"].T)
+        st = t % W
+        xp[t + 1] = xm[t].dot(R["abar"][st].T) + y.dot(R["j"][st].T)
 
     def filter(
         self, y: Any, *, prior: Any = None, outputs: Any = "all", state: FilterState | None = None

@@ -476,6 +476,8 @@ class DelayFadingSystem:
         if h and q_mult is None:
             raise ValidationError("q_mult: expected the variances Q_zeta_i of the multiplicative noises, got None")
         self._q_mult = self._q_schedule(q_mult, h)
+        #: Q_ζ does not change with t (no multiplicative noise, or one variance per A_i)
+        self.q_constant = h == 0 or (not callable(q_mult) and np.ndim(q_mult) <= 1)
         self.fading = _FadingSchedule(fading)
         self.lags = {self.d: self.A}
         for lag, mat in (extra_lags or {}).items():

@@ -1,0 +1,175 @@
+r"""Compiled (numba) covariance step of the reorganized-innovation LMMSE (Algorithm D of the delay module).
+
+:func:`reorg_cov_step` is :meth:`tobitkf.filters.delay.ReorganizedInnovationLMMSE._cov_step`, the numpy
+reference, on the same flat ring buffer (layout: :func:`tobitkf.filters.delay._ring_layout`, whose field
+offsets are passed in ``offs``): the data-independent part of one step t >= warmup, (a)–(f) of
+:func:`~tobitkf.filters.delay.reorganized_lmmse` without the means, the moments of Λ(t-d) (R(t), J(t),
+Ā(t), Σ(t), Λ(t+1), corrected recursion LD-E2), and the gains the means read. Covered: fading and
+multiplicative-noise laws that do not change with t (γ̄, σ², Q_ζ constant), both decorrelation modes and
+the re-inserted errata. The products are written as loops (the blocks are n x n with n of a few), so the
+results equal the numpy step's to rounding, not bitwise (tested to 1e-12).
+Compiled on first use and cached on disk; importing this module imports numba.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .._linalg_kernels import gauss_solve
+
+__all__ = ["reorg_cov_step"]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mm(A, B, ta, tb):
+    """op(A) op(B) with op the transpose where ``ta``/``tb``; a new array."""
+    p = A.shape[1] if ta else A.shape[0]
+    q = A.shape[0] if ta else A.shape[1]
+    r = B.shape[0] if tb else B.shape[1]
+    out = np.empty((p, r))
+    for i in range(p):
+        for k in range(r):
+            acc = 0.0
+            for j in range(q):
+                acc += (A[j, i] if ta else A[i, j]) * (B[k, j] if tb else B[j, k])
+            out[i, k] = acc
+    return out
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _sym_into(M, out):
+    """out = (M + M^T) / 2."""
+    n = M.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * (M[i, j] + M[j, i])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _right_inverse(B, M):
+    """B M^{-1} for a symmetric (m, m) M: (M^{-1} B^T)^T; a division for m = 1 (as the numpy step)."""
+    m = M.shape[0]
+    if m == 1:
+        return B / M[0, 0]
+    X = np.ascontiguousarray(B.T)
+    gauss_solve(M.copy(), X)
+    return np.ascontiguousarray(X.T)
+
+
+@njit(cache=True, error_model="numpy")
+def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7):
+    """One covariance step t >= warmup of Algorithm D on ``ring`` (in place); see the module docstring.
+
+    ``offs`` are the offsets of the fields psi, kh, pf, psm, pmeas, pp, pm, lam, abar, sig, j, qe, kf, ks,
+    ke (in this order); ``gconst``/``s2`` the fading law's mean and variance; ``optimal`` the
+    decorrelation mode; ``e5``/``e6``/``e7`` the re-inserted errata.
+    """
+    n = A.shape[0]
+    m = H.shape[0]
+    nn, nm = n * n, n * m
+    psi = ring[offs[0] : offs[0] + W * (d + 1) * nn].reshape((W, d + 1, n, n))
+    kh = ring[offs[1] : offs[1] + W * (d + 1) * nn].reshape((W, d + 1, n, n))
+    pf = ring[offs[2] : offs[2] + W * nn].reshape((W, n, n))
+    psm = ring[offs[3] : offs[3] + W * nn].reshape((W, n, n))
+    pmeas = ring[offs[4] : offs[4] + W * nn].reshape((W, n, n))
+    pp = ring[offs[5] : offs[5] + W * nn].reshape((W, n, n))
+    pm = ring[offs[6] : offs[6] + W * nn].reshape((W, n, n))
+    lam = ring[offs[7] : offs[7] + W * nn].reshape((W, n, n))
+    abar = ring[offs[8] : offs[8] + W * nn].reshape((W, n, n))
+    sig = ring[offs[9] : offs[9] + W * nn].reshape((W, n, n))
+    jj = ring[offs[10] : offs[10] + W * nm].reshape((W, n, m))
+    qe = ring[offs[11] : offs[11] + W * m * m].reshape((W, m, m))
+    kf = ring[offs[12] : offs[12] + nm].reshape((n, m))
+    nks = max(d - 1, 1)
+    ks = ring[offs[13] : offs[13] + nks * nm].reshape((nks, n, m))
+    ke = ring[offs[14] : offs[14] + nm].reshape((n, m))
+    st = t % W
+    gb = gconst
+
+    # moments of Λ(t-d): R(t), the multiplicative term, Λ(t+1), J(t), Ā(t), Σ(t)
+    Lam = lam[(t - d) % W]
+    HLH = _mm(_mm(H, Lam, False, False), H, False, True)
+    Rt = Qv + s2 * HLH
+    mult = np.zeros((n, n))
+    for i in range(q.shape[0]):
+        mult += q[i] * _mm(_mm(Ai[i], Lam, False, False), Ai[i], False, True)
+    Lq = _mm(_mm(A, Lam, False, False), A, False, True) + (mult + GQG)
+    _sym_into(Lq, lam[(t + 1) % W])
+    if optimal:
+        SRinv = _right_inverse(S, Rt)  # S R^{-1}  (p, m)
+        J = _mm(G, SRinv, False, False)
+        Sigma = mult + _mm(_mm(G, Qw - _mm(SRinv, S, False, True), False, False), G, False, True)
+    else:
+        J = _mm(G, SQvi, False, False)
+        Sigma = (
+            mult + _mm(_mm(G, eta, False, False), G, False, True) + s2 * _mm(_mm(J, HLH, False, False), J, False, True)
+        )
+    jj[st] = J
+    abar[st] = A - gb * _mm(J, H, False, False)
+    _sym_into(Sigma, sig[st])
+
+    # (a) innovation covariance (15)
+    Pmp = psm[(t - 1) % W].copy()
+    pm[st] = Pmp
+    Q = gb * gb * _mm(_mm(H, Pmp, False, False), H, False, True) + Rt
+    if m > 1:
+        Qs = np.empty((m, m))
+        _sym_into(Q, Qs)
+        Q = Qs
+    qe[st] = Q
+    HtQi = _right_inverse(np.ascontiguousarray(H.T), Q)  # H^T Q_ε^{-1}  (n, m)
+    # (b) filter
+    Psd = psi[(t + d - 1) % W, d]
+    Kf = gb * _mm(Psd, HtQi, True, False)
+    kf[:, :] = Kf
+    KfH = _mm(Kf, H, False, False)
+    kh[st, 0] = KfH
+    _sym_into(pp[st] - gb * _mm(KfH, Psd, False, False), pf[st])
+    # (c) Ψ_i(t), i = d-1..1, corrected (58)
+    if t - d >= 0:
+        Abar_td = abar[(t - d) % W]
+        g_md = gconst
+    else:
+        Abar_td = A
+        g_md = 0.0
+    g_md1 = gconst if t - d + 1 >= 0 else 0.0
+    psi_d = psi[st, d].T.copy() if e6 else psi[st, d].copy()
+    Pm_td = pm[(t - d) % W]
+    for i in range(d - 1, 0, -1):
+        a = t - d - i + 1
+        a5 = a - 1 if e5 else a
+        inner = psi[(t - i) % W, d - i + 1].T - g_md * _mm(kh[(t - d) % W, t - d - a5], Pm_td, False, False)
+        val = _mm(inner, Abar_td, False, True)
+        val = val - g_md1 * _mm(kh[(t - d + 1) % W, t - d + 1 - a], psi_d, False, False)
+        top = d - 1 - i if e7 else d - 2 - i
+        for j in range(0, top + 1):
+            s = t - i - j
+            g_s = gconst if s >= 0 else 0.0
+            val = val - g_s * _mm(kh[s % W, s - a], psi[st, i + j + 1], False, False)
+        psi[st, i] = val
+    # (d) fixed-lag d-1 smoother covariance (55)-(57), a = t-d+1
+    a = t - d + 1
+    Ps = pf[a % W].copy()
+    for i in range(1, d):
+        s = t - i + 1
+        if s < 0:
+            continue
+        psi_i = psi[st, i]
+        Ks = gconst * _mm(psi_i, _right_inverse(np.ascontiguousarray(H.T), qe[s % W]), True, False)
+        ks[i - 1] = Ks
+        KsH = _mm(Ks, H, False, False)
+        kh[s % W, s - a] = KsH
+        Ps = Ps - gconst * _mm(KsH, psi_i, False, False)
+    _sym_into(Ps, psm[st])
+    # (e) delayed filter and predictor covariances (50)-(52)
+    Ke = gb * _mm(Pmp, HtQi, False, False)
+    ke[:, :] = Ke
+    KeH = _mm(Ke, H, False, False)
+    kh[st, d] = KeH
+    _sym_into(Pmp - gb * _mm(KeH, Pmp, False, False), pmeas[st])
+    Ab = abar[st]
+    _sym_into(_mm(_mm(Ab, pmeas[st], False, False), Ab, False, True) + sig[st], pp[(t + 1) % W])
+    # (f) corrected (39): Ψ_d(t+d) = {Ā(t)[Ψ_1(t) - γ̄ K(t-d|t) H Ψ_1(t)]}^T
+    psi1 = psi[st, 1].copy()
+    psi[(t + d) % W, d] = _mm(Ab, psi1 - gb * _mm(KeH, psi1, False, False), False, False).T
