@@ -88,8 +88,9 @@ _REORG_DICTS = ("xf", "xsm", "xm", "xp", "eps")
 _RING_FIELDS = ("psi", "kh", "pf", "psm", "pmeas", "pp", "pm", "lam", "abar", "sig", "j", "qe", "kf", "ks", "ke")
 
 
-def _ring_layout(d: int, n: int, m: int) -> tuple[int, dict[str, tuple[int, tuple[int, ...]]]]:
-    """Ring size W and the (offset, shape) of every field of the flat buffer."""
+def _ring_layout(d: int, n: int, m: int) -> tuple[int, dict[str, Any]]:
+    """Ring size W and the (offset, shape) of every field of the flat buffer (and, under ``"fields"``,
+    (name, offset, shape, size) of each)."""
     W = 4 * d + 4
     shapes = {
         "psi": (W, d + 1, n, n),
@@ -108,18 +109,21 @@ def _ring_layout(d: int, n: int, m: int) -> tuple[int, dict[str, tuple[int, tupl
         "ks": (max(d - 1, 1), n, m),
         "ke": (n, m),
     }
-    out, off = {}, 0
+    out: dict[str, Any] = {}
+    off = 0
     for name in _RING_FIELDS:
         size = int(np.prod(shapes[name]))
         out[name] = (off, shapes[name])
         off += size
     out["size"] = (off, ())
+    # (name, offset, shape, size) once, for the per-step views
+    out["fields"] = tuple((k, o, sh, int(np.prod(sh))) for k, (o, sh) in out.items() if k != "size")
     return W, out
 
 
 def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
     """The fields of a flat ring buffer as views."""
-    return {k: buf[o : o + int(np.prod(s))].reshape(s) for k, (o, s) in layout.items() if k != "size"}
+    return {k: buf[o : o + z].reshape(s) for k, o, s, z in layout["fields"]}
 
 
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
