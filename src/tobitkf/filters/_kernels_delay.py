@@ -8,6 +8,8 @@ offsets are passed in ``offs``): the data-independent part of one step t >= warm
 multiplicative-noise laws that do not change with t (γ̄, σ², Q_ζ constant), both decorrelation modes and
 the re-inserted errata. The products are written as loops (the blocks are n x n with n of a few), so the
 results equal the numpy step's to rounding, not bitwise (tested to 1e-12).
+:func:`delay_moments` is the first part, the moments of Λ(t-d), on its own: the chain LMMSE's compiled
+moments (Algorithm C), the same code as the reorganized step's.
 Compiled on first use and cached on disk; importing this module imports numba.
 """
 
@@ -18,7 +20,7 @@ from numba import njit
 
 from .._linalg_kernels import gauss_solve
 
-__all__ = ["reorg_cov_step"]
+__all__ = ["reorg_cov_step", "delay_moments"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -58,6 +60,44 @@ def _right_inverse(B, M):
 
 
 @njit(cache=True, error_model="numpy")
+def _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J_out, abar_out, sig_out):
+    r"""What time t needs of the second moment Λ(t-d) = ``Lam`` (the numpy
+    :func:`tobitkf.filters.delay._moments_at`): writes Λ(t+1) = sym(AΛA^T + Q_u(t)) (LD-E2), J(t), Ā(t) and
+    Σ(t) of the decorrelated predictor into the ``*_out`` arrays and returns R(t) = Q_v + σ²HΛH^T (m, m)."""
+    n = A.shape[0]
+    HLH = _mm(_mm(H, Lam, False, False), H, False, True)
+    Rt = Qv + s2 * HLH
+    mult = np.zeros((n, n))
+    for i in range(q.shape[0]):
+        mult += q[i] * _mm(_mm(Ai[i], Lam, False, False), Ai[i], False, True)
+    Lq = _mm(_mm(A, Lam, False, False), A, False, True) + (mult + GQG)
+    _sym_into(Lq, lam_next)
+    if optimal:
+        SRinv = _right_inverse(S, Rt)  # S R^{-1}  (p, m)
+        J = _mm(G, SRinv, False, False)
+        Sigma = mult + _mm(_mm(G, Qw - _mm(SRinv, S, False, True), False, False), G, False, True)
+    else:
+        J = _mm(G, SQvi, False, False)
+        Sigma = (
+            mult + _mm(_mm(G, eta, False, False), G, False, True) + s2 * _mm(_mm(J, HLH, False, False), J, False, True)
+        )
+    J_out[:, :] = J
+    abar_out[:, :] = A - gb * _mm(J, H, False, False)
+    _sym_into(Sigma, sig_out)
+    return Rt
+
+
+@njit(cache=True, error_model="numpy")
+def delay_moments(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal):
+    """:func:`_moments_into` into new arrays: ``(R (m, m), J (n, m), Ā (n, n), Σ (n, n), Λ(t+1) (n, n))``, the
+    chain LMMSE's step (Algorithm C) for laws constant in t."""
+    n, m = A.shape[0], H.shape[0]
+    lam_next, J, Abar, Sigma = np.empty((n, n)), np.empty((n, m)), np.empty((n, n)), np.empty((n, n))
+    Rt = _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J, Abar, Sigma)
+    return Rt, J, Abar, Sigma, lam_next
+
+
+@njit(cache=True, error_model="numpy")
 def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7):
     """One covariance step t >= warmup of Algorithm D on ``ring`` (in place); see the module docstring.
 
@@ -88,26 +128,10 @@ def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, et
     gb = gconst
 
     # moments of Λ(t-d): R(t), the multiplicative term, Λ(t+1), J(t), Ā(t), Σ(t)
-    Lam = lam[(t - d) % W]
-    HLH = _mm(_mm(H, Lam, False, False), H, False, True)
-    Rt = Qv + s2 * HLH
-    mult = np.zeros((n, n))
-    for i in range(q.shape[0]):
-        mult += q[i] * _mm(_mm(Ai[i], Lam, False, False), Ai[i], False, True)
-    Lq = _mm(_mm(A, Lam, False, False), A, False, True) + (mult + GQG)
-    _sym_into(Lq, lam[(t + 1) % W])
-    if optimal:
-        SRinv = _right_inverse(S, Rt)  # S R^{-1}  (p, m)
-        J = _mm(G, SRinv, False, False)
-        Sigma = mult + _mm(_mm(G, Qw - _mm(SRinv, S, False, True), False, False), G, False, True)
-    else:
-        J = _mm(G, SQvi, False, False)
-        Sigma = (
-            mult + _mm(_mm(G, eta, False, False), G, False, True) + s2 * _mm(_mm(J, HLH, False, False), J, False, True)
-        )
-    jj[st] = J
-    abar[st] = A - gb * _mm(J, H, False, False)
-    _sym_into(Sigma, sig[st])
+    Rt = _moments_into(
+        lam[(t - d) % W], A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal,
+        lam[(t + 1) % W], jj[st], abar[st], sig[st],
+    )  # fmt: skip
 
     # (a) innovation covariance (15)
     Pmp = psm[(t - 1) % W].copy()

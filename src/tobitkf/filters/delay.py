@@ -251,8 +251,8 @@ def _moments_at(system: DelayFadingSystem, t: int, Lam: np.ndarray, mode: str):
 
 def _mult_sum(q: np.ndarray, Ai: np.ndarray, Lam: np.ndarray) -> np.ndarray:
     """Σ_i q_i A_i Λ A_i^T with matmuls (einsum over four indices would be O(N^4))."""
-    if q.size == 1:  # the sum of one term, unbatched
-        return q[0] * (Ai[0] @ Lam @ Ai[0].T)
+    if q.size == 1:  # the sum of one term, unbatched (ndarray.dot: bitwise @, a fraction of its overhead)
+        return q[0] * Ai[0].dot(Lam).dot(Ai[0].T)
     return np.sum(q[:, None, None] * (Ai @ Lam @ np.swapaxes(Ai, -1, -2)), axis=0)
 
 
@@ -269,6 +269,24 @@ def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray]
         Lq = A.dot(L).dot(A.T) + system.process_cov(t, L)
         lam[t + 1] = 0.5 * (Lq + Lq.T)
     return lam
+
+
+def _kernel_gap(system: DelayFadingSystem) -> str | None:
+    """What the compiled delay kernels (:mod:`tobitkf.filters._kernels_delay`) do not cover in ``system``."""
+    if system.fading.varying or not system.q_constant:
+        return "fading or multiplicative-noise laws that change with t"
+    return None
+
+
+def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
+    """The constant arguments of :func:`tobitkf.filters._kernels_delay.delay_moments` after Λ (those of
+    ``reorg_cov_step`` after ``d, W``): the model's matrices, Q_ζ (empty without multiplicative noise),
+    γ̄, σ² and the decorrelation mode, for laws constant in t."""
+    c = np.ascontiguousarray
+    q = system.q_mult(0) if system.h else np.zeros(0)
+    mats = (system.A, system.H, system.Qv, system.Gamma, system.S, system.Qw, system.GQG, system.A_mult)
+    args: tuple = tuple(c(M) for M in mats) + (c(q, dtype=float), c(system.S_Qv_inv), c(system.eta_cov))
+    return args + (float(system.gamma_mean(0)), float(system.gamma_var(0)), mode == "optimal")
 
 
 class _DelayEstimator(Estimator):
@@ -376,17 +394,34 @@ class ChainLMMSE(_DelayEstimator):
         Uncorrelated prior of x(0), ..., x(-d).
     decorrelation : {"optimal", "paper"}, default "optimal"
         See :func:`chain_lmmse`.
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        ``"auto"`` forms the moments of Λ(t-d) (R(t), J(t), Ā(t), Σ(t), Λ(t+1)) compiled
+        (:func:`tobitkf.filters._kernels_delay.delay_moments`, the reorganized LMMSE's code) and runs the
+        shared update and predict compiled when numba imports and the fading and multiplicative-noise
+        laws do not change with t (else the moments stay on numpy); equal to the numpy path to rounding
+        (tested to 1e-12). ``"numpy"`` the reference path; ``"numba"`` raises
+        :class:`~tobitkf.ValidationError` for laws that change with t.
     """
 
     _name = "ChainLMMSE"
     _step_options = ("lags", "horizons", "point", "keep_rts")
 
-    def __init__(self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal"):
-        check_keywords({"decorrelation": decorrelation}, {"decorrelation": _DECORRELATION})
+    def __init__(
+        self, system: DelayFadingSystem, prior: HistoryPrior, *, decorrelation: str = "optimal", backend: str = "auto"
+    ):
+        check_keywords(
+            {"decorrelation": decorrelation, "backend": backend}, {"decorrelation": _DECORRELATION, "backend": BACKENDS}
+        )
         self._setup(system, prior)
         _require_chain(system, self.prior)
         self.decorrelation = decorrelation
+        self.backend = backend
         self._GS = system.GS
+        self._moments = None  # the compiled moments of Λ(t-d) and their constant arguments
+        if use_kernel(backend, _kernel_gap(system), "the chain LMMSE's moments"):
+            from ._kernels_delay import delay_moments
+
+            self._moments = (delay_moments, _kernel_moment_args(system, decorrelation))
 
     def _state_dim(self) -> int:
         return self.n * (self.system.d + 1)
@@ -415,7 +450,11 @@ class ChainLMMSE(_DelayEstimator):
         e = t - d
         # what time t needs of Λ(t-d), each formed once: R(t) = Q_v + σ² H Λ H^T, J(t), Ā(t), Σ(t) and Λ(t+1)
         lam = dict(carry["lam"])
-        R, (J, Abar, Sigma), lam[t + 1] = _moments_at(sys_, t, lam[e], self.decorrelation)
+        if self._moments is not None:
+            kern, margs = self._moments
+            R, J, Abar, Sigma, lam[t + 1] = kern(lam[e], *margs)
+        else:
+            R, (J, Abar, Sigma), lam[t + 1] = _moments_at(sys_, t, lam[e], self.decorrelation)
         if horizons and max(horizons) > 1:
             lam = _extend_second_moments(sys_, lam, t + max(horizons))
         gb = sys_.gamma_mean(t)
@@ -712,7 +751,9 @@ def _aug_step(
     """
     AA, Ai, G, HH, GQG, GS_T = mats
     gb, s2 = system.gamma_mean(t), system.gamma_var(t)
-    R = symmetrize(s2 * (HH @ LamX @ HH.T) + system.Qv)
+    # the model's products are of 2-D matrices (Λ_X, 𝔄, 𝔥, J, R): ndarray.dot, bitwise the products of @
+    # at a fraction of its call overhead (the online step of one run forms about ten of them)
+    R = symmetrize(s2 * HH.dot(LamX).dot(HH.T) + system.Qv)
     mp = MeasurementPrediction(expected=gb * (X @ HH.T), H0=gb * HH, noise=R[None])
     Xf, Pf, Sf, K, Qe = measurement_update(X, P, S, y, mp, form, compiled=compiled)
     if Qe is None:  # the square-root form does not form Q_ε
@@ -721,10 +762,10 @@ def _aug_step(
     q = system.q_mult(t)
     Qu = GQG + (_mult_sum(q, Ai, LamX) if q.size else 0.0)
     J = _solve_small(R, GS_T).T  # 𝔊 S R^{-1} (R symmetric)
-    Abar = AA - gb * (J @ HH)
-    tr = Transition(A=Abar, Qd=symmetrize(Qu - J @ R @ J.T), b=y @ J.T)
+    Abar = AA - gb * J.dot(HH)
+    tr = Transition(A=Abar, Qd=symmetrize(Qu - J.dot(R).dot(J.T)), b=y @ J.T)
     Xp, Pp, Sp = time_update(Xf, Pf, Sf, tr, form, compiled=compiled)
-    LamX = symmetrize(AA @ LamX @ AA.T + Qu)
+    LamX = symmetrize(AA.dot(LamX).dot(AA.T) + Qu)
     return Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp
 
 
@@ -942,15 +983,13 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._t0(self.prior)
         self._HT = system.H.T
         self.backend = backend
-        gap = None
-        if system.fading.varying or not system.q_constant:
-            gap = "fading or multiplicative-noise laws that change with t"
+        gap = _kernel_gap(system)
         self._kernel, self._kernel_args = None, ()
         # d = 0 is Algorithm C (its chain's own step)
         if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
             self._kernel, self._kernel_args = self._compiled_step()
         if system.d == 0:
-            self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation)
+            self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation, backend=backend)
         # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
@@ -962,12 +1001,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
         offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
-        c = np.ascontiguousarray
-        q = sys_.q_mult(0) if sys_.h else np.zeros(0)
-        args = (offs,)
-        args += (sys_.d, W, c(sys_.A), c(sys_.H), c(sys_.Qv), c(sys_.Gamma), c(sys_.S), c(sys_.Qw), c(sys_.GQG))
-        args += (c(sys_.A_mult), c(q, dtype=float), c(sys_.S_Qv_inv), c(sys_.eta_cov))
-        args += (float(sys_.gamma_mean(0)), float(sys_.gamma_var(0)), self.decorrelation == "optimal")
+        args = (offs, sys_.d, W) + _kernel_moment_args(sys_, self.decorrelation)
         args += ("E5" in self.errata, "E6" in self.errata, "E7" in self.errata)
         return reorg_cov_step, args
 
