@@ -140,3 +140,23 @@ def test_names_handed_on_are_the_same_objects():
     for cls in (tk.KalmanFilter, tk.DroppingKalmanFilter, tk.TobitKalmanFilter, tk.AssumedDensityTobitFilter):
         assert cls.smooth is smoothing.SmoothingMethods.smooth
         assert cls.log_likelihood is smoothing.SmoothingMethods.log_likelihood
+
+
+def test_control_uses_no_private_name_of_another_layer():
+    """Control builds on the estimators' public API (issue "One estimation core"): it imports no
+    underscore name from outside ``tobitkf.control`` (the shared helper modules ``_validation`` and
+    ``_linalg`` are imported for their public names only)."""
+    found = []
+    for path in sorted((SRC / PACKAGE / "control").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if not isinstance(node, ast.ImportFrom):
+                continue
+            inside = node.level == 1  # from .x import ...: a module of control itself
+            if inside:
+                continue
+            found += [
+                f"{path.name}: from {'.' * node.level}{node.module} import {a.name}"
+                for a in node.names
+                if a.name.startswith("_")
+            ]
+    assert found == [], found

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "diagonal_sigma",
     "as_float",
     "as_generator",
     "check_bool",
@@ -416,3 +417,28 @@ def as_generator(seed: Any) -> np.random.Generator:
         return np.random.default_rng(seed)
     except (TypeError, ValueError) as exc:
         raise ValidationError(f"seed: expected an int, SeedSequence or Generator, got {seed!r} ({exc})") from None
+
+
+def diagonal_sigma(
+    R: np.ndarray,
+    name: str = "R",
+    *,
+    who: str = "the Tobit Kalman filter",
+    why: str = "Miller Assumption A2, (3.36)",
+    positive: str | None = None,
+) -> np.ndarray:
+    """Channel standard deviations sqrt(diag R) (m,) of a diagonal R (m, m), refusing a correlated or singular
+    one (naming ``who`` and the source's reason ``why``); shared by the Tobit families and the closed loops.
+
+    Raises
+    ------
+    ValidationError
+        R not diagonal (to 1e-12 relative) or a variance not positive.
+    """
+    off = R - np.diag(np.diagonal(R))
+    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
+        raise ValidationError(f"{name}: {who} needs a diagonal R ({why})")
+    d = np.diagonal(R)
+    if np.any(d <= 0):
+        raise ValidationError(f"{name}: {positive or who + ' needs positive measurement variances'}, got {d}")
+    return np.sqrt(d)

@@ -58,11 +58,12 @@ from .._validation import (
     check_instance,
     check_memory,
     check_option,
+    diagonal_sigma,
 )
 from ..channels.censoring import Censoring
 from ..filters.kalman import KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter
-from ..filters.tobit import NOISE_TERMS, TobitKalmanFilter, _sigma_of
+from ..filters.tobit import NOISE_TERMS, TobitKalmanFilter
 from ..models.linear import LinearSystem
 from .lqg import controlled_noise, reference_gain
 
@@ -225,7 +226,7 @@ def simulate_closed_loop(
         raise ShapeError(f"Nbar: expected ({p}, {Cz.shape[0]}), got {Nbar.shape}")
 
     tobit = observer != "kf"
-    sigma = _sigma_of(R) if tobit else np.sqrt(np.diagonal(R))
+    sigma = diagonal_sigma(R) if tobit else np.sqrt(np.diagonal(R))
     moving = observer in ("tkf-moving", "sstkf")
     if moving:
         if xi_uncensored is None:

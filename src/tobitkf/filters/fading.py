@@ -96,7 +96,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import check_instance
+from .._validation import check_instance, diagonal_sigma
 from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
@@ -105,7 +105,6 @@ from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kern
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
 from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none
 from .tobit import TobitKalmanFilter
-from .tobit import _sigma_of as _diagonal_sigma
 
 __all__ = [
     "fading_tobit_kalman_filter",
@@ -146,7 +145,7 @@ def augmented_measurement_matrix(system: LinearSystem, fading: RiceFading, k: in
 
 def _sigma_of(R: np.ndarray, name: str) -> np.ndarray:
     # App. B of the source assumes cov{y^m, y^t} = 0 for m != t: R must be diagonal (docs/sources GF-13).
-    return _diagonal_sigma(
+    return diagonal_sigma(
         R,
         name,
         who="the fading Tobit Kalman filter",

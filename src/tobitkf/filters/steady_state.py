@@ -62,13 +62,13 @@ import numpy as np
 from scipy.linalg import solve_discrete_are
 from scipy.special import ndtri
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option, diagonal_sigma
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition
 from .kalman import LinearGaussianFamily
-from .tobit import TobitKalmanFilter, _sigma_of, tobit_measurement
+from .tobit import TobitKalmanFilter, tobit_measurement
 
 __all__ = [
     "SteadyStateTobitKalmanFilter",
@@ -229,7 +229,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         if not system.time_invariant:
             raise ValidationError("system: the steady-state TKF needs a time-invariant model (constant A, C, Q, R)")
         m = system.m
-        sigma = _sigma_of(system.measurement_cov(1))
+        sigma = diagonal_sigma(system.measurement_cov(1))
         xi = _xi_per_channel(xi_uncensored, m)
         self.alpha, self.lambda_hat, self.upsilon, self._offset = controlled_limit_statistics(xi, sigma)
         self.inverse_mills = -self.lambda_hat if side == "upper" else self.lambda_hat.copy()
@@ -381,7 +381,7 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
         check_instance(system, LinearSystem, "system")
         check_option(side, "side", ("upper", "lower"))
         super().__init__(system, Censoring(), check_limits=False, **options)
-        sigma = _sigma_of(system.measurement_cov(1))
+        sigma = diagonal_sigma(system.measurement_cov(1))
         self.alpha = controlled_limit_statistics(_xi_per_channel(xi_uncensored, system.m), sigma)[0]
         self.side, self.sigma_ = side, sigma
 

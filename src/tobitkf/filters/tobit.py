@@ -67,7 +67,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_instance
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, diagonal_sigma
 from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -198,24 +198,6 @@ def tobit_update(
     return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
-def _sigma_of(
-    R: np.ndarray,
-    name: str = "R",
-    *,
-    who: str = "the Tobit Kalman filter",
-    why: str = "Miller Assumption A2, (3.36)",
-    positive: str | None = None,
-) -> np.ndarray:
-    """Channel standard deviations of a diagonal R, refusing a correlated or singular one (naming ``who``)."""
-    off = R - np.diag(np.diagonal(R))
-    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
-        raise ValidationError(f"{name}: {who} needs a diagonal R ({why})")
-    d = np.diagonal(R)
-    if np.any(d <= 0):
-        raise ValidationError(f"{name}: {positive or who + ' needs positive measurement variances'}, got {d}")
-    return np.sqrt(d)
-
-
 class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
     r"""Tobit Kalman filter for left, right, two-sided and multi-region censoring (Miller §3.3.4).
 
@@ -296,7 +278,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         censoring.check(system.m)
         if not isinstance(check_limits, (bool, np.bool_)):
             raise ValidationError(f"check_limits: expected True or False, got {check_limits!r}")
-        self._sigma = None if system.R.varying else _sigma_of(system.measurement_cov(1))
+        self._sigma = None if system.R.varying else diagonal_sigma(system.measurement_cov(1))
         self._setup_system(system)
         self.censoring = censoring
         self.noise_term, self.covariance_update, self.backend = noise_term, covariance_update, backend
@@ -304,7 +286,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         self.check_limits = bool(check_limits)
 
     def _sigma_at(self, k: int) -> np.ndarray:
-        return self._sigma if self._sigma is not None else _sigma_of(self.system.measurement_cov(k), f"R({k})")
+        return self._sigma if self._sigma is not None else diagonal_sigma(self.system.measurement_cov(k), f"R({k})")
 
     def _measurement(self, k, xp, Pp, y, u, carry, lower=None, upper=None):
         if lower is None or upper is None:
