@@ -142,6 +142,21 @@ def list_cmd() -> None:
         typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}")
 
 
+@app.command("estimators")
+@cli_errors
+def estimators_cmd() -> None:
+    """List every registered estimator: name, model kind, the channel pieces it needs, its options."""
+    from .filters.registry import ENTRIES
+
+    width = max(len(name) for name in ENTRIES)
+    for e in ENTRIES.values():
+        needs = ", ".join(e.needs) or "-"
+        opts = ", ".join(f"{k}{'*' if k in e.required else ''}" for k in e.options) or "-"
+        typer.echo(f"{e.name:<{width}}  {e.model:<7} needs: {needs:<18} options: {opts}")
+        typer.echo(f"{'':<{width}}  {e.summary}")
+    typer.echo("(* required; a sweep file names them as [[estimators]] type = ...)")
+
+
 def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progress: Progress | None = None) -> Path:
     """Run one experiment and write its metrics.json and figures under ``out/exp_id``."""
     from ._extras import require

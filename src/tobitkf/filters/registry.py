@@ -2,7 +2,7 @@ r"""One registry of the estimators: name -> class, the channel pieces it takes, 
 
 Sweeps (:mod:`tobitkf.sweep`) build every model-mode estimator from it, so a sweep file can name any
 family on a :class:`~tobitkf.LinearSystem` (``type = "FadingTobitKalmanFilter"``, ...), and the
-experiments and the command line (``tobitkf estimators``) list it. An entry knows
+the command line lists it (``tobitkf estimators``). An entry knows
 
 * the **channel pieces** its constructor takes, by section name of a sweep file: ``censoring``
   (:class:`~tobitkf.Censoring`), ``fading`` (:class:`~tobitkf.RiceFading`), ``protocol``
@@ -77,6 +77,7 @@ class Entry:
 
 
 _FORMS = ("standard", "joseph", "square_root")
+_BACKENDS = ("auto", "numpy", "numba")
 
 
 def _kf(system, parts, o):
@@ -135,6 +136,24 @@ def _pbtkf(system, parts, o):
     return ProtocolTobitKalmanFilter.baseline(system, parts["protocol"], **o)
 
 
+def _adf(system, parts, o):
+    from .assumed_density import AssumedDensityTobitFilter
+
+    return AssumedDensityTobitFilter(system, parts["censoring"], **o)
+
+
+def _fadf(system, parts, o):
+    from .adf_fading import FadingAssumedDensityFilter
+
+    return FadingAssumedDensityFilter(system, parts["fading"], parts.get("censoring"), **o)
+
+
+def _padf(system, parts, o):
+    from .adf_protocol import ProtocolAssumedDensityFilter
+
+    return ProtocolAssumedDensityFilter(system, parts["protocol"], **o)
+
+
 def _delay(cls_name):
     def make(system, parts, o):
         from . import delay
@@ -161,14 +180,14 @@ _ENTRY_LIST = [
         "KalmanFilter",
         "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
         _kf,
-        options={"covariance_update": _FORMS, "backend": ("auto", "numpy", "numba")},
+        options={"covariance_update": _FORMS, "backend": _BACKENDS},
     ),
     Entry(
         "DroppingKalmanFilter",
         "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
         _dkf,
         needs=("censoring",),
-        options={"covariance_update": _FORMS, "rtol": float},
+        options={"covariance_update": _FORMS, "rtol": float, "backend": _BACKENDS},
     ),
     Entry(
         "TobitKalmanFilter",
@@ -179,13 +198,14 @@ _ENTRY_LIST = [
             "noise_term": ("dissertation", "total_variance", "exact_pv"),
             "covariance_update": _FORMS,
             "threads": int,
+            "backend": _BACKENDS,
         },
     ),
     Entry(
         "SteadyStateTobitKalmanFilter",
         "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
         _sstkf,
-        options={"xi_uncensored": float, "side": ("upper", "lower")},
+        options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": _BACKENDS},
         required=("xi_uncensored",),
         reads="latent",
     ),
@@ -211,6 +231,7 @@ _ENTRY_LIST = [
             "fading_variance_term": (False, True),
             "exact_tobit_variance": (False, True),
             "covariance_update": ("joseph", "standard", "square_root"),
+            "backend": _BACKENDS,
         },
     ),
     Entry(
@@ -229,6 +250,7 @@ _ENTRY_LIST = [
             "failure_term": ("variance", "literal", "second_moment", "lmmse_unconditional"),
             "prehistory_prior": ("x0", "zero_mean"),
             "covariance_update": ("joseph", "standard", "square_root"),
+            "backend": _BACKENDS,
         },
     ),
     Entry(
@@ -239,11 +261,32 @@ _ENTRY_LIST = [
         options={"covariance_update": ("joseph", "standard", "square_root")},
     ),
     Entry(
+        "AssumedDensityTobitFilter",
+        "assumed-density filter: the exact posterior moments of each censored reading (beyond the sources)",
+        _adf,
+        needs=("censoring",),
+        options={"covariance_update": _FORMS, "order": ("channels", "uncensored_first")},
+    ),
+    Entry(
+        "FadingAssumedDensityFilter",
+        "assumed-density filter for censored readings through Rice fading (beyond the sources)",
+        _fadf,
+        needs=("fading",),
+        options={"covariance_update": _FORMS},
+    ),
+    Entry(
+        "ProtocolAssumedDensityFilter",
+        "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
+        _padf,
+        needs=("protocol",),
+        options={"covariance_update": _FORMS, "nodes": int},
+    ),
+    Entry(
         "ChainLMMSE",
         "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
         _delay("ChainLMMSE"),
         needs=("prior",),
-        options={"decorrelation": ("optimal", "paper")},
+        options={"decorrelation": ("optimal", "paper"), "backend": _BACKENDS},
         model="delay",
     ),
     Entry(
@@ -251,7 +294,7 @@ _ENTRY_LIST = [
         "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
         _delay("AugmentedLMMSE"),
         needs=("prior",),
-        options={"window": int},
+        options={"window": int, "covariance_update": _FORMS},
         model="delay",
     ),
     Entry(
@@ -259,7 +302,7 @@ _ENTRY_LIST = [
         "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
         _delay("ReorganizedInnovationLMMSE"),
         needs=("prior",),
-        options={"decorrelation": ("optimal", "paper")},
+        options={"decorrelation": ("optimal", "paper"), "warmup": int, "backend": _BACKENDS},
         model="delay",
     ),
     Entry(
