@@ -129,6 +129,29 @@ def test_kernel_given_uncensored_and_continued_state():
             np.testing.assert_array_equal(a2.extras["scheduled"], b2.extras["scheduled"])
 
 
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_kernel_three_sensors_custom_order_per_sensor_laws(mode):
+    """p = 3 sensors served in the order 3, 1, 3, 2 (sensor 3 twice per cycle), a law per sensor (the
+    per-sensor lam_mean, lam_var), continued from result.final at a step inside the cycle."""
+    from tobitkf.channels.protocol import PMF
+
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    C = [[1.0, 0.0], [0.3, 1.0], [-0.5, 0.7]]
+    sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 2.0]), x0=[5.0, 0.0], P0=np.eye(2))
+    laws = [LAMBDA_BASE, NO_FAILURE, PMF([0.2, 1.0], [0.3, 0.7])]
+    ch = ProtocolChannel(3, window=1, failures=laws, threshold=-0.5, order=[3, 1, 3, 2])
+    y = tk.simulate(sys_, 27, 6, seed=9, channel=ch).y
+    a, b = both(sys_, ch, y, failure_term=mode)
+    assert_results_equal(a, b)
+    fk = ProtocolTobitKalmanFilter(sys_, ch, backend="numba", failure_term=mode)
+    fn = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode)
+    a2 = fk.filter(y[:, 5:], state=fk.filter(y[:, :5]).final)
+    b2 = fn.filter(y[:, 5:], state=fn.filter(y[:, :5]).final)
+    assert_results_equal(a2, b2)
+    assert_same(a2.mean, b.mean[:, 5:])  # the continuation is the whole run's tail
+
+
 def test_kernel_many_runs_cross_blocks():
     sys_, ch = oscillator(), channel()
     y = data(sys_, ch, (70,), 12, seed=6)  # 70 = 2 full blocks of 32 and one of 6

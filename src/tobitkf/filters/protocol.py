@@ -728,11 +728,8 @@ def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0
     p = len(est._lam_mean)
     Cs, Hs = np.zeros((p, est._nxi)), np.zeros((p, est._nxi))
     rs, lm, lv = np.ones(p), np.zeros(p), np.zeros(p)
-    seen: set[int] = set()
-    for t, h in enumerate(sched.tolist()):
-        if h in seen:
-            continue
-        seen.add(h)
+    for t in np.sort(np.unique(sched, return_index=True)[1]).tolist():  # each sensor's first step, in time order
+        h = int(sched[t])
         Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(k0 + t + 1, h)
         Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
     AQ = est.__dict__.get("_kernel_mats")
@@ -751,7 +748,7 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     n, nxi = est.n, est._nxi
     c64 = np.ascontiguousarray
     order = est._order
-    sched = np.array([order[(state.k + t) % len(order)] for t in range(T)], dtype=np.int64)
+    sched = np.asarray(order, dtype=np.int64)[(state.k + np.arange(T)) % len(order)]
     A, Qd, Cs, Hs, rs, lm, lv = _protocol_kernel_terms(est, sched, state.k)
     yk = c64(y2[:, :, 0], dtype=float)
     gam = yk > est._tau if step_data is None else c64(step_data["uncensored"][:, :, 0], dtype=np.bool_)
@@ -760,11 +757,11 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     if est.failure_term == "lmmse_unconditional":  # the deterministic X_k of _measurement, run here
         F_fixed = np.empty(T)
         Xk = carry["X"]
+        Aa = augmented_transition(est.system.transition(0), est._ell)  # a time-invariant system (covered case)
+        Bn = noise_input(n, est._ell)
+        BQB = Bn @ est.system.process_cov(0) @ Bn.T
         for t in range(T):
-            k = state.k + t + 1
-            Aa = augmented_transition(est.system.transition(k - 1), est._ell)
-            Bn = noise_input(n, est._ell)
-            Xk = Aa @ Xk @ Aa.T + Bn @ est.system.process_cov(k - 1) @ Bn.T
+            Xk = Aa @ Xk @ Aa.T + BQB
             h = int(sched[t])
             F_fixed[t] = float(lv[h]) * float(Cs[h] @ Xk @ Cs[h])
         carry = dict(carry)
