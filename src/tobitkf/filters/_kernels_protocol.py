@@ -141,7 +141,6 @@ def protocol_kernel(
     noise = np.zeros((1, 1, B))
     gone = np.ones((1, B))
     Hrow = np.empty((1, nxi))
-    ok = np.empty(B, dtype=np.bool_)
     ee = np.empty(B)
     buf = np.empty((2, glx.shape[0]))
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
@@ -202,7 +201,6 @@ def protocol_kernel(
                 Ree = HPH + ntot  # (24)
                 g = gam_in[r0 + b, t]
                 good = g and Ree > _TINY
-                ok[b] = good
                 noise[0, 0, b] = ntot
                 ee[b] = y[r0 + b, t] - yhat if good else 0.0
                 if want_x:
@@ -219,16 +217,12 @@ def protocol_kernel(
                 else:
                     for i in range(nxi):
                         K[i, 0, b] = 0.0
-            # (19), (22): the mean; (20) or App. D (44): the covariance (K = 0: the prediction, unchanged)
+            # (19), (22): the mean; (20) or App. D (44): the covariance. A run left out has K = 0 and e = 0, so
+            # this is the numpy path's arithmetic x + 0 e, P - 0 R_xe^T (the prediction, unchanged)
             for i in range(nxi):
                 for b in range(nb):
-                    x[i, b] = xp[i, b] + K[i, 0, b] * ee[b] if ok[b] else xp[i, b]
+                    x[i, b] = xp[i, b] + K[i, 0, b] * ee[b]
             update_cov_block(Pp, K, Rxe, Hrow, gone, noise, joseph, P, MH, nb)
-            for b in range(nb):
-                if not ok[b]:  # the numpy path's P - 0 R_xe^T: the prediction, bit for bit
-                    for i in range(nxi):
-                        for j in range(nxi):
-                            P[i, j, b] = Pp[i, j, b]
             _stage_vec(x, s_mean, tt, nb, 0, n)
             _stage_cov(P, s_cov, tt, nb, n)
             _stage_vec(x, s_am, tt, nb, 0, nxi)
