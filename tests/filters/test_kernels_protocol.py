@@ -179,6 +179,21 @@ def test_kernel_reduces_to_the_kalman_filter():
         assert_same(got.cov, ref.cov, 1e-12)
 
 
+def test_one_compiled_specialization_for_every_call():
+    """One run (batch ()), read-only readings and detection flags, a continuation: all one signature of the
+    kernel (another would compile or load a second specialization on the first such call)."""
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (4,), 10)
+    y.flags.writeable = False
+    g = y > 0.0
+    g.flags.writeable = False
+    est = ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
+    r = est.filter(y, uncensored=g)
+    est.filter(y[0], uncensored=g[0])
+    est.filter(y, state=r.final)
+    assert len(_kernels_protocol.protocol_kernel.signatures) == 1
+
+
 # --- dispatch -----------------------------------------------------------------------------------
 
 

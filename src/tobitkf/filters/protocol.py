@@ -734,8 +734,9 @@ def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0
         Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
     AQ = est.__dict__.get("_kernel_mats")
     if AQ is None:
-        c64 = np.ascontiguousarray
-        AQ = est._kernel_mats = (c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float))
+        AQ = est._kernel_mats = tuple(
+            np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
+        )  # writeable copies: one compiled specialization whatever the system's arrays are
     return AQ + (Cs, Hs, rs, lm, lv)
 
 
@@ -746,12 +747,11 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     kern = kernels()
     N, T, _ = y2.shape
     n, nxi = est.n, est._nxi
-    c64 = np.ascontiguousarray
     order = est._order
     sched = np.asarray(order, dtype=np.int64)[(state.k + np.arange(T)) % len(order)]
     A, Qd, Cs, Hs, rs, lm, lv = _protocol_kernel_terms(est, sched, state.k)
-    yk = c64(y2[:, :, 0], dtype=float)
-    gam = yk > est._tau if step_data is None else c64(step_data["uncensored"][:, :, 0], dtype=np.bool_)
+    yk = np.array(y2[:, :, 0], dtype=float, order="C")  # writeable copies (see P below)
+    gam = yk > est._tau if step_data is None else np.array(step_data["uncensored"][:, :, 0], dtype=np.bool_, order="C")
     carry = state.carry
     F_fixed = np.empty(0)
     if est.failure_term == "lmmse_unconditional":  # the deterministic X_k of _measurement, run here
@@ -767,8 +767,9 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
         carry = dict(carry)
         carry["X"] = Xk
     assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
-    x = c64(state.x, dtype=float)
-    P = c64(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float)
+    # writeable C-contiguous float64 always (a read-only array would load another compiled specialization)
+    x = np.array(state.x, dtype=float, order="C")
+    P = np.array(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
 
     def arr(on, shape):
         return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
