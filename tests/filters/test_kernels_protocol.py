@@ -194,6 +194,19 @@ def test_one_compiled_specialization_for_every_call():
     assert len(_kernels_protocol.protocol_kernel.signatures) == 1
 
 
+def test_divergence_reruns_on_numpy():
+    """A non-finite covariance from the kernel: the call reruns on numpy, which warns and NaNs the means."""
+    sys_ = tk.LinearSystem(A=[[1e200]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    ch = ProtocolChannel(1, window=1, threshold=-1.0)
+    y = np.zeros((2, 4, 1))
+    with pytest.warns(RuntimeWarning, match="stopped being finite"):
+        out = ProtocolTobitKalmanFilter(sys_, ch, backend="numba").filter(y)
+    with pytest.warns(RuntimeWarning, match="stopped being finite"):
+        ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y)
+    assert np.isnan(out.mean[:, -1]).all()
+    assert_same(out.mean, ref.mean, 0.0)
+
+
 # --- dispatch -----------------------------------------------------------------------------------
 
 
