@@ -8,21 +8,32 @@ integral window ell = 2 (augmented state of size 6), failure law {0, 0.5, 1}, ta
     (no Tobit or failure terms, so it does less work per step) is looped over a subset of
     runs and scaled: run-steps/second and ratios to filterpy.
 (b) one run of 10^4 steps: microseconds per step (online latency).
+(c) the compiled time loop (backend="numba", :mod:`tobitkf.filters._kernels_protocol`) against the
+    numpy reference path (backend="numpy") and against the numpy loop around the compiled shared step
+    (the default before the loop existed), 1000 runs x 100 steps, each failure-term mode, Joseph form:
+    median of ``repeat`` interleaved calls (min-max), ns per run-step, and the load average.
 
-``--smoke`` runs a tiny version. Run by hand:  PYTHONPATH=src python benchmarks/bench_protocol.py
+(a) and (b) run the default backend ("auto"), i.e. the compiled loop where numba imports.
+``--smoke`` runs a tiny version, ``--only-compiled`` only (c). Run by hand:
+PYTHONPATH=src python benchmarks/bench_protocol.py
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import statistics
+import time
 
 import numpy as np
 
 import tobitkf as tk
 from _timing import best_time
 from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
+from tobitkf.filters._backend import numba_available
 from tobitkf.filters.protocol import (
     FAILURE_TERMS,
+    ProtocolTobitKalmanFilter,
     augmented_transition,
     noise_input,
     protocol_covariance_bounds,
@@ -56,10 +67,50 @@ def filterpy_runs(sys_, ch, y: np.ndarray) -> None:
             f.update(z, H=Hs[sched[k]])
 
 
+def compiled_loop(smoke: bool) -> None:
+    """(c): the compiled loop against the numpy paths, median of interleaved repeats."""
+    runs, steps, repeat = (50, 20, 3) if smoke else (1000, 100, 7)
+    sys_, ch = make_problem()
+    y = tk.simulate(sys_, steps, runs, seed=2, channel=ch).y
+    print(
+        f"(c) compiled loop: {runs} runs x {steps} steps, n_xi=6, censored fraction {np.mean(y <= 0):.2f}, "
+        f"median of {repeat} interleaved (min-max), ns per run-step; load {os.getloadavg()[0]:.2f}"
+    )
+    if not numba_available():
+        print("  numba not installed: skipped")
+        return
+    for mode in FAILURE_TERMS:
+        ests = {
+            "numba": ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode, backend="numba"),
+            "numpy": ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode, backend="numpy"),
+            "core": ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode, backend="auto"),
+        }
+        ests["core"]._kernel_static = False  # the numpy loop around the compiled shared step
+        times: dict[str, list[float]] = {be: [] for be in ests}
+        for est in ests.values():
+            est.filter(y[:2, :3])  # compile / warm up outside the timings
+        for _ in range(repeat):
+            for be, est in ests.items():
+                t0 = time.perf_counter()
+                est.filter(y)
+                times[be].append((time.perf_counter() - t0) / (runs * steps) * 1e9)
+        med = {be: statistics.median(ts) for be, ts in times.items()}
+        spread = "  ".join(f"{be} {med[be]:7.0f} ({min(ts):.0f}-{max(ts):.0f})" for be, ts in times.items())
+        print(
+            f"  {mode:20s} {spread}   numpy/numba x{med['numpy'] / med['numba']:.1f}, "
+            f"core/numba x{med['core'] / med['numba']:.1f}"
+        )
+    print(f"  load after {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes")
+    ap.add_argument("--only-compiled", action="store_true", help="only (c), the compiled loop against numpy")
     args = ap.parse_args()
+    if args.only_compiled:
+        compiled_loop(args.smoke)
+        return
     runs, steps, long_steps, peer_runs, repeat = (10_000, 100, 10_000, 20, 2)
     if args.smoke:
         runs, steps, long_steps, peer_runs, repeat = (200, 50, 500, 2, 1)
@@ -82,6 +133,7 @@ def main() -> None:
     t_1 = best_time(lambda: protocol_tobit_kalman_filter(sys_, ch, long), 1) / long_steps
     for name, t in (("filterpy KalmanFilter, augmented", t_fp1), ("tobitkf PBTKF-IMSF variance", t_1)):
         print(f"  {name:44s} {t * 1e6:10.2f} us/step   filterpy/this = {t_fp1 / t:6.2f}")
+    compiled_loop(args.smoke)
 
 
 if __name__ == "__main__":

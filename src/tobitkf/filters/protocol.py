@@ -89,9 +89,9 @@ from .._validation import (
 from ..censored import CensoredMoments, _small_moments, unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, kernels
+from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
-from .kalman import LinearGaussianFamily
+from .kalman import LinearGaussianFamily, _finite_or_none
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
@@ -410,15 +410,19 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     P0_aug : array_like, optional
         :math:`M_0`.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        The shared predict and update (standard and Joseph forms) compiled
-        (:mod:`tobitkf.filters._kernels_core`, equal to the numpy path to rounding) when numba imports
-        (``"auto"``), always (``"numba"``), or the numpy reference path (``"numpy"``); with the compiled step
-        the censored moments of (21)-(24) of a batch come from the TKF kernel's compiled statistics.
+        ``filter`` runs the compiled time loop (:mod:`tobitkf.filters._kernels_protocol`, equal to the numpy
+        path to rounding) where it covers the case (a time-invariant system, the standard or Joseph form,
+        every failure term, ``keep_augmented=False``) and numba imports (``"auto"``), insists on it
+        (``"numba"``), or runs the numpy reference path (``"numpy"``). Elsewhere (the online step, the cases
+        the loop does not cover) ``"auto"`` and ``"numba"`` run the shared predict and update compiled
+        (:mod:`tobitkf.filters._kernels_core`), the censored moments of (21)-(24) of a batch from the TKF
+        kernel's compiled statistics.
 
     Raises
     ------
     ValidationError
-        Unknown option or wrong argument types.
+        Unknown option or wrong argument types; at ``filter``, ``backend="numba"`` for a case the compiled
+        loop does not cover.
     ImportError
         ``backend="numba"`` without numba installed.
 
@@ -431,6 +435,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     _name = "ProtocolTobitKalmanFilter"
     _step_options = ("uncensored",)
+    _kernel_mats: tuple[np.ndarray, ...]  # A, B Q B^T of the compiled loop, set on its first call
+    _kernel_static: bool  # whether the compiled loop runs (decided on the first call)
 
     def __init__(
         self,
@@ -661,7 +667,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             P0,
             outputs=outputs,
             state=state,
-            step_options={"keep_augmented": keep_augmented},
+            step_options={"keep_augmented": keep_augmented, "uncensored_record": step_data},
             step_data=step_data,
         )
         if res.extras:
@@ -669,6 +675,26 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             k0 = res.times[0] - 1
             res.extras["scheduled"] = self.channel.schedule.scheduled(k0 + T)[k0:]
         return res
+
+    # ---- the compiled path (batched ``filter`` only; ``step`` runs numpy) ----------------------
+    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+        what = "the protocol Tobit Kalman filter"
+        step_options = step_options or {}
+        if "uncensored_record" not in step_options:  # a loop not started by filter(): gamma unknown here
+            gap = "a loop without the uncensored record"
+        elif step_options.get("keep_augmented"):
+            gap = "keep_augmented=True"
+        else:
+            ok = self.__dict__.get("_kernel_static")
+            if ok is None:
+                ok = self._kernel_static = use_kernel(self.backend, _protocol_kernel_gap(self, u2), what)
+            if not ok:
+                return None
+            return _finite_or_none(
+                _protocol_kernel_run(self, y2, step_options["uncensored_record"], state, want, batch)
+            )
+        use_kernel(self.backend, gap, what)  # raises for backend="numba"
+        return None
 
     def bounds(self, steps: int, **options: Any) -> CovarianceBounds:
         """Upper and lower bounds on :math:`E\\{P_{\\tilde x^-_k}\\}`; see :func:`protocol_covariance_bounds`."""
@@ -679,6 +705,130 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     def __repr__(self) -> str:
         opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items() if k != "P0_aug")
         return f"ProtocolTobitKalmanFilter({self.system!r}, {self.channel!r}, {opts})"
+
+
+# --------------------------------------------------------------------------- the compiled path
+_KERNEL_MODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_unconditional": 3}
+
+
+def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
+    """Why :func:`tobitkf.filters._kernels_protocol.protocol_kernel` cannot run ``est`` (None when it can);
+    ``keep_augmented`` and the uncensored record are checked by the caller."""
+    if est.covariance_update == "square_root":
+        return "covariance_update='square_root'"
+    return system_gap(est.system, u)
+
+
+def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0: int) -> tuple[np.ndarray, ...]:
+    """A, B Q B^T (n, n) and the terms C_h, H_h (p, n_xi), R_h, lam_mean_h, lam_var_h (p,) of the sensors
+    ``sched`` schedules, as contiguous float64: those of :meth:`ProtocolTobitKalmanFilter._step_terms` (kept per
+    sensor), which checks each sensor's noise variance at the first step k0 + t + 1 that schedules it, as the
+    numpy loop would (rows of the sensors not scheduled stay 0 and are not read)."""
+    sys_ = est.system
+    p = len(est._lam_mean)
+    Cs, Hs = np.zeros((p, est._nxi)), np.zeros((p, est._nxi))
+    rs, lm, lv = np.ones(p), np.zeros(p), np.zeros(p)
+    for t in np.sort(np.unique(sched, return_index=True)[1]).tolist():  # each sensor's first step, in time order
+        h = int(sched[t])
+        Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(k0 + t + 1, h)
+        Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
+    AQ = est.__dict__.get("_kernel_mats")
+    if AQ is None:
+        AQ = est._kernel_mats = tuple(
+            np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
+        )  # writeable copies: one compiled specialization whatever the system's arrays are
+    return AQ + (Cs, Hs, rs, lm, lv)
+
+
+def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: FilterState, want, batch):
+    """The compiled loop from ``state`` (augmented ξ, P); outputs on request, as the numpy path's."""
+    from . import _kernels_protocol as kp
+
+    kern = kernels()
+    N, T, _ = y2.shape
+    n, nxi = est.n, est._nxi
+    order = est._order
+    sched = np.asarray(order, dtype=np.int64)[(state.k + np.arange(T)) % len(order)]
+    A, Qd, Cs, Hs, rs, lm, lv = _protocol_kernel_terms(est, sched, state.k)
+    yk = np.array(y2[:, :, 0], dtype=float, order="C")  # writeable copies (see P below)
+    gam = yk > est._tau if step_data is None else np.array(step_data["uncensored"][:, :, 0], dtype=np.bool_, order="C")
+    carry = state.carry
+    F_fixed = np.empty(0)
+    if est.failure_term == "lmmse_unconditional":  # the deterministic X_k of _measurement, run here
+        F_fixed = np.empty(T)
+        Xk = carry["X"]
+        Aa = augmented_transition(est.system.transition(0), est._ell)  # a time-invariant system (covered case)
+        Bn = noise_input(n, est._ell)
+        BQB = Bn @ est.system.process_cov(0) @ Bn.T
+        for t in range(T):
+            Xk = Aa @ Xk @ Aa.T + BQB
+            h = int(sched[t])
+            F_fixed[t] = float(lv[h]) * float(Cs[h] @ Xk @ Cs[h])
+        carry = dict(carry)
+        carry["X"] = Xk
+    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
+    # writeable C-contiguous float64 always (a read-only array would load another compiled specialization)
+    x = np.array(state.x, dtype=float, order="C")
+    P = np.array(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
+
+    def arr(on, shape):
+        return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
+
+    ext = "extras" in want
+    means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
+    covs, pcovs = arr("cov" in want or "var" in want, (n, n)), arr("pred_cov" in want, (n, n))
+    amean, apmean = arr(ext, (nxi,)), arr(ext, (nxi,))
+    exts = arr(ext, (kp.N_EXTRAS,))
+    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
+    kp.protocol_kernel(
+        yk,
+        gam,
+        sched,
+        A,
+        Qd,
+        Cs,
+        Hs,
+        rs,
+        lm,
+        lv,
+        F_fixed,
+        est._tau,
+        _KERNEL_MODES[est.failure_term],
+        est.covariance_update == "joseph",
+        x,
+        P,
+        kern.GL_X,
+        kern.GL_W,
+        means,
+        covs,
+        pmeans,
+        pcovs,
+        amean,
+        apmean,
+        exts,
+        x_last,
+        P_last,
+    )
+
+    def out(a):
+        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+
+    cov = out(covs)
+    extras: dict[str, Any] = {}
+    if ext:
+        extras = {name: out(exts[..., i]) for i, name in enumerate(kp.EXTRA_NAMES)}
+        extras.update(aug_mean=out(amean), aug_pred_mean=out(apmean), uncensored=out(gam))
+    final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=carry)
+    return FilterResult(
+        mean=out(means),
+        cov=cov if "cov" in want else None,
+        pred_mean=out(pmeans),
+        pred_cov=out(pcovs),
+        extras=extras,
+        times=np.arange(state.k + 1, state.k + T + 1),
+        var=None if "var" not in want or cov is None else np.diagonal(cov, axis1=-2, axis2=-1),
+        final=final,
+    )
 
 
 def protocol_tobit_kalman_filter(

@@ -1,0 +1,238 @@
+r"""Compiled (numba) time loop of the protocol-based Tobit Kalman filter (PBTKF-IMSF).
+
+An *implementation* of the numpy reference path of
+:class:`tobitkf.filters.protocol.ProtocolTobitKalmanFilter` (Geng et al., Theorem 1, Table I), not a
+second algorithm. Per step k, with the scheduled sensor :math:`h = \bar h_k`,
+:math:`\mathbf H = \bar\Lambda_h\mathcal C_h` and :math:`\zeta = \mathbf H\hat\xi^-_k`:
+
+.. math::
+
+    \hat\xi^-_k, P^-_k &: \text{the block shift (17)–(18)}
+        \;(:func:`~tobitkf.filters._kernels_fading.shift_predict_block`) \\
+    \lambda, \mathcal R(1-\varphi) &: \text{the censored statistics at } \zeta
+        \text{ (:func:`~tobitkf.filters._kernels.censored_stats`, lower limit } \tau),
+        \text{ the latter floored at } 10^{-12}\mathcal R \\
+    \hat y &= \zeta + \sqrt{\mathcal R}\lambda \;(21), \quad
+    R_{ee} = \mathbf HP^-_k\mathbf H^T + F_k + \mathcal R(1-\varphi) \;(24) \\
+    K &= P^-_k\mathbf H^T/R_{ee},\quad \hat\xi_k = \hat\xi^-_k + K(y_k - \hat y),\quad
+    M = P^-_k - KR_{xe}^T \;(19), (20), (22)
+
+and the standard form :math:`P = \mathrm{sym}(M)` or the Joseph form (App. D (44)) in the rank-one
+arithmetic of the shared numpy update, :math:`P = \mathrm{sym}(M - (M\mathbf H^T - KN)K^T)`
+(:func:`~tobitkf.filters._kernels_fading.update_cov_block`). A reading that is censored
+(:math:`\gamma_k = 0`) or whose :math:`R_{ee}` is not above the smallest normal number leaves the
+prediction unchanged (K = 0), as the numpy path.
+
+The failure term :math:`F_k` (``mode``): 0 ``"variance"`` :math:`\check\Lambda_h\mathcal C_hP^-_k\mathcal C_h^T`,
+1 ``"literal"`` :math:`(\bar\Lambda_h^2+\check\Lambda_h)\mathcal C_hP^-_k\mathcal C_h^T`, 2 ``"second_moment"``
+:math:`\check\Lambda_h(\mathcal C_hP^-_k\mathcal C_h^T + (\mathcal C_h\hat\xi^-_k)^2)`, 3 ``"lmmse_unconditional"``
+the per-step value ``F_fixed[t]`` (the same for every run; the driver runs the deterministic recursion of
+:math:`\mathfrak X_k`).
+
+Covered (the dispatcher in ``protocol.py`` decides): time-invariant A, Q, C, R, every failure-term mode,
+``covariance_update`` ``"joseph"`` and ``"standard"``, a given or default :math:`\gamma_k`,
+``keep_augmented=False``. Everything else runs on numpy.
+
+Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block of runs and written run
+by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
+``(N, 0, ...)`` is not requested: it gets no staging and is not written.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ._kernels import _TINY, _block_dims, _flush, _load, _mean_scratch, _stage_shape, _store_last, censored_stats
+from ._kernels_fading import shift_predict_block, update_cov_block
+
+__all__ = ["protocol_kernel", "N_EXTRAS", "EXTRA_NAMES"]
+
+#: the per-step scalars of the ``ext`` output, in its last axis
+EXTRA_NAMES = (
+    "theta_bar",
+    "inverse_mills",
+    "trunc_var_factor",
+    "expected_y",
+    "innovation",
+    "p_uncensored",
+    "innovation_var",
+)
+N_EXTRAS = len(EXTRA_NAMES)
+_FLOOR = 1e-12  # R (1 - phi) floored at 1e-12 R, as protocol._TINY
+
+
+@njit(cache=True, error_model="numpy")
+def _stage_vec(v, buf, tt, nb, lo, hi):
+    """``buf[b, tt, i - lo] = v[i, b]`` for i in [lo, hi) (a staging buffer with no runs is skipped)."""
+    if buf.shape[0] == 0:
+        return
+    for b in range(nb):
+        for i in range(lo, hi):
+            buf[b, tt, i - lo] = v[i, b]
+
+
+@njit(cache=True, error_model="numpy")
+def _stage_cov(P, buf, tt, nb, n):
+    if buf.shape[0] == 0:
+        return
+    for b in range(nb):
+        for i in range(n):
+            for j in range(n):
+                buf[b, tt, i, j] = P[i, j, b]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def protocol_kernel(
+    y,
+    gam_in,
+    sched,
+    A,
+    Qd,
+    Cs,
+    Hs,
+    rs,
+    lam_mean,
+    lam_var,
+    F_fixed,
+    tau,
+    mode,
+    joseph,
+    x0,
+    P0,
+    glx,
+    glw,
+    means,
+    covs,
+    pmeans,
+    pcovs,
+    amean,
+    apmean,
+    ext,
+    x_last,
+    P_last,
+):
+    """PBTKF-IMSF over ``N`` runs of ``T`` steps from the augmented state ``x0`` (N, nxi), ``P0`` (N, nxi, nxi).
+
+    ``y`` (N, T) the received readings, ``gam_in`` (N, T) bool the :math:`\\gamma_k`; ``sched`` (T,) the
+    0-based scheduled sensor of each step; ``A``/``Qd`` (n, n) the transition and process covariance of the
+    top block; ``Cs``/``Hs`` (p, nxi) :math:`\\mathcal C_h` and :math:`\\bar\\Lambda_h\\mathcal C_h`; ``rs``
+    (p,) :math:`\\mathcal R`; ``lam_mean``/``lam_var`` (p,); ``F_fixed`` (T,) the failure term of mode 3
+    (any length otherwise); ``tau`` the threshold; ``mode`` the failure-term mode (module docstring);
+    ``joseph`` the covariance form. Outputs: ``means``/``pmeans`` (N, T, n), ``covs``/``pcovs``
+    (N, T, n, n) (block 0), ``amean``/``apmean`` (N, T, nxi), ``ext`` (N, T, N_EXTRAS) in the order of
+    :data:`EXTRA_NAMES`; each of shape ``(N, 0, ...)`` when not requested. ``x_last`` (N, nxi) and
+    ``P_last`` (N, nxi, nxi) receive the state after the last step.
+    """
+    N, T = y.shape
+    nxi = Cs.shape[1]
+    n = A.shape[0]
+    B, S = _block_dims(N, T)
+    x, xp, _e, _yb = _mean_scratch(nxi, 1, B)
+    P = np.empty((nxi, nxi, B))
+    Pp = np.empty((nxi, nxi, B))
+    X = np.empty((nxi, n, B))
+    K = np.empty((nxi, 1, B))
+    Rxe = np.empty((nxi, 1, B))
+    MH = np.empty((nxi, 1, B))
+    PC = np.empty((nxi, B))
+    noise = np.zeros((1, 1, B))
+    gone = np.ones((1, B))
+    Hrow = np.empty((1, nxi))
+    ee = np.empty(B)
+    buf = np.empty((2, glx.shape[0]))
+    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
+    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
+    s_am, s_apm = np.empty(_stage_shape(amean, B, S)), np.empty(_stage_shape(apmean, B, S))
+    s_ext = np.empty(_stage_shape(ext, B, S))
+    want_x = ext.shape[1] > 0
+    sd_all = np.sqrt(rs)
+    for r0 in range(0, N, B):
+        nb = min(B, N - r0)
+        _load(x0, P0, r0, nb, x, P)
+        for t in range(T):
+            tt = t % S
+            h = sched[t]
+            r = rs[h]
+            sd = sd_all[h]
+            lm, lv = lam_mean[h], lam_var[h]
+            for j in range(nxi):
+                Hrow[0, j] = Hs[h, j]
+            shift_predict_block(A, Qd, x, P, xp, Pp, X, nb)  # (17)-(18)
+            _stage_vec(xp, s_pmean, tt, nb, 0, n)
+            _stage_cov(Pp, s_pcov, tt, nb, n)
+            _stage_vec(xp, s_apm, tt, nb, 0, nxi)
+            # R_xe = P H^T, and P C^T for the failure term (the numpy path's row products)
+            for i in range(nxi):
+                for b in range(nb):
+                    Rxe[i, 0, b] = 0.0
+                    PC[i, b] = 0.0
+                for k in range(nxi):
+                    hk = Hs[h, k]
+                    ck = Cs[h, k]
+                    for b in range(nb):
+                        Rxe[i, 0, b] += Pp[i, k, b] * hk
+                        PC[i, b] += Pp[i, k, b] * ck
+            for b in range(nb):
+                zeta = 0.0
+                HPH = 0.0
+                CPC = 0.0
+                xc = 0.0
+                for j in range(nxi):
+                    zeta += xp[j, b] * Hs[h, j]
+                    HPH += Rxe[j, 0, b] * Hs[h, j]
+                    CPC += PC[j, b] * Cs[h, j]
+                    xc += xp[j, b] * Cs[h, j]
+                st = censored_stats(zeta, sd, tau, math.inf, glx, glw, buf)  # (13)-(16)
+                lam = st[3]
+                nz = max(st[5], _FLOOR * r)  # R (1 - phi), floored
+                if mode == 0:
+                    F = lv * CPC
+                elif mode == 1:
+                    F = (lm * lm + lv) * CPC
+                elif mode == 2:
+                    F = lv * (CPC + xc * xc)
+                else:
+                    F = F_fixed[t]
+                ntot = F + nz
+                yhat = zeta + sd * lam  # (21), gamma = 1
+                Ree = HPH + ntot  # (24)
+                g = gam_in[r0 + b, t]
+                good = g and Ree > _TINY
+                noise[0, 0, b] = ntot
+                ee[b] = y[r0 + b, t] - yhat if good else 0.0
+                if want_x:
+                    s_ext[b, tt, 0] = (tau - zeta) / sd
+                    s_ext[b, tt, 1] = lam
+                    s_ext[b, tt, 2] = 1.0 - nz / r
+                    s_ext[b, tt, 3] = yhat if g else tau
+                    s_ext[b, tt, 4] = y[r0 + b, t] - yhat if g else 0.0
+                    s_ext[b, tt, 5] = st[2]
+                    s_ext[b, tt, 6] = Ree if g else nz
+                if good:
+                    for i in range(nxi):
+                        K[i, 0, b] = Rxe[i, 0, b] / Ree
+                else:
+                    for i in range(nxi):
+                        K[i, 0, b] = 0.0
+            # (19), (22): the mean; (20) or App. D (44): the covariance. A run left out has K = 0 and e = 0, so
+            # this is the numpy path's arithmetic x + 0 e, P - 0 R_xe^T (the prediction, unchanged)
+            for i in range(nxi):
+                for b in range(nb):
+                    x[i, b] = xp[i, b] + K[i, 0, b] * ee[b]
+            update_cov_block(Pp, K, Rxe, Hrow, gone, noise, joseph, P, MH, nb)
+            _stage_vec(x, s_mean, tt, nb, 0, n)
+            _stage_cov(P, s_cov, tt, nb, n)
+            _stage_vec(x, s_am, tt, nb, 0, nxi)
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_cov, covs, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
+                _flush(s_am, amean, r0, t0, nb, tt + 1)
+                _flush(s_apm, apmean, r0, t0, nb, tt + 1)
+                _flush(s_ext, ext, r0, t0, nb, tt + 1)
+        _store_last(x, P, r0, nb, x_last, P_last)

@@ -1,0 +1,278 @@
+"""The compiled time loop of the protocol TKF (PBTKF-IMSF, Geng et al.) against its numpy reference path.
+
+The numpy path is the reference (tests/filters/test_protocol.py checks it against the source); the
+compiled loop must reproduce it to rounding (1e-12 relative) in every case it covers, and every other
+case must run on numpy (``backend="auto"``) or be refused (``backend="numba"``).
+
+Mutation checks (done by hand, not kept): the GP-03 misreading ``yhat = zeta + r * lam`` for
+``zeta + sd * lam`` in the kernel failed all 72 cases of ``test_kernel_equals_numpy`` (R = 0.5 for
+sensor 2), and ``F = lm * CPC`` for ``F = lv * CPC`` in mode 0 failed all 18 ``"variance"`` cases; both
+restored. Switching the kernel's Joseph term off was *not* caught, as expected: for the optimal gain
+the Joseph and standard forms agree to rounding (measured on the numpy path: 1e-16 in the covariances,
+3e-15 in the means).
+"""
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf._validation import ValidationError
+from tobitkf.channels.protocol import LAMBDA_BASE, NO_FAILURE, ProtocolChannel
+from tobitkf.filters import _backend
+from tobitkf.filters.protocol import FAILURE_TERMS, ProtocolTobitKalmanFilter
+
+pytest.importorskip("numba")
+from tobitkf.filters import _kernels_protocol  # noqa: E402
+
+FIELDS = ("mean", "cov", "pred_mean", "pred_cov", "var")
+
+
+def assert_same(a, b, rtol=1e-12):
+    """Equal to rounding relative to the array's scale; NaN exactly where the reference has NaN; booleans equal."""
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.shape == b.shape
+    if b.dtype == bool:
+        np.testing.assert_array_equal(a, b)
+        return
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    scale = max(1.0, float(np.nanmax(np.abs(b)))) if np.isfinite(b).any() else 1.0
+    np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * scale)
+
+
+def assert_results_equal(r1, r2, rtol=1e-12):
+    for f in FIELDS:
+        va, vb = getattr(r1, f), getattr(r2, f)
+        assert (va is None) == (vb is None), f
+        if va is not None:
+            assert_same(va, vb, rtol)
+    assert r1.extras.keys() == r2.extras.keys()
+    for key in r1.extras:
+        assert_same(r1.extras[key], r2.extras[key], rtol)
+    np.testing.assert_array_equal(r1.times, r2.times)
+    assert r1.final.k == r2.final.k
+    assert_same(r1.final.x, r2.final.x, rtol)
+    assert_same(np.broadcast_to(r1.final.P, r2.final.P.shape), r2.final.P, rtol)
+    assert r1.final.carry.keys() == r2.final.carry.keys()
+    for key in r1.final.carry:
+        assert_same(r1.final.carry[key], r2.final.carry[key], rtol)
+
+
+def oscillator(R=(1.0, 0.5)):
+    """The source example's plant (Sec. IV: rotation by 0.052 pi, two sensors)."""
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    return tk.LinearSystem(
+        A=A, C=[[1.0, 0.0], [0.3, 1.0]], Q=0.0025 * np.eye(2), R=np.diag(R), x0=[5.0, 0.0], P0=np.eye(2)
+    )
+
+
+def channel(window=2, threshold=0.0, failures=LAMBDA_BASE):
+    return ProtocolChannel(2, window=window, failures=failures, threshold=threshold)
+
+
+def data(sys_, ch, shape, steps, seed=0):
+    runs = int(np.prod(shape, dtype=int))
+    return tk.simulate(sys_, steps, runs, seed=seed, channel=ch).y.reshape(shape + (steps, 1))
+
+
+def both(sys_, ch, y, **kw):
+    filt = {k: kw.pop(k) for k in ("outputs", "state", "uncensored", "x0", "P0") if k in kw}
+    a = ProtocolTobitKalmanFilter(sys_, ch, backend="numba", **kw).filter(y, **filt)
+    b = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", **kw).filter(y, **filt)
+    return a, b
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("shape", [(), (3,), (2, 2)])
+@pytest.mark.parametrize("form", ["joseph", "standard"])
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_kernel_equals_numpy(mode, form, shape, seed):
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, shape, 40, seed)
+    a, b = both(sys_, ch, y, failure_term=mode, covariance_update=form)
+    assert a.mean.shape == shape + (40, 2)
+    assert a.extras["aug_mean"].shape == shape + (40, 6)
+    assert_results_equal(a, b)
+
+
+@pytest.mark.parametrize("window", [0, 1, 4])
+@pytest.mark.parametrize("threshold", [-np.inf, -1.0, 3.0])
+def test_kernel_windows_and_thresholds(window, threshold):
+    """Other windows (n_xi = 2, 4, 10) and thresholds: none (the general route of the censored statistics),
+    rarely and mostly censored (3 sigma above zero: the continued-fraction tail)."""
+    sys_, ch = oscillator(), channel(window=window, threshold=threshold)
+    y = data(sys_, ch, (5,), 30, seed=3)
+    for mode in ("variance", "second_moment"):
+        assert_results_equal(*both(sys_, ch, y, failure_term=mode, prehistory_prior="zero_mean"))
+
+
+def test_kernel_given_uncensored_and_continued_state():
+    """A detection device that disagrees with y > tau on some steps, a given prior and P0_aug, and a
+    continuation from result.final (the schedule and the lmmse recursion X_k picked up at k0 + 1)."""
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (4,), 30, seed=5)
+    rng = np.random.default_rng(5)
+    g = (y > 0.0) ^ (rng.random(y.shape) < 0.1)
+    P0_aug = np.kron(np.eye(3), np.diag([2.0, 0.5])) + 0.1
+    for mode in ("variance", "lmmse_unconditional"):
+        kw = dict(failure_term=mode, P0_aug=P0_aug)
+        a, b = both(sys_, ch, y, uncensored=g, x0=[4.0, 1.0], **kw)
+        assert_results_equal(a, b)
+        fk = ProtocolTobitKalmanFilter(sys_, ch, backend="numba", **kw)
+        fn = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", **kw)
+        for split in (1, 7):
+            a1, b1 = fk.filter(y[:, :split], uncensored=g[:, :split]), fn.filter(y[:, :split], uncensored=g[:, :split])
+            assert_results_equal(a1, b1)
+            a2 = fk.filter(y[:, split:], uncensored=g[:, split:], state=a1.final)
+            b2 = fn.filter(y[:, split:], uncensored=g[:, split:], state=b1.final)
+            assert_results_equal(a2, b2)
+            np.testing.assert_array_equal(a2.extras["scheduled"], b2.extras["scheduled"])
+
+
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_kernel_three_sensors_custom_order_per_sensor_laws(mode):
+    """p = 3 sensors served in the order 3, 1, 3, 2 (sensor 3 twice per cycle), a law per sensor (the
+    per-sensor lam_mean, lam_var), continued from result.final at a step inside the cycle."""
+    from tobitkf.channels.protocol import PMF
+
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    C = [[1.0, 0.0], [0.3, 1.0], [-0.5, 0.7]]
+    sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 2.0]), x0=[5.0, 0.0], P0=np.eye(2))
+    laws = [LAMBDA_BASE, NO_FAILURE, PMF([0.2, 1.0], [0.3, 0.7])]
+    ch = ProtocolChannel(3, window=1, failures=laws, threshold=-0.5, order=[3, 1, 3, 2])
+    y = tk.simulate(sys_, 27, 6, seed=9, channel=ch).y
+    a, b = both(sys_, ch, y, failure_term=mode)
+    assert_results_equal(a, b)
+    fk = ProtocolTobitKalmanFilter(sys_, ch, backend="numba", failure_term=mode)
+    fn = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode)
+    a2 = fk.filter(y[:, 5:], state=fk.filter(y[:, :5]).final)
+    b2 = fn.filter(y[:, 5:], state=fn.filter(y[:, :5]).final)
+    assert_results_equal(a2, b2)
+    assert_same(a2.mean, b.mean[:, 5:])  # the continuation is the whole run's tail
+
+
+def test_kernel_many_runs_cross_blocks():
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (70,), 12, seed=6)  # 70 = 2 full blocks of 32 and one of 6
+    assert_results_equal(*both(sys_, ch, y))
+
+
+@pytest.mark.parametrize("outputs", ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), "all"])
+def test_kernel_honours_the_output_selection(outputs):
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (3,), 15, seed=7)
+    assert_results_equal(*both(sys_, ch, y, outputs=outputs))
+
+
+def test_kernel_reduces_to_the_kalman_filter():
+    """An independent oracle: one sensor, no window, no failures, no threshold is the Kalman filter."""
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.0025 * np.eye(2), R=[[1.0]], x0=[5.0, 0.0], P0=np.eye(2))
+    ch = ProtocolChannel(1, window=0, failures=NO_FAILURE, threshold=-np.inf)
+    y = tk.simulate(sys_, 25, 4, seed=8).y
+    for form in ("joseph", "standard"):
+        got = ProtocolTobitKalmanFilter(sys_, ch, backend="numba", covariance_update=form).filter(y)
+        ref = tk.KalmanFilter(sys_, backend="numpy").filter(y)
+        assert_same(got.mean, ref.mean, 1e-12)
+        assert_same(got.cov, ref.cov, 1e-12)
+
+
+def test_one_compiled_specialization_for_every_call():
+    """One run (batch ()), read-only readings and detection flags, a continuation: all one signature of the
+    kernel (another would compile or load a second specialization on the first such call)."""
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (4,), 10)
+    y.flags.writeable = False
+    g = y > 0.0
+    g.flags.writeable = False
+    est = ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
+    r = est.filter(y, uncensored=g)
+    est.filter(y[0], uncensored=g[0])
+    est.filter(y, state=r.final)
+    assert len(_kernels_protocol.protocol_kernel.signatures) == 1
+
+
+def test_divergence_reruns_on_numpy():
+    """A non-finite covariance from the kernel: the call reruns on numpy, which warns and NaNs the means."""
+    sys_ = tk.LinearSystem(A=[[1e200]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    ch = ProtocolChannel(1, window=1, threshold=-1.0)
+    y = np.zeros((2, 4, 1))
+    with pytest.warns(RuntimeWarning, match="stopped being finite"):
+        out = ProtocolTobitKalmanFilter(sys_, ch, backend="numba").filter(y)
+    with pytest.warns(RuntimeWarning, match="stopped being finite"):
+        ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y)
+    assert np.isnan(out.mean[:, -1]).all()
+    assert_same(out.mean, ref.mean, 0.0)
+
+
+# --- dispatch -----------------------------------------------------------------------------------
+
+
+def _raise(*args):
+    raise AssertionError("protocol kernel used")
+
+
+def test_auto_uses_the_kernel_when_covered(monkeypatch):
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (2,), 5)
+    monkeypatch.setattr(_kernels_protocol, "protocol_kernel", _raise)
+    with pytest.raises(AssertionError, match="protocol kernel used"):
+        ProtocolTobitKalmanFilter(sys_, ch).filter(y)
+    with pytest.raises(AssertionError, match="protocol kernel used"):
+        tk.protocol_tobit_kalman_filter(sys_, ch, y, failure_term="literal", covariance_update="standard")
+    ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y)  # numpy never touches it
+    st = ProtocolTobitKalmanFilter(sys_, ch).init((2,))
+    ProtocolTobitKalmanFilter(sys_, ch).step(st, y[:, 0])  # nor the online step
+
+
+def _time_varying():
+    sys_ = oscillator()
+    return tk.LinearSystem(
+        A=np.stack([sys_.transition(0)] * 20), C=sys_.measurement(1), Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5]),
+        x0=[5.0, 0.0], P0=np.eye(2),
+    )  # fmt: skip
+
+
+CASES = {
+    "keep_augmented": ({}, {"keep_augmented": True}, "keep_augmented=True"),
+    "time_varying": ({}, {}, "time-varying"),
+    "square_root": ({"covariance_update": "square_root"}, {}, "covariance_update='square_root'"),
+}
+
+
+@pytest.mark.parametrize("which", sorted(CASES))
+def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
+    opts, call, match = CASES[which]
+    sys_ = _time_varying() if which == "time_varying" else oscillator()
+    ch = channel()
+    y = data(oscillator(), ch, (3,), 20)
+    ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", **opts).filter(y, **call)
+    with pytest.raises(
+        ValidationError, match=f"numba kernel of the protocol Tobit Kalman filter does not cover {match}"
+    ):
+        ProtocolTobitKalmanFilter(sys_, ch, backend="numba", **opts).filter(y, **call)
+    monkeypatch.setattr(_kernels_protocol, "protocol_kernel", _raise)
+    auto = ProtocolTobitKalmanFilter(sys_, ch, **opts).filter(y, **call)
+    # not the protocol kernel (it raises) but the compiled shared step around the numpy moments: to rounding
+    assert_results_equal(auto, ref, 1e-12)
+
+
+def test_without_numba(monkeypatch):
+    monkeypatch.setattr(_backend, "_load", lambda: None)
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (2,), 10)
+    with pytest.raises(ImportError, match="needs the numba package"):
+        ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
+    auto = ProtocolTobitKalmanFilter(sys_, ch).filter(y)
+    assert_results_equal(auto, ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y), 1e-12)
+
+
+def test_bad_sensor_variance_is_reported_as_on_numpy():
+    sys_ = oscillator(R=(1.0, 0.0))
+    ch = channel()
+    y = data(oscillator(), ch, (2,), 6)
+    for backend in ("numba", "numpy"):
+        with pytest.raises(ValidationError, match=r"R\(2\): sensor 2 needs a positive noise variance"):
+            ProtocolTobitKalmanFilter(sys_, ch, backend=backend).filter(y)
