@@ -177,6 +177,33 @@ def test_R1_reduces_to_the_kalman_filter(update):
     np.testing.assert_allclose(a.pred_cov, b.pred_cov, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "auto"])
+def test_control_inputs_enter_the_prediction_as_in_the_kalman_filter(backend):
+    """With a control input (not in the source) the R1 reduction still holds: the protocol TKF with
+    ``u`` equals the KF with the same ``u`` (filter and online step); ``u`` given to a system with a
+    feedthrough D is refused (the received reading (4) has none)."""
+    rng = np.random.default_rng(7)
+    base = random_system(rng, n=3, p=1, T=15, varying=False)
+    mats = dict(A=base.transition(0), C=base.measurement(1), Q=base.process_cov(0), R=base.measurement_cov(1))
+    mats.update(x0=base.x0, P0=base.P0, Bu=rng.normal(size=(3, 2)))
+    sys_ = tk.LinearSystem(**mats)
+    ch = ProtocolChannel(1, window=0, threshold=-1e12)
+    y = rng.normal(size=(4, 15, 1)) * 3
+    u = rng.normal(size=(4, 15, 2))
+    est = ProtocolTobitKalmanFilter(sys_, ch, backend=backend)
+    a = est.filter(y, u=u)
+    b = tk.KalmanFilter(sys_).filter(y, u=u)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.cov, b.cov, rtol=0, atol=1e-12)
+    assert np.abs(a.mean - est.filter(y).mean).max() > 0.1  # the input is not ignored
+    s = est.init((4,))
+    for k in range(15):
+        s = est.step(s, y[:, k], u=u[:, k])
+    np.testing.assert_allclose(s.mean, b.mean[:, -1], rtol=0, atol=1e-12)
+    with pytest.raises(tk.ValidationError, match="no feedthrough D u"):
+        ProtocolTobitKalmanFilter(tk.LinearSystem(**mats, D=np.ones((1, 2))), ch).filter(y, u=u)
+
+
 def test_R1_round_robin_equals_time_varying_kalman_filter():
     rng = np.random.default_rng(2)
     T = 12

@@ -509,13 +509,16 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return xi, symmetrize(M0)[None], carry  # exactly symmetric (the shift prediction needs it)
 
     def _transition(self, k, u, carry):
-        if self._transition_cache is not None:  # a constant A and Q: built once
-            return self._transition_cache
         sys_ = self.system
+        controlled = u is not None and sys_.Bu is not None
+        if self._transition_cache is not None and not controlled:  # a constant A and Q: built once
+            return self._transition_cache
         G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        # (17)-(18): the block shift of (10), the noise in its top block
-        tr = Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=0.0, shift=True, G=G)
-        if self._constant_AQ:
+        # (17)-(18): the block shift of (10), the noise in its top block; a control input B_u u(k-1) (not in
+        # the source, whose plant has none) enters the top block's mean, as in the fading family
+        b = u @ sys_.Bu.at(k).T if controlled else 0.0
+        tr = Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, G=G)
+        if self._constant_AQ and not controlled:
             self._transition_cache = tr
         return tr
 
@@ -555,6 +558,11 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return terms
 
     def _measurement(self, k, xp, Pp, y, u, carry, uncensored=None, **_):
+        if u is not None and self.system.D is not None:
+            raise ValidationError(
+                "u: the protocol TKF's received reading (4) has no feedthrough D u; "
+                "give the system no D (a control input enters through Bu only)"
+            )
         h = self._sensor(k)
         Cc, r, sd, H, H0, lam_mean, lam_var = self._step_terms(k, h)
         X = None
@@ -637,6 +645,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         self,
         y: Any,
         *,
+        u: Any = None,
         uncensored: Any = None,
         keep_augmented: bool = False,
         x0: Any = None,
@@ -644,7 +653,11 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         outputs: Any = "all",
         state: FilterState | None = None,
     ) -> FilterResult:
-        """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`."""
+        """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`.
+
+        ``u`` (..., T, p), optional: the control inputs u(0..T-1) of a system with ``Bu`` (the prediction of
+        step k adds B_u u(k-1) to the current state's block; not in the source, whose plant has no input).
+        """
         y2, batch = self._prepare_record(y)
         N, T, _ = y2.shape
         step_data = None
@@ -662,7 +675,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             step_data = {"uncensored": np.asarray(gam, dtype=bool).reshape(N, T, 1)}
         res = self._run(
             y2.reshape(batch + (T, 1)),
-            None,
+            u,
             x0,
             P0,
             outputs=outputs,
@@ -685,9 +698,11 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         elif step_options.get("keep_augmented"):
             gap = "keep_augmented=True"
         else:
-            ok = self.__dict__.get("_kernel_static")
+            ok = self.__dict__.get("_kernel_static") if u2 is None else None  # decided once for the case without input
             if ok is None:
-                ok = self._kernel_static = use_kernel(self.backend, _protocol_kernel_gap(self, u2), what)
+                ok = use_kernel(self.backend, _protocol_kernel_gap(self, u2), what)
+                if u2 is None:
+                    self._kernel_static = ok
             if not ok:
                 return None
             return _finite_or_none(
