@@ -636,3 +636,17 @@ def test_iterate_does_not_retry_its_steps_with_a_second_solver(model, monkeypatc
     assert it.ok
     assert calls[0] == "SCS"  # the initial coupled design keeps its fallback
     assert len(calls) > 1 and all(f is None for f in calls[1:])
+
+
+def test_names_that_left_the_filter_module_say_where_they_went():
+    """The model's names warn and are served from ``tobitkf.models.ross`` (one release); the simulator's
+    are refused by name (a filter module may not import the simulator)."""
+    import tobitkf.filters.hinf as old
+    from tobitkf.models import ross
+
+    for name in ("RossModel", "wang2010_model"):
+        with pytest.warns(DeprecationWarning, match=f"moved to tobitkf.models.ross.{name}"):
+            assert getattr(old, name) is getattr(ross, name)
+    for name in ("RossSimulation", "simulate_ross", "wang2010_disturbances"):
+        with pytest.raises(AttributeError, match=f"moved to tobitkf.simulate.ross.{name}"):
+            getattr(old, name)

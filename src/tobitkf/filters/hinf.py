@@ -20,7 +20,7 @@ import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array
 from ..design.hinf import HinfCertificate
-from ..models.ross import RossModel
+from ..models import ross as _ross
 from .core import Estimator, FilterResult, FilterState
 
 __all__ = ["HinfFilterResult", "hinf_filter", "RegionalHinfFilter"]
@@ -87,7 +87,7 @@ class RegionalHinfFilter(Estimator):
         self.n, self.m = n, self.Bf.shape[1]
 
     @classmethod
-    def from_certificate(cls, cert: HinfCertificate, model: RossModel) -> RegionalHinfFilter:
+    def from_certificate(cls, cert: HinfCertificate, model: _ross.RossModel) -> RegionalHinfFilter:
         """Filter from a successful :func:`~tobitkf.design.hinf.design`; refuses a failed one."""
         if not isinstance(cert, HinfCertificate):
             raise ValidationError(f"cert: expected a HinfCertificate from design(), got {type(cert).__name__}")
@@ -171,7 +171,6 @@ _MOVED_TO_DESIGN = (
 )
 _MOVED_ELSEWHERE = {
     "RossModel": "tobitkf.models.ross",
-    "wang2010_model": "tobitkf.models.ross",
     "RossSimulation": "tobitkf.simulate.ross",
     "simulate_ross": "tobitkf.simulate.ross",
     "wang2010_disturbances": "tobitkf.simulate.ross",
@@ -191,14 +190,14 @@ def __getattr__(name: str):
             stacklevel=2,
         )
         return getattr(_design, name)
-    if name == "RossModel":
+    if name in ("RossModel", "wang2010_model"):  # the model layer: served from there, with a warning
         warnings.warn(
-            "tobitkf.filters.hinf.RossModel moved to tobitkf.models.ross.RossModel (also tk.RossModel); "
-            "the old name will be removed in the next release",
+            f"tobitkf.filters.hinf.{name} moved to tobitkf.models.ross.{name}"
+            f"{' (also tk.RossModel)' if name == 'RossModel' else ''}; the old name will be removed in the next release",
             DeprecationWarning,
             stacklevel=2,
         )
-        return RossModel
-    if name in _MOVED_ELSEWHERE:
+        return getattr(_ross, name)
+    if name in _MOVED_ELSEWHERE:  # the simulator's names: a filter may not import the simulator (one-way flow)
         raise AttributeError(f"tobitkf.filters.hinf.{name} moved to {_MOVED_ELSEWHERE[name]}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
