@@ -140,7 +140,7 @@ def case_protocol(batch, rng, backend="numpy", form="joseph"):
     N = int(np.prod(batch)) if batch else 1
     d = tk.simulate(sys_, T, N, channel=ch, seed=12)
     est = tk.ProtocolTobitKalmanFilter(sys_, ch, covariance_update=form, failure_term="second_moment")
-    return est, d.y.reshape(batch + (T, 1)), None
+    return est, with_gaps(d.y, rng).reshape(batch + (T, 1)), None
 
 
 def _delay(batch, rng, cls, **kw):
@@ -324,6 +324,23 @@ def test_missing_reading_only_predicts():
     np.testing.assert_array_equal(s1.mean[0], pred.mean[0])
     np.testing.assert_array_equal(s1.cov[0], pred.cov[0])
     assert not np.allclose(s1.mean[1], pred.mean[1])
+
+
+@pytest.mark.parametrize("name", ["protocol", "fading", "tkf", "dkf", "fkf", "multi-region"])
+def test_a_lost_reading_only_predicts_in_every_family(name):
+    """A NaN reading of one run: that run's state after the step is the prediction (mean and covariance),
+    the other runs are updated."""
+    est, y, u = CASES[name]((3,), np.random.default_rng(5))
+    s0 = est.init((3,))
+    yk = np.where(np.isnan(y[:, 0]), 0.0, y[:, 0])  # complete first readings (0: valid for every case), run 0 lost
+    yk[0] = np.nan
+    uk = None if u is None else u[:, 0]
+    s1 = est.step(s0, yk) if uk is None else est.step(s0, yk, u=uk)
+    pred = est.predict(s0) if uk is None else est.predict(s0, u=uk)
+    P1, Pp = np.broadcast_to(s1.cov, (3,) + s1.cov.shape[-2:]), np.broadcast_to(pred.cov, (3,) + pred.cov.shape[-2:])
+    np.testing.assert_allclose(s1.mean[0], pred.mean[0], rtol=0, atol=TOL)
+    np.testing.assert_allclose(P1[0], Pp[0], rtol=0, atol=TOL)
+    assert np.abs(P1[1:] - Pp[1:]).max() > 1e-6  # the others are updated
 
 
 def test_predict_then_update_equals_step():

@@ -573,6 +573,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             carry["X"] = X = Aa @ carry["X"] @ Aa.T + Bn @ self.system.process_cov(k - 1) @ Bn.T
         yk = y[:, 0]
         tau = self._tau
+        # a lost reading (NaN) counts as censored here (NaN > tau is False) and leaves the update through the
+        # shared update's mask (its innovation is NaN): the step only predicts
         gam = yk > tau if uncensored is None else uncensored[:, 0]
         mp = _prediction(
             xp, Pp, yk, gam, Cc, r, sd, H, H0, tau, lam_mean, lam_var, self.failure_term, X, self._compiled_core()
@@ -590,7 +592,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return info
 
     def _prepare_record(self, y, name="y"):
-        arr = as_float_array(y, name, allow_nan=False)
+        arr = as_float_array(y, name, allow_nan=True)  # NaN: a lost reading, which only predicts
         if arr.ndim == 1:  # one record (T,): the pre-0.2 layout
             warnings.warn(
                 f"{name}: a (T,) record is deprecated; pass (..., T, 1) like every estimator "
@@ -632,8 +634,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         arr = super()._reading(state, y, name)
         if (arr >= self._tau).all():  # the common case in one comparison: no NaN, none below tau
             return arr
-        if np.isnan(arr).any():
-            raise ValidationError(f"{name}: the protocol TKF takes no missing readings (NaN found)")
         if self.check_limits and (arr < self.channel.threshold).any():
             raise ValidationError(
                 f"{name}: readings below the threshold tau={self.channel.threshold} cannot come "
@@ -657,6 +657,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
         ``u`` (..., T, p), optional: the control inputs u(0..T-1) of a system with ``Bu`` (the prediction of
         step k adds B_u u(k-1) to the current state's block; not in the source, whose plant has no input).
+        A NaN reading (a packet lost on the link, not in the source's model) only predicts; such a record
+        runs the numpy loop.
         """
         y2, batch = self._prepare_record(y)
         N, T, _ = y2.shape
@@ -695,6 +697,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         step_options = step_options or {}
         if "uncensored_record" not in step_options:  # a loop not started by filter(): gamma unknown here
             gap = "a loop without the uncensored record"
+        elif np.isnan(y2).any():
+            gap = "missing readings (NaN)"
         elif step_options.get("keep_augmented"):
             gap = "keep_augmented=True"
         else:
