@@ -320,6 +320,36 @@ def test_square_root_form_of_the_augmented_families_on_the_hard_case():
             assert bad_mean or bad_psd
 
 
+def test_square_root_form_of_the_other_gaussian_families_on_the_hard_case():
+    """The dropping KF (no limits), the fading KF (L = 0, unit gain), the protocol baseline (one sensor)
+    and the assumed-density filter (no limits) reduce to the KF here: in square-root form each matches
+    the 60-digit reference to 1e-6 and stays PSD on the hard case (tolerances as above). (The delay
+    LMMSEs have the source's own covariance recursions: only the augmented one offers the square-root
+    form, tested against its standard form in tests/filters/test_delay.py.)"""
+    from tobitkf.channels.fading import RiceFading
+    from tobitkf.channels.protocol import ProtocolChannel
+
+    s, data = _hard_case()
+    s1 = tk.LinearSystem(A=s.A.array, C=s.C.array[:1], Q=s.Q.array, R=s.R.array[:1, :1], x0=s.x0, P0=s.P0)
+    y1 = data.y[..., :1]
+    cases = [
+        (s, data.y, tk.DroppingKalmanFilter(s, tk.Censoring(), covariance_update="square_root")),
+        (s, data.y, tk.FadingKalmanFilter(s, RiceFading(0, [1.0]), covariance_update="square_root")),
+        (s1, y1, tk.ProtocolTobitKalmanFilter.baseline(s1, ProtocolChannel(1), covariance_update="square_root")),
+        (s, data.y, tk.AssumedDensityTobitFilter(s, tk.Censoring(), covariance_update="square_root")),
+    ]
+    for sys_, y, est in cases:
+        for r in range(y.shape[0]):
+            mean, cov, pcov = _decimal_kf(sys_, y[r])
+            out = est.filter(y[r])
+            name = type(est).__name__
+            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6, name
+            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
+                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6, name
+                eig = np.linalg.eigvalsh(got)
+                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2))), name
+
+
 def test_square_root_tobit_filter_on_the_hard_case_with_limits():
     """The TKF in square-root form stays healthy on the hard case with active two-sided limits."""
     s, data = _hard_case()
