@@ -507,3 +507,20 @@ def test_estimators_without_covariance_step_like_their_filter(form):
     for k in range(20):
         s = hinf.step(s, y[:, k])
     np.testing.assert_allclose(s.mean, r.mean[:, -1], rtol=0, atol=TOL)
+
+
+def test_families_that_refuse_a_lost_reading_say_why():
+    from tobitkf.filters.fixed_gain import FixedGainTobitObserver
+    from tobitkf.models.delay import paper_example, paper_prior
+
+    y = np.array([[[0.1], [np.nan], [0.2]]])
+    cases = [
+        (tk.RegionalHinfFilter([[0.5]], [[1.0]], [[2.0]]), "no rule for a lost reading"),
+        (FixedGainTobitObserver([[0.9]], [[0.4]], [[1.0]], 0.5, -0.3), "no rule for a lost reading"),
+        (tk.ChainLMMSE(paper_example(), paper_prior()), "cannot be skipped"),
+    ]
+    for est, why in cases:
+        with pytest.raises(tk.ValidationError, match=f"found NaN .*{why}"):
+            est.filter(y)
+        with pytest.raises(tk.ValidationError, match=f"found NaN .*{why}"):
+            est.step(est.init((1,)), y[:, 1])

@@ -1047,6 +1047,7 @@ class Estimator:
     #: whether a reading may be NaN (missing); False for the estimators whose covariances do not depend
     #: on the data (the delay family) or that have no update to skip (the H-infinity filter)
     _allow_missing: bool = True
+    _missing_reason: str = ""  # why a family that refuses NaN readings does (appended to the error)
 
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -1109,8 +1110,17 @@ class Estimator:
     def _state_dim(self) -> int:
         return self.n
 
+    def _refused_nan(self, err: ValidationError) -> ValidationError:
+        """The NaN refusal ``err`` with the family's reason appended."""
+        if self._missing_reason and "NaN" in str(err):
+            return ValidationError(f"{err} ({self._missing_reason})")
+        return err
+
     def _reading(self, state: FilterState, y: Any, name: str = "y") -> np.ndarray:
-        arr = as_float_array(y, name, allow_nan=self._allow_missing)
+        try:
+            arr = as_float_array(y, name, allow_nan=self._allow_missing)
+        except ValidationError as err:
+            raise self._refused_nan(err) from None
         want = state.batch_shape + (self.m,)
         if arr.shape != want:
             try:
@@ -1220,7 +1230,10 @@ class Estimator:
         return rec.result(N, times, final)
 
     def _prepare_record(self, y: Any, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
-        return prepare_measurements(y, self.m, name, allow_nan=self._allow_missing)
+        try:
+            return prepare_measurements(y, self.m, name, allow_nan=self._allow_missing)
+        except ValidationError as err:
+            raise self._refused_nan(err) from None
 
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):  # pragma: no cover - abstract
         raise NotImplementedError

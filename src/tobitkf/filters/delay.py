@@ -297,6 +297,9 @@ class _DelayEstimator(Estimator):
 
     k0 = -1
     _allow_missing = False
+    _missing_reason = (
+        "the LMMSE's covariances are formed from the model alone, before any reading, so a reading cannot be skipped"
+    )
 
     def _setup(self, system: Any, prior: Any) -> None:
         check_instance(system, DelayFadingSystem, "system")

@@ -55,6 +55,7 @@ class FixedGainTobitObserver(Estimator):
 
     _name = "FixedGainTobitObserver"
     _allow_missing = False
+    _missing_reason = "the observer (5.2) has a given gain and no rule for a lost reading"
 
     def __init__(
         self,

@@ -74,6 +74,10 @@ class RegionalHinfFilter(Estimator):
 
     _name = "RegionalHinfFilter"
     _allow_missing = False
+    _missing_reason = (
+        "the filter (5) has given gains and no rule for a lost reading: pass the value its channel "
+        "delivers in that case"
+    )
 
     def __init__(self, Af: Any, Bf: Any, M: Any):
         self.Af = as_float_array(Af, "Af", ndim=2)
