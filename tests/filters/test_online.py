@@ -106,6 +106,16 @@ def case_sstkf(batch, rng, backend="numpy", form="standard"):
     return est, y, u
 
 
+def case_cltkf(batch, rng, backend="numpy", form="standard"):
+    """The controlled-limit TKF reads the sensor's latent readings and censors them at the limit it steers."""
+    from tobitkf.filters.steady_state import ControlledLimitTobitKalmanFilter
+
+    sys_ = oscillator()
+    N = int(np.prod(batch)) if batch else 1
+    d = tk.simulate(sys_, 10, N, seed=10)
+    return ControlledLimitTobitKalmanFilter(sys_, 0.7), d.y_latent.reshape(batch + (10, 1)), None
+
+
 def case_fading(batch, rng, backend="numpy", form="joseph"):
     from tobitkf.channels.fading import RiceFading
 
@@ -215,6 +225,7 @@ def case_hinf(batch, rng, backend="numpy", form="standard"):
 
 CASES = {
     "fkf": case_fkf,
+    "cltkf": case_cltkf,
     "pbtkf": case_pbtkf,
     "multi-region": case_multi_region,
     "hinf": case_hinf,
