@@ -107,9 +107,11 @@ class Censoring(Channel):
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
 
-    def all_limits(self, steps: int, m: int, *, start: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        """Limits broadcast to ``(T, m)`` for k = start..start+T-1 (default k = 1..T)."""
-        self.check(m, start - 1 + steps)
+    def all_limits(self, steps: int, m: int, *, start: int = 1, check: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Limits broadcast to ``(T, m)`` for k = start..start+T-1 (default k = 1..T); ``check=False`` skips
+        :meth:`check` for a caller that made it already (an estimator validates once at its boundary)."""
+        if check:
+            self.check(m, start - 1 + steps)
         lo = self.lower[start - 1 : start - 1 + steps] if self.time_varying else self.lower
         hi = self.upper[start - 1 : start - 1 + steps] if self.time_varying else self.upper
         return (np.broadcast_to(lo, (steps, m)).copy(), np.broadcast_to(hi, (steps, m)).copy())

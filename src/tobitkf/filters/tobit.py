@@ -306,9 +306,10 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
     def _check_record(self, y2, u2, k0, name="y"):
         super()._check_record(y2, u2, k0, name)
-        self.censoring.check(self.m, k0 + y2.shape[1])
-        if self.check_limits:
+        if self.check_limits:  # checks the limits against m and the horizon, then the readings
             self.censoring.check_measurements(y2, name, start=k0 + 1)
+        else:
+            self.censoring.check(self.m, k0 + y2.shape[1])
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         out = {}
@@ -338,7 +339,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
     def _fast_filter(self, y2, u2, state, want, batch):
         if not self._kernel_ok(u2):
             return None
-        lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1)
+        lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1, check=False)  # checked at _run
         return _finite_or_none(_tkf_kernel_run(self, y2, lo, hi, state, want, batch))
 
     def _fast_step(self, state, y, u, options):
