@@ -49,8 +49,9 @@ Proposals (``proposal``):
 * ``"prior"`` (the bootstrap filter): :math:`\xi_k \sim p(\xi_k \mid \xi_{k-1})`, incremental weight
   :math:`p(y_k \mid \xi_k)`.
 * ``"optimal"`` (the locally optimal proposal :math:`p(x_k \mid x_{k-1}, y_k)`, Doucet, Godsill &
-  Andrieu 2000, §II.D), where it has a closed form: linear readings with censoring, and the
-  protocol channel with a discrete failure law. The latent reading is sampled with the state: the
+  Andrieu 2000, §II.D), where it has a closed form: linear readings with censoring, the
+  protocol channel with a discrete failure law, and random saturation (a five-piece mixture per
+  sensor, ``_Saturation.propose``; with censoring, one piece's mass by a one-draw estimate). The latent reading is sampled with the state: the
   channels are processed in sequence (diagonal R), each conditioning the Gaussian
   :math:`p(x_k \mid x_{k-1}, y^*_{k,1..l-1})` on :math:`y^*_{k,l}`; an uncensored channel on its value
   (weight :math:`N(y; \mu, s^2)`), a censored one on a draw of the latent reading from its truncated
@@ -315,6 +316,44 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
     cls = _classify(y, lo, hi)
     U = rng.random((N, Np, m))
     eps = rng.standard_normal((N, Np, n))
+
+    def reading(l, kind, rows, p, sd):
+        if kind == _INTERIOR:
+            yv = y[rows, l][:, None]
+            z = (yv - p) / sd
+            return np.broadcast_to(yv, p.shape), -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
+        if kind == _LOWER:
+            lm = log_ndtr((lo[l] - p) / sd)
+            return _truncated_draw(p, sd, lm, U[rows, :, l], -1), lm
+        lm = log_ndtr((p - hi[l]) / sd)
+        return _truncated_draw(p, sd, lm, U[rows, :, l], +1), lm
+
+    return _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps)
+
+
+def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
+    r"""The channel-by-channel Gaussian conditioning shared by the closed-form proposals.
+
+    :math:`x_k \sim N(\mu, \Sigma)`, :math:`\Sigma = Q_d` at the start; for each channel l with a reading
+    (``cls[:, l]`` not missing) the latent value :math:`y^*_l = H_lx_k + o_l + v_l`,
+    :math:`v_l \sim N(0, r_l)`, has the law :math:`N(p, s^2)`, :math:`p = H_l\mu + o_l`,
+    :math:`s^2 = H_l\Sigma H_l^T + r_l`; ``reading(l, kind, rows, p, sd)`` returns a draw of
+    :math:`y^*_l` given the reading (for the runs ``rows`` of class ``kind``) and its log weight, and
+    the Gaussian is conditioned on it: :math:`\mu \leftarrow \mu + g(y^*_l - p)`,
+    :math:`\Sigma \leftarrow \Sigma - s^2gg^T`, :math:`g = \Sigma H_l^T/s^2` (:math:`g = 0` where
+    :math:`s^2 = 0`: the value is then :math:`p` itself). Finally :math:`x_k = \mu + \Sigma^{1/2}\varepsilon`.
+
+    Parameters
+    ----------
+    mu : (N, Np, n) ; Qd : (n, n) ; H : (m, n) ; offset : (N, Np, m), (N, m) or 0 ; r : (N or 1, m) (>= 0)
+    cls : (N, m) reading classes ; reading : callable ; eps : (N, Np, n) standard normal draws
+
+    Returns
+    -------
+    X : (N, Np, n) ; logw : (N, Np) the sum of the channels' log weights
+    """
+    N, Np, n = mu.shape
+    m = H.shape[0]
     logw = np.zeros((N, Np))
     per_run = bool((cls == _MISSING).any()) or r.shape[0] != 1
     Sig = np.broadcast_to(Qd, (N if per_run else 1, n, n)).copy()
@@ -326,7 +365,7 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
             continue
         Sc = Sig @ c  # (Ns, n)
         s2 = Sc @ c + r[:, l]  # (Ns,)
-        g = Sc / s2[:, None]
+        g = Sc / np.where(s2 > 0, s2, 1.0)[:, None]
         pred = _mat(mu, c[:, None])[..., 0]
         if not (np.isscalar(off) and off == 0.0):
             pred = pred + off[..., l]
@@ -336,20 +375,9 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
             rows = np.flatnonzero(cls[:, l] == kind)
             if rows.size == 0:
                 continue
-            p, sd = pred[rows], sr[rows][:, None]
-            if kind == _INTERIOR:
-                yv = y[rows, l][:, None]
-                z = (yv - p) / sd
-                logw[rows] += -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
-                val[rows] = yv
-            elif kind == _LOWER:
-                lm = log_ndtr((lo[l] - p) / sd)
-                logw[rows] += lm
-                val[rows] = _truncated_draw(p, sd, lm, U[rows, :, l], -1)
-            else:
-                lm = log_ndtr((p - hi[l]) / sd)
-                logw[rows] += lm
-                val[rows] = _truncated_draw(p, sd, lm, U[rows, :, l], +1)
+            v, lw = reading(l, kind, rows, pred[rows], sr[rows][:, None])
+            val[rows] = v
+            logw[rows] += lw
         innov = np.where(valid[:, None], val - pred, 0.0)
         gr = np.broadcast_to(g, (N, n)) if g.shape[0] == 1 else g
         mu = mu + innov[..., None] * gr[:, None, :]
@@ -561,6 +589,8 @@ class _Protocol(_Model):
 class _Saturation(_Model):
     """Randomly occurring saturation with missing readings: a three-mode mixture per sensor."""
 
+    optimal = True
+
     def __init__(self, system, channel: RandomSaturation, censoring):
         super().__init__(system)
         channel.check(system)
@@ -580,6 +610,158 @@ class _Saturation(_Model):
             (self.logp[1], cx, sd),
             (self.logp[2], np.zeros_like(cx), sd),
         ]
+
+    def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
+        r"""Locally optimal proposal :math:`p(x_k \mid x_{k-1}, y_k)` for the three-mode channel.
+
+        Given :math:`x_{k-1}`, :math:`x_k \sim N(\mu, Q_d)`, :math:`\mu = A_{k-1}x_{k-1} + B^u_ku_k`, and
+        sensor i reads through :math:`c_i = C_ix_k` only. The sensors are taken in sequence (diagonal R):
+        with :math:`c_i \mid x_{k-1}, c_{<i} \sim N(m, s^2)` (the running Gaussian of
+        :func:`_condition_in_sequence`, here with no latent noise), :math:`c_i` is drawn from its posterior
+        given :math:`y_i`, a finite mixture whose pieces have closed-form masses :math:`M_j` and draws
+        (:math:`S = s^2 + r`, :math:`m' = m + \tfrac{s^2}{S}(y - m)`, :math:`v' = s^2r/S`, u the level,
+        :math:`\pi_{sat} = \mu_i`, :math:`\pi_{lin} = (1-\mu_i)\nu_i`, :math:`\pi_0 = (1-\mu_i)(1-\nu_i)`;
+        an uncensored reading y):
+
+        .. math::
+
+            \begin{array}{lll}
+            \text{noise only} & M = \pi_0N(y; 0, r) & c \sim N(m, s^2) \\
+            \text{linear} & M = \pi_{lin}N(y; m, S) & c \sim N(m', v') \\
+            \text{saturated}, c \le -u & M = \pi_{sat}\Phi(\tfrac{-u-m}{s})N(y; -u, r) & c \sim TN(m, s^2; (-\infty, -u]) \\
+            \text{saturated}, |c| < u & M = \pi_{sat}N(y; m, S)\,P_{(-u,u)}(m', v') & c \sim TN(m', v'; (-u, u)) \\
+            \text{saturated}, c \ge u & M = \pi_{sat}\Phi(\tfrac{m-u}{s})N(y; u, r) & c \sim TN(m, s^2; [u, \infty))
+            \end{array}
+
+        (the pieces of :mod:`~tobitkf.filters.adf_saturation`). A piece is chosen with probability
+        :math:`M_j/\sum M`, c drawn from it, then :math:`x_k \mid c` (Gaussian); the incremental weight is
+        :math:`\sum_jM_j = p(y_i \mid x_{k-1}, c_{<i})`. A reading censored below at l (:math:`y^* \le l`)
+        changes the masses to :math:`\pi_0\Phi(l/\sqrt r)`, :math:`\pi_{lin}\Phi((l-m)/\sqrt S)` (c drawn
+        through a truncated-normal draw of :math:`y^*`, as :func:`_gaussian_proposal`),
+        :math:`\pi_{sat}\Phi(\tfrac{-u-m}{s})\Phi(\tfrac{l+u}{\sqrt r})`,
+        :math:`\pi_{sat}\Phi(\tfrac{m-u}{s})\Phi(\tfrac{l-u}{\sqrt r})`; the middle saturated piece (a
+        bivariate normal mass) is replaced by its unbiased one-draw estimate
+        :math:`\pi_{sat}P_{(-u,u)}(m, s^2)\Phi((l-c)/\sqrt r)`, :math:`c \sim TN(m, s^2; (-u, u))` (a random
+        weight: still properly weighted); above, mirrored. A missing (NaN) reading leaves
+        :math:`c_i` free, weight 1. For one sensor and an uncensored reading this is exactly
+        :math:`p(x_k \mid x_{k-1}, y_k)` with weight :math:`p(y_k \mid x_{k-1})`; for several, the GHK
+        sequence (the weight is unbiased for :math:`p(y_k \mid x_{k-1})`).
+
+        Returns (X_new (N, Np, n), log incremental weight (N, Np)).
+        """
+        sys_ = self.system
+        mu = _mat(X, sys_.transition(k - 1).T)
+        if not (np.isscalar(b) and b == 0.0):
+            mu = mu + b[:, None, :]
+        N, Np, n = mu.shape
+        m = self.m
+        lo, hi = self.limits(k)
+        cls = _classify(y, lo, hi)
+        rv = _diag_sigma(sys_, k, "saturated readings") ** 2
+        U = rng.random((N, Np, m, 3))
+        Z = rng.standard_normal((N, Np, m))
+        eps = rng.standard_normal((N, Np, n))
+        level = self.channel.level
+        lps, lpl, lp0 = (self.logp[0], self.logp[1], self.logp[2])
+
+        def reading(l, kind, rows, p, sd):
+            return _saturation_pieces(
+                kind,
+                y[rows, l][:, None],
+                p,
+                sd,
+                rv[l],
+                level[l],
+                lo[l],
+                hi[l],
+                (lps[l], lpl[l], lp0[l]),
+                U[rows, :, l],
+                Z[rows, :, l],
+            )
+
+        return _condition_in_sequence(
+            mu, sys_.process_cov(k - 1), sys_.measurement(k), 0.0, np.zeros((1, m)), cls, reading, eps
+        )
+
+
+def _lognorm(y, mean, var):
+    return -0.5 * (y - mean) ** 2 / var - 0.5 * np.log(var) - _LOG_SQRT_2PI
+
+
+def _log_interval(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    r""":math:`\log(\Phi(b) - \Phi(a))` for :math:`a \le b`, stable in both tails (mirrored to :math:`a \le 0`)."""
+    flip = a > 0
+    a2, b2 = np.where(flip, -b, a), np.where(flip, -a, b)
+    la, lb = log_ndtr(a2), log_ndtr(b2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return lb + np.log1p(-np.exp(la - lb))
+
+
+def _interval_z(a: np.ndarray, b: np.ndarray, log_mass: np.ndarray, u: np.ndarray) -> np.ndarray:
+    r"""A standard normal draw truncated to :math:`[a, b]` by inversion in log space,
+    :math:`z = \Phi^{-1}(\Phi(a) + u(\Phi(b) - \Phi(a)))` (mirrored to :math:`a \le 0`; ``log_mass`` from
+    :func:`_log_interval`)."""
+    flip = a > 0
+    a2, b2 = np.where(flip, -b, a), np.where(flip, -a, b)
+    with np.errstate(divide="ignore"):
+        z = ndtri_exp(np.logaddexp(log_ndtr(a2), np.log(u) + log_mass))
+    z = np.clip(z, a2, b2)
+    return np.where(flip, -z, z)
+
+
+def _saturation_pieces(kind, y, m, s, r, u, lo, hi, logpi, U, Z):
+    """The five pieces of one saturated sensor's posterior of c (see ``_Saturation.propose``): a draw of c
+    and the log of the total mass, for the prior c ~ N(m, s^2) (m (R, Np), s (R, 1)) and readings y (R, 1)."""
+    lps, lpl, lp0 = logpi
+    s = np.maximum(s, 1e-150)  # s = 0: c is m itself (the limits of the pieces below)
+    S = s * s + r
+    sS, sr = np.sqrt(S), np.sqrt(r)
+    gk = s * s / S
+    sv = np.sqrt(s * s * r / S)
+    la, lb = log_ndtr((-u - m) / s), log_ndtr((m - u) / s)  # Prob(c <= -u), Prob(c >= u)
+    c_low = _truncated_draw(m, s, la, U[..., 1], -1)
+    c_high = _truncated_draw(m, s, lb, U[..., 1], +1)
+    full = np.broadcast_to
+    if kind == _INTERIOR:
+        mp = m + gk * (y - m)
+        am, bm = (-u - mp) / sv, (u - mp) / sv
+        lmid = _log_interval(am, bm)
+        lin = _lognorm(y, m, S)
+        logs = [
+            full(lp0 + _lognorm(y, 0.0, r), m.shape),
+            lpl + lin,
+            lps + la + _lognorm(y, -u, r),
+            lps + lin + lmid,
+            lps + lb + _lognorm(y, u, r),
+        ]
+        draws = [m + s * Z, mp + sv * Z, c_low, mp + sv * _interval_z(am, bm, lmid, U[..., 1]), c_high]
+    else:
+        side = -1 if kind == _LOWER else +1
+        t = lo if side < 0 else hi
+
+        def tail(v):  # log Prob(v + noise beyond the limit t)
+            return log_ndtr((t - v) / sr) if side < 0 else log_ndtr((v - t) / sr)
+
+        ll = log_ndtr((t - m) / sS) if side < 0 else log_ndtr((m - t) / sS)
+        ystar = _truncated_draw(m, sS, ll, U[..., 1], side)
+        am, bm = (-u - m) / s, (u - m) / s
+        lmid = _log_interval(am, bm)
+        c_mid = m + s * _interval_z(am, bm, lmid, U[..., 2])
+        logs = [
+            full(lp0 + tail(0.0), m.shape),
+            lpl + ll,
+            lps + la + tail(-u),
+            lps + lmid + tail(c_mid),
+            lps + lb + tail(u),
+        ]
+        draws = [m + s * Z, m + gk * (ystar - m) + sv * Z, c_low, c_mid, c_high]
+    L = np.stack(logs)  # (5, R, Np)
+    tot = logsumexp(L, axis=0)
+    with np.errstate(invalid="ignore"):
+        P = np.where(np.isfinite(tot), np.exp(L - tot), 0.0)
+    j = np.minimum((U[None, ..., 0] >= np.cumsum(P, axis=0)).sum(0), 4)
+    c = np.take_along_axis(np.stack(draws), j[None], axis=0)[0]
+    return np.where(np.isfinite(c), c, m), tot  # a non-finite draw only where no piece explains y
 
 
 def _flatten(channel: Any) -> list:
@@ -670,7 +852,7 @@ class ParticleFilter(Estimator):
         (0: never, 1: every step).
     proposal : {"auto", "optimal", "prior"}, default "auto"
         See the module docstring; ``"optimal"`` is refused for channels without a closed form
-        (fading, saturation, protocol with a continuous failure law).
+        (fading, protocol with a continuous failure law).
     seed : int, SeedSequence, Generator or None, default None
         Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
         gives the same numbers; None draws fresh entropy once, when the filter is built.
