@@ -303,19 +303,16 @@ def _mean_scratch(dim, m, B):
 
 
 @njit(cache=True, inline="always")
-def _update_scratch(dim, ntop, m, B, G, dense):
+def _update_scratch(dim, ntop, m, B, G):
     """The scratch of the covariance recursion and the masked gain of a block of ``B`` runs.
 
     ``dim`` the state size, ``ntop`` the size of the block the transition acts on (``dim`` for the TKF
-    and the KF, ``n`` for the shifted fading state), ``m`` channels, ``G`` quadrature nodes; ``dense``
-    selects the Joseph scratch of :func:`_cov_update` (``H``, ``IKH``, ``T1``) instead of the rank-m one
-    of :func:`~tobitkf.filters._kernels_fading.update_cov_block` (``MH``); the other is empty. Returns
-    ``(P, Pp, AP, CP, Rxe, Ree, K, H, MH, noise, IKH, T1, gam, ok)`` (``AP`` (dim, ntop, B), ``noise``
+    and the KF, ``n`` for the shifted fading state), ``m`` channels, ``G`` quadrature nodes. Returns
+    ``(P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok)`` (``AP`` (dim, ntop, B), ``MH`` the scratch of
+    :func:`_cov_update`, ``noise``
     (m, m, B) zeroed), the per-run solve scratch ``(Rs, Ws, Ks, oks, Rxs, ds)`` of :func:`_gain_of_run`,
     the block solve scratch ``(Rw, Wb, db, bad)`` of :func:`_gain_block` (empty for m = 1) and the
     (2, G) quadrature buffer of :func:`censored_stats`."""
-    dd = dim if dense else 0
-    dr = 0 if dense else dim
     g = m if m > 1 else 0
     gb = B if m > 1 else 0
     blk = (
@@ -326,11 +323,8 @@ def _update_scratch(dim, ntop, m, B, G, dense):
         np.empty((dim, m, B)),  # Rxe
         np.empty((m, m, B)),  # Ree
         np.empty((dim, m, B)),  # K
-        np.empty((m, dd, B)),  # H
-        np.empty((dr, m, B)),  # MH
+        np.empty((dim, m, B)),  # MH
         np.zeros((m, m, B)),  # noise
-        np.empty((dd, dd, B)),  # IKH
-        np.empty((dd, dd, B)),  # T1
         np.empty((m, B)),  # gam
         np.empty((m, B), dtype=np.bool_),  # ok
     )
@@ -595,9 +589,17 @@ def _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
-    r""":math:`P = \mathrm{sym}(\bar P - K R_{xe}^T)`, or the Joseph form
-    :math:`(I-KH)\bar P(I-KH)^T + K\,\mathrm{noise}\,K^T` (``noise`` (m, m, BLOCK))."""
+def _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
+    r"""The covariance update of a block of runs, the one compiled form of every kernel (TKF, KF, fading,
+    protocol, the shared step), as the numpy update of :mod:`tobitkf.filters.core`, with the effective
+    measurement matrix :math:`H = \mathrm{diag}(\gamma)C` (``C`` (m, n) shared, ``gam`` (m, B) per run):
+
+    standard form :math:`P = \bar P - KR_{xe}^T` (upper triangle, mirrored); Joseph form
+    :math:`(I-KH)\bar P(I-KH)^T + KNK^T`, applied in rank-m products as
+    :math:`P = \mathrm{sym}(M - (MH^T - KN)K^T)`, :math:`M = \bar P - KR_{xe}^T` (the two are equal for
+    any gain K with :math:`R_{xe} = \bar PH^T`; O(n^2 m) instead of O(n^3)). ``noise`` (m, m, B) the
+    noise term N; ``MH`` (n, m, B) scratch. A masked channel has a zero gain column, so its row of H
+    does not matter."""
     n, m = K.shape[0], K.shape[1]
     if not joseph:
         for i in range(n):
@@ -609,36 +611,35 @@ def _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb):
                         P[i, j, b] += K[i, k, b] * Rxe[j, k, b]
                 for b in range(nb):
                     P[i, j, b] = Pp[i, j, b] - P[i, j, b]
-    else:
-        for i in range(n):
-            for j in range(n):
-                d = 1.0 if i == j else 0.0
+        _mirror(P, nb)
+        return
+    for i in range(n):
+        for j in range(n):
+            for b in range(nb):
+                P[i, j, b] = Pp[i, j, b]
+            for l in range(m):
                 for b in range(nb):
-                    IKH[i, j, b] = 0.0
-                for k in range(m):
+                    P[i, j, b] -= K[i, l, b] * Rxe[j, l, b]
+    for i in range(n):
+        for l in range(m):
+            for b in range(nb):
+                MH[i, l, b] = 0.0
+            for k in range(n):
+                c = C[l, k]
+                if c != 0.0:
                     for b in range(nb):
-                        IKH[i, j, b] += K[i, k, b] * H[k, j, b]
+                        MH[i, l, b] += P[i, k, b] * c
+            for b in range(nb):
+                MH[i, l, b] = MH[i, l, b] * gam[l, b]
+            for q in range(m):
                 for b in range(nb):
-                    IKH[i, j, b] = d - IKH[i, j, b]
-        for i in range(n):
-            for j in range(n):
+                    MH[i, l, b] -= K[i, q, b] * noise[q, l, b]
+    for i in range(n):
+        for j in range(n):
+            for l in range(m):
                 for b in range(nb):
-                    T1[i, j, b] = 0.0
-                for k in range(n):
-                    for b in range(nb):
-                        T1[i, j, b] += IKH[i, k, b] * Pp[k, j, b]
-        for i in range(n):
-            for j in range(i, n):
-                for b in range(nb):
-                    P[i, j, b] = 0.0
-                for k in range(n):
-                    for b in range(nb):
-                        P[i, j, b] += T1[i, k, b] * IKH[j, k, b]
-                for k in range(m):
-                    for q in range(m):
-                        for b in range(nb):
-                            P[i, j, b] += K[i, q, b] * noise[q, k, b] * K[j, k, b]
-    _mirror(P, nb)
+                    P[i, j, b] -= MH[i, l, b] * K[j, l, b]
+    _symmetrize(P, nb)
 
 
 @njit(cache=True, error_model="numpy")
@@ -729,8 +730,8 @@ def tkf_kernel(
     n = A.shape[0]
     B, S = _block_dims(N, T)
     x, xp, e, _yb = _mean_scratch(n, m, B)
-    blk, run, solve, buf = _update_scratch(n, n, m, B, glx.shape[0], True)
-    P, Pp, AP, CP, Rxe, Ree, K, H, _mh, noise, IKH, T1, gam, ok = blk
+    blk, run, solve, buf = _update_scratch(n, n, m, B, glx.shape[0])
+    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
     Rw, Wb, db, bad = solve
     # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
@@ -768,16 +769,11 @@ def tkf_kernel(
                         s_ey[b, tt, l] = st[6]
             # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
             _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
-            if joseph:
-                for l in range(m):
-                    for b in range(nb):
-                        for j in range(n):
-                            H[l, j, b] = C[l, j] * gam[l, b] if ok[l, b] else 0.0
             if m > 1:
                 _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
             else:
                 _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
-            _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
+            _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # H = diag(E(p)) C (3.41)
             _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt
@@ -808,8 +804,9 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
     shared = covs.shape[0] == 1 and N > 1
     B, S = _block_dims(N, T)
     x, xp, e, _yb = _mean_scratch(n, m, B)
-    blk, run, solve, _buf = _update_scratch(n, n, m, B, 0, True)
-    P, Pp, AP, CP, Rxe, Ree, K, H, _mh, noise, IKH, T1, _gam, ok = blk
+    blk, run, solve, _buf = _update_scratch(n, n, m, B, 0)
+    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    gam[:, :] = 1.0  # H = C
     Rs, Ws, Ks, oks, Rxs, ds = run
     Rw, Wb, db, bad = solve
     for l in range(m):
@@ -860,8 +857,6 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
                     ok[l, b] = good
                     if not good:
                         e[l, b] = 0.0
-                    for j in range(n):
-                        H[l, j, b] = C[l, j] if good else 0.0
             if m > 1:
                 _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
             else:
@@ -870,7 +865,7 @@ def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, 
                 for i in range(n):
                     for l in range(m):
                         Kall[t, i, l] = K[i, l, 0]
-            _cov_update(Pp, K, Rxe, H, noise, joseph, P, IKH, T1, nb)
+            _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
             _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt

@@ -86,10 +86,10 @@ def measurement_update_runs(
     N, nx = x.shape
     m = H0.shape[0]
     B = min(BLOCK, N)
-    # the block scratch from the kernels' shared allocators (the dense Joseph scratch of _cov_update)
+    # the block scratch from the kernels' shared allocators
     xn, xp, e, _ = _mean_scratch(nx, m, B)
-    blk, run, solve, _ = _update_scratch(nx, nx, m, B, 0, True)
-    Pn, Pp, _, CP, Rxe, Ree, K, H, _, nz, IKH, T1, gam, ok = blk
+    blk, run, solve, _ = _update_scratch(nx, nx, m, B, 0)
+    Pn, Pp, _, CP, Rxe, Ree, K, MH, nz, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
     Rw, W, d, bad = solve
     one_s = scale.shape[0] == 1
@@ -107,8 +107,6 @@ def measurement_update_runs(
                 s = scale[rs, l]
                 gam[l, b] = s
                 e[l, b] = e_in[r, l] if (not masked or valid[r, l]) else np.nan
-                for j in range(nx):
-                    H[l, j, b] = s * H0[l, j]
                 for q in range(m):
                     if noise_diag:
                         nz[l, q, b] = noise[rn, l, 0] if l == q else 0.0
@@ -125,7 +123,7 @@ def measurement_update_runs(
             _gain(Rxe, Ree, ok, K, e, xp, xn, nb, Rs, Ws, Ks, oks, Rxs, ds)
         else:
             _gain_block(Rxe, Ree, ok, K, e, xp, xn, nb, Rw, W, d, bad, Rs, Ws, Ks, oks, Rxs, ds)
-        _cov_update(Pp, K, Rxe, H, nz, joseph, Pn, IKH, T1, nb)
+        _cov_update(Pp, K, Rxe, H0, gam, nz, joseph, Pn, MH, nb)  # H = diag(s) H0
         if nr > 0:  # P + K V K^T
             for b in range(nb):
                 rr = 0 if nr == 1 else r0 + b

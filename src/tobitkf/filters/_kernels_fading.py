@@ -37,6 +37,7 @@ from numba import njit
 
 from ._kernels import (
     _block_dims,
+    _cov_update,
     _flush,
     _gain,
     _gain_block,
@@ -45,12 +46,11 @@ from ._kernels import (
     _mean_scratch,
     _stage_shape,
     _store_last,
-    _symmetrize,
     _update_scratch,
     censored_stats,
 )
 
-__all__ = ["fading_tkf_kernel", "shift_predict_block", "update_cov_block"]
+__all__ = ["fading_tkf_kernel", "shift_predict_block"]
 
 
 @njit(cache=True, error_model="numpy")
@@ -107,41 +107,6 @@ def shift_predict_block(A, Qd, x, P, xp, Pp, X, nb):
                 Pp[i, j, b] = P[i - n, j - n, b]
 
 
-@njit(cache=True, error_model="numpy")
-def update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
-    r"""Covariance update of a block of runs, as the shared numpy update of :mod:`tobitkf.filters.core`:
-    :math:`M = \bar P - KR_{xe}^T`; standard form :math:`P = \mathrm{sym}(M)`; Joseph form
-    :math:`(I-KG)\bar P(I-KG)^T + KNK^T` applied as :math:`P = \mathrm{sym}(M - (MG^T - KN)K^T)`,
-    :math:`G = \mathrm{diag}(\gamma)C` (rank-m products, O(n_\xi^2 m)). ``C`` (m, nxi), ``gam`` (m, B),
-    ``noise`` (m, m, B) (its diagonal is N), ``MH`` (nxi, m, B) scratch."""
-    nxi, m = K.shape[0], K.shape[1]
-    for i in range(nxi):
-        for j in range(nxi):
-            for b in range(nb):
-                P[i, j, b] = Pp[i, j, b]
-            for l in range(m):
-                for b in range(nb):
-                    P[i, j, b] -= K[i, l, b] * Rxe[j, l, b]
-    if joseph:
-        for i in range(nxi):
-            for l in range(m):
-                for b in range(nb):
-                    MH[i, l, b] = 0.0
-                for k in range(nxi):
-                    c = C[l, k]
-                    if c != 0.0:
-                        for b in range(nb):
-                            MH[i, l, b] += P[i, k, b] * c
-                for b in range(nb):
-                    MH[i, l, b] = MH[i, l, b] * gam[l, b] - K[i, l, b] * noise[l, l, b]
-        for i in range(nxi):
-            for j in range(nxi):
-                for l in range(m):
-                    for b in range(nb):
-                        P[i, j, b] -= MH[i, l, b] * K[j, l, b]
-    _symmetrize(P, nb)
-
-
 @njit(cache=True, error_model="numpy", nogil=True)
 def fading_tkf_kernel(
     y,
@@ -187,8 +152,8 @@ def fading_tkf_kernel(
     L = Hs.shape[0] - 1
     B, S = _block_dims(N, T)
     x, xp, e, _yb = _mean_scratch(nxi, m, B)
-    blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0], False)
-    P, Pp, X, CP, Rxe, Ree, K, _h, MH, noise, _ikh, _t1, gam, ok = blk
+    blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0])
+    P, Pp, X, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
     Rw, Wb, db, bad = solve
     want_m, want_c, want_pm, want_pc = means.shape[1] > 0, covs.shape[1] > 0, pmeans.shape[1] > 0, pcovs.shape[1] > 0
@@ -240,7 +205,7 @@ def fading_tkf_kernel(
                 _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
             else:
                 _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
-            update_cov_block(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
+            _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
             if want_m:
                 for b in range(nb):
                     for i in range(n):

@@ -19,7 +19,7 @@ second algorithm. Per step k, with the scheduled sensor :math:`h = \bar h_k`,
 
 and the standard form :math:`P = \mathrm{sym}(M)` or the Joseph form (App. D (44)) in the rank-one
 arithmetic of the shared numpy update, :math:`P = \mathrm{sym}(M - (M\mathbf H^T - KN)K^T)`
-(:func:`~tobitkf.filters._kernels_fading.update_cov_block`). A reading that is censored
+(:func:`~tobitkf.filters._kernels._cov_update`). A reading that is censored
 (:math:`\gamma_k = 0`) or whose :math:`R_{ee}` is not above the smallest normal number leaves the
 prediction unchanged (K = 0), as the numpy path.
 
@@ -45,8 +45,18 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels import _TINY, _block_dims, _flush, _load, _mean_scratch, _stage_shape, _store_last, censored_stats
-from ._kernels_fading import shift_predict_block, update_cov_block
+from ._kernels import (
+    _TINY,
+    _block_dims,
+    _cov_update,
+    _flush,
+    _load,
+    _mean_scratch,
+    _stage_shape,
+    _store_last,
+    censored_stats,
+)
+from ._kernels_fading import shift_predict_block
 
 __all__ = ["protocol_kernel", "N_EXTRAS", "EXTRA_NAMES"]
 
@@ -222,7 +232,7 @@ def protocol_kernel(
             for i in range(nxi):
                 for b in range(nb):
                     x[i, b] = xp[i, b] + K[i, 0, b] * ee[b]
-            update_cov_block(Pp, K, Rxe, Hrow, gone, noise, joseph, P, MH, nb)
+            _cov_update(Pp, K, Rxe, Hrow, gone, noise, joseph, P, MH, nb)
             _stage_vec(x, s_mean, tt, nb, 0, n)
             _stage_cov(P, s_cov, tt, nb, n)
             _stage_vec(x, s_am, tt, nb, 0, nxi)
