@@ -103,7 +103,7 @@ from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
-from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none
+from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, kernel_array, kernel_result
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -816,22 +816,12 @@ def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, wan
     )
 
     def out(a):
-        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+        return kernel_array(a, batch)
 
-    cov = out(covs)
     extras: dict[str, Any] = {}
     if ext:
         extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam)}
         if keep_smoothed:
             extras.update(smoothed_mean=out(sm_mean), smoothed_cov=out(sm_cov))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    return FilterResult(
-        mean=out(means),
-        cov=cov if "cov" in want else None,
-        pred_mean=out(pmeans),
-        pred_cov=out(pcovs),
-        extras=extras,
-        times=np.arange(state.k + 1, state.k + T + 1),
-        var=None if "var" not in want or cov is None else np.diagonal(cov, axis1=-2, axis2=-1),
-        final=final,
-    )
+    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)

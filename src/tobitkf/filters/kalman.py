@@ -216,6 +216,37 @@ def _finite_or_none(res: FilterResult) -> FilterResult | None:
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
 
 
+def kernel_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
+    """A kernel's output ``(N or 1, T, ...)`` as ``batch + (T, ...)``: None when it was not requested
+    (``T`` axis of length 0), a read-only broadcast view when the kernel wrote one row for all runs (a
+    covariance shared by the runs)."""
+    if a.shape[1] == 0:
+        return None
+    runs = int(np.prod(batch, dtype=int))
+    if a.shape[0] == 1 and runs != 1:
+        return np.broadcast_to(a[0], batch + a.shape[1:])
+    return a.reshape(batch + a.shape[1:])
+
+
+def kernel_result(
+    want, batch, T: int, means, covs, pmeans, pcovs, extras: dict[str, Any], final: FilterState
+) -> FilterResult:
+    """The :class:`FilterResult` of a compiled loop over T readings ending at ``final`` (the kernels of
+    every family): its outputs by :func:`kernel_array`, ``cov`` only when requested (the covariances are
+    computed for ``"var"`` too, whose diagonals are returned), ``times`` the readings' time indices."""
+    cov = kernel_array(covs, batch)
+    return FilterResult(
+        mean=kernel_array(means, batch),
+        cov=cov if "cov" in want else None,
+        pred_mean=kernel_array(pmeans, batch),
+        pred_cov=kernel_array(pcovs, batch),
+        extras=extras,
+        times=np.arange(final.k - T + 1, final.k + 1),
+        var=None if "var" not in want or cov is None else np.diagonal(cov, axis1=-2, axis2=-1),
+        final=final,
+    )
+
+
 def _kernel_matrices(est) -> tuple[np.ndarray, ...]:
     """A, B Q B^T, C, R of a time-invariant system as contiguous float64 (computed once per estimator)."""
     mats = est.__dict__.get("_kernel_mats")
@@ -318,28 +349,7 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
         P_last,
     )
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-
-    def out(a):
-        if a.shape[1] == 0:
-            return None
-        if a.shape[0] == 1 and N != 1:
-            return np.broadcast_to(a[0], batch + a.shape[1:])
-        return a.reshape(batch + a.shape[1:])
-
-    cov = out(covs)
-    var = None
-    if "var" in want and cov is not None:
-        var = np.diagonal(cov, axis1=-2, axis2=-1)
-    return FilterResult(
-        mean=out(means),
-        cov=cov if "cov" in want else None,
-        pred_mean=out(pmeans),
-        pred_cov=out(pcovs),
-        extras={},
-        times=np.arange(state.k + 1, state.k + T + 1),
-        var=var,
-        final=final,
-    )
+    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, {}, final)
 
 
 def kalman_filter(

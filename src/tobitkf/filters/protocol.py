@@ -91,7 +91,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
-from .kalman import LinearGaussianFamily, _finite_or_none
+from .kalman import LinearGaussianFamily, _finite_or_none, kernel_array, kernel_result
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
@@ -830,24 +830,14 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     )
 
     def out(a):
-        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+        return kernel_array(a, batch)
 
-    cov = out(covs)
     extras: dict[str, Any] = {}
     if ext:
         extras = {name: out(exts[..., i]) for i, name in enumerate(kp.EXTRA_NAMES)}
         extras.update(aug_mean=out(amean), aug_pred_mean=out(apmean), uncensored=out(gam))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=carry)
-    return FilterResult(
-        mean=out(means),
-        cov=cov if "cov" in want else None,
-        pred_mean=out(pmeans),
-        pred_cov=out(pcovs),
-        extras=extras,
-        times=np.arange(state.k + 1, state.k + T + 1),
-        var=None if "var" not in want or cov is None else np.diagonal(cov, axis1=-2, axis2=-1),
-        final=final,
-    )
+    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
 def protocol_tobit_kalman_filter(

@@ -67,7 +67,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition
-from .kalman import LinearGaussianFamily
+from .kalman import LinearGaussianFamily, kernel_array
 from .tobit import TobitKalmanFilter, tobit_measurement
 
 __all__ = [
@@ -477,7 +477,7 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
     )
 
     def out(a):
-        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
+        return kernel_array(a, batch)
 
     def const(key, P):
         # the numpy loop stores a covariance shared by the runs once and broadcasts it (a copy for one run)

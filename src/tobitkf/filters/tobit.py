@@ -83,7 +83,7 @@ from .core import (
     measurement_update,
     psd_sqrt,
 )
-from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices
+from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices, kernel_array, kernel_result
 from .smoothing import SmoothingMethods
 
 __all__ = [
@@ -498,23 +498,10 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
     else:
         run_split(work, N, check_threads(est.threads))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-
-    def out(a):
-        return None if a.shape[1] == 0 else a.reshape(batch + a.shape[1:])
-
-    cov = out(covs)
-    var = np.diagonal(cov, axis1=-2, axis2=-1) if ("var" in want and cov is not None) else None
-    extras = {"p_uncensored": out(pu), "expected_y": out(ey)} if "extras" in want else {}
-    return FilterResult(
-        mean=out(means),
-        cov=cov if "cov" in want else None,
-        pred_mean=out(pmeans),
-        pred_cov=out(pcovs),
-        extras=extras,
-        times=np.arange(state.k + 1, state.k + T + 1),
-        var=var,
-        final=final,
+    extras = (
+        {"p_uncensored": kernel_array(pu, batch), "expected_y": kernel_array(ey, batch)} if "extras" in want else {}
     )
+    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
 def tobit_kalman_filter(
