@@ -19,16 +19,9 @@ from tobitkf.filters.steady_state import ControlledLimitTobitKalmanFilter, Stead
 pytest.importorskip("numba")
 from tobitkf.filters import _kernels_steady  # noqa: E402
 
+from ._compare import assert_same
+
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov", "var")
-
-
-def assert_same(a, b, rtol=1e-12):
-    """Equal to rounding relative to the array's scale; NaN exactly where the reference has NaN."""
-    a, b = np.asarray(a), np.asarray(b)
-    assert a.shape == b.shape
-    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-    scale = max(1.0, float(np.nanmax(np.abs(b)))) if np.isfinite(b).any() else 1.0
-    np.testing.assert_allclose(a, b, rtol=rtol, atol=rtol * scale)
 
 
 def assert_results_equal(r1, r2, rtol=1e-12):
