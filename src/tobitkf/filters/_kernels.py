@@ -594,32 +594,27 @@ def _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
     protocol, the shared step), as the numpy update of :mod:`tobitkf.filters.core`, with the effective
     measurement matrix :math:`H = \mathrm{diag}(\gamma)C` (``C`` (m, n) shared, ``gam`` (m, B) per run):
 
-    standard form :math:`P = \bar P - KR_{xe}^T` (upper triangle, mirrored); Joseph form
+    standard form :math:`P = \bar P - KR_{xe}^T`; Joseph form
     :math:`(I-KH)\bar P(I-KH)^T + KNK^T`, applied in rank-m products as
-    :math:`P = \mathrm{sym}(M - (MH^T - KN)K^T)`, :math:`M = \bar P - KR_{xe}^T` (the two are equal for
+    :math:`P = M - (MH^T - KN)K^T`, :math:`M = \bar P - KR_{xe}^T` (the two are equal for
     any gain K with :math:`R_{xe} = \bar PH^T`; O(n^2 m) instead of O(n^3)). ``noise`` (m, m, B) the
-    noise term N; ``MH`` (n, m, B) scratch. A masked channel has a zero gain column, so its row of H
-    does not matter."""
+    noise term N; ``MH`` (n, m, B) scratch. :math:`MH^T` is formed from the *computed* M, so M's
+    rounding error :math:`\delta M` enters P as :math:`\delta M(I - H^TK^T)`, damped as in the
+    Joseph form, not as :math:`\delta M` (the reason for this order: with a flat prior the
+    cancellation in M is all of P's error otherwise). M and P are computed on the upper triangle and
+    mirrored (M is symmetric in exact arithmetic; the mirrored M is the one both steps use). A masked
+    channel has a zero gain column, so its row of H does not matter."""
     n, m = K.shape[0], K.shape[1]
-    if not joseph:
-        for i in range(n):
-            for j in range(i, n):
-                for b in range(nb):
-                    P[i, j, b] = 0.0
-                for k in range(m):
-                    for b in range(nb):
-                        P[i, j, b] += K[i, k, b] * Rxe[j, k, b]
-                for b in range(nb):
-                    P[i, j, b] = Pp[i, j, b] - P[i, j, b]
-        _mirror(P, nb)
-        return
     for i in range(n):
-        for j in range(n):
+        for j in range(i, n):
             for b in range(nb):
                 P[i, j, b] = Pp[i, j, b]
             for l in range(m):
                 for b in range(nb):
                     P[i, j, b] -= K[i, l, b] * Rxe[j, l, b]
+    _mirror(P, nb)
+    if not joseph:
+        return
     for i in range(n):
         for l in range(m):
             for b in range(nb):
@@ -635,11 +630,11 @@ def _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
                 for b in range(nb):
                     MH[i, l, b] -= K[i, q, b] * noise[q, l, b]
     for i in range(n):
-        for j in range(n):
+        for j in range(i, n):
             for l in range(m):
                 for b in range(nb):
                     P[i, j, b] -= MH[i, l, b] * K[j, l, b]
-    _symmetrize(P, nb)
+    _mirror(P, nb)
 
 
 @njit(cache=True, error_model="numpy")
