@@ -325,6 +325,7 @@ _ENTRY_LIST = [
             "feedback": ("corrected", "printed", "off"),
             "second_map": ("closest", "mutual"),
             "gate": (False, True),
+            "covariance_update": _FORMS,
         },
         model="frames",
     ),

@@ -43,6 +43,9 @@ one of them, and a predict that starts from the covariance of the previous predi
 matched, it also reuses the gain K and posterior P of the update from that :math:`\bar P` (core's
 fixed-gain route, :math:`\hat x = \bar x + K(y - C\bar x)`) when K has at most one nonzero per row
 (the decoupled x/y model of the defaults), where that product is rounded exactly as in the full update.
+Both reuses hold in every covariance form (``covariance_update``, standard by default as in the source):
+in the square-root form the predict reads, and the memo is keyed on, the factor S (``state.S``, shared
+(1, 4, 4) like P until a miss) instead of P, and the update memo also keeps the posterior factor.
 
 Online: ``state = tracker.init(initial)``, ``state = tracker.step(state, frame)`` with one frame of
 unordered detections (L, 2) per step; ``filter(detections, initial=...)`` is the loop
@@ -57,6 +60,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from .._linalg import psd_sqrt
 from .._validation import (
     ShapeError,
     ValidationError,
@@ -69,6 +73,7 @@ from .._validation import (
     check_psd,
 )
 from .core import (
+    COVARIANCE_FORMS,
     Estimator,
     FilterResult,
     FilterState,
@@ -89,6 +94,20 @@ def _constant(M: np.ndarray) -> np.ndarray:
     c = np.array(M, dtype=float)
     c.setflags(write=False)
     return c
+
+
+def _cholesky_signs(S: np.ndarray | None) -> np.ndarray | None:
+    """The lower-triangular factor ``S`` (..., n, n) of a QR array form with its columns negated where
+    the diagonal is negative: the Cholesky factor (diagonal >= 0) of the same :math:`P = SS^T`, bit for
+    bit (a negation is exact). Householder QR fixes the factor only up to column signs, and those
+    alternate from frame to frame; with the signs fixed the factor reaches the floating-point fixed point
+    of the recursion, as P does, so the predict memo applies."""
+    if S is None:
+        return None
+    d = np.diagonal(S, axis1=-2, axis2=-1)
+    if not (d < 0).any():
+        return S
+    return S * np.where(d < 0, -1.0, 1.0)[..., None, :]
 
 
 def constant_velocity_pixel_model() -> tuple[np.ndarray, np.ndarray]:
@@ -124,12 +143,25 @@ class MultiTargetTracker(Estimator):
     feedback : {"corrected", "printed", "off"}, default "corrected"
     second_map : {"closest", "mutual"}, default "closest"
     gate : bool, default True   (False: no gating, for the comparison of Exp. 3)
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        Keyword-only. The form of the shared update (:func:`~tobitkf.filters.core.measurement_update`).
+        ``"standard"`` (Miller §2.2 uses the standard KF update (2.3)-(2.6),
+        :math:`P = \\bar P - KC\\bar P`) is the faithful default; ``"joseph"`` the algebraically equal
+        Joseph form; ``"square_root"`` (ours, not in the source) carries the Cholesky factor :math:`S`
+        (``state.S``, :math:`P = SS^T`, lower triangular with a nonnegative diagonal, shared (1, 4, 4)
+        like P until a miss) through the QR array forms of :func:`~tobitkf.filters.core.sqrt_predict`
+        and :func:`~tobitkf.filters.core.sqrt_update`, so every covariance is PSD by construction, also
+        for a huge prior with a near-singular R (P0 = 1e8 I, R = 1e-12 I), where the standard form's
+        position variances after the first update are 0 or a multiple of 1.5e-8 instead of 1e-12 (in
+        the tested case three later ones are also indefinite). The three agree to rounding otherwise
+        (tested to 1e-10); the square-root form costs about 1.6 times the standard one.
 
     Raises
     ------
     ValidationError
         A gate0 <= 0, a negative gate_slope, NaN/inf/text/booleans for a number, a warm-up that is
-        not an integer >= 0, ``gate`` not a bool, unknown options; in :meth:`filter`, :meth:`step` and
+        not an integer >= 0, ``gate`` not a bool, unknown options (a ``covariance_update`` other
+        than "standard", "joseph", "square_root"); in :meth:`filter`, :meth:`step` and
         :meth:`track`, NaN, inf or text in a detection frame.
     ShapeError
         A detection frame that is not (L, 2).
@@ -137,7 +169,9 @@ class MultiTargetTracker(Estimator):
     Notes
     -----
     The model matrices are kept as read-only copies (attributes ``A``, ``C``, ``Q``, ``R``, ``P0``,
-    ``B``): the steps reuse what was computed from them.
+    ``B``): the steps reuse what was computed from them. The reused predict is keyed on the form and
+    on the bytes of what the step reads (P in the standard and Joseph forms, the factor S in the
+    square-root form), so a different covariance or factor is never given another's prediction.
     """
 
     _name = "MultiTargetTracker"
@@ -156,7 +190,9 @@ class MultiTargetTracker(Estimator):
         feedback: str = "corrected",
         second_map: str = "closest",
         gate: bool = True,
+        covariance_update: str = "standard",
     ):
+        check_option(covariance_update, "covariance_update", COVARIANCE_FORMS)
         check_option(feedback, "feedback", ("corrected", "printed", "off"))
         check_option(second_map, "second_map", ("closest", "mutual"))
         gate0 = as_float(gate0, "gate0", low=0.0, low_open=True)
@@ -179,14 +215,18 @@ class MultiTargetTracker(Estimator):
         )
         self.gate0, self.gate_slope, self.warmup = gate0, gate_slope, warmup
         self.feedback, self.second_map, self.gate = feedback, second_map, gate
+        self.covariance_update = covariance_update
+        self._G = _constant(psd_sqrt(self.Q))  # G G^T = Q: the process-noise root of the square-root predict
         self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
-        self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0)  # the predict of a frame without feedback
+        self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0, G=self._G)  # the predict of a frame without feedback
         self._feedback_free = feedback == "off"
         self._BT, self._CT = self.B.T, self.C.T
-        # (P.shape, P's bytes, P̄ = sym(A P A^T + Q), the input-free Transition with P_fixed = P̄ or None):
-        # the last covariance predict, reused when the next one starts from the same P bit for bit
+        # ((form, shape, bytes) of what the predict reads (P, or S in the square-root form), P̄ = sym(A P A^T + Q),
+        # the input-free Transition with P_fixed = P̄ or None, S̄ or None): the last covariance predict,
+        # reused when the next one starts from the same P (S) bit for bit in the same form
         self._last_predict: tuple | None = None
-        # (that P̄, the gain K (4, 2) and the posterior P computed from it): the last update of a reused P̄
+        # (the prior the update read (that P̄, or S̄ in the square-root form), the gain K (4, 2), the posterior
+        # P and S (or None) computed from it): the last update of a reused prediction
         self._last_update: tuple | None = None
 
     def _feedback(self, x: np.ndarray, visible: np.ndarray) -> np.ndarray:
@@ -220,8 +260,9 @@ class MultiTargetTracker(Estimator):
         x = np.zeros((N, 4))
         x[:, 0], x[:, 2] = init[:, 0], init[:, 1]
         P = self.P0[None].copy()  # one covariance shared by the targets until one of them misses a frame
+        S = psd_sqrt(P) if self.covariance_update == "square_root" else None
         carry = {"O": np.zeros(N, dtype=int), "visible": np.ones(N, dtype=bool), "last_meas": init.copy()}
-        return FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, carry=carry)
+        return FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, S=S, carry=carry)
 
     def _frame(self, frame: Any, name: str = "detections") -> np.ndarray:
         """One frame as (L, 2) finite pixel coordinates; (2,) is one point, an empty array none."""
@@ -313,24 +354,35 @@ class MultiTargetTracker(Estimator):
         # its fixed point in floating point) every frame predicts the same P̄ from the same P, and the
         # predict of the last frame is passed on as the Transition's fixed covariance (the mean is
         # still A x + b, the same expression)
-        key, last = P.tobytes(), self._last_predict
-        reused = last is not None and last[0] == P.shape and last[1] == key
+        form = self.covariance_update
+        sqrt = form == "square_root"
+        read = S if sqrt else P  # what the predict reads: the factor S in the square-root form, else P
+        key, last = (form, read.shape, read.tobytes()), self._last_predict
+        reused = last is not None and last[0] == key
         if reused:
             if input_free:
-                if last[3] is None:
-                    last = self._last_predict = last[:3] + (Transition(A=self.A, Qd=self.Q, b=0.0, P_fixed=last[2]),)
-                tr = last[3]
+                if last[2] is None:
+                    last = self._last_predict = (
+                        last[:2] + (Transition(A=self.A, Qd=self.Q, b=0.0, G=self._G, P_fixed=last[1]),) + last[3:]
+                    )
+                tr = last[2]
             else:
-                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT, P_fixed=last[2])
-            xp, Pp, _ = time_update(x, P, None, tr, "standard")
+                b = self._feedback(x, visible) @ self._BT
+                tr = Transition(A=self.A, Qd=self.Q, b=b, G=self._G, P_fixed=last[1])
+            # the fixed covariance route: x̄ = A x + b (the same expression as the full predict) and the cached P̄
+            xp, Pp, _ = time_update(x, P, S, tr, form)
+            Sp = last[3]
         else:
             if input_free:
                 tr = self._no_input
             else:
-                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT)
-            xp, Pp, _ = time_update(x, P, None, tr, "standard")
+                tr = Transition(A=self.A, Qd=self.Q, b=self._feedback(x, visible) @ self._BT, G=self._G)
+            xp, Pp, Sp = time_update(x, P, S, tr, form)
+            Sp = _cholesky_signs(Sp)
             Pp.setflags(write=False)  # shared by the frames that reuse it
-            self._last_predict = (P.shape, key, Pp, None)
+            if Sp is not None:
+                Sp.setflags(write=False)
+            self._last_predict = (key, Pp, None, Sp)
         Cx = xp @ self._CT  # the predicted positions
         ref = last_meas if k - 1 < self.warmup else Cx
         Ol = O.tolist()
@@ -352,33 +404,39 @@ class MultiTargetTracker(Estimator):
         # a covariance shared by the targets (P (1, 4, 4)) stays shared while every target is matched;
         # the first frame that misses one makes the update return one covariance per target
         last_up = self._last_update
-        if valid is None and finite and ref is Cx and last_up is not None and last_up[0] is Pp:
-            # the reused P̄ with every target matched and finite predicted positions: the gain K and the
-            # posterior P of the last such update, as a fixed gain (x = x̄ + K e); taken only for a gain
+        prior = Sp if sqrt else Pp  # what the update reads
+        if valid is None and finite and ref is Cx and last_up is not None and last_up[0] is prior:
+            # the reused prediction (the very object of the predict memo, so the same form and the same
+            # P̄ or S̄) with every target matched and finite predicted positions: the gain K and the
+            # posterior of the last such update, as a fixed gain (x = x̄ + K e); taken only for a gain
             # with at most one nonzero per row (the default decoupled x/y model), where K e is one
             # rounded product per component in any order of summation, the same numbers as the full update
             mp = MeasurementPrediction(
                 expected=Cx, H0=self.C, noise=self._R1, gain=last_up[1], posterior_cov=last_up[2]
             )
-            xn, Pn, _, _, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+            xn, Pn, _, _, _ = measurement_update(xp, Pp, Sp, z, mp, form)
+            Sn = last_up[3]
         else:
             mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
-            xn, Pn, _, K, _ = measurement_update(xp, Pp, None, z, mp, "standard")
+            xn, Pn, Sn, K, _ = measurement_update(xp, Pp, Sp, z, mp, form)
+            Sn = _cholesky_signs(Sn)
             if reused and valid is None and K.shape[0] == 1 and int((K[0] != 0).sum(axis=1).max()) <= 1:
                 Pn.setflags(write=False)  # shared by the frames that reuse it
-                self._last_update = (Pp, K[0], Pn)
+                if Sn is not None:
+                    Sn.setflags(write=False)
+                self._last_update = (prior, K[0], Pn, Sn)
         new = {"O": new_O, "visible": visible, "last_meas": new_last}
-        return xn, Pn, None, new, xp, Pp, {"assignment": assignment, "occluded_frames": O.copy()}
+        return xn, Pn, Sn, new, xp, Pp, {"assignment": assignment, "occluded_frames": O.copy()}
 
     def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
         """Track one frame of unordered detections (L, 2) (L may be 0)."""
         state = self._check_state(state)
         M = self._frame(detections)
         k = state.k + 1
-        x, P, _, carry, _, _, extras = self._step_arrays(
-            k, state.x, state.P, None, state.carry, None, None, {"frame": M, "finite": True}
+        x, P, S, carry, _, _, extras = self._step_arrays(
+            k, state.x, state.P, state.S, state.carry, None, None, {"frame": M, "finite": True}
         )
-        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=4, carry=carry, extras=extras)
+        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=4, S=S, carry=carry, extras=extras)
 
     def filter(
         self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None, outputs: Any = "all"
