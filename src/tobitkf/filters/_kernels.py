@@ -656,11 +656,26 @@ def _stage(xv, Pv, tt, nb, mbuf, cbuf):
         for b in range(nb):
             for i in range(n):
                 mbuf[b, tt, i] = xv[i, b]
-    if cbuf.shape[0] > 0:
+    _stage_cov(Pv, cbuf, tt, nb)
+
+
+@njit(cache=True, error_model="numpy")
+def _stage_cov(Pv, cbuf, tt, nb):
+    """Copy the top-left ``n x n`` block of a block's P[i, j, b] (n = ``cbuf.shape[2]``) into the staging
+    buffer ``cbuf`` (B, S, n, n) at chunk step ``tt``, or only its diagonal into ``cbuf`` (B, S, n, 1) (the
+    variances, for ``outputs=("var",)``: no (N, T, n, n) array); skipped when ``cbuf`` has no runs."""
+    if cbuf.shape[0] == 0:
+        return
+    n = cbuf.shape[2]
+    if cbuf.shape[3] == 1:
         for b in range(nb):
             for i in range(n):
-                for j in range(n):
-                    cbuf[b, tt, i, j] = Pv[i, j, b]
+                cbuf[b, tt, i, 0] = Pv[i, i, b]
+        return
+    for b in range(nb):
+        for i in range(n):
+            for j in range(n):
+                cbuf[b, tt, i, j] = Pv[i, j, b]
 
 
 @njit(cache=True, error_model="numpy")

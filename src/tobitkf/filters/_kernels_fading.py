@@ -44,6 +44,7 @@ from ._kernels import (
     _innovation_moments,
     _load,
     _mean_scratch,
+    _stage_cov,
     _stage_shape,
     _store_last,
     _update_scratch,
@@ -180,10 +181,7 @@ def fading_tkf_kernel(
                     for i in range(n):
                         s_pmean[b, tt, i] = xp[i, b]
             if want_pc:
-                for b in range(nb):
-                    for i in range(n):
-                        for j in range(n):
-                            s_pcov[b, tt, i, j] = Pp[i, j, b]
+                _stage_cov(Pp, s_pcov, tt, nb)
             # Lemma 1 at chi = H_k xi_{k|k-1}; (6), (21), (12) or the censored variance
             for l in range(m):
                 for b in range(nb):
@@ -211,10 +209,7 @@ def fading_tkf_kernel(
                     for i in range(n):
                         s_mean[b, tt, i] = x[i, b]
             if want_c:
-                for b in range(nb):
-                    for i in range(n):
-                        for j in range(n):
-                            s_cov[b, tt, i, j] = P[i, j, b]
+                _stage_cov(P, s_cov, tt, nb)  # P or its diagonal (outputs=("var",))
             if want_sm:
                 for b in range(nb):
                     for s in range(L + 1):

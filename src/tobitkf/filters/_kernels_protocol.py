@@ -52,6 +52,7 @@ from ._kernels import (
     _flush,
     _load,
     _mean_scratch,
+    _stage_cov,
     _stage_shape,
     _store_last,
     censored_stats,
@@ -82,16 +83,6 @@ def _stage_vec(v, buf, tt, nb, lo, hi):
     for b in range(nb):
         for i in range(lo, hi):
             buf[b, tt, i - lo] = v[i, b]
-
-
-@njit(cache=True, error_model="numpy")
-def _stage_cov(P, buf, tt, nb, n):
-    if buf.shape[0] == 0:
-        return
-    for b in range(nb):
-        for i in range(n):
-            for j in range(n):
-                buf[b, tt, i, j] = P[i, j, b]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -172,7 +163,7 @@ def protocol_kernel(
                 Hrow[0, j] = Hs[h, j]
             shift_predict_block(A, Qd, x, P, xp, Pp, X, nb)  # (17)-(18)
             _stage_vec(xp, s_pmean, tt, nb, 0, n)
-            _stage_cov(Pp, s_pcov, tt, nb, n)
+            _stage_cov(Pp, s_pcov, tt, nb)
             _stage_vec(xp, s_apm, tt, nb, 0, nxi)
             # R_xe = P H^T, and P C^T for the failure term (the numpy path's row products)
             for i in range(nxi):
@@ -234,7 +225,7 @@ def protocol_kernel(
                     x[i, b] = xp[i, b] + K[i, 0, b] * ee[b]
             _cov_update(Pp, K, Rxe, Hrow, gone, noise, joseph, P, MH, nb)
             _stage_vec(x, s_mean, tt, nb, 0, n)
-            _stage_cov(P, s_cov, tt, nb, n)
+            _stage_cov(P, s_cov, tt, nb)  # P or its diagonal (outputs=("var",))
             _stage_vec(x, s_am, tt, nb, 0, nxi)
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt

@@ -103,7 +103,7 @@ from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
-from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, kernel_array, kernel_result
+from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, cov_output, kernel_array, kernel_result
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -782,7 +782,7 @@ def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, wan
 
     ext = "extras" in want
     means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
-    covs, pcovs = arr("cov" in want or "var" in want, (n, n)), arr("pred_cov" in want, (n, n))
+    covs, pcovs = cov_output(want, N, T, n), arr("pred_cov" in want, (n, n))
     pu, ey, lam = arr(ext, (m,)), arr(ext, (m,)), arr(ext, (m,))
     sm_mean, sm_cov = arr(ext and keep_smoothed, (L + 1, n)), arr(ext and keep_smoothed, (L + 1, n, n))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))

@@ -228,13 +228,29 @@ def kernel_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
     return a.reshape(batch + a.shape[1:])
 
 
+def cov_output(want, runs: int, T: int, n: int) -> np.ndarray:
+    """The filtered-covariance output a compiled loop writes: ``(runs, T, n, n)`` when ``"cov"`` is
+    requested, ``(runs, T, n, 1)`` (the diagonals only, no n x n array per step) when only ``"var"`` is,
+    and ``(runs, 0, n, n)`` (not written) otherwise; :func:`kernel_result` reads it back."""
+    if "cov" in want:
+        return np.empty((runs, T, n, n))
+    return np.empty((runs, T, n, 1)) if "var" in want else np.empty((runs, 0, n, n))
+
+
 def kernel_result(
     want, batch, T: int, means, covs, pmeans, pcovs, extras: dict[str, Any], final: FilterState
 ) -> FilterResult:
     """The :class:`FilterResult` of a compiled loop over T readings ending at ``final`` (the kernels of
-    every family): its outputs by :func:`kernel_array`, ``cov`` only when requested (the covariances are
-    computed for ``"var"`` too, whose diagonals are returned), ``times`` the readings' time indices."""
+    every family): its outputs by :func:`kernel_array`, ``covs`` as laid out by :func:`cov_output`
+    (``var`` the diagonals of the covariances, or the diagonals the loop wrote alone), ``times`` the
+    readings' time indices."""
     cov = kernel_array(covs, batch)
+    if cov is None or "var" not in want:
+        var = None
+    elif "cov" in want:
+        var = np.diagonal(cov, axis1=-2, axis2=-1)
+    else:
+        var = cov[..., 0]
     return FilterResult(
         mean=kernel_array(means, batch),
         cov=cov if "cov" in want else None,
@@ -242,7 +258,7 @@ def kernel_result(
         pred_cov=kernel_array(pcovs, batch),
         extras=extras,
         times=np.arange(final.k - T + 1, final.k + 1),
-        var=None if "var" not in want or cov is None else np.diagonal(cov, axis1=-2, axis2=-1),
+        var=var,
         final=final,
     )
 
@@ -325,9 +341,7 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
         return np.empty((runs, T) + shape) if name in want else np.empty((runs, 0) + shape)
 
     means, pmeans = arr("mean", (n,), N), arr("pred_mean", (n,), N)
-    need_cov = "cov" in want or "var" in want
-    # (outputs=("var",) needs the covariances too: their diagonals are returned)
-    covs = np.empty((Pn, T, n, n)) if need_cov else np.empty((Pn, 0, n, n))
+    covs = cov_output(want, Pn, T, n)
     pcovs = arr("pred_cov", (n, n), Pn)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     c64 = np.ascontiguousarray

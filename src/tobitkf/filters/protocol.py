@@ -91,7 +91,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
-from .kalman import LinearGaussianFamily, _finite_or_none, kernel_array, kernel_result
+from .kalman import LinearGaussianFamily, _finite_or_none, cov_output, kernel_array, kernel_result
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
@@ -795,7 +795,7 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
 
     ext = "extras" in want
     means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
-    covs, pcovs = arr("cov" in want or "var" in want, (n, n)), arr("pred_cov" in want, (n, n))
+    covs, pcovs = cov_output(want, N, T, n), arr("pred_cov" in want, (n, n))
     amean, apmean = arr(ext, (nxi,)), arr(ext, (nxi,))
     exts = arr(ext, (kp.N_EXTRAS,))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))

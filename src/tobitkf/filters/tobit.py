@@ -83,7 +83,15 @@ from .core import (
     measurement_update,
     psd_sqrt,
 )
-from .kalman import LinearGaussianFamily, _empty, _finite_or_none, _kernel_matrices, kernel_array, kernel_result
+from .kalman import (
+    LinearGaussianFamily,
+    _empty,
+    _finite_or_none,
+    _kernel_matrices,
+    cov_output,
+    kernel_array,
+    kernel_result,
+)
 from .smoothing import SmoothingMethods
 
 __all__ = [
@@ -460,7 +468,7 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
         return np.empty((N, T) + shape) if name in want else np.empty((N, 0) + shape)
 
     means, pmeans = arr("mean", (n,)), arr("pred_mean", (n,))
-    covs = np.empty((N, T, n, n)) if ("cov" in want or "var" in want) else np.empty((N, 0, n, n))
+    covs = cov_output(want, N, T, n)
     pcovs = arr("pred_cov", (n, n))
     pu, ey = arr("extras", (m,)), arr("extras", (m,))
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
