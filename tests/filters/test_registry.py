@@ -15,7 +15,7 @@ from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
 from tobitkf.cli import app
 from tobitkf.filters.registry import ENTRIES, get, names
 
-SAMPLE = {float: 0.7, int: 2}  # a valid number for the options typed by number (xi in (0, 1), a count)
+SAMPLE = {float: 0.7, int: 2, object: 3}  # a valid value per option type (xi in (0, 1), a count, a seed)
 
 
 def _system(m=1):

@@ -352,6 +352,7 @@ _ENTRY_LIST = [
             "proposal": ("auto", "optimal", "prior"),
             "seed": object,
         },
+        required=("seed",),  # a registry-built particle filter draws the same particles on every run
     ),
     Entry(
         "ChainLMMSE",
