@@ -15,7 +15,7 @@ from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
 from tobitkf.cli import app
 from tobitkf.filters.registry import ENTRIES, get, names
 
-SAMPLE = {float: 0.7, int: 2}  # a valid number for the options typed by number (xi in (0, 1), a count)
+SAMPLE = {float: 0.7, int: 2, object: 3}  # a valid value per option type (xi in (0, 1), a count, a seed)
 
 
 def _system(m=1):
@@ -30,12 +30,15 @@ def _parts():
         "censoring": tk.Censoring(lower=0.2),
         "fading": RiceFading.gaussian(1, [0.9, 0.4], [0.01, 0.02]),
         "protocol": ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0),
+        "saturation": tk.RandomSaturation([0.3], [0.8]),
     }
 
 
 def _built(entry, options):
     m = 2 if "protocol" in entry.needs else 1
-    return entry.build(_system(m), _parts(), options)
+    # the particle filter takes any channel: none here, the only one with every proposal it lists
+    parts = {} if entry.name == "ParticleFilter" else _parts()
+    return entry.build(_system(m), parts, options)
 
 
 LINEAR = names("linear")
@@ -63,7 +66,9 @@ def test_every_listed_value_of_every_option_builds(name):
             if key == "backend" and v == "numba":
                 pytest.importorskip("numba")
             built = _built(entry, {**base, key: v})
-            if hasattr(built, key):  # the estimator keeps the option it was given
+            if (name, key, v) == ("ParticleFilter", "proposal", "auto"):
+                assert built.proposal == "optimal"  # "auto" resolves to the closed form the model has
+            elif hasattr(built, key):  # the estimator keeps the option it was given
                 assert getattr(built, key) == v, (key, v)
 
 

@@ -491,3 +491,39 @@ def test_protocol_family_sweeps_like_a_direct_run(tmp_path):
 def test_channel_sections_are_checked_on_load(text, match):
     with pytest.raises(SweepFileError, match=match):
         parse_sweep(text, name="bad")
+
+
+def test_a_sweep_refuses_an_entry_whose_channel_piece_no_sweep_file_describes():
+    text = BASE.replace('type = "TobitKalmanFilter"', 'type = "SaturationAssumedDensityFilter"')
+    with pytest.raises(SweepFileError, match="its pieces: saturation"):
+        parse_sweep(text.format(runs=40, steps=10, block=20, chunk=1), name="sat")
+
+
+PARTICLE = BASE.replace(
+    '[estimators.tkf]\ntype = "TobitKalmanFilter"',
+    '[estimators.tkf]\ntype = "TobitKalmanFilter"\n\n[estimators.pf]\ntype = "ParticleFilter"\nparticles = 40\nseed = 11',
+)
+
+
+def test_a_particle_filter_sweeps_like_a_direct_run(tmp_path):
+    """The registry's ParticleFilter in a sweep: the channel of the point, the seed given, the block data."""
+    assert "ParticleFilter" in PARTICLE
+    text = PARTICLE.format(runs=40, steps=10, block=20, chunk=1)
+    ds = load_result(run_sweep(parse_sweep(text, name="pf"), tmp_path))
+    sys_ = tk.LinearSystem(A=[[0.95]], C=[[1.0]], Q=[[0.04]], R=[[0.01]], x0=[0.0], P0=[[0.2]])
+    for i, lo in enumerate((-0.2, 0.1)):
+        cens = tk.Censoring(lower=lo)
+        ref = _direct_rmse(
+            lambda seed: tk.simulate(sys_, 10, 20, censoring=cens, seed=seed),
+            {"pf": lambda d: tk.ParticleFilter(sys_, cens, particles=40, seed=11).filter(d.y)},
+            2,
+            3,
+        )
+        got = ds["rmse"].isel({"censoring.lower": i}).sel(estimator="pf").values
+        np.testing.assert_allclose(got, ref["pf"], rtol=1e-12)
+
+
+def test_a_sweep_particle_filter_needs_its_seed():
+    text = PARTICLE.replace("\nseed = 11", "").format(runs=40, steps=10, block=20, chunk=1)
+    with pytest.raises(SweepFileError, match="seed: ParticleFilter needs this option"):
+        parse_sweep(text, name="pf")

@@ -22,12 +22,13 @@ from scipy.special import ndtri
 
 from .. import metrics as mx
 from .._validation import ValidationError
-from ..filters.particle import ParticleFilter
+from ..filters.registry import Lineup, describe, lineup, parts_of
 
 __all__ = [
     "TOLERANCE",
     "LEVEL",
     "pf_check",
+    "pf_lineup",
     "add_optimum",
     "check_particles",
     "pop_options",
@@ -106,23 +107,32 @@ def pop_options(overrides: dict[str, Any], particles: int, runs: int = 200) -> d
     return {"particles": p, "runs": int(r)}
 
 
+def pf_lineup(particles: int, seed: Any) -> Lineup:
+    """The two particle filters of :func:`pf_check` as a registry line-up: ``"pf-half"`` with N_p
+    particles (the convergence check) and ``"pf"`` with 2 N_p (the optimum), seeded
+    ``SeedSequence([seed, 7, j])``, j = 0, 1."""
+    return {
+        key: ("ParticleFilter", {"particles": Np, "seed": np.random.SeedSequence([int(seed), 7, j])})
+        for j, (key, Np) in enumerate((("pf-half", particles), ("pf", 2 * particles)))
+    }
+
+
 def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str, Any], Any]:
-    """The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data.
+    """The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data
+    (built from the registry, :func:`pf_lineup`).
 
     Returns the summary of the optimum (``mx.summarize`` plus ``particles``, ``proposal`` and
     ``convergence``) and its :class:`~tobitkf.filters.core.FilterResult` (mean and var)."""
-    results = []
-    for j, Np in enumerate((particles, 2 * particles)):
-        pf = ParticleFilter(system, channel, particles=Np, seed=np.random.SeedSequence([int(seed), 7, j]))
-        results.append(pf.filter(y, outputs=("mean", "var")))
-    small, big = results
+    parts = parts_of(channel)
+    pfs = lineup(pf_lineup(particles, seed), system, parts)
+    small, big = (pfs[k].filter(y, outputs=("mean", "var")) for k in ("pf-half", "pf"))
     r_small = mx.rmse(x, small.mean).mean(0)
     summ = mx.summarize(x, big.mean)
     m_small, m_big = np.asarray(small.mean), np.asarray(big.mean)
     truth = mx.align_truth(x, m_small)
     conv = convergence((m_small - truth) ** 2, (m_big - truth) ** 2)
     summ["particles"] = 2 * particles
-    summ["proposal"] = ParticleFilter(system, channel, particles=1).proposal
+    summ["proposal"] = pfs["pf"].proposal
     summ["convergence"] = {"particles": [particles, 2 * particles], "rmse_time_avg_half": r_small.tolist(), **conv}
     return summ, big
 
@@ -139,9 +149,11 @@ def add_optimum(
     seed: Any,
     runs: int = 200,
     key: str = "pf",
+    record: dict[str, Any] | None = None,
 ) -> None:
     """Add ``summaries[key]`` (the optimum) and ``summaries[k]["ratio_to_optimum"]`` for every k of ``means``,
-    in place (nothing if ``particles`` is 0).
+    in place (nothing if ``particles`` is 0), and the optimum's registry description to ``record[key]``
+    (an experiment's ``metrics["lineup"]``) when given.
 
     ``means[k]`` (N, T, n) are the estimators' means on ``y`` (N, T, m), ``x`` (N, T+1, n) the truth;
     the particle filter and the ratios use the first ``runs`` runs."""
@@ -156,3 +168,5 @@ def add_optimum(
             summaries[k]["ratio_to_optimum"] = (mx.rmse(x[:r], m[:r]).mean(0) / ref).tolist()
     pf["ratio_to_optimum"] = [1.0] * ref.size
     summaries[key] = pf
+    if record is not None:
+        record[key] = describe(pf_lineup(particles, seed))["pf"]

@@ -45,7 +45,7 @@ from .. import metrics as _metrics
 from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
-from ..filters.fading import fading_estimators
+from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
 from ..pcrlb import posterior_crlb
 from ..plotting import save
@@ -60,6 +60,18 @@ ESTIMATOR_KEYS = ("tkf-fm", "tkf", "kf", "kf-fm")
 LABELS = {"tkf-fm": "TKF-FM", "tkf": "TKF [Allik 2016]", "kf": "KF", "kf-fm": "KF with fading means"}
 COLORS = {"tkf-fm": "tab:blue", "tkf": "tab:red", "kf": "tab:green", "kf-fm": "tab:gray"}
 FILTER_OPTIONS = ("p_uncensored_mode", "fading_variance_term", "exact_tobit_variance")
+
+
+def estimator_lineup(options: dict[str, Any]) -> Lineup:
+    """The experiment's estimators, key -> (registry name, options): the TKF-FM with the settings'
+    ``options`` (:data:`FILTER_OPTIONS`) and the baselines of
+    :func:`~tobitkf.filters.fading.fading_estimators` (TKF, KF, KF with the fading means)."""
+    return {
+        "tkf-fm": ("FadingTobitKalmanFilter", dict(options)),
+        "tkf": ("TobitKalmanFilter", {}),
+        "kf": ("KalmanFilter", {}),
+        "kf-fm": ("FadingKalmanFilter", {}),
+    }
 
 
 def _common_filter_settings() -> dict[str, dict[str, Any]]:
@@ -179,7 +191,8 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
     data = simulate(system, steps, runs, censoring=censoring, measurement=fading, seed=seed)
     if progress:
         progress(0.1)
-    est = fading_estimators(system, fading, censoring, **options)
+    plan = estimator_lineup(options)
+    est = lineup(plan, system, {"fading": fading, "censoring": censoring})
     results, summaries = {}, {}
     for i, key in enumerate(ESTIMATOR_KEYS):
         out = est[key].filter(data.y)
@@ -200,6 +213,7 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
     censored = float(censoring.censored_mask(data.y)[0].mean())
     metrics = {
         "estimators": summaries,
+        "lineup": describe(plan),
         "censored_fraction": censored,
         "tkf_fm_below_tkf_every_k": point.all(axis=0).tolist(),
         "tkf_fm_below_tkf_every_k_from_2": point[1:].all(axis=0).tolist(),
@@ -218,6 +232,7 @@ def _run(exp_id: str, settings: dict[str, dict[str, Any]], *, runs: int, seed: i
         particles=check_particles(settings["optimum_particles"]["value"]),
         seed=seed,
         runs=int(settings["optimum_runs"]["value"]),
+        record=metrics["lineup"],
     )
     metrics["pcrlb_rmse"] = np.sqrt(posterior_crlb(system, [fading, censoring], truth=data.x).var)
     fm_avg, tkf_avg = summaries["tkf-fm"]["rmse_time_avg"], summaries["tkf"]["rmse_time_avg"]

@@ -41,7 +41,8 @@ import numpy as np
 
 from .. import metrics as mt
 from ..channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
-from ..filters.protocol import FAILURE_TERMS, ProtocolTobitKalmanFilter, protocol_covariance_bounds
+from ..filters.protocol import FAILURE_TERMS, protocol_covariance_bounds
+from ..filters.registry import describe, lineup
 from ..models.linear import LinearSystem
 from ..plotting import save
 from ..simulate.core import simulate
@@ -116,7 +117,8 @@ def _run(
     optimum: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Simulate once and run the filters on the same data; returns data and per-estimator results
-    (and what the optimum, a particle filter not in the source, needs: ``optimum`` particles/runs)."""
+    (and what the optimum, a particle filter not in the source, needs: ``optimum`` particles/runs), with
+    the line-up, mode (or ``"baseline"``) -> (registry name, options), under ``"lineup"``."""
     data = simulate(system, steps, runs, channel=channel, seed=seed)
     out: dict[str, Any] = {
         "data": data,
@@ -125,10 +127,14 @@ def _run(
         "channel": channel,
         "optimum": None if optimum is None else {**optimum, "seed": seed},
     }
-    for mode in modes:
-        out["filters"][mode] = ProtocolTobitKalmanFilter(system, channel, failure_term=mode).filter(data.y)
+    plan: dict[str, tuple[str, dict[str, Any]]] = {
+        mode: ("ProtocolTobitKalmanFilter", {"failure_term": mode}) for mode in modes
+    }
     if baseline:
-        out["filters"]["baseline"] = ProtocolTobitKalmanFilter.baseline(system, channel).filter(data.y)
+        plan["baseline"] = ("ProtocolBaselineTobitKalmanFilter", {})
+    out["lineup"] = plan
+    for mode, est in lineup(plan, system, {"protocol": channel}).items():
+        out["filters"][mode] = est.filter(data.y)
     return out
 
 
@@ -165,11 +171,15 @@ def _summ(truth: np.ndarray, res: Any) -> dict[str, Any]:
     return out
 
 
-def _estimators(run: dict[str, Any], ft: str, suffix: str = "") -> tuple[dict[str, Any], dict[str, Any]]:
-    """Keys: ``pbtkf-imsf<suffix>`` for the chosen failure term ``ft``, ``pbtkf-imsf<suffix>-<mode>``
-    for the other modes, ``pbtkf<suffix>`` for the baseline."""
+def _estimators(
+    run: dict[str, Any], ft: str, suffix: str = ""
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any]]:
+    """Summaries, consistency and the registry description (``metrics["lineup"]``) of each estimator.
+
+    Keys: ``pbtkf-imsf<suffix>`` for the chosen failure term ``ft``, ``pbtkf-imsf<suffix>-<mode>``
+    for the other modes, ``pbtkf<suffix>`` for the baseline, ``pf<suffix>`` the optimum."""
     truth = run["data"].x
-    est, cons, means = {}, {}, {}
+    est, cons, means, used = {}, {}, {}, {}
     for mode, res in run["filters"].items():
         if mode == "baseline":
             key = "pbtkf" + suffix
@@ -180,6 +190,7 @@ def _estimators(run: dict[str, Any], ft: str, suffix: str = "") -> tuple[dict[st
         est[key] = _summ(truth, res)
         cons[key] = _consistency(truth, res)
         means[key] = res.mean
+        used[key] = describe({key: run["lineup"][mode]})[key]
     opt = run.get("optimum")
     if opt:
         add_optimum(
@@ -193,8 +204,9 @@ def _estimators(run: dict[str, Any], ft: str, suffix: str = "") -> tuple[dict[st
             seed=opt["seed"],
             runs=opt["runs"],
             key="pf" + suffix,
+            record=used,
         )
-    return est, cons
+    return est, cons, used
 
 
 def _avg(est: dict[str, Any], key: str) -> float:
@@ -318,7 +330,7 @@ def tracking(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrid
     sys_, ch = example_system(False), example_channel()
     run = _run(sys_, ch, runs, seed, steps, modes=_modes(ft), optimum=opt)
     _progress(progress, 0.8)
-    est, cons = _estimators(run, ft)
+    est, cons, used = _estimators(run, ft)
     r_i, r_b = np.asarray(est["pbtkf-imsf"]["rmse"]), np.asarray(est["pbtkf"]["rmse"])
     x = run["data"].x[:, 1:]
     e_i, e_b = run["filters"][ft].mean - x, run["filters"]["baseline"].mean - x
@@ -352,7 +364,7 @@ def tracking(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrid
     return ExperimentResult(
         id="geng-protocol-tracking",
         settings=_base_settings(runs, seed, steps, ft, False),
-        metrics={"estimators": est, "consistency": cons},
+        metrics={"estimators": est, "lineup": used, "consistency": cons},
         data=data,
         claims=claims,
     )
@@ -398,7 +410,7 @@ def mect(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: 
     sys_, ch = example_system(True), example_channel()
     run = _run(sys_, ch, runs, seed, steps, modes=_modes(ft), optimum=opt)
     _progress(progress, 0.8)
-    est, cons = _estimators(run, ft)
+    est, cons, used = _estimators(run, ft)
     claims = []
     for which, attr in (("mect_prior", "pred_cov"), ("mect_posterior", "cov")):
         a, b = np.asarray(est["pbtkf-imsf"][which]), np.asarray(est["pbtkf"][which])
@@ -436,7 +448,7 @@ def mect(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides: 
     return ExperimentResult(
         id="geng-protocol-mect",
         settings=_base_settings(runs, seed, steps, ft, True),
-        metrics={"estimators": est, "consistency": cons},
+        metrics={"estimators": est, "lineup": used, "consistency": cons},
         claims=claims,
     )
 
@@ -525,7 +537,7 @@ def bounds(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides
     """Fig. 5: tr N^l_k <= tr E P^-_k <= tr N^u_k (damped as in the source; undamped as well)."""
     opt = pop_options(overrides, OPTIMUM_PARTICLES, OPTIMUM_RUNS)
     steps, ft = _options(dict(overrides))
-    metrics: dict[str, Any] = {"bounds": {}, "estimators": {}, "consistency": {}}
+    metrics: dict[str, Any] = {"bounds": {}, "estimators": {}, "lineup": {}, "consistency": {}}
     claims = []
     for i, damped in enumerate((True, False)):
         case = "damped" if damped else "undamped"
@@ -533,6 +545,7 @@ def bounds(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides
         metrics["bounds"][case] = m
         suffix = "" if damped else "-undamped"
         metrics["estimators"]["pbtkf-imsf" + suffix] = _summ(extra["truth"], extra["res"])
+        metrics["lineup"]["pbtkf-imsf" + suffix] = describe({ft: run["lineup"][ft]})[ft]
         if opt["particles"]:
             add_optimum(
                 metrics["estimators"],
@@ -545,6 +558,7 @@ def bounds(*, runs: int = RUNS, seed: int = 0, progress: Any = None, **overrides
                 seed=seed,
                 runs=opt["runs"],
                 key="pf" + suffix,
+                record=metrics["lineup"],
             )
         metrics["consistency"]["pbtkf-imsf" + suffix] = _consistency(extra["truth"], extra["res"])
         mse = ((extra["truth"][:, 1:] - extra["res"].pred_mean) ** 2).sum(-1).mean(0)
@@ -608,6 +622,7 @@ def _variant(
     steps, ft = _options(dict(overrides))
     est: dict[str, Any] = {}
     cons: dict[str, Any] = {}
+    used: dict[str, Any] = {}
     data: dict[str, Any] = {}
     claims = []
     summary: dict[str, Any] = {}
@@ -618,9 +633,10 @@ def _variant(
         for suffix, kw in variants:
             run = _run(example_system(damped), example_channel(**kw), runs, seed, steps, modes=_modes(ft), optimum=opt)
             errs[suffix] = run["filters"][ft].mean - run["data"].x[:, 1:]
-            e, c = _estimators(run, ft, suffix + tag)
+            e, c, u = _estimators(run, ft, suffix + tag)
             est.update(e)
             cons.update(c)
+            used.update(u)
             avgs[suffix] = {
                 mode: _avg(e, k)
                 for mode, k in [
@@ -677,7 +693,7 @@ def _variant(
     return ExperimentResult(
         id=exp_id,
         settings=_base_settings(runs, seed, steps, ft, "damped and undamped"),
-        metrics={"estimators": est, "consistency": cons, "comparison": summary},
+        metrics={"estimators": est, "lineup": used, "consistency": cons, "comparison": summary},
         data=data,
         claims=claims,
     )

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ..filters.delay import augmented_lmmse, chain_lmmse
+from ..filters.registry import Lineup, describe, lineup
 from ..metrics import summarize
 from ..models.delay import paper_example, paper_prior
 from ..plotting import save
@@ -106,19 +106,31 @@ def _settings(runs: int, steps: int, seed: int, S_values: tuple[float, ...], ext
     return out
 
 
+LINEUP: Lineup = {
+    "chain": ("ChainLMMSE", {}),
+    "augmented": ("AugmentedLMMSE", {}),
+    "paper-j": ("ChainLMMSE", {"decorrelation": "paper"}),
+    "naive-kf": ("ChainLMMSE", {}),
+}
+"""The estimators, key -> (registry name, options); ``naive-kf`` runs on the model told S = 0 and
+gamma = 1 (``system.replace(S=0.0, fading=None)``), the others on the paper's model, all with the
+paper's prior (the registry's ``prior`` piece)."""
+MISMODELLED = ("naive-kf",)
+"""The keys built on the mis-modelled system."""
+
+
+def _lineup(keys: Any) -> dict[str, Any]:
+    """``metrics["lineup"]``: the registry description of ``keys`` (``key@q=...`` described as ``key``)."""
+    return {k: describe({k: LINEUP[k.split("@")[0]]})[k] for k in keys}
+
+
 def _estimate(S: float, q: float, data: Any, keys: tuple[str, ...]) -> dict[str, Any]:
     system = paper_example(S=S, q=q)
     prior = paper_prior()
     out = {}
     for key in keys:
-        if key == "chain":
-            out[key] = chain_lmmse(system, prior, data.y)
-        elif key == "augmented":
-            out[key] = augmented_lmmse(system, prior, data.y)
-        elif key == "paper-j":
-            out[key] = chain_lmmse(system, prior, data.y, decorrelation="paper")
-        elif key == "naive-kf":
-            out[key] = chain_lmmse(system.replace(S=0.0, fading=None), prior, data.y)
+        sys_k = system.replace(S=0.0, fading=None) if key in MISMODELLED else system
+        out[key] = lineup({key: LINEUP[key]}, sys_k, {"prior": prior})[key].filter(data.y)
     return out
 
 
@@ -132,7 +144,8 @@ def _steady_state(q_values=Q_VALUES, S_values=S_VALUES, horizon: int = 600) -> l
     rows = []
     for q in q_values:
         for S in S_values:
-            r = chain_lmmse(paper_example(S=S, q=q), paper_prior(), np.zeros((horizon, 1)))
+            chain = lineup({"chain": LINEUP["chain"]}, paper_example(S=S, q=q), {"prior": paper_prior()})["chain"]
+            r = chain.filter(np.zeros((horizon, 1)))  # the covariances do not depend on the readings
             ref = REFERENCE.get((q, S))
             assert r.cov is not None, "filter() records the covariances by default"
             row = {
@@ -280,6 +293,7 @@ def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: i
     per = by[(1.0, headline)]
     metrics = {
         "estimators": {k: v["filter_summary"] for k, v in per.items()},
+        "lineup": _lineup(per),
         "headline_S": headline,
         "mse": _metrics_block(by, 1.0, S_values),
         "steady_state": _steady_state((1.0,), S_values),
@@ -389,6 +403,7 @@ def run_fading(*, runs: int, seed: int, progress=None, S: Any = None, steps: int
         metrics["by_q"][f"q={q:g}"] = _metrics_block(by, q, S_values)
         for key, v in by[(q, headline)].items():
             metrics["estimators"][key if q == 1.0 else f"{key}@q={q:g}"] = v["filter_summary"]
+    metrics["lineup"] = _lineup(metrics["estimators"])
     metrics["steady_state"] = _steady_state(Q_VALUES, S_values)
     ordered = {}
     for s in S_values:
@@ -507,6 +522,7 @@ def run_tables(*, runs: int, seed: int, progress=None, S: Any = None, steps: int
         }
     metrics = {
         "estimators": {k: v["filter_summary"] for k, v in by[(1.0, headline)].items()},
+        "lineup": _lineup(by[(1.0, headline)]),
         "headline_S": headline,
         "table_times": list(TABLE_TIMES),
         "tables": rows,

@@ -29,7 +29,7 @@ from ..control.closed_loop import quadratic_cost, simulate_closed_loop
 from ..control.lqg import discretize, dlqe, dlqr, lqe, lqr, tobit_dlqe, tobit_lqe
 from ..control.plants import dc_motor_position, dc_motor_speed, scalar_example
 from ..control.stability import dissertation_jacobian_5_56, fixed_gain_tobit_observer, mean_field_error, tobit_jacobian
-from ..filters.tobit import TobitKalmanFilter
+from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
@@ -40,6 +40,11 @@ __all__ = ["jacobian_scalar", "dc_motor_speed_exp", "dc_motor_position_exp", "cl
 
 _SOURCE = "Miller 2015: Estimation and Control with Censored Data (dissertation)"
 DT = 0.01
+
+
+ESTIMATION_LINEUP: Lineup = {"tkf": ("TobitKalmanFilter", {})}
+"""The registry estimators of the open-loop estimation runs (the fixed-gain observers beside them,
+:func:`~tobitkf.control.stability.fixed_gain_tobit_observer`, are control code, not registry entries)."""
 
 
 def _noop(_: float) -> None:
@@ -368,7 +373,7 @@ def _estimation_runs(
         "tkf-fixed-tobit-gain": fixed_gain_tobit_observer(
             A, g_tob.filter_gain, Cm, sim.y, sigma, -np.inf, T, xhat0=x0, form="filter"
         ),
-        "tkf": TobitKalmanFilter(filt, cens).filter(sim.y).mean,
+        **{k: e.filter(sim.y).mean for k, e in lineup(ESTIMATION_LINEUP, filt, {"censoring": cens}).items()},
     }
     gains = {
         "dt_uncensored_filter_gain": g_unc.filter_gain[:, 0].tolist(),
@@ -471,6 +476,7 @@ def _estimation_experiment(
             "T": T,
             "xhat0": None if xhat0 is None else list(xhat0),
             "estimators": summ,
+            "lineup": describe(ESTIMATION_LINEUP),
             "censored_fraction": float(np.mean(cmask)),
             "censored_fraction_se": float(CL.mean_se(cfrac_runs)[1]),
             "mean_on_censored_samples": {k: v[0] for k, v in in_cens.items()},

@@ -26,9 +26,7 @@ from .. import metrics as mx
 from .._validation import ValidationError
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
-from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
-from ..filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
-from ..filters.tobit import TobitKalmanFilter
+from ..filters.registry import Lineup, describe, lineup, make
 from ..models.linear import LinearSystem
 from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, plot_rmse_over_time, save, style
@@ -46,13 +44,17 @@ def _noop(_: float) -> None:
     pass
 
 
+THREE: Lineup = {
+    "kf": ("KalmanFilter", {}),
+    "ikf": ("DroppingKalmanFilter", {}),
+    "tkf": ("TobitKalmanFilter", {}),
+}
+"""The three estimators of the Ch. 3 comparisons, key -> (registry name, options)."""
+
+
 def _run_three(sys_f: LinearSystem, cens: Censoring, y: np.ndarray):
-    """The three estimators of the Ch. 3 comparisons on the same data."""
-    return {
-        "kf": KalmanFilter(sys_f).filter(y),
-        "ikf": DroppingKalmanFilter(sys_f, cens).filter(y),
-        "tkf": TobitKalmanFilter(sys_f, cens).filter(y),
-    }
+    """The three estimators of the Ch. 3 comparisons (:data:`THREE`) on the same data."""
+    return {key: est.filter(y) for key, est in lineup(THREE, sys_f, {"censoring": cens}).items()}
 
 
 def _summaries(truth: np.ndarray, outs: dict[str, Any]) -> dict[str, Any]:
@@ -170,6 +172,7 @@ def constant(
         targets = {"kf": float(st.censored_mean), "ikf": float(st.truncated_mean), "tkf": truth}
         final = {k: o.mean[:, -1, 0] for k, o in outs.items()}
         summ = _summaries(sim.x, outs)
+        used = describe(THREE)
         add_optimum(
             summ,
             {k: o.mean for k, o in outs.items()},
@@ -180,9 +183,11 @@ def constant(
             particles=optimum_particles,
             seed=_seed_int(seed) + i,
             runs=optimum_runs,
+            record=used,
         )
         scen[name] = {
             "estimators": summ,
+            "lineup": used,
             "final_mean": {k: float(v.mean()) for k, v in final.items()},
             "final_std": {k: float(v.std(ddof=1)) for k, v in final.items()},
             "analytic_limit": targets,
@@ -328,6 +333,7 @@ def brownian(
     outs = _run_three(sys_, cens, sim.y)
     progress(0.9)
     est = _summaries(sim.x, outs)
+    used = describe(THREE)
     add_optimum(
         est,
         {k: o.mean for k, o in outs.items()},
@@ -338,6 +344,7 @@ def brownian(
         particles=optimum_particles,
         seed=_seed_int(seed),
         runs=optimum_runs,
+        record=used,
     )
     var = {k: o.cov[..., 0, 0] for k, o in outs.items()}
     per_run_max = {k: v.max(axis=1) for k, v in var.items()}
@@ -418,6 +425,7 @@ def brownian(
     metrics = {
         "runs": runs,
         "estimators": est,
+        "lineup": used,
         "median_max_variance": max_var,
         "kf_steady_variance": kf_ss,
         "kf_dare_posterior_variance": kf_dare,
@@ -549,6 +557,7 @@ def oscillator(
     cens = Censoring(lower=limit)
     omegas = list(dict.fromkeys([omega, *omega_sweep]))
     sweep, est, data, checks = {}, None, {}, {}
+    used = describe(THREE)  # at every omega; the optimum at omega only
     for i, om in enumerate(omegas):
         sys_ = LinearSystem(A=_rotation(om), C=[[1.0, 0.0]], Q=q * np.eye(2), R=[[r]], x0=[0.0, 0.0], P0=p0 * np.eye(2))
         sim = simulate(sys_, steps, runs, censoring=cens, seed=np.random.SeedSequence([_seed_int(seed), i]))
@@ -570,6 +579,7 @@ def oscillator(
                 particles=optimum_particles,
                 seed=_seed_int(seed) + i,
                 runs=optimum_runs,
+                record=used,
             )
             pcrlb = np.sqrt(posterior_crlb(sys_, cens, truth=sim.x).var)
             est = summ
@@ -608,7 +618,13 @@ def oscillator(
             tolerance=tol_text,
         )
     )
-    metrics = {"runs": runs, "estimators": est, "rmse_time_avg_by_omega": sweep, "pcrlb_rmse": pcrlb}
+    metrics = {
+        "runs": runs,
+        "estimators": est,
+        "lineup": used,
+        "rmse_time_avg_by_omega": sweep,
+        "pcrlb_rmse": pcrlb,
+    }
     return ExperimentResult("miller-oscillator", settings, metrics, data, claims)
 
 
@@ -720,11 +736,20 @@ def steady_state(
     progress(0.4)
     est = _summaries(sim.x, outs)
     claims, per_xi, data, errs = [], {}, {}, {}
+    plan = dict(THREE)
     for j, xi in enumerate(xis):
         key = "sstkf" if j == 0 else f"sstkf-xi-{xi}"
-        ss = SteadyStateTobitKalmanFilter(sys_, xi)
+        plan[key] = ("SteadyStateTobitKalmanFilter", {"xi_uncensored": xi})
+        # the full TKF with the steered limit, as tobit_kalman_filter_controlled builds it
+        plan[f"tkf-controlled-xi-{xi}"] = (
+            "ControlledLimitTobitKalmanFilter",
+            {"xi_uncensored": xi, "backend": "numpy"},
+        )
+        ss = make(plan[key][0], sys_, **plan[key][1])
         o_ss = ss.filter_controlled(sim.y_latent)
-        o_full = tobit_kalman_filter_controlled(sys_, xi, sim.y_latent)
+        o_full = make(plan[f"tkf-controlled-xi-{xi}"][0], sys_, **plan[f"tkf-controlled-xi-{xi}"][1]).filter(
+            sim.y_latent
+        )
         assert o_ss.mean is not None and o_full.mean is not None and o_full.cov is not None, "the default outputs"
         est[key] = mx.summarize(sim.x, o_ss.mean, o_ss.cov)
         est[f"tkf-controlled-xi-{xi}"] = mx.summarize(sim.x, o_full.mean, o_full.cov)
@@ -802,6 +827,7 @@ def steady_state(
     metrics = {
         "runs": runs,
         "estimators": est,
+        "lineup": describe(plan),
         "controlled_limit": per_xi,
         "fixed_limit_censored_fraction": float((sim.y >= fixed_limit).mean()),
     }

@@ -22,14 +22,25 @@ from pathlib import Path
 
 import numpy as np
 
-from ..filters.kalman import KalmanFilter
-from ..filters.tracking import MultiTargetTracker, constant_velocity_pixel_model
+from ..filters.registry import Lineup, describe, make
+from ..filters.tracking import constant_velocity_pixel_model
 from ..models.linear import LinearSystem
 from ..plotting import new_figure, save
 from . import ExperimentResult, register, setting
 from . import _claims as CL
 
-__all__ = ["tracker"]
+__all__ = ["tracker", "LINEUP"]
+
+LINEUP: Lineup = {
+    "tracker": ("MultiTargetTracker", {}),
+    "tracker-feedback-corrected": ("MultiTargetTracker", {"feedback": "corrected"}),
+    "tracker-feedback-off": ("MultiTargetTracker", {"feedback": "off"}),
+    "tracker-feedback-printed": ("MultiTargetTracker", {"feedback": "printed"}),
+    "kf": ("KalmanFilter", {}),
+}
+"""What the three runs build (Exp. 1 and 3 the default tracker, Exp. 2 each feedback, Exp. 3 the KF
+beside the tracker), key -> (registry name, options); no key has RMSE summaries (the runs score
+identities and pixel errors)."""
 
 W, H = 640.0, 480.0
 
@@ -120,7 +131,7 @@ def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult
     swaps, final_err, err1 = [], [], None
     for r in range(runs):
         frames = _frames(truth1, rng, spurious=100, inside=False)
-        res = MultiTargetTracker().track(start, frames)
+        res = make("MultiTargetTracker", None).track(start, frames)
         pos = res.mean[..., ::2]
         # identity kept when each filter's matched detection is its own point
         own = np.array(
@@ -152,7 +163,7 @@ def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult
         errs, reassoc, max_occ_err = [], [], []
         for r in range(runs):
             frames = _frames(truth2, np.random.default_rng([seed, r]), spurious=0)
-            res = MultiTargetTracker(feedback=fb).track(c0, frames)
+            res = make("MultiTargetTracker", None, feedback=fb).track(c0, frames)
             e = np.linalg.norm(res.mean[..., ::2] - truth2, axis=-1)
             occluded = res.assignment < 0
             max_occ_err.append(float(e[occluded].max()) if occluded.any() else 0.0)
@@ -182,13 +193,13 @@ def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult
     for s in range(20, frames3, 20):
         bad[s : s + 3] = True
     meas[bad] = np.array([400.0, 50.0])
-    res = MultiTargetTracker().track(truth3[:1] - np.array([1.0, 1.0]), [m[None] for m in meas])
+    res = make("MultiTargetTracker", None).track(truth3[:1] - np.array([1.0, 1.0]), [m[None] for m in meas])
     e_g = np.linalg.norm(res.mean[:, 0, ::2] - truth3, axis=-1)
     A, Cpx = constant_velocity_pixel_model()
     sysk = LinearSystem(
         A=A, C=Cpx, Q=0.01 * np.eye(4), R=np.eye(2), x0=[100.0, 0, 80.0, 0], P0=np.diag([1.0, 10, 1, 10])
     )
-    kf = KalmanFilter(sysk).filter(meas)
+    kf = make("KalmanFilter", sysk).filter(meas)
     assert kf.mean is not None, "filter() records the means by default"
     e_k = np.linalg.norm(kf.mean[:, ::2] - truth3, axis=-1)
     metrics["exp3"] = {
@@ -251,6 +262,7 @@ def tracker(*, runs: int = 10, seed: int = 0, progress=None) -> ExperimentResult
         "feedback": setting("corrected sign, occluded targets only", "reconstructed", "MA-01, MA-02"),
     }
     metrics["estimators"] = {}
+    metrics["lineup"] = describe(LINEUP)
     data = {
         "exp1": {"err": err1},
         "exp2": {"truth": truth2[:, 3, 0], "with": out2["corrected"], "without": out2["off"]},

@@ -29,8 +29,7 @@ from ..control.panning import (
     keep_in_view_limit,
     moving_window_tkf,
 )
-from ..filters.kalman import KalmanFilter
-from ..filters.tobit import TobitKalmanFilter
+from ..filters.registry import Lineup, describe, lineup, make
 from ..models.linear import LinearSystem
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
@@ -40,6 +39,12 @@ from . import _claims as CL
 __all__ = ["multi_region_exp", "fov", "panning"]
 
 _SOURCE = "Miller 2015: Estimation and Control with Censored Data (dissertation)"
+
+
+_TKF: tuple[str, dict[str, Any]] = ("TobitKalmanFilter", {})
+"""The multi-region examples' estimator (one TKF per system and stacked censoring), as a registry line-up item."""
+FOV_LINEUP: Lineup = {"tkf": _TKF, "kf": ("KalmanFilter", {})}
+"""The field-of-view example's estimators, key -> (registry name, options)."""
 
 
 def _noop(_: float) -> None:
@@ -125,9 +130,9 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
     base = _brownian(0.05)
     two_sys, two_cens = multi_region(base, [[(-np.inf, 0.0), (0.0, np.inf)]])
     sim = simulate(two_sys, steps, runs, censoring=two_cens, seed=s1)
-    two = TobitKalmanFilter(two_sys, two_cens).filter(sim.y)
+    two = make("TobitKalmanFilter", two_sys, censoring=two_cens).filter(sim.y)
     one_cens = Censoring(upper=0.0)
-    one = TobitKalmanFilter(base, one_cens).filter(sim.y[..., :1])
+    one = make("TobitKalmanFilter", base, censoring=one_cens).filter(sim.y[..., :1])
     assert two.mean is not None and one.mean is not None, "filter() records the means by default"
     x = sim.x[:, 1:, 0]
     half = {"x>0": x > 0, "x<0": x <= 0}
@@ -154,7 +159,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
         mse_runs = []
         for n_y in ny:
             sys_n = _brownian(sig, n_y)
-            out = TobitKalmanFilter(sys_n, Censoring(upper=0.0)).filter(sim2.y[..., :n_y])
+            out = make("TobitKalmanFilter", sys_n, censoring=Censoring(upper=0.0)).filter(sim2.y[..., :n_y])
             assert out.mean is not None, "filter() records the means by default"
             mse_runs.append(((out.mean[..., 0] - sim2.x[:, 1:, 0]) ** 2).mean(axis=1))
         per_run = np.stack(mse_runs, axis=1)  # (runs, len(ny))
@@ -166,7 +171,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
     base3 = _brownian(0.05, p0=0.01)  # start near 0: from a broad prior the first re-entry overshoots
     sys3, cens3 = multi_region(base3, [windows])
     sim3 = simulate(sys3, steps, runs, censoring=cens3, seed=s4)
-    out3 = TobitKalmanFilter(sys3, cens3).filter(sim3.y)
+    out3 = make("TobitKalmanFilter", sys3, censoring=cens3).filter(sim3.y)
     assert out3.mean is not None and out3.cov is not None, "filter() records means and covariances by default"
     x3 = sim3.x[:, 1:, 0]
     regions = {
@@ -195,7 +200,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
     ex3["wide_gap"] = {"windows": wide}
     err_w = {}
     for nt in ("dissertation", "exact_pv"):
-        ow = TobitKalmanFilter(sysw, censw, noise_term=nt).filter(simw.y)
+        ow = make("TobitKalmanFilter", sysw, censoring=censw, noise_term=nt).filter(simw.y)
         assert ow.mean is not None, "filter() records the means by default"
         err_w[nt] = ow.mean - simw.x[:, 1:]
         ex3["wide_gap"][nt] = {
@@ -309,6 +314,7 @@ def multi_region_exp(*, runs: int = 10, seed: int = 0, progress=None, steps: int
         "example2": {"N_y": ny, "mse": ex2},
         "example3": ex3,
         "estimators": {**ex1["estimators"], "tkf-two-windows": ex3["estimators"]["tkf"]},
+        "lineup": describe(dict.fromkeys(("tkf-two-sensors", "tkf-right-only", "tkf-two-windows"), _TKF)),
     }
     data = {
         "ex1": {"truth": sim.x[0, 1:, 0], "two": two.mean[0, :, 0], "one": one.mean[0, :, 0]},
@@ -389,8 +395,8 @@ def fov(*, runs: int = 50, seed: int = 0, progress=None, dt: float = 0.1, horizo
         sys = constant_velocity(dt, 0.1, 0.5, cameras=2, x0=np.array([0.0, -1.0]), P0=np.diag([0.25, 0.01]))
         cens = Censoring(lower=np.array([w[0] for w in windows]), upper=np.array([w[1] for w in windows]))
         sim = simulate(sys, steps, runs, censoring=cens, seed=np.random.SeedSequence([seed, i]))
-        tkf = TobitKalmanFilter(sys, cens).filter(sim.y)
-        kf = KalmanFilter(sys).filter(sim.y)
+        outs = {key: est.filter(sim.y) for key, est in lineup(FOV_LINEUP, sys, {"censoring": cens}).items()}
+        tkf, kf = outs["tkf"], outs["kf"]
         assert tkf.mean is not None and tkf.cov is not None and kf.mean is not None, "the default outputs"
         A, Qd = sys.transition(0), sys.process_cov(0)
         C1 = sys.measurement(1)[:1]
@@ -493,7 +499,12 @@ def fov(*, runs: int = 50, seed: int = 0, progress=None, dt: float = 0.1, horizo
         "right_camera": setting([-13.0, 20.0], "default", "reproduces the 13-18 s gap timeline (MB-36)"),
         "left_camera": setting({"non-overlapping": [-50.0, -18.0], "overlapping": [-50.0, -10.0]}, "default"),
     }
-    metrics = {"runs": runs, "scenarios": scen, "estimators": scen["non-overlapping"]["estimators"]}
+    metrics = {
+        "runs": runs,
+        "scenarios": scen,
+        "estimators": scen["non-overlapping"]["estimators"],
+        "lineup": describe(FOV_LINEUP),
+    }
     return ExperimentResult("miller-fov", settings, metrics, data, claims)
 
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from .. import metrics as mx
 from ..design import hinf as D
-from ..filters import hinf as F
+from ..filters.registry import describe, make
 from ..models.ross import RossModel, wang2010_model
 from ..plotting import save
 from ..simulate.ross import RossSimulation, simulate_ross, wang2010_disturbances
@@ -89,7 +89,12 @@ def _certificate_dict(c: D.HinfCertificate) -> dict[str, Any]:
 
 
 def _run_filters(model: RossModel, gains: dict[str, tuple[np.ndarray, np.ndarray]], sim: RossSimulation):
-    return {k: _run_filter(Af, Bf, model.M, sim.y) for k, (Af, Bf) in gains.items()}
+    return {k: _run_filter(Af, Bf, model, sim.y) for k, (Af, Bf) in gains.items()}
+
+
+def _lineup(gains: dict[str, tuple[Any, Any]]) -> dict[str, Any]:
+    """``metrics["lineup"]``: each filter as the registry's ``RegionalHinfFilter`` with its designed gains."""
+    return describe({k: ("RegionalHinfFilter", {"Af": Af, "Bf": Bf}) for k, (Af, Bf) in gains.items()})
 
 
 class _Trajectory(NamedTuple):
@@ -105,8 +110,10 @@ def _arr(a: np.ndarray | None) -> np.ndarray:
     return a
 
 
-def _run_filter(Af: np.ndarray, Bf: np.ndarray, M: np.ndarray, y: np.ndarray) -> _Trajectory:
-    out = F.RegionalHinfFilter(Af, Bf, M).filter(y, outputs="mean")  # rows x̂_1..x̂_T
+def _run_filter(Af: np.ndarray, Bf: np.ndarray, model: RossModel, y: np.ndarray) -> _Trajectory:
+    """The filter (5) with the designed gains, built by the registry (output matrix ``model.M``)."""
+    M = model.M
+    out = make("RegionalHinfFilter", model, Af=Af, Bf=Bf).filter(y, outputs="mean")  # rows x̂_1..x̂_T
     assert out.mean is not None, "outputs='mean' records the means"
     mean = np.concatenate([np.zeros(out.mean.shape[:-2] + (1, out.mean.shape[-1])), out.mean], axis=-2)
     return _Trajectory(mean, mean @ np.asarray(M).T)
@@ -324,6 +331,7 @@ def design_experiment(*, runs: int = 500, seed: int = 0, progress=None, steps: i
         "runs": runs,
         "steps": steps,
         "estimators": estimators,
+        "lineup": _lineup(gains),
         "zero_filter_gamma": zg,
         "certified_gamma": gammas,
         "designs": res,
@@ -419,7 +427,7 @@ def _inside_scale(model, gains, P, rho, w, v, seed) -> float:
         s = 0.5 * (lo + hi)
         sim = simulate_ross(model, w.shape[0], 200, w=s * w, v=s * v, seed=seed)
         Af, Bf = gains
-        out = _run_filter(Af, Bf, model.M, sim.y)
+        out = _run_filter(Af, Bf, model, sim.y)
         lo, hi = (s, hi) if _peak_ratio(sim, out, P, rho).max() <= 1 else (lo, s)
     return lo
 
@@ -478,20 +486,20 @@ def simulation_experiment(*, runs: int = 2000, seed: int = 0, progress=None, ste
     data: dict[str, Any] = {"z": sim_x0.z[0], "x": sim_x0.x[0], "zhat": {}, "xhat": {}, "mean_err": {}, "ratio": {}}
     claims = []
     for i, (key, (Af, Bf, P, rho, gamma, note)) in enumerate(certs.items()):
-        o_x0 = _run_filter(Af, Bf, model.M, sim_x0.y)
-        o_zero = _run_filter(Af, Bf, model.M, sim_zero.y)
+        o_x0 = _run_filter(Af, Bf, model, sim_x0.y)
+        o_zero = _run_filter(Af, Bf, model, sim_zero.y)
         e_x0 = float(_err_energy(sim_x0, o_x0).mean())
         e_zero = float(_err_energy(sim_zero, o_zero).mean())
         ratio = _peak_ratio(sim_x0, o_x0, P, rho)
         eta0 = np.concatenate([paper["x0"], np.zeros(3)])
         s = _inside_scale(model, (Af, Bf), P, rho, w, v, seed + 2)
         sim_in = simulate_ross(model, steps, runs, w=s * w, v=s * v, seed=seed + 3)
-        en_in = _err_energy(sim_in, _run_filter(Af, Bf, model.M, sim_in.y)) / max(sim_in.disturbance_energy[0], 1e-300)
+        en_in = _err_energy(sim_in, _run_filter(Af, Bf, model, sim_in.y)) / max(sim_in.disturbance_energy[0], 1e-300)
         gain_in = float(np.sqrt(en_in.mean())) if s > 0 else None
         gain_in_se = float(CL.jackknife_se(en_in[:, None], lambda mm: np.sqrt(mm[..., 0]))) if s > 0 else None
         s_w = _inside_scale(model, (Af, Bf), P, rho, worst_w, np.zeros((steps, 2)), seed + 4)
         sim_w = simulate_ross(model, steps, runs, w=s_w * worst_w, seed=seed + 5)
-        en_w = _err_energy(sim_w, _run_filter(Af, Bf, model.M, sim_w.y)) / max(sim_w.disturbance_energy[0], 1e-300)
+        en_w = _err_energy(sim_w, _run_filter(Af, Bf, model, sim_w.y)) / max(sim_w.disturbance_energy[0], 1e-300)
         gain_w = float(np.sqrt(en_w.mean())) if s_w > 0 else None
         per[key] = {
             "note": note,
@@ -608,6 +616,7 @@ def simulation_experiment(*, runs: int = 2000, seed: int = 0, progress=None, ste
         "steps": steps,
         "disturbance_energy": energy,
         "estimators": estimators,
+        "lineup": _lineup({k: c[:2] for k, c in certs.items()}),
         "per_estimator": per,
         "report_tables": report_tables,
     }

@@ -62,23 +62,16 @@ from .. import metrics as mx
 from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..channels.saturation import RandomSaturation
-from ..filters.adf_fading import FadingAssumedDensityFilter
-from ..filters.adf_protocol import ProtocolAssumedDensityFilter
-from ..filters.adf_saturation import SaturationAssumedDensityFilter
-from ..filters.assumed_density import AssumedDensityTobitFilter
-from ..filters.fading import FadingTobitKalmanFilter
-from ..filters.kalman import DroppingKalmanFilter, KalmanFilter
-from ..filters.protocol import ProtocolTobitKalmanFilter
-from ..filters.tobit import TobitKalmanFilter
+from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
 from ..pcrlb import bound_test, posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
 from . import _claims as CL
-from ._optimum import LEVEL, TOLERANCE, pf_check
+from ._optimum import LEVEL, TOLERANCE, pf_check, pf_lineup
 
-__all__ = ["run", "EXAMPLES", "random_stable_system", "optimum_ratios", "ISSUE_TABLE"]
+__all__ = ["run", "EXAMPLES", "random_stable_system", "optimum_ratios", "ISSUE_TABLE", "LINEUPS"]
 
 EXAMPLES = (
     "miller-constant",
@@ -117,15 +110,42 @@ def _rotation(omega: float, alpha: float = 1.0) -> np.ndarray:
     return alpha * np.array([[c, -s], [s, c]])
 
 
-def _censoring_estimators(sys_: LinearSystem, cens: Censoring) -> dict[str, Any]:
-    return {
-        "kf": KalmanFilter(sys_),
-        "ikf": DroppingKalmanFilter(sys_, cens),
-        "tkf": TobitKalmanFilter(sys_, cens),
-        "tkf-total-variance": TobitKalmanFilter(sys_, cens, noise_term="total_variance"),
-        "tkf-exact-pv": TobitKalmanFilter(sys_, cens, noise_term="exact_pv"),
-        "adf": AssumedDensityTobitFilter(sys_, cens),
-    }
+CENSORING_LINEUP: Lineup = {
+    "kf": ("KalmanFilter", {}),
+    "ikf": ("DroppingKalmanFilter", {}),
+    "tkf": ("TobitKalmanFilter", {}),
+    "tkf-total-variance": ("TobitKalmanFilter", {"noise_term": "total_variance"}),
+    "tkf-exact-pv": ("TobitKalmanFilter", {"noise_term": "exact_pv"}),
+    "adf": ("AssumedDensityTobitFilter", {}),
+}
+FADING_LINEUP: Lineup = {
+    "tkf-fm": ("FadingTobitKalmanFilter", {}),
+    "tkf-fm-fading-variance": ("FadingTobitKalmanFilter", {"fading_variance_term": True}),
+    "tkf-fm-exact-variance": ("FadingTobitKalmanFilter", {"exact_tobit_variance": True}),
+    "tkf-fm-both": ("FadingTobitKalmanFilter", {"fading_variance_term": True, "exact_tobit_variance": True}),
+    "tkf": ("TobitKalmanFilter", {}),
+    "adf": ("FadingAssumedDensityFilter", {}),
+}
+PROTOCOL_LINEUP: Lineup = {
+    "pbtkf-imsf": ("ProtocolTobitKalmanFilter", {}),
+    "pbtkf-imsf-second-moment": ("ProtocolTobitKalmanFilter", {"failure_term": "second_moment"}),
+    "pbtkf-imsf-literal": ("ProtocolTobitKalmanFilter", {"failure_term": "literal"}),
+    "pbtkf-imsf-lmmse": ("ProtocolTobitKalmanFilter", {"failure_term": "lmmse_unconditional"}),
+    "pbtkf": ("ProtocolBaselineTobitKalmanFilter", {}),
+    "adf": ("ProtocolAssumedDensityFilter", {}),
+}
+SATURATION_LINEUP: Lineup = {"kf": ("KalmanFilter", {}), "adf": ("SaturationAssumedDensityFilter", {})}
+LINEUPS: dict[str, Lineup] = {
+    "miller-constant": CENSORING_LINEUP,
+    "miller-brownian": CENSORING_LINEUP,
+    "miller-oscillator": CENSORING_LINEUP,
+    "geng2017-oscillator": FADING_LINEUP,
+    "geng-protocol-tracking": PROTOCOL_LINEUP,
+    "saturation-oscillator": SATURATION_LINEUP,
+    "random": CENSORING_LINEUP,
+}
+"""Each example's estimators (the random systems': ``"random"``), key -> (registry name, options)
+(:mod:`tobitkf.filters.registry`); the optimum ``pf`` is :func:`~tobitkf.experiments._optimum.pf_lineup`."""
 
 
 def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
@@ -139,7 +159,7 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
             "system": sys_f,
             "channel": cens,
             "sim": sim,
-            "estimators": _censoring_estimators(sys_f, cens),
+            "estimators": lineup(CENSORING_LINEUP, sys_f, {"censoring": cens}),
             "pcrlb": None,
             "censored": float((sim.y <= 0.0).mean()),
         }
@@ -151,7 +171,7 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
             "system": sys_,
             "channel": cens,
             "sim": sim,
-            "estimators": _censoring_estimators(sys_, cens),
+            "estimators": lineup(CENSORING_LINEUP, sys_, {"censoring": cens}),
             "pcrlb": cens,
             "censored": float((sim.y <= 0.0).mean()),
         }
@@ -165,7 +185,7 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
             "system": sys_,
             "channel": cens,
             "sim": sim,
-            "estimators": _censoring_estimators(sys_, cens),
+            "estimators": lineup(CENSORING_LINEUP, sys_, {"censoring": cens}),
             "pcrlb": cens,
             "censored": float((sim.y <= 0.0).mean()),
         }
@@ -175,16 +195,7 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
         settings = geng2017.oscillator_settings()
         sys_, fading, cens = geng2017.build("geng2017-oscillator", settings)
         sim = simulate(sys_, steps, runs, censoring=cens, measurement=fading, seed=seed)
-        est = {
-            "tkf-fm": FadingTobitKalmanFilter(sys_, fading, cens),
-            "tkf-fm-fading-variance": FadingTobitKalmanFilter(sys_, fading, cens, fading_variance_term=True),
-            "tkf-fm-exact-variance": FadingTobitKalmanFilter(sys_, fading, cens, exact_tobit_variance=True),
-            "tkf-fm-both": FadingTobitKalmanFilter(
-                sys_, fading, cens, fading_variance_term=True, exact_tobit_variance=True
-            ),
-            "tkf": TobitKalmanFilter(sys_, cens),
-            "adf": FadingAssumedDensityFilter(sys_, fading, cens),
-        }
+        est = lineup(FADING_LINEUP, sys_, {"fading": fading, "censoring": cens})
         return {
             "system": sys_,
             "channel": [fading, cens],
@@ -198,14 +209,7 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
 
         sys_, ch = geng_protocol.example_system(False), geng_protocol.example_channel()
         sim = simulate(sys_, steps, runs, channel=ch, seed=seed)
-        est = {
-            "pbtkf-imsf": ProtocolTobitKalmanFilter(sys_, ch),
-            "pbtkf-imsf-second-moment": ProtocolTobitKalmanFilter(sys_, ch, failure_term="second_moment"),
-            "pbtkf-imsf-literal": ProtocolTobitKalmanFilter(sys_, ch, failure_term="literal"),
-            "pbtkf-imsf-lmmse": ProtocolTobitKalmanFilter(sys_, ch, failure_term="lmmse_unconditional"),
-            "pbtkf": ProtocolTobitKalmanFilter.baseline(sys_, ch),
-            "adf": ProtocolAssumedDensityFilter(sys_, ch),
-        }
+        est = lineup(PROTOCOL_LINEUP, sys_, {"protocol": ch})
         return {
             "system": sys_,
             "channel": ch,
@@ -225,7 +229,7 @@ def _case(name: str, runs: int, steps: int, seed: int) -> dict[str, Any]:
         )
         sat = RandomSaturation([0.7, 0.6], [0.7, 0.75])
         sim = simulate(sys_, steps, runs, channel=sat, seed=np.random.SeedSequence([seed, 3]))
-        est = {"kf": KalmanFilter(sys_), "adf": SaturationAssumedDensityFilter(sys_, sat)}
+        est = lineup(SATURATION_LINEUP, sys_, {"saturation": sat})
         return {
             "system": sys_,
             "channel": sat,
@@ -309,7 +313,11 @@ def _pcrlb_check(system, channel, x, pf_mean) -> dict[str, Any]:
     }
 
 
-def _evaluate(case: dict[str, Any], particles: int, seed: int, progress, lo: float, hi: float) -> dict[str, Any]:
+def _evaluate(
+    case: dict[str, Any], plan: Lineup, particles: int, seed: int, progress, lo: float, hi: float
+) -> dict[str, Any]:
+    """Every estimator of ``case`` (built from the line-up ``plan``) and the optimum on the case's data;
+    ``lineup`` records ``plan`` and the optimum's particle filter."""
     sim = case["sim"]
     out: dict[str, Any] = {
         "censored_fraction": case["censored"],
@@ -324,6 +332,7 @@ def _evaluate(case: dict[str, Any], particles: int, seed: int, progress, lo: flo
     summ["pf"], pf_res = pf_check(case["system"], case["channel"], sim.y, sim.x, particles, seed)
     optimum_ratios(summ)
     out["estimators"] = summ
+    out["lineup"] = describe({**plan, "pf": pf_lineup(particles, seed)["pf"]})
     if case["pcrlb"] is not None:
         out["pcrlb"] = _pcrlb_check(case["system"], case["pcrlb"], sim.x, pf_res.mean)
     progress(hi)
@@ -464,7 +473,7 @@ def run(
     for name in examples:
         r0, t0, p0 = _OWN[name]
         case = _case(name, min(runs, r0), t0 if steps is None else min(steps, t0), seed)
-        out_ex[name] = _evaluate(case, particles or p0, seed, progress, done / total, (done + 1) / total)
+        out_ex[name] = _evaluate(case, LINEUPS[name], particles or p0, seed, progress, done / total, (done + 1) / total)
         done += 1
     out_rs: dict[str, Any] = {}
     for i in range(int(random_systems)):
@@ -478,11 +487,11 @@ def run(
             "system": sys_,
             "channel": cens,
             "sim": sim,
-            "estimators": _censoring_estimators(sys_, cens),
+            "estimators": lineup(CENSORING_LINEUP, sys_, {"censoring": cens}),
             "pcrlb": cens,
             "censored": float((at_lo | at_hi).mean()),
         }
-        ev = _evaluate(case, particles or p0, seed, progress, done / total, (done + 1) / total)
+        ev = _evaluate(case, LINEUPS["random"], particles or p0, seed, progress, done / total, (done + 1) / total)
         ev["system"] = desc
         out_rs[f"random-{i + 1:02d}"] = ev
         done += 1

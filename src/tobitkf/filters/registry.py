@@ -1,14 +1,20 @@
 r"""One registry of the estimators: name -> class, the channel pieces it takes, its options.
 
 Sweeps (:mod:`tobitkf.sweep`) build every model-mode estimator from it, so a sweep file can name any
-family on a :class:`~tobitkf.LinearSystem` (``type = "FadingTobitKalmanFilter"``, ...), and the
-the command line lists it (``tobitkf estimators``). An entry knows
+family on a :class:`~tobitkf.LinearSystem` (``type = "FadingTobitKalmanFilter"``, ...), the
+experiments (:mod:`tobitkf.experiments`) declare their line-ups of estimators as data, key ->
+(registry name, options), build them with :func:`lineup` and record them with :func:`describe`
+(``metrics["lineup"]``), and the command line lists it (``tobitkf estimators``). An entry knows
 
 * the **channel pieces** its constructor takes, by section name of a sweep file: ``censoring``
   (:class:`~tobitkf.Censoring`), ``fading`` (:class:`~tobitkf.RiceFading`), ``protocol``
-  (:class:`~tobitkf.ProtocolChannel`);
-* its **options**: name -> the allowed values (a tuple) or the type of a number (``float``, ``int``);
-  ``required`` lists the ones without a default;
+  (:class:`~tobitkf.ProtocolChannel`); and two no sweep file describes: ``saturation``
+  (:class:`~tobitkf.RandomSaturation`) and the delay family's ``prior``
+  (:class:`~tobitkf.models.delay.HistoryPrior`);
+* its **options**: name -> the allowed values (a tuple), the type of a number (``float``, ``int``),
+  or ``object`` for a value no TOML scalar expresses (the H∞ filter's designed gains, the particle
+  filter's seed: an int, a :class:`numpy.random.SeedSequence` or a Generator), which the estimator
+  checks itself; ``required`` lists the ones without a default;
 * what it **reads**: ``"y"``, the readings the channel delivers, or ``"latent"``, the sensor's latent
   readings, which the estimator censors itself at a limit it sets (the controlled-limit filters);
 * its **model** kind (``"linear"``; the delay family's ``"delay"``, the H∞ filter's ``"ross"`` and the
@@ -17,7 +23,19 @@ the command line lists it (``tobitkf estimators``). An entry knows
 
 >>> from tobitkf.filters.registry import get
 >>> get("TobitKalmanFilter").needs, sorted(get("TobitKalmanFilter").options)
-(('censoring',), ['covariance_update', 'noise_term'])
+(('censoring',), ['backend', 'covariance_update', 'noise_term', 'threads'])
+
+A line-up, built and described:
+
+>>> import tobitkf as tk
+>>> from tobitkf.filters.registry import describe, lineup
+>>> sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.1]], R=[[0.5]], x0=[0.0], P0=[[1.0]])
+>>> plan = {"kf": ("KalmanFilter", {}), "tkf-tv": ("TobitKalmanFilter", {"noise_term": "total_variance"})}
+>>> est = lineup(plan, sys_, {"censoring": tk.Censoring(lower=0.0)})
+>>> type(est["tkf-tv"]).__name__, est["tkf-tv"].noise_term
+('TobitKalmanFilter', 'total_variance')
+>>> describe(plan)["tkf-tv"]
+{'type': 'TobitKalmanFilter', 'options': {'noise_term': 'total_variance'}}
 """
 
 from __future__ import annotations
@@ -27,7 +45,7 @@ from typing import Any, Callable, Mapping
 
 from .._validation import ValidationError
 
-__all__ = ["Entry", "ENTRIES", "get", "names"]
+__all__ = ["Entry", "ENTRIES", "get", "names", "make", "lineup", "describe", "parts_of", "Lineup"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +70,19 @@ class Entry:
             An unknown or missing option, or a channel piece the entry needs but was not given.
         """
         options = dict(options or {})
+        self.check(options, parts)
+        return self.factory(system, parts, options)
+
+    def check(self, options: Mapping[str, Any], parts: Mapping[str, Any] | None = None) -> None:
+        """What :meth:`build` checks before it builds: every option known, every required one given, and
+        (when ``parts`` is given) every channel piece the entry needs present. The values are the
+        estimator's to check.
+
+        Raises
+        ------
+        ValidationError
+            An unknown or missing option, or a channel piece the entry needs but was not given.
+        """
         for key in options:
             if key not in self.options:
                 raise ValidationError(
@@ -60,10 +91,9 @@ class Entry:
         for key in self.required:
             if key not in options:
                 raise ValidationError(f"{key}: {self.name} needs this option")
-        for part in self.needs:
-            if parts.get(part) is None:
+        for part in self.needs if parts is not None else ():
+            if parts is not None and parts.get(part) is None:
                 raise ValidationError(f"{part}: {self.name} needs the channel piece [{part}]")
-        return self.factory(system, parts, options)
 
     def run(self, estimator: Any, data: Any, **kwargs: Any) -> Any:
         """Filter the simulated ``data`` (:class:`~tobitkf.SimulationData`) with what the entry reads."""
@@ -163,6 +193,29 @@ def _delay(cls_name):
     return make
 
 
+def _sadf(system, parts, o):
+    from .adf_saturation import SaturationAssumedDensityFilter
+
+    return SaturationAssumedDensityFilter(system, parts["saturation"], **o)
+
+
+def _pf(system, parts, o):
+    from .particle import ParticleFilter
+
+    return ParticleFilter(system, _pf_channel(parts), **o)
+
+
+def _pf_channel(parts):
+    """The particle filter's channel from the pieces given: the reading model (``protocol``, else
+    ``saturation``, else ``fading``, else none) and the ``censoring`` (not with the protocol channel,
+    which censors at its own threshold); the same rule as a sweep point's channel."""
+    if parts.get("protocol") is not None:
+        return parts["protocol"]
+    drawer = parts.get("saturation") if parts.get("saturation") is not None else parts.get("fading")
+    pieces = [p for p in (drawer, parts.get("censoring")) if p is not None]
+    return pieces[0] if len(pieces) == 1 else (pieces or None)
+
+
 def _hinf(system, parts, o):
     from .hinf import RegionalHinfFilter
 
@@ -217,6 +270,7 @@ _ENTRY_LIST = [
             "xi_uncensored": float,
             "side": ("upper", "lower"),
             "noise_term": ("dissertation", "total_variance", "exact_pv"),
+            "backend": _BACKENDS,  # no compiled path: "auto" and "numpy" run numpy, "numba" refuses
         },
         required=("xi_uncensored",),
         reads="latent",
@@ -282,6 +336,25 @@ _ENTRY_LIST = [
         options={"covariance_update": _FORMS, "nodes": int},
     ),
     Entry(
+        "SaturationAssumedDensityFilter",
+        "assumed-density filter for random saturation with missing readings (beyond the sources)",
+        _sadf,
+        needs=("saturation",),
+        options={"covariance_update": _FORMS},
+    ),
+    Entry(
+        "ParticleFilter",
+        "bootstrap / optimal-proposal particle filter on any channel: the Bayes optimum (beyond the sources)",
+        _pf,
+        options={
+            "particles": int,
+            "resample_threshold": float,
+            "proposal": ("auto", "optimal", "prior"),
+            "seed": object,
+        },
+        required=("seed",),  # a registry-built particle filter draws the same particles on every run
+    ),
+    Entry(
         "ChainLMMSE",
         "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
         _delay("ChainLMMSE"),
@@ -309,7 +382,7 @@ _ENTRY_LIST = [
         "RegionalHinfFilter",
         "regional H-infinity filter with given gains (Wang, Shen & Liu)",
         _hinf,
-        options={"Af": list, "Bf": list},
+        options={"Af": object, "Bf": object},  # the designed gains (n, n) and (n, m), array_like
         required=("Af", "Bf"),
         model="ross",
     ),
@@ -345,3 +418,129 @@ def get(name: str) -> Entry:
 def names(model: str | None = None) -> list[str]:
     """The registered names (of one model kind, e.g. ``"linear"``, when given)."""
     return [k for k, e in ENTRIES.items() if model is None or e.model == model]
+
+
+Lineup = Mapping[str, tuple[str, Mapping[str, Any]]]
+"""A line-up of estimators as data: key -> (registry name, options)."""
+
+
+def make(
+    name: str,
+    system: Any,
+    *,
+    censoring: Any = None,
+    fading: Any = None,
+    protocol: Any = None,
+    saturation: Any = None,
+    prior: Any = None,
+    **options: Any,
+) -> Any:
+    """The estimator ``name`` of the registry for ``system``, its channel pieces and ``options``.
+
+    The pieces given (not None) are the ``parts`` of :meth:`Entry.build`, whose checks apply.
+
+    Raises
+    ------
+    ValidationError
+        An unknown name, an unknown or missing option, a piece the entry needs but was not given.
+
+    >>> import tobitkf as tk
+    >>> sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.1]], R=[[0.5]], x0=[0.0], P0=[[1.0]])
+    >>> make("DroppingKalmanFilter", sys_, censoring=tk.Censoring(lower=0.0), rtol=1e-9).rtol
+    1e-09
+    >>> make("DroppingKalmanFilter", sys_)
+    Traceback (most recent call last):
+    ...
+    tobitkf._validation.ValidationError: censoring: DroppingKalmanFilter needs the channel piece [censoring]
+    """
+    given = {"censoring": censoring, "fading": fading, "protocol": protocol, "saturation": saturation, "prior": prior}
+    return get(name).build(system, {k: v for k, v in given.items() if v is not None}, options)
+
+
+def parts_of(channel: Any) -> dict[str, Any]:
+    """The channel pieces of ``channel`` (one piece, a list of pieces, or None) by section name:
+    :class:`~tobitkf.Censoring` -> ``censoring``, :class:`~tobitkf.RiceFading` -> ``fading``,
+    :class:`~tobitkf.ProtocolChannel` -> ``protocol``, :class:`~tobitkf.RandomSaturation` -> ``saturation``.
+
+    Raises
+    ------
+    ValidationError
+        A piece of another type, or two pieces of one section.
+
+    >>> import tobitkf as tk
+    >>> sorted(parts_of([tk.RandomSaturation([0.5], [0.9]), tk.Censoring(lower=0.0)]))
+    ['censoring', 'saturation']
+    """
+    from ..channels.censoring import Censoring
+    from ..channels.fading import RiceFading
+    from ..channels.protocol import ProtocolChannel
+    from ..channels.saturation import RandomSaturation
+
+    kinds = {Censoring: "censoring", RiceFading: "fading", ProtocolChannel: "protocol", RandomSaturation: "saturation"}
+    pieces = [] if channel is None else list(channel) if isinstance(channel, (list, tuple)) else [channel]
+    out: dict[str, Any] = {}
+    for piece in pieces:
+        section = next((v for k, v in kinds.items() if isinstance(piece, k)), None)
+        if section is None:
+            raise ValidationError(
+                f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation pieces, "
+                f"got {type(piece).__name__}"
+            )
+        if section in out:
+            raise ValidationError(f"channel: two {section} pieces; expected at most one of each")
+        out[section] = piece
+    return out
+
+
+def _check_lineup(plan: Lineup) -> None:
+    if not isinstance(plan, Mapping):
+        raise ValidationError(f"lineup: expected a mapping key -> (registry name, options), got {type(plan).__name__}")
+    for key, item in plan.items():
+        if not (isinstance(item, tuple) and len(item) == 2 and isinstance(item[1], Mapping)):
+            raise ValidationError(f"lineup[{key!r}]: expected a pair (registry name, options mapping), got {item!r}")
+        get(item[0]).check(item[1])
+
+
+def lineup(plan: Lineup, system: Any, parts: Mapping[str, Any]) -> dict[str, Any]:
+    """The estimators of a line-up: ``{key: get(name).build(system, parts, options)}``, in the
+    order of ``plan`` (``plan`` maps key -> (registry name, options); ``parts`` section name -> piece,
+    as for :meth:`Entry.build`; a piece an entry does not use is ignored by it).
+
+    Raises
+    ------
+    ValidationError
+        A malformed line-up, an unknown name, or what :meth:`Entry.build` raises.
+    """
+    _check_lineup(plan)
+    return {key: get(name).build(system, parts, options) for key, (name, options) in plan.items()}
+
+
+def _jsonable(value: Any) -> Any:
+    import numpy as np
+
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (np.integer, np.floating, np.bool_)):
+        return value.item()
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return np.asarray(value).tolist()
+    if isinstance(value, np.random.SeedSequence):
+        return {"SeedSequence": np.asarray(value.entropy).tolist(), "spawn_key": list(value.spawn_key)}
+    return repr(value)
+
+
+def describe(plan: Lineup) -> dict[str, dict[str, Any]]:
+    """A line-up as JSON-able data, ``{key: {"type": name, "options": {...}}}`` (for ``metrics["lineup"]``):
+    numbers, strings and booleans as they are, arrays as nested lists, a SeedSequence as its entropy
+    and spawn key, anything else as its ``repr``.
+
+    Raises
+    ------
+    ValidationError
+        A malformed line-up or an unknown name.
+    """
+    _check_lineup(plan)
+    return {
+        key: {"type": name, "options": {k: _jsonable(v) for k, v in options.items()}}
+        for key, (name, options) in plan.items()
+    }

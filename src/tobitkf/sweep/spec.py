@@ -74,11 +74,15 @@ __all__ = ["SweepFileError", "SweepSpec", "load_sweep", "parse_sweep", "ESTIMATO
 def _estimator_types() -> dict[str, tuple[str, ...]]:
     from ..filters.registry import ENTRIES
 
-    return {name: tuple(e.options) for name, e in ENTRIES.items() if e.model == "linear"}
+    return {
+        name: tuple(e.options) for name, e in ENTRIES.items() if e.model == "linear" and set(e.needs) <= _SWEEP_PIECES
+    }
 
 
-# estimator types a sweep file may name (every registered family on a LinearSystem, tobitkf.filters.registry),
-# with the options each accepts (checked on load)
+# the channel pieces a sweep file describes (its sections)
+_SWEEP_PIECES = {"censoring", "fading", "protocol"}
+# estimator types a sweep file may name (every registered family on a LinearSystem whose channel pieces a
+# sweep file describes, tobitkf.filters.registry), with the options each accepts (checked on load)
 ESTIMATOR_TYPES: dict[str, tuple[str, ...]] = _estimator_types()
 _SWEEP_KEYS = {"runs", "steps", "seed", "block_runs", "chunk_blocks", "name", "experiment"}
 _MODEL_KEYS = {"A", "C", "Q", "R", "x0", "P0", "B"}
@@ -399,8 +403,10 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
                 raise _fail(
                     text,
                     f"estimators.{key}.type",
-                    f"{est['type']} is not a family on a linear model (its model: "
-                    f"{ENTRIES[est['type']].model}); sweep it through its experiment (sweep.experiment)",
+                    f"{est['type']} is not a family on a linear model with the channel pieces of a sweep file "
+                    f"(its model: {ENTRIES[est['type']].model}, its pieces: "
+                    f"{', '.join(ENTRIES[est['type']].needs) or 'none'}); sweep it through its experiment "
+                    "(sweep.experiment)",
                 )
             if not isinstance(est["type"], str) or est["type"] not in ESTIMATOR_TYPES:
                 raise _fail(
