@@ -7,8 +7,10 @@ and then measures the call on all runs in two ways:
 
 * **traced**: the peak of ``tracemalloc`` (every numpy allocation, so the outputs and any copies of the
   input; numba's internal scratch is not traced, it is a few kB per block of runs);
-* **RSS**: the growth of the process's peak resident set (``ru_maxrss``) across the call, which sees
-  every allocation that was touched, numba's included.
+* **RSS**: the process's peak resident set during the call (``VmHWM`` of ``/proc/self/status``, reset
+  to the current resident set just before the call by writing 5 to ``/proc/self/clear_refs``) minus the
+  resident set before it: every allocation that was touched, numba's included (Linux only; elsewhere
+  the column is NaN).
 
 Both are printed as multiples of the means array ``(N, T, n)`` float64 that the call returns. Issue 19's
 target: means only, 10^5 runs x 100 steps, peak increment at most 1.3x the means array.
@@ -60,9 +62,26 @@ def _problem(name: str):
     return sys_, {"censoring": cens}, lambda: tk.TobitKalmanFilter(sys_, cens, backend=backend)
 
 
+def _status_kb(field: str) -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(field + ":"):
+                return float(line.split()[1])
+    return float("nan")
+
+
+def _rss_reset() -> float:
+    """Reset the peak resident set to the current one; return the current one in bytes (NaN off Linux)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return _status_kb("VmRSS") * 1024
+    except OSError:
+        return float("nan")
+
+
 def child(name: str, outputs_key: str, path: str) -> None:
     """Measure one call (run in a fresh process); prints one JSON line."""
-    import resource
     import tracemalloc
 
     _, _, make = _problem(name)
@@ -70,12 +89,12 @@ def child(name: str, outputs_key: str, path: str) -> None:
     est = make()
     outputs = OUTPUTS[outputs_key]
     est.filter(y[:100], outputs=outputs)  # compile and warm up
-    base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+    base = _rss_reset()
     tracemalloc.start()
     res = est.filter(y, outputs=outputs)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
-    grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 - base
+    grown = _status_kb("VmHWM") * 1024 - base if base == base else float("nan")
     means = res.mean.nbytes
     print(json.dumps({"traced": peak / means, "rss": grown / means, "means_mb": means / 1e6}))
 

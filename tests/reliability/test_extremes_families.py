@@ -21,6 +21,7 @@ import tobitkf as tk
 from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.design.hinf import WANG2010_PAPER
+from tobitkf.filters._backend import numba_available
 from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.filters.hinf import RegionalHinfFilter
@@ -190,21 +191,30 @@ _NEEDS_SQRT = "P0/R = 1e20 with an unseen direction: needs the square-root form 
 
 
 @pytest.mark.parametrize(
-    "form",
+    "form,backend",
     [
+        # the compiled standard form (the default backend's) is indefinite here (-1.2 x scale, measured)
         pytest.param(
             "standard",
-            marks=pytest.mark.xfail(strict=True, reason=_NEEDS_SQRT + "; the plain form stays indefinite (-3 x scale)"),
+            "numba",
+            marks=[
+                pytest.mark.xfail(strict=True, reason=_NEEDS_SQRT + "; the compiled plain form is indefinite"),
+                pytest.mark.skipif(not numba_available(), reason="needs numba"),
+            ],
         ),
+        # the numpy standard form's rounding happens to stay PSD on this case (measured); which way it
+        # falls moves with the order of the operations: not strict (a backend="auto" that ran numpy once
+        # made the strict form of this test, which did not name the backend, XPASS)
+        pytest.param("standard", "numpy", marks=pytest.mark.xfail(strict=False, reason=_NEEDS_SQRT)),
         # the Joseph form is at rounding level here (-6e-3 x its own scale, within 1e-9 of the prior's
         # scale as measured today; it moves with any change of rounding): not strict
-        pytest.param("joseph", marks=pytest.mark.xfail(strict=False, reason=_NEEDS_SQRT)),
-        "square_root",
+        pytest.param("joseph", "auto", marks=pytest.mark.xfail(strict=False, reason=_NEEDS_SQRT)),
+        ("square_root", "auto"),
     ],
 )
-def test_huge_prior_with_near_singular_R_together_needs_square_root_form(form):
+def test_huge_prior_with_near_singular_R_together_needs_square_root_form(form, backend):
     s, data = _hard_case()
-    out = tk.KalmanFilter(s, covariance_update=form).filter(data.y)
+    out = tk.KalmanFilter(s, covariance_update=form, backend=backend).filter(data.y)
     assert_healthy(out.mean, out.cov, out.pred_cov)
 
 
