@@ -223,7 +223,124 @@ def case_hinf(batch, rng, backend="numpy", form="standard"):
     return est, rng.normal(size=batch + (10, 1)), None
 
 
+def _tv_system(m=1, D=None, **kw):
+    """Time-varying A (callable) and C (array over time), a control input through Bu (and D if given)."""
+    T = 14
+    Cs = np.stack([np.array([[1.0, 0.02 * k], [0.3, 1.0]])[:m] for k in range(1, T + 2)])
+    base = dict(
+        A=lambda k: np.array([[0.95, 0.1], [-0.05, 0.9 + 0.002 * k]]),
+        C=np.concatenate([Cs[:1], Cs]),  # index 0 unused: the first reading is at k = 1
+        Q=1e-2 * np.eye(2),
+        R=np.diag([0.05, 0.1][:m]),
+        x0=[0.5, 0.2],
+        P0=np.eye(2),
+        Bu=[[0.0], [1.0]],
+        D=D,
+    )
+    base.update(kw)
+    return tk.LinearSystem(**base)
+
+
+def _inputs(batch, rng, T):
+    N = int(np.prod(batch)) if batch else 1
+    u = 0.1 * rng.standard_normal(batch + (T, 1))
+    return N, u, u.reshape(N, T, 1)
+
+
+def case_adf(batch, rng, backend="numpy", form="standard"):
+    """The assumed-density Tobit filter: time-varying A, C and two-sided limits, inputs through Bu and D."""
+    T = 12
+    sys_ = _tv_system(m=2, D=[[0.1], [0.0]])
+    cens = tk.Censoring(lower=np.linspace(-0.5, 0.2, T)[:, None] * np.ones((1, 2)), upper=1.0)
+    N, u, u3 = _inputs(batch, rng, T)
+    d = tk.simulate(sys_, T, N, censoring=cens, inputs=u3, seed=17)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 2))
+    return tk.AssumedDensityTobitFilter(sys_, cens, covariance_update=form), y, u
+
+
+def case_adf_fading(batch, rng, backend="numpy", form="standard"):
+    """The fading ADF of order 2: time-varying A and C, inputs through Bu and D, censoring at 0."""
+    from tobitkf.channels.fading import RiceFading
+
+    T = 12
+    sys_ = _tv_system(m=1, D=[[0.2]])
+    fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
+    cens = tk.Censoring(lower=0.0)
+    N, u, u3 = _inputs(batch, rng, T)
+    d = tk.simulate(sys_, T, N, censoring=cens, measurement=fad, inputs=u3, seed=18)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 1))
+    return tk.FadingAssumedDensityFilter(sys_, fad, cens, covariance_update=form), y, u
+
+
+def case_adf_protocol(batch, rng, backend="numpy", form="standard"):
+    """The protocol ADF (window 2, the example's failure law, tau = 0): time-varying A and C, inputs
+    through Bu (the channel has no feedthrough D: refused, test_channels_without_feedthrough_refuse_u_with_D)."""
+    from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
+
+    T = 12
+    sys_ = _tv_system(m=2, R=np.diag([1.0, 0.5]), x0=[5.0, 0.0])
+    ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    N, u, u3 = _inputs(batch, rng, T)
+    d = tk.simulate(sys_, T, N, channel=ch, inputs=u3, seed=19)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 1))
+    return tk.ProtocolAssumedDensityFilter(sys_, ch, covariance_update=form), y, u
+
+
+def case_adf_saturation(batch, rng, backend="numpy", form="standard"):
+    """The saturation ADF (the H-infinity example's probabilities): time-varying A and C, inputs through Bu."""
+    T = 12
+    sys_ = _tv_system(m=2)
+    ch = tk.RandomSaturation([0.3, 0.2], [0.8, 0.9], level=0.5)
+    N, u, u3 = _inputs(batch, rng, T)
+    d = tk.simulate(sys_, T, N, channel=ch, inputs=u3, seed=20)
+    y = with_gaps(d.y, rng).reshape(batch + (T, 2))
+    return tk.SaturationAssumedDensityFilter(sys_, ch, covariance_update=form), y, u
+
+
+def _particle(batch, rng, piece, sys_, seed, particles=64, **sim):
+    T = 12
+    N, u, u3 = _inputs(batch, rng, T)
+    d = tk.simulate(sys_, T, N, inputs=u3, seed=seed, **sim)
+    y = with_gaps(d.y, rng).reshape(batch + (T, d.y.shape[-1]))
+    return tk.ParticleFilter(sys_, piece, particles=particles, seed=seed), y, u
+
+
+def case_pf(batch, rng, backend="numpy", form="standard", particles=64):
+    """The particle filter on censored readings (optimal proposal): time-varying A, C and limits, Bu and D."""
+    sys_ = _tv_system(m=2, D=[[0.1], [0.0]])
+    cens = tk.Censoring(lower=np.linspace(-0.5, 0.2, 12)[:, None] * np.ones((1, 2)), upper=1.0)
+    return _particle(batch, rng, cens, sys_, 21, particles, censoring=cens)
+
+
+def case_pf_fading(batch, rng, backend="numpy", form="standard", particles=64):
+    from tobitkf.channels.fading import RiceFading
+
+    fad = RiceFading.gaussian(1, [0.9, 0.6], [0.01, 0.01])
+    return _particle(batch, rng, fad, _tv_system(m=1, D=[[0.2]]), 22, particles, measurement=fad)
+
+
+def case_pf_protocol(batch, rng, backend="numpy", form="standard", particles=64):
+    from tobitkf.channels.laws import PMF
+    from tobitkf.channels.protocol import ProtocolChannel
+
+    ch = ProtocolChannel(2, window=1, failures=PMF([0.0, 1.0], [0.2, 0.8]), threshold=0.0)
+    return _particle(batch, rng, ch, _tv_system(m=2), 23, particles, channel=ch)
+
+
+def case_pf_saturation(batch, rng, backend="numpy", form="standard", particles=64):
+    ch = tk.RandomSaturation([0.3, 0.2], [0.8, 0.9], level=0.5)
+    return _particle(batch, rng, ch, _tv_system(m=2), 24, particles, channel=ch)
+
+
 CASES = {
+    "adf": case_adf,
+    "adf-fading": case_adf_fading,
+    "adf-protocol": case_adf_protocol,
+    "adf-saturation": case_adf_saturation,
+    "pf": case_pf,
+    "pf-fading": case_pf_fading,
+    "pf-protocol": case_pf_protocol,
+    "pf-saturation": case_pf_saturation,
     "fkf": case_fkf,
     "cltkf": case_cltkf,
     "pbtkf": case_pbtkf,
@@ -314,7 +431,11 @@ def test_compiled_step_equals_numpy_step(name):
     np.testing.assert_allclose(c_nb, c_np, rtol=0, atol=TOL)
 
 
-@pytest.mark.parametrize("name", ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv", "fading", "protocol"])
+@pytest.mark.parametrize(
+    "name",
+    ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv", "fading", "protocol"]
+    + ["adf", "adf-fading", "adf-protocol", "adf-saturation"],
+)
 def test_square_root_form_equals_standard(name):
     rng = np.random.default_rng(3)
     std, y, u = CASES[name]((4,), rng)
@@ -337,7 +458,11 @@ def test_missing_reading_only_predicts():
     assert not np.allclose(s1.mean[1], pred.mean[1])
 
 
-@pytest.mark.parametrize("name", ["protocol", "fading", "tkf", "dkf", "fkf", "multi-region"])
+@pytest.mark.parametrize(
+    "name",
+    ["protocol", "fading", "tkf", "dkf", "fkf", "multi-region"]
+    + ["adf", "adf-fading", "adf-protocol", "adf-saturation"],
+)
 def test_a_lost_reading_only_predicts_in_every_family(name):
     """A NaN reading of one run: that run's state after the step is the prediction (mean and covariance),
     the other runs are updated."""
@@ -352,6 +477,56 @@ def test_a_lost_reading_only_predicts_in_every_family(name):
     np.testing.assert_allclose(s1.mean[0], pred.mean[0], rtol=0, atol=TOL)
     np.testing.assert_allclose(P1[0], Pp[0], rtol=0, atol=TOL)
     assert np.abs(P1[1:] - Pp[1:]).max() > 1e-6  # the others are updated
+
+
+@pytest.mark.parametrize("name", ["pf", "pf-fading", "pf-protocol", "pf-saturation"])
+def test_a_lost_reading_only_predicts_in_the_particle_filter(name):
+    """A NaN reading of one run: its log-weights are unchanged (exactly), its likelihood term is 0, and its
+    particles are the transition of the carried cloud: their weighted mean is A m + B^u u, m the weighted
+    mean of the carried particles, up to sum_i W_i G z_i, of covariance Q / ESS (|z| < 5; measured N(0, 1)
+    over 30 seeds for each channel). The optimal proposals draw the transition noise their own way, so no
+    exact equality. The other runs are updated."""
+    est, y, u = CASES[name]((3,), np.random.default_rng(5), particles=20000)
+    s1 = est.step(est.init((3,)), y[:, 0], u=u[:, 0])
+    yk = np.where(np.isnan(y[:, 1]), 0.0, y[:, 1])  # complete readings (0: valid for every case), run 0 lost
+    yk[0] = np.nan
+    res = est.filter(yk[:, None], u=u[:, 1:2], state=s1)
+    ll = res.extras["log_likelihood"][:, 0]
+    assert ll[0] == 0.0 and not res.extras["resampled"][0, 0] and np.all(ll[1:] != 0.0)
+    np.testing.assert_array_equal(res.final.carry["log_weights"][0], s1.carry["log_weights"][0])
+    W, X = np.exp(s1.carry["log_weights"][0]), s1.carry["particles"][0][:, : est.n]
+    pred = est.system.transition(1) @ (W @ X) + est.system.Bu.at(2) @ u[0, 1]
+    z = (res.mean[0, 0] - pred) / np.sqrt(np.diagonal(est.system.process_cov(1)) * (W @ W))
+    assert np.all(np.abs(z) < 5.0), z
+    np.testing.assert_array_equal(res.final.carry["particles"][0][:, est.n :], s1.carry["particles"][0][:, : -est.n])
+
+
+def test_channels_without_feedthrough_refuse_u_with_D():
+    """The protocol and random-saturation readings have no D u (the simulator adds none): with a system
+    that has D, a control input is refused with the reason (it used to be dropped silently), by the
+    assumed-density filters and the particle filter, in filter, step and update; Bu alone is taken."""
+    from tobitkf.channels.laws import PMF
+    from tobitkf.channels.protocol import ProtocolChannel
+
+    sys_ = _tv_system(m=2, D=[[1.0], [0.5]])
+    prot = ProtocolChannel(2, window=1, failures=PMF([0.0, 1.0], [0.2, 0.8]), threshold=0.0)
+    sat = tk.RandomSaturation([0.3, 0.2], [0.8, 0.9], level=0.5)
+    u = np.ones((2, 3, 1))
+    for est, m, why in [
+        (tk.ProtocolAssumedDensityFilter(sys_, prot), 1, "protocol channel's reading .*has no feedthrough D u"),
+        (tk.SaturationAssumedDensityFilter(sys_, sat), 2, "saturation filter's reading .*has no feedthrough D u"),
+        (tk.ParticleFilter(sys_, prot, particles=8, seed=0), 1, "protocol channel's reading has no feedthrough"),
+        (tk.ParticleFilter(sys_, sat, particles=8, seed=0), 2, "random-saturation channel's reading has no feedth"),
+    ]:
+        y = np.full((2, 3, m), 0.1)
+        with pytest.raises(tk.ValidationError, match=f"u: the {why}"):
+            est.filter(y, u=u)
+        with pytest.raises(tk.ValidationError, match=f"u: the {why}"):
+            est.step(est.init((2,)), y[:, 0], u=u[:, 0])
+        if not isinstance(est, tk.ParticleFilter):
+            with pytest.raises(tk.ValidationError, match=f"u: the {why}"):
+                est.update(est.predict(est.init((2,)), u=u[:, 0]), y[:, 0])
+        est.filter(y)  # no input: fine
 
 
 def test_predict_then_update_equals_step():

@@ -360,6 +360,39 @@ def test_square_root_form_of_the_other_gaussian_families_on_the_hard_case():
                 assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2))), name
 
 
+def test_square_root_form_of_the_assumed_density_families_on_the_hard_case():
+    """The fading ADF (L = 0, unit deterministic gain, no limits), the protocol ADF (one sensor, no window,
+    no failures, tau = -inf) and the saturation ADF (mu = 0: never saturated; nu = 1: always arriving)
+    reduce to the KF here: in square-root form each matches the 60-digit reference to 1e-6 and stays PSD
+    on the hard case (tolerances as above)."""
+    from tobitkf.channels.fading import RiceFading
+    from tobitkf.channels.protocol import ProtocolChannel
+
+    s, data = _hard_case()
+    s1 = tk.LinearSystem(A=s.A.array, C=s.C.array[:1], Q=s.Q.array, R=s.R.array[:1, :1], x0=s.x0, P0=s.P0)
+    y1 = data.y[..., :1]
+    sq = "square_root"
+    cases = [
+        (s, data.y, tk.FadingAssumedDensityFilter(s, RiceFading(0, [1.0]), covariance_update=sq)),
+        (s1, y1, tk.ProtocolAssumedDensityFilter(s1, ProtocolChannel(1), covariance_update=sq)),
+        (
+            s,
+            data.y,
+            tk.SaturationAssumedDensityFilter(s, tk.RandomSaturation([0.0, 0.0], [1.0, 1.0]), covariance_update=sq),
+        ),
+    ]
+    for sys_, y, est in cases:
+        for r in range(y.shape[0]):
+            mean, cov, pcov = _decimal_kf(sys_, y[r])
+            out = est.filter(y[r])
+            name = type(est).__name__
+            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6, name
+            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
+                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6, name
+                eig = np.linalg.eigvalsh(got)
+                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2))), name
+
+
 def test_square_root_tobit_filter_on_the_hard_case_with_limits():
     """The TKF in square-root form stays healthy on the hard case with active two-sided limits."""
     s, data = _hard_case()

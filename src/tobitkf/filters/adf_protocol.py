@@ -106,7 +106,9 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
     Raises
     ------
     ValidationError
-        A failure law without a finite representation, non-diagonal or non-positive R, bad option.
+        A failure law without a finite representation, non-diagonal or non-positive R, bad option; (when
+        filtering) a control input ``u`` with a system that has a feedthrough D (the reading (2) has none:
+        u enters through Bu).
     ShapeError
         A system whose C does not have one row per sensor.
 
@@ -188,6 +190,11 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
         return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
 
     def _project(self, k, xp, Pp, Sp, y, u=None):
+        if u is not None and self.system.D is not None:
+            raise ValidationError(
+                "u: the protocol channel's reading (2) has no feedthrough D u (it would be ambiguous whether "
+                "D u is scaled by the failure gain); give the system no D (a control input enters through Bu only)"
+            )
         order = self.channel.schedule.order
         h = int(order[(k - 1) % order.size]) - 1
         Cc = np.tile(self.system.measurement(k)[h], self.ell + 1)

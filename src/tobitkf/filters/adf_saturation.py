@@ -125,7 +125,8 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
     Raises
     ------
     ValidationError
-        A non-diagonal or non-positive R, bad option or argument type.
+        A non-diagonal or non-positive R, bad option or argument type; (when filtering) a control input
+        ``u`` with a system that has a feedthrough D (the saturated reading (2) has none: u enters through Bu).
     ShapeError
         A channel whose sensor count differs from the system's m.
 
@@ -171,6 +172,11 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
         return np.diagonal(R)
 
     def _project(self, k, xp, Pp, Sp, y, u=None):
+        if u is not None and self.system.D is not None:
+            raise ValidationError(
+                "u: the saturation filter's reading (2) has no feedthrough D u (it would be ambiguous whether "
+                "D u is saturated); give the system no D (a control input enters through Bu only)"
+            )
         C, r = self.system.measurement(k), self._variances(k)
         N, m = y.shape
         x, P, S = xp, Pp, Sp

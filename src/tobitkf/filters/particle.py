@@ -941,8 +941,14 @@ class ParticleFilter(Estimator):
     _step_input = LinearGaussianFamily._step_input
 
     def _feedthrough(self, k, u):
-        if u is None or self.system.D is None or isinstance(self.model, (_Protocol, _Saturation)):
+        if u is None or self.system.D is None:
             return 0.0
+        if isinstance(self.model, (_Protocol, _Saturation)):
+            what = "protocol" if isinstance(self.model, _Protocol) else "random-saturation"
+            raise ValidationError(
+                f"u: the {what} channel's reading has no feedthrough D u (the simulator does not add it "
+                "either); give the system no D (a control input enters through Bu only)"
+            )
         return u @ self.system.D.at(k).T
 
     def _state_dim(self) -> int:
@@ -1033,7 +1039,9 @@ class ParticleFilter(Estimator):
         ShapeError
             Malformed ``y``, ``u`` or prior.
         ValidationError
-            A reading outside its censoring limits, NaN-free checks of the inputs.
+            A reading outside its censoring limits, NaN-free checks of the inputs; a control input ``u``
+            with a system that has a feedthrough D on the protocol or random-saturation channel (their
+            readings have none: u enters through Bu).
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
