@@ -502,9 +502,10 @@ def test_a_lost_reading_only_predicts_in_the_particle_filter(name):
 
 
 def test_channels_without_feedthrough_refuse_u_with_D():
-    """The protocol and random-saturation readings have no D u (the simulator adds none): with a system
-    that has D, a control input is refused with the reason (it used to be dropped silently), by the
-    assumed-density filters and the particle filter, in filter, step and update; Bu alone is taken."""
+    """The protocol and random-saturation readings have no D u: with a system that has D, a control input
+    is refused with the reason (it used to be dropped silently), by the assumed-density filters and the
+    particle filter, in filter, step and update, and by the simulator's draw of those channels; Bu alone
+    is taken."""
     from tobitkf.channels.laws import PMF
     from tobitkf.channels.protocol import ProtocolChannel
 
@@ -527,6 +528,10 @@ def test_channels_without_feedthrough_refuse_u_with_D():
             with pytest.raises(tk.ValidationError, match=f"u: the {why}"):
                 est.update(est.predict(est.init((2,)), u=u[:, 0]), y[:, 0])
         est.filter(y)  # no input: fine
+    for ch, why in [(prot, "protocol channel's reading"), (sat, "randomly saturated reading")]:
+        with pytest.raises(tk.ValidationError, match=f"u: the {why} \\(2\\) has no feedthrough D u"):
+            tk.simulate(sys_, 3, 2, channel=ch, inputs=u, seed=0)
+        tk.simulate(sys_, 3, 2, channel=ch, seed=0)  # no input: fine
 
 
 def test_predict_then_update_equals_step():

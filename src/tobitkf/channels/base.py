@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Channel"]
+__all__ = ["Channel", "refuse_feedthrough"]
 
 
 class Channel:
@@ -57,3 +57,16 @@ class Channel:
     def measures(self) -> bool:
         """True when the channel replaces the linear reading (overrides :meth:`draw`)."""
         return type(self).draw is not Channel.draw
+
+
+def refuse_feedthrough(system: Any, inputs: Any, reading: str) -> None:
+    """Raise :class:`~tobitkf.ValidationError` for control ``inputs`` on a ``system`` with a feedthrough D when
+    the channel's ``reading`` replaces :math:`Cx + Du + v` by a model without a :math:`Du` term (the
+    protocol channel's integral reading, the randomly saturated one): drawing it would drop D u silently,
+    as its filters would (they refuse it the same way)."""
+    if inputs is not None and getattr(system, "D", None) is not None:
+        from .._validation import ValidationError
+
+        raise ValidationError(
+            f"u: {reading} has no feedthrough D u; give the system no D (a control input enters through Bu only)"
+        )

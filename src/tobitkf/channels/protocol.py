@@ -54,7 +54,7 @@ import numpy as np
 
 from .._linalg import eigh_sqrt
 from .._validation import ShapeError, ValidationError, as_float_array, check_memory
-from .base import Channel
+from .base import Channel, refuse_feedthrough
 from .censoring import Censoring
 from .laws import PMF, Constant, Gaussian
 
@@ -391,6 +391,7 @@ class ProtocolChannel(Channel):
         pre-history (N, ℓ, n).
         """
         self.check_system(system)
+        refuse_feedthrough(system, inputs, "the protocol channel's reading (2)")
         N, T1, n = x.shape
         T, p = T1 - 1, self.sensors
         if self.shared_law:

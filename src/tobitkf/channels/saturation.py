@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_probability
-from .base import Channel
+from .base import Channel, refuse_feedthrough
 
 __all__ = ["RandomSaturation", "saturate"]
 
@@ -149,6 +149,7 @@ class RandomSaturation(Channel):
         draws ``{"alpha", "beta"}`` (N, T, m). Lets the linear-Gaussian simulator produce ROSS
         measurements for the other estimators (Gaussian noise instead of the paper's l_2 noise).
         """
+        refuse_feedthrough(system, inputs, "the randomly saturated reading (2)")
         N, T = noise.shape[0], noise.shape[1]
         alpha, beta = self.draw_modes(rng, (N, T))
         cx = np.stack([x[:, k] @ system.measurement(k).T for k in range(1, T + 1)], axis=1)
