@@ -182,16 +182,27 @@ def _lower_only(mu, sd, lo):
     return p_lo, 0.0, gam, lam, tmean, tvar, cmean, cvar
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     """Censored-normal statistics of one channel, as :func:`tobitkf.censored.censored_moments`.
 
     ``buf`` is a (2, len(glx)) scratch array for the quadrature nodes and weights.
     Returns ``(p_lower, p_upper, p_uncensored, inverse_mills, truncated_mean,
     truncated_var, censored_mean, censored_var)``.
+
+    Inlined into the caller (numba ``inline="always"``), so the common case, a lower limit alone, is one
+    call of :func:`_lower_only` with scalar arguments: a call that passes the three arrays costs more
+    than the statistics (measured: 84 ns per call through it against 36 for :func:`_lower_only`, the
+    arrays' reference counting included); everything else is :func:`_general_stats`.
     """
     if hi == _INF and lo != -_INF:
         return _lower_only(mu, sd, lo)
+    return _general_stats(mu, sd, lo, hi, glx, glw, buf)
+
+
+@njit(cache=True, error_model="numpy")
+def _general_stats(mu, sd, lo, hi, glx, glw, buf):
+    """:func:`censored_stats` for any limits (two-sided, upper only, none)."""
     a = -_INF if lo == -_INF else (lo - mu) / sd
     b = _INF if hi == _INF else (hi - mu) / sd
     p_lo, q_a = _ndtr_pair(a)  # Phi(a), Phi(-a)
