@@ -769,7 +769,9 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     order = est._order
     sched = np.asarray(order, dtype=np.int64)[(state.k + np.arange(T)) % len(order)]
     A, Qd, Cs, Hs, rs, lm, lv = _protocol_kernel_terms(est, sched, state.k)
-    yk = np.array(y2[:, :, 0], dtype=float, order="C")  # writeable copies (see P below)
+    # C-contiguous writeable float64 (a read-only array would load another compiled specialization): a view of
+    # the readings when they already are, a copy otherwise
+    yk = np.require(y2[:, :, 0], dtype=np.float64, requirements=("C", "W"))
     gam = yk > est._tau if step_data is None else np.array(step_data["uncensored"][:, :, 0], dtype=np.bool_, order="C")
     carry = state.carry
     F_fixed = np.empty(0)
