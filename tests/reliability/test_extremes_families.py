@@ -330,6 +330,22 @@ def test_square_root_form_of_the_augmented_families_on_the_hard_case():
             assert bad_mean or bad_psd
 
 
+def _assert_match_reference_and_psd(cases):
+    """Each (system, readings, estimator) of ``cases``, run by run: means, covariances and predicted
+    covariances within 1e-6 (relative to each step's largest entry) of the 60-digit KF reference, and PSD
+    to 1e-12 of scale."""
+    for sys_, y, est in cases:
+        for r in range(y.shape[0]):
+            mean, cov, pcov = _decimal_kf(sys_, y[r])
+            out = est.filter(y[r])
+            name = type(est).__name__
+            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6, name
+            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
+                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6, name
+                eig = np.linalg.eigvalsh(got)
+                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2))), name
+
+
 def test_square_root_form_of_the_other_gaussian_families_on_the_hard_case():
     """The dropping KF (no limits), the fading KF (L = 0, unit gain), the protocol baseline (one sensor)
     and the assumed-density filter (no limits) reduce to the KF here: in square-root form each matches
@@ -348,16 +364,7 @@ def test_square_root_form_of_the_other_gaussian_families_on_the_hard_case():
         (s1, y1, tk.ProtocolTobitKalmanFilter.baseline(s1, ProtocolChannel(1), covariance_update="square_root")),
         (s, data.y, tk.AssumedDensityTobitFilter(s, tk.Censoring(), covariance_update="square_root")),
     ]
-    for sys_, y, est in cases:
-        for r in range(y.shape[0]):
-            mean, cov, pcov = _decimal_kf(sys_, y[r])
-            out = est.filter(y[r])
-            name = type(est).__name__
-            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6, name
-            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
-                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6, name
-                eig = np.linalg.eigvalsh(got)
-                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2))), name
+    _assert_match_reference_and_psd(cases)
 
 
 def test_square_root_form_of_the_assumed_density_families_on_the_hard_case():
@@ -381,16 +388,7 @@ def test_square_root_form_of_the_assumed_density_families_on_the_hard_case():
             tk.SaturationAssumedDensityFilter(s, tk.RandomSaturation([0.0, 0.0], [1.0, 1.0]), covariance_update=sq),
         ),
     ]
-    for sys_, y, est in cases:
-        for r in range(y.shape[0]):
-            mean, cov, pcov = _decimal_kf(sys_, y[r])
-            out = est.filter(y[r])
-            name = type(est).__name__
-            assert (np.abs(out.mean - mean).max(axis=-1) / np.abs(mean).max(axis=-1)).max() <= 1e-6, name
-            for got, ref in ((out.cov, cov), (out.pred_cov, pcov)):
-                assert (np.abs(got - ref).max(axis=(-1, -2)) / np.abs(ref).max(axis=(-1, -2))).max() <= 1e-6, name
-                eig = np.linalg.eigvalsh(got)
-                assert np.all(eig.min(axis=-1) >= -1e-12 * np.abs(got).max(axis=(-1, -2))), name
+    _assert_match_reference_and_psd(cases)
 
 
 def test_square_root_tobit_filter_on_the_hard_case_with_limits():
