@@ -431,6 +431,47 @@ def test_compiled_step_equals_numpy_step(name):
     np.testing.assert_allclose(c_nb, c_np, rtol=0, atol=TOL)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("batch", [(), (3,)], ids=str)
+def test_dropping_step_leaves_out_the_readings_of_the_limit_rule(backend, batch):
+    """The online step's dropped readings (a band computed once for constant limits) are those of the limit
+    rule applied per reading: two-sided limits, an infinite one, a wide rtol and readings on either side of
+    the tolerance edge; the step loop equals the filter and a KF fed the dropped readings as NaN."""
+    if backend == "numba":
+        pytest.importorskip("numba")
+    sys_ = tk.LinearSystem(
+        A=[[0.9, 0.1], [0.0, 0.95]], C=np.eye(3, 2), Q=1e-2 * np.eye(2), R=0.05 * np.eye(3),
+        x0=[0.3, 0.1], P0=np.eye(2),
+    )  # fmt: skip
+    cens = tk.Censoring(lower=[0.0, -np.inf, -2.0], upper=[1.0, 0.5, np.inf])
+    rtol = 1e-3
+    est = tk.DroppingKalmanFilter(sys_, cens, rtol=rtol, backend=backend)
+    tol = rtol * np.maximum(1.0, np.abs(np.array([0.0, 0.5, -2.0])))
+    edges = [0.0 + tol[0], 1.0 - tol[0], 0.5 - tol[1], -2.0 + tol[2]]
+    N = int(np.prod(batch)) if batch else 1
+    rng = np.random.default_rng(8)
+    T = 16
+    y = np.clip(0.4 * rng.standard_normal((N, T, 3)), [0.0, -np.inf, -2.0], [1.0, 0.5, np.inf])
+    y[:, 3] = [edges[0], 0.2, edges[3]]  # at the edges: dropped
+    y[:, 4] = [edges[1], edges[2], 0.1]
+    y[:, 5] = [edges[0] + 1e-9, edges[2] - 1e-9, edges[3] + 1e-9]  # just inside: kept
+    y[:, 6, 1] = np.nan
+    y = y.reshape(batch + (T, 3))
+    expected = np.isnan(y) | np.stack([est._dropped(y[..., t, :], t + 1) for t in range(T)], axis=-2)
+    assert expected[..., 3, [0, 2]].all() and expected[..., 4, :2].all() and not expected[..., 5, :].any()
+    state = est.init(batch)
+    means = []
+    for t in range(T):
+        state = est.step(state, y[..., t, :])
+        means.append(state.mean)
+    res = est.filter(y)
+    kf = tk.KalmanFilter(sys_, backend="numpy").filter(np.where(expected, np.nan, y))
+    np.testing.assert_array_equal(res.extras["censored"], expected & ~np.isnan(y))
+    np.testing.assert_allclose(np.stack(means, axis=-2), res.mean, rtol=0, atol=TOL)
+    np.testing.assert_allclose(np.stack(means, axis=-2), kf.mean, rtol=0, atol=TOL)
+    np.testing.assert_allclose(state.cov, kf.final.cov, rtol=0, atol=TOL)
+
+
 @pytest.mark.parametrize(
     "name",
     ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv", "fading", "protocol"]
