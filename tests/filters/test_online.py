@@ -639,6 +639,49 @@ def test_steady_state_latent_step_equals_filter_controlled():
     np.testing.assert_array_equal(state.cov, np.broadcast_to(est.cov, (4, 2, 2)))
 
 
+@pytest.mark.parametrize("side", ["upper", "lower"])
+@pytest.mark.parametrize("latent", [False, True])
+@pytest.mark.parametrize("batch", [(), (3,)], ids=str)
+def test_steady_state_step_without_input_is_the_fixed_gain_recursion(side, latent, batch):
+    """The step without an input (its own short path) against the recursion written out,
+    x̄ = A x, x = x̄ + K(y - E[y]) with E[y] of (3.58), against the numpy filter (its extras too), and an
+    overflowed estimate takes the shared step (NaN innovation: channel left out, the mean stays x̄)."""
+    sys_ = oscillator(C=[[1.0, 0.0], [0.3, 1.0]], R=np.diag([0.04, 0.09]))
+    est = tk.SteadyStateTobitKalmanFilter(sys_, [0.7, 0.55], side=side, backend="numpy")
+    N = int(np.prod(batch)) if batch else 1
+    d = tk.simulate(sys_, 10, N, seed=12)
+    censored = est.filter_controlled(d.y_latent).extras["y"]
+    ref = est.filter_controlled(d.y_latent) if latent else est.filter(censored)
+    yin = d.y_latent if latent else censored
+    A, C, K = sys_.transition(0), sys_.measurement(1), est.gain
+    shift = est.sigma * est.alpha
+    x = np.broadcast_to(sys_.x0, (N, 2)).copy()
+    state = est.init(batch)
+    for k in range(10):
+        yk = yin[:, k].reshape(batch + (2,))
+        state = est.step(state, yk, **({"latent": True} if latent else {}))
+        xb = x @ A.T
+        ybar = xb @ C.T
+        lim = ybar + shift if side == "upper" else ybar - shift
+        obs = (np.minimum if side == "upper" else np.maximum)(yin[:, k], lim) if latent else yin[:, k]
+        expected = ybar - est._offset if side == "upper" else ybar + est._offset
+        x = xb + (obs - expected) @ K.T
+        np.testing.assert_allclose(state.mean, x.reshape(batch + (2,)), rtol=0, atol=TOL)
+        np.testing.assert_allclose(state.mean, ref.mean.reshape(N, 10, 2)[:, k].reshape(batch + (2,)), rtol=0, atol=TOL)
+        if latent:
+            np.testing.assert_allclose(state.extras["limits"], lim, rtol=0, atol=TOL)
+            np.testing.assert_allclose(state.extras["y"], obs, rtol=0, atol=TOL)
+        else:
+            assert state.extras == {}
+        np.testing.assert_array_equal(state.cov, np.broadcast_to(est.cov, batch + (2, 2)))
+    blown = state.replace(x=np.where(np.arange(2) == 0, np.inf, -np.inf) + 0 * state.x)
+    with np.errstate(invalid="ignore"):
+        after = est.step(blown, yin[:, 0].reshape(batch + (2,)))
+        shared = est._step_arrays(blown.k + 1, blown.x, blown.P, None, {}, yin[:, 0], None, {})
+    assert np.isnan(after.x).any()
+    np.testing.assert_array_equal(after.x, shared[0])
+
+
 def test_controlled_full_tkf_step_equals_its_filter():
     sys_ = oscillator()
     est = tk.filters.steady_state.ControlledLimitTobitKalmanFilter(sys_, 0.7)
