@@ -594,6 +594,29 @@ def test_steered_limits_in_update_equal_a_filter_with_those_limits():
         np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
 
 
+def test_step_state_is_the_dataclass_state():
+    """The steps' constructor (no frozen __init__) makes the object FilterState(...) makes: same fields, a
+    fresh empty dict for each default, frozen, and it pickles."""
+    import dataclasses
+
+    from tobitkf.filters.core import step_state
+
+    x, P = np.zeros((1, 2)), np.eye(2)[None]
+    a = step_state(3, (), x, P, 2)
+    b = FilterState(k=3, batch_shape=(), x=x, P=P, n=2)
+    assert type(a) is FilterState and vars(a).keys() == vars(b).keys()
+    assert all(
+        getattr(a, f.name) is getattr(b, f.name) for f in dataclasses.fields(b) if f.name not in ("carry", "extras")
+    )
+    assert (
+        a.carry == {} and a.extras == {} and a.carry is not a.extras and a.carry is not step_state(3, (), x, P, 2).carry
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.k = 4  # type: ignore[misc]
+    c = pickle.loads(pickle.dumps(step_state(1, (1,), x, P, 2, None, {"O": 1}, {"e": 2})))
+    assert (c.k, c.batch_shape, c.carry, c.extras) == (1, (1,), {"O": 1}, {"e": 2}) and np.array_equal(c.P, P)
+
+
 def test_bad_state_and_reading_are_refused():
     sys_ = oscillator()
     kf = tk.KalmanFilter(sys_)

@@ -102,7 +102,16 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
-from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
+from .core import (
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    Transition,
+    check_keywords,
+    check_prior,
+    step_state,
+    symmetrize,
+)
 from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, cov_output, kernel_array, kernel_result
 from .tobit import TobitKalmanFilter
 
@@ -516,15 +525,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
             return None
         extras = {key: val[:, 0] for key, val in res.extras.items()}
         assert res.final is not None
-        return FilterState(
-            k=state.k + 1,
-            batch_shape=state.batch_shape,
-            x=res.final.x,
-            P=res.final.P,
-            n=self.n,
-            carry=state.carry,
-            extras=extras,
-        )
+        return step_state(state.k + 1, state.batch_shape, res.final.x, res.final.P, self.n, None, state.carry, extras)
 
 
 class FadingKalmanFilter(_FadingFamily):

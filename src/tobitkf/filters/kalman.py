@@ -61,6 +61,7 @@ from .core import (
     prepare_inputs,
     prepare_measurements,
     process_roots,
+    step_state,
 )
 from .likelihood import prediction_log_densities
 from .smoothing import SmoothingMethods
@@ -322,7 +323,7 @@ def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state
     )
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None  # a small state: Python floats, the same verdict
-    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry)
+    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry)
 
 
 def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):

@@ -66,7 +66,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
-from .core import FilterResult, FilterState, MeasurementPrediction, Transition
+from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
 from .kalman import LinearGaussianFamily, kernel_array
 from .tobit import TobitKalmanFilter, tobit_measurement
 
@@ -325,15 +325,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         innov = obs - self.expected_measurement(ybar)
         if innov.size <= 4 and any(v != v for v in innov.ravel().tolist()) or innov.size > 4 and np.isnan(innov).any():
             return None
-        return FilterState(
-            k=state.k + 1,
-            batch_shape=state.batch_shape,
-            x=xp + innov @ Kt,
-            P=P,
-            n=self.n,
-            carry=state.carry,
-            extras=extras,
-        )
+        return step_state(state.k + 1, state.batch_shape, xp + innov @ Kt, P, self.n, None, state.carry, extras)
 
     def _prepare_step_options(self, state, options):
         latent = options.get("latent", False)
