@@ -316,7 +316,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         At, Ct, Kt, P = mats
         xp = state.x @ At + 0.0  # the shared predict adds the input offset b = 0.0
         ybar = xp @ Ct + 0.0  # and the feedthrough 0.0
-        extras: dict[str, Any] = {}
+        extras = {}
         obs = y
         if options:  # latent=True: the sensor clips its reading at the limit the filter set
             lim = self.limit(ybar)
