@@ -643,7 +643,9 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     def _reading(self, state, y, name="y"):
         arr = super()._reading(state, y, name)
-        if (arr >= self._tau).all():  # the common case in one comparison: no NaN, none below tau
+        tau = self._tau
+        # the common case in one comparison: no NaN, none below tau (a few readings in Python floats, the same verdict)
+        if all(v >= tau for v in arr.ravel().tolist()) if arr.size <= 16 else (arr >= tau).all():
             return arr
         if self.check_limits and (arr < self.channel.threshold).any():
             raise ValidationError(
