@@ -5,9 +5,11 @@ on its paper's example size, and compared with filterpy's ``predict()`` + ``upda
 equivalent linear model measured in the same process (the peer the issue names). Each timing is the
 median of ``repeat`` loops over ``steps`` readings, the repeats interleaved across the cases and the
 ratio to filterpy taken within each repeat (this machine is shared: medians and the spread min..max are
-printed). The KF and TKF steps run the compiled kernels when numba is installed (a single step through
-the block kernel), the other Gaussian families the compiled shared predict and update
-(:mod:`tobitkf.filters._kernels_core`) around their own moments; the "(numpy)" rows the reference path.
+printed). The KF, TKF and dropping-KF steps run the compiled kernels when numba is installed (a single step
+through the block kernel), the fading and protocol TKF steps their compiled loops for one reading, the
+steady-state TKF and the tracker (once its gain is fixed) the fixed-gain recursion in numpy, the other
+Gaussian families the compiled shared predict and update (:mod:`tobitkf.filters._kernels_core`) around their
+own moments; the "(numpy)" rows the reference path.
 
 Targets (issue "One estimation core"): KF and TKF step no slower than filterpy's predict + update;
 every other family within 5x of it.

@@ -333,3 +333,50 @@ def test_online_step_with_input_runs_numpy(monkeypatch):
     for k in range(6):
         sa, sb = auto.step(sa, y[k], u=[1.0]), ref.step(sb, y[k], u=[1.0])
         np.testing.assert_allclose(sa.x, sb.x, rtol=0, atol=1e-12)  # the compiled shared step: equal to rounding
+
+
+@pytest.mark.parametrize("keep_smoothed", [True, False])
+@pytest.mark.parametrize("shape", [(), (3,)])
+def test_online_kernel_step_with_time_varying_limits_and_options(keep_smoothed, shape):
+    """The compiled step (its own lean call of the loop) with limits that change every step (converted per
+    step, not cached) and keep_smoothed on or off equals the numpy step, extras included, and the rows of
+    the batched numpy filter; two channels."""
+    sys_, fad = oscillator(m=2), fading(2)
+    T = 12
+    lower = np.linspace(3.5, 4.5, T)[:, None] * np.ones((1, 2))
+    cens = tk.Censoring(lower=lower, upper=lower + 2.0)
+    runs = int(np.prod(shape, dtype=int))
+    y = data(sys_, fad, cens, runs=runs, steps=T, missing=0.15).reshape(shape + (T, 2))
+    fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
+    ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
+    a, b = fast.init(batch_shape=shape), ref.init(batch_shape=shape)
+    means = []
+    for k in range(T):
+        a = fast.step(a, y[..., k, :], keep_smoothed=keep_smoothed)
+        b = ref.step(b, y[..., k, :], keep_smoothed=keep_smoothed)
+        assert_same(a.x, b.x)
+        assert_same(np.broadcast_to(a.P, b.P.shape), b.P)
+        assert a.extras.keys() == b.extras.keys() and ("smoothed_mean" in a.extras) == keep_smoothed
+        for key in b.extras:
+            assert_same(a.extras[key], b.extras[key])
+        means.append(a.mean)
+    assert_same(np.stack(means, axis=-2), ref.filter(y).mean)
+    assert fast._kernel_static and "_step_consts" not in vars(fast)  # the kernel ran, the limits not cached
+    with pytest.raises(tk.ShapeError, match="time-varying limits"):
+        fast.step(a, y[..., 0, :])  # step T + 1: beyond the limits, the same error as the numpy step
+    with pytest.raises(tk.ShapeError, match="time-varying limits"):
+        ref.step(b, y[..., 0, :])
+
+
+def test_online_kernel_step_divergence_reruns_on_numpy():
+    """A step whose covariance overflows in the kernel returns the numpy step's state, which warns."""
+    sys_ = tk.LinearSystem(A=[[1e200]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    fad = RiceFading(0, [1.0])
+    fast = FadingTobitKalmanFilter(sys_, fad, tk.Censoring(lower=-1.0), backend="numba")
+    ref = FadingTobitKalmanFilter(sys_, fad, tk.Censoring(lower=-1.0), backend="numpy")
+    a, b = fast.init(), ref.init()
+    with pytest.warns(RuntimeWarning):
+        for _ in range(3):
+            a, b = fast.step(a, [0.0]), ref.step(b, [0.0])
+    np.testing.assert_array_equal(a.x, b.x)
+    assert np.isnan(a.x).any()

@@ -181,7 +181,9 @@ def test_one_compiled_specialization_for_every_call():
     r = est.filter(y, uncensored=g)
     est.filter(y[0], uncensored=g[0])
     est.filter(y, state=r.final)
-    assert len(_kernels_protocol.protocol_kernel.signatures) == 1
+    st = est.step(est.step(est.init(), y[0, 0], uncensored=g[0, 0]), y[0, 1])  # the online step's call too
+    est.step(est.init((4,)), y[:, 0])
+    assert st.k == 2 and len(_kernels_protocol.protocol_kernel.signatures) == 1
 
 
 def test_divergence_reruns_on_numpy():
@@ -213,8 +215,10 @@ def test_auto_uses_the_kernel_when_covered(monkeypatch):
     with pytest.raises(AssertionError, match="protocol kernel used"):
         tk.protocol_tobit_kalman_filter(sys_, ch, y, failure_term="literal", covariance_update="standard")
     ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y)  # numpy never touches it
-    st = ProtocolTobitKalmanFilter(sys_, ch).init((2,))
-    ProtocolTobitKalmanFilter(sys_, ch).step(st, y[:, 0])  # nor the online step
+    st = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").init((2,))
+    ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").step(st, y[:, 0])  # nor its online step
+    with pytest.raises(AssertionError, match="protocol kernel used"):
+        ProtocolTobitKalmanFilter(sys_, ch).step(st, y[:, 0])  # the online step runs it too (T = 1)
 
 
 def _time_varying():
@@ -266,3 +270,77 @@ def test_bad_sensor_variance_is_reported_as_on_numpy():
     for backend in ("numba", "numpy"):
         with pytest.raises(ValidationError, match=r"R\(2\): sensor 2 needs a positive noise variance"):
             ProtocolTobitKalmanFilter(sys_, ch, backend=backend).filter(y)
+
+
+def _steps(est, y, shape, gamma=None, resume_at=None):
+    import pickle
+
+    st, states = est.init(shape), []
+    for k in range(y.shape[-2]):
+        kw = {} if gamma is None else {"uncensored": gamma[..., k, :]}
+        st = est.step(st, y[..., k, :], **kw)
+        if k == resume_at:
+            st = pickle.loads(pickle.dumps(st))
+        states.append(st)
+    return states
+
+
+@pytest.mark.parametrize("shape", [(), (3,)])
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_online_kernel_step_equals_the_numpy_step(mode, shape):
+    """The compiled online step (T = 1 through the loop, the sensors' terms kept as first scheduled): p = 3
+    sensors in the order 3, 1, 3, 2 with a law each, a detection device disagreeing with y > tau on some
+    steps, a lost reading (that step runs numpy), a pickled state resumed: every state's x, P, extras and
+    carry equal the numpy step's, and the stream the numpy filter's rows; lmmse_unconditional (its carried
+    X_k) runs numpy."""
+    from tobitkf.channels.protocol import PMF
+
+    w = 0.052 * np.pi
+    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+    C = [[1.0, 0.0], [0.3, 1.0], [-0.5, 0.7]]
+    sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 2.0]), x0=[5.0, 0.0], P0=np.eye(2))
+    laws = [LAMBDA_BASE, NO_FAILURE, PMF([0.2, 1.0], [0.3, 0.7])]
+    ch = ProtocolChannel(3, window=1, failures=laws, threshold=-0.5, order=[3, 1, 3, 2])
+    runs = int(np.prod(shape, dtype=int))
+    T = 19
+    y = tk.simulate(sys_, T, runs, seed=9, channel=ch).y.reshape(shape + (T, 1))
+    gamma = y > -0.5
+    gamma[..., 4, :] = ~gamma[..., 4, :]
+    gamma[..., 11, :] = True
+    y[..., 7, :] = np.nan
+    fast = _steps(ProtocolTobitKalmanFilter(sys_, ch, backend="auto", failure_term=mode), y, shape, gamma, 9)
+    ref = _steps(ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode), y, shape, gamma, 9)
+    for a, b in zip(fast, ref):
+        assert a.k == b.k and a.batch_shape == b.batch_shape
+        assert_same(a.x, b.x)
+        assert_same(np.broadcast_to(a.P, b.P.shape), b.P)
+        assert a.extras.keys() == b.extras.keys() and a.carry.keys() == b.carry.keys()
+        for key in b.extras:
+            assert_same(a.extras[key], b.extras[key])
+        for key in b.carry:
+            assert_same(a.carry[key], b.carry[key])
+    res = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode).filter(y, uncensored=gamma)
+    assert_same(np.stack([s.mean for s in fast], axis=-2), res.mean)
+
+
+def test_online_kernel_step_reports_a_bad_sensor_variance_and_diverges_as_numpy():
+    sys_ = oscillator(R=(1.0, 0.0))
+    ch = channel()
+    y = data(oscillator(), ch, (2,), 6)
+    for backend in ("auto", "numpy"):
+        est = ProtocolTobitKalmanFilter(sys_, ch, backend=backend)
+        st = est.step(est.init((2,)), y[:, 0])  # sensor 1: fine
+        with pytest.raises(ValidationError, match=r"R\(2\): sensor 2 needs a positive noise variance"):
+            est.step(st, y[:, 1])
+    sys_ = tk.LinearSystem(A=[[1e200]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    ch = ProtocolChannel(1, window=1, threshold=-1.0)
+    states = []
+    for backend in ("auto", "numpy"):
+        est = ProtocolTobitKalmanFilter(sys_, ch, backend=backend)
+        st = est.init()
+        with pytest.warns(RuntimeWarning, match="stopped being finite"):
+            for _ in range(4):
+                st = est.step(st, [0.0])
+        states.append(st)
+    assert np.isnan(states[0].mean).all()
+    assert_same(states[0].x, states[1].x, 0.0)

@@ -431,6 +431,47 @@ def test_compiled_step_equals_numpy_step(name):
     np.testing.assert_allclose(c_nb, c_np, rtol=0, atol=TOL)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("batch", [(), (3,)], ids=str)
+def test_dropping_step_leaves_out_the_readings_of_the_limit_rule(backend, batch):
+    """The online step's dropped readings (a band computed once for constant limits) are those of the limit
+    rule applied per reading: two-sided limits, an infinite one, a wide rtol and readings on either side of
+    the tolerance edge; the step loop equals the filter and a KF fed the dropped readings as NaN."""
+    if backend == "numba":
+        pytest.importorskip("numba")
+    sys_ = tk.LinearSystem(
+        A=[[0.9, 0.1], [0.0, 0.95]], C=np.eye(3, 2), Q=1e-2 * np.eye(2), R=0.05 * np.eye(3),
+        x0=[0.3, 0.1], P0=np.eye(2),
+    )  # fmt: skip
+    cens = tk.Censoring(lower=[0.0, -np.inf, -2.0], upper=[1.0, 0.5, np.inf])
+    rtol = 1e-3
+    est = tk.DroppingKalmanFilter(sys_, cens, rtol=rtol, backend=backend)
+    tol = rtol * np.maximum(1.0, np.abs(np.array([0.0, 0.5, -2.0])))
+    edges = [0.0 + tol[0], 1.0 - tol[0], 0.5 - tol[1], -2.0 + tol[2]]
+    N = int(np.prod(batch)) if batch else 1
+    rng = np.random.default_rng(8)
+    T = 16
+    y = np.clip(0.4 * rng.standard_normal((N, T, 3)), [0.0, -np.inf, -2.0], [1.0, 0.5, np.inf])
+    y[:, 3] = [edges[0], 0.2, edges[3]]  # at the edges: dropped
+    y[:, 4] = [edges[1], edges[2], 0.1]
+    y[:, 5] = [edges[0] + 1e-9, edges[2] - 1e-9, edges[3] + 1e-9]  # just inside: kept
+    y[:, 6, 1] = np.nan
+    y = y.reshape(batch + (T, 3))
+    expected = np.isnan(y) | np.stack([est._dropped(y[..., t, :], t + 1) for t in range(T)], axis=-2)
+    assert expected[..., 3, [0, 2]].all() and expected[..., 4, :2].all() and not expected[..., 5, :].any()
+    state = est.init(batch)
+    means = []
+    for t in range(T):
+        state = est.step(state, y[..., t, :])
+        means.append(state.mean)
+    res = est.filter(y)
+    kf = tk.KalmanFilter(sys_, backend="numpy").filter(np.where(expected, np.nan, y))
+    np.testing.assert_array_equal(res.extras["censored"], expected & ~np.isnan(y))
+    np.testing.assert_allclose(np.stack(means, axis=-2), res.mean, rtol=0, atol=TOL)
+    np.testing.assert_allclose(np.stack(means, axis=-2), kf.mean, rtol=0, atol=TOL)
+    np.testing.assert_allclose(state.cov, kf.final.cov, rtol=0, atol=TOL)
+
+
 @pytest.mark.parametrize(
     "name",
     ["kf", "dkf", "tkf", "tkf-tv", "kf-inputs-tv", "fading", "protocol"]
@@ -558,6 +599,29 @@ def test_steered_limits_in_update_equal_a_filter_with_those_limits():
         np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
 
 
+def test_step_state_is_the_dataclass_state():
+    """The steps' constructor (no frozen __init__) makes the object FilterState(...) makes: same fields, a
+    fresh empty dict for each default, frozen, and it pickles."""
+    import dataclasses
+
+    from tobitkf.filters.core import step_state
+
+    x, P = np.zeros((1, 2)), np.eye(2)[None]
+    a = step_state(3, (), x, P, 2)
+    b = FilterState(k=3, batch_shape=(), x=x, P=P, n=2)
+    assert type(a) is FilterState and vars(a).keys() == vars(b).keys()
+    assert all(
+        getattr(a, f.name) is getattr(b, f.name) for f in dataclasses.fields(b) if f.name not in ("carry", "extras")
+    )
+    assert (
+        a.carry == {} and a.extras == {} and a.carry is not a.extras and a.carry is not step_state(3, (), x, P, 2).carry
+    )
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.k = 4  # type: ignore[misc]
+    c = pickle.loads(pickle.dumps(step_state(1, (1,), x, P, 2, None, {"O": 1}, {"e": 2})))
+    assert (c.k, c.batch_shape, c.carry, c.extras) == (1, (1,), {"O": 1}, {"e": 2}) and np.array_equal(c.P, P)
+
+
 def test_bad_state_and_reading_are_refused():
     sys_ = oscillator()
     kf = tk.KalmanFilter(sys_)
@@ -601,6 +665,49 @@ def test_steady_state_latent_step_equals_filter_controlled():
         state = est.step(state, d.y_latent[:, k], latent=True)
         np.testing.assert_allclose(state.mean, ref.mean[:, k], rtol=0, atol=TOL)
     np.testing.assert_array_equal(state.cov, np.broadcast_to(est.cov, (4, 2, 2)))
+
+
+@pytest.mark.parametrize("side", ["upper", "lower"])
+@pytest.mark.parametrize("latent", [False, True])
+@pytest.mark.parametrize("batch", [(), (3,)], ids=str)
+def test_steady_state_step_without_input_is_the_fixed_gain_recursion(side, latent, batch):
+    """The step without an input (its own short path) against the recursion written out,
+    x̄ = A x, x = x̄ + K(y - E[y]) with E[y] of (3.58), against the numpy filter (its extras too), and an
+    overflowed estimate takes the shared step (NaN innovation: channel left out, the mean stays x̄)."""
+    sys_ = oscillator(C=[[1.0, 0.0], [0.3, 1.0]], R=np.diag([0.04, 0.09]))
+    est = tk.SteadyStateTobitKalmanFilter(sys_, [0.7, 0.55], side=side, backend="numpy")
+    N = int(np.prod(batch)) if batch else 1
+    d = tk.simulate(sys_, 10, N, seed=12)
+    censored = est.filter_controlled(d.y_latent).extras["y"]
+    ref = est.filter_controlled(d.y_latent) if latent else est.filter(censored)
+    yin = d.y_latent if latent else censored
+    A, C, K = sys_.transition(0), sys_.measurement(1), est.gain
+    shift = est.sigma * est.alpha
+    x = np.broadcast_to(sys_.x0, (N, 2)).copy()
+    state = est.init(batch)
+    for k in range(10):
+        yk = yin[:, k].reshape(batch + (2,))
+        state = est.step(state, yk, **({"latent": True} if latent else {}))
+        xb = x @ A.T
+        ybar = xb @ C.T
+        lim = ybar + shift if side == "upper" else ybar - shift
+        obs = (np.minimum if side == "upper" else np.maximum)(yin[:, k], lim) if latent else yin[:, k]
+        expected = ybar - est._offset if side == "upper" else ybar + est._offset
+        x = xb + (obs - expected) @ K.T
+        np.testing.assert_allclose(state.mean, x.reshape(batch + (2,)), rtol=0, atol=TOL)
+        np.testing.assert_allclose(state.mean, ref.mean.reshape(N, 10, 2)[:, k].reshape(batch + (2,)), rtol=0, atol=TOL)
+        if latent:
+            np.testing.assert_allclose(state.extras["limits"], lim, rtol=0, atol=TOL)
+            np.testing.assert_allclose(state.extras["y"], obs, rtol=0, atol=TOL)
+        else:
+            assert state.extras == {}
+        np.testing.assert_array_equal(state.cov, np.broadcast_to(est.cov, batch + (2, 2)))
+    blown = state.replace(x=np.where(np.arange(2) == 0, np.inf, -np.inf) + 0 * state.x)
+    with np.errstate(invalid="ignore"):
+        after = est.step(blown, yin[:, 0].reshape(batch + (2,)))
+        shared = est._step_arrays(blown.k + 1, blown.x, blown.P, None, {}, yin[:, 0], None, {})
+    assert np.isnan(after.x).any()
+    np.testing.assert_array_equal(after.x, shared[0])
 
 
 def test_controlled_full_tkf_step_equals_its_filter():

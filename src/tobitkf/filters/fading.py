@@ -92,6 +92,7 @@ Code names -> paper symbols: ``mean`` x̂_{k|k}; ``cov`` P_{k|k}; ``pred_mean`` 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -102,8 +103,25 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
-from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, check_prior, symmetrize
-from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, cov_output, kernel_array, kernel_result
+from .core import (
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    Transition,
+    check_keywords,
+    check_prior,
+    step_state,
+    symmetrize,
+)
+from .kalman import (
+    KalmanFilter,
+    LinearGaussianFamily,
+    _empty,
+    _finite_or_none,
+    cov_output,
+    kernel_array,
+    kernel_result,
+)
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -429,6 +447,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
 
     _name = "FadingTobitKalmanFilter"
     _kernel_mats: tuple[np.ndarray, ...]  # A, Qd, H_0..H_L of the kernel, set on its first call
+    _step_consts: tuple[np.ndarray, ...]  # the online step's lower, upper, sigma (constant limits), set once
 
     def __init__(
         self,
@@ -489,7 +508,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
         """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
-    # ---- the compiled path (batched ``filter`` only; ``step`` runs numpy) ----------------------
+    # ---- the compiled path (``filter``, and ``step`` through _fading_kernel_step) ----------------------
     def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
         what = "the fading Tobit Kalman filter"
         gap = None
@@ -510,21 +529,21 @@ class FadingTobitKalmanFilter(_FadingFamily):
         numpy step runs) where the kernel does not cover the case or the covariance stopped being finite."""
         opts = {"keep_smoothed": options.get("keep_smoothed", True), "keep_augmented": options.get("keep_augmented")}
         N = y.shape[0]
+        if u is None and not opts["keep_augmented"]:
+            ok = self.__dict__.get("_kernel_static")
+            if ok is None:
+                what = "the fading Tobit Kalman filter"
+                ok = self._kernel_static = use_kernel(self.backend, _fading_kernel_gap(self, None), what)
+            if not ok:
+                return None
+            return _fading_kernel_step(self, y, state, bool(opts["keep_smoothed"]))
         u2 = None if u is None else u.reshape(N, 1, -1)
         res = self._fast_filter_with(y.reshape(N, 1, self.m), u2, state, _STEP_OUTPUTS, (N,), opts)
         if res is None:
             return None
         extras = {key: val[:, 0] for key, val in res.extras.items()}
         assert res.final is not None
-        return FilterState(
-            k=state.k + 1,
-            batch_shape=state.batch_shape,
-            x=res.final.x,
-            P=res.final.P,
-            n=self.n,
-            carry=state.carry,
-            extras=extras,
-        )
+        return step_state(state.k + 1, state.batch_shape, res.final.x, res.final.P, self.n, None, state.carry, extras)
 
 
 class FadingKalmanFilter(_FadingFamily):
@@ -761,6 +780,72 @@ def _fading_kernel_matrices(est: FadingTobitKalmanFilter) -> tuple[np.ndarray, .
             c64(Hs, dtype=float),
         )
     return mats
+
+
+def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterState, keep_smoothed: bool):
+    """One online step (y (N, m)) through the compiled loop with T = 1 and only the step's extras written: the
+    call of :func:`_fading_kernel_run` without its per-record glue (the limits and sigma converted once per
+    estimator for constant limits, cached empty outputs, no result object); None when the covariance
+    stopped being finite (the numpy step then reruns it and reports the divergence)."""
+    from . import _kernels_fading
+
+    kern = kernels()
+    N, m = y.shape
+    n, L, nxi = est.n, est.L, est._nxi
+    c64 = np.ascontiguousarray
+    A, Qd, Hs = _fading_kernel_matrices(est)
+    cens = est._cens
+    consts = None if cens.time_varying else est.__dict__.get("_step_consts")
+    if consts is None:
+        lo, hi = cens.all_limits(1, m, start=state.k + 1)
+        consts = (c64(lo, dtype=float), c64(hi, dtype=float), c64(est._sigma, dtype=float))
+        if not cens.time_varying:
+            est._step_consts = consts  # constant limits: converted once
+    lo, hi, sigma = consts
+    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
+    P = state.P if state.P.shape[0] == N else np.broadcast_to(state.P, (N, nxi, nxi))
+    pu, ey, lam = np.empty((N, 1, m)), np.empty((N, 1, m)), np.empty((N, 1, m))
+    if keep_smoothed:
+        sm_mean, sm_cov = np.empty((N, 1, L + 1, n)), np.empty((N, 1, L + 1, n, n))
+    else:
+        sm_mean, sm_cov = _empty((N, 0, L + 1, n)), _empty((N, 0, L + 1, n, n))
+    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
+    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
+    _kernels_fading.fading_tkf_kernel(
+        c64(y.reshape(N, 1, m)),
+        A,
+        Qd,
+        Hs,
+        sigma,
+        lo,
+        hi,
+        c64(state.x, dtype=float),
+        c64(P, dtype=float),
+        state.k,
+        n,
+        est.exact_tobit_variance,
+        est.covariance_update == "joseph",
+        kern.GL_X,
+        kern.GL_W,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        pu,
+        ey,
+        lam,
+        sm_mean,
+        sm_cov,
+        x_last,
+        P_last,
+    )
+    d = np.diagonal(P_last, axis1=-2, axis2=-1)  # the check of _finite_or_none, in Python floats for one run
+    if not (all(map(math.isfinite, d.ravel().tolist())) if d.size <= 16 else np.isfinite(d).all()):
+        return None
+    extras = {"p_uncensored": pu[:, 0], "expected_y": ey[:, 0], "inverse_mills": lam[:, 0]}
+    if keep_smoothed:
+        extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean[:, 0], sm_cov[:, 0]
+    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
 def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, want, batch, keep_smoothed):

@@ -39,6 +39,7 @@ Symbols: ``mean`` = x̂, ``cov`` = P, ``pred_mean`` = x̄, ``pred_cov`` = P̄.
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -60,6 +61,7 @@ from .core import (
     prepare_inputs,
     prepare_measurements,
     process_roots,
+    step_state,
 )
 from .likelihood import prediction_log_densities
 from .smoothing import SmoothingMethods
@@ -295,8 +297,7 @@ def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state
     n = est.n
     P = state.P
     assert P is not None, "the compiled kernels run the standard form, which carries P"
-    per_run = P.shape[0] != 1 or bool(missing.any())
-    if per_run and P.shape[0] != N:
+    if P.shape[0] != N and (P.shape[0] != 1 or bool(missing.any())):  # one run: never per run
         P = np.broadcast_to(P, (N, n, n))
     P = np.ascontiguousarray(P, dtype=float)
     Pn = P.shape[0]
@@ -320,9 +321,9 @@ def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state
         x_last,
         P_last,
     )
-    if not np.isfinite(P_last).all():
-        return None
-    return FilterState(k=state.k + 1, batch_shape=state.batch_shape, x=x_last, P=P_last, n=n, carry=state.carry)
+    if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
+        return None  # a small state: Python floats, the same verdict
+    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry)
 
 
 def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):
@@ -573,7 +574,26 @@ class DroppingKalmanFilter(KalmanFilter):
     def _fast_step(self, state, y, u, options):
         if not self._kernel_ok(u):
             return None
-        return _kf_kernel_step(self, y, np.isnan(y) | self._dropped(y, state.k + 1), state)
+        return _kf_kernel_step(self, y, self._step_missing(y, state.k + 1), state)
+
+    def _step_missing(self, y: np.ndarray, k: int) -> np.ndarray:
+        """The readings (N, m) of step ``k`` left out of the update: NaN or dropped (:meth:`_dropped`).
+
+        For constant limits the band of kept readings, ``lower + tol < y < upper - tol`` with the tolerance
+        of :meth:`_dropped` (an infinite limit: no bound), is computed once per estimator (and limits and
+        ``rtol``); a reading is left out unless it lies inside it (NaN compares False: left out).
+        """
+        cens = self.censoring
+        if cens.time_varying:
+            return np.isnan(y) | self._dropped(y, k)
+        band = self.__dict__.get("_kept_band")
+        if band is None or band[0] is not cens or band[1] != self.rtol:
+            lo, hi = (np.broadcast_to(v, (self.m,)) for v in cens.limits(k))
+            fin_lo, fin_hi = np.isfinite(lo), np.isfinite(hi)
+            lo_t = np.where(fin_lo, lo + self.rtol * np.maximum(1.0, np.abs(np.where(fin_lo, lo, 0))), -np.inf)
+            hi_t = np.where(fin_hi, hi - self.rtol * np.maximum(1.0, np.abs(np.where(fin_hi, hi, 0))), np.inf)
+            band = self._kept_band = (cens, self.rtol, lo_t, hi_t)
+        return ~((y > band[2]) & (y < band[3]))
 
 
 def dropping_with_indicator(

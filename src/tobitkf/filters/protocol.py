@@ -90,8 +90,16 @@ from ..censored import CensoredMoments, _small_moments, unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
-from .core import FilterResult, FilterState, MeasurementPrediction, Transition, check_keywords, symmetrize
-from .kalman import LinearGaussianFamily, _finite_or_none, cov_output, kernel_array, kernel_result
+from .core import (
+    FilterResult,
+    FilterState,
+    MeasurementPrediction,
+    Transition,
+    check_keywords,
+    step_state,
+    symmetrize,
+)
+from .kalman import LinearGaussianFamily, _empty, _finite_or_none, cov_output, kernel_array, kernel_result
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
@@ -413,8 +421,10 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         ``filter`` runs the compiled time loop (:mod:`tobitkf.filters._kernels_protocol`, equal to the numpy
         path to rounding) where it covers the case (a time-invariant system, the standard or Joseph form,
         every failure term, ``keep_augmented=False``) and numba imports (``"auto"``), insists on it
-        (``"numba"``), or runs the numpy reference path (``"numpy"``). Elsewhere (the online step, the cases
-        the loop does not cover) ``"auto"`` and ``"numba"`` run the shared predict and update compiled
+        (``"numba"``), or runs the numpy reference path (``"numpy"``). The online ``step`` runs the same loop
+        for one reading in those cases without an input, a lost reading or ``failure_term="lmmse_unconditional"``.
+        Elsewhere (the other steps, the cases the loop does not cover) ``"auto"`` and ``"numba"`` run the
+        shared predict and update compiled
         (:mod:`tobitkf.filters._kernels_core`), the censored moments of (21)-(24) of a batch from the TKF
         kernel's compiled statistics.
 
@@ -437,6 +447,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     _step_options = ("uncensored",)
     _kernel_mats: tuple[np.ndarray, ...]  # A, B Q B^T of the compiled loop, set on its first call
     _kernel_static: bool  # whether the compiled loop runs (decided on the first call)
+    _step_rows: tuple  # the online step's per-sensor kernel terms, filled as the sensors are scheduled
 
     def __init__(
         self,
@@ -632,7 +643,9 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     def _reading(self, state, y, name="y"):
         arr = super()._reading(state, y, name)
-        if (arr >= self._tau).all():  # the common case in one comparison: no NaN, none below tau
+        tau = self._tau
+        # the common case in one comparison: no NaN, none below tau (a few readings in Python floats, the same verdict)
+        if all(v >= tau for v in arr.ravel().tolist()) if arr.size <= 16 else (arr >= tau).all():
             return arr
         if self.check_limits and (arr < self.channel.threshold).any():
             raise ValidationError(
@@ -691,7 +704,26 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             res.extras["scheduled"] = self.channel.schedule.scheduled(k0 + T)[k0:]
         return res
 
-    # ---- the compiled path (batched ``filter`` only; ``step`` runs numpy) ----------------------
+    # ---- the compiled path (``filter``, and ``step`` through _protocol_kernel_step) -------------------
+    def _fast_step(self, state, y, u, options):
+        """One online step through the compiled loop (T = 1, :func:`_protocol_kernel_step`); None (the numpy
+        step runs) with an input, a lost reading (NaN), ``failure_term="lmmse_unconditional"`` (its X_k is
+        carried on the numpy path), a case the kernel does not cover, or a covariance that stopped being
+        finite. Never raises for ``backend="numba"``: the numpy step has always run those cases."""
+        if u is not None or self.failure_term == "lmmse_unconditional":
+            return None
+        ok = self.__dict__.get("_kernel_static")
+        if ok is None:
+            ok = self._kernel_static = use_kernel(
+                self.backend, _protocol_kernel_gap(self, None), "the protocol Tobit Kalman filter"
+            )
+        if not ok:
+            return None
+        vals = y.ravel().tolist() if y.size <= 16 else None
+        if any(map(math.isnan, vals)) if vals is not None else np.isnan(y).any():
+            return None
+        return _protocol_kernel_step(self, y, options.get("uncensored"), state)
+
     def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
         what = "the protocol Tobit Kalman filter"
         step_options = step_options or {}
@@ -757,6 +789,89 @@ def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0
             np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
         )  # writeable copies: one compiled specialization whatever the system's arrays are
     return AQ + (Cs, Hs, rs, lm, lv)
+
+
+def _protocol_kernel_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, state: FilterState):
+    """One online step (y (N, 1), ``gamma`` (N, 1) bool or None for y > tau) through the compiled loop with
+    T = 1 and only the step's extras written: :func:`_protocol_kernel_run` without its per-record glue (the
+    scheduled sensor's terms kept per sensor as it is first scheduled, :meth:`_step_terms` checking them
+    then as the numpy step does; cached empty outputs; no result object). None when the covariance stopped
+    being finite (the numpy step then reruns it and reports the divergence)."""
+    from . import _kernels_protocol as kp
+
+    kern = kernels()
+    N = y.shape[0]
+    n, nxi = est.n, est._nxi
+    order = est._order
+    h = order[state.k % len(order)]  # the sensor of step k + 1 (_sensor)
+    rows = est.__dict__.get("_step_rows")
+    if rows is None:
+        p = len(est._lam_mean)
+        scheds = tuple(np.array([j], dtype=np.int64) for j in range(p))
+        rows = est._step_rows = (
+            np.zeros((p, nxi)),
+            np.zeros((p, nxi)),
+            np.ones(p),
+            np.zeros(p),
+            np.zeros(p),
+            scheds,
+            set(),
+        )
+    Cs, Hs, rs, lm, lv, scheds, filled = rows
+    if h not in filled:  # a time-invariant system (the kernel's case): the sensor's terms of any step
+        Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(state.k + 1, h)
+        Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
+        filled.add(h)
+    AQ = est.__dict__.get("_kernel_mats")
+    if AQ is None:
+        sys_ = est.system
+        AQ = est._kernel_mats = tuple(
+            np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
+        )
+    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
+    # writeable C-contiguous float64 copies, as _protocol_kernel_run's
+    yk = np.array(y, dtype=float, order="C")
+    gam = yk > est._tau if gamma is None else np.array(gamma, dtype=np.bool_, order="C")
+    x = np.array(state.x, dtype=float, order="C")
+    P = np.array(state.P if state.P.shape[0] == N else np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
+    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
+    amean, apmean, exts = np.empty((N, 1, nxi)), np.empty((N, 1, nxi)), np.empty((N, 1, kp.N_EXTRAS))
+    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
+    kp.protocol_kernel(
+        yk,
+        gam,
+        scheds[h],
+        AQ[0],
+        AQ[1],
+        Cs,
+        Hs,
+        rs,
+        lm,
+        lv,
+        _empty((0,)),
+        est._tau,
+        _KERNEL_MODES[est.failure_term],
+        est.covariance_update == "joseph",
+        x,
+        P,
+        kern.GL_X,
+        kern.GL_W,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        amean,
+        apmean,
+        exts,
+        x_last,
+        P_last,
+    )
+    d = np.diagonal(P_last, axis1=-2, axis2=-1)  # the check of _finite_or_none, in Python floats for one run
+    if not (all(map(math.isfinite, d.ravel().tolist())) if d.size <= 16 else np.isfinite(d).all()):
+        return None
+    extras: dict[str, Any] = {name: exts[:, 0, i] for i, name in enumerate(kp.EXTRA_NAMES)}
+    extras.update(aug_mean=amean[:, 0], aug_pred_mean=apmean[:, 0], uncensored=gam[:, 0])
+    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
 def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: FilterState, want, batch):

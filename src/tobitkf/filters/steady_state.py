@@ -66,7 +66,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
-from .core import FilterResult, FilterState, MeasurementPrediction, Transition
+from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
 from .kalman import LinearGaussianFamily, kernel_array
 from .tobit import TobitKalmanFilter, tobit_measurement
 
@@ -299,6 +299,33 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
             extras=extras,
         )
         return mp, carry
+
+    def _fast_step(self, state, y, u, options):
+        r"""The fixed-gain step without the shared update's general machinery (no input ``u``): the same
+        numbers as :meth:`_transition` + :meth:`_measurement` + the fixed-gain branch of
+        :func:`~tobitkf.filters.core.measurement_update`, in the same order, :math:`\bar x = A\hat x`,
+        :math:`\hat x = \bar x + K_\infty(y - E[y])` and :math:`\Psi_\infty`, with the transposed matrices
+        cached per estimator. None (the shared step runs) with an input or a NaN innovation (an overflowed
+        estimate, whose channels the shared update leaves out)."""
+        if u is not None:
+            return None
+        mats = self.__dict__.get("_step_mats")
+        if mats is None:
+            sys_ = self.system
+            mats = self._step_mats = (sys_.transition(0).T, sys_.measurement(1).T, self.gain.T, self.cov[None])
+        At, Ct, Kt, P = mats
+        xp = state.x @ At + 0.0  # the shared predict adds the input offset b = 0.0
+        ybar = xp @ Ct + 0.0  # and the feedthrough 0.0
+        extras = {}
+        obs = y
+        if options:  # latent=True: the sensor clips its reading at the limit the filter set
+            lim = self.limit(ybar)
+            obs = np.minimum(y, lim) if self.side == "upper" else np.maximum(y, lim)
+            extras = {"limits": lim, "y": obs}
+        innov = obs - self.expected_measurement(ybar)
+        if innov.size <= 4 and any(v != v for v in innov.ravel().tolist()) or innov.size > 4 and np.isnan(innov).any():
+            return None
+        return step_state(state.k + 1, state.batch_shape, xp + innov @ Kt, P, self.n, None, state.carry, extras)
 
     def _prepare_step_options(self, state, options):
         latent = options.get("latent", False)

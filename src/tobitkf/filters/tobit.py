@@ -82,6 +82,7 @@ from .core import (
     check_keywords,
     measurement_update,
     psd_sqrt,
+    step_state,
 )
 from .kalman import (
     LinearGaussianFamily,
@@ -442,15 +443,8 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
     )
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None
-    return FilterState(
-        k=state.k + 1,
-        batch_shape=state.batch_shape,
-        x=x_last,
-        P=P_last,
-        n=n,
-        carry=state.carry,
-        extras={"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]},
-    )
+    extras = {"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]}
+    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
 def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want, batch) -> FilterResult:

@@ -80,6 +80,7 @@ from .core import (
     MeasurementPrediction,
     Transition,
     measurement_update,
+    step_state,
     time_update,
 )
 
@@ -267,8 +268,10 @@ class MultiTargetTracker(Estimator):
     def _frame(self, frame: Any, name: str = "detections") -> np.ndarray:
         """One frame as (L, 2) finite pixel coordinates; (2,) is one point, an empty array none."""
         if type(frame) is np.ndarray and frame.dtype == np.float64 and frame.ndim == 2 and frame.shape[1] == 2:
-            # the common case, a float (L, 2) array: one finiteness pass (check_finite names the culprit)
-            if not np.isfinite(frame).all():
+            # the common case, a float (L, 2) array: one finiteness pass (check_finite names the culprit); a few
+            # points as Python floats (the same verdict, without the numpy calls)
+            ok = all(map(math.isfinite, frame.ravel().tolist())) if frame.size <= 16 else np.isfinite(frame).all()
+            if not ok:
                 check_finite(frame, name)
             return frame if frame.size else np.zeros((0, 2))
         M = as_float_array(frame, name)
@@ -411,11 +414,9 @@ class MultiTargetTracker(Estimator):
             # posterior of the last such update, as a fixed gain (x = x̄ + K e); taken only for a gain
             # with at most one nonzero per row (the default decoupled x/y model), where K e is one
             # rounded product per component in any order of summation, the same numbers as the full update
-            mp = MeasurementPrediction(
-                expected=Cx, H0=self.C, noise=self._R1, gain=last_up[1], posterior_cov=last_up[2]
-            )
-            xn, Pn, _, _, _ = measurement_update(xp, Pp, Sp, z, mp, form)
-            Sn = last_up[3]
+            # measurement_update's fixed-gain branch written out (x̄ + K e, e = z - C x̄, which is finite here:
+            # the frame is checked finite and the predicted positions are): the same expression
+            xn, Pn, Sn = xp + (z - Cx) @ last_up[1].T, last_up[2], last_up[3]
         else:
             mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
             xn, Pn, Sn, K, _ = measurement_update(xp, Pp, Sp, z, mp, form)
@@ -436,7 +437,7 @@ class MultiTargetTracker(Estimator):
         x, P, S, carry, _, _, extras = self._step_arrays(
             k, state.x, state.P, state.S, state.carry, None, None, {"frame": M, "finite": True}
         )
-        return FilterState(k=k, batch_shape=state.batch_shape, x=x, P=P, n=4, S=S, carry=carry, extras=extras)
+        return step_state(k, state.batch_shape, x, P, 4, S, carry, extras)
 
     def filter(
         self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None, outputs: Any = "all"
