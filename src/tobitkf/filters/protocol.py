@@ -775,7 +775,6 @@ def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0
     ``sched`` schedules, as contiguous float64: those of :meth:`ProtocolTobitKalmanFilter._step_terms` (kept per
     sensor), which checks each sensor's noise variance at the first step k0 + t + 1 that schedules it, as the
     numpy loop would (rows of the sensors not scheduled stay 0 and are not read)."""
-    sys_ = est.system
     p = len(est._lam_mean)
     Cs, Hs = np.zeros((p, est._nxi)), np.zeros((p, est._nxi))
     rs, lm, lv = np.ones(p), np.zeros(p), np.zeros(p)
@@ -783,12 +782,19 @@ def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0
         h = int(sched[t])
         Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(k0 + t + 1, h)
         Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
+    return _protocol_kernel_mats(est) + (Cs, Hs, rs, lm, lv)
+
+
+def _protocol_kernel_mats(est: ProtocolTobitKalmanFilter) -> tuple[np.ndarray, ...]:
+    """A and B Q B^T (n, n) of the compiled loop, computed once per estimator as writeable C-contiguous
+    float64 copies (one compiled specialization whatever the system's arrays are)."""
     AQ = est.__dict__.get("_kernel_mats")
     if AQ is None:
+        sys_ = est.system
         AQ = est._kernel_mats = tuple(
             np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
-        )  # writeable copies: one compiled specialization whatever the system's arrays are
-    return AQ + (Cs, Hs, rs, lm, lv)
+        )
+    return AQ
 
 
 def _protocol_kernel_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, state: FilterState):
@@ -822,12 +828,7 @@ def _protocol_kernel_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, 
         Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(state.k + 1, h)
         Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
         filled.add(h)
-    AQ = est.__dict__.get("_kernel_mats")
-    if AQ is None:
-        sys_ = est.system
-        AQ = est._kernel_mats = tuple(
-            np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
-        )
+    AQ = _protocol_kernel_mats(est)
     assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
     # writeable C-contiguous float64 copies, as _protocol_kernel_run's
     yk = np.array(y, dtype=float, order="C")
