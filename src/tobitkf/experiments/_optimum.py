@@ -106,24 +106,70 @@ def pop_options(overrides: dict[str, Any], particles: int, runs: int = 200) -> d
     return {"particles": p, "runs": int(r)}
 
 
-def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str, Any], Any]:
-    """The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data.
+def pf_check(
+    system,
+    channel,
+    y,
+    x,
+    particles: int,
+    seed: Any,
+    *,
+    proposal: str = "auto",
+    doublings: int = 0,
+) -> tuple[dict[str, Any], Any]:
+    r"""The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data.
 
-    Returns the summary of the optimum (``mx.summarize`` plus ``particles``, ``proposal`` and
-    ``convergence``) and its :class:`~tobitkf.filters.core.FilterResult` (mean and var)."""
-    results = []
-    for j, Np in enumerate((particles, 2 * particles)):
-        pf = ParticleFilter(system, channel, particles=Np, seed=np.random.SeedSequence([int(seed), 7, j]))
-        results.append(pf.filter(y, outputs=("mean", "var")))
-    small, big = results
-    r_small = mx.rmse(x, small.mean).mean(0)
+    With ``doublings`` = d > 0 the particle ladder goes on while the check fails: the pair
+    :math:`(2^iN_p, 2^{i+1}N_p)` for i = 0, 1, ..., d, stopping at the first converged pair (each rung is
+    run once; rung i with the seed ``SeedSequence([seed, 7, i])``, so d = 0 and the first pair of any
+    ladder are the numbers of the plain check). The optimum is the last rung run; its ``convergence``
+    is that of the last pair, and ``ladder`` lists every pair tried (particles, changes, converged), so a
+    row that stops at the cap unconverged says so. Each pair is tested at the check's level, with no
+    correction for the repeated look (the change itself halves with each doubling).
+
+    Parameters
+    ----------
+    proposal : str, default "auto"
+        The particle filter's proposal (:class:`~tobitkf.ParticleFilter`).
+    doublings : int >= 0, default 0
+        At most this many extra doublings of the particle count.
+
+    Returns the summary of the optimum (``mx.summarize`` plus ``particles``, ``proposal``,
+    ``convergence`` and ``ladder``) and its :class:`~tobitkf.filters.core.FilterResult` (mean and var)."""
+    if isinstance(doublings, bool) or not isinstance(doublings, (int, np.integer)) or doublings < 0:
+        raise ValidationError(f"doublings: expected an integer >= 0, got {doublings!r}")
+
+    def rung(i: int):
+        pf = ParticleFilter(
+            system,
+            channel,
+            particles=particles * 2**i,
+            proposal=proposal,
+            seed=np.random.SeedSequence([int(seed), 7, i]),
+        )
+        return pf, pf.filter(y, outputs=("mean", "var"))
+
+    pf0, small = rung(0)
+    truth = mx.align_truth(x, np.asarray(small.mean))
+    ladder = []
+    for i in range(int(doublings) + 1):
+        _, big = rung(i + 1)
+        m_small, m_big = np.asarray(small.mean), np.asarray(big.mean)
+        conv = convergence((m_small - truth) ** 2, (m_big - truth) ** 2)
+        conv = {
+            "particles": [particles * 2**i, particles * 2 ** (i + 1)],
+            "rmse_time_avg_half": mx.rmse(x, small.mean).mean(0).tolist(),
+            **conv,
+        }
+        ladder.append({k: conv[k] for k in ("particles", "relative_change", "stderr", "converged")})
+        if conv["converged"]:
+            break
+        small = big
     summ = mx.summarize(x, big.mean)
-    m_small, m_big = np.asarray(small.mean), np.asarray(big.mean)
-    truth = mx.align_truth(x, m_small)
-    conv = convergence((m_small - truth) ** 2, (m_big - truth) ** 2)
-    summ["particles"] = 2 * particles
-    summ["proposal"] = ParticleFilter(system, channel, particles=1).proposal
-    summ["convergence"] = {"particles": [particles, 2 * particles], "rmse_time_avg_half": r_small.tolist(), **conv}
+    summ["particles"] = conv["particles"][1]
+    summ["proposal"] = pf0.proposal
+    summ["convergence"] = conv
+    summ["ladder"] = ladder
     return summ, big
 
 
