@@ -555,7 +555,8 @@ def _enumerated_mixture_kalman(sys_, ch, y):
     M = np.array(means_all)  # (J^T, T, n)
     mean = np.einsum("st,stn->tn", W, M)
     var = np.einsum("st,stn->tn", W, (M - mean) ** 2)  # the spread over sequences (a lower bound of Var)
-    return mean, var
+    top = lw[:, -1].max()
+    return mean, var, top + np.log(np.exp(lw[:, -1] - top).sum())  # and log p(y_{1:T})
 
 
 def test_rao_blackwellised_protocol_with_failures_equals_the_enumerated_mixture_of_kalman_filters():
@@ -568,9 +569,13 @@ def test_rao_blackwellised_protocol_with_failures_equals_the_enumerated_mixture_
     y = d.y.copy()
     y[1, 2] = np.nan
     Np = 2000
-    rb = ParticleFilter(sys_, ch, particles=Np, proposal="rao_blackwellised", seed=33).filter(y)
+    pf = ParticleFilter(sys_, ch, particles=Np, proposal="rao_blackwellised", seed=33)
+    rb = pf.filter(y)
+    ll = pf.log_likelihood(y)
     for r in range(y.shape[0]):
-        mean, spread = _enumerated_mixture_kalman(sys_, ch, y[r])
+        mean, spread, exact_ll = _enumerated_mixture_kalman(sys_, ch, y[r])
+        # the likelihood estimate: log-scale error of order sqrt(kappa T / N_p), kappa about 1 here
+        assert abs(ll[r] - exact_ll) < 4 * np.sqrt(y.shape[1] / Np)
         # standardize by the posterior variance (within + between; the RB filter's own estimate of it)
         var = np.diagonal(rb.cov[r], axis1=-2, axis2=-1)
         assert z2(rb.mean[r], mean, var, Np).mean() < KAPPA / 3
