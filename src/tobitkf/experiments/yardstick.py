@@ -41,7 +41,7 @@ jackknife standard error over runs (``converged`` when the change is not signifi
 any component, one-sided at 1 %; ``resolved`` when the check's error is small enough to see 0.3 %;
 :func:`~tobitkf.experiments._optimum.convergence`). The PCRLB claim is Holm's family-wise 1 % test over
 steps and components (:func:`~tobitkf.pcrlb.bound_test`; a per-step normal test at 1 % rejects true
-nulls several times too often here: skewed squared errors, hundreds of dependent steps). ``N_p`` per example: 2000, 500, 1000, 4000,
+nulls several times too often here: skewed squared errors, hundreds of dependent steps). ``N_p`` per example: 2000, 2000, 1000, 8000,
 500, 4000, and 1000 for the random systems (``particles`` replaces them all); while the check fails the
 particle count is doubled, at most ``doublings`` (default 1) times (the ladder of
 :func:`~tobitkf.experiments._optimum.pf_check`: the row reports the particles it used, every pair tried
@@ -51,7 +51,8 @@ keeps the past window states fixed per particle and its mean's Monte Carlo varia
 posterior variance over N_p, against about 1). The saturation
 example's "censored_fraction" is the fraction of saturated readings.
 
-Runtime: about half an hour on one core at the default run counts (some 5e9 particle-steps);
+Runtime: about three quarters of an hour on one core at the default run counts (some 7e9 particle-steps,
+the fading example's 2 x 8000 particles over 1000 runs the largest part);
 ``runs`` caps every example's run count and ``steps`` every horizon, for a quick look.
 """
 
@@ -96,9 +97,9 @@ EXAMPLES = (
 )
 _OWN = {
     "miller-constant": (200, 1000, 2000),
-    "miller-brownian": (200, 1000, 500),
+    "miller-brownian": (200, 1000, 2000),  # 500 -> 1000 moved the RMSE 0.37 %, 1000 -> 2000 0.40 %, 2000 -> 4000 0.13 %
     "miller-oscillator": (100, 2000, 1000),
-    "geng2017-oscillator": (1000, 100, 4000),
+    "geng2017-oscillator": (1000, 100, 8000),  # 4000 -> 8000: 0.34 %, 8000 -> 16000: 0.08 % (200 runs)
     "geng-protocol-tracking": (1000, 100, 500),  # Rao-Blackwellised: 500 of them beat 4000 'optimal' ones
     "saturation-oscillator": (200, 100, 4000),  # optimal proposal: doubling from 4000 moves the RMSE 0.13 %
 }  # runs, steps, N_p
