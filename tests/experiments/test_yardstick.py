@@ -17,7 +17,7 @@ from tobitkf.experiments.yardstick import EXAMPLES, optimum_ratios, random_stabl
 
 @pytest.fixture(scope="module")
 def small():
-    return get("yardstick").run(runs=12, steps=25, random_systems=2, particles=100, seed=3)
+    return get("yardstick").run(runs=12, steps=25, random_systems=2, particles=100, seed=3, doublings=0)
 
 
 def test_every_example_and_random_system_has_every_estimator_and_its_ratio(small):
@@ -57,6 +57,37 @@ def test_same_data_as_the_experiments():
     )
 
 
+def test_particle_ladder_doubles_until_converged_and_reports_every_pair(small):
+    """The ladder's first pair is the plain check (same seeds); it doubles only while the check fails, up to
+    the cap, and the optimum is the last rung; the protocol row runs the Rao-Blackwellised filter."""
+    from tobitkf.experiments._optimum import pf_check
+
+    ex = small.metrics["examples"]["geng-protocol-tracking"]
+    assert ex["estimators"]["pf"]["proposal"] == "rao_blackwellised"
+    assert small.metrics["examples"]["miller-brownian"]["estimators"]["pf"]["proposal"] == "optimal"
+    from tobitkf.experiments.yardstick import _case
+
+    for name, doublings in (("miller-oscillator", 3), ("saturation-oscillator", 2)):
+        case = _case(name, 30, 40, 0)
+        sim, args = case["sim"], (case["system"], case["channel"], case["sim"].y, case["sim"].x, 2, 0)
+        plain, _ = pf_check(*args, proposal="prior")
+        keys = ("particles", "relative_change", "stderr", "converged")
+        assert plain["ladder"] == [{k: plain["convergence"][k] for k in keys}]
+        lad, res = pf_check(*args, proposal="prior", doublings=doublings)
+        steps = lad["ladder"]
+        assert steps[0] == plain["ladder"][0] and not steps[0]["converged"]  # 2 particles: not converged
+        assert [s["particles"] for s in steps] == [[2 * 2**i, 2 * 2 ** (i + 1)] for i in range(len(steps))]
+        assert all(not s["converged"] for s in steps[:-1])
+        assert steps[-1]["converged"] or len(steps) == doublings + 1
+        assert lad["particles"] == steps[-1]["particles"][1]
+        assert lad["convergence"]["converged"] == steps[-1]["converged"]
+        np.testing.assert_allclose(lad["rmse_time_avg"], np.sqrt(((res.mean - sim.x[:, 1:]) ** 2).mean(0)).mean(0))
+    # the two cases: one stops converged before the cap, one reaches the cap unconverged
+    assert len(steps) == 3 and not steps[-1]["converged"]
+    with pytest.raises(tk.ValidationError, match="doublings: expected an integer >= 0"):
+        pf_check(*args, doublings=-1)
+
+
 def test_random_systems_censor_30_to_90_percent():
     rng = np.random.default_rng(0)
     for _ in range(10):
@@ -83,6 +114,8 @@ def test_bad_settings_are_refused():
         run(runs=2, random_systems=-1)
     with pytest.raises(tk.ValidationError, match="particles: expected a positive integer or None"):
         run(runs=2, particles=0)
+    with pytest.raises(tk.ValidationError, match="doublings: expected an integer >= 0"):
+        run(runs=2, doublings=True)
 
 
 def test_figures_and_cli(tmp_path, small):

@@ -311,7 +311,7 @@ def _run_steps(est, y, batch, start=None):
 
 
 @pytest.mark.parametrize("batch", [(), (4,), (2, 3)], ids=str)
-@pytest.mark.parametrize("channel", ["censoring", "protocol"])
+@pytest.mark.parametrize("channel", ["censoring", "protocol", "protocol-rb"])
 def test_step_loop_equals_filter_and_pickled_state_resumes(channel, batch):
     rng = np.random.default_rng(1)
     N = int(np.prod(batch)) if batch else 1
@@ -325,7 +325,8 @@ def test_step_loop_equals_filter_and_pickled_state_resumes(channel, batch):
     y = d.y.copy()
     y[rng.random(y.shape) < 0.1] = np.nan
     y = y.reshape(batch + y.shape[1:])
-    pf = ParticleFilter(sys_, ch, particles=200, seed=3)
+    prop = "rao_blackwellised" if channel == "protocol-rb" else "auto"
+    pf = ParticleFilter(sys_, ch, particles=200, proposal=prop, seed=3)
     res = pf.filter(y)
     assert res.mean.shape == batch + (12, 2) and res.times.tolist() == list(range(1, 13))
     assert res.extras["ess"].shape == batch + (12,)
@@ -489,3 +490,154 @@ def test_saturation_optimal_proposal_agrees_with_a_long_bootstrap_run(censored):
     # 247 (2.4x) censored, mean over runs and steps
     boot = ParticleFilter(sys_, ch, censoring=cens, particles=Np, proposal="prior", seed=33).filter(d.y)
     assert opt.extras["ess"].mean() > 2.0 * boot.extras["ess"].mean()
+
+
+# --------------------------------------------------------------------------- protocol: Rao-Blackwellised
+
+
+def test_rao_blackwellised_protocol_without_failures_or_censoring_is_the_augmented_kalman_filter():
+    """No failures, no censoring: every particle is the augmented Kalman filter itself (nothing is sampled),
+    so the RB filter equals the exact filter to rounding, with any particle count (missing readings too)."""
+    sys_ = oscillator(C=np.eye(2), R=np.diag([0.1, 0.2]))
+    for prehistory in ("prior", "hold", "zero"):
+        ch = tk.ProtocolChannel(2, window=2, prehistory=prehistory)
+        d = tk.simulate(sys_, 15, 4, channel=ch, seed=30)
+        y = d.y.copy()
+        y[:, 3] = np.nan
+        exact = tk.ProtocolAssumedDensityFilter(sys_, ch).filter(y)
+        rb = ParticleFilter(sys_, ch, particles=7, proposal="rao_blackwellised", seed=31).filter(y)
+        np.testing.assert_allclose(rb.mean, exact.mean, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(rb.cov, exact.cov, rtol=0, atol=1e-10)
+        assert (rb.extras["ess"] > 7 - 1e-9).all()
+
+
+def _enumerated_mixture_kalman(sys_, ch, y):
+    """Exact posterior means of x_k for the protocol channel without censoring (tau = -inf), by enumerating
+    every sequence of failure outcomes (J^T Kalman filters on the window (x_k, .., x_{k-ell}), each weighted
+    by pi(sequence) p(y_{1:k} | sequence)); written from the model, prehistory iid from the prior."""
+    import itertools
+
+    n, ell = sys_.n, ch.window
+    nx = n * (ell + 1)
+    A, Q = np.asarray(sys_.A.at(0)), np.asarray(sys_.Q.at(0))
+    F = np.zeros((nx, nx))
+    F[:n, :n] = A
+    F[n:, :-n] = np.eye(nx - n)
+    G = np.zeros((nx, nx))
+    G[:n, :n] = Q
+    vals, probs = np.asarray(ch.laws[0].values), np.asarray(ch.laws[0].probs)
+    C, R = np.asarray(sys_.C.at(0)), np.diagonal(np.asarray(sys_.R.at(0)))
+    T = y.shape[0]
+    logw_all, means_all = [], []
+    for seq in itertools.product(range(vals.size), repeat=T):
+        m = np.tile(np.asarray(sys_.x0, float), ell + 1)
+        P = np.kron(np.eye(ell + 1), np.asarray(sys_.P0, float))
+        lw, means = np.zeros(T), np.zeros((T, n))
+        acc = 0.0
+        for k in range(T):
+            m, P = F @ m, F @ P @ F.T + G
+            h = k % ch.sensors
+            if not np.isnan(y[k, 0]):
+                H = vals[seq[k]] * np.tile(C[h], ell + 1)
+                S = H @ P @ H + R[h]
+                K = P @ H / S
+                e = y[k, 0] - H @ m
+                acc += np.log(probs[seq[k]]) - 0.5 * e * e / S - 0.5 * np.log(2 * np.pi * S)
+                m, P = m + K * e, P - np.outer(K, K) * S
+            else:
+                acc += np.log(probs[seq[k]])
+            lw[k], means[k] = acc, m[:n]
+        logw_all.append(lw)
+        means_all.append(means)
+    lw = np.array(logw_all)  # (J^T, T): the weight of each sequence's first k outcomes given y_{1:k}
+    W = np.exp(lw - lw.max(0))
+    W /= W.sum(0)
+    M = np.array(means_all)  # (J^T, T, n)
+    mean = np.einsum("st,stn->tn", W, M)
+    var = np.einsum("st,stn->tn", W, (M - mean) ** 2)  # the spread over sequences (a lower bound of Var)
+    top = lw[:, -1].max()
+    return mean, var, top + np.log(np.exp(lw[:, -1] - top).sum())  # and log p(y_{1:T})
+
+
+def test_rao_blackwellised_protocol_with_failures_equals_the_enumerated_mixture_of_kalman_filters():
+    """Failures {0, 0.5, 1}, ell = 1, no censoring, T = 6: the exact posterior mean is a mixture of 3^6 Kalman
+    filters (enumerated); the RB particle mean must match it within its Monte Carlo error (kappa measured
+    about 1 here), and a wrong weight (e.g. dropping the outcome posterior) would be off by far more."""
+    sys_ = oscillator(C=np.eye(2), R=np.diag([0.1, 0.2]), x0=[1.0, 0.0])
+    ch = tk.ProtocolChannel(2, window=1, failures=PMF([0.0, 0.5, 1.0], [0.2, 0.3, 0.5]))
+    d = tk.simulate(sys_, 6, 3, channel=ch, seed=32)
+    y = d.y.copy()
+    y[1, 2] = np.nan
+    Np = 2000
+    pf = ParticleFilter(sys_, ch, particles=Np, proposal="rao_blackwellised", seed=33)
+    rb = pf.filter(y)
+    ll = pf.log_likelihood(y)
+    for r in range(y.shape[0]):
+        mean, spread, exact_ll = _enumerated_mixture_kalman(sys_, ch, y[r])
+        # the likelihood estimate: log-scale error of order sqrt(kappa T / N_p), kappa about 1 here
+        assert abs(ll[r] - exact_ll) < 4 * np.sqrt(y.shape[1] / Np)
+        # standardize by the posterior variance (within + between; the RB filter's own estimate of it)
+        var = np.diagonal(rb.cov[r], axis1=-2, axis2=-1)
+        assert z2(rb.mean[r], mean, var, Np).mean() < KAPPA / 3
+        assert (var >= spread - 1e-9).all()
+
+
+def _window_grid_filter(a, q, r, x0, p0, vals, probs, tau, y, grid):
+    """Exact (to the grid) filter of a scalar x_k = a x_{k-1} + w, ell = 1, one sensor:
+    y = max(lambda (x_k + x_{k-1}) + v, tau), lambda ~ PMF(vals, probs), x_{-1} iid N(x0, p0). The joint of
+    the window (x_k, x_{k-1}) lives on grid x grid; written from the model."""
+    g = grid
+    K = np.exp(-0.5 * (g[:, None] - a * g[None, :]) ** 2 / q)  # p(x_k = g_i | x_{k-1} = g_j), unnormalized
+    K /= K.sum(0, keepdims=True)
+    prior1 = np.exp(-0.5 * (g - x0) ** 2 / p0)
+    joint = np.outer(prior1, prior1)  # (x_0, x_{-1})
+    joint /= joint.sum()
+    s = g[:, None] + g[None, :]
+    sr = np.sqrt(r)
+    means, vars_ = [], []
+    for yk in y:
+        marg = joint.sum(1)  # p(x_{k-1} | y_{1:k-1})
+        joint = K * marg[None, :]  # (x_k, x_{k-1})
+        if not np.isnan(yk):
+            if yk <= tau:
+                lik = sum(p * np.exp(log_ndtr((tau - v * s) / sr)) for v, p in zip(vals, probs, strict=True))
+            else:
+                lik = sum(p * np.exp(-0.5 * (yk - v * s) ** 2 / r) for v, p in zip(vals, probs, strict=True))
+            joint = joint * lik
+        joint /= joint.sum()
+        px = joint.sum(1)
+        m = px @ g
+        means.append(m)
+        vars_.append(px @ (g - m) ** 2)
+    return np.array(means), np.array(vars_)
+
+
+def test_rao_blackwellised_protocol_with_censoring_equals_a_grid_filter():
+    """Scalar state, ell = 1, failures {0, 0.5, 1}, censored at tau = 0 (about half the readings): the RB
+    mean matches a grid filter of the window's joint within the Monte Carlo error; so does the locally optimal
+    proposal (with its larger kappa). Same seed, same numbers."""
+    a, q, r, x0, p0 = 0.95, 0.05, 0.1, 0.3, 0.5
+    sys_ = tk.LinearSystem(A=[[a]], C=[[1.0]], Q=[[q]], R=[[r]], x0=[x0], P0=[[p0]])
+    law = PMF([0.0, 0.5, 1.0], [0.1, 0.2, 0.7])
+    ch = tk.ProtocolChannel(1, window=1, failures=law, threshold=0.0)
+    d = tk.simulate(sys_, 15, 4, channel=ch, seed=34)
+    assert 0.2 < (d.y <= 0.0).mean() < 0.8
+    grid = np.linspace(-4.0, 4.5, 700)
+    Np = 2000
+    rb_pf = ParticleFilter(sys_, ch, particles=Np, proposal="rao_blackwellised", seed=35)
+    rb = rb_pf.filter(d.y)
+    np.testing.assert_array_equal(rb.mean, rb_pf.filter(d.y).mean)
+    opt = ParticleFilter(sys_, ch, particles=Np, proposal="optimal", seed=36).filter(d.y)
+    for run in range(d.y.shape[0]):
+        mean, var = _window_grid_filter(a, q, r, x0, p0, law.values, law.probs, 0.0, d.y[run, :, 0], grid)
+        assert z2(rb.mean[run, :, 0], mean, var, Np).mean() < KAPPA / 3
+        assert z2(opt.mean[run, :, 0], mean, var, Np).mean() < 4 * KAPPA
+        assert np.abs(rb.cov[run, :, 0, 0] / var - 1).mean() < 0.1  # the mixture's variance too, on average
+
+
+def test_rao_blackwellised_is_refused_where_it_is_not_implemented():
+    sys_ = oscillator(C=np.eye(2), R=np.diag([0.1, 0.2]))
+    with pytest.raises(tk.ValidationError, match="'rao_blackwellised' is implemented for the protocol channel"):
+        ParticleFilter(oscillator(), tk.Censoring(lower=0.0), proposal="rao_blackwellised")
+    with pytest.raises(tk.ValidationError, match="'rao_blackwellised' is implemented for the protocol channel"):
+        ParticleFilter(sys_, tk.ProtocolChannel(2, failures=Uniform(0.3, 1.0)), proposal="rao_blackwellised")

@@ -29,6 +29,7 @@ __all__ = [
     "LEVEL",
     "pf_check",
     "pf_lineup",
+    "pf_rung",
     "add_optimum",
     "check_particles",
     "pop_options",
@@ -107,33 +108,87 @@ def pop_options(overrides: dict[str, Any], particles: int, runs: int = 200) -> d
     return {"particles": p, "runs": int(r)}
 
 
-def pf_lineup(particles: int, seed: Any) -> Lineup:
-    """The two particle filters of :func:`pf_check` as a registry line-up: ``"pf-half"`` with N_p
-    particles (the convergence check) and ``"pf"`` with 2 N_p (the optimum), seeded
-    ``SeedSequence([seed, 7, j])``, j = 0, 1."""
-    return {
-        key: ("ParticleFilter", {"particles": Np, "seed": np.random.SeedSequence([int(seed), 7, j])})
-        for j, (key, Np) in enumerate((("pf-half", particles), ("pf", 2 * particles)))
-    }
+def pf_rung(particles: int, seed: Any, i: int = 1, proposal: str = "auto") -> tuple[str, dict[str, Any]]:
+    """Rung ``i`` of the particle ladder of :func:`pf_check` as a registry entry (name, options):
+    :math:`2^iN_p` particles, seeded ``SeedSequence([seed, 7, i])`` (rung 0 is the plain check's N_p
+    filter, rung 1 its optimum)."""
+    opts = {"particles": particles * 2**i, "seed": np.random.SeedSequence([int(seed), 7, i])}
+    if proposal != "auto":
+        opts["proposal"] = proposal
+    return "ParticleFilter", opts
 
 
-def pf_check(system, channel, y, x, particles: int, seed: Any) -> tuple[dict[str, Any], Any]:
-    """The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data
-    (built from the registry, :func:`pf_lineup`).
+def pf_lineup(particles: int, seed: Any, proposal: str = "auto") -> Lineup:
+    """The two particle filters of the plain check (:func:`pf_check` without doublings) as a registry
+    line-up: ``"pf-half"`` with N_p particles (the convergence check) and ``"pf"`` with 2 N_p (the optimum),
+    rungs 0 and 1 of :func:`pf_rung`."""
+    return {"pf-half": pf_rung(particles, seed, 0, proposal), "pf": pf_rung(particles, seed, 1, proposal)}
 
-    Returns the summary of the optimum (``mx.summarize`` plus ``particles``, ``proposal`` and
-    ``convergence``) and its :class:`~tobitkf.filters.core.FilterResult` (mean and var)."""
+
+def pf_check(
+    system,
+    channel,
+    y,
+    x,
+    particles: int,
+    seed: Any,
+    *,
+    proposal: str = "auto",
+    doublings: int = 0,
+) -> tuple[dict[str, Any], Any]:
+    r"""The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data,
+    built from the registry (:func:`pf_rung`).
+
+    With ``doublings`` = d > 0 the particle ladder goes on while the check fails: the pair
+    :math:`(2^iN_p, 2^{i+1}N_p)` for i = 0, 1, ..., d, stopping at the first converged pair (each rung is
+    run once; rung i with the seed ``SeedSequence([seed, 7, i])``, so d = 0 and the first pair of any
+    ladder are the numbers of the plain check). The optimum is the last rung run; its ``convergence``
+    is that of the last pair, and ``ladder`` lists every pair tried (particles, changes, converged), so a
+    row that stops at the cap unconverged says so. Each pair is tested at the check's level, with no
+    correction for the repeated look (the change itself halves with each doubling).
+
+    Parameters
+    ----------
+    proposal : str, default "auto"
+        The particle filter's proposal (:class:`~tobitkf.ParticleFilter`).
+    doublings : int >= 0, default 0
+        At most this many extra doublings of the particle count.
+
+    Returns the summary of the optimum (``mx.summarize`` plus ``particles``, ``proposal``,
+    ``convergence``, ``ladder`` and ``lineup``, the optimum's registry description) and its
+    :class:`~tobitkf.filters.core.FilterResult` (mean and var)."""
+    if isinstance(doublings, bool) or not isinstance(doublings, (int, np.integer)) or doublings < 0:
+        raise ValidationError(f"doublings: expected an integer >= 0, got {doublings!r}")
     parts = parts_of(channel)
-    pfs = lineup(pf_lineup(particles, seed), system, parts)
-    small, big = (pfs[k].filter(y, outputs=("mean", "var")) for k in ("pf-half", "pf"))
-    r_small = mx.rmse(x, small.mean).mean(0)
+
+    def rung(i: int):
+        pf = lineup({"pf": pf_rung(particles, seed, i, proposal)}, system, parts)["pf"]
+        return pf, pf.filter(y, outputs=("mean", "var"))
+
+    pf0, small = rung(0)
+    truth = mx.align_truth(x, np.asarray(small.mean))
+    ladder = []
+    last = 1
+    for i in range(int(doublings) + 1):
+        _, big = rung(i + 1)
+        last = i + 1
+        m_small, m_big = np.asarray(small.mean), np.asarray(big.mean)
+        conv = convergence((m_small - truth) ** 2, (m_big - truth) ** 2)
+        conv = {
+            "particles": [particles * 2**i, particles * 2 ** (i + 1)],
+            "rmse_time_avg_half": mx.rmse(x, small.mean).mean(0).tolist(),
+            **conv,
+        }
+        ladder.append({k: conv[k] for k in ("particles", "relative_change", "stderr", "converged")})
+        if conv["converged"]:
+            break
+        small = big
     summ = mx.summarize(x, big.mean)
-    m_small, m_big = np.asarray(small.mean), np.asarray(big.mean)
-    truth = mx.align_truth(x, m_small)
-    conv = convergence((m_small - truth) ** 2, (m_big - truth) ** 2)
-    summ["particles"] = 2 * particles
-    summ["proposal"] = pfs["pf"].proposal
-    summ["convergence"] = {"particles": [particles, 2 * particles], "rmse_time_avg_half": r_small.tolist(), **conv}
+    summ["particles"] = conv["particles"][1]
+    summ["proposal"] = pf0.proposal
+    summ["convergence"] = conv
+    summ["ladder"] = ladder
+    summ["lineup"] = describe({"pf": pf_rung(particles, seed, last, proposal)})["pf"]
     return summ, big
 
 
@@ -169,4 +224,6 @@ def add_optimum(
     pf["ratio_to_optimum"] = [1.0] * ref.size
     summaries[key] = pf
     if record is not None:
-        record[key] = describe(pf_lineup(particles, seed))["pf"]
+        record[key] = pf.pop("lineup")
+    else:
+        pf.pop("lineup")
