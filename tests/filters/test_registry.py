@@ -36,8 +36,11 @@ def _parts():
 
 def _built(entry, options):
     m = 2 if "protocol" in entry.needs else 1
-    # the particle filter takes any channel: none here, the only one with every proposal it lists
+    # the particle filter takes any channel: none here (the censored linear reading, which has every proposal
+    # it lists but the Rao-Blackwellised one), the protocol channel for that one
     parts = {} if entry.name == "ParticleFilter" else _parts()
+    if entry.name == "ParticleFilter" and options.get("proposal") == "rao_blackwellised":
+        parts, m = {"protocol": _parts()["protocol"]}, 2
     return entry.build(_system(m), parts, options)
 
 

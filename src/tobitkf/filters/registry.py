@@ -349,7 +349,7 @@ _ENTRY_LIST = [
         options={
             "particles": int,
             "resample_threshold": float,
-            "proposal": ("auto", "optimal", "prior"),
+            "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
             "seed": object,
         },
         required=("seed",),  # a registry-built particle filter draws the same particles on every run
