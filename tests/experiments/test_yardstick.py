@@ -138,3 +138,26 @@ def test_metrics_are_json(small):
         atomic_write_json(p, small.metrics)
         back = json.loads(p.read_text())
     assert back["examples"]["miller-oscillator"]["estimators"]["pf"]["convergence"]["tolerance"] == 0.003
+
+
+def test_particle_check_runs_in_blocks_of_runs(monkeypatch):
+    """With more runs than RUN_BLOCK the particle filter runs block by block: block 0 seeded as the unblocked
+    call (SeedSequence([seed, 7, i])), block b > 0 with SeedSequence([seed, 7, i, b]), each on its runs; the
+    means are the blocks' in order (checked against direct filters), the summary is computed from them."""
+    from tobitkf.experiments import _optimum
+    from tobitkf.experiments.yardstick import _case
+
+    case = _case("miller-oscillator", 7, 20, 0)
+    sys_, cens, sim = case["system"], case["channel"], case["sim"]
+    whole, whole_res = _optimum.pf_check(sys_, cens, sim.y, sim.x, 5, 4)
+    monkeypatch.setattr(_optimum, "RUN_BLOCK", 3)
+    blocked, res = _optimum.pf_check(sys_, cens, sim.y, sim.x, 5, 4)
+    assert res.mean.shape == whole_res.mean.shape and res.var.shape == whole_res.var.shape
+    for b, r0 in enumerate(range(0, 7, 3)):
+        seed = np.random.SeedSequence([4, 7, 1]) if b == 0 else np.random.SeedSequence([4, 7, 1, b])
+        direct = tk.ParticleFilter(sys_, cens, particles=10, seed=seed).filter(sim.y[r0 : r0 + 3])
+        np.testing.assert_array_equal(res.mean[r0 : r0 + 3], direct.mean)
+    # (block 0 is not the unblocked call restricted to its runs: one generator draws for the whole batch)
+    np.testing.assert_allclose(
+        blocked["rmse_time_avg"], np.sqrt(((res.mean - sim.x[:, 1:]) ** 2).mean(0)).mean(0), rtol=1e-12
+    )
