@@ -92,7 +92,6 @@ Code names -> paper symbols: ``mean`` x̂_{k|k}; ``cov`` P_{k|k}; ``pred_mean`` 
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -119,6 +118,7 @@ from .kalman import (
     _empty,
     _finite_or_none,
     cov_output,
+    finite_variances,
     kernel_array,
     kernel_result,
 )
@@ -839,8 +839,7 @@ def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: Filt
         x_last,
         P_last,
     )
-    d = np.diagonal(P_last, axis1=-2, axis2=-1)  # the check of _finite_or_none, in Python floats for one run
-    if not (all(map(math.isfinite, d.ravel().tolist())) if d.size <= 16 else np.isfinite(d).all()):
+    if not finite_variances(P_last):  # the check of _finite_or_none
         return None
     extras = {"p_uncensored": pu[:, 0], "expected_y": ey[:, 0], "inverse_mills": lam[:, 0]}
     if keep_smoothed:

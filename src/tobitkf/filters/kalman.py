@@ -218,6 +218,14 @@ def _finite_or_none(res: FilterResult) -> FilterResult | None:
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
 
 
+def finite_variances(P: np.ndarray) -> bool:
+    """Whether every variance (diagonal entry) of ``P`` (..., n, n) is finite: the check of
+    :func:`_finite_or_none` for one online step's state, in Python floats when there are a few (no numpy
+    reductions for one run)."""
+    d = np.diagonal(P, axis1=-2, axis2=-1)
+    return all(map(math.isfinite, d.ravel().tolist())) if d.size <= 16 else bool(np.isfinite(d).all())
+
+
 def kernel_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
     """A kernel's output ``(N or 1, T, ...)`` as ``batch + (T, ...)``: None when it was not requested
     (``T`` axis of length 0), a read-only broadcast view when the kernel wrote one row for all runs (a

@@ -99,7 +99,15 @@ from .core import (
     step_state,
     symmetrize,
 )
-from .kalman import LinearGaussianFamily, _empty, _finite_or_none, cov_output, kernel_array, kernel_result
+from .kalman import (
+    LinearGaussianFamily,
+    _empty,
+    _finite_or_none,
+    cov_output,
+    finite_variances,
+    kernel_array,
+    kernel_result,
+)
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
@@ -867,8 +875,7 @@ def _protocol_kernel_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, 
         x_last,
         P_last,
     )
-    d = np.diagonal(P_last, axis1=-2, axis2=-1)  # the check of _finite_or_none, in Python floats for one run
-    if not (all(map(math.isfinite, d.ravel().tolist())) if d.size <= 16 else np.isfinite(d).all()):
+    if not finite_variances(P_last):  # the check of _finite_or_none
         return None
     extras: dict[str, Any] = {name: exts[:, 0, i] for i, name in enumerate(kp.EXTRA_NAMES)}
     extras.update(aug_mean=amean[:, 0], aug_pred_mean=apmean[:, 0], uncensored=gam[:, 0])
