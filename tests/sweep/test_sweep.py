@@ -92,6 +92,27 @@ def test_chunking_and_dask_give_identical_statistics(tmp_path):
         np.testing.assert_array_equal(one[name], dask[name])
 
 
+def test_one_worker_runs_its_filters_on_one_thread(tmp_path, monkeypatch):
+    """workers=1 is one thread: the blocks run in sequence with single-threaded filters (threads=1), as in a
+    Dask worker (before, they ran with the filters' default threads, all CPUs); with more workers the
+    pool's tasks run single-threaded filters too."""
+    from tobitkf.sweep import run as R
+
+    seen = []
+    real = R.run_task
+
+    def spy(text, name, p, blocks, threads=None):
+        seen.append(threads)
+        return real(text, name, p, blocks, threads)
+
+    monkeypatch.setattr(R, "run_task", spy)
+    run_sweep(spec(chunk=1), tmp_path / "one", workers=1)
+    assert seen and set(seen) == {1}
+    seen.clear()
+    run_sweep(spec(chunk=1), tmp_path / "three", workers=3)  # the pool: each task's filters single-threaded
+    assert seen and set(seen) == {1}
+
+
 def test_scheduler_address_runs_on_an_existing_cluster(tmp_path):
     """``--scheduler ADDRESS``: the same file on a cluster started elsewhere gives the same numbers."""
     distributed = pytest.importorskip("distributed")

@@ -203,7 +203,9 @@ def run_sweep(
     workers : int, optional
         ``local``: threads that run tasks side by side in this process (model mode; the
         compiled filters and numpy's random generator release the GIL), each block's filters
-        then single-threaded; an experiment sweep runs its tasks one after the other.
+        then single-threaded; an experiment sweep runs its tasks one after the other. With
+        ``workers=1`` a model sweep runs on one thread (its filters too, which otherwise take
+        :func:`~tobitkf.filters._backend.default_threads`).
         ``processes``: worker processes. Default: :func:`~tobitkf.filters._backend.default_threads`
         (``TOBITKF_NUM_THREADS``, else ``OMP_NUM_THREADS``, else the number of CPUs). Ignored
         for a scheduler address (the cluster has its workers).
@@ -302,8 +304,11 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
     if progress is not None:
         progress(finished, total, 0.0)
     if client is None and (threads == 1 or spec.experiment is not None or len(tasks) < 2):
+        # one worker asked for (workers=1): one thread, the filters' too (as in a Dask worker, where
+        # OMP_NUM_THREADS=1); otherwise a sequential run leaves the filters their default threads
+        inner = 1 if threads == 1 else None
         for p, blocks in tasks:
-            record(p, run_task(spec.text, spec.name, p, blocks))
+            record(p, run_task(spec.text, spec.name, p, blocks, inner))
     elif client is None:
         from concurrent.futures import ThreadPoolExecutor
         from concurrent.futures import as_completed as done_first
