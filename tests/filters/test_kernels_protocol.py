@@ -119,10 +119,9 @@ def test_kernel_given_uncensored_and_continued_state():
             np.testing.assert_array_equal(a2.extras["scheduled"], b2.extras["scheduled"])
 
 
-@pytest.mark.parametrize("mode", FAILURE_TERMS)
-def test_kernel_three_sensors_custom_order_per_sensor_laws(mode):
-    """p = 3 sensors served in the order 3, 1, 3, 2 (sensor 3 twice per cycle), a law per sensor (the
-    per-sensor lam_mean, lam_var), continued from result.final at a step inside the cycle."""
+def three_sensor_case():
+    """p = 3 sensors served in the order 3, 1, 3, 2 (sensor 3 twice per cycle), a failure law per sensor,
+    window 1, threshold -0.5, on the example's oscillator."""
     from tobitkf.channels.protocol import PMF
 
     w = 0.052 * np.pi
@@ -130,7 +129,14 @@ def test_kernel_three_sensors_custom_order_per_sensor_laws(mode):
     C = [[1.0, 0.0], [0.3, 1.0], [-0.5, 0.7]]
     sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 2.0]), x0=[5.0, 0.0], P0=np.eye(2))
     laws = [LAMBDA_BASE, NO_FAILURE, PMF([0.2, 1.0], [0.3, 0.7])]
-    ch = ProtocolChannel(3, window=1, failures=laws, threshold=-0.5, order=[3, 1, 3, 2])
+    return sys_, ProtocolChannel(3, window=1, failures=laws, threshold=-0.5, order=[3, 1, 3, 2])
+
+
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_kernel_three_sensors_custom_order_per_sensor_laws(mode):
+    """p = 3 sensors served in the order 3, 1, 3, 2 (sensor 3 twice per cycle), a law per sensor (the
+    per-sensor lam_mean, lam_var), continued from result.final at a step inside the cycle."""
+    sys_, ch = three_sensor_case()
     y = tk.simulate(sys_, 27, 6, seed=9, channel=ch).y
     a, b = both(sys_, ch, y, failure_term=mode)
     assert_results_equal(a, b)
@@ -293,14 +299,7 @@ def test_online_kernel_step_equals_the_numpy_step(mode, shape):
     steps, a lost reading (that step runs numpy), a pickled state resumed: every state's x, P, extras and
     carry equal the numpy step's, and the stream the numpy filter's rows; lmmse_unconditional (its carried
     X_k) runs numpy."""
-    from tobitkf.channels.protocol import PMF
-
-    w = 0.052 * np.pi
-    A = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
-    C = [[1.0, 0.0], [0.3, 1.0], [-0.5, 0.7]]
-    sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 2.0]), x0=[5.0, 0.0], P0=np.eye(2))
-    laws = [LAMBDA_BASE, NO_FAILURE, PMF([0.2, 1.0], [0.3, 0.7])]
-    ch = ProtocolChannel(3, window=1, failures=laws, threshold=-0.5, order=[3, 1, 3, 2])
+    sys_, ch = three_sensor_case()
     runs = int(np.prod(shape, dtype=int))
     T = 19
     y = tk.simulate(sys_, T, runs, seed=9, channel=ch).y.reshape(shape + (T, 1))
