@@ -286,7 +286,13 @@ BLOCK = 32
 CHUNK = 64
 # Outputs are staged for CHUNK steps of a block and then written run by run: writing
 # every step straight into (N, T, ...) arrays touches BLOCK rows T*n*8 bytes apart,
-# which for long records alias in the cache and miss the TLB on every store.
+# which for long records alias in the cache and miss the TLB on every store. The staging
+# buffers are laid out (S, ..., B), the run innermost as in the block's state, so that the
+# per-step copies into them are contiguous, vectorised loops over the block; the transpose
+# to the run-major (N, T, ...) layout happens once per chunk in _flush (strided reads from
+# the cache-resident buffer, contiguous writes). Measured on the steady-state TKF (n = 2,
+# 10^4 runs x 100 steps, outputs preallocated): 15.6 ns per run-step against 21.2 ns with
+# (B, S, ...) buffers written run by run at every step, and 17.2 ns writing the outputs directly.
 
 
 # --- the block scratch ---------------------------------------------------------------------
@@ -353,9 +359,10 @@ def _update_scratch(dim, ntop, m, B, G):
 
 @njit(cache=True)
 def _stage_shape(out, B, S):
-    """Shape of the staging buffer of the output ``out`` (N, T, ...): ``(B, S, ...)``, or ``(0, S, ...)``
-    when the output is not requested (``out.shape[1] == 0``: no staging, not written)."""
-    return (B if out.shape[1] > 0 else 0, S) + out.shape[2:]
+    """Shape of the staging buffer of the output ``out`` (N, T, ...): ``(S, ..., B)`` (chunk step first,
+    run last: ``buf[tt, ..., b]``), or ``(0, ..., B)`` when the output is not requested
+    (``out.shape[1] == 0``: no staging, not written)."""
+    return (S if out.shape[1] > 0 else 0,) + out.shape[2:] + (B,)
 
 
 @njit(cache=True, error_model="numpy")
@@ -662,44 +669,48 @@ def _load(x0, P0, r0, nb, x, P):
 def _stage(xv, Pv, tt, nb, mbuf, cbuf):
     """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``; a buffer with
     no runs (``shape[0] == 0``: that output was not requested) is skipped."""
-    n = xv.shape[0]
+    n = mbuf.shape[1]
     if mbuf.shape[0] > 0:
-        for b in range(nb):
-            for i in range(n):
-                mbuf[b, tt, i] = xv[i, b]
+        for i in range(n):
+            for b in range(nb):
+                mbuf[tt, i, b] = xv[i, b]
     _stage_cov(Pv, cbuf, tt, nb)
 
 
 @njit(cache=True, error_model="numpy")
 def _stage_cov(Pv, cbuf, tt, nb):
-    """Copy the top-left ``n x n`` block of a block's P[i, j, b] (n = ``cbuf.shape[2]``) into the staging
-    buffer ``cbuf`` (B, S, n, n) at chunk step ``tt``, or only its diagonal into ``cbuf`` (B, S, n, 1) (the
-    variances, for ``outputs=("var",)``: no (N, T, n, n) array); skipped when ``cbuf`` has no runs."""
+    """Copy the top-left ``n x n`` block of a block's P[i, j, b] (n = ``cbuf.shape[1]``) into the staging
+    buffer ``cbuf`` (S, n, n, B) at chunk step ``tt``, or only its diagonal into ``cbuf`` (S, n, 1, B) (the
+    variances, for ``outputs=("var",)``: no (N, T, n, n) array); skipped when ``cbuf`` has no steps."""
     if cbuf.shape[0] == 0:
         return
-    n = cbuf.shape[2]
-    if cbuf.shape[3] == 1:
-        for b in range(nb):
-            for i in range(n):
-                cbuf[b, tt, i, 0] = Pv[i, i, b]
-        return
-    for b in range(nb):
+    n = cbuf.shape[1]
+    if cbuf.shape[2] == 1:
         for i in range(n):
-            for j in range(n):
-                cbuf[b, tt, i, j] = Pv[i, j, b]
+            for b in range(nb):
+                cbuf[tt, i, 0, b] = Pv[i, i, b]
+        return
+    for i in range(n):
+        for j in range(n):
+            for b in range(nb):
+                cbuf[tt, i, j, b] = Pv[i, j, b]
 
 
 @njit(cache=True, error_model="numpy")
 def _flush(buf, out, r0, t0, nb, cnt):
-    """Write ``cnt`` staged steps of ``nb`` runs to ``out[r0 + b, t0:t0 + cnt]`` (contiguous per run).
-    An output with no time axis (``out.shape[1] == 0``) was not requested and is skipped."""
+    """Write ``cnt`` staged steps of ``nb`` runs, ``buf[tt, ..., b]`` (S, ..., B), to
+    ``out[r0 + b, t0:t0 + cnt]`` (the transpose; contiguous writes per run). An output with no time axis
+    (``out.shape[1] == 0``) was not requested and is skipped."""
     if out.shape[1] == 0:
         return
+    S, B = buf.shape[0], buf.shape[buf.ndim - 1]
+    d = buf.size // (S * B)
+    src = buf.reshape((S, d, B))
     for b in range(nb):
         dst = out[r0 + b, t0 : t0 + cnt].reshape(-1)
-        src = buf[b, :cnt].reshape(-1)
-        for k in range(src.shape[0]):
-            dst[k] = src[k]
+        for s in range(cnt):
+            for q in range(d):
+                dst[s * d + q] = src[s, q, b]
 
 
 @njit(cache=True, error_model="numpy")
@@ -785,9 +796,9 @@ def tkf_kernel(
                     noise[l, l, b] = v
                     e[l, b] = y[r0 + b, t, l] - st[6]
                     if want_pu:
-                        s_pu[b, tt, l] = g
+                        s_pu[tt, l, b] = g
                     if want_ey:
-                        s_ey[b, tt, l] = st[6]
+                        s_ey[tt, l, b] = st[6]
             # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
             _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
             if m > 1:

@@ -177,9 +177,9 @@ def fading_tkf_kernel(
             C = Hs[min(k, L)]
             shift_predict_block(A, Qd, x, P, xp, Pp, X, nb)  # (17)-(18)
             if want_pm:
-                for b in range(nb):
-                    for i in range(n):
-                        s_pmean[b, tt, i] = xp[i, b]
+                for i in range(n):
+                    for b in range(nb):
+                        s_pmean[tt, i, b] = xp[i, b]
             if want_pc:
                 _stage_cov(Pp, s_pcov, tt, nb)
             # Lemma 1 at chi = H_k xi_{k|k-1}; (6), (21), (12) or the censored variance
@@ -194,9 +194,9 @@ def fading_tkf_kernel(
                     noise[l, l, b] = st[7] if exact else st[5]
                     e[l, b] = y[r0 + b, t, l] - st[6]
                     if want_x:
-                        s_pu[b, tt, l] = g
-                        s_ey[b, tt, l] = st[6]
-                        s_lam[b, tt, l] = st[3]
+                        s_pu[tt, l, b] = g
+                        s_ey[tt, l, b] = st[6]
+                        s_lam[tt, l, b] = st[3]
             # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
             _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
             if m > 1:  # (23), (19)
@@ -205,22 +205,28 @@ def fading_tkf_kernel(
                 _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
             _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
             if want_m:
-                for b in range(nb):
-                    for i in range(n):
-                        s_mean[b, tt, i] = x[i, b]
+                for i in range(n):
+                    for b in range(nb):
+                        s_mean[tt, i, b] = x[i, b]
             if want_c:
                 _stage_cov(P, s_cov, tt, nb)  # P or its diagonal (outputs=("var",))
-            if want_sm:
-                for b in range(nb):
-                    for s in range(L + 1):
-                        for i in range(n):
-                            s_smm[b, tt, s, i] = x[s * n + i, b] if s <= k else np.nan
+            if want_sm:  # the blocks s > k (before the record's start) are NaN
+                for s in range(L + 1):
+                    for i in range(n):
+                        if s <= k:
+                            for b in range(nb):
+                                s_smm[tt, s, i, b] = x[s * n + i, b]
+                        else:
+                            s_smm[tt, s, i, :nb] = np.nan
             if want_sc:
-                for b in range(nb):
-                    for s in range(L + 1):
-                        for i in range(n):
-                            for j in range(n):
-                                s_smc[b, tt, s, i, j] = P[s * n + i, s * n + j, b] if s <= k else np.nan
+                for s in range(L + 1):
+                    for i in range(n):
+                        for j in range(n):
+                            if s <= k:
+                                for b in range(nb):
+                                    s_smc[tt, s, i, j, b] = P[s * n + i, s * n + j, b]
+                            else:
+                                s_smc[tt, s, i, j, :nb] = np.nan
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt
                 _flush(s_mean, means, r0, t0, nb, tt + 1)

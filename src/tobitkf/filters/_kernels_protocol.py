@@ -77,12 +77,12 @@ _FLOOR = 1e-12  # R (1 - phi) floored at 1e-12 R, as protocol._TINY
 
 @njit(cache=True, error_model="numpy")
 def _stage_vec(v, buf, tt, nb, lo, hi):
-    """``buf[b, tt, i - lo] = v[i, b]`` for i in [lo, hi) (a staging buffer with no runs is skipped)."""
+    """``buf[tt, i - lo, b] = v[i, b]`` for i in [lo, hi) (a staging buffer with no steps is skipped)."""
     if buf.shape[0] == 0:
         return
-    for b in range(nb):
-        for i in range(lo, hi):
-            buf[b, tt, i - lo] = v[i, b]
+    for i in range(lo, hi):
+        for b in range(nb):
+            buf[tt, i - lo, b] = v[i, b]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -205,13 +205,13 @@ def protocol_kernel(
                 noise[0, 0, b] = ntot
                 ee[b] = y[r0 + b, t] - yhat if good else 0.0
                 if want_x:
-                    s_ext[b, tt, 0] = (tau - zeta) / sd
-                    s_ext[b, tt, 1] = lam
-                    s_ext[b, tt, 2] = 1.0 - nz / r
-                    s_ext[b, tt, 3] = yhat if g else tau
-                    s_ext[b, tt, 4] = y[r0 + b, t] - yhat if g else 0.0
-                    s_ext[b, tt, 5] = st[2]
-                    s_ext[b, tt, 6] = Ree if g else nz
+                    s_ext[tt, 0, b] = (tau - zeta) / sd
+                    s_ext[tt, 1, b] = lam
+                    s_ext[tt, 2, b] = 1.0 - nz / r
+                    s_ext[tt, 3, b] = yhat if g else tau
+                    s_ext[tt, 4, b] = y[r0 + b, t] - yhat if g else 0.0
+                    s_ext[tt, 5, b] = st[2]
+                    s_ext[tt, 6, b] = Ree if g else nz
                 if good:
                     for i in range(nxi):
                         K[i, 0, b] = Rxe[i, 0, b] / Ree

@@ -91,8 +91,8 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                             e[l, b] = max(e[l, b], ybar[l, b] - sh)
                     if want_x:
                         for b in range(nb):
-                            s_lim[b, tt, l] = ybar[l, b] - sh
-                            s_y[b, tt, l] = e[l, b]
+                            s_lim[tt, l, b] = ybar[l, b] - sh
+                            s_y[tt, l, b] = e[l, b]
                 off = sgn * offset[l]
                 for b in range(nb):
                     e[l, b] = e[l, b] - (ybar[l, b] + off)  # y - E[y] (3.58)
@@ -104,13 +104,13 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                     for b in range(nb):
                         x[i, b] += k * e[l, b]
             if want_pm:
-                for b in range(nb):
-                    for i in range(n):
-                        s_pmean[b, tt, i] = xp[i, b]
+                for i in range(n):
+                    for b in range(nb):
+                        s_pmean[tt, i, b] = xp[i, b]
             if want_m:
-                for b in range(nb):
-                    for i in range(n):
-                        s_mean[b, tt, i] = x[i, b]
+                for i in range(n):
+                    for b in range(nb):
+                        s_mean[tt, i, b] = x[i, b]
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt
                 _flush(s_mean, means, r0, t0, nb, tt + 1)
