@@ -232,6 +232,8 @@ def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_i
         if not allow_inf and any(v in (math.inf, -math.inf) for v in vals):
             raise ValidationError(f"{name}: expected finite numbers, found inf")
         return
+    if not allow_nan and not allow_inf and np.isfinite(arr).all():
+        return  # the common case in one pass over the array, not one for NaN and one for inf
     if not allow_nan and np.isnan(arr).any():
         raise ValidationError(f"{name}: expected finite numbers, found NaN")
     if not allow_inf and np.isinf(arr).any():

@@ -145,6 +145,27 @@ def test_divergence_is_reported_as_on_numpy():
     np.testing.assert_array_equal(np.isfinite(a.mean), np.isfinite(b.mean))
 
 
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+@pytest.mark.parametrize("method", ["filter", "filter_controlled"])
+def test_divergence_warning_names_the_caller_and_the_step(backend, method):
+    """The kernel reports its means' finiteness itself (no second pass over them): the warning is the
+    numpy path's, with the same step, pointing at the caller's line; none without the means."""
+    # filter: the constant readings above; filter_controlled: the latent readings of test_extremes_families
+    sys_ = tk.LinearSystem(A=[[-1.0]], C=[[1.0]], Q=[[0.15]], R=[[1e-4]], x0=[0.0], P0=[[1.0]])
+    y = np.full((3, 2000, 1), 50.0) if method == "filter" else tk.simulate(sys_, 1000, 3, seed=0).y_latent
+    est = SteadyStateTobitKalmanFilter(sys_, 0.1, backend=backend)
+    ref = SteadyStateTobitKalmanFilter(sys_, 0.1, backend="numpy")
+    with np.errstate(over="ignore", invalid="ignore"), pytest.warns(RuntimeWarning, match="diverged") as rec:
+        res = getattr(est, method)(y)
+    step = int(np.argmax(~np.isfinite(res.mean[0]).all(axis=-1))) + 1
+    assert f"at step k={step};" in str(rec[0].message)
+    assert rec[0].filename == __file__
+    with np.errstate(over="ignore", invalid="ignore"), pytest.warns(RuntimeWarning, match="diverged"):
+        np.testing.assert_array_equal(np.isfinite(getattr(ref, method)(y).mean), np.isfinite(res.mean))
+    with np.errstate(over="ignore", invalid="ignore"):  # no means recorded: nothing to report (as before)
+        getattr(est, method)(y, outputs=("pred_mean",))
+
+
 # --- dispatch -----------------------------------------------------------------------------------
 
 

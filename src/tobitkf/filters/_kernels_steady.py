@@ -49,11 +49,17 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
     censoring. Outputs: ``means``/``pmeans`` (N, T, n), ``lim_out``/``y_out`` (N, T, m) (the limits and
     the clipped readings, latent only), each of shape ``(N, 0, ...)`` when not requested; ``x_last``
     (N, n) receives the mean after the last step.
+
+    Returns True when every mean :math:`\\hat x_k` of every run was finite (the divergence check of the
+    estimator without a second pass over ``means``): ``fin[b]`` accumulates :math:`\\sum_{k,i}0\\cdot\\hat x_{k,i}`,
+    which is 0 for finite numbers and NaN once one is inf or NaN.
     """
     N, T, m = y.shape
     n = A.shape[0]
     B, S = _block_dims(N, T)  # outputs staged for S steps, then written run by run (contiguous)
     x, xp, e, ybar = _mean_scratch(n, m, B)
+    fin = np.zeros(B)
+    finite = True
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
     s_lim, s_y = np.empty(_stage_shape(lim_out, B, S)), np.empty(_stage_shape(y_out, B, S))
     want_m, want_pm, want_x = means.shape[1] > 0, pmeans.shape[1] > 0, lim_out.shape[1] > 0
@@ -103,6 +109,8 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                     k = K[i, l]
                     for b in range(nb):
                         x[i, b] += k * e[l, b]
+                for b in range(nb):
+                    fin[b] += 0.0 * x[i, b]
             if want_pm:
                 for i in range(n):
                     for b in range(nb):
@@ -120,3 +128,6 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
         for b in range(nb):
             for i in range(n):
                 x_last[r0 + b, i] = x[i, b]
+            finite = finite and fin[b] == 0.0
+            fin[b] = 0.0
+    return finite

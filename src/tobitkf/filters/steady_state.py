@@ -122,16 +122,6 @@ def _xi_per_channel(xi_uncensored: Any, m: int) -> np.ndarray:
     return np.broadcast_to(xi.reshape(-1), (m,)).copy()
 
 
-def _no_missing(y2: np.ndarray, name: str) -> None:
-    # the gain and the reported covariance are the constant steady-state ones: a skipped
-    # (missing) sample would make the reported covariance wrong, so NaN is refused
-    if np.isnan(y2).any():
-        raise ValidationError(
-            f"{name}: the steady-state TKF has a fixed gain and cannot skip missing samples "
-            "(NaN found); use TobitKalmanFilter for records with gaps"
-        )
-
-
 def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ...]) -> np.ndarray:
     n = system.n
     x = system.x0 if x0 is None else as_float_array(x0, "x0")
@@ -143,7 +133,7 @@ def _initial_mean(system: LinearSystem, x0: Any, runs: int, batch: tuple[int, ..
     raise ShapeError(f"x0: expected ({n},) or the batch shape of y + ({n},), got {x.shape}")
 
 
-def _warn_if_diverged(means: np.ndarray | None, name: str, k0: int = 0) -> None:
+def _warn_if_diverged(means: np.ndarray | None, name: str, k0: int = 0, stacklevel: int = 3) -> None:
     # the fixed-gain Tobit observer is not globally stable (e.g. A = -1, Xi < 0.5, small sigma: the
     # error grows geometrically and overflows); say so instead of returning NaN silently
     if means is None or np.isfinite(means.reshape(-1) if means.flags.c_contiguous else means).all():
@@ -157,7 +147,7 @@ def _warn_if_diverged(means: np.ndarray | None, name: str, k0: int = 0) -> None:
             f"at step k={k0 + step + 1}; the fixed-gain Tobit observer is not globally stable for this "
             "model and Xi (docs/reliability.md)",
             RuntimeWarning,
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
 
 
@@ -220,6 +210,13 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     _name = "SteadyStateTobitKalmanFilter"
     _kernel_mats: tuple[np.ndarray, ...]  # A, C, K, offset, shift of the kernel, set on its first call
     _step_options = ("latent",)
+    # the gain and the reported covariance are the constant steady-state ones: a skipped (missing) sample
+    # would make the reported covariance wrong, so NaN is refused, by the record's one finiteness pass
+    _allow_missing = False
+    _missing_reason = (
+        "the steady-state TKF has a fixed gain and cannot skip missing samples; use TobitKalmanFilter for records "
+        "with gaps"
+    )
 
     def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
@@ -333,20 +330,19 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
             raise ValidationError(f"latent: expected True or False, got {latent!r}")
         return {"latent": True} if latent else {}
 
-    def _reading(self, state, y, name="y"):
-        arr = super()._reading(state, y, name)
-        _no_missing(arr, name)
-        return arr
-
-    def _check_record(self, y2, u2, k0, name="y"):
-        super()._check_record(y2, u2, k0, name)
-        _no_missing(y2, name)
-
     # ---- the compiled path (batched ``filter``/``filter_controlled`` only; ``step`` runs numpy) ------
+    # the divergence warning of ``filter``/``filter_controlled`` is issued at the end of either path: the
+    # kernel reports whether its means stayed finite (no second pass over them), the numpy loop scans them
     def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
         if not use_kernel(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
             return None
         return _steady_kernel_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
+
+    def _loop(self, rec, state, *args):
+        res = super()._loop(rec, state, *args)
+        # stack: here, Estimator._run, filter or filter_controlled, the caller
+        _warn_if_diverged(res.mean, self._name, state.k, stacklevel=5)
+        return res
 
     def filter(
         self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
@@ -361,10 +357,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         NaN (a missing sample) is refused with a :class:`ValidationError`: a fixed gain
         cannot skip a sample without making the reported covariance wrong.
         """
-        res = self._run(y, u, x0, None, outputs=outputs, state=state)
-        assert res.times is not None, "the estimation loop records the time index"
-        _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
-        return res
+        return self._run(y, u, x0, None, outputs=outputs, state=state)
 
     def filter_controlled(
         self, y_latent: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
@@ -376,12 +369,9 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         Returns the usual result with extras ``limits`` and ``y`` (..., T, m): the limits
         used and the censored readings the filter received.
         """
-        res = self._run(
+        return self._run(
             y_latent, u, x0, None, outputs=outputs, state=state, name="y_latent", step_options={"latent": True}
         )
-        assert res.times is not None, "the estimation loop records the time index"
-        _warn_if_diverged(res.mean, self._name, res.times[0] - 1)
-        return res
 
 
 class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
@@ -486,7 +476,7 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
     means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
     lim, yo = arr(ext, (m,)), arr(ext, (m,))
     x_last = np.empty((N, n))
-    _kernels_steady.steady_tkf_kernel(
+    finite = _kernels_steady.steady_tkf_kernel(
         c64(y2, dtype=float),
         A,
         C,
@@ -505,6 +495,9 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
 
     def out(a):
         return kernel_array(a, batch)
+
+    if not finite:  # locate the first overflow (stack: here, _fast_filter_with, Estimator._run, filter*, caller)
+        _warn_if_diverged(out(means), est._name, state.k, stacklevel=6)
 
     def const(key, P):
         # the numpy loop stores a covariance shared by the runs once and broadcasts it (a copy for one run)
