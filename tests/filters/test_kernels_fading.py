@@ -142,6 +142,30 @@ def test_kernel_many_runs_cross_blocks():
     assert_results_equal(*both(sys_, fad, cens, y))
 
 
+@pytest.mark.parametrize("outputs", ["all", ("var", "pred_mean")])
+def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
+    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 37 runs
+    (a full block and a partial one), more than two chunks of steps, and a continuation whose record starts
+    inside the first L steps (smoothed blocks s > k NaN) and a second one whose chunks start at k0 = 70."""
+    from tobitkf.filters import _kernels
+
+    sys_ = oscillator(2)
+    cens = tk.Censoring(lower=[0.0, -0.5])
+    fad = fading(2)
+    T = 2 * _kernels.CHUNK + 7
+    y = data(sys_, fad, cens, runs=37, steps=T + 71)
+    fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
+    ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
+    a, b = fast.filter(y[:, :1], outputs=outputs), ref.filter(y[:, :1], outputs=outputs)
+    assert_results_equal(a, b)
+    for lo, hi in ((1, 71), (71, T + 71)):
+        a = fast.filter(y[:, lo:hi], outputs=outputs, state=a.final)
+        b = ref.filter(y[:, lo:hi], outputs=outputs, state=b.final)
+        assert_results_equal(a, b)
+    if outputs == "all":
+        assert np.isfinite(a.extras["smoothed_cov"]).all()
+
+
 @pytest.mark.parametrize("form", ["joseph", "standard"])
 def test_kernel_block_gain_solve_three_channels(form):
     """m = 3: the block gain solve (elimination over the runs of a block, without pivoting on the

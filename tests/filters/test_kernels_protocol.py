@@ -154,6 +154,24 @@ def test_kernel_many_runs_cross_blocks():
     assert_results_equal(*both(sys_, ch, y))
 
 
+@pytest.mark.parametrize("outputs", ["all", ("var", "extras")])
+def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
+    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 37 runs
+    (a full block and a partial one), more than two chunks of steps, continued from a state at k0 = 5."""
+    from tobitkf.filters import _kernels
+
+    sys_, ch = oscillator(), channel()
+    T = 2 * _kernels.CHUNK + 7
+    y = data(sys_, ch, (37,), T + 5)
+    fast = ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
+    ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy")
+    a, b = fast.filter(y[:, :5], outputs=outputs), ref.filter(y[:, :5], outputs=outputs)
+    assert_results_equal(a, b)
+    a = fast.filter(y[:, 5:], outputs=outputs, state=a.final)
+    b = ref.filter(y[:, 5:], outputs=outputs, state=b.final)
+    assert_results_equal(a, b)
+
+
 @pytest.mark.parametrize("outputs", ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), "all"])
 def test_kernel_honours_the_output_selection(outputs):
     sys_, ch = oscillator(), channel()
