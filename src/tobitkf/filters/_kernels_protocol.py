@@ -143,6 +143,11 @@ def protocol_kernel(
     gone = np.ones((1, B))
     Hrow = np.empty((1, nxi))
     ee = np.empty(B)
+    # the per-run scalars of a step, each a dot product over xi computed for the whole block at once
+    # (the same sums in the same order as one run at a time, so the same rounding)
+    zeta_b, HPH_b, CPC_b, xc_b = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
+    Ree_b = np.empty(B)
+    good_b = np.empty(B, dtype=np.bool_)
     buf = np.empty((2, glx.shape[0]))
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
     s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
@@ -177,15 +182,20 @@ def protocol_kernel(
                         Rxe[i, 0, b] += Pp[i, k, b] * hk
                         PC[i, b] += Pp[i, k, b] * ck
             for b in range(nb):
-                zeta = 0.0
-                HPH = 0.0
-                CPC = 0.0
-                xc = 0.0
-                for j in range(nxi):
-                    zeta += xp[j, b] * Hs[h, j]
-                    HPH += Rxe[j, 0, b] * Hs[h, j]
-                    CPC += PC[j, b] * Cs[h, j]
-                    xc += xp[j, b] * Cs[h, j]
+                zeta_b[b] = 0.0
+                HPH_b[b] = 0.0
+                CPC_b[b] = 0.0
+                xc_b[b] = 0.0
+            for j in range(nxi):
+                hj = Hs[h, j]
+                cj = Cs[h, j]
+                for b in range(nb):
+                    zeta_b[b] += xp[j, b] * hj
+                    HPH_b[b] += Rxe[j, 0, b] * hj
+                    CPC_b[b] += PC[j, b] * cj
+                    xc_b[b] += xp[j, b] * cj
+            for b in range(nb):
+                zeta, HPH, CPC, xc = zeta_b[b], HPH_b[b], CPC_b[b], xc_b[b]
                 st = censored_stats(zeta, sd, tau, math.inf, glx, glw, buf)  # (13)-(16)
                 lam = st[3]
                 nz = max(st[5], _FLOOR * r)  # R (1 - phi), floored
@@ -212,12 +222,11 @@ def protocol_kernel(
                     s_ext[tt, 4, b] = y[r0 + b, t] - yhat if g else 0.0
                     s_ext[tt, 5, b] = st[2]
                     s_ext[tt, 6, b] = Ree if g else nz
-                if good:
-                    for i in range(nxi):
-                        K[i, 0, b] = Rxe[i, 0, b] / Ree
-                else:
-                    for i in range(nxi):
-                        K[i, 0, b] = 0.0
+                Ree_b[b] = Ree
+                good_b[b] = good
+            for i in range(nxi):
+                for b in range(nb):
+                    K[i, 0, b] = Rxe[i, 0, b] / Ree_b[b] if good_b[b] else 0.0
             # (19), (22): the mean; (20) or App. D (44): the covariance. A run left out has K = 0 and e = 0, so
             # this is the numpy path's arithmetic x + 0 e, P - 0 R_xe^T (the prediction, unchanged)
             for i in range(nxi):
