@@ -152,7 +152,7 @@ def fading_tkf_kernel(
     nxi = Hs.shape[2]
     L = Hs.shape[0] - 1
     B, S = _block_dims(N, T)
-    x, xp, e, _yb = _mean_scratch(nxi, m, B)
+    x, xp, e, mu_b = _mean_scratch(nxi, m, B)
     blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0])
     P, Pp, X, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
@@ -184,11 +184,14 @@ def fading_tkf_kernel(
                 _stage_cov(Pp, s_pcov, tt, nb)
             # Lemma 1 at chi = H_k xi_{k|k-1}; (6), (21), (12) or the censored variance
             for l in range(m):
+                for b in range(nb):  # chi = H_k xi for the whole block (vectorised; the same sums in the same order)
+                    mu_b[l, b] = 0.0
+                for j in range(nxi):
+                    c = C[l, j]
+                    for b in range(nb):
+                        mu_b[l, b] += xp[j, b] * c
                 for b in range(nb):
-                    mu = 0.0
-                    for j in range(nxi):
-                        mu += xp[j, b] * C[l, j]
-                    st = censored_stats(mu, sigma[l], lo[t, l], hi[t, l], glx, glw, buf)
+                    st = censored_stats(mu_b[l, b], sigma[l], lo[t, l], hi[t, l], glx, glw, buf)
                     g = st[2]
                     gam[l, b] = g
                     noise[l, l, b] = st[7] if exact else st[5]
