@@ -7,6 +7,7 @@ on numpy (``backend="auto"``) or be refused (``backend="numba"``).
 
 import numpy as np
 import pytest
+from scipy.special import ndtr
 
 import tobitkf as tk
 from tobitkf._validation import ValidationError
@@ -140,6 +141,20 @@ def test_kernel_many_runs_cross_blocks():
     fad = fading(2)
     y = data(sys_, fad, cens, runs=70, steps=10)  # 70 = 2 full blocks of 32 and one of 6
     assert_results_equal(*both(sys_, fad, cens, y))
+
+
+@pytest.mark.parametrize("lower", [2.0, 10.0])
+def test_kernel_tail_continued_fractions_of_a_block(lower):
+    """A lower limit above the signal (amplitude ~5): at 2 the runs of a block mix the direct formulas and
+    the continued fraction beyond 4 sigma, at 10 every run is in the tail with its own number of terms (the
+    block computes them together); equal to the numpy path, readings and covariances alike."""
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=lower)
+    fad = fading(2)
+    y = data(sys_, fad, cens, runs=37, steps=40)
+    a, b = both(sys_, fad, cens, y)
+    assert_results_equal(a, b)
+    assert (b.extras["p_uncensored"] < ndtr(-4.0)).any()
 
 
 @pytest.mark.parametrize("outputs", ["all", ("var", "pred_mean")])

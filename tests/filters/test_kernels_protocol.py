@@ -14,6 +14,7 @@ the Joseph and standard forms agree to rounding (measured on the numpy path: 1e-
 
 import numpy as np
 import pytest
+from scipy.special import ndtr
 
 import tobitkf as tk
 from tobitkf._validation import ValidationError
@@ -152,6 +153,17 @@ def test_kernel_many_runs_cross_blocks():
     sys_, ch = oscillator(), channel()
     y = data(sys_, ch, (70,), 12, seed=6)  # 70 = 2 full blocks of 32 and one of 6
     assert_results_equal(*both(sys_, ch, y))
+
+
+@pytest.mark.parametrize("threshold", [2.0, 8.0])
+def test_kernel_tail_continued_fractions_of_a_block(threshold):
+    """A threshold above the signal: the block's runs mix the direct formulas and the continued fraction
+    beyond 4 sigma (2.0), or are all in the tail with their own numbers of terms (8.0); equal to numpy."""
+    sys_, ch = oscillator(), channel(threshold=threshold)
+    y = data(sys_, ch, (37,), 40)
+    a, b = both(sys_, ch, y)
+    assert_results_equal(a, b)
+    assert (b.extras["p_uncensored"] < ndtr(-4.0)).any()
 
 
 @pytest.mark.parametrize("outputs", ["all", ("var", "extras")])

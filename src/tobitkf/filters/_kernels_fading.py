@@ -36,6 +36,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels import (
+    _INF,
     _block_dims,
     _cov_update,
     _flush,
@@ -43,12 +44,13 @@ from ._kernels import (
     _gain_block,
     _innovation_moments,
     _load,
+    _lower_tail_block,
     _mean_scratch,
     _stage_cov,
     _stage_shape,
     _store_last,
     _update_scratch,
-    censored_stats,
+    censored_stats_at,
 )
 
 __all__ = ["fading_tkf_kernel", "shift_predict_block"]
@@ -153,6 +155,7 @@ def fading_tkf_kernel(
     L = Hs.shape[0] - 1
     B, S = _block_dims(N, T)
     x, xp, e, mu_b = _mean_scratch(nxi, m, B)
+    cf_a, cf_s, cf_k = np.empty(B), np.empty(B), np.empty(B, dtype=np.int64)
     blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0])
     P, Pp, X, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
@@ -190,8 +193,11 @@ def fading_tkf_kernel(
                     c = C[l, j]
                     for b in range(nb):
                         mu_b[l, b] += xp[j, b] * c
+                lower = hi[t, l] == _INF and lo[t, l] != -_INF
+                if lower:  # the tail's continued fractions of the block at once
+                    _lower_tail_block(mu_b[l], sigma[l], lo[t, l], nb, cf_a, cf_k, cf_s)
                 for b in range(nb):
-                    st = censored_stats(mu_b[l, b], sigma[l], lo[t, l], hi[t, l], glx, glw, buf)
+                    st = censored_stats_at(b, lower, mu_b[l, b], sigma[l], lo[t, l], hi[t, l], glx, glw, buf, cf_s)
                     g = st[2]
                     gam[l, b] = g
                     noise[l, l, b] = st[7] if exact else st[5]

@@ -46,16 +46,18 @@ import numpy as np
 from numba import njit
 
 from ._kernels import (
+    _INF,
     _TINY,
     _block_dims,
     _cov_update,
     _flush,
     _load,
+    _lower_tail_block,
     _mean_scratch,
     _stage_cov,
     _stage_shape,
     _store_last,
-    censored_stats,
+    censored_stats_at,
 )
 from ._kernels_fading import shift_predict_block
 
@@ -148,6 +150,8 @@ def protocol_kernel(
     zeta_b, HPH_b, CPC_b, xc_b = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     Ree_b = np.empty(B)
     good_b = np.empty(B, dtype=np.bool_)
+    cf_a, cf_s, cf_k = np.empty(B), np.empty(B), np.empty(B, dtype=np.int64)
+    lower = tau != -_INF  # the upper limit is infinite
     buf = np.empty((2, glx.shape[0]))
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
     s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
@@ -194,9 +198,11 @@ def protocol_kernel(
                     HPH_b[b] += Rxe[j, 0, b] * hj
                     CPC_b[b] += PC[j, b] * cj
                     xc_b[b] += xp[j, b] * cj
+            if lower:  # the tail's continued fractions of the block at once
+                _lower_tail_block(zeta_b, sd, tau, nb, cf_a, cf_k, cf_s)
             for b in range(nb):
                 zeta, HPH, CPC, xc = zeta_b[b], HPH_b[b], CPC_b[b], xc_b[b]
-                st = censored_stats(zeta, sd, tau, math.inf, glx, glw, buf)  # (13)-(16)
+                st = censored_stats_at(b, lower, zeta, sd, tau, math.inf, glx, glw, buf, cf_s)  # (13)-(16)
                 lam = st[3]
                 nz = max(st[5], _FLOOR * r)  # R (1 - phi), floored
                 if mode == 0:
