@@ -96,6 +96,20 @@ def test_kernel_windows_and_thresholds(window, threshold):
         assert_results_equal(*both(sys_, ch, y, failure_term=mode, prehistory_prior="zero_mean"))
 
 
+@pytest.mark.parametrize("threshold", [-60.0, 60.0])
+def test_kernel_thresholds_40_sigma_out(threshold):
+    """Thresholds about 40 to 60 predicted-reading sigmas from every reading (the predicted readings stay
+    within a few units of zero, their sigma is 1 to 1.5): below, never censored (the lower tail of the
+    statistics' one-sided route); above, every reading censored, the window deep in the upper tail. The
+    compiled loop must still reproduce numpy to rounding (1e-12), and every output must be finite."""
+    sys_, ch = oscillator(), channel(threshold=threshold)
+    y = data(sys_, ch, (4,), 30, seed=5)
+    for mode in ("variance", "second_moment"):
+        a, b = both(sys_, ch, y, failure_term=mode)
+        assert_results_equal(a, b)
+        assert np.isfinite(a.mean).all() and np.isfinite(a.cov).all()
+
+
 def test_kernel_given_uncensored_and_continued_state():
     """A detection device that disagrees with y > tau on some steps, a given prior and P0_aug, and a
     continuation from result.final (the schedule and the lmmse recursion X_k picked up at k0 + 1)."""
