@@ -187,6 +187,27 @@ def test_list_association_equals_the_numpy_argmin_route(kw):
     assert MultiTargetTracker()._associate_nonfinite(D, np.zeros(3, dtype=int)) == [-1, -1, 1]
 
 
+@pytest.mark.parametrize("kw", [{}, {"gate": False}, {"gate0": 1.0}])
+def test_one_pass_nearest_equals_the_distance_matrix_route(kw):
+    """The closest second map's one pass (each target's nearest detection and distance, no matrix D) gives the
+    D route's first map, distances, finiteness and assignment, ties included (points on a coarse grid), and a
+    NaN or inf point is reported as not finite (the step then takes numpy's argmin route)."""
+    rng = np.random.default_rng(7)
+    tr = MultiTargetTracker(**kw)
+    for _ in range(300):
+        N, L = rng.integers(1, 6), rng.integers(1, 5)
+        ref, M = np.round(rng.uniform(0, 12, size=(N, 2))), np.round(rng.uniform(0, 12, size=(L, 2)))
+        O = rng.integers(0, 3, size=N).tolist()
+        first, near, finite = tr._nearest(ref, M)
+        D, fin = tr._distances(ref, M)
+        assert finite and fin
+        assert first == np.argmin(np.array(D), axis=1).tolist()
+        assert near == [row[j] for row, j in zip(D, first)]
+        assert tr._assign(first, near, O) == tr._associate(D, O)
+    for bad in (np.nan, np.inf):
+        assert not tr._nearest(np.array([[0.0, 0.0], [1.0, bad]]), np.array([[0.5, 0.5]]))[2]
+
+
 _BLOCK_Q = np.kron(np.eye(2), [[0.02, 0.005], [0.005, 0.01]])
 
 
