@@ -463,16 +463,17 @@ def test_memos_of_each_form_equal_fresh_steps_after_a_miss(form, monkeypatch):
     frames[120] = frames[120][[0, 2]]  # target 1 missed once, at the fixed point
     start, other = _clutter_case(seed=7, N=3, T=160)
     tr = MultiTargetTracker(covariance_update=form)
-    hits = []
+    full = []  # the frames whose covariance predict ran (the others took the memo's P̄)
     predict = trk.time_update
 
     def counting(x, P, S, t, f):
-        hits.append(t.P_fixed is not None)
+        full.append(t.P_fixed is None)
         return predict(x, P, S, t, f)
 
     monkeypatch.setattr(trk, "time_update", counting)
+    _run_states(MultiTargetTracker(covariance_update=form), tr.init(c), frames[:120])
+    assert 120 - sum(full) > 10  # the memo is used in this form before the miss
     reused = _run_states(tr, tr.init(c), frames)[0]
-    assert sum(hits[:120]) > 10  # the memo is used in this form before the miss
     fresh, s = [], tr.init(c)
     for f in frames:
         tr._last_predict = tr._last_update = None

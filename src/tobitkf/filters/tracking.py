@@ -221,9 +221,9 @@ class MultiTargetTracker(Estimator):
         self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
         self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0, G=self._G)  # the predict of a frame without feedback
         self._feedback_free = feedback == "off"
-        self._BT, self._CT = self.B.T, self.C.T
+        self._AT, self._BT, self._CT = self.A.T, self.B.T, self.C.T
         # ((form, shape, bytes) of what the predict reads (P, or S in the square-root form), P̄ = sym(A P A^T + Q),
-        # the input-free Transition with P_fixed = P̄ or None, S̄ or None): the last covariance predict,
+        # S̄ or None): the last covariance predict,
         # reused when the next one starts from the same P (S) bit for bit in the same form
         self._last_predict: tuple | None = None
         # (the prior the update read (that P̄, or S̄ in the square-root form), the gain K (4, 2), the posterior
@@ -406,18 +406,15 @@ class MultiTargetTracker(Estimator):
         key, last = (form, read.shape, read.tobytes()), self._last_predict
         reused = last is not None and last[0] == key
         if reused:
-            if input_free:
-                if last[2] is None:
-                    last = self._last_predict = (
-                        last[:2] + (Transition(A=self.A, Qd=self.Q, b=0.0, G=self._G, P_fixed=last[1]),) + last[3:]
-                    )
-                tr = last[2]
+            # the fixed covariance route: x̄ = A x + b (the same expression as the full predict) and the cached P̄
+            Pp, Sp = last[1], last[2]
+            if (
+                input_free
+            ):  # time_update's fixed-covariance branch written out, x A^T + b with b = 0 (.dot: @'s product)
+                xp = x.dot(self._AT) + 0.0
             else:
                 b = self._feedback(x, visible) @ self._BT
-                tr = Transition(A=self.A, Qd=self.Q, b=b, G=self._G, P_fixed=last[1])
-            # the fixed covariance route: x̄ = A x + b (the same expression as the full predict) and the cached P̄
-            xp, Pp, _ = time_update(x, P, S, tr, form)
-            Sp = last[3]
+                xp, Pp, _ = time_update(x, P, S, Transition(A=self.A, Qd=self.Q, b=b, G=self._G, P_fixed=Pp), form)
         else:
             if input_free:
                 tr = self._no_input
@@ -428,7 +425,7 @@ class MultiTargetTracker(Estimator):
             Pp.setflags(write=False)  # shared by the frames that reuse it
             if Sp is not None:
                 Sp.setflags(write=False)
-            self._last_predict = (key, Pp, None, Sp)
+            self._last_predict = (key, Pp, Sp)
         # the predicted positions; ndarray.dot is the BLAS product of @ (the same numbers) without the
         # matmul ufunc's dispatch, which costs more than the product for these (N, 4) x (4, 2) arrays
         Cx = xp.dot(self._CT)
