@@ -33,7 +33,16 @@ import math
 import numpy as np
 from numba import njit
 
-from ..filters._kernels import BLOCK, block_scratch, predict_block, tobit_update_block
+from ..filters._kernels import (
+    BLOCK,
+    CHUNK,
+    block_scratch,
+    flush_rows,
+    predict_block,
+    stage_block,
+    stage_shape,
+    tobit_update_block,
+)
 
 __all__ = ["OBSERVER_CODES", "closed_loop_kernel"]
 
@@ -121,6 +130,24 @@ def closed_loop_kernel(
     kf_hi = np.full((B, m), math.inf)
     alive = np.empty(B, dtype=np.bool_)
     ur = np.empty(p)
+    pv = np.empty((n, B))  # the recorded prediction (the frozen estimate for a frozen run)
+    uo = np.empty((p, B))  # the recorded input (0 for a frozen run)
+    go = np.empty((m, B))  # the recorded gamma
+    lot = np.empty((m, B))  # the limits, (m, B) for staging
+    hit = np.empty((m, B))
+    # outputs staged for S steps of a block, then written run by run (as the filter kernels do)
+    S = min(CHUNK, max(T, 1))
+    s_x, s_est, s_pred = np.empty((B, S, n)), np.empty((B, S, n)), np.empty((B, S, n))
+    s_cov = np.empty(stage_shape(cov, B, S))
+    s_u = np.empty((B, S, p))
+    s_y, s_yl, s_lo, s_hi, s_g = (
+        np.empty((B, S, m)),
+        np.empty((B, S, m)),
+        np.empty((B, S, m)),
+        np.empty((B, S, m)),
+        np.empty((B, S, m)),
+    )
+    no_cov = np.empty((0, S, n, n))
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         for b in range(nb):
@@ -247,7 +274,6 @@ def closed_loop_kernel(
                 )
             # divergence: a run whose state or estimate leaves the bound is frozen at its last values
             for b in range(nb):
-                rb = r0 + b
                 keep = alive[b]
                 if keep:
                     for i in range(n):
@@ -255,28 +281,44 @@ def closed_loop_kernel(
                             keep = False
                     if not keep:
                         alive[b] = False
-                        dstep[rb] = t + 1
+                        dstep[r0 + b] = t + 1
                 for i in range(n):
                     if keep:
                         xt[i, b] = xk[i, b]
                         xh[i, b] = xn[i, b]
                         for j in range(n):
                             P[i, j, b] = Pn[i, j, b]
-                    X[rb, t + 1, i] = xt[i, b]
-                    est[rb, t, i] = xh[i, b]
-                    pred[rb, t, i] = xp[i, b] if keep else xh[i, b]
-                    for j in range(n):
-                        cov[rb, t, i, j] = P[i, j, b]
+                    pv[i, b] = xp[i, b] if keep else xh[i, b]
                 for i in range(p):
-                    U[rb, t, i] = uk[i, b] if keep else 0.0
+                    uo[i, b] = uk[i, b] if keep else 0.0
                 for l in range(m):
-                    Y[rb, t, l] = yk[l, b]
-                    Ylat[rb, t, l] = ylat[l, b]
-                    LO[rb, t, l] = lob[b, l]
-                    HI[rb, t, l] = hib[b, l]
+                    lot[l, b] = lob[b, l]
+                    hit[l, b] = hib[b, l]
                     if obs_code == 0:
-                        GAM[rb, t, l] = 1.0
+                        go[l, b] = 1.0
                     elif steady:
-                        GAM[rb, t, l] = xi[l]
+                        go[l, b] = xi[l]
                     else:
-                        GAM[rb, t, l] = gam[l, b]
+                        go[l, b] = gam[l, b]
+            tt = t % S
+            stage_block(xt, P, tt, nb, s_x, no_cov)
+            stage_block(xh, P, tt, nb, s_est, s_cov)
+            stage_block(pv, P, tt, nb, s_pred, no_cov)
+            stage_block(uo, P, tt, nb, s_u, no_cov)
+            stage_block(yk, P, tt, nb, s_y, no_cov)
+            stage_block(ylat, P, tt, nb, s_yl, no_cov)
+            stage_block(lot, P, tt, nb, s_lo, no_cov)
+            stage_block(hit, P, tt, nb, s_hi, no_cov)
+            stage_block(go, P, tt, nb, s_g, no_cov)
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                flush_rows(s_x, X, r0, t0 + 1, nb, tt + 1)  # X row 0 is x_0
+                flush_rows(s_est, est, r0, t0, nb, tt + 1)
+                flush_rows(s_pred, pred, r0, t0, nb, tt + 1)
+                flush_rows(s_cov, cov, r0, t0, nb, tt + 1)
+                flush_rows(s_u, U, r0, t0, nb, tt + 1)
+                flush_rows(s_y, Y, r0, t0, nb, tt + 1)
+                flush_rows(s_yl, Ylat, r0, t0, nb, tt + 1)
+                flush_rows(s_lo, LO, r0, t0, nb, tt + 1)
+                flush_rows(s_hi, HI, r0, t0, nb, tt + 1)
+                flush_rows(s_g, GAM, r0, t0, nb, tt + 1)

@@ -48,6 +48,10 @@ __all__ = [
     "tobit_update_block",
     "predict_block",
     "block_scratch",
+    "stage_block",
+    "flush_rows",
+    "stage_shape",
+    "CHUNK",
     "NOISE_CODES",
     "GL_X",
     "GL_W",
@@ -786,6 +790,14 @@ def predict_block(A, Qd, x, P, xp, Pp, AP, nb):
     :func:`tkf_kernel` and :func:`kf_kernel`, shared with the compiled closed loop of :mod:`tobitkf.control`);
     ``x`` (n, B), ``P`` (n, n, B) in, ``xp``, ``Pp`` out, ``AP`` (n, n, B) scratch."""
     _predict(A, Qd, x, P, xp, Pp, AP, nb)
+
+
+# the output staging of the kernels, shared with the compiled closed loop of tobitkf.control: stage_block
+# copies a block's (dim, B) [and (n, n, B)] arrays into (B, S, ...) buffers at a chunk step, flush_rows
+# writes the staged steps run by run into the (N, T, ...) outputs (see CHUNK)
+stage_block = _stage
+flush_rows = _flush
+stage_shape = _stage_shape
 
 
 @njit(cache=True, inline="always")
