@@ -121,10 +121,10 @@ def closed_loop_kernel(
     xt = np.empty((n, B))
     xk = np.empty((n, B))
     uk = np.empty((p, B))
-    dy = np.empty((m, B))
+    dy = np.empty((B, 1, m))  # D u_k and the reading of each run, laid out for tobit_update_block
+    yk = np.empty((B, 1, m))
     lob = np.empty((B, m))
     hib = np.empty((B, m))
-    yk = np.empty((m, B))
     ylat = np.empty((m, B))
     kf_lo = np.full((B, m), -math.inf)  # the KF observer: the Tobit update with infinite limits
     kf_hi = np.full((B, m), math.inf)
@@ -133,6 +133,7 @@ def closed_loop_kernel(
     pv = np.empty((n, B))  # the recorded prediction (the frozen estimate for a frozen run)
     uo = np.empty((p, B))  # the recorded input (0 for a frozen run)
     go = np.empty((m, B))  # the recorded gamma
+    yo = np.empty((m, B))  # the reading, (m, B) for staging
     lot = np.empty((m, B))  # the limits, (m, B) for staging
     hit = np.empty((m, B))
     # outputs staged for S steps of a block, then written run by run (as the filter kernels do)
@@ -187,7 +188,7 @@ def closed_loop_kernel(
                     if has_d:
                         for j in range(p):
                             sd += uk[j, b] * D[l, j]
-                    dy[l, b] = sd
+                    dy[b, 0, l] = sd
                     s = 0.0
                     for j in range(n):
                         s += xk[j, b] * C[l, j]
@@ -215,7 +216,7 @@ def closed_loop_kernel(
                         s = 0.0
                         for j in range(n):
                             s += xp[j, b] * C[l, j]
-                        lim = s + dy[l, b] + shift[l]
+                        lim = s + dy[b, 0, l] + shift[l]
                         if upper_side:
                             lob[b, l] = -math.inf
                             hib[b, l] = lim
@@ -225,7 +226,7 @@ def closed_loop_kernel(
                     else:
                         lob[b, l] = lo_fix[t, l]
                         hib[b, l] = hi_fix[t, l]
-                    yk[l, b] = min(max(ylat[l, b], lob[b, l]), hib[b, l])
+                    yk[b, 0, l] = min(max(ylat[l, b], lob[b, l]), hib[b, l])
             # the observer's update
             if steady:  # xhat = xbar + K_inf (y - E[y]), E[y] = C xbar + D u + offset (3.58)
                 for l in range(m):
@@ -233,8 +234,8 @@ def closed_loop_kernel(
                         s = 0.0
                         for j in range(n):
                             s += xp[j, b] * C[l, j]
-                        ybar = s + dy[l, b]
-                        e[l, b] = yk[l, b] - (ybar + offset[l])
+                        ybar = s + dy[b, 0, l]
+                        e[l, b] = yk[b, 0, l] - (ybar + offset[l])
                 for i in range(n):
                     for b in range(nb):
                         s = 0.0
@@ -244,10 +245,6 @@ def closed_loop_kernel(
                         for j in range(n):
                             Pn[i, j, b] = Pss[i, j]
             else:  # the TKF update (3.37)-(3.41), (3.55); the KF's with infinite limits
-                for l in range(m):
-                    for b in range(nb):
-                        mu[l, b] = dy[l, b]
-                        e[l, b] = yk[l, b]
                 ulo, uhi = (kf_lo, kf_hi) if obs_code == 0 else (lob, hib)
                 tobit_update_block(
                     C,
@@ -256,6 +253,10 @@ def closed_loop_kernel(
                     uhi,
                     0,
                     1,
+                    yk,
+                    dy,
+                    0,
+                    0,
                     noise_code,
                     False,
                     glx,
@@ -292,6 +293,7 @@ def closed_loop_kernel(
                 for i in range(p):
                     uo[i, b] = uk[i, b] if keep else 0.0
                 for l in range(m):
+                    yo[l, b] = yk[b, 0, l]
                     lot[l, b] = lob[b, l]
                     hit[l, b] = hib[b, l]
                     if obs_code == 0:
@@ -305,7 +307,7 @@ def closed_loop_kernel(
             stage_block(xh, P, tt, nb, s_est, s_cov)
             stage_block(pv, P, tt, nb, s_pred, no_cov)
             stage_block(uo, P, tt, nb, s_u, no_cov)
-            stage_block(yk, P, tt, nb, s_y, no_cov)
+            stage_block(yo, P, tt, nb, s_y, no_cov)
             stage_block(ylat, P, tt, nb, s_yl, no_cov)
             stage_block(lot, P, tt, nb, s_lo, no_cov)
             stage_block(hit, P, tt, nb, s_hi, no_cov)

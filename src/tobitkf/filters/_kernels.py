@@ -735,33 +735,59 @@ def _store_last(xv, Pv, r0, nb, x_last, P_last):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def tobit_update_block(
-    C, sigma, lo, hi, lrow, lstep, noise_code, joseph, glx, glw, xp, Pp, mu, e, x, P, blk, run, solve, buf, nb
+    C,
+    sigma,
+    lo,
+    hi,
+    lrow,
+    lstep,
+    y,
+    du,
+    r0,
+    t,
+    noise_code,
+    joseph,
+    glx,
+    glw,
+    xp,
+    Pp,
+    mu,
+    e,
+    x,
+    P,
+    blk,
+    run,
+    solve,
+    buf,
+    nb,
 ):
     r"""The Tobit measurement update of a block of ``nb`` runs (Miller (3.37)–(3.41), (3.39)–(3.40), (3.32),
     (3.22), (3.55)), all channel statistics at the prior (Assumption A1, (3.35)): the step of
     :func:`tkf_kernel`, shared with the compiled closed loop of :mod:`tobitkf.control` (which runs the TKF
     as its observer), so that the update exists once.
 
-    ``xp`` (n, B), ``Pp`` (n, n, B) the prediction; ``mu`` (m, B) on entry the feedthrough :math:`Du_k` of
-    each run (0 without input), on exit :math:`E(y)` (3.8); ``e`` (m, B) on entry the reading y (NaN:
-    missing), on exit the innovation :math:`y - E(y)` (0 for a channel left out); ``lo``/``hi`` (L, m) the
-    limits, run b of the block reading row ``lrow + lstep * b`` (``lstep = 0``: one row for the block, the
-    limits of the step; ``lstep = 1``: one row per run). ``noise_code`` from :data:`NOISE_CODES`. Writes the
-    posterior ``x`` (n, B), ``P`` (n, n, B), and in ``blk`` (from :func:`_update_scratch`) ``gam`` =
-    :math:`E(\mathbf p)` and the noise term :math:`R_{uu}` among the rest. Inlined (numba
+    ``xp`` (n, B), ``Pp`` (n, n, B) the prediction; run b of the block reads its reading at
+    ``y[r0 + b, t]`` (NaN: missing) and its feedthrough :math:`Du_k` at ``du[r0 + b, t]`` (``du`` with no
+    steps, ``du.shape[1] == 0``: none); ``lo``/``hi`` (L, m) the limits, run b reading row
+    ``lrow + lstep * b`` (``lstep = 0``: one row for the block, the limits of the step; ``lstep = 1``: one
+    row per run). ``noise_code`` from :data:`NOISE_CODES`. Writes the posterior ``x`` (n, B), ``P``
+    (n, n, B), :math:`E(y)` (3.8) in ``mu`` (m, B), the innovation :math:`y - E(y)` in ``e`` (m, B) (0 for
+    a channel left out), and in ``blk`` (from :func:`_update_scratch`) ``gam`` = :math:`E(\mathbf p)` and
+    the noise term :math:`R_{uu}` among the rest. Inlined (numba
     ``inline="always"``): the caller's loop sees the statistics of :func:`censored_stats` inlined as before.
     """
     _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
     Rw, Wb, db, bad = solve
     m, n = C.shape
+    has_du = du.shape[1] > 0
     for l in range(m):
         sd = sigma[l]
         for b in range(nb):
             s = 0.0
             for j in range(n):
                 s += xp[j, b] * C[l, j]
-            mean = s + mu[l, b]  # mu = C xbar + D u (the numpy path's x_pred @ C.T + dy)
+            mean = s + du[r0 + b, t, l] if has_du else s  # C xbar + D u (the numpy path's x_pred @ C.T + dy)
             r = lrow + lstep * b
             st = censored_stats(mean, sd, lo[r, l], hi[r, l], glx, glw, buf)
             g = st[2]
@@ -773,7 +799,7 @@ def tobit_update_block(
             else:
                 v = g * (st[5] + (st[4] - mean) ** 2)
             noise[l, l, b] = v
-            e[l, b] = e[l, b] - st[6]
+            e[l, b] = y[r0 + b, t, l] - st[6]
             mu[l, b] = st[6]
     # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
     _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
@@ -853,7 +879,7 @@ def tkf_kernel(
     s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
     s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
     want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
-    has_bu, has_du = bu.shape[1] > 0, du.shape[1] > 0
+    has_bu = bu.shape[1] > 0
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -865,12 +891,32 @@ def tkf_kernel(
                     for b in range(nb):
                         xp[i, b] += bu[r0 + b, t, i]
             _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
-            for l in range(m):
-                for b in range(nb):
-                    mu[l, b] = du[r0 + b, t, l] if has_du else 0.0
-                    e[l, b] = y[r0 + b, t, l]
             tobit_update_block(
-                C, sigma, lo, hi, t, 0, noise_code, joseph, glx, glw, xp, Pp, mu, e, x, P, blk, run, solve, buf, nb
+                C,
+                sigma,
+                lo,
+                hi,
+                t,
+                0,
+                y,
+                du,
+                r0,
+                t,
+                noise_code,
+                joseph,
+                glx,
+                glw,
+                xp,
+                Pp,
+                mu,
+                e,
+                x,
+                P,
+                blk,
+                run,
+                solve,
+                buf,
+                nb,
             )
             if want_pu or want_ey:
                 for l in range(m):
