@@ -462,7 +462,8 @@ def _time_varying():
     return tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.3, 0.0], P0=0.05 * np.eye(2))
 
 
-def _with_input():
+def _with_input(**inputs):
+    """The oscillator with a control input (default B^u = [0.1, 0]^T; ``inputs`` give Bu and/or D)."""
     return tk.LinearSystem(
         A=oscillator().transition(0),
         C=[[1.0, 0.0]],
@@ -470,7 +471,7 @@ def _with_input():
         R=[[0.1]],
         x0=[0.3, 0.0],
         P0=0.05 * np.eye(2),
-        Bu=[[0.1], [0.0]],
+        **({"Bu": [[0.1], [0.0]]} | inputs),
     )
 
 
@@ -505,16 +506,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
 def test_tkf_kernel_with_inputs_equals_numpy(cu):
     """Control inputs through B^u (predict) and D (feedthrough of the latent mean), per run, online too;
     an input matrix indexed by k is refused by backend='numba' and runs on numpy under 'auto'."""
-    sys_ = tk.LinearSystem(
-        A=oscillator().transition(0),
-        C=[[1.0, 0.0]],
-        Q=0.01 * np.eye(2),
-        R=[[0.1]],
-        x0=[0.3, 0.0],
-        P0=0.05 * np.eye(2),
-        Bu=[[0.1], [0.05]],
-        D=[[0.2]],
-    )
+    sys_ = _with_input(Bu=[[0.1], [0.05]], D=[[0.2]])
     cens = tk.Censoring(lower=0.0, upper=1.2)
     u = np.random.default_rng(2).normal(size=(5, 40, 1))
     y = cens.clip(data(oscillator(), tk.Censoring(), runs=5, steps=40) + 0.2 * u)
@@ -528,15 +520,7 @@ def test_tkf_kernel_with_inputs_equals_numpy(cu):
         sa, sb = fast.step(sa, y[:, k], u=u[:, k]), ref.step(sb, y[:, k], u=u[:, k])
     assert_same(sa.x, sb.x)
     assert_same(sa.x, b.mean[:, 9])
-    varying = tk.LinearSystem(
-        A=oscillator().transition(0),
-        C=[[1.0, 0.0]],
-        Q=0.01 * np.eye(2),
-        R=[[0.1]],
-        x0=[0.3, 0.0],
-        P0=0.05 * np.eye(2),
-        Bu=np.stack([[[0.1], [0.05]]] * 40),
-    )
+    varying = _with_input(Bu=np.stack([[[0.1], [0.05]]] * 40))
     with pytest.raises(ValidationError, match="does not cover time-varying input matrices"):
         tobit_kalman_filter(varying, cens, y, u=u, backend="numba")
     assert_results_equal(

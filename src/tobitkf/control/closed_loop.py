@@ -320,20 +320,7 @@ def simulate_closed_loop(
         )
         run["x"], run["reference"] = x, r
         return _result(run)
-    out = {
-        name: np.empty((runs, steps) + shape)
-        for name, shape in (
-            ("estimate", (n,)),
-            ("pred", (n,)),
-            ("cov", (n, n)),
-            ("u", (p,)),
-            ("y", (m,)),
-            ("ylat", (m,)),
-            ("lower", (m,)),
-            ("upper", (m,)),
-            ("gamma", (m,)),
-        )
-    }
+    out = _outputs(runs, steps, n, p, m)
     alive = np.ones(runs, dtype=bool)
     diverged_step = np.full(runs, -1)
     inf = np.full((runs, m), np.inf)
@@ -387,6 +374,13 @@ def simulate_closed_loop(
     return _result(out)
 
 
+def _outputs(runs: int, steps: int, n: int, p: int, m: int) -> dict[str, np.ndarray]:
+    """The per-step output arrays (N, T, ...) of both loops, by the numpy loop's names."""
+    shapes = {"estimate": (n,), "pred": (n,), "cov": (n, n), "u": (p,), "y": (m,), "ylat": (m,)}
+    shapes.update({"lower": (m,), "upper": (m,), "gamma": (m,)})
+    return {name: np.empty((runs, steps) + shape) for name, shape in shapes.items()}
+
+
 def _result(out: dict[str, np.ndarray]) -> ClosedLoopResult:
     return ClosedLoopResult(
         x=out["x"],
@@ -428,20 +422,7 @@ def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma
         P0 = f64(np.broadcast_to(state.P, (runs, n, n)), dtype=float)
     shift = np.zeros(m) if shift is None else shift
     lo, hi = cens.all_limits(steps, m, check=False)
-    out = {
-        name: np.empty((runs, steps) + shape)
-        for name, shape in (
-            ("estimate", (n,)),
-            ("pred", (n,)),
-            ("cov", (n, n)),
-            ("u", (p,)),
-            ("y", (m,)),
-            ("ylat", (m,)),
-            ("lower", (m,)),
-            ("upper", (m,)),
-            ("gamma", (m,)),
-        )
-    }
+    out = _outputs(runs, steps, n, p, m)
     dstep = np.empty(runs, dtype=np.int64)
     kc.closed_loop_kernel(
         kc.OBSERVER_CODES[observer],
