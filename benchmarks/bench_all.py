@@ -18,7 +18,9 @@ Families and sizes (n state, m measurements, augmented size in brackets):
             covariance; filterpy has no counterpart)
 * sstkf     steady-state TKF with the controlled limit (Miller §3.4.3 oscillator): n=2, m=1
 * closed    LQG loop with a (Tobit) Kalman observer, DC-motor position (Miller §6.4): n=3, m=1,
-            p=1; each run-step also simulates the plant (filterpy: the KF observer alone)
+            p=1; each run-step also simulates the plant (filterpy: the KF observer alone); the compiled
+            loop (default) and the numpy loop, interleaved repeats, medians (min-max) and their ratio
+            (issue 19: >= 5x), and one run's microseconds per step
 
 Run by hand::
 
@@ -221,14 +223,46 @@ def bench_closed(tab, runs, steps, peer, repeat):
     )
     C = plant.measurement(1)
     upper = float(np.sqrt(plant.measurement_cov(1)[0, 0]))
+    notes = []
+    # the batch of the table, and the size of Miller's §6.4 example (40 runs x 3000 steps; smoke: 4 x 100)
+    sizes = [(runs, steps), (40, 3000) if steps >= 100 else (4, 100)]
     for obs, kw in (
         ("kf", {}),
         ("tkf", {"censoring": tk.Censoring(upper=upper)}),
         ("tkf-moving", {"xi_uncensored": 0.95}),
         ("sstkf", {"xi_uncensored": 0.95}),
     ):
-        t = cpu_time(lambda: simulate_closed_loop(plant, K, steps, runs, observer=obs, seed=0, **kw), repeat)
-        tab.add("closed", f"simulate_closed_loop {obs}", f"n={plant.n} m={C.shape[0]} p=1", runs * steps / t, fp)
+        simulate_closed_loop(plant, K, 3, 2, observer=obs, seed=0, **kw)  # compile outside the timing
+        for N, T in sizes:
+            # the compiled loop (default) and the numpy loop, interleaved; CPU time per call
+            times: dict[str, list[float]] = {"auto": [], "numpy": []}
+            for _ in range(max(repeat, 1)):
+                for be in times:
+                    times[be].append(
+                        cpu_time(
+                            lambda: simulate_closed_loop(plant, K, T, N, observer=obs, seed=0, backend=be, **kw), 1
+                        )
+                    )
+            med = {be: float(np.median(ts)) for be, ts in times.items()}
+            if (N, T) == (runs, steps):
+                for be, label in (("auto", "compiled"), ("numpy", "numpy loop")):
+                    tab.add(
+                        "closed", f"closed loop {obs} ({label})", f"n={plant.n} m={C.shape[0]} p=1", N * T / med[be], fp
+                    )
+            spread = ", ".join(
+                f"{be} {med[be] / (N * T) * 1e9:.0f} ns ({min(ts) / (N * T) * 1e9:.0f}-{max(ts) / (N * T) * 1e9:.0f})"
+                for be, ts in times.items()
+            )
+            notes.append(
+                f"  closed {obs} {N} runs x {T} steps: per run-step, median of {len(times['auto'])} (min-max): "
+                f"{spread}; compiled x{med['numpy'] / med['auto']:.1f} the numpy loop (target >= 5)"
+            )
+        one = min(steps * 20, 2000)
+        lat = [
+            cpu_time(lambda: simulate_closed_loop(plant, K, one, 1, observer=obs, seed=0, **kw), 1) for _ in range(3)
+        ]
+        notes.append(f"  closed {obs}: one run x {one} steps, compiled: {np.median(lat) / one * 1e6:.2f} us/step")
+    print("\n".join(notes))
 
 
 FAMILIES = {

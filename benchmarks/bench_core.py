@@ -16,8 +16,14 @@ The single-run numpy rows time 10^4 steps (their cost per step is constant).
     x 100 steps): the compiled kernel (``threads=1``) against the numpy path, median of
     ``repeat`` interleaved calls (min-max), all outputs and means only (issue 19: at least 3x).
 
+(d) multi-region TKF (Miller §6.6 Example 3: x_{k+1} = 0.99 x_k + w, one output seen by two sensors with
+    the windows (-1.5, -0.1) and (0.1, 1.5), sigma = 0.05; n = 1, m = 2), without and with a control input
+    (B^u, D): the compiled kernel (``threads=1``) against the numpy path at the experiment's size (10 runs x
+    2000 steps), at 10^4 runs x 100 steps, and one run through ``filter`` (microseconds per step); median of
+    ``repeat`` interleaved calls (min-max) (issue 19: compiled >= 5x numpy, one run <= 5 us per step).
+
 ``--smoke`` runs a tiny version (CI). Run by hand:  python benchmarks/bench_core.py
-(``--only-m8`` runs (c) alone).
+(``--only-m8`` runs (c) alone, ``--only-multi-region`` (d) alone).
 """
 
 from __future__ import annotations
@@ -105,13 +111,54 @@ def multichannel(smoke: bool) -> None:
     print(f"  load after {os.getloadavg()[0]:.2f}")
 
 
+def multi_region_case(smoke: bool) -> None:
+    """(d): multi-region TKF, compiled against numpy, median of interleaved repeats."""
+    repeat = 3 if smoke else 7
+    sizes = [(4, 50), (50, 20), (1, 200)] if smoke else [(10, 2000), (10_000, 100), (1, 2000)]
+    print(
+        f"(d) multi-region TKF (Miller 6.6 Example 3, n=1, m=2): median of {repeat} (min-max); load {os.getloadavg()[0]:.2f}"
+    )
+    if not numba_available():
+        print("  numba not installed: skipped")
+        return
+    for with_input in (False, True):
+        extra = {"Bu": [[0.05]], "D": [[0.1]]} if with_input else {}
+        base = tk.LinearSystem(A=[[0.99]], C=[[1.0]], Q=[[0.01]], R=[[0.05**2]], x0=[0.0], P0=[[0.01]], **extra)
+        sys_, cens = tk.multi_region(base, [[(-1.5, -0.1), (0.1, 1.5)]])
+        for runs, steps in sizes:
+            u = np.random.default_rng(2).normal(size=(runs, steps, 1)) if with_input else None
+            y = tk.simulate(sys_, steps, runs, censoring=cens, inputs=u, seed=1).y
+            if runs == 1:
+                y, u = y[0], (None if u is None else u[0])  # one run, (T, m), as an online user passes it
+            ests = {be: tk.TobitKalmanFilter(sys_, cens, backend=be, threads=1) for be in ("numba", "numpy")}
+            for est in ests.values():  # compile / warm up outside the timings
+                est.filter(y[..., :3, :], u=None if u is None else u[..., :3, :])
+            times: dict[str, list[float]] = {be: [] for be in ests}
+            for _ in range(repeat):
+                for be, est in ests.items():
+                    t0 = time.perf_counter()
+                    est.filter(y, u=u)
+                    times[be].append((time.perf_counter() - t0) / (runs * steps) * 1e9)
+            med = {be: statistics.median(ts) for be, ts in times.items()}
+            label = f"{'input' if with_input else 'no input':8s} {runs:>6d} runs x {steps:<5d}"
+            for be, ts in times.items():
+                print(f"  {label} {be:6s} {med[be]:10.0f} ns/run-step ({min(ts):.0f}-{max(ts):.0f})")
+            note = f"; one run: {med['numba'] / 1e3:.2f} us/step (target <= 5)" if runs == 1 else ""
+            print(f"  {label} compiled is x{med['numpy'] / med['numba']:.1f} the numpy path (target >= 5){note}")
+    print(f"  load after {os.getloadavg()[0]:.2f}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
     ap.add_argument("--only-m8", action="store_true", help="only (c), the n = 16, m = 8 TKF")
+    ap.add_argument("--only-multi-region", action="store_true", help="only (d), the multi-region TKF")
     args = ap.parse_args()
     if args.only_m8:
         multichannel(args.smoke)
+        return
+    if args.only_multi_region:
+        multi_region_case(args.smoke)
         return
     runs, steps, long_steps, peer_runs, repeat = (10_000, 1_000, 100_000, 20, 2)
     if args.smoke:
@@ -164,6 +211,7 @@ def main() -> None:
         f"single-run TKF no slower per step than filterpy: {lat[best] * 1e6:.2f} vs {t_fp1 * 1e6:.2f} us/step"
     )
     multichannel(args.smoke)
+    multi_region_case(args.smoke)
 
 
 if __name__ == "__main__":

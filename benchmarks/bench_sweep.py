@@ -7,7 +7,10 @@
   printed with the speed-up of the best times (target >= 1.6x on 2 cores). A ``local``
   run of the same file gives the in-process reference.
 * Memory: peak resident memory of a ``local`` sweep process for growing run counts
-  (target: flat; 10^6 runs of the core TKF with T = 100 within 2 GB), and of an experiment
+  (``--mem-runs``, default 10^4, 10^5, 10^6; target: flat, 10^6 runs of the core TKF with T = 100
+  within 2 GB), or with ``--mem-scheduler processes`` of a 2-worker Dask sweep, summed over the
+  whole process tree (driver, nannies, workers; issue 19 asks for a 10^7-run sweep with memory
+  flat: ``--mem-runs 10000 1000000 10000000 --mem-scheduler processes``), and of an experiment
   sweep (the fading TKF example in blocks of 1000 runs) for 2000 and 20000 runs.
 
 Run by hand: ``python benchmarks/bench_sweep.py``; CI: ``--smoke``.
@@ -63,15 +66,40 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
 """
 
 
-def run(file: Path, out: Path, scheduler: str, workers: int) -> tuple[float, float]:
+def run(file: Path, out: Path, scheduler: str, workers: int, tree: bool = False) -> tuple[float, float]:
+    """Wall seconds of one sweep process and its peak memory in MB: the process's own peak RSS, or with
+    ``tree`` the peak of the summed RSS of the process and all its descendants (Dask's nannies and worker
+    processes), sampled every 50 ms with psutil (a spike shorter than that can be missed)."""
     t = time.perf_counter()
-    res = subprocess.run(
+    proc = subprocess.Popen(
         [sys.executable, "-c", _PEAK, str(file), str(out), scheduler, str(workers)],
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        check=True,
     )
-    return time.perf_counter() - t, float(res.stdout.strip().splitlines()[-1])
+    peak_tree = 0.0
+    if tree:
+        import psutil
+
+        root = psutil.Process(proc.pid)
+        while proc.poll() is None:
+            total = 0
+            try:
+                for p in [root, *root.children(recursive=True)]:
+                    try:
+                        total += p.memory_info().rss
+                    except psutil.Error:  # a worker that exited between the listing and the read
+                        pass
+            except psutil.Error:
+                break
+            peak_tree = max(peak_tree, total / 2**20)
+            time.sleep(0.05)
+    stdout, stderr = proc.communicate()
+    wall = time.perf_counter() - t
+    if proc.returncode != 0:
+        raise subprocess.CalledProcessError(proc.returncode, proc.args, stdout, stderr)
+    own = float(stdout.strip().splitlines()[-1])
+    return wall, (max(peak_tree, own) if tree else own)
 
 
 def main() -> None:
@@ -80,6 +108,15 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="alternating 1-worker/2-worker timings (default 3)")
     ap.add_argument("--runs", type=int, default=None, help="runs of the speed sweep (default 10^6; 4000 with --smoke)")
     ap.add_argument("--speed-only", action="store_true", help="skip the memory measurements")
+    ap.add_argument(
+        "--mem-runs", type=int, nargs="+", default=None, help="run counts of the memory ladder (default 10^4 10^5 10^6)"
+    )
+    ap.add_argument(
+        "--mem-scheduler",
+        choices=["local", "processes"],
+        default="local",
+        help="scheduler of the memory ladder (processes: 2 Dask workers, the peak of the whole process tree)",
+    )
     args = ap.parse_args()
     speed_runs, steps, block = (1_000_000, 100, 2_000) if not args.smoke else (4_000, 20, 1_000)
     if args.runs is not None:
@@ -88,6 +125,10 @@ def main() -> None:
     if args.runs is not None and args.runs < 1:
         ap.error("--runs: expected a positive run count")
     mem_runs = [10_000, 100_000, 1_000_000] if not args.smoke else [2_000, 4_000]
+    if args.mem_runs is not None:
+        mem_runs = args.mem_runs
+    if any(r < 1 for r in mem_runs):
+        ap.error("--mem-runs: expected positive run counts")
     exp_runs = [2_000, 20_000] if not args.smoke else [20, 40]
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -122,15 +163,19 @@ def main() -> None:
             print(json.dumps(results))
             return
         mem = {}
+        tree = args.mem_scheduler == "processes"
+        label = "Dask processes, 2 workers, process tree" if tree else "local (2 threads)"
         for runs in mem_runs:
             g = tmp / f"mem{runs}.toml"
             g.write_text(SWEEP.format(runs=runs, steps=steps, block=min(block, runs)))
-            t, peak = run(g, tmp / f"m{runs}", "local", 2)
+            t, peak = run(g, tmp / f"m{runs}", args.mem_scheduler, 2, tree=tree)
             mem[runs] = peak
             print(
-                f"local (2 threads), {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
-                f"{runs * steps / t:,.0f} run-steps/s"
+                f"{label}, {runs:>9} runs x {steps} steps: {t:7.1f} s, peak RSS {peak:7.1f} MB, "
+                f"{runs * steps / t:,.0f} run-steps/s",
+                flush=True,
             )
+        results["mem_scheduler"] = args.mem_scheduler
         results["peak_rss_mb"] = mem
         # experiment mode streams too: the fading TKF experiment in blocks of 1000 runs
         exp_mem = {}

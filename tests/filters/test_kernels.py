@@ -462,7 +462,8 @@ def _time_varying():
     return tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.3, 0.0], P0=0.05 * np.eye(2))
 
 
-def _with_input():
+def _with_input(**inputs):
+    """The oscillator with a control input (default B^u = [0.1, 0]^T; ``inputs`` give Bu and/or D)."""
     return tk.LinearSystem(
         A=oscillator().transition(0),
         C=[[1.0, 0.0]],
@@ -470,7 +471,7 @@ def _with_input():
         R=[[0.1]],
         x0=[0.3, 0.0],
         P0=0.05 * np.eye(2),
-        Bu=[[0.1], [0.0]],
+        **({"Bu": [[0.1], [0.0]]} | inputs),
     )
 
 
@@ -484,16 +485,47 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     y = data(oscillator(), cens, runs=2, steps=20)
     ref_t = tobit_kalman_filter(sys_, cens, y, u=u, backend="numpy")
     ref_k = kalman_filter(sys_, y, u=u, backend="numpy")
-    with pytest.raises(
-        ValidationError, match=f"backend: the numba kernel of the Tobit Kalman filter does not cover {match}"
-    ):
-        tobit_kalman_filter(sys_, cens, y, u=u, backend="numba")
+    if which == "time_varying":  # the TKF kernel covers control inputs (test_tkf_kernel_with_inputs_equals_numpy)
+        with pytest.raises(
+            ValidationError, match=f"backend: the numba kernel of the Tobit Kalman filter does not cover {match}"
+        ):
+            tobit_kalman_filter(sys_, cens, y, u=u, backend="numba")
     with pytest.raises(ValidationError, match=f"does not cover {match}"):
         kalman_filter(sys_, y, u=u, backend="numba")
     monkeypatch.setattr(_backend, "_load", lambda: _Trap())
     # not the block kernel (the trap), but the compiled shared step around the numpy moments: equal to rounding
-    assert_results_equal(tobit_kalman_filter(sys_, cens, y, u=u), ref_t, 1e-12)
+    if which == "time_varying":
+        assert_results_equal(tobit_kalman_filter(sys_, cens, y, u=u), ref_t, 1e-12)
+    else:
+        with pytest.raises(AssertionError, match="kernel tkf_kernel used"):
+            tobit_kalman_filter(sys_, cens, y, u=u)
     assert_results_equal(kalman_filter(sys_, y, u=u), ref_k, 1e-12)
+
+
+@pytest.mark.parametrize("cu", ["standard", "joseph"])
+def test_tkf_kernel_with_inputs_equals_numpy(cu):
+    """Control inputs through B^u (predict) and D (feedthrough of the latent mean), per run, online too;
+    an input matrix indexed by k is refused by backend='numba' and runs on numpy under 'auto'."""
+    sys_ = _with_input(Bu=[[0.1], [0.05]], D=[[0.2]])
+    cens = tk.Censoring(lower=0.0, upper=1.2)
+    u = np.random.default_rng(2).normal(size=(5, 40, 1))
+    y = cens.clip(data(oscillator(), tk.Censoring(), runs=5, steps=40) + 0.2 * u)
+    y[1, 3:6] = np.nan
+    a = tobit_kalman_filter(sys_, cens, y, u=u, covariance_update=cu, backend="numba")
+    b = tobit_kalman_filter(sys_, cens, y, u=u, covariance_update=cu, backend="numpy")
+    assert_results_equal(a, b)
+    fast, ref = tk.TobitKalmanFilter(sys_, cens, backend="numba"), tk.TobitKalmanFilter(sys_, cens, backend="numpy")
+    sa, sb = fast.init((5,)), ref.init((5,))
+    for k in range(10):
+        sa, sb = fast.step(sa, y[:, k], u=u[:, k]), ref.step(sb, y[:, k], u=u[:, k])
+    assert_same(sa.x, sb.x)
+    assert_same(sa.x, b.mean[:, 9])
+    varying = _with_input(Bu=np.stack([[[0.1], [0.05]]] * 40))
+    with pytest.raises(ValidationError, match="does not cover time-varying input matrices"):
+        tobit_kalman_filter(varying, cens, y, u=u, backend="numba")
+    assert_results_equal(
+        tobit_kalman_filter(varying, cens, y, u=u), tobit_kalman_filter(varying, cens, y, u=u, backend="numpy")
+    )
 
 
 def test_without_numba(monkeypatch):

@@ -97,6 +97,20 @@ def test_kernel_windows_and_thresholds(window, threshold):
         assert_results_equal(*both(sys_, ch, y, failure_term=mode, prehistory_prior="zero_mean"))
 
 
+@pytest.mark.parametrize("threshold", [-60.0, 60.0])
+def test_kernel_thresholds_40_sigma_out(threshold):
+    """Thresholds about 40 to 60 predicted-reading sigmas from every reading (the predicted readings stay
+    within a few units of zero, their sigma is 1 to 1.5): below, never censored (the lower tail of the
+    statistics' one-sided route); above, every reading censored, the window deep in the upper tail. The
+    compiled loop must still reproduce numpy to rounding (1e-12), and every output must be finite."""
+    sys_, ch = oscillator(), channel(threshold=threshold)
+    y = data(sys_, ch, (4,), 30, seed=5)
+    for mode in ("variance", "second_moment"):
+        a, b = both(sys_, ch, y, failure_term=mode)
+        assert_results_equal(a, b)
+        assert np.isfinite(a.mean).all() and np.isfinite(a.cov).all()
+
+
 def test_kernel_given_uncensored_and_continued_state():
     """A detection device that disagrees with y > tau on some steps, a given prior and P0_aug, and a
     continuation from result.final (the schedule and the lmmse recursion X_k picked up at k0 + 1)."""
@@ -350,6 +364,52 @@ def test_online_kernel_step_equals_the_numpy_step(mode, shape):
             assert_same(a.carry[key], b.carry[key])
     res = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode).filter(y, uncensored=gamma)
     assert_same(np.stack([s.mean for s in fast], axis=-2), res.mean)
+
+
+@pytest.mark.parametrize("mode", ["variance", "second_moment"])
+def test_plain_online_step_equals_the_general_step(mode, monkeypatch):
+    """A plain step call (no keyword, float64 readings in [tau, inf)) goes straight to the compiled step: a
+    (2, 3) batch from the shared prior covariance, three sensors in the order 3, 1, 3, 2, readings set to
+    tau (censored) on some steps, a lost reading (that step takes the general route), a pickled state
+    resumed. Its states equal those of the general step (the same detections given as ``uncensored``) to
+    1e-12 and the numpy step's to 1e-12; the general route ran only at the first step (which decides on the
+    kernel) and at the lost reading; a reading below tau or a wrong shape is refused as by the general step."""
+    sys_, ch = three_sensor_case()
+    shape, T = (2, 3), 17
+    y = tk.simulate(sys_, T, 6, seed=4, channel=ch).y.reshape(shape + (T, 1))
+    y[0, :, 3] = ch.threshold
+    y[..., 6, :] = ch.threshold
+    y[1, 2, 10] = np.nan
+    general = ProtocolTobitKalmanFilter._fast_step
+    calls = []
+
+    def spy(self, *args):
+        calls.append(1)
+        return general(self, *args)
+
+    monkeypatch.setattr(ProtocolTobitKalmanFilter, "_fast_step", spy)
+    plain = _steps(ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode), y, shape, resume_at=8)
+    assert len(calls) == 2
+    given = _steps(ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode), y, shape, y > ch.threshold, 8)
+    ref = _steps(ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode), y, shape, resume_at=8)
+    for a, b, c in zip(plain, given, ref):
+        assert a.k == b.k == c.k and a.batch_shape == c.batch_shape
+        assert a.extras.keys() == c.extras.keys() and a.carry.keys() == c.carry.keys()
+        for other in (b, c):
+            assert_same(a.x, other.x, 1e-12)
+            assert_same(np.broadcast_to(a.P, other.P.shape), np.broadcast_to(other.P, a.P.shape), 1e-12)
+            for key in c.extras:
+                assert_same(a.extras[key], other.extras[key], 1e-12)
+    res = ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode).filter(y)
+    assert_same(np.stack([s.mean for s in plain], axis=-2), res.mean, 1e-12)
+    est = ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode)
+    st = est.step(est.init(shape), y[..., 0, :])
+    below = y[..., 1, :].copy()
+    below[0, 1] = ch.threshold - 1.0
+    with pytest.raises(ValidationError, match="below the threshold"):
+        est.step(st, below)
+    with pytest.raises(tk.ShapeError, match="batch_shape"):
+        est.step(st, y[0, :2, 1, :])
 
 
 def test_online_kernel_step_reports_a_bad_sensor_variance_and_diverges_as_numpy():

@@ -113,6 +113,59 @@ def test_one_worker_runs_its_filters_on_one_thread(tmp_path, monkeypatch):
     assert seen and set(seen) == {1}
 
 
+def test_stored_blocks_are_released(tmp_path, monkeypatch):
+    """A sweep's memory must not grow with its run count: once a task's blocks are in the store, nothing
+    of the sweep holds their statistics (before, every finished future stayed in a dict until the end, so
+    the results of all tasks stayed in memory). Checked with weak references to each task's results, on
+    the in-process pool and on a Dask cluster in this process."""
+    import gc
+    import weakref
+
+    from tobitkf.sweep import run as R
+
+    class Stats(dict):  # a dict that can be weakly referenced
+        pass
+
+    real_task, real_write = R.run_task, R.write_blocks
+    refs: list[list] = []
+    alive_old: list[int] = []
+
+    def task(text, name, p, blocks, threads=None):
+        return [(b, Stats(d)) for b, d in real_task(text, name, p, blocks, threads)]
+
+    def write(g, p, results):
+        real_write(g, p, results)
+        gc.collect()
+        # results stored two or more writes ago: nothing may hold them any more
+        alive_old.append(sum(r() is not None for batch in refs[:-1] for r in batch))
+        refs.append([weakref.ref(d) for _, d in results])
+
+    monkeypatch.setattr(R, "run_task", task)
+    monkeypatch.setattr(R, "write_blocks", write)
+    run_sweep(spec(chunk=1), tmp_path / "pool", workers=2)
+    assert len(refs) == 14 and max(alive_old) == 0
+    distributed = pytest.importorskip("distributed")
+    refs.clear()
+    alive_old.clear()
+    lag = 3  # a released result leaves the worker when the scheduler's message arrives: allow a few writes
+
+    def write_dask(g, p, results):
+        real_write(g, p, results)
+        for _ in range(40):  # up to 2 s for the release to reach the worker (a loaded machine)
+            gc.collect()
+            alive = sum(r() is not None for batch in refs[:-lag] for r in batch)
+            if not alive:
+                break
+            time.sleep(0.05)
+        alive_old.append(alive)
+        refs.append([weakref.ref(d) for _, d in results])
+
+    monkeypatch.setattr(R, "write_blocks", write_dask)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cl:
+        run_sweep(spec(chunk=1), tmp_path / "dask", scheduler=cl.scheduler_address)
+    assert len(refs) == 14 and max(alive_old) == 0
+
+
 def test_scheduler_address_runs_on_an_existing_cluster(tmp_path):
     """``--scheduler ADDRESS``: the same file on a cluster started elsewhere gives the same numbers."""
     distributed = pytest.importorskip("distributed")

@@ -53,12 +53,16 @@ def kernels() -> ModuleType:
     return mod
 
 
-def system_gap(system, u) -> str | None:
-    """Why the kernels cannot run this system/input, or None when they can."""
+def system_gap(system, u, *, inputs: bool = False) -> str | None:
+    """Why the kernels cannot run this system/input, or None when they can. ``inputs=True``: the kernel
+    covers control inputs (constant B^u and D)."""
     if not system.time_invariant:
         return "time-varying system matrices (A, B, C, Q or R indexed by k)"
     if u is not None:
-        return "control inputs u"
+        if not inputs:
+            return "control inputs u"
+        if any(mat is not None and mat.varying for mat in (system.Bu, system.D)):
+            return "time-varying input matrices (Bu or D indexed by k)"
     return None
 
 
@@ -84,9 +88,10 @@ def use_kernel(backend: str, gap: str | None, what: str) -> bool:
     return gap is None and numba_available()
 
 
-def kernel_ok(est, u, what: str) -> bool:
+def kernel_ok(est, u, what: str, *, inputs: bool = False) -> bool:
     """Whether ``est`` (a KF or TKF) runs its compiled kernel for input ``u``: decided once per estimator
-    for the case without input (its system and options do not change), else afresh."""
+    for the case without input (its system and options do not change), else afresh. ``inputs``: the
+    kernel covers control inputs (see :func:`system_gap`)."""
     if u is None:
         cached = est.__dict__.get("_kernel_static")
         if cached is None:
@@ -97,7 +102,9 @@ def kernel_ok(est, u, what: str) -> bool:
             )
         return cached
     return use_kernel(
-        est.backend, check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, u), what
+        est.backend,
+        check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, u, inputs=inputs),
+        what,
     )
 
 

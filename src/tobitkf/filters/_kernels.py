@@ -12,9 +12,11 @@ coordinates when the uncensored window lies beyond 4σ in a tail or is narrower 
 1σ). Results agree with the numpy path to rounding (tested to 1e-12).
 
 Covered cases (the dispatchers in ``kalman.py`` / ``tobit.py`` decide, with
-:func:`tobitkf.filters._backend.system_gap`): time-invariant A, C, Q, R (and B), no control input; any
-censoring limits (constant or ``(T, m)``), NaN (missing) measurements, every
-``noise_term`` and both ``covariance_update`` forms. Everything else runs on numpy.
+:func:`tobitkf.filters._backend.system_gap`): time-invariant A, C, Q, R (and B); for the TKF also
+control inputs through constant B^u and D (the KF kernel takes none); any censoring limits (constant or
+``(T, m)``, one- or two-sided, so the multi-region TKF of :func:`tobitkf.multi_region`, whose sensors
+are stacked channels, runs here), NaN (missing) measurements, every ``noise_term`` and both
+``covariance_update`` forms. Everything else runs on numpy.
 
 Runs are processed in blocks of :data:`BLOCK` (outer loop) over time (inner loop), the
 block's state in structure-of-arrays scratch (innermost loops over the runs of the
@@ -38,7 +40,22 @@ from numba import njit
 from .._linalg_kernels import gauss_solve as _gauss_solve
 from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
 
-__all__ = ["censored_stats", "censored_moments_array", "tkf_kernel", "kf_kernel", "NOISE_CODES", "GL_X", "GL_W"]
+__all__ = [
+    "censored_stats",
+    "censored_moments_array",
+    "tkf_kernel",
+    "kf_kernel",
+    "tobit_update_block",
+    "predict_block",
+    "block_scratch",
+    "stage_block",
+    "flush_rows",
+    "stage_shape",
+    "CHUNK",
+    "NOISE_CODES",
+    "GL_X",
+    "GL_W",
+]
 
 NOISE_CODES = {"dissertation": 0, "total_variance": 1, "exact_pv": 2}
 GL_X, GL_W = _GL_X, _GL_W  # the quadrature of censored_moments (passed to the kernels)
@@ -766,6 +783,107 @@ def _store_last(xv, Pv, r0, nb, x_last, P_last):
 # --- the Tobit Kalman filter -----------------------------------------------------------------
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def tobit_update_block(
+    C,
+    sigma,
+    lo,
+    hi,
+    lrow,
+    lstep,
+    y,
+    du,
+    r0,
+    t,
+    noise_code,
+    joseph,
+    glx,
+    glw,
+    xp,
+    Pp,
+    mu,
+    e,
+    x,
+    P,
+    blk,
+    run,
+    solve,
+    buf,
+    nb,
+):
+    r"""The Tobit measurement update of a block of ``nb`` runs (Miller (3.37)–(3.41), (3.39)–(3.40), (3.32),
+    (3.22), (3.55)), all channel statistics at the prior (Assumption A1, (3.35)): the step of
+    :func:`tkf_kernel`, shared with the compiled closed loop of :mod:`tobitkf.control` (which runs the TKF
+    as its observer), so that the update exists once.
+
+    ``xp`` (n, B), ``Pp`` (n, n, B) the prediction; run b of the block reads its reading at
+    ``y[r0 + b, t]`` (NaN: missing) and its feedthrough :math:`Du_k` at ``du[r0 + b, t]`` (``du`` with no
+    steps, ``du.shape[1] == 0``: none); ``lo``/``hi`` (L, m) the limits, run b reading row
+    ``lrow + lstep * b`` (``lstep = 0``: one row for the block, the limits of the step; ``lstep = 1``: one
+    row per run). ``noise_code`` from :data:`NOISE_CODES`. Writes the posterior ``x`` (n, B), ``P``
+    (n, n, B), :math:`E(y)` (3.8) in ``mu`` (m, B), the innovation :math:`y - E(y)` in ``e`` (m, B) (0 for
+    a channel left out), and in ``blk`` (from :func:`_update_scratch`) ``gam`` = :math:`E(\mathbf p)` and
+    the noise term :math:`R_{uu}` among the rest. Inlined (numba
+    ``inline="always"``): the caller's loop sees the statistics of :func:`censored_stats` inlined as before.
+    """
+    _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    Rs, Ws, Ks, oks, Rxs, ds = run
+    Rw, Wb, db, bad = solve
+    m, n = C.shape
+    has_du = du.shape[1] > 0
+    for l in range(m):
+        sd = sigma[l]
+        for b in range(nb):
+            s = 0.0
+            for j in range(n):
+                s += xp[j, b] * C[l, j]
+            mean = s + du[r0 + b, t, l] if has_du else s  # C xbar + D u (the numpy path's x_pred @ C.T + dy)
+            r = lrow + lstep * b
+            st = censored_stats(mean, sd, lo[r, l], hi[r, l], glx, glw, buf)
+            g = st[2]
+            gam[l, b] = g
+            if noise_code == 0:
+                v = st[5]
+            elif noise_code == 1:
+                v = st[7]
+            else:
+                v = g * (st[5] + (st[4] - mean) ** 2)
+            noise[l, l, b] = v
+            e[l, b] = y[r0 + b, t, l] - st[6]
+            mu[l, b] = st[6]
+    # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
+    _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
+    if m > 1:
+        _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+    else:
+        _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
+    _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # H = diag(E(p)) C (3.41)
+
+
+@njit(cache=True, error_model="numpy")
+def predict_block(A, Qd, x, P, xp, Pp, AP, nb):
+    r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(APA^T + Q)` of a block of runs (the predict of
+    :func:`tkf_kernel` and :func:`kf_kernel`, shared with the compiled closed loop of :mod:`tobitkf.control`);
+    ``x`` (n, B), ``P`` (n, n, B) in, ``xp``, ``Pp`` out, ``AP`` (n, n, B) scratch."""
+    _predict(A, Qd, x, P, xp, Pp, AP, nb)
+
+
+# the output staging of the kernels, shared with the compiled closed loop of tobitkf.control: stage_block
+# copies a block's (dim, B) [and (n, n, B)] arrays into (S, ..., B) buffers at a chunk step, flush_rows
+# writes the staged steps run by run into the (N, T, ...) outputs (see CHUNK)
+stage_block = _stage
+flush_rows = _flush
+stage_shape = _stage_shape
+
+
+@njit(cache=True, inline="always")
+def block_scratch(n, m, B, G):
+    """The block scratch of a Kalman-type step of ``B`` runs (state size ``n``, ``m`` channels, ``G``
+    quadrature nodes): ``(x, xp, e, ey)`` of :func:`_mean_scratch` and ``(blk, run, solve, buf)`` of
+    :func:`_update_scratch`, for a kernel outside this module (the compiled closed loop)."""
+    return _mean_scratch(n, m, B), _update_scratch(n, n, m, B, G)
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def tkf_kernel(
     y,
@@ -775,6 +893,8 @@ def tkf_kernel(
     sigma,
     lo,
     hi,
+    bu,
+    du,
     x0,
     P0,
     noise_code,
@@ -793,58 +913,68 @@ def tkf_kernel(
     """TKF over ``N`` runs of ``T`` steps; fills the ``(N, T, ...)`` output arrays in place.
 
     ``y`` (N, T, m) (NaN = missing), ``A``/``Qd`` (n, n), ``C`` (m, n), ``sigma`` (m,),
-    ``lo``/``hi`` (T, m), ``x0`` (N, n), ``P0`` (N, n, n), ``noise_code`` from :data:`NOISE_CODES`.
-    An output of shape ``(N, 0, ...)`` is not written (not requested); ``x_last`` (N, n) and
-    ``P_last`` (N, n, n) receive the state after the last step.
+    ``lo``/``hi`` (T, m), ``bu`` (N, T, n) the input offsets :math:`B^uu_k` of the predict and ``du``
+    (N, T, m) the feedthrough :math:`Du_k` (each (N, 0, ...) without), ``x0`` (N, n), ``P0`` (N, n, n),
+    ``noise_code`` from :data:`NOISE_CODES`. An output of shape ``(N, 0, ...)`` is not written (not
+    requested); ``x_last`` (N, n) and ``P_last`` (N, n, n) receive the state after the last step.
     """
     N, T, m = y.shape
     n = A.shape[0]
     B, S = _block_dims(N, T)
-    x, xp, e, _yb = _mean_scratch(n, m, B)
+    x, xp, e, mu = _mean_scratch(n, m, B)
     blk, run, solve, buf = _update_scratch(n, n, m, B, glx.shape[0])
-    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
-    Rs, Ws, Ks, oks, Rxs, ds = run
-    Rw, Wb, db, bad = solve
+    P, Pp, AP, _CP, _Rxe, _Ree, _K, _MH, _noise, gam, _ok = blk
     # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
     s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
     s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
     want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
+    has_bu = bu.shape[1] > 0
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
         for t in range(T):
             tt = t % S
             _predict(A, Qd, x, P, xp, Pp, AP, nb)
+            if has_bu:  # xbar = A x + B^u u_k
+                for i in range(n):
+                    for b in range(nb):
+                        xp[i, b] += bu[r0 + b, t, i]
             _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
-            # channel statistics at the prior (Assumption A1, (3.35)); (3.37), (3.8), (3.41)
-            for l in range(m):
-                for b in range(nb):
-                    mu = 0.0
-                    for j in range(n):
-                        mu += xp[j, b] * C[l, j]
-                    st = censored_stats(mu, sigma[l], lo[t, l], hi[t, l], glx, glw, buf)
-                    g = st[2]
-                    gam[l, b] = g
-                    if noise_code == 0:
-                        v = st[5]
-                    elif noise_code == 1:
-                        v = st[7]
-                    else:
-                        v = g * (st[5] + (st[4] - mu) ** 2)
-                    noise[l, l, b] = v
-                    e[l, b] = y[r0 + b, t, l] - st[6]
-                    if want_pu:
-                        s_pu[tt, l, b] = g
-                    if want_ey:
-                        s_ey[tt, l, b] = st[6]
-            # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
-            _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
-            if m > 1:
-                _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
-            else:
-                _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
-            _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # H = diag(E(p)) C (3.41)
+            tobit_update_block(
+                C,
+                sigma,
+                lo,
+                hi,
+                t,
+                0,
+                y,
+                du,
+                r0,
+                t,
+                noise_code,
+                joseph,
+                glx,
+                glw,
+                xp,
+                Pp,
+                mu,
+                e,
+                x,
+                P,
+                blk,
+                run,
+                solve,
+                buf,
+                nb,
+            )
+            if want_pu or want_ey:
+                for l in range(m):
+                    for b in range(nb):
+                        if want_pu:
+                            s_pu[tt, l, b] = gam[l, b]
+                        if want_ey:
+                            s_ey[tt, l, b] = mu[l, b]
             _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt

@@ -127,7 +127,9 @@ def protocol_kernel(
     ``joseph`` the covariance form. Outputs: ``means``/``pmeans`` (N, T, n), ``covs``/``pcovs``
     (N, T, n, n) (block 0), ``amean``/``apmean`` (N, T, nxi), ``ext`` (N, T, N_EXTRAS) in the order of
     :data:`EXTRA_NAMES`; each of shape ``(N, 0, ...)`` when not requested. ``x_last`` (N, nxi) and
-    ``P_last`` (N, nxi, nxi) receive the state after the last step.
+    ``P_last`` (N, nxi, nxi) receive the state after the last step. Returns whether every variance
+    (diagonal entry) of ``P_last`` is finite (the check of ``kalman._finite_or_none``, which the online
+    step then need not make in Python).
     """
     N, T = y.shape
     nxi = Cs.shape[1]
@@ -252,3 +254,8 @@ def protocol_kernel(
                 _flush(s_apm, apmean, r0, t0, nb, tt + 1)
                 _flush(s_ext, ext, r0, t0, nb, tt + 1)
         _store_last(x, P, r0, nb, x_last, P_last)
+    for b in range(N):
+        for i in range(nxi):
+            if not math.isfinite(P_last[b, i, i]):
+                return False
+    return True

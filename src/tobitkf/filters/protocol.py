@@ -71,6 +71,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -104,7 +105,6 @@ from .kalman import (
     _empty,
     _finite_or_none,
     cov_output,
-    finite_variances,
     kernel_array,
     kernel_result,
 )
@@ -712,6 +712,22 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             res.extras["scheduled"] = self.channel.schedule.scheduled(k0 + T)[k0:]
         return res
 
+    def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
+        """One predict + update with the reading ``y`` (``batch_shape + (1,)``; NaN: a lost reading, which
+        only predicts).
+
+        ``uncensored`` (keyword, laid out like ``y``): the detection device's :math:`\\gamma_k`, default
+        ``y > threshold``. A plain call (no input, no keyword, float64 readings in [τ, ∞), the compiled
+        loop's case) goes straight to the compiled step (:func:`_protocol_plain_step`, the same kernel call
+        the general step makes, without the checks such a call passes); every other call takes the
+        general step.
+        """
+        if u is None and not options:
+            fast = _protocol_plain_step(self, state, y)
+            if fast is not None:
+                return fast
+        return super().step(state, y, u=u, **options)
+
     # ---- the compiled path (``filter``, and ``step`` through _protocol_kernel_step) -------------------
     def _fast_step(self, state, y, u, options):
         """One online step through the compiled loop (T = 1, :func:`_protocol_kernel_step`); None (the numpy
@@ -805,86 +821,111 @@ def _protocol_kernel_mats(est: ProtocolTobitKalmanFilter) -> tuple[np.ndarray, .
     return AQ
 
 
+def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> FilterState | None:
+    """:meth:`ProtocolTobitKalmanFilter.step` of a plain call (no input, no keyword) straight to the compiled
+    step, :func:`_protocol_kernel_step`, when the general step's checks would pass it unchanged and its
+    :meth:`~ProtocolTobitKalmanFilter._fast_step` would run that kernel: the compiled loop decided on for
+    the estimator (at its first step), a failure term other than ``"lmmse_unconditional"``, a
+    :class:`FilterState` of the augmented dimension, and ``y`` a float64 array of shape
+    ``batch_shape + (1,)`` whose (at most 16) readings all lie in [τ, ∞) (no NaN: nothing lost, none
+    below τ). None otherwise (the general step then runs, with its checks and messages), or when the
+    covariance stopped being finite."""
+    if not (
+        est.__dict__.get("_kernel_static")
+        and type(state) is FilterState
+        and type(y) is np.ndarray
+        and y.dtype == np.float64
+        and y.shape == state.batch_shape + (1,)
+        and y.size <= 16
+        and state.x.shape[-1] == est._nxi
+        and est.failure_term != "lmmse_unconditional"
+    ):
+        return None
+    tau = est._tau
+    if not all(tau <= v < math.inf for v in y.ravel().tolist()):
+        return None
+    return _protocol_kernel_step(est, y.reshape(-1, 1), None, state)
+
+
+def _protocol_step_context(est: ProtocolTobitKalmanFilter) -> tuple:
+    """What every online step passes to the compiled loop, built once per estimator: the per-sensor rows
+    ``Cs``, ``Hs``, ``rs``, ``lm``, ``lv`` (filled as the sensors are first scheduled), the schedules
+    ``[h]`` (int64) of one step of each sensor, the set of the filled sensors and the constant arguments
+    ``(A, B Q B^T, Cs, Hs, rs, lm, lv, F_fixed, tau, mode, joseph)`` and ``(GL_X, GL_W)`` around the state
+    (arrays and numbers only: the estimator still pickles)."""
+    ctx = est.__dict__.get("_step_rows")
+    if ctx is None:
+        kern = kernels()
+        p = len(est._lam_mean)
+        rows = (np.zeros((p, est._nxi)), np.zeros((p, est._nxi)), np.ones(p), np.zeros(p), np.zeros(p))
+        scheds = tuple(np.array([j], dtype=np.int64) for j in range(p))
+        AQ = _protocol_kernel_mats(est)
+        head = (
+            AQ
+            + rows
+            + (
+                _empty((0,)),
+                est._tau,
+                _KERNEL_MODES[est.failure_term],
+                est.covariance_update == "joseph",
+            )
+        )
+        ctx = est._step_rows = rows + (scheds, set(), head, (kern.GL_X, kern.GL_W))
+    return ctx
+
+
+_KERNEL_MODULE: list[ModuleType] = []  # tobitkf.filters._kernels_protocol, imported (with numba) on first use
+
+
+def _protocol_kernels() -> ModuleType:
+    """The module of the compiled loop, :mod:`tobitkf.filters._kernels_protocol` (imported once)."""
+    if not _KERNEL_MODULE:
+        from . import _kernels_protocol
+
+        _KERNEL_MODULE.append(_kernels_protocol)
+    return _KERNEL_MODULE[0]
+
+
 def _protocol_kernel_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, state: FilterState):
     """One online step (y (N, 1), ``gamma`` (N, 1) bool or None for y > tau) through the compiled loop with
     T = 1 and only the step's extras written: :func:`_protocol_kernel_run` without its per-record glue (the
-    scheduled sensor's terms kept per sensor as it is first scheduled, :meth:`_step_terms` checking them
-    then as the numpy step does; cached empty outputs; no result object). None when the covariance stopped
-    being finite (the numpy step then reruns it and reports the divergence)."""
-    from . import _kernels_protocol as kp
-
-    kern = kernels()
+    constant arguments built once, :func:`_protocol_step_context`; the scheduled sensor's terms kept per
+    sensor as it is first scheduled, :meth:`_step_terms` checking them then as the numpy step does; cached
+    empty outputs; the posterior mean ``x_last`` is also ``aug_mean``, as the numpy step's ``x`` is; the
+    kernel's finiteness flag; no result object). None when the covariance stopped being finite (the numpy
+    step then reruns it and reports the divergence)."""
+    Cs, Hs, rs, lm, lv, scheds, filled, head, gl = _protocol_step_context(est)
+    kp = _KERNEL_MODULE[0] if _KERNEL_MODULE else _protocol_kernels()
     N = y.shape[0]
     n, nxi = est.n, est._nxi
     order = est._order
     h = order[state.k % len(order)]  # the sensor of step k + 1 (_sensor)
-    rows = est.__dict__.get("_step_rows")
-    if rows is None:
-        p = len(est._lam_mean)
-        scheds = tuple(np.array([j], dtype=np.int64) for j in range(p))
-        rows = est._step_rows = (
-            np.zeros((p, nxi)),
-            np.zeros((p, nxi)),
-            np.ones(p),
-            np.zeros(p),
-            np.zeros(p),
-            scheds,
-            set(),
-        )
-    Cs, Hs, rs, lm, lv, scheds, filled = rows
     if h not in filled:  # a time-invariant system (the kernel's case): the sensor's terms of any step
         Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(state.k + 1, h)
         Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
         filled.add(h)
-    AQ = _protocol_kernel_mats(est)
     assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
     # writeable C-contiguous float64 copies, as _protocol_kernel_run's
     yk = np.array(y, dtype=float, order="C")
     gam = yk > est._tau if gamma is None else np.array(gamma, dtype=np.bool_, order="C")
     x = np.array(state.x, dtype=float, order="C")
     P = np.array(state.P if state.P.shape[0] == N else np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
-    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
-    amean, apmean, exts = np.empty((N, 1, nxi)), np.empty((N, 1, nxi)), np.empty((N, 1, kp.N_EXTRAS))
+    e_m, e_c, e_a = _empty((N, 0, n)), _empty((N, 0, n, n)), _empty((N, 0, nxi))
+    apmean, exts = np.empty((N, 1, nxi)), np.empty((N, 1, kp.N_EXTRAS))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    kp.protocol_kernel(
-        yk,
-        gam,
-        scheds[h],
-        AQ[0],
-        AQ[1],
-        Cs,
-        Hs,
-        rs,
-        lm,
-        lv,
-        _empty((0,)),
-        est._tau,
-        _KERNEL_MODES[est.failure_term],
-        est.covariance_update == "joseph",
-        x,
-        P,
-        kern.GL_X,
-        kern.GL_W,
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        amean,
-        apmean,
-        exts,
-        x_last,
-        P_last,
+    finite = kp.protocol_kernel(
+        yk, gam, scheds[h], *head, x, P, *gl, e_m, e_c, e_m, e_c, e_a, apmean, exts, x_last, P_last
     )
-    if not finite_variances(P_last):  # the check of _finite_or_none
+    if not finite:  # the check of _finite_or_none
         return None
-    extras: dict[str, Any] = {name: exts[:, 0, i] for i, name in enumerate(kp.EXTRA_NAMES)}
-    extras.update(aug_mean=amean[:, 0], aug_pred_mean=apmean[:, 0], uncensored=gam[:, 0])
+    extras: dict[str, Any] = dict(zip(kp.EXTRA_NAMES, exts[:, 0].T))
+    extras["aug_mean"], extras["aug_pred_mean"], extras["uncensored"] = x_last, apmean[:, 0], gam[:, 0]
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
 def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: FilterState, want, batch):
     """The compiled loop from ``state`` (augmented ξ, P); outputs on request, as the numpy path's."""
-    from . import _kernels_protocol as kp
+    kp = _protocol_kernels()
 
     kern = kernels()
     N, T, _ = y2.shape

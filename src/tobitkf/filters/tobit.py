@@ -343,18 +343,18 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
     # ---- the compiled path ------------------------------------------------------------
     def _kernel_ok(self, u) -> bool:
-        return kernel_ok(self, u, "the Tobit Kalman filter")
+        return kernel_ok(self, u, "the Tobit Kalman filter", inputs=True)
 
     def _fast_filter(self, y2, u2, state, want, batch):
         if not self._kernel_ok(u2):
             return None
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1, check=False)  # checked at _run
-        return _finite_or_none(_tkf_kernel_run(self, y2, lo, hi, state, want, batch))
+        return _finite_or_none(_tkf_kernel_run(self, y2, u2, lo, hi, state, want, batch))
 
     def _fast_step(self, state, y, u, options):
         if options or not self._kernel_ok(u):
             return None
-        return _tkf_kernel_step(self, y, state)
+        return _tkf_kernel_step(self, y, u, state)
 
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing).
@@ -394,7 +394,23 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         return adf._log_likelihood_terms(y, u=u, x0=x0, P0=P0, **recorded)
 
 
-def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) -> FilterState | None:
+def _input_terms(est: TobitKalmanFilter, u: np.ndarray | None, N: int, T: int) -> tuple[np.ndarray, np.ndarray]:
+    """The kernel's input arrays from ``u`` (N, T, p) or None: ``bu`` = :math:`B^uu_k` (N, T, n) and ``du`` =
+    :math:`Du_k` (N, T, m) as contiguous float64, each (N, 0, ...) when absent (the same products as the
+    numpy path's ``u @ Bu.T`` and ``u @ D.T``, per step)."""
+    sys_ = est.system
+    if u is None or sys_.Bu is None:
+        bu = _empty((N, 0, est.n))
+    else:
+        bu = np.ascontiguousarray(u @ sys_.Bu.at(1).T, dtype=float)
+    if u is None or sys_.D is None:
+        du = _empty((N, 0, est.m))
+    else:
+        du = np.ascontiguousarray(u @ sys_.D.at(1).T, dtype=float)
+    return bu, du
+
+
+def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, u, state: FilterState) -> FilterState | None:
     """One online step through the compiled kernel (T = 1); None when the covariance stopped being finite."""
     N, m = y.shape
     n = est.n
@@ -418,6 +434,7 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
     pu, ey = np.empty((N, 1, m)), np.empty((N, 1, m))
     e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
+    bu, du = _input_terms(est, None if u is None else u.reshape(N, 1, -1), N, 1)
     kern.tkf_kernel(
         np.ascontiguousarray(y.reshape(N, 1, m)),
         A,
@@ -426,6 +443,8 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
         est._sigma,
         lo,
         hi,
+        bu,
+        du,
         np.ascontiguousarray(state.x, dtype=float),
         np.ascontiguousarray(P, dtype=float),
         kern.NOISE_CODES[est.noise_term],
@@ -447,7 +466,7 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, state: FilterState) 
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
-def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want, batch) -> FilterResult:
+def _tkf_kernel_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState, want, batch) -> FilterResult:
     """The compiled loop (:func:`tobitkf.filters._kernels.tkf_kernel`) from ``state``; outputs on request."""
     sys_ = est.system
     N, T, m = y2.shape
@@ -469,6 +488,7 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
     yc, A, Qd = c64(y2), c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float)
     C, sig, lo, hi = c64(sys_.measurement(1), dtype=float), c64(est._sigma), c64(lo), c64(hi)
     code, joseph = kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph"
+    bu, du = _input_terms(est, u2, N, T)
 
     def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
         kern.tkf_kernel(
@@ -479,6 +499,8 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, lo, hi, state: FilterState, want
             sig,
             lo,
             hi,
+            bu[a:b],
+            du[a:b],
             x[a:b],
             P[a:b],
             code,
@@ -549,9 +571,9 @@ def tobit_kalman_filter(
     backend : {"auto", "numpy", "numba"}, default "auto"
         Implementation of the time loop (same results to rounding, tested to 1e-12).
         ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
-        covers time-invariant A, B, C, Q, R without control input (any limits, NaN
-        samples and noise term; the standard and Joseph updates, not the square-root
-        form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;
+        covers time-invariant A, B, C, Q, R, with or without control input through constant
+        B^u and D (any limits, multi-region included, NaN samples and noise term; the standard
+        and Joseph updates, not the square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;
         ``"auto"`` the kernel when numba is installed and the case is covered, else numpy
         (always numpy for ``covariance_update="square_root"``).
     threads : int, optional

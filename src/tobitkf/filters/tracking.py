@@ -221,9 +221,9 @@ class MultiTargetTracker(Estimator):
         self._R1 = self.R[None]  # (1, 2, 2): the noise shared by the targets
         self._no_input = Transition(A=self.A, Qd=self.Q, b=0.0, G=self._G)  # the predict of a frame without feedback
         self._feedback_free = feedback == "off"
-        self._BT, self._CT = self.B.T, self.C.T
+        self._AT, self._BT, self._CT = self.A.T, self.B.T, self.C.T
         # ((form, shape, bytes) of what the predict reads (P, or S in the square-root form), P̄ = sym(A P A^T + Q),
-        # the input-free Transition with P_fixed = P̄ or None, S̄ or None): the last covariance predict,
+        # S̄ or None): the last covariance predict,
         # reused when the next one starts from the same P (S) bit for bit in the same form
         self._last_predict: tuple | None = None
         # (the prior the update read (that P̄, or S̄ in the square-root form), the gain K (4, 2), the posterior
@@ -303,27 +303,60 @@ class MultiTargetTracker(Estimator):
         Da = np.sqrt(np.add.reduce(d * d, axis=-1))  # (N, L): np.linalg.norm(d, axis=-1), without its wrapper
         return Da.tolist(), bool(np.isfinite(Da).all())
 
+    def _nearest(self, ref: np.ndarray, M: np.ndarray) -> tuple[list[int], list[float], bool]:
+        r"""Each target's nearest detection :math:`j(i)` (the first of equal minima, as argmin), its distance
+        :math:`D_{ij(i)}` and whether every distance is finite, for a few pairs in Python floats in one pass
+        without the matrix D: the first map of :meth:`_associate`, the distances evaluated as in
+        :meth:`_distances` (the same IEEE operations, so the same numbers). What the closest second map
+        needs (the mutual one reads D's columns)."""
+        pts = M.tolist()
+        sqrt, inf = math.sqrt, math.inf
+        first, near = [], []
+        total = 0.0
+        for rx, ry in ref.tolist():
+            best, jbest, j = inf, 0, 0
+            for mx, my in pts:
+                dx, dy = rx - mx, ry - my
+                d = sqrt(dx * dx + dy * dy)
+                total += d
+                if d < best:  # strictly: the first of equal minima
+                    best, jbest = d, j
+                j += 1
+            first.append(jbest)
+            near.append(best)
+        # a sum is finite only if every term is (an overflowing sum takes the general route, which is exact too)
+        return first, near, math.isfinite(total)
+
     def _associate(self, D: list[list[float]], O: list[int]) -> list[int]:
         r"""The nearest-neighbour assignment on finite distances D (N, L) as lists: each target's
-        nearest detection :math:`j(i)`, the closest of the targets choosing one detection wins it (the
-        first on a tie, as argmin), within the gate :math:`\|y_i - m_j\| < T_o + \alpha O_i`. Python
-        loops over a few targets cost far less than the numpy calls per detection they replace.
+        nearest detection :math:`j(i)` (the first of equal minima, as argmin), then :meth:`_assign`.
         Returns ``match`` (N,): the matched detection of each target, -1 for none."""
-        N = len(D)
         first = [row.index(min(row)) for row in D]  # argmin: the first of equal minima
+        return self._assign(first, [row[j] for row, j in zip(D, first)], O, D)
+
+    def _assign(
+        self, first: list[int], near: list[float], O: list[int], D: list[list[float]] | None = None
+    ) -> list[int]:
+        r"""The second map and the gate on each target's nearest detection ``first`` (N,) at the finite
+        distance ``near`` (N,): the closest of the targets choosing one detection wins it (the first on a
+        tie, as argmin), within the gate :math:`\|y_i - m_j\| < T_o + \alpha O_i`; the mutual second map
+        also reads the distances ``D`` (N, L). Python loops over a few targets cost far less than the numpy
+        calls per detection they replace. Returns ``match`` (N,): the matched detection of each target, -1
+        for none."""
         winner: dict[int, int] = {}
         for i, j in enumerate(first):
             w = winner.get(j)
-            if w is None or D[i][j] < D[w][j]:  # a later chooser wins only when strictly closer
+            if w is None or near[i] < near[w]:  # a later chooser wins only when strictly closer
                 winner[j] = i
-        match = [-1] * N
+        match = [-1] * len(first)
         mutual, gated, T0, alpha = self.second_map == "mutual", self.gate, self.gate0, self.gate_slope
         for j, i in winner.items():
             if mutual:
+                assert D is not None, "the mutual second map reads the distances"
                 col = [row[j] for row in D]
                 if col.index(min(col)) != i:
                     continue
-            if not gated or D[i][j] < T0 + alpha * O[i]:
+            if not gated or near[i] < T0 + alpha * O[i]:
                 match[i] = j
         return match
 
@@ -341,6 +374,16 @@ class MultiTargetTracker(Estimator):
             if not self.gate or dist[best] < self.gate0 + self.gate_slope * O[best]:
                 match[int(best)] = int(j)
         return match
+
+    def _all_visible(self, N: int) -> np.ndarray:
+        """The visibility of a frame that matched all ``N`` targets: one read-only all-True array per N, shared
+        by the states of such frames (nothing writes a state's visibility; a new frame makes a new one)."""
+        cache = self.__dict__.setdefault("_visible_cache", {})
+        arr = cache.get(N)
+        if arr is None:
+            arr = cache[N] = np.ones(N, dtype=bool)
+            arr.setflags(write=False)
+        return arr
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
         frame = options["frame"]
@@ -363,18 +406,15 @@ class MultiTargetTracker(Estimator):
         key, last = (form, read.shape, read.tobytes()), self._last_predict
         reused = last is not None and last[0] == key
         if reused:
-            if input_free:
-                if last[2] is None:
-                    last = self._last_predict = (
-                        last[:2] + (Transition(A=self.A, Qd=self.Q, b=0.0, G=self._G, P_fixed=last[1]),) + last[3:]
-                    )
-                tr = last[2]
+            # the fixed covariance route: x̄ = A x + b (the same expression as the full predict) and the cached P̄
+            Pp, Sp = last[1], last[2]
+            if (
+                input_free
+            ):  # time_update's fixed-covariance branch written out, x A^T + b with b = 0 (.dot: @'s product)
+                xp = x.dot(self._AT) + 0.0
             else:
                 b = self._feedback(x, visible) @ self._BT
-                tr = Transition(A=self.A, Qd=self.Q, b=b, G=self._G, P_fixed=last[1])
-            # the fixed covariance route: x̄ = A x + b (the same expression as the full predict) and the cached P̄
-            xp, Pp, _ = time_update(x, P, S, tr, form)
-            Sp = last[3]
+                xp, Pp, _ = time_update(x, P, S, Transition(A=self.A, Qd=self.Q, b=b, G=self._G, P_fixed=Pp), form)
         else:
             if input_free:
                 tr = self._no_input
@@ -385,12 +425,21 @@ class MultiTargetTracker(Estimator):
             Pp.setflags(write=False)  # shared by the frames that reuse it
             if Sp is not None:
                 Sp.setflags(write=False)
-            self._last_predict = (key, Pp, None, Sp)
-        Cx = xp @ self._CT  # the predicted positions
+            self._last_predict = (key, Pp, Sp)
+        # the predicted positions; ndarray.dot is the BLAS product of @ (the same numbers) without the
+        # matmul ufunc's dispatch, which costs more than the product for these (N, 4) x (4, 2) arrays
+        Cx = xp.dot(self._CT)
         ref = last_meas if k - 1 < self.warmup else Cx
         Ol = O.tolist()
         finite = False
-        if len(M):
+        if len(M) and self.second_map == "closest" and len(ref) * len(M) <= _FEW_PAIRS:
+            first, near, finite = self._nearest(ref, M)  # the first map without the matrix D
+            match = (
+                self._assign(first, near, Ol)
+                if finite
+                else self._associate_nonfinite(np.array(self._distances(ref, M)[0]), O)
+            )
+        elif len(M):
             D, finite = self._distances(ref, M)
             match = self._associate(D, Ol) if finite else self._associate_nonfinite(np.array(D), O)
         else:
@@ -398,7 +447,7 @@ class MultiTargetTracker(Estimator):
         assignment = np.array(match, dtype=int)
         if -1 not in match:  # every target matched: the masks below would select everything (the same numbers)
             z = M.take(assignment, axis=0)
-            valid, visible, new_O, new_last = None, np.array([True] * N), np.zeros(N, dtype=O.dtype), z
+            valid, visible, new_O, new_last = None, self._all_visible(N), np.zeros(N, dtype=O.dtype), z
         else:
             visible = assignment >= 0
             z = np.where(visible[:, None], M[np.maximum(assignment, 0)] if len(M) else 0.0, 0.0)
@@ -416,7 +465,7 @@ class MultiTargetTracker(Estimator):
             # rounded product per component in any order of summation, the same numbers as the full update
             # measurement_update's fixed-gain branch written out (x̄ + K e, e = z - C x̄, which is finite here:
             # the frame is checked finite and the predicted positions are): the same expression
-            xn, Pn, Sn = xp + (z - Cx) @ last_up[1].T, last_up[2], last_up[3]
+            xn, Pn, Sn = xp + (z - Cx).dot(last_up[1].T), last_up[2], last_up[3]  # .dot: @'s product, as Cx
         else:
             mp = MeasurementPrediction(expected=Cx, H0=self.C, noise=self._R1, valid=valid)
             xn, Pn, Sn, K, _ = measurement_update(xp, Pp, Sp, z, mp, form)

@@ -316,16 +316,21 @@ def _run(spec: SweepSpec, path: Path, points: list[dict[str, Any]], client, prog
         pool = ThreadPoolExecutor(max_workers=threads)
         try:
             futs = {pool.submit(run_task, spec.text, spec.name, p, blocks, 1): p for p, blocks in tasks}
-            for fut in done_first(futs):
-                record(futs[fut], fut.result())
+            for fut in done_first(list(futs)):
+                # dropped once stored: a finished future holds its blocks' statistics, so keeping
+                # them all would make the sweep's memory grow with its run count
+                record(futs.pop(fut), fut.result())
         finally:
             pool.shutdown(wait=True, cancel_futures=True)
     else:
         as_completed = require("distributed", extra="sweep").as_completed
 
         futs = {client.submit(run_task, spec.text, spec.name, p, blocks, pure=False): p for p, blocks in tasks}
-        for fut in as_completed(futs):
-            record(futs[fut], fut.result())
+        for fut in as_completed(list(futs)):
+            # dropped once stored: while the client holds a future, its worker keeps the result
+            # (the blocks' statistics), so keeping them all would grow the workers with the run count
+            record(futs.pop(fut), fut.result())
+            fut.release()
     if bool(_read(g, "done").all()):
         _write_summary(path, reduce_store(g))
 
