@@ -819,3 +819,111 @@ def test_chain_compiled_step_loop_equals_filter_and_refuses_varying_laws():
     a = ChainLMMSE(varying, prior).filter(y)  # "auto": the moments on numpy, bitwise the numpy path's
     b = ChainLMMSE(varying, prior, backend="numpy").filter(y)
     np.testing.assert_array_equal(a.mean, b.mean)
+
+
+# ---------------------------------------------------------------- whole-step kernels of Algorithms A and C
+
+
+def _two_channel(d):
+    """A pure-delay model with two measurement channels (the kernels' solve, not a division), S ≠ 0 and a
+    multiplicative noise; the paper's fading pmf."""
+    from tobitkf.models.delay import paper_fading
+
+    return DelayFadingSystem(
+        A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0], [1.0, -0.3]], Gamma=[[1.0], [1.0]], Qw=0.3,
+        Qv=[[0.3, 0.05], [0.05, 0.2]], S=[[0.2, 0.1]], d=d, A_mult=[[[0.1, 0.2], [0.2, -0.1]]], q_mult=[0.16],
+        fading=paper_fading(0.3),
+    )  # fmt: skip
+
+
+def _leaves(x, path):
+    """The arrays of a result's extras, through their dicts and tuples, with their paths."""
+    if isinstance(x, dict):
+        return [leaf for k in sorted(x) for leaf in _leaves(x[k], f"{path}.{k}")]
+    if isinstance(x, (list, tuple)):
+        return [leaf for i, e in enumerate(x) for leaf in _leaves(e, f"{path}[{i}]")]
+    return [(path, np.asarray(x, dtype=float))]
+
+
+def _assert_results_close(fast, ref, tol=1e-12):
+    _assert_close_rel(fast, ref, fields=("mean", "cov", "pred_mean", "pred_cov"), tol=tol)
+    got, want = _leaves(fast.extras, "extras"), _leaves(ref.extras, "extras")
+    assert [p for p, _ in got] == [p for p, _ in want]
+    for (path, a), (_, b) in zip(got, want):
+        assert a.shape == b.shape, path
+        np.testing.assert_allclose(a, b, rtol=tol, atol=tol * max(1.0, float(np.abs(b).max())), err_msg=path)
+
+
+@pytest.mark.parametrize("d", [0, 1, 3])
+@pytest.mark.parametrize("case", ["paper", "two-channel"])
+@pytest.mark.parametrize("batch", [(), (3,)], ids=str)
+def test_augmented_whole_step_kernel_equals_numpy(d, case, batch):
+    """The compiled step of Algorithm A (update, decorrelated predict, Λ_X(t+1) in one call) gives the numpy
+    path's every output to 1e-12, for one run and a batch, one and two channels, a correlated prior; the step
+    loop equals its filter bitwise."""
+    pytest.importorskip("numba")
+    sys_ = paper_example(S=0.2, q=0.3, d=d) if case == "paper" else _two_channel(d)
+    prior = HistoryPrior.constant(np.zeros(2), [[1.0, 0.3], [0.3, 0.8]], d, jitter=0.01)
+    T = 25
+    y = simulate_delay(sys_, prior, T, int(np.prod(batch, dtype=int)), seed=d + 11).y.reshape(batch + (T, sys_.m))
+    ref = AugmentedLMMSE(sys_, prior, window=d + 1, backend="numpy").filter(y)
+    est = AugmentedLMMSE(sys_, prior, window=d + 1, backend="numba")
+    fast = est.filter(y)
+    _assert_results_close(fast, ref)
+    s = est.init(batch)
+    for k in range(T):
+        s = est.step(s, y[..., k, :])
+    np.testing.assert_array_equal(s.mean, fast.mean[..., -1, :])
+
+
+def test_augmented_whole_step_kernel_refuses_what_it_does_not_cover():
+    """``backend="numba"`` refuses laws that change with t and the non-standard forms; ``"auto"`` then runs
+    the step it ran before (the shared compiled update around the numpy moments: bitwise the numpy path for
+    the laws, and the form's own numbers)."""
+    pytest.importorskip("numba")
+    sys_, prior = paper_example(d=2), paper_prior(d=2)
+    varying = sys_.replace(fading=FadingMoments(np.linspace(0.5, 0.9, 50), 0.01))
+    with pytest.raises(ValidationError, match="change with t"):
+        AugmentedLMMSE(varying, prior, backend="numba")
+    with pytest.raises(ValidationError, match="joseph"):
+        AugmentedLMMSE(sys_, prior, covariance_update="joseph", backend="numba")
+    y = simulate_delay(varying, prior, 20, 2, seed=0).y
+    a = AugmentedLMMSE(varying, prior).filter(y)
+    b = AugmentedLMMSE(varying, prior, backend="numpy").filter(y)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-12)
+    j = AugmentedLMMSE(sys_, prior, covariance_update="joseph").filter(y)
+    s = AugmentedLMMSE(sys_, prior).filter(y)
+    np.testing.assert_allclose(j.mean, s.mean, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("d", [0, 1, 2, 4])
+@pytest.mark.parametrize("mode", ["optimal", "paper"])
+@pytest.mark.parametrize("case", ["paper", "two-channel"])
+def test_chain_plain_step_kernel_equals_numpy(d, mode, case):
+    """Algorithm C without lags, horizons or a fixed point runs one compiled call per reading: every output
+    (estimates, window, predictions, innovations, second moments) equals the numpy path's to 1e-12."""
+    pytest.importorskip("numba")
+    sys_ = paper_example(S=0.2, q=0.3, d=d) if case == "paper" else _two_channel(d)
+    prior = _uncorrelated(d)
+    y = simulate_delay(sys_, prior, 30, 3, seed=d + 3).y
+    ref = ChainLMMSE(sys_, prior, decorrelation=mode, backend="numpy").filter(y)
+    fast = ChainLMMSE(sys_, prior, decorrelation=mode, backend="numba").filter(y)
+    _assert_results_close(fast, ref)
+
+
+def test_chain_plain_steps_continue_a_smoothing_run():
+    """A state from a run with lags beyond the window and a fixed point (its carry keeps older elements) goes
+    on by plain compiled steps as by numpy steps, and a plain compiled state continues a smoothing run."""
+    pytest.importorskip("numba")
+    sys_, prior = paper_example(S=0.2, q=0.3, d=2), _uncorrelated(2)
+    y = simulate_delay(sys_, prior, 30, 2, seed=4).y
+    fast, ref = ChainLMMSE(sys_, prior, backend="numba"), ChainLMMSE(sys_, prior, backend="numpy")
+    first = ref.filter(y[:, :12], lags=(1, 4), fixed_point=3)
+    a, b = fast.filter(y[:, 12:], state=first.final), ref.filter(y[:, 12:], state=first.final)
+    _assert_results_close(a, b)
+    plain = fast.filter(y[:, :12]).final
+    c = ref.filter(y[:, 12:], lags=(1, 2), state=plain)
+    e = ref.filter(y, lags=(1, 2))
+    np.testing.assert_allclose(c.mean, e.mean[:, 12:], rtol=0, atol=1e-12)
+    for L in (1, 2):
+        np.testing.assert_allclose(c.extras["lagged"][L][0], e.extras["lagged"][L][0][:, 12:], rtol=0, atol=1e-12)

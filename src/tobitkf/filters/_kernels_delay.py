@@ -197,3 +197,148 @@ def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, et
     # (f) corrected (39): Ψ_d(t+d) = {Ā(t)[Ψ_1(t) - γ̄ K(t-d|t) H Ψ_1(t)]}^T
     psi1 = psi[st, 1].copy()
     psi[(t + d) % W, d] = _mm(Ab, psi1 - gb * _mm(KeH, psi1, False, False), False, False).T
+
+
+# --------------------------------------------------------------------------- whole online steps (Algorithms A, C)
+#
+# A compiled function returning a tuple of k arrays pays about a microsecond to box each (dominant in a step
+# of one run): the whole-step kernels return their outputs as one flat array instead, the 2-D blocks in a
+# fixed order, and :func:`tobitkf.filters.delay._flat_views` cuts the views.
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _put(out, o, M):
+    """Copy the 2-D ``M`` row-major into ``out[o:]``; the offset after it."""
+    r, c = M.shape
+    for i in range(r):
+        for j in range(c):
+            out[o + i * c + j] = M[i, j]
+    return o + r * c
+
+
+@njit(cache=True, error_model="numpy")
+def _flat(blocks):
+    """The 2-D arrays of the tuple ``blocks`` one after the other in one new flat array."""
+    z = 0
+    for M in blocks:
+        z += M.size
+    out = np.empty(z)
+    o = 0
+    for M in blocks:
+        o = _put(out, o, M)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _update_predict(x, P, y, gb, H, Rn, Abar, Qd, J):
+    r"""The shared update and decorrelated predict of Algorithms A and C for one covariance ``P`` (n_x, n_x)
+    common to the N runs (the numpy :func:`~tobitkf.filters.core.measurement_update`, standard form, and
+    :func:`~tobitkf.filters.core.time_update` with a :class:`~tobitkf.filters.core.Transition`):
+
+    .. math::
+
+        R_{xe} = \bar\gamma PH^T,\ Q_\varepsilon = \bar\gamma HR_{xe} + R_n,\ K = R_{xe}Q_\varepsilon^{-1},\
+        \varepsilon = y - \bar\gamma H x,\ \hat x = x + K\varepsilon,\ P^+ = \mathrm{sym}(P - KR_{xe}^T), \\
+        x^- = \bar A\hat x + Jy,\ P^- = \mathrm{sym}(\bar AP^+\bar A^T + Q_d).
+
+    ``x`` (N, n_x), ``y`` (N, m), ``H`` (m, n_x). Returns ``(x̂ (N, n_x), P⁺, x⁻ (N, n_x), P⁻, K (n_x, m),
+    Q_ε (m, m), ε (N, m))``."""
+    N, nx = x.shape
+    m = H.shape[0]
+    Rxe = gb * _mm(P, H, False, True)
+    Q = gb * _mm(H, Rxe, False, False) + Rn
+    if m > 1:
+        Qs = np.empty((m, m))
+        _sym_into(Q, Qs)
+        Q = Qs
+    K = _right_inverse(Rxe, Q)
+    eps = np.empty((N, m))
+    xf = np.empty((N, nx))
+    xp = np.empty((N, nx))
+    for r in range(N):
+        for l in range(m):
+            acc = 0.0
+            for j in range(nx):
+                acc += H[l, j] * x[r, j]
+            eps[r, l] = y[r, l] - gb * acc
+        for i in range(nx):
+            acc = x[r, i]
+            for l in range(m):
+                acc += K[i, l] * eps[r, l]
+            xf[r, i] = acc
+        for i in range(nx):
+            acc = 0.0
+            for j in range(nx):
+                acc += Abar[i, j] * xf[r, j]
+            for l in range(m):
+                acc += J[i, l] * y[r, l]
+            xp[r, i] = acc
+    Pf = np.empty((nx, nx))
+    _sym_into(P - _mm(K, Rxe, False, True), Pf)
+    Pp = np.empty((nx, nx))
+    _sym_into(_mm(_mm(Abar, Pf, False, False), Abar, False, True) + Qd, Pp)
+    return xf, Pf, xp, Pp, K, Q, eps
+
+
+@njit(cache=True, error_model="numpy")
+def aug_step(X, P, LamX, y, AA, Ai, q, HH, GQG, GS_T, Qv, gb, s2):
+    r"""One reading of Algorithm A for one covariance common to the runs (the numpy
+    :func:`tobitkf.filters.delay._aug_step`, standard form, for laws constant in t):
+    :math:`R = \mathrm{sym}(\sigma^2\mathfrak h\Lambda_X\mathfrak h^T + Q_v)`, the update of X(t|t-1) with
+    :math:`H = \bar\gamma\mathfrak h`, then :math:`J = \mathfrak G SR^{-1}`, :math:`\bar A = \mathfrak A - \bar\gamma J\mathfrak h`,
+    :math:`Q_u = \mathfrak G Q_w\mathfrak G^T + \sum_i q_i\mathfrak A_i\Lambda_X\mathfrak A_i^T`,
+    X(t+1|t) = ĀX(t|t) + Jy, P(t+1|t) = sym(ĀPĀ^T + sym(Q_u - JRJ^T)), Λ_X(t+1) = sym(𝔄Λ_X𝔄^T + Q_u).
+    ``X`` (N, n_x), ``P``/``LamX`` (n_x, n_x), ``y`` (N, m). Returns X(t|t) (N, n_x), X(t+1|t) (N, n_x),
+    ε (N, m), P(t|t), P(t+1|t), Q_ε (m, m) and Λ_X(t+1) one after the other in one flat array (:func:`_flat`)."""
+    nx = X.shape[1]
+    m = HH.shape[0]
+    R = np.empty((m, m))
+    _sym_into(s2 * _mm(_mm(HH, LamX, False, False), HH, False, True) + Qv, R)
+    Qu = GQG.copy()
+    for i in range(q.shape[0]):
+        Qu += q[i] * _mm(_mm(Ai[i], LamX, False, False), Ai[i], False, True)
+    J = _right_inverse(np.ascontiguousarray(GS_T.T), R)  # 𝔊S R^{-1} (n_x, m)
+    Abar = AA - gb * _mm(J, HH, False, False)
+    Qd = np.empty((nx, nx))
+    _sym_into(Qu - _mm(_mm(J, R, False, False), J, False, True), Qd)
+    Xf, Pf, Xp, Pp, _, Qe, eps = _update_predict(X, P, y, gb, HH, R, Abar, Qd, J)
+    Lam_next = np.empty((nx, nx))
+    _sym_into(_mm(_mm(AA, LamX, False, False), AA, False, True) + Qu, Lam_next)
+    return _flat((Xf, Xp, eps, Pf, Pp, Qe, Lam_next))
+
+
+@njit(cache=True, error_model="numpy")
+def chain_step(x, P, x_pred, P_pred, Lam, y, d, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal):
+    r"""One plain reading y(t) of Algorithm C (no lags beyond the window, horizons or fixed point; the numpy
+    :meth:`tobitkf.filters.delay.ChainLMMSE._step_arrays`) for one covariance common to the runs.
+
+    ``x`` (N, n(d+1)), ``P`` (n(d+1), n(d+1)) the window x̂(t-1-k|t-1), k = 0..d, after the last reading;
+    ``x_pred`` (N, n), ``P_pred`` (n, n) the prediction x̂(t|t-1); ``Lam`` Λ(t-d) of the measured element.
+    The moments of Λ(t-d) (:func:`_moments_into`), the update of x(t-d) and the decorrelated predict
+    (:func:`_update_predict`, with :math:`\bar\gamma H`, R(t), Ā(t), Σ(t), J(t)). (The cross-covariance Φ of
+    the measured element is not formed: a plain step drops the element from the carry.) Returns the window
+    x̂(t-k|t) (N, n(d+1)), the window before the reading x̂(t-k|t-1), x̂(t+1|t) (N, n), ε (N, m), the two
+    windows' (block-diagonal) covariances, P(t+1|t), Q_ε (m, m) and Λ(t+1) (n, n) one after the other in one
+    flat array (:func:`_flat`)."""
+    N = x.shape[0]
+    n = A.shape[0]
+    m = H.shape[0]
+    nw = n * (d + 1)
+    lam_next, J, Abar, Sigma = np.empty((n, n)), np.empty((n, m)), np.empty((n, n)), np.empty((n, n))
+    Rt = _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J, Abar, Sigma)
+    # the window before the reading: x̂(t|t-1) on top of the last window's first d blocks (block diagonal)
+    xw = np.empty((N, nw))
+    Pw = np.zeros((nw, nw))
+    xw[:, :n] = x_pred
+    Pw[:n, :n] = P_pred
+    if d > 0:
+        xw[:, n:] = x[:, : d * n]
+        Pw[n:, n:] = P[: d * n, : d * n]
+    xe_prior = np.ascontiguousarray(xw[:, d * n :])
+    Pe_prior = np.ascontiguousarray(Pw[d * n :, d * n :])
+    xe, Pe, xn, Pn, K, Qe, eps = _update_predict(xe_prior, Pe_prior, y, gb, H, Rt, Abar, Sigma, J)
+    x_new = xw.copy()
+    P_new = Pw.copy()
+    x_new[:, d * n :] = xe
+    P_new[d * n :, d * n :] = Pe
+    return _flat((x_new, xw, xn, eps, P_new, Pw, Pn, Qe, lam_next))

@@ -40,6 +40,7 @@ Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected: LD-E2); ``decorrelation`` 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,6 +125,17 @@ def _ring_layout(d: int, n: int, m: int) -> tuple[int, dict[str, Any]]:
 def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
     """The fields of a flat ring buffer as views."""
     return {k: buf[o : o + z].reshape(s) for k, o, s, z in layout["fields"]}
+
+
+def _flat_views(buf: np.ndarray, shapes: tuple[tuple[int, ...], ...]) -> list[np.ndarray]:
+    """The arrays of ``shapes`` laid one after the other in the flat ``buf`` (the outputs of a whole-step kernel
+    of :mod:`tobitkf.filters._kernels_delay`, which returns one array, not a tuple), as views."""
+    out, o = [], 0
+    for sh in shapes:
+        z = math.prod(sh)
+        out.append(buf[o : o + z].reshape(sh))
+        o += z
+    return out
 
 
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
@@ -421,10 +433,13 @@ class ChainLMMSE(_DelayEstimator):
         self.backend = backend
         self._GS = system.GS
         self._moments = None  # the compiled moments of Λ(t-d) and their constant arguments
+        self._whole = None  # the compiled plain step (:func:`~tobitkf.filters._kernels_delay.chain_step`)
         if use_kernel(backend, _kernel_gap(system), "the chain LMMSE's moments"):
-            from ._kernels_delay import delay_moments
+            from ._kernels_delay import chain_step, delay_moments
 
-            self._moments = (delay_moments, _kernel_moment_args(system, decorrelation))
+            margs = _kernel_moment_args(system, decorrelation)
+            self._moments = (delay_moments, margs)
+            self._whole = (chain_step, (system.d,) + margs)
 
     def _state_dim(self) -> int:
         return self.n * (self.system.d + 1)
@@ -449,6 +464,11 @@ class ChainLMMSE(_DelayEstimator):
         d, n = sys_.d, self.n
         lags, horizons = options.get("lags", ()), options.get("horizons", ())
         point, keep_rts = options.get("point"), options.get("keep_rts", False)
+        # the compiled plain step reads the window before y(t) off the last one, x̂(t-1-k|t-1): from t = 1 on
+        # (the prior's window is x(0), ..., x(-d) itself)
+        plain = not (lags or horizons or keep_rts) and point is None and t > 0
+        if self._whole is not None and plain and P.shape[0] == 1:
+            return self._plain_step(t, x, P, carry, y)
         xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
         e = t - d
         # what time t needs of Λ(t-d), each formed once: R(t) = Q_v + σ² H Λ H^T, J(t), Ā(t), Σ(t) and Λ(t+1)
@@ -526,14 +546,32 @@ class ChainLMMSE(_DelayEstimator):
         x_new, P_new = xp.copy(), Pp.copy()
         x_new[:, d * n :] = xe
         P_new[0, d * n :, d * n :] = Pe[0]
-        keep = max((d,) + tuple(lags))
-        for j in [j for j in xb if j < t + 1 - keep and j != point]:
-            del xb[j], Pb[j], D[j]
-        for j in [j for j in lam if j < t + 1 - keep - d - 1]:
-            del lam[j]
-        new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
-        if point is not None:
-            new["point"] = point
+        new = _chain_prune(t, d, lags, point, xb, Pb, D, lam)
+        return x_new, P_new, None, new, xp, Pp, extras
+
+    def _plain_step(self, t, x, P, carry, y):
+        """:meth:`_step_arrays` at t >= 1 without lags, horizons or a fixed point, as one compiled call
+        (:func:`~tobitkf.filters._kernels_delay.chain_step`; the same carry and extras, equal to rounding)."""
+        d, n, m = self.system.d, self.n, self.m
+        kern, args = self._whole
+        N, nw = x.shape
+        buf = kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - d], y, *args)
+        shapes = ((N, nw), (N, nw), (N, n), (N, m), (1, nw, nw), (1, nw, nw), (1, n, n), (1, m, m), (n, n))
+        x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, shapes)
+        xb, Pb, D, lam = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"]), dict(carry["lam"])
+        # the measured element x(t-d) leaves the carry (the window keeps it): its Φ is not formed
+        xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
+        lam[t + 1] = lam_next
+        extras = {
+            "measured_mean": x_new[:, d * n :],
+            "measured_cov": P_new[:, d * n :, d * n :],
+            "next_mean": xn,
+            "next_cov": Pn,
+            "innovation": eps,
+            "innovation_cov": Qe,
+            "_lam": lam[t][None],
+        }
+        new = _chain_prune(t, d, (), None, xb, Pb, D, lam)
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _checked_options(self, lags, horizons, fixed_point):
@@ -579,6 +617,20 @@ class ChainLMMSE(_DelayEstimator):
     def smooth_point(self, y: Any, j0: int):
         """Fixed-point smoother; see :func:`smooth_point`."""
         return smooth_point(self.system, self.prior, y, j0)
+
+
+def _chain_prune(t: int, d: int, lags: tuple, point: int | None, xb, Pb, D, lam) -> dict[str, Any]:
+    """The chain LMMSE's new carry after step t: the elements x(j), j < t + 1 - max(d, lags), dropped (but the
+    fixed point), and Λ(j) no longer read (the dicts are the step's own copies, pruned in place)."""
+    keep = max((d,) + tuple(lags))
+    for j in [j for j in xb if j < t + 1 - keep and j != point]:
+        del xb[j], Pb[j], D[j]
+    for j in [j for j in lam if j < t + 1 - keep - d - 1]:
+        del lam[j]
+    new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
+    if point is not None:
+        new["point"] = point
+    return new
 
 
 def chain_lmmse(
@@ -794,6 +846,13 @@ class AugmentedLMMSE(_DelayEstimator):
         The covariance form of the shared update and predict; ``"square_root"`` carries a factor of the
         augmented covariance (not in the source; the chain and reorganized algorithms have their own
         covariance recursions for the older elements and keep the standard form).
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        ``"auto"`` runs a step of one covariance shared by the runs (every step from the prior) as one compiled
+        call (:func:`tobitkf.filters._kernels_delay.aug_step`: the update, the decorrelated predict and
+        Λ_X(t+1)) when numba imports, the form is ``"standard"`` and the fading and multiplicative-noise laws
+        do not change with t; else the shared update and predict run compiled around the numpy moments. Equal
+        to the numpy path to rounding (tested to 1e-12). ``"numpy"`` the reference path; ``"numba"`` raises
+        :class:`~tobitkf.ValidationError` for the cases the whole-step kernel does not cover.
     """
 
     _name = "AugmentedLMMSE"
@@ -806,11 +865,14 @@ class AugmentedLMMSE(_DelayEstimator):
         *,
         window: int | None = None,
         covariance_update: str = "standard",
+        backend: str = "auto",
     ):
         check_keywords(
-            {"covariance_update": covariance_update}, {"covariance_update": ("standard", "joseph", "square_root")}
+            {"covariance_update": covariance_update, "backend": backend},
+            {"covariance_update": ("standard", "joseph", "square_root"), "backend": BACKENDS},
         )
         self.covariance_update = covariance_update
+        self.backend = backend
         self._setup(system, prior)
         d = system.d
         W = d if window is None else window
@@ -818,6 +880,18 @@ class AugmentedLMMSE(_DelayEstimator):
             raise ValidationError(f"window: expected an integer >= d = {d}, got {window!r}")
         self.window = int(W)
         self._mats = _augmented_matrices(system, self.window)
+        gap = _kernel_gap(system)
+        if gap is None and covariance_update != "standard":
+            gap = f"covariance_update={covariance_update!r} (the whole-step kernel runs the standard form)"
+        self._whole = None  # the compiled whole step and its constant arguments after (X, P, Λ_X, y)
+        if use_kernel(backend, gap, "the augmented LMMSE's step"):
+            from ._kernels_delay import aug_step
+
+            AA, Ai, _, HH, GQG, GS_T = self._mats
+            q = system.q_mult(0) if system.h else np.zeros(0)
+            c = np.ascontiguousarray
+            consts = (c(AA), c(Ai), c(q, dtype=float), c(HH), c(GQG), c(GS_T), c(system.Qv))
+            self._whole = (aug_step, consts + (float(system.gamma_mean(0)), float(system.gamma_var(0))))
 
     def _state_dim(self) -> int:
         return self.n * (self.window + 1)
@@ -838,9 +912,18 @@ class AugmentedLMMSE(_DelayEstimator):
             Xpr, Ppr, Spr = carry["next"]
         else:
             Xpr, Ppr, Spr = x, P, S
-        Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(
-            self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, self.covariance_update, Spr, self._compiled_core()
-        )
+        if self._whole is not None and Ppr.shape[0] == 1:  # one compiled call (a covariance shared by the runs)
+            kern, consts = self._whole
+            N, nx = Xpr.shape
+            buf = kern(Xpr, Ppr[0], carry["LamX"], y, *consts)
+            shapes = ((N, nx), (N, nx), (N, self.m), (1, nx, nx), (1, nx, nx), (1, self.m, self.m), (nx, nx))
+            Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(buf, shapes)
+            Sf = Sp = None
+        else:
+            form, fast = self.covariance_update, self._compiled_core()
+            Xf, Pf, Xp, Pp, _, eps, Qe, LamX, Sf, Sp = _aug_step(
+                self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, form, Spr, fast
+            )
         N = x.shape[0]
         extras = {
             "measured_mean": _blk(Xf, d, None, n),
@@ -860,6 +943,8 @@ class AugmentedLMMSE(_DelayEstimator):
         return Xf, Pf, Sf, new, Xpr, Ppr, extras
 
     def _prepare_step_options(self, state, options):
+        if not options:  # the plain online step: nothing to check
+            return {"lags": ()}
         lags = _check_lags(options.get("lags", ()), "lags", 0)
         if any(L > self.window for L in lags):
             raise ValidationError(f"lags: expected lags <= window W = {self.window}, got {max(lags)}")
