@@ -20,7 +20,7 @@ from numba import njit
 
 from .._linalg_kernels import gauss_solve
 
-__all__ = ["reorg_cov_step", "delay_moments"]
+__all__ = ["reorg_cov_step", "reorg_step", "delay_moments", "aug_step", "chain_step"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -342,3 +342,83 @@ def chain_step(x, P, x_pred, P_pred, Lam, y, d, A, H, Qv, G, S, Qw, GQG, Ai, q, 
     x_new[:, d * n :] = xe
     P_new[d * n :, d * n :] = Pe
     return _flat((x_new, xw, xn, eps, P_new, Pw, Pn, Qe, lam_next))
+
+
+@njit(cache=True, error_model="numpy")
+def reorg_step(
+    ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7,
+    y, xp_t, xsm_prev, xf_a, eps_prev,
+):  # fmt: skip
+    r"""One whole step t >= warmup of Algorithm D for laws constant in t: :func:`reorg_cov_step` on ``ring``
+    (in place), the means of :meth:`tobitkf.filters.delay.ReorganizedInnovationLMMSE._means_step`, and the
+    ring's Ψ and K(a|·)H of time t-2d-2 zeroed (no longer read).
+
+    ``y`` (N, m); ``xp_t`` x̂(t|t-1), ``xsm_prev`` x̂(t-d|t-1), ``xf_a`` x̂(t-d+1|t-d+1) (N, n; not read for d = 1,
+    where it is this step's x̂(t|t)); ``eps_prev`` the
+    innovations ε(t-1), ..., ε(t-d+2) (N, m) (a tuple of max(d-2, 1); entries of times < 0 are not read).
+
+    .. math::
+
+        \varepsilon(t) = y - \bar\gamma H\hat x(t-d|t-1),\ \hat x(t|t) = \hat x(t|t-1) + K(t|t)\varepsilon(t),\
+        \hat x(t-d+1|t) = \hat x(t-d+1|t-d+1) + \sum_{i=1}^{d-1} K_s(i)\varepsilon(t-i+1), \\
+        \hat x(t-d|t) = \hat x(t-d|t-1) + K(t-d|t)\varepsilon(t),\ \hat x(t+1|t) = \bar A(t)\hat x(t-d|t) + J(t)y.
+
+    Returns one flat array (:func:`_flat`): x̂(t|t), x̂(t-d+1|t), x̂(t-d|t), x̂(t+1|t) (N, n each), ε(t) (N, m),
+    then P(t|t), P(t|t-1), P(t-d|t), P(t+1|t), P(t-d+1|t), Λ(t), Λ(t+1) (n, n each) and Q_ε(t) (m, m).
+    """
+    reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7)
+    n = A.shape[0]
+    m = H.shape[0]
+    N = y.shape[0]
+    nn, nm = n * n, n * m
+    pf = ring[offs[2] : offs[2] + W * nn].reshape((W, n, n))
+    psm = ring[offs[3] : offs[3] + W * nn].reshape((W, n, n))
+    pmeas = ring[offs[4] : offs[4] + W * nn].reshape((W, n, n))
+    pp = ring[offs[5] : offs[5] + W * nn].reshape((W, n, n))
+    lam = ring[offs[7] : offs[7] + W * nn].reshape((W, n, n))
+    abar = ring[offs[8] : offs[8] + W * nn].reshape((W, n, n))
+    jj = ring[offs[10] : offs[10] + W * nm].reshape((W, n, m))
+    qe = ring[offs[11] : offs[11] + W * m * m].reshape((W, m, m))
+    kf = ring[offs[12] : offs[12] + nm].reshape((n, m))
+    ks = ring[offs[13] : offs[13] + max(d - 1, 1) * nm].reshape((max(d - 1, 1), n, m))
+    ke = ring[offs[14] : offs[14] + nm].reshape((n, m))
+    st, s1 = t % W, (t + 1) % W
+    gb = gconst
+    e_t = np.empty((N, m))
+    xf_t = np.empty((N, n))
+    xs_t = np.empty((N, n))
+    xm_t = np.empty((N, n))
+    xp_n = np.empty((N, n))
+    Ab, Jt = abar[st], jj[st]
+    for r in range(N):
+        for l in range(m):
+            acc = 0.0
+            for j in range(n):
+                acc += xsm_prev[r, j] * H[l, j]
+            e_t[r, l] = y[r, l] - gb * acc
+        for i in range(n):
+            a_f, a_s, a_m = xp_t[r, i], xf_a[r, i], xsm_prev[r, i]
+            for l in range(m):
+                a_f += e_t[r, l] * kf[i, l]
+                a_m += e_t[r, l] * ke[i, l]
+            for k in range(1, d):  # K_s(k) ε(t-k+1): ε(t) for k = 1, else eps_prev[k-2]
+                if t - k + 1 < 0:
+                    continue
+                for l in range(m):
+                    a_s += (e_t[r, l] if k == 1 else eps_prev[k - 2][r, l]) * ks[k - 1, i, l]
+            # d = 1: the smoother's element x(t-d+1) = x(t) is this step's filter estimate
+            xf_t[r, i], xs_t[r, i], xm_t[r, i] = a_f, a_f if d == 1 else a_s, a_m
+        for i in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += xm_t[r, j] * Ab[i, j]
+            for l in range(m):
+                acc += y[r, l] * Jt[i, l]
+            xp_n[r, i] = acc
+    # Ψ_i and K(a|·)H of time t-2d-2 are no longer read: zeroed (a vanishing Ψ or gain reads as zero)
+    old = (t - 2 * d - 2) % W
+    blk = (d + 1) * nn
+    for o in (offs[0], offs[1]):
+        for z in range(blk):
+            ring[o + old * blk + z] = 0.0
+    return _flat((xf_t, xs_t, xm_t, xp_n, e_t, pf[st], pp[st], pmeas[st], pp[s1], psm[st], lam[st], lam[s1], qe[st]))

@@ -138,6 +138,10 @@ def _flat_views(buf: np.ndarray, shapes: tuple[tuple[int, ...], ...]) -> list[np
     return out
 
 
+#: a placeholder array for a kernel argument that is not read (an innovation of a time before the first reading)
+_NOTHING = np.zeros((1, 1))
+
+
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
 #: (``DelayEstimates`` is kept as its name for one release).
 DelayEstimates = FilterResult
@@ -1072,26 +1076,28 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._HT = system.H.T
         self.backend = backend
         gap = _kernel_gap(system)
-        self._kernel, self._kernel_args = None, ()
-        # d = 0 is Algorithm C (its chain's own step)
+        # the compiled whole step (covariances and means) and its arguments after (ring, t); d = 0 is
+        # Algorithm C (its chain's own step)
+        self._whole = None
         if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
-            self._kernel, self._kernel_args = self._compiled_step()
+            self._whole = self._compiled_step()
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation, backend=backend)
         # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
     def _compiled_step(self):
-        """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
-        constant arguments after ``(ring, t)``."""
-        from ._kernels_delay import reorg_cov_step
+        """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.reorg_step`: the covariance step
+        :func:`~tobitkf.filters._kernels_delay.reorg_cov_step` and the means) and its constant arguments after
+        ``(ring, t)``."""
+        from ._kernels_delay import reorg_step
 
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
         offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
         args = (offs, sys_.d, W) + _kernel_moment_args(sys_, self.decorrelation)
         args += ("E5" in self.errata, "E6" in self.errata, "E7" in self.errata)
-        return reorg_cov_step, args
+        return reorg_step, args
 
     def _gbar(self, s: int) -> float:
         """γ̄(s) (one call, not two, when the fading law does not change with s)."""
@@ -1170,13 +1176,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xf, xsm, xm, xp, eps = (c[k] for k in _REORG_DICTS)
         W, layout = self._layout
         ring = c["ring"] = carry["ring"].copy()
+        if t >= c["t0"] and self._whole is not None:
+            return self._whole_step(t, y, c, xf, xsm, xm, xp, eps, ring)
         R = _ring_views(ring, layout)
         xpred = xp[t]
         if t < c["t0"]:
             self._warmup_step(t, y, c, R)
-        elif self._kernel is not None:
-            self._kernel(ring, t, *self._kernel_args)
-            self._means_step(t, y, xf, xsm, xm, xp, eps, R)
         else:
             self._cov_step(t, R)
             self._means_step(t, y, xf, xsm, xm, xp, eps, R)
@@ -1202,6 +1207,44 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         for dct in (xf, xsm, xm, xp, eps):
             dct.pop(old - 1, None)
         return xf[t], R["pf"][st][None], None, c, xpred, R["pp"][st][None], extras
+
+    def _whole_step(self, t, y, c, xf, xsm, xm, xp, eps, ring):
+        """:meth:`_step_arrays` at t >= warmup as one compiled call (:func:`~tobitkf.filters._kernels_delay.reorg_step`:
+        the covariance step, the means and the ring's pruning) on the step's own copies of the carry."""
+        d, n, m = self.system.d, self.n, self.m
+        kern, args = self._whole
+        N = y.shape[0]
+        # C-ordered arguments (the warm-up's means are column blocks of Algorithm A's, the loop's readings
+        # columns of the record): one compiled signature, and a tuple of one array type
+        c_ = np.ascontiguousarray
+        prev = tuple(c_(eps[s]) if s >= 0 else _NOTHING for s in range(t - 1, t - d + 1, -1)) or (_NOTHING,)
+        xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the kernel's own x̂(t|t)
+        buf = kern(ring, t, *args, c_(y), c_(xp[t]), c_(xsm[t - 1]), c_(xf_a), prev)  # prev: ε(t-1), ..., ε(t-d+2)
+        Mz = 4 * N * n
+        M = buf[:Mz].reshape(4, N, n)
+        e_t = buf[Mz : Mz + N * m].reshape(N, m)
+        Cz = Mz + N * m + 7 * n * n
+        C = buf[Mz + N * m : Cz].reshape(7, 1, n, n)
+        Qe = buf[Cz:].reshape(1, m, m)
+        xpred = xp[t]
+        xf[t], xsm[t], xm[t], xp[t + 1] = M[0], M[1], M[2], M[3]
+        eps[t] = e_t
+        extras = {
+            "measured_mean": M[2],
+            "measured_cov": C[2],
+            "next_mean": M[3],
+            "next_cov": C[3],
+            "innovation": e_t,
+            "innovation_cov": Qe,
+            f"lag{d - 1}_mean": M[1],
+            f"lag{d - 1}_cov": C[4],
+            "_lam": C[5],
+        }
+        c["lam"] = {t + 1: C[6][0]}  # Λ(t+1), read by the result assembly (_group_extras)
+        old = t - 2 * d - 2
+        for dct in (xf, xsm, xm, xp, eps):
+            dct.pop(old - 1, None)
+        return M[0], C[0], None, c, xpred, C[1], extras
 
     def _warmup_step(self, t, y, c, R):
         """A step t < warmup by Algorithm A, from which every stored Ψ, gain and covariance is read (LD-05)."""
