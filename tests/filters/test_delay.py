@@ -951,3 +951,33 @@ def test_reorganized_whole_step_kernel_step_loop_equals_numpy(d, case):
             np.testing.assert_allclose(sf.extras[key], sr.extras[key], rtol=1e-12, atol=1e-12, err_msg=key)
     res = fast.filter(y)
     np.testing.assert_array_equal(sf.mean, res.mean[-1])
+
+
+@pytest.mark.parametrize("name", ["chain", "augmented", "reorganized"])
+def test_compiled_online_step_of_a_diverging_model_warns_like_numpy(name):
+    """An unstable model whose covariances overflow: the compiled online step (no floating-point context,
+    a check of the covariance's trace) hands the step to the checked one, which warns and makes the means NaN
+    from there on, as the numpy step loop (within a step: the paths round differently). (The chain LMMSE's new carry does not keep the
+    "warned" flag, so it warns at every step after the overflow, on both paths.)"""
+    pytest.importorskip("numba")
+    cls = {"chain": ChainLMMSE, "augmented": AugmentedLMMSE, "reorganized": ReorganizedInnovationLMMSE}[name]
+    sys_ = paper_example(d=1).replace(A=[[60.0, 0.0], [0.0, 40.0]])
+    prior = _uncorrelated(1)
+    y = np.full((1, 300, 1), 0.5)
+    runs = {}
+    for backend in ("numba", "numpy"):
+        est = cls(sys_, prior, backend=backend)
+        s, means = est.init((1,)), []
+        with pytest.warns(RuntimeWarning, match="stopped being finite") as rec:
+            for k in range(300):
+                s = est.step(s, y[:, k])
+                means.append(s.mean[0])
+        runs[backend] = np.array(means), sum("stopped being finite" in str(w.message) for w in rec)
+    # the two paths round differently, so the overflow may come one step apart
+    (fast, warned_f), (ref, warned_n) = runs["numba"], runs["numpy"]
+    assert warned_n >= 1 and abs(warned_f - warned_n) <= 1
+    nan_f, nan_n = np.isnan(fast).any(axis=1), np.isnan(ref).any(axis=1)
+    assert nan_n.any() and not nan_n[:50].any()
+    first_f, first_n = int(np.argmax(nan_f)), int(np.argmax(nan_n))
+    assert abs(first_f - first_n) <= 1 and nan_f[first_f:].all() and nan_n[first_n:].all()
+    np.testing.assert_allclose(fast[: min(first_f, first_n) - 5], ref[: min(first_f, first_n) - 5], rtol=1e-9)

@@ -57,6 +57,7 @@ from .core import (
     Transition,
     check_keywords,
     measurement_update,
+    step_state,
     symmetrize,
     time_update,
 )
@@ -323,6 +324,25 @@ class _DelayEstimator(Estimator):
         self.system = system
         self.n, self.m = system.n, system.m
 
+    def _whole_takes(self, state: FilterState, options: dict[str, Any]) -> bool:
+        """Whether the family's compiled whole step (one kernel call) takes the step from ``state``."""
+        return False
+
+    def _fast_step(self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]) -> FilterState | None:
+        """The online step by the compiled whole step: :meth:`_step_arrays` without the loop's floating-point
+        context (the kernel's arithmetic warns of nothing) and the divergence check on the trace of the one
+        shared covariance; None (the checked step runs, which warns and makes the means NaN) when the kernel does not
+        take this step or a variance is not finite."""
+        if not self._whole_takes(state, options):
+            return None
+        k = state.k + 1
+        x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, y, u, options)
+        # a sum of the variances of the one shared covariance: not finite when one is not (or, harmlessly, when
+        # they overflow their sum: the checked step then runs)
+        if not math.isfinite(P[0].trace()):
+            return None
+        return step_state(k, state.batch_shape, x, P, self.n, S, carry, extras)
+
     def _the_prior(self, prior: Any) -> HistoryPrior:
         return self.prior if prior is None else self.system.check_prior(prior)
 
@@ -562,10 +582,10 @@ class ChainLMMSE(_DelayEstimator):
         buf = kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - d], y, *args)
         shapes = ((N, nw), (N, nw), (N, n), (N, m), (1, nw, nw), (1, nw, nw), (1, n, n), (1, m, m), (n, n))
         x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, shapes)
-        xb, Pb, D, lam = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"]), dict(carry["lam"])
         # the measured element x(t-d) leaves the carry (the window keeps it): its Φ is not formed
-        xb[t + 1], Pb[t + 1], D[t + 1] = xn, Pn, Pn
-        lam[t + 1] = lam_next
+        new = _chain_prune(t, d, (), None, carry["xb"], carry["Pb"], carry["D"], carry["lam"])
+        new["xb"][t + 1], new["Pb"][t + 1], new["D"][t + 1] = xn, Pn, Pn
+        new["lam"][t + 1] = lam_next
         extras = {
             "measured_mean": x_new[:, d * n :],
             "measured_cov": P_new[:, d * n :, d * n :],
@@ -573,9 +593,8 @@ class ChainLMMSE(_DelayEstimator):
             "next_cov": Pn,
             "innovation": eps,
             "innovation_cov": Qe,
-            "_lam": lam[t][None],
+            "_lam": carry["lam"][t][None],
         }
-        new = _chain_prune(t, d, (), None, xb, Pb, D, lam)
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _checked_options(self, lags, horizons, fixed_point):
@@ -594,6 +613,16 @@ class ChainLMMSE(_DelayEstimator):
                 "decorrelation='optimal'; the constant-J covariances are not error covariances"
             )
         return {"lags": lags, "horizons": horizons, "point": fixed_point}
+
+    def _whole_takes(self, state, options):
+        plain = not (options.get("lags") or options.get("horizons") or options.get("keep_rts"))
+        return (
+            self._whole is not None
+            and plain
+            and options.get("point") is None
+            and state.k >= 0
+            and state.P.shape[0] == 1
+        )
 
     def _prepare_step_options(self, state, options):
         if not options:  # the plain online step: nothing to check
@@ -624,14 +653,17 @@ class ChainLMMSE(_DelayEstimator):
 
 
 def _chain_prune(t: int, d: int, lags: tuple, point: int | None, xb, Pb, D, lam) -> dict[str, Any]:
-    """The chain LMMSE's new carry after step t: the elements x(j), j < t + 1 - max(d, lags), dropped (but the
-    fixed point), and Λ(j) no longer read (the dicts are the step's own copies, pruned in place)."""
-    keep = max((d,) + tuple(lags))
-    for j in [j for j in xb if j < t + 1 - keep and j != point]:
-        del xb[j], Pb[j], D[j]
-    for j in [j for j in lam if j < t + 1 - keep - d - 1]:
-        del lam[j]
-    new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
+    """The chain LMMSE's new carry after step t: new dicts without the elements x(j), j < t + 1 - max(d, lags)
+    (but the fixed point), and the Λ(j) no longer read."""
+    lo = t + 1 - max((d,) + tuple(lags))
+    kept = [j for j in xb if j >= lo or j == point]
+    lo_lam = lo - d - 1
+    new: dict[str, Any] = {
+        "xb": {j: xb[j] for j in kept},
+        "Pb": {j: Pb[j] for j in kept},
+        "D": {j: D[j] for j in kept},
+        "lam": {j: v for j, v in lam.items() if j >= lo_lam},
+    }
     if point is not None:
         new["point"] = point
     return new
@@ -946,6 +978,10 @@ class AugmentedLMMSE(_DelayEstimator):
         new = {"LamX": LamX, "next": (Xp, Pp, Sp), "lam": {t + 1: LamX[:n, :n]}}
         return Xf, Pf, Sf, new, Xpr, Ppr, extras
 
+    def _whole_takes(self, state, options):
+        P = state.carry["next"][1] if "next" in state.carry else state.P
+        return self._whole is not None and P.shape[0] == 1
+
     def _prepare_step_options(self, state, options):
         if not options:  # the plain online step: nothing to check
             return {"lags": ()}
@@ -1086,6 +1122,9 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
+    def _whole_takes(self, state, options):
+        return self._whole is not None and state.k + 1 >= state.carry["t0"]
+
     def _compiled_step(self):
         """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.reorg_step`: the covariance step
         :func:`~tobitkf.filters._kernels_delay.reorg_cov_step` and the means) and its constant arguments after
@@ -1216,10 +1255,10 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         N = y.shape[0]
         # C-ordered arguments (the warm-up's means are column blocks of Algorithm A's, the loop's readings
         # columns of the record): one compiled signature, and a tuple of one array type
-        c_ = np.ascontiguousarray
-        prev = tuple(c_(eps[s]) if s >= 0 else _NOTHING for s in range(t - 1, t - d + 1, -1)) or (_NOTHING,)
+        # (the warm-up stores its means C-ordered too)
+        prev = tuple(eps[s] if s >= 0 else _NOTHING for s in range(t - 1, t - d + 1, -1)) or (_NOTHING,)
         xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the kernel's own x̂(t|t)
-        buf = kern(ring, t, *args, c_(y), c_(xp[t]), c_(xsm[t - 1]), c_(xf_a), prev)  # prev: ε(t-1), ..., ε(t-d+2)
+        buf = kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev)  # prev: ε(t-1)..ε(t-d+2)
         Mz = 4 * N * n
         M = buf[:Mz].reshape(4, N, n)
         e_t = buf[Mz : Mz + N * m].reshape(N, m)
@@ -1258,14 +1297,16 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, self._warmup_matrices(), Xa, Pa, LamX, y, t)
         Pprior = Pa[0]
         PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
-        c["xf"][t], R["pf"][st] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
-        c["xsm"][t], R["psm"][st] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
-        c["xm"][t], R["pmeas"][st] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
-        c["xp"][t + 1], R["pp"][(t + 1) % W] = _blk(Xp_, 0, None, n), _blk(PpA, 0, 0, n)
+        # the means C-ordered (copies of the column blocks), as the compiled whole step reads them
+        c_ = np.ascontiguousarray
+        c["xf"][t], R["pf"][st] = c_(_blk(Xf, 0, None, n)), _blk(PfA, 0, 0, n)
+        c["xsm"][t], R["psm"][st] = c_(_blk(Xf, d - 1, None, n)), _blk(PfA, d - 1, d - 1, n)
+        c["xm"][t], R["pmeas"][st] = c_(_blk(Xf, d, None, n)), _blk(PfA, d, d, n)
+        c["xp"][t + 1], R["pp"][(t + 1) % W] = c_(_blk(Xp_, 0, None, n)), _blk(PpA, 0, 0, n)
         R["pm"][st] = _blk(Pprior, d, d, n)  # P(t-d|t-1)
         for k in range(d + 1):
             R["kh"][st, k] = _blk(KA.T, k, None, n).T.dot(sys_.H)  # K(t-k|t) H: K(t-k|t) the rows of block k
-        c["eps"][t], R["qe"][st] = e_t, Q_t
+        c["eps"][t], R["qe"][st] = c_(e_t), Q_t
         # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
         for j, Pj in ((t, Pprior), (t + 1, PpA)):
             for i in range(1, d + 1):
