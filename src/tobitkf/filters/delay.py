@@ -1117,6 +1117,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._whole = None
         if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
             self._whole = self._compiled_step()
+        self._eps_back = tuple(range(1, system.d - 1))  # the whole step reads ε(t-k), k = 1..d-2
+        self._lag_keys = (f"lag{system.d - 1}_mean", f"lag{system.d - 1}_cov")
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation, backend=backend)
         # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
@@ -1212,7 +1214,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         c = dict(carry)
         for key in _REORG_DICTS:
             c[key] = dict(carry[key])
-        xf, xsm, xm, xp, eps = (c[k] for k in _REORG_DICTS)
+        xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
         W, layout = self._layout
         ring = c["ring"] = carry["ring"].copy()
         if t >= c["t0"] and self._whole is not None:
@@ -1243,8 +1245,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         old = t - 2 * d - 2
         R["psi"][old % W] = 0.0
         R["kh"][old % W] = 0.0
-        for dct in (xf, xsm, xm, xp, eps):
-            dct.pop(old - 1, None)
+        _drop_means(old - 1, xf, xsm, xm, xp, eps)
         return xf[t], R["pf"][st][None], None, c, xpred, R["pp"][st][None], extras
 
     def _whole_step(self, t, y, c, xf, xsm, xm, xp, eps, ring):
@@ -1256,7 +1257,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         # C-ordered arguments (the warm-up's means are column blocks of Algorithm A's, the loop's readings
         # columns of the record): one compiled signature, and a tuple of one array type
         # (the warm-up stores its means C-ordered too)
-        prev = tuple(eps[s] if s >= 0 else _NOTHING for s in range(t - 1, t - d + 1, -1)) or (_NOTHING,)
+        back = self._eps_back  # ε(t-1), ..., ε(t-d+2)
+        prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
         xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the kernel's own x̂(t|t)
         buf = kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev)  # prev: ε(t-1)..ε(t-d+2)
         Mz = 4 * N * n
@@ -1275,14 +1277,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             "next_cov": C[3],
             "innovation": e_t,
             "innovation_cov": Qe,
-            f"lag{d - 1}_mean": M[1],
-            f"lag{d - 1}_cov": C[4],
+            self._lag_keys[0]: M[1],
+            self._lag_keys[1]: C[4],
             "_lam": C[5],
         }
         c["lam"] = {t + 1: C[6][0]}  # Λ(t+1), read by the result assembly (_group_extras)
-        old = t - 2 * d - 2
-        for dct in (xf, xsm, xm, xp, eps):
-            dct.pop(old - 1, None)
+        _drop_means(t - 2 * d - 3, xf, xsm, xm, xp, eps)  # (the kernel zeroed the ring's Ψ, K H of t-2d-2)
         return M[0], C[0], None, c, xpred, C[1], extras
 
     def _warmup_step(self, t, y, c, R):
@@ -1426,6 +1426,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         res = self._run_delay(y, prior, state, outputs, {})
         res.extras["warmup"] = int(res.final.carry["t0"])
         return res
+
+
+def _drop_means(j: int, *dicts: dict) -> None:
+    """Algorithm D's means of time j, no longer read, out of the step's own copies of the per-time dicts."""
+    for dct in dicts:
+        dct.pop(j, None)
 
 
 def reorganized_lmmse(
