@@ -836,6 +836,21 @@ def _two_channel(d):
     )  # fmt: skip
 
 
+def _whole_step_case(case, d):
+    """The models of the whole-step kernel tests: the paper's (one channel, one multiplicative noise), two
+    channels, and one without multiplicative noise (no A_i, Q_ζ among the packed constants)."""
+    if case == "paper":
+        return paper_example(S=0.2, q=0.3, d=d)
+    if case == "two-channel":
+        return _two_channel(d)
+    from tobitkf.models.delay import paper_fading
+
+    return DelayFadingSystem(
+        A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=0.2, d=d,
+        fading=paper_fading(0.3),
+    )  # fmt: skip
+
+
 def _leaves(x, path):
     """The arrays of a result's extras, through their dicts and tuples, with their paths."""
     if isinstance(x, dict):
@@ -855,14 +870,14 @@ def _assert_results_close(fast, ref, tol=1e-12):
 
 
 @pytest.mark.parametrize("d", [0, 1, 3])
-@pytest.mark.parametrize("case", ["paper", "two-channel"])
+@pytest.mark.parametrize("case", ["paper", "two-channel", "no-mult"])
 @pytest.mark.parametrize("batch", [(), (3,)], ids=str)
 def test_augmented_whole_step_kernel_equals_numpy(d, case, batch):
     """The compiled step of Algorithm A (update, decorrelated predict, Λ_X(t+1) in one call) gives the numpy
     path's every output to 1e-12, for one run and a batch, one and two channels, a correlated prior; the step
     loop equals its filter bitwise."""
     pytest.importorskip("numba")
-    sys_ = paper_example(S=0.2, q=0.3, d=d) if case == "paper" else _two_channel(d)
+    sys_ = _whole_step_case(case, d)
     prior = HistoryPrior.constant(np.zeros(2), [[1.0, 0.3], [0.3, 0.8]], d, jitter=0.01)
     T = 25
     y = simulate_delay(sys_, prior, T, int(np.prod(batch, dtype=int)), seed=d + 11).y.reshape(batch + (T, sys_.m))
@@ -898,12 +913,12 @@ def test_augmented_whole_step_kernel_refuses_what_it_does_not_cover():
 
 @pytest.mark.parametrize("d", [0, 1, 2, 4])
 @pytest.mark.parametrize("mode", ["optimal", "paper"])
-@pytest.mark.parametrize("case", ["paper", "two-channel"])
+@pytest.mark.parametrize("case", ["paper", "two-channel", "no-mult"])
 def test_chain_plain_step_kernel_equals_numpy(d, mode, case):
     """Algorithm C without lags, horizons or a fixed point runs one compiled call per reading: every output
     (estimates, window, predictions, innovations, second moments) equals the numpy path's to 1e-12."""
     pytest.importorskip("numba")
-    sys_ = paper_example(S=0.2, q=0.3, d=d) if case == "paper" else _two_channel(d)
+    sys_ = _whole_step_case(case, d)
     prior = _uncorrelated(d)
     y = simulate_delay(sys_, prior, 30, 3, seed=d + 3).y
     ref = ChainLMMSE(sys_, prior, decorrelation=mode, backend="numpy").filter(y)
@@ -930,13 +945,13 @@ def test_chain_plain_steps_continue_a_smoothing_run():
 
 
 @pytest.mark.parametrize("d", [1, 2, 3, 4])
-@pytest.mark.parametrize("case", ["paper", "two-channel"])
+@pytest.mark.parametrize("case", ["paper", "two-channel", "no-mult"])
 def test_reorganized_whole_step_kernel_step_loop_equals_numpy(d, case):
     """Algorithm D's compiled whole step (covariances, means, pruning in one call) driven online for one run,
     from a correlated prior (the warm-up steps by Algorithm A, whose means are column blocks), equals the numpy
     step loop to 1e-12 in every per-step output, and its own filter bitwise."""
     pytest.importorskip("numba")
-    sys_ = paper_example(S=0.2, q=0.3, d=d) if case == "paper" else _two_channel(d)
+    sys_ = _whole_step_case(case, d)
     prior = HistoryPrior.constant(np.zeros(2), [[1.0, 0.3], [0.3, 0.8]], d, jitter=0.01)
     T = 4 * d + 12
     y = simulate_delay(sys_, prior, T, 1, seed=d + 21).y[0]

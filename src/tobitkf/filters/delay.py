@@ -306,6 +306,18 @@ def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
     return args + (float(system.gamma_mean(0)), float(system.gamma_var(0)), mode == "optimal")
 
 
+def _packed_moment_args(system: DelayFadingSystem, mode: str, *ints: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_kernel_moment_args` packed for the whole-step kernels (``_kernels_delay._unpack_moments``): the
+    matrices row-major then γ̄, σ² in one float array, and (n, m, p, h, optimal) followed by ``ints``."""
+    args = list(_kernel_moment_args(system, mode))
+    h = np.size(args[8])  # Q_ζ: one per multiplicative noise (none: no A_i either)
+    args[7] = args[7][:h]
+    cb = np.concatenate([np.ravel(a) for a in args[:-3]] + [np.array(args[-3:-1], dtype=float)])
+    n, m, p = system.n, system.m, system.Gamma.shape[1]
+    ib = np.array((n, m, p, h, int(args[-1])) + ints, dtype=np.int64)
+    return cb, ib
+
+
 class _DelayEstimator(Estimator):
     """What the three delay algorithms share: the source's time index (y(0) first, measuring x(-d); the
     prior is the history x(0), ..., x(-d), ``state.k = -1``), the check of the readings (finite: the
@@ -461,9 +473,8 @@ class ChainLMMSE(_DelayEstimator):
         if use_kernel(backend, _kernel_gap(system), "the chain LMMSE's moments"):
             from ._kernels_delay import chain_step, delay_moments
 
-            margs = _kernel_moment_args(system, decorrelation)
-            self._moments = (delay_moments, margs)
-            self._whole = (chain_step, (system.d,) + margs)
+            self._moments = (delay_moments, _kernel_moment_args(system, decorrelation))
+            self._whole = (chain_step, _packed_moment_args(system, decorrelation, system.d))
 
     def _state_dim(self) -> int:
         return self.n * (self.system.d + 1)
@@ -1129,16 +1140,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     def _compiled_step(self):
         """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.reorg_step`: the covariance step
-        :func:`~tobitkf.filters._kernels_delay.reorg_cov_step` and the means) and its constant arguments after
-        ``(ring, t)``."""
+        :func:`~tobitkf.filters._kernels_delay.reorg_cov_step` and the means) and its packed constants
+        ``(cb, ib)`` (:func:`_packed_moment_args` with d, W, the errata flags and the ring's offsets)."""
         from ._kernels_delay import reorg_step
 
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
-        offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
-        args = (offs, sys_.d, W) + _kernel_moment_args(sys_, self.decorrelation)
-        args += ("E5" in self.errata, "E6" in self.errata, "E7" in self.errata)
-        return reorg_step, args
+        offs = tuple(int(layout[k][0]) for k in _RING_FIELDS)
+        flags = tuple(int(e in self.errata) for e in ("E5", "E6", "E7"))
+        return reorg_step, _packed_moment_args(sys_, self.decorrelation, sys_.d, W, *flags, *offs)
 
     def _gbar(self, s: int) -> float:
         """γ̄(s) (one call, not two, when the fading law does not change with s)."""
