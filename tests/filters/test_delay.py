@@ -996,3 +996,26 @@ def test_compiled_online_step_of_a_diverging_model_warns_like_numpy(name):
     first_f, first_n = int(np.argmax(nan_f)), int(np.argmax(nan_n))
     assert abs(first_f - first_n) <= 1 and nan_f[first_f:].all() and nan_n[first_n:].all()
     np.testing.assert_allclose(fast[: min(first_f, first_n) - 5], ref[: min(first_f, first_n) - 5], rtol=1e-9)
+
+
+@pytest.mark.parametrize("cls", [ChainLMMSE, ReorganizedInnovationLMMSE])
+def test_many_runs_keep_the_vectorised_path(cls, monkeypatch):
+    """Above ``_WHOLE_STEP_MAX_RUNS`` runs (lowered to 2 here) C and D keep the compiled covariances with the
+    vectorised numpy means and shared update: equal to the numpy path and to the whole-step kernel to 1e-12,
+    and the step loop equals the filter."""
+    pytest.importorskip("numba")
+    import tobitkf.filters.delay as delay_mod
+
+    sys_, prior = paper_example(S=0.2, q=0.3, d=3), _uncorrelated(3)
+    y = simulate_delay(sys_, prior, 30, 3, seed=9).y
+    whole = cls(sys_, prior, backend="numba").filter(y)
+    monkeypatch.setattr(delay_mod, "_WHOLE_STEP_MAX_RUNS", 2)
+    est = cls(sys_, prior, backend="numba")
+    many = est.filter(y)
+    ref = cls(sys_, prior, backend="numpy").filter(y)
+    _assert_results_close(many, ref)
+    _assert_results_close(many, whole)
+    s = est.init((3,))
+    for k in range(30):
+        s = est.step(s, y[:, k])
+    np.testing.assert_array_equal(s.mean, many.mean[:, -1])

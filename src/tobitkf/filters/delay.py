@@ -139,6 +139,11 @@ def _flat_views(buf: np.ndarray, shapes: tuple[tuple[int, ...], ...]) -> list[np
     return out
 
 
+#: the most runs the whole-step kernels of Algorithms C and D take (the online case: one run, a few); more runs
+#: keep their vectorised numpy means and threaded shared update, which a single-threaded loop over the runs
+#: does not beat (D, 10^4 runs: 1.3-1.8x slower; measured 3 Dec 2026)
+_WHOLE_STEP_MAX_RUNS = 1024
+
 #: a placeholder array for a kernel argument that is not read (an innovation of a time before the first reading)
 _NOTHING = np.zeros((1, 1))
 
@@ -502,7 +507,7 @@ class ChainLMMSE(_DelayEstimator):
         # the compiled plain step reads the window before y(t) off the last one, x̂(t-1-k|t-1): from t = 1 on
         # (the prior's window is x(0), ..., x(-d) itself)
         plain = not (lags or horizons or keep_rts) and point is None and t > 0
-        if self._whole is not None and plain and P.shape[0] == 1:
+        if self._whole is not None and plain and P.shape[0] == 1 and x.shape[0] <= _WHOLE_STEP_MAX_RUNS:
             return self._plain_step(t, x, P, carry, y)
         xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
         e = t - d
@@ -633,6 +638,7 @@ class ChainLMMSE(_DelayEstimator):
             and options.get("point") is None
             and state.k >= 0
             and state.P.shape[0] == 1
+            and state.runs <= _WHOLE_STEP_MAX_RUNS
         )
 
     def _prepare_step_options(self, state, options):
@@ -1128,6 +1134,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._whole = None
         if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
             self._whole = self._compiled_step()
+            self._kernel, self._kernel_args = self._compiled_cov_step()
         self._eps_back = tuple(range(1, system.d - 1))  # the whole step reads ε(t-k), k = 1..d-2
         self._lag_keys = (f"lag{system.d - 1}_mean", f"lag{system.d - 1}_cov")
         if system.d == 0:
@@ -1136,7 +1143,18 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
     def _whole_takes(self, state, options):
-        return self._whole is not None and state.k + 1 >= state.carry["t0"]
+        return self._whole is not None and state.k + 1 >= state.carry["t0"] and state.runs <= _WHOLE_STEP_MAX_RUNS
+
+    def _compiled_cov_step(self):
+        """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
+        constant arguments after ``(ring, t)``, for many runs (their means on numpy)."""
+        from ._kernels_delay import reorg_cov_step
+
+        sys_ = self.system
+        W, layout = _ring_layout(sys_.d, self.n, self.m)
+        offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
+        args = (offs, sys_.d, W) + _kernel_moment_args(sys_, self.decorrelation)
+        return reorg_cov_step, args + tuple(e in self.errata for e in ("E5", "E6", "E7"))
 
     def _compiled_step(self):
         """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.reorg_step`: the covariance step
@@ -1227,12 +1245,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
         W, layout = self._layout
         ring = c["ring"] = carry["ring"].copy()
-        if t >= c["t0"] and self._whole is not None:
+        if t >= c["t0"] and self._whole is not None and y.shape[0] <= _WHOLE_STEP_MAX_RUNS:
             return self._whole_step(t, y, c, xf, xsm, xm, xp, eps, ring)
         R = _ring_views(ring, layout)
         xpred = xp[t]
         if t < c["t0"]:
             self._warmup_step(t, y, c, R)
+        elif self._whole is not None:  # many runs: the compiled covariance step, the numpy means
+            self._kernel(ring, t, *self._kernel_args)
+            self._means_step(t, y, xf, xsm, xm, xp, eps, R)
         else:
             self._cov_step(t, R)
             self._means_step(t, y, xf, xsm, xm, xp, eps, R)
