@@ -97,6 +97,27 @@ def delay_moments(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optima
     return Rt, J, Abar, Sigma, lam_next
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _ring_fields(ring, offs, d, W, n, m):
+    """The fields psi, kh, pf, psm, pmeas, pp, pm, lam, abar, sig, j, qe, kf, ks, ke of the flat ring buffer
+    (offsets ``offs``; layout :func:`tobitkf.filters.delay._ring_layout`) as views."""
+    nn, nm = n * n, n * m
+    out3 = []
+    for k in range(2, 10):  # pf .. sig: (W, n, n) each
+        out3.append(ring[offs[k] : offs[k] + W * nn].reshape((W, n, n)))
+    nks = max(d - 1, 1)
+    return (
+        ring[offs[0] : offs[0] + W * (d + 1) * nn].reshape((W, d + 1, n, n)),
+        ring[offs[1] : offs[1] + W * (d + 1) * nn].reshape((W, d + 1, n, n)),
+        out3[0], out3[1], out3[2], out3[3], out3[4], out3[5], out3[6], out3[7],
+        ring[offs[10] : offs[10] + W * nm].reshape((W, n, m)),
+        ring[offs[11] : offs[11] + W * m * m].reshape((W, m, m)),
+        ring[offs[12] : offs[12] + nm].reshape((n, m)),
+        ring[offs[13] : offs[13] + nks * nm].reshape((nks, n, m)),
+        ring[offs[14] : offs[14] + nm].reshape((n, m)),
+    )  # fmt: skip
+
+
 @njit(cache=True, error_model="numpy")
 def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7):
     """One covariance step t >= warmup of Algorithm D on ``ring`` (in place); see the module docstring.
@@ -107,23 +128,7 @@ def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, et
     """
     n = A.shape[0]
     m = H.shape[0]
-    nn, nm = n * n, n * m
-    psi = ring[offs[0] : offs[0] + W * (d + 1) * nn].reshape((W, d + 1, n, n))
-    kh = ring[offs[1] : offs[1] + W * (d + 1) * nn].reshape((W, d + 1, n, n))
-    pf = ring[offs[2] : offs[2] + W * nn].reshape((W, n, n))
-    psm = ring[offs[3] : offs[3] + W * nn].reshape((W, n, n))
-    pmeas = ring[offs[4] : offs[4] + W * nn].reshape((W, n, n))
-    pp = ring[offs[5] : offs[5] + W * nn].reshape((W, n, n))
-    pm = ring[offs[6] : offs[6] + W * nn].reshape((W, n, n))
-    lam = ring[offs[7] : offs[7] + W * nn].reshape((W, n, n))
-    abar = ring[offs[8] : offs[8] + W * nn].reshape((W, n, n))
-    sig = ring[offs[9] : offs[9] + W * nn].reshape((W, n, n))
-    jj = ring[offs[10] : offs[10] + W * nm].reshape((W, n, m))
-    qe = ring[offs[11] : offs[11] + W * m * m].reshape((W, m, m))
-    kf = ring[offs[12] : offs[12] + nm].reshape((n, m))
-    nks = max(d - 1, 1)
-    ks = ring[offs[13] : offs[13] + nks * nm].reshape((nks, n, m))
-    ke = ring[offs[14] : offs[14] + nm].reshape((n, m))
+    psi, kh, pf, psm, pmeas, pp, pm, lam, abar, sig, jj, qe, kf, ks, ke = _ring_fields(ring, offs, d, W, n, m)
     st = t % W
     gb = gconst
 
@@ -206,33 +211,27 @@ def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, et
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _take(cb, o, r, c):
+    """The (r, c) block of ``cb`` at offset ``o`` (a view) and the offset after it."""
+    return cb[o : o + r * c].reshape((r, c)), o + r * c
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _unpack_moments(cb, ib):
     """The constant arguments of :func:`_moments_into` after Λ from the packed ``cb`` (A, H, Q_v, Γ, S, Q_w,
     ΓQ_wΓ^T, A_i, q, SQ_v^{-1}, η row-major, then γ̄, σ²) and ``ib`` (n, m, p, h, optimal, ...): views of ``cb``."""
     n, m, p, h = ib[0], ib[1], ib[2], ib[3]
-    o = 0
-    A = cb[o : o + n * n].reshape((n, n))
-    o += n * n
-    H = cb[o : o + m * n].reshape((m, n))
-    o += m * n
-    Qv = cb[o : o + m * m].reshape((m, m))
-    o += m * m
-    G = cb[o : o + n * p].reshape((n, p))
-    o += n * p
-    S = cb[o : o + p * m].reshape((p, m))
-    o += p * m
-    Qw = cb[o : o + p * p].reshape((p, p))
-    o += p * p
-    GQG = cb[o : o + n * n].reshape((n, n))
-    o += n * n
-    Ai = cb[o : o + h * n * n].reshape((h, n, n))
-    o += h * n * n
-    q = cb[o : o + h]
-    o += h
-    SQvi = cb[o : o + p * m].reshape((p, m))
-    o += p * m
-    eta = cb[o : o + p * p].reshape((p, p))
-    o += p * p
+    A, o = _take(cb, 0, n, n)
+    H, o = _take(cb, o, m, n)
+    Qv, o = _take(cb, o, m, m)
+    G, o = _take(cb, o, n, p)
+    S, o = _take(cb, o, p, m)
+    Qw, o = _take(cb, o, p, p)
+    GQG, o = _take(cb, o, n, n)
+    Ai, o = cb[o : o + h * n * n].reshape((h, n, n)), o + h * n * n
+    q, o = cb[o : o + h], o + h
+    SQvi, o = _take(cb, o, p, m)
+    eta, o = _take(cb, o, p, p)
     return A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, cb[o], cb[o + 1], ib[4] != 0
 
 
@@ -265,6 +264,28 @@ def _flat(blocks):
     return out
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _innovation_row(e, y, x, H, gb, r):
+    """Row r of the innovation ε = y - γ̄ H x (``e``, ``y`` (N, m), ``x`` (N, n_x), ``H`` (m, n_x))."""
+    for l in range(H.shape[0]):
+        acc = 0.0
+        for j in range(H.shape[1]):
+            acc += H[l, j] * x[r, j]
+        e[r, l] = y[r, l] - gb * acc
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _predict_row(out, Abar, x, J, y, r):
+    """Row r of the decorrelated prediction Ā x + J y (``out``, ``x`` (N, n_x), ``y`` (N, m))."""
+    for i in range(Abar.shape[0]):
+        acc = 0.0
+        for j in range(Abar.shape[1]):
+            acc += Abar[i, j] * x[r, j]
+        for l in range(J.shape[1]):
+            acc += J[i, l] * y[r, l]
+        out[r, i] = acc
+
+
 @njit(cache=True, error_model="numpy")
 def _update_predict(x, P, y, gb, H, Rn, Abar, Qd, J):
     r"""The shared update and decorrelated predict of Algorithms A and C for one covariance ``P`` (n_x, n_x)
@@ -292,23 +313,13 @@ def _update_predict(x, P, y, gb, H, Rn, Abar, Qd, J):
     xf = np.empty((N, nx))
     xp = np.empty((N, nx))
     for r in range(N):
-        for l in range(m):
-            acc = 0.0
-            for j in range(nx):
-                acc += H[l, j] * x[r, j]
-            eps[r, l] = y[r, l] - gb * acc
+        _innovation_row(eps, y, x, H, gb, r)
         for i in range(nx):
             acc = x[r, i]
             for l in range(m):
                 acc += K[i, l] * eps[r, l]
             xf[r, i] = acc
-        for i in range(nx):
-            acc = 0.0
-            for j in range(nx):
-                acc += Abar[i, j] * xf[r, j]
-            for l in range(m):
-                acc += J[i, l] * y[r, l]
-            xp[r, i] = acc
+        _predict_row(xp, Abar, xf, J, y, r)
     Pf = np.empty((nx, nx))
     _sym_into(P - _mm(K, Rxe, False, True), Pf)
     Pp = np.empty((nx, nx))
@@ -409,18 +420,8 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev):
     n = A.shape[0]
     m = H.shape[0]
     N = y.shape[0]
-    nn, nm = n * n, n * m
-    pf = ring[offs[2] : offs[2] + W * nn].reshape((W, n, n))
-    psm = ring[offs[3] : offs[3] + W * nn].reshape((W, n, n))
-    pmeas = ring[offs[4] : offs[4] + W * nn].reshape((W, n, n))
-    pp = ring[offs[5] : offs[5] + W * nn].reshape((W, n, n))
-    lam = ring[offs[7] : offs[7] + W * nn].reshape((W, n, n))
-    abar = ring[offs[8] : offs[8] + W * nn].reshape((W, n, n))
-    jj = ring[offs[10] : offs[10] + W * nm].reshape((W, n, m))
-    qe = ring[offs[11] : offs[11] + W * m * m].reshape((W, m, m))
-    kf = ring[offs[12] : offs[12] + nm].reshape((n, m))
-    ks = ring[offs[13] : offs[13] + max(d - 1, 1) * nm].reshape((max(d - 1, 1), n, m))
-    ke = ring[offs[14] : offs[14] + nm].reshape((n, m))
+    nn = n * n
+    _, _, pf, psm, pmeas, pp, _, lam, abar, _, jj, qe, kf, ks, ke = _ring_fields(ring, offs, d, W, n, m)
     st, s1 = t % W, (t + 1) % W
     gb = gconst
     e_t = np.empty((N, m))
@@ -430,11 +431,7 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev):
     xp_n = np.empty((N, n))
     Ab, Jt = abar[st], jj[st]
     for r in range(N):
-        for l in range(m):
-            acc = 0.0
-            for j in range(n):
-                acc += xsm_prev[r, j] * H[l, j]
-            e_t[r, l] = y[r, l] - gb * acc
+        _innovation_row(e_t, y, xsm_prev, H, gb, r)
         for i in range(n):
             a_f, a_s, a_m = xp_t[r, i], xf_a[r, i], xsm_prev[r, i]
             for l in range(m):
@@ -447,13 +444,7 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev):
                     a_s += (e_t[r, l] if k == 1 else eps_prev[k - 2][r, l]) * ks[k - 1, i, l]
             # d = 1: the smoother's element x(t-d+1) = x(t) is this step's filter estimate
             xf_t[r, i], xs_t[r, i], xm_t[r, i] = a_f, a_f if d == 1 else a_s, a_m
-        for i in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += xm_t[r, j] * Ab[i, j]
-            for l in range(m):
-                acc += y[r, l] * Jt[i, l]
-            xp_n[r, i] = acc
+        _predict_row(xp_n, Ab, xm_t, Jt, y, r)
     # Ψ_i and K(a|·)H of time t-2d-2 are no longer read: zeroed (a vanishing Ψ or gain reads as zero)
     old = (t - 2 * d - 2) % W
     blk = (d + 1) * nn
