@@ -819,3 +819,203 @@ def test_chain_compiled_step_loop_equals_filter_and_refuses_varying_laws():
     a = ChainLMMSE(varying, prior).filter(y)  # "auto": the moments on numpy, bitwise the numpy path's
     b = ChainLMMSE(varying, prior, backend="numpy").filter(y)
     np.testing.assert_array_equal(a.mean, b.mean)
+
+
+# ---------------------------------------------------------------- whole-step kernels of Algorithms A and C
+
+
+def _two_channel(d):
+    """A pure-delay model with two measurement channels (the kernels' solve, not a division), S ≠ 0 and a
+    multiplicative noise; the paper's fading pmf."""
+    from tobitkf.models.delay import paper_fading
+
+    return DelayFadingSystem(
+        A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0], [1.0, -0.3]], Gamma=[[1.0], [1.0]], Qw=0.3,
+        Qv=[[0.3, 0.05], [0.05, 0.2]], S=[[0.2, 0.1]], d=d, A_mult=[[[0.1, 0.2], [0.2, -0.1]]], q_mult=[0.16],
+        fading=paper_fading(0.3),
+    )  # fmt: skip
+
+
+def _whole_step_case(case, d):
+    """The models of the whole-step kernel tests: the paper's (one channel, one multiplicative noise), two
+    channels, and one without multiplicative noise (no A_i, Q_ζ among the packed constants)."""
+    if case == "paper":
+        return paper_example(S=0.2, q=0.3, d=d)
+    if case == "two-channel":
+        return _two_channel(d)
+    from tobitkf.models.delay import paper_fading
+
+    return DelayFadingSystem(
+        A=[[0.4, 0.7], [0.2, 0.6]], H=[[0.5, 1.0]], Gamma=[[1.0], [1.0]], Qw=0.3, Qv=0.3, S=0.2, d=d,
+        fading=paper_fading(0.3),
+    )  # fmt: skip
+
+
+def _leaves(x, path):
+    """The arrays of a result's extras, through their dicts and tuples, with their paths."""
+    if isinstance(x, dict):
+        return [leaf for k in sorted(x) for leaf in _leaves(x[k], f"{path}.{k}")]
+    if isinstance(x, (list, tuple)):
+        return [leaf for i, e in enumerate(x) for leaf in _leaves(e, f"{path}[{i}]")]
+    return [(path, np.asarray(x, dtype=float))]
+
+
+def _assert_results_close(fast, ref, tol=1e-12):
+    _assert_close_rel(fast, ref, fields=("mean", "cov", "pred_mean", "pred_cov"), tol=tol)
+    got, want = _leaves(fast.extras, "extras"), _leaves(ref.extras, "extras")
+    assert [p for p, _ in got] == [p for p, _ in want]
+    for (path, a), (_, b) in zip(got, want):
+        assert a.shape == b.shape, path
+        np.testing.assert_allclose(a, b, rtol=tol, atol=tol * max(1.0, float(np.abs(b).max())), err_msg=path)
+
+
+@pytest.mark.parametrize("d", [0, 1, 3])
+@pytest.mark.parametrize("case", ["paper", "two-channel", "no-mult"])
+@pytest.mark.parametrize("batch", [(), (3,)], ids=str)
+def test_augmented_whole_step_kernel_equals_numpy(d, case, batch):
+    """The compiled step of Algorithm A (update, decorrelated predict, Λ_X(t+1) in one call) gives the numpy
+    path's every output to 1e-12, for one run and a batch, one and two channels, a correlated prior; the step
+    loop equals its filter bitwise."""
+    pytest.importorskip("numba")
+    sys_ = _whole_step_case(case, d)
+    prior = HistoryPrior.constant(np.zeros(2), [[1.0, 0.3], [0.3, 0.8]], d, jitter=0.01)
+    T = 25
+    y = simulate_delay(sys_, prior, T, int(np.prod(batch, dtype=int)), seed=d + 11).y.reshape(batch + (T, sys_.m))
+    ref = AugmentedLMMSE(sys_, prior, window=d + 1, backend="numpy").filter(y)
+    est = AugmentedLMMSE(sys_, prior, window=d + 1, backend="numba")
+    fast = est.filter(y)
+    _assert_results_close(fast, ref)
+    s = est.init(batch)
+    for k in range(T):
+        s = est.step(s, y[..., k, :])
+    np.testing.assert_array_equal(s.mean, fast.mean[..., -1, :])
+
+
+def test_augmented_whole_step_kernel_refuses_what_it_does_not_cover():
+    """``backend="numba"`` refuses laws that change with t and the non-standard forms; ``"auto"`` then runs
+    the step it ran before (the shared compiled update around the numpy moments: bitwise the numpy path for
+    the laws, and the form's own numbers)."""
+    pytest.importorskip("numba")
+    sys_, prior = paper_example(d=2), paper_prior(d=2)
+    varying = sys_.replace(fading=FadingMoments(np.linspace(0.5, 0.9, 50), 0.01))
+    with pytest.raises(ValidationError, match="change with t"):
+        AugmentedLMMSE(varying, prior, backend="numba")
+    with pytest.raises(ValidationError, match="joseph"):
+        AugmentedLMMSE(sys_, prior, covariance_update="joseph", backend="numba")
+    y = simulate_delay(varying, prior, 20, 2, seed=0).y
+    a = AugmentedLMMSE(varying, prior).filter(y)
+    b = AugmentedLMMSE(varying, prior, backend="numpy").filter(y)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-12)
+    j = AugmentedLMMSE(sys_, prior, covariance_update="joseph").filter(y)
+    s = AugmentedLMMSE(sys_, prior).filter(y)
+    np.testing.assert_allclose(j.mean, s.mean, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("d", [0, 1, 2, 4])
+@pytest.mark.parametrize("mode", ["optimal", "paper"])
+@pytest.mark.parametrize("case", ["paper", "two-channel", "no-mult"])
+def test_chain_plain_step_kernel_equals_numpy(d, mode, case):
+    """Algorithm C without lags, horizons or a fixed point runs one compiled call per reading: every output
+    (estimates, window, predictions, innovations, second moments) equals the numpy path's to 1e-12."""
+    pytest.importorskip("numba")
+    sys_ = _whole_step_case(case, d)
+    prior = _uncorrelated(d)
+    y = simulate_delay(sys_, prior, 30, 3, seed=d + 3).y
+    ref = ChainLMMSE(sys_, prior, decorrelation=mode, backend="numpy").filter(y)
+    fast = ChainLMMSE(sys_, prior, decorrelation=mode, backend="numba").filter(y)
+    _assert_results_close(fast, ref)
+
+
+def test_chain_plain_steps_continue_a_smoothing_run():
+    """A state from a run with lags beyond the window and a fixed point (its carry keeps older elements) goes
+    on by plain compiled steps as by numpy steps, and a plain compiled state continues a smoothing run."""
+    pytest.importorskip("numba")
+    sys_, prior = paper_example(S=0.2, q=0.3, d=2), _uncorrelated(2)
+    y = simulate_delay(sys_, prior, 30, 2, seed=4).y
+    fast, ref = ChainLMMSE(sys_, prior, backend="numba"), ChainLMMSE(sys_, prior, backend="numpy")
+    first = ref.filter(y[:, :12], lags=(1, 4), fixed_point=3)
+    a, b = fast.filter(y[:, 12:], state=first.final), ref.filter(y[:, 12:], state=first.final)
+    _assert_results_close(a, b)
+    plain = fast.filter(y[:, :12]).final
+    c = ref.filter(y[:, 12:], lags=(1, 2), state=plain)
+    e = ref.filter(y, lags=(1, 2))
+    np.testing.assert_allclose(c.mean, e.mean[:, 12:], rtol=0, atol=1e-12)
+    for L in (1, 2):
+        np.testing.assert_allclose(c.extras["lagged"][L][0], e.extras["lagged"][L][0][:, 12:], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("d", [1, 2, 3, 4])
+@pytest.mark.parametrize("case", ["paper", "two-channel", "no-mult"])
+def test_reorganized_whole_step_kernel_step_loop_equals_numpy(d, case):
+    """Algorithm D's compiled whole step (covariances, means, pruning in one call) driven online for one run,
+    from a correlated prior (the warm-up steps by Algorithm A, whose means are column blocks), equals the numpy
+    step loop to 1e-12 in every per-step output, and its own filter bitwise."""
+    pytest.importorskip("numba")
+    sys_ = _whole_step_case(case, d)
+    prior = HistoryPrior.constant(np.zeros(2), [[1.0, 0.3], [0.3, 0.8]], d, jitter=0.01)
+    T = 4 * d + 12
+    y = simulate_delay(sys_, prior, T, 1, seed=d + 21).y[0]
+    fast, ref = (ReorganizedInnovationLMMSE(sys_, prior, backend=b) for b in ("numba", "numpy"))
+    sf, sr = fast.init(), ref.init()
+    keys = ("measured_mean", "measured_cov", "next_mean", "next_cov", "innovation", "innovation_cov")
+    for k in range(T):
+        sf, sr = fast.step(sf, y[k]), ref.step(sr, y[k])
+        np.testing.assert_allclose(sf.mean, sr.mean, rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(sf.cov, sr.cov, rtol=1e-12, atol=1e-12)
+        for key in keys + (f"lag{d - 1}_mean", f"lag{d - 1}_cov"):
+            np.testing.assert_allclose(sf.extras[key], sr.extras[key], rtol=1e-12, atol=1e-12, err_msg=key)
+    res = fast.filter(y)
+    np.testing.assert_array_equal(sf.mean, res.mean[-1])
+
+
+@pytest.mark.parametrize("name", ["chain", "augmented", "reorganized"])
+def test_compiled_online_step_of_a_diverging_model_warns_like_numpy(name):
+    """An unstable model whose covariances overflow: the compiled online step (no floating-point context,
+    a check of the covariance's trace) hands the step to the checked one, which warns and makes the means NaN
+    from there on, as the numpy step loop (within a step: the paths round differently). (The chain LMMSE's new carry does not keep the
+    "warned" flag, so it warns at every step after the overflow, on both paths.)"""
+    pytest.importorskip("numba")
+    cls = {"chain": ChainLMMSE, "augmented": AugmentedLMMSE, "reorganized": ReorganizedInnovationLMMSE}[name]
+    sys_ = paper_example(d=1).replace(A=[[60.0, 0.0], [0.0, 40.0]])
+    prior = _uncorrelated(1)
+    y = np.full((1, 300, 1), 0.5)
+    runs = {}
+    for backend in ("numba", "numpy"):
+        est = cls(sys_, prior, backend=backend)
+        s, means = est.init((1,)), []
+        with pytest.warns(RuntimeWarning, match="stopped being finite") as rec:
+            for k in range(300):
+                s = est.step(s, y[:, k])
+                means.append(s.mean[0])
+        runs[backend] = np.array(means), sum("stopped being finite" in str(w.message) for w in rec)
+    # the two paths round differently, so the overflow may come one step apart
+    (fast, warned_f), (ref, warned_n) = runs["numba"], runs["numpy"]
+    assert warned_n >= 1 and abs(warned_f - warned_n) <= 1
+    nan_f, nan_n = np.isnan(fast).any(axis=1), np.isnan(ref).any(axis=1)
+    assert nan_n.any() and not nan_n[:50].any()
+    first_f, first_n = int(np.argmax(nan_f)), int(np.argmax(nan_n))
+    assert abs(first_f - first_n) <= 1 and nan_f[first_f:].all() and nan_n[first_n:].all()
+    np.testing.assert_allclose(fast[: min(first_f, first_n) - 5], ref[: min(first_f, first_n) - 5], rtol=1e-9)
+
+
+@pytest.mark.parametrize("cls", [ChainLMMSE, ReorganizedInnovationLMMSE])
+def test_many_runs_keep_the_vectorised_path(cls, monkeypatch):
+    """Above ``_WHOLE_STEP_MAX_RUNS`` runs (lowered to 2 here) C and D keep the compiled covariances with the
+    vectorised numpy means and shared update: equal to the numpy path and to the whole-step kernel to 1e-12,
+    and the step loop equals the filter."""
+    pytest.importorskip("numba")
+    import tobitkf.filters.delay as delay_mod
+
+    sys_, prior = paper_example(S=0.2, q=0.3, d=3), _uncorrelated(3)
+    y = simulate_delay(sys_, prior, 30, 3, seed=9).y
+    whole = cls(sys_, prior, backend="numba").filter(y)
+    monkeypatch.setattr(delay_mod, "_WHOLE_STEP_MAX_RUNS", 2)
+    est = cls(sys_, prior, backend="numba")
+    many = est.filter(y)
+    ref = cls(sys_, prior, backend="numpy").filter(y)
+    _assert_results_close(many, ref)
+    _assert_results_close(many, whole)
+    s = est.init((3,))
+    for k in range(30):
+        s = est.step(s, y[:, k])
+    np.testing.assert_array_equal(s.mean, many.mean[:, -1])

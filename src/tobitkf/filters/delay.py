@@ -40,6 +40,7 @@ Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected: LD-E2); ``decorrelation`` 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -56,6 +57,7 @@ from .core import (
     Transition,
     check_keywords,
     measurement_update,
+    step_state,
     symmetrize,
     time_update,
 )
@@ -124,6 +126,26 @@ def _ring_layout(d: int, n: int, m: int) -> tuple[int, dict[str, Any]]:
 def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
     """The fields of a flat ring buffer as views."""
     return {k: buf[o : o + z].reshape(s) for k, o, s, z in layout["fields"]}
+
+
+def _flat_views(buf: np.ndarray, shapes: tuple[tuple[int, ...], ...]) -> list[np.ndarray]:
+    """The arrays of ``shapes`` laid one after the other in the flat ``buf`` (the outputs of a whole-step kernel
+    of :mod:`tobitkf.filters._kernels_delay`, which returns one array, not a tuple), as views."""
+    out, o = [], 0
+    for sh in shapes:
+        z = math.prod(sh)
+        out.append(buf[o : o + z].reshape(sh))
+        o += z
+    return out
+
+
+#: the most runs the whole-step kernels of Algorithms C and D take (the online case: one run, a few); more runs
+#: keep their vectorised numpy means and threaded shared update, which a single-threaded loop over the runs
+#: does not beat (D, 10^4 runs: 1.3-1.8x slower; measured 3 Dec 2026)
+_WHOLE_STEP_MAX_RUNS = 1024
+
+#: a placeholder array for a kernel argument that is not read (an innovation of a time before the first reading)
+_NOTHING = np.zeros((1, 1))
 
 
 #: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
@@ -289,6 +311,18 @@ def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
     return args + (float(system.gamma_mean(0)), float(system.gamma_var(0)), mode == "optimal")
 
 
+def _packed_moment_args(system: DelayFadingSystem, mode: str, *ints: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_kernel_moment_args` packed for the whole-step kernels (``_kernels_delay._unpack_moments``): the
+    matrices row-major then γ̄, σ² in one float array, and (n, m, p, h, optimal) followed by ``ints``."""
+    args = list(_kernel_moment_args(system, mode))
+    h = np.size(args[8])  # Q_ζ: one per multiplicative noise (none: no A_i either)
+    args[7] = args[7][:h]
+    cb = np.concatenate([np.ravel(a) for a in args[:-3]] + [np.array(args[-3:-1], dtype=float)])
+    n, m, p = system.n, system.m, system.Gamma.shape[1]
+    ib = np.array((n, m, p, h, int(args[-1])) + ints, dtype=np.int64)
+    return cb, ib
+
+
 class _DelayEstimator(Estimator):
     """What the three delay algorithms share: the source's time index (y(0) first, measuring x(-d); the
     prior is the history x(0), ..., x(-d), ``state.k = -1``), the check of the readings (finite: the
@@ -306,6 +340,25 @@ class _DelayEstimator(Estimator):
         self.prior = system.check_prior(prior)
         self.system = system
         self.n, self.m = system.n, system.m
+
+    def _whole_takes(self, state: FilterState, options: dict[str, Any]) -> bool:
+        """Whether the family's compiled whole step (one kernel call) takes the step from ``state``."""
+        return False
+
+    def _fast_step(self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]) -> FilterState | None:
+        """The online step by the compiled whole step: :meth:`_step_arrays` without the loop's floating-point
+        context (the kernel's arithmetic warns of nothing) and the divergence check on the trace of the one
+        shared covariance; None (the checked step runs, which warns and makes the means NaN) when the kernel does not
+        take this step or a variance is not finite."""
+        if not self._whole_takes(state, options):
+            return None
+        k = state.k + 1
+        x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, y, u, options)
+        # a sum of the variances of the one shared covariance: not finite when one is not (or, harmlessly, when
+        # they overflow their sum: the checked step then runs)
+        if not math.isfinite(P[0].trace()):
+            return None
+        return step_state(k, state.batch_shape, x, P, self.n, S, carry, extras)
 
     def _the_prior(self, prior: Any) -> HistoryPrior:
         return self.prior if prior is None else self.system.check_prior(prior)
@@ -421,10 +474,12 @@ class ChainLMMSE(_DelayEstimator):
         self.backend = backend
         self._GS = system.GS
         self._moments = None  # the compiled moments of Λ(t-d) and their constant arguments
+        self._whole = None  # the compiled plain step (:func:`~tobitkf.filters._kernels_delay.chain_step`)
         if use_kernel(backend, _kernel_gap(system), "the chain LMMSE's moments"):
-            from ._kernels_delay import delay_moments
+            from ._kernels_delay import chain_step, delay_moments
 
             self._moments = (delay_moments, _kernel_moment_args(system, decorrelation))
+            self._whole = (chain_step, _packed_moment_args(system, decorrelation, system.d))
 
     def _state_dim(self) -> int:
         return self.n * (self.system.d + 1)
@@ -449,6 +504,11 @@ class ChainLMMSE(_DelayEstimator):
         d, n = sys_.d, self.n
         lags, horizons = options.get("lags", ()), options.get("horizons", ())
         point, keep_rts = options.get("point"), options.get("keep_rts", False)
+        # the compiled plain step reads the window before y(t) off the last one, x̂(t-1-k|t-1): from t = 1 on
+        # (the prior's window is x(0), ..., x(-d) itself)
+        plain = not (lags or horizons or keep_rts) and point is None and t > 0
+        if self._whole is not None and plain and P.shape[0] == 1 and x.shape[0] <= _WHOLE_STEP_MAX_RUNS:
+            return self._plain_step(t, x, P, carry, y)
         xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
         e = t - d
         # what time t needs of Λ(t-d), each formed once: R(t) = Q_v + σ² H Λ H^T, J(t), Ā(t), Σ(t) and Λ(t+1)
@@ -526,14 +586,31 @@ class ChainLMMSE(_DelayEstimator):
         x_new, P_new = xp.copy(), Pp.copy()
         x_new[:, d * n :] = xe
         P_new[0, d * n :, d * n :] = Pe[0]
-        keep = max((d,) + tuple(lags))
-        for j in [j for j in xb if j < t + 1 - keep and j != point]:
-            del xb[j], Pb[j], D[j]
-        for j in [j for j in lam if j < t + 1 - keep - d - 1]:
-            del lam[j]
-        new = {"xb": xb, "Pb": Pb, "D": D, "lam": lam}
-        if point is not None:
-            new["point"] = point
+        new = _chain_prune(t, d, lags, point, xb, Pb, D, lam)
+        return x_new, P_new, None, new, xp, Pp, extras
+
+    def _plain_step(self, t, x, P, carry, y):
+        """:meth:`_step_arrays` at t >= 1 without lags, horizons or a fixed point, as one compiled call
+        (:func:`~tobitkf.filters._kernels_delay.chain_step`; the same carry and extras, equal to rounding)."""
+        d, n, m = self.system.d, self.n, self.m
+        kern, args = self._whole
+        N, nw = x.shape
+        buf = kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - d], y, *args)
+        shapes = ((N, nw), (N, nw), (N, n), (N, m), (1, nw, nw), (1, nw, nw), (1, n, n), (1, m, m), (n, n))
+        x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, shapes)
+        # the measured element x(t-d) leaves the carry (the window keeps it): its Φ is not formed
+        new = _chain_prune(t, d, (), None, carry["xb"], carry["Pb"], carry["D"], carry["lam"])
+        new["xb"][t + 1], new["Pb"][t + 1], new["D"][t + 1] = xn, Pn, Pn
+        new["lam"][t + 1] = lam_next
+        extras = {
+            "measured_mean": x_new[:, d * n :],
+            "measured_cov": P_new[:, d * n :, d * n :],
+            "next_mean": xn,
+            "next_cov": Pn,
+            "innovation": eps,
+            "innovation_cov": Qe,
+            "_lam": carry["lam"][t][None],
+        }
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _checked_options(self, lags, horizons, fixed_point):
@@ -552,6 +629,17 @@ class ChainLMMSE(_DelayEstimator):
                 "decorrelation='optimal'; the constant-J covariances are not error covariances"
             )
         return {"lags": lags, "horizons": horizons, "point": fixed_point}
+
+    def _whole_takes(self, state, options):
+        plain = not (options.get("lags") or options.get("horizons") or options.get("keep_rts"))
+        return (
+            self._whole is not None
+            and plain
+            and options.get("point") is None
+            and state.k >= 0
+            and state.P.shape[0] == 1
+            and state.runs <= _WHOLE_STEP_MAX_RUNS
+        )
 
     def _prepare_step_options(self, state, options):
         if not options:  # the plain online step: nothing to check
@@ -579,6 +667,23 @@ class ChainLMMSE(_DelayEstimator):
     def smooth_point(self, y: Any, j0: int):
         """Fixed-point smoother; see :func:`smooth_point`."""
         return smooth_point(self.system, self.prior, y, j0)
+
+
+def _chain_prune(t: int, d: int, lags: tuple, point: int | None, xb, Pb, D, lam) -> dict[str, Any]:
+    """The chain LMMSE's new carry after step t: new dicts without the elements x(j), j < t + 1 - max(d, lags)
+    (but the fixed point), and the Λ(j) no longer read."""
+    lo = t + 1 - max((d,) + tuple(lags))
+    kept = [j for j in xb if j >= lo or j == point]
+    lo_lam = lo - d - 1
+    new: dict[str, Any] = {
+        "xb": {j: xb[j] for j in kept},
+        "Pb": {j: Pb[j] for j in kept},
+        "D": {j: D[j] for j in kept},
+        "lam": {j: v for j, v in lam.items() if j >= lo_lam},
+    }
+    if point is not None:
+        new["point"] = point
+    return new
 
 
 def chain_lmmse(
@@ -794,6 +899,13 @@ class AugmentedLMMSE(_DelayEstimator):
         The covariance form of the shared update and predict; ``"square_root"`` carries a factor of the
         augmented covariance (not in the source; the chain and reorganized algorithms have their own
         covariance recursions for the older elements and keep the standard form).
+    backend : {"auto", "numpy", "numba"}, default "auto"
+        ``"auto"`` runs a step of one covariance shared by the runs (every step from the prior) as one compiled
+        call (:func:`tobitkf.filters._kernels_delay.aug_step`: the update, the decorrelated predict and
+        Λ_X(t+1)) when numba imports, the form is ``"standard"`` and the fading and multiplicative-noise laws
+        do not change with t; else the shared update and predict run compiled around the numpy moments. Equal
+        to the numpy path to rounding (tested to 1e-12). ``"numpy"`` the reference path; ``"numba"`` raises
+        :class:`~tobitkf.ValidationError` for the cases the whole-step kernel does not cover.
     """
 
     _name = "AugmentedLMMSE"
@@ -806,11 +918,14 @@ class AugmentedLMMSE(_DelayEstimator):
         *,
         window: int | None = None,
         covariance_update: str = "standard",
+        backend: str = "auto",
     ):
         check_keywords(
-            {"covariance_update": covariance_update}, {"covariance_update": ("standard", "joseph", "square_root")}
+            {"covariance_update": covariance_update, "backend": backend},
+            {"covariance_update": ("standard", "joseph", "square_root"), "backend": BACKENDS},
         )
         self.covariance_update = covariance_update
+        self.backend = backend
         self._setup(system, prior)
         d = system.d
         W = d if window is None else window
@@ -818,6 +933,18 @@ class AugmentedLMMSE(_DelayEstimator):
             raise ValidationError(f"window: expected an integer >= d = {d}, got {window!r}")
         self.window = int(W)
         self._mats = _augmented_matrices(system, self.window)
+        gap = _kernel_gap(system)
+        if gap is None and covariance_update != "standard":
+            gap = f"covariance_update={covariance_update!r} (the whole-step kernel runs the standard form)"
+        self._whole = None  # the compiled whole step and its constant arguments after (X, P, Λ_X, y)
+        if use_kernel(backend, gap, "the augmented LMMSE's step"):
+            from ._kernels_delay import aug_step
+
+            AA, Ai, _, HH, GQG, GS_T = self._mats
+            q = system.q_mult(0) if system.h else np.zeros(0)
+            c = np.ascontiguousarray
+            consts = (c(AA), c(Ai), c(q, dtype=float), c(HH), c(GQG), c(GS_T), c(system.Qv))
+            self._whole = (aug_step, consts + (float(system.gamma_mean(0)), float(system.gamma_var(0))))
 
     def _state_dim(self) -> int:
         return self.n * (self.window + 1)
@@ -838,9 +965,18 @@ class AugmentedLMMSE(_DelayEstimator):
             Xpr, Ppr, Spr = carry["next"]
         else:
             Xpr, Ppr, Spr = x, P, S
-        Xf, Pf, Xp, Pp, K, eps, Qe, LamX, Sf, Sp = _aug_step(
-            self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, self.covariance_update, Spr, self._compiled_core()
-        )
+        if self._whole is not None and Ppr.shape[0] == 1:  # one compiled call (a covariance shared by the runs)
+            kern, consts = self._whole
+            N, nx = Xpr.shape
+            buf = kern(Xpr, Ppr[0], carry["LamX"], y, *consts)
+            shapes = ((N, nx), (N, nx), (N, self.m), (1, nx, nx), (1, nx, nx), (1, self.m, self.m), (nx, nx))
+            Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(buf, shapes)
+            Sf = Sp = None
+        else:
+            form, fast = self.covariance_update, self._compiled_core()
+            Xf, Pf, Xp, Pp, _, eps, Qe, LamX, Sf, Sp = _aug_step(
+                self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, form, Spr, fast
+            )
         N = x.shape[0]
         extras = {
             "measured_mean": _blk(Xf, d, None, n),
@@ -859,7 +995,13 @@ class AugmentedLMMSE(_DelayEstimator):
         new = {"LamX": LamX, "next": (Xp, Pp, Sp), "lam": {t + 1: LamX[:n, :n]}}
         return Xf, Pf, Sf, new, Xpr, Ppr, extras
 
+    def _whole_takes(self, state, options):
+        P = state.carry["next"][1] if "next" in state.carry else state.P
+        return self._whole is not None and P.shape[0] == 1
+
     def _prepare_step_options(self, state, options):
+        if not options:  # the plain online step: nothing to check
+            return {"lags": ()}
         lags = _check_lags(options.get("lags", ()), "lags", 0)
         if any(L > self.window for L in lags):
             raise ValidationError(f"lags: expected lags <= window W = {self.window}, got {max(lags)}")
@@ -987,26 +1129,44 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._HT = system.H.T
         self.backend = backend
         gap = _kernel_gap(system)
-        self._kernel, self._kernel_args = None, ()
-        # d = 0 is Algorithm C (its chain's own step)
+        # the compiled whole step (covariances and means) and its arguments after (ring, t); d = 0 is
+        # Algorithm C (its chain's own step)
+        self._whole = None
         if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
-            self._kernel, self._kernel_args = self._compiled_step()
+            self._whole = self._compiled_step()
+            self._kernel, self._kernel_args = self._compiled_cov_step()
+        self._eps_back = tuple(range(1, system.d - 1))  # the whole step reads ε(t-k), k = 1..d-2
+        self._lag_keys = (f"lag{system.d - 1}_mean", f"lag{system.d - 1}_cov")
         if system.d == 0:
             self._chain = ChainLMMSE(system, self.prior, decorrelation=decorrelation, backend=backend)
         # γ̄(s), read about 2d times per step: the law's one mean when it does not change with s
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
-    def _compiled_step(self):
+    def _whole_takes(self, state, options):
+        return self._whole is not None and state.k + 1 >= state.carry["t0"] and state.runs <= _WHOLE_STEP_MAX_RUNS
+
+    def _compiled_cov_step(self):
         """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
-        constant arguments after ``(ring, t)``."""
+        constant arguments after ``(ring, t)``, for many runs (their means on numpy)."""
         from ._kernels_delay import reorg_cov_step
 
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
         offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
         args = (offs, sys_.d, W) + _kernel_moment_args(sys_, self.decorrelation)
-        args += ("E5" in self.errata, "E6" in self.errata, "E7" in self.errata)
-        return reorg_cov_step, args
+        return reorg_cov_step, args + tuple(e in self.errata for e in ("E5", "E6", "E7"))
+
+    def _compiled_step(self):
+        """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.reorg_step`: the covariance step
+        :func:`~tobitkf.filters._kernels_delay.reorg_cov_step` and the means) and its packed constants
+        ``(cb, ib)`` (:func:`_packed_moment_args` with d, W, the errata flags and the ring's offsets)."""
+        from ._kernels_delay import reorg_step
+
+        sys_ = self.system
+        W, layout = _ring_layout(sys_.d, self.n, self.m)
+        offs = tuple(int(layout[k][0]) for k in _RING_FIELDS)
+        flags = tuple(int(e in self.errata) for e in ("E5", "E6", "E7"))
+        return reorg_step, _packed_moment_args(sys_, self.decorrelation, sys_.d, W, *flags, *offs)
 
     def _gbar(self, s: int) -> float:
         """γ̄(s) (one call, not two, when the fading law does not change with s)."""
@@ -1082,14 +1242,16 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         c = dict(carry)
         for key in _REORG_DICTS:
             c[key] = dict(carry[key])
-        xf, xsm, xm, xp, eps = (c[k] for k in _REORG_DICTS)
+        xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
         W, layout = self._layout
         ring = c["ring"] = carry["ring"].copy()
+        if t >= c["t0"] and self._whole is not None and y.shape[0] <= _WHOLE_STEP_MAX_RUNS:
+            return self._whole_step(t, y, c, xf, xsm, xm, xp, eps, ring)
         R = _ring_views(ring, layout)
         xpred = xp[t]
         if t < c["t0"]:
             self._warmup_step(t, y, c, R)
-        elif self._kernel is not None:
+        elif self._whole is not None:  # many runs: the compiled covariance step, the numpy means
             self._kernel(ring, t, *self._kernel_args)
             self._means_step(t, y, xf, xsm, xm, xp, eps, R)
         else:
@@ -1114,9 +1276,45 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         old = t - 2 * d - 2
         R["psi"][old % W] = 0.0
         R["kh"][old % W] = 0.0
-        for dct in (xf, xsm, xm, xp, eps):
-            dct.pop(old - 1, None)
+        _drop_means(old - 1, xf, xsm, xm, xp, eps)
         return xf[t], R["pf"][st][None], None, c, xpred, R["pp"][st][None], extras
+
+    def _whole_step(self, t, y, c, xf, xsm, xm, xp, eps, ring):
+        """:meth:`_step_arrays` at t >= warmup as one compiled call (:func:`~tobitkf.filters._kernels_delay.reorg_step`:
+        the covariance step, the means and the ring's pruning) on the step's own copies of the carry."""
+        d, n, m = self.system.d, self.n, self.m
+        kern, args = self._whole
+        N = y.shape[0]
+        # C-ordered arguments (the warm-up's means are column blocks of Algorithm A's, the loop's readings
+        # columns of the record): one compiled signature, and a tuple of one array type
+        # (the warm-up stores its means C-ordered too)
+        back = self._eps_back  # ε(t-1), ..., ε(t-d+2)
+        prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
+        xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the kernel's own x̂(t|t)
+        buf = kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev)  # prev: ε(t-1)..ε(t-d+2)
+        Mz = 4 * N * n
+        M = buf[:Mz].reshape(4, N, n)
+        e_t = buf[Mz : Mz + N * m].reshape(N, m)
+        Cz = Mz + N * m + 7 * n * n
+        C = buf[Mz + N * m : Cz].reshape(7, 1, n, n)
+        Qe = buf[Cz:].reshape(1, m, m)
+        xpred = xp[t]
+        xf[t], xsm[t], xm[t], xp[t + 1] = M[0], M[1], M[2], M[3]
+        eps[t] = e_t
+        extras = {
+            "measured_mean": M[2],
+            "measured_cov": C[2],
+            "next_mean": M[3],
+            "next_cov": C[3],
+            "innovation": e_t,
+            "innovation_cov": Qe,
+            self._lag_keys[0]: M[1],
+            self._lag_keys[1]: C[4],
+            "_lam": C[5],
+        }
+        c["lam"] = {t + 1: C[6][0]}  # Λ(t+1), read by the result assembly (_group_extras)
+        _drop_means(t - 2 * d - 3, xf, xsm, xm, xp, eps)  # (the kernel zeroed the ring's Ψ, K H of t-2d-2)
+        return M[0], C[0], None, c, xpred, C[1], extras
 
     def _warmup_step(self, t, y, c, R):
         """A step t < warmup by Algorithm A, from which every stored Ψ, gain and covariance is read (LD-05)."""
@@ -1130,14 +1328,16 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         Xf, PfA, Xp_, PpA, KA, e_t, Q_t, LamX, _, _ = _aug_step(sys_, self._warmup_matrices(), Xa, Pa, LamX, y, t)
         Pprior = Pa[0]
         PfA, PpA, KA, Q_t = PfA[0], PpA[0], KA[0], Q_t[0]
-        c["xf"][t], R["pf"][st] = _blk(Xf, 0, None, n), _blk(PfA, 0, 0, n)
-        c["xsm"][t], R["psm"][st] = _blk(Xf, d - 1, None, n), _blk(PfA, d - 1, d - 1, n)
-        c["xm"][t], R["pmeas"][st] = _blk(Xf, d, None, n), _blk(PfA, d, d, n)
-        c["xp"][t + 1], R["pp"][(t + 1) % W] = _blk(Xp_, 0, None, n), _blk(PpA, 0, 0, n)
+        # the means C-ordered (copies of the column blocks), as the compiled whole step reads them
+        c_ = np.ascontiguousarray
+        c["xf"][t], R["pf"][st] = c_(_blk(Xf, 0, None, n)), _blk(PfA, 0, 0, n)
+        c["xsm"][t], R["psm"][st] = c_(_blk(Xf, d - 1, None, n)), _blk(PfA, d - 1, d - 1, n)
+        c["xm"][t], R["pmeas"][st] = c_(_blk(Xf, d, None, n)), _blk(PfA, d, d, n)
+        c["xp"][t + 1], R["pp"][(t + 1) % W] = c_(_blk(Xp_, 0, None, n)), _blk(PpA, 0, 0, n)
         R["pm"][st] = _blk(Pprior, d, d, n)  # P(t-d|t-1)
         for k in range(d + 1):
             R["kh"][st, k] = _blk(KA.T, k, None, n).T.dot(sys_.H)  # K(t-k|t) H: K(t-k|t) the rows of block k
-        c["eps"][t], R["qe"][st] = e_t, Q_t
+        c["eps"][t], R["qe"][st] = c_(e_t), Q_t
         # Ψ_i(t') = block (d, d-i) of P(j|j-1) with j = t'-i+1
         for j, Pj in ((t, Pprior), (t + 1, PpA)):
             for i in range(1, d + 1):
@@ -1257,6 +1457,12 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         res = self._run_delay(y, prior, state, outputs, {})
         res.extras["warmup"] = int(res.final.carry["t0"])
         return res
+
+
+def _drop_means(j: int, *dicts: dict) -> None:
+    """Algorithm D's means of time j, no longer read, out of the step's own copies of the per-time dicts."""
+    for dct in dicts:
+        dct.pop(j, None)
 
 
 def reorganized_lmmse(
