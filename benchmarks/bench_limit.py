@@ -19,12 +19,15 @@ covariances written by every contestant (and, for ours, a means-only row):
   ``jax.scipy.special.ndtr``/``log_ndtr``) when JAX is installed (``pip install .[bench]``);
   skipped with a note otherwise.
 
-Each contestant runs ``--repeat`` times, interleaved (round r times everyone once), after one
-untimed call (compilation), and every timed call starts from the same cache state: an untimed
-pass over a scratch array as large as the case's mean + covariance outputs first (without it a
-contestant's time depended on its predecessor: one that follows a call that freed fresh outputs
-reuses pages still in cache, one that follows "outputs reused" does not; measured 120-210 ns per
-run-step for the same kernel at 10^5 x 100 by position alone; ``--no-scrub`` turns it off); printed: median ns per run-step, spread (min-max) and the ratio of
+Each contestant runs ``--repeat`` times, interleaved (round r times everyone once, in an order
+shuffled every round, seeded), after one untimed call (compilation), each timed call after an
+untimed pass over a scratch array as large as the case's mean + covariance outputs. Both because a
+contestant's time depended on its predecessor, by more than the differences measured: with a fixed
+order, the same kernel took 121 or 210 ns per run-step at 10^5 x 100 by position alone (writing
+fresh memory is cheap right after a call that freed some, dear after "outputs reused", which
+frees none; on this VM the freed pages seem to be handed back to the host after a while). The
+scrub alone did not remove that (``--no-scrub`` turns it off);
+printed: median ns per run-step, spread (min-max) and the ratio of
 medians against the fused limit and against JAX's TKF (> 1 = faster than it). The machine's
 load average is printed before and after, since the machine is shared.
 
@@ -216,8 +219,12 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int, scrub: bool = True)
         fn()
     times: dict[str, list[float]] = {k: [] for k in contestants}
     pad = np.zeros(runs * steps * 6) if scrub else None  # the size of the mean + covariance outputs
+    rng = np.random.default_rng(0)
+    names = list(contestants)
     for _ in range(repeat):
-        for name, (fn, work) in contestants.items():
+        for i in rng.permutation(len(names)):  # no fixed predecessor (see the module docstring)
+            name = names[i]
+            fn, work = contestants[name]
             if pad is not None:
                 pad += 1.0  # the same cache state before every timed call (see the module docstring)
             t0 = time.perf_counter()
@@ -254,7 +261,7 @@ def main() -> None:
     cases = [(100_000, 100, 20), (10_000, 1_000, 5)] if not args.smoke else [(400, 40, 2)]
     repeat = args.repeat if not args.smoke else 2
     scrubbed = "no scrub" if args.no_scrub else "a cache scrub before each call"
-    print(f"one thread; load average before: {_load()}; {repeat} interleaved repeats, medians; {scrubbed}")
+    print(f"one thread; load average before: {_load()}; {repeat} shuffled interleaved repeats, medians; {scrubbed}")
     for runs, steps, peers in cases:
         case(runs, steps, repeat, peers, scrub=not args.no_scrub)
     print(f"\nload average after: {_load()}")
