@@ -22,8 +22,7 @@ Runs are processed in blocks of :data:`BLOCK` (outer loop) over time (inner loop
 block's state in structure-of-arrays scratch (innermost loops over the runs of the
 block, which are independent: one run alone is a latency-bound chain), and the outputs
 staged for :data:`CHUNK` steps before they are written run by run into the
-preallocated ``(N, T, ...)`` arrays (except the TKF's filtered mean and covariance, written
-straight into theirs by :func:`_write_step`). Functions are compiled on first use and cached on
+preallocated ``(N, T, ...)`` arrays. Functions are compiled on first use and cached on
 disk (``cache=True``). The kernels release the GIL (``nogil=True``), so threads (e.g. a
 threaded Dask scheduler) can run several filters at once.
 
@@ -771,35 +770,6 @@ def _flush(buf, out, r0, t0, nb, cnt):
 
 
 @njit(cache=True, error_model="numpy")
-def _write_step(xv, Pv, r0, t, nb, means, covs):
-    """Write a block's x[i, b] and the top-left ``n x n`` block of P[i, j, b] straight into ``means[r0 + b,
-    t]`` (N, T, n) and ``covs[r0 + b, t]`` (N, T, n, n), or P's diagonal alone into ``covs`` (N, T, n, 1)
-    (as :func:`_stage_cov`); an output with no time axis (``shape[1] == 0``) is not requested and skipped.
-
-    The alternative to staging (:func:`_stage` + :func:`_flush`) for the filtered outputs of the TKF:
-    one pass over the output instead of two. Measured (n = 2, m = 1, fresh first-touch outputs, one
-    thread, interleaved, the same cache scrub before every call): 10^5 runs x 100 steps 134-152 ns per
-    run-step against 178-200 staged, 10^4 x 1000 202 against 215."""
-    n = xv.shape[0]
-    if means.shape[1] > 0:
-        for b in range(nb):
-            for i in range(n):
-                means[r0 + b, t, i] = xv[i, b]
-    if covs.shape[1] == 0:
-        return
-    nc = covs.shape[2]
-    if covs.shape[3] == 1:
-        for b in range(nb):
-            for i in range(nc):
-                covs[r0 + b, t, i, 0] = Pv[i, i, b]
-        return
-    for b in range(nb):
-        for i in range(nc):
-            for j in range(nc):
-                covs[r0 + b, t, i, j] = Pv[i, j, b]
-
-
-@njit(cache=True, error_model="numpy")
 def _store_last(xv, Pv, r0, nb, x_last, P_last):
     """The block's state after its last step into ``x_last[r0 + b]``, ``P_last[r0 + b]``."""
     n = xv.shape[0]
@@ -965,8 +935,8 @@ def tkf_kernel(
     blk, run, solve, buf = _update_scratch(n, n, m, B, glx.shape[0])
     P, Pp, AP, _CP, _Rxe, _Ree, _K, _MH, _noise, gam, _ok = blk
     # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
-    # (the filtered mean and covariance are written straight into their outputs by _write_step)
-    s_pmean, s_pcov = np.empty(_stage_shape(pmeans, B, S)), np.empty(_stage_shape(pcovs, B, S))
+    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
+    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
     s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
     want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
     has_bu = bu.shape[1] > 0
@@ -1017,9 +987,11 @@ def tkf_kernel(
                             s_pu[tt, l, b] = gam[l, b]
                         if want_ey:
                             s_ey[tt, l, b] = mu[l, b]
-            _write_step(x, P, r0, t, nb, means, covs)
+            _stage(x, P, tt, nb, s_mean, s_cov)
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_cov, covs, r0, t0, nb, tt + 1)
                 _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
                 _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
                 _flush(s_pu, pu, r0, t0, nb, tt + 1)
