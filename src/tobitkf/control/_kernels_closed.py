@@ -118,7 +118,6 @@ def closed_loop_kernel(
     gam = blk[9]
     xn = np.empty((n, B))
     Pn = np.empty((n, n, B))
-    cf = (np.empty(B), np.empty(B, dtype=np.int64), np.empty(B))  # tobit_update_block's (one limit row per run: unused)
     xt = np.empty((n, B))
     xk = np.empty((n, B))
     uk = np.empty((p, B))
@@ -274,7 +273,6 @@ def closed_loop_kernel(
                     solve,
                     buf,
                     nb,
-                    cf,
                 )
             # divergence: a run whose state or estimate leaves the bound is frozen at its last values
             for b in range(nb):

@@ -810,7 +810,6 @@ def tobit_update_block(
     solve,
     buf,
     nb,
-    cf,
 ):
     r"""The Tobit measurement update of a block of ``nb`` runs (Miller (3.37)–(3.41), (3.39)–(3.40), (3.32),
     (3.22), (3.55)), all channel statistics at the prior (Assumption A1, (3.35)): the step of
@@ -824,10 +823,7 @@ def tobit_update_block(
     row per run). ``noise_code`` from :data:`NOISE_CODES`. Writes the posterior ``x`` (n, B), ``P``
     (n, n, B), :math:`E(y)` (3.8) in ``mu`` (m, B), the innovation :math:`y - E(y)` in ``e`` (m, B) (0 for
     a channel left out), and in ``blk`` (from :func:`_update_scratch`) ``gam`` = :math:`E(\mathbf p)` and
-    the noise term :math:`R_{uu}` among the rest. ``cf`` = ``(a, kst, s)`` ((B,), (B,) int, (B,)) the
-    scratch of :func:`_lower_tail_block`, which evaluates the continued fractions of the block's tail runs
-    together when the block shares one lower limit alone (``lstep = 0``: the TKF over a record; one run's
-    chain at a time was most of the extra time of a tail-heavy record). Inlined (numba
+    the noise term :math:`R_{uu}` among the rest. Inlined (numba
     ``inline="always"``): the caller's loop sees the statistics of :func:`censored_stats` inlined as before.
     """
     _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
@@ -835,21 +831,15 @@ def tobit_update_block(
     Rw, Wb, db, bad = solve
     m, n = C.shape
     has_du = du.shape[1] > 0
-    cf_a, cf_k, cf_s = cf
     for l in range(m):
         sd = sigma[l]
         for b in range(nb):
             s = 0.0
             for j in range(n):
                 s += xp[j, b] * C[l, j]
-            mu[l, b] = s + du[r0 + b, t, l] if has_du else s  # C xbar + D u (the numpy path's x_pred @ C.T + dy)
-        lower = lstep == 0 and hi[lrow, l] == _INF and lo[lrow, l] != -_INF  # censored_stats' _lower_only route
-        if lower:
-            _lower_tail_block(mu[l], sd, lo[lrow, l], nb, cf_a, cf_k, cf_s)
-        for b in range(nb):
-            mean = mu[l, b]
+            mean = s + du[r0 + b, t, l] if has_du else s  # C xbar + D u (the numpy path's x_pred @ C.T + dy)
             r = lrow + lstep * b
-            st = censored_stats_at(b, lower, mean, sd, lo[r, l], hi[r, l], glx, glw, buf, cf_s)
+            st = censored_stats(mean, sd, lo[r, l], hi[r, l], glx, glw, buf)
             g = st[2]
             gam[l, b] = g
             if noise_code == 0:
@@ -940,7 +930,6 @@ def tkf_kernel(
     s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
     want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
     has_bu = bu.shape[1] > 0
-    cf = (np.empty(B), np.empty(B, dtype=np.int64), np.empty(B))  # scratch of _lower_tail_block
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _load(x0, P0, r0, nb, x, P)
@@ -978,7 +967,6 @@ def tkf_kernel(
                 solve,
                 buf,
                 nb,
-                cf,
             )
             if want_pu or want_ey:
                 for l in range(m):
