@@ -19,8 +19,15 @@ covariances written by every contestant (and, for ours, a means-only row):
   ``jax.scipy.special.ndtr``/``log_ndtr``) when JAX is installed (``pip install .[bench]``);
   skipped with a note otherwise.
 
-Each contestant runs ``--repeat`` times, interleaved (round r times everyone once), after one
-untimed call (compilation); printed: median ns per run-step, spread (min-max) and the ratio of
+Each contestant runs ``--repeat`` times, interleaved (round r times everyone once, in an order
+shuffled every round, seeded), after one untimed call (compilation), each timed call after an
+untimed pass over a scratch array as large as the case's mean + covariance outputs. Both because a
+contestant's time depended on its predecessor, by more than the differences measured: with a fixed
+order, the same kernel took 121 or 210 ns per run-step at 10^5 x 100 by position alone (writing
+fresh memory is cheap right after a call that freed some, dear after "outputs reused", which
+frees none; on this VM the freed pages seem to be handed back to the host after a while). The
+scrub alone did not remove that (``--no-scrub`` turns it off);
+printed: median ns per run-step, spread (min-max) and the ratio of
 medians against the fused limit and against JAX's TKF (> 1 = faster than it). The machine's
 load average is printed before and after, since the machine is shared.
 
@@ -142,7 +149,7 @@ def jax_filters(sys_, lower):
 # ---- the benchmark ------------------------------------------------------------------------------
 
 
-def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
+def case(runs: int, steps: int, repeat: int, peer_runs: int, scrub: bool = True) -> None:
     sys_ = make_system()
     lower = 0.0
     cens = tk.Censoring(lower=lower)
@@ -211,8 +218,15 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int) -> None:
     for fn, _ in contestants.values():  # compile / warm up outside the timings
         fn()
     times: dict[str, list[float]] = {k: [] for k in contestants}
+    pad = np.zeros(runs * steps * 6) if scrub else None  # the size of the mean + covariance outputs
+    rng = np.random.default_rng(0)
+    names = list(contestants)
     for _ in range(repeat):
-        for name, (fn, work) in contestants.items():
+        for i in rng.permutation(len(names)):  # no fixed predecessor (see the module docstring)
+            name = names[i]
+            fn, work = contestants[name]
+            if pad is not None:
+                pad += 1.0  # the same cache state before every timed call (see the module docstring)
             t0 = time.perf_counter()
             fn()
             times[name].append((time.perf_counter() - t0) / work * 1e9)
@@ -240,14 +254,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
+    ap.add_argument("--no-scrub", action="store_true", help="no cache scrub before each timed call")
     args = ap.parse_args()
     if args.repeat < 1:
         ap.error("--repeat: expected a positive count")
     cases = [(100_000, 100, 20), (10_000, 1_000, 5)] if not args.smoke else [(400, 40, 2)]
     repeat = args.repeat if not args.smoke else 2
-    print(f"one thread; load average before: {_load()}; {repeat} interleaved repeats, medians")
+    scrubbed = "no scrub" if args.no_scrub else "a cache scrub before each call"
+    print(f"one thread; load average before: {_load()}; {repeat} shuffled interleaved repeats, medians; {scrubbed}")
     for runs, steps, peers in cases:
-        case(runs, steps, repeat, peers)
+        case(runs, steps, repeat, peers, scrub=not args.no_scrub)
     print(f"\nload average after: {_load()}")
 
 

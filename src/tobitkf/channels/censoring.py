@@ -153,8 +153,11 @@ class Censoring(Channel):
         lo, hi = self.all_limits(steps, m, start=start)
         tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
         tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))
-        with np.errstate(invalid="ignore"):
-            bad = (y < lo - tol_lo) | (y > hi + tol_hi)
+        # a side whose limits are all infinite cannot be violated (y < -inf, y > inf and NaN compare False):
+        # not compared (a left-censored record is one pass over y, not two and an "or")
+        bad = np.zeros(y.shape, dtype=bool) if np.isinf(lo).all() else y < lo - tol_lo
+        if not np.isinf(hi).all():
+            bad |= y > hi + tol_hi
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             t, ch = idx[-2], idx[-1]
