@@ -20,18 +20,24 @@ PYTHONPATH=src python benchmarks/bench_protocol.py
 
 from __future__ import annotations
 
-import argparse
 import os
-import statistics
-import time
 
-import numpy as np
+# single-core numbers: the numpy path's BLAS on one thread, as the compiled loops run
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import tobitkf as tk
-from _timing import best_time
-from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
-from tobitkf.filters._backend import numba_available
-from tobitkf.filters.protocol import (
+
+import argparse  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import tobitkf as tk  # noqa: E402
+from _timing import best_time  # noqa: E402
+from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel  # noqa: E402
+from tobitkf.filters._backend import numba_available  # noqa: E402
+from tobitkf.filters.protocol import (  # noqa: E402
     FAILURE_TERMS,
     ProtocolTobitKalmanFilter,
     augmented_transition,
