@@ -78,13 +78,19 @@ def pairs(runs: int, steps: int):
             "fading L=2",
             fy,
             tk.FadingAssumedDensityFilter(fsys, fad, cens),
-            {"TKF-FM (numpy)": tk.FadingTobitKalmanFilter(fsys, fad, cens)},
+            {
+                "TKF-FM (numpy)": tk.FadingTobitKalmanFilter(fsys, fad, cens, backend="numpy"),
+                "TKF-FM (numba, reference)": tk.FadingTobitKalmanFilter(fsys, fad, cens),
+            },
         ),
         (
             "protocol ell=2",
             py,
             tk.ProtocolAssumedDensityFilter(psys, ch),
-            {"PBTKF-IMSF (numpy)": tk.ProtocolTobitKalmanFilter(psys, ch)},
+            {
+                "PBTKF-IMSF (numpy)": tk.ProtocolTobitKalmanFilter(psys, ch, backend="numpy"),
+                "PBTKF-IMSF (numba, reference)": tk.ProtocolTobitKalmanFilter(psys, ch),
+            },
         ),
     ]
 

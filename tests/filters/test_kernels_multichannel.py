@@ -111,6 +111,21 @@ def test_tkf_n16_m8_batch_shapes_equal_numpy(shape):
     assert_results_equal(a, b)
 
 
+def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
+    """n = 16: 256 numbers per run-step, the outputs flushed step by step (``_flush`` for large blocks);
+    40 runs (a full block of 32 and a partial one) x 150 steps (two full chunks of 64 and a partial one),
+    every output compared with numpy."""
+    from tobitkf.filters import _kernels
+
+    sys_ = random_system(16, 8, seed=5)
+    cens = censorings(8)["two_sided"]
+    y = records(sys_, cens, runs=40, steps=150, seed=6)
+    assert 16 * 16 >= _kernels.FLUSH_BY_STEP > 16 and y.shape[1] > 2 * _kernels.CHUNK and y.shape[0] > _kernels.BLOCK
+    assert_results_equal(
+        tobit_kalman_filter(sys_, cens, y, backend="numba"), tobit_kalman_filter(sys_, cens, y, backend="numpy")
+    )
+
+
 @pytest.mark.parametrize("sign", [1.0, -1.0])
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_tkf_m_gt_1_limits_40_sigma_out(sign, cu):

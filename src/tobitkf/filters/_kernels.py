@@ -340,6 +340,7 @@ def censored_moments_array(mu, sd, lo, hi, glx, glw):
 
 BLOCK = 32
 CHUNK = 64
+FLUSH_BY_STEP = 32  # numbers per run-step from which _flush goes step by step
 # Outputs are staged for CHUNK steps of a block and then written run by run: writing
 # every step straight into (N, T, ...) arrays touches BLOCK rows T*n*8 bytes apart,
 # which for long records alias in the cache and miss the TLB on every store. The staging
@@ -762,6 +763,17 @@ def _flush(buf, out, r0, t0, nb, cnt):
     S, B = buf.shape[0], buf.shape[buf.ndim - 1]
     d = buf.size // (S * B)
     src = buf.reshape((S, d, B))
+    if d >= FLUSH_BY_STEP:
+        # large per-step blocks (n = 16: d = 256, a 4 MB buffer): step by step, so that the strided
+        # reads stay in one step's slab (d * B * 8 bytes, in cache) instead of sweeping the whole
+        # buffer once per run (measured: n = 16, m = 8, all outputs 8.0-11.5 us against 5.0 us per
+        # run-step for the run-major loop order before the (S, ..., B) layout)
+        for s in range(cnt):
+            for b in range(nb):
+                dst = out[r0 + b, t0 + s].reshape(-1)
+                for q in range(d):
+                    dst[q] = src[s, q, b]
+        return
     for b in range(nb):
         dst = out[r0 + b, t0 : t0 + cnt].reshape(-1)
         for s in range(cnt):
