@@ -16,7 +16,7 @@ the number of failed scripts (capped at 99).
 
 Run by hand::
 
-    python benchmarks/run_all.py                      # the whole suite, ~25 minutes on an idle machine
+    python benchmarks/run_all.py                      # the whole suite, ~20 minutes on an idle machine
     python benchmarks/run_all.py --only limit online  # some entries
     python benchmarks/run_all.py --smoke              # every script's --smoke form, listed ones included (CI)
 
