@@ -70,11 +70,14 @@ def run(file: Path, out: Path, scheduler: str, workers: int, tree: bool = False)
     """Wall seconds of one sweep process and its peak memory in MB: the process's own peak RSS, or with
     ``tree`` the peak of the summed RSS of the process and all its descendants (Dask's nannies and worker
     processes), sampled every 50 ms with psutil (a spike shorter than that can be missed)."""
+    # the output goes to files, not pipes: while the memory is sampled nothing reads a pipe, and a full
+    # one (Dask's log lines on stderr) would stall the sweep
+    out_f, err_f = tempfile.TemporaryFile("w+"), tempfile.TemporaryFile("w+")
     t = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-c", _PEAK, str(file), str(out), scheduler, str(workers)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
+        stdout=out_f,
+        stderr=err_f,
         text=True,
     )
     peak_tree = 0.0
@@ -94,8 +97,13 @@ def run(file: Path, out: Path, scheduler: str, workers: int, tree: bool = False)
                 break
             peak_tree = max(peak_tree, total / 2**20)
             time.sleep(0.05)
-    stdout, stderr = proc.communicate()
+    proc.wait()
     wall = time.perf_counter() - t
+    out_f.seek(0)
+    err_f.seek(0)
+    stdout, stderr = out_f.read(), err_f.read()
+    out_f.close()
+    err_f.close()
     if proc.returncode != 0:
         raise subprocess.CalledProcessError(proc.returncode, proc.args, stdout, stderr)
     own = float(stdout.strip().splitlines()[-1])
