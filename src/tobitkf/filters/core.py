@@ -1189,7 +1189,9 @@ class Estimator:
         k = state.k + 1
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
-        x, carry = _divergence_check(self._name, x, P if S is None else S, k, self.covariance_update, carry)
+        x, carry = _divergence_check(
+            self._name, x, P if S is None else S, k, self.covariance_update, carry, state.carry
+        )
         return step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
@@ -1349,7 +1351,9 @@ class GaussianFilter(Estimator):
         uk = state.carry.get("_u")
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             x, P, S, carry, extras = self._update_arrays(state.k, state.x, state.P, state.S, yk, uk, carry, opts)
-        x, carry = _divergence_check(self._name, x, P if S is None else S, state.k, self.covariance_update, carry)
+        x, carry = _divergence_check(
+            self._name, x, P if S is None else S, state.k, self.covariance_update, carry, state.carry
+        )
         return FilterState(
             k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
         )
@@ -1407,12 +1411,23 @@ def _divergence_warning(name: str, k: int, form: str) -> None:
     )
 
 
-def _divergence_check(name: str, x: np.ndarray, P: np.ndarray | None, k: int, form: str, carry: Mapping[str, Any]):
-    """Online form of the loop's check: NaN means for diverged runs, one warning per run of steps."""
+def _divergence_check(
+    name: str,
+    x: np.ndarray,
+    P: np.ndarray | None,
+    k: int,
+    form: str,
+    carry: Mapping[str, Any],
+    prev: Mapping[str, Any],
+):
+    """Online form of the loop's check: NaN means for diverged runs, one warning per run of steps. The flag
+    that it warned is read from ``prev``, the carry the step started from, as well as from the step's new
+    ``carry`` (a family's step may build its carry afresh, and would otherwise warn at every later step)."""
     if _first_nonfinite(P, k) is None:
         return x, carry
     if not carry.get("_diverged"):
-        _divergence_warning(name, k, form)
+        if not prev.get("_diverged"):
+            _divergence_warning(name, k, form)
         carry = dict(carry)
         carry["_diverged"] = True
     return _poison_diverged(x, P), carry

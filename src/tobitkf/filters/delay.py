@@ -587,7 +587,6 @@ class ChainLMMSE(_DelayEstimator):
         x_new[:, d * n :] = xe
         P_new[0, d * n :, d * n :] = Pe[0]
         new = _chain_prune(t, d, lags, point, xb, Pb, D, lam)
-        _keep_diverged(carry, new)
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _plain_step(self, t, x, P, carry, y):
@@ -601,7 +600,6 @@ class ChainLMMSE(_DelayEstimator):
         x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, shapes)
         # the measured element x(t-d) leaves the carry (the window keeps it): its Φ is not formed
         new = _chain_prune(t, d, (), None, carry["xb"], carry["Pb"], carry["D"], carry["lam"])
-        _keep_diverged(carry, new)
         new["xb"][t + 1], new["Pb"][t + 1], new["D"][t + 1] = xn, Pn, Pn
         new["lam"][t + 1] = lam_next
         extras = {
@@ -669,13 +667,6 @@ class ChainLMMSE(_DelayEstimator):
     def smooth_point(self, y: Any, j0: int):
         """Fixed-point smoother; see :func:`smooth_point`."""
         return smooth_point(self.system, self.prior, y, j0)
-
-
-def _keep_diverged(carry: dict[str, Any], new: dict[str, Any]) -> None:
-    """Carry the online divergence check's flag (:func:`tobitkf.filters.core._divergence_check`) into a step's
-    new carry, so that a diverged run warns once, not at every later step."""
-    if carry.get("_diverged"):
-        new["_diverged"] = True
 
 
 def _chain_prune(t: int, d: int, lags: tuple, point: int | None, xb, Pb, D, lam) -> dict[str, Any]:
@@ -1002,7 +993,6 @@ class AugmentedLMMSE(_DelayEstimator):
             extras[f"lag{L}_mean"] = _blk(Xf, L, None, n) if t - L >= -d else nan_m
             extras[f"lag{L}_cov"] = _blk(Pf, L, L, n) if t - L >= -d else nan_P
         new = {"LamX": LamX, "next": (Xp, Pp, Sp), "lam": {t + 1: LamX[:n, :n]}}
-        _keep_diverged(carry, new)
         return Xf, Pf, Sf, new, Xpr, Ppr, extras
 
     def _whole_takes(self, state, options):
