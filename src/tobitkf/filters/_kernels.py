@@ -9,7 +9,9 @@ zero gain column), same symmetrization after each predict and update, and the sa
 censored-normal statistics as :func:`tobitkf.censored.censored_moments` (direct
 formulas in the central region; 64-node Gauss–Legendre quadrature in shifted
 coordinates when the uncensored window lies beyond 4σ in a tail or is narrower than
-1σ). Results agree with the numpy path to rounding (tested to 1e-12).
+1σ); a channel with one finite limit shared by the runs of a block (the common Tobit case) takes the
+vectorised statistics of :mod:`tobitkf.filters._kernels_censored` for all runs of the block at once.
+Results agree with the numpy path to rounding (tested to 1e-12).
 
 Covered cases (the dispatchers in ``kalman.py`` / ``tobit.py`` decide, with
 :func:`tobitkf.filters._backend.system_gap`): time-invariant A, C, Q, R (and B); for the TKF also
@@ -39,6 +41,7 @@ from numba import njit
 
 from .._linalg_kernels import gauss_solve as _gauss_solve
 from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
+from ._kernels_censored import one_sided_block
 
 __all__ = [
     "censored_stats",
@@ -835,7 +838,11 @@ def tobit_update_block(
     row per run). ``noise_code`` from :data:`NOISE_CODES`. Writes the posterior ``x`` (n, B), ``P``
     (n, n, B), :math:`E(y)` (3.8) in ``mu`` (m, B), the innovation :math:`y - E(y)` in ``e`` (m, B) (0 for
     a channel left out), and in ``blk`` (from :func:`_update_scratch`) ``gam`` = :math:`E(\mathbf p)` and
-    the noise term :math:`R_{uu}` among the rest. Inlined (numba
+    the noise term :math:`R_{uu}` among the rest. A channel whose limits the block shares (``lstep = 0``)
+    with one side infinite gets its statistics for all runs at once from
+    :func:`~tobitkf.filters._kernels_censored.one_sided_block` (vectorised; 8 against 27 ns per run on the
+    central route, 10 against 57 with tails, measured in isolation); any other from :func:`censored_stats`
+    run by run. Inlined (numba
     ``inline="always"``): the caller's loop sees the statistics of :func:`censored_stats` inlined as before.
     """
     _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
@@ -845,6 +852,21 @@ def tobit_update_block(
     has_du = du.shape[1] > 0
     for l in range(m):
         sd = sigma[l]
+        lo_l, hi_l = lo[lrow, l], hi[lrow, l]
+        if lstep == 0 and (lo_l == -_INF) != (hi_l == _INF):
+            # one finite limit shared by the block (the common Tobit case): the statistics of all runs at
+            # once, vectorised (_kernels_censored.one_sided_block); the means C xbar + D u staged in e[l]
+            el = e[l]
+            for b in range(nb):
+                s = 0.0
+                for j in range(n):
+                    s += xp[j, b] * C[l, j]
+                el[b] = s + du[r0 + b, t, l] if has_du else s
+            upper = lo_l == -_INF
+            one_sided_block(el, sd, hi_l if upper else lo_l, upper, nb, noise_code, gam[l], noise[l, l], mu[l])
+            for b in range(nb):
+                el[b] = y[r0 + b, t, l] - mu[l, b]
+            continue
         for b in range(nb):
             s = 0.0
             for j in range(n):
