@@ -181,3 +181,21 @@ def test_exp_without_libm():
     np.testing.assert_allclose(got[normal], want[normal], rtol=4.5e-16)
     np.testing.assert_allclose(got[~normal], want[~normal], rtol=0, atol=1e-322)
     assert got[-1] == 0.0 and got[-2] == 0.0
+
+
+def test_lower_stats_block_gives_every_statistic_of_the_scalar_route():
+    """The form the fading and protocol kernels read: gamma, lambda, the truncated variance, the censored mean
+    and variance, against the scalar kernel (lambda to 1e-13; the variances as in the first test)."""
+    a = standardized_grid()
+    sd, lo = 0.4, -0.2
+    mu = lo - a * sd
+    got = kc.lower_stats_array(np.ascontiguousarray(mu), sd, lo)
+    ref = scalar(mu, sd, lo, False)
+    scale = np.abs(mu) + sd + abs(lo)
+    assert_close(got[0], ref[2], 1e-13, 1e-300, a)
+    assert_close(got[1], ref[3], 1e-13, 1e-300, a)
+    assert_close(got[3], ref[6], 1e-13, 1e-14 * scale, a)
+    for i, j in ((2, 5), (4, 7)):
+        c = a <= 2.0
+        assert_close(got[i][c], ref[j][c], 1e-13, 1e-14 * sd * scale[c], a[c])
+        assert_close(got[i], ref[j], 1.5e-12, 1e-14 * sd * scale, a)

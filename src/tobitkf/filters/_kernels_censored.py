@@ -46,7 +46,7 @@ from scipy.special import erfcx as _erfcx
 
 from ..censored import _CF_FROM
 
-__all__ = ["one_sided_block", "one_sided_array", "X0", "A_TAIL"]
+__all__ = ["one_sided_block", "lower_stats_block", "one_sided_array", "lower_stats_array", "X0", "A_TAIL"]
 
 X0 = _CF_FROM * math.sqrt(0.5)  # erfcx argument at |a| = 4, the far side's edge
 A_TAIL = 2.0  # a > A_TAIL: the tail fits (no cancellation in the variance), else erfcx
@@ -159,69 +159,95 @@ def _tail_var_poly(t):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _one_sided_at(mu, sd, lo):
+    """The statistics of one run for a lower limit ``lo`` alone (inlined into the block loops, where it
+    vectorises): ``(p_lower, gamma, lambda, truncated mean, truncated variance, censored mean, censored
+    variance)``, the quantities of :func:`~tobitkf.filters._kernels.censored_stats` (module docstring)."""
+    a = (lo - mu) / sd
+    ab = abs(a)
+    rb = 1.0 / ab  # the one reciprocal of the routes (inf at a = 0, then unused)
+    tail = a > A_TAIL
+    far = a < -_CF_FROM
+    central = not (tail or far)
+    pos = a > 0.0
+    # the route's argument in [-1, 1]: x / X0 = |a| / 4, X0 / x = 4 / |a| or A_TAIL / a, mapped
+    u = ab * (1.0 / _CF_FROM) if central else (_CF_FROM * rb if far else A_TAIL * rb)
+    t = 2.0 * u - 1.0
+    p1 = _first_poly(t, central, far)
+    ez = _exp_neg(-0.5 * a * a)  # e^{-x^2}, x = |a| / sqrt(2)
+    phi = ez * _INV_SQRT_2PI
+    # erfcx(x) (central, far side), h = Phi(-|a|)
+    E = p1 if central else p1 * (_INV_SQRT_PI * _SQRT2) * rb
+    h = 0.5 * E * ez
+    lam_tail = ab + p1 * rb  # a + t
+    # one division: lambda (central a > 0: sqrt(2/pi) / E; a <= 0: phi / gamma) or gamma (tail: phi / lambda)
+    g_left = 1.0 - h
+    num = phi if (tail or not pos) else _SQRT_2_PI
+    den = lam_tail if tail else (E if pos else g_left)
+    q = num / den
+    if tail:
+        g = q
+        lam = lam_tail
+        zvar = _tail_var_poly(t) * rb * rb
+    else:
+        g = h if pos else g_left
+        lam = q
+        zvar = 1.0 + a * lam - lam * lam
+    plo = 1.0 - g if (tail or pos) else h
+    g = min(max(g, 0.0), 1.0)
+    zvar = max(zvar, 0.0)
+    tmean = mu + sd * lam
+    tvar = sd * sd * zvar
+    cm = plo * lo + g * tmean
+    d1 = tmean - cm
+    d2 = lo - cm
+    cvar = g * (tvar + d1 * d1) + plo * (d2 * d2)
+    return plo, g, lam, tmean, tvar, cm, cvar
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
-    r"""Censored-normal statistics of the runs ``b < nb`` of a block for one channel with one finite limit.
+    r"""Censored-normal statistics of the runs ``b < nb`` of a block for one channel with one finite limit,
+    as the TKF update needs them.
 
     ``ym`` (B,) the means :math:`\mu_b` of the latent reading, ``sd`` its standard deviation (> 0, shared),
     ``lim`` the finite limit: a lower limit, or an upper one when ``upper`` (the other side infinite).
     Writes :math:`\gamma_b = P(\text{uncensored})` into ``gam``, the censored mean :math:`E(y)` (Miller
     (3.8)) into ``cmean`` and the noise term of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`:
     0 the truncated variance, 1 the censored variance, 2 :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)`)
-    into ``noise``; the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-14 relative.
+    into ``noise``; the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-13 relative.
     An upper limit is the lower limit :math:`-\ell` of :math:`-y`: the same statistics with the means'
     signs flipped."""
     sg = -1.0 if upper else 1.0
     lo = sg * lim
     for b in range(nb):
         mu = sg * ym[b]
-        a = (lo - mu) / sd
-        ab = abs(a)
-        rb = 1.0 / ab  # the one reciprocal of the routes (inf at a = 0, then unused)
-        tail = a > A_TAIL
-        far = a < -_CF_FROM
-        central = not (tail or far)
-        pos = a > 0.0
-        # the route's argument in [-1, 1]: x / X0 = |a| / 4, X0 / x = 4 / |a| or A_TAIL / a, mapped
-        u = ab * (1.0 / _CF_FROM) if central else (_CF_FROM * rb if far else A_TAIL * rb)
-        t = 2.0 * u - 1.0
-        p1 = _first_poly(t, central, far)
-        ez = _exp_neg(-0.5 * a * a)  # e^{-x^2}, x = |a| / sqrt(2)
-        phi = ez * _INV_SQRT_2PI
-        # erfcx(x) (central, far side), h = Phi(-|a|)
-        E = p1 if central else p1 * (_INV_SQRT_PI * _SQRT2) * rb
-        h = 0.5 * E * ez
-        lam_tail = ab + p1 * rb  # a + t
-        # one division: lambda (central a > 0: sqrt(2/pi) / E; a <= 0: phi / gamma) or gamma (tail: phi / lambda)
-        g_left = 1.0 - h
-        num = phi if (tail or not pos) else _SQRT_2_PI
-        den = lam_tail if tail else (E if pos else g_left)
-        q = num / den
-        if tail:
-            g = q
-            lam = lam_tail
-            zvar = _tail_var_poly(t) * rb * rb
-        else:
-            g = h if pos else g_left
-            lam = q
-            zvar = 1.0 + a * lam - lam * lam
-        plo = 1.0 - g if (tail or pos) else h
-        g = min(max(g, 0.0), 1.0)
-        zvar = max(zvar, 0.0)
-        tmean = mu + sd * lam
-        tvar = sd * sd * zvar
-        cm = plo * lo + g * tmean
+        _plo, g, _lam, tmean, tvar, cm, cvar = _one_sided_at(mu, sd, lo)
         if noise_code == 0:
             v = tvar
         elif noise_code == 1:
-            d1 = tmean - cm
-            d2 = lo - cm
-            v = g * (tvar + d1 * d1) + plo * (d2 * d2)
+            v = cvar
         else:
             d = tmean - mu
             v = g * (tvar + d * d)
         gam[b] = g
         noise[b] = v
         cmean[b] = sg * cm
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def lower_stats_block(ym, sd, lo, nb, gam, lam, tvar, cmean, cvar):
+    r"""The statistics of the runs ``b < nb`` of a block for a lower limit ``lo`` alone (the form the fading
+    and protocol kernels read): :math:`\gamma` into ``gam``, the inverse Mills ratio into ``lam``, the
+    truncated variance into ``tvar``, the censored mean and variance into ``cmean``, ``cvar`` (each (B,));
+    the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-13 relative."""
+    for b in range(nb):
+        _plo, g, lm, _tmean, tv, cm, cv = _one_sided_at(ym[b], sd, lo)
+        gam[b] = g
+        lam[b] = lm
+        tvar[b] = tv
+        cmean[b] = cm
+        cvar[b] = cv
 
 
 @njit(cache=True, error_model="numpy")
@@ -231,3 +257,13 @@ def one_sided_array(ym, sd, lim, upper, noise_code):
     gam, noise, cmean = np.empty(n), np.empty(n), np.empty(n)
     one_sided_block(ym, sd, lim, upper, n, noise_code, gam, noise, cmean)
     return gam, noise, cmean
+
+
+@njit(cache=True, error_model="numpy")
+def lower_stats_array(ym, sd, lo):
+    """:func:`lower_stats_block` over a 1-d array of means (a testing aid); returns ``(gam, lam, tvar, cmean,
+    cvar)``."""
+    n = ym.shape[0]
+    out = np.empty((5, n))
+    lower_stats_block(ym, sd, lo, n, out[0], out[1], out[2], out[3], out[4])
+    return out
