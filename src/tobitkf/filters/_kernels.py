@@ -182,30 +182,10 @@ def _lower_only(mu, sd, lo):
     return _lower_stats(mu, sd, lo, s)
 
 
-@njit(cache=True, error_model="numpy")
-def _lower_tail_block(mu, sd, lo, nb, a, kst, s):
-    """The continued fraction of :func:`_lower_only` for the runs ``b < nb`` of a block at once: ``s[b]``
-    for ``mu[b]`` (``a``, ``kst`` scratch (B,)), 0 for a run not beyond the tail bound. One run's fraction is
-    a chain of up to ~40 dependent divisions (~200 ns at a > 4); over the block the divisions of the runs
-    are independent and vectorise. A run starts at its own number of terms (before that its ``s`` stays
-    0, which is where the scalar loop starts), so every ``s[b]`` is the scalar loop's number exactly."""
-    kmax = 0
-    for b in range(nb):
-        ab = (lo - mu[b]) / sd
-        a[b] = ab
-        kb = int(_CF_TERMS / ab) + 6 if ab > _CF_FROM else 0
-        kst[b] = kb
-        kmax = max(kmax, kb)
-        s[b] = 0.0
-    for k in range(kmax, 1, -1):
-        for b in range(nb):
-            s[b] = k / (a[b] + s[b]) if k <= kst[b] else 0.0
-
-
 @njit(cache=True, error_model="numpy", inline="always")
 def _lower_stats(mu, sd, lo, s):
-    """:func:`_lower_only` given its continued fraction ``s`` (from the scalar loop or
-    :func:`_lower_tail_block`; unused when ``a`` is not beyond the tail bound)."""
+    """:func:`_lower_only` given its continued fraction ``s`` (unused when ``a`` is not beyond the tail
+    bound)."""
     a = (lo - mu) / sd
     p_lo, q_a = _ndtr_pair(a)
     if a > _CF_FROM:
@@ -247,16 +227,6 @@ def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     if hi == _INF and lo != -_INF:
         return _lower_only(mu, sd, lo)
     return _general_stats(mu, sd, lo, hi, glx, glw, buf)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def censored_stats_at(b, lower, mu, sd, lo, hi, glx, glw, buf, s):
-    """:func:`censored_stats` of run ``b`` of a block whose lower-limit-only continued fractions
-    ``s`` were computed by :func:`_lower_tail_block` when ``lower`` (``hi`` infinite, ``lo`` finite: the
-    same for every run of the step); the same numbers."""
-    if lower:
-        return _lower_stats(mu, sd, lo, s[b])
-    return censored_stats(mu, sd, lo, hi, glx, glw, buf)
 
 
 @njit(cache=True, error_model="numpy")

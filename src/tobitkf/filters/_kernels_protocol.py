@@ -52,13 +52,13 @@ from ._kernels import (
     _cov_update,
     _flush,
     _load,
-    _lower_tail_block,
     _mean_scratch,
     _stage_cov,
     _stage_shape,
     _store_last,
-    censored_stats_at,
+    censored_stats,
 )
+from ._kernels_censored import lower_stats_block
 from ._kernels_fading import shift_predict_block
 
 __all__ = ["protocol_kernel", "N_EXTRAS", "EXTRA_NAMES"]
@@ -152,7 +152,7 @@ def protocol_kernel(
     zeta_b, HPH_b, CPC_b, xc_b = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     Ree_b = np.empty(B)
     good_b = np.empty(B, dtype=np.bool_)
-    cf_a, cf_s, cf_k = np.empty(B), np.empty(B), np.empty(B, dtype=np.int64)
+    st_g, st_lam, st_tv, st_cm, st_cv = np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     lower = tau != -_INF  # the upper limit is infinite
     buf = np.empty((2, glx.shape[0]))
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
@@ -200,13 +200,16 @@ def protocol_kernel(
                     HPH_b[b] += Rxe[j, 0, b] * hj
                     CPC_b[b] += PC[j, b] * cj
                     xc_b[b] += xp[j, b] * cj
-            if lower:  # the tail's continued fractions of the block at once
-                _lower_tail_block(zeta_b, sd, tau, nb, cf_a, cf_k, cf_s)
+            if lower:  # the statistics of the block at once, vectorised
+                lower_stats_block(zeta_b, sd, tau, nb, st_g, st_lam, st_tv, st_cm, st_cv)
             for b in range(nb):
                 zeta, HPH, CPC, xc = zeta_b[b], HPH_b[b], CPC_b[b], xc_b[b]
-                st = censored_stats_at(b, lower, zeta, sd, tau, math.inf, glx, glw, buf, cf_s)  # (13)-(16)
-                lam = st[3]
-                nz = max(st[5], _FLOOR * r)  # R (1 - phi), floored
+                if lower:  # (13)-(16)
+                    pg, lam, tv = st_g[b], st_lam[b], st_tv[b]
+                else:
+                    st = censored_stats(zeta, sd, tau, math.inf, glx, glw, buf)
+                    pg, lam, tv = st[2], st[3], st[5]
+                nz = max(tv, _FLOOR * r)  # R (1 - phi), floored
                 if mode == 0:
                     F = lv * CPC
                 elif mode == 1:
@@ -228,7 +231,7 @@ def protocol_kernel(
                     s_ext[tt, 2, b] = 1.0 - nz / r
                     s_ext[tt, 3, b] = yhat if g else tau
                     s_ext[tt, 4, b] = y[r0 + b, t] - yhat if g else 0.0
-                    s_ext[tt, 5, b] = st[2]
+                    s_ext[tt, 5, b] = pg
                     s_ext[tt, 6, b] = Ree if g else nz
                 Ree_b[b] = Ree
                 good_b[b] = good
