@@ -236,6 +236,22 @@ def test_check_finite_small_and_large_arrays_agree(size, bad):
                     check_finite(arr, "y", allow_nan=allow_nan, allow_inf=allow_inf)
 
 
+@pytest.mark.parametrize("size", [2, 4, 5])
+@pytest.mark.parametrize("order", ["nan-first", "inf-first"])
+def test_check_finite_with_nan_and_inf_names_what_is_refused(size, order):
+    """A reading with both a NaN and an inf: the route of up to 4 entries (one pass for the passing verdict,
+    then the checks that name what they found) refuses what the array route refuses, NaN before inf."""
+    arr = np.zeros(size)
+    arr[:2] = (np.nan, np.inf) if order == "nan-first" else (-np.inf, np.nan)
+    with pytest.raises(ValidationError, match="found NaN"):
+        check_finite(arr, "y")
+    with pytest.raises(ValidationError, match="found NaN"):
+        check_finite(arr, "y", allow_inf=True)
+    with pytest.raises(ValidationError, match="found inf"):
+        check_finite(arr, "y", allow_nan=True)
+    check_finite(arr, "y", allow_nan=True, allow_inf=True)
+
+
 @pytest.mark.parametrize("shape", [(1, 1), (1, 2), (2, 2), (3, 2)])
 def test_check_reading_float_route_agrees(shape):
     """One reading of up to 4 entries is checked on Python floats: same verdict and message as the arrays."""
