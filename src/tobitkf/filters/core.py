@@ -1181,8 +1181,11 @@ class Estimator:
         """
         state = self._check_state(state)
         yk = self._reading(state, y)
-        uk = self._step_input(state, u)
-        opts = self._prepare_step_options(state, self._check_options(options))
+        if u is None and not options:  # a plain call: no input to form, no keyword to vet
+            uk, opts = None, self._prepare_step_options(state, options)
+        else:
+            uk = self._step_input(state, u)
+            opts = self._prepare_step_options(state, self._check_options(options))
         self._check_reading(state, yk, opts)
         fast = self._fast_step(state, yk, uk, opts)
         if fast is not None:

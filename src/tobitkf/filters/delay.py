@@ -1436,6 +1436,51 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xp = c["xp"] = carry["xp"].copy()
         eps = c["eps"] = carry["eps"].copy()
         ring = c["ring"] = carry["ring"].copy()
+        # :meth:`_whole_kernel` and :meth:`_whole_assemble` written out (their calls and the list of views are a
+        # tenth of this step; the test of the reorganized kernel's step loop holds the two forms equal)
+        N = y.shape[0]
+        d = self.system.d
+        lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N)
+        if lay is None:
+            return self._whole_online_first(state, y)
+        size, ((_, z0, s0), (o1, z1, s1), (o2, z2, s2), (o3, z3, s3)) = lay
+        back = self._eps_back
+        prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
+        buf = np.empty(size)
+        kern, args = self._whole
+        kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf[t - d + 1] if d > 1 else xp[t], prev, buf)
+        if not math.isfinite(buf[-1]):
+            return None
+        M, e_t = buf[:z0].reshape(s0), buf[o1 : o1 + z1].reshape(s1)
+        C, Qe = buf[o2 : o2 + z2].reshape(s2), buf[o3 : o3 + z3].reshape(s3)
+        m0, m1, m2, m3 = M[0], M[1], M[2], M[3]
+        xf[t], xsm[t], xm[t], xp[t + 1], eps[t] = m0, m1, m2, m3, e_t
+        lag_mean, lag_cov = self._lag_keys
+        extras = {
+            "measured_mean": m2,
+            "measured_cov": C[2],
+            "next_mean": m3,
+            "next_cov": C[3],
+            "innovation": e_t,
+            "innovation_cov": Qe,
+            lag_mean: m1,
+            lag_cov: C[4],
+            "_lam": C[5],
+        }
+        c["lam"] = {t + 1: C[6, 0]}
+        old = t - 2 * d - 3
+        xf.pop(old, None), xsm.pop(old, None), xm.pop(old, None), xp.pop(old, None), eps.pop(old, None)
+        return step_state(t, state.batch_shape, m0, C[0], self.n, None, c, extras)
+
+    def _whole_online_first(self, state, y):
+        """:meth:`_whole_online` by the two methods it writes out, at the first step for a number of runs (which
+        forms the layout of the kernel's output)."""
+        t, carry = state.k + 1, state.carry
+        c = dict(carry)
+        for key in _REORG_DICTS:
+            c[key] = dict(carry[key])
+        ring = c["ring"] = carry["ring"].copy()
+        xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
         buf, lay = self._whole_kernel(t, y, xf, xsm, xp, eps, ring)
         if not math.isfinite(buf[-1]):
             return None
