@@ -368,10 +368,11 @@ class _DelayEstimator(Estimator):
         return False
 
     def _fast_step(self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]) -> FilterState | None:
-        """The online step by the compiled whole step: :meth:`_step_arrays` without the loop's floating-point
-        context (the kernel's arithmetic warns of nothing) and the divergence check on the trace of the one
-        shared covariance; None (the checked step runs, which warns and makes the means NaN) when the kernel does not
-        take this step or a variance is not finite."""
+        """The online step by the compiled whole step (the family's :meth:`_whole_online`: its branch of
+        :meth:`_step_arrays` without the loop's floating-point context, as the kernel's arithmetic warns of nothing,
+        and with the divergence check on the kernel's trace of the one shared covariance); None (the checked step
+        runs, which warns and makes the means NaN) when the kernel does not take this step or a variance is not
+        finite."""
         if not self._whole_takes(state, options):
             return None
         return self._whole_online(state, y)
