@@ -236,6 +236,35 @@ def test_check_finite_small_and_large_arrays_agree(size, bad):
                     check_finite(arr, "y", allow_nan=allow_nan, allow_inf=allow_inf)
 
 
+@pytest.mark.parametrize("size", [2, 4, 5])
+@pytest.mark.parametrize("order", ["nan-first", "inf-first"])
+def test_check_finite_with_nan_and_inf_names_what_is_refused(size, order):
+    """A reading with both a NaN and an inf: the route of up to 4 entries (one pass for the passing verdict,
+    then the checks that name what they found) refuses what the array route refuses, NaN before inf."""
+    arr = np.zeros(size)
+    arr[:2] = (np.nan, np.inf) if order == "nan-first" else (-np.inf, np.nan)
+    with pytest.raises(ValidationError, match="found NaN"):
+        check_finite(arr, "y")
+    with pytest.raises(ValidationError, match="found NaN"):
+        check_finite(arr, "y", allow_inf=True)
+    with pytest.raises(ValidationError, match="found inf"):
+        check_finite(arr, "y", allow_nan=True)
+    check_finite(arr, "y", allow_nan=True, allow_inf=True)
+
+
+def test_byte_swapped_float64_takes_the_general_route():
+    """The cheap test of the common case is the native float64 dtype object; a byte-swapped float64 array
+    (another descriptor) is converted by the general route, and its NaN or inf still refused."""
+    swapped = np.array([0.5, -2.0], dtype=">f8")
+    out = as_float_array(swapped, "y")
+    assert out.dtype == np.float64 and out.dtype.isnative
+    np.testing.assert_array_equal(out, [0.5, -2.0])
+    with pytest.raises(ValidationError, match="found NaN"):
+        as_float_array(np.array([np.nan], dtype=">f8"), "y")
+    with pytest.raises(ValidationError, match="found inf"):
+        check_finite(np.array([np.inf], dtype=">f8"), "y")
+
+
 @pytest.mark.parametrize("shape", [(1, 1), (1, 2), (2, 2), (3, 2)])
 def test_check_reading_float_route_agrees(shape):
     """One reading of up to 4 entries is checked on Python floats: same verdict and message as the arrays."""

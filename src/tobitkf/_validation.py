@@ -78,6 +78,11 @@ def _not_a_number(value: Any) -> str | None:
     return None
 
 
+#: the native float64 dtype, a singleton: ``dtype is _F64`` is the cheap test of the common case (another
+#: float64 descriptor, e.g. byte-swapped, takes the general route, which converts it)
+_F64 = np.dtype(np.float64)
+
+
 def as_float_array(
     value: Any, name: str, *, ndim: int | Iterable[int] | None = None, allow_nan: bool = False, allow_inf: bool = False
 ) -> np.ndarray:
@@ -86,7 +91,7 @@ def as_float_array(
     Integer, float, read-only, strided, masked and pandas input is accepted; text (also numeric
     text such as ``"0.5"``), booleans and complex values are refused, naming ``name``.
     """
-    if type(value) is np.ndarray and value.dtype == np.float64:  # the common case: nothing to convert
+    if type(value) is np.ndarray and value.dtype is _F64:  # the common case: nothing to convert
         arr = value
     elif isinstance(value, float) or (
         isinstance(value, int) and not isinstance(value, bool) and -(2**1023) < value < 2**1023
@@ -225,8 +230,12 @@ def check_memory(nbytes: int, name: str, what: str) -> None:
 
 def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_inf: bool = False) -> None:
     """Raise if ``arr`` holds NaN (unless allowed) or +-inf (unless allowed)."""
-    if arr.size <= 4 and arr.dtype == np.float64:  # one reading of an online step: Python floats, same verdict
+    if arr.size <= 4 and arr.dtype is _F64:  # one reading of an online step: Python floats, same verdict
         vals = arr.ravel().tolist()
+        # the passing verdict in one C-level map, no generator (all finite; with NaN allowed, no inf); a
+        # reading that fails it gets the checks below, which name what they found
+        if not any(map(math.isinf, vals)) if allow_nan and not allow_inf else all(map(math.isfinite, vals)):
+            return
         if not allow_nan and any(v != v for v in vals):
             raise ValidationError(f"{name}: expected finite numbers, found NaN")
         if not allow_inf and any(v in (math.inf, -math.inf) for v in vals):

@@ -1020,3 +1020,91 @@ def test_many_runs_keep_the_vectorised_path(cls, monkeypatch):
     for k in range(30):
         s = est.step(s, y[:, k])
     np.testing.assert_array_equal(s.mean, many.mean[:, -1])
+
+
+def _carry_keys(c):
+    return {k: sorted(v) for k, v in c.items() if isinstance(v, dict)}
+
+
+@pytest.mark.parametrize("d", [1, 2, 3])
+def test_chain_online_plain_steps_keep_the_numpy_steps_carry(d):
+    """The compiled online step of Algorithm C builds its new carry by copying the dicts and deleting their one
+    stale entry when the carry is the plain steps' window, else by the scan of the numpy step: driven through
+    steps with lags beyond the window, a horizon (Λ kept ahead), a fixed point and back to plain steps, every
+    carry holds the numpy step's entries (the same times, values to 1e-12), and a state pickled mid-run
+    resumes bitwise."""
+    pytest.importorskip("numba")
+    import pickle
+
+    sys_, prior = paper_example(S=0.2, q=0.3, d=d), _uncorrelated(d)
+    T = 8 * d + 16
+    y = simulate_delay(sys_, prior, T, 1, seed=d + 40).y[0]
+    fast, ref = ChainLMMSE(sys_, prior, backend="numba"), ChainLMMSE(sys_, prior, backend="numpy")
+
+    def options(k):
+        if k < 2 * d + 3:
+            return {"lags": (1, 2 * d + 1)}
+        if k == 3 * d + 4:
+            return {"horizons": (1, 3)}
+        if 4 * d + 5 <= k < 4 * d + 7:
+            return {"point": 1}
+        return {}
+
+    sf, sr = fast.init(), ref.init()
+    for k in range(T):
+        sf, sr = fast.step(sf, y[k], **options(k)), ref.step(sr, y[k], **options(k))
+        assert _carry_keys(sf.carry) == _carry_keys(sr.carry), k
+        for key in ("xb", "Pb", "D", "lam"):
+            for j, v in sr.carry[key].items():
+                np.testing.assert_allclose(sf.carry[key][j], v, rtol=1e-12, atol=1e-14, err_msg=f"{k} {key}[{j}]")
+        np.testing.assert_allclose(sf.mean, sr.mean, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(sf.cov, sr.cov, rtol=1e-12, atol=1e-14)
+        if k == T // 2:
+            mid = sf
+    revived = pickle.loads(pickle.dumps(mid))
+    s1, s2 = mid, revived
+    for k in range(T // 2 + 1, T):
+        s1, s2 = fast.step(s1, y[k]), fast.step(s2, y[k])
+    np.testing.assert_array_equal(s1.mean, s2.mean)
+    np.testing.assert_array_equal(s1.cov, s2.cov)
+    np.testing.assert_array_equal(s1.mean, sf.mean)
+
+
+@pytest.mark.parametrize("cls", [ChainLMMSE, AugmentedLMMSE, ReorganizedInnovationLMMSE])
+def test_compiled_online_steps_of_one_estimator_for_several_batch_shapes(cls):
+    """The compiled online step keeps the layout of its kernel's output per number of runs: one estimator
+    stepping one run, then three, then one again gives, for each, bitwise what a fresh estimator gives (a
+    layout of another number of runs would cut the wrong views or fail)."""
+    pytest.importorskip("numba")
+    sys_, prior = paper_example(S=0.2, q=0.3, d=2), _uncorrelated(2)
+    y = simulate_delay(sys_, prior, 15, 3, seed=7).y
+    shared = cls(sys_, prior)
+    for batch, rec in (((), y[0]), ((3,), y), ((), y[1])):  # rec: (..., T, m)
+        a, b = shared.init(batch), cls(sys_, prior).init(batch)
+        fresh = cls(sys_, prior)
+        for k in range(15):
+            a, b = shared.step(a, rec[..., k, :]), fresh.step(b, rec[..., k, :])
+        np.testing.assert_array_equal(a.mean, b.mean)
+        np.testing.assert_array_equal(a.cov, b.cov)
+        for key, v in b.extras.items():
+            np.testing.assert_array_equal(a.extras[key], v, err_msg=key)
+        res = cls(sys_, prior).filter(rec)
+        np.testing.assert_allclose(a.mean, res.mean[..., -1, :], rtol=1e-12, atol=1e-14)
+
+
+def test_augmented_online_step_with_lags_equals_its_filter():
+    """Algorithm A's online step with lags (which the compiled online step hands to the general step, the same
+    compiled kernel inside) records the filter's lagged estimates."""
+    pytest.importorskip("numba")
+    sys_, prior = paper_example(S=0.2, q=0.3, d=2), _uncorrelated(2)
+    y = simulate_delay(sys_, prior, 20, 1, seed=8).y[0]
+    est = AugmentedLMMSE(sys_, prior, window=3)
+    res = est.filter(y, lags=(1, 3))
+    s = est.init()
+    for k in range(20):
+        s = est.step(s, y[k], lags=(1, 3))
+        for L in (1, 3):
+            np.testing.assert_allclose(
+                s.extras[f"lag{L}_mean"][0], res.extras["lagged"][L][0][k], rtol=1e-12, atol=1e-14
+            )
+    np.testing.assert_allclose(s.mean, res.mean[-1], rtol=1e-12, atol=1e-14)

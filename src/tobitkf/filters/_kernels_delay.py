@@ -237,8 +237,9 @@ def _unpack_moments(cb, ib):
 
 #
 # A compiled function returning a tuple of k arrays pays about a microsecond to box each (dominant in a step
-# of one run): the whole-step kernels return their outputs as one flat array instead, the 2-D blocks in a
-# fixed order, and :func:`tobitkf.filters.delay._flat_views` cuts the views.
+# of one run), and even one returned array a few tenths (numba unpickles its type at every call): the whole-step
+# kernels write their outputs into one flat array ``out`` the caller allocates, the 2-D blocks in a fixed order
+# and the trace of the step's covariance last, and :func:`tobitkf.filters.delay._flat_views` cuts the views.
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -251,17 +252,17 @@ def _put(out, o, M):
     return o + r * c
 
 
-@njit(cache=True, error_model="numpy")
-def _flat(blocks):
-    """The 2-D arrays of the tuple ``blocks`` one after the other in one new flat array."""
-    z = 0
-    for M in blocks:
-        z += M.size
-    out = np.empty(z)
+@njit(cache=True, error_model="numpy", inline="always")
+def _flat_into(out, blocks, P):
+    """The 2-D arrays of the tuple ``blocks`` one after the other in the flat ``out``, then the trace of the
+    square ``P`` (the step's covariance: the caller's check that it is finite, without a numpy call)."""
     o = 0
     for M in blocks:
         o = _put(out, o, M)
-    return out
+    tr = 0.0
+    for i in range(P.shape[0]):
+        tr += P[i, i]
+    out[o] = tr
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -328,15 +329,16 @@ def _update_predict(x, P, y, gb, H, Rn, Abar, Qd, J):
 
 
 @njit(cache=True, error_model="numpy")
-def aug_step(X, P, LamX, y, AA, Ai, q, HH, GQG, GS_T, Qv, gb, s2):
+def aug_step(X, P, LamX, y, AA, Ai, q, HH, GQG, GS_T, Qv, gb, s2, out):
     r"""One reading of Algorithm A for one covariance common to the runs (the numpy
     :func:`tobitkf.filters.delay._aug_step`, standard form, for laws constant in t):
     :math:`R = \mathrm{sym}(\sigma^2\mathfrak h\Lambda_X\mathfrak h^T + Q_v)`, the update of X(t|t-1) with
     :math:`H = \bar\gamma\mathfrak h`, then :math:`J = \mathfrak G SR^{-1}`, :math:`\bar A = \mathfrak A - \bar\gamma J\mathfrak h`,
     :math:`Q_u = \mathfrak G Q_w\mathfrak G^T + \sum_i q_i\mathfrak A_i\Lambda_X\mathfrak A_i^T`,
     X(t+1|t) = ĀX(t|t) + Jy, P(t+1|t) = sym(ĀPĀ^T + sym(Q_u - JRJ^T)), Λ_X(t+1) = sym(𝔄Λ_X𝔄^T + Q_u).
-    ``X`` (N, n_x), ``P``/``LamX`` (n_x, n_x), ``y`` (N, m). Returns X(t|t) (N, n_x), X(t+1|t) (N, n_x),
-    ε (N, m), P(t|t), P(t+1|t), Q_ε (m, m) and Λ_X(t+1) one after the other in one flat array (:func:`_flat`)."""
+    ``X`` (N, n_x), ``P``/``LamX`` (n_x, n_x), ``y`` (N, m). Writes X(t|t) (N, n_x), X(t+1|t) (N, n_x),
+    ε (N, m), P(t|t), P(t+1|t), Q_ε (m, m) and Λ_X(t+1) one after the other, then trace P(t|t), in ``out``
+    (:func:`_flat_into`)."""
     nx = X.shape[1]
     m = HH.shape[0]
     R = np.empty((m, m))
@@ -351,11 +353,11 @@ def aug_step(X, P, LamX, y, AA, Ai, q, HH, GQG, GS_T, Qv, gb, s2):
     Xf, Pf, Xp, Pp, _, Qe, eps = _update_predict(X, P, y, gb, HH, R, Abar, Qd, J)
     Lam_next = np.empty((nx, nx))
     _sym_into(_mm(_mm(AA, LamX, False, False), AA, False, True) + Qu, Lam_next)
-    return _flat((Xf, Xp, eps, Pf, Pp, Qe, Lam_next))
+    _flat_into(out, (Xf, Xp, eps, Pf, Pp, Qe, Lam_next), Pf)
 
 
 @njit(cache=True, error_model="numpy")
-def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib):
+def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib, out):
     r"""One plain reading y(t) of Algorithm C (no lags beyond the window, horizons or fixed point; the numpy
     :meth:`tobitkf.filters.delay.ChainLMMSE._step_arrays`) for one covariance common to the runs.
 
@@ -363,10 +365,11 @@ def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib):
     ``x_pred`` (N, n), ``P_pred`` (n, n) the prediction x̂(t|t-1); ``Lam`` Λ(t-d) of the measured element.
     The moments of Λ(t-d) (:func:`_moments_into`), the update of x(t-d) and the decorrelated predict
     (:func:`_update_predict`, with :math:`\bar\gamma H`, R(t), Ā(t), Σ(t), J(t)). (The cross-covariance Φ of
-    the measured element is not formed: a plain step drops the element from the carry.) Returns the window
+    the measured element is not formed: a plain step drops the element from the carry.) Writes the window
     x̂(t-k|t) (N, n(d+1)), the window before the reading x̂(t-k|t-1), x̂(t+1|t) (N, n), ε (N, m), the two
-    windows' (block-diagonal) covariances, P(t+1|t), Q_ε (m, m) and Λ(t+1) (n, n) one after the other in one
-    flat array (:func:`_flat`). ``cb``, ``ib``: the packed constants (:func:`_unpack_moments`; ``ib[5]`` = d)."""
+    windows' (block-diagonal) covariances, P(t+1|t), Q_ε (m, m) and Λ(t+1) (n, n) one after the other, then the
+    trace of the new window's covariance, in ``out`` (:func:`_flat_into`). ``cb``, ``ib``: the packed constants
+    (:func:`_unpack_moments`; ``ib[5]`` = d)."""
     A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal = _unpack_moments(cb, ib)
     d = ib[5]
     N = x.shape[0]
@@ -390,11 +393,11 @@ def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib):
     P_new = Pw.copy()
     x_new[:, d * n :] = xe
     P_new[d * n :, d * n :] = Pe
-    return _flat((x_new, xw, xn, eps, P_new, Pw, Pn, Qe, lam_next))
+    _flat_into(out, (x_new, xw, xn, eps, P_new, Pw, Pn, Qe, lam_next), P_new)
 
 
 @njit(cache=True, error_model="numpy")
-def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev):
+def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev, out):
     r"""One whole step t >= warmup of Algorithm D for laws constant in t: :func:`reorg_cov_step` on ``ring``
     (in place), the means of :meth:`tobitkf.filters.delay.ReorganizedInnovationLMMSE._means_step`, and the
     ring's Ψ and K(a|·)H of time t-2d-2 zeroed (no longer read).
@@ -409,8 +412,9 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev):
         \hat x(t-d+1|t) = \hat x(t-d+1|t-d+1) + \sum_{i=1}^{d-1} K_s(i)\varepsilon(t-i+1), \\
         \hat x(t-d|t) = \hat x(t-d|t-1) + K(t-d|t)\varepsilon(t),\ \hat x(t+1|t) = \bar A(t)\hat x(t-d|t) + J(t)y.
 
-    Returns one flat array (:func:`_flat`): x̂(t|t), x̂(t-d+1|t), x̂(t-d|t), x̂(t+1|t) (N, n each), ε(t) (N, m),
-    then P(t|t), P(t|t-1), P(t-d|t), P(t+1|t), P(t-d+1|t), Λ(t), Λ(t+1) (n, n each) and Q_ε(t) (m, m).
+    Writes into the flat ``out`` (:func:`_flat_into`): x̂(t|t), x̂(t-d+1|t), x̂(t-d|t), x̂(t+1|t) (N, n each),
+    ε(t) (N, m), then P(t|t), P(t|t-1), P(t-d|t), P(t+1|t), P(t-d+1|t), Λ(t), Λ(t+1) (n, n each), Q_ε(t) (m, m)
+    and the trace of P(t|t).
     ``cb``, ``ib``: the packed constants (:func:`_unpack_moments`), ``ib[5:10]`` = d, W and the errata flags
     E5, E6, E7, ``ib[10:]`` the ring's field offsets.
     """
@@ -451,4 +455,5 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev):
     for o in (offs[0], offs[1]):
         for z in range(blk):
             ring[o + old * blk + z] = 0.0
-    return _flat((xf_t, xs_t, xm_t, xp_n, e_t, pf[st], pp[st], pmeas[st], pp[s1], psm[st], lam[st], lam[s1], qe[st]))
+    means = (xf_t, xs_t, xm_t, xp_n, e_t)
+    _flat_into(out, means + (pf[st], pp[st], pmeas[st], pp[s1], psm[st], lam[st], lam[s1], qe[st]), pf[st])

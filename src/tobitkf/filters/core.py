@@ -1151,7 +1151,8 @@ class Estimator:
             arr = as_float_array(y, name, allow_nan=self._allow_missing)
         except ValidationError as err:
             raise self._refused_nan(err) from None
-        want = state.batch_shape + (self.m,)
+        m = self.m
+        want = state.batch_shape + (m,)
         if arr.shape != want:
             try:
                 arr = np.broadcast_to(arr, want)
@@ -1159,7 +1160,7 @@ class Estimator:
                 raise ShapeError(
                     f"{name}: expected one reading of shape {want} (batch_shape + (m,)), got {arr.shape}"
                 ) from None
-        return arr.reshape(state.runs, self.m)
+        return arr.reshape(-1, m) if m else arr.reshape(state.runs, 0)  # (runs, m): -1 spares the product
 
     def _step_input(self, state: FilterState, u: Any) -> np.ndarray | None:
         if u is None:
@@ -1180,8 +1181,11 @@ class Estimator:
         """
         state = self._check_state(state)
         yk = self._reading(state, y)
-        uk = self._step_input(state, u)
-        opts = self._prepare_step_options(state, self._check_options(options))
+        if u is None and not options:  # a plain call: no input to form, no keyword to vet
+            uk, opts = None, self._prepare_step_options(state, options)
+        else:
+            uk = self._step_input(state, u)
+            opts = self._prepare_step_options(state, self._check_options(options))
         self._check_reading(state, yk, opts)
         fast = self._fast_step(state, yk, uk, opts)
         if fast is not None:

@@ -128,21 +128,43 @@ def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
     return {k: buf[o : o + z].reshape(s) for k, o, s, z in layout["fields"]}
 
 
-def _flat_views(buf: np.ndarray, shapes: tuple[tuple[int, ...], ...]) -> list[np.ndarray]:
-    """The arrays of ``shapes`` laid one after the other in the flat ``buf`` (the outputs of a whole-step kernel
-    of :mod:`tobitkf.filters._kernels_delay`, which returns one array, not a tuple), as views."""
+def _flat_layout(shapes: tuple[tuple[int, ...], ...]) -> tuple[int, tuple[tuple[int, int, tuple[int, ...]], ...]]:
+    """The size of the flat output of a whole-step kernel of :mod:`tobitkf.filters._kernels_delay` whose arrays
+    have ``shapes``, one after the other, then the trace of the step's covariance, and the ``(offset, size,
+    shape)`` of each array (formed once per estimator and number of runs)."""
     out, o = [], 0
     for sh in shapes:
         z = math.prod(sh)
-        out.append(buf[o : o + z].reshape(sh))
+        out.append((o, z, sh))
         o += z
-    return out
+    return o + 1, tuple(out)
+
+
+def _flat_views(buf: np.ndarray, layout: tuple[tuple[int, int, tuple[int, ...]], ...]) -> list[np.ndarray]:
+    """The arrays of ``layout`` (entries of :func:`_flat_layout`) in the flat ``buf`` the kernel wrote (one array,
+    not a tuple: boxing each output would cost about a microsecond), as views."""
+    return [buf[o : o + z].reshape(sh) for o, z, sh in layout]
+
+
+def _cached_layout(est: Any, key: Any, shapes: Any) -> tuple[int, tuple[tuple[int, int, tuple[int, ...]], ...]]:
+    """:func:`_flat_layout` of ``shapes()``, formed once per ``key`` (the number of runs) and kept on ``est`` in
+    ``_flat_layouts`` (which the callers read first: a hit costs a dict look-up, not this call)."""
+    cache = est.__dict__.get("_flat_layouts")
+    if cache is None:
+        cache = est._flat_layouts = {}
+    lay = cache.get(key)
+    if lay is None:
+        lay = cache[key] = _flat_layout(shapes())
+    return lay
 
 
 #: the most runs the whole-step kernels of Algorithms C and D take (the online case: one run, a few); more runs
 #: keep their vectorised numpy means and threaded shared update, which a single-threaded loop over the runs
 #: does not beat (D, 10^4 runs: 1.3-1.8x slower; measured 3 Dec 2026)
 _WHOLE_STEP_MAX_RUNS = 1024
+
+#: the layouts of an estimator that has formed none yet (:func:`_cached_layout`)
+_NO_LAYOUTS: dict = {}
 
 #: a placeholder array for a kernel argument that is not read (an innovation of a time before the first reading)
 _NOTHING = np.zeros((1, 1))
@@ -346,19 +368,21 @@ class _DelayEstimator(Estimator):
         return False
 
     def _fast_step(self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]) -> FilterState | None:
-        """The online step by the compiled whole step: :meth:`_step_arrays` without the loop's floating-point
-        context (the kernel's arithmetic warns of nothing) and the divergence check on the trace of the one
-        shared covariance; None (the checked step runs, which warns and makes the means NaN) when the kernel does not
-        take this step or a variance is not finite."""
+        """The online step by the compiled whole step (the family's :meth:`_whole_online`: its branch of
+        :meth:`_step_arrays` without the loop's floating-point context, as the kernel's arithmetic warns of nothing,
+        and with the divergence check on the kernel's trace of the one shared covariance); None (the checked step
+        runs, which warns and makes the means NaN) when the kernel does not take this step or a variance is not
+        finite."""
         if not self._whole_takes(state, options):
             return None
-        k = state.k + 1
-        x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, y, u, options)
-        # a sum of the variances of the one shared covariance: not finite when one is not (or, harmlessly, when
-        # they overflow their sum: the checked step then runs)
-        if not math.isfinite(P[0].trace()):
-            return None
-        return step_state(k, state.batch_shape, x, P, self.n, S, carry, extras)
+        return self._whole_online(state, y)
+
+    def _whole_online(self, state: FilterState, y: np.ndarray) -> FilterState | None:
+        """The compiled whole step from ``state`` as the online step (the family's own, without the loop's
+        per-step outputs the online state does not keep); None when the kernel's trace of the step's covariance
+        (a sum of the variances of the one shared covariance) is not finite (or, harmlessly, overflows: the
+        checked step then runs)."""
+        raise NotImplementedError  # pragma: no cover - every family with a whole step implements it
 
     def _the_prior(self, prior: Any) -> HistoryPrior:
         return self.prior if prior is None else self.system.check_prior(prior)
@@ -589,29 +613,74 @@ class ChainLMMSE(_DelayEstimator):
         new = _chain_prune(t, d, lags, point, xb, Pb, D, lam)
         return x_new, P_new, None, new, xp, Pp, extras
 
+    def _plain_kernel(self, t, x, P, carry, y):
+        """The compiled plain step (:func:`~tobitkf.filters._kernels_delay.chain_step`) at t >= 1: its flat output
+        (the trace of the new window's covariance last) and the layout of its arrays."""
+        kern, args = self._whole
+        N, nw = x.shape
+        lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N) or _cached_layout(
+            self, N, lambda: self._plain_shapes(N, nw)
+        )
+        size, lay = lay
+        buf = np.empty(size)
+        kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - self.system.d], y, *args, buf)
+        return buf, lay
+
+    def _plain_shapes(self, N, nw):
+        n, m = self.n, self.m
+        return ((N, nw), (N, nw), (N, n), (N, m), (1, nw, nw), (1, nw, nw), (1, n, n), (1, m, m), (n, n))
+
+    def _plain_carry(self, t, carry, xn, Pn, lam_next):
+        """The plain step's new carry: the measured element x(t-d) leaves it (the window keeps it; its Φ is not
+        formed), x̂(t+1|t) and Λ(t+1) join it. In the steady state of plain steps (the carry holds exactly the
+        window x(t-d..t) and Λ(t-2d-1..t)) the dicts are copied and their one stale entry deleted; else
+        :func:`_chain_prune` (the same entries, by a scan)."""
+        d = self.system.d
+        xb, Pb, D, lam = carry["xb"], carry["Pb"], carry["D"], carry["lam"]
+        e, e_lam = t - d, t - 2 * d - 1
+        if len(xb) == d + 1 and e in xb and t in xb and len(lam) == 2 * d + 2 and e_lam in lam and t in lam:
+            new = {"xb": xb.copy(), "Pb": Pb.copy(), "D": D.copy(), "lam": lam.copy()}
+            del new["xb"][e], new["Pb"][e], new["D"][e], new["lam"][e_lam]
+        else:
+            new = _chain_prune(t, d, (), None, xb, Pb, D, lam)
+        new["xb"][t + 1], new["Pb"][t + 1], new["D"][t + 1] = xn, Pn, Pn
+        new["lam"][t + 1] = lam_next
+        return new
+
     def _plain_step(self, t, x, P, carry, y):
         """:meth:`_step_arrays` at t >= 1 without lags, horizons or a fixed point, as one compiled call
         (:func:`~tobitkf.filters._kernels_delay.chain_step`; the same carry and extras, equal to rounding)."""
-        d, n, m = self.system.d, self.n, self.m
-        kern, args = self._whole
-        N, nw = x.shape
-        buf = kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - d], y, *args)
-        shapes = ((N, nw), (N, nw), (N, n), (N, m), (1, nw, nw), (1, nw, nw), (1, n, n), (1, m, m), (n, n))
-        x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, shapes)
-        # the measured element x(t-d) leaves the carry (the window keeps it): its Φ is not formed
-        new = _chain_prune(t, d, (), None, carry["xb"], carry["Pb"], carry["D"], carry["lam"])
-        new["xb"][t + 1], new["Pb"][t + 1], new["D"][t + 1] = xn, Pn, Pn
-        new["lam"][t + 1] = lam_next
-        extras = {
-            "measured_mean": x_new[:, d * n :],
-            "measured_cov": P_new[:, d * n :, d * n :],
+        buf, lay = self._plain_kernel(t, x, P, carry, y)
+        x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, lay)
+        new = self._plain_carry(t, carry, xn, Pn, lam_next)
+        return x_new, P_new, None, new, xp, Pp, self._plain_extras(t, carry, x_new, P_new, xn, Pn, eps, Qe)
+
+    def _plain_extras(self, t, carry, x_new, P_new, xn, Pn, eps, Qe):
+        dn = self.system.d * self.n
+        return {
+            "measured_mean": x_new[:, dn:],
+            "measured_cov": P_new[:, dn:, dn:],
             "next_mean": xn,
             "next_cov": Pn,
             "innovation": eps,
             "innovation_cov": Qe,
             "_lam": carry["lam"][t][None],
         }
-        return x_new, P_new, None, new, xp, Pp, extras
+
+    def _whole_online(self, state, y):
+        """:meth:`_plain_step` as the online step: the views of the window before the reading, which the state
+        does not keep, are not cut."""
+        t, carry, x = state.k + 1, state.carry, state.x
+        buf, lay = self._plain_kernel(t, x, state.P, carry, y)
+        if not math.isfinite(buf[-1]):
+            return None
+        (o0, z0, s0), _, (o2, z2, s2), (o3, z3, s3), (o4, z4, s4), _, (o6, z6, s6), (o7, z7, s7), (o8, z8, s8) = lay
+        x_new, xn, eps = buf[o0 : o0 + z0].reshape(s0), buf[o2 : o2 + z2].reshape(s2), buf[o3 : o3 + z3].reshape(s3)
+        P_new, Pn = buf[o4 : o4 + z4].reshape(s4), buf[o6 : o6 + z6].reshape(s6)
+        Qe, lam_next = buf[o7 : o7 + z7].reshape(s7), buf[o8 : o8 + z8].reshape(s8)
+        new = self._plain_carry(t, carry, xn, Pn, lam_next)
+        extras = self._plain_extras(t, carry, x_new, P_new, xn, Pn, eps, Qe)
+        return step_state(t, state.batch_shape, x_new, P_new, self.n, None, new, extras)
 
     def _checked_options(self, lags, horizons, fixed_point):
         lags = _check_lags(lags, "lags", 0)
@@ -638,7 +707,7 @@ class ChainLMMSE(_DelayEstimator):
             and options.get("point") is None
             and state.k >= 0
             and state.P.shape[0] == 1
-            and state.runs <= _WHOLE_STEP_MAX_RUNS
+            and state.x.shape[0] <= _WHOLE_STEP_MAX_RUNS
         )
 
     def _prepare_step_options(self, state, options):
@@ -966,11 +1035,7 @@ class AugmentedLMMSE(_DelayEstimator):
         else:
             Xpr, Ppr, Spr = x, P, S
         if self._whole is not None and Ppr.shape[0] == 1:  # one compiled call (a covariance shared by the runs)
-            kern, consts = self._whole
-            N, nx = Xpr.shape
-            buf = kern(Xpr, Ppr[0], carry["LamX"], y, *consts)
-            shapes = ((N, nx), (N, nx), (N, self.m), (1, nx, nx), (1, nx, nx), (1, self.m, self.m), (nx, nx))
-            Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(buf, shapes)
+            Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(*self._whole_kernel(Xpr, Ppr, carry, y))
             Sf = Sp = None
         else:
             form, fast = self.covariance_update, self._compiled_core()
@@ -978,15 +1043,7 @@ class AugmentedLMMSE(_DelayEstimator):
                 self.system, self._mats, Xpr, Ppr, carry["LamX"], y, t, form, Spr, fast
             )
         N = x.shape[0]
-        extras = {
-            "measured_mean": _blk(Xf, d, None, n),
-            "measured_cov": _blk(Pf, d, d, n),
-            "next_mean": _blk(Xp, 0, None, n),
-            "next_cov": _blk(Pp, 0, 0, n),
-            "innovation": eps,
-            "innovation_cov": Qe,
-            "_lam": carry["LamX"][:n, :n][None],
-        }
+        extras = self._aug_extras(carry, Xf, Pf, Xp, Pp, eps, Qe)
         if lags:  # the NaN rows of elements before x(-d)
             nan_m, nan_P = np.full((N, n), np.nan), np.full((1, n, n), np.nan)
         for L in lags:
@@ -995,9 +1052,48 @@ class AugmentedLMMSE(_DelayEstimator):
         new = {"LamX": LamX, "next": (Xp, Pp, Sp), "lam": {t + 1: LamX[:n, :n]}}
         return Xf, Pf, Sf, new, Xpr, Ppr, extras
 
+    def _aug_extras(self, carry, Xf, Pf, Xp, Pp, eps, Qe):
+        n, d = self.n, self.system.d
+        return {
+            "measured_mean": _blk(Xf, d, None, n),
+            "measured_cov": _blk(Pf, d, d, n),
+            "next_mean": _blk(Xp, 0, None, n),
+            "next_cov": _blk(Pp, 0, 0, n),
+            "innovation": eps,
+            "innovation_cov": Qe,
+            "_lam": carry["LamX"][:n, :n][None],
+        }
+
+    def _whole_kernel(self, Xpr, Ppr, carry, y):
+        """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.aug_step`) from the prediction
+        ``Xpr``, ``Ppr``: its flat output (the trace of P(t|t) last) and the layout of its arrays."""
+        kern, consts = self._whole
+        N, nx = Xpr.shape
+        m = self.m
+        lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N) or _cached_layout(
+            self, N, lambda: ((N, nx), (N, nx), (N, m), (1, nx, nx), (1, nx, nx), (1, m, m), (nx, nx))
+        )
+        size, lay = lay
+        buf = np.empty(size)
+        kern(Xpr, Ppr[0], carry["LamX"], y, *consts, buf)
+        return buf, lay
+
+    def _whole_online(self, state, y):
+        """:meth:`_step_arrays`' compiled branch as the online step (no lags)."""
+        t, carry = state.k + 1, state.carry
+        Xpr, Ppr, _ = carry["next"] if "next" in carry else (state.x, state.P, None)
+        buf, lay = self._whole_kernel(Xpr, Ppr, carry, y)
+        if not math.isfinite(buf[-1]):
+            return None
+        Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(buf, lay)
+        n = self.n
+        new = {"LamX": LamX, "next": (Xp, Pp, None), "lam": {t + 1: LamX[:n, :n]}}
+        extras = self._aug_extras(carry, Xf, Pf, Xp, Pp, eps, Qe)
+        return step_state(t, state.batch_shape, Xf, Pf, n, None, new, extras)
+
     def _whole_takes(self, state, options):
         P = state.carry["next"][1] if "next" in state.carry else state.P
-        return self._whole is not None and P.shape[0] == 1
+        return self._whole is not None and P.shape[0] == 1 and not options.get("lags")
 
     def _prepare_step_options(self, state, options):
         if not options:  # the plain online step: nothing to check
@@ -1143,7 +1239,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
     def _whole_takes(self, state, options):
-        return self._whole is not None and state.k + 1 >= state.carry["t0"] and state.runs <= _WHOLE_STEP_MAX_RUNS
+        return self._whole is not None and state.k + 1 >= state.carry["t0"] and state.x.shape[0] <= _WHOLE_STEP_MAX_RUNS
 
     def _compiled_cov_step(self):
         """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
@@ -1282,39 +1378,115 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
     def _whole_step(self, t, y, c, xf, xsm, xm, xp, eps, ring):
         """:meth:`_step_arrays` at t >= warmup as one compiled call (:func:`~tobitkf.filters._kernels_delay.reorg_step`:
         the covariance step, the means and the ring's pruning) on the step's own copies of the carry."""
+        xpred = xp[t]
+        buf, lay = self._whole_kernel(t, y, xf, xsm, xp, eps, ring)
+        x, P, Pprior, extras = self._whole_assemble(t, buf, lay, c, xf, xsm, xm, xp, eps)
+        return x, P, None, c, xpred, Pprior, extras
+
+    def _whole_kernel(self, t, y, xf, xsm, xp, eps, ring):
+        """The compiled whole step's flat output (the trace of P(t|t) last) and the layout of its arrays."""
         d, n, m = self.system.d, self.n, self.m
         kern, args = self._whole
         N = y.shape[0]
+        lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N) or _cached_layout(
+            self, N, lambda: ((4, N, n), (N, m), (7, 1, n, n), (1, m, m))
+        )
+        size, lay = lay
         # C-ordered arguments (the warm-up's means are column blocks of Algorithm A's, the loop's readings
         # columns of the record): one compiled signature, and a tuple of one array type
         # (the warm-up stores its means C-ordered too)
         back = self._eps_back  # ε(t-1), ..., ε(t-d+2)
         prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
         xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the kernel's own x̂(t|t)
-        buf = kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev)  # prev: ε(t-1)..ε(t-d+2)
-        Mz = 4 * N * n
-        M = buf[:Mz].reshape(4, N, n)
-        e_t = buf[Mz : Mz + N * m].reshape(N, m)
-        Cz = Mz + N * m + 7 * n * n
-        C = buf[Mz + N * m : Cz].reshape(7, 1, n, n)
-        Qe = buf[Cz:].reshape(1, m, m)
-        xpred = xp[t]
-        xf[t], xsm[t], xm[t], xp[t + 1] = M[0], M[1], M[2], M[3]
+        buf = np.empty(size)
+        kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev, buf)  # prev: ε(t-1)..ε(t-d+2)
+        return buf, lay
+
+    def _whole_assemble(self, t, buf, lay, c, xf, xsm, xm, xp, eps):
+        """The means of the kernel's output into the step's per-time dicts (those of time t-2d-3 dropped: the
+        kernel zeroed the ring's Ψ, K H of t-2d-2), Λ(t+1) into ``c``; x̂(t|t), P(t|t), P(t|t-1) and the extras."""
+        M, e_t, C, Qe = _flat_views(buf, lay)
+        m0, m1, m2, m3 = M[0], M[1], M[2], M[3]  # (indexing: a third of the cost of iterating)
+        xf[t], xsm[t], xm[t], xp[t + 1] = m0, m1, m2, m3
         eps[t] = e_t
+        lag_mean, lag_cov = self._lag_keys
         extras = {
-            "measured_mean": M[2],
+            "measured_mean": m2,
             "measured_cov": C[2],
-            "next_mean": M[3],
+            "next_mean": m3,
             "next_cov": C[3],
             "innovation": e_t,
             "innovation_cov": Qe,
-            self._lag_keys[0]: M[1],
-            self._lag_keys[1]: C[4],
+            lag_mean: m1,
+            lag_cov: C[4],
             "_lam": C[5],
         }
-        c["lam"] = {t + 1: C[6][0]}  # Λ(t+1), read by the result assembly (_group_extras)
-        _drop_means(t - 2 * d - 3, xf, xsm, xm, xp, eps)  # (the kernel zeroed the ring's Ψ, K H of t-2d-2)
-        return M[0], C[0], None, c, xpred, C[1], extras
+        c["lam"] = {t + 1: C[6, 0]}  # Λ(t+1), read by the result assembly (_group_extras)
+        old = t - 2 * self.system.d - 3
+        xf.pop(old, None), xsm.pop(old, None), xm.pop(old, None), xp.pop(old, None), eps.pop(old, None)
+        return m0, C[0], C[1], extras
+
+    def _whole_online(self, state, y):
+        """:meth:`_step_arrays`' compiled branch as the online step: the new carry (the ring copied once, the
+        per-time dicts of the means copied and grown), the kernel, and the checked trace of P(t|t)."""
+        t, carry = state.k + 1, state.carry
+        c = dict(carry)
+        xf = c["xf"] = carry["xf"].copy()
+        xsm = c["xsm"] = carry["xsm"].copy()
+        xm = c["xm"] = carry["xm"].copy()
+        xp = c["xp"] = carry["xp"].copy()
+        eps = c["eps"] = carry["eps"].copy()
+        ring = c["ring"] = carry["ring"].copy()
+        # :meth:`_whole_kernel` and :meth:`_whole_assemble` written out (their calls and the list of views are a
+        # tenth of this step; the test of the reorganized kernel's step loop holds the two forms equal)
+        N = y.shape[0]
+        d = self.system.d
+        lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N)
+        if lay is None:
+            return self._whole_online_first(state, y)
+        size, ((_, z0, s0), (o1, z1, s1), (o2, z2, s2), (o3, z3, s3)) = lay
+        back = self._eps_back
+        prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
+        buf = np.empty(size)
+        kern, args = self._whole
+        kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf[t - d + 1] if d > 1 else xp[t], prev, buf)
+        if not math.isfinite(buf[-1]):
+            return None
+        M, e_t = buf[:z0].reshape(s0), buf[o1 : o1 + z1].reshape(s1)
+        C, Qe = buf[o2 : o2 + z2].reshape(s2), buf[o3 : o3 + z3].reshape(s3)
+        m0, m1, m2, m3 = M[0], M[1], M[2], M[3]
+        xf[t], xsm[t], xm[t], xp[t + 1], eps[t] = m0, m1, m2, m3, e_t
+        lag_mean, lag_cov = self._lag_keys
+        extras = {
+            "measured_mean": m2,
+            "measured_cov": C[2],
+            "next_mean": m3,
+            "next_cov": C[3],
+            "innovation": e_t,
+            "innovation_cov": Qe,
+            lag_mean: m1,
+            lag_cov: C[4],
+            "_lam": C[5],
+        }
+        c["lam"] = {t + 1: C[6, 0]}
+        old = t - 2 * d - 3
+        xf.pop(old, None), xsm.pop(old, None), xm.pop(old, None), xp.pop(old, None), eps.pop(old, None)
+        return step_state(t, state.batch_shape, m0, C[0], self.n, None, c, extras)
+
+    def _whole_online_first(self, state, y):
+        """:meth:`_whole_online` by the two methods it writes out, at the first step for a number of runs (which
+        forms the layout of the kernel's output)."""
+        t, carry = state.k + 1, state.carry
+        c = dict(carry)
+        for key in _REORG_DICTS:
+            c[key] = dict(carry[key])
+        ring = c["ring"] = carry["ring"].copy()
+        xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
+        buf, lay = self._whole_kernel(t, y, xf, xsm, xp, eps, ring)
+        if not math.isfinite(buf[-1]):
+            return None
+        x, P, _, extras = self._whole_assemble(t, buf, lay, c, xf, xsm, xm, xp, eps)
+        return step_state(t, state.batch_shape, x, P, self.n, None, c, extras)
 
     def _warmup_step(self, t, y, c, R):
         """A step t < warmup by Algorithm A, from which every stored Ψ, gain and covariance is read (LD-05)."""
