@@ -92,6 +92,30 @@ def test_chunking_and_dask_give_identical_statistics(tmp_path):
         np.testing.assert_array_equal(one[name], dask[name])
 
 
+def test_processes_cluster_keeps_its_monitors_quiet():
+    """``--scheduler processes`` starts its cluster with Dask's periodic monitors made rare (their CPU,
+    ~0.1 s per second with the defaults, is taken from the workers when they fill the cores): no
+    statistical profiler in the workers, the health tick and the memory monitors once a second, in the
+    worker processes and in the scheduler of this process."""
+    pytest.importorskip("distributed")
+    from tobitkf.sweep import run as R
+
+    client, cluster = R._client("processes", 1)
+    try:
+        (workers,) = client.run(
+            lambda dask_worker: {k: v.callback_time for k, v in dask_worker.periodic_callbacks.items()}
+        ).values()
+        nannies = [{k: v.callback_time for k, v in n.periodic_callbacks.items()} for n in cluster.workers.values()]
+        sched = {k: v.callback_time for k, v in cluster.scheduler.periodic_callbacks.items()}
+    finally:
+        client.close()
+        cluster.close()
+    assert "profile" not in workers and "profile-cycle" not in workers
+    assert workers["tick"] == workers["memory_monitor"] == 1000 and workers["monitor"] == 5000
+    assert nannies and all(n["tick"] == n["memory_monitor"] == 1000 for n in nannies)
+    assert sched["tick"] == 1000 and sched["monitor"] == 5000
+
+
 def test_one_worker_runs_its_filters_on_one_thread(tmp_path, monkeypatch):
     """workers=1 is one thread: the blocks run in sequence with single-threaded filters (threads=1), as in a
     Dask worker (before, they ran with the filters' default threads, all CPUs); with more workers the
