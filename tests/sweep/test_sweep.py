@@ -116,6 +116,30 @@ def test_processes_cluster_keeps_its_monitors_quiet():
     assert sched["tick"] == 1000 and sched["monitor"] == 5000
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+def test_processes_cluster_forks_its_workers_with_the_sweep_imported():
+    """On Linux the workers of ``--scheduler processes`` are forked from this process, so they start with
+    tobitkf imported (a spawned worker imports Dask, numpy, scipy and tobitkf afresh: ~1.3 s of CPU each);
+    their filters still run on one thread (the nanny's OMP_NUM_THREADS=1 reaches a forked worker too)."""
+    pytest.importorskip("distributed")
+    from tobitkf.sweep import run as R
+
+    def probe():
+        import sys
+
+        from tobitkf._compiled import default_threads
+
+        return "tobitkf.sweep.run" in sys.modules, default_threads()
+
+    client, cluster = R._client("processes", 2)
+    try:
+        got = list(client.run(probe).values())
+    finally:
+        client.close()
+        cluster.close()
+    assert got == [(True, 1), (True, 1)]
+
+
 def test_one_worker_runs_its_filters_on_one_thread(tmp_path, monkeypatch):
     """workers=1 is one thread: the blocks run in sequence with single-threaded filters (threads=1), as in a
     Dask worker (before, they ran with the filters' default threads, all CPUs); with more workers the
