@@ -246,7 +246,9 @@ def run_sweep(
         Output directory; the store is ``out/<name>.zarr``.
     scheduler : {"local", "processes"} or a Dask scheduler address
         ``local`` runs in this process; ``processes`` starts a ``distributed.LocalCluster``
-        with ``workers`` single-threaded worker processes; an address connects to a cluster.
+        with ``workers`` single-threaded worker processes (forked from this process on Linux, see
+        :func:`_start_method`; Dask's periodic monitors made rare, see ``_QUIET``); an address
+        connects to a cluster.
     workers : int, optional
         ``local``: threads that run tasks side by side in this process (model mode; the
         compiled filters and numpy's random generator release the GIL), each block's filters
