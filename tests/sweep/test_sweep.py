@@ -92,6 +92,54 @@ def test_chunking_and_dask_give_identical_statistics(tmp_path):
         np.testing.assert_array_equal(one[name], dask[name])
 
 
+def test_processes_cluster_keeps_its_monitors_quiet():
+    """``--scheduler processes`` starts its cluster with Dask's periodic monitors made rare (their CPU,
+    ~0.1 s per second with the defaults, is taken from the workers when they fill the cores): no
+    statistical profiler in the workers, the health tick and the memory monitors once a second, in the
+    worker processes and in the scheduler of this process."""
+    pytest.importorskip("distributed")
+    from tobitkf.sweep import run as R
+
+    client, cluster = R._client("processes", 1)
+    try:
+        (workers,) = client.run(
+            lambda dask_worker: {k: v.callback_time for k, v in dask_worker.periodic_callbacks.items()}
+        ).values()
+        nannies = [{k: v.callback_time for k, v in n.periodic_callbacks.items()} for n in cluster.workers.values()]
+        sched = {k: v.callback_time for k, v in cluster.scheduler.periodic_callbacks.items()}
+    finally:
+        client.close()
+        cluster.close()
+    assert "profile" not in workers and "profile-cycle" not in workers
+    assert workers["tick"] == workers["memory_monitor"] == 1000 and workers["monitor"] == 5000
+    assert nannies and all(n["tick"] == n["memory_monitor"] == 1000 for n in nannies)
+    assert sched["tick"] == 1000 and sched["monitor"] == 5000
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+def test_processes_cluster_forks_its_workers_with_the_sweep_imported():
+    """On Linux the workers of ``--scheduler processes`` are forked from this process, so they start with
+    tobitkf imported (a spawned worker imports Dask, numpy, scipy and tobitkf afresh: ~1.3 s of CPU each);
+    their filters still run on one thread (the nanny's OMP_NUM_THREADS=1 reaches a forked worker too)."""
+    pytest.importorskip("distributed")
+    from tobitkf.sweep import run as R
+
+    def probe():
+        import sys
+
+        from tobitkf._compiled import default_threads
+
+        return "tobitkf.sweep.run" in sys.modules, default_threads()
+
+    client, cluster = R._client("processes", 2)
+    try:
+        got = list(client.run(probe).values())
+    finally:
+        client.close()
+        cluster.close()
+    assert got == [(True, 1), (True, 1)]
+
+
 def test_one_worker_runs_its_filters_on_one_thread(tmp_path, monkeypatch):
     """workers=1 is one thread: the blocks run in sequence with single-threaded filters (threads=1), as in a
     Dask worker (before, they ran with the filters' default threads, all CPUs); with more workers the
