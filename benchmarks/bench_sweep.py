@@ -4,7 +4,7 @@
   processes`` with 1 and with 2 workers, each a fresh ``tobitkf sweep``-like process timed
   from start to exit (interpreter start, cluster start, store and summary included); the
   two are run alternately ``--repeat`` times and the best and median wall times are
-  printed with the speed-up of the best times (target >= 1.6x on 2 cores). A ``local``
+  printed with the speed-up of the best times (issue 19: >= 1.7x on 2 cores). A ``local``
   run of the same file gives the in-process reference.
 * Memory: peak resident memory of a ``local`` sweep process for growing run counts
   (``--mem-runs``, default 10^4, 10^5, 10^6; target: flat, 10^6 runs of the core TKF with T = 100
