@@ -608,3 +608,39 @@ def test_kernels_honour_the_output_selection(outputs, m):
             assert_same(a.extras[key], b.extras[key])
         assert_same(a.final.x, b.final.x)
         assert_same(np.broadcast_to(a.final.P, b.final.P.shape), b.final.P)
+
+
+@pytest.mark.parametrize(
+    "lo, hi",
+    [(0.0, np.inf), (-1.5, np.inf), (0.0, 2.0), (-np.inf, 0.5), (-np.inf, np.inf), (3.0, 3.2)],
+)
+def test_censored_stats_block_equals_the_scalar_statistics_bitwise(lo, hi):
+    """_kernels.censored_stats_block (the fading and protocol loops' statistics of a block of runs: a lower limit
+    alone by _lower_tail_block and _lower_stats_block, anything else run by run) against censored_stats of each
+    run: bitwise, over means that reach every route of the lower-limit code (|a| < 1/sqrt 2 (erf), the direct
+    tails (erfc), beyond 4 sigma (continued fraction, each run its own number of terms), gamma underflowing,
+    a NaN mean), for a full block and a partial one (the runs b >= nb left as they were)."""
+    rng = np.random.default_rng(3)
+    sd = 1.7
+    mu = np.concatenate(
+        [
+            lo - sd * np.array([-0.7, -0.3, 0.0, 0.3, 0.7, 0.71, 1.0, 3.9, 4.0, 4.01, 6.0, 12.0, 40.0, 1e3]),
+            lo + sd * np.array([0.5, 2.0, 5.0, 9.0]),
+            rng.normal(lo if np.isfinite(lo) else 0.0, 4 * sd, 13),
+            [np.nan],
+        ]
+    )
+    B = 32
+    assert mu.size == B
+    glx, glw = _kernels.GL_X, _kernels.GL_W
+    buf = np.empty((2, glx.shape[0]))
+    ref = _kernels.censored_moments_array(mu, np.full(B, sd), np.full(B, lo), np.full(B, hi), glx, glw)
+    lower = hi == np.inf and lo != -np.inf
+    for nb in (B, 19):
+        cf = (np.empty(B), np.empty(B, dtype=np.int64), np.empty(B), np.empty(B), np.empty(B))
+        st = np.full((8, B), -7.0)
+        _kernels.censored_stats_block(lower, mu, sd, lo, hi, nb, glx, glw, buf, cf, st)
+        np.testing.assert_array_equal(st[:, :nb], ref[:, :nb])
+        assert (st[:, nb:] == -7.0).all()
+    if lower:  # the continued fraction did run, and gamma underflowed
+        assert (lo - mu)[np.isfinite(mu)].max() / sd > 4 and (ref[2] == 0.0).any()

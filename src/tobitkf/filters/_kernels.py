@@ -228,6 +228,75 @@ def _lower_stats(mu, sd, lo, s):
     return p_lo, 0.0, gam, lam, tmean, tvar, cmean, cvar
 
 
+@njit(cache=True, error_model="numpy")
+def _lower_stats_block(mu, sd, lo, nb, s, a, q, ex, st):
+    """:func:`_lower_stats` of the runs ``b < nb`` of a block at once, given the continued fractions ``s`` of
+    :func:`_lower_tail_block`: ``st[j, b]`` (``st`` (8, B)) = entry j of ``_lower_stats(mu[b], sd, lo, s[b])``,
+    the same operations in the same order, so the same numbers. The library calls (erf or erfc, exp, and log
+    in the tail) run in one loop; the arithmetic around them, with its divisions, in loops without calls,
+    which vectorise over the runs (``a``, ``q``, ``ex`` (B,) scratch). Measured: 43 -> 37 ns per value."""
+    for b in range(nb):
+        a[b] = (lo - mu[b]) / sd
+    for b in range(nb):
+        ab = a[b]
+        p_lo, q_a = _ndtr_pair(ab)
+        st[0, b] = p_lo
+        q[b] = q_a
+        if ab > _CF_FROM:  # gam = phi(a) / lambda, from the fraction (as _lower_stats)
+            lam = ab + 1.0 / (ab + s[b])
+            ex[b] = math.exp(-0.5 * ab * ab - _LOG_SQRT_2PI - math.log(lam))
+        else:  # phi(a)
+            ex[b] = math.exp(-0.5 * ab * ab - _LOG_SQRT_2PI)
+    for b in range(nb):
+        ab = a[b]
+        p_lo = st[0, b]
+        e = ex[b]
+        if ab > _CF_FROM:
+            sb = s[b]
+            t = 1.0 / (ab + sb)
+            lam = ab + t
+            zvar = t * (sb - t)
+            gam = e
+        else:
+            gam = q[b] if ab > 0 else 1.0 - p_lo
+            lam = e / gam
+            zvar = 1.0 + (ab * e) / gam - lam * lam
+        gam = min(max(gam, 0.0), 1.0)
+        zvar = max(zvar, 0.0)
+        tmean = mu[b] + sd * lam
+        tvar = sd * sd * zvar
+        cmean = gam * tmean
+        if p_lo > 0:
+            cmean = p_lo * lo + cmean
+        cvar = gam * (tvar + (tmean - cmean) ** 2)
+        if p_lo > 0:
+            cvar += p_lo * (lo - cmean) ** 2
+        st[1, b] = 0.0
+        st[2, b] = gam
+        st[3, b] = lam
+        st[4, b] = tmean
+        st[5, b] = tvar
+        st[6, b] = cmean
+        st[7, b] = cvar
+
+
+@njit(cache=True, error_model="numpy")
+def censored_stats_block(lower, mu, sd, lo, hi, nb, glx, glw, buf, cf, st):
+    """The censored statistics of the runs ``b < nb`` of a block at one channel's limits, ``st[j, b]`` (``st``
+    (8, B)) = entry j of :func:`censored_stats` at ``mu[b]``; ``lower`` (``hi`` infinite, ``lo`` finite) by
+    :func:`_lower_tail_block` and :func:`_lower_stats_block` (``cf`` = ``(a, kst, s, q, ex)`` (B,) scratch),
+    anything else run by run. The same numbers as :func:`censored_stats` run by run."""
+    a, kst, s, q, ex = cf
+    if lower:
+        _lower_tail_block(mu, sd, lo, nb, a, kst, s)
+        _lower_stats_block(mu, sd, lo, nb, s, a, q, ex, st)
+        return
+    for b in range(nb):
+        v = censored_stats(mu[b], sd, lo, hi, glx, glw, buf)
+        for j in range(8):
+            st[j, b] = v[j]
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def censored_stats(mu, sd, lo, hi, glx, glw, buf):
     """Censored-normal statistics of one channel, as :func:`tobitkf.censored.censored_moments`.

@@ -44,13 +44,12 @@ from ._kernels import (
     _gain_block,
     _innovation_moments,
     _load,
-    _lower_tail_block,
     _mean_scratch,
     _stage_cov,
     _stage_shape,
     _store_last,
     _update_scratch,
-    censored_stats_at,
+    censored_stats_block,
 )
 
 __all__ = ["fading_tkf_kernel", "shift_predict_block"]
@@ -155,7 +154,8 @@ def fading_tkf_kernel(
     L = Hs.shape[0] - 1
     B, S = _block_dims(N, T)
     x, xp, e, mu_b = _mean_scratch(nxi, m, B)
-    cf_a, cf_s, cf_k = np.empty(B), np.empty(B), np.empty(B, dtype=np.int64)
+    cf = (np.empty(B), np.empty(B, dtype=np.int64), np.empty(B), np.empty(B), np.empty(B))  # censored_stats_block
+    stb = np.empty((8, B))
     blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0])
     P, Pp, X, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
@@ -194,18 +194,17 @@ def fading_tkf_kernel(
                     for b in range(nb):
                         mu_b[l, b] += xp[j, b] * c
                 lower = hi[t, l] == _INF and lo[t, l] != -_INF
-                if lower:  # the tail's continued fractions of the block at once
-                    _lower_tail_block(mu_b[l], sigma[l], lo[t, l], nb, cf_a, cf_k, cf_s)
+                # the statistics of the block at once (a lower limit alone: vectorised around the library calls)
+                censored_stats_block(lower, mu_b[l], sigma[l], lo[t, l], hi[t, l], nb, glx, glw, buf, cf, stb)
                 for b in range(nb):
-                    st = censored_stats_at(b, lower, mu_b[l, b], sigma[l], lo[t, l], hi[t, l], glx, glw, buf, cf_s)
-                    g = st[2]
+                    g = stb[2, b]
                     gam[l, b] = g
-                    noise[l, l, b] = st[7] if exact else st[5]
-                    e[l, b] = y[r0 + b, t, l] - st[6]
+                    noise[l, l, b] = stb[7, b] if exact else stb[5, b]
+                    e[l, b] = y[r0 + b, t, l] - stb[6, b]
                     if want_x:
                         s_pu[tt, l, b] = g
-                        s_ey[tt, l, b] = st[6]
-                        s_lam[tt, l, b] = st[3]
+                        s_ey[tt, l, b] = stb[6, b]
+                        s_lam[tt, l, b] = stb[3, b]
             # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
             _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
             if m > 1:  # (23), (19)

@@ -52,12 +52,11 @@ from ._kernels import (
     _cov_update,
     _flush,
     _load,
-    _lower_tail_block,
     _mean_scratch,
     _stage_cov,
     _stage_shape,
     _store_last,
-    censored_stats_at,
+    censored_stats_block,
 )
 from ._kernels_fading import shift_predict_block
 
@@ -152,7 +151,8 @@ def protocol_kernel(
     zeta_b, HPH_b, CPC_b, xc_b = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     Ree_b = np.empty(B)
     good_b = np.empty(B, dtype=np.bool_)
-    cf_a, cf_s, cf_k = np.empty(B), np.empty(B), np.empty(B, dtype=np.int64)
+    cf = (np.empty(B), np.empty(B, dtype=np.int64), np.empty(B), np.empty(B), np.empty(B))  # censored_stats_block
+    stb = np.empty((8, B))
     lower = tau != -_INF  # the upper limit is infinite
     buf = np.empty((2, glx.shape[0]))
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
@@ -200,13 +200,12 @@ def protocol_kernel(
                     HPH_b[b] += Rxe[j, 0, b] * hj
                     CPC_b[b] += PC[j, b] * cj
                     xc_b[b] += xp[j, b] * cj
-            if lower:  # the tail's continued fractions of the block at once
-                _lower_tail_block(zeta_b, sd, tau, nb, cf_a, cf_k, cf_s)
+            # (13)-(16) for the block at once (the lower limit alone: vectorised around the library calls)
+            censored_stats_block(lower, zeta_b, sd, tau, math.inf, nb, glx, glw, buf, cf, stb)
             for b in range(nb):
                 zeta, HPH, CPC, xc = zeta_b[b], HPH_b[b], CPC_b[b], xc_b[b]
-                st = censored_stats_at(b, lower, zeta, sd, tau, math.inf, glx, glw, buf, cf_s)  # (13)-(16)
-                lam = st[3]
-                nz = max(st[5], _FLOOR * r)  # R (1 - phi), floored
+                lam = stb[3, b]
+                nz = max(stb[5, b], _FLOOR * r)  # R (1 - phi), floored
                 if mode == 0:
                     F = lv * CPC
                 elif mode == 1:
@@ -228,7 +227,7 @@ def protocol_kernel(
                     s_ext[tt, 2, b] = 1.0 - nz / r
                     s_ext[tt, 3, b] = yhat if g else tau
                     s_ext[tt, 4, b] = y[r0 + b, t] - yhat if g else 0.0
-                    s_ext[tt, 5, b] = st[2]
+                    s_ext[tt, 5, b] = stb[2, b]
                     s_ext[tt, 6, b] = Ree if g else nz
                 Ree_b[b] = Ree
                 good_b[b] = good
