@@ -14,7 +14,8 @@ Joseph or the standard form, both in the rank-m arithmetic of the shared numpy u
 
 Everything that is not specific to the fading model is shared with the TKF kernel of
 :mod:`tobitkf.filters._kernels`: the censored-normal statistics (continued-fraction tails,
-quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block scratch, the moments of the
+quadrature: :func:`~tobitkf.filters._kernels.censored_stats`, here for a block of runs at once by
+:func:`~tobitkf.filters._kernels.censored_stats_block`), the block scratch, the moments of the
 scaled update and the masked gain (missing or degenerate channels get a zero gain column): for m > 1
 the block solve :func:`~tobitkf.filters._kernels._gain_block` over all runs of a block at once, as in
 the TKF kernel.
@@ -27,7 +28,9 @@ else runs on numpy.
 
 Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block of runs and written
 run by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
-``(N, 0, ...)`` is not requested: it gets no staging and is not written.
+``(N, 0, ...)`` is not requested: it gets no staging and is not written. The driver carves the
+requested arrays from one allocation (:func:`tobitkf.filters.kalman.output_arrays`: fewer first-touch page
+faults).
 """
 
 from __future__ import annotations
