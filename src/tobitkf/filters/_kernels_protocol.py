@@ -50,7 +50,6 @@ from numba import njit
 from ._kernels import (
     _INF,
     _TINY,
-    _block_dims,
     _cov_update,
     _flush,
     _load,
@@ -60,7 +59,7 @@ from ._kernels import (
     _store_last,
     censored_stats_block,
 )
-from ._kernels_fading import shift_predict_block
+from ._kernels_fading import aug_block_dims, shift_predict_block
 
 __all__ = ["protocol_kernel", "N_EXTRAS", "EXTRA_NAMES"]
 
@@ -135,7 +134,7 @@ def protocol_kernel(
     N, T = y.shape
     nxi = Cs.shape[1]
     n = A.shape[0]
-    B, S = _block_dims(N, T)
+    B, S = aug_block_dims(N, T)  # 64 runs per block, as the fading loop
     x, xp, _e, _yb = _mean_scratch(nxi, 1, B)
     P = np.empty((nxi, nxi, B))
     Pp = np.empty((nxi, nxi, B))
