@@ -86,3 +86,42 @@ def test_variances_alone_allocate_no_covariance_array(name):
     p2, v2 = _peak(est, y)
     grow_y = y.nbytes // 2
     assert p2 - p1 <= 1.5 * (v2 - v1) + grow_y, (p2 - p1, v2 - v1)
+
+
+def test_output_arrays_are_disjoint_views_of_one_allocation():
+    """kalman.output_arrays: every requested output a C-contiguous (runs, T) + shape view, no two sharing an
+    element (a wrong offset or size would make neighbours overlap and the kernel overwrite one with another),
+    the ones not requested (runs, 0) + shape; cov_spec as cov_output."""
+    from tobitkf.filters.kalman import cov_output, cov_spec, output_arrays
+
+    specs = [(True, (3,)), (False, (2, 2)), (True, (1,)), (True, (2, 3, 3)), (True, ()), (False, (5,))]
+    arrs = output_arrays(7, 5, *specs)
+    assert [a.shape for a in arrs] == [(7, 5, 3), (7, 0, 2, 2), (7, 5, 1), (7, 5, 2, 3, 3), (7, 5), (7, 0, 5)]
+    on = [a for a, (flag, _) in zip(arrs, specs) if flag]
+    assert all(a.flags.c_contiguous and a.flags.writeable for a in on)
+    base = on[0].base
+    assert all(a.base is base for a in on)  # one allocation
+    for i, a in enumerate(on):
+        a[...] = i
+    for i, a in enumerate(on):
+        assert (a == i).all()  # nothing written through another view
+        assert all(not np.shares_memory(a, b) for b in on[i + 1 :])
+    for want in (("mean", "cov"), ("var",), ("mean", "var"), ("mean",), ("cov", "var")):
+        flag, shape = cov_spec(want, 4)
+        (c,) = output_arrays(3, 2, (flag, shape))
+        assert c.shape == cov_output(want, 3, 2, 4).shape
+
+
+@pytest.mark.parametrize("name", ["fading", "protocol"])
+def test_outputs_of_one_allocation_share_no_element(name):
+    """The fading and protocol loops write every output of a call into one allocation: the result's arrays
+    (extras included) share no element, so writing into one cannot change another."""
+    (make, y) = {c[0]: c[1:] for c in _cases(5, 12)}[name]
+    res = make("numba").filter(y)
+    arrays = [res.mean, res.cov, res.pred_mean, res.pred_cov]
+    arrays += [v for k, v in res.extras.items() if k not in ("uncensored",)]
+    if name == "protocol":  # the extras of the loop's (N, T, 7) array are its columns: disjoint too
+        assert res.extras["inverse_mills"].base is not None
+    for i, a in enumerate(arrays):
+        for b in arrays[i + 1 :]:
+            assert not np.shares_memory(a, b)

@@ -139,7 +139,7 @@ def test_kernel_many_runs_cross_blocks():
     sys_ = oscillator()
     cens = tk.Censoring(lower=0.0)
     fad = fading(2)
-    y = data(sys_, fad, cens, runs=70, steps=10)  # 70 = 2 full blocks of 32 and one of 6
+    y = data(sys_, fad, cens, runs=140, steps=10)  # 140 = 2 full blocks of 64 and one of 12 (AUG_BLOCK)
     assert_results_equal(*both(sys_, fad, cens, y))
 
 
@@ -151,7 +151,7 @@ def test_kernel_tail_continued_fractions_of_a_block(lower):
     sys_ = oscillator()
     cens = tk.Censoring(lower=lower)
     fad = fading(2)
-    y = data(sys_, fad, cens, runs=37, steps=40)
+    y = data(sys_, fad, cens, runs=69, steps=40)
     a, b = both(sys_, fad, cens, y)
     assert_results_equal(a, b)
     assert (b.extras["p_uncensored"] < ndtr(-4.0)).any()
@@ -159,8 +159,8 @@ def test_kernel_tail_continued_fractions_of_a_block(lower):
 
 @pytest.mark.parametrize("outputs", ["all", ("var", "pred_mean")])
 def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
-    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 37 runs
-    (a full block and a partial one), more than two chunks of steps, and a continuation whose record starts
+    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 69 runs
+    (a full block of 64 and a partial one), more than two chunks of steps, and a continuation whose record starts
     inside the first L steps (smoothed blocks s > k NaN) and a second one whose chunks start at k0 = 70."""
     from tobitkf.filters import _kernels
 
@@ -168,7 +168,7 @@ def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
     cens = tk.Censoring(lower=[0.0, -0.5])
     fad = fading(2)
     T = 2 * _kernels.CHUNK + 7
-    y = data(sys_, fad, cens, runs=37, steps=T + 71)
+    y = data(sys_, fad, cens, runs=69, steps=T + 71)
     fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
     a, b = fast.filter(y[:, :1], outputs=outputs), ref.filter(y[:, :1], outputs=outputs)
@@ -192,7 +192,7 @@ def test_kernel_block_gain_solve_three_channels(form):
     sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 0.3]), x0=[5.0, 0.0], P0=np.eye(2))
     cens = tk.Censoring(lower=[0.0, -1.0, -np.inf], upper=[np.inf, 3.0, 2.0])
     fad = fading(1)
-    y = data(sys_, fad, cens, runs=40, steps=25)  # 40 runs: a full block of 32 and a partial one
+    y = data(sys_, fad, cens, runs=72, steps=25)  # 72 runs: a full block of 64 and a partial one
     y[:, ::4, 1] = np.nan
     y[5, :, 2] = np.nan
     a, b = both(sys_, fad, cens, y, covariance_update=form)
@@ -419,3 +419,15 @@ def test_online_kernel_step_divergence_reruns_on_numpy():
             a, b = fast.step(a, [0.0]), ref.step(b, [0.0])
     np.testing.assert_array_equal(a.x, b.x)
     assert np.isnan(a.x).any()
+
+
+def test_augmented_block_dims():
+    """The fading and protocol loops' blocks: AUG_BLOCK runs (one run alone: one column), CHUNK staged steps at most;
+    the tests of these loops that cross blocks use more runs than AUG_BLOCK."""
+    from tobitkf.filters import _kernels
+
+    B = _kernels_fading.AUG_BLOCK
+    assert _kernels_fading.aug_block_dims(1000, 100) == (B, _kernels.CHUNK)
+    assert _kernels_fading.aug_block_dims(1, 1) == (1, 1)
+    assert _kernels_fading.aug_block_dims(B - 5, 7) == (B - 5, 7)
+    assert B < 69 < 2 * B < 140

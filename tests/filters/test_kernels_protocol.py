@@ -165,7 +165,7 @@ def test_kernel_three_sensors_custom_order_per_sensor_laws(mode):
 
 def test_kernel_many_runs_cross_blocks():
     sys_, ch = oscillator(), channel()
-    y = data(sys_, ch, (70,), 12, seed=6)  # 70 = 2 full blocks of 32 and one of 6
+    y = data(sys_, ch, (140,), 12, seed=6)  # 140 = 2 full blocks of 64 and one of 12 (AUG_BLOCK)
     assert_results_equal(*both(sys_, ch, y))
 
 
@@ -174,7 +174,7 @@ def test_kernel_tail_continued_fractions_of_a_block(threshold):
     """A threshold above the signal: the block's runs mix the direct formulas and the continued fraction
     beyond 4 sigma (2.0), or are all in the tail with their own numbers of terms (8.0); equal to numpy."""
     sys_, ch = oscillator(), channel(threshold=threshold)
-    y = data(sys_, ch, (37,), 40)
+    y = data(sys_, ch, (69,), 40)
     a, b = both(sys_, ch, y)
     assert_results_equal(a, b)
     assert (b.extras["p_uncensored"] < ndtr(-4.0)).any()
@@ -182,13 +182,13 @@ def test_kernel_tail_continued_fractions_of_a_block(threshold):
 
 @pytest.mark.parametrize("outputs", ["all", ("var", "extras")])
 def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
-    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 37 runs
-    (a full block and a partial one), more than two chunks of steps, continued from a state at k0 = 5."""
+    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 69 runs
+    (a full block of 64 and a partial one), more than two chunks of steps, continued from a state at k0 = 5."""
     from tobitkf.filters import _kernels
 
     sys_, ch = oscillator(), channel()
     T = 2 * _kernels.CHUNK + 7
-    y = data(sys_, ch, (37,), T + 5)
+    y = data(sys_, ch, (69,), T + 5)
     fast = ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
     ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy")
     a, b = fast.filter(y[:, :5], outputs=outputs), ref.filter(y[:, :5], outputs=outputs)

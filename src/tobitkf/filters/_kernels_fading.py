@@ -14,7 +14,8 @@ Joseph or the standard form, both in the rank-m arithmetic of the shared numpy u
 
 Everything that is not specific to the fading model is shared with the TKF kernel of
 :mod:`tobitkf.filters._kernels`: the censored-normal statistics (continued-fraction tails,
-quadrature) :func:`~tobitkf.filters._kernels.censored_stats`, the block scratch, the moments of the
+quadrature: :func:`~tobitkf.filters._kernels.censored_stats`; for a lower limit alone the vectorised
+statistics of a whole block, :func:`~tobitkf.filters._kernels_censored.lower_stats_block`), the block scratch, the moments of the
 scaled update and the masked gain (missing or degenerate channels get a zero gain column): for m > 1
 the block solve :func:`~tobitkf.filters._kernels._gain_block` over all runs of a block at once, as in
 the TKF kernel.
@@ -27,7 +28,9 @@ else runs on numpy.
 
 Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block of runs and written
 run by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
-``(N, 0, ...)`` is not requested: it gets no staging and is not written.
+``(N, 0, ...)`` is not requested: it gets no staging and is not written. The driver carves the
+requested arrays from one allocation (:func:`tobitkf.filters.kalman.output_arrays`: fewer first-touch page
+faults).
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from numba import njit
 
 from ._kernels import (
     _INF,
-    _block_dims,
+    CHUNK,
     _cov_update,
     _flush,
     _gain,
@@ -53,7 +56,22 @@ from ._kernels import (
 )
 from ._kernels_censored import lower_stats_block
 
-__all__ = ["fading_tkf_kernel", "shift_predict_block"]
+__all__ = ["fading_tkf_kernel", "shift_predict_block", "AUG_BLOCK", "aug_block_dims"]
+
+#: runs per block of the augmented-state loops (this one and the protocol loop), twice the TKF's
+#: :data:`~tobitkf.filters._kernels.BLOCK`: a step of these loops is some 300 short loops over the runs of a block
+#: (n_xi = 6), whose fixed cost per loop 64 runs share better than 32. Measured (1000 runs x 100 steps, all
+#: outputs, thread CPU time, old/new processes alternated twice, load 4.5-5.8): fading default 164-167 -> 148-152,
+#: protocol "variance" 163 -> 152-157 ns per run-step; the staging of the fading loop's 33 numbers per run-step is
+#: then 1.1 MB (64 steps x 64 runs)
+AUG_BLOCK = 64
+
+
+@njit(cache=True)
+def aug_block_dims(N, T):
+    """``(B, S)`` of the augmented-state loops: :func:`~tobitkf.filters._kernels._block_dims` with
+    :data:`AUG_BLOCK` runs per block."""
+    return min(AUG_BLOCK, max(N, 1)), min(CHUNK, max(T, 1))
 
 
 @njit(cache=True, error_model="numpy")
@@ -153,7 +171,7 @@ def fading_tkf_kernel(
     N, T, m = y.shape
     nxi = Hs.shape[2]
     L = Hs.shape[0] - 1
-    B, S = _block_dims(N, T)
+    B, S = aug_block_dims(N, T)
     x, xp, e, mu_b = _mean_scratch(nxi, m, B)
     st_g, st_lam, st_tv, st_cm, st_cv = np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     blk, run, solve, buf = _update_scratch(nxi, A.shape[0], m, B, glx.shape[0])

@@ -10,7 +10,7 @@ second algorithm. Per step k, with the scheduled sensor :math:`h = \bar h_k`,
     \hat\xi^-_k, P^-_k &: \text{the block shift (17)–(18)}
         \;(:func:`~tobitkf.filters._kernels_fading.shift_predict_block`) \\
     \lambda, \mathcal R(1-\varphi) &: \text{the censored statistics at } \zeta
-        \text{ (:func:`~tobitkf.filters._kernels.censored_stats`, lower limit } \tau),
+        \text{ (:func:`~tobitkf.filters._kernels_censored.lower_stats_block`, lower limit } \tau),
         \text{ the latter floored at } 10^{-12}\mathcal R \\
     \hat y &= \zeta + \sqrt{\mathcal R}\lambda \;(21), \quad
     R_{ee} = \mathbf HP^-_k\mathbf H^T + F_k + \mathcal R(1-\varphi) \;(24) \\
@@ -35,7 +35,9 @@ Covered (the dispatcher in ``protocol.py`` decides): time-invariant A, Q, C, R, 
 
 Outputs are staged for :data:`~tobitkf.filters._kernels.CHUNK` steps per block of runs and written run
 by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
-``(N, 0, ...)`` is not requested: it gets no staging and is not written.
+``(N, 0, ...)`` is not requested: it gets no staging and is not written. The driver carves the
+requested arrays from one allocation (:func:`tobitkf.filters.kalman.output_arrays`: fewer first-touch page
+faults).
 """
 
 from __future__ import annotations
@@ -48,7 +50,6 @@ from numba import njit
 from ._kernels import (
     _INF,
     _TINY,
-    _block_dims,
     _cov_update,
     _flush,
     _load,
@@ -59,7 +60,7 @@ from ._kernels import (
     censored_stats,
 )
 from ._kernels_censored import lower_stats_block
-from ._kernels_fading import shift_predict_block
+from ._kernels_fading import aug_block_dims, shift_predict_block
 
 __all__ = ["protocol_kernel", "N_EXTRAS", "EXTRA_NAMES"]
 
@@ -134,7 +135,7 @@ def protocol_kernel(
     N, T = y.shape
     nxi = Cs.shape[1]
     n = A.shape[0]
-    B, S = _block_dims(N, T)
+    B, S = aug_block_dims(N, T)  # 64 runs per block, as the fading loop
     x, xp, _e, _yb = _mean_scratch(nxi, 1, B)
     P = np.empty((nxi, nxi, B))
     Pp = np.empty((nxi, nxi, B))

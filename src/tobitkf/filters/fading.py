@@ -117,10 +117,11 @@ from .kalman import (
     LinearGaussianFamily,
     _empty,
     _finite_or_none,
-    cov_output,
+    cov_spec,
     finite_variances,
     kernel_array,
     kernel_result,
+    output_arrays,
 )
 from .tobit import TobitKalmanFilter
 
@@ -861,14 +862,20 @@ def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, wan
     x = c64(state.x, dtype=float)
     P = c64(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float)
 
-    def arr(on, shape):
-        return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
-
-    ext = "extras" in want
-    means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
-    covs, pcovs = cov_output(want, N, T, n), arr("pred_cov" in want, (n, n))
-    pu, ey, lam = arr(ext, (m,)), arr(ext, (m,)), arr(ext, (m,))
-    sm_mean, sm_cov = arr(ext and keep_smoothed, (L + 1, n)), arr(ext and keep_smoothed, (L + 1, n, n))
+    ext, sm = "extras" in want, "extras" in want and keep_smoothed
+    means, covs, pmeans, pcovs, pu, ey, lam, sm_mean, sm_cov = output_arrays(
+        N,
+        T,
+        ("mean" in want, (n,)),
+        cov_spec(want, n),
+        ("pred_mean" in want, (n,)),
+        ("pred_cov" in want, (n, n)),
+        (ext, (m,)),
+        (ext, (m,)),
+        (ext, (m,)),
+        (sm, (L + 1, n)),
+        (sm, (L + 1, n, n)),
+    )
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
     _kernels_fading.fading_tkf_kernel(
         c64(y2, dtype=float),

@@ -247,6 +247,37 @@ def cov_output(want, runs: int, T: int, n: int) -> np.ndarray:
     return np.empty((runs, T, n, 1)) if "var" in want else np.empty((runs, 0, n, n))
 
 
+def cov_spec(want, n: int) -> tuple[bool, tuple[int, ...]]:
+    """:func:`cov_output`'s array as an ``(on, shape)`` entry of :func:`output_arrays`."""
+    if "cov" in want:
+        return True, (n, n)
+    return ("var" in want), ((n, 1) if "var" in want else (n, n))
+
+
+def output_arrays(runs: int, T: int, *specs: tuple[bool, tuple[int, ...]]) -> list[np.ndarray]:
+    """The ``(runs, T) + shape`` outputs of a compiled loop, one per ``(on, shape)`` entry, carved from ONE
+    fresh allocation (each a C-contiguous view at a multiple of 64 bytes from its start); an entry that is off gets a
+    cached ``(runs, 0) + shape`` array (not requested, not written). Why one allocation: the first touch of
+    fresh memory costs a page fault per 4 KiB page, and numpy asks for transparent huge pages
+    (``madvise``) on allocations of 4 MiB and more only, so separate arrays of a few MiB each (the
+    fading and protocol loops' 9 and 7 outputs at 1000 runs x 100 steps) fault page by page: measured on
+    the 2-core VM, ~4000 faults and ~45 ns per run-step of the fading loop's ~250. The views keep the one
+    buffer alive together (it is freed when the last of them is)."""
+    sizes = [runs * T * math.prod(shape) if on else 0 for on, shape in specs]
+    starts, total = [], 0
+    for size in sizes:
+        starts.append(total)
+        total += -(-size // 8) * 8  # the next view 64 bytes further on
+    buf = np.empty(total)
+    out = []
+    for (on, shape), start, size in zip(specs, starts, sizes):
+        if on:
+            out.append(buf[start : start + size].reshape((runs, T) + shape))
+        else:
+            out.append(_empty((runs, 0) + shape))
+    return out
+
+
 def kernel_result(
     want, batch, T: int, means, covs, pmeans, pcovs, extras: dict[str, Any], final: FilterState
 ) -> FilterResult:

@@ -104,9 +104,10 @@ from .kalman import (
     LinearGaussianFamily,
     _empty,
     _finite_or_none,
-    cov_output,
+    cov_spec,
     kernel_array,
     kernel_result,
+    output_arrays,
 )
 
 __all__ = [
@@ -956,14 +957,18 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     x = np.array(state.x, dtype=float, order="C")
     P = np.array(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
 
-    def arr(on, shape):
-        return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
-
     ext = "extras" in want
-    means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
-    covs, pcovs = cov_output(want, N, T, n), arr("pred_cov" in want, (n, n))
-    amean, apmean = arr(ext, (nxi,)), arr(ext, (nxi,))
-    exts = arr(ext, (kp.N_EXTRAS,))
+    means, covs, pmeans, pcovs, amean, apmean, exts = output_arrays(
+        N,
+        T,
+        ("mean" in want, (n,)),
+        cov_spec(want, n),
+        ("pred_mean" in want, (n,)),
+        ("pred_cov" in want, (n, n)),
+        (ext, (nxi,)),
+        (ext, (nxi,)),
+        (ext, (kp.N_EXTRAS,)),
+    )
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
     kp.protocol_kernel(
         yk,
