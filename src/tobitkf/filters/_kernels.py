@@ -447,8 +447,19 @@ def _mirror(P, nb):
 
 @njit(cache=True, error_model="numpy")
 def _predict(A, Qd, x, P, xp, Pp, AP, nb):
-    r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)` (Miller (2.3), (3.20)–(3.21))."""
+    r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)` (Miller (2.3), (3.20)–(3.21)).
+
+    Loop order for speed at larger n (measured at n = 16, m = 8, B = 32: 1040 -> ~450 ns per run): ``AP``
+    row by row as :math:`(AP)_{i\cdot} = \sum_k A_{ik}P_{k\cdot}` over the whole contiguous slab
+    ``P[k]`` (n B numbers, all lanes of the block: lanes past ``nb`` hold an earlier block's values and
+    are never read back), one long vectorised loop per term instead of n short ones; :math:`\bar P_{ij}`
+    (only ``j >= i``, mirrored) with the sum over k taken eight terms per pass over the runs, so that
+    the accumulator is loaded and stored once per eight products (:func:`_dot8`)."""
     n = A.shape[0]
+    W = P.shape[2]
+    L = n * W
+    Pf = P.reshape((n, L))
+    APf = AP.reshape((n, L))
     for i in range(n):
         for b in range(nb):
             xp[i, b] = 0.0
@@ -456,25 +467,42 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
             a = A[i, k]
             for b in range(nb):
                 xp[i, b] += a * x[k, b]
-        for j in range(n):
-            for b in range(nb):
-                AP[i, j, b] = 0.0
-            for k in range(n):
-                a = A[i, k]
-                for b in range(nb):
-                    AP[i, j, b] += a * P[k, j, b]
+        a = A[i, 0]
+        for q in range(L):
+            APf[i, q] = a * Pf[0, q]
+        for k in range(1, n):
+            a = A[i, k]
+            for q in range(L):
+                APf[i, q] += a * Pf[k, q]
     for i in range(n):
         for j in range(i, n):
-            for b in range(nb):
-                Pp[i, j, b] = 0.0
-            for k in range(n):
-                a = A[j, k]
-                for b in range(nb):
-                    Pp[i, j, b] += AP[i, k, b] * a
+            _dot8(Pp, i, j, AP, i, A, j, n, W)
             q = 0.5 * (Qd[i, j] + Qd[j, i])
-            for b in range(nb):
+            for b in range(W):
                 Pp[i, j, b] += q
-    _mirror(Pp, nb)
+    _mirror(Pp, W)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _dot8(out, i, j, X, r, M, s, n, W):
+    """``out[i, j, b] = sum_k X[r, k, b] * M[s, k]`` for ``b < W``, ``k < n``: the sum over k eight terms
+    per pass over the runs (the accumulator ``out[i, j]`` loaded and stored once per eight products;
+    measured at n = 16, B = 32: 160 against 320 ns per run for the upper triangle of (AP)A^T one term
+    per pass)."""
+    n8 = n - n % 8
+    for b in range(W):
+        out[i, j, b] = 0.0
+    for k in range(0, n8, 8):
+        a0, a1, a2, a3 = M[s, k], M[s, k + 1], M[s, k + 2], M[s, k + 3]
+        a4, a5, a6, a7 = M[s, k + 4], M[s, k + 5], M[s, k + 6], M[s, k + 7]
+        for b in range(W):
+            out[i, j, b] += (X[r, k, b] * a0 + X[r, k + 1, b] * a1 + X[r, k + 2, b] * a2 + X[r, k + 3, b] * a3) + (
+                X[r, k + 4, b] * a4 + X[r, k + 5, b] * a5 + X[r, k + 6, b] * a6 + X[r, k + 7, b] * a7
+            )
+    for k in range(n8, n):
+        a = M[s, k]
+        for b in range(W):
+            out[i, j, b] += X[r, k, b] * a
 
 
 @njit(cache=True, error_model="numpy")
@@ -631,28 +659,33 @@ def _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
     innovation of one that does not is set to 0. Writes ``CP`` (m, dim, nb), ``Rxe``, ``Ree``,
     ``ok``, ``e`` in place."""
     m, dim = C.shape
-    for l in range(m):
-        for j in range(dim):
-            for b in range(nb):
-                CP[l, j, b] = 0.0
-            for k in range(dim):
-                c = C[l, k]
-                if c != 0.0:
-                    for b in range(nb):
-                        CP[l, j, b] += c * Pp[k, j, b]
+    W = Pp.shape[2]
+    L = dim * W
+    Ppf = Pp.reshape((dim, L))
+    CPf = CP.reshape((m, L))
+    for l in range(m):  # CP[l] = sum_k C[l, k] Pp[k], over contiguous slabs of all lanes (as _predict)
+        for q in range(L):
+            CPf[l, q] = 0.0
+        for k in range(dim):
+            c = C[l, k]
+            if c != 0.0:
+                for q in range(L):
+                    CPf[l, q] += c * Ppf[k, q]
     for l in range(m):
         for j in range(dim):
             for b in range(nb):
                 Rxe[j, l, b] = CP[l, j, b] * gam[l, b]
-        for q in range(m):
-            for b in range(nb):
+        for q in range(l, m):  # symmetric: q >= l, mirrored
+            for b in range(W):
                 Ree[l, q, b] = 0.0
             for k in range(dim):
                 c = C[q, k]
-                for b in range(nb):
-                    Ree[l, q, b] += CP[l, k, b] * c
+                if c != 0.0:
+                    for b in range(W):
+                        Ree[l, q, b] += CP[l, k, b] * c
             for b in range(nb):
                 Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
+                Ree[q, l, b] = Ree[l, q, b]
         for b in range(nb):
             Ree[l, l, b] += noise[l, l, b]
     for l in range(m):
@@ -680,11 +713,17 @@ def _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
     mirrored (M is symmetric in exact arithmetic; the mirrored M is the one both steps use). A masked
     channel has a zero gain column, so its row of H does not matter."""
     n, m = K.shape[0], K.shape[1]
-    for i in range(n):
+    m4 = m - m % 4
+    for i in range(n):  # the sum over the channels four terms per pass over the runs (as _dot8)
         for j in range(i, n):
             for b in range(nb):
                 P[i, j, b] = Pp[i, j, b]
-            for l in range(m):
+            for l in range(0, m4, 4):
+                for b in range(nb):
+                    P[i, j, b] -= (K[i, l, b] * Rxe[j, l, b] + K[i, l + 1, b] * Rxe[j, l + 1, b]) + (
+                        K[i, l + 2, b] * Rxe[j, l + 2, b] + K[i, l + 3, b] * Rxe[j, l + 3, b]
+                    )
+            for l in range(m4, m):
                 for b in range(nb):
                     P[i, j, b] -= K[i, l, b] * Rxe[j, l, b]
     _mirror(P, nb)
