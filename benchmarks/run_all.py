@@ -43,6 +43,7 @@ ROOT = HERE.parent
 SUITE: list[tuple[str, str, list[str], bool]] = [
     ("limit", "bench_limit.py", [], True),
     ("core", "bench_core.py", [], True),
+    ("stats", "bench_stats.py", [], True),
     ("all", "bench_all.py", [], True),
     ("fading", "bench_fading.py", ["--compiled-only"], True),
     ("protocol", "bench_protocol.py", ["--only-compiled"], True),
