@@ -484,13 +484,8 @@ def _predict_blocked(A, Qd, x, P, xp, Pp, AP, nb):
     L = n * W
     Pf = P.reshape((n, L))
     APf = AP.reshape((n, L))
+    mean_predict(A, x, xp, nb)
     for i in range(n):
-        for b in range(nb):
-            xp[i, b] = 0.0
-        for k in range(n):
-            a = A[i, k]
-            for b in range(nb):
-                xp[i, b] += a * x[k, b]
         a = A[i, 0]
         for q in range(L):
             APf[i, q] = a * Pf[0, q]
@@ -673,6 +668,33 @@ def _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, W, d, bad, Rs, Ws, Ks, oks, R
     _mean_update(K, e, xp, x, nb)
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _take_part(Ree, e, ok, m, nb):
+    """The channels that take part (``ok``): innovation variance above the smallest normal number and
+    innovation not NaN; the innovation of one that does not is set to 0 (both forms of
+    :func:`_innovation_moments`)."""
+    for l in range(m):
+        for b in range(nb):
+            good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
+            ok[l, b] = good
+            if not good:
+                e[l, b] = 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def mean_predict(A, x, xp, nb):
+    r""":math:`\bar x = A\hat x` for the top ``A.shape[0]`` rows of a block's means (``x``, ``xp`` (dim, B)):
+    the mean of :func:`_predict_blocked` and of the fading kernel's block shift."""
+    n = A.shape[0]
+    for i in range(n):
+        for b in range(nb):
+            xp[i, b] = 0.0
+        for k in range(n):
+            a = A[i, k]
+            for b in range(nb):
+                xp[i, b] += a * x[k, b]
+
+
 @njit(cache=True, error_model="numpy")
 def _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
     r"""The moments of a scaled update for a block of runs (the runs on the last axis):
@@ -710,12 +732,7 @@ def _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
                 Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
         for b in range(nb):
             Ree[l, l, b] += noise[l, l, b]
-    for l in range(m):
-        for b in range(nb):
-            good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
-            ok[l, b] = good
-            if not good:
-                e[l, b] = 0.0
+    _take_part(Ree, e, ok, m, nb)
 
 
 @njit(cache=True, error_model="numpy")
@@ -753,12 +770,7 @@ def _innovation_moments_blocked(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
                 Ree[q, l, b] = Ree[l, q, b]
         for b in range(nb):
             Ree[l, l, b] += noise[l, l, b]
-    for l in range(m):
-        for b in range(nb):
-            good = (Ree[l, l, b] > _TINY) and not math.isnan(e[l, b])
-            ok[l, b] = good
-            if not good:
-                e[l, b] = 0.0
+    _take_part(Ree, e, ok, m, nb)
 
 
 @njit(cache=True, error_model="numpy")

@@ -53,6 +53,7 @@ from ._kernels import (
     _store_last,
     _update_scratch,
     censored_stats,
+    mean_predict,
 )
 from ._kernels_censored import lower_stats_block
 
@@ -82,13 +83,7 @@ def shift_predict_block(A, Qd, x, P, xp, Pp, X, nb):
     :math:`\bar P_{i+1,j+1} = P_{ij}`. ``A``, ``Qd`` (n, n); ``x`` (nxi, B), ``P`` (nxi, nxi, B)
     exactly symmetric; ``X`` (nxi, n, B) scratch. O(n n_xi^2) instead of O(n_xi^3)."""
     nxi, n = x.shape[0], A.shape[0]
-    for i in range(n):
-        for b in range(nb):
-            xp[i, b] = 0.0
-        for k in range(n):
-            a = A[i, k]
-            for b in range(nb):
-                xp[i, b] += a * x[k, b]
+    mean_predict(A, x, xp, nb)
     for i in range(n, nxi):
         for b in range(nb):
             xp[i, b] = x[i - n, b]
