@@ -440,13 +440,8 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
     if n >= BLOCKED_N:
         _predict_blocked(A, Qd, x, P, xp, Pp, AP, nb)
         return
+    mean_predict(A, x, xp, nb)
     for i in range(n):
-        for b in range(nb):
-            xp[i, b] = 0.0
-        for k in range(n):
-            a = A[i, k]
-            for b in range(nb):
-                xp[i, b] += a * x[k, b]
         for j in range(n):
             for b in range(nb):
                 AP[i, j, b] = 0.0
@@ -684,7 +679,8 @@ def _take_part(Ree, e, ok, m, nb):
 @njit(cache=True, error_model="numpy", inline="always")
 def mean_predict(A, x, xp, nb):
     r""":math:`\bar x = A\hat x` for the top ``A.shape[0]`` rows of a block's means (``x``, ``xp`` (dim, B)):
-    the mean of :func:`_predict_blocked` and of the fading kernel's block shift."""
+    the mean of both forms of :func:`_predict`, of the fading kernel's block shift and of the steady-state
+    kernel."""
     n = A.shape[0]
     for i in range(n):
         for b in range(nb):

@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import _block_dims, _flush, _mean_scratch, _stage_shape
+from ._kernels import _block_dims, _flush, _mean_scratch, _stage_shape, mean_predict
 
 __all__ = ["steady_tkf_kernel"]
 
@@ -71,13 +71,7 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
                 x[i, b] = x0[r0 + b, i]
         for t in range(T):
             tt = t % S
-            for i in range(n):  # x_bar = A x
-                for b in range(nb):
-                    xp[i, b] = 0.0
-                for j in range(n):
-                    a = A[i, j]
-                    for b in range(nb):
-                        xp[i, b] += a * x[j, b]
+            mean_predict(A, x, xp, nb)  # x_bar = A x
             for l in range(m):
                 for b in range(nb):
                     ybar[l, b] = 0.0
