@@ -343,12 +343,13 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of tkf_kerne
 
 
 @njit(cache=True)
-def _block_dims(N, T, d=0):
+def _block_dims(N, T, d=0, block=BLOCK):
     """``(B, S)``: runs per block and staged steps of a call of ``N`` runs x ``T`` steps (a single run,
     the online step, gets a single column, a single step a single staging slot). ``d`` the largest
     number of staged values per run-step (0: not given): S is cut so that one staging buffer holds at
-    most :data:`STAGE_BYTES`."""
-    B = min(BLOCK, max(N, 1))
+    most :data:`STAGE_BYTES`; ``block`` the most runs per block (:data:`BLOCK`; the augmented-state loops
+    take 64)."""
+    B = min(block, max(N, 1))
     S = min(CHUNK, max(T, 1))
     if d > 0:
         S = max(1, min(S, STAGE_BYTES // (8 * d * B)))

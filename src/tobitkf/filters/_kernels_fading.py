@@ -40,7 +40,7 @@ from numba import njit
 
 from ._kernels import (
     _INF,
-    CHUNK,
+    _block_dims,
     _cov_update,
     _flush,
     _gain,
@@ -72,7 +72,7 @@ AUG_BLOCK = 64
 def aug_block_dims(N, T):
     """``(B, S)`` of the augmented-state loops: :func:`~tobitkf.filters._kernels._block_dims` with
     :data:`AUG_BLOCK` runs per block."""
-    return min(AUG_BLOCK, max(N, 1)), min(CHUNK, max(T, 1))
+    return _block_dims(N, T, 0, AUG_BLOCK)
 
 
 @njit(cache=True, error_model="numpy")
