@@ -86,7 +86,7 @@ def test_motor_loop_equals_numpy(case):
     plant, K = motor()
     r = np.zeros(300)
     r[50:] = 1.0
-    a, _ = assert_loops_equal(plant, K, 300, 37, reference=r, seed=3, **CASES[case])  # a block and a part
+    a, _ = assert_loops_equal(plant, K, 300, 133, reference=r, seed=3, **CASES[case])  # a block (128) and a part
     assert not a.diverged.any()
     if case.startswith("tkf"):
         assert (a.y != a.y_latent).any()  # the sensor did censor

@@ -3,7 +3,7 @@
 Each case is run twice through the public functions, ``compiled=False`` (the numpy reference) and
 ``compiled=True``, on random inputs that reach every branch: the plain and the block-shift predict
 (source 0; a pure delay, source > 0, runs on numpy), an input offset, one run and more runs than a
-kernel block (BLOCK = 32), one and several channels, the standard and Joseph forms, a diagonal and a full noise term, a per-run channel scale,
+kernel block (``runs_per_block(nx)`` runs: 128 at these sizes), one and several channels, the standard and Joseph forms, a diagonal and a full noise term, a per-run channel scale,
 family masks, missing readings, a degenerate innovation variance and a retained variance.
 """
 
@@ -32,7 +32,7 @@ def _close(a, b):
     np.testing.assert_allclose(a, b, rtol=0, atol=RTOL * scale)
 
 
-@pytest.mark.parametrize("N", [1, 3, 45])
+@pytest.mark.parametrize("N", [1, 3, 133])  # 133: a block of 128 (nx <= 8) and a part
 @pytest.mark.parametrize("blocks,source", [(1, 0), (3, 0), (4, 3)])
 @pytest.mark.parametrize("offset", ["none", "shared", "per_run"])
 def test_time_update_compiled_equals_numpy(N, blocks, source, offset):
@@ -79,7 +79,7 @@ def _prediction(rng, N, m, nx, *, noise, scale, mask, missing, degenerate, retai
     return MeasurementPrediction(expected=rng.normal(size=(N, m)), H0=H0, **kw), y
 
 
-@pytest.mark.parametrize("N", [1, 40])
+@pytest.mark.parametrize("N", [1, 133])
 @pytest.mark.parametrize("m", [1, 2, 3])
 @pytest.mark.parametrize("form", ["standard", "joseph"])
 @pytest.mark.parametrize(

@@ -120,7 +120,7 @@ def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
     sys_ = random_system(16, 8, seed=5)
     cens = censorings(8)["two_sided"]
     y = records(sys_, cens, runs=40, steps=150, seed=6)
-    assert 16 * 16 >= _kernels.FLUSH_BY_STEP > 16 and y.shape[1] > 2 * _kernels.CHUNK and y.shape[0] > _kernels.BLOCK
+    assert 16 * 16 >= _kernels.FLUSH_BY_STEP > 16 and y.shape[1] > 2 * _kernels.CHUNK and y.shape[0] > _kernels.runs_per_block(16)
     assert_results_equal(
         tobit_kalman_filter(sys_, cens, y, backend="numba"), tobit_kalman_filter(sys_, cens, y, backend="numpy")
     )
@@ -131,12 +131,14 @@ def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
 def test_tkf_blocked_products_across_blocks_equal_numpy(n, m, cu):
     """The block products at larger n (A P over whole slabs of all lanes of the block, (AP)A^T and the
     symmetric R_ee / covariance update with the sums over k taken eight and four terms at a time, their
-    remainders for n, m not multiples of 8, 4): 40 runs (a full block and a partial one, whose spare
+    remainders for n, m not multiples of 8, 4): 40 runs (a full block and a partial one of 8, whose spare
     lanes hold the first block's values) x 70 steps with missing readings, every output against numpy,
-    both covariance forms."""
+    both covariance forms. A full block is ``runs_per_block(n)`` runs (32 at n = 16, 64 at 11, 128 at 9)."""
+    from tobitkf.filters import _kernels
+
     sys_ = random_system(n, m, seed=7)
     cens = censorings(m)["one_sided"]
-    y = records(sys_, cens, runs=40, steps=70, seed=8)
+    y = records(sys_, cens, runs=_kernels.runs_per_block(n) + 8, steps=70, seed=8)
     a = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numba")
     b = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)

@@ -22,7 +22,7 @@ The observer steps are the filters' compiled blocks, not copies: the predict
 (:math:`E(\mathbf p) = 1`, :math:`E(y) = C\bar x + Du`, noise :math:`\sigma_l^2 = R_{ll}`: the Kalman update,
 for a diagonal R); the steady-state observer is the fixed-gain update of (3.58),
 :math:`\hat x = \bar x + K_\infty(y - E[y])` with the constant :math:`\Psi_\infty`. Equal to the numpy loop
-to rounding (tested to 1e-12). Runs are processed in blocks of :data:`~tobitkf.filters._kernels.BLOCK`
+to rounding (tested to 1e-12). Runs are processed in blocks of :func:`~tobitkf.filters._kernels.runs_per_block` runs
 (innermost loops over the runs of a block).
 """
 
@@ -34,11 +34,11 @@ import numpy as np
 from numba import njit
 
 from ..filters._kernels import (
-    BLOCK,
     CHUNK,
     block_scratch,
     flush_rows,
     predict_block,
+    runs_per_block,
     stage_block,
     stage_shape,
     tobit_update_block,
@@ -112,7 +112,7 @@ def closed_loop_kernel(
     has_d = D.shape[0] > 0
     moving = obs_code >= 2
     steady = obs_code == 3
-    B = min(BLOCK, max(N, 1))
+    B = min(runs_per_block(n), max(N, 1))
     (xh, xp, e, mu), (blk, run, solve, buf) = block_scratch(n, m, B, glx.shape[0])
     P, Pp, AP = blk[0], blk[1], blk[2]
     gam = blk[9]

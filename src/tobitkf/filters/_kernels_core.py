@@ -16,7 +16,7 @@ path to rounding (tested to 1e-12).
 Every Gaussian-update family whose online ``step`` (or Python time loop) runs the numpy step gets
 this path when numba imports and its ``backend`` is not ``"numpy"``: one call per predict and one
 per update instead of about forty small numpy operations, which is what one run of one reading
-costs on the numpy path. Runs are processed in blocks of :data:`~tobitkf.filters._kernels.BLOCK`,
+costs on the numpy path. Runs are processed in blocks of :func:`~tobitkf.filters._kernels.runs_per_block` runs,
 copied into structure-of-arrays scratch from the kernels' shared allocators (runs on the last axis, as
 in the TKF kernel) and back.
 """
@@ -27,7 +27,6 @@ import numpy as np
 from numba import njit
 
 from ._kernels import (
-    BLOCK,
     _cov_update,
     _gain,
     _gain_block,
@@ -36,6 +35,7 @@ from ._kernels import (
     _mean_scratch,
     _store_last,
     _update_scratch,
+    runs_per_block,
 )
 from ._kernels_fading import shift_predict_block
 
@@ -51,7 +51,7 @@ def time_update_runs(x, P, A, Qd, bvec, xp_out, Pp_out):
     the offset of the top block; writes ``xp_out`` (N, n_x), ``Pp_out`` (N, n_x, n_x)."""
     N, nx = x.shape
     n = A.shape[0]
-    B = min(BLOCK, N)
+    B = min(runs_per_block(nx), N)
     xs = np.empty((nx, B))
     Ps = np.empty((nx, nx, B))
     xp = np.empty((nx, B))
@@ -85,7 +85,7 @@ def measurement_update_runs(
     :math:`R_{ee}` ``Ree_out`` (N, m, m)."""
     N, nx = x.shape
     m = H0.shape[0]
-    B = min(BLOCK, N)
+    B = min(runs_per_block(nx), N)
     # the block scratch from the kernels' shared allocators
     xn, xp, e, _ = _mean_scratch(nx, m, B)
     blk, run, solve, _ = _update_scratch(nx, nx, m, B, 0)

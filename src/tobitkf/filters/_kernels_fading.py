@@ -59,7 +59,7 @@ from ._kernels_censored import lower_stats_block
 
 __all__ = ["fading_tkf_kernel", "shift_predict_block", "AUG_BLOCK", "aug_block_dims"]
 
-#: runs per block of the augmented-state loops (this one and the protocol loop), twice the TKF's
+#: runs per block of the augmented-state loops (this one and the protocol loop), twice the large-n TKF's
 #: :data:`~tobitkf.filters._kernels.BLOCK`: a step of these loops is some 300 short loops over the runs of a block
 #: (n_xi = 6), whose fixed cost per loop 64 runs share better than 32. Measured (1000 runs x 100 steps, all
 #: outputs, thread CPU time, old/new processes alternated twice, load 4.5-5.8): fading default 164-167 -> 148-152,

@@ -20,7 +20,7 @@ Covered (the dispatcher in ``steady_state.py`` decides): no control input (the m
 time-invariant by construction), both sides, censored and latent readings. NaN readings are refused
 by the estimator before either path runs.
 
-Runs are taken in blocks of :data:`~tobitkf.filters._kernels.BLOCK`, state (n, B), every inner loop
+Runs are taken in blocks of :func:`~tobitkf.filters._kernels.runs_per_block` runs, state (n, B), every inner loop
 over the block and branch-free (the side and ``latent`` tests are hoisted out of it), so the
 compiler vectorises across runs. Measured at n = 2, m = 1 without outputs: one run at a time
 (latency-bound) ~27 ns per run-step, blocks with the branches inside ~25 ns, this form ~8 ns.
@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import _block_dims, _flush, _mean_scratch, _stage_shape, mean_predict
+from ._kernels import _block_dims, _flush, _mean_scratch, _stage_shape, mean_predict, runs_per_block
 
 __all__ = ["steady_tkf_kernel"]
 
@@ -56,7 +56,7 @@ def steady_tkf_kernel(y, A, C, K, offset, shift, upper, latent, x0, means, pmean
     """
     N, T, m = y.shape
     n = A.shape[0]
-    B, S = _block_dims(N, T)  # outputs staged for S steps, then written run by run (contiguous)
+    B, S = _block_dims(N, T, 0, runs_per_block(n))  # outputs staged for S steps, then written run by run (contiguous)
     x, xp, e, ybar = _mean_scratch(n, m, B)
     fin = np.zeros(B)
     finite = True
