@@ -120,7 +120,11 @@ def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
     sys_ = random_system(16, 8, seed=5)
     cens = censorings(8)["two_sided"]
     y = records(sys_, cens, runs=40, steps=150, seed=6)
-    assert 16 * 16 >= _kernels.FLUSH_BY_STEP > 16 and y.shape[1] > 2 * _kernels.CHUNK and y.shape[0] > _kernels.runs_per_block(16)
+    assert (
+        16 * 16 >= _kernels.FLUSH_BY_STEP > 16
+        and y.shape[1] > 2 * _kernels.CHUNK
+        and y.shape[0] > _kernels.runs_per_block(16)
+    )
     assert_results_equal(
         tobit_kalman_filter(sys_, cens, y, backend="numba"), tobit_kalman_filter(sys_, cens, y, backend="numpy")
     )

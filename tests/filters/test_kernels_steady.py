@@ -69,7 +69,9 @@ def censored_at_own_limits(sys_, xi, side, ylat):
 @pytest.mark.parametrize(("m", "xi"), [(1, 0.5), (1, 0.9), (2, [0.3, 0.8])])
 def test_kernel_equals_numpy(method, side, m, xi):
     sys_ = oscillator(m)
-    y = latent(sys_, runs=133, steps=150)  # 133 runs: one full block of 128 (runs_per_block(2)) and a partial one; 150 > CHUNK
+    y = latent(
+        sys_, runs=133, steps=150
+    )  # 133 runs: one full block of 128 (runs_per_block(2)) and a partial one; 150 > CHUNK
     if method == "filter":
         y = censored_at_own_limits(sys_, xi, side, y)
     a, b = both(sys_, xi, side, y, method)
