@@ -129,14 +129,15 @@ def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
 @pytest.mark.parametrize(("n", "m"), [(16, 8), (11, 6), (9, 5)])
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_tkf_blocked_products_across_blocks_equal_numpy(n, m, cu):
-    """The block products at larger n (A P over whole slabs of all lanes of the block, (AP)A^T and the
-    symmetric R_ee / covariance update with the sums over k taken eight and four terms at a time, their
-    remainders for n, m not multiples of 8, 4): 40 runs (a full block and a partial one, whose spare
-    lanes hold the first block's values) x 70 steps with missing readings, every output against numpy,
-    both covariance forms."""
+    """The block products at larger n (A P and C Pbar over whole slabs of all lanes of the block, four rows x
+    four terms at a time; (AP)A^T and the symmetric R_ee four entries x four terms at a time, the covariance
+    update four terms; their remainders for n, m not multiples of 4) and the large outputs' flush in 8 x 8
+    tiles (remainders of runs and numbers): 50 runs (a full block, 40 runs at n = 16 and 32 otherwise, and a
+    partial one, whose spare lanes hold the first block's values) x 70 steps with missing readings, every
+    output against numpy, both covariance forms."""
     sys_ = random_system(n, m, seed=7)
     cens = censorings(m)["one_sided"]
-    y = records(sys_, cens, runs=40, steps=70, seed=8)
+    y = records(sys_, cens, runs=50, steps=70, seed=8)
     a = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numba")
     b = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)
