@@ -112,14 +112,14 @@ def test_tkf_n16_m8_batch_shapes_equal_numpy(shape):
 
 
 def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
-    """n = 16: 256 numbers per run-step, the outputs flushed step by step (``_flush`` for large blocks);
-    40 runs (a full block of 32 and a partial one) x 150 steps (two full chunks of 64 and a partial one),
+    """n = 16: 256 numbers per run-step, the outputs flushed in tiles (``_flush`` for large blocks);
+    50 runs (a full block of 40 and a partial one) x 150 steps (two full chunks of 64 and a partial one),
     every output compared with numpy."""
     from tobitkf.filters import _kernels
 
     sys_ = random_system(16, 8, seed=5)
     cens = censorings(8)["two_sided"]
-    y = records(sys_, cens, runs=40, steps=150, seed=6)
+    y = records(sys_, cens, runs=50, steps=150, seed=6)
     assert (
         16 * 16 >= _kernels.FLUSH_BY_STEP > 16
         and y.shape[1] > 2 * _kernels.CHUNK
@@ -133,16 +133,17 @@ def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
 @pytest.mark.parametrize(("n", "m"), [(16, 8), (11, 6), (9, 5)])
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_tkf_blocked_products_across_blocks_equal_numpy(n, m, cu):
-    """The block products at larger n (A P over whole slabs of all lanes of the block, (AP)A^T and the
-    symmetric R_ee / covariance update with the sums over k taken eight and four terms at a time, their
-    remainders for n, m not multiples of 8, 4): 40 runs (a full block and a partial one of 8, whose spare
-    lanes hold the first block's values) x 70 steps with missing readings, every output against numpy,
-    both covariance forms. A full block is ``runs_per_block(n)`` runs (32 at n = 16, 64 at 11, 128 at 9)."""
+    """The block products at larger n (A P and C Pbar over whole slabs of all lanes of the block, four rows x
+    four terms at a time; (AP)A^T and the symmetric R_ee four entries x four terms at a time, the covariance
+    update four terms; their remainders for n, m not multiples of 4) and the large outputs' flush in 8 x 8
+    tiles (remainders of runs and numbers): a full block (``runs_per_block(n)``: 40 runs at n = 16, 64 at 11,
+    128 at 9) and a partial one of 18 runs, whose spare lanes hold the first block's values, x 70 steps with
+    missing readings, every output against numpy, both covariance forms."""
     from tobitkf.filters import _kernels
 
     sys_ = random_system(n, m, seed=7)
     cens = censorings(m)["one_sided"]
-    y = records(sys_, cens, runs=_kernels.runs_per_block(n) + 8, steps=70, seed=8)
+    y = records(sys_, cens, runs=_kernels.runs_per_block(n) + 18, steps=70, seed=8)
     a = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numba")
     b = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)

@@ -345,7 +345,8 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of tkf_kerne
 @njit(cache=True)
 def runs_per_block(n):
     """Runs per block of the Kalman-type kernels (TKF, KF, steady-state, closed loop, the shared step) at
-    state size ``n``: 128 up to n = 8, 64 up to n = 12, :data:`BLOCK` (32) beyond.
+    state size ``n``: 128 up to n = 8, 64 up to n = 12, :data:`BLOCK` (32) beyond, plus 8 where slabs alias
+    (below).
 
     A step of a block is some tens of short loops over its runs; at small n each loop's set-up (the
     vector loop's alias checks and remainder) is paid per loop, not per run, so more runs per block
@@ -355,12 +356,23 @@ def runs_per_block(n):
     means 40.4 / 36.0 / 28.2, KF 24.4 / 30.2 / 17.1; n = 4, m = 1 mean + cov 91.6 / 104 / 78.0; n = 6, m = 2
     252-270 / 222-239 / 220-224; n = 8, m = 2 355-468 / 316-318 / 331-346; n = 12, m = 4 897-982 /
     845-870 / 852-858; n = 16, m = 8 mean + cov 2023 / 2186 / 2316 (the blocked slab loops run over all
-    of a block's lanes at once already)."""
+    of a block's lanes at once already).
+
+    From n = :data:`BLOCKED_N` on, 8 runs more when a slab ``P[k]`` of the block (``n * B * 8`` bytes; n = 16,
+    B = 32: 4 KB) is a multiple of 4 KB: the slab products (:func:`_rows_times`) read four slabs and update
+    four at once, and slabs 4 KB apart all fall into the same set of the 8-way L1 cache and evict each other.
+    Measured at n = 16, m = 8, 10^3 runs x 100 steps (in-process A/B, thread CPU time, outputs reused, load
+    1.6): means only 1408 -> 1344, all outputs 2303 -> 2071 ns per run-step with 40 runs per block against 32
+    (48: the same as 40); at n = 8 (128 runs: 8 KB slabs) 136 runs against 128, alternated twice (load 1.7):
+    n = 8, m = 2 mean + cov 257-270 against 283-306, m = 8 568-572 against 607-750 ns per run-step."""
+    B = BLOCK
     if n <= 8:
-        return 128
-    if n <= 12:
-        return 64
-    return BLOCK
+        B = 128
+    elif n <= 12:
+        B = 64
+    if n >= BLOCKED_N and (n * B * 8) % 4096 == 0:
+        B += 8
+    return B
 
 
 @njit(cache=True)
@@ -489,56 +501,139 @@ def _predict(A, Qd, x, P, xp, Pp, AP, nb):
 def _predict_blocked(A, Qd, x, P, xp, Pp, AP, nb):
     r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)` (Miller (2.3), (3.20)–(3.21)).
 
-    Loop order for speed at larger n (measured at n = 16, m = 8, B = 32: 1040 -> ~600 ns per run, CPU time
-    at load 5): ``AP``
-    row by row as :math:`(AP)_{i\cdot} = \sum_k A_{ik}P_{k\cdot}` over the whole contiguous slab
-    ``P[k]`` (n B numbers, all lanes of the block: lanes past ``nb`` hold an earlier block's values and
-    are never read back), one long vectorised loop per term instead of n short ones; :math:`\bar P_{ij}`
-    (only ``j >= i``, mirrored) with the sum over k taken eight terms per pass over the runs, so that
-    the accumulator is loaded and stored once per eight products (:func:`_dot8`)."""
+    Loop order for speed at larger n: ``AP`` row by row as :math:`(AP)_{i\cdot} = \sum_k A_{ik}P_{k\cdot}` over
+    the whole contiguous slabs ``P[k]`` (n B numbers, all lanes of the block: lanes past ``nb`` hold an
+    earlier block's values and are never read back) by :func:`_rows_times`, four rows and four terms per pass;
+    :math:`\bar P_{ij}` (only ``j >= i``, mirrored) by :func:`_sym_times`, four entries and four terms per
+    pass over the runs. Measured at n = 16, B = 32 (in isolation, thread CPU time, load 1.2): 659 -> 427 ns
+    per run (one row and one term per pass for ``AP``, one entry and eight terms for :math:`\bar P`: 1040 ->
+    ~600 ns before that, against one short loop over the runs per term)."""
     n = A.shape[0]
     W = P.shape[2]
     L = n * W
-    Pf = P.reshape((n, L))
-    APf = AP.reshape((n, L))
     mean_predict(A, x, xp, nb)
-    for i in range(n):
-        a = A[i, 0]
-        for q in range(L):
-            APf[i, q] = a * Pf[0, q]
-        for k in range(1, n):
-            a = A[i, k]
-            for q in range(L):
-                APf[i, q] += a * Pf[k, q]
-    for i in range(n):
-        for j in range(i, n):
-            _dot8(Pp, i, j, AP, i, A, j, n, W)
-            q = 0.5 * (Qd[i, j] + Qd[j, i])
-            for b in range(W):
-                Pp[i, j, b] += q
+    _rows_times(AP.reshape((n, L)), A, P.reshape((n, L)), n, L, False)
+    _sym_times(Pp, AP, A, Qd, True, n, W, False)
     _mirror(Pp, W)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _dot8(out, i, j, X, r, M, s, n, W):
-    """``out[i, j, b] = sum_k X[r, k, b] * M[s, k]`` for ``b < W``, ``k < n``: the sum over k eight terms
-    per pass over the runs (the accumulator ``out[i, j]`` loaded and stored once per eight products;
-    measured at n = 16, B = 32: 160 against 320 ns per run for the upper triangle of (AP)A^T one term
-    per pass)."""
-    n8 = n - n % 8
-    for b in range(W):
-        out[i, j, b] = 0.0
-    for k in range(0, n8, 8):
-        a0, a1, a2, a3 = M[s, k], M[s, k + 1], M[s, k + 2], M[s, k + 3]
-        a4, a5, a6, a7 = M[s, k + 4], M[s, k + 5], M[s, k + 6], M[s, k + 7]
-        for b in range(W):
-            out[i, j, b] += (X[r, k, b] * a0 + X[r, k + 1, b] * a1 + X[r, k + 2, b] * a2 + X[r, k + 3, b] * a3) + (
-                X[r, k + 4, b] * a4 + X[r, k + 5, b] * a5 + X[r, k + 6, b] * a6 + X[r, k + 7, b] * a7
-            )
-    for k in range(n8, n):
-        a = M[s, k]
-        for b in range(W):
-            out[i, j, b] += X[r, k, b] * a
+@njit(cache=True, error_model="numpy")
+def _rows_times(out, M, X, nk, L, skip_zero):
+    """``out[i, q] = sum_k M[i, k] X[k, q]`` for every row i of ``M`` (``out`` (rows, L), ``X`` (nk, L), 2-d
+    contiguous): the block products over the whole slabs of a block's lanes (:func:`_predict_blocked`,
+    :func:`_innovation_moments_blocked`), in register tiles of four rows and four terms per pass over ``q``
+    (four loads of ``X``, four loads and stores of the accumulators per sixteen products; one row and one
+    term per pass loads and stores the accumulator once per product). Measured at n = 16, B = 32 (A P, in
+    isolation, thread CPU time, load 1.2): 446 -> 298 ns per run. ``skip_zero``: a term whose coefficient
+    is 0 is left out (the augmented measurement matrix of the fading TKF is mostly zeros), so that a tile
+    with a zero coefficient takes its terms one at a time."""
+    nr = M.shape[0]
+    r4 = nr - nr % 4
+    for i0 in range(0, r4, 4):
+        for r in range(4):
+            for q in range(L):
+                out[i0 + r, q] = 0.0
+        k = 0
+        while k < nk:
+            tile = k + 4 <= nk
+            if tile and skip_zero:
+                for r in range(4):
+                    for c in range(4):
+                        if M[i0 + r, k + c] == 0.0:
+                            tile = False
+            if tile:
+                a00, a01, a02, a03 = M[i0, k], M[i0, k + 1], M[i0, k + 2], M[i0, k + 3]
+                a10, a11, a12, a13 = M[i0 + 1, k], M[i0 + 1, k + 1], M[i0 + 1, k + 2], M[i0 + 1, k + 3]
+                a20, a21, a22, a23 = M[i0 + 2, k], M[i0 + 2, k + 1], M[i0 + 2, k + 2], M[i0 + 2, k + 3]
+                a30, a31, a32, a33 = M[i0 + 3, k], M[i0 + 3, k + 1], M[i0 + 3, k + 2], M[i0 + 3, k + 3]
+                for q in range(L):
+                    p0, p1, p2, p3 = X[k, q], X[k + 1, q], X[k + 2, q], X[k + 3, q]
+                    out[i0, q] += (a00 * p0 + a01 * p1) + (a02 * p2 + a03 * p3)
+                    out[i0 + 1, q] += (a10 * p0 + a11 * p1) + (a12 * p2 + a13 * p3)
+                    out[i0 + 2, q] += (a20 * p0 + a21 * p1) + (a22 * p2 + a23 * p3)
+                    out[i0 + 3, q] += (a30 * p0 + a31 * p1) + (a32 * p2 + a33 * p3)
+                k += 4
+                continue
+            for r in range(4):
+                a = M[i0 + r, k]
+                if a != 0.0 or not skip_zero:
+                    for q in range(L):
+                        out[i0 + r, q] += a * X[k, q]
+            k += 1
+    for i in range(r4, nr):
+        for q in range(L):
+            out[i, q] = 0.0
+        for k in range(nk):
+            a = M[i, k]
+            if a != 0.0 or not skip_zero:
+                for q in range(L):
+                    out[i, q] += a * X[k, q]
+
+
+@njit(cache=True, error_model="numpy")
+def _sym_times(out, X, M, Q, with_q, nk, W, skip_zero):
+    r"""The upper triangle of ``out[i, j, b] = q_ij + sum_k X[i, k, b] M[j, k]`` (``j >= i``, ``k < nk``,
+    ``b < W``; :math:`q_{ij}` the symmetric part of ``Q`` when ``with_q``, else 0): :math:`\bar P = (AP)A^T +
+    \mathrm{sym}(Q)` of :func:`_predict_blocked` and :math:`C\bar PC^T` of :func:`_innovation_moments_blocked`,
+    four entries ``j`` and four terms ``k`` per pass over the runs (the four loads of ``X[i, k]`` shared by
+    the four entries; the last ``n - i`` mod 4 entries of a row one at a time). ``skip_zero``: a tile whose
+    sixteen (or four) coefficients are all 0 is left out (the fading TKF's augmented C; a zero coefficient
+    inside a tile adds an exact 0 for finite ``X``). Measured at n = 16, B = 32 ((AP)A^T in isolation,
+    thread CPU time, load 1.2): 207 -> 149 ns per run against one entry and eight terms per pass (160 against
+    320 ns for one term per pass)."""
+    nr = out.shape[1]
+    for i in range(out.shape[0]):
+        j = i
+        while j < nr:
+            four = j + 4 <= nr
+            jn = 4 if four else 1
+            for r in range(jn):
+                qr = 0.5 * (Q[i, j + r] + Q[j + r, i]) if with_q else 0.0
+                for b in range(W):
+                    out[i, j + r, b] = qr
+            k = 0
+            while k < nk:
+                kn = 4 if k + 4 <= nk else 1
+                if skip_zero:
+                    nz = False
+                    for r in range(jn):
+                        for c in range(kn):
+                            if M[j + r, k + c] != 0.0:
+                                nz = True
+                    if not nz:
+                        k += kn
+                        continue
+                if four and kn == 4:
+                    a00, a01, a02, a03 = M[j, k], M[j, k + 1], M[j, k + 2], M[j, k + 3]
+                    a10, a11, a12, a13 = M[j + 1, k], M[j + 1, k + 1], M[j + 1, k + 2], M[j + 1, k + 3]
+                    a20, a21, a22, a23 = M[j + 2, k], M[j + 2, k + 1], M[j + 2, k + 2], M[j + 2, k + 3]
+                    a30, a31, a32, a33 = M[j + 3, k], M[j + 3, k + 1], M[j + 3, k + 2], M[j + 3, k + 3]
+                    for b in range(W):
+                        p0, p1, p2, p3 = X[i, k, b], X[i, k + 1, b], X[i, k + 2, b], X[i, k + 3, b]
+                        out[i, j, b] += (a00 * p0 + a01 * p1) + (a02 * p2 + a03 * p3)
+                        out[i, j + 1, b] += (a10 * p0 + a11 * p1) + (a12 * p2 + a13 * p3)
+                        out[i, j + 2, b] += (a20 * p0 + a21 * p1) + (a22 * p2 + a23 * p3)
+                        out[i, j + 3, b] += (a30 * p0 + a31 * p1) + (a32 * p2 + a33 * p3)
+                elif four:
+                    a0, a1, a2, a3 = M[j, k], M[j + 1, k], M[j + 2, k], M[j + 3, k]
+                    for b in range(W):
+                        p = X[i, k, b]
+                        out[i, j, b] += a0 * p
+                        out[i, j + 1, b] += a1 * p
+                        out[i, j + 2, b] += a2 * p
+                        out[i, j + 3, b] += a3 * p
+                elif kn == 4:
+                    a0, a1, a2, a3 = M[j, k], M[j, k + 1], M[j, k + 2], M[j, k + 3]
+                    for b in range(W):
+                        out[i, j, b] += (X[i, k, b] * a0 + X[i, k + 1, b] * a1) + (
+                            X[i, k + 2, b] * a2 + X[i, k + 3, b] * a3
+                        )
+                else:
+                    a = M[j, k]
+                    for b in range(W):
+                        out[i, j, b] += X[i, k, b] * a
+                k += kn
+            j += jn
 
 
 @njit(cache=True, error_model="numpy")
@@ -757,32 +852,22 @@ def _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
 def _innovation_moments_blocked(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb):
     r""":func:`_innovation_moments` at larger dim: :math:`C\bar P` row by row over the contiguous slabs
     ``Pp[k]`` of all lanes of the block (as :func:`_predict_blocked`; zero entries of C skipped) and
-    :math:`R_{ee}` on its upper triangle, mirrored (measured at n = 16, m = 8: 500 -> 310 ns per run)."""
+    :math:`R_{ee}` on its upper triangle, mirrored (measured at n = 16, m = 8: 500 -> 310 ns per run), both
+    in register tiles (:func:`_rows_times`, :func:`_sym_times`; in isolation, B = 40, thread CPU time, one
+    process, load 4.4: 507 ns per run one row and one term per pass, 334 with the tiles of C P, 231 with
+    those of R_ee too)."""
     m, dim = C.shape
     W = Pp.shape[2]
     L = dim * W
     Ppf = Pp.reshape((dim, L))
     CPf = CP.reshape((m, L))
-    for l in range(m):  # CP[l] = sum_k C[l, k] Pp[k], over contiguous slabs of all lanes (as _predict)
-        for q in range(L):
-            CPf[l, q] = 0.0
-        for k in range(dim):
-            c = C[l, k]
-            if c != 0.0:
-                for q in range(L):
-                    CPf[l, q] += c * Ppf[k, q]
+    _rows_times(CPf, C, Ppf, dim, L, True)  # CP[l] = sum_k C[l, k] Pp[k] over the slabs (as _predict_blocked)
+    _sym_times(Ree, CP, C, C, False, dim, W, True)  # the upper triangle of C Pbar C^T (scaled below)
     for l in range(m):
         for j in range(dim):
             for b in range(nb):
                 Rxe[j, l, b] = CP[l, j, b] * gam[l, b]
-        for q in range(l, m):  # symmetric: q >= l, mirrored
-            for b in range(W):
-                Ree[l, q, b] = 0.0
-            for k in range(dim):
-                c = C[q, k]
-                if c != 0.0:
-                    for b in range(W):
-                        Ree[l, q, b] += CP[l, k, b] * c
+        for q in range(l, m):  # symmetric: q >= l, mirrored (C Pbar C^T by _sym_times above)
             for b in range(nb):
                 Ree[l, q, b] = Ree[l, q, b] * gam[l, b] * gam[q, b]
                 Ree[q, l, b] = Ree[l, q, b]
@@ -809,7 +894,7 @@ def _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
     channel has a zero gain column, so its row of H does not matter."""
     n, m = K.shape[0], K.shape[1]
     m4 = m - m % 4
-    for i in range(n):  # the sum over the channels four terms per pass over the runs (as _dot8)
+    for i in range(n):  # the sum over the channels four terms per pass over the runs (as _sym_times)
         for j in range(i, n):
             for b in range(nb):
                 P[i, j, b] = Pp[i, j, b]
@@ -902,11 +987,26 @@ def _flush(buf, out, r0, t0, nb, cnt):
         # reads stay in one step's slab (d * B * 8 bytes, in cache) instead of sweeping the whole
         # buffer once per run (measured: n = 16, m = 8, all outputs 8.0-11.5 us against 5.0 us per
         # run-step for the run-major loop order before the (S, ..., B) layout)
+        # (then 8 x 8 tiles, below)
+        dst = out.reshape((out.shape[0], out.shape[1] * d))
+        b8, d8 = nb - nb % 8, d - d % 8
         for s in range(cnt):
-            for b in range(nb):
-                dst = out[r0 + b, t0 + s].reshape(-1)
+            o = (t0 + s) * d
+            for b0 in range(0, b8, 8):
+                # 8 runs x 8 numbers at a time (measured in isolation at d = 256, B = 32, 200 MB of
+                # outputs: 303 -> 185 ns per run-step against one run at a time): the eight strided
+                # reads of a run share their cache lines with the tile's other runs, and each run's
+                # eight writes fill a whole cache line at once
+                for q0 in range(0, d8, 8):
+                    for u in range(8):
+                        for v in range(8):
+                            dst[r0 + b0 + u, o + q0 + v] = src[s, q0 + v, b0 + u]
+                for u in range(8):
+                    for q in range(d8, d):
+                        dst[r0 + b0 + u, o + q] = src[s, q, b0 + u]
+            for b in range(b8, nb):
                 for q in range(d):
-                    dst[q] = src[s, q, b]
+                    dst[r0 + b, o + q] = src[s, q, b]
         return
     for b in range(nb):
         dst = out[r0 + b, t0 : t0 + cnt].reshape(-1)
