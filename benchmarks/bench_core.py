@@ -31,17 +31,23 @@ The single-run numpy rows time 10^4 steps (their cost per step is constant).
 
 from __future__ import annotations
 
-import argparse
 import os
-import resource
-import statistics
-import time
 
-import numpy as np
+# one thread for everything: the numpy path's BLAS too (without this it ran OpenBLAS's default of one thread
+# per core, whose spinning workers showed as user time above the wall time and shared the 2 cores)
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-import tobitkf as tk
-from _timing import best_time
-from tobitkf.filters._backend import numba_available
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+import tobitkf as tk  # noqa: E402
+from _timing import best_time  # noqa: E402
+from tobitkf.filters._backend import numba_available  # noqa: E402
 
 
 def make_system() -> tk.LinearSystem:
