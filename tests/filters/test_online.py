@@ -822,3 +822,45 @@ def test_families_that_refuse_a_lost_reading_say_why():
             est.filter(y)
         with pytest.raises(tk.ValidationError, match=f"found NaN .*{why}"):
             est.step(est.init((1,)), y[:, 1])
+
+
+def test_one_run_reading_fast_path_gives_the_general_paths_array_and_errors():
+    """``step``'s reading of one run as a float64 (m,) array takes a shortcut (its verdict in Python floats): it
+    returns the general path's (1, m) array, the same memory, and every reading it does not pass (NaN where the
+    family refuses it, inf, the wrong length, another dtype or shape) gets the general path's error, named as
+    before; a list of the same values (always the general path) is the reference."""
+    from tobitkf.models.delay import paper_example, paper_prior
+
+    sys_ = oscillator()
+    ests = [
+        tk.KalmanFilter(sys_),
+        tk.TobitKalmanFilter(sys_, tk.Censoring(lower=0.0)),
+        tk.ChainLMMSE(paper_example(), paper_prior()),
+        tk.RegionalHinfFilter([[0.5]], [[1.0]], [[2.0]]),
+    ]
+    record = np.array([[0.3, 7.0], [np.nan, 1.0], [np.inf, 0.0], [-np.inf, 2.0], [0.0, 0.0]])
+    for est in ests:
+        s, s1 = est.init(), est.init((1,))
+        for row in record:
+            y = row[:1]  # a view of a row of a record, as in a loop over it
+            want_err = None
+            try:
+                want = est._reading(s, y.tolist())
+            except ValueError as err:  # ValidationError, ShapeError
+                want_err = (type(err), str(err))
+            if want_err is None:
+                got = est._reading(s, y)
+                assert got.shape == (1, 1) and np.shares_memory(got, y)
+                np.testing.assert_array_equal(got, want)
+                np.testing.assert_array_equal(est._reading(s1, y), want)
+            else:
+                with pytest.raises(want_err[0]) as info:
+                    est._reading(s, y)
+                assert str(info.value) == want_err[1]
+        for bad in (np.zeros(2), np.zeros(0), np.zeros((1, 1, 1))):  # the wrong length or shape
+            with pytest.raises(tk.ShapeError, match="expected one reading of shape"):
+                est.step(s, bad)
+        # other dtypes and non-contiguous views take the general path, with its numbers
+        np.testing.assert_array_equal(est._reading(s, np.array([2], dtype=np.int64)), [[2.0]])
+        np.testing.assert_array_equal(est._reading(s, np.array([0.5], dtype=np.float32)), [[0.5]])
+        np.testing.assert_array_equal(est._reading(s, record[::2, 1][:1]), [[7.0]])

@@ -6,8 +6,9 @@ offsets are passed in ``offs``): the data-independent part of one step t >= warm
 :func:`~tobitkf.filters.delay.reorganized_lmmse` without the means, the moments of Λ(t-d) (R(t), J(t),
 Ā(t), Σ(t), Λ(t+1), corrected recursion LD-E2), and the gains the means read. Covered: fading and
 multiplicative-noise laws that do not change with t (γ̄, σ², Q_ζ constant), both decorrelation modes and
-the re-inserted errata. The products are written as loops (the blocks are n x n with n of a few), so the
-results equal the numpy step's to rounding, not bitwise (tested to 1e-12).
+the re-inserted errata. The products are written as loops (the blocks are n x n with n of a few) into arrays
+the step was handed (no array per product), so the results equal the numpy step's to rounding, not bitwise
+(tested to 1e-12).
 :func:`delay_moments` is the first part, the moments of Λ(t-d), on its own: the chain LMMSE's compiled
 moments (Algorithm C), the same code as the reorganized step's.
 Compiled on first use and cached on disk; importing this module imports numba.
@@ -59,32 +60,121 @@ def _right_inverse(B, M):
     return np.ascontiguousarray(X.T)
 
 
+# --------------------------------------------------------------------------- products into preallocated arrays
+#
+# The covariance step writes every product into an array it was handed (a view of the ring, of the output, or of
+# one work array allocated once per call), not into a new array per product as ``_mm`` does. The reorganized step
+# of the online benchmark (d = 3, n = 2, m = 1) formed some 80 small arrays per call; also gone: the fifteen
+# reshapes of the ring's fields done twice per whole step (numba's reshape helper, ~35 ns each; now five, once) and
+# the five arrays of the means (written into the output). In-process A/B, thread CPU time, median of 15 x 5000
+# calls, load ~2: ``reorg_step`` 8.6 -> 4.8 µs, ``reorg_cov_step`` (20 arguments: ~1 µs of it is the call)
+# 7.2 -> 4.5 µs. Each element is formed in ``_mm``'s order (its sum from 0.0 over j) and scaled and added as the
+# array expression it replaces (``Y + a X`` as ``Y + a s``; ``Y - g X`` as ``Y + (-g) s``, the same number, as
+# negation is exact), so the results are bitwise those of the former kernel (checked on every ring field and
+# output over 120 steps of d = 1..4, one and two channels, both decorrelations, with and without the errata).
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _gemm(out, A, B, ta, tb, alpha, acc):
+    """``out = alpha op(A) op(B)``, or ``out += alpha op(A) op(B)`` when ``acc`` (op the transpose where
+    ``ta``/``tb``); ``out`` must not share memory with ``A`` or ``B``."""
+    p = A.shape[1] if ta else A.shape[0]
+    q = A.shape[0] if ta else A.shape[1]
+    r = B.shape[0] if tb else B.shape[1]
+    for i in range(p):
+        for k in range(r):
+            s = 0.0
+            for j in range(q):
+                s += (A[j, i] if ta else A[i, j]) * (B[k, j] if tb else B[j, k])
+            if acc:
+                out[i, k] += alpha * s
+            else:
+                out[i, k] = alpha * s
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _copy_into(out, M, transpose):
+    """``out = M`` (``M^T`` when ``transpose``)."""
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            out[i, j] = M[j, i] if transpose else M[i, j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _right_inverse_into(out, B, bt, M, Mw, X):
+    """``out = B M^{-1}`` (p, m) for a symmetric (m, m) ``M`` and ``B`` (p, m) (given as its transpose (m, p)
+    when ``bt``), as :func:`_right_inverse` (a division for m = 1, else ``M^{-1} B^T`` by :func:`gauss_solve`);
+    ``Mw`` (m, m) and ``X`` (m, p) are work arrays."""
+    m = M.shape[0]
+    if m == 1:
+        d = M[0, 0]
+        for i in range(out.shape[0]):
+            out[i, 0] = (B[0, i] if bt else B[i, 0]) / d
+        return
+    _copy_into(X, B, not bt)
+    _copy_into(Mw, M, False)
+    gauss_solve(Mw, X)
+    _copy_into(out, X, True)
+
+
+#: the number of (L, L) work blocks :func:`_moments_into` takes (L = max(n, m, p))
+_MOMENTS_WORK = 12
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _work(n, m, p, k):
+    """``k`` work blocks (k, L, L), L = max(n, m, p): a block ``w[i, :r, :c]`` is a view formed inline (a reshape
+    of a flat work array calls numba's reshape helper, some 13 ns a view, a fifth of the step's arithmetic)."""
+    L = max(n, m, p)
+    return np.empty((k, L, L))
+
+
 @njit(cache=True, error_model="numpy")
-def _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J_out, abar_out, sig_out):
+def _moments_into(
+    Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J_out, abar_out, sig_out, Rt, w
+):
     r"""What time t needs of the second moment Λ(t-d) = ``Lam`` (the numpy
     :func:`tobitkf.filters.delay._moments_at`): writes Λ(t+1) = sym(AΛA^T + Q_u(t)) (LD-E2), J(t), Ā(t) and
-    Σ(t) of the decorrelated predictor into the ``*_out`` arrays and returns R(t) = Q_v + σ²HΛH^T (m, m)."""
+    Σ(t) of the decorrelated predictor into the ``*_out`` arrays and R(t) = Q_v + σ²HΛH^T into ``Rt`` (m, m);
+    ``w`` holds :data:`_MOMENTS_WORK` work blocks (:func:`_work`; no array is allocated)."""
     n = A.shape[0]
-    HLH = _mm(_mm(H, Lam, False, False), H, False, True)
-    Rt = Qv + s2 * HLH
-    mult = np.zeros((n, n))
+    m = H.shape[0]
+    p = G.shape[1]
+    HLH, HL, mult, T = w[0, :m, :m], w[1, :m, :n], w[2, :n, :n], w[3, :n, :n]
+    Lq, Sigma, SRinv, Mw = w[4, :n, :n], w[5, :n, :n], w[6, :p, :m], w[7, :m, :m]
+    X, Tpp, Tnp, Tnm = w[8, :m, :p], w[9, :p, :p], w[10, :n, :p], w[11, :n, :m]
+    _gemm(HL, H, Lam, False, False, 1.0, False)
+    _gemm(HLH, HL, H, False, True, 1.0, False)
+    for i in range(m):
+        for j in range(m):
+            Rt[i, j] = Qv[i, j] + s2 * HLH[i, j]
+    mult[:, :] = 0.0
     for i in range(q.shape[0]):
-        mult += q[i] * _mm(_mm(Ai[i], Lam, False, False), Ai[i], False, True)
-    Lq = _mm(_mm(A, Lam, False, False), A, False, True) + (mult + GQG)
+        _gemm(T, Ai[i], Lam, False, False, 1.0, False)
+        _gemm(mult, T, Ai[i], False, True, q[i], True)
+    for i in range(n):
+        for j in range(n):
+            Lq[i, j] = mult[i, j] + GQG[i, j]
+    _gemm(T, A, Lam, False, False, 1.0, False)
+    _gemm(Lq, T, A, False, True, 1.0, True)
     _sym_into(Lq, lam_next)
+    _copy_into(Sigma, mult, False)
     if optimal:
-        SRinv = _right_inverse(S, Rt)  # S R^{-1}  (p, m)
-        J = _mm(G, SRinv, False, False)
-        Sigma = mult + _mm(_mm(G, Qw - _mm(SRinv, S, False, True), False, False), G, False, True)
+        _right_inverse_into(SRinv, S, False, Rt, Mw, X)  # S R^{-1}  (p, m)
+        _gemm(J_out, G, SRinv, False, False, 1.0, False)
+        _copy_into(Tpp, Qw, False)
+        _gemm(Tpp, SRinv, S, False, True, -1.0, True)
+        _gemm(Tnp, G, Tpp, False, False, 1.0, False)
+        _gemm(Sigma, Tnp, G, False, True, 1.0, True)
     else:
-        J = _mm(G, SQvi, False, False)
-        Sigma = (
-            mult + _mm(_mm(G, eta, False, False), G, False, True) + s2 * _mm(_mm(J, HLH, False, False), J, False, True)
-        )
-    J_out[:, :] = J
-    abar_out[:, :] = A - gb * _mm(J, H, False, False)
+        _gemm(J_out, G, SQvi, False, False, 1.0, False)
+        _gemm(Tnp, G, eta, False, False, 1.0, False)
+        _gemm(Sigma, Tnp, G, False, True, 1.0, True)
+        _gemm(Tnm, J_out, HLH, False, False, 1.0, False)
+        _gemm(Sigma, Tnm, J_out, False, True, s2, True)
+    _copy_into(abar_out, A, False)
+    _gemm(abar_out, J_out, H, False, False, -gb, True)
     _sym_into(Sigma, sig_out)
-    return Rt
 
 
 @njit(cache=True, error_model="numpy")
@@ -93,28 +183,34 @@ def delay_moments(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optima
     chain LMMSE's step (Algorithm C) for laws constant in t."""
     n, m = A.shape[0], H.shape[0]
     lam_next, J, Abar, Sigma = np.empty((n, n)), np.empty((n, m)), np.empty((n, n)), np.empty((n, n))
-    Rt = _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J, Abar, Sigma)
+    Rt = np.empty((m, m))
+    w = _work(n, m, G.shape[1], _MOMENTS_WORK)
+    _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J, Abar, Sigma, Rt, w)
     return Rt, J, Abar, Sigma, lam_next
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _ring_fields(ring, offs, d, W, n, m):
     """The fields psi, kh, pf, psm, pmeas, pp, pm, lam, abar, sig, j, qe, kf, ks, ke of the flat ring buffer
-    (offsets ``offs``; layout :func:`tobitkf.filters.delay._ring_layout`) as views."""
+    (layout :func:`tobitkf.filters.delay._ring_layout`: the fields one after the other in this order, from
+    the offsets ``offs``) as views.
+
+    Five reshapes, not one per field: a reshape in a compiled function calls numba's reshape helper (some
+    35 ns for these 3- and 4-d views; the fifteen fields took 0.54 µs, two of them a step), while an integer
+    index of a reshaped group is a view formed inline: Ψ and K H are one (2, W, d+1, n, n) block, the eight
+    (W, n, n) covariance fields one (8, W, n, n), and the gains K_f, K_s, K_e one (d+1 or 3, n, m) (their
+    offsets are consecutive by the layout)."""
     nn, nm = n * n, n * m
-    out3 = []
-    for k in range(2, 10):  # pf .. sig: (W, n, n) each
-        out3.append(ring[offs[k] : offs[k] + W * nn].reshape((W, n, n)))
     nks = max(d - 1, 1)
+    pk = ring[offs[0] : offs[0] + 2 * W * (d + 1) * nn].reshape((2, W, d + 1, n, n))
+    cv = ring[offs[2] : offs[2] + 8 * W * nn].reshape((8, W, n, n))
+    gains = ring[offs[12] : offs[12] + (nks + 2) * nm].reshape((nks + 2, n, m))
     return (
-        ring[offs[0] : offs[0] + W * (d + 1) * nn].reshape((W, d + 1, n, n)),
-        ring[offs[1] : offs[1] + W * (d + 1) * nn].reshape((W, d + 1, n, n)),
-        out3[0], out3[1], out3[2], out3[3], out3[4], out3[5], out3[6], out3[7],
+        pk[0], pk[1],
+        cv[0], cv[1], cv[2], cv[3], cv[4], cv[5], cv[6], cv[7],
         ring[offs[10] : offs[10] + W * nm].reshape((W, n, m)),
         ring[offs[11] : offs[11] + W * m * m].reshape((W, m, m)),
-        ring[offs[12] : offs[12] + nm].reshape((n, m)),
-        ring[offs[13] : offs[13] + nks * nm].reshape((nks, n, m)),
-        ring[offs[14] : offs[14] + nm].reshape((n, m)),
+        gains[0], gains[1 : nks + 1], gains[nks + 1],
     )  # fmt: skip
 
 
@@ -126,35 +222,52 @@ def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, et
     ke (in this order); ``gconst``/``s2`` the fading law's mean and variance; ``optimal`` the
     decorrelation mode; ``e5``/``e6``/``e7`` the re-inserted errata.
     """
+    F = _ring_fields(ring, offs, d, W, A.shape[0], H.shape[0])
+    _reorg_cov(F, t, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7)
+
+
+@njit(cache=True, error_model="numpy")
+def _reorg_cov(F, t, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7):
+    """:func:`reorg_cov_step` on the ring's fields ``F`` (:func:`_ring_fields`, formed once by the caller)."""
     n = A.shape[0]
     m = H.shape[0]
-    psi, kh, pf, psm, pmeas, pp, pm, lam, abar, sig, jj, qe, kf, ks, ke = _ring_fields(ring, offs, d, W, n, m)
+    p = G.shape[1]
+    psi, kh, pf, psm, pmeas, pp, pm, lam, abar, sig, jj, qe, kf, ks, ke = F
     st = t % W
     gb = gconst
+    # the work blocks of the step (one array): R(t), Q_ε, H^T Q_ε^{-1}, H^T Q_ε(s)^{-1}, three n x n blocks, the
+    # solve's work (m x m and m x n), then the moments' own
+    w = _work(n, m, p, 9 + _MOMENTS_WORK)
+    Rt, Q, HtQi, Hq = w[0, :m, :m], w[1, :m, :m], w[2, :n, :m], w[3, :n, :m]
+    T1, T2, T3, Mw, X = w[4, :n, :n], w[5, :n, :n], w[6, :n, :n], w[7, :m, :m], w[8, :m, :n]
+    wm = w[9:]
 
     # moments of Λ(t-d): R(t), the multiplicative term, Λ(t+1), J(t), Ā(t), Σ(t)
-    Rt = _moments_into(
+    _moments_into(
         lam[(t - d) % W], A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal,
-        lam[(t + 1) % W], jj[st], abar[st], sig[st],
+        lam[(t + 1) % W], jj[st], abar[st], sig[st], Rt, wm,
     )  # fmt: skip
 
-    # (a) innovation covariance (15)
-    Pmp = psm[(t - 1) % W].copy()
-    pm[st] = Pmp
-    Q = gb * gb * _mm(_mm(H, Pmp, False, False), H, False, True) + Rt
+    # (a) innovation covariance (15); P(t-d|t-1) = last step's smoother covariance, kept as pm[st]
+    Pmp = pm[st]
+    _copy_into(Pmp, psm[(t - 1) % W], False)
+    _gemm(X, H, Pmp, False, False, 1.0, False)
+    _copy_into(Q, Rt, False)
+    _gemm(Q, X, H, False, True, gb * gb, True)
     if m > 1:
-        Qs = np.empty((m, m))
-        _sym_into(Q, Qs)
-        Q = Qs
-    qe[st] = Q
-    HtQi = _right_inverse(np.ascontiguousarray(H.T), Q)  # H^T Q_ε^{-1}  (n, m)
+        _sym_into(Q, qe[st])
+    else:
+        qe[st, 0, 0] = Q[0, 0]
+    Q = qe[st]
+    _right_inverse_into(HtQi, H, True, Q, Mw, X)  # H^T Q_ε^{-1}  (n, m)
     # (b) filter
     Psd = psi[(t + d - 1) % W, d]
-    Kf = gb * _mm(Psd, HtQi, True, False)
-    kf[:, :] = Kf
-    KfH = _mm(Kf, H, False, False)
-    kh[st, 0] = KfH
-    _sym_into(pp[st] - gb * _mm(KfH, Psd, False, False), pf[st])
+    _gemm(kf, Psd, HtQi, True, False, gb, False)
+    KfH = kh[st, 0]
+    _gemm(KfH, kf, H, False, False, 1.0, False)
+    _copy_into(T1, pp[st], False)
+    _gemm(T1, KfH, Psd, False, False, -gb, True)
+    _sym_into(T1, pf[st])
     # (c) Ψ_i(t), i = d-1..1, corrected (58)
     if t - d >= 0:
         Abar_td = abar[(t - d) % W]
@@ -163,45 +276,54 @@ def reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, et
         Abar_td = A
         g_md = 0.0
     g_md1 = gconst if t - d + 1 >= 0 else 0.0
-    psi_d = psi[st, d].T.copy() if e6 else psi[st, d].copy()
+    psi_d = psi[st, d]  # read transposed under E6 (not written below: i < d)
     Pm_td = pm[(t - d) % W]
     for i in range(d - 1, 0, -1):
         a = t - d - i + 1
         a5 = a - 1 if e5 else a
-        inner = psi[(t - i) % W, d - i + 1].T - g_md * _mm(kh[(t - d) % W, t - d - a5], Pm_td, False, False)
-        val = _mm(inner, Abar_td, False, True)
-        val = val - g_md1 * _mm(kh[(t - d + 1) % W, t - d + 1 - a], psi_d, False, False)
+        val = psi[st, i]  # written in place: the terms read Ψ_k(t) only for k > i, and other times' Ψ
+        _copy_into(T1, psi[(t - i) % W, d - i + 1], True)
+        _gemm(T1, kh[(t - d) % W, t - d - a5], Pm_td, False, False, -g_md, True)
+        _gemm(val, T1, Abar_td, False, True, 1.0, False)
+        _gemm(val, kh[(t - d + 1) % W, t - d + 1 - a], psi_d, False, e6, -g_md1, True)
         top = d - 1 - i if e7 else d - 2 - i
         for j in range(0, top + 1):
             s = t - i - j
             g_s = gconst if s >= 0 else 0.0
-            val = val - g_s * _mm(kh[s % W, s - a], psi[st, i + j + 1], False, False)
-        psi[st, i] = val
+            _gemm(val, kh[s % W, s - a], psi[st, i + j + 1], False, False, -g_s, True)
     # (d) fixed-lag d-1 smoother covariance (55)-(57), a = t-d+1
     a = t - d + 1
-    Ps = pf[a % W].copy()
+    _copy_into(T2, pf[a % W], False)
     for i in range(1, d):
         s = t - i + 1
         if s < 0:
             continue
         psi_i = psi[st, i]
-        Ks = gconst * _mm(psi_i, _right_inverse(np.ascontiguousarray(H.T), qe[s % W]), True, False)
-        ks[i - 1] = Ks
-        KsH = _mm(Ks, H, False, False)
-        kh[s % W, s - a] = KsH
-        Ps = Ps - gconst * _mm(KsH, psi_i, False, False)
-    _sym_into(Ps, psm[st])
+        _right_inverse_into(Hq, H, True, qe[s % W], Mw, X)  # H^T Q_ε(s)^{-1}
+        Ks = ks[i - 1]
+        _gemm(Ks, psi_i, Hq, True, False, gconst, False)
+        KsH = kh[s % W, s - a]
+        _gemm(KsH, Ks, H, False, False, 1.0, False)
+        _gemm(T2, KsH, psi_i, False, False, -gconst, True)
+    _sym_into(T2, psm[st])
     # (e) delayed filter and predictor covariances (50)-(52)
-    Ke = gb * _mm(Pmp, HtQi, False, False)
-    ke[:, :] = Ke
-    KeH = _mm(Ke, H, False, False)
-    kh[st, d] = KeH
-    _sym_into(Pmp - gb * _mm(KeH, Pmp, False, False), pmeas[st])
+    _gemm(ke, Pmp, HtQi, False, False, gb, False)
+    KeH = kh[st, d]
+    _gemm(KeH, ke, H, False, False, 1.0, False)
+    _copy_into(T1, Pmp, False)
+    _gemm(T1, KeH, Pmp, False, False, -gb, True)
+    _sym_into(T1, pmeas[st])
     Ab = abar[st]
-    _sym_into(_mm(_mm(Ab, pmeas[st], False, False), Ab, False, True) + sig[st], pp[(t + 1) % W])
+    _gemm(T1, Ab, pmeas[st], False, False, 1.0, False)
+    _copy_into(T2, sig[st], False)
+    _gemm(T2, T1, Ab, False, True, 1.0, True)
+    _sym_into(T2, pp[(t + 1) % W])
     # (f) corrected (39): Ψ_d(t+d) = {Ā(t)[Ψ_1(t) - γ̄ K(t-d|t) H Ψ_1(t)]}^T
-    psi1 = psi[st, 1].copy()
-    psi[(t + d) % W, d] = _mm(Ab, psi1 - gb * _mm(KeH, psi1, False, False), False, False).T
+    psi1 = psi[st, 1]
+    _copy_into(T1, psi1, False)
+    _gemm(T1, KeH, psi1, False, False, -gb, True)
+    _gemm(T3, Ab, T1, False, False, 1.0, False)
+    _copy_into(psi[(t + d) % W, d], T3, True)
 
 
 # --------------------------------------------------------------------------- whole online steps (Algorithms A, C, D)
@@ -377,7 +499,9 @@ def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib, out):
     m = H.shape[0]
     nw = n * (d + 1)
     lam_next, J, Abar, Sigma = np.empty((n, n)), np.empty((n, m)), np.empty((n, n)), np.empty((n, n))
-    Rt = _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J, Abar, Sigma)
+    Rt = np.empty((m, m))
+    w = _work(n, m, G.shape[1], _MOMENTS_WORK)
+    _moments_into(Lam, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gb, s2, optimal, lam_next, J, Abar, Sigma, Rt, w)
     # the window before the reading: x̂(t|t-1) on top of the last window's first d blocks (block diagonal)
     xw = np.empty((N, nw))
     Pw = np.zeros((nw, nw))
@@ -420,19 +544,19 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev, out):
     """
     A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal = _unpack_moments(cb, ib)
     d, W, e5, e6, e7, offs = ib[5], ib[6], ib[7] != 0, ib[8] != 0, ib[9] != 0, ib[10:]
-    reorg_cov_step(ring, t, offs, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7)
     n = A.shape[0]
     m = H.shape[0]
     N = y.shape[0]
     nn = n * n
-    _, _, pf, psm, pmeas, pp, _, lam, abar, _, jj, qe, kf, ks, ke = _ring_fields(ring, offs, d, W, n, m)
+    F = _ring_fields(ring, offs, d, W, n, m)
+    _reorg_cov(F, t, d, W, A, H, Qv, G, S, Qw, GQG, Ai, q, SQvi, eta, gconst, s2, optimal, e5, e6, e7)
+    _, _, pf, psm, pmeas, pp, _, lam, abar, _, jj, qe, kf, ks, ke = F
     st, s1 = t % W, (t + 1) % W
     gb = gconst
-    e_t = np.empty((N, m))
-    xf_t = np.empty((N, n))
-    xs_t = np.empty((N, n))
-    xm_t = np.empty((N, n))
-    xp_n = np.empty((N, n))
+    # the means straight into their places in ``out`` (x̂(t|t), x̂(t-d+1|t), x̂(t-d|t), x̂(t+1|t), ε(t))
+    means = out[: 4 * N * n].reshape((4, N, n))
+    xf_t, xs_t, xm_t, xp_n = means[0], means[1], means[2], means[3]
+    e_t, o_cov = _take(out, 4 * N * n, N, m)
     Ab, Jt = abar[st], jj[st]
     for r in range(N):
         _innovation_row(e_t, y, xsm_prev, H, gb, r)
@@ -455,5 +579,4 @@ def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev, out):
     for o in (offs[0], offs[1]):
         for z in range(blk):
             ring[o + old * blk + z] = 0.0
-    means = (xf_t, xs_t, xm_t, xp_n, e_t)
-    _flat_into(out, means + (pf[st], pp[st], pmeas[st], pp[s1], psm[st], lam[st], lam[s1], qe[st]), pf[st])
+    _flat_into(out[o_cov:], (pf[st], pp[st], pmeas[st], pp[s1], psm[st], lam[st], lam[s1], qe[st]), pf[st])

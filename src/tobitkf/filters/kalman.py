@@ -222,7 +222,7 @@ def finite_variances(P: np.ndarray) -> bool:
     """Whether every variance (diagonal entry) of ``P`` (..., n, n) is finite: the check of
     :func:`_finite_or_none` for one online step's state, in Python floats when there are a few (no numpy
     reductions for one run)."""
-    d = np.diagonal(P, axis1=-2, axis2=-1)
+    d = P.diagonal(0, -2, -1)  # the method: np.diagonal's dispatch wrapper costs ~0.3 µs of a ~15 µs step
     return all(map(math.isfinite, d.ravel().tolist())) if d.size <= 16 else bool(np.isfinite(d).all())
 
 
