@@ -8,7 +8,10 @@ covariances written by every contestant (and, for ours, a means-only row):
 
 * tobitkf TKF and KF, compiled kernels (``backend="numba"``) and numpy reference path
   (``backend="numpy"``, timed on a tenth of the runs and scaled: its cost per run-step does
-  not grow with the batch);
+  not grow with the batch). The compiled rows take their outputs from the output pool
+  (``tobitkf.filters._pool``: the memory of a previous call's outputs once that result is freed, as in any
+  loop of calls; on by default, up to 1 GiB: the all-outputs row's 1.1 GB does not fit and is fresh every
+  call); the row "pool off" writes fresh memory in every call, as the fused limit and JAX do;
 * a hand-fused scalar numba TKF (``benchmarks/_fused_tkf.py``): the limit, allocating its
   outputs in the call like every other contestant (fresh memory: first-touch page faults
   included), and once more writing into arrays allocated and touched before the timings
@@ -52,6 +55,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 import tobitkf as tk  # noqa: E402
+from tobitkf.filters import _pool  # noqa: E402
 from tobitkf.filters._backend import numba_available  # noqa: E402
 
 
@@ -189,6 +193,12 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int, scrub: bool = True)
         tkf = tk.TobitKalmanFilter(sys_, cens, backend="numba", threads=1)
         kf = tk.KalmanFilter(sys_, backend="numba")
         contestants["tobitkf TKF numba, mean+cov"] = (lambda: tkf.filter(y, outputs=("mean", "cov")), full)
+
+        def fresh():
+            with _pool.bypassed():  # new memory for the outputs, the pool's buffers left for the other rows
+                return tkf.filter(y, outputs=("mean", "cov"))
+
+        contestants["tobitkf TKF numba, mean+cov, pool off"] = (fresh, full)
         contestants["tobitkf TKF numba, all outputs"] = (lambda: tkf.filter(y), full)
         contestants["tobitkf TKF numba, means only"] = (lambda: tkf.filter(y, outputs=("mean",)), full)
         contestants["tobitkf KF numba, mean+cov"] = (lambda: kf.filter(y, outputs=("mean", "cov")), full)

@@ -52,6 +52,7 @@ from .filters import (
     kalman_filter,
     tobit_kalman_filter,
 )
+from .filters._pool import output_pool_limit, set_output_pool
 from .filters.adf_fading import FadingAssumedDensityFilter
 from .filters.adf_protocol import ProtocolAssumedDensityFilter
 from .filters.adf_saturation import SaturationAssumedDensityFilter
@@ -173,5 +174,7 @@ __all__ = [
     "load_fit",
     "CensoredAR",
     "data",
+    "set_output_pool",
+    "output_pool_limit",
     "__version__",
 ]

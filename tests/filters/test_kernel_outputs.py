@@ -91,8 +91,8 @@ def test_variances_alone_allocate_no_covariance_array(name):
 def test_output_arrays_are_disjoint_views_of_one_allocation():
     """kalman.output_arrays: every requested output a C-contiguous (runs, T) + shape view, no two sharing an
     element (a wrong offset or size would make neighbours overlap and the kernel overwrite one with another),
-    the ones not requested (runs, 0) + shape; cov_spec as cov_output."""
-    from tobitkf.filters.kalman import cov_output, cov_spec, output_arrays
+    the ones not requested (runs, 0) + shape; cov_spec's layouts of the covariance output."""
+    from tobitkf.filters.kalman import cov_spec, output_arrays
 
     specs = [(True, (3,)), (False, (2, 2)), (True, (1,)), (True, (2, 3, 3)), (True, ()), (False, (5,))]
     arrs = output_arrays(7, 5, *specs)
@@ -106,10 +106,16 @@ def test_output_arrays_are_disjoint_views_of_one_allocation():
     for i, a in enumerate(on):
         assert (a == i).all()  # nothing written through another view
         assert all(not np.shares_memory(a, b) for b in on[i + 1 :])
-    for want in (("mean", "cov"), ("var",), ("mean", "var"), ("mean",), ("cov", "var")):
-        flag, shape = cov_spec(want, 4)
-        (c,) = output_arrays(3, 2, (flag, shape))
-        assert c.shape == cov_output(want, 3, 2, 4).shape
+    expected = {
+        ("mean", "cov"): (3, 2, 4, 4),
+        ("var",): (3, 2, 4, 1),  # the diagonals alone
+        ("mean", "var"): (3, 2, 4, 1),
+        ("mean",): (3, 0, 4, 4),  # not written
+        ("cov", "var"): (3, 2, 4, 4),
+    }
+    for want, shape_expected in expected.items():
+        (c,) = output_arrays(3, 2, cov_spec(want, 4))
+        assert c.shape == shape_expected
 
 
 @pytest.mark.parametrize("name", ["fading", "protocol"])

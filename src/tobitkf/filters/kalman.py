@@ -48,6 +48,7 @@ from .._validation import ShapeError, ValidationError, as_float, as_float_array,
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
+from ._pool import take_buffer
 from ._readings import censoring_sides
 from .core import (
     COVARIANCE_FORMS,
@@ -238,17 +239,10 @@ def kernel_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
     return a.reshape(batch + a.shape[1:])
 
 
-def cov_output(want, runs: int, T: int, n: int) -> np.ndarray:
-    """The filtered-covariance output a compiled loop writes: ``(runs, T, n, n)`` when ``"cov"`` is
-    requested, ``(runs, T, n, 1)`` (the diagonals only, no n x n array per step) when only ``"var"`` is,
-    and ``(runs, 0, n, n)`` (not written) otherwise; :func:`kernel_result` reads it back."""
-    if "cov" in want:
-        return np.empty((runs, T, n, n))
-    return np.empty((runs, T, n, 1)) if "var" in want else np.empty((runs, 0, n, n))
-
-
 def cov_spec(want, n: int) -> tuple[bool, tuple[int, ...]]:
-    """:func:`cov_output`'s array as an ``(on, shape)`` entry of :func:`output_arrays`."""
+    """The filtered-covariance output of a compiled loop as an ``(on, shape)`` entry of :func:`output_arrays`:
+    ``(runs, T, n, n)`` when ``"cov"`` is requested, ``(runs, T, n, 1)`` (the diagonals only, no n x n array
+    per step) when only ``"var"`` is, not written otherwise; :func:`kernel_result` reads it back."""
     if "cov" in want:
         return True, (n, n)
     return ("var" in want), ((n, 1) if "var" in want else (n, n))
@@ -262,13 +256,14 @@ def output_arrays(runs: int, T: int, *specs: tuple[bool, tuple[int, ...]]) -> li
     (``madvise``) on allocations of 4 MiB and more only, so separate arrays of a few MiB each (the
     fading and protocol loops' 9 and 7 outputs at 1000 runs x 100 steps) fault page by page: measured on
     the 2-core VM, ~4000 faults and ~45 ns per run-step of the fading loop's ~250. The views keep the one
-    buffer alive together (it is freed when the last of them is)."""
+    buffer alive together; a buffer of 4 MiB or more comes from the output pool
+    (:mod:`tobitkf.filters._pool`), which hands it out again once the last of those views is freed."""
     sizes = [runs * T * math.prod(shape) if on else 0 for on, shape in specs]
     starts, total = [], 0
     for size in sizes:
         starts.append(total)
         total += -(-size // 8) * 8  # the next view 64 bytes further on
-    buf = np.empty(total)
+    buf = take_buffer(total)  # from the output pool (tobitkf.filters._pool) when large enough
     out = []
     for (on, shape), start, size in zip(specs, starts, sizes):
         if on:
@@ -282,7 +277,7 @@ def kernel_result(
     want, batch, T: int, means, covs, pmeans, pcovs, extras: dict[str, Any], final: FilterState
 ) -> FilterResult:
     """The :class:`FilterResult` of a compiled loop over T readings ending at ``final`` (the kernels of
-    every family): its outputs by :func:`kernel_array`, ``covs`` as laid out by :func:`cov_output`
+    every family): its outputs by :func:`kernel_array`, ``covs`` as laid out by :func:`cov_spec`
     (``var`` the diagonals of the covariances, or the diagonals the loop wrote alone), ``times`` the
     readings' time indices."""
     cov = kernel_array(covs, batch)
@@ -377,12 +372,13 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
     P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
     Pn = P.shape[0]
 
-    def arr(name, shape, runs):
-        return np.empty((runs, T) + shape) if name in want else np.empty((runs, 0) + shape)
-
-    means, pmeans = arr("mean", (n,), N), arr("pred_mean", (n,), N)
-    covs = cov_output(want, Pn, T, n)
-    pcovs = arr("pred_cov", (n, n), Pn)
+    mean_specs = (("mean" in want, (n,)), ("pred_mean" in want, (n,)))
+    cov_specs = (cov_spec(want, n), ("pred_cov" in want, (n, n)))
+    if Pn == N:  # one allocation for all (output_arrays)
+        means, pmeans, covs, pcovs = output_arrays(N, T, *mean_specs, *cov_specs)
+    else:  # one covariance shared by the runs: only the means have a row per run
+        means, pmeans = output_arrays(N, T, *mean_specs)
+        covs, pcovs = output_arrays(Pn, T, *cov_specs)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     c64 = np.ascontiguousarray
     kernels().kf_kernel(

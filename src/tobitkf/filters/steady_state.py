@@ -67,7 +67,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
-from .kalman import LinearGaussianFamily, kernel_array
+from .kalman import LinearGaussianFamily, kernel_array, output_arrays
 from .tobit import TobitKalmanFilter, tobit_measurement
 
 __all__ = [
@@ -469,12 +469,10 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
         )
     A, C, K, offset, shift = mats
 
-    def arr(on, shape):
-        return np.empty((N, T) + shape) if on else np.empty((N, 0) + shape)
-
     ext = "extras" in want and latent
-    means, pmeans = arr("mean" in want, (n,)), arr("pred_mean" in want, (n,))
-    lim, yo = arr(ext, (m,)), arr(ext, (m,))
+    means, pmeans, lim, yo = output_arrays(  # one allocation, from the output pool when large
+        N, T, ("mean" in want, (n,)), ("pred_mean" in want, (n,)), (ext, (m,)), (ext, (m,))
+    )
     x_last = np.empty((N, n))
     finite = _kernels_steady.steady_tkf_kernel(
         c64(y2, dtype=float),

@@ -89,9 +89,10 @@ from .kalman import (
     _empty,
     _finite_or_none,
     _kernel_matrices,
-    cov_output,
+    cov_spec,
     kernel_array,
     kernel_result,
+    output_arrays,
 )
 from .smoothing import SmoothingMethods
 
@@ -477,13 +478,17 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState, 
     assert state.P is not None, "the compiled kernels run the standard form, which carries P"
     P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=np.float64)
 
-    def arr(name, shape):
-        return np.empty((N, T) + shape) if name in want else np.empty((N, 0) + shape)
-
-    means, pmeans = arr("mean", (n,)), arr("pred_mean", (n,))
-    covs = cov_output(want, N, T, n)
-    pcovs = arr("pred_cov", (n, n))
-    pu, ey = arr("extras", (m,)), arr("extras", (m,))
+    ext = "extras" in want
+    means, covs, pmeans, pcovs, pu, ey = output_arrays(  # one allocation, from the output pool when large
+        N,
+        T,
+        ("mean" in want, (n,)),
+        cov_spec(want, n),
+        ("pred_mean" in want, (n,)),
+        ("pred_cov" in want, (n, n)),
+        (ext, (m,)),
+        (ext, (m,)),
+    )
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
     yc, A, Qd = c64(y2), c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float)
     C, sig, lo, hi = c64(sys_.measurement(1), dtype=float), c64(est._sigma), c64(lo), c64(hi)
