@@ -123,6 +123,15 @@ def _evict(need: int) -> None:
     _buffers[:] = keep
 
 
+def _find_free(nbytes: int) -> np.ndarray | None:
+    """A free buffer of ``nbytes`` to twice that, or None (the caller holds the lock). A function of its own
+    so that its loop variable, which holds a buffer, is gone before :func:`_evict` counts references."""
+    for b in _buffers:
+        if nbytes <= b.nbytes <= 2 * nbytes and sys.getrefcount(b) == _FREE:
+            return b
+    return None
+
+
 def take_buffer(count: int) -> np.ndarray:
     """A float64 buffer of ``count`` numbers (1-D, C-contiguous, contents undefined, as ``numpy.empty``): a
     free pooled buffer of at least that size and at most twice it (its first ``count`` numbers), else a
@@ -131,10 +140,9 @@ def take_buffer(count: int) -> np.ndarray:
     if nbytes < MIN_BYTES or nbytes > _limit or _bypass:
         return np.empty(count)
     with _lock:
-        for b in _buffers:
-            if nbytes <= b.nbytes <= 2 * nbytes and sys.getrefcount(b) == _FREE:
-                return b[:count]
-        b = None  # the loop variable would otherwise hold the last buffer through _evict's count
+        found = _find_free(nbytes)
+        if found is not None:
+            return found[: nbytes // 8]
         _evict(nbytes)
         buf = np.empty(count)
         if _held() + nbytes <= _limit:
