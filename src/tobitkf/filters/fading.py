@@ -119,11 +119,11 @@ from .kalman import (
     LinearGaussianFamily,
     _empty,
     _finite_or_none,
-    cov_spec,
     finite_variances,
     kernel_array,
     kernel_result,
     output_arrays,
+    state_specs,
 )
 from .tobit import TobitKalmanFilter
 
@@ -879,10 +879,7 @@ def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, wan
     means, covs, pmeans, pcovs, pu, ey, lam, sm_mean, sm_cov = output_arrays(
         N,
         T,
-        ("mean" in want, (n,)),
-        cov_spec(want, n),
-        ("pred_mean" in want, (n,)),
-        ("pred_cov" in want, (n, n)),
+        *state_specs(want, n),
         (ext, (m,)),
         (ext, (m,)),
         (ext, (m,)),

@@ -248,6 +248,12 @@ def cov_spec(want, n: int) -> tuple[bool, tuple[int, ...]]:
     return ("var" in want), ((n, 1) if "var" in want else (n, n))
 
 
+def state_specs(want, n: int) -> tuple[tuple[bool, tuple[int, ...]], ...]:
+    """The four state outputs of a compiled loop as :func:`output_arrays` entries, in the order mean,
+    covariance (:func:`cov_spec`), predicted mean, predicted covariance; ``n`` the state size reported."""
+    return (("mean" in want, (n,)), cov_spec(want, n), ("pred_mean" in want, (n,)), ("pred_cov" in want, (n, n)))
+
+
 def output_arrays(runs: int, T: int, *specs: tuple[bool, tuple[int, ...]]) -> list[np.ndarray]:
     """The ``(runs, T) + shape`` outputs of a compiled loop, one per ``(on, shape)`` entry, carved from ONE
     fresh allocation (each a C-contiguous view at a multiple of 64 bytes from its start); an entry that is off gets a
@@ -372,13 +378,12 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
     P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
     Pn = P.shape[0]
 
-    mean_specs = (("mean" in want, (n,)), ("pred_mean" in want, (n,)))
-    cov_specs = (cov_spec(want, n), ("pred_cov" in want, (n, n)))
+    m_spec, c_spec, pm_spec, pc_spec = state_specs(want, n)
     if Pn == N:  # one allocation for all (output_arrays)
-        means, pmeans, covs, pcovs = output_arrays(N, T, *mean_specs, *cov_specs)
+        means, covs, pmeans, pcovs = output_arrays(N, T, m_spec, c_spec, pm_spec, pc_spec)
     else:  # one covariance shared by the runs: only the means have a row per run
-        means, pmeans = output_arrays(N, T, *mean_specs)
-        covs, pcovs = output_arrays(Pn, T, *cov_specs)
+        means, pmeans = output_arrays(N, T, m_spec, pm_spec)
+        covs, pcovs = output_arrays(Pn, T, c_spec, pc_spec)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     c64 = np.ascontiguousarray
     kernels().kf_kernel(

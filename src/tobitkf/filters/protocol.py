@@ -104,10 +104,10 @@ from .kalman import (
     LinearGaussianFamily,
     _empty,
     _finite_or_none,
-    cov_spec,
     kernel_array,
     kernel_result,
     output_arrays,
+    state_specs,
 )
 
 __all__ = [
@@ -961,10 +961,7 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
     means, covs, pmeans, pcovs, amean, apmean, exts = output_arrays(
         N,
         T,
-        ("mean" in want, (n,)),
-        cov_spec(want, n),
-        ("pred_mean" in want, (n,)),
-        ("pred_cov" in want, (n, n)),
+        *state_specs(want, n),
         (ext, (nxi,)),
         (ext, (nxi,)),
         (ext, (kp.N_EXTRAS,)),

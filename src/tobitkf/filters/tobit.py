@@ -89,10 +89,10 @@ from .kalman import (
     _empty,
     _finite_or_none,
     _kernel_matrices,
-    cov_spec,
     kernel_array,
     kernel_result,
     output_arrays,
+    state_specs,
 )
 from .smoothing import SmoothingMethods
 
@@ -482,10 +482,7 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState, 
     means, covs, pmeans, pcovs, pu, ey = output_arrays(  # one allocation, from the output pool when large
         N,
         T,
-        ("mean" in want, (n,)),
-        cov_spec(want, n),
-        ("pred_mean" in want, (n,)),
-        ("pred_cov" in want, (n, n)),
+        *state_specs(want, n),
         (ext, (m,)),
         (ext, (m,)),
     )
