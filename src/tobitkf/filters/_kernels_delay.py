@@ -26,17 +26,9 @@ __all__ = ["reorg_cov_step", "reorg_step", "delay_moments", "aug_step", "chain_s
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _mm(A, B, ta, tb):
-    """op(A) op(B) with op the transpose where ``ta``/``tb``; a new array."""
-    p = A.shape[1] if ta else A.shape[0]
-    q = A.shape[0] if ta else A.shape[1]
-    r = B.shape[0] if tb else B.shape[1]
-    out = np.empty((p, r))
-    for i in range(p):
-        for k in range(r):
-            acc = 0.0
-            for j in range(q):
-                acc += (A[j, i] if ta else A[i, j]) * (B[k, j] if tb else B[j, k])
-            out[i, k] = acc
+    """op(A) op(B) with op the transpose where ``ta``/``tb``; a new array (:func:`_gemm` into it)."""
+    out = np.empty((A.shape[1] if ta else A.shape[0], B.shape[0] if tb else B.shape[1]))
+    _gemm(out, A, B, ta, tb, 1.0, False)
     return out
 
 
@@ -51,13 +43,12 @@ def _sym_into(M, out):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _right_inverse(B, M):
-    """B M^{-1} for a symmetric (m, m) M: (M^{-1} B^T)^T; a division for m = 1 (as the numpy step)."""
-    m = M.shape[0]
-    if m == 1:
-        return B / M[0, 0]
-    X = np.ascontiguousarray(B.T)
-    gauss_solve(M.copy(), X)
-    return np.ascontiguousarray(X.T)
+    """B M^{-1} for a symmetric (m, m) M: (M^{-1} B^T)^T; a division for m = 1 (as the numpy step); a new
+    array (:func:`_right_inverse_into` into it)."""
+    p, m = B.shape
+    out = np.empty((p, m))
+    _right_inverse_into(out, B, False, M, np.empty((m, m)), np.empty((m, p)))
+    return out
 
 
 # --------------------------------------------------------------------------- products into preallocated arrays

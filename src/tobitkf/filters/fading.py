@@ -863,8 +863,6 @@ def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: Filt
 
 def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, want, batch, keep_smoothed):
     """The compiled loop from ``state`` (augmented x, P); outputs on request, as the numpy path's."""
-    from . import _kernels_fading
-
     kern = kernels()
     N, T, m = y2.shape
     n, L, nxi = est.n, est.L, est._nxi
@@ -887,7 +885,7 @@ def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, wan
         (sm, (L + 1, n, n)),
     )
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    _kernels_fading.fading_tkf_kernel(
+    _fading_kernels().fading_tkf_kernel(
         c64(y2, dtype=float),
         A,
         Qd,
