@@ -81,6 +81,7 @@ __all__ = [
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _MAX_WIDENINGS = 10000  # EGRET stops widening after this many rounds ("Problems converging")
+_BLOCK = 256  # estimation points fitted together
 _NAMES = ("intercept", "decimal_year", "ln_q", "sin_2pi_t", "cos_2pi_t")
 
 
@@ -460,14 +461,12 @@ class WRTDS:
         return self._estimate(self.time, self.ln_q, np.arange(self.num_samples))
 
     def _estimate(self, t0: np.ndarray, lq0: np.ndarray, exclude: np.ndarray | None) -> WRTDSEstimate:
-        win = self.windows(t0, lq0, exclude=exclude)
-        x0 = self._design(t0, lq0)  # (P, 5)
-        Xc = self.design[None, :, :] - x0[:, None, :]  # centred at each point; intercept column becomes 0
-        Xc[..., 0] = 1.0
-        beta_c, sigma, ll, conv = fit_weighted_tobit(Xc, self.ln_low, self.ln_high, win.weights)
-        mean = beta_c[:, 0]
-        coef = beta_c.copy()
-        coef[:, 0] = mean - np.einsum("pj,pj->p", beta_c[:, 1:], x0[:, 1:])
+        parts = []
+        for start in range(0, max(t0.size, 1), _BLOCK):  # blocks of points: the (P, n, 6) arrays stay small
+            sl = slice(start, start + _BLOCK)
+            parts.append(self._estimate_block(t0[sl], lq0[sl], None if exclude is None else exclude[sl]))
+        win = Windows(*(np.concatenate([getattr(p[-1], f) for p in parts]) for f in Windows.__dataclass_fields__))
+        mean, sigma, coef, ll, conv = (np.concatenate([p[i] for p in parts]) for i in range(5))
         return WRTDSEstimate(
             time=t0,
             ln_q=lq0,
@@ -480,6 +479,17 @@ class WRTDS:
             windows=win,
         )
 
+    def _estimate_block(self, t0: np.ndarray, lq0: np.ndarray, exclude: np.ndarray | None):
+        win = self.windows(t0, lq0, exclude=exclude)
+        x0 = self._design(t0, lq0)  # (P, 5)
+        Xc = self.design[None, :, :] - x0[:, None, :]  # centred at each point; intercept column becomes 0
+        Xc[..., 0] = 1.0
+        beta_c, sigma, ll, conv = fit_weighted_tobit(Xc, self.ln_low, self.ln_high, win.weights)
+        mean = beta_c[:, 0]
+        coef = beta_c.copy()
+        coef[:, 0] = mean - np.einsum("pj,pj->p", beta_c[:, 1:], x0[:, 1:])
+        return mean, sigma, coef, ll, conv, win
+
 
 # ---------------------------------------------------------------------- weighted Tobit by Newton
 def _pieces(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, theta: np.ndarray, need: int):
@@ -490,7 +500,7 @@ def _pieces(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, theta: np.ndarray, ne
     l = log(Phi(u) - Phi(v)).
     """
     gamma, tau = theta[:, :-1], theta[:, -1]
-    xg = np.einsum("pnk,pk->pn", X, gamma)
+    xg = (X @ gamma[..., None])[..., 0]
     exact = lo == hi
     lo_f = np.where(np.isfinite(lo), lo, 0.0)
     hi_f = np.where(np.isfinite(hi), hi, 0.0)
@@ -582,14 +592,11 @@ def fit_weighted_tobit(
         Du = np.concatenate([-Xa, np.broadcast_to(hi_f, Xa.shape[:2])[..., None]], axis=2)
         Dv = np.concatenate([-Xa, np.broadcast_to(lo_f, Xa.shape[:2])[..., None]], axis=2)
         wex = np.where(exact, wa, 0.0).sum(axis=1)
-        g = np.einsum("pn,pnj->pj", wa * gu, Du) + np.einsum("pn,pnj->pj", wa * gv, Dv)
+        g = (Du.transpose(0, 2, 1) @ (wa * gu)[..., None] + Dv.transpose(0, 2, 1) @ (wa * gv)[..., None])[..., 0]
         g[:, -1] += wex / tau
-        H = (
-            np.einsum("pn,pnj,pnk->pjk", wa * huu, Du, Du)
-            + np.einsum("pn,pnj,pnk->pjk", wa * hvv, Dv, Dv)
-            + np.einsum("pn,pnj,pnk->pjk", wa * huv, Du, Dv)
-            + np.einsum("pn,pnj,pnk->pjk", wa * huv, Dv, Du)
-        )
+        DuT, DvT = Du.transpose(0, 2, 1), Dv.transpose(0, 2, 1)
+        cross = DuT @ ((wa * huv)[..., None] * Dv)
+        H = DuT @ ((wa * huu)[..., None] * Du) + DvT @ ((wa * hvv)[..., None] * Dv) + cross + cross.transpose(0, 2, 1)
         H[:, -1, -1] -= wex / tau**2
         step = np.linalg.solve(-H, g[..., None])[..., 0]
         decrement = np.einsum("pj,pj->p", g, step)
