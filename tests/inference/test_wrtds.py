@@ -261,6 +261,10 @@ def test_errors_name_the_argument(rec):
     bad[2] = 10.0
     with pytest.raises(tk.ValidationError, match="sample 2"):
         W.WRTDS(rec.date, rec.q, bad, rec.conc_high)
+    zero = rec.conc_high.copy()
+    zero[5] = 0.0
+    with pytest.raises(tk.ValidationError, match="conc_high: expected a positive concentration.*sample 5"):
+        W.WRTDS(rec.date, rec.q, rec.conc_low, zero)
     with pytest.raises(tk.ShapeError, match="conc_high"):
         W.WRTDS(rec.date, rec.q, rec.conc_low, rec.conc_high[:-1])
     with pytest.raises(tk.ValidationError, match="window_q"):
@@ -274,3 +278,17 @@ def test_public_names_and_docstring_examples():
     assert tk.wrtds is W and tk.inference.wrtds is W
     res = doctest.testmod(W, optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
     assert res.failed == 0 and res.attempted > 0
+
+
+def test_egret_interval_columns_become_log_bounds(rec):
+    low, high = rec.conc_low.copy(), rec.conc_high.copy()
+    low[3], high[3] = 0.02, np.nan  # above 0.02: right-censored
+    low[4], high[4] = 0.01, 0.04  # an interval
+    low[5] = 0.0  # a zero ConcLow is no lower bound, as EGRET reads it
+    m = W.WRTDS(rec.date, rec.q, low, high)
+    assert m.ln_low[3] == pytest.approx(math.log(0.02)) and m.ln_high[3] == np.inf
+    assert (m.ln_low[4], m.ln_high[4]) == pytest.approx((math.log(0.01), math.log(0.04)))
+    assert m.ln_low[5] == -np.inf and m.ln_high[5] == pytest.approx(math.log(rec.conc_high[5]))
+    assert rec.uncensored[3:6].all() and not m.uncensored[3:6].any()
+    assert m.uncensored.sum() == rec.uncensored.sum() - 3
+    assert m.estimate(rec.date[:3], rec.q[:3]).converged.all()

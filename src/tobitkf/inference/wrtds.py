@@ -127,7 +127,8 @@ def decimal_year(dates: Any) -> np.ndarray:
 def tricube(d: Any, h: Any) -> np.ndarray:
     r"""Tukey's tricube weight :math:`T(d, h) = \max(0, 1 - (|d|/h)^3)^3` (EGRET's ``triCube``), broadcast."""
     u = np.abs(np.asarray(d, dtype=float)) / np.asarray(h, dtype=float)
-    return np.maximum(0.0, 1.0 - u**3) ** 3
+    c = np.maximum(0.0, 1.0 - u * u * u)
+    return c * c * c
 
 
 def settings_from_egret(info: dict[str, Any]) -> dict[str, Any]:
@@ -233,7 +234,8 @@ def _as_dates_or_years(value: Any, name: str) -> np.ndarray:
 
 
 def _interval_bounds(conc_low: np.ndarray, conc_high: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """ln bounds: a missing or zero ConcLow is no lower bound; a missing or infinite ConcHigh no upper one."""
+    """ln bounds: a missing or zero ConcLow is no lower bound; a missing or infinite ConcHigh no upper one
+    (both checked non-negative and ConcHigh positive before)."""
     with np.errstate(divide="ignore"):
         lo = np.where(np.isnan(conc_low) | (conc_low <= 0.0), -np.inf, np.log(np.where(conc_low > 0, conc_low, 1.0)))
         hi = np.where(np.isnan(conc_high), np.inf, np.log(np.where(conc_high > 0, conc_high, 1.0)))
@@ -252,7 +254,8 @@ class WRTDS:
     conc_low, conc_high : (n,) array_like
         EGRET's interval convention: the concentration lies in ``[conc_low, conc_high]``; equal for a
         measured value; ``conc_low`` NaN (or 0) for a left-censored sample, whose ``conc_high`` is the
-        detection limit; ``conc_high`` NaN or ``inf`` for a right-censored one.
+        detection limit; ``conc_high`` NaN or ``inf`` for a right-censored one; both finite and
+        different for an interval.
     window_y, window_q, window_s : float
         Starting half-windows in time (years), ln Q and season (years): EGRET's ``windowY`` (7),
         ``windowQ`` (2), ``windowS`` (0.5).
@@ -270,7 +273,8 @@ class WRTDS:
     ShapeError
         When the arrays are not one-dimensional of one length.
     ValidationError
-        For a non-positive discharge, a lower bound above the upper bound, non-positive windows or
+        For a non-positive discharge, a negative ``conc_low``, a non-positive ``conc_high``, a lower bound
+        above the upper bound (naming the sample), non-positive windows or
         minimum counts the record cannot meet (as EGRET, which stops when ``min_num_obs`` or
         ``min_num_uncen`` is not below the record's count).
 
@@ -311,6 +315,12 @@ class WRTDS:
         if np.any(q <= 0):
             i = int(np.flatnonzero(q <= 0)[0])
             raise ValidationError(f"q: expected positive discharge, got {q[i]} at sample {i}")
+        for name, arr, ok in (("conc_low", low, ~(low < 0)), ("conc_high", high, ~(high <= 0))):
+            if not ok.all():
+                i = int(np.flatnonzero(~ok)[0])
+                raise ValidationError(
+                    f"{name}: expected a positive concentration or NaN (no bound), got {arr[i]} at sample {i}"
+                )
         self.ln_low, self.ln_high = _interval_bounds(low, high)
         bad = ~(self.ln_low <= self.ln_high) | (np.isinf(self.ln_low) & np.isinf(self.ln_high))
         if np.any(bad):
@@ -493,35 +503,39 @@ class WRTDS:
 
 # ---------------------------------------------------------------------- weighted Tobit by Newton
 def _pieces(X: np.ndarray, lo: np.ndarray, hi: np.ndarray, theta: np.ndarray, need: int):
-    """Per-sample log-likelihood (and first/second derivatives w.r.t. the linear arguments) at theta.
+    """Per-sample log-likelihood (and its first/second derivatives w.r.t. the linear arguments) at theta.
 
-    Olsen's parameters theta = (gamma (k,), tau); for a measured value r = tau y - x gamma and
+    Olsen's parameters theta = (gamma (k,), tau); for a measured value y, r = tau y - x gamma and
     l = log tau - r^2/2 - log sqrt(2 pi); for an interval, u = tau hi - x gamma, v = tau lo - x gamma and
-    l = log(Phi(u) - Phi(v)).
+    l = log(Phi(u) - Phi(v)). ``lo``, ``hi`` are (n,); the measured and the censored samples (columns)
+    are evaluated apart, so the normal tails are computed only where needed.
     """
     gamma, tau = theta[:, :-1], theta[:, -1]
     xg = (X @ gamma[..., None])[..., 0]
     exact = lo == hi
-    lo_f = np.where(np.isfinite(lo), lo, 0.0)
-    hi_f = np.where(np.isfinite(hi), hi, 0.0)
-    u = np.where(np.isfinite(hi), tau[:, None] * hi_f - xg, np.inf)
-    v = np.where(np.isfinite(lo), tau[:, None] * lo_f - xg, -np.inf)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        log_d = _log_interval(np.where(exact, -np.inf, v), np.where(exact, np.inf, u))
-        ll = np.where(exact, np.log(tau)[:, None] - 0.5 * u**2 - _LOG_SQRT_2PI, log_d)
-        if need == 0:
-            return ll
-        phi_u = np.where(np.isfinite(u), np.exp(-0.5 * u**2 - _LOG_SQRT_2PI - log_d), 0.0)  # phi(u)/D
-        phi_v = np.where(np.isfinite(v), np.exp(-0.5 * v**2 - _LOG_SQRT_2PI - log_d), 0.0)  # phi(v)/D
-        uf = np.where(np.isfinite(u), u, 0.0)
-        vf = np.where(np.isfinite(v), v, 0.0)
-    # d ll / du, d ll / dv; second derivatives
-    gu = np.where(exact, -uf, phi_u)
-    gv = np.where(exact, 0.0, -phi_v)
-    huu = np.where(exact, -1.0, -uf * phi_u - phi_u**2)
-    hvv = np.where(exact, 0.0, vf * phi_v - phi_v**2)
-    huv = np.where(exact, 0.0, phi_u * phi_v)
-    return ll, gu, gv, huu, hvv, huv, hi_f, lo_f, exact
+    ex, ce = np.flatnonzero(exact), np.flatnonzero(~exact)
+    ll = np.empty(xg.shape)
+    r = tau[:, None] * hi[ex] - xg[:, ex]
+    ll[:, ex] = np.log(tau)[:, None] - 0.5 * r**2 - _LOG_SQRT_2PI
+    lo_c, hi_c = lo[ce], hi[ce]
+    fin_u, fin_v = np.isfinite(hi_c), np.isfinite(lo_c)
+    xc = xg[:, ce]
+    uf = np.where(fin_u, tau[:, None] * np.where(fin_u, hi_c, 0.0) - xc, 0.0)
+    vf = np.where(fin_v, tau[:, None] * np.where(fin_v, lo_c, 0.0) - xc, 0.0)
+    log_d = _log_interval(np.where(fin_v, vf, -np.inf), np.where(fin_u, uf, np.inf))
+    ll[:, ce] = log_d
+    if need == 0:
+        return ll
+    phi_u = np.where(fin_u, np.exp(-0.5 * uf**2 - _LOG_SQRT_2PI - log_d), 0.0)  # phi(u)/D
+    phi_v = np.where(fin_v, np.exp(-0.5 * vf**2 - _LOG_SQRT_2PI - log_d), 0.0)  # phi(v)/D
+    # d ll / du, d ll / dv and the second derivatives
+    gu, gv, huu, hvv, huv = (np.zeros(xg.shape) for _ in range(5))
+    gu[:, ex], huu[:, ex] = -r, -1.0
+    gu[:, ce], gv[:, ce] = phi_u, -phi_v
+    huu[:, ce] = -uf * phi_u - phi_u**2
+    hvv[:, ce] = vf * phi_v - phi_v**2
+    huv[:, ce] = phi_u * phi_v
+    return ll, gu, gv, huu, hvv, huv
 
 
 def _objective(X, lo, hi, w, theta):
@@ -567,7 +581,11 @@ def fit_weighted_tobit(
     """
     P, n, k = X.shape
     w = np.asarray(weights, dtype=float)
-    lo, hi = ln_low[None, :], ln_high[None, :]
+    lo, hi = np.asarray(ln_low, dtype=float), np.asarray(ln_high, dtype=float)
+    exact = lo == hi
+    # derivatives of u = tau hi - x gamma and v = tau lo - x gamma w.r.t. (gamma, tau): (-x, hi), (-x, lo)
+    Du_all = np.concatenate([-X, np.broadcast_to(np.where(np.isfinite(hi), hi, 0.0), (P, n))[..., None]], axis=2)
+    Dv_all = np.concatenate([-X, np.broadcast_to(np.where(np.isfinite(lo), lo, 0.0), (P, n))[..., None]], axis=2)
     # start: weighted least squares on a representative value of each sample
     yv = np.where(np.isfinite(ln_high), np.where(np.isfinite(ln_low), 0.5 * (ln_low + ln_high), ln_high), ln_low)
     sw = np.sqrt(w)
@@ -586,12 +604,10 @@ def fit_weighted_tobit(
     for _ in range(max_iter):
         a = active
         Xa, wa, th = X[a], w[a], theta[a]
-        ll, gu, gv, huu, hvv, huv, hi_f, lo_f, exact = _pieces(Xa, lo, hi, th, 2)
+        ll, gu, gv, huu, hvv, huv = _pieces(Xa, lo, hi, th, 2)
         tau = th[:, -1]
-        # derivatives of u and v w.r.t. theta: du = (-x, hi), dv = (-x, lo)
-        Du = np.concatenate([-Xa, np.broadcast_to(hi_f, Xa.shape[:2])[..., None]], axis=2)
-        Dv = np.concatenate([-Xa, np.broadcast_to(lo_f, Xa.shape[:2])[..., None]], axis=2)
-        wex = np.where(exact, wa, 0.0).sum(axis=1)
+        Du, Dv = Du_all[a], Dv_all[a]
+        wex = wa[:, exact].sum(axis=1)
         g = (Du.transpose(0, 2, 1) @ (wa * gu)[..., None] + Dv.transpose(0, 2, 1) @ (wa * gv)[..., None])[..., 0]
         g[:, -1] += wex / tau
         DuT, DvT = Du.transpose(0, 2, 1), Dv.transpose(0, 2, 1)
