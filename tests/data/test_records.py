@@ -63,7 +63,7 @@ def test_arkansas_series_is_the_log_concentration():
     np.testing.assert_allclose(s.lower[s.censored], np.log(rec.conc_high[rec.censored]))
     assert np.all(np.isneginf(s.lower[~s.censored])) and np.all(np.isposinf(s.upper))
     np.testing.assert_allclose(s.covariates["lnQ"], np.log(rec.q))
-    np.testing.assert_array_equal(s.dates, rec.date)
+    np.testing.assert_array_equal(s.times, rec.date)
     assert s.design("lnQ").shape == (254, 2)
 
 
@@ -98,16 +98,16 @@ def test_niagara_matches_its_provenance_note():
     s = load_niagara()
     assert s.steps == 144
     assert int(s.censored.sum()) == 21
-    assert str(s.dates[0]) == "2001-03-01" and str(s.dates[-1]) == "2007-03-22"
-    assert s.dates.dtype == np.dtype("datetime64[D]")
+    assert str(s.times[0]) == "2001-03-01" and str(s.times[-1]) == "2007-03-22"
+    assert s.times.dtype == np.dtype("datetime64[D]")
     assert set(s.lower.tolist()) == {0.214, 0.0878}
-    drop = s.dates[np.flatnonzero(s.lower == 0.0878)[0]]
-    assert np.all(s.lower[s.dates < drop] == 0.214) and np.all(s.lower[s.dates >= drop] == 0.0878)
+    drop = s.times[np.flatnonzero(s.lower == 0.0878)[0]]
+    assert np.all(s.lower[s.times < drop] == 0.214) and np.all(s.lower[s.times >= drop] == 0.0878)
     assert np.datetime64("2005-03-24") <= drop <= np.datetime64("2005-04-21")  # the change "from 2005-03-24"
-    assert int(s.censored[s.dates < drop].sum()) == 20
+    assert int(s.censored[s.times < drop].sum()) == 20
     np.testing.assert_array_equal(s.y[s.censored], s.lower[s.censored])  # a censored reading holds its limit
     assert np.all(s.y[~s.censored] > 0)
-    gaps = np.diff(s.dates).astype(int)
+    gaps = np.diff(s.times).astype(int)
     assert np.median(gaps) == 14
     lg = load_niagara(log=True)
     np.testing.assert_allclose(lg.y, np.log(s.y))

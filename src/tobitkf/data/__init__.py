@@ -67,8 +67,9 @@ class CensoredSeries:
         Time labels as recorded.
     description : str
         One line on what the series is.
-    dates : (T,) datetime64[D] ndarray or None
-        Calendar date of each reading, where the record has them.
+    times : (T,) ndarray of datetime64 or float, or None
+        When each reading was taken (``datetime64[D]`` calendar dates for the dated records), where the
+        record has them.
     """
 
     name: str
@@ -79,7 +80,7 @@ class CensoredSeries:
     covariates: dict[str, np.ndarray] = field(default_factory=dict)
     time: np.ndarray | None = None
     description: str = ""
-    dates: np.ndarray | None = None
+    times: np.ndarray | None = None
 
     @property
     def steps(self) -> int:
@@ -277,7 +278,7 @@ class SampleRecord:
             covariates={"lnQ": np.log(self.q)},
             time=self.date.astype(str),
             description=self.description,
-            dates=self.date.copy(),
+            times=self.date.copy(),
         )
 
 
@@ -442,7 +443,7 @@ def load_niagara(*, log: bool = False) -> CensoredSeries:
 
     144 readings about two weeks apart, 21 left-censored at the detection limit in force (``lower``:
     0.214 ng/L, then 0.0878 from the reading of 2005-04-07 on; the distribution's notes date the change
-    2005-03-24, the date of the last reading at 0.214); a censored reading holds its limit. ``dates`` are the
+    2005-03-24, the date of the last reading at 0.214); a censored reading holds its limit. ``times`` are the
     calendar dates (day 1 = 2001-03-01), ``time`` the recorded day numbers, covariate ``"day"`` the
     same as numbers. GPL >= 2. Provenance: :func:`provenance`.
 
@@ -455,7 +456,7 @@ def load_niagara(*, log: bool = False) -> CensoredSeries:
     --------
     >>> from tobitkf.data import load_niagara
     >>> d = load_niagara()
-    >>> d.steps, int(d.censored.sum()), sorted(set(d.lower.tolist())), str(d.dates[0])
+    >>> d.steps, int(d.censored.sum()), sorted(set(d.lower.tolist())), str(d.times[0])
     (144, 21, [0.0878, 0.214], '2001-03-01')
     """
     rows = _rows("niagara_dichlorobenzene.csv")
@@ -474,5 +475,5 @@ def load_niagara(*, log: bool = False) -> CensoredSeries:
         time=np.array([r["day"] for r in rows]),
         description="1,2-dichlorobenzene (" + ("log " if log else "") + "ng/L), Niagara River at Fort Erie "
         "(Environment Canada), about biweekly 2001-2007, left-censored at 0.214 then 0.0878 ng/L",
-        dates=np.datetime64("2001-03-01") + (day - 1).astype("timedelta64[D]"),
+        times=np.datetime64("2001-03-01") + (day - 1).astype("timedelta64[D]"),
     )
