@@ -447,11 +447,19 @@ class WRTDS:
         Returns
         -------
         WRTDSEstimate
+
+        Notes
+        -----
+        Each point gets its own local regression. EGRET's daily series (``estSurfaces`` and
+        ``estDailyFromSurfaces``) instead fits a grid in time and ln Q and interpolates it to each day,
+        which differs from this slightly.
         """
         q = as_float_array(np.atleast_1d(q), "q", ndim=1)
         if np.any(q <= 0):
             raise ValidationError("q: expected positive discharge at every estimation point")
         t0 = _as_dates_or_years(np.atleast_1d(time), "time")
+        if q.shape != t0.shape:
+            raise ShapeError(f"q: expected shape {t0.shape} like time, got {q.shape}")
         return self._estimate(t0, np.log(q), None)
 
     def cross_validate(self) -> WRTDSEstimate:
