@@ -89,6 +89,7 @@ from .inference import (
     load_fit,
     log_likelihood,
     smooth,
+    wrtds,
 )
 from .models import LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
@@ -174,6 +175,7 @@ __all__ = [
     "load_fit",
     "CensoredAR",
     "data",
+    "wrtds",
     "set_output_pool",
     "output_pool_limit",
     "__version__",

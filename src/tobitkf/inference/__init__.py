@@ -8,8 +8,12 @@
 - :func:`fit` with :class:`CensoredAR` (exact ML), a :class:`~tobitkf.LinearSystem` template (EM) or a map
   theta -> LinearSystem (direct); :class:`FitResult` (estimates, s.e., AIC/BIC, trace, forecasts,
   residuals, JSON), :func:`load_fit`, :func:`residual_diagnostics`.
+- :mod:`~tobitkf.inference.wrtds` -- WRTDS (weighted regressions on time, discharge and season, USGS
+  EGRET), the established baseline for sparse censored water-quality records, with its leave-one-out
+  cross-validation and predictive scores.
 """
 
+from . import wrtds
 from .adf import ADFilter
 from .censored_ar import CensoredAR, CensoredARData, exact_log_likelihood, posterior_moments
 from .fitting import FitResult, fit, load_fit, residual_diagnostics
@@ -34,4 +38,5 @@ __all__ = [
     "FitResult",
     "load_fit",
     "residual_diagnostics",
+    "wrtds",
 ]
