@@ -12,6 +12,7 @@ MODULES = [
     "tobitkf.inference.likelihood",
     "tobitkf.inference.censored_ar",
     "tobitkf.inference.fitting",
+    "tobitkf.inference.wrtds",
     "tobitkf.inference._results",
     "tobitkf.filters.smoothing",
     "tobitkf.filters.likelihood",
