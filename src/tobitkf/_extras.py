@@ -26,7 +26,15 @@ from typing import Any
 from urllib.parse import unquote, urlparse
 from urllib.request import url2pathname
 
-__all__ = ["EXTRAS", "MissingExtraError", "require", "extra_of", "missing_extra_message", "install_command"]
+__all__ = [
+    "EXTRAS",
+    "MissingExtraError",
+    "require",
+    "extra_of",
+    "missing_extra_message",
+    "install_command",
+    "install_folder",
+]
 
 #: what each extra provides (the import names of its packages) and what it is for
 EXTRAS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -109,6 +117,32 @@ def _local_folder(url: str) -> Path | None:
     return Path(url2pathname(unquote(parsed.path)))
 
 
+def _direct_url(dist: Any = None) -> dict[str, Any]:
+    """The installed distribution's ``direct_url.json`` (PEP 610) as a dict ({} when there is none).
+    ``dist`` defaults to ``importlib.metadata.distribution("tobitkf")``."""
+    if dist is None:
+        try:
+            dist = importlib.metadata.distribution("tobitkf")
+        except importlib.metadata.PackageNotFoundError:
+            return {}
+    try:
+        raw = dist.read_text("direct_url.json")
+        loaded = json.loads(raw) if raw else {}
+    except (OSError, ValueError):
+        return {}
+    return loaded if isinstance(loaded, dict) else {}
+
+
+def install_folder(dist: Any = None) -> Path | None:
+    """The local folder tobitkf was installed from (a clone: ``pip install .`` or ``-e .``), or None
+    (installed from an index, an archive or a URL, or not installed)."""
+    info = _direct_url(dist)
+    url = info.get("url")
+    if not isinstance(url, str) or not isinstance(info.get("dir_info"), dict):
+        return None
+    return _local_folder(url)
+
+
 def install_command(extra: str, dist: Any = None) -> str:
     """The command that installs ``extra`` for this installation of tobitkf.
 
@@ -125,19 +159,7 @@ def install_command(extra: str, dist: Any = None) -> str:
     A folder that no longer exists is still named (it says where the package came from), with a
     note that the user's clone is what to install from.
     """
-    if dist is None:
-        try:
-            dist = importlib.metadata.distribution("tobitkf")
-        except importlib.metadata.PackageNotFoundError:
-            dist = None
-    info: dict[str, Any] = {}
-    if dist is not None:
-        try:
-            raw = dist.read_text("direct_url.json")
-            loaded = json.loads(raw) if raw else {}
-            info = loaded if isinstance(loaded, dict) else {}
-        except (OSError, ValueError):
-            info = {}
+    info = _direct_url(dist)
     url = info.get("url")
     if not isinstance(url, str) or not url:
         return f"pip install {shlex.quote(f'tobitkf[{extra}]')}"
