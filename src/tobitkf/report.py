@@ -842,12 +842,14 @@ def _html_claims(e: ExperimentReport, links: _Links) -> list[str]:
         if c.needs_explanation:
             text = f"why {c.word}" if c.holds is False else "why n/a"
             cell += f'<br><a class="why" href="#{c.anchor}">{text} →</a>'
-        test = _e(c.test or "—") + (f'<span class="how">tolerance: {_e(c.tolerance)}</span>' if c.tolerance else "")
+        test = _el(c.test or "—", links) + (
+            f'<span class="how">tolerance: {_el(c.tolerance, links)}</span>' if c.tolerance else ""
+        )
         whose = "the source's" if c.origin == "source" else "this package's"
         out.append(
             f'<tr id="{c.anchor}-row" class="{_claim_classes(c)}"><td class="num">{c.number}</td>'
             f'<td>{_el(c.claim, links)}<span class="how">{whose}</span></td>'
-            f"<td>{_e(c.quantity or '—')}</td><td>{_el(c.measured, links)}</td><td>{test}</td><td>{cell}</td></tr>"
+            f"<td>{_el(c.quantity or '—', links)}</td><td>{_el(c.measured, links)}</td><td>{test}</td><td>{cell}</td></tr>"
         )
     out.append("</tbody></table></div>")
     for c in e.claims:
@@ -865,7 +867,9 @@ def _html_claims(e: ExperimentReport, links: _Links) -> list[str]:
                 f"<p><strong>Measured:</strong> {_e(c.measured) or '<span class=empty>nothing recorded</span>'}</p>"
             )
         if c.test:
-            out.append(f"<p><strong>Test:</strong> {_e(c.test)}; tolerance: {_e(c.tolerance or '—')}</p>")
+            out.append(
+                f"<p><strong>Test:</strong> {_el(c.test, links)}; tolerance: {_el(c.tolerance or '—', links)}</p>"
+            )
         if c.note:
             out.append(f"<p><strong>Note:</strong> {_el(c.note, links)}</p>")
         if c.explanation:
@@ -917,11 +921,13 @@ def _html_source_tables(e: ExperimentReport, links: _Links) -> list[str]:
     out = []
     for t in e.source_tables:
         out.append('<div class="scroll"><table class="source-table">')
-        out.append(f"<caption>{_e(t.title)}</caption>")
+        out.append(f"<caption>{_el(t.title, links)}</caption>")
         out.append("<thead><tr>" + "".join(f'<th scope="col">{_e(c)}</th>' for c in t.columns) + "</tr></thead><tbody>")
         for r in t.rows:
             out.append(
-                "<tr>" + "".join(f'<td class="{"num" if j else ""}">{_e(v)}</td>' for j, v in enumerate(r)) + "</tr>"
+                "<tr>"
+                + "".join(f'<td class="{"num" if j else ""}">{_el(v, links)}</td>' for j, v in enumerate(r))
+                + "</tr>"
             )
         out.append("</tbody></table></div>")
         if t.note:
@@ -946,7 +952,7 @@ def _html_experiment(e: ExperimentReport, links: _Links) -> list[str]:
             dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
             caption = e.captions.get(name, "")
             text = (
-                f'{_e(caption)} <span class="file">({_e(name)})</span>'
+                f'{_el(caption, links)} <span class="file">({_e(name)})</span>'
                 if caption
                 else f'<span class="file">{_e(name)}</span>'
             )
@@ -1159,7 +1165,7 @@ def render_markdown(
                 cap = e.captions.get(n, "")
                 out += [f"![{_md(e.id)}: {_md(cap or n)}]({quote(e.folder)}/{quote(n)})", ""]
                 if cap:
-                    out += [f"*{_md(cap)}* ({_md(n)})", ""]
+                    out += [f"*{_mdl(cap, links)}* ({_md(n)})", ""]
             out += ["#### Parameters", ""]
             if e.settings:
                 rows = [
@@ -1180,13 +1186,15 @@ def render_markdown(
                 for c in e.claims:
                     _, sym, _ = _VERDICT[c.holds]
                     verdict = f"{sym} {c.word}" + (f" (see note {c.number} below)" if c.needs_explanation else "")
-                    test = _md(c.test or "—") + (f" (tolerance: {_md(c.tolerance)})" if c.tolerance else "")
+                    test = _mdl(c.test or "—", links) + (
+                        f" (tolerance: {_mdl(c.tolerance, links)})" if c.tolerance else ""
+                    )
                     whose = "the source's" if c.origin == "source" else "this package's"
                     rows.append(
                         [
                             str(c.number),
                             f"{_mdl(c.claim, links)} ({whose})",
-                            _md(c.quantity or "—"),
+                            _mdl(c.quantity or "—", links),
                             _mdl(c.measured, links),
                             test,
                             verdict,
@@ -1222,10 +1230,10 @@ def render_markdown(
             if e.source_tables:
                 out += ["#### The source's tables and ours", ""]
                 for t in e.source_tables:
-                    out += [f"*{_md(t.title)}*", ""]
+                    out += [f"*{_mdl(t.title, links)}*", ""]
                     out += _md_table(
                         [_md(c) for c in t.columns],
-                        [[_md(v) for v in r] for r in t.rows],
+                        [[_mdl(v, links) for v in r] for r in t.rows],
                         right=set(range(1, len(t.columns))),
                     )
                     if t.note:
