@@ -3,7 +3,8 @@
 Three experiments, written the way ``cli.run_experiment`` writes them (``atomic_write_json``
 of numpy arrays, figures drawn with matplotlib): ``fake-alpha`` (top-level estimators,
 claims that hold, fail and are unchecked, a ``<script>`` claim, all three provenances),
-``fake-beta`` (estimators nested under ``scenarios``) and ``fake-gamma`` (same source as
+``fake-beta`` (estimators nested under ``scenarios``; alpha also has claims of the package itself:
+held, failed with a stated limitation citing deviation IDs, failed with no reason) and ``fake-gamma`` (same source as
 alpha, nothing but an id). ``build_fake_results`` returns what it wrote, so tests compare
 the report with the input rather than with the report's own output.
 """
@@ -19,6 +20,9 @@ from tobitkf._io import atomic_write_json
 SOURCE_A = "Alpha & Beta 2020, Ch. <1>"
 SOURCE_B = "Zeta 2019"
 SCRIPT_CLAIM = "<script>alert('x')</script> the TKF is unbiased"
+# deviation IDs in a package claim's explanation: three with an entry in docs/sources, one without
+LIMITATION = "a stated limitation of the option (MB-09 to MB-11, LD-E3); MA-99 has no entry"
+LINKED_IDS = ("MB-09", "MB-11", "LD-E3")
 CAPTION_A1 = "Fig 3.1: one run of the three filters on censored readings & their mean over runs"
 
 CLAIMS_ALPHA = [
@@ -55,6 +59,31 @@ CLAIMS_ALPHA = [
         "measured": "bias 0.2 | 4 s.e. = 0.01",
         "test": "|bias| <= tol",
         "tolerance": "0.01",
+        "holds": False,
+    },
+    {
+        "claim": "(not in the source) the ADF is within 1.02x of the optimum",
+        "quantity": "RMSE / optimum",
+        "measured": "1.004",
+        "test": "ratio <= 1.02",
+        "tolerance": "none beyond the target",
+        "holds": True,
+    },
+    {
+        "claim": "(not in the source) the total-variance TKF stays finite",
+        "quantity": "largest RMSE",
+        "measured": "RMSE 3e3",
+        "test": "finite and below 10",
+        "tolerance": "none",
+        "holds": False,
+        "explanation": LIMITATION,
+    },
+    {
+        "claim": "(not in the source) the fit converges",
+        "quantity": "optimiser status",
+        "measured": "not converged",
+        "test": "converged",
+        "tolerance": "none",
         "holds": False,
     },
 ]

@@ -18,11 +18,12 @@ import pytest
 from typer.testing import CliRunner
 
 import tobitkf as tk
-from tobitkf._extras import EXTRAS, MissingExtraError, extra_of, missing_extra_message, require
+from tobitkf._extras import EXTRAS, MissingExtraError, extra_of, install_command, missing_extra_message, require
 from tobitkf.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
-ERR = r"optional extra '{}' is needed.*pip install 'tobitkf\[{}\]'"
+# the install command names the folder of an install from a clone (the test venv's), else the index
+ERR = r"optional extra '{}' is needed.*pip install (-e )?'[^' ]*\[{}\]'"
 
 
 def block(monkeypatch, *modules: str) -> None:
@@ -74,7 +75,7 @@ def test_lmi_solver_missing_is_named_by_hinf_design(monkeypatch):
     from tobitkf.models.ross import wang2010_model
 
     block(monkeypatch, "clarabel")
-    with pytest.raises(MissingExtraError, match="clarabel is not installed.*tobitkf\\[lmi\\]"):
+    with pytest.raises(MissingExtraError, match="clarabel is not installed.*\\[lmi\\]'"):
         tk.hinf_design(wang2010_model())
 
 
@@ -106,7 +107,7 @@ def test_sweep_missing_is_named_by_the_command_line(monkeypatch, tmp_path):
         app, ["sweep", str(ROOT / "examples" / "sweeps" / "tkf_threshold.toml"), "--out", str(tmp_path)]
     )
     assert res.exit_code == 2
-    assert "tobitkf[sweep]" in res.output and "bug" not in res.output
+    assert install_command("sweep") in " ".join(res.output.split()) and "bug" not in res.output
     assert not list(tmp_path.iterdir())
 
 
@@ -131,12 +132,12 @@ def test_report_missing_is_named_by_reproduce_before_the_run(monkeypatch, tmp_pa
     block(monkeypatch, "matplotlib", "matplotlib.pyplot")
     res = CliRunner().invoke(app, ["reproduce", "miller-constant", "--runs", "2", "--out", str(tmp_path)])
     assert res.exit_code == 2
-    assert "tobitkf[report]" in res.output and "bug" not in res.output
+    assert install_command("report") in " ".join(res.output.split()) and "bug" not in res.output
 
 
 def test_an_unwrapped_import_of_an_extra_is_still_named_on_the_command_line():
     exc = ModuleNotFoundError("No module named 'control'", name="control")
-    assert "tobitkf[control]" in missing_extra_message(exc)
+    assert install_command("control") in missing_extra_message(exc)
     assert missing_extra_message(ModuleNotFoundError("x", name="not_an_extra_module")) is None
 
 
@@ -174,3 +175,57 @@ def test_version_has_one_source():
     assert tk.__version__ == __version__
     res = CliRunner().invoke(app, ["--version"])
     assert res.exit_code == 0 and res.output.strip() == f"tobitkf {__version__}"
+
+
+# --------------------------------------------------------------------------- the install command
+def _dist(tmp_path, direct_url: dict | str | None):
+    """An installed distribution of tobitkf in ``tmp_path`` with the given ``direct_url.json``."""
+    import importlib.metadata
+    import json
+
+    info = tmp_path / "site" / "tobitkf-9.9.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: tobitkf\nVersion: 9.9\n")
+    if direct_url is not None:
+        text = direct_url if isinstance(direct_url, str) else json.dumps(direct_url)
+        (info / "direct_url.json").write_text(text)
+    return importlib.metadata.Distribution.at(info)
+
+
+def test_install_command_names_the_clone_a_package_was_installed_from(tmp_path):
+    clone = tmp_path / "my clone"  # a space: the command must quote the path
+    clone.mkdir()
+    plain = _dist(tmp_path / "a", {"url": clone.as_uri(), "dir_info": {}})
+    assert install_command("plot", plain) == f"pip install '{clone}[plot]'"
+    editable = _dist(tmp_path / "b", {"url": clone.as_uri(), "dir_info": {"editable": True}})
+    assert install_command("lmi", editable) == f"pip install -e '{clone}[lmi]'"
+    # the command is one a shell splits into pip's arguments: the path with the extra, unsplit
+    import shlex
+
+    assert shlex.split(install_command("lmi", editable)) == ["pip", "install", "-e", f"{clone}[lmi]"]
+
+
+def test_install_command_for_an_index_a_vcs_url_and_a_vanished_folder(tmp_path):
+    assert install_command("plot", _dist(tmp_path / "a", None)) == "pip install 'tobitkf[plot]'"
+    assert install_command("plot", _dist(tmp_path / "b", "not json")) == "pip install 'tobitkf[plot]'"
+    vcs = _dist(tmp_path / "c", {"url": "https://example.org/x/tobitkf.git", "vcs_info": {"vcs": "git"}})
+    assert install_command("sweep", vcs) == "pip install 'tobitkf[sweep] @ git+https://example.org/x/tobitkf.git'"
+    gone = tmp_path / "deleted-clone"
+    cmd = install_command("plot", _dist(tmp_path / "d", {"url": gone.as_uri(), "dir_info": {}}))
+    assert cmd.startswith(f"pip install '{gone}[plot]'") and "clone" in cmd and "gone" in cmd
+
+
+def test_the_message_gives_the_command_for_this_installation(monkeypatch, tmp_path):
+    import tobitkf._extras as extras
+
+    clone = tmp_path / "clone"
+    clone.mkdir()
+    dist = _dist(tmp_path, {"url": clone.as_uri(), "dir_info": {}})
+    monkeypatch.setattr(extras.importlib.metadata, "distribution", lambda name: dist)
+    block(monkeypatch, "matplotlib", "matplotlib.pyplot")
+    with pytest.raises(MissingExtraError) as info:
+        require("matplotlib.pyplot", extra="plot")
+    assert f"pip install '{clone}[plot]'" in str(info.value) and f"pip install '{clone}[all]'" in str(info.value)
+    assert "'tobitkf[plot]'" not in str(info.value)
+    exc = ModuleNotFoundError("No module named 'zarr'", name="zarr")
+    assert f"pip install '{clone}[sweep]'" in (missing_extra_message(exc) or "")

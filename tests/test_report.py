@@ -25,6 +25,7 @@ _spec = importlib.util.spec_from_file_location("_report_fake", Path(__file__).wi
 fake = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(fake)
 
+ROOT = Path(__file__).resolve().parents[1]
 _VOID = {"meta", "img", "br", "hr", "link", "input", "source", "wbr"}
 
 
@@ -112,8 +113,11 @@ def _rows(table: Node) -> list[Node]:
     return [r for r in table.iter("tr") if r.parent.tag == "tbody"]
 
 
-def _verdict(holds) -> str:
-    return {True: "✓ held", False: "✗ not held", None: "n/a"}[holds]
+def _verdict(claim) -> str:
+    """The verdict's words: a source's claim is reproduced or not, the package's own held or failed."""
+    if claim["claim"].startswith("(not in the source)"):
+        return {True: "✓ held", False: "✗ failed", None: "n/a"}[claim["holds"]]
+    return {True: "✓ reproduced", False: "✗ not reproduced", None: "n/a"}[claim["holds"]]
 
 
 # ------------------------------------------------------------------ files and figures
@@ -168,11 +172,12 @@ def test_claims_table_lists_every_claim_with_symbol_and_word(report, exp_id):
     assert len(rows) == len(claims)
     for row, claim in zip(rows, claims):
         cells = [c for c in row.children if c.tag == "td"]
-        assert cells[1].text == claim["claim"]
+        whose = "this package's" if claim["claim"].startswith("(not in the source)") else "the source's"
+        assert cells[1].text == claim["claim"] + whose
         assert cells[2].text == claim["quantity"]
         assert cells[3].text == claim["measured"]
         assert claim["test"] in cells[4].text and claim["tolerance"] in cells[4].text
-        assert _verdict(claim["holds"]) in cells[5].text  # the word, not only a colour
+        assert _verdict(claim) in cells[5].text  # the word, not only a colour
         assert {True: "held", False: "failed", None: "na"}[claim["holds"]] in row.classes
 
 
@@ -187,7 +192,7 @@ def test_failed_claims_link_to_an_explanation(report):
     claims = report["written"]["fake-alpha"]["claims"]
     rows = _rows(next(t for t in dom.find_id("exp-fake-alpha").iter("table") if "claims" in t.classes))
     failed = [(r, c) for r, c in zip(rows, claims) if c["holds"] is False]
-    assert len(failed) == 2
+    assert len(failed) == 4  # two of the source's, two of the package's
     for row, claim in failed:
         links = [a.attrs["href"] for a in row.iter("a")]
         assert len(links) == 1 and links[0].startswith("#")
@@ -208,27 +213,101 @@ def test_held_claims_have_no_explanation_link(report):
     assert all(not list(r.iter("a")) for r in rows)
 
 
-def test_summary_counts_match_the_claims_written(report):
-    claims = [c for m in report["written"].values() for c in m.get("claims", [])]
-    expected = {
-        "experiments": len(report["written"]),
-        "claims held": sum(c["holds"] is True for c in claims),
-        "claims not held": sum(c["holds"] is False for c in claims),
-        "claims n/a (not measurable)": sum(c["holds"] is None for c in claims),
-    }
+def _cards(node) -> dict[str, int]:
     cards = {}
-    for card in report["dom"].iter("div"):
+    for card in node.iter("div"):
         if "card" in card.classes:
             number = next(card.iter("b")).text
-            label = card.text[len(number) :].strip(" ✓✗–")
-            cards[label] = int(number)
-    assert cards == expected
+            cards[card.text[len(number) :].strip(" ✓✗–")] = int(number)
+    return cards
+
+
+def test_summary_counts_the_sources_claims_apart_from_the_packages(report):
+    claims = [c for m in report["written"].values() for c in m.get("claims", [])]
+    ours = [c for c in claims if c["claim"].startswith("(not in the source)")]
+    theirs = [c for c in claims if not c["claim"].startswith("(not in the source)")]
+    assert ours and theirs
+    dom = report["dom"]
+
+    def count(cs, holds):
+        return sum(c["holds"] is holds for c in cs)
+
+    source = {
+        "reproduced": count(theirs, True),
+        "not reproduced": count(theirs, False),
+        "n/a (not measurable)": count(theirs, None),
+    }
+    package = {"held": count(ours, True), "failed": count(ours, False), "n/a (not measurable)": count(ours, None)}
+    assert _cards(dom.find_id("summary-source")) == source
+    assert _cards(dom.find_id("summary-package")) == package
+    # what a failure means is said next to the counts: a source's is a finding, the package's a defect or limitation
+    assert "a finding about the source, not a defect" in dom.find_id("summary-source").text
+    assert "defect of the package or a limitation" in dom.find_id("summary-package").text
+    # the source's claims that did not reproduce are not shown in the red of a defect
+    assert "bad" not in next(c for c in dom.find_id("summary-source").iter("div") if "finding" in c.classes).classes
     md_line = report["md_text"].splitlines()[2]
     assert md_line == (
-        f"Experiments: {expected['experiments']} · claims ✓ held: {expected['claims held']} · "
-        f"✗ not held: {expected['claims not held']} · – n/a (not measurable): "
-        f"{expected['claims n/a (not measurable)']}"
+        f"Experiments: {len(report['written'])} · the sources' claims: ✓ reproduced: {source['reproduced']} · "
+        f"✗ not reproduced: {source['not reproduced']} · – n/a (not measurable): {source['n/a (not measurable)']} · "
+        f"this package's claims: ✓ held: {package['held']} · ✗ failed: {package['failed']} · "
+        f"– n/a (not measurable): {package['n/a (not measurable)']}"
     )
+    md = report["md_text"]
+    assert md.index("## The sources' claims that did not reproduce") < md.index("## This package's claims that failed")
+
+
+def test_a_failure_of_the_package_without_a_reason_is_called_a_defect(report):
+    dom = report["dom"]
+    claims = report["written"]["fake-alpha"]["claims"]
+    no_reason = claims.index(next(c for c in claims if c["claim"] == "(not in the source) the fit converges")) + 1
+    explain = dom.find_id(f"exp-fake-alpha-claim-{no_reason}")
+    assert "fails" in explain.text and "no reason recorded" in explain.text and "defect" in explain.text
+    stated = claims.index(next(c for c in claims if c.get("explanation") == fake.LIMITATION)) + 1
+    assert "no reason recorded" not in dom.find_id(f"exp-fake-alpha-claim-{stated}").text
+    # a source's claim that did not reproduce is never called a defect
+    source_failed = dom.find_id("exp-fake-alpha-claim-2")
+    assert "is not reproduced" in source_failed.text and "defect" not in source_failed.text
+
+
+def test_deviation_ids_link_to_their_entries_in_docs_sources(report):
+    import tobitkf.report as rep
+
+    dom = report["dom"]
+    links = [a for a in dom.iter("a") if "dev" in a.classes]
+    assert sorted(a.text for a in links) == sorted(fake.LINKED_IDS)  # MA-99 has no entry: not linked
+    for a in links:
+        path, _, anchor = unquote(a.attrs["href"]).partition("#")
+        page = (report["root"] / path).resolve()
+        assert page.parent == ROOT / "docs" / "sources" and anchor == a.text.lower()
+        assert "{#" + anchor + "}" in page.read_text(encoding="utf-8")
+        assert rep.deviation_href(a.text).startswith("docs/sources/")
+    md_links = re.findall(r"\[([A-Z]{2}-[EF]?\d+)\]\(([^)]+)\)", report["md_text"])
+    assert sorted(i for i, _ in md_links) == sorted(fake.LINKED_IDS)
+    for dev_id, href in md_links:
+        path, _, anchor = unquote(href).partition("#")
+        assert (report["root"] / path).resolve() == ROOT / rep.deviation_href(dev_id).partition("#")[0]
+        assert anchor == dev_id.lower()
+    # without the docs on this machine, the link is the page's path in the repository
+    text = rep.render_markdown(*rep.collect_results(report["root"]))
+    assert "[LD-E3](docs/sources/li2018-delay.md#ld-e3)" in text
+
+
+def test_every_deviation_id_the_experiments_cite_has_an_entry_in_docs_sources():
+    import tobitkf.report as rep
+
+    anchors = set()
+    for page in (ROOT / "docs" / "sources").glob("*.md"):
+        anchors |= {(page.stem, a) for a in re.findall(r"\{#([a-z0-9-]+)\}", page.read_text(encoding="utf-8"))}
+    cited = set()
+    for path in (ROOT / "src" / "tobitkf").rglob("*.py"):
+        cited |= set(rep.deviation_ids(path.read_text(encoding="utf-8")))
+    assert len(cited) > 50
+    missing = []
+    for dev_id in sorted(cited):
+        page, _, anchor = rep.deviation_href(dev_id, base="").partition(".md#")
+        if (page, anchor) not in anchors:
+            missing.append(dev_id)
+    assert not missing, f"cited but with no entry in docs/sources: {missing}"
 
 
 # ------------------------------------------------------------------ escaping and self-containment
@@ -259,6 +338,8 @@ def test_html_is_self_contained_and_responsive(report):
         href = a.attrs["href"]
         if href.startswith("#"):
             assert dom.find_id(href[1:]) is not None, href
+        elif "dev" in a.classes:  # a deviation ID: its entry in the docs pages of this clone
+            assert (report["root"] / unquote(href).partition("#")[0]).is_file(), href
         else:
             assert (report["root"] / unquote(href)).is_file() and href.endswith(".png"), href
     ids = [n.attrs["id"] for n in dom.iter() if "id" in n.attrs]
@@ -280,7 +361,13 @@ def test_one_section_per_source_holding_its_experiments(report):
     assert got == want
     assert list(got) == sorted(want, key=str.lower)
     md_heads = [line[3:] for line in report["md_text"].splitlines() if line.startswith("## ")]
-    assert md_heads == ["Contents", "Alpha & Beta 2020, Ch. \\<1>", "Zeta 2019"]
+    assert md_heads == [
+        "The sources' claims that did not reproduce",
+        "This package's claims that failed",
+        "Contents",
+        "Alpha & Beta 2020, Ch. \\<1>",
+        "Zeta 2019",
+    ]
 
 
 def test_parameters_flag_values_the_source_does_not_state(report):
@@ -386,7 +473,7 @@ def test_claim_verdict_other_than_true_false_null_is_unchecked_and_reported(tmp_
 def test_empty_folder_gives_an_empty_report(tmp_path):
     index, md = write_report(tmp_path)
     assert "No results found" in index.read_text(encoding="utf-8")
-    assert "Experiments: 0 · claims ✓ held: 0" in md.read_text(encoding="utf-8")
+    assert "Experiments: 0 · the sources' claims: ✓ reproduced: 0" in md.read_text(encoding="utf-8")
 
 
 def test_rewriting_unchanged_results_changes_nothing(report):
@@ -473,4 +560,19 @@ def test_na_claims_say_why_they_cannot_be_measured(report):
     na = [i for i, c in enumerate(claims, start=1) if c["holds"] is None]
     target = dom.find_id(f"exp-fake-alpha-claim-{na[0]}")
     assert "cannot be measured" in target.text and "the figure has no axis scale" in target.text
-    assert "claims n/a (not measurable)" in dom.text and "unchecked" not in report["html"]
+    assert "n/a (not measurable)" in dom.text and "unchecked" not in report["html"]
+
+
+def test_whose_claim_it_is():
+    from tobitkf.experiments._claims import ClaimError, check_claim, claim_origin
+
+    assert claim_origin({"claim": "Fig 3.2: the TKF tracks the truth"}) == "source"
+    assert claim_origin({"claim": "(not in the source) the ADF is within 1.02x"}) == "package"
+    assert claim_origin({"claim": "  (Not in the source, which shows Fig 3.3 only) x"}) == "package"
+    assert claim_origin({"claim": "the PF converges"}, "tobitkf (not in the sources): particle filter") == "package"
+    assert claim_origin({"claim": "(not in the source) x", "origin": "source"}) == "source"  # explicit wins
+    assert claim_origin("not a dict") == "source"
+    base = {"claim": "c", "quantity": "q", "measured": "m", "test": "t", "tolerance": "tol", "holds": True}
+    assert check_claim({**base, "origin": "package"})["origin"] == "package"
+    with pytest.raises(ClaimError, match="origin must be one of"):
+        check_claim({**base, "origin": "ours"})

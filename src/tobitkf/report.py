@@ -4,15 +4,21 @@
 PNG figures. :func:`write_report` reads every such folder and writes
 
 * ``DIR/index.html``: one self-contained page (inline CSS, no scripts, no network),
-  readable on a phone. A summary at the top (experiments; claims held / not held /
-  n/a, i.e. not measurable; links), then one section per source and, in it, each
+  readable on a phone. A summary at the top keeps two kinds of claims apart: the
+  sources' claims (reproduced / not reproduced / n/a: a source's claim that our faithful
+  implementation does not reproduce is a finding about the source, not a defect) and this
+  package's own claims (held / failed / n/a: each failure is a defect or a limitation
+  stated with its reason; :func:`tobitkf.experiments._claims.claim_origin` tells them
+  apart), with links to each claim that did not hold; then one section per source and, in it, each
   experiment with its figures (each with its caption, linked to the full-size image),
   its parameters (those not stated by the source are flagged with the reason), the
   source's claims with their quantity, measured value, test and tolerance and the
   verdict as a symbol *and* a word, the tables the source prints next to ours, and the
   time-averaged RMSE of each estimator. A claim that does not hold links to an
   explanation: what was measured, the claim's ``note`` and its optional
-  ``explanation``; an n/a claim says why it cannot be measured.
+  ``explanation``; an n/a claim says why it cannot be measured. Every deviation ID (``MB-09``,
+  ``LD-E3``...) in a claim, note, parameter or table links to its entry in the project's
+  ``docs/sources/`` pages (:func:`deviation_href`).
 * ``DIR/REPORT.md``: the same tables in Markdown, for terminals and diffs.
 
 Both files are written atomically and hold no time stamp, so rerunning the report on
@@ -22,7 +28,7 @@ or a missing figure is listed under "Problems" instead of stopping the report.
 Fields read from ``metrics.json`` (all optional but ``id``): ``id``, ``title``,
 ``source``, ``runs``, ``seed``, ``package_version``, ``elapsed_seconds``,
 ``settings`` (``{name: {value, provenance, note}}``), ``claims`` (``[{claim, quantity?,
-measured, test?, tolerance?, holds, note?, explanation?, not_measurable?}]``, the claims
+measured, test?, tolerance?, holds, note?, explanation?, not_measurable?, origin?}]``, the claims
 rule of :mod:`tobitkf.experiments._claims`), ``figures`` (file names in the folder),
 ``figure_captions`` (``{file name: caption}``), ``report_tables`` (``[{title, columns,
 rows, note?}]``) and every ``estimators`` block anywhere in the remaining metrics
@@ -46,6 +52,7 @@ from urllib.parse import quote
 
 from ._io import atomic_write_text
 from ._validation import ValidationError
+from .experiments._claims import claim_origin
 
 __all__ = [
     "write_report",
@@ -54,6 +61,9 @@ __all__ = [
     "render_markdown",
     "ExperimentReport",
     "check_report_targets",
+    "DEVIATION_PAGES",
+    "deviation_href",
+    "deviation_ids",
 ]
 
 # Every report carries a marker so that a rerun replaces only files tobitkf wrote
@@ -93,6 +103,93 @@ _RMSE_DEFINITION = (
 )
 _VALUE_LIMIT = 240  # characters of a parameter value shown before "…"
 _VERDICT = {True: ("held", "✓", "held"), False: ("failed", "✗", "not held"), None: ("na", "–", "n/a")}
+# the words of a verdict by whose claim it is: a source's claim is reproduced or not, the package's held or failed
+_WORDS = {
+    "source": {True: "reproduced", False: "not reproduced", None: "n/a"},
+    "package": {True: "held", False: "failed", None: "n/a"},
+}
+_ORIGIN_TITLE = {"source": "The sources' claims", "package": "This package's claims"}
+_ORIGIN_MEANING = {
+    "source": (
+        "What each source claims about its own examples, tested on our faithful implementation of it. A claim "
+        "that does not reproduce is a finding about the source, not a defect of this package: its explanation "
+        "says what we measured and why, and the source's page in docs/sources/ lists the source's known errors."
+    ),
+    "package": (
+        'What this package claims about its own estimators and tools (marked "not in the source"). Each '
+        "failure is a defect of the package or a limitation stated with its reason."
+    ),
+}
+_NO_REASON = "no reason recorded: a failure of this package without a stated limitation is a defect"
+
+#: the ``docs/sources/`` page of each deviation-ID prefix (``MB-09`` -> ``miller2015-ch5-7.md#mb-09``)
+DEVIATION_PAGES = {
+    "MA": "miller2015-ch1-4",
+    "MB": "miller2015-ch5-7",
+    "GF": "geng2017-fading",
+    "GP": "geng-protocol",
+    "LD": "li2018-delay",
+    "WH": "wang-hinf",
+}
+_DEVIATION_ID = re.compile(r"\b(" + "|".join(DEVIATION_PAGES) + r")-([EF]?\d{1,3})\b")
+_DOCS_SOURCES = "docs/sources/"  # the pages' path in the repository
+
+
+def deviation_ids(text: str) -> list[str]:
+    """Every deviation ID (``MA-09``, ``LD-E3``, ``WH-F1``...) in ``text``, in order."""
+    return [m.group(0) for m in _DEVIATION_ID.finditer(text)]
+
+
+def deviation_href(dev_id: str, base: str = _DOCS_SOURCES) -> str:
+    """The link to a deviation's entry: ``base + page + ".md#" + anchor`` (the pages write
+    ``{#mb-09}`` after each heading), e.g. ``docs/sources/miller2015-ch5-7.md#mb-09``."""
+    prefix, _, _ = dev_id.partition("-")
+    return f"{base}{DEVIATION_PAGES[prefix]}.md#{dev_id.lower()}"
+
+
+def _docs_sources_dir() -> Path | None:
+    """The project's ``docs/sources`` folder when tobitkf runs from a clone (the source tree, or the
+    folder it was installed from), else None."""
+    from ._extras import install_folder
+
+    candidates = [Path(__file__).resolve().parents[2]]
+    folder = install_folder()
+    if folder is not None:
+        candidates.append(folder)
+    for root in candidates:
+        if (root / "docs" / "sources" / "index.md").is_file():
+            return root / "docs" / "sources"
+    return None
+
+
+@dataclass(frozen=True)
+class _Links:
+    """How deviation IDs become links: ``base`` is the path from the report's folder to the
+    ``docs/sources/`` pages; ``anchors`` the IDs those pages hold (None: not checked, every ID links)."""
+
+    base: str = _DOCS_SOURCES
+    anchors: frozenset[str] | None = None
+
+    def href(self, dev_id: str) -> str | None:
+        if self.anchors is not None and dev_id.lower() not in self.anchors:
+            return None
+        return deviation_href(dev_id, self.base)
+
+
+def _links_for(results_dir: Path) -> _Links:
+    """Links that work from ``results_dir`` when the docs pages are on this machine (a relative path to
+    them, only to anchors that exist); else the pages' path in the repository."""
+    docs = _docs_sources_dir()
+    if docs is None:
+        return _Links()
+    anchors = set()
+    for page in docs.glob("*.md"):
+        anchors.update(re.findall(r"\{#([a-z0-9-]+)\}", page.read_text(encoding="utf-8")))
+    try:
+        base = Path(os.path.relpath(docs, results_dir.resolve())).as_posix() + "/"
+    except ValueError:  # another drive (Windows)
+        base = docs.as_uri() + "/"
+    return _Links(base=base, anchors=frozenset(anchors))
 
 
 @dataclass(frozen=True)
@@ -124,6 +221,12 @@ class Claim:
     test: str = ""
     tolerance: str = ""
     not_measurable: str = ""
+    origin: str = "source"
+
+    @property
+    def word(self) -> str:
+        """The verdict in words: reproduced / not reproduced (a source's), held / failed (the package's), n/a."""
+        return _WORDS[self.origin][self.holds]
 
     @property
     def needs_explanation(self) -> bool:
@@ -191,8 +294,9 @@ class ExperimentReport:
     captions: dict[str, str] = field(default_factory=dict)
     source_tables: list[SourceTable] = field(default_factory=list)
 
-    def count(self, holds: bool | None) -> int:
-        return sum(1 for c in self.claims if c.holds is holds)
+    def count(self, holds: bool | None, origin: str | None = None) -> int:
+        """Claims with this verdict (of this origin, ``"source"`` or ``"package"``; None: both)."""
+        return sum(1 for c in self.claims if c.holds is holds and (origin is None or c.origin == origin))
 
 
 # --------------------------------------------------------------------------- reading
@@ -347,6 +451,7 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
                 test=_text(c.get("test")),
                 tolerance=_text(c.get("tolerance")),
                 not_measurable=_text(c.get("not_measurable")),
+                origin=claim_origin(c, _text(metrics.get("source"))),
             )
         )
 
@@ -535,11 +640,11 @@ def _by_source(experiments: list[ExperimentReport]) -> list[tuple[str, str, list
     return [(src, _slug(src, taken, "src-"), exps) for src, exps in groups.items()]
 
 
-def _totals(experiments: list[ExperimentReport]) -> tuple[int, int, int]:
+def _totals(experiments: list[ExperimentReport], origin: str | None = None) -> tuple[int, int, int]:
     return (
-        sum(e.count(True) for e in experiments),
-        sum(e.count(False) for e in experiments),
-        sum(e.count(None) for e in experiments),
+        sum(e.count(True, origin) for e in experiments),
+        sum(e.count(False, origin) for e in experiments),
+        sum(e.count(None, origin) for e in experiments),
     )
 
 
@@ -582,6 +687,8 @@ padding:.05em .3em;border-radius:4px}
 .card.ok{background:var(--okbg);border-color:#b5dfc2;color:var(--ok)}
 .card.bad{background:var(--badbg);border-color:#f3b9b9;color:var(--bad)}
 .card.na{background:var(--nabg);color:var(--na)}
+.card.finding{background:var(--warnbg);border-color:#f0d48a;color:var(--warn)}
+.group{margin:14px 0 4px}.group h3{margin:0 0 .2em}.group p{margin:0 0 .4em;color:var(--muted);font-size:.9rem}
 .toc{padding-left:1.2em}.toc li{margin:.2em 0}.toc ul{padding-left:1.1em}
 .exp{border:1px solid var(--line);border-radius:12px;padding:16px 16px 8px;margin:18px 0;background:var(--bg)}
 .meta{color:var(--muted);font-size:.88rem;margin:0 0 .6em}
@@ -606,11 +713,14 @@ tr.flagged,tr.flagged td{background:var(--warnbg)}
 tr.flagged>:first-child{box-shadow:inset 4px 0 0 #e0a800}
 tr.failed,tr.failed td{background:var(--badbg)}
 tr.failed>:first-child{box-shadow:inset 4px 0 0 var(--bad)}
+tr.failed.finding,tr.failed.finding td{background:var(--warnbg)}
+tr.failed.finding>:first-child{box-shadow:inset 4px 0 0 #e0a800}
 .badge{display:inline-block;white-space:nowrap;border-radius:999px;padding:1px 9px;font-size:.82rem;font-weight:600;
 border:1px solid transparent}
 .badge.held{background:var(--okbg);color:var(--ok);border-color:#b5dfc2}
 .badge.failed{background:var(--badbg);color:var(--bad);border-color:#f3b9b9}
 .badge.na{background:var(--nabg);color:var(--na);border-color:#d3d8df}
+.badge.failed.finding{background:var(--warnbg);color:var(--warn);border-color:#f0d48a}
 .badge.source{color:var(--muted);font-weight:400;padding-left:0}
 .badge.reconstructed,.badge.default,.badge.unspecified{background:var(--warnbg);color:var(--warn);
 border-color:#f0d48a}
@@ -618,6 +728,7 @@ border-color:#f0d48a}
 .explain{border-left:4px solid var(--bad);background:var(--badbg);border-radius:0 8px 8px 0;padding:8px 12px;
 margin:8px 0}
 .explain.na{border-left-color:#9aa3ad;background:var(--nabg)}
+.explain.finding{border-left-color:#e0a800;background:var(--warnbg)}
 .how{display:block;color:var(--muted);font-size:.85rem;margin-top:2px}
 .explain p{margin:.25em 0}
 .counts{font-size:.85rem;color:var(--muted);white-space:nowrap}
@@ -646,16 +757,48 @@ def _e(s: Any) -> str:
     return html.escape(str(s), quote=True)
 
 
-def _badge(holds: bool | None) -> str:
-    cls, sym, word = _VERDICT[holds]
-    return f'<span class="badge {cls}"><span aria-hidden="true">{sym}</span> {word}</span>'
+def _el(s: Any, links: _Links) -> str:
+    """Escaped text with every deviation ID linked to its ``docs/sources/`` entry."""
+
+    def link(m: re.Match) -> str:
+        href = links.href(m.group(0))
+        return m.group(0) if href is None else f'<a class="dev" href="{_e(href)}">{m.group(0)}</a>'
+
+    return _DEVIATION_ID.sub(link, _e(s))
+
+
+def _claim_classes(c: Claim) -> str:
+    cls = _VERDICT[c.holds][0]
+    return f"{cls} finding" if c.holds is False and c.origin == "source" else cls
+
+
+def _badge(c: Claim) -> str:
+    _, sym, _ = _VERDICT[c.holds]
+    return f'<span class="badge {_claim_classes(c)}"><span aria-hidden="true">{sym}</span> {c.word}</span>'
+
+
+def _counts_text(e: ExperimentReport, sep: str = " · ") -> list[tuple[str, str]]:
+    """Per origin with claims: (title, "a ✓ reproduced · b ✗ not reproduced · c n/a")."""
+    out = []
+    for origin in ("source", "package"):
+        if any(c.origin == origin for c in e.claims):
+            words = _WORDS[origin]
+            text = sep.join(
+                f"{e.count(h, origin)} {sym} {words[h]}".replace(" – ", " ")
+                for h, sym in ((True, "✓"), (False, "✗"), (None, "–"))
+            )
+            out.append(("the source's" if origin == "source" else "this package's", text))
+    return out
 
 
 def _html_counts(e: ExperimentReport) -> str:
-    return f'<span class="counts">{e.count(True)} ✓ held · {e.count(False)} ✗ not held · {e.count(None)} n/a</span>'
+    parts = _counts_text(e)
+    if not parts:
+        return '<span class="counts">none</span>'
+    return "; ".join(f'<span class="counts">{_e(who)}: {_e(text)}</span>' for who, text in parts)
 
 
-def _html_settings(e: ExperimentReport) -> list[str]:
+def _html_settings(e: ExperimentReport, links: _Links) -> list[str]:
     if not e.settings:
         return ['<p class="empty">No parameters recorded.</p>']
     out = [
@@ -670,7 +813,7 @@ def _html_settings(e: ExperimentReport) -> list[str]:
         if s.flagged and not s.note:
             note = '<span class="empty">no reason given</span>'
         else:
-            note = _e(s.note)
+            note = _el(s.note, links)
         out.append(
             f'<tr{cls}><th scope="row"><code>{_e(s.name)}</code></th><td class="val">{_e(s.value)}</td>'
             f"<td>{badge}</td><td>{note}</td></tr>"
@@ -679,33 +822,44 @@ def _html_settings(e: ExperimentReport) -> list[str]:
     return out
 
 
-def _html_claims(e: ExperimentReport) -> list[str]:
+def _explain_head(c: Claim) -> str:
+    if c.holds is None:
+        return "cannot be measured"
+    return "(the source's) is not reproduced" if c.origin == "source" else "(this package's) fails"
+
+
+def _html_claims(e: ExperimentReport, links: _Links) -> list[str]:
     if not e.claims:
         return ['<p class="empty">No claims recorded.</p>']
     out = [
         '<div class="scroll"><table class="claims">',
-        '<thead><tr><th scope="col" class="num">#</th><th scope="col">claim (source)</th>'
+        '<thead><tr><th scope="col" class="num">#</th><th scope="col">claim (whose)</th>'
         '<th scope="col">quantity</th><th scope="col">measured</th><th scope="col">test (tolerance)</th>'
-        '<th scope="col">holds</th></tr></thead><tbody>',
+        '<th scope="col">verdict</th></tr></thead><tbody>',
     ]
     for c in e.claims:
-        cls = _VERDICT[c.holds][0]
-        cell = _badge(c.holds)
+        cell = _badge(c)
         if c.needs_explanation:
-            text = "why it does not hold" if c.holds is False else "why n/a"
+            text = f"why {c.word}" if c.holds is False else "why n/a"
             cell += f'<br><a class="why" href="#{c.anchor}">{text} →</a>'
-        test = _e(c.test or "—") + (f'<span class="how">tolerance: {_e(c.tolerance)}</span>' if c.tolerance else "")
+        test = _el(c.test or "—", links) + (
+            f'<span class="how">tolerance: {_el(c.tolerance, links)}</span>' if c.tolerance else ""
+        )
+        whose = "the source's" if c.origin == "source" else "this package's"
         out.append(
-            f'<tr id="{c.anchor}-row" class="{cls}"><td class="num">{c.number}</td><td>{_e(c.claim)}</td>'
-            f"<td>{_e(c.quantity or '—')}</td><td>{_e(c.measured)}</td><td>{test}</td><td>{cell}</td></tr>"
+            f'<tr id="{c.anchor}-row" class="{_claim_classes(c)}"><td class="num">{c.number}</td>'
+            f'<td>{_el(c.claim, links)}<span class="how">{whose}</span></td>'
+            f"<td>{_el(c.quantity or '—', links)}</td><td>{_el(c.measured, links)}</td><td>{test}</td><td>{cell}</td></tr>"
         )
     out.append("</tbody></table></div>")
     for c in e.claims:
         if not c.needs_explanation:
             continue
-        cls = "explain" if c.holds is False else "explain na"
-        head = "does not hold" if c.holds is False else "cannot be measured"
-        out.append(f'<div class="{cls}" id="{c.anchor}"><p><strong>Claim {c.number} {head}:</strong> {_e(c.claim)}</p>')
+        cls = "explain na" if c.holds is None else ("explain finding" if c.origin == "source" else "explain")
+        out.append(
+            f'<div class="{cls}" id="{c.anchor}"><p><strong>Claim {c.number} {_explain_head(c)}:</strong> '
+            f"{_el(c.claim, links)}</p>"
+        )
         if c.holds is None and c.not_measurable:
             out.append(f"<p><strong>Why n/a:</strong> {_e(c.not_measurable)}</p>")
         else:
@@ -713,11 +867,15 @@ def _html_claims(e: ExperimentReport) -> list[str]:
                 f"<p><strong>Measured:</strong> {_e(c.measured) or '<span class=empty>nothing recorded</span>'}</p>"
             )
         if c.test:
-            out.append(f"<p><strong>Test:</strong> {_e(c.test)}; tolerance: {_e(c.tolerance or '—')}</p>")
+            out.append(
+                f"<p><strong>Test:</strong> {_el(c.test, links)}; tolerance: {_el(c.tolerance or '—', links)}</p>"
+            )
         if c.note:
-            out.append(f"<p><strong>Note:</strong> {_e(c.note)}</p>")
+            out.append(f"<p><strong>Note:</strong> {_el(c.note, links)}</p>")
         if c.explanation:
-            out.append(f"<p><strong>Explanation:</strong> {_e(c.explanation)}</p>")
+            out.append(f"<p><strong>Explanation:</strong> {_el(c.explanation, links)}</p>")
+        if c.holds is False and c.origin == "package" and not (c.note or c.explanation):
+            out.append(f'<p><strong>Reason:</strong> <span class="empty">{_e(_NO_REASON)}</span></p>')
         out.append(f'<p><a href="#{c.anchor}-row">↑ back to the claims table</a></p></div>')
     return out
 
@@ -759,23 +917,25 @@ def _html_rmse(e: ExperimentReport) -> list[str]:
     return out
 
 
-def _html_source_tables(e: ExperimentReport) -> list[str]:
+def _html_source_tables(e: ExperimentReport, links: _Links) -> list[str]:
     out = []
     for t in e.source_tables:
         out.append('<div class="scroll"><table class="source-table">')
-        out.append(f"<caption>{_e(t.title)}</caption>")
+        out.append(f"<caption>{_el(t.title, links)}</caption>")
         out.append("<thead><tr>" + "".join(f'<th scope="col">{_e(c)}</th>' for c in t.columns) + "</tr></thead><tbody>")
         for r in t.rows:
             out.append(
-                "<tr>" + "".join(f'<td class="{"num" if j else ""}">{_e(v)}</td>' for j, v in enumerate(r)) + "</tr>"
+                "<tr>"
+                + "".join(f'<td class="{"num" if j else ""}">{_el(v, links)}</td>' for j, v in enumerate(r))
+                + "</tr>"
             )
         out.append("</tbody></table></div>")
         if t.note:
-            out.append(f'<p class="meta">{_e(t.note)}</p>')
+            out.append(f'<p class="meta">{_el(t.note, links)}</p>')
     return out
 
 
-def _html_experiment(e: ExperimentReport) -> list[str]:
+def _html_experiment(e: ExperimentReport, links: _Links) -> list[str]:
     out = [
         f'<section class="exp" id="{e.anchor}" aria-labelledby="{e.anchor}-h">',
         f'<h3 id="{e.anchor}-h"><code>{_e(e.id)}</code>{" — " + _e(e.title) if e.title else ""}</h3>',
@@ -792,7 +952,7 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
             dims = f' width="{size[0]}" height="{size[1]}"' if size else ""
             caption = e.captions.get(name, "")
             text = (
-                f'{_e(caption)} <span class="file">({_e(name)})</span>'
+                f'{_el(caption, links)} <span class="file">({_e(name)})</span>'
                 if caption
                 else f'<span class="file">{_e(name)}</span>'
             )
@@ -805,12 +965,12 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
     else:
         out.append('<p class="empty">No figures.</p>')
     out.append("<h4>Parameters</h4>")
-    out.extend(_html_settings(e))
+    out.extend(_html_settings(e, links))
     out.append("<h4>Claims</h4>")
-    out.extend(_html_claims(e))
+    out.extend(_html_claims(e, links))
     if e.source_tables:
         out.append("<h4>The source's tables and ours</h4>")
-        out.extend(_html_source_tables(e))
+        out.extend(_html_source_tables(e, links))
     out.append("<h4>Time-averaged RMSE per estimator</h4>")
     out.append(f'<p class="meta">{_e(_RMSE_DEFINITION)}</p>')
     out.extend(_html_rmse(e))
@@ -818,9 +978,16 @@ def _html_experiment(e: ExperimentReport) -> list[str]:
     return out
 
 
-def render_html(experiments: list[ExperimentReport], problems: list[str], *, title: str = "tobitkf results") -> str:
-    """The whole ``index.html`` page as a string (self-contained, no scripts)."""
-    held, failed, na = _totals(experiments)
+def render_html(
+    experiments: list[ExperimentReport],
+    problems: list[str],
+    *,
+    title: str = "tobitkf results",
+    links: _Links | None = None,
+) -> str:
+    """The whole ``index.html`` page as a string (self-contained, no scripts). ``links``: how deviation
+    IDs link to ``docs/sources/`` (default: the pages' path in the repository)."""
+    links = links or _Links()
     groups = _by_source(experiments)
     out = [
         "<!DOCTYPE html>",
@@ -838,28 +1005,44 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
         '<p class="lead">The sources\' numerical examples as reproduced by <code>tobitkf reproduce</code>: '
         "figures, parameters (⚑ marks values the source does not state), the source's claims with what "
         "we measured, the test and its tolerance, the source's tables next to ours, and the time-averaged "
-        "RMSE of each estimator. A claim is held or not held when it can be measured; n/a marks what "
-        "cannot be measured. Our deviations from each source are listed, with their IDs, in the "
-        "project's <code>docs/sources/</code> pages.</p>",
+        "RMSE of each estimator. A measured claim is held or not; n/a marks what cannot be measured. Our "
+        "deviations from each source are listed, with their IDs (linked), in the project's "
+        "<code>docs/sources/</code> pages.</p>",
         '<div class="cards">',
         f'<div class="card"><b>{len(experiments)}</b>experiments</div>',
-        f'<div class="card ok"><b>{held}</b>✓ claims held</div>',
-        f'<div class="card bad"><b>{failed}</b>✗ claims not held</div>',
-        f'<div class="card na"><b>{na}</b>– claims n/a (not measurable)</div>',
         "</div>",
     ]
+    for origin in ("source", "package"):
+        held, failed, na = _totals(experiments, origin)
+        words = _WORDS[origin]
+        bad = "finding" if origin == "source" else "bad"
+        out += [
+            f'<div class="group" id="summary-{origin}"><h3>{_e(_ORIGIN_TITLE[origin])}</h3>',
+            f"<p>{_e(_ORIGIN_MEANING[origin])}</p>",
+            '<div class="cards">',
+            f'<div class="card ok"><b>{held}</b>✓ {words[True]}</div>',
+            f'<div class="card {bad}"><b>{failed}</b>✗ {words[False]}</div>',
+            f'<div class="card na"><b>{na}</b>– n/a (not measurable)</div>',
+            "</div></div>",
+        ]
     if problems:
         out.append('<h2 id="problems">Problems</h2><ul class="problems">')
         out.extend(f"<li>{_e(p)}</li>" for p in problems)
         out.append("</ul>")
-    if failed:
-        out.append('<h2 id="not-held">Claims not held</h2><ul class="toc">')
-        for e in experiments:
-            for c in e.claims:
-                if c.holds is False:
-                    out.append(
-                        f'<li><a href="#{c.anchor}"><code>{_e(e.id)}</code> claim {c.number}</a>: {_e(c.claim)}</li>'
-                    )
+    for origin, anchor, heading in (
+        ("source", "not-reproduced", "The sources' claims that did not reproduce"),
+        ("package", "failed", "This package's claims that failed"),
+    ):
+        failing = [(e, c) for e in experiments for c in e.claims if c.holds is False and c.origin == origin]
+        if not failing:
+            continue
+        out.append(f'<h2 id="{anchor}">{_e(heading)}</h2><ul class="toc">')
+        for e, c in failing:
+            reason = "" if origin == "source" or c.note or c.explanation else f" <em>({_e(_NO_REASON)})</em>"
+            out.append(
+                f'<li><a href="#{c.anchor}"><code>{_e(e.id)}</code> claim {c.number}</a>: {_el(c.claim, links)}'
+                f"{reason}</li>"
+            )
         out.append("</ul>")
     out.append('<h2 id="contents">Contents</h2>')
     if not experiments:
@@ -874,7 +1057,7 @@ def render_html(experiments: list[ExperimentReport], problems: list[str], *, tit
     for src, anchor, exps in groups:
         out.append(f'<section id="{anchor}" class="source"><h2>{_e(src)}</h2>')
         for e in exps:
-            out.extend(_html_experiment(e))
+            out.extend(_html_experiment(e, links))
         out.append("</section>")
     out += ["</main>", "</body>", "</html>", ""]
     return "\n".join(out)
@@ -897,6 +1080,16 @@ def _md(s: Any) -> str:
     )
 
 
+def _mdl(s: Any, links: _Links) -> str:
+    """:func:`_md` with every deviation ID linked to its ``docs/sources/`` entry."""
+
+    def link(m: re.Match) -> str:
+        href = links.href(m.group(0))
+        return m.group(0) if href is None else f"[{m.group(0)}]({quote(href, safe='/#:.-_~')})"
+
+    return _DEVIATION_ID.sub(link, _md(s))
+
+
 def _md_table(head: list[str], rows: list[list[str]], right: AbstractSet[int] = frozenset()) -> list[str]:
     align = ["---:" if i in right else "---" for i in range(len(head))]
     out = ["| " + " | ".join(head) + " |", "| " + " | ".join(align) + " |"]
@@ -904,27 +1097,61 @@ def _md_table(head: list[str], rows: list[list[str]], right: AbstractSet[int] = 
     return out + [""]
 
 
-def render_markdown(experiments: list[ExperimentReport], problems: list[str], *, title: str = "tobitkf results") -> str:
-    """``REPORT.md``: the same tables as the HTML page, in Markdown."""
-    held, failed, na = _totals(experiments)
+def _md_summary_line(experiments: list[ExperimentReport]) -> str:
+    parts = [f"Experiments: {len(experiments)}"]
+    for origin in ("source", "package"):
+        held, failed, na = _totals(experiments, origin)
+        words = _WORDS[origin]
+        parts.append(
+            f"{_ORIGIN_TITLE[origin].lower()}: ✓ {words[True]}: {held} · ✗ {words[False]}: {failed} · "
+            f"– n/a (not measurable): {na}"
+        )
+    return " · ".join(parts)
+
+
+def render_markdown(
+    experiments: list[ExperimentReport],
+    problems: list[str],
+    *,
+    title: str = "tobitkf results",
+    links: _Links | None = None,
+) -> str:
+    """``REPORT.md``: the same tables as the HTML page, in Markdown (``links`` as :func:`render_html`)."""
+    links = links or _Links()
     out = [
         f"# {_md(title)}",
         "",
-        f"Experiments: {len(experiments)} · claims ✓ held: {held} · ✗ not held: {failed} · "
-        f"– n/a (not measurable): {na}",
+        _md_summary_line(experiments),
         "",
         "Each claim states its quantity, its test and its tolerance (three Monte Carlo standard errors for a "
-        "random quantity). Our deviations from each source are listed, with their IDs, in `docs/sources/`.",
+        "random quantity). Our deviations from each source are listed, with their IDs (linked), in "
+        "`docs/sources/`.",
         "",
     ]
+    for origin in ("source", "package"):
+        out += [f"- **{_ORIGIN_TITLE[origin]}.** {_md(_ORIGIN_MEANING[origin])}"]
+    out.append("")
     if problems:
         out += ["## Problems", ""] + [f"- {_md(p)}" for p in problems] + [""]
+    for origin, heading in (
+        ("source", "The sources' claims that did not reproduce"),
+        ("package", "This package's claims that failed"),
+    ):
+        failing = [(e, c) for e in experiments for c in e.claims if c.holds is False and c.origin == origin]
+        if failing:
+            out += [f"## {heading}", ""]
+            for e, c in failing:
+                reason = "" if origin == "source" or c.note or c.explanation else f" *({_md(_NO_REASON)})*"
+                out.append(f"- `{_md(e.id)}` claim {c.number}: {_mdl(c.claim, links)}{reason}")
+            out.append("")
     groups = _by_source(experiments)
     out += ["## Contents", ""]
     for src, _, exps in groups:
         out.append(f"- {_md(src)}")
         out.extend(
-            f"  - `{_md(e.id)}` {_md(e.title)} ({e.count(True)} ✓, {e.count(False)} ✗, {e.count(None)} n/a)"
+            f"  - `{_md(e.id)}` {_md(e.title)} ("
+            + ("; ".join(f"{who}: {text}" for who, text in _counts_text(e, sep=", ")) or "no claims")
+            + ")"
             for e in exps
         )
     out.append("")
@@ -938,7 +1165,7 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                 cap = e.captions.get(n, "")
                 out += [f"![{_md(e.id)}: {_md(cap or n)}]({quote(e.folder)}/{quote(n)})", ""]
                 if cap:
-                    out += [f"*{_md(cap)}* ({_md(n)})", ""]
+                    out += [f"*{_mdl(cap, links)}* ({_md(n)})", ""]
             out += ["#### Parameters", ""]
             if e.settings:
                 rows = [
@@ -946,7 +1173,7 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
                         f"`{_md(s.name)}`",
                         _md(s.value),
                         ("⚑ " if s.flagged else "") + _md(s.provenance),
-                        _md(s.note) if (s.note or not s.flagged) else "*no reason given*",
+                        _mdl(s.note, links) if (s.note or not s.flagged) else "*no reason given*",
                     ]
                     for s in e.settings
                 ]
@@ -957,25 +1184,44 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
             if e.claims:
                 rows = []
                 for c in e.claims:
-                    _, sym, word = _VERDICT[c.holds]
-                    verdict = f"{sym} {word}" + (f" (see note {c.number} below)" if c.needs_explanation else "")
-                    test = _md(c.test or "—") + (f" (tolerance: {_md(c.tolerance)})" if c.tolerance else "")
-                    rows.append([str(c.number), _md(c.claim), _md(c.quantity or "—"), _md(c.measured), test, verdict])
+                    _, sym, _ = _VERDICT[c.holds]
+                    verdict = f"{sym} {c.word}" + (f" (see note {c.number} below)" if c.needs_explanation else "")
+                    test = _mdl(c.test or "—", links) + (
+                        f" (tolerance: {_mdl(c.tolerance, links)})" if c.tolerance else ""
+                    )
+                    whose = "the source's" if c.origin == "source" else "this package's"
+                    rows.append(
+                        [
+                            str(c.number),
+                            f"{_mdl(c.claim, links)} ({whose})",
+                            _mdl(c.quantity or "—", links),
+                            _mdl(c.measured, links),
+                            test,
+                            verdict,
+                        ]
+                    )
                 out += _md_table(
-                    ["#", "claim (source)", "quantity", "measured", "test (tolerance)", "holds"], rows, right={0}
+                    ["#", "claim (whose)", "quantity", "measured", "test (tolerance)", "verdict"], rows, right={0}
                 )
                 for c in e.claims:
                     if c.needs_explanation:
                         if c.holds is False:
-                            lead = f"- **Claim {c.number} does not hold.** Measured: {_md(c.measured) or 'nothing'}."
+                            lead = (
+                                f"- **Claim {c.number} {_explain_head(c)}.** "
+                                f"Measured: {_mdl(c.measured, links) or 'nothing'}."
+                            )
                         else:
                             lead = (
                                 f"- **Claim {c.number} cannot be measured.** "
                                 f"{_md(c.not_measurable or c.measured) or 'no reason recorded'}."
                             )
                         extra = "".join(
-                            f" {lbl}: {_md(t)}." for lbl, t in (("Note", c.note), ("Explanation", c.explanation)) if t
+                            f" {lbl}: {_mdl(t, links)}."
+                            for lbl, t in (("Note", c.note), ("Explanation", c.explanation))
+                            if t
                         )
+                        if c.holds is False and c.origin == "package" and not (c.note or c.explanation):
+                            extra += f" Reason: {_md(_NO_REASON)}."
                         out.append(lead + extra)
                 if any(c.needs_explanation for c in e.claims):
                     out.append("")
@@ -984,14 +1230,14 @@ def render_markdown(experiments: list[ExperimentReport], problems: list[str], *,
             if e.source_tables:
                 out += ["#### The source's tables and ours", ""]
                 for t in e.source_tables:
-                    out += [f"*{_md(t.title)}*", ""]
+                    out += [f"*{_mdl(t.title, links)}*", ""]
                     out += _md_table(
                         [_md(c) for c in t.columns],
-                        [[_md(v) for v in r] for r in t.rows],
+                        [[_mdl(v, links) for v in r] for r in t.rows],
                         right=set(range(1, len(t.columns))),
                     )
                     if t.note:
-                        out += [_md(t.note), ""]
+                        out += [_mdl(t.note, links), ""]
             out += ["#### Time-averaged RMSE per estimator", "", _md(_RMSE_DEFINITION), ""]
             if not e.rmse_tables:
                 out += ["*No estimator summaries recorded.*", ""]
@@ -1050,8 +1296,9 @@ def write_report(results_dir: str | os.PathLike) -> tuple[Path, Path]:
     experiments, problems = collect_results(root)
     check_report_targets(root)
     # lone surrogates (from JSON escapes) cannot be written as UTF-8: shown as U+FFFD instead
-    html_text = render_html(experiments, problems).encode("utf-8", "replace").decode("utf-8")
-    md_text = render_markdown(experiments, problems).encode("utf-8", "replace").decode("utf-8")
+    links = _links_for(root)
+    html_text = render_html(experiments, problems, links=links).encode("utf-8", "replace").decode("utf-8")
+    md_text = render_markdown(experiments, problems, links=links).encode("utf-8", "replace").decode("utf-8")
     index = atomic_write_text(root / "index.html", html_text)
     md = atomic_write_text(root / "REPORT.md", md_text)
     return index, md

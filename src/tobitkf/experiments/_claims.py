@@ -12,6 +12,14 @@ One rule for every experiment, so that a verdict means the same thing everywhere
    * ``tolerance``: the value of ``tol`` and where it comes from;
    * ``holds``: ``True`` (held), ``False`` (not held) or ``None`` (n/a).
 
+   Whose claim it is (:func:`claim_origin`) decides what a failure means. A **source's claim**
+   that our faithful implementation does not reproduce is a finding about the source (the
+   claim's ``note`` or ``explanation`` says what we measured and why; ``docs/sources/`` lists the
+   source's errors), not a defect of the package. A claim of **this package** ("(not in the
+   source)", or any claim of an experiment whose source is tobitkf itself) that fails is a defect,
+   or a limitation that its ``explanation`` states with the reason. An optional ``origin`` field
+   (``"source"`` or ``"package"``) overrides the rule.
+
 2. **The tolerance of a random quantity comes from its Monte Carlo error.** A Monte Carlo
    mean, RMSE or fraction has a standard error from the run count (:func:`jackknife_se` over the
    runs, :func:`mean_se`); the tolerance is ``K_SE`` = 3 standard errors. A deterministic
@@ -65,12 +73,36 @@ __all__ = [
     "half_unit",
     "matches_print",
     "rmse_masked",
+    "claim_origin",
+    "ORIGINS",
 ]
 
 K_SE = 3.0
 """Tolerance of a Monte Carlo quantity, in standard errors (two-sided, about 99.7 %)."""
 
 REQUIRED = ("claim", "quantity", "measured", "test", "tolerance")
+ORIGINS = ("source", "package")
+"""Whose claim it is: a source's (a paper's) or this package's own."""
+_OURS = "(not in the source"
+
+
+def claim_origin(c: Any, source: str = "") -> str:
+    """``"source"`` for a claim of the source, ``"package"`` for a claim of this package.
+
+    A claim is the package's when its ``origin`` field says so, when its text begins with
+    "(not in the source" (the claims rule's mark for a statement of ours), or when the
+    experiment's ``source`` is tobitkf itself (begins with "tobitkf"); any other claim is the
+    source's. ``c`` is a claim dict (anything else is taken as the source's claim).
+    """
+    if not isinstance(c, dict):
+        return "source"
+    origin = c.get("origin")
+    if origin in ORIGINS:
+        return str(origin)
+    text = str(c.get("claim") or "").lstrip().lower()
+    if text.startswith(_OURS) or str(source or "").lstrip().lower().startswith("tobitkf"):
+        return "package"
+    return "source"
 
 
 class ClaimError(ValidationError):
@@ -371,6 +403,8 @@ def check_claim(c: Any) -> dict[str, Any]:
         raise ClaimError(f"claim {c['claim']!r}: holds must be True, False or None, got {holds!r}")
     elif c.get("not_measurable"):
         raise ClaimError(f"claim {c['claim']!r}: a measured claim cannot also be 'not measurable'")
+    if "origin" in c and c["origin"] not in ORIGINS:
+        raise ClaimError(f"claim {c['claim']!r}: origin must be one of {ORIGINS}, got {c['origin']!r}")
     return c
 
 

@@ -319,7 +319,7 @@ def _run(
         if p in (1, 2) and (series.name == "phosphorus" or p == 1):
             claims.append(
                 CL.at_most(
-                    f"(not in the source) AR({p}) exact ML fit in under {time_limit:g} s (the issue's target)",
+                    f"(not in the source) AR({p}) exact ML fit in under {time_limit:g} s (the package's target)",
                     quantity="wall time of the fit, standard errors included (numba's one-off start-up excluded)",
                     value=fs,
                     bound=time_limit,
@@ -340,9 +340,9 @@ def _run(
                 quantity="ADF - exact log-likelihood at the exact MLE; distance of the ADF's maximiser from it in s.e.",
                 measured=f"{a['loglik_error_at_exact_mle']:+.3f} log-units" + where,
                 test="|difference| < 0.05 and distance < 0.1 s.e.",
-                tolerance="the issue's targets for a likelihood fit for estimation (deterministic on the data)",
+                tolerance="the package's targets for a likelihood fit for estimation (deterministic on the data)",
                 holds=bool(abs(a["loglik_error_at_exact_mle"]) < 0.05 and worst < 0.1),
-                note="the issue's reason for an exact likelihood: where this fails, the assumed-density fit would be off",
+                note="why the package has an exact likelihood: where this fails, the assumed-density fit would be off",
             )
         )
     for key, rec in metrics["holdout"].items():
@@ -480,8 +480,12 @@ def _settings(series, limit_note: str, extra: dict[str, Any]) -> dict[str, Any]:
             f"nodes per panel {NODES}, panel <= {PANEL_SD} sd, cut {SPAN} sd, Hermite {HERMITE}",
         ),
         "censoring_indicator": setting("the recorded one (cc)", "source"),
-        "holdout_fractions": setting(list(FRACTIONS), "source", "issue: 30 % and 50 % of the uncensored readings"),
-        "holdout_limit": setting(limit_note, "default", "the issue: move the limit into the data"),
+        "holdout_fractions": setting(
+            list(FRACTIONS), "default", "30 % and 50 % of the uncensored readings (not in the source)"
+        ),
+        "holdout_limit": setting(
+            limit_note, "default", "the limit moved into the data, so that the held-out readings are censored"
+        ),
         "holdout_model": setting(
             "AR(1), refitted by exact ML to each held-out record; every smoother uses that fit",
             "default",
