@@ -1,6 +1,6 @@
-"""Every benchmark of the README in one run: each script a fresh process, one after the other.
+"""Every benchmark of the documentation in one run: each script a fresh process, one after the other.
 
-The README's benchmark tables come from one invocation of this script, so that their numbers share a
+The speed tables (the README's short one and the docs' performance page) come from one invocation of this script, so that their numbers share a
 machine state. For each entry of :data:`SUITE` it records the command, the wall time, the machine's
 load average (1-minute) just before and just after, and the script's output; it writes
 
@@ -8,7 +8,7 @@ load average (1-minute) just before and just after, and the script's output; it 
 * ``<out>/run.json``: date, git commit, CPU count, and per script: command, exit code, wall seconds,
   load before/after;
 * ``<out>/run.md``: the same as a page (one section per script: command, load, output), the page the
-  README's tables are transcribed from.
+  tables are transcribed from.
 
 Scripts run in order with no overlap (the suite is a measurement, not a test: nothing is asserted).
 A script that fails is recorded with its exit code and the suite goes on; the exit code of the suite is
@@ -152,7 +152,9 @@ def _page(record: dict, out: Path) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="every entry's --smoke form (CI)")
-    ap.add_argument("--only", nargs="+", choices=NAMES, default=None, help="entries to run (default: the README's)")
+    ap.add_argument(
+        "--only", nargs="+", choices=NAMES, default=None, help="entries to run (default: the entries of the full run)"
+    )
     ap.add_argument("--out", default="results/benchmarks", help="output folder (default results/benchmarks)")
     args = ap.parse_args()
     names = args.only or (NAMES if args.smoke else DEFAULT)
