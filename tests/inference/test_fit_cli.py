@@ -69,7 +69,7 @@ def test_fit_command_a_state_space_model_by_em(tmp_path):
     [
         ('[data]\ny = "nope"\n', "column 'nope'"),
         ('[data]\nx = "lP"\n', "unknown key 'x'"),
-        ("[data]\n", "needs y"),
+        ("[data]\n", "name the column of the readings"),
         ('[data]\ny = "lP"\n[model]\nkind = "nn"\n', "unknown model kind"),
         ("[data\n", "not valid TOML"),
         ('[data]\ny = "lP"\nlower = [1]\n', "lower must be"),

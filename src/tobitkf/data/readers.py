@@ -173,13 +173,13 @@ class _Table:
         return f"{self.source} {self.rows[i]}, column {col!r}"
 
 
-def _decode(raw: bytes, path: Path, encoding: str) -> str:
+def _decode(raw: bytes, path: Path, encoding: str, shown: str) -> str:
     try:
         return raw.decode(encoding)
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
         raise ValidationError(
-            f"{path}: line {line} is not {encoding} text (byte 0x{raw[exc.start]:02x}); save the file as UTF-8 "
+            f"{path}: line {line} is not {shown} text (byte 0x{raw[exc.start]:02x}); save the file as UTF-8 "
             "or give its encoding (e.g. encoding='latin-1')"
         ) from None
     except LookupError:
@@ -197,7 +197,7 @@ def _read_csv(path: Path, encoding: str, progress: Callable[[str], None] | None)
         assert progress is not None  # for mypy: big implies a callback
         progress(f"reading {path} ({len(raw) / 2**20:.1f} MB)")
     enc = "utf-8-sig" if encoding.lower().replace("_", "-") in ("utf-8", "utf8") else encoding
-    text = _decode(raw, path, enc)
+    text = _decode(raw, path, enc, encoding)
     del raw
     reader = csv.reader(io.StringIO(text, newline=""))
     header: list[str] | None = None
@@ -251,7 +251,9 @@ def _is_dataframe(obj: Any) -> bool:
 
 
 def _from_dataframe(df: Any) -> _Table:
-    import pandas as pd  # only reached for a DataFrame, so pandas is there
+    import importlib
+
+    pd = importlib.import_module("pandas")  # only reached for a DataFrame, so pandas is there (optional)
 
     if not isinstance(df, pd.DataFrame):
         raise ValidationError(f"source: expected a pandas DataFrame, got {type(df).__name__}")
@@ -497,7 +499,9 @@ def _strings_or_flag(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarr
     ycol = a["y"]
     if ycol is None:
         raise ValidationError(
-            f"y: name the column of the readings (columns of {t.source}: {', '.join(repr(c) for c in t.columns)})"
+            f'y: name the column of the readings (y = "<column>"; columns of {t.source}: '
+            f"{', '.join(repr(c) for c in t.columns)}), or use a layout with its own columns "
+            "(ConcLow/ConcHigh, DV/CENS)"
         )
     v, sign, unit = _numbers(t, ycol, "y", signs=True)
     n = v.size
