@@ -264,6 +264,10 @@ def run_fit(
                 f"FILE: regressor column {r!r} is blank at reading {int(np.argmax(miss)) + 1}; regressors must be "
                 "known for every reading"
             )
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValidationError(f"--out: cannot create the folder {out} ({exc.strerror or exc})") from None
     intercept = d.get("intercept", True)
     X_cols = ([np.ones(T)] if intercept else []) + [series.covariates[r] for r in regs]
     X = np.column_stack(X_cols) if X_cols else None
