@@ -38,8 +38,8 @@ Formats (``format=``; ``"auto"`` picks one when it is unambiguous: ``ConcLow``/`
     LIMIT is supported, i.e. the M3 likelihood); ``MDV`` = 1 marks a missing reading and rows with
     ``EVID`` not 0 (dose records) are skipped.
 
-**Blank limits (one rule, also for** ``tk.fit`` **and** ``tobitkf fit``\ **).** A limit that was not recorded
-means *no limit* on that reading: the reader writes ``-inf`` (``lower``) or ``+inf`` (``upper``), which is
+Blank limits follow one rule, here, in :func:`tobitkf.fit` and in ``tobitkf fit``: a limit that was not
+recorded means *no limit* on that reading: the reader writes ``-inf`` (``lower``) or ``+inf`` (``upper``), which is
 what :func:`tobitkf.fit` and the filters take for "no limit" (they refuse NaN limits). This is harmless
 for an uncensored or missing reading, whose likelihood does not use its limit; a *censored* reading
 with a blank limit cell is an error naming the row and the column.
@@ -94,7 +94,9 @@ _PROGRESS_EVERY = 2.0  # seconds between progress lines
 class CensoredRecord(CensoredSeries):
     r"""A :class:`CensoredSeries` read from a user's record, with its sample times and units.
 
-    Attributes (besides :class:`CensoredSeries`')
+    Besides the attributes of :class:`CensoredSeries`:
+
+    Attributes
     ----------
     times : (T,) ndarray of datetime64 or float, or None
         The sample times, increasing (None when the record has no time column or index).
