@@ -7,8 +7,8 @@ import pytest
 
 import tobitkf as tk
 from tobitkf import ValidationError
-from tobitkf.data import CensoredSeries, read_censored, read_censored_panel, write_censored
-from tobitkf.data.readers import CensoredRecord
+from tobitkf.data import CensoredSeries
+from tobitkf.data.readers import CensoredRecord, read_censored, read_censored_panel, write_censored
 
 HERE = Path(__file__).parent / "readers_data"
 inf = np.inf

@@ -88,9 +88,6 @@ class CensoredSeries:
         return np.column_stack(cols) if cols else np.zeros((self.steps, 0))
 
 
-from .readers import CensoredPanel, CensoredRecord, read_censored, read_censored_panel, write_censored  # noqa: E402, F401 - re-exported; readers subclass CensoredSeries (above)
-
-
 def _rows(filename: str) -> list[dict[str, str]]:
     text = resources.files(__name__).joinpath(filename).read_text(encoding="utf-8")
     return list(csv.DictReader(text.splitlines()))

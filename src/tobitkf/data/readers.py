@@ -872,7 +872,7 @@ def read_censored(
 
     Examples
     --------
-    >>> from tobitkf.data import read_censored
+    >>> from tobitkf.data.readers import read_censored
     >>> s = read_censored({"date": ["2020-01-01", "2020-01-09"], "conc": ["<0.05", "0.12"]}, y="conc", time="date")
     >>> s.y.tolist(), s.censored.tolist(), s.lower.tolist()
     ([0.05, 0.12], [True, False], [0.05, -inf])
@@ -914,7 +914,7 @@ def read_censored_panel(
 
     Examples
     --------
-    >>> from tobitkf.data import read_censored_panel
+    >>> from tobitkf.data.readers import read_censored_panel
     >>> p = read_censored_panel({"id": ["a", "a", "b"], "day": [0, 7, 3], "v": ["1.0", "<0.5", "2.0"]},
     ...                         id="id", time="day", y="v")
     >>> p.ids, p.steps.tolist(), p["a"].censored.tolist()
