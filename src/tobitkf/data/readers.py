@@ -58,6 +58,7 @@ Times are kept: ``times`` is a ``datetime64`` array for dates (``"2001-03-01"``,
 from __future__ import annotations
 
 import csv
+import gc
 import io
 import math
 import os
@@ -159,20 +160,25 @@ class CensoredPanel:
 
 @dataclass
 class _Table:
-    """Columns of cells (lists of str / objects, or numeric arrays) and a label for each row."""
+    """Columns of cells (lists of str / objects, or numeric arrays) and where each row came from."""
 
     source: str
     columns: dict[str, Any]
-    rows: list[str]  # "line 5" / "row 3" / "row 2020-01-01", one per data row
+    rows: Any  # a CSV's line numbers (int array), or one label per row ("row 3", "row 2020-01-01")
     index_times: np.ndarray | None = None
+    announce: Callable[[str], None] | None = None  # progress lines of a large file
 
     def take(self, idx: np.ndarray) -> _Table:
         cols = {k: (v[idx] if isinstance(v, np.ndarray) else [v[i] for i in idx]) for k, v in self.columns.items()}
         times = None if self.index_times is None else self.index_times[idx]
-        return _Table(self.source, cols, [self.rows[i] for i in idx], times)
+        rows = self.rows[idx] if isinstance(self.rows, np.ndarray) else [self.rows[i] for i in idx]
+        return _Table(self.source, cols, rows, times, self.announce)
+
+    def label(self, i: int) -> str:
+        return f"line {self.rows[i]}" if isinstance(self.rows, np.ndarray) else self.rows[i]
 
     def at(self, i: int, col: str) -> str:
-        return f"{self.source} {self.rows[i]}, column {col!r}"
+        return f"{self.source} {self.label(i)}, column {col!r}"
 
 
 def _decode(raw: bytes, path: Path, encoding: str, shown: str) -> str:
@@ -189,63 +195,78 @@ def _decode(raw: bytes, path: Path, encoding: str, shown: str) -> str:
 
 
 def _read_csv(path: Path, encoding: str, progress: Callable[[str], None] | None) -> _Table:
+    from .._validation import check_memory
+
     try:
         raw = path.read_bytes()
     except OSError as exc:
         raise ValidationError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-    big = progress is not None and len(raw) >= PROGRESS_BYTES
-    t0 = last = _time.perf_counter()
-    if big:
-        assert progress is not None  # for mypy: big implies a callback
-        progress(f"reading {path} ({len(raw) / 2**20:.1f} MB)")
+    # the text, its cells as Python strings and the columns: about 40 bytes per byte of a file of short numbers
+    check_memory(40 * len(raw), str(path), "reading the file")
+    announce = progress if progress is not None and len(raw) >= PROGRESS_BYTES else None
+    t0 = _time.perf_counter()
+    if announce is not None:
+        announce(f"reading {path} ({len(raw) / 2**20:.1f} MB)")
     enc = "utf-8-sig" if encoding.lower().replace("_", "-") in ("utf-8", "utf8") else encoding
     text = _decode(raw, path, enc, encoding)
     del raw
+    collect = gc.isenabled()
+    gc.disable()  # millions of small lists: the cycle collector would run over them again and again
+    try:
+        return _csv_records(path, text, announce, t0)
+    finally:
+        if collect:
+            gc.enable()
+
+
+def _csv_records(path: Path, text: str, announce: Callable[[str], None] | None, t0: float) -> _Table:
+    last = t0
     reader = csv.reader(io.StringIO(text, newline=""))
     header: list[str] | None = None
-    cells: list[list[str]] = []
-    rows: list[str] = []
+    records: list[list[str]] = []
+    lines: list[int] = []
+    n = 0
     try:
         for rec in reader:
-            if not rec or all(not c.strip() for c in rec):
-                continue
-            if header is None:
-                header = [c.strip() for c in rec]
-                seen: dict[str, int] = {}
-                for j, name in enumerate(header):
-                    if name and name in seen:
-                        raise ValidationError(
-                            f"{path}: the header names two columns {name!r} (columns {seen[name] + 1} and {j + 1}); "
-                            "rename one"
-                        )
-                    seen[name] = j
-                cells = [[] for _ in header]
-                continue
-            n = len(header)
-            if len(rec) != n:
+            if len(rec) != n or header is None:
+                if not rec or all(not c.strip() for c in rec):
+                    continue
+                if header is None:
+                    header = [c.strip() for c in rec]
+                    n = len(header)
+                    seen: dict[str, int] = {}
+                    for j, name in enumerate(header):
+                        if name and name in seen:
+                            raise ValidationError(
+                                f"{path}: the header names two columns {name!r} (columns {seen[name] + 1} and "
+                                f"{j + 1}); rename one"
+                            )
+                        seen[name] = j
+                    continue
                 if len(rec) < n or any(c.strip() for c in rec[n:]):
                     raise ValidationError(
                         f"{path} line {reader.line_num}: {len(rec)} fields, the header has {n}"
                         + (" (a comma inside a number? quote such cells)" if len(rec) > n else "")
                     )
                 rec = rec[:n]
-            for col, c in zip(cells, rec):
-                col.append(c)
-            rows.append(f"line {reader.line_num}")
-            if big and len(rows) % 65536 == 0 and _time.perf_counter() - last >= _PROGRESS_EVERY:
+            elif not rec[0] and not any(c.strip() for c in rec):
+                continue
+            records.append(rec)
+            lines.append(reader.line_num)
+            if announce is not None and len(lines) % 65536 == 0 and _time.perf_counter() - last >= _PROGRESS_EVERY:
                 last = _time.perf_counter()
-                assert progress is not None  # for mypy: big implies a callback
-                progress(f"  {len(rows):,} rows read ({last - t0:.0f} s)")
+                announce(f"  {len(lines):,} rows read ({last - t0:.0f} s)")
     except csv.Error as exc:
         raise ValidationError(f"{path} line {reader.line_num}: not readable as CSV ({exc})") from None
     if header is None:
         raise ValidationError(f"{path}: the file is empty (a header row and one row per reading expected)")
-    if not rows:
+    if not records:
         raise ValidationError(f"{path}: no data rows (a header row and one row per reading expected)")
-    if big:
-        assert progress is not None  # for mypy: big implies a callback
-        progress(f"read {len(rows):,} rows of {path.name} in {_time.perf_counter() - t0:.1f} s")
-    return _Table(str(path), dict(zip(header, cells)), rows)
+    columns = [list(c) for c in zip(*records)]
+    del records
+    if announce is not None:
+        announce(f"read {len(lines):,} rows of {path.name} in {_time.perf_counter() - t0:.1f} s; checking them")
+    return _Table(str(path), dict(zip(header, columns)), np.array(lines), announce=announce)
 
 
 def _is_dataframe(obj: Any) -> bool:
@@ -344,12 +365,49 @@ def _is_missing(c: Any) -> bool:
 
 def _fast_numbers(cells: list[Any]) -> np.ndarray | None:
     """Plain numeric text converted at once (a large file of numbers), or None to parse cell by cell."""
-    if not all(type(c) is str for c in cells) or any("_" in c for c in cells):
-        return None  # float() would take "1_000" as 1000
+    if not _all_text(cells):
+        return None
     try:
-        return np.array(cells, dtype=float)
+        return np.fromiter(map(float, cells), dtype=float, count=len(cells))
     except ValueError:
         return None
+
+
+def _all_text(cells: Sequence[Any]) -> bool:
+    """Every cell is text without an underscore (float() would read "1_000" as 1000)."""
+    return set(map(type, cells)) == {str} and "_" not in "".join(cells)
+
+
+def _unsigned(cell: str) -> str:
+    b = cell.strip()
+    if b[:1] in ("<", ">"):
+        b = b[2:] if b[1:2] == "=" else b[1:]
+        return b.strip() or "?"  # a sign without a number: let the cell-by-cell parser say so
+    return "nan" if b.lower() in _MISSING else b
+
+
+def _fast_text(cells: list[Any], signs: bool) -> tuple[np.ndarray, np.ndarray] | None:
+    """Numbers, blanks and (``signs``) "<L" / ">U" cells without units converted at once, or None."""
+    if not _all_text(cells):
+        return None
+    sign = np.zeros(len(cells), dtype=np.int8)
+    try:
+        return np.fromiter(map(float, cells), dtype=float, count=len(cells)), sign
+    except ValueError:
+        pass
+    lead = [c.lstrip()[:1] for c in cells]
+    first = set(lead)
+    if "<" in first or ">" in first:
+        if not signs:
+            return None
+        sign = np.array([-1 if c == "<" else 1 if c == ">" else 0 for c in lead], dtype=np.int8)
+    try:
+        vals = np.array([_unsigned(c) for c in cells], dtype=float)
+    except ValueError:
+        return None
+    if (np.isnan(vals) & (sign != 0)).any():
+        return None
+    return vals, sign
 
 
 def _parse_cells(t: _Table, name: str, cells: list[Any], signs: bool) -> tuple[np.ndarray, np.ndarray, str]:
@@ -389,7 +447,7 @@ def _parse_cells(t: _Table, name: str, cells: list[Any], signs: bool) -> tuple[n
             other, j = next((u, j) for u, j in first.items() if u != here)
             raise ValidationError(
                 f"{t.at(i, name)}: mixed units in one column: {here or 'no unit'!r} here, {other or 'no unit'!r} "
-                f"at {t.rows[j]}; convert the column to one unit"
+                f"at {t.label(j)}; convert the column to one unit"
             )
     return vals, sign, next(iter(first), "")
 
@@ -407,9 +465,9 @@ def _numbers(
             raise ValidationError(f"{t.at(0, name)}: booleans (True/False) are not numbers")
         vals, sign, unit = np.asarray(cells, dtype=float), np.zeros(len(cells), dtype=np.int8), ""
     else:
-        fast = _fast_numbers(cells)
+        fast = _fast_text(cells, signs)
         if fast is not None:
-            vals, sign, unit = fast, np.zeros(len(cells), dtype=np.int8), ""
+            vals, sign, unit = fast[0], fast[1], ""
         else:
             vals, sign, unit = _parse_cells(t, name, cells, signs)
     bad = np.isinf(vals)
@@ -426,42 +484,46 @@ def _flags(t: _Table, name: str, codes: Mapping[Any, str] | None) -> np.ndarray:
     for k, v in (codes or {}).items():
         if v not in ("left", "right", "none", "censored"):
             raise ValidationError(f"flag_codes: {k!r} maps to {v!r}; expected 'left', 'right', 'censored' or 'none'")
-        side = {"left": -1, "right": 1, "none": 0, "censored": 2}[v]
+        code = {"left": -1, "right": 1, "none": 0, "censored": 2}[v]
         key = str(k).strip().lower()
-        table[key] = side
+        table[key] = code
         try:  # 1, 1.0 and "1" are one code
             f = float(key)
-            table[repr(f)] = table[str(int(f)) if f.is_integer() else key] = side
+            table[repr(f)] = table[str(int(f)) if f.is_integer() else key] = code
         except ValueError:
             pass
-    n = len(cells)
-    out = np.zeros(n, dtype=np.int8)
     if isinstance(cells, np.ndarray) and cells.dtype.kind == "b":
-        out[cells] = 2
-        return out
-    for i, c in enumerate(cells.tolist() if isinstance(cells, np.ndarray) else cells):
+        return np.where(cells, 2, 0).astype(np.int8)
+    vals = cells.tolist() if isinstance(cells, np.ndarray) else list(cells)
+
+    def side(c: Any) -> int | None:
         if _is_missing(c):
-            continue
+            return 0
         if isinstance(c, (bool, np.bool_)):
-            out[i] = 2 if c else 0
-            continue
+            return 2 if c else 0
         s = str(c).strip().lower()
         if isinstance(c, (float, np.floating)) and float(c).is_integer():
             s = str(int(c))
-        if s in table:
-            out[i] = table[s]
-        elif s in _TRUE:
-            out[i] = 2
-        elif s in _FALSE:
-            out[i] = 0
-        elif s in _SIDES:
-            out[i] = _SIDES[s]
-        else:
-            raise ValidationError(
-                f"{t.at(i, name)}: expected a censoring flag (1/0, true/false, '<'/'>', left/right), got {c!r:.40}"
-                + ("; give flag_codes for numeric side codes" if s.lstrip("-").replace(".", "").isdigit() else "")
-            )
-    return out
+        for known in (table, _SIDES):
+            if s in known:
+                return known[s]
+        return 2 if s in _TRUE else 0 if s in _FALSE else None
+
+    if any(type(c) is bool for c in vals):  # True == 1 as dict keys: decide cell by cell
+        sides = [side(c) for c in vals]
+    else:  # each distinct cell once (a large file has a handful)
+        distinct = dict.fromkeys(vals)
+        for c in distinct:
+            distinct[c] = side(c)
+        sides = [distinct[c] for c in vals]
+    if None in sides:
+        i = sides.index(None)
+        s = str(vals[i]).strip()
+        raise ValidationError(
+            f"{t.at(i, name)}: expected a censoring flag (1/0, true/false, '<'/'>', left/right), got {vals[i]!r:.40}"
+            + ("; give flag_codes for numeric side codes" if s.lstrip("-").replace(".", "").isdigit() else "")
+        )
+    return np.array(sides, dtype=np.int8)
 
 
 def _find(t: _Table, given: str | None, default: str) -> str | None:
@@ -668,16 +730,18 @@ def _times(t: _Table, name: str | None) -> tuple[np.ndarray | None, np.ndarray |
         blank = np.isnat(times) if times.dtype.kind == "M" else np.isnan(times)
         _first(t, blank, name, "a blank time")
         return times, labels
-    labels = np.array([("" if c is None else str(c)).strip() for c in cells])
-    _first(t, np.array([_is_missing(c) for c in cells]), name, "a blank time")
-    nums = _fast_numbers([str(c) for c in labels])
+    texts = [("" if c is None else str(c)).strip() for c in cells]
+    nums = _fast_numbers(texts)
     if nums is not None:
-        return nums, labels
+        _first(t, np.isnan(nums), name, "a blank time")
+        return nums, np.array(texts)
     try:
-        parsed = [lab if isinstance(c, str) else np.datetime64(c) for c, lab in zip(cells, labels)]
-        return np.array(parsed, dtype="datetime64"), labels
+        parsed = [lab if isinstance(c, str) else np.datetime64(c) for c, lab in zip(cells, texts)]
+        times = np.array(parsed, dtype="datetime64")
     except ValueError:
-        for i, c in enumerate(labels):
+        for i, c in enumerate(texts):
+            if _is_missing(c):
+                raise ValidationError(f"{t.at(i, name)}: a blank time") from None
             try:
                 np.datetime64(c)
             except ValueError:
@@ -685,6 +749,8 @@ def _times(t: _Table, name: str | None) -> tuple[np.ndarray | None, np.ndarray |
                     f"{t.at(i, name)}: expected a date (YYYY-MM-DD, optionally Thh:mm:ss) or a number, got {c!r:.40}"
                 ) from None
         raise  # pragma: no cover - some cell failed above
+    _first(t, np.isnat(times), name, "a blank time")
+    return times, np.array(texts)
 
 
 def _check_order(
@@ -710,12 +776,12 @@ def _check_order(
             extra = "(duplicates='drop' drops a row that repeats the previous one exactly)"
         if bad.any():
             i = int(np.argmax(bad)) + 1
-            raise ValidationError(f"{t.at(i, tcol)}: the time {times[i]} repeats {t.rows[i - 1]}'s {extra}")
+            raise ValidationError(f"{t.at(i, tcol)}: the time {times[i]} repeats {t.label(i - 1)}'s {extra}")
     back = times[1:] < times[:-1]
     if back.any():
         i = int(np.argmax(back)) + 1
         raise ValidationError(
-            f"{t.at(i, tcol)}: the time {times[i]} comes before {t.rows[i - 1]}'s {times[i - 1]}; sort the rows by time"
+            f"{t.at(i, tcol)}: the time {times[i]} comes before {t.label(i - 1)}'s {times[i - 1]}; sort the rows by time"
         )
     return keep
 
@@ -768,6 +834,10 @@ def _build(t: _Table, fmt: str, a: dict[str, Any], name: str) -> CensoredRecord:
             y, side, lo, hi, times = y[keep], side[keep], lo[keep], hi[keep], times[keep]
             labels = None if labels is None else labels[keep]
             covs = {k: v[keep] for k, v in covs.items()}
+    if t.announce is not None:
+        t.announce(
+            f"checked {y.size:,} readings ({int((side != 0).sum()):,} censored, {int(np.isnan(y).sum()):,} missing)"
+        )
     return CensoredRecord(
         name=name,
         y=y,
