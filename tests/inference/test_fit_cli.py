@@ -297,3 +297,15 @@ def test_a_command_without_the_decorator_still_ends_in_one_line():
         res.output.strip()
         == "error: unexpected RuntimeError: [red]x[/red] (this is a bug in tobitkf; please report it)"
     )
+
+
+def test_fit_detects_egret_interval_columns_and_refuses_an_unknown_format(tmp_path):
+    from pathlib import Path
+
+    egret = (Path(__file__).parents[1] / "readers_data" / "arkansas_excerpt.csv").read_bytes()
+    res = _run(tmp_path, None, '[data]\ntime = "Date"\n[model]\np = 0\n', csv_bytes=egret)
+    assert res.exit_code == 0, res.output
+    rows = [r.split(",") for r in (tmp_path / "o" / "series.csv").read_text().splitlines()[1:]]
+    assert [r[2] for r in rows] == ["1", "1"] + ["0"] * 7 + ["1", "0", "0"]
+    assert rows[9][:4] == ["1999-04-13", "0.005", "1", "0.005"]
+    _one_line_error(_run(tmp_path, DL_CSV, DL_MODEL, "--format", "excel"), "--format: expected one of auto")

@@ -228,10 +228,12 @@ def run_fit(
         Unreadable or inconsistent inputs (each message names the file and the key, or the line and column).
     """
     from .._io import as_path, atomic_write_text, check_writable_dir
-    from ..data.readers import read_censored
+    from ..data.readers import FORMATS, read_censored
     from .censored_ar import CensoredAR
     from .fitting import fit
 
+    if format is not None and format not in FORMATS:
+        raise ValidationError(f"--format: expected one of {', '.join(FORMATS)}, got {format!r}")
     spec = read_spec(as_path(model_path, "--model"))
     out = check_writable_dir(out, "--out")
     check_outputs(out, force=force)
