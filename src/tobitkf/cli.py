@@ -84,7 +84,8 @@ def cli_errors(command: Callable[..., Any]) -> Callable[..., Any]:
 
 class _Group(typer.core.TyperGroup):
     """The command group; usage errors (unknown option, a value click cannot parse or out of
-    range) are one line too, ``error: Invalid value for '--seed': ...``, exit code 2."""
+    range) are one line too, ``error: Invalid value for '--seed': ...``, exit code 2; so is any
+    error of a command that is not wrapped by :func:`cli_errors` (the same message)."""
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         if not standalone_mode:
@@ -100,6 +101,11 @@ class _Group(typer.core.TyperGroup):
         except typer.Abort:
             typer.echo("error: aborted", err=True)
             sys.exit(1)
+        except Exception as exc:  # noqa: BLE001 - a command that lacks @cli_errors still ends in one line
+            if os.environ.get("TOBITKF_DEBUG"):
+                raise
+            typer.echo(f"error: {_one_line(_describe(exc))}", err=True)
+            sys.exit(2)
         sys.exit(rv if isinstance(rv, int) else 0)
 
 
@@ -384,26 +390,41 @@ def plot(
 
 
 @app.command()
+@cli_errors
 def fit(
     file: Annotated[Path, typer.Argument(help="CSV file with a header row, one row per reading")],
     model: Annotated[
         Path, typer.Option("--model", help="model file (TOML): columns and model, see tobitkf.inference.fit_cli")
     ],
     out: Annotated[Path, typer.Option("--out", help="output directory")] = Path("fit"),
+    format: Annotated[
+        Optional[str],
+        typer.Option(
+            "--format",
+            help="layout of FILE: auto, strings ('<0.05'), flag (value, flag, limit), interval (ConcLow/ConcHigh), "
+            "nonmem (DV/CENS/LIMIT); default: the model file's, else auto",
+        ),
+    ] = None,
+    force: Annotated[
+        bool,
+        typer.Option(
+            "--force", help="replace fit.json, summary.txt, series.csv, fit.png even if tobitkf did not write them"
+        ),
+    ] = False,
 ) -> None:
     """Fit a model to a censored series: writes OUT/fit.json, summary.txt, series.csv and fit.png."""
-    from ._validation import ValidationError
     from .inference.fit_cli import run_fit
 
-    try:
-        check_out_dir(out)
-        paths = run_fit(file, model, out, progress=True)
-    except ValidationError as exc:
-        console.print(f"[red]error:[/red] {exc}")
-        raise typer.Exit(2) from None
+    check_out_dir(out)
+    paths = run_fit(file, model, out, progress=True, format=format, force=force, notes=_note)
     typer.echo((out / "summary.txt").read_text(encoding="utf-8"), nl=False)
     for p in paths:
-        console.print(f"wrote {p}")
+        _note(f"wrote {p}")
+
+
+def _note(line: str) -> None:
+    """One line on stderr, printed as written (no markup: ``[data]`` stays ``[data]``)."""
+    console.print(line, markup=False, highlight=False, soft_wrap=True)
 
 
 def main() -> None:  # pragma: no cover - console entry point
