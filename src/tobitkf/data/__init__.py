@@ -34,8 +34,16 @@ from typing import Any
 
 import numpy as np
 
+from ._series import CensoredSeries
+from .readers import CensoredPanel, CensoredRecord, read_censored, read_censored_panel, write_censored
+
 __all__ = [
     "CensoredSeries",
+    "CensoredRecord",
+    "CensoredPanel",
+    "read_censored",
+    "read_censored_panel",
+    "write_censored",
     "SampleRecord",
     "ViralLoadPanel",
     "load_phosphorus",
@@ -45,69 +53,6 @@ __all__ = [
     "load_niagara",
     "provenance",
 ]
-
-
-@dataclass(frozen=True)
-class CensoredSeries:
-    r"""One censored scalar time series as recorded.
-
-    Attributes
-    ----------
-    name : str
-        Short name of the data set.
-    y : (T,) ndarray
-        Readings; a censored reading holds its limit; NaN marks a missing reading.
-    censored : (T,) bool ndarray
-        The censoring indicator recorded with the data (False for missing readings).
-    lower, upper : (T,) ndarray
-        Censoring limits of each reading (``-inf`` / ``+inf``: no limit on that side).
-    covariates : dict of str to (T,) ndarray
-        Known regressors (e.g. ``"lQ"``, the log discharge).
-    time : (T,) ndarray of str
-        Time labels as recorded.
-    description : str
-        One line on what the series is.
-    times : (T,) ndarray of datetime64 or float, or None
-        When each reading was taken (``datetime64[D]`` calendar dates for the dated records), where the
-        record has them.
-    """
-
-    name: str
-    y: np.ndarray
-    censored: np.ndarray
-    lower: np.ndarray
-    upper: np.ndarray
-    covariates: dict[str, np.ndarray] = field(default_factory=dict)
-    time: np.ndarray | None = None
-    description: str = ""
-    times: np.ndarray | None = None
-
-    @property
-    def steps(self) -> int:
-        """Number of readings T."""
-        return int(self.y.shape[0])
-
-    @property
-    def missing(self) -> np.ndarray:
-        """(T,) bool: readings that are missing."""
-        return np.isnan(self.y)
-
-    def censoring(self):
-        """The limits as a :class:`~tobitkf.Censoring` of one channel, ``(T, 1)``."""
-        from ..channels.censoring import Censoring
-
-        return Censoring(lower=self.lower[:, None], upper=self.upper[:, None])
-
-    def design(self, *names: str, intercept: bool = True) -> np.ndarray:
-        """The regressor matrix ``(T, l)``: a column of ones (when ``intercept``) and the named covariates."""
-        cols = [np.ones(self.steps)] if intercept else []
-        for nm in names:
-            if nm not in self.covariates:
-                from .._validation import ValidationError
-
-                raise ValidationError(f"names: unknown covariate {nm!r}; known: {', '.join(self.covariates) or 'none'}")
-            cols.append(self.covariates[nm])
-        return np.column_stack(cols) if cols else np.zeros((self.steps, 0))
 
 
 def _rows(filename: str) -> list[dict[str, str]]:

@@ -72,7 +72,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ValidationError
-from . import CensoredSeries
+from ._series import CensoredSeries
 
 __all__ = ["CensoredRecord", "CensoredPanel", "read_censored", "read_censored_panel", "write_censored", "FORMATS"]
 
