@@ -38,7 +38,7 @@ from . import control, data, metrics
 from ._validation import ShapeError, ValidationError
 from ._version import __version__
 from .censored import CensoredMoments, censored_moments
-from .channels import Channel, Censoring, Quantizer, laws, multi_region
+from .channels import Censoring, Channel, Quantizer, laws, multi_region
 from .channels.fading import RiceFading
 from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .channels.saturation import RandomSaturation

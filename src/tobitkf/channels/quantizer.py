@@ -159,7 +159,9 @@ class Quantizer(Channel):
         """Raise :class:`ShapeError` unless the parameters fit the system's m outputs (one value or m)."""
         m = system if isinstance(system, (int, np.integer)) else system.m
         if self.channels is not None and self.channels != m:
-            raise ShapeError(f"quantizer: expected parameters for {m} channel(s) to match the system, got {self.channels}")
+            raise ShapeError(
+                f"quantizer: expected parameters for {m} channel(s) to match the system, got {self.channels}"
+            )
 
     def censor(self, y_latent: np.ndarray) -> np.ndarray:
         """:meth:`quantize` of a whole record ``(..., T, m)`` (the simulation stage)."""

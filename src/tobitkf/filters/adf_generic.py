@@ -436,8 +436,10 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
         self.covariance_update = covariance_update
 
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
-        sigma = self._sigma if self._sigma is not None else diagonal_sigma(
-            self.system.measurement_cov(k), f"R({k})", who=_WHO, why=_WHY
+        sigma = (
+            self._sigma
+            if self._sigma is not None
+            else diagonal_sigma(self.system.measurement_cov(k), f"R({k})", who=_WHO, why=_WHY)
         )
         C = self.system.measurement(k)
         mu = xp @ C.T + self._feedthrough(k, u)
