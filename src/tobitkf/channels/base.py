@@ -213,6 +213,10 @@ class Channel:
         """Raise :class:`~tobitkf.ValidationError` for a reading of ``y`` (..., T, m) the channel cannot give
         (row 0 is time ``start``); default: every reading possible."""
 
+    def reading_width(self, system: Any) -> int:
+        """Channels of the readings the estimators receive from ``system`` (default its m outputs)."""
+        return int(system.m)
+
     def at_limit(self, y: np.ndarray, start: int = 1) -> np.ndarray:
         """Mask (..., T, m) of the readings at a limit of the sensor; default: none."""
         return np.zeros(np.shape(y), dtype=bool)

@@ -342,6 +342,10 @@ class ProtocolChannel(Channel):
             kw["failures"] = failures
         return cls(system.m, **kw)
 
+    def reading_width(self, system: Any) -> int:
+        """1: the estimators receive the scheduled sensor's reading."""
+        return 1
+
     def at_limit(self, y: np.ndarray, start: int = 1) -> np.ndarray:
         """Readings at (or below) the threshold τ."""
         with np.errstate(invalid="ignore"):
