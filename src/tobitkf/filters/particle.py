@@ -221,8 +221,10 @@ class _Model:
 
     @classmethod
     def build(cls, system: LinearSystem, piece: Any, censoring: Censoring | None) -> _Model:
-        """The model of ``piece`` with an optional censoring of its readings."""
-        return cls(system, piece, censoring)
+        """The model of ``piece`` with an optional censoring of its readings (the subclasses that serve a
+        channel class take ``(system, piece, censoring)``)."""
+        make: Any = cls
+        return make(system, piece, censoring)
 
     def __init__(self, system: LinearSystem):
         self.system = system

@@ -227,13 +227,15 @@ def channel_of(parts: Mapping[str, Any]) -> Any:
     """The channel the pieces ``parts`` (section name -> piece) make, as the simulator draws it and the
     generic filters take it: a piece that carries its own limits (``replaces_censoring``: the protocol
     channel, the quantizer) alone; else the reading model (the last piece other than the censoring that is a
-    channel) with the ``censoring``; one piece alone, none as None. Pieces that are no channel (the delay
+    channel) with the ``censoring`` (left out when it has no finite limit); one piece alone, none as None. Pieces that are no channel (the delay
     family's prior) are left out.
 
     >>> import tobitkf as tk
     >>> channel_of({"censoring": tk.Censoring(lower=0.0), "quantizer": tk.Quantizer(0.5)})
     Quantizer(0.5)
     """
+    import numpy as np
+
     from ..channels.base import Channel
 
     pieces = [p for p in parts.values() if isinstance(p, Channel)]
@@ -242,6 +244,8 @@ def channel_of(parts: Mapping[str, Any]) -> Any:
         return own[0]
     cens = parts.get("censoring")
     drawers = [p for p in pieces if p is not cens]
+    if drawers and cens is not None and not (np.isfinite(cens.lower).any() or np.isfinite(cens.upper).any()):
+        cens = None  # a censoring without a finite limit (a sweep file's default) censors nothing
     chosen = [p for p in (drawers[-1] if drawers else None, cens) if p is not None]
     return chosen[0] if len(chosen) == 1 else (chosen or None)
 
