@@ -334,3 +334,19 @@ def test_the_quantized_adf_is_within_monte_carlo_error_of_the_particle_filter():
     e_adf, e_pf = _paired_mse(sys_, tk.Quantizer(0.5), runs=300, steps=40, particles=400, seed=11)
     se = np.sqrt(e_adf.var(ddof=1) / e_adf.size + e_pf.var(ddof=1) / e_pf.size)
     assert abs(e_adf.mean() - e_pf.mean()) <= 3 * se, (e_adf.mean(), e_pf.mean(), se)
+
+
+def test_the_predictive_linearization_keeps_the_tobit_type_filter_on_a_coarse_quantizer():
+    """At the prior mean (the TKF's assumption) the gain grows like 1/slope in the middle of a wide cell and a
+    reading in the next cell throws the estimate off; under the predictive law the update is the linear
+    minimum-MSE one and stays within a few percent of the assumed-density filter."""
+    sys_ = tk.LinearSystem(A=[[0.95]], C=[[1.0]], Q=[[0.1]], R=[[0.09]], x0=[0.0], P0=[[1.0]])
+    q = tk.Quantizer(2.0)
+    d = tk.simulate(sys_, 40, 200, channel=q, seed=11)
+
+    def mse(est):
+        return float(((est.filter(d.y).mean - d.x[:, 1:]) ** 2).mean())
+
+    adf = mse(tk.AssumedDensityFilter(sys_, q))
+    assert mse(tk.TobitFilter(sys_, q)) > 10 * adf
+    assert mse(tk.TobitFilter(sys_, q, linearization="predictive")) < 1.05 * adf

@@ -388,7 +388,7 @@ _ENTRY_LIST = [
         "the Tobit Kalman filter's update for any channel with reading statistics (beyond the sources)",
         _generic_tobit,
         needs=("channel",),
-        options={"covariance_update": _FORMS},
+        options={"covariance_update": _FORMS, "linearization": ("prior_mean", "predictive")},
     ),
     Entry(
         "ParticleFilter",
