@@ -169,8 +169,8 @@ def _split(channel: Any, censoring: Any):
     if other or len(cens) > 1 or len(fad) > 1:
         names = ", ".join(type(p).__name__ for p in pieces)
         raise ValidationError(
-            f"channel: the PCRLB covers censored linear readings, Rice fading (at most one "
-            f"Censoring and one RiceFading) and channels that give their reading's Fisher information "
+            f"channel: the PCRLB covers censored linear readings and Rice fading (at most one "
+            f"Censoring and one RiceFading), and channels that give their reading's Fisher information "
             f"(fisher_information, tobitkf.channels.base), got {names}"
         )
     return (cens[0] if cens else None), (fad[0] if fad else None)
