@@ -3,8 +3,8 @@ r"""The interface every channel implements: what happens between the sensor and 
 A channel is one small public class that knows how it is **drawn** (the simulator), what a reading
 says about the **latent reading** :math:`y^*` (the filters: its Gaussian moments and its likelihood),
 and its **options** (the registry of estimators and the sweep files). A class that names its
-``section`` registers itself when it is defined: nothing in the package lists the channel families,
-so a channel written outside the package (the tutorial "Write your own channel") gets the
+``section`` registers itself when it is defined, so a channel written outside the package (the
+tutorial "Write your own channel") gets the
 assumed-density filter :class:`~tobitkf.AssumedDensityFilter`, the Tobit-type filter
 :class:`~tobitkf.TobitFilter`, the particle filter, the simulator, the registry and the sweep files
 without an edit to any of them.
