@@ -6,7 +6,9 @@ protocol-scheduled measurements; batched over Monte Carlo runs.
 Public API (stable):
 
 - :class:`LinearSystem` -- the state-space model.
-- :class:`Censoring`, :func:`multi_region` -- censoring limits.
+- :class:`Censoring`, :func:`multi_region` -- censoring limits; :class:`Quantizer` -- a quantized sensor;
+  :class:`Channel` -- the contract a channel of your own implements (:mod:`tobitkf.channels.base`), served by
+  :class:`AssumedDensityFilter`, :class:`TobitFilter` and :class:`ParticleFilter`.
 - :func:`simulate` -- batched truth and measurements.
 - :class:`KalmanFilter`, :class:`DroppingKalmanFilter`, :class:`TobitKalmanFilter`,
   :class:`SteadyStateTobitKalmanFilter` -- estimators.
@@ -19,8 +21,8 @@ Public API (stable):
   measurements, sensor failures) and :func:`protocol_covariance_bounds` (Geng et al.).
 - :class:`DelayFadingSystem`, :func:`chain_lmmse` and relatives: optimal linear filter, predictor
   and smoothers for time-delay systems with fading measurements (Li et al. 2018).
-- :class:`ParticleFilter` (the Bayes-optimal yardstick for every channel), the assumed-density filters
-  :class:`AssumedDensityTobitFilter`, :class:`FadingAssumedDensityFilter`,
+- :class:`ParticleFilter` (the Bayes-optimal yardstick for every channel), the assumed-density filter of
+  any channel :class:`AssumedDensityFilter` and its named forms :class:`AssumedDensityTobitFilter`, :class:`FadingAssumedDensityFilter`,
   :class:`ProtocolAssumedDensityFilter`, :class:`SaturationAssumedDensityFilter`, and
   :func:`posterior_crlb` (posterior Cramér–Rao bound).
 - :mod:`tobitkf.control` -- LQR/LQE/LQG via python-control, closed loops with (Tobit) Kalman observers,
@@ -36,7 +38,7 @@ from . import control, data, metrics
 from ._validation import ShapeError, ValidationError
 from ._version import __version__
 from .censored import CensoredMoments, censored_moments
-from .channels import Censoring, laws, multi_region
+from .channels import Censoring, Channel, Quantizer, laws, multi_region
 from .channels.fading import RiceFading
 from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .channels.saturation import RandomSaturation
@@ -54,6 +56,7 @@ from .filters import (
 )
 from .filters._pool import output_pool_limit, set_output_pool
 from .filters.adf_fading import FadingAssumedDensityFilter
+from .filters.adf_generic import AssumedDensityFilter, TobitFilter
 from .filters.adf_protocol import ProtocolAssumedDensityFilter
 from .filters.adf_saturation import SaturationAssumedDensityFilter
 from .filters.assumed_density import AssumedDensityTobitFilter
@@ -103,6 +106,10 @@ __all__ = [
     "LinearSystem",
     "Censoring",
     "multi_region",
+    "Channel",
+    "Quantizer",
+    "AssumedDensityFilter",
+    "TobitFilter",
     "simulate",
     "SimulationData",
     "KalmanFilter",

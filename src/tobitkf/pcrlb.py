@@ -63,6 +63,7 @@ from scipy.special import log_ndtr, ndtr, ndtri
 
 from ._linalg import symmetrize
 from ._validation import ShapeError, ValidationError, as_float_array, check_count, check_instance
+from .channels.base import Channel
 from .channels.censoring import Censoring
 from .channels.fading import RiceFading, measurement_matrix_at
 from .channels.laws import Gaussian
@@ -163,11 +164,14 @@ def _split(channel: Any, censoring: Any):
     cens = [p for p in pieces if isinstance(p, Censoring)]
     fad = [p for p in pieces if isinstance(p, RiceFading)]
     other = [p for p in pieces if not isinstance(p, (Censoring, RiceFading))]
+    if len(other) == 1 and not cens and not fad and isinstance(other[0], Channel) and other[0].supports("fisher"):
+        return other[0], None  # a channel of the contract with the Fisher information of its reading
     if other or len(cens) > 1 or len(fad) > 1:
         names = ", ".join(type(p).__name__ for p in pieces)
         raise ValidationError(
             f"channel: the PCRLB covers censored linear readings and Rice fading (at most one "
-            f"Censoring and one RiceFading), got {names}"
+            f"Censoring and one RiceFading), and channels that give their reading's Fisher information "
+            f"(fisher_information, tobitkf.channels.base), got {names}"
         )
     return (cens[0] if cens else None), (fad[0] if fad else None)
 
@@ -197,8 +201,10 @@ def posterior_crlb(
     system : LinearSystem
         The model the truth is drawn from (its prior :math:`N(\bar x_0, P_0)` is :math:`B_0`);
         diagonal, positive R.
-    channel : Censoring or RiceFading or a sequence of both, optional
-        The readings' channel (fading coefficients must be Gaussian); None: linear readings.
+    channel : Censoring or RiceFading or a sequence of both, or a Channel, optional
+        The readings' channel (fading coefficients must be Gaussian); or one channel that gives the Fisher
+        information of its reading (``fisher_information``: :class:`~tobitkf.Quantizer`, a channel of your
+        own; then :math:`J_z = C_k^T\mathrm{diag}(E[I_{\mu\mu}])C_k`); None: linear readings.
     censoring : Censoring, optional
         The censoring, given separately.
     truth : (N, T+1, n) array_like, optional
@@ -252,6 +258,7 @@ def posterior_crlb(
             )
     if cens is not None:
         cens.check(system.m)
+    contract = cens is not None and not isinstance(cens, Censoring)
     if truth is None:
         if steps is None:
             raise ValidationError("steps: give the horizon T (or the true trajectories as truth)")
@@ -282,15 +289,22 @@ def posterior_crlb(
             Bp[:n, n:] = Bp[n:, :n].T
             Bp[n:, n:] = B[: nx - n, : nx - n]
         sig = _sigmas(system, k)
-        lo, hi = (np.full(m, -np.inf), np.full(m, np.inf)) if cens is None else cens.limits(k)
-        lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
         J = np.zeros((nx, nx))
-        if fad is None:
+        if contract:
+            C = system.measurement(k)
+            mu = X[:, k] @ C.T  # (N, m)
+            Imm = np.stack([cens.fisher_information(mu[:, l], np.full(mu.shape[0], sig[l]), k, l) for l in range(m)], 1)
+            J = (C.T * Imm.mean(0)) @ C
+        elif fad is None:
+            lo, hi = (np.full(m, -np.inf), np.full(m, np.inf)) if cens is None else cens.limits(k)
+            lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
             C = system.measurement(k)
             mu = X[:, k] @ C.T  # (N, m)
             Imm, _, _ = censored_fisher_information(mu, sig, lo, hi)
             J = (C.T * Imm.mean(0)) @ C
         else:
+            lo, hi = (np.full(m, -np.inf), np.full(m, np.inf)) if cens is None else cens.limits(k)
+            lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
             S_ = min(L, k)
             Cs = [measurement_matrix_at(system, k - s) for s in range(S_ + 1)]
             for l in range(m):

@@ -39,6 +39,8 @@ def _built(entry, options):
     # the particle filter takes any channel: none here (the censored linear reading, which has every proposal
     # it lists but the Rao-Blackwellised one), the protocol channel for that one
     parts = {} if entry.name == "ParticleFilter" else _parts()
+    if "channel" in entry.needs:  # the generic filters of any channel: one without a named form
+        parts = {"quantizer": tk.Quantizer(0.5)}
     if entry.name == "ParticleFilter" and options.get("proposal") == "rao_blackwellised":
         parts, m = {"protocol": _parts()["protocol"]}, 2
     return entry.build(_system(m), parts, options)

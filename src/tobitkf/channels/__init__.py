@@ -5,11 +5,12 @@ knows its statistics): every piece implements :class:`~tobitkf.channels.base.Cha
 (:mod:`tobitkf.channels.base`). Pieces: :class:`Censoring` (Tobit limits, :mod:`.censoring`),
 :class:`~tobitkf.channels.fading.RiceFading` (:mod:`.fading`),
 :class:`~tobitkf.channels.protocol.ProtocolChannel` (:mod:`.protocol`),
-:class:`~tobitkf.channels.saturation.RandomSaturation` (:mod:`.saturation`), and the coefficient
-laws of :mod:`.laws`.
+:class:`~tobitkf.channels.saturation.RandomSaturation` (:mod:`.saturation`),
+:class:`~tobitkf.channels.quantizer.Quantizer` (:mod:`.quantizer`), and the coefficient laws of :mod:`.laws`.
 """
 
 from .base import Channel
 from .censoring import Censoring, multi_region
+from .quantizer import Quantizer
 
-__all__ = ["Channel", "Censoring", "multi_region"]
+__all__ = ["Channel", "Censoring", "multi_region", "Quantizer"]

@@ -54,6 +54,9 @@ class Censoring(Channel):
     [0.0, 0.2]
     """
 
+    section = "censoring"
+    sweep_options = {"lower": float, "upper": float}
+
     def __init__(self, lower: Any = -np.inf, upper: Any = np.inf):
         lo = as_float_array(lower, "lower", ndim=(0, 1, 2), allow_inf=True)
         hi = as_float_array(upper, "upper", ndim=(0, 1, 2), allow_inf=True)
@@ -197,6 +200,36 @@ class Censoring(Channel):
                 f"{name}: measurement {y[idx]:.6g} at step k={k}, channel {ch} lies outside its "
                 f"censoring limits [{lo_b[ch]:.6g}, {hi_b[ch]:.6g}]"
             )
+
+    # --- the measurement contract (channels.base) ---------------------------------------------
+    def region(self, y: np.ndarray, k: int, l: int) -> tuple[np.ndarray, np.ndarray]:
+        """A reading inside the limits is exact (``(y, y)``); one at the lower limit says :math:`y^* \\le l`,
+        one at the upper :math:`y^* \\ge h` (within ``1e-12 max(1, |limit|)``, as :meth:`censored_mask`)."""
+        lo, hi = (np.broadcast_to(v, (max(self.channels or 1, l + 1),))[l] for v in self.limits(k))
+        lo, hi = float(lo), float(hi)
+        at_lo = np.isfinite(lo) & (y <= lo + 1e-12 * max(1.0, abs(lo) if np.isfinite(lo) else 0.0))
+        at_hi = np.isfinite(hi) & (y >= hi - 1e-12 * max(1.0, abs(hi) if np.isfinite(hi) else 0.0)) & ~at_lo
+        return np.where(at_hi, hi, np.where(at_lo, -np.inf, y)), np.where(at_lo, lo, np.where(at_hi, np.inf, y))
+
+    def reading_statistics(
+        self, mean: np.ndarray, std: np.ndarray, k: int, l: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The censored reading's mean, slope :math:`\\partial E[y]/\\partial\\mu = P(l < y^* < h)` and
+        variance (:func:`tobitkf.censored_moments`: (3.8) in two-sided form, the law of total variance)."""
+        from ..censored import unchecked_moments
+
+        lo, hi = (np.broadcast_to(v, (max(self.channels or 1, l + 1),))[l] for v in self.limits(k))
+        st = unchecked_moments(mean, std, lo, hi)
+        return st.censored_mean, st.p_uncensored, st.censored_var
+
+    def check_readings(self, y: np.ndarray, start: int = 1, name: str = "y") -> None:
+        """:meth:`check_measurements` (the contract's name)."""
+        self.check_measurements(y, name, start=start)
+
+    def at_limit(self, y: np.ndarray, start: int = 1) -> np.ndarray:
+        """Readings at either limit (:meth:`censored_mask`)."""
+        lo, hi = self.censored_mask(y, start=start)
+        return lo | hi
 
     def __repr__(self) -> str:
         def fmt(v):

@@ -94,6 +94,35 @@ class RiceFading(Channel):
     (2, [0.95, 0.75, 0.85])
     """
 
+    section = "fading"
+    sweep_options = {"order": int, "mean": object, "variance": object, "low": object, "high": object}
+
+    @classmethod
+    def from_options(cls, options: Any, system: Any = None) -> RiceFading:
+        """A sweep file's ``[fading]``: ``order`` L and the coefficients' ``mean`` and ``variance`` per delay
+        (a Gaussian law), or ``low``/``high`` (uniform).
+
+        Raises
+        ------
+        ValidationError
+            A missing order or means, both kinds of law given, an unknown key.
+        """
+        from .laws import Uniform
+
+        tbl = dict(options)
+        unknown = set(tbl) - set(cls.sweep_options)
+        if unknown:
+            raise ValidationError(f"{sorted(unknown)[0]}: not an option of [fading]")
+        if "order" not in tbl:
+            raise ValidationError("order: the [fading] channel needs its order L")
+        if "low" in tbl or "high" in tbl:
+            if "mean" in tbl or "variance" in tbl:
+                raise ValidationError("mean: give either mean/variance (Gaussian) or low/high (uniform), not both")
+            return cls(tbl["order"], Uniform(tbl.get("low"), tbl.get("high")))
+        if "mean" not in tbl:
+            raise ValidationError("mean: the [fading] channel needs the coefficients' means (or low/high)")
+        return cls.gaussian(tbl["order"], tbl["mean"], tbl.get("variance", 0.0))
+
     def __init__(self, order: Any, coefficients: Any):
         self.order = _check_order(order)
         law = as_law(coefficients, "coefficients")

@@ -262,6 +262,22 @@ class RoundRobin:
         return f"RoundRobin(sensors={self.sensors}, order={self.order.tolist()})"
 
 
+def _sweep_law(tbl: Any, name: str) -> Any:
+    """A failure law of a sweep file: ``"none"`` (None), ``"base"``, ``"lambda1"`` or ``{values, probs}``."""
+    if tbl is None or tbl == "none":
+        return None
+    if isinstance(tbl, str):
+        laws = {"base": LAMBDA_BASE, "lambda1": LAMBDA_1}
+        if tbl not in laws:
+            raise ValidationError(
+                f"{name}: expected 'none', 'base', 'lambda1' or a table {{values, probs}}, got {tbl!r}"
+            )
+        return laws[tbl]
+    if not isinstance(tbl, dict) or set(tbl) != {"values", "probs"}:
+        raise ValidationError(f"{name}: expected a table with 'values' and 'probs', got {tbl!r}")
+    return PMF(tbl["values"], tbl["probs"])
+
+
 class ProtocolChannel(Channel):
     r"""Integral measurement + sensor failures + Round-Robin + Tobit censoring (eqs. (2)–(7)).
 
@@ -298,6 +314,42 @@ class ProtocolChannel(Channel):
     >>> ch.failure_mean.tolist(), ch.failure_variance.round(6).tolist()
     ([0.9, 0.9], [0.065, 0.065])
     """
+
+    section = "protocol"
+    sweep_options = {"window": int, "threshold": float, "failures": object, "order": object, "prehistory": PREHISTORY}
+    replaces_censoring = True
+
+    @classmethod
+    def from_options(cls, options: Any, system: Any = None) -> ProtocolChannel:
+        """A sweep file's ``[protocol]`` for ``system`` (one sensor per output): ``window`` ℓ, ``threshold`` τ,
+        ``failures`` = ``"none"``, ``"base"`` (:data:`LAMBDA_BASE`), ``"lambda1"`` (:data:`LAMBDA_1`) or a
+        table ``{values = [...], probs = [...]}``, ``order``, ``prehistory``.
+
+        Raises
+        ------
+        ValidationError
+            An unknown key or failure law, and the constructor's errors.
+        """
+        tbl = dict(options)
+        unknown = set(tbl) - set(cls.sweep_options)
+        if unknown:
+            raise ValidationError(f"{sorted(unknown)[0]}: not an option of [protocol]")
+        kw = {k: v for k, v in tbl.items() if k in ("window", "threshold", "order", "prehistory")}
+        if "threshold" in kw:
+            kw["threshold"] = float(kw["threshold"])
+        failures = _sweep_law(tbl.get("failures"), "failures")
+        if failures is not None:
+            kw["failures"] = failures
+        return cls(system.m, **kw)
+
+    def reading_width(self, system: Any) -> int:
+        """1: the estimators receive the scheduled sensor's reading."""
+        return 1
+
+    def at_limit(self, y: np.ndarray, start: int = 1) -> np.ndarray:
+        """Readings at (or below) the threshold τ."""
+        with np.errstate(invalid="ignore"):
+            return np.asarray(y) <= self.threshold
 
     def __init__(
         self,

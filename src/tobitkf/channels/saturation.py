@@ -71,6 +71,8 @@ class RandomSaturation(Channel):
         ``mu``, ``nu``, ``level`` not of one common length m.
     """
 
+    section = "saturation"  # no sweep-file section: the registry and the particle filter name it
+
     def __init__(self, mu: Any, nu: Any, level: Any = 1.0):
         mu = np.atleast_1d(check_probability(mu, "mu"))
         nu = np.atleast_1d(check_probability(nu, "nu"))

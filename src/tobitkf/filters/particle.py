@@ -114,6 +114,7 @@ from scipy.special import log_ndtr, ndtri_exp
 
 from .._linalg import psd_sqrt, symmetrize
 from .._validation import ValidationError, as_float_array, check_instance
+from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..channels.laws import PMF, Gaussian
@@ -194,12 +195,36 @@ def _truncated_draw(mean: np.ndarray, sd: Any, log_mass: np.ndarray, u: np.ndarr
 
 
 class _Model:
-    """What a channel contributes to the particle filter (internal)."""
+    """What a channel contributes to the particle filter (internal).
+
+    A model for a channel family with a reading model of its own (fading, the protocol channel, random
+    saturation) names the channel class it serves (``serves``) and is found by it; every other channel
+    goes through the measurement contract (:class:`_Contract`)."""
 
     nx: int  # state (history) dimension carried by the particles
     m: int  # reading dimension
     optimal: bool = False
     censoring: Censoring | None = None
+    serves: type | None = None  # the channel class this model is the particle filter's reading model of
+    feedthrough = True  # the reading carries D u (the protocol and saturation readings do not)
+    _served: dict[type, type[_Model]] = {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("serves") is not None:
+            _Model._served[cls.__dict__["serves"]] = cls
+
+    @property
+    def label(self) -> str:
+        """The kind of readings, for messages."""
+        return type(self).__name__[1:].lower()
+
+    @classmethod
+    def build(cls, system: LinearSystem, piece: Any, censoring: Censoring | None) -> _Model:
+        """The model of ``piece`` with an optional censoring of its readings (the subclasses that serve a
+        channel class take ``(system, piece, censoring)``)."""
+        make: Any = cls
+        return make(system, piece, censoring)
 
     def __init__(self, system: LinearSystem):
         self.system = system
@@ -424,6 +449,8 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
 class _Fading(_Model):
     """Rice fading of order L (Gaussian coefficients marginalized exactly; other laws drawn)."""
 
+    serves = RiceFading
+
     def __init__(self, system, fading, censoring):
         super().__init__(system)
         fading.check(system.m)
@@ -476,6 +503,15 @@ class _Fading(_Model):
 
 class _Protocol(_Model):
     """Integral window + failure gains + Round-Robin + censoring at tau (the scheduled sensor's reading)."""
+
+    serves = ProtocolChannel
+    feedthrough = False
+
+    @classmethod
+    def build(cls, system, piece, censoring):
+        if censoring is not None:
+            raise ValidationError("censoring: the protocol channel carries its own threshold tau; give no Censoring")
+        return cls(system, piece)
 
     def __init__(self, system, channel: ProtocolChannel):
         super().__init__(system)
@@ -701,6 +737,8 @@ class _Saturation(_Model):
     """Randomly occurring saturation with missing readings: a three-mode mixture per sensor."""
 
     optimal = True
+    serves = RandomSaturation
+    feedthrough = False
 
     def __init__(self, system, channel: RandomSaturation, censoring):
         super().__init__(system)
@@ -886,14 +924,83 @@ def _flatten(channel: Any) -> list:
     return [channel]
 
 
+class _Contract(_Model):
+    r"""A channel of the measurement contract (:mod:`tobitkf.channels.base`): the reading of channel l is a
+    function of :math:`y^*_l = C_lx + D_lu + v_l`; its weight is the channel's ``reading_log_likelihood`` of the
+    particle's latent mean and the noise's standard deviation. A channel with a ``region`` (an interval per
+    reading) also has the locally optimal proposal: the channels in sequence, an exact reading conditioned on
+    its value, an interval one on a draw of :math:`y^*` from the normal truncated to it (weight its mass)."""
+
+    def __init__(self, system: LinearSystem, channel: Channel):
+        super().__init__(system)
+        channel.check(system)
+        self.channel = channel
+        self.nx, self.m = system.n, system.m
+        self.optimal = type(channel).region is not Channel.region
+
+    @property
+    def label(self) -> str:
+        return type(self.channel).__name__
+
+    def log_likelihood(self, rng, k, X, y, dy):
+        mu = _mat(X, self.system.measurement(k).T)
+        if not (np.isscalar(dy) and dy == 0.0):
+            mu = mu + dy[:, None, :]
+        sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")
+        N, Np = X.shape[:2]
+        out = np.zeros((N, Np))
+        for l in range(self.m):
+            rows = np.flatnonzero(~np.isnan(y[:, l]))
+            if rows.size == 0:
+                continue
+            yy = np.repeat(y[rows, l], Np)
+            ll = self.channel.reading_log_likelihood(yy, mu[rows, :, l].ravel(), np.full(yy.size, sd[l]), k, l)
+            out[rows] += np.asarray(ll, dtype=float).reshape(rows.size, Np)
+        return out
+
+    def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
+        sys_ = self.system
+        mu = _mat(X, sys_.transition(k - 1).T)
+        if not (np.isscalar(b) and b == 0.0):
+            mu = mu + b[:, None, :]
+        N, Np, n = mu.shape
+        m = self.m
+        lo, hi = np.full((N, m), np.nan), np.full((N, m), np.nan)
+        cls = np.full((N, m), _MISSING, dtype=np.int8)
+        for l in range(m):
+            rows = ~np.isnan(y[:, l])
+            if rows.any():
+                lo[rows, l], hi[rows, l] = self.channel.region(y[rows, l], k, l)
+                cls[rows, l] = np.where(lo[rows, l] == hi[rows, l], _INTERIOR, _LOWER)  # exact / an interval
+        r = _diag_sigma(sys_, k, f"{type(self.channel).__name__} readings") ** 2
+        U = rng.random((N, Np, m))
+        eps = rng.standard_normal((N, Np, n))
+
+        def reading(l, kind, rows, p, sd):
+            if kind == _INTERIOR:
+                yv = lo[rows, l][:, None]
+                z = (yv - p) / sd
+                return np.broadcast_to(yv, p.shape), -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
+            a, bb = (lo[rows, l][:, None] - p) / sd, (hi[rows, l][:, None] - p) / sd
+            lm = _log_interval(a, bb)
+            return p + sd * _interval_z(a, bb, lm, U[rows, :, l]), lm
+
+        return _condition_in_sequence(
+            mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :], cls, reading, eps
+        )
+
+    def check_record(self, y2: np.ndarray, start: int) -> None:
+        self.channel.check(self.system, start - 1 + y2.shape[1])
+        self.channel.check_readings(y2, start=start)
+
+
 def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     pieces = _flatten(channel) + ([] if censoring is None else [censoring])
-    known = (Censoring, RiceFading, ProtocolChannel, RandomSaturation)
     for p in pieces:
-        if not isinstance(p, known):
+        if not isinstance(p, Channel):
             raise ValidationError(
-                f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation "
-                f"pieces, got {type(p).__name__}"
+                f"channel: expected Censoring, RiceFading, ProtocolChannel, RandomSaturation, Quantizer or "
+                f"other tobitkf.Channel pieces, got {type(p).__name__}"
             )
     cens = [p for p in pieces if isinstance(p, Censoring)]
     drawers = [p for p in pieces if not isinstance(p, Censoring)]
@@ -909,13 +1016,20 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     if not drawers:
         return _Linear(system, c)
     d = drawers[0]
-    if isinstance(d, RiceFading):
-        return _Fading(system, d, c)
-    if isinstance(d, ProtocolChannel):
-        if c is not None:
-            raise ValidationError("censoring: the protocol channel carries its own threshold tau; give no Censoring")
-        return _Protocol(system, d)
-    return _Saturation(system, d, c)
+    model = next((_Model._served[t] for t in type(d).__mro__ if t in _Model._served), None)
+    if model is not None:
+        return model.build(system, d, c)
+    if c is not None:
+        raise ValidationError(
+            f"censoring: {type(d).__name__} is a reading model of its own; give no Censoring with it (a channel "
+            "of your own includes its limits in its region)"
+        )
+    if not d.supports("likelihood"):
+        raise ValidationError(
+            f"channel: {type(d).__name__} supplies neither region() nor reading_moments() (tobitkf.channels.base), "
+            "which the particle filter needs"
+        )
+    return _Contract(system, d)
 
 
 def _rng_state(seed: Any) -> Any:
@@ -952,7 +1066,9 @@ class ParticleFilter(Estimator):
     channel : Channel or sequence of Channel, optional
         :class:`~tobitkf.Censoring` (one-, two-sided, time-varying; several regions as stacked
         channels, :func:`~tobitkf.multi_region`), :class:`~tobitkf.RiceFading` (with a Censoring),
-        :class:`~tobitkf.ProtocolChannel` or :class:`~tobitkf.RandomSaturation` (with a Censoring);
+        :class:`~tobitkf.ProtocolChannel` or :class:`~tobitkf.RandomSaturation` (with a Censoring), or
+        any channel of the measurement contract (:class:`~tobitkf.Quantizer`, a channel of your own:
+        :mod:`tobitkf.channels.base`; the locally optimal proposal when it has a ``region``);
         None: linear Gaussian readings.
     censoring : Censoring, optional
         The censoring, given separately (the same as adding it to ``channel``).
@@ -1043,13 +1159,12 @@ class ParticleFilter(Estimator):
         self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:
             raise ValidationError(
-                f"proposal: 'optimal' has no closed form for {type(self.model).__name__[1:].lower()} "
-                "readings (use 'auto' or 'prior')"
+                f"proposal: 'optimal' has no closed form for {self.model.label} readings (use 'auto' or 'prior')"
             )
         if proposal == "rao_blackwellised" and not (isinstance(self.model, _Protocol) and self.model.optimal):
             raise ValidationError(
                 "proposal: 'rao_blackwellised' is implemented for the protocol channel with discrete failure "
-                f"laws only, not for {type(self.model).__name__[1:].lower()} readings (use 'auto')"
+                f"laws only, not for {self.model.label} readings (use 'auto')"
             )
         if not system.R.varying:
             _diag_sigma(system, 1, "its channels")
@@ -1066,7 +1181,7 @@ class ParticleFilter(Estimator):
     def _feedthrough(self, k, u):
         if u is None or self.system.D is None:
             return 0.0
-        if isinstance(self.model, (_Protocol, _Saturation)):
+        if not self.model.feedthrough:
             what = "protocol" if isinstance(self.model, _Protocol) else "random-saturation"
             raise ValidationError(
                 f"u: the {what} channel's reading has no feedthrough D u (the simulator does not add it "
@@ -1239,7 +1354,7 @@ class ParticleFilter(Estimator):
 
     def __repr__(self) -> str:
         return (
-            f"ParticleFilter({type(self.model).__name__[1:].lower()}, particles={self.particles}, "
+            f"ParticleFilter({self.model.label}, particles={self.particles}, "
             f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})"
         )
 

@@ -6,11 +6,14 @@ experiments (:mod:`tobitkf.experiments`) declare their line-ups of estimators as
 (registry name, options), build them with :func:`lineup` and record them with :func:`describe`
 (``metrics["lineup"]``), and the command line lists it (``tobitkf estimators``). An entry knows
 
-* the **channel pieces** its constructor takes, by section name of a sweep file: ``censoring``
+* the **channel pieces** its constructor takes, by the ``section`` name each channel class registers
+  itself under (:mod:`tobitkf.channels.base`; a sweep file's table of that name): ``censoring``
   (:class:`~tobitkf.Censoring`), ``fading`` (:class:`~tobitkf.RiceFading`), ``protocol``
-  (:class:`~tobitkf.ProtocolChannel`); and two no sweep file describes: ``saturation``
-  (:class:`~tobitkf.RandomSaturation`) and the delay family's ``prior``
-  (:class:`~tobitkf.models.delay.HistoryPrior`);
+  (:class:`~tobitkf.ProtocolChannel`), ``quantizer`` (:class:`~tobitkf.Quantizer`), ``saturation``
+  (:class:`~tobitkf.RandomSaturation`, no sweep-file table), any channel of your own, and the delay
+  family's ``prior`` (:class:`~tobitkf.models.delay.HistoryPrior`); ``channel`` means any channel piece
+  (the generic :class:`~tobitkf.AssumedDensityFilter`, :class:`~tobitkf.TobitFilter` and the particle
+  filter take the channel the pieces make, :func:`channel_of`);
 * its **options**: name -> the allowed values (a tuple), the type of a number (``float``, ``int``),
   or ``object`` for a value no TOML scalar expresses (the H∞ filter's designed gains, the particle
   filter's seed: an int, a :class:`numpy.random.SeedSequence` or a Generator), which the estimator
@@ -45,7 +48,7 @@ from typing import Any, Callable, Mapping
 
 from .._validation import ValidationError
 
-__all__ = ["Entry", "ENTRIES", "get", "names", "make", "lineup", "describe", "parts_of", "Lineup"]
+__all__ = ["Entry", "ENTRIES", "get", "names", "make", "lineup", "describe", "parts_of", "channel_of", "Lineup"]
 
 
 @dataclass(frozen=True)
@@ -92,7 +95,10 @@ class Entry:
             if key not in options:
                 raise ValidationError(f"{key}: {self.name} needs this option")
         for part in self.needs if parts is not None else ():
-            if parts is not None and parts.get(part) is None:
+            if part == "channel" and parts is not None:
+                if channel_of(parts) is None:
+                    raise ValidationError(f"channel: {self.name} needs a channel piece")
+            elif parts is not None and parts.get(part) is None:
                 raise ValidationError(f"{part}: {self.name} needs the channel piece [{part}]")
 
     def run(self, estimator: Any, data: Any, **kwargs: Any) -> Any:
@@ -202,18 +208,46 @@ def _sadf(system, parts, o):
 def _pf(system, parts, o):
     from .particle import ParticleFilter
 
-    return ParticleFilter(system, _pf_channel(parts), **o)
+    return ParticleFilter(system, channel_of(parts), **o)
 
 
-def _pf_channel(parts):
-    """The particle filter's channel from the pieces given: the reading model (``protocol``, else
-    ``saturation``, else ``fading``, else none) and the ``censoring`` (not with the protocol channel,
-    which censors at its own threshold); the same rule as a sweep point's channel."""
-    if parts.get("protocol") is not None:
-        return parts["protocol"]
-    drawer = parts.get("saturation") if parts.get("saturation") is not None else parts.get("fading")
-    pieces = [p for p in (drawer, parts.get("censoring")) if p is not None]
-    return pieces[0] if len(pieces) == 1 else (pieces or None)
+def _generic_adf(system, parts, o):
+    from .adf_generic import AssumedDensityFilter
+
+    return AssumedDensityFilter(system, channel_of(parts), **o)
+
+
+def _generic_tobit(system, parts, o):
+    from .adf_generic import TobitFilter
+
+    return TobitFilter(system, channel_of(parts), **o)
+
+
+def channel_of(parts: Mapping[str, Any]) -> Any:
+    """The channel the pieces ``parts`` (section name -> piece) make, as the simulator draws it and the
+    generic filters take it: a piece that carries its own limits (``replaces_censoring``: the protocol
+    channel, the quantizer) alone; else the reading model (the last piece other than the censoring that is a
+    channel) with the ``censoring`` (left out when it has no finite limit); one piece alone, none as None. Pieces that are no channel (the delay
+    family's prior) are left out.
+
+    >>> import tobitkf as tk
+    >>> channel_of({"censoring": tk.Censoring(lower=0.0), "quantizer": tk.Quantizer(0.5)})
+    Quantizer(0.5)
+    """
+    import numpy as np
+
+    from ..channels.base import Channel
+
+    pieces = [p for p in parts.values() if isinstance(p, Channel)]
+    own = [p for p in pieces if p.replaces_censoring]
+    if own:
+        return own[0]
+    cens = parts.get("censoring")
+    drawers = [p for p in pieces if p is not cens]
+    if drawers and cens is not None and not (np.isfinite(cens.lower).any() or np.isfinite(cens.upper).any()):
+        cens = None  # a censoring without a finite limit (a sweep file's default) censors nothing
+    chosen = [p for p in (drawers[-1] if drawers else None, cens) if p is not None]
+    return chosen[0] if len(chosen) == 1 else (chosen or None)
 
 
 def _hinf(system, parts, o):
@@ -343,6 +377,20 @@ _ENTRY_LIST = [
         options={"covariance_update": _FORMS},
     ),
     Entry(
+        "AssumedDensityFilter",
+        "assumed-density filter of any channel: a named form where one exists, else the channel's moments",
+        _generic_adf,
+        needs=("channel",),
+        options={"covariance_update": _FORMS},
+    ),
+    Entry(
+        "TobitFilter",
+        "the Tobit Kalman filter's update for any channel with reading statistics (beyond the sources)",
+        _generic_tobit,
+        needs=("channel",),
+        options={"covariance_update": _FORMS, "linearization": ("prior_mean", "predictive")},
+    ),
+    Entry(
         "ParticleFilter",
         "bootstrap / optimal-proposal particle filter on any channel: the Bayes optimum (beyond the sources)",
         _pf,
@@ -437,7 +485,9 @@ def make(
 ) -> Any:
     """The estimator ``name`` of the registry for ``system``, its channel pieces and ``options``.
 
-    The pieces given (not None) are the ``parts`` of :meth:`Entry.build`, whose checks apply.
+    The pieces given (not None) are the ``parts`` of :meth:`Entry.build`, whose checks apply; a keyword named
+    after another registered channel section (``quantizer=``, a channel of your own) whose value is a
+    :class:`~tobitkf.Channel` is a piece too.
 
     Raises
     ------
@@ -453,37 +503,39 @@ def make(
     ...
     tobitkf._validation.ValidationError: censoring: DroppingKalmanFilter needs the channel piece [censoring]
     """
+    from ..channels.base import Channel, registered_channels
+
     given = {"censoring": censoring, "fading": fading, "protocol": protocol, "saturation": saturation, "prior": prior}
+    sections = registered_channels()
+    for key in [k for k, v in options.items() if k in sections and isinstance(v, Channel)]:
+        given[key] = options.pop(key)
     return get(name).build(system, {k: v for k, v in given.items() if v is not None}, options)
 
 
 def parts_of(channel: Any) -> dict[str, Any]:
-    """The channel pieces of ``channel`` (one piece, a list of pieces, or None) by section name:
-    :class:`~tobitkf.Censoring` -> ``censoring``, :class:`~tobitkf.RiceFading` -> ``fading``,
-    :class:`~tobitkf.ProtocolChannel` -> ``protocol``, :class:`~tobitkf.RandomSaturation` -> ``saturation``.
+    """The channel pieces of ``channel`` (one piece, a list of pieces, or None) by the section name their class
+    registered (:class:`~tobitkf.Censoring` -> ``censoring``, :class:`~tobitkf.RiceFading` -> ``fading``,
+    :class:`~tobitkf.ProtocolChannel` -> ``protocol``, :class:`~tobitkf.RandomSaturation` -> ``saturation``,
+    :class:`~tobitkf.Quantizer` -> ``quantizer``, a channel of your own -> its ``section``).
 
     Raises
     ------
     ValidationError
-        A piece of another type, or two pieces of one section.
+        A piece that is no registered channel, or two pieces of one section.
 
     >>> import tobitkf as tk
     >>> sorted(parts_of([tk.RandomSaturation([0.5], [0.9]), tk.Censoring(lower=0.0)]))
     ['censoring', 'saturation']
     """
-    from ..channels.censoring import Censoring
-    from ..channels.fading import RiceFading
-    from ..channels.protocol import ProtocolChannel
-    from ..channels.saturation import RandomSaturation
+    from ..channels.base import registered_channels, section_of
 
-    kinds = {Censoring: "censoring", RiceFading: "fading", ProtocolChannel: "protocol", RandomSaturation: "saturation"}
     pieces = [] if channel is None else list(channel) if isinstance(channel, (list, tuple)) else [channel]
     out: dict[str, Any] = {}
     for piece in pieces:
-        section = next((v for k, v in kinds.items() if isinstance(piece, k)), None)
+        section = section_of(piece)
         if section is None:
             raise ValidationError(
-                f"channel: expected Censoring, RiceFading, ProtocolChannel or RandomSaturation pieces, "
+                f"channel: expected registered channel pieces ({', '.join(sorted(registered_channels()))}), "
                 f"got {type(piece).__name__}"
             )
         if section in out:

@@ -25,73 +25,31 @@ class Point:
     parts: dict[str, Any]
     estimators: dict[str, tuple[Any, Any]]
 
+    def _own(self) -> Any:
+        """The piece that carries its own limits (the protocol channel, a quantizer), if any."""
+        return next((p for p in self.parts.values() if getattr(p, "replaces_censoring", False)), None)
+
     @property
     def reading_width(self) -> int:
         """Channels of the readings the estimators receive (1 for the protocol channel's scalar)."""
-        return 1 if self.parts.get("protocol") is not None else self.system.m
+        own = self._own()
+        return self.system.m if own is None else own.reading_width(self.system)
 
     def channel(self) -> list[Any]:
-        """The pieces the simulator draws, in order (the protocol channel censors and schedules itself)."""
-        if self.parts.get("protocol") is not None:
-            return [self.parts["protocol"]]
-        return [p for p in (self.parts.get("fading"), self.parts.get("censoring")) if p is not None]
+        """The pieces the simulator draws, in order (a piece with its own limits draws and censors alone)."""
+        from ..filters.registry import channel_of
+
+        ch = channel_of(self.parts)
+        return [] if ch is None else list(ch) if isinstance(ch, list) else [ch]
 
     def censored(self, y: np.ndarray) -> np.ndarray:
-        """(N, T, width) mask of the readings at a censoring limit."""
-        if self.parts.get("protocol") is not None:
-            return y <= self.parts["protocol"].threshold
-        lo, hi = self.parts["censoring"].censored_mask(y)
-        return lo | hi
+        """(N, T, width) mask of the readings at a limit of the sensor."""
+        own = self._own()
+        return (own if own is not None else self.parts["censoring"]).at_limit(y)
 
     # the pre-0.2 tuple form: (system, censoring, {key: estimator})
     def __iter__(self):
         return iter((self.system, self.parts.get("censoring"), {k: e for k, (_, e) in self.estimators.items()}))
-
-
-def _law(tbl: dict[str, Any] | str | None, name: str):
-    from ..channels.laws import PMF
-
-    if tbl is None or tbl == "none":
-        return None
-    if isinstance(tbl, str):
-        from ..channels.protocol import LAMBDA_1, LAMBDA_BASE
-
-        laws = {"base": LAMBDA_BASE, "lambda1": LAMBDA_1}
-        if tbl not in laws:
-            raise ValidationError(
-                f"{name}: expected 'none', 'base', 'lambda1' or a table {{values, probs}}, got {tbl!r}"
-            )
-        return laws[tbl]
-    if not isinstance(tbl, dict) or set(tbl) != {"values", "probs"}:
-        raise ValidationError(f"{name}: expected a table with 'values' and 'probs', got {tbl!r}")
-    return PMF(tbl["values"], tbl["probs"])
-
-
-def _fading(tbl: dict[str, Any]):
-    from ..channels.fading import RiceFading
-    from ..channels.laws import Uniform
-
-    if "order" not in tbl:
-        raise ValidationError("order: the [fading] channel needs its order L")
-    if "low" in tbl or "high" in tbl:
-        if "mean" in tbl or "variance" in tbl:
-            raise ValidationError("mean: give either mean/variance (Gaussian) or low/high (uniform), not both")
-        return RiceFading(tbl["order"], Uniform(tbl.get("low"), tbl.get("high")))
-    if "mean" not in tbl:
-        raise ValidationError("mean: the [fading] channel needs the coefficients' means (or low/high)")
-    return RiceFading.gaussian(tbl["order"], tbl["mean"], tbl.get("variance", 0.0))
-
-
-def _protocol(tbl: dict[str, Any], system):
-    from ..channels.protocol import ProtocolChannel
-
-    kw = {k: v for k, v in tbl.items() if k in ("window", "threshold", "order", "prehistory")}
-    if "threshold" in kw:
-        kw["threshold"] = float(kw["threshold"])
-    failures = _law(tbl.get("failures"), "failures")
-    if failures is not None:
-        kw["failures"] = failures
-    return ProtocolChannel(system.m, **kw)
 
 
 def build_point(spec: Any, point: dict[str, Any], *, threads: int | None = None) -> Point:
@@ -99,6 +57,7 @@ def build_point(spec: Any, point: dict[str, Any], *, threads: int | None = None)
 
     ``threads`` is passed to the estimators that split their runs over threads (the TKF's
     compiled kernel); None keeps their default."""
+    from ..channels.base import channel_class
     from ..channels.censoring import Censoring
     from ..filters.registry import get
     from ..models.linear import LinearSystem
@@ -106,15 +65,13 @@ def build_point(spec: Any, point: dict[str, Any], *, threads: int | None = None)
     r = spec.resolved(point)
     sys_ = LinearSystem(**r["model"])
     parts: dict[str, Any] = {}
-    if "protocol" in r:
-        parts["protocol"] = _protocol(r["protocol"], sys_)
-    else:
+    for sec in spec.channels:  # each channel table by its registered class (tobitkf.channels.base)
+        parts[sec] = channel_class(sec).from_options(r[sec], sys_)
+        parts[sec].check(sys_, spec.steps)
+    if not any(p.replaces_censoring for p in parts.values()):
         cens = Censoring(**r["censoring"])
         cens.check(sys_.m, spec.steps)
-        parts["censoring"] = cens
-    if "fading" in r:
-        parts["fading"] = _fading(r["fading"])
-        parts["fading"].check(sys_.m)
+        parts = {"censoring": cens, **parts}
     estimators = {}
     for key, est in r["estimators"].items():
         entry = get(est["type"])

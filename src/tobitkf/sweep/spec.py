@@ -36,13 +36,17 @@ Channel sections (optional; the pieces of :mod:`tobitkf.channels` the data pass 
 that need them take): ``[fading]`` (``order`` L, the coefficients' ``mean`` and ``variance`` per delay
 s = 0..L (a Gaussian law), or ``low``/``high`` (uniform)) and ``[protocol]`` (``window`` ℓ,
 ``threshold`` τ, ``failures`` = ``"none"``, ``"base"`` (the example's Λ on {0, 0.5, 1}, mean 0.9),
-``"lambda1"`` (mean 0.6) or a table ``{values = [...], probs = [...]}``, ``order``, ``prehistory``).
+``"lambda1"`` (mean 0.6) or a table ``{values = [...], probs = [...]}``, ``order``, ``prehistory``),
+``[quantizer]`` (``width``, ``offset``, ``lower``, ``upper``; it replaces ``[censoring]``), and the table of
+any channel class of your own that registers a ``section`` with ``sweep_options``
+(:mod:`tobitkf.channels.base`): the tables are the registered channels', not a list kept here.
 Estimator types are the registry's families on a linear model (:mod:`tobitkf.filters.registry`):
 ``KalmanFilter``, ``DroppingKalmanFilter``, ``TobitKalmanFilter``, ``SteadyStateTobitKalmanFilter``
 (``xi_uncensored = ...``; it reads the latent readings and censors them itself),
 ``ControlledLimitTobitKalmanFilter``, ``FadingTobitKalmanFilter``, ``FadingKalmanFilter``
 (need ``[fading]``), ``ProtocolTobitKalmanFilter``, ``ProtocolBaselineTobitKalmanFilter`` (need
-``[protocol]``, which replaces ``[censoring]``).
+``[protocol]``, which replaces ``[censoring]``), and for any channel ``AssumedDensityFilter``,
+``TobitFilter`` and ``ParticleFilter`` (``seed = ...``).
 
 Experiment mode: ``[sweep] experiment = "miller-oscillator"``, optional ``[settings]``
 (keyword overrides of the experiment's ``run``), and grid keys ``"settings.<name>"``.
@@ -79,20 +83,33 @@ def _estimator_types() -> dict[str, tuple[str, ...]]:
     }
 
 
-# the channel pieces a sweep file describes (its sections)
-_SWEEP_PIECES = {"censoring", "fading", "protocol"}
+def _channel_keys() -> dict[str, set[str]]:
+    """The channel tables a sweep file may have (every registered channel class with ``sweep_options``, but
+    ``[censoring]``, which a model-mode sweep always has) and the keys each accepts (tobitkf.channels.base)."""
+    from ..channels.base import registered_channels
+
+    return {
+        sec: set(cls.sweep_options)
+        for sec, cls in registered_channels().items()
+        if cls.sweep_options and sec != "censoring"
+    }
+
+
+def _own_limits(sec: str) -> bool:
+    from ..channels.base import channel_class
+
+    return channel_class(sec).replaces_censoring
+
+
+# the channel pieces a sweep file describes (its sections), and "channel": any of them
+_SWEEP_PIECES = {"censoring", "channel", *_channel_keys()}
 # estimator types a sweep file may name (every registered family on a LinearSystem whose channel pieces a
 # sweep file describes, tobitkf.filters.registry), with the options each accepts (checked on load)
 ESTIMATOR_TYPES: dict[str, tuple[str, ...]] = _estimator_types()
 _SWEEP_KEYS = {"runs", "steps", "seed", "block_runs", "chunk_blocks", "name", "experiment"}
 _MODEL_KEYS = {"A", "C", "Q", "R", "x0", "P0", "B"}
 _CENS_KEYS = {"lower", "upper"}
-# channel sections (tobitkf.channels): the keys each accepts
-_CHANNEL_KEYS = {
-    "fading": {"order", "mean", "variance", "low", "high"},
-    "protocol": {"window", "threshold", "failures", "order", "prehistory"},
-}
-_TOP = {"sweep", "model", "censoring", "estimators", "grid", "settings"} | set(_CHANNEL_KEYS)
+_TOP = {"sweep", "model", "censoring", "estimators", "grid", "settings"}  # and the channel tables
 
 
 class SweepFileError(ValidationError):
@@ -328,9 +345,11 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
     depth, where = _depth(doc, MAX_DEPTH)
     if depth > MAX_DEPTH:
         raise _fail(text, where, f"nested more than {MAX_DEPTH} levels deep; a sweep file needs at most a few")
+    _CHANNEL_KEYS = _channel_keys()  # noqa: N806  (the registered channels when the file is read)
+    top = _TOP | set(_CHANNEL_KEYS)
     for key in doc:
-        if key not in _TOP:
-            raise _fail(text, key, f"unknown table; expected one of {', '.join(sorted(_TOP))}")
+        if key not in top:
+            raise _fail(text, key, f"unknown table; expected one of {', '.join(sorted(top))}")
     sw = doc.get("sweep")
     if not isinstance(sw, dict):
         raise SweepFileError("sweep file: missing the [sweep] table (runs, steps, seed)")
@@ -390,8 +409,11 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             for key in tbl:
                 if key not in allowed_keys:
                     raise _fail(text, f"{sec}.{key}", f"unknown key; expected one of {', '.join(sorted(allowed_keys))}")
-        if "protocol" in doc and cens:
-            raise _fail(text, "censoring", "the [protocol] channel censors at its own threshold; drop [censoring]")
+        own = [sec for sec in _CHANNEL_KEYS if sec in doc and _own_limits(sec)]
+        if len(own) > 1:
+            raise _fail(text, own[1], f"[{own[0]}] and [{own[1]}] each carry their own limits; keep one")
+        if own and cens:
+            raise _fail(text, "censoring", f"the [{own[0]}] channel carries its own limits; drop [censoring]")
         if not ests:
             raise _fail(text, "estimators", "expected at least one [estimators.<key>] table")
         for key, est in ests.items():
