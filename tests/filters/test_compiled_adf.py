@@ -93,7 +93,9 @@ def test_interval_event_matches_the_reference(ea, eb):
     """The interval piece a quantizer reuses: truncated moments on [ea, eb] (narrow, wide, in a tail) as
     tobitkf.censored_moments; its log-probability as the reference's uncensored probability."""
     mu, sd = 0.0, 1.0
-    logp, m, v = cm.interval_event(mu, sd, ea, eb, tk.filters._kernels.GL_X, tk.filters._kernels.GL_W, np.empty((2, 64)))
+    logp, m, v = cm.interval_event(
+        mu, sd, ea, eb, tk.filters._kernels.GL_X, tk.filters._kernels.GL_W, np.empty((2, 64))
+    )
     ref = censored_moments(mu, sd, ea, eb)
     assert m == pytest.approx(float(ref.truncated_mean), rel=1e-12, abs=1e-13)
     assert v == pytest.approx(float(ref.truncated_var), rel=1e-10, abs=1e-300)
@@ -126,8 +128,18 @@ def test_censored_block_is_the_adf_update_of_one_channel():
     cls = tk.filters._readings.classify_readings(y, lo, hi)
     hph = np.einsum("rij,i,j->r", P, c, c)
     alpha, beta, llc, puc, _ = cm.family_array(
-        cm.CENSORED, y, cls, mu, hph, np.full(N, r), np.full(N, lo), np.full(N, hi), np.zeros(0), 0,
-        tk.filters._kernels.GL_X, tk.filters._kernels.GL_W,
+        cm.CENSORED,
+        y,
+        cls,
+        mu,
+        hph,
+        np.full(N, r),
+        np.full(N, lo),
+        np.full(N, hi),
+        np.zeros(0),
+        0,
+        tk.filters._kernels.GL_X,
+        tk.filters._kernels.GL_W,
     )
     Pc = P @ c
     np.testing.assert_allclose(x + alpha[:, None] * Pc, xn, rtol=0, atol=1e-12 * np.abs(xn).max())
@@ -177,8 +189,14 @@ def test_censoring_adf_readings_forty_sigma_into_the_tails():
     a limit 40 sigma on its side), and interior readings with the limits 40 sigma away."""
     sys_ = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[0.5]], x0=[0.0], P0=[[0.5]])
     s = 1.0  # the latent's predicted sd at the first step: sqrt(0.5 + 0.5)
-    for lo, hi, reading in ((-40 * s, np.inf, -40 * s), (40 * s, np.inf, 40 * s), (-np.inf, 40 * s, 40 * s),
-                            (-np.inf, -40 * s, -40 * s), (-40 * s, 40 * s, 0.3), (-40 * s, 40 * s, 40 * s)):
+    for lo, hi, reading in (
+        (-40 * s, np.inf, -40 * s),
+        (40 * s, np.inf, 40 * s),
+        (-np.inf, 40 * s, 40 * s),
+        (-np.inf, -40 * s, -40 * s),
+        (-40 * s, 40 * s, 0.3),
+        (-40 * s, 40 * s, 40 * s),
+    ):
         cens = tk.Censoring(lower=lo, upper=hi)
         y = np.array([[[reading]], [[0.1 if np.isfinite(reading) else 0.0]]])
         y[1] = np.clip(y[1], lo, hi)
@@ -275,7 +293,9 @@ def test_fading_adf_compiled_equals_numpy(censored):
     assert_same(*both(make, y, u=u))
     assert_same(*both(make, y, outputs=("mean", "var", "extras")))
     a1 = make("numpy").filter(y[..., :1, :])  # a state within the first L steps
-    assert_same(make("numpy").filter(y[..., 1:, :], state=a1.final), make("numba").filter(y[..., 1:, :], state=a1.final))
+    assert_same(
+        make("numpy").filter(y[..., 1:, :], state=a1.final), make("numba").filter(y[..., 1:, :], state=a1.final)
+    )
 
 
 @pytest.mark.parametrize(
@@ -290,8 +310,12 @@ def test_fading_adf_compiled_equals_numpy(censored):
 def test_protocol_adf_compiled_equals_numpy(law, window, threshold, mode):
     w = 0.052 * np.pi
     sys_ = tk.LinearSystem(
-        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=np.eye(2), Q=0.0025 * np.eye(2),
-        R=np.diag([1.0, 0.5]), x0=[5.0, 0.0], P0=np.eye(2),
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]],
+        C=np.eye(2),
+        Q=0.0025 * np.eye(2),
+        R=np.diag([1.0, 0.5]),
+        x0=[5.0, 0.0],
+        P0=np.eye(2),
     )
     ch = tk.ProtocolChannel(2, window=window, failures=law, threshold=threshold, prehistory=mode)
     y = tk.simulate(sys_, 25, 20, channel=ch, seed=11).y.copy()

@@ -38,19 +38,49 @@ from numba import njit
 
 from ._backend import system_gap, use_kernel
 from ._compiled_moments import CENSORED, INTERIOR, LOWER, PROTOCOL, SATURATION, UPPER, classify, family_block
-from ._kernels import GL_W, GL_X, _load, _mirror, predict_block, runs_per_block
+from ._kernels import GL_W, GL_X, _mirror, predict_block, runs_per_block
 from ._kernels_fading import shift_predict_block
 from ._readings import classify_readings
 from .core import FilterState
 from .kalman import kernel_result, output_arrays, state_specs
 
-__all__ = ["adf_loop", "CompiledSpec", "compiled_filter", "censoring_spec", "fading_spec", "protocol_spec",
-           "saturation_spec"]
+__all__ = [
+    "adf_loop",
+    "CompiledSpec",
+    "compiled_filter",
+    "censoring_spec",
+    "fading_spec",
+    "protocol_spec",
+    "saturation_spec",
+]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def adf_loop(
-    family, y, cls, A, Qd, H, F, r, lo, hi, par, J, bu, du, x0, P0, means, covs, pmeans, pcovs, pu, ll, comp, x_last,
+    family,
+    y,
+    cls,
+    A,
+    Qd,
+    H,
+    F,
+    r,
+    lo,
+    hi,
+    par,
+    J,
+    bu,
+    du,
+    x0,
+    P0,
+    means,
+    covs,
+    pmeans,
+    pcovs,
+    pu,
+    ll,
+    comp,
+    x_last,
     P_last,
 ):
     r"""The assumed-density filter of ``family`` over N runs x T steps (module docstring); fills the outputs.
@@ -157,8 +187,9 @@ def adf_loop(
                     lov[b] = lo_l
                     hiv[b] = hi_l
                     cv[b] = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
-                family_block(family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pub, compb,
-                             glx, glw, buf)
+                family_block(
+                    family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pub, compb, glx, glw, buf
+                )
                 # the rank-one update along P h^T
                 for i in range(nx):
                     for b in range(nb):
@@ -199,8 +230,6 @@ def adf_loop(
                 for j in range(nx):
                     P_last[r0 + b, i, j] = P[i, j, b]
 
-
-_ = _load  # the kernels' loader is the layout this loop reads (runs last); kept for the reader
 
 
 @dataclass
@@ -260,12 +289,26 @@ def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, ste
     side = None if cls is None else np.where(cls == LOWER, -1, np.where(cls == UPPER, 1, 0)).astype(np.int8)
 
     def extras(pu, ll, comp):
-        return {"p_uncensored": _per_batch(pu, batch), "log_likelihood": _per_batch(ll, batch),
-                "side": _per_batch(side, batch)}
+        return {
+            "p_uncensored": _per_batch(pu, batch),
+            "log_likelihood": _per_batch(ll, batch),
+            "side": _per_batch(side, batch),
+        }
 
     bu, du = _input_terms(est, u2, N, est.n, m)
-    return CompiledSpec(CENSORED, _c(est.system.measurement(1))[None], _c(est._r)[None], _c(lo), _c(hi),
-                        np.zeros((1, m, 0)), 0, extras, cls=cls if flags is not None else None, bu=bu, du=du)
+    return CompiledSpec(
+        CENSORED,
+        _c(est.system.measurement(1))[None],
+        _c(est._r)[None],
+        _c(lo),
+        _c(hi),
+        np.zeros((1, m, 0)),
+        0,
+        extras,
+        cls=cls if flags is not None else None,
+        bu=bu,
+        du=du,
+    )
 
 
 def fading_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
@@ -295,8 +338,9 @@ def fading_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_d
         return {"p_uncensored": _per_batch(pu, batch), "log_likelihood": _per_batch(ll, batch)}
 
     bu, du = _input_terms(est, u2, N, n, m)
-    return CompiledSpec(CENSORED, H, _c(est._r)[None], _c(lo), _c(hi), np.zeros((1, m, 0)), 0, extras, F=F, bu=bu,
-                        du=du)
+    return CompiledSpec(
+        CENSORED, H, _c(est._r)[None], _c(lo), _c(hi), np.zeros((1, m, 0)), 0, extras, F=F, bu=bu, du=du
+    )
 
 
 def protocol_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
@@ -320,12 +364,16 @@ def protocol_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step
     tau = float(est.channel.threshold)
 
     def extras(pu, ll, comp):
-        return {"failure_posterior": _per_batch(comp[:, :, 0], batch), "p_uncensored": _per_batch(pu[..., 0], batch),
-                "log_likelihood": _per_batch(ll, batch)}
+        return {
+            "failure_posterior": _per_batch(comp[:, :, 0], batch),
+            "p_uncensored": _per_batch(pu[..., 0], batch),
+            "log_likelihood": _per_batch(ll, batch),
+        }
 
     bu, du = _input_terms(est, u2, N, est.n, 1, feedthrough=False)
-    return CompiledSpec(PROTOCOL, H, _c(rdiag[hs])[:, None], np.full((1, 1), tau), np.full((1, 1), np.inf), par, J,
-                        extras, bu=bu, du=du)
+    return CompiledSpec(
+        PROTOCOL, H, _c(rdiag[hs])[:, None], np.full((1, 1), tau), np.full((1, 1), np.inf), par, J, extras, bu=bu, du=du
+    )
 
 
 def saturation_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
@@ -342,8 +390,18 @@ def saturation_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, st
 
     bu, du = _input_terms(est, u2, N, est.n, m, feedthrough=False)
     inf = np.full((1, m), np.inf)
-    return CompiledSpec(SATURATION, _c(est.system.measurement(1))[None], _c(est._variances(1))[None], -inf, inf, par,
-                        3, extras, bu=bu, du=du)
+    return CompiledSpec(
+        SATURATION,
+        _c(est.system.measurement(1))[None],
+        _c(est._variances(1))[None],
+        -inf,
+        inf,
+        par,
+        3,
+        extras,
+        bu=bu,
+        du=du,
+    )
 
 
 def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spec_of) -> Any:
@@ -377,10 +435,33 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     sys_ = est.system
     F = spec.F if spec.F is not None else np.zeros((1, m, 0, nx))
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
-    adf_loop(spec.family, np.ascontiguousarray(y2), np.ascontiguousarray(cls, dtype=np.int8),
-             _c(sys_.transition(0)), _c(sys_.process_cov(0)), _c(spec.H), _c(F), _c(spec.r), _c(spec.lo),
-             _c(spec.hi), _c(spec.par), spec.J, spec.bu, spec.du, x0, P0, means, covs, pmeans, pcovs, pu, ll,
-             comp if comp.shape[1] > 0 else np.empty((N, 0, m, spec.J)), x_last, P_last)
+    adf_loop(
+        spec.family,
+        np.ascontiguousarray(y2),
+        np.ascontiguousarray(cls, dtype=np.int8),
+        _c(sys_.transition(0)),
+        _c(sys_.process_cov(0)),
+        _c(spec.H),
+        _c(F),
+        _c(spec.r),
+        _c(spec.lo),
+        _c(spec.hi),
+        _c(spec.par),
+        spec.J,
+        spec.bu,
+        spec.du,
+        x0,
+        P0,
+        means,
+        covs,
+        pmeans,
+        pcovs,
+        pu,
+        ll,
+        comp if comp.shape[1] > 0 else np.empty((N, 0, m, spec.J)),
+        x_last,
+        P_last,
+    )
     if not np.isfinite(np.diagonal(P_last, axis1=-2, axis2=-1)).all():
         return None
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)

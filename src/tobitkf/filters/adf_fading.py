@@ -38,8 +38,8 @@ from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, _noise_variances, censored_channel_update
 from ._backend import BACKENDS
+from .assumed_density import AssumedDensityFamily, _noise_variances, censored_channel_update
 from .core import (
     COVARIANCE_FORMS,
     Transition,

@@ -48,8 +48,8 @@ from .._validation import ValidationError, check_instance
 from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, censored_channel_update, merge_gaussians
 from ._backend import BACKENDS
+from .assumed_density import AssumedDensityFamily, censored_channel_update, merge_gaussians
 from .core import (
     COVARIANCE_FORMS,
     Transition,

@@ -47,8 +47,8 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.saturation import RandomSaturation
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, merge_gaussians
 from ._backend import BACKENDS
+from .assumed_density import AssumedDensityFamily, merge_gaussians
 from .core import (
     COVARIANCE_FORMS,
     MeasurementPrediction,

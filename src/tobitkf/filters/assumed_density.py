@@ -58,10 +58,10 @@ import numpy as np
 from scipy.special import ndtr
 
 from .._validation import ValidationError, as_float_array, check_instance
-from ._backend import BACKENDS, kernels, numba_available
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS, kernels, numba_available
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, _as_indicator, censored_log_likelihood, censoring_sides
 from ._readings import classify_readings as _classify
 from .core import (
