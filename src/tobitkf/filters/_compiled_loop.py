@@ -231,7 +231,6 @@ def adf_loop(
                     P_last[r0 + b, i, j] = P[i, j, b]
 
 
-
 @dataclass
 class CompiledSpec:
     """What a family gives :func:`adf_loop` (module docstring); ``extras`` turns the loop's ``pu`` (N, T, m),
