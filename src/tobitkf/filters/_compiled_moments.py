@@ -136,8 +136,9 @@ def _censored_one(y, c, mu, s2, lo, hi):
     # p_uncensored = P(y* > lo) - P(y* > hi), and the piece beyond the limit of a censored reading
     lo_fin = lo != -_INF
     hi_fin = hi != _INF
-    p_above_lo, lp_lo, m_lo, v_lo = beyond(mu, s, lo if lo_fin else 0.0, -1.0)  # y* <= lo
-    p_below_hi, lp_hi, m_hi, v_hi = beyond(mu, s, hi if hi_fin else 0.0, 1.0)  # y* >= hi
+    # a side without a limit is not evaluated (the branch is the channel's, the same for every run)
+    p_above_lo, lp_lo, m_lo, v_lo = beyond(mu, s, lo, -1.0) if lo_fin else (1.0, 0.0, 0.0, 0.0)  # y* <= lo
+    p_below_hi, lp_hi, m_hi, v_hi = beyond(mu, s, hi, 1.0) if hi_fin else (1.0, 0.0, 0.0, 0.0)  # y* >= hi
     if lo_fin and hi_fin:
         pu = p_above_lo - math.exp(lp_hi)
     elif lo_fin:
@@ -146,30 +147,21 @@ def _censored_one(y, c, mu, s2, lo, hi):
         pu = p_below_hi
     else:
         pu = 1.0
-    alpha = 0.0
-    beta = 0.0
-    ll = 0.0
-    if c == MISSING:
-        return alpha, beta, ll, pu
-    if not ok:  # a degenerate latent: the indicator of the reading, no update
-        if c == LOWER:
-            agrees = mu <= lo
-        elif c == UPPER:
-            agrees = mu >= hi
-        else:
-            agrees = y == mu
-        return alpha, beta, (0.0 if agrees else -_INF), pu
-    if c == INTERIOR:
-        z = (y - mu) / s
-        ll = -0.5 * z * z - math.log(s) - _LOG_SQRT_2PI
-        obs = y
-        v = 0.0
-    elif c == LOWER:
-        ll, obs, v = lp_lo, m_lo, v_lo
-    else:
-        ll, obs, v = lp_hi, m_hi, v_hi
-    alpha = (obs - mu) / s2
-    beta = (s2 - v) / (s2 * s2)
+    # selects rather than branches per run (the loop over a block's runs stays vectorisable)
+    is_lo = c == LOWER
+    is_hi = c == UPPER
+    z = (y - mu) / s
+    ll_in = -0.5 * z * z - math.log(s) - _LOG_SQRT_2PI
+    obs = m_lo if is_lo else (m_hi if is_hi else y)
+    v = v_lo if is_lo else (v_hi if is_hi else 0.0)
+    ll = lp_lo if is_lo else (lp_hi if is_hi else ll_in)
+    take = ok and c != MISSING
+    alpha = (obs - mu) / s2 if take else 0.0
+    beta = (s2 - v) / (s2 * s2) if take else 0.0
+    if not take:
+        # missing: 0; a degenerate latent: the indicator of the reading (mu agrees with it), no update
+        agrees = (mu <= lo) if is_lo else ((mu >= hi) if is_hi else (y == mu))
+        ll = 0.0 if (c == MISSING or agrees) else -_INF
     return alpha, beta, ll, pu
 
 
