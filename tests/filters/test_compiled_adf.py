@@ -162,13 +162,14 @@ CENSORINGS = {
 
 @pytest.mark.parametrize("kind", list(CENSORINGS))
 @pytest.mark.parametrize("m", [1, 3])
-def test_censoring_adf_compiled_equals_numpy(kind, m):
+@pytest.mark.parametrize("order", ["channels", "uncensored_first"])
+def test_censoring_adf_compiled_equals_numpy(kind, m, order):
     sys_ = oscillator(m)
     cens = CENSORINGS[kind](m)
     y = tk.simulate(sys_, 25, 30, censoring=cens, seed=m).y.copy()
     y[::4, 3, 0] = np.nan  # missing readings
     y[2, 5:9] = np.nan
-    assert_same(*both(lambda be: tk.AssumedDensityTobitFilter(sys_, cens, backend=be), y))
+    assert_same(*both(lambda be: tk.AssumedDensityTobitFilter(sys_, cens, order=order, backend=be), y))
 
 
 def test_censoring_adf_multi_region_and_limits_per_step():
@@ -220,6 +221,12 @@ def test_censoring_adf_indicator_outputs_batches_inputs_and_states():
 
     for outputs in ("all", "last", ("mean",), ("var",), ("cov", "extras"), ("pred_mean", "pred_cov")):
         assert_same(*both(make, y, u=u, outputs=outputs))
+    first = tk.AssumedDensityTobitFilter(sys_, cens, order="uncensored_first", backend="numpy").filter(
+        y, u=u, censored=flags
+    )
+    assert_same(
+        first, tk.AssumedDensityTobitFilter(sys_, cens, order="uncensored_first").filter(y, u=u, censored=flags)
+    )
     flip = flags.copy()
     flip[0, 0, :] = False  # readings at a limit recorded as exact
     assert_same(*both(make, y, u=u, censored=flags))
@@ -253,7 +260,7 @@ def test_backend_choice_and_uncovered_options():
     y = tk.simulate(sys_, 10, 4, censoring=cens, seed=8).y
     with pytest.raises(tk.ValidationError, match="backend"):
         tk.AssumedDensityTobitFilter(sys_, cens, backend="fast")
-    for kw in ({"covariance_update": "joseph"}, {"order": "uncensored_first"}):
+    for kw in ({"covariance_update": "joseph"}, {"covariance_update": "square_root"}):
         with pytest.raises(tk.ValidationError, match="backend"):
             tk.AssumedDensityTobitFilter(sys_, cens, backend="numba", **kw).filter(y)
         auto = tk.AssumedDensityTobitFilter(sys_, cens, **kw).filter(y)  # falls back to the numpy loop

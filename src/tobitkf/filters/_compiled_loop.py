@@ -24,7 +24,7 @@ variances ``r`` (TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`
 mixture components ``J`` whose posterior weights are returned; per-step arrays are indexed by
 ``min(t, len - 1)`` (one row: constant). Covered: the standard covariance form, time-invariant system
 matrices (control inputs through constant ``Bu``/``D``), the channel-order update; anything else (the Joseph
-and square-root forms, ``order="uncensored_first"``, time-varying matrices, per-step limits given to
+and square-root forms, time-varying matrices, per-step limits given to
 ``step``) runs the numpy path (``backend="auto"``) or is refused (``backend="numba"``).
 """
 
@@ -37,7 +37,7 @@ import numpy as np
 from numba import njit
 
 from ._backend import system_gap, use_kernel
-from ._compiled_moments import CENSORED, INTERIOR, LOWER, PROTOCOL, SATURATION, UPPER, classify, family_block
+from ._compiled_moments import CENSORED, INTERIOR, LOWER, MISSING, PROTOCOL, SATURATION, UPPER, classify, family_block
 from ._kernels import GL_W, GL_X, _mirror, predict_block, runs_per_block
 from ._kernels_fading import shift_predict_block
 from ._readings import classify_readings
@@ -69,6 +69,7 @@ def adf_loop(
     hi,
     par,
     J,
+    npass,
     bu,
     du,
     x0,
@@ -103,6 +104,7 @@ def adf_loop(
     hx, hph, rb = np.empty(B), np.empty(B), np.empty(B)
     yv, lov, hiv = np.empty(B), np.empty(B), np.empty(B)
     cv = np.empty(B, dtype=np.int8)
+    member = np.empty(B, dtype=np.bool_)
     alpha, beta, llb, pub = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
     compb = np.zeros((J, B))
     buf = np.empty((2, GL_X.shape[0]))
@@ -143,7 +145,8 @@ def adf_loop(
                 llb[b] = 0.0
             th, tf, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, r.shape[0] - 1)
             tl, tp = min(t, lo.shape[0] - 1), min(t, par.shape[0] - 1)
-            for l in range(m):
+            for pl in range(npass * m):  # npass = 2: the readings inside their limits first, then the others
+                ps, l = pl // m, pl % m
                 h = H[th, l]
                 lo_l, hi_l, r_l = lo[tl, l], hi[tl, l], r[tr, l]
                 # P h^T, h x + d, h P h^T
@@ -186,7 +189,9 @@ def adf_loop(
                     yv[b] = yb
                     lov[b] = lo_l
                     hiv[b] = hi_l
-                    cv[b] = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
+                    c = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
+                    member[b] = npass == 1 or ((c == INTERIOR) == (ps == 0))
+                    cv[b] = c if member[b] else MISSING
                 family_block(
                     family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pub, compb, glx, glw, buf
                 )
@@ -201,7 +206,8 @@ def adf_loop(
                 _mirror(Pp, nb)
                 if w_pu:
                     for b in range(nb):
-                        pu[r0 + b, t, l] = pub[b]
+                        if member[b]:
+                            pu[r0 + b, t, l] = pub[b]
                 if w_comp:
                     for b in range(nb):
                         for j in range(J):
@@ -248,6 +254,7 @@ class CompiledSpec:
     cls: np.ndarray | None = None
     bu: np.ndarray | None = None
     du: np.ndarray | None = None
+    npass: int = 1
 
 
 def _c(a: Any) -> np.ndarray:
@@ -273,8 +280,9 @@ def _per_batch(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray:
 
 def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
     """The :class:`~tobitkf.filters.assumed_density.AssumedDensityTobitFilter`'s arrays, or None when its
-    options are not covered (``order="uncensored_first"``, time-varying R)."""
-    if est.order != "channels" or est._r is None:
+    options are not covered (time-varying R). ``order="uncensored_first"``: two passes over the channels, the
+    readings inside their limits in the first, the others in the second."""
+    if est._r is None:
         return None
     N, T, m = y2.shape
     lo, hi = est.censoring.all_limits(T, m, start=state.k + 1, check=False)
@@ -307,6 +315,7 @@ def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, ste
         cls=cls if flags is not None else None,
         bu=bu,
         du=du,
+        npass=1 if est.order == "channels" else 2,
     )
 
 
@@ -447,6 +456,7 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         _c(spec.hi),
         _c(spec.par),
         spec.J,
+        spec.npass,
         spec.bu,
         spec.du,
         x0,

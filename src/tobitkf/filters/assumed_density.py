@@ -424,7 +424,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         - \mu)/s)`; the smoothers, likelihoods and fits of :mod:`tobitkf.inference` use it.
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"`` runs :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when
-        numba is installed and the options are covered (the standard covariance form, ``order="channels"``,
+        numba is installed and the options are covered (the standard covariance form, either ``order``,
         time-invariant system matrices, control inputs through constant ``Bu``/``D``), the numpy loop
         otherwise; ``"numba"`` insists on the compiled loop (raises otherwise); ``"numpy"`` never uses it.
         Both give the same numbers (tested to 1e-12); :meth:`step` runs the numpy step.
