@@ -88,6 +88,7 @@ __all__ = [
 ]
 
 _OPTIONS = {"covariance_update": COVARIANCE_FORMS, "order": ("channels", "uncensored_first"), "backend": BACKENDS}
+_NUMPY_HOOKS = ("_project", "_sequential", "_update_arrays", "_step_arrays", "_initial", "_transition")
 _STEP_DATA: ContextVar[Mapping[str, np.ndarray] | None] = ContextVar("adf_step_data", default=None)
 _TINY = np.finfo(np.float64).tiny
 
@@ -347,11 +348,18 @@ class AssumedDensityFamily(GaussianFilter):
         finally:
             _STEP_DATA.reset(token)
 
+    def _own_hooks(self) -> bool:
+        """Whether the numpy hooks are those of the class that names the compiled arrays: a subclass that
+        changes them (its own projection or extras) keeps the numpy loop, which runs them."""
+        cls = type(self)
+        owner = next(c for c in cls.__mro__ if "_compiled_spec" in c.__dict__)
+        return all(getattr(cls, h, None) is getattr(owner, h, None) for h in _NUMPY_HOOKS)
+
     def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
         """The compiled loop (:mod:`tobitkf.filters._compiled_loop`) when the ``backend`` allows it and covers
         the options; None: the numpy loop runs."""
         backend = getattr(self, "backend", "numpy")
-        if self._compiled_spec is None or backend == "numpy" or step_options:
+        if self._compiled_spec is None or backend == "numpy" or step_options or not self._own_hooks():
             return None
         if not numba_available():
             if backend == "numba":
