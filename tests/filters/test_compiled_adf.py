@@ -281,6 +281,22 @@ def test_saturation_adf_compiled_equals_numpy(m):
         assert_same(*both(lambda be: tk.SaturationAssumedDensityFilter(sys_, ch, backend=be), y, outputs=outputs))
 
 
+def test_saturation_adf_forty_sigma_beyond_the_level():
+    """A prior 40 standard deviations beyond the saturation level (either side): the pieces of the
+    saturated mode far into their tails."""
+    sys_ = tk.LinearSystem(A=np.eye(1), C=[[1.0]], Q=[[1e-4]], R=[[0.01]], x0=[0.0], P0=[[1e-2]])
+    ch = tk.RandomSaturation([0.5], [0.9], level=[0.2])
+    for x0, reading in ((4.2, 0.2), (-3.8, -0.2), (4.2, 4.2), (0.0, 0.2)):
+        y = np.array([[[reading], [reading]], [[np.nan], [reading]]])
+
+        def make(be, x0=x0):
+            return tk.SaturationAssumedDensityFilter(sys_, ch, backend=be)
+
+        a, b = make("numpy").filter(y, x0=[x0]), make("numba").filter(y, x0=[x0])
+        assert np.isfinite(a.mean).all()
+        assert_same(a, b)
+
+
 @pytest.mark.parametrize("censored", [False, True])
 def test_fading_adf_compiled_equals_numpy(censored):
     sys_ = oscillator(2, Bu=[[0.1], [0.05]], D=[[0.1], [0.0]])
@@ -312,6 +328,7 @@ def test_fading_adf_compiled_equals_numpy(censored):
         (PMF([0.0, 1.0], [0.2, 0.8]), 1, 0.0, "hold"),
         (Uniform(0.3, 1.0), 0, -np.inf, "zero"),
         (PMF([0.0, 0.5, 1.0], [0.05, 0.10, 0.85]), 2, 4.0, "prior"),
+        (PMF([0.0, 0.5, 1.0], [0.05, 0.10, 0.85]), 1, 45.0, "prior"),  # every reading at tau, ~40 sigma away
     ],
 )
 def test_protocol_adf_compiled_equals_numpy(law, window, threshold, mode):
