@@ -48,6 +48,7 @@ from .._validation import ValidationError, check_instance
 from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS
 from .assumed_density import AssumedDensityFamily, censored_channel_update, merge_gaussians
 from .core import (
     COVARIANCE_FORMS,
@@ -60,7 +61,7 @@ from .kalman import LinearGaussianFamily
 
 __all__ = ["ProtocolAssumedDensityFilter", "failure_nodes"]
 
-_OPTIONS = {"covariance_update": COVARIANCE_FORMS}
+_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 
 
 def failure_nodes(law: Any, nodes: int = 16) -> tuple[np.ndarray, np.ndarray]:
@@ -102,6 +103,10 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
         Covariance form of each outcome's update (and of the merge: the square root merges factors).
     nodes : int, default 16
         Gauss–Legendre points for a uniform failure law.
+    backend : {"auto", "numba", "numpy"}, default "auto"
+        ``"auto"``: :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when numba
+        is installed and the options are covered (the standard covariance form, time-invariant system matrices, failure laws with the same number of outcomes for every sensor), else the numpy loop; ``"numba"``
+        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12).
 
     Raises
     ------
@@ -136,11 +141,17 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
     _name = "ProtocolAssumedDensityFilter"
 
     def __init__(
-        self, system: LinearSystem, channel: ProtocolChannel, *, covariance_update: str = "standard", nodes: int = 16
+        self,
+        system: LinearSystem,
+        channel: ProtocolChannel,
+        *,
+        covariance_update: str = "standard",
+        nodes: int = 16,
+        backend: str = "auto",
     ):
         check_instance(system, LinearSystem, "system")
         check_instance(channel, ProtocolChannel, "channel")
-        check_keywords({"covariance_update": covariance_update}, _OPTIONS)
+        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         channel.check(system)
         if isinstance(nodes, bool) or not isinstance(nodes, (int, np.integer)) or nodes < 1:
             raise ValidationError(f"nodes: expected a positive integer, got {nodes!r}")
@@ -151,8 +162,11 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
         self.covariance_update = covariance_update
         self.laws = [failure_nodes(law, int(nodes)) for law in channel.laws]
         self._roots = process_roots(system)
+        self.backend = backend
         if not system.R.varying:
             self._variances(1)
+
+    _compiled_spec = "protocol_spec"
 
     _prepare_inputs = LinearGaussianFamily._prepare_inputs
     _step_input = LinearGaussianFamily._step_input

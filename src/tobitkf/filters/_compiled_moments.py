@@ -1,0 +1,327 @@
+r"""The measurement moments of the assumed-density families, compiled, for a block of runs and one channel.
+
+An assumed-density update of one scalar channel with row :math:`h` conditions the Gaussian prior
+:math:`N(\bar x, \bar P)` on what was observed about the latent reading and projects the result back
+onto a Gaussian. For every family here the posterior moments (a single Gaussian or a moment-matched
+mixture of them) are a rank-one change along :math:`\bar Ph^T`:
+
+.. math::
+
+    \hat x = \bar x + \alpha\,\bar Ph^T, \qquad P = \bar P - \beta\,\bar Ph^T h\bar P,
+
+with two scalars per run. A component j of the update with scale :math:`\lambda_j` (the reading is
+:math:`\lambda_j h x + d + v`, :math:`s_j^2 = \lambda_j^2h\bar Ph^T + r`), posterior latent mean
+:math:`E_j` and retained variance :math:`V_j` contributes
+:math:`c_j = \lambda_j(E_j - \mu_j)/s_j^2` and :math:`d_j = \lambda_j^2(s_j^2 - V_j)/s_j^4`
+(:mod:`tobitkf.filters.assumed_density`: :math:`K_j = \lambda_j\bar Ph^T/s_j^2`,
+:math:`P_j = \bar P - K_j(s_j^2 - V_j)K_j^T`); the mixture with posterior weights :math:`w_j` merges to
+(:func:`~tobitkf.filters.assumed_density.merge_gaussians`)
+
+.. math::
+
+    \alpha = \sum_j w_jc_j, \qquad \beta = \sum_j w_jd_j - \sum_j w_j(c_j - \alpha)^2.
+
+A family supplies :math:`(\alpha, \beta)`, the log-likelihood of the reading under the Gaussian prior,
+the probability of an uncensored reading and its components' posterior weights, for the runs of a
+block (runs on the last axis, as in every kernel), by one function of the common signature
+``(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp)``:
+
+* :func:`censored_block` (class code :data:`CENSORED`): censoring one- or two-sided, several regions
+  (stacked channels), the Rice-fading channel (its fading variance is in ``rb``);
+* :func:`saturation_block` (:data:`SATURATION`): random saturation, three modes;
+* :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ.
+
+The event "the latent reading lies in [ea, eb]" (:func:`interval_event`: beyond a limit on one side, or
+between two finite bounds) is the piece a quantized sensor's interval update reuses. One-sided pieces
+take the vectorised statistics of :mod:`tobitkf.filters._kernels_censored` (one implementation of the
+routes), two-sided ones :func:`tobitkf.filters._kernels.censored_stats` (the routes and arithmetic of
+:func:`tobitkf.censored_moments`, quadrature for narrow windows); log-probabilities stay finite 40σ (and
+more) into the tails: :math:`\log Q(a) = -a^2/2 - \log\sqrt{2\pi} - \log\lambda(a)` beyond the centre.
+:mod:`tobitkf.censored` remains the high-precision reference (tested against it).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ._kernels import censored_stats
+from ._kernels_censored import _one_sided_at
+
+__all__ = [
+    "CENSORED",
+    "SATURATION",
+    "PROTOCOL",
+    "MISSING",
+    "INTERIOR",
+    "LOWER",
+    "UPPER",
+    "beyond",
+    "interval_event",
+    "censored_block",
+    "saturation_block",
+    "protocol_block",
+    "family_block",
+    "family_array",
+]
+
+CENSORED, SATURATION, PROTOCOL = 0, 1, 2  #: family codes of the compiled loop
+MISSING, INTERIOR, LOWER, UPPER = 0, 1, 2, 3  #: reading classes (as tobitkf.filters._readings)
+_TINY = float(np.finfo(np.float64).tiny)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+_RTOL_LIMIT = 1e-12  # the limit rule of classify_readings
+_INF = math.inf
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def beyond(mu, sd, lim, sign):
+    r"""The latent :math:`y^* \sim N(\mu, sd^2)` beyond the finite limit ``lim`` on the side ``sign``
+    (+1: :math:`y^* \ge` lim, -1: :math:`y^* \le` lim): ``(p_other, log_p, mean, var)`` = the probability
+    of the other side, the log-probability of this one (finite far into the tails), and the truncated
+    mean and variance. Vectorisable (:func:`~tobitkf.filters._kernels_censored._one_sided_at`)."""
+    m = sign * mu
+    lm = sign * lim
+    plo, g, lam, tmean, tvar, _cm, _cv = _one_sided_at(m, sd, lm)
+    a = (lm - m) / sd
+    log_centre = math.log(max(g, _TINY))
+    log_tail = -0.5 * a * a - _LOG_SQRT_2PI - math.log(max(lam, _TINY))
+    logp = log_centre if a <= 0.0 else log_tail
+    return plo, logp, sign * tmean, tvar
+
+
+@njit(cache=True, error_model="numpy")
+def _two_sided(mu, sd, ea, eb, glx, glw, buf):
+    st = censored_stats(mu, sd, ea, eb, glx, glw, buf)
+    g = st[2]
+    return math.log(g) if g > 0.0 else -_INF, st[4], st[5]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def interval_event(mu, sd, ea, eb, glx, glw, buf):
+    r"""``(log_p, mean, var)`` of :math:`y^* \sim N(\mu, sd^2)` given :math:`ea \le y^* \le eb` (one side
+    may be infinite): the log-probability of the event and the truncated moments. One finite bound: the
+    vectorised one-sided routes (:func:`beyond`); two: :func:`~tobitkf.filters._kernels.censored_stats`
+    (direct formulas, quadrature for a narrow window or one in a tail). The update of a quantized sensor
+    (a reading at level l: the window [l - w/2, l + w/2)) and of a censored one (beyond its limit)."""
+    if ea == -_INF:
+        _p, lp, tm, tv = beyond(mu, sd, eb, -1.0)
+        return lp, tm, tv
+    if eb == _INF:
+        _p, lp, tm, tv = beyond(mu, sd, ea, 1.0)
+        return lp, tm, tv
+    return _two_sided(mu, sd, ea, eb, glx, glw, buf)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def classify(y, lo, hi):
+    """The class of one reading by the limit rule of :func:`~tobitkf.filters._readings.classify_readings`."""
+    if math.isnan(y):
+        return MISSING
+    if lo != -_INF and y <= lo + _RTOL_LIMIT * max(1.0, abs(lo)):
+        return LOWER
+    if hi != _INF and y >= hi - _RTOL_LIMIT * max(1.0, abs(hi)):
+        return UPPER
+    return INTERIOR
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _censored_one(y, c, mu, s2, lo, hi):
+    r"""One run of :func:`censored_block`: ``(alpha, beta, ll, pu)`` of the reading ``y`` of class ``c``
+    with latent :math:`N(\mu, s2)` and limits lo < hi (either infinite), as
+    :func:`~tobitkf.filters.assumed_density.censored_channel_update`."""
+    ok = s2 > _TINY
+    s = math.sqrt(s2) if ok else 1.0
+    # p_uncensored = P(y* > lo) - P(y* > hi), and the piece beyond the limit of a censored reading
+    lo_fin = lo != -_INF
+    hi_fin = hi != _INF
+    # a side without a limit is not evaluated (the branch is the channel's, the same for every run)
+    p_above_lo, lp_lo, m_lo, v_lo = beyond(mu, s, lo, -1.0) if lo_fin else (1.0, 0.0, 0.0, 0.0)  # y* <= lo
+    p_below_hi, lp_hi, m_hi, v_hi = beyond(mu, s, hi, 1.0) if hi_fin else (1.0, 0.0, 0.0, 0.0)  # y* >= hi
+    if lo_fin and hi_fin:
+        pu = p_above_lo - math.exp(lp_hi)
+    elif lo_fin:
+        pu = p_above_lo
+    elif hi_fin:
+        pu = p_below_hi
+    else:
+        pu = 1.0
+    # selects rather than branches per run (the loop over a block's runs stays vectorisable)
+    is_lo = c == LOWER
+    is_hi = c == UPPER
+    z = (y - mu) / s
+    ll_in = -0.5 * z * z - math.log(s) - _LOG_SQRT_2PI
+    obs = m_lo if is_lo else (m_hi if is_hi else y)
+    v = v_lo if is_lo else (v_hi if is_hi else 0.0)
+    ll = lp_lo if is_lo else (lp_hi if is_hi else ll_in)
+    take = ok and c != MISSING
+    alpha = (obs - mu) / s2 if take else 0.0
+    beta = (s2 - v) / (s2 * s2) if take else 0.0
+    if not take:
+        # missing: 0; a degenerate latent: the indicator of the reading (mu agrees with it), no update
+        agrees = (mu <= lo) if is_lo else ((mu >= hi) if is_hi else (y == mu))
+        ll = 0.0 if (c == MISSING or agrees) else -_INF
+    return alpha, beta, ll, pu
+
+
+@njit(cache=True, error_model="numpy")
+def censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    r"""The assumed-density update of a censored channel for the runs ``b < nb`` of a block: the reading
+    ``y[b]`` of class ``cls[b]``, latent mean ``hx[b]`` (:math:`h\bar x + d`) and variance
+    ``hph[b] + rb[b]``, the channel's limits ``lo[b]`` < ``hi[b]``; writes ``alpha``, ``beta``, ``pu``
+    and adds the log-likelihood to ``ll`` (``par``, ``comp`` unused). The equations of
+    :mod:`tobitkf.filters.assumed_density`: :math:`\alpha = (E[y^*\mid\text{obs}] - \mu)/s^2`,
+    :math:`\beta = (s^2 - V)/s^4`."""
+    for b in range(nb):
+        a, be, lb, p = _censored_one(y[b], cls[b], hx[b], hph[b] + rb[b], lo[b], hi[b])
+        alpha[b] = a
+        beta[b] = be
+        ll[b] += lb
+        pu[b] = p
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _lognorm(y, m, var):
+    d = y - m
+    return -0.5 * d * d / var - 0.5 * math.log(var) - _LOG_SQRT_2PI
+
+
+@njit(cache=True, error_model="numpy")
+def saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    r"""The assumed-density update of a randomly saturating sensor (:mod:`tobitkf.filters.adf_saturation`)
+    for the runs ``b < nb``: ``hx`` = :math:`\mu_c = C_i\bar x`, ``hph`` = :math:`s^2 = C_i\bar PC_i^T`,
+    ``rb`` = :math:`R_{ii}`, ``par`` = ``(u, log P(saturated), log P(linear), log P(noise only))``. Three
+    modes: saturated (the three pieces of :math:`\sigma(c)`, merged), linear (the Kalman update), noise
+    only (no change); their posterior probabilities go to ``comp`` (3, B); ``pu`` is 1 (no censoring)."""
+    u = par[0]
+    for b in range(nb):
+        pu[b] = 1.0
+        c = cls[b]
+        if c == MISSING:
+            alpha[b] = 0.0
+            beta[b] = 0.0
+            for j in range(3):
+                comp[j, b] = math.exp(par[1 + j])
+            continue
+        yb = y[b]
+        mu = hx[b]
+        var = hph[b]
+        r = rb[b]
+        ok = var > _TINY
+        vs = var if ok else 1.0
+        s = math.sqrt(vs)
+        # the saturated mode: c <= -u, |c| < u given the reading, c >= u
+        _p1, lp_low, m_low, v_low = beyond(mu, s, -u, -1.0)
+        _p3, lp_high, m_high, v_high = beyond(mu, s, u, 1.0)
+        g = vs / (vs + r)
+        mid_m = mu + g * (yb - mu)
+        mid_v = vs * r / (vs + r)
+        st = censored_stats(mid_m, math.sqrt(mid_v), -u, u, glx, glw, buf)
+        l1p = lp_low + _lognorm(yb, -u, r)
+        l2p = _lognorm(yb, mu, vs + r) + (math.log(st[2]) if st[2] > 0.0 else -_INF)
+        l3p = lp_high + _lognorm(yb, u, r)
+        top = max(l1p, max(l2p, l3p))
+        w1, w2, w3 = math.exp(l1p - top), math.exp(l2p - top), math.exp(l3p - top)
+        tot = w1 + w2 + w3
+        w1, w2, w3 = w1 / tot, w2 / tot, w3 / tot
+        pm = w1 * m_low + w2 * st[4] + w3 * m_high
+        pv = w1 * (v_low + (m_low - pm) ** 2) + w2 * (st[5] + (st[4] - pm) ** 2) + w3 * (v_high + (m_high - pm) ** 2)
+        pv = max(pv, 0.0)
+        l_sat = math.log(tot) + top
+        if ok:
+            c1 = (pm - mu) / var
+            d1 = (var - pv) / (var * var)
+        else:  # the saturated mode leaves the prior (its reading is masked)
+            l_sat = _lognorm(yb, min(max(mu, -u), u), r)
+            c1 = 0.0
+            d1 = 0.0
+        # the linear mode: the Kalman update
+        sl = var + r
+        c2 = (yb - mu) / sl
+        d2 = 1.0 / sl
+        q1 = par[1] + l_sat
+        q2 = par[2] + _lognorm(yb, mu, sl)
+        q3 = par[3] + _lognorm(yb, 0.0, r)
+        top = max(q1, max(q2, q3))
+        e1, e2, e3 = math.exp(q1 - top), math.exp(q2 - top), math.exp(q3 - top)
+        tot = e1 + e2 + e3
+        e1, e2, e3 = e1 / tot, e2 / tot, e3 / tot
+        a = e1 * c1 + e2 * c2
+        alpha[b] = a
+        beta[b] = e1 * d1 + e2 * d2 - (e1 * (c1 - a) ** 2 + e2 * (c2 - a) ** 2 + e3 * a * a)
+        ll[b] += math.log(tot) + top
+        comp[0, b] = e1
+        comp[1, b] = e2
+        comp[2, b] = e3
+
+
+@njit(cache=True, error_model="numpy")
+def protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    r"""The assumed-density update of the protocol channel (:mod:`tobitkf.filters.adf_protocol`) for the runs
+    ``b < nb``: ``hx`` = :math:`\mathcal C_h\bar\xi`, ``hph`` = :math:`\mathcal C_h\bar P\mathcal C_h^T`, ``rb``
+    = :math:`R_{hh}`, ``lo`` the threshold τ, ``par`` = ``(λ_1..λ_J, log π_1..log π_J)`` (J = ``comp.shape[0]``).
+    Each failure outcome j is a censored reading (:func:`_censored_one`) of scale :math:`\lambda_j`; the
+    outcomes' posterior probabilities go to ``comp``, :math:`\sum_j\pi_jP_j(y^* > \tau)` to ``pu``."""
+    J = comp.shape[0]
+    cj = np.empty(J)
+    dj = np.empty(J)
+    for b in range(nb):
+        c = cls[b]
+        mu0 = hx[b]
+        v0 = hph[b]
+        r = rb[b]
+        top = -_INF
+        pub = 0.0
+        for j in range(J):
+            lam = par[j]
+            aj, bj, lj, pj = _censored_one(y[b], c, lam * mu0, lam * lam * v0 + r, lo[b], hi[b])
+            cj[j] = lam * aj
+            dj[j] = lam * lam * bj
+            pub += math.exp(par[J + j]) * pj
+            q = par[J + j] + lj  # the log weight, normalised below
+            comp[j, b] = q
+            top = max(top, q)
+        pu[b] = pub
+        tot = 0.0
+        for j in range(J):
+            w = math.exp(comp[j, b] - top)
+            comp[j, b] = w
+            tot += w
+        a = 0.0
+        for j in range(J):
+            comp[j, b] /= tot
+            a += comp[j, b] * cj[j]
+        bsum = 0.0
+        for j in range(J):
+            d = cj[j] - a
+            bsum += comp[j, b] * (dj[j] - d * d)
+        alpha[b] = a
+        beta[b] = bsum
+        if c != MISSING:
+            ll[b] += math.log(tot) + top
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`):
+    a branch per channel and block, not per run. (A loop that took the family's function as an argument
+    would be recompiled in every process: numba does not cache a function specialised on another.)"""
+    if family == CENSORED:
+        censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif family == SATURATION:
+        saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    else:
+        protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+
+
+@njit(cache=True, error_model="numpy")
+def family_array(family, y, cls, hx, hph, rb, lo, hi, par, J, glx, glw):
+    """:func:`family_block` over 1-d arrays (a testing aid, and the form the numpy side may call): returns
+    ``(alpha, beta, ll, pu, comp)`` with ``comp`` (J, N)."""
+    n = y.shape[0]
+    alpha, beta, ll, pu = np.empty(n), np.empty(n), np.zeros(n), np.empty(n)
+    comp = np.zeros((J, n))
+    buf = np.empty((2, glx.shape[0]))
+    family_block(family, n, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    return alpha, beta, ll, pu, comp
