@@ -91,7 +91,7 @@ from .inference import (
     smooth,
     wrtds,
 )
-from .models import LinearSystem
+from .models import ContinuousLinearSystem, LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
 from .models.ross import RossModel
 from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
@@ -101,6 +101,7 @@ from .simulate.delay import simulate_delay
 
 __all__ = [
     "LinearSystem",
+    "ContinuousLinearSystem",
     "Censoring",
     "multi_region",
     "simulate",
