@@ -6,7 +6,7 @@ import pytest
 from scipy.linalg import expm
 
 import tobitkf as tk
-from tobitkf.models.continuous import time_values
+from tobitkf.models.continuous import expm_batch, time_values
 
 AC2 = np.array([[-0.3, 1.0], [-0.5, -0.2]])
 QC2 = np.array([[0.5, 0.1], [0.1, 0.3]])
@@ -27,6 +27,17 @@ def test_ou_matches_the_analytic_transition_and_variance(dt):
     assert B is None
     assert np.isclose(A[0, 0], np.exp(-theta * dt), rtol=1e-13, atol=0)
     assert np.isclose(Q[0, 0], sigma2 * (1 - np.exp(-2 * theta * dt)) / (2 * theta), rtol=1e-11, atol=1e-300)
+
+
+def test_the_batched_exponential_equals_scipy():
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(300, 4, 4)) * rng.uniform(0, 30, size=(300, 1, 1))
+    M[:5] = 0.0
+    M[5:10] = np.triu(rng.normal(size=(5, 4, 4)), 1)  # nilpotent (a random walk's Van Loan block)
+    ref = np.stack([expm(m) for m in M])
+    scale = np.abs(ref).max(axis=(-1, -2), keepdims=True)
+    assert np.all(np.abs(expm_batch(M) - ref) <= 1e-11 * scale)
+    assert np.array_equal(expm_batch(np.zeros((2, 3, 3))), np.broadcast_to(np.eye(3), (2, 3, 3)))
 
 
 def _euler_by_doubling(Ac, Qc, Bc, dt, levels=22):
