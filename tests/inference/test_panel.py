@@ -123,3 +123,23 @@ def test_the_panel_fit_recovers_simulated_parameters():
     assert len(sm) == 50 and sm[0]["mean"].shape == (len(times[0]), 1)
     fc = res.forecast(3, X=[1.0])
     assert fc["mean"].shape == (50, 3, 1) and np.all(np.diff(fc["sd"], axis=1) > 0)
+
+
+def test_fit_with_times_is_the_panel_of_one_series():
+    times, ys, los, his = _simulate(1, 5, TRUE, upper=2.6)
+    t, y, u = times[0], ys[0], np.ones((len(times[0]), 1))
+    res = tk.fit(_ou, y, times=t, u=u, lower=los[0], upper=his[0], theta0=TRUE, maxiter=2, standard_errors=False)
+    cens = tk.Censoring(lower=los[0][:, None], upper=his[0][:, None])
+    own = tk.AssumedDensityTobitFilter(_ou(res.theta), cens, order="uncensored_first").log_likelihood(
+        y[:, None], u=u, times=t
+    )
+    assert np.isclose(res.loglik, own, rtol=0, atol=1e-10) and res.n_obs == len(t)
+    panel = tk.Panel(times, ys)
+    with pytest.raises(tk.ValidationError, match="carries its own"):
+        tk.fit(_ou, panel, times=t, theta0=TRUE)
+    with pytest.raises(tk.ValidationError, match="ContinuousLinearSystem"):
+        tk.fit(
+            lambda th: tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]]),
+            panel,
+            theta0=[0.0],
+        )
