@@ -196,3 +196,22 @@ def test_refusals_name_the_problem():
         tk.KalmanFilter(cont).smooth(y, times=[0.0, 1.0, 2.5], grid=[0.0, 1.0, 2.0, 3.0], u=np.zeros((4, 1)))
     with pytest.raises(tk.ValidationError, match="before the first"):
         cont.at_times([0.0, 1.0], start=0.5)
+
+
+def test_per_reading_limits_move_onto_the_union_grid():
+    cont = _model2()
+    times = np.array([0.5, 1.0, 2.0, 3.5])
+    lo = np.array([[-0.4], [-0.2], [-0.4], [-0.1]])
+    y = np.array([[-0.4], [0.3], [0.1], [-0.1]])  # the first and last at their own limits
+    grid = np.array([0.0, 1.0, 1.5, 3.0, 4.0])
+    adf = tk.AssumedDensityTobitFilter(cont, tk.Censoring(lower=lo), order="uncensored_first")
+    res = adf.smooth(y, times=times, grid=grid)
+    union = np.union1d(times, grid)
+    yu = np.full((union.size, 1), np.nan)
+    lou = np.full((union.size, 1), -np.inf)
+    rows = np.searchsorted(union, times)
+    yu[rows], lou[rows] = y, lo
+    ref = tk.AssumedDensityTobitFilter(cont, tk.Censoring(lower=lou), order="uncensored_first").smooth(yu, times=union)
+    assert np.allclose(res.mean, ref.mean[np.searchsorted(union, grid)], rtol=0, atol=1e-12)
+    # the readings at their limits were censored (the side recorded on the union), not exact
+    assert (res.extras["smoothed"].extras["side"][rows, 0] == [-1, 0, 0, -1]).all()
