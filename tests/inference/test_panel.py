@@ -125,7 +125,7 @@ def test_the_panel_fit_recovers_simulated_parameters():
     assert fc["mean"].shape == (50, 3, 1) and np.all(np.diff(fc["sd"], axis=1) > 0)
 
 
-def test_fit_with_times_is_the_panel_of_one_series():
+def test_fit_with_times_is_the_panel_of_one_series(tmp_path):
     times, ys, los, his = _simulate(1, 5, TRUE, upper=2.6)
     t, y, u = times[0], ys[0], np.ones((len(times[0]), 1))
     res = tk.fit(_ou, y, times=t, u=u, lower=los[0], upper=his[0], theta0=TRUE, maxiter=2, standard_errors=False)
@@ -134,6 +134,9 @@ def test_fit_with_times_is_the_panel_of_one_series():
         y[:, None], u=u, times=t
     )
     assert np.isclose(res.loglik, own, rtol=0, atol=1e-10) and res.n_obs == len(t)
+    back = tk.load_fit(res.save(tmp_path / "fit.json"), data=res.data)  # saved and read back
+    assert np.array_equal(back.theta, res.theta) and np.allclose(back.model.fitted.Ac, res.model.fitted.Ac)
+    assert np.allclose(back.smooth()[0]["mean"], res.smooth()[0]["mean"], rtol=0, atol=1e-12)
     panel = tk.Panel(times, ys)
     with pytest.raises(tk.ValidationError, match="carries its own"):
         tk.fit(_ou, panel, times=t, theta0=TRUE)

@@ -102,6 +102,10 @@ def _model_from_spec(spec: dict[str, Any]):
         from .state_space import StateSpaceModel
 
         return StateSpaceModel.from_spec(spec)
+    if kind == "continuous_panel":
+        from .panel import PanelModel
+
+        return PanelModel.from_spec(spec)
     raise ValidationError(f"model: unknown model kind {kind!r} in the fit file")
 
 

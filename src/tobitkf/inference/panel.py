@@ -508,11 +508,25 @@ class PanelModel:
     def residuals(self, res: FitResult, seed: int = 0):
         raise ValidationError("residuals: not available for a panel fit; use the per-subject smoothed readings")
 
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any]) -> PanelModel:
+        """The model written by :meth:`to_spec` (``tk.load_fit``)."""
+        S = spec["system"]
+        fitted = ContinuousLinearSystem(
+            S["Ac"], S["Qc"], S["C"], S["R"], S["x0"], S["P0"], Bc=S.get("Bc"), D=S.get("D"), unit=spec["unit"]
+        )
+        return cls(fitted, spec["likelihood"], spec["align"], spec.get("start"))
+
     def to_spec(self) -> dict[str, Any]:
         s = self.fitted
         return {
             "kind": self.kind,
             "align": self.align,
+            "start": None
+            if self.start is None
+            else float(self.start)
+            if isinstance(self.start, (int, float, np.number))
+            else str(self.start),
             "likelihood": self.likelihood,
             "unit": s.unit,
             "system": {
