@@ -215,3 +215,12 @@ def test_per_reading_limits_move_onto_the_union_grid():
     assert np.allclose(res.mean, ref.mean[np.searchsorted(union, grid)], rtol=0, atol=1e-12)
     # the readings at their limits were censored (the side recorded on the union), not exact
     assert (res.extras["smoothed"].extras["side"][rows, 0] == [-1, 0, 0, -1]).all()
+
+
+@pytest.mark.parametrize("name", ["tobitkf.models.continuous", "tobitkf.inference.panel"])
+def test_docstring_examples(name):
+    import doctest
+    import importlib
+
+    res = doctest.testmod(importlib.import_module(name), optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
+    assert res.failed == 0 and res.attempted > 0
