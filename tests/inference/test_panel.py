@@ -65,6 +65,16 @@ def test_padding_changes_nothing_for_each_subject():
         )
         assert np.allclose(fc["mean"][i], f.mean[-1], rtol=0, atol=1e-10)
         assert np.allclose(fc["cov"][i], f.cov[-1], rtol=0, atol=1e-10)
+    # the state on a grid (days since each first visit) = each series' own grid smoother
+    grid = np.arange(0.0, 120.0)  # whole days: every visit is a grid day
+    smg = panel_smooth(sys_, panel, grid=grid)
+    for i, (t, y, lo, hi, u) in enumerate(zip(times, ys, los, his, us)):
+        cens = tk.Censoring(lower=lo[:, None], upper=hi[:, None])
+        adf = tk.AssumedDensityTobitFilter(sys_, cens, order="uncensored_first")
+        own_g = adf.smooth(y[:, None], times=t - t[0], grid=grid, u=np.ones((grid.size, 1)))
+        assert np.allclose(smg[i]["grid_mean"], own_g.mean, rtol=0, atol=1e-10)
+        assert np.allclose(smg[i]["grid_cov"], own_g.cov, rtol=0, atol=1e-10)
+        assert np.allclose(smg[i]["mean"], sm[i]["mean"], rtol=0, atol=1e-10)
     # a panel of one subject is the plain series; tk.fit's times= route builds exactly that panel
     one = tk.Panel([times[0]], [ys[0]], lower=[los[0]], upper=[his[0]], u=[us[0]])
     assert np.isclose(panel_log_likelihood(sys_, one), per[0], rtol=0, atol=1e-12)

@@ -240,8 +240,11 @@ class Panel:
     def __repr__(self) -> str:
         return f"Panel({self.n_subjects} subjects, {self.n_obs} readings, m={self.m})"
 
-    def arrays(self, system: ContinuousLinearSystem, *, align: str = "first", start: Any = None) -> PanelArrays:
-        """The padded arrays on the union of the (aligned) sample times, in ``system``'s time unit.
+    def arrays(
+        self, system: ContinuousLinearSystem, *, align: str = "first", start: Any = None, grid: Any = None
+    ) -> PanelArrays:
+        """The padded arrays on the union of the (aligned) sample times, in ``system``'s time unit; ``grid``
+        (floats in that unit, on the aligned clock) adds times without readings (rows ``grid_rows``).
 
         Raises
         ------
@@ -266,7 +269,10 @@ class Panel:
             s0 = None if start is None else float(as_float_array(start, "start", ndim=0))
         offsets = np.array([t[0] if align == "first" else 0.0 for t in ts])
         ts = [t - o for t, o in zip(ts, offsets)]
-        union = np.unique(np.concatenate(ts))
+        g = None if grid is None else as_float_array(grid, "grid", ndim=1)
+        if g is not None:
+            check_increasing(g, "grid")
+        union = np.unique(np.concatenate(ts + ([] if g is None else [g])))
         t0 = union[0] if s0 is None else s0
         if t0 > union[0]:
             raise ValidationError("start: the prior's time must be at or before the first visit")
@@ -286,8 +292,18 @@ class Panel:
                 assert ui is not None, "inputs are given for every subject or for none"
                 nxt = np.minimum(np.searchsorted(r, np.arange(U)), r.size - 1)  # the next reading's row (hold)
                 u[i] = ui[nxt]
+        grid_rows = None if g is None else np.searchsorted(union, g)
         return PanelArrays(
-            times=union, t0=float(t0), y=y, lower=lo, upper=hi, censored=flags, u=u, rows=rows, offsets=offsets
+            times=union,
+            t0=float(t0),
+            y=y,
+            lower=lo,
+            upper=hi,
+            censored=flags,
+            u=u,
+            rows=rows,
+            offsets=offsets,
+            grid_rows=grid_rows,
         )
 
 
@@ -296,7 +312,7 @@ class PanelArrays:
     """A panel on the union of its aligned sample times: ``times`` (U,) in the model's unit, ``t0`` the
     prior's time, ``y``/``lower``/``upper``/``censored`` (N, U, m), ``u`` (N, U, p) or None, ``rows`` each
     subject's rows in the union, ``offsets`` (N,) each subject's time shift (its first visit with
-    ``align="first"``, else 0)."""
+    ``align="first"``, else 0), ``grid_rows`` the rows of the requested grid (or None)."""
 
     times: np.ndarray
     t0: float
@@ -307,6 +323,7 @@ class PanelArrays:
     u: np.ndarray | None
     rows: list[np.ndarray]
     offsets: np.ndarray
+    grid_rows: np.ndarray | None = None
 
     @property
     def censoring_present(self) -> bool:
@@ -375,18 +392,29 @@ def panel_log_likelihood(
 
 
 def panel_smooth(
-    system: ContinuousLinearSystem, panel: Panel, *, likelihood: str = "auto", align: str = "first", start: Any = None
+    system: ContinuousLinearSystem,
+    panel: Panel,
+    *,
+    likelihood: str = "auto",
+    align: str = "first",
+    start: Any = None,
+    grid: Any = None,
 ) -> list[dict[str, Any]]:
     """Each subject's smoothed states at its own sample times: a list of N dicts with ``id``, ``times`` (as
     given), ``mean`` (T_i, n), ``cov`` (T_i, n, n), and the latent reading's ``reading_mean`` (T_i, m) and
     ``reading_sd`` (T_i, m) (:math:`C\\hat x + Du`, :math:`\\sqrt{\\mathrm{diag}(CPC^T + R)}`).
+
+    ``grid`` (G,): floats in the model's unit on the aligned clock (with ``align="first"`` the time since
+    each subject's first visit): each dict gains ``grid_mean`` (G, n) and ``grid_cov`` (G, n, n), the
+    subject's smoothed state at those times (the grid joins the union as missing readings; a grid time
+    before the first visit moves every prior there, as the single-series grid smoother does).
 
     Raises
     ------
     ValidationError
         As :func:`panel_log_likelihood`.
     """
-    arr = _check_panel(panel).arrays(_check_model(system), align=align, start=start)
+    arr = _check_panel(panel).arrays(_check_model(system), align=align, start=start, grid=grid)
     res, disc, _ = _run(system, arr, _likelihood_kind(likelihood, arr))
     sm = rts_smooth(res, disc)
     assert sm.mean is not None and sm.cov is not None
@@ -409,6 +437,9 @@ def panel_smooth(
                 "reading_sd": sd,
             }
         )
+        if arr.grid_rows is not None:
+            out[-1]["grid_mean"] = np.asarray(sm.mean[i, arr.grid_rows])
+            out[-1]["grid_cov"] = np.asarray(sm.cov[i, arr.grid_rows])
     return out
 
 
