@@ -86,6 +86,7 @@ from .inference import (
     CensoredAR,
     FitResult,
     FixedLagSmoother,
+    Panel,
     adf_log_likelihood,
     fit,
     kalman_log_likelihood,
@@ -94,7 +95,7 @@ from .inference import (
     smooth,
     wrtds,
 )
-from .models import LinearSystem
+from .models import ContinuousLinearSystem, LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
 from .models.ross import RossModel
 from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
@@ -104,6 +105,7 @@ from .simulate.delay import simulate_delay
 
 __all__ = [
     "LinearSystem",
+    "ContinuousLinearSystem",
     "Censoring",
     "multi_region",
     "Channel",
@@ -181,6 +183,7 @@ __all__ = [
     "FitResult",
     "load_fit",
     "CensoredAR",
+    "Panel",
     "data",
     "wrtds",
     "set_output_pool",

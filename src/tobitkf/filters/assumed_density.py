@@ -64,6 +64,7 @@ from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, numba_available
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, _as_indicator, censored_log_likelihood, censoring_sides
 from ._readings import classify_readings as _classify
+from ._times import at_times
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
@@ -627,6 +628,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         P0: Any = None,
         outputs: Any = "all",
         state: FilterState | None = None,
+        times: Any = None,
     ) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); NaN = missing: :meth:`AssumedDensityFamily.filter`
         (its parameters) with the recorded indicator.
@@ -636,6 +638,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         censored : (..., T, m) bool array_like, optional
             The censoring indicator recorded with the data (True = censored); default the limit rule.
             See the class Notes.
+        times : (T,) array_like, optional
+            Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
 
         Raises
         ------
@@ -645,6 +649,9 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         ShapeError
             Malformed ``y``, ``u``, limits or ``censored``.
         """
+        if times is not None:
+            est = at_times(self, times, y)
+            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
         if censored is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
         y2, batch = prepare_measurements(y, self.m)

@@ -50,6 +50,7 @@ from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
 from ._pool import take_buffer
 from ._readings import censoring_sides
+from ._times import at_times
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
@@ -195,13 +196,17 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
         P0: Any = None,
         outputs: Any = "all",
         state: FilterState | None = None,
+        times: Any = None,
     ) -> FilterResult:
         """Filter measurements ``y`` (..., T, m); see :func:`kalman_filter`.
 
         ``outputs`` selects what is recorded per step (``"all"``, ``"last"`` or names from
         ``mean, cov, var, pred_mean, pred_cov, extras``); ``state`` continues from a previous state
-        (e.g. ``result.final``) instead of the prior.
+        (e.g. ``result.final``) instead of the prior. ``times`` (T,): the sample times of the readings, for a
+        :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly; the prior at the first time).
         """
+        if times is not None:
+            return at_times(self, times, y).filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
@@ -603,10 +608,14 @@ class DroppingKalmanFilter(KalmanFilter):
         P0: Any = None,
         outputs: Any = "all",
         state: FilterState | None = None,
+        times: Any = None,
     ) -> FilterResult:
         """Filter ``y`` (..., T, m), dropping the censored readings: by the limit rule, or by the recorded
         indicator ``censored`` (..., T, m) when given (then an unflagged reading at the limit is used;
-        :func:`dropping_with_indicator`)."""
+        :func:`dropping_with_indicator`). ``times``: sample times of a continuous-time model."""
+        if times is not None:
+            est = at_times(self, times, y)
+            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
         if censored is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
         return dropping_with_indicator(self, y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)

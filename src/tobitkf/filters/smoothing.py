@@ -43,6 +43,7 @@ import numpy as np
 
 from .._validation import ValidationError
 from ..models.linear import LinearSystem
+from ._times import at_times, smooth_on_grid
 from .core import FilterResult, check_prior
 
 __all__ = ["rts_smooth", "solve_psd", "SmoothingMethods"]
@@ -212,7 +213,18 @@ class SmoothingMethods:
     system: LinearSystem
     filter: Callable[..., FilterResult]
 
-    def smooth(self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
+    def smooth(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        times: Any = None,
+        grid: Any = None,
+        start: Any = None,
+    ) -> FilterResult:
         r"""Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments, with lag-one
         cross-covariances: :func:`rts_smooth` over ``self.filter(y, ...)`` (for the TKF its linearisation
         :math:`H = E(\mathbf p)C`; for the dropping KF the censored readings dropped; for the assumed-density
@@ -226,22 +238,42 @@ class SmoothingMethods:
             The recorded censoring indicator, for the filters whose ``filter`` takes one.
         x0, P0 : array_like, optional
             Override the system's prior.
+        times : (T,) array_like, optional
+            Sample times of the readings (floats or dates), for a :class:`~tobitkf.ContinuousLinearSystem`:
+            each gap discretised exactly, the prior at ``start`` (default the first sample or grid time).
+        grid : (G,) array_like, optional
+            With ``times``: return the state at these times instead
+            (:func:`~tobitkf.filters._times.smooth_on_grid`; ``u`` is then given on the grid).
 
         Returns
         -------
         FilterResult
-            See :func:`rts_smooth`.
+            See :func:`rts_smooth`; with ``grid`` the rows of the grid.
 
         Raises
         ------
         ValidationError, ShapeError
-            As the filter's ``filter``.
+            As the filter's ``filter``; ``times`` for a discrete-time system, duplicate sample times.
         """
+        if times is not None:
+            if grid is not None:
+                return smooth_on_grid(self, y, times, grid, u=u, censored=censored, x0=x0, P0=P0, start=start)
+            return at_times(self, times, y, start=start).smooth(y, u=u, censored=censored, x0=x0, P0=P0)
+        if grid is not None or start is not None:
+            raise ValidationError("grid/start: give the sample times (times=) of a continuous-time model")
         res = self.filter(y, u=u, x0=x0, P0=P0, **_recorded(censored))
         return rts_smooth(res, self.system, x0=x0, P0=P0)
 
     def log_likelihood(
-        self, y: Any, *, u: Any = None, censored: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        per_step: bool = False,
+        times: Any = None,
     ) -> np.ndarray:
         r"""Log-likelihood :math:`\sum_k \ell_k` of ``y`` (..., T, m): (...), or the terms (..., T) with ``per_step``.
 
@@ -249,13 +281,17 @@ class SmoothingMethods:
         model, NaN readings skipped (:func:`tobitkf.inference.kalman_log_likelihood`). The assumed-density
         filter: its ``log_likelihood`` extras (see its Notes); with ``order="uncensored_first"`` it is
         :func:`tobitkf.inference.adf_log_likelihood`. The TKF's update defines none: it gives the
-        assumed-density likelihood of its model (system and censoring).
+        assumed-density likelihood of its model (system and censoring). ``times`` (T,): sample times for a
+        :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
 
         Raises
         ------
         ValidationError, ShapeError
             As the filter's ``filter``.
         """
+        if times is not None:
+            est = at_times(self, times, y)
+            return est.log_likelihood(y, u=u, censored=censored, x0=x0, P0=P0, per_step=per_step)
         terms = self._log_likelihood_terms(y, u=u, x0=x0, P0=P0, **_recorded(censored))
         return terms if per_step else terms.sum(-1)
 

@@ -73,6 +73,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
 from ._readings import censoring_sides
+from ._times import at_times
 from .assumed_density import assumed_density_filter
 from .core import (
     COVARIANCE_FORMS,
@@ -378,12 +379,17 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         P0: Any = None,
         outputs: Any = "all",
         state: FilterState | None = None,
+        times: Any = None,
     ) -> FilterResult:
         """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`.
 
         ``censored`` (..., T, m), the recorded indicator, is checked against the readings (a flagged one
         must lie at its limit); the update (3.37)-(3.41) is linear in the reading and unchanged by it.
+        ``times`` (T,): sample times for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
         """
+        if times is not None:
+            est = at_times(self, times, y)
+            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
         if censored is not None:
             check_tobit_indicator(self.censoring, y, censored, start=(0 if state is None else state.k) + 1)
         return self._run(y, u, x0, P0, outputs=outputs, state=state)

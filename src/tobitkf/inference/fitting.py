@@ -102,6 +102,10 @@ def _model_from_spec(spec: dict[str, Any]):
         from .state_space import StateSpaceModel
 
         return StateSpaceModel.from_spec(spec)
+    if kind == "continuous_panel":
+        from .panel import PanelModel
+
+        return PanelModel.from_spec(spec)
     raise ValidationError(f"model: unknown model kind {kind!r} in the fit file")
 
 
@@ -120,6 +124,7 @@ def fit(
     method: str = "auto",
     likelihood: str = "auto",
     progress: Any = None,
+    times: Any = None,
     **options: Any,
 ) -> FitResult:
     r"""Fit a model to (censored) readings: exact ML, EM or direct maximisation (module docstring).
@@ -149,6 +154,10 @@ def fit(
         For state-space models: the Kalman likelihood (no censoring) or the assumed-density one.
     progress : True or callable, optional
         A progress line on long fits, or a callback per iteration.
+    times : (T,) array_like, optional
+        Sample times of ``y`` for a callable ``theta -> ContinuousLinearSystem`` (each gap discretised
+        exactly). A :class:`~tobitkf.Panel` as ``y`` (many subjects, own times) is fitted jointly the same
+        way: :func:`~tobitkf.inference.panel.fit_panel` (options ``align``, ``start``, ``names``).
     **options
         Passed to the fitter (``maxiter``, ``tol``/``gtol``, ``standard_errors``, ...).
 
@@ -175,6 +184,14 @@ def fit(
 
     if method not in ("auto", "em", "direct"):
         raise ValidationError(f"method: expected 'auto', 'em' or 'direct', got {method!r}")
+    from .panel import Panel, fit_panel, single_series_panel
+
+    if times is not None or isinstance(y, Panel):  # a continuous-time model at sample times
+        if not isinstance(y, Panel):
+            y = single_series_panel(y, times, u=u, censoring=censoring, censored=censored, lower=lower, upper=upper)
+        elif times is not None or u is not None or censoring is not None or censored is not None:
+            raise ValidationError("times/u/censoring/censored: a Panel carries its own; give them to the Panel")
+        return fit_panel(model, y, theta0=theta0, method=method, likelihood=likelihood, progress=progress, **options)
     if isinstance(model, CensoredAR):
         if method == "em":
             raise ValidationError("method: the censored AR model is fitted by direct exact maximisation ('direct')")

@@ -28,6 +28,7 @@ import numpy as np
 
 from .._validation import ValidationError, check_instance
 from ..channels.censoring import Censoring
+from ..filters._times import system_at_times
 from ..filters.assumed_density import assumed_density_filter
 from ..filters.kalman import KalmanFilter
 from ..filters.likelihood import prediction_log_densities
@@ -39,7 +40,14 @@ LIKELIHOODS = ("kalman", "adf")
 
 
 def kalman_log_likelihood(
-    system: LinearSystem, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+    system: LinearSystem,
+    y: Any,
+    *,
+    u: Any = None,
+    x0: Any = None,
+    P0: Any = None,
+    per_step: bool = False,
+    times: Any = None,
 ) -> np.ndarray:
     r"""Exact log-likelihood :math:`\log p(y_{1:T})` of the linear Gaussian model (NaN readings skipped).
 
@@ -52,6 +60,8 @@ def kalman_log_likelihood(
         Override the system's prior.
     per_step : bool, default False
         Return the per-step terms (..., T) instead of their sum (...).
+    times : (T,) array_like, optional
+        Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
 
     Returns
     -------
@@ -74,6 +84,7 @@ def kalman_log_likelihood(
     True
     """
     check_instance(system, LinearSystem, "system")
+    system = system if times is None else system_at_times(system, times, y)
     res = KalmanFilter(system).filter(y, u=u, x0=x0, P0=P0, outputs=("pred_mean", "pred_cov"))
     terms = prediction_log_densities(system, y, res, u=u)
     return terms if per_step else terms.sum(-1)
@@ -89,6 +100,7 @@ def adf_log_likelihood(
     x0: Any = None,
     P0: Any = None,
     per_step: bool = False,
+    times: Any = None,
 ) -> np.ndarray:
     r"""Assumed-density log-likelihood of censored readings (see the module docstring).
 
@@ -104,6 +116,8 @@ def adf_log_likelihood(
     u, x0, P0 : optional
         Inputs and a prior override.
     per_step : bool, default False
+    times : (T,) array_like, optional
+        Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
 
     Returns
     -------
@@ -125,6 +139,7 @@ def adf_log_likelihood(
     True
     """
     check_instance(system, LinearSystem, "system")
+    system = system if times is None else system_at_times(system, times, y)
     res = assumed_density_filter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",))
     terms = res.extras["log_likelihood"]
     return terms if per_step else terms.sum(-1)
@@ -141,6 +156,7 @@ def log_likelihood(
     x0: Any = None,
     P0: Any = None,
     per_step: bool = False,
+    times: Any = None,
 ) -> np.ndarray:
     r"""Log-likelihood of readings ``y`` under ``system`` (and ``censoring``).
 
@@ -158,6 +174,8 @@ def log_likelihood(
         ``"adf"``.
     u, x0, P0 : optional
     per_step : bool, default False
+    times : (T,) array_like, optional
+        Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
 
     Returns
     -------
@@ -173,7 +191,9 @@ def log_likelihood(
     if method not in LIKELIHOODS:
         raise ValidationError(f"method: expected one of auto, {', '.join(LIKELIHOODS)}, got {method!r}")
     if method == "kalman":
-        return kalman_log_likelihood(system, y, u=u, x0=x0, P0=P0, per_step=per_step)
+        return kalman_log_likelihood(system, y, u=u, x0=x0, P0=P0, per_step=per_step, times=times)
     if censoring is None:
         raise ValidationError("censoring: the assumed-density likelihood needs the censoring limits")
-    return adf_log_likelihood(system, censoring, y, censored=censored, u=u, x0=x0, P0=P0, per_step=per_step)
+    return adf_log_likelihood(
+        system, censoring, y, censored=censored, u=u, x0=x0, P0=P0, per_step=per_step, times=times
+    )

@@ -75,6 +75,9 @@ def smooth(
     u: Any = None,
     x0: Any = None,
     P0: Any = None,
+    times: Any = None,
+    grid: Any = None,
+    start: Any = None,
 ) -> FilterResult:
     r"""Fixed-interval smoothing of readings ``y`` (..., T, m): :math:`\hat x_{k|T}`, :math:`P_{k|T}` and the
     lag-one cross-covariances.
@@ -97,11 +100,18 @@ def smooth(
         Known inputs.
     x0, P0 : array_like, optional
         Override the system's prior.
+    times : (T,) array_like, optional
+        Sample times (floats or dates) for a :class:`~tobitkf.ContinuousLinearSystem`: each gap
+        discretised exactly, the prior at ``start`` (default: the first sample or grid time).
+    grid : (G,) array_like, optional
+        With ``times``: the times at which the state is returned (merged into the sample times as
+        missing readings; ``u`` then given on the grid). See
+        :func:`~tobitkf.filters._times.smooth_on_grid`.
 
     Returns
     -------
     FilterResult
-        See the module docstring; for ``"adf"`` also the filter's ``extras["log_likelihood"]`` (..., T)
+        See the module docstring (with ``grid``: the rows of the grid); for ``"adf"`` also the filter's ``extras["log_likelihood"]`` (..., T)
         and ``extras["side"]`` (..., T, m).
 
     Raises
@@ -128,6 +138,12 @@ def smooth(
     if censoring is not None:
         check_instance(censoring, Censoring, "censoring")
     est = _filter_for(system, method, censoring)
+    if times is not None or grid is not None or start is not None:
+        if method == "tobit" and censored is not None:
+            assert censoring is not None, "_filter_for refuses the tobit method without censoring"
+            check_tobit_indicator(censoring, y, censored)
+        recorded = censored if method in ("adf", "dropping") else None
+        return est.smooth(y, u=u, censored=recorded, x0=x0, P0=P0, times=times, grid=grid, start=start)
     if method == "adf":
         res = est.filter(y, u=u, censored=censored, x0=x0, P0=P0)
     elif method == "dropping" and censored is not None:
