@@ -216,3 +216,25 @@ def test_arkansas_full_run(tmp_path):
     assert loo["static_ar1"]["mean_log_score"] == pytest.approx(-0.888, abs=0.002)
     paths = e.plot(r, tmp_path)
     assert len(paths) == 2
+
+
+def test_finite_differences_are_exact_on_a_quadratic():
+    """Central differences are exact for a quadratic: the gradient and the Hessian of one batched call each."""
+    from tobitkf.experiments.records import fd_gradient, fd_hessian
+
+    rng = np.random.default_rng(1)
+    M = rng.normal(size=(4, 4))
+    A = M @ M.T + np.eye(4)
+    b = rng.normal(size=4)
+    calls = []
+
+    def f(pts, rep=None):
+        calls.append(len(pts))
+        return -0.5 * np.einsum("ni,ij,nj->n", pts, A, pts) + pts @ b
+
+    th = rng.normal(size=(3, 4))
+    val, g = fd_gradient(f, th, h=1e-3)
+    np.testing.assert_allclose(val, f(th))
+    np.testing.assert_allclose(g, -th @ A + b, rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(fd_hessian(f, th[0], h=1e-2), -A, rtol=1e-7, atol=1e-7)
+    assert calls[0] == 3 * 9 and calls[-1] == 2 * 4 * 5

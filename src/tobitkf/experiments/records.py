@@ -77,6 +77,8 @@ __all__ = [
     "ARKANSAS_MODEL",
     "STATIC_MODEL",
     "FLUX_FACTOR",
+    "fd_gradient",
+    "fd_hessian",
 ]
 
 FLUX_FACTOR = 28.316846592 * 86400.0 * 1e-6
@@ -170,6 +172,34 @@ def adf_pass(
         out["sd"] = np.sqrt(np.maximum(v, 0.0) + r2)
         out["filtered"] = res
     return out
+
+
+def fd_gradient(loglik: Any, theta: np.ndarray, h: float = _FD_STEP) -> tuple[np.ndarray, np.ndarray]:
+    """Log-likelihoods (N,) and central-difference gradients (N, p) at N parameter vectors ``theta`` (N, p),
+    from one call ``loglik(points, repeat)`` on the N (2p + 1) points (``repeat`` = 2p + 1 points per vector,
+    in the vectors' order), so that a batched likelihood evaluates them together."""
+    th = np.atleast_2d(np.asarray(theta, dtype=float))
+    N, p = th.shape
+    E = np.eye(p) * h
+    pts = np.concatenate([th[:, None, :], th[:, None, :] + E, th[:, None, :] - E], axis=1)  # (N, 2p+1, p)
+    ll = np.asarray(loglik(pts.reshape(-1, p), 2 * p + 1)).reshape(N, 2 * p + 1)
+    return ll[:, 0], (ll[:, 1 : p + 1] - ll[:, p + 1 :]) / (2 * h)
+
+
+def fd_hessian(loglik: Any, theta: np.ndarray, h: float = 1e-3) -> np.ndarray:
+    r"""Central-difference Hessian (p, p) at one ``theta`` from one call ``loglik(points)`` on the 2p(p + 1)
+    points :math:`\theta \pm h e_i \pm h e_j`, :math:`i \le j`."""
+    th = np.asarray(theta, dtype=float).reshape(-1)
+    p = th.size
+    E = np.eye(p) * h
+    corners = ((1, 1), (1, -1), (-1, 1), (-1, -1))
+    pairs = [(i, j) for i in range(p) for j in range(i, p)]
+    pts = [th + si * E[i] + sj * E[j] for i, j in pairs for si, sj in corners]
+    f = np.asarray(loglik(np.array(pts))).reshape(-1, 4)
+    H = np.empty((p, p))
+    for c, (i, j) in enumerate(pairs):
+        H[i, j] = H[j, i] = (f[c, 0] - f[c, 1] - f[c, 2] + f[c, 3]) / (4 * h * h)
+    return H
 
 
 # ---------------------------------------------------------------------------------------------- model
@@ -490,36 +520,18 @@ class RiverModel:
     def loglik_and_gradient(
         self, theta: np.ndarray, y: np.ndarray | None = None, h: float = _FD_STEP
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Log-likelihoods (N,) and central-difference gradients (N, p) of N runs, in one batched filter pass
-        of N (2p + 1) runs."""
-        th = np.atleast_2d(theta)
-        N, p = th.shape
-        E = np.eye(p) * h
-        pts = np.concatenate([th[:, None, :], th[:, None, :] + E, th[:, None, :] - E], axis=1)  # (N, 2p+1, p)
-        Y = None if y is None else np.repeat(np.asarray(y, dtype=float), 2 * p + 1, axis=0)
-        ll = self.run(pts.reshape(-1, p), Y)["loglik"].reshape(N, 2 * p + 1)
-        return ll[:, 0], (ll[:, 1 : p + 1] - ll[:, p + 1 :]) / (2 * h)
+        """Log-likelihoods (N,) and central-difference gradients (N, p) of N runs (readings ``y`` (N, n) per
+        run, default the record's), in one batched filter pass of N (2p + 1) runs."""
 
-    def hessian(self, theta: np.ndarray, y: np.ndarray | None = None, h: float = 1e-3) -> np.ndarray:
+        def ll(pts: np.ndarray, rep: int) -> np.ndarray:
+            Y = None if y is None else np.repeat(np.asarray(y, dtype=float), rep, axis=0)
+            return self.run(pts, Y)["loglik"]
+
+        return fd_gradient(ll, theta, h)
+
+    def hessian(self, theta: np.ndarray, h: float = 1e-3) -> np.ndarray:
         """Central-difference Hessian (p, p) of the log-likelihood at one ``theta``, one batched pass."""
-        th = np.asarray(theta, dtype=float)
-        p = th.size
-        E = np.eye(p) * h
-        pts = [th]
-        for i in range(p):
-            for j in range(i, p):
-                for si, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
-                    pts.append(th + si * E[i] + sj * E[j])
-        Y = None if y is None else np.repeat(np.atleast_2d(y), len(pts), axis=0)
-        ll = self.run(np.array(pts), Y)["loglik"]
-        H = np.empty((p, p))
-        c = 1
-        for i in range(p):
-            for j in range(i, p):
-                f = ll[c : c + 4]
-                H[i, j] = H[j, i] = (f[0] - f[1] - f[2] + f[3]) / (4 * h * h)
-                c += 4
-        return H
+        return fd_hessian(lambda pts: self.run(pts)["loglik"], theta, h)
 
 
 def _inverse_information(H: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -746,30 +758,13 @@ class PanelModel:
             res["sd"] = out["sd"].reshape(M, S, T)
         return res
 
-    def loglik_and_gradient(self, theta: np.ndarray, h: float = _FD_STEP) -> tuple[float, np.ndarray]:
-        th = np.asarray(theta, dtype=float).reshape(-1)
-        p = th.size
-        E = np.eye(p) * h
-        ll = self.run(np.vstack([th, th + E, th - E]))["loglik"]
-        return float(ll[0]), (ll[1 : p + 1] - ll[p + 1 :]) / (2 * h)
+    def loglik_and_gradient(self, theta: np.ndarray, h: float = _FD_STEP) -> tuple[np.ndarray, np.ndarray]:
+        """Summed log-likelihoods (M,) and their central-difference gradients (M, p), one batched pass."""
+        return fd_gradient(lambda pts, rep: self.run(pts)["loglik"], theta, h)
 
     def hessian(self, theta: np.ndarray, h: float = 1e-3) -> np.ndarray:
-        th = np.asarray(theta, dtype=float)
-        p = th.size
-        E = np.eye(p) * h
-        pts = [th + si * E[i] + sj * E[j] for i in range(p) for j in range(i, p) for si, sj in _CORNERS]
-        ll = self.run(np.array(pts))["loglik"].reshape(-1, 4)
-        H = np.empty((p, p))
-        c = 0
-        for i in range(p):
-            for j in range(i, p):
-                f = ll[c]
-                H[i, j] = H[j, i] = (f[0] - f[1] - f[2] + f[3]) / (4 * h * h)
-                c += 1
-        return H
-
-
-_CORNERS = ((1, 1), (1, -1), (-1, 1), (-1, -1))
+        """Central-difference Hessian (p, p) of the summed log-likelihood at one ``theta``, one batched pass."""
+        return fd_hessian(lambda pts: self.run(pts)["loglik"], theta, h)
 
 
 def fit_ml(model: Any, start: np.ndarray | None = None, gtol: float = 1e-5) -> dict[str, Any]:
