@@ -1,0 +1,240 @@
+"""The record experiments (tobitkf.experiments.records): the per-gap filter against the package's filter on the
+daily grid, the batched leave-one-out refits against one-by-one refits, the panel likelihood against the
+per-patient likelihoods, and reduced runs of the three experiments."""
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf.data import load_arkansas, load_hiv_viral_load
+from tobitkf.experiments import get
+from tobitkf.experiments._claims import check_claims
+from tobitkf.experiments.records import (
+    ARKANSAS_MODEL,
+    PanelModel,
+    RiverModel,
+    batched_loo_refit,
+    fit_ml,
+    last_visit_predictions,
+    run_arkansas,
+)
+
+DAYS = 8 * 365  # a reduced record: the first eight years of the daily grid (79 samples)
+
+
+@pytest.fixture(scope="module")
+def short_model():
+    """The Arkansas model on the first eight years (its samples and its daily rows)."""
+    full = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
+    keep = full.day < DAYS
+    return RiverModel(
+        day=full.day[keep],
+        y=full.y[keep],
+        censored=full.censored[keep],
+        rows=full.rows[:DAYS],
+        drift=full.drift,
+        flow_variance=full.flow_variance,
+    )
+
+
+def _theta(m):
+    """A parameter vector away from any optimum, every component active."""
+    th = m.start()
+    th[m.names.index("log_tau_days")] = np.log(40.0)
+    th[m.names.index("gamma_flow")] = -0.2
+    return th
+
+
+def test_sample_grid_filter_equals_the_adf_on_the_daily_grid(short_model):
+    """Each gap taken in one exact step equals the package's ADF over every day, readings NaN between samples."""
+    m = short_model
+    th = _theta(m)
+    sys_, y, cens, ind = m.daily_system(th)
+    ll_daily = tk.adf_log_likelihood(sys_, cens, y, censored=ind, per_step=True)
+    out = m.run(th[None])
+    np.testing.assert_allclose(out["terms"][0], ll_daily[m.day], rtol=1e-10, atol=1e-12)
+    assert np.all(np.delete(ll_daily, m.day) == 0.0)
+    assert m.censored.any() and (~m.censored).any()
+
+
+def test_daily_smoother_equals_tk_smooth_on_the_daily_grid(short_model):
+    m = short_model
+    th = _theta(m)
+    sys_, y, cens, ind = m.daily_system(th)
+    ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
+    got = m.daily_smooth(th)
+    np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-9, atol=1e-11)
+    np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-9, atol=1e-12)
+    # the sample-grid smoother's predictive of each sample: the daily smoother's at its day, plus the noise
+    sm = m.run(th[None], smooth=True)
+    np.testing.assert_allclose(sm["mean"][0], got["ln_mean"][m.day], rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(sm["sd"][0] ** 2, got["ln_sd"][m.day] ** 2 + got["noise_sd"][m.day] ** 2, rtol=1e-9)
+
+
+def test_batched_leave_one_out_equals_one_by_one_refits(short_model):
+    """Two samples (one censored, one measured): the batched quasi-Newton refit against scipy's BFGS on the
+    record without the sample, both from the full fit."""
+    m = short_model
+    fit = fit_ml(m)
+    cens_i = int(np.flatnonzero(m.censored)[0])
+    meas_i = int(np.flatnonzero(~m.censored)[1])
+    samples = np.array([cens_i, meas_i])
+    gtol = 1e-5
+    loo = batched_loo_refit(m, fit["theta"], fit["cov"], samples, gtol=gtol)
+    assert loo["converged"].all() and loo["gradient_max"].max() < gtol
+    for j, i in enumerate(samples):
+        y = m.y.copy()
+        y[i] = np.nan
+        mi = RiverModel(
+            day=m.day,
+            y=y,
+            censored=m.censored & (np.arange(m.n_samples) != i),
+            rows=m.rows,
+            drift=m.drift,
+            flow_variance=m.flow_variance,
+        )
+        ref = fit_ml(mi, start=fit["theta"], gtol=1e-7)
+        # both stop near a zero of the gradient: the distance is bounded by |H^-1| (|g1| + |g2|) sqrt(p)
+        Hinv = np.linalg.norm(ref["cov"], 2)
+        tol = Hinv * 2 * gtol * np.sqrt(m.p)
+        assert np.max(np.abs(loo["theta"][j] - ref["theta"])) < tol
+        assert loo["loglik"][j] == pytest.approx(ref["loglik"], abs=1e-7)
+        sm = mi.run(ref["theta"][None], smooth=True)
+        assert loo["mean"][j] == pytest.approx(sm["mean"][0, i], abs=1e-3)
+        assert loo["sd"][j] == pytest.approx(sm["sd"][0, i], abs=1e-3)
+        # the removed sample moved the fit (a refit that did nothing would equal the full fit)
+        assert np.max(np.abs(ref["theta"] - fit["theta"])) > 10 * tol
+
+
+def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
+    """The batched panel pass against the package's ADF likelihood of each patient on its own, with per-gap
+    (T, n, n) transition and noise matrices, an offset through D u and limits per visit on both sides."""
+    model, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True)
+    th = np.array([4.2, -0.5, np.log(0.4), np.log(200.0), np.log(0.8), np.log(0.3)])
+    out = model.run(th[None])
+    nat = model.natural(th)
+    checked = 0
+    for i in range(model.subjects):
+        ok = np.isfinite(model.y[i])
+        T = int(ok.sum())
+        gaps = model.gaps[i, :T]
+        phi = np.exp(-gaps / nat["T"])
+        A = np.zeros((T, 2, 2))
+        A[:, 0, 0], A[:, 1, 1] = 1.0, phi
+        Q = np.zeros((T, 2, 2))
+        Q[:, 1, 1] = nat["sigma"] ** 2 * (1 - phi**2)
+        # the package's A_k takes x_k to x_{k+1}: A[j] spans the gap before visit j + 1 (the first visit's
+        # gap is 0: A = I, Q = 0, so x_1 = x_0, the patient's prior at the first visit)
+        sys_ = tk.LinearSystem(
+            A=A,
+            C=np.ones((1, 2)),
+            Q=Q,
+            R=[[nat["r"] ** 2]],
+            x0=[nat["mu"], 0.0],
+            P0=np.diag([nat["tau_s"] ** 2, nat["sigma"] ** 2]),
+            D=[[nat["delta"]]],
+        )
+        lo = model.lower[i, :T][:, None]
+        hi = model.upper[i, :T][:, None]
+        ll = tk.adf_log_likelihood(
+            sys_,
+            tk.Censoring(lower=lo, upper=hi),
+            model.y[i, :T][:, None],
+            censored=(np.isfinite(lo) | np.isfinite(hi)),
+            u=model.treated[i, :T][:, None],
+        )
+        assert out["per_subject"][0, i] == pytest.approx(float(ll), rel=1e-10, abs=1e-10)
+        checked += 1
+    assert checked == 72
+    assert out["loglik"][0] == pytest.approx(out["per_subject"][0].sum(), rel=1e-12)
+    assert np.isfinite(model.lower).sum() > 0 and np.isfinite(model.upper).sum() > 0  # both sides censored
+
+
+def test_last_visit_baselines_are_what_they_say():
+    panel = load_hiv_viral_load()
+    lv = last_visit_predictions(panel)
+    model, info = PanelModel.from_panel(panel, drop_last=True)
+    who = np.flatnonzero(info["last"] >= 0)
+    assert len(lv["patients"]) == who.size == np.sum(np.isfinite(model.y).sum(axis=1) >= 2)
+    prev = model.y[who, info["last"][who] - 1]
+    np.testing.assert_array_equal(lv["lvcf"]["mean"], prev)  # the previous reading as recorded
+    assert np.unique(lv["lvcf"]["sd"]).size == 1 and np.unique(lv["half_limit"]["sd"]).size == 1
+    # a patient whose earlier visits include one below the limit: its mean uses half that limit
+    for j, i in enumerate(who):
+        earlier = slice(0, info["last"][i])
+        low = np.isfinite(model.lower[i, earlier])
+        if low.any():
+            vals = np.where(low, model.y[i, earlier] - np.log10(2), model.y[i, earlier])
+            assert lv["half_limit"]["mean"][j] == pytest.approx(vals.mean())
+            break
+    else:
+        pytest.fail("no patient with a censored earlier visit")
+
+
+def test_arkansas_reduced_run_has_the_loo_fields():
+    """Leave-one-out on 10 samples: the metrics the report and users read."""
+    idx = np.arange(0, 254, 26)[:10]
+    metrics, data = run_arkansas(loo_samples=idx, static_baseline=False)
+    loo = metrics["loo"]
+    for k in ("wrtds", "state_space"):
+        e = loo[k]
+        assert len(e["date"]) == len(e["mean"]) == len(e["sd"]) == 10
+        assert e["date"][0] == str(load_arkansas().date[idx[0]])
+        assert np.all(np.array(e["sd"]) > 0)
+        assert np.isfinite(e["mean_log_score"]) and np.isfinite(e["rmse_uncensored"])
+        assert e["mean_log_score"] == pytest.approx(np.mean(e["log_score"]))
+    d = loo["difference_state_space_minus_wrtds"]
+    assert d["mean_log_score"] == pytest.approx(loo["state_space"]["mean_log_score"] - loo["wrtds"]["mean_log_score"])
+    assert d["se"] > 0
+    assert loo["state_space"]["refits_converged"] == 10
+    fit = metrics["model"]["fit"]
+    assert fit["converged"] and fit["hessian_negative_definite"]
+    assert all(np.isfinite(v) and v > 0 for v in fit["se"].values())
+    # flux = concentration x Q x the unit factor
+    np.testing.assert_allclose(data["flux"], data["conc"] * load_arkansas().daily_q * 2.446576, rtol=1e-6)
+
+
+@pytest.mark.parametrize("exp_id", ["data-hiv", "data-niagara"])
+def test_small_record_experiments_follow_the_claims_rule(exp_id, tmp_path):
+    e = get(exp_id)
+    r = e.run(runs=1, seed=0)
+    check_claims(r.claims, exp_id)
+    assert r.metrics["model"]["fit"]["converged"]
+    paths = e.plot(r, tmp_path)
+    assert all(p.exists() for p in paths)
+    assert set(r.metrics["figure_captions"]) == {p.name for p in paths}
+
+
+@pytest.mark.heavy
+def test_arkansas_full_run(tmp_path):
+    e = get("data-arkansas")
+    r = e.run(runs=1, seed=0)
+    loo = r.metrics["loo"]
+    assert loo["samples"] == 254 and loo["state_space"]["refits_converged"] == 254
+    # the static AR(1) regression reproduces the measured tie with WRTDS (-0.888 against -0.871)
+    assert loo["wrtds"]["mean_log_score"] == pytest.approx(-0.871, abs=0.001)
+    assert loo["static_ar1"]["mean_log_score"] == pytest.approx(-0.888, abs=0.002)
+    paths = e.plot(r, tmp_path)
+    assert len(paths) == 2
+
+
+def test_finite_differences_are_exact_on_a_quadratic():
+    """Central differences are exact for a quadratic: the gradient and the Hessian of one batched call each."""
+    from tobitkf.experiments.records import fd_gradient, fd_hessian
+
+    rng = np.random.default_rng(1)
+    M = rng.normal(size=(4, 4))
+    A = M @ M.T + np.eye(4)
+    b = rng.normal(size=4)
+    calls = []
+
+    def f(pts, rep=None):
+        calls.append(len(pts))
+        return -0.5 * np.einsum("ni,ij,nj->n", pts, A, pts) + pts @ b
+
+    th = rng.normal(size=(3, 4))
+    val, g = fd_gradient(f, th, h=1e-3)
+    np.testing.assert_allclose(val, f(th))
+    np.testing.assert_allclose(g, -th @ A + b, rtol=1e-8, atol=1e-8)
+    np.testing.assert_allclose(fd_hessian(f, th[0], h=1e-2), -A, rtol=1e-7, atol=1e-7)
+    assert calls[0] == 3 * 9 and calls[-1] == 2 * 4 * 5
