@@ -29,7 +29,13 @@ block (runs on the last axis, as in every kernel), by one function of the common
 * :func:`censored_block` (class code :data:`CENSORED`): censoring one- or two-sided, several regions
   (stacked channels), the Rice-fading channel (its fading variance is in ``rb``);
 * :func:`saturation_block` (:data:`SATURATION`): random saturation, three modes;
-* :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ.
+* :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ;
+* :func:`quantizer_block` (:data:`QUANTIZER`): a quantized sensor, the reading's cell as a window.
+
+A channel of the measurement contract (:mod:`tobitkf.channels.base`) reaches the loop by naming its block
+in its ``compiled_moments`` attribute (a key of :data:`FAMILIES`) and giving the block's ``par`` through
+``compiled_parameters``; adding a family is a block here and an entry in :data:`FAMILIES` and
+:func:`family_block`, with no edit to the loop or its callers.
 
 The event "the latent reading lies in [ea, eb]" (:func:`interval_event`: beyond a limit on one side, or
 between two finite bounds) is the piece a quantized sensor's interval update reuses. One-sided pieces
@@ -63,11 +69,21 @@ __all__ = [
     "censored_block",
     "saturation_block",
     "protocol_block",
+    "quantizer_block",
+    "QUANTIZER",
+    "FAMILIES",
     "family_block",
     "family_array",
 ]
 
-CENSORED, SATURATION, PROTOCOL = 0, 1, 2  #: family codes of the compiled loop
+CENSORED, SATURATION, PROTOCOL, QUANTIZER = 0, 1, 2, 3  #: family codes of the compiled loop
+#: the block functions a channel may name in its ``compiled_moments`` -> their family codes
+FAMILIES = {
+    "censored_block": CENSORED,
+    "saturation_block": SATURATION,
+    "protocol_block": PROTOCOL,
+    "quantizer_block": QUANTIZER,
+}
 MISSING, INTERIOR, LOWER, UPPER = 0, 1, 2, 3  #: reading classes (as tobitkf.filters._readings)
 _TINY = float(np.finfo(np.float64).tiny)
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -302,15 +318,52 @@ def protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, co
             ll[b] += math.log(tot) + top
 
 
+@njit(cache=True, error_model="numpy")
+def quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    r"""The assumed-density update of a quantized sensor (:class:`~tobitkf.Quantizer`) for the runs
+    ``b < nb``: ``par`` = ``(w, o, j_min, j_max)`` (width, offset, the end levels' indices, infinite without
+    an end). The reading :math:`\ell = o + jw`, :math:`j = \mathrm{rint}((y - o)/w)`, says
+    :math:`y^* \in [\ell - w/2, \ell + w/2)`, open to :math:`-\infty` at :math:`j \le j_{min}` and to
+    :math:`+\infty` at :math:`j \ge j_{max}` (the channel's ``region``); :func:`interval_event` gives the
+    log-probability and the truncated moments :math:`(E, V)` under :math:`y^* \sim N(\mu, s^2)`,
+    :math:`\mu` = ``hx``, :math:`s^2` = ``hph + rb``, and :math:`\alpha = (E - \mu)/s^2`,
+    :math:`\beta = (s^2 - V)/s^4`. A missing reading: no update, no term; a degenerate latent
+    (:math:`s^2` not above the smallest normal number): no update, the term 0 if :math:`\mu` lies in the
+    cell, else :math:`-\infty`. ``pu`` is 1, ``lo``/``hi``/``comp`` unused."""
+    w, o, j_min, j_max = par[0], par[1], par[2], par[3]
+    for b in range(nb):
+        pu[b] = 1.0
+        alpha[b] = 0.0
+        beta[b] = 0.0
+        if cls[b] == MISSING:
+            continue
+        j = np.rint((y[b] - o) / w)
+        level = o + j * w
+        ea = -_INF if j <= j_min else level - 0.5 * w
+        eb = _INF if j >= j_max else level + 0.5 * w
+        mu = hx[b]
+        s2 = hph[b] + rb[b]
+        if not s2 > _TINY:
+            ll[b] += 0.0 if (ea <= mu and mu <= eb) else -_INF
+            continue
+        lp, tm, tv = interval_event(mu, math.sqrt(s2), ea, eb, glx, glw, buf)
+        alpha[b] = (tm - mu) / s2
+        beta[b] = (s2 - tv) / (s2 * s2)
+        ll[b] += lp
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`):
+    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`,
+    :data:`QUANTIZER`):
     a branch per channel and block, not per run. (A loop that took the family's function as an argument
     would be recompiled in every process: numba does not cache a function specialised on another.)"""
     if family == CENSORED:
         censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     elif family == SATURATION:
         saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif family == QUANTIZER:
+        quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     else:
         protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
 
