@@ -88,6 +88,7 @@ MISSING, INTERIOR, LOWER, UPPER = 0, 1, 2, 3  #: reading classes (as tobitkf.fil
 _TINY = float(np.finfo(np.float64).tiny)
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _RTOL_LIMIT = 1e-12  # the limit rule of classify_readings
+_LOG_SMALL = -600.0  # below this log-mass a window's probability is taken in log space (e^-600 ~ 1e-261)
 _INF = math.inf
 
 
@@ -114,6 +115,21 @@ def _two_sided(mu, sd, ea, eb, glx, glw, buf):
     return math.log(g) if g > 0.0 else -_INF, st[4], st[5]
 
 
+@njit(cache=True, error_model="numpy")
+def _log_window(mu, sd, ea, eb):
+    r""":math:`\log P(ea \le y^* \le eb)` for finite ea < eb from the two one-sided log-probabilities on the
+    side of the nearer tail (mirrored when the window lies above the mean): :math:`\log P_b +
+    \log(1 - e^{\log P_a - \log P_b})`, finite where :math:`\Phi(\beta) - \Phi(\alpha)` underflows (a cell
+    40σ away), as :func:`tobitkf.channels.base.log_interval_mass`."""
+    if (ea - mu) + (eb - mu) > 0.0:
+        _p, la, _m, _v = beyond(mu, sd, eb, 1.0)
+        _p, lb, _m, _v = beyond(mu, sd, ea, 1.0)
+    else:
+        _p, la, _m, _v = beyond(mu, sd, ea, -1.0)
+        _p, lb, _m, _v = beyond(mu, sd, eb, -1.0)
+    return lb + math.log1p(-math.exp(la - lb))
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def interval_event(mu, sd, ea, eb, glx, glw, buf):
     r"""``(log_p, mean, var)`` of :math:`y^* \sim N(\mu, sd^2)` given :math:`ea \le y^* \le eb` (one side
@@ -127,7 +143,10 @@ def interval_event(mu, sd, ea, eb, glx, glw, buf):
     if eb == _INF:
         _p, lp, tm, tv = beyond(mu, sd, ea, 1.0)
         return lp, tm, tv
-    return _two_sided(mu, sd, ea, eb, glx, glw, buf)
+    lp, tm, tv = _two_sided(mu, sd, ea, eb, glx, glw, buf)
+    if lp < _LOG_SMALL:  # the mass is (nearly) subnormal: its logarithm from the tails' log-probabilities
+        lp = _log_window(mu, sd, ea, eb)
+    return lp, tm, tv
 
 
 @njit(cache=True, error_model="numpy", inline="always")
