@@ -384,7 +384,7 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
                 f"compiled_moments: expected the name of a block of the compiled loop ({', '.join(FAMILIES)}) "
                 f"for {type(self.channel).__name__}, got {name!r}"
             )
-        par = np.asarray(self.channel.compiled_parameters(k, 1, m), dtype=float)
+        par = np.array(getattr(self.channel, "compiled_parameters")(k, 1, m), dtype=np.float64)
         return FAMILIES[name], par[0]
 
     def _project(self, k, xp, Pp, Sp, y, u, **options):
