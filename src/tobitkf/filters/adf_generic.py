@@ -490,6 +490,12 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
     :meth:`log_likelihood` gives the assumed-density likelihood of the same model (system and channel),
     as the TKF does; :meth:`smooth` the RTS smoother over this filter's linearisation.
 
+    For a quantizer the statistics are sums over its cells, as in the multi-region TKF (Miller §6.6), but
+    :func:`~tobitkf.multi_region` with the cells as windows is another model: there each window is a sensor of
+    its own noise that passes :math:`y^*` through inside its window, while a quantized reading gives the cell
+    alone (no exact value in any cell) and one noise decides every threshold; so
+    ``TobitKalmanFilter(*multi_region(...))`` cannot express a quantizer and this filter is its Tobit-type update.
+
     Examples
     --------
     With censoring it is the TKF with the exact (total) variance of the censored reading as its noise term:
