@@ -6,7 +6,8 @@ does not cover, so the compiled path is known to have run) and ``backend="numpy"
 every output and extra agrees to 1e-12 (scaled by the output's size). Cases: one- and two-sided limits,
 several regions, limits per step, missing readings, readings 40 standard deviations into either tail, the
 recorded indicator, output selections, batch shapes, control inputs, continuing from a state, the online
-step loop against the compiled filter; saturation, Rice fading and the protocol channel's failure laws.
+step loop against the compiled filter; saturation, Rice fading and the protocol channel's failure laws; the
+generic assumed-density filter of a quantized sensor (its channel names its compiled block).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from scipy.special import log_ndtr
 
 import tobitkf as tk
 from tobitkf.censored import censored_moments
+from tobitkf.channels.base import Channel, log_interval_mass
 from tobitkf.channels.laws import PMF, Uniform
 from tobitkf.channels.protocol import LAMBDA_BASE
 
@@ -91,7 +93,9 @@ def test_beyond_a_limit_matches_the_reference_far_into_both_tails():
 )
 def test_interval_event_matches_the_reference(ea, eb):
     """The interval piece a quantizer reuses: truncated moments on [ea, eb] (narrow, wide, in a tail) as
-    tobitkf.censored_moments; its log-probability as the reference's uncensored probability."""
+    tobitkf.censored_moments; its log-probability as the log_ndtr differences of the numpy path
+    (log_interval_mass: the reference's probability is subnormal beyond ~37 sigma, its logarithm then off by
+    1e-12 relative; quadrature of the shifted density agrees with log_interval_mass at (38, 38.5))."""
     mu, sd = 0.0, 1.0
     logp, m, v = cm.interval_event(
         mu, sd, ea, eb, tk.filters._kernels.GL_X, tk.filters._kernels.GL_W, np.empty((2, 64))
@@ -99,8 +103,7 @@ def test_interval_event_matches_the_reference(ea, eb):
     ref = censored_moments(mu, sd, ea, eb)
     assert m == pytest.approx(float(ref.truncated_mean), rel=1e-12, abs=1e-13)
     assert v == pytest.approx(float(ref.truncated_var), rel=1e-10, abs=1e-300)
-    if float(ref.p_uncensored) > 0:
-        assert logp == pytest.approx(np.log(float(ref.p_uncensored)), rel=1e-12, abs=1e-13)
+    assert logp == pytest.approx(float(log_interval_mass(ea, eb)), rel=1e-12, abs=1e-13)
 
 
 def test_censored_block_is_the_adf_update_of_one_channel():
@@ -348,3 +351,169 @@ def test_protocol_adf_compiled_equals_numpy(law, window, threshold, mode):
         assert_same(
             *both(lambda be: tk.ProtocolAssumedDensityFilter(sys_, ch, nodes=5, backend=be), y, outputs=outputs)
         )
+
+
+# --------------------------------------------------------------------------- the quantizer (generic filter)
+
+QUANTIZERS = {
+    "both ends": lambda: tk.Quantizer([0.4, 0.7], offset=[0.0, 0.1], lower=[-0.8, -1.3], upper=[0.8, 1.5]),
+    "one end each": lambda: tk.Quantizer([0.5, 0.3], lower=[-0.5, -np.inf], upper=[np.inf, 0.6]),
+    "no ends": lambda: tk.Quantizer(0.25),
+    "two levels": lambda: tk.Quantizer(1.0, offset=0.5, lower=-0.5, upper=0.5),  # a binary sensor
+}
+
+
+def quantized_adf(sys_, q):
+    return lambda be: tk.AssumedDensityFilter(sys_, q, backend=be)
+
+
+@pytest.mark.parametrize("kind", list(QUANTIZERS))
+def test_quantizer_adf_compiled_equals_numpy(kind):
+    """Missing readings, readings at the saturated ends, output selections and batch shapes."""
+    sys_ = oscillator(2)
+    q = QUANTIZERS[kind]()
+    y = tk.simulate(sys_, 25, 12, channel=q, seed=3).y.copy()
+    y[::4, 3, 0] = np.nan
+    y[2, 5:9] = np.nan
+    if kind != "no ends":
+        assert q.at_limit(y).any()  # saturated readings are in the record
+    make = quantized_adf(sys_, q)
+    assert isinstance(make("numba"), tk.AssumedDensityFilter)
+    for outputs in ("all", "last", ("mean",), ("var", "extras"), ("pred_mean", "pred_cov")):
+        assert_same(*both(make, y, outputs=outputs))
+    assert_same(*both(make, y.reshape(3, 4, 25, 2)))
+    assert_same(*both(make, y[0]))  # a single run (T, m)
+
+
+def test_quantizer_adf_forty_sigma_into_the_tails():
+    """The reading's cell 40 predicted standard deviations below and above the latent mean: a saturated end
+    (one-sided), an inner cell (two-sided, narrow against the distance), and the cell that holds the mean."""
+    sys_ = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[0.5]], x0=[0.0], P0=[[0.5]])  # s = 1
+    q = tk.Quantizer(1.0, lower=-45.0, upper=45.0)
+    for x0 in (40.0, -40.0, 45.0, -45.0, 0.3):
+        y = np.array([[[0.0], [0.0]], [[-45.0], [1.0]], [[45.0], [-1.0]], [[np.nan], [0.0]]])
+        make = quantized_adf(sys_, q)
+        a, b = make("numpy").filter(y, x0=[x0]), make("numba").filter(y, x0=[x0])
+        assert np.isfinite(a.mean).all() and np.isfinite(a.extras["log_likelihood"]).all()
+        assert_same(a, b)
+
+
+def test_quantizer_adf_inputs_states_and_degenerate_latents():
+    sys_ = oscillator(2, Bu=[[0.1], [0.0]], D=[[0.2], [-0.1]])
+    q = tk.Quantizer(0.3, lower=-0.6, upper=0.6)
+    T = 16
+    u = np.sin(np.arange(T))[:, None]
+    y = tk.simulate(sys_, T, 8, channel=q, inputs=u, seed=6).y
+    make = quantized_adf(sys_, q)
+    assert_same(*both(make, y, u=u))
+    a1, b1 = both(make, y[:, :7], u=u[:7])
+    assert_same(
+        make("numpy").filter(y[:, 7:], u=u[7:], state=a1.final), make("numba").filter(y[:, 7:], u=u[7:], state=b1.final)
+    )
+    # no noise and a known state: the latent is degenerate; no update, the term 0 in the reading's cell, else -inf
+    exact = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[0.0]], x0=[0.1], P0=[[0.0]])
+    yd = np.array([[[0.0]], [[1.0]]])
+    a, b = both(quantized_adf(exact, tk.Quantizer(0.5)), yd)
+    np.testing.assert_array_equal(a.extras["log_likelihood"][:, 0], [0.0, -np.inf])
+    assert_same(a, b)
+
+
+class _DeadBand(Channel):
+    """A channel of the contract without compiled moments (section None: not registered)."""
+
+    def region(self, y, k, l):
+        return np.where(y == 0.0, -0.2, y), np.where(y == 0.0, 0.2, y)
+
+
+def test_generic_adf_backend_choice():
+    sys_ = oscillator(1)
+    q = tk.Quantizer(0.3)
+    y = tk.simulate(sys_, 10, 4, channel=q, seed=8).y
+    with pytest.raises(tk.ValidationError, match="backend"):
+        tk.AssumedDensityFilter(sys_, q, backend="fast")
+    with pytest.raises(tk.ValidationError, match="backend"):
+        tk.AssumedDensityFilter(sys_, q, backend="numba", covariance_update="joseph").filter(y)
+    ref = tk.AssumedDensityFilter(sys_, q, backend="numpy", covariance_update="joseph").filter(y)
+    assert_same(ref, tk.AssumedDensityFilter(sys_, q, covariance_update="joseph").filter(y))  # auto: numpy loop
+    # a channel that names no compiled moments runs the numpy loop, and backend="numba" refuses it
+    yd = np.where(np.abs(y) < 0.2, 0.0, y)
+    with pytest.raises(tk.ValidationError, match="backend"):
+        tk.AssumedDensityFilter(sys_, _DeadBand(), backend="numba").filter(yd)
+    assert_same(
+        tk.AssumedDensityFilter(sys_, _DeadBand(), backend="numpy").filter(yd),
+        tk.AssumedDensityFilter(sys_, _DeadBand()).filter(yd),
+    )
+
+    class Misnamed(tk.Quantizer):
+        compiled_moments = "no_such_block"
+
+    with pytest.raises(tk.ValidationError, match="compiled_moments"):
+        tk.AssumedDensityFilter(sys_, Misnamed(0.3), backend="numba").filter(y)
+
+
+@pytest.mark.parametrize("form", ["joseph", "square_root"])
+def test_quantizer_numpy_loop_with_compiled_moments_equals_numpy_moments(form):
+    """Where the numpy loop runs (here the Joseph and square-root forms) the quantizer's moments come from the
+    compiled block unless backend="numpy": the same numbers as the numpy moments, cells 40 sigma away included."""
+    sys_ = oscillator(2)
+    q = QUANTIZERS["both ends"]()
+    y = tk.simulate(sys_, 20, 6, channel=q, seed=12).y.copy()
+    y[1, 2:5] = np.nan
+    for x0 in ([0.0, 0.0], [30.0, -20.0]):
+        a = tk.AssumedDensityFilter(sys_, q, covariance_update=form, backend="numpy").filter(y, x0=x0)
+        b = tk.AssumedDensityFilter(sys_, q, covariance_update=form).filter(y, x0=x0)
+        assert np.isfinite(a.extras["log_likelihood"]).all()
+        assert_same(a, b)
+
+
+def test_quantizer_step_loop_equals_the_compiled_filter():
+    sys_ = oscillator(2)
+    q = QUANTIZERS["one end each"]()
+    y = tk.simulate(sys_, 12, 5, channel=q, seed=7).y
+    out = tk.AssumedDensityFilter(sys_, q, backend="numba").filter(y)
+    est = tk.AssumedDensityFilter(sys_, q)
+    st = est.init((5,))
+    for t in range(12):
+        st = est.step(st, y[:, t])
+        np.testing.assert_allclose(st.mean, out.mean[:, t], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(st.cov, out.cov[:, t], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("form", ["joseph", "square_root"])
+def test_censoring_numpy_loop_with_compiled_moments_equals_numpy_moments(form):
+    """The censored ADF's numpy loop takes its moments from the compiled block unless backend="numpy": the same
+    numbers as the numpy moments (tobitkf.censored), with readings 40 sigma into the tails, per-step limits,
+    the recorded indicator and a degenerate latent."""
+    sys_ = oscillator(2)
+    cens = tk.Censoring(lower=[-0.1, -0.25], upper=[np.inf, 0.3])
+    y = tk.simulate(sys_, 20, 6, censoring=cens, seed=13).y.copy()
+    y[1, 2:5] = np.nan
+    for order in ("channels", "uncensored_first"):
+        for x0 in ([0.0, 0.0], [30.0, -20.0]):
+
+            def make(be):
+                return tk.AssumedDensityTobitFilter(sys_, cens, covariance_update=form, order=order, backend=be)
+
+            a, b = make("numpy").filter(y, x0=x0), make("auto").filter(y, x0=x0)
+            assert np.isfinite(a.extras["log_likelihood"]).all()
+            assert_same(a, b)
+    flags = (y == np.array([-0.1, -0.25])) | (y == np.array([np.inf, 0.3]))
+    flags[0, :, 0] = False
+    a = tk.AssumedDensityTobitFilter(sys_, cens, covariance_update=form, backend="numpy").filter(y, censored=flags)
+    assert_same(a, tk.AssumedDensityTobitFilter(sys_, cens, covariance_update=form).filter(y, censored=flags))
+    st_a = tk.AssumedDensityTobitFilter(sys_, cens, backend="numpy").step(
+        tk.AssumedDensityTobitFilter(sys_, cens).init((6,)), y[:, 0], lower=[-0.05, -0.2], upper=[0.2, 0.3]
+    )
+    est = tk.AssumedDensityTobitFilter(sys_, cens)
+    st_b = est.step(est.init((6,)), y[:, 0], lower=[-0.05, -0.2], upper=[0.2, 0.3])
+    np.testing.assert_allclose(st_b.mean, st_a.mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(st_b.cov, st_a.cov, rtol=0, atol=1e-12)
+    exact = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[0.0]], x0=[0.1], P0=[[0.0]])
+    c1 = tk.Censoring(lower=0.0)
+    yd = np.array([[[0.0]], [[0.1]], [[0.3]]])
+    a, b = (
+        tk.AssumedDensityTobitFilter(exact, c1, covariance_update=form, backend=be).filter(yd)
+        for be in ("numpy", "auto")
+    )
+    np.testing.assert_array_equal(a.extras["log_likelihood"][:, 0], [-np.inf, 0.0, -np.inf])
+    assert_same(a, b)

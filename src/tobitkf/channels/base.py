@@ -77,9 +77,13 @@ generic assumed-density update follows (the projection formula, Maybeck 1982 §1
 ``at_limit(y, start=1)``
     the ``(..., T, m)`` mask of readings at a limit of the sensor (reported by the sweeps).
 
-``compiled_moments`` (class attribute, default None) is reserved for a numba-compiled form of
-``reading_moments`` over a block of runs, which the compiled assumed-density loop may call instead of
-the numpy hook; a channel without one runs on the numpy path.
+``compiled_moments`` (class attribute, default None) names the numba-compiled form of the channel's
+moments over a block of runs: a block function of :mod:`tobitkf.filters._compiled_moments` (a key of its
+``FAMILIES``, e.g. ``"quantizer_block"``), whose per-step parameters the channel gives by
+``compiled_parameters(k, steps, m)`` → an array (1 or ``steps``, m, K). With it,
+:class:`~tobitkf.AssumedDensityFilter` runs :meth:`filter` in the compiled loop of the assumed-density
+filters and takes its moments from that block in the numpy loop too (``backend`` as for the other
+filters); a channel without one runs on the numpy path.
 
 Registration
 ------------
@@ -125,7 +129,7 @@ class Channel:
     replaces_censoring: ClassVar[bool] = False
     """True when the channel carries its own limits (no separate :class:`~tobitkf.Censoring` with it)."""
     compiled_moments: ClassVar[Any] = None
-    """Optional numba-compiled form of :meth:`reading_moments` for the compiled loop; None: numpy path only."""
+    """Name of the channel's block function in the compiled moments (module docstring); None: numpy path only."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

@@ -88,6 +88,8 @@ class Quantizer(Channel):
     section = "quantizer"
     sweep_options = {"width": float, "offset": float, "lower": float, "upper": float}
     replaces_censoring = True
+    compiled_moments = "quantizer_block"
+    """The compiled loop's block of this channel (:func:`tobitkf.filters._compiled_moments.quantizer_block`)."""
 
     def __init__(self, width: Any, offset: Any = 0.0, lower: Any = -np.inf, upper: Any = np.inf):
         w = as_float_array(width, "width", ndim=(0, 1))
@@ -177,6 +179,12 @@ class Quantizer(Channel):
         lo = np.where(j <= j_min, -np.inf, level - 0.5 * w)
         hi = np.where(j >= j_max, np.inf, level + 0.5 * w)
         return lo, hi
+
+    def compiled_parameters(self, k: int, steps: int, m: int) -> np.ndarray:
+        """The compiled block's parameters (1, m, 4): per channel the width, the offset and the indices of the
+        end levels (infinite without an end), the same at every step."""
+        cols = (self.width, self.offset, self._j_min, self._j_max)
+        return np.stack([np.broadcast_to(np.asarray(v, dtype=float), (m,)) for v in cols], axis=-1)[None]
 
     def _cells(self, mean: np.ndarray, std: np.ndarray, l: int):
         """The levels within 12 std of ``mean`` (N, J), a mask of those that exist, and their standardized

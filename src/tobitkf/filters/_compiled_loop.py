@@ -19,7 +19,8 @@ blocks (runs on the last axis, vectorised), outputs carved from the output pool
 (:func:`~tobitkf.filters.kalman.output_arrays`).
 
 What a family gives the loop (:class:`CompiledSpec`, built by the ``*_spec`` functions below from an estimator
-and a record): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_x), the noise
+and a record; :func:`channel_spec` for any channel of the measurement contract that names its compiled block,
+so that the generic :class:`~tobitkf.AssumedDensityFilter` of such a channel needs no spec of its own): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_x), the noise
 variances ``r`` (TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`` (TP, m, K), the number of
 mixture components ``J`` whose posterior weights are returned; per-step arrays are indexed by
 ``min(t, len - 1)`` (one row: constant). Covered: the standard covariance form, time-invariant system
@@ -37,7 +38,18 @@ import numpy as np
 from numba import njit
 
 from ._backend import system_gap, use_kernel
-from ._compiled_moments import CENSORED, INTERIOR, LOWER, MISSING, PROTOCOL, SATURATION, UPPER, classify, family_block
+from ._compiled_moments import (
+    CENSORED,
+    FAMILIES,
+    INTERIOR,
+    LOWER,
+    MISSING,
+    PROTOCOL,
+    SATURATION,
+    UPPER,
+    classify,
+    family_block,
+)
 from ._kernels import GL_W, GL_X, _mirror, predict_block, runs_per_block
 from ._kernels_fading import shift_predict_block
 from ._readings import classify_readings
@@ -52,6 +64,7 @@ __all__ = [
     "fading_spec",
     "protocol_spec",
     "saturation_spec",
+    "channel_spec",
 ]
 
 
@@ -409,6 +422,49 @@ def saturation_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, st
         extras,
         bu=bu,
         du=du,
+    )
+
+
+def channel_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
+    """The generic :class:`~tobitkf.AssumedDensityFilter`'s arrays for a channel that names its compiled
+    moments (:mod:`tobitkf.channels.base`): ``channel.compiled_moments``, a key of
+    :data:`~tobitkf.filters._compiled_moments.FAMILIES` (the block function), and
+    ``channel.compiled_parameters(k, steps, m)``, the block's ``par`` (TP, m, K) for the steps k..k+steps-1
+    (TP = 1: constant). The rows are C, the noise variances R's diagonal, no limits (every reading but a
+    missing one goes to the block). None (the numpy path) for a channel without compiled moments or a
+    time-varying R.
+
+    Raises
+    ------
+    ValidationError
+        A ``compiled_moments`` that names no block of the compiled loop, or parameters of another shape.
+    """
+    from .._validation import ValidationError
+
+    name = getattr(est.channel, "compiled_moments", None)
+    if name is None or est._r is None:
+        return None
+    N, T, m = y2.shape
+    family = FAMILIES.get(name) if isinstance(name, str) else None
+    if family is None:
+        raise ValidationError(
+            f"compiled_moments: expected the name of a block of the compiled loop ({', '.join(FAMILIES)}) "
+            f"for {type(est.channel).__name__}, got {name!r}"
+        )
+    par = _c(est.channel.compiled_parameters(state.k + 1, T, m))
+    if par.ndim != 3 or par.shape[0] not in (1, T) or par.shape[1] != m:
+        raise ValidationError(
+            f"compiled_parameters: expected an array (1 or {T}, {m}, K) from {type(est.channel).__name__}, "
+            f"got shape {par.shape}"
+        )
+
+    def extras(pu, ll, comp):
+        return {"log_likelihood": _per_batch(ll, batch)}
+
+    bu, du = _input_terms(est, u2, N, est.n, m)
+    inf = np.full((1, m), np.inf)
+    return CompiledSpec(
+        family, _c(est.system.measurement(1))[None], _c(est._r)[None], -inf, inf, par, 0, extras, bu=bu, du=du
     )
 
 

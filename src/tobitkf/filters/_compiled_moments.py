@@ -29,7 +29,13 @@ block (runs on the last axis, as in every kernel), by one function of the common
 * :func:`censored_block` (class code :data:`CENSORED`): censoring one- or two-sided, several regions
   (stacked channels), the Rice-fading channel (its fading variance is in ``rb``);
 * :func:`saturation_block` (:data:`SATURATION`): random saturation, three modes;
-* :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ.
+* :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ;
+* :func:`quantizer_block` (:data:`QUANTIZER`): a quantized sensor, the reading's cell as a window.
+
+A channel of the measurement contract (:mod:`tobitkf.channels.base`) reaches the loop by naming its block
+in its ``compiled_moments`` attribute (a key of :data:`FAMILIES`) and giving the block's ``par`` through
+``compiled_parameters``; adding a family is a block here and an entry in :data:`FAMILIES` and
+:func:`family_block`, with no edit to the loop or its callers.
 
 The event "the latent reading lies in [ea, eb]" (:func:`interval_event`: beyond a limit on one side, or
 between two finite bounds) is the piece a quantized sensor's interval update reuses. One-sided pieces
@@ -63,15 +69,26 @@ __all__ = [
     "censored_block",
     "saturation_block",
     "protocol_block",
+    "quantizer_block",
+    "QUANTIZER",
+    "FAMILIES",
     "family_block",
     "family_array",
 ]
 
-CENSORED, SATURATION, PROTOCOL = 0, 1, 2  #: family codes of the compiled loop
+CENSORED, SATURATION, PROTOCOL, QUANTIZER = 0, 1, 2, 3  #: family codes of the compiled loop
+#: the block functions a channel may name in its ``compiled_moments`` -> their family codes
+FAMILIES = {
+    "censored_block": CENSORED,
+    "saturation_block": SATURATION,
+    "protocol_block": PROTOCOL,
+    "quantizer_block": QUANTIZER,
+}
 MISSING, INTERIOR, LOWER, UPPER = 0, 1, 2, 3  #: reading classes (as tobitkf.filters._readings)
 _TINY = float(np.finfo(np.float64).tiny)
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _RTOL_LIMIT = 1e-12  # the limit rule of classify_readings
+_LOG_SMALL = -600.0  # below this log-mass a window's probability is taken in log space (e^-600 ~ 1e-261)
 _INF = math.inf
 
 
@@ -98,6 +115,21 @@ def _two_sided(mu, sd, ea, eb, glx, glw, buf):
     return math.log(g) if g > 0.0 else -_INF, st[4], st[5]
 
 
+@njit(cache=True, error_model="numpy")
+def _log_window(mu, sd, ea, eb):
+    r""":math:`\log P(ea \le y^* \le eb)` for finite ea < eb from the two one-sided log-probabilities on the
+    side of the nearer tail (mirrored when the window lies above the mean): :math:`\log P_b +
+    \log(1 - e^{\log P_a - \log P_b})`, finite where :math:`\Phi(\beta) - \Phi(\alpha)` underflows (a cell
+    40σ away), as :func:`tobitkf.channels.base.log_interval_mass`."""
+    if (ea - mu) + (eb - mu) > 0.0:
+        _p, la, _m, _v = beyond(mu, sd, eb, 1.0)
+        _p, lb, _m, _v = beyond(mu, sd, ea, 1.0)
+    else:
+        _p, la, _m, _v = beyond(mu, sd, ea, -1.0)
+        _p, lb, _m, _v = beyond(mu, sd, eb, -1.0)
+    return lb + math.log1p(-math.exp(la - lb))
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def interval_event(mu, sd, ea, eb, glx, glw, buf):
     r"""``(log_p, mean, var)`` of :math:`y^* \sim N(\mu, sd^2)` given :math:`ea \le y^* \le eb` (one side
@@ -111,7 +143,10 @@ def interval_event(mu, sd, ea, eb, glx, glw, buf):
     if eb == _INF:
         _p, lp, tm, tv = beyond(mu, sd, ea, 1.0)
         return lp, tm, tv
-    return _two_sided(mu, sd, ea, eb, glx, glw, buf)
+    lp, tm, tv = _two_sided(mu, sd, ea, eb, glx, glw, buf)
+    if lp < _LOG_SMALL:  # the mass is (nearly) subnormal: its logarithm from the tails' log-probabilities
+        lp = _log_window(mu, sd, ea, eb)
+    return lp, tm, tv
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -302,15 +337,52 @@ def protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, co
             ll[b] += math.log(tot) + top
 
 
+@njit(cache=True, error_model="numpy")
+def quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    r"""The assumed-density update of a quantized sensor (:class:`~tobitkf.Quantizer`) for the runs
+    ``b < nb``: ``par`` = ``(w, o, j_min, j_max)`` (width, offset, the end levels' indices, infinite without
+    an end). The reading :math:`\ell = o + jw`, :math:`j = \mathrm{rint}((y - o)/w)`, says
+    :math:`y^* \in [\ell - w/2, \ell + w/2)`, open to :math:`-\infty` at :math:`j \le j_{min}` and to
+    :math:`+\infty` at :math:`j \ge j_{max}` (the channel's ``region``); :func:`interval_event` gives the
+    log-probability and the truncated moments :math:`(E, V)` under :math:`y^* \sim N(\mu, s^2)`,
+    :math:`\mu` = ``hx``, :math:`s^2` = ``hph + rb``, and :math:`\alpha = (E - \mu)/s^2`,
+    :math:`\beta = (s^2 - V)/s^4`. A missing reading: no update, no term; a degenerate latent
+    (:math:`s^2` not above the smallest normal number): no update, the term 0 if :math:`\mu` lies in the
+    cell, else :math:`-\infty`. ``pu`` is 1, ``lo``/``hi``/``comp`` unused."""
+    w, o, j_min, j_max = par[0], par[1], par[2], par[3]
+    for b in range(nb):
+        pu[b] = 1.0
+        alpha[b] = 0.0
+        beta[b] = 0.0
+        if cls[b] == MISSING:
+            continue
+        j = np.rint((y[b] - o) / w)
+        level = o + j * w
+        ea = -_INF if j <= j_min else level - 0.5 * w
+        eb = _INF if j >= j_max else level + 0.5 * w
+        mu = hx[b]
+        s2 = hph[b] + rb[b]
+        if not s2 > _TINY:
+            ll[b] += 0.0 if (ea <= mu and mu <= eb) else -_INF
+            continue
+        lp, tm, tv = interval_event(mu, math.sqrt(s2), ea, eb, glx, glw, buf)
+        alpha[b] = (tm - mu) / s2
+        beta[b] = (s2 - tv) / (s2 * s2)
+        ll[b] += lp
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`):
+    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`,
+    :data:`QUANTIZER`):
     a branch per channel and block, not per run. (A loop that took the family's function as an argument
     would be recompiled in every process: numba does not cache a function specialised on another.)"""
     if family == CENSORED:
         censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     elif family == SATURATION:
         saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif family == QUANTIZER:
+        quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     else:
         protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
 

@@ -59,6 +59,7 @@ import numpy as np
 from .._validation import ValidationError, check_instance, diagonal_sigma
 from ..channels.base import Channel, section_of
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS, numba_available
 from .assumed_density import AssumedDensityFamily, _noise_variances
 from .core import (
     COVARIANCE_FORMS,
@@ -182,6 +183,7 @@ def channel_update(
     *,
     dy: Any = 0.0,
     form: str = "standard",
+    compiled: tuple[int, np.ndarray] | None = None,
 ):
     r"""The assumed-density update of channel ``l`` of ``channel`` at step ``k`` (the module docstring), batched.
 
@@ -193,6 +195,11 @@ def channel_update(
     y : (N,) the channel's readings (NaN = missing: no update)
     c : (n,) its row of C ; r : its noise variance (>= 0), scalar or (N,) ; dy : (N,) or 0, the feed-through
     form : {"standard", "joseph", "square_root"}
+    compiled : (family, par), optional
+        Take the moments from the compiled block of the family code ``family`` with this channel's parameters
+        ``par`` (K,) (:func:`~tobitkf.filters._compiled_moments.family_array`, the function the compiled loop
+        runs) instead of ``reading_moments``: :math:`E[y^* \mid y] = \mu + \alpha s^2`,
+        :math:`V = s^2 - \beta s^4`. Needs numba.
 
     Returns
     -------
@@ -204,7 +211,8 @@ def channel_update(
     N = x.shape[0]
     mu = np.broadcast_to(x @ c + dy, (N,))
     rv = np.asarray(r, dtype=float)
-    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
+    cPc = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c), (N,))
+    s2 = cPc + rv
     ok = s2 > _TINY
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     has = ~np.isnan(y)
@@ -212,11 +220,16 @@ def channel_update(
     obs = np.full(N, np.nan)
     V = np.zeros(N)
     ll = np.zeros(N)
-    if valid.any():
+    if compiled is not None:
+        family, par = compiled
+        alpha, beta, ll = _compiled_moments(family, par, y, has, mu, cPc, np.broadcast_to(rv, (N,)))
+        obs = np.where(valid, mu + alpha * s2, np.nan)
+        V = np.where(valid, s2 - beta * s2 * s2, 0.0)
+    elif valid.any():
         o, v, lp = channel.reading_moments(y[valid], mu[valid], s[valid], k, l)
         obs[valid], V[valid], ll[valid] = o, v, lp
     degenerate = ~ok & has
-    if degenerate.any() and channel.supports("likelihood") and _has_region(channel):
+    if compiled is None and degenerate.any() and channel.supports("likelihood") and _has_region(channel):
         lo, hi = channel.region(y[degenerate], k, l)
         md = mu[degenerate]
         ll[degenerate] = np.where((lo <= md) & (md <= hi), 0.0, -np.inf)
@@ -233,6 +246,18 @@ def channel_update(
     )
     xn, Pn, Sn, _, _ = measurement_update(x, P, S, obs[:, None], mp, form)
     return xn, Pn, Sn, ll
+
+
+def _compiled_moments(family, par, y, has, mu, cPc, r):
+    """``(alpha, beta, log_likelihood)`` of the compiled block ``family`` for the readings ``y`` (N,)."""
+    from ._compiled_moments import INTERIOR, MISSING, family_array
+    from ._kernels import GL_W, GL_X
+
+    inf = np.full(y.shape, np.inf)
+    cls = np.where(has, INTERIOR, MISSING).astype(np.int8)
+    f = np.ascontiguousarray
+    alpha, beta, ll, _, _ = family_array(family, f(y), cls, f(mu), f(cPc), f(r), -inf, inf, f(par), 0, GL_X, GL_W)
+    return alpha, beta, ll
 
 
 def _has_region(channel: Channel) -> bool:
@@ -273,6 +298,15 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
     covariance_update : {"standard", "joseph", "square_root"}, default "standard"
         The covariance form of the shared update: :math:`\bar P - K(s^2 - V)K^T`; Joseph
         :math:`(I - Kc)\bar P(I - Kc)^T + KrK^T + KVK^T`; the square root (QR array form).
+    backend : {"auto", "numba", "numpy"}, default "auto"
+        ``"auto"`` runs :meth:`filter` through the compiled loop of the assumed-density filters
+        (:mod:`tobitkf.filters._compiled_loop`) when numba is installed, the channel names its compiled moments
+        (its ``compiled_moments`` and ``compiled_parameters``: the :class:`~tobitkf.Quantizer` does) and the
+        case is covered (the standard covariance form, a time-invariant system, R constant), else the numpy
+        loop; ``"numba"`` requires the compiled loop (:class:`~tobitkf.ValidationError` for a case it does not
+        cover); ``"numpy"`` never uses it. Both give the same numbers to rounding (tested to 1e-12). Where the
+        numpy loop runs (:meth:`step`, the Joseph and square-root forms, a time-varying system) a channel's
+        compiled moments come from the same compiled function as the loop's unless ``backend="numpy"``.
 
     Raises
     ------
@@ -319,27 +353,61 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
                     return factory(system, parts, **options)
         return super().__new__(cls)
 
-    def __init__(self, system: LinearSystem, channel: Any, *, covariance_update: str = "standard"):
+    def __init__(
+        self, system: LinearSystem, channel: Any, *, covariance_update: str = "standard", backend: str = "auto"
+    ):
         check_instance(system, LinearSystem, "system")
         self.channel = _contract_channel(channel, "moments", "the assumed-density filter")
-        check_keywords({"covariance_update": covariance_update}, _OPTIONS)
+        check_keywords({"covariance_update": covariance_update, "backend": backend}, {**_OPTIONS, "backend": BACKENDS})
         self.channel.check(system)
         self._r = None if system.R.varying else _noise_variances(system.measurement_cov(1), "R")
         self._setup_system(system)
         self.covariance_update = covariance_update
+        self.backend = backend
+
+    #: a channel that names its compiled moments (``compiled_moments``) runs :meth:`filter` in the compiled loop
+    _compiled_spec = "channel_spec"
 
     def _noise_at(self, k: int) -> np.ndarray:
         return self._r if self._r is not None else _noise_variances(self.system.measurement_cov(k), f"R({k})")
+
+    def _compiled_block(self, k: int, m: int) -> tuple[int, np.ndarray] | None:
+        """``(family, par (m, K))`` of the channel's compiled moments at step ``k`` when the step loop takes them
+        (the channel names them, numba is installed, ``backend`` is not ``"numpy"``), else None."""
+        name = getattr(self.channel, "compiled_moments", None)
+        if name is None or self.backend == "numpy" or not numba_available():
+            return None
+        from ._compiled_moments import FAMILIES
+
+        if name not in FAMILIES:
+            raise ValidationError(
+                f"compiled_moments: expected the name of a block of the compiled loop ({', '.join(FAMILIES)}) "
+                f"for {type(self.channel).__name__}, got {name!r}"
+            )
+        par = np.array(getattr(self.channel, "compiled_parameters")(k, 1, m), dtype=np.float64)
+        return FAMILIES[name], par[0]
 
     def _project(self, k, xp, Pp, Sp, y, u, **options):
         N, m = y.shape
         C, r = self.system.measurement(k), self._noise_at(k)
         dy = np.broadcast_to(self._feedthrough(k, u), (N, m))
+        block = self._compiled_block(k, m)
         x, P, S = xp, Pp, Sp
         ll = np.zeros(N)
         for l in range(m):
             x, P, S, lll = channel_update(
-                self.channel, k, l, x, P, S, y[:, l], C[l], r[l], dy=dy[:, l], form=self.covariance_update
+                self.channel,
+                k,
+                l,
+                x,
+                P,
+                S,
+                y[:, l],
+                C[l],
+                r[l],
+                dy=dy[:, l],
+                form=self.covariance_update,
+                compiled=None if block is None else (block[0], block[1][l]),
             )
             ll += lll
         return x, P, S, {"log_likelihood": ll}
@@ -385,7 +453,8 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
         return self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
 
     def __repr__(self) -> str:
-        return f"AssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"
+        backend = "" if self.backend == "auto" else f", backend={self.backend!r}"
+        return f"AssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r}{backend})"
 
 
 class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
@@ -420,6 +489,12 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
     (..., T, m), :math:`g = \partial E[y]/\partial\mu` (for censoring the TKF's :math:`E(\mathbf p)`).
     :meth:`log_likelihood` gives the assumed-density likelihood of the same model (system and channel),
     as the TKF does; :meth:`smooth` the RTS smoother over this filter's linearisation.
+
+    For a quantizer the statistics are sums over its cells, as in the multi-region TKF (Miller §6.6), but
+    :func:`~tobitkf.multi_region` with the cells as windows is another model: there each window is a sensor of
+    its own noise that passes :math:`y^*` through inside its window, while a quantized reading gives the cell
+    alone (no exact value in any cell) and one noise decides every threshold; so
+    ``TobitKalmanFilter(*multi_region(...))`` cannot express a quantizer and this filter is its Tobit-type update.
 
     Examples
     --------

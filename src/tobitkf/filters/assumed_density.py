@@ -143,6 +143,7 @@ def censored_channel_update(
     dy: Any = 0.0,
     form: str = "standard",
     cls: np.ndarray | None = None,
+    compiled: bool = False,
 ):
     r"""The ADF update of one channel (the module docstring's equations), batched over runs.
 
@@ -158,6 +159,10 @@ def censored_channel_update(
         The class of each reading (missing / interior / lower / upper, see
         :func:`censored_reading_moments`), e.g. from a recorded indicator; a reading of class missing
         is skipped whatever its value. Default the limit rule.
+    compiled : bool, default False
+        Take the moments, the log-likelihood and ``p_uncensored`` from the compiled block the compiled loop runs
+        (:func:`~tobitkf.filters._compiled_moments.censored_block`): :math:`E[y^* \mid \text{obs}] = \mu +
+        \alpha s^2`, :math:`V = s^2 - \beta s^4`. Needs numba; the same numbers to rounding (tested to 1e-12).
 
     Returns
     -------
@@ -178,13 +183,29 @@ def censored_channel_update(
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N,))
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N,))
-    obs, V, cls = censored_reading_moments(y, mu, s, lo, hi, cls)
-    valid = ok & (cls != _MISSING)
-    a, b = (lo - mu) / s, (hi - mu) / s
-    p_unc = np.where(np.isneginf(lo), 1.0, ndtr(-a)) - np.where(np.isposinf(hi), 0.0, ndtr(-b))
-    ll = np.where(valid, censored_log_likelihood(y, mu, s, lo, hi, classes=cls), 0.0)
+    if compiled:
+        from ._compiled_moments import CENSORED, family_array
+        from ._kernels import GL_W, GL_X
+
+        cls = _classify(y, lo, hi) if cls is None else cls
+        f = np.ascontiguousarray
+        cPc = s2 - rv
+        alpha, beta, ll, p_unc, _ = family_array(
+            CENSORED, f(y), f(cls, dtype=np.int8), f(mu), f(cPc), f(np.broadcast_to(rv, (N,))), f(lo), f(hi),
+            np.zeros(0), 0, GL_X, GL_W,
+        )  # fmt: skip
+        valid = ok & (cls != _MISSING)
+        beyond = valid & ((cls == _LOWER) | (cls == _UPPER))
+        obs = np.where(beyond, mu + alpha * s2, np.where(valid, y, np.nan))
+        V = np.where(beyond, s2 - beta * s2 * s2, 0.0)
+    else:
+        obs, V, cls = censored_reading_moments(y, mu, s, lo, hi, cls)
+        valid = ok & (cls != _MISSING)
+        a, b = (lo - mu) / s, (hi - mu) / s
+        p_unc = np.where(np.isneginf(lo), 1.0, ndtr(-a)) - np.where(np.isposinf(hi), 0.0, ndtr(-b))
+        ll = np.where(valid, censored_log_likelihood(y, mu, s, lo, hi, classes=cls), 0.0)
     degenerate = ~ok & (cls != _MISSING)
-    if degenerate.any():
+    if degenerate.any() and not compiled:
         with np.errstate(invalid="ignore"):
             agrees = np.where(cls == _LOWER, mu <= lo, np.where(cls == _UPPER, mu >= hi, y == mu))
         ll = np.where(degenerate, np.where(agrees, 0.0, -np.inf), ll)
@@ -436,7 +457,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         numba is installed and the options are covered (the standard covariance form, either ``order``,
         time-invariant system matrices, control inputs through constant ``Bu``/``D``), the numpy loop
         otherwise; ``"numba"`` insists on the compiled loop (raises otherwise); ``"numpy"`` never uses it.
-        Both give the same numbers (tested to 1e-12); :meth:`step` runs the numpy step.
+        Both give the same numbers (tested to 1e-12); :meth:`step` (and a case the compiled loop does not cover)
+        runs the numpy step, with the moments of the compiled loop's function unless ``"numpy"``.
 
     Raises
     ------
@@ -531,6 +553,9 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
             cls = _recorded_classes(cls, censored, y, k)
         C, r = self.system.measurement(k), self._noise_at(k)
         dy = np.broadcast_to(self._feedthrough(k, u), (N, m))
+        compiled = (
+            getattr(self, "backend", "auto") != "numpy" and numba_available()
+        )  # the compiled loop's moments, unless "numpy"
         x, P, S = xp, Pp, Sp
         pu = np.empty((N, m))
         ll = np.zeros(N)
@@ -555,6 +580,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
                     dy=dy[:, l],
                     form=self.covariance_update,
                     cls=cp[:, l],
+                    compiled=compiled,
                 )
                 pu[:, l] = np.where(member[:, l], pul, pu[:, l])
                 ll += lll
