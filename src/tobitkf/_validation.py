@@ -89,10 +89,14 @@ def as_float_array(
     """Convert ``value`` to a float64 array and check dimension and finiteness.
 
     Integer, float, read-only, strided, masked and pandas input is accepted; text (also numeric
-    text such as ``"0.5"``), booleans and complex values are refused, naming ``name``.
+    text such as ``"0.5"``), booleans and complex values are refused, naming ``name``. The masked entries
+    of a numpy masked array are missing values: NaN where ``allow_nan`` (a missing reading), refused
+    otherwise (never the number hidden under the mask).
     """
     if type(value) is np.ndarray and value.dtype is _F64:  # the common case: nothing to convert
         arr = value
+    elif isinstance(value, np.ma.MaskedArray):
+        arr = _unmask(value, name, allow_nan)
     elif isinstance(value, float) or (
         isinstance(value, int) and not isinstance(value, bool) and -(2**1023) < value < 2**1023
     ):
@@ -107,6 +111,21 @@ def as_float_array(
             )
     check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
     return arr
+
+
+def _unmask(value: np.ma.MaskedArray, name: str, allow_nan: bool) -> np.ndarray:
+    """float64 array of a masked array with its masked entries NaN (refused unless ``allow_nan``)."""
+    data = _convert(np.ma.getdata(value), name)
+    mask = np.ma.getmaskarray(value)
+    if not mask.any():
+        return data
+    if not allow_nan:
+        raise ValidationError(
+            f"{name}: expected finite numbers, found {int(mask.sum())} masked entries (a masked entry is missing: NaN)"
+        )
+    out = np.array(data, dtype=np.float64, copy=True)  # never write into the caller's data
+    out[mask] = np.nan
+    return out
 
 
 def _convert(value: Any, name: str) -> np.ndarray:
