@@ -22,6 +22,8 @@ __all__ = [
     "check_bool",
     "check_int",
     "check_memory",
+    "check_scale",
+    "READING_LIMIT",
     "memory_limit",
     "check_count",
     "ShapeError",
@@ -266,6 +268,37 @@ def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_i
         raise ValidationError(f"{name}: expected finite numbers, found NaN")
     if not allow_inf and np.isinf(arr).any():
         raise ValidationError(f"{name}: expected finite numbers, found inf")
+
+
+#: largest magnitude of a reading: its square (a variance, a likelihood term) must not overflow float64
+READING_LIMIT = 1e150
+_READING_TOO_BIG = READING_LIMIT.__lt__  # x -> READING_LIMIT < x (False for NaN)
+
+
+def reading_in_scale(vals: list[float]) -> bool:
+    """Whether every (finite or NaN) value of the list lies within :data:`READING_LIMIT` in magnitude: two
+    C-level maps, for an online step's reading."""
+    return not any(map(_READING_TOO_BIG, map(abs, vals)))
+
+
+def check_scale(arr: np.ndarray, name: str) -> None:
+    """Refuse readings larger than :data:`READING_LIMIT` (1e150) in magnitude, naming ``name``, the value and
+    its index: squares of them overflow float64, so no estimate, variance or likelihood of them is finite.
+    NaN (missing) passes."""
+    if arr.size == 0:
+        return
+    flat = arr.reshape(-1)
+    # two passes without a temporary (fmax/fmin skip NaN); the index is looked for only when one is too big
+    if not (np.fmax.reduce(flat) > READING_LIMIT or np.fmin.reduce(flat) < -READING_LIMIT):
+        return
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(arr) > READING_LIMIT
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValidationError(
+            f"{name}: reading {float(arr[idx]):.6g} at index {idx} is beyond +-{READING_LIMIT:g}, where its square "
+            "overflows float64; rescale the data (e.g. change its units)"
+        )
 
 
 def check_instance(value: Any, cls: type, name: str) -> None:

@@ -59,6 +59,8 @@ from .._validation import (
     check_memory,
     check_option,
     check_psd,
+    check_scale,
+    reading_in_scale,
 )
 from . import _backend
 
@@ -920,7 +922,9 @@ def prepare_measurements(
 ) -> tuple[np.ndarray, tuple[int, ...]]:
     """Validate ``y`` of shape ``(..., T, m)`` and flatten the batch axes.
 
-    NaN entries are allowed (missing samples) unless ``allow_nan`` is False; infinities are not.
+    NaN entries are allowed (missing samples) unless ``allow_nan`` is False; infinities are not, nor are
+    readings beyond :data:`~tobitkf._validation.READING_LIMIT` in magnitude (their squares overflow). The
+    masked entries of a numpy masked array are missing (NaN).
 
     Returns
     -------
@@ -929,6 +933,7 @@ def prepare_measurements(
         The leading shape to restore on outputs (``()`` for a single ``(T, m)`` record).
     """
     arr = as_float_array(y, name, allow_nan=allow_nan)
+    check_scale(arr, name)
     if arr.ndim < 2:
         raise ShapeError(
             f"{name}: expected (..., T, {m}) (for one scalar channel pass y[:, None]), got shape {arr.shape}"
@@ -940,8 +945,8 @@ def prepare_measurements(
     batch = arr.shape[:-2]
     if 0 in batch:
         raise ShapeError(f"{name}: expected at least one run (leading axes of positive length), got shape {arr.shape}")
-    if not arr.flags.c_contiguous:  # a broadcast or strided view: the flat (N, T, m) layout may be a copy
-        check_memory(8 * arr.size, name, f"a contiguous copy of the readings of shape {arr.shape}")
+    if not arr.flags.c_contiguous:  # a broadcast or strided view: the flat layout and the compiled loops copy it
+        check_memory(8 * arr.size, name, f"the readings of shape {arr.shape} as one contiguous array")
     return arr.reshape((-1,) + arr.shape[-2:]), batch
 
 
@@ -1209,14 +1214,17 @@ class Estimator:
         # else, or a reading it would refuse, takes the general path, which raises its errors.
         if type(y) is np.ndarray and y.dtype is _F64 and y.ndim == 1 and not state.batch_shape:
             vals = y.tolist()
-            if len(vals) == self.m and (
-                not any(map(math.isinf, vals)) if self._allow_missing else all(map(math.isfinite, vals))
+            if (
+                len(vals) == self.m
+                and (not any(map(math.isinf, vals)) if self._allow_missing else all(map(math.isfinite, vals)))
+                and reading_in_scale(vals)
             ):
                 return y[None]
         try:
             arr = as_float_array(y, name, allow_nan=self._allow_missing)
         except ValidationError as err:
             raise self._refused_nan(err) from None
+        check_scale(arr, name)
         m = self.m
         want = state.batch_shape + (m,)
         if arr.shape != want:
@@ -1564,8 +1572,8 @@ def check_state(est: Estimator, state: Any) -> FilterState:
     estimator's dimensions; ``P`` (N or 1, n_x, n_x) float64, finite, symmetric and positive semi-definite
     (:func:`~tobitkf._validation.check_psd`), present when the estimator keeps a covariance; ``S`` of the same
     shape with :math:`SS^T = P` (to 1e-8 relative); the carried quantities the estimator keeps (a state
-    made by another estimator lacks them). A state whose runs diverged (``carry["_diverged"]``) may hold
-    non-finite values. Cost: :math:`O(N n_x^3)` (one symmetric eigendecomposition per run), paid once per
+    made by another estimator lacks them). Means may be non-finite (an overflowed or diverged run, as the
+    estimator leaves it); so may the covariance of a diverged run (the others are checked). Cost: :math:`O(N n_x^3)` (one symmetric eigendecomposition per run), paid once per
     state; the state is then marked as this estimator's (:func:`mark_trusted`).
 
     Raises
@@ -1603,9 +1611,6 @@ def check_state(est: Estimator, state: Any) -> FilterState:
             f"state.x: expected a float64 array of shape ({N}, {nx}) (runs of batch shape {batch}, the state "
             f"dimension of this {name}), got {_describe(x)}"
         )
-    diverged = bool(state.carry.get("_diverged"))
-    if not diverged and not np.isfinite(x).all():
-        raise ValidationError("state.x: expected finite numbers (a state whose runs did not diverge)")
     template = _state_template(est)
     for key, mat in (("P", state.P), ("S", state.S)):
         if mat is None:
@@ -1619,23 +1624,24 @@ def check_state(est: Estimator, state: Any) -> FilterState:
         ):
             shapes = f"({N}, {nx}, {nx})" + ("" if N == 1 else f" or (1, {nx}, {nx})")
             raise ShapeError(f"state.{key}: expected a float64 array of shape {shapes}, got {_describe(mat)}")
-        if not diverged and not np.isfinite(mat).all():
-            raise ValidationError(f"state.{key}: expected finite numbers (a state whose runs did not diverge)")
     P, S = state.P, state.S
     if P is None:
         if template is not None and template.P is not None:
             raise ValidationError(f"state.P: this {name} keeps a covariance, got None: a state from another estimator?")
-    elif not diverged:
-        check_psd(P, "state.P")
+    else:
+        # a run whose covariance is no longer finite diverged (its mean is NaN, as the estimator leaves it)
+        ok = np.isfinite(P).all(axis=(-2, -1))
+        Pf = P[ok]
+        check_psd(Pf, "state.P")
         if S is not None:
-            SS = S @ S.swapaxes(-1, -2)
-            scale = max(float(np.abs(P).max(initial=0.0)), _TINY)
-            if float(np.abs(SS - P).max(initial=0.0)) > 1e-8 * scale:
-                raise ValidationError("state.S: expected a factor of state.P (S S^T = P)")
+            SS = S[ok] @ S[ok].swapaxes(-1, -2) if S.shape[0] == P.shape[0] else None
+            scale = max(float(np.abs(Pf).max(initial=0.0)), _TINY)
+            if SS is None or float(np.abs(SS - Pf).max(initial=0.0)) > 1e-8 * scale:
+                raise ValidationError("state.S: expected a factor of state.P (S S^T = P, one per covariance)")
     if template is not None:
         for key, val in template.carry.items():
-            if key.startswith("_"):
-                continue
+            if key.startswith("_") or not isinstance(val, (np.ndarray, Mapping)):
+                continue  # the carried arrays and tables; a family's warm-up scalars may come and go
             if key not in state.carry:
                 raise ValidationError(
                     f"state.carry: lacks {key!r}, which this {name} keeps: a state from another estimator? Pass a "
@@ -1734,11 +1740,15 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     if not over.any():
         return
     flat = over.reshape(-1, over.shape[-1])
-    first = int(np.min(np.argmax(flat, axis=-1)[flat.any(axis=-1)])) + W - 1
-    runs = int(flat.any(axis=-1).sum())
+    hit = flat.any(axis=-1)
+    ends = np.where(hit, np.argmax(flat, axis=-1), flat.shape[-1])
+    run = int(np.argmin(ends))  # the run that crossed first; its window ends at row ends[run] + W - 1
+    end = int(ends[run]) + W
+    first = end - W + int(np.argmax(c.reshape(-1, T)[run, end - W : end]))  # the largest update of that window
+    runs = int(hit.sum())
     k = int(result.times[first]) if result.times is not None else first + 1
     warnings.warn(
-        f"{est._name}: its updates became far larger than its own covariance allows by step k={k} in {runs} of "
+        f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
         f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared corrections, in predicted standard "
         f"deviations, exceeds {limit:.3g}): the estimate has diverged from the readings while its covariance "
         f"stayed finite. Remedy: {_correction_remedy(est)}",
