@@ -1681,6 +1681,9 @@ def _check_output_memory(want: frozenset[str], N: int, T: int, n: int, name: str
 CORRECTION_WINDOW = 20
 #: how far above its bound for a consistent filter the window's sum must be to count as divergence
 CORRECTION_FACTOR = 100.0
+#: each step adds at most this fraction of the threshold: one absurd reading (an outlier, a hostile prior) is a
+#: surprise, not a divergence; it takes at least 1 / CORRECTION_CAP such updates within a window
+CORRECTION_CAP = 0.25
 
 
 def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.ndarray) -> np.ndarray:
@@ -1721,7 +1724,9 @@ def _correction_remedy(est: Any) -> str:
 
 def _correction_check(est: Any, result: FilterResult) -> None:
     r"""Warn once when a ``filter`` run's updates are far larger than its own covariance allows: the window sum
-    over :data:`CORRECTION_WINDOW` steps of :func:`correction_statistic` above :func:`correction_threshold`.
+    over :data:`CORRECTION_WINDOW` steps of :func:`correction_statistic`, each step capped at
+    :data:`CORRECTION_CAP` of the threshold (so one outlier never suffices), above :func:`correction_threshold`
+    (the capped sum is below the plain one, so the bound for a consistent filter still holds).
     A diverging filter whose covariance stays finite and small (confidently wrong, e.g. the TKF's
     ``noise_term="total_variance"`` deep in the censored region) is caught here; the non-finite covariance
     check (:func:`_divergence_warning`) catches the others. Needs the recorded ``mean``, ``pred_mean`` and
@@ -1732,10 +1737,11 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     c = correction_statistic(mean, pm, pc)  # batch + (T,)
     T = c.shape[-1]
     W = min(CORRECTION_WINDOW, T)
+    limit = correction_threshold(est.m, W)
+    c = np.minimum(c, CORRECTION_CAP * limit)
     cs = np.cumsum(c, axis=-1)
     win = cs[..., W - 1 :].copy()
     win[..., 1:] -= cs[..., : T - W]
-    limit = correction_threshold(est.m, W)
     over = win > limit
     if not over.any():
         return
@@ -1749,8 +1755,8 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     k = int(result.times[first]) if result.times is not None else first + 1
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
-        f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared corrections, in predicted standard "
-        f"deviations, exceeds {limit:.3g}): the estimate has diverged from the readings while its covariance "
+        f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared updates, in predicted variances and "
+        f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate has diverged from the readings while its covariance "
         f"stayed finite. Remedy: {_correction_remedy(est)}",
         RuntimeWarning,
         stacklevel=4,
