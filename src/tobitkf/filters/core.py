@@ -1756,8 +1756,9 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
         f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared updates, in predicted variances and "
-        f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate has diverged from the readings while its covariance "
-        f"stayed finite. Remedy: {_correction_remedy(est)}",
+        f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no longer follows the readings while its covariance "
+        f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
+        f"{_correction_remedy(est)}",
         RuntimeWarning,
         stacklevel=4,
     )
