@@ -1743,6 +1743,8 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     win = cs[..., W - 1 :].copy()
     win[..., 1:] -= cs[..., : T - W]
     over = win > limit
+    # a run whose means stopped being finite is the non-finite check's to report (one warning per event)
+    over &= np.isfinite(mean).all(axis=(-2, -1))[..., None]
     if not over.any():
         return
     flat = over.reshape(-1, over.shape[-1])
