@@ -400,6 +400,7 @@ class TimeSequence:
         self.core_ndim = core_ndim
         self._psd = psd
         self._strict = strict_psd
+        self._valid_to = offset  # a callable is validated for k < _valid_to (each k once)
         if callable(value):
             self.fn: Callable[[int], Any] | None = value
             first = as_float_array(value(offset), f"{name}({offset})", ndim=core_ndim)
@@ -451,12 +452,15 @@ class TimeSequence:
             raise ShapeError(f"{self.name}: time-indexed array has {self.steps} steps, {steps} needed")
 
     def validate_all(self, steps: int) -> None:
-        """Check a callable over the whole horizon once (shapes and PSD)."""
+        """Check a callable over the whole horizon (shapes and PSD), each time index once: a later call checks
+        only the steps beyond those already checked (an online step extends the horizon by one)."""
         if self.fn is not None:
-            for k in range(self.offset, self.offset + steps):
+            end = self.offset + steps
+            for k in range(max(self.offset, self.__dict__.get("_valid_to", self.offset)), end):
                 mat = self.at(k)
                 check_finite(mat, f"{self.name}({k})")
                 self._check(mat, f"{self.name}({k})")
+                self._valid_to = k + 1
 
 
 def check_count(value: Any, name: str) -> int:

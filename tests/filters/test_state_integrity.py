@@ -339,3 +339,20 @@ def test_one_outlier_is_a_surprise_not_a_divergence():
     y[:, 31:40] += 40.0 * (-1.0) ** np.arange(9)[:, None]
     res, found = _warnings_of(tk.KalmanFilter(sys_), y)
     assert len(found) == 1 and "at step k=" in found[0]
+
+
+def test_the_online_steps_reading_check_evaluates_a_callable_model_once_per_step():
+    """``step`` checks its reading by the record's rule, which validates a callable model over the horizon:
+    each time index is validated once (an online run of T steps costs O(T) evaluations, not O(T^2))."""
+    calls = []
+
+    def C(k):
+        calls.append(k)
+        return np.array([[1.0, 0.01 * k]])
+
+    sys_ = tk.LinearSystem(A=0.9 * np.eye(2), C=C, Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=np.eye(2))
+    est = tk.DroppingKalmanFilter(sys_, tk.Censoring(lower=-1.0), backend="numpy")
+    s, start = est.init(), len(calls)
+    for k in range(60):
+        s = est.step(s, np.array([0.1]))
+    assert len(calls) - start <= 4 * 60
