@@ -1730,10 +1730,13 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     A diverging filter whose covariance stays finite and small (confidently wrong, e.g. the TKF's
     ``noise_term="total_variance"`` deep in the censored region) is caught here; the non-finite covariance
     check (:func:`_divergence_warning`) catches the others. Needs the recorded ``mean``, ``pred_mean`` and
-    ``pred_cov`` (``outputs="all"``, the default)."""
+    ``pred_cov`` (``outputs="all"``, the default); a fixed-gain filter (its covariance the same at every
+    step, a nominal one) is not checked."""
     mean, pm, pc = result.mean, result.pred_mean, result.pred_cov
     if mean is None or pm is None or pc is None or mean.ndim < 2 or mean.shape[-2] < 1:
         return
+    if pc.shape[-3] > 1 and (pc == pc[..., :1, :, :]).all():
+        return  # a fixed-gain filter's nominal covariance (the same at every step) claims no consistency
     c = correction_statistic(mean, pm, pc)  # batch + (T,)
     T = c.shape[-1]
     W = min(CORRECTION_WINDOW, T)
@@ -1762,5 +1765,16 @@ def _correction_check(est: Any, result: FilterResult) -> None:
         f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
         f"{_correction_remedy(est)}",
         RuntimeWarning,
-        stacklevel=4,
+        stacklevel=_caller_level(),
     )
+
+
+def _caller_level() -> int:
+    """``stacklevel`` of the first frame outside this package: the warning points at the user's call (a test,
+    a script), however many of the package's own functions (``filter`` wrappers, an experiment) lie between."""
+    import sys
+
+    frame, level = sys._getframe(1), 1
+    while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
+        frame, level = frame.f_back, level + 1
+    return level
