@@ -1774,7 +1774,8 @@ def _caller_level() -> int:
     a script), however many of the package's own functions (``filter`` wrappers, an experiment) lie between."""
     import sys
 
-    frame, level = sys._getframe(1), 1
+    frame: Any = sys._getframe(1)
+    level = 1
     while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
         frame, level = frame.f_back, level + 1
     return level
