@@ -492,8 +492,8 @@ def test_memos_of_each_form_equal_fresh_steps_after_a_miss(form, monkeypatch):
 
 
 def test_predict_memo_is_keyed_on_the_form_and_on_what_the_step_reads():
-    """The square-root step reads the factor S (not P): a state whose P is that of the memo but whose S
-    differs is predicted from its S; and an entry of the standard form is never taken by the
+    """The square-root step reads the factor S (not P): a state with another factor is predicted from its S (a
+    state whose S is not a factor of its P is refused); and an entry of the standard form is never taken by the
     square-root form, even for an S whose bytes equal the cached P's (the form is part of the key)."""
     c = np.array([[0.0, 0.0], [20.0, 0.0], [40.0, 0.0]])
     frames = np.random.default_rng(5).normal(size=(130, 3, 2)) * 0.5 + c
@@ -502,7 +502,9 @@ def test_predict_memo_is_keyed_on_the_form_and_on_what_the_step_reads():
     for f in frames[:-1]:
         s = tr.step(s, f)
     assert tr._last_predict is not None and tr._last_predict[0][2] == s.S.tobytes()  # at the fixed point
-    odd = s.replace(S=2.0 * s.S)  # P kept: a memo keyed on P would predict from the old factor
+    with pytest.raises(ValidationError, match=r"state.S: expected a factor of state.P"):
+        tr.step(s.replace(S=2.0 * s.S), frames[-1])  # P kept, S changed: no longer a state, refused
+    odd = s.replace(S=2.0 * s.S, P=4.0 * s.P)  # a memo keyed on P's bytes alone would not see S either
     a = tr.step(odd, frames[-1])
     tr._last_predict = tr._last_update = None
     b = tr.step(odd, frames[-1])
@@ -514,7 +516,7 @@ def test_predict_memo_is_keyed_on_the_form_and_on_what_the_step_reads():
     for f in frames[:-1]:
         s = tr.step(s, f)
     assert tr._last_predict is not None and tr._last_predict[0][2] == s.P.tobytes()
-    twin = s.replace(S=s.P.copy())  # a "factor" with the cached P's bytes
+    twin = s.replace(S=s.P.copy(), P=s.P @ s.P)  # a factor (of P^2) with the cached P's bytes
     tr.covariance_update = "square_root"
     a = tr.step(twin, frames[-1])
     fresh = MultiTargetTracker(covariance_update="square_root").step(twin, frames[-1])

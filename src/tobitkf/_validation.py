@@ -22,6 +22,8 @@ __all__ = [
     "check_bool",
     "check_int",
     "check_memory",
+    "check_scale",
+    "READING_LIMIT",
     "memory_limit",
     "check_count",
     "ShapeError",
@@ -89,10 +91,14 @@ def as_float_array(
     """Convert ``value`` to a float64 array and check dimension and finiteness.
 
     Integer, float, read-only, strided, masked and pandas input is accepted; text (also numeric
-    text such as ``"0.5"``), booleans and complex values are refused, naming ``name``.
+    text such as ``"0.5"``), booleans and complex values are refused, naming ``name``. The masked entries
+    of a numpy masked array are missing values: NaN where ``allow_nan`` (a missing reading), refused
+    otherwise (never the number hidden under the mask).
     """
     if type(value) is np.ndarray and value.dtype is _F64:  # the common case: nothing to convert
         arr = value
+    elif isinstance(value, np.ma.MaskedArray):
+        arr = _unmask(value, name, allow_nan)
     elif isinstance(value, float) or (
         isinstance(value, int) and not isinstance(value, bool) and -(2**1023) < value < 2**1023
     ):
@@ -107,6 +113,21 @@ def as_float_array(
             )
     check_finite(arr, name, allow_nan=allow_nan, allow_inf=allow_inf)
     return arr
+
+
+def _unmask(value: np.ma.MaskedArray, name: str, allow_nan: bool) -> np.ndarray:
+    """float64 array of a masked array with its masked entries NaN (refused unless ``allow_nan``)."""
+    data = _convert(np.ma.getdata(value), name)
+    mask = np.ma.getmaskarray(value)
+    if not mask.any():
+        return data
+    if not allow_nan:
+        raise ValidationError(
+            f"{name}: expected finite numbers, found {int(mask.sum())} masked entries (a masked entry is missing: NaN)"
+        )
+    out = np.array(data, dtype=np.float64, copy=True)  # never write into the caller's data
+    out[mask] = np.nan
+    return out
 
 
 def _convert(value: Any, name: str) -> np.ndarray:
@@ -249,6 +270,37 @@ def check_finite(arr: np.ndarray, name: str, *, allow_nan: bool = False, allow_i
         raise ValidationError(f"{name}: expected finite numbers, found inf")
 
 
+#: largest magnitude of a reading: its square (a variance, a likelihood term) must not overflow float64
+READING_LIMIT = 1e150
+_READING_TOO_BIG = READING_LIMIT.__lt__  # x -> READING_LIMIT < x (False for NaN)
+
+
+def reading_in_scale(vals: list[float]) -> bool:
+    """Whether every (finite or NaN) value of the list lies within :data:`READING_LIMIT` in magnitude: two
+    C-level maps, for an online step's reading."""
+    return not any(map(_READING_TOO_BIG, map(abs, vals)))
+
+
+def check_scale(arr: np.ndarray, name: str) -> None:
+    """Refuse readings larger than :data:`READING_LIMIT` (1e150) in magnitude, naming ``name``, the value and
+    its index: squares of them overflow float64, so no estimate, variance or likelihood of them is finite.
+    NaN (missing) passes."""
+    if arr.size == 0:
+        return
+    flat = arr.reshape(-1)
+    # two passes without a temporary (fmax/fmin skip NaN); the index is looked for only when one is too big
+    if not (np.fmax.reduce(flat) > READING_LIMIT or np.fmin.reduce(flat) < -READING_LIMIT):
+        return
+    with np.errstate(invalid="ignore"):
+        bad = np.abs(arr) > READING_LIMIT
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise ValidationError(
+            f"{name}: reading {float(arr[idx]):.6g} at index {idx} is beyond +-{READING_LIMIT:g}, where its square "
+            "overflows float64; rescale the data (e.g. change its units)"
+        )
+
+
 def check_instance(value: Any, cls: type, name: str) -> None:
     """Raise :class:`ValidationError` naming ``name`` unless ``value`` is a ``cls``."""
     if not isinstance(value, cls):
@@ -348,6 +400,7 @@ class TimeSequence:
         self.core_ndim = core_ndim
         self._psd = psd
         self._strict = strict_psd
+        self._valid_to = offset  # a callable is validated for k < _valid_to (each k once)
         if callable(value):
             self.fn: Callable[[int], Any] | None = value
             first = as_float_array(value(offset), f"{name}({offset})", ndim=core_ndim)
@@ -399,12 +452,15 @@ class TimeSequence:
             raise ShapeError(f"{self.name}: time-indexed array has {self.steps} steps, {steps} needed")
 
     def validate_all(self, steps: int) -> None:
-        """Check a callable over the whole horizon once (shapes and PSD)."""
+        """Check a callable over the whole horizon (shapes and PSD), each time index once: a later call checks
+        only the steps beyond those already checked (an online step extends the horizon by one)."""
         if self.fn is not None:
-            for k in range(self.offset, self.offset + steps):
+            end = self.offset + steps
+            for k in range(max(self.offset, self.__dict__.get("_valid_to", self.offset)), end):
                 mat = self.at(k)
                 check_finite(mat, f"{self.name}({k})")
                 self._check(mat, f"{self.name}({k})")
+                self._valid_to = k + 1
 
 
 def check_count(value: Any, name: str) -> int:

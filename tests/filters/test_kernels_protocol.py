@@ -373,7 +373,8 @@ def test_plain_online_step_equals_the_general_step(mode, monkeypatch):
     tau (censored) on some steps, a lost reading (that step takes the general route), a pickled state
     resumed. Its states equal those of the general step (the same detections given as ``uncensored``) to
     1e-12 and the numpy step's to 1e-12; the general route ran only at the first step (which decides on the
-    kernel) and at the lost reading; a reading below tau or a wrong shape is refused as by the general step."""
+    kernel), at the lost reading and at the resumed (unpickled) state, which it checks in full once; a reading
+    below tau or a wrong shape is refused as by the general step."""
     sys_, ch = three_sensor_case()
     shape, T = (2, 3), 17
     y = tk.simulate(sys_, T, 6, seed=4, channel=ch).y.reshape(shape + (T, 1))
@@ -389,7 +390,7 @@ def test_plain_online_step_equals_the_general_step(mode, monkeypatch):
 
     monkeypatch.setattr(ProtocolTobitKalmanFilter, "_fast_step", spy)
     plain = _steps(ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode), y, shape, resume_at=8)
-    assert len(calls) == 2
+    assert len(calls) == 3
     given = _steps(ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode), y, shape, y > ch.threshold, 8)
     ref = _steps(ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", failure_term=mode), y, shape, resume_at=8)
     for a, b, c in zip(plain, given, ref):

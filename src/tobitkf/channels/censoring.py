@@ -153,6 +153,9 @@ class Censoring(Channel):
     def check_measurements(self, y: np.ndarray, name: str = "y", *, rtol: float = 1e-9, start: int = 1) -> None:
         """Raise :class:`ValidationError` if a (non-NaN) reading lies outside its limits (row 0 is time ``start``)."""
         steps, m = y.shape[-2:]
+        if steps == 1:  # one step (an online step's reading): the same rule in its one-step form
+            self.check_reading(y[..., 0, :], start, name, rtol=rtol)
+            return
         lo, hi = self.all_limits(steps, m, start=start)
         tol_lo = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(lo), lo, 0.0)))
         tol_hi = rtol * np.maximum(1.0, np.abs(np.where(np.isfinite(hi), hi, 0.0)))

@@ -51,7 +51,17 @@ from typing import Any, Mapping, cast
 import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
-from .._validation import _F64, ShapeError, ValidationError, as_float_array, check_option, check_psd
+from .._validation import (
+    _F64,
+    ShapeError,
+    ValidationError,
+    as_float_array,
+    check_memory,
+    check_option,
+    check_psd,
+    check_scale,
+    reading_in_scale,
+)
 from . import _backend
 
 __all__ = [
@@ -177,10 +187,16 @@ class FilterState:
         return self.P.reshape(self.batch_shape + self.P.shape[-2:])
 
     def replace(self, **changes: Any) -> FilterState:
-        """A copy with some fields changed."""
+        """A copy with some fields changed (checked in full when it next enters an estimator)."""
         from dataclasses import replace as _replace
 
         return _replace(self, **changes)
+
+    def __getstate__(self) -> dict[str, Any]:
+        # the mark of the estimator that made the state (:func:`mark_trusted`) does not travel: an unpickled
+        # (or copied) state is checked in full when it next enters an estimator
+        d = self.__dict__
+        return {key: val for key, val in d.items() if key != _ORIGIN} if _ORIGIN in d else dict(d)
 
 
 def step_state(
@@ -211,6 +227,32 @@ def step_state(
 
 
 _new_object = object.__new__
+
+#: key, in a state's ``__dict__``, of the token of the estimator that made it (not a field: ``replace``,
+#: pickling and copying drop it)
+_ORIGIN = "_origin"
+_UNTRUSTED = object()
+
+
+def _token(est: Any) -> object:
+    """The estimator's private token, made at its first state."""
+    tok = est.__dict__.get("_state_token")
+    if tok is None:
+        tok = est.__dict__["_state_token"] = object()
+    return tok
+
+
+def mark_trusted(est: Any, state: FilterState) -> FilterState:
+    """Mark ``state`` as made (or checked in full) by ``est``: it then enters ``est``'s ``step``, ``predict``
+    and ``update`` without the full check of :meth:`Estimator._check_state`. Returns ``state``."""
+    state.__dict__[_ORIGIN] = _token(est)
+    return state
+
+
+def is_trusted(est: Any, state: Any) -> bool:
+    """Whether ``state`` is a :class:`FilterState` that ``est`` made (or checked) and nobody replaced, copied
+    or unpickled since: one type test and two dictionary look-ups."""
+    return type(state) is FilterState and state.__dict__.get(_ORIGIN, _UNTRUSTED) is est.__dict__.get("_state_token")
 
 
 @dataclass(frozen=True)
@@ -880,7 +922,9 @@ def prepare_measurements(
 ) -> tuple[np.ndarray, tuple[int, ...]]:
     """Validate ``y`` of shape ``(..., T, m)`` and flatten the batch axes.
 
-    NaN entries are allowed (missing samples) unless ``allow_nan`` is False; infinities are not.
+    NaN entries are allowed (missing samples) unless ``allow_nan`` is False; infinities are not, nor are
+    readings beyond :data:`~tobitkf._validation.READING_LIMIT` in magnitude (their squares overflow). The
+    masked entries of a numpy masked array are missing (NaN).
 
     Returns
     -------
@@ -889,6 +933,7 @@ def prepare_measurements(
         The leading shape to restore on outputs (``()`` for a single ``(T, m)`` record).
     """
     arr = as_float_array(y, name, allow_nan=allow_nan)
+    check_scale(arr, name)
     if arr.ndim < 2:
         raise ShapeError(
             f"{name}: expected (..., T, {m}) (for one scalar channel pass y[:, None]), got shape {arr.shape}"
@@ -898,6 +943,10 @@ def prepare_measurements(
     if arr.shape[-2] < 1:
         raise ShapeError(f"{name}: expected at least one time step, got shape {arr.shape}")
     batch = arr.shape[:-2]
+    if 0 in batch:
+        raise ShapeError(f"{name}: expected at least one run (leading axes of positive length), got shape {arr.shape}")
+    if not arr.flags.c_contiguous:  # a broadcast or strided view: the flat layout and the compiled loops copy it
+        check_memory(8 * arr.size, name, f"the readings of shape {arr.shape} as one contiguous array")
     return arr.reshape((-1,) + arr.shape[-2:]), batch
 
 
@@ -979,7 +1028,16 @@ def parse_outputs(outputs: Any) -> frozenset[str]:
         return frozenset(("mean", "cov", "pred_mean", "pred_cov", "extras"))
     if isinstance(outputs, str) and outputs == "last":
         return frozenset()
-    names = (outputs,) if isinstance(outputs, str) else tuple(outputs)
+    if isinstance(outputs, str):
+        names: tuple[Any, ...] = (outputs,)
+    else:
+        try:
+            names = tuple(outputs)
+        except TypeError:
+            raise ValidationError(
+                f"outputs: expected 'all', 'last', a name or a list of names from {', '.join(OUTPUTS)}, got "
+                f"{outputs!r} ({type(outputs).__name__})"
+            ) from None
     bad = [o for o in names if not isinstance(o, str) or o not in OUTPUTS]
     if bad:
         raise ValidationError(f"outputs: expected 'all', 'last' or names from {', '.join(OUTPUTS)}, got {bad[0]!r}")
@@ -1118,24 +1176,27 @@ class Estimator:
         ``x0``/``P0`` override the model's prior (``(n,)``/``(n, n)`` or laid out like the batch).
         """
         batch = _check_batch(batch_shape)
-        N = int(np.prod(batch, dtype=int))
+        N = math.prod(batch)  # a Python int: no overflow before the memory check
+        check_memory(N * self._bytes_per_run(), "batch_shape", f"the state of {N} runs of this {self._name}")
         x, P, carry = self._initial(N, x0, P0, batch)
         S = None
         if self.covariance_update == "square_root" and P is not None:
             S = psd_sqrt(P)
-        return FilterState(k=self.k0, batch_shape=batch, x=x, P=P, n=self.n, S=S, carry=carry)
+        return mark_trusted(self, FilterState(k=self.k0, batch_shape=batch, x=x, P=P, n=self.n, S=S, carry=carry))
+
+    def _bytes_per_run(self) -> int:
+        """Bytes the state of one run takes (its mean and covariance, and the factor in the square-root form);
+        a family that carries more per run (particles) says so."""
+        nx = self._state_dim()
+        return 8 * (nx + nx * nx * (2 if self.covariance_update == "square_root" else 1))
 
     def _check_state(self, state: Any) -> FilterState:
-        if not isinstance(state, FilterState):
-            raise ValidationError(f"state: expected a FilterState (from init() or step()), got {type(state).__name__}")
-        if state.x.shape[-1] != self._state_dim():
-            raise ShapeError(
-                f"state: expected a state of dimension {self._state_dim()} for this {self._name}, "
-                f"got {state.x.shape[-1]}"
-            )
-        if self.covariance_update == "square_root" and state.S is None and state.P is not None:
-            state = state.replace(S=psd_sqrt(state.P))
-        return state
+        """``state`` as it may enter this estimator: a state this estimator made passes at the cost of two
+        dictionary look-ups (:func:`is_trusted`); any other (unpickled, copied, ``replace``-d, built by hand or
+        made by another estimator) gets the full check of :func:`check_state` once."""
+        if is_trusted(self, state):
+            return state
+        return check_state(self, state)
 
     def _state_dim(self) -> int:
         return self.n
@@ -1153,14 +1214,17 @@ class Estimator:
         # else, or a reading it would refuse, takes the general path, which raises its errors.
         if type(y) is np.ndarray and y.dtype is _F64 and y.ndim == 1 and not state.batch_shape:
             vals = y.tolist()
-            if len(vals) == self.m and (
-                not any(map(math.isinf, vals)) if self._allow_missing else all(map(math.isfinite, vals))
+            if (
+                len(vals) == self.m
+                and (not any(map(math.isinf, vals)) if self._allow_missing else all(map(math.isfinite, vals)))
+                and reading_in_scale(vals)
             ):
                 return y[None]
         try:
             arr = as_float_array(y, name, allow_nan=self._allow_missing)
         except ValidationError as err:
             raise self._refused_nan(err) from None
+        check_scale(arr, name)
         m = self.m
         want = state.batch_shape + (m,)
         if arr.shape != want:
@@ -1190,6 +1254,8 @@ class Estimator:
         (``state.k`` advanced by one); the old one is unchanged.
         """
         state = self._check_state(state)
+        if state.carry.get("_predicted"):
+            raise _prediction_to_step()
         yk = self._reading(state, y)
         if u is None and not options:  # a plain call: no input to form, no keyword to vet
             uk, opts = None, self._prepare_step_options(state, options)
@@ -1199,20 +1265,25 @@ class Estimator:
         self._check_reading(state, yk, opts)
         fast = self._fast_step(state, yk, uk, opts)
         if fast is not None:
-            return fast
+            return mark_trusted(self, fast)
         k = state.k + 1
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
             x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
         x, carry = _divergence_check(
             self._name, x, P if S is None else S, k, self.covariance_update, carry, state.carry
         )
-        return step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None)
+        return mark_trusted(self, step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None))
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
 
     def _check_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
-        """Checks of one reading (N, m) of ``step`` beyond its shape (e.g. within the censoring limits)."""
+        """Checks of one reading (N, m) of ``step`` beyond its shape (e.g. within the censoring limits): those of
+        ``filter`` (:meth:`_check_record` of a record of one step), so that ``step`` and ``filter`` accept the
+        same readings; a step that sets its own limits (``lower``/``upper``) is checked by its family."""
+        if options and (options.get("lower") is not None or options.get("upper") is not None):
+            return
+        self._check_record(y[:, None], None, state.k)
 
     def _run(
         self,
@@ -1237,19 +1308,26 @@ class Estimator:
             if x0 is not None or P0 is not None:
                 raise ValidationError("state: give either a state to continue from or x0/P0, not both")
             state = self._check_state(state)
+            if state.carry.get("_predicted"):
+                raise _prediction_to_step("filter")
             if state.batch_shape != batch and state.runs != N:
                 raise ShapeError(f"state: batch shape {state.batch_shape} does not match y's {batch}")
         else:
             state = self.init(batch, x0=x0, P0=P0)
         u2 = self._prepare_inputs(u, N, T, batch)
         self._check_record(y2, u2, state.k, name)
+        _check_output_memory(want, N, T, self.n, name)
         fast = self._fast_filter_with(y2, u2, state, want, batch, step_options)
-        if fast is not None:
-            return fast
-        rec = _Recorder(want, T, batch, self.n)
-        x, P, S, carry = state.x, state.P, state.S, state.carry
-        with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
-            return self._loop(rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T)
+        if fast is None:
+            rec = _Recorder(want, T, batch, self.n)
+            x, P, S, carry = state.x, state.P, state.S, state.carry
+            with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
+                fast = self._loop(rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T)
+        if fast.final is not None:
+            mark_trusted(self, fast.final)
+        if isinstance(self, GaussianFilter):
+            _correction_check(self, fast)
+        return fast
 
     def _loop(self, rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T):
         first_bad = None
@@ -1328,7 +1406,11 @@ class GaussianFilter(Estimator):
         return xn, Pn, Sn, carry, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree, options)
 
     def _check_update_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
-        """Checks of :meth:`update`'s reading (N, m) beyond its shape; none unless a family adds them."""
+        """Checks of :meth:`update`'s reading (N, m) beyond its shape: those of ``filter`` for the reading of
+        time ``state.k`` (as :meth:`~Estimator._check_reading`)."""
+        if options and (options.get("lower") is not None or options.get("upper") is not None):
+            return
+        self._check_record(y[:, None], None, state.k - 1)
 
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
         """One predict + update on arrays: returns ``(x, P, S, carry, x̄, P̄, extras)``."""
@@ -1347,9 +1429,12 @@ class GaussianFilter(Estimator):
         xp, Pp, Sp = time_update(state.x, state.P, state.S, tr, self.covariance_update, compiled=self._compiled_core())
         carry = dict(state.carry)
         carry["_predicted"] = True
+        carry.pop("_u", None)  # a prediction of a prediction: the first step's input is not this one's
         if uk is not None:
             carry["_u"] = uk
-        return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
+        return mark_trusted(
+            self, FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
+        )
 
     def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
@@ -1368,8 +1453,11 @@ class GaussianFilter(Estimator):
         x, carry = _divergence_check(
             self._name, x, P if S is None else S, state.k, self.covariance_update, carry, state.carry
         )
-        return FilterState(
-            k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
+        return mark_trusted(
+            self,
+            FilterState(
+                k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
+            ),
         )
 
 
@@ -1445,3 +1533,249 @@ def _divergence_check(
         carry = dict(carry)
         carry["_diverged"] = True
     return _poison_diverged(x, P), carry
+
+
+# --------------------------------------------------------------------------- a state entering an estimator
+
+
+def _prediction_to_step(what: str = "step") -> ValidationError:
+    return ValidationError(
+        f"state: a prediction from predict() (its reading not applied yet): give it its reading with update(state, "
+        f"y), or pass the filtered state (from init(), step() or update()) to {what}()"
+    )
+
+
+def _describe(arr: Any) -> str:
+    if isinstance(arr, np.ndarray):
+        return f"a {arr.dtype} array of shape {arr.shape}"
+    return f"{type(arr).__name__}"
+
+
+def _state_template(est: Estimator) -> FilterState | None:
+    """The prior of one run of ``est`` (its layout: covariance or none, carried arrays), made once; None when
+    the estimator's ``init`` needs arguments (the tracker's locations)."""
+    cached = est.__dict__.get("_state_layout", _UNTRUSTED)
+    if cached is _UNTRUSTED:
+        try:
+            cached = est.init()
+        except Exception:  # noqa: BLE001 - an init that needs arguments: no layout to compare with
+            cached = None
+        est.__dict__["_state_layout"] = cached
+    return cast("FilterState | None", cached)
+
+
+def check_state(est: Estimator, state: Any) -> FilterState:
+    r"""The full check of a state entering ``est`` (:meth:`Estimator._check_state` of a state it did not make).
+
+    Checks, naming the field: a :class:`FilterState`; ``k`` an integer not before the estimator's prior
+    (``est.k0``); ``batch_shape`` a tuple of positive integers; ``n`` and ``x`` (N, n_x) float64 of this
+    estimator's dimensions; ``P`` (N or 1, n_x, n_x) float64, finite, symmetric and positive semi-definite
+    (:func:`~tobitkf._validation.check_psd`), present when the estimator keeps a covariance; ``S`` of the same
+    shape with :math:`SS^T = P` (to 1e-8 relative); the carried quantities the estimator keeps (a state
+    made by another estimator lacks them). Means may be non-finite (an overflowed or diverged run, as the
+    estimator leaves it); so may the covariance of a diverged run (the others are checked). Cost: :math:`O(N n_x^3)` (one symmetric eigendecomposition per run), paid once per
+    state; the state is then marked as this estimator's (:func:`mark_trusted`).
+
+    Raises
+    ------
+    ValidationError, ShapeError
+        What is wrong, naming the field (``state.P``, ``state.k``...).
+    """
+    name = est._name
+    if not isinstance(state, FilterState):
+        raise ValidationError(f"state: expected a FilterState (from init() or step()), got {type(state).__name__}")
+    k = state.k
+    if isinstance(k, (bool, np.bool_)) or not isinstance(k, (int, np.integer)):
+        raise ValidationError(f"state.k: expected an integer time index, got {k!r} ({type(k).__name__})")
+    if k < est.k0:
+        raise ValidationError(
+            f"state.k: expected a time index >= {est.k0} (the prior of this {name}), got {k}: a state from "
+            "another estimator?"
+        )
+    if not isinstance(state.batch_shape, tuple):
+        raise ValidationError(f"state.batch_shape: expected a tuple of positive integers, got {state.batch_shape!r}")
+    try:
+        batch = _check_batch(state.batch_shape)
+    except ValidationError:
+        raise ValidationError(
+            f"state.batch_shape: expected a tuple of positive integers, got {state.batch_shape!r}"
+        ) from None
+    if not isinstance(state.carry, Mapping):
+        raise ValidationError(f"state.carry: expected a mapping, got {type(state.carry).__name__}")
+    N, nx = math.prod(batch), est._state_dim()
+    if state.n != est.n:
+        raise ShapeError(f"state.n: expected {est.n} (the state dimension of this {name}), got {state.n!r}")
+    x = state.x
+    if not (isinstance(x, np.ndarray) and x.dtype == np.float64 and x.shape == (N, nx)):
+        raise ShapeError(
+            f"state.x: expected a float64 array of shape ({N}, {nx}) (runs of batch shape {batch}, the state "
+            f"dimension of this {name}), got {_describe(x)}"
+        )
+    template = _state_template(est)
+    for key, mat in (("P", state.P), ("S", state.S)):
+        if mat is None:
+            continue
+        if not (
+            isinstance(mat, np.ndarray)
+            and mat.dtype == np.float64
+            and mat.ndim == 3
+            and mat.shape[1:] == (nx, nx)
+            and mat.shape[0] in (1, N)
+        ):
+            shapes = f"({N}, {nx}, {nx})" + ("" if N == 1 else f" or (1, {nx}, {nx})")
+            raise ShapeError(f"state.{key}: expected a float64 array of shape {shapes}, got {_describe(mat)}")
+    P, S = state.P, state.S
+    if P is None:
+        if template is not None and template.P is not None:
+            raise ValidationError(f"state.P: this {name} keeps a covariance, got None: a state from another estimator?")
+    else:
+        # a run whose covariance is no longer finite diverged (its mean is NaN, as the estimator leaves it)
+        ok = np.isfinite(P).all(axis=(-2, -1))
+        Pf = P[ok]
+        check_psd(Pf, "state.P")
+        if S is not None:
+            SS = S[ok] @ S[ok].swapaxes(-1, -2) if S.shape[0] == P.shape[0] else None
+            scale = max(float(np.abs(Pf).max(initial=0.0)), _TINY)
+            if SS is None or float(np.abs(SS - Pf).max(initial=0.0)) > 1e-8 * scale:
+                raise ValidationError("state.S: expected a factor of state.P (S S^T = P, one per covariance)")
+    if template is not None:
+        for key, val in template.carry.items():
+            if key.startswith("_") or not isinstance(val, (np.ndarray, Mapping)):
+                continue  # the carried arrays and tables; a family's warm-up scalars may come and go
+            if key not in state.carry:
+                raise ValidationError(
+                    f"state.carry: lacks {key!r}, which this {name} keeps: a state from another estimator? Pass a "
+                    "state from this estimator's init(), step() or filter(...).final"
+                )
+            got = state.carry[key]
+            if isinstance(val, np.ndarray) and val.ndim >= 1:
+                if not (isinstance(got, np.ndarray) and got.ndim == val.ndim and got.shape[1:] == val.shape[1:]):
+                    raise ShapeError(
+                        f"state.carry[{key!r}]: expected an array of shape (..., {', '.join(map(str, val.shape[1:]))}) "
+                        f"as this {name} keeps, got {_describe(got)}: a state from another estimator?"
+                    )
+    if est.covariance_update == "square_root" and S is None and P is not None:
+        state = state.replace(S=psd_sqrt(P))
+    return mark_trusted(est, state)
+
+
+# --------------------------------------------------------------------------- memory of a run's outputs
+
+_OUTPUT_SIZES = {"mean": 1, "pred_mean": 1, "var": 1, "cov": 2, "pred_cov": 2}
+
+
+def _check_output_memory(want: frozenset[str], N: int, T: int, n: int, name: str) -> None:
+    """Refuse, before the loop allocates them, outputs that cannot fit in memory (``name``: the readings)."""
+    per = sum(n ** _OUTPUT_SIZES[key] for key in want if key in _OUTPUT_SIZES)
+    if per:
+        check_memory(
+            8 * N * T * per,
+            name,
+            f"the outputs ({', '.join(sorted(want & set(_OUTPUT_SIZES)))}) of {N} runs x {T} steps",
+        )
+
+
+# --------------------------------------------------------------------------- a filter that stopped listening
+
+#: steps of the window over which the normalised corrections are summed
+CORRECTION_WINDOW = 20
+#: how far above its bound for a consistent filter the window's sum must be to count as divergence
+CORRECTION_FACTOR = 100.0
+#: each step adds at most this fraction of the threshold: one absurd reading (an outlier, a hostile prior) is a
+#: surprise, not a divergence; it takes at least 1 / CORRECTION_CAP such updates within a window
+CORRECTION_CAP = 0.25
+
+
+def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.ndarray) -> np.ndarray:
+    r"""Size of each update relative to the prediction's spread: :math:`c_k = \max_i (\hat x_{k|k} -
+    \hat x_{k|k-1})_i^2 / (P_{k|k-1})_{ii}`, shape ``mean.shape[:-1]``.
+
+    For a consistent Kalman-type update :math:`\hat x_{k|k} - \hat x_{k|k-1} = Ke_k`, and each component's
+    :math:`c` is at most the Mahalanobis size :math:`(Ke)^T\bar P^{-1}Ke = e^TR_{ee}^{-1}H\bar PH^T R_{ee}^{-1}e
+    \le e^TR_{ee}^{-1}e`, the normalised innovation squared (:math:`\chi^2_m`). So a sum of c over W steps is
+    below a :math:`\chi^2_{mW}` variable. Rows without a reading give 0; a component of zero predicted
+    variance, or non-finite values (a diverged run), count 0 here (the covariance check reports those).
+    """
+    d = mean - pred_mean
+    v = np.diagonal(pred_cov, axis1=-2, axis2=-1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        c = np.where(v > _TINY, d * d / np.where(v > _TINY, v, 1.0), 0.0)
+    c = np.where(np.isfinite(c), c, 0.0)
+    return c.max(axis=-1) if c.shape[-1] else np.zeros(c.shape[:-1])
+
+
+def correction_threshold(m: int, window: int = CORRECTION_WINDOW) -> float:
+    r""":data:`CORRECTION_FACTOR` times the :math:`1 - 10^{-9}` quantile of :math:`\chi^2_{mW}`: the window sum
+    of :func:`correction_statistic` above which a filter has stopped describing its readings."""
+    from scipy.stats import chi2
+
+    return CORRECTION_FACTOR * float(chi2.isf(1e-9, max(m, 1) * window))
+
+
+def _correction_remedy(est: Any) -> str:
+    if getattr(est, "noise_term", None) == "total_variance":
+        return (
+            "noise_term='dissertation' or 'exact_pv' (the total variance makes the gain grow like a^2 when the "
+            "prediction sits a standard deviations inside the censored region), or the assumed-density filter "
+            "(AssumedDensityTobitFilter)"
+        )
+    return "check the model (A, Q, R, the channel) against the readings; the assumed-density filter for censored ones"
+
+
+def _correction_check(est: Any, result: FilterResult) -> None:
+    r"""Warn once when a ``filter`` run's updates are far larger than its own covariance allows: the window sum
+    over :data:`CORRECTION_WINDOW` steps of :func:`correction_statistic`, each step capped at
+    :data:`CORRECTION_CAP` of the threshold (so one outlier never suffices), above :func:`correction_threshold`
+    (the capped sum is below the plain one, so the bound for a consistent filter still holds).
+    A diverging filter whose covariance stays finite and small (confidently wrong, e.g. the TKF's
+    ``noise_term="total_variance"`` deep in the censored region) is caught here; the non-finite covariance
+    check (:func:`_divergence_warning`) catches the others. Needs the recorded ``mean``, ``pred_mean`` and
+    ``pred_cov`` (``outputs="all"``, the default); a fixed-gain filter (its covariance the same at every
+    step, a nominal one) is not checked."""
+    mean, pm, pc = result.mean, result.pred_mean, result.pred_cov
+    if mean is None or pm is None or pc is None or mean.ndim < 2 or mean.shape[-2] < 1:
+        return
+    if pc.shape[-3] > 1 and (pc == pc[..., :1, :, :]).all():
+        return  # a fixed-gain filter's nominal covariance (the same at every step) claims no consistency
+    c = correction_statistic(mean, pm, pc)  # batch + (T,)
+    T = c.shape[-1]
+    W = min(CORRECTION_WINDOW, T)
+    limit = correction_threshold(est.m, W)
+    c = np.minimum(c, CORRECTION_CAP * limit)
+    cs = np.cumsum(c, axis=-1)
+    win = cs[..., W - 1 :].copy()
+    win[..., 1:] -= cs[..., : T - W]
+    over = win > limit
+    # a run whose means stopped being finite is the non-finite check's to report (one warning per event)
+    over &= np.isfinite(mean).all(axis=(-2, -1))[..., None]
+    if not over.any():
+        return
+    flat = over.reshape(-1, over.shape[-1])
+    hit = flat.any(axis=-1)
+    ends = np.where(hit, np.argmax(flat, axis=-1), flat.shape[-1])
+    run = int(np.argmin(ends))  # the run that crossed first; its window ends at row ends[run] + W - 1
+    end = int(ends[run]) + W
+    first = end - W + int(np.argmax(c.reshape(-1, T)[run, end - W : end]))  # the largest update of that window
+    runs = int(hit.sum())
+    k = int(result.times[first]) if result.times is not None else first + 1
+    warnings.warn(
+        f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
+        f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared updates, in predicted variances and "
+        f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no longer follows the readings while its covariance "
+        f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
+        f"{_correction_remedy(est)}",
+        RuntimeWarning,
+        stacklevel=_caller_level(),
+    )
+
+
+def _caller_level() -> int:
+    """``stacklevel`` of the first frame outside this package: the warning points at the user's call (a test,
+    a script), however many of the package's own functions (``filter`` wrappers, an experiment) lie between."""
+    import sys
+
+    frame: Any = sys._getframe(1)
+    level = 1
+    while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
+        frame, level = frame.f_back, level + 1
+    return level

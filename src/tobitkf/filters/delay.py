@@ -28,12 +28,14 @@ fixed-lag-(d-1) smoother x̂(t-d+1|t) equals x̂(t-d+1|t-d) (docs/sources LD-02)
 the printed model, not a bug.
 
 Time convention (the source's): y(0) is the first measurement, at index 0, and measures x(-d).
-Output index t holds x̂(t|t) (``mean``), x̂(t+1|t) (``pred_mean``) and x̂(t-d|t)
-(``measured_mean``). Covariances do not depend on the data (no censoring), so they are
-computed once and broadcast over the runs as read-only views.
+Output index t holds x̂(t|t) (``mean``), x̂(t|t-1) (``pred_mean``, the prediction of x(t) before the
+reading y(t), as in every family; the prior's x̂(0|-1) = x̄(0) at t = 0), x̂(t+1|t) (``extras["next_mean"]``,
+so ``pred_mean[t+1] == next_mean[t]``) and x̂(t-d|t) (``measured_mean``). Covariances do not depend on the
+data (no censoring), so they are computed once and broadcast over the runs as read-only views.
 
 Code names -> paper symbols: ``mean``/``cov`` x̂(t|t), P(t|t) (Theorem 1); ``pred_mean``/``pred_cov``
-x̂(t+1|t), P(t+1|t) (Theorem 2, (50)–(52)); ``measured_mean`` x̂(t-d|t) (Lemma 1, i = 0);
+x̂(t|t-1), P(t|t-1) (Theorem 2, (50)–(52), of the step before); ``next_mean``/``next_cov`` x̂(t+1|t),
+P(t+1|t); ``measured_mean`` x̂(t-d|t) (Lemma 1, i = 0);
 ``lagged[L]`` x̂(t-L|t) (Theorem 3 is L = d-1); ``innovation`` ε(t) (14); ``innovation_cov``
 Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected: LD-E2); ``decorrelation`` J (8).
 """

@@ -113,7 +113,7 @@ import numpy as np
 from scipy.special import log_ndtr, ndtri_exp
 
 from .._linalg import psd_sqrt, symmetrize
-from .._validation import ValidationError, as_float_array, check_instance
+from .._validation import ValidationError, as_float_array, check_instance, check_memory
 from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
@@ -1173,6 +1173,15 @@ class ParticleFilter(Estimator):
         self.resample_threshold = float(thr)
         self._rng0 = _rng_state(seed)
         self.n, self.m = system.n, self.model.m
+        # refused before any cloud is drawn: the particles of one run must fit in memory
+        check_memory(self._bytes_per_run(), "particles", f"{self.particles} particles of one run")
+
+    def _bytes_per_run(self) -> int:
+        """Bytes of one run's state: its cloud (the particles, their log-weights and a resampling copy of both)
+        and, for the Rao-Blackwellised proposal, a covariance per particle, besides the mean and covariance."""
+        nx = self._state_dim()
+        per = nx + 1 + (nx * nx if self.proposal == "rao_blackwellised" else 0)
+        return 8 * (2 * self.particles * per + nx + nx * nx)
 
     # the linear-system boundary checks are those of the Gaussian families
     _prepare_inputs = LinearGaussianFamily._prepare_inputs

@@ -97,6 +97,8 @@ from .core import (
     MeasurementPrediction,
     Transition,
     check_keywords,
+    is_trusted,
+    mark_trusted,
     step_state,
     symmetrize,
 )
@@ -826,14 +828,15 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     """:meth:`ProtocolTobitKalmanFilter.step` of a plain call (no input, no keyword) straight to the compiled
     step, :func:`_protocol_kernel_step`, when the general step's checks would pass it unchanged and its
     :meth:`~ProtocolTobitKalmanFilter._fast_step` would run that kernel: the compiled loop decided on for
-    the estimator (at its first step), a failure term other than ``"lmmse_unconditional"``, a
-    :class:`FilterState` of the augmented dimension, and ``y`` a float64 array of shape
-    ``batch_shape + (1,)`` whose (at most 16) readings all lie in [τ, ∞) (no NaN: nothing lost, none
+    the estimator (at its first step), a failure term other than ``"lmmse_unconditional"``, a state this
+    estimator made (:func:`~tobitkf.filters.core.is_trusted`), not a prediction, of the augmented dimension,
+    and ``y`` a float64 array of shape ``batch_shape + (1,)`` whose (at most 16) readings all lie in [τ, ∞) (no NaN: nothing lost, none
     below τ). None otherwise (the general step then runs, with its checks and messages), or when the
     covariance stopped being finite."""
     if not (
         est.__dict__.get("_kernel_static")
-        and type(state) is FilterState
+        and is_trusted(est, state)  # a state this estimator made (any other takes the general step's checks)
+        and not state.carry.get("_predicted")
         and type(y) is np.ndarray
         and y.dtype == np.float64
         and y.shape == state.batch_shape + (1,)
@@ -845,7 +848,8 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     tau = est._tau
     if not all(tau <= v < math.inf for v in y.ravel().tolist()):
         return None
-    return _protocol_kernel_step(est, y.reshape(-1, 1), None, state)
+    new = _protocol_kernel_step(est, y.reshape(-1, 1), None, state)
+    return None if new is None else mark_trusted(est, new)
 
 
 def _protocol_step_context(est: ProtocolTobitKalmanFilter) -> tuple:

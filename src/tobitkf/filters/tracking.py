@@ -79,6 +79,7 @@ from .core import (
     FilterState,
     MeasurementPrediction,
     Transition,
+    mark_trusted,
     measurement_update,
     step_state,
     time_update,
@@ -263,7 +264,7 @@ class MultiTargetTracker(Estimator):
         P = self.P0[None].copy()  # one covariance shared by the targets until one of them misses a frame
         S = psd_sqrt(P) if self.covariance_update == "square_root" else None
         carry = {"O": np.zeros(N, dtype=int), "visible": np.ones(N, dtype=bool), "last_meas": init.copy()}
-        return FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, S=S, carry=carry)
+        return mark_trusted(self, FilterState(k=0, batch_shape=(N,), x=x, P=P, n=4, S=S, carry=carry))
 
     def _frame(self, frame: Any, name: str = "detections") -> np.ndarray:
         """One frame as (L, 2) finite pixel coordinates; (2,) is one point, an empty array none."""
@@ -486,7 +487,7 @@ class MultiTargetTracker(Estimator):
         x, P, S, carry, _, _, extras = self._step_arrays(
             k, state.x, state.P, state.S, state.carry, None, None, {"frame": M, "finite": True}
         )
-        return step_state(k, state.batch_shape, x, P, 4, S, carry, extras)
+        return mark_trusted(self, step_state(k, state.batch_shape, x, P, 4, S, carry, extras))
 
     def filter(
         self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None, outputs: Any = "all"
