@@ -639,9 +639,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         ShapeError
             Malformed ``y``, ``u``, limits or indicator.
         """
-        if self.check_limits and options.get("lower") is None and options.get("upper") is None:
-            st = self._check_state(state)
-            self.censoring.check_measurements(self._reading(st, y)[:, None], start=st.k + 1)
+        # the reading is checked by the shared step (GaussianFilter._check_reading: filter's own record check)
         return super().step(state, y, u=u, **options)
 
     def filter(
