@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ShapeError, ValidationError, as_float_array
 from ._results import _FORMAT, _VERSION, FitResult, residual_diagnostics
 
 __all__ = ["FitResult", "fit", "load_fit", "residual_diagnostics"]
@@ -179,8 +179,10 @@ def fit(
         if method == "em":
             raise ValidationError("method: the censored AR model is fitted by direct exact maximisation ('direct')")
         lo, hi = _limits_1d(censoring, lower, upper)
-        y1 = np.asarray(y, dtype=float)
-        if y1.ndim == 2 and y1.shape[1] == 1:
+        y1 = as_float_array(y, "y", ndim=(1, 2), allow_nan=True)
+        if y1.ndim == 2:
+            if y1.shape[1] != 1:
+                raise ShapeError(f"y: the censored AR model takes one series, (T,) or (T, 1); got shape {y1.shape}")
             y1 = y1[:, 0]
         c1 = None if censored is None else np.asarray(censored).reshape(-1)
         return model.fit(y1, X, lower=lo, upper=hi, censored=c1, progress=progress, **options)
