@@ -455,6 +455,8 @@ def _check_plan_size(counts: np.ndarray, p: int) -> None:
 
 #: records longer than this start the search on a subsample (:meth:`CensoredAR.fit`)
 _WARM_T = 20_000
+#: the search's tolerance (standard errors) when Newton steps on the model's rule follow it
+_SEARCH_GTOL = 0.05
 
 
 def _subsample(data: CensoredARData, pieces: int = 10, length: int = 1000) -> CensoredARData:
@@ -535,7 +537,11 @@ def _node_arrays(data: CensoredARData, beta, sigma2, phi, plan: GridPlan):
     pts = panels == 0
     z[start[pts]] = (data.y - mu)[pts]
     reg = np.flatnonzero(panels > 0)
-    if reg.size:
+    if reg.size and numba_available():
+        from . import _ar_kernels as K
+
+        K.fill_legendre(z, lw, start[reg], panels[reg], lo[reg], hi[reg], x, w)
+    elif reg.size:
         P = panels[reg]
         h = (hi[reg] - lo[reg]) / P
         step_of_panel = np.repeat(np.arange(reg.size), P)
@@ -1000,6 +1006,9 @@ class CensoredAR:
         positive definite (without the information, ``standard_errors=False`` and ``coarse=False``: when
         the search's rule was met). Otherwise ``converged`` is False and ``message`` says why.
 
+        With ``coarse`` the search on the coarse rule stops at 0.05 standard errors (or ``gtol`` if
+        larger) and the Newton steps finish it.
+
         **Long records** (``warm_start="auto"``: more than 20 000 readings and no ``start``): the search
         first runs on ten stretches of 1000 readings spread over the record (joined by one missing
         reading each), and starts the full search from that optimum with its quasi-Newton inverse
@@ -1081,15 +1090,20 @@ class CensoredAR:
                     sub = None
                 if sub is not None:
                     ticker.tick("searching on a subsample")
-                    u_sub, _, n_ev, h_sub = self._search(sub, u, gtol, maxiter, passes, coarse, None, ticker, None, [])
+                    u_sub, _, n_ev, h_sub = self._search(
+                        sub, u, max(gtol, _SEARCH_GTOL), maxiter, passes, coarse, None, ticker, None, []
+                    )
                     evals += n_ev
                     if h_sub is not None and np.isfinite(self.log_likelihood(data, self._from_free(u_sub, l))):
                         u = u_sub
                         n_full = int((~np.isnan(data.y)).sum())
                         hinv = h_sub * (int((~np.isnan(sub.y)).sum()) / max(n_full, 1))
             ticker.tick("searching")
+            # with the coarse rule the Newton steps below finish the search (quadratically), so the search
+            # itself stops within a twentieth of a standard error
+            search_tol = max(gtol, _SEARCH_GTOL) if coarse else gtol
             u, (converged, message), n_ev, _ = self._search(
-                data, u, gtol, maxiter, passes, coarse, cb, ticker, hinv, trace
+                data, u, search_tol, maxiter, passes, coarse, cb, ticker, hinv, trace
             )
             evals += n_ev
             theta = self._from_free(u, l)
