@@ -464,14 +464,18 @@ def _subsample(data: CensoredARData, pieces: int = 10, length: int = 1000) -> Ce
     reading each (a start for the search on a long record, not a likelihood of the record)."""
     T = data.T
     starts = np.unique(np.linspace(0, T - length, pieces).round().astype(np.int64))
-    ys, Xs, los, his, sides = [], [], [], [], []
+    ys: list[np.ndarray] = []
+    Xs: list[np.ndarray] = []
+    los: list[np.ndarray] = []
+    his: list[np.ndarray] = []
+    sides: list[np.ndarray] = []
     for k, s0 in enumerate(starts.tolist()):
         sl = slice(s0, s0 + length)
         if k:
-            ys.append([np.nan])
+            ys.append(np.full(1, np.nan))
             Xs.append(np.zeros((1, data.X.shape[1])))
-            los.append([-np.inf])
-            his.append([np.inf])
+            los.append(np.full(1, -np.inf))
+            his.append(np.full(1, np.inf))
             sides.append(np.zeros(1, dtype=data.side.dtype))
         ys.append(data.y[sl])
         Xs.append(data.X[sl])
@@ -1083,10 +1087,11 @@ class CensoredAR:
         warm = (start is None and data.T > _WARM_T) if warm_start == "auto" else bool(warm_start)
         try:
             if warm:
-                sub = _subsample(data)
+                candidate = _subsample(data)
+                sub: CensoredARData | None = candidate
                 try:
-                    _check_information(sub)
-                except ValidationError:
+                    _check_information(candidate)
+                except ValidationError:  # a subsample without exact readings: start from the full record
                     sub = None
                 if sub is not None:
                     ticker.tick("searching on a subsample")
@@ -1108,7 +1113,11 @@ class CensoredAR:
             evals += n_ev
             theta = self._from_free(u, l)
             plan = self._checked_plan(data, theta)
-            f = lambda th: self.log_likelihood(data, th, plan)  # noqa: E731
+
+            def f(th, plan=plan):
+                ticker.tick()
+                return self.log_likelihood(data, th, plan)
+
             ll = f(theta)
             evals += 1
             cov = None
@@ -1116,17 +1125,17 @@ class CensoredAR:
                 ticker.tick("observed information")
                 H = forward_hessian(f, theta, f0=ll)
                 evals += 1 + theta.size + theta.size * (theta.size + 1) // 2
-                cov = _inverse_information(H)
+                cov = info = _inverse_information(H)
                 converged, message = False, message + "; the observed information is not positive definite"
                 for _ in range(4):  # Newton steps on the model's own rule; the last one decides convergence
-                    if not np.all(np.isfinite(cov)):
+                    if info is None or not np.all(np.isfinite(info)):
                         break
                     ticker.tick("Newton steps on the model's rule")
                     hs = 1e-7 * np.maximum(1.0, np.abs(theta))
                     g = np.array([(f(theta + e) - ll) / hs[i] for i, e in enumerate(np.diag(hs))])
                     evals += theta.size
-                    step = cov @ g
-                    se_ = np.sqrt(np.maximum(np.diagonal(cov), 1e-300))
+                    step = info @ g
+                    se_ = np.sqrt(np.maximum(np.diagonal(info), 1e-300))
                     size = float(np.max(np.abs(step) / se_))
                     new_theta, new_ll = theta + step, -np.inf
                     for _ in range(8):

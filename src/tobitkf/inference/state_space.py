@@ -822,7 +822,7 @@ def fit_state_space(
                     cb(entry)
                 ticker.tick(f"EM iteration {it}, log-likelihood {ll:.6f}")
                 if np.isfinite(prev_ll) and abs(ll - prev_ll) <= tol * max(1.0, abs(ll)):
-                    converged, message = True, f"EM converged: log-likelihood change below {tol:g} (relative)"
+                    converged, message = True, f"EM stopped: log-likelihood change below {tol:g} (relative)"
                     break
                 prev_ll = ll
                 M = M_new
