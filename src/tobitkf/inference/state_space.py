@@ -27,9 +27,19 @@ generalised-EM approximation). Without censoring each iteration increases the ex
 censoring the E-step is approximate and so is the fixed point (the direct method maximises the
 assumed-density likelihood itself).
 
-**Direct**: a user map :math:`\theta \mapsto` :class:`~tobitkf.LinearSystem`, or the estimated matrices of
-a template (covariances through the log-Cholesky map, so that every step is a valid model), and the Kalman
-or assumed-density log-likelihood, maximised by BFGS with finite-difference gradients.
+**Direct** (the default): a user map :math:`\theta \mapsto` :class:`~tobitkf.LinearSystem`, or the
+estimated matrices of a template (covariances through the log-Cholesky map, so that every step is a valid
+model), and the Kalman or assumed-density log-likelihood, maximised by BFGS with finite-difference
+gradients and the scale-free stopping rule of :func:`~tobitkf.inference._optimize.maximize`. For constant
+matrices with a diagonal R (or one channel) each evaluation is one compiled pass of the filter's recursion
+(:mod:`tobitkf.inference._ss_kernels`, equal to the filter's log-likelihood to rounding): about a
+millisecond for 300 readings, so a fit of A, Q, R and a mean takes a fraction of a second where EM took
+tens of seconds. Other models run the filters themselves.
+
+**Convergence**: ``converged`` needs the Newton step with the observed information at the estimates to be
+below ``gtol`` standard errors (EM included: EM's own rule, a small relative change of the likelihood,
+stops it, but does not make it converged). A singular starting value of an estimated covariance is
+refused (EM cannot move a zero variance, and its logarithm is :math:`-\infty`).
 
 Standard errors: the observed information (central-difference Hessian of the log-likelihood) in the
 estimated entries (EM: the free entries of each estimated matrix, upper triangles of Q and R) or in
