@@ -1096,9 +1096,12 @@ class CensoredAR:
                     sub = None
                 if sub is not None:
                     ticker.tick("searching on a subsample")
-                    u_sub, _, n_ev, h_sub = self._search(
-                        sub, u, max(gtol, _SEARCH_GTOL), maxiter, passes, coarse, None, ticker, None, []
-                    )
+                    try:
+                        u_sub, _, n_ev, h_sub = self._search(
+                            sub, u, max(gtol, _SEARCH_GTOL), maxiter, passes, coarse, None, ticker, None, []
+                        )
+                    except ValidationError:  # the subsample's estimates ran away: start from the full record
+                        u_sub, n_ev, h_sub = u, 0, None
                     evals += n_ev
                     if h_sub is not None and np.isfinite(self.log_likelihood(data, self._from_free(u_sub, l))):
                         u = u_sub
