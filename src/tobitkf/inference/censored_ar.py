@@ -1012,7 +1012,8 @@ class CensoredAR:
 
         With ``coarse`` the search on the coarse rule stops at 0.01 standard errors (or ``gtol`` if
         larger) and the Newton steps finish it; the information is computed again where they end when
-        they moved the estimates by more than 0.01 standard errors.
+        they moved the estimates by more than 0.01 standard errors and 1e-4 of their size (a smaller
+        move changes the standard errors by less than about 1e-4, relative).
 
         **Long records** (``warm_start="auto"``: more than 20 000 readings and no ``start``): the search
         first runs on ten stretches of 1000 readings spread over the record (joined by one missing
@@ -1174,13 +1175,17 @@ class CensoredAR:
                     )
                     if converged:
                         break
-                moved = (
-                    np.abs(theta - theta_info) / np.sqrt(np.maximum(np.diagonal(info), 1e-300))
-                    if info is not None
-                    else 0
+                # the information where the estimates ended, not where the Newton steps began, when the steps
+                # moved them by more than 0.01 s.e. and 1e-4 of their size: the information changes by
+                # O(|step|) relative, so a smaller move (long records: s.e. of 1e-3) leaves the s.e. to 1e-4
+                shift = np.abs(theta - theta_info)
+                moved = bool(
+                    info is not None
+                    and np.all(np.isfinite(info))
+                    and np.max(shift / np.sqrt(np.maximum(np.diagonal(info), 1e-300))) > 0.01
+                    and np.max(shift / np.maximum(1.0, np.abs(theta))) > 1e-4
                 )
-                if standard_errors and info is not None and np.all(np.isfinite(info)) and np.max(moved) > 0.01:
-                    # the information where the estimates ended, not where the Newton steps began
+                if standard_errors and moved:
                     ticker.tick("observed information at the optimum")
                     cov = _inverse_information(forward_hessian(f, theta, f0=ll))
                     evals += 1 + theta.size + theta.size * (theta.size + 1) // 2
