@@ -214,8 +214,8 @@ def maximize(
     iteration0 : int
         Number of the first iteration in the trace (passes continue the count).
     hess_inv0 : (d, d) ndarray, optional
-        Starting inverse Hessian (positive definite); default the identity scaled so that the first step
-        moves no parameter by more than 1.
+        Starting inverse Hessian (positive definite); default the identity, with a first step of length
+        at most 1.
     ticker : Ticker, optional
         Told of every evaluation (progress lines on long fits).
 
@@ -260,10 +260,9 @@ def maximize(
         return Outcome(x, fx, True, "nothing to estimate", 0, count[0], trace, np.zeros((0, 0)), 0.0)
     g = grad(x, fx)
     have_curvature = hess_inv0 is not None
-    if hess_inv0 is not None:
-        Hinv = np.array(hess_inv0, dtype=float)
-    else:
-        Hinv = np.eye(d) / max(1.0, float(np.max(np.abs(g))))
+    # without a start, the identity (as scipy's BFGS): its first step is cut to length 1 below, and
+    # each update corrects the curvature along its step only, keeping long steps in flat directions
+    Hinv = np.eye(d) if hess_inv0 is None else np.array(hess_inv0, dtype=float)
     converged, message, dec = False, f"stopped after {maxiter} iterations", np.nan
     for _ in range(maxiter):
         if not np.all(np.isfinite(g)):
@@ -271,8 +270,8 @@ def maximize(
             break
         direction = Hinv @ g
         dec2 = float(g @ direction)
-        if not dec2 > 0:  # lost positive definiteness: restart from the scaled identity
-            Hinv = np.eye(d) / max(1.0, float(np.max(np.abs(g))))
+        if not dec2 > 0:  # lost positive definiteness: restart from the identity
+            Hinv = np.eye(d)
             have_curvature = False
             direction = Hinv @ g
             dec2 = float(g @ direction)
@@ -280,7 +279,8 @@ def maximize(
         if have_curvature and dec < gtol:
             converged, message = True, f"Newton decrement {dec:.2g} below gtol = {gtol:g} (standard errors)"
             break
-        alpha, fnew, xnew = 1.0, -np.inf, x
+        # a first trial step of length at most 1 until the curvature is known
+        alpha, fnew, xnew = (1.0 if have_curvature else min(1.0, 1.0 / float(np.linalg.norm(direction)))), -np.inf, x
         for _ in range(40):  # backtracking: Armijo's sufficient increase
             xnew = x + alpha * direction
             fnew = val(xnew)
@@ -298,8 +298,6 @@ def maximize(
         s_, y_ = xnew - x, g - gnew  # y_ = change of the gradient of -f
         sy = float(s_ @ y_)
         if sy > 1e-12 * float(np.linalg.norm(s_) * np.linalg.norm(y_)) and np.all(np.isfinite(gnew)):
-            if not have_curvature and hess_inv0 is None:  # Nocedal & Wright (6.20): rescale before the first update
-                Hinv = np.eye(d) * (sy / float(y_ @ y_))
             rho = 1.0 / sy
             V = np.eye(d) - rho * np.outer(s_, y_)
             Hinv = V @ Hinv @ V.T + rho * np.outer(s_, s_)

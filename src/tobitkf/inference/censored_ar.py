@@ -931,7 +931,9 @@ class CensoredAR:
     def _from_free(self, u, l):
         u = np.asarray(u, dtype=float)
         phi = pacf_to_ar(np.tanh(u[l + 1 :])) if self.p else np.zeros(0)
-        return np.concatenate([u[:l], [np.exp(u[l])], phi])
+        with np.errstate(over="ignore"):  # a trial step far out: sigma2 = inf, a failed step (-inf likelihood)
+            s2 = np.exp(u[l])
+        return np.concatenate([u[:l], [s2], phi])
 
     def start(self, data: CensoredARData) -> np.ndarray:
         """Starting values: least squares on the present readings (censored ones at their limit), then

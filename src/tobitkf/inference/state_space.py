@@ -501,7 +501,8 @@ def _free_unpack(M, names, u):
         if n in _COVS:
             k = shape[0]
             L = np.zeros((k, k))
-            L[np.diag_indices(k)] = np.exp(u[i : i + k])
+            with np.errstate(over="ignore"):  # a trial step far out: an infinite variance, refused as a model
+                L[np.diag_indices(k)] = np.exp(u[i : i + k])
             i += k
             nl = k * (k - 1) // 2
             L[np.tril_indices(k, -1)] = u[i : i + nl]
