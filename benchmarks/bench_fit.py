@@ -1,4 +1,4 @@
-"""Fitting benchmark (issue 18): fit times on the real data sets, and parameter recovery on simulated
+"""Fitting benchmark: fit times on the real data sets, and parameter recovery on simulated
 censored state-space models.
 
 1. Times: exact ML (tk.CensoredAR, standard errors included) on the phosphorus data (AR(1), AR(2)) and
@@ -24,10 +24,18 @@ censored state-space models.
    small enough against T (T = 300 with 200 replications is too few steps: phi2 fails at 30 %). The
    default T = 1000.
 
+3. Scale (``--scale N ...``, default 100000 1000000; ``--no-scale`` skips it): ``tk.fit`` of a censored
+   regression with AR(1) errors (y*_t = 1 + 0.5 x_t + xi_t, phi = 0.6, sigma2 = 1, 30 % left-censored) on
+   N readings, once each, wall clock and process CPU time with the load average before and after (the CPU
+   time is the fair figure on a shared machine); targets: 10^5 under 30 s and converged, 10^6 under
+   300 s. And a state-space model with n = 1 (estimate A, Q, R and a mean D on a constant input) on 300
+   readings, by the default method (direct quasi-Newton) and by EM (for comparison, maxiter 300); target:
+   the default under 2 s, best of ``--repeat`` after the one-off compile.
+
 Run by hand:  PYTHONPATH=src python benchmarks/bench_fit.py [--steps 1000] [--reps 100] [--fractions 0.3 0.7]
               [--jobs 2] [--gaussian-check] [--rows FILE.jsonl (resumable)] [--no-times] [--json OUT]
-``--smoke``: 1 repeat of the phosphorus AR(1) fit and 3 replications of T = 100 in one process (a quick
-check that it runs).
+``--smoke``: 1 repeat of the phosphorus AR(1) fit, 3 replications of T = 100 in one process, the scale
+section on 10^4 readings and the state-space fit without EM (a quick check that it runs).
 """
 
 from __future__ import annotations
@@ -303,6 +311,92 @@ def recovery(
     return out
 
 
+def _scale_series(T: int, seed: int = 1):
+    from scipy.signal import lfilter
+
+    rng = np.random.default_rng(seed)
+    xi = lfilter([1.0], [1.0, -0.6], rng.normal(size=T))
+    X = np.c_[np.ones(T), rng.normal(size=T)]
+    ys = X @ [1.0, 0.5] + xi
+    lim = float(np.quantile(ys, 0.3))
+    return np.maximum(ys, lim), X, lim
+
+
+def _state_space_series(T: int = 300, seed: int = 1):
+    rng = np.random.default_rng(seed)
+    x, y = 0.0, np.empty(T)
+    for t in range(T):
+        x = 0.8 * x + rng.normal() * np.sqrt(0.5)
+        y[t] = 2.0 + x + rng.normal() * np.sqrt(0.3)
+    return y
+
+
+def scale(sizes: list[int], repeat: int, with_em: bool) -> dict:
+    """The speed targets of tk.fit (module docstring, section 3)."""
+    _warm()
+    out: dict = {}
+    y = _state_space_series()
+    u = np.ones((y.size, 1))
+    templ = tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]], D=[[0.0]])
+    est = ("A", "Q", "R", "D")
+    tk.fit(templ, y[:50], u=u[:50], estimate=est)  # the compiled likelihood's one-off load
+    methods = [("auto", 2.0)] + ([("em", None)] if with_em else [])
+    for method, limit in methods:
+        res = {}
+
+        def run(method=method, res=res):
+            res["fit"] = tk.fit(templ, y, u=u, estimate=est, method=method, maxiter=300 if method == "em" else 500)
+
+        load0 = os.getloadavg()[0]
+        t = best_time(run, repeat if method == "auto" else 1)
+        tc = best_time(run, repeat if method == "auto" else 1, cpu=True)
+        f = res["fit"]
+        key = f"state-space-n1-T300-{f.method}"
+        out[key] = {
+            "seconds": round(t, 3),
+            "cpu_seconds": round(tc, 3),
+            "target_seconds": limit,
+            "met": None if limit is None else bool(t < limit and f.converged),
+            "converged": f.converged,
+            "loglik": f.loglik,
+            "evaluations": f.evaluations,
+            "load_average": [load0, os.getloadavg()[0]],
+        }
+        print(
+            f"state space n = 1, 300 readings, estimate A, Q, R, D, method {f.method}: {t:.3f} s wall, "
+            f"{tc:.3f} s CPU" + ("" if limit is None else f" (target < {limit:g} s)") + f", converged {f.converged}, "
+            f"loglik {f.loglik:.6f}, load average {load0:.1f} -> {os.getloadavg()[0]:.1f}",
+            flush=True,
+        )
+    for T in sizes:
+        y, X, lim = _scale_series(T)
+        limit = 30.0 if T <= 100_000 else 300.0
+        load0 = os.getloadavg()[0]
+        t0, c0 = time.perf_counter(), time.process_time()
+        f = tk.fit(tk.CensoredAR(1), y, X=X, lower=lim, progress=None)
+        t, tc = time.perf_counter() - t0, time.process_time() - c0
+        load1 = os.getloadavg()[0]
+        out[f"censored-ar1-T{T}"] = {
+            "seconds": round(t, 2),
+            "cpu_seconds": round(tc, 2),
+            "target_seconds": limit,
+            "met": bool(t < limit and f.converged),
+            "converged": f.converged,
+            "message": f.message,
+            "evaluations": f.evaluations,
+            "estimates": f.params,
+            "se": f.se,
+            "load_average": [load0, load1],
+        }
+        print(
+            f"CensoredAR(1), {T} readings (30 % censored): {t:.1f} s wall, {tc:.1f} s CPU (target < {limit:g} s), "
+            f"converged {f.converged} ({f.message}), {f.evaluations} evaluations, load average {load0:.1f} -> "
+            f"{load1:.1f}; estimates " + ", ".join(f"{n} {f.params[n]:.4f} +- {f.se[n]:.4f}" for n in f.names),
+            flush=True,
+        )
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--reps", type=int, nargs="+", default=[100], help="replications (one value, or one per fraction)")
@@ -319,16 +413,22 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--smoke", action="store_true")
+    ap.add_argument("--scale", type=int, nargs="+", default=[100_000, 1_000_000], help="record lengths of section 3")
+    ap.add_argument("--no-scale", action="store_true", help="skip section 3")
+    ap.add_argument("--no-recovery", action="store_true", help="skip section 2")
     ap.add_argument("--json", default=None)
     a = ap.parse_args(argv)
     if a.smoke:
-        a.reps, a.steps, a.repeat, a.jobs = [3], 100, 1, 1
+        a.reps, a.steps, a.repeat, a.jobs, a.scale = [3], 100, 1, 1, [10_000]
         print("smoke run: checks that the benchmark runs; 3 replications make its verdicts meaningless", flush=True)
     print(f"bench_fit: {' '.join(sys.argv[1:]) or '(defaults)'}; load average {os.getloadavg()}", flush=True)
     res: dict = {} if a.no_times else {"times": times(a.repeat, a.smoke)}
     if a.jobs == 1:
         _warm()
-    res["recovery"] = recovery(a.reps, a.steps, a.seed, a.fractions, a.jobs, a.gaussian_check, a.rows)
+    if not a.no_scale:
+        res["scale"] = scale(a.scale, a.repeat, with_em=not a.smoke)
+    if not a.no_recovery:
+        res["recovery"] = recovery(a.reps, a.steps, a.seed, a.fractions, a.jobs, a.gaussian_check, a.rows)
     print(f"load average at the end {os.getloadavg()}", flush=True)
     if a.json:
         Path(a.json).write_text(json.dumps(res, indent=1))

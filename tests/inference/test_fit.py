@@ -155,7 +155,7 @@ def test_em_increases_the_exact_likelihood_and_agrees_with_direct_maximisation()
     y = tk.simulate(system, steps=400, runs=1, seed=4).y[0].copy()
     y[[10, 11, 50]] = np.nan
     templ = tk.LinearSystem(A=[[0.8]], C=[[1.0]], Q=[[2.0]], R=[[2.0]], x0=[0.0], P0=[[1.0]])
-    em = tk.fit(templ, y, estimate=("Q", "R"), maxiter=1000, tol=1e-11)
+    em = tk.fit(templ, y, estimate=("Q", "R"), method="em", maxiter=1000, tol=1e-11)
     ll = np.array([e["loglik"] for e in em.trace])
     assert np.all(np.diff(ll) > -1e-8)  # EM never decreases the exact likelihood
     assert em.converged and em.method == "em" and em.likelihood == "kalman"
@@ -172,7 +172,7 @@ def test_em_of_a_and_c_recovers_a_scalar_model_and_reports_standard_errors():
     system = tk.LinearSystem(A=[[0.85]], C=[[1.0]], Q=[[0.4]], R=[[0.3]], x0=[0.0], P0=[[1.0]])
     y = tk.simulate(system, steps=800, runs=1, seed=rng.integers(1 << 30)).y[0]
     templ = tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[1.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
-    f = tk.fit(templ, y, estimate=("A", "Q", "R"), maxiter=1000, tol=1e-11)
+    f = tk.fit(templ, y, estimate=("A", "Q", "R"), method="em", maxiter=1000, tol=1e-11)
     for name, true in (("A[0,0]", 0.85), ("Q[0,0]", 0.4), ("R[0,0]", 0.3)):
         assert abs(f.params[name] - true) < 4 * f.se[name], (name, f.params[name], f.se[name])
 
@@ -199,7 +199,15 @@ def test_censored_state_space_fit_with_the_assumed_density_likelihood_and_a_stat
     yc = np.maximum(y, lim)
     templ = tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[1.0]], R=[[0.5]], x0=[0.0], P0=[[1.0]])
     em = tk.fit(
-        templ, yc, lower=lim, estimate=("A", "Q", "R"), prior="stationary", maxiter=25, tol=1e-9, standard_errors=False
+        templ,
+        yc,
+        lower=lim,
+        estimate=("A", "Q", "R"),
+        prior="stationary",
+        method="em",
+        maxiter=25,
+        tol=1e-9,
+        standard_errors=False,
     )
     assert em.likelihood == "adf" and len(em.trace) == 25
     S = em.system()

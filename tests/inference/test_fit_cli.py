@@ -56,7 +56,7 @@ def test_fit_command_a_state_space_model_by_em(tmp_path):
     model = tmp_path / "m.toml"
     model.write_text(
         '[data]\ny = "y"\nintercept = false\n[model]\nkind = "state_space"\nA = [[0.8]]\nC = [[1.0]]\n'
-        'Q = [[1.0]]\nR = [[1.0]]\nx0 = [0.0]\nP0 = [[1.0]]\nestimate = ["Q", "R"]\nmaxiter = 200\n'
+        'Q = [[1.0]]\nR = [[1.0]]\nx0 = [0.0]\nP0 = [[1.0]]\nestimate = ["Q", "R"]\nmethod = "em"\nmaxiter = 200\n'
     )
     res = CliRunner().invoke(app, ["fit", str(csv), "--model", str(model), "--out", str(tmp_path / "o")])
     assert res.exit_code == 0, res.output

@@ -263,3 +263,21 @@ def forward_ar2(z, lw, start, count, a1, a2, v):  # pragma: no cover - compiled
         for i in range(M2):
             s += math.exp(la[j, i] - m)
     return total + m + math.log(s)
+
+
+@njit(cache=True, nogil=True)
+def fill_legendre(z, lw, start, panels, lo, hi, x, w):  # pragma: no cover - compiled
+    """The composite Gauss-Legendre nodes and log weights of the censored steps, written in place: step i
+    (``start[i]`` into ``z``/``lw``) cuts ``[lo[i], hi[i]]`` into ``panels[i]`` equal panels of the rule
+    ``x``, ``w`` on [-1, 1] (the numbers of the numpy branch of ``censored_ar._node_arrays``)."""
+    G = x.shape[0]
+    for i in range(start.shape[0]):
+        P = panels[i]
+        h = (hi[i] - lo[i]) / P
+        pos = start[i]
+        for q in range(P):
+            base = lo[i] + h * q
+            for j in range(G):
+                z[pos] = base + 0.5 * h * (x[j] + 1.0)
+                lw[pos] = math.log(0.5 * h * w[j])
+                pos += 1

@@ -26,12 +26,24 @@ _VERSION = 1
 
 
 def _progress_callback(progress: Any, title: str):
-    """``(callback, close)`` for a ``progress`` option: None, a callable, or True (a rich status line)."""
-    if progress is None or progress is False:
-        return None, lambda: None
-    if callable(progress):
-        return progress, lambda: None
+    """``(callback, close, ticker)`` for a ``progress`` option.
+
+    None (the default): no callback, and a :class:`~tobitkf.inference._optimize.Ticker` that prints a
+    line on stderr every 10 s once the fit has run 10 s; False: silent; True: a rich status line on a
+    terminal, else the ticker's lines from the start; a callable: called with every iteration's trace
+    entry (no lines).
+    """
+    import sys
+
+    from ._optimize import Ticker
+
+    if progress is None:
+        return None, lambda: None, Ticker(title)
+    if progress is False:
+        return None, lambda: None, Ticker(title, enabled=False)
     if progress is True:
+        if not sys.stderr.isatty():
+            return None, lambda: None, Ticker(title, after=0.0)
         from rich.console import Console
 
         console = Console(stderr=True)
@@ -44,8 +56,10 @@ def _progress_callback(progress: Any, title: str):
                 f"{entry.get('seconds', 0):.1f} s"
             )
 
-        return cb, status.stop
-    raise ValidationError(f"progress: expected None, True or a callable, got {progress!r}")
+        return cb, status.stop, Ticker(title, enabled=False)
+    if callable(progress):
+        return progress, lambda: None, Ticker(title, enabled=False)
+    raise ValidationError(f"progress: expected None, True, False or a callable, got {progress!r}")
 
 
 @dataclass

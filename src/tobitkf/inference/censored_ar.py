@@ -56,9 +56,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._compiled import numba_available
-from .._validation import ShapeError, ValidationError, as_float_array
+from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_memory
 from ._common import LOG_2PI, censoring_sides
-from ._optimize import central_gradient, forward_hessian, maximize
+from ._optimize import check_iterations, check_tolerance, forward_hessian, maximize
 from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = [
@@ -302,46 +302,49 @@ class GridPlan:
 
 
 def _runs(data: CensoredARData) -> list[tuple[int, int]]:
-    """Maximal runs [s, e) of steps that are not observed exactly."""
-    obs = data.observed
-    out, t = [], 0
-    while t < data.T:
-        if obs[t]:
-            t += 1
-            continue
-        s = t
-        while t < data.T and not obs[t]:
-            t += 1
-        out.append((s, t))
-    return out
+    """Maximal runs [s, e) of steps that are not observed exactly (vectorised: O(T) numpy, no Python loop
+    over the steps)."""
+    s, e = _run_bounds(data.observed)
+    return list(zip(s.tolist(), e.tolist()))
 
 
-def _structure(data: CensoredARData, p: int):
-    """The runs of non-observed steps with their anchors (exactly observed steps within p of the run),
-    computed once per data set and order: ``[(s, e, run_idx, anchor_idx, pure), ...]``."""
+def _run_bounds(observed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Starts and ends (exclusive) of the maximal runs of False in ``observed``."""
+    edge = np.diff(np.concatenate([[1], observed.astype(np.int8), [1]]))
+    return np.flatnonzero(edge == -1), np.flatnonzero(edge == 1)
+
+
+class _RunGroup(NamedTuple):
+    """Runs of non-observed steps that share their length, their anchors' offsets and purity: the
+    Gaussian conditional of their values given the anchors has the same weights for all of them."""
+
+    length: int
+    anchors: np.ndarray  # (a,) offsets of the anchors from the run's start (negative: before it)
+    pure: bool
+    starts: np.ndarray  # (k,) the runs' first steps
+
+
+def _structure(data: CensoredARData, p: int) -> list[_RunGroup]:
+    """The runs of non-observed steps grouped by (length, anchor offsets, pure), computed once per data
+    set and order. The anchors of a run are the exactly observed steps within p of it. Memory O(T):
+    nothing is stored per pair of steps of a run, so one censored run as long as the record costs no
+    more than T scattered ones."""
     cache = data.__dict__.setdefault("_structure_cache", {})
     if p not in cache:
         obs = data.observed
-        out = []
-        for s, e in _runs(data):
-            anc = np.array(
-                [t for t in range(max(0, s - p), s) if obs[t]] + [t for t in range(e, min(data.T, e + p)) if obs[t]],
-                dtype=int,
-            )
-            run = np.arange(s, e)
-            out.append(
-                (
-                    s,
-                    e,
-                    run,
-                    anc,
-                    np.abs(np.subtract.outer(run, run)),
-                    np.abs(np.subtract.outer(anc, anc)),
-                    np.abs(np.subtract.outer(run, anc)),
-                    not (data.side[s:e] != 0).any(),
-                )
-            )
-        cache[p] = out
+        T = data.T
+        starts, ends = _run_bounds(obs)
+        cens = np.concatenate([[0], np.cumsum(data.side != 0)])
+        pure = (cens[ends] - cens[starts]) == 0
+        keys: dict[tuple, list[int]] = {}
+        for s, e, pu in zip(starts.tolist(), ends.tolist(), pure.tolist()):
+            before = tuple(t - s for t in range(max(0, s - p), s) if obs[t])
+            after = tuple(t - s for t in range(e, min(T, e + p)) if obs[t])
+            keys.setdefault((e - s, before + after, pu), []).append(s)
+        cache[p] = [
+            _RunGroup(L, np.array(off, dtype=np.int64), bool(pu), np.array(st, dtype=np.int64))
+            for (L, off, pu), st in keys.items()
+        ]
     return cache[p]
 
 
@@ -356,6 +359,9 @@ def _intervals(data: CensoredARData, beta, sigma2, phi, span: float):
     Exactly observed steps get NaN. ``pure`` marks the steps of runs without a censored reading (only
     missing ones), whose posterior given the neighbours is Gaussian.
 
+    The conditional weights depend only on the lags, so runs of the same shape (:class:`_RunGroup`)
+    share one solve: the cost is one small solve per shape plus O(T) arithmetic.
+
     Returns
     -------
     m, s, lo, hi, width : (T,) ndarrays ; pure : (T,) bool
@@ -368,20 +374,22 @@ def _intervals(data: CensoredARData, beta, sigma2, phi, span: float):
     m = np.full(T, np.nan)
     sd = np.full(T, np.nan)
     pure = np.zeros(T, dtype=bool)
-    struct = _structure(data, p)
-    longest = max((e - s for s, e, *_ in struct), default=0)
+    groups = _structure(data, p)
+    longest = max((gr.length for gr in groups), default=0)
     g = ar_autocovariance(phi, sigma2, longest + 2 * p + 1)
-    for s, e, run, anc, Irr, Iaa, Ira, is_pure in struct:
+    for L, anc, is_pure, starts in groups:
+        ro = np.arange(L)
+        idx = (starts[:, None] + ro[None, :]).ravel()
         if anc.size:
-            Gra = g[Ira]
-            W = np.linalg.solve(g[Iaa], Gra.T).T
-            m[s:e] = W @ xi[anc]
+            Gra = g[np.abs(ro[:, None] - anc[None, :])]
+            W = np.linalg.solve(g[np.abs(anc[:, None] - anc[None, :])], Gra.T).T  # (L, a)
+            m[idx] = (xi[starts[:, None] + anc[None, :]] @ W.T).ravel()
             v = g[0] - np.einsum("ij,ij->i", W, Gra)
         else:
-            m[s:e] = 0.0
-            v = np.full(e - s, g[0])
-        sd[s:e] = np.sqrt(np.maximum(v, 1e-300))
-        pure[s:e] = is_pure
+            m[idx] = 0.0
+            v = np.full(L, g[0])
+        sd[idx] = np.tile(np.sqrt(np.maximum(v, 1e-300)), starts.size)
+        pure[idx] = is_pure
     side = data.side
     lower = np.where(side < 0, data.lower - mu, np.nan)
     upper = np.where(side > 0, data.upper - mu, np.nan)
@@ -406,13 +414,110 @@ def plan_grid(
     times the step's width scale (see :func:`_intervals`) for censored steps; ``hermite``
     Gauss-Hermite nodes on the Gaussian conditional for the steps of runs of missing readings only
     (0: Gauss-Legendre for those too)."""
-    _, _, lo, hi, width, pure = _intervals(data, np.asarray(beta, float), float(sigma2), np.asarray(phi, float), span)
-    with np.errstate(invalid="ignore"):
+    phi = np.asarray(phi, float)
+    _, _, lo, hi, width, pure = _intervals(data, np.asarray(beta, float), float(sigma2), phi, span)
+    with np.errstate(invalid="ignore", over="ignore"):
         n = np.ceil((hi - lo) / (panel_sd * width))
-    panels = np.where(np.isnan(n), 0, np.maximum(n, 1)).astype(int)
+    n = np.where(np.isfinite(n) | np.isnan(n), n, 2.0**62)
+    panels = np.where(np.isnan(n), 0, np.clip(n, 1, 2**62)).astype(np.int64)
     if hermite:
         panels = np.where(pure, -1, panels)
-    return GridPlan(panels=tuple(int(v) for v in panels), nodes=int(nodes), span=float(span), hermite=int(hermite))
+    counts = np.where(panels > 0, panels * int(nodes), np.where(panels < 0, int(hermite), 1))
+    _check_plan_size(counts, phi.size)
+    return GridPlan(panels=tuple(panels.tolist()), nodes=int(nodes), span=float(span), hermite=int(hermite))
+
+
+class _PlanTooLarge(ValidationError):
+    """A step's quadrature would need more nodes than the recursion can afford (parameters far from
+    the data: a search that runs away)."""
+
+
+#: most nodes of one step: the recursion costs O(M^(p+1)) per step and holds M^p values
+_MAX_STEP_WORK = 2.0**32
+
+
+def _check_plan_size(counts: np.ndarray, p: int) -> None:
+    r"""Refuse, before anything is allocated, a quadrature whose one step costs more than
+    :data:`_MAX_STEP_WORK` kernel evaluations, or whose nodes (about 48 bytes each with the
+    temporaries of :func:`_node_arrays`) and recursion arrays (:math:`M^{\max(p, 1)}` values, three
+    copies) do not fit in memory."""
+    if counts.size == 0:
+        return
+    t = int(np.argmax(counts))
+    M = int(counts[t])
+    if float(M) ** (max(p, 1) + 1) > _MAX_STEP_WORK:
+        raise _PlanTooLarge(
+            f"y: the quadrature of reading {t} would need {M} nodes at these parameters (its censored "
+            f"interval spans that many kernel widths); the recursion cannot afford it"
+        )
+    check_memory(48 * int(counts.sum()) + 24 * M ** max(p, 1), "y", "the quadrature nodes of the likelihood")
+
+
+#: records longer than this start the search on a subsample (:meth:`CensoredAR.fit`)
+_WARM_T = 20_000
+#: the search's tolerance (standard errors) when Newton steps on the model's rule follow it
+_SEARCH_GTOL = 0.01
+
+
+def _subsample(data: CensoredARData, pieces: int = 10, length: int = 1000) -> CensoredARData:
+    """``pieces`` stretches of ``length`` readings spread evenly over the record, joined by one missing
+    reading each (a start for the search on a long record, not a likelihood of the record)."""
+    T = data.T
+    starts = np.unique(np.linspace(0, T - length, pieces).round().astype(np.int64))
+    ys: list[np.ndarray] = []
+    Xs: list[np.ndarray] = []
+    los: list[np.ndarray] = []
+    his: list[np.ndarray] = []
+    sides: list[np.ndarray] = []
+    for k, s0 in enumerate(starts.tolist()):
+        sl = slice(s0, s0 + length)
+        if k:
+            ys.append(np.full(1, np.nan))
+            Xs.append(np.zeros((1, data.X.shape[1])))
+            los.append(np.full(1, -np.inf))
+            his.append(np.full(1, np.inf))
+            sides.append(np.zeros(1, dtype=data.side.dtype))
+        ys.append(data.y[sl])
+        Xs.append(data.X[sl])
+        los.append(data.lower[sl])
+        his.append(data.upper[sl])
+        sides.append(data.side[sl])
+    return CensoredARData(
+        y=np.concatenate(ys),
+        X=np.concatenate(Xs),
+        lower=np.concatenate(los),
+        upper=np.concatenate(his),
+        side=np.concatenate(sides),
+    )
+
+
+def _check_information(data: CensoredARData) -> None:
+    """Refuse data whose likelihood has no maximum: nothing present; no reading observed exactly (with
+    only censored readings the likelihood grows without bound as the mean moves past the limits); or,
+    without censored readings, exact readings that the regressors fit without error (the likelihood
+    grows without bound as the innovation variance goes to zero)."""
+    present = ~np.isnan(data.y)
+    if not present.any():
+        raise ValidationError(f"y: all {data.T} readings are missing (NaN): there is nothing to fit")
+    obs = data.observed
+    n_exact = int(obs.sum())
+    n_cens = int((present & (data.side != 0)).sum())
+    if n_exact == 0:
+        raise ValidationError(
+            f"y: none of the {int(present.sum())} readings present is observed exactly (all are censored at "
+            "their limits), so the likelihood has no maximum: it keeps growing as the mean moves past the "
+            "limits; the fit needs exactly observed readings"
+        )
+    if n_cens == 0:
+        Xo, yo = data.X[obs], data.y[obs]
+        coef = np.linalg.lstsq(Xo, yo, rcond=None)[0]
+        scale = max(1.0, float(np.max(np.abs(yo))))
+        if float(np.max(np.abs(yo - Xo @ coef))) <= 1e-12 * scale:
+            raise ValidationError(
+                f"y: the regressors fit all {n_exact} readings without error (for example, readings that "
+                "are all equal with an intercept), so the innovation variance has no positive estimate "
+                "and the likelihood no maximum"
+            )
 
 
 def _node_arrays(data: CensoredARData, beta, sigma2, phi, plan: GridPlan):
@@ -436,7 +541,11 @@ def _node_arrays(data: CensoredARData, beta, sigma2, phi, plan: GridPlan):
     pts = panels == 0
     z[start[pts]] = (data.y - mu)[pts]
     reg = np.flatnonzero(panels > 0)
-    if reg.size:
+    if reg.size and numba_available():
+        from . import _ar_kernels as K
+
+        K.fill_legendre(z, lw, start[reg], panels[reg], lo[reg], hi[reg], x, w)
+    elif reg.size:
         P = panels[reg]
         h = (hi[reg] - lo[reg]) / P
         step_of_panel = np.repeat(np.arange(reg.size), P)
@@ -822,7 +931,9 @@ class CensoredAR:
     def _from_free(self, u, l):
         u = np.asarray(u, dtype=float)
         phi = pacf_to_ar(np.tanh(u[l + 1 :])) if self.p else np.zeros(0)
-        return np.concatenate([u[:l], [np.exp(u[l])], phi])
+        with np.errstate(over="ignore"):  # a trial step far out: sigma2 = inf, a failed step (-inf likelihood)
+            s2 = np.exp(u[l])
+        return np.concatenate([u[:l], [s2], phi])
 
     def start(self, data: CensoredARData) -> np.ndarray:
         """Starting values: least squares on the present readings (censored ones at their limit), then
@@ -882,6 +993,7 @@ class CensoredAR:
         standard_errors: bool = True,
         coarse: bool = True,
         progress: Any = None,
+        warm_start: Any = "auto",
     ):
         r"""Exact maximum-likelihood fit (direct maximisation, BFGS on unconstrained parameters).
 
@@ -890,6 +1002,25 @@ class CensoredAR:
         pass and refreshed at the pass's optimum (at most ``passes`` passes, until it no longer changes).
         Standard errors from the observed information: the inverse of minus the (forward-difference,
         step 1e-4 relative) Hessian of the log-likelihood in the natural parameters at the optimum.
+
+        **Stopping rule** (scale-free, so that it means the same for 100 readings as for :math:`10^6`):
+        the search stops when the Newton decrement :math:`\sqrt{g^TH^{-1}g}` (g the gradient, H minus
+        the quasi-Newton Hessian) is below ``gtol`` (:func:`~tobitkf.inference._optimize.maximize`). The
+        fit is reported ``converged`` when, on the model's own quadrature rule, the Newton step with the
+        observed information, :math:`\delta = I^{-1}g`, is below ``gtol`` standard errors in every
+        parameter, :math:`\max_i|\delta_i|/\mathrm{se}_i < \texttt{gtol}`, and the information is
+        positive definite (without the information, ``standard_errors=False`` and ``coarse=False``: when
+        the search's rule was met). Otherwise ``converged`` is False and ``message`` says why.
+
+        With ``coarse`` the search on the coarse rule stops at 0.01 standard errors (or ``gtol`` if
+        larger) and the Newton steps finish it; the information is computed again where they end when
+        they moved the estimates by more than 0.01 standard errors and 1e-4 of their size (a smaller
+        move changes the standard errors by less than about 1e-4, relative).
+
+        **Long records** (``warm_start="auto"``: more than 20 000 readings and no ``start``): the search
+        first runs on ten stretches of 1000 readings spread over the record (joined by one missing
+        reading each), and starts the full search from that optimum with its quasi-Newton inverse
+        Hessian scaled by the ratio of the readings; the full record then needs a few iterations.
 
         Parameters
         ----------
@@ -903,17 +1034,22 @@ class CensoredAR:
             The recorded indicator (default: the limit rule).
         start : (l + 1 + p,) array_like, optional
             Natural starting values (default :meth:`start`).
-        maxiter, gtol : int, float
-            BFGS settings per pass.
-        passes : int
+        maxiter : int >= 1
+            BFGS iterations per pass.
+        gtol : float > 0
+            Tolerance of the stopping rule, in standard errors.
+        passes : int >= 1
             Maximum number of quadrature-plan refreshes.
         standard_errors : bool
             Compute the observed-information standard errors.
         coarse : bool, default True
             Search on a coarser quadrature rule (2 nodes fewer per panel, panels 4/3 wider), then polish
-            the optimum with Newton steps on the model's own rule (until the step is below 1e-3 s.e.).
-        progress : callable or True, optional
-            Called with each iteration's trace entry; True shows a progress line (rich) on stderr.
+            the optimum with Newton steps on the model's own rule.
+        progress : None, False, True or callable
+            None (default): a progress line on stderr every 10 s once a fit has run 10 s; False: silent;
+            True: a status line from the start; a callable is called with each iteration's trace entry.
+        warm_start : {"auto", True, False}
+            The subsample start for long records (above).
 
         Returns
         -------
@@ -922,10 +1058,21 @@ class CensoredAR:
         Raises
         ------
         ValidationError, ShapeError
-            Bad data (see :class:`CensoredARData`) or a start outside the parameter space.
+            Bad data (see :class:`CensoredARData`); data without information (no reading observed
+            exactly, or exact readings that the regressors fit without error: the likelihood then has no
+            maximum); a start outside the parameter space; ``gtol``/``maxiter``/``passes`` not valid;
+            estimates that run away during the search (the same cause: no maximum).
         """
         t0 = time.perf_counter()
+        gtol = check_tolerance(gtol, "gtol")
+        maxiter = check_iterations(maxiter, "maxiter")
+        passes = check_iterations(passes, "passes")
+        standard_errors = check_bool(standard_errors, "standard_errors")
+        coarse = check_bool(coarse, "coarse")
+        if not (warm_start == "auto" or isinstance(warm_start, (bool, np.bool_))):
+            raise ValidationError(f"warm_start: expected 'auto', True or False, got {warm_start!r}")
         data = CensoredARData.build(y, X, lower, upper, censored)
+        _check_information(data)
         l = data.X.shape[1]
         names = self.names(l)
         theta = self.start(data) if start is None else as_float_array(start, "start", ndim=1)
@@ -936,84 +1083,118 @@ class CensoredAR:
                 "start: the log-likelihood is -inf there (sigma2 <= 0, a non-stationary phi, or "
                 "readings of zero probability)"
             )
-        cb, close = _progress_callback(progress, f"fit {self!r}")
+        cb, close, ticker = _progress_callback(progress, f"fit {self!r} to {data.T} readings")
         trace: list[dict[str, Any]] = []
-        converged, message, evals = False, "", 0
-        # the passes run on a coarser rule (about 5 times cheaper for p = 2); the default rule then
-        # polishes the optimum by Newton steps with the Hessian the standard errors need anyway
-        search = self._coarse() if coarse else self
+        evals = 0
+        u = self._to_free(theta, l)
+        hinv = None
+        warm = (start is None and data.T > _WARM_T) if warm_start == "auto" else bool(warm_start)
         try:
-            u = self._to_free(theta, l)
-            for _ in range(max(1, passes)):
-                plan = search.plan(data, self._from_free(u, l))
-                out = maximize(
-                    lambda v: search.log_likelihood(data, self._from_free(v, l), plan),
-                    u,
-                    gtol=gtol,
-                    maxiter=maxiter,
-                    progress=cb,
-                    label=lambda v: dict(zip(names, self._from_free(v, l).tolist())),
-                    iteration0=len(trace),
+            if warm:
+                candidate = _subsample(data)
+                sub: CensoredARData | None = candidate
+                try:
+                    _check_information(candidate)
+                except ValidationError:  # a subsample without exact readings: start from the full record
+                    sub = None
+                if sub is not None:
+                    ticker.tick("searching on a subsample")
+                    try:
+                        u_sub, _, n_ev, h_sub = self._search(
+                            sub, u, max(gtol, _SEARCH_GTOL), maxiter, passes, coarse, None, ticker, None, []
+                        )
+                    except ValidationError:  # the subsample's estimates ran away: start from the full record
+                        u_sub, n_ev, h_sub = u, 0, None
+                    evals += n_ev
+                    if h_sub is not None and np.isfinite(self.log_likelihood(data, self._from_free(u_sub, l))):
+                        u = u_sub
+                        n_full = int((~np.isnan(data.y)).sum())
+                        hinv = h_sub * (int((~np.isnan(sub.y)).sum()) / max(n_full, 1))
+            ticker.tick("searching")
+            # with the coarse rule the Newton steps below finish the search (quadratically), so the search
+            # itself stops within a hundredth of a standard error
+            search_tol = max(gtol, _SEARCH_GTOL) if coarse else gtol
+            u, (converged, message), n_ev, _ = self._search(
+                data, u, search_tol, maxiter, passes, coarse, cb, ticker, hinv, trace
+            )
+            evals += n_ev
+            theta = self._from_free(u, l)
+            plan = self._checked_plan(data, theta)
+
+            def f(th, plan=plan):
+                ticker.tick()
+                return self.log_likelihood(data, th, plan)
+
+            ll = f(theta)
+            evals += 1
+            cov = None
+            if standard_errors or coarse:
+                ticker.tick("observed information")
+                H = forward_hessian(f, theta, f0=ll)
+                evals += 1 + theta.size + theta.size * (theta.size + 1) // 2
+                cov = info = _inverse_information(H)
+                theta_info = theta.copy()
+                converged, message = False, message + "; the observed information is not positive definite"
+                for _ in range(4):  # Newton steps on the model's own rule; the last one decides convergence
+                    if info is None or not np.all(np.isfinite(info)):
+                        break
+                    ticker.tick("Newton steps on the model's rule")
+                    hs = 1e-7 * np.maximum(1.0, np.abs(theta))
+                    g = np.array([(f(theta + e) - ll) / hs[i] for i, e in enumerate(np.diag(hs))])
+                    evals += theta.size
+                    step = info @ g
+                    se_ = np.sqrt(np.maximum(np.diagonal(info), 1e-300))
+                    size = float(np.max(np.abs(step) / se_))
+                    new_theta, new_ll = theta + step, -np.inf
+                    for _ in range(8):
+                        new_ll = f(new_theta)
+                        evals += 1
+                        if np.isfinite(new_ll) and new_ll >= ll - 1e-9 * max(1.0, abs(ll)):
+                            break
+                        step = step / 2
+                        new_theta = theta + step
+                    if size < gtol:
+                        converged = True
+                        message = (
+                            f"the Newton step on the model's rule is {size:.2g} standard errors (below gtol = {gtol:g})"
+                        )
+                    else:
+                        converged = False
+                        message = (
+                            f"the last Newton step on the model's rule is {size:.2g} standard errors (gtol = {gtol:g})"
+                        )
+                    if not (np.isfinite(new_ll) and new_ll >= ll - 1e-9 * max(1.0, abs(ll))):
+                        break
+                    theta, ll = new_theta, new_ll
+                    trace.append(
+                        {
+                            "iteration": len(trace) + 1,
+                            "loglik": float(ll),
+                            "params": dict(zip(names, theta.tolist())),
+                            "polish": True,
+                            "seconds": round(time.perf_counter() - t0, 4),
+                        }
+                    )
+                    if converged:
+                        break
+                # the information where the estimates ended, not where the Newton steps began, when the steps
+                # moved them by more than 0.01 s.e. and 1e-4 of their size: the information changes by
+                # O(|step|) relative, so a smaller move (long records: s.e. of 1e-3) leaves the s.e. to 1e-4
+                shift = np.abs(theta - theta_info)
+                moved = bool(
+                    info is not None
+                    and np.all(np.isfinite(info))
+                    and np.max(shift / np.sqrt(np.maximum(np.diagonal(info), 1e-300))) > 0.01
+                    and np.max(shift / np.maximum(1.0, np.abs(theta))) > 1e-4
                 )
-                trace += out.trace
-                evals += out.evaluations
-                u = out.x
-                converged, message = out.converged, out.message
-                th = self._from_free(u, l)
-                new_plan = search.plan(data, th)
-                if new_plan == plan or abs(search.log_likelihood(data, th, new_plan) - out.value) < 1e-7:
-                    break
-            if not converged:
-                grad = central_gradient(lambda v: search.log_likelihood(data, self._from_free(v, l), plan), u)
-                evals += 2 * u.size
-                if np.max(np.abs(grad)) < 10 * gtol:
-                    converged, message = True, message + " (central-difference gradient below 10 gtol)"
+                if standard_errors and moved:
+                    ticker.tick("observed information at the optimum")
+                    cov = _inverse_information(forward_hessian(f, theta, f0=ll))
+                    evals += 1 + theta.size + theta.size * (theta.size + 1) // 2
+                if not standard_errors:
+                    cov = None
         finally:
             close()
-        theta = self._from_free(u, l)
-        plan = self.plan(data, theta)
-        f = lambda th: self.log_likelihood(data, th, plan)  # noqa: E731
-        ll = f(theta)
-        evals += 1
-        cov = None
-        if standard_errors or coarse:
-            H = forward_hessian(f, theta, f0=ll)
-            evals += 1 + theta.size + theta.size * (theta.size + 1) // 2
-            cov = _inverse_information(H)
-        if coarse:
-            for _ in range(3):  # Newton polish on the default rule
-                g = np.array(
-                    [(f(theta + e) - ll) / e[i] for i, e in enumerate(np.diag(1e-7 * np.maximum(1.0, np.abs(theta))))]
-                )
-                evals += theta.size
-                if cov is None or not np.all(np.isfinite(cov)):
-                    break
-                step = cov @ g
-                new_theta, new_ll = theta + step, -np.inf
-                for _ in range(5):
-                    new_ll = f(new_theta)
-                    evals += 1
-                    if np.isfinite(new_ll) and new_ll >= ll - 1e-9:
-                        break
-                    step = step / 2
-                    new_theta = theta + step
-                se_ = np.sqrt(np.maximum(np.diagonal(cov), 1e-300))
-                if not (np.isfinite(new_ll) and new_ll >= ll - 1e-9):
-                    break
-                theta, ll = new_theta, new_ll
-                trace.append(
-                    {
-                        "iteration": len(trace) + 1,
-                        "loglik": float(ll),
-                        "params": dict(zip(names, theta.tolist())),
-                        "polish": True,
-                        "seconds": round(time.perf_counter() - t0, 4),
-                    }
-                )
-                if np.max(np.abs(step) / se_) < 1e-3:
-                    break
-            if not standard_errors:
-                cov = None
         k = len(names)
         n = int((~np.isnan(data.y)).sum())
         return FitResult(
@@ -1033,6 +1214,50 @@ class CensoredAR:
             evaluations=evals,
             data=data,
         )
+
+    def _checked_plan(self, data: CensoredARData, theta) -> GridPlan:
+        """:meth:`plan`, with a run-away search named as such (the plan's size check raises)."""
+        try:
+            return self.plan(data, theta)
+        except _PlanTooLarge as exc:
+            raise ValidationError(
+                f"y: the estimates ran away during the fit ({exc}); the likelihood of these readings "
+                "appears to have no maximum (too few exactly observed readings, or a variance that goes "
+                "to zero); check the data or give a start"
+            ) from None
+
+    def _search(self, data, u, gtol, maxiter, passes, coarse, cb, ticker, hinv, trace):
+        """BFGS passes on the (coarse) rule, the plan frozen within a pass; returns
+        ``(u, (converged, message), evaluations, inverse Hessian)``."""
+        l = data.X.shape[1]
+        names = self.names(l)
+        search = self._coarse() if coarse else self
+        converged, message, evals = False, "", 0
+        for _ in range(passes):
+            plan = search._checked_plan(data, self._from_free(u, l))
+            out = maximize(
+                lambda v, plan=plan: search.log_likelihood(data, self._from_free(v, l), plan),
+                u,
+                gtol=gtol,
+                maxiter=maxiter,
+                progress=cb,
+                label=lambda v: dict(zip(names, self._from_free(v, l).tolist())),
+                iteration0=len(trace),
+                hess_inv0=hinv,
+                ticker=ticker,
+            )
+            trace += out.trace
+            evals += out.evaluations
+            u, hinv = out.x, out.hess_inv
+            converged, message = out.converged, out.message
+            th = self._from_free(u, l)
+            new_plan = search._checked_plan(data, th)
+            evals += 1
+            if new_plan == plan or abs(search.log_likelihood(data, th, new_plan) - out.value) < 1e-7 * max(
+                1.0, abs(out.value) / 1e3
+            ):
+                break
+        return u, (converged, message), evals, hinv
 
     # what a user does after a fit -----------------------------------------------------
     def system(self, theta, l: int):

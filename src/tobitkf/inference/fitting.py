@@ -6,14 +6,33 @@ Three kinds of model (what ``model`` is):
   errors (R = 0: exact readings when uncensored): exact maximum likelihood by direct maximisation of
   the quadrature likelihood of :mod:`tobitkf.inference.censored_ar`;
 * a :class:`~tobitkf.LinearSystem` (the starting values) with ``estimate`` naming the matrices to learn,
-  any subset of ``A, C, Q, R, Bu, D, x0, P0`` (``P0="stationary"`` ties the prior to A and Q):
-  expectation-maximisation with the closed-form M-steps of the linear Gaussian model (Shumway &
-  Stoffer 1982; Ghahramani & Hinton 1996), with the E-step of the KF/RTS smoother (exact) or, for
-  censored readings, of the assumed-density smoother of each reading's latent value (module
-  :mod:`tobitkf.inference.em`);
+  any subset of ``A, C, Q, R, Bu, D, x0, P0`` (``P0="stationary"`` ties the prior to A and Q): by
+  default direct quasi-Newton maximisation of the Kalman (no censoring) or assumed-density
+  log-likelihood over the estimated entries (covariances through their log-Cholesky factors), each
+  evaluation a compiled pass of the filter's recursion (:mod:`tobitkf.inference._ss_kernels`);
+  ``method="em"``: expectation-maximisation with the closed-form M-steps of the linear Gaussian model
+  (Shumway & Stoffer 1982; Ghahramani & Hinton 1996), the E-step of the KF/RTS smoother (exact) or, for
+  censored readings, of the assumed-density smoother of each reading's latent value. EM takes small
+  steps near the optimum (hundreds of iterations on a 300-reading series, and the likelihood change it
+  stops on can be small while the optimum is still standard errors away), so it is the named option;
 * a callable ``theta -> LinearSystem`` (a structured model) with ``theta0``: direct maximisation of the
-  Kalman (no censoring) or assumed-density log-likelihood with scipy.optimize (BFGS, central-difference
-  gradients).
+  same log-likelihood.
+
+**Stopping rule and convergence** (every kind): the quasi-Newton search stops when its Newton decrement
+:math:`\sqrt{g^TH^{-1}g}` is below ``gtol`` (1e-3 by default): the remaining step is shorter than ``gtol``
+standard errors, whatever the record's length (:func:`~tobitkf.inference._optimize.maximize`).
+``converged`` is True only when, at the estimates, the Newton step with the observed information,
+:math:`I^{-1}g`, is below ``gtol`` standard errors in every parameter and the information is positive
+definite (without standard errors: when the search's rule was met); ``message`` says which rule
+decided and, when not converged, how far off the estimates are. Gradients are finite differences of
+the log-likelihood (forward, relative step 1e-6, during the search; central for the check).
+
+**What is refused** (a ``ValidationError`` naming the argument): no reading present; for the censored
+AR model no exactly observed reading (the likelihood of censored-only readings has no maximum) or, with
+nothing censored, readings the regressors fit without error; text or boolean readings; tolerances that
+are not positive finite numbers; iteration counts that are not integers >= 1; a singular starting value
+of an estimated covariance; estimates that run away during the search (the quadrature's size is checked
+before anything is allocated).
 
 Every fit returns a :class:`FitResult`: estimates, standard errors from the observed information
 (the inverse of minus the Hessian of the log-likelihood at the optimum, in the natural parameters),
@@ -31,7 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validation import ValidationError
+from .._validation import ShapeError, ValidationError, as_float_array
 from ._results import _FORMAT, _VERSION, FitResult, residual_diagnostics
 
 __all__ = ["FitResult", "fit", "load_fit", "residual_diagnostics"]
@@ -149,17 +168,19 @@ def fit(
     theta0 : array_like
         Starting parameter vector for a callable model.
     method : {"auto", "em", "direct"}
-        ``"auto"``: exact ML for CensoredAR, EM for a LinearSystem template, direct for a callable.
+        ``"auto"``: exact ML for CensoredAR, direct quasi-Newton maximisation for a LinearSystem template
+        and for a callable; ``"em"``: expectation-maximisation (a LinearSystem template only).
     likelihood : {"auto", "kalman", "adf"}
         For state-space models: the Kalman likelihood (no censoring) or the assumed-density one.
-    progress : True or callable, optional
-        A progress line on long fits, or a callback per iteration.
+    progress : None, False, True or callable
+        None: a progress line on stderr every 10 s once a fit has run 10 s; False: silent; True: progress
+        from the start; a callable: called with each iteration's trace entry.
     times : (T,) array_like, optional
         Sample times of ``y`` for a callable ``theta -> ContinuousLinearSystem`` (each gap discretised
         exactly). A :class:`~tobitkf.Panel` as ``y`` (many subjects, own times) is fitted jointly the same
         way: :func:`~tobitkf.inference.panel.fit_panel` (options ``align``, ``start``, ``names``).
     **options
-        Passed to the fitter (``maxiter``, ``tol``/``gtol``, ``standard_errors``, ...).
+        Passed to the fitter (``maxiter``, ``gtol``, EM's ``tol``, ``standard_errors``, ...).
 
     Returns
     -------
@@ -168,7 +189,8 @@ def fit(
     Raises
     ------
     ValidationError
-        An unknown model kind or method, missing ``theta0`` for a callable, and the fitters' own errors.
+        An unknown model kind or method, missing ``theta0`` for a callable, data without information,
+        invalid tolerances (module docstring), and the fitters' own errors.
 
     Examples
     --------
@@ -196,8 +218,10 @@ def fit(
         if method == "em":
             raise ValidationError("method: the censored AR model is fitted by direct exact maximisation ('direct')")
         lo, hi = _limits_1d(censoring, lower, upper)
-        y1 = np.asarray(y, dtype=float)
-        if y1.ndim == 2 and y1.shape[1] == 1:
+        y1 = as_float_array(y, "y", ndim=(1, 2), allow_nan=True)
+        if y1.ndim == 2:
+            if y1.shape[1] != 1:
+                raise ShapeError(f"y: the censored AR model takes one series, (T,) or (T, 1); got shape {y1.shape}")
             y1 = y1[:, 0]
         c1 = None if censored is None else np.asarray(censored).reshape(-1)
         return model.fit(y1, X, lower=lo, upper=hi, censored=c1, progress=progress, **options)
