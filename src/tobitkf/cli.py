@@ -133,13 +133,15 @@ def _options(
 @app.command("list")
 @cli_errors
 def list_cmd() -> None:
-    """List every experiment, one line each: id, default run count, title."""
+    """List every experiment, one line each: id, default run count, title (and the run count of
+    ``reproduce --full`` where it differs)."""
     from .experiments import all_experiments
 
     exps = all_experiments()
     width = max(len(e.id) for e in exps)
     for exp in exps:
-        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}")
+        full = f" (--full: {exp.runs_for(True)} runs)" if exp.runs_for(True) != exp.default_runs else ""
+        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}{full}")
 
 
 @app.command("estimators")
