@@ -200,6 +200,8 @@ def run_experiment(
     elapsed = time.perf_counter() - t0
     final = safe_child(out, exp_id)
     outdir = staging_dir(final)  # built whole beside the previous result, then swapped in
+    if heartbeat is not None:
+        heartbeat(1.0, "drawing the figures")
     figures = exp.plot(result, outdir)
     atomic_write_json(
         outdir / "metrics.json",
