@@ -43,11 +43,24 @@ class Heartbeat:
         Seconds between progress lines; ``0`` or less: no periodic lines (start and end only).
     stream : text stream, default ``sys.stderr``
     prefix : str
-        Put before the name on the start line (e.g. ``"[3/29] "``).
+        Put before the name on the start and end lines (e.g. ``"[3/29] "``).
+    announce : bool, default True
+        Print the start line, and a line when the task stops on an error. False (one task the user
+        named): only the progress lines and the end line on success, so that an error stays the one
+        line the caller prints.
     """
 
-    def __init__(self, name: str, *, every: float = 30.0, stream: TextIO | None = None, prefix: str = "") -> None:
+    def __init__(
+        self,
+        name: str,
+        *,
+        every: float = 30.0,
+        stream: TextIO | None = None,
+        prefix: str = "",
+        announce: bool = True,
+    ) -> None:
         self.name = name
+        self.announce = announce
         self.every = float(every)
         self.stream = stream
         self.prefix = prefix
@@ -89,7 +102,8 @@ class Heartbeat:
 
     def __enter__(self) -> Heartbeat:
         self._t0 = time.perf_counter()
-        self._write(f"{self.prefix}{self.name}: started")
+        if self.announce:
+            self._write(f"{self.prefix}{self.name}: started")
         if self.every > 0:
             self._thread = threading.Thread(target=self._run, name=f"heartbeat-{self.name}", daemon=True)
             self._thread.start()
@@ -100,5 +114,7 @@ class Heartbeat:
         if self._thread is not None:
             self._thread.join()
         self.elapsed = time.perf_counter() - self._t0
-        outcome = "done" if exc_type is None else f"stopped ({exc_type.__name__})"
-        self._write(f"{self.prefix}{self.name}: {outcome} in {format_seconds(self.elapsed)}")
+        if exc_type is None:
+            self._write(f"{self.prefix}{self.name}: done in {format_seconds(self.elapsed)}")
+        elif self.announce:
+            self._write(f"{self.prefix}{self.name}: stopped ({exc_type.__name__}) in {format_seconds(self.elapsed)}")

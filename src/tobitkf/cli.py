@@ -313,8 +313,9 @@ def reproduce(
 ) -> None:
     """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html.
 
-    A line on stderr when each experiment starts and ends (with its time), and every 30 s while it
-    runs when stderr is not a terminal (a log, CI); on a terminal a progress bar."""
+    A line on stderr when each experiment starts and ends (with its time; one experiment: when it
+    ends), and every 30 s while it runs when stderr is not a terminal (a log, CI); on a terminal a
+    progress bar."""
     from ._progress import Heartbeat, format_seconds
     from ._validation import ValidationError, check_int
     from .experiments import all_experiments, get
@@ -345,7 +346,8 @@ def reproduce(
                     progress.advance(overall)
                 continue
             prefix = f"[{i + 1}/{len(ids)}] " if len(ids) > 1 else ""
-            with Heartbeat(exp_id, every=0 if terminal else _HEARTBEAT_SECONDS, prefix=prefix) as beat:
+            every = 0 if terminal else _HEARTBEAT_SECONDS
+            with Heartbeat(exp_id, every=every, prefix=prefix, announce=len(ids) > 1) as beat:
                 outdir = run_experiment(
                     exp_id, runs=runs, seed=seed, out=out, progress=progress, full=full, heartbeat=beat
                 )

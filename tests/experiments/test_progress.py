@@ -83,6 +83,17 @@ def test_heartbeat_says_when_the_task_stopped():
     assert out.getvalue().splitlines()[1].startswith("job: stopped (KeyError) in ")
 
 
+def test_heartbeat_without_announce_prints_the_end_of_a_success_only():
+    out = io.StringIO()
+    with Heartbeat("job", every=0, stream=out, announce=False):
+        pass
+    assert [ln.split(" in ")[0] for ln in out.getvalue().splitlines()] == ["job: done"]
+    out = io.StringIO()
+    with pytest.raises(KeyError), Heartbeat("job", every=0, stream=out, announce=False):
+        raise KeyError("x")
+    assert out.getvalue() == ""
+
+
 def test_progress_callback_adapts_one_argument_callbacks():
     got = []
     progress_callback(got.append)(0.5, "note")  # one argument: the fraction only
@@ -92,19 +103,65 @@ def test_progress_callback_adapts_one_argument_callbacks():
 
 
 def test_reproduce_prints_lines_when_not_a_terminal(tmp_path, dummy, monkeypatch):
-    """CliRunner's output is not a terminal: the start line, a progress line (every 0.1 s here) with the
-    experiment's note, the end line with its time."""
+    """CliRunner's output is not a terminal: a progress line (every 0.1 s here) with the experiment's note,
+    the end line with its time (one experiment: no start line, so that an error stays one line)."""
     monkeypatch.setattr(cli, "_HEARTBEAT_SECONDS", 0.1)
     res = CliRunner().invoke(cli.app, ["reproduce", "progress-dummy", "--out", str(tmp_path / "r")])
     assert res.exit_code == 0, res.output
     out = res.output
-    assert "progress-dummy: started" in out
+    assert "started" not in out
     assert "  progress-dummy: 50%, half way (" in out
     assert "progress-dummy: done in " in out
-    assert out.index("started") < out.index("half way") < out.index("done in")
+    assert out.index("half way") < out.index("done in")
     assert CALLS == [{"runs": 3, "seed": 0, "size": 1}]
     meta = json.loads((tmp_path / "r" / "progress-dummy" / "metrics.json").read_text())
     assert meta["runs"] == 3 and meta["full"] is False
+
+
+def test_reproduce_all_prints_a_line_when_each_experiment_starts_and_ends(tmp_path, dummy, monkeypatch):
+    from tobitkf import experiments
+
+    second = Experiment("progress-dummy-2", "dummy", "test", _slow_run, _no_plot, 2, __name__)
+    monkeypatch.setattr(experiments, "_REGISTRY", {"progress-dummy": dummy, "progress-dummy-2": second})
+    monkeypatch.setattr(experiments, "_DISCOVERED", True)
+    monkeypatch.setattr(cli, "_HEARTBEAT_SECONDS", 0.1)
+    res = CliRunner().invoke(cli.app, ["reproduce", "all", "--out", str(tmp_path / "r")])
+    assert res.exit_code == 0, res.output
+    out = res.output
+    order = [
+        "[1/2] progress-dummy: started",
+        "  progress-dummy: 50%, half way (",
+        "[1/2] progress-dummy: done in ",
+        "[2/2] progress-dummy-2: started",
+        "  progress-dummy-2: 50%, half way (",
+        "[2/2] progress-dummy-2: done in ",
+        "2 experiments in ",
+        "(the experiments' own times add up to ",
+    ]
+    at = [out.index(text) for text in order]
+    assert at == sorted(at), out
+    assert [c["runs"] for c in CALLS] == [3, 2]
+
+
+def test_a_failing_experiment_is_one_line_alone_and_named_in_all(tmp_path, monkeypatch):
+    from tobitkf import experiments
+
+    def broken(*, runs, seed, progress=None):
+        raise tk.ValidationError("runs: too many")
+
+    bad = Experiment("progress-broken", "t", "s", broken, _no_plot, 1, __name__)
+    monkeypatch.setattr(experiments, "_REGISTRY", {"progress-broken": bad})
+    monkeypatch.setattr(experiments, "_DISCOVERED", True)
+    res = CliRunner().invoke(cli.app, ["reproduce", "progress-broken", "--out", str(tmp_path / "a")])
+    assert res.exit_code == 2 and [ln for ln in res.output.splitlines() if ln.strip()] == ["error: runs: too many"]
+    ok = Experiment("progress-ok", "t", "s", _slow_run, _no_plot, 1, __name__)
+    monkeypatch.setattr(experiments, "_REGISTRY", {"progress-broken": bad, "progress-ok": ok})
+    res = CliRunner().invoke(cli.app, ["reproduce", "all", "--out", str(tmp_path / "b")])
+    assert res.exit_code == 2
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert lines[0] == "[1/2] progress-broken: started"
+    assert lines[1].startswith("[1/2] progress-broken: stopped (ValidationError) in ")
+    assert lines[2:] == ["error: runs: too many"]
 
 
 def test_reproduce_full_runs_the_full_size_and_resume_tells_the_sizes_apart(tmp_path, dummy):
