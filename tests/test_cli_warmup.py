@@ -89,7 +89,7 @@ def test_warmup_runs_every_target_with_a_line_each(monkeypatch):
     assert res.exit_code == 0, res.output
     assert ran == [1, 2]
     assert "[1/2] first group: " in res.output and "[2/2] second group: " in res.output
-    assert "warm: " in res.output
+    assert "warmup: " in res.output
 
 
 def test_warmup_failure_is_one_line_and_exit_2(monkeypatch):

@@ -307,7 +307,7 @@ def reproduce(
         bool,
         typer.Option(
             "--full",
-            help="run every experiment at the sources' sizes (run counts, particles): about an hour on two cores",
+            help="run every experiment at the sources' sizes (their run counts): about an hour on two cores",
         ),
     ] = False,
 ) -> None:
@@ -394,7 +394,7 @@ def warmup() -> None:
     compiled = int(after["compiled"]) - int(before["compiled"])
     seconds = float(after["seconds"]) - float(before["seconds"])
     what = f"{compiled} kernels compiled in {format_seconds(seconds)}" if compiled else "every kernel was cached"
-    typer.echo(f"warm: {what}; {format_seconds(total)} in all")
+    typer.echo(f"warmup: {what}; {format_seconds(total)} in all")
 
 
 def _write_report(out: Path) -> None:
