@@ -1,17 +1,172 @@
-"""Whether the compiled (numba) paths can run, and how many threads they use.
+"""Whether the compiled (numba) paths can run, how many threads they use, and the compile notice.
 
 numba is imported lazily, on the first call that may use a kernel, so ``import tobitkf`` does
 not pay for it. Each layer keeps its kernels beside its code (:mod:`tobitkf.filters._kernels`,
 :mod:`tobitkf._linalg_kernels`); this module only answers the questions they share.
+
+**The compile notice.** The kernels are compiled on their first call and kept in numba's on-disk
+cache (``cache=True``), so only the first process after an install or an upgrade pays for it (about
+a minute on two cores); later processes load them in a few seconds. When a kernel of tobitkf is
+actually compiled (a cache miss: numba's ``"numba:compile"`` event, which a cache hit does not
+fire), one line on stderr says so, once per process. The listener is registered as soon as numba
+is imported, by whichever module imports it first (:func:`watch_compiles`; ``import tobitkf`` does
+not import numba for it). ``tobitkf warmup`` compiles the common kernels ahead
+(:mod:`tobitkf._warmup`).
 """
 
 from __future__ import annotations
 
+import sys
+import threading
+import time
 from functools import lru_cache
 
 from ._validation import ValidationError
 
-__all__ = ["numba_available", "default_threads", "check_threads", "run_split"]
+__all__ = [
+    "numba_available",
+    "default_threads",
+    "check_threads",
+    "run_split",
+    "watch_compiles",
+    "compile_stats",
+    "COMPILE_NOTICE",
+]
+
+COMPILE_NOTICE = (
+    "tobitkf: compiling numerical kernels for their first use (once after an install or upgrade, then "
+    "cached on disk: about a minute on two cores; 'tobitkf warmup' does it ahead)"
+)
+"""The line printed on stderr when the first kernel of a process is compiled."""
+
+_STATS = {"compiled": 0, "seconds": 0.0, "announced": False, "watching": False}
+_LOCK = threading.Lock()
+
+
+def compile_stats() -> dict[str, float | int | bool]:
+    """Kernels of tobitkf compiled in this process (cache misses), the seconds spent compiling them, and
+    whether the notice was printed (a copy)."""
+    with _LOCK:
+        return dict(_STATS)
+
+
+_PACKAGES = ["tobitkf"]
+"""Packages whose kernels the notice is about (the tests add a throw-away one)."""
+
+
+def _is_ours(event) -> bool:
+    disp = (getattr(event, "data", None) or {}).get("dispatcher")
+    module = getattr(getattr(disp, "py_func", None), "__module__", "") or ""
+    return any(module == p or module.startswith(p + ".") for p in _PACKAGES)
+
+
+def _make_listener():
+    from numba.core import event as ev
+
+    class _CompileNotice(ev.Listener):
+        """Print :data:`COMPILE_NOTICE` at the first compile of a tobitkf kernel; time the compiles.
+
+        numba compiles under one global lock, so compiles do not overlap; a kernel compiles the
+        kernels it calls inside its own compile (``depth``): only the outermost is timed."""
+
+        def __init__(self) -> None:
+            self.depth = 0
+            self.t0 = 0.0
+
+        def on_start(self, event) -> None:
+            if not _is_ours(event):
+                return
+            self.depth += 1
+            if self.depth > 1:
+                return
+            self.t0 = time.perf_counter()
+            with _LOCK:
+                first = not _STATS["announced"]
+                _STATS["announced"] = True
+            if first:
+                try:
+                    sys.stderr.write(COMPILE_NOTICE + "\n")
+                    sys.stderr.flush()
+                except (OSError, ValueError):  # a closed stderr must not stop the computation
+                    pass
+
+        def on_end(self, event) -> None:
+            if not _is_ours(event) or self.depth == 0:
+                return
+            self.depth -= 1
+            if self.depth == 0:
+                with _LOCK:
+                    _STATS["compiled"] += 1
+                    _STATS["seconds"] += time.perf_counter() - self.t0
+
+    return _CompileNotice()
+
+
+def watch_compiles() -> bool:
+    """Register the compile notice's listener with numba (once; imports numba). False when numba does
+    not import."""
+    with _LOCK:
+        if _STATS["watching"]:
+            return True
+    try:
+        from numba.core import event as ev
+    except ImportError:
+        return False
+    with _LOCK:
+        if _STATS["watching"]:
+            return True
+        _STATS["watching"] = True
+    ev.register("numba:compile", _make_listener())
+    return True
+
+
+class _AfterNumbaImport:
+    """A one-shot import hook: when numba is first imported (by any module), register the compile
+    notice right after numba's own module has run (:func:`watch_compiles`). It finds numba's spec
+    through the other finders and only wraps that spec's ``exec_module``; every other import passes."""
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname != "numba":
+            return None
+        _unhook()
+        import importlib.util
+
+        spec = importlib.util.find_spec("numba")
+        loader = getattr(spec, "loader", None)
+        inner = getattr(loader, "exec_module", None)
+        if inner is None:
+            return spec
+
+        def exec_module(module):
+            inner(module)
+            try:
+                watch_compiles()
+            except Exception:  # noqa: BLE001 - the notice is a courtesy: never break numba's import
+                pass
+
+        loader.exec_module = exec_module  # this spec's loader instance only
+        return spec
+
+
+_HOOK = _AfterNumbaImport()
+
+
+def _unhook() -> None:
+    try:
+        sys.meta_path.remove(_HOOK)
+    except ValueError:
+        pass
+
+
+def _hook() -> None:
+    if "numba" in sys.modules:
+        if sys.modules["numba"] is not None:
+            watch_compiles()
+        return
+    sys.meta_path.insert(0, _HOOK)
+
+
+_hook()
 
 
 @lru_cache(maxsize=1)

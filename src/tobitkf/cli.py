@@ -139,13 +139,15 @@ def _options(
 @app.command("list")
 @cli_errors
 def list_cmd() -> None:
-    """List every experiment, one line each: id, default run count, title."""
+    """List every experiment, one line each: id, default run count, title (and the run count of
+    ``reproduce --full`` where it differs)."""
     from .experiments import all_experiments
 
     exps = all_experiments()
     width = max(len(e.id) for e in exps)
     for exp in exps:
-        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}")
+        full = f" (--full: {exp.runs_for(True)} runs)" if exp.runs_for(True) != exp.default_runs else ""
+        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}{full}")
 
 
 @app.command("estimators")
@@ -163,8 +165,21 @@ def estimators_cmd() -> None:
     typer.echo("(* required; a sweep file names them as [[estimators]] type = ...)")
 
 
-def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progress: Progress | None = None) -> Path:
-    """Run one experiment and write its metrics.json and figures under ``out/exp_id``."""
+def run_experiment(
+    exp_id: str,
+    *,
+    runs: int | None,
+    seed: int,
+    out: Path,
+    progress: Progress | None = None,
+    full: bool = False,
+    heartbeat: Any = None,
+) -> Path:
+    """Run one experiment and write its metrics.json and figures under ``out/exp_id``.
+
+    ``runs`` None: the experiment's default run count, or its full (the sources') run count when
+    ``full``. ``heartbeat`` (a :class:`tobitkf._progress.Heartbeat`, optional) receives the
+    experiment's progress beside the bar."""
     from ._extras import require
 
     matplotlib = require("matplotlib", extra="report", feature="the figures of tobitkf reproduce")
@@ -174,21 +189,25 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
     from .experiments import get
 
     exp = get(exp_id)
-    n_runs = exp.default_runs if runs is None else runs
+    n_runs = exp.runs_for(full) if runs is None else runs
     task = None
     if progress is not None:
         task = progress.add_task(exp_id, total=1.0)
 
-    def report(done: float) -> None:
+    def report(done: float, note: str | None = None) -> None:
         if progress is not None and task is not None:
             progress.update(task, completed=min(max(done, 0.0), 1.0))
+        if heartbeat is not None:
+            heartbeat(done, note)
 
     check_experiment_folder(out, exp_id)
     t0 = time.perf_counter()
-    result = exp.run(runs=n_runs, seed=seed, progress=report)
+    result = exp.run(runs=n_runs, seed=seed, progress=report, **exp.settings_for(full))
     elapsed = time.perf_counter() - t0
     final = safe_child(out, exp_id)
     outdir = staging_dir(final)  # built whole beside the previous result, then swapped in
+    if heartbeat is not None:
+        heartbeat(1.0, "drawing the figures")
     figures = exp.plot(result, outdir)
     atomic_write_json(
         outdir / "metrics.json",
@@ -197,6 +216,7 @@ def run_experiment(exp_id: str, *, runs: int | None, seed: int, out: Path, progr
             "title": exp.title,
             "source": exp.source,
             "runs": n_runs,
+            "full": bool(full),
             "seed": seed,
             "package_version": __version__,
             "elapsed_seconds": round(elapsed, 3),
@@ -248,9 +268,9 @@ def check_experiment_folder(out: Path, exp_id: str) -> None:
         )
 
 
-def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
-    """True when ``out/exp_id`` holds a readable metrics.json of the same runs, seed and
-    package version whose figures all exist (what ``reproduce --resume`` skips)."""
+def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int, full: bool = False) -> bool:
+    """True when ``out/exp_id`` holds a readable metrics.json of the same runs, size (``--full`` or not),
+    seed and package version whose figures all exist (what ``reproduce --resume`` skips)."""
     import json
 
     from . import __version__
@@ -261,11 +281,12 @@ def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int) -> bool:
         meta = json.loads((folder / "metrics.json").read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return False
-    n_runs = get(exp_id).default_runs if runs is None else runs
+    n_runs = get(exp_id).runs_for(full) if runs is None else runs
     return (
         isinstance(meta, dict)
         and meta.get("runs") == n_runs
         and meta.get("seed") == seed
+        and bool(meta.get("full", False)) == bool(full)
         and meta.get("package_version") == __version__
         and isinstance(meta.get("figures", []), list)
         and all(isinstance(f, str) and Path(f).name == f and (folder / f).is_file() for f in meta.get("figures", []))
@@ -288,35 +309,98 @@ def reproduce(
             help="skip experiments whose OUT/ID/metrics.json is complete for the same runs, seed and package version",
         ),
     ] = False,
+    full: Annotated[
+        bool,
+        typer.Option(
+            "--full",
+            help="run every experiment at the sources' sizes (their run counts): about an hour on two cores",
+        ),
+    ] = False,
 ) -> None:
-    """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html."""
-    from ._validation import check_int
+    """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html.
+
+    A line on stderr when each experiment starts and ends (with its time; one experiment: when it
+    ends), and every 30 s while it runs when stderr is not a terminal (a log, CI); on a terminal a
+    progress bar."""
+    from ._progress import Heartbeat, format_seconds
+    from ._validation import ValidationError, check_int
     from .experiments import all_experiments, get
     from .report import check_report_targets
 
     # everything that can be refused is refused before the first experiment runs
     ids = [e.id for e in all_experiments()] if experiment == "all" else [get(experiment).id]
     check_int(seed, "--seed", minimum=0)
+    if full and runs is not None:
+        raise ValidationError(
+            "--full: runs every experiment at the sources' run counts; give --runs or --full, not both"
+        )
     check_out_dir(out)
     check_report_targets(out)
     for exp_id in ids:
         check_experiment_folder(out, exp_id)
+    terminal = console.is_terminal
     columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
-    with Progress(*columns, console=console, transient=False, disable=not console.is_terminal) as progress:
+    t_all, spent = time.perf_counter(), 0.0
+    with Progress(*columns, console=console, transient=False, disable=not terminal) as progress:
         overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None
-        for exp_id in ids:
-            if resume and is_complete(out, exp_id, runs=runs, seed=seed):
+        for i, exp_id in enumerate(ids):
+            if resume and is_complete(out, exp_id, runs=runs, seed=seed, full=full):
                 console.print(
                     f"kept {out / exp_id} (complete, --resume)", markup=False, highlight=False, soft_wrap=True
                 )
                 if overall is not None:
                     progress.advance(overall)
                 continue
-            outdir = run_experiment(exp_id, runs=runs, seed=seed, out=out, progress=progress)
+            prefix = f"[{i + 1}/{len(ids)}] " if len(ids) > 1 else ""
+            every = 0 if terminal else _HEARTBEAT_SECONDS
+            with Heartbeat(exp_id, every=every, prefix=prefix, announce=len(ids) > 1) as beat:
+                outdir = run_experiment(
+                    exp_id, runs=runs, seed=seed, out=out, progress=progress, full=full, heartbeat=beat
+                )
+            spent += beat.elapsed
             console.print(f"wrote {outdir}", markup=False, highlight=False, soft_wrap=True)
             if overall is not None:
                 progress.advance(overall)
+    if len(ids) > 1:
+        console.print(
+            f"{len(ids)} experiments in {format_seconds(time.perf_counter() - t_all)} "
+            f"(the experiments' own times add up to {format_seconds(spent)})",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
     _write_report(out)
+
+
+_HEARTBEAT_SECONDS = 30.0
+"""Seconds between the progress lines of a running experiment when stderr is not a terminal."""
+
+
+@app.command()
+@cli_errors
+def warmup() -> None:
+    """Compile the common kernels (filters, online step, smoother, censored-AR fit) into numba's disk cache.
+
+    The first process after an install or upgrade compiles each kernel on its first call (about a
+    minute on two cores); afterwards they load in seconds. A line per group of kernels on stderr."""
+    from . import _warmup
+    from ._compiled import compile_stats, numba_available
+    from ._progress import format_seconds
+
+    if not numba_available():
+        typer.echo("numba is not installed: nothing to compile (the filters run their numpy paths)")
+        return
+
+    def line(text: str) -> None:
+        console.print(text, markup=False, highlight=False, soft_wrap=True)
+
+    before = compile_stats()
+    total = _warmup.warmup(report=line)
+    after = compile_stats()
+    compiled = int(after["compiled"]) - int(before["compiled"])
+    seconds = float(after["seconds"]) - float(before["seconds"])
+    what = f"{compiled} kernels compiled in {format_seconds(seconds)}" if compiled else "every kernel was cached"
+    typer.echo(f"warmup: {what}; {format_seconds(total)} in all")
 
 
 def _write_report(out: Path) -> None:

@@ -161,3 +161,40 @@ def test_particle_check_runs_in_blocks_of_runs(monkeypatch):
     np.testing.assert_allclose(
         blocked["rmse_time_avg"], np.sqrt(((res.mean - sim.x[:, 1:]) ** 2).mean(0)).mean(0), rtol=1e-12
     )
+
+
+def test_the_default_size_runs_fewer_runs_with_the_same_horizons_and_particles():
+    """size="default" (tobitkf reproduce) runs each example at _DEFAULT_RUNS, size="full" (--full) at its own
+    experiment's run count; the CLI passes size="full" with --full; a bad size is refused."""
+    from tobitkf.experiments import yardstick as Y
+
+    kw = {"steps": 3, "particles": 4, "random_systems": 1, "examples": ("geng-protocol-tracking",), "doublings": 0}
+    small = Y.run(**kw)
+    full = Y.run(size="full", **kw)
+    for res, runs in ((small, Y._DEFAULT_RUNS), (full, {**{k: v[0] for k, v in Y._OWN.items()}, "random": 200})):
+        ex, rs = res.metrics["examples"]["geng-protocol-tracking"], res.metrics["random_systems"]["random-01"]
+        assert ex["runs"] == runs["geng-protocol-tracking"] and rs["runs"] == runs["random"]
+        assert ex["steps"] == rs["steps"] == 3 and ex["estimators"]["pf"]["particles"] == 8
+    assert full.settings["size"]["value"] == "full" and small.settings["size"]["value"] == "default"
+    assert Y.run(runs=7, **kw).metrics["examples"]["geng-protocol-tracking"]["runs"] == 7  # runs caps
+    exp = get("yardstick")
+    assert exp.settings_for(True) == {"size": "full"} and exp.runs_for(True) >= max(runs.values())
+    assert exp.runs_for(False) >= max(Y._DEFAULT_RUNS.values())
+    with pytest.raises(tk.ValidationError, match="size: expected one of 'default', 'full'"):
+        Y.run(size="huge", **kw)
+
+
+def test_ratio_stderr_is_the_jackknife_of_the_ratio():
+    """ratio_stderr against the leave-one-run-out ratios computed by brute force."""
+    from tobitkf.experiments._optimum import ratio_stderr
+
+    rng = np.random.default_rng(2)
+    e_opt = rng.gamma(2.0, 1.0, size=(9, 6, 2))
+    e_est = e_opt * rng.uniform(1.0, 1.5, size=e_opt.shape)
+
+    def ratio(a, b):
+        return np.sqrt(a.mean(0)).mean(0) / np.sqrt(b.mean(0)).mean(0)
+
+    loo = np.array([ratio(np.delete(e_est, r, 0), np.delete(e_opt, r, 0)) for r in range(9)])
+    se = np.sqrt(8 / 9 * ((loo - loo.mean(0)) ** 2).sum(0))
+    np.testing.assert_allclose(ratio_stderr(e_est, e_opt), se, rtol=1e-12)

@@ -1,7 +1,8 @@
 """Registry of the sources' numerical examples, each a named, reproducible experiment.
 
 An experiment is a function ``run(*, runs, seed, progress=None, **settings) ->
-ExperimentResult`` registered with :func:`register`, plus a ``plot(result, outdir)``
+ExperimentResult`` (``progress(fraction)`` or ``progress(fraction, note)``, the note saying what it
+is doing, e.g. which estimator runs) registered with :func:`register`, plus a ``plot(result, outdir)``
 function that draws its figures. The CLI only calls them. Every module in this
 package is imported by :func:`all_experiments`, so a new experiment module registers
 itself by being placed here.
@@ -24,7 +25,16 @@ from typing import Any
 
 from .._validation import ValidationError
 
-__all__ = ["Experiment", "ExperimentResult", "register", "get", "all_experiments", "setting", "report_table"]
+__all__ = [
+    "Experiment",
+    "ExperimentResult",
+    "register",
+    "get",
+    "all_experiments",
+    "setting",
+    "report_table",
+    "progress_callback",
+]
 
 
 @dataclass
@@ -67,6 +77,16 @@ class Experiment:
     plot: Callable[[ExperimentResult, Path], list[Path]]
     default_runs: int
     module: str
+    full_runs: int | None = None
+    full_settings: dict[str, Any] = field(default_factory=dict)
+
+    def runs_for(self, full: bool = False) -> int:
+        """The run count of a default run, or of a full run (``tobitkf reproduce --full``: the sources' sizes)."""
+        return self.full_runs if full and self.full_runs is not None else self.default_runs
+
+    def settings_for(self, full: bool = False) -> dict[str, Any]:
+        """Keyword settings beside ``runs`` of a full run (e.g. larger particle counts); none by default."""
+        return dict(self.full_settings) if full else {}
 
 
 _REGISTRY: dict[str, Experiment] = {}
@@ -94,9 +114,21 @@ def report_table(title: str, columns: list[str], rows: list[list[Any]], note: st
 
 
 def register(
-    id: str, *, title: str, source: str, plot: Callable[[ExperimentResult, Path], list[Path]], default_runs: int
+    id: str,
+    *,
+    title: str,
+    source: str,
+    plot: Callable[[ExperimentResult, Path], list[Path]],
+    default_runs: int,
+    full_runs: int | None = None,
+    full_settings: dict[str, Any] | None = None,
 ):
     """Decorator registering ``run`` under ``id``.
+
+    ``default_runs`` is the run count of ``tobitkf reproduce``; ``full_runs`` (default: the same) and
+    ``full_settings`` (keyword settings, default none) those of ``tobitkf reproduce --full``, the sources'
+    sizes, for an experiment whose default is smaller to keep the main job short. A smaller default
+    must still support every claim: the claims' tolerances come from the run count actually used.
 
     The registered (and returned) ``run`` checks the claims of its result against the claims
     rule (:func:`tobitkf.experiments._claims.check_claims`); the registered ``plot`` stores the
@@ -132,10 +164,41 @@ def register(
             plot=plot_with_captions,
             default_runs=default_runs,
             module=run.__module__,
+            full_runs=full_runs,
+            full_settings=dict(full_settings or {}),
         )
         return checked_run
 
     return deco
+
+
+def progress_callback(progress: Callable[..., Any] | None) -> Callable[..., None]:
+    """``progress`` as a callback that takes ``(fraction, note=None)``: a callback of one argument gets the
+    fraction only, None becomes a no-op (so an experiment can name what it is doing whatever it was given)."""
+    if progress is None:
+
+        def ignore(fraction: float, note: str | None = None) -> None:
+            pass
+
+        return ignore
+    import inspect
+
+    try:
+        params = list(inspect.signature(progress).parameters.values())
+    except (TypeError, ValueError):  # a builtin without a signature: the fraction only
+        params = []
+    takes_note = any(p.kind is p.VAR_POSITIONAL for p in params) or (
+        sum(p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) for p in params) >= 2
+    )
+    user = progress
+
+    def adapted(fraction: float, note: str | None = None) -> None:
+        if takes_note:
+            user(fraction, note)
+        else:
+            user(fraction)
+
+    return adapted
 
 
 def _discover() -> None:

@@ -35,6 +35,7 @@ __all__ = [
     "check_particles",
     "pop_options",
     "convergence",
+    "ratio_stderr",
 ]
 
 TOLERANCE = 0.003
@@ -98,6 +99,26 @@ def convergence(err2_half: np.ndarray, err2_full: np.ndarray, tolerance: float =
     }
 
 
+def ratio_stderr(err2: np.ndarray, err2_optimum: np.ndarray) -> list[float]:
+    r"""Jackknife standard error over runs of an estimator's ratio to the optimum, per component.
+
+    The ratio :math:`\bar r_i/\bar r^{\mathrm{opt}}_i` (time-averaged RMSEs, :math:`\bar r` the mean over
+    steps of the per-step RMSE over runs) is paired: both on the same runs. Its standard error,
+    :math:`\mathrm{se}^2 = \frac{N-1}{N}\sum_r (q^{(-r)} - \bar q^{(\cdot)})^2` over the leave-one-run-out
+    ratios, holds the error of the runs and of the optimum's particles.
+
+    Parameters
+    ----------
+    err2, err2_optimum : (N, T, n) ndarray
+        Squared errors of the estimator and of the optimum on the same runs, N >= 2.
+    """
+    N = err2.shape[0]
+    _, r_loo = _time_avg_rmse_jackknife(err2)
+    _, o_loo = _time_avg_rmse_jackknife(err2_optimum)
+    q_loo = r_loo / o_loo
+    return np.sqrt((N - 1) / N * ((q_loo - q_loo.mean(0)) ** 2).sum(0)).tolist()
+
+
 def check_particles(value: Any, name: str = "optimum_particles") -> int:
     """A particle count N_p >= 0 (0: no particle filter)."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
@@ -141,6 +162,7 @@ def pf_check(
     *,
     proposal: str = "auto",
     doublings: int = 0,
+    note: Any = None,
 ) -> tuple[dict[str, Any], Any]:
     r"""The PF with 2 N_p particles (the optimum) and with N_p (the convergence check), on the same data,
     built from the registry (:func:`pf_rung`).
@@ -160,6 +182,9 @@ def pf_check(
         The particle filter's proposal (:class:`~tobitkf.ParticleFilter`).
     doublings : int >= 0, default 0
         At most this many extra doublings of the particle count.
+    note : callable, optional
+        ``note(text)`` before each block of runs (e.g. ``"particle filter, 4000 particles, runs 1-200 of
+        1000"``), for the progress lines of a long experiment.
 
     Returns the summary of the optimum (``mx.summarize`` plus ``particles``, ``proposal``,
     ``convergence``, ``ladder`` and ``lineup``, the optimum's registry description) and its
@@ -172,6 +197,9 @@ def pf_check(
         name, opts = pf_rung(particles, seed, i, proposal)
         pfs, parts_out = [], []
         for b, r0 in enumerate(range(0, y.shape[0], RUN_BLOCK)):  # blocks of runs: memory capped
+            if note is not None:
+                r1 = min(r0 + RUN_BLOCK, y.shape[0])
+                note(f"particle filter, {opts['particles']} particles, runs {r0 + 1}-{r1} of {y.shape[0]}")
             o = dict(opts) if b == 0 else {**opts, "seed": np.random.SeedSequence([int(seed), 7, i, b])}
             pfs.append(lineup({"pf": (name, o)}, system, parts)["pf"])
             parts_out.append(pfs[-1].filter(y[r0 : r0 + RUN_BLOCK], outputs=("mean", "var")))

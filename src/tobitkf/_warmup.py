@@ -1,0 +1,132 @@
+"""``tobitkf warmup``: compile the common kernels into numba's on-disk cache ahead of their first use.
+
+Each target runs one family on a tiny problem (a few runs, a few steps) through the public API, so the
+kernels are compiled for the argument types a user's call passes (float64, C-contiguous; numba
+specialises on types, not sizes). A kernel already in the cache is loaded, not compiled: a second
+warmup takes seconds. The targets are the filters most calls use (the Kalman and Tobit Kalman filters
+with their online step, the assumed-density filters, the fading and protocol filters, the smoother)
+and the censored-AR fit of ``tobitkf fit``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["TARGETS", "warmup"]
+
+
+def _oscillator():
+    from .channels.censoring import Censoring
+    from .models.linear import LinearSystem
+
+    w = 0.1 * np.pi
+    A = 0.95 * np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    system = LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.1 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=np.eye(2))
+    return system, Censoring(lower=0.0)
+
+
+def _readings(system, runs: int = 4, steps: int = 6, **channel):
+    from .simulate.core import simulate
+
+    return simulate(system, steps, runs, seed=0, **channel).y
+
+
+def _kalman_tobit() -> None:
+    from .filters.kalman import KalmanFilter
+    from .filters.tobit import TobitKalmanFilter
+
+    system, cens = _oscillator()
+    y = _readings(system, censoring=cens)
+    KalmanFilter(system).filter(y)
+    tkf = TobitKalmanFilter(system, cens)
+    tkf.filter(y)
+    tkf.filter(y, outputs=("mean",))
+    state = tkf.init(batch_shape=(y.shape[0],))
+    for k in range(2):
+        state = tkf.step(state, y[:, k])
+
+
+def _assumed_density() -> None:
+    from .channels.saturation import RandomSaturation
+    from .filters.adf_saturation import SaturationAssumedDensityFilter
+    from .filters.assumed_density import AssumedDensityTobitFilter
+    from .models.linear import LinearSystem
+
+    system, cens = _oscillator()
+    AssumedDensityTobitFilter(system, cens).filter(_readings(system, censoring=cens))
+    sys2 = LinearSystem(A=system.A.at(0), C=np.eye(2), Q=0.1 * np.eye(2), R=0.01 * np.eye(2), x0=[0, 0], P0=np.eye(2))
+    sat = RandomSaturation([0.7, 0.6], [0.7, 0.75])
+    SaturationAssumedDensityFilter(sys2, sat).filter(_readings(sys2, channel=sat))
+
+
+def _fading() -> None:
+    from .channels.fading import RiceFading
+    from .filters.adf_fading import FadingAssumedDensityFilter
+    from .filters.fading import FadingTobitKalmanFilter
+
+    system, cens = _oscillator()
+    fading = RiceFading.gaussian(2, [0.8, 0.3, 0.1], [0.01, 0.01, 0.01])
+    y = _readings(system, censoring=cens, measurement=fading)
+    FadingTobitKalmanFilter(system, fading, cens).filter(y)
+    FadingAssumedDensityFilter(system, fading, cens).filter(y)
+
+
+def _protocol() -> None:
+    from .channels.protocol import ProtocolChannel
+    from .filters.adf_protocol import ProtocolAssumedDensityFilter
+    from .filters.protocol import ProtocolTobitKalmanFilter
+    from .models.linear import LinearSystem
+
+    system = LinearSystem(A=np.eye(2), C=np.eye(2), Q=0.0025 * np.eye(2), R=np.eye(2), x0=[5.0, 0.0], P0=np.eye(2))
+    channel = ProtocolChannel(2, window=2, threshold=0.0)
+    y = _readings(system, channel=channel)
+    ProtocolTobitKalmanFilter(system, channel).filter(y)
+    ProtocolAssumedDensityFilter(system, channel).filter(y)
+
+
+def _smoother() -> None:
+    from .inference.smoothing import smooth
+
+    system, cens = _oscillator()
+    smooth(system, _readings(system, censoring=cens)[0], censoring=cens)
+
+
+def _censored_ar() -> None:
+    from .inference.censored_ar import CensoredAR
+    from .inference.fitting import fit
+
+    rng = np.random.default_rng(0)
+    e = rng.standard_normal(60)
+    x = np.empty(60)
+    x[0] = e[0]
+    for t in range(1, 60):
+        x[t] = 0.5 * x[t - 1] + e[t]
+    y = np.maximum(x, -0.5)
+    for p in (1, 2):
+        fit(CensoredAR(p), y, lower=-0.5)
+
+
+TARGETS: list[tuple[str, Callable[[], None]]] = [
+    ("Kalman and Tobit Kalman filters (filter, online step)", _kalman_tobit),
+    ("assumed-density filters (censoring, saturation)", _assumed_density),
+    ("fading filters (TKF-FM, its assumed-density filter)", _fading),
+    ("protocol filters (PBTKF-IMSF, its assumed-density filter)", _protocol),
+    ("smoother", _smoother),
+    ("censored AR fit (tobitkf fit)", _censored_ar),
+]
+"""What ``tobitkf warmup`` compiles: (label, a function that runs it on a tiny problem)."""
+
+
+def warmup(report: Callable[[str], None] = print, targets: list[tuple[str, Callable[[], None]]] | None = None) -> float:
+    """Run every target once (compiling its kernels into the on-disk cache); ``report`` gets a line per
+    target with its time. Returns the total seconds."""
+    todo = TARGETS if targets is None else targets
+    t_all = time.perf_counter()
+    for i, (label, target) in enumerate(todo, 1):
+        t0 = time.perf_counter()
+        target()
+        report(f"[{i}/{len(todo)}] {label}: {time.perf_counter() - t0:.1f} s")
+    return time.perf_counter() - t_all

@@ -1,0 +1,119 @@
+"""``tobitkf warmup`` and the compile notice.
+
+The notice: one line on stderr when a kernel of tobitkf is actually compiled (a cache miss), once per
+process, nothing on a cache hit; ``import tobitkf`` does not import numba for it. Checked in fresh
+processes with their own numba cache folder (``NUMBA_CACHE_DIR``) on a one-line kernel, so no test pays
+for compiling the real kernels; the real warmup is a heavy test.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from tobitkf import _warmup, cli
+from tobitkf._compiled import COMPILE_NOTICE
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+
+KERNELS = textwrap.dedent(
+    """
+    import numba
+
+    @numba.njit(cache=True)
+    def add_one(x):
+        return x + 1
+
+    @numba.njit(cache=True)
+    def double(x):
+        return x * 2
+    """
+)
+USER = textwrap.dedent(
+    """
+    import sys
+    import tobitkf
+    assert "numba" not in sys.modules  # importing tobitkf does not import numba
+    from tobitkf import _compiled
+    _compiled._PACKAGES.append("fakekernels")  # stands for tobitkf's kernels
+    import fakekernels
+    print(fakekernels.add_one(1), fakekernels.add_one(2.5), fakekernels.double(3))  # three compiles
+    print(_compiled.compile_stats()["compiled"])
+    """
+)
+
+
+def _run(script: Path, cache: Path) -> subprocess.CompletedProcess:
+    env = {
+        **os.environ,
+        "NUMBA_CACHE_DIR": str(cache),
+        "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", ""),
+    }
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+
+
+def test_the_notice_comes_once_per_process_and_only_when_a_kernel_compiles(tmp_path):
+    (tmp_path / "fakekernels.py").write_text(KERNELS)
+    script = tmp_path / "user.py"
+    script.write_text(USER)
+    first = _run(script, tmp_path / "cache")
+    assert first.returncode == 0, first.stderr
+    assert first.stdout.split() == ["2", "3.5", "6", "3"]
+    assert first.stderr.count(COMPILE_NOTICE) == 1  # three compiles, one line
+    second = _run(script, tmp_path / "cache")  # the same kernels, now in the disk cache
+    assert second.returncode == 0, second.stderr
+    assert second.stdout.split() == ["2", "3.5", "6", "0"]
+    assert COMPILE_NOTICE not in second.stderr
+
+
+def test_the_notice_is_silent_for_kernels_of_other_packages(tmp_path):
+    (tmp_path / "fakekernels.py").write_text(KERNELS)
+    script = tmp_path / "other.py"
+    script.write_text("import tobitkf, fakekernels\nprint(fakekernels.add_one(1))\n")
+    res = _run(script, tmp_path / "cache")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["2"] and COMPILE_NOTICE not in res.stderr
+
+
+def test_warmup_runs_every_target_with_a_line_each(monkeypatch):
+    ran = []
+    targets = [("first group", lambda: ran.append(1)), ("second group", lambda: ran.append(2))]
+    monkeypatch.setattr(_warmup, "TARGETS", targets)
+    res = CliRunner().invoke(cli.app, ["warmup"])
+    assert res.exit_code == 0, res.output
+    assert ran == [1, 2]
+    assert "[1/2] first group: " in res.output and "[2/2] second group: " in res.output
+    assert "warmup: " in res.output
+
+
+def test_warmup_failure_is_one_line_and_exit_2(monkeypatch):
+    def broken():
+        raise ValueError("no such kernel")
+
+    monkeypatch.setattr(_warmup, "TARGETS", [("broken", broken)])
+    res = CliRunner().invoke(cli.app, ["warmup"])
+    assert res.exit_code == 2
+    assert "no such kernel" in res.output and "Traceback" not in res.output
+
+
+def test_every_target_is_a_labelled_callable():
+    assert len(_warmup.TARGETS) >= 5
+    assert all(isinstance(label, str) and label and callable(fn) for label, fn in _warmup.TARGETS)
+
+
+@pytest.mark.heavy
+def test_the_real_warmup_exits_0_and_a_second_one_compiles_nothing():
+    env = {**os.environ, "PYTHONPATH": SRC + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    cmd = [sys.executable, "-m", "tobitkf", "warmup"]
+    first = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+    assert first.returncode == 0, first.stderr
+    assert first.stderr.count(f"[{len(_warmup.TARGETS)}/{len(_warmup.TARGETS)}]") == 1
+    second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
+    assert second.returncode == 0, second.stderr
+    assert "every kernel was cached" in second.stdout and COMPILE_NOTICE not in second.stderr
