@@ -63,7 +63,6 @@ from .filters.assumed_density import AssumedDensityTobitFilter
 from .filters.delay import (
     AugmentedLMMSE,
     ChainLMMSE,
-    DelayEstimates,
     ReorganizedInnovationLMMSE,
     augmented_lmmse,
     chain_lmmse,
@@ -150,7 +149,6 @@ __all__ = [
     "ChainLMMSE",
     "AugmentedLMMSE",
     "ReorganizedInnovationLMMSE",
-    "DelayEstimates",
     "ProtocolChannel",
     "RoundRobin",
     "IntegralMeasurement",

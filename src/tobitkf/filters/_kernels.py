@@ -4,7 +4,7 @@ These kernels are an *implementation* of the numpy reference paths in
 :mod:`tobitkf.filters.kalman` and :mod:`tobitkf.filters.tobit`, not a second
 algorithm: same equations (Miller (2015) (2.3)–(2.6); (3.20)–(3.22), (3.32),
 (3.37)–(3.41), (3.55)), same channel masking as
-:func:`tobitkf.filters._common.gain_update` (missing or degenerate channels get a
+:func:`tobitkf.filters.core.gain_update` (missing or degenerate channels get a
 zero gain column), same symmetrization after each predict and update, and the same
 censored-normal statistics as :func:`tobitkf.censored.censored_moments` (direct
 formulas in the central region; 64-node Gauss–Legendre quadrature in shifted
@@ -639,7 +639,7 @@ def _sym_times(out, X, M, Q, with_q, nk, W, skip_zero):
 @njit(cache=True, error_model="numpy")
 def _solve_gain(Ree, Rxe, ok, K, W, d):
     r"""One run: :math:`K = R_{xe}R_{ee}^{-1}` with channels ``~ok`` removed (zero gain column), as
-    :func:`~tobitkf.filters._common.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
+    :func:`~tobitkf.filters.core.gain_update`. ``Ree`` (m, m) is overwritten; Gaussian
     elimination with partial pivoting, like LAPACK gesv."""
     n, m = Rxe.shape
     for i in range(m):
@@ -649,7 +649,7 @@ def _solve_gain(Ree, Rxe, ok, K, W, d):
     for j in range(m):
         for i in range(n):
             W[j, i] = Rxe[i, j] if ok[j] else 0.0
-    # scale Ree to unit diagonal (as _common._gain): channels whose variances differ by ~1e77
+    # scale Ree to unit diagonal (as core._gain): channels whose variances differ by ~1e77
     # otherwise give gain entries wrong by ~1e54 and a Joseph covariance of ~1e33
     # (``d`` (m,) is the caller's scratch: nothing is allocated per call)
     for i in range(m):

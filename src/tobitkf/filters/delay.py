@@ -63,7 +63,6 @@ from .core import (
 )
 
 __all__ = [
-    "DelayEstimates",
     "IntervalSmoothing",
     "chain_lmmse",
     "augmented_lmmse",
@@ -168,11 +167,6 @@ _NO_LAYOUTS: dict = {}
 
 #: a placeholder array for a kernel argument that is not read (an innovation of a time before the first reading)
 _NOTHING = np.zeros((1, 1))
-
-
-#: The pre-0.2 result type of the delay family; every estimator now returns :class:`FilterResult`
-#: (``DelayEstimates`` is kept as its name for one release).
-DelayEstimates = FilterResult
 
 
 @dataclass(frozen=True)
@@ -764,7 +758,7 @@ def chain_lmmse(
     lags: Any = (),
     horizons: Any = (),
     fixed_point: int | None = None,
-) -> DelayEstimates:
+) -> FilterResult:
     r"""Algorithm C: chain-decoupled exact LMMSE filter, predictors and smoothers (chain decoupling, ours; LD-02).
 
     For each measurement y(t), with j = t - d (the measured element):
@@ -802,7 +796,7 @@ def chain_lmmse(
 
     Returns
     -------
-    DelayEstimates
+    FilterResult
 
     Raises
     ------
@@ -1118,7 +1112,7 @@ class AugmentedLMMSE(_DelayEstimator):
 
 def augmented_lmmse(
     system: DelayFadingSystem, prior: HistoryPrior, y: Any, *, window: int | None = None, lags: Any = ()
-) -> DelayEstimates:
+) -> FilterResult:
     r"""Algorithm A: dense LMMSE on the augmented state X(t) = [x(t); ...; x(t-W)] (state augmentation, ours).
 
     .. math::
@@ -1145,7 +1139,7 @@ def augmented_lmmse(
 
     Returns
     -------
-    DelayEstimates
+    FilterResult
         ``extras["final_mean"]`` (..., n(W+1)) and ``extras["final_cov"]`` (n(W+1), n(W+1)):
         X̂(T|T-1), i.e. x̂(T-k|T-1) for k = 0..W. With W = T + d this is the fixed-interval
         smoother of every element x(-d)..x(T) (the oracle for :func:`smooth_interval`).
@@ -1645,7 +1639,7 @@ def reorganized_lmmse(
     decorrelation: str = "optimal",
     warmup: int | None = None,
     reinsert_errata: Any = (),
-) -> DelayEstimates:
+) -> FilterResult:
     r"""Algorithm D: the source's reorganized-innovation estimator (Theorems 1–3), LD-E3 to LD-E7 corrected.
 
     Streaming order at time t (Ψ_i(t) := Φ_{t-i}(t-d-i+1, t-d+1), i = 1..d):
@@ -1688,7 +1682,7 @@ def reorganized_lmmse(
 
     Returns
     -------
-    DelayEstimates
+    FilterResult
         ``lagged[d-1]`` is Theorem 3's smoother x̂(t-d+1|t) (d >= 1).
 
     Raises

@@ -56,8 +56,7 @@ Time convention: :math:`x_0 \sim N(\bar x_0, P_0)` with the pre-history
 
 Readings: ``y`` is ``(..., T, 1)`` like every estimator's (one scalar per step, the scheduled
 sensor's); ``uncensored`` (the detection device's :math:`\gamma_k`, default ``y > threshold``) is laid
-out like ``y``. The pre-0.2 layouts ``y`` (T,) and ``uncensored`` (..., T) still work, with a
-DeprecationWarning.
+out like ``y``.
 
 Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 ``p_uncensored`` :math:`1-\Phi(\bar\vartheta_k)` (the diagnostic (8), GP-06), ``theta_bar``
@@ -69,7 +68,6 @@ Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
@@ -129,8 +127,6 @@ __all__ = [
 
 FAILURE_TERMS = ("variance", "literal", "second_moment", "lmmse_unconditional")
 PREHISTORY_PRIORS = ("x0", "zero_mean")
-PRIOR_MEANS = ("repeat", "zero")  # the pre-0.2 names of PREHISTORY_PRIORS (prehistory_mean=)
-_OLD_PRIOR = {"repeat": "x0", "zero": "zero_mean"}
 UPPER_FORMS = ("expected_riccati", "suboptimal_gain", "paper_literal")
 LOWER_FORMS = ("statement", "paper_proof")
 PHI_UPPER = ("zero", "mean_trajectory")
@@ -165,14 +161,8 @@ def stacked_measurement(C_row: np.ndarray, window: int) -> np.ndarray:
     return np.tile(np.asarray(C_row, dtype=float).reshape(-1), window + 1)
 
 
-def _prehistory_prior(value: str) -> str:
-    """The ``prehistory_prior`` value of a pre-0.2 ``prehistory_mean`` spelling (or itself)."""
-    return _OLD_PRIOR.get(value, value)
-
-
 def _initial(system: LinearSystem, window: int, prehistory_prior: str, P0_aug: Any, x0: Any = None, P0: Any = None):
     n = system.n
-    prehistory_prior = _prehistory_prior(prehistory_prior)
     mean = system.x0 if x0 is None else x0
     cov = system.P0 if P0 is None else P0
     if prehistory_prior == "x0":
@@ -385,20 +375,7 @@ def _protocol_info(mp: MeasurementPrediction, Ree: np.ndarray | None) -> dict[st
     return info
 
 
-def _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean):
-    if prehistory_mean is not None:
-        if prehistory_mean not in PRIOR_MEANS:
-            raise ValidationError(
-                f"prehistory_mean: expected one of {', '.join(map(repr, PRIOR_MEANS))}, got {prehistory_mean!r}"
-            )
-        warnings.warn(
-            f"prehistory_mean={prehistory_mean!r} is deprecated: use "
-            f"prehistory_prior={_OLD_PRIOR[prehistory_mean]!r} (the prior of x_-1..x_-ell in the filter; "
-            "the channel's prehistory= says how the simulator draws them)",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        prehistory_prior = _OLD_PRIOR[prehistory_mean]
+def _check_options(failure_term, prehistory_prior, covariance_update):
     check_keywords(
         {"failure_term": failure_term, "prehistory_prior": prehistory_prior, "covariance_update": covariance_update},
         _OPTIONS,
@@ -420,8 +397,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     prehistory_prior : {"x0", "zero_mean"}, default "x0"
         The filter's prior of the pre-history :math:`x_{-1..-\ell}`: independent
         :math:`N(\bar x_0, P_0)` (``"x0"``) or :math:`N(0, P_0)` (``"zero_mean"``). (The channel's
-        ``prehistory`` says how the *simulator* draws them.) ``prehistory_mean="repeat"``/``"zero"`` is
-        the deprecated spelling.
+        ``prehistory`` says how the *simulator* draws them.)
     covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
         Joseph form (App. D (44), the source's), (20), or the QR array form (not in the source).
     P0_aug : array_like, optional
@@ -467,11 +443,10 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         prehistory_prior: str = "x0",
         covariance_update: str = "joseph",
         P0_aug: Any = None,
-        prehistory_mean: str | None = None,
         check_limits: bool = True,
         backend: str = "auto",
     ):
-        prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean)
+        prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update)
         check_option(backend, "backend", BACKENDS)
         if backend == "numba":
             kernels()  # raises ImportError without numba
@@ -613,15 +588,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     def _prepare_record(self, y, name="y"):
         arr = as_float_array(y, name, allow_nan=True)  # NaN: a lost reading, which only predicts
-        if arr.ndim == 1:  # one record (T,): the pre-0.2 layout
-            warnings.warn(
-                f"{name}: a (T,) record is deprecated; pass (..., T, 1) like every estimator "
-                "(y[:, None] for one record)",
-                DeprecationWarning,
-                stacklevel=4,
-            )
-            arr = arr[:, None]
-        elif arr.ndim >= 2 and arr.shape[-1] != 1:
+        if arr.ndim < 2 or arr.shape[-1] != 1:
             raise ShapeError(
                 f"{name}: expected (..., T, 1) received scalars (the scheduled sensor's reading), got shape {arr.shape}"
             )
@@ -687,13 +654,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         step_data = None
         if uncensored is not None:
             gam = np.asarray(uncensored)
-            if gam.shape == batch + (T,):
-                warnings.warn(
-                    "uncensored: a (..., T) array is deprecated; lay it out like y, (..., T, 1)",
-                    DeprecationWarning,
-                    stacklevel=2,
-                )
-                gam = gam[..., None]
             if gam.shape != batch + (T, 1):
                 raise ShapeError(f"uncensored: expected shape {batch + (T, 1)} (like y), got {gam.shape}")
             step_data = {"uncensored": np.asarray(gam, dtype=bool).reshape(N, T, 1)}
@@ -1020,7 +980,6 @@ def protocol_tobit_kalman_filter(
     P0_aug: Any = None,
     keep_augmented: bool = False,
     check_limits: bool = True,
-    prehistory_mean: str | None = None,
 ) -> FilterResult:
     r"""Run the PBTKF-IMSF (Theorem 1, Table I) over a batch of received records.
 
@@ -1032,15 +991,13 @@ def protocol_tobit_kalman_filter(
     channel : ProtocolChannel
         Window ℓ, failure laws (only their means and variances are used), schedule, τ.
     y : (..., T, 1) array_like
-        Received scalar measurements :math:`y_1..y_T` (censored readings equal τ); the pre-0.2 (T,)
-        layout is deprecated.
+        Received scalar measurements :math:`y_1..y_T` (censored readings equal τ).
     uncensored : (..., T, 1) bool array_like, optional
         :math:`\gamma_k` from the detection device, laid out like ``y``; default ``y > threshold``.
     failure_term : {"variance", "literal", "second_moment", "lmmse_unconditional"}, default "variance"
         The failure term of (24) (docs/sources GP-01).
     prehistory_prior : {"x0", "zero_mean"}, default "x0"
-        Prior of :math:`x_{-1..-\ell}`: :math:`N(\bar x_0, P_0)` or :math:`N(0, P_0)`, independent
-        (``prehistory_mean="repeat"``/``"zero"`` is the deprecated spelling).
+        Prior of :math:`x_{-1..-\ell}`: :math:`N(\bar x_0, P_0)` or :math:`N(0, P_0)`, independent.
     covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
         Joseph form (App. D (44)) or (20), equal for the optimal gain; or the QR array form.
     P0_aug : (n_ξ, n_ξ) array_like, optional
@@ -1099,7 +1056,6 @@ def protocol_tobit_kalman_filter(
         prehistory_prior=prehistory_prior,
         covariance_update=covariance_update,
         P0_aug=P0_aug,
-        prehistory_mean=prehistory_mean,
         check_limits=check_limits,
     )
     return est.filter(y, uncensored=uncensored, keep_augmented=keep_augmented)
@@ -1149,7 +1105,6 @@ def analytic_p_uncensored(
     *,
     prehistory_prior: str = "x0",
     P0_aug: Any = None,
-    prehistory_mean: str | None = None,
 ) -> np.ndarray:
     r"""Unconditional :math:`\bar\gamma_k = P(\bar y_k > \tau)` under the true model, k = 1..T (docs/sources GP-06).
 
@@ -1169,7 +1124,7 @@ def analytic_p_uncensored(
         For a law that is neither discrete nor uniform (pass γ̄ explicitly then).
     """
     n, ell = system.n, channel.window
-    xi0, M0 = _initial(system, ell, prehistory_mean or prehistory_prior, P0_aug)
+    xi0, M0 = _initial(system, ell, prehistory_prior, P0_aug)
     Bn = noise_input(n, ell)
     nodes = []
     for i, law in enumerate(channel.laws):
@@ -1214,7 +1169,6 @@ def protocol_covariance_bounds(
     phi_upper: str = "zero",
     prehistory_prior: str = "x0",
     P0_aug: Any = None,
-    prehistory_mean: str | None = None,
 ) -> CovarianceBounds:
     r"""Upper and lower bounds on the expected prior covariance (Theorems 3–5 of the source).
 
@@ -1253,7 +1207,7 @@ def protocol_covariance_bounds(
         :math:`\bar\varphi^u_k`: 0 (a guaranteed bound) or φ along the mean trajectory (tighter,
         not guaranteed).
     prehistory_prior, P0_aug
-        The filter's initialisation (``prehistory_mean`` is the deprecated spelling).
+        The filter's initialisation.
 
     Returns
     -------
@@ -1279,8 +1233,6 @@ def protocol_covariance_bounds(
       version :math:`(1-\bar\gamma)\mathcal AM\mathcal A^T + \bar\gamma\mathcal BQ\mathcal B^T` with
       :math:`M^l_0 = 0`, i.e. :math:`M^l_1 = \mathcal BQ_0\mathcal B^T` (looser, also valid).
     """
-    if prehistory_mean is not None:
-        prehistory_prior = _check_options(failure_term, prehistory_prior, "joseph", prehistory_mean)
     check_keywords(
         {
             "failure_term": failure_term,
