@@ -687,9 +687,7 @@ def tobit_lqe(
     return _tobit_lqe(A, G, C, W, V, xi_uncensored, "ct")
 
 
-def tobit_dlqe(
-    A: Any, G: Any, C: Any, W: Any, *, V: Any = None, xi_uncensored: Any = None
-) -> EstimatorGain:
+def tobit_dlqe(A: Any, G: Any, C: Any, W: Any, *, V: Any = None, xi_uncensored: Any = None) -> EstimatorGain:
     r"""Discrete-time steady-state Tobit observer gains: the DARE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
 
     The modified DARE of Miller §3.4.2 ((3.57) corrected, docs/sources MA-11): the fixed gain of
