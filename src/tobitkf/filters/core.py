@@ -84,7 +84,6 @@ OUTPUTS = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
 _TINY = np.finfo(np.float64).tiny
 
 
-
 # --------------------------------------------------------------------------- state and result
 
 
@@ -240,7 +239,6 @@ class FilterResult:
     times: np.ndarray | None = None
     var: np.ndarray | None = None
     final: FilterState | None = None
-
 
 
 # --------------------------------------------------------------------------- what a family contributes
