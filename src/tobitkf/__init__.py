@@ -96,7 +96,7 @@ from .inference import (
 from .models import LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
 from .models.ross import RossModel
-from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
+from .design.pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
 from .report import write_report
 from .simulate import SimulationData, simulate
 from .simulate.delay import simulate_delay

@@ -47,7 +47,7 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
 from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
-from ..pcrlb import posterior_crlb
+from ..design.pcrlb import posterior_crlb
 from ..plotting import save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting
