@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from tobitkf.experiments._optimum import convergence
 from tobitkf.design.pcrlb import bound_test
+from tobitkf.experiments._optimum import convergence
 
 
 def _errors(rng, reps, N, T, n, rho, scale):

@@ -46,6 +46,8 @@ from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, to
 from .design.hinf import analyze as hinf_analyze
 from .design.hinf import design as hinf_design
 from .design.hinf import verify as hinf_verify
+from .design.pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
+from .design.protocol_bounds import protocol_covariance_bounds
 from .filters import (
     DroppingKalmanFilter,
     FilterResult,
@@ -78,7 +80,7 @@ from .filters.fading import (
 )
 from .filters.hinf import RegionalHinfFilter
 from .filters.particle import ParticleFilter
-from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
+from .filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .filters.tracking import MultiTargetTracker
 from .inference import (
@@ -96,7 +98,6 @@ from .inference import (
 from .models import LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
 from .models.ross import RossModel
-from .design.pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
 from .report import write_report
 from .simulate import SimulationData, simulate
 from .simulate.delay import simulate_delay

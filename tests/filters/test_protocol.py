@@ -9,13 +9,12 @@ from scipy.stats import norm
 import tobitkf as tk
 from tobitkf.channels.laws import Constant, Uniform
 from tobitkf.channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
+from tobitkf.design.protocol_bounds import analytic_p_uncensored, protocol_covariance_bounds
 from tobitkf.filters.protocol import (
     FAILURE_TERMS,
     ProtocolTobitKalmanFilter,
-    analytic_p_uncensored,
     augmented_transition,
     noise_input,
-    protocol_covariance_bounds,
     protocol_tobit_kalman_filter,
     stacked_measurement,
 )

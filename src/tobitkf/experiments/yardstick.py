@@ -69,9 +69,9 @@ from .. import metrics as mx
 from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..channels.saturation import RandomSaturation
+from ..design.pcrlb import bound_test, posterior_crlb
 from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
-from ..design.pcrlb import bound_test, posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting

@@ -68,20 +68,16 @@ Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy.special import ndtr
 
 from .._validation import (
     ShapeError,
     ValidationError,
     as_float_array,
     check_instance,
-    check_int,
-    check_memory,
     check_option,
     check_psd,
 )
