@@ -141,7 +141,9 @@ def bench_protocol(tab, runs, steps, peer, repeat):
 
 
 def bench_delay(tab, runs, steps, peer, repeat):
-    from tobitkf.filters.delay import _augmented_matrices, augmented_lmmse, chain_lmmse, reorganized_lmmse
+    from tobitkf.filters.delay_augmented import _augmented_matrices, augmented_lmmse
+    from tobitkf.filters.delay_chain import chain_lmmse
+    from tobitkf.filters.delay_reorganized import reorganized_lmmse
     from tobitkf.models.delay import paper_example, paper_prior
     from tobitkf.simulate.delay import simulate_delay
 

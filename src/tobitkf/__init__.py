@@ -62,16 +62,9 @@ from .filters.adf_generic import AssumedDensityFilter, TobitFilter
 from .filters.adf_protocol import ProtocolAssumedDensityFilter
 from .filters.adf_saturation import SaturationAssumedDensityFilter
 from .filters.assumed_density import AssumedDensityTobitFilter
-from .filters.delay import (
-    AugmentedLMMSE,
-    ChainLMMSE,
-    ReorganizedInnovationLMMSE,
-    augmented_lmmse,
-    chain_lmmse,
-    reorganized_lmmse,
-    smooth_interval,
-    smooth_point,
-)
+from .filters.delay_augmented import AugmentedLMMSE, augmented_lmmse
+from .filters.delay_chain import ChainLMMSE, chain_lmmse, smooth_interval, smooth_point
+from .filters.delay_reorganized import ReorganizedInnovationLMMSE, reorganized_lmmse
 from .filters.fading import (
     FadingKalmanFilter,
     FadingTobitKalmanFilter,

@@ -19,7 +19,8 @@ from tobitkf.channels.saturation import RandomSaturation
 from tobitkf.control import certify_tkf_stability, dlqr, quadratic_cost, reference_gain, simulate_closed_loop, tobit_lqe
 from tobitkf.design.hinf import WANG2010_PAPER
 from tobitkf.design.protocol_bounds import protocol_covariance_bounds
-from tobitkf.filters.delay import augmented_lmmse, chain_lmmse
+from tobitkf.filters.delay_augmented import augmented_lmmse
+from tobitkf.filters.delay_chain import chain_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.filters.hinf import RegionalHinfFilter
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter

@@ -17,6 +17,7 @@ import numpy as np
 
 from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
+from . import delay as _shared  # _WHOLE_STEP_MAX_RUNS read at call time: one knob for C and D
 from ._backend import BACKENDS, use_kernel
 from .core import (
     FilterResult,
@@ -32,7 +33,6 @@ from .core import (
 from .delay import (
     _DECORRELATION,
     _NO_LAYOUTS,
-    _WHOLE_STEP_MAX_RUNS,
     IntervalSmoothing,
     _blockdiag,
     _cached_layout,
@@ -131,7 +131,7 @@ class ChainLMMSE(_DelayEstimator):
         # the compiled plain step reads the window before y(t) off the last one, x̂(t-1-k|t-1): from t = 1 on
         # (the prior's window is x(0), ..., x(-d) itself)
         plain = not (lags or horizons or keep_rts) and point is None and t > 0
-        if self._whole is not None and plain and P.shape[0] == 1 and x.shape[0] <= _WHOLE_STEP_MAX_RUNS:
+        if self._whole is not None and plain and P.shape[0] == 1 and x.shape[0] <= _shared._WHOLE_STEP_MAX_RUNS:
             return self._plain_step(t, x, P, carry, y)
         xb, Pb, D = dict(carry["xb"]), dict(carry["Pb"]), dict(carry["D"])
         e = t - d
@@ -307,7 +307,7 @@ class ChainLMMSE(_DelayEstimator):
             and options.get("point") is None
             and state.k >= 0
             and state.P.shape[0] == 1
-            and state.x.shape[0] <= _WHOLE_STEP_MAX_RUNS
+            and state.x.shape[0] <= _shared._WHOLE_STEP_MAX_RUNS
         )
 
     def _prepare_step_options(self, state, options):

@@ -15,6 +15,7 @@ import numpy as np
 
 from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
+from . import delay as _shared  # _WHOLE_STEP_MAX_RUNS read at call time: one knob for C and D
 from ._backend import BACKENDS, use_kernel
 from .core import (
     FilterResult,
@@ -29,7 +30,6 @@ from .delay import (
     _NOTHING,
     _REORG_DICTS,
     _RING_FIELDS,
-    _WHOLE_STEP_MAX_RUNS,
     _cached_layout,
     _DelayEstimator,
     _flat_views,
@@ -114,7 +114,11 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._g_const = None if system.fading.varying else system.gamma_mean(0)
 
     def _whole_takes(self, state, options):
-        return self._whole is not None and state.k + 1 >= state.carry["t0"] and state.x.shape[0] <= _WHOLE_STEP_MAX_RUNS
+        return (
+            self._whole is not None
+            and state.k + 1 >= state.carry["t0"]
+            and state.x.shape[0] <= _shared._WHOLE_STEP_MAX_RUNS
+        )
 
     def _compiled_cov_step(self):
         """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
@@ -216,7 +220,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
         W, layout = self._layout
         ring = c["ring"] = carry["ring"].copy()
-        if t >= c["t0"] and self._whole is not None and y.shape[0] <= _WHOLE_STEP_MAX_RUNS:
+        if t >= c["t0"] and self._whole is not None and y.shape[0] <= _shared._WHOLE_STEP_MAX_RUNS:
             return self._whole_step(t, y, c, xf, xsm, xm, xp, eps, ring)
         R = _ring_views(ring, layout)
         xpred = xp[t]
