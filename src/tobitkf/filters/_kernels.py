@@ -39,7 +39,6 @@ import math
 import numpy as np
 from numba import njit
 
-from .._linalg_kernels import gauss_solve as _gauss_solve
 from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
 from ._kernels_block import (
     _block_dims,
@@ -65,12 +64,6 @@ __all__ = [
     "tkf_kernel",
     "kf_kernel",
     "tobit_update_block",
-    "predict_block",
-    "block_scratch",
-    "stage_block",
-    "flush_rows",
-    "stage_shape",
-    "CHUNK",
     "NOISE_CODES",
     "GL_X",
     "GL_W",
