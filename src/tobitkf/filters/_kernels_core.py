@@ -5,7 +5,7 @@ block-shift predict of an augmented state) and :func:`measurement_update_runs` i
 :func:`~tobitkf.filters.core.measurement_update` (standard and Joseph forms, diagonal or full noise
 term, per-run channel scale, the masking rule, a retained variance) for N runs with one covariance
 each. They are an *implementation* of those numpy functions, not a second algorithm, and are built
-from the blocks of the TKF kernel (:mod:`tobitkf.filters._kernels`): the innovation moments
+from the blocks of the TKF kernel (:mod:`tobitkf.filters._kernels_block`): the innovation moments
 (:func:`~tobitkf.filters._kernels_block._innovation_moments`), the masked gain and mean update
 (``_gain`` for one channel, the block solve ``_gain_block`` for several), the covariance update
 (``_cov_update``), and the fading kernel's block-shift predict
