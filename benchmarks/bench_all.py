@@ -116,12 +116,8 @@ def bench_fading(tab, runs, steps, peer, repeat):
 
 def bench_protocol(tab, runs, steps, peer, repeat):
     from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
-    from tobitkf.filters.protocol import (
-        augmented_transition,
-        noise_input,
-        protocol_tobit_kalman_filter,
-        stacked_measurement,
-    )
+    from tobitkf.filters.protocol import protocol_tobit_kalman_filter
+    from tobitkf.filters.protocol_model import augmented_transition, noise_input, stacked_measurement
 
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])

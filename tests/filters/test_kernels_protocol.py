@@ -20,7 +20,8 @@ import tobitkf as tk
 from tobitkf._validation import ValidationError
 from tobitkf.channels.protocol import LAMBDA_BASE, NO_FAILURE, ProtocolChannel
 from tobitkf.filters import _backend
-from tobitkf.filters.protocol import FAILURE_TERMS, ProtocolTobitKalmanFilter
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
+from tobitkf.filters.protocol_model import FAILURE_TERMS
 
 pytest.importorskip("numba")
 from tobitkf.filters import _kernels_block, _kernels_protocol  # noqa: E402

@@ -10,14 +10,8 @@ import tobitkf as tk
 from tobitkf.channels.laws import Constant, Uniform
 from tobitkf.channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
 from tobitkf.design.protocol_bounds import analytic_p_uncensored, protocol_covariance_bounds
-from tobitkf.filters.protocol import (
-    FAILURE_TERMS,
-    ProtocolTobitKalmanFilter,
-    augmented_transition,
-    noise_input,
-    protocol_tobit_kalman_filter,
-    stacked_measurement,
-)
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
+from tobitkf.filters.protocol_model import FAILURE_TERMS, augmented_transition, noise_input, stacked_measurement
 
 W = 0.052 * np.pi
 ROT = np.array([[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]])

@@ -20,7 +20,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_int
 from ..censored import unchecked_moments
 from ..channels.protocol import ProtocolChannel
 from ..filters.core import check_keywords
-from ..filters.protocol import (
+from ..filters.protocol_model import (
     FAILURE_TERMS,
     PREHISTORY_PRIORS,
     _check_parts,

@@ -42,7 +42,7 @@ import numpy as np
 from .. import metrics as mt
 from ..channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
 from ..design.protocol_bounds import protocol_covariance_bounds
-from ..filters.protocol import FAILURE_TERMS
+from ..filters.protocol_model import FAILURE_TERMS
 from ..filters.registry import describe, lineup
 from ..models.linear import LinearSystem
 from ..plotting import save
