@@ -116,12 +116,8 @@ def bench_fading(tab, runs, steps, peer, repeat):
 
 def bench_protocol(tab, runs, steps, peer, repeat):
     from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
-    from tobitkf.filters.protocol import (
-        augmented_transition,
-        noise_input,
-        protocol_tobit_kalman_filter,
-        stacked_measurement,
-    )
+    from tobitkf.filters.protocol import protocol_tobit_kalman_filter
+    from tobitkf.filters.protocol_model import augmented_transition, noise_input, stacked_measurement
 
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -141,7 +137,9 @@ def bench_protocol(tab, runs, steps, peer, repeat):
 
 
 def bench_delay(tab, runs, steps, peer, repeat):
-    from tobitkf.filters.delay import _augmented_matrices, augmented_lmmse, chain_lmmse, reorganized_lmmse
+    from tobitkf.filters.delay_augmented import _augmented_matrices, augmented_lmmse
+    from tobitkf.filters.delay_chain import chain_lmmse
+    from tobitkf.filters.delay_reorganized import reorganized_lmmse
     from tobitkf.models.delay import paper_example, paper_prior
     from tobitkf.simulate.delay import simulate_delay
 

@@ -15,7 +15,9 @@ import argparse
 import numpy as np
 
 from _timing import best_time
-from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
+from tobitkf.filters.delay_augmented import augmented_lmmse
+from tobitkf.filters.delay_chain import chain_lmmse
+from tobitkf.filters.delay_reorganized import reorganized_lmmse
 from tobitkf.models.delay import DelayFadingSystem, FadingPMF, HistoryPrior, paper_example, paper_prior
 from tobitkf.simulate.delay import simulate_delay
 

@@ -36,16 +36,10 @@ import numpy as np  # noqa: E402
 import tobitkf as tk  # noqa: E402
 from _timing import best_time  # noqa: E402
 from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel  # noqa: E402
+from tobitkf.design.protocol_bounds import protocol_covariance_bounds  # noqa: E402
 from tobitkf.filters._backend import numba_available  # noqa: E402
-from tobitkf.filters.protocol import (  # noqa: E402
-    FAILURE_TERMS,
-    ProtocolTobitKalmanFilter,
-    augmented_transition,
-    noise_input,
-    protocol_covariance_bounds,
-    protocol_tobit_kalman_filter,
-    stacked_measurement,
-)
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter  # noqa: E402
+from tobitkf.filters.protocol_model import FAILURE_TERMS, augmented_transition, noise_input, stacked_measurement  # noqa: E402
 
 
 def make_problem():

@@ -19,7 +19,7 @@ import numpy as np
 import tobitkf as tk
 from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
-from tobitkf.filters.delay import chain_lmmse
+from tobitkf.filters.delay_chain import chain_lmmse
 from tobitkf.filters.fading import FadingTobitKalmanFilter
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled

@@ -11,7 +11,7 @@ is the work, and it is steadier than wall time on a shared machine:
   fading order L;
 * the protocol TKF (``protocol_tobit_kalman_filter``, the problem of ``bench_protocol.py``) against
   the integral window ell;
-* the delay LMMSE (``chain_lmmse`` and ``reorganized_lmmse`` of ``filters/delay.py``, the paper
+* the delay LMMSE (``chain_lmmse`` and ``reorganized_lmmse`` of ``filters/delay_chain.py`` and ``filters/delay_reorganized.py``, the paper
   example of ``bench_delay.py``) against the delay d.
 
 Writes ``--out``.json and ``--out``.csv (default ``results/bench_scaling``: generated output, not
@@ -112,7 +112,8 @@ def protocol_rows(windows, runs: int, steps: int, repeat: int) -> list[dict]:
 
 
 def delay_rows(delays, runs: int, steps: int, repeat: int) -> list[dict]:
-    from tobitkf.filters.delay import chain_lmmse, reorganized_lmmse
+    from tobitkf.filters.delay_chain import chain_lmmse
+    from tobitkf.filters.delay_reorganized import reorganized_lmmse
     from tobitkf.models.delay import paper_example, paper_prior
     from tobitkf.simulate.delay import simulate_delay
 

@@ -1,4 +1,4 @@
-"""The calibrated test of "the MSE lies above a lower bound at every step" (tobitkf.pcrlb.bound_test) and
+"""The calibrated test of "the MSE lies above a lower bound at every step" (tobitkf.design.pcrlb.bound_test) and
 the particle filter's convergence check with its Monte Carlo error (experiments._optimum.convergence),
 on synthetic data where the truth is known."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
+from tobitkf.design.pcrlb import bound_test
 from tobitkf.experiments._optimum import convergence
-from tobitkf.pcrlb import bound_test
 
 
 def _errors(rng, reps, N, T, n, rho, scale):

@@ -1,4 +1,4 @@
-"""The posterior Cramér–Rao bound (tobitkf.pcrlb): the censored Fisher information, reductions, and the bound
+"""The posterior Cramér–Rao bound (tobitkf.design.pcrlb): the censored Fisher information, reductions, and the bound
 lying below the particle filter's MSE (Holm's family-wise test at 1 % over the steps)."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import pytest
 from scipy import integrate, stats
 
 import tobitkf as tk
-from tobitkf.pcrlb import bound_test, censored_fisher_information
+from tobitkf.design.pcrlb import bound_test, censored_fisher_information
 
 
 def _fim_by_quadrature(mu, sd, lo, hi):

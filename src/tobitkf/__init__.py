@@ -46,6 +46,8 @@ from .control import certify_tkf_stability, simulate_closed_loop, tobit_dlqe, to
 from .design.hinf import analyze as hinf_analyze
 from .design.hinf import design as hinf_design
 from .design.hinf import verify as hinf_verify
+from .design.pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
+from .design.protocol_bounds import protocol_covariance_bounds
 from .filters import (
     DroppingKalmanFilter,
     FilterResult,
@@ -60,17 +62,9 @@ from .filters.adf_generic import AssumedDensityFilter, TobitFilter
 from .filters.adf_protocol import ProtocolAssumedDensityFilter
 from .filters.adf_saturation import SaturationAssumedDensityFilter
 from .filters.assumed_density import AssumedDensityTobitFilter
-from .filters.delay import (
-    AugmentedLMMSE,
-    ChainLMMSE,
-    DelayEstimates,
-    ReorganizedInnovationLMMSE,
-    augmented_lmmse,
-    chain_lmmse,
-    reorganized_lmmse,
-    smooth_interval,
-    smooth_point,
-)
+from .filters.delay_augmented import AugmentedLMMSE, augmented_lmmse
+from .filters.delay_chain import ChainLMMSE, chain_lmmse, smooth_interval, smooth_point
+from .filters.delay_reorganized import ReorganizedInnovationLMMSE, reorganized_lmmse
 from .filters.fading import (
     FadingKalmanFilter,
     FadingTobitKalmanFilter,
@@ -79,7 +73,7 @@ from .filters.fading import (
 )
 from .filters.hinf import RegionalHinfFilter
 from .filters.particle import ParticleFilter
-from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
+from .filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .filters.tracking import MultiTargetTracker
 from .inference import (
@@ -98,7 +92,6 @@ from .inference import (
 from .models import ContinuousLinearSystem, LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
 from .models.ross import RossModel
-from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
 from .report import write_report
 from .simulate import SimulationData, simulate
 from .simulate.delay import simulate_delay
@@ -152,7 +145,6 @@ __all__ = [
     "ChainLMMSE",
     "AugmentedLMMSE",
     "ReorganizedInnovationLMMSE",
-    "DelayEstimates",
     "ProtocolChannel",
     "RoundRobin",
     "IntegralMeasurement",

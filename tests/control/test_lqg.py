@@ -373,26 +373,17 @@ def test_filter_and_predictor_gains_have_their_own_names():
     Kf = g.prior_cov @ Ct.T @ np.linalg.inv(Ct @ g.prior_cov @ Ct.T + g.noise)
     np.testing.assert_allclose(g.filter_gain, Kf, rtol=1e-12)
     np.testing.assert_allclose(g.predictor_gain, A @ Kf, rtol=1e-12)
-    with pytest.warns(DeprecationWarning, match="predictor_gain"):
-        old = g.gain  # the DT .gain was the predictor gain
-    np.testing.assert_array_equal(old, g.predictor_gain)
+    with pytest.raises(AttributeError, match="predictor_gain"):
+        g.gain  # noqa: B018 (a DT result names its two gains)
     c = lqe([[-0.8]], None, [[1.0]], [[0.01]], [[0.25]])
-    with pytest.warns(DeprecationWarning, match=r"use \.gain"):
-        np.testing.assert_array_equal(c.filter_gain, c.gain)
+    with pytest.raises(AttributeError, match=r"one gain, \.gain"):
+        c.filter_gain  # noqa: B018
     with pytest.raises(AttributeError, match="one gain"):
         c.predictor_gain  # noqa: B018
 
 
-def test_tobit_lqe_takes_a_covariance_and_the_old_forms_warn():
+def test_tobit_lqe_takes_a_covariance_by_keyword():
     p = dc_motor_speed()
-    new = tobit_lqe(p.A, p.G, p.C, p.W, V=[[0.05**2]], xi_uncensored=0.5)
-    with pytest.warns(DeprecationWarning, match=r"V=sigma\*\*2"):
-        old = tobit_lqe(p.A, p.G, p.C, p.W, 0.05, 0.5)
-    np.testing.assert_allclose(old.gain, new.gain, rtol=1e-12)
-    with pytest.warns(DeprecationWarning, match="tobit_dlqe"):
-        via_domain = tobit_lqe([[0.9]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=0.5, domain="dt")
-    direct = tobit_dlqe([[0.9]], None, [[1.0]], [[0.01]], V=[[0.01]], xi_uncensored=0.5)
-    np.testing.assert_array_equal(via_domain.filter_gain, direct.filter_gain)
     with pytest.raises(TypeError, match="V="):
         tobit_lqe(p.A, p.G, p.C, p.W, xi_uncensored=0.5)
     with pytest.raises(ValidationError, match="diagonal"):
@@ -407,6 +398,6 @@ def test_tobit_lqe_takes_a_covariance_and_the_old_forms_warn():
         lambda: equilibrium([[0.5]], [[1.0]], [[1.0]], [[0.0]], [1.0]),
     ],
 )
-def test_an_omitted_time_domain_is_deprecated(call):
-    with pytest.warns(DeprecationWarning, match="domain='dt'"):
+def test_an_omitted_time_domain_is_refused(call):
+    with pytest.raises(ValidationError, match="domain='dt'"):
         call()

@@ -225,5 +225,5 @@ def test_two_output_counterexample_fails_at_n_2():
 
 def test_certificate_domain_must_be_given():
     c = COUNTEREXAMPLE
-    with pytest.warns(DeprecationWarning, match="certify_tkf_stability: pass domain"):
+    with pytest.raises(ValidationError, match="certify_tkf_stability needs domain"):
         certify_tkf_stability(c["A"], c["L"], c["C"])

@@ -212,7 +212,8 @@ def test_geng2017_lineup_is_the_old_fading_estimators():
 
 
 def test_li2018_estimators_equal_the_functions_the_experiment_called():
-    from tobitkf.filters.delay import augmented_lmmse, chain_lmmse
+    from tobitkf.filters.delay_augmented import augmented_lmmse
+    from tobitkf.filters.delay_chain import chain_lmmse
     from tobitkf.models.delay import paper_example, paper_prior
     from tobitkf.simulate.delay import simulate_delay
 

@@ -13,7 +13,7 @@ from tobitkf.experiments import (
     geng2017,
     geng_protocol,
     li2018,
-    miller_control,
+    miller_closed_loop,
     miller_robot,
     miller_tkf,
     miller_vision,
@@ -47,10 +47,10 @@ def test_panning_covariance_feedback_judged_over_frames_500_to_2000():
 
 def _closed_loop(names, runs):
     scen, data, res = {}, {}, {}
-    for i, spec in enumerate(miller_control.CLOSED_LOOP_SCENARIOS):
+    for i, spec in enumerate(miller_closed_loop.CLOSED_LOOP_SCENARIOS):
         if spec[0] in names:
-            scen[spec[0]], data[spec[0]], res[spec[0]] = miller_control.closed_loop_scenario(i, runs, 0)
-    return scen, miller_control.closed_loop_claims(scen, data, res, runs)
+            scen[spec[0]], data[spec[0]], res[spec[0]] = miller_closed_loop.closed_loop_scenario(i, runs, 0)
+    return scen, miller_closed_loop.closed_loop_claims(scen, data, res, runs)
 
 
 def test_closed_loop_fig_6_2_is_judged_against_the_reference_not_the_kf():
@@ -86,7 +86,7 @@ def test_steady_state_censored_fraction_is_judged_by_its_monte_carlo_error():
 
 def test_steady_state_lqg_95_percent_is_measured_and_not_held():
     """Was: "n/a" for the same shortfall (about 93.6 % uncensored against 95 %)."""
-    r = miller_control.steady_state_lqg(runs=8, seed=0)
+    r = miller_closed_loop.steady_state_lqg(runs=8, seed=0)
     c = _find(r.claims, "95 % of the measurements are uncensored")
     assert c["holds"] is False
     assert r.metrics["uncensored_fraction"]["realized"]["sstkf-lqg"] < 0.945

@@ -9,17 +9,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tobitkf._validation import ValidationError
-from tobitkf.filters.delay import (
-    AugmentedLMMSE,
-    ChainLMMSE,
-    ReorganizedInnovationLMMSE,
-    augmented_lmmse,
-    chain_lmmse,
-    reorganized_lmmse,
-    second_moments,
-    smooth_interval,
-    smooth_point,
-)
+from tobitkf.filters.delay import second_moments
+from tobitkf.filters.delay_augmented import AugmentedLMMSE, augmented_lmmse
+from tobitkf.filters.delay_chain import ChainLMMSE, chain_lmmse, smooth_interval, smooth_point
+from tobitkf.filters.delay_reorganized import ReorganizedInnovationLMMSE, reorganized_lmmse
 from tobitkf.models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior, paper_example, paper_prior
 from tobitkf.simulate.delay import full_states, simulate_delay
 

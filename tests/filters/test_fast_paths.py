@@ -98,7 +98,8 @@ def test_shift_predict_equals_dense_block_shift():
 
 def test_protocol_prediction_equals_dense_augmented_recursion():
     from tobitkf.channels.protocol import LAMBDA_BASE, ProtocolChannel
-    from tobitkf.filters.protocol import FAILURE_TERMS, augmented_transition, protocol_tobit_kalman_filter
+    from tobitkf.filters.protocol import protocol_tobit_kalman_filter
+    from tobitkf.filters.protocol_model import FAILURE_TERMS, augmented_transition
 
     w = 0.052 * np.pi
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -121,7 +122,7 @@ def test_protocol_prediction_equals_dense_augmented_recursion():
 
 def test_protocol_joseph_rank_one_equals_dense_joseph():
     """protocol_update's Joseph form (rank-one factors applied in turn) == the dense product to 1e-12."""
-    from tobitkf.filters.protocol import protocol_update
+    from tobitkf.filters.protocol_model import protocol_update
 
     rng = np.random.default_rng(4)
     N, nxi = 50, 6

@@ -252,19 +252,6 @@ def test_simulation_is_seeded_and_batched(model):
     np.testing.assert_allclose(out.extras["z"], out.mean @ model.M.T, atol=1e-15)
 
 
-def test_deprecated_hinf_filter_keeps_the_old_layout():
-    """hinf_filter(...) warns and still returns x̂_0..x̂_T (T+1 rows), equal to the estimator's rows."""
-    model = M.wang2010_model()
-    w, v = S.wang2010_disturbances(15)
-    a = S.simulate_ross(model, 15, 3, x0=PAPER["x0"], w=w, v=v, seed=2)
-    with pytest.warns(DeprecationWarning, match="use RegionalHinfFilter"):
-        old = F.hinf_filter(PAPER["Af"], PAPER["Bf"], model.M, a.y, xhat0=[0.1, 0.0, 0.2])
-    np.testing.assert_array_equal(old.mean, trajectory(PAPER["Af"], PAPER["Bf"], model.M, a.y, x0=[0.1, 0.0, 0.2]))
-    with pytest.warns(DeprecationWarning, match="use filter\\(y, x0=...\\)"):
-        pos = F.RegionalHinfFilter(PAPER["Af"], PAPER["Bf"], model.M).filter(a.y, [0.1, 0.0, 0.2])
-    np.testing.assert_array_equal(pos.mean, old.mean[:, 1:])
-
-
 # --------------------------------------------------------------------------------------------
 # Bad input
 # --------------------------------------------------------------------------------------------
@@ -619,8 +606,6 @@ def test_certificate_reports_the_slack_it_has(improved):
     assert v.margin == pytest.approx(-v.max_eig) and v.margin > v.rounding > 0
     s = improved.summary()
     assert s["verified_margin"] == v.margin and s["lmi_margin"] == improved.lmi_margin
-    with pytest.warns(DeprecationWarning, match="lmi_margin"):
-        assert improved.margin == improved.lmi_margin
 
 
 def test_iterate_does_not_retry_its_steps_with_a_second_solver(model, monkeypatch):
@@ -636,17 +621,3 @@ def test_iterate_does_not_retry_its_steps_with_a_second_solver(model, monkeypatc
     assert it.ok
     assert calls[0] == "SCS"  # the initial coupled design keeps its fallback
     assert len(calls) > 1 and all(f is None for f in calls[1:])
-
-
-def test_names_that_left_the_filter_module_say_where_they_went():
-    """The model's names warn and are served from ``tobitkf.models.ross`` (one release); the simulator's
-    are refused by name (a filter module may not import the simulator)."""
-    import tobitkf.filters.hinf as old
-    from tobitkf.models import ross
-
-    for name in ("RossModel", "wang2010_model"):
-        with pytest.warns(DeprecationWarning, match=f"moved to tobitkf.models.ross.{name}"):
-            assert getattr(old, name) is getattr(ross, name)
-    for name in ("RossSimulation", "simulate_ross", "wang2010_disturbances"):
-        with pytest.raises(AttributeError, match=f"moved to tobitkf.simulate.ross.{name}"):
-            getattr(old, name)

@@ -21,7 +21,7 @@ from tobitkf.filters.kalman import kalman_filter
 from tobitkf.filters.tobit import tobit_kalman_filter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels  # noqa: E402
+from tobitkf.filters import _kernels, _kernels_block  # noqa: E402
 
 VECTORS = Path("/work/shared/vectors/censoring_stats.json")
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov")
@@ -288,7 +288,7 @@ def test_tkf_kernel_many_runs_crosses_blocks():
     """More runs than one block of the kernel, not a multiple of it."""
     sys_ = oscillator()
     cens = tk.Censoring(lower=0.0)
-    y = data(sys_, cens, runs=2 * _kernels.runs_per_block(2) + 5, steps=20)
+    y = data(sys_, cens, runs=2 * _kernels_block.runs_per_block(2) + 5, steps=20)
     a = tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y)
     b = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y)
     assert_results_equal(a, b)
@@ -377,7 +377,7 @@ def test_tkf_kernel_threads_give_the_same_results():
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_kf_kernel_equals_numpy(cu):
     sys_ = three_state()
-    y = data(sys_, tk.Censoring(), runs=2 * _kernels.runs_per_block(3) + 3, steps=2 * _kernels.CHUNK + 7)
+    y = data(sys_, tk.Censoring(), runs=2 * _kernels_block.runs_per_block(3) + 3, steps=2 * _kernels_block.CHUNK + 7)
     a = kalman_filter(sys_, y, covariance_update=cu, backend="numba")
     b = kalman_filter(sys_, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)

@@ -16,7 +16,7 @@ from tobitkf.filters import _backend
 from tobitkf.filters.fading import FadingTobitKalmanFilter, fading_tobit_kalman_filter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels_fading  # noqa: E402
+from tobitkf.filters import _kernels_block, _kernels_fading  # noqa: E402
 
 from ._compare import assert_same
 
@@ -162,12 +162,11 @@ def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
     """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 69 runs
     (a full block of 64 and a partial one), more than two chunks of steps, and a continuation whose record starts
     inside the first L steps (smoothed blocks s > k NaN) and a second one whose chunks start at k0 = 70."""
-    from tobitkf.filters import _kernels
 
     sys_ = oscillator(2)
     cens = tk.Censoring(lower=[0.0, -0.5])
     fad = fading(2)
-    T = 2 * _kernels.CHUNK + 7
+    T = 2 * _kernels_block.CHUNK + 7
     y = data(sys_, fad, cens, runs=69, steps=T + 71)
     fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
@@ -424,10 +423,9 @@ def test_online_kernel_step_divergence_reruns_on_numpy():
 def test_augmented_block_dims():
     """The fading and protocol loops' blocks: AUG_BLOCK runs (one run alone: one column), CHUNK staged steps at most;
     the tests of these loops that cross blocks use more runs than AUG_BLOCK."""
-    from tobitkf.filters import _kernels
 
     B = _kernels_fading.AUG_BLOCK
-    assert _kernels_fading.aug_block_dims(1000, 100) == (B, _kernels.CHUNK)
+    assert _kernels_fading.aug_block_dims(1000, 100) == (B, _kernels_block.CHUNK)
     assert _kernels_fading.aug_block_dims(1, 1) == (1, 1)
     assert _kernels_fading.aug_block_dims(B - 5, 7) == (B - 5, 7)
     assert B < 69 < 2 * B < 140

@@ -20,10 +20,11 @@ import tobitkf as tk
 from tobitkf._validation import ValidationError
 from tobitkf.channels.protocol import LAMBDA_BASE, NO_FAILURE, ProtocolChannel
 from tobitkf.filters import _backend
-from tobitkf.filters.protocol import FAILURE_TERMS, ProtocolTobitKalmanFilter
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
+from tobitkf.filters.protocol_model import FAILURE_TERMS
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels_protocol  # noqa: E402
+from tobitkf.filters import _kernels_block, _kernels_protocol  # noqa: E402
 
 from ._compare import assert_same
 
@@ -184,10 +185,9 @@ def test_kernel_tail_continued_fractions_of_a_block(threshold):
 def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
     """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 69 runs
     (a full block of 64 and a partial one), more than two chunks of steps, continued from a state at k0 = 5."""
-    from tobitkf.filters import _kernels
 
     sys_, ch = oscillator(), channel()
-    T = 2 * _kernels.CHUNK + 7
+    T = 2 * _kernels_block.CHUNK + 7
     y = data(sys_, ch, (69,), T + 5)
     fast = ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
     ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy")

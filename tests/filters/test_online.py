@@ -164,19 +164,19 @@ def _delay(batch, rng, cls, **kw):
 
 
 def case_delay_chain(batch, rng, backend="numpy", form="standard"):
-    from tobitkf.filters.delay import ChainLMMSE
+    from tobitkf.filters.delay_chain import ChainLMMSE
 
     return _delay(batch, rng, ChainLMMSE)
 
 
 def case_delay_augmented(batch, rng, backend="numpy", form="standard"):
-    from tobitkf.filters.delay import AugmentedLMMSE
+    from tobitkf.filters.delay_augmented import AugmentedLMMSE
 
     return _delay(batch, rng, AugmentedLMMSE, window=5)
 
 
 def case_delay_reorganized(batch, rng, backend="numpy", form="standard"):
-    from tobitkf.filters.delay import ReorganizedInnovationLMMSE
+    from tobitkf.filters.delay_reorganized import ReorganizedInnovationLMMSE
 
     return _delay(batch, rng, ReorganizedInnovationLMMSE, warmup=3)
 

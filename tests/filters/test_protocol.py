@@ -9,16 +9,9 @@ from scipy.stats import norm
 import tobitkf as tk
 from tobitkf.channels.laws import Constant, Uniform
 from tobitkf.channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
-from tobitkf.filters.protocol import (
-    FAILURE_TERMS,
-    ProtocolTobitKalmanFilter,
-    analytic_p_uncensored,
-    augmented_transition,
-    noise_input,
-    protocol_covariance_bounds,
-    protocol_tobit_kalman_filter,
-    stacked_measurement,
-)
+from tobitkf.design.protocol_bounds import analytic_p_uncensored, protocol_covariance_bounds
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
+from tobitkf.filters.protocol_model import FAILURE_TERMS, augmented_transition, noise_input, stacked_measurement
 
 W = 0.052 * np.pi
 ROT = np.array([[np.cos(W), -np.sin(W)], [np.sin(W), np.cos(W)]])
@@ -565,12 +558,14 @@ def test_bad_options_and_input():
     y = np.ones((5, 1))
     with pytest.raises(ValueError, match="failure_term"):
         protocol_tobit_kalman_filter(sys_, ch, y, failure_term="second")
-    with pytest.raises(ValueError, match="prehistory_mean"):
-        ProtocolTobitKalmanFilter(sys_, ch, prehistory_mean="hold")
+    with pytest.raises(ValueError, match="prehistory_prior"):
+        ProtocolTobitKalmanFilter(sys_, ch, prehistory_prior="hold")
     with pytest.raises(ValueError, match="covariance_update"):
         ProtocolTobitKalmanFilter(sys_, ch, covariance_update="fast")
     with pytest.raises(ValueError, match=r"expected \(\.\.\., T, 1\)"):
         protocol_tobit_kalman_filter(sys_, ch, np.ones((3, 5)))
+    with pytest.raises(ValueError, match=r"expected \(\.\.\., T, 1\)"):  # a (T,) record: lay it out as (T, 1)
+        protocol_tobit_kalman_filter(sys_, ch, np.ones(5))
     with pytest.raises(ValueError, match="below the threshold"):
         protocol_tobit_kalman_filter(sys_, ch, -y)
     with pytest.raises(ValueError, match="uncensored: expected shape"):
@@ -619,23 +614,3 @@ def test_bound_phi_upper_mean_trajectory_is_tighter():
     a = protocol_covariance_bounds(sys_, ch, 60)
     b = protocol_covariance_bounds(sys_, ch, 60, phi_upper="mean_trajectory")
     assert (np.trace(b.upper, axis1=1, axis2=2) <= np.trace(a.upper, axis1=1, axis2=2) + 1e-12).all()
-
-
-def test_pre_0_2_spellings_still_work_with_a_deprecation_warning():
-    """prehistory_mean=, a (T,) record and a (..., T) indicator: same numbers as the new spellings."""
-    sys_, ch = example(), example_channel()
-    d = tk.simulate(sys_, 12, 3, seed=4, channel=ch)
-    new = protocol_tobit_kalman_filter(sys_, ch, d.y, uncensored=d.extras["uncensored"], prehistory_prior="zero_mean")
-    with pytest.warns(DeprecationWarning, match="prehistory_prior='zero_mean'"):
-        old = protocol_tobit_kalman_filter(sys_, ch, d.y, prehistory_mean="zero")
-    np.testing.assert_array_equal(old.mean, new.mean)
-    with pytest.warns(DeprecationWarning, match=r"lay it out like y, \(\.\.\., T, 1\)"):
-        old = protocol_tobit_kalman_filter(
-            sys_, ch, d.y, uncensored=d.extras["uncensored"][..., 0], prehistory_prior="zero_mean"
-        )
-    np.testing.assert_array_equal(old.mean, new.mean)
-    with pytest.warns(DeprecationWarning, match=r"a \(T,\) record is deprecated"):
-        one = protocol_tobit_kalman_filter(sys_, ch, d.y[0, :, 0], prehistory_prior="zero_mean")
-    np.testing.assert_array_equal(
-        one.mean, protocol_tobit_kalman_filter(sys_, ch, d.y[0], prehistory_prior="zero_mean").mean
-    )

@@ -1,7 +1,7 @@
 """The square-root covariance form (``covariance_update="square_root"``) of the KF and the TKF.
 
 The form propagates a factor S with P = S S^T through QR factorizations
-(``tobitkf.filters._common.sqrt_predict`` / ``sqrt_update``). In exact arithmetic it is the
+(``tobitkf.filters.core.sqrt_predict`` / ``sqrt_update``). In exact arithmetic it is the
 same filter as the standard form, so on well-conditioned models the two must agree to
 rounding; the hard, ill-conditioned case where only this form stays PSD is tested in
 ``tests/reliability/test_extremes_families.py`` against a 60-digit reference.
@@ -22,7 +22,7 @@ import tobitkf as tk
 from tobitkf import ValidationError
 from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
-from tobitkf.filters._common import psd_sqrt, sqrt_predict, sqrt_update
+from tobitkf.filters.core import psd_sqrt, sqrt_predict, sqrt_update
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.filters.kalman import kalman_filter
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter

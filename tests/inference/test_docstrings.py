@@ -7,7 +7,6 @@ import pytest
 
 MODULES = [
     "tobitkf.data",
-    "tobitkf.inference.adf",
     "tobitkf.inference.smoothing",
     "tobitkf.inference.likelihood",
     "tobitkf.inference.censored_ar",

@@ -284,19 +284,3 @@ def test_adf_filter_indicator_and_errors():
     assert float(tk.adf_log_likelihood(sys_, cens, y, censored=[[False], [False], [True]])) == pytest.approx(
         float(flagged.extras["log_likelihood"].sum()), abs=1e-12
     )
-
-
-def test_the_deprecated_adfilter_is_the_assumed_density_filter():
-    from tobitkf.inference import ADFilter
-
-    sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.5]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
-    cens = tk.Censoring(lower=0.0)
-    y = np.array([[0.0], [0.4], [0.0]])
-    with pytest.warns(DeprecationWarning, match="AssumedDensityTobitFilter"):
-        old = ADFilter(sys_, cens)
-    assert isinstance(old, tk.AssumedDensityTobitFilter) and old.order == "uncensored_first"
-    a, b = old.filter(y), _adf(sys_, cens).filter(y)  # the alias (its own hook) runs numpy, the filter compiled
-    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(a.extras["log_lik"], b.extras["log_likelihood"], rtol=0, atol=1e-12)
-    with pytest.warns(DeprecationWarning), pytest.raises(ValidationError, match="rtol"):
-        ADFilter(sys_, cens, rtol=-1.0)

@@ -22,7 +22,9 @@ from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.design.hinf import WANG2010_PAPER
 from tobitkf.filters._backend import numba_available
-from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
+from tobitkf.filters.delay_augmented import augmented_lmmse
+from tobitkf.filters.delay_chain import chain_lmmse
+from tobitkf.filters.delay_reorganized import reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.filters.hinf import RegionalHinfFilter
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter

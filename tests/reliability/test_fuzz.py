@@ -23,7 +23,9 @@ from tobitkf import ValidationError
 from tobitkf.channels.fading import RiceFading
 from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.channels.saturation import RandomSaturation
-from tobitkf.filters.delay import augmented_lmmse, chain_lmmse, reorganized_lmmse
+from tobitkf.filters.delay_augmented import augmented_lmmse
+from tobitkf.filters.delay_chain import chain_lmmse
+from tobitkf.filters.delay_reorganized import reorganized_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.filters.hinf import RegionalHinfFilter
 from tobitkf.filters.protocol import ProtocolTobitKalmanFilter

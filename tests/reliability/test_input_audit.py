@@ -18,10 +18,12 @@ from tobitkf.channels.protocol import ProtocolChannel
 from tobitkf.channels.saturation import RandomSaturation
 from tobitkf.control import certify_tkf_stability, dlqr, quadratic_cost, reference_gain, simulate_closed_loop, tobit_lqe
 from tobitkf.design.hinf import WANG2010_PAPER
-from tobitkf.filters.delay import augmented_lmmse, chain_lmmse
+from tobitkf.design.protocol_bounds import protocol_covariance_bounds
+from tobitkf.filters.delay_augmented import augmented_lmmse
+from tobitkf.filters.delay_chain import chain_lmmse
 from tobitkf.filters.fading import FadingKalmanFilter, FadingTobitKalmanFilter
 from tobitkf.filters.hinf import RegionalHinfFilter
-from tobitkf.filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds
+from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from tobitkf.filters.tracking import MultiTargetTracker
 from tobitkf.models.delay import DelayFadingSystem, HistoryPrior, paper_example, paper_prior

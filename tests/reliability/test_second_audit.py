@@ -28,7 +28,7 @@ from tobitkf.channels.protocol import ProtocolChannel, RoundRobin  # noqa: E402
 from tobitkf.channels.saturation import RandomSaturation  # noqa: E402
 from tobitkf.control import dlqr, simulate_closed_loop  # noqa: E402
 from tobitkf.experiments import _REGISTRY, Experiment, ExperimentResult  # noqa: E402
-from tobitkf.filters.delay import chain_lmmse  # noqa: E402
+from tobitkf.filters.delay_chain import chain_lmmse  # noqa: E402
 from tobitkf.filters.tracking import MultiTargetTracker  # noqa: E402
 from tobitkf.models.delay import DelayFadingSystem, FadingMoments, HistoryPrior, paper_prior  # noqa: E402
 from tobitkf.models.ross import wang2010_model  # noqa: E402

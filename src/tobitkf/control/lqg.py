@@ -79,16 +79,11 @@ DOMAINS = ("ct", "dt")
 
 
 def _domain(domain: Any, func: str) -> str:
-    """The time domain of ``func``: required; an omitted one is 'dt' for one release, with a warning."""
+    """The time domain of ``func``, which is required (the control functions differ in their domain)."""
     if domain is None:
-        warnings.warn(
-            f"{func}: pass domain='dt' (discrete time) or domain='ct' (continuous time); the implicit "
-            "default 'dt' is deprecated and will be removed (the control functions differ in their "
-            "domain, so it must be explicit)",
-            DeprecationWarning,
-            stacklevel=3,
+        raise ValidationError(
+            f"domain: {func} needs domain='dt' (discrete time) or domain='ct' (continuous time), got none"
         )
-        return "dt"
     check_option(domain, "domain", DOMAINS)
     return domain
 
@@ -124,9 +119,8 @@ class EstimatorGain:
     ``measurement``, ``noise``
         The C̃ and the measurement covariance used (ΞC and Υ for the Tobit LQE).
 
-    ``gain`` of a DT result and ``filter_gain`` of a CT result still work for one release, with a
-    ``DeprecationWarning`` (the DT ``gain`` was the predictor gain, while the steady-state TKF's
-    ``gain`` is the filter gain: one name, two quantities).
+    A DT result has no ``gain`` and a CT result no ``filter_gain`` (``AttributeError``): the DT
+    ``gain`` would be ambiguous (the predictor gain here, the filter gain in the steady-state TKF).
     """
 
     __slots__ = ("domain", "_gain", "_filter_gain", "prior_cov", "cov", "poles", "measurement", "noise")
@@ -174,27 +168,18 @@ class EstimatorGain:
 
     @property
     def gain(self) -> np.ndarray:
-        """CT Kalman–Bucy gain L (DT results: deprecated alias of :attr:`predictor_gain`)."""
+        """CT Kalman–Bucy gain L."""
         if self.domain == "dt":
-            warnings.warn(
-                "EstimatorGain.gain of a discrete-time result is the predictor gain A K_f: use "
-                ".predictor_gain (or .filter_gain for K_f); .gain is deprecated there",
-                DeprecationWarning,
-                stacklevel=2,
+            raise AttributeError(
+                "gain: a discrete-time result has .predictor_gain (A K_f) and .filter_gain (K_f), no .gain"
             )
         return self._gain
 
     @property
     def filter_gain(self) -> np.ndarray:
-        """DT filter gain :math:`K_f` (CT results: deprecated alias of :attr:`gain`)."""
+        """DT filter gain :math:`K_f`."""
         if self.domain == "ct":
-            warnings.warn(
-                "EstimatorGain.filter_gain of a continuous-time result is its only gain: use .gain; "
-                ".filter_gain is deprecated there",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            return self._gain
+            raise AttributeError("filter_gain: a continuous-time result has one gain, .gain (Kalman–Bucy)")
         assert self._filter_gain is not None, "a discrete-time result has its filter gain"
         return self._filter_gain
 
@@ -304,7 +289,7 @@ def uncontrollable_modes(
 
     ``which``: ``"unstable"`` (the modes that make (A, B) not stabilizable), ``"boundary"``
     (on the imaginary axis / unit circle) or ``"all"``. ``domain`` ("ct" or "dt") is required
-    (omitting it is deprecated; it means "dt" for one release).
+    (omitting it raises a ValidationError).
     """
     check_option(which, "which", ("unstable", "boundary", "all"))
     domain = _domain(domain, "uncontrollable_modes")
@@ -373,7 +358,7 @@ def is_stable(M: Any, *, domain: str | None = None) -> bool:
     """True if ``M`` is Hurwitz (``domain="ct"``: all Re λ < 0) or Schur (``"dt"``: spectral radius < 1).
 
     The domain is required (the dissertation judges discrete-time systems by the continuous-time test,
-    docs/sources MA-21); omitting it is deprecated and means "dt" for one release.
+    docs/sources MA-21); omitting it raises a ValidationError.
     """
     domain = _domain(domain, "is_stable")
     ev = np.linalg.eigvals(np.asarray(M, dtype=float))
@@ -639,30 +624,8 @@ def _tobit_lqe(A, G, C, W, V, xi_uncensored, domain: str) -> EstimatorGain:
     return _lqe(A, G, xi[:, None] * C, W, np.diag(ups), domain, tag="Tobit LQE (modified ARE)")
 
 
-def _tobit_arguments(args: tuple, V: Any, xi_uncensored: Any, sigma: Any, func: str) -> tuple[Any, Any]:
-    """The (V, xi) of a Tobit LQE call; the old ``(sigma, xi)`` positional form still works, with a warning."""
-    if len(args) > 2:
-        raise TypeError(f"{func}() takes at most 6 positional arguments ({4 + len(args)} given)")
-    if args or sigma is not None:
-        if V is not None:
-            raise TypeError(f"{func}: give the measurement covariance V or the deprecated sigma, not both")
-        if args:
-            sigma, *rest = args
-            if rest:
-                if xi_uncensored is not None:
-                    raise TypeError(f"{func}: xi_uncensored given twice")
-                xi_uncensored = rest[0]
-        warnings.warn(
-            f"{func}(A, G, C, W, sigma, xi_uncensored) with a standard deviation is deprecated: pass the "
-            f"measurement covariance by keyword, {func}(A, G, C, W, V=sigma**2, xi_uncensored=xi) "
-            "(every control function takes covariances)",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        sd = np.atleast_1d(as_float_array(sigma, "sigma"))
-        if sd.ndim != 1 or np.any(sd <= 0):
-            raise ValidationError(f"sigma: expected positive standard deviations, got {sd.tolist()}")
-        V = np.diag(sd**2)
+def _tobit_arguments(V: Any, xi_uncensored: Any, func: str) -> tuple[Any, Any]:
+    """The (V, xi) of a Tobit LQE call, both required."""
     if V is None or xi_uncensored is None:
         raise TypeError(f"{func}: the measurement covariance V= and the probability xi_uncensored= are required")
     return V, xi_uncensored
@@ -673,11 +636,9 @@ def tobit_lqe(
     G: Any,
     C: Any,
     W: Any,
-    *args: Any,
+    *,
     V: Any = None,
     xi_uncensored: Any = None,
-    domain: str | None = None,
-    sigma: Any = None,
 ) -> EstimatorGain:
     r"""Continuous-time steady-state Tobit observer gain: the Kalman–Bucy LQE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
 
@@ -694,10 +655,6 @@ def tobit_lqe(
         Measurement-noise covariance, diagonal (variances σ_i², as :func:`lqe` takes).
     xi_uncensored : float or (m,) array_like in (0, 1), keyword
         Probability Ξ of an uncensored reading per channel.
-    domain, sigma
-        Deprecated. ``domain="dt"`` is :func:`tobit_dlqe`; ``sigma`` (a standard deviation, also the
-        old fifth positional argument) is ``V = diag(sigma**2)``. Both work for one release with a
-        ``DeprecationWarning``.
 
     Returns
     -------
@@ -726,36 +683,16 @@ def tobit_lqe(
     >>> [round(float(L[0, 0]), 3), round(float(L[1, 0]), 3)]
     [16.452, 0.305]
     """
-    V, xi_uncensored = _tobit_arguments(args, V, xi_uncensored, sigma, "tobit_lqe")
-    if domain is not None:
-        check_option(domain, "domain", DOMAINS)
-        if domain == "dt":
-            warnings.warn(
-                "tobit_lqe(..., domain='dt') is deprecated: use tobit_dlqe(...) (the name says the time "
-                "domain, as lqe/dlqe)",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-        else:
-            warnings.warn(
-                "tobit_lqe(..., domain='ct'): the domain argument is deprecated, tobit_lqe is the "
-                "continuous-time LQE (tobit_dlqe the discrete-time one)",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-        return _tobit_lqe(A, G, C, W, V, xi_uncensored, domain)
+    V, xi_uncensored = _tobit_arguments(V, xi_uncensored, "tobit_lqe")
     return _tobit_lqe(A, G, C, W, V, xi_uncensored, "ct")
 
 
-def tobit_dlqe(
-    A: Any, G: Any, C: Any, W: Any, *args: Any, V: Any = None, xi_uncensored: Any = None, sigma: Any = None
-) -> EstimatorGain:
+def tobit_dlqe(A: Any, G: Any, C: Any, W: Any, *, V: Any = None, xi_uncensored: Any = None) -> EstimatorGain:
     r"""Discrete-time steady-state Tobit observer gains: the DARE of :math:`(A, \Xi C)` with noise :math:`\Upsilon`.
 
     The modified DARE of Miller §3.4.2 ((3.57) corrected, docs/sources MA-11): the fixed gain of
     :class:`~tobitkf.filters.steady_state.SteadyStateTobitKalmanFilter`. Same arguments as
-    :func:`tobit_lqe` (``V`` a diagonal covariance, ``xi_uncensored``; the deprecated ``sigma`` form
-    still works for one release).
+    :func:`tobit_lqe` (``V`` a diagonal covariance, ``xi_uncensored``).
 
     Returns
     -------
@@ -772,7 +709,7 @@ def tobit_dlqe(
     >>> bool(np.allclose(L, 0.9 * g.filter_gain))
     True
     """
-    V, xi_uncensored = _tobit_arguments(args, V, xi_uncensored, sigma, "tobit_dlqe")
+    V, xi_uncensored = _tobit_arguments(V, xi_uncensored, "tobit_dlqe")
     return _tobit_lqe(A, G, C, W, V, xi_uncensored, "dt")
 
 
@@ -781,8 +718,8 @@ def reference_gain(A: Any, B: Any, Cz: Any, K: Any, *, domain: str | None = None
     r"""Feed-forward :math:`\bar N` for unit DC gain from r to z = C_z x under u = N̄r − Kx (6.22), (6.45).
 
     CT: :math:`\bar N = -[C_z(A - BK)^{-1}B]^{-1}`; DT: :math:`\bar N = [C_z(I - A + BK)^{-1}B]^{-1}`
-    (Miller §6.1). ``domain`` ("ct" or "dt") is required; omitting it is deprecated and means "dt"
-    for one release.
+    (Miller §6.1). ``domain`` ("ct" or "dt") is required; omitting it raises a
+    ValidationError.
 
     Raises
     ------
@@ -823,7 +760,7 @@ def equilibrium(A: Any, B: Any, G: Any, H: Any, r: Any, *, domain: str | None = 
 
     Solves :math:`[[A - I\,(\text{DT}) \text{ or } A, B], [G, H]]\,[x_{eq}; u_{eq}] = [0; r]` in the
     least-squares sense and checks that the residual vanishes. ``domain`` ("ct" or "dt") is required
-    (omitting it is deprecated and means "dt" for one release).
+    (omitting it raises a ValidationError).
 
     Raises
     ------

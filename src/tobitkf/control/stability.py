@@ -227,8 +227,8 @@ def certify_tkf_stability(
     :math:`\bar\Gamma_k \in [0, 1]^m`, and with noise it stays mean-square bounded.
 
     ``domain`` ("dt": L is a predictor gain of x̂_{k+1} = Ax̂_k + L(y_k − E[ŷ_k]); "ct": an observer
-    gain of the continuous-time error) is required; omitting it is deprecated and means "dt" for one
-    release (the Tobit LQE functions differ in their domain, so it must be explicit).
+    gain of the continuous-time error) is required; omitting it raises a ValidationError (the Tobit LQE
+    functions differ in their domain, so it must be explicit).
 
     Returns "not certified" (``certified=False``) for :data:`COUNTEREXAMPLE` (a vertex check alone
     would pass there) and for :data:`COUNTEREXAMPLE_TWO_OUTPUTS` (an unstable vertex). The claim

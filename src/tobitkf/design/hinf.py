@@ -445,18 +445,6 @@ class HinfCertificate:
     lmi_margin: float | None = None
 
     @property
-    def margin(self) -> float | None:
-        """Deprecated: the LMI strictness margin, now :attr:`lmi_margin` (the verified slack is
-        ``verification.margin``)."""
-        warnings.warn(
-            "HinfCertificate.margin is deprecated: it is the margin asked of the solver, now .lmi_margin; "
-            "the slack the certificate actually has is .verification.margin",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return self.lmi_margin
-
-    @property
     def ok(self) -> bool:
         """True when gains/P are present (solved and re-verified)."""
         return self.status in ("optimal", "optimal_inaccurate") and self.P is not None

@@ -10,7 +10,7 @@ The convergence check is a test, not a raw threshold: the relative change :math:
 time-averaged RMSE on doubling the particles carries Monte Carlo error (over runs and particles), estimated
 by the jackknife over runs (each run's particles are independent of the others'); converged means
 :math:`|c|` is not significantly above 0.3 % (one-sided, 1 %, Bonferroni over the components).
-:func:`tobitkf.pcrlb.bound_test` is the calibrated test of "the MSE lies above the bound at every step".
+:func:`tobitkf.design.pcrlb.bound_test` is the calibrated test of "the MSE lies above the bound at every step".
 """
 
 from __future__ import annotations

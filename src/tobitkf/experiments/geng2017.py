@@ -45,9 +45,9 @@ from .. import metrics as _metrics
 from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
+from ..design.pcrlb import posterior_crlb
 from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
-from ..pcrlb import posterior_crlb
 from ..plotting import save
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting

@@ -41,7 +41,8 @@ import numpy as np
 
 from .. import metrics as mt
 from ..channels.protocol import LAMBDA_1, LAMBDA_BASE, ProtocolChannel
-from ..filters.protocol import FAILURE_TERMS, protocol_covariance_bounds
+from ..design.protocol_bounds import protocol_covariance_bounds
+from ..filters.protocol_model import FAILURE_TERMS
 from ..filters.registry import describe, lineup
 from ..models.linear import LinearSystem
 from ..plotting import save

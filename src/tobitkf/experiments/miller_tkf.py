@@ -26,9 +26,9 @@ from .. import metrics as mx
 from .._validation import ValidationError
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
+from ..design.pcrlb import posterior_crlb
 from ..filters.registry import Lineup, describe, lineup, make
 from ..models.linear import LinearSystem
-from ..pcrlb import posterior_crlb
 from ..plotting import new_figure, plot_rmse_over_time, save, style
 from ..simulate.core import simulate
 from . import ExperimentResult, register, setting

@@ -40,7 +40,7 @@ with ``N_p`` as well on the same data and reports the relative change of the tim
 jackknife standard error over runs (``converged`` when the change is not significantly above 0.3 % for
 any component, one-sided at 1 %; ``resolved`` when the check's error is small enough to see 0.3 %;
 :func:`~tobitkf.experiments._optimum.convergence`). The PCRLB claim is Holm's family-wise 1 % test over
-steps and components (:func:`~tobitkf.pcrlb.bound_test`; a per-step normal test at 1 % rejects true
+steps and components (:func:`~tobitkf.design.pcrlb.bound_test`; a per-step normal test at 1 % rejects true
 nulls several times too often here: skewed squared errors, hundreds of dependent steps). ``N_p`` per example: 2000, 2000, 1000, 8000,
 500, 4000, and 1000 for the random systems (``particles`` replaces them all); while the check fails the
 particle count is doubled, at most ``doublings`` (default 1) times (the ladder of
@@ -71,9 +71,9 @@ from .. import metrics as mx
 from .._validation import ValidationError
 from ..channels.censoring import Censoring
 from ..channels.saturation import RandomSaturation
+from ..design.pcrlb import bound_test, posterior_crlb
 from ..filters.registry import Lineup, describe, lineup
 from ..models.linear import LinearSystem
-from ..pcrlb import bound_test, posterior_crlb
 from ..plotting import new_figure, save
 from ..simulate.core import simulate
 from . import ExperimentResult, progress_callback, register, setting
@@ -319,7 +319,7 @@ def optimum_ratios(summaries: dict[str, Any], optimum: str = "pf") -> None:
 
 def _pcrlb_check(system, channel, x, pf_mean) -> dict[str, Any]:
     """The PCRLB (averaged over the true states) and the calibrated test of PF MSE >= bound at every step
-    (:func:`~tobitkf.pcrlb.bound_test`: Holm at 1 % family-wise over steps and components)."""
+    (:func:`~tobitkf.design.pcrlb.bound_test`: Holm at 1 % family-wise over steps and components)."""
     b = posterior_crlb(system, channel, truth=x)
     err2 = (pf_mean - x[:, 1:]) ** 2  # (N, T, n)
     t = bound_test(err2, b.var, LEVEL)

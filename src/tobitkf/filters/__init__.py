@@ -1,6 +1,6 @@
 """Estimators, one source family per module, all with the same batched call shape."""
 
-from ._common import FilterResult
+from .core import FilterResult
 from .kalman import DroppingKalmanFilter, KalmanFilter, kalman_filter
 from .tobit import TobitKalmanFilter, tobit_kalman_filter, tobit_update
 

@@ -12,7 +12,7 @@ rank-one change along :math:`\bar Ph^T` (:mod:`tobitkf.filters._compiled_moments
 
 with :math:`(\alpha, \beta)` per run from the family's block function (:func:`~tobitkf.filters._compiled_moments.
 family_block`). :func:`adf_loop` is that loop, written once: the predict of the TKF kernel
-(:func:`~tobitkf.filters._kernels.predict_block`) or of the fading kernel
+(:func:`~tobitkf.filters._kernels_block.predict_block`) or of the fading kernel
 (:func:`~tobitkf.filters._kernels_fading.shift_predict_block`), the channel rows :math:`h_l` per step, a
 multiplicative-noise term (the fading variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`), the runs in
 blocks (runs on the last axis, vectorised), outputs carved from the output pool
@@ -50,7 +50,8 @@ from ._compiled_moments import (
     classify,
     family_block,
 )
-from ._kernels import GL_W, GL_X, _mirror, predict_block, runs_per_block
+from ._kernels import GL_W, GL_X
+from ._kernels_block import _mirror, predict_block, runs_per_block
 from ._kernels_fading import shift_predict_block
 from ._readings import classify_readings
 from .core import FilterState

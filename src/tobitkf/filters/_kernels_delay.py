@@ -1,9 +1,9 @@
 r"""Compiled (numba) covariance step of the reorganized-innovation LMMSE (Algorithm D of the delay module).
 
-:func:`reorg_cov_step` is :meth:`tobitkf.filters.delay.ReorganizedInnovationLMMSE._cov_step`, the numpy
+:func:`reorg_cov_step` is :meth:`tobitkf.filters.delay_reorganized.ReorganizedInnovationLMMSE._cov_step`, the numpy
 reference, on the same flat ring buffer (layout: :func:`tobitkf.filters.delay._ring_layout`, whose field
 offsets are passed in ``offs``): the data-independent part of one step t >= warmup, (a)–(f) of
-:func:`~tobitkf.filters.delay.reorganized_lmmse` without the means, the moments of Λ(t-d) (R(t), J(t),
+:func:`~tobitkf.filters.delay_reorganized.reorganized_lmmse` without the means, the moments of Λ(t-d) (R(t), J(t),
 Ā(t), Σ(t), Λ(t+1), corrected recursion LD-E2), and the gains the means read. Covered: fading and
 multiplicative-noise laws that do not change with t (γ̄, σ², Q_ζ constant), both decorrelation modes and
 the re-inserted errata. The products are written as loops (the blocks are n x n with n of a few) into arrays
@@ -444,7 +444,7 @@ def _update_predict(x, P, y, gb, H, Rn, Abar, Qd, J):
 @njit(cache=True, error_model="numpy")
 def aug_step(X, P, LamX, y, AA, Ai, q, HH, GQG, GS_T, Qv, gb, s2, out):
     r"""One reading of Algorithm A for one covariance common to the runs (the numpy
-    :func:`tobitkf.filters.delay._aug_step`, standard form, for laws constant in t):
+    :func:`tobitkf.filters.delay_augmented._aug_step`, standard form, for laws constant in t):
     :math:`R = \mathrm{sym}(\sigma^2\mathfrak h\Lambda_X\mathfrak h^T + Q_v)`, the update of X(t|t-1) with
     :math:`H = \bar\gamma\mathfrak h`, then :math:`J = \mathfrak G SR^{-1}`, :math:`\bar A = \mathfrak A - \bar\gamma J\mathfrak h`,
     :math:`Q_u = \mathfrak G Q_w\mathfrak G^T + \sum_i q_i\mathfrak A_i\Lambda_X\mathfrak A_i^T`,
@@ -472,7 +472,7 @@ def aug_step(X, P, LamX, y, AA, Ai, q, HH, GQG, GS_T, Qv, gb, s2, out):
 @njit(cache=True, error_model="numpy")
 def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib, out):
     r"""One plain reading y(t) of Algorithm C (no lags beyond the window, horizons or fixed point; the numpy
-    :meth:`tobitkf.filters.delay.ChainLMMSE._step_arrays`) for one covariance common to the runs.
+    :meth:`tobitkf.filters.delay_chain.ChainLMMSE._step_arrays`) for one covariance common to the runs.
 
     ``x`` (N, n(d+1)), ``P`` (n(d+1), n(d+1)) the window x̂(t-1-k|t-1), k = 0..d, after the last reading;
     ``x_pred`` (N, n), ``P_pred`` (n, n) the prediction x̂(t|t-1); ``Lam`` Λ(t-d) of the measured element.
@@ -514,7 +514,7 @@ def chain_step(x, P, x_pred, P_pred, Lam, y, cb, ib, out):
 @njit(cache=True, error_model="numpy")
 def reorg_step(ring, t, cb, ib, y, xp_t, xsm_prev, xf_a, eps_prev, out):
     r"""One whole step t >= warmup of Algorithm D for laws constant in t: :func:`reorg_cov_step` on ``ring``
-    (in place), the means of :meth:`tobitkf.filters.delay.ReorganizedInnovationLMMSE._means_step`, and the
+    (in place), the means of :meth:`tobitkf.filters.delay_reorganized.ReorganizedInnovationLMMSE._means_step`, and the
     ring's Ψ and K(a|·)H of time t-2d-2 zeroed (no longer read).
 
     ``y`` (N, m); ``xp_t`` x̂(t|t-1), ``xsm_prev`` x̂(t-d|t-1), ``xf_a`` x̂(t-d+1|t-d+1) (N, n; not read for d = 1,

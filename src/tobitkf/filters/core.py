@@ -93,19 +93,6 @@ COVARIANCE_FORMS = ("standard", "joseph", "square_root")
 OUTPUTS = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
 _TINY = np.finfo(np.float64).tiny
 
-# fields of the pre-0.2 result types (DelayEstimates, HinfFilterResult) now in FilterResult.extras
-_OLD_FIELDS = (
-    "measured_mean",
-    "measured_cov",
-    "innovation",
-    "innovation_cov",
-    "second_moment",
-    "lagged",
-    "ahead",
-    "point",
-    "z",
-)
-
 
 # --------------------------------------------------------------------------- state and result
 
@@ -294,20 +281,6 @@ class FilterResult:
     times: np.ndarray | None = None
     var: np.ndarray | None = None
     final: FilterState | None = None
-
-    def __getattr__(self, name: str) -> Any:
-        # the fields of the pre-0.2 DelayEstimates and HinfFilterResult, now extras
-        if name in _OLD_FIELDS:
-            extras = object.__getattribute__(self, "extras")
-            if name in extras:
-                warnings.warn(
-                    f"FilterResult.{name} is deprecated: use result.extras[{name!r}] (the delay and H-infinity "
-                    "families now return the common FilterResult)",
-                    DeprecationWarning,
-                    stacklevel=2,
-                )
-                return extras[name]
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
 
 # --------------------------------------------------------------------------- what a family contributes

@@ -12,8 +12,6 @@ Time convention (the source's, forced by (5) being a one-step predictor): ``y[..
 
 from __future__ import annotations
 
-import warnings
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -23,23 +21,7 @@ from ..design.hinf import HinfCertificate
 from ..models import ross as _ross
 from .core import Estimator, FilterResult, FilterState
 
-__all__ = ["HinfFilterResult", "hinf_filter", "RegionalHinfFilter"]
-
-
-@dataclass(frozen=True)
-class HinfFilterResult:
-    """Output of the deprecated :func:`hinf_filter` (pre-0.2 layout, with the initial x̂_0 as row 0).
-
-    Attributes
-    ----------
-    mean : (..., T+1, n) ndarray
-        x̂_0..x̂_T (x̂_{k} uses ỹ_0..ỹ_{k-1}).
-    z : (..., T+1, r) ndarray
-        ẑ_k = M x̂_k.
-    """
-
-    mean: np.ndarray
-    z: np.ndarray
+__all__ = ["RegionalHinfFilter"]
 
 
 class RegionalHinfFilter(Estimator):
@@ -116,92 +98,9 @@ class RegionalHinfFilter(Estimator):
         x_new = x @ self.Af.T + y @ self.Bf.T  # (5)
         return x_new, None, None, carry, None, None, {"z": x_new @ self.M.T}
 
-    def filter(
-        self, y: Any, xhat0: Any = None, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
-    ) -> FilterResult:
+    def filter(self, y: Any, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
         """Run (5) on ``y`` (..., T, m): rows x̂_1..x̂_T, ``extras["z"]`` ẑ_1..ẑ_T, ``times`` 1..T.
 
-        ``x0`` is x̂_0 (default 0); the positional ``xhat0`` is its deprecated spelling.
+        ``x0`` is x̂_0 (default 0).
         """
-        if xhat0 is not None:
-            warnings.warn(
-                "RegionalHinfFilter.filter(y, xhat0) is deprecated: use filter(y, x0=...)",
-                DeprecationWarning,
-                stacklevel=2,
-            )
-            if x0 is not None:
-                raise ValidationError("x0: given twice (x0= and the deprecated positional xhat0)")
-            x0 = xhat0
         return self._run(y, None, x0, None, outputs=outputs, state=state)
-
-
-def hinf_filter(Af: Any, Bf: Any, M: Any, y: Any, xhat0: Any = None) -> HinfFilterResult:
-    r"""Deprecated: run (5) and return x̂_0..x̂_T in the pre-0.2 layout.
-
-    Use ``RegionalHinfFilter(Af, Bf, M).filter(y, x0=xhat0)``, which returns the common
-    :class:`FilterResult` (rows x̂_1..x̂_T with ``times``, the outputs in ``extras["z"]``).
-    """
-    warnings.warn(
-        "hinf_filter(Af, Bf, M, y, xhat0) is deprecated: use RegionalHinfFilter(Af, Bf, M).filter(y, x0=...)",
-        DeprecationWarning,
-        stacklevel=2,
-    )
-    f = RegionalHinfFilter(Af, Bf, M)
-    res = f.filter(y, x0=xhat0, outputs="mean")
-    y2 = as_float_array(y, "y")
-    batch = y2.shape[:-2]
-    x0 = np.zeros(batch + (f.n,)) if xhat0 is None else np.broadcast_to(as_float_array(xhat0, "xhat0"), batch + (f.n,))
-    mean = np.concatenate([x0[..., None, :], res.mean], axis=-2)
-    return HinfFilterResult(mean=mean, z=mean @ f.M.T)
-
-
-# Names that lived in this module before the layout of 0.2 (design, model, simulator): kept for one
-# release, with a DeprecationWarning naming the new home.
-_MOVED_TO_DESIGN = (
-    "HinfCertificate",
-    "Verification",
-    "augmented_step",
-    "expected_lyapunov_next",
-    "psi_matrix",
-    "verify",
-    "analyze",
-    "design",
-    "zero_filter_gamma",
-    "WANG2010_PAPER",
-    "METHODS",
-    "OBJECTIVES",
-    "COVARIANCES",
-    "SOLVERS",
-)
-_MOVED_ELSEWHERE = {
-    "RossModel": "tobitkf.models.ross",
-    "RossSimulation": "tobitkf.simulate.ross",
-    "simulate_ross": "tobitkf.simulate.ross",
-    "wang2010_disturbances": "tobitkf.simulate.ross",
-}
-
-
-def __getattr__(name: str):
-    import warnings
-
-    if name in _MOVED_TO_DESIGN:
-        from ..design import hinf as _design
-
-        warnings.warn(
-            f"tobitkf.filters.hinf.{name} moved to tobitkf.design.hinf.{name}; the old name will be "
-            "removed in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(_design, name)
-    if name in ("RossModel", "wang2010_model"):  # the model layer: served from there, with a warning
-        warnings.warn(
-            f"tobitkf.filters.hinf.{name} moved to tobitkf.models.ross.{name}"
-            f"{' (also tk.RossModel)' if name == 'RossModel' else ''}; the old name will be removed in the next release",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(_ross, name)
-    if name in _MOVED_ELSEWHERE:  # the simulator's names: a filter may not import the simulator (one-way flow)
-        raise AttributeError(f"tobitkf.filters.hinf.{name} moved to {_MOVED_ELSEWHERE[name]}.{name}")
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -56,8 +56,7 @@ Time convention: :math:`x_0 \sim N(\bar x_0, P_0)` with the pre-history
 
 Readings: ``y`` is ``(..., T, 1)`` like every estimator's (one scalar per step, the scheduled
 sensor's); ``uncensored`` (the detection device's :math:`\gamma_k`, default ``y > threshold``) is laid
-out like ``y``. The pre-0.2 layouts ``y`` (T,) and ``uncensored`` (..., T) still work, with a
-DeprecationWarning.
+out like ``y``.
 
 Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 ``p_uncensored`` :math:`1-\Phi(\bar\vartheta_k)` (the diagnostic (8), GP-06), ``theta_bar``
@@ -69,32 +68,24 @@ Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 from __future__ import annotations
 
 import math
-import warnings
-from dataclasses import dataclass
 from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy.special import ndtr
 
 from .._validation import (
     ShapeError,
     ValidationError,
     as_float_array,
-    check_instance,
-    check_int,
-    check_memory,
     check_option,
     check_psd,
 )
-from ..censored import CensoredMoments, _small_moments, unchecked_moments
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from .core import (
     FilterResult,
     FilterState,
-    MeasurementPrediction,
     Transition,
     check_keywords,
     is_trusted,
@@ -111,296 +102,33 @@ from .kalman import (
     output_arrays,
     state_specs,
 )
+from .protocol_model import (
+    FAILURE_TERMS,
+    PREHISTORY_PRIORS,
+    _check_parts,
+    _initial,
+    _prediction,
+    _protocol_info,
+    _sensor_stats,
+    augmented_transition,
+    noise_input,
+    stacked_measurement,
+)
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
     "protocol_tobit_kalman_filter",
     "baseline_channel",
-    "protocol_covariance_bounds",
-    "CovarianceBounds",
-    "augmented_transition",
-    "noise_input",
-    "stacked_measurement",
-    "analytic_p_uncensored",
-    "protocol_measurement",
-    "FAILURE_TERMS",
-    "UPPER_FORMS",
-    "LOWER_FORMS",
-    "PREHISTORY_PRIORS",
 ]
 
-FAILURE_TERMS = ("variance", "literal", "second_moment", "lmmse_unconditional")
-PREHISTORY_PRIORS = ("x0", "zero_mean")
-PRIOR_MEANS = ("repeat", "zero")  # the pre-0.2 names of PREHISTORY_PRIORS (prehistory_mean=)
-_OLD_PRIOR = {"repeat": "x0", "zero": "zero_mean"}
-UPPER_FORMS = ("expected_riccati", "suboptimal_gain", "paper_literal")
-LOWER_FORMS = ("statement", "paper_proof")
-PHI_UPPER = ("zero", "mean_trajectory")
 _OPTIONS = {
     "failure_term": FAILURE_TERMS,
     "prehistory_prior": PREHISTORY_PRIORS,
     "covariance_update": ("joseph", "standard", "square_root"),
 }
-_TINY = 1e-12
 
 
-# --- augmentation (9)-(10) -------------------------------------------------------------
-def augmented_transition(A: np.ndarray, window: int) -> np.ndarray:
-    r""":math:`\mathcal A` of (10): ``A`` in the top-left block, identities on the block sub-diagonal."""
-    n = A.shape[-1]
-    nx = n * (window + 1)
-    out = np.zeros((nx, nx))
-    out[:n, :n] = A
-    out[n:, :-n] = np.eye(n * window)
-    return out
-
-
-def noise_input(n: int, window: int) -> np.ndarray:
-    r""":math:`\mathcal B = [I\;0\cdots0]^T` of (10), also the transpose of the selector Π of (25)."""
-    out = np.zeros((n * (window + 1), n))
-    out[:n] = np.eye(n)
-    return out
-
-
-def stacked_measurement(C_row: np.ndarray, window: int) -> np.ndarray:
-    r""":math:`\mathcal C_{m,k} = [C_{m,k}\;\cdots\;C_{m,k}]` (ℓ+1 copies), shape (n(ℓ+1),)."""
-    return np.tile(np.asarray(C_row, dtype=float).reshape(-1), window + 1)
-
-
-def _prehistory_prior(value: str) -> str:
-    """The ``prehistory_prior`` value of a pre-0.2 ``prehistory_mean`` spelling (or itself)."""
-    return _OLD_PRIOR.get(value, value)
-
-
-def _initial(system: LinearSystem, window: int, prehistory_prior: str, P0_aug: Any, x0: Any = None, P0: Any = None):
-    n = system.n
-    prehistory_prior = _prehistory_prior(prehistory_prior)
-    mean = system.x0 if x0 is None else x0
-    cov = system.P0 if P0 is None else P0
-    if prehistory_prior == "x0":
-        xi0 = np.tile(mean, window + 1)
-    else:
-        xi0 = np.concatenate([mean, np.zeros(n * window)])
-    if P0_aug is None:
-        M0 = np.kron(np.eye(window + 1), cov)
-    else:
-        M0 = as_float_array(P0_aug, "P0_aug", ndim=2)
-        if M0.shape != (n * (window + 1),) * 2:
-            raise ShapeError(f"P0_aug: expected ({n * (window + 1)}, {n * (window + 1)}), got {M0.shape}")
-        check_psd(M0, "P0_aug")
-    return xi0, M0
-
-
-def _sensor_stats(system: LinearSystem, k: int, h: int):
-    C = system.measurement(k)
-    R = system.measurement_cov(k)
-    r = float(R[h, h])
-    if not r > 0:
-        raise ValidationError(f"R({k}): sensor {h + 1} needs a positive noise variance, got {r}")
-    return C[h], r
-
-
-def _failure_term(
-    mode: str,
-    Cc: np.ndarray,
-    P_pred: np.ndarray,
-    xi_pred: np.ndarray,
-    lam_mean: float,
-    lam_var: float,
-    X: np.ndarray | None,
-) -> np.ndarray:
-    """F_k, the failure term of (24) (docs/sources GP-01), (N,) or (1,) (a covariance shared by the runs;
-    it broadcasts)."""
-    if mode == "lmmse_unconditional":
-        return np.full(P_pred.shape[0], lam_var * float(Cc @ X @ Cc))
-    CPC = (P_pred @ Cc) @ Cc  # (N or 1,): C P C^T of each run's covariance, P_pred never broadcast
-    if mode == "variance":
-        return lam_var * CPC
-    if mode == "literal":
-        return (lam_mean**2 + lam_var) * CPC
-    return lam_var * (CPC + (xi_pred @ Cc) ** 2)  # second_moment
-
-
-def _check_parts(system: Any, channel: Any) -> None:
-    check_instance(system, LinearSystem, "system")
-    check_instance(channel, ProtocolChannel, "channel")
-    channel.check_system(system)
-
-
-def protocol_measurement(
-    xi_pred: np.ndarray,
-    P_pred: np.ndarray,
-    y: np.ndarray,
-    gamma: np.ndarray,
-    Cc: np.ndarray,
-    r: float,
-    tau: float,
-    lam_mean: float,
-    lam_var: float,
-    *,
-    failure_term: str = "variance",
-    second_moment: np.ndarray | None = None,
-) -> MeasurementPrediction:
-    r"""The measurement prediction of Theorem 1, (21)–(24), batched over runs.
-
-    With :math:`\mathbf H = \bar\Lambda_h\mathcal C_h`, :math:`\zeta = \mathbf H\hat\xi^-_k`,
-    :math:`\bar\vartheta = (\tau - \zeta)/\sqrt{\mathcal R}` and the Mills ratio
-    :math:`\lambda`: ``expected`` :math:`\zeta + \sqrt{\mathcal R}\lambda` (21) for an uncensored
-    reading, ``H0`` :math:`\mathbf H`, ``noise`` :math:`F_k + \mathcal R(1-\varphi)` (24) with
-    :math:`\mathcal R(1-\varphi)` floored at :math:`10^{-12}\mathcal R`, the reading taking part only
-    when :math:`\gamma_k = 1` (K = 0 otherwise: the prediction is kept, bit for bit).
-
-    Parameters
-    ----------
-    xi_pred : (N, n_ξ) ; P_pred : (N or 1, n_ξ, n_ξ) ; y : (N,) received :math:`y_k` ; gamma : (N,) bool
-    Cc : (n_ξ,) :math:`\mathcal C_{h,k}` ; r : :math:`\mathcal R_k = R_{h,k}` ; tau : threshold
-    lam_mean, lam_var : :math:`\bar\Lambda_h`, :math:`\check\Lambda_h`
-    failure_term : see the module docstring
-    second_moment : (n_ξ, n_ξ), for ``"lmmse_unconditional"``
-    """
-    H = lam_mean * Cc
-    return _prediction(
-        xi_pred, P_pred, y, gamma, Cc, r, np.sqrt(r), H, H[None, :], tau, lam_mean, lam_var, failure_term, second_moment
-    )
-
-
-def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term, X, compiled=False):
-    """:func:`protocol_measurement` with the per-sensor constants ``sd`` = sqrt(r), ``H`` = lam_mean Cc and
-    ``H0`` = H[None, :] given (the filter computes them once per sensor). ``compiled``: the censored moments of
-    several runs from the compiled statistics of the TKF kernel
-    (:func:`tobitkf.filters._kernels.censored_moments_array`, equal to :func:`~tobitkf.censored.unchecked_moments`
-    to rounding) instead of the array code."""
-    if xi_pred.shape[0] == 1 and failure_term != "lmmse_unconditional":
-        one = _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term)
-        if one is not None:
-            return one
-    zeta = xi_pred @ H
-    if compiled and np.isfinite(zeta).all():
-        kern = kernels()
-        K = zeta.shape[0]
-        rows = kern.censored_moments_array(
-            np.ascontiguousarray(zeta, dtype=float),
-            np.full(K, float(sd)),
-            np.full(K, float(tau)),
-            np.full(K, math.inf),
-            kern.GL_X,
-            kern.GL_W,
-        )
-        st = CensoredMoments(*rows)
-    else:
-        st = unchecked_moments(zeta, sd, tau, np.inf)
-    lam = st.inverse_mills
-    noise = np.maximum(st.truncated_var, _TINY * r)  # R (1 - phi), floored
-    F = _failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, X)
-    yhat = zeta + sd * lam  # (21), gamma = 1
-    g = gamma if isinstance(gamma, np.ndarray) and gamma.dtype == bool else np.asarray(gamma, dtype=bool)
-    if math.isfinite(tau):  # tau - zeta cannot be inf - inf; sd > 0, so no division by zero
-        theta = (tau - zeta) / sd
-    else:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            theta = (tau - zeta) / sd
-    extras = {
-        "theta_bar": theta,
-        "inverse_mills": lam,
-        "trunc_var_factor": 1.0 - noise / r,
-        "expected_y": np.where(g, yhat, tau),
-        "innovation": np.where(g, y - yhat, 0.0),
-        "p_uncensored": st.p_uncensored,
-        "_noise": noise,
-        "_gamma": g,
-    }
-    return MeasurementPrediction(
-        expected=yhat[:, None], H0=H0, noise=(F + noise)[:, None], valid=g[:, None], extras=extras
-    )
-
-
-def _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term):
-    """:func:`_prediction` of one run (the online step) on Python floats: the same equations (21)-(24) in the
-    same order, the censored moments from the scalar route of :func:`~tobitkf.censored.unchecked_moments`
-    (tested equal to the array route to 1e-13). None when that route does not apply (the array code runs)."""
-    xi = xi_pred[0]
-    zeta = float(xi @ H)
-    row = _small_moments(zeta, float(sd), float(tau), math.inf)
-    if row is None:
-        return None
-    gam_u, lam, tvar = row[2], row[3], row[5]
-    noise = max(tvar, _TINY * r)  # R (1 - phi), floored
-    F = float(_failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, None)[0])  # (24), one formula
-    yhat = zeta + sd * lam  # (21), gamma = 1
-    g = bool(np.asarray(gamma).reshape(-1)[0])
-    theta = (tau - zeta) / sd if math.isfinite(tau) else math.copysign(math.inf, tau)
-    y0 = float(y[0])
-    extras = {
-        "theta_bar": np.array([theta]),
-        "inverse_mills": np.array([lam]),
-        "trunc_var_factor": np.array([1.0 - noise / r]),
-        "expected_y": np.array([yhat if g else tau]),
-        "innovation": np.array([y0 - yhat if g else 0.0]),
-        "p_uncensored": np.array([gam_u]),
-        "_noise": np.array([noise]),
-        "_gamma": np.array([g]),
-    }
-    return MeasurementPrediction(
-        expected=np.array([[yhat]]), H0=H0, noise=np.array([[F + noise]]), valid=np.array([[g]]), extras=extras
-    )
-
-
-def protocol_update(
-    xi_pred: np.ndarray,
-    P_pred: np.ndarray,
-    y: np.ndarray,
-    gamma: np.ndarray,
-    Cc: np.ndarray,
-    r: float,
-    tau: float,
-    lam_mean: float,
-    lam_var: float,
-    *,
-    failure_term: str = "variance",
-    second_moment: np.ndarray | None = None,
-    covariance_update: str = "joseph",
-):
-    r"""One measurement update of Theorem 1, (19)–(24), batched over runs (procedural form).
-
-    :func:`protocol_measurement` followed by the shared :func:`~tobitkf.filters.core.measurement_update`
-    (Joseph form of App. D (44), or (20)).
-
-    Returns
-    -------
-    xi, P, info (dict of (N,) arrays: theta_bar, inverse_mills, trunc_var_factor, expected_y,
-    innovation, innovation_var, p_uncensored)
-    """
-    from .core import measurement_update
-
-    mp = protocol_measurement(
-        xi_pred, P_pred, y, gamma, Cc, r, tau, lam_mean, lam_var, failure_term=failure_term, second_moment=second_moment
-    )
-    xi, P, _, _, Ree = measurement_update(xi_pred, P_pred, None, y[:, None], mp, covariance_update)
-    return xi, P, _protocol_info(mp, Ree)
-
-
-def _protocol_info(mp: MeasurementPrediction, Ree: np.ndarray | None) -> dict[str, np.ndarray]:
-    info = {k: v for k, v in mp.extras.items() if not k.startswith("_")}
-    g = mp.extras["_gamma"]
-    S = mp.extras["_noise"] if Ree is None else Ree[..., 0, 0]
-    info["innovation_var"] = np.where(g, S, mp.extras["_noise"])
-    return info
-
-
-def _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean):
-    if prehistory_mean is not None:
-        if prehistory_mean not in PRIOR_MEANS:
-            raise ValidationError(
-                f"prehistory_mean: expected one of {', '.join(map(repr, PRIOR_MEANS))}, got {prehistory_mean!r}"
-            )
-        warnings.warn(
-            f"prehistory_mean={prehistory_mean!r} is deprecated: use "
-            f"prehistory_prior={_OLD_PRIOR[prehistory_mean]!r} (the prior of x_-1..x_-ell in the filter; "
-            "the channel's prehistory= says how the simulator draws them)",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-        prehistory_prior = _OLD_PRIOR[prehistory_mean]
+def _check_options(failure_term, prehistory_prior, covariance_update):
     check_keywords(
         {"failure_term": failure_term, "prehistory_prior": prehistory_prior, "covariance_update": covariance_update},
         _OPTIONS,
@@ -422,8 +150,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     prehistory_prior : {"x0", "zero_mean"}, default "x0"
         The filter's prior of the pre-history :math:`x_{-1..-\ell}`: independent
         :math:`N(\bar x_0, P_0)` (``"x0"``) or :math:`N(0, P_0)` (``"zero_mean"``). (The channel's
-        ``prehistory`` says how the *simulator* draws them.) ``prehistory_mean="repeat"``/``"zero"`` is
-        the deprecated spelling.
+        ``prehistory`` says how the *simulator* draws them.)
     covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
         Joseph form (App. D (44), the source's), (20), or the QR array form (not in the source).
     P0_aug : array_like, optional
@@ -469,11 +196,10 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         prehistory_prior: str = "x0",
         covariance_update: str = "joseph",
         P0_aug: Any = None,
-        prehistory_mean: str | None = None,
         check_limits: bool = True,
         backend: str = "auto",
     ):
-        prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update, prehistory_mean)
+        prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update)
         check_option(backend, "backend", BACKENDS)
         if backend == "numba":
             kernels()  # raises ImportError without numba
@@ -615,15 +341,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     def _prepare_record(self, y, name="y"):
         arr = as_float_array(y, name, allow_nan=True)  # NaN: a lost reading, which only predicts
-        if arr.ndim == 1:  # one record (T,): the pre-0.2 layout
-            warnings.warn(
-                f"{name}: a (T,) record is deprecated; pass (..., T, 1) like every estimator "
-                "(y[:, None] for one record)",
-                DeprecationWarning,
-                stacklevel=4,
-            )
-            arr = arr[:, None]
-        elif arr.ndim >= 2 and arr.shape[-1] != 1:
+        if arr.ndim < 2 or arr.shape[-1] != 1:
             raise ShapeError(
                 f"{name}: expected (..., T, 1) received scalars (the scheduled sensor's reading), got shape {arr.shape}"
             )
@@ -689,13 +407,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         step_data = None
         if uncensored is not None:
             gam = np.asarray(uncensored)
-            if gam.shape == batch + (T,):
-                warnings.warn(
-                    "uncensored: a (..., T) array is deprecated; lay it out like y, (..., T, 1)",
-                    DeprecationWarning,
-                    stacklevel=2,
-                )
-                gam = gam[..., None]
             if gam.shape != batch + (T, 1):
                 raise ShapeError(f"uncensored: expected shape {batch + (T, 1)} (like y), got {gam.shape}")
             step_data = {"uncensored": np.asarray(gam, dtype=bool).reshape(N, T, 1)}
@@ -773,12 +484,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             )
         use_kernel(self.backend, gap, what)  # raises for backend="numba"
         return None
-
-    def bounds(self, steps: int, **options: Any) -> CovarianceBounds:
-        """Upper and lower bounds on :math:`E\\{P_{\\tilde x^-_k}\\}`; see :func:`protocol_covariance_bounds`."""
-        opts = {"failure_term": self.failure_term, "prehistory_prior": self.prehistory_prior, "P0_aug": self.P0_aug}
-        opts.update(options)
-        return protocol_covariance_bounds(self.system, self.channel, steps, **opts)
 
     def __repr__(self) -> str:
         opts = ", ".join(f"{k}={v!r}" for k, v in self.options.items() if k != "P0_aug")
@@ -1024,7 +729,6 @@ def protocol_tobit_kalman_filter(
     P0_aug: Any = None,
     keep_augmented: bool = False,
     check_limits: bool = True,
-    prehistory_mean: str | None = None,
 ) -> FilterResult:
     r"""Run the PBTKF-IMSF (Theorem 1, Table I) over a batch of received records.
 
@@ -1036,15 +740,13 @@ def protocol_tobit_kalman_filter(
     channel : ProtocolChannel
         Window ℓ, failure laws (only their means and variances are used), schedule, τ.
     y : (..., T, 1) array_like
-        Received scalar measurements :math:`y_1..y_T` (censored readings equal τ); the pre-0.2 (T,)
-        layout is deprecated.
+        Received scalar measurements :math:`y_1..y_T` (censored readings equal τ).
     uncensored : (..., T, 1) bool array_like, optional
         :math:`\gamma_k` from the detection device, laid out like ``y``; default ``y > threshold``.
     failure_term : {"variance", "literal", "second_moment", "lmmse_unconditional"}, default "variance"
         The failure term of (24) (docs/sources GP-01).
     prehistory_prior : {"x0", "zero_mean"}, default "x0"
-        Prior of :math:`x_{-1..-\ell}`: :math:`N(\bar x_0, P_0)` or :math:`N(0, P_0)`, independent
-        (``prehistory_mean="repeat"``/``"zero"`` is the deprecated spelling).
+        Prior of :math:`x_{-1..-\ell}`: :math:`N(\bar x_0, P_0)` or :math:`N(0, P_0)`, independent.
     covariance_update : {"joseph", "standard", "square_root"}, default "joseph"
         Joseph form (App. D (44)) or (20), equal for the optimal gain; or the QR array form.
     P0_aug : (n_ξ, n_ξ) array_like, optional
@@ -1103,7 +805,6 @@ def protocol_tobit_kalman_filter(
         prehistory_prior=prehistory_prior,
         covariance_update=covariance_update,
         P0_aug=P0_aug,
-        prehistory_mean=prehistory_mean,
         check_limits=check_limits,
     )
     return est.filter(y, uncensored=uncensored, keep_augmented=keep_augmented)
@@ -1116,262 +817,3 @@ def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
     (:math:`\bar\Lambda \equiv 1`, :math:`\check\Lambda \equiv 0`, so :math:`F_k = 0`).
     """
     return channel.replace(window=0, failures=NO_FAILURE)
-
-
-# --- performance bounds (Sec. IV and App. C–D of the source; docs/sources GP-02, GP-04, GP-06) ------------
-@dataclass(frozen=True)
-class CovarianceBounds:
-    r"""Bounds :math:`N^l_k \preceq N_k = E\{P_{\tilde x^-_k}\} \preceq N^u_k` (Theorem 5), k = 1..T.
-
-    Attributes
-    ----------
-    upper, lower : (T, n, n) ndarray
-        :math:`N^u_k`, :math:`N^l_k` (index k-1 holds step k).
-    upper_aug, lower_aug : (T, n_ξ, n_ξ) ndarray
-        :math:`M^u_k`, :math:`M^l_k`.
-    p_uncensored : (T,) ndarray
-        The deterministic :math:`\bar\gamma_k` used.
-    """
-
-    upper: np.ndarray
-    lower: np.ndarray
-    upper_aug: np.ndarray
-    lower_aug: np.ndarray
-    p_uncensored: np.ndarray
-
-
-def _gl_nodes(lo: float, hi: float, n: int = 64):
-    """Gauss-Legendre nodes on [lo, hi] and weights of the uniform density there (summing to 1)."""
-    x, w = np.polynomial.legendre.leggauss(n)
-    return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * w
-
-
-def analytic_p_uncensored(
-    system: LinearSystem,
-    channel: ProtocolChannel,
-    steps: int,
-    *,
-    prehistory_prior: str = "x0",
-    P0_aug: Any = None,
-    prehistory_mean: str | None = None,
-) -> np.ndarray:
-    r"""Unconditional :math:`\bar\gamma_k = P(\bar y_k > \tau)` under the true model, k = 1..T (docs/sources GP-06).
-
-    .. math::
-
-        \bar\gamma_k = \sum_j \pi_j\Big[1 - \Phi\Big(\frac{\tau - \lambda_j\mathcal C_h\mathfrak m_k}
-        {\sqrt{\lambda_j^2\mathcal C_h\Sigma_k\mathcal C_h^T + \mathcal R_k}}\Big)\Big]
-
-    with the unconditional mean :math:`\mathfrak m_k` and covariance :math:`\Sigma_k` of
-    :math:`\xi_k`. Discrete laws (``values``/``probs``) are summed, constant gains (variance 0)
-    are a single point, uniform laws (``low``/``high``) are integrated by 64-point Gauss–Legendre
-    quadrature.
-
-    Raises
-    ------
-    ValidationError
-        For a law that is neither discrete nor uniform (pass γ̄ explicitly then).
-    """
-    n, ell = system.n, channel.window
-    xi0, M0 = _initial(system, ell, prehistory_mean or prehistory_prior, P0_aug)
-    Bn = noise_input(n, ell)
-    nodes = []
-    for i, law in enumerate(channel.laws):
-        if hasattr(law, "values") and hasattr(law, "probs"):
-            nodes.append((np.asarray(law.values, float).ravel(), np.asarray(law.probs, float).ravel()))
-        elif hasattr(law, "low") and hasattr(law, "high"):
-            lo, hi = float(law.low), float(law.high)
-            nodes.append(_gl_nodes(lo, hi) if hi > lo else (np.array([lo]), np.array([1.0])))
-        elif float(law.variance) == 0.0:
-            nodes.append((np.array([float(law.mean)]), np.array([1.0])))
-        else:
-            raise ValidationError(
-                f"failures[{i}]: the analytic p_uncensored needs a discrete (values/probs) or "
-                f"uniform (low/high) law, got {type(law).__name__}; pass p_uncensored explicitly"
-            )
-    sched = channel.schedule.scheduled(steps)
-    m, S = xi0, M0
-    out = np.empty(steps)
-    for k in range(1, steps + 1):
-        Aa = augmented_transition(system.transition(k - 1), ell)
-        m = Aa @ m
-        S = Aa @ S @ Aa.T + Bn @ system.process_cov(k - 1) @ Bn.T
-        h = int(sched[k - 1]) - 1
-        C_row, r = _sensor_stats(system, k, h)
-        Cc = stacked_measurement(C_row, ell)
-        vals, wts = nodes[h]
-        mu = vals * (Cc @ m)
-        sd = np.sqrt(vals**2 * (Cc @ S @ Cc) + r)
-        out[k - 1] = float(wts @ ndtr((mu - channel.threshold) / sd))
-    return out
-
-
-def protocol_covariance_bounds(
-    system: LinearSystem,
-    channel: ProtocolChannel,
-    steps: int,
-    *,
-    p_uncensored: Any = "analytic",
-    failure_term: str = "variance",
-    upper_form: str = "expected_riccati",
-    lower_form: str = "statement",
-    phi_upper: str = "zero",
-    prehistory_prior: str = "x0",
-    P0_aug: Any = None,
-    prehistory_mean: str | None = None,
-) -> CovarianceBounds:
-    r"""Upper and lower bounds on the expected prior covariance (Theorems 3–5 of the source).
-
-
-    Sec. IV and App. C–D of the source; our deviations docs/sources GP-02, GP-04, GP-06. Index convention
-    (docs/sources GP-05):
-    :math:`M^u_1 = M^l_1 = P^-_1 = \mathcal A_0M_0\mathcal A_0^T + \mathcal BQ_0\mathcal B^T`;
-    then for k = 1..T-1, with step-k quantities (:math:`h = \bar h_k`, :math:`\mathbf H_k`, :math:`\mathcal R_k`,
-    :math:`\bar\gamma_k`):
-
-    .. math::
-
-        M^u_{k+1} &= \mathcal AM^u_k\mathcal A^T + \mathcal BQ\mathcal B^T
-          - \bar\gamma_k\,\mathcal AM^u_k\mathbf H^T\big[\mathbf HM^u_k\mathbf H^T + F^u_k
-          + \mathcal R_k(1-\bar\varphi^u_k)\big]^{-1}\mathbf HM^u_k\mathcal A^T \\
-        M^l_{k+1} &= (1-\bar\gamma_k)\mathcal AM^l_k\mathcal A^T + \mathcal BQ\mathcal B^T  &(30)
-
-    and :math:`N^{u,l}_k = \Pi M^{u,l}_k\Pi^T` (32).
-
-    Parameters
-    ----------
-    system, channel
-        As for the filter.
-    steps : int
-        T.
-    p_uncensored : "analytic" or float or (T,) array_like, default "analytic"
-        :math:`\bar\gamma_k`: the unconditional probability (:func:`analytic_p_uncensored`), or
-        given values (e.g. the Monte Carlo frequency, or a constant).
-    failure_term : str, default "variance"
-        :math:`F^u_k`: ``"variance"`` :math:`\check\Lambda\mathcal CM^u\mathcal C^T`, ``"literal"``
-        :math:`(\bar\Lambda^2+\check\Lambda)\mathcal CM^u\mathcal C^T`, ``"second_moment"`` and
-        ``"lmmse_unconditional"`` :math:`\check\Lambda\mathcal C\mathfrak X_k\mathcal C^T`.
-    upper_form : {"expected_riccati", "suboptimal_gain", "paper_literal"}, default "expected_riccati"
-    lower_form : {"statement", "paper_proof"}, default "statement"
-    phi_upper : {"zero", "mean_trajectory"}, default "zero"
-        :math:`\bar\varphi^u_k`: 0 (a guaranteed bound) or φ along the mean trajectory (tighter,
-        not guaranteed).
-    prehistory_prior, P0_aug
-        The filter's initialisation (``prehistory_mean`` is the deprecated spelling).
-
-    Returns
-    -------
-    CovarianceBounds
-
-    Raises
-    ------
-    ValidationError
-        Unknown option, :math:`\bar\gamma` outside [0, 1] or of the wrong length.
-
-    Notes
-    -----
-    Deviations from the source (docs/sources GP-02, GP-04):
-
-    * (28) uses the random :math:`P_{\xi_k}` in its failure term and never defines
-      :math:`\bar\gamma^u, \bar\varphi^u`; the default uses :math:`M^u_k`,
-      :math:`\bar\gamma^u = \bar\gamma`, :math:`\bar\varphi^u = 0` and the expected-Riccati
-      form (a valid bound by concavity and Jensen under the paper's independence idealization).
-      ``"suboptimal_gain"`` is what the proof (38)–(41) yields with :math:`E\gamma^2 = \bar\gamma`
-      (valid, looser); ``"paper_literal"`` is (28) with :math:`\bar\gamma^2` inside the braces
-      (a diagnostic: it is violated in the transient).
-    * (30) as stated is the default; ``lower_form="paper_proof"`` is the proof's (45)–(46)
-      version :math:`(1-\bar\gamma)\mathcal AM\mathcal A^T + \bar\gamma\mathcal BQ\mathcal B^T` with
-      :math:`M^l_0 = 0`, i.e. :math:`M^l_1 = \mathcal BQ_0\mathcal B^T` (looser, also valid).
-    """
-    if prehistory_mean is not None:
-        prehistory_prior = _check_options(failure_term, prehistory_prior, "joseph", prehistory_mean)
-    check_keywords(
-        {
-            "failure_term": failure_term,
-            "upper_form": upper_form,
-            "lower_form": lower_form,
-            "phi_upper": phi_upper,
-            "prehistory_prior": prehistory_prior,
-        },
-        {
-            "failure_term": FAILURE_TERMS,
-            "upper_form": UPPER_FORMS,
-            "lower_form": LOWER_FORMS,
-            "phi_upper": PHI_UPPER,
-            "prehistory_prior": PREHISTORY_PRIORS,
-        },
-    )
-    _check_parts(system, channel)
-    steps = check_int(steps, "steps", minimum=1)
-    check_memory(
-        8 * 4 * int(steps) * (system.n * (channel.window + 1)) ** 2, "steps", f"covariance bounds over {steps} steps"
-    )
-    if isinstance(p_uncensored, str):
-        if p_uncensored != "analytic":
-            raise ValidationError(f"p_uncensored: expected 'analytic' or numbers in [0, 1], got {p_uncensored!r}")
-        gbar = analytic_p_uncensored(system, channel, steps, prehistory_prior=prehistory_prior, P0_aug=P0_aug)
-    else:
-        gbar = as_float_array(p_uncensored, "p_uncensored", ndim=(0, 1))
-        if gbar.ndim == 1 and gbar.shape != (steps,):
-            raise ShapeError(f"p_uncensored: expected a scalar or shape ({steps},), got {gbar.shape}")
-        if ((gbar < 0) | (gbar > 1)).any():
-            raise ValidationError(
-                f"p_uncensored: expected probabilities in [0, 1], got {gbar[(gbar < 0) | (gbar > 1)][:3]}"
-            )
-        gbar = np.broadcast_to(gbar, (steps,)).astype(float)
-    system.check_horizon(steps)
-    n, ell = system.n, channel.window
-    nxi = n * (ell + 1)
-    xi0, M0 = _initial(system, ell, prehistory_prior, P0_aug)
-    Bn = noise_input(n, ell)
-    lam_mean, lam_var = channel.failure_mean, channel.failure_variance
-    sched = channel.schedule.scheduled(steps)
-    tau = channel.threshold
-    Mu = np.empty((steps, nxi, nxi))
-    Ml = np.empty((steps, nxi, nxi))
-    A0 = augmented_transition(system.transition(0), ell)
-    BQB0 = Bn @ system.process_cov(0) @ Bn.T
-    Mu[0] = symmetrize(A0 @ M0 @ A0.T + BQB0)
-    Ml[0] = Mu[0] if lower_form == "statement" else BQB0
-    mean, X = A0 @ xi0, Mu[0] + np.outer(A0 @ xi0, A0 @ xi0)  # unconditional moments at k = 1
-    for k in range(1, steps):
-        h = int(sched[k - 1]) - 1
-        C_row, r = _sensor_stats(system, k, h)
-        Cc = stacked_measurement(C_row, ell)
-        H = lam_mean[h] * Cc
-        M = Mu[k - 1]
-        if failure_term == "variance":
-            F = lam_var[h] * (Cc @ M @ Cc)
-        elif failure_term == "literal":
-            F = (lam_mean[h] ** 2 + lam_var[h]) * (Cc @ M @ Cc)
-        else:
-            F = lam_var[h] * (Cc @ X @ Cc)
-        if phi_upper == "zero":
-            phi = 0.0
-        else:
-            st = unchecked_moments(H @ mean, np.sqrt(r), tau, np.inf)
-            phi = 1.0 - float(st.truncated_var) / r
-        g = gbar[k - 1]
-        MH = M @ H
-        HMH = float(H @ MH)
-        if upper_form == "expected_riccati":
-            corr = g / (HMH + F + r * (1 - phi))
-        elif upper_form == "suboptimal_gain":
-            corr = g**2 / (g * (HMH + F) + r * (1 - phi))
-        else:
-            corr = g**2 / (g**2 * (HMH + F) + r * (1 - phi))
-        Aa = augmented_transition(system.transition(k), ell)
-        BQB = Bn @ system.process_cov(k) @ Bn.T
-        Mpost = M - corr * np.outer(MH, MH)
-        Mu[k] = symmetrize(Aa @ Mpost @ Aa.T + BQB)
-        low_noise = BQB if lower_form == "statement" else g * BQB
-        Ml[k] = symmetrize((1 - g) * (Aa @ Ml[k - 1] @ Aa.T) + low_noise)
-        mean = Aa @ mean
-        X = Aa @ X @ Aa.T + BQB
-    return CovarianceBounds(
-        upper=Mu[:, :n, :n].copy(),
-        lower=Ml[:, :n, :n].copy(),
-        upper_aug=Mu,
-        lower_aug=Ml,
-        p_uncensored=np.asarray(gbar, dtype=float),
-    )

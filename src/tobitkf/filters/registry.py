@@ -192,9 +192,10 @@ def _padf(system, parts, o):
 
 def _delay(cls_name):
     def make(system, parts, o):
-        from . import delay
+        from . import delay_augmented, delay_chain, delay_reorganized
 
-        return getattr(delay, cls_name)(system, parts["prior"], **o)
+        module = {"ChainLMMSE": delay_chain, "AugmentedLMMSE": delay_augmented}.get(cls_name, delay_reorganized)
+        return getattr(module, cls_name)(system, parts["prior"], **o)
 
     return make
 

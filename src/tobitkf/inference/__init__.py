@@ -16,7 +16,6 @@
 """
 
 from . import wrtds
-from .adf import ADFilter
 from .censored_ar import CensoredAR, CensoredARData, exact_log_likelihood, posterior_moments
 from .fitting import FitResult, fit, load_fit, residual_diagnostics
 from .likelihood import adf_log_likelihood, kalman_log_likelihood, log_likelihood, prediction_log_densities
@@ -32,7 +31,6 @@ __all__ = [
     "kalman_log_likelihood",
     "adf_log_likelihood",
     "prediction_log_densities",
-    "ADFilter",
     "CensoredAR",
     "CensoredARData",
     "exact_log_likelihood",

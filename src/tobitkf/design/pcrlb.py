@@ -61,13 +61,13 @@ from typing import Any
 import numpy as np
 from scipy.special import log_ndtr, ndtr, ndtri
 
-from ._linalg import symmetrize
-from ._validation import ShapeError, ValidationError, as_float_array, check_count, check_instance
-from .channels.base import Channel
-from .channels.censoring import Censoring
-from .channels.fading import RiceFading, measurement_matrix_at
-from .channels.laws import Gaussian
-from .models.linear import LinearSystem
+from .._linalg import symmetrize
+from .._validation import ShapeError, ValidationError, as_float_array, check_count, check_instance
+from ..channels.base import Channel
+from ..channels.censoring import Censoring
+from ..channels.fading import RiceFading, measurement_matrix_at
+from ..channels.laws import Gaussian
+from ..models.linear import LinearSystem
 
 __all__ = ["censored_fisher_information", "posterior_crlb", "PosteriorCRLB", "bound_test"]
 
@@ -263,7 +263,7 @@ def posterior_crlb(
         if steps is None:
             raise ValidationError("steps: give the horizon T (or the true trajectories as truth)")
         T = check_count(steps, "steps")
-        from .simulate.core import simulate
+        from ..simulate.core import simulate
 
         X = simulate(system, T, check_count(runs, "runs"), seed=seed).x
     else:
