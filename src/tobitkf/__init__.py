@@ -5,7 +5,8 @@ protocol-scheduled measurements; batched over Monte Carlo runs.
 
 Public API (stable):
 
-- :class:`LinearSystem` -- the state-space model.
+- :class:`LinearSystem` -- the state-space model; :class:`NonlinearSystem` (with :func:`discretize`) the
+  nonlinear one.
 - :class:`Censoring`, :func:`multi_region` -- censoring limits; :class:`Quantizer` -- a quantized sensor;
   :class:`Channel` -- the contract a channel of your own implements (:mod:`tobitkf.channels.base`), served by
   :class:`AssumedDensityFilter`, :class:`TobitFilter` and :class:`ParticleFilter`.
@@ -96,6 +97,7 @@ from .inference import (
 )
 from .models import LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
+from .models.nonlinear import NonlinearSystem, discretize
 from .models.ross import RossModel
 from .pcrlb import PosteriorCRLB, censored_fisher_information, posterior_crlb
 from .report import write_report
@@ -104,6 +106,8 @@ from .simulate.delay import simulate_delay
 
 __all__ = [
     "LinearSystem",
+    "NonlinearSystem",
+    "discretize",
     "Censoring",
     "multi_region",
     "Channel",
