@@ -79,6 +79,14 @@ from .filters.fading import (
     fading_tobit_kalman_filter,
 )
 from .filters.hinf import RegionalHinfFilter
+from .filters.nonlinear import (
+    ExtendedKalmanFilter,
+    NonlinearAssumedDensityFilter,
+    SigmaPoints,
+    TobitExtendedKalmanFilter,
+    TobitUnscentedKalmanFilter,
+    UnscentedKalmanFilter,
+)
 from .filters.particle import ParticleFilter
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
@@ -108,6 +116,12 @@ __all__ = [
     "LinearSystem",
     "NonlinearSystem",
     "discretize",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
+    "SigmaPoints",
+    "TobitExtendedKalmanFilter",
+    "TobitUnscentedKalmanFilter",
+    "NonlinearAssumedDensityFilter",
     "Censoring",
     "multi_region",
     "Channel",
