@@ -6,9 +6,6 @@ import math
 
 import numpy as np
 import pytest
-from filterpy.kalman import ExtendedKalmanFilter as FilterpyEKF
-from filterpy.kalman import MerweScaledSigmaPoints
-from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
 
 import tobitkf as tk
 
@@ -28,6 +25,8 @@ def record():
 
 
 def test_ekf_equals_filterpy(record):
+    FilterpyEKF = pytest.importorskip("filterpy.kalman").ExtendedKalmanFilter
+
     # filterpy's EKF with the same f (its predict_x), the same Jacobians, its Joseph update
     class EKF(FilterpyEKF):
         def predict_x(self, u=0):
@@ -51,6 +50,8 @@ def test_ekf_equals_filterpy(record):
 
 @pytest.mark.parametrize("abk", [(1.0, 2.0, 0.0), (0.5, 2.0, 1.0), (0.8, 0.0, -1.0)])
 def test_ukf_equals_filterpy(record, abk):
+    fk = pytest.importorskip("filterpy.kalman")
+    FilterpyUKF, MerweScaledSigmaPoints = fk.UnscentedKalmanFilter, fk.MerweScaledSigmaPoints
     a, b, kap = abk
     ours = tk.UnscentedKalmanFilter(pendulum(), alpha=a, beta=b, kappa=kap).filter(record[1])
     ref = FilterpyUKF(
