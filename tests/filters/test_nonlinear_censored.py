@@ -214,3 +214,45 @@ def test_refusals():
         tk.NonlinearAssumedDensityFilter(sys_, tk.Censoring(lower=0.0), iterations=0)
     with pytest.raises(tk.ValidationError, match="reading_statistics"):
         tk.TobitExtendedKalmanFilter(sys_, tk.RandomSaturation(mu=[0.5, 0.5], nu=[0.5, 0.5]))
+
+
+# --------------------------------------------------------------------------- the particle filter
+
+
+@pytest.mark.parametrize("name", ["censoring", "quantizer", "none"])
+def test_particle_filter_on_a_linear_nonlinear_system_is_the_linear_bootstrap_filter(name):
+    # the same generator, the same draws in the same order, the same weights (the channel's likelihood): the
+    # bootstrap filter of the NonlinearSystem with a linear f, h is the linear model's bootstrap filter
+    channel = CHANNELS.get(name)
+    nl, lin = _linear_pair()
+    y = tk.simulate(lin, 15, 2, channel=channel, seed=15).y
+    y[1, 2, 0] = np.nan
+    a = tk.ParticleFilter(nl, channel, particles=300, seed=4).filter(y)
+    b = tk.ParticleFilter(lin, channel, particles=300, proposal="prior", seed=4).filter(y)
+    np.testing.assert_allclose(a.mean, b.mean, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.cov, b.cov, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.pred_mean, b.pred_mean, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.extras["log_likelihood"], b.extras["log_likelihood"], rtol=0, atol=1e-9)
+
+
+def test_particle_filter_matches_the_exact_one_step_posterior():
+    # one reading from a Gaussian prior through a nonlinear h and a censoring: the exact posterior mean by
+    # quadrature; the particle mean's Monte Carlo error over 20 000 particles is about sd/sqrt(ESS), ESS >= 5000
+    channel = tk.Censoring(lower=0.0)
+    sys_ = tk.NonlinearSystem(lambda x, k: x, lambda x, k: x + 0.4 * x**2, [[0.0]], [[0.1]], [0.3], [[1.0]])
+    out = tk.ParticleFilter(sys_, channel, particles=20000, resample_threshold=0.0, seed=5).filter([[0.0]])
+    mu, P = _quadrature(
+        np.array([0.3]), np.array([[1.0]]), lambda X: X + 0.4 * X**2, channel, np.array([0.0]), [0.1], 40001
+    )
+    se = np.sqrt(P[0, 0] / out.extras["ess"][0])
+    assert out.extras["ess"][0] > 5000
+    assert abs(out.mean[0, 0] - mu[0]) < 5 * se
+
+
+def test_particle_filter_refusals_for_a_nonlinear_system():
+    with pytest.raises(tk.ValidationError, match="one channel piece"):
+        tk.ParticleFilter(pendulum(), [tk.Censoring(lower=0.0), tk.Quantizer(0.5)])
+    with pytest.raises(tk.ValidationError, match="region"):
+        tk.ParticleFilter(pendulum(), tk.RandomSaturation(mu=[0.5, 0.5], nu=[0.5, 0.5]))
+    with pytest.raises(tk.ValidationError, match="optimal"):
+        tk.ParticleFilter(pendulum(), tk.Censoring(lower=0.0), proposal="optimal")

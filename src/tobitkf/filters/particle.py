@@ -1061,8 +1061,10 @@ class ParticleFilter(Estimator):
 
     Parameters
     ----------
-    system : LinearSystem
-        The dynamics (and C, R, D of the readings). R must be diagonal and positive.
+    system : LinearSystem or NonlinearSystem
+        The dynamics (and C, R, D of the readings). R must be diagonal and positive. A
+        :class:`~tobitkf.NonlinearSystem` runs the bootstrap proposal with one contract channel
+        (:mod:`tobitkf.filters.particle_nonlinear`).
     channel : Channel or sequence of Channel, optional
         :class:`~tobitkf.Censoring` (one-, two-sided, time-varying; several regions as stacked
         channels, :func:`~tobitkf.multi_region`), :class:`~tobitkf.RiceFading` (with a Censoring),
@@ -1145,7 +1147,11 @@ class ParticleFilter(Estimator):
         proposal: str = "auto",
         seed: Any = None,
     ):
-        check_instance(system, LinearSystem, "system")
+        from ..models.nonlinear import NonlinearSystem
+
+        nonlinear = isinstance(system, NonlinearSystem)
+        if not nonlinear:
+            check_instance(system, LinearSystem, "system")
         if censoring is not None:
             check_instance(censoring, Censoring, "censoring")
         if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < 1:
@@ -1156,7 +1162,12 @@ class ParticleFilter(Estimator):
         if proposal not in PROPOSALS:
             raise ValidationError(f"proposal: expected one of {', '.join(map(repr, PROPOSALS))}, got {proposal!r}")
         self.system = system
-        self.model = _build_model(system, channel, censoring)
+        if nonlinear:  # the bootstrap filter with the channel's likelihood (filters.particle_nonlinear)
+            from .particle_nonlinear import nonlinear_model
+
+            self.model = nonlinear_model(system, channel, censoring)
+        else:
+            self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:
             raise ValidationError(
                 f"proposal: 'optimal' has no closed form for {self.model.label} readings (use 'auto' or 'prior')"
