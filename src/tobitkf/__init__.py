@@ -88,6 +88,7 @@ from .filters.nonlinear import (
     UnscentedKalmanFilter,
 )
 from .filters.particle import ParticleFilter
+from .filters.particle_nonlinear import nonlinear_model as _nonlinear_particle_model  # registers it
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_covariance_bounds, protocol_tobit_kalman_filter
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .filters.tracking import MultiTargetTracker

@@ -34,11 +34,33 @@ def test_tobit_filters_on_a_linear_model_are_the_tobit_filter(name):
     y = tk.simulate(lin, 30, 2, channel=channel, seed=11).y
     y[1, 4, 0] = np.nan
     want = tk.TobitFilter(lin, channel).filter(y)
-    for est in (tk.TobitExtendedKalmanFilter(nl, channel), tk.TobitUnscentedKalmanFilter(nl, channel)):
+    term = {"noise_term": "total_variance"}
+    for est in (tk.TobitExtendedKalmanFilter(nl, channel, **term), tk.TobitUnscentedKalmanFilter(nl, channel, **term)):
         got = est.filter(y)
         np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9)
         np.testing.assert_allclose(got.cov, np.broadcast_to(want.cov, got.cov.shape), rtol=0, atol=1e-9)
         np.testing.assert_allclose(got.extras["slope"], want.extras["slope"], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("term", ["dissertation", "total_variance", "exact_pv"])
+def test_tobit_filters_on_a_linear_model_are_the_tobit_kalman_filter(term):
+    channel = CHANNELS["censoring"]
+    nl, lin = _linear_pair()
+    y = tk.simulate(lin, 30, 2, channel=channel, seed=16).y
+    y[0, 2, 1] = np.nan
+    want = tk.TobitKalmanFilter(lin, channel, noise_term=term, backend="numpy").filter(y)
+    for est in (
+        tk.TobitExtendedKalmanFilter(nl, channel, noise_term=term),
+        tk.TobitUnscentedKalmanFilter(nl, channel, noise_term=term, rule="cubature"),
+    ):
+        assert est.noise_term == term
+        got = est.filter(y)
+        np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(got.cov, np.broadcast_to(want.cov, got.cov.shape), rtol=0, atol=1e-9)
+    assert tk.TobitExtendedKalmanFilter(nl, channel).noise_term == "dissertation"  # the TKF's default
+    assert tk.TobitExtendedKalmanFilter(nl, CHANNELS["quantizer"]).noise_term == "total_variance"
+    with pytest.raises(tk.ValidationError, match="noise_term"):
+        tk.TobitExtendedKalmanFilter(nl, CHANNELS["quantizer"], noise_term="dissertation")
 
 
 def test_tobit_filters_without_censoring_are_the_uncensored_filters():

@@ -22,18 +22,21 @@ The **update** from these moments is the linear one's with :math:`C` replaced by
 * :class:`ExtendedKalmanFilter` / :class:`UnscentedKalmanFilter`: :math:`K = P_{xy}(P_{yy} + R)^{-1}`,
   :math:`\hat x = \bar x + K(y - \hat y)`, :math:`P = \bar P - KP_{xy}^T`;
 * :class:`TobitExtendedKalmanFilter` / :class:`TobitUnscentedKalmanFilter`: the Tobit Kalman filter's update
-  (Arthur, Attarian, Hamilton & Tran 2018, the Tobit EKF; the channel's ``reading_statistics`` at the
-  prior mean as :class:`~tobitkf.TobitFilter` takes them): per channel l, at
-  :math:`\mu_l = \hat y_l` and the noise's :math:`\sigma_l = \sqrt{R_{ll}}`, the reading's mean
-  :math:`E[y_l]`, slope :math:`g_l = \partial E[y_l]/\partial\mu_l` (for censoring the probability of an
-  uncensored reading) and variance :math:`\mathrm{Var}[y_l]`, and with :math:`G = \mathrm{diag}(g)`
+  (Arthur, Attarian, Hamilton & Tran 2018, the Tobit EKF), every statistic at the predicted measurement as
+  the TKF takes them (Miller 2015, Assumption A1): per channel l, at :math:`\mu_l = \hat y_l` and the noise's
+  :math:`\sigma_l = \sqrt{R_{ll}}`, the reading's mean :math:`E[y_l]`, slope
+  :math:`g_l = \partial E[y_l]/\partial\mu_l` (for censoring :math:`E(\mathbf p)`, the probability of an
+  uncensored reading) and a noise term :math:`N_l` (for censoring the TKF's ``noise_term``, by default the
+  truncated variance of its source; for any other channel its reading's variance
+  :math:`\mathrm{Var}[y_l]`, from ``reading_statistics``), and with :math:`G = \mathrm{diag}(g)`
 
   .. math::
 
-      K = P_{xy}G\,(GP_{yy}G + \mathrm{diag}(\mathrm{Var}[y]))^{-1}, \qquad \hat x = \bar x + K(y - E[y]),
+      K = P_{xy}G\,(GP_{yy}G + \mathrm{diag}(N))^{-1}, \qquad \hat x = \bar x + K(y - E[y]),
       \qquad P = \bar P - KGP_{xy}^T,
 
-  for a linear :math:`h` exactly :class:`~tobitkf.TobitFilter` (tested);
+  for a linear :math:`h` exactly :class:`~tobitkf.TobitKalmanFilter` (censoring, each ``noise_term``) and
+  :class:`~tobitkf.TobitFilter` (any channel with ``reading_statistics``), tested;
 * :class:`NonlinearAssumedDensityFilter`: channel by channel (R diagonal), the latent reading of channel l
   under the affine model is :math:`y^*_l \sim N(\mu, s^2)`, :math:`\mu = \hat y_l`,
   :math:`s^2 = P_{yy,ll} + R_{ll}`, jointly Gaussian with x with covariance :math:`P_{xy,\cdot l}`; the
@@ -75,10 +78,12 @@ import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
 from .._validation import ValidationError, check_instance, check_int, diagonal_sigma
+from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
 from .adf_generic import _contract_channel, _ContractChecks
 from .assumed_density import _noise_variances
 from .core import FilterResult, FilterState, GaussianFilter, check_keywords, check_prior, gain_update
+from .tobit import NOISE_TERMS, tobit_measurement
 
 __all__ = [
     "SigmaPoints",
@@ -403,9 +408,20 @@ class UnscentedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
 class _TobitUpdate(_ContractChecks):
     _who = "the Tobit extended/unscented Kalman filter"
 
-    def _tobit_setup(self, system: NonlinearSystem, channel: Any) -> None:
+    def _tobit_setup(self, system: NonlinearSystem, channel: Any, noise_term: str | None) -> None:
         self.channel = _contract_channel(channel, "statistics", self._who)
         self.channel.check(system)
+        censoring = isinstance(self.channel, Censoring)
+        if noise_term is None:
+            noise_term = "dissertation" if censoring else "total_variance"
+        check_keywords({"noise_term": noise_term}, {"noise_term": NOISE_TERMS})
+        if not censoring and noise_term != "total_variance":
+            raise ValidationError(
+                f"noise_term: {noise_term!r} is a noise term of censored readings; a {type(self.channel).__name__} "
+                "reading's noise term is its variance ('total_variance')"
+            )
+        self.noise_term = noise_term
+        self._eye = np.eye(system.m)
         self._sigma = None if system.R.varying else self._sigmas(system.measurement_cov(1), "R")
 
     def _sigmas(self, R: np.ndarray, name: str) -> np.ndarray:
@@ -415,11 +431,18 @@ class _TobitUpdate(_ContractChecks):
         yhat, Pxy, Pyy, _ = self._measurement_moments(k, xp, Pp)
         sigma = self._sigma if self._sigma is not None else self._sigmas(self._noise(k), f"R({k})")
         N, m = yhat.shape
-        E, g, V = np.empty((N, m)), np.empty((N, m)), np.empty((N, m))
-        for l in range(m):
-            E[:, l], g[:, l], V[:, l] = self.channel.reading_statistics(
-                np.ascontiguousarray(yhat[:, l]), np.full(N, sigma[l]), k, l
-            )
+        if isinstance(self.channel, Censoring):  # the Tobit Kalman filter's own statistics, with C = I on ŷ
+            lo, hi = (np.broadcast_to(v, (m,)) for v in self.channel.limits(k))
+            mp = tobit_measurement(yhat, self._eye, sigma, lo, hi, noise_term=self.noise_term)
+            E, V = mp.expected, np.asarray(mp.noise)
+            assert mp.scale is not None, "the Tobit measurement has a channel scale"
+            g = mp.scale
+        else:
+            E, g, V = np.empty((N, m)), np.empty((N, m)), np.empty((N, m))
+            for l in range(m):
+                E[:, l], g[:, l], V[:, l] = self.channel.reading_statistics(
+                    np.ascontiguousarray(yhat[:, l]), np.full(N, sigma[l]), k, l
+                )
         Rxe = Pxy * g[:, None, :]
         Ree = g[:, :, None] * Pyy * g[:, None, :] + V[:, :, None] * np.eye(m)
         innov, valid = _masked(y, E)
@@ -447,6 +470,10 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         The model; R diagonal with positive entries.
     channel : Channel
         A channel with ``reading_statistics`` (:class:`~tobitkf.Censoring`, :class:`~tobitkf.Quantizer`, ...).
+    noise_term : {"dissertation", "total_variance", "exact_pv"}, optional
+        The noise term of a censored reading, as :class:`~tobitkf.TobitKalmanFilter`'s (default there and here
+        ``"dissertation"``, the truncated variance of the source); a channel other than
+        :class:`~tobitkf.Censoring` has only its reading's variance, ``"total_variance"`` (the default for it).
 
     Raises
     ------
@@ -465,12 +492,12 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
 
     _name = "TobitExtendedKalmanFilter"
 
-    def __init__(self, system: NonlinearSystem, channel: Any):
+    def __init__(self, system: NonlinearSystem, channel: Any, *, noise_term: str | None = None):
         self._setup(system, "standard", None)
-        self._tobit_setup(system, channel)
+        self._tobit_setup(system, channel, noise_term)
 
     def __repr__(self) -> str:
-        return f"TobitExtendedKalmanFilter({self.system!r}, {self.channel!r})"
+        return f"TobitExtendedKalmanFilter({self.system!r}, {self.channel!r}, noise_term={self.noise_term!r})"
 
 
 class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
@@ -487,6 +514,8 @@ class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         A channel with ``reading_statistics``.
     rule, alpha, beta, kappa, order
         The sigma-point rule, as :class:`UnscentedKalmanFilter`.
+    noise_term : {"dissertation", "total_variance", "exact_pv"}, optional
+        As :class:`TobitExtendedKalmanFilter`.
 
     Raises
     ------
@@ -508,12 +537,16 @@ class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         beta: float = 2.0,
         kappa: float = 0.0,
         order: int = 3,
+        noise_term: str | None = None,
     ):
         self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
-        self._tobit_setup(system, channel)
+        self._tobit_setup(system, channel, noise_term)
 
     def __repr__(self) -> str:
-        return f"TobitUnscentedKalmanFilter({self.system!r}, {self.channel!r}, rule={self.rule!r})"
+        return (
+            f"TobitUnscentedKalmanFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}, "
+            f"noise_term={self.noise_term!r})"
+        )
 
 
 # --------------------------------------------------------------------------- the assumed-density filter

@@ -1032,6 +1032,11 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     return _Contract(system, d)
 
 
+#: model class other than LinearSystem -> ``builder(system, channel, censoring)`` of its particle-filter model;
+#: filled by the module that serves it (tobitkf.filters.particle_nonlinear for NonlinearSystem)
+SYSTEM_MODELS: dict[type, Any] = {}
+
+
 def _rng_state(seed: Any) -> Any:
     if isinstance(seed, np.random.Generator):
         return seed.bit_generator.state
@@ -1147,10 +1152,8 @@ class ParticleFilter(Estimator):
         proposal: str = "auto",
         seed: Any = None,
     ):
-        from ..models.nonlinear import NonlinearSystem
-
-        nonlinear = isinstance(system, NonlinearSystem)
-        if not nonlinear:
+        builder = next((b for t, b in SYSTEM_MODELS.items() if isinstance(system, t)), None)
+        if builder is None:
             check_instance(system, LinearSystem, "system")
         if censoring is not None:
             check_instance(censoring, Censoring, "censoring")
@@ -1162,10 +1165,8 @@ class ParticleFilter(Estimator):
         if proposal not in PROPOSALS:
             raise ValidationError(f"proposal: expected one of {', '.join(map(repr, PROPOSALS))}, got {proposal!r}")
         self.system = system
-        if nonlinear:  # the bootstrap filter with the channel's likelihood (filters.particle_nonlinear)
-            from .particle_nonlinear import nonlinear_model
-
-            self.model = nonlinear_model(system, channel, censoring)
+        if builder is not None:  # another kind of model (a NonlinearSystem: filters.particle_nonlinear)
+            self.model = builder(system, channel, censoring)
         else:
             self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:

@@ -20,9 +20,9 @@ from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
 from .nonlinear import SigmaPoints, _sigma_moments
-from .particle import _diag_sigma, _flatten, _mat, _Model
+from .particle import SYSTEM_MODELS, _diag_sigma, _flatten, _mat, _Model
 
-__all__ = ["nonlinear_model"]
+__all__ = ["nonlinear_model"]  # registered with the particle filter when imported (by tobitkf)
 
 _PREDICTION = SigmaPoints("unscented")
 
@@ -88,3 +88,6 @@ def nonlinear_model(system: Any, channel: Any, censoring: Any) -> _Model:
             "(tobitkf.channels.base), which the particle filter of a NonlinearSystem needs"
         )
     return _Nonlinear(system, piece)
+
+
+SYSTEM_MODELS[NonlinearSystem] = nonlinear_model
