@@ -292,6 +292,72 @@ class _NonlinearFamily(GaussianFilter):
     def _noise(self, k: int) -> np.ndarray:
         return self.system.measurement_cov(k)
 
+    def smooth(self, y: Any, *, x0: Any = None, P0: Any = None) -> FilterResult:
+        r"""Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments.
+
+        The backward pass of the extended RTS smoother (a filter without sigma points: the cross-covariance
+        :math:`C_k = P_{k|k}F_k^T`, :math:`F_k = \partial f/\partial x` at :math:`\hat x_{k|k}`) or of the
+        sigma-point RTS smoother (Särkkä 2008: :math:`C_k = \sum_i w^c_i(\chi_i - \hat x_{k|k})
+        (f(\chi_i, k) - \bar x_{k+1})^T`, the rule's points of :math:`N(\hat x_{k|k}, P_{k|k})`), over the
+        filtered and predicted moments of :meth:`filter`:
+
+        .. math::
+
+            G_k = C_k\bar P_{k+1}^{-1}, \qquad \hat x_{k|T} = \hat x_{k|k} + G_k(\hat x_{k+1|T} - \bar x_{k+1}),
+            \qquad P_{k|T} = P_{k|k} + G_k(P_{k+1|T} - \bar P_{k+1})G_k^T.
+
+        For a linear model it is the Kalman (RTS) smoother.
+
+        Returns
+        -------
+        FilterResult
+            ``mean`` :math:`\hat x_{k|T}` (..., T, n), ``cov`` :math:`P_{k|T}` (..., T, n, n), ``extras``
+            ``filtered_mean``, ``filtered_cov`` and ``gain`` (:math:`G_k`, (..., T, n, n); zero in the last row);
+            ``times`` as the filter's.
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`.
+        """
+        res = self.filter(y, x0=x0, P0=P0)
+        assert res.mean is not None and res.cov is not None and res.pred_mean is not None and res.pred_cov is not None
+        assert res.times is not None
+        batch, (T, n) = res.mean.shape[:-2], res.mean.shape[-2:]
+        xf, Pf = res.mean.reshape(-1, T, n), np.broadcast_to(res.cov, batch + (T, n, n)).reshape(-1, T, n, n)
+        xp, Pp = res.pred_mean.reshape(-1, T, n), np.broadcast_to(res.pred_cov, batch + (T, n, n)).reshape(-1, T, n, n)
+        N = xf.shape[0]
+        xs, Ps, gain = np.empty_like(xf), np.empty((N, T, n, n)), np.zeros((N, T, n, n))
+        xs[:, -1], Ps[:, -1] = xf[:, -1], Pf[:, -1]
+        k_first = int(res.times[0])
+        for i in range(T - 2, -1, -1):
+            k = k_first + i  # row i holds x_k; x_{k+1} = f(x_k, k) + w_k
+            C = self._cross_cov(k, xf[:, i], Pf[:, i])
+            G = np.linalg.solve(Pp[:, i + 1], C.swapaxes(-1, -2)).swapaxes(-1, -2)  # C P̄^{-1}, P̄ symmetric
+            xs[:, i] = xf[:, i] + np.einsum("rij,rj->ri", G, xs[:, i + 1] - xp[:, i + 1])
+            Ps[:, i] = symmetrize(Pf[:, i] + G @ (Ps[:, i + 1] - Pp[:, i + 1]) @ G.swapaxes(-1, -2))
+            gain[:, i] = G
+        shape_x, shape_P = batch + (T, n), batch + (T, n, n)
+        return FilterResult(
+            mean=xs.reshape(shape_x),
+            cov=Ps.reshape(shape_P),
+            pred_mean=None,
+            pred_cov=None,
+            extras={
+                "filtered_mean": res.mean,
+                "filtered_cov": res.cov,
+                "gain": gain.reshape(shape_P),
+            },
+            times=res.times,
+        )
+
+    def _cross_cov(self, k: int, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        r""":math:`\mathrm{Cov}(x_k, f(x_k, k))` (N, n, n) under :math:`N(x, P)`: extended or by the rule."""
+        sys_ = self.system
+        if self.rule is None:
+            return P @ sys_.transition_jacobian(x, k).swapaxes(-1, -2)
+        return _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k), x, P)[1]
+
 
 def _masked(y: np.ndarray, expected: np.ndarray):
     """The innovation with missing readings set to 0 and the mask of the readings present."""
