@@ -91,6 +91,12 @@ def test_adf_on_a_linear_model_is_the_linear_adf(name):
         np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-9)
         np.testing.assert_allclose(got.cov, np.broadcast_to(want.cov, got.cov.shape), rtol=0, atol=1e-9)
         np.testing.assert_allclose(got.extras["log_likelihood"], want.extras["log_likelihood"], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        tk.NonlinearAssumedDensityFilter(nl, channel).log_likelihood(y),
+        tk.AssumedDensityFilter(lin, channel).log_likelihood(y),
+        rtol=0,
+        atol=1e-8,
+    )
     # a linear h is linearised exactly: iterating changes nothing
     again = tk.NonlinearAssumedDensityFilter(nl, channel, iterations=3).filter(y)
     np.testing.assert_allclose(again.mean, want.mean, rtol=0, atol=1e-9)

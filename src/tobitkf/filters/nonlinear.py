@@ -703,6 +703,19 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             ll += lll
         return x, P, None, carry, {"log_likelihood": ll}
 
+    def log_likelihood(self, y: Any, *, x0: Any = None, P0: Any = None, per_step: bool = False) -> np.ndarray:
+        r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (..., T, m): (...), or the terms
+        (..., T) with ``per_step`` (the ``log_likelihood`` extras of :meth:`filter`; for a linear h the linear
+        :class:`~tobitkf.AssumedDensityFilter`'s).
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`.
+        """
+        terms = self.filter(y, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        return terms if per_step else terms.sum(-1)
+
     def _channel(self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float):
         """The projection of channel ``l``, iterated about the posterior: ``(x, P, log p(y))``."""
         sys_ = cast(NonlinearSystem, self.system)
