@@ -516,18 +516,8 @@ class _TobitUpdate(_ContractChecks):
         return x, P, None, carry, {"expected_y": E, "slope": g}
 
 
-_TOBIT_NOTES = r"""
-    Notes
-    -----
-    Extras: ``expected_y`` (..., T, m), the reading's mean :math:`E[y]` at the predicted measurement, and
-    ``slope`` (..., T, m), :math:`g = \partial E[y]/\partial\mu` (for censoring the probability of an
-    uncensored reading). Readings the channel cannot give are refused (its ``check_readings``).
-"""
-
-
 class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
-    (
-        r"""The Tobit extended Kalman filter (Arthur et al. 2018): the Tobit Kalman filter's update with
+    r"""The Tobit extended Kalman filter (Arthur et al. 2018): the Tobit Kalman filter's update with
     :math:`C` replaced by the Jacobian :math:`H = \partial h/\partial x` at the prediction (module docstring).
 
     Parameters
@@ -546,15 +536,18 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
     ValidationError
         ``system`` not a NonlinearSystem, a channel without ``reading_statistics``, R not diagonal or a
         variance not positive.
-    """
-        + _TOBIT_NOTES
-        + r"""
+
+    Notes
+    -----
+    Extras: ``expected_y`` (..., T, m), the reading's mean :math:`E[y]` at the predicted measurement, and
+    ``slope`` (..., T, m), :math:`g = \partial E[y]/\partial\mu` (for censoring the probability of an
+    uncensored reading). Readings the channel cannot give are refused (its ``check_readings``).
+
     References
     ----------
     .. [1] R. Arthur, A. Attarian, F. Hamilton, H. Tran, "Nonlinear Kalman filtering with censored
        observations", Applied Mathematics and Computation 316 (2018) 155-166.
     """
-    )
 
     _name = "TobitExtendedKalmanFilter"
 
@@ -567,8 +560,7 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
 
 
 class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
-    (
-        r"""The Tobit update on the sigma-point measurement prediction: :class:`TobitExtendedKalmanFilter` with
+    r"""The Tobit update on the sigma-point measurement prediction: :class:`TobitExtendedKalmanFilter` with
     :math:`\bar PH^T` and :math:`H\bar PH^T` replaced by the statistical :math:`P_{xy}` and :math:`P_{yy}`
     (module docstring).
 
@@ -587,9 +579,13 @@ class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
     ------
     ValidationError
         As :class:`TobitExtendedKalmanFilter`, and an unknown rule or a bad parameter.
+
+    Notes
+    -----
+    Extras: ``expected_y`` (..., T, m), the reading's mean :math:`E[y]` at the predicted measurement, and
+    ``slope`` (..., T, m), :math:`g = \partial E[y]/\partial\mu` (for censoring the probability of an
+    uncensored reading). Readings the channel cannot give are refused (its ``check_readings``).
     """
-        + _TOBIT_NOTES
-    )
 
     _name = "TobitUnscentedKalmanFilter"
 
