@@ -5,7 +5,8 @@ protocol-scheduled measurements; batched over Monte Carlo runs.
 
 Public API (stable):
 
-- :class:`LinearSystem` -- the state-space model.
+- :class:`LinearSystem` -- the state-space model; :class:`NonlinearSystem` (with :func:`discretize`) the
+  nonlinear one.
 - :class:`Censoring`, :func:`multi_region` -- censoring limits; :class:`Quantizer` -- a quantized sensor;
   :class:`Channel` -- the contract a channel of your own implements (:mod:`tobitkf.channels.base`), served by
   :class:`AssumedDensityFilter`, :class:`TobitFilter` and :class:`ParticleFilter`.
@@ -72,7 +73,16 @@ from .filters.fading import (
     fading_tobit_kalman_filter,
 )
 from .filters.hinf import RegionalHinfFilter
+from .filters.nonlinear import (
+    ExtendedKalmanFilter,
+    NonlinearAssumedDensityFilter,
+    SigmaPoints,
+    TobitExtendedKalmanFilter,
+    TobitUnscentedKalmanFilter,
+    UnscentedKalmanFilter,
+)
 from .filters.particle import ParticleFilter
+from .filters.particle_nonlinear import nonlinear_model as _nonlinear_particle_model  # registers it
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
 from .filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from .filters.tracking import MultiTargetTracker
@@ -91,6 +101,7 @@ from .inference import (
 )
 from .models import ContinuousLinearSystem, LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
+from .models.nonlinear import NonlinearSystem, discretize
 from .models.ross import RossModel
 from .report import write_report
 from .simulate import SimulationData, simulate
@@ -99,6 +110,14 @@ from .simulate.delay import simulate_delay
 __all__ = [
     "LinearSystem",
     "ContinuousLinearSystem",
+    "NonlinearSystem",
+    "discretize",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
+    "SigmaPoints",
+    "TobitExtendedKalmanFilter",
+    "TobitUnscentedKalmanFilter",
+    "NonlinearAssumedDensityFilter",
     "Censoring",
     "multi_region",
     "Channel",

@@ -1032,6 +1032,11 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
     return _Contract(system, d)
 
 
+#: model class other than LinearSystem -> ``builder(system, channel, censoring)`` of its particle-filter model;
+#: filled by the module that serves it (tobitkf.filters.particle_nonlinear for NonlinearSystem)
+SYSTEM_MODELS: dict[type, Any] = {}
+
+
 def _rng_state(seed: Any) -> Any:
     if isinstance(seed, np.random.Generator):
         return seed.bit_generator.state
@@ -1061,8 +1066,10 @@ class ParticleFilter(Estimator):
 
     Parameters
     ----------
-    system : LinearSystem
-        The dynamics (and C, R, D of the readings). R must be diagonal and positive.
+    system : LinearSystem or NonlinearSystem
+        The dynamics (and C, R, D of the readings). R must be diagonal and positive. A
+        :class:`~tobitkf.NonlinearSystem` runs the bootstrap proposal with one contract channel
+        (:mod:`tobitkf.filters.particle_nonlinear`).
     channel : Channel or sequence of Channel, optional
         :class:`~tobitkf.Censoring` (one-, two-sided, time-varying; several regions as stacked
         channels, :func:`~tobitkf.multi_region`), :class:`~tobitkf.RiceFading` (with a Censoring),
@@ -1145,7 +1152,9 @@ class ParticleFilter(Estimator):
         proposal: str = "auto",
         seed: Any = None,
     ):
-        check_instance(system, LinearSystem, "system")
+        builder = next((b for t, b in SYSTEM_MODELS.items() if isinstance(system, t)), None)
+        if builder is None:
+            check_instance(system, LinearSystem, "system")
         if censoring is not None:
             check_instance(censoring, Censoring, "censoring")
         if isinstance(particles, bool) or not isinstance(particles, (int, np.integer)) or particles < 1:
@@ -1156,7 +1165,10 @@ class ParticleFilter(Estimator):
         if proposal not in PROPOSALS:
             raise ValidationError(f"proposal: expected one of {', '.join(map(repr, PROPOSALS))}, got {proposal!r}")
         self.system = system
-        self.model = _build_model(system, channel, censoring)
+        if builder is not None:  # another kind of model (a NonlinearSystem: filters.particle_nonlinear)
+            self.model = builder(system, channel, censoring)
+        else:
+            self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:
             raise ValidationError(
                 f"proposal: 'optimal' has no closed form for {self.model.label} readings (use 'auto' or 'prior')"

@@ -43,6 +43,7 @@ from .._validation import (
 from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
+from ..models.nonlinear import NonlinearSystem
 
 __all__ = ["SimulationData", "simulate", "as_generator", "psd_sqrt"]
 
@@ -81,7 +82,7 @@ class SimulationData:
 
 
 def simulate(
-    system: LinearSystem,
+    system: LinearSystem | NonlinearSystem,
     steps: int,
     runs: int = 1,
     *,
@@ -96,8 +97,9 @@ def simulate(
 
     Parameters
     ----------
-    system : LinearSystem
-        The model.
+    system : LinearSystem or NonlinearSystem
+        The model (a :class:`~tobitkf.NonlinearSystem` draws :math:`x_k = f(x_{k-1}, k-1) + w_{k-1}`,
+        :math:`y^*_k = h(x_k, k) + v_k`; no channel piece may draw its reading from ``C``).
     steps : int
         Horizon T (number of measurements).
     runs : int, default 1
@@ -140,7 +142,9 @@ def simulate(
     >>> data.x.shape, data.y.shape, bool((data.y >= 0).all())
     ((3, 6, 1), (3, 5, 1), True)
     """
-    check_instance(system, LinearSystem, "system")
+    nonlinear = isinstance(system, NonlinearSystem)
+    if not nonlinear:
+        check_instance(system, LinearSystem, "system")
     steps = check_count(steps, "steps")
     runs = check_count(runs, "runs")
     # refused before anything is allocated (or a callable evaluated over a huge horizon)
@@ -178,6 +182,11 @@ def simulate(
         )
     if drawers:
         measurement = drawers[0]
+    if nonlinear and measurement is not None:
+        raise ValidationError(
+            "channel: a NonlinearSystem's reading is h(x, k) + v; a piece that draws its own reading from C "
+            f"({type(measurement).__name__}) does not apply"
+        )
     u = system.check_inputs(inputs, steps, "inputs")
     if u is not None:
         assert system.p is not None, "check_inputs returns inputs only for a system with an input matrix"
@@ -201,14 +210,16 @@ def simulate(
     if not system.R.varying:
         v = v @ psd_sqrt(system.R.at(1)).T
     for k in range(1, steps + 1):
-        A = system.transition(k - 1)
         noise = w[:, k - 1]
         if not const_noise:
             G = psd_sqrt(system.Q.at(k - 1))
             if system.B is not None:
                 G = system.B.at(k - 1) @ G
             noise = noise @ G.T
-        x[:, k] = x[:, k - 1] @ A.T + noise
+        if isinstance(system, NonlinearSystem):
+            x[:, k] = system.transition_map(x[:, k - 1], k - 1) + noise
+        else:
+            x[:, k] = x[:, k - 1] @ system.transition(k - 1).T + noise
         if u is not None and system.Bu is not None:
             x[:, k] += u[:, k - 1] @ system.Bu.at(k).T
         if system.R.varying:
@@ -216,7 +227,9 @@ def simulate(
 
     extras: dict[str, Any] = {}
     if measurement is None:
-        if system.C.varying:
+        if isinstance(system, NonlinearSystem):
+            y_latent = np.stack([system.measurement_map(x[:, k], k) for k in range(1, steps + 1)], axis=1) + v
+        elif system.C.varying:
             y_latent = np.stack([x[:, k] @ system.measurement(k).T for k in range(1, steps + 1)], axis=1) + v
         else:
             y_latent = x[:, 1:] @ system.measurement(1).T + v

@@ -1,0 +1,761 @@
+r"""Filters of a :class:`~tobitkf.NonlinearSystem`: the prediction turned into the moments the linear update takes.
+
+Every filter here reduces one step of :math:`x_k = f(x_{k-1}, k-1) + w`, :math:`y^*_k = h(x_k, k) + v` to
+Gaussian moments and hands them to the shared Gaussian step (:func:`~tobitkf.filters.core.gain_update`):
+
+* the **prediction** :math:`\bar x, \bar P` of :math:`x_k`: by linearisation (extended,
+  :math:`\bar x = f(\hat x)`, :math:`\bar P = F\hat PF^T + Q`, :math:`F = \partial f/\partial x` at
+  :math:`\hat x`) or by a sigma-point rule (:math:`\bar x = \sum_i w^m_if(\chi_i)`,
+  :math:`\bar P = \sum_i w^c_i(f(\chi_i) - \bar x)(\cdot)^T + Q`, :math:`\chi_i` the rule's points of
+  :math:`N(\hat x, \hat P)`);
+* the **measurement prediction** :math:`\hat y = E[h(x_k)]`, :math:`P_{xy} = \mathrm{Cov}(x_k, h(x_k))`,
+  :math:`P_{yy} = \mathrm{Cov}(h(x_k))` under :math:`x_k \sim N(\bar x, \bar P)`: extended
+  :math:`\hat y = h(\bar x)`, :math:`P_{xy} = \bar PH^T`, :math:`P_{yy} = H\bar PH^T`; sigma points
+  :math:`\chi_i` of :math:`N(\bar x, \bar P)` (redrawn after the prediction) with the same weighted sums.
+  That is the affine model :math:`y^* \approx \mathcal Hx + b + e`, :math:`e \sim N(0, \Omega + R)`, with
+  :math:`\mathcal H = P_{xy}^T\bar P^{-1}`, :math:`b = \hat y - \mathcal H\bar x`,
+  :math:`\Omega = P_{yy} - \mathcal H\bar P\mathcal H^T` (the statistical linearisation; :math:`\Omega = 0`
+  for the extended form).
+
+The **update** from these moments is the linear one's with :math:`C` replaced by the linearisation:
+
+* :class:`ExtendedKalmanFilter` / :class:`UnscentedKalmanFilter`: :math:`K = P_{xy}(P_{yy} + R)^{-1}`,
+  :math:`\hat x = \bar x + K(y - \hat y)`, :math:`P = \bar P - KP_{xy}^T`;
+* :class:`TobitExtendedKalmanFilter` / :class:`TobitUnscentedKalmanFilter`: the Tobit Kalman filter's update
+  (Arthur, Attarian, Hamilton & Tran 2018, the Tobit EKF), every statistic at the predicted measurement as
+  the TKF takes them (Miller 2015, Assumption A1): per channel l, at :math:`\mu_l = \hat y_l` and the noise's
+  :math:`\sigma_l = \sqrt{R_{ll}}`, the reading's mean :math:`E[y_l]`, slope
+  :math:`g_l = \partial E[y_l]/\partial\mu_l` (for censoring :math:`E(\mathbf p)`, the probability of an
+  uncensored reading) and a noise term :math:`N_l` (for censoring the TKF's ``noise_term``, by default the
+  truncated variance of its source; for any other channel its reading's variance
+  :math:`\mathrm{Var}[y_l]`, from ``reading_statistics``), and with :math:`G = \mathrm{diag}(g)`
+
+  .. math::
+
+      K = P_{xy}G\,(GP_{yy}G + \mathrm{diag}(N))^{-1}, \qquad \hat x = \bar x + K(y - E[y]),
+      \qquad P = \bar P - KGP_{xy}^T,
+
+  for a linear :math:`h` exactly :class:`~tobitkf.TobitKalmanFilter` (censoring, each ``noise_term``) and
+  :class:`~tobitkf.TobitFilter` (any channel with ``reading_statistics``), tested;
+* :class:`NonlinearAssumedDensityFilter`: channel by channel (R diagonal), the latent reading of channel l
+  under the affine model is :math:`y^*_l \sim N(\mu, s^2)`, :math:`\mu = \hat y_l`,
+  :math:`s^2 = P_{yy,ll} + R_{ll}`, jointly Gaussian with x with covariance :math:`P_{xy,\cdot l}`; the
+  channel's exact moments of the latent reading given its reading (``reading_moments``: censored,
+  saturated at a limit, an interval of a quantizer) give the projection
+  :math:`\hat x = \bar x + K(E[y^* \mid y] - \mu)`, :math:`P = \bar P - K(s^2 - V)K^T`,
+  :math:`K = P_{xy,\cdot l}/s^2` (the linear :class:`~tobitkf.AssumedDensityFilter`'s update, which it equals
+  for a linear h). With ``iterations > 1`` the linearisation is redone about the current posterior
+  (iterated posterior linearisation, García-Fernández et al. 2015): :math:`\mathcal H, b, \Omega` from the
+  sigma points of the posterior, then the update from the prior with :math:`\mu = \mathcal H\bar x + b`,
+  :math:`s^2 = \mathcal H\bar P\mathcal H^T + \Omega + R_{ll}`, :math:`K = \bar P\mathcal H^T/s^2`.
+
+Sigma-point rules (``rule=``, unit points :math:`\xi_i` with :math:`\chi_i = \bar x + L\xi_i`,
+:math:`LL^T = \bar P` the lower Cholesky factor, an eigen root when P is singular):
+
+``"unscented"`` (alpha, beta, kappa)
+    :math:`\lambda = \alpha^2(n + \kappa) - n`; :math:`\xi_0 = 0`, :math:`\xi_{\pm i} = \pm\sqrt{n+\lambda}e_i`;
+    :math:`w^m_0 = \lambda/(n+\lambda)`, :math:`w^c_0 = w^m_0 + 1 - \alpha^2 + \beta`, the others
+    :math:`1/(2(n+\lambda))` (Wan & van der Merwe 2000; filterpy's ``MerweScaledSigmaPoints``). Exact for
+    polynomials of degree 3 in the mean.
+``"cubature"``
+    :math:`\xi_{\pm i} = \pm\sqrt n e_i`, weights :math:`1/(2n)` (Arasaratnam & Haykin 2009); degree 3.
+``"gauss_hermite"`` (order p)
+    the tensor product of the p-point Gauss–Hermite rule for :math:`N(0, 1)` (:math:`p^n` points); exact for
+    polynomials of degree up to :math:`2p - 1` in each coordinate.
+
+Missing readings (NaN) take no part in the update, channel by channel. Time convention (package-wide):
+:math:`x_0 \sim N(\bar x_0, P_0)` is the prior, :math:`y_1` is at index 0, result row k-1 holds
+:math:`\hat x_{k|k}`, :math:`P_{k|k}` and the prediction.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Any, cast
+
+import numpy as np
+
+from .._linalg import psd_sqrt, symmetrize
+from .._validation import ValidationError, check_instance, check_int, diagonal_sigma
+from ..channels.censoring import Censoring
+from ..models.nonlinear import NonlinearSystem
+from .adf_generic import _contract_channel, _ContractChecks
+from .assumed_density import _noise_variances
+from .core import FilterResult, FilterState, GaussianFilter, check_keywords, check_prior, gain_update
+from .tobit import NOISE_TERMS, tobit_measurement
+
+__all__ = [
+    "SigmaPoints",
+    "ExtendedKalmanFilter",
+    "UnscentedKalmanFilter",
+    "TobitExtendedKalmanFilter",
+    "TobitUnscentedKalmanFilter",
+    "NonlinearAssumedDensityFilter",
+]
+
+RULES = ("unscented", "cubature", "gauss_hermite")
+_TINY = np.finfo(np.float64).tiny
+
+
+# --------------------------------------------------------------------------- sigma-point rules
+
+
+class SigmaPoints:
+    r"""A sigma-point rule for :math:`E[g(x)]`, :math:`x \sim N(\bar x, \bar P)` (the module docstring).
+
+    Parameters
+    ----------
+    rule : {"unscented", "cubature", "gauss_hermite"}, default "unscented"
+    alpha, beta, kappa : float, default 1, 2, 0
+        The unscented rule's parameters (``alpha > 0``, ``n + kappa > 0``); ignored by the other rules.
+    order : int >= 1, default 3
+        Points per coordinate of the Gauss–Hermite rule; ignored by the other rules.
+
+    Raises
+    ------
+    ValidationError
+        An unknown rule, a non-positive alpha or order, a kappa with ``n + kappa <= 0`` (at first use).
+    """
+
+    def __init__(
+        self, rule: str = "unscented", *, alpha: float = 1.0, beta: float = 2.0, kappa: float = 0.0, order: int = 3
+    ):
+        check_keywords({"rule": rule}, {"rule": RULES})
+        self.rule = rule
+        self.alpha, self.beta, self.kappa = float(alpha), float(beta), float(kappa)
+        if not (math.isfinite(self.alpha) and self.alpha > 0):
+            raise ValidationError(f"alpha: expected a positive number, got {alpha!r}")
+        if not (math.isfinite(self.beta) and math.isfinite(self.kappa)):
+            raise ValidationError(f"beta/kappa: expected finite numbers, got {beta!r}, {kappa!r}")
+        self.order = check_int(order, "order", minimum=1, maximum=40)
+
+    def unit(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The unit points ``(L, n)`` and the mean and covariance weights ``(L,)`` for dimension ``n``."""
+        return _unit(self.rule, n, self.alpha, self.beta, self.kappa, self.order)
+
+    def points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        r"""The points :math:`\chi_i = x + L\xi_i` (N, L, n) of :math:`N(x, P)`, x (N, n), P (N or 1, n, n)."""
+        xi = self.unit(x.shape[-1])[0]
+        root = psd_sqrt(P)
+        return x[:, None, :] + np.einsum("lj,rij->rli", xi, root)
+
+    def __repr__(self) -> str:
+        if self.rule == "unscented":
+            return f"SigmaPoints('unscented', alpha={self.alpha}, beta={self.beta}, kappa={self.kappa})"
+        if self.rule == "gauss_hermite":
+            return f"SigmaPoints('gauss_hermite', order={self.order})"
+        return "SigmaPoints('cubature')"
+
+
+@lru_cache(maxsize=64)
+def _unit(rule: str, n: int, alpha: float, beta: float, kappa: float, order: int):
+    eye = np.eye(n)
+    if rule == "unscented":
+        if n + kappa <= 0:
+            raise ValidationError(f"kappa: expected n + kappa > 0 (n = {n}), got kappa = {kappa}")
+        lam = alpha**2 * (n + kappa) - n
+        c = n + lam
+        xi = np.concatenate([np.zeros((1, n)), math.sqrt(c) * eye, -math.sqrt(c) * eye])
+        wm = np.full(2 * n + 1, 0.5 / c)
+        wc = wm.copy()
+        wm[0] = lam / c
+        wc[0] = lam / c + (1.0 - alpha**2 + beta)
+    elif rule == "cubature":
+        xi = np.concatenate([math.sqrt(n) * eye, -math.sqrt(n) * eye])
+        wm = np.full(2 * n, 0.5 / n)
+        wc = wm
+    else:
+        nodes, weights = np.polynomial.hermite_e.hermegauss(order)
+        weights = weights / weights.sum()
+        grids = np.meshgrid(*([nodes] * n), indexing="ij")
+        xi = np.stack([g.ravel() for g in grids], axis=-1)
+        wgrids = np.meshgrid(*([weights] * n), indexing="ij")
+        wm = np.prod(np.stack([g.ravel() for g in wgrids], axis=-1), axis=-1)
+        wc = wm
+    for arr in (xi, wm, wc):
+        arr.setflags(write=False)
+    return xi, wm, wc
+
+
+def _sigma_moments(rule: SigmaPoints, fun, x: np.ndarray, P: np.ndarray):
+    r"""``(ȳ, P_xy, P_yy)`` of :math:`y = g(x)`, :math:`x \sim N(x, P)`: (N, r), (N, n, r), (N, r, r)."""
+    N, n = x.shape
+    _, wm, wc = rule.unit(n)
+    X = rule.points(x, P)
+    L = X.shape[1]
+    Y = fun(X.reshape(N * L, n)).reshape(N, L, -1)
+    ym = np.einsum("l,rla->ra", wm, Y)
+    dY = Y - ym[:, None, :]
+    dX = X - x[:, None, :]
+    Pyy = np.einsum("l,rla,rlb->rab", wc, dY, dY)
+    Pxy = np.einsum("l,rla,rlb->rab", wc, dX, dY)
+    return ym, Pxy, symmetrize(Pyy)
+
+
+# --------------------------------------------------------------------------- the shared family
+
+
+class _NonlinearFamily(GaussianFilter):
+    """A filter of a :class:`~tobitkf.NonlinearSystem`: prior, predict and the measurement moments by
+    linearisation (``rule=None``) or sigma points; the update is the family's."""
+
+    system: Any  # a NonlinearSystem (Any: the contract checks' mixin declares a LinearSystem)
+    _forms: tuple[str, ...] = ("standard",)
+
+    def _setup(self, system: Any, covariance_update: str, rule: SigmaPoints | None) -> None:
+        check_instance(system, NonlinearSystem, "system")
+        check_keywords({"covariance_update": covariance_update}, {"covariance_update": self._forms})
+        self.system = system
+        self.n, self.m = system.n, system.m
+        self.covariance_update = covariance_update
+        self.rule = rule
+        if rule is not None:
+            rule.unit(self.n)  # a kappa that does not fit n is refused here
+
+    def _compiled_core(self) -> bool:
+        return False
+
+    def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):
+        x, P = check_prior(self.system, x0, P0, N, batch)
+        per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
+        return x, (P if per_run else P[:1].copy()), {}
+
+    def _check_record(self, y2: np.ndarray, u2, k0: int, name: str = "y") -> None:
+        self.system.check_horizon(k0 + y2.shape[1])
+
+    def _predict(self, k: int, x: np.ndarray, P: np.ndarray):
+        """:math:`\\bar x_k, \\bar P_k` from the posterior at k-1."""
+        sys_, Q = self.system, self.system.process_cov(k - 1)
+        if self.rule is None:
+            xp = sys_.transition_map(x, k - 1)
+            F = sys_.transition_jacobian(x, k - 1)
+            Pp = F @ P @ F.swapaxes(-1, -2) + Q
+        else:
+            xp, _, Pf = _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k - 1), x, P)
+            Pp = Pf + Q
+        return xp, symmetrize(Pp)
+
+    def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray):
+        """``(ŷ, P_xy, P_yy, H)`` of :math:`h(x_k)` under the prediction (H the Jacobian, None for sigma points)."""
+        sys_ = self.system
+        if self.rule is None:
+            yhat = sys_.measurement_map(xp, k)
+            H = sys_.measurement_jacobian(xp, k)
+            Pxy = Pp @ H.swapaxes(-1, -2)
+            return yhat, Pxy, symmetrize(H @ Pxy), H
+        yhat, Pxy, Pyy = _sigma_moments(self.rule, lambda z: sys_.measurement_map(z, k), xp, Pp)
+        return yhat, Pxy, Pyy, None
+
+    def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
+        xp, Pp = self._predict(k, x, P)
+        xn, Pn, Sn, carry, extras = self._update_arrays(k, xp, Pp, None, y, u, carry, options or {})
+        return xn, Pn, Sn, carry, xp, Pp, extras
+
+    def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
+        """The time update alone: the prediction :math:`\\bar x_{k+1}`, :math:`\\bar P_{k+1}` as a state whose
+        ``k`` is the predicted time (pass it to :meth:`update` with that time's reading)."""
+        state = self._check_state(state)
+        self._step_input(state, u)
+        k = state.k + 1
+        assert state.P is not None, "a Gaussian filter's state carries P"
+        xp, Pp = self._predict(k, state.x, state.P)
+        carry = dict(state.carry)
+        carry["_predicted"] = True
+        return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, carry=carry)
+
+    def filter(
+        self, y: Any, *, x0: Any = None, P0: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
+        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
+
+        Parameters
+        ----------
+        y : (..., T, m) array_like
+            Readings y_1..y_T (leading axes are runs).
+        x0, P0 : array_like, optional
+            Override the system's prior ((n,)/(n, n) or laid out like the batch).
+        outputs : str or sequence of str, default "all"
+            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
+        state : FilterState, optional
+            Continue from this state (from :meth:`init`, :meth:`step` or a result's ``final``).
+
+        Raises
+        ------
+        ShapeError
+            Malformed ``y``, or f, h or a Jacobian returning the wrong shape.
+        ValidationError
+            Infinite readings, or a reading the channel cannot give.
+        """
+        return self._run(y, None, x0, P0, outputs=outputs, state=state)
+
+    def _noise(self, k: int) -> np.ndarray:
+        return self.system.measurement_cov(k)
+
+    def smooth(self, y: Any, *, x0: Any = None, P0: Any = None) -> FilterResult:
+        r"""Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments.
+
+        The backward pass of the extended RTS smoother (a filter without sigma points: the cross-covariance
+        :math:`C_k = P_{k|k}F_k^T`, :math:`F_k = \partial f/\partial x` at :math:`\hat x_{k|k}`) or of the
+        sigma-point RTS smoother (Särkkä 2008: :math:`C_k = \sum_i w^c_i(\chi_i - \hat x_{k|k})
+        (f(\chi_i, k) - \bar x_{k+1})^T`, the rule's points of :math:`N(\hat x_{k|k}, P_{k|k})`), over the
+        filtered and predicted moments of :meth:`filter`:
+
+        .. math::
+
+            G_k = C_k\bar P_{k+1}^{-1}, \qquad \hat x_{k|T} = \hat x_{k|k} + G_k(\hat x_{k+1|T} - \bar x_{k+1}),
+            \qquad P_{k|T} = P_{k|k} + G_k(P_{k+1|T} - \bar P_{k+1})G_k^T.
+
+        For a linear model it is the Kalman (RTS) smoother.
+
+        Returns
+        -------
+        FilterResult
+            ``mean`` :math:`\hat x_{k|T}` (..., T, n), ``cov`` :math:`P_{k|T}` (..., T, n, n), ``extras``
+            ``filtered_mean``, ``filtered_cov`` and ``gain`` (:math:`G_k`, (..., T, n, n); zero in the last row);
+            ``times`` as the filter's.
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`.
+        """
+        res = self.filter(y, x0=x0, P0=P0)
+        assert res.mean is not None and res.cov is not None and res.pred_mean is not None and res.pred_cov is not None
+        assert res.times is not None
+        batch, (T, n) = res.mean.shape[:-2], res.mean.shape[-2:]
+        xf, Pf = res.mean.reshape(-1, T, n), np.broadcast_to(res.cov, batch + (T, n, n)).reshape(-1, T, n, n)
+        xp, Pp = res.pred_mean.reshape(-1, T, n), np.broadcast_to(res.pred_cov, batch + (T, n, n)).reshape(-1, T, n, n)
+        N = xf.shape[0]
+        xs, Ps, gain = np.empty_like(xf), np.empty((N, T, n, n)), np.zeros((N, T, n, n))
+        xs[:, -1], Ps[:, -1] = xf[:, -1], Pf[:, -1]
+        k_first = int(res.times[0])
+        for i in range(T - 2, -1, -1):
+            k = k_first + i  # row i holds x_k; x_{k+1} = f(x_k, k) + w_k
+            C = self._cross_cov(k, xf[:, i], Pf[:, i])
+            G = np.linalg.solve(Pp[:, i + 1], C.swapaxes(-1, -2)).swapaxes(-1, -2)  # C P̄^{-1}, P̄ symmetric
+            xs[:, i] = xf[:, i] + np.einsum("rij,rj->ri", G, xs[:, i + 1] - xp[:, i + 1])
+            Ps[:, i] = symmetrize(Pf[:, i] + G @ (Ps[:, i + 1] - Pp[:, i + 1]) @ G.swapaxes(-1, -2))
+            gain[:, i] = G
+        shape_x, shape_P = batch + (T, n), batch + (T, n, n)
+        return FilterResult(
+            mean=xs.reshape(shape_x),
+            cov=Ps.reshape(shape_P),
+            pred_mean=None,
+            pred_cov=None,
+            extras={
+                "filtered_mean": res.mean,
+                "filtered_cov": res.cov,
+                "gain": gain.reshape(shape_P),
+            },
+            times=res.times,
+        )
+
+    def _cross_cov(self, k: int, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        r""":math:`\mathrm{Cov}(x_k, f(x_k, k))` (N, n, n) under :math:`N(x, P)`: extended or by the rule."""
+        sys_ = self.system
+        if self.rule is None:
+            return P @ sys_.transition_jacobian(x, k).swapaxes(-1, -2)
+        return _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k), x, P)[1]
+
+
+def _masked(y: np.ndarray, expected: np.ndarray):
+    """The innovation with missing readings set to 0 and the mask of the readings present."""
+    valid = ~np.isnan(y)
+    return np.where(valid, y - expected, 0.0), (None if valid.all() else valid)
+
+
+def _full(P: np.ndarray, N: int) -> np.ndarray:
+    return P if P.shape[0] == N else np.broadcast_to(P, (N,) + P.shape[1:]).copy()
+
+
+# --------------------------------------------------------------------------- the uncensored baselines
+
+
+class _KalmanUpdate:
+    def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
+        yhat, Pxy, Pyy, H = self._measurement_moments(k, xp, Pp)
+        R = self._noise(k)
+        innov, valid = _masked(y, yhat)
+        if self.covariance_update == "joseph":
+            x, P, _ = gain_update(xp, Pp, innov, Pxy, Pyy + R, valid, H=H, noise=R[None])
+        else:
+            x, P, _ = gain_update(xp, Pp, innov, Pxy, Pyy + R, valid)
+        return x, P, None, carry, None
+
+
+class ExtendedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
+    r"""The extended Kalman filter of a :class:`~tobitkf.NonlinearSystem` (module docstring), the uncensored baseline.
+
+    Prediction :math:`\bar x = f(\hat x)`, :math:`\bar P = F\hat PF^T + Q`; update with :math:`H = \partial h/\partial x`
+    at :math:`\bar x`: :math:`K = \bar PH^T(H\bar PH^T + R)^{-1}`, :math:`\hat x = \bar x + K(y - h(\bar x))`.
+    The Jacobians are the system's ``F``, ``H`` or central differences.
+
+    Parameters
+    ----------
+    system : NonlinearSystem
+    covariance_update : {"standard", "joseph"}, default "standard"
+        :math:`P = \bar P - K H\bar P`, or the Joseph form :math:`(I-KH)\bar P(I-KH)^T + KRK^T` (filterpy's).
+
+    Raises
+    ------
+    ValidationError
+        ``system`` not a NonlinearSystem, an unknown option.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.NonlinearSystem(lambda x, k: x, lambda x, k: 2.0 * x, Q=[[0.0]], R=[[1.0]], x0=[0.0], P0=[[1.0]])
+    >>> out = tk.ExtendedKalmanFilter(sys).filter([[2.0]])      # the Kalman filter of C = 2
+    >>> round(float(out.mean[0, 0]), 12), round(float(out.cov[0, 0, 0]), 12)
+    (0.8, 0.2)
+    """
+
+    _name = "ExtendedKalmanFilter"
+    _forms = ("standard", "joseph")
+
+    def __init__(self, system: NonlinearSystem, *, covariance_update: str = "standard"):
+        self._setup(system, covariance_update, None)
+
+    def __repr__(self) -> str:
+        return f"ExtendedKalmanFilter({self.system!r}, covariance_update={self.covariance_update!r})"
+
+
+def _rule(rule: Any, alpha: float, beta: float, kappa: float, order: int) -> SigmaPoints:
+    if isinstance(rule, SigmaPoints):
+        return rule
+    return SigmaPoints(rule, alpha=alpha, beta=beta, kappa=kappa, order=order)
+
+
+class UnscentedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
+    r"""The sigma-point (unscented, cubature, Gauss–Hermite) Kalman filter of a :class:`~tobitkf.NonlinearSystem`.
+
+    Prediction and measurement moments by the sigma-point ``rule`` (module docstring; the points of the
+    measurement are redrawn from the prediction), update :math:`K = P_{xy}(P_{yy} + R)^{-1}`,
+    :math:`\hat x = \bar x + K(y - \hat y)`, :math:`P = \bar P - KP_{xy}^T`. For a linear model every rule gives
+    the Kalman filter (tested).
+
+    Parameters
+    ----------
+    system : NonlinearSystem
+    rule : {"unscented", "cubature", "gauss_hermite"} or SigmaPoints, default "unscented"
+    alpha, beta, kappa : float, default 1, 2, 0
+        The unscented rule's parameters (filterpy's ``MerweScaledSigmaPoints(n, alpha, beta, kappa)``).
+    order : int, default 3
+        Points per coordinate of the Gauss–Hermite rule.
+
+    Raises
+    ------
+    ValidationError
+        ``system`` not a NonlinearSystem, an unknown rule or a bad parameter.
+    """
+
+    _name = "UnscentedKalmanFilter"
+
+    def __init__(
+        self,
+        system: NonlinearSystem,
+        *,
+        rule: Any = "unscented",
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        order: int = 3,
+    ):
+        self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
+
+    def __repr__(self) -> str:
+        return f"UnscentedKalmanFilter({self.system!r}, rule={self.rule!r})"
+
+
+# --------------------------------------------------------------------------- the Tobit update
+
+
+class _TobitUpdate(_ContractChecks):
+    _who = "the Tobit extended/unscented Kalman filter"
+
+    def _tobit_setup(self, system: NonlinearSystem, channel: Any, noise_term: str | None) -> None:
+        self.channel = _contract_channel(channel, "statistics", self._who)
+        self.channel.check(system)
+        censoring = isinstance(self.channel, Censoring)
+        if noise_term is None:
+            noise_term = "dissertation" if censoring else "total_variance"
+        check_keywords({"noise_term": noise_term}, {"noise_term": NOISE_TERMS})
+        if not censoring and noise_term != "total_variance":
+            raise ValidationError(
+                f"noise_term: {noise_term!r} is a noise term of censored readings; a {type(self.channel).__name__} "
+                "reading's noise term is its variance ('total_variance')"
+            )
+        self.noise_term = noise_term
+        self._eye = np.eye(system.m)
+        self._sigma = None if system.R.varying else self._sigmas(system.measurement_cov(1), "R")
+
+    def _sigmas(self, R: np.ndarray, name: str) -> np.ndarray:
+        return diagonal_sigma(R, name, who=self._who, why="independent channels")
+
+    def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
+        yhat, Pxy, Pyy, _ = self._measurement_moments(k, xp, Pp)
+        sigma = self._sigma if self._sigma is not None else self._sigmas(self._noise(k), f"R({k})")
+        N, m = yhat.shape
+        if isinstance(self.channel, Censoring):  # the Tobit Kalman filter's own statistics, with C = I on ŷ
+            lo, hi = (np.broadcast_to(v, (m,)) for v in self.channel.limits(k))
+            mp = tobit_measurement(yhat, self._eye, sigma, lo, hi, noise_term=self.noise_term)
+            E, V = mp.expected, np.asarray(mp.noise)
+            assert mp.scale is not None, "the Tobit measurement has a channel scale"
+            g = mp.scale
+        else:
+            E, g, V = np.empty((N, m)), np.empty((N, m)), np.empty((N, m))
+            for l in range(m):
+                E[:, l], g[:, l], V[:, l] = self.channel.reading_statistics(
+                    np.ascontiguousarray(yhat[:, l]), np.full(N, sigma[l]), k, l
+                )
+        Rxe = Pxy * g[:, None, :]
+        Ree = g[:, :, None] * Pyy * g[:, None, :] + V[:, :, None] * np.eye(m)
+        innov, valid = _masked(y, E)
+        x, P, _ = gain_update(xp, Pp, innov, Rxe, Ree, valid)
+        return x, P, None, carry, {"expected_y": E, "slope": g}
+
+
+class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
+    r"""The Tobit extended Kalman filter (Arthur et al. 2018): the Tobit Kalman filter's update with
+    :math:`C` replaced by the Jacobian :math:`H = \partial h/\partial x` at the prediction (module docstring).
+
+    Parameters
+    ----------
+    system : NonlinearSystem
+        The model; R diagonal with positive entries.
+    channel : Channel
+        A channel with ``reading_statistics`` (:class:`~tobitkf.Censoring`, :class:`~tobitkf.Quantizer`, ...).
+    noise_term : {"dissertation", "total_variance", "exact_pv"}, optional
+        The noise term of a censored reading, as :class:`~tobitkf.TobitKalmanFilter`'s (default there and here
+        ``"dissertation"``, the truncated variance of the source); a channel other than
+        :class:`~tobitkf.Censoring` has only its reading's variance, ``"total_variance"`` (the default for it).
+
+    Raises
+    ------
+    ValidationError
+        ``system`` not a NonlinearSystem, a channel without ``reading_statistics``, R not diagonal or a
+        variance not positive.
+
+    Notes
+    -----
+    Extras: ``expected_y`` (..., T, m), the reading's mean :math:`E[y]` at the predicted measurement, and
+    ``slope`` (..., T, m), :math:`g = \partial E[y]/\partial\mu` (for censoring the probability of an
+    uncensored reading). Readings the channel cannot give are refused (its ``check_readings``).
+
+    References
+    ----------
+    .. [1] R. Arthur, A. Attarian, F. Hamilton, H. Tran, "Nonlinear Kalman filtering with censored
+       observations", Applied Mathematics and Computation 316 (2018) 155-166.
+    """
+
+    _name = "TobitExtendedKalmanFilter"
+
+    def __init__(self, system: NonlinearSystem, channel: Any, *, noise_term: str | None = None):
+        self._setup(system, "standard", None)
+        self._tobit_setup(system, channel, noise_term)
+
+    def __repr__(self) -> str:
+        return f"TobitExtendedKalmanFilter({self.system!r}, {self.channel!r}, noise_term={self.noise_term!r})"
+
+
+class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
+    r"""The Tobit update on the sigma-point measurement prediction: :class:`TobitExtendedKalmanFilter` with
+    :math:`\bar PH^T` and :math:`H\bar PH^T` replaced by the statistical :math:`P_{xy}` and :math:`P_{yy}`
+    (module docstring).
+
+    Parameters
+    ----------
+    system : NonlinearSystem
+        The model; R diagonal with positive entries.
+    channel : Channel
+        A channel with ``reading_statistics``.
+    rule, alpha, beta, kappa, order
+        The sigma-point rule, as :class:`UnscentedKalmanFilter`.
+    noise_term : {"dissertation", "total_variance", "exact_pv"}, optional
+        As :class:`TobitExtendedKalmanFilter`.
+
+    Raises
+    ------
+    ValidationError
+        As :class:`TobitExtendedKalmanFilter`, and an unknown rule or a bad parameter.
+
+    Notes
+    -----
+    Extras: ``expected_y`` (..., T, m), the reading's mean :math:`E[y]` at the predicted measurement, and
+    ``slope`` (..., T, m), :math:`g = \partial E[y]/\partial\mu` (for censoring the probability of an
+    uncensored reading). Readings the channel cannot give are refused (its ``check_readings``).
+    """
+
+    _name = "TobitUnscentedKalmanFilter"
+
+    def __init__(
+        self,
+        system: NonlinearSystem,
+        channel: Any,
+        *,
+        rule: Any = "unscented",
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        order: int = 3,
+        noise_term: str | None = None,
+    ):
+        self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
+        self._tobit_setup(system, channel, noise_term)
+
+    def __repr__(self) -> str:
+        return (
+            f"TobitUnscentedKalmanFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}, "
+            f"noise_term={self.noise_term!r})"
+        )
+
+
+# --------------------------------------------------------------------------- the assumed-density filter
+
+
+class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
+    r"""The assumed-density filter of a :class:`~tobitkf.NonlinearSystem` read through any contract channel.
+
+    Channel by channel, the measurement is linearised statistically with the sigma-point ``rule`` and the
+    channel's exact moments of the latent reading (censored, at a saturation limit, within a quantizer's
+    cell) give the posterior moments by the projection formula (module docstring); with
+    ``iterations > 1`` the linearisation is redone about the current posterior (iterated posterior
+    linearisation). For a linear ``h`` one iteration is the linear :class:`~tobitkf.AssumedDensityFilter`
+    (tested), and its update the exact posterior moments of one channel from a Gaussian prior.
+
+    Parameters
+    ----------
+    system : NonlinearSystem
+        The model; R diagonal (the channels are updated in sequence), entries >= 0.
+    channel : Channel
+        A channel with ``region`` or ``reading_moments`` (:class:`~tobitkf.Censoring`,
+        :class:`~tobitkf.Quantizer`, a channel of your own).
+    rule : {"unscented", "cubature", "gauss_hermite"} or SigmaPoints, default "unscented"
+        The rule of the prediction and of the statistical linearisation; parameters as
+        :class:`UnscentedKalmanFilter` (``alpha``, ``beta``, ``kappa``, ``order``).
+    iterations : int >= 1, default 1
+        Linearisations per channel and step.
+
+    Raises
+    ------
+    ValidationError
+        ``system`` not a NonlinearSystem, a channel without ``region``/``reading_moments``, a non-diagonal or
+        negative R, an unknown rule or a bad parameter.
+
+    Notes
+    -----
+    Extras: ``log_likelihood`` (..., T), :math:`\sum_l \log p(y_k(l))` under the first linearisation of each
+    channel (the channel's third ``reading_moments`` output; 0 for a missing reading).
+
+    Examples
+    --------
+    For a linear h it is the linear assumed-density filter:
+
+    >>> import numpy as np, tobitkf as tk
+    >>> cens = tk.Censoring(lower=0.0)
+    >>> nl = tk.NonlinearSystem(lambda x, k: 0.9 * x, lambda x, k: x, Q=[[0.1]], R=[[0.5]], x0=[0.0], P0=[[1.0]])
+    >>> lin = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.1]], R=[[0.5]], x0=[0.0], P0=[[1.0]])
+    >>> y = np.array([[0.3], [0.0], [0.8]])
+    >>> a = tk.NonlinearAssumedDensityFilter(nl, cens).filter(y).mean
+    >>> b = tk.AssumedDensityFilter(lin, cens).filter(y).mean
+    >>> bool(np.allclose(a, b, rtol=0, atol=1e-12))
+    True
+
+    References
+    ----------
+    .. [1] P. S. Maybeck, *Stochastic Models, Estimation and Control*, vol. 2, Academic Press, 1982, §12.7.
+    .. [2] Á. F. García-Fernández, L. Svensson, M. R. Morelande, S. Särkkä, "Posterior linearization filter:
+       principles and implementation using sigma points", IEEE Trans. Signal Processing 63(20), 2015.
+    """
+
+    _name = "NonlinearAssumedDensityFilter"
+
+    def __init__(
+        self,
+        system: NonlinearSystem,
+        channel: Any,
+        *,
+        rule: Any = "unscented",
+        iterations: int = 1,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+        order: int = 3,
+    ):
+        self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
+        self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
+        self.channel = _contract_channel(channel, "moments", "the nonlinear assumed-density filter")
+        self.channel.check(system)
+        self._r = None if system.R.varying else _noise_variances(system.measurement_cov(1), "R")
+
+    def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
+        N = xp.shape[0]
+        r = self._r if self._r is not None else _noise_variances(self._noise(k), f"R({k})")
+        x, P = xp, _full(Pp, N)
+        ll = np.zeros(N)
+        for l in range(self.m):
+            x, P, lll = self._channel(k, l, x, P, y[:, l], r[l])
+            ll += lll
+        return x, P, None, carry, {"log_likelihood": ll}
+
+    def log_likelihood(self, y: Any, *, x0: Any = None, P0: Any = None, per_step: bool = False) -> np.ndarray:
+        r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (..., T, m): (...), or the terms
+        (..., T) with ``per_step`` (the ``log_likelihood`` extras of :meth:`filter`; for a linear h the linear
+        :class:`~tobitkf.AssumedDensityFilter`'s).
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`.
+        """
+        terms = self.filter(y, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        return terms if per_step else terms.sum(-1)
+
+    def _channel(self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float):
+        """The projection of channel ``l``, iterated about the posterior: ``(x, P, log p(y))``."""
+        sys_ = cast(NonlinearSystem, self.system)
+        rule = self.rule
+        assert rule is not None, "the assumed-density filter linearises with sigma points"
+        N = x.shape[0]
+        has = ~np.isnan(y)
+        ll = np.zeros(N)
+        if not has.any():
+            return x, P, ll
+        h_l = lambda z: sys_.measurement_map(z, k)[:, l : l + 1]  # noqa: E731
+        xm, Pm = x, P
+        for it in range(self.iterations):
+            ybar, Pxy, Pyy = _sigma_moments(rule, h_l, xm, Pm)
+            if it == 0:  # linearised about the prior itself: the moments as they are
+                mu, cxy, s2 = ybar[:, 0], Pxy[:, :, 0], Pyy[:, 0, 0] + r
+            else:  # the affine model fitted about the posterior, applied to the prior
+                Hl = _regress(Pm, Pxy[:, :, 0])  # (N, n)
+                omega = np.maximum(Pyy[:, 0, 0] - np.einsum("ri,rij,rj->r", Hl, Pm, Hl), 0.0)
+                mu = ybar[:, 0] + np.einsum("ri,ri->r", Hl, x - xm)
+                cxy = np.einsum("rij,rj->ri", P, Hl)
+                s2 = np.einsum("ri,ri->r", Hl, cxy) + omega + r
+            ok = has & (s2 > _TINY)
+            if not ok.any():
+                return x, P, ll
+            s = np.sqrt(np.where(ok, s2, 1.0))
+            obs, V = np.array(mu), np.zeros(N)
+            o, v, lp = self.channel.reading_moments(y[ok], mu[ok], s[ok], k, l)
+            obs[ok], V[ok] = o, v
+            if it == 0:
+                ll[ok] = lp
+            xm, Pm, K = gain_update(x, P, (obs - mu)[:, None], cxy[:, :, None], s2[:, None, None], ok[:, None])
+            Pm = symmetrize(Pm + (K * V[:, None, None]) @ K.swapaxes(-1, -2))
+        return xm, Pm, ll
+
+    def __repr__(self) -> str:
+        it = "" if self.iterations == 1 else f", iterations={self.iterations}"
+        return f"NonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it})"
+
+
+def _regress(P: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The rows :math:`P^{-1}c` (N, n) of the statistical linearisation; a least-squares solve when P is singular
+    (a noiseless reading collapsed a direction)."""
+    try:
+        return np.linalg.solve(P, c[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:
+        return np.einsum("rij,rj->ri", np.linalg.pinv(P, hermitian=True), c)

@@ -1,0 +1,243 @@
+r"""Nonlinear Gaussian state-space models with additive noise.
+
+The model, with the package-wide time convention (:mod:`tobitkf.models.linear`):
+
+.. math::
+
+    x_k &= f(x_{k-1}, k-1) + w_{k-1}, \qquad w_{k-1} \sim N(0, Q_{k-1}) \\
+    y^*_k &= h(x_k, k) + v_k, \qquad v_k \sim N(0, R_k), \qquad x_0 \sim N(\bar x_0, P_0)
+
+for :math:`k = 1, \dots, T`; :math:`x_0` is the prior and :math:`y_1` sits at array index 0. What reaches
+the estimator is :math:`y^*_k` passed through a channel (censoring, a quantizer, lost readings) exactly as
+for a :class:`~tobitkf.LinearSystem`.
+
+``f`` and ``h`` are batched over leading axes: ``f(x, k)`` maps ``(..., n)`` to ``(..., n)`` and ``h(x, k)``
+``(..., n)`` to ``(..., m)``, with ``k`` a Python int. ``Q`` and ``R`` are constant, given per step or
+callables of k, as for :class:`~tobitkf.LinearSystem` (``Q[k]`` / ``Q(k)`` for k = 0..T-1, ``R[k-1]`` /
+``R(k)`` for k = 1..T).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+
+from .._validation import ShapeError, TimeSequence, ValidationError, as_float_array, check_count, check_psd
+
+__all__ = ["NonlinearSystem", "discretize", "jacobian_fd"]
+
+_EPS = np.finfo(np.float64).eps
+
+
+def jacobian_fd(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray) -> np.ndarray:
+    r"""Central-difference Jacobian of a batched ``fun`` ((N, n) -> (N, r)) at ``x`` (N, n): (N, r, n).
+
+    Column j is :math:`(g(x + \delta_je_j) - g(x - \delta_je_j)) / (2\delta_j)` with the usual step for a
+    central difference, :math:`\delta_j = \epsilon^{1/3}\max(1, |x_j|)` (:math:`\epsilon` the machine
+    epsilon; the step that balances the :math:`O(\delta^2)` truncation error against the
+    :math:`O(\epsilon/\delta)` rounding error), so the error is about :math:`\epsilon^{2/3} \approx 4\cdot10^{-11}`
+    relative for a function whose third derivative is of the order of the function. All 2n shifted points
+    are evaluated in one call of ``fun``.
+    """
+    N, n = x.shape
+    delta = np.cbrt(_EPS) * np.maximum(1.0, np.abs(x))  # (N, n)
+    shifts = np.zeros((2, n, N, n))
+    idx = np.arange(n)
+    shifts[0, idx, :, idx] = delta.T
+    shifts[1, idx, :, idx] = -delta.T
+    pts = (x[None, None] + shifts).reshape(2 * n * N, n)
+    vals = np.asarray(fun(pts), dtype=float)
+    r = vals.shape[-1]
+    vals = vals.reshape(2, n, N, r)
+    diff = (vals[0] - vals[1]) / (2.0 * delta.T[:, :, None])  # (n, N, r)
+    return np.ascontiguousarray(np.transpose(diff, (1, 2, 0)))
+
+
+def discretize(fc: Callable[[np.ndarray, float], np.ndarray], dt: float, substeps: int = 1):
+    r"""The transition map of an ODE :math:`\dot x = f_c(x, t)` over one sampling interval, by fixed-step RK4.
+
+    Returns ``f(x, k)``: ``substeps`` classical fourth-order Runge-Kutta steps of size
+    :math:`h = dt/\text{substeps}` from :math:`t = k\,dt` to :math:`(k+1)\,dt`. ``fc(x, t)`` must be batched
+    over the leading axes of ``x`` (..., n), as ``f`` is. The local error per interval is :math:`O(h^5)` per
+    substep, the global error of the map :math:`O(h^4)`.
+
+    Parameters
+    ----------
+    fc : callable ``fc(x, t) -> dx/dt``
+    dt : float > 0
+        Sampling interval.
+    substeps : int >= 1, default 1
+
+    Raises
+    ------
+    ValidationError
+        ``fc`` not callable, ``dt`` not a positive finite number, ``substeps`` not a positive integer.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> f = tk.discretize(lambda x, t: -x, dt=0.1, substeps=4)
+    >>> bool(abs(f(np.array([1.0]), 0)[0] - np.exp(-0.1)) < 1e-9)
+    True
+    """
+    if not callable(fc):
+        raise ValidationError(f"fc: expected a callable fc(x, t), got {type(fc).__name__}")
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise ValidationError(f"dt: expected a positive number, got {dt!r}") from None
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValidationError(f"dt: expected a positive finite number, got {dt!r}")
+    substeps = check_count(substeps, "substeps")
+    h = dt / substeps
+
+    def f(x: np.ndarray, k: int) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        t = k * dt
+        for _ in range(substeps):
+            k1 = fc(x, t)
+            k2 = fc(x + 0.5 * h * k1, t + 0.5 * h)
+            k3 = fc(x + 0.5 * h * k2, t + 0.5 * h)
+            k4 = fc(x + h * k3, t + h)
+            x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+            t += h
+        return x
+
+    return f
+
+
+class NonlinearSystem:
+    r"""A nonlinear state-space model with additive Gaussian noise (module docstring).
+
+    Parameters
+    ----------
+    f : callable ``f(x, k) -> (..., n)``
+        Transition, batched over the leading axes of ``x`` (..., n); :math:`x_k = f(x_{k-1}, k-1) + w_{k-1}`.
+    h : callable ``h(x, k) -> (..., m)``
+        Measurement function, batched likewise; :math:`y^*_k = h(x_k, k) + v_k`.
+    Q : (n, n) or (T, n, n) array_like or callable
+        Process-noise covariance :math:`Q_k` (symmetric PSD).
+    R : (m, m) or (T, m, m) array_like or callable
+        Measurement-noise covariance :math:`R_k` (symmetric PSD).
+    x0 : (n,) array_like
+        Prior mean. P0 : (n, n) array_like, prior covariance (symmetric PSD).
+    F : callable ``F(x, k) -> (..., n, n)``, optional
+        Jacobian :math:`\partial f/\partial x`. Default: central differences (:func:`jacobian_fd`, step
+        :math:`\epsilon^{1/3}\max(1, |x_j|)`, error about :math:`10^{-10}` relative for a smooth ``f``).
+    H : callable ``H(x, k) -> (..., m, n)``, optional
+        Jacobian :math:`\partial h/\partial x`; default central differences as for ``F``.
+
+    Raises
+    ------
+    ValidationError
+        ``f``, ``h`` (or ``F``, ``H``) not callable, a non-finite value of f or h at the prior mean, a
+        covariance that is not symmetric PSD.
+    ShapeError
+        ``f(x0, 0)`` not of shape (n,), ``f`` or ``h`` not batched ((1, n) in, (1, ...) out), ``Q`` not (n, n),
+        ``R`` not (m, m) with m the length of ``h(x0, 1)``, a Jacobian of the wrong shape.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.NonlinearSystem(lambda x, k: np.sin(x), lambda x, k: x**2, Q=[[0.1]], R=[[0.01]],
+    ...                          x0=[0.5], P0=[[1.0]])
+    >>> sys.n, sys.m
+    (1, 1)
+    """
+
+    def __init__(self, f: Any, h: Any, Q: Any, R: Any, x0: Any, P0: Any, *, F: Any = None, H: Any = None):
+        for name, fn in (("f", f), ("h", h)):
+            if not callable(fn):
+                raise ValidationError(f"{name}: expected a callable {name}(x, k), got {type(fn).__name__}")
+        for name, fn in (("F", F), ("H", H)):
+            if fn is not None and not callable(fn):
+                raise ValidationError(f"{name}: expected a callable {name}(x, k) or None, got {type(fn).__name__}")
+        self.x0 = as_float_array(x0, "x0", ndim=1)
+        n = self.x0.shape[0]
+        self.P0 = as_float_array(P0, "P0", ndim=2)
+        if self.P0.shape != (n, n):
+            raise ShapeError(f"P0: expected shape ({n}, {n}) to match x0, got {self.P0.shape}")
+        check_psd(self.P0, "P0")
+        self.f, self.h, self.F, self.H = f, h, F, H
+        fx = as_float_array(f(self.x0.copy(), 0), "f(x0, 0)", ndim=1)
+        if fx.shape != (n,):
+            raise ShapeError(f"f(x0, 0): expected shape ({n},) (f maps (..., n) to (..., n)), got {fx.shape}")
+        hx = as_float_array(h(self.x0.copy(), 1), "h(x0, 1)", ndim=1)
+        m = hx.shape[0]
+        if m < 1:
+            raise ShapeError("h(x0, 1): expected at least one output, got shape (0,)")
+        self.n, self.m, self.q, self.p = n, m, n, None
+        # the noise enters directly and there is no input: the LinearSystem attributes a simulation reads
+        self.B = self.Bu = self.D = None
+        # batched over leading axes: (1, n) in, (1, n) / (1, m) out
+        self.transition_map(self.x0[None], 0)
+        self.measurement_map(self.x0[None], 1)
+        self.Q = TimeSequence(Q, "Q", offset=0, psd=True)
+        self.R = TimeSequence(R, "R", offset=1, psd=True)
+        if self.Q.core_shape != (n, n):
+            raise ShapeError(f"Q: expected ({n}, {n}) to match x0 of size n={n}, got {self.Q.core_shape}")
+        if self.R.core_shape != (m, m):
+            raise ShapeError(f"R: expected ({m}, {m}) to match h's {m} outputs, got {self.R.core_shape}")
+        if F is not None:
+            self.transition_jacobian(self.x0[None], 0)
+        if H is not None:
+            self.measurement_jacobian(self.x0[None], 1)
+
+    # --- the maps, batched (N, n) -> (N, .) ------------------------------------------------------------
+    def transition_map(self, x: np.ndarray, k: int) -> np.ndarray:
+        """:math:`f(x, k)` for ``x`` (N, n): (N, n), checked."""
+        return _checked(self.f(x, k), (x.shape[0], self.n), f"f(x, {k})")
+
+    def measurement_map(self, x: np.ndarray, k: int) -> np.ndarray:
+        """:math:`h(x, k)` for ``x`` (N, n): (N, m), checked."""
+        return _checked(self.h(x, k), (x.shape[0], self.m), f"h(x, {k})")
+
+    def transition_jacobian(self, x: np.ndarray, k: int) -> np.ndarray:
+        r""":math:`\partial f/\partial x` at ``x`` (N, n): (N, n, n), from ``F`` or central differences."""
+        if self.F is None:
+            return jacobian_fd(lambda z: self.transition_map(z, k), x)
+        return _checked(self.F(x, k), (x.shape[0], self.n, self.n), f"F(x, {k})")
+
+    def measurement_jacobian(self, x: np.ndarray, k: int) -> np.ndarray:
+        r""":math:`\partial h/\partial x` at ``x`` (N, n): (N, m, n), from ``H`` or central differences."""
+        if self.H is None:
+            return jacobian_fd(lambda z: self.measurement_map(z, k), x)
+        return _checked(self.H(x, k), (x.shape[0], self.m, self.n), f"H(x, {k})")
+
+    # --- per-step accessors, as LinearSystem's -----------------------------------------------------------
+    def process_cov(self, k: int) -> np.ndarray:
+        """:math:`Q_k`, the covariance of the noise added to :math:`x_{k+1}`."""
+        return self.Q.at(k)
+
+    def measurement_cov(self, k: int) -> np.ndarray:
+        """:math:`R_k` (k >= 1)."""
+        return self.R.at(k)
+
+    @property
+    def time_invariant(self) -> bool:
+        """True when Q and R are constant (f and h may still depend on k)."""
+        return not (self.Q.varying or self.R.varying)
+
+    def check_horizon(self, steps: int) -> None:
+        """Raise if Q or R given per step is shorter than ``steps`` or a callable misbehaves on it."""
+        for part in (self.Q, self.R):
+            part.check_horizon(steps)
+            part.validate_all(steps)
+
+    def check_inputs(self, u: Any, steps: int, name: str = "u") -> None:
+        """The model takes no control input: None, or :class:`~tobitkf.ShapeError`."""
+        if u is not None:
+            raise ShapeError(f"{name}: a NonlinearSystem takes no control input (fold it into f(x, k))")
+        return None
+
+    def __repr__(self) -> str:
+        kind = "constant noise" if self.time_invariant else "time-varying noise"
+        return f"NonlinearSystem(n={self.n}, m={self.m}, {kind})"
+
+
+def _checked(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
+    arr = value if isinstance(value, np.ndarray) and value.dtype == np.float64 else np.asarray(value, dtype=float)
+    if arr.shape != shape:
+        raise ShapeError(f"{name}: expected shape {shape} for a batch of {shape[0]} states, got {arr.shape}")
+    return arr
