@@ -121,6 +121,7 @@ from ..channels.laws import PMF, Gaussian
 from ..channels.protocol import ProtocolChannel
 from ..channels.saturation import RandomSaturation, saturate
 from ..models.linear import LinearSystem
+from ._backend import BACKENDS, system_gap, use_kernel
 from ._readings import _INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood
 from ._readings import classify_readings as _classify
 from .core import Estimator, FilterResult, FilterState, check_prior, predict, shift_predict
@@ -1093,12 +1094,17 @@ class ParticleFilter(Estimator):
     seed : int, SeedSequence, Generator or None, default None
         Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
         gives the same numbers; None draws fresh entropy once, when the filter is built.
+    backend : {"auto", "numba", "numpy"}, default "auto"
+        ``filter`` for linear readings (censored or not) of a time-invariant system without input runs
+        compiled (:mod:`tobitkf.filters._compiled_particle`: the same equations and the same random
+        numbers, in blocks of runs) under ``"auto"`` when numba imports, and always under ``"numba"``
+        (which refuses the other cases); ``"numpy"`` always runs the numpy loop. ``step`` is numpy.
 
     Raises
     ------
     ValidationError
         Unknown channel pieces, more than one reading model, a non-diagonal or non-positive R, a bad
-        particle count, threshold, proposal or seed.
+        particle count, threshold, proposal, seed or backend.
 
     Notes
     -----
@@ -1151,6 +1157,7 @@ class ParticleFilter(Estimator):
         resample_threshold: float = 0.5,
         proposal: str = "auto",
         seed: Any = None,
+        backend: str = "auto",
     ):
         builder = next((b for t, b in SYSTEM_MODELS.items() if isinstance(system, t)), None)
         if builder is None:
@@ -1164,6 +1171,9 @@ class ParticleFilter(Estimator):
             raise ValidationError(f"resample_threshold: expected a fraction in [0, 1], got {float(thr)}")
         if proposal not in PROPOSALS:
             raise ValidationError(f"proposal: expected one of {', '.join(map(repr, PROPOSALS))}, got {proposal!r}")
+        if backend not in BACKENDS:
+            raise ValidationError(f"backend: expected one of {', '.join(map(repr, BACKENDS))}, got {backend!r}")
+        self.backend = backend
         self.system = system
         if builder is not None:  # another kind of model (a NonlinearSystem: filters.particle_nonlinear)
             self.model = builder(system, channel, censoring)
@@ -1198,6 +1208,19 @@ class ParticleFilter(Estimator):
     # the linear-system boundary checks are those of the Gaussian families
     _prepare_inputs = LinearGaussianFamily._prepare_inputs
     _step_input = LinearGaussianFamily._step_input
+
+    def _compiled_gap(self, u) -> str | None:
+        """Why the compiled loop (:mod:`tobitkf.filters._compiled_particle`) cannot run, or None."""
+        if type(self.model) is not _Linear:
+            return f"{self.model.label} readings (linear readings with censoring only)"
+        return system_gap(self.system, u)
+
+    def _fast_filter(self, y2, u2, state, want, batch):
+        if not use_kernel(self.backend, self._compiled_gap(u2), "the particle filter"):
+            return None
+        from ._compiled_particle import filter_blocks
+
+        return filter_blocks(self, y2, state, want, batch)
 
     def _feedthrough(self, k, u):
         if u is None or self.system.D is None:

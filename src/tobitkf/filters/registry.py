@@ -400,6 +400,7 @@ _ENTRY_LIST = [
             "resample_threshold": float,
             "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
             "seed": object,
+            "backend": _BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
         },
         required=("seed",),  # a registry-built particle filter draws the same particles on every run
     ),
