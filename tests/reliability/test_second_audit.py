@@ -384,7 +384,7 @@ def test_closed_loop_nan_noise_is_named_not_a_shape_error():
         (lambda: ProtocolChannel(2, window=10**6), r"^window: an integral window of 1000000 steps .* would need"),
         (lambda: RoundRobin(10**15), r"^sensors: "),
         (lambda: paper_prior(d=10**7), r"^d: a history of"),
-        (lambda: tk.certify_tkf_stability(CA, [[0.5], [0.1]], [[1.0, 0.0]], grid=10**15), r"^grid: "),
+        (lambda: tk.certify_tkf_stability(CA, [[0.5], [0.1]], [[1.0, 0.0]], grid=10**15, domain="dt"), r"^grid: "),
     ],
 )
 def test_sizes_that_cannot_fit_are_refused_before_allocating(monkeypatch, call, pattern):

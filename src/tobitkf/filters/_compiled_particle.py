@@ -454,13 +454,19 @@ def runs_per_block(particles: int, n: int, m: int, budget: int = BLOCK_BYTES) ->
     return max(1, budget // per_run)
 
 
+def _generator(state: dict) -> np.random.Generator:
+    """The generator a particle filter's state carries (its bit generator's state), as the numpy path restores it."""
+    bg = getattr(np.random, state["bit_generator"])()
+    bg.state = state
+    return np.random.Generator(bg)
+
+
 def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], batch: tuple[int, ...], block=None):
     """The particle filter's loop over the readings ``y2`` (N, T, m) from ``state``, compiled, in blocks of runs.
 
     ``pf`` is a :class:`~tobitkf.ParticleFilter` with a linear model (time-invariant system, no input);
     returns the :class:`~tobitkf.filters.core.FilterResult` its numpy loop returns."""
     from .core import FilterResult, FilterState
-    from .particle import _generator
 
     model, system = pf.model, pf.system
     N, T, m = y2.shape
@@ -482,7 +488,7 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     ll_acc = np.array(carry["log_likelihood"], dtype=float)
     xm = np.array(state.x, dtype=float).reshape(N, n)
     Pm = np.array(np.broadcast_to(state.P, (N, n, n)), dtype=float)
-    rng = _generator(carry["rng"])
+    rng = _generator(carry["rng"])  # the numpy path's generator, restored from the state
     outs: dict[str, np.ndarray] = {}
     for key in ("mean", "pred_mean"):
         if key in want:

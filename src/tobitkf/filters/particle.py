@@ -1051,6 +1051,7 @@ def _rng_state(seed: Any) -> Any:
 
 
 def _generator(state: dict) -> np.random.Generator:
+    # the same restoration is in _compiled_particle (which cannot import this module: it is imported from here)
     bg = getattr(np.random, state["bit_generator"])()
     bg.state = state
     return np.random.Generator(bg)

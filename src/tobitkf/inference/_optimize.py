@@ -325,3 +325,24 @@ def maximize(
         hess_inv=Hinv,
         decrement=dec,
     )
+
+
+def _newton_check(f, v, cov, gtol: float, optimizer_message: str) -> tuple[bool, str, int]:
+    r"""Whether ``v`` is an optimum to ``gtol`` standard errors: the Newton step :math:`\delta = I^{-1}g`
+    with the observed information (``cov`` = :math:`I^{-1}`) and a central-difference gradient g must be
+    below ``gtol`` standard errors in every parameter. Returns ``(converged, message, evaluations)``."""
+    if cov is None or not np.all(np.isfinite(cov)):
+        return False, optimizer_message + "; the observed information is not positive definite there", 0
+    g = central_gradient(f, v)
+    if not np.all(np.isfinite(g)):
+        return False, optimizer_message + "; the gradient is not finite there", 2 * v.size
+    se = np.sqrt(np.maximum(np.diagonal(cov), 1e-300))
+    size = float(np.max(np.abs(cov @ g) / se, initial=0.0))
+    if size < gtol:
+        return True, f"{optimizer_message}; Newton step {size:.2g} standard errors (below gtol = {gtol:g})", 2 * v.size
+    return (
+        False,
+        f"{optimizer_message}; but the Newton step to the optimum is still {size:.2g} standard errors "
+        f"(gtol = {gtol:g})",
+        2 * v.size,
+    )

@@ -44,7 +44,7 @@ from ..filters.likelihood import prediction_log_densities
 from ..filters.smoothing import rts_smooth
 from ..models.continuous import ContinuousLinearSystem, check_increasing, time_values
 from ..models.linear import LinearSystem
-from ._optimize import central_hessian, maximize
+from ._optimize import _newton_check, central_hessian, maximize
 from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = ["Panel", "PanelArrays", "PanelModel", "panel_log_likelihood", "panel_smooth", "panel_forecast", "fit_panel"]
@@ -659,23 +659,27 @@ def fit_panel(
 
     if not np.isfinite(ll_of(th0)):
         raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-    cb, close = _progress_callback(progress, "fit panel")
+    cb, close, ticker = _progress_callback(progress, "fit panel")
     try:
         out = maximize(
-            ll_of, th0, gtol=gtol, maxiter=maxiter, progress=cb, label=lambda v: dict(zip(names, v.tolist()))
+            ll_of,
+            th0,
+            gtol=gtol,
+            maxiter=maxiter,
+            progress=cb,
+            label=lambda v: dict(zip(names, v.tolist())),
+            ticker=ticker,
         )
     finally:
         close()
     th = out.x
-    converged, message = out.converged, out.message
-    if not converged:
-        from ._optimize import central_gradient
-
-        g = central_gradient(ll_of, th)
-        if np.all(np.isfinite(g)) and np.max(np.abs(g)) < 10 * gtol:
-            converged, message = True, message + " (central-difference gradient below 10 gtol)"
     ll = ll_of(th)
-    cov = _inverse_information(central_hessian(ll_of, th, f0=ll)) if standard_errors else None
+    cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
+    # converged means what it means for tk.fit's other models: the Newton step with the observed information
+    # is below gtol standard errors in every parameter
+    converged, message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
+    if not standard_errors:
+        cov = None
     return FitResult(
         model=PanelModel(sys_of(th), kind, align, start),
         names=names,

@@ -58,7 +58,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_boo
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
-from ._optimize import central_hessian, check_iterations, check_tolerance, maximize
+from ._optimize import _newton_check, central_hessian, check_iterations, check_tolerance, maximize
 from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
@@ -596,29 +596,6 @@ class _Likelihood:
             )
         )
         return v if np.isfinite(v) else -np.inf
-
-
-def _newton_check(f, v, cov, gtol: float, optimizer_message: str) -> tuple[bool, str, int]:
-    r"""Whether ``v`` is an optimum to ``gtol`` standard errors: the Newton step :math:`\delta = I^{-1}g`
-    with the observed information (``cov`` = :math:`I^{-1}`) and a central-difference gradient g must be
-    below ``gtol`` standard errors in every parameter. Returns ``(converged, message, evaluations)``."""
-    from ._optimize import central_gradient
-
-    if cov is None or not np.all(np.isfinite(cov)):
-        return False, optimizer_message + "; the observed information is not positive definite there", 0
-    g = central_gradient(f, v)
-    if not np.all(np.isfinite(g)):
-        return False, optimizer_message + "; the gradient is not finite there", 2 * v.size
-    se = np.sqrt(np.maximum(np.diagonal(cov), 1e-300))
-    size = float(np.max(np.abs(cov @ g) / se, initial=0.0))
-    if size < gtol:
-        return True, f"{optimizer_message}; Newton step {size:.2g} standard errors (below gtol = {gtol:g})", 2 * v.size
-    return (
-        False,
-        f"{optimizer_message}; but the Newton step to the optimum is still {size:.2g} standard errors "
-        f"(gtol = {gtol:g})",
-        2 * v.size,
-    )
 
 
 def fit_state_space(
