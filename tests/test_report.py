@@ -516,7 +516,7 @@ def test_cli_reproduce_writes_the_report_of_the_whole_folder(tmp_path, monkeypat
     class _Exp:
         id = "fake-beta"
 
-    def fake_run(exp_id, *, runs, seed, out, progress=None):
+    def fake_run(exp_id, *, runs, seed, out, **_options):  # progress, full, heartbeat: not used here
         ran.append((exp_id, runs, seed, Path(out)))
         return Path(out) / exp_id
 

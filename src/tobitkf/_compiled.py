@@ -122,8 +122,9 @@ def watch_compiles() -> bool:
 
 class _AfterNumbaImport:
     """A one-shot import hook: when numba is first imported (by any module), register the compile
-    notice right after numba's own module has run (:func:`watch_compiles`). It finds numba's spec
-    through the other finders and only wraps that spec's ``exec_module``; every other import passes."""
+    notice right after numba's own module has run (:func:`watch_compiles`). It finds numba's module
+    through the other finders and only wraps the ``exec_module`` of that module's loader; every other import
+    passes."""
 
     def find_spec(self, fullname, path=None, target=None):
         if fullname != "numba":
@@ -144,7 +145,7 @@ class _AfterNumbaImport:
             except Exception:  # noqa: BLE001 - the notice is a courtesy: never break numba's import
                 pass
 
-        loader.exec_module = exec_module  # this spec's loader instance only
+        loader.exec_module = exec_module  # this loader instance only (numba's)
         return spec
 
 
