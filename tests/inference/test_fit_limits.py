@@ -215,3 +215,10 @@ def test_progress_lines_go_to_stderr_as_plain_text(capsys):
     assert "fit CensoredAR(p=1) to 200 readings" in capsys.readouterr().err
     CensoredAR(1).fit(y, X, lower=lim, progress=False)
     assert capsys.readouterr().err == ""
+
+
+def test_a_reading_whose_square_overflows_is_refused_by_name_in_the_censored_ar_fit():
+    # a reading of 1e308 used to surface as an error about 'start' (the search's starting values)
+    y = np.array([0.3, 1e308, 0.1, 0.5, 0.2])
+    with pytest.raises(tk.ValidationError, match=r"^y: "):
+        tk.fit(tk.CensoredAR(1), y, lower=0.0)

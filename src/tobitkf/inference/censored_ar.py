@@ -56,7 +56,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._compiled import numba_available
-from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_memory
+from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_memory, check_scale
 from ._common import LOG_2PI, censoring_sides
 from ._optimize import check_iterations, check_tolerance, forward_hessian, maximize
 from ._results import FitResult, _inverse_information, _progress_callback
@@ -227,6 +227,7 @@ class CensoredARData:
         cls, y: Any, X: Any = None, lower: Any = -np.inf, upper: Any = np.inf, censored: Any = None, rtol: float = 1e-12
     ) -> CensoredARData:
         y = as_float_array(y, "y", ndim=1, allow_nan=True)
+        check_scale(y, "y")  # a reading whose square overflows is refused by name, as the filters do
         T = y.size
         if T < 1:
             raise ShapeError("y: expected at least one reading")
