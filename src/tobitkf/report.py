@@ -152,7 +152,8 @@ margin:8px 0}
 .explain.finding{border-left-color:#e0a800;background:var(--warnbg)}
 .how{display:block;color:var(--muted);font-size:.85rem;margin-top:2px}
 .explain p{margin:.25em 0}
-.counts{font-size:.85rem;color:var(--muted);white-space:nowrap}
+.counts{font-size:.85rem;color:var(--muted)}
+.meta span.claims{white-space:normal}
 .problems{border:1px solid #f0d48a;background:var(--warnbg);border-radius:8px;padding:8px 12px 8px 28px}
 .empty{color:var(--muted);font-style:italic}
 .top{font-size:.85rem;text-align:right;margin:0}
@@ -362,7 +363,7 @@ def _html_experiment(e: ExperimentReport, links: _Links) -> list[str]:
         f'<h3 id="{e.anchor}-h"><code>{_e(e.id)}</code>{" — " + _e(e.title) if e.title else ""}</h3>',
     ]
     meta = " ".join(f"<span>{_e(k)}: <b>{_e(v)}</b></span>" for k, v in e.meta)
-    out.append(f'<p class="meta">{meta} <span>claims: {_html_counts(e)}</span></p>')
+    out.append(f'<p class="meta">{meta} <span class="claims">claims: {_html_counts(e)}</span></p>')
     if e.figures:
         out.append('<div class="figs">')
         for name in e.figures:
