@@ -34,27 +34,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import ValidationError, check_instance
+from .._validation import check_bool, check_instance
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS
-from .assumed_density import AssumedDensityFamily, _noise_variances, censored_channel_update
-from .core import (
-    COVARIANCE_FORMS,
-    Transition,
-    check_keywords,
-    check_prior,
-    process_roots,
-)
+from .assumed_density import AssumedDensityFamily, AugmentedWindow, censored_channel_update
 from .kalman import LinearGaussianFamily
 
 __all__ = ["FadingAssumedDensityFilter"]
 
-_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 
-
-class FadingAssumedDensityFilter(AssumedDensityFamily):
+class FadingAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
     r"""Assumed-density filter for censored readings through a Rice fading channel (module docstring).
 
     Parameters
@@ -109,57 +99,31 @@ class FadingAssumedDensityFilter(AssumedDensityFamily):
         check_limits: bool = True,
         backend: str = "auto",
     ):
-        check_instance(system, LinearSystem, "system")
+        self._configure(system, covariance_update, backend)
         check_instance(fading, RiceFading, "fading")
         if censoring is not None:
             check_instance(censoring, Censoring, "censoring")
-        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         fading.check(system.m)
         censoring = Censoring() if censoring is None else censoring
         censoring.check(system.m)
-        if not isinstance(check_limits, (bool, np.bool_)):
-            raise ValidationError(f"check_limits: expected True or False, got {check_limits!r}")
-        self.system, self.fading, self.censoring = system, fading, censoring
-        self.n, self.m, self.L = system.n, system.m, fading.order
+        self.check_limits = check_bool(check_limits, "check_limits")
+        self.fading, self.censoring, self.L = fading, censoring, fading.order
         self.nx = system.n * (self.L + 1)
         self.mean_g, self.var_g = fading.mean_gains(system.m), fading.var_gains(system.m)
-        self.covariance_update, self.check_limits = covariance_update, bool(check_limits)
-        self._roots = process_roots(system)
-        self._r = None if system.R.varying else _noise_variances(system.measurement_cov(1), "R")
-        self.backend = backend
 
     _compiled_spec = "fading_spec"
 
-    _prepare_inputs = LinearGaussianFamily._prepare_inputs
-    _step_input = LinearGaussianFamily._step_input
     _feedthrough = LinearGaussianFamily._feedthrough
 
-    def _state_dim(self) -> int:
-        return self.nx
-
     def _initial(self, N, x0, P0, batch):
-        x, P = check_prior(self.system, x0, P0, N, batch)
-        per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
-        if not per_run:
-            P = P[:1]
-        xi = np.zeros((N, self.nx))
-        xi[:, : self.n] = x
-        M = np.zeros((P.shape[0], self.nx, self.nx))
-        M[:, : self.n, : self.n] = 0.5 * (P + np.swapaxes(P, -1, -2))
-        return xi, M, {}
-
-    def _transition(self, k, u, carry) -> Transition:
-        sys_ = self.system
-        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
-        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
+        return self._window_prior(N, x0, P0, batch, "zero")  # blocks s > k: the terms do not exist yet
 
     def _project(self, k, xp, Pp, Sp, y, u):
         n, m = self.n, self.m
         N = xp.shape[0]
         S_ = min(self.L, k)
         Cs = [measurement_matrix_at(self.system, k - s) for s in range(S_ + 1)]
-        r = self._r if self._r is not None else _noise_variances(self.system.measurement_cov(k), f"R({k})")
+        r = self._noise_at(k)
         lo, hi = self.censoring.limits(k)
         lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
         dy = np.broadcast_to(self._feedthrough(k, u), (N, m))

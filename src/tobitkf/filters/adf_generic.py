@@ -59,11 +59,10 @@ import numpy as np
 from .._validation import ValidationError, check_instance, diagonal_sigma
 from ..channels.base import Channel, section_of
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, numba_available
-from .assumed_density import AssumedDensityFamily, _noise_variances
+from ._backend import numba_available
+from .assumed_density import AssumedDensityFamily
 from .core import (
     COVARIANCE_FORMS,
-    FilterResult,
     FilterState,
     MeasurementPrediction,
     check_keywords,
@@ -358,18 +357,11 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
     ):
         check_instance(system, LinearSystem, "system")
         self.channel = _contract_channel(channel, "moments", "the assumed-density filter")
-        check_keywords({"covariance_update": covariance_update, "backend": backend}, {**_OPTIONS, "backend": BACKENDS})
+        self._configure(system, covariance_update, backend)
         self.channel.check(system)
-        self._r = None if system.R.varying else _noise_variances(system.measurement_cov(1), "R")
-        self._setup_system(system)
-        self.covariance_update = covariance_update
-        self.backend = backend
 
     #: a channel that names its compiled moments (``compiled_moments``) runs :meth:`filter` in the compiled loop
     _compiled_spec = "channel_spec"
-
-    def _noise_at(self, k: int) -> np.ndarray:
-        return self._r if self._r is not None else _noise_variances(self.system.measurement_cov(k), f"R({k})")
 
     def _compiled_block(self, k: int, m: int) -> tuple[int, np.ndarray] | None:
         """``(family, par (m, K))`` of the channel's compiled moments at step ``k`` when the step loop takes them
@@ -411,40 +403,6 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
             )
             ll += lll
         return x, P, S, {"log_likelihood": ll}
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
-
-        Parameters
-        ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T.
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs (through ``Bu`` and ``D``).
-        x0, P0 : array_like, optional
-            Override the system's prior.
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
-
-        Raises
-        ------
-        ValidationError
-            A reading the channel cannot give (its ``check_readings``).
-        ShapeError
-            Malformed ``y`` or ``u``.
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The ``log_likelihood`` extras of :meth:`filter` (..., T)."""
@@ -559,19 +517,7 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
         )
         return mp, carry
 
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the readings ``y`` (..., T, m); NaN = missing. Parameters and errors as
-        :meth:`AssumedDensityFilter.filter`."""
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+    filter = AssumedDensityFamily.filter  # the same record loop, parameters and errors
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The assumed-density terms (..., T) of this filter's model (system and channel)."""

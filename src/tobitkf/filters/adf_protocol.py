@@ -48,20 +48,9 @@ from .._validation import ValidationError, check_instance
 from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS
-from .assumed_density import AssumedDensityFamily, censored_channel_update, merge_gaussians
-from .core import (
-    COVARIANCE_FORMS,
-    Transition,
-    check_keywords,
-    check_prior,
-    process_roots,
-)
-from .kalman import LinearGaussianFamily
+from .assumed_density import AssumedDensityFamily, AugmentedWindow, censored_channel_update, merge_gaussians
 
 __all__ = ["ProtocolAssumedDensityFilter", "failure_nodes"]
-
-_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 
 
 def failure_nodes(law: Any, nodes: int = 16) -> tuple[np.ndarray, np.ndarray]:
@@ -90,7 +79,7 @@ def failure_nodes(law: Any, nodes: int = 16) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-class ProtocolAssumedDensityFilter(AssumedDensityFamily):
+class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
     r"""Protocol-channel filter that conditions on the failure outcome (see the module docstring).
 
     Parameters
@@ -149,59 +138,22 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
         nodes: int = 16,
         backend: str = "auto",
     ):
-        check_instance(system, LinearSystem, "system")
+        self._configure(system, covariance_update, backend)
         check_instance(channel, ProtocolChannel, "channel")
-        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         channel.check(system)
         if isinstance(nodes, bool) or not isinstance(nodes, (int, np.integer)) or nodes < 1:
             raise ValidationError(f"nodes: expected a positive integer, got {nodes!r}")
-        self.system, self.channel = system, channel
-        self.n, self.m = system.n, 1
+        self.channel, self.m = channel, 1  # one reading per step: the scheduled sensor's
         self.ell = channel.window
         self.nx = system.n * (self.ell + 1)
-        self.covariance_update = covariance_update
         self.laws = [failure_nodes(law, int(nodes)) for law in channel.laws]
-        self._roots = process_roots(system)
-        self.backend = backend
-        if not system.R.varying:
-            self._variances(1)
 
     _compiled_spec = "protocol_spec"
-
-    _prepare_inputs = LinearGaussianFamily._prepare_inputs
-    _step_input = LinearGaussianFamily._step_input
-
-    def _state_dim(self) -> int:
-        return self.nx
-
-    def _variances(self, k: int) -> np.ndarray:
-        R = self.system.measurement_cov(k)
-        off = R - np.diag(np.diagonal(R))
-        if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()) or np.any(np.diagonal(R) <= 0):
-            raise ValidationError(f"R({k}): the protocol filter needs a diagonal R with positive sensor variances")
-        return np.diagonal(R)
+    _positive_noise = "the protocol filter"
+    _variances = AssumedDensityFamily._noise_at  # the name the compiled loop's arrays read
 
     def _initial(self, N, x0, P0, batch):
-        x, P = check_prior(self.system, x0, P0, N, batch)
-        per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
-        if not per_run:
-            P = P[:1]
-        n, ell, mode = self.n, self.ell, self.channel.prehistory
-        xi = np.zeros((N, self.nx))
-        M = np.zeros((P.shape[0], self.nx, self.nx))
-        for s in range(ell + 1):
-            if s == 0 or mode != "zero":
-                xi[:, s * n : (s + 1) * n] = x
-            for t in range(ell + 1):
-                if (s == t and (s == 0 or mode != "zero")) or mode == "hold":
-                    M[:, s * n : (s + 1) * n, t * n : (t + 1) * n] = P
-        return xi, M, {}
-
-    def _transition(self, k, u, carry) -> Transition:
-        sys_ = self.system
-        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
-        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
+        return self._window_prior(N, x0, P0, batch, self.channel.prehistory)
 
     def _project(self, k, xp, Pp, Sp, y, u=None):
         if u is not None and self.system.D is not None:
@@ -212,7 +164,7 @@ class ProtocolAssumedDensityFilter(AssumedDensityFamily):
         order = self.channel.schedule.order
         h = int(order[(k - 1) % order.size]) - 1
         Cc = np.tile(self.system.measurement(k)[h], self.ell + 1)
-        r = float(self._variances(k)[h])
+        r = float(self._noise_at(k)[h])
         vals, probs = self.laws[h]
         N = xp.shape[0]
         yk = y[:, 0]

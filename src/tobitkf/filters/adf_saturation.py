@@ -47,19 +47,11 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.saturation import RandomSaturation
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS
 from .assumed_density import AssumedDensityFamily, merge_gaussians
-from .core import (
-    COVARIANCE_FORMS,
-    MeasurementPrediction,
-    check_keywords,
-    measurement_update,
-)
+from .core import MeasurementPrediction, measurement_update
 from .kalman import LinearGaussianFamily
 
 __all__ = ["SaturationAssumedDensityFilter", "saturated_reading_moments"]
-
-_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _TINY = np.finfo(np.float64).tiny
 
@@ -163,28 +155,17 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        check_instance(system, LinearSystem, "system")
+        self._configure(system, covariance_update, backend)
         check_instance(channel, RandomSaturation, "channel")
-        check_keywords({"covariance_update": covariance_update, "backend": backend}, _OPTIONS)
         channel.check(system)
-        self._setup_system(system)
         self.channel = channel
-        self.covariance_update = covariance_update
-        self.backend = backend
         with np.errstate(divide="ignore"):
             mu, nu = channel.mu, channel.nu
             self._logp = np.stack([np.log(mu), np.log((1 - mu) * nu), np.log((1 - mu) * (1 - nu))], axis=-1)
-        if not system.R.varying:
-            self._variances(1)
 
     _compiled_spec = "saturation_spec"
-
-    def _variances(self, k: int) -> np.ndarray:
-        R = self.system.measurement_cov(k)
-        off = R - np.diag(np.diagonal(R))
-        if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()) or np.any(np.diagonal(R) <= 0):
-            raise ValidationError(f"R({k}): the saturation filter needs a diagonal R with positive sensor variances")
-        return np.diagonal(R)
+    _positive_noise = "the saturation filter"
+    _variances = AssumedDensityFamily._noise_at  # the name the compiled loop's arrays read
 
     def _project(self, k, xp, Pp, Sp, y, u=None):
         if u is not None and self.system.D is not None:
@@ -192,7 +173,7 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
                 "u: the saturation filter's reading (2) has no feedthrough D u (it would be ambiguous whether "
                 "D u is saturated); give the system no D (a control input enters through Bu only)"
             )
-        C, r = self.system.measurement(k), self._variances(k)
+        C, r = self.system.measurement(k), self._noise_at(k)
         N, m = y.shape
         x, P, S = xp, Pp, Sp
         post = np.zeros((N, m, 3))

@@ -57,7 +57,7 @@ from typing import Any, Mapping
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ValidationError, as_float_array, check_instance
+from .._validation import ValidationError, as_float_array, check_bool, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -71,9 +71,12 @@ from .core import (
     FilterState,
     GaussianFilter,
     MeasurementPrediction,
+    Transition,
     check_keywords,
+    check_prior,
     measurement_update,
     prepare_measurements,
+    process_roots,
     psd_sqrt,
 )
 from .kalman import LinearGaussianFamily
@@ -86,9 +89,10 @@ __all__ = [
     "censored_channel_update",
     "assumed_density_update",
     "merge_gaussians",
+    "steered_limits",
 ]
 
-_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "order": ("channels", "uncensored_first"), "backend": BACKENDS}
+_ORDERS = ("channels", "uncensored_first")
 _NUMPY_HOOKS = ("_project", "_sequential", "_update_arrays", "_step_arrays", "_initial", "_transition")
 _STEP_DATA: ContextVar[Mapping[str, np.ndarray] | None] = ContextVar("adf_step_data", default=None)
 _TINY = np.finfo(np.float64).tiny
@@ -325,13 +329,51 @@ def _recorded_classes(cls: np.ndarray, flags: np.ndarray, y: np.ndarray, k: int)
     return np.where(at_limit & ~flags, _INTERIOR, cls).astype(np.int8)
 
 
-def _noise_variances(R: np.ndarray, name: str) -> np.ndarray:
+def steered_limits(censoring: Censoring, state: FilterState, options: Mapping[str, Any], m: int) -> dict[str, Any]:
+    """The limits of one online step (the ``lower``/``upper`` keywords of ``step`` and ``update`` of the censoring
+    filters, a limit steered from the prediction): ``{"lower": (N, m), "upper": (N, m)}`` with the censoring's
+    limit of the step where only one is given, or ``{}`` when neither is.
+
+    Raises
+    ------
+    ValidationError
+        A limit that does not broadcast to ``state.batch_shape + (m,)``, or lower >= upper in a channel.
+    """
+    out = {}
+    for key in ("lower", "upper"):
+        if options.get(key) is not None:
+            arr = as_float_array(options[key], key, allow_inf=True)
+            try:
+                out[key] = np.broadcast_to(arr, (state.runs, m))
+            except ValueError:
+                raise ValidationError(
+                    f"{key}: expected this step's limits of shape ({m},) or {state.batch_shape + (m,)}, got {arr.shape}"
+                ) from None
+    if not out:
+        return out
+    lo, hi = censoring.limits(state.k + (0 if state.carry.get("_predicted") else 1))
+    lo = out.get("lower", np.broadcast_to(lo, (state.runs, m)))
+    hi = out.get("upper", np.broadcast_to(hi, (state.runs, m)))
+    if not (lo < hi).all():
+        raise ValidationError("lower/upper: expected lower < upper for every channel of this step")
+    return {"lower": lo, "upper": hi}
+
+
+def _noise_variances(R: np.ndarray, name: str, positive: str | None = None) -> np.ndarray:
+    """The diagonal of a measurement covariance ``R`` (m, m) the channels are updated from in sequence.
+
+    Raises ValidationError naming ``name`` for an off-diagonal entry (beyond 1e-12 of the largest) or a
+    negative variance; with ``positive`` (the filter's name, e.g. ``"the protocol filter"``) also for a zero one.
+    """
     off = R - np.diag(np.diagonal(R))
-    if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, np.abs(R).max()):
+    d = np.diagonal(R).copy()
+    diagonal = np.abs(off).max(initial=0.0) <= 1e-12 * max(1.0, np.abs(R).max())
+    if positive is not None and (not diagonal or np.any(d <= 0)):
+        raise ValidationError(f"{name}: {positive} needs a diagonal R with positive sensor variances")
+    if not diagonal:
         raise ValidationError(
             f"{name}: the assumed-density filter processes the channels in sequence and needs a diagonal R"
         )
-    d = np.diagonal(R).copy()
     if np.any(d < 0):
         raise ValidationError(f"{name}: expected measurement variances >= 0, got {d}")
     return d
@@ -354,6 +396,37 @@ class AssumedDensityFamily(GaussianFilter):
 
     def _project(self, k, xp, Pp, Sp, y, u, **options):  # pragma: no cover - abstract
         raise NotImplementedError
+
+    #: None: the channels take a measurement variance >= 0; a filter's name (e.g. ``"the protocol filter"``):
+    #: every variance must be positive (its likelihood divides by it), and the error names that filter
+    _positive_noise: str | None = None
+    _r: np.ndarray | None = None
+    system: LinearSystem
+
+    def _configure(self, system: LinearSystem, covariance_update: str, backend: str, **options: Any) -> None:
+        """The checks and settings every family's constructor shares: ``system`` a :class:`LinearSystem`, the
+        ``covariance_update`` and ``backend`` (and the family's own keyword ``options``, name -> (value,
+        choices)) among their choices, R diagonal (checked now when it is constant, else at each step); sets
+        ``system``, ``n``, ``m`` and the process-noise roots of the square-root form.
+
+        Raises ValidationError naming the argument."""
+        check_instance(system, LinearSystem, "system")
+        check_keywords(
+            {"covariance_update": covariance_update, "backend": backend, **{k: v for k, (v, _) in options.items()}},
+            {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS, **{k: c for k, (_, c) in options.items()}},
+        )
+        self.covariance_update = covariance_update
+        self.backend = backend
+        self._r = None if system.R.varying else self._noise_of(system, 1, "R")
+        self.system, self.n, self.m = system, system.n, system.m
+        self._roots = process_roots(system)
+
+    def _noise_of(self, system: LinearSystem, k: int, name: str) -> np.ndarray:
+        return _noise_variances(system.measurement_cov(k), name, self._positive_noise)
+
+    def _noise_at(self, k: int) -> np.ndarray:
+        """The measurement variances (m,) at step ``k`` (:func:`_noise_variances`; computed once when R is constant)."""
+        return self._r if self._r is not None else self._noise_of(self.system, k, f"R({k})")
 
     #: the builder of the family's arrays for the compiled loop (a ``*_spec`` function of
     #: :mod:`tobitkf.filters._compiled_loop`), None: no compiled path
@@ -409,9 +482,9 @@ class AssumedDensityFamily(GaussianFilter):
         y : (..., T, m) array_like
             Readings y_1..y_T.
         u : (T, p) or (..., T, p) array_like, optional
-            Control inputs (through ``Bu``).
+            Control inputs (through ``Bu``, and ``D`` where the reading has a feed-through).
         x0, P0 : array_like, optional
-            Override the system's prior of :math:`x_0` (and of a delayed family's pre-history blocks).
+            Override the system's prior of :math:`x_0` (and of an augmented state's window blocks).
         outputs : str or sequence of str, default "all"
             ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
         state : FilterState, optional
@@ -420,12 +493,62 @@ class AssumedDensityFamily(GaussianFilter):
         Raises
         ------
         ValidationError
-            A reading the family's channel cannot give (outside the censoring limits, below a
-            protocol's threshold τ).
+            A reading the channel cannot give (outside the censoring limits, below a protocol's threshold
+            τ, refused by a channel's own ``check_readings``); a measurement covariance R that is not
+            diagonal (or, where the family needs it, not positive) at a step.
         ShapeError
             Malformed ``y`` or ``u``.
         """
         return self._run(y, u, x0, P0, outputs=outputs, state=state)
+
+
+class AugmentedWindow:
+    r"""The state of the assumed-density families whose reading sees a window of past states: the stacked
+    :math:`\xi_k = [x_k^T \cdots x_{k-W}^T]^T` (``nx`` = n (W + 1)), its shift transition and its prior.
+
+    Taken by :class:`~tobitkf.filters.adf_fading.FadingAssumedDensityFilter` (W = L, the fading order) and
+    :class:`~tobitkf.filters.adf_protocol.ProtocolAssumedDensityFilter` (W = ℓ, the integral window); the
+    family sets ``system``, ``n``, ``nx``, ``covariance_update`` and ``_roots``.
+    """
+
+    system: LinearSystem
+    n: int
+    nx: int
+    covariance_update: str
+    _roots: Any
+
+    _prepare_inputs = LinearGaussianFamily._prepare_inputs
+    _step_input = LinearGaussianFamily._step_input
+
+    def _state_dim(self) -> int:
+        return self.nx
+
+    def _window_prior(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...], mode: str):
+        r"""The prior of :math:`\xi_0` (N runs): the top block :math:`N(\bar x_0, P_0)` and the window blocks by
+        ``mode``: ``"zero"`` zero blocks (terms that do not exist yet), ``"prior"`` iid :math:`N(\bar x_0, P_0)`
+        blocks, ``"hold"`` :math:`x_{-s} = x_0` (fully correlated blocks). The covariance keeps one copy
+        (1, nx, nx) unless ``x0`` or ``P0`` is given per run."""
+        x, P = check_prior(self.system, x0, P0, N, batch)
+        per_run = (x0 is not None and np.ndim(x0) > 1) or (P0 is not None and np.ndim(P0) > 2)
+        if not per_run:
+            P = P[:1]
+        P = 0.5 * (P + np.swapaxes(P, -1, -2))
+        n, W = self.n, self.nx // self.n - 1
+        xi = np.zeros((N, self.nx))
+        M = np.zeros((P.shape[0], self.nx, self.nx))
+        for s in range(W + 1):
+            if s == 0 or mode != "zero":
+                xi[:, s * n : (s + 1) * n] = x
+            for t in range(W + 1):
+                if (s == t and (s == 0 or mode != "zero")) or mode == "hold":
+                    M[:, s * n : (s + 1) * n, t * n : (t + 1) * n] = P
+        return xi, M, {}
+
+    def _transition(self, k, u, carry) -> Transition:
+        sys_ = self.system
+        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
+        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
+        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
 
 
 class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
@@ -521,24 +644,14 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         order: str = "channels",
         backend: str = "auto",
     ):
-        check_instance(system, LinearSystem, "system")
+        self._configure(system, covariance_update, backend, order=(order, _ORDERS))
         check_instance(censoring, Censoring, "censoring")
-        check_keywords({"covariance_update": covariance_update, "order": order, "backend": backend}, _OPTIONS)
         censoring.check(system.m)
-        if not isinstance(check_limits, (bool, np.bool_)):
-            raise ValidationError(f"check_limits: expected True or False, got {check_limits!r}")
-        self._r = None if system.R.varying else _noise_variances(system.measurement_cov(1), "R")
-        self._setup_system(system)
+        self.check_limits = check_bool(check_limits, "check_limits")
         self.censoring = censoring
-        self.covariance_update = covariance_update
-        self.check_limits = bool(check_limits)
         self.order = order
-        self.backend = backend
 
     _compiled_spec = "censoring_spec"
-
-    def _noise_at(self, k: int) -> np.ndarray:
-        return self._r if self._r is not None else _noise_variances(self.system.measurement_cov(k), f"R({k})")
 
     def _sequential(self, k, xp, Pp, Sp, y, u, lower=None, upper=None, censored=None):
         if lower is None or upper is None:
@@ -595,27 +708,10 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
             self.censoring.check_measurements(y[:, None], start=state.k)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
-        out = {}
         flags = None
         if options.get("censored") is not None:
             flags = _indicator(options["censored"], state.batch_shape + (self.m,)).reshape(state.runs, self.m)
-        for key in ("lower", "upper"):
-            if options.get(key) is not None:
-                arr = as_float_array(options[key], key, allow_inf=True)
-                try:
-                    out[key] = np.broadcast_to(arr, (state.runs, self.m))
-                except ValueError:
-                    raise ValidationError(
-                        f"{key}: expected this step's limits of shape ({self.m},) or "
-                        f"{state.batch_shape + (self.m,)}, got {arr.shape}"
-                    ) from None
-        if out:
-            lo, hi = self.censoring.limits(state.k + (0 if state.carry.get("_predicted") else 1))
-            lo = out.get("lower", np.broadcast_to(lo, (state.runs, self.m)))
-            hi = out.get("upper", np.broadcast_to(hi, (state.runs, self.m)))
-            if not (lo < hi).all():
-                raise ValidationError("lower/upper: expected lower < upper for every channel of this step")
-            out = {"lower": lo, "upper": hi}
+        out = steered_limits(self.censoring, state, options, self.m)
         if flags is not None:
             out["censored"] = flags
         return out
