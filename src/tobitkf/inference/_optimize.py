@@ -27,6 +27,8 @@ __all__ = [
     "check_tolerance",
     "check_iterations",
     "Ticker",
+    "maximize_closing",
+    "observed_information",
 ]
 
 
@@ -346,3 +348,35 @@ def _newton_check(f, v, cov, gtol: float, optimizer_message: str) -> tuple[bool,
         f"(gtol = {gtol:g})",
         2 * v.size,
     )
+
+
+def maximize_closing(
+    f: Callable[[np.ndarray], float],
+    x0: np.ndarray,
+    progress: tuple[Any, Callable[[], None], Ticker],
+    *,
+    gtol: float,
+    maxiter: int,
+    label: Callable[[np.ndarray], Any] | None = None,
+) -> Outcome:
+    """:func:`maximize` of ``f`` from ``x0`` reporting to ``progress`` (the ``(callback, close, ticker)`` of a fit's
+    ``progress`` option), closed whatever happens: the direct maximisation of every fit."""
+    cb, close, ticker = progress
+    try:
+        return maximize(f, x0, gtol=gtol, maxiter=maxiter, progress=cb, label=label, ticker=ticker)
+    finally:
+        close()
+
+
+def observed_information(
+    f: Callable[[np.ndarray], float], v: np.ndarray, f0: float, gtol: float, optimizer_message: str
+) -> tuple[np.ndarray | None, bool, str, int]:
+    r"""The standard errors and the convergence verdict of a fit at ``v`` (``f0`` = f(v)): the covariance
+    :math:`I^{-1}` from the central-difference Hessian (all NaN where the observed information is not positive
+    definite) and :func:`_newton_check` with it. Returns ``(cov, converged, message, evaluations of the check)``.
+    """
+    from ._results import _inverse_information
+
+    cov = _inverse_information(central_hessian(f, v, f0=f0))
+    converged, message, evaluations = _newton_check(f, v, cov, gtol, optimizer_message)
+    return cov, converged, message, evaluations

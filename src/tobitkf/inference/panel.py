@@ -44,8 +44,8 @@ from ..filters.likelihood import prediction_log_densities
 from ..filters.smoothing import rts_smooth
 from ..models.continuous import ContinuousLinearSystem, check_increasing, time_values
 from ..models.linear import LinearSystem
-from ._optimize import _newton_check, central_hessian, maximize
-from ._results import FitResult, _inverse_information, _progress_callback
+from ._optimize import maximize_closing, observed_information
+from ._results import FitResult, _progress_callback
 
 __all__ = ["Panel", "PanelArrays", "PanelModel", "panel_log_likelihood", "panel_smooth", "panel_forecast", "fit_panel"]
 
@@ -659,25 +659,15 @@ def fit_panel(
 
     if not np.isfinite(ll_of(th0)):
         raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-    cb, close, ticker = _progress_callback(progress, "fit panel")
-    try:
-        out = maximize(
-            ll_of,
-            th0,
-            gtol=gtol,
-            maxiter=maxiter,
-            progress=cb,
-            label=lambda v: dict(zip(names, v.tolist())),
-            ticker=ticker,
-        )
-    finally:
-        close()
+    progress_ = _progress_callback(progress, "fit panel")
+    out = maximize_closing(
+        ll_of, th0, progress_, gtol=gtol, maxiter=maxiter, label=lambda v: dict(zip(names, v.tolist()))
+    )
     th = out.x
     ll = ll_of(th)
-    cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
     # converged means what it means for tk.fit's other models: the Newton step with the observed information
     # is below gtol standard errors in every parameter
-    converged, message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
+    cov, converged, message, _ = observed_information(ll_of, th, ll, gtol, out.message)
     if not standard_errors:
         cov = None
     return FitResult(

@@ -58,8 +58,8 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_boo
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
-from ._optimize import _newton_check, central_hessian, check_iterations, check_tolerance, maximize
-from ._results import FitResult, _inverse_information, _progress_callback
+from ._optimize import check_iterations, check_tolerance, maximize_closing, observed_information
+from ._results import FitResult, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
 
@@ -661,7 +661,7 @@ def fit_state_space(
         raise ShapeError(f"u: expected {T} rows (one per reading), got {u2.shape}")
     if prior not in ("given", "stationary"):
         raise ValidationError(f"prior: expected 'given' or 'stationary', got {prior!r}")
-    cb, close, ticker = _progress_callback(progress, "fit state-space model")
+    progress_ = cb, close, ticker = _progress_callback(progress, "fit state-space model")
     data = {"y": y2, "u": u2, "censored": c2}
     lik = _Likelihood(y2, u2, censoring, c2)
 
@@ -694,24 +694,14 @@ def fit_state_space(
 
         if not np.isfinite(ll_of(th0)):
             raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-        try:
-            out = maximize(
-                ll_of,
-                th0,
-                gtol=gtol,
-                maxiter=maxiter,
-                progress=cb,
-                label=lambda v: dict(zip(names, v.tolist())),
-                ticker=ticker,
-            )
-        finally:
-            close()
+        out = maximize_closing(
+            ll_of, th0, progress_, gtol=gtol, maxiter=maxiter, label=lambda v: dict(zip(names, v.tolist()))
+        )
         th = out.x
         ll = ll_of(th)
         cov = None
         if standard_errors:
-            cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
-            out.converged, out.message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
+            cov, out.converged, out.message, _ = observed_information(ll_of, th, ll, gtol, out.message)
         fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
         return FitResult(
             model=fitted,
@@ -760,30 +750,29 @@ def fit_state_space(
         M["P0"] = _stationary_cov(M["A"], M["Q"])
     entries = _free_entries(M, [e for e in estimate if not (e == "P0" and prior == "stationary")])
     enames = [_entry_name(n, idx) for n, idx in entries]
+
+    def ll_matrices(Mv):  # the log-likelihood of matrices, a stationary prior following A and Q
+        if prior == "stationary":
+            try:
+                Mv["P0"] = _stationary_cov(Mv["A"], Mv["Q"])
+            except (ValidationError, np.linalg.LinAlgError):
+                return -np.inf
+        return lik.of_matrices(Mv)
+
     if method == "direct":
         free_names = [e for e in ESTIMABLE if e in estimate and not (e == "P0" and prior == "stationary")]
 
         def ll_free(w):
-            Mv = _free_unpack(M, free_names, w)
-            if prior == "stationary":
-                try:
-                    Mv["P0"] = _stationary_cov(Mv["A"], Mv["Q"])
-                except (ValidationError, np.linalg.LinAlgError):
-                    return -np.inf
-            return lik.of_matrices(Mv)
+            return ll_matrices(_free_unpack(M, free_names, w))
 
-        try:
-            out = maximize(
-                ll_free,
-                _free_pack(M, free_names),
-                gtol=gtol,
-                maxiter=maxiter,
-                progress=cb,
-                label=lambda w: dict(zip(enames, _vec(_free_unpack(M, free_names, w), entries).tolist())),
-                ticker=ticker,
-            )
-        finally:
-            close()
+        out = maximize_closing(
+            ll_free,
+            _free_pack(M, free_names),
+            progress_,
+            gtol=gtol,
+            maxiter=maxiter,
+            label=lambda w: dict(zip(enames, _vec(_free_unpack(M, free_names, w), entries).tolist())),
+        )
         M = _free_unpack(M, free_names, out.x)
         if prior == "stationary":
             M["P0"] = _stationary_cov(M["A"], M["Q"])
@@ -820,21 +809,14 @@ def fit_state_space(
         v = _vec(M, entries)
 
     def it_ll(vv):  # the log-likelihood in the estimated entries at the fit, for the observed information
-        Mv = _with(M, entries, vv)
-        if prior == "stationary":
-            try:
-                Mv["P0"] = _stationary_cov(Mv["A"], Mv["Q"])
-            except (ValidationError, np.linalg.LinAlgError):
-                return -np.inf
-        return lik.of_matrices(Mv)
+        return ll_matrices(_with(M, entries, vv))
 
     system = _build(M)
     ll = lik.of_matrices(M)
     cov = None
     if standard_errors and entries:
         ticker.tick("observed information")
-        cov = _inverse_information(central_hessian(it_ll, v, f0=ll))
-        converged, message, n_ev = _newton_check(it_ll, v, cov, gtol, message)
+        cov, converged, message, n_ev = observed_information(it_ll, v, ll, gtol, message)
         evals += n_ev
     fitted = StateSpaceModel(system, censoring, estimate, prior, diagonal_R)
     return FitResult(
