@@ -68,12 +68,9 @@ class ChainLMMSE(_DelayEstimator):
 
     Parameters
     ----------
-    system : DelayFadingSystem
-        Pure-delay model (no ``extra_lags``).
-    prior : HistoryPrior
-        Uncorrelated prior of x(0), ..., x(-d).
-    decorrelation : {"optimal", "paper"}, default "optimal"
-        See :func:`chain_lmmse`.
+    system, prior, decorrelation
+        The pure-delay model, the uncorrelated prior of its history and the predictor's decorrelation
+        (default ``"optimal"``), as in :func:`chain_lmmse`.
     backend : {"auto", "numpy", "numba"}, default "auto"
         ``"auto"`` forms the moments of Λ(t-d) (R(t), J(t), Ā(t), Σ(t), Λ(t+1)) compiled
         (:func:`tobitkf.filters._kernels_delay.delay_moments`, the reorganized LMMSE's code) and runs the

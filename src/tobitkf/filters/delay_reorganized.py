@@ -285,9 +285,15 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         """The means of the kernel's output into the step's per-time dicts (those of time t-2d-3 dropped: the
         kernel zeroed the ring's Ψ, K H of t-2d-2), Λ(t+1) into ``c``; x̂(t|t), P(t|t), P(t|t-1) and the extras."""
         M, e_t, C, Qe = _flat_views(buf, lay)
+        extras = self._store_step(t, c, xf, xsm, xm, xp, eps, M, e_t, C, Qe)
+        return M[0], C[0], C[1], extras
+
+    def _store_step(self, t, c, xf, xsm, xm, xp, eps, M, e_t, C, Qe):
+        """The kernel's outputs of step t (views of its buffer) into the per-time dicts of the means (those of
+        time t-2d-3 dropped: the kernel zeroed the ring's Ψ, K H of t-2d-2) and Λ(t+1) into ``c``; returns the
+        step's extras."""
         m0, m1, m2, m3 = M[0], M[1], M[2], M[3]  # (indexing: a third of the cost of iterating)
-        xf[t], xsm[t], xm[t], xp[t + 1] = m0, m1, m2, m3
-        eps[t] = e_t
+        xf[t], xsm[t], xm[t], xp[t + 1], eps[t] = m0, m1, m2, m3, e_t
         lag_mean, lag_cov = self._lag_keys
         extras = {
             "measured_mean": m2,
@@ -303,7 +309,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         c["lam"] = {t + 1: C[6, 0]}  # Λ(t+1), read by the result assembly (_group_extras)
         old = t - 2 * self.system.d - 3
         xf.pop(old, None), xsm.pop(old, None), xm.pop(old, None), xp.pop(old, None), eps.pop(old, None)
-        return m0, C[0], C[1], extras
+        return extras
 
     def _whole_online(self, state, y):
         """:meth:`_step_arrays`' compiled branch as the online step: the new carry (the ring copied once, the
@@ -316,8 +322,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xp = c["xp"] = carry["xp"].copy()
         eps = c["eps"] = carry["eps"].copy()
         ring = c["ring"] = carry["ring"].copy()
-        # :meth:`_whole_kernel` and :meth:`_whole_assemble` written out (their calls and the list of views are a
-        # tenth of this step; the test of the reorganized kernel's step loop holds the two forms equal)
+        # :meth:`_whole_kernel` and the views of :meth:`_whole_assemble` written out (their calls and the list of
+        # views are a tenth of this step; the test of the reorganized kernel's step loop holds the two forms equal)
         N = y.shape[0]
         d = self.system.d
         lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N)
@@ -333,24 +339,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
             return None
         M, e_t = buf[:z0].reshape(s0), buf[o1 : o1 + z1].reshape(s1)
         C, Qe = buf[o2 : o2 + z2].reshape(s2), buf[o3 : o3 + z3].reshape(s3)
-        m0, m1, m2, m3 = M[0], M[1], M[2], M[3]
-        xf[t], xsm[t], xm[t], xp[t + 1], eps[t] = m0, m1, m2, m3, e_t
-        lag_mean, lag_cov = self._lag_keys
-        extras = {
-            "measured_mean": m2,
-            "measured_cov": C[2],
-            "next_mean": m3,
-            "next_cov": C[3],
-            "innovation": e_t,
-            "innovation_cov": Qe,
-            lag_mean: m1,
-            lag_cov: C[4],
-            "_lam": C[5],
-        }
-        c["lam"] = {t + 1: C[6, 0]}
-        old = t - 2 * d - 3
-        xf.pop(old, None), xsm.pop(old, None), xm.pop(old, None), xp.pop(old, None), eps.pop(old, None)
-        return step_state(t, state.batch_shape, m0, C[0], self.n, None, c, extras)
+        extras = self._store_step(t, c, xf, xsm, xm, xp, eps, M, e_t, C, Qe)
+        return step_state(t, state.batch_shape, M[0], C[0], self.n, None, c, extras)
 
     def _whole_online_first(self, state, y):
         """:meth:`_whole_online` by the two methods it writes out, at the first step for a number of runs (which
