@@ -46,7 +46,7 @@ from ..models.linear import LinearSystem
 from ._times import at_times, smooth_on_grid
 from .core import FilterResult, check_prior
 
-__all__ = ["rts_smooth", "solve_psd", "SmoothingMethods"]
+__all__ = ["rts_smooth", "rts_step", "solve_psd", "SmoothingMethods"]
 
 
 @overload
@@ -143,13 +143,8 @@ def rts_smooth(
             xfi, Pfi = xf[:, i - 1], Pf[:, i - 1]
         else:
             xfi, Pfi = xa, Pa
-        Ppi = Pp[:, i]
-        Jt = solve_psd(np.broadcast_to(Ppi, (max(Ppi.shape[0], Pfi.shape[0]),) + Ppi.shape[1:]), A @ Pfi)
-        J = np.swapaxes(Jt, -1, -2)  # (Nc, n, n)
-        gain[:, i] = J
-        xn = xfi + np.einsum("...ij,...j->...i", J, xs[:, i] - xp[:, i])
-        Pn = Pfi + J @ (Ps[:, i] - Ppi) @ Jt
-        Pn = 0.5 * (Pn + np.swapaxes(Pn, -1, -2))
+        xn, Pn, Jt = rts_step(A, xfi, Pfi, xp[:, i], Pp[:, i], xs[:, i], Ps[:, i])
+        gain[:, i] = np.swapaxes(Jt, -1, -2)  # (Nc, n, n)
         cross[:, i] = Ps[:, i] @ Jt
         if i > 0:
             xs[:, i - 1] = xn
@@ -182,6 +177,35 @@ def rts_smooth(
         times=filtered.times,
         final=filtered.final,
     )
+
+
+def rts_step(
+    A: np.ndarray,
+    x_filt: np.ndarray,
+    P_filt: np.ndarray,
+    x_pred: np.ndarray,
+    P_pred: np.ndarray,
+    x_next: np.ndarray,
+    P_next: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""One step of the RTS backward pass (the module docstring's equations), batched over runs.
+
+    Parameters
+    ----------
+    A : (n, n) :math:`A_k` ; x_filt : (N, n) :math:`\hat x_{k|k}` ; P_filt : (N or 1, n, n) :math:`P_{k|k}`
+    x_pred : (N, n) :math:`\bar x_{k+1|k}` ; P_pred : (N or 1, n, n) :math:`\bar P_{k+1|k}`
+    x_next : (N, n) :math:`\hat x_{k+1|T}` ; P_next : (N or 1, n, n) :math:`P_{k+1|T}`
+
+    Returns
+    -------
+    x : (N, n) :math:`\hat x_{k|T}` ; P : (N or 1, n, n) :math:`P_{k|T}` (symmetrised) ;
+    Jt : (N or 1, n, n) :math:`J_k^T` (the cross-covariance is :math:`P_{k+1|T}J_k^T`)
+    """
+    Jt = solve_psd(np.broadcast_to(P_pred, (max(P_pred.shape[0], P_filt.shape[0]),) + P_pred.shape[1:]), A @ P_filt)
+    J = np.swapaxes(Jt, -1, -2)
+    x = x_filt + np.einsum("...ij,...j->...i", J, x_next - x_pred)
+    P = P_filt + J @ (P_next - P_pred) @ Jt
+    return x, 0.5 * (P + np.swapaxes(P, -1, -2)), Jt
 
 
 def solve_psd(S: np.ndarray, B: np.ndarray) -> np.ndarray:

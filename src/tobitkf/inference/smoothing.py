@@ -36,7 +36,7 @@ from ..channels.censoring import Censoring
 from ..filters.assumed_density import assumed_density_filter
 from ..filters.core import FilterResult, FilterState, prepare_measurements
 from ..filters.kalman import DroppingKalmanFilter, KalmanFilter, dropping_with_indicator
-from ..filters.smoothing import rts_smooth, solve_psd
+from ..filters.smoothing import rts_smooth, rts_step
 from ..filters.tobit import TobitKalmanFilter, check_tobit_indicator
 from ..models.linear import LinearSystem
 
@@ -245,12 +245,7 @@ class FixedLagSmoother:
         A_of = self.estimator.system.transition
         for j in range(len(win) - 2, -1, -1):
             kj, xf, Pf = win[j][0], win[j][1], win[j][2]
-            xp, Pp = win[j + 1][3], win[j + 1][4]
-            Jt = solve_psd(np.broadcast_to(Pp, (max(Pp.shape[0], Pf.shape[0]),) + Pp.shape[1:]), A_of(kj) @ Pf)
-            J = np.swapaxes(Jt, -1, -2)
-            x = xf + np.einsum("...ij,...j->...i", J, x - xp)
-            P = Pf + J @ (P - Pp) @ Jt
-            P = 0.5 * (P + np.swapaxes(P, -1, -2))
+            x, P, _ = rts_step(A_of(kj), xf, Pf, win[j + 1][3], win[j + 1][4], x, P)
             out.append((kj, x, P))
         return out
 
