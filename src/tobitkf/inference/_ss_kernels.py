@@ -39,6 +39,31 @@ _LOG_2PI = math.log(2.0 * math.pi)
 _TINY = np.finfo(float).tiny
 
 
+@njit(cache=True, error_model="numpy", nogil=True)
+def predict_into(A, Q, x, P, xp, AP, Pp):  # pragma: no cover - compiled
+    r"""The time update :math:`\bar x = Ax`, :math:`\bar P = APA^T + Q` of one run in scalar loops, written into
+    ``xp`` (n,) and ``Pp`` (n, n) (symmetric by construction; ``AP`` (n, n) is scratch). ``Pp`` may be ``P``
+    itself: AP is formed in full before it is written."""
+    n = A.shape[0]
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += A[i, j] * x[j]
+        xp[i] = s
+        for j in range(n):
+            s = 0.0
+            for q in range(n):
+                s += A[i, q] * P[q, j]
+            AP[i, j] = s
+    for i in range(n):
+        for j in range(i, n):
+            s = Q[i, j]
+            for q in range(n):
+                s += AP[i, q] * A[j, q]
+            Pp[i, j] = s
+            Pp[j, i] = s
+
+
 @njit(cache=True, error_model="numpy")
 def log_likelihood(A, Q, C, r, Bu, D, x0, P0, y, side, lim, u):  # pragma: no cover - compiled
     """``A`` (n, n), ``Q`` (n, n), ``C`` (m, n), ``r`` (m,) the diagonal of R, ``Bu`` (n, p), ``D`` (m, p),
@@ -55,27 +80,12 @@ def log_likelihood(A, Q, C, r, Bu, D, x0, P0, y, side, lim, u):  # pragma: no co
     Pc = np.empty(n)
     total = 0.0
     for k in range(T):
+        predict_into(A, Q, x, P, xn, AP, P)
         for i in range(n):
-            s = 0.0
-            for j in range(n):
-                s += A[i, j] * x[j]
+            s = xn[i]
             for j in range(p):
                 s += Bu[i, j] * u[k, j]
-            xn[i] = s
-        for i in range(n):
-            x[i] = xn[i]
-            for j in range(n):
-                s = 0.0
-                for q in range(n):
-                    s += A[i, q] * P[q, j]
-                AP[i, j] = s
-        for i in range(n):
-            for j in range(i, n):
-                s = Q[i, j]
-                for q in range(n):
-                    s += AP[i, q] * A[j, q]
-                P[i, j] = s
-                P[j, i] = s
+            x[i] = s
         for stage in range(2):  # the readings inside the limits first, then the censored ones
             for l in range(m):
                 yl = y[k, l]
