@@ -42,6 +42,7 @@ Q_ε(t) (15); ``second_moment`` Λ(t) (10, corrected: LD-E2); ``decorrelation`` 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -412,16 +413,7 @@ def _group_extras(res: FilterResult) -> FilterResult:
         ex["ahead"] = dict(sorted(ahead.items()))
     if point is not None:
         ex["point"] = point
-    return FilterResult(
-        mean=res.mean,
-        cov=res.cov,
-        pred_mean=res.pred_mean,
-        pred_cov=res.pred_cov,
-        extras=ex,
-        times=res.times,
-        var=res.var,
-        final=res.final,
-    )
+    return dataclasses.replace(res, extras=ex)
 
 
 def _stack_blocks(blocks: list[np.ndarray]) -> np.ndarray:

@@ -47,6 +47,15 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 from .._validation import ValidationError
+from ._backend import BACKENDS
+from .assumed_density import _ORDERS
+from .core import COVARIANCE_FORMS
+from .delay import _DECORRELATION
+from .fading import _KF_OPTIONS as _FADING_KF_OPTIONS
+from .fading import _TOBIT_OPTIONS as _FADING_TOBIT_OPTIONS
+from .protocol import _OPTIONS as _PROTOCOL_OPTIONS
+from .tobit import _OPTIONS as _TOBIT_OPTIONS
+from .tobit import NOISE_TERMS
 
 __all__ = ["Entry", "ENTRIES", "get", "names", "make", "lineup", "describe", "parts_of", "channel_of", "Lineup"]
 
@@ -112,8 +121,9 @@ class Entry:
         return estimator.filter(data.y, **kwargs)
 
 
-_FORMS = ("standard", "joseph", "square_root")
-_BACKENDS = ("auto", "numpy", "numba")
+# the option values are the families' own constants (each family checks its options against them)
+_FORMS = COVARIANCE_FORMS
+_ADF_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 
 
 def _kf(system, parts, o):
@@ -268,32 +278,27 @@ _ENTRY_LIST = [
         "KalmanFilter",
         "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
         _kf,
-        options={"covariance_update": _FORMS, "backend": _BACKENDS},
+        options={"covariance_update": _FORMS, "backend": BACKENDS},
     ),
     Entry(
         "DroppingKalmanFilter",
         "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
         _dkf,
         needs=("censoring",),
-        options={"covariance_update": _FORMS, "rtol": float, "backend": _BACKENDS},
+        options={"covariance_update": _FORMS, "rtol": float, "backend": BACKENDS},
     ),
     Entry(
         "TobitKalmanFilter",
         "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
         _tkf,
         needs=("censoring",),
-        options={
-            "noise_term": ("dissertation", "total_variance", "exact_pv"),
-            "covariance_update": _FORMS,
-            "threads": int,
-            "backend": _BACKENDS,
-        },
+        options={**_TOBIT_OPTIONS, "threads": int},
     ),
     Entry(
         "SteadyStateTobitKalmanFilter",
         "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
         _sstkf,
-        options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": _BACKENDS},
+        options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": BACKENDS},
         required=("xi_uncensored",),
         reads="latent",
     ),
@@ -304,8 +309,8 @@ _ENTRY_LIST = [
         options={
             "xi_uncensored": float,
             "side": ("upper", "lower"),
-            "noise_term": ("dissertation", "total_variance", "exact_pv"),
-            "backend": _BACKENDS,  # no compiled path: "auto" and "numpy" run numpy, "numba" refuses
+            "noise_term": NOISE_TERMS,
+            "backend": BACKENDS,  # no compiled path: "auto" and "numpy" run numpy, "numba" refuses
         },
         required=("xi_uncensored",),
         reads="latent",
@@ -315,67 +320,56 @@ _ENTRY_LIST = [
         "TKF with L-th order Rice fading (Geng et al. 2017)",
         _ftkf,
         needs=("fading",),
-        options={
-            "p_uncensored_mode": ("augmented", "eq6_stale"),
-            "fading_variance_term": (False, True),
-            "exact_tobit_variance": (False, True),
-            "covariance_update": ("joseph", "standard", "square_root"),
-            "backend": _BACKENDS,
-        },
+        options=_FADING_TOBIT_OPTIONS,
     ),
     Entry(
         "FadingKalmanFilter",
         "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
         _fkf,
         needs=("fading",),
-        options={"fading_variance_term": (False, True), "covariance_update": ("joseph", "standard", "square_root")},
+        options=_FADING_KF_OPTIONS,
     ),
     Entry(
         "ProtocolTobitKalmanFilter",
         "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
         _ptkf,
         needs=("protocol",),
-        options={
-            "failure_term": ("variance", "literal", "second_moment", "lmmse_unconditional"),
-            "prehistory_prior": ("x0", "zero_mean"),
-            "covariance_update": ("joseph", "standard", "square_root"),
-            "backend": _BACKENDS,
-        },
+        options={**_PROTOCOL_OPTIONS, "backend": BACKENDS},
     ),
     Entry(
         "ProtocolBaselineTobitKalmanFilter",
         "the protocol paper's PBTKF baseline: no window, no failures modelled",
         _pbtkf,
         needs=("protocol",),
-        options={"covariance_update": ("joseph", "standard", "square_root")},
+        options={"covariance_update": _PROTOCOL_OPTIONS["covariance_update"]},
     ),
     Entry(
         "AssumedDensityTobitFilter",
         "assumed-density filter: the exact posterior moments of each censored reading (beyond the sources)",
         _adf,
         needs=("censoring",),
-        options={"covariance_update": _FORMS, "order": ("channels", "uncensored_first"), "backend": _BACKENDS},
+        options={**_ADF_OPTIONS, "order": _ORDERS},
     ),
     Entry(
         "FadingAssumedDensityFilter",
         "assumed-density filter for censored readings through Rice fading (beyond the sources)",
         _fadf,
         needs=("fading",),
-        options={"covariance_update": _FORMS, "backend": _BACKENDS},
+        options=_ADF_OPTIONS,
     ),
     Entry(
         "ProtocolAssumedDensityFilter",
         "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
         _padf,
         needs=("protocol",),
-        options={"covariance_update": _FORMS, "nodes": int, "backend": _BACKENDS},
+        options={**_ADF_OPTIONS, "nodes": int},
     ),
     Entry(
         "SaturationAssumedDensityFilter",
         "assumed-density filter for random saturation with missing readings (beyond the sources)",
         _sadf,
         needs=("saturation",),
-        options={"covariance_update": _FORMS, "backend": _BACKENDS},
+        options=_ADF_OPTIONS,
     ),
     Entry(
         "AssumedDensityFilter",
@@ -400,7 +394,7 @@ _ENTRY_LIST = [
             "resample_threshold": float,
             "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
             "seed": object,
-            "backend": _BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
+            "backend": BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
         },
         required=("seed",),  # a registry-built particle filter draws the same particles on every run
     ),
@@ -409,7 +403,7 @@ _ENTRY_LIST = [
         "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
         _delay("ChainLMMSE"),
         needs=("prior",),
-        options={"decorrelation": ("optimal", "paper"), "backend": _BACKENDS},
+        options={"decorrelation": _DECORRELATION, "backend": BACKENDS},
         model="delay",
     ),
     Entry(
@@ -425,7 +419,7 @@ _ENTRY_LIST = [
         "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
         _delay("ReorganizedInnovationLMMSE"),
         needs=("prior",),
-        options={"decorrelation": ("optimal", "paper"), "warmup": int, "backend": _BACKENDS},
+        options={"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
         model="delay",
     ),
     Entry(
