@@ -44,6 +44,7 @@ A line-up, built and described:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from importlib import import_module
 from typing import Any, Callable, Mapping
 
 from .._validation import ValidationError
@@ -126,54 +127,19 @@ _FORMS = COVARIANCE_FORMS
 _ADF_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 
 
-def _kf(system, parts, o):
-    from .kalman import KalmanFilter
+def _maker(module: str, name: str, *pieces: str) -> Callable[..., Any]:
+    """The factory of the class ``name`` of ``tobitkf.filters.<module>`` (imported when first built): it takes
+    the system, then the channel ``pieces`` by section name (a name ending in ``?`` is optional: None when not
+    given; ``"channel"`` is the channel the pieces make, :func:`channel_of`), then the options."""
 
-    return KalmanFilter(system, **o)
+    def make(system, parts, o):
+        cls = getattr(import_module(f"{__package__}.{module}"), name)
+        args = [
+            channel_of(parts) if p == "channel" else parts.get(p[:-1]) if p.endswith("?") else parts[p] for p in pieces
+        ]
+        return cls(system, *args, **o)
 
-
-def _dkf(system, parts, o):
-    from .kalman import DroppingKalmanFilter
-
-    return DroppingKalmanFilter(system, parts["censoring"], **o)
-
-
-def _tkf(system, parts, o):
-    from .tobit import TobitKalmanFilter
-
-    return TobitKalmanFilter(system, parts["censoring"], **o)
-
-
-def _sstkf(system, parts, o):
-    from .steady_state import SteadyStateTobitKalmanFilter
-
-    o = dict(o)
-    return SteadyStateTobitKalmanFilter(system, o.pop("xi_uncensored"), **o)
-
-
-def _cltkf(system, parts, o):
-    from .steady_state import ControlledLimitTobitKalmanFilter
-
-    o = dict(o)
-    return ControlledLimitTobitKalmanFilter(system, o.pop("xi_uncensored"), **o)
-
-
-def _ftkf(system, parts, o):
-    from .fading import FadingTobitKalmanFilter
-
-    return FadingTobitKalmanFilter(system, parts["fading"], parts.get("censoring"), **o)
-
-
-def _fkf(system, parts, o):
-    from .fading import FadingKalmanFilter
-
-    return FadingKalmanFilter(system, parts["fading"], **o)
-
-
-def _ptkf(system, parts, o):
-    from .protocol import ProtocolTobitKalmanFilter
-
-    return ProtocolTobitKalmanFilter(system, parts["protocol"], **o)
+    return make
 
 
 def _pbtkf(system, parts, o):
@@ -182,56 +148,11 @@ def _pbtkf(system, parts, o):
     return ProtocolTobitKalmanFilter.baseline(system, parts["protocol"], **o)
 
 
-def _adf(system, parts, o):
-    from .assumed_density import AssumedDensityTobitFilter
-
-    return AssumedDensityTobitFilter(system, parts["censoring"], **o)
+_DELAY_MODULES = {"ChainLMMSE": "delay_chain", "AugmentedLMMSE": "delay_augmented"}
 
 
-def _fadf(system, parts, o):
-    from .adf_fading import FadingAssumedDensityFilter
-
-    return FadingAssumedDensityFilter(system, parts["fading"], parts.get("censoring"), **o)
-
-
-def _padf(system, parts, o):
-    from .adf_protocol import ProtocolAssumedDensityFilter
-
-    return ProtocolAssumedDensityFilter(system, parts["protocol"], **o)
-
-
-def _delay(cls_name):
-    def make(system, parts, o):
-        from . import delay_augmented, delay_chain, delay_reorganized
-
-        module = {"ChainLMMSE": delay_chain, "AugmentedLMMSE": delay_augmented}.get(cls_name, delay_reorganized)
-        return getattr(module, cls_name)(system, parts["prior"], **o)
-
-    return make
-
-
-def _sadf(system, parts, o):
-    from .adf_saturation import SaturationAssumedDensityFilter
-
-    return SaturationAssumedDensityFilter(system, parts["saturation"], **o)
-
-
-def _pf(system, parts, o):
-    from .particle import ParticleFilter
-
-    return ParticleFilter(system, channel_of(parts), **o)
-
-
-def _generic_adf(system, parts, o):
-    from .adf_generic import AssumedDensityFilter
-
-    return AssumedDensityFilter(system, channel_of(parts), **o)
-
-
-def _generic_tobit(system, parts, o):
-    from .adf_generic import TobitFilter
-
-    return TobitFilter(system, channel_of(parts), **o)
+def _delay(cls_name: str) -> Callable[..., Any]:
+    return _maker(_DELAY_MODULES.get(cls_name, "delay_reorganized"), cls_name, "prior")
 
 
 def channel_of(parts: Mapping[str, Any]) -> Any:
@@ -277,27 +198,27 @@ _ENTRY_LIST = [
     Entry(
         "KalmanFilter",
         "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
-        _kf,
+        _maker("kalman", "KalmanFilter"),
         options={"covariance_update": _FORMS, "backend": BACKENDS},
     ),
     Entry(
         "DroppingKalmanFilter",
         "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
-        _dkf,
+        _maker("kalman", "DroppingKalmanFilter", "censoring"),
         needs=("censoring",),
         options={"covariance_update": _FORMS, "rtol": float, "backend": BACKENDS},
     ),
     Entry(
         "TobitKalmanFilter",
         "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
-        _tkf,
+        _maker("tobit", "TobitKalmanFilter", "censoring"),
         needs=("censoring",),
         options={**_TOBIT_OPTIONS, "threads": int},
     ),
     Entry(
         "SteadyStateTobitKalmanFilter",
         "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
-        _sstkf,
+        _maker("steady_state", "SteadyStateTobitKalmanFilter"),  # xi_uncensored: an option by keyword
         options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": BACKENDS},
         required=("xi_uncensored",),
         reads="latent",
@@ -305,7 +226,7 @@ _ENTRY_LIST = [
     Entry(
         "ControlledLimitTobitKalmanFilter",
         "full TKF with the steered limit of (3.56) (Miller §3.4)",
-        _cltkf,
+        _maker("steady_state", "ControlledLimitTobitKalmanFilter"),
         options={
             "xi_uncensored": float,
             "side": ("upper", "lower"),
@@ -318,21 +239,21 @@ _ENTRY_LIST = [
     Entry(
         "FadingTobitKalmanFilter",
         "TKF with L-th order Rice fading (Geng et al. 2017)",
-        _ftkf,
+        _maker("fading", "FadingTobitKalmanFilter", "fading", "censoring?"),
         needs=("fading",),
         options=_FADING_TOBIT_OPTIONS,
     ),
     Entry(
         "FadingKalmanFilter",
         "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
-        _fkf,
+        _maker("fading", "FadingKalmanFilter", "fading"),
         needs=("fading",),
         options=_FADING_KF_OPTIONS,
     ),
     Entry(
         "ProtocolTobitKalmanFilter",
         "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
-        _ptkf,
+        _maker("protocol", "ProtocolTobitKalmanFilter", "protocol"),
         needs=("protocol",),
         options={**_PROTOCOL_OPTIONS, "backend": BACKENDS},
     ),
@@ -346,49 +267,49 @@ _ENTRY_LIST = [
     Entry(
         "AssumedDensityTobitFilter",
         "assumed-density filter: the exact posterior moments of each censored reading (beyond the sources)",
-        _adf,
+        _maker("assumed_density", "AssumedDensityTobitFilter", "censoring"),
         needs=("censoring",),
         options={**_ADF_OPTIONS, "order": _ORDERS},
     ),
     Entry(
         "FadingAssumedDensityFilter",
         "assumed-density filter for censored readings through Rice fading (beyond the sources)",
-        _fadf,
+        _maker("adf_fading", "FadingAssumedDensityFilter", "fading", "censoring?"),
         needs=("fading",),
         options=_ADF_OPTIONS,
     ),
     Entry(
         "ProtocolAssumedDensityFilter",
         "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
-        _padf,
+        _maker("adf_protocol", "ProtocolAssumedDensityFilter", "protocol"),
         needs=("protocol",),
         options={**_ADF_OPTIONS, "nodes": int},
     ),
     Entry(
         "SaturationAssumedDensityFilter",
         "assumed-density filter for random saturation with missing readings (beyond the sources)",
-        _sadf,
+        _maker("adf_saturation", "SaturationAssumedDensityFilter", "saturation"),
         needs=("saturation",),
         options=_ADF_OPTIONS,
     ),
     Entry(
         "AssumedDensityFilter",
         "assumed-density filter of any channel: a named form where one exists, else the channel's moments",
-        _generic_adf,
+        _maker("adf_generic", "AssumedDensityFilter", "channel"),
         needs=("channel",),
         options={"covariance_update": _FORMS},
     ),
     Entry(
         "TobitFilter",
         "the Tobit Kalman filter's update for any channel with reading statistics (beyond the sources)",
-        _generic_tobit,
+        _maker("adf_generic", "TobitFilter", "channel"),
         needs=("channel",),
         options={"covariance_update": _FORMS, "linearization": ("prior_mean", "predictive")},
     ),
     Entry(
         "ParticleFilter",
         "bootstrap / optimal-proposal particle filter on any channel: the Bayes optimum (beyond the sources)",
-        _pf,
+        _maker("particle", "ParticleFilter", "channel"),
         options={
             "particles": int,
             "resample_threshold": float,
