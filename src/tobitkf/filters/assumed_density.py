@@ -388,10 +388,15 @@ class AssumedDensityFamily(GaussianFilter):
     ``(x, P, S, extras)`` on arrays (N runs, no validation inside), with ``S`` the square-root factor
     (None unless ``covariance_update="square_root"``). It replaces the Kalman-type update of
     :class:`~tobitkf.filters.core.GaussianFilter` (the ``_update_arrays`` hook); the time update, :meth:`step`,
-    :meth:`predict` and :meth:`update` are the shared ones. Taken by :class:`AssumedDensityTobitFilter`,
-    :class:`~tobitkf.filters.adf_fading.FadingAssumedDensityFilter`,
-    :class:`~tobitkf.filters.adf_protocol.ProtocolAssumedDensityFilter` and
-    :class:`~tobitkf.filters.adf_saturation.SaturationAssumedDensityFilter`.
+    :meth:`predict` and :meth:`update` are the shared ones, and so is :meth:`filter`. A family's constructor
+    calls :meth:`_configure` (the system, ``covariance_update``, ``backend`` and its own keyword options checked,
+    R diagonal) and checks its channel; :meth:`_noise_at` gives the measurement variances of a step
+    (``_positive_noise`` names a family that needs them positive); a family whose reading sees past states
+    takes :class:`AugmentedWindow` (the stacked state, its prior and shift). Taken by
+    :class:`AssumedDensityTobitFilter`, :class:`~tobitkf.filters.adf_fading.FadingAssumedDensityFilter`,
+    :class:`~tobitkf.filters.adf_protocol.ProtocolAssumedDensityFilter`,
+    :class:`~tobitkf.filters.adf_saturation.SaturationAssumedDensityFilter` and the generic
+    :class:`~tobitkf.filters.adf_generic.AssumedDensityFilter`.
     """
 
     def _project(self, k, xp, Pp, Sp, y, u, **options):  # pragma: no cover - abstract
