@@ -375,8 +375,16 @@ def observed_information(
     :math:`I^{-1}` from the central-difference Hessian (all NaN where the observed information is not positive
     definite) and :func:`_newton_check` with it. Returns ``(cov, converged, message, evaluations of the check)``.
     """
-    from ._results import _inverse_information
-
     cov = _inverse_information(central_hessian(f, v, f0=f0))
     converged, message, evaluations = _newton_check(f, v, cov, gtol, optimizer_message)
     return cov, converged, message, evaluations
+
+
+def _inverse_information(H: np.ndarray) -> np.ndarray | None:
+    """The inverse of the observed information -H, or an all-NaN matrix when -H is not positive definite."""
+    info = -0.5 * (H + H.T)
+    try:
+        np.linalg.cholesky(info)
+    except np.linalg.LinAlgError:
+        return np.full(info.shape, np.nan)
+    return np.linalg.inv(info)

@@ -58,8 +58,8 @@ import numpy as np
 from .._compiled import numba_available
 from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_memory, check_scale
 from ._common import LOG_2PI, censoring_sides
-from ._optimize import check_iterations, check_tolerance, forward_hessian, maximize
-from ._results import FitResult, _inverse_information, _progress_callback
+from ._optimize import _inverse_information, check_iterations, check_tolerance, forward_hessian, maximize
+from ._results import FitResult, _progress_callback
 
 __all__ = [
     "CensoredARData",
