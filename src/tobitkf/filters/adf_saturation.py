@@ -52,6 +52,7 @@ from .core import MeasurementPrediction, measurement_update
 from .kalman import LinearGaussianFamily
 
 __all__ = ["SaturationAssumedDensityFilter", "saturated_reading_moments"]
+
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _TINY = np.finfo(np.float64).tiny
 
