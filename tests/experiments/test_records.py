@@ -238,3 +238,49 @@ def test_finite_differences_are_exact_on_a_quadratic():
     np.testing.assert_allclose(g, -th @ A + b, rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(fd_hessian(f, th[0], h=1e-2), -A, rtol=1e-7, atol=1e-7)
     assert calls[0] == 3 * 9 and calls[-1] == 2 * 4 * 5
+
+
+def test_gap_matrices_compose_and_reduce_to_a_random_walk():
+    """A gap of 2 d is two steps of d (a(2d) = a(d)^2, q(2d) = a(d)^2 q(d) + q(d)); rate 0 is a random walk
+    (q d); the stationary variance of an OU state is q / (2 rate)."""
+    from tobitkf.experiments.records_common import gap_matrices
+
+    rate = np.array([[0.0, 0.03, 2.0]])
+    diff = np.array([[0.5, 0.2, 1.5]])
+    a1, q1 = gap_matrices(rate, diff, np.array([7.0]))
+    a2, q2 = gap_matrices(rate, diff, np.array([14.0]))
+    np.testing.assert_allclose(a2, a1**2, rtol=1e-14)
+    np.testing.assert_allclose(q2, a1**2 * q1 + q1, rtol=1e-13)
+    assert a1[0, 0, 0] == 1.0 and q1[0, 0, 0] == pytest.approx(0.5 * 7.0, rel=1e-15)
+    _, q_far = gap_matrices(rate, diff, np.array([1e4]))
+    assert q_far[0, 0, 2] == pytest.approx(1.5 / 4.0, rel=1e-14)
+
+
+def test_compiled_likelihood_equals_the_numpy_pass(short_model):
+    """The compiled pass against the numpy pass (the package's censored channel update): a river model at
+    scattered parameters, and the panel (censored below and above, padded with NaN)."""
+    from unittest import mock
+
+    from tobitkf.experiments import records_common
+
+    m = short_model
+    rng = np.random.default_rng(3)
+    th = _theta(m)[None] + rng.normal(0, 0.3, (4, m.p))
+    panel, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True)
+    thp = np.array([4.2, -0.5, np.log(0.4), np.log(200.0), np.log(0.8), np.log(0.3)])[None] + rng.normal(
+        0, 0.2, (3, panel.p)
+    )
+    fast_m, fast_p = m.run(th)["terms"], panel.run(thp)["per_subject"]
+    numpy_pass = records_common.adf_pass
+
+    def slow(*args, **kw):
+        return numpy_pass(*args, **{**kw, "compiled": False})
+
+    with (
+        mock.patch("tobitkf.experiments.records_river.adf_pass", slow),
+        mock.patch("tobitkf.experiments.records_hiv.adf_pass", slow),
+    ):
+        slow_m, slow_p = m.run(th)["terms"], panel.run(thp)["per_subject"]
+    np.testing.assert_allclose(fast_m, slow_m, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(fast_p, slow_p, rtol=1e-11, atol=1e-12)
+    assert np.all(np.isfinite(fast_m)) and np.all(np.isfinite(fast_p))

@@ -9,18 +9,48 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["adf_pass", "fd_gradient", "fd_hessian", "fit_ml", "inverse_information", "fit_record"]
+__all__ = ["adf_pass", "gap_matrices", "fd_gradient", "fd_hessian", "fit_ml", "inverse_information", "fit_record"]
 
 _YEAR = 365.25
 _FD_STEP = 1e-4  # central finite differences in the unconstrained parameters
 
 
 # ------------------------------------------------------------------------------- the batched ADF pass
+def gap_matrices(rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r"""The exact discretisation of a diagonal continuous-time model over each gap: the diagonals of
+    :math:`A` and :math:`Q`,
+
+    .. math::
+
+        a_j = e^{-\lambda_j \Delta}, \qquad q^d_j = q_j \Delta\,\psi(2\lambda_j\Delta), \quad
+        \psi(z) = (1 - e^{-z})/z,\ \psi(0) = 1,
+
+    of :math:`dx_j = -\lambda_j x_j\,dt + \sqrt{q_j}\,dW_j` (an Ornstein-Uhlenbeck state of stationary
+    variance :math:`q_j/2\lambda_j`; :math:`\lambda_j = 0` a random walk of variance :math:`q_j` per unit
+    time).
+
+    Parameters
+    ----------
+    rate, diffusion : (N, n) :math:`\lambda \ge 0` and :math:`q \ge 0` of each run
+    gaps : (T,) or (N, T) :math:`\Delta \ge 0` before each step
+
+    Returns
+    -------
+    a, qd : (N, T, n)
+    """
+    rate = np.asarray(rate, dtype=float)
+    dt = np.broadcast_to(np.asarray(gaps, dtype=float), (rate.shape[0], np.shape(gaps)[-1]))[:, :, None]
+    z = 2.0 * rate[:, None, :] * dt
+    psi = np.where(z > 0, -np.expm1(-z) / np.where(z > 0, z, 1.0), 1.0)
+    return np.exp(-rate[:, None, :] * dt), np.asarray(diffusion, dtype=float)[:, None, :] * dt * psi
+
+
 def adf_pass(
     x0: np.ndarray,
     P0: np.ndarray,
-    a: np.ndarray,
-    qd: np.ndarray,
+    rate: np.ndarray,
+    diffusion: np.ndarray,
+    gaps: np.ndarray,
     C: np.ndarray,
     y: np.ndarray,
     lower: Any,
@@ -29,14 +59,15 @@ def adf_pass(
     *,
     dy: Any = 0.0,
     smooth: bool = False,
+    compiled: bool = True,
 ) -> dict[str, Any]:
     r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
 
-    Model of run i: :math:`x_k = \mathrm{diag}(a_{ik})\,x_{k-1} + w_k`, :math:`w_k \sim N(0,
-    \mathrm{diag}(q_{ik}))`, :math:`y^*_k = c_k x_k + d_{ik} + v_k`, :math:`v_k \sim N(0, r^2_{ik})`,
-    :math:`x_0 \sim N(x_{0i}, P_{0i})`, the reading censored at ``lower``/``upper``. The prediction is
-    the Gaussian time update with each run's diagonal :math:`A` and :math:`Q` (a continuous-time model
-    discretised over each run's own gaps); the update is the package's censored channel update
+    Model of run i: the diagonal continuous-time state of :func:`gap_matrices` (rates :math:`\lambda_i`,
+    diffusions :math:`q_i`) taken over each gap exactly, :math:`x_k = \mathrm{diag}(a_{ik})\,x_{k-1} + w_k`,
+    :math:`w_k \sim N(0, \mathrm{diag}(q^d_{ik}))`, :math:`y^*_k = c_k x_k + d_{ik} + v_k`,
+    :math:`v_k \sim N(0, r^2_{ik})`, :math:`x_0 \sim N(x_{0i}, P_{0i})`, the reading censored at
+    ``lower``/``upper``. The update is the package's censored channel update
     (:func:`~tobitkf.filters.assumed_density.censored_channel_update`), the smoother its RTS pass
     (:func:`~tobitkf.filters.smoothing.rts_smooth`): :class:`~tobitkf.LinearSystem` holds one model
     for every run, and a likelihood maximised over a batch of parameter vectors needs one per run.
@@ -44,13 +75,17 @@ def adf_pass(
     Parameters
     ----------
     x0 : (N, n) ; P0 : (N, n, n)
-    a, qd : (N, T, n) diagonals of :math:`A_{k-1}` (from the previous reading's time to reading k's) and
-        of its noise covariance
+    rate, diffusion : (N, n) the continuous-time model of each run (:func:`gap_matrices`)
+    gaps : (T,) or (N, T) time from the previous reading (from the prior's time for the first) to reading k
     C : (T, n) the measurement row of each step (shared by the runs)
     y : (N, T) readings; NaN = missing; a censored reading holds its limit
     lower, upper : scalar, (T,) or (N, T) limits (the limit rule classifies the readings)
     r2 : (N, T) noise variances ; dy : scalar or (N, T) offsets :math:`d_{ik}`
     smooth : also return the smoothed predictive of every reading
+    compiled : without ``smooth``, take the log-likelihood from the compiled pass
+        (:func:`~tobitkf.experiments._records_kernels.diag_adf_terms`: the same discretisation and prediction
+        and the package's compiled censored update, equal to this numpy pass to rounding, tested);
+        ``False``: the numpy pass
 
     Returns
     -------
@@ -63,14 +98,24 @@ def adf_pass(
     from ..filters.core import FilterResult
     from ..filters.smoothing import rts_smooth
 
-    N, T, n = a.shape
-    lo = (
-        np.broadcast_to(np.asarray(lower, dtype=float), (N, T))
-        if np.ndim(lower) != 1
-        else np.broadcast_to(lower, (N, T))
-    )
+    N, n = np.shape(rate)
+    T = np.shape(y)[-1]
+    lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))
     d = np.broadcast_to(np.asarray(dy, dtype=float), (N, T))
+    if compiled and not smooth:
+        from ._records_kernels import diag_adf_terms
+
+        f = np.ascontiguousarray
+        terms = np.empty((N, T))
+        diag_adf_terms(
+            f(x0, dtype=float), f(P0, dtype=float), f(rate, dtype=float), f(diffusion, dtype=float),
+            np.broadcast_to(np.asarray(gaps, dtype=float), (N, T)), f(C, dtype=float),
+            np.broadcast_to(np.asarray(y, dtype=float), (N, T)), lo, hi,
+            np.broadcast_to(np.asarray(r2, dtype=float), (N, T)), d, terms,
+        )  # fmt: skip
+        return {"loglik": terms.sum(-1), "terms": terms}
+    a, qd = gap_matrices(rate, diffusion, gaps)
     x, P = x0.copy(), P0.copy()
     terms = np.zeros((N, T))
     if smooth:

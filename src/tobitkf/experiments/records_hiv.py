@@ -134,9 +134,8 @@ class PanelModel:
         N = M * S
         Y = np.tile(self.y if y is None else y, (M, 1))
         gaps = np.tile(self.gaps, (M, 1))
-        phi = np.exp(-gaps / nat["T"][:, None])
-        a = np.stack([np.ones((N, T)), phi], axis=-1)
-        qd = np.stack([np.zeros((N, T)), nat["sigma"][:, None] ** 2 * -np.expm1(-2 * gaps / nat["T"][:, None])], -1)
+        rate = np.stack([np.zeros(N), 1.0 / nat["T"]], axis=-1)  # the set point static, the deviation an OU
+        diffusion = np.stack([np.zeros(N), 2.0 * nat["sigma"] ** 2 / nat["T"]], axis=-1)
         x0 = np.stack([nat["mu"], np.zeros(N)], axis=-1)
         P0 = np.zeros((N, 2, 2))
         P0[:, 0, 0] = nat["tau_s"] ** 2
@@ -145,7 +144,18 @@ class PanelModel:
         r2 = np.broadcast_to((nat["r"] ** 2)[:, None], (N, T))
         dy = nat["delta"][:, None] * np.tile(self.treated, (M, 1))
         out = adf_pass(
-            x0, P0, a, qd, C, Y, np.tile(self.lower, (M, 1)), np.tile(self.upper, (M, 1)), r2, dy=dy, smooth=smooth
+            x0,
+            P0,
+            rate,
+            diffusion,
+            gaps,
+            C,
+            Y,
+            np.tile(self.lower, (M, 1)),
+            np.tile(self.upper, (M, 1)),
+            r2,
+            dy=dy,
+            smooth=smooth,
         )
         res = {"per_subject": out["loglik"].reshape(M, S), "loglik": out["loglik"].reshape(M, S).sum(-1)}
         if smooth:

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from .records_common import _FD_STEP, _YEAR, adf_pass, fd_gradient, fd_hessian
+from .records_common import _FD_STEP, _YEAR, adf_pass, fd_gradient, fd_hessian, gap_matrices
 
 __all__ = ["RiverModel", "batched_loo_refit"]
 
@@ -227,17 +227,23 @@ class RiverModel:
         ]
 
     # ---- the system, per run
-    def _step_matrices(self, nat: dict[str, np.ndarray], gap: Any) -> tuple[np.ndarray, np.ndarray]:
-        """Diagonals of A and Q (N, nx) over a gap of ``gap`` days (scalar or (N,))."""
+    def continuous(self, nat: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        r"""The diagonal continuous-time model (:func:`~tobitkf.experiments.records_common.gap_matrices`) of
+        each run, per day: rates (N, nx) (0 for the coefficients' random walks, :math:`1/\tau` for the AR
+        residual) and diffusions (N, nx) (:math:`q_j/365.25`, :math:`2\sigma^2/\tau`)."""
         N, nb = nat["tau"].shape[0], self.nb
-        gap = np.broadcast_to(np.asarray(gap, dtype=float), (N,))
-        phi = np.exp(-gap / nat["tau"])
-        a = np.ones((N, nb + 1))
-        a[:, nb] = phi
-        qd = np.empty((N, nb + 1))
-        qd[:, :nb] = nat["q"] * (gap / _YEAR)[:, None]
-        qd[:, nb] = nat["sigma"] ** 2 * -np.expm1(-2 * gap / nat["tau"])
-        return a, qd
+        rate = np.zeros((N, nb + 1))
+        rate[:, nb] = 1.0 / nat["tau"]
+        diffusion = np.empty((N, nb + 1))
+        diffusion[:, :nb] = nat["q"] / _YEAR
+        diffusion[:, nb] = 2.0 * nat["sigma"] ** 2 / nat["tau"]
+        return rate, diffusion
+
+    def _step_matrices(self, nat: dict[str, np.ndarray], gap: Any) -> tuple[np.ndarray, np.ndarray]:
+        """Diagonals of A and Q (D, nx) of one run over gaps ``gap`` (D,) days (or one gap: (1, nx))."""
+        rate, diffusion = self.continuous(nat)
+        a, qd = gap_matrices(rate[:1], diffusion[:1], np.atleast_1d(np.asarray(gap, dtype=float)))
+        return a[0], qd[0]
 
     def prior(self, nat: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         N, nb = nat["tau"].shape[0], self.nb
@@ -269,12 +275,9 @@ class RiverModel:
         Y = np.broadcast_to(self.y, (N, T)) if y is None else np.asarray(y, dtype=float)
         nat = self.natural(theta)
         x0, P0 = self.prior(nat)
-        a = np.empty((N, T, self.nx))
-        qd = np.empty((N, T, self.nx))
-        for k in range(T):
-            a[:, k], qd[:, k] = self._step_matrices(nat, self.gaps[k])
+        rate, diffusion = self.continuous(nat)
         r2 = self.noise_var(nat, np.arange(T))
-        return adf_pass(x0, P0, a, qd, self.C, Y, self.lower, np.inf, r2, smooth=smooth)
+        return adf_pass(x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, np.inf, r2, smooth=smooth)
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         r"""The smoothed state on every day of the daily grid, for one parameter vector.
@@ -310,7 +313,7 @@ class RiverModel:
         prev = np.searchsorted(self.day, days, side="left") - 1  # last sample strictly before each day
         t_prev = np.where(prev >= 0, self.day[np.maximum(prev, 0)], -1)
         gap = (days - t_prev).astype(float)
-        a, qd = self._step_matrices({k: np.repeat(v, D, axis=0) for k, v in nat.items()}, gap)
+        a, qd = self._step_matrices(nat, gap)
         xp = a * xf[prev + 1]
         Pp = Pf[prev + 1] * a[:, :, None] * a[:, None, :]
         Pp[:, np.arange(nx), np.arange(nx)] += qd
