@@ -106,11 +106,15 @@ def test_batched_leave_one_out_equals_one_by_one_refits(short_model):
         assert np.max(np.abs(ref["theta"] - fit["theta"])) > 10 * tol
 
 
-def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
+@pytest.mark.parametrize("options", [{}, {"trend": True, "rebound": True}])
+def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods(options):
     """The batched panel pass against the package's ADF likelihood of each patient on its own, with per-gap
-    (T, n, n) transition and noise matrices, an offset through D u and limits per visit on both sides."""
-    model, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True)
+    (T, n, n) transition and noise matrices, the mean course through D u (the on-treatment shift, or the
+    rebound e^(-t/T_r) and the yearly trend) and limits per visit on both sides."""
+    model, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True, **options)
     th = np.array([4.2, -0.5, np.log(0.4), np.log(200.0), np.log(0.8), np.log(0.3)])
+    if options:
+        th = np.r_[th, 0.3, np.log(40.0)]
     out = model.run(th[None])
     nat = model.natural(th)
     checked = 0
@@ -123,6 +127,13 @@ def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
         A[:, 0, 0], A[:, 1, 1] = 1.0, phi
         Q = np.zeros((T, 2, 2))
         Q[:, 1, 1] = nat["sigma"] ** 2 * (1 - phi**2)
+        t = model.day[i, :T]
+        if options:  # the rebound from the on-treatment level and the trend, by hand
+            u = np.column_stack([np.where(t <= 0, 1.0, np.exp(-t / 40.0)), np.maximum(t, 0) / 365.25])
+            D = [[nat["delta"], 0.3]]
+        else:
+            u = (t <= 0).astype(float)[:, None]
+            D = [[nat["delta"]]]
         # the package's A_k takes x_k to x_{k+1}: A[j] spans the gap before visit j + 1 (the first visit's
         # gap is 0: A = I, Q = 0, so x_1 = x_0, the patient's prior at the first visit)
         sys_ = tk.LinearSystem(
@@ -132,7 +143,7 @@ def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
             R=[[nat["r"] ** 2]],
             x0=[nat["mu"], 0.0],
             P0=np.diag([nat["tau_s"] ** 2, nat["sigma"] ** 2]),
-            D=[[nat["delta"]]],
+            D=D,
         )
         lo = model.lower[i, :T][:, None]
         hi = model.upper[i, :T][:, None]
@@ -141,7 +152,7 @@ def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
             tk.Censoring(lower=lo, upper=hi),
             model.y[i, :T][:, None],
             censored=(np.isfinite(lo) | np.isfinite(hi)),
-            u=model.treated[i, :T][:, None],
+            u=u,
         )
         assert out["per_subject"][0, i] == pytest.approx(float(ll), rel=1e-10, abs=1e-10)
         checked += 1

@@ -106,13 +106,14 @@ def adf_pass(
     if compiled and not smooth:
         from ._records_kernels import diag_adf_terms
 
-        f = np.ascontiguousarray
+        def f(v: Any, shape: tuple[int, ...]) -> np.ndarray:  # one compiled signature: writable C arrays
+            return np.array(np.broadcast_to(np.asarray(v, dtype=float), shape), dtype=float, order="C")
+
         terms = np.empty((N, T))
+        NT = (N, T)
         diag_adf_terms(
-            f(x0, dtype=float), f(P0, dtype=float), f(rate, dtype=float), f(diffusion, dtype=float),
-            np.broadcast_to(np.asarray(gaps, dtype=float), (N, T)), f(C, dtype=float),
-            np.broadcast_to(np.asarray(y, dtype=float), (N, T)), lo, hi,
-            np.broadcast_to(np.asarray(r2, dtype=float), (N, T)), d, terms,
+            f(x0, (N, n)), f(P0, (N, n, n)), f(rate, (N, n)), f(diffusion, (N, n)), f(gaps, NT),
+            f(C, (T, n)), f(y, NT), f(lo, NT), f(hi, NT), f(r2, NT), f(d, NT), terms,
         )  # fmt: skip
         return {"loglik": terms.sum(-1), "terms": terms}
     a, qd = gap_matrices(rate, diffusion, gaps)

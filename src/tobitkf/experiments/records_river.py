@@ -75,6 +75,14 @@ class RiverModel:
         Sample noise sd :math:`r\,e^{\gamma(\ln Q - \overline{\ln Q})}` instead of r.
     season_slope : bool
         Add :math:`\ln Q \sin 2\pi t` and :math:`\ln Q \cos 2\pi t` (a seasonal ln Q slope).
+    harmonics : int
+        Seasonal harmonics: 1 (sin and cos of :math:`2\pi t`) or 2 (also :math:`\sin 4\pi t = 2\sin\cos`,
+        :math:`\cos 4\pi t = \cos^2 - \sin^2`, coefficients ``sin2``, ``cos2``).
+    flow_anomaly_days : float
+        If positive, add the regressor :math:`\ln Q_d - m_{d-1}`, the day's ln Q against its exponentially
+        weighted mean over the days before (:math:`m_d = m_{d-1} + (\ln Q_d - m_{d-1})/L`, :math:`L` this
+        many days, :math:`m_0 = \ln Q_0`): a rising or falling flow against a steady one (coefficient
+        ``flow_anomaly``).
     coef : tuple of str
         Names of the regressors in ``rows`` (``"intercept"``, ``"ln_q"``, ``"sin"``, ``"cos"`` by default).
     residual_ar : bool
@@ -102,6 +110,8 @@ class RiverModel:
     quadratic: bool = False
     flow_variance: bool = False
     season_slope: bool = False
+    harmonics: int = 1
+    flow_anomaly_days: float = 0.0
     coef: tuple[str, ...] = ("intercept", "ln_q", "sin", "cos")
     residual_ar: bool = True
     names: tuple[str, ...] = field(init=False)
@@ -127,6 +137,21 @@ class RiverModel:
             z, si, co = (self.rows[:, self.coef.index(c)] for c in ("ln_q", "sin", "cos"))
             self.rows = np.column_stack([self.rows[:, :-1], z * si, z * co, self.rows[:, -1:]])
             self.coef = self.coef + ("ln_q_sin", "ln_q_cos")
+        if self.harmonics not in (1, 2):
+            raise ValueError(f"harmonics: expected 1 or 2, found {self.harmonics!r}")
+        if self.harmonics == 2:
+            si, co = (self.rows[:, self.coef.index(c)] for c in ("sin", "cos"))
+            self.rows = np.column_stack([self.rows[:, :-1], 2 * si * co, co**2 - si**2, self.rows[:, -1:]])
+            self.coef = self.coef + ("sin2", "cos2")
+        if self.flow_anomaly_days > 0:
+            from scipy.signal import lfilter
+
+            z = self.rows[:, self.coef.index("ln_q")]
+            w = 1.0 / self.flow_anomaly_days
+            m, _ = lfilter([w], [1.0, w - 1.0], z[1:], zi=[(1.0 - w) * z[0]])  # m_d, d = 1..D-1
+            anomaly = z - np.r_[z[0], z[0], m[:-1]]
+            self.rows = np.column_stack([self.rows[:, :-1], anomaly, self.rows[:, -1:]])
+            self.coef = self.coef + ("flow_anomaly",)
         self.nb = self.rows.shape[1] - 1  # regression coefficients; the last state is the AR residual
         self.nx = self.nb + 1
         self.C = self.rows[self.day]  # (n, nx)
@@ -148,12 +173,11 @@ class RiverModel:
         cls,
         rec: Any,
         drift: tuple[str, ...] = ("intercept", "slope", "season"),
-        *,
-        quadratic: bool = False,
-        flow_variance: bool = False,
-        season_slope: bool = False,
+        **options: Any,
     ) -> RiverModel:
-        """The model of a :class:`tobitkf.data.SampleRecord` (sample days located on its daily record)."""
+        """The model of a :class:`tobitkf.data.SampleRecord` (sample days located on its daily record); ``options``
+        are the other fields (``quadratic``, ``flow_variance``, ``season_slope``, ``harmonics``,
+        ``flow_anomaly_days``)."""
         from ..inference.wrtds import decimal_year
 
         lq = np.log(rec.daily_q)
@@ -170,10 +194,8 @@ class RiverModel:
             y=s.y,
             censored=s.censored,
             rows=rows,
-            drift=drift,
-            quadratic=quadratic,
-            flow_variance=flow_variance,
-            season_slope=season_slope,
+            drift=tuple(drift),
+            **options,
         )
 
     @property
