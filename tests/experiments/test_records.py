@@ -11,6 +11,7 @@ from tobitkf.experiments import get
 from tobitkf.experiments._claims import check_claims
 from tobitkf.experiments.records import (
     ARKANSAS_MODEL,
+    STATIC_MODEL,
     PanelModel,
     RiverModel,
     batched_loo_refit,
@@ -32,6 +33,7 @@ def short_model():
         y=full.y[keep],
         censored=full.censored[keep],
         rows=full.rows[:DAYS],
+        coef=full.coef,  # the rows already hold the added regressors (square, harmonics, flow anomaly)
         drift=full.drift,
         flow_variance=full.flow_variance,
     )
@@ -90,6 +92,7 @@ def test_batched_leave_one_out_equals_one_by_one_refits(short_model):
             y=y,
             censored=m.censored & (np.arange(m.n_samples) != i),
             rows=m.rows,
+            coef=m.coef,
             drift=m.drift,
             flow_variance=m.flow_variance,
         )
@@ -185,7 +188,7 @@ def test_last_visit_baselines_are_what_they_say():
 def test_arkansas_reduced_run_has_the_loo_fields():
     """Leave-one-out on 10 samples: the metrics the report and users read."""
     idx = np.arange(0, 254, 26)[:10]
-    metrics, data = run_arkansas(loo_samples=idx, static_baseline=False)
+    metrics, data = run_arkansas(loo_samples=idx, candidates=(STATIC_MODEL, ARKANSAS_MODEL))
     loo = metrics["loo"]
     for k in ("wrtds", "state_space"):
         e = loo[k]
@@ -198,6 +201,15 @@ def test_arkansas_reduced_run_has_the_loo_fields():
     assert d["mean_log_score"] == pytest.approx(loo["state_space"]["mean_log_score"] - loo["wrtds"]["mean_log_score"])
     assert d["se"] > 0
     assert loo["state_space"]["refits_converged"] == 10
+    # the model is the candidate of smallest AIC, and the table scores every candidate against WRTDS
+    table = metrics["models_compared"]
+    assert len(table) == 2
+    aic = [r["aic"] for r in table]
+    assert metrics["model"]["options"] == table[int(np.argmin(aic))]["options"]
+    for r in table:
+        assert r["aic"] == pytest.approx(-2 * r["loglik"] + 2 * r["n_params"])
+        assert r["minus_wrtds"] == pytest.approx(r["loo_mean_log_score"] - loo["wrtds"]["mean_log_score"])
+    assert table[0]["loo_mean_log_score"] == pytest.approx(loo["static_ar1"]["mean_log_score"])
     fit = metrics["model"]["fit"]
     assert fit["converged"] and fit["hessian_negative_definite"]
     assert all(np.isfinite(v) and v > 0 for v in fit["se"].values())
@@ -295,3 +307,25 @@ def test_compiled_likelihood_equals_the_numpy_pass(short_model):
     np.testing.assert_allclose(fast_m, slow_m, rtol=1e-11, atol=1e-12)
     np.testing.assert_allclose(fast_p, slow_p, rtol=1e-11, atol=1e-12)
     assert np.all(np.isfinite(fast_m)) and np.all(np.isfinite(fast_p))
+
+
+def test_added_regressors_are_what_the_model_says():
+    """The second harmonic is sin/cos of 4 pi t on the daily dates; the flow anomaly is ln Q against its
+    exponentially weighted mean of the days before (a loop over the days)."""
+    from tobitkf.inference.wrtds import decimal_year
+
+    rec = load_arkansas()
+    m = RiverModel.from_record(rec, drift=(), harmonics=2, flow_anomaly_days=30.0, quadratic=True)
+    t = decimal_year(rec.daily_date)
+    np.testing.assert_allclose(m.rows[:, m.coef.index("sin2")], np.sin(4 * np.pi * t), atol=1e-12)
+    np.testing.assert_allclose(m.rows[:, m.coef.index("cos2")], np.cos(4 * np.pi * t), atol=1e-12)
+    z = np.log(rec.daily_q) - np.log(rec.daily_q).mean()
+    ema = np.empty_like(z)
+    ema[0] = z[0]
+    for d in range(1, z.size):
+        ema[d] = ema[d - 1] + (z[d] - ema[d - 1]) / 30.0
+    np.testing.assert_allclose(m.rows[:, m.coef.index("flow_anomaly")], z - np.r_[z[0], ema[:-1]], atol=1e-12)
+    assert m.coef[-1] == "flow_anomaly" and m.rows.shape[1] == len(m.coef) + 1
+    assert np.all(m.rows[:, -1] == 1.0)  # the AR residual's column stays last
+    with pytest.raises(ValueError, match="harmonics"):
+        RiverModel.from_record(rec, drift=(), harmonics=3)

@@ -15,9 +15,18 @@ This module gathers their public names.
 
 from __future__ import annotations
 
-from .records_arkansas import ARKANSAS_MODEL, FLUX_FACTOR, LOO_GTOL, STATIC_MODEL, arkansas, run_arkansas
-from .records_common import adf_pass, fd_gradient, fd_hessian, fit_ml
-from .records_hiv import PanelModel, hiv, last_visit_predictions, run_hiv
+from .records_arkansas import (
+    ARKANSAS_CANDIDATES,
+    ARKANSAS_MODEL,
+    FLUX_FACTOR,
+    LOO_GTOL,
+    STATIC_MODEL,
+    arkansas,
+    fit_river,
+    run_arkansas,
+)
+from .records_common import adf_pass, fd_gradient, fd_hessian, fit_ml, gap_matrices
+from .records_hiv import HIV_CANDIDATES, PanelModel, hiv, last_visit_predictions, run_hiv
 from .records_niagara import niagara, niagara_model
 from .records_river import RiverModel, batched_loo_refit
 
@@ -35,6 +44,10 @@ __all__ = [
     "last_visit_predictions",
     "niagara_model",
     "ARKANSAS_MODEL",
+    "ARKANSAS_CANDIDATES",
+    "HIV_CANDIDATES",
+    "fit_river",
+    "gap_matrices",
     "STATIC_MODEL",
     "FLUX_FACTOR",
     "LOO_GTOL",

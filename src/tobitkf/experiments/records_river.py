@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validation import ValidationError
 from .records_common import _FD_STEP, _YEAR, adf_pass, fd_gradient, fd_hessian, gap_matrices
 
 __all__ = ["RiverModel", "batched_loo_refit"]
@@ -138,7 +139,7 @@ class RiverModel:
             self.rows = np.column_stack([self.rows[:, :-1], z * si, z * co, self.rows[:, -1:]])
             self.coef = self.coef + ("ln_q_sin", "ln_q_cos")
         if self.harmonics not in (1, 2):
-            raise ValueError(f"harmonics: expected 1 or 2, found {self.harmonics!r}")
+            raise ValidationError(f"harmonics: expected 1 or 2, found {self.harmonics!r}")
         if self.harmonics == 2:
             si, co = (self.rows[:, self.coef.index(c)] for c in ("sin", "cos"))
             self.rows = np.column_stack([self.rows[:, :-1], 2 * si * co, co**2 - si**2, self.rows[:, -1:]])
