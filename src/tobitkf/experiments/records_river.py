@@ -1,35 +1,35 @@
 r"""The drifting-coefficient censored model of a sample record with daily covariates (:class:`RiverModel`),
 and its batched leave-one-out refits (:func:`batched_loo_refit`).
 
-Built for ``data-arkansas`` (ammonia in the Arkansas River: 254 samples on irregular days over 22 years, 45 %
-below one of three detection limits, discharge known every day) and used by ``data-niagara``. The model is the state-space
-counterpart of WRTDS's moving windows: on the daily grid :math:`d = 1..D`,
+Built for ``data-arkansas`` (ammonia in the Arkansas River: 254 samples on irregular days over 22 years,
+45 % below one of three detection limits, discharge known every day) and used by ``data-niagara``. The
+model is the state-space counterpart of WRTDS's moving windows: on the daily grid :math:`d = 1..D`,
 
 .. math::
 
     \ln c_d = \beta_{0,d} + \beta_{1,d}(\ln Q_d - \overline{\ln Q}) + \beta_{2,d}\sin 2\pi t_d
-              + \beta_{3,d}\cos 2\pi t_d + \xi_d + v_d,
+              + \beta_{3,d}\cos 2\pi t_d + \textstyle\sum_j \beta_{j,d} z_{j,d} + \xi_d + v_d,
 
 with some coefficients random walks (:math:`\beta_{j,d+1} = \beta_{j,d} + w_{j,d}`,
 :math:`w_{j,d} \sim N(0, q_j/365.25)`, :math:`t` in decimal years; the two seasonal terms share one
-:math:`q_2`), the residual :math:`\xi` a daily AR(1) (a sampled Ornstein-Uhlenbeck process,
-:math:`\phi = e^{-1/\tau}`, stationary variance :math:`\sigma^2`) and :math:`v_d \sim N(0, r^2)` the
-sample's own noise, optionally with an sd that depends on the flow,
-:math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}`. The experiment's model (:data:`ARKANSAS_MODEL`)
-lets the intercept drift and the noise depend on the flow; :data:`STATIC_MODEL` (every :math:`q_j = 0`,
-a static regression with an AR(1) residual) is reported beside it. The state is :math:`x_d = (\beta_{0..3,d}, \xi_d)`, the daily :math:`\ln Q` and
-season are known time-varying rows :math:`C_d` of a :class:`~tobitkf.LinearSystem`, the readings are
-NaN on days without a sample, and a censored sample lies below its own detection limit. The prior
-is :math:`\beta_{\cdot,0} = b` (parameters) and :math:`\xi_0 \sim N(0, \sigma^2)`.
+:math:`q_2`), optional further known regressors :math:`z_j` (the square of the centred ln Q, a seasonal
+ln Q slope, the second seasonal harmonic, a flow anomaly: :class:`RiverModel`), the residual :math:`\xi`
+a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary variance
+:math:`\sigma^2`) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with an sd that
+depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}`. ``data-arkansas`` compares many
+such models (:mod:`~tobitkf.experiments.records_arkansas`). The state is :math:`x_d = (\beta_{\cdot,d},
+\xi_d)`, the daily regressors are known time-varying rows :math:`C_d` of a :class:`~tobitkf.LinearSystem`,
+the readings are NaN on days without a sample, and a censored sample lies below its own detection limit.
+The prior is :math:`\beta_{\cdot,0} = b` (parameters) and :math:`\xi_0 \sim N(0, \sigma^2)`.
 
 The likelihood is the assumed-density filter's (:func:`tobitkf.adf_log_likelihood`). Days without
 a sample are pure prediction steps, so the filter on the daily grid equals the filter on the
 samples' days with each gap of :math:`\Delta` days taken in one step (:math:`A = \mathrm{diag}(1,1,1,1,
 \phi^\Delta)`, :math:`Q = \mathrm{diag}(q\Delta/365.25, \sigma^2(1 - \phi^{2\Delta}))`), tested. The
 fits and the leave-one-out refits run on the samples' days: a *batch* of parameter vectors goes
-through the filter at once (each run its own :math:`A_k`, :math:`Q_k`, the package's censored
-channel update :func:`~tobitkf.filters.assumed_density.censored_channel_update` and RTS pass
-:func:`~tobitkf.filters.smoothing.rts_smooth`), which gives central finite-difference gradients in
+through the filter at once (:func:`~tobitkf.experiments.records_common.adf_pass`: each run its own
+:math:`A_k`, :math:`Q_k`, the package's censored channel update, compiled for the likelihood, and its RTS
+pass :func:`~tobitkf.filters.smoothing.rts_smooth`), which gives central finite-difference gradients in
 one call. The daily concentration comes from the package's RTS pass over the daily grid
 (:meth:`RiverModel.daily_smooth`, equal to :func:`tobitkf.smooth` on the daily system, tested).
 
