@@ -113,23 +113,45 @@ def _rmse_difference(mean_a: np.ndarray, mean_b: np.ndarray, low: np.ndarray, hi
     return float(stat(g.mean(axis=0))), float(CL.jackknife_se(g, stat))
 
 
-def fit_river(model: RiverModel) -> dict[str, Any]:
-    """:func:`~tobitkf.experiments.records_common.fit_ml` from two starts (the model's own, and a two-month
-    residual time scale with drifts of 0.02 per year), the higher likelihood kept; ``fit_seconds`` covers
-    both searches."""
-    first = fit_ml(model)
+def fit_river(model: RiverModel, nested: tuple[tuple[str, ...], np.ndarray] | None = None) -> dict[str, Any]:
+    """:func:`~tobitkf.experiments.records_common.fit_ml` from two or three starts, the highest likelihood kept:
+    the model's own start, a two-month residual time scale with drifts of 0.02 per year, and (``nested``:
+    the names and estimates of a model whose parameters are a subset of this one's) the nested model's
+    estimates with this model's further parameters at 0 (coefficients, ``gamma_flow``) or at a drift of 0.02
+    per year. ``fit_seconds`` covers every search."""
+    starts = [model.start()]
     st = model.start()
     if "log_tau_days" in model.names:
         st[model.names.index("log_tau_days")] = np.log(60.0)
     for i, name in enumerate(model.names):
         if name.startswith("log_sd_drift"):
             st[i] = np.log(0.02)
-    second = fit_ml(model, start=st)
-    best = second if second["loglik"] > first["loglik"] else first
-    best = dict(best)
-    best["fit_seconds"] = first["fit_seconds"] + second["fit_seconds"]
-    best["seconds"] = first["seconds"] + second["seconds"]
+    starts.append(st)
+    if nested is not None:
+        est = dict(zip(nested[0], np.asarray(nested[1], dtype=float)))
+        warm = st.copy()  # log_tau_days, log_sigma, log_r and the drifts as in the second start
+        for i, name in enumerate(model.names):
+            if name in est:
+                warm[i] = est[name]
+            elif not name.startswith("log_"):
+                warm[i] = 0.0  # a further regression coefficient or gamma_flow
+        starts.append(warm)
+    fits = [fit_ml(model, start=x) for x in starts]
+    best = dict(max(fits, key=lambda f: f["loglik"]))
+    best["fit_seconds"] = sum(f["fit_seconds"] for f in fits)
+    best["seconds"] = sum(f["seconds"] for f in fits)
+    best["starts"] = len(fits)
     return best
+
+
+def _nested_start(model: RiverModel, fitted: list[tuple[dict[str, Any], RiverModel, dict[str, Any]]]) -> Any:
+    """The names and estimates of the best-fitting earlier model nested in ``model`` (its parameters a
+    subset of this one's), or None."""
+    inner = [(m.names, f) for _, m, f in fitted if set(m.names) < set(model.names)]
+    if not inner:
+        return None
+    names, f = max(inner, key=lambda t: t[1]["loglik"])
+    return names, f["theta"]
 
 
 def _label(opts: dict[str, Any]) -> str:
@@ -195,14 +217,14 @@ def run_arkansas(
     sc_w = predictive_scores(cv.mean[idx], cv.sd[idx], low, high)
     progress(0.05)
     # every candidate fitted; the model: the smallest AIC
-    fitted = []
+    fitted: list[tuple[dict[str, Any], RiverModel, dict[str, Any]]] = []
     for opts in candidates:
         m = RiverModel.from_record(rec, **opts)
-        fitted.append((dict(opts), m, fit_river(m)))
+        fitted.append((dict(opts), m, fit_river(m, _nested_start(m, fitted))))
     if model_options is not None:
         opts = dict(model_options)
         model = RiverModel.from_record(rec, **opts)
-        fit = fit_river(model)
+        fit = fit_river(model, _nested_start(model, fitted))
     elif fitted:
         best = int(np.argmin([-2 * f["loglik"] + 2 * m.p for _, m, f in fitted]))
         opts, model, fit = fitted[best]
