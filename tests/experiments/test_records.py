@@ -338,3 +338,17 @@ def test_the_documented_models_are_candidates():
 
     assert ARKANSAS_MODEL in ARKANSAS_CANDIDATES and STATIC_MODEL in ARKANSAS_CANDIDATES
     assert len({repr(sorted(c.items())) for c in ARKANSAS_CANDIDATES}) == len(ARKANSAS_CANDIDATES)  # no repeats
+
+
+def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
+    """The full record under the experiment's model (a drifting intercept, static coefficients of zero prior
+    variance, the added regressors, days after the last sample): the one-step fill-in between sample days
+    against the RTS pass over every day."""
+    m = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
+    th = _theta(m)
+    sys_, y, cens, ind = m.daily_system(th)
+    ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
+    got = m.daily_smooth(th)
+    assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
+    np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)

@@ -144,6 +144,7 @@ def adf_pass(
         v = np.einsum("ntij,ti,tj->nt", sm.cov, C, C)
         out["sd"] = np.sqrt(np.maximum(v, 0.0) + r2)
         out["filtered"] = res
+        out["smoothed"] = sm
     return out
 
 

@@ -305,11 +305,23 @@ class RiverModel:
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         r"""The smoothed state on every day of the daily grid, for one parameter vector.
 
-        The filter runs on the samples' days (:meth:`run`); on a day without a sample the filter's
-        moments are the prediction from the last sample (no update), which is computed for all days
-        at once; the package's RTS pass (:func:`~tobitkf.filters.smoothing.rts_smooth`) then runs
-        over the daily grid. The result equals :func:`tobitkf.smooth` on the daily system
-        (:meth:`daily_system`), tested.
+        The filter and the package's RTS pass (:func:`~tobitkf.filters.smoothing.rts_smooth`) run on the
+        samples' days (:meth:`run`). A day without a sample is only a prediction step, so the RTS pass over
+        the daily grid would carry the smoothed state from the next sample day :math:`k+1` back to day
+        :math:`d` through a chain of pure predictions; the chain collapses to one step, taken for every day
+        at once: with :math:`\bar x_d = a(\Delta_d) \odot \hat x_{k|k}`,
+        :math:`\bar P_d = A(\Delta_d)P_{k|k}A(\Delta_d)^T + Q(\Delta_d)` the prediction from the last sample
+        :math:`k` before d (the prior before the first) and :math:`A_r = A(t_{k+1} - d)`,
+
+        .. math::
+
+            J_d = \bar P_d A_r^T P_{k+1|k}^{+}, \quad
+            \hat x_{d|D} = \bar x_d + J_d(\hat x_{k+1|D} - \hat x_{k+1|k}), \quad
+            P_{d|D} = \bar P_d + J_d(P_{k+1|D} - P_{k+1|k})J_d^T
+
+        (the pseudo-inverse of :func:`~tobitkf.filters.smoothing.solve_psd`, as the RTS pass); a sample day
+        takes the sample's smoothed moments, a day after the last sample the prediction. Equal to
+        :func:`tobitkf.smooth` on the daily system (:meth:`daily_system`), tested.
 
         Returns
         -------
@@ -317,45 +329,44 @@ class RiverModel:
             ``mean`` (D, nx), ``cov`` (D, nx, nx) of :math:`x_{d|D}`; ``ln_mean``, ``ln_sd`` (D,): the latent
             daily ln concentration :math:`C_d x_d` (without the sample noise), and ``noise_sd`` (D,).
         """
-        from ..filters.core import FilterResult
-        from ..filters.smoothing import rts_smooth
+        from ..filters.smoothing import solve_psd
 
         th = np.atleast_2d(np.asarray(theta, dtype=float))
         nat = self.natural(th)
         out = self.run(th, smooth=True)
-        f = out["filtered"]
-        D, nx = self.rows.shape[0], self.nx
+        f, sm = out["filtered"], out["smoothed"]
+        D, n = self.rows.shape[0], self.n_samples
         days = np.arange(D)
-        last = np.searchsorted(self.day, days, side="right") - 1  # last sample on or before each day
         x0, P0 = self.prior(nat)
-        xf = np.concatenate([x0, f.mean[0]])  # index 0: the prior (day -1)
+        # the prediction to each day from the last sample strictly before it (index 0: the prior, day -1)
+        prev = np.searchsorted(self.day, days, side="left") - 1
+        xf = np.concatenate([x0, f.mean[0]])
         Pf = np.concatenate([P0, f.cov[0]])
-        t_from = np.where(last >= 0, self.day[np.maximum(last, 0)], -1)
-        src = last + 1
-        # prediction from the last sample to each day (not including that day's reading)
-        prev = np.searchsorted(self.day, days, side="left") - 1  # last sample strictly before each day
         t_prev = np.where(prev >= 0, self.day[np.maximum(prev, 0)], -1)
-        gap = (days - t_prev).astype(float)
-        a, qd = self._step_matrices(nat, gap)
-        xp = a * xf[prev + 1]
-        Pp = Pf[prev + 1] * a[:, :, None] * a[:, None, :]
-        Pp[:, np.arange(nx), np.arange(nx)] += qd
-        # filtered moments: the update on sample days, the prediction elsewhere
-        on_sample = t_from == days
-        xd = np.where(on_sample[:, None], xf[src], xp)
-        Pd = np.where(on_sample[:, None, None], Pf[src], Pp)
-        res = FilterResult(mean=xd, cov=Pd, pred_mean=xp, pred_cov=Pp)
-        a1, _ = self._step_matrices(nat, 1.0)
-        A = np.diag(a1[0])
-        sm = rts_smooth(res, lambda k: A, x0=x0[0], P0=P0[0])
-        assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
-        ln_mean = np.einsum("dj,dj->d", sm.mean, self.rows)
-        ln_var = np.einsum("dij,di,dj->d", sm.cov, self.rows, self.rows)
+        a, qd = self._step_matrices(nat, (days - t_prev).astype(float))
+        x = a * xf[prev + 1]
+        P = Pf[prev + 1] * a[:, :, None] * a[:, None, :]
+        P[:, np.arange(self.nx), np.arange(self.nx)] += qd
+        nxt = prev + 1  # the next sample on or after each day (n: none)
+        on = nxt < n
+        k = np.minimum(nxt, n - 1)
+        sample_day = on & (self.day[k] == days)
+        between = np.flatnonzero(on & ~sample_day)
+        kb = k[between]
+        ar, _ = self._step_matrices(nat, (self.day[kb] - days[between]).astype(float))
+        Pp = f.pred_cov[0][kb]
+        J = np.swapaxes(solve_psd(Pp, ar[:, :, None] * P[between]), -1, -2)  # P_d A_r^T Pp^+ (Pp symmetric)
+        x[between] += np.einsum("dij,dj->di", J, sm.mean[0][kb] - f.pred_mean[0][kb])
+        P[between] += J @ (sm.cov[0][kb] - Pp) @ np.swapaxes(J, -1, -2)
+        x[sample_day] = sm.mean[0][k[sample_day]]
+        P[sample_day] = sm.cov[0][k[sample_day]]
+        ln_mean = np.einsum("dj,dj->d", x, self.rows)
+        ln_var = np.einsum("dij,di,dj->d", P, self.rows, self.rows)
         z = self.rows[:, self.zcol] if self.zcol is not None else np.zeros(D)
         noise = float(nat["r"][0]) * np.exp(float(nat["gamma"][0]) * z)
         return {
-            "mean": sm.mean,
-            "cov": sm.cov,
+            "mean": x,
+            "cov": P,
             "ln_mean": ln_mean,
             "ln_sd": np.sqrt(np.maximum(ln_var, 0)),
             "noise_sd": noise,
