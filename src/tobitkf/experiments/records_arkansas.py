@@ -5,7 +5,7 @@ state-space model (:class:`~tobitkf.experiments.records_river.RiverModel`) again
 The model is chosen, not assumed: every model tried on this record is listed in
 :data:`ARKANSAS_CANDIDATES` (drifting coefficients, a flow-dependent noise, a square of ln Q, a seasonal ln Q
 slope, a second seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days); the
-experiment fits each by maximum likelihood (:func:`fit_river`, two starts) and takes the one of smallest AIC
+experiment fits each by maximum likelihood (:func:`fit_river`: two starts and the best nested candidate's estimates) and takes the one of smallest AIC
 on the full record. The leave-one-out score of every candidate is reported beside it (``models_compared``),
 so that a reader sees how many models were compared and where the chosen one stands.
 
@@ -462,7 +462,7 @@ def _arkansas_claims(metrics: dict[str, Any]) -> list[dict[str, Any]]:
             bound=5.0,
             tol=0.0,
             tolerance="none: the target itself (wall time on this machine; it varies with the load)",
-            note=f"fit {tm['state_space_fit']:.2f} s (two starts), daily smoother "
+            note=f"fit {tm['state_space_fit']:.2f} s (every start of fit_river), daily smoother "
             f"{tm['state_space_daily_smoother']:.2f} s, Hessian (standard errors) {tm['state_space_hessian']:.2f} s; "
             f"the compiled likelihood's first use in a process (compiling, or loading numba's cache) "
             f"{tm['compile_or_load_kernels']:.2f} s before that",
