@@ -5,8 +5,8 @@ state-space model (:class:`~tobitkf.experiments.records_river.RiverModel`) again
 The model is chosen, not assumed: every model tried on this record is listed in
 :data:`ARKANSAS_CANDIDATES` (drifting coefficients, a flow-dependent noise, a square of ln Q, a seasonal ln Q
 slope, a second seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days); the
-experiment fits each by maximum likelihood (:func:`fit_river`: two starts and the best nested candidate's estimates) and takes the one of smallest AIC
-on the full record. The leave-one-out score of every candidate is reported beside it (``models_compared``),
+experiment fits each by maximum likelihood (:func:`fit_river`: two starts and the best nested candidate's
+estimates) and takes the one of smallest AIC on the full record. The leave-one-out score of every candidate is reported beside it (``models_compared``),
 so that a reader sees how many models were compared and where the chosen one stands.
 
 Leave-one-out: for each sample i, the parameters are refitted to the record without it
