@@ -11,6 +11,7 @@ from tobitkf.experiments import get
 from tobitkf.experiments._claims import check_claims
 from tobitkf.experiments.records import (
     ARKANSAS_MODEL,
+    STATIC_MODEL,
     PanelModel,
     RiverModel,
     batched_loo_refit,
@@ -25,13 +26,15 @@ DAYS = 8 * 365  # a reduced record: the first eight years of the daily grid (79 
 @pytest.fixture(scope="module")
 def short_model():
     """The Arkansas model on the first eight years (its samples and its daily rows)."""
-    full = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
+    # a smaller model than the experiment's: on eight years of samples its intercept drift stays identified
+    full = RiverModel.from_record(load_arkansas(), drift=("intercept",), flow_variance=True)
     keep = full.day < DAYS
     return RiverModel(
         day=full.day[keep],
         y=full.y[keep],
         censored=full.censored[keep],
         rows=full.rows[:DAYS],
+        coef=full.coef,  # the rows already hold the added regressors (square, harmonics, flow anomaly)
         drift=full.drift,
         flow_variance=full.flow_variance,
     )
@@ -90,6 +93,7 @@ def test_batched_leave_one_out_equals_one_by_one_refits(short_model):
             y=y,
             censored=m.censored & (np.arange(m.n_samples) != i),
             rows=m.rows,
+            coef=m.coef,
             drift=m.drift,
             flow_variance=m.flow_variance,
         )
@@ -106,11 +110,15 @@ def test_batched_leave_one_out_equals_one_by_one_refits(short_model):
         assert np.max(np.abs(ref["theta"] - fit["theta"])) > 10 * tol
 
 
-def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
+@pytest.mark.parametrize("options", [{}, {"trend": True, "rebound": True}])
+def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods(options):
     """The batched panel pass against the package's ADF likelihood of each patient on its own, with per-gap
-    (T, n, n) transition and noise matrices, an offset through D u and limits per visit on both sides."""
-    model, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True)
+    (T, n, n) transition and noise matrices, the mean course through D u (the on-treatment shift, or the
+    rebound e^(-t/T_r) and the yearly trend) and limits per visit on both sides."""
+    model, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True, **options)
     th = np.array([4.2, -0.5, np.log(0.4), np.log(200.0), np.log(0.8), np.log(0.3)])
+    if options:
+        th = np.r_[th, 0.3, np.log(40.0)]
     out = model.run(th[None])
     nat = model.natural(th)
     checked = 0
@@ -123,6 +131,13 @@ def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
         A[:, 0, 0], A[:, 1, 1] = 1.0, phi
         Q = np.zeros((T, 2, 2))
         Q[:, 1, 1] = nat["sigma"] ** 2 * (1 - phi**2)
+        t = model.day[i, :T]
+        if options:  # the rebound from the on-treatment level and the trend, by hand
+            u = np.column_stack([np.where(t <= 0, 1.0, np.exp(-t / 40.0)), np.maximum(t, 0) / 365.25])
+            D = [[nat["delta"], 0.3]]
+        else:
+            u = (t <= 0).astype(float)[:, None]
+            D = [[nat["delta"]]]
         # the package's A_k takes x_k to x_{k+1}: A[j] spans the gap before visit j + 1 (the first visit's
         # gap is 0: A = I, Q = 0, so x_1 = x_0, the patient's prior at the first visit)
         sys_ = tk.LinearSystem(
@@ -132,7 +147,7 @@ def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
             R=[[nat["r"] ** 2]],
             x0=[nat["mu"], 0.0],
             P0=np.diag([nat["tau_s"] ** 2, nat["sigma"] ** 2]),
-            D=[[nat["delta"]]],
+            D=D,
         )
         lo = model.lower[i, :T][:, None]
         hi = model.upper[i, :T][:, None]
@@ -141,7 +156,7 @@ def test_panel_likelihood_is_the_sum_of_the_patients_likelihoods():
             tk.Censoring(lower=lo, upper=hi),
             model.y[i, :T][:, None],
             censored=(np.isfinite(lo) | np.isfinite(hi)),
-            u=model.treated[i, :T][:, None],
+            u=u,
         )
         assert out["per_subject"][0, i] == pytest.approx(float(ll), rel=1e-10, abs=1e-10)
         checked += 1
@@ -174,7 +189,8 @@ def test_last_visit_baselines_are_what_they_say():
 def test_arkansas_reduced_run_has_the_loo_fields():
     """Leave-one-out on 10 samples: the metrics the report and users read."""
     idx = np.arange(0, 254, 26)[:10]
-    metrics, data = run_arkansas(loo_samples=idx, static_baseline=False)
+    small = {"drift": ("intercept",), "flow_variance": True}  # identified without a nested start
+    metrics, data = run_arkansas(loo_samples=idx, candidates=(STATIC_MODEL, small))
     loo = metrics["loo"]
     for k in ("wrtds", "state_space"):
         e = loo[k]
@@ -187,6 +203,15 @@ def test_arkansas_reduced_run_has_the_loo_fields():
     assert d["mean_log_score"] == pytest.approx(loo["state_space"]["mean_log_score"] - loo["wrtds"]["mean_log_score"])
     assert d["se"] > 0
     assert loo["state_space"]["refits_converged"] == 10
+    # the model is the candidate of smallest AIC, and the table scores every candidate against WRTDS
+    table = metrics["models_compared"]
+    assert len(table) == 2
+    aic = [r["aic"] for r in table]
+    assert metrics["model"]["options"] == table[int(np.argmin(aic))]["options"]
+    for r in table:
+        assert r["aic"] == pytest.approx(-2 * r["loglik"] + 2 * r["n_params"])
+        assert r["minus_wrtds"] == pytest.approx(r["loo_mean_log_score"] - loo["wrtds"]["mean_log_score"])
+    assert table[0]["loo_mean_log_score"] == pytest.approx(loo["static_ar1"]["mean_log_score"])
     fit = metrics["model"]["fit"]
     assert fit["converged"] and fit["hessian_negative_definite"]
     assert all(np.isfinite(v) and v > 0 for v in fit["se"].values())
@@ -238,3 +263,92 @@ def test_finite_differences_are_exact_on_a_quadratic():
     np.testing.assert_allclose(g, -th @ A + b, rtol=1e-8, atol=1e-8)
     np.testing.assert_allclose(fd_hessian(f, th[0], h=1e-2), -A, rtol=1e-7, atol=1e-7)
     assert calls[0] == 3 * 9 and calls[-1] == 2 * 4 * 5
+
+
+def test_gap_matrices_compose_and_reduce_to_a_random_walk():
+    """A gap of 2 d is two steps of d (a(2d) = a(d)^2, q(2d) = a(d)^2 q(d) + q(d)); rate 0 is a random walk
+    (q d); the stationary variance of an OU state is q / (2 rate)."""
+    from tobitkf.experiments.records_common import gap_matrices
+
+    rate = np.array([[0.0, 0.03, 2.0]])
+    diff = np.array([[0.5, 0.2, 1.5]])
+    a1, q1 = gap_matrices(rate, diff, np.array([7.0]))
+    a2, q2 = gap_matrices(rate, diff, np.array([14.0]))
+    np.testing.assert_allclose(a2, a1**2, rtol=1e-14)
+    np.testing.assert_allclose(q2, a1**2 * q1 + q1, rtol=1e-13)
+    assert a1[0, 0, 0] == 1.0 and q1[0, 0, 0] == pytest.approx(0.5 * 7.0, rel=1e-15)
+    _, q_far = gap_matrices(rate, diff, np.array([1e4]))
+    assert q_far[0, 0, 2] == pytest.approx(1.5 / 4.0, rel=1e-14)
+
+
+def test_compiled_likelihood_equals_the_numpy_pass(short_model):
+    """The compiled pass against the numpy pass (the package's censored channel update): a river model at
+    scattered parameters, and the panel (censored below and above, padded with NaN)."""
+    from unittest import mock
+
+    from tobitkf.experiments import records_common
+
+    m = short_model
+    rng = np.random.default_rng(3)
+    th = _theta(m)[None] + rng.normal(0, 0.3, (4, m.p))
+    panel, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True)
+    thp = np.array([4.2, -0.5, np.log(0.4), np.log(200.0), np.log(0.8), np.log(0.3)])[None] + rng.normal(
+        0, 0.2, (3, panel.p)
+    )
+    fast_m, fast_p = m.run(th)["terms"], panel.run(thp)["per_subject"]
+    numpy_pass = records_common.adf_pass
+
+    def slow(*args, **kw):
+        return numpy_pass(*args, **{**kw, "compiled": False})
+
+    with (
+        mock.patch("tobitkf.experiments.records_river.adf_pass", slow),
+        mock.patch("tobitkf.experiments.records_hiv.adf_pass", slow),
+    ):
+        slow_m, slow_p = m.run(th)["terms"], panel.run(thp)["per_subject"]
+    np.testing.assert_allclose(fast_m, slow_m, rtol=1e-11, atol=1e-12)
+    np.testing.assert_allclose(fast_p, slow_p, rtol=1e-11, atol=1e-12)
+    assert np.all(np.isfinite(fast_m)) and np.all(np.isfinite(fast_p))
+
+
+def test_added_regressors_are_what_the_model_says():
+    """The second harmonic is sin/cos of 4 pi t on the daily dates; the flow anomaly is ln Q against its
+    exponentially weighted mean of the days before (a loop over the days)."""
+    from tobitkf.inference.wrtds import decimal_year
+
+    rec = load_arkansas()
+    m = RiverModel.from_record(rec, drift=(), harmonics=2, flow_anomaly_days=30.0, quadratic=True)
+    t = decimal_year(rec.daily_date)
+    np.testing.assert_allclose(m.rows[:, m.coef.index("sin2")], np.sin(4 * np.pi * t), atol=1e-12)
+    np.testing.assert_allclose(m.rows[:, m.coef.index("cos2")], np.cos(4 * np.pi * t), atol=1e-12)
+    z = np.log(rec.daily_q) - np.log(rec.daily_q).mean()
+    ema = np.empty_like(z)
+    ema[0] = z[0]
+    for d in range(1, z.size):
+        ema[d] = ema[d - 1] + (z[d] - ema[d - 1]) / 30.0
+    np.testing.assert_allclose(m.rows[:, m.coef.index("flow_anomaly")], z - np.r_[z[0], ema[:-1]], atol=1e-12)
+    assert m.coef[-1] == "flow_anomaly" and m.rows.shape[1] == len(m.coef) + 1
+    assert np.all(m.rows[:, -1] == 1.0)  # the AR residual's column stays last
+    with pytest.raises(ValueError, match="harmonics"):
+        RiverModel.from_record(rec, drift=(), harmonics=3)
+
+
+def test_the_documented_models_are_candidates():
+    from tobitkf.experiments.records import ARKANSAS_CANDIDATES
+
+    assert ARKANSAS_MODEL in ARKANSAS_CANDIDATES and STATIC_MODEL in ARKANSAS_CANDIDATES
+    assert len({repr(sorted(c.items())) for c in ARKANSAS_CANDIDATES}) == len(ARKANSAS_CANDIDATES)  # no repeats
+
+
+def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
+    """The full record under the experiment's model (a drifting intercept, static coefficients of zero prior
+    variance, the added regressors, days after the last sample): the one-step fill-in between sample days
+    against the RTS pass over every day."""
+    m = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
+    th = _theta(m)
+    sys_, y, cens, ind = m.daily_system(th)
+    ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
+    got = m.daily_smooth(th)
+    assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
+    np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)

@@ -1,0 +1,265 @@
+r"""Shared pieces of the record experiments: the batched assumed-density pass over runs that each carry
+their own model, finite-difference derivatives of a batched likelihood, the maximum-likelihood fit with
+standard errors, and the fit's record in ``metrics.json``."""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+__all__ = ["adf_pass", "gap_matrices", "fd_gradient", "fd_hessian", "fit_ml", "inverse_information", "fit_record"]
+
+_YEAR = 365.25
+_FD_STEP = 1e-4  # central finite differences in the unconstrained parameters
+
+
+# ------------------------------------------------------------------------------- the batched ADF pass
+def gap_matrices(rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    r"""The exact discretisation of a diagonal continuous-time model over each gap: the diagonals of
+    :math:`A` and :math:`Q`,
+
+    .. math::
+
+        a_j = e^{-\lambda_j \Delta}, \qquad q^d_j = q_j \Delta\,\psi(2\lambda_j\Delta), \quad
+        \psi(z) = (1 - e^{-z})/z,\ \psi(0) = 1,
+
+    of :math:`dx_j = -\lambda_j x_j\,dt + \sqrt{q_j}\,dW_j` (an Ornstein-Uhlenbeck state of stationary
+    variance :math:`q_j/2\lambda_j`; :math:`\lambda_j = 0` a random walk of variance :math:`q_j` per unit
+    time).
+
+    Parameters
+    ----------
+    rate, diffusion : (N, n) :math:`\lambda \ge 0` and :math:`q \ge 0` of each run
+    gaps : (T,) or (N, T) :math:`\Delta \ge 0` before each step
+
+    Returns
+    -------
+    a, qd : (N, T, n)
+    """
+    rate = np.asarray(rate, dtype=float)
+    dt = np.broadcast_to(np.asarray(gaps, dtype=float), (rate.shape[0], np.shape(gaps)[-1]))[:, :, None]
+    z = 2.0 * rate[:, None, :] * dt
+    psi = np.where(z > 0, -np.expm1(-z) / np.where(z > 0, z, 1.0), 1.0)
+    return np.exp(-rate[:, None, :] * dt), np.asarray(diffusion, dtype=float)[:, None, :] * dt * psi
+
+
+def adf_pass(
+    x0: np.ndarray,
+    P0: np.ndarray,
+    rate: np.ndarray,
+    diffusion: np.ndarray,
+    gaps: np.ndarray,
+    C: np.ndarray,
+    y: np.ndarray,
+    lower: Any,
+    upper: Any,
+    r2: np.ndarray,
+    *,
+    dy: Any = 0.0,
+    smooth: bool = False,
+    compiled: bool = True,
+) -> dict[str, Any]:
+    r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
+
+    Model of run i: the diagonal continuous-time state of :func:`gap_matrices` (rates :math:`\lambda_i`,
+    diffusions :math:`q_i`) taken over each gap exactly, :math:`x_k = \mathrm{diag}(a_{ik})\,x_{k-1} + w_k`,
+    :math:`w_k \sim N(0, \mathrm{diag}(q^d_{ik}))`, :math:`y^*_k = c_k x_k + d_{ik} + v_k`,
+    :math:`v_k \sim N(0, r^2_{ik})`, :math:`x_0 \sim N(x_{0i}, P_{0i})`, the reading censored at
+    ``lower``/``upper``. The update is the package's censored channel update
+    (:func:`~tobitkf.filters.assumed_density.censored_channel_update`), the smoother its RTS pass
+    (:func:`~tobitkf.filters.smoothing.rts_smooth`): :class:`~tobitkf.LinearSystem` holds one model
+    for every run, and a likelihood maximised over a batch of parameter vectors needs one per run.
+
+    Parameters
+    ----------
+    x0 : (N, n) ; P0 : (N, n, n)
+    rate, diffusion : (N, n) the continuous-time model of each run (:func:`gap_matrices`)
+    gaps : (T,) or (N, T) time from the previous reading (from the prior's time for the first) to reading k
+    C : (T, n) the measurement row of each step (shared by the runs)
+    y : (N, T) readings; NaN = missing; a censored reading holds its limit
+    lower, upper : scalar, (T,) or (N, T) limits (the limit rule classifies the readings)
+    r2 : (N, T) noise variances ; dy : scalar or (N, T) offsets :math:`d_{ik}`
+    smooth : also return the smoothed predictive of every reading
+    compiled : without ``smooth``, take the log-likelihood from the compiled pass
+        (:func:`~tobitkf.experiments._records_kernels.diag_adf_terms`: the same discretisation and prediction
+        and the package's compiled censored update, equal to this numpy pass to rounding, tested);
+        ``False``: the numpy pass
+
+    Returns
+    -------
+    dict
+        ``loglik`` (N,) and ``terms`` (N, T), the assumed-density log-likelihood; with ``smooth``,
+        ``mean`` and ``sd`` (N, T): :math:`c_k \hat x_{k|T} + d_{ik}` and
+        :math:`\sqrt{c_k P_{k|T} c_k^T + r^2_{ik}}`, the smoothed predictive of each (latent) reading.
+    """
+    from ..filters.assumed_density import censored_channel_update
+    from ..filters.core import FilterResult
+    from ..filters.smoothing import rts_smooth
+
+    N, n = np.shape(rate)
+    T = np.shape(y)[-1]
+    lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))
+    hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))
+    d = np.broadcast_to(np.asarray(dy, dtype=float), (N, T))
+    if compiled and not smooth:
+        from ._records_kernels import diag_adf_terms
+
+        def f(v: Any, shape: tuple[int, ...]) -> np.ndarray:  # one compiled signature: writable C arrays
+            return np.array(np.broadcast_to(np.asarray(v, dtype=float), shape), dtype=float, order="C")
+
+        terms = np.empty((N, T))
+        NT = (N, T)
+        diag_adf_terms(
+            f(x0, (N, n)), f(P0, (N, n, n)), f(rate, (N, n)), f(diffusion, (N, n)), f(gaps, NT),
+            f(C, (T, n)), f(y, NT), f(lo, NT), f(hi, NT), f(r2, NT), f(d, NT), terms,
+        )  # fmt: skip
+        return {"loglik": terms.sum(-1), "terms": terms}
+    a, qd = gap_matrices(rate, diffusion, gaps)
+    x, P = x0.copy(), P0.copy()
+    terms = np.zeros((N, T))
+    if smooth:
+        xs_f, Ps_f = np.empty((N, T, n)), np.empty((N, T, n, n))
+        xs_p, Ps_p = np.empty((N, T, n)), np.empty((N, T, n, n))
+    diag = np.arange(n)
+    for k in range(T):
+        x = x * a[:, k]
+        P = P * a[:, k, :, None] * a[:, k, None, :]
+        P[:, diag, diag] += qd[:, k]
+        if smooth:
+            xs_p[:, k], Ps_p[:, k] = x, P
+        rk: Any = r2[:, k]  # one noise variance per run
+        x, P, _, _, ll = censored_channel_update(x, P, None, y[:, k], C[k], rk, lo[:, k], hi[:, k], dy=d[:, k])
+        terms[:, k] = ll
+        if smooth:
+            xs_f[:, k], Ps_f[:, k] = x, P
+    out = {"loglik": terms.sum(-1), "terms": terms}
+    if smooth:
+        res = FilterResult(mean=xs_f, cov=Ps_f, pred_mean=xs_p, pred_cov=Ps_p)
+        # rts_smooth asks for A_k of x_{k+1} = A_k x_k: the transition into reading k+1 (array index k)
+        sm = rts_smooth(res, lambda k: a[:, k, :, None] * np.eye(n), x0=x0, P0=P0)
+        assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
+        out["mean"] = np.einsum("ntj,tj->nt", sm.mean, C) + d
+        v = np.einsum("ntij,ti,tj->nt", sm.cov, C, C)
+        out["sd"] = np.sqrt(np.maximum(v, 0.0) + r2)
+        out["filtered"] = res
+        out["smoothed"] = sm
+    return out
+
+
+def fd_gradient(loglik: Any, theta: np.ndarray, h: float = _FD_STEP) -> tuple[np.ndarray, np.ndarray]:
+    """Log-likelihoods (N,) and central-difference gradients (N, p) at N parameter vectors ``theta`` (N, p),
+    from one call ``loglik(points, repeat)`` on the N (2p + 1) points (``repeat`` = 2p + 1 points per vector,
+    in the vectors' order), so that a batched likelihood evaluates them together."""
+    th = np.atleast_2d(np.asarray(theta, dtype=float))
+    N, p = th.shape
+    E = np.eye(p) * h
+    pts = np.concatenate([th[:, None, :], th[:, None, :] + E, th[:, None, :] - E], axis=1)  # (N, 2p+1, p)
+    ll = np.asarray(loglik(pts.reshape(-1, p), 2 * p + 1)).reshape(N, 2 * p + 1)
+    return ll[:, 0], (ll[:, 1 : p + 1] - ll[:, p + 1 :]) / (2 * h)
+
+
+def fd_hessian(loglik: Any, theta: np.ndarray, h: float = 1e-3) -> np.ndarray:
+    r"""Central-difference Hessian (p, p) at one ``theta`` from one call ``loglik(points)`` on the 2p(p + 1)
+    points :math:`\theta \pm h e_i \pm h e_j`, :math:`i \le j`."""
+    th = np.asarray(theta, dtype=float).reshape(-1)
+    p = th.size
+    E = np.eye(p) * h
+    corners = ((1, 1), (1, -1), (-1, 1), (-1, -1))
+    pairs = [(i, j) for i in range(p) for j in range(i, p)]
+    pts = [th + si * E[i] + sj * E[j] for i, j in pairs for si, sj in corners]
+    f = np.asarray(loglik(np.array(pts))).reshape(-1, 4)
+    H = np.empty((p, p))
+    for c, (i, j) in enumerate(pairs):
+        H[i, j] = H[j, i] = (f[c, 0] - f[c, 1] - f[c, 2] + f[c, 3]) / (4 * h * h)
+    return H
+
+
+def inverse_information(H: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Inverse of the observed information -H (eigenvalues floored at 1e-8 of the largest, so that a
+    parameter at the edge of its range, where the likelihood is flat, gets a finite, large variance), the
+    standard errors (NaN along a floored direction) and whether -H is positive definite."""
+    w, V = np.linalg.eigh(-0.5 * (H + H.T))
+    floor = 1e-8 * max(float(np.max(np.abs(w))), 1e-300)
+    pd = bool(np.all(w > floor))
+    cov = (V / np.maximum(w, floor)) @ V.T
+    se = np.sqrt(np.diag(cov))
+    if not pd:
+        flat = np.abs(V[:, w <= floor]).max(axis=1) > 0.1 if np.any(w <= floor) else np.zeros(H.shape[0], bool)
+        se = np.where(flat, np.nan, se)
+    return cov, se, pd
+
+
+def fit_ml(model: Any, start: np.ndarray | None = None, gtol: float = 1e-5) -> dict[str, Any]:
+    """Maximum likelihood of a model with ``loglik_and_gradient`` (one parameter vector) and ``hessian``: BFGS,
+    then the observed information's inverse and standard errors."""
+    from scipy.optimize import minimize
+
+    t0 = time.perf_counter()
+    x0 = model.start() if start is None else np.asarray(start, dtype=float)
+
+    def fun(th: np.ndarray) -> tuple[float, np.ndarray]:
+        f, g = model.loglik_and_gradient(th[None])
+        val = float(np.ravel(f)[0])
+        if not np.isfinite(val):
+            return 1e10, np.zeros_like(th)
+        return -val, -np.reshape(g, -1)
+
+    res = minimize(fun, x0, jac=True, method="BFGS", options={"gtol": gtol, "maxiter": 500})
+    fit_seconds = time.perf_counter() - t0
+    H = model.hessian(res.x)
+    cov, se, pd = inverse_information(H)
+    return {
+        "theta": res.x,
+        "loglik": -float(res.fun),
+        "hessian": H,
+        "cov": cov,
+        "se": se,
+        "hessian_negative_definite": pd,
+        "converged": bool(res.success),
+        "message": str(res.message),
+        "iterations": int(res.nit),
+        "evaluations": int(res.nfev),
+        "fit_seconds": fit_seconds,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def _noop(_: float) -> None:
+    pass
+
+
+def natural_table(model: Any, fit: dict[str, Any]) -> dict[str, Any]:
+    """Estimates and standard errors on the fitted (unconstrained) scale, and of exp(.) of the log parameters
+    (delta method: se of exp(u) = exp(u) se(u))."""
+    th, se = fit["theta"], fit["se"]
+    est = dict(zip(model.names, th.tolist()))
+    ses = dict(zip(model.names, se.tolist()))
+    nat, nat_se = {}, {}
+    for name, v, s in zip(model.names, th, se):
+        if name.startswith("log_"):
+            nat[name[4:]] = float(np.exp(v))
+            nat_se[name[4:]] = float(np.exp(v) * s)
+        else:
+            nat[name] = float(v)
+            nat_se[name] = float(s)
+    return {"estimates": est, "se": ses, "natural": nat, "natural_se": nat_se}
+
+
+def fit_record(model: Any, fit: dict[str, Any]) -> dict[str, Any]:
+    out = natural_table(model, fit)
+    out.update(
+        {
+            "loglik": fit["loglik"],
+            "n_params": model.p,
+            "aic": -2 * fit["loglik"] + 2 * model.p,
+            "converged": fit["converged"],
+            "hessian_negative_definite": fit["hessian_negative_definite"],
+            "iterations": fit["iterations"],
+            "evaluations": fit["evaluations"],
+            "fit_seconds": round(fit["fit_seconds"], 3),
+            "seconds_with_hessian": round(fit["seconds"], 3),
+        }
+    )
+    return out
