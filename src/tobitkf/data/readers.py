@@ -97,10 +97,27 @@ class CensoredRecord(CensoredSeries):
         The sample times, increasing (None when the record has no time column or index).
     units : str
         The unit written with the readings (``"mg/L"``), or ``""``.
+    source : str
+        Where the record was read from (the file's path, ``"DataFrame"`` or ``"table"``).
+    rows : (T,) ndarray of int or str, or None
+        Where each reading came from: the file's line numbers, or the DataFrame's row labels
+        (``"row 2020-01-01"``); :meth:`where` turns one into the readers' wording.
     """
 
     times: np.ndarray | None = None
     units: str = ""
+    source: str = ""
+    rows: np.ndarray | None = None
+
+    def where(self, i: int, column: str | None = None) -> str:
+        """Reading ``i`` (0-based) as the readers name it in an error: ``"FILE line 12, column 'conc'"``."""
+        if self.rows is None:
+            at = f"reading {i + 1}"
+        else:
+            r = self.rows[i]
+            at = f"line {int(r)}" if np.issubdtype(np.asarray(self.rows).dtype, np.integer) else str(r)
+        place = f"{self.source} {at}" if self.source else at
+        return place if column is None else f"{place}, column {column!r}"
 
     @property
     def side(self) -> np.ndarray:
@@ -162,6 +179,7 @@ def _build(t: _Table, fmt: str, a: dict[str, Any], name: str) -> CensoredRecord:
             raise ValidationError("censored: the flag format needs the flag column (censored=...)")
         y, side, lo, hi, unit = _strings_or_flag(t, a)
     times, labels = _times(t, a["time"])
+    rows = np.asarray(t.rows)
     covs = {}
     for c in a["covariates"]:
         covs[c] = _numbers(t, c, "covariates")[0]
@@ -170,6 +188,7 @@ def _build(t: _Table, fmt: str, a: dict[str, Any], name: str) -> CensoredRecord:
         if not keep.all():
             y, side, lo, hi, times = y[keep], side[keep], lo[keep], hi[keep], times[keep]
             labels = None if labels is None else labels[keep]
+            rows = rows[keep]
             covs = {k: v[keep] for k, v in covs.items()}
     if t.announce is not None:
         t.announce(
@@ -186,6 +205,8 @@ def _build(t: _Table, fmt: str, a: dict[str, Any], name: str) -> CensoredRecord:
         description=f"read from {t.source} ({fmt} format)",
         times=times,
         units=unit,
+        source=t.source,
+        rows=rows,
     )
 
 
