@@ -278,6 +278,14 @@ def _times(t: _Table, name: str | None) -> tuple[np.ndarray | None, np.ndarray |
     return times, np.array(texts)
 
 
+def _shown(t: Any) -> str:
+    """A time as a user wrote it: a date without its midnight clock (``2020-01-02``), else as it is."""
+    if isinstance(t, np.datetime64):
+        day = t.astype("datetime64[D]")
+        return str(day) if day == t else np.datetime_as_string(t, unit="s")
+    return str(t)
+
+
 def _check_order(
     t: _Table, tcol: str, times: np.ndarray, y: np.ndarray, side: np.ndarray, lo: np.ndarray, hi: np.ndarray, how: str
 ) -> np.ndarray:
@@ -301,11 +309,12 @@ def _check_order(
             extra = "(duplicates='drop' drops a row that repeats the previous one exactly)"
         if bad.any():
             i = int(np.argmax(bad)) + 1
-            raise ValidationError(f"{t.at(i, tcol)}: the time {times[i]} repeats {t.label(i - 1)}'s {extra}")
+            raise ValidationError(f"{t.at(i, tcol)}: the time {_shown(times[i])} repeats {t.label(i - 1)}'s {extra}")
     back = times[1:] < times[:-1]
     if back.any():
         i = int(np.argmax(back)) + 1
         raise ValidationError(
-            f"{t.at(i, tcol)}: the time {times[i]} comes before {t.label(i - 1)}'s {times[i - 1]}; sort the rows by time"
+            f"{t.at(i, tcol)}: the time {_shown(times[i])} comes before {t.label(i - 1)}'s {_shown(times[i - 1])}; "
+            "sort the rows by time"
         )
     return keep

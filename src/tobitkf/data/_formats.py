@@ -127,7 +127,20 @@ def _interval(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.
         right = ~np.isnan(lo_v) & np.isnan(hi_v)
         _first(t, lo_v > hi_v, lcol, "the low end is above the high end")
     inside = ~np.isnan(lo_v) & ~np.isnan(hi_v) & ~exact & ~left
-    _first(t, inside, lcol, "an interval with two finite ends is not supported (only left- or right-censored readings)")
+    how = a.get("interval_rows", "error")
+    if how == "error":
+        _first(
+            t,
+            inside,
+            lcol,
+            f"an interval with two finite ends ({lcol} < {hcol}): a reading known only to lie between them, which "
+            "a censored series cannot hold (one limit per side of each reading); pass interval_rows='left' to read "
+            f"such rows as below {hcol} (what {lcol} says is dropped) or interval_rows='right' as above {lcol}",
+        )
+    elif how == "left":
+        left = left | inside
+    else:
+        right = right | inside
     side = np.where(left, -1, np.where(right, 1, 0)).astype(np.int8)
     y = np.where(left, hi_v, lo_v)
     lower = np.where(left, hi_v, -np.inf)

@@ -32,6 +32,8 @@ Formats (``format=``; ``"auto"`` picks one when it is unambiguous: ``ConcLow``/`
     EGRET's interval columns ``low``/``high`` (default ``"ConcLow"``/``"ConcHigh"``): equal = an exact
     reading; ``low`` empty (or 0) and ``high`` = L: left-censored at L; ``high`` empty and ``low`` = U:
     right-censored at U; both empty: missing. A column ``Uncen`` (1 = uncensored), if present, must agree.
+    A row with two finite ends (``low < high``: the value lies between them) is refused unless
+    ``interval_rows`` says how to read it (``"left"``: below ``high``; ``"right"``: above ``low``).
 ``"nonmem"``
     NONMEM / nlmixr2 / Monolix columns ``DV``, ``CENS`` (0 exact, 1 left-censored at DV, -1 right-censored
     at DV) and optionally ``LIMIT`` (the other end of the censoring interval: only an empty or infinite
@@ -213,6 +215,8 @@ def _build(t: _Table, fmt: str, a: dict[str, Any], name: str) -> CensoredRecord:
 def _args(**kw: Any) -> dict[str, Any]:
     if kw["format"] not in FORMATS:
         raise ValidationError(f"format: expected one of {', '.join(FORMATS)}, got {kw['format']!r}")
+    if kw.get("interval_rows", "error") not in ("error", "left", "right"):
+        raise ValidationError(f"interval_rows: expected 'error', 'left' or 'right', got {kw['interval_rows']!r}")
     if kw["duplicates"] not in ("error", "drop"):
         raise ValidationError(f"duplicates: expected 'error' or 'drop', got {kw['duplicates']!r}")
     cov = kw["covariates"]
@@ -250,6 +254,7 @@ def read_censored(
     mdv: str | None = None,
     evid: str | None = None,
     uncen: str | None = None,
+    interval_rows: str = "error",
 ) -> CensoredRecord:
     r"""Read one censored series from a CSV file, a pandas DataFrame or a mapping of columns.
 
@@ -274,6 +279,11 @@ def read_censored(
         a LIMIT column).
     uncen : str, optional
         EGRET's ``Uncen`` check column (default: ``Uncen`` when present).
+    interval_rows : {"error", "left", "right"}
+        EGRET's rows with two finite ends (``ConcLow < ConcHigh``: the value lies between them): refused (the
+        default; a :class:`CensoredSeries` holds one limit per side of a reading), or read as left-censored at
+        ``ConcHigh`` (``"left"``: the lower end is dropped, a weaker statement than the record's) or as
+        right-censored at ``ConcLow`` (``"right"``).
     time : str, optional
         The times' column (dates or numbers); a DataFrame's ``DatetimeIndex`` is used when not given.
     covariates : sequence of str
@@ -367,6 +377,15 @@ def read_censored_panel(
         groups.setdefault(k, []).append(i)
     base = name or _default_name(source)
     series = {k: _build(t.take(np.array(idx)), format, a, f"{base}:{k}") for k, idx in groups.items()}
+    first = next(iter(series.values()))
+    for rec in series.values():  # each subject's cells agree within it; the column must agree across subjects
+        if rec.units != first.units:
+            col = a["y"] or "the readings"
+            raise ValidationError(
+                f"{rec.where(0, col)}: mixed units in one column: {rec.units or 'no unit'!r} for subject "
+                f"{rec.name.rpartition(':')[2]!r}, {first.units or 'no unit'!r} at {first.where(0)}; convert the column "
+                "to one unit"
+            )
     return CensoredPanel(name=base, series=series, id_column=id)
 
 

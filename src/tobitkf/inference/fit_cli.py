@@ -20,7 +20,8 @@ The file's layout (``format``, or ``--format`` on the command line) is one of th
 + limits, as above), ``"interval"`` (EGRET's ``ConcLow``/``ConcHigh``; keys ``low``/``high`` rename
 them), ``"nonmem"`` (``DV``/``CENS``/``LIMIT``; keys ``y``, ``cens``, ``limit``), or ``"auto"`` (the
 default: picked from the columns). Further ``[data]`` keys: ``flag_codes`` (a table such as
-``{1 = "left", 2 = "right"}``), ``duplicates`` (``"error"`` or ``"drop"``), ``encoding``.
+``{1 = "left", 2 = "right"}``), ``duplicates`` (``"error"`` or ``"drop"``), ``encoding``, ``interval_rows``
+(``"left"`` or ``"right"``: how to read EGRET's rows with two finite ends, refused by default).
 
 **Blank limits.** A blank limit cell means that no limit was recorded for that reading (``-inf`` /
 ``+inf``, as :func:`tobitkf.fit` takes it): harmless for an uncensored or missing reading; a censored
@@ -101,6 +102,7 @@ _DATA_KEYS = {
     "encoding",
     "subject",
     "transform",
+    "interval_rows",
 }
 _AR_KEYS = {"kind", "p", "maxiter"}
 _SS_KEYS = {"kind", "A", "C", "Q", "R", "x0", "P0", "D", "estimate", "prior", "method", "maxiter"}
@@ -179,6 +181,10 @@ def _check_data(d: dict[str, Any]) -> None:
         raise ValidationError(f"{_key('data', 'format')}: expected one of {', '.join(FORMATS)}, got {d['format']!r}")
     if "duplicates" in d and d["duplicates"] not in ("error", "drop"):
         raise ValidationError(f"{_key('data', 'duplicates')}: expected 'error' or 'drop', got {d['duplicates']!r}")
+    if "interval_rows" in d and d["interval_rows"] not in ("error", "left", "right"):
+        raise ValidationError(
+            f"{_key('data', 'interval_rows')}: expected 'error', 'left' or 'right', got {d['interval_rows']!r}"
+        )
     if "transform" in d and d["transform"] not in ("none", "log", "log10"):
         raise ValidationError(f"{_key('data', 'transform')}: expected 'none', 'log' or 'log10', got {d['transform']!r}")
     codes = d.get("flag_codes")
@@ -320,6 +326,7 @@ def run_fit(
         duplicates=d.get("duplicates", "error"),
         encoding=d.get("encoding", "utf-8"),
         progress=lines,
+        interval_rows=d.get("interval_rows", "error"),
     )
     ids: list[str] | None = None
     if subject is not None:
