@@ -162,3 +162,32 @@ def test_a_forecast_file_it_did_not_write_is_not_replaced(tmp_path):
     (out / "forecast.csv").write_text("my own notes\n")
     _one_line_error(_run(tmp_path, text, MODEL), f"{out / 'forecast.csv'} was not written by tobitkf")
     assert (out / "forecast.csv").read_text() == "my own notes\n"
+
+
+def test_the_hiv_record_as_distributed_is_read_as_a_panel_and_fitted(tmp_path):
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "readers_data" / "hiv_excerpt.csv").read_text()
+    model = (
+        '[data]\nsubject = "patient"\ntime = "days_after_ti"\ny = "rna_copies_per_ml"\ncensored = "censored"\n'
+        'flag_codes = {1 = "left", 2 = "right"}\nduplicates = "drop"\ntransform = "log10"\n'
+        '[model]\nkind = "ou"\nforecast = 1\n'
+    )
+    res = _run(tmp_path, text, model)
+    assert res.exit_code == 0, res.output
+    cells = [r.split(",") for r in text.splitlines()[1:]]
+    ids = list(dict.fromkeys(c[0] for c in cells))
+    head, rows = _rows(tmp_path / "o" / "series.csv")
+    assert [r[0] for r in rows[:1]] == ids[:1] and list(dict.fromkeys(r[0] for r in rows)) == ids
+    # each kept row: log10 of the copies (blank: missing), right-censored ones (2) flagged at their upper limit
+    for r in rows:
+        src = next(c for c in cells if c[0] == r[0] and float(c[1]) == float(r[1]))
+        if not src[3]:
+            assert r[2] == "" and r[3] == "0"
+            continue
+        assert float(r[2]) == pytest.approx(np.log10(float(src[3])))
+        assert r[3] == ("1" if src[4] in ("1", "2") else "0")
+        if src[4] == "2":
+            assert float(r[5]) == pytest.approx(np.log10(float(src[3])))
+    _, fc = _rows(tmp_path / "o" / "forecast.csv")
+    assert [r[0] for r in fc] == ids
