@@ -330,8 +330,8 @@ def run_fit(
     )
     ids: list[str] | None = None
     if subject is not None:
-        panel = read_censored_panel(as_path(csv_path, "FILE"), id=subject, **columns)
-        records, ids = list(panel.series.values()), panel.ids
+        read = read_censored_panel(as_path(csv_path, "FILE"), id=subject, **columns)
+        records, ids = list(read.series.values()), read.ids
     else:
         records = [read_censored(as_path(csv_path, "FILE"), **columns)]
     records = [_transformed(r, d.get("transform", "none"), d) for r in records]
@@ -348,7 +348,10 @@ def run_fit(
     except OSError as exc:
         raise ValidationError(f"--out: cannot create the folder {out} ({exc.strerror or exc})") from None
     if kind == "ou":
-        return _run_ou(records, ids, d, mspec, regs, out, progress, notes)
+        from .panel import Panel
+
+        panel = Panel.from_records(records, regressors=regs, intercept=d.get("intercept", True), ids=ids)
+        return _run_ou(records, panel, ids, d, mspec, regs, out, progress, notes)
     series = records[0]
     y, T = series.y, series.steps
     intercept = d.get("intercept", True)
@@ -576,29 +579,16 @@ def _time_after(last: Any, h: float, unit: str) -> str:
     return str(t.astype("datetime64[D]")) if whole_days else np.datetime_as_string(t, unit="s")
 
 
-def _run_ou(records, ids, d, mspec, regs, out: Path, progress: Any, notes) -> list[Path]:
+def _run_ou(records, panel, ids, d, mspec, regs, out: Path, progress: Any, notes) -> list[Path]:
     """``kind = "ou"``: the continuous-time fit of one series or a panel, and its files (module docstring)."""
     from .._io import atomic_write_text
     from .fitting import fit
-    from .panel import Panel
 
     intercept = d.get("intercept", True)
     names = ["intercept"] * bool(intercept) + regs
     p = len(names)
-    Xs = [
-        np.column_stack(([np.ones(r.steps)] if intercept else []) + [r.covariates[c] for c in regs]) if p else None
-        for r in records
-    ]
+    Xs = panel.u if p else [None] * len(records)
     level, nsd, unit = mspec.get("level", False), mspec.get("noise_sd"), mspec.get("unit", "D")
-    panel = Panel(
-        [r.times for r in records],
-        [r.y for r in records],
-        lower=[r.lower for r in records],
-        upper=[r.upper for r in records],
-        censored=[r.censored for r in records],
-        u=Xs if p else None,
-        ids=ids,
-    )
     theta0 = _ou_start(records, Xs, p, level, nsd is None, unit)
     span = max(float(_gaps(records, unit).max(initial=1.0)), float(mspec.get("forecast", 0)))
     pnames = [f"beta_{n}" for n in names] + ["log_rate", "log_sd"] + ["log_level_sd"] * level
