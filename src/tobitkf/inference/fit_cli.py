@@ -582,6 +582,7 @@ def _time_after(last: Any, h: float, unit: str) -> str:
 def _run_ou(records, panel, ids, d, mspec, regs, out: Path, progress: Any, notes) -> list[Path]:
     """``kind = "ou"``: the continuous-time fit of one series or a panel, and its files (module docstring)."""
     from .._io import atomic_write_text
+    from ..models.continuous import _unit
     from .fitting import fit
 
     intercept = d.get("intercept", True)
@@ -605,7 +606,11 @@ def _run_ou(records, panel, ids, d, mspec, regs, out: Path, progress: Any, notes
     )
     paths = [res.save(out / "fit.json")]
     est = res.params
-    what = [f"memory 1/rate {np.exp(-est['log_rate']):.4g} {unit}", f"residual sd {np.exp(est['log_sd']):.4g}"]
+    shown = {"s": "seconds", "min": "minutes", "h": "hours", "D": "days", "W": "weeks", "Y": "years"}
+    what = [
+        f"memory 1/rate {np.exp(-est['log_rate']):.4g} {shown[_unit(unit)]}",
+        f"residual sd {np.exp(est['log_sd']):.4g}",
+    ]
     if level:
         what.append(f"level sd between subjects {np.exp(est['log_level_sd']):.4g}")
     what.append(f"noise sd {np.exp(est['log_noise_sd']) if nsd is None else nsd:.4g}" + (" (fixed)" if nsd else ""))
