@@ -191,3 +191,14 @@ def test_the_hiv_record_as_distributed_is_read_as_a_panel_and_fitted(tmp_path):
             assert float(r[5]) == pytest.approx(np.log10(float(src[3])))
     _, fc = _rows(tmp_path / "o" / "forecast.csv")
     assert [r[0] for r in fc] == ids
+
+
+def test_without_matplotlib_the_panel_files_are_written_and_the_figure_skipped(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    text, _ = _panel_csv(subjects=3)
+    res = _run(tmp_path, text, MODEL)
+    assert res.exit_code == 0, res.output
+    assert "skipped fit.png: the optional extra 'plot' is needed" in " ".join(res.output.split())
+    assert {p.name for p in (tmp_path / "o").iterdir()} == {"fit.json", "summary.txt", "series.csv", "forecast.csv"}

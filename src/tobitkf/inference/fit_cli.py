@@ -453,7 +453,8 @@ def _fit_state_space(mspec: dict[str, Any], series: Any, X: np.ndarray | None, n
     )
 
 
-def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | None:
+def _plotting(notes) -> Any:
+    """The package's plotting module with matplotlib on its file backend, or None (and a note) without matplotlib."""
     from .._extras import MissingExtraError, require
 
     try:
@@ -463,7 +464,16 @@ def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | N
             notes(f"skipped fit.png: {exc}")
         return None
     matplotlib.use("Agg")
-    from ..plotting import new_figure, save
+    from .. import plotting
+
+    return plotting
+
+
+def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | None:
+    plotting = _plotting(notes)
+    if plotting is None:
+        return None
+    new_figure, save = plotting.new_figure, plotting.save
 
     t = np.arange(1, y.size + 1)
     fig, ax = new_figure(1, 1, width=10, height=3.8)
@@ -658,16 +668,10 @@ def _run_ou(records, panel, ids, d, mspec, regs, out: Path, progress: Any, notes
 def _ou_figure(out: Path, records, ids, curves, res, notes) -> Path | None:
     """Readings, censored readings at their limits and the smoothed series with a +-2 sd band: one panel, or the
     first six subjects of a panel."""
-    from .._extras import MissingExtraError, require
-
-    try:
-        matplotlib = require("matplotlib", extra="plot", feature="the figure of tobitkf fit")
-    except MissingExtraError as exc:
-        if notes is not None:
-            notes(f"skipped fit.png: {exc}")
+    plotting = _plotting(notes)
+    if plotting is None:
         return None
-    matplotlib.use("Agg")
-    from ..plotting import new_figure, save
+    new_figure, save = plotting.new_figure, plotting.save
 
     k = min(len(records), 6)
     cols = 1 if k == 1 else 2 if k <= 4 else 3
