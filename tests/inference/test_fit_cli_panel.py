@@ -202,3 +202,25 @@ def test_without_matplotlib_the_panel_files_are_written_and_the_figure_skipped(t
     assert res.exit_code == 0, res.output
     assert "skipped fit.png: the optional extra 'plot' is needed" in " ".join(res.output.split())
     assert {p.name for p in (tmp_path / "o").iterdir()} == {"fit.json", "summary.txt", "series.csv", "forecast.csv"}
+
+
+def test_the_grid_series_agrees_with_the_smoothed_readings_at_the_sample_times(tmp_path):
+    text, latent = _panel_csv(subjects=3)
+    res = _run(tmp_path, text, MODEL.replace("forecast = 3", "grid = 1"))
+    assert res.exit_code == 0, res.output
+    _, series = _rows(tmp_path / "o" / "series.csv")
+    head, grid = _rows(tmp_path / "o" / "grid.csv")
+    assert head == "subject,time,smoothed,smoothed_sd,lower_95,upper_95"
+    for sid, (days, _) in latent.items():
+        mine = [g for g in grid if g[0] == sid]
+        # every day from the subject's first sample to its last
+        assert [float(g[1]) for g in mine] == list(np.arange(days[0], days[-1] + 1))
+        at = {float(g[1]): g for g in mine}
+        for r in (r for r in series if r[0] == sid):
+            g = at[float(r[1])]  # a sample day: the same smoothed value and sd (the regressor of that sample)
+            assert float(g[2]) == pytest.approx(float(r[6]), rel=1e-9, abs=1e-12)
+            assert float(g[3]) == pytest.approx(float(r[7]), rel=1e-9, abs=1e-12)
+        sds = np.array([float(g[3]) for g in mine])
+        on_sample = np.isin([float(g[1]) for g in mine], days)
+        assert sds[~on_sample].min() >= sds[on_sample].min()  # a day without a sample is known less well
+    _one_line_error(_run(tmp_path, text, MODEL + "grid = 0\n"), "[model] grid: expected a step > 0")

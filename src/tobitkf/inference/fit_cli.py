@@ -50,7 +50,9 @@ level :math:`\ell \sim N(0, \tau^2)` constant within each subject (a subject's o
 :math:`\ell = 0`), ``noise_sd`` fixes r (default: estimated), ``unit`` the time unit of the rates for dated
 times (``"D"``, the default, ``"h"``, ``"W"``, ``"Y"``, ...), ``forecast = H`` the lead of the forecasts (H
 time units after each subject's last reading, at 1, 2, ..., H; the regressors held at their last values),
-``align`` (``"first"``: each subject's prior at its first reading, the default; ``"common"``), ``maxiter``.
+``grid = g`` the step of a smoothed series on a regular grid (every g time units from each subject's first
+reading to its last, written to ``grid.csv``), ``align`` (``"first"``: each subject's prior at its first
+reading, the default; ``"common"``), ``maxiter``.
 The parameters are the coefficients ``beta_<column>``, ``log_rate``, ``log_sd`` and, when estimated,
 ``log_level_sd`` and ``log_noise_sd``.
 
@@ -65,7 +67,9 @@ It writes into ``--out``: ``fit.json`` (:meth:`~tobitkf.inference.fitting.FitRes
 ``summary.txt``, ``series.csv`` (the readings, the indicator, the limits and the smoothed latent series
 with its standard deviation; for ``kind = "ou"`` the smoothed :math:`D u + \ell + \xi` at each reading
 without the measurement error), ``forecast.csv`` (``kind = "ou"`` with ``forecast``: each subject's
-predictive mean, standard deviation and 95 % interval of a reading at each lead) and ``fit.png`` (readings, limits, smoothed series; skipped with a note
+predictive mean, standard deviation and 95 % interval of a reading at each lead), ``grid.csv`` (``kind =
+"ou"`` with ``grid``: the smoothed series on the grid with its standard deviation and 95 % band) and
+``fit.png`` (readings, limits, smoothed series; skipped with a note
 when matplotlib is not installed). Files of those names that tobitkf did not write are not replaced
 unless ``force`` is set.
 """
@@ -106,12 +110,13 @@ _DATA_KEYS = {
 }
 _AR_KEYS = {"kind", "p", "maxiter"}
 _SS_KEYS = {"kind", "A", "C", "Q", "R", "x0", "P0", "D", "estimate", "prior", "method", "maxiter"}
-_OU_KEYS = {"kind", "level", "noise_sd", "unit", "forecast", "align", "maxiter"}
+_OU_KEYS = {"kind", "level", "noise_sd", "unit", "forecast", "grid", "align", "maxiter"}
 _MODEL_KEYS = _AR_KEYS | _SS_KEYS | _OU_KEYS
 _KINDS = {"censored_ar": _AR_KEYS, "state_space": _SS_KEYS, "ou": _OU_KEYS}
 _SERIES_HEADER = "time,y,censored,lower,upper,smoothed,smoothed_sd"
 _PANEL_HEADER = "subject," + _SERIES_HEADER
 _FORECAST_HEADER = "time,ahead,mean,sd,lower_95,upper_95"
+_GRID_HEADER = "time,smoothed,smoothed_sd,lower_95,upper_95"
 _SUMMARY_MARK = "(written by tobitkf fit)"
 #: the files ``tobitkf fit`` writes, each with the marker that shows tobitkf wrote it
 OUTPUTS: dict[str, tuple[bytes, ...]] = {
@@ -119,6 +124,7 @@ OUTPUTS: dict[str, tuple[bytes, ...]] = {
     "summary.txt": (_SUMMARY_MARK.encode(),),
     "series.csv": ((_SERIES_HEADER + "\n").encode(), (_PANEL_HEADER + "\n").encode()),
     "forecast.csv": ((_FORECAST_HEADER + "\n").encode(), ("subject," + _FORECAST_HEADER + "\n").encode()),
+    "grid.csv": ((_GRID_HEADER + "\n").encode(), ("subject," + _GRID_HEADER + "\n").encode()),
     "fit.png": FIGURE_MARKERS,
 }
 
@@ -211,6 +217,9 @@ def _check_model(m: dict[str, Any]) -> None:
     for k in ("prior", "method"):
         if k in m and not isinstance(m[k], str):
             raise ValidationError(f"{_key('model', k)}: expected text, got {m[k]!r}")
+    g = m.get("grid")
+    if g is not None and (isinstance(g, bool) or not isinstance(g, (int, float)) or not 0 < g < float("inf")):
+        raise ValidationError(f"{_key('model', 'grid')}: expected a step > 0 (in the model's time unit), got {g!r}")
     if "forecast" in m:
         check_int(m["forecast"], _key("model", "forecast"), minimum=0)
     if "level" in m and not isinstance(m["level"], bool):
@@ -578,7 +587,7 @@ def _ou_start(records: list[Any], Xs: list[Any], p: int, level: bool, noise: boo
 
 
 def _time_after(last: Any, h: float, unit: str) -> str:
-    """The label of the time ``h`` units after ``last`` (a date, or a number)."""
+    """The label of the time ``h`` units after ``last`` (a date, or a number; ``h`` may be 0)."""
     from ..models.continuous import TIME_UNITS, _unit
 
     if np.asarray(last).dtype.kind != "M":
@@ -659,10 +668,47 @@ def _run_ou(records, panel, ids, d, mspec, regs, out: Path, progress: Any, notes
                 cells += [str(h + 1)] + [repr(float(fc[k][i, h, 0])) for k in ("mean", "sd", "lower", "upper")]
                 rows.append(",".join(_csv_cell(c) for c in cells))
         paths.append(atomic_write_text(out / "forecast.csv", "\n".join(rows) + "\n"))
+    if mspec.get("grid") is not None:
+        paths.append(_ou_grid(out, records, ids, res, float(mspec["grid"]), unit, lead))
     figure = _ou_figure(out, records, ids, curves, res, notes)
     if figure is not None:
         paths.append(figure)
     return paths
+
+
+def _ou_grid(out: Path, records, ids, res, step: float, unit: str, lead: str) -> Path:
+    r"""``grid.csv``: each subject's smoothed :math:`D u + \ell + \xi` every ``step`` time units from its first reading
+    to its last (the regressors held from the next reading, as the filter holds them), with its standard deviation
+    and 95 % band."""
+    from .._io import atomic_write_text
+    from ..models.continuous import time_values
+    from .panel import panel_smooth
+
+    model = res.model
+    fitted = model.fitted
+    starts = [time_values(r.times, unit=unit) for r in records]
+    origin = min(float(t[0]) for t in starts)
+    # each subject's readings on the model's clock: since its first reading (align "first") or the earliest one
+    spans = [(t - (t[0] if model.align == "first" else origin))[[0, -1]] for t in starts]
+    top = max(float(b) for _, b in spans)
+    grid = np.arange(0.0, top + step * 1e-9, step)
+    sm = panel_smooth(fitted, res.data, likelihood=model.likelihood, align=model.align, start=model.start, grid=grid)
+    C = fitted.measurement(1)
+    D = None if fitted.D is None else fitted.D.at(1)
+    rows = [lead + _GRID_HEADER]
+    for i, (rec, (a, b)) in enumerate(zip(records, spans)):
+        keep = (grid >= a - 1e-9 * step) & (grid <= b + 1e-9 * step)
+        own = grid[keep] - a  # the grid on the subject's own clock (0 at its first reading)
+        mean = np.asarray(sm[i]["grid_mean"])[keep] @ C[0]
+        if D is not None and res.data.u[i] is not None:
+            nxt = np.minimum(np.searchsorted(starts[i] - starts[i][0], own - 1e-9 * step), rec.steps - 1)
+            mean = mean + res.data.u[i][nxt] @ D[0]
+        sd = np.sqrt(np.maximum(np.einsum("j,tjk,k->t", C[0], np.asarray(sm[i]["grid_cov"])[keep], C[0]), 0.0))
+        for h, m_, s_ in zip(own, mean, sd):
+            cells = ([str(ids[i])] if ids is not None else []) + [_time_after(rec.times[0], float(h), unit)]
+            cells += [repr(float(v)) for v in (m_, s_, m_ - 1.96 * s_, m_ + 1.96 * s_)]
+            rows.append(",".join(_csv_cell(c) for c in cells))
+    return atomic_write_text(out / "grid.csv", "\n".join(rows) + "\n")
 
 
 def _ou_figure(out: Path, records, ids, curves, res, notes) -> Path | None:
