@@ -229,3 +229,63 @@ def test_format_detection_and_its_errors(tmp_path):
         read_censored(both, format="excel")
     with pytest.raises(ValidationError, match="source: expected a CSV path"):
         read_censored(42)
+
+
+# --------------------------------------------------------------------------- interval rows, panels, row labels
+
+
+def test_egret_rows_between_two_finite_ends_are_refused_with_the_way_out(tmp_path):
+    text = "Date,ConcLow,ConcHigh\n2001-01-01,0.1,0.1\n2001-02-01,0.02,0.05\n2001-03-01,,0.05\n2001-04-01,0.3,\n"
+    path = _csv(tmp_path, text)
+    with pytest.raises(ValidationError, match=r"line 3, column 'ConcLow': an interval with two finite ends") as err:
+        read_censored(path, time="Date")
+    assert "interval_rows='left'" in str(err.value) and "interval_rows='right'" in str(err.value)
+    left = read_censored(path, time="Date", interval_rows="left")  # known below 0.05 (the 0.02 dropped)
+    assert left.side.tolist() == [0, -1, -1, 1] and left.y.tolist() == [0.1, 0.05, 0.05, 0.3]
+    assert left.lower.tolist() == [-inf, 0.05, 0.05, -inf] and left.upper.tolist() == [inf, inf, inf, 0.3]
+    right = read_censored(path, time="Date", interval_rows="right")  # known above 0.02
+    assert right.side.tolist() == [0, 1, -1, 1] and right.y[1] == 0.02 and right.upper[1] == 0.02
+    # what was read writes back and reads back the same (the interval layout keeps one end per row)
+    back = read_censored(write_censored(left, tmp_path / "w.csv", format="interval"), time="time")
+    np.testing.assert_array_equal(back.y, left.y)
+    np.testing.assert_array_equal(back.side, left.side)
+    with pytest.raises(ValidationError, match="interval_rows: expected 'error', 'left' or 'right'"):
+        read_censored(path, time="Date", interval_rows="mid")
+
+
+def test_a_panel_refuses_units_that_differ_between_subjects(tmp_path):
+    # each subject's cells agree within it; the old reader checked them subject by subject only
+    text = "id,day,v\na,1,0.5 mg/L\na,2,<0.1 mg/L\nb,1,40 ug/L\nb,3,55 ug/L\n"
+    with pytest.raises(ValidationError, match=r"line 4, column 'v': mixed units in one column: 'ug/L' for subject 'b'"):
+        read_censored_panel(_csv(tmp_path, text), id="id", time="day", y="v")
+    p = read_censored_panel(_csv(tmp_path, text.replace("ug/L", "mg/L")), id="id", time="day", y="v")
+    assert p["a"].units == p["b"].units == "mg/L"
+
+
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("id,day,v\na,1,0.5\nb,1,<\n", r"line 3, column 'v': '<' has '<' but no number"),
+        ("id,day,v\na,1,0.5\nb,1,2\nb,1,3\n", r"line 4, column 'day': the time 1.0 repeats line 3's"),
+        ("id,day,v\na,1,0.5\nb,5,2\na,0,3\n", r"line 4, column 'day': the time 0.0 comes before line 2's 1.0"),
+        ("id,day,v,c,dl\na,1,0.5,0,0.1\nb,1,0.05,0,0.1\n", r"line 3, column 'v'.*uncensored reading below its lower"),
+        ("id,day,v\na,1,0.5\n,2,1\n", r"line 3, column 'id': a blank subject id"),
+    ],
+)
+def test_panel_errors_name_the_line_of_the_whole_table(tmp_path, text, match):
+    kw = {"censored": "c", "lower": "dl"} if ",c,dl" in text else {}
+    with pytest.raises(ValidationError, match=match):
+        read_censored_panel(_csv(tmp_path, text), id="id", time="day", y="v", **kw)
+
+
+def test_dataframe_errors_name_the_row_label_and_records_keep_where_each_reading_came_from(tmp_path):
+    pd = pytest.importorskip("pandas")
+    df = pd.DataFrame({"y": ["0.5", "<0.1", "0.7"]}, index=pd.to_datetime(["2020-01-01", "2020-01-02", "2020-01-02"]))
+    with pytest.raises(ValidationError, match=r"DataFrame row 2020-01-02, column 'index': the time 2020-01-02 repeats"):
+        read_censored(df, y="y")
+    bad = pd.DataFrame({"y": ["0.5 mg/L", "<0.1 ug/L"]}, index=[10, 11])
+    with pytest.raises(ValidationError, match=r"DataFrame row 11, column 'y': mixed units"):
+        read_censored(bad, y="y")
+    s = read_censored(_csv(tmp_path, "t,y\n1,0.5\n\n2,0.7\n"), y="y", time="t")
+    assert s.rows.tolist() == [2, 4] and s.where(1, "y").endswith("r.csv line 4, column 'y'")
+    assert read_censored(df.iloc[:2], y="y").where(1) == "DataFrame row 2020-01-02"

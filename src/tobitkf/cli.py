@@ -492,11 +492,13 @@ def fit(
     force: Annotated[
         bool,
         typer.Option(
-            "--force", help="replace fit.json, summary.txt, series.csv, fit.png even if tobitkf did not write them"
+            "--force",
+            help="replace fit.json, summary.txt, series.csv, forecast.csv, fit.png even if tobitkf did not write them",
         ),
     ] = False,
 ) -> None:
-    """Fit a model to a censored series: writes OUT/fit.json, summary.txt, series.csv and fit.png."""
+    """Fit a model to a censored series or a panel of subjects: writes OUT/fit.json, summary.txt, series.csv,
+    forecast.csv (continuous-time model with a forecast lead) and fit.png."""
     from .inference.fit_cli import run_fit
 
     check_out_dir(out)

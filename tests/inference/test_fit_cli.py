@@ -268,9 +268,9 @@ def test_fit_format_option_reads_nonmem_columns(tmp_path):
 
 
 def test_fit_prints_progress_lines_while_reading_a_large_file(tmp_path, monkeypatch):
-    from tobitkf.data import readers
+    from tobitkf.data import _tables
 
-    monkeypatch.setattr(readers, "PROGRESS_BYTES", 10)  # every file is "large"
+    monkeypatch.setattr(_tables, "PROGRESS_BYTES", 10)  # every file is "large"
     res = _run(tmp_path, DL_CSV, DL_MODEL)
     assert res.exit_code == 0, res.output
     assert "reading " in res.output and "read 10 rows of d.csv in" in res.output

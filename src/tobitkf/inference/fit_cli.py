@@ -20,7 +20,8 @@ The file's layout (``format``, or ``--format`` on the command line) is one of th
 + limits, as above), ``"interval"`` (EGRET's ``ConcLow``/``ConcHigh``; keys ``low``/``high`` rename
 them), ``"nonmem"`` (``DV``/``CENS``/``LIMIT``; keys ``y``, ``cens``, ``limit``), or ``"auto"`` (the
 default: picked from the columns). Further ``[data]`` keys: ``flag_codes`` (a table such as
-``{1 = "left", 2 = "right"}``), ``duplicates`` (``"error"`` or ``"drop"``), ``encoding``.
+``{1 = "left", 2 = "right"}``), ``duplicates`` (``"error"`` or ``"drop"``), ``encoding``, ``interval_rows``
+(``"left"`` or ``"right"``: how to read EGRET's rows with two finite ends, refused by default).
 
 **Blank limits.** A blank limit cell means that no limit was recorded for that reading (``-inf`` /
 ``+inf``, as :func:`tobitkf.fit` takes it): harmless for an uncensored or missing reading; a censored
@@ -33,15 +34,49 @@ known inputs through ``D`` (``y_k = C x_k + D u_k + v_k``), starting from ``D`` 
 estimated (``"D"`` is added to ``estimate`` when ``estimate`` is not given; with ``estimate`` given,
 either list ``"D"``, give a fixed ``D``, or set ``intercept = false`` and no regressors).
 
+For irregular sample times, a model in continuous time (``kind = "ou"``): the intercept and regressors
+``u`` enter through ``D`` and the residual is an Ornstein-Uhlenbeck process (a continuous-time AR(1)) with
+rate :math:`\theta` per time unit and stationary standard deviation :math:`s`, read with a measurement error
+:math:`v \sim N(0, r^2)`,
+
+.. math::
+
+    y(t_k) = D u_k + \ell + \xi(t_k) + v_k, \qquad d\xi = -\theta\xi\,dt + \sqrt{2\theta s^2}\,dW,
+
+each gap discretised exactly (:class:`~tobitkf.ContinuousLinearSystem`) and fitted by maximum likelihood
+(:func:`tobitkf.fit` with the sample times; the assumed-density likelihood when a reading is censored). It
+needs ``[data] time`` (dates, or numbers in the model's unit). Its ``[model]`` keys: ``level = true`` adds a
+level :math:`\ell \sim N(0, \tau^2)` constant within each subject (a subject's own set point; without it
+:math:`\ell = 0`), ``noise_sd`` fixes r (default: estimated), ``unit`` the time unit of the rates for dated
+times (``"D"``, the default, ``"h"``, ``"W"``, ``"Y"``, ...), ``forecast = H`` the lead of the forecasts (H
+time units after each subject's last reading, at 1, 2, ..., H; the regressors held at their last values),
+``grid = g`` the step of a smoothed series on a regular grid (every g time units from each subject's first
+reading to its last, written to ``grid.csv``), ``align`` (``"first"``: each subject's prior at its first
+reading, the default; ``"common"``), ``maxiter``.
+The parameters are the coefficients ``beta_<column>``, ``log_rate``, ``log_sd`` and, when estimated,
+``log_level_sd`` and ``log_noise_sd``.
+
+**Panels.** ``[data] subject = "id"`` names a column of subject labels: the file is a long table (one row
+per reading, each subject's rows in time order) read by :func:`~tobitkf.data.read_censored_panel` into a
+:class:`~tobitkf.Panel` and fitted jointly with ``kind = "ou"``; ``series.csv`` and ``forecast.csv`` then
+start with a ``subject`` column. ``[data] transform = "log"`` or ``"log10"`` fits the logarithm of the
+readings and their limits (a reading or limit that is not above 0 is refused, naming its line and column);
+the written series are on that scale.
+
 It writes into ``--out``: ``fit.json`` (:meth:`~tobitkf.inference.fitting.FitResult.save`),
 ``summary.txt``, ``series.csv`` (the readings, the indicator, the limits and the smoothed latent series
-with its standard deviation) and ``fit.png`` (readings, limits, smoothed series; skipped with a note
+with its standard deviation; for ``kind = "ou"`` the smoothed :math:`D u + \ell + \xi` at each reading
+without the measurement error), ``forecast.csv`` (``kind = "ou"`` with ``forecast``: each subject's
+predictive mean, standard deviation and 95 % interval of a reading at each lead), ``grid.csv`` (``kind =
+"ou"`` with ``grid``: the smoothed series on the grid with its standard deviation and 95 % band) and
+``fit.png`` (readings, limits, smoothed series; skipped with a note
 when matplotlib is not installed). Files of those names that tobitkf did not write are not replaced
 unless ``force`` is set.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -69,17 +104,27 @@ _DATA_KEYS = {
     "time",
     "duplicates",
     "encoding",
+    "subject",
+    "transform",
+    "interval_rows",
 }
 _AR_KEYS = {"kind", "p", "maxiter"}
 _SS_KEYS = {"kind", "A", "C", "Q", "R", "x0", "P0", "D", "estimate", "prior", "method", "maxiter"}
-_MODEL_KEYS = _AR_KEYS | _SS_KEYS
+_OU_KEYS = {"kind", "level", "noise_sd", "unit", "forecast", "grid", "align", "maxiter"}
+_MODEL_KEYS = _AR_KEYS | _SS_KEYS | _OU_KEYS
+_KINDS = {"censored_ar": _AR_KEYS, "state_space": _SS_KEYS, "ou": _OU_KEYS}
 _SERIES_HEADER = "time,y,censored,lower,upper,smoothed,smoothed_sd"
+_PANEL_HEADER = "subject," + _SERIES_HEADER
+_FORECAST_HEADER = "time,ahead,mean,sd,lower_95,upper_95"
+_GRID_HEADER = "time,smoothed,smoothed_sd,lower_95,upper_95"
 _SUMMARY_MARK = "(written by tobitkf fit)"
 #: the files ``tobitkf fit`` writes, each with the marker that shows tobitkf wrote it
 OUTPUTS: dict[str, tuple[bytes, ...]] = {
     "fit.json": (b'"format": "tobitkf-fit"',),
     "summary.txt": (_SUMMARY_MARK.encode(),),
-    "series.csv": ((_SERIES_HEADER + "\n").encode(),),
+    "series.csv": ((_SERIES_HEADER + "\n").encode(), (_PANEL_HEADER + "\n").encode()),
+    "forecast.csv": ((_FORECAST_HEADER + "\n").encode(), ("subject," + _FORECAST_HEADER + "\n").encode()),
+    "grid.csv": ((_GRID_HEADER + "\n").encode(), ("subject," + _GRID_HEADER + "\n").encode()),
     "fit.png": FIGURE_MARKERS,
 }
 
@@ -124,7 +169,7 @@ def _key(section: str, key: str) -> str:
 def _check_data(d: dict[str, Any]) -> None:
     from ..data.readers import FORMATS
 
-    for k in ("y", "censored", "low", "high", "cens", "time", "encoding"):
+    for k in ("y", "censored", "low", "high", "cens", "time", "encoding", "subject"):
         if k in d and not (isinstance(d[k], str) and d[k]):
             raise ValidationError(f"{_key('data', k)}: expected a column name (text), got {d[k]!r}")
     for k in ("lower", "upper"):
@@ -142,6 +187,12 @@ def _check_data(d: dict[str, Any]) -> None:
         raise ValidationError(f"{_key('data', 'format')}: expected one of {', '.join(FORMATS)}, got {d['format']!r}")
     if "duplicates" in d and d["duplicates"] not in ("error", "drop"):
         raise ValidationError(f"{_key('data', 'duplicates')}: expected 'error' or 'drop', got {d['duplicates']!r}")
+    if "interval_rows" in d and d["interval_rows"] not in ("error", "left", "right"):
+        raise ValidationError(
+            f"{_key('data', 'interval_rows')}: expected 'error', 'left' or 'right', got {d['interval_rows']!r}"
+        )
+    if "transform" in d and d["transform"] not in ("none", "log", "log10"):
+        raise ValidationError(f"{_key('data', 'transform')}: expected 'none', 'log' or 'log10', got {d['transform']!r}")
     codes = d.get("flag_codes")
     if codes is not None and not (isinstance(codes, dict) and all(isinstance(v, str) for v in codes.values())):
         raise ValidationError(f'{_key("data", "flag_codes")}: expected a table such as {{1 = "left"}}, got {codes!r}')
@@ -151,9 +202,9 @@ def _check_model(m: dict[str, Any]) -> None:
     from .._validation import check_int
 
     kind = m.get("kind", "censored_ar")
-    if kind not in ("censored_ar", "state_space"):
-        raise ValidationError(f"--model: unknown model kind {kind!r}; expected 'censored_ar' or 'state_space'")
-    allowed = _AR_KEYS if kind == "censored_ar" else _SS_KEYS
+    if kind not in _KINDS:
+        raise ValidationError(f"--model: unknown model kind {kind!r}; expected 'censored_ar', 'state_space' or 'ou'")
+    allowed = _KINDS[kind]
     extra = sorted(set(m) - allowed)
     if extra:
         raise ValidationError(
@@ -166,6 +217,25 @@ def _check_model(m: dict[str, Any]) -> None:
     for k in ("prior", "method"):
         if k in m and not isinstance(m[k], str):
             raise ValidationError(f"{_key('model', k)}: expected text, got {m[k]!r}")
+    g = m.get("grid")
+    if g is not None and (isinstance(g, bool) or not isinstance(g, (int, float)) or not 0 < g < float("inf")):
+        raise ValidationError(f"{_key('model', 'grid')}: expected a step > 0 (in the model's time unit), got {g!r}")
+    if "forecast" in m:
+        check_int(m["forecast"], _key("model", "forecast"), minimum=0)
+    if "level" in m and not isinstance(m["level"], bool):
+        raise ValidationError(f"{_key('model', 'level')}: expected true or false, got {m['level']!r}")
+    nsd = m.get("noise_sd")
+    if nsd is not None and (isinstance(nsd, bool) or not isinstance(nsd, (int, float)) or not nsd > 0):
+        raise ValidationError(f"{_key('model', 'noise_sd')}: expected a number > 0, got {nsd!r}")
+    if "unit" in m:
+        from ..models.continuous import _unit
+
+        try:
+            _unit(m["unit"])
+        except ValidationError as exc:
+            raise ValidationError(f"{_key('model', 'unit')}: {str(exc).removeprefix('unit: ')}") from None
+    if "align" in m and m["align"] not in ("first", "common"):
+        raise ValidationError(f"{_key('model', 'align')}: expected 'first' or 'common', got {m['align']!r}")
     est = m.get("estimate")
     if est is not None and (not isinstance(est, list) or not all(isinstance(e, str) for e in est)):
         raise ValidationError(f"{_key('model', 'estimate')}: expected a list of matrix names, got {est!r}")
@@ -228,7 +298,7 @@ def run_fit(
         Unreadable or inconsistent inputs (each message names the file and the key, or the line and column).
     """
     from .._io import as_path, atomic_write_text, check_writable_dir
-    from ..data.readers import FORMATS, read_censored
+    from ..data.readers import FORMATS, read_censored, read_censored_panel
     from .censored_ar import CensoredAR
     from .fitting import fit
 
@@ -238,10 +308,18 @@ def run_fit(
     out = check_writable_dir(out, "--out")
     check_outputs(out, force=force)
     d, mspec = spec["data"], spec["model"]
+    kind = mspec.get("kind", "censored_ar")
+    subject = d.get("subject")
+    if subject is not None and kind != "ou":
+        raise ValidationError(
+            f"{_key('data', 'subject')}: a panel (many subjects) is fitted with the continuous-time model; "
+            f'set [model] kind = "ou" (the model file has kind = {kind!r})'
+        )
+    if kind == "ou" and "time" not in d:
+        raise ValidationError(f'{_key("data", "time")}: kind = "ou" needs the sample times; name their column')
     regs = list(d.get("regressors", []))
     lines = _progress_lines(progress)
-    series = read_censored(
-        as_path(csv_path, "FILE"),
+    columns: dict[str, Any] = dict(
         format=format or d.get("format", "auto"),
         y=d.get("y"),
         censored=d.get("censored"),
@@ -257,26 +335,40 @@ def run_fit(
         duplicates=d.get("duplicates", "error"),
         encoding=d.get("encoding", "utf-8"),
         progress=lines,
+        interval_rows=d.get("interval_rows", "error"),
     )
-    y, T = series.y, series.steps
-    for r in regs:
-        miss = np.isnan(series.covariates[r])
-        if miss.any():
-            raise ValidationError(
-                f"FILE: regressor column {r!r} is blank at reading {int(np.argmax(miss)) + 1}; regressors must be "
-                "known for every reading"
-            )
+    ids: list[str] | None = None
+    if subject is not None:
+        read = read_censored_panel(as_path(csv_path, "FILE"), id=subject, **columns)
+        records, ids = list(read.series.values()), read.ids
+    else:
+        records = [read_censored(as_path(csv_path, "FILE"), **columns)]
+    records = [_transformed(r, d.get("transform", "none"), d) for r in records]
+    for rec in records:
+        for r in regs:
+            miss = np.isnan(rec.covariates[r])
+            if miss.any():
+                raise ValidationError(
+                    f"{rec.where(int(np.argmax(miss)), r)}: a blank regressor; regressors must be known for every "
+                    "reading"
+                )
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ValidationError(f"--out: cannot create the folder {out} ({exc.strerror or exc})") from None
+    if kind == "ou":
+        from .panel import Panel
+
+        panel = Panel.from_records(records, regressors=regs, intercept=d.get("intercept", True), ids=ids)
+        return _run_ou(records, panel, ids, d, mspec, regs, out, progress, notes)
+    series = records[0]
+    y, T = series.y, series.steps
     intercept = d.get("intercept", True)
     X_cols = ([np.ones(T)] if intercept else []) + [series.covariates[r] for r in regs]
     X = np.column_stack(X_cols) if X_cols else None
     names = ["intercept"] * bool(intercept) + regs
     censored = series.censored
     limited = bool(np.isfinite(series.lower).any() or np.isfinite(series.upper).any())
-    kind = mspec.get("kind", "censored_ar")
     if kind == "censored_ar":
         if X is None:
             raise ValidationError("--model: the censored AR model needs an intercept or regressors")
@@ -370,7 +462,8 @@ def _fit_state_space(mspec: dict[str, Any], series: Any, X: np.ndarray | None, n
     )
 
 
-def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | None:
+def _plotting(notes) -> Any:
+    """The package's plotting module with matplotlib on its file backend, or None (and a note) without matplotlib."""
     from .._extras import MissingExtraError, require
 
     try:
@@ -380,7 +473,16 @@ def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | N
             notes(f"skipped fit.png: {exc}")
         return None
     matplotlib.use("Agg")
-    from ..plotting import new_figure, save
+    from .. import plotting
+
+    return plotting
+
+
+def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | None:
+    plotting = _plotting(notes)
+    if plotting is None:
+        return None
+    new_figure, save = plotting.new_figure, plotting.save
 
     t = np.arange(1, y.size + 1)
     fig, ax = new_figure(1, 1, width=10, height=3.8)
@@ -395,4 +497,247 @@ def _figure(out: Path, y, flags, lower, upper, mean, sd, res, notes) -> Path | N
     a.fill_between(t, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.15, lw=0, label="+-2 sd")
     a.set_title(f"{res.model!r}: log-likelihood {res.loglik:.3f}, AIC {res.aic:.2f}", fontsize=9)
     a.legend(fontsize=7, ncol=3)
+    return save(fig, out, "fit.png")
+
+
+def _transformed(rec: Any, how: str, d: dict[str, Any]) -> Any:
+    """``rec`` with the logarithm (``how``: "log" or "log10") of its readings and finite limits; refuses, naming
+    the line and column, a reading or a limit that is not above 0."""
+    if how == "none":
+        return rec
+    f = np.log if how == "log" else np.log10
+    ycol = d.get("y") or "the readings"
+    with np.errstate(invalid="ignore"):
+        for vals, col, what in (
+            (rec.y, ycol, "reading"),
+            (rec.lower, d.get("lower") if isinstance(d.get("lower"), str) else ycol, "lower limit"),
+            (rec.upper, d.get("upper") if isinstance(d.get("upper"), str) else ycol, "upper limit"),
+        ):
+            bad = np.isfinite(vals) & ~(vals > 0)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise ValidationError(
+                    f"{rec.where(i, col)}: the {what} {vals[i]:.6g} is not above 0, so it has no logarithm "
+                    f"([data] transform = {how!r})"
+                )
+
+    def tr(a: np.ndarray) -> np.ndarray:
+        out = a.copy()
+        ok = np.isfinite(a)
+        out[ok] = f(a[ok])
+        return out
+
+    units = f"{how}({rec.units})" if rec.units else how
+    return dataclasses.replace(rec, y=tr(rec.y), lower=tr(rec.lower), upper=tr(rec.upper), units=units)
+
+
+def _ou_system(p: int, level: bool, noise_sd: float | None, unit: str, span: float) -> Callable[[np.ndarray], Any]:
+    """The map theta -> ContinuousLinearSystem of ``kind = "ou"`` (module docstring): theta = (beta (p,),
+    log rate, log sd, [log level sd], [log noise sd]). A rate so fast that ``rate * span`` (``span`` the longest
+    gap or lead) exceeds 600 is refused (the search reads it as a log-likelihood of -inf): the residual has
+    forgotten everything over any gap long before, and the discretisation's exponentials would overflow."""
+    from ..models.continuous import ContinuousLinearSystem
+
+    def model(th: np.ndarray) -> ContinuousLinearSystem:
+        rate, sd = np.exp(th[p]), np.exp(th[p + 1])
+        if not rate * span <= 600.0:
+            raise ValidationError(f"theta: a rate of {rate:.3g} per {unit} forgets within any gap ({span:.3g} {unit})")
+        i = p + 2
+        tau = 0.0
+        if level:
+            tau, i = float(np.exp(th[i])), i + 1
+        r = float(noise_sd) if noise_sd is not None else float(np.exp(th[i]))
+        q = 2.0 * rate * sd * sd
+        if level:
+            Ac, Qc = [[0.0, 0.0], [0.0, -rate]], [[0.0, 0.0], [0.0, q]]
+            C, x0, P0 = [[1.0, 1.0]], [0.0, 0.0], [[tau * tau, 0.0], [0.0, sd * sd]]
+        else:
+            Ac, Qc, C, x0, P0 = [[-rate]], [[q]], [[1.0]], [0.0], [[sd * sd]]
+        D = [list(th[:p])] if p else None
+        return ContinuousLinearSystem(Ac, Qc, C, [[r * r]], x0, P0, D=D, unit=unit)
+
+    return model
+
+
+def _gaps(records: list[Any], unit: str) -> np.ndarray:
+    """The gaps between consecutive readings of every subject, in the model's ``unit``."""
+    from ..models.continuous import time_values
+
+    out = [np.diff(time_values(r.times, unit=unit)) for r in records if r.steps > 1]
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def _ou_start(records: list[Any], Xs: list[Any], p: int, level: bool, noise: bool, unit: str) -> np.ndarray:
+    """Starting values: least squares of the present readings (censored ones at their limit) on the inputs; the
+    residual's spread split between the process, the level and the noise; a memory of five typical gaps."""
+    y = np.concatenate([r.y for r in records])
+    ok = ~np.isnan(y)
+    if p:
+        X = np.concatenate(Xs)[ok]
+        beta = np.linalg.lstsq(X, y[ok], rcond=None)[0]
+        resid = y[ok] - X @ beta
+    else:
+        beta, resid = np.zeros(0), y[ok]
+    s = max(float(np.std(resid)), 1e-3 * max(1.0, float(np.abs(y[ok]).max(initial=0.0))))
+    g = _gaps(records, unit)
+    g = g[g > 0]
+    gap = float(np.median(g)) if g.size else 1.0
+    extra = [np.log(0.5 * s)] * level + [np.log(0.4 * s)] * noise
+    return np.concatenate([beta, [np.log(1.0 / (5.0 * gap)), np.log(0.8 * s)], extra])
+
+
+def _time_after(last: Any, h: float, unit: str) -> str:
+    """The label of the time ``h`` units after ``last`` (a date, or a number; ``h`` may be 0)."""
+    from ..models.continuous import TIME_UNITS, _unit
+
+    if np.asarray(last).dtype.kind != "M":
+        return repr(float(last) + h)
+    ns = h * TIME_UNITS[_unit(unit)]
+    t = np.datetime64(last, "ns") + np.timedelta64(int(round(ns)), "ns")
+    whole_days = np.datetime64(last).dtype == np.dtype("datetime64[D]") and ns % 86400e9 == 0
+    return str(t.astype("datetime64[D]")) if whole_days else np.datetime_as_string(t, unit="s")
+
+
+def _run_ou(records, panel, ids, d, mspec, regs, out: Path, progress: Any, notes) -> list[Path]:
+    """``kind = "ou"``: the continuous-time fit of one series or a panel, and its files (module docstring)."""
+    from .._io import atomic_write_text
+    from ..models.continuous import _unit
+    from .fitting import fit
+
+    intercept = d.get("intercept", True)
+    names = ["intercept"] * bool(intercept) + regs
+    p = len(names)
+    Xs = panel.u if p else [None] * len(records)
+    level, nsd, unit = mspec.get("level", False), mspec.get("noise_sd"), mspec.get("unit", "D")
+    theta0 = _ou_start(records, Xs, p, level, nsd is None, unit)
+    span = max(float(_gaps(records, unit).max(initial=1.0)), float(mspec.get("forecast", 0)))
+    pnames = [f"beta_{n}" for n in names] + ["log_rate", "log_sd"] + ["log_level_sd"] * level
+    pnames += ["log_noise_sd"] * (nsd is None)
+    options = {"maxiter": mspec["maxiter"]} if "maxiter" in mspec else {}
+    res = fit(
+        _ou_system(p, level, nsd, unit, span),
+        panel,
+        theta0=theta0,
+        names=pnames,
+        align=mspec.get("align", "first"),
+        progress=progress,
+        **options,
+    )
+    paths = [res.save(out / "fit.json")]
+    est = res.params
+    shown = {"s": "seconds", "min": "minutes", "h": "hours", "D": "days", "W": "weeks", "Y": "years"}
+    what = [
+        f"memory 1/rate {np.exp(-est['log_rate']):.4g} {shown[_unit(unit)]}",
+        f"residual sd {np.exp(est['log_sd']):.4g}",
+    ]
+    if level:
+        what.append(f"level sd between subjects {np.exp(est['log_level_sd']):.4g}")
+    what.append(f"noise sd {np.exp(est['log_noise_sd']) if nsd is None else nsd:.4g}" + (" (fixed)" if nsd else ""))
+    summary = res.summary() + "\n" + "; ".join(what)
+    if p:
+        summary += "\ninputs (columns of D): " + ", ".join(names)
+    if ids is not None:
+        summary += f"\n{panel.n_subjects} subjects, {panel.n_obs} readings"
+    paths.append(atomic_write_text(out / "summary.txt", f"{summary}\n{_SUMMARY_MARK}\n"))
+    fitted = res.model.fitted
+    C = fitted.measurement(1)
+    smoothed = res.model.smooth(res)
+    lead = "" if ids is None else "subject,"
+    rows = [lead + _SERIES_HEADER]
+    curves = []
+    for i, (rec, sm) in enumerate(zip(records, smoothed)):
+        mean = np.asarray(sm["reading_mean"])[:, 0]
+        sd = np.sqrt(np.maximum(np.einsum("j,tjk,k->t", C[0], sm["cov"], C[0]), 0.0))
+        curves.append((mean, sd))
+        label = [str(v) for v in rec.time] if rec.time is not None else [str(k + 1) for k in range(rec.steps)]
+        for k in range(rec.steps):
+            cells = ([str(ids[i])] if ids is not None else []) + [label[k]]
+            cells += ["" if np.isnan(rec.y[k]) else repr(float(rec.y[k])), str(int(rec.censored[k]))]
+            cells += [repr(float(v)) for v in (rec.lower[k], rec.upper[k], mean[k], sd[k])]
+            rows.append(",".join(_csv_cell(c) for c in cells))
+    paths.append(atomic_write_text(out / "series.csv", "\n".join(rows) + "\n"))
+    H = int(mspec.get("forecast", 0))
+    if H:
+        held = np.stack([X[-1] for X in Xs if X is not None]) if p else None
+        fc = res.model.forecast(res, H, X=held)
+        rows = [lead + _FORECAST_HEADER]
+        for i, rec in enumerate(records):
+            assert rec.times is not None, "kind = 'ou' reads the times"
+            for h in range(H):
+                cells = ([str(ids[i])] if ids is not None else []) + [_time_after(rec.times[-1], h + 1, unit)]
+                cells += [str(h + 1)] + [repr(float(fc[k][i, h, 0])) for k in ("mean", "sd", "lower", "upper")]
+                rows.append(",".join(_csv_cell(c) for c in cells))
+        paths.append(atomic_write_text(out / "forecast.csv", "\n".join(rows) + "\n"))
+    if mspec.get("grid") is not None:
+        paths.append(_ou_grid(out, records, ids, res, float(mspec["grid"]), unit, lead))
+    figure = _ou_figure(out, records, ids, curves, res, notes)
+    if figure is not None:
+        paths.append(figure)
+    return paths
+
+
+def _ou_grid(out: Path, records, ids, res, step: float, unit: str, lead: str) -> Path:
+    r"""``grid.csv``: each subject's smoothed :math:`D u + \ell + \xi` every ``step`` time units from its first reading
+    to its last (the regressors held from the next reading, as the filter holds them), with its standard deviation
+    and 95 % band."""
+    from .._io import atomic_write_text
+    from ..models.continuous import time_values
+    from .panel import panel_smooth
+
+    model = res.model
+    fitted = model.fitted
+    starts = [time_values(r.times, unit=unit) for r in records]
+    origin = min(float(t[0]) for t in starts)
+    # each subject's readings on the model's clock: since its first reading (align "first") or the earliest one
+    spans = [(t - (t[0] if model.align == "first" else origin))[[0, -1]] for t in starts]
+    top = max(float(b) for _, b in spans)
+    grid = np.arange(0.0, top + step * 1e-9, step)
+    sm = panel_smooth(fitted, res.data, likelihood=model.likelihood, align=model.align, start=model.start, grid=grid)
+    C = fitted.measurement(1)
+    D = None if fitted.D is None else fitted.D.at(1)
+    rows = [lead + _GRID_HEADER]
+    for i, (rec, (a, b)) in enumerate(zip(records, spans)):
+        keep = (grid >= a - 1e-9 * step) & (grid <= b + 1e-9 * step)
+        own = grid[keep] - a  # the grid on the subject's own clock (0 at its first reading)
+        mean = np.asarray(sm[i]["grid_mean"])[keep] @ C[0]
+        if D is not None and res.data.u[i] is not None:
+            nxt = np.minimum(np.searchsorted(starts[i] - starts[i][0], own - 1e-9 * step), rec.steps - 1)
+            mean = mean + res.data.u[i][nxt] @ D[0]
+        sd = np.sqrt(np.maximum(np.einsum("j,tjk,k->t", C[0], np.asarray(sm[i]["grid_cov"])[keep], C[0]), 0.0))
+        for h, m_, s_ in zip(own, mean, sd):
+            cells = ([str(ids[i])] if ids is not None else []) + [_time_after(rec.times[0], float(h), unit)]
+            cells += [repr(float(v)) for v in (m_, s_, m_ - 1.96 * s_, m_ + 1.96 * s_)]
+            rows.append(",".join(_csv_cell(c) for c in cells))
+    return atomic_write_text(out / "grid.csv", "\n".join(rows) + "\n")
+
+
+def _ou_figure(out: Path, records, ids, curves, res, notes) -> Path | None:
+    """Readings, censored readings at their limits and the smoothed series with a +-2 sd band: one panel, or the
+    first six subjects of a panel."""
+    plotting = _plotting(notes)
+    if plotting is None:
+        return None
+    new_figure, save = plotting.new_figure, plotting.save
+
+    k = min(len(records), 6)
+    cols = 1 if k == 1 else 2 if k <= 4 else 3
+    nrows = -(-k // cols)
+    fig, ax = new_figure(nrows, cols, width=10, height=3.8 if k == 1 else 2.4 * nrows)
+    for j in range(nrows * cols):
+        a = ax[j // cols, j % cols]
+        if j >= k:
+            a.set_visible(False)
+            continue
+        rec, (mean, sd) = records[j], curves[j]
+        t = rec.times
+        ok = ~rec.censored & ~np.isnan(rec.y)
+        a.fill_between(t, mean - 2 * sd, mean + 2 * sd, color="tab:blue", alpha=0.15, lw=0, label="+-2 sd")
+        a.plot(t, mean, color="tab:blue", lw=1.0, label="smoothed")
+        a.plot(t[ok], rec.y[ok], ".", color="black", ms=4, label="reading")
+        a.plot(t[rec.censored], rec.y[rec.censored], "v", color="tab:red", ms=4, label="censored (at the limit)")
+        if ids is not None:
+            a.set_title(f"subject {ids[j]}", fontsize=8)
+        if j == 0:
+            a.legend(fontsize=7, ncol=2)
+    fig.suptitle(f"{res.model!r}: log-likelihood {res.loglik:.3f}, AIC {res.aic:.2f}", fontsize=9)
     return save(fig, out, "fit.png")

@@ -223,6 +223,62 @@ class Panel:
             ids=list(order),
         )
 
+    @classmethod
+    def from_records(
+        cls, records: Any, *, regressors: Sequence[str] = (), intercept: bool = False, ids: Sequence[Any] | None = None
+    ) -> Panel:
+        """A panel from read records: a :class:`~tobitkf.data.CensoredPanel` (``read_censored_panel``) or a
+        sequence of :class:`~tobitkf.data.CensoredSeries` with ``times``, each subject's readings, limits and
+        recorded indicator as read; the inputs ``u`` are a column of ones (``intercept``) and the named
+        covariates (``regressors``), or none.
+
+        Raises
+        ------
+        ValidationError
+            A record without times, an unknown covariate, or a blank regressor (named by its line and column
+            when the record was read from a file).
+
+        Examples
+        --------
+        >>> import tobitkf as tk
+        >>> from tobitkf.data import read_censored_panel
+        >>> recs = read_censored_panel({"id": ["a", "a", "b"], "day": [0, 7, 3], "v": ["1.0", "<0.5", "2.0"]},
+        ...                            id="id", time="day", y="v")
+        >>> p = tk.Panel.from_records(recs, intercept=True)
+        >>> p.ids, p.counts.tolist(), p.lower[0][:, 0].tolist(), p.u[1].tolist()
+        (['a', 'b'], [2, 1], [-inf, 0.5], [[1.0]])
+        """
+        if hasattr(records, "series") and hasattr(records, "ids"):
+            ids = records.ids if ids is None else ids
+            records = list(records.series.values())
+        records = list(records)
+        us = []
+        for i, r in enumerate(records):
+            if getattr(r, "times", None) is None:
+                raise ValidationError(f"records[{i}]: {r.name!r} has no sample times (read it with time=...)")
+            cols = [np.ones(r.steps)] if intercept else []
+            for name in regressors:
+                if name not in r.covariates:
+                    raise ValidationError(
+                        f"regressors: {r.name!r} has no covariate {name!r}; known: {', '.join(r.covariates) or 'none'}"
+                    )
+                v = np.asarray(r.covariates[name], dtype=float)
+                if np.isnan(v).any():
+                    k = int(np.argmax(np.isnan(v)))
+                    at = r.where(k, name) if hasattr(r, "where") else f"{r.name!r} reading {k + 1}, column {name!r}"
+                    raise ValidationError(f"{at}: a blank regressor; regressors must be known for every reading")
+                cols.append(v)
+            us.append(np.column_stack(cols) if cols else None)
+        return cls(
+            [r.times for r in records],
+            [r.y for r in records],
+            lower=[r.lower for r in records],
+            upper=[r.upper for r in records],
+            censored=[r.censored for r in records],
+            u=us if us and us[0] is not None else None,
+            ids=ids,
+        )
+
     @property
     def n_subjects(self) -> int:
         return len(self.y)
