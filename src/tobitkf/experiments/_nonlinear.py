@@ -62,6 +62,7 @@ __all__ = [
     "cost_table",
     "plot_case",
     "per_component_tolerance",
+    "better_claim",
     "DropClipped",
     "InflateClipped",
 ]
@@ -263,6 +264,63 @@ def _finite_runs(*errs: np.ndarray) -> np.ndarray:
     return ok
 
 
+def _state_error(err: np.ndarray) -> np.ndarray:
+    """The error's Euclidean norm over the state's components, (N, T, n) -> (N, T, 1)."""
+    return np.sqrt((err**2).sum(-1, keepdims=True))
+
+
+def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> dict[str, Any]:
+    """The package's claim that the assumed-density filter is more accurate than ``rival`` on the case ``ev``.
+
+    The quantity is the time-averaged RMSE of the whole state (per step the root of the mean over runs of the
+    squared error norm), paired on the same runs; the claim holds when the rival's exceeds the filter's by
+    more than three jackknife standard errors of the difference. Runs on which the rival's estimate stopped
+    being finite are left out (and counted); a rival that diverged on every run loses by definition. The
+    per-component margins are in the note."""
+    err, N = ev["errors"], ev["runs"]
+    label = what or f"the {rival}"
+    text = f"(not in the source) {name}: the assumed-density filter is more accurate than {label}"
+    ok = _finite_runs(err["adf"], err[rival])
+    diverged = int(N - ok.sum())
+    if ok.sum() < 2:
+        return CL.claim(
+            text,
+            quantity=f"time-averaged RMSE of the whole state of {rival} and of the assumed-density filter",
+            measured=f"{rival} diverged (non-finite estimates) on {diverged} of {N} runs",
+            test="the rival's RMSE is not finite: the filter's finite RMSE is the smaller",
+            tolerance="none (a diverged estimate has no finite error)",
+            holds=bool(np.isfinite(err["adf"]).all()),
+        )
+    ea, eb = err["adf"][ok], err[rival][ok]
+    diff, dse = CL.rmse_difference(_state_error(ea), _state_error(eb))
+    a = float(np.sqrt((_state_error(ea) ** 2).mean(0)).mean())
+    per, _ = CL.rmse_difference(ea, eb)
+    tol, tol_text = CL.mc_tolerance(dse, int(ok.sum()), "the paired RMSE difference (jackknife over runs)")
+    margin = float(diff[0])
+    explanation = ""
+    if not margin > tol:
+        explanation = (
+            f"{rival} is the more accurate here"
+            if margin < 0
+            else f"the filter's RMSE is the lower, but by less than the Monte Carlo error at {int(ok.sum())} runs: "
+            "the difference is not shown at this size (tobitkf reproduce --full runs more)"
+        )
+    return CL.less(
+        text,
+        quantity=f"time-averaged RMSE of the whole state (norm of the error over its components) of the "
+        f"assumed-density filter and of {rival}, on the same runs"
+        + (f" (the {int(ok.sum())} runs on which {rival} stayed finite)" if diverged else ""),
+        a=a,
+        b=a + margin,
+        tol=tol,
+        tolerance=tol_text,
+        names=("adf", rival),
+        note=f"per component, {rival}'s RMSE minus the filter's: {CL.fmt(per, 3)}"
+        + (f"; {rival} diverged on {diverged} of {N} runs" if diverged else ""),
+        explanation=explanation,
+    )
+
+
 def per_component_tolerance(se: Any, runs: int, what: str) -> tuple[np.ndarray, str]:
     """``K_SE`` standard errors per component (the claims rule's tolerance of a Monte Carlo quantity) and the
     sentence saying so."""
@@ -275,7 +333,7 @@ def target_claims(
 ):
     """The package's claims on one case ``ev`` (from :func:`evaluate`): the assumed-density filter within
     ``target`` x the optimum, better than each of ``rivals``, and the optimum converged."""
-    summ, err = ev["estimators"], ev["errors"]
+    summ = ev["estimators"]
     N = ev["runs"]
     claims = []
     ratio = np.asarray(summ["adf"]["ratio_to_optimum"], dtype=float)
@@ -293,41 +351,14 @@ def target_claims(
             tolerance=tol_text,
             holds=bool(np.all(ratio <= target + tol)),
             note=f"the iterated filter ({ITERATIONS} linearisations): {CL.fmt(it)}",
+            explanation=""
+            if np.all(ratio <= target + tol)
+            else "the filter's RMSE exceeds the target beyond the Monte Carlo error: its Gaussian posterior "
+            "misses what the optimum uses (a skewed or multimodal posterior, see the experiment's tables)",
         )
     )
     for rival in rivals:
-        ok = _finite_runs(err["adf"], err[rival])
-        diverged = int(N - ok.sum())
-        if ok.sum() < 2:
-            claims.append(
-                CL.claim(
-                    f"(not in the source) {name}: the assumed-density filter is more accurate than the {rival}",
-                    quantity=f"time-averaged RMSE of the {rival} and of the assumed-density filter",
-                    measured=f"the {rival} diverged (non-finite estimates) on {diverged} of {N} runs",
-                    test="the rival's RMSE is not finite: the ADF's finite RMSE is the smaller",
-                    tolerance="none (a diverged estimate has no finite error)",
-                    holds=bool(np.isfinite(err["adf"]).all()),
-                )
-            )
-            continue
-        diff, dse = CL.rmse_difference(err["adf"][ok], err[rival][ok])
-        a = np.sqrt((err["adf"][ok] ** 2).mean(0)).mean(0)
-        b = a + diff
-        tol_d, tol_d_text = per_component_tolerance(dse, int(ok.sum()), "the paired RMSE difference")
-        claims.append(
-            CL.less(
-                f"(not in the source) {name}: the assumed-density filter is more accurate than the {rival}",
-                quantity=f"per state component: the time-averaged RMSE of the assumed-density filter and of the "
-                f"{rival}, on the same runs"
-                + (f" (the {int(ok.sum())} runs on which the {rival} stayed finite)" if diverged else ""),
-                a=a,
-                b=b,
-                tol=tol_d,
-                tolerance=tol_d_text,
-                names=("adf", rival),
-                note=f"the {rival} diverged on {diverged} of {N} runs" if diverged else "",
-            )
-        )
+        claims.append(better_claim(name, ev, rival))
     conv = summ["pf"]["convergence"]
     claims.append(
         CL.claim(
