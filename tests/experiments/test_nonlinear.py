@@ -218,7 +218,8 @@ def test_the_localisation_reports_where_the_posterior_is_bimodal(tiny):
     assert tiny["nonlinear-localisation"].data["bimodality"].shape == (2, 12)
 
 
-def test_the_report_shows_the_ratios_and_costs(tiny, tmp_path):
+@pytest.mark.heavy  # the experiment at its default horizon and particles (seconds)
+def test_the_report_shows_the_ratios_and_costs(tmp_path):
     from tobitkf.cli import run_experiment
     from tobitkf.report import write_report
 
