@@ -1,0 +1,236 @@
+"""The nonlinear experiments (tobitkf.experiments.nonlinear): the models against analytic values and independent
+oracles, the autopilots' heuristics against the filters they are built from, the bimodality coefficient against
+its known values, and the metrics keys the report reads."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import tobitkf as tk
+from tobitkf.experiments import _nonlinear as NL
+from tobitkf.experiments import get
+from tobitkf.experiments import nonlinear as E
+
+# --------------------------------------------------------------------------- the oscillator
+
+
+def test_the_oscillator_map_is_the_van_der_pol_flow_and_keeps_its_parameter():
+    from scipy.integrate import solve_ivp
+
+    x0 = np.array([[2.0, -0.3, 1.3], [0.4, 1.1, 0.6]])
+    out = E._vdp_map(x0, 0)
+    for row, got in zip(x0, out):
+        mu = row[2]
+        sol = solve_ivp(
+            lambda t, z: [z[1], mu * (1 - z[0] ** 2) * z[1] - z[0]],
+            (0.0, E.OSCILLATOR_DT),
+            row[:2],
+            rtol=1e-12,
+            atol=1e-12,
+        )
+        # two RK4 substeps of 0.05: local error O(h^5) per substep, about 1e-7 here
+        np.testing.assert_allclose(got[:2], sol.y[:, -1], atol=1e-6)
+        assert got[2] == mu
+    assert E._vdp_map(x0[0], 0).shape == (3,)  # unbatched too
+
+
+def test_the_oscillator_is_read_under_a_detection_limit_at_zero():
+    system, cens = E.oscillator_system()
+    assert (system.n, system.m) == (3, 1)
+    data = tk.simulate(system, 60, 20, channel=cens, seed=4)
+    np.testing.assert_array_equal(data.y, np.maximum(data.y_latent, 0.0))
+    np.testing.assert_array_equal(system.measurement_map(data.x[0, 1:], 1)[:, 0], data.x[0, 1:, 0])
+    assert 0.2 < cens.at_limit(data.y).mean() < 0.8
+
+
+# --------------------------------------------------------------------------- the accelerometer
+
+
+def test_the_vibration_turns_by_its_frequency_damps_and_its_frequency_reverts():
+    x = np.array([[1.5, -0.4, 0.45], [-2.0, 0.7, 0.6]])
+    out = E._vibration_map(x, 0)
+    w = x[:, 2]
+    # (p, v/w) rotated by w: its norm is kept up to the damping; the phase advances by w
+    z0 = x[:, 0] + 1j * x[:, 1] / w
+    z1 = out[:, 0] + 1j * out[:, 1] / w
+    np.testing.assert_allclose(np.abs(z1), E.ACCEL_DAMPING * np.abs(z0), rtol=1e-14)
+    np.testing.assert_allclose(np.angle(z1 / z0), -w, rtol=1e-13)
+    np.testing.assert_allclose(out[:, 2] - E.ACCEL_OMEGA, E.ACCEL_REVERSION * (w - E.ACCEL_OMEGA), rtol=1e-14)
+
+
+def test_the_accelerometer_reads_the_acceleration_and_clips_at_its_range():
+    system, clip = E.accelerometer_system()
+    x = np.array([[3.0, 0.0, 0.5], [-1.0, 2.0, 0.4]])
+    np.testing.assert_allclose(system.measurement_map(x, 1)[:, 0], [-0.75, 0.16], rtol=1e-14)
+    data = tk.simulate(system, 100, 20, channel=clip, seed=5)
+    np.testing.assert_array_equal(data.y, np.clip(data.y_latent, -1.0, 1.0))
+    at = clip.at_limit(data.y)
+    np.testing.assert_array_equal(at, np.abs(data.y_latent) >= 1.0)
+    assert 0.1 < at.mean() < 0.6  # the peaks are clipped, not the whole signal
+
+
+def test_dropping_clipped_readings_is_the_filter_of_the_record_with_them_missing():
+    system, clip = E.accelerometer_system()
+    data = tk.simulate(system, 40, 3, channel=clip, seed=6)
+    y = data.y.copy()
+    y[clip.at_limit(y)] = np.nan
+    want = tk.ExtendedKalmanFilter(system).filter(y).mean
+    got = NL.DropClipped(tk.ExtendedKalmanFilter(system), clip).filter(data.y).mean
+    np.testing.assert_array_equal(got, want)
+    assert np.isnan(y).any()
+
+
+def test_inflating_a_clipped_reading_is_the_filter_with_that_steps_noise_inflated():
+    system, clip = E.accelerometer_system()
+    data = tk.simulate(system, 30, 1, channel=clip, seed=7)
+    at = clip.at_limit(data.y)[0, :, 0]
+    assert at.any() and not at.all()
+    c = 0.7
+    R = np.array([system.measurement_cov(k) + (c**2 if at[k - 1] else 0.0) for k in range(1, 31)])
+    inflated = tk.NonlinearSystem(
+        system.f, system.h, Q=system.process_cov(0), R=R, x0=system.x0, P0=system.P0
+    )  # the oracle: the noise of the clipped steps given per step
+    want = tk.ExtendedKalmanFilter(inflated).filter(data.y[0])
+    got = NL.InflateClipped(system, clip, inflation=c).filter(data.y[0])
+    np.testing.assert_allclose(got.mean, want.mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(got.cov, want.cov, rtol=0, atol=1e-12)
+    # no clipped reading: the extended Kalman filter itself
+    y = np.clip(data.y[0], -0.9, 0.9)
+    np.testing.assert_array_equal(
+        NL.InflateClipped(system, clip, inflation=c).filter(y).mean, tk.ExtendedKalmanFilter(system).filter(y).mean
+    )
+
+
+# --------------------------------------------------------------------------- the localisation
+
+
+def test_the_signal_strength_follows_the_path_loss_and_is_censored_beyond_range():
+    system, cens = E.localisation_system()
+    b = E.BEACONS
+    x = np.array([b[0] + [30.0, 40.0]])  # 50 m from beacon 1
+    d = np.sqrt(((x[0] - b) ** 2).sum(-1) + 1.0)
+    want = E.RSS_P0 - 10 * E.RSS_ETA * np.log10(d)
+    np.testing.assert_allclose(system.measurement_map(x, 1)[0], want, rtol=1e-14)
+    reach = 10 ** ((E.RSS_P0 - E.RSS_FLOOR) / (10 * E.RSS_ETA))  # the range: the floor's distance
+    at_reach = np.array([[b[1, 0] - np.sqrt(reach**2 - 1.0), b[1, 1]]])
+    np.testing.assert_allclose(system.measurement_map(at_reach, 1)[0, 1], E.RSS_FLOOR, atol=1e-12)
+    data = tk.simulate(system, 50, 20, channel=cens, seed=8)
+    np.testing.assert_array_equal(data.y, np.maximum(data.y_latent, E.RSS_FLOOR))
+    assert cens.at_limit(data.y).any() and not cens.at_limit(data.y).all()
+
+
+def test_the_bimodality_coefficient_has_its_known_values():
+    rng = np.random.default_rng(0)
+    P = 200_000
+    # Gaussian 1/3, uniform 5/9, two equal point masses 1: along the principal axis of a 2-D cloud
+    gauss = rng.standard_normal((1, P, 2)) * [3.0, 0.5]
+    unif = np.stack([rng.uniform(-1, 1, P), 0.01 * rng.standard_normal(P)], -1)[None]
+    two = np.zeros((1, P, 2))
+    two[0, : P // 2, 1], two[0, P // 2 :, 1] = -1.0, 1.0
+    lw = np.zeros((1, P))
+    got = [float(E.bimodality(c, lw)[0]) for c in (gauss, unif, two)]
+    # sampling error of a moment ratio over 2e5 draws: below 0.01
+    np.testing.assert_allclose(got, [1 / 3, 5 / 9, 1.0], atol=0.01)
+    # the weights count: a cloud with half its particles weighted zero is the other half
+    cloud = np.concatenate([gauss[:, : P // 2], two[:, : P // 2] + 100.0], axis=1)
+    w = np.concatenate([np.zeros(P // 2), np.full(P // 2, -np.inf)])[None]
+    np.testing.assert_allclose(E.bimodality(cloud, w), E.bimodality(gauss[:, : P // 2], lw[:, : P // 2]), rtol=1e-9)
+
+
+# --------------------------------------------------------------------------- the random systems
+
+
+def test_random_nonlinear_systems_censor_about_their_drawn_fraction():
+    for i in range(3):
+        rng = np.random.default_rng(100 + i)
+        system, cens, desc = E.random_nonlinear_system(rng)
+        assert desc["n"] in (2, 3) and desc["m"] in (1, 2) and (system.n, system.m) == (desc["n"], desc["m"])
+        frac = np.asarray(desc["target_censored_fraction"])
+        assert np.all((0.3 <= frac) & (frac <= 0.9))
+        data = tk.simulate(system, 100, 100, channel=cens, seed=200 + i)
+        got = cens.at_limit(data.y).reshape(-1, system.m).mean(0)
+        # the limit is the quantile of a pilot of 20 runs x 100 correlated steps (a few hundred effective
+        # samples: standard error about 0.035); 0.1 is about three of them
+        np.testing.assert_allclose(got, frac, atol=0.1)
+        lo, hi = cens.limits(1)
+        for l, side in enumerate(desc["side"]):
+            assert np.isfinite(hi[l] if side == "upper" else lo[l])
+            assert np.isinf(lo[l] if side == "upper" else hi[l])
+
+
+# --------------------------------------------------------------------------- the experiments' metrics
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    kw = dict(runs=3, seed=1, steps=12, particles=40)
+    return {
+        "nonlinear-oscillator": get("nonlinear-oscillator").run(**kw),
+        "nonlinear-accelerometer": get("nonlinear-accelerometer").run(**kw),
+        "nonlinear-localisation": get("nonlinear-localisation").run(**kw, bimodality_runs=2),
+        "nonlinear-random": get("nonlinear-random").run(**kw, systems=2),
+    }
+
+
+def _blocks(result):
+    m = result.metrics
+    return list(m["systems"].values()) if "systems" in m else [m]
+
+
+@pytest.mark.parametrize(
+    "exp_id", ["nonlinear-oscillator", "nonlinear-accelerometer", "nonlinear-localisation", "nonlinear-random"]
+)
+def test_each_experiment_writes_the_metrics_the_report_reads(tiny, exp_id):
+    result = tiny[exp_id]
+    want = set(NL.LINEUP) | {"pf"} | ({"ekf-inflate", "ekf-drop"} if exp_id == "nonlinear-accelerometer" else set())
+    for block in _blocks(result):
+        est = block["estimators"]
+        assert set(est) == want
+        assert "errors" not in block  # the errors stay out of metrics.json
+        for key, s in est.items():
+            n = len(s["rmse_time_avg"])
+            assert np.shape(s["rmse"]) == (12, n)
+            np.testing.assert_allclose(
+                s["ratio_to_optimum"], np.asarray(s["rmse_time_avg"]) / est["pf"]["rmse_time_avg"]
+            )
+            assert s["cost_us_per_run_step"] > 0 and s["diverged_runs"] >= 0
+            assert key == "pf" or len(s["ratio_stderr"]) == n
+        assert est["pf"]["convergence"]["particles"] == [40, 80]
+        assert block["runs"] == 3 and block["steps"] == 12
+    assert result.metrics["report_tables"] and result.metrics["lineup"]["pf"]["options"]["particles"] == 80
+    texts = [c["claim"] for c in result.claims]
+    for case in list(result.metrics["systems"]) if exp_id == "nonlinear-random" else [None]:
+        mine = [t for t in texts if case is None or f" {case}:" in t]
+        assert sum("within" in t for t in mine) == 1
+        assert sum("more accurate than the tobit-ekf" in t for t in mine) == 1
+        assert sum("more accurate than the tobit-ukf" in t for t in mine) == 1
+        assert sum("converged" in t for t in mine) == 1
+    json.dumps(result.metrics, default=lambda a: np.asarray(a).tolist())  # JSON-able
+
+
+def test_the_localisation_reports_where_the_posterior_is_bimodal(tiny):
+    b = tiny["nonlinear-localisation"].metrics["bimodality"]
+    assert b["runs"] == 2 and b["threshold"] == pytest.approx(5 / 9)
+    assert b["bimodal"]["fraction"] + b["unimodal"]["fraction"] == pytest.approx(1.0)
+    assert tiny["nonlinear-localisation"].data["bimodality"].shape == (2, 12)
+
+
+@pytest.mark.heavy  # the experiment at its default horizon and particles (seconds)
+def test_the_report_shows_the_ratios_and_costs(tmp_path):
+    from tobitkf.cli import run_experiment
+    from tobitkf.report import write_report
+
+    folder = run_experiment("nonlinear-accelerometer", runs=2, seed=0, out=tmp_path)
+    metrics = json.loads((folder / "metrics.json").read_text(encoding="utf-8"))
+    assert set(metrics["figure_captions"]) == {"rmse_accelerometer.png", "ratio_accelerometer.png"}
+    _, md = write_report(tmp_path)
+    text = md.read_text(encoding="utf-8")
+    assert "RMSE / optimum and cost" in text and "µs per run-step" in text and "ekf-inflate" in text
+
+
+def test_sizes_are_checked():
+    with pytest.raises(tk.ValidationError, match="particles: expected a positive integer"):
+        get("nonlinear-oscillator").run(runs=2, particles=0)
