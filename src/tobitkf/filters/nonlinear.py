@@ -1078,17 +1078,20 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             times=np.arange(1, T + 1),
         )
 
-    def log_likelihood(self, y: Any, *, x0: Any = None, P0: Any = None, per_step: bool = False) -> np.ndarray:
+    def log_likelihood(
+        self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+    ) -> np.ndarray:
         r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (..., T, m): (...), or the terms
         (..., T) with ``per_step`` (the ``log_likelihood`` extras of :meth:`filter`; for a linear h the linear
-        :class:`~tobitkf.AssumedDensityFilter`'s).
+        :class:`~tobitkf.AssumedDensityFilter`'s); ``u`` the inputs of an ``f(x, k, u)``. Maximised over the
+        parameters of f and h by :func:`tobitkf.fit` with a map ``theta -> NonlinearSystem``.
 
         Raises
         ------
         ValidationError, ShapeError
             As :meth:`filter`.
         """
-        terms = self.filter(y, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        terms = self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
         return terms if per_step else terms.sum(-1)
 
     def _channel(self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float):
