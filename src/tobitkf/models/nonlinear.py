@@ -44,7 +44,7 @@ from .._validation import (
     check_psd,
 )
 
-__all__ = ["NonlinearSystem", "discretize", "jacobian_fd"]
+__all__ = ["NonlinearSystem", "augment_parameters", "discretize", "jacobian_fd"]
 
 _EPS = np.finfo(np.float64).eps
 
@@ -349,3 +349,123 @@ def _checked(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     if arr.shape != shape:
         raise ShapeError(f"{name}: expected shape {shape} for a batch of {shape[0]} states, got {arr.shape}")
     return arr
+
+
+def augment_parameters(
+    f: Any,
+    h: Any,
+    Q: Any,
+    R: Any,
+    x0: Any,
+    P0: Any,
+    *,
+    theta0: Any,
+    theta_cov: Any,
+    theta_noise: Any = 0.0,
+    inputs: int | None = None,
+) -> NonlinearSystem:
+    r"""Joint state-parameter tracking by state augmentation: unknown parameters :math:`\theta` appended to the
+    state as a random walk (Arthur, Attarian, Hamilton & Tran 2018, the parameter tracking of their Tobit EKF).
+
+    With ``f(x, k, theta)`` and ``h(x, k, theta)`` batched over the leading axes of ``x`` (..., n) and
+    ``theta`` (..., d), the augmented state :math:`z = (x, \theta)` (n + d) follows
+
+    .. math::
+
+        x_k = f(x_{k-1}, k-1, \theta_{k-1}) + w_{k-1}, \qquad \theta_k = \theta_{k-1} + \eta_{k-1},
+        \qquad y^*_k = h(x_k, k, \theta_k) + v_k,
+
+    :math:`w \sim N(0, Q)`, :math:`\eta \sim N(0, Q_\theta)` (``theta_noise``; 0 keeps the parameter constant
+    and its variance only shrinks), :math:`z_0 \sim N((\bar x_0, \theta_0), \mathrm{diag}(P_0, P_\theta))`. Any
+    filter of a :class:`NonlinearSystem` then estimates x and :math:`\theta` together: the last d components of
+    its mean are the tracked parameters and the matching block of its covariance their uncertainty.
+
+    Parameters
+    ----------
+    f : callable ``f(x, k, theta)`` (or ``f(x, k, theta, u)`` with ``inputs``)
+    h : callable ``h(x, k, theta)``
+    Q : (n, n) or (T, n, n) array_like or callable ; R : as for :class:`NonlinearSystem`
+    x0 : (n,) ; P0 : (n, n)
+    theta0 : (d,) array_like
+        The parameters' prior mean.
+    theta_cov : (d,) or (d, d) array_like
+        Their prior variances (a vector) or covariance :math:`P_\theta`.
+    theta_noise : float, (d,) or (d, d) array_like, default 0
+        The random walk's step covariance :math:`Q_\theta` (a scalar or vector: variances).
+    inputs : int, optional
+        The input length p of an ``f(x, k, theta, u)``.
+
+    Returns
+    -------
+    NonlinearSystem
+        Of dimension n + d, the parameters last.
+
+    Raises
+    ------
+    ValidationError, ShapeError
+        As :class:`NonlinearSystem` for the augmented model; ``theta_cov`` or ``theta_noise`` not PSD or not
+        of size d.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.augment_parameters(lambda x, k, th: th * x, lambda x, k, th: x, [[0.1]], [[0.2]], [1.0],
+    ...                             [[1.0]], theta0=[0.5], theta_cov=[0.04])
+    >>> sys.n, sys.x0.tolist()
+    (2, [1.0, 0.5])
+    """
+    for name, fn in (("f", f), ("h", h)):
+        if not callable(fn):
+            raise ValidationError(f"{name}: expected a callable {name}(x, k, theta), got {type(fn).__name__}")
+    xa = as_float_array(x0, "x0", ndim=1)
+    th = as_float_array(theta0, "theta0", ndim=1)
+    n, d = xa.shape[0], th.shape[0]
+    P_th = _cov_of(theta_cov, d, "theta_cov")
+    Q_th = _cov_of(theta_noise, d, "theta_noise")
+    P0a = as_float_array(P0, "P0", ndim=2)
+    if P0a.shape != (n, n):
+        raise ShapeError(f"P0: expected shape ({n}, {n}) to match x0, got {P0a.shape}")
+
+    def f_aug(z: np.ndarray, k: int, *u: np.ndarray) -> np.ndarray:
+        theta = z[..., n:]
+        return np.concatenate([np.asarray(f(z[..., :n], k, theta, *u), dtype=float), theta], axis=-1)
+
+    def f_aug_u(z: np.ndarray, k: int, u: np.ndarray) -> np.ndarray:
+        return f_aug(z, k, u)
+
+    def h_aug(z: np.ndarray, k: int) -> np.ndarray:
+        return h(z[..., :n], k, z[..., n:])
+
+    if callable(Q):
+        Q_aug: Any = lambda k: _block(np.asarray(Q(k), dtype=float), Q_th)  # noqa: E731
+    else:
+        Qa = as_float_array(Q, "Q", ndim=(2, 3))
+        Q_aug = _block(Qa, Q_th) if Qa.ndim == 2 else np.stack([_block(q, Q_th) for q in Qa])
+    return NonlinearSystem(
+        f_aug if inputs is None else f_aug_u,
+        h_aug,
+        Q_aug,
+        R,
+        np.concatenate([xa, th]),
+        _block(P0a, P_th),
+        inputs=inputs,
+    )
+
+
+def _cov_of(value: Any, d: int, name: str) -> np.ndarray:
+    arr = as_float_array(value, name, ndim=(0, 1, 2))
+    if arr.ndim < 2:
+        arr = np.diag(np.broadcast_to(arr, (d,)).astype(float)) if arr.size in (1, d) else arr
+    if arr.shape != (d, d):
+        raise ShapeError(
+            f"{name}: expected a scalar, ({d},) variances or a ({d}, {d}) covariance, got {np.shape(value)}"
+        )
+    check_psd(arr, name)
+    return arr
+
+
+def _block(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    n, d = A.shape[0], B.shape[0]
+    out = np.zeros((n + d, n + d))
+    out[:n, :n], out[n:, n:] = A, B
+    return out
