@@ -72,6 +72,9 @@ def test_signature_is_read_and_inputs_declared():
         tk.NonlinearSystem(f_folded, h, Q, R, X0, P0, inputs=1)
     with pytest.raises(tk.ValidationError, match="inputs"):
         tk.NonlinearSystem(f_u, h, Q, R, X0, P0, inputs=0)
+    # an optional third parameter: no input unless declared
+    assert not tk.NonlinearSystem(lambda x, k, u=None: x, h, Q, R, X0, P0).takes_input
+    assert tk.NonlinearSystem(lambda x, k, u=None: x, h, Q, R, X0, P0, inputs=2).p == 2
 
 
 def test_simulate_draws_the_input_model_as_the_folded_one():

@@ -138,21 +138,22 @@ def discretize(fc: Callable[..., np.ndarray], dt: float, substeps: int = 1):
     return f
 
 
-def _takes_input(fn: Any) -> bool | None:
-    """Whether ``fn(x, k, u)`` takes an input by its signature (a third positional parameter without a default):
-    True, False, or None when the signature cannot be read (a compiled or built-in function)."""
+def _takes_input(fn: Any, *, optional: bool = False) -> bool | None:
+    """Whether ``fn(x, k, u)`` takes an input by its signature: a third positional parameter without a default
+    (or, with ``optional``, with one). True, False, or None when the signature cannot be read (a compiled or
+    built-in function) or takes ``*args``."""
     try:
         sig = inspect.signature(fn)
     except (TypeError, ValueError):
+        return None
+    if any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in sig.parameters.values()):
         return None
     positional = [
         p
         for p in sig.parameters.values()
         if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
     ]
-    if any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in sig.parameters.values()):
-        return None
-    return len(positional) >= 3 and positional[2].default is inspect.Parameter.empty
+    return len(positional) >= 3 and (optional or positional[2].default is inspect.Parameter.empty)
 
 
 class NonlinearSystem:
@@ -224,16 +225,15 @@ class NonlinearSystem:
             raise ShapeError(f"P0: expected shape ({n}, {n}) to match x0, got {self.P0.shape}")
         check_psd(self.P0, "P0")
         self.f, self.h, self.F, self.H = f, h, F, H
-        takes = _takes_input(f)
         if inputs is None:
-            if takes:
+            if _takes_input(f):
                 raise ValidationError(
                     "inputs: f(x, k, u) takes a known input u; give its length as inputs=p (or drop the third "
                     "parameter of f)"
                 )
             self.p: int | None = None
         else:
-            if takes is False:
+            if _takes_input(f, optional=True) is False:
                 raise ValidationError(
                     f"inputs: given ({inputs!r}) but f takes no input (expected f(x, k, u) with a third parameter)"
                 )
