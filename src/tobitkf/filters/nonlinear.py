@@ -921,15 +921,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         (:func:`_linearisation`), the Kalman part :math:`\bar P - K s^2K^T` by the array form
         (:func:`~tobitkf.filters.core.sqrt_update`, noise :math:`\Omega + R_{ll}`) and :math:`+KVK^T` by one more
         QR, so the factor stays PSD by construction."""
-        sys_ = cast(NonlinearSystem, self.system)
-        rule = self.rule
-        assert rule is not None, "the assumed-density filter linearises with sigma points"
-        N = x.shape[0]
-        has = ~np.isnan(y)
-        ll = np.zeros(N)
+        rule, h_l, has, ll = self._channel_setup(k, l, y)
         if not has.any():
             return x, S, ll
-        h_l = lambda z: sys_.measurement_map(z, k)[:, l : l + 1]  # noqa: E731
         xm, Sm = x, S
         for it in range(self.iterations):
             ybar, dY, xi, wc = _sigma_factor(rule, h_l, xm, Sm)
@@ -1096,15 +1090,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
 
     def _channel(self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float):
         """The projection of channel ``l``, iterated about the posterior: ``(x, P, log p(y))``."""
-        sys_ = cast(NonlinearSystem, self.system)
-        rule = self.rule
-        assert rule is not None, "the assumed-density filter linearises with sigma points"
-        N = x.shape[0]
-        has = ~np.isnan(y)
-        ll = np.zeros(N)
+        rule, h_l, has, ll = self._channel_setup(k, l, y)
         if not has.any():
             return x, P, ll
-        h_l = lambda z: sys_.measurement_map(z, k)[:, l : l + 1]  # noqa: E731
         xm, Pm = x, P
         for it in range(self.iterations):
             ybar, Pxy, Pyy = _sigma_moments(rule, h_l, xm, Pm)
@@ -1131,6 +1119,14 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             return None
         xm, Pm, K = gain_update(x, P, (obs - mu)[:, None], cxy[:, :, None], s2[:, None, None], ok[:, None])
         return xm, symmetrize(Pm + (K * V[:, None, None]) @ K.swapaxes(-1, -2))
+
+    def _channel_setup(self, k: int, l: int, y: np.ndarray):
+        """``(rule, h_l, has, ll)``: the rule, channel ``l``'s measurement map (N, n) -> (N, 1), the runs with a
+        reading and zeroed log-likelihood terms."""
+        sys_ = cast(NonlinearSystem, self.system)
+        rule = self.rule
+        assert rule is not None, "the assumed-density filter linearises with sigma points"
+        return rule, lambda z: sys_.measurement_map(z, k)[:, l : l + 1], ~np.isnan(y), np.zeros(y.shape[0])
 
     def _latent_moments(self, k, l, y, has, mu, s2, ll):
         r"""The channel's moments of the latent reading :math:`y^* \sim N(\mu, s^2)` given ``y`` (N,): ``(ok, E[y^*

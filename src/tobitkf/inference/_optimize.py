@@ -27,6 +27,7 @@ __all__ = [
     "check_tolerance",
     "check_iterations",
     "Ticker",
+    "maximize_map",
 ]
 
 
@@ -325,6 +326,56 @@ def maximize(
         hess_inv=Hinv,
         decrement=dec,
     )
+
+
+def maximize_map(
+    ll_of: Callable[[np.ndarray], float],
+    th0: np.ndarray,
+    names: list[str],
+    *,
+    gtol: float,
+    maxiter: int,
+    progress: tuple[Any, Callable[[], None], Ticker],
+    standard_errors: bool = True,
+    check_always: bool = False,
+) -> tuple[Outcome, np.ndarray, float, np.ndarray | None]:
+    r"""The direct fit of a user map's parameters, shared by every kind of model: the log-likelihood checked at
+    ``th0``, :func:`maximize`, then the observed information (inverse of minus the central-difference Hessian) and
+    the Newton-step convergence check (:func:`_newton_check`; with ``check_always`` also when no standard errors
+    are wanted). ``progress`` is the ``(callback, close, ticker)`` of the fit's progress option.
+
+    Returns ``(outcome, theta, loglik, cov)`` with the outcome's ``converged``/``message`` those of the check,
+    ``cov`` None without standard errors.
+
+    Raises
+    ------
+    ValidationError
+        The log-likelihood is not finite at ``th0``.
+    """
+    from ._results import _inverse_information
+
+    if not np.isfinite(ll_of(th0)):
+        raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
+    cb, close, ticker = progress
+    try:
+        out = maximize(
+            ll_of,
+            th0,
+            gtol=gtol,
+            maxiter=maxiter,
+            progress=cb,
+            label=lambda v: dict(zip(names, v.tolist())),
+            ticker=ticker,
+        )
+    finally:
+        close()
+    th = out.x
+    ll = ll_of(th)
+    cov = None
+    if standard_errors or check_always:
+        cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
+        out.converged, out.message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
+    return out, th, ll, (cov if standard_errors else None)
 
 
 def _newton_check(f, v, cov, gtol: float, optimizer_message: str) -> tuple[bool, str, int]:

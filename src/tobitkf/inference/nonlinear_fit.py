@@ -29,8 +29,8 @@ import numpy as np
 from .._validation import ShapeError, ValidationError, as_float_array, check_bool
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
-from ._optimize import _newton_check, central_hessian, check_iterations, check_tolerance, maximize
-from ._results import FitResult, _inverse_information, _progress_callback
+from ._optimize import check_iterations, check_tolerance, maximize_map
+from ._results import FitResult, _progress_callback
 
 __all__ = ["NonlinearModel", "builds_nonlinear", "fit_nonlinear"]
 
@@ -204,27 +204,15 @@ def fit_nonlinear(
                 return -np.inf
         return v if np.isfinite(v) else -np.inf
 
-    if not np.isfinite(ll_of(th0)):
-        raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-    cb, close, ticker = _progress_callback(progress, "fit nonlinear model")
-    try:
-        out = maximize(
-            ll_of,
-            th0,
-            gtol=gtol,
-            maxiter=maxiter,
-            progress=cb,
-            label=lambda v: dict(zip(names, v.tolist())),
-            ticker=ticker,
-        )
-    finally:
-        close()
-    th = out.x
-    ll = ll_of(th)
-    cov = None
-    if standard_errors:
-        cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
-        out.converged, out.message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
+    out, th, ll, cov = maximize_map(
+        ll_of,
+        th0,
+        names,
+        gtol=gtol,
+        maxiter=maxiter,
+        progress=_progress_callback(progress, "fit nonlinear model"),
+        standard_errors=standard_errors,
+    )
     return FitResult(
         model=NonlinearModel(model, channel, rule, iterations),
         names=names,

@@ -44,8 +44,8 @@ from ..filters.likelihood import prediction_log_densities
 from ..filters.smoothing import rts_smooth
 from ..models.continuous import ContinuousLinearSystem, check_increasing, time_values
 from ..models.linear import LinearSystem
-from ._optimize import _newton_check, central_hessian, maximize
-from ._results import FitResult, _inverse_information, _progress_callback
+from ._optimize import maximize_map
+from ._results import FitResult, _progress_callback
 
 __all__ = ["Panel", "PanelArrays", "PanelModel", "panel_log_likelihood", "panel_smooth", "panel_forecast", "fit_panel"]
 
@@ -657,29 +657,19 @@ def fit_panel(
         v = float(terms.sum())
         return v if np.isfinite(v) else -np.inf
 
-    if not np.isfinite(ll_of(th0)):
-        raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-    cb, close, ticker = _progress_callback(progress, "fit panel")
-    try:
-        out = maximize(
-            ll_of,
-            th0,
-            gtol=gtol,
-            maxiter=maxiter,
-            progress=cb,
-            label=lambda v: dict(zip(names, v.tolist())),
-            ticker=ticker,
-        )
-    finally:
-        close()
-    th = out.x
-    ll = ll_of(th)
-    cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
     # converged means what it means for tk.fit's other models: the Newton step with the observed information
-    # is below gtol standard errors in every parameter
-    converged, message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
-    if not standard_errors:
-        cov = None
+    # is below gtol standard errors in every parameter (checked also when no standard errors are reported)
+    out, th, ll, cov = maximize_map(
+        ll_of,
+        th0,
+        names,
+        gtol=gtol,
+        maxiter=maxiter,
+        progress=_progress_callback(progress, "fit panel"),
+        standard_errors=standard_errors,
+        check_always=True,
+    )
+    converged, message = out.converged, out.message
     return FitResult(
         model=PanelModel(sys_of(th), kind, align, start),
         names=names,

@@ -58,7 +58,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_boo
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
-from ._optimize import _newton_check, central_hessian, check_iterations, check_tolerance, maximize
+from ._optimize import _newton_check, central_hessian, check_iterations, check_tolerance, maximize, maximize_map
 from ._results import FitResult, _inverse_information, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
@@ -692,26 +692,15 @@ def fit_state_space(
                 return -np.inf
             return lik.of_system(s)
 
-        if not np.isfinite(ll_of(th0)):
-            raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-        try:
-            out = maximize(
-                ll_of,
-                th0,
-                gtol=gtol,
-                maxiter=maxiter,
-                progress=cb,
-                label=lambda v: dict(zip(names, v.tolist())),
-                ticker=ticker,
-            )
-        finally:
-            close()
-        th = out.x
-        ll = ll_of(th)
-        cov = None
-        if standard_errors:
-            cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
-            out.converged, out.message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
+        out, th, ll, cov = maximize_map(
+            ll_of,
+            th0,
+            names,
+            gtol=gtol,
+            maxiter=maxiter,
+            progress=(cb, close, ticker),
+            standard_errors=standard_errors,
+        )
         fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
         return FitResult(
             model=fitted,
