@@ -63,6 +63,19 @@ Sigma-point rules (``rule=``, unit points :math:`\xi_i` with :math:`\chi_i = \ba
     the tensor product of the p-point Gauss–Hermite rule for :math:`N(0, 1)` (:math:`p^n` points); exact for
     polynomials of degree up to :math:`2p - 1` in each coordinate.
 
+**Square-root form** (``covariance_update="square_root"``, every filter here; a numerical device, not in the
+sources): a factor :math:`S`, :math:`P = SS^T`, is carried instead of P. The points are drawn from S itself;
+the predicted factor is the triangular factor of one QR of the weighted deviations and the noise root,
+:math:`[\sqrt{w^c_i}(f(\chi_i) - \bar x)^T;\ Q^{1/2\,T}]` (a rank-one Cholesky downdate per negative weight);
+the update is the array form (:func:`~tobitkf.filters.core.sqrt_update`) of the statistical linearisation,
+:math:`\mathcal H = Z^TS^{-1}` with :math:`Z = \sum_iw^c_i\xi_i(h(\chi_i) - \hat y)^T` (so
+:math:`P_{xy} = SZ`), and noise :math:`\Omega + R` factored from the residual rows
+:math:`\sqrt{w^c_i}(h(\chi_i) - \hat y - Z^T\xi_i)`. Equal to the standard form to rounding, PSD by
+construction.
+
+**Known inputs**: with an ``f(x, k, u)`` (:class:`~tobitkf.NonlinearSystem` ``inputs=p``) every ``filter``,
+``step``, ``predict`` and ``smooth`` takes ``u`` (row k-1 holds :math:`u_k`, :math:`x_k = f(x_{k-1}, k-1, u_k)`).
+
 Missing readings (NaN) take no part in the update, channel by channel. Time convention (package-wide):
 :math:`x_0 \sim N(\bar x_0, P_0)` is the prior, :math:`y_1` is at index 0, result row k-1 holds
 :math:`\hat x_{k|k}`, :math:`P_{k|k}` and the prediction.
