@@ -352,8 +352,6 @@ def maximize_map(
     ValidationError
         The log-likelihood is not finite at ``th0``.
     """
-    from ._results import _inverse_information
-
     if not np.isfinite(ll_of(th0)):
         raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
     cb, close, ticker = progress
@@ -376,6 +374,16 @@ def maximize_map(
         cov = _inverse_information(central_hessian(ll_of, th, f0=ll))
         out.converged, out.message, _ = _newton_check(ll_of, th, cov, gtol, out.message)
     return out, th, ll, (cov if standard_errors else None)
+
+
+def _inverse_information(H: np.ndarray) -> np.ndarray | None:
+    """The inverse of the observed information -H, or an all-NaN matrix when -H is not positive definite."""
+    info = -0.5 * (H + H.T)
+    try:
+        np.linalg.cholesky(info)
+    except np.linalg.LinAlgError:
+        return np.full(info.shape, np.nan)
+    return np.linalg.inv(info)
 
 
 def _newton_check(f, v, cov, gtol: float, optimizer_message: str) -> tuple[bool, str, int]:

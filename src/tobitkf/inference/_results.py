@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ValidationError
+from ._optimize import _inverse_information  # noqa: F401 - re-exported: the fits import it from here
 
 __all__ = ["FitResult", "residual_diagnostics"]
 
@@ -310,13 +311,3 @@ def residual_diagnostics(r: Any, *, lags: int | None = None, fitted: int = 0) ->
         "ljung_box_p": float(stats.chi2.sf(Q, dof)),
         "autocorrelation": rho.tolist(),
     }
-
-
-def _inverse_information(H: np.ndarray) -> np.ndarray | None:
-    """The inverse of the observed information -H, or an all-NaN matrix when -H is not positive definite."""
-    info = -0.5 * (H + H.T)
-    try:
-        np.linalg.cholesky(info)
-    except np.linalg.LinAlgError:
-        return np.full(info.shape, np.nan)
-    return np.linalg.inv(info)
