@@ -165,7 +165,8 @@ def fit(
     X : (T, l) array_like, optional
         Regressors of a :class:`CensoredAR` (default: the intercept).
     u : (T, p) array_like, optional
-        Known inputs of a state-space model (the input matrices Bu, D multiply them).
+        Known inputs of a state-space model (the input matrices Bu, D multiply them; a NonlinearSystem's
+        ``f(x, k, u)`` takes them).
     censoring : Censoring, optional
         Limits; or give ``lower``/``upper`` (scalars or per reading).
     censored : bool array_like, optional
