@@ -75,3 +75,24 @@ def test_refusals_and_saving(tmp_path):
     assert back.params == res.params and back.model.kind == "nonlinear"
     with pytest.raises(tk.ValidationError, match="rebuild"):
         back.system()
+
+
+def test_inputs_reach_the_likelihood():
+    # f(x, k, u) with u given equals the model with the inputs folded into f: the same objective, the same fit
+    U = np.random.default_rng(2).normal(size=(40, 1))
+
+    def forced(th):
+        return tk.NonlinearSystem(
+            lambda x, k, u: th[0] * np.tanh(x) + u, lambda x, k: x, [[0.2]], [[0.1]], [0.0], [[1.0]], inputs=1
+        )
+
+    def folded(th):
+        return tk.NonlinearSystem(
+            lambda x, k: th[0] * np.tanh(x) + U[k], lambda x, k: x, [[0.2]], [[0.1]], [0.0], [[1.0]]
+        )
+
+    y = tk.simulate(forced([0.8]), 40, 1, channel=CENS, inputs=U, seed=4).y[0]
+    a = tk.fit(forced, y, u=U, theta0=[0.5], censoring=CENS, progress=False)
+    b = tk.fit(folded, y, theta0=[0.5], censoring=CENS, progress=False)
+    assert a.loglik == pytest.approx(b.loglik, abs=1e-9)
+    np.testing.assert_allclose(a.theta, b.theta, rtol=0, atol=1e-8)
