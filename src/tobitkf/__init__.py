@@ -5,7 +5,8 @@ protocol-scheduled measurements; batched over Monte Carlo runs.
 
 Public API (stable):
 
-- :class:`LinearSystem` -- the state-space model; :class:`NonlinearSystem` (with :func:`discretize`) the
+- :class:`LinearSystem` -- the state-space model; :class:`NonlinearSystem` (with :func:`discretize` and
+  :func:`augment_parameters` for tracking unknown parameters) the
   nonlinear one.
 - :class:`Censoring`, :func:`multi_region` -- censoring limits; :class:`Quantizer` -- a quantized sensor;
   :class:`Channel` -- the contract a channel of your own implements (:mod:`tobitkf.channels.base`), served by
@@ -101,7 +102,7 @@ from .inference import (
 )
 from .models import ContinuousLinearSystem, LinearSystem
 from .models.delay import DelayFadingSystem, FadingMoments, FadingPMF, HistoryPrior
-from .models.nonlinear import NonlinearSystem, discretize
+from .models.nonlinear import NonlinearSystem, augment_parameters, discretize
 from .models.ross import RossModel
 from .report import write_report
 from .simulate import SimulationData, simulate
@@ -112,6 +113,7 @@ __all__ = [
     "ContinuousLinearSystem",
     "NonlinearSystem",
     "discretize",
+    "augment_parameters",
     "ExtendedKalmanFilter",
     "UnscentedKalmanFilter",
     "SigmaPoints",

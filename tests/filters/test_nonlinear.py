@@ -184,7 +184,9 @@ def test_refusals():
     with pytest.raises(tk.ValidationError, match="kappa"):
         tk.UnscentedKalmanFilter(pendulum(), kappa=-2.0)
     with pytest.raises(tk.ValidationError, match="covariance_update"):
-        tk.ExtendedKalmanFilter(pendulum(), covariance_update="square_root")
+        tk.ExtendedKalmanFilter(pendulum(), covariance_update="information")
+    with pytest.raises(tk.ValidationError, match="covariance_update"):
+        tk.UnscentedKalmanFilter(pendulum(), covariance_update="joseph")
     with pytest.raises(tk.ShapeError):
         tk.ExtendedKalmanFilter(pendulum()).filter(np.zeros((5, 3)))
 

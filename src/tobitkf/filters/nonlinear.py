@@ -63,6 +63,19 @@ Sigma-point rules (``rule=``, unit points :math:`\xi_i` with :math:`\chi_i = \ba
     the tensor product of the p-point Gauss–Hermite rule for :math:`N(0, 1)` (:math:`p^n` points); exact for
     polynomials of degree up to :math:`2p - 1` in each coordinate.
 
+**Square-root form** (``covariance_update="square_root"``, every filter here; a numerical device, not in the
+sources): a factor :math:`S`, :math:`P = SS^T`, is carried instead of P. The points are drawn from S itself;
+the predicted factor is the triangular factor of one QR of the weighted deviations and the noise root,
+:math:`[\sqrt{w^c_i}(f(\chi_i) - \bar x)^T;\ Q^{1/2\,T}]` (a rank-one Cholesky downdate per negative weight);
+the update is the array form (:func:`~tobitkf.filters.core.sqrt_update`) of the statistical linearisation,
+:math:`\mathcal H = Z^TS^{-1}` with :math:`Z = \sum_iw^c_i\xi_i(h(\chi_i) - \hat y)^T` (so
+:math:`P_{xy} = SZ`), and noise :math:`\Omega + R` factored from the residual rows
+:math:`\sqrt{w^c_i}(h(\chi_i) - \hat y - Z^T\xi_i)`. Equal to the standard form to rounding, PSD by
+construction.
+
+**Known inputs**: with an ``f(x, k, u)`` (:class:`~tobitkf.NonlinearSystem` ``inputs=p``) every ``filter``,
+``step``, ``predict`` and ``smooth`` takes ``u`` (row k-1 holds :math:`u_k`, :math:`x_k = f(x_{k-1}, k-1, u_k)`).
+
 Missing readings (NaN) take no part in the update, channel by channel. Time convention (package-wide):
 :math:`x_0 \sim N(\bar x_0, P_0)` is the prior, :math:`y_1` is at index 0, result row k-1 holds
 :math:`\hat x_{k|k}`, :math:`P_{k|k}` and the prediction.
@@ -77,12 +90,23 @@ from typing import Any, cast
 import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
-from .._validation import ValidationError, check_instance, check_int, diagonal_sigma
+from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_int, diagonal_sigma
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
 from .adf_generic import _contract_channel, _ContractChecks
 from .assumed_density import _noise_variances
-from .core import FilterResult, FilterState, GaussianFilter, check_keywords, check_prior, gain_update
+from .core import (
+    FilterResult,
+    FilterState,
+    GaussianFilter,
+    check_keywords,
+    check_prior,
+    gain_update,
+    prepare_inputs,
+    process_roots,
+    qr_r,
+    sqrt_update,
+)
 from .tobit import NOISE_TERMS, tobit_measurement
 
 __all__ = [
@@ -179,7 +203,9 @@ def _unit(rule: str, n: int, alpha: float, beta: float, kappa: float, order: int
 
 
 def _sigma_moments(rule: SigmaPoints, fun, x: np.ndarray, P: np.ndarray):
-    r"""``(ȳ, P_xy, P_yy)`` of :math:`y = g(x)`, :math:`x \sim N(x, P)`: (N, r), (N, n, r), (N, r, r)."""
+    r"""``(ȳ, P_xy, P_yy)`` of :math:`y = g(x)`, :math:`x \sim N(x, P)`: (N, r), (N, n, r), (N, r, r).
+
+    ``fun`` maps the points (N L, n), run-outermost, to (N L, r)."""
     N, n = x.shape
     _, wm, wc = rule.unit(n)
     X = rule.points(x, P)
@@ -193,6 +219,86 @@ def _sigma_moments(rule: SigmaPoints, fun, x: np.ndarray, P: np.ndarray):
     return ym, Pxy, symmetrize(Pyy)
 
 
+def _per_point(u: np.ndarray | None, points: int) -> np.ndarray | None:
+    """The input of each run (N, p) repeated for its ``points`` sigma points (run-outermost rows)."""
+    return None if u is None else np.repeat(u, points, axis=0)
+
+
+def _sigma_factor(rule: SigmaPoints, fun, x: np.ndarray, S: np.ndarray):
+    r"""The points of :math:`N(x, SS^T)` (S a factor of N or 1 runs) through ``fun``: ``(ȳ, dY, ξ, w^c)`` with
+    :math:`\bar y = \sum_i w^m_ig(\chi_i)` (N, r) and the deviations :math:`g(\chi_i) - \bar y` (N, L, r)."""
+    N, n = x.shape
+    xi, wm, wc = rule.unit(n)
+    L = xi.shape[0]
+    X = x[:, None, :] + np.einsum("lj,rij->rli", xi, S)
+    Y = fun(X.reshape(N * L, n)).reshape(N, L, -1)
+    ym = np.einsum("l,rla->ra", wm, Y)
+    return ym, Y - ym[:, None, :], xi, wc
+
+
+def _weighted_factor(E: np.ndarray, wc: np.ndarray, root: np.ndarray | None) -> np.ndarray:
+    r"""Lower factor W (N, r, r) of :math:`\sum_i w_ie_ie_i^T + \text{root}\,\text{root}^T` from the rows
+    ``E`` (N, L, r) and ``root`` ((r, c) or (N, r, c)): one QR of :math:`[\sqrt{w_i}e_i^T;\ \text{root}^T]` over the non-negative weights, then a
+    rank-one downdate per negative weight."""
+    N, L, r = E.shape
+    pos = wc >= 0
+    rows = np.sqrt(wc[pos])[None, :, None] * E[:, pos, :]
+    if root is not None:
+        rows = np.concatenate([rows, np.broadcast_to(np.swapaxes(root, -1, -2), (N,) + root.shape[-2:])], axis=1)
+    if rows.shape[1] < r:  # fewer rows than columns: pad with zeros (a singular factor)
+        rows = np.concatenate([rows, np.zeros((N, r - rows.shape[1], r))], axis=1)
+    W = np.swapaxes(qr_r(rows), -1, -2)
+    sign = np.where(np.diagonal(W, axis1=-2, axis2=-1) < 0, -1.0, 1.0)
+    W = W * sign[:, None, :]
+    for i in np.flatnonzero(~pos):
+        W = _chol_downdate(W, math.sqrt(-wc[i]) * E[:, i, :])
+    return W
+
+
+def _chol_downdate(L: np.ndarray, v: np.ndarray) -> np.ndarray:
+    r"""The lower factor of :math:`LL^T - vv^T`, batched ((N, r, r), (N, r)); NaN rows where it is indefinite."""
+    L, v = L.copy(), v.copy()
+    r = L.shape[-1]
+    for j in range(r):
+        d = L[:, j, j]
+        rad = d * d - v[:, j] ** 2
+        bad = ~(rad >= 0)
+        new = np.sqrt(np.where(bad, 0.0, rad))
+        safe = np.where(d > 0, d, 1.0)
+        c, s_ = np.where(d > 0, new / safe, 1.0), np.where(d > 0, v[:, j] / safe, 0.0)
+        L[:, j, j] = new
+        if j + 1 < r:
+            cs = np.where(c > 0, c, 1.0)
+            col = (L[:, j + 1 :, j] - s_[:, None] * v[:, j + 1 :]) / cs[:, None]
+            v[:, j + 1 :] = c[:, None] * v[:, j + 1 :] - s_[:, None] * col
+            L[:, j + 1 :, j] = col
+        L[bad] = np.nan
+    return L
+
+
+def _add_retained(S: np.ndarray, K: np.ndarray, V: np.ndarray) -> np.ndarray:
+    r"""The factor of :math:`SS^T + KVK^T` (V (N, m) diagonal, >= 0) by one QR: PSD by construction."""
+    KV = K * np.sqrt(np.maximum(V, 0.0))[..., None, :]
+    Sb = np.broadcast_to(S, KV.shape[:-2] + S.shape[-2:])
+    U = qr_r(np.concatenate([np.swapaxes(Sb, -1, -2), np.swapaxes(KV, -1, -2)], axis=-2))
+    return np.swapaxes(U, -1, -2)
+
+
+def _linearisation(S: np.ndarray, dY: np.ndarray, xi: np.ndarray, wc: np.ndarray):
+    r"""The statistical linearisation of :math:`g` from its points about :math:`N(x, SS^T)`: ``(HS, H, E)`` with
+    :math:`HS = Z^T` (N, r, n), :math:`\mathcal H = Z^TS^{-1}` (N, r, n; a least-squares solve when S is
+    singular) and the residuals E (N, L, r) (:func:`_sigma_factor`)."""
+    Z = np.einsum("l,lj,rla->rja", wc, xi, dY)  # (N, n, r)
+    HS = np.swapaxes(Z, -1, -2)
+    E = dY - np.einsum("lj,rja->rla", xi, Z)
+    Sb = np.broadcast_to(S, (Z.shape[0],) + S.shape[-2:])
+    try:
+        H = np.swapaxes(np.linalg.solve(np.swapaxes(Sb, -1, -2), Z), -1, -2)
+    except np.linalg.LinAlgError:
+        H = HS @ np.linalg.pinv(Sb)
+    return HS, H, E
+
+
 # --------------------------------------------------------------------------- the shared family
 
 
@@ -201,7 +307,7 @@ class _NonlinearFamily(GaussianFilter):
     linearisation (``rule=None``) or sigma points; the update is the family's."""
 
     system: Any  # a NonlinearSystem (Any: the contract checks' mixin declares a LinearSystem)
-    _forms: tuple[str, ...] = ("standard",)
+    _forms: tuple[str, ...] = ("standard", "square_root")
 
     def _setup(self, system: Any, covariance_update: str, rule: SigmaPoints | None) -> None:
         check_instance(system, NonlinearSystem, "system")
@@ -212,6 +318,7 @@ class _NonlinearFamily(GaussianFilter):
         self.rule = rule
         if rule is not None:
             rule.unit(self.n)  # a kappa that does not fit n is refused here
+        self._qroot: Any = process_roots(system) if covariance_update == "square_root" else None
 
     def _compiled_core(self) -> bool:
         return False
@@ -224,17 +331,46 @@ class _NonlinearFamily(GaussianFilter):
     def _check_record(self, y2: np.ndarray, u2, k0: int, name: str = "y") -> None:
         self.system.check_horizon(k0 + y2.shape[1])
 
-    def _predict(self, k: int, x: np.ndarray, P: np.ndarray):
-        """:math:`\\bar x_k, \\bar P_k` from the posterior at k-1."""
+    def _prepare_inputs(self, u: Any, N: int, T: int, batch: tuple[int, ...]) -> np.ndarray | None:
+        return prepare_inputs(self.system, u, N, T)
+
+    def _step_input(self, state: FilterState, u: Any) -> np.ndarray | None:
+        if u is None:
+            return None
+        p = self.system.p
+        if p is None:
+            raise ShapeError("u: this NonlinearSystem's f(x, k) takes no input (write f(x, k, u), inputs=p)")
+        arr = as_float_array(u, "u")
+        want = state.batch_shape + (p,)
+        try:
+            arr = np.broadcast_to(arr, want)
+        except ValueError:
+            raise ShapeError(f"u: expected one input of shape {want} (batch_shape + (p,)), got {arr.shape}") from None
+        return arr.reshape(state.runs, p)
+
+    def _predict(self, k: int, x: np.ndarray, P: np.ndarray, S: np.ndarray | None = None, u: np.ndarray | None = None):
+        """:math:`\bar x_k, \bar P_k` (and the factor :math:`\bar S_k` in the square-root form, else None) from
+        the posterior at k-1, with the input :math:`u_k` (N, p) or None."""
         sys_, Q = self.system, self.system.process_cov(k - 1)
         if self.rule is None:
-            xp = sys_.transition_map(x, k - 1)
-            F = sys_.transition_jacobian(x, k - 1)
-            Pp = F @ P @ F.swapaxes(-1, -2) + Q
-        else:
-            xp, _, Pf = _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k - 1), x, P)
-            Pp = Pf + Q
-        return xp, symmetrize(Pp)
+            xp = sys_.transition_map(x, k - 1, u)
+            F = sys_.transition_jacobian(x, k - 1, u)
+            if S is not None:
+                root = self._qroot(k - 1)
+                rows = np.concatenate(
+                    [np.swapaxes(F @ S, -1, -2), np.broadcast_to(root.T, (F.shape[0],) + root.T.shape)], axis=-2
+                )
+                Sp = np.swapaxes(qr_r(rows), -1, -2)
+                return xp, symmetrize(Sp @ np.swapaxes(Sp, -1, -2)), Sp
+            return xp, symmetrize(F @ P @ F.swapaxes(-1, -2) + Q), None
+        if S is not None:
+            L = self.rule.unit(self.n)[0].shape[0]
+            xp, dX, xi, wc = _sigma_factor(self.rule, lambda z: sys_.transition_map(z, k - 1, _per_point(u, L)), x, S)
+            Sp = _weighted_factor(dX, wc, self._qroot(k - 1))
+            return xp, symmetrize(Sp @ np.swapaxes(Sp, -1, -2)), Sp
+        L = self.rule.unit(self.n)[0].shape[0]
+        xp, _, Pf = _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k - 1, _per_point(u, L)), x, P)
+        return xp, symmetrize(Pf + Q), None
 
     def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray):
         """``(ŷ, P_xy, P_yy, H)`` of :math:`h(x_k)` under the prediction (H the Jacobian, None for sigma points)."""
@@ -247,25 +383,44 @@ class _NonlinearFamily(GaussianFilter):
         yhat, Pxy, Pyy = _sigma_moments(self.rule, lambda z: sys_.measurement_map(z, k), xp, Pp)
         return yhat, Pxy, Pyy, None
 
+    def _measurement_factor(self, k: int, xp: np.ndarray, Sp: np.ndarray):
+        r"""Square-root form: ``(ŷ, H, E, wc)``, the statistical linearisation :math:`\mathcal H` (N, m, n) of h
+        about :math:`N(\bar x, \bar S\bar S^T)` and its residual rows (:func:`_linearisation`); the extended
+        form: ŷ = h(x̄), the Jacobian and no residual (None, None)."""
+        sys_ = self.system
+        if self.rule is None:
+            return sys_.measurement_map(xp, k), sys_.measurement_jacobian(xp, k), None, None
+        ym, dY, xi, wc = _sigma_factor(self.rule, lambda z: sys_.measurement_map(z, k), xp, Sp)
+        _, H, E = _linearisation(Sp, dY, xi, wc)
+        return ym, H, E, wc
+
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
-        xp, Pp = self._predict(k, x, P)
-        xn, Pn, Sn, carry, extras = self._update_arrays(k, xp, Pp, None, y, u, carry, options or {})
+        xp, Pp, Sp = self._predict(k, x, P, S, u)
+        xn, Pn, Sn, carry, extras = self._update_arrays(k, xp, Pp, Sp, y, u, carry, options or {})
         return xn, Pn, Sn, carry, xp, Pp, extras
 
     def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
-        """The time update alone: the prediction :math:`\\bar x_{k+1}`, :math:`\\bar P_{k+1}` as a state whose
-        ``k`` is the predicted time (pass it to :meth:`update` with that time's reading)."""
+        """The time update alone: the prediction :math:`\bar x_{k+1}`, :math:`\bar P_{k+1}` as a state whose
+        ``k`` is the predicted time (pass it to :meth:`update` with that time's reading); ``u`` the input
+        :math:`u_{k+1}` of an ``f(x, k, u)``."""
         state = self._check_state(state)
-        self._step_input(state, u)
+        uk = self._step_input(state, u)
         k = state.k + 1
         assert state.P is not None, "a Gaussian filter's state carries P"
-        xp, Pp = self._predict(k, state.x, state.P)
+        xp, Pp, Sp = self._predict(k, state.x, state.P, state.S, uk)
         carry = dict(state.carry)
         carry["_predicted"] = True
-        return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, carry=carry)
+        return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
 
     def filter(
-        self, y: Any, *, x0: Any = None, P0: Any = None, outputs: Any = "all", state: FilterState | None = None
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
     ) -> FilterResult:
         """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
 
@@ -273,6 +428,8 @@ class _NonlinearFamily(GaussianFilter):
         ----------
         y : (..., T, m) array_like
             Readings y_1..y_T (leading axes are runs).
+        u : (T, p) or (..., T, p) array_like, optional
+            Known inputs u_1..u_T of an ``f(x, k, u)`` (index k-1 holds u_k; none given: u = 0).
         x0, P0 : array_like, optional
             Override the system's prior ((n,)/(n, n) or laid out like the batch).
         outputs : str or sequence of str, default "all"
@@ -283,16 +440,17 @@ class _NonlinearFamily(GaussianFilter):
         Raises
         ------
         ShapeError
-            Malformed ``y``, or f, h or a Jacobian returning the wrong shape.
+            Malformed ``y`` or ``u`` (or an input for an ``f(x, k)``), or f, h or a Jacobian returning the wrong
+            shape.
         ValidationError
             Infinite readings, or a reading the channel cannot give.
         """
-        return self._run(y, None, x0, P0, outputs=outputs, state=state)
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def _noise(self, k: int) -> np.ndarray:
         return self.system.measurement_cov(k)
 
-    def smooth(self, y: Any, *, x0: Any = None, P0: Any = None) -> FilterResult:
+    def smooth(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None) -> FilterResult:
         r"""Fixed-interval (RTS) smoother of ``y`` (..., T, m) over this filter's moments.
 
         The backward pass of the extended RTS smoother (a filter without sigma points: the cross-covariance
@@ -306,7 +464,8 @@ class _NonlinearFamily(GaussianFilter):
             G_k = C_k\bar P_{k+1}^{-1}, \qquad \hat x_{k|T} = \hat x_{k|k} + G_k(\hat x_{k+1|T} - \bar x_{k+1}),
             \qquad P_{k|T} = P_{k|k} + G_k(P_{k+1|T} - \bar P_{k+1})G_k^T.
 
-        For a linear model it is the Kalman (RTS) smoother.
+        For a linear model it is the Kalman (RTS) smoother. ``u`` are the inputs of an ``f(x, k, u)``, as for
+        :meth:`filter`.
 
         Returns
         -------
@@ -320,19 +479,20 @@ class _NonlinearFamily(GaussianFilter):
         ValidationError, ShapeError
             As :meth:`filter`.
         """
-        res = self.filter(y, x0=x0, P0=P0)
+        res = self.filter(y, u=u, x0=x0, P0=P0)
         assert res.mean is not None and res.cov is not None and res.pred_mean is not None and res.pred_cov is not None
         assert res.times is not None
         batch, (T, n) = res.mean.shape[:-2], res.mean.shape[-2:]
         xf, Pf = res.mean.reshape(-1, T, n), np.broadcast_to(res.cov, batch + (T, n, n)).reshape(-1, T, n, n)
         xp, Pp = res.pred_mean.reshape(-1, T, n), np.broadcast_to(res.pred_cov, batch + (T, n, n)).reshape(-1, T, n, n)
         N = xf.shape[0]
+        u2 = self._prepare_inputs(u, N, T, batch)
         xs, Ps, gain = np.empty_like(xf), np.empty((N, T, n, n)), np.zeros((N, T, n, n))
         xs[:, -1], Ps[:, -1] = xf[:, -1], Pf[:, -1]
         k_first = int(res.times[0])
         for i in range(T - 2, -1, -1):
-            k = k_first + i  # row i holds x_k; x_{k+1} = f(x_k, k) + w_k
-            C = self._cross_cov(k, xf[:, i], Pf[:, i])
+            k = k_first + i  # row i holds x_k; x_{k+1} = f(x_k, k, u_{k+1}) + w_k, u_{k+1} in row i + 1
+            C = self._cross_cov(k, xf[:, i], Pf[:, i], None if u2 is None else u2[:, i + 1])
             G = np.linalg.solve(Pp[:, i + 1], C.swapaxes(-1, -2)).swapaxes(-1, -2)  # C P̄^{-1}, P̄ symmetric
             xs[:, i] = xf[:, i] + np.einsum("rij,rj->ri", G, xs[:, i + 1] - xp[:, i + 1])
             Ps[:, i] = symmetrize(Pf[:, i] + G @ (Ps[:, i + 1] - Pp[:, i + 1]) @ G.swapaxes(-1, -2))
@@ -351,12 +511,17 @@ class _NonlinearFamily(GaussianFilter):
             times=res.times,
         )
 
-    def _cross_cov(self, k: int, x: np.ndarray, P: np.ndarray) -> np.ndarray:
-        r""":math:`\mathrm{Cov}(x_k, f(x_k, k))` (N, n, n) under :math:`N(x, P)`: extended or by the rule."""
+    def _cross_cov(self, k: int, x: np.ndarray, P: np.ndarray, u: np.ndarray | None = None) -> np.ndarray:
+        r""":math:`\mathrm{Cov}(x_k, f(x_k, k, u_{k+1}))` (N, n, n) under :math:`N(x, P)`: extended or by the rule."""
         sys_ = self.system
         if self.rule is None:
-            return P @ sys_.transition_jacobian(x, k).swapaxes(-1, -2)
-        return _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k), x, P)[1]
+            return P @ sys_.transition_jacobian(x, k, u).swapaxes(-1, -2)
+        L = self.rule.unit(self.n)[0].shape[0]
+        return _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k, _per_point(u, L)), x, P)[1]
+
+
+def _form(est: Any) -> str:
+    return "" if est.covariance_update == "standard" else f", covariance_update={est.covariance_update!r}"
 
 
 def _masked(y: np.ndarray, expected: np.ndarray):
@@ -374,8 +539,19 @@ def _full(P: np.ndarray, N: int) -> np.ndarray:
 
 class _KalmanUpdate:
     def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
-        yhat, Pxy, Pyy, H = self._measurement_moments(k, xp, Pp)
         R = self._noise(k)
+        if Sp is not None:  # the array form on the linearisation: noise Ω + R with the factor of both
+            yhat, H, E, wc = self._measurement_factor(k, xp, Sp)
+            innov, valid = _masked(y, yhat)
+            Rroot = psd_sqrt(R)
+            if E is None:
+                noise, root = R[None], Rroot[None]
+            else:
+                root = _weighted_factor(E, wc, Rroot)
+                noise = root @ np.swapaxes(root, -1, -2)
+            x, P, S, _ = sqrt_update(xp, Sp, innov, H, noise, valid, R_root=root)
+            return x, P, S, carry, None
+        yhat, Pxy, Pyy, H = self._measurement_moments(k, xp, Pp)
         innov, valid = _masked(y, yhat)
         if self.covariance_update == "joseph":
             x, P, _ = gain_update(xp, Pp, innov, Pxy, Pyy + R, valid, H=H, noise=R[None])
@@ -394,8 +570,12 @@ class ExtendedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
     Parameters
     ----------
     system : NonlinearSystem
-    covariance_update : {"standard", "joseph"}, default "standard"
-        :math:`P = \bar P - K H\bar P`, or the Joseph form :math:`(I-KH)\bar P(I-KH)^T + KRK^T` (filterpy's).
+    covariance_update : {"standard", "joseph", "square_root"}, default "standard"
+        :math:`P = \bar P - K H\bar P`, or the Joseph form :math:`(I-KH)\bar P(I-KH)^T + KRK^T` (filterpy's), or
+        the square-root (Cholesky) form: a factor :math:`S` with :math:`P = SS^T` carried through QR array
+        steps (prediction :math:`[S^TF^T;\ Q^{1/2\,T}]`, update
+        :func:`~tobitkf.filters.core.sqrt_update`), PSD by construction (a numerical device, equal to the
+        standard form to rounding).
 
     Raises
     ------
@@ -412,7 +592,7 @@ class ExtendedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
     """
 
     _name = "ExtendedKalmanFilter"
-    _forms = ("standard", "joseph")
+    _forms = ("standard", "joseph", "square_root")
 
     def __init__(self, system: NonlinearSystem, *, covariance_update: str = "standard"):
         self._setup(system, covariance_update, None)
@@ -443,6 +623,13 @@ class UnscentedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
         The unscented rule's parameters (filterpy's ``MerweScaledSigmaPoints(n, alpha, beta, kappa)``).
     order : int, default 3
         Points per coordinate of the Gauss–Hermite rule.
+    covariance_update : {"standard", "square_root"}, default "standard"
+        ``"square_root"`` carries a factor :math:`S`, :math:`P = SS^T`, through QR array steps: the sigma
+        points from S, the predicted factor from one QR of :math:`[\sqrt{w^c_i}(f(\chi_i) - \bar x)^T;\
+        Q^{1/2\,T}]`, the update as the array form of the statistical linearisation
+        (:math:`\mathcal H = P_{xy}^T\bar P^{-1}`, noise :math:`\Omega + R` factored from the residual rows).
+        PSD by construction; equal to the standard form to rounding when that stays PSD (tested), and
+        still PSD where the standard form's subtraction loses definiteness (very precise readings).
 
     Raises
     ------
@@ -461,11 +648,12 @@ class UnscentedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
         beta: float = 2.0,
         kappa: float = 0.0,
         order: int = 3,
+        covariance_update: str = "standard",
     ):
-        self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
+        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order))
 
     def __repr__(self) -> str:
-        return f"UnscentedKalmanFilter({self.system!r}, rule={self.rule!r})"
+        return f"UnscentedKalmanFilter({self.system!r}, rule={self.rule!r}{_form(self)})"
 
 
 # --------------------------------------------------------------------------- the Tobit update
@@ -494,8 +682,27 @@ class _TobitUpdate(_ContractChecks):
         return diagonal_sigma(R, name, who=self._who, why="independent channels")
 
     def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
+        if Sp is not None:  # the array form: H -> G H, noise G Ω G + diag(N), with the factor of the noise
+            yhat, H, Eres, wc = self._measurement_factor(k, xp, Sp)
+            E, g, V = self._tobit_statistics(k, yhat)
+            Vroot = np.sqrt(np.maximum(V, 0.0))[:, :, None] * np.eye(self.m)
+            root = Vroot if Eres is None else _weighted_factor(Eres * g[:, None, :], wc, Vroot)
+            innov, valid = _masked(y, E)
+            x, P, S, _ = sqrt_update(
+                xp, Sp, innov, g[:, :, None] * H, root @ np.swapaxes(root, -1, -2), valid, R_root=root
+            )
+            return x, P, S, carry, {"expected_y": E, "slope": g}
         yhat, Pxy, Pyy, _ = self._measurement_moments(k, xp, Pp)
-        sigma = self._sigma if self._sigma is not None else self._sigmas(self._noise(k), f"R({k})")
+        E, g, V = self._tobit_statistics(k, yhat)
+        Rxe = Pxy * g[:, None, :]
+        Ree = g[:, :, None] * Pyy * g[:, None, :] + V[:, :, None] * np.eye(self.m)
+        innov, valid = _masked(y, E)
+        x, P, _ = gain_update(xp, Pp, innov, Rxe, Ree, valid)
+        return x, P, None, carry, {"expected_y": E, "slope": g}
+
+    def _tobit_statistics(self, k: int, yhat: np.ndarray):
+        """The reading's mean E[y], slope g and noise term N at the predicted measurement ŷ (N, m) each."""
+        sigma = self._sigma if self._sigma is not None else self._sigmas(cast(Any, self)._noise(k), f"R({k})")
         N, m = yhat.shape
         if isinstance(self.channel, Censoring):  # the Tobit Kalman filter's own statistics, with C = I on ŷ
             lo, hi = (np.broadcast_to(v, (m,)) for v in self.channel.limits(k))
@@ -509,11 +716,7 @@ class _TobitUpdate(_ContractChecks):
                 E[:, l], g[:, l], V[:, l] = self.channel.reading_statistics(
                     np.ascontiguousarray(yhat[:, l]), np.full(N, sigma[l]), k, l
                 )
-        Rxe = Pxy * g[:, None, :]
-        Ree = g[:, :, None] * Pyy * g[:, None, :] + V[:, :, None] * np.eye(m)
-        innov, valid = _masked(y, E)
-        x, P, _ = gain_update(xp, Pp, innov, Rxe, Ree, valid)
-        return x, P, None, carry, {"expected_y": E, "slope": g}
+        return E, g, V
 
 
 class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
@@ -530,6 +733,9 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         The noise term of a censored reading, as :class:`~tobitkf.TobitKalmanFilter`'s (default there and here
         ``"dissertation"``, the truncated variance of the source); a channel other than
         :class:`~tobitkf.Censoring` has only its reading's variance, ``"total_variance"`` (the default for it).
+    covariance_update : {"standard", "square_root"}, default "standard"
+        ``"square_root"``: the update as the array form with :math:`H \to GH` and noise
+        :math:`\mathrm{diag}(N)` (:func:`~tobitkf.filters.core.sqrt_update`), a factor carried throughout.
 
     Raises
     ------
@@ -551,12 +757,21 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
 
     _name = "TobitExtendedKalmanFilter"
 
-    def __init__(self, system: NonlinearSystem, channel: Any, *, noise_term: str | None = None):
-        self._setup(system, "standard", None)
+    def __init__(
+        self,
+        system: NonlinearSystem,
+        channel: Any,
+        *,
+        noise_term: str | None = None,
+        covariance_update: str = "standard",
+    ):
+        self._setup(system, covariance_update, None)
         self._tobit_setup(system, channel, noise_term)
 
     def __repr__(self) -> str:
-        return f"TobitExtendedKalmanFilter({self.system!r}, {self.channel!r}, noise_term={self.noise_term!r})"
+        return (
+            f"TobitExtendedKalmanFilter({self.system!r}, {self.channel!r}, noise_term={self.noise_term!r}{_form(self)})"
+        )
 
 
 class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
@@ -574,6 +789,9 @@ class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         The sigma-point rule, as :class:`UnscentedKalmanFilter`.
     noise_term : {"dissertation", "total_variance", "exact_pv"}, optional
         As :class:`TobitExtendedKalmanFilter`.
+    covariance_update : {"standard", "square_root"}, default "standard"
+        As :class:`UnscentedKalmanFilter`, with :math:`\mathcal H \to G\mathcal H` and noise
+        :math:`G\Omega G + \mathrm{diag}(N)` in the array update.
 
     Raises
     ------
@@ -600,14 +818,15 @@ class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         kappa: float = 0.0,
         order: int = 3,
         noise_term: str | None = None,
+        covariance_update: str = "standard",
     ):
-        self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
+        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order))
         self._tobit_setup(system, channel, noise_term)
 
     def __repr__(self) -> str:
         return (
             f"TobitUnscentedKalmanFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}, "
-            f"noise_term={self.noise_term!r})"
+            f"noise_term={self.noise_term!r}{_form(self)})"
         )
 
 
@@ -636,6 +855,10 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         :class:`UnscentedKalmanFilter` (``alpha``, ``beta``, ``kappa``, ``order``).
     iterations : int >= 1, default 1
         Linearisations per channel and step.
+    covariance_update : {"standard", "square_root"}, default "standard"
+        ``"square_root"``: a factor carried throughout, each channel's projection as the array form of its
+        linearisation (noise :math:`\Omega + R_{ll}`) plus one QR for :math:`+KVK^T`; PSD by construction
+        and equal to the standard form to rounding when that stays PSD.
 
     Raises
     ------
@@ -682,8 +905,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         beta: float = 2.0,
         kappa: float = 0.0,
         order: int = 3,
+        covariance_update: str = "standard",
     ):
-        self._setup(system, "standard", _rule(rule, alpha, beta, kappa, order))
+        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order))
         self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
         self.channel = _contract_channel(channel, "moments", "the nonlinear assumed-density filter")
         self.channel.check(system)
@@ -692,37 +916,196 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
         N = xp.shape[0]
         r = self._r if self._r is not None else _noise_variances(self._noise(k), f"R({k})")
-        x, P = xp, _full(Pp, N)
         ll = np.zeros(N)
+        if Sp is not None:
+            x, S = xp, _full(Sp, N)
+            for l in range(self.m):
+                x, S, lll = self._channel_sqrt(k, l, x, S, y[:, l], r[l])
+                ll += lll
+            return x, symmetrize(S @ np.swapaxes(S, -1, -2)), S, carry, {"log_likelihood": ll}
+        x, P = xp, _full(Pp, N)
         for l in range(self.m):
             x, P, lll = self._channel(k, l, x, P, y[:, l], r[l])
             ll += lll
         return x, P, None, carry, {"log_likelihood": ll}
 
-    def log_likelihood(self, y: Any, *, x0: Any = None, P0: Any = None, per_step: bool = False) -> np.ndarray:
+    def _channel_sqrt(self, k: int, l: int, x: np.ndarray, S: np.ndarray, y: np.ndarray, r: float):
+        r"""The square-root form of :meth:`_channel`: the linearisation :math:`\mathcal H, \Omega` from the factor
+        (:func:`_linearisation`), the Kalman part :math:`\bar P - K s^2K^T` by the array form
+        (:func:`~tobitkf.filters.core.sqrt_update`, noise :math:`\Omega + R_{ll}`) and :math:`+KVK^T` by one more
+        QR, so the factor stays PSD by construction."""
+        rule, h_l, has, ll = self._channel_setup(k, l, y)
+        if not has.any():
+            return x, S, ll
+        xm, Sm = x, S
+        for it in range(self.iterations):
+            ybar, dY, xi, wc = _sigma_factor(rule, h_l, xm, Sm)
+            _, Hl, Eres = _linearisation(Sm, dY, xi, wc)
+            omega = np.einsum("l,rl->r", wc, Eres[:, :, 0] ** 2)
+            # about the prior (it == 0) the affine model reproduces the moments; later ones apply it to the prior
+            mu = ybar[:, 0] + (0.0 if it == 0 else np.einsum("ri,ri->r", Hl[:, 0], x - xm))
+            HS = np.einsum("ri,rij->rj", Hl[:, 0], S)
+            s2 = np.einsum("rj,rj->r", HS, HS) + np.maximum(omega, 0.0) + r
+            ok, obs, V = self._latent_moments(k, l, y, has, mu, s2, ll if it == 0 else None)
+            if not ok.any():
+                return x, S, ll
+            noise = (np.maximum(omega, 0.0) + r)[:, None, None]
+            xm, _, Sm, K = sqrt_update(x, S, (obs - mu)[:, None], Hl, noise, ok[:, None], R_root=np.sqrt(noise))
+            Sm = _add_retained(Sm, K, V[:, None])
+        return xm, Sm, ll
+
+    def smooth(self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, iterations: int = 1) -> FilterResult:
+        r"""Fixed-interval smoother of ``y`` (..., T, m); with ``iterations > 1`` the iterated posterior-linearisation
+        smoother (IPLS; García-Fernández, Svensson & Särkkä 2017).
+
+        ``iterations=1``: the sigma-point RTS smoother over this filter's moments (as the other nonlinear
+        filters' :meth:`~_NonlinearFamily.smooth`). Each further iteration re-linearises the model about the
+        smoothed posterior of the previous one and smooths the linearised model exactly as the filter
+        treats a linear one: with the rule's statistical linear regression of a map g about
+        :math:`N(\hat x_{k|T}, P_{k|T})`,
+
+        .. math::
+
+            \mathcal A = \mathrm{Cov}(g(x), x)P_{k|T}^{-1}, \quad a = E[g(x)] - \mathcal A\hat x_{k|T}, \quad
+            \Lambda = \mathrm{Cov}(g(x)) - \mathcal AP_{k|T}\mathcal A^T,
+
+        the transition :math:`x_{k+1} = \mathcal A_kx_k + a_k + w_k`, :math:`w_k \sim N(0, Q_k + \Lambda_k)`
+        (g = f about :math:`x_{k|T}`, k = 0..T-1, the prior :math:`x_0` included) and, channel by channel, the
+        latent reading :math:`y^*_{k,l} = \mathcal H_{k,l}x_k + b_{k,l} + e`, :math:`e \sim N(0, \Omega_{k,l} +
+        R_{k,ll})` (g = h_l about :math:`x_{k|T}`); the forward pass is this filter's projection with those
+        moments (the channel's exact moments of each reading), the backward pass the RTS pass with
+        :math:`\mathcal A_k` (:func:`~tobitkf.filters.smoothing.rts_smooth`). For a linear model every
+        linearisation is the model itself, so every iteration gives the one-pass smoother (tested).
+
+        Parameters
+        ----------
+        y : (..., T, m) array_like
+            Readings; NaN = missing.
+        u : (..., T, p) array_like, optional
+            Inputs of an ``f(x, k, u)``.
+        x0, P0 : array_like, optional
+            Override the prior.
+        iterations : int >= 1, default 1
+            Passes of the smoother (1: no re-linearisation).
+
+        Returns
+        -------
+        FilterResult
+            ``mean`` :math:`\hat x_{k|T}` (..., T, n), ``cov`` (..., T, n, n), ``extras`` ``filtered_mean``,
+            ``filtered_cov``, ``gain`` (of the last pass) and, with ``iterations > 1``, ``initial_mean`` /
+            ``initial_cov`` (:math:`\hat x_{0|T}`, :math:`P_{0|T}`) and ``cross_cov``.
+
+        Raises
+        ------
+        ValidationError, ShapeError
+            As :meth:`filter`; ``iterations`` not an integer in [1, 1000].
+
+        References
+        ----------
+        .. [1] Á. F. García-Fernández, L. Svensson, S. Särkkä, "Iterated posterior linearization smoother",
+           IEEE Trans. Automatic Control 62(4), 2017, 2056-2063.
+        """
+        iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
+        if iterations == 1:
+            return super().smooth(y, u=u, x0=x0, P0=P0)
+        from .smoothing import rts_smooth
+
+        y2, batch = self._prepare_record(y)
+        N, T, _ = y2.shape
+        xa, Pa = check_prior(self.system, x0, P0, N, batch)
+        u2 = self._prepare_inputs(u, N, T, batch)
+        self._check_record(y2, u2, 0)
+        res = self.filter(y2, u=u2, x0=xa, P0=Pa)
+        assert res.mean is not None and res.cov is not None
+        xf = np.concatenate([xa[:, None], res.mean], axis=1)  # rows k = 0..T
+        Pf = np.concatenate([Pa[:, None], np.broadcast_to(res.cov, (N, T) + Pa.shape[1:])], axis=1)
+        trans = self._linearise_f(xf, Pf, u2)[0]  # pass 1: about the filtered densities (the RTS smoother)
+        sm = rts_smooth(res, lambda k: trans[:, k], x0=xa, P0=Pa)
+        for _ in range(iterations - 1):
+            assert sm.mean is not None and sm.cov is not None
+            xs = np.concatenate([sm.extras["initial_mean"][:, None], sm.mean], axis=1)
+            Ps = np.concatenate([sm.extras["initial_cov"][:, None], np.broadcast_to(sm.cov, (N, T) + Pa.shape[1:])], 1)
+            lin_f = self._linearise_f(xs, Ps, u2)
+            res = self._linearised_pass(y2, xa, Pa, lin_f, xs, Ps)
+            trans = lin_f[0]
+            sm = rts_smooth(res, lambda k: trans[:, k], x0=xa, P0=Pa)
+        return _unflatten(sm, batch)
+
+    def _linearise_f(self, xs: np.ndarray, Ps: np.ndarray, u2: np.ndarray | None):
+        """The statistical linear regressions ``(A, a, Λ)`` ((N, T, n, n), (N, T, n), (N, T, n, n)) of f(·, k, u_{k+1})
+        about N(xs[:, k], Ps[:, k]), k = 0..T-1."""
+        sys_ = cast(NonlinearSystem, self.system)
+        rule = self.rule
+        assert rule is not None
+        N, T1, n = xs.shape
+        A, a, Lam = np.empty((N, T1 - 1, n, n)), np.empty((N, T1 - 1, n)), np.empty((N, T1 - 1, n, n))
+        L = rule.unit(n)[0].shape[0]
+        for k in range(T1 - 1):
+            uk = None if u2 is None else u2[:, k]
+            A[:, k], a[:, k], Lam[:, k] = _slr(
+                rule, lambda z: sys_.transition_map(z, k, _per_point(uk, L)), xs[:, k], Ps[:, k]
+            )
+        return A, a, Lam
+
+    def _linearised_pass(self, y2, xa, Pa, lin_f, xs, Ps) -> FilterResult:
+        """The forward pass of the model linearised about the smoothed ``xs``, ``Ps`` (rows k = 0..T): the
+        filtered and predicted moments as a flat (N, T, ...) :class:`~tobitkf.FilterResult`."""
+        sys_ = cast(NonlinearSystem, self.system)
+        rule = self.rule
+        assert rule is not None
+        A, a, Lam = lin_f
+        N, T, m = y2.shape
+        n = self.n
+        out = {key: np.empty((N, T, n)) for key in ("mean", "pred_mean")}
+        out.update({key: np.empty((N, T, n, n)) for key in ("cov", "pred_cov")})
+        x, P = xa, Pa
+        for i in range(T):
+            k = i + 1
+            x = np.einsum("rij,rj->ri", A[:, i], x) + a[:, i]
+            P = symmetrize(A[:, i] @ P @ A[:, i].swapaxes(-1, -2) + Lam[:, i] + sys_.process_cov(k - 1))
+            out["pred_mean"][:, i], out["pred_cov"][:, i] = x, P
+            r = self._r if self._r is not None else _noise_variances(self._noise(k), f"R({k})")
+            for l in range(m):
+                Hl, bl, om = _slr(rule, lambda z: sys_.measurement_map(z, k)[:, l : l + 1], xs[:, k], Ps[:, k])
+                H1 = Hl[:, 0]  # (N, n)
+                cxy = np.einsum("rij,rj->ri", P, H1)
+                mu = np.einsum("ri,ri->r", H1, x) + bl[:, 0]
+                s2 = np.einsum("ri,ri->r", H1, cxy) + np.maximum(om[:, 0, 0], 0.0) + r[l]
+                yl = y2[:, i, l]
+                post = self._project(k, l, x, P, yl, ~np.isnan(yl), mu, cxy, s2, None)
+                if post is not None:
+                    x, P = post
+            out["mean"][:, i], out["cov"][:, i] = x, P
+        return FilterResult(
+            mean=out["mean"],
+            cov=out["cov"],
+            pred_mean=out["pred_mean"],
+            pred_cov=out["pred_cov"],
+            extras={},
+            times=np.arange(1, T + 1),
+        )
+
+    def log_likelihood(
+        self, y: Any, *, u: Any = None, x0: Any = None, P0: Any = None, per_step: bool = False
+    ) -> np.ndarray:
         r"""The assumed-density log-likelihood :math:`\sum_k \ell_k` of ``y`` (..., T, m): (...), or the terms
         (..., T) with ``per_step`` (the ``log_likelihood`` extras of :meth:`filter`; for a linear h the linear
-        :class:`~tobitkf.AssumedDensityFilter`'s).
+        :class:`~tobitkf.AssumedDensityFilter`'s); ``u`` the inputs of an ``f(x, k, u)``. Maximised over the
+        parameters of f and h by :func:`tobitkf.fit` with a map ``theta -> NonlinearSystem``.
 
         Raises
         ------
         ValidationError, ShapeError
             As :meth:`filter`.
         """
-        terms = self.filter(y, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        terms = self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
         return terms if per_step else terms.sum(-1)
 
     def _channel(self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float):
         """The projection of channel ``l``, iterated about the posterior: ``(x, P, log p(y))``."""
-        sys_ = cast(NonlinearSystem, self.system)
-        rule = self.rule
-        assert rule is not None, "the assumed-density filter linearises with sigma points"
-        N = x.shape[0]
-        has = ~np.isnan(y)
-        ll = np.zeros(N)
+        rule, h_l, has, ll = self._channel_setup(k, l, y)
         if not has.any():
             return x, P, ll
-        h_l = lambda z: sys_.measurement_map(z, k)[:, l : l + 1]  # noqa: E731
         xm, Pm = x, P
         for it in range(self.iterations):
             ybar, Pxy, Pyy = _sigma_moments(rule, h_l, xm, Pm)
@@ -734,22 +1117,76 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
                 mu = ybar[:, 0] + np.einsum("ri,ri->r", Hl, x - xm)
                 cxy = np.einsum("rij,rj->ri", P, Hl)
                 s2 = np.einsum("ri,ri->r", Hl, cxy) + omega + r
-            ok = has & (s2 > _TINY)
-            if not ok.any():
+            post = self._project(k, l, x, P, y, has, mu, cxy, s2, ll if it == 0 else None)
+            if post is None:
                 return x, P, ll
-            s = np.sqrt(np.where(ok, s2, 1.0))
-            obs, V = np.array(mu), np.zeros(N)
-            o, v, lp = self.channel.reading_moments(y[ok], mu[ok], s[ok], k, l)
-            obs[ok], V[ok] = o, v
-            if it == 0:
-                ll[ok] = lp
-            xm, Pm, K = gain_update(x, P, (obs - mu)[:, None], cxy[:, :, None], s2[:, None, None], ok[:, None])
-            Pm = symmetrize(Pm + (K * V[:, None, None]) @ K.swapaxes(-1, -2))
+            xm, Pm = post
         return xm, Pm, ll
+
+    def _project(self, k, l, x, P, y, has, mu, cxy, s2, ll):
+        r"""The projection of channel ``l`` under the affine model :math:`y^*_l \sim N(\mu, s^2)`, covariance
+        ``cxy`` with x: :math:`\hat x = x + K(E[y^* \mid y] - \mu)`, :math:`P = P - K(s^2 - V)K^T`,
+        :math:`K = c_{xy}/s^2`; None when no run takes part."""
+        ok, obs, V = self._latent_moments(k, l, y, has, mu, s2, ll)
+        if not ok.any():
+            return None
+        xm, Pm, K = gain_update(x, P, (obs - mu)[:, None], cxy[:, :, None], s2[:, None, None], ok[:, None])
+        return xm, symmetrize(Pm + (K * V[:, None, None]) @ K.swapaxes(-1, -2))
+
+    def _channel_setup(self, k: int, l: int, y: np.ndarray):
+        """``(rule, h_l, has, ll)``: the rule, channel ``l``'s measurement map (N, n) -> (N, 1), the runs with a
+        reading and zeroed log-likelihood terms."""
+        sys_ = cast(NonlinearSystem, self.system)
+        rule = self.rule
+        assert rule is not None, "the assumed-density filter linearises with sigma points"
+        return rule, lambda z: sys_.measurement_map(z, k)[:, l : l + 1], ~np.isnan(y), np.zeros(y.shape[0])
+
+    def _latent_moments(self, k, l, y, has, mu, s2, ll):
+        r"""The channel's moments of the latent reading :math:`y^* \sim N(\mu, s^2)` given ``y`` (N,): ``(ok, E[y^*
+        | y], Var[y^* | y])`` with ``ok`` the runs that take part (a reading, :math:`s^2` normal); the log-density
+        of each reading is written into ``ll`` when it is given."""
+        ok = has & (s2 > _TINY)
+        obs, V = np.array(mu), np.zeros(mu.shape[0])
+        if ok.any():
+            s = np.sqrt(np.where(ok, s2, 1.0))
+            obs[ok], V[ok], lp = self.channel.reading_moments(y[ok], mu[ok], s[ok], k, l)
+            if ll is not None:
+                ll[ok] = lp
+        return ok, obs, V
 
     def __repr__(self) -> str:
         it = "" if self.iterations == 1 else f", iterations={self.iterations}"
-        return f"NonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it})"
+        return f"NonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it}{_form(self)})"
+
+
+def _slr(rule: SigmaPoints, fun, x: np.ndarray, P: np.ndarray):
+    r"""The statistical linear regression of :math:`g(x)`, :math:`x \sim N(x, P)`, by the rule:
+    ``(A, b, Λ)`` (N, r, n), (N, r), (N, r, r) with :math:`A = P_{xg}^TP^{-1}` (the pseudo-inverse when P is
+    singular), :math:`b = \bar g - Ax`, :math:`\Lambda = P_{gg} - APA^T` (its negative rounding kept out)."""
+    from .smoothing import solve_psd
+
+    ym, Pxy, Pyy = _sigma_moments(rule, fun, x, P)
+    A = np.swapaxes(solve_psd(P, Pxy), -1, -2)
+    b = ym - np.einsum("rij,rj->ri", A, x)
+    Lam = symmetrize(Pyy - A @ P @ np.swapaxes(A, -1, -2))
+    w, V = np.linalg.eigh(Lam)
+    return A, b, (V * np.maximum(w, 0.0)[..., None, :]) @ np.swapaxes(V, -1, -2)
+
+
+def _unflatten(res: FilterResult, batch: tuple[int, ...]) -> FilterResult:
+    """A flat (N, T, ...) result laid out over the leading axes ``batch``."""
+
+    def lay(v: Any) -> Any:
+        return v.reshape(batch + v.shape[1:]) if isinstance(v, np.ndarray) and v.ndim >= 1 else v
+
+    return FilterResult(
+        mean=lay(res.mean),
+        cov=lay(res.cov),
+        pred_mean=lay(res.pred_mean),
+        pred_cov=lay(res.pred_cov),
+        extras={key: lay(v) for key, v in res.extras.items()},
+        times=res.times,
+    )
 
 
 def _regress(P: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -75,6 +75,11 @@ class _Nonlinear(_Model):
 def nonlinear_model(system: Any, channel: Any, censoring: Any) -> _Model:
     """The particle filter's model of ``system`` (a NonlinearSystem) read through one contract channel (or a
     Censoring given as ``censoring``; none: plain Gaussian readings)."""
+    if system.takes_input:  # the particle filter's step forms B^u u, which an f(x, k, u) does not have
+        raise ValidationError(
+            "system: the particle filter does not take the inputs of an f(x, k, u) yet; fold the known inputs "
+            "into f(x, k) (they are known in advance)"
+        )
     pieces = _flatten(channel) + ([] if censoring is None else [censoring])
     if len(pieces) > 1:
         raise ValidationError(

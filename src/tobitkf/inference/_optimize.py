@@ -27,6 +27,7 @@ __all__ = [
     "check_tolerance",
     "check_iterations",
     "Ticker",
+    "maximize_map",
     "maximize_closing",
     "observed_information",
 ]
@@ -329,6 +330,53 @@ def maximize(
     )
 
 
+def maximize_map(
+    ll_of: Callable[[np.ndarray], float],
+    th0: np.ndarray,
+    names: list[str],
+    *,
+    gtol: float,
+    maxiter: int,
+    progress: tuple[Any, Callable[[], None], Ticker],
+    standard_errors: bool = True,
+    check_always: bool = False,
+) -> tuple[Outcome, np.ndarray, float, np.ndarray | None]:
+    r"""The direct fit of a user map's parameters, shared by every kind of model: the log-likelihood checked at
+    ``th0``, :func:`maximize`, then the observed information (inverse of minus the central-difference Hessian) and
+    the Newton-step convergence check (:func:`_newton_check`; with ``check_always`` also when no standard errors
+    are wanted). ``progress`` is the ``(callback, close, ticker)`` of the fit's progress option.
+
+    Returns ``(outcome, theta, loglik, cov)`` with the outcome's ``converged``/``message`` those of the check,
+    ``cov`` None without standard errors.
+
+    Raises
+    ------
+    ValidationError
+        The log-likelihood is not finite at ``th0``.
+    """
+    if not np.isfinite(ll_of(th0)):
+        raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
+    out = maximize_closing(
+        ll_of, th0, progress, gtol=gtol, maxiter=maxiter, label=lambda v: dict(zip(names, v.tolist()))
+    )
+    th = out.x
+    ll = ll_of(th)
+    cov = None
+    if standard_errors or check_always:
+        cov, out.converged, out.message, _ = observed_information(ll_of, th, ll, gtol, out.message)
+    return out, th, ll, (cov if standard_errors else None)
+
+
+def _inverse_information(H: np.ndarray) -> np.ndarray | None:
+    """The inverse of the observed information -H, or an all-NaN matrix when -H is not positive definite."""
+    info = -0.5 * (H + H.T)
+    try:
+        np.linalg.cholesky(info)
+    except np.linalg.LinAlgError:
+        return np.full(info.shape, np.nan)
+    return np.linalg.inv(info)
+
+
 def _newton_check(f, v, cov, gtol: float, optimizer_message: str) -> tuple[bool, str, int]:
     r"""Whether ``v`` is an optimum to ``gtol`` standard errors: the Newton step :math:`\delta = I^{-1}g`
     with the observed information (``cov`` = :math:`I^{-1}`) and a central-difference gradient g must be
@@ -378,13 +426,3 @@ def observed_information(
     cov = _inverse_information(central_hessian(f, v, f0=f0))
     converged, message, evaluations = _newton_check(f, v, cov, gtol, optimizer_message)
     return cov, converged, message, evaluations
-
-
-def _inverse_information(H: np.ndarray) -> np.ndarray | None:
-    """The inverse of the observed information -H, or an all-NaN matrix when -H is not positive definite."""
-    info = -0.5 * (H + H.T)
-    try:
-        np.linalg.cholesky(info)
-    except np.linalg.LinAlgError:
-        return np.full(info.shape, np.nan)
-    return np.linalg.inv(info)

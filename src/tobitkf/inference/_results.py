@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from .._validation import ValidationError
+from ._optimize import _inverse_information  # noqa: F401 - re-exported: the fits import it from here
 
 __all__ = ["FitResult", "residual_diagnostics"]
 

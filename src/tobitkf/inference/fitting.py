@@ -16,7 +16,10 @@ Three kinds of model (what ``model`` is):
   steps near the optimum (hundreds of iterations on a 300-reading series, and the likelihood change it
   stops on can be small while the optimum is still standard errors away), so it is the named option;
 * a callable ``theta -> LinearSystem`` (a structured model) with ``theta0``: direct maximisation of the
-  same log-likelihood.
+  same log-likelihood;
+* a callable ``theta -> NonlinearSystem`` with ``theta0``: direct maximisation of the nonlinear
+  assumed-density filter's log-likelihood (:mod:`tobitkf.inference.nonlinear_fit`; options ``channel``,
+  ``rule``, ``iterations``, ``names``).
 
 **Stopping rule and convergence** (every kind): the quasi-Newton search stops when its Newton decrement
 :math:`\sqrt{g^TH^{-1}g}` is below ``gtol`` (1e-3 by default): the remaining step is shorter than ``gtol``
@@ -125,6 +128,10 @@ def _model_from_spec(spec: dict[str, Any]):
         from .panel import PanelModel
 
         return PanelModel.from_spec(spec)
+    if kind == "nonlinear":
+        from .nonlinear_fit import NonlinearModel
+
+        return NonlinearModel.from_spec(spec)
     raise ValidationError(f"model: unknown model kind {kind!r} in the fit file")
 
 
@@ -152,13 +159,14 @@ def fit(
     ----------
     model : CensoredAR, LinearSystem or callable
         The template (see the module docstring); a callable maps a parameter vector to a
-        :class:`~tobitkf.LinearSystem`.
+        :class:`~tobitkf.LinearSystem` or a :class:`~tobitkf.NonlinearSystem`.
     y : (T,) or (T, m) array_like
         Readings; censored ones hold their limit; NaN = missing.
     X : (T, l) array_like, optional
         Regressors of a :class:`CensoredAR` (default: the intercept).
     u : (T, p) array_like, optional
-        Known inputs of a state-space model (the input matrices Bu, D multiply them).
+        Known inputs of a state-space model (the input matrices Bu, D multiply them; a NonlinearSystem's
+        ``f(x, k, u)`` takes them).
     censoring : Censoring, optional
         Limits; or give ``lower``/``upper`` (scalars or per reading).
     censored : bool array_like, optional
@@ -227,6 +235,25 @@ def fit(
         return model.fit(y1, X, lower=lo, upper=hi, censored=c1, progress=progress, **options)
     from .state_space import fit_state_space
 
+    if callable(model) and not isinstance(model, LinearSystem) and theta0 is not None:
+        from .nonlinear_fit import builds_nonlinear, fit_nonlinear
+
+        if builds_nonlinear(model, theta0):  # a map theta -> NonlinearSystem: the assumed-density likelihood
+            if censored is not None or estimate is not None or X is not None:
+                raise ValidationError("censored/estimate/X: not options of a nonlinear model's fit")
+            return fit_nonlinear(
+                model,
+                y,
+                theta0=theta0,
+                u=u,
+                censoring=censoring,
+                lower=lower,
+                upper=upper,
+                method=method,
+                likelihood=likelihood,
+                progress=progress,
+                **options,
+            )
     if isinstance(model, LinearSystem) or callable(model):
         return fit_state_space(
             model,

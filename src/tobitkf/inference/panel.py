@@ -44,7 +44,7 @@ from ..filters.likelihood import prediction_log_densities
 from ..filters.smoothing import rts_smooth
 from ..models.continuous import ContinuousLinearSystem, check_increasing, time_values
 from ..models.linear import LinearSystem
-from ._optimize import maximize_closing, observed_information
+from ._optimize import maximize_map
 from ._results import FitResult, _progress_callback
 
 __all__ = ["Panel", "PanelArrays", "PanelModel", "panel_log_likelihood", "panel_smooth", "panel_forecast", "fit_panel"]
@@ -713,19 +713,19 @@ def fit_panel(
         v = float(terms.sum())
         return v if np.isfinite(v) else -np.inf
 
-    if not np.isfinite(ll_of(th0)):
-        raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-    progress_ = _progress_callback(progress, "fit panel")
-    out = maximize_closing(
-        ll_of, th0, progress_, gtol=gtol, maxiter=maxiter, label=lambda v: dict(zip(names, v.tolist()))
-    )
-    th = out.x
-    ll = ll_of(th)
     # converged means what it means for tk.fit's other models: the Newton step with the observed information
-    # is below gtol standard errors in every parameter
-    cov, converged, message, _ = observed_information(ll_of, th, ll, gtol, out.message)
-    if not standard_errors:
-        cov = None
+    # is below gtol standard errors in every parameter (checked also when no standard errors are reported)
+    out, th, ll, cov = maximize_map(
+        ll_of,
+        th0,
+        names,
+        gtol=gtol,
+        maxiter=maxiter,
+        progress=_progress_callback(progress, "fit panel"),
+        standard_errors=standard_errors,
+        check_always=True,
+    )
+    converged, message = out.converged, out.message
     return FitResult(
         model=PanelModel(sys_of(th), kind, align, start),
         names=names,

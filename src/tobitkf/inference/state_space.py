@@ -58,7 +58,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_boo
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
-from ._optimize import check_iterations, check_tolerance, maximize_closing, observed_information
+from ._optimize import check_iterations, check_tolerance, maximize_closing, maximize_map, observed_information
 from ._results import FitResult, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
@@ -692,16 +692,15 @@ def fit_state_space(
                 return -np.inf
             return lik.of_system(s)
 
-        if not np.isfinite(ll_of(th0)):
-            raise ValidationError("theta0: the log-likelihood is -inf (or the map fails) at the starting values")
-        out = maximize_closing(
-            ll_of, th0, progress_, gtol=gtol, maxiter=maxiter, label=lambda v: dict(zip(names, v.tolist()))
+        out, th, ll, cov = maximize_map(
+            ll_of,
+            th0,
+            names,
+            gtol=gtol,
+            maxiter=maxiter,
+            progress=(cb, close, ticker),
+            standard_errors=standard_errors,
         )
-        th = out.x
-        ll = ll_of(th)
-        cov = None
-        if standard_errors:
-            cov, out.converged, out.message, _ = observed_information(ll_of, th, ll, gtol, out.message)
         fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
         return FitResult(
             model=fitted,

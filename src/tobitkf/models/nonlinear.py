@@ -15,17 +15,36 @@ for a :class:`~tobitkf.LinearSystem`.
 ``(..., n)`` to ``(..., m)``, with ``k`` a Python int. ``Q`` and ``R`` are constant, given per step or
 callables of k, as for :class:`~tobitkf.LinearSystem` (``Q[k]`` / ``Q(k)`` for k = 0..T-1, ``R[k-1]`` /
 ``R(k)`` for k = 1..T).
+
+**Known inputs.** A transition ``f(x, k, u)`` takes a known input :math:`u_k` (p,), with the linear model's
+convention: :math:`u_k` acts over the interval (k-1, k] and is stored at index k-1 like :math:`y_k`,
+
+.. math:: x_k = f(x_{k-1}, k-1, u_k) + w_{k-1},
+
+``u`` batched like ``x`` ((..., p), one row per state). Whether ``f`` takes an input is read from its
+signature (a third positional parameter without a default) or declared with ``inputs=p``; its length p is
+always given as ``inputs=p``. The filters, smoothers and :func:`~tobitkf.simulate` then take ``u``
+(``inputs`` for the simulator) of shape (..., T, p); no input given means :math:`u_k = 0`.
 """
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, Callable
 
 import numpy as np
 
-from .._validation import ShapeError, TimeSequence, ValidationError, as_float_array, check_count, check_psd
+from .._validation import (
+    ShapeError,
+    TimeSequence,
+    ValidationError,
+    as_float_array,
+    check_count,
+    check_int,
+    check_psd,
+)
 
-__all__ = ["NonlinearSystem", "discretize", "jacobian_fd"]
+__all__ = ["NonlinearSystem", "augment_parameters", "discretize", "jacobian_fd"]
 
 _EPS = np.finfo(np.float64).eps
 
@@ -54,17 +73,19 @@ def jacobian_fd(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray) -> np.nd
     return np.ascontiguousarray(np.transpose(diff, (1, 2, 0)))
 
 
-def discretize(fc: Callable[[np.ndarray, float], np.ndarray], dt: float, substeps: int = 1):
+def discretize(fc: Callable[..., np.ndarray], dt: float, substeps: int = 1):
     r"""The transition map of an ODE :math:`\dot x = f_c(x, t)` over one sampling interval, by fixed-step RK4.
 
     Returns ``f(x, k)``: ``substeps`` classical fourth-order Runge-Kutta steps of size
     :math:`h = dt/\text{substeps}` from :math:`t = k\,dt` to :math:`(k+1)\,dt`. ``fc(x, t)`` must be batched
     over the leading axes of ``x`` (..., n), as ``f`` is. The local error per interval is :math:`O(h^5)` per
-    substep, the global error of the map :math:`O(h^4)`.
+    substep, the global error of the map :math:`O(h^4)`. When ``fc`` takes an input, ``fc(x, t, u)`` (a
+    third positional parameter without a default), the map is ``f(x, k, u)`` with ``u`` held constant over
+    the interval (zero-order hold); give the system ``inputs=p``.
 
     Parameters
     ----------
-    fc : callable ``fc(x, t) -> dx/dt``
+    fc : callable ``fc(x, t) -> dx/dt`` or ``fc(x, t, u)``
     dt : float > 0
         Sampling interval.
     substeps : int >= 1, default 1
@@ -92,19 +113,47 @@ def discretize(fc: Callable[[np.ndarray, float], np.ndarray], dt: float, substep
     substeps = check_count(substeps, "substeps")
     h = dt / substeps
 
-    def f(x: np.ndarray, k: int) -> np.ndarray:
+    def integrate(x: np.ndarray, k: int, rate: Callable[..., np.ndarray]) -> np.ndarray:
         x = np.asarray(x, dtype=float)
         t = k * dt
         for _ in range(substeps):
-            k1 = fc(x, t)
-            k2 = fc(x + 0.5 * h * k1, t + 0.5 * h)
-            k3 = fc(x + 0.5 * h * k2, t + 0.5 * h)
-            k4 = fc(x + h * k3, t + h)
+            k1 = rate(x, t)
+            k2 = rate(x + 0.5 * h * k1, t + 0.5 * h)
+            k3 = rate(x + 0.5 * h * k2, t + 0.5 * h)
+            k4 = rate(x + h * k3, t + h)
             x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
             t += h
         return x
 
+    if _takes_input(fc) is True:
+
+        def f_u(x: np.ndarray, k: int, u: np.ndarray) -> np.ndarray:
+            return integrate(x, k, lambda z, t: fc(z, t, u))
+
+        return f_u
+
+    def f(x: np.ndarray, k: int) -> np.ndarray:
+        return integrate(x, k, fc)
+
     return f
+
+
+def _takes_input(fn: Any, *, optional: bool = False) -> bool | None:
+    """Whether ``fn(x, k, u)`` takes an input by its signature: a third positional parameter without a default
+    (or, with ``optional``, with one). True, False, or None when the signature cannot be read (a compiled or
+    built-in function) or takes ``*args``."""
+    try:
+        sig = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return None
+    if any(p.kind is inspect.Parameter.VAR_POSITIONAL for p in sig.parameters.values()):
+        return None
+    positional = [
+        p
+        for p in sig.parameters.values()
+        if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    ]
+    return len(positional) >= 3 and (optional or positional[2].default is inspect.Parameter.empty)
 
 
 class NonlinearSystem:
@@ -127,12 +176,16 @@ class NonlinearSystem:
         :math:`\epsilon^{1/3}\max(1, |x_j|)`, error about :math:`10^{-10}` relative for a smooth ``f``).
     H : callable ``H(x, k) -> (..., m, n)``, optional
         Jacobian :math:`\partial h/\partial x`; default central differences as for ``F``.
+    inputs : int >= 1, optional
+        The length p of a known input :math:`u_k` of ``f(x, k, u)`` (module docstring); required when ``f``
+        takes one (read from its signature, or declared by giving ``inputs``). ``F`` then takes ``u`` too.
 
     Raises
     ------
     ValidationError
         ``f``, ``h`` (or ``F``, ``H``) not callable, a non-finite value of f or h at the prior mean, a
-        covariance that is not symmetric PSD.
+        covariance that is not symmetric PSD, an ``f(x, k, u)`` without ``inputs``, ``inputs`` for an ``f(x, k)``
+        or not a positive integer.
     ShapeError
         ``f(x0, 0)`` not of shape (n,), ``f`` or ``h`` not batched ((1, n) in, (1, ...) out), ``Q`` not (n, n),
         ``R`` not (m, m) with m the length of ``h(x0, 1)``, a Jacobian of the wrong shape.
@@ -146,7 +199,19 @@ class NonlinearSystem:
     (1, 1)
     """
 
-    def __init__(self, f: Any, h: Any, Q: Any, R: Any, x0: Any, P0: Any, *, F: Any = None, H: Any = None):
+    def __init__(
+        self,
+        f: Any,
+        h: Any,
+        Q: Any,
+        R: Any,
+        x0: Any,
+        P0: Any,
+        *,
+        F: Any = None,
+        H: Any = None,
+        inputs: int | None = None,
+    ):
         for name, fn in (("f", f), ("h", h)):
             if not callable(fn):
                 raise ValidationError(f"{name}: expected a callable {name}(x, k), got {type(fn).__name__}")
@@ -160,14 +225,28 @@ class NonlinearSystem:
             raise ShapeError(f"P0: expected shape ({n}, {n}) to match x0, got {self.P0.shape}")
         check_psd(self.P0, "P0")
         self.f, self.h, self.F, self.H = f, h, F, H
-        fx = as_float_array(f(self.x0.copy(), 0), "f(x0, 0)", ndim=1)
+        if inputs is None:
+            if _takes_input(f):
+                raise ValidationError(
+                    "inputs: f(x, k, u) takes a known input u; give its length as inputs=p (or drop the third "
+                    "parameter of f)"
+                )
+            self.p: int | None = None
+        else:
+            if _takes_input(f, optional=True) is False:
+                raise ValidationError(
+                    f"inputs: given ({inputs!r}) but f takes no input (expected f(x, k, u) with a third parameter)"
+                )
+            self.p = check_int(inputs, "inputs", minimum=1)
+        u0 = () if self.p is None else (np.zeros(self.p),)
+        fx = as_float_array(f(self.x0.copy(), 0, *u0), "f(x0, 0)", ndim=1)
         if fx.shape != (n,):
             raise ShapeError(f"f(x0, 0): expected shape ({n},) (f maps (..., n) to (..., n)), got {fx.shape}")
         hx = as_float_array(h(self.x0.copy(), 1), "h(x0, 1)", ndim=1)
         m = hx.shape[0]
         if m < 1:
             raise ShapeError("h(x0, 1): expected at least one output, got shape (0,)")
-        self.n, self.m, self.q, self.p = n, m, n, None
+        self.n, self.m, self.q = n, m, n
         # the noise enters directly and there is no input: the LinearSystem attributes a simulation reads
         self.B = self.Bu = self.D = None
         # batched over leading axes: (1, n) in, (1, n) / (1, m) out
@@ -184,20 +263,37 @@ class NonlinearSystem:
         if H is not None:
             self.measurement_jacobian(self.x0[None], 1)
 
+    @property
+    def takes_input(self) -> bool:
+        """Whether ``f`` takes a known input, ``f(x, k, u)``."""
+        return self.p is not None
+
+    def _input_args(self, x: np.ndarray, u: np.ndarray | None) -> tuple[np.ndarray, ...]:
+        """``(u,)`` with one row per row of ``x`` (zeros when no input is given), or ``()`` for an ``f(x, k)``."""
+        if self.p is None:
+            return ()
+        if u is None:
+            return (np.zeros((x.shape[0], self.p)),)
+        reps = x.shape[0] // u.shape[0]
+        return (u if reps == 1 else np.tile(u, (reps, 1)),)
+
     # --- the maps, batched (N, n) -> (N, .) ------------------------------------------------------------
-    def transition_map(self, x: np.ndarray, k: int) -> np.ndarray:
-        """:math:`f(x, k)` for ``x`` (N, n): (N, n), checked."""
-        return _checked(self.f(x, k), (x.shape[0], self.n), f"f(x, {k})")
+    def transition_map(self, x: np.ndarray, k: int, u: np.ndarray | None = None) -> np.ndarray:
+        """:math:`f(x, k)` (or :math:`f(x, k, u)`) for ``x`` (N, n): (N, n), checked. ``u`` (N', p) holds the
+        input of each run, with N a multiple of N' and the rows of ``x`` run-innermost (``x`` (R, N', n)
+        flattened); None means :math:`u = 0`."""
+        return _checked(self.f(x, k, *self._input_args(x, u)), (x.shape[0], self.n), f"f(x, {k})")
 
     def measurement_map(self, x: np.ndarray, k: int) -> np.ndarray:
         """:math:`h(x, k)` for ``x`` (N, n): (N, m), checked."""
         return _checked(self.h(x, k), (x.shape[0], self.m), f"h(x, {k})")
 
-    def transition_jacobian(self, x: np.ndarray, k: int) -> np.ndarray:
-        r""":math:`\partial f/\partial x` at ``x`` (N, n): (N, n, n), from ``F`` or central differences."""
+    def transition_jacobian(self, x: np.ndarray, k: int, u: np.ndarray | None = None) -> np.ndarray:
+        r""":math:`\partial f/\partial x` at ``x`` (N, n): (N, n, n), from ``F`` or central differences (``u`` as
+        :meth:`transition_map`'s)."""
         if self.F is None:
-            return jacobian_fd(lambda z: self.transition_map(z, k), x)
-        return _checked(self.F(x, k), (x.shape[0], self.n, self.n), f"F(x, {k})")
+            return jacobian_fd(lambda z: self.transition_map(z, k, u), x)
+        return _checked(self.F(x, k, *self._input_args(x, u)), (x.shape[0], self.n, self.n), f"F(x, {k})")
 
     def measurement_jacobian(self, x: np.ndarray, k: int) -> np.ndarray:
         r""":math:`\partial h/\partial x` at ``x`` (N, n): (N, m, n), from ``H`` or central differences."""
@@ -225,15 +321,27 @@ class NonlinearSystem:
             part.check_horizon(steps)
             part.validate_all(steps)
 
-    def check_inputs(self, u: Any, steps: int, name: str = "u") -> None:
-        """The model takes no control input: None, or :class:`~tobitkf.ShapeError`."""
-        if u is not None:
-            raise ShapeError(f"{name}: a NonlinearSystem takes no control input (fold it into f(x, k))")
-        return None
+    def check_inputs(self, u: Any, steps: int, name: str = "u") -> np.ndarray | None:
+        """Validate a known-input sequence ``(..., T, p)`` of an ``f(x, k, u)``; None when none is given.
+
+        Raises
+        ------
+        ShapeError
+            An input for a model whose ``f`` takes none, or not of shape (..., steps, p).
+        """
+        if u is None:
+            return None
+        if self.p is None:
+            raise ShapeError(f"{name}: this NonlinearSystem's f(x, k) takes no input (write f(x, k, u), inputs=p)")
+        arr = as_float_array(u, name)
+        if arr.ndim < 2 or arr.shape[-2:] != (steps, self.p):
+            raise ShapeError(f"{name}: expected (..., {steps}, {self.p}), got {arr.shape}")
+        return arr
 
     def __repr__(self) -> str:
         kind = "constant noise" if self.time_invariant else "time-varying noise"
-        return f"NonlinearSystem(n={self.n}, m={self.m}, {kind})"
+        inp = "" if self.p is None else f", p={self.p}"
+        return f"NonlinearSystem(n={self.n}, m={self.m}{inp}, {kind})"
 
 
 def _checked(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -241,3 +349,123 @@ def _checked(value: Any, shape: tuple[int, ...], name: str) -> np.ndarray:
     if arr.shape != shape:
         raise ShapeError(f"{name}: expected shape {shape} for a batch of {shape[0]} states, got {arr.shape}")
     return arr
+
+
+def augment_parameters(
+    f: Any,
+    h: Any,
+    Q: Any,
+    R: Any,
+    x0: Any,
+    P0: Any,
+    *,
+    theta0: Any,
+    theta_cov: Any,
+    theta_noise: Any = 0.0,
+    inputs: int | None = None,
+) -> NonlinearSystem:
+    r"""Joint state-parameter tracking by state augmentation: unknown parameters :math:`\theta` appended to the
+    state as a random walk (Arthur, Attarian, Hamilton & Tran 2018, the parameter tracking of their Tobit EKF).
+
+    With ``f(x, k, theta)`` and ``h(x, k, theta)`` batched over the leading axes of ``x`` (..., n) and
+    ``theta`` (..., d), the augmented state :math:`z = (x, \theta)` (n + d) follows
+
+    .. math::
+
+        x_k = f(x_{k-1}, k-1, \theta_{k-1}) + w_{k-1}, \qquad \theta_k = \theta_{k-1} + \eta_{k-1},
+        \qquad y^*_k = h(x_k, k, \theta_k) + v_k,
+
+    :math:`w \sim N(0, Q)`, :math:`\eta \sim N(0, Q_\theta)` (``theta_noise``; 0 keeps the parameter constant
+    and its variance only shrinks), :math:`z_0 \sim N((\bar x_0, \theta_0), \mathrm{diag}(P_0, P_\theta))`. Any
+    filter of a :class:`NonlinearSystem` then estimates x and :math:`\theta` together: the last d components of
+    its mean are the tracked parameters and the matching block of its covariance their uncertainty.
+
+    Parameters
+    ----------
+    f : callable ``f(x, k, theta)`` (or ``f(x, k, theta, u)`` with ``inputs``)
+    h : callable ``h(x, k, theta)``
+    Q : (n, n) or (T, n, n) array_like or callable ; R : as for :class:`NonlinearSystem`
+    x0 : (n,) ; P0 : (n, n)
+    theta0 : (d,) array_like
+        The parameters' prior mean.
+    theta_cov : (d,) or (d, d) array_like
+        Their prior variances (a vector) or covariance :math:`P_\theta`.
+    theta_noise : float, (d,) or (d, d) array_like, default 0
+        The random walk's step covariance :math:`Q_\theta` (a scalar or vector: variances).
+    inputs : int, optional
+        The input length p of an ``f(x, k, theta, u)``.
+
+    Returns
+    -------
+    NonlinearSystem
+        Of dimension n + d, the parameters last.
+
+    Raises
+    ------
+    ValidationError, ShapeError
+        As :class:`NonlinearSystem` for the augmented model; ``theta_cov`` or ``theta_noise`` not PSD or not
+        of size d.
+
+    Examples
+    --------
+    >>> import numpy as np, tobitkf as tk
+    >>> sys = tk.augment_parameters(lambda x, k, th: th * x, lambda x, k, th: x, [[0.1]], [[0.2]], [1.0],
+    ...                             [[1.0]], theta0=[0.5], theta_cov=[0.04])
+    >>> sys.n, sys.x0.tolist()
+    (2, [1.0, 0.5])
+    """
+    for name, fn in (("f", f), ("h", h)):
+        if not callable(fn):
+            raise ValidationError(f"{name}: expected a callable {name}(x, k, theta), got {type(fn).__name__}")
+    xa = as_float_array(x0, "x0", ndim=1)
+    th = as_float_array(theta0, "theta0", ndim=1)
+    n, d = xa.shape[0], th.shape[0]
+    P_th = _cov_of(theta_cov, d, "theta_cov")
+    Q_th = _cov_of(theta_noise, d, "theta_noise")
+    P0a = as_float_array(P0, "P0", ndim=2)
+    if P0a.shape != (n, n):
+        raise ShapeError(f"P0: expected shape ({n}, {n}) to match x0, got {P0a.shape}")
+
+    def f_aug(z: np.ndarray, k: int, *u: np.ndarray) -> np.ndarray:
+        theta = z[..., n:]
+        return np.concatenate([np.asarray(f(z[..., :n], k, theta, *u), dtype=float), theta], axis=-1)
+
+    def f_aug_u(z: np.ndarray, k: int, u: np.ndarray) -> np.ndarray:
+        return f_aug(z, k, u)
+
+    def h_aug(z: np.ndarray, k: int) -> np.ndarray:
+        return h(z[..., :n], k, z[..., n:])
+
+    if callable(Q):
+        Q_aug: Any = lambda k: _block(np.asarray(Q(k), dtype=float), Q_th)  # noqa: E731
+    else:
+        Qa = as_float_array(Q, "Q", ndim=(2, 3))
+        Q_aug = _block(Qa, Q_th) if Qa.ndim == 2 else np.stack([_block(q, Q_th) for q in Qa])
+    return NonlinearSystem(
+        f_aug if inputs is None else f_aug_u,
+        h_aug,
+        Q_aug,
+        R,
+        np.concatenate([xa, th]),
+        _block(P0a, P_th),
+        inputs=inputs,
+    )
+
+
+def _cov_of(value: Any, d: int, name: str) -> np.ndarray:
+    arr = as_float_array(value, name, ndim=(0, 1, 2))
+    if arr.ndim < 2:
+        arr = np.diag(np.broadcast_to(arr, (d,)).astype(float)) if arr.size in (1, d) else arr
+    if arr.shape != (d, d):
+        raise ShapeError(
+            f"{name}: expected a scalar, ({d},) variances or a ({d}, {d}) covariance, got {np.shape(value)}"
+        )
+    check_psd(arr, name)
+    return arr
+
+
+def _block(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    n, d = A.shape[0], B.shape[0]
+    out = np.zeros((n + d, n + d))
+    out[:n, :n], out[n:, n:] = A, B
+    return out

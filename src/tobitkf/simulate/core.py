@@ -217,7 +217,7 @@ def simulate(
                 G = system.B.at(k - 1) @ G
             noise = noise @ G.T
         if isinstance(system, NonlinearSystem):
-            x[:, k] = system.transition_map(x[:, k - 1], k - 1) + noise
+            x[:, k] = system.transition_map(x[:, k - 1], k - 1, None if u is None else u[:, k - 1]) + noise
         else:
             x[:, k] = x[:, k - 1] @ system.transition(k - 1).T + noise
         if u is not None and system.Bu is not None:

@@ -1,0 +1,233 @@
+r"""Maximum (assumed-density) likelihood for the parameters of a :class:`~tobitkf.NonlinearSystem`.
+
+The model is a map :math:`\theta \mapsto` ``NonlinearSystem`` (the parameters may sit in f, h, Q, R or the
+prior); the readings pass through a channel (censoring, a quantizer, ... or none). The log-likelihood is the
+nonlinear assumed-density filter's (:meth:`~tobitkf.NonlinearAssumedDensityFilter.log_likelihood`),
+
+.. math:: \ell(\theta) = \sum_{r}\sum_k \sum_l \log p(y_{r,k,l} \mid \text{the Gaussian prediction of its
+   latent reading}),
+
+each term the channel's exact probability (density, or mass of a censored reading) of the reading under the
+filter's Gaussian, statistically linearised, prediction of the latent reading; summed over independent records
+``r`` when ``y`` has leading axes. It is exact for a linear model and an approximation otherwise (as the
+filter's moments are). It is maximised by the quasi-Newton search of every fit in the package
+(:func:`~tobitkf.inference._optimize.maximize`: BFGS, finite-difference gradients, the Newton-decrement
+stopping rule), and the standard errors are those of the observed information, the inverse of minus the
+central-difference Hessian of :math:`\ell` at the optimum (:class:`~tobitkf.FitResult`).
+
+Reached through :func:`tobitkf.fit` with a callable model that returns a ``NonlinearSystem`` at ``theta0``.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from typing import Any, Callable
+
+import numpy as np
+
+from .._validation import ShapeError, ValidationError, as_float_array, check_bool
+from ..channels.censoring import Censoring
+from ..models.nonlinear import NonlinearSystem
+from ._optimize import check_iterations, check_tolerance, maximize_map
+from ._results import FitResult, _progress_callback
+
+__all__ = ["NonlinearModel", "builds_nonlinear", "fit_nonlinear"]
+
+
+class NonlinearModel:
+    """The fitted model of a nonlinear fit (:class:`~tobitkf.FitResult`'s ``model``): the map, the channel and
+    the filter's options. ``system(theta)`` rebuilds the system at ``theta``; a fit read back from JSON has no
+    map (the code of f and h is not saved), so it holds the estimates only."""
+
+    kind = "nonlinear"
+
+    def __init__(self, build: Callable[[np.ndarray], Any] | None, channel: Any, rule: str, iterations: int):
+        self.build, self.channel, self.rule, self.iterations = build, channel, rule, iterations
+
+    def __repr__(self) -> str:
+        return f"NonlinearModel(channel={self.channel!r}, rule={self.rule!r}, iterations={self.iterations})"
+
+    def system(self, theta: Any = None, l: int = 0) -> NonlinearSystem:
+        if self.build is None:
+            raise ValidationError("model: a nonlinear fit read from a file has no map theta -> system; rebuild it")
+        return self.build(np.asarray(theta, dtype=float))
+
+    def to_spec(self) -> dict[str, Any]:
+        return {"kind": self.kind, "rule": self.rule, "iterations": self.iterations}
+
+    @classmethod
+    def from_spec(cls, spec: dict[str, Any]) -> NonlinearModel:
+        return cls(None, None, str(spec.get("rule", "unscented")), int(spec.get("iterations", 1)))
+
+    def _unavailable(self, what: str):
+        raise ValidationError(
+            f"model: {what} of a nonlinear fit is not available here; run "
+            "tk.NonlinearAssumedDensityFilter(res.system(), channel) on the readings"
+        )
+
+    def smooth(self, res: Any):
+        self._unavailable("smooth()")
+
+    def forecast(self, res: Any, steps: int, **kw: Any):
+        self._unavailable("forecast()")
+
+    def residuals(self, res: Any, seed: int = 0):
+        self._unavailable("residuals()")
+
+
+def builds_nonlinear(model: Any, theta0: Any) -> bool:
+    """Whether the callable ``model`` returns a :class:`~tobitkf.NonlinearSystem` at ``theta0``."""
+    try:
+        th0 = np.asarray(theta0, dtype=float)
+    except (TypeError, ValueError):
+        return False
+    return isinstance(model(th0), NonlinearSystem)
+
+
+def fit_nonlinear(
+    model: Callable[[np.ndarray], NonlinearSystem],
+    y: Any,
+    *,
+    theta0: Any,
+    u: Any = None,
+    censoring: Any = None,
+    lower: Any = None,
+    upper: Any = None,
+    channel: Any = None,
+    method: str = "auto",
+    likelihood: str = "auto",
+    progress: Any = None,
+    rule: str = "unscented",
+    iterations: int = 1,
+    names: Any = None,
+    gtol: float = 1e-3,
+    maxiter: int = 200,
+    standard_errors: bool = True,
+) -> FitResult:
+    r"""Fit the parameters of a map ``theta -> NonlinearSystem`` by maximum assumed-density likelihood.
+
+    Parameters
+    ----------
+    model : callable
+        ``model(theta)`` returns the :class:`~tobitkf.NonlinearSystem` at the parameter vector ``theta`` (d,).
+    y : (T,), (T, m) or (..., T, m) array_like
+        Readings (censored ones hold their limit; NaN = missing); leading axes are independent records
+        of the same model.
+    theta0 : (d,) array_like
+        Starting values.
+    u : (T, p) or (..., T, p) array_like, optional
+        Known inputs of an ``f(x, k, u)``.
+    censoring, lower, upper, channel
+        The channel the readings passed through: a :class:`~tobitkf.Censoring` (or its ``lower``/``upper``),
+        or any contract ``channel`` (one of them); none: plain Gaussian readings.
+    method : {"auto", "direct"}
+        Direct quasi-Newton maximisation (the only method for a nonlinear model).
+    likelihood : {"auto", "adf"}
+        The assumed-density likelihood (the only one).
+    progress
+        As :func:`tobitkf.fit`'s.
+    rule : str, default "unscented"
+        The sigma-point rule of the filter (``"unscented"``, ``"cubature"``, ``"gauss_hermite"``).
+    iterations : int, default 1
+        The filter's posterior-linearisation iterations per channel.
+    names : sequence of str, optional
+        Parameter names (default ``theta0``, ``theta1``, ...).
+    gtol, maxiter, standard_errors
+        The search's tolerance (standard errors), its iteration cap, and whether to compute the observed
+        information (the standard errors and the convergence check).
+
+    Returns
+    -------
+    FitResult
+        ``likelihood="adf"``, ``method="direct"``; ``res.system()`` the fitted system.
+
+    Raises
+    ------
+    ValidationError
+        The map does not return a NonlinearSystem, the log-likelihood is not finite at ``theta0``, no
+        reading present, both ``channel`` and ``censoring``/``lower``/``upper``, an unknown method or
+        likelihood, bad tolerances.
+    ShapeError
+        ``theta0`` not a vector, ``names`` of the wrong length, ``y`` or ``u`` malformed.
+    """
+    from ..filters.nonlinear import NonlinearAssumedDensityFilter
+
+    t0 = time.perf_counter()
+    gtol = check_tolerance(gtol, "gtol")
+    maxiter = check_iterations(maxiter, "maxiter")
+    standard_errors = check_bool(standard_errors, "standard_errors")
+    if method not in ("auto", "direct"):
+        raise ValidationError(f"method: a nonlinear model is fitted by direct maximisation ('direct'), got {method!r}")
+    if likelihood not in ("auto", "adf"):
+        raise ValidationError(
+            f"likelihood: a nonlinear model has the assumed-density likelihood ('adf'), got {likelihood!r}"
+        )
+    th0 = as_float_array(theta0, "theta0", ndim=1)
+    names = [f"theta{i}" for i in range(th0.size)] if names is None else [str(v) for v in names]
+    if len(names) != th0.size:
+        raise ShapeError(f"names: expected {th0.size} names, got {len(names)}")
+    arr = as_float_array(y, "y", allow_nan=True)
+    y2 = arr[:, None] if arr.ndim == 1 else arr
+    if y2.ndim < 2 or y2.size == 0 or np.isnan(y2).all():
+        raise ValidationError(f"y: expected readings (T, m) with at least one present, got shape {arr.shape}")
+    if channel is not None and (censoring is not None or lower is not None or upper is not None):
+        raise ValidationError("channel: give either a channel or censoring/lower/upper, not both")
+    if channel is None:
+        if censoring is None:
+            censoring = Censoring(lower=-np.inf if lower is None else lower, upper=np.inf if upper is None else upper)
+        elif lower is not None or upper is not None:
+            raise ValidationError("censoring: give either censoring or lower/upper, not both")
+        channel = censoring
+
+    def sys_of(th: np.ndarray) -> NonlinearSystem:
+        s = model(np.asarray(th, dtype=float))
+        if not isinstance(s, NonlinearSystem):
+            raise ValidationError(f"model: the map returned {type(s).__name__}, expected a NonlinearSystem")
+        return s
+
+    first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations)
+    first.log_likelihood(y2, u=u)  # the readings, inputs and channel checked once, with their own errors
+
+    def ll_of(th: np.ndarray) -> float:
+        try:
+            est = NonlinearAssumedDensityFilter(sys_of(th), channel, rule=rule, iterations=iterations)
+        except ValueError as exc:  # a parameter the map or the system refuses (a negative variance ...)
+            if "the map returned" in str(exc):
+                raise
+            return -np.inf
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore")  # a trial step of the search may diverge: it scores -inf
+            try:
+                v = float(np.sum(est.log_likelihood(y2, u=u)))
+            except (ValueError, np.linalg.LinAlgError):
+                return -np.inf
+        return v if np.isfinite(v) else -np.inf
+
+    out, th, ll, cov = maximize_map(
+        ll_of,
+        th0,
+        names,
+        gtol=gtol,
+        maxiter=maxiter,
+        progress=_progress_callback(progress, "fit nonlinear model"),
+        standard_errors=standard_errors,
+    )
+    return FitResult(
+        model=NonlinearModel(model, channel, rule, iterations),
+        names=names,
+        theta=th,
+        cov=cov,
+        loglik=ll,
+        n_obs=int((~np.isnan(y2)).sum()),
+        n_params=th.size,
+        method="direct",
+        likelihood="adf",
+        converged=out.converged,
+        message=out.message,
+        trace=out.trace,
+        fit_seconds=time.perf_counter() - t0,
+        evaluations=out.evaluations,
+        data={"y": y2, "u": u},
+        extra={"theta_map": True, "nonlinear": True},
+    )
