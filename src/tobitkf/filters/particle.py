@@ -122,6 +122,8 @@ from ..channels.protocol import ProtocolChannel
 from ..channels.saturation import RandomSaturation, saturate
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
+from ._particle_rng import generator as _generator
+from ._particle_rng import rng_state as _rng_state
 from ._readings import _INTERIOR, _LOG_SQRT_2PI, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER, censored_log_likelihood
 from ._readings import classify_readings as _classify
 from .core import Estimator, FilterResult, FilterState, check_prior, predict, shift_predict
@@ -1036,25 +1038,6 @@ def _build_model(system: LinearSystem, channel: Any, censoring: Any) -> _Model:
 #: model class other than LinearSystem -> ``builder(system, channel, censoring)`` of its particle-filter model;
 #: filled by the module that serves it (tobitkf.filters.particle_nonlinear for NonlinearSystem)
 SYSTEM_MODELS: dict[type, Any] = {}
-
-
-def _rng_state(seed: Any) -> Any:
-    if isinstance(seed, np.random.Generator):
-        return seed.bit_generator.state
-    if isinstance(seed, bool):
-        raise ValidationError(f"seed: expected an int, SeedSequence, Generator or None, got {seed!r}")
-    try:
-        ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
-    except (TypeError, ValueError) as exc:
-        raise ValidationError(f"seed: expected an int, SeedSequence, Generator or None, got {seed!r} ({exc})") from None
-    return np.random.PCG64(ss).state
-
-
-def _generator(state: dict) -> np.random.Generator:
-    # the same restoration is in _compiled_particle (which cannot import this module: it is imported from here)
-    bg = getattr(np.random, state["bit_generator"])()
-    bg.state = state
-    return np.random.Generator(bg)
 
 
 # --------------------------------------------------------------------------- the estimator
