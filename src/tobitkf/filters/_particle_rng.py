@@ -27,14 +27,14 @@ def rng_state(seed: Any) -> dict:
         A seed of another type (a bool, a string, a negative int...).
     """
     if isinstance(seed, np.random.Generator):
-        return seed.bit_generator.state
+        return dict(seed.bit_generator.state)
     if isinstance(seed, bool):
         raise ValidationError(f"seed: expected an int, SeedSequence, Generator or None, got {seed!r}")
     try:
         ss = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
     except (TypeError, ValueError) as exc:
         raise ValidationError(f"seed: expected an int, SeedSequence, Generator or None, got {seed!r} ({exc})") from None
-    return np.random.PCG64(ss).state
+    return dict(np.random.PCG64(ss).state)
 
 
 def generator(state: dict) -> np.random.Generator:
