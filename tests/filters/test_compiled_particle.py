@@ -187,6 +187,48 @@ def test_readings_far_in_the_tails():
     assert np.isfinite(got.mean).all() and np.isfinite(got.extras["log_likelihood"]).all()
 
 
+def _arrays(obj, seen=None):
+    """Every ndarray reachable from a result (its fields, extras and final state)."""
+    seen = set() if seen is None else seen
+    if id(obj) in seen:
+        return []
+    seen.add(id(obj))
+    if isinstance(obj, np.ndarray):
+        return [obj]
+    if isinstance(obj, dict):
+        return [a for v in obj.values() for a in _arrays(v, seen)]
+    if isinstance(obj, (list, tuple)):
+        return [a for v in obj for a in _arrays(v, seen)]
+    if hasattr(obj, "__dict__"):
+        return [a for v in vars(obj).values() for a in _arrays(v, seen)]
+    return []
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_memory_is_flat_in_the_number_of_steps(backend):
+    import tracemalloc
+
+    N, T, Np = 3, 31, 997  # sizes no other axis shares
+    cens = CENSORINGS["lower"](1)
+    pf = tk.ParticleFilter(system(1), cens, particles=Np, seed=1, backend=backend)
+    res = pf.filter(tk.simulate(system(1), T, N, censoring=cens, seed=0).y)
+    shapes = [a.shape for a in _arrays(res)]
+    assert (N, Np, 2) in shapes  # the final particles are kept (the state to continue from)...
+    assert not [s for s in shapes if Np in s and T in s]  # ...but nothing per step and particle
+    # the peak of a filter that records nothing per step does not grow with T (beyond the readings)
+    peaks = {}
+    for steps in (T, 8 * T):
+        y = tk.simulate(system(1), steps, N, censoring=cens, seed=0).y
+        pf.filter(y[:, :2], outputs="last")  # compiled functions and caches loaded before measuring
+        tracemalloc.start()
+        pf.filter(y, outputs="last")
+        peaks[steps] = tracemalloc.get_traced_memory()[1] - y.nbytes
+        tracemalloc.stop()
+    assert peaks[T] > 8 * N * Np * 2  # the particles are counted...
+    # ...and 7 T more steps add at most a few numbers per step (the limits), not a particle array (24 kB a step)
+    assert peaks[8 * T] - peaks[T] < 7 * T * 100
+
+
 def test_a_filter_continued_from_its_final_state_equals_one_call():
     cens = CENSORINGS["lower"](1)
     y = record(1, cens, steps=14)

@@ -543,9 +543,9 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     C = np.ascontiguousarray(system.measurement(k0 + 1), dtype=float)
     d = np.diagonal(system.measurement_cov(k0 + 1)).astype(float)
     r = np.ascontiguousarray(np.sqrt(d) ** 2 if optimal else d)  # as the numpy path forms them
-    lims = [model.limits(k0 + 1 + i) for i in range(T)]
-    LO = np.ascontiguousarray([lo for lo, _ in lims], dtype=float).reshape(T, m)
-    HI = np.ascontiguousarray([hi for _, hi in lims], dtype=float).reshape(T, m)
+    LO, HI = np.empty((T, m)), np.empty((T, m))  # the limits per step: m numbers each, nothing per particle
+    for i in range(T):
+        LO[i], HI[i] = model.limits(k0 + 1 + i)
     carry = state.carry
     X = np.array(carry["particles"], dtype=float, order="C")  # (N, Np, n): the final particles, in place
     lw = np.array(carry["log_weights"], dtype=float, order="C")
