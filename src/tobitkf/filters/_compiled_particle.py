@@ -310,35 +310,33 @@ def pf_block(
     d = np.empty(n)
     S1 = np.empty(n)
     S2 = np.empty((n, n))
-    xp = np.empty(n)
-    Xn = np.empty((Np, n))  # one run's proposed particles
+    Xn = np.empty((Np, n))  # one run's particles before resampling (the proposals are written in place)
     work = np.empty(Np)  # its log weights, then the cumulative weights
     Wb = np.empty(Np)
     logNp = math.log(Np)
     for k in range(T):
         for b in range(B):
-            # the linear prediction of the weighted moments (core.predict)
-            for i in range(n):
-                s = 0.0
-                for j in range(n):
-                    s += A[i, j] * xm[b, j]
-                xp[i] = s
-            for i in range(n):
-                for j in range(n):
-                    s = 0.0
-                    for q in range(n):
-                        for h in range(n):
-                            s += A[i, q] * Pm[b, q, h] * A[j, h]
-                    Sig[i, j] = s + Qd[i, j]
+            # the linear prediction of the weighted moments (core.predict), where it is recorded
             if want[3]:
                 for i in range(n):
-                    o_pm[b, k, i] = xp[i]
+                    s = 0.0
+                    for j in range(n):
+                        s += A[i, j] * xm[b, j]
+                    o_pm[b, k, i] = s
             if want[4]:
+                for i in range(n):
+                    for j in range(n):
+                        s = 0.0
+                        for q in range(n):
+                            for h in range(n):
+                                s += A[i, q] * Pm[b, q, h] * A[j, h]
+                        Sig[i, j] = s + Qd[i, j]
                 for i in range(n):
                     for j in range(n):
                         o_pc[b, k, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
             for l in range(m):
                 cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
+            top = -_INF  # the largest unnormalised log weight, tracked as they are formed
             if optimal:
                 # the Gaussian conditioning of _condition_in_sequence: the same for every particle of the run
                 for i in range(n):
@@ -404,8 +402,11 @@ def pf_block(
                         s = 0.0
                         for j in range(n):
                             s += e[j] * L[i, j]
-                        Xn[p, i] = mu[i] + s
-                    work[p] = inc + lw[b, p]
+                        X[b, p, i] = mu[i] + s
+                    w = inc + lw[b, p]
+                    work[p] = w
+                    if w > top:
+                        top = w
             else:
                 for p in range(Np):
                     for j in range(n):
@@ -416,7 +417,9 @@ def pf_block(
                         for j in range(n):
                             s += X[b, p, j] * A[i, j]
                             t += e[j] * G[i, j]
-                        Xn[p, i] = s + t
+                        mu[i] = s + t
+                    for i in range(n):
+                        X[b, p, i] = mu[i]
                     inc = 0.0
                     for l in range(m):
                         c = cls[l]
@@ -424,7 +427,7 @@ def pf_block(
                             continue
                         mul = 0.0
                         for j in range(n):
-                            mul += Xn[p, j] * C[l, j]
+                            mul += mu[j] * C[l, j]
                         if c == _INTERIOR:
                             z = (y[b, k, l] - mul) / srp[l]
                             inc += -0.5 * z * z - lsp[l]
@@ -432,13 +435,12 @@ def pf_block(
                             inc += log_ndtr((LO[k, l] - mul) / srp[l])
                         else:
                             inc += log_ndtr((mul - HI[k, l]) / srp[l])
-                    work[p] = inc + lw[b, p]
+                    w = inc + lw[b, p]
+                    work[p] = w
+                    if w > top:
+                        top = w
             # weights: log-sum-exp normalisation, fused with the weighted moments (one pass; the sums of the
             # deviations from the run's first particle, so no cancellation when the mean is far from 0)
-            top = -_INF
-            for p in range(Np):
-                if work[p] > top:
-                    top = work[p]
             dead = not (top > -_INF and top < _INF)
             if dead:  # no particle explains the reading: keep the weights, report -inf
                 top = -_INF
@@ -446,8 +448,9 @@ def pf_block(
                     work[p] = lw[b, p]
                     if work[p] > top:
                         top = work[p]
+            full = want[1] or want[2] or want[4] or k == T - 1  # the covariance is needed (else the mean only)
             for i in range(n):
-                x0[i] = Xn[0, i]
+                x0[i] = X[b, 0, i]
                 S1[i] = 0.0
                 for j in range(n):
                     S2[i, j] = 0.0
@@ -459,22 +462,24 @@ def pf_block(
                 tot += w
                 sw2 += w * w
                 for i in range(n):
-                    d[i] = Xn[p, i] - x0[i]
+                    d[i] = X[b, p, i] - x0[i]
                     S1[i] += w * d[i]
-                for i in range(n):
-                    for j in range(i, n):
-                        S2[i, j] += w * d[i] * d[j]
+                if full:
+                    for i in range(n):
+                        for j in range(i, n):
+                            S2[i, j] += w * d[i] * d[j]
             lnorm = math.log(tot) + top
             ll = -_INF if dead else lnorm
             ll_acc[b] += ll
             for i in range(n):
                 d[i] = S1[i] / tot
                 xm[b, i] = x0[i] + d[i]
-            for i in range(n):
-                for j in range(i, n):
-                    v = S2[i, j] / tot - d[i] * d[j]
-                    Pm[b, i, j] = v
-                    Pm[b, j, i] = v
+            if full:
+                for i in range(n):
+                    for j in range(i, n):
+                        v = S2[i, j] / tot - d[i] * d[j]
+                        Pm[b, i, j] = v
+                        Pm[b, j, i] = v
             ess = 1.0 / (sw2 / (tot * tot))
             res = ess < thr
             if res:
@@ -485,6 +490,9 @@ def pf_block(
                     cum += Wb[p] / tot
                     work[p] = cum
                 work[Np - 1] = 1.0
+                for p in range(Np):
+                    for i in range(n):
+                        Xn[p, i] = X[b, p, i]
                 j = 0
                 for p in range(Np):
                     v = (u0 + p) / Np
@@ -496,8 +504,6 @@ def pf_block(
                     lw[b, p] = -logNp
             else:
                 for p in range(Np):
-                    for i in range(n):
-                        X[b, p, i] = Xn[p, i]
                     lw[b, p] = work[p] - lnorm
             if want[0]:
                 for i in range(n):

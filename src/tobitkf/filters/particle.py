@@ -205,9 +205,12 @@ class ParticleFilter(Estimator):
         gives the same numbers; None draws fresh entropy once, when the filter is built.
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``filter`` for linear readings (censored or not) of a time-invariant system without input runs
-        compiled (:mod:`tobitkf.filters._compiled_particle`: the same equations and the same random
-        numbers, in blocks of runs) under ``"auto"`` when numba imports, and always under ``"numba"``
-        (which refuses the other cases); ``"numpy"`` always runs the numpy loop. ``step`` is numpy.
+        compiled (:mod:`tobitkf.filters._compiled_particle`: the same equations, in blocks of runs,
+        drawing from the same generator in its own order, so equal to the numpy loop in law, and to
+        rounding for the same numbers) under ``"auto"`` when numba imports, and always under
+        ``"numba"`` (which refuses the other channels: fading, the protocol channel, random saturation,
+        contract channels and nonlinear models run the numpy loop); ``"numpy"`` always runs the numpy
+        loop. ``step`` is numpy. The two backends give different particles for the same seed.
 
     Raises
     ------
