@@ -310,6 +310,7 @@ def pf_block(
     d = np.empty(n)
     S1 = np.empty(n)
     S2 = np.empty((n, n))
+    R = np.empty((Np, m + n))  # one run-step's random numbers: uniforms of the censored readings, normals
     Xn = np.empty((Np, n))  # one run's particles before resampling (the proposals are written in place)
     work = np.empty(Np)  # its log weights, then the cumulative weights
     Wb = np.empty(Np)
@@ -367,6 +368,13 @@ def pf_block(
                             Sig[i, j] = v
                             Sig[j, i] = v
                 _psd_sqrt(Sig, L)
+                # the run's numbers first, in the documented order (then the arithmetic runs without calls)
+                for p in range(Np):
+                    for l in range(m):
+                        if cls[l] == _LOWER or cls[l] == _UPPER:
+                            R[p, l] = rng.random()
+                    for j in range(n):
+                        R[p, m + j] = rng.standard_normal()
                 for p in range(Np):
                     for i in range(n):
                         s = 0.0
@@ -387,21 +395,19 @@ def pf_block(
                             inc += -0.5 * z * z - lsd[l]
                             dv = y[b, k, l] - pred
                         elif c == _LOWER:
-                            lm, z = censored_draw((LO[k, l] - pred) / sd, rng.random())
+                            lm, z = censored_draw((LO[k, l] - pred) / sd, R[p, l])
                             inc += lm
                             dv = z * sd
                         else:
-                            lm, z = censored_draw((pred - HI[k, l]) / sd, rng.random())
+                            lm, z = censored_draw((pred - HI[k, l]) / sd, R[p, l])
                             inc += lm
                             dv = -z * sd
                         for i in range(n):
                             mu[i] += dv * g[l, i]
-                    for j in range(n):
-                        e[j] = rng.standard_normal()
                     for i in range(n):
                         s = 0.0
                         for j in range(n):
-                            s += e[j] * L[i, j]
+                            s += R[p, m + j] * L[i, j]
                         X[b, p, i] = mu[i] + s
                     w = inc + lw[b, p]
                     work[p] = w
@@ -410,13 +416,14 @@ def pf_block(
             else:
                 for p in range(Np):
                     for j in range(n):
-                        e[j] = rng.standard_normal()
+                        R[p, m + j] = rng.standard_normal()
+                for p in range(Np):
                     for i in range(n):
                         s = 0.0
                         t = 0.0
                         for j in range(n):
                             s += X[b, p, j] * A[i, j]
-                            t += e[j] * G[i, j]
+                            t += R[p, m + j] * G[i, j]
                         mu[i] = s + t
                     for i in range(n):
                         X[b, p, i] = mu[i]
