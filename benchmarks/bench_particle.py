@@ -353,7 +353,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--target", action="store_true", help="(c) and (d) only, at the target size")
-    parser.add_argument("--target-runs", type=int, default=50, help="(c): runs (the target: 1000)")
+    parser.add_argument("--target-runs", type=int, default=None, help="(c): runs (default 50; --target: 1000)")
     parser.add_argument("--target-steps", type=int, default=100, help="(c): steps (the target: 100)")
     parser.add_argument("--target-particles", type=int, default=4000, help="(c): particles per run")
     parser.add_argument("--peer-runs", type=int, default=40, help="(d): runs")
@@ -366,12 +366,12 @@ def main() -> None:
         peers(8, 200, 5, 1)
         return
     if args.target:
-        compiled_vs_plain(1000, 4000, 100, args.repeat, args.numpy_path)
+        compiled_vs_plain(args.target_runs or 1000, 4000, 100, args.repeat, args.numpy_path)
         peers(args.peer_runs, 4000, 100, args.repeat)
         return
     throughput(args.runs, args.particles, args.steps, min(args.repeat, 3))
     memory(args.runs, args.particles // 10, 50)
-    compiled_vs_plain(args.target_runs, args.target_particles, args.target_steps, args.repeat, args.numpy_path)
+    compiled_vs_plain(args.target_runs or 50, args.target_particles, args.target_steps, args.repeat, args.numpy_path)
     peers(args.peer_runs, args.target_particles, args.target_steps, args.repeat)
 
 
