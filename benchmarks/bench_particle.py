@@ -221,7 +221,11 @@ def compiled_vs_plain(runs: int, particles: int, steps: int, repeat: int, numpy_
         print(f"  {proposal} proposal")
         for name, v in t.items():
             print(_row(name, v, rs, None if name == "plain numpy" else t["plain numpy"][2]), flush=True)
-        print(f"  -> ours {ratio:.2f}x the plain numpy filter ({'meets' if ratio >= 3 else 'misses'} the 3x target)")
+        at_target = runs >= 1000 and steps == 100 and particles == 4000
+        verdict = (
+            ("meets" if ratio >= 3 else "misses") + " the 3x target" if at_target else "the 3x target: 1000x100x4000"
+        )
+        print(f"  -> ours {ratio:.2f}x the plain numpy filter ({verdict})")
         out[proposal] = dict(t, ratio=ratio)
     return out
 
