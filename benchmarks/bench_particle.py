@@ -7,18 +7,26 @@
     The issue's target: >= 1e6 particle-steps/s per core for n = 2, m = 1.
 (b) Memory: peak traced allocation (tracemalloc) of ``filter(y, outputs="last")`` for T and 10 T steps:
     the particles are O(N N_p n_x) and nothing grows with T (the ratio should be ~1).
-(c) The compiled loop against numpy: the censored oscillator (n = 2, m = 1, censoring at 0), µs per
-    run-step (CPU time, best of ``--repeat``) of ``ParticleFilter`` on its numpy path and compiled, and of
-    a plain vectorised numpy particle filter written here (:func:`plain_filter`, the filter one would
-    write by hand), for the optimal and the bootstrap proposal. The target: the compiled optimal
-    filter at least 3x the plain one at 10^3 runs x 100 steps x 4,000 particles
-    (``--target-runs 1000 --target-steps 100 --target-particles 4000``; the default is smaller).
+(c) The target: the censored oscillator (n = 2, m = 1, censoring at 0), ``ParticleFilter`` compiled
+    against a plain vectorised numpy particle filter written here (:func:`plain_filter`, the filter one
+    would write by hand: all runs' particles as one array, the same proposals, log-sum-exp weights,
+    systematic resampling), for the optimal and the bootstrap proposal, in the same process,
+    interleaved, medians of 5 of user, system and wall time (µs per run-step), the load average
+    stated. Target: the compiled optimal filter at least 3x the plain one at 10^3 runs x 100 steps x
+    4,000 particles (``--target``; the default is smaller). ``--numpy-path`` adds ParticleFilter's own
+    numpy path.
+(d) Peers on the same *uncensored* bootstrap model (the packages have no censored proposal): ours
+    compiled, the ``particles`` package (N. Chopin's SMC library: one run per ``SMC`` object, its
+    bootstrap filter, systematic resampling at ESS < N/2, the filtering moments collected) and
+    cuthbert's JAX particle filter (``vmap`` over runs of its ``lax.scan`` filter, adaptive systematic
+    resampling, JIT-compiled before timing), medians of 5; a peer that is not installed is skipped
+    (``pip install "tobitkf[bench]"``). Target: ours faster than both.
 
 Run by hand::
 
     PYTHONPATH=src python benchmarks/bench_particle.py            # ~1 minute
     PYTHONPATH=src python benchmarks/bench_particle.py --smoke    # seconds
-    PYTHONPATH=src python benchmarks/bench_particle.py --compiled-only --target-runs 1000 --target-steps 100
+    PYTHONPATH=src python benchmarks/bench_particle.py --target    # (c) and (d) at the target size
 """
 
 from __future__ import annotations
@@ -29,6 +37,8 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import resource  # noqa: E402
+import time  # noqa: E402
 import tracemalloc  # noqa: E402
 
 import numpy as np  # noqa: E402
@@ -150,39 +160,192 @@ def plain_filter(sys_: tk.LinearSystem, y: np.ndarray, lower: float, particles: 
     return means
 
 
-def compiled_vs_numpy(runs: int, particles: int, steps: int, repeat: int, compiled_only: bool = False) -> dict:
-    """(c): µs per run-step of the numpy path, the compiled path and the plain numpy filter."""
-    import os as _os
+def _clock():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime, r.ru_stime, time.perf_counter()
 
-    load = _os.getloadavg()[0] if hasattr(_os, "getloadavg") else float("nan")
+
+def timed(fn) -> tuple[float, float, float]:
+    """(user, system, wall) seconds of one call of ``fn``."""
+    a = _clock()
+    fn()
+    b = _clock()
+    return b[0] - a[0], b[1] - a[1], b[2] - a[2]
+
+
+def interleaved(contestants: dict, repeat: int) -> dict:
+    """Medians over ``repeat`` rounds of (user, system, wall) seconds; each round calls every contestant once,
+    in turn (so a change of the machine's load hits all of them)."""
+    got: dict = {name: [] for name in contestants}
+    for _ in range(repeat):
+        for name, fn in contestants.items():
+            got[name].append(timed(fn))
+    return {name: tuple(float(np.median(col)) for col in zip(*rows)) for name, rows in got.items()}
+
+
+def _load() -> str:
+    one, five, _ = os.getloadavg()
+    return f"load average {one:.1f} (1 min), {five:.1f} (5 min) on {os.cpu_count()} cores"
+
+
+def _row(name: str, t: tuple, rs: int, ref: float | None) -> str:
+    us = [v / rs * 1e6 for v in t]
+    ratio = f"{ref / t[2]:11.2f}x" if ref is not None else ""
+    return f"  {name:<34}{us[0]:10.1f}{us[1]:8.1f}{us[2]:10.1f}{ratio}"
+
+
+def compiled_vs_plain(runs: int, particles: int, steps: int, repeat: int, numpy_path: bool = False) -> dict:
+    """(c): µs per run-step (user, system, wall; medians of ``repeat``) of the compiled filter and the plain
+    numpy filter, interleaved in this process; ratios = plain wall / ours wall."""
     print(
-        f"(c) compiled vs numpy: censored oscillator n=2 m=1, {runs} runs x {steps} steps x {particles} particles "
-        f"(CPU time, best of {repeat}; load average {load:.1f})"
+        f"(c) ours compiled vs a plain vectorised numpy filter: censored oscillator n=2 m=1, {runs} runs x "
+        f"{steps} steps x {particles} particles; µs per run-step, medians of {repeat}, interleaved; {_load()}"
     )
     sys_, cens = oscillator(), tk.Censoring(lower=0.0)
     y = tk.simulate(sys_, steps, runs, censoring=cens, seed=0).y
     rs = runs * steps
     tk.ParticleFilter(sys_, cens, particles=8, backend="numba").filter(y[:1, :2])  # compile (or load the cache)
-    print(f"{'proposal':<10}{'numpy path':>14}{'compiled':>12}{'plain numpy':>14}{'vs plain':>10}{'>=3x':>6}")
+    print(f"  {'contestant':<34}{'user':>10}{'sys':>8}{'wall':>10}{'plain/ours':>12}")
     out = {}
     for proposal in ("optimal", "prior"):
-        times = {}
-        for backend in ("numpy", "numba"):
-            if backend == "numpy" and compiled_only:
-                times[backend] = float("nan")
-                continue
-            pf = tk.ParticleFilter(sys_, cens, particles=particles, proposal=proposal, seed=1, backend=backend)
-            times[backend] = best_time(lambda pf=pf: pf.filter(y, outputs="mean"), repeat, cpu=True) / rs * 1e6
-        times["plain"] = (
-            best_time(lambda p=proposal: plain_filter(sys_, y, 0.0, particles, p, 1), repeat, cpu=True) / rs * 1e6
+        pf = tk.ParticleFilter(sys_, cens, particles=particles, proposal=proposal, seed=1, backend="numba")
+        contestants = {
+            "ours (compiled)": lambda pf=pf: pf.filter(y, outputs="mean"),
+            "plain numpy": lambda p=proposal: plain_filter(sys_, y, 0.0, particles, p, 1),
+        }
+        if numpy_path:
+            pn = tk.ParticleFilter(sys_, cens, particles=particles, proposal=proposal, seed=1, backend="numpy")
+            contestants["ours (numpy path)"] = lambda pn=pn: pn.filter(y, outputs="mean")
+        t = interleaved(contestants, repeat)
+        ratio = t["plain numpy"][2] / t["ours (compiled)"][2]
+        print(f"  {proposal} proposal")
+        for name, v in t.items():
+            print(_row(name, v, rs, None if name == "plain numpy" else t["plain numpy"][2]), flush=True)
+        at_target = runs >= 1000 and steps == 100 and particles == 4000
+        verdict = (
+            ("meets" if ratio >= 3 else "misses") + " the 3x target" if at_target else "the 3x target: 1000x100x4000"
         )
-        ratio = times["plain"] / times["numba"]
-        out[proposal] = dict(times, ratio=ratio)
-        print(
-            f"{proposal:<10}{times['numpy']:12.1f}µs{times['numba']:10.1f}µs{times['plain']:12.1f}µs{ratio:9.1f}x"
-            f"{'yes' if ratio >= 3 else 'no':>6}",
-            flush=True,
-        )
+        print(f"  -> ours {ratio:.2f}x the plain numpy filter ({verdict})")
+        out[proposal] = dict(t, ratio=ratio)
+    return out
+
+
+def _particles_peer(sys_: tk.LinearSystem, y: np.ndarray, particles: int):
+    """The ``particles`` package's bootstrap filter, one SMC object per run; None when it is not installed."""
+    try:
+        import particles as smc
+        from particles import collectors
+        from particles import distributions as dists
+        from particles import state_space_models as ssm
+    except ImportError:
+        return None
+    A, Q, c = sys_.transition(0), sys_.process_cov(0), sys_.measurement(1)[0]
+    sd = float(np.sqrt(sys_.measurement_cov(1)[0, 0]))
+    x0, P0 = sys_.x0, sys_.P0
+
+    class Model(ssm.StateSpaceModel):
+        def PX0(self):
+            return dists.MvNormal(loc=x0, cov=P0)
+
+        def PX(self, t, xp):
+            return dists.MvNormal(loc=xp @ A.T, cov=Q)
+
+        def PY(self, t, xp, x):
+            return dists.Normal(loc=x @ c, scale=sd)
+
+    def run():
+        for r in range(y.shape[0]):
+            fk = ssm.Bootstrap(ssm=Model(), data=list(y[r, :, 0]))
+            alg = smc.SMC(fk=fk, N=particles, resampling="systematic", ESSrmin=0.5, collect=[collectors.Moments()])
+            alg.run()
+
+    return run
+
+
+def _cuthbert_peer(sys_: tk.LinearSystem, y: np.ndarray, particles: int, block: int = 8):
+    """cuthbert's particle filter, vmapped over blocks of runs, the weighted means computed inside the compiled
+    function; None when cuthbert (or JAX) is not installed."""
+    try:
+        import jax
+        import jax.numpy as jnp
+        from cuthbert import filter as cfilter
+        from cuthbert.smc import particle_filter
+        from cuthbertlib.resampling import systematic
+        from cuthbertlib.resampling.adaptive import ess_decorator
+    except ImportError:
+        return None
+    jax.config.update("jax_enable_x64", True)
+    A, Lq = jnp.asarray(sys_.transition(0)), jnp.asarray(np.linalg.cholesky(sys_.process_cov(0)))
+    c, sd = jnp.asarray(sys_.measurement(1)[0]), float(np.sqrt(sys_.measurement_cov(1)[0, 0]))
+    x0, L0 = jnp.asarray(sys_.x0), jnp.asarray(np.linalg.cholesky(sys_.P0))
+    n = A.shape[0]
+
+    def init_sample(key):
+        return x0 + L0 @ jax.random.normal(key, (n,))
+
+    def propagate_sample(key, x, yk):
+        return A @ x + Lq @ jax.random.normal(key, (n,))
+
+    def log_potential(xp, x, yk):
+        z = (yk - c @ x) / sd
+        return -0.5 * z * z
+
+    pf = particle_filter.build_filter(
+        init_sample, propagate_sample, log_potential, particles, ess_decorator(systematic.resampling, 0.5)
+    )
+
+    def one(key, yr):
+        k0, k1 = jax.random.split(key)
+        states = cfilter(pf, yr, pf.init_prepare(key=k0), key=k1)
+        W = jax.nn.softmax(states.log_weights, axis=-1)
+        return jnp.einsum("tp,tpi->ti", W, states.particles)[1:]
+
+    batched = jax.jit(jax.vmap(one))
+    yj = jnp.asarray(y[..., 0])
+    N = y.shape[0]
+    B = min(block, N)
+    keys = jax.random.split(jax.random.PRNGKey(0), N)
+    batched(keys[:B], yj[:B]).block_until_ready()  # compile before timing
+
+    def run():
+        for r0 in range(0, N - B + 1, B):
+            batched(keys[r0 : r0 + B], yj[r0 : r0 + B]).block_until_ready()
+
+    return run, (N // B) * B
+
+
+def peers(runs: int, particles: int, steps: int, repeat: int) -> dict:
+    """(d): ours compiled, ``particles`` and cuthbert on the uncensored bootstrap model, µs per run-step."""
+    print(
+        f"(d) peers on the uncensored bootstrap model (oscillator n=2 m=1), {runs} runs x {steps} steps x "
+        f"{particles} particles; µs per run-step, medians of {repeat}, interleaved; {_load()}"
+    )
+    sys_ = oscillator()
+    y = tk.simulate(sys_, steps, runs, seed=0).y
+    pf = tk.ParticleFilter(sys_, particles=particles, proposal="prior", seed=1, backend="numba")
+    pf.filter(y[:1, :2])
+    contestants = {"ours (compiled)": lambda: pf.filter(y, outputs="mean")}
+    per_run = {"ours (compiled)": runs}
+    got = _particles_peer(sys_, y, particles)
+    if got is None:
+        print("  particles: not installed (pip install particles), skipped")
+    else:
+        contestants["particles (N. Chopin)"] = got
+        per_run["particles (N. Chopin)"] = runs
+    cg = _cuthbert_peer(sys_, y, particles)
+    if cg is None:
+        print("  cuthbert: not installed (pip install cuthbert), skipped")
+    else:
+        contestants["cuthbert (JAX)"], per_run["cuthbert (JAX)"] = cg
+    t = interleaved(contestants, repeat)
+    print(f"  {'contestant':<34}{'user':>10}{'sys':>8}{'wall':>10}{'ours faster by':>16}")
+    ours = t["ours (compiled)"][2] / per_run["ours (compiled)"]
+    out = {}
+    for name, v in t.items():
+        k = per_run[name] * steps
+        ratio = (v[2] / per_run[name]) / ours
+        out[name] = dict(user=v[0], sys=v[1], wall=v[2], run_steps=k, ratio=ratio)
+        print(_row(name, v, k, None) + (f"{ratio:15.2f}x" if name != "ours (compiled)" else ""), flush=True)
     return out
 
 
@@ -192,23 +355,28 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=100)
     parser.add_argument("--particles", type=int, default=10_000)
     parser.add_argument("--steps", type=int, default=20)
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--target-runs", type=int, default=20, help="(c): runs (the target: 1000)")
-    parser.add_argument("--target-steps", type=int, default=20, help="(c): steps (the target: 100)")
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--target", action="store_true", help="(c) and (d) only, at the target size")
+    parser.add_argument("--target-runs", type=int, default=None, help="(c): runs (default 50; --target: 1000)")
+    parser.add_argument("--target-steps", type=int, default=100, help="(c): steps (the target: 100)")
     parser.add_argument("--target-particles", type=int, default=4000, help="(c): particles per run")
-    parser.add_argument("--compiled-only", action="store_true", help="(c) only, without the numpy path")
+    parser.add_argument("--peer-runs", type=int, default=40, help="(d): runs")
+    parser.add_argument("--numpy-path", action="store_true", help="(c): also ParticleFilter's numpy path")
     args = parser.parse_args()
     if args.smoke:
         throughput(4, 500, 5, 1)
         memory(4, 500, 5)
-        compiled_vs_numpy(4, 500, 5, 1)
+        compiled_vs_plain(4, 500, 5, 1, numpy_path=True)
+        peers(8, 200, 5, 1)
         return
-    if args.compiled_only:
-        compiled_vs_numpy(args.target_runs, args.target_particles, args.target_steps, args.repeat, True)
+    if args.target:
+        compiled_vs_plain(args.target_runs or 1000, 4000, 100, args.repeat, args.numpy_path)
+        peers(args.peer_runs, 4000, 100, args.repeat)
         return
-    throughput(args.runs, args.particles, args.steps, args.repeat)
+    throughput(args.runs, args.particles, args.steps, min(args.repeat, 3))
     memory(args.runs, args.particles // 10, 50)
-    compiled_vs_numpy(args.target_runs, args.target_particles, args.target_steps, args.repeat)
+    compiled_vs_plain(args.target_runs or 50, args.target_particles, args.target_steps, args.repeat, args.numpy_path)
+    peers(args.peer_runs, args.target_particles, args.target_steps, args.repeat)
 
 
 if __name__ == "__main__":

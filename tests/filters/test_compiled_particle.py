@@ -1,10 +1,11 @@
 """The compiled particle filter (tobitkf.filters._compiled_particle) against the numpy path it implements.
 
-The compiled loop draws the numpy path's random numbers (same Generator calls, same order), so with
-the runs in one block its results equal the numpy path's to rounding: means, covariances, the
-extras, the final particles and the generator's state. With several blocks, block j equals the
-numpy path run on those runs alone, continuing the generator where block j-1 left it. The normal
-tails are checked against scipy.special.
+The compiled loop draws its own numbers from the filter's generator, in its own order (documented in
+the module). For the same random numbers the two paths must agree: the numpy path is fed, through a
+stand-in generator, exactly the numbers the compiled loop drew (replayed from the same generator
+state in the compiled order), and every output, the final particles and weights must then agree to
+rounding, and the replay must leave the generator where the compiled loop left it. The normal tails
+are checked against scipy.special.
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ from scipy.special import log_ndtr as scipy_log_ndtr
 from scipy.special import ndtri_exp as scipy_ndtri_exp
 
 import tobitkf as tk
-from tobitkf.filters.core import FilterState
+from tobitkf.filters import particle as pt
+from tobitkf.filters._particle_rng import generator
+from tobitkf.filters._readings import LOWER, UPPER, classify_readings
 
 pytest.importorskip("numba")
 
@@ -47,17 +50,103 @@ def record(m, cens, runs=6, steps=12, seed=0):
     return y
 
 
+class _Feed:
+    """Stands in for the numpy path's Generator: serves prepared arrays, in the order the path asks for them."""
+
+    def __init__(self, arrays):
+        self.arrays = list(arrays)
+        self.bit_generator = self  # the path stores ``bit_generator.state`` in its carry
+        self.state = {"bit_generator": "fed"}
+
+    def _next(self, size):
+        a = self.arrays.pop(0)
+        assert a.shape == (size if isinstance(size, tuple) else (size,)), (a.shape, size)
+        return a.copy()
+
+    def random(self, size=None):
+        return self._next(size)
+
+    def standard_normal(self, size=None):
+        return self._next(size)
+
+
+def replay(pf, state, y, block):
+    """The numbers the compiled loop draws from ``state``'s generator, in its order, as the arrays the numpy
+    path asks for per step ((U,) eps, the resampling uniforms); and the generator after them."""
+    N, T, m = y.shape
+    Np, n = pf.particles, pf.n
+    optimal = pf.proposal == "optimal"
+    lims = [pf.model.limits(state.k + 1 + k) for k in range(T)]
+    lo = np.array([a for a, _ in lims])[None]
+    hi = np.array([b for _, b in lims])[None]
+    censored = np.isin(classify_readings(y, lo, hi), (LOWER, UPPER))
+    g = generator(state.carry["rng"])
+    U, E, UR = np.full((T, N, Np, m), 0.5), np.empty((T, N, Np, n)), np.full((T, N), 0.5)
+    resampled = {}
+
+    def draw_step(k, b, res):
+        for p in range(Np):
+            if optimal:
+                for l in range(m):
+                    if censored[b, k, l]:
+                        U[k, b, p, l] = g.random()
+            for j in range(n):
+                E[k, b, p, j] = g.standard_normal()
+        if res:
+            UR[k, b] = g.random()
+
+    return U, E, UR, g, draw_step, resampled
+
+
+def fed_numpy_path(pf, state, y, compiled, block):
+    """The numpy path run from ``state`` on the numbers the compiled loop drew (``compiled``: its result)."""
+    N, T, _ = y.shape
+    U, E, UR, g, draw_step, _ = replay(pf, state, y, block)
+    res = compiled.extras["resampled"].reshape(N, T)
+    for r0 in range(0, N, block):
+        for k in range(T):
+            for b in range(r0, min(N, r0 + block)):
+                draw_step(k, b, res[b, k])
+    arrays = []
+    for k in range(T):
+        arrays += ([U[k]] if pf.proposal == "optimal" else []) + [E[k], UR[k]]
+    feed = _Feed(arrays)
+    orig, backend = pt._generator, pf.backend
+    pt._generator, pf.backend = (lambda state: feed), "numpy"
+    try:
+        out = pf.filter(y, state=state, outputs=("mean", "cov", "pred_mean", "pred_cov", "extras"))
+    finally:
+        pt._generator, pf.backend = orig, backend
+    assert not feed.arrays  # every prepared number was used
+    return out, g.bit_generator.state
+
+
 def assert_same(a, b):
     for key in ("mean", "cov", "pred_mean", "pred_cov"):
         np.testing.assert_allclose(getattr(b, key), getattr(a, key), rtol=0, atol=TOL, err_msg=key)
     np.testing.assert_array_equal(b.extras["resampled"], a.extras["resampled"])
     np.testing.assert_allclose(b.extras["ess"], a.extras["ess"], rtol=TOL, atol=0)
-    np.testing.assert_allclose(b.extras["log_likelihood"], a.extras["log_likelihood"], rtol=0, atol=TOL)
+    # the log-likelihood and log weights to rounding relative to their size (thousands, far in the tails)
+    np.testing.assert_allclose(b.extras["log_likelihood"], a.extras["log_likelihood"], rtol=1e-14, atol=TOL)
     fa, fb = a.final.carry, b.final.carry
     np.testing.assert_allclose(fb["particles"], fa["particles"], rtol=0, atol=TOL)
-    np.testing.assert_allclose(fb["log_weights"], fa["log_weights"], rtol=0, atol=TOL)
-    np.testing.assert_allclose(fb["log_likelihood"], fa["log_likelihood"], rtol=0, atol=TOL)
-    assert fb["rng"] == fa["rng"]
+    np.testing.assert_allclose(fb["log_weights"], fa["log_weights"], rtol=1e-14, atol=TOL)
+    np.testing.assert_allclose(fb["log_likelihood"], fa["log_likelihood"], rtol=1e-14, atol=TOL)
+
+
+def check_against_numpy(pf, y, block=None, both_branches=True):
+    """Run ``pf`` compiled (in blocks of ``block`` runs) and the numpy path on the same numbers; compare."""
+    N = int(np.prod(y.shape[:-2]))
+    y2 = y.reshape(N, *y.shape[-2:])
+    st = pf.init((N,))
+    block = block or cp.runs_per_block(pf.particles, pf.n)
+    got = cp.filter_blocks(pf, y2, st, frozenset(("mean", "cov", "pred_mean", "pred_cov", "extras")), (N,), block)
+    ref, rng_after = fed_numpy_path(pf, st, y2, got, block)
+    if both_branches:  # resampling and not resampling are both exercised
+        assert ref.extras["resampled"].any() and not ref.extras["resampled"].all()
+    assert_same(ref, got)
+    assert got.final.carry["rng"] == rng_after  # the compiled loop drew exactly these numbers
+    return got
 
 
 @pytest.mark.parametrize("proposal", ["optimal", "prior"])
@@ -66,54 +155,78 @@ def assert_same(a, b):
 def test_compiled_equals_numpy_for_the_same_random_numbers(proposal, m, kind):
     cens = CENSORINGS[kind](m)
     y = record(m, cens)
-    kw = dict(particles=200, proposal=proposal, seed=3, resample_threshold=0.7)
-    a = tk.ParticleFilter(system(m), cens, backend="numpy", **kw).filter(y)
-    b = tk.ParticleFilter(system(m), cens, backend="numba", **kw).filter(y)
-    assert a.extras["resampled"].any() and not a.extras["resampled"].all()  # both branches are exercised
-    assert_same(a, b)
+    pf = tk.ParticleFilter(system(m), cens, particles=200, proposal=proposal, seed=3, resample_threshold=0.7)
+    check_against_numpy(pf, y)
 
 
 def test_time_varying_limits_and_a_batch_shape():
     cens = tk.Censoring(lower=np.linspace(-0.5, 0.5, 10)[:, None])
     y = tk.simulate(system(1), 10, 6, censoring=cens, seed=1).y.reshape(2, 3, 10, 1)
-    kw = dict(particles=150, seed=5)
-    a = tk.ParticleFilter(system(1), cens, backend="numpy", **kw).filter(y)
-    b = tk.ParticleFilter(system(1), cens, backend="numba", **kw).filter(y)
-    assert b.mean.shape == (2, 3, 10, 2)
-    assert_same(a, b)
+    pf = tk.ParticleFilter(system(1), cens, particles=150, seed=5, backend="numba")
+    b = pf.filter(y)
+    assert b.mean.shape == (2, 3, 10, 2) and b.extras["ess"].shape == (2, 3, 10)
+    got = check_against_numpy(pf, y)
+    np.testing.assert_allclose(b.mean.reshape(6, 10, 2), got.mean, rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("proposal", ["optimal", "prior"])
-def test_blocks_of_runs_continue_the_generator(proposal):
+def test_blocks_of_runs_draw_one_block_after_the_other(proposal):
     cens = CENSORINGS["two-sided"](1)
     y = record(1, cens, runs=7)
-    pf = tk.ParticleFilter(system(1), cens, particles=120, proposal=proposal, seed=9, backend="numpy")
-    st = pf.init((7,))
-    got = cp.filter_blocks(pf, y, st, frozenset(("mean", "cov", "extras")), (7,), block=3)
-    rng = st.carry["rng"]
-    for r0 in range(0, 7, 3):
-        r1 = min(7, r0 + 3)
-        sub = FilterState(
-            k=0,
-            batch_shape=(r1 - r0,),
-            x=st.x[r0:r1],
-            P=st.P[r0:r1],
-            n=2,
-            S=None,
-            carry={
-                "particles": st.carry["particles"][r0:r1],
-                "log_weights": st.carry["log_weights"][r0:r1],
-                "rng": rng,
-                "log_likelihood": np.zeros(r1 - r0),
-            },
-        )
-        ref = pf.filter(y[r0:r1], state=sub)
-        rng = ref.final.carry["rng"]
-        np.testing.assert_allclose(got.mean[r0:r1], ref.mean, rtol=0, atol=TOL)
-        np.testing.assert_allclose(got.cov[r0:r1], ref.cov, rtol=0, atol=TOL)
-        np.testing.assert_array_equal(got.extras["resampled"][r0:r1], ref.extras["resampled"])
-        np.testing.assert_allclose(got.final.carry["particles"][r0:r1], ref.final.carry["particles"], atol=TOL)
-    assert got.final.carry["rng"] == rng
+    pf = tk.ParticleFilter(system(1), cens, particles=120, proposal=proposal, seed=9, resample_threshold=0.7)
+    check_against_numpy(pf, y, block=3)
+
+
+def test_readings_far_in_the_tails():
+    # a prior mean near 0 and readings censored at -40 and +45 (the latent reading ~40 standard deviations
+    # from the prediction): the censored draws come from the far tails of the quantile
+    cens = tk.Censoring(lower=[-40.0], upper=[45.0])
+    y = np.array([[[-40.0]] * 3, [[45.0]] * 3, [[0.1], [-40.0], [0.3]]])
+    pf = tk.ParticleFilter(system(1), cens, particles=300, seed=4, resample_threshold=0.7, proposal="optimal")
+    got = check_against_numpy(pf, y, both_branches=False)
+    assert np.isfinite(got.mean).all() and np.isfinite(got.extras["log_likelihood"]).all()
+
+
+def _arrays(obj, seen=None):
+    """Every ndarray reachable from a result (its fields, extras and final state)."""
+    seen = set() if seen is None else seen
+    if id(obj) in seen:
+        return []
+    seen.add(id(obj))
+    if isinstance(obj, np.ndarray):
+        return [obj]
+    if isinstance(obj, dict):
+        return [a for v in obj.values() for a in _arrays(v, seen)]
+    if isinstance(obj, (list, tuple)):
+        return [a for v in obj for a in _arrays(v, seen)]
+    if hasattr(obj, "__dict__"):
+        return [a for v in vars(obj).values() for a in _arrays(v, seen)]
+    return []
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_memory_is_flat_in_the_number_of_steps(backend):
+    import tracemalloc
+
+    N, T, Np = 3, 31, 997  # sizes no other axis shares
+    cens = CENSORINGS["lower"](1)
+    pf = tk.ParticleFilter(system(1), cens, particles=Np, seed=1, backend=backend)
+    res = pf.filter(tk.simulate(system(1), T, N, censoring=cens, seed=0).y)
+    shapes = [a.shape for a in _arrays(res)]
+    assert (N, Np, 2) in shapes  # the final particles are kept (the state to continue from)...
+    assert not [s for s in shapes if Np in s and T in s]  # ...but nothing per step and particle
+    # the peak of a filter that records nothing per step does not grow with T (beyond the readings)
+    peaks = {}
+    for steps in (T, 8 * T):
+        y = tk.simulate(system(1), steps, N, censoring=cens, seed=0).y
+        pf.filter(y[:, :2], outputs="last")  # compiled functions and caches loaded before measuring
+        tracemalloc.start()
+        pf.filter(y, outputs="last")
+        peaks[steps] = tracemalloc.get_traced_memory()[1] - y.nbytes
+        tracemalloc.stop()
+    assert peaks[T] > 8 * N * Np * 2  # the particles are counted...
+    # ...and 7 T more steps add at most a few numbers per step (the limits), not a particle array (24 kB a step)
+    assert peaks[8 * T] - peaks[T] < 7 * T * 100
 
 
 def test_a_filter_continued_from_its_final_state_equals_one_call():

@@ -326,11 +326,10 @@ def test_step_loop_equals_filter_and_pickled_state_resumes(channel, batch):
     y[rng.random(y.shape) < 0.1] = np.nan
     y = y.reshape(batch + y.shape[1:])
     prop = "rao_blackwellised" if channel == "protocol-rb" else "auto"
-    # step is the numpy path: bit-equal to the numpy loop; the compiled loop equals it to rounding
+    # step is the numpy path: bit-equal to the numpy loop (the compiled loop draws its numbers in its own
+    # order: equal to the numpy path for the same numbers, tests/filters/test_compiled_particle.py)
     pf = ParticleFilter(sys_, ch, particles=200, proposal=prop, seed=3, backend="numpy")
     res = pf.filter(y)
-    auto = ParticleFilter(sys_, ch, particles=200, proposal=prop, seed=3).filter(y)
-    np.testing.assert_allclose(auto.mean, res.mean, rtol=0, atol=1e-12)
     assert res.mean.shape == batch + (12, 2) and res.times.tolist() == list(range(1, 13))
     assert res.extras["ess"].shape == batch + (12,)
     state, means = _run_steps(pf, y, batch)

@@ -6,28 +6,44 @@ readings), both proposals it has there (``"prior"``, the bootstrap filter, and `
 locally optimal proposal drawn channel by channel), not a second algorithm: the same equations in
 the same order per particle, the same log-sum-exp normalisation of the weights, the same systematic
 resampling (Kitagawa 1996) when the effective sample size :math:`1/\sum_iW_i^2` falls below the
-threshold, and **the same random numbers**: the driver draws, per step, exactly the arrays the numpy
-path draws, with the same ``numpy.random.Generator`` calls in the same order (into buffers allocated
-once, ``out=``), and hands them to the compiled step. With all runs in one block the results equal the
-numpy path's to rounding (tested to 1e-12).
+threshold. Given the same random numbers, the results equal the numpy path's to rounding (tested to
+1e-12 by feeding the numpy path the draws of the compiled loop).
 
-Runs are processed in blocks (outer loop) over time (inner loop); the working buffers (the proposed
-particles, the random numbers) are those of one block, allocated once, so the working memory does not
-grow with the run count or with T. The particles of every run (the final state, from which a filter
-can continue) are one ``(N, N_p, n)`` array updated in place. With several blocks a block consumes the
-generator for all its steps before the next one starts (the draws of block ``j`` are those the numpy
-path draws for those runs alone, continuing the generator where block ``j-1`` left it; tested).
+**Random numbers.** The compiled loop draws its own numbers, inside the loop, from the filter's
+``numpy.random.Generator`` (numba runs numpy's own algorithms on the same bit generator, so the stream
+is numpy's and the generator's state afterwards is the one a pickled state carries on). Only the
+numbers a particle needs are drawn, in this order: for each block of runs, for each step, for each
+run of the block, for each particle: (optimal proposal) one uniform per censored reading, in channel
+order, then the n standard normals of the state; then, if the run resamples, one uniform. The numpy
+path draws the same kinds of numbers, all runs at once (a uniform per channel and particle, the
+normals, a uniform per run); so the two paths agree in law, and exactly for the same numbers.
 
-The normal tails: :math:`\log\Phi` (:func:`log_ndtr`) through ``erfc`` and, beyond 25√2 ≈ 35.4 standard
-deviations, the asymptotic series of ``erfcx``; its inverse (:func:`ndtri_exp`) from Acklam's rational
-start refined by a Halley step (agree with ``scipy.special`` to ~1e-15).
-Functions are compiled on first use and cached on disk (``cache=True``).
+**Memory.** Runs are processed in blocks (outer loop) over time (inner loop, compiled); a block's
+particles stay in the cache for its T steps. The working memory is one run's scratch (its proposed
+particles and weights); the particles of every run (the final state, from which a filter can
+continue) are the ``(N, N_p, n)`` array of the state, updated in place; nothing grows with T but the
+per-step outputs requested (``outputs="last"`` requests none). With several blocks, block ``j`` draws
+its numbers after block ``j-1`` has drawn all of its own; a filter continued from its final state
+equals one call when the runs fit one block.
 
-Cost per particle and step: the numpy normal draws (shared with the numpy path, so that both give the
-same numbers) and, for a censored reading, one :func:`log_ndtr` and, under the optimal proposal, one
-:func:`ndtri_exp` (scalar libm calls: erfc, log, exp); the rest (propagation, weights, moments,
-resampling) is a few passes over the block's particles without temporaries
-(``benchmarks/bench_particle.py`` (c) times it against the numpy path and a plain numpy filter).
+**The normal tails** cost what the bootstrap weight and the censored draw need, no more: a censored
+weight is :math:`\log\Phi(a)` through one ``erfc`` and one logarithm (:func:`log_ndtr`; beyond
+25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the censored draw
+:math:`z = \Phi^{-1}(u\,\Phi(a))` reuses that :math:`\Phi(a)` (:func:`censored_draw`): the quantile by
+Wichura's AS 241 (rational functions, relative error about 1e-16: no further ``erfc`` or ``exp``), its
+tail from :math:`\sqrt{-\log p}` and the upper tail from :math:`1 - p = (1-u) + u\,\Phi(-a)` (no
+cancellation). :func:`ndtri_exp` (the quantile from :math:`\log p`) serves the far tail. All agree
+with ``scipy.special`` to about 1e-15. Functions are compiled on first use and cached on disk
+(``cache=True``).
+
+Cost per particle and step (``benchmarks/bench_particle.py`` times it against a plain vectorised numpy
+filter and the `particles` and `cuthbert` packages): n normal draws and a matrix-vector product; for a
+censored reading one ``erfc`` and one ``log`` (the optimal proposal: plus a uniform and, in the tails of
+:math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); one ``exp`` for the weight; the weighted moments and the
+resampling in two passes over the run's particles, without temporaries.
+
+References: M. J. Wichura, Algorithm AS 241: the percentage points of the normal distribution, Applied
+Statistics 37(3), 1988.
 """
 
 from __future__ import annotations
@@ -38,18 +54,18 @@ from typing import Any
 import numpy as np
 from numba import njit
 
+from ._particle_rng import generator
 from ._readings import _INTERIOR, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
 
-__all__ = ["log_ndtr", "ndtri_exp", "pf_step", "runs_per_block", "filter_blocks", "BLOCK_BYTES"]
+__all__ = ["log_ndtr", "ndtri_exp", "censored_draw", "pf_block", "runs_per_block", "filter_blocks", "BLOCK_BYTES"]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
 _SQRT_PI = math.sqrt(math.pi)
-_SQRT_2PI = math.sqrt(2.0 * math.pi)
 _INF = math.inf
 
-#: working-memory budget of one block of runs (bytes): the proposed particles and the random numbers
-BLOCK_BYTES = 4 * 2**20
+#: cache budget of one block of runs (bytes): its particles and log-weights stay in the core's L2 cache
+BLOCK_BYTES = 1 * 2**20
 
 
 # --------------------------------------------------------------------------- normal tails
@@ -81,38 +97,51 @@ def log_ndtr(x):
     return -0.5 * x * x + math.log(0.5 * s / (t * _SQRT_PI))
 
 
-# Acklam's rational approximation of the normal quantile (relative error < 1.2e-9): the start
-_A = (-3.969683028665376e01, 2.209460984245205e02, -2.759285104469687e02, 1.383577518672690e02,
-      -3.066479806614716e01, 2.506628277459239e00)  # fmt: skip
-_B = (-5.447609879822406e01, 1.615858368580409e02, -1.556989798598866e02, 6.680131188771972e01,
-      -1.328068155288572e01)  # fmt: skip
-_C = (-7.784894002430293e-03, -3.223964580411365e-01, -2.400758277161838e00, -2.549732539343734e00,
-      4.374664141464968e00, 2.938163982698783e00)  # fmt: skip
-_D = (7.784695709041462e-03, 3.224671290700398e-01, 2.445134137142996e00, 3.754408661907416e00)
-_P_LOW = 0.02425
-_LOG_P_LOW = math.log(_P_LOW)
-_LOG_P_HIGH = math.log1p(-_P_LOW)
-
-
-@njit(cache=True, error_model="numpy")
-def _tail_start(q):
-    c0, c1, c2, c3, c4, c5 = _C
-    d0, d1, d2, d3 = _D
-    return (((((c0 * q + c1) * q + c2) * q + c3) * q + c4) * q + c5) / ((((d0 * q + d1) * q + d2) * q + d3) * q + 1.0)
+# Wichura's AS 241 (PPND16): the normal quantile by rational functions, relative error about 1e-16.
+# The central region |p - 1/2| <= 0.425, in r = 0.180625 - (p - 1/2)^2:
+_A = (3.3871328727963666080e0, 1.3314166789178437745e2, 1.9715909503065514427e3, 1.3731693765509461125e4,
+      4.5921953931549871457e4, 6.7265770927008700853e4, 3.3430575583588128105e4, 2.5090809287301226727e3)  # fmt: skip
+_B = (1.0, 4.2313330701600911252e1, 6.8718700749205790830e2, 5.3941960214247511077e3, 2.1213794301586595867e4,
+      3.9307895800092710610e4, 2.8729085735721942674e4, 5.2264952788528545610e3)  # fmt: skip
+# the tails, in s = sqrt(-log(min(p, 1 - p))): s <= 5 (in s - 1.6) and s > 5 (in s - 5)
+_C = (1.42343711074968357734e0, 4.63033784615654529590e0, 5.76949722146069140550e0, 3.64784832476320460504e0,
+      1.27045825245236838258e0, 2.41780725177450611770e-1, 2.27238449892691845833e-2, 7.74545014278341407640e-4)  # fmt: skip
+_D = (1.0, 2.05319162663775882187e0, 1.67638483018380384940e0, 6.89767334985100004550e-1, 1.48103976427480074590e-1,
+      1.51986665636164571966e-2, 5.47593808499534494600e-4, 1.05075007164441684324e-9)  # fmt: skip
+_E = (6.65790464350110377720e0, 5.46378491116411436990e0, 1.78482653991729133580e0, 2.96560571828504891230e-1,
+      2.65321895265761230930e-2, 1.24266094738807843860e-3, 2.71155556874348757815e-5, 2.01033439929228813265e-7)  # fmt: skip
+_F = (1.0, 5.99832206555887937690e-1, 1.36929880922735805310e-1, 1.48753612908506148525e-2, 7.86869131145613259100e-4,
+      1.84631831751005468180e-5, 1.42151175831644588870e-7, 2.04426310338993978564e-15)  # fmt: skip
+_LOG_P_LOW = math.log(0.075)
+_LOG_P_HIGH = math.log(0.925)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _halley(z, p):
-    r"""One Halley step towards :math:`\Phi(z) = p` from Acklam's start (relative error 1.2e-9 -> rounding)."""
-    e = 0.5 * math.erfc(-z * _SQRT1_2) - p
-    u = e * _SQRT_2PI * math.exp(0.5 * z * z)
-    return z - u / (1.0 + 0.5 * z * u)
+def _poly7(c, x):
+    return c[0] + x * (c[1] + x * (c[2] + x * (c[3] + x * (c[4] + x * (c[5] + x * (c[6] + x * c[7]))))))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _quantile_center(q):
+    """:math:`\\Phi^{-1}(1/2 + q)` for :math:`|q| \\le 0.425` (AS 241)."""
+    r = 0.180625 - q * q
+    return q * _poly7(_A, r) / _poly7(_B, r)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _quantile_tail(s):
+    r""":math:`-\Phi^{-1}(p)` for :math:`p < 0.075` given :math:`s = \sqrt{-\log p}` (AS 241; > 0)."""
+    if s <= 5.0:
+        s -= 1.6
+        return _poly7(_C, s) / _poly7(_D, s)
+    s -= 5.0
+    return _poly7(_E, s) / _poly7(_F, s)
 
 
 @njit(cache=True, error_model="numpy")
 def _ndtri_exp_far(t):
-    """:func:`ndtri_exp` below t = -700 (Phi(z) under 1e-304): Newton steps on log Phi(z) = t from Acklam's start."""
-    z = _tail_start(math.sqrt(-2.0 * t))
+    """:func:`ndtri_exp` below t = -700 (Phi(z) under 1e-304): Newton steps on log Phi(z) = t from AS 241's tail."""
+    z = -_quantile_tail(math.sqrt(-t))
     for _ in range(12):
         lp = log_ndtr(z)
         step = (lp - t) * math.exp(lp + 0.5 * z * z + _LOG_SQRT_2PI)
@@ -126,10 +155,9 @@ def _ndtri_exp_far(t):
 def ndtri_exp(t):
     r"""The z with :math:`\log\Phi(z) = t` (:math:`t \le 0`; :math:`-\infty` at :math:`-\infty`, :math:`+\infty` at 0).
 
-    Acklam's rational start (the lower tail from :math:`q = \sqrt{-2t}`; the upper tail mirrored, from
-    :math:`1 - p = -\mathrm{expm1}(t)`, so no cancellation), then one Halley step on :math:`\Phi(z) = p`
-    through ``erfc`` (on :math:`\Phi(-z) = 1 - p` in the upper tail); below t = -700 Newton steps on
-    :math:`\log\Phi(z) = t`."""
+    AS 241 (Wichura 1988): the lower tail (:math:`p < 0.075`) from :math:`s = \sqrt{-t}` (no exponential),
+    the centre from :math:`p = e^t`, the upper tail from :math:`1 - p = -\mathrm{expm1}(t)` (no
+    cancellation); below t = -700 Newton steps on :math:`\log\Phi(z) = t`."""
     if t != t or t > 0.0:
         return math.nan
     if t == -_INF:
@@ -139,18 +167,41 @@ def ndtri_exp(t):
     if t < -700.0:
         return _ndtri_exp_far(t)
     if t < _LOG_P_LOW:
-        return _halley(_tail_start(math.sqrt(-2.0 * t)), math.exp(t))
+        return -_quantile_tail(math.sqrt(-t))
     if t > _LOG_P_HIGH:
-        q = -math.expm1(t)
-        return -_halley(_tail_start(math.sqrt(-2.0 * math.log(q))), q)
-    a0, a1, a2, a3, a4, a5 = _A
-    b0, b1, b2, b3, b4 = _B
-    p = math.exp(t)
-    q = p - 0.5
-    r = q * q
-    z = (((((a0 * r + a1) * r + a2) * r + a3) * r + a4) * r + a5) * q
-    z /= ((((b0 * r + b1) * r + b2) * r + b3) * r + b4) * r + 1.0
-    return _halley(z, p)
+        return _quantile_tail(math.sqrt(-math.log(-math.expm1(t))))
+    return _quantile_center(math.exp(t) - 0.5)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def censored_draw(a, u):
+    r"""The log-mass and a draw of a standard normal truncated to :math:`(-\infty, a]`:
+    :math:`(\log\Phi(a),\ \Phi^{-1}(u\,\Phi(a)))` for a uniform u, the two sharing one ``erfc``.
+
+    Equal to ``(log_ndtr(a), ndtri_exp(log(u) + log_ndtr(a)))`` (the numpy path's composition) to
+    rounding: :math:`p = u\Phi(a)` is formed directly (:math:`\Phi(a) \ge 10^{-274}` here, so
+    :math:`\log p` does not underflow), the quantile's upper tail from
+    :math:`1 - p = (1 - u) + u\,\Phi(-a)`; beyond 35 standard deviations (:math:`a < -25\sqrt2`) through
+    :func:`log_ndtr` and :func:`ndtri_exp`."""
+    if a > 0.0:
+        Q = 0.5 * math.erfc(a * _SQRT1_2)  # Phi(-a)
+        lm = math.log1p(-Q)
+        p = u * (1.0 - Q)
+        if p > 0.925:
+            return lm, _quantile_tail(math.sqrt(-math.log((1.0 - u) + u * Q)))
+    else:
+        t = -a * _SQRT1_2
+        if not t < 25.0:
+            lm = log_ndtr(a)
+            return lm, ndtri_exp(math.log(u) + lm)
+        P = 0.5 * math.erfc(t)
+        lm = math.log(P)
+        p = u * P
+    if p < 0.075:
+        if p == 0.0:
+            return lm, -_INF
+        return lm, -_quantile_tail(math.sqrt(-math.log(p)))
+    return lm, _quantile_center(p - 0.5)
 
 
 # --------------------------------------------------------------------------- small linear algebra
@@ -200,45 +251,48 @@ def _classify(y, lo, hi):
     return _INTERIOR
 
 
-# --------------------------------------------------------------------------- one step of a block
+# --------------------------------------------------------------------------- a block of runs over T steps
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def pf_step(
-    optimal, X, Xn, lw, eps, U, ur, A, G, Qd, C, r, y, lo, hi, thr, xm, Pm, xp, Pp, ess, res, ll, ll_acc, work, Wb
+def pf_block(
+    optimal, rng, X, lw, ll_acc, xm, Pm, A, G, Qd, C, r, y, LO, HI, thr, o_mean, o_cov, o_var, o_pm, o_pc, o_ext, want
 ):
-    r"""One step of the particle filter for the B runs of a block, in place.
+    r"""The particle filter for the B runs of a block over T steps, in place, drawing its own numbers.
 
     Parameters
     ----------
     optimal : bool
         The locally optimal proposal (else the bootstrap one).
+    rng : numpy.random.Generator
+        The filter's generator (advanced; the order of the draws is the module's).
     X : (B, Np, n)
-        The particles at k-1; on return those at k (resampled where the run resampled).
-    Xn : (B, Np, n)
-        Scratch for the proposed particles.
+        The particles at the start; on return those after the last step.
     lw : (B, Np)
         Normalised log weights, updated.
-    eps : (B, Np, n) ; U : (B, Np, m) ; ur : (B,)
-        The step's standard normals, uniforms of the censored draws (optimal proposal) and of resampling.
-    A, G, Qd : (n, n)
-        Transition, a root of the process covariance (G G^T = Qd), the process covariance.
-    C : (m, n) ; r : (m,) ; y : (B, m) ; lo, hi : (m,)
-        Readings matrix, noise variances, readings (NaN = missing) and limits at k.
-    thr : float
-        Resample when the effective sample size is below ``thr`` (the threshold times Np).
-    xm, Pm : (B, n), (B, n, n)
-        In: the weighted moments at k-1; out: those at k.
-    xp, Pp, ess, res, ll : out
-        The linear prediction of the moments, the effective sample size, whether the run resampled and
-        the step's log-likelihood estimate (-inf where no particle explains the reading).
     ll_acc : (B,)
         Running sum of the log-likelihood, updated.
-    work : (Np,) ; Wb : (Np,)
-        Scratch (incremental log weights; normalised weights).
+    xm, Pm : (B, n), (B, n, n)
+        In: the weighted moments at the start; out: those after the last step.
+    A, G, Qd : (n, n)
+        Transition, a root of the process covariance (G G^T = Qd), the process covariance.
+    C : (m, n) ; r : (m,)
+        Readings matrix and noise variances.
+    y : (B, T, m) ; LO, HI : (T, m)
+        Readings (NaN = missing) and limits.
+    thr : float
+        Resample when the effective sample size is below ``thr`` (the threshold times Np).
+    o_mean, o_cov, o_var, o_pm, o_pc : (B, T, ...) or placeholders
+        Outputs per step: the weighted mean and covariance, the variances, the linear prediction of the
+        moments (written where ``want`` says so).
+    o_ext : (B, T, 3)
+        The effective sample size, whether the run resampled (1.0/0.0) and the step's log-likelihood
+        estimate (-inf where no particle explains the reading).
+    want : (6,) bool
+        Which of mean, cov, var, pred_mean, pred_cov, extras to write.
     """
     B, Np, n = X.shape
-    m = C.shape[0]
+    T, m = LO.shape
     cls = np.empty(m, dtype=np.int8)
     Sig = np.empty((n, n))
     L = np.empty((n, n))
@@ -251,221 +305,244 @@ def pf_step(
         srp[l] = math.sqrt(r[l])
         lsp[l] = math.log(srp[l]) + _LOG_SQRT_2PI
     mu = np.empty(n)
-    Sc = np.empty(n)
+    e = np.empty(n)
     x0 = np.empty(n)
     d = np.empty(n)
     S1 = np.empty(n)
     S2 = np.empty((n, n))
+    R = np.empty((Np, m + n))  # one run-step's random numbers: uniforms of the censored readings, normals
+    Xn = np.empty((Np, n))  # one run's particles before resampling (the proposals are written in place)
+    work = np.empty(Np)  # its log weights, then the cumulative weights
+    Wb = np.empty(Np)
     logNp = math.log(Np)
-    rank = 0
-    for b in range(B):
-        # the linear prediction of the weighted moments (core.predict)
-        for i in range(n):
-            s = 0.0
-            for j in range(n):
-                s += A[i, j] * xm[b, j]
-            xp[b, i] = s
-        for i in range(n):
-            for j in range(n):
-                s = 0.0
-                for k in range(n):
-                    for q in range(n):
-                        s += A[i, k] * Pm[b, k, q] * A[j, q]
-                Sig[i, j] = s + Qd[i, j]
-        for i in range(n):
-            for j in range(n):
-                Pp[b, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
-        for l in range(m):
-            cls[l] = _classify(y[b, l], lo[l], hi[l])
-        if optimal:
-            # the Gaussian conditioning of _condition_in_sequence: the same for every particle of the run
-            for i in range(n):
-                for j in range(n):
-                    Sig[i, j] = Qd[i, j]
+    for k in range(T):
+        for b in range(B):
+            # the linear prediction of the weighted moments (core.predict), where it is recorded
+            if want[3]:
+                for i in range(n):
+                    s = 0.0
+                    for j in range(n):
+                        s += A[i, j] * xm[b, j]
+                    o_pm[b, k, i] = s
+            if want[4]:
+                for i in range(n):
+                    for j in range(n):
+                        s = 0.0
+                        for q in range(n):
+                            for h in range(n):
+                                s += A[i, q] * Pm[b, q, h] * A[j, h]
+                        Sig[i, j] = s + Qd[i, j]
+                for i in range(n):
+                    for j in range(n):
+                        o_pc[b, k, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
             for l in range(m):
-                if cls[l] == _MISSING:
-                    continue
-                for i in range(n):
-                    s = 0.0
-                    for j in range(n):
-                        s += Sig[i, j] * C[l, j]
-                    Sc[i] = s
-                s2 = r[l]
-                s = 0.0
-                for i in range(n):
-                    s += Sc[i] * C[l, i]
-                s2 = s + r[l]
-                den = s2 if s2 > 0.0 else 1.0
-                for i in range(n):
-                    g[l, i] = Sc[i] / den
-                sr[l] = math.sqrt(s2)
-                lsd[l] = math.log(sr[l]) + _LOG_SQRT_2PI
+                cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
+            top = -_INF  # the largest unnormalised log weight, tracked as they are formed
+            if optimal:
+                # the Gaussian conditioning of _condition_in_sequence: the same for every particle of the run
                 for i in range(n):
                     for j in range(n):
-                        Sig[i, j] = Sig[i, j] - s2 * g[l, i] * g[l, j]
-                for i in range(n):
-                    for j in range(i + 1, n):
-                        v = 0.5 * (Sig[i, j] + Sig[j, i])
-                        Sig[i, j] = v
-                        Sig[j, i] = v
-            _psd_sqrt(Sig, L)
-            for p in range(Np):
-                for i in range(n):
-                    s = 0.0
-                    for j in range(n):
-                        s += X[b, p, j] * A[i, j]
-                    mu[i] = s
-                inc = 0.0
+                        Sig[i, j] = Qd[i, j]
                 for l in range(m):
-                    c = cls[l]
-                    if c == _MISSING:
+                    if cls[l] == _MISSING:
                         continue
-                    pred = 0.0
-                    for j in range(n):
-                        pred += mu[j] * C[l, j]
-                    sd = sr[l]
-                    if c == _INTERIOR:
-                        val = y[b, l]
-                        z = (val - pred) / sd
-                        inc += -0.5 * z * z - lsd[l]
-                    elif c == _LOWER:
-                        lm = log_ndtr((lo[l] - pred) / sd)
-                        val = pred + ndtri_exp(math.log(U[b, p, l]) + lm) * sd
-                        inc += lm
-                    else:
-                        lm = log_ndtr((pred - hi[l]) / sd)
-                        val = pred - ndtri_exp(math.log(U[b, p, l]) + lm) * sd
-                        inc += lm
-                    dv = val - pred
+                    s2 = 0.0
                     for i in range(n):
-                        mu[i] += dv * g[l, i]
-                for i in range(n):
-                    s = 0.0
+                        s = 0.0
+                        for j in range(n):
+                            s += Sig[i, j] * C[l, j]
+                        e[i] = s
+                        s2 += s * C[l, i]
+                    s2 += r[l]
+                    den = s2 if s2 > 0.0 else 1.0
+                    for i in range(n):
+                        g[l, i] = e[i] / den
+                    sr[l] = math.sqrt(s2)
+                    lsd[l] = math.log(sr[l]) + _LOG_SQRT_2PI
+                    for i in range(n):
+                        for j in range(n):
+                            Sig[i, j] = Sig[i, j] - s2 * g[l, i] * g[l, j]
+                    for i in range(n):
+                        for j in range(i + 1, n):
+                            v = 0.5 * (Sig[i, j] + Sig[j, i])
+                            Sig[i, j] = v
+                            Sig[j, i] = v
+                _psd_sqrt(Sig, L)
+                # the run's numbers first, in the documented order (then the arithmetic runs without calls)
+                for p in range(Np):
+                    for l in range(m):
+                        if cls[l] == _LOWER or cls[l] == _UPPER:
+                            R[p, l] = rng.random()
                     for j in range(n):
-                        s += eps[b, p, j] * L[i, j]
-                    Xn[b, p, i] = mu[i] + s
-                work[p] = inc
-        else:
-            for p in range(Np):
-                for i in range(n):
-                    s = 0.0
+                        R[p, m + j] = rng.standard_normal()
+                for p in range(Np):
+                    for i in range(n):
+                        s = 0.0
+                        for j in range(n):
+                            s += X[b, p, j] * A[i, j]
+                        mu[i] = s
+                    inc = 0.0
+                    for l in range(m):
+                        c = cls[l]
+                        if c == _MISSING:
+                            continue
+                        pred = 0.0
+                        for j in range(n):
+                            pred += mu[j] * C[l, j]
+                        sd = sr[l]
+                        if c == _INTERIOR:
+                            z = (y[b, k, l] - pred) / sd
+                            inc += -0.5 * z * z - lsd[l]
+                            dv = y[b, k, l] - pred
+                        elif c == _LOWER:
+                            lm, z = censored_draw((LO[k, l] - pred) / sd, R[p, l])
+                            inc += lm
+                            dv = z * sd
+                        else:
+                            lm, z = censored_draw((pred - HI[k, l]) / sd, R[p, l])
+                            inc += lm
+                            dv = -z * sd
+                        for i in range(n):
+                            mu[i] += dv * g[l, i]
+                    for i in range(n):
+                        s = 0.0
+                        for j in range(n):
+                            s += R[p, m + j] * L[i, j]
+                        X[b, p, i] = mu[i] + s
+                    w = inc + lw[b, p]
+                    work[p] = w
+                    if w > top:
+                        top = w
+            else:
+                for p in range(Np):
                     for j in range(n):
-                        s += X[b, p, j] * A[i, j]
-                    t = 0.0
-                    for j in range(n):
-                        t += eps[b, p, j] * G[i, j]
-                    Xn[b, p, i] = s + t
-                inc = 0.0
-                for l in range(m):
-                    c = cls[l]
-                    if c == _MISSING:
-                        continue
-                    mul = 0.0
-                    for j in range(n):
-                        mul += Xn[b, p, j] * C[l, j]
-                    sd = srp[l]
-                    if c == _INTERIOR:
-                        z = (y[b, l] - mul) / sd
-                        inc += -0.5 * z * z - lsp[l]
-                    elif c == _LOWER:
-                        inc += log_ndtr((lo[l] - mul) / sd)
-                    else:
-                        inc += log_ndtr((mul - hi[l]) / sd)
-                work[p] = inc
-        # weights: log-sum-exp normalisation, fused with the weighted moments (one pass; the sums of the
-        # deviations from the run's first particle, so no cancellation when the mean is far from 0)
-        top = -_INF
-        for p in range(Np):
-            work[p] += lw[b, p]
-            if work[p] > top:
-                top = work[p]
-        dead = not (top > -_INF and top < _INF)
-        if dead:  # no particle explains the reading: keep the weights, report -inf
-            top = -_INF
-            for p in range(Np):
-                work[p] = lw[b, p]
-                if work[p] > top:
-                    top = work[p]
-        for i in range(n):
-            x0[i] = Xn[b, 0, i]
-            S1[i] = 0.0
-            for j in range(n):
-                S2[i, j] = 0.0
-        tot = 0.0
-        sw2 = 0.0
-        for p in range(Np):
-            w = math.exp(work[p] - top)
-            Wb[p] = w
-            tot += w
-            sw2 += w * w
+                        R[p, m + j] = rng.standard_normal()
+                for p in range(Np):
+                    for i in range(n):
+                        s = 0.0
+                        t = 0.0
+                        for j in range(n):
+                            s += X[b, p, j] * A[i, j]
+                            t += R[p, m + j] * G[i, j]
+                        mu[i] = s + t
+                    for i in range(n):
+                        X[b, p, i] = mu[i]
+                    inc = 0.0
+                    for l in range(m):
+                        c = cls[l]
+                        if c == _MISSING:
+                            continue
+                        mul = 0.0
+                        for j in range(n):
+                            mul += mu[j] * C[l, j]
+                        if c == _INTERIOR:
+                            z = (y[b, k, l] - mul) / srp[l]
+                            inc += -0.5 * z * z - lsp[l]
+                        elif c == _LOWER:
+                            inc += log_ndtr((LO[k, l] - mul) / srp[l])
+                        else:
+                            inc += log_ndtr((mul - HI[k, l]) / srp[l])
+                    w = inc + lw[b, p]
+                    work[p] = w
+                    if w > top:
+                        top = w
+            # weights: log-sum-exp normalisation, fused with the weighted moments (one pass; the sums of the
+            # deviations from the run's first particle, so no cancellation when the mean is far from 0)
+            dead = not (top > -_INF and top < _INF)
+            if dead:  # no particle explains the reading: keep the weights, report -inf
+                top = -_INF
+                for p in range(Np):
+                    work[p] = lw[b, p]
+                    if work[p] > top:
+                        top = work[p]
+            full = want[1] or want[2] or want[4] or k == T - 1  # the covariance is needed (else the mean only)
             for i in range(n):
-                d[i] = Xn[b, p, i] - x0[i]
-                S1[i] += w * d[i]
+                x0[i] = X[b, 0, i]
+                S1[i] = 0.0
+                for j in range(n):
+                    S2[i, j] = 0.0
+            tot = 0.0
+            sw2 = 0.0
+            for p in range(Np):
+                w = math.exp(work[p] - top)
+                Wb[p] = w
+                tot += w
+                sw2 += w * w
+                for i in range(n):
+                    d[i] = X[b, p, i] - x0[i]
+                    S1[i] += w * d[i]
+                if full:
+                    for i in range(n):
+                        for j in range(i, n):
+                            S2[i, j] += w * d[i] * d[j]
+            lnorm = math.log(tot) + top
+            ll = -_INF if dead else lnorm
+            ll_acc[b] += ll
             for i in range(n):
-                for j in range(i, n):
-                    S2[i, j] += w * d[i] * d[j]
-        lnorm = math.log(tot) + top
-        ll[b] = -_INF if dead else lnorm
-        ll_acc[b] += ll[b]
-        for i in range(n):
-            d[i] = S1[i] / tot
-            xm[b, i] = x0[i] + d[i]
-        for i in range(n):
-            for j in range(i, n):
-                v = S2[i, j] / tot - d[i] * d[j]
-                Pm[b, i, j] = v
-                Pm[b, j, i] = v
-        sw2 /= tot * tot
-        e = 1.0 / sw2
-        ess[b] = e
-        if e < thr:
-            # systematic resampling, the comparisons of systematic_resample (row offset = rank)
-            res[b] = True
-            off = float(rank)
-            rank += 1
-            cum = 0.0
-            for p in range(Np):
-                cum += Wb[p] / tot
-                work[p] = cum
-            work[Np - 1] = 1.0
-            j = 0
-            for p in range(Np):
-                v = (ur[b] + p) / Np + off
-                while j < Np and work[j] + off <= v:
-                    j += 1
-                src = j if j < Np else Np - 1
+                d[i] = S1[i] / tot
+                xm[b, i] = x0[i] + d[i]
+            if full:
                 for i in range(n):
-                    X[b, p, i] = Xn[b, src, i]
-                lw[b, p] = -logNp
-        else:
-            res[b] = False
-            for p in range(Np):
+                    for j in range(i, n):
+                        v = S2[i, j] / tot - d[i] * d[j]
+                        Pm[b, i, j] = v
+                        Pm[b, j, i] = v
+            ess = 1.0 / (sw2 / (tot * tot))
+            res = ess < thr
+            if res:
+                # systematic resampling (the comparisons of systematic_resample, one run)
+                u0 = rng.random()
+                cum = 0.0
+                for p in range(Np):
+                    cum += Wb[p] / tot
+                    work[p] = cum
+                work[Np - 1] = 1.0
+                for p in range(Np):
+                    for i in range(n):
+                        Xn[p, i] = X[b, p, i]
+                j = 0
+                for p in range(Np):
+                    v = (u0 + p) / Np
+                    while j < Np and work[j] <= v:
+                        j += 1
+                    src = j if j < Np else Np - 1
+                    for i in range(n):
+                        X[b, p, i] = Xn[src, i]
+                    lw[b, p] = -logNp
+            else:
+                for p in range(Np):
+                    lw[b, p] = work[p] - lnorm
+            if want[0]:
                 for i in range(n):
-                    X[b, p, i] = Xn[b, p, i]
-                lw[b, p] = work[p] - lnorm
+                    o_mean[b, k, i] = xm[b, i]
+            if want[1]:
+                for i in range(n):
+                    for j in range(n):
+                        o_cov[b, k, i, j] = Pm[b, i, j]
+            if want[2]:
+                for i in range(n):
+                    o_var[b, k, i] = Pm[b, i, i]
+            if want[5]:
+                o_ext[b, k, 0] = ess
+                o_ext[b, k, 1] = 1.0 if res else 0.0
+                o_ext[b, k, 2] = ll
 
 
 # --------------------------------------------------------------------------- the driver
 
 
-def runs_per_block(particles: int, n: int, m: int, budget: int = BLOCK_BYTES) -> int:
-    """Runs per block so that the block's working buffers (proposed particles, normals, uniforms) fit ``budget``."""
-    per_run = 8 * particles * (2 * n + m + 2)
-    return max(1, budget // per_run)
-
-
-def _generator(state: dict) -> np.random.Generator:
-    """The generator a particle filter's state carries (its bit generator's state), as the numpy path restores it."""
-    bg = getattr(np.random, state["bit_generator"])()
-    bg.state = state
-    return np.random.Generator(bg)
+def runs_per_block(particles: int, n: int, budget: int = BLOCK_BYTES) -> int:
+    """Runs per block so that the block's particles and log weights fit ``budget`` bytes (at least one run)."""
+    return max(1, budget // (8 * particles * (n + 1)))
 
 
 def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], batch: tuple[int, ...], block=None):
     """The particle filter's loop over the readings ``y2`` (N, T, m) from ``state``, compiled, in blocks of runs.
 
     ``pf`` is a :class:`~tobitkf.ParticleFilter` with a linear model (time-invariant system, no input);
-    returns the :class:`~tobitkf.filters.core.FilterResult` its numpy loop returns."""
+    ``block`` overrides the runs per block (:func:`runs_per_block`). Returns the
+    :class:`~tobitkf.filters.core.FilterResult` its numpy loop returns: the outputs in ``want`` per step,
+    the final state (particles, log weights, generator, running log-likelihood)."""
     from .core import FilterResult, FilterState
 
     model, system = pf.model, pf.system
@@ -479,83 +556,46 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     C = np.ascontiguousarray(system.measurement(k0 + 1), dtype=float)
     d = np.diagonal(system.measurement_cov(k0 + 1)).astype(float)
     r = np.ascontiguousarray(np.sqrt(d) ** 2 if optimal else d)  # as the numpy path forms them
-    lims = [model.limits(k0 + 1 + i) for i in range(T)]
-    LO = np.ascontiguousarray([lo for lo, _ in lims], dtype=float).reshape(T, m)
-    HI = np.ascontiguousarray([hi for _, hi in lims], dtype=float).reshape(T, m)
+    LO, HI = np.empty((T, m)), np.empty((T, m))  # the limits per step: m numbers each, nothing per particle
+    for i in range(T):
+        LO[i], HI[i] = model.limits(k0 + 1 + i)
     carry = state.carry
     X = np.array(carry["particles"], dtype=float, order="C")  # (N, Np, n): the final particles, in place
     lw = np.array(carry["log_weights"], dtype=float, order="C")
     ll_acc = np.array(carry["log_likelihood"], dtype=float)
     xm = np.array(state.x, dtype=float).reshape(N, n)
     Pm = np.array(np.broadcast_to(state.P, (N, n, n)), dtype=float)
-    rng = _generator(carry["rng"])  # the numpy path's generator, restored from the state
-    outs: dict[str, np.ndarray] = {}
-    for key in ("mean", "pred_mean"):
-        if key in want:
-            outs[key] = np.empty((N, T, n))
-    for key in ("cov", "pred_cov"):
-        if key in want:
-            outs[key] = np.empty((N, T, n, n))
-    if "var" in want:
-        outs["var"] = np.empty((N, T, n))
-    extras = {}
-    if "extras" in want:
-        extras = {
-            "ess": np.empty((N, T)),
-            "resampled": np.empty((N, T), dtype=bool),
-            "log_likelihood": np.empty((N, T)),
-        }
-    Bmax = min(N, int(block) if block else runs_per_block(Np, n, m))
-    Xn = np.empty((Bmax, Np, n))
-    eps = np.empty((Bmax, Np, n))
-    U = np.empty((Bmax, Np, m) if optimal else (1, 1, 1))
-    ur = np.empty(Bmax)
-    xp, Pp = np.empty((Bmax, n)), np.empty((Bmax, n, n))
-    ess, res, ll = np.empty(Bmax), np.empty(Bmax, dtype=bool), np.empty(Bmax)
-    work, Wb = np.empty(Np), np.empty(Np)
-    thr = pf.resample_threshold * Np
+    rng = generator(carry["rng"])  # the filter's generator, restored from the state
+    names = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
+    flags = np.array([key in want for key in names])
+    shapes = {"mean": (n,), "cov": (n, n), "var": (n,), "pred_mean": (n,), "pred_cov": (n, n)}
+    outs = {key: np.empty((N, T) + shp) if key in want else np.empty((1, 1) + shp) for key, shp in shapes.items()}
+    ext = np.empty((N, T, 3)) if flags[5] else np.empty((1, 1, 3))
+    Bmax = min(N, int(block) if block else runs_per_block(Np, n))
     yc = np.ascontiguousarray(y2, dtype=float)
     for r0 in range(0, N, Bmax):
         r1 = min(N, r0 + Bmax)
-        B = r1 - r0
-        Xb, lwb, xmb, Pmb, lab = X[r0:r1], lw[r0:r1], xm[r0:r1], Pm[r0:r1], ll_acc[r0:r1]
-        Xs, es, Us, us = Xn[:B], eps[:B], U[:B] if optimal else U, ur[:B]
-        xps, Pps, esss, ress, lls = xp[:B], Pp[:B], ess[:B], res[:B], ll[:B]
-        for i in range(T):
-            # the draws of the numpy path, in its order: (U,) eps, then the resampling uniforms
-            if optimal:
-                rng.random(out=Us)
-            rng.standard_normal(out=es)
-            rng.random(out=us)
-            pf_step(optimal, Xb, Xs, lwb, es, Us, us, A, G, Qd, C, r, yc[r0:r1, i], LO[i], HI[i], thr,
-                    xmb, Pmb, xps, Pps, esss, ress, lls, lab, work, Wb)  # fmt: skip
-            if "mean" in outs:
-                outs["mean"][r0:r1, i] = xmb
-            if "cov" in outs:
-                outs["cov"][r0:r1, i] = Pmb
-            if "var" in outs:
-                outs["var"][r0:r1, i] = np.diagonal(Pmb, axis1=1, axis2=2)
-            if "pred_mean" in outs:
-                outs["pred_mean"][r0:r1, i] = xps
-            if "pred_cov" in outs:
-                outs["pred_cov"][r0:r1, i] = Pps
-            if extras:
-                extras["ess"][r0:r1, i] = esss
-                extras["resampled"][r0:r1, i] = ress
-                extras["log_likelihood"][r0:r1, i] = lls
+        blk = {key: (a[r0:r1] if key in want else a) for key, a in outs.items()}
+        pf_block(optimal, rng, X[r0:r1], lw[r0:r1], ll_acc[r0:r1], xm[r0:r1], Pm[r0:r1], A, G, Qd, C, r,
+                 yc[r0:r1], LO, HI, pf.resample_threshold * Np, blk["mean"], blk["cov"], blk["var"],
+                 blk["pred_mean"], blk["pred_cov"], ext[r0:r1] if flags[5] else ext, flags)  # fmt: skip
     new_carry = {"particles": X, "log_weights": lw, "rng": rng.bit_generator.state, "log_likelihood": ll_acc}
     final = FilterState(k=k0 + T, batch_shape=batch, x=xm, P=Pm, n=n, S=None, carry=new_carry)
 
-    def shaped(a):
-        return None if a is None else a.reshape(batch + a.shape[1:])
+    def shaped(key):
+        return outs[key].reshape(batch + outs[key].shape[1:]) if key in want else None
 
+    extras = {}
+    if flags[5]:
+        extras = {"ess": ext[..., 0].copy(), "resampled": ext[..., 1] > 0.5, "log_likelihood": ext[..., 2].copy()}
+        extras = {key: v.reshape(batch + v.shape[1:]) for key, v in extras.items()}
     return FilterResult(
-        mean=shaped(outs.get("mean")),
-        cov=shaped(outs.get("cov")),
-        pred_mean=shaped(outs.get("pred_mean")),
-        pred_cov=shaped(outs.get("pred_cov")),
-        extras={key: shaped(v) for key, v in extras.items()},
+        mean=shaped("mean"),
+        cov=shaped("cov"),
+        pred_mean=shaped("pred_mean"),
+        pred_cov=shaped("pred_cov"),
+        extras=extras,
         times=np.arange(k0 + 1, k0 + T + 1),
-        var=shaped(outs.get("var")),
+        var=shaped("var"),
         final=final,
     )

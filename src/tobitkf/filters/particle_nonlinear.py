@@ -19,8 +19,8 @@ from .._validation import ValidationError
 from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
+from ._particle_models import SYSTEM_MODELS, _diag_sigma, _flatten, _mat, _Model
 from .nonlinear import SigmaPoints, _sigma_moments
-from .particle import SYSTEM_MODELS, _diag_sigma, _flatten, _mat, _Model
 
 __all__ = ["nonlinear_model"]  # registered with the particle filter when imported (by tobitkf)
 

@@ -66,7 +66,7 @@ import numpy as np
 from scipy.special import log_ndtr
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_bool
-from ..filters.particle import _log_interval
+from ..filters._particle_models import _log_interval
 
 __all__ = [
     "WRTDS",
