@@ -1238,14 +1238,19 @@ class Estimator:
         self._check_reading(state, yk, opts)
         fast = self._fast_step(state, yk, uk, opts)
         if fast is not None:
+            if isinstance(self, GaussianFilter):
+                fast = _online_check.check_step(self, state, fast, uk)
             return mark_trusted(self, fast)
         k = state.k + 1
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
-            x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
+            x, P, S, carry, xp, Pp, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
         x, carry = _divergence_check(
             self._name, x, P if S is None else S, k, self.covariance_update, carry, state.carry
         )
-        return mark_trusted(self, step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None))
+        new = step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None)
+        if isinstance(self, GaussianFilter):
+            new = _online_check.check_step(self, state, new, uk, xp, Pp)
+        return mark_trusted(self, new)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
@@ -1752,3 +1757,7 @@ def _caller_level() -> int:
     while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
         frame, level = frame.f_back, level + 1
     return level
+
+
+# the online form of the correction check (it imports the names above: imported last)
+from . import _online_check  # noqa: E402 - needs this module's names defined (a cycle resolved at the end)
