@@ -145,21 +145,19 @@ def check_step(
     if N == 1 and not isinstance(c, list):
         c = [float(c[0])]
     W = CORRECTION_WINDOW
-    if not _valid(memo, N):  # none yet, or not this check's (a state edited by hand): start afresh
-        memo = (0, None)
-    assert memo is not None
-    count = int(memo[0])
+    kept: Any = memo if _valid(memo, N) else (0, None)  # (0, None): none yet, or not this check's (hand-edited)
+    count, last = kept
     w = min(count + 1, W)
     limit = _limits(est)[w - 1]
     cap = CORRECTION_CAP * limit
     if isinstance(c, list):  # one run: the window is a tuple of W Python floats
-        vals = list(memo[1]) if count else [0.0] * W
+        vals = [0.0] * W if last is None else list(last)
         vals[count % W] = c[0]
         window: Any = tuple(vals)
         total = sum(v if v < cap else cap for v in vals)
         runs = int(total > limit and all(map(math.isfinite, new.x[0].tolist())))
     else:
-        window = memo[1].copy() if count else np.zeros((N, W))
+        window = np.zeros((N, W)) if last is None else last.copy()
         window[:, count % W] = c
         over = (np.minimum(window, cap).sum(axis=-1) > limit) & np.isfinite(new.x).all(axis=-1)
         runs = int(over.sum())
