@@ -32,16 +32,62 @@ from typing import Any
 
 import numpy as np
 
-from .core import (
-    CORRECTION_CAP,
-    CORRECTION_WINDOW,
-    FilterState,
-    _caller_level,
-    _correction_remedy,
-    correction_threshold,
-)
+from .._progress import plural
 
-__all__ = ["KEY", "STRIDE", "WARNED", "check_step"]
+__all__ = [
+    "CORRECTION_CAP",
+    "CORRECTION_FACTOR",
+    "CORRECTION_WINDOW",
+    "KEY",
+    "STRIDE",
+    "WARNED",
+    "check_step",
+    "correction_threshold",
+]
+
+# --------------------------------------------------------------------------- shared with filter's check
+
+#: steps of the window over which the normalised corrections are summed
+CORRECTION_WINDOW = 20
+#: how far above its bound for a consistent filter the window's sum must be to count as divergence
+CORRECTION_FACTOR = 100.0
+#: each step adds at most this fraction of the threshold: one absurd reading (an outlier, a hostile prior) is a
+#: surprise, not a divergence; it takes at least 1 / CORRECTION_CAP such updates within a window
+CORRECTION_CAP = 0.25
+
+
+def correction_threshold(m: int, window: int = CORRECTION_WINDOW) -> float:
+    r""":data:`CORRECTION_FACTOR` times the :math:`1 - 10^{-9}` quantile of :math:`\chi^2_{mW}`: the window sum
+    of :func:`~tobitkf.filters.core.correction_statistic` above which a filter has stopped describing its readings."""
+    from scipy.stats import chi2
+
+    return CORRECTION_FACTOR * float(chi2.isf(1e-9, max(m, 1) * window))
+
+
+def _correction_remedy(est: Any) -> str:
+    if getattr(est, "noise_term", None) == "total_variance":
+        return (
+            "noise_term='dissertation' or 'exact_pv' (the total variance makes the gain grow like a^2 when the "
+            "prediction sits a standard deviations inside the censored region), or the assumed-density filter "
+            "(AssumedDensityTobitFilter)"
+        )
+    return "check the model (A, Q, R, the channel) against the readings; the assumed-density filter for censored ones"
+
+
+def _caller_level() -> int:
+    """``stacklevel`` of the first frame outside this package: the warning points at the user's call (a test,
+    a script), however many of the package's own functions (``filter`` wrappers, an experiment) lie between."""
+    import sys
+
+    frame: Any = sys._getframe(1)
+    level = 1
+    while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
+        frame, level = frame.f_back, level + 1
+    return level
+
+
+# --------------------------------------------------------------------------- the online check
+
 
 #: key of the check's memory in a state's ``carry``: ``(count, window)`` with ``window`` the last W checked
 #: values of each run, (N, W) (a tuple of W floats for one run; column ``count % W`` the next to write), or :data:`WARNED` once it warned
@@ -63,7 +109,7 @@ def _limits(est: Any) -> tuple[float, ...]:
     return cached
 
 
-def _statistic(est: Any, prev: FilterState, new: FilterState, u: Any, xp: Any, Pp: Any) -> list[float] | np.ndarray:
+def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[float] | np.ndarray:
     """:func:`~tobitkf.filters.core.correction_statistic` of one step, per run, over the first ``n`` components
     (the reported state): from the step's prediction ``xp``/``Pp`` when given, else from the previous state
     and the step's transition (only the reported block of the prediction: its mean and variances). One run
@@ -122,12 +168,12 @@ def _one_run(A: list, x: list, P: list, q: list, b: Any, post: list) -> float:
 
 def check_step(
     est: Any,
-    prev: FilterState,
-    new: FilterState,
+    prev: Any,
+    new: Any,
     u: np.ndarray | None = None,
     xp: np.ndarray | None = None,
     Pp: np.ndarray | None = None,
-) -> FilterState:
+) -> Any:
     """Carry the check's memory from ``prev`` into ``new`` (the state ``step`` made from it) and, on a checked
     step, update it and warn once when a run's window sum exceeds its threshold. ``xp``/``Pp``: the step's
     prediction when it computed one (its numpy path); else, on a checked step, it is recomputed from ``prev``
@@ -194,7 +240,7 @@ def _fixed_gain(est: Any, k: int, u: Any, carry: Any) -> bool:
     return bool(cached)
 
 
-def _set_carry(state: FilterState, memo: Any) -> None:
+def _set_carry(state: Any, memo: Any) -> None:
     carry = dict(state.carry)
     carry[KEY] = memo
     state.__dict__["carry"] = carry  # a frozen dataclass: its fields live in __dict__ (as ``step_state`` sets them)
@@ -205,7 +251,7 @@ def _warn(est: Any, k: int, runs: int, N: int, w: int, limit: float) -> None:
 
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows by step k={k} in {runs} of "
-        f"{N} run(s) (the sum over the last {w} checked steps, every {STRIDE}th, of the squared updates in "
+        f"{plural(N, 'run')} (the sum over the last {w} checked steps, every {STRIDE}th, of the squared updates in "
         f"predicted variances, each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no "
         f"longer follows the readings while its covariance says it should (a diverging filter, or a model or "
         f"readings with gross errors). Remedy: {_correction_remedy(est)}",

@@ -51,6 +51,7 @@ from typing import Any, Mapping, cast
 import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
+from .._progress import plural
 from .._validation import (
     _F64,
     ShapeError,
@@ -62,7 +63,14 @@ from .._validation import (
     check_scale,
     reading_in_scale,
 )
-from . import _backend
+from . import _backend, _online_check
+from ._online_check import (
+    CORRECTION_CAP,
+    CORRECTION_WINDOW,
+    _caller_level,
+    _correction_remedy,
+    correction_threshold,
+)
 
 __all__ = [
     "FilterResult",
@@ -1150,7 +1158,7 @@ class Estimator:
         """
         batch = _check_batch(batch_shape)
         N = math.prod(batch)  # a Python int: no overflow before the memory check
-        check_memory(N * self._bytes_per_run(), "batch_shape", f"the state of {N} runs of this {self._name}")
+        check_memory(N * self._bytes_per_run(), "batch_shape", f"the state of {plural(N, 'run')} of this {self._name}")
         x, P, carry = self._initial(N, x0, P0, batch)
         S = None
         if self.covariance_update == "square_root" and P is not None:
@@ -1649,19 +1657,11 @@ def _check_output_memory(want: frozenset[str], N: int, T: int, n: int, name: str
         check_memory(
             8 * N * T * per,
             name,
-            f"the outputs ({', '.join(sorted(want & set(_OUTPUT_SIZES)))}) of {N} runs x {T} steps",
+            f"the outputs ({', '.join(sorted(want & set(_OUTPUT_SIZES)))}) of {plural(N, 'run')} x {plural(T, 'step')}",
         )
 
 
 # --------------------------------------------------------------------------- a filter that stopped listening
-
-#: steps of the window over which the normalised corrections are summed
-CORRECTION_WINDOW = 20
-#: how far above its bound for a consistent filter the window's sum must be to count as divergence
-CORRECTION_FACTOR = 100.0
-#: each step adds at most this fraction of the threshold: one absurd reading (an outlier, a hostile prior) is a
-#: surprise, not a divergence; it takes at least 1 / CORRECTION_CAP such updates within a window
-CORRECTION_CAP = 0.25
 
 
 def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.ndarray) -> np.ndarray:
@@ -1680,24 +1680,6 @@ def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.n
         c = np.where(v > _TINY, d * d / np.where(v > _TINY, v, 1.0), 0.0)
     c = np.where(np.isfinite(c), c, 0.0)
     return c.max(axis=-1) if c.shape[-1] else np.zeros(c.shape[:-1])
-
-
-def correction_threshold(m: int, window: int = CORRECTION_WINDOW) -> float:
-    r""":data:`CORRECTION_FACTOR` times the :math:`1 - 10^{-9}` quantile of :math:`\chi^2_{mW}`: the window sum
-    of :func:`correction_statistic` above which a filter has stopped describing its readings."""
-    from scipy.stats import chi2
-
-    return CORRECTION_FACTOR * float(chi2.isf(1e-9, max(m, 1) * window))
-
-
-def _correction_remedy(est: Any) -> str:
-    if getattr(est, "noise_term", None) == "total_variance":
-        return (
-            "noise_term='dissertation' or 'exact_pv' (the total variance makes the gain grow like a^2 when the "
-            "prediction sits a standard deviations inside the censored region), or the assumed-density filter "
-            "(AssumedDensityTobitFilter)"
-        )
-    return "check the model (A, Q, R, the channel) against the readings; the assumed-density filter for censored ones"
 
 
 def _correction_check(est: Any, result: FilterResult) -> None:
@@ -1738,26 +1720,10 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     k = int(result.times[first]) if result.times is not None else first + 1
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
-        f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared updates, in predicted variances and "
+        f"{plural(flat.shape[0], 'run')} (the sum over {W} steps of the squared updates, in predicted variances and "
         f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no longer follows the readings while its covariance "
         f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
         f"{_correction_remedy(est)}",
         RuntimeWarning,
         stacklevel=_caller_level(),
     )
-
-
-def _caller_level() -> int:
-    """``stacklevel`` of the first frame outside this package: the warning points at the user's call (a test,
-    a script), however many of the package's own functions (``filter`` wrappers, an experiment) lie between."""
-    import sys
-
-    frame: Any = sys._getframe(1)
-    level = 1
-    while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
-        frame, level = frame.f_back, level + 1
-    return level
-
-
-# the online form of the correction check (it imports the names above: imported last)
-from . import _online_check  # noqa: E402 - needs this module's names defined (a cycle resolved at the end)

@@ -56,6 +56,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .._compiled import numba_available
+from .._progress import plural
 from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_memory, check_scale
 from ._common import LOG_2PI, censoring_sides
 from ._optimize import check_iterations, check_tolerance, forward_hessian, maximize
@@ -499,14 +500,16 @@ def _check_information(data: CensoredARData) -> None:
     grows without bound as the innovation variance goes to zero)."""
     present = ~np.isnan(data.y)
     if not present.any():
-        raise ValidationError(f"y: all {data.T} readings are missing (NaN): there is nothing to fit")
+        raise ValidationError(
+            f"y: {'the one reading is' if data.T == 1 else f'all {data.T} readings are'} missing (NaN): there is nothing to fit"
+        )
     obs = data.observed
     n_exact = int(obs.sum())
     n_cens = int((present & (data.side != 0)).sum())
     if n_exact == 0:
         raise ValidationError(
-            f"y: none of the {int(present.sum())} readings present is observed exactly (all are censored at "
-            "their limits), so the likelihood has no maximum: it keeps growing as the mean moves past the "
+            f"y: no reading is observed exactly (of the {plural(int(present.sum()), 'reading')} present, all are "
+            "censored at their limits), so the likelihood has no maximum: it keeps growing as the mean moves past the "
             "limits; the fit needs exactly observed readings"
         )
     if n_cens == 0:
@@ -515,7 +518,7 @@ def _check_information(data: CensoredARData) -> None:
         scale = max(1.0, float(np.max(np.abs(yo))))
         if float(np.max(np.abs(yo - Xo @ coef))) <= 1e-12 * scale:
             raise ValidationError(
-                f"y: the regressors fit all {n_exact} readings without error (for example, readings that "
+                f"y: the regressors fit the {plural(n_exact, 'exactly observed reading')} without error (for example, readings that "
                 "are all equal with an intercept), so the innovation variance has no positive estimate "
                 "and the likelihood no maximum"
             )
@@ -1084,7 +1087,7 @@ class CensoredAR:
                 "start: the log-likelihood is -inf there (sigma2 <= 0, a non-stationary phi, or "
                 "readings of zero probability)"
             )
-        cb, close, ticker = _progress_callback(progress, f"fit {self!r} to {data.T} readings")
+        cb, close, ticker = _progress_callback(progress, f"fit {self!r} to {plural(data.T, 'reading')}")
         trace: list[dict[str, Any]] = []
         evals = 0
         u = self._to_free(theta, l)
