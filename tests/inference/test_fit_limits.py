@@ -10,8 +10,9 @@ from scipy.signal import lfilter
 import tobitkf as tk
 from tobitkf._validation import ValidationError
 from tobitkf.inference import CensoredAR
+from tobitkf.inference._ar_likelihood import _intervals
 from tobitkf.inference._optimize import Ticker, central_gradient
-from tobitkf.inference.censored_ar import CensoredARData, _intervals
+from tobitkf.inference.censored_ar import CensoredARData
 from tobitkf.inference.state_space import _Likelihood, _loglik, _matrices, em_step
 
 
