@@ -261,6 +261,23 @@ def test_allocations_scaled_by_the_input_are_checked_first(small_memory):
     assert kf.filter(np.zeros((1000, 100, 1)), outputs="last").final.runs == 1000
 
 
+@pytest.mark.parametrize("fill", [0.0, 0])
+def test_a_huge_broadcast_record_is_refused_before_its_values_are_read(monkeypatch, fill):
+    """A broadcast (10^6, 10^4) record was refused only after every one of its 10^10 values had been checked
+    (minutes), and an integer one was first converted (an 80 GB copy): the memory check now comes first."""
+    from tobitkf import _validation
+
+    def scan(*args, **kwargs):
+        raise AssertionError("the values were read before the memory check")
+
+    kf = tk.KalmanFilter(oscillator())
+    monkeypatch.setattr(_validation, "check_finite", scan)
+    monkeypatch.setattr(_validation, "_convert", scan)
+    y = np.broadcast_to(fill, (10**6, 10**4, 1))
+    with pytest.raises(tk.ValidationError, match=r"y: the readings of shape \(1000000, 10000, 1\) .* would need 80 GB"):
+        kf.filter(y)
+
+
 # --------------------------------------------------------------------------- divergence
 
 

@@ -913,6 +913,10 @@ def prepare_measurements(
     batch_shape : tuple
         The leading shape to restore on outputs (``()`` for a single ``(T, m)`` record).
     """
+    if isinstance(y, np.ndarray) and not y.flags.c_contiguous:
+        # a broadcast or strided view: the flat layout and the compiled loops copy it. Refused before its values
+        # are read (a broadcast of 10^10 readings takes minutes to scan) or converted (a copy)
+        check_memory(8 * y.size, name, f"the readings of shape {y.shape} as one contiguous array")
     arr = as_float_array(y, name, allow_nan=allow_nan)
     check_scale(arr, name)
     if arr.ndim < 2:
@@ -926,8 +930,6 @@ def prepare_measurements(
     batch = arr.shape[:-2]
     if 0 in batch:
         raise ShapeError(f"{name}: expected at least one run (leading axes of positive length), got shape {arr.shape}")
-    if not arr.flags.c_contiguous:  # a broadcast or strided view: the flat layout and the compiled loops copy it
-        check_memory(8 * arr.size, name, f"the readings of shape {arr.shape} as one contiguous array")
     return arr.reshape((-1,) + arr.shape[-2:]), batch
 
 
