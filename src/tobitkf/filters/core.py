@@ -1235,6 +1235,11 @@ class Estimator:
 
         Equal to one row of :meth:`filter` (tested to 1e-12 on the numpy path). Returns the new state
         (``state.k`` advanced by one); the old one is unchanged.
+
+        Warns (``RuntimeWarning``) as :meth:`filter` does: when the covariance stops being finite, and, for a
+        Gaussian-update family, once per lineage of states when the updates grow far larger than the
+        filter's own covariance allows (a diverging filter: :mod:`tobitkf.filters._online_check`, every
+        8th step), naming the step and the remedy.
         """
         state = self._check_state(state)
         if state.carry.get("_predicted"):
