@@ -40,7 +40,7 @@ __all__ = [
     "CORRECTION_WINDOW",
     "KEY",
     "STRIDE",
-    "WARNED",
+    "has_warned",
     "check_step",
     "correction_threshold",
 ]
@@ -89,13 +89,12 @@ def _caller_level() -> int:
 # --------------------------------------------------------------------------- the online check
 
 
-#: key of the check's memory in a state's ``carry``: ``(count, window)`` with ``window`` the last W checked
-#: values of each run, (N, W) (a tuple of W floats for one run; column ``count % W`` the next to write), or :data:`WARNED` once it warned
+#: key of the check's memory in a state's ``carry``: a float64 array (N, W + 1), the last W checked values of
+#: each run (column ``count % W`` the next to write), then (column W) the count of checked steps, -1 once the
+#: lineage warned
 KEY = "_correction_window"
 #: the check looks at the steps whose ``k`` is a multiple of this
 STRIDE = 8
-#: the check's memory once the lineage warned
-WARNED = "warned"
 _TINY = 1e-300
 
 
@@ -180,51 +179,62 @@ def check_step(
     and ``u`` (the step's input). Returns ``new`` (its ``carry`` replaced by a new dict when the memory
     changed; the states are not otherwise touched)."""
     memo = prev.carry.get(KEY)
-    if isinstance(memo, str) or new.k % STRIDE or prev.carry.get("_diverged"):  # a str: it warned (or unpickled)
-        if memo is not None and new.carry.get(KEY) is not memo:
-            _set_carry(new, memo)
-        return new
+    if new.k % STRIDE or prev.carry.get("_diverged"):
+        return _keep(new, memo)
+    N = new.x.shape[0]
+    W = CORRECTION_WINDOW
+    valid = _valid(memo, N)
+    if valid and memo[0, W] < 0:  # this lineage warned
+        return _keep(new, memo)
     if prev.P is None or _fixed_gain(est, new.k, u, prev.carry):
         return new  # a fixed-gain filter's nominal covariance claims no consistency
     c = _statistic(est, prev, new, u, xp, Pp)
-    N = new.x.shape[0]
-    if N == 1 and not isinstance(c, list):
-        c = [float(c[0])]
-    W = CORRECTION_WINDOW
-    kept: Any = memo if _valid(memo, N) else (0, None)  # (0, None): none yet, or not this check's (hand-edited)
-    count, last = kept
+    count = int(memo[0, W]) if valid else 0  # 0: none yet, or not this check's (a state edited by hand)
     w = min(count + 1, W)
     limit = _limits(est)[w - 1]
     cap = CORRECTION_CAP * limit
-    if isinstance(c, list):  # one run: the window is a tuple of W Python floats
-        vals = [0.0] * W if last is None else list(last)
-        vals[count % W] = c[0]
-        window: Any = tuple(vals)
-        total = sum(v if v < cap else cap for v in vals)
+    if N == 1:  # one run: Python floats
+        vals = memo[0].tolist() if valid else [0.0] * (W + 1)
+        vals[count % W] = float(c[0])
+        vals[W] = count + 1.0
+        total = sum(v if v < cap else cap for v in vals[:W])
         runs = int(total > limit and all(map(math.isfinite, new.x[0].tolist())))
+        window = np.array([vals])
     else:
-        window = np.zeros((N, W)) if last is None else last.copy()
+        window = memo.copy() if valid else np.zeros((N, W + 1))
         window[:, count % W] = c
-        over = (np.minimum(window, cap).sum(axis=-1) > limit) & np.isfinite(new.x).all(axis=-1)
+        window[:, W] = count + 1.0
+        over = (np.minimum(window[:, :W], cap).sum(axis=-1) > limit) & np.isfinite(new.x).all(axis=-1)
         runs = int(over.sum())
-    count += 1
     if runs:
         _warn(est, new.k, runs, N, w, limit)
-        _set_carry(new, WARNED)
-    else:
-        _set_carry(new, (count, window))
+        window[:, W] = -1.0
+    _set_carry(new, window)
+    return new
+
+
+def has_warned(state: Any) -> bool:
+    """Whether the lineage of ``state`` has given the online divergence warning (its memory says so)."""
+    memo = state.carry.get(KEY)
+    return _valid(memo, state.x.shape[0]) and bool(memo[0, CORRECTION_WINDOW] < 0)
+
+
+def _keep(new: Any, memo: Any) -> Any:
+    """``new`` with ``memo`` in its carry (a step that rebuilt its carry would drop it)."""
+    if memo is not None and new.carry.get(KEY) is not memo:
+        _set_carry(new, memo)
     return new
 
 
 def _valid(memo: Any, N: int) -> bool:
-    """Whether ``memo`` is this check's memory for N runs: ``(count, window)``, the window a tuple of W floats
-    (one run) or a float64 array (N, W)."""
-    if not (isinstance(memo, tuple) and len(memo) == 2 and type(memo[0]) is int and memo[0] >= 0):
-        return False
-    win = memo[1]
-    if isinstance(win, tuple):
-        return N == 1 and len(win) == CORRECTION_WINDOW and all(type(v) is float for v in win)
-    return isinstance(win, np.ndarray) and win.shape == (N, CORRECTION_WINDOW) and win.dtype == np.float64
+    """Whether ``memo`` is this check's memory for N runs: a float64 array (N, W + 1), the last W checked values
+    of each run then the count of checked steps (-1 once it warned)."""
+    return (
+        isinstance(memo, np.ndarray)
+        and memo.dtype == np.float64
+        and memo.shape == (N, CORRECTION_WINDOW + 1)
+        and (memo[0, CORRECTION_WINDOW] == -1.0 or 0.0 <= memo[0, CORRECTION_WINDOW] < 2.0**53)
+    )
 
 
 def _fixed_gain(est: Any, k: int, u: Any, carry: Any) -> bool:
