@@ -92,6 +92,41 @@ def test_warmup_runs_every_target_with_a_line_each(monkeypatch):
     assert "warmup: " in res.output
 
 
+@pytest.mark.parametrize("count, word", [(1, "1 kernel compiled"), (3, "3 kernels compiled")])
+def test_warmup_counts_its_kernels_in_the_right_number(monkeypatch, count, word):
+    """One compiled kernel is "1 kernel", not "1 kernels" (what warmup said after compiling one)."""
+    from tobitkf import _compiled
+
+    calls = iter([{"compiled": 0, "seconds": 0.0}, {"compiled": count, "seconds": 1.5}])
+    monkeypatch.setattr(_compiled, "compile_stats", lambda: next(calls))
+    monkeypatch.setattr(_warmup, "TARGETS", [("group", lambda: None)])
+    res = CliRunner().invoke(cli.app, ["warmup"])
+    assert res.exit_code == 0, res.output
+    assert f"warmup: {word} in 1.5 s" in res.output
+
+
+def test_plural_and_the_messages_that_count():
+    """The count-and-noun phrases of user messages agree in number (they said "1 runs", "1 iterations",
+    "all 1 readings are missing", "has 1 steps")."""
+    import numpy as np
+
+    import tobitkf as tk
+    from tobitkf._progress import plural
+
+    assert [plural(n, "kernel") for n in (0, 1, 2)] == ["0 kernels", "1 kernel", "2 kernels"]
+    assert plural(1, "series", "series") == "1 series" and plural(2, "child", "children") == "2 children"
+    with pytest.raises(tk.ValidationError, match=r"y: the one reading is missing \(NaN\)"):
+        tk.fit(tk.CensoredAR(1), np.array([np.nan]))
+    sys_ = tk.LinearSystem(
+        A=np.eye(1), C=np.ones((1, 1)), Q=np.ones((1, 1)) * 0.1, R=np.ones((1, 1)), x0=[0.0], P0=[[1.0]]
+    )
+    with pytest.raises(tk.ValidationError, match=r"1 run x 10000000000 steps"):
+        tk.simulate(sys_, 10**10, 1)
+    cens = tk.Censoring(lower=np.zeros((1, 1)))
+    with pytest.raises(tk.ShapeError, match=r"time-varying limits have 1 step, 3 needed"):
+        tk.TobitKalmanFilter(sys_, cens).filter(np.zeros((3, 1)))
+
+
 def test_warmup_failure_is_one_line_and_exit_2(monkeypatch):
     def broken():
         raise ValueError("no such kernel")

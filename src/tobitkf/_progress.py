@@ -13,7 +13,13 @@ import threading
 import time
 from typing import TextIO
 
-__all__ = ["Heartbeat", "format_seconds"]
+__all__ = ["Heartbeat", "format_seconds", "plural"]
+
+
+def plural(count: int, word: str, words: str | None = None) -> str:
+    """``"1 kernel"``, ``"2 kernels"``, ``"0 kernels"``: the count and the word in the number it needs
+    (``words``, default ``word + "s"``, for any count other than one)."""
+    return f"{count} {word if count == 1 else (words if words is not None else word + 's')}"
 
 
 def format_seconds(seconds: float) -> str:

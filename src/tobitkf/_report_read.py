@@ -63,6 +63,7 @@ _META_KEYS = {
     "figures",
     "figure_captions",
     "report_tables",
+    "warnings",
 }
 _RMSE_DEFINITION = (
     "The mean over steps of the per-step RMSE (the root of the mean over runs of the squared error "
@@ -261,6 +262,7 @@ class ExperimentReport:
     figure_sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
     captions: dict[str, str] = field(default_factory=dict)
     source_tables: list[SourceTable] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
     def count(self, holds: bool | None, origin: str | None = None) -> int:
         """Claims with this verdict (of this origin, ``"source"`` or ``"package"``; None: both)."""
@@ -464,6 +466,12 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
             )
         )
 
+    raw_warnings = metrics.get("warnings") or []
+    if not isinstance(raw_warnings, list):
+        problems.append(f"{exp_id}: warnings is not a list of texts; skipped")
+        raw_warnings = []
+    warned = [t for t in (_text(w) for w in raw_warnings) if t]
+
     rest = {k: v for k, v in metrics.items() if k not in _META_KEYS}
     tables = [_rmse_table(p, b) for p, b in _find_estimator_blocks(rest)]
     return ExperimentReport(
@@ -481,6 +489,7 @@ def _read_experiment(folder: Path, metrics: dict, taken: set[str]) -> Experiment
         figure_sizes={f: size for f in figures if (size := _png_size(folder / f))},
         captions=captions,
         source_tables=source_tables,
+        warnings=warned,
     )
 
 

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from ._progress import plural
+
 __all__ = [
     "diagonal_sigma",
     "as_float",
@@ -440,7 +442,7 @@ class TimeSequence:
             idx = k - self.offset
             if not 0 <= idx < self.array.shape[0]:
                 raise ShapeError(
-                    f"{self.name}: time-indexed array has {self.array.shape[0]} steps, "
+                    f"{self.name}: time-indexed array has {plural(self.array.shape[0], 'step')}, "
                     f"step k={k} (index {idx}) requested"
                 )
             return self.array[idx]
@@ -449,7 +451,7 @@ class TimeSequence:
     def check_horizon(self, steps: int) -> None:
         """Raise if a time-indexed array is shorter than ``steps``."""
         if self.steps is not None and self.steps < steps:
-            raise ShapeError(f"{self.name}: time-indexed array has {self.steps} steps, {steps} needed")
+            raise ShapeError(f"{self.name}: time-indexed array has {plural(self.steps, 'step')}, {steps} needed")
 
     def validate_all(self, steps: int) -> None:
         """Check a callable over the whole horizon (shapes and PSD), each time index once: a later call checks

@@ -20,6 +20,8 @@ import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from ._progress import plural
+
 try:  # typer >= 0.20 carries its own copy of click
     from typer._click import exceptions as _click_errors
 except ImportError:  # pragma: no cover - older typer uses click itself
@@ -146,8 +148,10 @@ def list_cmd() -> None:
     exps = all_experiments()
     width = max(len(e.id) for e in exps)
     for exp in exps:
-        full = f" (--full: {exp.runs_for(True)} runs)" if exp.runs_for(True) != exp.default_runs else ""
-        typer.echo(f"{exp.id:<{width}}  {exp.default_runs:>6} runs  {exp.title}{full}")
+        full = f" (--full: {plural(exp.runs_for(True), 'run')})" if exp.runs_for(True) != exp.default_runs else ""
+        typer.echo(
+            f"{exp.id:<{width}}  {exp.default_runs:>6} {'run ' if exp.default_runs == 1 else 'runs'}  {exp.title}{full}"
+        )
 
 
 @app.command("estimators")
@@ -399,7 +403,9 @@ def warmup() -> None:
     after = compile_stats()
     compiled = int(after["compiled"]) - int(before["compiled"])
     seconds = float(after["seconds"]) - float(before["seconds"])
-    what = f"{compiled} kernels compiled in {format_seconds(seconds)}" if compiled else "every kernel was cached"
+    what = (
+        f"{plural(compiled, 'kernel')} compiled in {format_seconds(seconds)}" if compiled else "every kernel was cached"
+    )
     typer.echo(f"warmup: {what}; {format_seconds(total)} in all")
 
 

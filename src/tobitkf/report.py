@@ -31,7 +31,8 @@ Fields read from ``metrics.json`` (all optional but ``id``): ``id``, ``title``,
 measured, test?, tolerance?, holds, note?, explanation?, not_measurable?, origin?}]``, the claims
 rule of :mod:`tobitkf.experiments._claims`), ``figures`` (file names in the folder),
 ``figure_captions`` (``{file name: caption}``), ``report_tables`` (``[{title, columns,
-rows, note?}]``) and every ``estimators`` block anywhere in the remaining metrics
+rows, note?}]``), ``warnings`` (the texts of the warnings raised while the experiment ran, shown under
+"Warnings while it ran") and every ``estimators`` block anywhere in the remaining metrics
 (``{key: {rmse_time_avg, nees_time_avg?, ...}}``), e.g. at the top level or under
 ``scenarios: {name: ...}``.
 """
@@ -357,6 +358,22 @@ def _html_source_tables(e: ExperimentReport, links: _Links) -> list[str]:
     return out
 
 
+_WARNINGS_HEAD = "Warnings while it ran"
+_WARNINGS_NOTE = (
+    "What the estimators said during the run (each text once), e.g. a variant the experiment compares that "
+    "diverges on some runs: read its numbers with that in mind."
+)
+
+
+def _html_warnings(e: ExperimentReport, links: _Links) -> list[str]:
+    if not e.warnings:
+        return []
+    out = [f"<h4>{_e(_WARNINGS_HEAD)}</h4>", f'<p class="meta">{_e(_WARNINGS_NOTE)}</p>', '<ul class="warnings">']
+    out += [f"<li>{_el(w, links)}</li>" for w in e.warnings]
+    out.append("</ul>")
+    return out
+
+
 def _html_experiment(e: ExperimentReport, links: _Links) -> list[str]:
     out = [
         f'<section class="exp" id="{e.anchor}" aria-labelledby="{e.anchor}-h">',
@@ -390,6 +407,7 @@ def _html_experiment(e: ExperimentReport, links: _Links) -> list[str]:
     out.extend(_html_settings(e, links))
     out.append("<h4>Claims</h4>")
     out.extend(_html_claims(e, links))
+    out.extend(_html_warnings(e, links))
     if e.source_tables:
         out.append("<h4>The source's tables and ours</h4>")
         out.extend(_html_source_tables(e, links))
@@ -649,6 +667,9 @@ def render_markdown(
                     out.append("")
             else:
                 out += ["*No claims recorded.*", ""]
+            if e.warnings:
+                out += [f"#### {_WARNINGS_HEAD}", "", _md(_WARNINGS_NOTE), ""]
+                out += [f"- {_mdl(w, links)}" for w in e.warnings] + [""]
             if e.source_tables:
                 out += ["#### The source's tables and ours", ""]
                 for t in e.source_tables:

@@ -261,6 +261,23 @@ def test_allocations_scaled_by_the_input_are_checked_first(small_memory):
     assert kf.filter(np.zeros((1000, 100, 1)), outputs="last").final.runs == 1000
 
 
+@pytest.mark.parametrize("fill", [0.0, 0])
+def test_a_huge_broadcast_record_is_refused_before_its_values_are_read(monkeypatch, fill):
+    """A broadcast (10^6, 10^4) record was refused only after every one of its 10^10 values had been checked
+    (minutes), and an integer one was first converted (an 80 GB copy): the memory check now comes first."""
+    from tobitkf import _validation
+
+    def scan(*args, **kwargs):
+        raise AssertionError("the values were read before the memory check")
+
+    kf = tk.KalmanFilter(oscillator())
+    monkeypatch.setattr(_validation, "check_finite", scan)
+    monkeypatch.setattr(_validation, "_convert", scan)
+    y = np.broadcast_to(fill, (10**6, 10**4, 1))
+    with pytest.raises(tk.ValidationError, match=r"y: the readings of shape \(1000000, 10000, 1\) .* would need 80 GB"):
+        kf.filter(y)
+
+
 # --------------------------------------------------------------------------- divergence
 
 
@@ -356,3 +373,77 @@ def test_the_online_steps_reading_check_evaluates_a_callable_model_once_per_step
     for k in range(60):
         s = est.step(s, np.array([0.1]))
     assert len(calls) - start <= 4 * 60
+
+
+def _step_warnings(est, y):
+    """The divergence warnings of an online loop ``state = est.step(state, y_k)`` over the runs of ``y`` (N, T,
+    m) at once, and the final state."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = est.init(batch_shape=(y.shape[0],))
+        for k in range(y.shape[1]):
+            s = est.step(s, y[:, k])
+    return s, [str(w.message) for w in caught if "far larger than its own covariance" in str(w.message)]
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+@pytest.mark.parametrize("seed", [2, 4])
+def test_a_diverging_total_variance_tkf_warns_from_a_step_loop_and_healthy_ones_do_not(seed, backend):
+    """The online form of the check above: the same diverging variant on the same data warns exactly once
+    from a ``step`` loop (one run at a time, and 20 runs batched), naming the step and the remedy; the
+    dissertation's term, the ADF and the KF do not warn. Before the online check ``step`` never warned."""
+    sys_, cens = _one_sided_system(seed)
+    d = tk.simulate(sys_, 200, 20, censoring=cens, seed=seed)
+    for est in (
+        tk.TobitKalmanFilter(sys_, cens, backend=backend),
+        tk.AssumedDensityTobitFilter(sys_, cens),
+        tk.KalmanFilter(sys_, backend=backend),
+    ):
+        assert _step_warnings(est, d.y)[1] == []
+    tv = tk.TobitKalmanFilter(sys_, cens, noise_term="total_variance", backend=backend)
+    s, found = _step_warnings(tv, d.y)
+    assert len(found) == 1
+    assert "by step k=" in found[0] and "noise_term='dissertation' or 'exact_pv'" in found[0]
+    from tobitkf.filters._online_check import has_warned
+
+    assert has_warned(s)  # the lineage remembers it warned
+    for run in range(20):  # one run at a time: some run warns, each lineage at most once
+        found = _step_warnings(tv, d.y[run : run + 1])[1]
+        assert len(found) <= 1
+        if found:
+            break
+    else:
+        pytest.fail("no single-run step loop warned")
+
+
+def test_the_step_check_lives_in_the_state_and_costs_one_time_update_per_stride():
+    """The check's memory is carried by the state (a new lineage from an earlier state warns again; the old
+    state is unchanged), and it looks at every STRIDE-th step only."""
+    from tobitkf.filters import _online_check
+
+    sys_, cens = _one_sided_system(2)
+    d = tk.simulate(sys_, 200, 20, censoring=cens, seed=2)
+    tv = tk.TobitKalmanFilter(sys_, cens, noise_term="total_variance", backend="numpy")
+    s0 = tv.init(batch_shape=(20,))
+    s = s0
+    for k in range(_online_check.STRIDE - 1):
+        s = tv.step(s, d.y[:, k])
+        assert "_correction_window" not in s.carry  # not a checked step
+    s = tv.step(s, d.y[:, _online_check.STRIDE - 1])
+    window = s.carry["_correction_window"]  # the last 20 checked values of each run, then the count
+    assert window.shape == (20, 21) and (window[:, 20] == 1).all()
+    assert (window[:, 0] > 0).any() and (window[:, 1:20] == 0).all()
+    first = _step_warnings(tv, d.y)[1]
+    again = _step_warnings(tv, d.y)[1]
+    assert len(first) == len(again) == 1
+    assert "_correction_window" not in s0.carry
+    # a pickled state carries the memory: resuming after the warning does not warn again
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        s = tv.init(batch_shape=(20,))
+        for k in range(150):
+            s = tv.step(s, d.y[:, k])
+        s = pickle.loads(pickle.dumps(s))
+        for k in range(150, 200):
+            s = tv.step(s, d.y[:, k])
+    assert sum("far larger" in str(w.message) for w in caught) == 1

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import ShapeError, ValidationError, as_float_array
 from .base import Channel
 
@@ -98,7 +99,7 @@ class Censoring(Channel):
             raise ShapeError(f"censoring limits: expected {m} channel(s) to match the system, got {self.channels}")
         n_steps = self.steps  # an int whenever the limits are time-varying
         if steps is not None and self.time_varying and n_steps is not None and n_steps < steps:
-            raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, {steps} needed")
+            raise ShapeError(f"censoring limits: time-varying limits have {plural(n_steps, 'step')}, {steps} needed")
 
     def limits(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(lower, upper)`` for measurement ``y_k`` (k >= 1; array index k-1)."""
@@ -106,7 +107,9 @@ class Censoring(Channel):
             n_steps = self.steps
             assert n_steps is not None, "time-varying limits have a number of steps"
             if not 1 <= k <= n_steps:
-                raise ShapeError(f"censoring limits: time-varying limits have {self.steps} steps, step k={k} requested")
+                raise ShapeError(
+                    f"censoring limits: time-varying limits have {plural(n_steps, 'step')}, step k={k} requested"
+                )
             return self.lower[k - 1], self.upper[k - 1]
         return self.lower, self.upper
 

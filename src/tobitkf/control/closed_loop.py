@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
+from .._progress import plural
 from .._validation import (
     ShapeError,
     ValidationError,
@@ -225,7 +226,7 @@ def simulate_closed_loop(
     check_memory(
         8 * runs * (steps + 1) * (4 * n + n * n + 3 * m + p),
         "runs/steps",
-        f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, estimates, covariances, readings)",
+        f"{plural(runs, 'run')} x {plural(steps, 'step')} (n = {n}, m = {m}: states, estimates, covariances, readings)",
     )
     A, C, Bu = plant.transition(0), plant.measurement(1), plant.Bu.at(1)
     D = None if plant.D is None else plant.D.at(1)

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import as_float, as_generator, check_count, check_memory, check_option
 from ..channels.censoring import Censoring
 from ..filters.kalman import KalmanFilter
@@ -170,7 +171,7 @@ def simulate_robot(
     check_memory(
         8 * runs * (steps + 1) * 31,
         "runs/steps",
-        f"{runs} runs x {steps} steps of the robot (states, two observers, readings, noises)",
+        f"{plural(runs, 'run')} x {plural(steps, 'step')} of the robot (states, two observers, readings, noises)",
     )
     s = setup
     rng = as_generator(seed)

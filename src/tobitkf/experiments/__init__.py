@@ -9,7 +9,8 @@ itself by being placed here.
 
 Every claim an experiment returns follows the claims rule of :mod:`._claims` (its quantity,
 test and tolerance; n/a only for what cannot be measured); :func:`register` checks it on
-return. Each figure is saved with a caption (:func:`tobitkf.plotting.save`), which the
+return, and records the warnings raised while it runs (:func:`recorded_warnings`, into
+``metrics["warnings"]``: the report shows them, the console stays quiet). Each figure is saved with a caption (:func:`tobitkf.plotting.save`), which the
 registered ``plot`` collects into ``metrics["figure_captions"]``; tables the source prints
 go into ``metrics["report_tables"]`` (see :func:`report_table`), and the report shows both.
 """
@@ -18,7 +19,9 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
-from collections.abc import Callable
+import warnings
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +37,7 @@ __all__ = [
     "setting",
     "report_table",
     "progress_callback",
+    "recorded_warnings",
 ]
 
 
@@ -152,8 +156,10 @@ def register(
 
         @functools.wraps(run)
         def checked_run(*args: Any, **kwargs: Any) -> ExperimentResult:
-            result = run(*args, **kwargs)
+            with recorded_warnings() as caught:
+                result = run(*args, **kwargs)
             check_claims(result.claims, id)
+            result.metrics["warnings"] = caught
             return result
 
         _REGISTRY[id] = Experiment(
@@ -170,6 +176,26 @@ def register(
         return checked_run
 
     return deco
+
+
+@contextmanager
+def recorded_warnings() -> Iterator[list[str]]:
+    """Record the warnings raised inside the block instead of printing them: yields a list that holds, when
+    the block ends, each distinct warning's text once, in the order first raised (a diverging variant an
+    experiment runs on purpose warns once per filter call; the report lists what was said, not how often).
+    Every registered experiment runs inside it; its list becomes ``metrics["warnings"]``."""
+    found: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            yield found
+        finally:
+            seen: set[str] = set()
+            for w in caught:
+                text = " ".join(str(w.message).split())
+                if text not in seen:
+                    seen.add(text)
+                    found.append(text)
 
 
 def progress_callback(progress: Callable[..., Any] | None) -> Callable[..., None]:

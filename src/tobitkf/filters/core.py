@@ -51,6 +51,7 @@ from typing import Any, Mapping, cast
 import numpy as np
 
 from .._linalg import psd_sqrt, symmetrize
+from .._progress import plural
 from .._validation import (
     _F64,
     ShapeError,
@@ -62,7 +63,14 @@ from .._validation import (
     check_scale,
     reading_in_scale,
 )
-from . import _backend
+from . import _backend, _online_check
+from ._online_check import (
+    CORRECTION_CAP,
+    CORRECTION_WINDOW,
+    _caller_level,
+    _correction_remedy,
+    correction_threshold,
+)
 
 __all__ = [
     "FilterResult",
@@ -905,6 +913,10 @@ def prepare_measurements(
     batch_shape : tuple
         The leading shape to restore on outputs (``()`` for a single ``(T, m)`` record).
     """
+    if isinstance(y, np.ndarray) and not y.flags.c_contiguous:
+        # a broadcast or strided view: the flat layout and the compiled loops copy it. Refused before its values
+        # are read (a broadcast of 10^10 readings takes minutes to scan) or converted (a copy)
+        check_memory(8 * y.size, name, f"the readings of shape {y.shape} as one contiguous array")
     arr = as_float_array(y, name, allow_nan=allow_nan)
     check_scale(arr, name)
     if arr.ndim < 2:
@@ -918,8 +930,6 @@ def prepare_measurements(
     batch = arr.shape[:-2]
     if 0 in batch:
         raise ShapeError(f"{name}: expected at least one run (leading axes of positive length), got shape {arr.shape}")
-    if not arr.flags.c_contiguous:  # a broadcast or strided view: the flat layout and the compiled loops copy it
-        check_memory(8 * arr.size, name, f"the readings of shape {arr.shape} as one contiguous array")
     return arr.reshape((-1,) + arr.shape[-2:]), batch
 
 
@@ -1150,7 +1160,7 @@ class Estimator:
         """
         batch = _check_batch(batch_shape)
         N = math.prod(batch)  # a Python int: no overflow before the memory check
-        check_memory(N * self._bytes_per_run(), "batch_shape", f"the state of {N} runs of this {self._name}")
+        check_memory(N * self._bytes_per_run(), "batch_shape", f"the state of {plural(N, 'run')} of this {self._name}")
         x, P, carry = self._initial(N, x0, P0, batch)
         S = None
         if self.covariance_update == "square_root" and P is not None:
@@ -1225,6 +1235,11 @@ class Estimator:
 
         Equal to one row of :meth:`filter` (tested to 1e-12 on the numpy path). Returns the new state
         (``state.k`` advanced by one); the old one is unchanged.
+
+        Warns (``RuntimeWarning``) as :meth:`filter` does: when the covariance stops being finite, and, for a
+        Gaussian-update family, once per lineage of states when the updates grow far larger than the
+        filter's own covariance allows (a diverging filter: :mod:`tobitkf.filters._online_check`, every
+        8th step), naming the step and the remedy.
         """
         state = self._check_state(state)
         if state.carry.get("_predicted"):
@@ -1238,14 +1253,23 @@ class Estimator:
         self._check_reading(state, yk, opts)
         fast = self._fast_step(state, yk, uk, opts)
         if fast is not None:
+            # the check's own test, without its call, for the common case: a step it does not look at whose carry
+            # (and so the check's memory) passed through unchanged
+            if (fast.k % _online_check.STRIDE == 0 or fast.carry is not state.carry) and isinstance(
+                self, GaussianFilter
+            ):
+                fast = _online_check.check_step(self, state, fast, uk)
             return mark_trusted(self, fast)
         k = state.k + 1
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
-            x, P, S, carry, _, _, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
+            x, P, S, carry, xp, Pp, extras = self._step_arrays(k, state.x, state.P, state.S, state.carry, yk, uk, opts)
         x, carry = _divergence_check(
             self._name, x, P if S is None else S, k, self.covariance_update, carry, state.carry
         )
-        return mark_trusted(self, step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None))
+        new = step_state(k, state.batch_shape, x, P, self.n, S, carry, extras or None)
+        if isinstance(self, GaussianFilter):
+            new = _online_check.check_step(self, state, new, uk, xp, Pp)
+        return mark_trusted(self, new)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
@@ -1644,19 +1668,11 @@ def _check_output_memory(want: frozenset[str], N: int, T: int, n: int, name: str
         check_memory(
             8 * N * T * per,
             name,
-            f"the outputs ({', '.join(sorted(want & set(_OUTPUT_SIZES)))}) of {N} runs x {T} steps",
+            f"the outputs ({', '.join(sorted(want & set(_OUTPUT_SIZES)))}) of {plural(N, 'run')} x {plural(T, 'step')}",
         )
 
 
 # --------------------------------------------------------------------------- a filter that stopped listening
-
-#: steps of the window over which the normalised corrections are summed
-CORRECTION_WINDOW = 20
-#: how far above its bound for a consistent filter the window's sum must be to count as divergence
-CORRECTION_FACTOR = 100.0
-#: each step adds at most this fraction of the threshold: one absurd reading (an outlier, a hostile prior) is a
-#: surprise, not a divergence; it takes at least 1 / CORRECTION_CAP such updates within a window
-CORRECTION_CAP = 0.25
 
 
 def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.ndarray) -> np.ndarray:
@@ -1675,24 +1691,6 @@ def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.n
         c = np.where(v > _TINY, d * d / np.where(v > _TINY, v, 1.0), 0.0)
     c = np.where(np.isfinite(c), c, 0.0)
     return c.max(axis=-1) if c.shape[-1] else np.zeros(c.shape[:-1])
-
-
-def correction_threshold(m: int, window: int = CORRECTION_WINDOW) -> float:
-    r""":data:`CORRECTION_FACTOR` times the :math:`1 - 10^{-9}` quantile of :math:`\chi^2_{mW}`: the window sum
-    of :func:`correction_statistic` above which a filter has stopped describing its readings."""
-    from scipy.stats import chi2
-
-    return CORRECTION_FACTOR * float(chi2.isf(1e-9, max(m, 1) * window))
-
-
-def _correction_remedy(est: Any) -> str:
-    if getattr(est, "noise_term", None) == "total_variance":
-        return (
-            "noise_term='dissertation' or 'exact_pv' (the total variance makes the gain grow like a^2 when the "
-            "prediction sits a standard deviations inside the censored region), or the assumed-density filter "
-            "(AssumedDensityTobitFilter)"
-        )
-    return "check the model (A, Q, R, the channel) against the readings; the assumed-density filter for censored ones"
 
 
 def _correction_check(est: Any, result: FilterResult) -> None:
@@ -1733,22 +1731,10 @@ def _correction_check(est: Any, result: FilterResult) -> None:
     k = int(result.times[first]) if result.times is not None else first + 1
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
-        f"{flat.shape[0]} run(s) (the sum over {W} steps of the squared updates, in predicted variances and "
+        f"{plural(flat.shape[0], 'run')} (the sum over {W} steps of the squared updates, in predicted variances and "
         f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no longer follows the readings while its covariance "
         f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
         f"{_correction_remedy(est)}",
         RuntimeWarning,
         stacklevel=_caller_level(),
     )
-
-
-def _caller_level() -> int:
-    """``stacklevel`` of the first frame outside this package: the warning points at the user's call (a test,
-    a script), however many of the package's own functions (``filter`` wrappers, an experiment) lie between."""
-    import sys
-
-    frame: Any = sys._getframe(1)
-    level = 1
-    while frame is not None and str(frame.f_globals.get("__name__", "")).startswith("tobitkf"):
-        frame, level = frame.f_back, level + 1
-    return level

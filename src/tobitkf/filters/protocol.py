@@ -83,6 +83,7 @@ from .._validation import (
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
+from ._online_check import check_step
 from .core import (
     FilterResult,
     FilterState,
@@ -554,7 +555,7 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     if not all(tau <= v < math.inf for v in y.ravel().tolist()):
         return None
     new = _protocol_kernel_step(est, y.reshape(-1, 1), None, state)
-    return None if new is None else mark_trusted(est, new)
+    return None if new is None else mark_trusted(est, check_step(est, state, new))
 
 
 def _protocol_step_context(est: ProtocolTobitKalmanFilter) -> tuple:

@@ -1,6 +1,6 @@
 r"""Compiled (numba) forward recursions of :mod:`tobitkf.inference.censored_ar` for p = 1 and p = 2.
 
-An implementation of the numpy reference :func:`tobitkf.inference.censored_ar._forward`, not a second
+An implementation of the numpy reference :func:`tobitkf.inference._ar_likelihood._forward`, not a second
 algorithm: the same nodes and weights (passed in, concatenated over the steps), the same log-domain
 recursion
 
@@ -269,7 +269,7 @@ def forward_ar2(z, lw, start, count, a1, a2, v):  # pragma: no cover - compiled
 def fill_legendre(z, lw, start, panels, lo, hi, x, w):  # pragma: no cover - compiled
     """The composite Gauss-Legendre nodes and log weights of the censored steps, written in place: step i
     (``start[i]`` into ``z``/``lw``) cuts ``[lo[i], hi[i]]`` into ``panels[i]`` equal panels of the rule
-    ``x``, ``w`` on [-1, 1] (the numbers of the numpy branch of ``censored_ar._node_arrays``)."""
+    ``x``, ``w`` on [-1, 1] (the numbers of the numpy branch of ``_ar_likelihood._node_arrays``)."""
     G = x.shape[0]
     for i in range(start.shape[0]):
         P = panels[i]

@@ -15,6 +15,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import ValidationError
 
 __all__ = [
@@ -266,7 +267,7 @@ def maximize(
     # without a start, the identity (as scipy's BFGS): its first step is cut to length 1 below, and
     # each update corrects the curvature along its step only, keeping long steps in flat directions
     Hinv = np.eye(d) if hess_inv0 is None else np.array(hess_inv0, dtype=float)
-    converged, message, dec = False, f"stopped after {maxiter} iterations", np.nan
+    converged, message, dec = False, f"stopped after {plural(maxiter, 'iteration')}", np.nan
     for _ in range(maxiter):
         if not np.all(np.isfinite(g)):
             message = "the gradient is not finite"

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import ValidationError
 from ._optimize import _inverse_information  # noqa: F401 - re-exported: the fits import it from here
 
@@ -141,7 +142,7 @@ class FitResult:
         """A plain-text table of the estimates and criteria."""
         lines = [
             f"{self.model!r}: {self.method} maximum likelihood ({self.likelihood} likelihood), "
-            f"{'converged' if self.converged else 'NOT converged'} in {len(self.trace)} iterations, "
+            f"{'converged' if self.converged else 'NOT converged'} in {plural(len(self.trace), 'iteration')}, "
             f"{self.fit_seconds:.2f} s",
             f"{'parameter':<12}{'estimate':>14}{'s.e.':>12}",
         ]

@@ -54,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import ShapeError, ValidationError, as_float_array, check_bool
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -634,7 +635,9 @@ def fit_state_space(
         raise ShapeError(f"y: expected one record (T,) or (T, m), got shape {arr.shape}")
     T, m = y2.shape
     if T == 0 or m == 0 or np.isnan(y2).all():
-        raise ValidationError(f"y: all {y2.size} readings are missing (NaN) or there are none: there is nothing to fit")
+        raise ValidationError(
+            f"y: {'the one reading is' if y2.size == 1 else f'all {y2.size} readings are'} missing (NaN) or there are none: there is nothing to fit"
+        )
     if censoring is None and (lower is not None or upper is not None):
         lo: Any = -np.inf if lower is None else np.asarray(lower, dtype=float)
         hi: Any = np.inf if upper is None else np.asarray(upper, dtype=float)
@@ -780,7 +783,7 @@ def fit_state_space(
         trace, converged, message, evals = out.trace, out.converged, out.message, out.evaluations
     else:
         trace = []
-        converged, message = False, f"EM stopped after {maxiter} iterations"
+        converged, message = False, f"EM stopped after {plural(maxiter, 'iteration')}"
         prev_ll = -np.inf
         evals = 0
         try:

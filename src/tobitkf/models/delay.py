@@ -41,6 +41,7 @@ from typing import Any
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import (
     ShapeError,
     ValidationError,
@@ -155,7 +156,7 @@ def _scalar_schedule(value: Any, name: str) -> Callable[[int], float]:
 
     def at(t: int) -> float:
         if not 0 <= t < arr.shape[0]:
-            raise ShapeError(f"{name}: time-indexed array has {arr.shape[0]} steps, t={t} requested")
+            raise ShapeError(f"{name}: time-indexed array has {plural(arr.shape[0], 'step')}, t={t} requested")
         return float(arr[t])
 
     return at
@@ -531,7 +532,7 @@ class DelayFadingSystem:
 
         def at2(t: int) -> np.ndarray:
             if not 0 <= t < arr.shape[0]:
-                raise ShapeError(f"q_mult: time-indexed array has {arr.shape[0]} steps, t={t} requested")
+                raise ShapeError(f"q_mult: time-indexed array has {plural(arr.shape[0], 'step')}, t={t} requested")
             return arr[t]
 
         return at2

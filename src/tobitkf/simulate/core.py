@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
+from .._progress import plural
 from .._validation import (
     ShapeError,
     ValidationError,
@@ -151,7 +152,7 @@ def simulate(
     check_memory(
         8 * runs * (steps + 1) * (2 * system.n + system.q + 3 * system.m + (system.p or 0)),
         "runs/steps",
-        f"{runs} runs x {steps} steps (n = {system.n}, m = {system.m}: states, noises, readings)",
+        f"{plural(runs, 'run')} x {plural(steps, 'step')} (n = {system.n}, m = {system.m}: states, noises, readings)",
     )
     system.check_horizon(steps)  # also validates callables over the horizon
     if censoring is not None:

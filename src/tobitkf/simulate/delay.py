@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import eigh_sqrt as psd_sqrt
+from .._progress import plural
 from .._validation import as_generator, check_count, check_instance, check_memory
 from ..models.delay import DelayFadingSystem, HistoryPrior
 from .core import SimulationData
@@ -61,7 +62,7 @@ def simulate_delay(
     check_memory(
         8 * N * (T + d + 1) * (2 * n + 2 * m + p + h + 1),
         "runs/steps",
-        f"{N} runs x {T} steps (n = {n}, m = {m}, d = {d}: states, noises, readings)",
+        f"{plural(N, 'run')} x {plural(T, 'step')} (n = {n}, m = {m}, d = {d}: states, noises, readings)",
     )
     rng = as_generator(seed)
     full = np.empty((N, T + d + 1, n))  # index j + d holds x(j), j = -d..T

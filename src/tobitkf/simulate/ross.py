@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from .._progress import plural
 from .._validation import ShapeError, ValidationError, as_float_array, as_generator, check_instance, check_memory
 from ..models.ross import RossModel
 
@@ -110,7 +111,7 @@ def simulate_ross(
     check_memory(
         8 * runs * (steps + 1) * (2 * n + 5 * m + p),
         "runs/steps",
-        f"{runs} runs x {steps} steps (n = {n}, m = {m}: states, readings, disturbances, modes)",
+        f"{plural(runs, 'run')} x {plural(steps, 'step')} (n = {n}, m = {m}: states, readings, disturbances, modes)",
     )
     x0a = np.zeros(n) if x0 is None else as_float_array(x0, "x0", ndim=(1, 2))
     if x0a.shape[-1] != n or (x0a.ndim == 2 and x0a.shape[0] != runs):
