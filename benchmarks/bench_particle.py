@@ -20,7 +20,8 @@
     bootstrap filter, systematic resampling at ESS < N/2, the filtering moments collected) and
     cuthbert's JAX particle filter (``vmap`` over runs of its ``lax.scan`` filter, adaptive systematic
     resampling, JIT-compiled before timing), medians of 5; a peer that is not installed is skipped
-    (``pip install "tobitkf[bench]"``). Target: ours faster than both.
+    (``pip install "tobitkf[bench]"`` for cuthbert; ``pip install --no-deps particles``, which keeps numpy 2).
+    Target: ours faster than both.
 
 Run by hand::
 
@@ -328,7 +329,7 @@ def peers(runs: int, particles: int, steps: int, repeat: int) -> dict:
     per_run = {"ours (compiled)": runs}
     got = _particles_peer(sys_, y, particles)
     if got is None:
-        print("  particles: not installed (pip install particles), skipped")
+        print("  particles: not installed (pip install --no-deps particles), skipped")
     else:
         contestants["particles (N. Chopin)"] = got
         per_run["particles (N. Chopin)"] = runs
