@@ -95,3 +95,32 @@ def test_dropping_kf_step_and_filter_through_the_loop_equal_numpy():
     for f in ("mean", "cov", "pred_mean", "pred_cov"):
         _assert_close(getattr(a, f), getattr(b, f))
     np.testing.assert_array_equal(a.extras["censored"], b.extras["censored"])
+
+
+def test_read_only_inputs_reach_the_loop_as_writable_arrays(monkeypatch):
+    """numba types a read-only array apart from a writable one: each read-only argument (cached limits, a
+    read-only record) compiled the whole loop once more. Every array reaching the loop is writable."""
+    from tobitkf.filters import _compiled_entries, _compiled_loop
+
+    flags = []
+
+    def spy(real):
+        def call(*args):
+            flags.extend(a.flags.writeable for a in args if isinstance(a, np.ndarray))
+            return real(*args)
+
+        return call
+
+    for mod, name in ((_compiled_entries, "tobit_loop"), (_compiled_entries, "kalman_loop")):
+        monkeypatch.setattr(mod, name, spy(getattr(mod, name)))
+    monkeypatch.setattr(_compiled_loop, "compiled_loop", spy(_compiled_loop.compiled_loop))
+    sys_ = _system()
+    cens = tk.Censoring(lower=0.0)
+    y = cens.censor(_record(sys_, 3, 6))
+    y.setflags(write=False)
+    tkf = tk.TobitKalmanFilter(sys_, cens, backend="numba")
+    tkf.filter(y)
+    tkf.step(tkf.init(batch_shape=(3,)), y[:, 0])
+    tk.KalmanFilter(sys_, backend="numba").filter(y)
+    tk.AssumedDensityTobitFilter(sys_, cens, backend="numba").filter(y)
+    assert len(flags) > 60 and all(flags)

@@ -33,7 +33,7 @@ compiled block, so that the generic :class:`~tobitkf.AssumedDensityFilter` of su
 own): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_x), the noise variances ``r``
 (TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`` (TP, m, K), the number of mixture components
 ``J`` whose posterior weights are returned; per-step arrays are indexed by ``min(t, len - 1)`` (one row:
-constant). The KF and the TKF pass their constant matrices (:func:`~tobitkf.filters.kalman.compiled_loop_call`).
+constant). The KF and the TKF enter through :mod:`tobitkf.filters._compiled_entries`.
 Covered: time-invariant system matrices (control inputs through constant ``Bu``/``D``); the KF and the TKF in the
 standard and Joseph forms, the assumed-density filters in the standard form and the channel-order update;
 anything else (the square-root form, time-varying matrices, per-step limits given to ``step``) runs the numpy
@@ -504,7 +504,7 @@ def _shared_gain_means(A, C, Kall, y, x0, means, pmeans, x_last):
 
 @dataclass
 class CompiledSpec:
-    """What a family gives :func:`adf_loop` (module docstring); ``extras`` turns the loop's ``pu`` (N, T, m),
+    """What an assumed-density family gives :func:`compiled_loop` (module docstring); ``extras`` turns the loop's ``pu`` (N, T, m),
     ``ll`` (N, T) and ``comp`` (N, T, m, J) into the family's extras dict (batch shape restored)."""
 
     family: int
@@ -523,7 +523,9 @@ class CompiledSpec:
 
 
 def _c(a: Any) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=float)
+    """``a`` as a C-contiguous, writable float64 array (a read-only one, e.g. cached limits, is copied: numba types
+    read-only arrays apart, and each would compile the loop once more)."""
+    return np.require(a, dtype=float, requirements=("C", "W"))
 
 
 def _input_terms(est, u2: np.ndarray | None, N: int, n: int, m: int, *, feedthrough: bool = True):
@@ -723,7 +725,7 @@ def channel_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_
 def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spec_of) -> Any:
     """The compiled ``filter`` of an assumed-density family, or None (the numpy loop runs): decides with the
     estimator's ``backend`` (:func:`~tobitkf.filters._backend.use_kernel`), builds its arrays with
-    ``spec_of`` (one of the ``*_spec`` functions) and runs :func:`adf_loop`. A covariance that stops being
+    ``spec_of`` (one of the ``*_spec`` functions) and runs :func:`compiled_loop`. A covariance that stops being
     finite also returns None, so that the numpy loop reruns the call and reports where it diverged."""
     what = f"the {est._name}"
     gap = None
@@ -753,8 +755,8 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
     compiled_loop(
         spec.family,
-        np.ascontiguousarray(y2),
-        np.ascontiguousarray(cls, dtype=np.int8),
+        _c(y2),
+        np.require(cls, dtype=np.int8, requirements=("C", "W")),
         _c(sys_.transition(0)),
         _c(sys_.process_cov(0)),
         _c(spec.H),

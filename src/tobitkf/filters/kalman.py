@@ -369,7 +369,7 @@ def _kf_compiled_online_step(
     Pn = P.shape[0]
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     e_m, e_c = _empty((N, 0, n)), _empty((Pn, 0, n, n))
-    y3 = np.ascontiguousarray(y.reshape(N, 1, m), dtype=float)
+    y3 = np.require(y.reshape(N, 1, m), float, ("C", "W"))
     _kalman_call(est, y3, np.ascontiguousarray(state.x, dtype=float), P, (e_m, e_c, e_m, e_c), x_last, P_last)
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None  # a small state: Python floats, the same verdict
@@ -394,7 +394,7 @@ def _kf_compiled_run(est: KalmanFilter, y2: np.ndarray, state: FilterState, want
         means, pmeans = output_arrays(N, T, m_spec, pm_spec)
         covs, pcovs = output_arrays(Pn, T, c_spec, pc_spec)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
-    _kalman_call(est, np.ascontiguousarray(y2, dtype=float), x, P, (means, covs, pmeans, pcovs), x_last, P_last)
+    _kalman_call(est, np.require(y2, float, ("C", "W")), x, P, (means, covs, pmeans, pcovs), x_last, P_last)
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
     return kernel_result(want, batch, T, means, covs, pmeans, pcovs, {}, final)
 

@@ -436,9 +436,9 @@ def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: F
     lims = None if cens.time_varying else est.__dict__.get("_loop_limits")
     if lims is None:
         lo, hi = cens.limits(state.k + 1)
-        lims = (
-            np.ascontiguousarray(np.broadcast_to(lo, (1, m)), dtype=float),
-            np.ascontiguousarray(np.broadcast_to(hi, (1, m)), dtype=float),
+        lims = (  # writable copies (a read-only argument would compile the loop once more)
+            np.require(np.broadcast_to(lo, (1, m)), float, ("C", "W")),
+            np.require(np.broadcast_to(hi, (1, m)), float, ("C", "W")),
         )
         if not cens.time_varying:
             est._loop_limits = lims  # constant limits: converted once
@@ -453,7 +453,7 @@ def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: F
     bu, du = _input_terms(est, None if u is None else u.reshape(N, 1, -1), N, 1)
     A, Qd, H, sigma, joseph = _loop_arrays(est)
     loop_entries().tobit_loop(
-        np.ascontiguousarray(y.reshape(N, 1, m), dtype=float),
+        np.require(y.reshape(N, 1, m), float, ("C", "W")),
         A,
         Qd,
         H,
@@ -500,7 +500,9 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
         (ext, (m,)),
     )
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
-    yc, lo, hi = c64(y2, dtype=float), c64(lo, dtype=float), c64(hi, dtype=float)
+    # writable copies of read-only limits (cached by the censoring): numba types read-only arrays apart, and each
+    # would compile the loop once more
+    yc, lo, hi = np.require(y2, float, ("C", "W")), np.require(lo, float, ("C", "W")), np.require(hi, float, ("C", "W"))
     code = _NOISE_CODES[est.noise_term]
     bu, du = _input_terms(est, u2, N, T)
 
