@@ -103,8 +103,9 @@ def _make_listener():
 
 
 def watch_compiles() -> bool:
-    """Register the compile notice's listener with numba (once; imports numba). False when numba does
-    not import."""
+    """Register the compile notice's listener with numba and key numba's on-disk cache of the package's
+    functions on all its compiled modules (:mod:`tobitkf._compiled_cache`) (once; imports numba). False when
+    numba does not import."""
     with _LOCK:
         if _STATS["watching"]:
             return True
@@ -117,6 +118,9 @@ def watch_compiles() -> bool:
             return True
         _STATS["watching"] = True
     ev.register("numba:compile", _make_listener())
+    from ._compiled_cache import install
+
+    install()  # the cache keyed on every compiled module of the package, before any of them is decorated
     return True
 
 

@@ -185,9 +185,9 @@ def test_time_varying_tkf_step_compiled_equals_numpy():
     _close(got.cov, ref.cov)
 
 
-def test_core_kernels_absent_means_numpy(monkeypatch):
+def test_core_compiled_module_absent_means_numpy(monkeypatch):
     """Without numba (the kernels module fails to import) ``compiled=True`` runs the numpy code."""
-    monkeypatch.setattr(core, "_core_kernels", lambda: None)
+    monkeypatch.setattr(core, "_core_compiled_module", lambda: None)
     rng = np.random.default_rng(0)
     x, P = rng.normal(size=(2, 2)), _spd(rng, 2, 2)
     tr = Transition(A=np.eye(2), Qd=np.eye(2))

@@ -381,14 +381,14 @@ def test_plain_online_step_equals_the_general_step(mode, monkeypatch):
     y[0, :, 3] = ch.threshold
     y[..., 6, :] = ch.threshold
     y[1, 2, 10] = np.nan
-    general = ProtocolTobitKalmanFilter._fast_step
+    general = ProtocolTobitKalmanFilter._compiled_online_step
     calls = []
 
     def spy(self, *args):
         calls.append(1)
         return general(self, *args)
 
-    monkeypatch.setattr(ProtocolTobitKalmanFilter, "_fast_step", spy)
+    monkeypatch.setattr(ProtocolTobitKalmanFilter, "_compiled_online_step", spy)
     plain = _steps(ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode), y, shape, resume_at=8)
     assert len(calls) == 3
     given = _steps(ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode), y, shape, y > ch.threshold, 8)

@@ -19,8 +19,9 @@ __all__ = [
     "BACKENDS",
     "numba_available",
     "kernels",
+    "compiled",
     "use_kernel",
-    "kernel_ok",
+    "compiled_ok",
     "system_gap",
     "default_threads",
     "check_threads",
@@ -38,6 +39,24 @@ def _load() -> ModuleType | None:
     except ImportError:
         return None
     return _kernels
+
+
+@lru_cache(maxsize=1)
+def _load_compiled() -> ModuleType | None:
+    try:
+        from . import _compiled_entries
+    except ImportError:
+        return None
+    return _compiled_entries
+
+
+def compiled() -> ModuleType:
+    """The :mod:`tobitkf.filters._compiled_entries` module: the KF's and the TKF's entries into the one compiled
+    loop (imports numba)."""
+    mod = _load_compiled()
+    if mod is None:
+        raise ImportError("backend='numba' needs the numba package (pip install numba); use backend='auto' or 'numpy'")
+    return mod
 
 
 def numba_available() -> bool:
@@ -88,7 +107,7 @@ def use_kernel(backend: str, gap: str | None, what: str) -> bool:
     return gap is None and numba_available()
 
 
-def kernel_ok(est, u, what: str, *, inputs: bool = False) -> bool:
+def compiled_ok(est, u, what: str, *, inputs: bool = False) -> bool:
     """Whether ``est`` (a KF or TKF) runs its compiled kernel for input ``u``: decided once per estimator
     for the case without input (its system and options do not change), else afresh. ``inputs``: the
     kernel covers control inputs (see :func:`system_gap`)."""

@@ -1,32 +1,43 @@
-r"""The compiled time loop of the assumed-density filters: one loop, a family's moments passed in.
+r"""The one compiled time loop of the Gaussian-update families: the Kalman filter, the Tobit Kalman filter (every
+noise term, both covariance forms, the multi-region TKF as stacked channels) and every assumed-density family.
 
-Every assumed-density family (censoring one-/two-sided and multi-region, Rice fading, the protocol channel's
-failure mixture, random saturation) updates its Gaussian channel by channel, and each channel's update is a
-rank-one change along :math:`\bar Ph^T` (:mod:`tobitkf.filters._compiled_moments`):
+:func:`compiled_loop` is written once: the runs in blocks (runs on the last axis, vectorised), per step the predict
+(:func:`~tobitkf.filters._kernels_block._predict`, or the block shift of an augmented state,
+:func:`~tobitkf.filters._kernels_fading.shift_predict_block`), the input term :math:`B^uu_k`, the family's
+update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._kernels_block`),
+carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). The update is chosen by a code,
+one branch per block and step:
 
-.. math::
+* :data:`KALMAN`: :math:`K = \bar PC^T(C\bar PC^T + R)^{-1}` over the channels that take part (a NaN reading
+  does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
+  covariance and the gains are computed once and the means of every run with those gains;
+* :data:`TOBIT`: the Tobit update of all channels at the prior,
+  :func:`~tobitkf.filters._kernels.tobit_update_block` (Miller (3.37)–(3.41));
+* an assumed-density family (:data:`~tobitkf.filters._compiled_moments.FAMILIES`): channel by channel, a
+  rank-one change along :math:`\bar Ph^T` (:mod:`tobitkf.filters._compiled_moments`),
 
-    \bar x, \bar P \text{ (predict: plain, or the block shift of an augmented state)}, \qquad
-    \text{for each channel } l:\ \hat x = \bar x + \alpha\,\bar Ph_l^T,\quad
-    P = \bar P - \beta\,\bar Ph_l^T h_l\bar P,
+  .. math::
 
-with :math:`(\alpha, \beta)` per run from the family's block function (:func:`~tobitkf.filters._compiled_moments.
-family_block`). :func:`adf_loop` is that loop, written once: the predict of the TKF kernel
-(:func:`~tobitkf.filters._kernels_block.predict_block`) or of the fading kernel
-(:func:`~tobitkf.filters._kernels_fading.shift_predict_block`), the channel rows :math:`h_l` per step, a
-multiplicative-noise term (the fading variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`), the runs in
-blocks (runs on the last axis, vectorised), outputs carved from the output pool
-(:func:`~tobitkf.filters.kalman.output_arrays`).
+      \hat x = \bar x + \alpha\,\bar Ph_l^T,\quad P = \bar P - \beta\,\bar Ph_l^T h_l\bar P,
 
-What a family gives the loop (:class:`CompiledSpec`, built by the ``*_spec`` functions below from an estimator
-and a record; :func:`channel_spec` for any channel of the measurement contract that names its compiled block,
-so that the generic :class:`~tobitkf.AssumedDensityFilter` of such a channel needs no spec of its own): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_x), the noise
-variances ``r`` (TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`` (TP, m, K), the number of
-mixture components ``J`` whose posterior weights are returned; per-step arrays are indexed by
-``min(t, len - 1)`` (one row: constant). Covered: the standard covariance form, time-invariant system
-matrices (control inputs through constant ``Bu``/``D``), the channel-order update; anything else (the Joseph
-and square-root forms, time-varying matrices, per-step limits given to
-``step``) runs the numpy path (``backend="auto"``) or is refused (``backend="numba"``).
+  with :math:`(\alpha, \beta)` per run from the family's block function
+  (:func:`~tobitkf.filters._compiled_moments.family_block`), the channel rows :math:`h_l` per step and a
+  multiplicative-noise term (the fading variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`).
+
+A code, not a function argument: numba does not cache a function specialised on another compiled function, so a
+loop taking the update as an argument would be compiled again in every process.
+
+What an assumed-density family gives the loop (:class:`CompiledSpec`, built by the ``*_spec`` functions below
+from an estimator and a record; :func:`channel_spec` for any channel of the measurement contract that names its
+compiled block, so that the generic :class:`~tobitkf.AssumedDensityFilter` of such a channel needs no spec of its
+own): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_x), the noise variances ``r``
+(TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`` (TP, m, K), the number of mixture components
+``J`` whose posterior weights are returned; per-step arrays are indexed by ``min(t, len - 1)`` (one row:
+constant). The KF and the TKF enter through :mod:`tobitkf.filters._compiled_entries`.
+Covered: time-invariant system matrices (control inputs through constant ``Bu``/``D``); the KF and the TKF in the
+standard and Joseph forms, the assumed-density filters in the standard form and the channel-order update;
+anything else (the square-root form, time-varying matrices, per-step limits given to ``step``) runs the numpy
+path (``backend="auto"``) or is refused (``backend="numba"``).
 """
 
 from __future__ import annotations
@@ -50,15 +61,32 @@ from ._compiled_moments import (
     classify,
     family_block,
 )
-from ._kernels import GL_W, GL_X
-from ._kernels_block import _mirror, predict_block, runs_per_block
+from ._kernels import GL_W, GL_X, tobit_update_block
+from ._kernels_block import (
+    _block_dims,
+    _cov_update,
+    _flush,
+    _gain,
+    _gain_block,
+    _mean_scratch,
+    _mirror,
+    _predict,
+    _stage,
+    _stage_shape,
+    _store_last,
+    _take_part,
+    _update_scratch,
+    runs_per_block,
+)
 from ._kernels_fading import shift_predict_block
 from ._readings import classify_readings
 from .core import FilterState
-from .kalman import kernel_result, output_arrays, state_specs
+from .kalman import _empty, kernel_result, output_arrays, state_specs
 
 __all__ = [
-    "adf_loop",
+    "compiled_loop",
+    "KALMAN",
+    "TOBIT",
     "CompiledSpec",
     "compiled_filter",
     "censoring_spec",
@@ -69,8 +97,165 @@ __all__ = [
 ]
 
 
+#: update codes of :func:`compiled_loop` beyond the assumed-density families of
+#: :data:`~tobitkf.filters._compiled_moments.FAMILIES`: the Kalman filter and the Tobit Kalman filter (a joint update
+#: of all channels, not channel by channel)
+KALMAN, TOBIT = 100, 101
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _kalman_moments(C, R, Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb):
+    r"""The Kalman filter's innovation moments of a block (Miller (2.4)–(2.5)): :math:`R_{ee} = C\bar PC^T + R`,
+    :math:`R_{xe} = \bar PC^T`, :math:`e = y - C\bar x`; a channel whose reading is NaN or whose innovation
+    variance is not positive does not take part (its innovation set to 0)."""
+    m, n = C.shape
+    for l in range(m):
+        for j in range(n):
+            for b in range(nb):
+                CP[l, j, b] = 0.0
+            for k in range(n):
+                c = C[l, k]
+                for b in range(nb):
+                    CP[l, j, b] += c * Pp[k, j, b]
+    for l in range(m):
+        for j in range(n):
+            for b in range(nb):
+                Rxe[j, l, b] = CP[l, j, b]
+        for q in range(m):
+            for b in range(nb):
+                Ree[l, q, b] = 0.0
+            for k in range(n):
+                c = C[q, k]
+                for b in range(nb):
+                    Ree[l, q, b] += CP[l, k, b] * c
+            rq = R[l, q]
+            for b in range(nb):
+                Ree[l, q, b] += rq
+        for b in range(nb):
+            s = 0.0
+            for j in range(n):
+                s += xp[j, b] * C[l, j]
+            e[l, b] = y[r0 + b, t, l] - s
+    _take_part(Ree, e, ok, m, nb)
+
+
+@njit(cache=True, error_model="numpy")
+def _channel_updates(
+    family,
+    npass,
+    y,
+    cls,
+    has_cls,
+    H,
+    F,
+    r,
+    lo,
+    hi,
+    par,
+    du,
+    r0,
+    t,
+    xp,
+    Pp,
+    Pc,
+    scr,
+    alpha,
+    beta,
+    llb,
+    pt,
+    compt,
+    pub,
+    compb,
+    member,
+    cv,
+    nb,
+):
+    r"""The assumed-density update of a block, channel by channel (module docstring): for each channel its row
+    ``H[t]``, the prior moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
+    variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`, the family's :math:`(\alpha, \beta)` from
+    :func:`~tobitkf.filters._compiled_moments.family_block`, and the rank-one change along :math:`\bar Ph^T`
+    of ``xp``, ``Pp`` in place. ``npass = 2``: the readings inside their limits first, then the others. Adds
+    each channel's log-likelihood to ``llb``; ``pub`` (m, B), ``compb`` (m, J, B) its probability of an
+    uncensored reading (of the pass that updated the run) and its components' posterior weights (of the last
+    pass); ``pt``, ``compt``, ``member``, ``cv`` scratch."""
+    m = y.shape[2]
+    nx = xp.shape[0]
+    Q = F.shape[2]
+    hx, hph, rb, yv, lov, hiv = scr[0], scr[1], scr[2], scr[3], scr[4], scr[5]
+    has_du = du.shape[1] > 0
+    glx, glw = GL_X, GL_W
+    buf = np.empty((2, glx.shape[0]))
+    th, tf, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, r.shape[0] - 1)
+    tl, tp = min(t, lo.shape[0] - 1), min(t, par.shape[0] - 1)
+    for b in range(nb):
+        llb[b] = 0.0
+    for pl in range(npass * m):
+        ps, l = pl // m, pl % m
+        h = H[th, l]
+        lo_l, hi_l, r_l = lo[tl, l], hi[tl, l], r[tr, l]
+        # P h^T, h x + d, h P h^T
+        for i in range(nx):
+            for b in range(nb):
+                Pc[i, b] = 0.0
+        for k in range(nx):
+            c = h[k]
+            if c != 0.0:
+                for i in range(nx):
+                    for b in range(nb):
+                        Pc[i, b] += Pp[k, i, b] * c
+        for b in range(nb):
+            s = 0.0
+            q = 0.0
+            for k in range(nx):
+                s += h[k] * xp[k, b]
+                q += h[k] * Pc[k, b]
+            hx[b] = s + du[r0 + b, t, l] if has_du else s
+            hph[b] = q
+            rb[b] = r_l
+        # the fading variance: sum_q f_q P f_q^T + (f_q x)^2
+        for qq in range(Q):
+            f = F[tf, l, qq]
+            for k in range(nx):
+                fk = f[k]
+                if fk != 0.0:
+                    for b in range(nb):
+                        acc = 0.0
+                        for j in range(nx):
+                            acc += Pp[k, j, b] * f[j]
+                        rb[b] += fk * acc
+            for b in range(nb):
+                s = 0.0
+                for k in range(nx):
+                    s += f[k] * xp[k, b]
+                rb[b] += s * s
+        for b in range(nb):
+            yb = y[r0 + b, t, l]
+            yv[b] = yb
+            lov[b] = lo_l
+            hiv[b] = hi_l
+            c = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
+            member[b] = npass == 1 or ((c == INTERIOR) == (ps == 0))
+            cv[b] = c if member[b] else MISSING
+        family_block(family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pt, compt, glx, glw, buf)
+        # the rank-one update along P h^T
+        for i in range(nx):
+            for b in range(nb):
+                xp[i, b] += alpha[b] * Pc[i, b]
+        for i in range(nx):
+            for j in range(i, nx):
+                for b in range(nb):
+                    Pp[i, j, b] -= beta[b] * Pc[i, b] * Pc[j, b]
+        _mirror(Pp, nb)
+        for b in range(nb):
+            if member[b]:
+                pub[l, b] = pt[b]
+        for j in range(compt.shape[0]):
+            for b in range(nb):
+                compb[l, j, b] = compt[j, b]
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
-def adf_loop(
+def compiled_loop(
     family,
     y,
     cls,
@@ -84,6 +269,8 @@ def adf_loop(
     par,
     J,
     npass,
+    noise_code,
+    joseph,
     bu,
     du,
     x0,
@@ -93,44 +280,65 @@ def adf_loop(
     pmeans,
     pcovs,
     pu,
+    ey,
     ll,
     comp,
     x_last,
     P_last,
 ):
-    r"""The assumed-density filter of ``family`` over N runs x T steps (module docstring); fills the outputs.
+    r"""The one compiled time loop of the Gaussian-update families over N runs x T steps; fills the outputs.
 
+    ``family``: :data:`KALMAN`, :data:`TOBIT` (a joint update of all channels) or an assumed-density family
+    code of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module docstring).
     ``y`` (N, T, m) readings (NaN: missing); ``cls`` (N, T, m) int8 their classes, or (N, 0, m): by the limit
-    rule; ``A``, ``Qd`` (n, n) acting on the top block of the state (n_x = ``x0.shape[1]`` > n: the block
-    shift); ``H``, ``F``, ``r``, ``lo``, ``hi``, ``par`` the family's per-step arrays; ``J`` its mixture
-    components; ``bu`` (N, T, n) / ``du`` (N, T, m) the input terms (T axis 0: none); ``x0`` (N, n_x),
-    ``P0`` (N or 1, n_x, n_x). Outputs (T axis 0: not written): ``means``, ``pmeans`` (N, T, n), ``covs``
-    (N, T, n, n) or (N, T, n, 1) (the variances), ``pcovs`` (N, T, n, n), ``pu`` (N, T, m), ``ll`` (N, T),
-    ``comp`` (N, T, m, J); ``x_last``, ``P_last`` the state after the last step."""
+    rule (assumed-density families only); ``A``, ``Qd`` (n, n) acting on the top block of the state (n_x =
+    ``x0.shape[1]`` > n: the block shift); ``H`` (TH, m, n_x) the rows (KF, TKF: C, one row); ``F`` (TF, m, Q,
+    n_x) the fading rows; ``r`` (TR, m) the noise variances (TKF: the standard deviations σ); ``lo``, ``hi``
+    (TL, m) the limits; ``par`` (TP, m, K) the family's parameters (KF: R, one row); per-step arrays indexed
+    by ``min(t, len - 1)``. ``J`` the mixture components, ``npass`` 1 or 2 (assumed-density: the readings
+    inside their limits first); ``noise_code`` the TKF's :data:`~tobitkf.filters._kernels.NOISE_CODES`,
+    ``joseph`` the Joseph form (KF, TKF); ``bu`` (N, T, n) / ``du`` (N, T, m) the input terms (T axis 0:
+    none); ``x0`` (N, n_x), ``P0`` (N or 1, n_x, n_x). Outputs (T axis 0: not written): ``means``,
+    ``pmeans`` (N, T, n), ``covs`` (N, T, n, n) or (N, T, n, 1) (the variances), ``pcovs`` (N, T, n, n),
+    ``pu``, ``ey`` (N, T, m) (P(uncensored), the TKF's E(y)), ``ll`` (N, T), ``comp`` (N, T, m, J);
+    ``x_last``, ``P_last`` the state after the last step. The Kalman filter with one prior covariance
+    (``P0`` (1, n, n), N > 1, nothing missing) runs the covariance and the gains once (``covs``, ``pcovs``,
+    ``P_last`` with one run) and the means of every run with those gains."""
     N, T, m = y.shape
     nx = x0.shape[1]
     n = A.shape[0]
-    B = min(runs_per_block(nx), N)
-    x, xp = np.empty((nx, B)), np.empty((nx, B))
-    P, Pp = np.empty((nx, nx, B)), np.empty((nx, nx, B))
-    X = np.empty((nx, n, B))
-    Pc = np.empty((nx, B))
-    hx, hph, rb = np.empty(B), np.empty(B), np.empty(B)
-    yv, lov, hiv = np.empty(B), np.empty(B), np.empty(B)
-    cv = np.empty(B, dtype=np.int8)
-    member = np.empty(B, dtype=np.bool_)
-    alpha, beta, llb, pub = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
-    compb = np.zeros((J, B))
-    buf = np.empty((2, GL_X.shape[0]))
+    shared = family == KALMAN and P0.shape[0] == 1 and N > 1
+    runs = 1 if shared else N
     glx, glw = GL_X, GL_W
-    has_cls, has_bu, has_du = cls.shape[1] > 0, bu.shape[1] > 0, du.shape[1] > 0
-    w_mean, w_cov, w_pmean, w_pcov = means.shape[1] > 0, covs.shape[1] > 0, pmeans.shape[1] > 0, pcovs.shape[1] > 0
-    w_pu, w_ll, w_comp = pu.shape[1] > 0, ll.shape[1] > 0, comp.shape[1] > 0
-    var_only = covs.shape[3] == 1 and n > 1
+    B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, runs_per_block(nx))
+    x, xp, e, mu = _mean_scratch(nx, m, B)
+    blk, run, solve, buf = _update_scratch(nx, n, m, B, glx.shape[0] if family == TOBIT else 0)
+    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    C = H[0]
+    if family == KALMAN:
+        gam[:, :] = 1.0  # H = C
+        for l in range(m):
+            for q in range(m):
+                noise[l, q, :] = par[0, l, q]
+    # the assumed-density scratch
+    Pc = np.empty((nx, B))
+    scr = np.empty((6, B))
+    alpha, beta, llb = np.empty(B), np.empty(B), np.empty(B)
+    pt, pub = np.empty(B), np.empty((m, B))
+    compt, compb = np.zeros((J, B)), np.zeros((m, J, B))
+    member = np.empty(B, dtype=np.bool_)
+    cv = np.empty(B, dtype=np.int8)
+    has_cls, has_bu = cls.shape[1] > 0, bu.shape[1] > 0
+    Kall = np.empty((T if shared else 0, n, m))
+    # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
+    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
+    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
+    s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
+    s_ll, s_comp = np.empty(_stage_shape(ll, B, S)), np.empty(_stage_shape(comp, B, S))
+    want_pu, want_ey, want_ll, want_comp = pu.shape[1] > 0, ey.shape[1] > 0, ll.shape[1] > 0, comp.shape[1] > 0
     one_p = P0.shape[0] == 1
-    Q = F.shape[2]
-    for r0 in range(0, N, B):
-        nb = min(B, N - r0)
+    for r0 in range(0, runs, B):
+        nb = min(B, runs - r0)
         for b in range(nb):
             rp = 0 if one_p else r0 + b
             for i in range(nx):
@@ -138,122 +346,165 @@ def adf_loop(
                 for j in range(nx):
                     P[i, j, b] = P0[rp, i, j]
         for t in range(T):
+            tt = t % S
             if nx == n:
-                predict_block(A, Qd, x, P, xp, Pp, X, nb)
+                _predict(A, Qd, x, P, xp, Pp, AP, nb)
             else:
-                shift_predict_block(A, Qd, x, P, xp, Pp, X, nb)
-            if has_bu:
+                shift_predict_block(A, Qd, x, P, xp, Pp, AP, nb)
+            if has_bu:  # xbar = A x + B^u u_k
                 for i in range(n):
                     for b in range(nb):
                         xp[i, b] += bu[r0 + b, t, i]
-            if w_pmean:
-                for b in range(nb):
-                    for i in range(n):
-                        pmeans[r0 + b, t, i] = xp[i, b]
-            if w_pcov:
-                for b in range(nb):
-                    for i in range(n):
-                        for j in range(n):
-                            pcovs[r0 + b, t, i, j] = Pp[i, j, b]
-            for b in range(nb):
-                llb[b] = 0.0
-            th, tf, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, r.shape[0] - 1)
-            tl, tp = min(t, lo.shape[0] - 1), min(t, par.shape[0] - 1)
-            for pl in range(npass * m):  # npass = 2: the readings inside their limits first, then the others
-                ps, l = pl // m, pl % m
-                h = H[th, l]
-                lo_l, hi_l, r_l = lo[tl, l], hi[tl, l], r[tr, l]
-                # P h^T, h x + d, h P h^T
-                for i in range(nx):
-                    for b in range(nb):
-                        Pc[i, b] = 0.0
-                for k in range(nx):
-                    c = h[k]
-                    if c != 0.0:
-                        for i in range(nx):
-                            for b in range(nb):
-                                Pc[i, b] += Pp[k, i, b] * c
-                for b in range(nb):
-                    s = 0.0
-                    q = 0.0
-                    for k in range(nx):
-                        s += h[k] * xp[k, b]
-                        q += h[k] * Pc[k, b]
-                    hx[b] = s + du[r0 + b, t, l] if has_du else s
-                    hph[b] = q
-                    rb[b] = r_l
-                # the fading variance: sum_q f_q P f_q^T + (f_q x)^2
-                for qq in range(Q):
-                    f = F[tf, l, qq]
-                    for k in range(nx):
-                        fk = f[k]
-                        if fk != 0.0:
-                            for b in range(nb):
-                                acc = 0.0
-                                for j in range(nx):
-                                    acc += Pp[k, j, b] * f[j]
-                                rb[b] += fk * acc
-                    for b in range(nb):
-                        s = 0.0
-                        for k in range(nx):
-                            s += f[k] * xp[k, b]
-                        rb[b] += s * s
-                for b in range(nb):
-                    yb = y[r0 + b, t, l]
-                    yv[b] = yb
-                    lov[b] = lo_l
-                    hiv[b] = hi_l
-                    c = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
-                    member[b] = npass == 1 or ((c == INTERIOR) == (ps == 0))
-                    cv[b] = c if member[b] else MISSING
-                family_block(
-                    family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pub, compb, glx, glw, buf
+            _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
+            if family == TOBIT:
+                tl = min(t, lo.shape[0] - 1)
+                tobit_update_block(
+                    C,
+                    r[0],
+                    lo,
+                    hi,
+                    tl,
+                    0,
+                    y,
+                    du,
+                    r0,
+                    t,
+                    noise_code,
+                    joseph,
+                    glx,
+                    glw,
+                    xp,
+                    Pp,
+                    mu,
+                    e,
+                    x,
+                    P,
+                    blk,
+                    run,
+                    solve,
+                    buf,
+                    nb,
                 )
-                # the rank-one update along P h^T
-                for i in range(nx):
-                    for b in range(nb):
-                        xp[i, b] += alpha[b] * Pc[i, b]
-                for i in range(nx):
-                    for j in range(i, nx):
+                if want_pu or want_ey:
+                    for l in range(m):
                         for b in range(nb):
-                            Pp[i, j, b] -= beta[b] * Pc[i, b] * Pc[j, b]
-                _mirror(Pp, nb)
-                if w_pu:
-                    for b in range(nb):
-                        if member[b]:
-                            pu[r0 + b, t, l] = pub[b]
-                if w_comp:
-                    for b in range(nb):
-                        for j in range(J):
-                            comp[r0 + b, t, l, j] = compb[j, b]
-            if w_ll:
-                for b in range(nb):
-                    ll[r0 + b, t] = llb[b]
-            if w_mean:
-                for b in range(nb):
+                            if want_pu:
+                                s_pu[tt, l, b] = gam[l, b]
+                            if want_ey:
+                                s_ey[tt, l, b] = mu[l, b]
+            elif family == KALMAN:
+                _kalman_moments(C, par[0], Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
+                Rs, Ws, Ks, oks, Rxs, ds = run
+                if m > 1:
+                    Rw, Wb, db, bad = solve
+                    _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+                else:
+                    _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
+                if shared:
                     for i in range(n):
-                        means[r0 + b, t, i] = xp[i, b]
-            if w_cov:
-                for b in range(nb):
-                    if var_only:
-                        for i in range(n):
-                            covs[r0 + b, t, i, 0] = Pp[i, i, b]
-                    else:
-                        for i in range(n):
-                            for j in range(n):
-                                covs[r0 + b, t, i, j] = Pp[i, j, b]
-            x, xp = xp, x
-            P, Pp = Pp, P
-        for b in range(nb):
-            for i in range(nx):
-                x_last[r0 + b, i] = x[i, b]
-                for j in range(nx):
-                    P_last[r0 + b, i, j] = P[i, j, b]
+                        for l in range(m):
+                            Kall[t, i, l] = K[i, l, 0]
+                _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
+            else:
+                _channel_updates(
+                    family,
+                    npass,
+                    y,
+                    cls,
+                    has_cls,
+                    H,
+                    F,
+                    r,
+                    lo,
+                    hi,
+                    par,
+                    du,
+                    r0,
+                    t,
+                    xp,
+                    Pp,
+                    Pc,
+                    scr,
+                    alpha,
+                    beta,
+                    llb,
+                    pt,
+                    compt,
+                    pub,
+                    compb,
+                    member,
+                    cv,
+                    nb,
+                )
+                if want_pu:
+                    for l in range(m):
+                        for b in range(nb):
+                            s_pu[tt, l, b] = pub[l, b]
+                if want_ll:
+                    for b in range(nb):
+                        s_ll[tt, b] = llb[b]
+                if want_comp:
+                    for l in range(m):
+                        for j in range(J):
+                            for b in range(nb):
+                                s_comp[tt, l, j, b] = compb[l, j, b]
+                x, xp = xp, x
+                P, Pp = Pp, P
+            _stage(x, P, tt, nb, s_mean, s_cov)
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_cov, covs, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
+                _flush(s_pu, pu, r0, t0, nb, tt + 1)
+                _flush(s_ey, ey, r0, t0, nb, tt + 1)
+                _flush(s_ll, ll, r0, t0, nb, tt + 1)
+                _flush(s_comp, comp, r0, t0, nb, tt + 1)
+        _store_last(x, P, r0, nb, x_last, P_last)
+    if shared:
+        _shared_gain_means(A, C, Kall, y, x0, means, pmeans, x_last)
+
+
+@njit(cache=True, error_model="numpy")
+def _shared_gain_means(A, C, Kall, y, x0, means, pmeans, x_last):
+    """The Kalman filter's means of runs 1..N-1 with the gains ``Kall`` (T, n, m) of run 0 (one covariance shared
+    by the runs: it does not depend on the readings)."""
+    N, T, m = y.shape
+    n = A.shape[0]
+    xs = np.empty(n)
+    xps = np.empty(n)
+    es = np.empty(m)
+    for r in range(1, N):
+        for i in range(n):
+            xs[i] = x0[r, i]
+        for t in range(T):
+            for i in range(n):
+                s = 0.0
+                for j in range(n):
+                    s += A[i, j] * xs[j]
+                xps[i] = s
+                if pmeans.shape[1] > 0:
+                    pmeans[r, t, i] = s
+            for l in range(m):
+                s = 0.0
+                for j in range(n):
+                    s += xps[j] * C[l, j]
+                es[l] = y[r, t, l] - s
+            for i in range(n):
+                s = 0.0
+                for l in range(m):
+                    s += Kall[t, i, l] * es[l]
+                xs[i] = xps[i] + s
+                if means.shape[1] > 0:
+                    means[r, t, i] = xs[i]
+        for i in range(n):
+            x_last[r, i] = xs[i]
 
 
 @dataclass
 class CompiledSpec:
-    """What a family gives :func:`adf_loop` (module docstring); ``extras`` turns the loop's ``pu`` (N, T, m),
+    """What an assumed-density family gives :func:`compiled_loop` (module docstring); ``extras`` turns the loop's ``pu`` (N, T, m),
     ``ll`` (N, T) and ``comp`` (N, T, m, J) into the family's extras dict (batch shape restored)."""
 
     family: int
@@ -272,7 +523,9 @@ class CompiledSpec:
 
 
 def _c(a: Any) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=float)
+    """``a`` as a C-contiguous, writable float64 array (a read-only one, e.g. cached limits, is copied: numba types
+    read-only arrays apart, and each would compile the loop once more)."""
+    return np.require(a, dtype=float, requirements=("C", "W"))
 
 
 def _input_terms(est, u2: np.ndarray | None, N: int, n: int, m: int, *, feedthrough: bool = True):
@@ -472,7 +725,7 @@ def channel_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_
 def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spec_of) -> Any:
     """The compiled ``filter`` of an assumed-density family, or None (the numpy loop runs): decides with the
     estimator's ``backend`` (:func:`~tobitkf.filters._backend.use_kernel`), builds its arrays with
-    ``spec_of`` (one of the ``*_spec`` functions) and runs :func:`adf_loop`. A covariance that stops being
+    ``spec_of`` (one of the ``*_spec`` functions) and runs :func:`compiled_loop`. A covariance that stops being
     finite also returns None, so that the numpy loop reruns the call and reports where it diverged."""
     what = f"the {est._name}"
     gap = None
@@ -500,10 +753,10 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     sys_ = est.system
     F = spec.F if spec.F is not None else np.zeros((1, m, 0, nx))
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
-    adf_loop(
+    compiled_loop(
         spec.family,
-        np.ascontiguousarray(y2),
-        np.ascontiguousarray(cls, dtype=np.int8),
+        _c(y2),
+        np.require(cls, dtype=np.int8, requirements=("C", "W")),
         _c(sys_.transition(0)),
         _c(sys_.process_cov(0)),
         _c(spec.H),
@@ -514,6 +767,8 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         _c(spec.par),
         spec.J,
         spec.npass,
+        0,
+        False,
         spec.bu,
         spec.du,
         x0,
@@ -523,6 +778,7 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         pmeans,
         pcovs,
         pu,
+        _empty((N, 0, m)),
         ll,
         comp if comp.shape[1] > 0 else np.empty((N, 0, m, spec.J)),
         x_last,

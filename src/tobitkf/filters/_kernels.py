@@ -1,32 +1,16 @@
-r"""Compiled (numba) time loops of the Kalman filter and the Tobit Kalman filter.
+r"""The censored-normal statistics and the Tobit measurement update of a block of runs, compiled (numba).
 
-These kernels are an *implementation* of the numpy reference paths in
-:mod:`tobitkf.filters.kalman` and :mod:`tobitkf.filters.tobit`, not a second
-algorithm: same equations (Miller (2015) (2.3)–(2.6); (3.20)–(3.22), (3.32),
-(3.37)–(3.41), (3.55)), same channel masking as
-:func:`tobitkf.filters.core.gain_update` (missing or degenerate channels get a
-zero gain column), same symmetrization after each predict and update, and the same
-censored-normal statistics as :func:`tobitkf.censored.censored_moments` (direct
-formulas in the central region; 64-node Gauss–Legendre quadrature in shifted
-coordinates when the uncensored window lies beyond 4σ in a tail or is narrower than
-1σ); a channel with one finite limit shared by the runs of a block (the common Tobit case) takes the
-vectorised statistics of :mod:`tobitkf.filters._kernels_censored` for all runs of the block at once.
-Results agree with the numpy path to rounding (tested to 1e-12).
+An *implementation* of the numpy reference paths in :mod:`tobitkf.censored` and :mod:`tobitkf.filters.tobit`,
+not a second algorithm: the censored-normal statistics of :func:`tobitkf.censored.censored_moments` (direct
+formulas in the central region; 64-node Gauss–Legendre quadrature in shifted coordinates when the uncensored
+window lies beyond 4σ in a tail or is narrower than 1σ; a channel with one finite limit shared by the runs of a
+block takes the vectorised statistics of :mod:`tobitkf.filters._kernels_censored` for all runs at once), and the
+Tobit update (Miller (2015) (3.20)–(3.22), (3.32), (3.37)–(3.41), (3.55)) with the channel masking of
+:func:`tobitkf.filters.core.gain_update`. The time loop that runs it is the one compiled loop of the
+Gaussian-update families, :func:`tobitkf.filters._compiled_loop.compiled_loop`; the compiled closed loop of
+:mod:`tobitkf.control` runs it too. Results agree with the numpy path to rounding (tested to 1e-12).
 
-Covered cases (the dispatchers in ``kalman.py`` / ``tobit.py`` decide, with
-:func:`tobitkf.filters._backend.system_gap`): time-invariant A, C, Q, R (and B); for the TKF also
-control inputs through constant B^u and D (the KF kernel takes none); any censoring limits (constant or
-``(T, m)``, one- or two-sided, so the multi-region TKF of :func:`tobitkf.multi_region`, whose sensors
-are stacked channels, runs here), NaN (missing) measurements, every ``noise_term`` and both
-``covariance_update`` forms. Everything else runs on numpy.
-
-Runs are processed in blocks of :func:`runs_per_block` runs (outer loop) over time (inner loop), the
-block's state in structure-of-arrays scratch (innermost loops over the runs of the
-block, which are independent: one run alone is a latency-bound chain), and the outputs
-staged for :data:`CHUNK` steps before they are written run by run into the
-preallocated ``(N, T, ...)`` arrays. Functions are compiled on first use and cached on
-disk (``cache=True``). The kernels release the GIL (``nogil=True``), so threads (e.g. a
-threaded Dask scheduler) can run several filters at once.
+Functions are compiled on first use and cached on disk (``cache=True``).
 
 Symbols: ``gam`` = E(p) = γ (P(uncensored)), ``lam`` = inverse Mills ratio λ,
 ``Ruu`` = the noise term :math:`R_{uu}` of (3.40), ``Rxe``/``Ree`` of (3.39)/(3.40).
@@ -40,29 +24,12 @@ import numpy as np
 from numba import njit
 
 from ..censored import _CF_FROM, _CF_TERMS, _FAR, _GL_W, _GL_X, _NARROW, _TAIL
-from ._kernels_block import (
-    _block_dims,
-    _cov_update,
-    _flush,
-    _gain,
-    _gain_block,
-    _innovation_moments,
-    _load,
-    _mean_scratch,
-    _predict,
-    _stage,
-    _stage_shape,
-    _store_last,
-    _update_scratch,
-    runs_per_block,
-)
+from ._kernels_block import _cov_update, _gain, _gain_block, _innovation_moments
 from ._kernels_censored import one_sided_block
 
 __all__ = [
     "censored_stats",
     "censored_moments_array",
-    "tkf_kernel",
-    "kf_kernel",
     "tobit_update_block",
     "NOISE_CODES",
     "GL_X",
@@ -347,7 +314,7 @@ def tobit_update_block(
 ):
     r"""The Tobit measurement update of a block of ``nb`` runs (Miller (3.37)–(3.41), (3.39)–(3.40), (3.32),
     (3.22), (3.55)), all channel statistics at the prior (Assumption A1, (3.35)): the step of
-    :func:`tkf_kernel`, shared with the compiled closed loop of :mod:`tobitkf.control` (which runs the TKF
+    :func:`~tobitkf.filters._compiled_loop.compiled_loop`, shared with the compiled closed loop of :mod:`tobitkf.control` (which runs the TKF
     as its observer), so that the update exists once.
 
     ``xp`` (n, B), ``Pp`` (n, n, B) the prediction; run b of the block reads its reading at
@@ -411,226 +378,3 @@ def tobit_update_block(
     else:
         _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
     _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # H = diag(E(p)) C (3.41)
-
-
-@njit(cache=True, error_model="numpy", nogil=True)
-def tkf_kernel(
-    y,
-    A,
-    Qd,
-    C,
-    sigma,
-    lo,
-    hi,
-    bu,
-    du,
-    x0,
-    P0,
-    noise_code,
-    joseph,
-    glx,
-    glw,
-    means,
-    covs,
-    pmeans,
-    pcovs,
-    pu,
-    ey,
-    x_last,
-    P_last,
-):
-    """TKF over ``N`` runs of ``T`` steps; fills the ``(N, T, ...)`` output arrays in place.
-
-    ``y`` (N, T, m) (NaN = missing), ``A``/``Qd`` (n, n), ``C`` (m, n), ``sigma`` (m,),
-    ``lo``/``hi`` (T, m), ``bu`` (N, T, n) the input offsets :math:`B^uu_k` of the predict and ``du``
-    (N, T, m) the feedthrough :math:`Du_k` (each (N, 0, ...) without), ``x0`` (N, n), ``P0`` (N, n, n),
-    ``noise_code`` from :data:`NOISE_CODES`. An output of shape ``(N, 0, ...)`` is not written (not
-    requested); ``x_last`` (N, n) and ``P_last`` (N, n, n) receive the state after the last step.
-    """
-    N, T, m = y.shape
-    n = A.shape[0]
-    B, S = _block_dims(N, T, n * n, runs_per_block(n))
-    x, xp, e, mu = _mean_scratch(n, m, B)
-    blk, run, solve, buf = _update_scratch(n, n, m, B, glx.shape[0])
-    P, Pp, AP, _CP, _Rxe, _Ree, _K, _MH, _noise, gam, _ok = blk
-    # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
-    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
-    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
-    s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
-    want_pu, want_ey = pu.shape[1] > 0, ey.shape[1] > 0
-    has_bu = bu.shape[1] > 0
-    for r0 in range(0, N, B):
-        nb = min(B, N - r0)
-        _load(x0, P0, r0, nb, x, P)
-        for t in range(T):
-            tt = t % S
-            _predict(A, Qd, x, P, xp, Pp, AP, nb)
-            if has_bu:  # xbar = A x + B^u u_k
-                for i in range(n):
-                    for b in range(nb):
-                        xp[i, b] += bu[r0 + b, t, i]
-            _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
-            tobit_update_block(
-                C,
-                sigma,
-                lo,
-                hi,
-                t,
-                0,
-                y,
-                du,
-                r0,
-                t,
-                noise_code,
-                joseph,
-                glx,
-                glw,
-                xp,
-                Pp,
-                mu,
-                e,
-                x,
-                P,
-                blk,
-                run,
-                solve,
-                buf,
-                nb,
-            )
-            if want_pu or want_ey:
-                for l in range(m):
-                    for b in range(nb):
-                        if want_pu:
-                            s_pu[tt, l, b] = gam[l, b]
-                        if want_ey:
-                            s_ey[tt, l, b] = mu[l, b]
-            _stage(x, P, tt, nb, s_mean, s_cov)
-            if tt == S - 1 or t == T - 1:
-                t0 = t - tt
-                _flush(s_mean, means, r0, t0, nb, tt + 1)
-                _flush(s_cov, covs, r0, t0, nb, tt + 1)
-                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
-                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
-                _flush(s_pu, pu, r0, t0, nb, tt + 1)
-                _flush(s_ey, ey, r0, t0, nb, tt + 1)
-        _store_last(x, P, r0, nb, x_last, P_last)
-
-
-# --- the Kalman filter ---------------------------------------------------------------------
-
-
-@njit(cache=True, error_model="numpy", nogil=True)
-def kf_kernel(y, skip, A, Qd, C, R, x0, P0, joseph, means, covs, pmeans, pcovs, x_last, P_last):
-    """KF over ``N`` runs; fills the outputs in place (an output of shape ``(N, 0, ...)`` is not
-    written); ``x_last`` (N, n) and ``P_last`` (N or 1, n, n) receive the state after the last step.
-
-    ``skip`` (N, T, m) bool marks channels left out (with NaN in ``y``). When ``covs``
-    has one run and ``N > 1`` (shared covariance: no channel skipped, common prior) the
-    covariance recursion and gains are computed once and only the means run per run;
-    otherwise each run has its own covariance. ``x0`` (N, n), ``P0`` (N or 1, n, n).
-    """
-    N, T, m = y.shape
-    n = A.shape[0]
-    shared = covs.shape[0] == 1 and N > 1
-    B, S = _block_dims(N, T, 0, runs_per_block(n))
-    x, xp, e, _yb = _mean_scratch(n, m, B)
-    blk, run, solve, _buf = _update_scratch(n, n, m, B, 0)
-    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
-    gam[:, :] = 1.0  # H = C
-    Rs, Ws, Ks, oks, Rxs, ds = run
-    Rw, Wb, db, bad = solve
-    for l in range(m):
-        for q in range(m):
-            noise[l, q, :] = R[l, q]
-    Kall = np.empty((T if shared else 0, n, m))
-    runs = 1 if shared else N
-    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
-    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
-    for r0 in range(0, runs, B):
-        nb = min(B, runs - r0)
-        _load(x0, P0, r0, nb, x, P)
-        for t in range(T):
-            tt = t % S
-            _predict(A, Qd, x, P, xp, Pp, AP, nb)
-            _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
-            # Ree = C Pbar C^T + R, Rxe = Pbar C^T, e = y - C xbar  (2.4)–(2.5)
-            for l in range(m):
-                for j in range(n):
-                    for b in range(nb):
-                        CP[l, j, b] = 0.0
-                    for k in range(n):
-                        c = C[l, k]
-                        for b in range(nb):
-                            CP[l, j, b] += c * Pp[k, j, b]
-            for l in range(m):
-                for j in range(n):
-                    for b in range(nb):
-                        Rxe[j, l, b] = CP[l, j, b]
-                for q in range(m):
-                    for b in range(nb):
-                        Ree[l, q, b] = 0.0
-                    for k in range(n):
-                        c = C[q, k]
-                        for b in range(nb):
-                            Ree[l, q, b] += CP[l, k, b] * c
-                    rq = R[l, q]
-                    for b in range(nb):
-                        Ree[l, q, b] += rq
-                for b in range(nb):
-                    s = 0.0
-                    for j in range(n):
-                        s += xp[j, b] * C[l, j]
-                    e[l, b] = y[r0 + b, t, l] - s
-            for l in range(m):
-                for b in range(nb):
-                    good = (Ree[l, l, b] > _TINY) and not skip[r0 + b, t, l]
-                    ok[l, b] = good
-                    if not good:
-                        e[l, b] = 0.0
-            if m > 1:
-                _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
-            else:
-                _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
-            if shared:
-                for i in range(n):
-                    for l in range(m):
-                        Kall[t, i, l] = K[i, l, 0]
-            _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
-            _stage(x, P, tt, nb, s_mean, s_cov)
-            if tt == S - 1 or t == T - 1:
-                t0 = t - tt
-                _flush(s_mean, means, r0, t0, nb, tt + 1)
-                _flush(s_cov, covs, r0, t0, nb, tt + 1)
-                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
-                _flush(s_pcov, pcovs, r0, t0, nb, tt + 1)
-        _store_last(x, P, r0, nb, x_last, P_last)
-    if shared:
-        # means of the other runs with the shared gains (the covariance does not depend on y)
-        xs = np.empty(n)
-        xps = np.empty(n)
-        es = np.empty(m)
-        for r in range(1, N):
-            for i in range(n):
-                xs[i] = x0[r, i]
-            for t in range(T):
-                for i in range(n):
-                    s = 0.0
-                    for j in range(n):
-                        s += A[i, j] * xs[j]
-                    xps[i] = s
-                    if pmeans.shape[1] > 0:
-                        pmeans[r, t, i] = s
-                for l in range(m):
-                    s = 0.0
-                    for j in range(n):
-                        s += xps[j] * C[l, j]
-                    es[l] = y[r, t, l] - s
-                for i in range(n):
-                    s = 0.0
-                    for l in range(m):
-                        s += Kall[t, i, l] * es[l]
-                    xs[i] = xps[i] + s
-                    if means.shape[1] > 0:
-                        means[r, t, i] = xs[i]
-            for i in range(n):
-                x_last[r, i] = xs[i]

@@ -42,7 +42,7 @@ BLOCK = 32  # runs per block from n = 13 on (runs_per_block: more at smaller n)
 CHUNK = 64
 FLUSH_BY_STEP = 32  # numbers per run-step from which _flush goes step by step
 BLOCKED_N = 8  # state size from which the block products take the blocked loops (_predict_blocked)
-STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of tkf_kernel (fewer steps at large n)
+STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of the compiled loop (fewer steps at large n)
 # Outputs are staged for CHUNK steps of a block and then written run by run: writing
 # every step straight into (N, T, ...) arrays touches B rows T*n*8 bytes apart,
 # which for long records alias in the cache and miss the TLB on every store. The staging
@@ -53,7 +53,7 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of tkf_kerne
 # 10^4 runs x 100 steps, outputs preallocated): 15.6 ns per run-step against 21.2 ns with
 # (B, S, ...) buffers written run by run at every step, and 17.2 ns writing the outputs directly.
 # At large n a chunk of CHUNK steps no longer fits the core's L2 cache (n = 16: 64 steps x 256 numbers x 32
-# runs = 4 MB per covariance buffer), and the staged copies went out to L3 and back: tkf_kernel stages
+# runs = 4 MB per covariance buffer), and the staged copies went out to L3 and back: the TKF stages
 # at most STAGE_BYTES per buffer (n = 16: 4 steps; n = 2 keeps 64). Measured at n = 16, m = 8, all
 # outputs into reused arrays (in-process A/B, thread CPU time, load 5.7): 3477 -> 2967 ns per run-step.
 
@@ -756,7 +756,7 @@ def _store_last(xv, Pv, r0, nb, x_last, P_last):
 @njit(cache=True, error_model="numpy")
 def predict_block(A, Qd, x, P, xp, Pp, AP, nb):
     r""":math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(APA^T + Q)` of a block of runs (the predict of
-    :func:`tkf_kernel` and :func:`kf_kernel`, shared with the compiled closed loop of :mod:`tobitkf.control`);
+    :func:`~tobitkf.filters._compiled_loop.compiled_loop`, shared with the compiled closed loop of :mod:`tobitkf.control`);
     ``x`` (n, B), ``P`` (n, n, B) in, ``xp``, ``Pp`` out, ``AP`` (n, n, B) scratch."""
     _predict(A, Qd, x, P, xp, Pp, AP, nb)
 

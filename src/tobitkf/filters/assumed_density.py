@@ -455,7 +455,7 @@ class AssumedDensityFamily(GaussianFilter):
         owner = next(c for c in cls.__mro__ if "_compiled_spec" in c.__dict__)
         return all(getattr(cls, h, None) is getattr(owner, h, None) for h in _NUMPY_HOOKS)
 
-    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
         """The compiled loop (:mod:`tobitkf.filters._compiled_loop`) when the ``backend`` allows it and covers
         the options; None: the numpy loop runs."""
         backend = getattr(self, "backend", "numpy")

@@ -466,7 +466,7 @@ def time_update(
     imports and the case is covered (standard or Joseph form, one covariance per run), else this numpy code.
     """
     if compiled and P is not None and _compiled_covers(x, P, form) and tr.P_fixed is None and tr.source == 0:
-        kern = _core_kernels()
+        kern = _core_compiled_module()
         if kern is not None:
             xp, Pp = _compiled_time_update(kern, x, P, tr)
             return xp, Pp, None
@@ -495,7 +495,7 @@ def time_update(
     return xp, Pp, None
 
 
-def _core_kernels():
+def _core_compiled_module():
     """The compiled shared step (:mod:`tobitkf.filters._kernels_core`), or None when the filters' kernels
     cannot be compiled (:func:`tobitkf.filters._backend.numba_available`)."""
     return _load_core() if _backend.numba_available() else None
@@ -847,7 +847,7 @@ def measurement_update(
         e = innov if valid is None else np.where(valid, innov, 0.0)
         return x + e @ mp.gain.T, (P if mp.posterior_cov is None else mp.posterior_cov), S, mp.gain, None
     if compiled and _compiled_covers(x, P, form) and mp.H0.ndim == 2:
-        kern = _core_kernels()
+        kern = _core_compiled_module()
         if kern is not None:
             assert P is not None
             return _compiled_measurement_update(kern, x, P, innov, valid, mp, form == "joseph")
@@ -1131,14 +1131,14 @@ class Estimator:
             return None
         raise ValidationError(f"u: {self._name} takes no control input")
 
-    def _fast_filter(self, y2, u2, state: FilterState, want: frozenset[str], batch) -> FilterResult | None:
+    def _compiled_filter(self, y2, u2, state: FilterState, want: frozenset[str], batch) -> FilterResult | None:
         """A compiled implementation of the loop, or None (the numpy loop runs)."""
         return None
 
-    def _fast_filter_with(self, y2, u2, state: FilterState, want: frozenset[str], batch, step_options):
-        """:meth:`_fast_filter` for a loop run with ``step_options`` (a family whose kernel depends on
+    def _compiled_filter_with(self, y2, u2, state: FilterState, want: frozenset[str], batch, step_options):
+        """:meth:`_compiled_filter` for a loop run with ``step_options`` (a family whose kernel depends on
         them overrides this; by default they are not looked at)."""
-        return self._fast_filter(y2, u2, state, want, batch)
+        return self._compiled_filter(y2, u2, state, want, batch)
 
     def _compiled_core(self) -> bool:
         """Whether the shared predict and update run compiled (:mod:`tobitkf.filters._kernels_core`):
@@ -1146,10 +1146,12 @@ class Estimator:
         ``"numpy"``. Decided once per estimator."""
         cached = self.__dict__.get("_core_compiled")
         if cached is None:
-            cached = self._core_compiled = getattr(self, "backend", "auto") != "numpy" and _core_kernels() is not None
+            cached = self._core_compiled = (
+                getattr(self, "backend", "auto") != "numpy" and _core_compiled_module() is not None
+            )
         return cached
 
-    def _fast_step(self, state: FilterState, y: np.ndarray, u, options) -> FilterState | None:
+    def _compiled_online_step(self, state: FilterState, y: np.ndarray, u, options) -> FilterState | None:
         """A compiled single step, or None (the numpy step runs)."""
         return None
 
@@ -1251,7 +1253,7 @@ class Estimator:
             uk = self._step_input(state, u)
             opts = self._prepare_step_options(state, self._check_options(options))
         self._check_reading(state, yk, opts)
-        fast = self._fast_step(state, yk, uk, opts)
+        fast = self._compiled_online_step(state, yk, uk, opts)
         if fast is not None:
             # the check's own test, without its call, for the common case: a step it does not look at whose carry
             # (and so the check's memory) passed through unchanged
@@ -1314,7 +1316,7 @@ class Estimator:
         u2 = self._prepare_inputs(u, N, T, batch)
         self._check_record(y2, u2, state.k, name)
         _check_output_memory(want, N, T, self.n, name)
-        fast = self._fast_filter_with(y2, u2, state, want, batch, step_options)
+        fast = self._compiled_filter_with(y2, u2, state, want, batch, step_options)
         if fast is None:
             rec = _Recorder(want, T, batch, self.n)
             x, P, S, carry = state.x, state.P, state.S, state.carry

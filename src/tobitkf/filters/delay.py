@@ -349,7 +349,9 @@ class _DelayEstimator(Estimator):
         """Whether the family's compiled whole step (one kernel call) takes the step from ``state``."""
         return False
 
-    def _fast_step(self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]) -> FilterState | None:
+    def _compiled_online_step(
+        self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]
+    ) -> FilterState | None:
         """The online step by the compiled whole step (the family's :meth:`_whole_online`: its branch of
         :meth:`_step_arrays` without the loop's floating-point context, as the kernel's arithmetic warns of nothing,
         and with the divergence check on the kernel's trace of the one shared covariance); None (the checked step

@@ -513,7 +513,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
     # ---- the compiled path (``filter``, and ``step`` through _fading_kernel_step) ----------------------
-    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
         what = "the fading Tobit Kalman filter"
         gap = None
         if step_options.get("keep_augmented"):
@@ -528,7 +528,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
             return None
         return _finite_or_none(_fading_kernel_run(self, y2, state, want, batch, bool(step_options["keep_smoothed"])))
 
-    def _fast_step(self, state, y, u, options):
+    def _compiled_online_step(self, state, y, u, options):
         """One online step through the compiled loop (T = 1), with the numpy step's extras; None (the
         numpy step runs) where the kernel does not cover the case or the covariance stopped being finite."""
         opts = {"keep_smoothed": options.get("keep_smoothed", True), "keep_augmented": options.get("keep_augmented")}
@@ -542,7 +542,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
                 return None
             return _fading_kernel_step(self, y, state, bool(opts["keep_smoothed"]))
         u2 = None if u is None else u.reshape(N, 1, -1)
-        res = self._fast_filter_with(y.reshape(N, 1, self.m), u2, state, _STEP_OUTPUTS, (N,), opts)
+        res = self._compiled_filter_with(y.reshape(N, 1, self.m), u2, state, _STEP_OUTPUTS, (N,), opts)
         if res is None:
             return None
         extras = {key: val[:, 0] for key, val in res.extras.items()}

@@ -47,7 +47,7 @@ import numpy as np
 from .._validation import ShapeError, ValidationError, as_float, as_float_array, check_instance
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, kernel_ok, kernels
+from ._backend import BACKENDS, check_square_root, compiled, compiled_ok
 from ._pool import take_buffer
 from ._readings import censoring_sides
 from ._times import at_times
@@ -174,18 +174,18 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
         return MeasurementPrediction(expected=xp @ C.T + self._feedthrough(k, u), H0=C, noise=R[None]), carry
 
     # ---- the compiled path ------------------------------------------------------------
-    def _kernel_ok(self, u) -> bool:
-        return kernel_ok(self, u, "the Kalman filter")
+    def _compiled_ok(self, u) -> bool:
+        return compiled_ok(self, u, "the Kalman filter")
 
-    def _fast_filter(self, y2, u2, state, want, batch):
-        if not self._kernel_ok(u2):
+    def _compiled_filter(self, y2, u2, state, want, batch):
+        if not self._compiled_ok(u2):
             return None
-        return _finite_or_none(_kf_kernel_run(self, y2, np.isnan(y2), state, want, batch))
+        return _finite_or_none(_kf_compiled_run(self, y2, state, want, batch))
 
-    def _fast_step(self, state, y, u, options):
-        if not self._kernel_ok(u):
+    def _compiled_online_step(self, state, y, u, options):
+        if not self._compiled_ok(u):
             return None
-        return _kf_kernel_step(self, y, np.isnan(y), state)
+        return _kf_compiled_online_step(self, y, state)
 
     def filter(
         self,
@@ -310,76 +310,80 @@ def kernel_result(
     )
 
 
-def _kernel_matrices(est) -> tuple[np.ndarray, ...]:
-    """A, B Q B^T, C, R of a time-invariant system as contiguous float64 (computed once per estimator)."""
-    mats = est.__dict__.get("_kernel_mats")
-    if mats is None:
+def _loop_arrays(est) -> tuple[Any, ...]:
+    """The constant arguments of the compiled loop's KF and TKF entries (:mod:`tobitkf.filters._compiled_entries`)
+    for a time-invariant system, as contiguous float64, computed once per estimator: ``A``, ``B Q B^T``, the rows
+    ``C`` (1, m, n), ``par`` (1, m, m) (the KF's R) or ``sigma`` (1, m) (the TKF's standard deviations), the Joseph
+    flag."""
+    args = est.__dict__.get("_loop_mats")
+    if args is None:
         sys_ = est.system
         c64 = np.ascontiguousarray
-        mats = est._kernel_mats = (
+        sigma = getattr(est, "_sigma", None)
+        args = est._loop_mats = (
             c64(sys_.transition(0), dtype=float),
             c64(sys_.process_cov(0), dtype=float),
-            c64(sys_.measurement(1), dtype=float),
-            c64(sys_.measurement_cov(1), dtype=float),
+            c64(sys_.measurement(1), dtype=float)[None],
+            c64(sys_.measurement_cov(1), dtype=float)[None] if sigma is None else c64(sigma, dtype=float)[None],
+            est.covariance_update == "joseph",
         )
-    return mats
+    return args
 
 
 _EMPTY: dict[tuple, np.ndarray] = {}
 
 
 def _empty(shape: tuple) -> np.ndarray:
-    """A cached zero-size output (an output the kernel is not asked to write)."""
+    """A cached zero-size float64 output (an output the compiled loop is not asked to write)."""
     arr = _EMPTY.get(shape)
     if arr is None:
         arr = _EMPTY[shape] = np.empty(shape)
     return arr
 
 
-def _kf_kernel_step(est: KalmanFilter, y: np.ndarray, missing: np.ndarray, state: FilterState) -> FilterState | None:
-    """One online step through the compiled kernel (T = 1, no per-step outputs); None when it diverged."""
+def loop_entries() -> Any:
+    """:mod:`tobitkf.filters._compiled_entries` (the KF's and the TKF's entries into the one compiled loop; imports
+    numba)."""
+    return compiled()
+
+
+def _kalman_call(est, y, x, P, outs, x_last, P_last) -> None:
+    """The KF through the compiled loop: readings ``y`` (N, T, m) (NaN: left out) from ``x`` (N, n), ``P`` (N or 1,
+    n, n); ``outs`` the outputs ``(means, covs, pmeans, pcovs)``."""
+    A, Qd, H, R, joseph = _loop_arrays(est)
+    loop_entries().kalman_loop(y, A, Qd, H, R, joseph, x, P, *outs, x_last, P_last)
+
+
+def _kf_compiled_online_step(
+    est: KalmanFilter, y: np.ndarray, state: FilterState, extras: dict[str, Any] | None = None
+) -> FilterState | None:
+    """One online step through the compiled loop (T = 1, no per-step outputs; ``y`` (N, m), NaN: left out); None
+    when it diverged."""
     N, m = y.shape
     n = est.n
     P = state.P
-    assert P is not None, "the compiled kernels run the standard form, which carries P"
-    if P.shape[0] != N and (P.shape[0] != 1 or bool(missing.any())):  # one run: never per run
+    assert P is not None, "the compiled path runs the standard form, which carries P"
+    if P.shape[0] != N and (P.shape[0] != 1 or bool(np.isnan(y).any())):  # one run: never per run
         P = np.broadcast_to(P, (N, n, n))
     P = np.ascontiguousarray(P, dtype=float)
     Pn = P.shape[0]
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
-    A, Qd, C, R = _kernel_matrices(est)
     e_m, e_c = _empty((N, 0, n)), _empty((Pn, 0, n, n))
-    kernels().kf_kernel(
-        np.ascontiguousarray(y.reshape(N, 1, m)),
-        missing.reshape(N, 1, m),
-        A,
-        Qd,
-        C,
-        R,
-        np.ascontiguousarray(state.x, dtype=float),
-        P,
-        est.covariance_update == "joseph",
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        x_last,
-        P_last,
-    )
+    y3 = np.require(y.reshape(N, 1, m), float, ("C", "W"))
+    _kalman_call(est, y3, np.ascontiguousarray(state.x, dtype=float), P, (e_m, e_c, e_m, e_c), x_last, P_last)
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None  # a small state: Python floats, the same verdict
-    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry)
+    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
-def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state: FilterState, want, batch):
-    """The compiled loop (:func:`tobitkf.filters._kernels.kf_kernel`) from ``state``; outputs on request."""
-    sys_ = est.system
+def _kf_compiled_run(est: KalmanFilter, y2: np.ndarray, state: FilterState, want, batch):
+    """The KF through the compiled loop from ``state`` (``y2`` (N, T, m), NaN: left out); outputs on request."""
     N, T, m = y2.shape
-    n = sys_.n
+    n = est.n
     x = np.ascontiguousarray(state.x, dtype=float)
     P = state.P
-    assert P is not None, "the compiled kernels run the standard form, which carries P"
-    per_run = bool(missing.any()) or P.shape[0] != 1
+    assert P is not None, "the compiled path runs the standard form, which carries P"
+    per_run = P.shape[0] != 1 or bool(np.isnan(y2).any())
     P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
     Pn = P.shape[0]
 
@@ -390,24 +394,7 @@ def _kf_kernel_run(est: KalmanFilter, y2: np.ndarray, missing: np.ndarray, state
         means, pmeans = output_arrays(N, T, m_spec, pm_spec)
         covs, pcovs = output_arrays(Pn, T, c_spec, pc_spec)
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
-    c64 = np.ascontiguousarray
-    kernels().kf_kernel(
-        c64(y2),
-        c64(missing),
-        c64(sys_.transition(0), dtype=float),
-        c64(sys_.process_cov(0), dtype=float),
-        c64(sys_.measurement(1), dtype=float),
-        c64(sys_.measurement_cov(1), dtype=float),
-        x,
-        P,
-        est.covariance_update == "joseph",
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        x_last,
-        P_last,
-    )
+    _kalman_call(est, np.require(y2, float, ("C", "W")), x, P, (means, covs, pmeans, pcovs), x_last, P_last)
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
     return kernel_result(want, batch, T, means, covs, pmeans, pcovs, {}, final)
 
@@ -578,12 +565,13 @@ class DroppingKalmanFilter(KalmanFilter):
         super()._check_record(y2, u2, k0, name)
         self.censoring.check_measurements(y2, name, start=k0 + 1)
 
-    def _fast_filter(self, y2, u2, state, want, batch):
-        if not self._kernel_ok(u2):
+    def _compiled_filter(self, y2, u2, state, want, batch):
+        if not self._compiled_ok(u2):
             return None
         at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol, start=state.k + 1)
         dropped = at_lo | at_hi
-        res = _finite_or_none(_kf_kernel_run(self, y2, np.isnan(y2) | dropped, state, want, batch))
+        y_kept = np.where(dropped, np.nan, y2) if dropped.any() else y2  # a dropped reading: left out, as NaN
+        res = _finite_or_none(_kf_compiled_run(self, y_kept, state, want, batch))
         if res is None:
             return None
         extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
@@ -620,10 +608,12 @@ class DroppingKalmanFilter(KalmanFilter):
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
         return dropping_with_indicator(self, y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
 
-    def _fast_step(self, state, y, u, options):
-        if not self._kernel_ok(u):
+    def _compiled_online_step(self, state, y, u, options):
+        if not self._compiled_ok(u):
             return None
-        return _kf_kernel_step(self, y, self._step_missing(y, state.k + 1), state)
+        missing = self._step_missing(y, state.k + 1)
+        extras = {"censored": missing & ~np.isnan(y)}  # as the numpy step: the readings dropped at their limits
+        return _kf_compiled_online_step(self, np.where(missing, np.nan, y) if missing.any() else y, state, extras)
 
     def _step_missing(self, y: np.ndarray, k: int) -> np.ndarray:
         """The readings (N, m) of step ``k`` left out of the update: NaN or dropped (:meth:`_dropped`).

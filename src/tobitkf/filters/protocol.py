@@ -444,7 +444,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return super().step(state, y, u=u, **options)
 
     # ---- the compiled path (``filter``, and ``step`` through _protocol_kernel_step) -------------------
-    def _fast_step(self, state, y, u, options):
+    def _compiled_online_step(self, state, y, u, options):
         """One online step through the compiled loop (T = 1, :func:`_protocol_kernel_step`); None (the numpy
         step runs) with an input, a lost reading (NaN), ``failure_term="lmmse_unconditional"`` (its X_k is
         carried on the numpy path), a case the kernel does not cover, or a covariance that stopped being
@@ -463,7 +463,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             return None
         return _protocol_kernel_step(self, y, options.get("uncensored"), state)
 
-    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
         what = "the protocol Tobit Kalman filter"
         step_options = step_options or {}
         if "uncensored_record" not in step_options:  # a loop not started by filter(): gamma unknown here
@@ -533,7 +533,7 @@ def _protocol_kernel_mats(est: ProtocolTobitKalmanFilter) -> tuple[np.ndarray, .
 def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> FilterState | None:
     """:meth:`ProtocolTobitKalmanFilter.step` of a plain call (no input, no keyword) straight to the compiled
     step, :func:`_protocol_kernel_step`, when the general step's checks would pass it unchanged and its
-    :meth:`~ProtocolTobitKalmanFilter._fast_step` would run that kernel: the compiled loop decided on for
+    :meth:`~ProtocolTobitKalmanFilter._compiled_online_step` would run that kernel: the compiled loop decided on for
     the estimator (at its first step), a failure term other than ``"lmmse_unconditional"``, a state this
     estimator made (:func:`~tobitkf.filters.core.is_trusted`), not a prediction, of the augmented dimension,
     and ``y`` a float64 array of shape ``batch_shape + (1,)`` whose (at most 16) readings all lie in [τ, ∞) (no NaN: nothing lost, none

@@ -297,7 +297,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         )
         return mp, carry
 
-    def _fast_step(self, state, y, u, options):
+    def _compiled_online_step(self, state, y, u, options):
         r"""The fixed-gain step without the shared update's general machinery (no input ``u``): the same
         numbers as :meth:`_transition` + :meth:`_measurement` + the fixed-gain branch of
         :func:`~tobitkf.filters.core.measurement_update`, in the same order, :math:`\bar x = A\hat x`,
@@ -333,7 +333,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     # ---- the compiled path (batched ``filter``/``filter_controlled`` only; ``step`` runs numpy) ------
     # the divergence warning of ``filter``/``filter_controlled`` is issued at the end of either path: the
     # kernel reports whether its means stayed finite (no second pass over them), the numpy loop scans them
-    def _fast_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
         if not use_kernel(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
             return None
         return _steady_kernel_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
@@ -402,13 +402,13 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
         self.alpha = controlled_limit_statistics(_xi_per_channel(xi_uncensored, system.m), sigma)[0]
         self.side, self.sigma_ = side, sigma
 
-    def _fast_filter(self, *args):
+    def _compiled_filter(self, *args):
         # the TKF kernel takes the limits as data; here they are set from the prior inside the loop, so
         # there is no compiled path: numpy under "auto", a refusal under "numba" (not a silent numpy run)
         use_kernel(self.backend, "a limit set from the filter's prior (3.56)", "the controlled-limit TKF")
         return None
 
-    def _fast_step(self, *args):
+    def _compiled_online_step(self, *args):
         return None
 
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
@@ -494,7 +494,7 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
     def out(a):
         return kernel_array(a, batch)
 
-    if not finite:  # locate the first overflow (stack: here, _fast_filter_with, Estimator._run, filter*, caller)
+    if not finite:  # locate the first overflow (stack: here, _compiled_filter_with, Estimator._run, filter*, caller)
         _warn_if_diverged(out(means), est._name, state.k, stacklevel=6)
 
     def const(key, P):

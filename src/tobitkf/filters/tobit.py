@@ -78,7 +78,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, check_threads, kernel_ok, kernels, run_split
+from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
 from ._readings import censoring_sides
 from ._times import at_times
 from .assumed_density import assumed_density_filter
@@ -96,9 +96,10 @@ from .kalman import (
     LinearGaussianFamily,
     _empty,
     _finite_or_none,
-    _kernel_matrices,
+    _loop_arrays,
     kernel_array,
     kernel_result,
+    loop_entries,
     output_arrays,
     state_specs,
 )
@@ -114,6 +115,7 @@ __all__ = [
 ]
 
 NOISE_TERMS = ("dissertation", "total_variance", "exact_pv")
+_NOISE_CODES = {term: code for code, term in enumerate(NOISE_TERMS)}  # the compiled loop's noise_code
 COVARIANCE_UPDATES = COVARIANCE_FORMS
 _OPTIONS = {"noise_term": NOISE_TERMS, "covariance_update": COVARIANCE_UPDATES, "backend": BACKENDS}
 
@@ -278,7 +280,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
     _name = "TobitKalmanFilter"
     _step_options: tuple[str, ...] = ("lower", "upper")
-    _kernel_limits: tuple[np.ndarray, np.ndarray]  # constant limits, set on the first kernel call
+    _loop_limits: tuple[np.ndarray, np.ndarray]  # constant limits, set on the first compiled step
 
     def __init__(
         self,
@@ -353,19 +355,19 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         return out
 
     # ---- the compiled path ------------------------------------------------------------
-    def _kernel_ok(self, u) -> bool:
-        return kernel_ok(self, u, "the Tobit Kalman filter", inputs=True)
+    def _compiled_ok(self, u) -> bool:
+        return compiled_ok(self, u, "the Tobit Kalman filter", inputs=True)
 
-    def _fast_filter(self, y2, u2, state, want, batch):
-        if not self._kernel_ok(u2):
+    def _compiled_filter(self, y2, u2, state, want, batch):
+        if not self._compiled_ok(u2):
             return None
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1, check=False)  # checked at _run
-        return _finite_or_none(_tkf_kernel_run(self, y2, u2, lo, hi, state, want, batch))
+        return _finite_or_none(_tkf_compiled_run(self, y2, u2, lo, hi, state, want, batch))
 
-    def _fast_step(self, state, y, u, options):
-        if options or not self._kernel_ok(u):
+    def _compiled_online_step(self, state, y, u, options):
+        if options or not self._compiled_ok(u):
             return None
-        return _tkf_kernel_step(self, y, u, state)
+        return _tkf_compiled_online_step(self, y, u, state)
 
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing).
@@ -426,47 +428,44 @@ def _input_terms(est: TobitKalmanFilter, u: np.ndarray | None, N: int, T: int) -
     return bu, du
 
 
-def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, u, state: FilterState) -> FilterState | None:
-    """One online step through the compiled kernel (T = 1); None when the covariance stopped being finite."""
+def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: FilterState) -> FilterState | None:
+    """One online step through the compiled loop (T = 1); None when the covariance stopped being finite."""
     N, m = y.shape
     n = est.n
-    kern = kernels()
     cens = est.censoring
-    lims = None if cens.time_varying else est.__dict__.get("_kernel_limits")
+    lims = None if cens.time_varying else est.__dict__.get("_loop_limits")
     if lims is None:
         lo, hi = cens.limits(state.k + 1)
-        lims = (
-            np.ascontiguousarray(np.broadcast_to(lo, (1, m)), dtype=float),
-            np.ascontiguousarray(np.broadcast_to(hi, (1, m)), dtype=float),
+        lims = (  # writable copies (a read-only argument would compile the loop once more)
+            np.require(np.broadcast_to(lo, (1, m)), float, ("C", "W")),
+            np.require(np.broadcast_to(hi, (1, m)), float, ("C", "W")),
         )
         if not cens.time_varying:
-            est._kernel_limits = lims  # constant limits: converted once
+            est._loop_limits = lims  # constant limits: converted once
     lo, hi = lims
     P = state.P
-    assert P is not None, "the compiled kernels run the standard form, which carries P"
+    assert P is not None, "the compiled path runs the standard form, which carries P"
     if P.shape[0] != N:
         P = np.broadcast_to(P, (N, n, n))
-    A, Qd, C, _ = _kernel_matrices(est)
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
     pu, ey = np.empty((N, 1, m)), np.empty((N, 1, m))
     e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
     bu, du = _input_terms(est, None if u is None else u.reshape(N, 1, -1), N, 1)
-    kern.tkf_kernel(
-        np.ascontiguousarray(y.reshape(N, 1, m)),
+    A, Qd, H, sigma, joseph = _loop_arrays(est)
+    loop_entries().tobit_loop(
+        np.require(y.reshape(N, 1, m), float, ("C", "W")),
         A,
         Qd,
-        C,
-        est._sigma,
+        H,
+        sigma,
         lo,
         hi,
         bu,
         du,
+        _NOISE_CODES[est.noise_term],
+        joseph,
         np.ascontiguousarray(state.x, dtype=float),
         np.ascontiguousarray(P, dtype=float),
-        kern.NOISE_CODES[est.noise_term],
-        est.covariance_update == "joseph",
-        kern.GL_X,
-        kern.GL_W,
         e_m,
         e_c,
         e_m,
@@ -482,15 +481,14 @@ def _tkf_kernel_step(est: TobitKalmanFilter, y: np.ndarray, u, state: FilterStat
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
-def _tkf_kernel_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState, want, batch) -> FilterResult:
-    """The compiled loop (:func:`tobitkf.filters._kernels.tkf_kernel`) from ``state``; outputs on request."""
-    sys_ = est.system
+def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState, want, batch) -> FilterResult:
+    """The TKF through the compiled loop (:func:`tobitkf.filters._compiled_loop.compiled_loop`) from ``state``;
+    outputs on request; the runs split over ``est.threads`` threads from 256 runs on."""
     N, T, m = y2.shape
-    n = sys_.n
-    kern = kernels()
+    n = est.n
     c64 = np.ascontiguousarray
     x = c64(state.x, dtype=float)
-    assert state.P is not None, "the compiled kernels run the standard form, which carries P"
+    assert state.P is not None, "the compiled path runs the standard form, which carries P"
     P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=np.float64)
 
     ext = "extras" in want
@@ -502,28 +500,30 @@ def _tkf_kernel_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState, 
         (ext, (m,)),
     )
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
-    yc, A, Qd = c64(y2), c64(sys_.transition(0), dtype=float), c64(sys_.process_cov(0), dtype=float)
-    C, sig, lo, hi = c64(sys_.measurement(1), dtype=float), c64(est._sigma), c64(lo), c64(hi)
-    code, joseph = kern.NOISE_CODES[est.noise_term], est.covariance_update == "joseph"
+    # writable copies of read-only limits (cached by the censoring): numba types read-only arrays apart, and each
+    # would compile the loop once more
+    yc, lo, hi = np.require(y2, float, ("C", "W")), np.require(lo, float, ("C", "W")), np.require(hi, float, ("C", "W"))
+    code = _NOISE_CODES[est.noise_term]
     bu, du = _input_terms(est, u2, N, T)
 
+    A, Qd, H, sigma, joseph = _loop_arrays(est)
+    loop = loop_entries().tobit_loop
+
     def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
-        kern.tkf_kernel(
+        loop(
             yc[a:b],
             A,
             Qd,
-            C,
-            sig,
+            H,
+            sigma,
             lo,
             hi,
             bu[a:b],
             du[a:b],
-            x[a:b],
-            P[a:b],
             code,
             joseph,
-            kern.GL_X,
-            kern.GL_W,
+            x[a:b],
+            P[a:b],
             means[a:b],
             covs[a:b],
             pmeans[a:b],
