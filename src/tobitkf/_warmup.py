@@ -4,7 +4,8 @@ Each target runs one family on a tiny problem (a few runs, a few steps) through 
 kernels are compiled for the argument types a user's call passes (float64, C-contiguous; numba
 specialises on types, not sizes). A kernel already in the cache is loaded, not compiled: a second
 warmup takes seconds. The targets are the filters most calls use (the Kalman and Tobit Kalman filters
-with their online step, the assumed-density filters, the fading and protocol filters, the smoother)
+with their online step, the assumed-density filters, the fading and protocol filters, the smoother, the
+particle filter on censored readings)
 and the censored-AR fit of ``tobitkf fit``.
 """
 
@@ -109,12 +110,22 @@ def _censored_ar() -> None:
         fit(CensoredAR(p), y, lower=-0.5)
 
 
+def _particle() -> None:
+    from .filters.particle import ParticleFilter
+
+    system, cens = _oscillator()
+    y = _readings(system, censoring=cens)
+    for proposal in ("optimal", "prior"):
+        ParticleFilter(system, cens, particles=64, proposal=proposal, seed=0).filter(y)
+
+
 TARGETS: list[tuple[str, Callable[[], None]]] = [
     ("Kalman and Tobit Kalman filters (filter, online step)", _kalman_tobit),
     ("assumed-density filters (censoring, saturation)", _assumed_density),
     ("fading filters (TKF-FM, its assumed-density filter)", _fading),
     ("protocol filters (PBTKF-IMSF, its assumed-density filter)", _protocol),
     ("smoother", _smoother),
+    ("particle filter (censored readings)", _particle),
     ("censored AR fit (tobitkf fit)", _censored_ar),
 ]
 """What ``tobitkf warmup`` compiles: (label, a function that runs it on a tiny problem)."""
