@@ -376,7 +376,7 @@ def test_closed_loop_nan_noise_is_named_not_a_shape_error():
     "call, pattern",
     [
         (lambda: tk.simulate(SYS, 10, 10**18), r"^runs/steps: 1000000000000000000 runs x 10 steps .* would need"),
-        (lambda: tk.simulate(SYS, 10**12, 1), r"^runs/steps: 1 runs x 1000000000000 steps"),
+        (lambda: tk.simulate(SYS, 10**12, 1), r"^runs/steps: 1 run x 1000000000000 steps"),
         (lambda: tk.simulate(SYS, 10**400, 1), r"^runs/steps: .*would need about 10\^"),
         (lambda: simulate_delay(DelayFadingSystem(**DELAY), paper_prior(), 10**12, seed=0), r"^runs/steps"),
         (lambda: simulate_ross(wang2010_model(), 10, 10**15, seed=0), r"^runs/steps"),
