@@ -76,12 +76,12 @@ from .filters.fading import (
 from .filters.hinf import RegionalHinfFilter
 from .filters.nonlinear import (
     ExtendedKalmanFilter,
-    NonlinearAssumedDensityFilter,
     SigmaPoints,
     TobitExtendedKalmanFilter,
     TobitUnscentedKalmanFilter,
     UnscentedKalmanFilter,
 )
+from .filters.nonlinear_adf import NonlinearAssumedDensityFilter
 from .filters.particle import ParticleFilter
 from .filters.particle_nonlinear import nonlinear_model as _nonlinear_particle_model  # registers it
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter

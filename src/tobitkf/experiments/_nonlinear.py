@@ -42,11 +42,11 @@ from .. import metrics as mx
 from ..channels.censoring import Censoring
 from ..filters.nonlinear import (
     ExtendedKalmanFilter,
-    NonlinearAssumedDensityFilter,
     TobitExtendedKalmanFilter,
     TobitUnscentedKalmanFilter,
     UnscentedKalmanFilter,
 )
+from ..filters.nonlinear_adf import NonlinearAssumedDensityFilter
 from ..models.nonlinear import NonlinearSystem
 from ..plotting import new_figure, save
 from . import _claims as CL

@@ -151,7 +151,7 @@ def fit_nonlinear(
     ShapeError
         ``theta0`` not a vector, ``names`` of the wrong length, ``y`` or ``u`` malformed.
     """
-    from ..filters.nonlinear import NonlinearAssumedDensityFilter
+    from ..filters.nonlinear_adf import NonlinearAssumedDensityFilter
 
     t0 = time.perf_counter()
     gtol = check_tolerance(gtol, "gtol")
