@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import tobitkf as tk
-from tobitkf.filters import core
+from tobitkf.filters import _update
 from tobitkf.filters.core import MeasurementPrediction, Transition, measurement_update, time_update
 
 pytest.importorskip("numba")
@@ -187,7 +187,7 @@ def test_time_varying_tkf_step_compiled_equals_numpy():
 
 def test_core_compiled_module_absent_means_numpy(monkeypatch):
     """Without numba (the kernels module fails to import) ``compiled=True`` runs the numpy code."""
-    monkeypatch.setattr(core, "_core_compiled_module", lambda: None)
+    monkeypatch.setattr(_update, "_core_compiled_module", lambda: None)
     rng = np.random.default_rng(0)
     x, P = rng.normal(size=(2, 2)), _spd(rng, 2, 2)
     tr = Transition(A=np.eye(2), Qd=np.eye(2))

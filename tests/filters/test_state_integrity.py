@@ -330,7 +330,7 @@ def test_a_diverging_total_variance_tkf_warns_and_healthy_filters_do_not(seed):
 def test_the_correction_statistic_is_below_the_normalised_innovation():
     r"""The bound the threshold rests on, exactly, on a Kalman filter: :math:`\max_i (Ke)_i^2/\bar P_{ii} \le
     e^2/R_{ee}` at every step (m = 1), with the innovation and its variance formed independently of the core."""
-    from tobitkf.filters.core import correction_statistic, correction_threshold
+    from tobitkf.filters._online_check import correction_statistic, correction_threshold
 
     sys_ = oscillator()
     d = tk.simulate(sys_, 50, 30, seed=3)

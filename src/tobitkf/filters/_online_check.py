@@ -28,6 +28,7 @@ variance.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
@@ -96,6 +97,7 @@ KEY = "_correction_window"
 #: the check looks at the steps whose ``k`` is a multiple of this
 STRIDE = 8
 _TINY = 1e-300
+_FLOAT_TINY = np.finfo(np.float64).tiny  # the filters' zero-variance test (correction_statistic)
 
 
 def _limits(est: Any) -> tuple[float, ...]:
@@ -257,14 +259,80 @@ def _set_carry(state: Any, memo: Any) -> None:
 
 
 def _warn(est: Any, k: int, runs: int, N: int, w: int, limit: float) -> None:
-    import warnings
-
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows by step k={k} in {runs} of "
         f"{plural(N, 'run')} (the sum over the last {w} checked steps, every {STRIDE}th, of the squared updates in "
         f"predicted variances, each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no "
         f"longer follows the readings while its covariance says it should (a diverging filter, or a model or "
         f"readings with gross errors). Remedy: {_correction_remedy(est)}",
+        RuntimeWarning,
+        stacklevel=_caller_level(),
+    )
+
+
+# --------------------------------------------------------------------------- a filter that stopped listening
+
+
+def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.ndarray) -> np.ndarray:
+    r"""Size of each update relative to the prediction's spread: :math:`c_k = \max_i (\hat x_{k|k} -
+    \hat x_{k|k-1})_i^2 / (P_{k|k-1})_{ii}`, shape ``mean.shape[:-1]``.
+
+    For a consistent Kalman-type update :math:`\hat x_{k|k} - \hat x_{k|k-1} = Ke_k`, and each component's
+    :math:`c` is at most the Mahalanobis size :math:`(Ke)^T\bar P^{-1}Ke = e^TR_{ee}^{-1}H\bar PH^T R_{ee}^{-1}e
+    \le e^TR_{ee}^{-1}e`, the normalised innovation squared (:math:`\chi^2_m`). So a sum of c over W steps is
+    below a :math:`\chi^2_{mW}` variable. Rows without a reading give 0; a component of zero predicted
+    variance, or non-finite values (a diverged run), count 0 here (the covariance check reports those).
+    """
+    d = mean - pred_mean
+    v = np.diagonal(pred_cov, axis1=-2, axis2=-1)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        c = np.where(v > _FLOAT_TINY, d * d / np.where(v > _FLOAT_TINY, v, 1.0), 0.0)
+    c = np.where(np.isfinite(c), c, 0.0)
+    return c.max(axis=-1) if c.shape[-1] else np.zeros(c.shape[:-1])
+
+
+def _correction_check(est: Any, result: Any) -> None:
+    r"""Warn once when a ``filter`` run's updates are far larger than its own covariance allows: the window sum
+    over :data:`CORRECTION_WINDOW` steps of :func:`correction_statistic`, each step capped at
+    :data:`CORRECTION_CAP` of the threshold (so one outlier never suffices), above :func:`correction_threshold`
+    (the capped sum is below the plain one, so the bound for a consistent filter still holds).
+    A diverging filter whose covariance stays finite and small (confidently wrong, e.g. the TKF's
+    ``noise_term="total_variance"`` deep in the censored region) is caught here; the non-finite covariance
+    check (:func:`_divergence_warning`) catches the others. Needs the recorded ``mean``, ``pred_mean`` and
+    ``pred_cov`` (``outputs="all"``, the default); a fixed-gain filter (its covariance the same at every
+    step, a nominal one) is not checked."""
+    mean, pm, pc = result.mean, result.pred_mean, result.pred_cov
+    if mean is None or pm is None or pc is None or mean.ndim < 2 or mean.shape[-2] < 1:
+        return
+    if pc.shape[-3] > 1 and (pc == pc[..., :1, :, :]).all():
+        return  # a fixed-gain filter's nominal covariance (the same at every step) claims no consistency
+    c = correction_statistic(mean, pm, pc)  # batch + (T,)
+    T = c.shape[-1]
+    W = min(CORRECTION_WINDOW, T)
+    limit = correction_threshold(est.m, W)
+    c = np.minimum(c, CORRECTION_CAP * limit)
+    cs = np.cumsum(c, axis=-1)
+    win = cs[..., W - 1 :].copy()
+    win[..., 1:] -= cs[..., : T - W]
+    over = win > limit
+    # a run whose means stopped being finite is the non-finite check's to report (one warning per event)
+    over &= np.isfinite(mean).all(axis=(-2, -1))[..., None]
+    if not over.any():
+        return
+    flat = over.reshape(-1, over.shape[-1])
+    hit = flat.any(axis=-1)
+    ends = np.where(hit, np.argmax(flat, axis=-1), flat.shape[-1])
+    run = int(np.argmin(ends))  # the run that crossed first; its window ends at row ends[run] + W - 1
+    end = int(ends[run]) + W
+    first = end - W + int(np.argmax(c.reshape(-1, T)[run, end - W : end]))  # the largest update of that window
+    runs = int(hit.sum())
+    k = int(result.times[first]) if result.times is not None else first + 1
+    warnings.warn(
+        f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
+        f"{plural(flat.shape[0], 'run')} (the sum over {W} steps of the squared updates, in predicted variances and "
+        f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no longer follows the readings while its covariance "
+        f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
+        f"{_correction_remedy(est)}",
         RuntimeWarning,
         stacklevel=_caller_level(),
     )
