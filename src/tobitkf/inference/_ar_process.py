@@ -10,7 +10,15 @@ import numpy as np
 
 from .._validation import ValidationError
 
-__all__ = ["pacf_to_ar", "ar_to_pacf", "is_stationary", "ar_autocovariance", "ar_predictors", "ar_state_space"]
+__all__ = [
+    "pacf_to_ar",
+    "ar_to_pacf",
+    "is_stationary",
+    "ar_autocovariance",
+    "ar_predictors",
+    "ar_state_space",
+    "ar_companion",
+]
 
 
 def pacf_to_ar(r: Any) -> np.ndarray:
@@ -109,6 +117,19 @@ def ar_predictors(phi: Any, sigma2: float) -> list[tuple[np.ndarray, float]]:
 # --------------------------------------------------------------------------- state-space form
 
 
+def ar_companion(phi: Any) -> np.ndarray:
+    r"""The companion matrix (p, p) of AR coefficients ``phi`` (p >= 1; an empty ``phi`` gives the 1 x 1 zero):
+    first row :math:`\phi`, ones on the subdiagonal, so that :math:`s_{t+1} = As_t + e_1\epsilon_{t+1}` for the
+    state :math:`s_t = (\xi_t, \dots, \xi_{t-p+1})`."""
+    phi = np.asarray(phi, dtype=float).ravel()
+    p = max(phi.size, 1)
+    A = np.zeros((p, p))
+    A[0, : phi.size] = phi
+    if p > 1:
+        A[1:, :-1] = np.eye(p - 1)
+    return A
+
+
 def ar_state_space(beta: Any, sigma2: float, phi: Any, *, noise_floor: float = 0.0):
     r"""The model as a :class:`~tobitkf.LinearSystem` for the package's filters and smoothers.
 
@@ -125,14 +146,9 @@ def ar_state_space(beta: Any, sigma2: float, phi: Any, *, noise_floor: float = 0
 
     beta = np.asarray(beta, dtype=float).ravel()
     phi = np.asarray(phi, dtype=float).ravel()
-    p = max(phi.size, 1)
-    ph = np.zeros(p)
-    ph[: phi.size] = phi
-    A = np.zeros((p, p))
-    A[0] = ph
-    if p > 1:
-        A[1:, :-1] = np.eye(p - 1)
-    g = ar_autocovariance(ph[: phi.size], sigma2, p)
+    A = ar_companion(phi)
+    p = A.shape[0]
+    g = ar_autocovariance(phi, sigma2, p)
     G = np.array([[g[abs(i - j)] for j in range(p)] for i in range(p)])
     B = np.zeros((p, 1))
     B[0, 0] = 1.0

@@ -33,7 +33,15 @@ from ._ar_likelihood import (
     plan_grid,
     posterior_moments,
 )
-from ._ar_process import ar_autocovariance, ar_predictors, ar_state_space, ar_to_pacf, is_stationary, pacf_to_ar
+from ._ar_process import (
+    ar_autocovariance,
+    ar_companion,
+    ar_predictors,
+    ar_state_space,
+    ar_to_pacf,
+    is_stationary,
+    pacf_to_ar,
+)
 from ._optimize import _inverse_information, check_iterations, check_tolerance, forward_hessian, maximize
 from ._results import FitResult, _progress_callback
 
@@ -572,13 +580,8 @@ def _ar_forecast(self, res, steps: int, *, X=None, level: float = 0.95, lower=No
         Xf = Xf[:, None] if Xf.ndim == 1 else Xf
         if Xf.shape != (steps, l):
             raise ShapeError(f"X: expected the future regressors of shape ({steps}, {l}), got {Xf.shape}")
-    p = max(phi.size, 1)
-    ph = np.zeros(p)
-    ph[: phi.size] = phi
-    A = np.zeros((p, p))
-    A[0] = ph
-    if p > 1:
-        A[1:, :-1] = np.eye(p - 1)
+    A = ar_companion(phi)
+    p = A.shape[0]
     _, (wT, zsT) = _predictive_mixtures(data, beta, s2, phi, self.plan(data, res.theta))
     if phi.size == 0:
         states = np.zeros((1, p))
