@@ -447,3 +447,34 @@ def test_the_step_check_lives_in_the_state_and_costs_one_time_update_per_stride(
         for k in range(150, 200):
             s = tv.step(s, d.y[:, k])
     assert sum("far larger" in str(w.message) for w in caught) == 1
+
+
+@pytest.mark.parametrize("n, m", [(2, 1), (6, 3)])
+@pytest.mark.parametrize("family", ["kf", "tkf"])
+def test_the_step_checks_statistic_of_one_compiled_run_is_the_predicted_normalised_update(family, n, m):
+    """One run of a compiled KF or TKF: the check's statistic (from the matrices the compiled step cached, in
+    Python floats for n = 2, numpy's products for n = 6) is max_i (x_i - xbar_i)^2 / Pbar_ii with
+    xbar = A x_prev, Pbar = A P_prev A^T + Q, computed here in numpy."""
+    from tobitkf.filters import _online_check
+
+    rng = np.random.default_rng(n)
+    A = 0.9 * np.linalg.qr(rng.normal(size=(n, n)))[0]
+    C = rng.normal(size=(m, n))
+    Q = 0.01 * np.eye(n) + 0.005 * np.ones((n, n))
+    sys_ = tk.LinearSystem(A=A, C=C, Q=Q, R=0.1 * np.eye(m), x0=np.zeros(n), P0=np.eye(n))
+    cens = tk.Censoring(lower=-0.5)
+    est = (
+        tk.KalmanFilter(sys_, backend="numba") if family == "kf" else tk.TobitKalmanFilter(sys_, cens, backend="numba")
+    )
+    y = tk.simulate(sys_, 12, 1, censoring=cens, seed=3).y[0]
+    prev = est.init()
+    for k in range(11):
+        prev = est.step(prev, y[k])
+    new = est.step(prev, y[11])
+    got = _online_check._statistic(est, prev, new, None, None, None)
+    assert "_check_lists" in est.__dict__  # the cached matrices were used
+    xbar = A @ prev.x[0]
+    var = np.diag(A @ prev.P[0] @ A.T + sys_.process_cov(0))
+    want = np.max((new.x[0] - xbar) ** 2 / var)
+    assert len(got) == 1 and want > 0
+    np.testing.assert_allclose(got[0], want, rtol=1e-12)

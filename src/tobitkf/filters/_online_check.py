@@ -115,9 +115,16 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
     of a small state: Python floats (a list of one value); else numpy, shape (N,)."""
     n = new.n
     if xp is None or Pp is None:
-        tr = est._transition(new.k, u, prev.carry)
         x, P = prev.x, prev.P
         assert P is not None, "checked by the caller"
+        lists = _invariant_lists(est) if u is None and x.shape[0] == 1 and P.shape[0] == 1 else None
+        if lists is not None:  # one run of a time-invariant KF or TKF without input: A, diag(Q) as lists, cached
+            A_l, q_l, A, q = lists
+            if n * x.shape[-1] <= 16:
+                return [_one_run(A_l, x[0].tolist(), P[0].tolist(), q_l, 0.0, new.x[0, :n].tolist())]
+            var_l = ((A @ P[0]) * A).sum(axis=1) + q  # one run: numpy's products, then Python floats
+            return [_one_run_moments((A @ x[0]).tolist(), var_l.tolist(), new.x[0, :n].tolist())]
+        tr = est._transition(new.k, u, prev.carry)
         A = tr.A
         if tr.shift:  # the block shift: the reported block is A times block `source`, plus the noise of the top
             sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1])
@@ -136,6 +143,35 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
         c = np.where(var > _TINY, d * d / np.where(var > _TINY, var, 1.0), 0.0)
     c = np.where(np.isfinite(c), c, 0.0)
     return c.max(axis=-1) if n else np.zeros(new.x.shape[0])
+
+
+def _invariant_lists(est: Any) -> tuple | None:
+    """``(A, diag(Q))`` of the transition of a time-invariant Kalman filter or Tobit Kalman filter as lists and
+    arrays, cached on the estimator; None for any other estimator. Known invariant from the matrices its compiled
+    step converted once (``_loop_mats``, made only for a time-invariant system): then the transition of every
+    step is :math:`A`, :math:`BQB^T` with no offset when no input is given, and :func:`_statistic` needs not
+    build it (the transition costs a few µs of a checked step)."""
+    mats = est.__dict__.get("_loop_mats")
+    if mats is None:
+        return None
+    cached = est.__dict__.get("_check_lists")
+    if cached is None or cached[0] is not mats:  # keyed on the matrices: rebuilt with them (a new system)
+        A, Qd = mats[0], mats[1]
+        q = Qd.diagonal().copy()
+        cached = est.__dict__["_check_lists"] = (mats, A.tolist(), q.tolist(), A, q)
+    return cached[1:]
+
+
+def _one_run_moments(mean: list, var: list, post: list) -> float:
+    """:func:`_one_run` from the predicted mean and variances of the reported block (lists)."""
+    best = 0.0
+    for m, v, p in zip(mean, var, post):
+        if v > _TINY and math.isfinite(v):
+            d = p - m
+            c = d * d / v
+            if c > best and math.isfinite(c):
+                best = c
+    return best
 
 
 def _one_run(A: list, x: list, P: list, q: list, b: Any, post: list) -> float:
@@ -197,7 +233,9 @@ def check_step(
         vals = memo[0].tolist() if valid else [0.0] * (W + 1)
         vals[count % W] = float(c[0])
         vals[W] = count + 1.0
-        total = sum(v if v < cap else cap for v in vals[:W])
+        total = sum(vals[:W])  # the capped sum is no larger: capped only when the plain one is not below the limit
+        if not total <= limit:
+            total = sum(v if v < cap else cap for v in vals[:W])
         runs = int(total > limit and all(map(math.isfinite, new.x[0].tolist())))
         window = np.array([vals])
     else:
