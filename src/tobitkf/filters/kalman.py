@@ -625,9 +625,26 @@ class DroppingKalmanFilter(KalmanFilter):
     def _compiled_online_step(self, state, y, u, options):
         if not self._compiled_ok(u):
             return None
+        if y.shape[0] == 1 and not self.censoring.time_varying:
+            return self._one_run_step(state, y)
         missing = self._step_missing(y, state.k + 1)
         extras = {"censored": missing & ~np.isnan(y)}  # as the numpy step: the readings dropped at their limits
         return _kf_compiled_online_step(self, np.where(missing, np.nan, y) if missing.any() else y, state, extras)
+
+    def _one_run_step(self, state: FilterState, y: np.ndarray) -> FilterState | None:
+        """The compiled online step of one run (``y`` (1, m)) with constant limits: the verdicts of
+        :meth:`_step_missing` and the ``censored`` extra in Python floats (numpy's calls on m numbers cost
+        ~3 µs of a ~12 µs step)."""
+        band = self.__dict__.get("_kept_band")
+        if band is None or band[0] is not self.censoring or band[1] != self.rtol:
+            self._step_missing(y, state.k + 1)  # makes the band of kept readings (cached)
+            band = self._kept_band
+        vals = y[0].tolist()
+        kept = [lo < v < hi for v, lo, hi in zip(vals, band[4], band[5])]
+        censored = np.array([[not ok and v == v for ok, v in zip(kept, vals)]])  # dropped, not NaN
+        if not all(kept):
+            y = np.array([[v if ok else math.nan for ok, v in zip(kept, vals)]])
+        return _kf_compiled_online_step(self, y, state, {"censored": censored})
 
     def _step_missing(self, y: np.ndarray, k: int) -> np.ndarray:
         """The readings (N, m) of step ``k`` left out of the update: NaN or dropped (:meth:`_dropped`).
@@ -645,7 +662,7 @@ class DroppingKalmanFilter(KalmanFilter):
             fin_lo, fin_hi = np.isfinite(lo), np.isfinite(hi)
             lo_t = np.where(fin_lo, lo + self.rtol * np.maximum(1.0, np.abs(np.where(fin_lo, lo, 0))), -np.inf)
             hi_t = np.where(fin_hi, hi - self.rtol * np.maximum(1.0, np.abs(np.where(fin_hi, hi, 0))), np.inf)
-            band = self._kept_band = (cens, self.rtol, lo_t, hi_t)
+            band = self._kept_band = (cens, self.rtol, lo_t, hi_t, lo_t.tolist(), hi_t.tolist())
         return ~((y > band[2]) & (y < band[3]))
 
 
