@@ -117,9 +117,11 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
     if xp is None or Pp is None:
         x, P = prev.x, prev.P
         assert P is not None, "checked by the caller"
-        lists = _invariant_lists(est) if u is None and x.shape[0] == 1 and P.shape[0] == 1 else None
-        if lists is not None:  # one run of a time-invariant KF or TKF without input: A, diag(Q) as lists, cached
-            A_l, q_l, A, q = lists
+        fixed = _fixed_transition(est, new.k, u, prev.carry) if x.shape[0] == 1 and P.shape[0] == 1 else None
+        if fixed is not None:  # one run, a transition that does not change: A, diag(Q) as lists, cached
+            sl, A_l, q_l, A, q = fixed
+            if sl is not None:
+                x, P = x[:, sl], P[:, sl, sl]
             if n * x.shape[-1] <= 16:
                 return [_one_run(A_l, x[0].tolist(), P[0].tolist(), q_l, 0.0, new.x[0, :n].tolist())]
             var_l = ((A @ P[0]) * A).sum(axis=1) + q  # one run: numpy's products, then Python floats
@@ -145,21 +147,32 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
     return c.max(axis=-1) if n else np.zeros(new.x.shape[0])
 
 
-def _invariant_lists(est: Any) -> tuple | None:
-    """``(A, diag(Q))`` of the transition of a time-invariant Kalman filter or Tobit Kalman filter as lists and
-    arrays, cached on the estimator; None for any other estimator. Known invariant from the matrices its compiled
-    step converted once (``_loop_mats``, made only for a time-invariant system): then the transition of every
-    step is :math:`A`, :math:`BQB^T` with no offset when no input is given, and :func:`_statistic` needs not
-    build it (the transition costs a few µs of a checked step)."""
-    mats = est.__dict__.get("_loop_mats")
-    if mats is None:
+def _fixed_transition(est: Any, k: int, u: Any, carry: Any) -> tuple | None:
+    """The transition of a check as ``(block slice or None, A, diag(Q), A, diag(Q))`` (lists, then arrays; the
+    reported rows) when it is the same at every step, cached on the estimator (keyed on its system); None
+    otherwise. The same at every step: no input, a time-invariant system and the transition of the Kalman-type
+    families (KF, TKF, dropping KF, the assumed-density families on a linear system, the fading TKF's block
+    shift), which depends on the system only. Building it costs a few µs of a checked step."""
+    if u is not None:
         return None
-    cached = est.__dict__.get("_check_lists")
-    if cached is None or cached[0] is not mats:  # keyed on the matrices: rebuilt with them (a new system)
-        A, Qd = mats[0], mats[1]
-        q = Qd.diagonal().copy()
-        cached = est.__dict__["_check_lists"] = (mats, A.tolist(), q.tolist(), A, q)
-    return cached[1:]
+    sys_ = est.system if hasattr(est, "system") else None
+    cached = est.__dict__.get("_check_transition")
+    if cached is not None and cached[0] is sys_:
+        return cached[1]
+    from .fading import FadingTobitKalmanFilter
+    from .kalman import LinearGaussianFamily
+
+    fixed = None
+    invariant = (LinearGaussianFamily._transition, FadingTobitKalmanFilter._transition)
+    if type(est)._transition in invariant and getattr(sys_, "time_invariant", False):
+        tr = est._transition(k, None, carry)
+        A = tr.A
+        sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1]) if tr.shift else None
+        A = np.array(A[: est.n])
+        q = tr.Qd.diagonal()[: est.n].copy()
+        fixed = (sl, A.tolist(), q.tolist(), A, q)
+    est.__dict__["_check_transition"] = (sys_, fixed)
+    return fixed
 
 
 def _one_run_moments(mean: list, var: list, post: list) -> float:
