@@ -464,6 +464,8 @@ def test_dropping_step_leaves_out_the_readings_of_the_limit_rule(backend, batch)
     for t in range(T):
         state = est.step(state, y[..., t, :])
         means.append(state.mean)
+        dropped = expected[..., t, :] & ~np.isnan(y[..., t, :])  # the step's extra: dropped, not missing
+        np.testing.assert_array_equal(np.reshape(state.extras["censored"], dropped.shape), dropped)
     res = est.filter(y)
     kf = tk.KalmanFilter(sys_, backend="numpy").filter(np.where(expected, np.nan, y))
     np.testing.assert_array_equal(res.extras["censored"], expected & ~np.isnan(y))

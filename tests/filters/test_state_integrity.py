@@ -447,3 +447,57 @@ def test_the_step_check_lives_in_the_state_and_costs_one_time_update_per_stride(
         for k in range(150, 200):
             s = tv.step(s, d.y[:, k])
     assert sum("far larger" in str(w.message) for w in caught) == 1
+
+
+@pytest.mark.parametrize("n, m", [(2, 1), (6, 3)])
+@pytest.mark.parametrize("family", ["kf", "tkf"])
+def test_the_step_checks_statistic_of_one_compiled_run_is_the_predicted_normalised_update(family, n, m):
+    """One run of a compiled KF or TKF: the check's statistic (from the transition cached on the estimator, in
+    Python floats for n = 2, numpy's products for n = 6) is max_i (x_i - xbar_i)^2 / Pbar_ii with
+    xbar = A x_prev, Pbar = A P_prev A^T + Q, computed here in numpy."""
+    from tobitkf.filters import _online_check
+
+    rng = np.random.default_rng(n)
+    A = 0.9 * np.linalg.qr(rng.normal(size=(n, n)))[0]
+    C = rng.normal(size=(m, n))
+    Q = 0.01 * np.eye(n) + 0.005 * np.ones((n, n))
+    sys_ = tk.LinearSystem(A=A, C=C, Q=Q, R=0.1 * np.eye(m), x0=np.zeros(n), P0=np.eye(n))
+    cens = tk.Censoring(lower=-0.5)
+    est = (
+        tk.KalmanFilter(sys_, backend="numba") if family == "kf" else tk.TobitKalmanFilter(sys_, cens, backend="numba")
+    )
+    y = tk.simulate(sys_, 12, 1, censoring=cens, seed=3).y[0]
+    prev = est.init()
+    for k in range(11):
+        prev = est.step(prev, y[k])
+    new = est.step(prev, y[11])
+    got = _online_check._statistic(est, prev, new, None, None, None)
+    assert est.__dict__["_check_transition"][1] is not None  # the cached transition was used
+    xbar = A @ prev.x[0]
+    var = np.diag(A @ prev.P[0] @ A.T + sys_.process_cov(0))
+    want = np.max((new.x[0] - xbar) ** 2 / var)
+    assert len(got) == 1 and want > 0
+    np.testing.assert_allclose(got[0], want, rtol=1e-12)
+
+
+def test_the_step_checks_cached_fading_transition_gives_the_statistic_of_the_transition_built_each_step():
+    """The fading TKF's block shift: the check's statistic from the transition cached on the estimator equals
+    the one from the transition built afresh for the step (the path of a time-varying system)."""
+    from tobitkf.channels.fading import RiceFading
+    from tobitkf.filters import _online_check
+
+    sys_ = oscillator()
+    cens = tk.Censoring(lower=0.0)
+    fad = RiceFading.gaussian(2, [0.95, 0.75, 0.85], [0.0081, 0.0064, 0.0049])
+    y = tk.simulate(sys_, 40, 1, censoring=cens, measurement=fad, seed=1).y[0]
+    est = tk.FadingTobitKalmanFilter(sys_, fad, cens)
+    prev = est.init()
+    for k in range(39):
+        prev = est.step(prev, y[k])
+    new = est.step(prev, y[39])
+    got = _online_check._statistic(est, prev, new, None, None, None)
+    assert est.__dict__["_check_transition"][1] is not None
+    est.__dict__["_check_transition"] = (est.system, None)  # as for a transition that changes: built each step
+    want = _online_check._statistic(est, prev, new, None, None, None)
+    assert want[0] > 0
+    np.testing.assert_allclose(got, want, rtol=1e-12)

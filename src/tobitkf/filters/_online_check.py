@@ -117,9 +117,18 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
     of a small state: Python floats (a list of one value); else numpy, shape (N,)."""
     n = new.n
     if xp is None or Pp is None:
-        tr = est._transition(new.k, u, prev.carry)
         x, P = prev.x, prev.P
         assert P is not None, "checked by the caller"
+        fixed = _fixed_transition(est, new.k, u, prev.carry) if x.shape[0] == 1 and P.shape[0] == 1 else None
+        if fixed is not None:  # one run, a transition that does not change: A, diag(Q) as lists, cached
+            sl, A_l, q_l, A, q = fixed
+            if sl is not None:
+                x, P = x[:, sl], P[:, sl, sl]
+            if n * x.shape[-1] <= 16:
+                return [_one_run(A_l, x[0].tolist(), P[0].tolist(), q_l, 0.0, new.x[0, :n].tolist())]
+            var_l = ((A @ P[0]) * A).sum(axis=1) + q  # one run: numpy's products, then Python floats
+            return [_one_run_moments((A @ x[0]).tolist(), var_l.tolist(), new.x[0, :n].tolist())]
+        tr = est._transition(new.k, u, prev.carry)
         A = tr.A
         if tr.shift:  # the block shift: the reported block is A times block `source`, plus the noise of the top
             sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1])
@@ -138,6 +147,46 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
         c = np.where(var > _TINY, d * d / np.where(var > _TINY, var, 1.0), 0.0)
     c = np.where(np.isfinite(c), c, 0.0)
     return c.max(axis=-1) if n else np.zeros(new.x.shape[0])
+
+
+def _fixed_transition(est: Any, k: int, u: Any, carry: Any) -> tuple | None:
+    """The transition of a check as ``(block slice or None, A, diag(Q), A, diag(Q))`` (lists, then arrays; the
+    reported rows) when it is the same at every step, cached on the estimator (keyed on its system); None
+    otherwise. The same at every step: no input, a time-invariant system and the transition of the Kalman-type
+    families (KF, TKF, dropping KF, the assumed-density families on a linear system, the fading TKF's block
+    shift), which depends on the system only. Building it costs a few µs of a checked step."""
+    if u is not None:
+        return None
+    sys_ = est.system if hasattr(est, "system") else None
+    cached = est.__dict__.get("_check_transition")
+    if cached is not None and cached[0] is sys_:
+        return cached[1]
+    from .fading import FadingTobitKalmanFilter
+    from .kalman import LinearGaussianFamily
+
+    fixed = None
+    invariant = (LinearGaussianFamily._transition, FadingTobitKalmanFilter._transition)
+    if type(est)._transition in invariant and getattr(sys_, "time_invariant", False):
+        tr = est._transition(k, None, carry)
+        A = tr.A
+        sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1]) if tr.shift else None
+        A = np.array(A[: est.n])
+        q = tr.Qd.diagonal()[: est.n].copy()
+        fixed = (sl, A.tolist(), q.tolist(), A, q)
+    est.__dict__["_check_transition"] = (sys_, fixed)
+    return fixed
+
+
+def _one_run_moments(mean: list, var: list, post: list) -> float:
+    """:func:`_one_run` from the predicted mean and variances of the reported block (lists)."""
+    best = 0.0
+    for m, v, p in zip(mean, var, post):
+        if v > _TINY and math.isfinite(v):
+            d = p - m
+            c = d * d / v
+            if c > best and math.isfinite(c):
+                best = c
+    return best
 
 
 def _one_run(A: list, x: list, P: list, q: list, b: Any, post: list) -> float:
@@ -199,7 +248,9 @@ def check_step(
         vals = memo[0].tolist() if valid else [0.0] * (W + 1)
         vals[count % W] = float(c[0])
         vals[W] = count + 1.0
-        total = sum(v if v < cap else cap for v in vals[:W])
+        total = sum(vals[:W])  # the capped sum is no larger: capped only when the plain one is not below the limit
+        if not total <= limit:
+            total = sum(v if v < cap else cap for v in vals[:W])
         runs = int(total > limit and all(map(math.isfinite, new.x[0].tolist())))
         window = np.array([vals])
     else:

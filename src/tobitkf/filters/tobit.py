@@ -100,6 +100,7 @@ from .kalman import (
     kernel_array,
     kernel_result,
     loop_entries,
+    loop_input,
     output_arrays,
     state_specs,
 )
@@ -453,7 +454,7 @@ def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: F
     bu, du = _input_terms(est, None if u is None else u.reshape(N, 1, -1), N, 1)
     A, Qd, H, sigma, joseph = _loop_arrays(est)
     loop_entries().tobit_loop(
-        np.require(y.reshape(N, 1, m), float, ("C", "W")),
+        loop_input(y.reshape(N, 1, m)),
         A,
         Qd,
         H,
