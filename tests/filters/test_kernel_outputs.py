@@ -92,7 +92,7 @@ def test_output_arrays_are_disjoint_views_of_one_allocation():
     """kalman.output_arrays: every requested output a C-contiguous (runs, T) + shape view, no two sharing an
     element (a wrong offset or size would make neighbours overlap and the kernel overwrite one with another),
     the ones not requested (runs, 0) + shape; cov_spec's layouts of the covariance output."""
-    from tobitkf.filters.kalman import cov_spec, output_arrays
+    from tobitkf.filters._outputs import cov_spec, output_arrays
 
     specs = [(True, (3,)), (False, (2, 2)), (True, (1,)), (True, (2, 3, 3)), (True, ()), (False, (5,))]
     arrs = output_arrays(7, 5, *specs)

@@ -19,7 +19,6 @@ __all__ = [
     "BACKENDS",
     "numba_available",
     "kernels",
-    "compiled",
     "use_kernel",
     "compiled_ok",
     "system_gap",
@@ -39,24 +38,6 @@ def _load() -> ModuleType | None:
     except ImportError:
         return None
     return _kernels
-
-
-@lru_cache(maxsize=1)
-def _load_compiled() -> ModuleType | None:
-    try:
-        from . import _compiled_entries
-    except ImportError:
-        return None
-    return _compiled_entries
-
-
-def compiled() -> ModuleType:
-    """The :mod:`tobitkf.filters._compiled_entries` module: the KF's and the TKF's entries into the one compiled
-    loop (imports numba)."""
-    mod = _load_compiled()
-    if mod is None:
-        raise ImportError("backend='numba' needs the numba package (pip install numba); use backend='auto' or 'numpy'")
-    return mod
 
 
 def numba_available() -> bool:

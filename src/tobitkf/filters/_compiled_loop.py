@@ -79,9 +79,9 @@ from ._kernels_block import (
     runs_per_block,
 )
 from ._kernels_fading import shift_predict_block
+from ._outputs import _empty, kernel_result, output_arrays, state_specs
 from ._readings import classify_readings
 from .core import FilterState
-from .kalman import _empty, kernel_result, output_arrays, state_specs
 
 __all__ = [
     "compiled_loop",

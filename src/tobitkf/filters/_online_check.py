@@ -161,12 +161,8 @@ def _fixed_transition(est: Any, k: int, u: Any, carry: Any) -> tuple | None:
     cached = est.__dict__.get("_check_transition")
     if cached is not None and cached[0] is sys_:
         return cached[1]
-    from .fading import FadingTobitKalmanFilter
-    from .kalman import LinearGaussianFamily
-
     fixed = None
-    invariant = (LinearGaussianFamily._transition, FadingTobitKalmanFilter._transition)
-    if type(est)._transition in invariant and getattr(sys_, "time_invariant", False):
+    if getattr(type(est)._transition, "system_only", False) and getattr(sys_, "time_invariant", False):
         tr = est._transition(k, None, carry)
         A = tr.A
         sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1]) if tr.shift else None
@@ -175,6 +171,14 @@ def _fixed_transition(est: Any, k: int, u: Any, carry: Any) -> tuple | None:
         fixed = (sl, A.tolist(), q.tolist(), A, q)
     est.__dict__["_check_transition"] = (sys_, fixed)
     return fixed
+
+
+def system_only(transition):
+    """Mark a family's ``_transition`` as depending on the system only (no carry, no step-dependent choice), so that
+    on a time-invariant system without input the check caches it (:func:`_fixed_transition`); a subclass that
+    overrides ``_transition`` is not marked unless it says so too."""
+    transition.system_only = True
+    return transition
 
 
 def _one_run_moments(mean: list, var: list, post: list) -> float:

@@ -104,6 +104,8 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
+from ._online_check import system_only
+from ._outputs import _empty, kernel_array, kernel_result, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -114,17 +116,7 @@ from .core import (
     step_state,
     symmetrize,
 )
-from .kalman import (
-    KalmanFilter,
-    LinearGaussianFamily,
-    _empty,
-    _finite_or_none,
-    finite_variances,
-    kernel_array,
-    kernel_result,
-    output_arrays,
-    state_specs,
-)
+from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, finite_variances
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -268,6 +260,7 @@ class _FadingFamily(LinearGaussianFamily):
             self._H_steady = H
         return H
 
+    @system_only
     def _transition(self, k, u, carry):
         sys_ = self.system
         b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T

@@ -84,6 +84,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from ._online_check import check_step
+from ._outputs import _empty, kernel_array, kernel_result, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -94,15 +95,7 @@ from .core import (
     step_state,
     symmetrize,
 )
-from .kalman import (
-    LinearGaussianFamily,
-    _empty,
-    _finite_or_none,
-    kernel_array,
-    kernel_result,
-    output_arrays,
-    state_specs,
-)
+from .kalman import LinearGaussianFamily, _finite_or_none
 from .protocol_model import (
     FAILURE_TERMS,
     PREHISTORY_PRIORS,

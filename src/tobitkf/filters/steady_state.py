@@ -66,8 +66,9 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
+from ._outputs import kernel_array, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
-from .kalman import LinearGaussianFamily, kernel_array, output_arrays
+from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, tobit_measurement
 
 __all__ = [

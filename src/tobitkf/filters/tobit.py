@@ -79,6 +79,7 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
+from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
 from ._times import at_times
 from .assumed_density import assumed_density_filter
@@ -92,18 +93,7 @@ from .core import (
     psd_sqrt,
     step_state,
 )
-from .kalman import (
-    LinearGaussianFamily,
-    _empty,
-    _finite_or_none,
-    _loop_arrays,
-    kernel_array,
-    kernel_result,
-    loop_entries,
-    loop_input,
-    output_arrays,
-    state_specs,
-)
+from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries
 from .smoothing import SmoothingMethods
 
 __all__ = [
