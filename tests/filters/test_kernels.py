@@ -17,6 +17,7 @@ import tobitkf as tk
 from tobitkf._validation import ValidationError
 from tobitkf.censored import censored_moments
 from tobitkf.filters import _backend
+from tobitkf.filters import kalman as kalman_module
 from tobitkf.filters.kalman import kalman_filter
 from tobitkf.filters.tobit import tobit_kalman_filter
 
@@ -446,7 +447,7 @@ class _Trap:
 
 def test_auto_uses_the_kernel_when_covered(monkeypatch):
     monkeypatch.setattr(_backend, "_load", lambda: _Trap())
-    monkeypatch.setattr(_backend, "_load_compiled", lambda: _Trap())
+    monkeypatch.setattr(kalman_module, "_load_entries", lambda: _Trap())
     sys_ = oscillator()
     cens = tk.Censoring(lower=0.0)
     y = data(sys_, cens, runs=2, steps=5)
@@ -494,7 +495,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     with pytest.raises(ValidationError, match=f"does not cover {match}"):
         kalman_filter(sys_, y, u=u, backend="numba")
     monkeypatch.setattr(_backend, "_load", lambda: _Trap())
-    monkeypatch.setattr(_backend, "_load_compiled", lambda: _Trap())
+    monkeypatch.setattr(kalman_module, "_load_entries", lambda: _Trap())
     # not the block kernel (the trap), but the compiled shared step around the numpy moments: equal to rounding
     if which == "time_varying":
         assert_results_equal(tobit_kalman_filter(sys_, cens, y, u=u), ref_t, 1e-12)

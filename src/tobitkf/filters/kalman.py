@@ -40,6 +40,7 @@ Symbols: ``mean`` = x̂, ``cov`` = P, ``pred_mean`` = x̄, ``pred_cov`` = P̄.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -257,12 +258,20 @@ def _loop_arrays(est) -> tuple[Any, ...]:
 def loop_entries() -> Any:
     """:mod:`tobitkf.filters._compiled_entries` (the KF's and the TKF's entries into the one compiled loop; imports
     numba)."""
+    mod = _load_entries()
+    if mod is None:
+        raise ImportError("backend='numba' needs the numba package (pip install numba); use backend='auto' or 'numpy'")
+    return mod
+
+
+@lru_cache(maxsize=1)
+def _load_entries() -> Any:
+    """The entries module, or None when numba does not import (loaded here, not by ``_backend``: the entries import
+    the compiled loop, which imports ``_backend``)."""
     try:
         from . import _compiled_entries
     except ImportError:
-        raise ImportError(
-            "backend='numba' needs the numba package (pip install numba); use backend='auto' or 'numpy'"
-        ) from None
+        return None
     return _compiled_entries
 
 
