@@ -120,8 +120,6 @@ def test_input_refusals():
         tk.UnscentedKalmanFilter(FORCED).filter(y, u=U[:, [0, 0]])
     with pytest.raises(tk.ShapeError, match="u"):
         tk.UnscentedKalmanFilter(FOLDED).step(tk.UnscentedKalmanFilter(FOLDED).init(), y[0], u=[1.0])
-    with pytest.raises(tk.ValidationError, match="inputs"):  # no silent drop of the inputs
-        tk.ParticleFilter(FORCED, CENS, particles=10)
 
 
 def test_discretize_holds_the_input_over_the_interval():

@@ -6,6 +6,12 @@ the exact likelihood of the reading through the channel, :math:`p(y_k \mid x_k) 
 p(y_{k,l} \mid y^*_{k,l} \sim N(h_l(x_k, k), R_{k,ll}))` (the channel's ``reading_log_likelihood``; no channel:
 the plain Gaussian reading). The predicted moments it reports (``pred_mean``, ``pred_cov``) are the
 unscented prediction of the filtered moments (:class:`~tobitkf.UnscentedKalmanFilter`'s).
+
+**Known inputs.** With an ``f(x, k, u)`` (``NonlinearSystem(inputs=p)``) the filter's ``filter``, ``step`` and
+``log_likelihood`` take ``u`` (..., T, p) as the Gaussian filters do (row k-1 holds :math:`u_k`): every particle
+of a run moves by :math:`x_k = f(x_{k-1}, k-1, u_k) + w_{k-1}` with its run's input, and the reported prediction
+pushes the sigma points through the same map. No ``u`` means :math:`u_k = 0`. With the same seed the result equals,
+to rounding, that of the model with the inputs folded into ``f`` (a map ``f(x, k)`` that reads them itself).
 """
 
 from __future__ import annotations
@@ -36,19 +42,31 @@ class _Nonlinear(_Model):
         channel.check(system)
         self.channel = channel
         self.nx, self.m = system.n, system.m
+        # the particle filter then hands the step's input u_k (N, p) to predict_moments/propagate as ``b``
+        self.takes_input = system.takes_input
 
     @property
     def label(self) -> str:
         return f"nonlinear {type(self.channel).__name__}"
 
+    @staticmethod
+    def _input(b: Any, rows: int) -> np.ndarray | None:
+        """The input u_k of each run (``b``, (N, p); the scalar 0.0 when none is given) repeated for its ``rows``
+        points (run-outermost), or None (no input: u = 0, or an f(x, k))."""
+        if np.ndim(b) == 0:
+            return None
+        return np.repeat(np.asarray(b, dtype=float), rows, axis=0)
+
     def predict_moments(self, k, x, P, b):
         sys_ = self.system
-        xp, _, Pf = _sigma_moments(_PREDICTION, lambda z: sys_.transition_map(z, k - 1), x, P)
+        L = _PREDICTION.unit(self.nx)[0].shape[0]
+        u = self._input(b, L)
+        xp, _, Pf = _sigma_moments(_PREDICTION, lambda z: sys_.transition_map(z, k - 1, u), x, P)
         return xp, Pf + sys_.process_cov(k - 1)
 
     def propagate(self, rng, k, X, b):
         N, Np, n = X.shape
-        Xn = self.system.transition_map(X.reshape(N * Np, n), k - 1).reshape(N, Np, n)
+        Xn = self.system.transition_map(X.reshape(N * Np, n), k - 1, self._input(b, Np)).reshape(N, Np, n)
         G = psd_sqrt(self.system.process_cov(k - 1))
         z = rng.standard_normal((N, Np, G.shape[1]))
         return Xn + _mat(z, G.T)
@@ -75,11 +93,6 @@ class _Nonlinear(_Model):
 def nonlinear_model(system: Any, channel: Any, censoring: Any) -> _Model:
     """The particle filter's model of ``system`` (a NonlinearSystem) read through one contract channel (or a
     Censoring given as ``censoring``; none: plain Gaussian readings)."""
-    if system.takes_input:  # the particle filter's step forms B^u u, which an f(x, k, u) does not have
-        raise ValidationError(
-            "system: the particle filter does not take the inputs of an f(x, k, u) yet; fold the known inputs "
-            "into f(x, k) (they are known in advance)"
-        )
     pieces = _flatten(channel) + ([] if censoring is None else [censoring])
     if len(pieces) > 1:
         raise ValidationError(
