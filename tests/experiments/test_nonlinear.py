@@ -166,7 +166,7 @@ def test_random_nonlinear_systems_censor_about_their_drawn_fraction():
 
 @pytest.fixture(scope="module")
 def tiny():
-    kw = dict(runs=3, seed=1, steps=12, particles=40)
+    kw = dict(runs=3, seed=1, steps=12, particles=40, compare_runs=5)
     return {
         "nonlinear-oscillator": get("nonlinear-oscillator").run(**kw),
         "nonlinear-accelerometer": get("nonlinear-accelerometer").run(**kw),
@@ -200,8 +200,13 @@ def test_each_experiment_writes_the_metrics_the_report_reads(tiny, exp_id):
             assert key == "pf" or len(s["ratio_stderr"]) == n
         assert est["pf"]["convergence"]["particles"] == [40, 80]
         assert block["runs"] == 3 and block["steps"] == 12
+        assert block["comparison"]["runs"] == 5 and "compare_errors" not in block
+        assert {"adf", "tobit-ekf", "tobit-ukf"} <= set(block["comparison"]["estimators"])
     assert result.metrics["report_tables"] and result.metrics["lineup"]["pf"]["options"]["particles"] == 80
     texts = [c["claim"] for c in result.claims]
+    for c in result.claims:
+        if "more accurate than" in c["claim"]:
+            assert "on the same 5 runs" in c["quantity"]  # measured on the comparison runs
     for case in list(result.metrics["systems"]) if exp_id == "nonlinear-random" else [None]:
         mine = [t for t in texts if case is None or f" {case}:" in t]
         assert sum("within" in t for t in mine) == 1
@@ -231,6 +236,34 @@ def test_the_report_shows_the_ratios_and_costs(tmp_path):
     assert "RMSE / optimum and cost" in text and "µs per run-step" in text and "ekf-inflate" in text
 
 
+def test_the_comparison_runs_are_the_experiments_runs_and_more_of_the_same_model():
+    # the oracle: the two simulations made by hand (the runs' seed stream and the comparison's own) and the filters
+    # run on each; the comparison's RMSE is over all the runs together, the claim measured on them
+    system, clip = E.accelerometer_system()
+    seed, runs, more, steps = 3, 4, 6, 20
+    ev, _ = E._case("a", system, clip, runs, steps, 30, seed, lambda *a, **k: None, 0.0, 1.0, None, runs + more)
+    sims = [
+        tk.simulate(system, steps, r, channel=clip, seed=np.random.SeedSequence([seed, s]))
+        for r, s in ((runs, 0), (more, 5))
+    ]
+    assert ev["comparison"]["runs"] == runs + more
+    for key, est in NL.standard_estimators(system, clip).items():
+        if key not in ("adf", "tobit-ekf", "tobit-ukf"):
+            assert key not in ev["comparison"]["estimators"]
+            continue
+        err = np.concatenate([est.filter(s.y).mean - s.x[:, 1:] for s in sims])
+        np.testing.assert_allclose(ev["compare_errors"][key], err, rtol=0, atol=1e-12)
+        want = np.sqrt((err**2).mean(0)).mean(0)
+        np.testing.assert_allclose(ev["comparison"]["estimators"][key]["rmse_time_avg"], want, rtol=1e-12)
+    claim = NL.better_claim("a", ev, "tobit-ekf")
+    alone = NL.better_claim(
+        "a", {k: v for k, v in ev.items() if k not in ("compare_errors", "comparison")}, "tobit-ekf"
+    )
+    assert f"same {runs + more} runs" in claim["quantity"] and f"same {runs} runs" in alone["quantity"]
+
+
 def test_sizes_are_checked():
     with pytest.raises(tk.ValidationError, match="particles: expected a positive integer"):
         get("nonlinear-oscillator").run(runs=2, particles=0)
+    with pytest.raises(tk.ValidationError, match="compare_runs: expected a positive integer"):
+        get("nonlinear-random").run(runs=2, compare_runs=0)

@@ -23,6 +23,14 @@ standard error over the runs, paired), ``diverged_runs`` (runs whose estimate st
 and ``cost_us_per_run_step`` (the wall time of its ``filter`` call over runs x steps, in microseconds;
 the particle filter's is the optimum's rung alone).
 
+**The comparison runs.** The claims "the assumed-density filter is more accurate than the Tobit EKF / UKF"
+(:func:`better_claim`) compare two Gaussian filters and need no particle filter, and the Tobit filters' errors
+are heavy-tailed (a few runs where a Tobit filter loses the track carry most of its mean squared error), so the
+Monte Carlo error of the difference shrinks slowly with the runs. These claims are therefore measured on a larger
+set of runs than the optimum's: the experiment's runs plus extra runs of the same model (their own seed stream)
+filtered only by the filters being compared (``compare_runs`` in total; ``metrics["comparison"]``). The
+quantity and the test are those of :func:`better_claim` whatever the number of runs.
+
 The particle filter is the bootstrap filter (a :class:`~tobitkf.NonlinearSystem` has no closed-form
 proposal and no compiled particle loop: those exist for linear readings only); its convergence is the
 check of :func:`~tobitkf.experiments._optimum.pf_check` (N_p against 2 N_p particles on the same
@@ -184,10 +192,17 @@ def evaluate(
     lo: float,
     hi: float,
     name: str,
+    more: Any = None,
+    compare: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """Every estimator of ``estimators`` and the optimum on ``sim`` (module docstring); returns the summaries
     (``estimators``), the censored fraction and, under ``errors`` (not JSON), the estimation errors (N, T, n)
-    of each estimator and of the optimum, for the claims."""
+    of each estimator and of the optimum, for the claims.
+
+    With ``more`` (a simulation of the same model, more runs) the estimators named in ``compare`` also filter
+    its runs: their errors on ``sim`` and ``more`` together are ``compare_errors`` (not JSON), the runs the
+    claims of :func:`better_claim` are measured on, and ``comparison`` (JSON) holds their number and each
+    filter's time-averaged RMSE over them."""
     x, y = sim.x, sim.y
     N, T = y.shape[:2]
     summ: dict[str, Any] = {}
@@ -229,14 +244,36 @@ def evaluate(
             ok = np.isfinite(err[key]).all(axis=(1, 2))
             se = ratio_stderr(err[key][ok] ** 2, err["pf"][ok] ** 2) if ok.sum() > 1 else [float("nan")] * ref.size
             s["ratio_stderr"] = se
-    progress(hi)
-    return {
+    out = {
         "censored_fraction": float(channel.at_limit(y).mean()),
         "runs": int(N),
         "steps": int(T),
         "estimators": summ,
         "errors": err,
     }
+    if more is not None and compare:
+        progress(hi, f"{name}: {more.y.shape[0]} more runs for the comparisons")
+        cmp_err: dict[str, np.ndarray] = {}
+        cmp_summ: dict[str, Any] = {}
+        for key in compare:
+            with np.errstate(all="ignore"), _quiet():
+                mean = np.asarray(estimators[key].filter(more.y, outputs=("mean",)).mean)
+            cmp_err[key] = np.concatenate([err[key], mean - more.x[:, 1:]])
+            ok = np.isfinite(cmp_err[key]).all(axis=(1, 2))
+            cmp_summ[key] = {
+                "rmse_time_avg": np.sqrt((cmp_err[key][ok] ** 2).mean(0)).mean(0).tolist(),
+                "diverged_runs": int((~ok).sum()),
+            }
+        out["compare_errors"] = cmp_err
+        out["comparison"] = {
+            "runs": int(N + more.y.shape[0]),
+            "censored_fraction": float(
+                (channel.at_limit(y).sum() + channel.at_limit(more.y).sum()) / (y.size + more.y.size)
+            ),
+            "estimators": cmp_summ,
+        }
+    progress(hi)
+    return out
 
 
 class _quiet:
@@ -276,8 +313,15 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
     squared error norm), paired on the same runs; the claim holds when the rival's exceeds the filter's by
     more than three jackknife standard errors of the difference. Runs on which the rival's estimate stopped
     being finite are left out (and counted); a rival that diverged on every run loses by definition. The
-    per-component margins are in the note."""
-    err, N = ev["errors"], ev["runs"]
+    per-component margins are in the note.
+
+    Measured on the comparison runs of ``ev`` (``compare_errors``, module docstring) when they hold both
+    filters, else on the optimum's runs."""
+    cmp = ev.get("compare_errors") or {}
+    if "adf" in cmp and rival in cmp:
+        err, N = cmp, ev["comparison"]["runs"]
+    else:
+        err, N = ev["errors"], ev["runs"]
     label = what or f"the {rival}"
     text = f"(not in the source) {name}: the assumed-density filter is more accurate than {label}"
     ok = _finite_runs(err["adf"], err[rival])
@@ -297,26 +341,39 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
     per, _ = CL.rmse_difference(ea, eb)
     tol, tol_text = CL.mc_tolerance(dse, int(ok.sum()), "the paired RMSE difference (jackknife over runs)")
     margin = float(diff[0])
+    # per run: is the filter's whole-run RMSE the lower? (a robust view of the heavy-tailed comparison, in the note)
+    wins = float((np.sqrt((_state_error(eb) ** 2).mean(1)) > np.sqrt((_state_error(ea) ** 2).mean(1))).mean())
+    summ = ev["estimators"]
+    gap = ""
+    if rival in summ and "adf" in summ:
+        gap = (
+            f"; on the optimum's {ev['runs']} runs the worst component's RMSE / optimum is "
+            f"{max(summ[rival]['ratio_to_optimum']):.3f} for {rival}, {max(summ['adf']['ratio_to_optimum']):.3f} "
+            "for the filter"
+        )
     explanation = ""
     if not margin > tol:
         explanation = (
             f"{rival} is the more accurate here"
             if margin < 0
             else f"the filter's RMSE is the lower, but by less than the Monte Carlo error at {int(ok.sum())} runs: "
-            "the difference is not shown at this size (tobitkf reproduce --full runs more)"
+            f"the difference is not shown at this size (the filter is the more accurate on {wins:.0%} of the runs"
+            f"{gap}: where the rival is itself close to the optimum there is little left to gain)"
         )
     return CL.less(
         text,
         quantity=f"time-averaged RMSE of the whole state (norm of the error over its components) of the "
-        f"assumed-density filter and of {rival}, on the same runs"
-        + (f" (the {int(ok.sum())} runs on which {rival} stayed finite)" if diverged else ""),
+        f"assumed-density filter and of {rival}, on the same {N} runs"
+        + (f" (the {int(ok.sum())} on which {rival} stayed finite)" if diverged else ""),
         a=a,
         b=a + margin,
         tol=tol,
         tolerance=tol_text,
         names=("adf", rival),
-        note=f"per component, {rival}'s RMSE minus the filter's: {CL.fmt(per, 3)}"
-        + (f"; {rival} diverged on {diverged} of {N} runs" if diverged else ""),
+        note=f"per component, {rival}'s RMSE minus the filter's: {CL.fmt(per, 3)}; the filter's whole-run RMSE "
+        f"is the lower on {wins:.0%} of the runs"
+        + (f"; {rival} diverged on {diverged} of {N} runs" if diverged else "")
+        + gap,
         explanation=explanation,
     )
 
