@@ -267,3 +267,11 @@ def test_sizes_are_checked():
         get("nonlinear-oscillator").run(runs=2, particles=0)
     with pytest.raises(tk.ValidationError, match="compare_runs: expected a positive integer"):
         get("nonlinear-random").run(runs=2, compare_runs=0)
+
+
+def test_the_bound_on_the_ratio_to_the_exact_optimum():
+    # the 2 N_p filter's excess RMSE is bounded by the change on doubling plus z standard errors (none below 0)
+    conv = {"signed_change": [0.01, -0.02], "relative_change": [0.01, 0.02], "stderr": [0.002, 0.001], "z": 2.0}
+    worst, excess = NL.optimum_bound([1.0, 0.98], conv)
+    np.testing.assert_allclose(excess, [0.014, 0.0], rtol=1e-12)
+    np.testing.assert_allclose(worst, [1.014, 0.98], rtol=1e-12)

@@ -71,6 +71,7 @@ __all__ = [
     "plot_case",
     "per_component_tolerance",
     "better_claim",
+    "optimum_bound",
     "DropClipped",
     "InflateClipped",
 ]
@@ -343,6 +344,10 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
     margin = float(diff[0])
     # per run: is the filter's whole-run RMSE the lower? (a robust view of the heavy-tailed comparison, in the note)
     wins = float((np.sqrt((_state_error(eb) ** 2).mean(1)) > np.sqrt((_state_error(ea) ** 2).mean(1))).mean())
+    # how heavy the rival's tail is: the share of its summed squared error carried by its worst 5 % of runs
+    per_run = np.sort((_state_error(eb) ** 2).mean(axis=(1, 2)))[::-1]
+    worst = max(1, int(np.ceil(0.05 * per_run.size)))
+    tail = float(per_run[:worst].sum() / per_run.sum()) if per_run.sum() > 0 else float("nan")
     summ = ev["estimators"]
     gap = ""
     if rival in summ and "adf" in summ:
@@ -358,7 +363,9 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
             if margin < 0
             else f"the filter's RMSE is the lower, but by less than the Monte Carlo error at {int(ok.sum())} runs: "
             f"the difference is not shown at this size (the filter is the more accurate on {wins:.0%} of the runs"
-            f"{gap}: where the rival is itself close to the optimum there is little left to gain)"
+            f"{gap}; the worst 5 % of the runs carry {tail:.0%} of {rival}'s squared error): where the rival is "
+            "itself close to the optimum there is little left to gain, and where a few runs carry most of its "
+            "squared error (the runs on which it loses the track) its RMSE settles only slowly with the runs"
         )
     return CL.less(
         text,
@@ -371,9 +378,8 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
         tolerance=tol_text,
         names=("adf", rival),
         note=f"per component, {rival}'s RMSE minus the filter's: {CL.fmt(per, 3)}; the filter's whole-run RMSE "
-        f"is the lower on {wins:.0%} of the runs"
-        + (f"; {rival} diverged on {diverged} of {N} runs" if diverged else "")
-        + gap,
+        f"is the lower on {wins:.0%} of the runs; the worst 5 % of the runs carry {tail:.0%} of {rival}'s squared "
+        "error" + (f"; {rival} diverged on {diverged} of {N} runs" if diverged else "") + gap,
         explanation=explanation,
     )
 
@@ -383,6 +389,22 @@ def per_component_tolerance(se: Any, runs: int, what: str) -> tuple[np.ndarray, 
     sentence saying so."""
     tol = CL.K_SE * np.asarray(se, dtype=float)
     return tol, f"{CL.K_SE:g} standard errors of {what} over {runs} runs, per component = {CL.fmt(tol, 3)}"
+
+
+def optimum_bound(ratio: Any, conv: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    r"""An upper bound of a ratio to the *exact* optimum from its ratio to the particle filter with 2 N_p particles.
+
+        The bootstrap filter's excess RMSE over the exact optimum falls about as :math:`1/N_p`, so the 2 N_p filter's
+        excess :math:`e` is about the relative change :math:`c` of its RMSE from N_p to 2 N_p particles
+        (:math:`c = e(N_p) - e(2N_p) pprox e(2N_p)`); bounding it by :math:`c + z\,\mathrm{se}` (the convergence
+        check's one-sided bound, ``conv`` from :func:`~tobitkf.experiments._optimum.convergence`), the ratio to the
+        exact optimum is at most :math:`
+    ho(1 + \max(c + z\,\mathrm{se}, 0))`, per component.
+
+        Returns the bound and the excess bound :math:`\max(c + z\,\mathrm{se}, 0)`, per component."""
+    change = np.asarray(conv.get("signed_change", conv["relative_change"]), dtype=float)
+    excess = np.maximum(change + float(conv["z"]) * np.asarray(conv["stderr"], dtype=float), 0.0)
+    return np.asarray(ratio, dtype=float) * (1.0 + excess), excess
 
 
 def target_claims(
@@ -397,6 +419,9 @@ def target_claims(
     se = np.asarray(summ["adf"]["ratio_stderr"], dtype=float)
     it = np.asarray(summ["adf-iterated"]["ratio_to_optimum"], dtype=float)
     tol, tol_text = per_component_tolerance(se, N, "the ratio (jackknife over runs, paired)")
+    conv = summ["pf"]["convergence"]
+    worst, excess = optimum_bound(ratio, conv)
+    robust = bool(np.all(worst <= target + tol))
     claims.append(
         CL.claim(
             f"(not in the source) {name}: the nonlinear assumed-density filter is within {target}x the optimum's "
@@ -407,7 +432,14 @@ def target_claims(
             test="quantity <= bound + tol, every component",
             tolerance=tol_text,
             holds=bool(np.all(ratio <= target + tol)),
-            note=f"the iterated filter ({ITERATIONS} linearisations): {CL.fmt(it)}",
+            note=f"the iterated filter ({ITERATIONS} linearisations): {CL.fmt(it)}; the optimum's own excess RMSE "
+            f"bounded by its change on doubling the particles (an excess falling as 1/N_p equals that change; at most "
+            f"{CL.fmt(100 * excess, 2)} % with its standard errors), the ratio to the exact optimum is at most {CL.fmt(worst)}: the verdict "
+            + (
+                "does not depend on the particle filter's convergence"
+                if robust
+                else "depends on the particle filter's convergence at this size"
+            ),
             explanation=""
             if np.all(ratio <= target + tol)
             else "the filter's RMSE exceeds the target beyond the Monte Carlo error: its Gaussian posterior "
@@ -416,7 +448,6 @@ def target_claims(
     )
     for rival in rivals:
         claims.append(better_claim(name, ev, rival))
-    conv = summ["pf"]["convergence"]
     claims.append(
         CL.claim(
             f"(not in the source) {name}: the particle filter is converged: doubling its particles moves the "
@@ -427,7 +458,12 @@ def target_claims(
                 f"{c * 100:.3g} ± {e * 100:.2g} %" for c, e in zip(conv["relative_change"], conv["stderr"])
             )
             + f" ({conv['particles'][0]} -> {conv['particles'][1]} particles)"
-            + ("" if conv["resolved"] else "; too few runs to resolve 0.3 %"),
+            + (
+                ""
+                if conv["resolved"]
+                else "; too few runs to resolve 0.3 %: at this size the check tells from none a change above "
+                + ", ".join(f"{conv['z'] * e * 100:.2g} %" for e in conv["stderr"])
+            ),
             test="|change| not significantly above 0.3 % on every component",
             tolerance=f"one-sided test at the {conv['level']:.0%} level (Bonferroni over the components): "
             f"|change| - {conv['z']:.2f} se < 0.3 %, se the jackknife over runs",
