@@ -421,7 +421,9 @@ def target_claims(
     tol, tol_text = per_component_tolerance(se, N, "the ratio (jackknife over runs, paired)")
     conv = summ["pf"]["convergence"]
     worst, excess = optimum_bound(ratio, conv)
-    robust = bool(np.all(worst <= target + tol))
+    holds = bool(np.all(ratio <= target + tol))
+    # the bound only raises the ratio: a verdict "not held" cannot depend on the optimum's own error
+    robust = bool(np.all(worst <= target + tol)) or not holds
     claims.append(
         CL.claim(
             f"(not in the source) {name}: the nonlinear assumed-density filter is within {target}x the optimum's "
@@ -431,17 +433,18 @@ def target_claims(
             measured=f"{CL.fmt(ratio)} ± {CL.fmt(se, 2)} (bound {target})",
             test="quantity <= bound + tol, every component",
             tolerance=tol_text,
-            holds=bool(np.all(ratio <= target + tol)),
+            holds=holds,
             note=f"the iterated filter ({ITERATIONS} linearisations): {CL.fmt(it)}; the optimum's own excess RMSE "
-            f"bounded by its change on doubling the particles (an excess falling as 1/N_p equals that change; at most "
-            f"{CL.fmt(100 * excess, 2)} % with its standard errors), the ratio to the exact optimum is at most {CL.fmt(worst)}: the verdict "
+            "bounded by its change on doubling the particles (an excess falling as 1/N_p equals that change; at "
+            f"most {CL.fmt(100 * excess, 2)} % with its standard errors), the ratio to the exact optimum is at most "
+            f"{CL.fmt(worst)}: the verdict "
             + (
                 "does not depend on the particle filter's convergence"
                 if robust
                 else "depends on the particle filter's convergence at this size"
             ),
             explanation=""
-            if np.all(ratio <= target + tol)
+            if holds
             else "the filter's RMSE exceeds the target beyond the Monte Carlo error: its Gaussian posterior "
             "misses what the optimum uses (a skewed or multimodal posterior, see the experiment's tables)",
         )

@@ -392,7 +392,8 @@ def _settings(runs: int, steps: int, particles: int, notes: dict[str, Any], comp
         "compare_runs": setting(
             max(compare_runs, runs),
             "default",
-            "runs of the claims 'more accurate than' (the optimum's runs plus more filtered by the compared filters only)",
+            "runs of the claims 'more accurate than' (the optimum's runs plus more, filtered by the compared "
+            "filters only)",
         ),
         "steps": setting(steps, "default", "readings per run"),
         "particles": setting(
