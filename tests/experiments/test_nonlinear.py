@@ -275,3 +275,20 @@ def test_the_bound_on_the_ratio_to_the_exact_optimum():
     worst, excess = NL.optimum_bound([1.0, 0.98], conv)
     np.testing.assert_allclose(excess, [0.014, 0.0], rtol=1e-12)
     np.testing.assert_allclose(worst, [1.014, 0.98], rtol=1e-12)
+
+
+def test_a_comparison_carried_by_a_few_runaway_runs_is_not_shown_and_says_why():
+    # 38 runs where both filters err by 0.1 and 2 where the rival runs away (error 10): the rival's RMSE is far
+    # the larger, but the jackknife over runs (leaving out one runaway run moves it by about 0.66) gives a standard
+    # error of about 0.9, three of which exceed the margin of about 2.14
+    N, T = 40, 5
+    ea = np.full((N, T, 1), 0.1)
+    eb = ea.copy()
+    eb[:2] = 10.0
+    ev = {"errors": {"adf": ea, "rival": eb}, "runs": N, "estimators": {}}
+    c = NL.better_claim("case", ev, "rival")
+    assert not c["holds"]
+    assert "loses the track" in c["explanation"] and "carry 100% of rival's squared error" in c["explanation"]
+    # every run with the rival three times the filter's error: shown
+    ev["errors"]["rival"] = 3 * ea * (1 + 0.1 * np.random.default_rng(0).random((N, 1, 1)))
+    assert NL.better_claim("case", ev, "rival")["holds"]

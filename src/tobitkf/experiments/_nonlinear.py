@@ -344,7 +344,8 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
     margin = float(diff[0])
     # per run: is the filter's whole-run RMSE the lower? (a robust view of the heavy-tailed comparison, in the note)
     wins = float((np.sqrt((_state_error(eb) ** 2).mean(1)) > np.sqrt((_state_error(ea) ** 2).mean(1))).mean())
-    # how heavy the rival's tail is: the share of its summed squared error carried by its worst 5 % of runs
+    # how heavy the rival's tail is: the share of its summed squared error carried by its worst 5 % of runs (the
+    # explanation of a claim not shown names the heavy tail when they carry half of it, else the small gap)
     per_run = np.sort((_state_error(eb) ** 2).mean(axis=(1, 2)))[::-1]
     worst = max(1, int(np.ceil(0.05 * per_run.size)))
     tail = float(per_run[:worst].sum() / per_run.sum()) if per_run.sum() > 0 else float("nan")
@@ -363,9 +364,13 @@ def better_claim(name: str, ev: dict[str, Any], rival: str, what: str = "") -> d
             if margin < 0
             else f"the filter's RMSE is the lower, but by less than the Monte Carlo error at {int(ok.sum())} runs: "
             f"the difference is not shown at this size (the filter is the more accurate on {wins:.0%} of the runs"
-            f"{gap}; the worst 5 % of the runs carry {tail:.0%} of {rival}'s squared error): where the rival is "
-            "itself close to the optimum there is little left to gain, and where a few runs carry most of its "
-            "squared error (the runs on which it loses the track) its RMSE settles only slowly with the runs"
+            f"{gap}; the worst 5 % of the runs carry {tail:.0%} of {rival}'s squared error)"
+            + (
+                f": a few runs on which {rival} loses the track carry most of its squared error, so its RMSE and the "
+                "standard error of the difference do not settle as runs are added"
+                if tail >= 0.5
+                else f": {rival} is itself close to the optimum here, so there is little left to gain"
+            )
         )
     return CL.less(
         text,
