@@ -327,6 +327,30 @@ def test_a_diverging_total_variance_tkf_warns_and_healthy_filters_do_not(seed):
         assert "at step k=" in found[0] and "noise_term='dissertation' or 'exact_pv'" in found[0]
 
 
+def test_the_correction_check_in_blocks_of_runs_names_the_same_step_and_count(monkeypatch):
+    """The check runs over blocks of runs (its temporaries bounded); the step it names, the number of runs it
+    counts and the window it reports do not depend on the block size: one run per block, seven, and the whole
+    record in one block give the same message, and that message agrees with a direct count of the runs whose
+    capped window sum exceeds the threshold."""
+    from tobitkf.filters import _online_check as oc
+
+    sys_, cens = _one_sided_system(2)
+    d = tk.simulate(sys_, 40, 30, censoring=cens, seed=2)
+    est = tk.TobitKalmanFilter(sys_, cens, noise_term="total_variance", backend="numpy")
+    messages = []
+    for values in (1, 7 * 40 * sys_.n, 1 << 30):
+        monkeypatch.setattr(oc, "_CHECK_BLOCK", values)
+        res, found = _warnings_of(est, d.y)
+        assert len(found) == 1
+        messages.append(found[0])
+    assert messages[0] == messages[1] == messages[2]
+    limit = oc.correction_threshold(1, 20)
+    c = np.minimum(oc.correction_statistic(res.mean, res.pred_mean, res.pred_cov), oc.CORRECTION_CAP * limit)
+    win = np.stack([c[:, j : j + 20].sum(axis=-1) for j in range(c.shape[-1] - 19)], axis=-1)
+    runs = int(((win > limit) & np.isfinite(res.mean).all(axis=(-2, -1))[:, None]).any(axis=-1).sum())
+    assert f" in {runs} of 30 runs " in messages[0]
+
+
 def test_the_correction_statistic_is_below_the_normalised_innovation():
     r"""The bound the threshold rests on, exactly, on a Kalman filter: :math:`\max_i (Ke)_i^2/\bar P_{ii} \le
     e^2/R_{ee}` at every step (m = 1), with the innovation and its variance formed independently of the core."""

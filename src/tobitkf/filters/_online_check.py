@@ -98,6 +98,7 @@ KEY = "_correction_window"
 STRIDE = 8
 _TINY = 1e-300
 _FLOAT_TINY = np.finfo(np.float64).tiny  # the filters' zero-variance test (correction_statistic)
+_CHECK_BLOCK = 1 << 19  # values of the statistic's (runs, T, n) arrays per block of :func:`_correction_check`
 
 
 def _limits(est: Any) -> tuple[float, ...]:
@@ -346,6 +347,18 @@ def correction_statistic(mean: np.ndarray, pred_mean: np.ndarray, pred_cov: np.n
     return c.max(axis=-1) if c.shape[-1] else np.zeros(c.shape[:-1])
 
 
+def _nominal_covariance(pc: np.ndarray) -> bool:
+    """Whether the predicted covariance is the same at every step of every run (a fixed-gain filter's nominal
+    one). The first, second and last steps are compared before the whole record, so a filter whose covariance
+    changes pays three small comparisons, not a pass over every covariance."""
+    if pc.shape[-3] < 2:
+        return False
+    first = pc[..., :1, :, :]
+    if not ((pc[..., 1:2, :, :] == first).all() and (pc[..., -1:, :, :] == first).all()):
+        return False
+    return bool((pc == first).all())
+
+
 def _correction_check(est: Any, result: Any) -> None:
     r"""Warn once when a ``filter`` run's updates are far larger than its own covariance allows: the window sum
     over :data:`CORRECTION_WINDOW` steps of :func:`correction_statistic`, each step capped at
@@ -359,32 +372,42 @@ def _correction_check(est: Any, result: Any) -> None:
     mean, pm, pc = result.mean, result.pred_mean, result.pred_cov
     if mean is None or pm is None or pc is None or mean.ndim < 2 or mean.shape[-2] < 1:
         return
-    if pc.shape[-3] > 1 and (pc == pc[..., :1, :, :]).all():
+    if _nominal_covariance(pc):
         return  # a fixed-gain filter's nominal covariance (the same at every step) claims no consistency
-    c = correction_statistic(mean, pm, pc)  # batch + (T,)
-    T = c.shape[-1]
+    T, n = mean.shape[-2:]
     W = min(CORRECTION_WINDOW, T)
     limit = correction_threshold(est.m, W)
-    c = np.minimum(c, CORRECTION_CAP * limit)
-    cs = np.cumsum(c, axis=-1)
-    win = cs[..., W - 1 :].copy()
-    win[..., 1:] -= cs[..., : T - W]
-    over = win > limit
-    # a run whose means stopped being finite is the non-finite check's to report (one warning per event)
-    over &= np.isfinite(mean).all(axis=(-2, -1))[..., None]
-    if not over.any():
+    mean2, pm2, pc2 = mean.reshape(-1, T, n), pm.reshape(-1, T, n), pc.reshape(-1, T, n, n)
+    N = mean2.shape[0]
+    # blocks of runs of about 4 MB of statistics: the check's temporaries stay in cache and are never fresh pages
+    # (over a whole record they were larger than the filter's own work)
+    B = max(1, _CHECK_BLOCK // max(T * n, 1))
+    hit = np.zeros(N, dtype=bool)
+    ends = np.full(N, T - W + 1)
+    for lo in range(0, N, B):
+        hi = min(lo + B, N)
+        c = np.minimum(correction_statistic(mean2[lo:hi], pm2[lo:hi], pc2[lo:hi]), CORRECTION_CAP * limit)
+        cs = np.cumsum(c, axis=-1)
+        win = cs[:, W - 1 :].copy()
+        win[:, 1:] -= cs[:, : T - W]
+        over = win > limit
+        if not over.any():
+            continue
+        # a run whose means stopped being finite is the non-finite check's to report (one warning per event)
+        over &= np.isfinite(mean2[lo:hi]).all(axis=(-2, -1))[:, None]
+        hit[lo:hi] = over.any(axis=-1)
+        ends[lo:hi] = np.where(hit[lo:hi], np.argmax(over, axis=-1), T - W + 1)
+    if not hit.any():
         return
-    flat = over.reshape(-1, over.shape[-1])
-    hit = flat.any(axis=-1)
-    ends = np.where(hit, np.argmax(flat, axis=-1), flat.shape[-1])
     run = int(np.argmin(ends))  # the run that crossed first; its window ends at row ends[run] + W - 1
     end = int(ends[run]) + W
-    first = end - W + int(np.argmax(c.reshape(-1, T)[run, end - W : end]))  # the largest update of that window
+    row = np.minimum(correction_statistic(mean2[run], pm2[run], pc2[run]), CORRECTION_CAP * limit)
+    first = end - W + int(np.argmax(row[end - W : end]))  # the largest update of that window
     runs = int(hit.sum())
     k = int(result.times[first]) if result.times is not None else first + 1
     warnings.warn(
         f"{est._name}: its updates became far larger than its own covariance allows at step k={k} in {runs} of "
-        f"{plural(flat.shape[0], 'run')} (the sum over {W} steps of the squared updates, in predicted variances and "
+        f"{plural(N, 'run')} (the sum over {W} steps of the squared updates, in predicted variances and "
         f"each capped at {CORRECTION_CAP * limit:.3g}, exceeds {limit:.3g}): the estimate no longer follows the readings while its covariance "
         f"says it should (a diverging filter, or a model or readings with gross errors). Remedy: "
         f"{_correction_remedy(est)}",
