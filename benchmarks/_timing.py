@@ -5,12 +5,16 @@ CPU time and minor page faults (``resource.getrusage``; all threads of the proce
 are where fresh memory shows: a call that writes memory not yet mapped pays a fault per page and the kernel's
 zeroing of it, which a wall time alone cannot tell from a slower computation, and a loaded machine shows as a
 wall time above user + system. :func:`measure` takes one call, :func:`summary` gives the medians and the spread
-of several, :func:`row` prints them per unit of work.
+of several, :func:`row` prints them per unit of work. A script that imports this module prints, at its exit,
+the wall, user and system time and minor faults of its timed calls together and of the whole process (its
+children included), so that every benchmark reports all three.
 """
 
 from __future__ import annotations
 
+import atexit
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -47,7 +51,9 @@ def measure(fn: Callable[[], object]) -> tuple[Sample, object]:
     out = fn()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     u1, s1, f1 = _usage()
-    return Sample(max(wall, 1e-9), u1 - u0, s1 - s0, f1 - f0, cpu), out
+    sample = Sample(max(wall, 1e-9), u1 - u0, s1 - s0, f1 - f0, cpu)
+    _LOG.append(sample)
+    return sample, out
 
 
 @dataclass(frozen=True)
@@ -105,3 +111,30 @@ def best_time(fn: Callable[[], object], repeat: int, *, cpu: bool = False) -> fl
 
 
 LAST_BEST: Sample | None = None  #: the best call of the latest :func:`best_time`
+
+
+_LOG: list[Sample] = []  # every call measured in this process
+_START = time.perf_counter()
+
+
+def _report_at_exit() -> None:
+    """Print the totals of the timed calls and of the process (wall, user, system, minor faults)."""
+    if resource is None:  # pragma: no cover
+        return
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    timed = ""
+    if _LOG:
+        timed = (
+            f"{len(_LOG)} timed calls: wall {sum(s.wall for s in _LOG):.1f} s, user {sum(s.user for s in _LOG):.1f} s, "
+            f"system {sum(s.sys for s in _LOG):.1f} s, {sum(s.faults for s in _LOG)} minor faults; "
+        )
+    print(
+        f"\n[times] {timed}whole process: wall {time.perf_counter() - _START:.1f} s, "
+        f"user {me.ru_utime + kids.ru_utime:.1f} s, system {me.ru_stime + kids.ru_stime:.1f} s "
+        f"(children {kids.ru_utime + kids.ru_stime:.1f} s), {me.ru_minflt} minor faults",
+        file=sys.stdout,
+        flush=True,
+    )
+
+
+atexit.register(_report_at_exit)
