@@ -170,7 +170,7 @@ def test_bypassed_leaves_the_pool(pool):
 
 def test_default_limit_is_bounded_by_memory():
     usable = _pool._usable_memory()
-    assert _pool.DEFAULT_LIMIT == (usable // 4 if usable > 0 else 1 << 30)
+    assert _pool.DEFAULT_LIMIT == (min(2 << 30, usable // 8) if usable > 0 else 1 << 30)
 
 
 @pytest.mark.skipif(not numba_available(), reason="the compiled loops take their outputs from the pool")

@@ -21,9 +21,11 @@ the previous result during each call takes two blocks and then alternates betwee
 The limit bounds the memory the pool *keeps*: the bytes of free blocks, which a process keeps resident after its
 results are freed. Blocks in use are the caller's results and are not counted (so a result larger than half the
 limit is pooled too; one larger than the limit is an ordinary allocation). When a returned block does not fit,
-the oldest free blocks are released (to the system: large blocks are unmapped). The default limit is a quarter
-of the memory the process may use (the machine's, or its control group's where that is less):
-:func:`set_output_pool` lowers it or turns the pool off, releasing the free blocks.
+the oldest free blocks are released (to the system: large blocks are unmapped). The default limit is 2 GiB (the
+1.1 GB of every output of a call of 10^5 runs x 100 steps of an n = 2 filter fits), or an eighth of the memory the
+process may use (the machine's, or its control group's) where that is less: every process keeps its own pool,
+so that a few worker processes of a sweep keep at most a few eighths of the memory between their calls.
+:func:`set_output_pool` lowers or raises it, or turns the pool off, releasing the free blocks.
 
 Thread safety: the pool's lists change under a lock; a block returned while another thread holds the lock (or
 during a garbage collection inside the pool) waits in a queue that the next call into the pool files.
@@ -72,9 +74,10 @@ def _usable_memory() -> int:
 
 
 def _default_limit() -> int:
-    """A quarter of the memory the process may use (:func:`_usable_memory`); 1 GiB when that is unknown."""
+    """2 GiB, or an eighth of the memory the process may use (:func:`_usable_memory`) where less; 1 GiB when
+    that is unknown."""
     usable = _usable_memory()
-    return usable // 4 if usable > 0 else 1 << 30
+    return min(2 << 30, usable // 8) if usable > 0 else 1 << 30
 
 
 DEFAULT_LIMIT = _default_limit()  #: bytes of free blocks the pool keeps by default
