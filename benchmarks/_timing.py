@@ -13,6 +13,7 @@ children included), so that every benchmark reports all three.
 from __future__ import annotations
 
 import atexit
+import os
 import statistics
 import sys
 import time
@@ -137,4 +138,5 @@ def _report_at_exit() -> None:
     )
 
 
-atexit.register(_report_at_exit)
+if os.path.dirname(os.path.abspath(sys.argv[0] or ".")) == os.path.dirname(os.path.abspath(__file__)):
+    atexit.register(_report_at_exit)  # a benchmark script run as one (not a test importing this module)
