@@ -1,42 +1,35 @@
-"""Core TKF and KF against the speed limit and the peers, in one process on the same data.
+"""The core TKF as a user's loop sees it: a plain loop of ``filter`` calls beside the hand-fused kernel and JAX.
 
-Data: the n = 2 oscillator of ``bench_core.py`` (m = 1, left-censored at 0, about half the
-samples censored). Cases: 10^5 runs x 100 steps and 10^4 runs x 1000 steps (the long records
-drift further into the censored side: more steps need tail statistics). Everything on one
-thread (BLAS, our kernels with ``threads=1``, XLA's CPU client single-threaded); means and
-covariances written by every contestant (and, for ours, a means-only row):
+Data: the n = 2 oscillator of ``bench_core.py`` (m = 1, left-censored at 0), two kinds of readings: drawn
+from the model (about half censored) and drawn apart from it, ``max(2 N(0, 1), 0)`` (readings four times as
+noisy as the model allows, which drive the prior into the censored tail). Cases: 10^5 runs x 100 steps and
+10^4 runs x 1000 steps. Everything on one thread (BLAS, our kernels with ``threads=1``, XLA's CPU client
+single-threaded as far as its flags go).
 
-* tobitkf TKF and KF, compiled kernels (``backend="numba"``) and numpy reference path
-  (``backend="numpy"``, timed on a tenth of the runs and scaled: its cost per run-step does
-  not grow with the batch). The compiled rows take their outputs from the output pool
-  (``tobitkf.filters._pool``: the memory of a previous call's outputs once that result is freed, as in any
-  loop of calls; on by default, up to 1 GiB: the all-outputs row's 1.1 GB does not fit and is fresh every
-  call); the row "pool off" writes fresh memory in every call, as the fused limit and JAX do;
-* a hand-fused scalar numba TKF (``benchmarks/_fused_tkf.py``): the limit, allocating its
-  outputs in the call like every other contestant (fresh memory: first-touch page faults
-  included), and once more writing into arrays allocated and touched before the timings
-  (compute only: the floor no filter that returns new arrays can reach);
-* filterpy ``KalmanFilter`` and pykalman ``KalmanFilter.filter`` looped over a few runs and
-  scaled (they have no Tobit update: they do a KF's arithmetic);
-* JAX ``jit(vmap(lax.scan))`` KF and TKF (closed-form statistics through
-  ``jax.scipy.special.ndtr``/``log_ndtr``) when JAX is installed (``pip install .[bench]``);
-  skipped with a note otherwise.
+Harness: each contestant runs a plain loop of ``--repeat`` calls as a user writes it (``r = f.filter(y, ...)``,
+the result read, then freed), the contestants one after the other in an order shuffled per case (seeded),
+after one untimed call of each (compilation); every call is timed for wall time and, from ``getrusage``, the
+process's user and system time and minor page faults (``benchmarks/_timing.py``). Contestants:
 
-Each contestant runs ``--repeat`` times, interleaved (round r times everyone once, in an order
-shuffled every round, seeded), after one untimed call (compilation), each timed call after an
-untimed pass over a scratch array as large as the case's mean + covariance outputs. Both because a
-contestant's time depended on its predecessor, by more than the differences measured: with a fixed
-order, the same kernel took 121 or 210 ns per run-step at 10^5 x 100 by position alone (writing
-fresh memory is cheap right after a call that freed some, dear after "outputs reused", which
-frees none; on this VM the freed pages seem to be handed back to the host after a while). The
-scrub alone did not remove that (``--no-scrub`` turns it off);
-printed: median ns per run-step, spread (min-max) and the ratio of
-medians against the fused limit and against JAX's TKF (> 1 = faster than it). The machine's
-load average is printed before and after, since the machine is shared.
+* tobitkf's TKF (compiled, ``backend="numba"``): means and covariances; means only; every output (the default
+  ``filter(y)``, 1.1 GB at these sizes, which adds the update-size check of the online diagnostics); means and
+  covariances with the output pool bypassed (fresh memory for every call); and the KF, means and covariances;
+* the hand-fused scalar numba TKF (``benchmarks/_fused_tkf.py``) writing into output arrays allocated and
+  touched before the loop (compute only: no filter that returns new arrays can do better), the reference of the
+  ratios;
+* JAX ``jit(vmap(lax.scan))`` TKF (closed-form statistics through ``jax.scipy.special``) and KF when JAX is
+  installed (``pip install .[bench]``), skipped with a note otherwise;
+* on the model's readings only: tobitkf's numpy reference path (a tenth of the runs, scaled: its cost per
+  run-step does not grow with the batch), filterpy's and pykalman's KF looped over a few runs and scaled.
+
+Printed per contestant: ns per run-step, median of the calls (min-max), for wall, user and system time, the
+median minor faults per call, and the ratios of medians (wall) fused/this and JAX TKF/this (> 1: this is
+faster). The machine's load average is printed before and after: on a loaded machine wall time exceeds user +
+system by the time spent waiting for a core.
 
 Run by hand::
 
-    PYTHONPATH=src python benchmarks/bench_limit.py              # ~3 minutes on an idle machine
+    PYTHONPATH=src python benchmarks/bench_limit.py              # ~5 minutes on an idle machine
     PYTHONPATH=src python benchmarks/bench_limit.py --smoke      # seconds (CI)
 """
 
@@ -49,12 +42,11 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 
 import argparse  # noqa: E402
-import statistics  # noqa: E402
-import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 import tobitkf as tk  # noqa: E402
+from _timing import HEADER, measure, row, summary  # noqa: E402
 from tobitkf.filters import _pool  # noqa: E402
 from tobitkf.filters._backend import numba_available  # noqa: E402
 
@@ -67,6 +59,13 @@ def make_system() -> tk.LinearSystem:
 
 def _load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def readings(sys_: tk.LinearSystem, cens: tk.Censoring, runs: int, steps: int, kind: str) -> np.ndarray:
+    """``(runs, steps, 1)`` readings: ``"model"`` simulated from the model, ``"apart"`` max(2 N(0, 1), 0)."""
+    if kind == "model":
+        return tk.simulate(sys_, steps, runs, censoring=cens, seed=0).y
+    return np.maximum(2.0 * np.random.default_rng(1).standard_normal((runs, steps, 1)), 0.0)
 
 
 # ---- peers --------------------------------------------------------------------------------------
@@ -153,20 +152,29 @@ def jax_filters(sys_, lower):
 # ---- the benchmark ------------------------------------------------------------------------------
 
 
-def case(runs: int, steps: int, repeat: int, peer_runs: int, scrub: bool = True) -> None:
+def _read(out) -> float:
+    """Read a result as a user would (a number from its last step), whatever the contestant returns."""
+    if isinstance(out, tk.FilterResult):
+        return float(out.mean[:, -1].sum())
+    if isinstance(out, tuple):
+        return float(np.asarray(out[0][:, -1]).sum())
+    return 0.0
+
+
+def case(runs: int, steps: int, kind: str, repeat: int, peer_runs: int) -> None:
     sys_ = make_system()
     lower = 0.0
     cens = tk.Censoring(lower=lower)
-    y = tk.simulate(sys_, steps, runs, censoring=cens, seed=0).y
+    y = readings(sys_, cens, runs, steps, kind)
     y2 = np.ascontiguousarray(y[:, :, 0])
     sub = max(1, runs // 10)
-    st = tk.censored_moments(y[:, :, 0] * 0 + 0.0, 1.0, 0.0, np.inf)  # warm the numpy path's imports
-    del st
     pre = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y[: min(runs, 500)], outputs=("pred_mean",))
     a = (lower - pre.pred_mean[..., 0]) / np.sqrt(0.1)  # the standardized limit the filter uses
+    what = "readings from the model" if kind == "model" else "readings apart from the model, max(2 N(0,1), 0)"
     print(
-        f"\n{runs} runs x {steps} steps, n=2, m=1: censored fraction {np.mean(y <= lower):.2f}, "
-        f"steps with the prior mean > 4 sd below the limit (tail route) ~{np.mean(a > 4):.3f}"
+        f"\n{runs} runs x {steps} steps, n=2, m=1, {what}: censored fraction {np.mean(y <= lower):.2f}, "
+        f"steps with the prior mean > 4 sd below the limit (tail route) ~{np.mean(a > 4):.3f}; "
+        f"load {_load()}"
     )
 
     A, Q = np.ascontiguousarray(sys_.transition(0)), np.ascontiguousarray(sys_.process_cov(0))
@@ -174,48 +182,29 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int, scrub: bool = True)
     x0, P0 = np.ascontiguousarray(sys_.x0), np.ascontiguousarray(sys_.P0)
     contestants: dict[str, tuple] = {}  # name -> (fn, run-steps per call)
     full = runs * steps
+    fused_name = "hand-fused numba TKF, outputs preallocated"
     if numba_available():
         from _fused_tkf import fused_tkf
 
+        reused = (np.zeros((runs, steps, 2)), np.zeros((runs, steps, 2, 2)))  # allocated and touched, here
+
         def fused():
-            means, covs = np.empty((runs, steps, 2)), np.empty((runs, steps, 2, 2))
-            fused_tkf(y2, A, Q, C, sig, lower, x0, P0, means, covs)
-            return means, covs
-
-        reused = (np.zeros((runs, steps, 2)), np.zeros((runs, steps, 2, 2)))  # touched once, here
-
-        def fused_reused():
             fused_tkf(y2, A, Q, C, sig, lower, x0, P0, *reused)
             return reused
 
-        contestants["hand-fused numba TKF (limit)"] = (fused, full)
-        contestants["hand-fused, outputs reused (compute)"] = (fused_reused, full)
+        contestants[fused_name] = (fused, full)
         tkf = tk.TobitKalmanFilter(sys_, cens, backend="numba", threads=1)
         kf = tk.KalmanFilter(sys_, backend="numba")
-        contestants["tobitkf TKF numba, mean+cov"] = (lambda: tkf.filter(y, outputs=("mean", "cov")), full)
+        contestants["tobitkf TKF, mean + cov"] = (lambda: tkf.filter(y, outputs=("mean", "cov")), full)
+        contestants["tobitkf TKF, means only"] = (lambda: tkf.filter(y, outputs=("mean",)), full)
+        contestants["tobitkf TKF, every output (default)"] = (lambda: tkf.filter(y), full)
 
         def fresh():
-            with _pool.bypassed():  # new memory for the outputs, the pool's buffers left for the other rows
+            with _pool.bypassed():  # new memory for the outputs, the pool's blocks left for the other rows
                 return tkf.filter(y, outputs=("mean", "cov"))
 
-        contestants["tobitkf TKF numba, mean+cov, pool off"] = (fresh, full)
-        contestants["tobitkf TKF numba, all outputs"] = (lambda: tkf.filter(y), full)
-        contestants["tobitkf TKF numba, means only"] = (lambda: tkf.filter(y, outputs=("mean",)), full)
-        contestants["tobitkf KF numba, mean+cov"] = (lambda: kf.filter(y, outputs=("mean", "cov")), full)
-    tkf_np = tk.TobitKalmanFilter(sys_, cens, backend="numpy")
-    kf_np = tk.KalmanFilter(sys_, backend="numpy")
-    contestants["tobitkf TKF numpy, mean+cov"] = (lambda: tkf_np.filter(y[:sub], outputs=("mean", "cov")), sub * steps)
-    contestants["tobitkf KF numpy, mean+cov"] = (lambda: kf_np.filter(y[:sub], outputs=("mean", "cov")), sub * steps)
-    contestants["filterpy KalmanFilter (looped)"] = (lambda: filterpy_runs(sys_, y[:peer_runs]), peer_runs * steps)
-    try:
-        import pykalman  # noqa: F401
-
-        contestants["pykalman KalmanFilter.filter (looped)"] = (
-            lambda: pykalman_runs(sys_, y[:peer_runs]),
-            peer_runs * steps,
-        )
-    except ImportError:
-        print("  (pykalman not installed: skipped)")
+        contestants["tobitkf TKF, mean + cov, pool bypassed"] = (fresh, full)
+        contestants["tobitkf KF, mean + cov"] = (lambda: kf.filter(y, outputs=("mean", "cov")), full)
     jx = jax_filters(sys_, lower)
     if jx is None:
         print("  (JAX not installed: skipped; pip install '.[bench]')")
@@ -224,56 +213,68 @@ def case(runs: int, steps: int, repeat: int, peer_runs: int, scrub: bool = True)
         yj = to_dev(y2)
         contestants["JAX vmap(lax.scan) TKF"] = (lambda: jtkf(yj), full)
         contestants["JAX vmap(lax.scan) KF"] = (lambda: jkf(yj), full)
+    if kind == "model":
+        tkf_np = tk.TobitKalmanFilter(sys_, cens, backend="numpy")
+        contestants["tobitkf TKF numpy path, mean + cov"] = (
+            lambda: tkf_np.filter(y[:sub], outputs=("mean", "cov")),
+            sub * steps,
+        )
+        contestants["filterpy KalmanFilter (looped, a KF)"] = (
+            lambda: filterpy_runs(sys_, y[:peer_runs]),
+            peer_runs * steps,
+        )
+        try:
+            import pykalman  # noqa: F401
+
+            contestants["pykalman KalmanFilter.filter (looped, a KF)"] = (
+                lambda: pykalman_runs(sys_, y[:peer_runs]),
+                peer_runs * steps,
+            )
+        except ImportError:
+            print("  (pykalman not installed: skipped)")
 
     for fn, _ in contestants.values():  # compile / warm up outside the timings
-        fn()
-    times: dict[str, list[float]] = {k: [] for k in contestants}
-    pad = np.zeros(runs * steps * 6) if scrub else None  # the size of the mean + covariance outputs
-    rng = np.random.default_rng(0)
+        _read(fn())
+    samples: dict[str, list] = {k: [] for k in contestants}
     names = list(contestants)
-    for _ in range(repeat):
-        for i in rng.permutation(len(names)):  # no fixed predecessor (see the module docstring)
-            name = names[i]
-            fn, work = contestants[name]
-            if pad is not None:
-                pad += 1.0  # the same cache state before every timed call (see the module docstring)
-            t0 = time.perf_counter()
-            fn()
-            times[name].append((time.perf_counter() - t0) / work * 1e9)
-    med = {k: statistics.median(v) for k, v in times.items()}
-    limit = med.get("hand-fused numba TKF (limit)")
-    compute = med.get("hand-fused, outputs reused (compute)")
-    jax_tkf = med.get("JAX vmap(lax.scan) TKF")
-    head = (
-        f"  {'':40s} {'ns/run-step':>12s} {'(min-max)':>17s} {'limit/this':>11s} {'compute/this':>13s} "
-        f"{'JAX TKF/this':>13s}"
-    )
-    print(head)
+    for i in np.random.default_rng(0).permutation(len(names)):
+        name = names[i]
+        fn, _ = contestants[name]
+        for _ in range(repeat):  # the user's loop: call, read, free
+            sample, out = measure(fn)
+            _read(out)
+            del out
+            samples[name].append(sample)
+    stats = {k: summary(v, 1e9 / contestants[k][1]) for k, v in samples.items()}
+    fused_wall = stats[fused_name].wall if fused_name in stats else None
+    jax_wall = stats["JAX vmap(lax.scan) TKF"].wall if "JAX vmap(lax.scan) TKF" in stats else None
+    print(f"  ns per run-step, median of {repeat} calls (min-max); faults: minor page faults per call")
+    print(f"  {'':44s} {HEADER} {'fused/this':>10s} {'JAX TKF/this':>12s}")
 
     def ratio(ref, val, width):
         return f"{ref / val:{width}.2f}" if ref else f"{'-':>{width}s}"
 
-    for name, v in times.items():
-        print(
-            f"  {name:40s} {med[name]:12.1f} {f'({min(v):.0f}-{max(v):.0f})':>17s} {ratio(limit, med[name], 11)} "
-            f"{ratio(compute, med[name], 13)} {ratio(jax_tkf, med[name], 13)}"
-        )
+    for name, st in stats.items():
+        print(f"  {name:44s} {row(st)} {ratio(fused_wall, st.wall, 10)} {ratio(jax_wall, st.wall, 12)}")
+    print(f"  load after: {_load()}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
-    ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
-    ap.add_argument("--no-scrub", action="store_true", help="no cache scrub before each timed call")
+    ap.add_argument("--repeat", type=int, default=5, help="timed calls in each contestant's loop (default 5)")
     args = ap.parse_args()
     if args.repeat < 1:
         ap.error("--repeat: expected a positive count")
     cases = [(100_000, 100, 20), (10_000, 1_000, 5)] if not args.smoke else [(400, 40, 2)]
     repeat = args.repeat if not args.smoke else 2
-    scrubbed = "no scrub" if args.no_scrub else "a cache scrub before each call"
-    print(f"one thread; load average before: {_load()}; {repeat} shuffled interleaved repeats, medians; {scrubbed}")
+    print(
+        f"one thread; load average before: {_load()}; a plain loop of {repeat} calls per contestant, medians; "
+        f"output pool limit {tk.output_pool_limit() / 2**30:.1f} GiB"
+    )
     for runs, steps, peers in cases:
-        case(runs, steps, repeat, peers, scrub=not args.no_scrub)
+        for kind in ("model", "apart"):
+            case(runs, steps, kind, repeat, peers)
     print(f"\nload average after: {_load()}")
 
 

@@ -30,6 +30,8 @@ import tempfile
 
 import numpy as np
 
+import _timing  # noqa: F401 (prints the process's wall, user and system time at exit)
+
 OUTPUTS = {"mean": "mean", "mean+var": ["mean", "var"], "all": "all"}
 ESTIMATORS = (
     "TobitKalmanFilter",

@@ -26,6 +26,7 @@ import argparse  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+import _timing  # noqa: E402,F401 (prints the times at exit)
 import tobitkf as tk  # noqa: E402
 from bench_scaling import random_system, timed  # noqa: E402
 from tobitkf.channels.fading import RiceFading  # noqa: E402

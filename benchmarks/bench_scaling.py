@@ -40,6 +40,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+import _timing  # noqa: E402,F401 (prints the times at exit)
 import tobitkf as tk  # noqa: E402
 from tobitkf.filters._backend import numba_available  # noqa: E402
 

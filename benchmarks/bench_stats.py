@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 
+import _timing  # noqa: F401 (prints the process's wall, user and system time at exit)
 from tobitkf.filters._backend import numba_available
 
 

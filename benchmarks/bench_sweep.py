@@ -27,6 +27,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import _timing  # noqa: F401 (prints the process's wall, user and system time at exit)
+
 SWEEP = """
 [sweep]
 runs = {runs}

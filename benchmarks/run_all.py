@@ -5,8 +5,9 @@ machine state. For each entry of :data:`SUITE` it records the command, the wall 
 load average (1-minute) just before and just after, and the script's output; it writes
 
 * ``<out>/<name>.txt``: the output of each script (stdout, then stderr if any);
-* ``<out>/run.json``: date, git commit, CPU count, and per script: command, exit code, wall seconds,
-  load before/after;
+* ``<out>/run.json``: date, git commit, machine (CPU model and count, memory), and per script: command, exit
+  code, wall, user and system seconds (the script's process and its children, from ``getrusage``), load
+  before/after;
 * ``<out>/run.md``: the same as a page (one section per script: command, load, output), the page the
   tables are transcribed from.
 
@@ -29,6 +30,8 @@ import argparse
 import datetime as _dt
 import json
 import os
+import platform
+import resource
 import subprocess
 import sys
 import time
@@ -79,6 +82,30 @@ def _commit() -> str:
         return "unknown"
 
 
+def _machine() -> str:
+    """CPU model, logical CPUs and memory, e.g. ``Intel(R) Xeon(R) ... x 2, 23.5 GiB``."""
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    model = line.split(":", 1)[1].strip()
+                    break
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    try:
+        mem = f", {os.sysconf('SC_PHYS_PAGES') * os.sysconf('SC_PAGE_SIZE') / 2**30:.1f} GiB"
+    except (AttributeError, OSError, ValueError):  # pragma: no cover - no sysconf
+        mem = ""
+    return f"{model} x {os.cpu_count()}{mem}"
+
+
+def _children() -> tuple[float, float]:
+    """User and system seconds of the finished children so far (each script's: the difference around it)."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime, r.ru_stime
+
+
 def run_suite(names: list[str], out: Path, smoke: bool) -> dict:
     """Run the entries ``names`` of :data:`SUITE` in order; write ``out``/*.txt, run.json, run.md."""
     out.mkdir(parents=True, exist_ok=True)
@@ -88,6 +115,7 @@ def run_suite(names: list[str], out: Path, smoke: bool) -> dict:
         "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "commit": _commit(),
         "cpus": os.cpu_count(),
+        "machine": _machine(),
         "smoke": smoke,
         "python": sys.version.split()[0],
         "scripts": [],
@@ -101,9 +129,9 @@ def run_suite(names: list[str], out: Path, smoke: bool) -> dict:
         cmd = [sys.executable, str(HERE / script), *argv]
         shown = " ".join(["python", f"benchmarks/{script}", *argv])
         print(f"[{name}] {shown}  (load {_load():.2f})", flush=True)
-        before, t0 = _load(), time.perf_counter()
+        before, t0, (u0, s0) = _load(), time.perf_counter(), _children()
         res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
-        wall, after = time.perf_counter() - t0, _load()
+        wall, after, (u1, s1) = time.perf_counter() - t0, _load(), _children()
         text = res.stdout + (f"\n--- stderr ---\n{res.stderr}" if res.stderr.strip() else "")
         (out / f"{name}.txt").write_text(text)
         entry = {
@@ -111,11 +139,17 @@ def run_suite(names: list[str], out: Path, smoke: bool) -> dict:
             "command": shown,
             "returncode": res.returncode,
             "wall_s": round(wall, 1),
+            "user_s": round(u1 - u0, 1),
+            "sys_s": round(s1 - s0, 1),
             "load_before": round(before, 2),
             "load_after": round(after, 2),
         }
         record["scripts"].append(entry)
-        print(f"[{name}] exit {res.returncode}, {wall:.0f} s, load {before:.2f} -> {after:.2f}", flush=True)
+        print(
+            f"[{name}] exit {res.returncode}, wall {wall:.0f} s (user {u1 - u0:.0f} s, system {s1 - s0:.0f} s), "
+            f"load {before:.2f} -> {after:.2f}",
+            flush=True,
+        )
         if res.returncode != 0:  # the end of a failing script's output, for a CI log
             print("\n".join(text.rstrip().splitlines()[-30:]), flush=True)
     (out / "run.json").write_text(json.dumps(record, indent=2) + "\n")
@@ -127,16 +161,19 @@ def _page(record: dict, out: Path) -> str:
     lines = [
         f"# Benchmark run {record['date']}",
         "",
-        f"Commit {record['commit']}, Python {record['python']}, {record['cpus']} CPUs"
+        f"Commit {record['commit']}, Python {record['python']}, {record['machine']}"
         f"{', smoke sizes' if record['smoke'] else ''}. Every script a fresh process, in this order, none overlapping;",
-        "load = the 1-minute load average just before and just after the script.",
+        "user and system = CPU seconds of the script's process (all its threads and children); load = the 1-minute",
+        "load average just before and just after the script (a wall time above user + system on a loaded machine is",
+        "time spent waiting for a core).",
         "",
-        "| script | command | exit | wall s | load before -> after |",
-        "|---|---|---|---|---|",
+        "| script | command | exit | wall s | user s | system s | load before -> after |",
+        "|---|---|---|---|---|---|---|",
     ]
     for e in record["scripts"]:
         lines.append(
-            f"| {e['name']} | `{e['command']}` | {e['returncode']} | {e['wall_s']} | {e['load_before']} -> {e['load_after']} |"
+            f"| {e['name']} | `{e['command']}` | {e['returncode']} | {e['wall_s']} | {e['user_s']} | {e['sys_s']} | "
+            f"{e['load_before']} -> {e['load_after']} |"
         )
     for e in record["scripts"]:
         lines += [

@@ -54,3 +54,55 @@ def test_run_suite_records_output_exit_codes_and_load(run_all, tmp_path, monkeyp
     smoke = run_all.run_suite(["ok"], tmp_path / "smoke", smoke=True)
     assert (tmp_path / "smoke" / "ok.txt").read_text().strip() == "args ['--smoke']"
     assert smoke["smoke"] is True
+
+
+def test_run_suite_records_user_and_system_time(run_all, tmp_path, monkeypatch):
+    """A script that spins for CPU time shows it as user time, and the page shows the machine."""
+    spin = tmp_path / "spin.py"
+    spin.write_text("import time\nt = time.process_time()\nwhile time.process_time() - t < 0.5:\n    pass\n")
+    monkeypatch.setattr(run_all, "SUITE", [("spin", str(spin), [], True)])
+    record = run_all.run_suite(["spin"], tmp_path / "out", smoke=False)
+    (e,) = record["scripts"]
+    assert e["user_s"] + e["sys_s"] >= 0.4 and e["user_s"] <= e["wall_s"] + 0.2
+    assert str(run_all.os.cpu_count()) in record["machine"]
+    assert "| user s | system s |" in (tmp_path / "out" / "run.md").read_text()
+
+
+def test_timing_measures_page_faults_and_cpu():
+    """benchmarks/_timing.measure: fresh memory shows as minor faults (one per 4 KiB page with numpy's huge-page
+    advice off), reused memory does not; a busy loop shows as user time."""
+    import sys
+
+    import numpy as np
+    from numpy._core import multiarray
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        import _timing
+    finally:
+        sys.path.pop(0)
+    nbytes = 64 << 20  # above the C library's largest mmap threshold: mapped fresh by every allocation
+    advice = multiarray._get_madvise_hugepage()
+    multiarray._set_madvise_hugepage(False)
+    try:
+        fresh, _ = _timing.measure(lambda: np.ones(nbytes // 8))
+        buf = np.ones(nbytes // 8)
+        reused, _ = _timing.measure(lambda: buf.fill(2.0))
+    finally:
+        multiarray._set_madvise_hugepage(advice)
+    assert fresh.faults >= nbytes // 4096 // 2
+    assert reused.faults < nbytes // 4096 // 10
+
+    def spin():
+        x = 0
+        for i in range(2_000_000):
+            x += i
+        return x
+
+    busy, out = _timing.measure(spin)
+    assert out == sum(range(2_000_000)) and busy.cpu > 0 and busy.user > 0
+    s = _timing.summary([busy, busy, fresh], scale=2.0)
+    assert s.wall == 2.0 * busy.wall and s.wall_range == (
+        2.0 * min(busy.wall, fresh.wall),
+        2.0 * max(busy.wall, fresh.wall),
+    )

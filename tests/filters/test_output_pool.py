@@ -44,9 +44,10 @@ def test_reused_only_when_free(pool):
     c = pool.take_buffer(n)
     assert _addr(c) != first  # a view of it is alive
     view[...] = 7.0
-    del view, c
+    del c
+    del view
     d = pool.take_buffer(n)
-    assert _addr(d) == first  # nothing of it left: reused
+    assert _addr(d) == first  # nothing of it left: reused (the latest freed of two of the size)
     big = pool.take_buffer(4 * n)
     big_addr = _addr(big)
     del big
@@ -57,25 +58,41 @@ def test_reused_only_when_free(pool):
 
 
 def test_small_requests_and_the_limit(pool):
+    """The limit bounds the free blocks kept, not the blocks in use (the caller's results)."""
     pool.take_buffer(pool.MIN_BYTES // 8 - 1)  # below MIN_BYTES: plain numpy, not pooled
-    assert pool._held() == 0
+    assert pool.pool_bytes() == (0, 0)
     tk.set_output_pool(2 * pool.MIN_BYTES)
     big = pool.take_buffer(3 * pool.MIN_BYTES // 8)  # larger than the limit: plain
-    assert pool._held() == 0
-    a = pool.take_buffer(pool.MIN_BYTES // 8)
-    b = pool.take_buffer(pool.MIN_BYTES // 8)
-    assert pool._held() == 2 * pool.MIN_BYTES
-    c = pool.take_buffer(pool.MIN_BYTES // 8)  # no room, nothing free to evict: plain
-    assert pool._held() == 2 * pool.MIN_BYTES
+    assert pool.pool_bytes() == (0, 0)
+    a, b, c = (pool.take_buffer(pool.MIN_BYTES // 8) for _ in range(3))
+    assert pool.pool_bytes() == (0, 3 * pool.MIN_BYTES)  # all three leased, over the limit: in use is not counted
     del a, b, c, big
-    d = pool.take_buffer(pool.MIN_BYTES // 4)  # evicts the two free ones to make room
-    assert pool._held() == 2 * pool.MIN_BYTES
-    assert tk.set_output_pool(0) == 2 * pool.MIN_BYTES  # the previous limit; d is in use: kept until freed
-    assert pool._held() == 2 * pool.MIN_BYTES
+    assert pool.pool_bytes() == (2 * pool.MIN_BYTES, 0)  # two kept (the limit), the oldest released
+    d = pool.take_buffer(pool.MIN_BYTES // 4)  # twice as large: no free block fits, a new one
+    assert pool.pool_bytes() == (2 * pool.MIN_BYTES, 2 * pool.MIN_BYTES)
+    assert tk.set_output_pool(0) == 2 * pool.MIN_BYTES  # the previous limit; the free blocks released
+    assert pool.pool_bytes() == (0, 2 * pool.MIN_BYTES)  # d is in use: kept until freed
     d[:] = 1.0  # still usable
     del d
-    tk.set_output_pool(0)  # evicts it now that it is free
-    assert pool._held() == 0
+    assert pool.pool_bytes() == (0, 0)  # given back and released at once (limit 0)
+
+
+def test_a_freed_result_is_given_back_at_once(pool):
+    """The last view's end files the block without a further call into the pool; a block freed while the pool's
+    lock is held waits and is filed by the next call."""
+    n = pool.MIN_BYTES // 8
+    a = pool.take_buffer(n)
+    view = a[5:]
+    del a
+    assert sum(b.nbytes for b in pool._free) == 0  # the view holds it
+    del view
+    assert sum(b.nbytes for b in pool._free) == pool.MIN_BYTES and not pool._returned
+    b = pool.take_buffer(n)  # the free block, leased again
+    assert pool.pool_bytes() == (0, pool.MIN_BYTES)
+    with pool._lock:
+        del b  # the finalizer cannot take the lock: queued
+    assert len(pool._returned) == 1
+    assert pool.pool_bytes() == (pool.MIN_BYTES, 0)  # filed by the next call
 
 
 @pytest.mark.parametrize("bad", [-1, 1.5, "1", True])
@@ -146,10 +163,51 @@ def test_bypassed_leaves_the_pool(pool):
     del a
     with pool.bypassed():
         b = pool.take_buffer(n)
-        assert _addr(b) != first and pool._held() == pool.MIN_BYTES  # fresh; the free buffer kept
+        assert _addr(b) != first and pool.pool_bytes() == (pool.MIN_BYTES, 0)  # fresh; the free block kept
     del b
     assert _addr(pool.take_buffer(n)) == first
 
 
 def test_default_limit_is_bounded_by_memory():
-    assert 0 < _pool.DEFAULT_LIMIT <= 1 << 30
+    usable = _pool._usable_memory()
+    assert _pool.DEFAULT_LIMIT == (min(2 << 30, usable // 8) if usable > 0 else 1 << 30)
+
+
+@pytest.mark.skipif(not numba_available(), reason="the compiled loops take their outputs from the pool")
+def test_a_plain_loop_takes_no_new_pages(pool):
+    """``r = tkf.filter(y)`` in a loop holds the previous result during each call: two blocks, then no new pages.
+
+    The outputs (38.4 MB) are above the C library's largest mmap threshold (32 MiB), so fresh ones are mapped
+    and unmapped by every call (no reuse by malloc's heap); with numpy's transparent-huge-page advice off, first
+    touching them costs one minor fault per 4 KiB page, ``S / 4096`` = 9375. With a limit of 1.5 S the old pool,
+    which counted the result in use against its limit, gave fresh memory every second call."""
+    import resource
+
+    from numpy._core import multiarray
+
+    w = 0.05
+    sys_ = tk.LinearSystem(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]],
+        x0=[0.0, 0.0], P0=0.05 * np.eye(2),
+    )  # fmt: skip
+    cens = tk.Censoring(lower=0.0)
+    runs, steps = 8000, 100
+    y = tk.simulate(sys_, steps, runs, censoring=cens, seed=0).y
+    tkf = tk.TobitKalmanFilter(sys_, cens, backend="numba")
+    size = runs * steps * 6 * 8  # mean + cov
+    tk.set_output_pool(size * 3 // 2)
+    advice = multiarray._get_madvise_hugepage()
+    multiarray._set_madvise_hugepage(False)
+    faults = []
+    try:
+        r = None
+        for _ in range(6):
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            r = tkf.filter(y, outputs=("mean", "cov"))
+            faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+            assert np.isfinite(r.mean[-1]).all()  # read
+    finally:
+        multiarray._set_madvise_hugepage(advice)
+    fresh = size // 4096
+    assert faults[1] > fresh // 2  # the second call's block is new (the first result is alive): the probe works
+    assert max(faults[2:]) < fresh // 10, faults

@@ -1,76 +1,133 @@
 """The output pool: large output buffers of the compiled loops, kept for reuse once their results are freed.
 
-A compiled ``filter`` call of 10^5 runs x 100 steps returns about 480 MB of means and covariances. Writing
-that much *fresh* memory costs a page fault per page (a 2 MiB page where numpy asks for transparent huge
-pages, a 4 KiB one otherwise) and the kernel's zeroing of the page, and on a virtual machine whose host
-reclaims the guest's freed memory, the host's backing of it too: on the 2-core development VM that cost
-swung from ~5 to ~60 ns per run-step of system time from call to call, against ~35 ns of arithmetic for the
-core TKF (``benchmarks/bench_limit.py``). A program that calls ``filter`` again and again on batches of one
-size (a Monte Carlo sweep in blocks, a likelihood in an optimiser's loop, a benchmark) frees each result and
-allocates the next one's memory afresh.
+A compiled ``filter`` call of 10^5 runs x 100 steps returns about 480 MB of means and covariances (1.1 GB with
+every output). Writing that much *fresh* memory costs a page fault per page (a 2 MiB page where numpy asks for
+transparent huge pages, a 4 KiB one otherwise), the kernel's zeroing of the page and, where transparent huge
+pages are on, the kernel's compaction of memory to find them: on the 2-core development VM from ~5 to ~150 ns
+per run-step of system time, varying from call to call, against ~40 ns of arithmetic for the core TKF. numpy
+takes an array of 32 MiB or more from the C library's ``mmap`` and returns it to the system with ``munmap`` when
+it is freed, so a program that calls ``filter`` again and again on batches of one size (a Monte Carlo sweep in
+blocks, a likelihood in an optimiser's loop, a benchmark) pays all of that in every call.
 
-The pool keeps the buffers it handed out (``numpy`` arrays of at least :data:`MIN_BYTES`) and hands one out
-again once no array of the result that used it is alive any more: every output of a call is a view of its
-buffer, a view holds a reference to it, and the pool's own references are the only ones left when the
-result and everything cut from it have been freed (CPython's reference count, read under a lock, so that
-two threads never take the same buffer). A buffer is never handed out while any view of it lives, so a
-result kept by the caller is never written over. Buffers in use count against the limit as well as free
-ones; a request that does not fit evicts free buffers first, and one larger than the limit (or with the pool
-off) is an ordinary allocation. The default limit is 1 GiB, or an eighth of the machine's memory where that
-is less. Cost: a process keeps up to the limit of resident memory after its results are freed
-(:func:`set_output_pool` lowers it or turns the pool off, releasing the free buffers).
+How the pool works. Every large output buffer (``numpy`` arrays of at least :data:`MIN_BYTES`) is *leased*: the
+caller gets an array over a pooled block through a ``memoryview`` of it, and every output of a call is a view of
+that array, so the ``memoryview`` lives exactly as long as some array of the result (or a view cut from one)
+does. When the last of them is freed, a finalizer on the ``memoryview`` gives the block back to the pool at
+once, which keeps it (up to the limit) and hands it to the next request of its size (at most twice it). A block
+is never handed out while any view of it lives, so a result kept by the caller is never written over, and the
+pool's reuse does not depend on when the caller asks for its next result: a loop ``r = f.filter(y)`` that holds
+the previous result during each call takes two blocks and then alternates between them.
+
+The limit bounds the memory the pool *keeps*: the bytes of free blocks, which a process keeps resident after its
+results are freed. Blocks in use are the caller's results and are not counted (so a result larger than half the
+limit is pooled too; one larger than the limit is an ordinary allocation). When a returned block does not fit,
+the oldest free blocks are released (to the system: large blocks are unmapped). The default limit is 2 GiB (the
+1.1 GB of every output of a call of 10^5 runs x 100 steps of an n = 2 filter fits), or an eighth of the memory the
+process may use (the machine's, or its control group's) where that is less: every process keeps its own pool,
+so that a few worker processes of a sweep keep at most a few eighths of the memory between their calls.
+:func:`set_output_pool` lowers or raises it, or turns the pool off, releasing the free blocks.
+
+Thread safety: the pool's lists change under a lock; a block returned while another thread holds the lock (or
+during a garbage collection inside the pool) waits in a queue that the next call into the pool files.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
-import sys
 import threading
+import weakref
+from collections import deque
 from collections.abc import Iterator
 
 import numpy as np
 
-__all__ = ["set_output_pool", "output_pool_limit", "take_buffer", "bypassed", "MIN_BYTES", "DEFAULT_LIMIT"]
+__all__ = [
+    "set_output_pool",
+    "output_pool_limit",
+    "take_buffer",
+    "bypassed",
+    "pool_bytes",
+    "MIN_BYTES",
+    "DEFAULT_LIMIT",
+]
 
 MIN_BYTES = 1 << 22  #: requests below 4 MiB go to numpy directly (the C allocator reuses small blocks itself)
 
 
-def _default_limit() -> int:
-    """1 GiB, or an eighth of the physical memory where that is less (4 GB: 512 MB)."""
+def _usable_memory() -> int:
+    """Bytes of memory the process may use: the machine's, or its cgroup's (v2 ``memory.max``) where less; 0
+    when unknown."""
     try:
         phys = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (AttributeError, OSError, ValueError):  # pragma: no cover - no sysconf (Windows)
-        return 1 << 30
-    return int(min(1 << 30, phys // 8)) if phys > 0 else 1 << 30
+        phys = 0
+    try:
+        with open("/sys/fs/cgroup/memory.max") as f:
+            text = f.read().strip()
+        cap = int(text) if text.isdigit() else 0
+    except OSError:
+        cap = 0
+    if cap > 0 and (phys <= 0 or cap < phys):
+        return cap
+    return max(phys, 0)
 
 
-DEFAULT_LIMIT = _default_limit()  #: bytes the pool may hold by default, in use and free together
+def _default_limit() -> int:
+    """2 GiB, or an eighth of the memory the process may use (:func:`_usable_memory`) where less; 1 GiB when
+    that is unknown."""
+    usable = _usable_memory()
+    return min(2 << 30, usable // 8) if usable > 0 else 1 << 30
+
+
+DEFAULT_LIMIT = _default_limit()  #: bytes of free blocks the pool keeps by default
 
 _lock = threading.Lock()
-_buffers: list[np.ndarray] = []
+_free: list[np.ndarray] = []  # blocks no result uses, oldest first (the lock held)
+_returned: deque[np.ndarray] = deque()  # blocks given back and not yet filed (appended without the lock)
+_in_use = 0  # bytes of leased blocks (the lock held)
 _limit = DEFAULT_LIMIT
 _bypass = 0  # > 0 inside bypassed(): fresh memory for every request, the pool left as it is
-# sys.getrefcount of a pooled buffer that nobody else holds: the list's reference, the loop variable's and
-# getrefcount's argument's (measured at import, so that a different interpreter's count is not assumed)
 
 
-def _free_count() -> int:
-    probe = [np.empty(1)]
-    for b in probe:
-        return sys.getrefcount(b)
-    raise AssertionError  # pragma: no cover
+def _file_returned() -> None:
+    """Move the returned blocks to the free list and release the oldest free blocks beyond the limit (the caller
+    holds the lock)."""
+    global _in_use
+    while _returned:
+        block = _returned.popleft()
+        _in_use -= block.nbytes
+        _free.append(block)
+    kept = sum(b.nbytes for b in _free)
+    while _free and kept > _limit:
+        kept -= _free.pop(0).nbytes
 
 
-_FREE = _free_count()
+def _give_back(block: np.ndarray) -> None:
+    """The finalizer of a lease: the last view of ``block`` is gone. Filed now when the lock is free, else by the
+    next call into the pool (a finalizer may run inside the pool itself, during a garbage collection)."""
+    _returned.append(block)
+    if _lock.acquire(blocking=False):
+        try:
+            _file_returned()
+        finally:
+            _lock.release()
+
+
+def _lease(block: np.ndarray, count: int) -> np.ndarray:
+    """The first ``count`` numbers of ``block`` as a new array whose last view's end gives ``block`` back."""
+    arr = np.frombuffer(memoryview(block), dtype=np.float64, count=count)  # type: ignore[arg-type]
+    fin = weakref.finalize(arr.base, _give_back, block)  # arr.base: the memoryview every view of arr holds
+    fin.atexit = False
+    return arr
 
 
 def set_output_pool(max_bytes: int) -> int:
-    """Set the most bytes the output pool holds (buffers in use and free together); 0 turns it off.
+    """Set the most bytes of free blocks the output pool keeps for reuse; 0 turns it off.
 
-    Returns the previous limit. Lowering the limit releases free buffers until the pool fits (buffers in
-    use are released when their results are freed). Raises ``ValueError`` for a negative or non-integer
-    limit.
+    Returns the previous limit. Lowering the limit releases the oldest free blocks until the pool fits (blocks in
+    use are results the caller holds: they are not counted, and are kept or released when freed). Raises
+    ``ValueError`` for a negative or non-integer limit.
 
     Examples
     --------
@@ -83,13 +140,13 @@ def set_output_pool(max_bytes: int) -> int:
         raise ValueError(f"set_output_pool: max_bytes must be a non-negative integer, got {max_bytes!r}")
     with _lock:
         previous, _limit = _limit, int(max_bytes)
-        _evict(0)
+        _file_returned()
         return previous
 
 
 @contextlib.contextmanager
 def bypassed() -> Iterator[None]:
-    """Within the block, every request gets fresh memory and the pool is left as it is (its free buffers are
+    """Within the block, every request gets fresh memory and the pool is left as it is (its free blocks are
     not released, unlike with :func:`set_output_pool`): for benchmarks that time a call with fresh outputs
     beside calls that reuse them. Not thread-local."""
     global _bypass
@@ -103,48 +160,35 @@ def bypassed() -> Iterator[None]:
 
 
 def output_pool_limit() -> int:
-    """The output pool's limit in bytes (0: off)."""
+    """The output pool's limit in bytes: the most bytes of free blocks it keeps (0: off)."""
     return _limit
 
 
-def _held() -> int:
-    return sum(b.nbytes for b in _buffers)
-
-
-def _evict(need: int) -> None:
-    """Drop free buffers until ``need`` more bytes fit under the limit (the caller holds the lock)."""
-    held = _held()
-    keep = []
-    for b in _buffers:  # the same form as the probe of _FREE: the list's, the loop's and the argument's
-        if held + need > _limit and sys.getrefcount(b) == _FREE:
-            held -= b.nbytes
-        else:
-            keep.append(b)
-    _buffers[:] = keep
-
-
-def _find_free(nbytes: int) -> np.ndarray | None:
-    """A free buffer of ``nbytes`` to twice that, or None (the caller holds the lock). A function of its own
-    so that its loop variable, which holds a buffer, is gone before :func:`_evict` counts references."""
-    for b in _buffers:
-        if nbytes <= b.nbytes <= 2 * nbytes and sys.getrefcount(b) == _FREE:
-            return b
-    return None
+def pool_bytes() -> tuple[int, int]:
+    """``(free, in_use)``: bytes of the blocks the pool keeps for reuse and of those leased to live results."""
+    with _lock:
+        _file_returned()
+        return sum(b.nbytes for b in _free), _in_use
 
 
 def take_buffer(count: int) -> np.ndarray:
-    """A float64 buffer of ``count`` numbers (1-D, C-contiguous, contents undefined, as ``numpy.empty``): a
-    free pooled buffer of at least that size and at most twice it (its first ``count`` numbers), else a
-    new one, pooled when it fits under the limit."""
+    """A float64 array of ``count`` numbers (1-D, C-contiguous, contents undefined, as ``numpy.empty``): from a
+    free pooled block of at least that size and at most twice it (the smallest such, the latest freed of
+    equals: its pages the likeliest in cache), else from a new block;
+    either way leased (given back to the pool when the array and every view of it are freed). Plain
+    ``numpy.empty`` below :data:`MIN_BYTES`, above the limit, with the pool off or inside :func:`bypassed`."""
+    global _in_use
     nbytes = 8 * count
     if nbytes < MIN_BYTES or nbytes > _limit or _bypass:
         return np.empty(count)
     with _lock:
-        found = _find_free(nbytes)
-        if found is not None:
-            return found[: nbytes // 8]
-        _evict(nbytes)
-        buf = np.empty(count)
-        if _held() + nbytes <= _limit:
-            _buffers.append(buf)
-        return buf
+        _file_returned()
+        best = -1
+        for i, b in enumerate(_free):
+            if nbytes <= b.nbytes <= 2 * nbytes and (best < 0 or b.nbytes <= _free[best].nbytes):
+                best = i
+        block = _free.pop(best) if best >= 0 else None
+        if block is None:
+            block = np.empty(count)
+        _in_use += block.nbytes
+    return _lease(block, count)
