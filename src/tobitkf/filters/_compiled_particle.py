@@ -70,6 +70,7 @@ __all__ = [
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
+_LN2 = math.log(2.0)
 _SQRT_PI = math.sqrt(math.pi)
 _INF = math.inf
 
@@ -602,12 +603,25 @@ def pf_block(
                     for p in range(Np):
                         Wb[p] = math.exp(work[p] - top)
             elif lb:
+                wmax = 0.0
                 if nz:
                     for p in range(Np):
-                        Wb[p] = lw[b, p] * F[p] * math.exp(work[p] - top)
+                        w = lw[b, p] * F[p] * math.exp(work[p] - top)
+                        Wb[p] = w
+                        wmax = max(wmax, w)
                 else:
                     for p in range(Np):
-                        Wb[p] = lw[b, p] * F[p]
+                        w = lw[b, p] * F[p]
+                        Wb[p] = w
+                        wmax = max(wmax, w)
+                if wmax < _W_MIN:
+                    # every weight small (masses far in the tails): scaled by a power of 2 (exactly) so the
+                    # largest is in [1/2, 1), else their squares (the effective sample size) underflow
+                    ex = math.frexp(wmax)[1]
+                    sc = math.ldexp(1.0, -ex)
+                    for p in range(Np):
+                        Wb[p] *= sc
+                    top += ex * _LN2
             else:
                 for p in range(Np):
                     Wb[p] = math.exp(work[p] - top)
