@@ -26,9 +26,24 @@ per-step outputs requested (``outputs="last"`` requests none). With several bloc
 its numbers after block ``j-1`` has drawn all of its own; a filter continued from its final state
 equals one call when the runs fit one block.
 
+**Weights held linear between resamplings.** After a resampling every weight is :math:`1/N_p`; from
+there on a run's normalised weights are held as numbers :math:`V_i` (in the log-weights array, flagged
+per run), not logarithms, and a step multiplies them by the particle's likelihood: a censored reading
+by its mass :math:`\Phi(a)` (one ``erfc``; no ``log`` and no ``exp``), an interior one by
+:math:`e^{\ell_i - \max_j\ell_j}` (the one ``exp`` the log-sum-exp normalisation needs too). Nothing
+can underflow unnoticed: a particle's product of masses stays above 1e-200 (a smaller mass goes, as its
+logarithm, to the exponent: so beyond 35 standard deviations, where it is :func:`log_ndtr` itself), a
+normalised weight above 1e-100 (else the run returns to logarithms, formed from the exact parts
+:math:`\log V_i + \log(\text{masses}) + \ell_i - \log\text{total}`, until its next resampling), and when
+every weight of a run is under 1e-100 they are scaled by a power of 2 (exactly) before the effective
+sample size squares them. The log weights of the state are the logarithms of these numbers (formed
+once per call). The same arithmetic as the log-sum-exp form up to rounding (the tests hold both to
+1e-12 against the numpy path, the hand-over to logarithms included).
+
 **The normal tails** cost what the bootstrap weight and the censored draw need, no more: a censored
-weight is :math:`\log\Phi(a)` through one ``erfc`` and one logarithm (:func:`log_ndtr`; beyond
-25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the censored draw
+weight is :math:`\Phi(a)` through one ``erfc`` (with logarithms: :math:`\log\Phi(a)`,
+:func:`log_ndtr`; beyond 25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the
+censored draw
 :math:`z = \Phi^{-1}(u\,\Phi(a))` reuses that :math:`\Phi(a)` (:func:`censored_draw`): the quantile by
 Wichura's AS 241 (rational functions, relative error about 1e-16: no further ``erfc`` or ``exp``), its
 tail from :math:`\sqrt{-\log p}` and the upper tail from :math:`1 - p = (1-u) + u\,\Phi(-a)` (no
@@ -38,9 +53,10 @@ with ``scipy.special`` to about 1e-15. Functions are compiled on first use and c
 
 Cost per particle and step (``benchmarks/bench_particle.py`` times it against a plain vectorised numpy
 filter and the `particles` and `cuthbert` packages): n normal draws and a matrix-vector product; for a
-censored reading one ``erfc`` and one ``log`` (the optimal proposal: plus a uniform and, in the tails of
-:math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); one ``exp`` for the weight; the weighted moments and the
-resampling in two passes over the run's particles, without temporaries.
+censored reading one ``erfc`` (the optimal proposal: plus a uniform and, in the tails of
+:math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); for an interior reading one ``exp``; the weighted moments
+and the resampling in passes over the run's particles, without temporaries. The only fast-math flag is
+``contract`` on AS 241's polynomials (:func:`_poly7`); the weights, sums and tails are strict IEEE.
 
 References: M. J. Wichura, Algorithm AS 241: the percentage points of the normal distribution, Applied
 Statistics 37(3), 1988.
@@ -318,7 +334,8 @@ def pf_block(
     X : (B, Np, n)
         The particles at the start; on return those after the last step.
     lw : (B, Np)
-        Normalised log weights, updated.
+        Normalised log weights, updated (inside the call a run's row may hold the weights themselves: see
+        "Weights held linear" in the module's docstring; logarithms again on return).
     ll_acc : (B,)
         Running sum of the log-likelihood, updated.
     xm, Pm : (B, n), (B, n, n)
