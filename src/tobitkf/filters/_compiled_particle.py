@@ -650,8 +650,9 @@ def pf_block(
                 for p in range(Np):
                     lw[b, p] = work[p] - lnorm
             elif dead or not wmin < _W_MIN * tot:
+                it = 1.0 / tot
                 for p in range(Np):
-                    lw[b, p] = Wb[p] / tot
+                    lw[b, p] = Wb[p] * it
             else:
                 # a normalised weight would fall below _W_MIN: back to logarithms, from the exact parts
                 lin[b] = False
