@@ -282,3 +282,30 @@ def test_ndtri_exp_inverts_log_ndtr():
     # the round trip is conditioned by |z| (d log t / dz ~ z far in the upper tail): 40 ulp of z
     np.testing.assert_allclose(back, t, rtol=1e-12, atol=0)
     assert cp.ndtri_exp(-np.inf) == -np.inf and cp.ndtri_exp(0.0) == np.inf and np.isnan(cp.ndtri_exp(0.5))
+
+
+@pytest.mark.parametrize("proposal", ["optimal", "prior"])
+def test_weights_spread_beyond_1e100_return_to_logarithms(proposal):
+    # never resampling, the weights of a run spread over hundreds of orders of magnitude: the compiled loop's
+    # linear weights hand over to logarithms, which must equal the numpy path's
+    cens = CENSORINGS["lower"](1)
+    y = record(1, cens, runs=3, steps=40, seed=2)
+    y[:, 10:] = np.where(np.arange(10, 40) % 2, 12.0, 0.0)[:, None]  # far readings and censored ones, in turn
+    pf = tk.ParticleFilter(system(1), cens, particles=150, proposal=proposal, seed=6, resample_threshold=0.0)
+    got = check_against_numpy(pf, y, both_branches=False)
+    lw = got.final.carry["log_weights"]
+    assert (lw.max(axis=1) - lw.min(axis=1) > np.log(1e100)).all()
+
+
+@pytest.mark.parametrize("proposal", ["optimal", "prior"])
+def test_censored_masses_under_1e200_go_to_the_log_part(proposal):
+    # readings censored 20-30 standard deviations below the prediction (not beyond 35, where the mass is taken
+    # in logarithms anyway): a mass under the linear weights' floor of 1e-200 (optimal proposal: the first, ~1e-208;
+    # bootstrap: the product of ~1e-159 and ~1e-80), every weight small
+    lim = -12.0 if proposal == "optimal" else -8.5
+    cens = tk.Censoring(lower=[lim, lim])
+    y = np.full((3, 4, 2), lim)
+    y[0, 1] = [0.2, 0.1]
+    pf = tk.ParticleFilter(system(2), cens, particles=200, proposal=proposal, seed=8, resample_threshold=0.7)
+    got = check_against_numpy(pf, y, both_branches=False)
+    assert (got.extras["log_likelihood"][:, 0] < np.log(1e-100)).all()  # every weight small: the exact rescaling

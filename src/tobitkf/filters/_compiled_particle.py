@@ -26,9 +26,24 @@ per-step outputs requested (``outputs="last"`` requests none). With several bloc
 its numbers after block ``j-1`` has drawn all of its own; a filter continued from its final state
 equals one call when the runs fit one block.
 
+**Weights held linear between resamplings.** After a resampling every weight is :math:`1/N_p`; from
+there on a run's normalised weights are held as numbers :math:`V_i` (in the log-weights array, flagged
+per run), not logarithms, and a step multiplies them by the particle's likelihood: a censored reading
+by its mass :math:`\Phi(a)` (one ``erfc``; no ``log`` and no ``exp``), an interior one by
+:math:`e^{\ell_i - \max_j\ell_j}` (the one ``exp`` the log-sum-exp normalisation needs too). Nothing
+can underflow unnoticed: a particle's product of masses stays above 1e-200 (a smaller mass goes, as its
+logarithm, to the exponent: so beyond 35 standard deviations, where it is :func:`log_ndtr` itself), a
+normalised weight above 1e-100 (else the run returns to logarithms, formed from the exact parts
+:math:`\log V_i + \log(\text{masses}) + \ell_i - \log\text{total}`, until its next resampling), and when
+every weight of a run is under 1e-100 they are scaled by a power of 2 (exactly) before the effective
+sample size squares them. The log weights of the state are the logarithms of these numbers (formed
+once per call). The same arithmetic as the log-sum-exp form up to rounding (the tests hold both to
+1e-12 against the numpy path, the hand-over to logarithms included).
+
 **The normal tails** cost what the bootstrap weight and the censored draw need, no more: a censored
-weight is :math:`\log\Phi(a)` through one ``erfc`` and one logarithm (:func:`log_ndtr`; beyond
-25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the censored draw
+weight is :math:`\Phi(a)` through one ``erfc`` (with logarithms: :math:`\log\Phi(a)`,
+:func:`log_ndtr`; beyond 25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the
+censored draw
 :math:`z = \Phi^{-1}(u\,\Phi(a))` reuses that :math:`\Phi(a)` (:func:`censored_draw`): the quantile by
 Wichura's AS 241 (rational functions, relative error about 1e-16: no further ``erfc`` or ``exp``), its
 tail from :math:`\sqrt{-\log p}` and the upper tail from :math:`1 - p = (1-u) + u\,\Phi(-a)` (no
@@ -38,9 +53,10 @@ with ``scipy.special`` to about 1e-15. Functions are compiled on first use and c
 
 Cost per particle and step (``benchmarks/bench_particle.py`` times it against a plain vectorised numpy
 filter and the `particles` and `cuthbert` packages): n normal draws and a matrix-vector product; for a
-censored reading one ``erfc`` and one ``log`` (the optimal proposal: plus a uniform and, in the tails of
-:math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); one ``exp`` for the weight; the weighted moments and the
-resampling in two passes over the run's particles, without temporaries.
+censored reading one ``erfc`` (the optimal proposal: plus a uniform and, in the tails of
+:math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); for an interior reading one ``exp``; the weighted moments
+and the resampling in passes over the run's particles, without temporaries. The only fast-math flag is
+``contract`` on AS 241's polynomials (:func:`_poly7`); the weights, sums and tails are strict IEEE.
 
 References: M. J. Wichura, Algorithm AS 241: the percentage points of the normal distribution, Applied
 Statistics 37(3), 1988.
@@ -57,15 +73,29 @@ from numba import njit
 from ._particle_rng import generator
 from ._readings import _INTERIOR, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
 
-__all__ = ["log_ndtr", "ndtri_exp", "censored_draw", "pf_block", "runs_per_block", "filter_blocks", "BLOCK_BYTES"]
+__all__ = [
+    "log_ndtr",
+    "ndtri_exp",
+    "censored_draw",
+    "pf_block",
+    "runs_per_block",
+    "filter_blocks",
+    "BLOCK_BYTES",
+]
 
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
+_LN2 = math.log(2.0)
 _SQRT_PI = math.sqrt(math.pi)
 _INF = math.inf
 
 #: cache budget of one block of runs (bytes): its particles and log-weights stay in the core's L2 cache
 BLOCK_BYTES = 1 * 2**20
+#: linear weights (see :func:`pf_block`): a particle's product of censored masses stays above this...
+_F_MIN = 1e-200
+#: ...and its normalised weight above this, else the run's weights return to logarithms
+_W_MIN = 1e-100
+_LOG_W_MIN = math.log(_W_MIN)
 
 
 # --------------------------------------------------------------------------- normal tails
@@ -116,9 +146,15 @@ _LOG_P_LOW = math.log(0.075)
 _LOG_P_HIGH = math.log(0.925)
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@njit(cache=True, error_model="numpy", fastmath={"contract"})
 def _poly7(c, x):
-    return c[0] + x * (c[1] + x * (c[2] + x * (c[3] + x * (c[4] + x * (c[5] + x * (c[6] + x * c[7]))))))
+    r""":math:`\sum_{i=0}^7 c_i x^i` by Estrin's scheme (three levels of multiply-adds instead of Horner's chain
+    of seven: the two polynomials of a quotient and the particles around them overlap). The only fast-math
+    flag is ``contract`` (a multiply-add rounded once, as accurate as or more than the two roundings; no
+    reassociation), here and nowhere else: these are rational approximations of relative error ~1e-16."""
+    x2 = x * x
+    x4 = x2 * x2
+    return (c[0] + c[1] * x) + x2 * (c[2] + c[3] * x) + x4 * ((c[4] + c[5] * x) + x2 * (c[6] + c[7] * x))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -174,6 +210,37 @@ def ndtri_exp(t):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _normal_mass(x):
+    r"""The mass :math:`\Phi(x)` in the form the weights use: ``(far, lm, M, upper)``.
+
+    For x > 0, ``upper`` and :math:`M = \Phi(-x)` (the mass is :math:`1 - M`); down to 25√2 ≈ 35.4
+    standard deviations below 0, :math:`M = \Phi(x)` (one ``erfc``); beyond, ``far`` and
+    :math:`lm = \log\Phi(x)` through :func:`log_ndtr` (the mass itself would underflow)."""
+    upper = x > 0.0
+    t = abs(x) * _SQRT1_2  # one erfc call site for both signs (no branch on the sign before it)
+    if not (upper or t < 25.0):
+        return True, log_ndtr(x), 0.0, False
+    return False, 0.0, 0.5 * math.erfc(t), upper
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _censored_core(a, u):
+    r"""The mass of :math:`(-\infty, a]` (as :func:`_normal_mass`) and the draw :math:`\Phi^{-1}(u\,\Phi(a))`:
+    ``(far, lm, M, upper, z)``; the quantile reuses the mass's ``erfc`` (no further ``erfc`` or ``exp``)."""
+    far, lm, M, upper = _normal_mass(a)
+    if far:
+        return far, lm, M, upper, ndtri_exp(math.log(u) + lm)
+    p = u * ((1.0 - M) if upper else M)
+    if p > 0.925:  # (only when upper)
+        return far, lm, M, upper, _quantile_tail(math.sqrt(-math.log((1.0 - u) + u * M)))
+    if p < 0.075:
+        if p == 0.0:
+            return far, lm, M, upper, -_INF
+        return far, lm, M, upper, -_quantile_tail(math.sqrt(-math.log(p)))
+    return far, lm, M, upper, _quantile_center(p - 0.5)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def censored_draw(a, u):
     r"""The log-mass and a draw of a standard normal truncated to :math:`(-\infty, a]`:
     :math:`(\log\Phi(a),\ \Phi^{-1}(u\,\Phi(a)))` for a uniform u, the two sharing one ``erfc``.
@@ -183,25 +250,23 @@ def censored_draw(a, u):
     :math:`\log p` does not underflow), the quantile's upper tail from
     :math:`1 - p = (1 - u) + u\,\Phi(-a)`; beyond 35 standard deviations (:math:`a < -25\sqrt2`) through
     :func:`log_ndtr` and :func:`ndtri_exp`."""
-    if a > 0.0:
-        Q = 0.5 * math.erfc(a * _SQRT1_2)  # Phi(-a)
-        lm = math.log1p(-Q)
-        p = u * (1.0 - Q)
-        if p > 0.925:
-            return lm, _quantile_tail(math.sqrt(-math.log((1.0 - u) + u * Q)))
-    else:
-        t = -a * _SQRT1_2
-        if not t < 25.0:
-            lm = log_ndtr(a)
-            return lm, ndtri_exp(math.log(u) + lm)
-        P = 0.5 * math.erfc(t)
-        lm = math.log(P)
-        p = u * P
-    if p < 0.075:
-        if p == 0.0:
-            return lm, -_INF
-        return lm, -_quantile_tail(math.sqrt(-math.log(p)))
-    return lm, _quantile_center(p - 0.5)
+    far, lm, M, upper, z = _censored_core(a, u)
+    if far:
+        return lm, z
+    return (math.log1p(-M) if upper else math.log(M)), z
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _mass_factor(far, lm, M, upper, F):
+    """A censored channel's weight factor in the linear weights: ``(F', log-part)``. The mass multiplies the
+    particle's factor F while the product stays above :data:`_F_MIN`; else (or far in the tail) its
+    logarithm goes to the log part (exact, and no underflow)."""
+    if far:
+        return F, lm
+    mass = 1.0 - M if upper else M
+    if mass * F < _F_MIN:
+        return F, (math.log1p(-M) if upper else math.log(M))
+    return F * mass, 0.0
 
 
 # --------------------------------------------------------------------------- small linear algebra
@@ -269,7 +334,8 @@ def pf_block(
     X : (B, Np, n)
         The particles at the start; on return those after the last step.
     lw : (B, Np)
-        Normalised log weights, updated.
+        Normalised log weights, updated (inside the call a run's row may hold the weights themselves: see
+        "Weights held linear" in the module's docstring; logarithms again on return).
     ll_acc : (B,)
         Running sum of the log-likelihood, updated.
     xm, Pm : (B, n), (B, n, n)
@@ -298,11 +364,14 @@ def pf_block(
     L = np.empty((n, n))
     g = np.empty((m, n))
     sr = np.empty(m)
+    isd = np.empty(m)
     lsd = np.empty(m)
-    srp = np.empty(m)  # the bootstrap's noise standard deviations and their log-normalisers
+    srp = np.empty(m)  # the bootstrap's noise standard deviations, their inverses and log-normalisers
+    isp = np.empty(m)
     lsp = np.empty(m)
     for l in range(m):
         srp[l] = math.sqrt(r[l])
+        isp[l] = 1.0 / srp[l]
         lsp[l] = math.log(srp[l]) + _LOG_SQRT_2PI
     mu = np.empty(n)
     e = np.empty(n)
@@ -312,9 +381,21 @@ def pf_block(
     S2 = np.empty((n, n))
     R = np.empty((Np, m + n))  # one run-step's random numbers: uniforms of the censored readings, normals
     Xn = np.empty((Np, n))  # one run's particles before resampling (the proposals are written in place)
-    work = np.empty(Np)  # its log weights, then the cumulative weights
+    work = np.empty(Np)  # the log part of the new weights, then the cumulative weights
+    F = np.empty(Np)  # the linear part (products of censored masses) of the new weights
     Wb = np.empty(Np)
-    logNp = math.log(Np)
+    # lin[b]: the run's weights are held linear in lw[b] (normalised), else as logarithms (see the docstring)
+    lin = np.empty(B, dtype=np.bool_)
+    for b in range(B):
+        ok = True
+        for p in range(Np):
+            if not lw[b, p] >= _LOG_W_MIN:
+                ok = False
+                break
+        lin[b] = ok
+        if ok:
+            for p in range(Np):
+                lw[b, p] = math.exp(lw[b, p])
     for k in range(T):
         for b in range(B):
             # the linear prediction of the weighted moments (core.predict), where it is recorded
@@ -337,7 +418,11 @@ def pf_block(
                         o_pc[b, k, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
             for l in range(m):
                 cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
-            top = -_INF  # the largest unnormalised log weight, tracked as they are formed
+            lb = lin[b]
+            # the largest log part, tracked as the weights form (with linear weights: of the log parts alone),
+            # and whether any log part is not 0 (else the linear weights need no exp)
+            top = -_INF
+            nz = False
             if optimal:
                 # the Gaussian conditioning of _condition_in_sequence: the same for every particle of the run
                 for i in range(n):
@@ -358,6 +443,7 @@ def pf_block(
                     for i in range(n):
                         g[l, i] = e[i] / den
                     sr[l] = math.sqrt(s2)
+                    isd[l] = 1.0 / sr[l]
                     lsd[l] = math.log(sr[l]) + _LOG_SQRT_2PI
                     for i in range(n):
                         for j in range(n):
@@ -382,6 +468,7 @@ def pf_block(
                             s += X[b, p, j] * A[i, j]
                         mu[i] = s
                     inc = 0.0
+                    fac = 1.0
                     for l in range(m):
                         c = cls[l]
                         if c == _MISSING:
@@ -391,17 +478,18 @@ def pf_block(
                             pred += mu[j] * C[l, j]
                         sd = sr[l]
                         if c == _INTERIOR:
-                            z = (y[b, k, l] - pred) / sd
-                            inc += -0.5 * z * z - lsd[l]
                             dv = y[b, k, l] - pred
-                        elif c == _LOWER:
-                            lm, z = censored_draw((LO[k, l] - pred) / sd, R[p, l])
-                            inc += lm
-                            dv = z * sd
+                            z = dv * isd[l]
+                            inc += -0.5 * z * z - lsd[l]
                         else:
-                            lm, z = censored_draw((pred - HI[k, l]) / sd, R[p, l])
+                            a = (LO[k, l] - pred) * isd[l] if c == _LOWER else (pred - HI[k, l]) * isd[l]
+                            far, lm, M, upper, z = _censored_core(a, R[p, l])
+                            if lb:
+                                fac, lm = _mass_factor(far, lm, M, upper, fac)
+                            elif not far:
+                                lm = math.log1p(-M) if upper else math.log(M)
                             inc += lm
-                            dv = -z * sd
+                            dv = z * sd if c == _LOWER else -z * sd
                         for i in range(n):
                             mu[i] += dv * g[l, i]
                     for i in range(n):
@@ -409,8 +497,10 @@ def pf_block(
                         for j in range(n):
                             s += R[p, m + j] * L[i, j]
                         X[b, p, i] = mu[i] + s
-                    w = inc + lw[b, p]
+                    F[p] = fac
+                    w = inc if lb else inc + lw[b, p]
                     work[p] = w
+                    nz = nz or inc != 0.0
                     if w > top:
                         top = w
             else:
@@ -428,6 +518,7 @@ def pf_block(
                     for i in range(n):
                         X[b, p, i] = mu[i]
                     inc = 0.0
+                    fac = 1.0
                     for l in range(m):
                         c = cls[l]
                         if c == _MISSING:
@@ -436,25 +527,66 @@ def pf_block(
                         for j in range(n):
                             mul += mu[j] * C[l, j]
                         if c == _INTERIOR:
-                            z = (y[b, k, l] - mul) / srp[l]
+                            z = (y[b, k, l] - mul) * isp[l]
                             inc += -0.5 * z * z - lsp[l]
-                        elif c == _LOWER:
-                            inc += log_ndtr((LO[k, l] - mul) / srp[l])
                         else:
-                            inc += log_ndtr((mul - HI[k, l]) / srp[l])
-                    w = inc + lw[b, p]
+                            a = (LO[k, l] - mul) * isp[l] if c == _LOWER else (mul - HI[k, l]) * isp[l]
+                            if lb:
+                                far, lm, M, upper = _normal_mass(a)
+                                fac, lm = _mass_factor(far, lm, M, upper, fac)
+                                inc += lm
+                            else:
+                                inc += log_ndtr(a)
+                    F[p] = fac
+                    w = inc if lb else inc + lw[b, p]
                     work[p] = w
+                    nz = nz or inc != 0.0
                     if w > top:
                         top = w
-            # weights: log-sum-exp normalisation, fused with the weighted moments (one pass; the sums of the
-            # deviations from the run's first particle, so no cancellation when the mean is far from 0)
+            # the new weights, unnormalised: exp(log weight - top) (logarithms), or
+            # weight x mass factor x exp(log part - top) (linear; the exp only where a log part is not 0)
+            if lb and not nz:
+                top = 0.0
             dead = not (top > -_INF and top < _INF)
             if dead:  # no particle explains the reading: keep the weights, report -inf
                 top = -_INF
                 for p in range(Np):
-                    work[p] = lw[b, p]
-                    if work[p] > top:
-                        top = work[p]
+                    if lb:
+                        Wb[p] = lw[b, p]
+                    else:
+                        work[p] = lw[b, p]
+                        if work[p] > top:
+                            top = work[p]
+                if lb:
+                    top = 0.0
+                else:
+                    for p in range(Np):
+                        Wb[p] = math.exp(work[p] - top)
+            elif lb:
+                wmax = 0.0
+                if nz:
+                    for p in range(Np):
+                        w = lw[b, p] * F[p] * math.exp(work[p] - top)
+                        Wb[p] = w
+                        wmax = max(wmax, w)
+                else:
+                    for p in range(Np):
+                        w = lw[b, p] * F[p]
+                        Wb[p] = w
+                        wmax = max(wmax, w)
+                if wmax < _W_MIN:
+                    # every weight small (masses far in the tails): scaled by a power of 2 (exactly) so the
+                    # largest is in [1/2, 1), else their squares (the effective sample size) underflow
+                    ex = math.frexp(wmax)[1]
+                    sc = math.ldexp(1.0, -ex)
+                    for p in range(Np):
+                        Wb[p] *= sc
+                    top += ex * _LN2
+            else:
+                for p in range(Np):
+                    Wb[p] = math.exp(work[p] - top)
+            # normalisation fused with the weighted moments (one pass; the sums of the deviations from the
+            # run's first particle, so no cancellation when the mean is far from 0)
             full = want[1] or want[2] or want[4] or k == T - 1  # the covariance is needed (else the mean only)
             for i in range(n):
                 x0[i] = X[b, 0, i]
@@ -463,11 +595,13 @@ def pf_block(
                     S2[i, j] = 0.0
             tot = 0.0
             sw2 = 0.0
+            wmin = _INF
             for p in range(Np):
-                w = math.exp(work[p] - top)
-                Wb[p] = w
+                w = Wb[p]
                 tot += w
                 sw2 += w * w
+                if w < wmin:
+                    wmin = w
                 for i in range(n):
                     d[i] = X[b, p, i] - x0[i]
                     S1[i] += w * d[i]
@@ -508,10 +642,23 @@ def pf_block(
                     src = j if j < Np else Np - 1
                     for i in range(n):
                         X[b, p, i] = Xn[src, i]
-                    lw[b, p] = -logNp
-            else:
+                # equal weights: held linear from here on
+                lin[b] = True
+                for p in range(Np):
+                    lw[b, p] = 1.0 / Np
+            elif not lb:
                 for p in range(Np):
                     lw[b, p] = work[p] - lnorm
+            elif dead or not wmin < _W_MIN * tot:
+                it = 1.0 / tot
+                for p in range(Np):
+                    lw[b, p] = Wb[p] * it
+            else:
+                # a normalised weight would fall below _W_MIN: back to logarithms, from the exact parts
+                lin[b] = False
+                lt = math.log(tot) + top
+                for p in range(Np):
+                    lw[b, p] = math.log(lw[b, p]) + math.log(F[p]) + work[p] - lt
             if want[0]:
                 for i in range(n):
                     o_mean[b, k, i] = xm[b, i]
@@ -526,6 +673,11 @@ def pf_block(
                 o_ext[b, k, 0] = ess
                 o_ext[b, k, 1] = 1.0 if res else 0.0
                 o_ext[b, k, 2] = ll
+    # the carry holds logarithms
+    for b in range(B):
+        if lin[b]:
+            for p in range(Np):
+                lw[b, p] = math.log(lw[b, p])
 
 
 # --------------------------------------------------------------------------- the driver
