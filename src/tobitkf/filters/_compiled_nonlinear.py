@@ -224,6 +224,99 @@ def _gain_update(x, P, e, Rxe, Ree, ok, H, R, joseph, xo, Po):
             Po[i, j] = 0.5 * (M[i, j] + M[j, i])
 
 
+@njit(error_model="numpy", cache=True)
+def _symmetric(M, out):
+    """``out`` = (M + M^T)/2."""
+    n = M.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * (M[i, j] + M[j, i])
+
+
+@njit(error_model="numpy", cache=True)
+def _extended_moments(xp, Pp, Hj, Pxy, Pyy):
+    r"""The extended measurement moments :math:`P_{xy} = \bar PH^T`, :math:`P_{yy} = HP_{xy}` (symmetrised)."""
+    Pxy[:] = Pp @ Hj.T
+    _symmetric(Hj @ Pxy, Pyy)
+
+
+@njit(error_model="numpy", cache=True)
+def _joint_update(code, yt, ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hj, xp, Pp, x, P, E, g):
+    r"""The update of all channels at once from the measurement moments: :data:`KALMAN`
+    (:math:`K = P_{xy}(P_{yy} + R)^{-1}`) or :data:`TOBIT` (the Tobit update at the predicted measurement
+    :math:`\hat y` = ``ym``, with :math:`E[y]` into ``E`` and the slope into ``g``); a NaN reading and a
+    channel with a degenerate innovation variance take no part. Writes ``x``, ``P``."""
+    m = ym.shape[0]
+    e = np.empty(m)
+    ok = np.empty(m, dtype=np.bool_)
+    if code == KALMAN:
+        Ree = Pyy + R
+        for a in range(m):
+            e[a] = yt[a] - ym[a]
+            ok[a] = not math.isnan(yt[a]) and Ree[a, a] > _TINY
+        _gain_update(xp, Pp, e, Pxy, Ree, ok, Hj, R, joseph, x, P)
+        return
+    buf = np.empty((2, GL_X.shape[0]))
+    V = np.empty(m)
+    for a in range(m):
+        st = censored_stats(ym[a], math.sqrt(R[a, a]), lo[a], hi[a], GL_X, GL_W, buf)
+        g[a] = st[2]
+        E[a] = st[6]
+        if noise_code == 0:
+            V[a] = st[5]
+        elif noise_code == 1:
+            V[a] = st[7]
+        else:
+            V[a] = st[2] * (st[5] + (st[4] - ym[a]) ** 2)
+    Rxe = Pxy * g.reshape((1, m))
+    Ree = g.reshape((m, 1)) * Pyy * g.reshape((1, m)) + np.diag(V)
+    for a in range(m):
+        e[a] = yt[a] - E[a]
+        ok[a] = not math.isnan(yt[a]) and Ree[a, a] > _TINY
+    _gain_update(xp, Pp, e, Rxe, Ree, ok, Hj, R, False, x, P)
+
+
+@njit(error_model="numpy", cache=True)
+def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, hi, par):
+    r"""One linearisation ``it`` of the assumed-density update of channel ``ch`` (reading ``yv``, not NaN):
+    from the rule's moments ``ym``, ``Pxy``, ``Pyy`` of h about :math:`N(x_m, P_m)` the affine model (about the
+    prior itself when ``it`` = 0), the channel's moments of the latent reading
+    (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``x``, ``P`` into
+    ``xm``, ``Pm``. Returns ``(taken, log p(y))``: not taken (``xm``, ``Pm`` the prior) when the latent variance
+    is not above the smallest normal number."""
+    n = x.shape[0]
+    if it == 0:
+        mu = ym[ch]
+        cxy = Pxy[:, ch].copy()
+        s2 = Pyy[ch, ch] + rl
+    else:  # the affine model fitted about the posterior, applied to the prior
+        Hl = np.linalg.solve(Pm, Pxy[:, ch].copy())
+        omega = max(Pyy[ch, ch] - np.dot(Hl, np.dot(Pm, Hl)), 0.0)
+        mu = ym[ch] + np.dot(Hl, x - xm)
+        cxy = np.dot(P, Hl)
+        s2 = np.dot(Hl, cxy) + omega + rl
+    if not s2 > _TINY:
+        xm[:] = x
+        Pm[:] = P
+        return False, 0.0
+    one = np.empty((9, 1))  # y, hx, hph, rb, lo, hi, alpha, beta, ll of the one run
+    one[0, 0], one[1, 0], one[2, 0], one[3, 0], one[4, 0], one[5, 0], one[8, 0] = yv, mu, s2 - rl, rl, lo, hi, 0.0
+    cls = np.empty(1, dtype=np.int8)
+    cls[0] = classify(yv, lo, hi) if family == CENSORED else 1
+    pu, comp, buf = np.empty(1), np.empty((0, 1)), np.empty((2, GL_X.shape[0]))
+    family_block(
+        family, 1, one[0], cls, one[1], one[2], one[3], one[4], one[5], par, one[6], one[7], one[8], pu, comp,
+        GL_X, GL_W, buf,
+    )  # fmt: skip
+    alpha, beta = one[6, 0], one[7, 0]
+    for i in range(n):
+        xm[i] = x[i] + alpha * cxy[i]
+        for j in range(n):
+            Pm[i, j] = P[i, j] - beta * cxy[i] * cxy[j]
+    _symmetric(Pm.copy(), Pm)
+    return True, one[8, 0]
+
+
 @njit(error_model="numpy")
 def nonlinear_loop(
     f, h, F, H, code, xi, wm, wc, y, u, Qs, Rs, k0, x0, P0,
@@ -242,6 +335,9 @@ def nonlinear_loop(
     ``joseph`` the Joseph form of the Kalman update. Writes ``means``/``pmeans`` (N, T or 0, n), ``covs``
     (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit extras ``ey``/``slope`` (N, T or 0, m), the
     ADF's ``ll`` (N, T or 0), and the last state ``x_last``/``P_last``.
+
+    Only this function is specialised on the user's functions (and compiled in every process): everything it
+    does besides calling them is in the cached helpers above.
     """
     N, T, m = y.shape
     n = x0.shape[1]
@@ -249,158 +345,85 @@ def nonlinear_loop(
     TQ, TR, TL, TP = Qs.shape[0], Rs.shape[0], lo.shape[0], par.shape[0]
     root = np.empty((n, n))
     ym, Pxy, Pyy = np.empty(m), np.empty((n, m)), np.empty((m, m))
-    xp, Pp = np.empty(n), np.empty((n, n))
-    e, ok = np.empty(m), np.empty(m, dtype=np.bool_)
-    Hm = np.zeros((m, n))
-    fx, fP, fxy = np.empty(n), np.empty((n, n)), np.empty((n, n))
-    # one-run arrays of the channel's block function
-    b_y, b_hx, b_hph, b_rb = np.empty(1), np.empty(1), np.empty(1), np.empty(1)
-    b_lo, b_hi, b_a, b_b = np.empty(1), np.empty(1), np.empty(1), np.empty(1)
-    b_ll, b_pu, b_comp = np.empty(1), np.empty(1), np.empty((0, 1))
-    b_cls = np.empty(1, dtype=np.int8)
-    buf = np.empty((2, GL_X.shape[0]))
-    cxy, Hl = np.empty(n), np.empty(n)
+    xp, Pp, fxy = np.empty(n), np.empty((n, n)), np.empty((n, n))
+    Hj, E, g = np.zeros((m, n)), np.empty(m), np.empty(m)
     for r in range(N):
         x = x0[r].copy()
         P = P0[r if P0.shape[0] > 1 else 0].copy()
         for t in range(T):
             k = k0 + t + 1
-            Q = Qs[min(t, TQ - 1)]
-            R = Rs[min(t, TR - 1)]
-            # ---- the prediction
+            Q, R = Qs[min(t, TQ - 1)], Rs[min(t, TR - 1)]
+            lo_t, hi_t = lo[min(t, TL - 1)], hi[min(t, TL - 1)]
+            # ---- the prediction: extended or by the rule
             if L == 0:
+                X = x.reshape((1, n)).copy()
                 Xd, delta = _difference_points(x)
-                X1 = x.reshape((1, n)).copy()
                 if u is None:
-                    xp[:] = f(X1, k - 1)[0]
-                    Fj = _difference_jacobian(f(Xd, k - 1), delta) if F is None else F(X1, k - 1)[0]
+                    xp[:] = f(X, k - 1)[0]
+                    Fj = _difference_jacobian(f(Xd, k - 1), delta) if F is None else F(X, k - 1)[0]
                 else:
                     uk = u[r, t].copy().reshape((1, u.shape[2]))
-                    xp[:] = f(X1, k - 1, uk)[0]
+                    xp[:] = f(X, k - 1, uk)[0]
                     if F is None:
-                        Fj = _difference_jacobian(
-                            f(Xd, k - 1, np.repeat(uk, 2 * n).reshape((u.shape[2], 2 * n)).T.copy()), delta
-                        )
+                        Ud = np.repeat(uk, 2 * n).reshape((u.shape[2], 2 * n)).T.copy()
+                        Fj = _difference_jacobian(f(Xd, k - 1, Ud), delta)
                     else:
-                        Fj = F(X1, k - 1, uk)[0]
-                M = Fj @ P @ Fj.T + Q
+                        Fj = F(X, k - 1, uk)[0]
+                _symmetric(Fj @ P @ Fj.T + Q, Pp)
             else:
                 X = _points(x, P, xi, root)
                 if u is None:
                     Y = f(X, k - 1)
                 else:
                     Y = f(X, k - 1, np.repeat(u[r, t].copy(), L).reshape((u.shape[2], L)).T.copy())
-                sigma_moments(X, x, Y, wm, wc, fx, fxy, fP)
-                xp[:] = fx
-                M = fP + Q
-            for i in range(n):
-                for j in range(n):
-                    Pp[i, j] = 0.5 * (M[i, j] + M[j, i])
+                sigma_moments(X, x, Y, wm, wc, xp, fxy, Pp)
+                _symmetric(Pp + Q, Pp)
             if pmeans.shape[1] > 0:
                 pmeans[r, t] = xp
             if pcovs.shape[1] > 0:
                 pcovs[r, t] = Pp
             # ---- the update
             yt = y[r, t]
-            if code == ADF:
+            if code == ADF:  # channel by channel, each linearised `iterations` times
                 x[:] = xp
                 P[:] = Pp
                 lsum = 0.0
                 for ch in range(m):
                     if math.isnan(yt[ch]):
                         continue
-                    rl = R[ch, ch]
-                    b_y[0] = yt[ch]
-                    b_lo[0] = lo[min(t, TL - 1), ch]
-                    b_hi[0] = hi[min(t, TL - 1), ch]
-                    b_cls[0] = classify(yt[ch], b_lo[0], b_hi[0]) if family == CENSORED else 1
                     xm, Pm = x.copy(), P.copy()
                     for it in range(iterations):
                         X = _points(xm, Pm, xi, root)
                         sigma_moments(X, xm, h(X, k), wm, wc, ym, Pxy, Pyy)
-                        if it == 0:
-                            mu = ym[ch]
-                            cxy[:] = Pxy[:, ch]
-                            s2 = Pyy[ch, ch] + rl
-                        else:  # the affine model fitted about the posterior, applied to the prior
-                            Hl[:] = np.linalg.solve(Pm, Pxy[:, ch].copy())
-                            omega = max(Pyy[ch, ch] - np.dot(Hl, np.dot(Pm, Hl)), 0.0)
-                            mu = ym[ch] + np.dot(Hl, x - xm)
-                            cxy[:] = np.dot(P, Hl)
-                            s2 = np.dot(Hl, cxy) + omega + rl
-                        if not s2 > _TINY:
-                            xm[:] = x
-                            Pm[:] = P
-                            break
-                        b_hx[0] = mu
-                        b_hph[0] = s2 - rl
-                        b_rb[0] = rl
-                        b_ll[0] = 0.0
-                        family_block(
-                            family, 1, b_y, b_cls, b_hx, b_hph, b_rb, b_lo, b_hi, par[min(t, TP - 1), ch],
-                            b_a, b_b, b_ll, b_pu, b_comp, GL_X, GL_W, buf,
+                        taken, lp = _channel_projection(
+                            it, ch, yt[ch], x, P, xm, Pm, ym, Pxy, Pyy, R[ch, ch], family, lo_t[ch], hi_t[ch],
+                            par[min(t, TP - 1), ch],
                         )  # fmt: skip
                         if it == 0:
-                            lsum += b_ll[0]
-                        for i in range(n):
-                            xm[i] = x[i] + b_a[0] * cxy[i]
-                        for i in range(n):
-                            for j in range(n):
-                                v = P[i, j] - b_b[0] * cxy[i] * cxy[j]
-                                Pm[i, j] = v
-                        for i in range(n):
-                            for j in range(i):
-                                v = 0.5 * (Pm[i, j] + Pm[j, i])
-                                Pm[i, j] = v
-                                Pm[j, i] = v
+                            lsum += lp
+                        if not taken:
+                            break
                     x[:] = xm
                     P[:] = Pm
                 if ll.shape[1] > 0:
                     ll[r, t] = lsum
             else:
                 if L == 0:  # the extended measurement: h(x̄) and its Jacobian
-                    X1 = xp.reshape((1, n)).copy()
-                    ym[:] = h(X1, k)[0]
+                    X = xp.reshape((1, n)).copy()
+                    ym[:] = h(X, k)[0]
                     if H is None:
                         Xd, delta = _difference_points(xp)
-                        Hm[:] = _difference_jacobian(h(Xd, k), delta)
+                        Hj[:] = _difference_jacobian(h(Xd, k), delta)
                     else:
-                        Hm[:] = H(X1, k)[0]
-                    Pxy[:] = Pp @ Hm.T
-                    M = Hm @ Pxy
-                    for a in range(m):
-                        for b in range(m):
-                            Pyy[a, b] = 0.5 * (M[a, b] + M[b, a])
+                        Hj[:] = H(X, k)[0]
+                    _extended_moments(xp, Pp, Hj, Pxy, Pyy)
                 else:
                     X = _points(xp, Pp, xi, root)
                     sigma_moments(X, xp, h(X, k), wm, wc, ym, Pxy, Pyy)
-                if code == KALMAN:
-                    for a in range(m):
-                        e[a] = yt[a] - ym[a]
-                        ok[a] = not math.isnan(yt[a]) and Pyy[a, a] + R[a, a] > _TINY
-                    _gain_update(xp, Pp, e, Pxy, Pyy + R, ok, Hm, R, joseph, x, P)
-                else:  # the Tobit update at the predicted measurement
-                    g, V, E = np.empty(m), np.empty(m), np.empty(m)
-                    for a in range(m):
-                        sd = math.sqrt(R[a, a])
-                        st = censored_stats(ym[a], sd, lo[min(t, TL - 1), a], hi[min(t, TL - 1), a], GL_X, GL_W, buf)
-                        g[a] = st[2]
-                        E[a] = st[6]
-                        if noise_code == 0:
-                            V[a] = st[5]
-                        elif noise_code == 1:
-                            V[a] = st[7]
-                        else:
-                            V[a] = st[2] * (st[5] + (st[4] - ym[a]) ** 2)
-                    Rxe = Pxy * g.reshape((1, m))
-                    Ree = g.reshape((m, 1)) * Pyy * g.reshape((1, m)) + np.diag(V)
-                    for a in range(m):
-                        e[a] = yt[a] - E[a]
-                        ok[a] = not math.isnan(yt[a]) and Ree[a, a] > _TINY
-                    _gain_update(xp, Pp, e, Rxe, Ree, ok, Hm, R, False, x, P)
-                    if ey.shape[1] > 0:
-                        ey[r, t] = E
-                        slope[r, t] = g
+                _joint_update(code, yt, ym, Pxy, Pyy, R, lo_t, hi_t, noise_code, joseph, Hj, xp, Pp, x, P, E, g)
+                if ey.shape[1] > 0:
+                    ey[r, t] = E
+                    slope[r, t] = g
             if means.shape[1] > 0:
                 means[r, t] = x
             if covs.shape[1] > 0:
