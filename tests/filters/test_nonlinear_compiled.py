@@ -169,7 +169,7 @@ def test_compiled_step_equals_filter(name, record):
     one = est.init()
     for i in range(y.shape[1]):
         one = est.step(one, y[2, i])
-    np.testing.assert_allclose(one.x, res.mean[2, -1], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(one.x[0], res.mean[2, -1], rtol=0, atol=1e-12)
 
 
 def test_compiled_continues_from_state(record):

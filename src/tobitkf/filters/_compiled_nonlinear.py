@@ -29,7 +29,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import overload
 
 from ._compiled_moments import CENSORED, classify, family_block
 from ._kernels import GL_W, GL_X, censored_stats
@@ -317,6 +318,36 @@ def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, 
     return True, one[8, 0]
 
 
+def _call(fn, X, k, U):  # pragma: no cover - compiled only (its overload below)
+    """``fn(X, k)`` or, with input rows ``U``, ``fn(X, k, U)``."""
+
+
+@overload(_call)
+def _call_overload(fn, X, k, U):
+    if isinstance(U, types.NoneType):
+        return lambda fn, X, k, U: fn(X, k)
+    return lambda fn, X, k, U: fn(X, k, U)
+
+
+def _input_rows(u, r, t, rows):  # pragma: no cover - compiled only (its overload below)
+    """The input of run r at step t repeated for ``rows`` points, (rows, p); None without inputs."""
+
+
+@overload(_input_rows)
+def _input_rows_overload(u, r, t, rows):
+    if isinstance(u, types.NoneType):
+        return lambda u, r, t, rows: None
+
+    def rows_of(u, r, t, rows):
+        p = u.shape[2]
+        out = np.empty((rows, p))
+        for i in range(rows):
+            out[i] = u[r, t]
+        return out
+
+    return rows_of
+
+
 @njit(error_model="numpy")
 def nonlinear_loop(
     f, h, F, H, code, xi, wm, wc, y, u, Qs, Rs, k0, x0, P0,
@@ -358,25 +389,15 @@ def nonlinear_loop(
             if L == 0:
                 X = x.reshape((1, n)).copy()
                 Xd, delta = _difference_points(x)
-                if u is None:
-                    xp[:] = f(X, k - 1)[0]
-                    Fj = _difference_jacobian(f(Xd, k - 1), delta) if F is None else F(X, k - 1)[0]
+                xp[:] = _call(f, X, k - 1, _input_rows(u, r, t, 1))[0]
+                if F is None:
+                    Fj = _difference_jacobian(_call(f, Xd, k - 1, _input_rows(u, r, t, 2 * n)), delta)
                 else:
-                    uk = u[r, t].copy().reshape((1, u.shape[2]))
-                    xp[:] = f(X, k - 1, uk)[0]
-                    if F is None:
-                        Ud = np.repeat(uk, 2 * n).reshape((u.shape[2], 2 * n)).T.copy()
-                        Fj = _difference_jacobian(f(Xd, k - 1, Ud), delta)
-                    else:
-                        Fj = F(X, k - 1, uk)[0]
+                    Fj = _call(F, X, k - 1, _input_rows(u, r, t, 1))[0]
                 _symmetric(Fj @ P @ Fj.T + Q, Pp)
             else:
                 X = _points(x, P, xi, root)
-                if u is None:
-                    Y = f(X, k - 1)
-                else:
-                    Y = f(X, k - 1, np.repeat(u[r, t].copy(), L).reshape((u.shape[2], L)).T.copy())
-                sigma_moments(X, x, Y, wm, wc, xp, fxy, Pp)
+                sigma_moments(X, x, _call(f, X, k - 1, _input_rows(u, r, t, L)), wm, wc, xp, fxy, Pp)
                 _symmetric(Pp + Q, Pp)
             if pmeans.shape[1] > 0:
                 pmeans[r, t] = xp
@@ -478,7 +499,7 @@ def channel_gap(est) -> str | None:
 
 def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = False):
     """The compiled ``filter`` (or, ``online``, one step) of a nonlinear estimator whose gap is None: a
-    :class:`~tobitkf.FilterResult` (the new state for a step), or None when the covariance stopped being finite
+    :class:`~tobitkf.FilterResult` (for a step the new state and the step's prediction ``(state, x̄, P̄)``), or None when the covariance stopped being finite
     (the numpy path reruns the call and reports where) or the channel is not covered."""
     from ._outputs import _empty, kernel_result, output_arrays, state_specs
     from .core import FilterState, step_state
@@ -501,8 +522,13 @@ def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = 
             sys_.measurement_cov(1)[None])  # fmt: skip
     code = est._compiled_code
     ext = online or "extras" in want
-    if online:
-        means, covs, pmeans, pcovs = _empty((N, 0, n)), _empty((N, 0, n, n)), _empty((N, 0, n)), _empty((N, 0, n, n))
+    if online:  # the prediction too, for the consistency check of the step
+        means, covs, pmeans, pcovs = (
+            _empty((N, 0, n)),
+            _empty((N, 0, n, n)),
+            np.empty((N, 1, n)),
+            np.empty((N, 1, n, n)),
+        )
         ey, slope, ll = (np.empty((N, 1, m)), np.empty((N, 1, m)), np.empty((N, 0))) if code == TOBIT else (
             _empty((N, 0, m)), _empty((N, 0, m)), np.empty((N, 1)) if code == ADF else _empty((N, 0)))  # fmt: skip
     else:
@@ -524,8 +550,9 @@ def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = 
     elif ext and code == ADF:
         extras = {"log_likelihood": ll}
     if online:
-        return step_state(k0 + 1, state.batch_shape, x_last, P_last, n, None, state.carry,
-                          {key: v[:, 0] for key, v in extras.items()} or None)  # fmt: skip
+        new = step_state(k0 + 1, state.batch_shape, x_last, P_last, n, None, state.carry,
+                         {key: v[:, 0] for key, v in extras.items()} or None)  # fmt: skip
+        return new, pmeans[:, 0], pcovs[:, 0]
     extras = {key: v.reshape(batch + v.shape[1:]) for key, v in extras.items()}
     final = FilterState(k=k0 + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
     return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)

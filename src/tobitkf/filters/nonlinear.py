@@ -94,6 +94,7 @@ from .._linalg import psd_sqrt, symmetrize
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_int, diagonal_sigma
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
+from . import _online_check
 from ._backend import BACKENDS, use_kernel
 from .adf_generic import _contract_channel, _ContractChecks
 from .core import (
@@ -103,6 +104,7 @@ from .core import (
     check_keywords,
     check_prior,
     gain_update,
+    mark_trusted,
     prepare_inputs,
     process_roots,
     qr_r,
@@ -375,14 +377,32 @@ class _NonlinearFamily(GaussianFilter):
 
         return _compiled_nonlinear.compiled_run(self, y2, u2, state, want, batch)
 
-    def _compiled_online_step(self, state, y, u, options):
+    def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
+        """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing); ``u`` the input
+        :math:`u_{k+1}` of an ``f(x, k, u)``. Equal to one row of :meth:`filter`.
+
+        With numba-compiled f and h (``backend`` "auto" or "numba") the step runs the compiled loop over one
+        step: the same checks of the state and the reading, and the same consistency check of the updates as
+        the numpy step (from the step's own prediction); a covariance that stops being finite reruns the step on
+        the numpy path, which reports it.
+        """
         if options or not self._use_compiled():
-            return None
+            return super().step(state, y, u=u, **options)
+        state = self._check_state(state)
+        if state.carry.get("_predicted"):
+            return super().step(state, y, u=u)  # refuses a predicted state, with the numpy step's message
+        yk = self._reading(state, y)
+        uk = self._step_input(state, u)
+        self._check_reading(state, yk, {})
         from . import _compiled_nonlinear
 
-        return _compiled_nonlinear.compiled_run(
-            self, y[:, None], None if u is None else u[:, None], state, frozenset(), state.batch_shape, online=True
+        out = _compiled_nonlinear.compiled_run(
+            self, yk[:, None], None if uk is None else uk[:, None], state, frozenset(), state.batch_shape, online=True
         )
+        if out is None:
+            return super().step(state, y, u=u)
+        new, xp, Pp = out
+        return mark_trusted(self, _online_check.check_step(self, state, new, uk, xp, Pp))
 
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):
         x, P = check_prior(self.system, x0, P0, N, batch)
