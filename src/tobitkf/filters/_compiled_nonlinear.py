@@ -278,13 +278,14 @@ def _joint_update(code, yt, ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hj, xp,
 
 
 @njit(error_model="numpy", cache=True)
-def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, hi, par):
+def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, hi, par, one, cls, pu, comp, buf):
     r"""One linearisation ``it`` of the assumed-density update of channel ``ch`` (reading ``yv``, not NaN):
     from the rule's moments ``ym``, ``Pxy``, ``Pyy`` of h about :math:`N(x_m, P_m)` the affine model (about the
     prior itself when ``it`` = 0), the channel's moments of the latent reading
     (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``x``, ``P`` into
     ``xm``, ``Pm``. Returns ``(taken, log p(y))``: not taken (``xm``, ``Pm`` the prior) when the latent variance
-    is not above the smallest normal number."""
+    is not above the smallest normal number. ``one`` (9, 1), ``cls`` (1,), ``pu`` (1,), ``comp`` (0, 1), ``buf``:
+    scratch of the one-run block call."""
     n = x.shape[0]
     if it == 0:
         mu = ym[ch]
@@ -300,11 +301,9 @@ def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, 
         xm[:] = x
         Pm[:] = P
         return False, 0.0
-    one = np.empty((9, 1))  # y, hx, hph, rb, lo, hi, alpha, beta, ll of the one run
+    # one: the y, hx, hph, rb, lo, hi, alpha, beta, ll of the one run
     one[0, 0], one[1, 0], one[2, 0], one[3, 0], one[4, 0], one[5, 0], one[8, 0] = yv, mu, s2 - rl, rl, lo, hi, 0.0
-    cls = np.empty(1, dtype=np.int8)
     cls[0] = classify(yv, lo, hi) if family == CENSORED else 1
-    pu, comp, buf = np.empty(1), np.empty((0, 1)), np.empty((2, GL_X.shape[0]))
     family_block(
         family, 1, one[0], cls, one[1], one[2], one[3], one[4], one[5], par, one[6], one[7], one[8], pu, comp,
         GL_X, GL_W, buf,
@@ -312,9 +311,10 @@ def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, 
     alpha, beta = one[6, 0], one[7, 0]
     for i in range(n):
         xm[i] = x[i] + alpha * cxy[i]
-        for j in range(n):
-            Pm[i, j] = P[i, j] - beta * cxy[i] * cxy[j]
-    _symmetric(Pm.copy(), Pm)
+        for j in range(i + 1):
+            v = 0.5 * ((P[i, j] - beta * cxy[i] * cxy[j]) + (P[j, i] - beta * cxy[j] * cxy[i]))
+            Pm[i, j] = v
+            Pm[j, i] = v
     return True, one[8, 0]
 
 
@@ -377,7 +377,10 @@ def nonlinear_loop(
     root = np.empty((n, n))
     ym, Pxy, Pyy = np.empty(m), np.empty((n, m)), np.empty((m, m))
     xp, Pp, fxy = np.empty(n), np.empty((n, n)), np.empty((n, n))
+    xm, Pm = np.empty(n), np.empty((n, n))
     Hj, E, g = np.zeros((m, n)), np.empty(m), np.empty(m)
+    one, cls, pu, comp = np.empty((9, 1)), np.empty(1, dtype=np.int8), np.empty(1), np.empty((0, 1))
+    buf = np.empty((2, GL_X.shape[0]))
     for r in range(N):
         x = x0[r].copy()
         P = P0[r if P0.shape[0] > 1 else 0].copy()
@@ -412,13 +415,14 @@ def nonlinear_loop(
                 for ch in range(m):
                     if math.isnan(yt[ch]):
                         continue
-                    xm, Pm = x.copy(), P.copy()
+                    xm[:] = x
+                    Pm[:] = P
                     for it in range(iterations):
                         X = _points(xm, Pm, xi, root)
                         sigma_moments(X, xm, h(X, k), wm, wc, ym, Pxy, Pyy)
                         taken, lp = _channel_projection(
                             it, ch, yt[ch], x, P, xm, Pm, ym, Pxy, Pyy, R[ch, ch], family, lo_t[ch], hi_t[ch],
-                            par[min(t, TP - 1), ch],
+                            par[min(t, TP - 1), ch], one, cls, pu, comp, buf,
                         )  # fmt: skip
                         if it == 0:
                             lsum += lp
