@@ -2,19 +2,22 @@
 
 The model (n = 4, m = 2): two coupled pendulums (semi-implicit Euler, dt = 0.05), each read through the
 horizontal offset of its bob, :math:`\\sin\\theta_i`, clipped at ±0.5 (both limits censored). ``f`` and ``h``
-come twice: as numpy functions and as ``numba.njit`` functions (the same equations; a filter that has a
-compiled path for njit ``f``, ``h`` takes it, one without calls them from numpy).
+come twice: as numpy functions and as ``numba.njit`` functions (the same equations); with the njit ones the
+nonlinear filters run their compiled loop (:mod:`tobitkf.filters._compiled_nonlinear`), with the numpy ones
+their numpy path.
 
-(1) Batched: ``tk.NonlinearAssumedDensityFilter`` (unscented rule, one linearisation) over 10^4 runs x 100
-steps, against the compiled linear ``tk.AssumedDensityTobitFilter`` of the model linearised at rest
-(:math:`\\sin\\theta \\approx \\theta`, the same size, the same readings). Issue target: at most 5x the linear
-ADF per run-step when f, h are njit. Printed per run-step: wall, user and system CPU time (best of
+(1) Batched: ``tk.NonlinearAssumedDensityFilter`` (unscented rule, one linearisation) and the uncensored
+``tk.UnscentedKalmanFilter`` over 10^4 runs x 100 steps, against the compiled linear
+``tk.AssumedDensityTobitFilter`` of the model linearised at rest (:math:`\\sin\\theta \\approx \\theta`, the
+same size, the same readings). Target: the nonlinear ADF at most 5x the linear ADF per run-step when f, h
+are njit. Printed per run-step: wall, user and system CPU time (best of
 ``--repeat``; BLAS held to one thread).
 
 (2) Online: one run, ``state = adf.step(state, y_k)`` in a Python loop, against filterpy's
 ``UnscentedKalmanFilter`` ``predict()`` + ``update()`` (``MerweScaledSigmaPoints(4, alpha=1, beta=2,
 kappa=0)``, the same rule) on the same readings in the same process; repeats interleaved and the ratio taken
-within each repeat (the machine may be shared: medians and min..max). Issue target: no slower than filterpy.
+within each repeat (the machine may be shared: medians and min..max). Target: the nonlinear ADF's step with
+njit f, h no slower than filterpy's UKF.
 
 Run by hand::
 
@@ -127,6 +130,7 @@ def batched(runs: int, steps: int, repeat: int) -> None:
         ("linear ADF (compiled)", tk.AssumedDensityTobitFilter(lin, clip)),
         ("nonlinear ADF, numpy f, h", tk.NonlinearAssumedDensityFilter(nl, clip)),
         ("nonlinear ADF, njit f, h", tk.NonlinearAssumedDensityFilter(nl_jit, clip)),
+        ("UKF (uncensored), njit f, h", tk.UnscentedKalmanFilter(nl_jit)),
     ]
     for _, est in cases:  # compile / warm up outside the timings
         est.filter(y[:4, :5], outputs=("mean",))
@@ -136,7 +140,7 @@ def batched(runs: int, steps: int, repeat: int) -> None:
         wall, user, sys_ = _timed(lambda est=est: est.filter(y, outputs=("mean",)), repeat)
         per = 1e6 / (runs * steps)
         ratio = "" if ref is None else f"   x{wall / ref:6.2f} the linear ADF"
-        if ref is not None and "njit" in name:
+        if ref is not None and name.startswith("nonlinear ADF, njit"):
             worst = wall / ref
         print(f"    {name:30s} {wall * per:9.3f} / {user * per:9.3f} / {sys_ * per:7.3f}{ratio}", flush=True)
         ref = wall if ref is None else ref
@@ -174,6 +178,7 @@ def online(steps: int, repeat: int) -> None:
         ("nonlinear ADF step, numpy f, h", ours(tk.NonlinearAssumedDensityFilter(nl, clip))),
         ("nonlinear ADF step, njit f, h", ours(tk.NonlinearAssumedDensityFilter(nl_jit, clip))),
         ("UKF step (uncensored), numpy f, h", ours(tk.UnscentedKalmanFilter(nl))),
+        ("UKF step (uncensored), njit f, h", ours(tk.UnscentedKalmanFilter(nl_jit))),
     ]
     for _, fn in cases:
         fn(y[:5])
@@ -194,9 +199,9 @@ def online(steps: int, repeat: int) -> None:
             f"{np.median(arr[:, 1]):7.1f} / {np.median(arr[:, 2]):5.1f}   x{ratios[name]:5.2f} ({rs.min():.2f}.."
             f"{rs.max():.2f})"
         )
-    best = min(ratios[n] for n, _ in cases[1:3])
-    verdict = "met" if best <= TARGET_ONLINE else "not met"
-    print(f"    target: the nonlinear ADF's step no slower than filterpy's UKF: x{best:.2f} ({verdict})")
+    got = ratios["nonlinear ADF step, njit f, h"]
+    verdict = "met" if got <= TARGET_ONLINE else "not met"
+    print(f"    target: the nonlinear ADF's step (njit f, h) no slower than filterpy's UKF: x{got:.2f} ({verdict})")
 
 
 def main() -> None:
@@ -208,6 +213,9 @@ def main() -> None:
     ap.add_argument("--online-steps", type=int, default=500)
     ap.add_argument("--online-repeat", type=int, default=7)
     a = ap.parse_args()
+    print(
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (the timings are of a shared machine when it is high)"
+    )
     if a.smoke:
         batched(200, 20, 1)
         online(50, 2)

@@ -84,6 +84,7 @@ Missing readings (NaN) take no part in the update, channel by channel. Time conv
 from __future__ import annotations
 
 import math
+import sys
 from functools import lru_cache
 from typing import Any, cast
 
@@ -93,6 +94,8 @@ from .._linalg import psd_sqrt, symmetrize
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_int, diagonal_sigma
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
+from . import _online_check
+from ._backend import BACKENDS, use_kernel
 from .adf_generic import _contract_channel, _ContractChecks
 from .core import (
     FilterResult,
@@ -101,6 +104,7 @@ from .core import (
     check_keywords,
     check_prior,
     gain_update,
+    mark_trusted,
     prepare_inputs,
     process_roots,
     qr_r,
@@ -307,9 +311,16 @@ class _NonlinearFamily(GaussianFilter):
     system: Any  # a NonlinearSystem (Any: the contract checks' mixin declares a LinearSystem)
     _forms: tuple[str, ...] = ("standard", "square_root")
 
-    def _setup(self, system: Any, covariance_update: str, rule: SigmaPoints | None) -> None:
+    #: the update code of the compiled loop (:mod:`tobitkf.filters._compiled_nonlinear`): 0 Kalman, 1 Tobit, 2 ADF
+    _compiled_code = 0
+
+    def _setup(self, system: Any, covariance_update: str, rule: SigmaPoints | None, backend: str = "auto") -> None:
         check_instance(system, NonlinearSystem, "system")
-        check_keywords({"covariance_update": covariance_update}, {"covariance_update": self._forms})
+        check_keywords(
+            {"covariance_update": covariance_update, "backend": backend},
+            {"covariance_update": self._forms, "backend": BACKENDS},
+        )
+        self.backend = backend
         self.system = system
         self.n, self.m = system.n, system.m
         self.covariance_update = covariance_update
@@ -320,6 +331,78 @@ class _NonlinearFamily(GaussianFilter):
 
     def _compiled_core(self) -> bool:
         return False
+
+    # ---- the compiled path (:mod:`tobitkf.filters._compiled_nonlinear`)
+    def _compiled_gap(self) -> str | None:
+        """Why the compiled loop cannot run this estimator, or None."""
+        sys_ = self.system
+        plain = [name for name in ("f", "h", "F", "H") if not _is_jitted(getattr(sys_, name))]
+        if plain:
+            return f"{', '.join(plain)} not compiled with numba.njit"
+        if self.covariance_update == "square_root":
+            return "covariance_update='square_root' (the compiled loop runs the standard and Joseph forms)"
+        from . import _compiled_nonlinear
+
+        return _compiled_nonlinear.channel_gap(self)
+
+    def _use_compiled(self) -> bool:
+        """Whether ``filter`` and ``step`` run the compiled loop: decided once per estimator by its ``backend``
+        (``"auto"``: when f and h are numba-compiled and the case is covered; ``"numba"``: always, else an error).
+
+        Raises
+        ------
+        ValidationError
+            ``backend="numba"`` with f or h (or a given F, H) that are not ``numba.njit`` functions, or a case the
+            compiled loop does not cover.
+        """
+        cached = self.__dict__.get("_compiled_ok")
+        if cached is None:
+            if self.backend == "numpy":
+                cached = False
+            else:
+                gap = self._compiled_gap()
+                if gap is not None and self.backend == "numba" and "numba.njit" in gap:
+                    raise ValidationError(
+                        f"backend: 'numba' runs f and h compiled, but {gap}; decorate them with @numba.njit "
+                        "(written for a batch of points (..., n) as for numpy), or use backend='auto' or 'numpy'"
+                    )
+                cached = use_kernel(self.backend, gap, f"the {self._name}")
+            self._compiled_ok = cached
+        return cached
+
+    def _compiled_filter(self, y2, u2, state, want, batch):
+        if not self._use_compiled():
+            return None
+        from . import _compiled_nonlinear
+
+        return _compiled_nonlinear.compiled_run(self, y2, u2, state, want, batch)
+
+    def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
+        """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing); ``u`` the input
+        :math:`u_{k+1}` of an ``f(x, k, u)``. Equal to one row of :meth:`filter`.
+
+        With numba-compiled f and h (``backend`` "auto" or "numba") the step runs the compiled loop over one
+        step: the same checks of the state and the reading, and the same consistency check of the updates as
+        the numpy step (from the step's own prediction); a covariance that stops being finite reruns the step on
+        the numpy path, which reports it.
+        """
+        if options or not self._use_compiled():
+            return super().step(state, y, u=u, **options)
+        state = self._check_state(state)
+        if state.carry.get("_predicted"):
+            return super().step(state, y, u=u)  # refuses a predicted state, with the numpy step's message
+        yk = self._reading(state, y)
+        uk = self._step_input(state, u)
+        self._check_reading(state, yk, {})
+        from . import _compiled_nonlinear
+
+        out = _compiled_nonlinear.compiled_run(
+            self, yk[:, None], None if uk is None else uk[:, None], state, frozenset(), state.batch_shape, online=True
+        )
+        if out is None:
+            return super().step(state, y, u=u)
+        new, xp, Pp = out
+        return mark_trusted(self, _online_check.check_step(self, state, new, uk, xp, Pp))
 
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):
         x, P = check_prior(self.system, x0, P0, N, batch)
@@ -518,6 +601,18 @@ class _NonlinearFamily(GaussianFilter):
         return _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k, _per_point(u, L)), x, P)[1]
 
 
+def _is_jitted(fn: Any) -> bool:
+    """Whether ``fn`` is a numba-compiled function (None, an absent Jacobian, counts as one); numba is not imported
+    for the question (a function cannot be compiled by numba before numba is imported)."""
+    if fn is None:
+        return True
+    if "numba" not in sys.modules:
+        return False
+    from numba.extending import is_jitted
+
+    return bool(is_jitted(fn))
+
+
 def _form(est: Any) -> str:
     return "" if est.covariance_update == "standard" else f", covariance_update={est.covariance_update!r}"
 
@@ -592,8 +687,8 @@ class ExtendedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
     _name = "ExtendedKalmanFilter"
     _forms = ("standard", "joseph", "square_root")
 
-    def __init__(self, system: NonlinearSystem, *, covariance_update: str = "standard"):
-        self._setup(system, covariance_update, None)
+    def __init__(self, system: NonlinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
+        self._setup(system, covariance_update, None, backend)
 
     def __repr__(self) -> str:
         return f"ExtendedKalmanFilter({self.system!r}, covariance_update={self.covariance_update!r})"
@@ -647,8 +742,9 @@ class UnscentedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
         kappa: float = 0.0,
         order: int = 3,
         covariance_update: str = "standard",
+        backend: str = "auto",
     ):
-        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order))
+        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
 
     def __repr__(self) -> str:
         return f"UnscentedKalmanFilter({self.system!r}, rule={self.rule!r}{_form(self)})"
@@ -659,6 +755,7 @@ class UnscentedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
 
 class _TobitUpdate(_ContractChecks):
     _who = "the Tobit extended/unscented Kalman filter"
+    _compiled_code = 1
 
     def _tobit_setup(self, system: NonlinearSystem, channel: Any, noise_term: str | None) -> None:
         self.channel = _contract_channel(channel, "statistics", self._who)
@@ -762,8 +859,9 @@ class TobitExtendedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         *,
         noise_term: str | None = None,
         covariance_update: str = "standard",
+        backend: str = "auto",
     ):
-        self._setup(system, covariance_update, None)
+        self._setup(system, covariance_update, None, backend)
         self._tobit_setup(system, channel, noise_term)
 
     def __repr__(self) -> str:
@@ -817,8 +915,9 @@ class TobitUnscentedKalmanFilter(_TobitUpdate, _NonlinearFamily):
         order: int = 3,
         noise_term: str | None = None,
         covariance_update: str = "standard",
+        backend: str = "auto",
     ):
-        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order))
+        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
         self._tobit_setup(system, channel, noise_term)
 
     def __repr__(self) -> str:

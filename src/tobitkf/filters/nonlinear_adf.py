@@ -101,6 +101,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     """
 
     _name = "NonlinearAssumedDensityFilter"
+    _compiled_code = 2  # the channel-by-channel projection of the compiled loop
 
     def __init__(
         self,
@@ -114,8 +115,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         kappa: float = 0.0,
         order: int = 3,
         covariance_update: str = "standard",
+        backend: str = "auto",
     ):
-        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order))
+        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
         self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
         self.channel = _contract_channel(channel, "moments", "the nonlinear assumed-density filter")
         self.channel.check(system)

@@ -1,0 +1,562 @@
+r"""The compiled time loop of the nonlinear filters, for a :class:`~tobitkf.NonlinearSystem` whose ``f`` and ``h``
+(and ``F``, ``H`` when given) are ``numba.njit`` functions.
+
+:func:`nonlinear_loop` is the numpy path of :mod:`tobitkf.filters.nonlinear` (whose module docstring states the
+equations) run by numba over runs and steps, one run at a time: the user's functions are called from compiled code
+on the points of one run, ``f(X, k)`` with ``X`` (L, n) (the L sigma points, or the 2n central-difference points
+of the extended form) and ``h(X, k)`` likewise, so a function written for the batched numpy path serves here
+unchanged. Per step:
+
+* the **prediction**: extended (:math:`\bar x = f(\hat x)`, :math:`\bar P = F\hat PF^T + Q`) or by the sigma-point
+  rule (:func:`sigma_moments`: the unit points ``xi`` and weights ``wm``, ``wc`` of
+  :class:`~tobitkf.filters.nonlinear.SigmaPoints`, drawn with the lower Cholesky factor, an eigen root when the
+  covariance is singular);
+* the **update**, by a code: :data:`KALMAN` (:math:`K = P_{xy}(P_{yy} + R)^{-1}` over the channels with a
+  reading, standard or Joseph), :data:`TOBIT` (the Tobit update at the predicted measurement, with the
+  censored-normal statistics of :func:`~tobitkf.filters._kernels.censored_stats` and the noise terms of
+  :data:`~tobitkf.filters._kernels.NOISE_CODES`), :data:`ADF` (channel by channel, iterated, the channel's
+  moments of the latent reading from :func:`~tobitkf.filters._compiled_moments.family_block`).
+
+The user's functions are arguments, so numba specialises the loop for each (f, h, F, H): compiled once per
+process and combination (a function specialised on another is not cached on disk). Covered: the standard form
+(and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
+filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters;
+the square-root form and other channels run the numpy path.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, types
+from numba.extending import overload
+
+from ._compiled_moments import CENSORED, classify, family_block
+from ._kernels import GL_W, GL_X, censored_stats
+
+__all__ = ["KALMAN", "TOBIT", "ADF", "nonlinear_loop", "sigma_moments", "channel_gap", "compiled_run"]
+
+KALMAN, TOBIT, ADF = 0, 1, 2  #: update codes of :func:`nonlinear_loop`
+_TINY = float(np.finfo(np.float64).tiny)
+_CBRT_EPS = float(np.cbrt(np.finfo(np.float64).eps))
+
+
+@njit(error_model="numpy", cache=True)
+def _cholesky(P, out):
+    """The lower Cholesky factor of ``P`` into ``out``; False (``out`` unfinished) when P is not numerically
+    positive definite."""
+    n = P.shape[0]
+    out[:] = 0.0
+    for j in range(n):
+        d = P[j, j]
+        for c in range(j):
+            d -= out[j, c] * out[j, c]
+        if not d > 0.0:
+            return False
+        d = math.sqrt(d)
+        out[j, j] = d
+        for i in range(j + 1, n):
+            s = P[i, j]
+            for c in range(j):
+                s -= out[i, c] * out[j, c]
+            out[i, j] = s / d
+    return True
+
+
+@njit(error_model="numpy", cache=True)
+def _root(P, out):
+    r"""A square root of the symmetric PSD ``P`` into ``out``: the lower Cholesky factor, or the eigen root
+    :math:`V\mathrm{diag}(\sqrt{\max(w, 0)})` when P is not numerically positive definite
+    (:func:`tobitkf._linalg.psd_sqrt`)."""
+    if _cholesky(P, out):
+        return
+    n = P.shape[0]
+    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    for i in range(n):
+        for c in range(n):
+            out[i, c] = V[i, c] * math.sqrt(max(w[c], 0.0))
+
+
+@njit(error_model="numpy", cache=True)
+def _points(x, P, xi, root):
+    """The sigma points (L, n) of N(x, P): :math:`\\chi_l = x + L\\xi_l`."""
+    _root(P, root)
+    L, n = xi.shape
+    X = np.empty((L, n))
+    for p in range(L):
+        for i in range(n):
+            s = x[i]
+            for j in range(n):
+                s += root[i, j] * xi[p, j]
+            X[p, i] = s
+    return X
+
+
+@njit(error_model="numpy", cache=True)
+def sigma_moments(X, x, Y, wm, wc, ym, Pxy, Pyy):
+    r"""The rule's moments of the mapped points ``Y`` (L, r) of ``X`` (L, n) about ``x``: :math:`\bar y = \sum_l
+    w^m_lY_l` into ``ym``, :math:`P_{xy} = \sum_l w^c_l(X_l - x)(Y_l - \bar y)^T` into ``Pxy`` (n, r) and the
+    symmetrised :math:`P_{yy}` into ``Pyy`` (r, r)."""
+    L, r = Y.shape
+    n = X.shape[1]
+    for a in range(r):
+        s = 0.0
+        for p in range(L):
+            s += wm[p] * Y[p, a]
+        ym[a] = s
+    Pxy[:] = 0.0
+    Pyy[:] = 0.0
+    for p in range(L):
+        w = wc[p]
+        for a in range(r):
+            da = w * (Y[p, a] - ym[a])
+            for i in range(n):
+                Pxy[i, a] += (X[p, i] - x[i]) * da
+            for b in range(r):
+                Pyy[a, b] += da * (Y[p, b] - ym[b])
+    for a in range(r):
+        for b in range(a):
+            v = 0.5 * (Pyy[a, b] + Pyy[b, a])
+            Pyy[a, b] = v
+            Pyy[b, a] = v
+
+
+@njit(error_model="numpy", cache=True)
+def _difference_points(x):
+    """The 2n points :math:`x \\pm \\delta_je_j` of the central-difference Jacobian and the steps δ
+    (:func:`tobitkf.models.nonlinear.jacobian_fd`)."""
+    n = x.shape[0]
+    X = np.empty((2 * n, n))
+    delta = np.empty(n)
+    for j in range(n):
+        delta[j] = _CBRT_EPS * max(1.0, abs(x[j]))
+    for j in range(n):
+        X[j] = x
+        X[n + j] = x
+        X[j, j] = x[j] + delta[j]
+        X[n + j, j] = x[j] - delta[j]
+    return X, delta
+
+
+@njit(error_model="numpy", cache=True)
+def _difference_jacobian(V, delta):
+    """The Jacobian (r, n) from the values ``V`` (2n, r) at the points of :func:`_difference_points`."""
+    n = delta.shape[0]
+    r = V.shape[1]
+    J = np.empty((r, n))
+    for j in range(n):
+        for a in range(r):
+            J[a, j] = (V[j, a] - V[n + j, a]) / (2.0 * delta[j])
+    return J
+
+
+@njit(error_model="numpy", cache=True)
+def _solve_masked(Rxe, Ree, e, ok, K):
+    r""":math:`K = R_{xe}R_{ee}^{-1}` (n, m) over the channels ``ok`` (the others: zero gain columns), by the
+    Cholesky factor of their block of :math:`R_{ee}`; ``e`` is set to 0 where a channel does not take part."""
+    n, m = Rxe.shape
+    idx = np.empty(m, dtype=np.int64)
+    q = 0
+    for a in range(m):
+        if ok[a]:
+            idx[q] = a
+            q += 1
+        else:
+            e[a] = 0.0
+    K[:] = 0.0
+    if q == 0:
+        return
+    C = np.empty((q, q))
+    for a in range(q):
+        for b in range(q):
+            C[a, b] = Ree[idx[a], idx[b]]
+    Lc = np.empty((q, q))
+    if not _cholesky(C, Lc):  # not positive definite: the LU solve, as numpy's
+        Rs = np.empty((q, n))
+        for a in range(q):
+            for i in range(n):
+                Rs[a, i] = Rxe[i, idx[a]]
+        Ks = np.linalg.solve(C, Rs)  # Ree symmetric: K^T = Ree^{-1} Rxe^T
+        for i in range(n):
+            for a in range(q):
+                K[i, idx[a]] = Ks[a, i]
+        return
+    z = np.empty(q)
+    for i in range(n):  # solve Lc Lc^T k = Rxe[i, idx] for the row k
+        for a in range(q):
+            s = Rxe[i, idx[a]]
+            for c in range(a):
+                s -= Lc[a, c] * z[c]
+            z[a] = s / Lc[a, a]
+        for a in range(q - 1, -1, -1):
+            s = z[a]
+            for c in range(a + 1, q):
+                s -= Lc[c, a] * z[c]
+            z[a] = s / Lc[a, a]
+        for a in range(q):
+            K[i, idx[a]] = z[a]
+
+
+@njit(error_model="numpy", cache=True)
+def _gain_update(x, P, e, Rxe, Ree, ok, H, R, joseph, xo, Po):
+    r"""The masked linear update (:func:`~tobitkf.filters.core.gain_update`): :math:`\hat x = \bar x + Ke`,
+    :math:`P = \bar P - KR_{xe}^T` or the Joseph form :math:`(I - KH)\bar P(I - KH)^T + KRK^T` (H's rows of the
+    channels left out zeroed), symmetrised."""
+    n, m = Rxe.shape
+    K = np.empty((n, m))
+    _solve_masked(Rxe, Ree, e, ok, K)
+    for i in range(n):
+        s = x[i]
+        for a in range(m):
+            s += K[i, a] * e[a]
+        xo[i] = s
+    if joseph:
+        Hm = H.copy()
+        for a in range(m):
+            if not ok[a]:
+                Hm[a] = 0.0
+        IKH = np.eye(n) - K @ Hm
+        M = IKH @ P @ IKH.T + K @ R @ K.T
+    else:
+        M = P - K @ Rxe.T
+    for i in range(n):
+        for j in range(n):
+            Po[i, j] = 0.5 * (M[i, j] + M[j, i])
+
+
+@njit(error_model="numpy", cache=True)
+def _symmetric(M, out):
+    """``out`` = (M + M^T)/2."""
+    n = M.shape[0]
+    for i in range(n):
+        for j in range(n):
+            out[i, j] = 0.5 * (M[i, j] + M[j, i])
+
+
+@njit(error_model="numpy", cache=True)
+def _extended_moments(xp, Pp, Hj, Pxy, Pyy):
+    r"""The extended measurement moments :math:`P_{xy} = \bar PH^T`, :math:`P_{yy} = HP_{xy}` (symmetrised)."""
+    Pxy[:] = Pp @ Hj.T
+    _symmetric(Hj @ Pxy, Pyy)
+
+
+@njit(error_model="numpy", cache=True)
+def _joint_update(code, yt, ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hj, xp, Pp, x, P, E, g):
+    r"""The update of all channels at once from the measurement moments: :data:`KALMAN`
+    (:math:`K = P_{xy}(P_{yy} + R)^{-1}`) or :data:`TOBIT` (the Tobit update at the predicted measurement
+    :math:`\hat y` = ``ym``, with :math:`E[y]` into ``E`` and the slope into ``g``); a NaN reading and a
+    channel with a degenerate innovation variance take no part. Writes ``x``, ``P``."""
+    m = ym.shape[0]
+    e = np.empty(m)
+    ok = np.empty(m, dtype=np.bool_)
+    if code == KALMAN:
+        Ree = Pyy + R
+        for a in range(m):
+            e[a] = yt[a] - ym[a]
+            ok[a] = not math.isnan(yt[a]) and Ree[a, a] > _TINY
+        _gain_update(xp, Pp, e, Pxy, Ree, ok, Hj, R, joseph, x, P)
+        return
+    buf = np.empty((2, GL_X.shape[0]))
+    V = np.empty(m)
+    for a in range(m):
+        st = censored_stats(ym[a], math.sqrt(R[a, a]), lo[a], hi[a], GL_X, GL_W, buf)
+        g[a] = st[2]
+        E[a] = st[6]
+        if noise_code == 0:
+            V[a] = st[5]
+        elif noise_code == 1:
+            V[a] = st[7]
+        else:
+            V[a] = st[2] * (st[5] + (st[4] - ym[a]) ** 2)
+    Rxe = Pxy * g.reshape((1, m))
+    Ree = g.reshape((m, 1)) * Pyy * g.reshape((1, m)) + np.diag(V)
+    for a in range(m):
+        e[a] = yt[a] - E[a]
+        ok[a] = not math.isnan(yt[a]) and Ree[a, a] > _TINY
+    _gain_update(xp, Pp, e, Rxe, Ree, ok, Hj, R, False, x, P)
+
+
+@njit(error_model="numpy", cache=True)
+def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, hi, par, one, cls, pu, comp, buf):
+    r"""One linearisation ``it`` of the assumed-density update of channel ``ch`` (reading ``yv``, not NaN):
+    from the rule's moments ``ym``, ``Pxy``, ``Pyy`` of h about :math:`N(x_m, P_m)` the affine model (about the
+    prior itself when ``it`` = 0), the channel's moments of the latent reading
+    (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``x``, ``P`` into
+    ``xm``, ``Pm``. Returns ``(taken, log p(y))``: not taken (``xm``, ``Pm`` the prior) when the latent variance
+    is not above the smallest normal number. ``one`` (9, 1), ``cls`` (1,), ``pu`` (1,), ``comp`` (0, 1), ``buf``:
+    scratch of the one-run block call."""
+    n = x.shape[0]
+    if it == 0:
+        mu = ym[ch]
+        cxy = Pxy[:, ch].copy()
+        s2 = Pyy[ch, ch] + rl
+    else:  # the affine model fitted about the posterior, applied to the prior
+        Hl = np.linalg.solve(Pm, Pxy[:, ch].copy())
+        omega = max(Pyy[ch, ch] - np.dot(Hl, np.dot(Pm, Hl)), 0.0)
+        mu = ym[ch] + np.dot(Hl, x - xm)
+        cxy = np.dot(P, Hl)
+        s2 = np.dot(Hl, cxy) + omega + rl
+    if not s2 > _TINY:
+        xm[:] = x
+        Pm[:] = P
+        return False, 0.0
+    # one: the y, hx, hph, rb, lo, hi, alpha, beta, ll of the one run
+    one[0, 0], one[1, 0], one[2, 0], one[3, 0], one[4, 0], one[5, 0], one[8, 0] = yv, mu, s2 - rl, rl, lo, hi, 0.0
+    cls[0] = classify(yv, lo, hi) if family == CENSORED else 1
+    family_block(
+        family, 1, one[0], cls, one[1], one[2], one[3], one[4], one[5], par, one[6], one[7], one[8], pu, comp,
+        GL_X, GL_W, buf,
+    )  # fmt: skip
+    alpha, beta = one[6, 0], one[7, 0]
+    for i in range(n):
+        xm[i] = x[i] + alpha * cxy[i]
+        for j in range(i + 1):
+            v = 0.5 * ((P[i, j] - beta * cxy[i] * cxy[j]) + (P[j, i] - beta * cxy[j] * cxy[i]))
+            Pm[i, j] = v
+            Pm[j, i] = v
+    return True, one[8, 0]
+
+
+def _call(fn, X, k, U):  # pragma: no cover - compiled only (its overload below)
+    """``fn(X, k)`` or, with input rows ``U``, ``fn(X, k, U)``."""
+
+
+@overload(_call)
+def _call_overload(fn, X, k, U):
+    if isinstance(U, types.NoneType):
+        return lambda fn, X, k, U: fn(X, k)
+    return lambda fn, X, k, U: fn(X, k, U)
+
+
+def _input_rows(u, r, t, rows):  # pragma: no cover - compiled only (its overload below)
+    """The input of run r at step t repeated for ``rows`` points, (rows, p); None without inputs."""
+
+
+@overload(_input_rows)
+def _input_rows_overload(u, r, t, rows):
+    if isinstance(u, types.NoneType):
+        return lambda u, r, t, rows: None
+
+    def rows_of(u, r, t, rows):
+        p = u.shape[2]
+        out = np.empty((rows, p))
+        for i in range(rows):
+            out[i] = u[r, t]
+        return out
+
+    return rows_of
+
+
+@njit(error_model="numpy")
+def nonlinear_loop(
+    f, h, F, H, code, xi, wm, wc, y, u, Qs, Rs, k0, x0, P0,
+    family, lo, hi, par, noise_code, iterations, joseph,
+    means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
+):  # fmt: skip
+    r"""The filter of every nonlinear family over the runs of ``y`` (N, T, m) from the prior ``x0`` (N, n),
+    ``P0`` (N or 1, n, n) at time ``k0``.
+
+    ``f``, ``h``, ``F``, ``H``: the model's compiled functions (``F``/``H`` None: central differences); ``u``
+    (N, T, p) the inputs of an ``f(x, k, u)`` or None; ``xi`` (L, n), ``wm``, ``wc`` (L,) the sigma-point rule
+    (L = 0: the extended form); ``Qs`` (TQ, n, n) :math:`Q_{k-1}` and ``Rs`` (TR, m, m) :math:`R_k` per step
+    (one row: constant); ``code`` :data:`KALMAN`, :data:`TOBIT` or :data:`ADF`; ``family``, ``lo``/``hi`` (TL, m),
+    ``par`` (TP, m, K) the channel of the ADF (a family of :mod:`~tobitkf.filters._compiled_moments`) and the
+    limits of the Tobit update, ``noise_code`` its noise term; ``iterations`` the ADF's linearisations;
+    ``joseph`` the Joseph form of the Kalman update. Writes ``means``/``pmeans`` (N, T or 0, n), ``covs``
+    (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit extras ``ey``/``slope`` (N, T or 0, m), the
+    ADF's ``ll`` (N, T or 0), and the last state ``x_last``/``P_last``.
+
+    Only this function is specialised on the user's functions (and compiled in every process): everything it
+    does besides calling them is in the cached helpers above.
+    """
+    N, T, m = y.shape
+    n = x0.shape[1]
+    L = xi.shape[0]
+    TQ, TR, TL, TP = Qs.shape[0], Rs.shape[0], lo.shape[0], par.shape[0]
+    root = np.empty((n, n))
+    ym, Pxy, Pyy = np.empty(m), np.empty((n, m)), np.empty((m, m))
+    xp, Pp, fxy = np.empty(n), np.empty((n, n)), np.empty((n, n))
+    xm, Pm = np.empty(n), np.empty((n, n))
+    Hj, E, g = np.zeros((m, n)), np.empty(m), np.empty(m)
+    one, cls, pu, comp = np.empty((9, 1)), np.empty(1, dtype=np.int8), np.empty(1), np.empty((0, 1))
+    buf = np.empty((2, GL_X.shape[0]))
+    for r in range(N):
+        x = x0[r].copy()
+        P = P0[r if P0.shape[0] > 1 else 0].copy()
+        for t in range(T):
+            k = k0 + t + 1
+            Q, R = Qs[min(t, TQ - 1)], Rs[min(t, TR - 1)]
+            lo_t, hi_t = lo[min(t, TL - 1)], hi[min(t, TL - 1)]
+            # ---- the prediction: extended or by the rule
+            if L == 0:
+                X = x.reshape((1, n)).copy()
+                Xd, delta = _difference_points(x)
+                xp[:] = _call(f, X, k - 1, _input_rows(u, r, t, 1))[0]
+                if F is None:
+                    Fj = _difference_jacobian(_call(f, Xd, k - 1, _input_rows(u, r, t, 2 * n)), delta)
+                else:
+                    Fj = _call(F, X, k - 1, _input_rows(u, r, t, 1))[0]
+                _symmetric(Fj @ P @ Fj.T + Q, Pp)
+            else:
+                X = _points(x, P, xi, root)
+                sigma_moments(X, x, _call(f, X, k - 1, _input_rows(u, r, t, L)), wm, wc, xp, fxy, Pp)
+                _symmetric(Pp + Q, Pp)
+            if pmeans.shape[1] > 0:
+                pmeans[r, t] = xp
+            if pcovs.shape[1] > 0:
+                pcovs[r, t] = Pp
+            # ---- the update
+            yt = y[r, t]
+            if code == ADF:  # channel by channel, each linearised `iterations` times
+                x[:] = xp
+                P[:] = Pp
+                lsum = 0.0
+                for ch in range(m):
+                    if math.isnan(yt[ch]):
+                        continue
+                    xm[:] = x
+                    Pm[:] = P
+                    for it in range(iterations):
+                        X = _points(xm, Pm, xi, root)
+                        sigma_moments(X, xm, h(X, k), wm, wc, ym, Pxy, Pyy)
+                        taken, lp = _channel_projection(
+                            it, ch, yt[ch], x, P, xm, Pm, ym, Pxy, Pyy, R[ch, ch], family, lo_t[ch], hi_t[ch],
+                            par[min(t, TP - 1), ch], one, cls, pu, comp, buf,
+                        )  # fmt: skip
+                        if it == 0:
+                            lsum += lp
+                        if not taken:
+                            break
+                    x[:] = xm
+                    P[:] = Pm
+                if ll.shape[1] > 0:
+                    ll[r, t] = lsum
+            else:
+                if L == 0:  # the extended measurement: h(x̄) and its Jacobian
+                    X = xp.reshape((1, n)).copy()
+                    ym[:] = h(X, k)[0]
+                    if H is None:
+                        Xd, delta = _difference_points(xp)
+                        Hj[:] = _difference_jacobian(h(Xd, k), delta)
+                    else:
+                        Hj[:] = H(X, k)[0]
+                    _extended_moments(xp, Pp, Hj, Pxy, Pyy)
+                else:
+                    X = _points(xp, Pp, xi, root)
+                    sigma_moments(X, xp, h(X, k), wm, wc, ym, Pxy, Pyy)
+                _joint_update(code, yt, ym, Pxy, Pyy, R, lo_t, hi_t, noise_code, joseph, Hj, xp, Pp, x, P, E, g)
+                if ey.shape[1] > 0:
+                    ey[r, t] = E
+                    slope[r, t] = g
+            if means.shape[1] > 0:
+                means[r, t] = x
+            if covs.shape[1] > 0:
+                if covs.shape[3] == 1:
+                    for i in range(n):
+                        covs[r, t, i, 0] = P[i, i]
+                else:
+                    covs[r, t] = P
+        x_last[r] = x
+        P_last[r] = P
+
+
+# --------------------------------------------------------------------------- the Python side
+
+
+def _c(a) -> np.ndarray:
+    """``a`` as a C-contiguous, writable float64 array (a read-only one would specialise the loop once more)."""
+    return np.require(a, dtype=float, requirements=("C", "W"))
+
+
+def channel_arrays(est, k0: int, T: int):
+    """``(family, lo, hi, par, noise_code)`` of the estimator's channel for the steps k0+1..k0+T, or a string
+    saying why the compiled loop does not cover it (the numpy path runs)."""
+    from ..channels.censoring import Censoring
+    from ._compiled_moments import FAMILIES, QUANTIZER
+    from ._kernels import NOISE_CODES
+
+    m = est.m
+    inf = np.full((1, m), np.inf)
+    none = np.zeros((1, m, 0))
+    code = est._compiled_code
+    if code == KALMAN:
+        return CENSORED, -inf, inf, none, 0
+    channel = est.channel
+    if getattr(est, "_sigma" if code == TOBIT else "_r", None) is None:
+        return "a measurement covariance R given per step"
+    if isinstance(channel, Censoring):
+        lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
+        noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
+        return CENSORED, _c(lo), _c(hi), none, noise
+    if code == ADF and FAMILIES.get(getattr(channel, "compiled_moments", None) or "") == QUANTIZER:
+        par = _c(channel.compiled_parameters(k0 + 1, T, m))
+        return QUANTIZER, -inf, inf, par, 0
+    return f"the channel {type(channel).__name__} (the compiled path covers censoring and, for the ADF, quantizers)"
+
+
+def channel_gap(est) -> str | None:
+    """Why the compiled loop does not cover the estimator's channel and noise (None: it does)."""
+    gap = channel_arrays(est, 0, 1)
+    return gap if isinstance(gap, str) else None
+
+
+def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = False):
+    """The compiled ``filter`` (or, ``online``, one step) of a nonlinear estimator whose gap is None: a
+    :class:`~tobitkf.FilterResult` (for a step the new state and the step's prediction ``(state, x̄, P̄)``), or None when the covariance stopped being finite
+    (the numpy path reruns the call and reports where) or the channel is not covered."""
+    from ._outputs import _empty, kernel_result, output_arrays, state_specs
+    from .core import FilterState, step_state
+
+    N, T, m = y2.shape
+    n = est.n
+    sys_ = est.system
+    arrays = channel_arrays(est, state.k, T)
+    if isinstance(arrays, str):
+        return None
+    family, lo, hi, par, noise_code = arrays
+    rule = est.rule
+    if rule is None:
+        xi, wm, wc = np.empty((0, n)), np.empty(0), np.empty(0)
+    else:
+        xi, wm, wc = (_c(a) for a in rule.unit(n))
+    k0 = state.k
+    Qs = _c(np.stack([sys_.process_cov(k0 + t) for t in range(T)]) if sys_.Q.varying else sys_.process_cov(0)[None])
+    Rs = _c(np.stack([sys_.measurement_cov(k0 + t + 1) for t in range(T)]) if sys_.R.varying else
+            sys_.measurement_cov(1)[None])  # fmt: skip
+    code = est._compiled_code
+    ext = online or "extras" in want
+    if online:  # the prediction too, for the consistency check of the step
+        means, covs, pmeans, pcovs = (
+            _empty((N, 0, n)),
+            _empty((N, 0, n, n)),
+            np.empty((N, 1, n)),
+            np.empty((N, 1, n, n)),
+        )
+        ey, slope, ll = (np.empty((N, 1, m)), np.empty((N, 1, m)), np.empty((N, 0))) if code == TOBIT else (
+            _empty((N, 0, m)), _empty((N, 0, m)), np.empty((N, 1)) if code == ADF else _empty((N, 0)))  # fmt: skip
+    else:
+        means, covs, pmeans, pcovs, ey, slope, ll = output_arrays(
+            N, T, *state_specs(want, n), (ext and code == TOBIT, (m,)), (ext and code == TOBIT, (m,)),
+            (ext and code == ADF, ()),
+        )  # fmt: skip
+    x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
+    nonlinear_loop(
+        sys_.f, sys_.h, sys_.F, sys_.H, code, xi, wm, wc, _c(y2), None if u2 is None else _c(u2), Qs, Rs, k0,
+        _c(state.x), _c(state.P), family, lo, hi, par, noise_code, est.iterations if code == ADF else 1,
+        est.covariance_update == "joseph", means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
+    )  # fmt: skip
+    if not np.isfinite(np.diagonal(P_last, axis1=-2, axis2=-1)).all():
+        return None
+    extras = {}
+    if ext and code == TOBIT:
+        extras = {"expected_y": ey, "slope": slope}
+    elif ext and code == ADF:
+        extras = {"log_likelihood": ll}
+    if online:
+        new = step_state(k0 + 1, state.batch_shape, x_last, P_last, n, None, state.carry,
+                         {key: v[:, 0] for key, v in extras.items()} or None)  # fmt: skip
+        return new, pmeans[:, 0], pcovs[:, 0]
+    extras = {key: v.reshape(batch + v.shape[1:]) for key, v in extras.items()}
+    final = FilterState(k=k0 + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
+    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
