@@ -303,29 +303,23 @@ def certify_tkf_stability(
                 break
         except cp.error.SolverError:
             continue
+    ok = False
     if status in ("optimal", "optimal_inaccurate") and P.value is not None:
         Pv = 0.5 * (P.value + P.value.T)
-        ok = np.linalg.eigvalsh(Pv).min() > 0
+        ok = bool(np.linalg.eigvalsh(Pv).min() > 0)
         for M in Av:
             Mn = M / scale if domain == "ct" else M
             S = Mn.T @ Pv @ Mn - Pv if domain == "dt" else Mn.T @ Pv + Pv @ Mn
-            ok &= np.linalg.eigvalsh(0.5 * (S + S.T)).max() < 0
-        if ok:
-            return StabilityCertificate(
-                True,
-                Pv,
-                vr,
-                float(samp[worst]),
-                float(ss[worst]),
-                f"certified: common quadratic Lyapunov function over {len(verts)} vertices",
-            )
+            ok &= bool(np.linalg.eigvalsh(0.5 * (S + S.T)).max() < 0)
     return StabilityCertificate(
-        False,
-        None,
+        ok,
+        Pv if ok else None,
         vr,
         float(samp[worst]),
         float(ss[worst]),
-        f"not certified: no common quadratic Lyapunov function (solver status {status})",
+        f"certified: common quadratic Lyapunov function over {len(verts)} vertices"
+        if ok
+        else f"not certified: no common quadratic Lyapunov function (solver status {status})",
     )
 
 
