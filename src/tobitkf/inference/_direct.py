@@ -80,7 +80,7 @@ def fit_map(
     **fields: Any,
 ) -> FitResult:
     """:func:`~tobitkf.inference._optimize.maximize_map` of ``ll_of`` from ``th0``, as a direct fit's
-    :class:`FitResult`: ``model`` is ``model_of(theta)``, ``fit_seconds`` counts from ``started``
+    :class:`FitResult`: a value of ``ll_of`` that is not finite scores -inf, ``model`` is ``model_of(theta)``, ``fit_seconds`` counts from ``started``
     (:func:`time.perf_counter`), and ``fields`` give the rest (``n_obs``, ``likelihood``, ``data``, ``extra``).
 
     Raises
@@ -88,8 +88,13 @@ def fit_map(
     ValidationError
         The log-likelihood is not finite at ``th0``.
     """
+
+    def scored(th: np.ndarray) -> float:  # a value that is not finite (nan, +inf) scores -inf
+        v = ll_of(th)
+        return v if np.isfinite(v) else -np.inf
+
     out, th, ll, cov = maximize_map(
-        ll_of,
+        scored,
         th0,
         names,
         gtol=gtol,

@@ -192,10 +192,9 @@ def fit_nonlinear(
         with warnings.catch_warnings(), np.errstate(all="ignore"):
             warnings.simplefilter("ignore")  # a trial step of the search may diverge: it scores -inf
             try:
-                v = float(np.sum(est.log_likelihood(y2, u=u)))
+                return float(np.sum(est.log_likelihood(y2, u=u)))
             except (ValueError, np.linalg.LinAlgError):
                 return -np.inf
-        return v if np.isfinite(v) else -np.inf
 
     return fit_map(
         ll_of,

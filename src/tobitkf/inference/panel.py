@@ -699,8 +699,7 @@ def fit_panel(
             _, _, terms = _run(s, arr, kind)
         except (ValidationError, np.linalg.LinAlgError, FloatingPointError):
             return -np.inf
-        v = float(terms.sum())
-        return v if np.isfinite(v) else -np.inf
+        return float(terms.sum())
 
     # converged means what it means for tk.fit's other models: the Newton step with the observed information
     # is below gtol standard errors in every parameter (checked also when no standard errors are reported)
