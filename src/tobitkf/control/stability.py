@@ -266,22 +266,15 @@ def certify_tkf_stability(
     samp = np.array([rad(A - s * L @ C) for s in ss])
     worst = int(np.argmax(samp))
     limit = 1.0 if domain == "dt" else 0.0
+
+    def certificate(Pv: np.ndarray | None, message: str) -> StabilityCertificate:  # certified iff a P is given
+        return StabilityCertificate(Pv is not None, Pv, vr, float(samp[worst]), float(ss[worst]), message)
+
     if np.any(vr >= limit):
-        return StabilityCertificate(
-            False,
-            None,
-            vr,
-            float(samp[worst]),
-            float(ss[worst]),
-            "not certified: a vertex A - L S C is itself unstable",
-        )
+        return certificate(None, "not certified: a vertex A - L S C is itself unstable")
     if grid > 0 and samp[worst] >= limit:
-        return StabilityCertificate(
-            False,
+        return certificate(
             None,
-            vr,
-            float(samp[worst]),
-            float(ss[worst]),
             f"not certified: A - s L C is unstable at s = {ss[worst]:.3f} "
             f"({'spectral radius' if domain == 'dt' else 'max real part'} {samp[worst]:.4f})",
         )
@@ -303,29 +296,19 @@ def certify_tkf_stability(
                 break
         except cp.error.SolverError:
             continue
+    ok = False
     if status in ("optimal", "optimal_inaccurate") and P.value is not None:
         Pv = 0.5 * (P.value + P.value.T)
-        ok = np.linalg.eigvalsh(Pv).min() > 0
+        ok = bool(np.linalg.eigvalsh(Pv).min() > 0)
         for M in Av:
             Mn = M / scale if domain == "ct" else M
             S = Mn.T @ Pv @ Mn - Pv if domain == "dt" else Mn.T @ Pv + Pv @ Mn
-            ok &= np.linalg.eigvalsh(0.5 * (S + S.T)).max() < 0
-        if ok:
-            return StabilityCertificate(
-                True,
-                Pv,
-                vr,
-                float(samp[worst]),
-                float(ss[worst]),
-                f"certified: common quadratic Lyapunov function over {len(verts)} vertices",
-            )
-    return StabilityCertificate(
-        False,
-        None,
-        vr,
-        float(samp[worst]),
-        float(ss[worst]),
-        f"not certified: no common quadratic Lyapunov function (solver status {status})",
+            ok &= bool(np.linalg.eigvalsh(0.5 * (S + S.T)).max() < 0)
+    return certificate(
+        Pv if ok else None,
+        f"certified: common quadratic Lyapunov function over {len(verts)} vertices"
+        if ok
+        else f"not certified: no common quadratic Lyapunov function (solver status {status})",
     )
 
 

@@ -1394,19 +1394,18 @@ def _design_once(
     prob = cp.Problem(cp.Minimize(v["g2"] if objective == "min_gamma" else 0), v["cons"])
     status, used = _solve(prob, solver, fallback)
     seconds = time.perf_counter() - t0
-    ok = status in ("optimal", "optimal_inaccurate")
-    if not ok:
-        return _finish(
-            model,
-            status=status,
-            solver=used,
-            method=method,
-            objective=objective,
-            theorem=2,
-            covariance=covariance,
-            seconds=seconds,
-            margin=margin,
-        )
+    run: dict[str, Any] = dict(
+        status=status,
+        solver=used,
+        method=method,
+        objective=objective,
+        theorem=2,
+        covariance=covariance,
+        seconds=seconds,
+        margin=margin,
+    )  # what the certificate records of the solve, whether it succeeded or not
+    if status not in ("optimal", "optimal_inaccurate"):
+        return _finish(model, **run)
     gam = float(np.sqrt(max(v["g2"].value, 0.0))) if objective == "min_gamma" else gamma
     if method == "theorem3":
         Q1 = Qf[0] if Qf is not None else v["Q1"].value
@@ -1421,23 +1420,7 @@ def _design_once(
         Bf = np.linalg.solve(W, v["Bh"].value)
         P = np.array(v["P"].value, dtype=float)
         blockdiag = False
-    return _finish(
-        model,
-        status=status,
-        solver=used,
-        method=method,
-        objective=objective,
-        theorem=2,
-        gamma=gam,
-        Af=Af,
-        Bf=Bf,
-        P=P,
-        **_multipliers(v),
-        covariance=covariance,
-        block_diagonal=blockdiag,
-        seconds=seconds,
-        margin=margin,
-    )
+    return _finish(model, **run, gamma=gam, Af=Af, Bf=Bf, P=P, **_multipliers(v), block_diagonal=blockdiag)
 
 
 def _ok_gamma(cert: HinfCertificate) -> float:

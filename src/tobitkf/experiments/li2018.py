@@ -347,6 +347,18 @@ def run_tracking(*, runs: int, seed: int, progress=None, S: Any = None, steps: i
 # --------------------------------------------------------------------------- li2018-fading
 
 
+def _save_pair(fig: Any, titles: list[str], title: str, path: Path, *, legend_size: int, caption: str) -> Path:
+    """Title each of the figure's panels (x1 and x2 over t) with ``titles``, label and legend them, title the
+    figure ``title`` and save it as ``path`` with its ``caption``; returns ``path``."""
+    for ax, sub in zip(fig.axes, titles):
+        ax.set_title(sub)
+        ax.set_xlabel("t")
+        ax.legend(fontsize=legend_size)
+    fig.suptitle(title)
+    save(fig, path.parent, path.name, dpi=100, tight=False, caption=caption)
+    return path
+
+
 def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
@@ -359,18 +371,12 @@ def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
             for i, ax in enumerate(axes):
                 (line,) = ax.plot(t, P[:, i], lw=1.2, label=f"P, q = {q:g}")
                 ax.plot(t, mse[:, i], ":", color=line.get_color(), lw=0.8, label=f"MC MSE, q = {q:g}")
-        for i, ax in enumerate(axes):
-            ax.set_title(f"({'ab'[i]}) x{i + 1}(t)")
-            ax.set_xlabel("t")
-            ax.legend(fontsize=7)
-        fig.suptitle(f"Li et al. 2018 Fig. 2: filter error variance, S = {s:g}")
-        path = outdir / f"fig2_fading_S{s:g}.png"
-        save(
+        path = _save_pair(
             fig,
-            path.parent,
-            path.name,
-            dpi=100,
-            tight=False,
+            ["(a) x1(t)", "(b) x2(t)"],
+            f"Li et al. 2018 Fig. 2: filter error variance, S = {s:g}",
+            outdir / f"fig2_fading_S{s:g}.png",
+            legend_size=7,
             caption=f"Fig. 2 (comparison of the filter's error variances for P(γ(t) = q) = 0.8, q = 0.3, 0.6, 1) at "
             f"S = {s:g}: the filter's error variance P(t|t) of x1 (a) and x2 (b), with the Monte Carlo MSE "
             "dotted (not in the source).",
@@ -475,18 +481,12 @@ def _plot_tables(result: ExperimentResult, outdir: Path) -> list[Path]:
                 ax.semilogy(
                     np.arange(1, curves.shape[0] + 1), curves[:, i], style, lw=1.2, label=_TABLE_LABELS.get(key, key)
                 )
-        for i, ax in enumerate(axes):
-            ax.set_title(f"x{i + 1}: running-average MSE")
-            ax.set_xlabel("t")
-            ax.legend(fontsize=8)
-        fig.suptitle(f"Li et al. 2018 Fig. {fig_no}: {which} (S = {d['S']:g}; naive-kf is a stand-in for [28])")
-        path = outdir / f"fig{fig_no}_{which}_mse.png"
-        save(
+        path = _save_pair(
             fig,
-            path.parent,
-            path.name,
-            dpi=100,
-            tight=False,
+            [f"x{i + 1}: running-average MSE" for i in range(2)],
+            f"Li et al. 2018 Fig. {fig_no}: {which} (S = {d['S']:g}; naive-kf is a stand-in for [28])",
+            outdir / f"fig{fig_no}_{which}_mse.png",
+            legend_size=8,
             caption=f"Fig. {fig_no} (MSE of the {which} against [28]'s): the running-average MSE of x1 and x2 over t "
             f"at S = {d['S']:g} for our estimators (chain = Algorithm C, augmented = Algorithm A, paper-j = "
             "the paper's constant decorrelation J) and the stand-in for [28] (naive-kf: the same estimator "

@@ -151,8 +151,16 @@ def _pbtkf(system, parts, o):
 _DELAY_MODULES = {"ChainLMMSE": "delay_chain", "AugmentedLMMSE": "delay_augmented"}
 
 
-def _delay(cls_name: str) -> Callable[..., Any]:
-    return _maker(_DELAY_MODULES.get(cls_name, "delay_reorganized"), cls_name, "prior")
+def _family(name: str, summary: str, module: str, takes: tuple[str, ...] = (), **fields: Any) -> Entry:
+    """The entry of the class ``name`` of ``tobitkf.filters.<module>``, built by :func:`_maker` with the channel
+    pieces ``takes``: it needs those not marked optional (``?``). ``fields`` are the entry's other fields."""
+    needs = tuple(p for p in takes if not p.endswith("?"))
+    return Entry(name, summary, _maker(module, name, *takes), needs=needs, **fields)
+
+
+def _delay(name: str, summary: str, **fields: Any) -> Entry:
+    """A delay-family entry (:func:`_family`): its class takes the history prior."""
+    return _family(name, summary, _DELAY_MODULES.get(name, "delay_reorganized"), ("prior",), model="delay", **fields)
 
 
 def channel_of(parts: Mapping[str, Any]) -> Any:
@@ -195,38 +203,38 @@ def _tracker(system, parts, o):
 
 
 _ENTRY_LIST = [
-    Entry(
+    _family(
         "KalmanFilter",
         "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
-        _maker("kalman", "KalmanFilter"),
+        "kalman",
         options={"covariance_update": _FORMS, "backend": BACKENDS},
     ),
-    Entry(
+    _family(
         "DroppingKalmanFilter",
         "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
-        _maker("kalman", "DroppingKalmanFilter", "censoring"),
-        needs=("censoring",),
+        "kalman",
+        ("censoring",),
         options={"covariance_update": _FORMS, "rtol": float, "backend": BACKENDS},
     ),
-    Entry(
+    _family(
         "TobitKalmanFilter",
         "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
-        _maker("tobit", "TobitKalmanFilter", "censoring"),
-        needs=("censoring",),
+        "tobit",
+        ("censoring",),
         options={**_TOBIT_OPTIONS, "threads": int},
     ),
-    Entry(
+    _family(
         "SteadyStateTobitKalmanFilter",
         "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
-        _maker("steady_state", "SteadyStateTobitKalmanFilter"),  # xi_uncensored: an option by keyword
+        "steady_state",  # xi_uncensored: an option by keyword
         options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": BACKENDS},
         required=("xi_uncensored",),
         reads="latent",
     ),
-    Entry(
+    _family(
         "ControlledLimitTobitKalmanFilter",
         "full TKF with the steered limit of (3.56) (Miller §3.4)",
-        _maker("steady_state", "ControlledLimitTobitKalmanFilter"),
+        "steady_state",
         options={
             "xi_uncensored": float,
             "side": ("upper", "lower"),
@@ -236,25 +244,25 @@ _ENTRY_LIST = [
         required=("xi_uncensored",),
         reads="latent",
     ),
-    Entry(
+    _family(
         "FadingTobitKalmanFilter",
         "TKF with L-th order Rice fading (Geng et al. 2017)",
-        _maker("fading", "FadingTobitKalmanFilter", "fading", "censoring?"),
-        needs=("fading",),
+        "fading",
+        ("fading", "censoring?"),
         options=_FADING_TOBIT_OPTIONS,
     ),
-    Entry(
+    _family(
         "FadingKalmanFilter",
         "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
-        _maker("fading", "FadingKalmanFilter", "fading"),
-        needs=("fading",),
+        "fading",
+        ("fading",),
         options=_FADING_KF_OPTIONS,
     ),
-    Entry(
+    _family(
         "ProtocolTobitKalmanFilter",
         "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
-        _maker("protocol", "ProtocolTobitKalmanFilter", "protocol"),
-        needs=("protocol",),
+        "protocol",
+        ("protocol",),
         options={**_PROTOCOL_OPTIONS, "backend": BACKENDS},
     ),
     Entry(
@@ -264,46 +272,46 @@ _ENTRY_LIST = [
         needs=("protocol",),
         options={"covariance_update": _PROTOCOL_OPTIONS["covariance_update"]},
     ),
-    Entry(
+    _family(
         "AssumedDensityTobitFilter",
         "assumed-density filter: the exact posterior moments of each censored reading (beyond the sources)",
-        _maker("assumed_density", "AssumedDensityTobitFilter", "censoring"),
-        needs=("censoring",),
+        "assumed_density",
+        ("censoring",),
         options={**_ADF_OPTIONS, "order": _ORDERS},
     ),
-    Entry(
+    _family(
         "FadingAssumedDensityFilter",
         "assumed-density filter for censored readings through Rice fading (beyond the sources)",
-        _maker("adf_fading", "FadingAssumedDensityFilter", "fading", "censoring?"),
-        needs=("fading",),
+        "adf_fading",
+        ("fading", "censoring?"),
         options=_ADF_OPTIONS,
     ),
-    Entry(
+    _family(
         "ProtocolAssumedDensityFilter",
         "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
-        _maker("adf_protocol", "ProtocolAssumedDensityFilter", "protocol"),
-        needs=("protocol",),
+        "adf_protocol",
+        ("protocol",),
         options={**_ADF_OPTIONS, "nodes": int},
     ),
-    Entry(
+    _family(
         "SaturationAssumedDensityFilter",
         "assumed-density filter for random saturation with missing readings (beyond the sources)",
-        _maker("adf_saturation", "SaturationAssumedDensityFilter", "saturation"),
-        needs=("saturation",),
+        "adf_saturation",
+        ("saturation",),
         options=_ADF_OPTIONS,
     ),
-    Entry(
+    _family(
         "AssumedDensityFilter",
         "assumed-density filter of any channel: a named form where one exists, else the channel's moments",
-        _maker("adf_generic", "AssumedDensityFilter", "channel"),
-        needs=("channel",),
+        "adf_generic",
+        ("channel",),
         options={"covariance_update": _FORMS},
     ),
-    Entry(
+    _family(
         "TobitFilter",
         "the Tobit Kalman filter's update for any channel with reading statistics (beyond the sources)",
-        _maker("adf_generic", "TobitFilter", "channel"),
-        needs=("channel",),
+        "adf_generic",
+        ("channel",),
         options={"covariance_update": _FORMS, "linearization": ("prior_mean", "predictive")},
     ),
     Entry(
@@ -319,29 +327,20 @@ _ENTRY_LIST = [
         },
         required=("seed",),  # a registry-built particle filter draws the same particles on every run
     ),
-    Entry(
+    _delay(
         "ChainLMMSE",
         "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
-        _delay("ChainLMMSE"),
-        needs=("prior",),
         options={"decorrelation": _DECORRELATION, "backend": BACKENDS},
-        model="delay",
     ),
-    Entry(
+    _delay(
         "AugmentedLMMSE",
         "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
-        _delay("AugmentedLMMSE"),
-        needs=("prior",),
         options={"window": int, "covariance_update": _FORMS},
-        model="delay",
     ),
-    Entry(
+    _delay(
         "ReorganizedInnovationLMMSE",
         "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
-        _delay("ReorganizedInnovationLMMSE"),
-        needs=("prior",),
         options={"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
-        model="delay",
     ),
     Entry(
         "RegionalHinfFilter",

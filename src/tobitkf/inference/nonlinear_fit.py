@@ -26,10 +26,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .._validation import ShapeError, ValidationError, as_float_array, check_bool
+from .._validation import ValidationError, as_float_array, check_bool
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
-from ._optimize import check_iterations, check_tolerance, maximize_map
+from ._direct import checked_map, fit_map, start_values
+from ._optimize import check_iterations, check_tolerance
 from ._results import FitResult, _progress_callback
 
 __all__ = ["NonlinearModel", "builds_nonlinear", "fit_nonlinear"]
@@ -163,10 +164,7 @@ def fit_nonlinear(
         raise ValidationError(
             f"likelihood: a nonlinear model has the assumed-density likelihood ('adf'), got {likelihood!r}"
         )
-    th0 = as_float_array(theta0, "theta0", ndim=1)
-    names = [f"theta{i}" for i in range(th0.size)] if names is None else [str(v) for v in names]
-    if len(names) != th0.size:
-        raise ShapeError(f"names: expected {th0.size} names, got {len(names)}")
+    th0, names = start_values(theta0, None if names is None else [str(v) for v in names])
     arr = as_float_array(y, "y", allow_nan=True)
     y2 = arr[:, None] if arr.ndim == 1 else arr
     if y2.ndim < 2 or y2.size == 0 or np.isnan(y2).all():
@@ -180,12 +178,7 @@ def fit_nonlinear(
             raise ValidationError("censoring: give either censoring or lower/upper, not both")
         channel = censoring
 
-    def sys_of(th: np.ndarray) -> NonlinearSystem:
-        s = model(np.asarray(th, dtype=float))
-        if not isinstance(s, NonlinearSystem):
-            raise ValidationError(f"model: the map returned {type(s).__name__}, expected a NonlinearSystem")
-        return s
-
+    sys_of = checked_map(model, NonlinearSystem)
     first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations)
     first.log_likelihood(y2, u=u)  # the readings, inputs and channel checked once, with their own errors
 
@@ -199,12 +192,11 @@ def fit_nonlinear(
         with warnings.catch_warnings(), np.errstate(all="ignore"):
             warnings.simplefilter("ignore")  # a trial step of the search may diverge: it scores -inf
             try:
-                v = float(np.sum(est.log_likelihood(y2, u=u)))
+                return float(np.sum(est.log_likelihood(y2, u=u)))
             except (ValueError, np.linalg.LinAlgError):
                 return -np.inf
-        return v if np.isfinite(v) else -np.inf
 
-    out, th, ll, cov = maximize_map(
+    return fit_map(
         ll_of,
         th0,
         names,
@@ -212,22 +204,10 @@ def fit_nonlinear(
         maxiter=maxiter,
         progress=_progress_callback(progress, "fit nonlinear model"),
         standard_errors=standard_errors,
-    )
-    return FitResult(
-        model=NonlinearModel(model, channel, rule, iterations),
-        names=names,
-        theta=th,
-        cov=cov,
-        loglik=ll,
+        started=t0,
+        model_of=lambda th: NonlinearModel(model, channel, rule, iterations),
         n_obs=int((~np.isnan(y2)).sum()),
-        n_params=th.size,
-        method="direct",
         likelihood="adf",
-        converged=out.converged,
-        message=out.message,
-        trace=out.trace,
-        fit_seconds=time.perf_counter() - t0,
-        evaluations=out.evaluations,
         data={"y": y2, "u": u},
         extra={"theta_map": True, "nonlinear": True},
     )

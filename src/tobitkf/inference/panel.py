@@ -44,7 +44,7 @@ from ..filters.likelihood import prediction_log_densities
 from ..filters.smoothing import rts_smooth
 from ..models.continuous import ContinuousLinearSystem, check_increasing, time_values
 from ..models.linear import LinearSystem
-from ._optimize import maximize_map
+from ._direct import checked_map, fit_map, start_values, system_or_none
 from ._results import FitResult, _progress_callback
 
 __all__ = ["Panel", "PanelArrays", "PanelModel", "panel_log_likelihood", "panel_smooth", "panel_forecast", "fit_panel"]
@@ -682,27 +682,16 @@ def fit_panel(
         raise ValidationError("model: expected a callable theta -> ContinuousLinearSystem (with theta0)")
     if theta0 is None:
         raise ValidationError("theta0: a callable model needs starting values theta0")
-    th0 = as_float_array(theta0, "theta0", ndim=1)
-    names = [f"theta{i}" for i in range(th0.size)] if names is None else list(names)
-    if len(names) != th0.size:
-        raise ShapeError(f"names: expected {th0.size} names, got {len(names)}")
-
-    def sys_of(th: np.ndarray) -> ContinuousLinearSystem:
-        s = model(np.asarray(th, dtype=float))
-        if not isinstance(s, ContinuousLinearSystem):
-            raise ValidationError(f"model: the map returned {type(s).__name__}, expected a ContinuousLinearSystem")
-        return s
+    th0, names = start_values(theta0, names)
+    sys_of = checked_map(model, ContinuousLinearSystem)
 
     s0 = sys_of(th0)
     arr = panel.arrays(s0, align=align, start=start)  # the union and the padded arrays, once
     kind = _likelihood_kind(likelihood, arr)
 
     def ll_of(th: np.ndarray) -> float:
-        try:
-            s = sys_of(th)
-        except ValidationError as exc:
-            if "the map returned" in str(exc):
-                raise
+        s = system_or_none(sys_of, th)
+        if s is None:
             return -np.inf
         if s.unit != s0.unit:
             raise ValidationError("model: the map changed the time unit between parameter values")
@@ -710,12 +699,11 @@ def fit_panel(
             _, _, terms = _run(s, arr, kind)
         except (ValidationError, np.linalg.LinAlgError, FloatingPointError):
             return -np.inf
-        v = float(terms.sum())
-        return v if np.isfinite(v) else -np.inf
+        return float(terms.sum())
 
     # converged means what it means for tk.fit's other models: the Newton step with the observed information
     # is below gtol standard errors in every parameter (checked also when no standard errors are reported)
-    out, th, ll, cov = maximize_map(
+    return fit_map(
         ll_of,
         th0,
         names,
@@ -724,23 +712,10 @@ def fit_panel(
         progress=_progress_callback(progress, "fit panel"),
         standard_errors=standard_errors,
         check_always=True,
-    )
-    converged, message = out.converged, out.message
-    return FitResult(
-        model=PanelModel(sys_of(th), kind, align, start),
-        names=names,
-        theta=th,
-        cov=cov,
-        loglik=ll,
+        started=t_start,
+        model_of=lambda th: PanelModel(sys_of(th), kind, align, start),
         n_obs=panel.n_obs,
-        n_params=th.size,
-        method="direct",
         likelihood=kind,
-        converged=converged,
-        message=message,
-        trace=out.trace,
-        fit_seconds=time.perf_counter() - t_start,
-        evaluations=out.evaluations,
         data=panel,
         extra={"subjects": panel.n_subjects, "union_steps": int(arr.times.size)},
     )

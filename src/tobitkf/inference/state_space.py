@@ -59,7 +59,8 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_boo
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._common import censoring_sides
-from ._optimize import check_iterations, check_tolerance, maximize_closing, maximize_map, observed_information
+from ._direct import checked_map, fit_map, start_values, system_or_none
+from ._optimize import check_iterations, check_tolerance, maximize_closing, observed_information
 from ._results import FitResult, _progress_callback
 
 __all__ = ["StateSpaceModel", "fit_state_space", "em_step", "ESTIMABLE"]
@@ -673,53 +674,26 @@ def fit_state_space(
             raise ValidationError("method: a user map theta -> LinearSystem is fitted directly ('direct')")
         if theta0 is None:
             raise ValidationError("theta0: a callable model needs starting values theta0")
-        th0 = as_float_array(theta0, "theta0", ndim=1)
-        names = [f"theta{i}" for i in range(th0.size)] if names is None else list(names)
-        if len(names) != th0.size:
-            raise ShapeError(f"names: expected {th0.size} names, got {len(names)}")
-
-        def sys_of(th):
-            s = model(np.asarray(th, dtype=float))
-            if not isinstance(s, LinearSystem):
-                raise ValidationError(f"model: the map returned {type(s).__name__}, expected a LinearSystem")
-            return s
-
+        th0, names = start_values(theta0, names)
+        sys_of = checked_map(model, LinearSystem)
         sys_of(th0)
 
         def ll_of(th):
-            try:
-                s = sys_of(th)
-            except ValidationError as exc:
-                if "the map returned" in str(exc):
-                    raise
-                return -np.inf
-            return lik.of_system(s)
+            s = system_or_none(sys_of, th)
+            return -np.inf if s is None else lik.of_system(s)
 
-        out, th, ll, cov = maximize_map(
+        return fit_map(
             ll_of,
             th0,
             names,
             gtol=gtol,
             maxiter=maxiter,
-            progress=(cb, close, ticker),
+            progress=progress_,
             standard_errors=standard_errors,
-        )
-        fitted = StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False)
-        return FitResult(
-            model=fitted,
-            names=names,
-            theta=th,
-            cov=cov,
-            loglik=ll,
+            started=t0,
+            model_of=lambda th: StateSpaceModel(sys_of(th), censoring, ("theta",), prior, False),
             n_obs=int((~np.isnan(y2)).sum()),
-            n_params=th.size,
-            method="direct",
             likelihood=lik_name,
-            converged=out.converged,
-            message=out.message,
-            trace=out.trace,
-            fit_seconds=time.perf_counter() - t0,
-            evaluations=out.evaluations,
             data=data,
             extra={"theta_map": True},
         )
