@@ -23,7 +23,7 @@ from tobitkf.filters import _kernels_censored as kc  # noqa: E402
 VECTORS = Path("/work/shared/vectors/censoring_stats.json")
 
 
-def scalar(mu, sd, lim, upper):
+def reference(mu, sd, lim, upper):
     """The reference statistics (8, K) of ``censored_moments`` for a lower (or upper) limit ``lim``."""
     mu = np.ascontiguousarray(mu, dtype=float)
     return np.array(censored_moments(mu, sd, -np.inf if upper else lim, lim if upper else np.inf))
@@ -36,7 +36,7 @@ def assert_close(got, want, rtol, atol, where):
 
 
 def noise_of(stats, mu, code):
-    """The noise term of ``code`` (NOISE_CODES) from the scalar statistics, as tobit_update_block forms it."""
+    """The noise term of ``code`` (NOISE_CODES) from the reference statistics, as tobit_update_block forms it."""
     if code == 0:
         return stats[5]
     if code == 1:
@@ -46,7 +46,7 @@ def noise_of(stats, mu, code):
 
 def standardized_grid():
     """The standardized lower limit a: dense in the central routes, the route switches (-4, 0, 2 and 4,
-    where the scalar kernel switches), the tails out to 1e5 sigma, and where e^{-a^2/2} becomes subnormal
+    where the reference switches), the tails out to 1e5 sigma, and where e^{-a^2/2} becomes subnormal
     and underflows (a ~ 37.7 to 38.6)."""
     rng = np.random.default_rng(0)
     edges = np.array([-4.0, 0.0, 2.0, 4.0])
@@ -65,16 +65,16 @@ def standardized_grid():
 
 @pytest.mark.parametrize("upper", [False, True])
 @pytest.mark.parametrize("code", [0, 1, 2])
-def test_block_equals_the_scalar_statistics(upper, code):
-    """gamma and E(y) to 1e-13 of the scalar kernel (relative, or absolute on the means' scale); the noise
-    term to 1e-13 wherever the scalar kernel itself is that accurate (below a = 2), and beyond a = 2, where
-    the scalar kernel's direct formula 1 + a lambda - lambda^2 cancels (up to a = 4), within the sum of both
+def test_block_equals_the_reference_statistics(upper, code):
+    """gamma and E(y) to 1e-13 of the reference (relative, or absolute on the means' scale); the noise
+    term to 1e-13 wherever the reference itself is that accurate (below a = 2), and beyond a = 2, where
+    the reference's direct formula 1 + a lambda - lambda^2 cancels (up to a = 4), within the sum of both
     errors against the converged continued fraction (next test) plus 1e-14."""
     a = standardized_grid()
     sd, lim = 0.7, 0.3
     mu = lim + a * sd if upper else lim - a * sd
     gam, noise, cmean = kc.one_sided_array(np.ascontiguousarray(mu), sd, lim, upper, code)
-    ref = scalar(mu, sd, lim, upper)
+    ref = reference(mu, sd, lim, upper)
     scale = np.abs(mu) + sd + abs(lim)
     assert_close(gam, ref[2], 1e-13, 1e-300, a)
     assert_close(cmean, ref[6], 1e-13, 1e-14 * scale, a)
@@ -95,19 +95,19 @@ def converged_tail(a):
     return a + t, t * (s - t)
 
 
-def test_tail_route_is_at_least_as_accurate_as_the_scalar_route():
+def test_tail_route_is_at_least_as_accurate_as_the_reference():
     """Beyond a = 2 the block computes lambda and the variance from fits of the continued fraction (no
     cancellation): within 2e-14 of the converged fraction everywhere, and at least as close to it as the
-    scalar kernel (whose direct formula loses up to ~1e-12 just below a = 4)."""
+    reference (whose direct formula loses up to ~1e-12 just below a = 4)."""
     a = np.concatenate([np.linspace(2.0 + 1e-9, 4.0, 4001), np.geomspace(4.0, 1e4, 2001)])
     lam_true, var_true = converged_tail(a)
     mu = -a  # sd 1, lower limit 0
     _, tvar, _ = kc.one_sided_array(np.ascontiguousarray(mu), 1.0, 0.0, False, 0)
-    ref = scalar(mu, 1.0, 0.0, False)
+    ref = reference(mu, 1.0, 0.0, False)
     err_block = np.abs(tvar / var_true - 1.0)
-    err_scalar = np.abs(ref[5] / var_true - 1.0)
+    err_ref = np.abs(ref[5] / var_true - 1.0)
     assert err_block.max() < 2e-14, (a[np.argmax(err_block)], err_block.max())
-    assert np.all(err_block <= err_scalar + 2e-14)
+    assert np.all(err_block <= err_ref + 2e-14)
     # gamma = phi(a) / lambda against the same lambda
     gam, _, cmean = kc.one_sided_array(np.ascontiguousarray(mu), 1.0, 0.0, False, 0)
     phi = np.exp(-0.5 * a * a) / np.sqrt(2.0 * np.pi)
@@ -117,7 +117,7 @@ def test_tail_route_is_at_least_as_accurate_as_the_scalar_route():
 
 def test_against_60_digit_vectors():
     """Every one-sided case of the shared 60-digit vectors: gamma, E(y) and the three noise terms no less
-    accurate than the scalar kernel (plus 1e-12 of their scale)."""
+    accurate than the reference (plus 1e-12 of their scale)."""
     if not VECTORS.exists():
         pytest.skip("shared vectors not available")
     cases = [
@@ -130,7 +130,7 @@ def test_against_60_digit_vectors():
         mu, sd, lo, hi = (float(c[k]) for k in ("mu", "sigma", "lower", "upper"))
         upper = lo == -np.inf
         lim = hi if upper else lo
-        ref = scalar(np.array([mu]), sd, lim, upper)[:, 0]
+        ref = reference(np.array([mu]), sd, lim, upper)[:, 0]
         exact = {k: float(c[k]) for k in ("p_uncensored", "truncated_variance", "censored_mean", "censored_variance")}
         for code, key in ((0, "truncated_variance"), (1, "censored_variance")):
             gam, noise, cmean = (v[0] for v in kc.one_sided_array(np.array([mu]), sd, lim, upper, code))
@@ -150,11 +150,11 @@ def test_against_60_digit_vectors():
     code=st.sampled_from([0, 1, 2]),
 )
 def test_block_property(mu, sd, a, upper, code):
-    """Any mean, scale and limit: finite, gamma in [0, 1], and the scalar kernel's numbers (the looser
+    """Any mean, scale and limit: finite, gamma in [0, 1], and the reference's numbers (the looser
     noise tolerance of the first test)."""
     lim = mu - a * sd if upper else mu + a * sd
     gam, noise, cmean = (v[0] for v in kc.one_sided_array(np.array([mu]), sd, lim, upper, code))
-    ref = scalar(np.array([mu]), sd, lim, upper)[:, 0]
+    ref = reference(np.array([mu]), sd, lim, upper)[:, 0]
     scale = abs(mu) + sd + abs(lim)
     assert 0.0 <= gam <= 1.0 and np.isfinite(noise) and np.isfinite(cmean)
     assert abs(gam - ref[2]) <= 1e-13 * ref[2] + 1e-300
@@ -183,14 +183,14 @@ def test_exp_without_libm():
     assert got[-1] == 0.0 and got[-2] == 0.0
 
 
-def test_lower_stats_block_gives_every_statistic_of_the_scalar_route():
+def test_lower_stats_block_gives_every_statistic_of_the_reference():
     """The form the fading and protocol kernels read: gamma, lambda, the truncated variance, the censored mean
-    and variance, against the scalar kernel (lambda to 1e-13; the variances as in the first test)."""
+    and variance, against the reference (lambda to 1e-13; the variances as in the first test)."""
     a = standardized_grid()
     sd, lo = 0.4, -0.2
     mu = lo - a * sd
     got = kc.lower_stats_array(np.ascontiguousarray(mu), sd, lo)
-    ref = scalar(mu, sd, lo, False)
+    ref = reference(mu, sd, lo, False)
     scale = np.abs(mu) + sd + abs(lo)
     assert_close(got[0], ref[2], 1e-13, 1e-300, a)
     assert_close(got[1], ref[3], 1e-13, 1e-300, a)

@@ -23,7 +23,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels_block import _cov_update, _gain, _gain_block, _innovation_moments
-from ._kernels_censored import GL_W, GL_X, censored_stats, one_sided_block
+from ._kernels_censored import GL_W, GL_X, censored_stats, noise_term, one_sided_block
 
 __all__ = [
     "censored_stats",
@@ -118,15 +118,8 @@ def tobit_update_block(
             mean = s + du[r0 + b, t, l] if has_du else s  # C xbar + D u (the numpy path's x_pred @ C.T + dy)
             r = lrow + lstep * b
             st = censored_stats(mean, sd, lo[r, l], hi[r, l], glx, glw, buf)
-            g = st[2]
-            gam[l, b] = g
-            if noise_code == 0:
-                v = st[5]
-            elif noise_code == 1:
-                v = st[7]
-            else:
-                v = g * (st[5] + (st[4] - mean) ** 2)
-            noise[l, l, b] = v
+            gam[l, b] = st[2]
+            noise[l, l, b] = noise_term(noise_code, mean, st[2], st[4], st[5], st[7])
             e[l, b] = y[r0 + b, t, l] - st[6]
             mu[l, b] = st[6]
     # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)

@@ -1,12 +1,20 @@
-r"""Censored-normal statistics of a one-sided limit for a block of runs at once, vectorised over the runs.
+r"""The censored-normal statistics of the compiled path (numba): the one implementation every compiled caller uses.
 
-:func:`tobitkf.filters._kernels.censored_stats` computes the statistics of one run with libm's
-``erfc``/``exp``/``log`` and a branch per route; a loop over the runs of a block that calls it cannot be
-vectorised (a call per run, a route per run) and costs about 45 ns per run on this machine's central
-route, a third of a core TKF step. :func:`one_sided_block` computes the same numbers for all runs of a
-block whose channel has one finite limit (a lower limit alone, the common Tobit case, or an upper limit
-alone, by mirroring) without a call or a branch per run, so that LLVM vectorises the loop (AVX2/AVX-512:
-4 or 8 runs per instruction).
+The compiled form of :func:`tobitkf.censored.censored_moments`, which stays the high-precision numpy reference
+(tested against it on a grid out to ±40σ, one- and two-sided, and against 60-digit values). Everything is
+built on one routine for a single finite limit, :func:`_one_sided_at`, written without a libm call or a
+branch per run so that a loop over the runs of a block vectorises (AVX2/AVX-512: 4 or 8 runs per
+instruction):
+
+* :func:`one_sided_block`: a channel whose one finite limit the runs of a block share (the common Tobit case;
+  an upper limit by mirroring), the TKF's statistics for all runs at once (:func:`lower_stats_block`: the form
+  the fading and protocol kernels read);
+* :func:`censored_stats`: one run with any limits (runs with their own limits, windows): one finite limit is
+  :func:`_one_sided_at`, two are :func:`_window_stats` (the reference's routes: direct formulas with
+  :math:`\Phi` from :func:`_one_sided_at`, a one-sided route when the far limit is negligible, Gauss–Legendre
+  quadrature for a narrow window or a two-sided one in a tail);
+* :func:`beyond`: the log-probability and truncated moments beyond one limit (the assumed-density updates and
+  the steady-state fit's log-likelihood), finite however far in the tail.
 
 Routes, in the standardized limit :math:`a = (\ell - \mu)/\sigma` of a lower limit :math:`\ell`:
 
@@ -15,12 +23,12 @@ Routes, in the standardized limit :math:`a = (\ell - \mu)/\sigma` of a lower lim
   for :math:`a > 0`, :math:`\gamma = \Phi(-a)` and the inverse Mills ratio
   :math:`\lambda = \varphi(a)/\gamma = \sqrt{2/\pi}/E`; for :math:`a \le 0`, :math:`\gamma = 1 - \Phi(a)`
   and :math:`\lambda = \varphi(a)/\gamma`; :math:`\mathrm{Var}[Z \mid Z > a] = 1 + a\lambda - \lambda^2`
-  (the scalar kernel's direct formulas);
+  (the reference's direct formulas);
 * :math:`a < -4`: the same, :math:`E` from a second fit in :math:`w = x_0/x`;
 * :math:`a > 2`: Laplace's continued fraction, :math:`s = 2/(a + 3/(a + \dots))`, :math:`t = 1/(a + s)`,
   :math:`\lambda = a + t`, :math:`\mathrm{Var} = t(s - t)`, through fits of the smooth functions
   :math:`a\,t` and :math:`a^2 t(s - t)` of :math:`u = 2/a \in (0, 1)`, and :math:`\gamma = \varphi(a)/\lambda`.
-  The scalar kernel takes the direct formulas up to :math:`a = 4` and the fraction beyond; between 2
+  The reference takes the direct formulas up to :math:`a = 4` and the fraction beyond; between 2
   and 4 its :math:`1 + a\lambda - \lambda^2` cancels (its error reaches ~1e-12 relative near
   :math:`a = 4`), which the fitted fraction does not (within 2e-14 of the converged fraction: tested).
 
@@ -31,8 +39,9 @@ from :func:`scipy.special.erfcx` and from the continued fraction evaluated with 
 rounding for :math:`a \ge 2`); interpolation errors are below 4e-15 relative (measured on dense grids).
 The polynomials are evaluated as power series in four Horner chains (short dependency chains), and
 :math:`e^{z}` as a polynomial with a table of powers of two instead of libm's ``exp``. The results agree
-with the scalar kernel to 1e-13 relative where it is accurate (and through a filter with the numpy path
-to 1e-12); tested, also against 60-digit values, in ``tests/filters/test_kernels_censored.py``.
+with the reference to 1e-13 relative where it is accurate (and through a filter with the numpy path to
+1e-12); tested, also against 60-digit values, in ``tests/filters/test_kernels_censored.py`` and
+``tests/filters/test_kernels.py``.
 """
 
 from __future__ import annotations
@@ -179,7 +188,7 @@ def _tail_var_poly(t):
 def _one_sided_at(mu, sd, lo):
     """The statistics of one run for a lower limit ``lo`` alone (inlined into the block loops, where it
     vectorises): ``(p_lower, gamma, lambda, truncated mean, truncated variance, censored mean, censored
-    variance)``, the quantities of :func:`~tobitkf.filters._kernels.censored_stats` (module docstring)."""
+    variance)``, the quantities of :func:`censored_stats` (module docstring)."""
     a = (lo - mu) / sd
     ab = abs(a)
     rb = 1.0 / ab  # the one reciprocal of the routes (inf at a = 0, then unused)
@@ -368,7 +377,7 @@ def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
     Writes :math:`\gamma_b = P(\text{uncensored})` into ``gam``, the censored mean :math:`E(y)` (Miller
     (3.8)) into ``cmean`` and the noise term of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`:
     0 the truncated variance, 1 the censored variance, 2 :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)`)
-    into ``noise``; the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-13 relative.
+    into ``noise``; the numbers of :func:`censored_stats`.
     An upper limit is the lower limit :math:`-\ell` of :math:`-y`: the same statistics with the means'
     signs flipped."""
     sg = -1.0 if upper else 1.0
@@ -376,16 +385,22 @@ def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
     for b in range(nb):
         mu = sg * ym[b]
         _plo, g, _lam, tmean, tvar, cm, cvar = _one_sided_at(mu, sd, lo)
-        if noise_code == 0:
-            v = tvar
-        elif noise_code == 1:
-            v = cvar
-        else:
-            d = tmean - mu
-            v = g * (tvar + d * d)
         gam[b] = g
-        noise[b] = v
+        noise[b] = noise_term(noise_code, mu, g, tmean, tvar, cvar)
         cmean[b] = sg * cm
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def noise_term(noise_code, mu, g, tmean, tvar, cvar):
+    r"""The TKF's noise term :math:`R_{uu}` of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`)
+    from a channel's statistics: 0 the truncated variance, 1 the censored variance, 2
+    :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)` (the mean :math:`\mu` of the latent reading)."""
+    if noise_code == 0:
+        return tvar
+    if noise_code == 1:
+        return cvar
+    d = tmean - mu
+    return g * (tvar + d * d)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -393,7 +408,7 @@ def lower_stats_block(ym, sd, lo, nb, gam, lam, tvar, cmean, cvar):
     r"""The statistics of the runs ``b < nb`` of a block for a lower limit ``lo`` alone (the form the fading
     and protocol kernels read): :math:`\gamma` into ``gam``, the inverse Mills ratio into ``lam``, the
     truncated variance into ``tvar``, the censored mean and variance into ``cmean``, ``cvar`` (each (B,));
-    the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-13 relative."""
+    the numbers of :func:`censored_stats`."""
     for b in range(nb):
         _plo, g, lm, _tmean, tv, cm, cv = _one_sided_at(ym[b], sd, lo)
         gam[b] = g
