@@ -23,10 +23,11 @@ import numpy as np
 from numba import njit
 
 from ._kernels_block import _cov_update, _gain, _gain_block, _innovation_moments
-from ._kernels_censored import GL_W, GL_X, censored_stats, noise_term, one_sided_block
+from ._kernels_censored import GL_W, GL_X, censored_moments_array, censored_stats, noise_term, one_sided_block
 
 __all__ = [
     "censored_stats",
+    "censored_moments_array",
     "tobit_update_block",
     "NOISE_CODES",
     "GL_X",
