@@ -80,7 +80,9 @@ def test_kernel_equals_numpy(exact, form, sides, m):
     fad = fading(2)
     y = data(sys_, fad, cens, runs=40, steps=30)
     a, b = both(sys_, fad, cens, y, exact_tobit_variance=exact, covariance_update=form)
-    assert_results_equal(a, b)
+    # two-sided: a window's truncated variance cancels, and the paths compute Phi differently (scipy's ndtr;
+    # the compiled erfcx fits, agreeing to ~1e-14): up to ~2e-12 after the steps (measured 1.9e-12)
+    assert_results_equal(a, b, rtol=5e-12 if sides == "two_sided" else 1e-12)
 
 
 @pytest.mark.parametrize("L", [0, 1, 2])

@@ -38,11 +38,12 @@ in its ``compiled_moments`` attribute (a key of :data:`FAMILIES`) and giving the
 :func:`family_block`, with no edit to the loop or its callers.
 
 The event "the latent reading lies in [ea, eb]" (:func:`interval_event`: beyond a limit on one side, or
-between two finite bounds) is the piece a quantized sensor's interval update reuses. One-sided pieces
-take the vectorised statistics of :mod:`tobitkf.filters._kernels_censored` (one implementation of the
-routes), two-sided ones :func:`tobitkf.filters._kernels.censored_stats` (the routes and arithmetic of
-:func:`tobitkf.censored_moments`, quadrature for narrow windows); log-probabilities stay finite 40σ (and
-more) into the tails: :math:`\log Q(a) = -a^2/2 - \log\sqrt{2\pi} - \log\lambda(a)` beyond the centre.
+between two finite bounds) is the piece a quantized sensor's interval update reuses. Every statistic comes
+from :mod:`tobitkf.filters._kernels_censored`, the one compiled implementation of the censored-normal
+statistics (:func:`~tobitkf.filters._kernels_censored.beyond` for one finite bound,
+:func:`~tobitkf.filters._kernels_censored.censored_stats` for a window, quadrature for narrow ones);
+log-probabilities stay finite 40σ (and more) into the tails: :math:`\log Q(a) = -a^2/2 - \log\sqrt{2\pi}
+- \log\lambda(a)` beyond the centre.
 :mod:`tobitkf.censored` remains the high-precision reference (tested against it).
 """
 
@@ -53,8 +54,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels import censored_stats
-from ._kernels_censored import _one_sided_at
+from ._kernels_censored import beyond, censored_stats
 
 __all__ = [
     "CENSORED",
@@ -92,22 +92,6 @@ _LOG_SMALL = -600.0  # below this log-mass a window's probability is taken in lo
 _INF = math.inf
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def beyond(mu, sd, lim, sign):
-    r"""The latent :math:`y^* \sim N(\mu, sd^2)` beyond the finite limit ``lim`` on the side ``sign``
-    (+1: :math:`y^* \ge` lim, -1: :math:`y^* \le` lim): ``(p_other, log_p, mean, var)`` = the probability
-    of the other side, the log-probability of this one (finite far into the tails), and the truncated
-    mean and variance. Vectorisable (:func:`~tobitkf.filters._kernels_censored._one_sided_at`)."""
-    m = sign * mu
-    lm = sign * lim
-    plo, g, lam, tmean, tvar, _cm, _cv = _one_sided_at(m, sd, lm)
-    a = (lm - m) / sd
-    log_centre = math.log(max(g, _TINY))
-    log_tail = -0.5 * a * a - _LOG_SQRT_2PI - math.log(max(lam, _TINY))
-    logp = log_centre if a <= 0.0 else log_tail
-    return plo, logp, sign * tmean, tvar
-
-
 @njit(cache=True, error_model="numpy")
 def _two_sided(mu, sd, ea, eb, glx, glw, buf):
     st = censored_stats(mu, sd, ea, eb, glx, glw, buf)
@@ -134,7 +118,7 @@ def _log_window(mu, sd, ea, eb):
 def interval_event(mu, sd, ea, eb, glx, glw, buf):
     r"""``(log_p, mean, var)`` of :math:`y^* \sim N(\mu, sd^2)` given :math:`ea \le y^* \le eb` (one side
     may be infinite): the log-probability of the event and the truncated moments. One finite bound: the
-    vectorised one-sided routes (:func:`beyond`); two: :func:`~tobitkf.filters._kernels.censored_stats`
+    vectorised one-sided routes (:func:`beyond`); two: :func:`~tobitkf.filters._kernels_censored.censored_stats`
     (direct formulas, quadrature for a narrow window or one in a tail). The update of a quantized sensor
     (a reading at level l: the window [l - w/2, l + w/2)) and of a censored one (beyond its limit)."""
     if ea == -_INF:

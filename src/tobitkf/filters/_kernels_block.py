@@ -169,21 +169,10 @@ def _stage_shape(out, B, S):
 
 
 @njit(cache=True, error_model="numpy")
-def _symmetrize(P, nb):
-    n = P.shape[0]
-    for i in range(n):
-        for j in range(i + 1, n):
-            for b in range(nb):
-                v = 0.5 * (P[i, j, b] + P[j, i, b])
-                P[i, j, b] = v
-                P[j, i, b] = v
-
-
-@njit(cache=True, error_model="numpy")
 def _mirror(P, nb):
     """Copy the upper triangle of the block's ``P[i, j, b]`` onto the lower (the products below
-    compute only ``j >= i`` of a symmetric result: half the work of the full product and
-    :func:`_symmetrize`, equal to it to rounding)."""
+    compute only ``j >= i`` of a symmetric result: half the work of the full product and its
+    symmetrization, equal to it to rounding)."""
     n = P.shape[0]
     for i in range(n):
         for j in range(i + 1, n):

@@ -1,12 +1,20 @@
-r"""Censored-normal statistics of a one-sided limit for a block of runs at once, vectorised over the runs.
+r"""The censored-normal statistics of the compiled path (numba): the one implementation every compiled caller uses.
 
-:func:`tobitkf.filters._kernels.censored_stats` computes the statistics of one run with libm's
-``erfc``/``exp``/``log`` and a branch per route; a loop over the runs of a block that calls it cannot be
-vectorised (a call per run, a route per run) and costs about 45 ns per run on this machine's central
-route, a third of a core TKF step. :func:`one_sided_block` computes the same numbers for all runs of a
-block whose channel has one finite limit (a lower limit alone, the common Tobit case, or an upper limit
-alone, by mirroring) without a call or a branch per run, so that LLVM vectorises the loop (AVX2/AVX-512:
-4 or 8 runs per instruction).
+The compiled form of :func:`tobitkf.censored.censored_moments`, which stays the high-precision numpy reference
+(tested against it on a grid out to ±40σ, one- and two-sided, and against 60-digit values). Everything is
+built on one routine for a single finite limit, :func:`_one_sided_at`, written without a libm call or a
+branch per run so that a loop over the runs of a block vectorises (AVX2/AVX-512: 4 or 8 runs per
+instruction):
+
+* :func:`one_sided_block`: a channel whose one finite limit the runs of a block share (the common Tobit case;
+  an upper limit by mirroring), the TKF's statistics for all runs at once (:func:`lower_stats_block`: the form
+  the fading and protocol kernels read);
+* :func:`censored_stats`: one run with any limits (runs with their own limits, windows): one finite limit is
+  :func:`_one_sided_at`, two are :func:`_window_stats` (the reference's routes: direct formulas with
+  :math:`\Phi` from :func:`_one_sided_at`, a one-sided route when the far limit is negligible, Gauss–Legendre
+  quadrature for a narrow window or a two-sided one in a tail);
+* :func:`beyond`: the log-probability and truncated moments beyond one limit (the assumed-density updates and
+  the steady-state fit's log-likelihood), finite however far in the tail.
 
 Routes, in the standardized limit :math:`a = (\ell - \mu)/\sigma` of a lower limit :math:`\ell`:
 
@@ -15,12 +23,12 @@ Routes, in the standardized limit :math:`a = (\ell - \mu)/\sigma` of a lower lim
   for :math:`a > 0`, :math:`\gamma = \Phi(-a)` and the inverse Mills ratio
   :math:`\lambda = \varphi(a)/\gamma = \sqrt{2/\pi}/E`; for :math:`a \le 0`, :math:`\gamma = 1 - \Phi(a)`
   and :math:`\lambda = \varphi(a)/\gamma`; :math:`\mathrm{Var}[Z \mid Z > a] = 1 + a\lambda - \lambda^2`
-  (the scalar kernel's direct formulas);
+  (the reference's direct formulas);
 * :math:`a < -4`: the same, :math:`E` from a second fit in :math:`w = x_0/x`;
 * :math:`a > 2`: Laplace's continued fraction, :math:`s = 2/(a + 3/(a + \dots))`, :math:`t = 1/(a + s)`,
   :math:`\lambda = a + t`, :math:`\mathrm{Var} = t(s - t)`, through fits of the smooth functions
   :math:`a\,t` and :math:`a^2 t(s - t)` of :math:`u = 2/a \in (0, 1)`, and :math:`\gamma = \varphi(a)/\lambda`.
-  The scalar kernel takes the direct formulas up to :math:`a = 4` and the fraction beyond; between 2
+  The reference takes the direct formulas up to :math:`a = 4` and the fraction beyond; between 2
   and 4 its :math:`1 + a\lambda - \lambda^2` cancels (its error reaches ~1e-12 relative near
   :math:`a = 4`), which the fitted fraction does not (within 2e-14 of the converged fraction: tested).
 
@@ -31,8 +39,9 @@ from :func:`scipy.special.erfcx` and from the continued fraction evaluated with 
 rounding for :math:`a \ge 2`); interpolation errors are below 4e-15 relative (measured on dense grids).
 The polynomials are evaluated as power series in four Horner chains (short dependency chains), and
 :math:`e^{z}` as a polynomial with a table of powers of two instead of libm's ``exp``. The results agree
-with the scalar kernel to 1e-13 relative where it is accurate (and through a filter with the numpy path
-to 1e-12); tested, also against 60-digit values, in ``tests/filters/test_kernels_censored.py``.
+with the reference to 1e-13 relative where it is accurate (and through a filter with the numpy path to
+1e-12); tested, also against 60-digit values, in ``tests/filters/test_kernels_censored.py`` and
+``tests/filters/test_kernels.py``.
 """
 
 from __future__ import annotations
@@ -44,9 +53,23 @@ from numba import njit
 from numpy.polynomial import chebyshev as _cheb
 from scipy.special import erfcx as _erfcx
 
-from ..censored import _CF_FROM
+from ..censored import _CF_FROM, _FAR, _GL_W, _GL_X, _NARROW
 
-__all__ = ["one_sided_block", "lower_stats_block", "one_sided_array", "lower_stats_array", "X0", "A_TAIL"]
+__all__ = [
+    "censored_stats",
+    "beyond",
+    "one_sided_block",
+    "lower_stats_block",
+    "censored_moments_array",
+    "one_sided_array",
+    "lower_stats_array",
+    "GL_X",
+    "GL_W",
+    "X0",
+    "A_TAIL",
+]
+
+GL_X, GL_W = _GL_X, _GL_W  # the quadrature of censored_moments (passed to the kernels)
 
 X0 = _CF_FROM * math.sqrt(0.5)  # erfcx argument at |a| = 4, the far side's edge
 A_TAIL = 2.0  # a > A_TAIL: the tail fits (no cancellation in the variance), else erfcx
@@ -98,11 +121,14 @@ _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 _SQRT_2_PI = math.sqrt(2.0 / math.pi)
 _INV_SQRT_PI = 1.0 / math.sqrt(math.pi)
 _SQRT2 = math.sqrt(2.0)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+_TINY = float(np.finfo(np.float64).tiny)
+_INF = math.inf
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _exp_neg(z):
-    r""":math:`e^z` for :math:`z \le 0` (0 below the subnormals), without a libm call."""
+    r""":math:`e^z` for :math:`z \le \ln(2)/2` (0 below the subnormals), without a libm call."""
     zc = max(z, _EXP_UNDER)
     k = math.floor(zc * _LOG2E + 0.5)
     r = (zc - k * _LN2_HI) - k * _LN2_LO
@@ -162,7 +188,7 @@ def _tail_var_poly(t):
 def _one_sided_at(mu, sd, lo):
     """The statistics of one run for a lower limit ``lo`` alone (inlined into the block loops, where it
     vectorises): ``(p_lower, gamma, lambda, truncated mean, truncated variance, censored mean, censored
-    variance)``, the quantities of :func:`~tobitkf.filters._kernels.censored_stats` (module docstring)."""
+    variance)``, the quantities of :func:`censored_stats` (module docstring)."""
     a = (lo - mu) / sd
     ab = abs(a)
     rb = 1.0 / ab  # the one reciprocal of the routes (inf at a = 0, then unused)
@@ -206,6 +232,142 @@ def _one_sided_at(mu, sd, lo):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def beyond(mu, sd, lim, sign):
+    r"""The latent :math:`y^* \sim N(\mu, sd^2)` beyond the finite limit ``lim`` on the side ``sign``
+    (+1: :math:`y^* \ge` lim, -1: :math:`y^* \le` lim): ``(p_other, log_p, mean, var)`` = the probability
+    of the other side, the log-probability of this one and the truncated mean and variance, from
+    :func:`_one_sided_at` (vectorisable). :math:`\log P` is :math:`\log\gamma` where :math:`\gamma \ge 1/2`
+    and :math:`-a^2/2 - \log\sqrt{2\pi} - \log\lambda` beyond the mean (:math:`\gamma = \varphi(a)/\lambda`),
+    finite however far the limit lies in the tail (also where :math:`\gamma` underflows)."""
+    m = sign * mu
+    lm = sign * lim
+    plo, g, lam, tmean, tvar, _cm, _cv = _one_sided_at(m, sd, lm)
+    a = (lm - m) / sd
+    log_centre = math.log(max(g, _TINY))
+    log_tail = -0.5 * a * a - _LOG_SQRT_2PI - math.log(max(lam, _TINY))
+    logp = log_centre if a <= 0.0 else log_tail
+    return plo, logp, sign * tmean, tvar
+
+
+@njit(cache=True, error_model="numpy")
+def _quadrature_moments(a2, b2, glx, glw, buf):
+    r"""``(E[Z | window], Var[Z | window], P(window))`` of :math:`Z \sim N(0, 1)` on the window [a2, b2]
+    (mirrored so that :math:`a_2 \ge -b_2`), as :func:`tobitkf.censored._tail_moments`: Gauss–Legendre
+    quadrature (nodes ``glx``, weights ``glw``) in shifted coordinates :math:`u = z - a_2`, where the
+    density is :math:`\varphi(a_2)e^{-a_2u - u^2/2}` on :math:`[0, \min(b_2 - a_2, u_{max})]`
+    (:math:`u_{max}`: the density down to :math:`e^{-40}`), with a two-pass variance. The exponents lie in
+    [-40.2, 0.125] (:func:`_exp_neg` is exact to 2 ulp there). ``buf`` (2, len(glx)) scratch."""
+    umax = 80.0 / (a2 + math.hypot(a2, math.sqrt(80.0)))  # -a2 + sqrt(a2^2 + 80), no cancellation
+    half = 0.5 * min(b2 - a2, umax)
+    G = glx.shape[0]
+    for j in range(G):
+        u = half * (glx[j] + 1.0)
+        buf[0, j] = u
+        buf[1, j] = glw[j] * half * _exp_neg(-a2 * u - 0.5 * u * u)
+    i0 = 0.0
+    i1 = 0.0
+    for j in range(G):
+        i0 += buf[1, j]
+        i1 += buf[1, j] * buf[0, j]
+    umean = i1 / i0
+    i2 = 0.0
+    for j in range(G):
+        d = buf[0, j] - umean
+        i2 += buf[1, j] * d * d
+    return a2 + umean, i2 / i0, math.exp(-0.5 * a2 * a2 - _LOG_SQRT_2PI + math.log(i0))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _assemble(mu, sd, lo, hi, p_lo, p_hi, gam, lam, zvar):
+    """The 8-tuple of :func:`censored_stats` from the standardized statistics (as :mod:`tobitkf.censored`)."""
+    gam = min(max(gam, 0.0), 1.0)
+    zvar = max(zvar, 0.0)
+    tmean = mu + sd * lam
+    tvar = sd * sd * zvar
+    cmean = gam * tmean
+    if p_lo > 0:
+        cmean = p_lo * lo + cmean
+    if p_hi > 0:
+        cmean = cmean + p_hi * hi
+    cvar = gam * (tvar + (tmean - cmean) ** 2)
+    if p_lo > 0:
+        cvar += p_lo * (lo - cmean) ** 2
+    if p_hi > 0:
+        cvar += p_hi * (hi - cmean) ** 2
+    return p_lo, p_hi, gam, lam, tmean, tvar, cmean, cvar
+
+
+@njit(cache=True, error_model="numpy")
+def _window_stats(mu, sd, lo, hi, glx, glw, buf):
+    r""":func:`censored_stats` for two finite limits lo < hi: the routes of :mod:`tobitkf.censored` with the
+    window mirrored to the upper tail (:math:`[a_2, b_2] = [-b, -a]` when :math:`a < -b`): the far limit
+    negligible (:math:`b_2^2 - a_2^2 > 100`) beyond :data:`A_TAIL`: the one-sided statistics at
+    :math:`a_2`; a window narrower than 1σ, or two-sided beyond 4σ: :func:`_quadrature_moments`;
+    otherwise the direct formulas, :math:`\gamma` subtracting the small tail probabilities
+    (:math:`\Phi`, :math:`Q` from :func:`_one_sided_at`)."""
+    a = (lo - mu) / sd
+    b = (hi - mu) / sd
+    # Phi(a), Phi(-a) and Phi(-b), Phi(b), by the same route at a and at -b (a symmetric window: p_lo = p_hi)
+    p_lo, q_a, _l, _m, _v, _c, _w = _one_sided_at(0.0, 1.0, a)
+    p_hi, q_b, _l, _m, _v, _c, _w = _one_sided_at(0.0, 1.0, -b)
+    flip = a < -b
+    a2 = -b if flip else a
+    b2 = -a if flip else b
+    one_sided = (b2 - a2) * (b2 + a2) > _FAR
+    if (one_sided and a2 > A_TAIL) or (a2 > _CF_FROM and not one_sided) or (b - a < _NARROW):
+        if one_sided and a2 > A_TAIL:
+            _p, gam, zm, _m, zvar, _c, _w = _one_sided_at(0.0, 1.0, a2)
+        else:
+            zm, zvar, gam = _quadrature_moments(a2, b2, glx, glw, buf)
+        lam = -zm if flip else zm
+    else:
+        if a > 0:
+            gam = q_a - p_hi
+        elif b < 0:
+            gam = q_b - p_lo
+        else:
+            gam = 1.0 - p_lo - p_hi
+        phi_a = _exp_neg(-0.5 * a * a) * _INV_SQRT_2PI
+        phi_b = _exp_neg(-0.5 * b * b) * _INV_SQRT_2PI
+        lam = (phi_a - phi_b) / gam
+        zvar = 1.0 + (a * phi_a - b * phi_b) / gam - lam * lam
+    return _assemble(mu, sd, lo, hi, p_lo, p_hi, gam, lam, zvar)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def censored_stats(mu, sd, lo, hi, glx, glw, buf):
+    r"""The censored-normal statistics of one run, as :func:`tobitkf.censored.censored_moments` (its
+    high-precision reference, tested against it): ``(p_lower, p_upper, p_uncensored, inverse_mills,
+    truncated_mean, truncated_var, censored_mean, censored_var)`` of :math:`y^* \sim N(\mu, sd^2)` clipped
+    to [lo, hi] (either infinite, lo < hi). One finite limit: :func:`_one_sided_at` (an upper limit as the
+    lower limit :math:`-h` of :math:`-y^*`); two: :func:`_window_stats` (quadrature nodes ``glx``, weights
+    ``glw``, scratch ``buf`` (2, len(glx))); none: the latent's own moments. Inlined (numba
+    ``inline="always"``), so that the one-sided route is inlined into the caller's loop over the runs."""
+    if lo != -_INF and hi == _INF:
+        plo, g, lam, tmean, tvar, cm, cv = _one_sided_at(mu, sd, lo)
+        return plo, 0.0, g, lam, tmean, tvar, cm, cv
+    if lo == -_INF and hi != _INF:
+        phi, g, lam, tmean, tvar, cm, cv = _one_sided_at(-mu, sd, -hi)
+        return 0.0, phi, g, -lam, -tmean, tvar, -cm, cv
+    if lo == -_INF:
+        v = sd * sd
+        return 0.0, 0.0, 1.0, 0.0, mu, v, mu, v
+    return _window_stats(mu, sd, lo, hi, glx, glw, buf)
+
+
+@njit(cache=True, error_model="numpy")
+def censored_moments_array(mu, sd, lo, hi, glx, glw):
+    """:func:`censored_stats` over 1-d arrays of equal length; returns an (8, K) array (testing aid)."""
+    out = np.empty((8, mu.shape[0]))
+    buf = np.empty((2, glx.shape[0]))
+    for i in range(mu.shape[0]):
+        st = censored_stats(mu[i], sd[i], lo[i], hi[i], glx, glw, buf)
+        for j in range(8):
+            out[j, i] = st[j]
+    return out
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
     r"""Censored-normal statistics of the runs ``b < nb`` of a block for one channel with one finite limit,
     as the TKF update needs them.
@@ -215,7 +377,7 @@ def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
     Writes :math:`\gamma_b = P(\text{uncensored})` into ``gam``, the censored mean :math:`E(y)` (Miller
     (3.8)) into ``cmean`` and the noise term of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`:
     0 the truncated variance, 1 the censored variance, 2 :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)`)
-    into ``noise``; the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-13 relative.
+    into ``noise``; the numbers of :func:`censored_stats`.
     An upper limit is the lower limit :math:`-\ell` of :math:`-y`: the same statistics with the means'
     signs flipped."""
     sg = -1.0 if upper else 1.0
@@ -223,16 +385,22 @@ def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
     for b in range(nb):
         mu = sg * ym[b]
         _plo, g, _lam, tmean, tvar, cm, cvar = _one_sided_at(mu, sd, lo)
-        if noise_code == 0:
-            v = tvar
-        elif noise_code == 1:
-            v = cvar
-        else:
-            d = tmean - mu
-            v = g * (tvar + d * d)
         gam[b] = g
-        noise[b] = v
+        noise[b] = noise_term(noise_code, mu, g, tmean, tvar, cvar)
         cmean[b] = sg * cm
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def noise_term(noise_code, mu, g, tmean, tvar, cvar):
+    r"""The TKF's noise term :math:`R_{uu}` of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`)
+    from a channel's statistics: 0 the truncated variance, 1 the censored variance, 2
+    :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)` (the mean :math:`\mu` of the latent reading)."""
+    if noise_code == 0:
+        return tvar
+    if noise_code == 1:
+        return cvar
+    d = tmean - mu
+    return g * (tvar + d * d)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -240,7 +408,7 @@ def lower_stats_block(ym, sd, lo, nb, gam, lam, tvar, cmean, cvar):
     r"""The statistics of the runs ``b < nb`` of a block for a lower limit ``lo`` alone (the form the fading
     and protocol kernels read): :math:`\gamma` into ``gam``, the inverse Mills ratio into ``lam``, the
     truncated variance into ``tvar``, the censored mean and variance into ``cmean``, ``cvar`` (each (B,));
-    the numbers of :func:`~tobitkf.filters._kernels.censored_stats` to ~1e-13 relative."""
+    the numbers of :func:`censored_stats`."""
     for b in range(nb):
         _plo, g, lm, _tmean, tv, cm, cv = _one_sided_at(ym[b], sd, lo)
         gam[b] = g

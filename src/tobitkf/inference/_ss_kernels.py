@@ -6,8 +6,8 @@ An implementation of the package's assumed-density filter's log-likelihood
 ``order="uncensored_first"``, standard covariance form) for one record and constant matrices, not a
 second algorithm: the same predict, the same scalar update of each channel in the same order (the
 readings inside the limits of a step first, in channel order, then the censored ones), the same
-censored-normal statistics (:func:`tobitkf.filters._kernels_censored._one_sided_at`, the filters'
-compiled route), the same log-likelihood terms:
+censored-normal statistics (:func:`tobitkf.filters._kernels_censored.beyond`, the filters' compiled
+route), the same log-likelihood terms:
 
 .. math::
 
@@ -33,7 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..filters._kernels_censored import A_TAIL, _one_sided_at
+from ..filters._kernels_censored import beyond
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _TINY = np.finfo(float).tiny
@@ -122,20 +122,9 @@ def log_likelihood(A, Q, C, r, Bu, D, x0, P0, y, side, lim, u):  # pragma: no co
                     total += -0.5 * (_LOG_2PI + math.log(s2) + e * e / s2)
                     obs = yl
                     V = 0.0
-                else:
-                    if sd_ < 0:  # y* <= l: the lower-limit statistics of -y* at -l
-                        _plo, g, lam, tmean, tvar, _cm, _cv = _one_sided_at(-mu, sd, -lim[k, l])
-                        a = (mu - lim[k, l]) / sd
-                        obs = -tmean
-                    else:  # y* >= h
-                        _plo, g, lam, tmean, tvar, _cm, _cv = _one_sided_at(mu, sd, lim[k, l])
-                        a = (lim[k, l] - mu) / sd
-                        obs = tmean
-                    if a > A_TAIL:  # P = phi(a) / lambda, in the log domain (finite far in the tail)
-                        total += -0.5 * a * a - 0.5 * _LOG_2PI - math.log(lam)
-                    else:
-                        total += math.log(g) if g > 0.0 else -np.inf
-                    V = tvar
+                else:  # beyond the limit: y* <= l (sd_ < 0) or y* >= h
+                    _p, logp, obs, V = beyond(mu, sd, lim[k, l], float(sd_))
+                    total += logp
                 f = (obs - mu) / s2
                 h = (s2 - V) / (s2 * s2)
                 for i in range(n):
