@@ -6,7 +6,7 @@ here, in compiled code). Why not call the loop directly from Python: numba unbox
 (~0.25 µs per array), and the loop's 29 arguments made one online step of a one-run KF 25 % slower than the
 former Kalman-filter loop with its 15 (measured in one process, thread CPU time: 12.1 against 9.6 µs per step,
 n = 2, m = 1, on a loaded machine); these entries take 14 and 21. The online ``step`` of one reading enters by :func:`kalman_step` and :func:`tobit_step`
-(6 and 9 arguments): the constant matrices flattened into one array (built once per estimator), the unused
+(6 and 8 arguments): the constant matrices flattened into one array (built once per estimator), the unused
 outputs made here.
 """
 

@@ -826,7 +826,7 @@ def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: Filt
     else:
         sm_mean, sm_cov = _empty((N, 0, n)), _empty((N, 0, n, n))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    _fading_step_entry()(
+    _fading_kernels().fading_tkf_step(
         loop_input(y),
         flat,
         lohi,
@@ -848,13 +848,6 @@ def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: Filt
     if keep_smoothed:
         extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
-
-
-@lru_cache(maxsize=1)
-def _fading_step_entry() -> Any:
-    """:func:`~tobitkf.filters._kernels_fading.fading_tkf_step` (looked up once: an attribute of a module costs a
-    dictionary look-up per step)."""
-    return _fading_kernels().fading_tkf_step
 
 
 def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, want, batch, keep_smoothed):

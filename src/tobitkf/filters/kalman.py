@@ -281,14 +281,6 @@ def step_constants(est: Any, *tail: float) -> np.ndarray:
     return cached[1]
 
 
-@lru_cache(maxsize=1)
-def step_entries() -> tuple[Any, Any]:
-    """The one-step entries ``(kalman_step, tobit_step)`` of :mod:`tobitkf.filters._compiled_entries`, looked up
-    once."""
-    mod = loop_entries()
-    return mod.kalman_step, mod.tobit_step
-
-
 def loop_entries() -> Any:
     """:mod:`tobitkf.filters._compiled_entries` (the KF's and the TKF's entries into the one compiled loop; imports
     numba)."""
@@ -329,7 +321,7 @@ def _kf_compiled_online_step(
         P = np.broadcast_to(P, (N, n, n))
     P = loop_input(P)
     x_last, P_last = np.empty((N, n)), np.empty((P.shape[0], n, n))
-    step_entries()[0](loop_input(y), step_constants(est), loop_input(state.x), P, x_last, P_last)
+    loop_entries().kalman_step(loop_input(y), step_constants(est), loop_input(state.x), P, x_last, P_last)
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None  # a small state: Python floats, the same verdict
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)

@@ -93,7 +93,7 @@ from .core import (
     psd_sqrt,
     step_state,
 )
-from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries, step_constants, step_entries
+from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries, step_constants
 from .smoothing import SmoothingMethods
 
 __all__ = [
@@ -421,7 +421,7 @@ def _input_terms(est: TobitKalmanFilter, u: np.ndarray | None, N: int, T: int) -
 
 def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: FilterState) -> FilterState | None:
     """One online step through the compiled loop (T = 1); None when the covariance stopped being finite. Without
-    an input it enters by :func:`~tobitkf.filters._compiled_entries.tobit_step` (9 arguments, the constants
+    an input it enters by :func:`~tobitkf.filters._compiled_entries.tobit_step` (8 arguments, the constants
     flattened once per estimator)."""
     N, m = y.shape
     n = est.n
@@ -440,7 +440,7 @@ def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: F
     out2 = np.empty((2, N, m))  # P(uncensored), E[y]
     x0, P0 = loop_input(state.x), loop_input(P)
     if u is None:
-        step_entries()[1](
+        loop_entries().tobit_step(
             loop_input(y), step_constants(est, _NOISE_CODES[est.noise_term]), lohi, x0, P0, out2, x_last, P_last
         )
     else:
