@@ -111,8 +111,8 @@ def test_read_only_inputs_reach_the_loop_as_writable_arrays(monkeypatch):
 
         return call
 
-    for mod, name in ((_compiled_entries, "tobit_loop"), (_compiled_entries, "kalman_loop")):
-        monkeypatch.setattr(mod, name, spy(getattr(mod, name)))
+    for name in ("tobit_loop", "kalman_loop", "tobit_step", "kalman_step"):  # the loop's entries, the step's too
+        monkeypatch.setattr(_compiled_entries, name, spy(getattr(_compiled_entries, name)))
     monkeypatch.setattr(_compiled_loop, "compiled_loop", spy(_compiled_loop.compiled_loop))
     sys_ = _system()
     cens = tk.Censoring(lower=0.0)

@@ -358,6 +358,7 @@ def test_online_step_runs_the_kernel_and_equals_numpy(shape, exact, monkeypatch)
     res = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", exact_tobit_variance=exact).filter(y)
     assert_same(np.stack([s.mean for s in fast], axis=-2), res.mean)
     monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    monkeypatch.setattr(_kernels_fading, "fading_tkf_step", _raise)  # the kernel's one-step entry
     est = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", exact_tobit_variance=exact)
     with pytest.raises(AssertionError, match="fading kernel used"):
         est.step(est.init(batch_shape=shape), y[..., 0, :])

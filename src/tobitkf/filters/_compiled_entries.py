@@ -5,7 +5,9 @@ r"""The Kalman filter's and the Tobit Kalman filter's entries into the one compi
 here, in compiled code). Why not call the loop directly from Python: numba unboxes every argument on every call
 (~0.25 µs per array), and the loop's 29 arguments made one online step of a one-run KF 25 % slower than the
 former Kalman-filter loop with its 15 (measured in one process, thread CPU time: 12.1 against 9.6 µs per step,
-n = 2, m = 1, on a loaded machine); these entries take 14 and 21.
+n = 2, m = 1, on a loaded machine); these entries take 14 and 21. The online ``step`` of one reading enters by :func:`kalman_step` and :func:`tobit_step`
+(6 and 8 arguments): the constant matrices flattened into one array (built once per estimator), the unused
+outputs made here.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from numba import njit
 
 from ._compiled_loop import KALMAN, TOBIT, compiled_loop
 
-__all__ = ["kalman_loop", "tobit_loop"]
+__all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step"]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -96,6 +98,82 @@ def tobit_loop(
         ey,
         np.empty((N, 0)),
         np.empty((N, 0, m, 0)),
+        x_last,
+        P_last,
+    )
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _unpack(consts, n, m, q):
+    """``A``, ``Qd`` (n, n), the rows ``H`` (1, m, n) and ``par`` (1, m, q) from the flat constants of a step entry
+    (in that order), and what follows them."""
+    nn = n * n
+    e = 2 * nn + m * n
+    A = consts[0:nn].reshape((n, n))
+    Qd = consts[nn : 2 * nn].reshape((n, n))
+    H = consts[2 * nn : e].reshape((1, m, n))
+    par = consts[e : e + m * q]
+    return A, Qd, H, par, consts[e + m * q :]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def kalman_step(y, consts, x0, P0, x_last, P_last):
+    """One step of :func:`kalman_loop` (the online ``step``): ``y`` (N, m), ``consts`` the flat ``A, Qd, C, R,
+    joseph`` (:func:`~tobitkf.filters.kalman.step_constants`), ``x0`` (N, n), ``P0`` (N or 1, n, n); writes the
+    new state into ``x_last``, ``P_last``."""
+    N, m = y.shape
+    n = x0.shape[1]
+    Pn = P0.shape[0]
+    A, Qd, H, par, rest = _unpack(consts, n, m, m)
+    e_m, e_c = np.empty((N, 0, n)), np.empty((Pn, 0, n, n))
+    kalman_loop(
+        y.reshape((N, 1, m)),
+        A,
+        Qd,
+        H,
+        par.reshape((1, m, m)),
+        rest[0] != 0.0,
+        x0,
+        P0,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        x_last,
+        P_last,
+    )
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def tobit_step(y, consts, lohi, x0, P0, out2, x_last, P_last):
+    """One step of :func:`tobit_loop` without inputs (the online ``step``): ``y`` (N, m), ``consts`` the flat ``A,
+    Qd, C, sigma, noise_code, joseph`` (:func:`~tobitkf.filters.kalman.step_constants`), ``lohi`` (2, 1, m) the
+    step's limits, ``x0`` (N, n), ``P0`` (N, n, n); writes P(uncensored) and E[y] into ``out2`` (2, N, m), the new
+    state into ``x_last``, ``P_last``."""
+    N, m = y.shape
+    n = x0.shape[1]
+    A, Qd, H, sigma, rest = _unpack(consts, n, m, 1)
+    e_m, e_c = np.empty((N, 0, n)), np.empty((N, 0, n, n))
+    tobit_loop(
+        y.reshape((N, 1, m)),
+        A,
+        Qd,
+        H,
+        sigma.reshape((1, m)),
+        lohi[0],
+        lohi[1],
+        np.empty((N, 0, n)),
+        np.empty((N, 0, m)),
+        int(rest[0]),
+        rest[1] != 0.0,
+        x0,
+        P0,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        out2[0].reshape((N, 1, m)),
+        out2[1].reshape((N, 1, m)),
         x_last,
         P_last,
     )

@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import _INF, censored_stats
+from ._kernels import _INF, GL_W, GL_X, censored_stats
 from ._kernels_block import (
     _block_dims,
     _cov_update,
@@ -56,7 +56,14 @@ from ._kernels_block import (
 )
 from ._kernels_censored import lower_stats_block
 
-__all__ = ["fading_tkf_kernel", "shift_predict_block", "AUG_BLOCK", "aug_block_dims"]
+__all__ = [
+    "fading_tkf_kernel",
+    "fading_tkf_step",
+    "step_constants",
+    "shift_predict_block",
+    "AUG_BLOCK",
+    "aug_block_dims",
+]
 
 #: runs per block of the augmented-state loops (this one and the protocol loop), twice the large-n TKF's
 #: :data:`~tobitkf.filters._kernels_block.BLOCK`: a step of these loops is some 300 short loops over the runs of a block
@@ -263,3 +270,58 @@ def fading_tkf_kernel(
                 _flush(s_smm, sm_mean, r0, t0, nb, tt + 1)
                 _flush(s_smc, sm_cov, r0, t0, nb, tt + 1)
         _store_last(x, P, r0, nb, x_last, P_last)
+
+
+def step_constants(A: np.ndarray, Qd: np.ndarray, Hs: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """``A``, ``Qd`` (n, n), ``Hs`` (L+1, m, nxi) and ``sigma`` (m,) flattened into one float64 array in that
+    order, as :func:`fading_tkf_step` takes them (built once per estimator)."""
+    return np.concatenate([np.ravel(A), np.ravel(Qd), np.ravel(Hs), np.ravel(sigma)]).astype(np.float64)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def fading_tkf_step(y, consts, lohi, x0, P0, k0, n, exact, joseph, out3, sm_mean, sm_cov, x_last, P_last):
+    """One step of :func:`fading_tkf_kernel` (the online ``step``) with 14 arguments instead of 26: numba unboxes
+    every argument of a call from Python (~0.1-0.2 µs per array), a large part of a one-run step. ``y`` (N, m);
+    ``consts`` the flat ``A, Qd, Hs, sigma`` of :func:`step_constants` (m = ``y.shape[1]``, nxi =
+    ``x0.shape[1]``, L + 1 = the rest); ``lohi`` (2, 1, m) the step's limits; ``out3`` (3, N, m) receives
+    P(uncensored), E[y] and the inverse Mills ratio; ``sm_mean`` (N, L+1, n), ``sm_cov`` (N, L+1, n, n) the
+    smoothed blocks, or zero-size arrays when not wanted; ``x_last``, ``P_last`` the new state."""
+    N, m = y.shape
+    nxi = x0.shape[1]
+    nn = n * n
+    L1 = (consts.shape[0] - 2 * nn - m) // (m * nxi)
+    A = consts[0:nn].reshape((n, n))
+    Qd = consts[nn : 2 * nn].reshape((n, n))
+    end = 2 * nn + L1 * m * nxi
+    Hs = consts[2 * nn : end].reshape((L1, m, nxi))
+    sigma = consts[end : end + m]
+    ts = 1 if sm_mean.size > 0 else 0
+    e_m, e_c = np.empty((N, 0, n)), np.empty((N, 0, n, n))
+    fading_tkf_kernel(
+        y.reshape((N, 1, m)),
+        A,
+        Qd,
+        Hs,
+        sigma,
+        lohi[0],
+        lohi[1],
+        x0,
+        P0,
+        k0,
+        n,
+        exact,
+        joseph,
+        GL_X,
+        GL_W,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        out3[0].reshape((N, 1, m)),
+        out3[1].reshape((N, 1, m)),
+        out3[2].reshape((N, 1, m)),
+        sm_mean.reshape((N, ts, L1, n)),
+        sm_cov.reshape((N, ts, L1, n, n)),
+        x_last,
+        P_last,
+    )

@@ -105,7 +105,7 @@ from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
 from ._online_check import system_only
-from ._outputs import _empty, kernel_array, kernel_result, output_arrays, state_specs
+from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -363,6 +363,17 @@ class _FadingFamily(LinearGaussianFamily):
         if self.tobit and self.check_limits:
             self._cens.check_measurements(y2, name, start=k0 + 1)
 
+    def _check_reading(self, state, y, options):
+        # the checks of _check_record for one step, without its record-wide calls (the limits' channels were
+        # checked at construction; the one-step limit check directly): ~2.5 µs of an online step
+        k = state.k + 1
+        self._check_horizon(k)
+        cens = self._cens
+        if cens.time_varying:
+            cens.check(self.m, k)
+        if self.tobit and self.check_limits:
+            cens.check_reading(y, k)
+
     def _prepare_step_options(self, state, options):
         # a plain step has none: no comprehension's frame (~0.2 µs) for an empty dict
         return {k: bool(v) for k, v in options.items()} if options else {}
@@ -444,7 +455,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
 
     _name = "FadingTobitKalmanFilter"
     _kernel_mats: tuple[np.ndarray, ...]  # A, Qd, H_0..H_L of the kernel, set on its first call
-    _step_consts: tuple[np.ndarray, ...]  # the online step's lower, upper, sigma (constant limits), set once
+    _step_consts: tuple[Any, np.ndarray, np.ndarray]  # the online step's system, flat constants, limits, set once
 
     def __init__(
         self,
@@ -789,58 +800,43 @@ def _fading_kernels() -> ModuleType:
 
 
 def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterState, keep_smoothed: bool):
-    """One online step (y (N, m)) through the compiled loop with T = 1 and only the step's extras written: the
-    call of :func:`_fading_kernel_run` without its per-record glue (the limits and sigma converted once per
-    estimator for constant limits, cached empty outputs, no result object); None when the covariance
+    """One online step (y (N, m)) through the compiled loop with T = 1 and only the step's extras written, by its
+    entry of 14 arguments (:func:`~tobitkf.filters._kernels_fading.fading_tkf_step`): the matrices flattened into
+    one array and the limits into another, once per estimator for constant limits; None when the covariance
     stopped being finite (the numpy step then reruns it and reports the divergence)."""
-    kern = kernels()
     N, m = y.shape
     n, L, nxi = est.n, est.L, est._nxi
-    c64 = np.ascontiguousarray
-    A, Qd, Hs = _fading_kernel_matrices(est)
     cens = est._cens
     consts = None if cens.time_varying else est.__dict__.get("_step_consts")
-    if consts is None:
+    if consts is None or consts[0] is not est.system:  # keyed on the system (an estimator copied onto another)
+        mod = _fading_kernels()
         lo, hi = cens.all_limits(1, m, start=state.k + 1)
-        consts = (c64(lo, dtype=float), c64(hi, dtype=float), c64(est._sigma, dtype=float))
+        flat = mod.step_constants(*_fading_kernel_matrices(est), est._sigma)
+        consts = (est.system, flat, np.stack([lo, hi]).astype(float))
         if not cens.time_varying:
             est._step_consts = consts  # constant limits: converted once
-    lo, hi, sigma = consts
-    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
-    P = state.P if state.P.shape[0] == N else np.broadcast_to(state.P, (N, nxi, nxi))
-    # p_uncensored, E[y], the inverse Mills ratios: three blocks of one array (an allocation is ~0.25 µs of
-    # Python, indexing a block ~0.1)
-    out3 = np.empty((3, N, 1, m))
-    pu, ey, lam = out3[0], out3[1], out3[2]
+    _, flat, lohi = consts
+    P = state.P
+    assert P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
+    if P.shape[0] != N:
+        P = np.broadcast_to(P, (N, nxi, nxi))
+    out3 = np.empty((3, N, m))  # p_uncensored, E[y], the inverse Mills ratios
     if keep_smoothed:
-        sm_mean, sm_cov = np.empty((N, 1, L + 1, n)), np.empty((N, 1, L + 1, n, n))
+        sm_mean, sm_cov = np.empty((N, L + 1, n)), np.empty((N, L + 1, n, n))
     else:
-        sm_mean, sm_cov = _empty((N, 0, L + 1, n)), _empty((N, 0, L + 1, n, n))
-    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
+        sm_mean, sm_cov = _empty((N, 0, n)), _empty((N, 0, n, n))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    _fading_kernels().fading_tkf_kernel(
-        c64(y.reshape(N, 1, m)),
-        A,
-        Qd,
-        Hs,
-        sigma,
-        lo,
-        hi,
-        c64(state.x, dtype=float),
-        c64(P, dtype=float),
+    _fading_kernels().fading_tkf_step(
+        loop_input(y),
+        flat,
+        lohi,
+        loop_input(state.x),
+        loop_input(P),
         state.k,
         n,
         est.exact_tobit_variance,
         est.covariance_update == "joseph",
-        kern.GL_X,
-        kern.GL_W,
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        pu,
-        ey,
-        lam,
+        out3,
         sm_mean,
         sm_cov,
         x_last,
@@ -848,9 +844,9 @@ def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: Filt
     )
     if not finite_variances(P_last):  # the check of _finite_or_none
         return None
-    extras = {"p_uncensored": pu[:, 0], "expected_y": ey[:, 0], "inverse_mills": lam[:, 0]}
+    extras = {"p_uncensored": out3[0], "expected_y": out3[1], "inverse_mills": out3[2]}
     if keep_smoothed:
-        extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean[:, 0], sm_cov[:, 0]
+        extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 

@@ -50,7 +50,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, compiled_ok
 from ._online_check import system_only
-from ._outputs import _empty, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import kernel_result, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
 from ._times import at_times
 from .core import (
@@ -128,7 +128,20 @@ class LinearGaussianFamily(GaussianFilter):
         return arr.reshape(state.runs, sys_.p)
 
     def _check_record(self, y2: np.ndarray, u2, k0: int, name: str = "y") -> None:
-        self.system.check_horizon(k0 + y2.shape[1])
+        self._check_horizon(k0 + y2.shape[1])
+
+    def _check_horizon(self, steps: int) -> None:
+        """:meth:`~tobitkf.LinearSystem.check_horizon` for ``steps`` steps, skipped when no part of the system is given
+        per step or as a callable (nothing to check then; asked once per system and cached: the check loops over
+        seven parts, ~0.7 µs of an online step)."""
+        sys_ = self.system
+        cached = self.__dict__.get("_horizon_free")
+        if cached is None or cached[0] is not sys_:
+            parts = (sys_.A, sys_.C, sys_.Q, sys_.R, sys_.B, sys_.Bu, sys_.D)
+            free = not any(p is not None and p.varying for p in parts)
+            cached = self.__dict__["_horizon_free"] = (sys_, free)
+        if not cached[1]:
+            sys_.check_horizon(steps)
 
 
 class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
@@ -255,6 +268,19 @@ def _loop_arrays(est) -> tuple[Any, ...]:
     return args
 
 
+def step_constants(est: Any, *tail: float) -> np.ndarray:
+    """The constants of a one-step entry (:func:`~tobitkf.filters._compiled_entries.kalman_step`,
+    :func:`~tobitkf.filters._compiled_entries.tobit_step`) as one flat float64 array, built once per estimator:
+    ``A``, ``B Q B^T``, ``C``, then R (the KF) or the standard deviations (the TKF), then ``tail`` (the TKF's noise
+    code), then the Joseph flag. One array instead of five: numba unboxes each argument of a call from Python."""
+    cached = est.__dict__.get("_step_flat")
+    if cached is None or cached[0] is not est.system:  # keyed on the system (an estimator copied onto another)
+        A, Qd, H, par, joseph = _loop_arrays(est)
+        parts = [A.ravel(), Qd.ravel(), H.ravel(), par.ravel(), np.array([*tail, float(joseph)])]
+        cached = est._step_flat = (est.system, np.concatenate(parts).astype(np.float64))
+    return cached[1]
+
+
 def loop_entries() -> Any:
     """:mod:`tobitkf.filters._compiled_entries` (the KF's and the TKF's entries into the one compiled loop; imports
     numba)."""
@@ -293,12 +319,9 @@ def _kf_compiled_online_step(
     assert P is not None, "the compiled path runs the standard form, which carries P"
     if P.shape[0] != N and (P.shape[0] != 1 or bool(np.isnan(y).any())):  # one run: never per run
         P = np.broadcast_to(P, (N, n, n))
-    P = np.ascontiguousarray(P, dtype=float)
-    Pn = P.shape[0]
-    x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
-    e_m, e_c = _empty((N, 0, n)), _empty((Pn, 0, n, n))
-    y3 = loop_input(y.reshape(N, 1, m))
-    _kalman_call(est, y3, np.ascontiguousarray(state.x, dtype=float), P, (e_m, e_c, e_m, e_c), x_last, P_last)
+    P = loop_input(P)
+    x_last, P_last = np.empty((N, n)), np.empty((P.shape[0], n, n))
+    loop_entries().kalman_step(loop_input(y), step_constants(est), loop_input(state.x), P, x_last, P_last)
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None  # a small state: Python floats, the same verdict
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)

@@ -93,7 +93,7 @@ from .core import (
     psd_sqrt,
     step_state,
 )
-from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries
+from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries, step_constants
 from .smoothing import SmoothingMethods
 
 __all__ = [
@@ -271,7 +271,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
     _name = "TobitKalmanFilter"
     _step_options: tuple[str, ...] = ("lower", "upper")
-    _loop_limits: tuple[np.ndarray, np.ndarray]  # constant limits, set on the first compiled step
+    _loop_limits: np.ndarray  # (2, 1, m) the constant limits of the compiled step, set on its first call
 
     def __init__(
         self,
@@ -420,55 +420,58 @@ def _input_terms(est: TobitKalmanFilter, u: np.ndarray | None, N: int, T: int) -
 
 
 def _tkf_compiled_online_step(est: TobitKalmanFilter, y: np.ndarray, u, state: FilterState) -> FilterState | None:
-    """One online step through the compiled loop (T = 1); None when the covariance stopped being finite."""
+    """One online step through the compiled loop (T = 1); None when the covariance stopped being finite. Without
+    an input it enters by :func:`~tobitkf.filters._compiled_entries.tobit_step` (8 arguments, the constants
+    flattened once per estimator)."""
     N, m = y.shape
     n = est.n
     cens = est.censoring
-    lims = None if cens.time_varying else est.__dict__.get("_loop_limits")
-    if lims is None:
-        lo, hi = cens.limits(state.k + 1)
-        lims = (  # writable copies (a read-only argument would compile the loop once more)
-            np.require(np.broadcast_to(lo, (1, m)), float, ("C", "W")),
-            np.require(np.broadcast_to(hi, (1, m)), float, ("C", "W")),
-        )
+    lohi = None if cens.time_varying else est.__dict__.get("_loop_limits")
+    if lohi is None:
+        lohi = np.empty((2, 1, m))  # writable (a read-only argument would compile the loop once more)
+        lohi[0], lohi[1] = cens.limits(state.k + 1)
         if not cens.time_varying:
-            est._loop_limits = lims  # constant limits: converted once
-    lo, hi = lims
+            est._loop_limits = lohi  # constant limits: converted once
     P = state.P
     assert P is not None, "the compiled path runs the standard form, which carries P"
     if P.shape[0] != N:
         P = np.broadcast_to(P, (N, n, n))
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
-    pu, ey = np.empty((N, 1, m)), np.empty((N, 1, m))
-    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
-    bu, du = _input_terms(est, None if u is None else u.reshape(N, 1, -1), N, 1)
-    A, Qd, H, sigma, joseph = _loop_arrays(est)
-    loop_entries().tobit_loop(
-        loop_input(y.reshape(N, 1, m)),
-        A,
-        Qd,
-        H,
-        sigma,
-        lo,
-        hi,
-        bu,
-        du,
-        _NOISE_CODES[est.noise_term],
-        joseph,
-        np.ascontiguousarray(state.x, dtype=float),
-        np.ascontiguousarray(P, dtype=float),
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        pu,
-        ey,
-        x_last,
-        P_last,
-    )
+    out2 = np.empty((2, N, m))  # P(uncensored), E[y]
+    x0, P0 = loop_input(state.x), loop_input(P)
+    if u is None:
+        loop_entries().tobit_step(
+            loop_input(y), step_constants(est, _NOISE_CODES[est.noise_term]), lohi, x0, P0, out2, x_last, P_last
+        )
+    else:
+        bu, du = _input_terms(est, u.reshape(N, 1, -1), N, 1)
+        A, Qd, H, sigma, joseph = _loop_arrays(est)
+        loop_entries().tobit_loop(
+            loop_input(y.reshape(N, 1, m)),
+            A,
+            Qd,
+            H,
+            sigma,
+            lohi[0],
+            lohi[1],
+            bu,
+            du,
+            _NOISE_CODES[est.noise_term],
+            joseph,
+            x0,
+            P0,
+            _empty((N, 0, n)),
+            _empty((N, 0, n, n)),
+            _empty((N, 0, n)),
+            _empty((N, 0, n, n)),
+            out2[0].reshape(N, 1, m),
+            out2[1].reshape(N, 1, m),
+            x_last,
+            P_last,
+        )
     if not (all(map(math.isfinite, P_last.ravel().tolist())) if P_last.size <= 16 else np.isfinite(P_last).all()):
         return None
-    extras = {"p_uncensored": pu[:, 0], "expected_y": ey[:, 0]}
+    extras = {"p_uncensored": out2[0], "expected_y": out2[1]}
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
