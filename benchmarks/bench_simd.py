@@ -42,7 +42,6 @@ def _load() -> str:
 
 def case(runs: int, steps: int, repeat: int) -> None:
     from _fused_tkf import fused_tkf
-
     from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
     from tobitkf.filters._compiled_soa import soa_kalman_loop, soa_tobit_loop
 

@@ -158,6 +158,7 @@ def soa_loop(
     s_cov, s_pcov = np.empty(_stage_shape(covs, BK, S)), np.empty(_stage_shape(pcovs, BK, S))
     s_pu, s_ey = np.empty(_stage_shape(pu, BK, S)), np.empty(_stage_shape(ey, BK, S))
     w_pu, w_ey = pu.shape[1] > 0, ey.shape[1] > 0
+    s_y = np.empty((S, BK))
     has_bu, has_du = bu.shape[1] > 0, du.shape[1] > 0
     one_p = P0.shape[0] == 1
     for r0 in range(0, N, BK):
@@ -174,8 +175,13 @@ def soa_loop(
             upper = lo[tl, 0] == -_INF
             sg = -1.0 if upper else 1.0
             lim = sg * (hi[tl, 0] if upper else lo[tl, 0])
+            if tt == 0:  # the readings of the chunk's steps, run by run (contiguous reads), into (S, B)
+                cnt = min(S, T - t)
+                for b in range(nb):
+                    for s in range(cnt):
+                        s_y[s, b] = y[r0 + b, t + s, 0]
             for b in range(nb):
-                W[oY * BK + b] = y[r0 + b, t, 0]
+                W[oY * BK + b] = s_y[tt, b]
             if has_bu:
                 for i in range(n):
                     for b in range(nb):
