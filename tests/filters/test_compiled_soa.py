@@ -179,3 +179,11 @@ def test_covers():
     assert not soa.soa_covers(False, 1, 5, 5, 5, np.zeros((1, 1)), np.full((1, 1), inf))  # n too large
     assert soa.soa_covers(True, 1, 3, 5, 5)
     assert not soa.soa_covers(True, 1, 3, 1, 5)  # one shared covariance: the shared-gain path
+
+
+def test_entries_choose_the_soa_path_only_where_covered():
+    inf = np.inf
+    assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.full((1, 1), inf)) is soa.soa_tobit_loop
+    assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is tobit_loop
+    assert soa.kalman_entry(kalman_loop, 1, 2, 7, 7) is soa.soa_kalman_loop
+    assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is kalman_loop
