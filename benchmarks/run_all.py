@@ -54,6 +54,7 @@ SUITE: list[tuple[str, str, list[str], bool]] = [
     ("memory", "bench_memory.py", [], True),
     ("scaling", "bench_scaling.py", ["--out", "{out}/bench_scaling"], True),
     ("adf", "bench_adf.py", [], True),
+    ("simd", "bench_simd.py", [], True),
     ("particle", "bench_particle.py", [], True),
     ("nonlinear", "bench_nonlinear.py", [], True),
     ("sweep", "bench_sweep.py", ["--mem-runs", "10000", "1000000", "10000000", "--mem-scheduler", "processes"], True),

@@ -1,0 +1,124 @@
+"""The core TKF and KF with the whole step vectorised over the runs against the compiled loop and the fused kernel.
+
+Data and system: those of ``bench_limit.py`` (the n = 2 oscillator, m = 1, left-censored at 0, simulated from the
+model). Contestants, all on one thread, all writing into output arrays allocated and touched before the timings
+(compute only; what the output pool and a user's loop add is ``bench_limit.py``'s subject):
+
+* the structure-of-arrays step (``tobitkf.filters._compiled_soa``), means only and means + covariances;
+* the compiled loop's TKF entry (``tobitkf.filters._compiled_entries.tobit_loop``: the block path the filters
+  run today), the same two output sets, and the KF through both, means only;
+* the hand-fused scalar numba TKF (``benchmarks/_fused_tkf.py``, one run at a time, means + covariances: the
+  yardstick of ``bench_limit.py``).
+
+Each contestant runs ``--repeat`` times, interleaved (every round calls each once, in an order shuffled every
+round, seeded), after one untimed call (compilation). Printed per contestant: the median and the spread
+(min-max) of the thread CPU time and of the wall time per run-step, and the ratio of medians (CPU time) of
+the fused kernel over it (> 1 = faster than the fused kernel); the machine's load average before and after,
+since the machine is shared.
+
+Run by hand::
+
+    PYTHONPATH=src python benchmarks/bench_simd.py            # about a minute on an idle machine
+    PYTHONPATH=src python benchmarks/bench_simd.py --smoke    # seconds (CI)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import random
+import statistics
+import time
+
+import numpy as np
+
+import tobitkf as tk
+from tobitkf.filters._backend import numba_available
+
+
+def _load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def case(runs: int, steps: int, repeat: int) -> None:
+    from _fused_tkf import fused_tkf
+    from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
+    from tobitkf.filters._compiled_soa import soa_kalman_loop, soa_tobit_loop
+
+    w = 0.05
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2))
+    cens = tk.Censoring(lower=0.0)
+    y = np.ascontiguousarray(tk.simulate(sys_, steps, runs, censoring=cens, seed=0).y, dtype=float)
+    n, N, T = 2, runs, steps
+    Q = np.ascontiguousarray(sys_.process_cov(0))
+    H = np.array([[[1.0, 0.0]]])
+    sig = np.array([[np.sqrt(0.1)]])
+    R = np.array([[[0.1]]])
+    lo, hi = np.zeros((1, 1)), np.full((1, 1), np.inf)
+    x0 = np.zeros((N, n))
+    P0 = np.ascontiguousarray(np.broadcast_to(0.05 * np.eye(n), (N, n, n)))
+    bu, du = np.empty((N, 0, n)), np.empty((N, 0, 1))
+    e_m, e_c, e1 = np.empty((N, 0, n)), np.empty((N, 0, n, n)), np.empty((N, 0, 1))
+    means, covs = np.zeros((N, T, n)), np.zeros((N, T, n, n))  # touched once, here
+    xl, Pl = np.empty((N, n)), np.empty((N, n, n))
+    y2 = np.ascontiguousarray(y[:, :, 0])
+    print(f"\n{runs} runs x {steps} steps, n=2, m=1, censored fraction {np.mean(y <= 0.0):.2f}")
+
+    def tkf(fn, cov):
+        return lambda: fn(y, A, Q, H, sig, lo, hi, bu, du, 0, False, x0, P0, means, cov, e_m, e_c, e1, e1, xl, Pl)
+
+    def kf(fn):
+        return lambda: fn(y, A, Q, H, R, False, x0, P0, means, e_c, e_m, e_c, xl, Pl)
+
+    contestants = {
+        "SoA TKF, means only": tkf(soa_tobit_loop, e_c),
+        "SoA TKF, mean+cov": tkf(soa_tobit_loop, covs),
+        "compiled loop TKF, means only": tkf(tobit_loop, e_c),
+        "compiled loop TKF, mean+cov": tkf(tobit_loop, covs),
+        "SoA KF, means only": kf(soa_kalman_loop),
+        "compiled loop KF, means only": kf(kalman_loop),
+        "hand-fused TKF, mean+cov": lambda: fused_tkf(y2, A, Q, H[0, 0], 0.1**0.5, 0.0, x0[0], P0[0], means, covs),
+    }
+    for fn in contestants.values():
+        fn()  # compilation, first touch
+    cpu: dict[str, list[float]] = {k: [] for k in contestants}
+    wall: dict[str, list[float]] = {k: [] for k in contestants}
+    order = list(contestants)
+    rng = random.Random(0)
+    print(f"load average before: {_load()}")
+    for _ in range(repeat):
+        rng.shuffle(order)
+        for name in order:
+            t0, c0 = time.perf_counter(), time.thread_time()
+            contestants[name]()
+            c1, t1 = time.thread_time(), time.perf_counter()
+            cpu[name].append((c1 - c0) / (N * T) * 1e9)
+            wall[name].append((t1 - t0) / (N * T) * 1e9)
+    print(f"load average after:  {_load()}")
+    ref = statistics.median(cpu["hand-fused TKF, mean+cov"])
+    print(f"{'contestant':32s} {'CPU ns/run-step (min-max)':>28s} {'wall ns/run-step (min-max)':>28s} {'fused/it':>9s}")
+    for name in contestants:
+        c, wl = cpu[name], wall[name]
+        mc, mw = statistics.median(c), statistics.median(wl)
+        print(
+            f"{name:32s} {mc:10.1f} ({min(c):6.1f}-{max(c):6.1f}) {mw:10.1f} ({min(wl):6.1f}-{max(wl):6.1f}) "
+            f"{ref / mc:8.2f}x"
+        )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
+    ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
+    args = ap.parse_args()
+    if not numba_available():
+        print("numba is not installed: nothing to measure")
+        return
+    cases = [(100_000, 100), (10_000, 1_000)] if not args.smoke else [(300, 20)]
+    for runs, steps in cases:
+        case(runs, steps, args.repeat if not args.smoke else 2)
+
+
+if __name__ == "__main__":
+    main()
