@@ -501,7 +501,10 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
     bu, du = _input_terms(est, u2, N, T)
 
     A, Qd, H, sigma, joseph = _loop_arrays(est)
-    loop = loop_entries().tobit_loop
+    entries = loop_entries()
+    loop = entries.tobit_loop
+    # one channel of up to 4 states with one finite limit per row: the step vectorised over runs (equal to the loop)
+    loop = entries.tobit_entry(loop, m, n, lo, hi)
 
     def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
         loop(
