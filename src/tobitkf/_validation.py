@@ -392,10 +392,23 @@ class TimeSequence:
     offset : int
         Array index of paper time ``k`` is ``k - offset`` (0 for A, Q, B whose
         first use is at k = 0; 1 for C, R whose first use is y_1).
+    batch_ndim : int, default 0
+        Number of leading run axes an array may carry: with ``b > 0`` an array of ``core_ndim`` axes is
+        shared by every run, one of ``core_ndim + b`` axes is ``(*batch, r, c)`` (one constant matrix per
+        run) and one of ``core_ndim + b + 1`` axes ``(*batch, T, r, c)``. ``batch_shape`` holds the run
+        axes (``()`` when shared; a callable is always shared) and :meth:`at` returns ``(*batch_shape, r, c)``.
     """
 
     def __init__(
-        self, value: Any, name: str, *, core_ndim: int = 2, offset: int = 0, psd: bool = False, strict_psd: bool = False
+        self,
+        value: Any,
+        name: str,
+        *,
+        core_ndim: int = 2,
+        offset: int = 0,
+        psd: bool = False,
+        strict_psd: bool = False,
+        batch_ndim: int = 0,
     ):
         self.name = name
         self.offset = offset
@@ -403,6 +416,22 @@ class TimeSequence:
         self._psd = psd
         self._strict = strict_psd
         self._valid_to = offset  # a callable is validated for k < _valid_to (each k once)
+        self.batch_shape: tuple[int, ...] = ()
+        if batch_ndim and not callable(value):
+            arr = as_float_array(value, name)
+            allowed = (core_ndim, core_ndim + batch_ndim, core_ndim + batch_ndim + 1)
+            if arr.ndim not in allowed:
+                raise ShapeError(
+                    f"{name}: expected {core_ndim} axes (shared by the runs), {allowed[1]} (one matrix per run: "
+                    f"{batch_ndim} run axes first) or {allowed[2]} (run axes, then time), got shape {arr.shape}"
+                )
+            self.fn = None
+            self.array = arr
+            self.batch_shape = arr.shape[:batch_ndim] if arr.ndim > core_ndim else ()
+            self.varying = arr.ndim == allowed[2]
+            self.core_shape = arr.shape[arr.ndim - core_ndim :]
+            self._check(arr, name)
+            return
         if callable(value):
             self.fn: Callable[[int], Any] | None = value
             first = as_float_array(value(offset), f"{name}({offset})", ndim=core_ndim)
@@ -425,7 +454,7 @@ class TimeSequence:
     @property
     def steps(self) -> int | None:
         """Number of steps stored, or None for constants and callables."""
-        return self.array.shape[0] if (self.varying and self.array is not None) else None
+        return self.array.shape[len(self.batch_shape)] if (self.varying and self.array is not None) else None
 
     def at(self, k: int) -> np.ndarray:
         """The matrix at paper time ``k``."""
@@ -440,12 +469,13 @@ class TimeSequence:
         assert self.array is not None, "a constant or time-indexed sequence holds its array"
         if self.varying:
             idx = k - self.offset
-            if not 0 <= idx < self.array.shape[0]:
+            nb = len(self.batch_shape)
+            if not 0 <= idx < self.array.shape[nb]:
                 raise ShapeError(
-                    f"{self.name}: time-indexed array has {plural(self.array.shape[0], 'step')}, "
+                    f"{self.name}: time-indexed array has {plural(self.array.shape[nb], 'step')}, "
                     f"step k={k} (index {idx}) requested"
                 )
-            return self.array[idx]
+            return self.array[(slice(None),) * nb + (idx,)]
         return self.array
 
     def check_horizon(self, steps: int) -> None:
@@ -504,10 +534,10 @@ def diagonal_sigma(
     ValidationError
         R not diagonal (to 1e-12 relative) or a variance not positive.
     """
-    off = R - np.diag(np.diagonal(R))
+    d = np.diagonal(R, axis1=-2, axis2=-1)  # (m,), or (N, m) for one R per run
+    off = R - d[..., :, None] * np.eye(R.shape[-1])
     if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
         raise ValidationError(f"{name}: {who} needs a diagonal R ({why})")
-    d = np.diagonal(R)
     if np.any(d <= 0):
         raise ValidationError(f"{name}: {positive or who + ' needs positive measurement variances'}, got {d}")
     return np.sqrt(d)

@@ -56,6 +56,8 @@ def kernels() -> ModuleType:
 def system_gap(system, u, *, inputs: bool = False) -> str | None:
     """Why the kernels cannot run this system/input, or None when they can. ``inputs=True``: the kernel
     covers control inputs (constant B^u and D)."""
+    if getattr(system, "per_run", False):
+        return "system matrices given per run (batch_ndim)"
     if not system.time_invariant:
         return "time-varying system matrices (A, B, C, Q or R indexed by k)"
     if u is not None:

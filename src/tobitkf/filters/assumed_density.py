@@ -155,7 +155,8 @@ def censored_channel_update(
     ----------
     x : (N, n) ; P : (N or 1, n, n) ; S : (N or 1, n, n) or None (square-root factor)
     y : (N,) readings of the channel (NaN = missing)
-    c : (n,) its row of C (of the effective measurement matrix) ; r : its noise variance (>= 0), scalar or (N,)
+    c : (n,) its row of C (of the effective measurement matrix), or (N or 1, n) one per run ;
+        r : its noise variance (>= 0), scalar or (N,)
     lower, upper : scalar or (N,) limits
     dy : (N,) or 0, the feed-through D u of the channel
     form : {"standard", "joseph", "square_root"}
@@ -180,9 +181,13 @@ def censored_channel_update(
         censored one), else ``-inf``; and no update.
     """
     N = x.shape[0]
-    mu = x @ c + dy
     rv = np.asarray(r, dtype=float)
-    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
+    if c.ndim == 2:  # one row per run (N or 1, n)
+        mu = np.einsum("ri,ri->r", x, np.broadcast_to(c, x.shape)) + dy
+        s2 = np.broadcast_to(np.einsum("rij,ri,rj->r", P, c, c) + rv, (N,))
+    else:
+        mu = x @ c + dy
+        s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
     ok = s2 > _TINY
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N,))
@@ -219,7 +224,7 @@ def censored_channel_update(
     noise = np.full((1, 1), float(rv)) if rv.ndim == 0 else np.broadcast_to(rv, (N,))[:, None]
     mp = MeasurementPrediction(
         expected=mu[:, None],
-        H0=c[None, :],
+        H0=c[..., None, :],
         noise=noise,
         observed=np.where(valid, obs, np.nan)[:, None],
         valid=valid[:, None],
@@ -365,8 +370,8 @@ def _noise_variances(R: np.ndarray, name: str, positive: str | None = None) -> n
     Raises ValidationError naming ``name`` for an off-diagonal entry (beyond 1e-12 of the largest) or a
     negative variance; with ``positive`` (the filter's name, e.g. ``"the protocol filter"``) also for a zero one.
     """
-    off = R - np.diag(np.diagonal(R))
-    d = np.diagonal(R).copy()
+    d = np.diagonal(R, axis1=-2, axis2=-1).copy()  # (m,), or (N or 1, m) with one R per run
+    off = R - d[..., :, None] * np.eye(R.shape[-1])
     diagonal = np.abs(off).max(initial=0.0) <= 1e-12 * max(1.0, np.abs(R).max())
     if positive is not None and (not diagonal or np.any(d <= 0)):
         raise ValidationError(f"{name}: {positive} needs a diagonal R with positive sensor variances")
@@ -691,8 +696,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
                     P,
                     S,
                     y[:, l],
-                    C[l],
-                    r[l],
+                    C[..., l, :],
+                    r[..., l],
                     lo[:, l],
                     hi[:, l],
                     dy=dy[:, l],
