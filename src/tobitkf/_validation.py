@@ -370,7 +370,11 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
         raise ValidationError(
             f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
         )
-    eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
+    d = np.diagonal(mat, axis1=-2, axis2=-1)
+    if not np.any(mat - d[..., :, None] * np.eye(mat.shape[-1])):  # diagonal: its eigenvalues, no solver
+        eig = d
+    else:
+        eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
     lo = float(eig.min(initial=np.inf))
     if strict and lo <= 0:
         raise ValidationError(f"{name}: expected a positive definite matrix, smallest eigenvalue {lo:.3g}")
@@ -384,7 +388,8 @@ class TimeSequence:
     Parameters
     ----------
     value : array_like or callable
-        ``(r, c)`` constant, ``(T, r, c)`` one matrix per step, or ``f(k) -> (r, c)``.
+        ``(r, c)`` constant, ``(T, r, c)`` one matrix per step, or ``f(k) -> (r, c)`` (with ``batch_ndim``
+        also ``f(k) -> (*batch, r, c)``, the run axes of its first value kept at every k).
     name : str
         Argument name used in error messages.
     core_ndim : int
@@ -434,8 +439,13 @@ class TimeSequence:
             return
         if callable(value):
             self.fn: Callable[[int], Any] | None = value
-            first = as_float_array(value(offset), f"{name}({offset})", ndim=core_ndim)
-            self.core_shape = first.shape
+            first = as_float_array(
+                value(offset),
+                f"{name}({offset})",
+                ndim=(core_ndim, core_ndim + batch_ndim) if batch_ndim else core_ndim,
+            )
+            self.batch_shape = first.shape[: first.ndim - core_ndim]  # a callable of one matrix per run
+            self.core_shape = first.shape[first.ndim - core_ndim :]
             self.array = None
             self.varying = True
             self._check(first, f"{name}({offset})")
@@ -463,8 +473,12 @@ class TimeSequence:
             if not (isinstance(mat, np.ndarray) and mat.dtype == np.float64):
                 # text, booleans or complex values at a later k: refused by name, never dropped
                 mat = as_float_array(mat, f"{self.name}({k})", allow_nan=True, allow_inf=True)
-            if mat.shape != self.core_shape:
-                raise ShapeError(f"{self.name}({k}): expected shape {self.core_shape}, got {mat.shape}")
+            if mat.shape[len(mat.shape) - len(self.core_shape) :] != self.core_shape or (
+                mat.ndim > len(self.core_shape) and mat.shape[: mat.ndim - len(self.core_shape)] != self.batch_shape
+            ):
+                raise ShapeError(
+                    f"{self.name}({k}): expected shape {self.batch_shape + self.core_shape}, got {mat.shape}"
+                )
             return mat
         assert self.array is not None, "a constant or time-indexed sequence holds its array"
         if self.varying:

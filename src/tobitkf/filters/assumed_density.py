@@ -51,13 +51,14 @@ its (sequential) prior, ``log_likelihood`` = :math:`\sum_l \log p(y_k(l) \mid \t
 
 from __future__ import annotations
 
+import copy
 from contextvars import ContextVar
 from typing import Any, Mapping
 
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ValidationError, as_float_array, check_bool, check_instance
+from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -464,7 +465,10 @@ class AssumedDensityFamily(GaussianFilter):
         """The compiled loop (:mod:`tobitkf.filters._compiled_loop`) when the ``backend`` allows it and covers
         the options; None: the numpy loop runs."""
         backend = getattr(self, "backend", "numpy")
-        if self._compiled_spec is None or backend == "numpy" or step_options or not self._own_hooks():
+        data = _STEP_DATA.get() or {}
+        per_run_limits = "lower" in data  # limits per run: only the censoring family's compiled arrays take them
+        own = self._compiled_spec == "censoring_spec" or not per_run_limits
+        if self._compiled_spec is None or backend == "numpy" or step_options or not own or not self._own_hooks():
             return None
         if not numba_available():
             if backend == "numba":
@@ -559,6 +563,18 @@ class AugmentedWindow:
         b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
         G = self._roots(k - 1) if self.covariance_update == "square_root" else None
         return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
+
+
+def _run_limits(given: Any, own: np.ndarray, batch: tuple[int, ...], shape: tuple[int, ...], name: str) -> np.ndarray:
+    """Limits (N, T, m) of every run and step: ``given`` broadcast to ``batch + (T, m)``, else the censoring's."""
+    if given is None:
+        return np.ascontiguousarray(np.broadcast_to(own, shape))
+    arr = as_float_array(given, name, allow_inf=True)
+    try:
+        full = np.broadcast_to(arr, batch + shape[1:])
+    except ValueError:
+        raise ShapeError(f"{name}: expected a shape broadcastable to {batch + shape[1:]}, got {arr.shape}") from None
+    return np.ascontiguousarray(full.reshape(shape))
 
 
 class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
@@ -759,6 +775,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         outputs: Any = "all",
         state: FilterState | None = None,
         times: Any = None,
+        lower: Any = None,
+        upper: Any = None,
     ) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); NaN = missing: :meth:`AssumedDensityFamily.filter`
         (its parameters) with the recorded indicator.
@@ -770,6 +788,9 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
             See the class Notes.
         times : (T,) array_like, optional
             Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
+        lower, upper : array_like broadcastable to (..., T, m), optional
+            Limits of each run and step replacing the censoring's (e.g. each subject's assay limits in a
+            panel); the censoring's limits stay where one is not given. Every reading must lie within them.
 
         Raises
         ------
@@ -781,16 +802,44 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         """
         if times is not None:
             est = at_times(self, times, y)
-            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
-        if censored is None:
+            return est.filter(
+                y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state, lower=lower, upper=upper
+            )
+        if censored is None and lower is None and upper is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=k0 + 1)
-        flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
-        censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
-        return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
+        data: dict[str, np.ndarray] = {}
+        if lower is not None or upper is not None:
+            lo, hi = (
+                _run_limits(given, own, batch, y2.shape, name)
+                for given, own, name in ((lower, lo, "lower"), (upper, hi, "upper"))
+            )
+            if np.any(lo > hi):
+                raise ValidationError("lower/upper: expected lower <= upper at every run and step")
+            with np.errstate(invalid="ignore"):
+                tol = 1e-12 * np.maximum(1.0, np.where(np.isfinite(lo), np.abs(lo), 0.0))
+                below = y2 < lo - tol
+                tol = 1e-12 * np.maximum(1.0, np.where(np.isfinite(hi), np.abs(hi), 0.0))
+                above = y2 > hi + tol
+            if (below | above).any():
+                i, t, l = (int(v[0]) for v in np.nonzero(below | above))
+                raise ValidationError(
+                    f"y: reading {y2[i, t, l]!r} of run {i}, step {t}, channel {l} lies outside its limits "
+                    f"[{lo[i, t, l]!r}, {hi[i, t, l]!r}]"
+                )
+            data.update(lower=lo, upper=hi)
+        if censored is not None:
+            flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
+            censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
+            data["censored"] = flags
+        if "lower" in data and self.check_limits:  # the record is checked against the limits just given
+            est = copy.copy(self)
+            est.check_limits = False
+            return est._run(y, u, x0, P0, outputs=outputs, state=state, step_data=data)
+        return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data=data)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The ``log_likelihood`` extras of :meth:`filter` (..., T): the terms of :meth:`log_likelihood`."""
