@@ -371,7 +371,7 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
             f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
         )
     d = np.diagonal(mat, axis1=-2, axis2=-1)
-    if not np.any(mat - d[..., :, None] * np.eye(mat.shape[-1])):  # diagonal: its eigenvalues, no solver
+    if np.count_nonzero(mat) == np.count_nonzero(d):  # diagonal: its eigenvalues, no solver
         eig = d
     else:
         eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
@@ -422,6 +422,8 @@ class TimeSequence:
         self._strict = strict_psd
         self._valid_to = offset  # a callable is validated for k < _valid_to (each k once)
         self.batch_shape: tuple[int, ...] = ()
+        self.fn: Callable[[int], Any] | None = None
+        self.array: np.ndarray | None = None
         if batch_ndim and not callable(value):
             arr = as_float_array(value, name)
             allowed = (core_ndim, core_ndim + batch_ndim, core_ndim + batch_ndim + 1)
@@ -438,7 +440,7 @@ class TimeSequence:
             self._check(arr, name)
             return
         if callable(value):
-            self.fn: Callable[[int], Any] | None = value
+            self.fn = value
             first = as_float_array(
                 value(offset),
                 f"{name}({offset})",

@@ -22,6 +22,7 @@ __all__ = [
 
 _YEAR = 365.25
 _FD_STEP = 1e-4  # central finite differences in the unconstrained parameters
+_CHUNK_NUMBERS = 1 << 23  # the most numbers in one per-run matrix array of adf_pass (64 MB)
 
 
 # ------------------------------------------------------------------------------- the batched ADF pass
@@ -60,8 +61,7 @@ def adf_system(
     r"""The models of N runs as one :class:`~tobitkf.LinearSystem` with a model per run (``batch_ndim=1``):
     :math:`A_{ik} = \mathrm{diag}(a_{ik})`, :math:`Q_{ik} = \mathrm{diag}(q^d_{ik})` (:func:`gap_matrices`),
     the row :math:`c_k` shared, :math:`R_{ik} = r^2_{ik}`, and the offset :math:`d_{ik}` entering as the input
-    :math:`u_{ik}` through :math:`D = 1`. The matrices are given per step as callables (no (N, T, n, n)
-    arrays held)."""
+    :math:`u_{ik}` through :math:`D = 1`."""
     from .. import LinearSystem
 
     N, n = np.shape(rate)
@@ -71,10 +71,10 @@ def adf_system(
     r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
     Cr = np.asarray(C, dtype=float)[None, :, None, :]  # (1, T, 1, n): shared by the runs, per step
     return LinearSystem(
-        A=lambda k: a[:, k, :, None] * eye,  # A(k): into reading k + 1 (array index k)
+        A=a[..., None] * eye,  # A[:, k]: into reading k + 1 (array index k)
         C=Cr,
-        Q=lambda k: qd[:, k, :, None] * eye,
-        R=lambda k: r2[:, k - 1, None, None],
+        Q=qd[..., None] * eye,
+        R=r2[..., None, None],
         x0=np.zeros(n),
         P0=np.eye(n),
         D=np.ones((1, 1)),
@@ -132,6 +132,22 @@ def adf_pass(
 
     N, n = np.shape(rate)
     T = np.shape(y)[-1]
+    chunk = max(1, _CHUNK_NUMBERS // (T * n * n))
+    if N > chunk:  # the per-run matrices (N, T, n, n) of a large batch, a chunk of runs at a time
+        parts = []
+        for s in range(0, N, chunk):
+            sl = slice(s, s + chunk)
+
+            def cut(v: Any) -> Any:
+                return v[sl] if np.ndim(v) >= 2 else v
+
+            parts.append(
+                adf_pass(
+                    x0[sl], P0[sl], rate[sl], diffusion[sl], cut(gaps), C, y[sl], cut(lower), cut(upper),
+                    cut(r2), dy=cut(dy), smooth=smooth,
+                )
+            )  # fmt: skip
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0] if key not in ("filtered", "smoothed")}
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))[..., None]
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))[..., None]
     d = np.broadcast_to(np.asarray(dy, dtype=float), (N, T))

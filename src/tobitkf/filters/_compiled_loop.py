@@ -563,9 +563,19 @@ class CompiledSpec:
     npass: int = 1
 
 
-def _per_step(at: Any, k0: int, T: int, varying: bool, shape: tuple[int, ...]) -> np.ndarray:
+def _per_step(at: Any, k0: int, T: int, varying: bool, shape: tuple[int, ...], seq: Any = None) -> np.ndarray:
     """``at(k0 + i)`` for the T steps (one step when not ``varying``) as one (N', T or 1, *shape) array,
-    N' the runs of the widest step (1: shared), for the compiled loop's run- and step-indexed matrices."""
+    N' the runs of the widest step (1: shared), for the compiled loop's run- and step-indexed matrices.
+    ``seq``: the :class:`~tobitkf._validation.TimeSequence` behind ``at`` when ``at`` returns its matrices as
+    they are (then an array is sliced at once instead of step by step)."""
+    if seq is not None and seq.fn is None and len(seq.batch_shape) <= 1:
+        arr = seq.array
+        if seq.varying:
+            i0 = k0 - seq.offset
+            arr = arr[..., i0 : i0 + T, :, :] if len(shape) == 2 else arr[..., i0 : i0 + T, :]
+        else:
+            arr = arr[..., None, :, :] if len(shape) == 2 else arr[..., None, :]
+        return _c(arr if seq.batch_shape else arr[None])
     mats = [np.asarray(at(k0 + i), dtype=float) for i in range(T if varying else 1)]
     Nr = max(M.shape[0] if M.ndim > len(shape) else 1 for M in mats)
     out = np.empty((Nr, len(mats)) + shape)
@@ -581,8 +591,8 @@ def _system_arrays(sys_, k0: int, T: int) -> tuple[np.ndarray, np.ndarray]:
     if sys_.time_invariant:
         return _c(sys_.transition(0))[None, None], _c(sys_.process_cov(0))[None, None]
     q_varying = sys_.Q.varying or (sys_.B is not None and sys_.B.varying)
-    A = _per_step(sys_.transition, k0, T, sys_.A.varying, (n, n))
-    Qd = _per_step(sys_.process_cov, k0, T, q_varying, (n, n))
+    A = _per_step(sys_.transition, k0, T, sys_.A.varying, (n, n), sys_.A)
+    Qd = _per_step(sys_.process_cov, k0, T, q_varying, (n, n), sys_.Q if sys_.B is None else None)
     return A, Qd
 
 
@@ -622,11 +632,12 @@ def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, ste
     if sys_.C.batch_shape and int(np.prod(sys_.C.batch_shape)) > 1:
         return None
     k0 = state.k
-    H = _per_step(sys_.measurement, k0 + 1, T, sys_.C.varying, (m, est.n))[0]
+    H = _per_step(sys_.measurement, k0 + 1, T, sys_.C.varying, (m, est.n), sys_.C)[0]
     if est._r is not None and not sys_.R.batch_shape:
         r = _c(est._r)[None]
     else:
-        r = _per_step(lambda k: _noise_variances(sys_.measurement_cov(k), f"R({k})"), k0 + 1, T, sys_.R.varying, (m,))
+        Rs = _per_step(sys_.measurement_cov, k0 + 1, T, sys_.R.varying, (m, m), sys_.R)
+        r = _c(_noise_variances(Rs, "R"))  # (runs or 1, steps, m)
     data = step_data or {}
     if data.get("lower") is not None:
         lo, hi = _c(data["lower"]), _c(data["upper"])

@@ -96,7 +96,7 @@ class LinearSystem:
         B: Any = None,
         Bu: Any = None,
         D: Any = None,
-        batch_ndim: int = 0,
+        batch_ndim: Any = 0,  # an int (checked); Any so that a spread of optional matrices type-checks
     ):
         b = check_int(batch_ndim, "batch_ndim", minimum=0)
         self.batch_ndim = b
