@@ -363,17 +363,18 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
             f"{name}: expected variances of 0 or at least {tiny:.3g} on the diagonal, got "
             f"{float(diag[sub][0]):.3g} (a subnormal number, without the precision a variance needs)"
         )
-    scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
-    with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
-        asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
-    if asym > rtol * scale:
-        raise ValidationError(
-            f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
-        )
     d = np.diagonal(mat, axis1=-2, axis2=-1)
-    if np.count_nonzero(mat) == np.count_nonzero(d):  # diagonal: its eigenvalues, no solver
+    if np.count_nonzero(mat) == np.count_nonzero(d):  # diagonal (e.g. one per run): symmetric, its eigenvalues
+        scale = max(float(diag.max(initial=0.0)), tiny)
         eig = d
     else:
+        scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
+        with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
+            asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
+        if asym > rtol * scale:
+            raise ValidationError(
+                f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
+            )
         eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
     lo = float(eig.min(initial=np.inf))
     if strict and lo <= 0:

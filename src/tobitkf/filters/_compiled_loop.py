@@ -266,21 +266,25 @@ def _predict_runs(A, Qd, r0, t, x, P, xp, Pp, AP, nb):
     for b in range(nb):
         Ab = A[r0 + b if na else 0, ta]
         Qb = Qd[r0 + b if nq else 0, tq]
-        for i in range(n):
+        for i in range(n):  # zero entries of A skipped (a diagonal A costs n^2, not n^3)
             s = 0.0
             for j in range(n):
                 s += Ab[i, j] * x[j, b]
             xp[i, b] = s
             for j in range(n):
-                s = 0.0
-                for k in range(n):
-                    s += Ab[i, k] * P[k, j, b]
-                AP[i, j] = s
+                AP[i, j] = 0.0
+            for k in range(n):
+                a = Ab[i, k]
+                if a != 0.0:
+                    for j in range(n):
+                        AP[i, j] += a * P[k, j, b]
         for i in range(n):
             for j in range(i, n):
                 s = 0.0
                 for k in range(n):
-                    s += AP[i, k] * Ab[j, k]
+                    a = Ab[j, k]
+                    if a != 0.0:
+                        s += AP[i, k] * a
                 v = s + 0.5 * (Qb[i, j] + Qb[j, i])
                 Pp[i, j, b] = v
                 Pp[j, i, b] = v

@@ -604,7 +604,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"`` runs :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when
         numba is installed and the options are covered (the standard covariance form, either ``order``,
-        time-invariant system matrices, control inputs through constant ``Bu``/``D``), the numpy loop
+        system matrices constant, per step or per run (``batch_ndim``) with C shared by the runs, limits of
+        the censoring or given per run to :meth:`filter`, control inputs through constant ``Bu``/``D``), the numpy loop
         otherwise; ``"numba"`` insists on the compiled loop (raises otherwise); ``"numpy"`` never uses it.
         Both give the same numbers (tested to 1e-12); :meth:`step` (and a case the compiled loop does not cover)
         runs the numpy step, with the moments of the compiled loop's function unless ``"numpy"``.
