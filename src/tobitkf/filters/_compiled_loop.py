@@ -34,10 +34,13 @@ own): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_
 (TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`` (TP, m, K), the number of mixture components
 ``J`` whose posterior weights are returned; per-step arrays are indexed by ``min(t, len - 1)`` (one row:
 constant). The KF and the TKF enter through :mod:`tobitkf.filters._compiled_entries`.
-Covered: time-invariant system matrices (control inputs through constant ``Bu``/``D``); the KF and the TKF in the
-standard and Joseph forms, the assumed-density filters in the standard form and the channel-order update;
-anything else (the square-root form, time-varying matrices, per-step limits given to ``step``) runs the numpy
-path (``backend="auto"``) or is refused (``backend="numba"``).
+Covered: time-invariant system matrices (control inputs through constant ``Bu``/``D``); for the censored
+assumed-density filter also matrices per step and per run (a :class:`~tobitkf.LinearSystem` with ``batch_ndim``:
+``A``, ``Qd`` (runs or 1, steps or 1, n, n), ``r`` and the limits (runs or 1, steps or 1, m), indexed by run and
+step, 0 where shared; :func:`_predict_runs` takes each lane's own transition), C shared by the runs; the KF and
+the TKF in the standard and Joseph forms, the assumed-density filters in the standard form and the channel-order
+update; anything else (the square-root form, other families' time-varying matrices, per-step limits given to
+``step``) runs the numpy path (``backend="auto"``) or is refused (``backend="numba"``).
 """
 
 from __future__ import annotations
