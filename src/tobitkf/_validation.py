@@ -363,14 +363,19 @@ def check_psd(mat: np.ndarray, name: str, *, strict: bool = False, rtol: float =
             f"{name}: expected variances of 0 or at least {tiny:.3g} on the diagonal, got "
             f"{float(diag[sub][0]):.3g} (a subnormal number, without the precision a variance needs)"
         )
-    scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
-    with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
-        asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
-    if asym > rtol * scale:
-        raise ValidationError(
-            f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
-        )
-    eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
+    d = np.diagonal(mat, axis1=-2, axis2=-1)
+    if np.count_nonzero(mat) == np.count_nonzero(d):  # diagonal (e.g. one per run): symmetric, its eigenvalues
+        scale = max(float(diag.max(initial=0.0)), tiny)
+        eig = d
+    else:
+        scale = max(float(np.abs(mat).max(initial=0.0)), tiny)
+        with np.errstate(over="ignore"):  # +-1e308 entries: the difference overflows to inf, i.e. asymmetric
+            asym = float(np.abs(mat - np.swapaxes(mat, -1, -2)).max(initial=0.0))
+        if asym > rtol * scale:
+            raise ValidationError(
+                f"{name}: expected a symmetric matrix, asymmetry {asym:.3g} relative to scale {scale:.3g}"
+            )
+        eig = np.linalg.eigvalsh(0.5 * mat + 0.5 * np.swapaxes(mat, -1, -2))  # halves first: no overflow at 1e308
     lo = float(eig.min(initial=np.inf))
     if strict and lo <= 0:
         raise ValidationError(f"{name}: expected a positive definite matrix, smallest eigenvalue {lo:.3g}")
@@ -384,7 +389,8 @@ class TimeSequence:
     Parameters
     ----------
     value : array_like or callable
-        ``(r, c)`` constant, ``(T, r, c)`` one matrix per step, or ``f(k) -> (r, c)``.
+        ``(r, c)`` constant, ``(T, r, c)`` one matrix per step, or ``f(k) -> (r, c)`` (with ``batch_ndim``
+        also ``f(k) -> (*batch, r, c)``, the run axes of its first value kept at every k).
     name : str
         Argument name used in error messages.
     core_ndim : int
@@ -392,10 +398,23 @@ class TimeSequence:
     offset : int
         Array index of paper time ``k`` is ``k - offset`` (0 for A, Q, B whose
         first use is at k = 0; 1 for C, R whose first use is y_1).
+    batch_ndim : int, default 0
+        Number of leading run axes an array may carry: with ``b > 0`` an array of ``core_ndim`` axes is
+        shared by every run, one of ``core_ndim + b`` axes is ``(*batch, r, c)`` (one constant matrix per
+        run) and one of ``core_ndim + b + 1`` axes ``(*batch, T, r, c)``. ``batch_shape`` holds the run
+        axes (``()`` when shared; a callable is always shared) and :meth:`at` returns ``(*batch_shape, r, c)``.
     """
 
     def __init__(
-        self, value: Any, name: str, *, core_ndim: int = 2, offset: int = 0, psd: bool = False, strict_psd: bool = False
+        self,
+        value: Any,
+        name: str,
+        *,
+        core_ndim: int = 2,
+        offset: int = 0,
+        psd: bool = False,
+        strict_psd: bool = False,
+        batch_ndim: int = 0,
     ):
         self.name = name
         self.offset = offset
@@ -403,10 +422,33 @@ class TimeSequence:
         self._psd = psd
         self._strict = strict_psd
         self._valid_to = offset  # a callable is validated for k < _valid_to (each k once)
+        self.batch_shape: tuple[int, ...] = ()
+        self.fn: Callable[[int], Any] | None = None
+        self.array: np.ndarray | None = None
+        if batch_ndim and not callable(value):
+            arr = as_float_array(value, name)
+            allowed = (core_ndim, core_ndim + batch_ndim, core_ndim + batch_ndim + 1)
+            if arr.ndim not in allowed:
+                raise ShapeError(
+                    f"{name}: expected {core_ndim} axes (shared by the runs), {allowed[1]} (one matrix per run: "
+                    f"{batch_ndim} run axes first) or {allowed[2]} (run axes, then time), got shape {arr.shape}"
+                )
+            self.fn = None
+            self.array = arr
+            self.batch_shape = arr.shape[:batch_ndim] if arr.ndim > core_ndim else ()
+            self.varying = arr.ndim == allowed[2]
+            self.core_shape = arr.shape[arr.ndim - core_ndim :]
+            self._check(arr, name)
+            return
         if callable(value):
-            self.fn: Callable[[int], Any] | None = value
-            first = as_float_array(value(offset), f"{name}({offset})", ndim=core_ndim)
-            self.core_shape = first.shape
+            self.fn = value
+            first = as_float_array(
+                value(offset),
+                f"{name}({offset})",
+                ndim=(core_ndim, core_ndim + batch_ndim) if batch_ndim else core_ndim,
+            )
+            self.batch_shape = first.shape[: first.ndim - core_ndim]  # a callable of one matrix per run
+            self.core_shape = first.shape[first.ndim - core_ndim :]
             self.array = None
             self.varying = True
             self._check(first, f"{name}({offset})")
@@ -425,7 +467,7 @@ class TimeSequence:
     @property
     def steps(self) -> int | None:
         """Number of steps stored, or None for constants and callables."""
-        return self.array.shape[0] if (self.varying and self.array is not None) else None
+        return self.array.shape[len(self.batch_shape)] if (self.varying and self.array is not None) else None
 
     def at(self, k: int) -> np.ndarray:
         """The matrix at paper time ``k``."""
@@ -434,18 +476,23 @@ class TimeSequence:
             if not (isinstance(mat, np.ndarray) and mat.dtype == np.float64):
                 # text, booleans or complex values at a later k: refused by name, never dropped
                 mat = as_float_array(mat, f"{self.name}({k})", allow_nan=True, allow_inf=True)
-            if mat.shape != self.core_shape:
-                raise ShapeError(f"{self.name}({k}): expected shape {self.core_shape}, got {mat.shape}")
+            if mat.shape[len(mat.shape) - len(self.core_shape) :] != self.core_shape or (
+                mat.ndim > len(self.core_shape) and mat.shape[: mat.ndim - len(self.core_shape)] != self.batch_shape
+            ):
+                raise ShapeError(
+                    f"{self.name}({k}): expected shape {self.batch_shape + self.core_shape}, got {mat.shape}"
+                )
             return mat
         assert self.array is not None, "a constant or time-indexed sequence holds its array"
         if self.varying:
             idx = k - self.offset
-            if not 0 <= idx < self.array.shape[0]:
+            nb = len(self.batch_shape)
+            if not 0 <= idx < self.array.shape[nb]:
                 raise ShapeError(
-                    f"{self.name}: time-indexed array has {plural(self.array.shape[0], 'step')}, "
+                    f"{self.name}: time-indexed array has {plural(self.array.shape[nb], 'step')}, "
                     f"step k={k} (index {idx}) requested"
                 )
-            return self.array[idx]
+            return self.array[(slice(None),) * nb + (idx,)]
         return self.array
 
     def check_horizon(self, steps: int) -> None:
@@ -504,10 +551,10 @@ def diagonal_sigma(
     ValidationError
         R not diagonal (to 1e-12 relative) or a variance not positive.
     """
-    off = R - np.diag(np.diagonal(R))
+    d = np.diagonal(R, axis1=-2, axis2=-1)  # (m,), or (N, m) for one R per run
+    off = R - d[..., :, None] * np.eye(R.shape[-1])
     if np.abs(off).max(initial=0.0) > 1e-12 * max(1.0, float(np.abs(R).max())):
         raise ValidationError(f"{name}: {who} needs a diagonal R ({why})")
-    d = np.diagonal(R)
     if np.any(d <= 0):
         raise ValidationError(f"{name}: {positive or who + ' needs positive measurement variances'}, got {d}")
     return np.sqrt(d)

@@ -281,34 +281,18 @@ def test_gap_matrices_compose_and_reduce_to_a_random_walk():
     assert q_far[0, 0, 2] == pytest.approx(1.5 / 4.0, rel=1e-14)
 
 
-def test_compiled_likelihood_equals_the_numpy_pass(short_model):
-    """The compiled pass against the numpy pass (the package's censored channel update): a river model at
-    scattered parameters, and the panel (censored below and above, padded with NaN)."""
-    from unittest import mock
-
-    from tobitkf.experiments import records_common
-
+def test_batched_parameter_vectors_equal_each_on_the_daily_grid(short_model):
+    """The batch of parameter vectors (one model per run through the package's ADF, compiled loop) against each
+    vector's model on the daily grid, run alone with one shared system (readings NaN between samples)."""
     m = short_model
     rng = np.random.default_rng(3)
     th = _theta(m)[None] + rng.normal(0, 0.3, (4, m.p))
-    panel, _ = PanelModel.from_panel(load_hiv_viral_load(), setpoint=True)
-    thp = np.array([4.2, -0.5, np.log(0.4), np.log(200.0), np.log(0.8), np.log(0.3)])[None] + rng.normal(
-        0, 0.2, (3, panel.p)
-    )
-    fast_m, fast_p = m.run(th)["terms"], panel.run(thp)["per_subject"]
-    numpy_pass = records_common.adf_pass
-
-    def slow(*args, **kw):
-        return numpy_pass(*args, **{**kw, "compiled": False})
-
-    with (
-        mock.patch("tobitkf.experiments.records_river.adf_pass", slow),
-        mock.patch("tobitkf.experiments.records_hiv.adf_pass", slow),
-    ):
-        slow_m, slow_p = m.run(th)["terms"], panel.run(thp)["per_subject"]
-    np.testing.assert_allclose(fast_m, slow_m, rtol=1e-11, atol=1e-12)
-    np.testing.assert_allclose(fast_p, slow_p, rtol=1e-11, atol=1e-12)
-    assert np.all(np.isfinite(fast_m)) and np.all(np.isfinite(fast_p))
+    terms = m.run(th)["terms"]
+    for i in range(th.shape[0]):
+        sys_, y, cens, ind = m.daily_system(th[i])
+        daily = tk.adf_log_likelihood(sys_, cens, y, censored=ind, per_step=True)
+        np.testing.assert_allclose(terms[i], daily[m.day], rtol=1e-10, atol=1e-11)
+    assert np.all(np.isfinite(terms))
 
 
 def test_added_regressors_are_what_the_model_says():

@@ -9,10 +9,20 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["adf_pass", "gap_matrices", "fd_gradient", "fd_hessian", "fit_ml", "inverse_information", "fit_record"]
+__all__ = [
+    "adf_pass",
+    "adf_system",
+    "gap_matrices",
+    "fd_gradient",
+    "fd_hessian",
+    "fit_ml",
+    "inverse_information",
+    "fit_record",
+]
 
 _YEAR = 365.25
 _FD_STEP = 1e-4  # central finite differences in the unconstrained parameters
+_CHUNK_NUMBERS = 1 << 23  # the most numbers in one per-run matrix array of adf_pass (64 MB)
 
 
 # ------------------------------------------------------------------------------- the batched ADF pass
@@ -45,6 +55,33 @@ def gap_matrices(rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray) -> t
     return np.exp(-rate[:, None, :] * dt), np.asarray(diffusion, dtype=float)[:, None, :] * dt * psi
 
 
+def adf_system(
+    x0: np.ndarray, P0: np.ndarray, rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray, C: np.ndarray, r2: Any
+):
+    r"""The models of N runs as one :class:`~tobitkf.LinearSystem` with a model per run (``batch_ndim=1``):
+    :math:`A_{ik} = \mathrm{diag}(a_{ik})`, :math:`Q_{ik} = \mathrm{diag}(q^d_{ik})` (:func:`gap_matrices`),
+    the row :math:`c_k` shared, :math:`R_{ik} = r^2_{ik}`, and the offset :math:`d_{ik}` entering as the input
+    :math:`u_{ik}` through :math:`D = 1`."""
+    from .. import LinearSystem
+
+    N, n = np.shape(rate)
+    T = np.shape(C)[0]
+    a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
+    eye = np.eye(n)
+    r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
+    Cr = np.asarray(C, dtype=float)[None, :, None, :]  # (1, T, 1, n): shared by the runs, per step
+    return LinearSystem(
+        A=a[..., None] * eye,  # A[:, k]: into reading k + 1 (array index k)
+        C=Cr,
+        Q=qd[..., None] * eye,
+        R=r2[..., None, None],
+        x0=np.zeros(n),
+        P0=np.eye(n),
+        D=np.ones((1, 1)),
+        batch_ndim=1,
+    )
+
+
 def adf_pass(
     x0: np.ndarray,
     P0: np.ndarray,
@@ -59,7 +96,6 @@ def adf_pass(
     *,
     dy: Any = 0.0,
     smooth: bool = False,
-    compiled: bool = True,
 ) -> dict[str, Any]:
     r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
 
@@ -67,10 +103,9 @@ def adf_pass(
     diffusions :math:`q_i`) taken over each gap exactly, :math:`x_k = \mathrm{diag}(a_{ik})\,x_{k-1} + w_k`,
     :math:`w_k \sim N(0, \mathrm{diag}(q^d_{ik}))`, :math:`y^*_k = c_k x_k + d_{ik} + v_k`,
     :math:`v_k \sim N(0, r^2_{ik})`, :math:`x_0 \sim N(x_{0i}, P_{0i})`, the reading censored at
-    ``lower``/``upper``. The update is the package's censored channel update
-    (:func:`~tobitkf.filters.assumed_density.censored_channel_update`), the smoother its RTS pass
-    (:func:`~tobitkf.filters.smoothing.rts_smooth`): :class:`~tobitkf.LinearSystem` holds one model
-    for every run, and a likelihood maximised over a batch of parameter vectors needs one per run.
+    ``lower``/``upper``. The package's assumed-density likelihood
+    (:func:`~tobitkf.inference.likelihood.adf_log_likelihood`) of the per-run system of :func:`adf_system`,
+    and with ``smooth`` its filter and RTS pass (:func:`~tobitkf.filters.smoothing.rts_smooth`).
 
     Parameters
     ----------
@@ -82,10 +117,6 @@ def adf_pass(
     lower, upper : scalar, (T,) or (N, T) limits (the limit rule classifies the readings)
     r2 : (N, T) noise variances ; dy : scalar or (N, T) offsets :math:`d_{ik}`
     smooth : also return the smoothed predictive of every reading
-    compiled : without ``smooth``, take the log-likelihood from the compiled pass
-        (:func:`~tobitkf.experiments._records_kernels.diag_adf_terms`: the same discretisation and prediction
-        and the package's compiled censored update, equal to this numpy pass to rounding, tested);
-        ``False``: the numpy pass
 
     Returns
     -------
@@ -94,57 +125,49 @@ def adf_pass(
         ``mean`` and ``sd`` (N, T): :math:`c_k \hat x_{k|T} + d_{ik}` and
         :math:`\sqrt{c_k P_{k|T} c_k^T + r^2_{ik}}`, the smoothed predictive of each (latent) reading.
     """
-    from ..filters.assumed_density import censored_channel_update
-    from ..filters.core import FilterResult
+    from .. import Censoring
+    from ..filters.assumed_density import assumed_density_filter
     from ..filters.smoothing import rts_smooth
+    from ..inference.likelihood import adf_log_likelihood
 
     N, n = np.shape(rate)
     T = np.shape(y)[-1]
-    lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))
-    hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))
+    chunk = max(1, _CHUNK_NUMBERS // (T * n * n))
+    if N > chunk:  # the per-run matrices (N, T, n, n) of a large batch, a chunk of runs at a time
+        parts = []
+        for s in range(0, N, chunk):
+            sl = slice(s, s + chunk)
+
+            def cut(v: Any) -> Any:
+                return v[sl] if np.ndim(v) >= 2 else v
+
+            parts.append(
+                adf_pass(
+                    x0[sl], P0[sl], rate[sl], diffusion[sl], cut(gaps), C, y[sl], cut(lower), cut(upper),
+                    cut(r2), dy=cut(dy), smooth=smooth,
+                )
+            )  # fmt: skip
+        return {key: np.concatenate([p[key] for p in parts]) for key in parts[0] if key not in ("filtered", "smoothed")}
+    lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))[..., None]
+    hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))[..., None]
     d = np.broadcast_to(np.asarray(dy, dtype=float), (N, T))
-    if compiled and not smooth:
-        from ._records_kernels import diag_adf_terms
-
-        def f(v: Any, shape: tuple[int, ...]) -> np.ndarray:  # one compiled signature: writable C arrays
-            return np.array(np.broadcast_to(np.asarray(v, dtype=float), shape), dtype=float, order="C")
-
-        terms = np.empty((N, T))
-        NT = (N, T)
-        diag_adf_terms(
-            f(x0, (N, n)), f(P0, (N, n, n)), f(rate, (N, n)), f(diffusion, (N, n)), f(gaps, NT),
-            f(C, (T, n)), f(y, NT), f(lo, NT), f(hi, NT), f(r2, NT), f(d, NT), terms,
-        )  # fmt: skip
+    system = adf_system(x0, P0, rate, diffusion, gaps, C, r2)
+    Y = np.asarray(y, dtype=float)[..., None]
+    u = np.ascontiguousarray(d[..., None])
+    if not smooth:
+        terms = adf_log_likelihood(system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi)
         return {"loglik": terms.sum(-1), "terms": terms}
-    a, qd = gap_matrices(rate, diffusion, gaps)
-    x, P = x0.copy(), P0.copy()
-    terms = np.zeros((N, T))
-    if smooth:
-        xs_f, Ps_f = np.empty((N, T, n)), np.empty((N, T, n, n))
-        xs_p, Ps_p = np.empty((N, T, n)), np.empty((N, T, n, n))
-    diag = np.arange(n)
-    for k in range(T):
-        x = x * a[:, k]
-        P = P * a[:, k, :, None] * a[:, k, None, :]
-        P[:, diag, diag] += qd[:, k]
-        if smooth:
-            xs_p[:, k], Ps_p[:, k] = x, P
-        rk: Any = r2[:, k]  # one noise variance per run
-        x, P, _, _, ll = censored_channel_update(x, P, None, y[:, k], C[k], rk, lo[:, k], hi[:, k], dy=d[:, k])
-        terms[:, k] = ll
-        if smooth:
-            xs_f[:, k], Ps_f[:, k] = x, P
-    out = {"loglik": terms.sum(-1), "terms": terms}
-    if smooth:
-        res = FilterResult(mean=xs_f, cov=Ps_f, pred_mean=xs_p, pred_cov=Ps_p)
-        # rts_smooth asks for A_k of x_{k+1} = A_k x_k: the transition into reading k+1 (array index k)
-        sm = rts_smooth(res, lambda k: a[:, k, :, None] * np.eye(n), x0=x0, P0=P0)
-        assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
-        out["mean"] = np.einsum("ntj,tj->nt", sm.mean, C) + d
-        v = np.einsum("ntij,ti,tj->nt", sm.cov, C, C)
-        out["sd"] = np.sqrt(np.maximum(v, 0.0) + r2)
-        out["filtered"] = res
-        out["smoothed"] = sm
+    res = assumed_density_filter(system, Censoring()).filter(Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi)
+    terms = res.extras["log_likelihood"]
+    sm = rts_smooth(res, system, x0=x0, P0=P0)
+    assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
+    Cn = np.asarray(C, dtype=float)
+    out: dict[str, Any] = {"loglik": terms.sum(-1), "terms": terms}
+    out["mean"] = np.einsum("ntj,tj->nt", sm.mean, Cn) + d
+    v = np.einsum("ntij,ti,tj->nt", sm.cov, Cn, Cn)
+    out["sd"] = np.sqrt(np.maximum(v, 0.0) + r2)
+    out["filtered"] = res
+    out["smoothed"] = sm
     return out
 
 

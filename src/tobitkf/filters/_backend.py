@@ -53,10 +53,13 @@ def kernels() -> ModuleType:
     return mod
 
 
-def system_gap(system, u, *, inputs: bool = False) -> str | None:
+def system_gap(system, u, *, inputs: bool = False, matrices: bool = True) -> str | None:
     """Why the kernels cannot run this system/input, or None when they can. ``inputs=True``: the kernel
-    covers control inputs (constant B^u and D)."""
-    if not system.time_invariant:
+    covers control inputs (constant B^u and D); ``matrices=False``: it covers time-varying and per-run
+    system matrices (only the inputs are checked)."""
+    if matrices and getattr(system, "per_run", False):
+        return "system matrices given per run (batch_ndim)"
+    if matrices and not system.time_invariant:
         return "time-varying system matrices (A, B, C, Q or R indexed by k)"
     if u is not None:
         if not inputs:

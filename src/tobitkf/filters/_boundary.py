@@ -78,6 +78,9 @@ def check_prior(system, x0: Any, P0: Any, runs: int, batch: tuple[int, ...] | No
     ``batch + (n,)`` / ``batch + (n, n)`` (or broadcastable to them) are accepted.
     """
     n = system.n
+    check_runs = getattr(system, "check_runs", None)  # a system with one model per run fits y's runs
+    if check_runs is not None:
+        check_runs(tuple(batch) if batch is not None else (runs,))
     x = system.x0 if x0 is None else as_float_array(x0, "x0")
     P = system.P0 if P0 is None else as_float_array(P0, "P0")
     if P0 is not None and P.ndim >= 2:

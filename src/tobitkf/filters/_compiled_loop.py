@@ -34,10 +34,13 @@ own): its code, the rows ``H`` (TH, m, n_x), the fading rows ``F`` (TF, m, Q, n_
 (TR, m), the limits ``lo``/``hi`` (TL, m), its parameters ``par`` (TP, m, K), the number of mixture components
 ``J`` whose posterior weights are returned; per-step arrays are indexed by ``min(t, len - 1)`` (one row:
 constant). The KF and the TKF enter through :mod:`tobitkf.filters._compiled_entries`.
-Covered: time-invariant system matrices (control inputs through constant ``Bu``/``D``); the KF and the TKF in the
-standard and Joseph forms, the assumed-density filters in the standard form and the channel-order update;
-anything else (the square-root form, time-varying matrices, per-step limits given to ``step``) runs the numpy
-path (``backend="auto"``) or is refused (``backend="numba"``).
+Covered: time-invariant system matrices (control inputs through constant ``Bu``/``D``); for the censored
+assumed-density filter also matrices per step and per run (a :class:`~tobitkf.LinearSystem` with ``batch_ndim``:
+``A``, ``Qd`` (runs or 1, steps or 1, n, n), ``r`` and the limits (runs or 1, steps or 1, m), indexed by run and
+step, 0 where shared; :func:`_predict_runs` takes each lane's own transition), C shared by the runs; the KF and
+the TKF in the standard and Joseph forms, the assumed-density filters in the standard form and the channel-order
+update; anything else (the square-root form, other families' time-varying matrices, per-step limits given to
+``step``) runs the numpy path (``backend="auto"``) or is refused (``backend="numba"``).
 """
 
 from __future__ import annotations
@@ -171,7 +174,7 @@ def _channel_updates(
     nb,
 ):
     r"""The assumed-density update of a block, channel by channel (module docstring): for each channel its row
-    ``H[t]``, the prior moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
+    ``H[t]``, the noise variance ``r`` and the limits ``lo``/``hi`` (runs or 1, steps, m) of each run, the prior moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
     variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`, the family's :math:`(\alpha, \beta)` from
     :func:`~tobitkf.filters._compiled_moments.family_block`, and the rank-one change along :math:`\bar Ph^T`
     of ``xp``, ``Pp`` in place. ``npass = 2``: the readings inside their limits first, then the others. Adds
@@ -185,14 +188,14 @@ def _channel_updates(
     has_du = du.shape[1] > 0
     glx, glw = GL_X, GL_W
     buf = np.empty((2, glx.shape[0]))
-    th, tf, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, r.shape[0] - 1)
-    tl, tp = min(t, lo.shape[0] - 1), min(t, par.shape[0] - 1)
+    th, tf, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, r.shape[1] - 1)
+    tl, tp = min(t, lo.shape[1] - 1), min(t, par.shape[0] - 1)
+    nr, nl = r.shape[0] > 1, lo.shape[0] > 1  # noise / limits per run: run r0 + b of the block reads its own
     for b in range(nb):
         llb[b] = 0.0
     for pl in range(npass * m):
         ps, l = pl // m, pl % m
         h = H[th, l]
-        lo_l, hi_l, r_l = lo[tl, l], hi[tl, l], r[tr, l]
         # P h^T, h x + d, h P h^T
         for i in range(nx):
             for b in range(nb):
@@ -211,7 +214,7 @@ def _channel_updates(
                 q += h[k] * Pc[k, b]
             hx[b] = s + du[r0 + b, t, l] if has_du else s
             hph[b] = q
-            rb[b] = r_l
+            rb[b] = r[r0 + b if nr else 0, tr, l]
         # the fading variance: sum_q f_q P f_q^T + (f_q x)^2
         for qq in range(Q):
             f = F[tf, l, qq]
@@ -231,6 +234,7 @@ def _channel_updates(
         for b in range(nb):
             yb = y[r0 + b, t, l]
             yv[b] = yb
+            lo_l, hi_l = lo[r0 + b if nl else 0, tl, l], hi[r0 + b if nl else 0, tl, l]
             lov[b] = lo_l
             hiv[b] = hi_l
             c = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
@@ -252,6 +256,41 @@ def _channel_updates(
         for j in range(compt.shape[0]):
             for b in range(nb):
                 compb[l, j, b] = compt[j, b]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _predict_runs(A, Qd, r0, t, x, P, xp, Pp, AP, nb):
+    r""":math:`\bar x = A_i\hat x`, :math:`\bar P = A_iPA_i^T + Q_i` of a block whose runs each have their own
+    ``A`` / ``Qd`` (runs or 1, steps, n, n) (run ``r0 + b`` in lane b; index 0 where shared, step ``min(t, len -
+    1)``); ``AP`` (n, n) scratch. :math:`\bar P` from its upper triangle with the symmetric part of Q, mirrored."""
+    n = x.shape[0]
+    ta, tq = min(t, A.shape[1] - 1), min(t, Qd.shape[1] - 1)
+    na, nq = A.shape[0] > 1, Qd.shape[0] > 1
+    for b in range(nb):
+        Ab = A[r0 + b if na else 0, ta]
+        Qb = Qd[r0 + b if nq else 0, tq]
+        for i in range(n):  # zero entries of A skipped (a diagonal A costs n^2, not n^3)
+            s = 0.0
+            for j in range(n):
+                s += Ab[i, j] * x[j, b]
+            xp[i, b] = s
+            for j in range(n):
+                AP[i, j] = 0.0
+            for k in range(n):
+                a = Ab[i, k]
+                if a != 0.0:
+                    for j in range(n):
+                        AP[i, j] += a * P[k, j, b]
+        for i in range(n):
+            for j in range(i, n):
+                s = 0.0
+                for k in range(n):
+                    a = Ab[j, k]
+                    if a != 0.0:
+                        s += AP[i, k] * a
+                v = s + 0.5 * (Qb[i, j] + Qb[j, i])
+                Pp[i, j, b] = v
+                Pp[j, i, b] = v
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -291,11 +330,13 @@ def compiled_loop(
     ``family``: :data:`KALMAN`, :data:`TOBIT` (a joint update of all channels) or an assumed-density family
     code of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module docstring).
     ``y`` (N, T, m) readings (NaN: missing); ``cls`` (N, T, m) int8 their classes, or (N, 0, m): by the limit
-    rule (assumed-density families only); ``A``, ``Qd`` (n, n) acting on the top block of the state (n_x =
-    ``x0.shape[1]`` > n: the block shift); ``H`` (TH, m, n_x) the rows (KF, TKF: C, one row); ``F`` (TF, m, Q,
-    n_x) the fading rows; ``r`` (TR, m) the noise variances (TKF: the standard deviations σ); ``lo``, ``hi``
-    (TL, m) the limits; ``par`` (TP, m, K) the family's parameters (KF: R, one row); per-step arrays indexed
-    by ``min(t, len - 1)``. ``J`` the mixture components, ``npass`` 1 or 2 (assumed-density: the readings
+    rule (assumed-density families only); ``A``, ``Qd`` (NA, TA, n, n) acting on the top block of the state
+    (n_x = ``x0.shape[1]`` > n: the block shift); ``H`` (TH, m, n_x) the rows (KF, TKF: C, one row); ``F`` (TF,
+    m, Q, n_x) the fading rows; ``r`` (NR, TR, m) the noise variances (TKF: the standard deviations σ); ``lo``,
+    ``hi`` (NL, TL, m) the limits; ``par`` (TP, m, K) the family's parameters (KF: R, one row); per-step arrays
+    indexed by ``min(t, len - 1)``, the run axis of ``A``, ``Qd``, ``r``, ``lo``, ``hi`` by the run (0 when
+    its length is 1: shared; a transition or noise per run is taken lane by lane, :func:`_predict_runs`, for a
+    state without the block shift). ``J`` the mixture components, ``npass`` 1 or 2 (assumed-density: the readings
     inside their limits first); ``noise_code`` the TKF's :data:`~tobitkf.filters._kernels.NOISE_CODES`,
     ``joseph`` the Joseph form (KF, TKF); ``bu`` (N, T, n) / ``du`` (N, T, m) the input terms (T axis 0:
     none); ``x0`` (N, n_x), ``P0`` (N or 1, n_x, n_x). Outputs (T axis 0: not written): ``means``,
@@ -306,11 +347,14 @@ def compiled_loop(
     ``P_last`` with one run) and the means of every run with those gains."""
     N, T, m = y.shape
     nx = x0.shape[1]
-    n = A.shape[0]
-    shared = family == KALMAN and P0.shape[0] == 1 and N > 1
+    n = A.shape[2]
+    # a transition or noise per run (run axis longer than 1): each lane of a block its own (_predict_runs)
+    per_run = A.shape[0] > 1 or Qd.shape[0] > 1
+    shared = family == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
     runs = 1 if shared else N
     glx, glw = GL_X, GL_W
     B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, runs_per_block(nx))
+    APr = np.empty((n, n))
     x, xp, e, mu = _mean_scratch(nx, m, B)
     blk, run, solve, buf = _update_scratch(nx, n, m, B, glx.shape[0] if family == TOBIT else 0)
     P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
@@ -347,22 +391,26 @@ def compiled_loop(
                     P[i, j, b] = P0[rp, i, j]
         for t in range(T):
             tt = t % S
-            if nx == n:
-                _predict(A, Qd, x, P, xp, Pp, AP, nb)
+            if per_run:  # (the augmented state's block shift takes shared matrices only)
+                _predict_runs(A, Qd, r0, t, x, P, xp, Pp, APr, nb)
             else:
-                shift_predict_block(A, Qd, x, P, xp, Pp, AP, nb)
+                At, Qt = A[0, min(t, A.shape[1] - 1)], Qd[0, min(t, Qd.shape[1] - 1)]
+                if nx == n:
+                    _predict(At, Qt, x, P, xp, Pp, AP, nb)
+                else:
+                    shift_predict_block(At, Qt, x, P, xp, Pp, AP, nb)
             if has_bu:  # xbar = A x + B^u u_k
                 for i in range(n):
                     for b in range(nb):
                         xp[i, b] += bu[r0 + b, t, i]
             _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
             if family == TOBIT:
-                tl = min(t, lo.shape[0] - 1)
+                tl = min(t, lo.shape[1] - 1)
                 tobit_update_block(
                     C,
-                    r[0],
-                    lo,
-                    hi,
+                    r[0, 0],
+                    lo[0],
+                    hi[0],
                     tl,
                     0,
                     y,
@@ -463,7 +511,7 @@ def compiled_loop(
                 _flush(s_comp, comp, r0, t0, nb, tt + 1)
         _store_last(x, P, r0, nb, x_last, P_last)
     if shared:
-        _shared_gain_means(A, C, Kall, y, x0, means, pmeans, x_last)
+        _shared_gain_means(A[0, 0], C, Kall, y, x0, means, pmeans, x_last)
 
 
 @njit(cache=True, error_model="numpy")
@@ -522,6 +570,39 @@ class CompiledSpec:
     npass: int = 1
 
 
+def _per_step(at: Any, k0: int, T: int, varying: bool, shape: tuple[int, ...], seq: Any = None) -> np.ndarray:
+    """``at(k0 + i)`` for the T steps (one step when not ``varying``) as one (N', T or 1, *shape) array,
+    N' the runs of the widest step (1: shared), for the compiled loop's run- and step-indexed matrices.
+    ``seq``: the :class:`~tobitkf._validation.TimeSequence` behind ``at`` when ``at`` returns its matrices as
+    they are (then an array is sliced at once instead of step by step)."""
+    if seq is not None and seq.fn is None and len(seq.batch_shape) <= 1:
+        arr = seq.array
+        if seq.varying:
+            i0 = k0 - seq.offset
+            arr = arr[..., i0 : i0 + T, :, :] if len(shape) == 2 else arr[..., i0 : i0 + T, :]
+        else:
+            arr = arr[..., None, :, :] if len(shape) == 2 else arr[..., None, :]
+        return _c(arr if seq.batch_shape else arr[None])
+    mats = [np.asarray(at(k0 + i), dtype=float) for i in range(T if varying else 1)]
+    Nr = max(M.shape[0] if M.ndim > len(shape) else 1 for M in mats)
+    out = np.empty((Nr, len(mats)) + shape)
+    for i, M in enumerate(mats):
+        out[:, i] = M if M.ndim > len(shape) else M[None]
+    return out
+
+
+def _system_arrays(sys_, k0: int, T: int) -> tuple[np.ndarray, np.ndarray]:
+    """The transitions ``A`` and noise covariances ``Qd`` (N', T', n, n) of steps k0 + 1 .. k0 + T: one of each
+    for a time-invariant system, else per step (and per run for a system with run axes)."""
+    n = sys_.n
+    if sys_.time_invariant:
+        return _c(sys_.transition(0))[None, None], _c(sys_.process_cov(0))[None, None]
+    q_varying = sys_.Q.varying or (sys_.B is not None and sys_.B.varying)
+    A = _per_step(sys_.transition, k0, T, sys_.A.varying, (n, n), sys_.A)
+    Qd = _per_step(sys_.process_cov, k0, T, q_varying, (n, n), sys_.Q if sys_.B is None else None)
+    return A, Qd
+
+
 def _c(a: Any) -> np.ndarray:
     """``a`` as a C-contiguous, writable float64 array (a read-only one, e.g. cached limits, is copied: numba types
     read-only arrays apart, and each would compile the loop once more)."""
@@ -547,16 +628,34 @@ def _per_batch(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray:
 
 def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
     """The :class:`~tobitkf.filters.assumed_density.AssumedDensityTobitFilter`'s arrays, or None when its
-    options are not covered (time-varying R). ``order="uncensored_first"``: two passes over the channels, the
-    readings inside their limits in the first, the others in the second."""
-    if est._r is None:
-        return None
+    options are not covered (a measurement matrix given per run). ``order="uncensored_first"``: two passes over
+    the channels, the readings inside their limits in the first, the others in the second. Covers time-varying
+    and per-run systems (rows per step, noise variances per run and step) and limits given per run
+    (``step_data`` ``lower``/``upper`` (N, T, m))."""
+    from .assumed_density import _noise_variances
+
     N, T, m = y2.shape
-    lo, hi = est.censoring.all_limits(T, m, start=state.k + 1, check=False)
-    flags = None if not step_data else step_data.get("censored")
+    sys_ = est.system
+    if sys_.C.batch_shape and int(np.prod(sys_.C.batch_shape)) > 1:
+        return None
+    k0 = state.k
+    H = _per_step(sys_.measurement, k0 + 1, T, sys_.C.varying, (m, est.n), sys_.C)[0]
+    if est._r is not None and not sys_.R.batch_shape:
+        r = _c(est._r)[None]
+    else:
+        Rs = _per_step(sys_.measurement_cov, k0 + 1, T, sys_.R.varying, (m, m), sys_.R)
+        r = _c(_noise_variances(Rs, "R"))  # (runs or 1, steps, m)
+    data = step_data or {}
+    if data.get("lower") is not None:
+        lo, hi = _c(data["lower"]), _c(data["upper"])
+        lo3, hi3 = lo, hi
+    else:
+        lo, hi = est.censoring.all_limits(T, m, start=k0 + 1, check=False)
+        lo3, hi3 = lo[None], hi[None]
+    flags = data.get("censored")
     cls = None
     if flags is not None or "extras" in want:
-        cls = classify_readings(y2, lo[None], hi[None])
+        cls = classify_readings(y2, lo3, hi3)
         if flags is not None:
             at_limit = (cls == LOWER) | (cls == UPPER)
             cls = np.where(at_limit & ~flags, INTERIOR, cls).astype(np.int8)
@@ -572,8 +671,8 @@ def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, ste
     bu, du = _input_terms(est, u2, N, est.n, m)
     return CompiledSpec(
         CENSORED,
-        _c(est.system.measurement(1))[None],
-        _c(est._r)[None],
+        _c(H),
+        r,
         _c(lo),
         _c(hi),
         np.zeros((1, m, 0)),
@@ -731,7 +830,10 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     gap = None
     if est.covariance_update != "standard":
         gap = f"covariance_update={est.covariance_update!r} (the compiled path runs the standard form)"
-    gap = gap or system_gap(est.system, u2, inputs=True)
+    # a family whose spec takes time-varying and per-run systems (rows and noise per step and run) checks
+    # only the inputs; the others need one system for every run and step
+    varying_ok = spec_of is censoring_spec
+    gap = gap or system_gap(est.system, u2, inputs=True, matrices=not varying_ok)
     spec = None
     if gap is None:
         spec = spec_of(est, y2, u2, state, want, batch, step_data)
@@ -750,20 +852,23 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         N, T, *specs, (ext, (m,)), (ext, ()), (ext and spec.J > 0, (m, spec.J))
     )
     x_last, P_last = np.empty((N, nx)), np.empty((N, nx, nx))
-    sys_ = est.system
+    A, Qd = _system_arrays(est.system, state.k, T)
+    if (A.shape[0] > 1 or Qd.shape[0] > 1) and nx != n:  # pragma: no cover - no family has both
+        return None
+    r, lo, hi = (a if a.ndim == 3 else a[None] for a in (spec.r, spec.lo, spec.hi))  # (runs or 1, steps, m)
     F = spec.F if spec.F is not None else np.zeros((1, m, 0, nx))
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
     compiled_loop(
         spec.family,
         _c(y2),
         np.require(cls, dtype=np.int8, requirements=("C", "W")),
-        _c(sys_.transition(0)),
-        _c(sys_.process_cov(0)),
+        A,
+        Qd,
         _c(spec.H),
         _c(F),
-        _c(spec.r),
-        _c(spec.lo),
-        _c(spec.hi),
+        _c(r),
+        _c(lo),
+        _c(hi),
         _c(spec.par),
         spec.J,
         spec.npass,

@@ -65,7 +65,7 @@ class MeasurementPrediction:
     ----------
     expected : (N, m) ndarray
         :math:`\hat y = E[y_k \mid \text{prior}]`; the innovation is :math:`y_k - \hat y`.
-    H0 : (m, n_x) ndarray
+    H0 : (m, n_x) ndarray, or (N or 1, m, n_x): one per run
         The common part of the effective measurement matrix.
     scale : (N, m) ndarray or None
         Per-run channel scale, :math:`H = \mathrm{diag}(s)H_0`; None means 1.
@@ -109,9 +109,12 @@ def predict(x: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, bx: Any
     r"""Time update :math:`\bar x = A\hat x + B^u u`, :math:`\bar P = \mathrm{sym}(A P A^T + Q)`
     (Miller (2.3), (3.20)–(3.21)), batched.
 
-    ``x`` (N, n), ``P`` (N or 1, n, n); ``A`` (n, n); ``Qd`` (n, n) the noise covariance
-    :math:`BQB^T`; ``bx`` (N, n) or 0.
+    ``x`` (N, n), ``P`` (N or 1, n, n); ``A`` (n, n) or (N or 1, n, n) (one per run); ``Qd`` (n, n) or
+    (N or 1, n, n) the noise covariance :math:`BQB^T`; ``bx`` (N, n) or 0.
     """
+    if A.ndim == 3:  # one transition per run
+        xp = np.einsum("...ij,...j->...i", A, x) + bx
+        return xp, symmetrize(A @ P @ np.swapaxes(A, -1, -2) + Qd)
     xp = x @ A.T + bx
     n = A.shape[-1]
     if A.ndim == 2 and P.ndim >= 2:
@@ -146,6 +149,20 @@ def shift_predict(xi: np.ndarray, P: np.ndarray, A: np.ndarray, Qd: np.ndarray, 
     N, nxi = xi.shape
     n = A.shape[-1]
     s0, s1 = source * n, (source + 1) * n
+    if A.ndim == 3 or np.ndim(Qd) == 3:  # one transition per run: the same blocks, batched products
+        A3 = A if A.ndim == 3 else A[None]
+        xi_p = np.empty_like(xi)
+        xi_p[:, :n] = np.einsum("...ij,...j->...i", A3, xi[:, s0:s1]) + bx
+        xi_p[:, n:] = xi[:, : nxi - n]
+        X = P[:, :, s0:s1] @ np.swapaxes(A3, -1, -2)  # (Np', nxi, n)
+        Np = X.shape[0]
+        P_p = np.empty((Np, nxi, nxi))
+        top = A3 @ X[:, s0:s1] + Qd
+        P_p[:, :n, :n] = 0.5 * (top + top.swapaxes(-1, -2))
+        P_p[:, n:, :n] = X[:, : nxi - n]
+        P_p[:, :n, n:] = X[:, : nxi - n].swapaxes(-1, -2)
+        P_p[:, n:, n:] = P[:, : nxi - n, : nxi - n]
+        return xi_p, P_p
     xi_p = np.empty_like(xi)
     xi_p[:, :n] = xi[:, s0:s1] @ A.T + bx
     xi_p[:, n:] = xi[:, : nxi - n]
@@ -207,7 +224,8 @@ def time_update(
     compiled form (:func:`tobitkf.filters._kernels_core.time_update_runs`, equal to rounding) when numba
     imports and the case is covered (standard or Joseph form, one covariance per run), else this numpy code.
     """
-    if compiled and P is not None and _compiled_covers(x, P, form) and tr.P_fixed is None and tr.source == 0:
+    shared = np.ndim(tr.A) == 2 and np.ndim(tr.Qd) == 2  # the compiled step: one transition for all runs
+    if compiled and shared and P is not None and _compiled_covers(x, P, form) and tr.P_fixed is None and tr.source == 0:
         kern = _core_compiled_module()
         if kern is not None:
             xp, Pp = _compiled_time_update(kern, x, P, tr)
@@ -519,11 +537,15 @@ def sqrt_update(
 def _moments(P: np.ndarray, mp: MeasurementPrediction):
     """``(R_xe (Np, n_x, m), R_ee (Np', m, m), P H0^T)`` with GEMMs over the stacked runs."""
     H0 = mp.H0
-    m, nx = H0.shape
+    m, nx = H0.shape[-2:]
     Np = P.shape[0]
-    # P H0^T for every run as one GEMM over the stacked rows (P symmetric): (Np, nx, m)
-    PH = (P.reshape(Np * nx, nx) @ H0.T).reshape(Np, nx, m)
-    HPH = (PH.swapaxes(-1, -2).reshape(Np * m, nx) @ H0.T).reshape(Np, m, m)
+    if H0.ndim == 3:  # one measurement matrix per run (N or 1, m, nx)
+        PH = P @ H0.swapaxes(-1, -2)
+        HPH = H0 @ PH
+    else:
+        # P H0^T for every run as one GEMM over the stacked rows (P symmetric): (Np, nx, m)
+        PH = (P.reshape(Np * nx, nx) @ H0.T).reshape(Np, nx, m)
+        HPH = (PH.swapaxes(-1, -2).reshape(Np * m, nx) @ H0.T).reshape(Np, m, m)
     s = mp.scale
     if s is None:
         Rxe, Ree = PH, HPH
@@ -594,9 +616,10 @@ def measurement_update(
             assert P is not None
             return _compiled_measurement_update(kern, x, P, innov, valid, mp, form == "joseph")
     if form == "square_root":
-        H = mp.H0[None] if mp.scale is None else mp.H0[None] * mp.scale[:, :, None]
+        H0 = mp.H0 if mp.H0.ndim == 3 else mp.H0[None]
+        H = H0 if mp.scale is None else H0 * mp.scale[:, :, None]
         noise = mp.noise
-        m = mp.H0.shape[0]
+        m = mp.H0.shape[-2]
         if noise.ndim == 2:
             nz = np.maximum(noise, 0.0)
             R = nz[..., :, None] * np.eye(m)
@@ -626,7 +649,10 @@ def measurement_update(
     if form == "joseph":
         nx = x.shape[-1]
         Nk = K.shape[0]
-        MH = (M.reshape(Nk * nx, nx) @ mp.H0.T).reshape(Nk, nx, -1)  # M H0^T
+        if mp.H0.ndim == 3:
+            MH = M @ mp.H0.swapaxes(-1, -2)
+        else:
+            MH = (M.reshape(Nk * nx, nx) @ mp.H0.T).reshape(Nk, nx, -1)  # M H0^T
         if mp.scale is not None:
             MH = MH * mp.scale[:, None, :]
         noise = mp.noise

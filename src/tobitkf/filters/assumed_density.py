@@ -51,13 +51,14 @@ its (sequential) prior, ``log_likelihood`` = :math:`\sum_l \log p(y_k(l) \mid \t
 
 from __future__ import annotations
 
+import copy
 from contextvars import ContextVar
 from typing import Any, Mapping
 
 import numpy as np
 from scipy.special import ndtr
 
-from .._validation import ValidationError, as_float_array, check_bool, check_instance
+from .._validation import ShapeError, ValidationError, as_float_array, check_bool, check_instance
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
@@ -155,7 +156,8 @@ def censored_channel_update(
     ----------
     x : (N, n) ; P : (N or 1, n, n) ; S : (N or 1, n, n) or None (square-root factor)
     y : (N,) readings of the channel (NaN = missing)
-    c : (n,) its row of C (of the effective measurement matrix) ; r : its noise variance (>= 0), scalar or (N,)
+    c : (n,) its row of C (of the effective measurement matrix), or (N or 1, n) one per run ;
+        r : its noise variance (>= 0), scalar or (N,)
     lower, upper : scalar or (N,) limits
     dy : (N,) or 0, the feed-through D u of the channel
     form : {"standard", "joseph", "square_root"}
@@ -180,9 +182,13 @@ def censored_channel_update(
         censored one), else ``-inf``; and no update.
     """
     N = x.shape[0]
-    mu = x @ c + dy
     rv = np.asarray(r, dtype=float)
-    s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
+    if c.ndim == 2:  # one row per run (N or 1, n)
+        mu = np.einsum("ri,ri->r", x, np.broadcast_to(c, x.shape)) + dy
+        s2 = np.broadcast_to(np.einsum("rij,ri,rj->r", P, c, c) + rv, (N,))
+    else:
+        mu = x @ c + dy
+        s2 = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c) + rv, (N,))
     ok = s2 > _TINY
     s = np.where(ok, np.sqrt(np.where(ok, s2, 1.0)), 1.0)
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N,))
@@ -219,7 +225,7 @@ def censored_channel_update(
     noise = np.full((1, 1), float(rv)) if rv.ndim == 0 else np.broadcast_to(rv, (N,))[:, None]
     mp = MeasurementPrediction(
         expected=mu[:, None],
-        H0=c[None, :],
+        H0=c[..., None, :],
         noise=noise,
         observed=np.where(valid, obs, np.nan)[:, None],
         valid=valid[:, None],
@@ -365,8 +371,8 @@ def _noise_variances(R: np.ndarray, name: str, positive: str | None = None) -> n
     Raises ValidationError naming ``name`` for an off-diagonal entry (beyond 1e-12 of the largest) or a
     negative variance; with ``positive`` (the filter's name, e.g. ``"the protocol filter"``) also for a zero one.
     """
-    off = R - np.diag(np.diagonal(R))
-    d = np.diagonal(R).copy()
+    d = np.diagonal(R, axis1=-2, axis2=-1).copy()  # (m,), or (N or 1, m) with one R per run
+    off = R - d[..., :, None] * np.eye(R.shape[-1])
     diagonal = np.abs(off).max(initial=0.0) <= 1e-12 * max(1.0, np.abs(R).max())
     if positive is not None and (not diagonal or np.any(d <= 0)):
         raise ValidationError(f"{name}: {positive} needs a diagonal R with positive sensor variances")
@@ -459,7 +465,10 @@ class AssumedDensityFamily(GaussianFilter):
         """The compiled loop (:mod:`tobitkf.filters._compiled_loop`) when the ``backend`` allows it and covers
         the options; None: the numpy loop runs."""
         backend = getattr(self, "backend", "numpy")
-        if self._compiled_spec is None or backend == "numpy" or step_options or not self._own_hooks():
+        data = _STEP_DATA.get() or {}
+        per_run_limits = "lower" in data  # limits per run: only the censoring family's compiled arrays take them
+        own = self._compiled_spec == "censoring_spec" or not per_run_limits
+        if self._compiled_spec is None or backend == "numpy" or step_options or not own or not self._own_hooks():
             return None
         if not numba_available():
             if backend == "numba":
@@ -556,6 +565,18 @@ class AugmentedWindow:
         return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
 
 
+def _run_limits(given: Any, own: np.ndarray, batch: tuple[int, ...], shape: tuple[int, ...], name: str) -> np.ndarray:
+    """Limits (N, T, m) of every run and step: ``given`` broadcast to ``batch + (T, m)``, else the censoring's."""
+    if given is None:
+        return np.ascontiguousarray(np.broadcast_to(own, shape))
+    arr = as_float_array(given, name, allow_inf=True)
+    try:
+        full = np.broadcast_to(arr, batch + shape[1:])
+    except ValueError:
+        raise ShapeError(f"{name}: expected a shape broadcastable to {batch + shape[1:]}, got {arr.shape}") from None
+    return np.ascontiguousarray(full.reshape(shape))
+
+
 class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for censored readings: exact posterior moments, Kalman cost.
 
@@ -583,7 +604,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"`` runs :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when
         numba is installed and the options are covered (the standard covariance form, either ``order``,
-        time-invariant system matrices, control inputs through constant ``Bu``/``D``), the numpy loop
+        system matrices constant, per step or per run (``batch_ndim``) with C shared by the runs, limits of
+        the censoring or given per run to :meth:`filter`, control inputs through constant ``Bu``/``D``), the numpy loop
         otherwise; ``"numba"`` insists on the compiled loop (raises otherwise); ``"numpy"`` never uses it.
         Both give the same numbers (tested to 1e-12); :meth:`step` (and a case the compiled loop does not cover)
         runs the numpy step, with the moments of the compiled loop's function unless ``"numpy"``.
@@ -691,8 +713,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
                     P,
                     S,
                     y[:, l],
-                    C[l],
-                    r[l],
+                    C[..., l, :],
+                    r[..., l],
                     lo[:, l],
                     hi[:, l],
                     dy=dy[:, l],
@@ -754,6 +776,8 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         outputs: Any = "all",
         state: FilterState | None = None,
         times: Any = None,
+        lower: Any = None,
+        upper: Any = None,
     ) -> FilterResult:
         """Filter censored readings ``y`` (..., T, m); NaN = missing: :meth:`AssumedDensityFamily.filter`
         (its parameters) with the recorded indicator.
@@ -765,6 +789,9 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
             See the class Notes.
         times : (T,) array_like, optional
             Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
+        lower, upper : array_like broadcastable to (..., T, m), optional
+            Limits of each run and step replacing the censoring's (e.g. each subject's assay limits in a
+            panel); the censoring's limits stay where one is not given. Every reading must lie within them.
 
         Raises
         ------
@@ -776,16 +803,44 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         """
         if times is not None:
             est = at_times(self, times, y)
-            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
-        if censored is None:
+            return est.filter(
+                y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state, lower=lower, upper=upper
+            )
+        if censored is None and lower is None and upper is None:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=k0 + 1)
-        flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
-        censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
-        return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data={"censored": flags})
+        data: dict[str, np.ndarray] = {}
+        if lower is not None or upper is not None:
+            lo, hi = (
+                _run_limits(given, own, batch, y2.shape, name)
+                for given, own, name in ((lower, lo, "lower"), (upper, hi, "upper"))
+            )
+            if np.any(lo > hi):
+                raise ValidationError("lower/upper: expected lower <= upper at every run and step")
+            with np.errstate(invalid="ignore"):
+                tol = 1e-12 * np.maximum(1.0, np.where(np.isfinite(lo), np.abs(lo), 0.0))
+                below = y2 < lo - tol
+                tol = 1e-12 * np.maximum(1.0, np.where(np.isfinite(hi), np.abs(hi), 0.0))
+                above = y2 > hi + tol
+            if (below | above).any():
+                i, t, l = (int(v[0]) for v in np.nonzero(below | above))
+                raise ValidationError(
+                    f"y: reading {y2[i, t, l]!r} of run {i}, step {t}, channel {l} lies outside its limits "
+                    f"[{lo[i, t, l]!r}, {hi[i, t, l]!r}]"
+                )
+            data.update(lower=lo, upper=hi)
+        if censored is not None:
+            flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
+            censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
+            data["censored"] = flags
+        if "lower" in data and self.check_limits:  # the record is checked against the limits just given
+            est = copy.copy(self)
+            est.check_limits = False
+            return est._run(y, u, x0, P0, outputs=outputs, state=state, step_data=data)
+        return self._run(y, u, x0, P0, outputs=outputs, state=state, step_data=data)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The ``log_likelihood`` extras of :meth:`filter` (..., T): the terms of :meth:`log_likelihood`."""

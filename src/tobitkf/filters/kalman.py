@@ -187,7 +187,10 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
         sys_ = self.system
         C, R = sys_.measurement(k), sys_.measurement_cov(k)
-        return MeasurementPrediction(expected=xp @ C.T + self._feedthrough(k, u), H0=C, noise=R[None]), carry
+        Cx = xp @ C.T if C.ndim == 2 else np.einsum("...ij,...j->...i", C, xp)  # C (N or 1, m, n): per run
+        return MeasurementPrediction(
+            expected=Cx + self._feedthrough(k, u), H0=C, noise=R if R.ndim == 3 else R[None]
+        ), carry
 
     # ---- the compiled path ------------------------------------------------------------
     def _compiled_ok(self, u) -> bool:

@@ -52,6 +52,7 @@ def prediction_log_densities(system: LinearSystem, y: Any, result: FilterResult,
     u2 = prepare_inputs(system, u, N, T)
     out = np.empty((N, T))
     fixed = not (system.C.varying or system.R.varying) and (u2 is None or system.D is None or not system.D.varying)
+    fixed = fixed and system.C.batch_shape == () and system.R.batch_shape == ()  # per-run C or R: step by step
     if fixed:  # every step at once: one batched density over (N, T)
         C, R = system.measurement(1), system.measurement_cov(1)
         yhat = xp @ C.T
@@ -65,10 +66,10 @@ def prediction_log_densities(system: LinearSystem, y: Any, result: FilterResult,
     for i in range(T):
         k = int(result.times[i]) if result.times is not None else i + 1
         C, R = system.measurement(k), system.measurement_cov(k)
-        yhat = xp[:, i] @ C.T
+        yhat = np.einsum("...ij,...j->...i", C, xp[:, i])  # C (m, n), or (N or 1, m, n) one per run
         if u2 is not None and system.D is not None:
             yhat = yhat + u2[:, i] @ system.D.at(k).T
-        S = C @ Pp[:, i] @ C.T + R
+        S = C @ Pp[:, i] @ np.swapaxes(C, -1, -2) + R
         out[:, i] = gaussian_log_density(y2[:, i] - yhat, S, ~np.isnan(y2[:, i]))
     return out.reshape(batch + (T,))
 

@@ -139,9 +139,10 @@ def tobit_measurement(
 
     Parameters
     ----------
-    x_pred : (N, n) ; C : (m, n) ; sigma : (m,) ; lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
+    x_pred : (N, n) ; C : (m, n) or (N or 1, m, n) (one per run) ; sigma : (m,) or (N or 1, m) ;
+    lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
     """
-    mu = x_pred @ C.T + dy
+    mu = (x_pred @ C.T if C.ndim == 2 else np.einsum("...ij,...j->...i", C, x_pred)) + dy
     st = unchecked_moments(mu, sigma, lower, upper)
     gam = st.p_uncensored
     if noise_term == "dissertation":

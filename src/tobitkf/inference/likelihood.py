@@ -101,6 +101,8 @@ def adf_log_likelihood(
     P0: Any = None,
     per_step: bool = False,
     times: Any = None,
+    lower: Any = None,
+    upper: Any = None,
 ) -> np.ndarray:
     r"""Assumed-density log-likelihood of censored readings (see the module docstring).
 
@@ -118,6 +120,11 @@ def adf_log_likelihood(
     per_step : bool, default False
     times : (T,) array_like, optional
         Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
+    lower, upper : array_like broadcastable to (..., T, m), optional
+        Limits of each run and step replacing the censoring's (e.g. each subject's limits in a panel).
+
+    With a ``system`` of one model per run (``batch_ndim``), each run's likelihood is under its own
+    model: a batch of parameter vectors evaluated in one pass.
 
     Returns
     -------
@@ -140,7 +147,9 @@ def adf_log_likelihood(
     """
     check_instance(system, LinearSystem, "system")
     system = system if times is None else system_at_times(system, times, y)
-    res = assumed_density_filter(system, censoring).filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",))
+    res = assumed_density_filter(system, censoring).filter(
+        y, u=u, censored=censored, x0=x0, P0=P0, outputs=("extras",), lower=lower, upper=upper
+    )
     terms = res.extras["log_likelihood"]
     return terms if per_step else terms.sum(-1)
 
