@@ -3,7 +3,7 @@
 One measurement channel, a lower limit only, the dissertation's noise term, the standard
 covariance update (Miller (3.20)–(3.22), (3.37)–(3.41), (3.55)); one run at a time, all the
 algebra of a step in one compiled loop body (its time update the package's scalar-loop
-:func:`tobitkf.inference._ss_kernels.predict_into`, a compiled call), the outputs written straight
+:func:`tobitkf.inference._compiled_ss.predict_into`, a compiled call), the outputs written straight
 into the (N, T, ...) arrays, and the closed-form censored statistics (``erfc``/``exp``, no tail
 treatment: fine while the standardized limit stays below ~37, which the benchmark's data do). It is
 a benchmark yardstick, not a filter of the package: no checks, no missing readings, no far tails.
@@ -16,7 +16,7 @@ import math
 import numpy as np
 from numba import njit
 
-from tobitkf.inference._ss_kernels import predict_into
+from tobitkf.inference._compiled_ss import predict_into
 
 _SQRT1_2 = math.sqrt(0.5)
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)

@@ -9,7 +9,7 @@ samples censored) goes through every filter:
 
 Prints run-steps/second and ratios to filterpy measured in the same process, for both
 tobitkf backends: ``numpy`` (the vectorised reference path) and ``numba`` (the compiled
-kernels of ``tobitkf.filters._kernels``, compiled before timing; skipped without numba).
+kernels of ``tobitkf.filters._compiled_tobit``, compiled before timing; skipped without numba).
 The single-run numpy rows time 10^4 steps (their cost per step is constant).
 
 (c) TKF at n = 16, m = 8 (a random stable system, left-censored at 0 in every channel, 10^3 runs

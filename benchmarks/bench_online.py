@@ -8,7 +8,7 @@ ratio to filterpy taken within each repeat (this machine is shared: medians and 
 printed). The KF, TKF and dropping-KF steps run the compiled kernels when numba is installed (a single step
 through the block kernel), the fading and protocol TKF steps their compiled loops for one reading, the
 steady-state TKF and the tracker (once its gain is fixed) the fixed-gain recursion in numpy, the other
-Gaussian families the compiled shared predict and update (:mod:`tobitkf.filters._kernels_core`) around their
+Gaussian families the compiled shared predict and update (:mod:`tobitkf.filters._compiled_step`) around their
 own moments; the "(numpy)" rows the reference path.
 
 Targets (issue "One estimation core"): KF and TKF step no slower than filterpy's predict + update;

@@ -1,6 +1,6 @@
 """Censored-normal statistics in the compiled path: run by run against the vectorised block.
 
-The compiled path has one implementation of the statistics (``tobitkf.filters._kernels_censored``). A channel
+The compiled path has one implementation of the statistics (``tobitkf.filters._compiled_censored``). A channel
 whose runs have their own limits takes ``censored_stats`` run by run (a branch on the limits per run); one
 whose lower limit the block's runs share takes ``one_sided_block``, the same route without the per-run
 branch, vectorised over the runs. (With the same limit for every run, as timed here, the branch of
@@ -42,7 +42,7 @@ def main() -> None:
         return
     from numba import njit
 
-    from tobitkf.filters._kernels_censored import GL_W, GL_X, censored_stats, one_sided_block
+    from tobitkf.filters._compiled_censored import GL_W, GL_X, censored_stats, one_sided_block
 
     @njit(error_model="numpy")
     def per_run(mu, sd, lo, g, v, c, calls):

@@ -22,7 +22,7 @@ def test_the_loop_is_cached_on_every_compiled_module():
     own, pkg = locator.get_source_stamp()
     assert pkg == _compiled_cache.package_stamp()
     names = {p.name for p in _compiled_cache.compiled_modules()}
-    assert {"_compiled_loop.py", "_compiled_moments.py", "_kernels_block.py", "_kernels.py"} <= names
+    assert {"_compiled_loop.py", "_compiled_moments.py", "_compiled_block.py", "_compiled_tobit.py"} <= names
 
 
 def test_package_stamp_changes_with_any_compiled_module(tmp_path):

@@ -1,8 +1,8 @@
 """Whether the compiled (numba) paths can run, how many threads they use, and the compile notice.
 
 numba is imported lazily, on the first call that may use a kernel, so ``import tobitkf`` does
-not pay for it. Each layer keeps its kernels beside its code (:mod:`tobitkf.filters._kernels`,
-:mod:`tobitkf._linalg_kernels`); this module only answers the questions they share.
+not pay for it. Each layer keeps its kernels beside its code (:mod:`tobitkf.filters._compiled_tobit`,
+:mod:`tobitkf._compiled_linalg`); this module only answers the questions they share.
 
 **The compile notice.** The kernels are compiled on their first call and kept in numba's on-disk
 cache (``cache=True``), so only the first process after an install or an upgrade pays for it (about

@@ -2,7 +2,7 @@
 
 numba keys a cached function on its own source file alone: a loop in one module that calls functions of another
 (the compiled loop of :mod:`tobitkf.filters._compiled_loop` calls the moments of
-:mod:`tobitkf.filters._compiled_moments`, the block algebra of :mod:`tobitkf.filters._kernels_block`, ...)
+:mod:`tobitkf.filters._compiled_moments`, the block algebra of :mod:`tobitkf.filters._compiled_block`, ...)
 inlines them into its machine code, and an edit of the other module leaves the loop's stale machine code in the
 cache, loaded by the next process as if nothing had changed. Here the cache of every function of the package is
 keyed on its own file AND on :func:`package_stamp`, a hash of every module of numba-compiled functions of the
@@ -13,7 +13,7 @@ How: :func:`install` puts :class:`PackageStampLocator` first among numba's cache
 in this package it wraps the locator numba would have chosen (same cache directory, same file names) and adds the
 package stamp to its source stamp. Installed when numba is first imported (:func:`tobitkf._compiled.watch_compiles`),
 before any function of the package is decorated. A module of numba-compiled functions is named ``_compiled_*.py``
-or ``*_kernels*.py`` (:data:`PATTERNS`; a test checks every module that defines one).
+(:data:`PATTERNS`; a test checks every module that defines one).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any
 __all__ = ["PATTERNS", "compiled_modules", "package_stamp", "install", "PackageStampLocator"]
 
 PACKAGE_DIR = Path(__file__).resolve().parent
-PATTERNS = ("_compiled_*.py", "*_kernels*.py")
+PATTERNS = ("_compiled_*.py",)
 """File-name patterns of the package's modules of numba-compiled functions."""
 
 

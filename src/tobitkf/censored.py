@@ -43,7 +43,7 @@ sign). Three routes:
 * otherwise the direct formulas above (:math:`a' \le 4`; their cancellation in the variance
   costs up to a few hundred ulp near the switch).
 
-:mod:`tobitkf.filters._kernels_censored` is the compiled implementation (the same routes, tested against
+:mod:`tobitkf.filters._compiled_censored` is the compiled implementation (the same routes, tested against
 these numbers).
 Tail probabilities use ``scipy.special.ndtr`` on the side where they are
 small, so limits 40 (or 1000) standard deviations away give finite, accurate numbers

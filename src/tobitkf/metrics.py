@@ -98,7 +98,7 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
     ``cov`` broadcasts against ``err`` (a covariance shared by the runs may omit the run axis).
     A linear solve per run and step (never an inverse); a singular covariance gives ``inf`` for
     its own term only. Uses the compiled kernel
-    :func:`tobitkf._linalg_kernels.nees_terms` when numba is installed and ``cov``'s leading
+    :func:`tobitkf._compiled_linalg.nees_terms` when numba is installed and ``cov``'s leading
     shape is a trailing part of ``err``'s, else ``numpy.linalg.solve``; both agree to rounding.
 
     Raises
@@ -125,7 +125,7 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
         from ._compiled import numba_available
 
         if numba_available():
-            from ._linalg_kernels import nees_terms as kernel
+            from ._compiled_linalg import nees_terms as kernel
 
             out = np.empty(int(np.prod(lead)))
             kernel(np.ascontiguousarray(err.reshape(-1, n)), np.ascontiguousarray(cov.reshape(-1, n, n)), out)

@@ -98,7 +98,7 @@ def test_interval_event_matches_the_reference(ea, eb):
     1e-12 relative; quadrature of the shifted density agrees with log_interval_mass at (38, 38.5))."""
     mu, sd = 0.0, 1.0
     logp, m, v = cm.interval_event(
-        mu, sd, ea, eb, tk.filters._kernels.GL_X, tk.filters._kernels.GL_W, np.empty((2, 64))
+        mu, sd, ea, eb, tk.filters._compiled_tobit.GL_X, tk.filters._compiled_tobit.GL_W, np.empty((2, 64))
     )
     ref = censored_moments(mu, sd, ea, eb)
     assert m == pytest.approx(float(ref.truncated_mean), rel=1e-12, abs=1e-13)
@@ -141,8 +141,8 @@ def test_censored_block_is_the_adf_update_of_one_channel():
         np.full(N, hi),
         np.zeros(0),
         0,
-        tk.filters._kernels.GL_X,
-        tk.filters._kernels.GL_W,
+        tk.filters._compiled_tobit.GL_X,
+        tk.filters._compiled_tobit.GL_W,
     )
     Pc = P @ c
     np.testing.assert_allclose(x + alpha[:, None] * Pc, xn, rtol=0, atol=1e-12 * np.abs(xn).max())

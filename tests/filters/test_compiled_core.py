@@ -1,4 +1,4 @@
-"""The compiled shared step (filters/_kernels_core.py) equals the numpy shared step (filters/core.py).
+"""The compiled shared step (filters/_compiled_step.py) equals the numpy shared step (filters/core.py).
 
 Each case is run twice through the public functions, ``compiled=False`` (the numpy reference) and
 ``compiled=True``, on random inputs that reach every branch: the plain and the block-shift predict

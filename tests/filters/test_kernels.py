@@ -22,7 +22,7 @@ from tobitkf.filters.kalman import kalman_filter
 from tobitkf.filters.tobit import tobit_kalman_filter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels, _kernels_block, _kernels_censored  # noqa: E402
+from tobitkf.filters import _compiled_block, _compiled_censored, _compiled_tobit  # noqa: E402
 
 VECTORS = Path("/work/shared/vectors/censoring_stats.json")
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov")
@@ -31,7 +31,7 @@ FIELDS = ("mean", "cov", "pred_mean", "pred_cov")
 def kernel_moments(mu, sd, lo, hi):
     arrs = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (mu, sd, lo, hi)))
     flat = [np.ascontiguousarray(a.ravel()) for a in arrs]
-    return _kernels_censored.censored_moments_array(*flat, _kernels.GL_X, _kernels.GL_W)
+    return _compiled_censored.censored_moments_array(*flat, _compiled_tobit.GL_X, _compiled_tobit.GL_W)
 
 
 def assert_same(a, b, rtol=1e-12):
@@ -294,7 +294,7 @@ def test_tkf_kernel_many_runs_crosses_blocks():
     """More runs than one block of the kernel, not a multiple of it."""
     sys_ = oscillator()
     cens = tk.Censoring(lower=0.0)
-    y = data(sys_, cens, runs=2 * _kernels_block.runs_per_block(2) + 5, steps=20)
+    y = data(sys_, cens, runs=2 * _compiled_block.runs_per_block(2) + 5, steps=20)
     a = tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y)
     b = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y)
     assert_results_equal(a, b)
@@ -386,7 +386,7 @@ def test_tkf_kernel_threads_give_the_same_results():
 @pytest.mark.parametrize("cu", ["standard", "joseph"])
 def test_kf_kernel_equals_numpy(cu):
     sys_ = three_state()
-    y = data(sys_, tk.Censoring(), runs=2 * _kernels_block.runs_per_block(3) + 3, steps=2 * _kernels_block.CHUNK + 7)
+    y = data(sys_, tk.Censoring(), runs=2 * _compiled_block.runs_per_block(3) + 3, steps=2 * _compiled_block.CHUNK + 7)
     a = kalman_filter(sys_, y, covariance_update=cu, backend="numba")
     b = kalman_filter(sys_, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)
@@ -446,8 +446,8 @@ def test_kf_kernel_singular_innovation_covariance_raises_like_numpy():
 class _Trap:
     """Stands in for the kernel module: any use of a kernel fails the test."""
 
-    NOISE_CODES = _kernels.NOISE_CODES
-    GL_X, GL_W = _kernels.GL_X, _kernels.GL_W
+    NOISE_CODES = _compiled_tobit.NOISE_CODES
+    GL_X, GL_W = _compiled_tobit.GL_X, _compiled_tobit.GL_W
 
     def __getattr__(self, name):
         raise AssertionError(f"kernel {name} used")

@@ -1,4 +1,4 @@
-"""The compiled censored-normal statistics (``_kernels_censored``: the vectorised one-sided block routes and
+"""The compiled censored-normal statistics (``_compiled_censored``: the vectorised one-sided block routes and
 ``censored_stats``, which every compiled caller uses).
 
 Checked against three independent things: the high-precision numpy reference ``tobitkf.censored_moments``
@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 pytest.importorskip("numba")
 from tobitkf.censored import censored_moments  # noqa: E402
-from tobitkf.filters import _kernels_censored as kc  # noqa: E402
+from tobitkf.filters import _compiled_censored as kc  # noqa: E402
 
 VECTORS = Path("/work/shared/vectors/censoring_stats.json")
 

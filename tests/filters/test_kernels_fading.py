@@ -16,7 +16,7 @@ from tobitkf.filters import _backend
 from tobitkf.filters.fading import FadingTobitKalmanFilter, fading_tobit_kalman_filter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels_block, _kernels_fading  # noqa: E402
+from tobitkf.filters import _compiled_block, _compiled_fading  # noqa: E402
 
 from ._compare import assert_same
 
@@ -168,7 +168,7 @@ def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
     sys_ = oscillator(2)
     cens = tk.Censoring(lower=[0.0, -0.5])
     fad = fading(2)
-    T = 2 * _kernels_block.CHUNK + 7
+    T = 2 * _compiled_block.CHUNK + 7
     y = data(sys_, fad, cens, runs=69, steps=T + 71)
     fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
@@ -223,7 +223,7 @@ def test_auto_uses_the_kernel_when_covered(monkeypatch):
     cens = tk.Censoring(lower=0.0)
     fad = fading(2)
     y = data(sys_, fad, cens, runs=2, steps=5)
-    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
     with pytest.raises(AssertionError, match="fading kernel used"):
         FadingTobitKalmanFilter(sys_, fad, cens).filter(y)
     with pytest.raises(AssertionError, match="fading kernel used"):
@@ -275,7 +275,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", **opts).filter(y, **call)
     with pytest.raises(ValidationError, match=f"numba kernel of the fading Tobit Kalman filter does not cover {match}"):
         FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **opts).filter(y, **call)
-    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
     auto = FadingTobitKalmanFilter(sys_, fad, cens, **opts).filter(y, **call)
     # not the fading kernel (it raises), but the compiled shared step around the numpy moments: equal to rounding
     assert_results_equal(auto, ref, 1e-12)
@@ -289,7 +289,7 @@ def test_square_root_form_falls_back_or_is_refused(monkeypatch):
     with pytest.raises(ValidationError, match="no square-root form"):
         FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root", backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root", backend="numpy").filter(y)
-    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
     auto = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root").filter(y)
     assert_same(auto.mean, ref.mean, 0.0)
 
@@ -357,8 +357,8 @@ def test_online_step_runs_the_kernel_and_equals_numpy(shape, exact, monkeypatch)
     # the stream equals the batched filter's rows, and the step really runs the kernel
     res = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", exact_tobit_variance=exact).filter(y)
     assert_same(np.stack([s.mean for s in fast], axis=-2), res.mean)
-    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
-    monkeypatch.setattr(_kernels_fading, "fading_tkf_step", _raise)  # the kernel's one-step entry
+    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_fading, "fading_tkf_step", _raise)  # the kernel's one-step entry
     est = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", exact_tobit_variance=exact)
     with pytest.raises(AssertionError, match="fading kernel used"):
         est.step(est.init(batch_shape=shape), y[..., 0, :])
@@ -367,7 +367,7 @@ def test_online_step_runs_the_kernel_and_equals_numpy(shape, exact, monkeypatch)
 def test_online_step_with_input_runs_numpy(monkeypatch):
     sys_, cens, fad = _with_input(), tk.Censoring(lower=0.0), fading(2)
     y = data(oscillator(), fad, cens, runs=1, steps=6)[0]
-    monkeypatch.setattr(_kernels_fading, "fading_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
     auto = FadingTobitKalmanFilter(sys_, fad, cens)
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
     sa, sb = auto.init(), ref.init()
@@ -427,8 +427,8 @@ def test_augmented_block_dims():
     """The fading and protocol loops' blocks: AUG_BLOCK runs (one run alone: one column), CHUNK staged steps at most;
     the tests of these loops that cross blocks use more runs than AUG_BLOCK."""
 
-    B = _kernels_fading.AUG_BLOCK
-    assert _kernels_fading.aug_block_dims(1000, 100) == (B, _kernels_block.CHUNK)
-    assert _kernels_fading.aug_block_dims(1, 1) == (1, 1)
-    assert _kernels_fading.aug_block_dims(B - 5, 7) == (B - 5, 7)
+    B = _compiled_fading.AUG_BLOCK
+    assert _compiled_fading.aug_block_dims(1000, 100) == (B, _compiled_block.CHUNK)
+    assert _compiled_fading.aug_block_dims(1, 1) == (1, 1)
+    assert _compiled_fading.aug_block_dims(B - 5, 7) == (B - 5, 7)
     assert B < 69 < 2 * B < 140

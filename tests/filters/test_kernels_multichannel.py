@@ -15,7 +15,7 @@ from tobitkf.filters.kalman import kalman_filter
 from tobitkf.filters.tobit import tobit_kalman_filter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels_block  # noqa: E402
+from tobitkf.filters import _compiled_block  # noqa: E402
 
 FIELDS = ("mean", "cov", "pred_mean", "pred_cov")
 
@@ -120,9 +120,9 @@ def test_tkf_n16_outputs_across_chunks_and_blocks_equal_numpy():
     cens = censorings(8)["two_sided"]
     y = records(sys_, cens, runs=50, steps=150, seed=6)
     assert (
-        16 * 16 >= _kernels_block.FLUSH_BY_STEP > 16
-        and y.shape[1] > 2 * _kernels_block.CHUNK
-        and y.shape[0] > _kernels_block.runs_per_block(16)
+        16 * 16 >= _compiled_block.FLUSH_BY_STEP > 16
+        and y.shape[1] > 2 * _compiled_block.CHUNK
+        and y.shape[0] > _compiled_block.runs_per_block(16)
     )
     assert_results_equal(
         tobit_kalman_filter(sys_, cens, y, backend="numba"), tobit_kalman_filter(sys_, cens, y, backend="numpy")
@@ -141,7 +141,7 @@ def test_tkf_blocked_products_across_blocks_equal_numpy(n, m, cu):
 
     sys_ = random_system(n, m, seed=7)
     cens = censorings(m)["one_sided"]
-    y = records(sys_, cens, runs=_kernels_block.runs_per_block(n) + 18, steps=70, seed=8)
+    y = records(sys_, cens, runs=_compiled_block.runs_per_block(n) + 18, steps=70, seed=8)
     a = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numba")
     b = tobit_kalman_filter(sys_, cens, y, covariance_update=cu, backend="numpy")
     assert_results_equal(a, b)
@@ -194,10 +194,10 @@ def _run_both(Ree, Rxe, ok, e, xp):
     n, m, nb = Rxe.shape
     K1, x1, K2, x2 = (np.empty((n, m, nb)), np.empty((n, nb)), np.empty((n, m, nb)), np.empty((n, nb)))
     per_run = (np.empty((m, m)), np.empty((m, n)), np.empty((n, m)), np.empty(m, dtype=bool), np.empty((n, m)))
-    _kernels_block._gain(Rxe, Ree.copy(), ok, K1, e, xp, x1, nb, *per_run, np.empty(m))
+    _compiled_block._gain(Rxe, Ree.copy(), ok, K1, e, xp, x1, nb, *per_run, np.empty(m))
     before = Ree.copy()
     scratch = (np.empty((m, m, nb)), np.empty((m, n, nb)), np.empty((m, nb)), np.empty(nb, dtype=bool))
-    _kernels_block._gain_block(Rxe, Ree, ok, K2, e, xp, x2, nb, *scratch, *per_run, np.empty(m))
+    _compiled_block._gain_block(Rxe, Ree, ok, K2, e, xp, x2, nb, *scratch, *per_run, np.empty(m))
     np.testing.assert_array_equal(Ree, before)  # R_ee left as it was
     return K1, x1, K2, x2
 

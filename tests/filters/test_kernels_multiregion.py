@@ -17,7 +17,7 @@ from tobitkf.filters import kalman as kalman_module
 from ._compare import assert_results_equal, assert_same
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels  # noqa: E402
+from tobitkf.filters import _compiled_tobit  # noqa: E402
 
 SIGMA = 0.05  # measurement noise of every sensor (Miller §6.6 Examples 1 and 3; docs/sources MB-36)
 
@@ -58,8 +58,8 @@ def record(sys_, cens, runs, steps, seed, with_input):
 class _Trap:
     """Stands in for the kernels module: any kernel the dispatcher reaches raises, naming it."""
 
-    NOISE_CODES = _kernels.NOISE_CODES
-    GL_X, GL_W = _kernels.GL_X, _kernels.GL_W
+    NOISE_CODES = _compiled_tobit.NOISE_CODES
+    GL_X, GL_W = _compiled_tobit.GL_X, _compiled_tobit.GL_W
 
     def __getattr__(self, name):
         raise AssertionError(f"kernel {name} used")

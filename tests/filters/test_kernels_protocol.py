@@ -24,7 +24,7 @@ from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.protocol_model import FAILURE_TERMS
 
 pytest.importorskip("numba")
-from tobitkf.filters import _kernels_block, _kernels_protocol  # noqa: E402
+from tobitkf.filters import _compiled_block, _compiled_protocol  # noqa: E402
 
 from ._compare import assert_same
 
@@ -187,7 +187,7 @@ def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
     (a full block of 64 and a partial one), more than two chunks of steps, continued from a state at k0 = 5."""
 
     sys_, ch = oscillator(), channel()
-    T = 2 * _kernels_block.CHUNK + 7
+    T = 2 * _compiled_block.CHUNK + 7
     y = data(sys_, ch, (69,), T + 5)
     fast = ProtocolTobitKalmanFilter(sys_, ch, backend="numba")
     ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy")
@@ -233,7 +233,7 @@ def test_one_compiled_specialization_for_every_call():
     est.filter(y, state=r.final)
     st = est.step(est.step(est.init(), y[0, 0], uncensored=g[0, 0]), y[0, 1])  # the online step's call too
     est.step(est.init((4,)), y[:, 0])
-    assert st.k == 2 and len(_kernels_protocol.protocol_kernel.signatures) == 1
+    assert st.k == 2 and len(_compiled_protocol.protocol_kernel.signatures) == 1
 
 
 def test_divergence_reruns_on_numpy():
@@ -259,7 +259,7 @@ def _raise(*args):
 def test_auto_uses_the_kernel_when_covered(monkeypatch):
     sys_, ch = oscillator(), channel()
     y = data(sys_, ch, (2,), 5)
-    monkeypatch.setattr(_kernels_protocol, "protocol_kernel", _raise)
+    monkeypatch.setattr(_compiled_protocol, "protocol_kernel", _raise)
     with pytest.raises(AssertionError, match="protocol kernel used"):
         ProtocolTobitKalmanFilter(sys_, ch).filter(y)
     with pytest.raises(AssertionError, match="protocol kernel used"):
@@ -297,7 +297,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
         ValidationError, match=f"numba kernel of the protocol Tobit Kalman filter does not cover {match}"
     ):
         ProtocolTobitKalmanFilter(sys_, ch, backend="numba", **opts).filter(y, **call)
-    monkeypatch.setattr(_kernels_protocol, "protocol_kernel", _raise)
+    monkeypatch.setattr(_compiled_protocol, "protocol_kernel", _raise)
     auto = ProtocolTobitKalmanFilter(sys_, ch, **opts).filter(y, **call)
     # not the protocol kernel (it raises) but the compiled shared step around the numpy moments: to rounding
     assert_results_equal(auto, ref, 1e-12)

@@ -26,7 +26,7 @@ Observers (``observer=``), each an estimator driven through its public online AP
 ==============  ===============================================================================
 
 Two implementations of the loop (``backend=``): the numpy loop below, the reference, which drives the
-observer through its online API step by step, and a compiled loop (:mod:`tobitkf.control._kernels_closed`,
+observer through its online API step by step, and a compiled loop (:mod:`tobitkf.control._compiled_closed`,
 the default when numba imports) that runs plant, sensor, observer and control law of a block of runs per
 step in one kernel, built from the TKF kernel's predict and update blocks; the two agree to rounding
 (tested to 1e-12 in ``tests/control/test_closed_loop_compiled.py``) and see the same random draws.
@@ -187,7 +187,7 @@ def simulate_closed_loop(
         across designs, or one run of a batch re-run alone).
     backend : {"auto", "numpy", "numba"}, default "auto"
         The time loop: ``"numpy"`` the loop below, driving the observer through its online API (the
-        reference); ``"numba"`` the compiled loop of :mod:`tobitkf.control._kernels_closed` (plant, observer
+        reference); ``"numba"`` the compiled loop of :mod:`tobitkf.control._compiled_closed` (plant, observer
         and control law per step, batched over runs; the same noises, equal to the numpy loop to rounding,
         tested to 1e-12), which covers every observer, with a diagonal R for ``"kf"``; ``"auto"`` the
         compiled loop when numba imports and the case is covered, else numpy.
@@ -401,11 +401,11 @@ def _result(out: dict[str, np.ndarray]) -> ClosedLoopResult:
 
 
 def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma, noise_term, bound, shift, side):
-    """The loop of :func:`simulate_closed_loop` by :func:`tobitkf.control._kernels_closed.closed_loop_kernel`
+    """The loop of :func:`simulate_closed_loop` by :func:`tobitkf.control._compiled_closed.closed_loop_kernel`
     (same noises, same observer matrices, read from the observer's public attributes); fills ``x`` (N, T+1, n)
     from its row 0 and returns the other outputs by the numpy loop's names."""
-    from ..filters._kernels import GL_W, GL_X, NOISE_CODES
-    from . import _kernels_closed as kc
+    from ..filters._compiled_tobit import GL_W, GL_X, NOISE_CODES
+    from . import _compiled_closed as kc
 
     runs, steps, n = w.shape
     m, p = plant.m, Nbar.shape[0]

@@ -34,10 +34,10 @@ BACKENDS = ("auto", "numpy", "numba")
 @lru_cache(maxsize=1)
 def _load() -> ModuleType | None:
     try:
-        from . import _kernels
+        from . import _compiled_tobit
     except ImportError:
         return None
-    return _kernels
+    return _compiled_tobit
 
 
 def numba_available() -> bool:
@@ -46,7 +46,7 @@ def numba_available() -> bool:
 
 
 def kernels() -> ModuleType:
-    """The :mod:`tobitkf.filters._kernels` module (imports numba)."""
+    """The :mod:`tobitkf.filters._compiled_tobit` module (imports numba)."""
     mod = _load()
     if mod is None:
         raise ImportError("backend='numba' needs the numba package (pip install numba); use backend='auto' or 'numpy'")

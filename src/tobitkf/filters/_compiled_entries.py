@@ -67,7 +67,7 @@ def tobit_loop(
 ):
     """:func:`~tobitkf.filters._compiled_loop.compiled_loop` for the Tobit Kalman filter: ``H`` (1, m, n) the rows
     C, ``sigma`` (1, m) the noise standard deviations, ``lo``/``hi`` (TL, m) the limits, ``noise_code`` of
-    :data:`~tobitkf.filters._kernels.NOISE_CODES`; the other arguments as there."""
+    :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; the other arguments as there."""
     N, _, m = y.shape
     n = A.shape[0]
     zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop

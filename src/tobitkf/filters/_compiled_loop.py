@@ -2,9 +2,9 @@ r"""The one compiled time loop of the Gaussian-update families: the Kalman filte
 noise term, both covariance forms, the multi-region TKF as stacked channels) and every assumed-density family.
 
 :func:`compiled_loop` is written once: the runs in blocks (runs on the last axis, vectorised), per step the predict
-(:func:`~tobitkf.filters._kernels_block._predict`, or the block shift of an augmented state,
-:func:`~tobitkf.filters._kernels_fading.shift_predict_block`), the input term :math:`B^uu_k`, the family's
-update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._kernels_block`),
+(:func:`~tobitkf.filters._compiled_block._predict`, or the block shift of an augmented state,
+:func:`~tobitkf.filters._compiled_fading.shift_predict_block`), the input term :math:`B^uu_k`, the family's
+update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._compiled_block`),
 carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). The update is chosen by a code,
 one branch per block and step:
 
@@ -12,7 +12,7 @@ one branch per block and step:
   does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
   covariance and the gains are computed once and the means of every run with those gains;
 * :data:`TOBIT`: the Tobit update of all channels at the prior,
-  :func:`~tobitkf.filters._kernels.tobit_update_block` (Miller (3.37)–(3.41));
+  :func:`~tobitkf.filters._compiled_tobit.tobit_update_block` (Miller (3.37)–(3.41));
 * an assumed-density family (:data:`~tobitkf.filters._compiled_moments.FAMILIES`): channel by channel, a
   rank-one change along :math:`\bar Ph^T` (:mod:`tobitkf.filters._compiled_moments`),
 
@@ -52,20 +52,7 @@ import numpy as np
 from numba import njit
 
 from ._backend import system_gap, use_kernel
-from ._compiled_moments import (
-    CENSORED,
-    FAMILIES,
-    INTERIOR,
-    LOWER,
-    MISSING,
-    PROTOCOL,
-    SATURATION,
-    UPPER,
-    classify,
-    family_block,
-)
-from ._kernels import GL_W, GL_X, tobit_update_block
-from ._kernels_block import (
+from ._compiled_block import (
     _block_dims,
     _cov_update,
     _flush,
@@ -81,7 +68,20 @@ from ._kernels_block import (
     _update_scratch,
     runs_per_block,
 )
-from ._kernels_fading import shift_predict_block
+from ._compiled_fading import shift_predict_block
+from ._compiled_moments import (
+    CENSORED,
+    FAMILIES,
+    INTERIOR,
+    LOWER,
+    MISSING,
+    PROTOCOL,
+    SATURATION,
+    UPPER,
+    classify,
+    family_block,
+)
+from ._compiled_tobit import GL_W, GL_X, tobit_update_block
 from ._outputs import _empty, kernel_result, output_arrays, state_specs
 from ._readings import classify_readings
 from .core import FilterState
@@ -337,7 +337,7 @@ def compiled_loop(
     indexed by ``min(t, len - 1)``, the run axis of ``A``, ``Qd``, ``r``, ``lo``, ``hi`` by the run (0 when
     its length is 1: shared; a transition or noise per run is taken lane by lane, :func:`_predict_runs`, for a
     state without the block shift). ``J`` the mixture components, ``npass`` 1 or 2 (assumed-density: the readings
-    inside their limits first); ``noise_code`` the TKF's :data:`~tobitkf.filters._kernels.NOISE_CODES`,
+    inside their limits first); ``noise_code`` the TKF's :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`,
     ``joseph`` the Joseph form (KF, TKF); ``bu`` (N, T, n) / ``du`` (N, T, m) the input terms (T axis 0:
     none); ``x0`` (N, n_x), ``P0`` (N or 1, n_x, n_x). Outputs (T axis 0: not written): ``means``,
     ``pmeans`` (N, T, n), ``covs`` (N, T, n, n) or (N, T, n, 1) (the variances), ``pcovs`` (N, T, n, n),

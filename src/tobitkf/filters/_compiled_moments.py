@@ -39,9 +39,9 @@ in its ``compiled_moments`` attribute (a key of :data:`FAMILIES`) and giving the
 
 The event "the latent reading lies in [ea, eb]" (:func:`interval_event`: beyond a limit on one side, or
 between two finite bounds) is the piece a quantized sensor's interval update reuses. Every statistic comes
-from :mod:`tobitkf.filters._kernels_censored`, the one compiled implementation of the censored-normal
-statistics (:func:`~tobitkf.filters._kernels_censored.beyond` for one finite bound,
-:func:`~tobitkf.filters._kernels_censored.censored_stats` for a window, quadrature for narrow ones);
+from :mod:`tobitkf.filters._compiled_censored`, the one compiled implementation of the censored-normal
+statistics (:func:`~tobitkf.filters._compiled_censored.beyond` for one finite bound,
+:func:`~tobitkf.filters._compiled_censored.censored_stats` for a window, quadrature for narrow ones);
 log-probabilities stay finite 40σ (and more) into the tails: :math:`\log Q(a) = -a^2/2 - \log\sqrt{2\pi}
 - \log\lambda(a)` beyond the centre.
 :mod:`tobitkf.censored` remains the high-precision reference (tested against it).
@@ -54,7 +54,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels_censored import beyond, censored_stats
+from ._compiled_censored import beyond, censored_stats
 
 __all__ = [
     "CENSORED",
@@ -118,7 +118,7 @@ def _log_window(mu, sd, ea, eb):
 def interval_event(mu, sd, ea, eb, glx, glw, buf):
     r"""``(log_p, mean, var)`` of :math:`y^* \sim N(\mu, sd^2)` given :math:`ea \le y^* \le eb` (one side
     may be infinite): the log-probability of the event and the truncated moments. One finite bound: the
-    vectorised one-sided routes (:func:`beyond`); two: :func:`~tobitkf.filters._kernels_censored.censored_stats`
+    vectorised one-sided routes (:func:`beyond`); two: :func:`~tobitkf.filters._compiled_censored.censored_stats`
     (direct formulas, quadrature for a narrow window or one in a tail). The update of a quantized sensor
     (a reading at level l: the window [l - w/2, l + w/2)) and of a censored one (beyond its limit)."""
     if ea == -_INF:

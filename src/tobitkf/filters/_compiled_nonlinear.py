@@ -13,8 +13,8 @@ unchanged. Per step:
   covariance is singular);
 * the **update**, by a code: :data:`KALMAN` (:math:`K = P_{xy}(P_{yy} + R)^{-1}` over the channels with a
   reading, standard or Joseph), :data:`TOBIT` (the Tobit update at the predicted measurement, with the
-  censored-normal statistics of :func:`~tobitkf.filters._kernels.censored_stats` and the noise terms of
-  :data:`~tobitkf.filters._kernels.NOISE_CODES`), :data:`ADF` (channel by channel, iterated, the channel's
+  censored-normal statistics of :func:`~tobitkf.filters._compiled_tobit.censored_stats` and the noise terms of
+  :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`), :data:`ADF` (channel by channel, iterated, the channel's
   moments of the latent reading from :func:`~tobitkf.filters._compiled_moments.family_block`).
 
 The user's functions are arguments, so numba specialises the loop for each (f, h, F, H): compiled once per
@@ -33,7 +33,7 @@ from numba import njit, types
 from numba.extending import overload
 
 from ._compiled_moments import CENSORED, classify, family_block
-from ._kernels import GL_W, GL_X, censored_stats
+from ._compiled_tobit import GL_W, GL_X, censored_stats
 
 __all__ = ["KALMAN", "TOBIT", "ADF", "nonlinear_loop", "sigma_moments", "channel_gap", "compiled_run"]
 
@@ -474,7 +474,7 @@ def channel_arrays(est, k0: int, T: int):
     saying why the compiled loop does not cover it (the numpy path runs)."""
     from ..channels.censoring import Censoring
     from ._compiled_moments import FAMILIES, QUANTIZER
-    from ._kernels import NOISE_CODES
+    from ._compiled_tobit import NOISE_CODES
 
     m = est.m
     inf = np.full((1, m), np.inf)

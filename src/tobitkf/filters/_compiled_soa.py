@@ -12,7 +12,7 @@ step's loop is emitted on 8-lane ``zmm`` registers (157 ``vmulpd``, 118 ``vaddpd
 keeps for the remainder of a block.
 
 Layout: a block of :data:`SOA_BLOCK` runs, means ``x[i, b]`` (n, B), covariances ``P[i, j, b]`` (n, n, B)
-(symmetric, both triangles stored: the output staging of :mod:`tobitkf.filters._kernels_block` reads them),
+(symmetric, both triangles stored: the output staging of :mod:`tobitkf.filters._compiled_block` reads them),
 readings (N, T, m) as given. The step of run b, with one channel (m = 1), row :math:`c` (the measurement matrix),
 
 .. math::
@@ -23,13 +23,13 @@ readings (N, T, m) as given. The step of run b, with one channel (m = 1), row :m
   :math:`R_{xe} = h`;
 * Tobit Kalman filter (Miller (3.37)–(3.41), all statistics at the prior): the censored-normal statistics of
   :math:`\mu = c\bar x + Du_k` and :math:`\sigma` at the channel's one finite limit,
-  :math:`(\gamma, E(y), R_{uu})`, from :func:`~tobitkf.filters._kernels_censored._one_sided_at` (the
+  :math:`(\gamma, E(y), R_{uu})`, from :func:`~tobitkf.filters._compiled_censored._one_sided_at` (the
   branch-free routes written for vectorisation, imported: the same numbers as the compiled loop's statistics),
   :math:`e = y - E(y)`, :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`R_{xe} = \gamma h`;
 
 then :math:`K = R_{xe}/R_{ee}`, :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` (standard form) or the
 Joseph form :math:`P = M - (MH^T - KR)K^T`, :math:`M = \bar P - KR_{xe}^T`, :math:`H = \gamma c` (as
-:func:`~tobitkf.filters._kernels_block._cov_update`). A reading that is NaN, or an innovation variance not above
+:func:`~tobitkf.filters._compiled_block._cov_update`). A reading that is NaN, or an innovation variance not above
 the smallest normal number, leaves the run's prediction unchanged (the compiled loop's rule).
 
 Covered (:func:`soa_covers`): one channel, n from 1 to :data:`SOA_MAX_N`, the standard and Joseph forms; for the
@@ -48,8 +48,8 @@ import math
 import numpy as np
 from numba import literally, njit
 
-from ._kernels_block import _flush, _stage, _stage_shape, _store_last
-from ._kernels_censored import _one_sided_at
+from ._compiled_block import _flush, _stage, _stage_shape, _store_last
+from ._compiled_censored import _one_sided_at
 
 __all__ = [
     "SOA_BLOCK",
@@ -131,7 +131,7 @@ def soa_loop(
     ``y`` (N, T, 1) readings (NaN: missing); ``A``, ``Qd`` (n, n); ``C`` (1, n); ``rnoise`` the KF's noise
     variance R or the TKF's standard deviation σ; ``lo``, ``hi`` (TL, 1) the TKF's limits, row
     ``min(t, TL - 1)``, one of them finite; ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none);
-    ``noise_code`` of :data:`~tobitkf.filters._kernels.NOISE_CODES`; ``joseph`` the Joseph form; ``x0`` (N, n),
+    ``noise_code`` of :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; ``joseph`` the Joseph form; ``x0`` (N, n),
     ``P0`` (N or 1, n, n). Outputs as :func:`~tobitkf.filters._compiled_loop.compiled_loop` (T axis 0: not
     written): ``means``, ``pmeans`` (N, T, n), ``covs`` (N, T, n, n) or (N, T, n, 1), ``pcovs`` (N, T, n, n),
     ``pu``, ``ey`` (N, T, 1) (the TKF's P(uncensored) and E(y)), ``x_last`` (N, n), ``P_last`` (N, n, n).

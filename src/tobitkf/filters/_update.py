@@ -221,7 +221,7 @@ def time_update(
 
     ``form`` is the covariance form (``"standard"``/``"joseph"`` propagate P, ``"square_root"`` S
     and P = S S^T). A fixed covariance (``tr.P_fixed``) is returned as is. ``compiled=True`` runs the
-    compiled form (:func:`tobitkf.filters._kernels_core.time_update_runs`, equal to rounding) when numba
+    compiled form (:func:`tobitkf.filters._compiled_step.time_update_runs`, equal to rounding) when numba
     imports and the case is covered (standard or Joseph form, one covariance per run), else this numpy code.
     """
     shared = np.ndim(tr.A) == 2 and np.ndim(tr.Qd) == 2  # the compiled step: one transition for all runs
@@ -256,7 +256,7 @@ def time_update(
 
 
 def _core_compiled_module():
-    """The compiled shared step (:mod:`tobitkf.filters._kernels_core`), or None when the filters' kernels
+    """The compiled shared step (:mod:`tobitkf.filters._compiled_step`), or None when the filters' kernels
     cannot be compiled (:func:`tobitkf.filters._backend.numba_available`)."""
     return _load_core() if _backend.numba_available() else None
 
@@ -264,10 +264,10 @@ def _core_compiled_module():
 @lru_cache(maxsize=1)
 def _load_core():
     try:
-        from . import _kernels_core
+        from . import _compiled_step
     except ImportError:
         return None
-    return _kernels_core
+    return _compiled_step
 
 
 def _compiled_covers(x: np.ndarray, P: np.ndarray | None, form: str) -> bool:
@@ -592,7 +592,7 @@ def measurement_update(
     mp : MeasurementPrediction
     form : {"standard", "joseph", "square_root"}
     compiled : bool, default False
-        Run the compiled form (:func:`tobitkf.filters._kernels_core.measurement_update_runs`, equal to
+        Run the compiled form (:func:`tobitkf.filters._compiled_step.measurement_update_runs`, equal to
         rounding) when numba imports and the case is covered (the standard or Joseph form, one covariance
         per run, no fixed gain), else this numpy code.
 

@@ -250,7 +250,7 @@ def channel_update(
 def _compiled_moments(family, par, y, has, mu, cPc, r):
     """``(alpha, beta, log_likelihood)`` of the compiled block ``family`` for the readings ``y`` (N,)."""
     from ._compiled_moments import INTERIOR, MISSING, family_array
-    from ._kernels import GL_W, GL_X
+    from ._compiled_tobit import GL_W, GL_X
 
     inf = np.full(y.shape, np.inf)
     cls = np.where(has, INTERIOR, MISSING).astype(np.int8)

@@ -195,7 +195,7 @@ def censored_channel_update(
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N,))
     if compiled:
         from ._compiled_moments import CENSORED, family_array
-        from ._kernels import GL_W, GL_X
+        from ._compiled_tobit import GL_W, GL_X
 
         cls = _classify(y, lo, hi) if cls is None else cls
         f = np.ascontiguousarray

@@ -440,7 +440,7 @@ class Estimator:
         return self._compiled_filter(y2, u2, state, want, batch)
 
     def _compiled_core(self) -> bool:
-        """Whether the shared predict and update run compiled (:mod:`tobitkf.filters._kernels_core`):
+        """Whether the shared predict and update run compiled (:mod:`tobitkf.filters._compiled_step`):
         numba imports and the estimator's ``backend`` (``"auto"`` for the families without the option) is not
         ``"numpy"``. Decided once per estimator."""
         cached = self.__dict__.get("_core_compiled")

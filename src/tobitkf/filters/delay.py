@@ -73,7 +73,7 @@ _REORG_DICTS = ("xf", "xsm", "xm", "xp", "eps")
 # (time τ in slot τ mod W), copied once per step: Ψ_i(τ) and K(a|τ)H (by offset τ-a = 0..d), P(τ|τ),
 # the smoother's P(τ-d+1|τ), P(τ-d|τ), P(τ|τ-1), P(τ-d|τ-1), Λ(τ), J(τ), Ā(τ), Σ(τ), Q_ε(τ); then the gains
 # of the last step, K(t|t), K(t-d+1|t-i+1) (i = 1..d-1) and K(t-d|t), which the means read. The numpy step
-# and the compiled step (:mod:`tobitkf.filters._kernels_delay`) read and write the same layout.
+# and the compiled step (:mod:`tobitkf.filters._compiled_delay`) read and write the same layout.
 _RING_FIELDS = ("psi", "kh", "pf", "psm", "pmeas", "pp", "pm", "lam", "abar", "sig", "j", "qe", "kf", "ks", "ke")
 
 
@@ -116,7 +116,7 @@ def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
 
 
 def _flat_layout(shapes: tuple[tuple[int, ...], ...]) -> tuple[int, tuple[tuple[int, int, tuple[int, ...]], ...]]:
-    """The size of the flat output of a whole-step kernel of :mod:`tobitkf.filters._kernels_delay` whose arrays
+    """The size of the flat output of a whole-step kernel of :mod:`tobitkf.filters._compiled_delay` whose arrays
     have ``shapes``, one after the other, then the trace of the step's covariance, and the ``(offset, size,
     shape)`` of each array (formed once per estimator and number of runs)."""
     out, o = [], 0
@@ -298,14 +298,14 @@ def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray]
 
 
 def _kernel_gap(system: DelayFadingSystem) -> str | None:
-    """What the compiled delay kernels (:mod:`tobitkf.filters._kernels_delay`) do not cover in ``system``."""
+    """What the compiled delay kernels (:mod:`tobitkf.filters._compiled_delay`) do not cover in ``system``."""
     if system.fading.varying or not system.q_constant:
         return "fading or multiplicative-noise laws that change with t"
     return None
 
 
 def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
-    """The constant arguments of :func:`tobitkf.filters._kernels_delay.delay_moments` after Λ (those of
+    """The constant arguments of :func:`tobitkf.filters._compiled_delay.delay_moments` after Λ (those of
     ``reorg_cov_step`` after ``d, W``): the model's matrices, Q_ζ (empty without multiplicative noise),
     γ̄, σ² and the decorrelation mode, for laws constant in t."""
     c = np.ascontiguousarray
@@ -316,7 +316,7 @@ def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
 
 
 def _packed_moment_args(system: DelayFadingSystem, mode: str, *ints: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_kernel_moment_args` packed for the whole-step kernels (``_kernels_delay._unpack_moments``): the
+    """:func:`_kernel_moment_args` packed for the whole-step kernels (``_compiled_delay._unpack_moments``): the
     matrices row-major then γ̄, σ² in one float array, and (n, m, p, h, optimal) followed by ``ints``."""
     args = list(_kernel_moment_args(system, mode))
     h = np.size(args[8])  # Q_ζ: one per multiplicative noise (none: no A_i either)

@@ -122,7 +122,7 @@ class AugmentedLMMSE(_DelayEstimator):
         covariance recursions for the older elements and keep the standard form).
     backend : {"auto", "numpy", "numba"}, default "auto"
         ``"auto"`` runs a step of one covariance shared by the runs (every step from the prior) as one compiled
-        call (:func:`tobitkf.filters._kernels_delay.aug_step`: the update, the decorrelated predict and
+        call (:func:`tobitkf.filters._compiled_delay.aug_step`: the update, the decorrelated predict and
         Λ_X(t+1)) when numba imports, the form is ``"standard"`` and the fading and multiplicative-noise laws
         do not change with t; else the shared update and predict run compiled around the numpy moments. Equal
         to the numpy path to rounding (tested to 1e-12). ``"numpy"`` the reference path; ``"numba"`` raises
@@ -159,7 +159,7 @@ class AugmentedLMMSE(_DelayEstimator):
             gap = f"covariance_update={covariance_update!r} (the whole-step kernel runs the standard form)"
         self._whole = None  # the compiled whole step and its constant arguments after (X, P, Λ_X, y)
         if use_kernel(backend, gap, "the augmented LMMSE's step"):
-            from ._kernels_delay import aug_step
+            from ._compiled_delay import aug_step
 
             AA, Ai, _, HH, GQG, GS_T = self._mats
             q = system.q_mult(0) if system.h else np.zeros(0)
@@ -217,7 +217,7 @@ class AugmentedLMMSE(_DelayEstimator):
         }
 
     def _whole_kernel(self, Xpr, Ppr, carry, y):
-        """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.aug_step`) from the prediction
+        """The compiled whole step (:func:`~tobitkf.filters._compiled_delay.aug_step`) from the prediction
         ``Xpr``, ``Ppr``: its flat output (the trace of P(t|t) last) and the layout of its arrays."""
         kern, consts = self._whole
         N, nx = Xpr.shape

@@ -73,7 +73,7 @@ class ChainLMMSE(_DelayEstimator):
         (default ``"optimal"``), as in :func:`chain_lmmse`.
     backend : {"auto", "numpy", "numba"}, default "auto"
         ``"auto"`` forms the moments of Λ(t-d) (R(t), J(t), Ā(t), Σ(t), Λ(t+1)) compiled
-        (:func:`tobitkf.filters._kernels_delay.delay_moments`, the reorganized LMMSE's code) and runs the
+        (:func:`tobitkf.filters._compiled_delay.delay_moments`, the reorganized LMMSE's code) and runs the
         shared update and predict compiled when numba imports and the fading and multiplicative-noise
         laws do not change with t (else the moments stay on numpy); equal to the numpy path to rounding
         (tested to 1e-12). ``"numpy"`` the reference path; ``"numba"`` raises
@@ -95,9 +95,9 @@ class ChainLMMSE(_DelayEstimator):
         self.backend = backend
         self._GS = system.GS
         self._moments = None  # the compiled moments of Λ(t-d) and their constant arguments
-        self._whole = None  # the compiled plain step (:func:`~tobitkf.filters._kernels_delay.chain_step`)
+        self._whole = None  # the compiled plain step (:func:`~tobitkf.filters._compiled_delay.chain_step`)
         if use_kernel(backend, _kernel_gap(system), "the chain LMMSE's moments"):
-            from ._kernels_delay import chain_step, delay_moments
+            from ._compiled_delay import chain_step, delay_moments
 
             self._moments = (delay_moments, _kernel_moment_args(system, decorrelation))
             self._whole = (chain_step, _packed_moment_args(system, decorrelation, system.d))
@@ -211,7 +211,7 @@ class ChainLMMSE(_DelayEstimator):
         return x_new, P_new, None, new, xp, Pp, extras
 
     def _plain_kernel(self, t, x, P, carry, y):
-        """The compiled plain step (:func:`~tobitkf.filters._kernels_delay.chain_step`) at t >= 1: its flat output
+        """The compiled plain step (:func:`~tobitkf.filters._compiled_delay.chain_step`) at t >= 1: its flat output
         (the trace of the new window's covariance last) and the layout of its arrays."""
         kern, args = self._whole
         N, nw = x.shape
@@ -246,7 +246,7 @@ class ChainLMMSE(_DelayEstimator):
 
     def _plain_step(self, t, x, P, carry, y):
         """:meth:`_step_arrays` at t >= 1 without lags, horizons or a fixed point, as one compiled call
-        (:func:`~tobitkf.filters._kernels_delay.chain_step`; the same carry and extras, equal to rounding)."""
+        (:func:`~tobitkf.filters._compiled_delay.chain_step`; the same carry and extras, equal to rounding)."""
         buf, lay = self._plain_kernel(t, x, P, carry, y)
         x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, lay)
         new = self._plain_carry(t, carry, xn, Pn, lam_next)

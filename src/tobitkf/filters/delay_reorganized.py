@@ -121,9 +121,9 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         )
 
     def _compiled_cov_step(self):
-        """The compiled covariance step (:func:`~tobitkf.filters._kernels_delay.reorg_cov_step`) and its
+        """The compiled covariance step (:func:`~tobitkf.filters._compiled_delay.reorg_cov_step`) and its
         constant arguments after ``(ring, t)``, for many runs (their means on numpy)."""
-        from ._kernels_delay import reorg_cov_step
+        from ._compiled_delay import reorg_cov_step
 
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
@@ -132,10 +132,10 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         return reorg_cov_step, args + tuple(e in self.errata for e in ("E5", "E6", "E7"))
 
     def _compiled_step(self):
-        """The compiled whole step (:func:`~tobitkf.filters._kernels_delay.reorg_step`: the covariance step
-        :func:`~tobitkf.filters._kernels_delay.reorg_cov_step` and the means) and its packed constants
+        """The compiled whole step (:func:`~tobitkf.filters._compiled_delay.reorg_step`: the covariance step
+        :func:`~tobitkf.filters._compiled_delay.reorg_cov_step` and the means) and its packed constants
         ``(cb, ib)`` (:func:`_packed_moment_args` with d, W, the errata flags and the ring's offsets)."""
-        from ._kernels_delay import reorg_step
+        from ._compiled_delay import reorg_step
 
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
@@ -255,7 +255,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         return xf[t], R["pf"][st][None], None, c, xpred, R["pp"][st][None], extras
 
     def _whole_step(self, t, y, c, xf, xsm, xm, xp, eps, ring):
-        """:meth:`_step_arrays` at t >= warmup as one compiled call (:func:`~tobitkf.filters._kernels_delay.reorg_step`:
+        """:meth:`_step_arrays` at t >= warmup as one compiled call (:func:`~tobitkf.filters._compiled_delay.reorg_step`:
         the covariance step, the means and the ring's pruning) on the step's own copies of the carry."""
         xpred = xp[t]
         buf, lay = self._whole_kernel(t, y, xf, xsm, xp, eps, ring)
@@ -389,7 +389,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     def _cov_step(self, t, R):
         """The data-independent part of a reorganized step t >= warmup on the ring (numpy reference of
-        :func:`tobitkf.filters._kernels_delay.reorg_cov_step`): (a)–(f) of :func:`reorganized_lmmse`
+        :func:`tobitkf.filters._compiled_delay.reorg_cov_step`): (a)–(f) of :func:`reorganized_lmmse`
         without the means, and Λ(t+1) (LD-E2); the gains the means read go to the ring's ``kf``, ``ks``,
         ``ke``."""
         sys_ = self.system

@@ -410,7 +410,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``filter`` through the compiled kernel of :mod:`tobitkf.filters._kernels_fading` or the numpy
+        ``filter`` through the compiled kernel of :mod:`tobitkf.filters._compiled_fading` or the numpy
         reference path; see :func:`fading_tobit_kalman_filter`.
 
     Raises
@@ -660,7 +660,7 @@ def fading_tobit_kalman_filter(
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``"numba"`` runs the compiled loop of :mod:`tobitkf.filters._kernels_fading` (equal to the
+        ``"numba"`` runs the compiled loop of :mod:`tobitkf.filters._compiled_fading` (equal to the
         numpy path to rounding; it covers a time-invariant system without input,
         ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, the Joseph and standard
         forms, ``keep_augmented=False``) and raises for another case; ``"auto"`` uses it when numba is
@@ -765,7 +765,7 @@ def fading_estimators(
 
 
 def _fading_kernel_gap(est: FadingTobitKalmanFilter, u) -> str | None:
-    """Why :func:`tobitkf.filters._kernels_fading.fading_tkf_kernel` cannot run ``est`` on input ``u``
+    """Why :func:`tobitkf.filters._compiled_fading.fading_tkf_kernel` cannot run ``est`` on input ``u``
     (None when it can); ``keep_augmented`` is checked by the caller."""
     gap = check_square_root(est.backend, est.covariance_update, "the fading Tobit Kalman filter")
     gap = gap or system_gap(est.system, u)
@@ -792,16 +792,16 @@ def _fading_kernel_matrices(est: FadingTobitKalmanFilter) -> tuple[np.ndarray, .
 
 @lru_cache(maxsize=1)
 def _fading_kernels() -> ModuleType:
-    """The :mod:`tobitkf.filters._kernels_fading` module, imported once (an import statement in the step costs
+    """The :mod:`tobitkf.filters._compiled_fading` module, imported once (an import statement in the step costs
     ~0.3 µs a call even when the module is loaded)."""
-    from . import _kernels_fading
+    from . import _compiled_fading
 
-    return _kernels_fading
+    return _compiled_fading
 
 
 def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterState, keep_smoothed: bool):
     """One online step (y (N, m)) through the compiled loop with T = 1 and only the step's extras written, by its
-    entry of 14 arguments (:func:`~tobitkf.filters._kernels_fading.fading_tkf_step`): the matrices flattened into
+    entry of 14 arguments (:func:`~tobitkf.filters._compiled_fading.fading_tkf_step`): the matrices flattened into
     one array and the limits into another, once per estimator for constant limits; None when the covariance
     stopped being finite (the numpy step then reruns it and reports the divergence)."""
     N, m = y.shape

@@ -387,7 +387,7 @@ def kalman_filter(
         Override the system's prior (``(..., n)``, ``(..., n, n)``).
     backend : {"auto", "numpy", "numba"}, default "auto"
         Implementation of the time loop (same results to rounding, tested to 1e-12).
-        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
+        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._compiled_tobit`, which
         covers time-invariant A, B, C, Q, R without control input (missing samples,
         ``skip``, per-run priors and the standard and Joseph updates included, not the
         square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers

@@ -150,14 +150,14 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     P0_aug : array_like, optional
         :math:`M_0`.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``filter`` runs the compiled time loop (:mod:`tobitkf.filters._kernels_protocol`, equal to the numpy
+        ``filter`` runs the compiled time loop (:mod:`tobitkf.filters._compiled_protocol`, equal to the numpy
         path to rounding) where it covers the case (a time-invariant system, the standard or Joseph form,
         every failure term, ``keep_augmented=False``) and numba imports (``"auto"``), insists on it
         (``"numba"``), or runs the numpy reference path (``"numpy"``). The online ``step`` runs the same loop
         for one reading in those cases without an input, a lost reading or ``failure_term="lmmse_unconditional"``.
         Elsewhere (the other steps, the cases the loop does not cover) ``"auto"`` and ``"numba"`` run the
         shared predict and update compiled
-        (:mod:`tobitkf.filters._kernels_core`), the censored moments of (21)-(24) of a batch from the TKF
+        (:mod:`tobitkf.filters._compiled_step`), the censored moments of (21)-(24) of a batch from the TKF
         kernel's compiled statistics.
 
     Raises
@@ -489,7 +489,7 @@ _KERNEL_MODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_uncondi
 
 
 def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
-    """Why :func:`tobitkf.filters._kernels_protocol.protocol_kernel` cannot run ``est`` (None when it can);
+    """Why :func:`tobitkf.filters._compiled_protocol.protocol_kernel` cannot run ``est`` (None when it can);
     ``keep_augmented`` and the uncensored record are checked by the caller."""
     if est.covariance_update == "square_root":
         return "covariance_update='square_root'"
@@ -578,15 +578,15 @@ def _protocol_step_context(est: ProtocolTobitKalmanFilter) -> tuple:
     return ctx
 
 
-_KERNEL_MODULE: list[ModuleType] = []  # tobitkf.filters._kernels_protocol, imported (with numba) on first use
+_KERNEL_MODULE: list[ModuleType] = []  # tobitkf.filters._compiled_protocol, imported (with numba) on first use
 
 
 def _protocol_kernels() -> ModuleType:
-    """The module of the compiled loop, :mod:`tobitkf.filters._kernels_protocol` (imported once)."""
+    """The module of the compiled loop, :mod:`tobitkf.filters._compiled_protocol` (imported once)."""
     if not _KERNEL_MODULE:
-        from . import _kernels_protocol
+        from . import _compiled_protocol
 
-        _KERNEL_MODULE.append(_kernels_protocol)
+        _KERNEL_MODULE.append(_compiled_protocol)
     return _KERNEL_MODULE[0]
 
 

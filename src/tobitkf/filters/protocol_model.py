@@ -168,7 +168,7 @@ def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_
     """:func:`protocol_measurement` with the per-sensor constants ``sd`` = sqrt(r), ``H`` = lam_mean Cc and
     ``H0`` = H[None, :] given (the filter computes them once per sensor). ``compiled``: the censored moments of
     several runs from the compiled statistics of the TKF kernel
-    (:func:`tobitkf.filters._kernels.censored_moments_array`, equal to :func:`~tobitkf.censored.unchecked_moments`
+    (:func:`tobitkf.filters._compiled_tobit.censored_moments_array`, equal to :func:`~tobitkf.censored.unchecked_moments`
     to rounding) instead of the array code."""
     if xi_pred.shape[0] == 1 and failure_term != "lmmse_unconditional":
         one = _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term)

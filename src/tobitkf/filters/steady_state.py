@@ -165,7 +165,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         Right censoring (the source's §3.4) or left censoring (ours, not in the source; docs/sources MA-18).
     backend : {"auto", "numpy", "numba"}, default "auto"
         ``filter`` and ``filter_controlled`` through the compiled loop of
-        :mod:`tobitkf.filters._kernels_steady` (equal to the numpy path to rounding; it covers every
+        :mod:`tobitkf.filters._compiled_steady` (equal to the numpy path to rounding; it covers every
         case without a control input ``u``) or the numpy reference path. ``"numba"`` raises for a
         case the kernel does not cover; ``"auto"`` then runs numpy. ``step`` always runs numpy.
 
@@ -453,7 +453,7 @@ def tobit_kalman_filter_controlled(
 def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, want, batch, latent: bool):
     """The compiled mean loop from ``state``; the constant covariances and the outputs as the numpy path
     returns them (one covariance shared by N > 1 runs is a read-only broadcast view)."""
-    from . import _kernels_steady
+    from . import _compiled_steady
 
     N, T, m = y2.shape
     n = est.n
@@ -475,7 +475,7 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
         N, T, ("mean" in want, (n,)), ("pred_mean" in want, (n,)), (ext, (m,)), (ext, (m,))
     )
     x_last = np.empty((N, n))
-    finite = _kernels_steady.steady_tkf_kernel(
+    finite = _compiled_steady.steady_tkf_kernel(
         c64(y2, dtype=float),
         A,
         C,

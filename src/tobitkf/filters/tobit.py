@@ -585,7 +585,7 @@ def tobit_kalman_filter(
         Raise if a measurement lies outside its censoring limits.
     backend : {"auto", "numpy", "numba"}, default "auto"
         Implementation of the time loop (same results to rounding, tested to 1e-12).
-        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._kernels`, which
+        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._compiled_tobit`, which
         covers time-invariant A, B, C, Q, R, with or without control input through constant
         B^u and D (any limits, multi-region included, NaN samples and noise term; the standard
         and Joseph updates, not the square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;

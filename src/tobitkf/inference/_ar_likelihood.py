@@ -437,7 +437,7 @@ def _node_arrays(data: CensoredARData, beta, sigma2, phi, plan: GridPlan):
     z[start[pts]] = (data.y - mu)[pts]
     reg = np.flatnonzero(panels > 0)
     if reg.size and numba_available():
-        from . import _ar_kernels as K
+        from . import _compiled_ar as K
 
         K.fill_legendre(z, lw, start[reg], panels[reg], lo[reg], hi[reg], x, w)
     elif reg.size:
@@ -554,7 +554,7 @@ def _log_likelihood(data, beta, sigma2, phi, plan: GridPlan, backend: str = "aut
     """The forward recursion: the compiled kernel for p = 1, 2 (when numba imports), else numpy."""
     p = phi.size
     if backend != "numpy" and p in (1, 2) and numba_available():
-        from . import _ar_kernels as K
+        from . import _compiled_ar as K
 
         z, lw, start, count = _node_arrays(data, beta, sigma2, phi, plan)
         preds = ar_predictors(phi, sigma2)

@@ -9,7 +9,7 @@ Three kinds of model (what ``model`` is):
   any subset of ``A, C, Q, R, Bu, D, x0, P0`` (``P0="stationary"`` ties the prior to A and Q): by
   default direct quasi-Newton maximisation of the Kalman (no censoring) or assumed-density
   log-likelihood over the estimated entries (covariances through their log-Cholesky factors), each
-  evaluation a compiled pass of the filter's recursion (:mod:`tobitkf.inference._ss_kernels`);
+  evaluation a compiled pass of the filter's recursion (:mod:`tobitkf.inference._compiled_ss`);
   ``method="em"``: expectation-maximisation with the closed-form M-steps of the linear Gaussian model
   (Shumway & Stoffer 1982; Ghahramani & Hinton 1996), the E-step of the KF/RTS smoother (exact) or, for
   censored readings, of the assumed-density smoother of each reading's latent value. EM takes small

@@ -32,7 +32,7 @@ estimated matrices of a template (covariances through the log-Cholesky map, so t
 model), and the Kalman or assumed-density log-likelihood, maximised by BFGS with finite-difference
 gradients and the scale-free stopping rule of :func:`~tobitkf.inference._optimize.maximize`. For constant
 matrices with a diagonal R (or one channel) each evaluation is one compiled pass of the filter's recursion
-(:mod:`tobitkf.inference._ss_kernels`, equal to the filter's log-likelihood to rounding): about a
+(:mod:`tobitkf.inference._compiled_ss`, equal to the filter's log-likelihood to rounding): about a
 millisecond for 300 readings, so a fit of A, Q, R and a mean takes a fraction of a second where EM took
 tens of seconds. Other models run the filters themselves.
 
@@ -537,7 +537,7 @@ def _loglik(system: LinearSystem, y, u, censoring, censored) -> float:
 
 class _Likelihood:
     """The log-likelihood of the fit's record under a model: the compiled kernel
-    (:mod:`tobitkf.inference._ss_kernels`) for constant matrices with a diagonal R (or one channel), else
+    (:mod:`tobitkf.inference._compiled_ss`) for constant matrices with a diagonal R (or one channel), else
     :func:`_loglik` through the filters; the readings' classes (inside, censored at which limit) are
     worked out once. ``-inf`` for a matrix set that is not a valid model."""
 
@@ -575,14 +575,14 @@ class _Likelihood:
         R = np.asarray(M["R"], dtype=float)
         if not self.compiled or np.any(R - np.diag(np.diagonal(R))):
             return _loglik(system, self.y, self.u, self.censoring, self.censored)
-        from . import _ss_kernels
+        from . import _compiled_ss
 
         n, m, p = M["A"].shape[0], R.shape[0], self.u_k.shape[1]
         Bu = np.zeros((n, p)) if M.get("Bu") is None or p == 0 else M["Bu"]
         D = np.zeros((m, p)) if M.get("D") is None or p == 0 else M["D"]
         c = np.ascontiguousarray
         v = float(
-            _ss_kernels.log_likelihood(
+            _compiled_ss.log_likelihood(
                 c(M["A"], dtype=float),
                 c(_sym(M["Q"]), dtype=float),
                 c(M["C"], dtype=float),

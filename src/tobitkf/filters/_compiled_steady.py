@@ -20,12 +20,12 @@ Covered (the dispatcher in ``steady_state.py`` decides): no control input (the m
 time-invariant by construction), both sides, censored and latent readings. NaN readings are refused
 by the estimator before either path runs.
 
-Runs are taken in blocks of :func:`~tobitkf.filters._kernels_block.runs_per_block` runs, state (n, B), every inner loop
+Runs are taken in blocks of :func:`~tobitkf.filters._compiled_block.runs_per_block` runs, state (n, B), every inner loop
 over the block and branch-free (the side and ``latent`` tests are hoisted out of it), so the
 compiler vectorises across runs. Measured at n = 2, m = 1 without outputs: one run at a time
 (latency-bound) ~27 ns per run-step, blocks with the branches inside ~25 ns, this form ~8 ns.
-Outputs are staged for :data:`~tobitkf.filters._kernels_block.CHUNK` steps per block and written run by
-run with the TKF kernel's :func:`~tobitkf.filters._kernels_block._flush` (contiguous); an output of shape
+Outputs are staged for :data:`~tobitkf.filters._compiled_block.CHUNK` steps per block and written run by
+run with the TKF kernel's :func:`~tobitkf.filters._compiled_block._flush` (contiguous); an output of shape
 ``(N, 0, ...)`` is not requested: it gets no staging and is not written.
 """
 
@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels_block import _block_dims, _flush, _mean_scratch, _stage_shape, mean_predict, runs_per_block
+from ._compiled_block import _block_dims, _flush, _mean_scratch, _stage_shape, mean_predict, runs_per_block
 
 __all__ = ["steady_tkf_kernel"]
 

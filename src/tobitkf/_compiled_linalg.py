@@ -2,7 +2,7 @@ r"""Compiled (numba) dense linear algebra shared by the filters' kernels and the
 
 :func:`gauss_solve` is Gaussian elimination with partial pivoting (what LAPACK's gesv behind
 ``numpy.linalg.solve`` does), written once and called by the TKF's gain solve
-(:mod:`tobitkf.filters._kernels`) and by :func:`nees_terms` (:func:`tobitkf.metrics.nees_terms`).
+(:mod:`tobitkf.filters._compiled_tobit`) and by :func:`nees_terms` (:func:`tobitkf.metrics.nees_terms`).
 Compiled on first use and cached on disk; importing this module imports numba.
 """
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .._linalg_kernels import gauss_solve
+from .._compiled_linalg import gauss_solve
 
 __all__ = ["reorg_cov_step", "reorg_step", "delay_moments", "aug_step", "chain_step"]
 

@@ -16,13 +16,13 @@ bound keeps its last state, estimate and covariance; its input is recorded as 0)
 numpy loop's, drawn up front by the caller, so both paths see the same random numbers.
 
 The observer steps are the filters' compiled blocks, not copies: the predict
-:func:`~tobitkf.filters._kernels_block.predict_block` and the Tobit update
-:func:`~tobitkf.filters._kernels.tobit_update_block` of the TKF kernel, in its scratch
-(:func:`~tobitkf.filters._kernels_block.block_scratch`). The KF observer is that update with infinite limits
+:func:`~tobitkf.filters._compiled_block.predict_block` and the Tobit update
+:func:`~tobitkf.filters._compiled_tobit.tobit_update_block` of the TKF kernel, in its scratch
+(:func:`~tobitkf.filters._compiled_block.block_scratch`). The KF observer is that update with infinite limits
 (:math:`E(\mathbf p) = 1`, :math:`E(y) = C\bar x + Du`, noise :math:`\sigma_l^2 = R_{ll}`: the Kalman update,
 for a diagonal R); the steady-state observer is the fixed-gain update of (3.58),
 :math:`\hat x = \bar x + K_\infty(y - E[y])` with the constant :math:`\Psi_\infty`. Equal to the numpy loop
-to rounding (tested to 1e-12). Runs are processed in blocks of :func:`~tobitkf.filters._kernels_block.runs_per_block` runs
+to rounding (tested to 1e-12). Runs are processed in blocks of :func:`~tobitkf.filters._compiled_block.runs_per_block` runs
 (innermost loops over the runs of a block).
 """
 
@@ -33,8 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..filters._kernels import tobit_update_block
-from ..filters._kernels_block import (
+from ..filters._compiled_block import (
     CHUNK,
     block_scratch,
     flush_rows,
@@ -43,6 +42,7 @@ from ..filters._kernels_block import (
     stage_block,
     stage_shape,
 )
+from ..filters._compiled_tobit import tobit_update_block
 
 __all__ = ["OBSERVER_CODES", "closed_loop_kernel"]
 

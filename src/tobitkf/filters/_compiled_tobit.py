@@ -3,7 +3,7 @@ r"""The Tobit measurement update of a block of runs, compiled (numba).
 An *implementation* of the numpy reference path of :mod:`tobitkf.filters.tobit`, not a second algorithm: the
 Tobit update (Miller (2015) (3.20)–(3.22), (3.32), (3.37)–(3.41), (3.55)) with the channel masking of
 :func:`tobitkf.filters.core.gain_update`, on the censored-normal statistics of
-:mod:`tobitkf.filters._kernels_censored` (the one compiled implementation of :func:`tobitkf.censored_moments`;
+:mod:`tobitkf.filters._compiled_censored` (the one compiled implementation of :func:`tobitkf.censored_moments`;
 a channel with one finite limit shared by the runs of a block takes them for all runs at once). The time
 loop that runs it is the one compiled loop of the Gaussian-update families,
 :func:`tobitkf.filters._compiled_loop.compiled_loop`; the compiled closed loop of :mod:`tobitkf.control`
@@ -22,8 +22,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels_block import _cov_update, _gain, _gain_block, _innovation_moments
-from ._kernels_censored import GL_W, GL_X, censored_moments_array, censored_stats, noise_term, one_sided_block
+from ._compiled_block import _cov_update, _gain, _gain_block, _innovation_moments
+from ._compiled_censored import GL_W, GL_X, censored_moments_array, censored_stats, noise_term, one_sided_block
 
 __all__ = [
     "censored_stats",
@@ -85,7 +85,7 @@ def tobit_update_block(
     a channel left out), and in ``blk`` (from :func:`_update_scratch`) ``gam`` = :math:`E(\mathbf p)` and
     the noise term :math:`R_{uu}` among the rest. A channel whose limits the block shares (``lstep = 0``)
     with one side infinite gets its statistics for all runs at once from
-    :func:`~tobitkf.filters._kernels_censored.one_sided_block` (vectorised; 8 against 27 ns per run on the
+    :func:`~tobitkf.filters._compiled_censored.one_sided_block` (vectorised; 8 against 27 ns per run on the
     central route, 10 against 57 with tails, measured in isolation); any other from :func:`censored_stats`
     run by run. Inlined (numba
     ``inline="always"``): the caller's loop sees the statistics of :func:`censored_stats` inlined as before.
@@ -100,7 +100,7 @@ def tobit_update_block(
         lo_l, hi_l = lo[lrow, l], hi[lrow, l]
         if lstep == 0 and (lo_l == -_INF) != (hi_l == _INF):
             # one finite limit shared by the block (the common Tobit case): the statistics of all runs at
-            # once, vectorised (_kernels_censored.one_sided_block); the means C xbar + D u staged in e[l]
+            # once, vectorised (_compiled_censored.one_sided_block); the means C xbar + D u staged in e[l]
             el = e[l]
             for b in range(nb):
                 s = 0.0

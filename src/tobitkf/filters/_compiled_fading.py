@@ -13,11 +13,11 @@ variance (12) or, with ``exact_tobit_variance``, the censored variance, and the 
 Joseph or the standard form, both in the rank-m arithmetic of the shared numpy update.
 
 Everything that is not specific to the fading model is shared with the TKF kernel of
-:mod:`tobitkf.filters._kernels`: the censored-normal statistics (continued-fraction tails,
-quadrature: :func:`~tobitkf.filters._kernels.censored_stats`; for a lower limit alone the vectorised
-statistics of a whole block, :func:`~tobitkf.filters._kernels_censored.lower_stats_block`), the block scratch, the moments of the
+:mod:`tobitkf.filters._compiled_tobit`: the censored-normal statistics (continued-fraction tails,
+quadrature: :func:`~tobitkf.filters._compiled_tobit.censored_stats`; for a lower limit alone the vectorised
+statistics of a whole block, :func:`~tobitkf.filters._compiled_censored.lower_stats_block`), the block scratch, the moments of the
 scaled update and the masked gain (missing or degenerate channels get a zero gain column): for m > 1
-the block solve :func:`~tobitkf.filters._kernels_block._gain_block` over all runs of a block at once, as in
+the block solve :func:`~tobitkf.filters._compiled_block._gain_block` over all runs of a block at once, as in
 the TKF kernel.
 
 Covered (the dispatcher in ``fading.py`` decides): time-invariant A, B, Q, C, R, no control input,
@@ -26,7 +26,7 @@ values, ``covariance_update`` ``"joseph"`` and ``"standard"``, any limits (const
 or two-sided), NaN readings, ``keep_smoothed`` either way, ``keep_augmented=False``. Everything
 else runs on numpy.
 
-Outputs are staged for :data:`~tobitkf.filters._kernels_block.CHUNK` steps per block of runs and written
+Outputs are staged for :data:`~tobitkf.filters._compiled_block.CHUNK` steps per block of runs and written
 run by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
 ``(N, 0, ...)`` is not requested: it gets no staging and is not written. The driver carves the
 requested arrays from one allocation (:func:`tobitkf.filters.kalman.output_arrays`: fewer first-touch page
@@ -38,8 +38,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels import _INF, GL_W, GL_X, censored_stats
-from ._kernels_block import (
+from ._compiled_block import (
     _block_dims,
     _cov_update,
     _flush,
@@ -54,7 +53,8 @@ from ._kernels_block import (
     _update_scratch,
     mean_predict,
 )
-from ._kernels_censored import lower_stats_block
+from ._compiled_censored import lower_stats_block
+from ._compiled_tobit import _INF, GL_W, GL_X, censored_stats
 
 __all__ = [
     "fading_tkf_kernel",
@@ -66,7 +66,7 @@ __all__ = [
 ]
 
 #: runs per block of the augmented-state loops (this one and the protocol loop), twice the large-n TKF's
-#: :data:`~tobitkf.filters._kernels_block.BLOCK`: a step of these loops is some 300 short loops over the runs of a block
+#: :data:`~tobitkf.filters._compiled_block.BLOCK`: a step of these loops is some 300 short loops over the runs of a block
 #: (n_xi = 6), whose fixed cost per loop 64 runs share better than 32. Measured (1000 runs x 100 steps, all
 #: outputs, thread CPU time, old/new processes alternated twice, load 4.5-5.8): fading default 164-167 -> 148-152,
 #: protocol "variance" 163 -> 152-157 ns per run-step; the staging of the fading loop's 33 numbers per run-step is
@@ -76,7 +76,7 @@ AUG_BLOCK = 64
 
 @njit(cache=True)
 def aug_block_dims(N, T):
-    """``(B, S)`` of the augmented-state loops: :func:`~tobitkf.filters._kernels_block._block_dims` with
+    """``(B, S)`` of the augmented-state loops: :func:`~tobitkf.filters._compiled_block._block_dims` with
     :data:`AUG_BLOCK` runs per block."""
     return _block_dims(N, T, 0, AUG_BLOCK)
 

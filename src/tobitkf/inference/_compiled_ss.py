@@ -6,7 +6,7 @@ An implementation of the package's assumed-density filter's log-likelihood
 ``order="uncensored_first"``, standard covariance form) for one record and constant matrices, not a
 second algorithm: the same predict, the same scalar update of each channel in the same order (the
 readings inside the limits of a step first, in channel order, then the censored ones), the same
-censored-normal statistics (:func:`tobitkf.filters._kernels_censored.beyond`, the filters' compiled
+censored-normal statistics (:func:`tobitkf.filters._compiled_censored.beyond`, the filters' compiled
 route), the same log-likelihood terms:
 
 .. math::
@@ -33,7 +33,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..filters._kernels_censored import beyond
+from ..filters._compiled_censored import beyond
 
 _LOG_2PI = math.log(2.0 * math.pi)
 _TINY = np.finfo(float).tiny

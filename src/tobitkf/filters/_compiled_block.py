@@ -2,8 +2,8 @@ r"""The block machinery every compiled loop shares: runs per block, the structur
 block linear algebra (predict, innovation moments, gain and covariance update, the small solves) and the
 output staging (stage a chunk of steps, flush it run by run into the ``(N, T, ...)`` outputs).
 
-Used by the Kalman and Tobit Kalman loops of :mod:`tobitkf.filters._kernels`, the shared core's
-loop (:mod:`tobitkf.filters._kernels_core`), the fading, protocol and steady-state kernels, the
+Used by the Kalman and Tobit Kalman loops of :mod:`tobitkf.filters._compiled_tobit`, the shared core's
+loop (:mod:`tobitkf.filters._compiled_step`), the fading, protocol and steady-state kernels, the
 compiled assumed-density loop (:mod:`tobitkf.filters._compiled_loop`) and the compiled closed loop of
 :mod:`tobitkf.control`. Compiled on first use and cached on disk (``cache=True``).
 """
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .._linalg_kernels import gauss_solve as _gauss_solve
+from .._compiled_linalg import gauss_solve as _gauss_solve
 
 __all__ = [
     "predict_block",
@@ -59,7 +59,7 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of the compi
 
 
 # --- the block scratch ---------------------------------------------------------------------
-# One allocator of the block scratch for every kernel (here, _kernels_fading, _kernels_steady),
+# One allocator of the block scratch for every kernel (here, _compiled_fading, _compiled_steady),
 # called once per kernel call (never per block or step) and inlined into the kernel at the numba
 # IR level, so that LLVM sees the arrays as fresh and unaliased. Not a workspace made by the
 # Python driver and passed in: measured on the TKF, views cut from one passed-in buffer cost more

@@ -8,9 +8,9 @@ second algorithm. Per step k, with the scheduled sensor :math:`h = \bar h_k`,
 .. math::
 
     \hat\xi^-_k, P^-_k &: \text{the block shift (17)–(18)}
-        \;(:func:`~tobitkf.filters._kernels_fading.shift_predict_block`) \\
+        \;(:func:`~tobitkf.filters._compiled_fading.shift_predict_block`) \\
     \lambda, \mathcal R(1-\varphi) &: \text{the censored statistics at } \zeta
-        \text{ (:func:`~tobitkf.filters._kernels_censored.lower_stats_block`, lower limit } \tau),
+        \text{ (:func:`~tobitkf.filters._compiled_censored.lower_stats_block`, lower limit } \tau),
         \text{ the latter floored at } 10^{-12}\mathcal R \\
     \hat y &= \zeta + \sqrt{\mathcal R}\lambda \;(21), \quad
     R_{ee} = \mathbf HP^-_k\mathbf H^T + F_k + \mathcal R(1-\varphi) \;(24) \\
@@ -19,7 +19,7 @@ second algorithm. Per step k, with the scheduled sensor :math:`h = \bar h_k`,
 
 and the standard form :math:`P = \mathrm{sym}(M)` or the Joseph form (App. D (44)) in the rank-one
 arithmetic of the shared numpy update, :math:`P = \mathrm{sym}(M - (M\mathbf H^T - KN)K^T)`
-(:func:`~tobitkf.filters._kernels_block._cov_update`). A reading that is censored
+(:func:`~tobitkf.filters._compiled_block._cov_update`). A reading that is censored
 (:math:`\gamma_k = 0`) or whose :math:`R_{ee}` is not above the smallest normal number leaves the
 prediction unchanged (K = 0), as the numpy path.
 
@@ -33,7 +33,7 @@ Covered (the dispatcher in ``protocol.py`` decides): time-invariant A, Q, C, R, 
 ``covariance_update`` ``"joseph"`` and ``"standard"``, a given or default :math:`\gamma_k`,
 ``keep_augmented=False``. Everything else runs on numpy.
 
-Outputs are staged for :data:`~tobitkf.filters._kernels_block.CHUNK` steps per block of runs and written run
+Outputs are staged for :data:`~tobitkf.filters._compiled_block.CHUNK` steps per block of runs and written run
 by run into the preallocated ``(N, T, ...)`` arrays (as in the TKF kernel); an array of shape
 ``(N, 0, ...)`` is not requested: it gets no staging and is not written. The driver carves the
 requested arrays from one allocation (:func:`tobitkf.filters.kalman.output_arrays`: fewer first-touch page
@@ -47,10 +47,10 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels import _INF, _TINY, censored_stats
-from ._kernels_block import _cov_update, _flush, _load, _mean_scratch, _stage_cov, _stage_shape, _store_last
-from ._kernels_censored import lower_stats_block
-from ._kernels_fading import aug_block_dims, shift_predict_block
+from ._compiled_block import _cov_update, _flush, _load, _mean_scratch, _stage_cov, _stage_shape, _store_last
+from ._compiled_censored import lower_stats_block
+from ._compiled_fading import aug_block_dims, shift_predict_block
+from ._compiled_tobit import _INF, _TINY, censored_stats
 
 __all__ = ["protocol_kernel", "N_EXTRAS", "EXTRA_NAMES"]
 

@@ -5,18 +5,18 @@ block-shift predict of an augmented state) and :func:`measurement_update_runs` i
 :func:`~tobitkf.filters.core.measurement_update` (standard and Joseph forms, diagonal or full noise
 term, per-run channel scale, the masking rule, a retained variance) for N runs with one covariance
 each. They are an *implementation* of those numpy functions, not a second algorithm, and are built
-from the blocks of the TKF kernel (:mod:`tobitkf.filters._kernels_block`): the innovation moments
-(:func:`~tobitkf.filters._kernels_block._innovation_moments`), the masked gain and mean update
+from the blocks of the TKF kernel (:mod:`tobitkf.filters._compiled_block`): the innovation moments
+(:func:`~tobitkf.filters._compiled_block._innovation_moments`), the masked gain and mean update
 (``_gain`` for one channel, the block solve ``_gain_block`` for several), the covariance update
 (``_cov_update``), and the fading kernel's block-shift predict
-(:func:`~tobitkf.filters._kernels_fading.shift_predict_block`, the augmentation of the fading and
+(:func:`~tobitkf.filters._compiled_fading.shift_predict_block`, the augmentation of the fading and
 protocol families; a pure-delay shift, ``source`` > 0, stays on numpy). Results agree with the numpy
 path to rounding (tested to 1e-12).
 
 Every Gaussian-update family whose online ``step`` (or Python time loop) runs the numpy step gets
 this path when numba imports and its ``backend`` is not ``"numpy"``: one call per predict and one
 per update instead of about forty small numpy operations, which is what one run of one reading
-costs on the numpy path. Runs are processed in blocks of :func:`~tobitkf.filters._kernels_block.runs_per_block` runs,
+costs on the numpy path. Runs are processed in blocks of :func:`~tobitkf.filters._compiled_block.runs_per_block` runs,
 copied into structure-of-arrays scratch from the kernels' shared allocators (runs on the last axis, as
 in the TKF kernel) and back.
 """
@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._kernels_block import (
+from ._compiled_block import (
     _cov_update,
     _gain,
     _gain_block,
@@ -37,7 +37,7 @@ from ._kernels_block import (
     _update_scratch,
     runs_per_block,
 )
-from ._kernels_fading import shift_predict_block
+from ._compiled_fading import shift_predict_block
 
 __all__ = ["time_update_runs", "measurement_update_runs"]
 
@@ -45,7 +45,7 @@ __all__ = ["time_update_runs", "measurement_update_runs"]
 @njit(cache=True, error_model="numpy")
 def time_update_runs(x, P, A, Qd, bvec, xp_out, Pp_out):
     r"""The predict of N runs by the fading kernel's block-shift predict
-    (:func:`~tobitkf.filters._kernels_fading.shift_predict_block`): ``x`` (N, n_x), ``P`` (N, n_x, n_x)
+    (:func:`~tobitkf.filters._compiled_fading.shift_predict_block`): ``x`` (N, n_x), ``P`` (N, n_x, n_x)
     exactly symmetric, ``A`` (n, n) acting on the top block (n = n_x: the plain predict
     :math:`\bar x = A\hat x`, :math:`\bar P = \mathrm{sym}(APA^T + Q_d)`), ``Qd`` (n, n), ``bvec`` (1 or N, n)
     the offset of the top block; writes ``xp_out`` (N, n_x), ``Pp_out`` (N, n_x, n_x)."""

@@ -375,7 +375,7 @@ def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
     ``ym`` (B,) the means :math:`\mu_b` of the latent reading, ``sd`` its standard deviation (> 0, shared),
     ``lim`` the finite limit: a lower limit, or an upper one when ``upper`` (the other side infinite).
     Writes :math:`\gamma_b = P(\text{uncensored})` into ``gam``, the censored mean :math:`E(y)` (Miller
-    (3.8)) into ``cmean`` and the noise term of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`:
+    (3.8)) into ``cmean`` and the noise term of ``noise_code`` (:data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`:
     0 the truncated variance, 1 the censored variance, 2 :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)`)
     into ``noise``; the numbers of :func:`censored_stats`.
     An upper limit is the lower limit :math:`-\ell` of :math:`-y`: the same statistics with the means'
@@ -392,7 +392,7 @@ def one_sided_block(ym, sd, lim, upper, nb, noise_code, gam, noise, cmean):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def noise_term(noise_code, mu, g, tmean, tvar, cvar):
-    r"""The TKF's noise term :math:`R_{uu}` of ``noise_code`` (:data:`~tobitkf.filters._kernels.NOISE_CODES`)
+    r"""The TKF's noise term :math:`R_{uu}` of ``noise_code`` (:data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`)
     from a channel's statistics: 0 the truncated variance, 1 the censored variance, 2
     :math:`\gamma(\mathrm{Var}_t + (E_t - \mu)^2)` (the mean :math:`\mu` of the latent reading)."""
     if noise_code == 0:
