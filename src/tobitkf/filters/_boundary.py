@@ -11,6 +11,7 @@ import numpy as np
 from .._linalg import psd_sqrt
 from .._validation import (
     ShapeError,
+    ValidationError,
     as_float_array,
     check_memory,
     check_option,
@@ -127,3 +128,23 @@ def process_roots(system):
         fixed = root(0)
         return lambda k: fixed
     return root
+
+
+def _noise_variances(R: np.ndarray, name: str, positive: str | None = None) -> np.ndarray:
+    """The diagonal of a measurement covariance ``R`` (m, m) the channels are updated from in sequence.
+
+    Raises ValidationError naming ``name`` for an off-diagonal entry (beyond 1e-12 of the largest) or a
+    negative variance; with ``positive`` (the filter's name, e.g. ``"the protocol filter"``) also for a zero one.
+    """
+    d = np.diagonal(R, axis1=-2, axis2=-1).copy()  # (m,), or (N or 1, m) with one R per run
+    off = R - d[..., :, None] * np.eye(R.shape[-1])
+    diagonal = np.abs(off).max(initial=0.0) <= 1e-12 * max(1.0, np.abs(R).max())
+    if positive is not None and (not diagonal or np.any(d <= 0)):
+        raise ValidationError(f"{name}: {positive} needs a diagonal R with positive sensor variances")
+    if not diagonal:
+        raise ValidationError(
+            f"{name}: the assumed-density filter processes the channels in sequence and needs a diagonal R"
+        )
+    if np.any(d < 0):
+        raise ValidationError(f"{name}: expected measurement variances >= 0, got {d}")
+    return d

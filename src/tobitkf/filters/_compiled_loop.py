@@ -52,6 +52,7 @@ import numpy as np
 from numba import njit
 
 from ._backend import system_gap, use_kernel
+from ._boundary import _noise_variances
 from ._compiled_block import (
     _block_dims,
     _cov_update,
@@ -632,8 +633,6 @@ def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, ste
     the channels, the readings inside their limits in the first, the others in the second. Covers time-varying
     and per-run systems (rows per step, noise variances per run and step) and limits given per run
     (``step_data`` ``lower``/``upper`` (N, T, m))."""
-    from .assumed_density import _noise_variances
-
     N, T, m = y2.shape
     sys_ = est.system
     if sys_.C.batch_shape and int(np.prod(sys_.C.batch_shape)) > 1:

@@ -63,6 +63,7 @@ from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, numba_available
+from ._boundary import _noise_variances
 from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, _as_indicator, censored_log_likelihood, censoring_sides
 from ._readings import classify_readings as _classify
 from ._times import at_times
@@ -363,26 +364,6 @@ def steered_limits(censoring: Censoring, state: FilterState, options: Mapping[st
     if not (lo < hi).all():
         raise ValidationError("lower/upper: expected lower < upper for every channel of this step")
     return {"lower": lo, "upper": hi}
-
-
-def _noise_variances(R: np.ndarray, name: str, positive: str | None = None) -> np.ndarray:
-    """The diagonal of a measurement covariance ``R`` (m, m) the channels are updated from in sequence.
-
-    Raises ValidationError naming ``name`` for an off-diagonal entry (beyond 1e-12 of the largest) or a
-    negative variance; with ``positive`` (the filter's name, e.g. ``"the protocol filter"``) also for a zero one.
-    """
-    d = np.diagonal(R, axis1=-2, axis2=-1).copy()  # (m,), or (N or 1, m) with one R per run
-    off = R - d[..., :, None] * np.eye(R.shape[-1])
-    diagonal = np.abs(off).max(initial=0.0) <= 1e-12 * max(1.0, np.abs(R).max())
-    if positive is not None and (not diagonal or np.any(d <= 0)):
-        raise ValidationError(f"{name}: {positive} needs a diagonal R with positive sensor variances")
-    if not diagonal:
-        raise ValidationError(
-            f"{name}: the assumed-density filter processes the channels in sequence and needs a diagonal R"
-        )
-    if np.any(d < 0):
-        raise ValidationError(f"{name}: expected measurement variances >= 0, got {d}")
-    return d
 
 
 class AssumedDensityFamily(GaussianFilter):

@@ -16,8 +16,8 @@ import numpy as np
 from .._linalg import symmetrize
 from .._validation import check_int
 from ..models.nonlinear import NonlinearSystem
+from ._boundary import _noise_variances
 from .adf_generic import _contract_channel, _ContractChecks
-from .assumed_density import _noise_variances
 from .core import (
     FilterResult,
     check_prior,
