@@ -106,6 +106,9 @@ def adf_log_likelihood(
 ) -> np.ndarray:
     r"""Assumed-density log-likelihood of censored readings (see the module docstring).
 
+    With a ``system`` of one model per run (``batch_ndim``), each run's likelihood is under its own
+    model: a batch of parameter vectors evaluated in one pass.
+
     Parameters
     ----------
     system : LinearSystem
@@ -122,9 +125,6 @@ def adf_log_likelihood(
         Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
     lower, upper : array_like broadcastable to (..., T, m), optional
         Limits of each run and step replacing the censoring's (e.g. each subject's limits in a panel).
-
-    With a ``system`` of one model per run (``batch_ndim``), each run's likelihood is under its own
-    model: a batch of parameter vectors evaluated in one pass.
 
     Returns
     -------
