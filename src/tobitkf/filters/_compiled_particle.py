@@ -316,6 +316,56 @@ def _classify(y, lo, hi):
     return _INTERIOR
 
 
+# --------------------------------------------------------------------------- passes over a run's particles
+
+
+@njit(cache=True, error_model="numpy")
+def _row_dot(V, c, out):
+    r"""``out[p] = sum_j V[j, p] c[j]`` (V: (n, Np)), summed in j's order as the per-particle loops did; the inner
+    loop runs over the particles (vectorised)."""
+    Np = V.shape[1]
+    for p in range(Np):
+        out[p] = 0.0
+    for j in range(V.shape[0]):
+        cj = c[j]
+        for p in range(Np):
+            out[p] += V[j, p] * cj
+
+
+# The three weighted sums over a run's particles may be reassociated (the only fast-math flag here): LLVM then
+# vectorises them with several accumulators, where a strict left-to-right sum is one chain of dependent adds
+# (a few cycles per particle each). The order of a sum of thousands of terms changes it at rounding level.
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
+def _sums(w):
+    r""":math:`(\sum_p w_p,\ \sum_p w_p^2)`."""
+    tot = 0.0
+    sw2 = 0.0
+    for p in range(w.shape[0]):
+        tot += w[p]
+        sw2 += w[p] * w[p]
+    return tot, sw2
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
+def _dev_sum(w, x, x0):
+    r""":math:`\sum_p w_p (x_p - x_0)`."""
+    s = 0.0
+    for p in range(w.shape[0]):
+        s += w[p] * (x[p] - x0)
+    return s
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc"})
+def _dev2_sum(w, x, x0, z, z0):
+    r""":math:`\sum_p w_p (x_p - x_0)(z_p - z_0)`."""
+    s = 0.0
+    for p in range(w.shape[0]):
+        s += w[p] * (x[p] - x0) * (z[p] - z0)
+    return s
+
+
 # --------------------------------------------------------------------------- a block of runs over T steps
 
 
@@ -373,17 +423,30 @@ def pf_block(
         srp[l] = math.sqrt(r[l])
         isp[l] = 1.0 / srp[l]
         lsp[l] = math.log(srp[l]) + _LOG_SQRT_2PI
-    mu = np.empty(n)
     e = np.empty(n)
     x0 = np.empty(n)
     d = np.empty(n)
     S1 = np.empty(n)
     S2 = np.empty((n, n))
-    R = np.empty((Np, m + n))  # one run-step's random numbers: uniforms of the censored readings, normals
-    Xn = np.empty((Np, n))  # one run's particles before resampling (the proposals are written in place)
-    work = np.empty(Np)  # the log part of the new weights, then the cumulative weights
+    # The particles of the block, one row per state component ((B, n, Np): a component of every particle of a
+    # run contiguous), and one run-step's scratch in the same layout: every pass below runs over the particles
+    # in its inner loop (LLVM vectorises the arithmetic ones); X is read in at the start and written back at
+    # the end.
+    Xs = np.empty((B, n, Np))
+    for b in range(B):
+        for p in range(Np):
+            for i in range(n):
+                Xs[b, i, p] = X[b, p, i]
+    MU = np.empty((n, Np))  # the proposals' means (optimal), the propagated particles (bootstrap)
+    T1 = np.empty(Np)  # a row of the noise term
+    U = np.empty((m, Np))  # one run-step's random numbers: the uniforms of the censored readings...
+    E = np.empty((n, Np))  # ...and the normals
+    Z = np.empty(Np)  # a channel's predicted reading, then its standardised limit, then the draw's offset
+    INC = np.empty(Np)  # the log part of the new weights (then with the old log weights: work)
+    work = np.empty(Np)  # the cumulative weights (resampling)
     F = np.empty(Np)  # the linear part (products of censored masses) of the new weights
     Wb = np.empty(Np)
+    Xn = np.empty((n, Np))  # one run's particles before resampling
     # lin[b]: the run's weights are held linear in lw[b] (normalised), else as logarithms (see the docstring)
     lin = np.empty(B, dtype=np.bool_)
     for b in range(B):
@@ -398,6 +461,7 @@ def pf_block(
                 lw[b, p] = math.exp(lw[b, p])
     for k in range(T):
         for b in range(B):
+            Xb = Xs[b]
             # the linear prediction of the weighted moments (core.predict), where it is recorded
             if want[3]:
                 for i in range(n):
@@ -419,10 +483,9 @@ def pf_block(
             for l in range(m):
                 cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
             lb = lin[b]
-            # the largest log part, tracked as the weights form (with linear weights: of the log parts alone),
-            # and whether any log part is not 0 (else the linear weights need no exp)
-            top = -_INF
-            nz = False
+            for p in range(Np):
+                INC[p] = 0.0
+                F[p] = 1.0
             if optimal:
                 # the Gaussian conditioning of _condition_in_sequence: the same for every particle of the run
                 for i in range(n):
@@ -458,91 +521,110 @@ def pf_block(
                 for p in range(Np):
                     for l in range(m):
                         if cls[l] == _LOWER or cls[l] == _UPPER:
-                            R[p, l] = rng.random()
+                            U[l, p] = rng.random()
                     for j in range(n):
-                        R[p, m + j] = rng.standard_normal()
-                for p in range(Np):
-                    for i in range(n):
-                        s = 0.0
-                        for j in range(n):
-                            s += X[b, p, j] * A[i, j]
-                        mu[i] = s
-                    inc = 0.0
-                    fac = 1.0
-                    for l in range(m):
-                        c = cls[l]
-                        if c == _MISSING:
-                            continue
-                        pred = 0.0
-                        for j in range(n):
-                            pred += mu[j] * C[l, j]
-                        sd = sr[l]
-                        if c == _INTERIOR:
-                            dv = y[b, k, l] - pred
-                            z = dv * isd[l]
-                            inc += -0.5 * z * z - lsd[l]
+                        E[j, p] = rng.standard_normal()
+                # the proposal's mean: A x, then conditioned on the channels in turn
+                for i in range(n):
+                    for p in range(Np):
+                        MU[i, p] = 0.0
+                    for j in range(n):
+                        aij = A[i, j]
+                        for p in range(Np):
+                            MU[i, p] += Xb[j, p] * aij
+                for l in range(m):
+                    c = cls[l]
+                    if c == _MISSING:
+                        continue
+                    _row_dot(MU, C[l], Z)
+                    sd = sr[l]
+                    isl = isd[l]
+                    if c == _INTERIOR:
+                        yl = y[b, k, l]
+                        ls = lsd[l]
+                        for p in range(Np):
+                            dv = yl - Z[p]
+                            zz = dv * isl
+                            INC[p] += -0.5 * zz * zz - ls
+                            Z[p] = dv
+                    else:
+                        if c == _LOWER:
+                            lo = LO[k, l]
+                            for p in range(Np):
+                                Z[p] = (lo - Z[p]) * isl
                         else:
-                            a = (LO[k, l] - pred) * isd[l] if c == _LOWER else (pred - HI[k, l]) * isd[l]
-                            far, lm, M, upper, z = _censored_core(a, R[p, l])
+                            hi = HI[k, l]
+                            for p in range(Np):
+                                Z[p] = (Z[p] - hi) * isl
+                        sgn = sd if c == _LOWER else -sd
+                        for p in range(Np):  # the tails: scalar calls
+                            far, lm, M, upper, z = _censored_core(Z[p], U[l, p])
                             if lb:
-                                fac, lm = _mass_factor(far, lm, M, upper, fac)
+                                F[p], lm = _mass_factor(far, lm, M, upper, F[p])
                             elif not far:
                                 lm = math.log1p(-M) if upper else math.log(M)
-                            inc += lm
-                            dv = z * sd if c == _LOWER else -z * sd
-                        for i in range(n):
-                            mu[i] += dv * g[l, i]
+                            INC[p] += lm
+                            Z[p] = z * sgn
                     for i in range(n):
-                        s = 0.0
-                        for j in range(n):
-                            s += R[p, m + j] * L[i, j]
-                        X[b, p, i] = mu[i] + s
-                    F[p] = fac
-                    w = inc if lb else inc + lw[b, p]
-                    work[p] = w
-                    nz = nz or inc != 0.0
-                    if w > top:
-                        top = w
+                        gi = g[l, i]
+                        for p in range(Np):
+                            MU[i, p] += Z[p] * gi
+                # the particles: the mean plus L times the normals
+                for i in range(n):
+                    _row_dot(E, L[i], T1)
+                    for p in range(Np):
+                        Xb[i, p] = MU[i, p] + T1[p]
             else:
                 for p in range(Np):
                     for j in range(n):
-                        R[p, m + j] = rng.standard_normal()
-                for p in range(Np):
-                    for i in range(n):
-                        s = 0.0
-                        t = 0.0
-                        for j in range(n):
-                            s += X[b, p, j] * A[i, j]
-                            t += R[p, m + j] * G[i, j]
-                        mu[i] = s + t
-                    for i in range(n):
-                        X[b, p, i] = mu[i]
-                    inc = 0.0
-                    fac = 1.0
-                    for l in range(m):
-                        c = cls[l]
-                        if c == _MISSING:
-                            continue
-                        mul = 0.0
-                        for j in range(n):
-                            mul += mu[j] * C[l, j]
-                        if c == _INTERIOR:
-                            z = (y[b, k, l] - mul) * isp[l]
-                            inc += -0.5 * z * z - lsp[l]
+                        E[j, p] = rng.standard_normal()
+                for i in range(n):
+                    _row_dot(Xb, A[i], MU[i])
+                    _row_dot(E, G[i], T1)
+                    for p in range(Np):
+                        MU[i, p] += T1[p]
+                for i in range(n):
+                    for p in range(Np):
+                        Xb[i, p] = MU[i, p]
+                for l in range(m):
+                    c = cls[l]
+                    if c == _MISSING:
+                        continue
+                    _row_dot(MU, C[l], Z)
+                    isl = isp[l]
+                    if c == _INTERIOR:
+                        yl = y[b, k, l]
+                        ls = lsp[l]
+                        for p in range(Np):
+                            zz = (yl - Z[p]) * isl
+                            INC[p] += -0.5 * zz * zz - ls
+                    else:
+                        if c == _LOWER:
+                            lo = LO[k, l]
+                            for p in range(Np):
+                                Z[p] = (lo - Z[p]) * isl
                         else:
-                            a = (LO[k, l] - mul) * isp[l] if c == _LOWER else (mul - HI[k, l]) * isp[l]
-                            if lb:
-                                far, lm, M, upper = _normal_mass(a)
-                                fac, lm = _mass_factor(far, lm, M, upper, fac)
-                                inc += lm
-                            else:
-                                inc += log_ndtr(a)
-                    F[p] = fac
-                    w = inc if lb else inc + lw[b, p]
-                    work[p] = w
-                    nz = nz or inc != 0.0
-                    if w > top:
-                        top = w
+                            hi = HI[k, l]
+                            for p in range(Np):
+                                Z[p] = (Z[p] - hi) * isl
+                        if lb:
+                            for p in range(Np):  # the tails: scalar calls
+                                far, lm, M, upper = _normal_mass(Z[p])
+                                F[p], lm = _mass_factor(far, lm, M, upper, F[p])
+                                INC[p] += lm
+                        else:
+                            for p in range(Np):
+                                INC[p] += log_ndtr(Z[p])
+            # the largest log part and whether any log part is not 0 (else the linear weights need no exp)
+            top = -_INF
+            nz = False
+            for p in range(Np):
+                inc = INC[p]
+                nz = nz or inc != 0.0
+                w = inc if lb else inc + lw[b, p]
+                INC[p] = w
+                if w > top:
+                    top = w
             # the new weights, unnormalised: exp(log weight - top) (logarithms), or
             # weight x mass factor x exp(log part - top) (linear; the exp only where a log part is not 0)
             if lb and not nz:
@@ -554,26 +636,24 @@ def pf_block(
                     if lb:
                         Wb[p] = lw[b, p]
                     else:
-                        work[p] = lw[b, p]
-                        if work[p] > top:
-                            top = work[p]
+                        INC[p] = lw[b, p]
+                        if INC[p] > top:
+                            top = INC[p]
                 if lb:
                     top = 0.0
                 else:
                     for p in range(Np):
-                        Wb[p] = math.exp(work[p] - top)
+                        Wb[p] = math.exp(INC[p] - top)
             elif lb:
-                wmax = 0.0
                 if nz:
                     for p in range(Np):
-                        w = lw[b, p] * F[p] * math.exp(work[p] - top)
-                        Wb[p] = w
-                        wmax = max(wmax, w)
+                        Wb[p] = lw[b, p] * F[p] * math.exp(INC[p] - top)
                 else:
                     for p in range(Np):
-                        w = lw[b, p] * F[p]
-                        Wb[p] = w
-                        wmax = max(wmax, w)
+                        Wb[p] = lw[b, p] * F[p]
+                wmax = 0.0
+                for p in range(Np):
+                    wmax = max(wmax, Wb[p])
                 if wmax < _W_MIN:
                     # every weight small (masses far in the tails): scaled by a power of 2 (exactly) so the
                     # largest is in [1/2, 1), else their squares (the effective sample size) underflow
@@ -584,31 +664,21 @@ def pf_block(
                     top += ex * _LN2
             else:
                 for p in range(Np):
-                    Wb[p] = math.exp(work[p] - top)
-            # normalisation fused with the weighted moments (one pass; the sums of the deviations from the
-            # run's first particle, so no cancellation when the mean is far from 0)
+                    Wb[p] = math.exp(INC[p] - top)
+            # the weighted moments: sums of the deviations from the run's first particle (no cancellation when
+            # the mean is far from 0), normalised once
             full = want[1] or want[2] or want[4] or k == T - 1  # the covariance is needed (else the mean only)
-            for i in range(n):
-                x0[i] = X[b, 0, i]
-                S1[i] = 0.0
-                for j in range(n):
-                    S2[i, j] = 0.0
-            tot = 0.0
-            sw2 = 0.0
+            tot, sw2 = _sums(Wb)
             wmin = _INF
             for p in range(Np):
-                w = Wb[p]
-                tot += w
-                sw2 += w * w
-                if w < wmin:
-                    wmin = w
+                wmin = min(wmin, Wb[p])
+            for i in range(n):
+                x0[i] = Xb[i, 0]
+                S1[i] = _dev_sum(Wb, Xb[i], x0[i])
+            if full:
                 for i in range(n):
-                    d[i] = X[b, p, i] - x0[i]
-                    S1[i] += w * d[i]
-                if full:
-                    for i in range(n):
-                        for j in range(i, n):
-                            S2[i, j] += w * d[i] * d[j]
+                    for j in range(i, n):
+                        S2[i, j] = _dev2_sum(Wb, Xb[i], x0[i], Xb[j], x0[j])
             lnorm = math.log(tot) + top
             ll = -_INF if dead else lnorm
             ll_acc[b] += ll
@@ -631,9 +701,9 @@ def pf_block(
                     cum += Wb[p] / tot
                     work[p] = cum
                 work[Np - 1] = 1.0
-                for p in range(Np):
-                    for i in range(n):
-                        Xn[p, i] = X[b, p, i]
+                for i in range(n):
+                    for p in range(Np):
+                        Xn[i, p] = Xb[i, p]
                 j = 0
                 for p in range(Np):
                     v = (u0 + p) / Np
@@ -641,14 +711,14 @@ def pf_block(
                         j += 1
                     src = j if j < Np else Np - 1
                     for i in range(n):
-                        X[b, p, i] = Xn[src, i]
+                        Xb[i, p] = Xn[i, src]
                 # equal weights: held linear from here on
                 lin[b] = True
                 for p in range(Np):
                     lw[b, p] = 1.0 / Np
             elif not lb:
                 for p in range(Np):
-                    lw[b, p] = work[p] - lnorm
+                    lw[b, p] = INC[p] - lnorm
             elif dead or not wmin < _W_MIN * tot:
                 it = 1.0 / tot
                 for p in range(Np):
@@ -658,7 +728,7 @@ def pf_block(
                 lin[b] = False
                 lt = math.log(tot) + top
                 for p in range(Np):
-                    lw[b, p] = math.log(lw[b, p]) + math.log(F[p]) + work[p] - lt
+                    lw[b, p] = math.log(lw[b, p]) + math.log(F[p]) + INC[p] - lt
             if want[0]:
                 for i in range(n):
                     o_mean[b, k, i] = xm[b, i]
@@ -673,8 +743,11 @@ def pf_block(
                 o_ext[b, k, 0] = ess
                 o_ext[b, k, 1] = 1.0 if res else 0.0
                 o_ext[b, k, 2] = ll
-    # the carry holds logarithms
+    # the particles back in the state's layout; the carry holds logarithms
     for b in range(B):
+        for p in range(Np):
+            for i in range(n):
+                X[b, p, i] = Xs[b, i, p]
         if lin[b]:
             for p in range(Np):
                 lw[b, p] = math.log(lw[b, p])
