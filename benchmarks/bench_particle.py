@@ -11,8 +11,9 @@
     against a plain vectorised numpy particle filter written here (:func:`plain_filter`, the filter one
     would write by hand: all runs' particles as one array, the same proposals, log-sum-exp weights,
     systematic resampling), for the optimal and the bootstrap proposal, in the same process,
-    interleaved, medians of 5 of user, system and wall time (µs per run-step), the load average
-    stated. Target: the compiled optimal filter at least 3x the plain one at 10^3 runs x 100 steps x
+    interleaved, medians and (min-max) of 5 of CPU (user + system), user, system and wall time (µs per
+    run-step), the ratio per round (plain / ours) as median and (min-max), by CPU time (the figure that
+    holds on a loaded machine) and by wall time, the load average stated. Target: the compiled optimal filter at least 3x the plain one at 10^3 runs x 100 steps x
     4,000 particles (``--target``; the default is smaller). ``--numpy-path`` adds ParticleFilter's own
     numpy path.
 (d) Peers on the same *uncensored* bootstrap model (the packages have no censored proposal): ours
@@ -38,15 +39,14 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import resource  # noqa: E402
-import time  # noqa: E402
+import statistics  # noqa: E402
 import tracemalloc  # noqa: E402
 
 import numpy as np  # noqa: E402
 from scipy.special import log_ndtr, ndtri_exp  # noqa: E402
 
 import tobitkf as tk  # noqa: E402
-from _timing import best_time  # noqa: E402
+from _timing import best_time, measure  # noqa: E402
 
 TARGET = 1e6
 
@@ -161,27 +161,14 @@ def plain_filter(sys_: tk.LinearSystem, y: np.ndarray, lower: float, particles: 
     return means
 
 
-def _clock():
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime, r.ru_stime, time.perf_counter()
-
-
-def timed(fn) -> tuple[float, float, float]:
-    """(user, system, wall) seconds of one call of ``fn``."""
-    a = _clock()
-    fn()
-    b = _clock()
-    return b[0] - a[0], b[1] - a[1], b[2] - a[2]
-
-
 def interleaved(contestants: dict, repeat: int) -> dict:
-    """Medians over ``repeat`` rounds of (user, system, wall) seconds; each round calls every contestant once,
-    in turn (so a change of the machine's load hits all of them)."""
+    """The samples (:class:`_timing.Sample`: wall, user, system, precise CPU) of ``repeat`` rounds per contestant;
+    each round calls every contestant once, in turn (so a change of the machine's load hits all of them)."""
     got: dict = {name: [] for name in contestants}
     for _ in range(repeat):
         for name, fn in contestants.items():
-            got[name].append(timed(fn))
-    return {name: tuple(float(np.median(col)) for col in zip(*rows)) for name, rows in got.items()}
+            got[name].append(measure(fn)[0])
+    return got
 
 
 def _load() -> str:
@@ -189,24 +176,47 @@ def _load() -> str:
     return f"load average {one:.1f} (1 min), {five:.1f} (5 min) on {os.cpu_count()} cores"
 
 
-def _row(name: str, t: tuple, rs: int, ref: float | None) -> str:
-    us = [v / rs * 1e6 for v in t]
-    ratio = f"{ref / t[2]:11.2f}x" if ref is not None else ""
-    return f"  {name:<34}{us[0]:10.1f}{us[1]:8.1f}{us[2]:10.1f}{ratio}"
+def _med(xs) -> str:
+    """Median (min-max)."""
+    return f"{statistics.median(xs):.2f}x ({min(xs):.2f}-{max(xs):.2f})"
+
+
+HEAD = f"  {'contestant':<30}{'CPU':>8}{'(min-max)':>14}{'user':>8}{'sys':>7}{'wall':>8}{'(min-max)':>14}"
+
+
+def _row(name: str, samples: list, run_steps: int) -> str:
+    """µs per run-step: CPU (user + system, the process's precise clock) and wall, medians and (min-max)."""
+    sc = 1e6 / run_steps
+
+    def mm(xs):
+        xs = [x * sc for x in xs]
+        return f"{statistics.median(xs):8.1f}{f'({min(xs):.0f}-{max(xs):.0f})':>14}"
+
+    user = statistics.median([s.user for s in samples]) * sc
+    sys_ = statistics.median([s.sys for s in samples]) * sc
+    return f"  {name:<30}{mm([s.cpu for s in samples])}{user:8.1f}{sys_:7.1f}{mm([s.wall for s in samples])}"
+
+
+def ratios(ref: list, ours: list, per_ref: float = 1.0, per_ours: float = 1.0) -> dict:
+    """Per round, reference time / our time (each per unit of work): CPU and wall, median and (min-max)."""
+    cpu = [(a.cpu / per_ref) / (b.cpu / per_ours) for a, b in zip(ref, ours)]
+    wall = [(a.wall / per_ref) / (b.wall / per_ours) for a, b in zip(ref, ours)]
+    return {"cpu": cpu, "wall": wall}
 
 
 def compiled_vs_plain(runs: int, particles: int, steps: int, repeat: int, numpy_path: bool = False) -> dict:
-    """(c): µs per run-step (user, system, wall; medians of ``repeat``) of the compiled filter and the plain
-    numpy filter, interleaved in this process; ratios = plain wall / ours wall."""
+    """(c): µs per run-step (CPU, user, system, wall; medians and spreads of ``repeat``) of the compiled filter and
+    the plain numpy filter, interleaved in this process; ratios per round = plain time / ours."""
     print(
         f"(c) ours compiled vs a plain vectorised numpy filter: censored oscillator n=2 m=1, {runs} runs x "
-        f"{steps} steps x {particles} particles; µs per run-step, medians of {repeat}, interleaved; {_load()}"
+        f"{steps} steps x {particles} particles; µs per run-step, medians (min-max) of {repeat}, interleaved; "
+        f"{_load()}"
     )
     sys_, cens = oscillator(), tk.Censoring(lower=0.0)
     y = tk.simulate(sys_, steps, runs, censoring=cens, seed=0).y
     rs = runs * steps
     tk.ParticleFilter(sys_, cens, particles=8, backend="numba").filter(y[:1, :2])  # compile (or load the cache)
-    print(f"  {'contestant':<34}{'user':>10}{'sys':>8}{'wall':>10}{'plain/ours':>12}")
+    print(HEAD)
     out = {}
     for proposal in ("optimal", "prior"):
         pf = tk.ParticleFilter(sys_, cens, particles=particles, proposal=proposal, seed=1, backend="numba")
@@ -218,16 +228,19 @@ def compiled_vs_plain(runs: int, particles: int, steps: int, repeat: int, numpy_
             pn = tk.ParticleFilter(sys_, cens, particles=particles, proposal=proposal, seed=1, backend="numpy")
             contestants["ours (numpy path)"] = lambda pn=pn: pn.filter(y, outputs="mean")
         t = interleaved(contestants, repeat)
-        ratio = t["plain numpy"][2] / t["ours (compiled)"][2]
         print(f"  {proposal} proposal")
         for name, v in t.items():
-            print(_row(name, v, rs, None if name == "plain numpy" else t["plain numpy"][2]), flush=True)
+            print(_row(name, v, rs), flush=True)
+        r = ratios(t["plain numpy"], t["ours (compiled)"])
+        ratio = statistics.median(r["cpu"])
         at_target = runs >= 1000 and steps == 100 and particles == 4000
         verdict = (
             ("meets" if ratio >= 3 else "misses") + " the 3x target" if at_target else "the 3x target: 1000x100x4000"
         )
-        print(f"  -> ours {ratio:.2f}x the plain numpy filter ({verdict})")
-        out[proposal] = dict(t, ratio=ratio)
+        print(
+            f"  -> ours faster than the plain numpy filter by CPU {_med(r['cpu'])}, wall {_med(r['wall'])} ({verdict})"
+        )
+        out[proposal] = dict(samples=t, ratio=ratio, ratios=r)
     return out
 
 
@@ -319,7 +332,7 @@ def peers(runs: int, particles: int, steps: int, repeat: int) -> dict:
     """(d): ours compiled, ``particles`` and cuthbert on the uncensored bootstrap model, µs per run-step."""
     print(
         f"(d) peers on the uncensored bootstrap model (oscillator n=2 m=1), {runs} runs x {steps} steps x "
-        f"{particles} particles; µs per run-step, medians of {repeat}, interleaved; {_load()}"
+        f"{particles} particles; µs per run-step, medians (min-max) of {repeat}, interleaved; {_load()}"
     )
     sys_ = oscillator()
     y = tk.simulate(sys_, steps, runs, seed=0).y
@@ -339,14 +352,15 @@ def peers(runs: int, particles: int, steps: int, repeat: int) -> dict:
     else:
         contestants["cuthbert (JAX)"], per_run["cuthbert (JAX)"] = cg
     t = interleaved(contestants, repeat)
-    print(f"  {'contestant':<34}{'user':>10}{'sys':>8}{'wall':>10}{'ours faster by':>16}")
-    ours = t["ours (compiled)"][2] / per_run["ours (compiled)"]
+    print(HEAD + f"{'ours faster by (CPU; wall)':>34}")
     out = {}
+    ours = t["ours (compiled)"]
     for name, v in t.items():
         k = per_run[name] * steps
-        ratio = (v[2] / per_run[name]) / ours
-        out[name] = dict(user=v[0], sys=v[1], wall=v[2], run_steps=k, ratio=ratio)
-        print(_row(name, v, k, None) + (f"{ratio:15.2f}x" if name != "ours (compiled)" else ""), flush=True)
+        r = ratios(v, ours, per_run[name], per_run["ours (compiled)"])
+        out[name] = dict(samples=v, run_steps=k, ratio=statistics.median(r["cpu"]), ratios=r)
+        tail = f"  {_med(r['cpu'])}; {_med(r['wall'])}" if name != "ours (compiled)" else ""
+        print(_row(name, v, k) + tail, flush=True)
     return out
 
 
