@@ -10,17 +10,23 @@ threshold. Given the same random numbers, the results equal the numpy path's to 
 1e-12 by feeding the numpy path the draws of the compiled loop).
 
 **Random numbers.** The compiled loop draws its own numbers, inside the loop, from the filter's
-``numpy.random.Generator`` (numba runs numpy's own algorithms on the same bit generator, so the stream
-is numpy's and the generator's state afterwards is the one a pickled state carries on). Only the
+``numpy.random.Generator`` (numba's implementations of numpy's own algorithms, called on the generator's
+bit generator, so the stream is numpy's and the generator's state afterwards is the one a pickled state
+carries on; called on the bit generator rather than through the Generator's methods, which pass the
+reference-counted Generator and pay an atomic increment and decrement per number). Only the
 numbers a particle needs are drawn, in this order: for each block of runs, for each step, for each
 run of the block, for each particle: (optimal proposal) one uniform per censored reading, in channel
 order, then the n standard normals of the state; then, if the run resamples, one uniform. The numpy
 path draws the same kinds of numbers, all runs at once (a uniform per channel and particle, the
 normals, a uniform per run); so the two paths agree in law, and exactly for the same numbers.
 
-**Memory.** Runs are processed in blocks (outer loop) over time (inner loop, compiled); a block's
-particles stay in the cache for its T steps. The working memory is one run's scratch (its proposed
-particles and weights); the particles of every run (the final state, from which a filter can
+**Memory and layout.** Runs are processed in blocks (outer loop) over time (inner loop, compiled); a
+block's particles stay in the cache for its T steps, copied for the call into one row per state component
+(``(B, n, N_p)``: a component of a run's particles contiguous), so that every stage of a step is a pass
+over the run's particles (propagation, predicted readings, conditioning, noise, weights, moments) that
+LLVM vectorises; only the draws and the branches of the censored quantile run particle by particle. The
+working memory is the block's copy and one run's scratch (its proposals, numbers and weights, a few
+``N_p``-vectors); the particles of every run (the final state, from which a filter can
 continue) are the ``(N, N_p, n)`` array of the state, updated in place; nothing grows with T but the
 per-step outputs requested (``outputs="last"`` requests none). With several blocks, block ``j`` draws
 its numbers after block ``j-1`` has drawn all of its own; a filter continued from its final state
@@ -29,8 +35,9 @@ equals one call when the runs fit one block.
 **Weights held linear between resamplings.** After a resampling every weight is :math:`1/N_p`; from
 there on a run's normalised weights are held as numbers :math:`V_i` (in the log-weights array, flagged
 per run), not logarithms, and a step multiplies them by the particle's likelihood: a censored reading
-by its mass :math:`\Phi(a)` (one ``erfc``; no ``log`` and no ``exp``), an interior one by
-:math:`e^{\ell_i - \max_j\ell_j}` (the one ``exp`` the log-sum-exp normalisation needs too). Nothing
+by its mass :math:`\Phi(a)` (no ``log`` and no ``exp``), an interior one by
+:math:`e^{\ell_i - \max_j\ell_j}` (the one ``exp`` the log-sum-exp normalisation needs too, in a vectorised
+pass: :func:`~tobitkf.filters._compiled_censored._exp_neg`). Nothing
 can underflow unnoticed: a particle's product of masses stays above 1e-200 (a smaller mass goes, as its
 logarithm, to the exponent: so beyond 35 standard deviations, where it is :func:`log_ndtr` itself), a
 normalised weight above 1e-100 (else the run returns to logarithms, formed from the exact parts
@@ -41,22 +48,25 @@ once per call). The same arithmetic as the log-sum-exp form up to rounding (the 
 1e-12 against the numpy path, the hand-over to logarithms included).
 
 **The normal tails** cost what the bootstrap weight and the censored draw need, no more: a censored
-weight is :math:`\Phi(a)` through one ``erfc`` (with logarithms: :math:`\log\Phi(a)`,
-:func:`log_ndtr`; beyond 25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the
-censored draw
+weight is :math:`\Phi(a)` from :math:`\Phi(-|a|)`, computed for all particles of a run in one vectorised
+pass by the package's compiled censored statistics (:func:`_tail_mass`; relative error about 1e-14 within
+8 standard deviations, 2e-13 at 35) (with logarithms: :math:`\log\Phi(a)`, :func:`log_ndtr`; beyond
+25√2 ≈ 35.4 standard deviations the asymptotic series of ``erfcx``), and the censored draw
 :math:`z = \Phi^{-1}(u\,\Phi(a))` reuses that :math:`\Phi(a)` (:func:`censored_draw`): the quantile by
 Wichura's AS 241 (rational functions, relative error about 1e-16: no further ``erfc`` or ``exp``), its
 tail from :math:`\sqrt{-\log p}` and the upper tail from :math:`1 - p = (1-u) + u\,\Phi(-a)` (no
-cancellation). :func:`ndtri_exp` (the quantile from :math:`\log p`) serves the far tail. All agree
-with ``scipy.special`` to about 1e-15. Functions are compiled on first use and cached on disk
+cancellation). :func:`ndtri_exp` (the quantile from :math:`\log p`) serves the far tail. The quantiles and
+:func:`log_ndtr` agree with ``scipy.special`` to about 1e-15. Functions are compiled on first use and cached on disk
 (``cache=True``).
 
 Cost per particle and step (``benchmarks/bench_particle.py`` times it against a plain vectorised numpy
-filter and the `particles` and `cuthbert` packages): n normal draws and a matrix-vector product; for a
-censored reading one ``erfc`` (the optimal proposal: plus a uniform and, in the tails of
-:math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); for an interior reading one ``exp``; the weighted moments
-and the resampling in passes over the run's particles, without temporaries. The only fast-math flag is
-``contract`` on AS 241's polynomials (:func:`_poly7`); the weights, sums and tails are strict IEEE.
+filter and the `particles` and `cuthbert` packages): n normal draws (a call into the bit generator each:
+at n = 2 about a third of the time) and vectorised passes for the matrix-vector products, the masses and
+the weights; for a censored reading under the optimal proposal a uniform and the quantile's branches (in
+the tails of :math:`\Phi^{-1}`, a ``log`` and a ``sqrt``); the resampling in one pass. The fast-math flags
+are ``contract`` on AS 241's polynomials (:func:`_poly7`) and ``reassoc`` on the three weighted sums
+(:func:`_sums`, :func:`_dev_sum`, :func:`_dev2_sum`: vectorised, their order changes them at rounding
+level); everything else is strict IEEE.
 
 References: M. J. Wichura, Algorithm AS 241: the percentage points of the normal distribution, Applied
 Statistics 37(3), 1988.
@@ -219,10 +229,10 @@ def ndtri_exp(t):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _tail_mass(x):
-    r""":math:`\Phi(-|x|)` by the package's compiled censored statistics (:func:`~tobitkf.filters._compiled_censored.
-    _one_sided_at`: polynomial fits of erfcx and an exp without libm, relative error about 1e-14 within 8
-    standard deviations, 2e-13 at 35), which a loop over particles vectorises: the censored weights take their
-    masses from one such pass, where a library ``erfc`` is a call per particle."""
+    r""":math:`\Phi(-|x|)` by the package's compiled censored statistics (``_compiled_censored._one_sided_at``:
+    polynomial fits of erfcx and an exp without libm; relative error about 1e-14 within 8 standard deviations,
+    2e-13 at 35), which a loop over particles vectorises: the censored weights take their masses from one such
+    pass, where a library ``erfc`` is a call per particle."""
     return _one_sided_at(0.0, 1.0, abs(x))[1]
 
 
