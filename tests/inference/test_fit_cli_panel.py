@@ -135,10 +135,10 @@ def test_one_dated_series_with_a_log_transform(tmp_path):
             "line 3, column 'v': the reading 0",
         ),
         ("day,v\n0,1\n", '[data]\ny = "v"\ntransform = "ln"\n', "[data] transform: expected 'none', 'log'"),
-        ("day,v\n0,1\n", '[data]\ny = "v"\ninterval_rows = "mid"\n', "[data] interval_rows: expected 'error'"),
+        ("day,v\n0,1\n", '[data]\ny = "v"\ninterval_rows = "mid"\n', "[data] interval_rows: expected one of 'keep'"),
         (
             "Date,ConcLow,ConcHigh\n2001-01-01,0.02,0.05\n",
-            '[data]\ntime = "Date"\n',
+            '[data]\ntime = "Date"\ninterval_rows = "error"\n',
             "line 2, column 'ConcLow': an interval with two finite ends",
         ),
         ("day,v\n0,1\n", '[data]\ny = "v"\n[model]\nkind = "ou"\nlevel = 1\n', "[model] level: expected true"),

@@ -140,3 +140,71 @@ def test_the_smoother_takes_interval_readings():
     assert sm.mean[-1, 0] == pytest.approx(f.mean[-1, 0], abs=1e-14)
     kf = tk.KalmanFilter(sys_).filter(y)
     assert abs(f.mean[1, 0] - kf.mean[1, 0]) > 1e-3
+
+
+def _record(seed=11, T=40):
+    rng = np.random.default_rng(seed)
+    x = np.zeros(T)
+    for k in range(1, T):
+        x[k] = 0.8 * x[k - 1] + rng.normal(0, 0.5)
+    y = x + rng.normal(0, 0.3, T)
+    return y
+
+
+def test_fit_scores_interval_readings_by_their_mass_and_open_ones_as_censored():
+    """tk.fit (a LinearSystem template, direct ML): the fitted log-likelihood is the assumed-density one with
+    the interval readings as intervals (not as exact midpoints), and a record whose intervals are open on one
+    side fits exactly as the same record censored there."""
+    y = _record()
+    T = y.size
+    iv = np.zeros(T, bool)
+    iv[[3, 9, 17, 25]] = True
+    lo = np.where(iv, np.floor(y * 2) / 2, -np.inf)  # each interval a bin of width 0.5 holding the value
+    hi = np.where(iv, lo + 0.5, np.inf)
+    yi = np.where(iv, lo + 0.25, y)
+    templ = tk.LinearSystem(A=[[0.5]], C=[[1.0]], Q=[[0.2]], R=[[0.1]], x0=[0.0], P0=[[1.0]])
+    kw = dict(estimate=("A", "Q", "R"), method="direct", standard_errors=False)
+    res = tk.fit(templ, yi[:, None], censored=iv[:, None], lower=lo[:, None], upper=hi[:, None], **kw)
+    cens = tk.Censoring(lower=lo[:, None], upper=hi[:, None])
+    ll = tk.adf_log_likelihood(res.system(), cens, yi[:, None], censored=iv[:, None])
+    assert res.loglik == pytest.approx(float(ll), abs=1e-9)
+    # the midpoints read as exact values give another likelihood
+    exact = tk.adf_log_likelihood(res.system(), tk.Censoring(), yi[:, None])
+    assert abs(float(exact) - res.loglik) > 0.1
+    # [lo, +inf) against the reading right-censored at lo (the compiled kernel scores that one)
+    hi_open = np.where(iv, np.inf, hi)
+    y_open = np.where(iv, lo + 1.0, y)
+    a = tk.fit(templ, y_open[:, None], censored=iv[:, None], lower=lo[:, None], upper=hi_open[:, None], **kw)
+    y_r = np.where(iv, lo, y)
+    b = tk.fit(templ, y_r[:, None], censored=iv[:, None], lower=-np.inf, upper=np.where(iv, lo, np.inf)[:, None], **kw)
+    assert a.loglik == pytest.approx(b.loglik, abs=1e-9)
+    np.testing.assert_allclose(a.theta, b.theta, rtol=0, atol=1e-6)
+
+
+def test_a_panel_takes_interval_readings():
+    from tobitkf.inference.panel import panel_log_likelihood
+
+    sys_ = tk.ContinuousLinearSystem([[-0.2]], [[0.4]], [[1.0]], [[0.09]], [0.0], [[1.0]])
+    times = [np.array([0.0, 2.0, 5.0]), np.array([1.0, 4.0])]
+    ys = [np.array([0.3, 0.55, -0.2]), np.array([1.25, 0.1])]
+    flags = [np.array([False, True, False]), np.array([True, False])]
+    los = [np.array([-np.inf, 0.2, -np.inf]), np.array([1.0, -np.inf])]
+    his = [np.array([np.inf, 0.9, np.inf]), np.array([1.5, np.inf])]
+    panel = tk.Panel(times, ys, lower=los, upper=his, censored=flags)
+    per = panel_log_likelihood(sys_, panel, per_subject=True)
+    for i in range(2):
+        est = tk.AssumedDensityTobitFilter(sys_, tk.Censoring(), order="uncensored_first")
+        own = est.filter(
+            ys[i][:, None], censored=flags[i][:, None], lower=los[i][:, None], upper=his[i][:, None], times=times[i]
+        ).extras["log_likelihood"]
+        assert per[i] == pytest.approx(float(own.sum()), abs=1e-10)
+
+
+def test_the_censored_ar_model_refuses_interval_readings_with_the_way_out():
+    y = _record()
+    iv = np.zeros(y.size, bool)
+    iv[4] = True
+    lo = np.where(iv, y - 0.2, -np.inf)
+    hi = np.where(iv, y + 0.2, np.inf)
+    with pytest.raises(tk.ValidationError, match="interval reading .* state-space model"):
+        tk.fit(tk.CensoredAR(1), y, X=np.ones((y.size, 1)), lower=lo, upper=hi, censored=iv)

@@ -1,4 +1,4 @@
-"""Readings of a censored channel: which limit each one sits at, and its exact log-likelihood.
+r"""Readings of a censored channel: which limit each one sits at, and its exact log-likelihood.
 
 Shared by the particle filter and the assumed-density filters. A reading within
 ``1e-12 max(1, |limit|)`` of a finite limit counts as censored there (the rule of
