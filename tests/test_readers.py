@@ -288,7 +288,9 @@ def test_a_flagged_reading_between_its_two_limits_is_an_interval_reading():
     d = {"y": ["0.3", "0.5", "0.2"], "c": ["0", "1", "1"], "lo": ["", "0.1", "0.2"], "hi": ["", "0.9", ""]}
     s = read_censored(d, y="y", censored="c", lower="lo", upper="hi")
     assert s.side.tolist() == [0, 2, -1] and s.interval.tolist() == [False, True, False]
-    with pytest.raises(ValidationError, match=r"table row 2, column 'c': flagged censored, but the reading is at neither"):
+    with pytest.raises(
+        ValidationError, match=r"table row 2, column 'c': flagged censored, but the reading is at neither"
+    ):
         read_censored(d, y="y", censored="c", lower="lo", upper="hi", interval_rows="error")
 
 

@@ -55,6 +55,15 @@ def gap_matrices(rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray) -> t
     return np.exp(-rate[:, None, :] * dt), np.asarray(diffusion, dtype=float)[:, None, :] * dt * psi
 
 
+def _diagonal_matrices(d: np.ndarray) -> np.ndarray:
+    """(..., n, n) diagonal matrices of the diagonals ``d`` (..., n): zeros with the diagonal written through a
+    strided view (several times faster than ``d[..., None] * eye``, which multiplies every entry)."""
+    n = d.shape[-1]
+    out = np.zeros(d.shape + (n,))
+    out.reshape(d.shape[:-1] + (n * n,))[..., :: n + 1] = d
+    return out
+
+
 def adf_system(
     x0: np.ndarray, P0: np.ndarray, rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray, C: np.ndarray, r2: Any
 ):
@@ -67,13 +76,12 @@ def adf_system(
     N, n = np.shape(rate)
     T = np.shape(C)[0]
     a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
-    eye = np.eye(n)
     r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
     Cr = np.asarray(C, dtype=float)[None, :, None, :]  # (1, T, 1, n): shared by the runs, per step
     return LinearSystem(
-        A=a[..., None] * eye,  # A[:, k]: into reading k + 1 (array index k)
+        A=_diagonal_matrices(a),  # A[:, k]: into reading k + 1 (array index k)
         C=Cr,
-        Q=qd[..., None] * eye,
+        Q=_diagonal_matrices(qd),
         R=r2[..., None, None],
         x0=np.zeros(n),
         P0=np.eye(n),
