@@ -161,6 +161,8 @@ def _label(opts: dict[str, Any]) -> str:
         parts.append("2 harmonics")
     if opts.get("flow_anomaly_days"):
         parts.append(f"flow anomaly {opts['flow_anomaly_days']:g} d")
+    if opts.get("fast_residual"):
+        parts.append("fast + slow residual")
     return ", ".join(parts)
 
 
