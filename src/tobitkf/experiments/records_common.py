@@ -104,6 +104,7 @@ def adf_pass(
     *,
     dy: Any = 0.0,
     smooth: bool = False,
+    censored: Any = None,
 ) -> dict[str, Any]:
     r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
 
@@ -125,6 +126,8 @@ def adf_pass(
     lower, upper : scalar, (T,) or (N, T) limits (the limit rule classifies the readings)
     r2 : (N, T) noise variances ; dy : scalar or (N, T) offsets :math:`d_{ik}`
     smooth : also return the smoothed predictive of every reading
+    censored : (T,) or (N, T) bool, optional: the recorded indicator (default: the limit rule); a flagged
+        reading strictly inside its limits is an interval reading
 
     Returns
     -------
@@ -152,7 +155,7 @@ def adf_pass(
             parts.append(
                 adf_pass(
                     x0[sl], P0[sl], rate[sl], diffusion[sl], cut(gaps), C, y[sl], cut(lower), cut(upper),
-                    cut(r2), dy=cut(dy), smooth=smooth,
+                    cut(r2), dy=cut(dy), smooth=smooth, censored=None if censored is None else cut(censored),
                 )
             )  # fmt: skip
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0] if key not in ("filtered", "smoothed")}
@@ -162,10 +165,13 @@ def adf_pass(
     system = adf_system(x0, P0, rate, diffusion, gaps, C, r2)
     Y = np.asarray(y, dtype=float)[..., None]
     u = np.ascontiguousarray(d[..., None])
+    flags = None if censored is None else np.broadcast_to(np.asarray(censored, dtype=bool), (N, T))[..., None]
     if not smooth:
-        terms = adf_log_likelihood(system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi)
+        terms = adf_log_likelihood(
+            system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi, censored=flags
+        )
         return {"loglik": terms.sum(-1), "terms": terms}
-    res = assumed_density_filter(system, Censoring()).filter(Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi)
+    res = assumed_density_filter(system, Censoring()).filter(Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi, censored=flags)
     terms = res.extras["log_likelihood"]
     sm = rts_smooth(res, system, x0=x0, P0=P0)
     assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"

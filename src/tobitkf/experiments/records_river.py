@@ -64,7 +64,8 @@ class RiverModel:
     y : (n,) ndarray
         ln concentration; the ln detection limit for a censored sample.
     censored : (n,) bool ndarray
-        Left-censored samples.
+        Censored samples: below ``lower`` (their ``y``) or, with ``upper`` finite, between the two (interval
+        readings).
     rows : (D, l + 1) ndarray
         :math:`C_d` of every day: the l regressors named by ``coef``, then 1 (the AR residual's column).
     drift : tuple of str
@@ -86,6 +87,10 @@ class RiverModel:
         ``flow_anomaly``).
     coef : tuple of str
         Names of the regressors in ``rows`` (``"intercept"``, ``"ln_q"``, ``"sin"``, ``"cos"`` by default).
+    lower, upper : (n,) ndarray, optional
+        Each sample's limits; default the limit rule's: ``lower = y`` on censored samples (a detection limit),
+        ``-inf`` elsewhere, ``upper = +inf``. A censored sample strictly between finite limits is an interval
+        reading (its likelihood the predictive probability of the interval).
     residual_ar : bool
         Include the AR(1) residual (else its state stays 0 and only the sample noise remains).
     fast_residual : bool
@@ -120,6 +125,8 @@ class RiverModel:
     coef: tuple[str, ...] = ("intercept", "ln_q", "sin", "cos")
     residual_ar: bool = True
     fast_residual: bool = False
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
     names: tuple[str, ...] = field(init=False)
 
     GROUPS = {"intercept": ("intercept",), "slope": ("ln_q",), "season": ("sin", "cos"), "quadratic": ("ln_q_sq",)}
@@ -170,7 +177,12 @@ class RiverModel:
         if self.flow_variance and self.zcol is None:
             raise ValueError("flow_variance: needs an ln_q regressor")
         self.z = self.C[:, self.zcol] if self.zcol is not None else np.zeros(self.y.size)
-        self.lower = np.where(self.censored, self.y, -np.inf)
+        if self.lower is None:
+            self.lower = np.where(self.censored, self.y, -np.inf)
+        self.lower = np.asarray(self.lower, dtype=float)
+        self.upper = np.full(self.y.size, np.inf) if self.upper is None else np.asarray(self.upper, dtype=float)
+        with np.errstate(invalid="ignore"):
+            self.interval = self.censored & (self.y > self.lower) & (self.y < self.upper)
         self.names = (
             tuple(f"b_{c}" for c in self.coef)
             + (("log_tau_days", "log_sigma") if self.residual_ar else ())
@@ -205,6 +217,8 @@ class RiverModel:
             day=day,
             y=s.y,
             censored=s.censored,
+            lower=s.lower,
+            upper=s.upper,
             rows=rows,
             drift=tuple(drift),
             **options,
@@ -319,7 +333,12 @@ class RiverModel:
         x0, P0 = self.prior(nat)
         rate, diffusion = self.continuous(nat)
         r2 = self.noise_var(nat, np.arange(T))
-        return adf_pass(x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, np.inf, r2, smooth=smooth)
+        flags = None
+        if self.interval.any():  # interval readings need the indicator (a removed reading is not flagged)
+            flags = self.censored & ~np.isnan(Y)
+        return adf_pass(
+            x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, self.upper, r2, smooth=smooth, censored=flags
+        )
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         r"""The smoothed state on every day of the daily grid, for one parameter vector.
@@ -418,7 +437,9 @@ class RiverModel:
             x0=x0[0],
             P0=P0[0],
         )
-        return sys, y, Censoring(lower=lower, upper=np.full((D, 1), np.inf)), cens
+        upper = np.full((D, 1), np.inf)
+        upper[self.day, 0] = self.upper
+        return sys, y, Censoring(lower=lower, upper=upper), cens
 
     # ---- likelihood derivatives by finite differences, batched
     def loglik_and_gradient(
