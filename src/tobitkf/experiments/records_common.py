@@ -55,12 +55,23 @@ def gap_matrices(rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray) -> t
     return np.exp(-rate[:, None, :] * dt), np.asarray(diffusion, dtype=float)[:, None, :] * dt * psi
 
 
-def _diagonal_matrices(d: np.ndarray) -> np.ndarray:
-    """(..., n, n) diagonal matrices of the diagonals ``d`` (..., n): zeros with the diagonal written through a
-    strided view (several times faster than ``d[..., None] * eye``, which multiplies every entry)."""
+_DIAGONAL_BUFFERS: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
+
+
+def _diagonal_matrices(d: np.ndarray, role: str) -> np.ndarray:
+    """(..., n, n) diagonal matrices of the diagonals ``d`` (..., n), the diagonal written through a strided view
+    into a zero buffer kept per ``role`` and shape (several times faster than ``d[..., None] * eye``, which
+    multiplies every entry, and than fresh zeros each call: a fit evaluates the likelihood hundreds of times
+    on arrays of one shape). The buffer is rewritten by the next call of the same role and shape: the system
+    built on it lives for one pass of :func:`adf_pass`."""
     n = d.shape[-1]
-    out = np.zeros(d.shape + (n,))
-    out.reshape(d.shape[:-1] + (n * n,))[..., :: n + 1] = d
+    key = (role, d.shape)
+    out = _DIAGONAL_BUFFERS.get(key)
+    if out is None:
+        if len(_DIAGONAL_BUFFERS) > 8:  # a few shapes at a time (a fit's batch, the Hessian's, the refits')
+            _DIAGONAL_BUFFERS.clear()
+        out = _DIAGONAL_BUFFERS[key] = np.zeros(d.shape + (n,))
+    out.reshape(d.shape[:-1] + (n * n,))[..., :: n + 1] = d  # the off-diagonal entries stay 0
     return out
 
 
@@ -79,9 +90,9 @@ def adf_system(
     r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
     Cr = np.asarray(C, dtype=float)[None, :, None, :]  # (1, T, 1, n): shared by the runs, per step
     return LinearSystem(
-        A=_diagonal_matrices(a),  # A[:, k]: into reading k + 1 (array index k)
+        A=_diagonal_matrices(a, "A"),  # A[:, k]: into reading k + 1 (array index k)
         C=Cr,
-        Q=_diagonal_matrices(qd),
+        Q=_diagonal_matrices(qd, "Q"),
         R=r2[..., None, None],
         x0=np.zeros(n),
         P0=np.eye(n),
