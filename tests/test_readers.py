@@ -167,11 +167,17 @@ def test_strings_with_one_unit_and_the_examples_of_the_docstrings():
         ("y\n0.1\n1_000\n", {"y": "y"}, r"line 3, column 'y': expected a number"),
         ("y,y\n1,2\n", {"y": "y"}, r"two columns 'y' \(columns 1 and 2\)"),
         ("y,x\n1,2\n3\n", {"y": "y"}, r"line 3: 1 fields, the header has 2"),
-        ("ConcLow,ConcHigh\n0.1,0.1\n0.1,0.2\n", {}, r"line 3, column 'ConcLow': an interval with two finite ends"),
+        (
+            "ConcLow,ConcHigh\n0.1,0.1\n0.1,0.2\n",
+            {"interval_rows": "error"},
+            r"line 3, column 'ConcLow': an interval with two finite ends",
+        ),
         ("ConcLow,ConcHigh\n0.3,0.1\n", {}, r"line 2, column 'ConcLow': the low end is above"),
         ("ConcLow,ConcHigh,Uncen\n,0.1,1\n", {}, r"line 2, column 'Uncen': disagrees"),
         ("DV,CENS\n1,0\n2,2\n", {}, r"line 3, column 'CENS': expected CENS 0, 1"),
-        ("DV,CENS,LIMIT\n1,0,\n2,1,0\n", {}, r"line 3, column 'LIMIT': a finite LIMIT"),
+        ("DV,CENS,LIMIT\n1,0,\n2,1,0\n", {"interval_rows": "error"}, r"line 3, column 'LIMIT': a finite LIMIT"),
+        ("DV,CENS,LIMIT\n1,0,\n2,1,3\n", {}, r"line 3, column 'LIMIT': CENS = 1 needs LIMIT below DV"),
+        ("DV,CENS,LIMIT\n1,0,\n2,-1,1\n", {}, r"line 3, column 'LIMIT': CENS = -1 needs LIMIT above DV"),
         ("DV,CENS\n1,0\n,1\n", {}, r"line 3, column 'DV': a censored row needs its limit"),
         ("y,c\n1,1\n", {"y": "y", "censored": "c"}, r"line 2, column 'c': flagged censored, but on which side"),
         ("y\n1\n", {"y": "nope"}, r"y: .* has no column 'nope' \(columns: 'y'\)"),
@@ -234,23 +240,58 @@ def test_format_detection_and_its_errors(tmp_path):
 # --------------------------------------------------------------------------- interval rows, panels, row labels
 
 
-def test_egret_rows_between_two_finite_ends_are_refused_with_the_way_out(tmp_path):
+def test_egret_rows_between_two_finite_ends_are_interval_readings(tmp_path):
     text = "Date,ConcLow,ConcHigh\n2001-01-01,0.1,0.1\n2001-02-01,0.02,0.05\n2001-03-01,,0.05\n2001-04-01,0.3,\n"
     path = _csv(tmp_path, text)
+    s = read_censored(path, time="Date")  # the default keeps the interval [0.02, 0.05]
+    assert s.censored.tolist() == [False, True, True, True] and s.interval.tolist() == [False, True, False, False]
+    assert s.side.tolist() == [0, 2, -1, 1]
+    assert s.lower[1] == 0.02 and s.upper[1] == 0.05 and s.lower[1] < s.y[1] < s.upper[1]
     with pytest.raises(ValidationError, match=r"line 3, column 'ConcLow': an interval with two finite ends") as err:
-        read_censored(path, time="Date")
-    assert "interval_rows='left'" in str(err.value) and "interval_rows='right'" in str(err.value)
+        read_censored(path, time="Date", interval_rows="error")
+    assert "interval_rows='keep'" in str(err.value)
     left = read_censored(path, time="Date", interval_rows="left")  # known below 0.05 (the 0.02 dropped)
     assert left.side.tolist() == [0, -1, -1, 1] and left.y.tolist() == [0.1, 0.05, 0.05, 0.3]
     assert left.lower.tolist() == [-inf, 0.05, 0.05, -inf] and left.upper.tolist() == [inf, inf, inf, 0.3]
     right = read_censored(path, time="Date", interval_rows="right")  # known above 0.02
     assert right.side.tolist() == [0, 1, -1, 1] and right.y[1] == 0.02 and right.upper[1] == 0.02
-    # what was read writes back and reads back the same (the interval layout keeps one end per row)
+    # what was read writes back and reads back the same
     back = read_censored(write_censored(left, tmp_path / "w.csv", format="interval"), time="time")
     np.testing.assert_array_equal(back.y, left.y)
     np.testing.assert_array_equal(back.side, left.side)
-    with pytest.raises(ValidationError, match="interval_rows: expected 'error', 'left' or 'right'"):
+    with pytest.raises(ValidationError, match="interval_rows: expected one of 'keep', 'error', 'left', 'right'"):
         read_censored(path, time="Date", interval_rows="mid")
+
+
+@pytest.mark.parametrize("fmt", ["flag", "interval", "nonmem"])
+def test_interval_readings_round_trip_every_layout_that_has_a_form_for_them(tmp_path, fmt):
+    text = "Date,ConcLow,ConcHigh\n2001-01-01,0.1,0.1\n2001-02-01,0.02,0.05\n2001-03-01,,0.05\n2001-04-01,0.3,\n"
+    s = read_censored(_csv(tmp_path, text), time="Date")
+    cols = {"y": "y", "censored": "censored", "lower": "lower", "upper": "upper"} if fmt == "flag" else {}
+    back = read_censored(write_censored(s, tmp_path / f"w_{fmt}.csv", format=fmt), format=fmt, time="time", **cols)
+    for key in ("y", "censored", "lower", "upper", "side", "interval"):
+        np.testing.assert_array_equal(getattr(back, key), getattr(s, key), err_msg=key)
+    with pytest.raises(ValidationError, match="reading 2 is an interval reading"):
+        write_censored(s, tmp_path / "w.csv", format="strings")
+
+
+def test_nonmem_finite_limits_are_interval_readings(tmp_path):
+    text = "TIME,DV,CENS,LIMIT\n0,0.1,1,0.02\n1,0.5,0,\n2,3,-1,10\n3,0.1,1,\n"
+    s = read_censored(_csv(tmp_path, text), time="TIME")
+    assert s.side.tolist() == [2, 0, 2, -1]
+    assert s.lower.tolist() == [0.02, -inf, 3.0, 0.1] and s.upper.tolist() == [0.1, inf, 10.0, inf]
+    one_sided = read_censored(_csv(tmp_path, text), time="TIME", interval_rows="left")  # LIMIT dropped
+    assert one_sided.side.tolist() == [-1, 0, 1, -1]
+
+
+def test_a_flagged_reading_between_its_two_limits_is_an_interval_reading():
+    d = {"y": ["0.3", "0.5", "0.2"], "c": ["0", "1", "1"], "lo": ["", "0.1", "0.2"], "hi": ["", "0.9", ""]}
+    s = read_censored(d, y="y", censored="c", lower="lo", upper="hi")
+    assert s.side.tolist() == [0, 2, -1] and s.interval.tolist() == [False, True, False]
+    with pytest.raises(
+        ValidationError, match=r"table row 2, column 'c': flagged censored, but the reading is at neither"
+    ):
+        read_censored(d, y="y", censored="c", lower="lo", upper="hi", interval_rows="error")
 
 
 def test_a_panel_refuses_units_that_differ_between_subjects(tmp_path):

@@ -336,3 +336,49 @@ def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
     assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
     np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_interval_samples_and_a_fast_residual_on_the_sample_grid_equal_the_daily_adf(short_model, fast):
+    """Samples known only to lie in a range (interval readings) and the second (fast) residual: the per-gap pass
+    equals the package's ADF and smoother on the daily grid, and the intervals are scored as intervals."""
+    m0 = short_model
+    iv = np.zeros(m0.n_samples, bool)
+    iv[np.flatnonzero(~m0.censored)[::5]] = True
+    lower = np.where(iv, m0.y - 0.3, m0.lower)
+    upper = np.where(iv, m0.y + 0.2, np.inf)
+    m = RiverModel(
+        day=m0.day, y=np.where(iv, m0.y - 0.05, m0.y), censored=m0.censored | iv, rows=m0.rows, coef=m0.coef,
+        drift=m0.drift, flow_variance=True, lower=lower, upper=upper, fast_residual=fast,
+    )  # fmt: skip
+    assert m.interval.sum() == iv.sum() and m.nx == m0.nx + int(fast)
+    th = m.start()
+    th[m.names.index("gamma_flow")] = -0.2
+    sys_, y, cens, ind = m.daily_system(th)
+    ll_daily = tk.adf_log_likelihood(sys_, cens, y, censored=ind, per_step=True)
+    out = m.run(th[None])
+    np.testing.assert_allclose(out["terms"][0], ll_daily[m.day], rtol=1e-10, atol=1e-12)
+    ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
+    got = m.daily_smooth(th)
+    np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-9, atol=1e-11)
+    # an interval sample scores the predictive mass of its interval, not the density of its midpoint
+    k = int(np.flatnonzero(iv)[0])
+    ll_exact = RiverModel(
+        day=m0.day, y=m.y, censored=m0.censored, rows=m0.rows, coef=m0.coef, drift=m0.drift, flow_variance=True,
+        fast_residual=fast,
+    ).run(th[None])["terms"][0]  # fmt: skip
+    assert out["terms"][0, k] < 0 < abs(out["terms"][0, k] - ll_exact[k])
+
+
+def test_a_sample_between_two_bounds_is_an_interval_reading_of_the_series():
+    rec = load_arkansas()
+    import dataclasses
+
+    low = rec.conc_low.copy()
+    j = int(np.flatnonzero(rec.censored)[0])
+    low[j] = 0.5 * rec.conc_high[j]
+    s = dataclasses.replace(rec, conc_low=low).series()
+    assert s.interval[j] and s.interval.sum() == 1
+    assert s.lower[j] == np.log(low[j]) and s.upper[j] == np.log(rec.conc_high[j]) and s.lower[j] < s.y[j] < s.upper[j]
+    m = RiverModel.from_record(dataclasses.replace(rec, conc_low=low), **STATIC_MODEL)
+    assert m.interval[j] and m.upper[j] == s.upper[j]

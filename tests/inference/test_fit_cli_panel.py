@@ -135,10 +135,10 @@ def test_one_dated_series_with_a_log_transform(tmp_path):
             "line 3, column 'v': the reading 0",
         ),
         ("day,v\n0,1\n", '[data]\ny = "v"\ntransform = "ln"\n', "[data] transform: expected 'none', 'log'"),
-        ("day,v\n0,1\n", '[data]\ny = "v"\ninterval_rows = "mid"\n', "[data] interval_rows: expected 'error'"),
+        ("day,v\n0,1\n", '[data]\ny = "v"\ninterval_rows = "mid"\n', "[data] interval_rows: expected one of 'keep'"),
         (
             "Date,ConcLow,ConcHigh\n2001-01-01,0.02,0.05\n",
-            '[data]\ntime = "Date"\n',
+            '[data]\ntime = "Date"\ninterval_rows = "error"\n',
             "line 2, column 'ConcLow': an interval with two finite ends",
         ),
         ("day,v\n0,1\n", '[data]\ny = "v"\n[model]\nkind = "ou"\nlevel = 1\n', "[model] level: expected true"),
@@ -224,3 +224,23 @@ def test_the_grid_series_agrees_with_the_smoothed_readings_at_the_sample_times(t
         on_sample = np.isin([float(g[1]) for g in mine], days)
         assert sds[~on_sample].min() >= sds[on_sample].min()  # a day without a sample is known less well
     _one_line_error(_run(tmp_path, text, MODEL + "grid = 0\n"), "[model] grid: expected a step > 0")
+
+
+def test_egret_interval_rows_through_tobitkf_fit(tmp_path):
+    days = np.datetime64("2020-01-01") + np.array([0, 9, 30, 31, 45, 80, 90, 120, 150, 151])
+    low = ["0.5", "", "0.9", "1.4", "0.02", "", "0.7", "2.0", "0.03", "0.8"]
+    high = ["0.5", "0.2", "0.9", "1.4", "0.05", "0.2", "0.7", "2.0", "0.3", "0.8"]
+    text = "Date,ConcLow,ConcHigh\n" + "".join(f"{d},{a},{b}\n" for d, a, b in zip(days, low, high))
+    model = '[data]\ntime = "Date"\ntransform = "log"\n[model]\nkind = "ou"\nnoise_sd = 0.1\n'
+    res = _run(tmp_path, text, model, "--format", "interval")
+    assert res.exit_code == 0, res.output
+    _, rows = _rows(tmp_path / "o" / "series.csv")
+    assert rows[4][2:5] == ["1", repr(float(np.log(0.02))), repr(float(np.log(0.05)))]  # kept as an interval
+    assert rows[1][2:5] == ["1", repr(float(np.log(0.2))), "inf"]  # left-censored at 0.2
+    ll_keep = json.loads((tmp_path / "o" / "fit.json").read_text())["loglik"]
+    left = model.replace("[model]", 'interval_rows = "left"\n[model]')
+    res = _run(tmp_path, text, left, "--format", "interval", "--force")
+    assert res.exit_code == 0, res.output
+    _, rows = _rows(tmp_path / "o" / "series.csv")
+    assert rows[4][2:5] == ["1", repr(float(np.log(0.05))), "inf"]  # read as below 0.05 instead
+    assert abs(json.loads((tmp_path / "o" / "fit.json").read_text())["loglik"] - ll_keep) > 1e-3

@@ -210,16 +210,24 @@ class SampleRecord:
         ``y`` is :math:`\ln c` (the log detection limit for a censored sample), ``lower`` the log
         detection limit on censored samples and ``-inf`` on measured ones (the limit in force on those
         days is not recorded: pass ``censored`` as the indicator rather than relying on the limit
-        rule), ``upper`` ``+inf``. Covariate ``"lnQ"``: log discharge on the sample's day.
+        rule), ``upper`` ``+inf``. A sample known only to lie between two finite bounds (``0 <`` ``conc_low``
+        ``<`` ``conc_high``) is an interval reading: ``lower``/``upper`` the log bounds, ``y`` their midpoint.
+        Covariate ``"lnQ"``: log discharge on the sample's day.
         """
         cens = self.censored
         y = np.log(self.conc_high)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            iv = cens & (self.conc_low > 0) & (self.conc_low < self.conc_high)
+            ln_low = np.log(np.where(iv, self.conc_low, 1.0))
+        lower = np.where(iv, ln_low, np.where(cens, y, -np.inf))
+        upper = np.where(iv, y, np.inf)
+        y = np.where(iv, 0.5 * (ln_low + y), y)
         return CensoredSeries(
             name=self.name,
             y=y,
             censored=cens.copy(),
-            lower=np.where(cens, y, -np.inf),
-            upper=np.full(y.size, np.inf),
+            lower=lower,
+            upper=upper,
             covariates={"lnQ": np.log(self.q)},
             time=self.date.astype(str),
             description=self.description,

@@ -1,7 +1,9 @@
 """The layouts of the readers (:mod:`tobitkf.data.readers`): readings as numbers and ``"<L"`` strings or
 with a flag and limits, EGRET's interval columns, NONMEM's ``DV``/``CENS``/``LIMIT``. Each turns a table
-into ``(y, side, lower, upper, unit)``: the readings (a censored one at its limit), the side (-1 left,
-+1 right, 0 none), the limits per reading (``-inf``/``+inf`` for none) and the readings' unit."""
+into ``(y, side, lower, upper, unit)``: the readings (a censored one at its limit, an interval one at the
+midpoint of its interval), the side (-1 left, +1 right, 0 none, :data:`INTERVAL` a value known only to lie
+between ``lower`` and ``upper``), the limits per reading (``-inf``/``+inf`` for none) and the readings'
+unit."""
 
 from __future__ import annotations
 
@@ -14,6 +16,15 @@ from ._cells import _find, _first, _flags, _limit, _numbers, _tol
 from ._tables import _Table
 
 FORMATS = ("auto", "strings", "flag", "interval", "nonmem")
+INTERVAL_ROWS = ("keep", "error", "left", "right")
+INTERVAL = 2
+"""The side code of an interval reading (censored into [lower, upper], both ends finite)."""
+
+
+def _midpoint(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """A value strictly inside each finite interval (its midpoint): what ``y`` holds for an interval reading."""
+    with np.errstate(invalid="ignore"):
+        return lo + 0.5 * (hi - lo)
 
 
 def _strings_or_flag(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, str]:
@@ -46,7 +57,7 @@ def _strings_or_flag(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarr
             "the flag's side contradicts the '<'/'>' reading",
         )
         side = np.where(sign != 0, sign, flag).astype(np.int8)
-    unknown = side == 2
+    unknown = side == 2  # (the reader's code for "censored, side not given"; INTERVAL once resolved)
     if unknown.any():  # censored, the side from the limits given
         if L is not None and U is None:
             side[unknown] = -1
@@ -58,7 +69,19 @@ def _strings_or_flag(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarr
                 at_hi = np.abs(v - U) <= _tol(U)
             side[unknown & at_lo] = -1
             side[unknown & ~at_lo & at_hi] = 1
-            _first(t, side == 2, a["censored"], "flagged censored, but the reading is at neither of its limits")
+            with np.errstate(invalid="ignore"):
+                inside = unknown & ~at_lo & ~at_hi & (v > L) & (v < U)
+            if a.get("interval_rows", "keep") == "keep":  # between its two limits: an interval reading
+                side[inside] = INTERVAL
+                unknown = unknown & ~inside
+            _first(
+                t,
+                unknown & (side == 2),
+                a["censored"],
+                "flagged censored, but the reading is at neither of its limits (nor between them)"
+                if a.get("interval_rows", "keep") == "keep"
+                else "flagged censored, but the reading is at neither of its limits",
+            )
         else:
             _first(
                 t,
@@ -70,6 +93,8 @@ def _strings_or_flag(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarr
     lo = np.full(n, -np.inf) if L is None else np.where(np.isnan(L), -np.inf, L)
     hi = np.full(n, np.inf) if U is None else np.where(np.isnan(U), np.inf, U)
     y = v.copy()
+    iv = side == INTERVAL
+    y[iv] = _midpoint(lo[iv], hi[iv])  # the reading's own value, unused by the likelihood, kept inside
     for s, lim, given, col in ((-1, lo, L, lcol), (1, hi, U, ucol)):
         rows = side == s
         if not rows.any():
@@ -127,24 +152,25 @@ def _interval(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.
         right = ~np.isnan(lo_v) & np.isnan(hi_v)
         _first(t, lo_v > hi_v, lcol, "the low end is above the high end")
     inside = ~np.isnan(lo_v) & ~np.isnan(hi_v) & ~exact & ~left
-    how = a.get("interval_rows", "error")
+    how = a.get("interval_rows", "keep")
     if how == "error":
         _first(
             t,
             inside,
             lcol,
-            f"an interval with two finite ends ({lcol} < {hcol}): a reading known only to lie between them, which "
-            "a censored series cannot hold (one limit per side of each reading); pass interval_rows='left' to read "
-            f"such rows as below {hcol} (what {lcol} says is dropped) or interval_rows='right' as above {lcol}",
+            f"an interval with two finite ends ({lcol} < {hcol}): a reading known only to lie between them, "
+            "refused by interval_rows='error'; the default interval_rows='keep' reads it as an interval reading",
         )
     elif how == "left":
         left = left | inside
-    else:
+        inside = inside & False
+    elif how == "right":
         right = right | inside
-    side = np.where(left, -1, np.where(right, 1, 0)).astype(np.int8)
-    y = np.where(left, hi_v, lo_v)
-    lower = np.where(left, hi_v, -np.inf)
-    upper = np.where(right, lo_v, np.inf)
+        inside = inside & False
+    side = np.where(left, -1, np.where(right, 1, np.where(inside, INTERVAL, 0))).astype(np.int8)
+    y = np.where(left, hi_v, np.where(inside, _midpoint(lo_v, hi_v), lo_v))
+    lower = np.where(left, hi_v, np.where(inside, lo_v, -np.inf))
+    upper = np.where(right, lo_v, np.where(inside, hi_v, np.inf))
     ucol = _find(t, a.get("uncen"), "Uncen")
     if ucol is not None:
         flag = _flags(t, ucol, None)
@@ -171,17 +197,33 @@ def _nonmem(t: _Table, a: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.nd
         dv = np.where(miss, np.nan, dv)
     _first(t, (side != 0) & np.isnan(dv), dcol, "a censored row needs its limit in DV, and DV is blank")
     lim_col = a["limit"] if a["limit"] is not None else _find(t, None, "LIMIT")
-    if lim_col is not None and a["limit"] is not False:
-        lim, _, _ = _numbers(t, lim_col, "limit", allow_inf=True)
-        _first(
-            t,
-            (side != 0) & np.isfinite(lim),
-            lim_col,
-            "a finite LIMIT makes the reading interval-censored (between LIMIT and DV), which is not supported; "
-            "leave LIMIT blank (or pass limit=False to ignore the column) for censoring on one side",
-        )
     lower = np.where(side == -1, dv, -np.inf)
     upper = np.where(side == 1, dv, np.inf)
+    if lim_col is not None and a["limit"] is not False:
+        lim, _, _ = _numbers(t, lim_col, "limit", allow_inf=True)
+        finite = (side != 0) & np.isfinite(lim)
+        how = a.get("interval_rows", "keep")
+        if how == "error":
+            _first(
+                t,
+                finite,
+                lim_col,
+                "a finite LIMIT makes the reading interval-censored (between LIMIT and DV), refused by "
+                "interval_rows='error'; the default interval_rows='keep' reads it as an interval reading",
+            )
+        elif how == "keep":
+            with np.errstate(invalid="ignore"):
+                _first(
+                    t, finite & (side == -1) & ~(lim < dv), lim_col, "CENS = 1 needs LIMIT below DV (y in [LIMIT, DV])"
+                )
+                _first(
+                    t, finite & (side == 1) & ~(lim > dv), lim_col, "CENS = -1 needs LIMIT above DV (y in [DV, LIMIT])"
+                )
+            lower = np.where(finite & (side == 1), dv, np.where(finite, lim, lower))
+            upper = np.where(finite & (side == -1), dv, np.where(finite, lim, upper))
+            dv = np.where(finite, _midpoint(lower, upper), dv)
+            side = np.where(finite, INTERVAL, side).astype(np.int8)
+        # "left"/"right": the one-sided reading at DV, what LIMIT says is dropped
     return dv, side, lower, upper, unit
 
 

@@ -19,11 +19,15 @@ class CensoredSeries:
     name : str
         Short name of the data set.
     y : (T,) ndarray
-        Readings; a censored reading holds its limit; NaN marks a missing reading.
+        Readings; a censored reading holds its limit, an interval reading a value strictly inside its
+        interval (the readers write the midpoint; it is not used); NaN marks a missing reading.
     censored : (T,) bool ndarray
         The censoring indicator recorded with the data (False for missing readings).
     lower, upper : (T,) ndarray
-        Censoring limits of each reading (``-inf`` / ``+inf``: no limit on that side).
+        Censoring limits of each reading (``-inf`` / ``+inf``: no limit on that side). A reading is
+        left-censored when it is flagged and at ``lower`` (its value at most ``lower``), right-censored when
+        flagged and at ``upper``, and an *interval* reading when flagged and strictly between them (its value
+        known only to lie in ``[lower, upper]``; :attr:`interval`).
     covariates : dict of str to (T,) ndarray
         Known regressors (e.g. ``"lQ"``, the log discharge).
     time : (T,) ndarray of str
@@ -49,6 +53,12 @@ class CensoredSeries:
     def steps(self) -> int:
         """Number of readings T."""
         return int(self.y.shape[0])
+
+    @property
+    def interval(self) -> np.ndarray:
+        """(T,) bool: interval readings, flagged censored and strictly between their two limits."""
+        with np.errstate(invalid="ignore"):
+            return np.asarray(self.censored, dtype=bool) & (self.y > self.lower) & (self.y < self.upper)
 
     @property
     def missing(self) -> np.ndarray:

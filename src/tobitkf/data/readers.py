@@ -31,14 +31,25 @@ Formats (``format=``; ``"auto"`` picks one when it is unambiguous: ``ConcLow``/`
 ``"interval"``
     EGRET's interval columns ``low``/``high`` (default ``"ConcLow"``/``"ConcHigh"``): equal = an exact
     reading; ``low`` empty (or 0) and ``high`` = L: left-censored at L; ``high`` empty and ``low`` = U:
-    right-censored at U; both empty: missing. A column ``Uncen`` (1 = uncensored), if present, must agree.
-    A row with two finite ends (``low < high``: the value lies between them) is refused unless
-    ``interval_rows`` says how to read it (``"left"``: below ``high``; ``"right"``: above ``low``).
+    right-censored at U; both empty: missing; two finite ends ``low < high``: an *interval* reading, the
+    value known only to lie between them. A column ``Uncen`` (1 = uncensored), if present, must agree.
 ``"nonmem"``
     NONMEM / nlmixr2 / Monolix columns ``DV``, ``CENS`` (0 exact, 1 left-censored at DV, -1 right-censored
-    at DV) and optionally ``LIMIT`` (the other end of the censoring interval: only an empty or infinite
-    LIMIT is supported, i.e. the M3 likelihood); ``MDV`` = 1 marks a missing reading and rows with
-    ``EVID`` not 0 (dose records) are skipped.
+    at DV) and optionally ``LIMIT`` (the other end of the censoring interval: empty or infinite, the M3
+    likelihood; finite, an interval reading, in [LIMIT, DV] for CENS = 1 and [DV, LIMIT] for CENS = -1,
+    the M4 likelihood); ``MDV`` = 1 marks a missing reading and rows with ``EVID`` not 0 (dose records)
+    are skipped.
+
+**Interval readings.** A reading known only to lie in ``[lower, upper]`` (both finite: EGRET's
+``ConcLow < ConcHigh``, NONMEM's finite ``LIMIT``, or in the ``"flag"`` layout a flagged reading strictly
+between its two limits) is kept as one: ``censored`` True, ``lower``/``upper`` its interval, and ``y`` the
+interval's midpoint (a value inside it, which the likelihood does not use). The assumed-density filters,
+their smoother and likelihood, :func:`tobitkf.fit` and the panels score it by the predictive probability of
+the interval. ``interval_rows=`` chooses: ``"keep"`` (the default), ``"error"`` (refuse such rows),
+``"left"`` (read as below the upper end: what the lower end says is dropped) or ``"right"`` (above the
+lower end). (Until version 0.2 such rows were refused unless ``interval_rows`` said ``"left"`` or
+``"right"``.) Strings such as ``"0.05-0.1"`` are not read as intervals (a minus sign makes them
+ambiguous).
 
 Blank limits follow one rule, here, in :func:`tobitkf.fit` and in ``tobitkf fit``: a limit that was not
 recorded means *no limit* on that reading: the reader writes ``-inf`` (``lower``) or ``+inf`` (``upper``), which is
@@ -72,7 +83,7 @@ import numpy as np
 
 from .._validation import ValidationError
 from ._cells import _check_order, _column, _is_missing, _numbers, _times
-from ._formats import FORMATS, _detect, _interval, _nonmem, _nonmem_rows, _strings_or_flag
+from ._formats import FORMATS, INTERVAL, INTERVAL_ROWS, _detect, _interval, _nonmem, _nonmem_rows, _strings_or_flag
 from ._series import CensoredSeries
 from ._tables import PROGRESS_BYTES, _Table, _table
 
@@ -83,6 +94,7 @@ __all__ = [
     "read_censored_panel",
     "write_censored",
     "FORMATS",
+    "INTERVAL_ROWS",
     "PROGRESS_BYTES",
 ]
 
@@ -123,11 +135,13 @@ class CensoredRecord(CensoredSeries):
 
     @property
     def side(self) -> np.ndarray:
-        """(T,) int8: -1 left-censored (at ``lower``), +1 right-censored (at ``upper``), 0 otherwise."""
+        """(T,) int8: -1 left-censored (at ``lower``), +1 right-censored (at ``upper``), 2 an interval reading
+        (between ``lower`` and ``upper``), 0 otherwise."""
         out = np.zeros(self.steps, dtype=np.int8)
         with np.errstate(invalid="ignore"):
             out[self.censored & (self.y <= self.lower)] = -1
             out[self.censored & (self.y >= self.upper)] = 1
+        out[self.interval] = INTERVAL
         return out
 
 
@@ -215,8 +229,10 @@ def _build(t: _Table, fmt: str, a: dict[str, Any], name: str) -> CensoredRecord:
 def _args(**kw: Any) -> dict[str, Any]:
     if kw["format"] not in FORMATS:
         raise ValidationError(f"format: expected one of {', '.join(FORMATS)}, got {kw['format']!r}")
-    if kw.get("interval_rows", "error") not in ("error", "left", "right"):
-        raise ValidationError(f"interval_rows: expected 'error', 'left' or 'right', got {kw['interval_rows']!r}")
+    if kw.get("interval_rows", "keep") not in INTERVAL_ROWS:
+        raise ValidationError(
+            f"interval_rows: expected one of {', '.join(repr(v) for v in INTERVAL_ROWS)}, got {kw['interval_rows']!r}"
+        )
     if kw["duplicates"] not in ("error", "drop"):
         raise ValidationError(f"duplicates: expected 'error' or 'drop', got {kw['duplicates']!r}")
     cov = kw["covariates"]
@@ -254,7 +270,7 @@ def read_censored(
     mdv: str | None = None,
     evid: str | None = None,
     uncen: str | None = None,
-    interval_rows: str = "error",
+    interval_rows: str = "keep",
 ) -> CensoredRecord:
     r"""Read one censored series from a CSV file, a pandas DataFrame or a mapping of columns.
 
@@ -279,11 +295,14 @@ def read_censored(
         a LIMIT column).
     uncen : str, optional
         EGRET's ``Uncen`` check column (default: ``Uncen`` when present).
-    interval_rows : {"error", "left", "right"}
-        EGRET's rows with two finite ends (``ConcLow < ConcHigh``: the value lies between them): refused (the
-        default; a :class:`CensoredSeries` holds one limit per side of a reading), or read as left-censored at
-        ``ConcHigh`` (``"left"``: the lower end is dropped, a weaker statement than the record's) or as
-        right-censored at ``ConcLow`` (``"right"``).
+    interval_rows : {"keep", "error", "left", "right"}
+        Rows whose value lies between two finite ends (EGRET's ``ConcLow < ConcHigh``, NONMEM's finite
+        ``LIMIT``, a flagged reading between its two limits): kept as interval readings (``"keep"``, the
+        default), refused (``"error"``), or read as censored below the upper end (``"left"``: the lower end
+        is dropped, a weaker statement than the record's) or above the lower end (``"right"``).
+
+        .. note:: Changed in 0.2: the default was ``"error"`` (such rows were refused); it is now
+           ``"keep"``.
     time : str, optional
         The times' column (dates or numbers); a DataFrame's ``DatetimeIndex`` is used when not given.
     covariates : sequence of str
@@ -402,13 +421,16 @@ def write_censored(series: CensoredSeries, path: str | os.PathLike, *, format: s
     Columns: ``time`` (``times`` when the series has them, else the labels ``time``), then for ``"strings"``
     ``y`` (``"<L"``/``">U"`` for censored readings); ``"flag"`` ``y``, ``censored`` (0/1), ``lower``, ``upper``
     (an infinite limit written blank: the blank-limit rule reads it back as no limit); ``"interval"``
-    ``ConcLow``, ``ConcHigh``; ``"nonmem"`` ``DV``, ``CENS`` (0, 1, -1), ``MDV``; then the covariates.
-    The ``"strings"``, ``"interval"`` and ``"nonmem"`` layouts keep no limit of an uncensored reading.
+    ``ConcLow``, ``ConcHigh``; ``"nonmem"`` ``DV``, ``CENS`` (0, 1, -1), ``MDV`` (and ``LIMIT`` when the series
+    has interval readings); then the covariates. The ``"strings"``, ``"interval"`` and ``"nonmem"`` layouts
+    keep no limit of an uncensored reading. An interval reading (:attr:`CensoredSeries.interval`) is written
+    as its two ends (``"flag"``: the midpoint flagged between its limits; ``"interval"``: ``ConcLow``,
+    ``ConcHigh``; ``"nonmem"``: ``DV`` the upper end, ``CENS`` 1, ``LIMIT`` the lower end).
 
     Raises
     ------
     ValidationError
-        An unknown format.
+        An unknown format; an interval reading in the ``"strings"`` layout (which has no form for it).
     """
     from .._io import atomic_write_text
 
@@ -419,6 +441,14 @@ def write_censored(series: CensoredSeries, path: str | os.PathLike, *, format: s
     with np.errstate(invalid="ignore"):
         side[series.censored & (series.y <= series.lower)] = -1
         side[series.censored & (series.y > series.lower)] = 1
+    iv = series.interval
+    side[iv] = INTERVAL
+    if format == "strings" and iv.any():
+        i = int(np.flatnonzero(iv)[0])
+        raise ValidationError(
+            f"format: reading {i + 1} is an interval reading ([{series.lower[i]!r}, {series.upper[i]!r}]), which "
+            "the strings layout cannot write; use format='interval', 'flag' or 'nonmem'"
+        )
     times = getattr(series, "times", None)
     if times is not None:
         tcol = [np.datetime_as_string(x) if times.dtype.kind == "M" else repr(float(x)) for x in times]
@@ -430,7 +460,7 @@ def write_censored(series: CensoredSeries, path: str | os.PathLike, *, format: s
         "strings": ["y"],
         "flag": ["y", "censored", "lower", "upper"],
         "interval": ["ConcLow", "ConcHigh"],
-        "nonmem": ["DV", "CENS", "MDV"],
+        "nonmem": ["DV", "CENS", "MDV"] + (["LIMIT"] if iv.any() else []),
     }[format]
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
@@ -448,9 +478,14 @@ def write_censored(series: CensoredSeries, path: str | os.PathLike, *, format: s
                 _fmt(hi) if np.isfinite(hi) else "",
             ]
         elif format == "interval":
-            cells = ["" if s < 0 else _fmt(v), "" if s > 0 else _fmt(v)]
+            if s == INTERVAL:
+                cells = [_fmt(float(series.lower[i])), _fmt(float(series.upper[i]))]
+            else:
+                cells = ["" if s < 0 else _fmt(v), "" if s > 0 else _fmt(v)]
+        elif s == INTERVAL:
+            cells = [_fmt(float(series.upper[i])), "1", "0", _fmt(float(series.lower[i]))]
         else:
-            cells = [_fmt(v), str(-s), "1" if math.isnan(v) else "0"]
+            cells = [_fmt(v), str(-s), "1" if math.isnan(v) else "0"] + ([""] if iv.any() else [])
         covs = [_fmt(float(c[i])) for c in series.covariates.values()]
         w.writerow(([tcol[i]] if tcol is not None else []) + cells + covs)
     return atomic_write_text(path, out.getvalue())

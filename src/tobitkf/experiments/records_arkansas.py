@@ -4,7 +4,8 @@ state-space model (:class:`~tobitkf.experiments.records_river.RiverModel`) again
 
 The model is chosen, not assumed: every model tried on this record is listed in
 :data:`ARKANSAS_CANDIDATES` (drifting coefficients, a flow-dependent noise, a square of ln Q, a seasonal ln Q
-slope, a second seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days); the
+slope, a second seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days, a second
+residual with a short memory beside the first); the
 experiment fits each by maximum likelihood (:func:`fit_river`: two starts and the best nested candidate's
 estimates) and takes the one of smallest AIC on the full record. The leave-one-out score of every candidate is reported beside it (``models_compared``),
 so that a reader sees how many models were compared and where the chosen one stands.
@@ -71,6 +72,14 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
     {"drift": ("intercept",), "flow_variance": True, "harmonics": 2, "flow_anomaly_days": 30.0},
     {"drift": ("intercept",), "flow_variance": True, "harmonics": 2, "flow_anomaly_days": 90.0},
     {"drift": ("intercept",), "flow_variance": True, "harmonics": 2, "quadratic": True, "flow_anomaly_days": 30.0},
+    {
+        "drift": ("intercept",),
+        "flow_variance": True,
+        "harmonics": 2,
+        "quadratic": True,
+        "flow_anomaly_days": 30.0,
+        "fast_residual": True,
+    },
 )
 """Every model tried on this record (:class:`~tobitkf.experiments.records_river.RiverModel` options), in the
 order they were tried. ``data-arkansas`` fits each, takes the one of smallest AIC (on the full record, not on
@@ -161,6 +170,8 @@ def _label(opts: dict[str, Any]) -> str:
         parts.append("2 harmonics")
     if opts.get("flow_anomaly_days"):
         parts.append(f"flow anomaly {opts['flow_anomaly_days']:g} d")
+    if opts.get("fast_residual"):
+        parts.append("fast + slow residual")
     return ", ".join(parts)
 
 

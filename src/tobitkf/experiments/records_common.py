@@ -55,6 +55,26 @@ def gap_matrices(rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray) -> t
     return np.exp(-rate[:, None, :] * dt), np.asarray(diffusion, dtype=float)[:, None, :] * dt * psi
 
 
+_DIAGONAL_BUFFERS: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
+
+
+def _diagonal_matrices(d: np.ndarray, role: str) -> np.ndarray:
+    """(..., n, n) diagonal matrices of the diagonals ``d`` (..., n), the diagonal written through a strided view
+    into a zero buffer kept per ``role`` and shape (several times faster than ``d[..., None] * eye``, which
+    multiplies every entry, and than fresh zeros each call: a fit evaluates the likelihood hundreds of times
+    on arrays of one shape). The buffer is rewritten by the next call of the same role and shape: the system
+    built on it lives for one pass of :func:`adf_pass`."""
+    n = d.shape[-1]
+    key = (role, d.shape)
+    out = _DIAGONAL_BUFFERS.get(key)
+    if out is None:
+        if len(_DIAGONAL_BUFFERS) > 8:  # a few shapes at a time (a fit's batch, the Hessian's, the refits')
+            _DIAGONAL_BUFFERS.clear()
+        out = _DIAGONAL_BUFFERS[key] = np.zeros(d.shape + (n,))
+    out.reshape(d.shape[:-1] + (n * n,))[..., :: n + 1] = d  # the off-diagonal entries stay 0
+    return out
+
+
 def adf_system(
     x0: np.ndarray, P0: np.ndarray, rate: np.ndarray, diffusion: np.ndarray, gaps: np.ndarray, C: np.ndarray, r2: Any
 ):
@@ -67,13 +87,12 @@ def adf_system(
     N, n = np.shape(rate)
     T = np.shape(C)[0]
     a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
-    eye = np.eye(n)
     r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
     Cr = np.asarray(C, dtype=float)[None, :, None, :]  # (1, T, 1, n): shared by the runs, per step
     return LinearSystem(
-        A=a[..., None] * eye,  # A[:, k]: into reading k + 1 (array index k)
+        A=_diagonal_matrices(a, "A"),  # A[:, k]: into reading k + 1 (array index k)
         C=Cr,
-        Q=qd[..., None] * eye,
+        Q=_diagonal_matrices(qd, "Q"),
         R=r2[..., None, None],
         x0=np.zeros(n),
         P0=np.eye(n),
@@ -96,6 +115,7 @@ def adf_pass(
     *,
     dy: Any = 0.0,
     smooth: bool = False,
+    censored: Any = None,
 ) -> dict[str, Any]:
     r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
 
@@ -117,6 +137,8 @@ def adf_pass(
     lower, upper : scalar, (T,) or (N, T) limits (the limit rule classifies the readings)
     r2 : (N, T) noise variances ; dy : scalar or (N, T) offsets :math:`d_{ik}`
     smooth : also return the smoothed predictive of every reading
+    censored : (T,) or (N, T) bool, optional: the recorded indicator (default: the limit rule); a flagged
+        reading strictly inside its limits is an interval reading
 
     Returns
     -------
@@ -144,7 +166,7 @@ def adf_pass(
             parts.append(
                 adf_pass(
                     x0[sl], P0[sl], rate[sl], diffusion[sl], cut(gaps), C, y[sl], cut(lower), cut(upper),
-                    cut(r2), dy=cut(dy), smooth=smooth,
+                    cut(r2), dy=cut(dy), smooth=smooth, censored=None if censored is None else cut(censored),
                 )
             )  # fmt: skip
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0] if key not in ("filtered", "smoothed")}
@@ -154,10 +176,13 @@ def adf_pass(
     system = adf_system(x0, P0, rate, diffusion, gaps, C, r2)
     Y = np.asarray(y, dtype=float)[..., None]
     u = np.ascontiguousarray(d[..., None])
+    flags = None if censored is None else np.broadcast_to(np.asarray(censored, dtype=bool), (N, T))[..., None]
     if not smooth:
-        terms = adf_log_likelihood(system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi)
+        terms = adf_log_likelihood(
+            system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi, censored=flags
+        )
         return {"loglik": terms.sum(-1), "terms": terms}
-    res = assumed_density_filter(system, Censoring()).filter(Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi)
+    res = assumed_density_filter(system, Censoring()).filter(Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi, censored=flags)
     terms = res.extras["log_likelihood"]
     sm = rts_smooth(res, system, x0=x0, P0=P0)
     assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"

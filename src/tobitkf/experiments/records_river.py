@@ -64,7 +64,8 @@ class RiverModel:
     y : (n,) ndarray
         ln concentration; the ln detection limit for a censored sample.
     censored : (n,) bool ndarray
-        Left-censored samples.
+        Censored samples: below ``lower`` (their ``y``) or, with ``upper`` finite, between the two (interval
+        readings).
     rows : (D, l + 1) ndarray
         :math:`C_d` of every day: the l regressors named by ``coef``, then 1 (the AR residual's column).
     drift : tuple of str
@@ -86,8 +87,16 @@ class RiverModel:
         ``flow_anomaly``).
     coef : tuple of str
         Names of the regressors in ``rows`` (``"intercept"``, ``"ln_q"``, ``"sin"``, ``"cos"`` by default).
+    lower, upper : (n,) ndarray, optional
+        Each sample's limits; default the limit rule's: ``lower = y`` on censored samples (a detection limit),
+        ``-inf`` elsewhere, ``upper = +inf``. A censored sample strictly between finite limits is an interval
+        reading (its likelihood the predictive probability of the interval).
     residual_ar : bool
         Include the AR(1) residual (else its state stays 0 and only the sample noise remains).
+    fast_residual : bool
+        A second Ornstein-Uhlenbeck residual beside the first, with its own time scale and sd (parameters
+        ``log_tau_fast_days``, ``log_sigma_fast``): a residual with a short memory (storm events, days)
+        and a long one (months); needs ``residual_ar``.
 
     Attributes
     ----------
@@ -115,6 +124,9 @@ class RiverModel:
     flow_anomaly_days: float = 0.0
     coef: tuple[str, ...] = ("intercept", "ln_q", "sin", "cos")
     residual_ar: bool = True
+    fast_residual: bool = False
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
     names: tuple[str, ...] = field(init=False)
 
     GROUPS = {"intercept": ("intercept",), "slope": ("ln_q",), "season": ("sin", "cos"), "quadratic": ("ln_q_sq",)}
@@ -153,17 +165,28 @@ class RiverModel:
             anomaly = z - np.r_[z[0], z[0], m[:-1]]
             self.rows = np.column_stack([self.rows[:, :-1], anomaly, self.rows[:, -1:]])
             self.coef = self.coef + ("flow_anomaly",)
-        self.nb = self.rows.shape[1] - 1  # regression coefficients; the last state is the AR residual
-        self.nx = self.nb + 1
+        if self.fast_residual:
+            if not self.residual_ar:
+                raise ValidationError("fast_residual: needs residual_ar (the second residual beside the first)")
+            self.rows = np.column_stack([self.rows, self.rows[:, -1:]])  # its column of ones
+        self.nres = 1 + int(self.fast_residual)  # residual states, last
+        self.nb = self.rows.shape[1] - self.nres  # regression coefficients
+        self.nx = self.nb + self.nres
         self.C = self.rows[self.day]  # (n, nx)
         self.zcol = self.coef.index("ln_q") if "ln_q" in self.coef else None
         if self.flow_variance and self.zcol is None:
             raise ValueError("flow_variance: needs an ln_q regressor")
         self.z = self.C[:, self.zcol] if self.zcol is not None else np.zeros(self.y.size)
-        self.lower = np.where(self.censored, self.y, -np.inf)
+        if self.lower is None:
+            self.lower = np.where(self.censored, self.y, -np.inf)
+        self.lower = np.asarray(self.lower, dtype=float)
+        self.upper = np.full(self.y.size, np.inf) if self.upper is None else np.asarray(self.upper, dtype=float)
+        with np.errstate(invalid="ignore"):
+            self.interval = self.censored & (self.y > self.lower) & (self.y < self.upper)
         self.names = (
             tuple(f"b_{c}" for c in self.coef)
             + (("log_tau_days", "log_sigma") if self.residual_ar else ())
+            + (("log_tau_fast_days", "log_sigma_fast") if self.fast_residual else ())
             + ("log_r",)
             + (("gamma_flow",) if self.flow_variance else ())
             + tuple(f"log_sd_drift_{g}" for g in self.drift)
@@ -194,6 +217,8 @@ class RiverModel:
             day=day,
             y=s.y,
             censored=s.censored,
+            lower=s.lower,
+            upper=s.upper,
             rows=rows,
             drift=tuple(drift),
             **options,
@@ -213,7 +238,7 @@ class RiverModel:
         th = np.asarray(theta, dtype=float)
         nb = self.nb
         q = np.zeros(th.shape[:-1] + (nb,))
-        j = nb + 2 if self.residual_ar else nb  # index of log_r
+        j = nb + 2 * (int(self.residual_ar) + int(self.fast_residual))  # index of log_r
         off = j + 1 + int(self.flow_variance)
         for i, g in enumerate(self.drift):
             for c in self.GROUPS[g]:
@@ -222,6 +247,8 @@ class RiverModel:
             "b": th[..., :nb],
             "tau": np.exp(th[..., nb]) if self.residual_ar else np.ones(th.shape[:-1]),
             "sigma": np.exp(th[..., nb + 1]) if self.residual_ar else np.zeros(th.shape[:-1]),
+            "tau_fast": np.exp(th[..., nb + 2]) if self.fast_residual else np.ones(th.shape[:-1]),
+            "sigma_fast": np.exp(th[..., nb + 3]) if self.fast_residual else np.zeros(th.shape[:-1]),
             "r": np.exp(th[..., j]),
             "gamma": th[..., j + 1] if self.flow_variance else np.zeros(th.shape[:-1]),
             "q": q,  # per year
@@ -244,6 +271,7 @@ class RiverModel:
         return np.r_[
             b,
             [np.log(30.0), np.log(0.7 * resid)] if self.residual_ar else [],
+            [np.log(3.0), np.log(0.3 * resid)] if self.fast_residual else [],
             np.log(0.5 * resid),
             [0.0] * int(self.flow_variance),
             [np.log(0.05)] * len(self.drift),
@@ -255,11 +283,14 @@ class RiverModel:
         each run, per day: rates (N, nx) (0 for the coefficients' random walks, :math:`1/\tau` for the AR
         residual) and diffusions (N, nx) (:math:`q_j/365.25`, :math:`2\sigma^2/\tau`)."""
         N, nb = nat["tau"].shape[0], self.nb
-        rate = np.zeros((N, nb + 1))
+        rate = np.zeros((N, self.nx))
         rate[:, nb] = 1.0 / nat["tau"]
-        diffusion = np.empty((N, nb + 1))
+        diffusion = np.empty((N, self.nx))
         diffusion[:, :nb] = nat["q"] / _YEAR
         diffusion[:, nb] = 2.0 * nat["sigma"] ** 2 / nat["tau"]
+        if self.fast_residual:
+            rate[:, nb + 1] = 1.0 / nat["tau_fast"]
+            diffusion[:, nb + 1] = 2.0 * nat["sigma_fast"] ** 2 / nat["tau_fast"]
         return rate, diffusion
 
     def _step_matrices(self, nat: dict[str, np.ndarray], gap: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -270,10 +301,12 @@ class RiverModel:
 
     def prior(self, nat: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         N, nb = nat["tau"].shape[0], self.nb
-        x0 = np.zeros((N, nb + 1))
+        x0 = np.zeros((N, self.nx))
         x0[:, :nb] = nat["b"]
-        P0 = np.zeros((N, nb + 1, nb + 1))
+        P0 = np.zeros((N, self.nx, self.nx))
         P0[:, nb, nb] = nat["sigma"] ** 2
+        if self.fast_residual:
+            P0[:, nb + 1, nb + 1] = nat["sigma_fast"] ** 2
         return x0, P0
 
     def run(self, theta: np.ndarray, y: np.ndarray | None = None, *, smooth: bool = False) -> dict[str, Any]:
@@ -300,7 +333,12 @@ class RiverModel:
         x0, P0 = self.prior(nat)
         rate, diffusion = self.continuous(nat)
         r2 = self.noise_var(nat, np.arange(T))
-        return adf_pass(x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, np.inf, r2, smooth=smooth)
+        flags = None
+        if self.interval.any():  # interval readings need the indicator (a removed reading is not flagged)
+            flags = self.censored & ~np.isnan(Y)
+        return adf_pass(
+            x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, self.upper, r2, smooth=smooth, censored=flags
+        )
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         r"""The smoothed state on every day of the daily grid, for one parameter vector.
@@ -399,7 +437,9 @@ class RiverModel:
             x0=x0[0],
             P0=P0[0],
         )
-        return sys, y, Censoring(lower=lower, upper=np.full((D, 1), np.inf)), cens
+        upper = np.full((D, 1), np.inf)
+        upper[self.day, 0] = self.upper
+        return sys, y, Censoring(lower=lower, upper=upper), cens
 
     # ---- likelihood derivatives by finite differences, batched
     def loglik_and_gradient(

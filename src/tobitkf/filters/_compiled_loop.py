@@ -84,7 +84,7 @@ from ._compiled_moments import (
 )
 from ._compiled_tobit import GL_W, GL_X, tobit_update_block
 from ._outputs import _empty, kernel_result, output_arrays, state_specs
-from ._readings import classify_readings
+from ._readings import classify_readings, interval_classes
 from .core import FilterState
 
 __all__ = [
@@ -655,9 +655,8 @@ def censoring_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, ste
     cls = None
     if flags is not None or "extras" in want:
         cls = classify_readings(y2, lo3, hi3)
-        if flags is not None:
-            at_limit = (cls == LOWER) | (cls == UPPER)
-            cls = np.where(at_limit & ~flags, INTERIOR, cls).astype(np.int8)
+        if flags is not None:  # a flagged reading inside its limits: an interval reading
+            cls = interval_classes(cls, flags, lo3, hi3)
     side = None if cls is None else np.where(cls == LOWER, -1, np.where(cls == UPPER, 1, 0)).astype(np.int8)
 
     def extras(pu, ll, comp):

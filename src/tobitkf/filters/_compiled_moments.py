@@ -64,6 +64,7 @@ __all__ = [
     "INTERIOR",
     "LOWER",
     "UPPER",
+    "INTERVAL",
     "beyond",
     "interval_event",
     "censored_block",
@@ -84,7 +85,7 @@ FAMILIES = {
     "protocol_block": PROTOCOL,
     "quantizer_block": QUANTIZER,
 }
-MISSING, INTERIOR, LOWER, UPPER = 0, 1, 2, 3  #: reading classes (as tobitkf.filters._readings)
+MISSING, INTERIOR, LOWER, UPPER, INTERVAL = 0, 1, 2, 3, 4  #: reading classes (as tobitkf.filters._readings)
 _TINY = float(np.finfo(np.float64).tiny)
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _RTOL_LIMIT = 1e-12  # the limit rule of classify_readings
@@ -191,9 +192,18 @@ def censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, co
     ``hph[b] + rb[b]``, the channel's limits ``lo[b]`` < ``hi[b]``; writes ``alpha``, ``beta``, ``pu``
     and adds the log-likelihood to ``ll`` (``par``, ``comp`` unused). The equations of
     :mod:`tobitkf.filters.assumed_density`: :math:`\alpha = (E[y^*\mid\text{obs}] - \mu)/s^2`,
-    :math:`\beta = (s^2 - V)/s^4`."""
+    :math:`\beta = (s^2 - V)/s^4`. A reading of class :data:`INTERVAL` (flagged censored inside its limits)
+    is told :math:`lo \le y^* \le hi` (:func:`interval_event`)."""
     for b in range(nb):
         a, be, lb, p = _censored_one(y[b], cls[b], hx[b], hph[b] + rb[b], lo[b], hi[b])
+        if cls[b] == INTERVAL:  # y* in [lo, hi]: the interval's mass and truncated moments (interval_event)
+            mu, s2 = hx[b], hph[b] + rb[b]
+            if s2 > _TINY:
+                lb, tm, tv = interval_event(mu, math.sqrt(s2), lo[b], hi[b], glx, glw, buf)
+                a, be = (tm - mu) / s2, (s2 - tv) / (s2 * s2)
+            else:
+                a, be = 0.0, 0.0
+                lb = 0.0 if (lo[b] <= mu and mu <= hi[b]) else -_INF
         alpha[b] = a
         beta[b] = be
         ll[b] += lb

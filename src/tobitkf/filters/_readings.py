@@ -1,8 +1,11 @@
-"""Readings of a censored channel: which limit each one sits at, and its exact log-likelihood.
+r"""Readings of a censored channel: which limit each one sits at, and its exact log-likelihood.
 
 Shared by the particle filter and the assumed-density filters. A reading within
 ``1e-12 max(1, |limit|)`` of a finite limit counts as censored there (the rule of
-:meth:`tobitkf.Censoring.censored_mask`); NaN is a missing reading.
+:meth:`tobitkf.Censoring.censored_mask`); NaN is a missing reading. With a recorded indicator, the
+assumed-density filters also take an *interval* reading (class ``INTERVAL``): one flagged censored that lies
+strictly inside its limits says only :math:`\text{lower} \le y^* \le \text{upper}` (an interval-censored
+laboratory value, EGRET's ``ConcLow < ConcHigh``); its likelihood is the predictive mass of the interval.
 """
 
 from __future__ import annotations
@@ -14,12 +17,22 @@ from scipy.special import log_ndtr
 
 from .._validation import ShapeError, ValidationError
 
-__all__ = ["classify_readings", "censored_log_likelihood", "censoring_sides", "MISSING", "INTERIOR", "LOWER", "UPPER"]
+__all__ = [
+    "classify_readings",
+    "censored_log_likelihood",
+    "censoring_sides",
+    "interval_classes",
+    "MISSING",
+    "INTERIOR",
+    "LOWER",
+    "UPPER",
+    "INTERVAL",
+]
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _RTOL_LIMIT = 1e-12
-_MISSING, _INTERIOR, _LOWER, _UPPER = 0, 1, 2, 3
-MISSING, INTERIOR, LOWER, UPPER = _MISSING, _INTERIOR, _LOWER, _UPPER
+_MISSING, _INTERIOR, _LOWER, _UPPER, _INTERVAL = 0, 1, 2, 3, 4
+MISSING, INTERIOR, LOWER, UPPER, INTERVAL = _MISSING, _INTERIOR, _LOWER, _UPPER, _INTERVAL
 
 
 def classify_readings(y: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -56,6 +69,9 @@ def censored_log_likelihood(
     :math:`\log\Phi((l-\mu)/\sigma)` when :math:`y = l` and :math:`\log\Phi((\mu-h)/\sigma)` when
     :math:`y = h` (``scipy.special.log_ndtr``, finite for limits thousands of σ away); NaN readings
     give 0 (missing). A reading within ``1e-12 max(1, |limit|)`` of a finite limit counts as censored.
+    A reading of class ``INTERVAL`` (only through ``classes``) scores the mass of its interval,
+    :math:`\log(\Phi((h-\mu)/\sigma) - \Phi((l-\mu)/\sigma))`
+    (:func:`~tobitkf.channels.base.log_interval_mass`).
 
     Parameters
     ----------
@@ -86,6 +102,12 @@ def censored_log_likelihood(
     out[i] = log_ndtr((lo[i] - mu[i]) / sd[i])
     i = cls == _UPPER
     out[i] = log_ndtr((mu[i] - hi[i]) / sd[i])
+    i = cls == _INTERVAL
+    if i.any():
+        from ..channels.base import log_interval_mass
+
+        with np.errstate(invalid="ignore"):
+            out[i] = log_interval_mass((lo[i] - mu[i]) / sd[i], (hi[i] - mu[i]) / sd[i])
     return out
 
 
@@ -97,6 +119,7 @@ def censoring_sides(
     *,
     rtol: float = 1e-12,
     name: str = "censored",
+    intervals: bool = False,
 ) -> np.ndarray:
     r"""Side of each reading: 0 uncensored (or missing), -1 censored at ``lower``, +1 at ``upper``.
 
@@ -112,6 +135,9 @@ def censoring_sides(
         :meth:`~tobitkf.Censoring.censored_mask`). With an indicator, a flagged reading is censored at
         the limit it lies at or beyond (within the same tolerance); an unflagged reading is
         uncensored even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data).
+    intervals : bool, default False
+        Accept a flagged reading strictly inside its limits as an interval reading (side 0; the estimators
+        that take them: the assumed-density filters and what is built on them). Without it, refused.
 
     Returns
     -------
@@ -122,8 +148,8 @@ def censoring_sides(
     ShapeError
         ``censored`` does not have the shape of ``y``.
     ValidationError
-        ``censored`` is not boolean (or 0/1), or flags a missing reading or one strictly inside its
-        limits.
+        ``censored`` is not boolean (or 0/1), or flags a missing reading, or one strictly inside its
+        limits (unless ``intervals``; then one without a finite limit).
     """
     lo = np.broadcast_to(lower, y.shape)
     hi = np.broadcast_to(upper, y.shape)
@@ -141,8 +167,15 @@ def censoring_sides(
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             raise ValidationError(f"{name}: reading at index {idx} is flagged censored but missing (NaN)")
         bad = flag & ~(at_lo | at_hi)
+        if intervals:
+            bad = bad & ~(np.isfinite(lo) | np.isfinite(hi))
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
+            if intervals:
+                raise ValidationError(
+                    f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but has no finite limit "
+                    "(an interval reading needs a finite lower or upper end)"
+                )
             raise ValidationError(
                 f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but lies strictly "
                 f"inside its limits [{lo[idx]:.6g}, {hi[idx]:.6g}]"
@@ -151,6 +184,17 @@ def censoring_sides(
     side[flag & at_lo] = -1
     side[flag & ~at_lo & at_hi] = 1
     return side
+
+
+def interval_classes(cls: np.ndarray, flags: np.ndarray, lo: Any, hi: Any) -> np.ndarray:
+    """Reading classes by a recorded indicator: a flagged reading keeps the limit it lies at (or beyond); a
+    flagged one strictly inside its limits, with a finite limit, is an ``INTERVAL`` reading; an unflagged one
+    at a limit is ``INTERIOR``. (A flagged reading inside limits that are both infinite stays ``INTERIOR``:
+    the callers refuse it first.)"""
+    at_limit = (cls == _LOWER) | (cls == _UPPER)
+    finite = np.isfinite(lo) | np.isfinite(hi)
+    out = np.where(at_limit & ~flags, _INTERIOR, cls)
+    return np.where(flags & (cls == _INTERIOR) & finite, _INTERVAL, out).astype(np.int8)
 
 
 def _as_indicator(censored: Any, shape: tuple[int, ...], name: str) -> np.ndarray:

@@ -64,7 +64,17 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, numba_available
 from ._boundary import _noise_variances
-from ._readings import _INTERIOR, _LOWER, _MISSING, _UPPER, _as_indicator, censored_log_likelihood, censoring_sides
+from ._readings import (
+    _INTERIOR,
+    _INTERVAL,
+    _LOWER,
+    _MISSING,
+    _UPPER,
+    _as_indicator,
+    censored_log_likelihood,
+    censoring_sides,
+    interval_classes,
+)
 from ._readings import classify_readings as _classify
 from ._times import at_times
 from .core import (
@@ -121,12 +131,15 @@ def censored_reading_moments(
     retained : (N,) ndarray
         0 for an interior reading, the truncated variance for a censored one (0 when missing).
     cls : (N,) int8 ndarray
-        0 missing, 1 interior, 2 at the lower limit, 3 at the upper limit.
+        0 missing, 1 interior, 2 at the lower limit, 3 at the upper limit, 4 an interval reading (only from a
+        given ``cls``: :math:`y^*` between the limits, its moments truncated to them).
     """
     cls = _classify(y, lower, upper) if cls is None else cls
-    lo_w = np.where(cls == _UPPER, upper, -np.inf)
-    hi_w = np.where(cls == _LOWER, lower, np.inf)
-    cens = (cls == _LOWER) | (cls == _UPPER)
+    lo_w = np.where((cls == _UPPER) | (cls == _INTERVAL), upper, -np.inf)
+    lo_w = np.where(cls == _INTERVAL, lower, lo_w)
+    hi_w = np.where((cls == _LOWER) | (cls == _INTERVAL), lower, np.inf)
+    hi_w = np.where(cls == _INTERVAL, upper, hi_w)
+    cens = (cls == _LOWER) | (cls == _UPPER) | (cls == _INTERVAL)
     obs = np.where(cls == _INTERIOR, y, np.nan)
     V = np.zeros(y.shape)
     if cens.any():
@@ -206,7 +219,7 @@ def censored_channel_update(
             np.zeros(0), 0, GL_X, GL_W,
         )  # fmt: skip
         valid = ok & (cls != _MISSING)
-        beyond = valid & ((cls == _LOWER) | (cls == _UPPER))
+        beyond = valid & ((cls == _LOWER) | (cls == _UPPER) | (cls == _INTERVAL))
         obs = np.where(beyond, mu + alpha * s2, np.where(valid, y, np.nan))
         V = np.where(beyond, s2 - beta * s2 * s2, 0.0)
     else:
@@ -218,11 +231,14 @@ def censored_channel_update(
     degenerate = ~ok & (cls != _MISSING)
     if degenerate.any() and not compiled:
         with np.errstate(invalid="ignore"):
-            agrees = np.where(cls == _LOWER, mu <= lo, np.where(cls == _UPPER, mu >= hi, y == mu))
+            inside = (mu >= lo) & (mu <= hi)
+            agrees = np.where(
+                cls == _LOWER, mu <= lo, np.where(cls == _UPPER, mu >= hi, np.where(cls == _INTERVAL, inside, y == mu))
+            )
         ll = np.where(degenerate, np.where(agrees, 0.0, -np.inf), ll)
     if not valid.any():
         return x, P, S, p_unc, ll
-    cens = (cls == _LOWER) | (cls == _UPPER)
+    cens = (cls == _LOWER) | (cls == _UPPER) | (cls == _INTERVAL)
     noise = np.full((1, 1), float(rv)) if rv.ndim == 0 else np.broadcast_to(rv, (N,))[:, None]
     mp = MeasurementPrediction(
         expected=mu[:, None],
@@ -322,18 +338,21 @@ def _indicator(censored: Any, shape: tuple[int, ...]) -> np.ndarray:
     return np.ascontiguousarray(_as_indicator(censored, shape, "censored"))
 
 
-def _recorded_classes(cls: np.ndarray, flags: np.ndarray, y: np.ndarray, k: int) -> np.ndarray:
-    """Reading classes by the recorded indicator: a flagged reading keeps the limit it lies at (or beyond),
-    an unflagged one at a limit is interior. Raises if a flagged reading is missing or inside its limits."""
-    at_limit = (cls == _LOWER) | (cls == _UPPER)
-    bad = flags & ~at_limit
+def _recorded_classes(
+    cls: np.ndarray, flags: np.ndarray, y: np.ndarray, k: int, lo: np.ndarray, hi: np.ndarray
+) -> np.ndarray:
+    """Reading classes by the recorded indicator (:func:`~tobitkf.filters._readings.interval_classes`): a
+    flagged reading keeps the limit it lies at (or beyond), a flagged one strictly inside its limits is an
+    interval reading, an unflagged one at a limit is interior. Raises if a flagged reading is missing or
+    inside limits that are both infinite."""
+    bad = flags & ((cls == _MISSING) | ((cls == _INTERIOR) & ~(np.isfinite(lo) | np.isfinite(hi))))
     if bad.any():
         run, l = (int(i) for i in np.argwhere(bad)[0])
-        what = "missing (NaN)" if cls[run, l] == _MISSING else f"{y[run, l]:.6g}, strictly inside its limits"
+        what = "missing (NaN)" if cls[run, l] == _MISSING else f"{y[run, l]:.6g}, without a finite limit"
         raise ValidationError(
             f"censored: the reading of channel {l} at time {k} (run {run}) is flagged censored but {what}"
         )
-    return np.where(at_limit & ~flags, _INTERIOR, cls).astype(np.int8)
+    return interval_classes(cls, flags, lo, hi)
 
 
 def steered_limits(censoring: Censoring, state: FilterState, options: Mapping[str, Any], m: int) -> dict[str, Any]:
@@ -602,8 +621,12 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
     :meth:`update`; both take ``lower``/``upper`` for a limit steered from the prediction and
     ``censored`` (``batch_shape + (m,)``) for the recorded indicator of the reading.
     :meth:`filter` takes the recorded indicator ``censored`` (..., T, m) of the record: a flagged
-    reading must lie at (or beyond) a limit and counts as censored there; an unflagged reading is an
-    exact reading even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data);
+    reading at (or beyond) a limit counts as censored there; a flagged reading strictly inside its limits
+    (``lower``/``upper`` given per run and step) is an *interval* reading, :math:`\text{lower} \le y^* \le
+    \text{upper}` (its value is unused): its log-likelihood term is the predictive mass
+    :math:`\log(\Phi(\beta) - \Phi(\alpha))` of the interval and its update the projection on the normal
+    truncated to it (one infinite end gives exactly the censored reading at the other); an unflagged reading
+    is an exact reading even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data);
     without it a reading within ``1e-12 max(1, |limit|)`` of a finite limit is censored.
 
     Extras: ``p_uncensored`` (..., T, m), the probability :math:`\Phi(b) - \Phi(a)` of each channel
@@ -671,7 +694,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, m))
         cls = _classify(y, lo, hi)
         if censored is not None:
-            cls = _recorded_classes(cls, censored, y, k)
+            cls = _recorded_classes(cls, censored, y, k, lo, hi)
         C, r = self.system.measurement(k), self._noise_at(k)
         dy = np.broadcast_to(self._feedthrough(k, u), (N, m))
         compiled = (
@@ -739,7 +762,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         Raises
         ------
         ValidationError
-            A reading outside its limits; a flagged reading that is missing or strictly inside them.
+            A reading outside its limits; a flagged reading that is missing or inside two infinite limits.
         ShapeError
             Malformed ``y``, ``u``, limits or indicator.
         """
@@ -778,7 +801,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         ------
         ValidationError
             A reading outside its limits; ``censored`` not boolean (or 0/1), or flagging a missing
-            reading or one strictly inside its limits.
+            reading or one inside limits that are both infinite.
         ShapeError
             Malformed ``y``, ``u``, limits or ``censored``.
         """
@@ -815,7 +838,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
             data.update(lower=lo, upper=hi)
         if censored is not None:
             flags = _indicator(censored, batch + y2.shape[1:]).reshape(y2.shape)
-            censoring_sides(y2, lo, hi, flags)  # the whole record's checks, with the index of a bad flag
+            censoring_sides(y2, lo, hi, flags, intervals=True)  # the record's checks, the index of a bad flag
             data["censored"] = flags
         if "lower" in data and self.check_limits:  # the record is checked against the limits just given
             est = copy.copy(self)

@@ -153,13 +153,20 @@ class CensoredARData:
             raise ValidationError(
                 f"y: reading {y[i]:.6g} at index {i} lies outside its limits [{lo[i]:.6g}, {hi[i]:.6g}]"
             )
-        side = censoring_sides(
-            y[:, None],
-            lo[:, None],
-            hi[:, None],
-            None if censored is None else np.asarray(censored).reshape(-1, 1) if np.size(censored) == T else censored,
-            rtol=rtol,
-        )[:, 0]
+        flags = (
+            None if censored is None else np.asarray(censored).reshape(-1, 1) if np.size(censored) == T else censored
+        )
+        if flags is not None and np.size(flags) == T:
+            with np.errstate(invalid="ignore"):
+                inside = np.asarray(flags, dtype=bool).reshape(-1) & (y > lo) & (y < hi) & np.isfinite(lo + hi)
+            if inside.any():
+                i = int(np.flatnonzero(inside)[0])
+                raise ValidationError(
+                    f"censored: reading {i} is an interval reading (flagged, inside [{lo[i]:.6g}, {hi[i]:.6g}]), which "
+                    "the censored AR model's exact likelihood does not take; fit a state-space model (tk.fit with "
+                    "a LinearSystem template or a map theta -> LinearSystem) for interval readings"
+                )
+        side = censoring_sides(y[:, None], lo[:, None], hi[:, None], flags, rtol=rtol)[:, 0]
         return cls(y=y, X=X, lower=lo, upper=hi, side=side)
 
     @property

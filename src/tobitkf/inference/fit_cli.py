@@ -21,7 +21,9 @@ The file's layout (``format``, or ``--format`` on the command line) is one of th
 them), ``"nonmem"`` (``DV``/``CENS``/``LIMIT``; keys ``y``, ``cens``, ``limit``), or ``"auto"`` (the
 default: picked from the columns). Further ``[data]`` keys: ``flag_codes`` (a table such as
 ``{1 = "left", 2 = "right"}``), ``duplicates`` (``"error"`` or ``"drop"``), ``encoding``, ``interval_rows``
-(``"left"`` or ``"right"``: how to read EGRET's rows with two finite ends, refused by default).
+(rows whose value lies between two finite ends, EGRET's ``ConcLow < ConcHigh`` or NONMEM's finite ``LIMIT``:
+``"keep"``, the default, reads them as interval readings, which the state-space models score by the
+interval's probability; ``"error"`` refuses them; ``"left"``/``"right"`` keep one end).
 
 **Blank limits.** A blank limit cell means that no limit was recorded for that reading (``-inf`` /
 ``+inf``, as :func:`tobitkf.fit` takes it): harmless for an uncensored or missing reading; a censored
@@ -167,7 +169,7 @@ def _key(section: str, key: str) -> str:
 
 
 def _check_data(d: dict[str, Any]) -> None:
-    from ..data.readers import FORMATS
+    from ..data.readers import FORMATS, INTERVAL_ROWS
 
     for k in ("y", "censored", "low", "high", "cens", "time", "encoding", "subject"):
         if k in d and not (isinstance(d[k], str) and d[k]):
@@ -187,9 +189,10 @@ def _check_data(d: dict[str, Any]) -> None:
         raise ValidationError(f"{_key('data', 'format')}: expected one of {', '.join(FORMATS)}, got {d['format']!r}")
     if "duplicates" in d and d["duplicates"] not in ("error", "drop"):
         raise ValidationError(f"{_key('data', 'duplicates')}: expected 'error' or 'drop', got {d['duplicates']!r}")
-    if "interval_rows" in d and d["interval_rows"] not in ("error", "left", "right"):
+    if "interval_rows" in d and d["interval_rows"] not in INTERVAL_ROWS:
         raise ValidationError(
-            f"{_key('data', 'interval_rows')}: expected 'error', 'left' or 'right', got {d['interval_rows']!r}"
+            f"{_key('data', 'interval_rows')}: expected one of {', '.join(repr(v) for v in INTERVAL_ROWS)}, got "
+            f"{d['interval_rows']!r}"
         )
     if "transform" in d and d["transform"] not in ("none", "log", "log10"):
         raise ValidationError(f"{_key('data', 'transform')}: expected 'none', 'log' or 'log10', got {d['transform']!r}")
@@ -335,7 +338,7 @@ def run_fit(
         duplicates=d.get("duplicates", "error"),
         encoding=d.get("encoding", "utf-8"),
         progress=lines,
-        interval_rows=d.get("interval_rows", "error"),
+        interval_rows=d.get("interval_rows", "keep"),
     )
     ids: list[str] | None = None
     if subject is not None:

@@ -93,7 +93,9 @@ class Panel:
         Censoring limits: one value (scalar or (m,)) for all, or per subject a value or (T_i,) / (T_i, m)
         per reading; ``-inf`` / ``+inf`` (or NaN) for none. Left and right limits may both be present.
     censored : sequence of N bool array_like, optional
-        The recorded censoring indicator (default: the limit rule, a reading at a limit is censored).
+        The recorded censoring indicator (default: the limit rule, a reading at a limit is censored). A
+        flagged reading strictly inside its limits is an interval reading (its value known only to lie
+        between them; the assumed-density likelihood scores the interval's predictive probability).
     u : sequence of N (T_i, p) array_like, optional
         Known inputs with each reading (held over the gap ending at it).
     ids : sequence of N labels, optional
@@ -165,7 +167,9 @@ class Panel:
             ci = None if cs[i] is None else np.asarray(cs[i])
             if ci is not None and ci.size == T * m:
                 ci = ci.reshape(T, m)
-            side = censoring_sides(yi, lo, hi, ci, name=f"censored[{i}]")
+            side = censoring_sides(yi, lo, hi, ci, name=f"censored[{i}]", intervals=True)
+            if ci is not None:  # a flagged reading inside its limits: an interval reading (side 0)
+                side = np.where(np.broadcast_to(np.asarray(ci, dtype=bool), side.shape) & (side == 0), 2, side)
             ui = None
             if us[i] is not None:
                 ui = as_float_array(us[i], f"u[{i}]")

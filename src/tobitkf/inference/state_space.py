@@ -240,6 +240,13 @@ class StateSpaceModel:
             F = ndtr((y - mean) / sd)
             draw = rng.uniform(size=y.shape)
             u = np.where(side < 0, draw * F, np.where(side > 0, F + draw * (1 - F), u))
+        flags = res.data.get("censored")
+        if side is not None and flags is not None and self.censoring is not None:
+            inside = np.asarray(flags, dtype=bool) & (side == 0) & ~np.isnan(y)  # interval readings
+            if inside.any():
+                lo, hi = self.censoring.all_limits(*y.shape)
+                Fa, Fb = ndtr((lo - mean) / sd), ndtr((hi - mean) / sd)
+                u = np.where(inside, Fa + rng.uniform(size=y.shape) * (Fb - Fa), u)
         r = ndtri(np.clip(u, 1e-300, 1 - 1e-16))
         r[np.isnan(y)] = np.nan
         return r[:, 0] if r.shape[1] == 1 else r
@@ -551,11 +558,13 @@ class _Likelihood:
             self.lim = np.full((T, m), np.nan)
         else:
             lo, hi = censoring.all_limits(T, m)
-            self.side = np.ascontiguousarray(censoring_sides(y, lo, hi, censored), dtype=np.int8)
+            self.side = np.ascontiguousarray(censoring_sides(y, lo, hi, censored, intervals=True), dtype=np.int8)
             self.lim = np.ascontiguousarray(np.where(self.side < 0, lo, np.where(self.side > 0, hi, np.nan)))
         self.u_k = np.zeros((T, 0)) if u is None else np.ascontiguousarray(u, dtype=float)
         self.y_k = np.ascontiguousarray(y, dtype=float)
-        self.compiled = numba_available()
+        # interval readings (flagged inside their limits) are scored by the filters, not the compiled kernel
+        intervals = censored is not None and bool((np.asarray(censored, dtype=bool) & (self.side == 0)).any())
+        self.compiled = numba_available() and not intervals
 
     def of_system(self, system: LinearSystem) -> float:
         try:
@@ -659,7 +668,7 @@ def fit_state_space(
     if censoring is not None:
         censoring.check(m, T)
         lo_, hi_ = censoring.all_limits(T, m)
-        censoring_sides(y2, lo_, hi_, c2)  # validates the indicator
+        censoring_sides(y2, lo_, hi_, c2, intervals=True)  # validates the indicator (interval readings taken)
     u2 = None if u is None else as_float_array(u, "u", ndim=2)
     if u2 is not None and u2.shape[0] != T:
         raise ShapeError(f"u: expected {T} rows (one per reading), got {u2.shape}")
