@@ -409,7 +409,10 @@ def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma
 
     runs, steps, n = w.shape
     m, p = plant.m, Nbar.shape[0]
-    f64 = np.ascontiguousarray
+
+    def f64(a, dtype=float):  # C-contiguous and writable: numba types read-only arrays apart, one compile more each
+        return np.require(a, dtype, ("C", "W"))
+
     A, C, Bu = (f64(mat, dtype=float) for mat in (plant.transition(0), plant.measurement(1), plant.Bu.at(1)))
     D = np.zeros((0, p)) if plant.D is None else f64(plant.D.at(1), dtype=float)
     steady = observer == "sstkf"

@@ -314,7 +314,7 @@ def _compiled_measurement_update(kern, x: np.ndarray, P: np.ndarray, innov, vali
     diag = noise.ndim == 2
     if diag:
         noise = noise.reshape(noise.shape[0], m, 1)
-    valid = _no_rows(m, "b") if valid is None else np.ascontiguousarray(valid, dtype=np.bool_)
+    valid = _no_rows(m, "b") if valid is None else np.require(valid, np.bool_, ("C", "W"))  # writable, as _f64
     retained = _no_rows(m, "f") if mp.retained is None else _f64(mp.retained).reshape(-1, m)
     xn, Pn = np.empty((N, nx)), np.empty((N, nx, nx))
     K, Ree = np.empty((N, nx, m)), np.empty((N, m, m))

@@ -60,6 +60,7 @@ from .._validation import ValidationError, check_instance, diagonal_sigma
 from ..channels.base import Channel, section_of
 from ..models.linear import LinearSystem
 from ._backend import numba_available
+from ._outputs import loop_input
 from .assumed_density import AssumedDensityFamily
 from .core import (
     COVARIANCE_FORMS,
@@ -254,7 +255,7 @@ def _compiled_moments(family, par, y, has, mu, cPc, r):
 
     inf = np.full(y.shape, np.inf)
     cls = np.where(has, INTERIOR, MISSING).astype(np.int8)
-    f = np.ascontiguousarray
+    f = loop_input  # writable: numba types read-only arrays (broadcast views) apart, one compile more each
     alpha, beta, ll, _, _ = family_array(family, f(y), cls, f(mu), f(cPc), f(r), -inf, inf, f(par), 0, GL_X, GL_W)
     return alpha, beta, ll
 

@@ -64,6 +64,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, numba_available
 from ._boundary import _noise_variances
+from ._outputs import loop_input
 from ._readings import (
     _INTERIOR,
     _INTERVAL,
@@ -212,11 +213,11 @@ def censored_channel_update(
         from ._compiled_tobit import GL_W, GL_X
 
         cls = _classify(y, lo, hi) if cls is None else cls
-        f = np.ascontiguousarray
+        f = loop_input  # writable: numba types read-only arrays (broadcast views) apart, one compile more each
         cPc = s2 - rv
         alpha, beta, ll, p_unc, _ = family_array(
-            CENSORED, f(y), f(cls, dtype=np.int8), f(mu), f(cPc), f(np.broadcast_to(rv, (N,))), f(lo), f(hi),
-            np.zeros(0), 0, GL_X, GL_W,
+            CENSORED, f(y), np.require(cls, np.int8, ("C", "W")), f(mu), f(cPc), f(np.broadcast_to(rv, (N,))),
+            f(lo), f(hi), np.zeros(0), 0, GL_X, GL_W,
         )  # fmt: skip
         valid = ok & (cls != _MISSING)
         beyond = valid & ((cls == _LOWER) | (cls == _UPPER) | (cls == _INTERVAL))

@@ -227,7 +227,8 @@ class AugmentedLMMSE(_DelayEstimator):
         )
         size, lay = lay
         buf = np.empty(size)
-        kern(Xpr, Ppr[0], carry["LamX"], y, *consts, buf)
+        # y contiguous whether a row of a record or one reading: numba types a strided array apart (one compile more)
+        kern(Xpr, Ppr[0], carry["LamX"], np.ascontiguousarray(y), *consts, buf)
         return buf, lay
 
     def _whole_online(self, state, y):

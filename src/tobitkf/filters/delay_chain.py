@@ -220,6 +220,8 @@ class ChainLMMSE(_DelayEstimator):
         )
         size, lay = lay
         buf = np.empty(size)
+        # y contiguous whether a row of a record or one reading: numba types a strided array apart (one compile more)
+        y = np.ascontiguousarray(y)
         kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - self.system.d], y, *args, buf)
         return buf, lay
 

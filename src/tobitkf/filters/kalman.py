@@ -334,11 +334,12 @@ def _kf_compiled_run(est: KalmanFilter, y2: np.ndarray, state: FilterState, want
     """The KF through the compiled loop from ``state`` (``y2`` (N, T, m), NaN: left out); outputs on request."""
     N, T, m = y2.shape
     n = est.n
-    x = np.ascontiguousarray(state.x, dtype=float)
+    x = loop_input(state.x)
     P = state.P
     assert P is not None, "the compiled path runs the standard form, which carries P"
     per_run = P.shape[0] != 1 or bool(np.isnan(y2).any())
-    P = np.ascontiguousarray(np.broadcast_to(P, (N, n, n)) if per_run else P, dtype=float)
+    # writable: a read-only P (a broadcast view, even of P's own shape) would compile the loop once more
+    P = loop_input(np.broadcast_to(P, (N, n, n)) if per_run else P)
     Pn = P.shape[0]
 
     m_spec, c_spec, pm_spec, pc_spec = state_specs(want, n)

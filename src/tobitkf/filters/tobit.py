@@ -481,10 +481,10 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
     outputs on request; the runs split over ``est.threads`` threads from 256 runs on."""
     N, T, m = y2.shape
     n = est.n
-    c64 = np.ascontiguousarray
-    x = c64(state.x, dtype=float)
+    x = loop_input(state.x)
     assert state.P is not None, "the compiled path runs the standard form, which carries P"
-    P = c64(np.broadcast_to(state.P, (N, n, n)), dtype=np.float64)
+    # writable: a read-only P (a broadcast view, even of P's own shape) would compile the loop once more
+    P = loop_input(np.broadcast_to(state.P, (N, n, n)))
 
     ext = "extras" in want
     means, covs, pmeans, pcovs, pu, ey = output_arrays(  # one allocation, from the output pool when large
