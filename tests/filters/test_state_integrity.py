@@ -525,3 +525,36 @@ def test_the_step_checks_cached_fading_transition_gives_the_statistic_of_the_tra
     want = _online_check._statistic(est, prev, new, None, None, None)
     assert want[0] > 0
     np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+@pytest.mark.parametrize("n", [2, 6])
+def test_the_step_checks_statistic_of_one_run_with_an_input_is_the_predicted_normalised_update(n):
+    """One run of a KF with a control input (the transition is built at the checked step, with its offset
+    b = B^u u): the check's statistic in Python floats (n = 2) and through numpy's products (n = 6) is
+    max_i (x_i - xbar_i)^2 / Pbar_ii with xbar = A x_prev + B^u u, Pbar = A P_prev A^T + Q, computed here in numpy;
+    the same step batched over two identical runs (the numpy route of the check) gives the same value."""
+    from tobitkf.filters import _online_check
+
+    rng = np.random.default_rng(10 + n)
+    A = 0.9 * np.linalg.qr(rng.normal(size=(n, n)))[0]
+    Bu = rng.normal(size=(n, 1))
+    sys_ = tk.LinearSystem(
+        A=A, C=rng.normal(size=(1, n)), Q=0.02 * np.eye(n), R=[[0.1]], x0=np.zeros(n), P0=np.eye(n), Bu=Bu
+    )
+    est = tk.KalmanFilter(sys_, backend="numpy")
+    prev = est.init()
+    for k in range(5):
+        prev = est.step(prev, rng.normal(size=1), u=[0.3])
+    u = np.array([[2.0]])  # the step's input as the check sees it: (runs, p)
+    new = est.step(prev, np.array([5.0]), u=[2.0])
+    got = _online_check._statistic(est, prev, new, u, None, None)
+    xbar = A @ prev.x[0] + Bu[:, 0] * 2.0
+    var = np.diag(A @ prev.P[0] @ A.T + 0.02 * np.eye(n))
+    want = np.max((new.x[0] - xbar) ** 2 / var)
+    without_b = np.max((new.x[0] - A @ prev.x[0]) ** 2 / var)
+    assert len(got) == 1 and abs(without_b - want) > 1e-3 * want  # the input's offset matters here
+    np.testing.assert_allclose(got[0], want, rtol=1e-12)
+    two = FilterState(k=prev.k, batch_shape=(2,), x=np.repeat(prev.x, 2, 0), P=np.repeat(prev.P, 2, 0), n=n)
+    new2 = FilterState(k=new.k, batch_shape=(2,), x=np.repeat(new.x, 2, 0), P=np.repeat(new.P, 2, 0), n=n)
+    batched = _online_check._statistic(est, two, new2, np.repeat(u, 2, 0), None, None)
+    np.testing.assert_allclose(batched, [want, want], rtol=1e-12)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from operator import mul
 from typing import Any
 
 import numpy as np
@@ -97,6 +98,8 @@ KEY = "_correction_window"
 #: the check looks at the steps whose ``k`` is a multiple of this
 STRIDE = 8
 _TINY = 1e-300
+_INF = math.inf
+_F64 = np.dtype(np.float64)
 _FLOAT_TINY = np.finfo(np.float64).tiny  # the filters' zero-variance test (correction_statistic)
 _CHECK_BLOCK = 1 << 19  # values of the statistic's (runs, T, n) arrays per block of :func:`_correction_check`
 
@@ -115,30 +118,31 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
     """:func:`~tobitkf.filters.core.correction_statistic` of one step, per run, over the first ``n`` components
     (the reported state): from the step's prediction ``xp``/``Pp`` when given, else from the previous state
     and the step's transition (only the reported block of the prediction: its mean and variances). One run
-    of a small state: Python floats (a list of one value); else numpy, shape (N,)."""
+    of a small state without the prediction: Python floats (:func:`_one_run`, a list of one value); else numpy,
+    shape (N,)."""
     n = new.n
     if xp is None or Pp is None:
         x, P = prev.x, prev.P
         assert P is not None, "checked by the caller"
-        fixed = _fixed_transition(est, new.k, u, prev.carry) if x.shape[0] == 1 and P.shape[0] == 1 else None
-        if fixed is not None:  # one run, a transition that does not change: A, diag(Q) as lists, cached
-            sl, A_l, q_l, A, q = fixed
-            if sl is not None:
-                x, P = x[:, sl], P[:, sl, sl]
-            if n * x.shape[-1] <= 16:
-                return [_one_run(A_l, x[0].tolist(), P[0].tolist(), q_l, 0.0, new.x[0, :n].tolist())]
-            var_l = ((A @ P[0]) * A).sum(axis=1) + q  # one run: numpy's products, then Python floats
-            return [_one_run_moments((A @ x[0]).tolist(), var_l.tolist(), new.x[0, :n].tolist())]
-        tr = est._transition(new.k, u, prev.carry)
-        A = tr.A
-        if tr.shift:  # the block shift: the reported block is A times block `source`, plus the noise of the top
-            sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1])
+        fixed = _fixed_transition(est, new.k, u, prev.carry)
+        if fixed is None:
+            sl, A, q, b = _reported_rows(est._transition(new.k, u, prev.carry), n)
+            rows = _rows(A, q) if A.size <= _PYTHON_ROUTE else None
+        else:
+            sl, rows, A, q = fixed
+            b = 0.0
+        if sl is not None:
             x, P = x[:, sl], P[:, sl, sl]
-        A = A[:n]
-        q = tr.Qd.diagonal()[:n]
-        b = tr.b
-        if x.shape[0] == 1 and P.shape[0] == 1 and n * x.shape[-1] <= 16:
-            return [_one_run(A.tolist(), x[0].tolist(), P[0].tolist(), q.tolist(), b, new.x[0, :n].tolist())]
+        if x.shape[0] == 1 and P.shape[0] == 1:  # one run: Python floats
+            post = new.x.ravel().tolist()  # (more than the reported n components for an augmented state)
+            if isinstance(b, np.ndarray):  # the offset b_i moved to the other side: (x_i - b_i) - A_i x
+                post = [p - bi for p, bi in zip(post, b.ravel().tolist())]
+            elif b:
+                post = [p - b for p in post]
+            if rows is not None:
+                return [_one_run(rows, x.ravel().tolist(), P.ravel().tolist(), post)]
+            var_l = ((A @ P[0]) * A).sum(axis=1) + q  # a larger state: numpy's products, then Python floats
+            return [_one_run_moments((A @ x[0]).tolist(), var_l.tolist(), post)]
         mean = x @ A.T + (b[:, :n] if isinstance(b, np.ndarray) and b.ndim == 2 else b)
         var = np.einsum("ij,njk,ik->ni", A, P, A) + q
     else:
@@ -150,12 +154,33 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
     return c.max(axis=-1) if n else np.zeros(new.x.shape[0])
 
 
+def _reported_rows(tr: Any, n: int) -> tuple[slice | None, np.ndarray, np.ndarray, Any]:
+    """Of a transition: the block of the previous state the reported block is predicted from (a slice, for the
+    block shift; None: the whole state), the reported rows of A and of diag(Q), and the offset b."""
+    A = tr.A
+    sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1]) if tr.shift else None
+    return sl, A[:n], tr.Qd.diagonal()[:n], tr.b
+
+
+#: one run whose reported block times the state (n * n_x) has at most this many entries: the statistic in
+#: Python floats (:func:`_one_run`); a larger one through numpy's products
+_PYTHON_ROUTE = 16
+
+
+def _rows(A: np.ndarray, q: np.ndarray) -> tuple[tuple[list[float], list[float], float], ...]:
+    r"""The reported rows of a transition for :func:`_one_run`: per component i, the row :math:`A_i` and the
+    flattened outer product :math:`A_i^T A_i` (so that :math:`A_iPA_i^T` is one dot product with the flattened
+    P), and :math:`Q_{ii}`, as Python floats."""
+    return tuple(zip(A.tolist(), (A[:, :, None] * A[:, None, :]).reshape(A.shape[0], -1).tolist(), q.tolist()))
+
+
 def _fixed_transition(est: Any, k: int, u: Any, carry: Any) -> tuple | None:
-    """The transition of a check as ``(block slice or None, A, diag(Q), A, diag(Q))`` (lists, then arrays; the
-    reported rows) when it is the same at every step, cached on the estimator (keyed on its system); None
-    otherwise. The same at every step: no input, a time-invariant system and the transition of the Kalman-type
-    families (KF, TKF, dropping KF, the assumed-density families on a linear system, the fading TKF's block
-    shift), which depends on the system only. Building it costs a few µs of a checked step."""
+    """The transition of a check as ``(block slice or None, rows or None, A, diag(Q))`` (``rows`` of
+    :func:`_rows` for a state small enough for the Python route; ``A``, ``diag(Q)`` the reported rows as
+    arrays) when it is the same at every step, cached on the estimator (keyed on its system); None otherwise.
+    The same at every step: no input, a time-invariant system and the transition of the Kalman-type families
+    (KF, TKF, dropping KF, the assumed-density families on a linear system, the fading TKF's block shift), which
+    depends on the system only. Building it costs a few µs of a checked step."""
     if u is not None:
         return None
     sys_ = est.system if hasattr(est, "system") else None
@@ -164,12 +189,9 @@ def _fixed_transition(est: Any, k: int, u: Any, carry: Any) -> tuple | None:
         return cached[1]
     fixed = None
     if getattr(type(est)._transition, "system_only", False) and getattr(sys_, "time_invariant", False):
-        tr = est._transition(k, None, carry)
-        A = tr.A
-        sl = slice(tr.source * A.shape[-1], (tr.source + 1) * A.shape[-1]) if tr.shift else None
-        A = np.array(A[: est.n])
-        q = tr.Qd.diagonal()[: est.n].copy()
-        fixed = (sl, A.tolist(), q.tolist(), A, q)
+        sl, A, q, _ = _reported_rows(est._transition(k, None, carry), est.n)
+        A, q = np.array(A), q.copy()
+        fixed = (sl, _rows(A, q) if A.size <= _PYTHON_ROUTE else None, A, q)
     est.__dict__["_check_transition"] = (sys_, fixed)
     return fixed
 
@@ -183,40 +205,33 @@ def system_only(transition):
 
 
 def _one_run_moments(mean: list, var: list, post: list) -> float:
-    """:func:`_one_run` from the predicted mean and variances of the reported block (lists)."""
+    """The largest :math:`(\\hat x_i - \\bar x_i)^2 / \\bar P_{ii}` from the predicted mean and variances of the
+    reported block (lists; 0 for a non-positive or non-finite variance or value): :func:`_one_run` of a larger
+    state, whose moments numpy's products give faster than the rows' dot products."""
     best = 0.0
     for m, v, p in zip(mean, var, post):
-        if v > _TINY and math.isfinite(v):
+        if _TINY < v < _INF:
             d = p - m
             c = d * d / v
-            if c > best and math.isfinite(c):
+            if best < c < _INF:
                 best = c
     return best
 
 
-def _one_run(A: list, x: list, P: list, q: list, b: Any, post: list) -> float:
-    """:func:`_statistic` of one run in Python floats: the predicted mean and variances of the reported block,
-    :math:`\\bar x_i = A_i x + b_i`, :math:`\\bar P_{ii} = A_i P A_i^T + Q_{ii}`, then the largest
-    :math:`(\\hat x_i - \\bar x_i)^2 / \\bar P_{ii}` (0 for a non-positive or non-finite variance or value)."""
-    bb = b.ravel().tolist() if isinstance(b, np.ndarray) else None
+def _one_run(rows: tuple, x: list, Pf: list, post: list) -> float:
+    """:func:`_statistic` of one run in Python floats: with the ``rows`` of :func:`_rows`, the predicted mean and
+    variance of each reported component, :math:`\\bar x_i = A_i x`, :math:`\\bar P_{ii} = A_i P A_i^T + Q_{ii}`
+    (``Pf`` the flattened P), then the largest :math:`(\\hat x_i - \\bar x_i)^2 / \\bar P_{ii}` (``post`` the
+    :math:`\\hat x_i`; 0 for a non-positive or non-finite variance or value). Two dot products per component,
+    each a single call (``sum(map(mul, ...))``): the checked step's largest cost is the interpreter's, not
+    the arithmetic's."""
     best = 0.0
-    idx = range(len(x))
-    for i, row in enumerate(A):
-        m = bb[i] if bb is not None else float(b)
-        var = q[i]
-        for j in idx:
-            a = row[j]
-            if a:
-                m += a * x[j]
-                Pj = P[j]
-                acc = 0.0
-                for l in idx:
-                    acc += Pj[l] * row[l]
-                var += a * acc
-        if var > _TINY and math.isfinite(var):
-            d = post[i] - m
-            c = d * d / var
-            if c > best and math.isfinite(c):
+    for (a, aa, qi), p in zip(rows, post):
+        v = qi + sum(map(mul, aa, Pf))
+        if _TINY < v < _INF:  # (False for NaN)
+            d = p - sum(map(mul, a, x))
+            c = d * d / v
+            if best < c < _INF:
                 best = c
     return best
 
@@ -234,47 +249,52 @@ def check_step(
     prediction when it computed one (its numpy path); else, on a checked step, it is recomputed from ``prev``
     and ``u`` (the step's input). Returns ``new`` (its ``carry`` replaced by a new dict when the memory
     changed; the states are not otherwise touched)."""
-    memo = prev.carry.get(KEY)
-    if new.k % STRIDE or prev.carry.get("_diverged"):
+    carry = prev.carry
+    memo = carry.get(KEY)
+    if new.k % STRIDE or carry.get("_diverged"):
         return _keep(new, memo)
     N = new.x.shape[0]
     W = CORRECTION_WINDOW
-    valid = _valid(memo, N)
-    if valid and memo[0, W] < 0:  # this lineage warned
+    count = _count(memo, N)  # None: no memory yet, or not this check's (a state edited by hand)
+    if count is not None and count < 0:  # this lineage warned
         return _keep(new, memo)
-    if prev.P is None or _fixed_gain(est, new.k, u, prev.carry):
+    cache = est.__dict__
+    fixed_gain = cache.get("_fixed_gain")
+    if prev.P is None or (_fixed_gain(est, new.k, u, carry) if fixed_gain is None else fixed_gain):
         return new  # a fixed-gain filter's nominal covariance claims no consistency
-    c = _statistic(est, prev, new, u, xp, Pp)
-    count = int(memo[0, W]) if valid else 0  # 0: none yet, or not this check's (a state edited by hand)
-    w = min(count + 1, W)
-    limit = _limits(est)[w - 1]
-    cap = CORRECTION_CAP * limit
-    if N == 1:  # one run: Python floats
-        vals = memo[0].tolist() if valid else [0.0] * (W + 1)
-        vals[count % W] = float(c[0])
-        vals[W] = count + 1.0
-        total = sum(vals[:W])  # the capped sum is no larger: capped only when the plain one is not below the limit
+    done = 0 if count is None else int(count)
+    w = min(done + 1, W)
+    limit = (cache.get("_correction_limits") or _limits(est))[w - 1]
+    slot = done % W
+    if N == 1:  # one run: Python floats, and the memory of the previous state copied with two entries changed
+        vals = memo.tolist()[0] if done else [0.0] * (W + 1)
+        vals[slot] = c0 = float(_statistic(est, prev, new, u, xp, Pp)[0])
+        vals[W] = 0.0
+        total = sum(vals)  # the capped sum is no larger: capped only when the plain one is not below the limit
         if not total <= limit:
-            total = sum(v if v < cap else cap for v in vals[:W])
-        runs = int(total > limit and all(map(math.isfinite, new.x[0].tolist())))
-        window = np.array([vals])
+            cap = CORRECTION_CAP * limit
+            total = sum(v if v < cap else cap for v in vals)
+        runs = int(total > limit and all(map(math.isfinite, new.x.ravel().tolist())))
+        window = memo.copy() if done else np.zeros((1, W + 1))
+        window[0, slot] = c0
+        window[0, W] = -1.0 if runs else done + 1.0
     else:
-        window = memo.copy() if valid else np.zeros((N, W + 1))
-        window[:, count % W] = c
-        window[:, W] = count + 1.0
+        window = memo.copy() if done else np.zeros((N, W + 1))
+        window[:, slot] = _statistic(est, prev, new, u, xp, Pp)
+        cap = CORRECTION_CAP * limit
         over = (np.minimum(window[:, :W], cap).sum(axis=-1) > limit) & np.isfinite(new.x).all(axis=-1)
         runs = int(over.sum())
+        window[:, W] = -1.0 if runs else done + 1.0
     if runs:
         _warn(est, new.k, runs, N, w, limit)
-        window[:, W] = -1.0
     _set_carry(new, window)
     return new
 
 
 def has_warned(state: Any) -> bool:
     """Whether the lineage of ``state`` has given the online divergence warning (its memory says so)."""
-    memo = state.carry.get(KEY)
-    return _valid(memo, state.x.shape[0]) and bool(memo[0, CORRECTION_WINDOW] < 0)
+    count = _count(state.carry.get(KEY), state.x.shape[0])
+    return count is not None and count < 0
 
 
 def _keep(new: Any, memo: Any) -> Any:
@@ -284,15 +304,13 @@ def _keep(new: Any, memo: Any) -> Any:
     return new
 
 
-def _valid(memo: Any, N: int) -> bool:
-    """Whether ``memo`` is this check's memory for N runs: a float64 array (N, W + 1), the last W checked values
-    of each run then the count of checked steps (-1 once it warned)."""
-    return (
-        isinstance(memo, np.ndarray)
-        and memo.dtype == np.float64
-        and memo.shape == (N, CORRECTION_WINDOW + 1)
-        and (memo[0, CORRECTION_WINDOW] == -1.0 or 0.0 <= memo[0, CORRECTION_WINDOW] < 2.0**53)
-    )
+def _count(memo: Any, N: int) -> float | None:
+    """The count of checked steps in ``memo`` (-1 once the lineage warned) when it is this check's memory for N
+    runs: a float64 array (N, W + 1), the last W checked values of each run then that count; None otherwise."""
+    if not isinstance(memo, np.ndarray) or memo.shape != (N, CORRECTION_WINDOW + 1) or memo.dtype != _F64:
+        return None
+    count = memo.item(0, CORRECTION_WINDOW)
+    return count if count == -1.0 or 0.0 <= count < 2.0**53 else None
 
 
 def _fixed_gain(est: Any, k: int, u: Any, carry: Any) -> bool:

@@ -40,6 +40,7 @@ Symbols: ``mean`` = x̂, ``cov`` = P, ``pred_mean`` = x̄, ``pred_cov`` = P̄.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from functools import lru_cache
 from typing import Any
 
@@ -530,16 +531,7 @@ class DroppingKalmanFilter(KalmanFilter):
         if res is None:
             return None
         extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
-        return FilterResult(
-            mean=res.mean,
-            cov=res.cov,
-            pred_mean=res.pred_mean,
-            pred_cov=res.pred_cov,
-            extras=extras,
-            times=res.times,
-            var=res.var,
-            final=res.final,
-        )
+        return replace(res, extras=extras)
 
     def filter(
         self,
@@ -641,13 +633,4 @@ def dropping_with_indicator(
     extras = dict(res.extras)
     if res.mean is not None or outputs == "all" or "extras" in (outputs or ()):
         extras["censored"] = (side != 0).reshape(batch + y2.shape[1:])
-    return FilterResult(
-        mean=res.mean,
-        cov=res.cov,
-        pred_mean=res.pred_mean,
-        pred_cov=res.pred_cov,
-        extras=extras,
-        times=res.times,
-        var=res.var,
-        final=res.final,
-    )
+    return replace(res, extras=extras)
