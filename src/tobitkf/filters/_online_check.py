@@ -127,13 +127,15 @@ def _statistic(est: Any, prev: Any, new: Any, u: Any, xp: Any, Pp: Any) -> list[
         fixed = _fixed_transition(est, new.k, u, prev.carry)
         if fixed is None:
             sl, A, q, b = _reported_rows(est._transition(new.k, u, prev.carry), n)
-            rows = _rows(A, q) if A.size <= _PYTHON_ROUTE else None
+            rows = None
         else:
             sl, rows, A, q = fixed
             b = 0.0
         if sl is not None:
             x, P = x[:, sl], P[:, sl, sl]
         if x.shape[0] == 1 and P.shape[0] == 1:  # one run: Python floats
+            if fixed is None and A.size <= _PYTHON_ROUTE:
+                rows = _rows(A, q)
             post = new.x.ravel().tolist()  # (more than the reported n components for an augmented state)
             if isinstance(b, np.ndarray):  # the offset b_i moved to the other side: (x_i - b_i) - A_i x
                 post = [p - bi for p, bi in zip(post, b.ravel().tolist())]
