@@ -10,6 +10,7 @@ Tests that pass their own ``@settings(max_examples=...)`` keep it (explicit sett
 
 import os
 
+import pytest
 from hypothesis import HealthCheck, settings
 
 settings.register_profile(
@@ -38,8 +39,68 @@ HEAVY = (
 
 
 def pytest_collection_modifyitems(config, items):
-    import pytest
-
     for item in items:
         if item.nodeid.startswith(HEAVY):
             item.add_marker(pytest.mark.heavy)
+
+
+# Needless compiles: numba compiles a kernel once per argument type, and a read-only array (np.broadcast_to returns one
+# even at the array's own shape) or a strided one (a row of a record) is a type of its own. A caller that hands one
+# over compiles the kernel once more in every process with a fresh cache (a minute or more of CPU for the
+# whole-record loop). At the end of a run, each kernel of tobitkf that a test process compiled for two argument lists
+# differing only in that way is listed in the run's summary (from every xdist worker): pass such arrays through
+# tobitkf.filters._outputs.loop_input or np.require(a, dtype, ("C", "W")) before the call.
+_NEEDLESS: list[str] = []
+
+
+def _needless_specialisations() -> list[str]:
+    import sys
+
+    if "numba" not in sys.modules:
+        return []
+    from numba.core import types
+    from numba.core.dispatcher import Dispatcher
+
+    def plain(t):
+        return (t.dtype, t.ndim) if isinstance(t, types.Array) else t
+
+    found = []
+    for name, mod in list(sys.modules.items()):
+        if mod is None or not (name == "tobitkf" or name.startswith("tobitkf.")):
+            continue
+        for attr, obj in list(vars(mod).items()):
+            if not isinstance(obj, Dispatcher) or getattr(obj.py_func, "__module__", None) != name:
+                continue
+            seen: dict = {}
+            for sig in obj.signatures:
+                key = tuple(plain(t) for t in sig)
+                if key in seen:
+                    diff = [f"argument {i}: {a} / {b}" for i, (a, b) in enumerate(zip(seen[key], sig)) if a != b]
+                    found.append(f"{name}.{attr} ({'; '.join(diff)})")
+                    break
+                seen[key] = sig
+    return found
+
+
+def pytest_sessionfinish(session):
+    try:
+        found = _needless_specialisations()
+    except Exception as exc:  # noqa: BLE001 - a diagnostic: never fail the run for it
+        found = [f"(the check of the compiled kernels failed: {exc!r})"]
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is not None:  # an xdist worker: the controller reports it
+        workeroutput["needless_specialisations"] = found
+    else:
+        _NEEDLESS.extend(found)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node, error):
+    _NEEDLESS.extend(getattr(node, "workeroutput", {}).get("needless_specialisations", []))
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _NEEDLESS:
+        terminalreporter.section("kernels compiled again for read-only or strided arrays")
+        for line in sorted(set(_NEEDLESS)):
+            terminalreporter.write_line(line)

@@ -189,3 +189,25 @@ def test_delay_steps_take_contiguous_readings(monkeypatch):
         calls(make)
     assert {"aug_step", "chain_step"} <= set(spies.calls)
     assert spies.bad == []
+
+
+def test_state_space_likelihood_takes_writable_arrays(monkeypatch):
+    """The compiled log-likelihood of the state-space fit, one channel (R's diagonal is a read-only view) and a
+    read-only record."""
+    from tobitkf.inference import _compiled_ss
+    from tobitkf.inference.state_space import _Likelihood
+
+    sys_ = tk.LinearSystem(A=[[0.8]], C=[[1.0]], Q=[[0.1]], R=[[0.2]], x0=[0.0], P0=[[1.0]])
+    cens = tk.Censoring(lower=0.0)
+    y = cens.censor(tk.simulate(sys_, 20, 1, seed=4).y[0])
+    y.setflags(write=False)
+
+    def calls():
+        return _Likelihood(y, None, cens, None).of_system(sys_)
+
+    want = calls()
+    spies = _Spies(monkeypatch)
+    spies.spy(_compiled_ss, "log_likelihood")
+    got = calls()
+    assert spies.calls == ["log_likelihood"] and spies.bad == []
+    assert got == want and np.isfinite(got)

@@ -560,8 +560,9 @@ class _Likelihood:
             lo, hi = censoring.all_limits(T, m)
             self.side = np.ascontiguousarray(censoring_sides(y, lo, hi, censored, intervals=True), dtype=np.int8)
             self.lim = np.ascontiguousarray(np.where(self.side < 0, lo, np.where(self.side > 0, hi, np.nan)))
-        self.u_k = np.zeros((T, 0)) if u is None else np.ascontiguousarray(u, dtype=float)
-        self.y_k = np.ascontiguousarray(y, dtype=float)
+        # writable: numba types a read-only array (a record the caller froze) apart, one compile of the kernel more
+        self.u_k = np.zeros((T, 0)) if u is None else np.require(u, float, ("C", "W"))
+        self.y_k = np.require(y, float, ("C", "W"))
         # interval readings (flagged inside their limits) are scored by the filters, not the compiled kernel
         intervals = censored is not None and bool((np.asarray(censored, dtype=bool) & (self.side == 0)).any())
         self.compiled = numba_available() and not intervals
@@ -589,7 +590,10 @@ class _Likelihood:
         n, m, p = M["A"].shape[0], R.shape[0], self.u_k.shape[1]
         Bu = np.zeros((n, p)) if M.get("Bu") is None or p == 0 else M["Bu"]
         D = np.zeros((m, p)) if M.get("D") is None or p == 0 else M["D"]
-        c = np.ascontiguousarray
+
+        def c(a, dtype=float):  # C-contiguous and writable (np.diagonal returns a read-only view): one specialisation
+            return np.require(a, dtype, ("C", "W"))
+
         v = float(
             _compiled_ss.log_likelihood(
                 c(M["A"], dtype=float),
