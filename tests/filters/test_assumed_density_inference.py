@@ -159,14 +159,14 @@ def test_the_indicator_is_checked():
     with pytest.raises(ShapeError, match="censored"):
         est.filter(y, u=u, censored=flags[:, :4])
     # a flagged reading strictly inside its limits is an interval reading (between the limits), not an error;
-    # with no finite limit it says nothing and is refused
+    # inside limits of which one is infinite the flag contradicts the reading and is refused
     inside = flags.copy()
     i = np.argwhere(~flags & ~np.isnan(y) & (y > -0.3) & (y < 0.8))[0]
     inside[tuple(i)] = True
     ll_iv = est.filter(y, u=u, censored=inside).extras["log_likelihood"]
     assert np.all(np.isfinite(ll_iv)) and ll_iv[tuple(i[:2])] <= 0.0
     free = tk.AssumedDensityTobitFilter(system, tk.Censoring())
-    with pytest.raises(ValidationError, match="censored.*no finite limit"):
+    with pytest.raises(ValidationError, match="censored.*two finite limits"):
         free.filter(np.nan_to_num(y), u=u, censored=inside)
     missing = flags.copy()
     missing[1, 4, 0] = True
@@ -175,7 +175,7 @@ def test_the_indicator_is_checked():
     with pytest.raises(ValidationError, match="censored"):
         est.filter(y, u=u, censored=flags.astype(float) * 0.5)
     st = free.init((3,))
-    with pytest.raises(ValidationError, match="censored.*without a finite limit"):
+    with pytest.raises(ValidationError, match="censored.*two finite limits"):
         j = np.argwhere(~flags[:, 0] & (y[:, 0] > -0.3) & (y[:, 0] < 0.8))[0]
         bad = flags[:, 0].copy()
         bad[tuple(j)] = True
