@@ -158,23 +158,28 @@ def test_the_indicator_is_checked():
     est = tk.AssumedDensityTobitFilter(system, cens)
     with pytest.raises(ShapeError, match="censored"):
         est.filter(y, u=u, censored=flags[:, :4])
+    # a flagged reading strictly inside its limits is an interval reading (between the limits), not an error;
+    # inside limits of which one is infinite the flag contradicts the reading and is refused
     inside = flags.copy()
     i = np.argwhere(~flags & ~np.isnan(y) & (y > -0.3) & (y < 0.8))[0]
     inside[tuple(i)] = True
-    with pytest.raises(ValidationError, match="censored.*inside its limits"):
-        est.filter(y, u=u, censored=inside)
+    ll_iv = est.filter(y, u=u, censored=inside).extras["log_likelihood"]
+    assert np.all(np.isfinite(ll_iv)) and ll_iv[tuple(i[:2])] <= 0.0
+    free = tk.AssumedDensityTobitFilter(system, tk.Censoring())
+    with pytest.raises(ValidationError, match="censored.*two finite limits"):
+        free.filter(np.nan_to_num(y), u=u, censored=inside)
     missing = flags.copy()
     missing[1, 4, 0] = True
     with pytest.raises(ValidationError, match="censored.*missing"):
         est.filter(y, u=u, censored=missing)
     with pytest.raises(ValidationError, match="censored"):
         est.filter(y, u=u, censored=flags.astype(float) * 0.5)
-    st = est.init((3,))
-    with pytest.raises(ValidationError, match="censored.*inside its limits"):
+    st = free.init((3,))
+    with pytest.raises(ValidationError, match="censored.*two finite limits"):
         j = np.argwhere(~flags[:, 0] & (y[:, 0] > -0.3) & (y[:, 0] < 0.8))[0]
         bad = flags[:, 0].copy()
         bad[tuple(j)] = True
-        est.step(st, y[:, 0], u=u[0], censored=bad)
+        free.step(st, np.nan_to_num(y[:, 0]), u=u[0], censored=bad)
     with pytest.raises(ValidationError, match="order"):
         tk.AssumedDensityTobitFilter(system, cens, order="nope")
 

@@ -26,8 +26,8 @@ class CensoredSeries:
     lower, upper : (T,) ndarray
         Censoring limits of each reading (``-inf`` / ``+inf``: no limit on that side). A reading is
         left-censored when it is flagged and at ``lower`` (its value at most ``lower``), right-censored when
-        flagged and at ``upper``, and an *interval* reading when flagged and strictly between them (its value
-        known only to lie in ``[lower, upper]``; :attr:`interval`).
+        flagged and at ``upper``, and an *interval* reading when flagged and strictly between two finite
+        limits (its value known only to lie in ``[lower, upper]``; :attr:`interval`).
     covariates : dict of str to (T,) ndarray
         Known regressors (e.g. ``"lQ"``, the log discharge).
     time : (T,) ndarray of str
@@ -56,9 +56,10 @@ class CensoredSeries:
 
     @property
     def interval(self) -> np.ndarray:
-        """(T,) bool: interval readings, flagged censored and strictly between their two limits."""
+        """(T,) bool: interval readings, flagged censored and strictly between two finite limits."""
         with np.errstate(invalid="ignore"):
-            return np.asarray(self.censored, dtype=bool) & (self.y > self.lower) & (self.y < self.upper)
+            inside = (self.y > self.lower) & (self.y < self.upper) & np.isfinite(self.lower) & np.isfinite(self.upper)
+            return np.asarray(self.censored, dtype=bool) & inside
 
     @property
     def missing(self) -> np.ndarray:

@@ -4,7 +4,7 @@ Shared by the particle filter and the assumed-density filters. A reading within
 ``1e-12 max(1, |limit|)`` of a finite limit counts as censored there (the rule of
 :meth:`tobitkf.Censoring.censored_mask`); NaN is a missing reading. With a recorded indicator, the
 assumed-density filters also take an *interval* reading (class ``INTERVAL``): one flagged censored that lies
-strictly inside its limits says only :math:`\text{lower} \le y^* \le \text{upper}` (an interval-censored
+strictly inside two finite limits says only :math:`\text{lower} \le y^* \le \text{upper}` (an interval-censored
 laboratory value, EGRET's ``ConcLow < ConcHigh``); its likelihood is the predictive mass of the interval.
 """
 
@@ -136,8 +136,9 @@ def censoring_sides(
         the limit it lies at or beyond (within the same tolerance); an unflagged reading is
         uncensored even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data).
     intervals : bool, default False
-        Accept a flagged reading strictly inside its limits as an interval reading (side 0; the estimators
-        that take them: the assumed-density filters and what is built on them). Without it, refused.
+        Accept a flagged reading strictly inside two finite limits as an interval reading (side 0; the
+        estimators that take them: the assumed-density filters and what is built on them). Without it, or
+        inside limits of which one is infinite (a flag that contradicts the reading), refused.
 
     Returns
     -------
@@ -149,7 +150,7 @@ def censoring_sides(
         ``censored`` does not have the shape of ``y``.
     ValidationError
         ``censored`` is not boolean (or 0/1), or flags a missing reading, or one strictly inside its
-        limits (unless ``intervals``; then one without a finite limit).
+        limits (with ``intervals``: inside limits that are not both finite).
     """
     lo = np.broadcast_to(lower, y.shape)
     hi = np.broadcast_to(upper, y.shape)
@@ -168,13 +169,13 @@ def censoring_sides(
             raise ValidationError(f"{name}: reading at index {idx} is flagged censored but missing (NaN)")
         bad = flag & ~(at_lo | at_hi)
         if intervals:
-            bad = bad & ~(np.isfinite(lo) | np.isfinite(hi))
+            bad = bad & ~(np.isfinite(lo) & np.isfinite(hi))
         if bad.any():
             idx = tuple(int(i) for i in np.argwhere(bad)[0])
             if intervals:
                 raise ValidationError(
-                    f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but has no finite limit "
-                    "(an interval reading needs a finite lower or upper end)"
+                    f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but lies strictly inside its "
+                    f"limits [{lo[idx]:.6g}, {hi[idx]:.6g}] (an interval reading needs two finite limits)"
                 )
             raise ValidationError(
                 f"{name}: reading {y[idx]:.6g} at index {idx} is flagged censored but lies strictly "
@@ -188,11 +189,11 @@ def censoring_sides(
 
 def interval_classes(cls: np.ndarray, flags: np.ndarray, lo: Any, hi: Any) -> np.ndarray:
     """Reading classes by a recorded indicator: a flagged reading keeps the limit it lies at (or beyond); a
-    flagged one strictly inside its limits, with a finite limit, is an ``INTERVAL`` reading; an unflagged one
-    at a limit is ``INTERIOR``. (A flagged reading inside limits that are both infinite stays ``INTERIOR``:
-    the callers refuse it first.)"""
+    flagged one strictly inside two finite limits is an ``INTERVAL`` reading; an unflagged one at a limit is
+    ``INTERIOR``. (A flagged reading inside limits of which one is infinite stays ``INTERIOR``: the callers
+    refuse it first.)"""
     at_limit = (cls == _LOWER) | (cls == _UPPER)
-    finite = np.isfinite(lo) | np.isfinite(hi)
+    finite = np.isfinite(lo) & np.isfinite(hi)
     out = np.where(at_limit & ~flags, _INTERIOR, cls)
     return np.where(flags & (cls == _INTERIOR) & finite, _INTERVAL, out).astype(np.int8)
 

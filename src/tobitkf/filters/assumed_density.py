@@ -344,12 +344,16 @@ def _recorded_classes(
 ) -> np.ndarray:
     """Reading classes by the recorded indicator (:func:`~tobitkf.filters._readings.interval_classes`): a
     flagged reading keeps the limit it lies at (or beyond), a flagged one strictly inside its limits is an
-    interval reading, an unflagged one at a limit is interior. Raises if a flagged reading is missing or
-    inside limits that are both infinite."""
-    bad = flags & ((cls == _MISSING) | ((cls == _INTERIOR) & ~(np.isfinite(lo) | np.isfinite(hi))))
+    interval reading if both limits are finite, an unflagged one at a limit is interior. Raises if a flagged
+    reading is missing or inside limits of which one is infinite."""
+    bad = flags & ((cls == _MISSING) | ((cls == _INTERIOR) & ~(np.isfinite(lo) & np.isfinite(hi))))
     if bad.any():
         run, l = (int(i) for i in np.argwhere(bad)[0])
-        what = "missing (NaN)" if cls[run, l] == _MISSING else f"{y[run, l]:.6g}, without a finite limit"
+        what = (
+            "missing (NaN)"
+            if cls[run, l] == _MISSING
+            else f"{y[run, l]:.6g}, strictly inside its limits (an interval reading needs two finite limits)"
+        )
         raise ValidationError(
             f"censored: the reading of channel {l} at time {k} (run {run}) is flagged censored but {what}"
         )
@@ -622,11 +626,12 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
     :meth:`update`; both take ``lower``/``upper`` for a limit steered from the prediction and
     ``censored`` (``batch_shape + (m,)``) for the recorded indicator of the reading.
     :meth:`filter` takes the recorded indicator ``censored`` (..., T, m) of the record: a flagged
-    reading at (or beyond) a limit counts as censored there; a flagged reading strictly inside its limits
-    (``lower``/``upper`` given per run and step) is an *interval* reading, :math:`\text{lower} \le y^* \le
+    reading at (or beyond) a limit counts as censored there; a flagged reading strictly inside two finite
+    limits (``lower``/``upper`` given per run and step) is an *interval* reading, :math:`\text{lower} \le y^* \le
     \text{upper}` (its value is unused): its log-likelihood term is the predictive mass
     :math:`\log(\Phi(\beta) - \Phi(\alpha))` of the interval and its update the projection on the normal
-    truncated to it (one infinite end gives exactly the censored reading at the other); an unflagged reading
+    truncated to it (the same event computation as a censored reading's, which is an interval with one
+    infinite end: equal to it exactly, tested); an unflagged reading
     is an exact reading even when it equals a limit (e.g. the 8 such readings of the cloud-ceiling data);
     without it a reading within ``1e-12 max(1, |limit|)`` of a finite limit is censored.
 
@@ -763,7 +768,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         Raises
         ------
         ValidationError
-            A reading outside its limits; a flagged reading that is missing or inside two infinite limits.
+            A reading outside its limits; a flagged reading that is missing or inside limits not both finite.
         ShapeError
             Malformed ``y``, ``u``, limits or indicator.
         """
@@ -802,7 +807,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         ------
         ValidationError
             A reading outside its limits; ``censored`` not boolean (or 0/1), or flagging a missing
-            reading or one inside limits that are both infinite.
+            reading or one inside limits that are not both finite.
         ShapeError
             Malformed ``y``, ``u``, limits or ``censored``.
         """
