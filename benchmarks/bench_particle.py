@@ -204,7 +204,9 @@ def ratios(ref: list, ours: list, per_ref: float = 1.0, per_ours: float = 1.0) -
     return {"cpu": cpu, "wall": wall}
 
 
-def compiled_vs_plain(runs: int, particles: int, steps: int, repeat: int, numpy_path: bool = False) -> dict:
+def compiled_vs_plain(
+    runs: int, particles: int, steps: int, repeat: int, numpy_path: bool = False, proposals=("optimal", "prior")
+) -> dict:
     """(c): µs per run-step (CPU, user, system, wall; medians and spreads of ``repeat``) of the compiled filter and
     the plain numpy filter, interleaved in this process; ratios per round = plain time / ours."""
     print(
@@ -218,7 +220,7 @@ def compiled_vs_plain(runs: int, particles: int, steps: int, repeat: int, numpy_
     tk.ParticleFilter(sys_, cens, particles=8, backend="numba").filter(y[:1, :2])  # compile (or load the cache)
     print(HEAD)
     out = {}
-    for proposal in ("optimal", "prior"):
+    for proposal in proposals:
         pf = tk.ParticleFilter(sys_, cens, particles=particles, proposal=proposal, seed=1, backend="numba")
         contestants = {
             "ours (compiled)": lambda pf=pf: pf.filter(y, outputs="mean"),
@@ -377,6 +379,10 @@ def main() -> None:
     parser.add_argument("--target-particles", type=int, default=4000, help="(c): particles per run")
     parser.add_argument("--peer-runs", type=int, default=40, help="(d): runs")
     parser.add_argument("--numpy-path", action="store_true", help="(c): also ParticleFilter's numpy path")
+    parser.add_argument(
+        "--proposal", choices=("optimal", "prior", "both"), default="both", help="(c): the proposals timed"
+    )
+    parser.add_argument("--no-peers", action="store_true", help="skip (d)")
     args = parser.parse_args()
     if args.smoke:
         throughput(4, 500, 5, 1)
@@ -384,14 +390,19 @@ def main() -> None:
         compiled_vs_plain(4, 500, 5, 1, numpy_path=True)
         peers(8, 200, 5, 1)
         return
+    props = ("optimal", "prior") if args.proposal == "both" else (args.proposal,)
     if args.target:
-        compiled_vs_plain(args.target_runs or 1000, 4000, 100, args.repeat, args.numpy_path)
-        peers(args.peer_runs, 4000, 100, args.repeat)
+        compiled_vs_plain(args.target_runs or 1000, 4000, 100, args.repeat, args.numpy_path, props)
+        if not args.no_peers:
+            peers(args.peer_runs, 4000, 100, args.repeat)
         return
     throughput(args.runs, args.particles, args.steps, min(args.repeat, 3))
     memory(args.runs, args.particles // 10, 50)
-    compiled_vs_plain(args.target_runs or 50, args.target_particles, args.target_steps, args.repeat, args.numpy_path)
-    peers(args.peer_runs, args.target_particles, args.target_steps, args.repeat)
+    compiled_vs_plain(
+        args.target_runs or 50, args.target_particles, args.target_steps, args.repeat, args.numpy_path, props
+    )
+    if not args.no_peers:
+        peers(args.peer_runs, args.target_particles, args.target_steps, args.repeat)
 
 
 if __name__ == "__main__":
