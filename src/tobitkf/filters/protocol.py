@@ -498,8 +498,9 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
     (:math:`\\bar\\Lambda_h`, :math:`\\check\\Lambda_h`, 0), filled as the sensors are first scheduled
     (:func:`_sensor_rows`), the per-sensor step arrays (views of one row of each table, shaped as the loop
     takes them), the transition ``A`` and noise ``Qd`` (1, 1, n, n), the threshold ``lo``, ``hi`` (1, 1, 1), the
-    names of the step's scalars (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`) and the module
-    of the loop (imported here, with numba, on first use)."""
+    names of the step's scalars (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the module
+    of the loop (imported here, with numba, on first use), the failure-term code and the covariance form, and
+    the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
     ctx = est.__dict__.get("_loop_ctx")
     if ctx is None:
         from . import _compiled_loop
@@ -513,7 +514,9 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
         )
         A, Qd = _compiled_loop._system_arrays(est.system, 0, 1)
         lohi = (np.full((1, 1, 1), est._tau), np.full((1, 1, 1), math.inf))
-        ctx = est._loop_ctx = (Hs, Cs, rs, pars, rows, set(), A, Qd) + lohi + (PROTOCOL_TKF_EXTRAS, _compiled_loop)
+        codes = (_KERNEL_MODES[est.failure_term], est.covariance_update == "joseph")
+        ctx = (Hs, Cs, rs, pars, rows, set(), A, Qd) + lohi + (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {})
+        est._loop_ctx = ctx
     return ctx
 
 
@@ -535,35 +538,16 @@ def _loop_call(est, ctx, y, gam, H, F, r, par, x, P, outs, comp, x_last, P_last)
     ``comp`` (N, T, 1, 7 + 2 n_ξ) the extras."""
     cl = ctx[11]
     N = y.shape[0]
-    n = est.n
+    none = ctx[13].get(N)
+    if none is None:  # the inputs and outputs the protocol TKF does not use, per number of runs
+        none = ctx[13][N] = (_empty((N, 0, est.n)), _empty((N, 0, 1)), _empty((N, 0)))
+    mode, joseph = ctx[12]
+    lo, hi = ctx[8], ctx[9]
+    e_n, e_1, e_0 = none
     cl.compiled_loop(
-        cl.PROTOCOL_TKF,
-        y,
-        gam.view(np.int8),
-        ctx[6],
-        ctx[7],
-        H,
-        F,
-        r,
-        ctx[8],
-        ctx[9],
-        par,
-        0,
-        1,
-        _KERNEL_MODES[est.failure_term],
-        est.covariance_update == "joseph",
-        _empty((N, 0, n)),
-        _empty((N, 0, 1)),
-        x,
-        P,
-        *outs,
-        _empty((N, 0, 1)),
-        _empty((N, 0, 1)),
-        _empty((N, 0)),
-        comp,
-        x_last,
-        P_last,
-    )
+        cl.PROTOCOL_TKF, y, gam.view(np.int8), ctx[6], ctx[7], H, F, r, lo, hi, par, 0, 1, mode, joseph, e_n, e_1, x, P,
+        *outs, e_1, e_1, e_0, comp, x_last, P_last,
+    )  # fmt: skip
 
 
 def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> FilterState | None:
