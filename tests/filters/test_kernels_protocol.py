@@ -24,7 +24,7 @@ from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.protocol_model import FAILURE_TERMS
 
 pytest.importorskip("numba")
-from tobitkf.filters import _compiled_block, _compiled_loop  # noqa: E402
+from tobitkf.filters import _compiled_block, _compiled_entries, _compiled_loop  # noqa: E402
 
 from ._compare import assert_same
 
@@ -256,7 +256,7 @@ def test_divergence_reruns_on_numpy():
 
 
 def _raise(*args):
-    raise AssertionError("protocol kernel used")
+    raise AssertionError("protocol kernel used")  # the compiled loop or its online-step entry
 
 
 def test_auto_uses_the_kernel_when_covered(monkeypatch):
@@ -270,6 +270,7 @@ def test_auto_uses_the_kernel_when_covered(monkeypatch):
     ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y)  # numpy never touches it
     st = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").init((2,))
     ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").step(st, y[:, 0])  # nor its online step
+    monkeypatch.setattr(_compiled_entries, "protocol_tkf_step", _raise)  # the online step's entry into the loop
     with pytest.raises(AssertionError, match="protocol kernel used"):
         ProtocolTobitKalmanFilter(sys_, ch).step(st, y[:, 0])  # the online step runs it too (T = 1)
 

@@ -1,7 +1,8 @@
-"""The numba kernel of the steady-state TKF (Miller 2015, §3.4.2) against its numpy reference path.
+"""The steady-state TKF (Miller 2015, §3.4.2) through the one compiled loop (its fixed-gain code) against its
+numpy reference path.
 
 The numpy path is the reference (tests/filters/test_steady_state.py checks it against the source); the
-kernel must reproduce it to rounding (1e-12) in every case it covers, and every other case must run
+compiled loop must reproduce it to rounding (1e-12) in every case it covers, and every other case must run
 on numpy (``backend="auto"``) or be refused (``backend="numba"``).
 
 The family is one-sided by construction (the limit (3.56) is set on one side, ``side``), so "one- and

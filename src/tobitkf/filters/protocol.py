@@ -94,7 +94,7 @@ from .core import (
     step_state,
     symmetrize,
 )
-from .kalman import LinearGaussianFamily, _finite_or_none, finite_variances
+from .kalman import LinearGaussianFamily, _finite_or_none
 from .protocol_model import (
     FAILURE_TERMS,
     PREHISTORY_PRIORS,
@@ -493,35 +493,37 @@ def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
 
 
 def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
-    """What every call of the compiled loop takes from the estimator, built once (arrays and numbers only: the
-    estimator still pickles): the per-sensor tables ``Hs``, ``Cs`` (p, n_ξ), ``rs`` (p,), ``pars`` (p, 3)
-    (:math:`\\bar\\Lambda_h`, :math:`\\check\\Lambda_h`, 0), filled as the sensors are first scheduled
-    (:func:`_sensor_rows`), the per-sensor step arrays (views of one row of each table, shaped as the loop
-    takes them), the transition ``A`` and noise ``Qd`` (1, 1, n, n), the threshold ``lo``, ``hi`` (1, 1, 1), the
-    names of the step's scalars (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the module
-    of the loop (imported here, with numba, on first use), the failure-term code and the covariance form, and
-    the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
+    r"""What every call of the compiled loop takes from the estimator, built once (arrays and numbers only: the
+    estimator still pickles): one table per sensor h (p, 2 n_ξ + 4), filled as the sensors are first scheduled
+    (:func:`_sensor_rows`), whose row is :math:`\mathbf H_h`, :math:`\mathcal C_h`, :math:`\mathcal R_h`,
+    :math:`\bar\Lambda_h`, :math:`\check\Lambda_h`, 0 (the online step's ``row`` of
+    :func:`~tobitkf.filters._compiled_entries.protocol_tkf_step`), its columns ``Hs``, ``Cs``, ``rs``, ``pars``
+    (views), its rows (views), the set of the filled sensors, the transition ``A`` and noise ``Qd`` (1, 1, n, n),
+    the threshold ``lo``, ``hi`` (1, 1, 1), the names of the step's scalars
+    (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the modules of the loop and of its entries
+    (imported here, with numba, on first use), the failure-term code and the covariance form, the step's flat
+    constants, and the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
     ctx = est.__dict__.get("_loop_ctx")
     if ctx is None:
-        from . import _compiled_loop
+        from . import _compiled_entries, _compiled_loop
         from ._compiled_moments import PROTOCOL_TKF_EXTRAS
 
         p, nxi = len(est._lam_mean), est._nxi
-        Hs, Cs, rs, pars = np.zeros((p, nxi)), np.zeros((p, nxi)), np.ones(p), np.zeros((p, 3))
-        rows = tuple(
-            (Hs[h : h + 1][None], Cs[h : h + 1][None, :, None], rs[h : h + 1].reshape(1, 1, 1), pars[h : h + 1][None])
-            for h in range(p)
-        )
+        table = np.zeros((p, 2 * nxi + 4))
+        table[:, 2 * nxi] = 1.0  # the noise variance of a sensor not yet scheduled (never read)
+        Hs, Cs, rs, pars = table[:, :nxi], table[:, nxi : 2 * nxi], table[:, 2 * nxi], table[:, 2 * nxi + 1 :]
         A, Qd = _compiled_loop._system_arrays(est.system, 0, 1)
         lohi = (np.full((1, 1, 1), est._tau), np.full((1, 1, 1), math.inf))
         codes = (_KERNEL_MODES[est.failure_term], est.covariance_update == "joseph")
-        ctx = (Hs, Cs, rs, pars, rows, set(), A, Qd) + lohi + (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {})
+        flat = np.concatenate([A.ravel(), Qd.ravel(), [est._tau, codes[0], float(codes[1])]])
+        ctx = (Hs, Cs, rs, pars, tuple(table), set(), A, Qd) + lohi
+        ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {}, _compiled_entries, flat)
         est._loop_ctx = ctx
     return ctx
 
 
 def _sensor_rows(est: ProtocolTobitKalmanFilter, h: int, k: int, ctx: tuple) -> None:
-    """Fill sensor h's rows of the tables of :func:`_loop_constants` at its first scheduled step k: the terms of
+    """Fill sensor h's row of the table of :func:`_loop_constants` at its first scheduled step k: the terms of
     :meth:`ProtocolTobitKalmanFilter._step_terms`, which checks the sensor's noise variance then, as the numpy
     loop would."""
     Hs, Cs, rs, pars, _, filled = ctx[:6]
@@ -532,9 +534,9 @@ def _sensor_rows(est: ProtocolTobitKalmanFilter, h: int, k: int, ctx: tuple) -> 
 
 
 def _loop_call(est, ctx, y, gam, H, F, r, par, x, P, outs, comp, x_last, P_last) -> None:
-    """:func:`~tobitkf.filters._compiled_loop.compiled_loop` with the protocol TKF's code: readings ``y`` (N, T, 1),
+    r""":func:`~tobitkf.filters._compiled_loop.compiled_loop` with the protocol TKF's code: readings ``y`` (N, T, 1),
     γ ``gam`` (N, T, 1) bool (as int8, 1 the class ``INTERIOR``), the per-step rows ``H`` (T', 1, n_ξ), ``F``
-    (T', 1, 1, n_ξ) (:math:`\\mathcal C_h`), ``r`` (1, T', 1), ``par`` (T', 1, 3); ``outs`` the state outputs,
+    (T', 1, 1, n_ξ) (:math:`\mathcal C_h`), ``r`` (1, T', 1), ``par`` (T', 1, 3); ``outs`` the state outputs,
     ``comp`` (N, T, 1, 7 + 2 n_ξ) the extras."""
     cl = ctx[11]
     N = y.shape[0]
@@ -597,13 +599,9 @@ def _protocol_loop_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, st
     names = ctx[10]
     nex = len(names)
     comp, x_last, P_last = np.empty((N, 1, 1, nex + 2 * nxi)), np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    e_m, e_c = _empty((N, 0, n)), _empty((N, 0, n, n))
-    H, F, r, par = ctx[4][h]
-    _loop_call(
-        est, ctx, yk, gam, H, F, r, par, loop_input(state.x), loop_input(P), (e_m, e_c, e_m, e_c), comp, x_last, P_last
-    )
-    if not finite_variances(P_last):  # the check of _finite_or_none
-        return None
+    x, P = loop_input(state.x), loop_input(P)
+    if not ctx[14].protocol_tkf_step(yk, gam.view(np.int8), ctx[15], ctx[4][h], x, P, comp, x_last, P_last):
+        return None  # the check of _finite_or_none, made in the entry
     ext = comp[:, 0, 0]
     extras: dict[str, Any] = dict(zip(names, ext[:, :nex].T))
     extras["aug_mean"], extras["aug_pred_mean"], extras["uncensored"] = x_last, ext[:, nex + nxi :], gam[:, 0, 0]
@@ -611,7 +609,7 @@ def _protocol_loop_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, st
 
 
 def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: FilterState, want, batch):
-    """The compiled loop over a record from ``state`` (augmented ξ, P): the schedule's rows per step, the
+    r"""The compiled loop over a record from ``state`` (augmented ξ, P): the schedule's rows per step, the
     deterministic recursion of :math:`\\mathfrak X_k` of ``"lmmse_unconditional"`` (its failure term, the same for
     every run) run here; outputs on request, as the numpy path's."""
     N, T, _ = y2.shape
