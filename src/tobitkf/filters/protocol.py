@@ -585,7 +585,7 @@ def _protocol_loop_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, st
     the scheduled sensor's rows kept per sensor (:func:`_loop_constants`), no state outputs, the extras of the
     step (the posterior mean ``x_last`` is also ``aug_mean``, as the numpy step's ``x`` is). None when the
     covariance stopped being finite (the numpy step then reruns it and reports the divergence)."""
-    ctx = _loop_constants(est)
+    ctx = est.__dict__.get("_loop_ctx") or _loop_constants(est)
     N = y.shape[0]
     n, nxi = est.n, est._nxi
     order = est._order
