@@ -8,7 +8,7 @@ integral window ell = 2 (augmented state of size 6), failure law {0, 0.5, 1}, ta
     (no Tobit or failure terms, so it does less work per step) is looped over a subset of
     runs and scaled: run-steps/second and ratios to filterpy.
 (b) one run of 10^4 steps: microseconds per step (online latency).
-(c) the compiled time loop (backend="numba", :mod:`tobitkf.filters._compiled_protocol`) against the
+(c) the compiled time loop (backend="numba", :mod:`tobitkf.filters._compiled_loop`) against the
     numpy reference path (backend="numpy") and against the numpy loop around the compiled shared step
     (the default before the loop existed), 1000 runs x 100 steps, each failure-term mode, Joseph form:
     median of ``repeat`` interleaved calls (min-max), ns per run-step, and the load average.

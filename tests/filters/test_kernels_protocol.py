@@ -24,7 +24,7 @@ from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.protocol_model import FAILURE_TERMS
 
 pytest.importorskip("numba")
-from tobitkf.filters import _compiled_block, _compiled_protocol  # noqa: E402
+from tobitkf.filters import _compiled_block, _compiled_entries, _compiled_loop  # noqa: E402
 
 from ._compare import assert_same
 
@@ -220,10 +220,13 @@ def test_kernel_reduces_to_the_kalman_filter():
 
 
 def test_one_compiled_specialization_for_every_call():
-    """One run (batch ()), read-only readings and detection flags, a continuation: all one signature of the
-    kernel (another would compile or load a second specialization on the first such call)."""
+    """One run (batch ()), read-only readings and detection flags, a continuation, the online step: all one
+    signature of the compiled loop (another would compile or load a second specialization on the first such
+    call), the one the other families' calls from Python use (here the assumed-density filter's)."""
     sys_, ch = oscillator(), channel()
     y = data(sys_, ch, (4,), 10)
+    tk.ProtocolAssumedDensityFilter(sys_, ch, backend="numba").filter(y)
+    before = len(_compiled_loop.compiled_loop.signatures)
     y.flags.writeable = False
     g = y > 0.0
     g.flags.writeable = False
@@ -233,7 +236,7 @@ def test_one_compiled_specialization_for_every_call():
     est.filter(y, state=r.final)
     st = est.step(est.step(est.init(), y[0, 0], uncensored=g[0, 0]), y[0, 1])  # the online step's call too
     est.step(est.init((4,)), y[:, 0])
-    assert st.k == 2 and len(_compiled_protocol.protocol_kernel.signatures) == 1
+    assert st.k == 2 and len(_compiled_loop.compiled_loop.signatures) == before
 
 
 def test_divergence_reruns_on_numpy():
@@ -253,13 +256,13 @@ def test_divergence_reruns_on_numpy():
 
 
 def _raise(*args):
-    raise AssertionError("protocol kernel used")
+    raise AssertionError("protocol kernel used")  # the compiled loop or its online-step entry
 
 
 def test_auto_uses_the_kernel_when_covered(monkeypatch):
     sys_, ch = oscillator(), channel()
     y = data(sys_, ch, (2,), 5)
-    monkeypatch.setattr(_compiled_protocol, "protocol_kernel", _raise)
+    monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)
     with pytest.raises(AssertionError, match="protocol kernel used"):
         ProtocolTobitKalmanFilter(sys_, ch).filter(y)
     with pytest.raises(AssertionError, match="protocol kernel used"):
@@ -267,6 +270,7 @@ def test_auto_uses_the_kernel_when_covered(monkeypatch):
     ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").filter(y)  # numpy never touches it
     st = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").init((2,))
     ProtocolTobitKalmanFilter(sys_, ch, backend="numpy").step(st, y[:, 0])  # nor its online step
+    monkeypatch.setattr(_compiled_entries, "protocol_tkf_step", _raise)  # the online step's entry into the loop
     with pytest.raises(AssertionError, match="protocol kernel used"):
         ProtocolTobitKalmanFilter(sys_, ch).step(st, y[:, 0])  # the online step runs it too (T = 1)
 
@@ -297,7 +301,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
         ValidationError, match=f"numba kernel of the protocol Tobit Kalman filter does not cover {match}"
     ):
         ProtocolTobitKalmanFilter(sys_, ch, backend="numba", **opts).filter(y, **call)
-    monkeypatch.setattr(_compiled_protocol, "protocol_kernel", _raise)
+    monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)
     auto = ProtocolTobitKalmanFilter(sys_, ch, **opts).filter(y, **call)
     # not the protocol kernel (it raises) but the compiled shared step around the numpy moments: to rounding
     assert_results_equal(auto, ref, 1e-12)

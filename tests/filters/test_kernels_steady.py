@@ -1,7 +1,8 @@
-"""The numba kernel of the steady-state TKF (Miller 2015, §3.4.2) against its numpy reference path.
+"""The steady-state TKF (Miller 2015, §3.4.2) through the one compiled loop (its fixed-gain code) against its
+numpy reference path.
 
 The numpy path is the reference (tests/filters/test_steady_state.py checks it against the source); the
-kernel must reproduce it to rounding (1e-12) in every case it covers, and every other case must run
+compiled loop must reproduce it to rounding (1e-12) in every case it covers, and every other case must run
 on numpy (``backend="auto"``) or be refused (``backend="numba"``).
 
 The family is one-sided by construction (the limit (3.56) is set on one side, ``side``), so "one- and
@@ -17,7 +18,7 @@ from tobitkf.filters import _backend
 from tobitkf.filters.steady_state import ControlledLimitTobitKalmanFilter, SteadyStateTobitKalmanFilter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _compiled_steady  # noqa: E402
+from tobitkf.filters import _compiled_loop  # noqa: E402
 
 from ._compare import assert_same
 
@@ -178,7 +179,7 @@ def _raise(*args):
 def test_auto_uses_the_kernel_when_covered(monkeypatch):
     sys_ = oscillator()
     y = latent(sys_, runs=2, steps=5)
-    monkeypatch.setattr(_compiled_steady, "steady_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)
     for method in ("filter", "filter_controlled"):
         with pytest.raises(AssertionError, match="steady-state kernel used"):
             getattr(SteadyStateTobitKalmanFilter(sys_, 0.7), method)(y)
@@ -194,7 +195,7 @@ def test_input_falls_back_to_numpy_or_is_refused(method, monkeypatch):
     match = "numba kernel of the steady-state Tobit Kalman filter does not cover control inputs"
     with pytest.raises(ValidationError, match=match):
         getattr(SteadyStateTobitKalmanFilter(sys_, 0.7, backend="numba"), method)(y, u=u)
-    monkeypatch.setattr(_compiled_steady, "steady_tkf_kernel", _raise)
+    monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)
     auto = getattr(SteadyStateTobitKalmanFilter(sys_, 0.7), method)(y, u=u)
     assert_results_equal(auto, ref, 0.0)
 

@@ -15,10 +15,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._compiled_loop import KALMAN, TOBIT, compiled_loop
+from ._compiled_loop import KALMAN, PROTOCOL_TKF, TOBIT, compiled_loop
 from ._compiled_soa import tobit_entry  # noqa: F401 - the TKF's choice between the runs-vectorised step and the loop
 
-__all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step"]
+__all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step"]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -178,3 +178,56 @@ def tobit_step(y, consts, lohi, x0, P0, out2, x_last, P_last):
         x_last,
         P_last,
     )
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def protocol_tkf_step(y, cls, consts, row, x0, P0, comp, x_last, P_last):
+    """One step of the protocol Tobit Kalman filter through the loop (the online ``step``, code
+    :data:`~tobitkf.filters._compiled_loop.PROTOCOL_TKF`): ``y`` (N, 1, 1), ``cls`` (N, 1, 1) int8 (1: γ = 1),
+    ``consts`` the flat ``A, Qd`` (n, n), τ, the failure-term code and the Joseph flag (built once per estimator),
+    ``row`` the scheduled sensor's flat :math:`\\mathbf H`, :math:`\\mathcal C_h` (n_ξ each), :math:`\\mathcal R_h`,
+    :math:`\\bar\\Lambda_h`, :math:`\\check\\Lambda_h` and 0, ``x0`` (N, n_ξ), ``P0`` (N or 1, n_ξ, n_ξ); writes the
+    step's extras into ``comp`` (N, 1, 1, 7 + 2 n_ξ), the new state into ``x_last``, ``P_last``. Returns whether
+    every variance of ``P_last`` is finite (the check the numpy step would otherwise make in Python)."""
+    N = y.shape[0]
+    nx = x0.shape[1]
+    nn = (consts.shape[0] - 3) // 2
+    n = int(np.sqrt(nn) + 0.5)
+    zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
+    e_m, e_c, e_1 = np.empty((N, 0, n)), np.empty((N, 0, n, n)), np.empty((N, 0, 1))
+    compiled_loop(
+        zero + PROTOCOL_TKF,
+        y,
+        cls,
+        consts[0:nn].reshape((1, 1, n, n)),
+        consts[nn : 2 * nn].reshape((1, 1, n, n)),
+        row[0:nx].reshape((1, 1, nx)),
+        row[nx : 2 * nx].reshape((1, 1, 1, nx)),
+        row[2 * nx : 2 * nx + 1].reshape((1, 1, 1)),
+        consts[2 * nn : 2 * nn + 1].reshape((1, 1, 1)),
+        np.full((1, 1, 1), np.inf),
+        row[2 * nx + 1 : 2 * nx + 4].reshape((1, 1, 3)),
+        zero,
+        zero + 1,
+        zero + int(consts[2 * nn + 1]),
+        consts[2 * nn + 2] != 0.0,
+        e_m,
+        e_1,
+        x0,
+        P0,
+        e_m,
+        e_c,
+        e_m,
+        e_c,
+        e_1,
+        e_1,
+        np.empty((N, 0)),
+        comp,
+        x_last,
+        P_last,
+    )
+    for b in range(N):
+        for i in range(nx):
+            if not np.isfinite(P_last[b, i, i]):
+                return False
+    return True

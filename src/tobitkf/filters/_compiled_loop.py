@@ -22,7 +22,13 @@ one branch per block and step:
 
   with :math:`(\alpha, \beta)` per run from the family's block function
   (:func:`~tobitkf.filters._compiled_moments.family_block`), the channel rows :math:`h_l` per step and a
-  multiplicative-noise term (the fading variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`).
+  multiplicative-noise term (the fading variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`);
+* :data:`PROTOCOL_TKF`: the protocol Tobit Kalman filter (Geng et al. (19)–(24)) on the augmented state, the
+  scheduled sensor's row per step, its moments from
+  :func:`~tobitkf.filters._compiled_moments.protocol_tkf_block` (:func:`_protocol_tkf_update`), the step's
+  scalars and the augmented means into ``comp``;
+* :data:`FIXED_GAIN`: the steady-state Tobit Kalman filter, whose gain and covariances are constants: its means
+  alone, :math:`\hat x = \bar x + K_\infty(y - E[y])` (Miller (3.56)–(3.58), :func:`_fixed_gain_means`).
 
 A code, not a function argument: numba does not cache a function specialised on another compiled function, so a
 loop taking the update as an argument would be compiled again in every process.
@@ -45,6 +51,7 @@ update; anything else (the square-root form, other families' time-varying matric
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -67,6 +74,7 @@ from ._compiled_block import (
     _store_last,
     _take_part,
     _update_scratch,
+    mean_predict,
     runs_per_block,
 )
 from ._compiled_fading import shift_predict_block
@@ -77,10 +85,12 @@ from ._compiled_moments import (
     LOWER,
     MISSING,
     PROTOCOL,
+    PROTOCOL_TKF_EXTRAS,
     SATURATION,
     UPPER,
     classify,
     family_block,
+    protocol_tkf_block,
 )
 from ._compiled_tobit import GL_W, GL_X, tobit_update_block
 from ._outputs import _empty, kernel_result, output_arrays, state_specs
@@ -91,6 +101,8 @@ __all__ = [
     "compiled_loop",
     "KALMAN",
     "TOBIT",
+    "PROTOCOL_TKF",
+    "FIXED_GAIN",
     "CompiledSpec",
     "compiled_filter",
     "censoring_spec",
@@ -105,6 +117,10 @@ __all__ = [
 #: :data:`~tobitkf.filters._compiled_moments.FAMILIES`: the Kalman filter and the Tobit Kalman filter (a joint update
 #: of all channels, not channel by channel)
 KALMAN, TOBIT = 100, 101
+#: update codes of the protocol Tobit Kalman filter (Geng et al. (21)-(24), a joint update of its one scheduled
+#: channel, :func:`_protocol_tkf_update`) and of the fixed-gain (steady-state) Tobit Kalman filter (Miller (3.58),
+#: means only, :func:`_fixed_gain_means`)
+PROTOCOL_TKF, FIXED_GAIN = 102, 103
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -294,6 +310,144 @@ def _predict_runs(A, Qd, r0, t, x, P, xp, Pp, AP, nb):
                 Pp[j, i, b] = v
 
 
+@njit(cache=True, error_model="numpy")
+def _protocol_tkf_update(y, cls, H, F, r, lo, par, mode, joseph, r0, t, xp, Pp, x, P, blk, PC, mom, buf, nb):
+    r"""The protocol Tobit Kalman filter's update of a block (Geng et al. (19)–(24)): the scheduled sensor's row
+    :math:`\mathbf H = \bar\Lambda_h\mathcal C_h` ``H[t]`` (1, n_ξ), its :math:`\mathcal C_h` ``F[t, 0, 0]``, its
+    noise variance ``r[0, t, 0]``, the threshold ``lo[0, 0, 0]``, ``par[t, 0]`` = (:math:`\bar\Lambda_h`,
+    :math:`\check\Lambda_h`, the failure term of ``"lmmse_unconditional"``), the failure term's ``mode``
+    (:func:`~tobitkf.filters._compiled_moments.protocol_tkf_block`), γ = ``cls == INTERIOR``; the moments of
+    :func:`~tobitkf.filters._compiled_moments.protocol_tkf_block` into ``mom``, then
+    :math:`K = P^-\mathbf H^T/R_{ee}` (0 for a run that does not take part), :math:`\hat\xi = \hat\xi^- + Ke`
+    and the covariance in the standard or Joseph form (App. D (44)) of the shared update
+    (:func:`~tobitkf.filters._compiled_block._cov_update`). ``PC`` (n_ξ, B) scratch."""
+    P_, Pp_, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    nx = xp.shape[0]
+    th, tf, tp, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, par.shape[0] - 1), min(t, r.shape[1] - 1)
+    h, c = H[th, 0], F[tf, 0, 0]
+    rv = r[0, tr, 0]
+    # R_xe = P H^T, and P C^T for the failure term
+    for i in range(nx):
+        for b in range(nb):
+            Rxe[i, 0, b] = 0.0
+            PC[i, b] = 0.0
+        for k in range(nx):
+            hk = h[k]
+            ck = c[k]
+            for b in range(nb):
+                Rxe[i, 0, b] += Pp[i, k, b] * hk
+                PC[i, b] += Pp[i, k, b] * ck
+    for j in range(4):
+        for b in range(nb):
+            mom[j, b] = 0.0
+    for j in range(nx):
+        hj = h[j]
+        cj = c[j]
+        for b in range(nb):
+            mom[0, b] += xp[j, b] * hj
+            mom[1, b] += Rxe[j, 0, b] * hj
+            mom[2, b] += PC[j, b] * cj
+            mom[3, b] += xp[j, b] * cj
+    for b in range(nb):
+        mom[14, b] = y[r0 + b, t, 0]
+        ok[0, b] = cls[r0 + b, t, 0] == INTERIOR
+        gam[0, b] = 1.0
+    lm, lv, fixed = par[tp, 0, 0], par[tp, 0, 1], par[tp, 0, 2]
+    protocol_tkf_block(nb, mom, ok[0], math.sqrt(rv), rv, lo[0, 0, 0], lm, lv, fixed, mode, GL_X, GL_W, buf)
+    for b in range(nb):
+        noise[0, 0, b] = mom[11, b]
+    for i in range(nx):
+        for b in range(nb):
+            K[i, 0, b] = Rxe[i, 0, b] / mom[12, b] if ok[0, b] else 0.0
+    # (19), (22): the mean; (20) or App. D (44): the covariance. A run left out has K = 0 and e = 0: its
+    # prediction, unchanged
+    for i in range(nx):
+        for b in range(nb):
+            x[i, b] = xp[i, b] + K[i, 0, b] * mom[13, b]
+    _cov_update(Pp, K, Rxe, H[th], gam, noise, joseph, P, MH, nb)
+
+
+@njit(cache=True, error_model="numpy")
+def _fixed_gain_means(y, A, C, par, code, x0, means, pmeans, comp, x_last):
+    r"""The steady-state Tobit Kalman filter's means over N runs x T steps (Miller (3.56)–(3.58); its covariances
+    are the constants of the modified DARE, not computed here):
+
+    .. math::
+
+        \bar x_k = A\hat x_{k-1}, \quad \bar y_k = C\bar x_k, \quad
+        \hat x_k = \bar x_k + K_\infty\big(y_k - (\bar y_k + o)\big),
+
+    ``par`` (m, 2 + n): per channel the signed offset :math:`o = \mp\sigma[\phi(\alpha) - (1 - \Xi)\alpha]` of
+    (3.58), the signed shift :math:`\pm\sigma\Phi^{-1}(\Xi)` of the limit (3.56) and the gain's column
+    :math:`K_\infty[:, l]`; ``code`` bit 0: right censoring (upper), bit 1: latent readings, which the sensor
+    clips at the limit :math:`T_k = \bar y_k + \text{shift}` (``min`` for right censoring, ``max`` for left)
+    before the update, the limits and the clipped readings going to ``comp`` (N, T, m, 2). Runs in blocks,
+    every inner loop over the block and branch-free (the side and latent tests hoisted out of it)."""
+    N, T, m = y.shape
+    n = A.shape[0]
+    upper, latent = (code & 1) == 1, (code & 2) == 2
+    B, S = _block_dims(N, T, 0, runs_per_block(n))
+    x, xp, e, ybar = _mean_scratch(n, m, B)
+    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
+    s_comp = np.empty(_stage_shape(comp, B, S))
+    want_m, want_pm, want_x = means.shape[1] > 0, pmeans.shape[1] > 0, comp.shape[1] > 0
+    for r0 in range(0, N, B):
+        nb = min(B, N - r0)
+        for b in range(nb):
+            for i in range(n):
+                x[i, b] = x0[r0 + b, i]
+        for t in range(T):
+            tt = t % S
+            mean_predict(A, x, xp, nb)  # x_bar = A x
+            for l in range(m):
+                for b in range(nb):
+                    ybar[l, b] = 0.0
+                for j in range(n):
+                    cl = C[l, j]
+                    for b in range(nb):
+                        ybar[l, b] += cl * xp[j, b]
+                for b in range(nb):
+                    e[l, b] = y[r0 + b, t, l]
+                if latent:  # the sensor's clip at the limit (3.56)
+                    sh = par[l, 1]
+                    if upper:
+                        for b in range(nb):
+                            e[l, b] = min(e[l, b], ybar[l, b] + sh)
+                    else:
+                        for b in range(nb):
+                            e[l, b] = max(e[l, b], ybar[l, b] + sh)
+                    if want_x:
+                        for b in range(nb):
+                            s_comp[tt, l, 0, b] = ybar[l, b] + sh
+                            s_comp[tt, l, 1, b] = e[l, b]
+                off = par[l, 0]
+                for b in range(nb):
+                    e[l, b] = e[l, b] - (ybar[l, b] + off)  # y - E[y] (3.58)
+            for i in range(n):  # x = x_bar + K e
+                for b in range(nb):
+                    x[i, b] = xp[i, b]
+                for l in range(m):
+                    k = par[l, 2 + i]
+                    for b in range(nb):
+                        x[i, b] += k * e[l, b]
+            if want_pm:
+                for i in range(n):
+                    for b in range(nb):
+                        s_pmean[tt, i, b] = xp[i, b]
+            if want_m:
+                for i in range(n):
+                    for b in range(nb):
+                        s_mean[tt, i, b] = x[i, b]
+            if tt == S - 1 or t == T - 1:
+                t0 = t - tt
+                _flush(s_mean, means, r0, t0, nb, tt + 1)
+                _flush(s_pmean, pmeans, r0, t0, nb, tt + 1)
+                _flush(s_comp, comp, r0, t0, nb, tt + 1)
+        for b in range(nb):
+            for i in range(n):
+                x_last[r0 + b, i] = x[i, b]
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def compiled_loop(
     family,
@@ -347,6 +501,9 @@ def compiled_loop(
     (``P0`` (1, n, n), N > 1, nothing missing) runs the covariance and the gains once (``covs``, ``pcovs``,
     ``P_last`` with one run) and the means of every run with those gains."""
     N, T, m = y.shape
+    if family == FIXED_GAIN:
+        _fixed_gain_means(y, A[0, 0], H[0], par[0], noise_code, x0, means, pmeans, comp, x_last)
+        return
     nx = x0.shape[1]
     n = A.shape[2]
     # a transition or noise per run (run axis longer than 1): each lane of a block its own (_predict_runs)
@@ -374,6 +531,7 @@ def compiled_loop(
     member = np.empty(B, dtype=np.bool_)
     cv = np.empty(B, dtype=np.int8)
     has_cls, has_bu = cls.shape[1] > 0, bu.shape[1] > 0
+    mom, pbuf = np.empty((20 if family == PROTOCOL_TKF else 0, B)), np.empty((2, glx.shape[0]))  # protocol TKF
     Kall = np.empty((T if shared else 0, n, m))
     # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
@@ -441,6 +599,19 @@ def compiled_loop(
                                 s_pu[tt, l, b] = gam[l, b]
                             if want_ey:
                                 s_ey[tt, l, b] = mu[l, b]
+            elif family == PROTOCOL_TKF:
+                _protocol_tkf_update(
+                    y, cls, H, F, r, lo, par, noise_code, joseph, r0, t, xp, Pp, x, P, blk, Pc, mom, pbuf, nb
+                )
+                if want_comp:  # the step's scalars, then the augmented posterior and prior means
+                    for i in range(len(PROTOCOL_TKF_EXTRAS)):
+                        for b in range(nb):
+                            s_comp[tt, 0, i, b] = mom[4 + i, b]
+                    i0 = len(PROTOCOL_TKF_EXTRAS)
+                    for i in range(nx):
+                        for b in range(nb):
+                            s_comp[tt, 0, i0 + i, b] = x[i, b]
+                            s_comp[tt, 0, i0 + nx + i, b] = xp[i, b]
             elif family == KALMAN:
                 _kalman_moments(C, par[0], Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
                 Rs, Ws, Ks, oks, Rxs, ds = run

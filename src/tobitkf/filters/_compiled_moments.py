@@ -32,6 +32,9 @@ block (runs on the last axis, as in every kernel), by one function of the common
 * :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ;
 * :func:`quantizer_block` (:data:`QUANTIZER`): a quantized sensor, the reading's cell as a window.
 
+The protocol Tobit Kalman filter (not an assumed-density update: a Kalman-type update with the censored
+moments of (21)–(24)) supplies its moments by :func:`protocol_tkf_block`.
+
 A channel of the measurement contract (:mod:`tobitkf.channels.base`) reaches the loop by naming its block
 in its ``compiled_moments`` attribute (a key of :data:`FAMILIES`) and giving the block's ``par`` through
 ``compiled_parameters``; adding a family is a block here and an entry in :data:`FAMILIES` and
@@ -54,7 +57,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._compiled_censored import beyond, censored_stats
+from ._compiled_censored import beyond, censored_stats, lower_stats_block
 
 __all__ = [
     "CENSORED",
@@ -75,6 +78,8 @@ __all__ = [
     "FAMILIES",
     "family_block",
     "family_array",
+    "PROTOCOL_TKF_EXTRAS",
+    "protocol_tkf_block",
 ]
 
 CENSORED, SATURATION, PROTOCOL, QUANTIZER = 0, 1, 2, 3  #: family codes of the compiled loop
@@ -391,3 +396,81 @@ def family_array(family, y, cls, hx, hph, rb, lo, hi, par, J, glx, glw):
     buf = np.empty((2, glx.shape[0]))
     family_block(family, n, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     return alpha, beta, ll, pu, comp
+
+
+#: the per-step scalars of the protocol TKF (:func:`protocol_tkf_block`), in the order of its rows 4..10
+PROTOCOL_TKF_EXTRAS = (
+    "theta_bar",
+    "inverse_mills",
+    "trunc_var_factor",
+    "expected_y",
+    "innovation",
+    "p_uncensored",
+    "innovation_var",
+)
+_FLOOR = 1e-12  # R (1 - phi) floored at 1e-12 R, as protocol_model._TINY
+
+
+@njit(cache=True, error_model="numpy")
+def protocol_tkf_block(nb, mom, ok, sd, r, tau, lm, lv, fixed, mode, glx, glw, buf):
+    r"""The measurement moments of the protocol Tobit Kalman filter (Geng et al. (13)–(16), (21), (23)–(24);
+    :func:`tobitkf.filters.protocol_model.protocol_measurement` on the numpy path) for the runs ``b < nb`` of a
+    block, the scheduled sensor h with noise variance ``r`` (``sd`` = :math:`\sqrt r`), threshold τ = ``tau``,
+    failure mean and variance ``lm`` = :math:`\bar\Lambda_h`, ``lv`` = :math:`\check\Lambda_h`:
+
+    .. math::
+
+        \bar\vartheta = (\tau - \zeta)/\sqrt{\mathcal R}, \quad \lambda, \;\mathcal R(1 - \varphi)
+        \text{ (the censored statistics at } \zeta\text{, floored at } 10^{-12}\mathcal R), \quad
+        \hat y = \zeta + \sqrt{\mathcal R}\lambda, \quad
+        R_{ee} = \mathbf HP^-\mathbf H^T + F + \mathcal R(1 - \varphi),
+
+    the failure term F by ``mode``: 0 ``"variance"`` :math:`\check\Lambda_h\mathcal C_hP^-\mathcal C_h^T`,
+    1 ``"literal"`` :math:`(\bar\Lambda_h^2 + \check\Lambda_h)\mathcal C_hP^-\mathcal C_h^T`, 2
+    ``"second_moment"`` :math:`\check\Lambda_h(\mathcal C_hP^-\mathcal C_h^T + (\mathcal C_h\hat\xi^-)^2)`, 3
+    ``"lmmse_unconditional"`` ``fixed`` (the same for every run).
+
+    ``mom`` (20, B): in, the rows 0 :math:`\zeta = \mathbf H\hat\xi^-`, 1 :math:`\mathbf HP^-\mathbf H^T`,
+    2 :math:`\mathcal C_hP^-\mathcal C_h^T`, 3 :math:`\mathcal C_h\hat\xi^-`, 14 the reading; out, the rows
+    4..10 the step's scalars of :data:`PROTOCOL_TKF_EXTRAS` (for a censored reading, γ = 0: ``expected_y`` τ,
+    ``innovation`` 0, ``innovation_var`` the noise alone), 11 the noise :math:`F + \mathcal R(1 - \varphi)`,
+    12 :math:`R_{ee}`, 13 the innovation of the update; rows 15..19 scratch. ``ok`` (B,) bool: in, γ; out,
+    whether the run takes part in the update (γ = 1 and :math:`R_{ee}` above the smallest normal number; a
+    run that does not has innovation 0 and keeps its prediction)."""
+    zeta, hph, cpc, xc, yv = mom[0], mom[1], mom[2], mom[3], mom[14]
+    st_g, st_lam, st_tv = mom[15], mom[16], mom[17]
+    lower = tau != -_INF  # the upper limit is infinite
+    if lower:  # the statistics of the block at once, vectorised
+        lower_stats_block(zeta, sd, tau, nb, st_g, st_lam, st_tv, mom[18], mom[19])
+    for b in range(nb):
+        z = zeta[b]
+        if lower:  # (13)-(16)
+            pg, lam, tv = st_g[b], st_lam[b], st_tv[b]
+        else:
+            st = censored_stats(z, sd, tau, _INF, glx, glw, buf)
+            pg, lam, tv = st[2], st[3], st[5]
+        nz = max(tv, _FLOOR * r)  # R (1 - phi), floored
+        if mode == 0:
+            F = lv * cpc[b]
+        elif mode == 1:
+            F = (lm * lm + lv) * cpc[b]
+        elif mode == 2:
+            F = lv * (cpc[b] + xc[b] * xc[b])
+        else:
+            F = fixed
+        ntot = F + nz
+        yhat = z + sd * lam  # (21), gamma = 1
+        ree = hph[b] + ntot  # (24)
+        g = ok[b]
+        good = g and ree > _TINY
+        mom[4, b] = (tau - z) / sd
+        mom[5, b] = lam
+        mom[6, b] = 1.0 - nz / r
+        mom[7, b] = yhat if g else tau
+        mom[8, b] = yv[b] - yhat if g else 0.0
+        mom[9, b] = pg
+        mom[10, b] = ree if g else nz
+        mom[11, b] = ntot
+        mom[12, b] = ree
+        mom[13, b] = yv[b] - yhat if good else 0.0
+        ok[b] = good

@@ -68,7 +68,6 @@ Code names -> paper: ``window`` ℓ, ``threshold`` τ, ``uncensored`` γ_k,
 from __future__ import annotations
 
 import math
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -84,7 +83,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from ._online_check import check_step
-from ._outputs import _empty, kernel_array, kernel_result, output_arrays, state_specs
+from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -150,8 +149,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     P0_aug : array_like, optional
         :math:`M_0`.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``filter`` runs the compiled time loop (:mod:`tobitkf.filters._compiled_protocol`, equal to the numpy
-        path to rounding) where it covers the case (a time-invariant system, the standard or Joseph form,
+        ``filter`` runs the one compiled time loop of the Gaussian-update families
+        (:mod:`tobitkf.filters._compiled_loop`, its protocol TKF code; equal to the numpy path to rounding) where it covers the case (a time-invariant system, the standard or Joseph form,
         every failure term, ``keep_augmented=False``) and numba imports (``"auto"``), insists on it
         (``"numba"``), or runs the numpy reference path (``"numpy"``). The online ``step`` runs the same loop
         for one reading in those cases without an input, a lost reading or ``failure_term="lmmse_unconditional"``.
@@ -177,9 +176,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
     _name = "ProtocolTobitKalmanFilter"
     _step_options = ("uncensored",)
-    _kernel_mats: tuple[np.ndarray, ...]  # A, B Q B^T of the compiled loop, set on its first call
+    _loop_ctx: tuple  # what every call of the compiled loop takes from the estimator (_loop_constants)
     _kernel_static: bool  # whether the compiled loop runs (decided on the first call)
-    _step_rows: tuple  # the online step's per-sensor kernel terms, filled as the sensors are scheduled
 
     def __init__(
         self,
@@ -426,7 +424,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
         ``uncensored`` (keyword, laid out like ``y``): the detection device's :math:`\\gamma_k`, default
         ``y > threshold``. A plain call (no input, no keyword, float64 readings in [τ, ∞), the compiled
-        loop's case) goes straight to the compiled step (:func:`_protocol_plain_step`, the same kernel call
+        loop's case) goes straight to the compiled step (:func:`_protocol_plain_step`, the same loop call
         the general step makes, without the checks such a call passes); every other call takes the
         general step.
         """
@@ -436,11 +434,11 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
                 return fast
         return super().step(state, y, u=u, **options)
 
-    # ---- the compiled path (``filter``, and ``step`` through _protocol_kernel_step) -------------------
+    # ---- the compiled path (``filter``, and ``step`` through _protocol_loop_step) -------------------
     def _compiled_online_step(self, state, y, u, options):
-        """One online step through the compiled loop (T = 1, :func:`_protocol_kernel_step`); None (the numpy
+        """One online step through the compiled loop (T = 1, :func:`_protocol_loop_step`); None (the numpy
         step runs) with an input, a lost reading (NaN), ``failure_term="lmmse_unconditional"`` (its X_k is
-        carried on the numpy path), a case the kernel does not cover, or a covariance that stopped being
+        carried on the numpy path), a case the loop does not cover, or a covariance that stopped being
         finite. Never raises for ``backend="numba"``: the numpy step has always run those cases."""
         if u is not None or self.failure_term == "lmmse_unconditional":
             return None
@@ -454,7 +452,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         vals = y.ravel().tolist() if y.size <= 16 else None
         if any(map(math.isnan, vals)) if vals is not None else np.isnan(y).any():
             return None
-        return _protocol_kernel_step(self, y, options.get("uncensored"), state)
+        return _protocol_loop_step(self, y, options.get("uncensored"), state)
 
     def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
         what = "the protocol Tobit Kalman filter"
@@ -473,9 +471,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
                     self._kernel_static = ok
             if not ok:
                 return None
-            return _finite_or_none(
-                _protocol_kernel_run(self, y2, step_options["uncensored_record"], state, want, batch)
-            )
+            return _finite_or_none(_protocol_loop_run(self, y2, step_options["uncensored_record"], state, want, batch))
         use_kernel(self.backend, gap, what)  # raises for backend="numba"
         return None
 
@@ -489,44 +485,77 @@ _KERNEL_MODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_uncondi
 
 
 def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
-    """Why :func:`tobitkf.filters._compiled_protocol.protocol_kernel` cannot run ``est`` (None when it can);
-    ``keep_augmented`` and the uncensored record are checked by the caller."""
+    """Why the compiled loop cannot run ``est`` (None when it can); ``keep_augmented`` and the uncensored record
+    are checked by the caller."""
     if est.covariance_update == "square_root":
         return "covariance_update='square_root'"
     return system_gap(est.system, u)
 
 
-def _protocol_kernel_terms(est: ProtocolTobitKalmanFilter, sched: np.ndarray, k0: int) -> tuple[np.ndarray, ...]:
-    """A, B Q B^T (n, n) and the terms C_h, H_h (p, n_xi), R_h, lam_mean_h, lam_var_h (p,) of the sensors
-    ``sched`` schedules, as contiguous float64: those of :meth:`ProtocolTobitKalmanFilter._step_terms` (kept per
-    sensor), which checks each sensor's noise variance at the first step k0 + t + 1 that schedules it, as the
-    numpy loop would (rows of the sensors not scheduled stay 0 and are not read)."""
-    p = len(est._lam_mean)
-    Cs, Hs = np.zeros((p, est._nxi)), np.zeros((p, est._nxi))
-    rs, lm, lv = np.ones(p), np.zeros(p), np.zeros(p)
-    for t in np.sort(np.unique(sched, return_index=True)[1]).tolist():  # each sensor's first step, in time order
-        h = int(sched[t])
-        Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(k0 + t + 1, h)
-        Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
-    return _protocol_kernel_mats(est) + (Cs, Hs, rs, lm, lv)
+def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
+    r"""What every call of the compiled loop takes from the estimator, built once (arrays and numbers only: the
+    estimator still pickles): one table per sensor h (p, 2 n_ξ + 4), filled as the sensors are first scheduled
+    (:func:`_sensor_rows`), whose row is :math:`\mathbf H_h`, :math:`\mathcal C_h`, :math:`\mathcal R_h`,
+    :math:`\bar\Lambda_h`, :math:`\check\Lambda_h`, 0 (the online step's ``row`` of
+    :func:`~tobitkf.filters._compiled_entries.protocol_tkf_step`), its columns ``Hs``, ``Cs``, ``rs``, ``pars``
+    (views), its rows (views), the set of the filled sensors, the transition ``A`` and noise ``Qd`` (1, 1, n, n),
+    the threshold ``lo``, ``hi`` (1, 1, 1), the names of the step's scalars
+    (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the modules of the loop and of its entries
+    (imported here, with numba, on first use), the failure-term code and the covariance form, the step's flat
+    constants, and the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
+    ctx = est.__dict__.get("_loop_ctx")
+    if ctx is None:
+        from . import _compiled_entries, _compiled_loop
+        from ._compiled_moments import PROTOCOL_TKF_EXTRAS
+
+        p, nxi = len(est._lam_mean), est._nxi
+        table = np.zeros((p, 2 * nxi + 4))
+        table[:, 2 * nxi] = 1.0  # the noise variance of a sensor not yet scheduled (never read)
+        Hs, Cs, rs, pars = table[:, :nxi], table[:, nxi : 2 * nxi], table[:, 2 * nxi], table[:, 2 * nxi + 1 :]
+        A, Qd = _compiled_loop._system_arrays(est.system, 0, 1)
+        lohi = (np.full((1, 1, 1), est._tau), np.full((1, 1, 1), math.inf))
+        codes = (_KERNEL_MODES[est.failure_term], est.covariance_update == "joseph")
+        flat = np.concatenate([A.ravel(), Qd.ravel(), [est._tau, codes[0], float(codes[1])]])
+        ctx = (Hs, Cs, rs, pars, tuple(table), set(), A, Qd) + lohi
+        ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {}, _compiled_entries, flat)
+        est._loop_ctx = ctx
+    return ctx
 
 
-def _protocol_kernel_mats(est: ProtocolTobitKalmanFilter) -> tuple[np.ndarray, ...]:
-    """A and B Q B^T (n, n) of the compiled loop, computed once per estimator as writeable C-contiguous
-    float64 copies (one compiled specialization whatever the system's arrays are)."""
-    AQ = est.__dict__.get("_kernel_mats")
-    if AQ is None:
-        sys_ = est.system
-        AQ = est._kernel_mats = tuple(
-            np.array(M, dtype=float, order="C") for M in (sys_.transition(0), sys_.process_cov(0))
-        )
-    return AQ
+def _sensor_rows(est: ProtocolTobitKalmanFilter, h: int, k: int, ctx: tuple) -> None:
+    """Fill sensor h's row of the table of :func:`_loop_constants` at its first scheduled step k: the terms of
+    :meth:`ProtocolTobitKalmanFilter._step_terms`, which checks the sensor's noise variance then, as the numpy
+    loop would."""
+    Hs, Cs, rs, pars, _, filled = ctx[:6]
+    if h not in filled:
+        Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(k, h)
+        Hs[h], Cs[h], rs[h], pars[h, :2] = H, Cc, r, (lam_mean, lam_var)
+        filled.add(h)
+
+
+def _loop_call(est, ctx, y, gam, H, F, r, par, x, P, outs, comp, x_last, P_last) -> None:
+    r""":func:`~tobitkf.filters._compiled_loop.compiled_loop` with the protocol TKF's code: readings ``y`` (N, T, 1),
+    γ ``gam`` (N, T, 1) bool (as int8, 1 the class ``INTERIOR``), the per-step rows ``H`` (T', 1, n_ξ), ``F``
+    (T', 1, 1, n_ξ) (:math:`\mathcal C_h`), ``r`` (1, T', 1), ``par`` (T', 1, 3); ``outs`` the state outputs,
+    ``comp`` (N, T, 1, 7 + 2 n_ξ) the extras."""
+    cl = ctx[11]
+    N = y.shape[0]
+    none = ctx[13].get(N)
+    if none is None:  # the inputs and outputs the protocol TKF does not use, per number of runs
+        none = ctx[13][N] = (_empty((N, 0, est.n)), _empty((N, 0, 1)), _empty((N, 0)))
+    mode, joseph = ctx[12]
+    lo, hi = ctx[8], ctx[9]
+    e_n, e_1, e_0 = none
+    cl.compiled_loop(
+        cl.PROTOCOL_TKF, y, gam.view(np.int8), ctx[6], ctx[7], H, F, r, lo, hi, par, 0, 1, mode, joseph, e_n, e_1, x, P,
+        *outs, e_1, e_1, e_0, comp, x_last, P_last,
+    )  # fmt: skip
 
 
 def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> FilterState | None:
     """:meth:`ProtocolTobitKalmanFilter.step` of a plain call (no input, no keyword) straight to the compiled
-    step, :func:`_protocol_kernel_step`, when the general step's checks would pass it unchanged and its
-    :meth:`~ProtocolTobitKalmanFilter._compiled_online_step` would run that kernel: the compiled loop decided on for
+    step, :func:`_protocol_loop_step`, when the general step's checks would pass it unchanged and its
+    :meth:`~ProtocolTobitKalmanFilter._compiled_online_step` would run that loop: the compiled loop decided on for
     the estimator (at its first step), a failure term other than ``"lmmse_unconditional"``, a state this
     estimator made (:func:`~tobitkf.filters.core.is_trusted`), not a prediction, of the augmented dimension,
     and ``y`` a float64 array of shape ``batch_shape + (1,)`` whose (at most 16) readings all lie in [τ, ∞) (no NaN: nothing lost, none
@@ -547,104 +576,53 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     tau = est._tau
     if not all(tau <= v < math.inf for v in y.ravel().tolist()):
         return None
-    new = _protocol_kernel_step(est, y.reshape(-1, 1), None, state)
+    new = _protocol_loop_step(est, y.reshape(-1, 1), None, state)
     return None if new is None else mark_trusted(est, check_step(est, state, new))
 
 
-def _protocol_step_context(est: ProtocolTobitKalmanFilter) -> tuple:
-    """What every online step passes to the compiled loop, built once per estimator: the per-sensor rows
-    ``Cs``, ``Hs``, ``rs``, ``lm``, ``lv`` (filled as the sensors are first scheduled), the schedules
-    ``[h]`` (int64) of one step of each sensor, the set of the filled sensors and the constant arguments
-    ``(A, B Q B^T, Cs, Hs, rs, lm, lv, F_fixed, tau, mode, joseph)`` and ``(GL_X, GL_W)`` around the state
-    (arrays and numbers only: the estimator still pickles)."""
-    ctx = est.__dict__.get("_step_rows")
-    if ctx is None:
-        kern = kernels()
-        p = len(est._lam_mean)
-        rows = (np.zeros((p, est._nxi)), np.zeros((p, est._nxi)), np.ones(p), np.zeros(p), np.zeros(p))
-        scheds = tuple(np.array([j], dtype=np.int64) for j in range(p))
-        AQ = _protocol_kernel_mats(est)
-        head = (
-            AQ
-            + rows
-            + (
-                _empty((0,)),
-                est._tau,
-                _KERNEL_MODES[est.failure_term],
-                est.covariance_update == "joseph",
-            )
-        )
-        ctx = est._step_rows = rows + (scheds, set(), head, (kern.GL_X, kern.GL_W))
-    return ctx
-
-
-_KERNEL_MODULE: list[ModuleType] = []  # tobitkf.filters._compiled_protocol, imported (with numba) on first use
-
-
-def _protocol_kernels() -> ModuleType:
-    """The module of the compiled loop, :mod:`tobitkf.filters._compiled_protocol` (imported once)."""
-    if not _KERNEL_MODULE:
-        from . import _compiled_protocol
-
-        _KERNEL_MODULE.append(_compiled_protocol)
-    return _KERNEL_MODULE[0]
-
-
-def _protocol_kernel_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, state: FilterState):
-    """One online step (y (N, 1), ``gamma`` (N, 1) bool or None for y > tau) through the compiled loop with
-    T = 1 and only the step's extras written: :func:`_protocol_kernel_run` without its per-record glue (the
-    constant arguments built once, :func:`_protocol_step_context`; the scheduled sensor's terms kept per
-    sensor as it is first scheduled, :meth:`_step_terms` checking them then as the numpy step does; cached
-    empty outputs; the posterior mean ``x_last`` is also ``aug_mean``, as the numpy step's ``x`` is; the
-    kernel's finiteness flag; no result object). None when the covariance stopped being finite (the numpy
-    step then reruns it and reports the divergence)."""
-    Cs, Hs, rs, lm, lv, scheds, filled, head, gl = _protocol_step_context(est)
-    kp = _KERNEL_MODULE[0] if _KERNEL_MODULE else _protocol_kernels()
+def _protocol_loop_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, state: FilterState):
+    """One online step (y (N, 1), ``gamma`` (N, 1) bool or None for y > τ) through the compiled loop with T = 1:
+    the scheduled sensor's rows kept per sensor (:func:`_loop_constants`), no state outputs, the extras of the
+    step (the posterior mean ``x_last`` is also ``aug_mean``, as the numpy step's ``x`` is). None when the
+    covariance stopped being finite (the numpy step then reruns it and reports the divergence)."""
+    ctx = est.__dict__.get("_loop_ctx") or _loop_constants(est)
     N = y.shape[0]
     n, nxi = est.n, est._nxi
     order = est._order
     h = order[state.k % len(order)]  # the sensor of step k + 1 (_sensor)
-    if h not in filled:  # a time-invariant system (the kernel's case): the sensor's terms of any step
-        Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(state.k + 1, h)
-        Cs[h], Hs[h], rs[h], lm[h], lv[h] = Cc, H, r, lam_mean, lam_var
-        filled.add(h)
-    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
-    # writeable C-contiguous float64 copies, as _protocol_kernel_run's
-    yk = np.array(y, dtype=float, order="C")
-    gam = yk > est._tau if gamma is None else np.array(gamma, dtype=np.bool_, order="C")
-    x = np.array(state.x, dtype=float, order="C")
-    P = np.array(state.P if state.P.shape[0] == N else np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
-    e_m, e_c, e_a = _empty((N, 0, n)), _empty((N, 0, n, n)), _empty((N, 0, nxi))
-    apmean, exts = np.empty((N, 1, nxi)), np.empty((N, 1, kp.N_EXTRAS))
-    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    finite = kp.protocol_kernel(
-        yk, gam, scheds[h], *head, x, P, *gl, e_m, e_c, e_m, e_c, e_a, apmean, exts, x_last, P_last
-    )
-    if not finite:  # the check of _finite_or_none
-        return None
-    extras: dict[str, Any] = dict(zip(kp.EXTRA_NAMES, exts[:, 0].T))
-    extras["aug_mean"], extras["aug_pred_mean"], extras["uncensored"] = x_last, apmean[:, 0], gam[:, 0]
+    if h not in ctx[5]:
+        _sensor_rows(est, h, state.k + 1, ctx)
+    assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
+    yk = loop_input(y).reshape(N, 1, 1)
+    gam = yk > est._tau if gamma is None else np.array(gamma, dtype=np.bool_, order="C").reshape(N, 1, 1)
+    P = state.P if state.P.shape[0] in (1, N) else np.broadcast_to(state.P, (N, nxi, nxi))
+    names = ctx[10]
+    nex = len(names)
+    comp, x_last, P_last = np.empty((N, 1, 1, nex + 2 * nxi)), np.empty((N, nxi)), np.empty((N, nxi, nxi))
+    x, P = loop_input(state.x), loop_input(P)
+    if not ctx[14].protocol_tkf_step(yk, gam.view(np.int8), ctx[15], ctx[4][h], x, P, comp, x_last, P_last):
+        return None  # the check of _finite_or_none, made in the entry
+    ext = comp[:, 0, 0]
+    extras: dict[str, Any] = dict(zip(names, ext[:, :nex].T))
+    extras["aug_mean"], extras["aug_pred_mean"], extras["uncensored"] = x_last, ext[:, nex + nxi :], gam[:, 0, 0]
     return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
 
 
-def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: FilterState, want, batch):
-    """The compiled loop from ``state`` (augmented ξ, P); outputs on request, as the numpy path's."""
-    kp = _protocol_kernels()
-
-    kern = kernels()
+def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: FilterState, want, batch):
+    r"""The compiled loop over a record from ``state`` (augmented ξ, P): the schedule's rows per step, the
+    deterministic recursion of :math:`\\mathfrak X_k` of ``"lmmse_unconditional"`` (its failure term, the same for
+    every run) run here; outputs on request, as the numpy path's."""
     N, T, _ = y2.shape
     n, nxi = est.n, est._nxi
     order = est._order
     sched = np.asarray(order, dtype=np.int64)[(state.k + np.arange(T)) % len(order)]
-    A, Qd, Cs, Hs, rs, lm, lv = _protocol_kernel_terms(est, sched, state.k)
-    # C-contiguous writeable float64 (a read-only array would load another compiled specialization): a view of
-    # the readings when they already are, a copy otherwise
-    yk = np.require(y2[:, :, 0], dtype=np.float64, requirements=("C", "W"))
-    gam = yk > est._tau if step_data is None else np.array(step_data["uncensored"][:, :, 0], dtype=np.bool_, order="C")
+    ctx = _loop_constants(est)
+    for t in np.sort(np.unique(sched, return_index=True)[1]).tolist():  # each sensor's first step, in time order
+        _sensor_rows(est, int(sched[t]), state.k + t + 1, ctx)
+    Hs, Cs, rs, pars = ctx[:4]
+    par = pars[sched][:, None]
     carry = state.carry
-    F_fixed = np.empty(0)
     if est.failure_term == "lmmse_unconditional":  # the deterministic X_k of _measurement, run here
-        F_fixed = np.empty(T)
         Xk = carry["X"]
         Aa = augmented_transition(est.system.transition(0), est._ell)  # a time-invariant system (covered case)
         Bn = noise_input(n, est._ell)
@@ -652,50 +630,32 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
         for t in range(T):
             Xk = Aa @ Xk @ Aa.T + BQB
             h = int(sched[t])
-            F_fixed[t] = float(lv[h]) * float(Cs[h] @ Xk @ Cs[h])
+            par[t, 0, 2] = float(pars[h, 1]) * float(Cs[h] @ Xk @ Cs[h])
         carry = dict(carry)
         carry["X"] = Xk
-    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
-    # writeable C-contiguous float64 always (a read-only array would load another compiled specialization)
-    x = np.array(state.x, dtype=float, order="C")
-    P = np.array(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float, order="C")
-
+    y3 = np.require(y2, dtype=np.float64, requirements=("C", "W"))
+    gam = y3 > est._tau if step_data is None else np.array(step_data["uncensored"], dtype=np.bool_, order="C")
+    assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
     ext = "extras" in want
-    means, covs, pmeans, pcovs, amean, apmean, exts = output_arrays(
-        N,
-        T,
-        *state_specs(want, n),
-        (ext, (nxi,)),
-        (ext, (nxi,)),
-        (ext, (kp.N_EXTRAS,)),
-    )
+    names = ctx[10]
+    nex = len(names)
+    means, covs, pmeans, pcovs, comp = output_arrays(N, T, *state_specs(want, n), (ext, (1, nex + 2 * nxi)))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    kp.protocol_kernel(
-        yk,
+    P = state.P if state.P.shape[0] in (1, N) else np.broadcast_to(state.P, (N, nxi, nxi))
+    H, F, r = Hs[sched][:, None], Cs[sched][:, None, None], rs[sched][None, :, None]
+    _loop_call(
+        est,
+        ctx,
+        y3,
         gam,
-        sched,
-        A,
-        Qd,
-        Cs,
-        Hs,
-        rs,
-        lm,
-        lv,
-        F_fixed,
-        est._tau,
-        _KERNEL_MODES[est.failure_term],
-        est.covariance_update == "joseph",
-        x,
-        P,
-        kern.GL_X,
-        kern.GL_W,
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        amean,
-        apmean,
-        exts,
+        H,
+        F,
+        r,
+        par,
+        loop_input(state.x),
+        loop_input(P),
+        (means, covs, pmeans, pcovs),
+        comp,
         x_last,
         P_last,
     )
@@ -705,8 +665,12 @@ def _protocol_kernel_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: F
 
     extras: dict[str, Any] = {}
     if ext:
-        extras = {name: out(exts[..., i]) for i, name in enumerate(kp.EXTRA_NAMES)}
-        extras.update(aug_mean=out(amean), aug_pred_mean=out(apmean), uncensored=out(gam))
+        extras = {name: out(comp[:, :, 0, i]) for i, name in enumerate(names)}
+        extras.update(
+            aug_mean=out(comp[:, :, 0, nex : nex + nxi]),
+            aug_pred_mean=out(comp[:, :, 0, nex + nxi :]),
+            uncensored=out(gam[..., 0]),
+        )
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=carry)
     return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 

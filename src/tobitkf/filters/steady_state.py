@@ -66,7 +66,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
-from ._outputs import kernel_array, output_arrays
+from ._outputs import _empty, kernel_array, loop_input, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, tobit_measurement
@@ -164,10 +164,10 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     side : {"upper", "lower"}, default "upper"
         Right censoring (the source's §3.4) or left censoring (ours, not in the source; docs/sources MA-18).
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``filter`` and ``filter_controlled`` through the compiled loop of
-        :mod:`tobitkf.filters._compiled_steady` (equal to the numpy path to rounding; it covers every
-        case without a control input ``u``) or the numpy reference path. ``"numba"`` raises for a
-        case the kernel does not cover; ``"auto"`` then runs numpy. ``step`` always runs numpy.
+        ``filter`` and ``filter_controlled`` through the one compiled time loop
+        (:mod:`tobitkf.filters._compiled_loop`, its fixed-gain code, the means only; equal to the numpy path to
+        rounding; it covers every case without a control input ``u``) or the numpy reference path. ``"numba"``
+        raises for a case the loop does not cover; ``"auto"`` then runs numpy. ``step`` always runs numpy.
 
     Attributes
     ----------
@@ -209,7 +209,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
     """
 
     _name = "SteadyStateTobitKalmanFilter"
-    _kernel_mats: tuple[np.ndarray, ...]  # A, C, K, offset, shift of the kernel, set on its first call
+    _loop_consts: tuple  # the compiled loop's constant arguments, set on its first call (_steady_loop_run)
     _step_options = ("latent",)
     # the gain and the reported covariance are the constant steady-state ones: a skipped (missing) sample
     # would make the reported covariance wrong, so NaN is refused, by the record's one finiteness pass
@@ -333,11 +333,11 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
 
     # ---- the compiled path (batched ``filter``/``filter_controlled`` only; ``step`` runs numpy) ------
     # the divergence warning of ``filter``/``filter_controlled`` is issued at the end of either path: the
-    # kernel reports whether its means stayed finite (no second pass over them), the numpy loop scans them
+    # compiled one scans the means only when the last mean is not finite, the numpy loop scans them
     def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
         if not use_kernel(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
             return None
-        return _steady_kernel_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
+        return _steady_loop_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
 
     def _loop(self, rec, state, *args):
         res = super()._loop(rec, state, *args)
@@ -450,52 +450,65 @@ def tobit_kalman_filter_controlled(
 # --------------------------------------------------------------------------- the compiled path
 
 
-def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, want, batch, latent: bool):
-    """The compiled mean loop from ``state``; the constant covariances and the outputs as the numpy path
-    returns them (one covariance shared by N > 1 runs is a read-only broadcast view)."""
-    from . import _compiled_steady
+def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, want, batch, latent: bool):
+    """The means through the compiled loop's fixed-gain code from ``state``; the constant covariances and the
+    outputs as the numpy path returns them (one covariance shared by N > 1 runs is a read-only broadcast view)."""
+    from . import _compiled_loop
 
     N, T, m = y2.shape
     n = est.n
-    c64 = np.ascontiguousarray
-    mats = est.__dict__.get("_kernel_mats")
-    if mats is None:
-        sys_ = est.system
-        mats = est._kernel_mats = (
-            c64(sys_.transition(0), dtype=float),
-            c64(sys_.measurement(1), dtype=float),
-            c64(est.gain, dtype=float),
-            c64(est._offset, dtype=float),
-            c64(est.sigma * est.alpha, dtype=float),
-        )
-    A, C, K, offset, shift = mats
-
+    consts = est.__dict__.get("_loop_consts")
+    if consts is None:  # A, Qd (unused), C (1, m, n), and per channel the signed offset and shift and K's column
+        upper = est.side == "upper"
+        sgn = -1.0 if upper else 1.0
+        A, Qd = _compiled_loop._system_arrays(est.system, 0, 1)
+        par = np.concatenate([(sgn * est._offset)[:, None], (-sgn * est.sigma * est.alpha)[:, None], est.gain.T], 1)
+        C = np.ascontiguousarray(est.system.measurement(1), dtype=float)[None]
+        consts = est._loop_consts = (A, Qd, C, np.ascontiguousarray(par)[None], int(upper))
+    A, Qd, C, par, code = consts
     ext = "extras" in want and latent
-    means, pmeans, lim, yo = output_arrays(  # one allocation, from the output pool when large
-        N, T, ("mean" in want, (n,)), ("pred_mean" in want, (n,)), (ext, (m,)), (ext, (m,))
+    means, pmeans, comp = output_arrays(  # one allocation, from the output pool when large
+        N, T, ("mean" in want, (n,)), ("pred_mean" in want, (n,)), (ext, (m, 2))
     )
     x_last = np.empty((N, n))
-    finite = _compiled_steady.steady_tkf_kernel(
-        c64(y2, dtype=float),
+    e = np.empty((1, 1, m))
+    _compiled_loop.compiled_loop(
+        _compiled_loop.FIXED_GAIN,
+        loop_input(y2),
+        np.empty((N, 0, m), dtype=np.int8),
         A,
+        Qd,
         C,
-        K,
-        offset,
-        shift,
-        est.side == "upper",
-        latent,
-        c64(state.x, dtype=float),
+        np.empty((1, m, 0, n)),
+        e,
+        e,
+        e,
+        par,
+        0,
+        1,
+        code + 2 * latent,
+        False,
+        _empty((N, 0, n)),
+        _empty((N, 0, m)),
+        loop_input(state.x),
+        est.cov[None],
         means,
+        _empty((N, 0, n, n)),
         pmeans,
-        lim,
-        yo,
+        _empty((N, 0, n, n)),
+        _empty((N, 0, m)),
+        _empty((N, 0, m)),
+        _empty((N, 0)),
+        comp,
         x_last,
+        np.empty((N, 0, 0)),  # no covariance is carried
     )
 
     def out(a):
         return kernel_array(a, batch)
 
-    if not finite:  # locate the first overflow (stack: here, _compiled_filter_with, Estimator._run, filter*, caller)
+    if not np.isfinite(x_last).all():  # an overflow never recovers (inf and NaN spread through A and K)
+        # locate the first one (stack: here, _compiled_filter_with, Estimator._run, filter*, caller)
         _warn_if_diverged(out(means), est._name, state.k, stacklevel=6)
 
     def const(key, P):
@@ -511,7 +524,7 @@ def _steady_kernel_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState
         cov=const("cov", est.cov),
         pred_mean=out(pmeans),
         pred_cov=const("pred_cov", est.prior_cov),
-        extras={"limits": out(lim), "y": out(yo)} if ext else {},
+        extras={"limits": out(comp[..., 0]), "y": out(comp[..., 1])} if ext else {},
         times=np.arange(state.k + 1, state.k + T + 1),
         var=const("var", np.diagonal(est.cov).copy()),
         final=final,
