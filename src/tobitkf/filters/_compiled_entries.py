@@ -188,8 +188,8 @@ def fading_step(y, consts, lohi, k, x0, P0, out3, sm_mean, sm_cov, x_last, P_las
     (L+1, m, n_x) and the standard deviations σ (m,) (:func:`~tobitkf.filters.fading.fading_step_constants`);
     ``lohi`` (2, 1, m) the step's limits; ``k`` the step's time index (its rows :math:`H_{\\min(k, L)}`); ``x0``
     (N, n_x), ``P0`` (N or 1, n_x, n_x). Writes P(uncensored), E[y] and the inverse Mills ratios into ``out3``
-    (3, N, m), every block of the new state and its diagonal blocks into ``sm_mean`` (N, 1, n_x), ``sm_cov``
-    (N, 1, n_x, n) (the smoothed estimates; (N, 0, ...): not written), the new state into ``x_last``,
+    (3, N, m), the smoothed estimates (every block of the new state and its diagonal blocks) into ``sm_mean``
+    (N, L+1, n), ``sm_cov`` (N, L+1, n, n) (each (N, 0, ...): not written), the new state into ``x_last``,
     ``P_last``. 11 arguments where the loop takes 29: numba unboxes each argument of a call from Python."""
     N, m = y.shape
     nxi = x0.shape[1]
@@ -202,6 +202,7 @@ def fading_step(y, consts, lohi, k, x0, P0, out3, sm_mean, sm_cov, x_last, P_las
     j = min(k, L1 - 1)
     H = consts[e + j * m * nxi : e + (j + 1) * m * nxi].reshape((1, m, nxi))
     e += L1 * m * nxi
+    ts = 1 if sm_mean.shape[1] > 0 else 0
     zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
     compiled_loop(
         zero + FADING,
@@ -223,8 +224,8 @@ def fading_step(y, consts, lohi, k, x0, P0, out3, sm_mean, sm_cov, x_last, P_las
         np.empty((N, 0, m)),
         x0,
         P0,
-        sm_mean,
-        sm_cov,
+        sm_mean.reshape((N, ts, nxi)),
+        sm_cov.reshape((N, ts, nxi, n)),
         np.empty((N, 0, n)),
         np.empty((N, 0, n, n)),
         out3[0].reshape((N, 1, m)),

@@ -36,7 +36,7 @@ from ._compiled_block import (
     _innovation_moments,
     mean_predict,
 )
-from ._compiled_censored import censored_stats, lower_stats_block, noise_term
+from ._compiled_censored import GL_W, GL_X, censored_stats, lower_stats_block, noise_term
 from ._compiled_tobit import _INF
 
 __all__ = [
@@ -111,9 +111,7 @@ def shift_predict_block(A, Qd, x, P, xp, Pp, X, nb):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def fading_update_block(
-    C, sigma, lo, hi, tl, y, du, r0, t, noise_code, joseph, glx, glw, xp, Pp, mu, e, lam, x, P, blk, run, solve, buf, nb
-):
+def fading_update_block(C, sigma, lo, hi, tl, noise_code, joseph, y, du, r0, t, xp, Pp, x, P, mu, e, lam, scratch, nb):
     r"""The TKF-FM measurement update of a block of ``nb`` runs ((6), (21), (23)–(26), (19), (20')), all channel
     statistics at the prediction :math:`\hat\chi = H_k\hat\xi_{k|k-1} + Du_k` (Lemma 1).
 
@@ -123,8 +121,9 @@ def fading_update_block(
     (the censored variance, ``exact_tobit_variance``) of :func:`~tobitkf.filters._compiled_censored.noise_term`;
     ``xp`` (n_ξ, B), ``Pp`` (n_ξ, n_ξ, B) the prediction. Writes the posterior ``x``, ``P``, :math:`\hat y`
     (21) into ``mu`` (m, B), the innovation into ``e``, the inverse Mills ratio into ``lam`` (m, B) and
-    :math:`\bar\gamma` into ``gam`` of ``blk`` (the scratch of
-    :func:`~tobitkf.filters._compiled_block._update_scratch`); ``buf`` the (2, G) quadrature buffer."""
+    :math:`\bar\gamma` into ``gam`` of ``blk``; ``scratch`` the ``(blk, run, solve, buf)`` of
+    :func:`~tobitkf.filters._compiled_block._update_scratch` (``buf`` the (2, G) buffer of the quadrature)."""
+    blk, run, solve, buf = scratch
     _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     Rs, Ws, Ks, oks, Rxs, ds = run
     Rw, Wb, db, bad = solve
@@ -151,7 +150,7 @@ def fading_update_block(
                 e[l, b] = y[r0 + b, t, l] - ml[b]
             continue
         for b in range(nb):
-            st = censored_stats(ml[b], sd, lo_l, hi_l, glx, glw, buf)
+            st = censored_stats(ml[b], sd, lo_l, hi_l, GL_X, GL_W, buf)
             gam[l, b] = st[2]
             lam[l, b] = st[3]
             noise[l, l, b] = noise_term(noise_code, ml[b], st[2], st[4], st[5], st[7])

@@ -72,7 +72,7 @@ from ._compiled_block import (
     _update_scratch,
     runs_per_block,
 )
-from ._compiled_fading import fading_update_block, shift_predict_block
+from ._compiled_fading import AUG_BLOCK, fading_update_block, shift_predict_block
 from ._compiled_moments import (
     CENSORED,
     FAMILIES,
@@ -364,7 +364,7 @@ def compiled_loop(
     shared = family == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
     runs = 1 if shared else N
     glx, glw = GL_X, GL_W
-    B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, runs_per_block(nx))
+    B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, AUG_BLOCK if family == FADING else runs_per_block(nx))
     APr = np.empty((n, n))
     x, xp, e, mu = _mean_scratch(nx, m, B)
     blk, run, solve, buf = _update_scratch(nx, n, m, B, glx.shape[0] if family == TOBIT or family == FADING else 0)
@@ -466,32 +466,10 @@ def compiled_loop(
                 _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
             elif family == FADING:  # the rows H_k of the step, the inverse Mills ratios into compb[:, 0] (J = 1)
                 lam = compb.reshape((m, B))
+                Ht, tl = H[min(t, H.shape[0] - 1)], min(t, lo.shape[1] - 1)
+                sc = (blk, run, solve, buf)
                 fading_update_block(
-                    H[min(t, H.shape[0] - 1)],
-                    r[0, 0],
-                    lo[0],
-                    hi[0],
-                    min(t, lo.shape[1] - 1),
-                    y,
-                    du,
-                    r0,
-                    t,
-                    noise_code,
-                    joseph,
-                    glx,
-                    glw,
-                    xp,
-                    Pp,
-                    mu,
-                    e,
-                    lam,
-                    x,
-                    P,
-                    blk,
-                    run,
-                    solve,
-                    buf,
-                    nb,
+                    Ht, r[0, 0], lo[0], hi[0], tl, noise_code, joseph, y, du, r0, t, xp, Pp, x, P, mu, e, lam, sc, nb
                 )
                 if want_pu or want_ey or want_comp:
                     for l in range(m):

@@ -527,11 +527,14 @@ class FadingTobitKalmanFilter(_FadingFamily):
     def _compiled_online_step(self, state, y, u, options):
         """One online step through the compiled loop (T = 1), with the numpy step's extras; None (the numpy step
         runs) where the loop does not cover the case or the covariance stopped being finite."""
-        keep_smoothed = bool(options.get("keep_smoothed", True))
+        keep_smoothed = bool(options.get("keep_smoothed", True)) if options else True
+        if u is None and not (options and options.get("keep_augmented")):  # the plain step: decided once
+            ok = self.__dict__.get("_kernel_static")
+            if ok is None:
+                ok = self._compiled_ok(None, False)
+            return _compiled_step(self, y, state, keep_smoothed) if ok else None
         if not self._compiled_ok(u, bool(options.get("keep_augmented"))):
             return None
-        if u is None:
-            return _compiled_step(self, y, state, keep_smoothed)
         N = y.shape[0]
         res = _compiled_run(
             self, y.reshape(N, 1, self.m), u.reshape(N, 1, -1), state, _STEP_OUTPUTS, (N,), keep_smoothed
@@ -794,7 +797,7 @@ def fading_step_constants(est: FadingTobitKalmanFilter) -> np.ndarray:
     per estimator: n, the noise code (1: the censored variance), the Joseph flag, then ``A``, ``B Q B^T``, ``H_0 ..
     H_L`` and σ of :func:`_loop_constants`."""
     cached = est.__dict__.get("_fading_flat")
-    if cached is None or cached[0] is not est.system:
+    if cached is None or cached[0] is not est.system:  # keyed on the system (an estimator copied onto another)
         head = [float(est.n), float(est.exact_tobit_variance), float(est.covariance_update == "joseph")]
         flat = np.concatenate([np.array(head)] + [a.ravel() for a in _loop_constants(est)])
         cached = est._fading_flat = (est.system, flat)
@@ -815,7 +818,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     """The compiled loop (update :data:`~tobitkf.filters._compiled_loop.FADING`) from ``state`` (augmented x, P);
     outputs on request, as the numpy path's. With the smoothed blocks requested the loop writes every block of the
     mean and the diagonal blocks of the covariance ((N, T, nxi), (N, T, nxi, n)), and ``mean`` and ``cov`` are
-    their first blocks."""
+    copies of their first blocks."""
     from ._compiled_loop import FADING, compiled_loop
 
     N, T, m = y2.shape
@@ -886,11 +889,12 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
         sm_mean, sm_cov = means.reshape(N, T, L + 1, n), covs.reshape(N, T, L + 1, n, n)
         _undefined_blocks(sm_mean, sm_cov, k0, L)
         extras.update(smoothed_mean=out(sm_mean), smoothed_cov=out(sm_cov))
-        means = means[:, :, :n] if "mean" in want else _empty((N, 0, n))
+        # the mean and the covariance: copies of the first blocks (the result's arrays share no element)
+        means = np.ascontiguousarray(means[:, :, :n]) if "mean" in want else _empty((N, 0, n))
         if "cov" in want:
-            covs = covs[:, :, :n]
+            covs = np.ascontiguousarray(covs[:, :, :n])
         elif "var" in want:  # the layout of cov_spec: the variances alone
-            covs = np.diagonal(covs[:, :, :n], axis1=-2, axis2=-1)[..., None]
+            covs = np.diagonal(covs[:, :, :n], axis1=-2, axis2=-1)[..., None].copy()
         else:
             covs = _empty((N, 0, n, n))
     final = FilterState(k=k0 + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
@@ -924,9 +928,9 @@ def _compiled_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterSta
             est._loop_limits = lohi  # constant limits: converted once
     out3 = np.empty((3, N, m))  # p_uncensored, E[y], the inverse Mills ratios
     if keep_smoothed:
-        sm_mean, sm_cov = np.empty((N, 1, nxi)), np.empty((N, 1, nxi, n))
+        sm_mean, sm_cov = np.empty((N, L + 1, n)), np.empty((N, L + 1, n, n))
     else:
-        sm_mean, sm_cov = _empty((N, 0, nxi)), _empty((N, 0, nxi, n))
+        sm_mean, sm_cov = _empty((N, 0, n)), _empty((N, 0, n, n))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
     assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
     loop_entries().fading_step(
@@ -946,7 +950,8 @@ def _compiled_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterSta
         return None
     extras = {"p_uncensored": out3[0], "expected_y": out3[1], "inverse_mills": out3[2]}
     if keep_smoothed:
-        sm_mean, sm_cov = sm_mean.reshape(N, 1, L + 1, n), sm_cov.reshape(N, 1, L + 1, n, n)
-        _undefined_blocks(sm_mean, sm_cov, state.k, L)
-        extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean[:, 0], sm_cov[:, 0]
+        if k <= L:  # blocks s > k stand for x_{k-s}, k-s < 0: not defined
+            sm_mean[:, k + 1 :] = np.nan
+            sm_cov[:, k + 1 :] = np.nan
+        extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
     return step_state(k, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
