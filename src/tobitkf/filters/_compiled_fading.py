@@ -17,7 +17,7 @@ both in the rank-m arithmetic of the shared numpy update.
 Everything that is not specific to the fading model is shared with the Tobit Kalman filter's update
 (:func:`~tobitkf.filters._compiled_tobit.tobit_update_block`): the censored-normal statistics
 (:func:`~tobitkf.filters._compiled_censored.censored_stats`; for a lower limit alone the vectorised statistics
-of a whole block, :func:`~tobitkf.filters._compiled_censored.lower_stats_block`), the noise term
+of a whole block, :func:`_lower_block`), the noise term
 (:func:`~tobitkf.filters._compiled_censored.noise_term`: the truncated variance is the TKF's ``"dissertation"``
 term, the censored variance its ``"total_variance"``), the moments of the scaled update and the masked gain
 (missing or degenerate channels get a zero gain column; for m > 1 the block solve over all runs of a block).
@@ -36,7 +36,7 @@ from ._compiled_block import (
     _innovation_moments,
     mean_predict,
 )
-from ._compiled_censored import GL_W, GL_X, censored_stats, lower_stats_block, noise_term
+from ._compiled_censored import GL_W, GL_X, _one_sided_at, censored_stats, noise_term
 from ._compiled_tobit import _INF
 
 __all__ = [
@@ -110,6 +110,22 @@ def shift_predict_block(A, Qd, x, P, xp, Pp, X, nb):
                 Pp[i, j, b] = P[i - n, j - n, b]
 
 
+@njit(cache=True, error_model="numpy")
+def _lower_block(ym, sd, lo, nb, noise_code, gam, lam, noise):
+    """The statistics of the runs ``b < nb`` of a block for a lower limit ``lo`` alone, vectorised: γ into ``gam``,
+    the inverse Mills ratio into ``lam``, the noise term of ``noise_code`` (0 the truncated, 1 the censored
+    variance) into ``noise``, the censored mean over the means ``ym`` (each (B,)); the numbers of
+    :func:`~tobitkf.filters._compiled_censored.censored_stats`. A function of its own, as the TKF's
+    :func:`~tobitkf.filters._compiled_censored.one_sided_block`: compiled apart from the loop, its loop over the
+    runs vectorises."""
+    for b in range(nb):
+        _plo, g, lm, _tmean, tv, cm, cv = _one_sided_at(ym[b], sd, lo)
+        gam[b] = g
+        lam[b] = lm
+        noise[b] = tv if noise_code == 0 else cv
+        ym[b] = cm
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def fading_update_block(C, sigma, lo, hi, tl, noise_code, joseph, y, du, r0, t, xp, Pp, x, P, mu, e, lam, scratch, nb):
     r"""The TKF-FM measurement update of a block of ``nb`` runs ((6), (21), (23)–(26), (19), (20')), all channel
@@ -141,12 +157,9 @@ def fading_update_block(C, sigma, lo, hi, tl, noise_code, joseph, y, du, r0, t, 
             for b in range(nb):
                 ml[b] += du[r0 + b, t, l]
         sd, lo_l, hi_l = sigma[l], lo[tl, l], hi[tl, l]
-        if hi_l == _INF and lo_l != -_INF:  # a lower limit alone: the statistics of the block at once, vectorised,
-            # the noise term's variance into noise[l, l], the other and the censored mean into free scratch rows
-            tv, cv = (noise[l, l], Rxe[0, l]) if noise_code == 0 else (Rxe[0, l], noise[l, l])
-            lower_stats_block(ml, sd, lo_l, nb, gam[l], lam[l], tv, e[l], cv)
+        if hi_l == _INF and lo_l != -_INF:  # a lower limit alone: the statistics of the block at once, vectorised
+            _lower_block(ml, sd, lo_l, nb, noise_code, gam[l], lam[l], noise[l, l])
             for b in range(nb):
-                ml[b] = e[l, b]
                 e[l, b] = y[r0 + b, t, l] - ml[b]
             continue
         for b in range(nb):
