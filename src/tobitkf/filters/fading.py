@@ -831,10 +831,9 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
     ext = "extras" in want
     sm = ext and keep_smoothed
+    state_out: tuple[tuple[bool, tuple[int, ...]], ...] = state_specs(want, n)[:2]
     if sm:
         state_out = ((True, (nxi,)), (True, (nxi, n)))
-    else:
-        state_out = state_specs(want, n)[:2]
     means, covs, pmeans, pcovs, pu, ey, lam = output_arrays(
         N,
         T,
