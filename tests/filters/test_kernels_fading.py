@@ -1,8 +1,8 @@
-"""The numba kernel of the fading TKF (Geng et al. 2017) against its numpy reference path.
+"""The fading TKF (Geng et al. 2017) through the one compiled loop against its numpy reference path.
 
 The numpy path is the reference (tests/filters/test_fading.py checks it against the source); the
-kernel must reproduce it to rounding (1e-12) in every case it covers, and every other case must run
-on numpy (``backend="auto"``) or be refused (``backend="numba"``).
+compiled loop (update code FADING) must reproduce it to rounding (1e-12) in every case it covers, and every
+other case must run on numpy (``backend="auto"``) or be refused (``backend="numba"``).
 """
 
 import numpy as np
@@ -16,7 +16,7 @@ from tobitkf.filters import _backend
 from tobitkf.filters.fading import FadingTobitKalmanFilter, fading_tobit_kalman_filter
 
 pytest.importorskip("numba")
-from tobitkf.filters import _compiled_block, _compiled_fading  # noqa: E402
+from tobitkf.filters import _compiled_block, _compiled_entries, _compiled_fading, _compiled_loop  # noqa: E402
 
 from ._compare import assert_same
 
@@ -137,11 +137,17 @@ def test_kernel_time_varying_limits_continued_state_and_per_run_prior():
         assert_same(a2.mean, whole.mean[:, split:])
 
 
+def loop_block(nxi):
+    """Runs per block of the compiled loop at state size ``nxi``."""
+    return _compiled_block.runs_per_block(nxi)
+
+
 def test_kernel_many_runs_cross_blocks():
     sys_ = oscillator()
     cens = tk.Censoring(lower=0.0)
     fad = fading(2)
-    y = data(sys_, fad, cens, runs=140, steps=10)  # 140 = 2 full blocks of 64 and one of 12 (AUG_BLOCK)
+    B = loop_block(6)
+    y = data(sys_, fad, cens, runs=2 * B + 12, steps=10)  # two full blocks and a partial one
     assert_results_equal(*both(sys_, fad, cens, y))
 
 
@@ -153,7 +159,7 @@ def test_kernel_tail_continued_fractions_of_a_block(lower):
     sys_ = oscillator()
     cens = tk.Censoring(lower=lower)
     fad = fading(2)
-    y = data(sys_, fad, cens, runs=69, steps=40)
+    y = data(sys_, fad, cens, runs=loop_block(6) + 5, steps=40)
     a, b = both(sys_, fad, cens, y)
     assert_results_equal(a, b)
     assert (b.extras["p_uncensored"] < ndtr(-4.0)).any()
@@ -161,15 +167,15 @@ def test_kernel_tail_continued_fractions_of_a_block(lower):
 
 @pytest.mark.parametrize("outputs", ["all", ("var", "pred_mean")])
 def test_kernel_outputs_across_chunks_and_a_partial_block(outputs):
-    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): 69 runs
-    (a full block of 64 and a partial one), more than two chunks of steps, and a continuation whose record starts
-    inside the first L steps (smoothed blocks s > k NaN) and a second one whose chunks start at k0 = 70."""
+    """The staged outputs (laid out step-major, run innermost, transposed when a chunk is written): a full block
+    of runs and a partial one, more than two chunks of steps, and a continuation whose record starts inside the
+    first L steps (smoothed blocks s > k NaN) and a second one whose chunks start at k0 = 70."""
 
     sys_ = oscillator(2)
     cens = tk.Censoring(lower=[0.0, -0.5])
     fad = fading(2)
     T = 2 * _compiled_block.CHUNK + 7
-    y = data(sys_, fad, cens, runs=69, steps=T + 71)
+    y = data(sys_, fad, cens, runs=loop_block(6) + 5, steps=T + 71)
     fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
     a, b = fast.filter(y[:, :1], outputs=outputs), ref.filter(y[:, :1], outputs=outputs)
@@ -193,16 +199,21 @@ def test_kernel_block_gain_solve_three_channels(form):
     sys_ = tk.LinearSystem(A=A, C=C, Q=0.0025 * np.eye(2), R=np.diag([1.0, 0.5, 0.3]), x0=[5.0, 0.0], P0=np.eye(2))
     cens = tk.Censoring(lower=[0.0, -1.0, -np.inf], upper=[np.inf, 3.0, 2.0])
     fad = fading(1)
-    y = data(sys_, fad, cens, runs=72, steps=25)  # 72 runs: a full block of 64 and a partial one
+    y = data(sys_, fad, cens, runs=loop_block(4) + 8, steps=25)  # a full block and a partial one
     y[:, ::4, 1] = np.nan
     y[5, :, 2] = np.nan
     a, b = both(sys_, fad, cens, y, covariance_update=form)
     assert_results_equal(a, b)
 
 
-@pytest.mark.parametrize("outputs", ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), "all"])
+OUTPUTS = ["last", ("mean",), ("cov",), ("var",), ("pred_mean", "extras"), ("var", "extras"), ("extras",), "all"]
+
+
+@pytest.mark.parametrize("outputs", OUTPUTS)
 @pytest.mark.parametrize("keep_smoothed", [True, False])
 def test_kernel_honours_the_output_selection(outputs, keep_smoothed):
+    """Every selection, with the smoothed blocks (the loop then writes every block of the mean and the diagonal
+    blocks of the covariance, of which the mean and the covariance are the first) and without."""
     sys_ = oscillator(2)
     cens = tk.Censoring(lower=[0.0, -0.5])
     fad = fading(2)
@@ -218,12 +229,18 @@ def _raise(*args):
     raise AssertionError("fading kernel used")
 
 
+def _no_loop(monkeypatch):
+    """Make the compiled loop (``filter``) and the fading TKF's one-step entry (``step``) raise when called."""
+    monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)
+    monkeypatch.setattr(_compiled_entries, "fading_step", _raise)
+
+
 def test_auto_uses_the_kernel_when_covered(monkeypatch):
     sys_ = oscillator()
     cens = tk.Censoring(lower=0.0)
     fad = fading(2)
     y = data(sys_, fad, cens, runs=2, steps=5)
-    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
+    _no_loop(monkeypatch)
     with pytest.raises(AssertionError, match="fading kernel used"):
         FadingTobitKalmanFilter(sys_, fad, cens).filter(y)
     with pytest.raises(AssertionError, match="fading kernel used"):
@@ -243,16 +260,18 @@ def _time_varying():
     )
 
 
-def _with_input():
-    sys_ = oscillator()
+def _with_input(m=1, varying=False, feedthrough=False):
+    sys_ = oscillator(m)
+    Bu = np.array([[0.1], [0.0]])
     return tk.LinearSystem(
         A=sys_.transition(0),
-        C=[[1.0, 0.0]],
+        C=sys_.measurement(1),
         Q=0.0025 * np.eye(2),
-        R=[[1.0]],
+        R=sys_.measurement_cov(1),
         x0=[5.0, 0.0],
         P0=np.eye(2),
-        Bu=[[0.1], [0.0]],
+        Bu=np.stack([Bu] * 20) if varying else Bu,
+        D=0.3 * np.ones((m, 1)) if feedthrough else None,
     )
 
 
@@ -261,23 +280,23 @@ CASES = {
     "fading_variance": ({"fading_variance_term": True}, {}, "fading_variance_term=True"),
     "keep_augmented": ({}, {"keep_augmented": True}, "keep_augmented=True"),
     "time_varying": ({}, {}, "time-varying"),
-    "input": ({}, {"u": np.ones((20, 1))}, "control inputs"),
+    "input": ({}, {"u": np.ones((20, 1))}, "time-varying input matrices"),
 }
 
 
 @pytest.mark.parametrize("which", sorted(CASES))
 def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     opts, call, match = CASES[which]
-    sys_ = {"time_varying": _time_varying(), "input": _with_input()}.get(which, oscillator())
+    sys_ = {"time_varying": _time_varying(), "input": _with_input(varying=True)}.get(which, oscillator())
     cens = tk.Censoring(lower=0.0)
     fad = fading(2)
     y = data(oscillator(), fad, cens, runs=2, steps=20)
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", **opts).filter(y, **call)
     with pytest.raises(ValidationError, match=f"numba kernel of the fading Tobit Kalman filter does not cover {match}"):
         FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **opts).filter(y, **call)
-    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
+    _no_loop(monkeypatch)
     auto = FadingTobitKalmanFilter(sys_, fad, cens, **opts).filter(y, **call)
-    # not the fading kernel (it raises), but the compiled shared step around the numpy moments: equal to rounding
+    # not the compiled loop (it raises), but the compiled shared step around the numpy moments: equal to rounding
     assert_results_equal(auto, ref, 1e-12)
 
 
@@ -289,7 +308,7 @@ def test_square_root_form_falls_back_or_is_refused(monkeypatch):
     with pytest.raises(ValidationError, match="no square-root form"):
         FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root", backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root", backend="numpy").filter(y)
-    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
+    _no_loop(monkeypatch)
     auto = FadingTobitKalmanFilter(sys_, fad, cens, covariance_update="square_root").filter(y)
     assert_same(auto.mean, ref.mean, 0.0)
 
@@ -357,23 +376,77 @@ def test_online_step_runs_the_kernel_and_equals_numpy(shape, exact, monkeypatch)
     # the stream equals the batched filter's rows, and the step really runs the kernel
     res = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", exact_tobit_variance=exact).filter(y)
     assert_same(np.stack([s.mean for s in fast], axis=-2), res.mean)
-    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
-    monkeypatch.setattr(_compiled_fading, "fading_tkf_step", _raise)  # the kernel's one-step entry
+    _no_loop(monkeypatch)
     est = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", exact_tobit_variance=exact)
     with pytest.raises(AssertionError, match="fading kernel used"):
         est.step(est.init(batch_shape=shape), y[..., 0, :])
 
 
-def test_online_step_with_input_runs_numpy(monkeypatch):
-    sys_, cens, fad = _with_input(), tk.Censoring(lower=0.0), fading(2)
-    y = data(oscillator(), fad, cens, runs=1, steps=6)[0]
-    monkeypatch.setattr(_compiled_fading, "fading_tkf_kernel", _raise)
-    auto = FadingTobitKalmanFilter(sys_, fad, cens)
+@pytest.mark.parametrize("feedthrough", [False, True])
+@pytest.mark.parametrize("m", [1, 2])
+def test_inputs_run_the_loop_and_equal_numpy(m, feedthrough, monkeypatch):
+    """Control inputs (B^u u into the top block of the prediction, D u into the latent readings) through the
+    compiled loop: the batch filter across the first L steps and a continuation, and the online step, equal to
+    the numpy path to rounding; and the loop really runs them."""
+    sys_, fad = _with_input(m, feedthrough=feedthrough), fading(2)
+    cens = tk.Censoring(lower=[0.0, -1.0][:m], upper=[np.inf, 2.5][:m])
+    T = 14
+    rng = np.random.default_rng(7)
+    u = rng.normal(0.0, 1.0, (5, T, 1))
+    y = np.clip(data(oscillator(m), fad, tk.Censoring(), runs=5, steps=T), [0.0, -1.0][:m], [np.inf, 2.5][:m])
+    fast = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy")
-    sa, sb = auto.init(), ref.init()
-    for k in range(6):
-        sa, sb = auto.step(sa, y[k], u=[1.0]), ref.step(sb, y[k], u=[1.0])
-        np.testing.assert_allclose(sa.x, sb.x, rtol=0, atol=1e-12)  # the compiled shared step: equal to rounding
+    a, b = fast.filter(y[:, :2], u=u[:, :2]), ref.filter(y[:, :2], u=u[:, :2])
+    assert_results_equal(a, b)
+    assert_results_equal(
+        fast.filter(y[:, 2:], u=u[:, 2:], state=a.final), ref.filter(y[:, 2:], u=u[:, 2:], state=b.final)
+    )
+    sa, sb = fast.init(batch_shape=(5,)), ref.init(batch_shape=(5,))
+    for k in range(T):
+        sa, sb = fast.step(sa, y[:, k], u=u[:, k]), ref.step(sb, y[:, k], u=u[:, k])
+        assert_same(sa.x, sb.x)
+        assert_same(np.broadcast_to(sa.P, sb.P.shape), sb.P)
+        assert sa.extras.keys() == sb.extras.keys()
+        for key in sb.extras:
+            assert_same(sa.extras[key], sb.extras[key])
+    _no_loop(monkeypatch)
+    with pytest.raises(AssertionError, match="fading kernel used"):
+        fast.filter(y, u=u)
+    with pytest.raises(AssertionError, match="fading kernel used"):
+        fast.step(fast.init(batch_shape=(5,)), y[:, 0], u=u[:, 0])
+
+
+@pytest.mark.parametrize("L", [1, 2])
+def test_scalar_state_smoothed_blocks(L):
+    """n = 1: the loop's diagonal blocks of the augmented covariance are its diagonal (the 1 x 1 blocks), staged
+    by the variances' route; smoothed estimates and every output equal to numpy, filter and step."""
+    sys_ = tk.LinearSystem(A=[[0.95]], C=[[1.0]], Q=[[0.1]], R=[[0.5]], x0=[1.0], P0=[[2.0]])
+    fad = fading(L)
+    cens = tk.Censoring(lower=0.2)
+    y = data(sys_, fad, cens, runs=11, steps=9)
+    for outputs in ("all", ("var", "extras")):
+        a, b = both(sys_, fad, cens, y, outputs=outputs)
+        assert_results_equal(a, b)
+    assert a.extras["smoothed_cov"].shape == (11, 9, L + 1, 1, 1)
+    fast, ref = (FadingTobitKalmanFilter(sys_, fad, cens, backend=be) for be in ("numba", "numpy"))
+    sa, sb = fast.init(batch_shape=(11,)), ref.init(batch_shape=(11,))
+    for k in range(4):
+        sa, sb = fast.step(sa, y[:, k]), ref.step(sb, y[:, k])
+        for key in sb.extras:
+            assert_same(sa.extras[key], sb.extras[key])
+
+
+def test_shared_and_per_run_prior_covariance():
+    """A prior covariance shared by the runs (one (n_xi, n_xi) matrix, read by every run of a block) and the
+    same prior given per run: the same numbers, equal to numpy."""
+    sys_, fad, cens = oscillator(), fading(2), tk.Censoring(lower=0.0)
+    y = data(sys_, fad, cens, runs=loop_block(6) + 3, steps=8)
+    P0 = np.tile(np.eye(2), (y.shape[0], 1, 1))
+    shared, per_run = both(sys_, fad, cens, y), both(sys_, fad, cens, y, P0=P0)
+    assert shared[0].final.P.shape == per_run[0].final.P.shape == (y.shape[0], 6, 6)
+    assert_results_equal(*shared)
+    assert_results_equal(*per_run)
+    assert_results_equal(shared[0], per_run[0], 0.0)
 
 
 @pytest.mark.parametrize("keep_smoothed", [True, False])
@@ -402,7 +475,7 @@ def test_online_kernel_step_with_time_varying_limits_and_options(keep_smoothed, 
             assert_same(a.extras[key], b.extras[key])
         means.append(a.mean)
     assert_same(np.stack(means, axis=-2), ref.filter(y).mean)
-    assert fast._kernel_static and "_step_consts" not in vars(fast)  # the kernel ran, the limits not cached
+    assert fast._kernel_static and "_loop_limits" not in vars(fast)  # the loop ran, the limits not cached
     with pytest.raises(tk.ShapeError, match="time-varying limits"):
         fast.step(a, y[..., 0, :])  # step T + 1: beyond the limits, the same error as the numpy step
     with pytest.raises(tk.ShapeError, match="time-varying limits"):

@@ -673,14 +673,23 @@ def _stage(xv, Pv, tt, nb, mbuf, cbuf):
 def _stage_cov(Pv, cbuf, tt, nb):
     """Copy the top-left ``n x n`` block of a block's P[i, j, b] (n = ``cbuf.shape[1]``) into the staging
     buffer ``cbuf`` (S, n, n, B) at chunk step ``tt``, or only its diagonal into ``cbuf`` (S, n, 1, B) (the
-    variances, for ``outputs=("var",)``: no (N, T, n, n) array); skipped when ``cbuf`` has no steps."""
+    variances, for ``outputs=("var",)``: no (N, T, n, n) array), or, for ``cbuf`` (S, n_x, w, B) with w < n_x,
+    the w x w diagonal blocks of an augmented state, stacked (row s w + i, column j: P[s w + i, s w + j]; the
+    fading TKF's smoothed covariances); skipped when ``cbuf`` has no steps."""
     if cbuf.shape[0] == 0:
         return
-    n = cbuf.shape[1]
-    if cbuf.shape[2] == 1:
+    n, w = cbuf.shape[1], cbuf.shape[2]
+    if w == 1:
         for i in range(n):
             for b in range(nb):
                 cbuf[tt, i, 0, b] = Pv[i, i, b]
+        return
+    if w < n:
+        for i in range(n):
+            o = i - i % w
+            for j in range(w):
+                for b in range(nb):
+                    cbuf[tt, i, j, b] = Pv[i, o + j, b]
         return
     for i in range(n):
         for j in range(n):

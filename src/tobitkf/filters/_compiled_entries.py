@@ -1,4 +1,5 @@
-r"""The Kalman filter's and the Tobit Kalman filter's entries into the one compiled loop.
+r"""The Kalman filter's, the Tobit Kalman filter's and the fading Tobit Kalman filter's entries into the one
+compiled loop.
 
 :func:`kalman_loop` and :func:`tobit_loop` take only the arrays their family uses and call
 :func:`~tobitkf.filters._compiled_loop.compiled_loop` with the family's code and empty arrays for the rest (made
@@ -6,8 +7,8 @@ here, in compiled code). Why not call the loop directly from Python: numba unbox
 (~0.25 µs per array), and the loop's 29 arguments made one online step of a one-run KF 25 % slower than the
 former Kalman-filter loop with its 15 (measured in one process, thread CPU time: 12.1 against 9.6 µs per step,
 n = 2, m = 1, on a loaded machine); these entries take 14 and 21. The online ``step`` of one reading enters by :func:`kalman_step` and :func:`tobit_step`
-(6 and 8 arguments): the constant matrices flattened into one array (built once per estimator), the unused
-outputs made here.
+(6 and 8 arguments), the fading TKF's by :func:`fading_step` (11; its ``filter`` calls the loop directly): the
+constant matrices flattened into one array (built once per estimator), the unused outputs made here.
 """
 
 from __future__ import annotations
@@ -15,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._compiled_loop import KALMAN, PROTOCOL_TKF, TOBIT, compiled_loop
+from ._compiled_loop import FADING, KALMAN, PROTOCOL_TKF, TOBIT, compiled_loop
 from ._compiled_soa import tobit_entry  # noqa: F401 - the TKF's choice between the runs-vectorised step and the loop
 
-__all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step"]
+__all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step", "fading_step"]
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -231,3 +232,59 @@ def protocol_tkf_step(y, cls, consts, row, x0, P0, comp, x_last, P_last):
             if not np.isfinite(P_last[b, i, i]):
                 return False
     return True
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def fading_step(y, consts, lohi, k, x0, P0, out3, sm_mean, sm_cov, x_last, P_last):
+    """One step of the fading Tobit Kalman filter (:data:`~tobitkf.filters._compiled_loop.FADING`, the online
+    ``step``): ``y`` (N, m); ``consts`` the flat ``n, noise_code, joseph, A, Qd`` (n, n), the rows ``H_0 .. H_L``
+    (L+1, m, n_x) and the standard deviations σ (m,) (:func:`~tobitkf.filters.fading.fading_step_constants`);
+    ``lohi`` (2, 1, m) the step's limits; ``k`` the step's time index (its rows :math:`H_{\\min(k, L)}`); ``x0``
+    (N, n_x), ``P0`` (N or 1, n_x, n_x). Writes P(uncensored), E[y] and the inverse Mills ratios into ``out3``
+    (3, N, m), the smoothed estimates (every block of the new state and its diagonal blocks) into ``sm_mean``
+    (N, L+1, n), ``sm_cov`` (N, L+1, n, n) (each (N, 0, ...): not written), the new state into ``x_last``,
+    ``P_last``. 11 arguments where the loop takes 29: numba unboxes each argument of a call from Python."""
+    N, m = y.shape
+    nxi = x0.shape[1]
+    n = int(consts[0])
+    nn = n * n
+    L1 = nxi // n
+    e = 3 + 2 * nn
+    A = consts[3 : 3 + nn].reshape((1, 1, n, n))
+    Qd = consts[3 + nn : e].reshape((1, 1, n, n))
+    j = min(k, L1 - 1)
+    H = consts[e + j * m * nxi : e + (j + 1) * m * nxi].reshape((1, m, nxi))
+    e += L1 * m * nxi
+    ts = 1 if sm_mean.shape[1] > 0 else 0
+    zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
+    compiled_loop(
+        zero + FADING,
+        y.reshape((N, 1, m)),
+        np.empty((N, 0, m), dtype=np.int8),
+        A,
+        Qd,
+        H,
+        np.empty((1, m, 0, nxi)),
+        consts[e : e + m].reshape((1, 1, m)),
+        lohi[0].reshape((1, 1, m)),
+        lohi[1].reshape((1, 1, m)),
+        np.empty((1, m, 0)),
+        zero + 1,
+        zero + 1,
+        zero + int(consts[1]),
+        consts[2] != 0.0,
+        np.empty((N, 0, n)),
+        np.empty((N, 0, m)),
+        x0,
+        P0,
+        sm_mean.reshape((N, ts, nxi)),
+        sm_cov.reshape((N, ts, nxi, n)),
+        np.empty((N, 0, n)),
+        np.empty((N, 0, n, n)),
+        out3[0].reshape((N, 1, m)),
+        out3[1].reshape((N, 1, m)),
+        np.empty((N, 0)),
+        out3[2].reshape((N, 1, m, 1)),
+        x_last,
+        P_last,
+    )

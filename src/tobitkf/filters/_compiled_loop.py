@@ -13,6 +13,9 @@ one branch per block and step:
   covariance and the gains are computed once and the means of every run with those gains;
 * :data:`TOBIT`: the Tobit update of all channels at the prior,
   :func:`~tobitkf.filters._compiled_tobit.tobit_update_block` (Miller (3.37)–(3.41));
+* :data:`FADING`: the fading TKF's update of its augmented state (Geng et al. 2017, Table 1), the same Tobit
+  update at the step's rows ``H[t]`` (:math:`H_k = \bar\theta_k\mathcal C_k`) with the inverse Mills ratios
+  among the outputs, :func:`~tobitkf.filters._compiled_fading.fading_update_block`;
 * an assumed-density family (:data:`~tobitkf.filters._compiled_moments.FAMILIES`): channel by channel, a
   rank-one change along :math:`\bar Ph^T` (:mod:`tobitkf.filters._compiled_moments`),
 
@@ -77,7 +80,7 @@ from ._compiled_block import (
     mean_predict,
     runs_per_block,
 )
-from ._compiled_fading import shift_predict_block
+from ._compiled_fading import AUG_BLOCK, fading_update_block, shift_predict_block
 from ._compiled_moments import (
     CENSORED,
     FAMILIES,
@@ -103,6 +106,7 @@ __all__ = [
     "TOBIT",
     "PROTOCOL_TKF",
     "FIXED_GAIN",
+    "FADING",
     "CompiledSpec",
     "compiled_filter",
     "censoring_spec",
@@ -121,6 +125,10 @@ KALMAN, TOBIT = 100, 101
 #: channel, :func:`_protocol_tkf_update`) and of the fixed-gain (steady-state) Tobit Kalman filter (Miller (3.58),
 #: means only, :func:`_fixed_gain_means`)
 PROTOCOL_TKF, FIXED_GAIN = 102, 103
+#: update code of the fading Tobit Kalman filter (Geng et al. 2017): the Tobit update of the augmented state at the
+#: step's rows :math:`H_k`, with the inverse Mills ratio among its outputs
+#: (:func:`~tobitkf.filters._compiled_fading.fading_update_block`)
+FADING = 110
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -496,7 +504,9 @@ def compiled_loop(
     ``joseph`` the Joseph form (KF, TKF); ``bu`` (N, T, n) / ``du`` (N, T, m) the input terms (T axis 0:
     none); ``x0`` (N, n_x), ``P0`` (N or 1, n_x, n_x). Outputs (T axis 0: not written): ``means``,
     ``pmeans`` (N, T, n), ``covs`` (N, T, n, n) or (N, T, n, 1) (the variances), ``pcovs`` (N, T, n, n),
-    ``pu``, ``ey`` (N, T, m) (P(uncensored), the TKF's E(y)), ``ll`` (N, T), ``comp`` (N, T, m, J);
+    ``pu``, ``ey`` (N, T, m) (P(uncensored), the TKF's E(y)), ``ll`` (N, T), ``comp`` (N, T, m, J) (:data:`FADING`:
+    J = 1, the inverse Mills ratios); for an augmented state ``means`` may be (N, T, n_x) (every block) and
+    ``covs`` (N, T, n_x, n) (the n x n diagonal blocks, :func:`~tobitkf.filters._compiled_block._stage_cov`);
     ``x_last``, ``P_last`` the state after the last step. The Kalman filter with one prior covariance
     (``P0`` (1, n, n), N > 1, nothing missing) runs the covariance and the gains once (``covs``, ``pcovs``,
     ``P_last`` with one run) and the means of every run with those gains."""
@@ -511,10 +521,10 @@ def compiled_loop(
     shared = family == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
     runs = 1 if shared else N
     glx, glw = GL_X, GL_W
-    B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, runs_per_block(nx))
+    B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, AUG_BLOCK if family == FADING else runs_per_block(nx))
     APr = np.empty((n, n))
     x, xp, e, mu = _mean_scratch(nx, m, B)
-    blk, run, solve, buf = _update_scratch(nx, n, m, B, glx.shape[0] if family == TOBIT else 0)
+    blk, run, solve, buf = _update_scratch(nx, n, m, B, glx.shape[0] if family == TOBIT or family == FADING else 0)
     P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
     C = H[0]
     if family == KALMAN:
@@ -625,6 +635,22 @@ def compiled_loop(
                         for l in range(m):
                             Kall[t, i, l] = K[i, l, 0]
                 _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
+            elif family == FADING:  # the rows H_k of the step, the inverse Mills ratios into compb[:, 0] (J = 1)
+                lam = compb.reshape((m, B))
+                Ht, tl = H[min(t, H.shape[0] - 1)], min(t, lo.shape[1] - 1)
+                sc = (blk, run, solve, buf)
+                fading_update_block(
+                    Ht, r[0, 0], lo[0], hi[0], tl, noise_code, joseph, y, du, r0, t, xp, Pp, x, P, mu, e, lam, sc, nb
+                )
+                if want_pu or want_ey or want_comp:
+                    for l in range(m):
+                        for b in range(nb):
+                            if want_pu:
+                                s_pu[tt, l, b] = gam[l, b]
+                            if want_ey:
+                                s_ey[tt, l, b] = mu[l, b]
+                            if want_comp:
+                                s_comp[tt, l, 0, b] = lam[l, b]
             else:
                 _channel_updates(
                     family,

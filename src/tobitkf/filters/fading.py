@@ -92,8 +92,6 @@ Code names -> paper symbols: ``mean`` x̂_{k|k}; ``cov`` P_{k|k}; ``pred_mean`` 
 
 from __future__ import annotations
 
-from functools import lru_cache
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -103,7 +101,7 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, kernels, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, system_gap, use_kernel
 from ._online_check import system_only
 from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
 from .core import (
@@ -116,7 +114,7 @@ from .core import (
     step_state,
     symmetrize,
 )
-from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, finite_variances
+from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, finite_variances, loop_entries
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -410,8 +408,8 @@ class FadingTobitKalmanFilter(_FadingFamily):
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``filter`` through the compiled kernel of :mod:`tobitkf.filters._compiled_fading` or the numpy
-        reference path; see :func:`fading_tobit_kalman_filter`.
+        ``filter`` and ``step`` through the one compiled loop of :mod:`tobitkf.filters._compiled_loop` or the
+        numpy reference path; see :func:`fading_tobit_kalman_filter`.
 
     Raises
     ------
@@ -454,8 +452,9 @@ class FadingTobitKalmanFilter(_FadingFamily):
     """
 
     _name = "FadingTobitKalmanFilter"
-    _kernel_mats: tuple[np.ndarray, ...]  # A, Qd, H_0..H_L of the kernel, set on its first call
-    _step_consts: tuple[Any, np.ndarray, np.ndarray]  # the online step's system, flat constants, limits, set once
+    _fading_mats: tuple[Any, tuple[np.ndarray, ...]]  # the system; its A, Qd, H_0..H_L, sigma for the loop; set once
+    _fading_flat: tuple[Any, np.ndarray]  # the system and the online step's flat constants, set once
+    _loop_limits: np.ndarray  # the online step's constant limits (2, 1, m), set once
 
     def __init__(
         self,
@@ -516,42 +515,45 @@ class FadingTobitKalmanFilter(_FadingFamily):
         """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
-    # ---- the compiled path (``filter``, and ``step`` through _fading_kernel_step) ----------------------
+    # ---- the compiled path (``filter``, and ``step`` through _compiled_step) ----------------------------------
     def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
-        what = "the fading Tobit Kalman filter"
-        gap = None
-        if step_options.get("keep_augmented"):
-            gap = "keep_augmented=True"
-        if u2 is None and gap is None:
-            ok = self.__dict__.get("_kernel_static")
-            if ok is None:
-                ok = self._kernel_static = use_kernel(self.backend, _fading_kernel_gap(self, None), what)
-        else:
-            ok = use_kernel(self.backend, gap or _fading_kernel_gap(self, u2), what)
-        if not ok:
-            return None
-        return _finite_or_none(_fading_kernel_run(self, y2, state, want, batch, bool(step_options["keep_smoothed"])))
+        ok = self._compiled_ok(u2, bool(step_options.get("keep_augmented")))
+        return (
+            _finite_or_none(_compiled_run(self, y2, u2, state, want, batch, bool(step_options["keep_smoothed"])))
+            if ok
+            else None
+        )
 
     def _compiled_online_step(self, state, y, u, options):
-        """One online step through the compiled loop (T = 1), with the numpy step's extras; None (the
-        numpy step runs) where the kernel does not cover the case or the covariance stopped being finite."""
-        opts = {"keep_smoothed": options.get("keep_smoothed", True), "keep_augmented": options.get("keep_augmented")}
-        N = y.shape[0]
-        if u is None and not opts["keep_augmented"]:
+        """One online step through the compiled loop (T = 1), with the numpy step's extras; None (the numpy step
+        runs) where the loop does not cover the case or the covariance stopped being finite."""
+        keep_smoothed = bool(options.get("keep_smoothed", True)) if options else True
+        if u is None and not (options and options.get("keep_augmented")):  # the plain step: decided once
             ok = self.__dict__.get("_kernel_static")
             if ok is None:
-                what = "the fading Tobit Kalman filter"
-                ok = self._kernel_static = use_kernel(self.backend, _fading_kernel_gap(self, None), what)
-            if not ok:
-                return None
-            return _fading_kernel_step(self, y, state, bool(opts["keep_smoothed"]))
-        u2 = None if u is None else u.reshape(N, 1, -1)
-        res = self._compiled_filter_with(y.reshape(N, 1, self.m), u2, state, _STEP_OUTPUTS, (N,), opts)
-        if res is None:
+                ok = self._compiled_ok(None, False)
+            return _compiled_step(self, y, state, keep_smoothed) if ok else None
+        if not self._compiled_ok(u, bool(options.get("keep_augmented"))):
+            return None
+        N = y.shape[0]
+        res = _compiled_run(
+            self, y.reshape(N, 1, self.m), u.reshape(N, 1, -1), state, _STEP_OUTPUTS, (N,), keep_smoothed
+        )
+        if not finite_variances(res.final.P):
             return None
         extras = {key: val[:, 0] for key, val in res.extras.items()}
-        assert res.final is not None
         return step_state(state.k + 1, state.batch_shape, res.final.x, res.final.P, self.n, None, state.carry, extras)
+
+    def _compiled_ok(self, u, keep_augmented: bool) -> bool:
+        """Whether the compiled loop runs this call: decided once per estimator for the call without input and
+        ``keep_augmented``, else afresh (raises for ``backend="numba"`` and a case it does not cover)."""
+        what = "the fading Tobit Kalman filter"
+        if u is None and not keep_augmented:
+            ok = self.__dict__.get("_kernel_static")
+            if ok is None:
+                ok = self._kernel_static = use_kernel(self.backend, _compiled_gap(self, None), what)
+            return ok
+        return use_kernel(self.backend, "keep_augmented=True" if keep_augmented else _compiled_gap(self, u), what)
 
 
 class FadingKalmanFilter(_FadingFamily):
@@ -660,10 +662,10 @@ def fading_tobit_kalman_filter(
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
     backend : {"auto", "numpy", "numba"}, default "auto"
-        ``"numba"`` runs the compiled loop of :mod:`tobitkf.filters._compiled_fading` (equal to the
-        numpy path to rounding; it covers a time-invariant system without input,
-        ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, the Joseph and standard
-        forms, ``keep_augmented=False``) and raises for another case; ``"auto"`` uses it when numba is
+        ``"numba"`` runs the one compiled loop of :mod:`tobitkf.filters._compiled_loop` (equal to the
+        numpy path to rounding; it covers a time-invariant system, control inputs through a constant
+        ``Bu`` and ``D``, ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, the Joseph
+        and standard forms, ``keep_augmented=False``) and raises for another case; ``"auto"`` uses it when numba is
         installed and the case is covered, else numpy; ``"numpy"`` always runs the reference path.
 
     Returns
@@ -680,7 +682,7 @@ def fading_tobit_kalman_filter(
     ------
     ValidationError
         Non-diagonal R, an unknown option, a reading outside the limits, wrong types;
-        ``backend="numba"`` for a case the kernel does not cover.
+        ``backend="numba"`` for a case the compiled loop does not cover.
     ImportError
         ``backend="numba"`` without numba installed.
     ShapeError
@@ -764,11 +766,11 @@ def fading_estimators(
 # --------------------------------------------------------------------------- the compiled path
 
 
-def _fading_kernel_gap(est: FadingTobitKalmanFilter, u) -> str | None:
-    """Why :func:`tobitkf.filters._compiled_fading.fading_tkf_kernel` cannot run ``est`` on input ``u``
-    (None when it can); ``keep_augmented`` is checked by the caller."""
+def _compiled_gap(est: FadingTobitKalmanFilter, u) -> str | None:
+    """Why the compiled loop cannot run ``est`` on input ``u`` (None when it can); ``keep_augmented`` is checked by
+    the caller."""
     gap = check_square_root(est.backend, est.covariance_update, "the fading Tobit Kalman filter")
-    gap = gap or system_gap(est.system, u)
+    gap = gap or system_gap(est.system, u, inputs=True)
     if gap is None and est.p_uncensored_mode != "augmented":
         gap = f"p_uncensored_mode={est.p_uncensored_mode!r}"
     if gap is None and est.fading_variance_term:
@@ -776,66 +778,167 @@ def _fading_kernel_gap(est: FadingTobitKalmanFilter, u) -> str | None:
     return gap
 
 
-def _fading_kernel_matrices(est: FadingTobitKalmanFilter) -> tuple[np.ndarray, ...]:
-    """A, B Q B^T (n, n) and the stack H_0..H_L (L+1, m, nxi), computed once per estimator."""
-    mats = est.__dict__.get("_kernel_mats")
-    if mats is None:
-        sys_, c64 = est.system, np.ascontiguousarray
+def _loop_constants(est: FadingTobitKalmanFilter) -> tuple[np.ndarray, ...]:
+    """A, B Q B^T (n, n), the stack H_0..H_L (L+1, m, nxi) and σ (m,) as contiguous float64, once per estimator
+    (keyed on the system: an estimator copied onto another)."""
+    cached = est.__dict__.get("_fading_mats")
+    if cached is None or cached[0] is not est.system:
+        sys_ = est.system
         Hs = np.stack([augmented_measurement_matrix(sys_, est.fading, j) for j in range(est.L + 1)])
-        mats = est._kernel_mats = (
-            c64(sys_.transition(0), dtype=float),
-            c64(sys_.process_cov(0), dtype=float),
-            c64(Hs, dtype=float),
+        mats = tuple(
+            np.ascontiguousarray(a, dtype=float) for a in (sys_.transition(0), sys_.process_cov(0), Hs, est._sigma)
         )
-    return mats
+        cached = est._fading_mats = (sys_, mats)
+    return cached[1]
 
 
-@lru_cache(maxsize=1)
-def _fading_kernels() -> ModuleType:
-    """The :mod:`tobitkf.filters._compiled_fading` module, imported once (an import statement in the step costs
-    ~0.3 µs a call even when the module is loaded)."""
-    from . import _compiled_fading
+def fading_step_constants(est: FadingTobitKalmanFilter) -> np.ndarray:
+    """The constants of :func:`~tobitkf.filters._compiled_entries.fading_step` as one flat float64 array, built once
+    per estimator: n, the noise code (1: the censored variance), the Joseph flag, then ``A``, ``B Q B^T``, ``H_0 ..
+    H_L`` and σ of :func:`_loop_constants`."""
+    cached = est.__dict__.get("_fading_flat")
+    if cached is None or cached[0] is not est.system:  # keyed on the system (an estimator copied onto another)
+        head = [float(est.n), float(est.exact_tobit_variance), float(est.covariance_update == "joseph")]
+        flat = np.concatenate([np.array(head)] + [a.ravel() for a in _loop_constants(est)])
+        cached = est._fading_flat = (est.system, flat)
+    return cached[1]
 
-    return _compiled_fading
+
+def _undefined_blocks(sm_mean: np.ndarray, sm_cov: np.ndarray | None, k0: int, L: int) -> None:
+    """NaN into the smoothed blocks s > k (x_{k-s} before the record's start) of the steps k = k0 + 1 .. L, in
+    place: ``sm_mean`` (N, T, L+1, n), ``sm_cov`` (N, T, L+1, n, n) (the numpy path's ``_extras``)."""
+    for t in range(min(sm_mean.shape[1], L - k0)):
+        k = k0 + t + 1
+        sm_mean[:, t, k + 1 :] = np.nan
+        if sm_cov is not None:
+            sm_cov[:, t, k + 1 :] = np.nan
 
 
-def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterState, keep_smoothed: bool):
-    """One online step (y (N, m)) through the compiled loop with T = 1 and only the step's extras written, by its
-    entry of 14 arguments (:func:`~tobitkf.filters._compiled_fading.fading_tkf_step`): the matrices flattened into
-    one array and the limits into another, once per estimator for constant limits; None when the covariance
-    stopped being finite (the numpy step then reruns it and reports the divergence)."""
+def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want, batch, keep_smoothed):
+    """The compiled loop (update :data:`~tobitkf.filters._compiled_loop.FADING`) from ``state`` (augmented x, P);
+    outputs on request, as the numpy path's. With the smoothed blocks requested the loop writes every block of the
+    mean and the diagonal blocks of the covariance ((N, T, nxi), (N, T, nxi, n)), and ``mean`` and ``cov`` are
+    copies of their first blocks."""
+    from ._compiled_loop import FADING, compiled_loop
+
+    N, T, m = y2.shape
+    n, L, nxi = est.n, est.L, est._nxi
+    A, Qd, Hs, sigma = _loop_constants(est)
+    k0 = state.k
+    TH = min(T, max(L - k0, 0) + 1)  # the rows H_min(k, L) of the steps k0 + 1 .. k0 + TH (then constant)
+    H = Hs[np.minimum(k0 + 1 + np.arange(TH), L)]
+    lo, hi = est._cens.all_limits(T, m, start=k0 + 1)
+    assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
+    ext = "extras" in want
+    sm = ext and keep_smoothed
+    state_out: tuple[tuple[bool, tuple[int, ...]], ...] = state_specs(want, n)[:2]
+    if sm:
+        state_out = ((True, (nxi,)), (True, (nxi, n)))
+    means, covs, pmeans, pcovs, pu, ey, lam = output_arrays(
+        N,
+        T,
+        *state_out,
+        ("pred_mean" in want, (n,)),
+        ("pred_cov" in want, (n, n)),
+        (ext, (m,)),
+        (ext, (m,)),
+        (ext, (m, 1)),
+    )
+    bu, du = _input_terms(est, u2, N, T)
+    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
+    compiled_loop(
+        FADING,
+        loop_input(y2),
+        np.empty((N, 0, m), dtype=np.int8),
+        A[None, None],
+        Qd[None, None],
+        np.ascontiguousarray(H),
+        np.empty((1, m, 0, nxi)),
+        sigma[None, None],
+        loop_input(lo)[None],
+        loop_input(hi)[None],
+        np.empty((1, m, 0)),
+        1,
+        1,
+        int(est.exact_tobit_variance),
+        est.covariance_update == "joseph",
+        bu,
+        du,
+        loop_input(state.x),
+        loop_input(state.P),
+        means,
+        covs,
+        pmeans,
+        pcovs,
+        pu,
+        ey,
+        _empty((N, 0)),
+        lam,
+        x_last,
+        P_last,
+    )
+
+    def out(a):
+        return kernel_array(a, batch)
+
+    extras: dict[str, Any] = {}
+    if ext:
+        extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam.reshape(N, T, m))}
+    if sm:
+        sm_mean, sm_cov = means.reshape(N, T, L + 1, n), covs.reshape(N, T, L + 1, n, n)
+        _undefined_blocks(sm_mean, sm_cov, k0, L)
+        extras.update(smoothed_mean=out(sm_mean), smoothed_cov=out(sm_cov))
+        # the mean and the covariance: copies of the first blocks (the result's arrays share no element)
+        means = np.ascontiguousarray(means[:, :, :n]) if "mean" in want else _empty((N, 0, n))
+        if "cov" in want:
+            covs = np.ascontiguousarray(covs[:, :, :n])
+        elif "var" in want:  # the layout of cov_spec: the variances alone
+            covs = np.diagonal(covs[:, :, :n], axis1=-2, axis2=-1)[..., None].copy()
+        else:
+            covs = _empty((N, 0, n, n))
+    final = FilterState(k=k0 + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
+    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+
+
+def _input_terms(est: FadingTobitKalmanFilter, u2, N: int, T: int) -> tuple[np.ndarray, np.ndarray]:
+    """The loop's input arrays from ``u2`` (N, T, p) or None: ``bu`` = :math:`B^uu_k` (N, T, n) entering the top
+    block of the prediction and ``du`` = :math:`Du_k` (N, T, m) the readings' feedthrough, each (N, 0, ...) when
+    absent (the numpy path's ``u @ Bu.T``, ``u @ D.T``)."""
+    sys_ = est.system
+    bu = _empty((N, 0, est.n)) if u2 is None or sys_.Bu is None else loop_input(u2 @ sys_.Bu.at(1).T)
+    du = _empty((N, 0, est.m)) if u2 is None or sys_.D is None else loop_input(u2 @ sys_.D.at(1).T)
+    return bu, du
+
+
+def _compiled_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterState, keep_smoothed: bool):
+    """One online step (y (N, m), no input) through the loop by its entry of 11 arguments
+    (:func:`~tobitkf.filters._compiled_entries.fading_step`): the constants flattened into one array and the limits
+    into another, once per estimator for constant limits; None when the covariance stopped being finite (the numpy
+    step then reruns it and reports the divergence)."""
     N, m = y.shape
     n, L, nxi = est.n, est.L, est._nxi
+    k = state.k + 1
     cens = est._cens
-    consts = None if cens.time_varying else est.__dict__.get("_step_consts")
-    if consts is None or consts[0] is not est.system:  # keyed on the system (an estimator copied onto another)
-        mod = _fading_kernels()
-        lo, hi = cens.all_limits(1, m, start=state.k + 1)
-        flat = mod.step_constants(*_fading_kernel_matrices(est), est._sigma)
-        consts = (est.system, flat, np.stack([lo, hi]).astype(float))
+    lohi = None if cens.time_varying else est.__dict__.get("_loop_limits")
+    if lohi is None:
+        lohi = np.empty((2, 1, m))  # writable (a read-only argument would compile the loop once more)
+        lohi[0], lohi[1] = cens.limits(k)
         if not cens.time_varying:
-            est._step_consts = consts  # constant limits: converted once
-    _, flat, lohi = consts
-    P = state.P
-    assert P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
-    if P.shape[0] != N:
-        P = np.broadcast_to(P, (N, nxi, nxi))
+            est._loop_limits = lohi  # constant limits: converted once
     out3 = np.empty((3, N, m))  # p_uncensored, E[y], the inverse Mills ratios
     if keep_smoothed:
         sm_mean, sm_cov = np.empty((N, L + 1, n)), np.empty((N, L + 1, n, n))
     else:
         sm_mean, sm_cov = _empty((N, 0, n)), _empty((N, 0, n, n))
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    _fading_kernels().fading_tkf_step(
+    assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
+    loop_entries().fading_step(
         loop_input(y),
-        flat,
+        fading_step_constants(est),
         lohi,
+        k,
         loop_input(state.x),
-        loop_input(P),
-        state.k,
-        n,
-        est.exact_tobit_variance,
-        est.covariance_update == "joseph",
+        loop_input(state.P),
         out3,
         sm_mean,
         sm_cov,
@@ -846,70 +949,8 @@ def _fading_kernel_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: Filt
         return None
     extras = {"p_uncensored": out3[0], "expected_y": out3[1], "inverse_mills": out3[2]}
     if keep_smoothed:
+        if k <= L:  # blocks s > k stand for x_{k-s}, k-s < 0: not defined
+            sm_mean[:, k + 1 :] = np.nan
+            sm_cov[:, k + 1 :] = np.nan
         extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
-    return step_state(state.k + 1, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
-
-
-def _fading_kernel_run(est: FadingTobitKalmanFilter, y2, state: FilterState, want, batch, keep_smoothed):
-    """The compiled loop from ``state`` (augmented x, P); outputs on request, as the numpy path's."""
-    kern = kernels()
-    N, T, m = y2.shape
-    n, L, nxi = est.n, est.L, est._nxi
-    c64 = np.ascontiguousarray
-    A, Qd, Hs = _fading_kernel_matrices(est)
-    lo, hi = est._cens.all_limits(T, m, start=state.k + 1)
-    assert state.P is not None, "the compiled kernel runs the Joseph and standard forms, which carry P"
-    x = c64(state.x, dtype=float)
-    P = c64(np.broadcast_to(state.P, (N, nxi, nxi)), dtype=float)
-
-    ext, sm = "extras" in want, "extras" in want and keep_smoothed
-    means, covs, pmeans, pcovs, pu, ey, lam, sm_mean, sm_cov = output_arrays(
-        N,
-        T,
-        *state_specs(want, n),
-        (ext, (m,)),
-        (ext, (m,)),
-        (ext, (m,)),
-        (sm, (L + 1, n)),
-        (sm, (L + 1, n, n)),
-    )
-    x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    _fading_kernels().fading_tkf_kernel(
-        c64(y2, dtype=float),
-        A,
-        Qd,
-        Hs,
-        c64(est._sigma, dtype=float),
-        c64(lo, dtype=float),
-        c64(hi, dtype=float),
-        x,
-        P,
-        state.k,
-        n,
-        est.exact_tobit_variance,
-        est.covariance_update == "joseph",
-        kern.GL_X,
-        kern.GL_W,
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        pu,
-        ey,
-        lam,
-        sm_mean,
-        sm_cov,
-        x_last,
-        P_last,
-    )
-
-    def out(a):
-        return kernel_array(a, batch)
-
-    extras: dict[str, Any] = {}
-    if ext:
-        extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam)}
-        if keep_smoothed:
-            extras.update(smoothed_mean=out(sm_mean), smoothed_cov=out(sm_cov))
-    final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+    return step_state(k, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
