@@ -2,9 +2,10 @@ r"""The compiled time loop of the nonlinear filters, for a :class:`~tobitkf.Nonl
 (and ``F``, ``H`` when given) are ``numba.njit`` functions.
 
 :func:`nonlinear_loop` is the numpy path of :mod:`tobitkf.filters.nonlinear` (whose module docstring states the
-equations) run by numba over runs and steps, one run at a time: the user's functions are called from compiled code
-on the points of one run, ``f(X, k)`` with ``X`` (L, n) (the L sigma points, or the 2n central-difference points
-of the extended form) and ``h(X, k)`` likewise, so a function written for the batched numpy path serves here
+equations) run by numba over blocks of :data:`NL_BLOCK` runs and steps: the user's functions are called from
+compiled code once per block and step on the stacked points of the block's runs, ``f(X, k)`` with ``X``
+(nb * L, n) (the L sigma points of each run, or the one mean and the 2n central-difference points of the extended
+form) and ``h(X, k)`` likewise, as the batched numpy path calls them, so a function written for it serves here
 unchanged. Per step:
 
 * the **prediction**: extended (:math:`\bar x = f(\hat x)`, :math:`\bar P = F\hat PF^T + Q`) or by the sigma-point
@@ -18,7 +19,9 @@ unchanged. Per step:
   moments of the latent reading from :func:`~tobitkf.filters._compiled_moments.family_block`).
 
 The user's functions are arguments, so numba specialises the loop for each (f, h, F, H): compiled once per
-process and combination (a function specialised on another is not cached on disk). Covered: the standard form
+process and combination (a function specialised on another is not cached on disk). That specialised loop is kept
+thin (the loops over blocks, steps, channels and linearisations, and the calls of f, h); the per-run algebra is in
+block steps cached on disk. Covered: the standard form
 (and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
 filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters;
 the square-root form and other channels run the numpy path.
@@ -76,19 +79,6 @@ def _root(P, out):
     for i in range(n):
         for c in range(n):
             out[i, c] = V[i, c] * math.sqrt(max(w[c], 0.0))
-
-
-@njit(error_model="numpy", cache=True)
-def _fill_points(x, P, xi, root, X):
-    """The sigma points (L, n) of N(x, P) into ``X``: :math:`\\chi_l = x + L\\xi_l`."""
-    _root(P, root)
-    L, n = xi.shape
-    for p in range(L):
-        for i in range(n):
-            s = x[i]
-            for j in range(n):
-                s += root[i, j] * xi[p, j]
-            X[p, i] = s
 
 
 @njit(error_model="numpy", cache=True)
@@ -270,50 +260,6 @@ def _joint_update(code, yt, ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hj, xp,
     _gain_update(xp, Pp, e, Rxe, Ree, ok, Hj, R, False, x, P)
 
 
-@njit(error_model="numpy", cache=True)
-def _channel_projection(
-    it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, hi, par, one, cls, pu, comp, buf, cxy
-):  # fmt: skip
-    r"""One linearisation ``it`` of the assumed-density update of channel ``ch`` (reading ``yv``, not NaN):
-    from the rule's moments ``ym``, ``Pxy``, ``Pyy`` of h about :math:`N(x_m, P_m)` the affine model (about the
-    prior itself when ``it`` = 0), the channel's moments of the latent reading
-    (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``x``, ``P`` into
-    ``xm``, ``Pm``. Returns ``(taken, log p(y))``: not taken (``xm``, ``Pm`` the prior) when the latent variance
-    is not above the smallest normal number. ``one`` (9, 1), ``cls`` (1,), ``pu`` (1,), ``comp`` (0, 1), ``buf``:
-    scratch of the one-run block call; ``cxy`` (n,) scratch."""
-    n = x.shape[0]
-    if it == 0:
-        mu = ym[ch]
-        for i in range(n):
-            cxy[i] = Pxy[i, ch]
-        s2 = Pyy[ch, ch] + rl
-    else:  # the affine model fitted about the posterior, applied to the prior
-        Hl = np.linalg.solve(Pm, Pxy[:, ch].copy())
-        omega = max(Pyy[ch, ch] - np.dot(Hl, np.dot(Pm, Hl)), 0.0)
-        mu = ym[ch] + np.dot(Hl, x - xm)
-        cxy[:] = np.dot(P, Hl)
-        s2 = np.dot(Hl, cxy) + omega + rl
-    if not s2 > _TINY:
-        xm[:] = x
-        Pm[:] = P
-        return False, 0.0
-    # one: the y, hx, hph, rb, lo, hi, alpha, beta, ll of the one run
-    one[0, 0], one[1, 0], one[2, 0], one[3, 0], one[4, 0], one[5, 0], one[8, 0] = yv, mu, s2 - rl, rl, lo, hi, 0.0
-    cls[0] = classify(yv, lo, hi) if family == CENSORED else 1
-    family_block(
-        family, 1, one[0], cls, one[1], one[2], one[3], one[4], one[5], par, one[6], one[7], one[8], pu, comp,
-        GL_X, GL_W, buf,
-    )  # fmt: skip
-    alpha, beta = one[6, 0], one[7, 0]
-    for i in range(n):
-        xm[i] = x[i] + alpha * cxy[i]
-        for j in range(i + 1):
-            v = 0.5 * ((P[i, j] - beta * cxy[i] * cxy[j]) + (P[j, i] - beta * cxy[j] * cxy[i]))
-            Pm[i, j] = v
-            Pm[j, i] = v
-    return True, one[8, 0]
-
-
 def _call(fn, X, k, U):  # pragma: no cover - compiled only (its overload below)
     """``fn(X, k)`` or, with input rows ``U``, ``fn(X, k, U)``."""
 
@@ -411,13 +357,41 @@ def _block_rows(xs, X, nb):
 @njit(error_model="numpy", cache=True)
 def _block_points(xs, Ps, xi, root, X, nb, act):
     """The sigma points of N(``xs[b]``, ``Ps[b]``) of the runs b < nb with ``act[b]``, stacked in ``X`` (L rows a
-    run, in order); returns how many runs."""
-    L = xi.shape[0]
+    run, in order): :math:`\\chi_l = x + L\\xi_l` with the lower Cholesky factor (:func:`_root`: an eigen root when
+    it fails); returns how many runs. Indexes the block arrays directly (no per-run views or calls)."""
+    L, n = xi.shape
     q = 0
     for b in range(nb):
-        if act[b]:
-            _fill_points(xs[b], Ps[b], xi, root, X[q * L : (q + 1) * L])
-            q += 1
+        if not act[b]:
+            continue
+        ok = True  # the Cholesky factor of Ps[b] into root (as _cholesky)
+        for i in range(n):
+            for c in range(n):
+                root[i, c] = 0.0
+        for j in range(n):
+            d = Ps[b, j, j]
+            for c in range(j):
+                d -= root[j, c] * root[j, c]
+            if not d > 0.0:
+                ok = False
+                break
+            d = math.sqrt(d)
+            root[j, j] = d
+            for i in range(j + 1, n):
+                s = Ps[b, i, j]
+                for c in range(j):
+                    s -= root[i, c] * root[j, c]
+                root[i, j] = s / d
+        if not ok:
+            _root(Ps[b], root)
+        base = q * L
+        for p in range(L):
+            for i in range(n):
+                s = xs[b, i]
+                for j in range(n):
+                    s += root[i, j] * xi[p, j]
+                X[base + p, i] = s
+        q += 1
     return q
 
 
@@ -440,24 +414,38 @@ def _block_jacobians(V, deltas, J, nb):
 
 
 @njit(error_model="numpy", cache=True)
-def _add_symmetric(P, Q):
-    """``P`` = ((P + Q) + (P + Q)^T)/2 in place."""
-    n = P.shape[0]
-    for i in range(n):
-        for j in range(i + 1):
-            v = 0.5 * ((P[i, j] + Q[i, j]) + (P[j, i] + Q[j, i]))
-            P[i, j] = v
-            P[j, i] = v
-
-
-@njit(error_model="numpy", cache=True)
 def _predict_sigma(X, xs, Y, wm, wc, Q, xps, Pps, fxy, nb):
     r"""The sigma-point prediction of the block's runs from the mapped points ``Y`` = f(``X``):
-    :math:`\bar x = \sum_l w^m_lf(\chi_l)`, :math:`\bar P = \sum_l w^c_l(f(\chi_l) - \bar x)(\cdot)^T + Q`."""
+    :math:`\bar x = \sum_l w^m_lf(\chi_l)`, :math:`\bar P = \sum_l w^c_l(f(\chi_l) - \bar x)(\cdot)^T + Q`
+    (symmetrised; the operations of :func:`sigma_moments`, indexed in the block arrays directly)."""
     L = wm.shape[0]
+    n = xs.shape[1]
     for b in range(nb):
-        sigma_moments(X[b * L : (b + 1) * L], xs[b], Y[b * L : (b + 1) * L], wm, wc, xps[b], fxy, Pps[b])
-        _add_symmetric(Pps[b], Q)
+        base = b * L
+        for a in range(n):
+            s = 0.0
+            for p in range(L):
+                s += wm[p] * Y[base + p, a]
+            xps[b, a] = s
+        for a in range(n):
+            for c in range(n):
+                Pps[b, a, c] = 0.0
+        for p in range(L):
+            w = wc[p]
+            for a in range(n):
+                da = w * (Y[base + p, a] - xps[b, a])
+                for c in range(n):
+                    Pps[b, a, c] += da * (Y[base + p, c] - xps[b, c])
+        for a in range(n):
+            for c in range(a):
+                v = 0.5 * (Pps[b, a, c] + Pps[b, c, a])
+                Pps[b, a, c] = v
+                Pps[b, c, a] = v
+        for a in range(n):
+            for c in range(a + 1):
+                v = 0.5 * ((Pps[b, a, c] + Q[a, c]) + (Pps[b, c, a] + Q[c, a]))
+                Pps[b, a, c] = v
+                Pps[b, c, a] = v
 
 
 @njit(error_model="numpy", cache=True)
@@ -514,29 +502,79 @@ def _adf_channel_start(y, r0, t, ch, xs, Ps, xms, Pms, act, nb):
 def _adf_project(
     it, ch, X, Y, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, rl, family, lo, hi, par, lsum, nb
 ):  # fmt: skip
-    """Linearisation ``it`` of channel ``ch`` for the block's runs in ``act`` (:func:`_channel_projection`), from
-    the values ``Y`` of h at their stacked sigma points ``X``: the projection into ``xms``, ``Pms``; the
-    log-likelihood of the first into ``lsum``; a run whose latent variance vanished leaves ``act``."""
+    r"""Linearisation ``it`` of channel ``ch`` for the block's runs in ``act``, from the values ``Y`` of h at their
+    stacked sigma points ``X`` the rule's moments of
+    the channel about :math:`N(x_m, P_m)` (``xms``, ``Pms``), the affine model (about the prior itself when
+    ``it`` = 0), the channel's moments of the latent reading for the runs at once
+    (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``xs``, ``Ps``
+    into ``xms``, ``Pms``; the log-likelihood of the first linearisation into ``lsum``. A run whose latent
+    variance is not above the smallest normal number keeps the prior and leaves ``act``."""
     L = wm.shape[0]
     n = xs.shape[1]
-    m = y.shape[2]
-    ym, Pxy, Pyy, cxy = np.empty(m), np.empty((n, m)), np.empty((m, m)), np.empty(n)
-    one, cls, pu, comp = np.empty((9, 1)), np.empty(1, dtype=np.int8), np.empty(1), np.empty((0, 1))
+    B = xs.shape[0]
+    idx = np.empty(B, dtype=np.int64)
+    yv, hx, hph, rb, lo_c, hi_c = np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B)
+    alpha, beta, llb, pu = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
+    cls = np.empty(B, dtype=np.int8)
+    C = np.empty((B, n))
+    c = np.empty(n)
+    comp = np.empty((0, B))
     buf = np.empty((2, GL_X.shape[0]))
-    q = 0
+    q = 0  # the run's rows in X, Y
+    q2 = 0  # the runs that take the update
     for b in range(nb):
         if not act[b]:
             continue
-        sigma_moments(X[q * L : (q + 1) * L], xms[b], Y[q * L : (q + 1) * L], wm, wc, ym, Pxy, Pyy)
-        taken, lp = _channel_projection(
-            it, ch, y[r0 + b, t, ch], xs[b], Ps[b], xms[b], Pms[b], ym, Pxy, Pyy, rl, family, lo, hi, par, one, cls,
-            pu, comp, buf, cxy,
-        )  # fmt: skip
-        if it == 0:
-            lsum[b] += lp
-        if not taken:
-            act[b] = False
+        base = q * L
         q += 1
+        s = 0.0
+        for p in range(L):
+            s += wm[p] * Y[base + p, ch]
+        mu0 = s
+        for i in range(n):
+            c[i] = 0.0
+        pyy = 0.0
+        for p in range(L):
+            da = wc[p] * (Y[base + p, ch] - mu0)
+            for i in range(n):
+                c[i] += (X[base + p, i] - xms[b, i]) * da
+            pyy += da * (Y[base + p, ch] - mu0)
+        if it == 0:
+            mu = mu0
+            for i in range(n):
+                C[q2, i] = c[i]
+            s2 = pyy + rl
+        else:  # the affine model fitted about the posterior, applied to the prior
+            Hl = np.linalg.solve(Pms[b], c)
+            omega = max(pyy - np.dot(Hl, np.dot(Pms[b], Hl)), 0.0)
+            mu = mu0 + np.dot(Hl, xs[b] - xms[b])
+            cxy = np.dot(Ps[b], Hl)
+            C[q2] = cxy
+            s2 = np.dot(Hl, cxy) + omega + rl
+        if not s2 > _TINY:
+            xms[b] = xs[b]
+            Pms[b] = Ps[b]
+            act[b] = False
+            continue
+        yb = y[r0 + b, t, ch]
+        idx[q2] = b
+        yv[q2], hx[q2], hph[q2], rb[q2], lo_c[q2], hi_c[q2], llb[q2] = yb, mu, s2 - rl, rl, lo, hi, 0.0
+        cls[q2] = classify(yb, lo, hi) if family == CENSORED else 1
+        q2 += 1
+    if q2 == 0:
+        return
+    family_block(family, q2, yv, cls, hx, hph, rb, lo_c, hi_c, par, alpha, beta, llb, pu, comp, GL_X, GL_W, buf)
+    for j in range(q2):
+        b = idx[j]
+        a, be = alpha[j], beta[j]
+        for i in range(n):
+            xms[b, i] = xs[b, i] + a * C[j, i]
+            for k in range(i + 1):
+                v = 0.5 * ((Ps[b, i, k] - be * C[j, i] * C[j, k]) + (Ps[b, k, i] - be * C[j, k] * C[j, i]))
+                Pms[b, i, k] = v
+                Pms[b, k, i] = v
+        if it == 0:
+            lsum[b] += llb[j]
 
 
 @njit(error_model="numpy", cache=True)
