@@ -125,6 +125,21 @@ def test_compiled_equals_numpy(name, record):
     _same(ref, est.filter(y))
 
 
+@pytest.mark.parametrize("name", ["ekf", "ukf", "tukf_exact", "adf_iterated"])
+def test_compiled_blocks_of_runs(name):
+    """More runs than one block of the compiled loop (the last block partial), readings lost on a channel for a
+    whole block at one step and for some runs of a block at another: equal to numpy run by run."""
+    from tobitkf.filters._compiled_nonlinear import NL_BLOCK
+
+    N = 2 * NL_BLOCK + 3
+    y = tk.simulate(_system(False), 6, N, channel=CLIP, seed=7).y
+    y[:NL_BLOCK, 1, 0] = np.nan  # the whole first block loses channel 0 at step 2
+    y[NL_BLOCK : NL_BLOCK + 5, 2, :] = np.nan  # a few runs of the second block lose both
+    y[-1, 3, 1] = np.nan  # the last run of the partial block
+    mk = ESTIMATORS[name]
+    _same(mk(_system(False), "numpy").filter(y), mk(_system(True), "numba").filter(y))
+
+
 @pytest.mark.parametrize("name", ["ekf", "ukf", "tukf_exact", "adf"])
 def test_compiled_with_inputs_and_jacobians(name, record):
     """An f(x, k, u) and given Jacobians F, H are called from the compiled loop as from numpy."""

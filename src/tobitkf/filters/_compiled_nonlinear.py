@@ -2,9 +2,10 @@ r"""The compiled time loop of the nonlinear filters, for a :class:`~tobitkf.Nonl
 (and ``F``, ``H`` when given) are ``numba.njit`` functions.
 
 :func:`nonlinear_loop` is the numpy path of :mod:`tobitkf.filters.nonlinear` (whose module docstring states the
-equations) run by numba over runs and steps, one run at a time: the user's functions are called from compiled code
-on the points of one run, ``f(X, k)`` with ``X`` (L, n) (the L sigma points, or the 2n central-difference points
-of the extended form) and ``h(X, k)`` likewise, so a function written for the batched numpy path serves here
+equations) run by numba over blocks of :data:`NL_BLOCK` runs and steps: the user's functions are called from
+compiled code once per block and step on the stacked points of the block's runs, ``f(X, k)`` with ``X``
+(nb * L, n) (the L sigma points of each run, or the one mean and the 2n central-difference points of the extended
+form) and ``h(X, k)`` likewise, as the batched numpy path calls them, so a function written for it serves here
 unchanged. Per step:
 
 * the **prediction**: extended (:math:`\bar x = f(\hat x)`, :math:`\bar P = F\hat PF^T + Q`) or by the sigma-point
@@ -18,7 +19,9 @@ unchanged. Per step:
   moments of the latent reading from :func:`~tobitkf.filters._compiled_moments.family_block`).
 
 The user's functions are arguments, so numba specialises the loop for each (f, h, F, H): compiled once per
-process and combination (a function specialised on another is not cached on disk). Covered: the standard form
+process and combination (a function specialised on another is not cached on disk). That specialised loop is kept
+thin (the loops over blocks, steps, channels and linearisations, and the calls of f, h); the per-run algebra is in
+block steps cached on disk. Covered: the standard form
 (and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
 filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters;
 the square-root form and other channels run the numpy path.
@@ -79,21 +82,6 @@ def _root(P, out):
 
 
 @njit(error_model="numpy", cache=True)
-def _points(x, P, xi, root):
-    """The sigma points (L, n) of N(x, P): :math:`\\chi_l = x + L\\xi_l`."""
-    _root(P, root)
-    L, n = xi.shape
-    X = np.empty((L, n))
-    for p in range(L):
-        for i in range(n):
-            s = x[i]
-            for j in range(n):
-                s += root[i, j] * xi[p, j]
-            X[p, i] = s
-    return X
-
-
-@njit(error_model="numpy", cache=True)
 def sigma_moments(X, x, Y, wm, wc, ym, Pxy, Pyy):
     r"""The rule's moments of the mapped points ``Y`` (L, r) of ``X`` (L, n) about ``x``: :math:`\bar y = \sum_l
     w^m_lY_l` into ``ym``, :math:`P_{xy} = \sum_l w^c_l(X_l - x)(Y_l - \bar y)^T` into ``Pxy`` (n, r) and the
@@ -123,12 +111,10 @@ def sigma_moments(X, x, Y, wm, wc, ym, Pxy, Pyy):
 
 
 @njit(error_model="numpy", cache=True)
-def _difference_points(x):
-    """The 2n points :math:`x \\pm \\delta_je_j` of the central-difference Jacobian and the steps δ
-    (:func:`tobitkf.models.nonlinear.jacobian_fd`)."""
+def _fill_differences(x, X, delta):
+    """The 2n points :math:`x \\pm \\delta_je_j` of the central-difference Jacobian into ``X`` (2n, n) and the
+    steps δ into ``delta`` (:func:`tobitkf.models.nonlinear.jacobian_fd`)."""
     n = x.shape[0]
-    X = np.empty((2 * n, n))
-    delta = np.empty(n)
     for j in range(n):
         delta[j] = _CBRT_EPS * max(1.0, abs(x[j]))
     for j in range(n):
@@ -136,19 +122,16 @@ def _difference_points(x):
         X[n + j] = x
         X[j, j] = x[j] + delta[j]
         X[n + j, j] = x[j] - delta[j]
-    return X, delta
 
 
 @njit(error_model="numpy", cache=True)
-def _difference_jacobian(V, delta):
-    """The Jacobian (r, n) from the values ``V`` (2n, r) at the points of :func:`_difference_points`."""
+def _difference_jacobian(V, delta, J):
+    """The Jacobian (r, n) into ``J`` from the values ``V`` (2n, r) at the points of :func:`_fill_differences`."""
     n = delta.shape[0]
     r = V.shape[1]
-    J = np.empty((r, n))
     for j in range(n):
         for a in range(r):
             J[a, j] = (V[j, a] - V[n + j, a]) / (2.0 * delta[j])
-    return J
 
 
 @njit(error_model="numpy", cache=True)
@@ -277,47 +260,6 @@ def _joint_update(code, yt, ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hj, xp,
     _gain_update(xp, Pp, e, Rxe, Ree, ok, Hj, R, False, x, P)
 
 
-@njit(error_model="numpy", cache=True)
-def _channel_projection(it, ch, yv, x, P, xm, Pm, ym, Pxy, Pyy, rl, family, lo, hi, par, one, cls, pu, comp, buf):
-    r"""One linearisation ``it`` of the assumed-density update of channel ``ch`` (reading ``yv``, not NaN):
-    from the rule's moments ``ym``, ``Pxy``, ``Pyy`` of h about :math:`N(x_m, P_m)` the affine model (about the
-    prior itself when ``it`` = 0), the channel's moments of the latent reading
-    (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``x``, ``P`` into
-    ``xm``, ``Pm``. Returns ``(taken, log p(y))``: not taken (``xm``, ``Pm`` the prior) when the latent variance
-    is not above the smallest normal number. ``one`` (9, 1), ``cls`` (1,), ``pu`` (1,), ``comp`` (0, 1), ``buf``:
-    scratch of the one-run block call."""
-    n = x.shape[0]
-    if it == 0:
-        mu = ym[ch]
-        cxy = Pxy[:, ch].copy()
-        s2 = Pyy[ch, ch] + rl
-    else:  # the affine model fitted about the posterior, applied to the prior
-        Hl = np.linalg.solve(Pm, Pxy[:, ch].copy())
-        omega = max(Pyy[ch, ch] - np.dot(Hl, np.dot(Pm, Hl)), 0.0)
-        mu = ym[ch] + np.dot(Hl, x - xm)
-        cxy = np.dot(P, Hl)
-        s2 = np.dot(Hl, cxy) + omega + rl
-    if not s2 > _TINY:
-        xm[:] = x
-        Pm[:] = P
-        return False, 0.0
-    # one: the y, hx, hph, rb, lo, hi, alpha, beta, ll of the one run
-    one[0, 0], one[1, 0], one[2, 0], one[3, 0], one[4, 0], one[5, 0], one[8, 0] = yv, mu, s2 - rl, rl, lo, hi, 0.0
-    cls[0] = classify(yv, lo, hi) if family == CENSORED else 1
-    family_block(
-        family, 1, one[0], cls, one[1], one[2], one[3], one[4], one[5], par, one[6], one[7], one[8], pu, comp,
-        GL_X, GL_W, buf,
-    )  # fmt: skip
-    alpha, beta = one[6, 0], one[7, 0]
-    for i in range(n):
-        xm[i] = x[i] + alpha * cxy[i]
-        for j in range(i + 1):
-            v = 0.5 * ((P[i, j] - beta * cxy[i] * cxy[j]) + (P[j, i] - beta * cxy[j] * cxy[i]))
-            Pm[i, j] = v
-            Pm[j, i] = v
-    return True, one[8, 0]
-
-
 def _call(fn, X, k, U):  # pragma: no cover - compiled only (its overload below)
     """``fn(X, k)`` or, with input rows ``U``, ``fn(X, k, U)``."""
 
@@ -329,23 +271,335 @@ def _call_overload(fn, X, k, U):
     return lambda fn, X, k, U: fn(X, k, U)
 
 
-def _input_rows(u, r, t, rows):  # pragma: no cover - compiled only (its overload below)
-    """The input of run r at step t repeated for ``rows`` points, (rows, p); None without inputs."""
+def _input_scratch(u, rows):  # pragma: no cover - compiled only (its overload below)
+    """The scratch (rows, p) of the input rows of a block; an empty array without inputs."""
 
 
-@overload(_input_rows)
-def _input_rows_overload(u, r, t, rows):
+@overload(_input_scratch)
+def _input_scratch_overload(u, rows):
     if isinstance(u, types.NoneType):
-        return lambda u, r, t, rows: None
+        return lambda u, rows: np.empty((0, 0))
+    return lambda u, rows: np.empty((rows, u.shape[2]))
 
-    def rows_of(u, r, t, rows):
-        p = u.shape[2]
-        out = np.empty((rows, p))
-        for i in range(rows):
-            out[i] = u[r, t]
-        return out
+
+def _block_inputs(u, r0, nb, t, rows, U):  # pragma: no cover - compiled only (its overload below)
+    """The inputs of the runs r0..r0+nb-1 at step t, each repeated for its ``rows`` points, (nb * rows, p) in
+    ``U``; None without inputs."""
+
+
+@overload(_block_inputs)
+def _block_inputs_overload(u, r0, nb, t, rows, U):
+    if isinstance(u, types.NoneType):
+        return lambda u, r0, nb, t, rows, U: None
+
+    def rows_of(u, r0, nb, t, rows, U):
+        for b in range(nb):
+            for i in range(rows):
+                U[b * rows + i] = u[r0 + b, t]
+        return U[: nb * rows]
 
     return rows_of
+
+
+# --------------------------------------------------------------------------- the block steps
+# The loop runs the runs in blocks of NL_BLOCK: at every step it stacks the points of a block's runs into one
+# array, calls the user's function once on it (f(X, k) with X (nb * L, n), as the batched numpy path calls it)
+# and hands the values to the block steps below, which do the per-run algebra. One call per block and step
+# instead of one per run: a compiled f or h allocates its result and temporaries on every call, and at n = 4
+# those allocations cost more than the arithmetic. Every helper is cached on disk; only nonlinear_loop (the
+# calls of the user's functions and the loops over blocks, steps, channels and linearisations) is specialised
+# on f, h, F, H and compiled in each process.
+
+NL_BLOCK = 64  #: runs per block of the compiled nonlinear loop
+
+
+@njit(error_model="numpy", cache=True)
+def _scratch(B, n, m, rows):
+    """The block state and scratch of :func:`nonlinear_loop`, allocated once per call."""
+    return (
+        np.empty((B, n)), np.empty((B, n, n)), np.empty((B, n)), np.empty((B, n, n)), np.empty((B, n)),
+        np.empty((B, n, n)), np.empty((B * rows, n)), np.empty((B, n)), np.empty((B, n)), np.empty((B, n, n)),
+        np.zeros((B, m, n)), np.ones(B, dtype=np.bool_), np.empty(B, dtype=np.bool_), np.empty(B),
+    )  # fmt: skip
+
+
+@njit(error_model="numpy", cache=True)
+def _block_start(x0, P0, r0, nb, xs, Ps):
+    """The prior of the runs r0..r0+nb-1 into the block state."""
+    for b in range(nb):
+        xs[b] = x0[r0 + b]
+        Ps[b] = P0[r0 + b if P0.shape[0] > 1 else 0]
+
+
+@njit(error_model="numpy", cache=True)
+def _block_end(xs, Ps, r0, nb, x_last, P_last):
+    """The last state of the block's runs into ``x_last``, ``P_last``."""
+    for b in range(nb):
+        x_last[r0 + b] = xs[b]
+        P_last[r0 + b] = Ps[b]
+
+
+@njit(error_model="numpy", cache=True)
+def _block_copy(xs, Ps, xo, Po, nb):
+    """``xo[b], Po[b] = xs[b], Ps[b]`` for the runs b < nb."""
+    for b in range(nb):
+        xo[b] = xs[b]
+        Po[b] = Ps[b]
+
+
+@njit(error_model="numpy", cache=True)
+def _block_rows(xs, X, nb):
+    """The means of the block's runs as the rows of ``X`` (the points of the extended form)."""
+    for b in range(nb):
+        X[b] = xs[b]
+
+
+@njit(error_model="numpy", cache=True)
+def _block_points(xs, Ps, xi, root, X, nb, act):
+    """The sigma points of N(``xs[b]``, ``Ps[b]``) of the runs b < nb with ``act[b]``, stacked in ``X`` (L rows a
+    run, in order): :math:`\\chi_l = x + L\\xi_l` with the lower Cholesky factor (:func:`_root`: an eigen root when
+    it fails); returns how many runs. Indexes the block arrays directly (no per-run views or calls)."""
+    L, n = xi.shape
+    q = 0
+    for b in range(nb):
+        if not act[b]:
+            continue
+        ok = True  # the Cholesky factor of Ps[b] into root (as _cholesky)
+        for i in range(n):
+            for c in range(n):
+                root[i, c] = 0.0
+        for j in range(n):
+            d = Ps[b, j, j]
+            for c in range(j):
+                d -= root[j, c] * root[j, c]
+            if not d > 0.0:
+                ok = False
+                break
+            d = math.sqrt(d)
+            root[j, j] = d
+            for i in range(j + 1, n):
+                s = Ps[b, i, j]
+                for c in range(j):
+                    s -= root[i, c] * root[j, c]
+                root[i, j] = s / d
+        if not ok:
+            _root(Ps[b], root)
+        base = q * L
+        for p in range(L):
+            for i in range(n):
+                s = xs[b, i]
+                for j in range(n):
+                    s += root[i, j] * xi[p, j]
+                X[base + p, i] = s
+        q += 1
+    return q
+
+
+@njit(error_model="numpy", cache=True)
+def _block_differences(xs, X, deltas, nb):
+    """The central-difference points of every run of the block stacked in ``X`` (2n rows a run), their steps in
+    ``deltas`` (B, n)."""
+    n = xs.shape[1]
+    for b in range(nb):
+        _fill_differences(xs[b], X[2 * n * b : 2 * n * (b + 1)], deltas[b])
+
+
+@njit(error_model="numpy", cache=True)
+def _block_jacobians(V, deltas, J, nb):
+    """The Jacobians ``J[b]`` (r, n) from the values ``V`` (nb * 2n, r) at the points of
+    :func:`_block_differences`."""
+    n = deltas.shape[1]
+    for b in range(nb):
+        _difference_jacobian(V[2 * n * b : 2 * n * (b + 1)], deltas[b], J[b])
+
+
+@njit(error_model="numpy", cache=True)
+def _predict_sigma(X, xs, Y, wm, wc, Q, xps, Pps, fxy, nb):
+    r"""The sigma-point prediction of the block's runs from the mapped points ``Y`` = f(``X``):
+    :math:`\bar x = \sum_l w^m_lf(\chi_l)`, :math:`\bar P = \sum_l w^c_l(f(\chi_l) - \bar x)(\cdot)^T + Q`
+    (symmetrised; the operations of :func:`sigma_moments`, indexed in the block arrays directly)."""
+    L = wm.shape[0]
+    n = xs.shape[1]
+    for b in range(nb):
+        base = b * L
+        for a in range(n):
+            s = 0.0
+            for p in range(L):
+                s += wm[p] * Y[base + p, a]
+            xps[b, a] = s
+        for a in range(n):
+            for c in range(n):
+                Pps[b, a, c] = 0.0
+        for p in range(L):
+            w = wc[p]
+            for a in range(n):
+                da = w * (Y[base + p, a] - xps[b, a])
+                for c in range(n):
+                    Pps[b, a, c] += da * (Y[base + p, c] - xps[b, c])
+        for a in range(n):
+            for c in range(a):
+                v = 0.5 * (Pps[b, a, c] + Pps[b, c, a])
+                Pps[b, a, c] = v
+                Pps[b, c, a] = v
+        for a in range(n):
+            for c in range(a + 1):
+                v = 0.5 * ((Pps[b, a, c] + Q[a, c]) + (Pps[b, c, a] + Q[c, a]))
+                Pps[b, a, c] = v
+                Pps[b, c, a] = v
+
+
+@njit(error_model="numpy", cache=True)
+def _predict_extended(Y1, J, Ps, Q, xps, Pps, nb):
+    r"""The extended prediction of the block's runs: :math:`\bar x = f(\hat x)` from ``Y1`` (nb, n),
+    :math:`\bar P = F\hat PF^T + Q` from the Jacobians ``J`` (nb, n, n)."""
+    for b in range(nb):
+        xps[b] = Y1[b]
+        Fj = J[b]
+        _symmetric(Fj @ Ps[b] @ Fj.T + Q, Pps[b])
+
+
+@njit(error_model="numpy", cache=True)
+def _update_joint(
+    code, sigma, X, Y, J, wm, wc, xps, Pps, y, r0, t, R, lo, hi, noise_code, joseph, xs, Ps, Hj, ey, slope, nb
+):  # fmt: skip
+    """The update of all channels at once (:func:`_joint_update`) of the block's runs from the values ``Y`` of h:
+    at the sigma points ``X`` (``sigma``) or at the means, with the Jacobians ``J``; the Tobit extras into
+    ``ey``, ``slope``."""
+    L = wm.shape[0]
+    n = xs.shape[1]
+    m = y.shape[2]
+    ym, Pxy, Pyy, E, g = np.empty(m), np.empty((n, m)), np.empty((m, m)), np.empty(m), np.empty(m)
+    for b in range(nb):
+        Hb = Hj[b]
+        if sigma:
+            sigma_moments(X[b * L : (b + 1) * L], xps[b], Y[b * L : (b + 1) * L], wm, wc, ym, Pxy, Pyy)
+        else:
+            ym[:] = Y[b]
+            Hb[:] = J[b]
+            _extended_moments(xps[b], Pps[b], Hb, Pxy, Pyy)
+        _joint_update(code, y[r0 + b, t], ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hb, xps[b], Pps[b], xs[b],
+                      Ps[b], E, g)  # fmt: skip
+        if ey.shape[1] > 0:
+            ey[r0 + b, t] = E
+            slope[r0 + b, t] = g
+
+
+@njit(error_model="numpy", cache=True)
+def _adf_channel_start(y, r0, t, ch, xs, Ps, xms, Pms, act, nb):
+    """Start channel ``ch`` of the assumed-density update: the linearisation point is the prior, ``act`` the
+    runs with a reading on the channel; returns how many."""
+    q = 0
+    for b in range(nb):
+        xms[b] = xs[b]
+        Pms[b] = Ps[b]
+        act[b] = not math.isnan(y[r0 + b, t, ch])
+        if act[b]:
+            q += 1
+    return q
+
+
+@njit(error_model="numpy", cache=True)
+def _adf_project(
+    it, ch, X, Y, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, rl, family, lo, hi, par, lsum, nb
+):  # fmt: skip
+    r"""Linearisation ``it`` of channel ``ch`` for the block's runs in ``act``, from the values ``Y`` of h at their
+    stacked sigma points ``X`` the rule's moments of
+    the channel about :math:`N(x_m, P_m)` (``xms``, ``Pms``), the affine model (about the prior itself when
+    ``it`` = 0), the channel's moments of the latent reading for the runs at once
+    (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``xs``, ``Ps``
+    into ``xms``, ``Pms``; the log-likelihood of the first linearisation into ``lsum``. A run whose latent
+    variance is not above the smallest normal number keeps the prior and leaves ``act``."""
+    L = wm.shape[0]
+    n = xs.shape[1]
+    B = xs.shape[0]
+    idx = np.empty(B, dtype=np.int64)
+    yv, hx, hph, rb, lo_c, hi_c = np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B), np.empty(B)
+    alpha, beta, llb, pu = np.empty(B), np.empty(B), np.empty(B), np.empty(B)
+    cls = np.empty(B, dtype=np.int8)
+    C = np.empty((B, n))
+    c = np.empty(n)
+    comp = np.empty((0, B))
+    buf = np.empty((2, GL_X.shape[0]))
+    q = 0  # the run's rows in X, Y
+    q2 = 0  # the runs that take the update
+    for b in range(nb):
+        if not act[b]:
+            continue
+        base = q * L
+        q += 1
+        s = 0.0
+        for p in range(L):
+            s += wm[p] * Y[base + p, ch]
+        mu0 = s
+        for i in range(n):
+            c[i] = 0.0
+        pyy = 0.0
+        for p in range(L):
+            da = wc[p] * (Y[base + p, ch] - mu0)
+            for i in range(n):
+                c[i] += (X[base + p, i] - xms[b, i]) * da
+            pyy += da * (Y[base + p, ch] - mu0)
+        if it == 0:
+            mu = mu0
+            for i in range(n):
+                C[q2, i] = c[i]
+            s2 = pyy + rl
+        else:  # the affine model fitted about the posterior, applied to the prior
+            Hl = np.linalg.solve(Pms[b], c)
+            omega = max(pyy - np.dot(Hl, np.dot(Pms[b], Hl)), 0.0)
+            mu = mu0 + np.dot(Hl, xs[b] - xms[b])
+            cxy = np.dot(Ps[b], Hl)
+            C[q2] = cxy
+            s2 = np.dot(Hl, cxy) + omega + rl
+        if not s2 > _TINY:
+            xms[b] = xs[b]
+            Pms[b] = Ps[b]
+            act[b] = False
+            continue
+        yb = y[r0 + b, t, ch]
+        idx[q2] = b
+        yv[q2], hx[q2], hph[q2], rb[q2], lo_c[q2], hi_c[q2], llb[q2] = yb, mu, s2 - rl, rl, lo, hi, 0.0
+        cls[q2] = classify(yb, lo, hi) if family == CENSORED else 1
+        q2 += 1
+    if q2 == 0:
+        return
+    family_block(family, q2, yv, cls, hx, hph, rb, lo_c, hi_c, par, alpha, beta, llb, pu, comp, GL_X, GL_W, buf)
+    for j in range(q2):
+        b = idx[j]
+        a, be = alpha[j], beta[j]
+        for i in range(n):
+            xms[b, i] = xs[b, i] + a * C[j, i]
+            for k in range(i + 1):
+                v = 0.5 * ((Ps[b, i, k] - be * C[j, i] * C[j, k]) + (Ps[b, k, i] - be * C[j, k] * C[j, i]))
+                Pms[b, i, k] = v
+                Pms[b, k, i] = v
+        if it == 0:
+            lsum[b] += llb[j]
+
+
+@njit(error_model="numpy", cache=True)
+def _record(xs, Ps, r0, t, nb, means, covs):
+    """The block's state at step t into ``means`` (N, T or 0, n) and ``covs`` (N, T or 0, n, n or 1: the
+    diagonals)."""
+    n = xs.shape[1]
+    if means.shape[1] > 0:
+        for b in range(nb):
+            means[r0 + b, t] = xs[b]
+    if covs.shape[1] > 0:
+        for b in range(nb):
+            if covs.shape[3] == 1:
+                for i in range(n):
+                    covs[r0 + b, t, i, 0] = Ps[b, i, i]
+            else:
+                covs[r0 + b, t] = Ps[b]
+
+
+@njit(error_model="numpy", cache=True)
+def _record_ll(lsum, r0, t, nb, ll):
+    """The block's log-likelihood terms at step t into ``ll`` (N, T or 0)."""
+    if ll.shape[1] > 0:
+        for b in range(nb):
+            ll[r0 + b, t] = lsum[b]
 
 
 @njit(error_model="numpy")
@@ -367,98 +621,79 @@ def nonlinear_loop(
     (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit extras ``ey``/``slope`` (N, T or 0, m), the
     ADF's ``ll`` (N, T or 0), and the last state ``x_last``/``P_last``.
 
-    Only this function is specialised on the user's functions (and compiled in every process): everything it
-    does besides calling them is in the cached helpers above.
+    The runs go in blocks of :data:`NL_BLOCK`; each call of f, h (F, H) takes the stacked points of a block
+    (:func:`_block_points`: (nb * L, n); the extended form: the nb means, or the nb * 2n central-difference
+    points), the assumed-density update only those of the runs still taking part. Only this function is
+    specialised on the user's functions (and compiled in every process): everything it does besides calling
+    them is in the cached block steps above.
     """
     N, T, m = y.shape
     n = x0.shape[1]
     L = xi.shape[0]
     TQ, TR, TL, TP = Qs.shape[0], Rs.shape[0], lo.shape[0], par.shape[0]
-    root = np.empty((n, n))
-    ym, Pxy, Pyy = np.empty(m), np.empty((n, m)), np.empty((m, m))
-    xp, Pp, fxy = np.empty(n), np.empty((n, n)), np.empty((n, n))
-    xm, Pm = np.empty(n), np.empty((n, n))
-    Hj, E, g = np.zeros((m, n)), np.empty(m), np.empty(m)
-    one, cls, pu, comp = np.empty((9, 1)), np.empty(1, dtype=np.int8), np.empty(1), np.empty((0, 1))
-    buf = np.empty((2, GL_X.shape[0]))
-    for r in range(N):
-        x = x0[r].copy()
-        P = P0[r if P0.shape[0] > 1 else 0].copy()
+    B = min(NL_BLOCK, N)
+    rows = L if L > 0 else 2 * n  # points per run of one call
+    xs, Ps, xps, Pps, xms, Pms, X, X1, deltas, J, Hj, every, act, lsum = _scratch(B, n, m, rows)
+    root, fxy = np.empty((n, n)), np.empty((n, n))
+    U = _input_scratch(u, B * rows)
+    for r0 in range(0, N, B):
+        nb = min(B, N - r0)
+        _block_start(x0, P0, r0, nb, xs, Ps)
         for t in range(T):
             k = k0 + t + 1
             Q, R = Qs[min(t, TQ - 1)], Rs[min(t, TR - 1)]
             lo_t, hi_t = lo[min(t, TL - 1)], hi[min(t, TL - 1)]
             # ---- the prediction: extended or by the rule
             if L == 0:
-                X = x.reshape((1, n)).copy()
-                Xd, delta = _difference_points(x)
-                xp[:] = _call(f, X, k - 1, _input_rows(u, r, t, 1))[0]
+                _block_rows(xs, X1, nb)
+                Y1 = _call(f, X1[:nb], k - 1, _block_inputs(u, r0, nb, t, 1, U))
                 if F is None:
-                    Fj = _difference_jacobian(_call(f, Xd, k - 1, _input_rows(u, r, t, 2 * n)), delta)
+                    _block_differences(xs, X, deltas, nb)
+                    V = _call(f, X[: nb * rows], k - 1, _block_inputs(u, r0, nb, t, rows, U))
+                    _block_jacobians(V, deltas, J, nb)
+                    _predict_extended(Y1, J, Ps, Q, xps, Pps, nb)
                 else:
-                    Fj = _call(F, X, k - 1, _input_rows(u, r, t, 1))[0]
-                _symmetric(Fj @ P @ Fj.T + Q, Pp)
+                    _predict_extended(Y1, _call(F, X1[:nb], k - 1, _block_inputs(u, r0, nb, t, 1, U)), Ps, Q, xps,
+                                      Pps, nb)  # fmt: skip
             else:
-                X = _points(x, P, xi, root)
-                sigma_moments(X, x, _call(f, X, k - 1, _input_rows(u, r, t, L)), wm, wc, xp, fxy, Pp)
-                _symmetric(Pp + Q, Pp)
-            if pmeans.shape[1] > 0:
-                pmeans[r, t] = xp
-            if pcovs.shape[1] > 0:
-                pcovs[r, t] = Pp
+                _block_points(xs, Ps, xi, root, X, nb, every)
+                Y = _call(f, X[: nb * L], k - 1, _block_inputs(u, r0, nb, t, L, U))
+                _predict_sigma(X, xs, Y, wm, wc, Q, xps, Pps, fxy, nb)
+            _record(xps, Pps, r0, t, nb, pmeans, pcovs)
             # ---- the update
-            yt = y[r, t]
             if code == ADF:  # channel by channel, each linearised `iterations` times
-                x[:] = xp
-                P[:] = Pp
-                lsum = 0.0
+                _block_copy(xps, Pps, xs, Ps, nb)
+                lsum[:] = 0.0
                 for ch in range(m):
-                    if math.isnan(yt[ch]):
+                    if _adf_channel_start(y, r0, t, ch, xs, Ps, xms, Pms, act, nb) == 0:
                         continue
-                    xm[:] = x
-                    Pm[:] = P
                     for it in range(iterations):
-                        X = _points(xm, Pm, xi, root)
-                        sigma_moments(X, xm, h(X, k), wm, wc, ym, Pxy, Pyy)
-                        taken, lp = _channel_projection(
-                            it, ch, yt[ch], x, P, xm, Pm, ym, Pxy, Pyy, R[ch, ch], family, lo_t[ch], hi_t[ch],
-                            par[min(t, TP - 1), ch], one, cls, pu, comp, buf,
-                        )  # fmt: skip
-                        if it == 0:
-                            lsum += lp
-                        if not taken:
+                        q = _block_points(xms, Pms, xi, root, X, nb, act)
+                        if q == 0:
                             break
-                    x[:] = xm
-                    P[:] = Pm
-                if ll.shape[1] > 0:
-                    ll[r, t] = lsum
+                        _adf_project(
+                            it, ch, X, h(X[: q * L], k), wm, wc, y, r0, t, xs, Ps, xms, Pms, act, R[ch, ch], family,
+                            lo_t[ch], hi_t[ch], par[min(t, TP - 1), ch], lsum, nb,
+                        )  # fmt: skip
+                    _block_copy(xms, Pms, xs, Ps, nb)
+                _record_ll(lsum, r0, t, nb, ll)
+            elif L == 0:  # the extended measurement: h(x̄) and its Jacobian
+                _block_rows(xps, X1, nb)
+                Y1 = h(X1[:nb], k)
+                if H is None:
+                    _block_differences(xps, X, deltas, nb)
+                    _block_jacobians(h(X[: nb * rows], k), deltas, Hj, nb)
+                    _update_joint(code, False, X, Y1, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t, noise_code,
+                                  joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
+                else:
+                    _update_joint(code, False, X, Y1, H(X1[:nb], k), wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
+                                  noise_code, joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
             else:
-                if L == 0:  # the extended measurement: h(x̄) and its Jacobian
-                    X = xp.reshape((1, n)).copy()
-                    ym[:] = h(X, k)[0]
-                    if H is None:
-                        Xd, delta = _difference_points(xp)
-                        Hj[:] = _difference_jacobian(h(Xd, k), delta)
-                    else:
-                        Hj[:] = H(X, k)[0]
-                    _extended_moments(xp, Pp, Hj, Pxy, Pyy)
-                else:
-                    X = _points(xp, Pp, xi, root)
-                    sigma_moments(X, xp, h(X, k), wm, wc, ym, Pxy, Pyy)
-                _joint_update(code, yt, ym, Pxy, Pyy, R, lo_t, hi_t, noise_code, joseph, Hj, xp, Pp, x, P, E, g)
-                if ey.shape[1] > 0:
-                    ey[r, t] = E
-                    slope[r, t] = g
-            if means.shape[1] > 0:
-                means[r, t] = x
-            if covs.shape[1] > 0:
-                if covs.shape[3] == 1:
-                    for i in range(n):
-                        covs[r, t, i, 0] = P[i, i]
-                else:
-                    covs[r, t] = P
-        x_last[r] = x
-        P_last[r] = P
+                _block_points(xps, Pps, xi, root, X, nb, every)
+                _update_joint(code, True, X, h(X[: nb * L], k), Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
+                              noise_code, joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
+            _record(xs, Ps, r0, t, nb, means, covs)
+        _block_end(xs, Ps, r0, nb, x_last, P_last)
 
 
 # --------------------------------------------------------------------------- the Python side
