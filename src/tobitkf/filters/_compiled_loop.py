@@ -858,8 +858,8 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     r, lo, hi = (a if a.ndim == 3 else a[None] for a in (spec.r, spec.lo, spec.hi))  # (runs or 1, steps, m)
     F = spec.F if spec.F is not None else np.zeros((1, m, 0, nx))
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
-    # the censored family, one channel of up to 4 states, one system: the step vectorised over runs (same numbers)
-    loop = censored_entry(compiled_loop, spec.family, A, Qd, spec.H, F, r, lo, hi, x0)
+    # the censored family, one channel of up to 4 states, one system, no extras: the step vectorised over runs
+    loop = censored_entry(compiled_loop, spec.family, A, Qd, spec.H, F, r, lo, hi, x0, pu.shape[1] + ll.shape[1] > 0)
     loop(
         spec.family,
         _c(y2),
