@@ -129,6 +129,7 @@ def test_read_only_inputs_reach_the_loop_as_writable_arrays(monkeypatch):
     for name in ("tobit_loop", "kalman_loop", "tobit_step", "kalman_step"):  # the loop's entries, the step's too
         monkeypatch.setattr(_compiled_entries, name, spy(getattr(_compiled_entries, name)))
     monkeypatch.setattr(_compiled_loop, "compiled_loop", spy(_compiled_loop.compiled_loop))
-    monkeypatch.setattr(_compiled_soa, "soa_tobit_loop", spy(_compiled_soa.soa_tobit_loop))  # the TKF's vectorised step
+    for name in ("soa_tobit_loop", "soa_kalman_loop", "soa_censored_loop"):  # the runs-vectorised steps
+        monkeypatch.setattr(_compiled_soa, name, spy(getattr(_compiled_soa, name)))
     calls()
     assert len(flags) > 60 and all(flags)

@@ -187,3 +187,171 @@ def test_entries_choose_the_soa_path_only_where_covered():
     assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is tobit_loop
     assert soa.kalman_entry(kalman_loop, 1, 2, 7, 7) is soa.soa_kalman_loop
     assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is kalman_loop
+
+
+# ---- the censored assumed-density filter: the SoA step against the compiled loop ------------------------------------
+
+
+def _adf_both(y, A, Q, H, r, lo, hi, x0, P0, *, cls=None, bu=None, du=None, extras=True, covs=True, npass=1):
+    """The SoA step and the compiled loop (the oracle) with the same arguments of ``compiled_loop``: ``r``, ``lo``,
+    ``hi`` (1, steps or 1, 1); outputs all, or the means only (``extras``/``covs`` False)."""
+    from tobitkf.filters._compiled_loop import compiled_loop
+
+    N, T, _ = y.shape
+    n = A.shape[0]
+    bu = np.empty((N, 0, n)) if bu is None else bu
+    du = np.empty((N, 0, 1)) if du is None else du
+    cls = np.empty((N, 0, 1), dtype=np.int8) if cls is None else cls
+    res = []
+    for fn in (soa.soa_censored_loop, compiled_loop):
+        outs = [
+            np.full((N, T, n), np.nan),
+            np.full((N, T, n, n) if covs else (N, 0, n, n), np.nan),
+            np.full((N, T, n), np.nan),
+            np.full((N, T, n, n) if covs else (N, 0, n, n), np.nan),
+            np.full((N, T if extras else 0, 1), np.nan),
+            np.full((N, T if extras else 0), np.nan),
+            np.full((N, n), np.nan),
+            np.full((N, n, n), np.nan),
+        ]
+        means, cv, pm, pc, pu, ll, xl, Pl = outs
+        fn(
+            0, y, cls, A[None, None], Q[None, None], H, np.zeros((1, 1, 0, n)), r, lo, hi, np.zeros((1, 1, 0)), 0,
+            npass, 0, False, bu, du, x0, P0, means, cv, pm, pc, pu, np.empty((N, 0, 1)), ll,
+            np.empty((N, 0, 1, 0)), xl, Pl,
+        )  # fmt: skip
+        res.append(outs)
+    return res
+
+
+_LIMITS = {
+    "lower": (0.0, np.inf),
+    "upper": (-np.inf, 0.4),
+    "two-sided": (-0.3, 0.5),
+    "none": (-np.inf, np.inf),
+}
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4])
+@pytest.mark.parametrize("kind", list(_LIMITS))
+@pytest.mark.parametrize("extras", [True, False])
+def test_adf_equals_the_compiled_loop(n, kind, extras):
+    """Random system, 131 runs (a block and a remainder), missing readings, inputs, limits of each kind; every
+    output (P(uncensored), the log-likelihood) or the means only."""
+    N, T = 131, 25
+    rng, A, Q, H, x0, P0, y, bu, du = _case(n, N, T, 100 + 10 * n + len(kind), inputs=True)
+    a, b = _LIMITS[kind]
+    y = np.clip(y, a, b)
+    y[rng.random(size=y.shape) < 0.05] = np.nan
+    lo, hi = np.full((1, 1, 1), a), np.full((1, 1, 1), b)
+    r = np.full((1, 1, 1), 0.2)
+    s, ref = _adf_both(y, A, Q, H, r, lo, hi, x0, P0, bu=bu, du=du, extras=extras, covs=extras)
+    for u, v in zip(s, ref):
+        _assert_close(u, v)
+    assert np.isfinite(s[0]).all()
+    if extras and kind != "none":
+        assert np.isfinite(s[5]).all() and (s[4] < 1.0).any()  # censored readings took part
+
+
+def test_adf_per_step_limits_and_noise_given_classes_and_two_passes():
+    """Limits changing kind with the step (lower, upper, two-sided, none), a noise variance per step, the classes
+    given (a reading at a limit declared uncensored), and the two-pass order (one channel: the same update)."""
+    n, N, T = 3, 40, 24
+    rng, A, Q, H, x0, P0, y, _, _ = _case(n, N, T, 77)
+    kinds = list(_LIMITS.values())
+    lo = np.array([kinds[t % 4][0] for t in range(T)])[None, :, None]
+    hi = np.array([kinds[t % 4][1] for t in range(T)])[None, :, None]
+    y = np.clip(y, lo, hi)
+    r = rng.uniform(0.05, 0.5, size=(1, T, 1))
+    from tobitkf.filters._readings import classify_readings
+
+    cls = classify_readings(y, lo, hi)
+    cls[rng.random(size=cls.shape) < 0.2] = 1  # INTERIOR: a reading at its limit taken as it is
+    cls = np.ascontiguousarray(cls, dtype=np.int8)
+    for npass in (1, 2):
+        for c in (None, cls):
+            s, ref = _adf_both(y, A, Q, H, r, lo, hi, x0, P0, cls=c, npass=npass)
+            for u, v in zip(s, ref):
+                _assert_close(u, v)
+
+
+@pytest.mark.parametrize("dist", [-40.0, 40.0])
+@pytest.mark.parametrize("kind", ["lower", "upper", "two-sided"])
+def test_adf_prior_40_sigma_from_the_limit(dist, kind):
+    """The latent prediction 40 standard deviations from the limit, inside and outside: the tail routes of the
+    statistics, a finite log-likelihood."""
+    n, N, T = 2, 9, 6
+    A = np.array([[0.9, 0.1], [0.0, 0.8]])
+    Q = 1e-4 * np.eye(n)
+    H = np.array([[[1.0, 0.0]]])
+    x0 = np.zeros((N, n))
+    P0 = np.broadcast_to(1e-4 * np.eye(n), (N, n, n)).copy()
+    sd = float(np.sqrt(0.04 + 1e-4))
+    d = dist * sd
+    a, b = {"lower": (-d, np.inf), "upper": (-np.inf, d), "two-sided": (-d, -d + 1.0) if dist < 0 else (d - 1.0, d)}[
+        kind
+    ]
+    y = np.full((N, T, 1), a if np.isfinite(a) else b)
+    s, ref = _adf_both(y, A, Q, H, np.full((1, 1, 1), 0.04), np.full((1, 1, 1), a), np.full((1, 1, 1), b), x0, P0)
+    for u, v in zip(s, ref):
+        _assert_close(u, v)
+    assert np.isfinite(s[5]).all()
+
+
+def test_adf_covers():
+    n = 2
+    A, Q = np.eye(n)[None, None], np.eye(n)[None, None]
+    H, F0, x0 = np.ones((1, 1, n)), np.zeros((1, 1, 0, n)), np.zeros((3, n))
+    r, lim = np.ones((1, 1, 1)), np.zeros((1, 1, 1))
+    inf = np.full((1, 1, 1), np.inf)
+    assert soa.censored_covers(0, A, Q, H, F0, r, lim, inf, x0)
+    assert not soa.censored_covers(1, A, Q, H, F0, r, lim, inf, x0)  # another family
+    assert not soa.censored_covers(0, A, Q, np.ones((1, 2, n)), F0, r, lim, inf, x0)  # two channels
+    assert not soa.censored_covers(0, A, Q, np.ones((5, 1, n)), F0, r, lim, inf, x0)  # rows per step
+    assert not soa.censored_covers(0, np.ones((1, 5, n, n)), Q, H, F0, r, lim, inf, x0)  # A per step
+    assert not soa.censored_covers(0, A, Q, H, np.zeros((1, 1, 1, n)), r, lim, inf, x0)  # fading rows
+    assert not soa.censored_covers(0, A, Q, H, F0, np.ones((3, 1, 1)), lim, inf, x0)  # noise per run
+    assert not soa.censored_covers(0, A, Q, H, F0, r, np.zeros((3, 1, 1)), inf, x0)  # limits per run
+    assert not soa.censored_covers(0, A, Q, H, F0, r, np.full((1, 1, 1), np.nan), inf, x0)
+    assert not soa.censored_covers(0, np.eye(5)[None, None], np.eye(5)[None, None], np.ones((1, 1, 5)), F0, r,
+                                   lim, inf, np.zeros((3, 5)))  # fmt: skip
+
+
+def _spy(monkeypatch, name):
+    calls = []
+    real = getattr(soa, name)
+
+    def call(*args):
+        calls.append(name)
+        return real(*args)
+
+    monkeypatch.setattr(soa, name, call)
+    return calls
+
+
+def test_the_public_filters_take_the_soa_step(monkeypatch):
+    """``filter`` of the KF (a covariance per run: missing readings) and of the censored assumed-density filter
+    (both orders, two-sided limits) runs the SoA step, with the numbers of the numpy path."""
+    w = 0.05
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.3, 0.0], P0=0.05 * np.eye(2))
+    cens = tk.Censoring(lower=-0.2, upper=0.6)
+    rng = np.random.default_rng(9)
+    N, T = 133, 30
+    y = cens.censor(rng.normal(0.2, 0.6, size=(N, T, 1)))
+    y[5, 3] = np.nan
+    kf_calls = _spy(monkeypatch, "soa_kalman_loop")
+    adf_calls = _spy(monkeypatch, "soa_censored_loop")
+    ref = tk.KalmanFilter(sys_, backend="numpy").filter(y)
+    got = tk.KalmanFilter(sys_, backend="numba").filter(y)
+    assert kf_calls
+    for f in ("mean", "cov", "pred_mean", "pred_cov"):
+        _assert_close(getattr(got, f), getattr(ref, f), rtol=1e-10)
+    for order in ("channels", "uncensored_first"):
+        ref = tk.AssumedDensityTobitFilter(sys_, cens, order=order, backend="numpy").filter(y, outputs="all")
+        got = tk.AssumedDensityTobitFilter(sys_, cens, order=order, backend="numba")
+        for outputs in (("mean", "cov", "pred_mean", "pred_cov"), "all"):
+            res = got.filter(y, outputs=outputs)
+            for f in ("mean", "cov", "pred_mean", "pred_cov"):
+                _assert_close(getattr(res, f), getattr(ref, f), rtol=1e-10)
+    assert len(adf_calls) == 2  # without the extras (with them the compiled loop is faster)

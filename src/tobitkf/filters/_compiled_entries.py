@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from ._compiled_loop import FADING, KALMAN, PROTOCOL_TKF, TOBIT, compiled_loop
-from ._compiled_soa import tobit_entry  # noqa: F401 - the TKF's choice between the runs-vectorised step and the loop
+from ._compiled_soa import kalman_entry, tobit_entry  # noqa: F401 - the choice between the runs-vectorised step and the loop
 
 __all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step", "fading_step"]
 

@@ -95,6 +95,7 @@ from ._compiled_moments import (
     family_block,
     protocol_tkf_block,
 )
+from ._compiled_soa import censored_entry
 from ._compiled_tobit import GL_W, GL_X, tobit_update_block
 from ._outputs import _empty, kernel_result, output_arrays, state_specs
 from ._readings import classify_readings, interval_classes
@@ -1053,7 +1054,9 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     r, lo, hi = (a if a.ndim == 3 else a[None] for a in (spec.r, spec.lo, spec.hi))  # (runs or 1, steps, m)
     F = spec.F if spec.F is not None else np.zeros((1, m, 0, nx))
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
-    compiled_loop(
+    # the censored family, one channel of up to 4 states, one system, no extras: the step vectorised over runs
+    loop = censored_entry(compiled_loop, spec.family, A, Qd, spec.H, F, r, lo, hi, x0, pu.shape[1] + ll.shape[1] > 0)
+    loop(
         spec.family,
         _c(y2),
         np.require(cls, dtype=np.int8, requirements=("C", "W")),

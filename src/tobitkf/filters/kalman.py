@@ -309,7 +309,10 @@ def _kalman_call(est, y, x, P, outs, x_last, P_last) -> None:
     """The KF through the compiled loop: readings ``y`` (N, T, m) (NaN: left out) from ``x`` (N, n), ``P`` (N or 1,
     n, n); ``outs`` the outputs ``(means, covs, pmeans, pcovs)``."""
     A, Qd, H, R, joseph = _loop_arrays(est)
-    loop_entries().kalman_loop(y, A, Qd, H, R, joseph, x, P, *outs, x_last, P_last)
+    entries = loop_entries()
+    # one channel of up to 4 states, a covariance per run: the step vectorised over runs (equal to the loop)
+    loop = entries.kalman_entry(entries.kalman_loop, H.shape[1], A.shape[0], P.shape[0], y.shape[0])
+    loop(y, A, Qd, H, R, joseph, x, P, *outs, x_last, P_last)
 
 
 def _kf_compiled_online_step(
