@@ -59,7 +59,7 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of the compi
 
 
 # --- the block scratch ---------------------------------------------------------------------
-# One allocator of the block scratch for every kernel (here, _compiled_fading, _compiled_steady),
+# One allocator of the block scratch for every kernel (here, the loop, the closed loop),
 # called once per kernel call (never per block or step) and inlined into the kernel at the numba
 # IR level, so that LLVM sees the arrays as fresh and unaliased. Not a workspace made by the
 # Python driver and passed in: measured on the TKF, views cut from one passed-in buffer cost more

@@ -1,5 +1,6 @@
 r"""The one compiled time loop of the Gaussian-update families: the Kalman filter, the Tobit Kalman filter (every
-noise term, both covariance forms, the multi-region TKF as stacked channels) and every assumed-density family.
+noise term, both covariance forms, the multi-region TKF as stacked channels), the fading, protocol and steady-state
+Tobit Kalman filters and every assumed-density family.
 
 :func:`compiled_loop` is written once: the runs in blocks (runs on the last axis, vectorised), per step the predict
 (:func:`~tobitkf.filters._compiled_block._predict`, or the block shift of an augmented state,
