@@ -25,6 +25,7 @@ from tobitkf.channels.protocol import LAMBDA_BASE
 pytest.importorskip("numba")
 
 from tobitkf.filters import _compiled_moments as cm  # noqa: E402
+from tobitkf.filters._compiled_tobit import GL_W, GL_X  # noqa: E402
 
 TOL = 1e-12
 KEYS = ("mean", "cov", "var", "pred_mean", "pred_cov")
@@ -97,9 +98,7 @@ def test_interval_event_matches_the_reference(ea, eb):
     (log_interval_mass: the reference's probability is subnormal beyond ~37 sigma, its logarithm then off by
     1e-12 relative; quadrature of the shifted density agrees with log_interval_mass at (38, 38.5))."""
     mu, sd = 0.0, 1.0
-    logp, m, v = cm.interval_event(
-        mu, sd, ea, eb, tk.filters._compiled_tobit.GL_X, tk.filters._compiled_tobit.GL_W, np.empty((2, 64))
-    )
+    logp, m, v = cm.interval_event(mu, sd, ea, eb, GL_X, GL_W, np.empty((2, 64)))
     ref = censored_moments(mu, sd, ea, eb)
     assert m == pytest.approx(float(ref.truncated_mean), rel=1e-12, abs=1e-13)
     assert v == pytest.approx(float(ref.truncated_var), rel=1e-10, abs=1e-300)
@@ -141,8 +140,8 @@ def test_censored_block_is_the_adf_update_of_one_channel():
         np.full(N, hi),
         np.zeros(0),
         0,
-        tk.filters._compiled_tobit.GL_X,
-        tk.filters._compiled_tobit.GL_W,
+        GL_X,
+        GL_W,
     )
     Pc = P @ c
     np.testing.assert_allclose(x + alpha[:, None] * Pc, xn, rtol=0, atol=1e-12 * np.abs(xn).max())
