@@ -67,9 +67,10 @@ def test_kalman_and_tobit_loops_take_writable_covariances(monkeypatch):
     for name in ("kalman_loop", "tobit_loop"):
         spies.spy(_compiled_entries, name)
     spies.spy(_compiled_loop, "compiled_loop")
-    spies.spy(_compiled_soa, "soa_tobit_loop")
+    for name in ("soa_tobit_loop", "soa_kalman_loop"):  # the runs-vectorised steps
+        spies.spy(_compiled_soa, name)
     calls()
-    assert "kalman_loop" in spies.calls and {"tobit_loop", "soa_tobit_loop"} & set(spies.calls)
+    assert {"kalman_loop", "soa_kalman_loop"} & set(spies.calls) and {"tobit_loop", "soa_tobit_loop"} & set(spies.calls)
     assert spies.bad == []
 
 
