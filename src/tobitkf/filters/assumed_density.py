@@ -479,10 +479,10 @@ class AssumedDensityFamily(GaussianFilter):
             if backend == "numba":
                 kernels()  # raises: numba is not installed
             return None
-        from . import _compiled_loop
+        from . import _loop_specs
 
-        spec_of = getattr(_compiled_loop, self._compiled_spec)
-        return _compiled_loop.compiled_filter(self, y2, u2, state, want, batch, _STEP_DATA.get(), spec_of)
+        spec_of = getattr(_loop_specs, self._compiled_spec)
+        return _loop_specs.compiled_filter(self, y2, u2, state, want, batch, _STEP_DATA.get(), spec_of)
 
     def filter(
         self,

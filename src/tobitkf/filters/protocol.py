@@ -505,14 +505,14 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
     constants, and the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
     ctx = est.__dict__.get("_loop_ctx")
     if ctx is None:
-        from . import _compiled_entries, _compiled_loop
+        from . import _compiled_entries, _compiled_loop, _loop_specs
         from ._compiled_moments import PROTOCOL_TKF_EXTRAS
 
         p, nxi = len(est._lam_mean), est._nxi
         table = np.zeros((p, 2 * nxi + 4))
         table[:, 2 * nxi] = 1.0  # the noise variance of a sensor not yet scheduled (never read)
         Hs, Cs, rs, pars = table[:, :nxi], table[:, nxi : 2 * nxi], table[:, 2 * nxi], table[:, 2 * nxi + 1 :]
-        A, Qd = _compiled_loop._system_arrays(est.system, 0, 1)
+        A, Qd = _loop_specs._system_arrays(est.system, 0, 1)
         lohi = (np.full((1, 1, 1), est._tau), np.full((1, 1, 1), math.inf))
         codes = (_KERNEL_MODES[est.failure_term], est.covariance_update == "joseph")
         flat = np.concatenate([A.ravel(), Qd.ravel(), [est._tau, codes[0], float(codes[1])]])

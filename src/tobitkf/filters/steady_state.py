@@ -453,7 +453,7 @@ def tobit_kalman_filter_controlled(
 def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, want, batch, latent: bool):
     """The means through the compiled loop's fixed-gain code from ``state``; the constant covariances and the
     outputs as the numpy path returns them (one covariance shared by N > 1 runs is a read-only broadcast view)."""
-    from . import _compiled_loop
+    from . import _compiled_loop, _loop_specs
 
     N, T, m = y2.shape
     n = est.n
@@ -461,7 +461,7 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
     if consts is None:  # A, Qd (unused), C (1, m, n), and per channel the signed offset and shift and K's column
         upper = est.side == "upper"
         sgn = -1.0 if upper else 1.0
-        A, Qd = _compiled_loop._system_arrays(est.system, 0, 1)
+        A, Qd = _loop_specs._system_arrays(est.system, 0, 1)
         par = np.concatenate([(sgn * est._offset)[:, None], (-sgn * est.sigma * est.alpha)[:, None], est.gain.T], 1)
         C = np.ascontiguousarray(est.system.measurement(1), dtype=float)[None]
         consts = est._loop_consts = (A, Qd, C, np.ascontiguousarray(par)[None], int(upper))
