@@ -2,13 +2,14 @@ r"""The Kalman filter's, the Tobit Kalman filter's and the fading Tobit Kalman f
 compiled loop.
 
 :func:`kalman_loop` and :func:`tobit_loop` take only the arrays their family uses and call
-:func:`~tobitkf.filters._compiled_loop.compiled_loop` with the family's code and empty arrays for the rest (made
-here, in compiled code). Why not call the loop directly from Python: numba unboxes every argument on every call
-(~0.25 µs per array), and the loop's 29 arguments made one online step of a one-run KF 25 % slower than the
-former Kalman-filter loop with its 15 (measured in one process, thread CPU time: 12.1 against 9.6 µs per step,
-n = 2, m = 1, on a loaded machine); these entries take 14 and 21. The online ``step`` of one reading enters by :func:`kalman_step` and :func:`tobit_step`
-(6 and 8 arguments), the fading TKF's by :func:`fading_step` (11; its ``filter`` calls the loop directly): the
-constant matrices flattened into one array (built once per estimator), the unused outputs made here.
+:func:`~tobitkf.filters._compiled_loop.compiled_loop` through :func:`loop_call`, which makes the arrays the family
+does not use (here, in compiled code). Why not call the loop directly from Python: numba unboxes every argument on
+every call (~0.25 µs per array), and the loop's 29 arguments made one online step of a one-run KF 25 % slower than
+the former Kalman-filter loop with its 15 (measured in one process, thread CPU time: 12.1 against 9.6 µs per step,
+n = 2, m = 1, on a loaded machine); these entries take 14 and 21. The online ``step`` of one reading enters by
+:func:`kalman_step` and :func:`tobit_step` (6 and 8 arguments), the fading TKF's by :func:`fading_step` (11; its
+``filter`` calls the loop directly): the constant matrices flattened into one array (built once per estimator), the
+unused outputs made here.
 """
 
 from __future__ import annotations
@@ -19,47 +20,84 @@ from numba import njit
 from ._compiled_loop import FADING, KALMAN, PROTOCOL_TKF, TOBIT, compiled_loop
 from ._compiled_soa import kalman_entry, tobit_entry  # noqa: F401 - the choice between the runs-vectorised step and the loop
 
-__all__ = ["kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step", "fading_step"]
+__all__ = ["loop_call", "kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step", "fading_step"]
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def loop_call(
+    family,
+    y,
+    A,
+    Qd,
+    H,
+    x0,
+    P0,
+    x_last,
+    P_last,
+    cls=None,
+    F=None,
+    r=None,
+    lo=None,
+    hi=None,
+    par=None,
+    J=None,
+    npass=None,
+    noise_code=None,
+    joseph=None,
+    bu=None,
+    du=None,
+    means=None,
+    covs=None,
+    pmeans=None,
+    pcovs=None,
+    pu=None,
+    ey=None,
+    ll=None,
+    comp=None,
+):
+    """:func:`~tobitkf.filters._compiled_loop.compiled_loop` (its arguments, by the same names) with what a family
+    does not give made here: the arrays the loop reads as absent (``cls`` (N, 0, m) int8, ``F`` (1, m, 0, n_x),
+    ``r``/``lo``/``hi`` (1, 1, m), ``par`` (1, m, 0), ``bu`` (N, 0, n), ``du`` (N, 0, m); outputs with a T axis
+    of length 0: not written), ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False. The integers go
+    to the loop as run-time int64 (``family`` too: a module constant is a literal to numba), so that every
+    entry shares one specialisation of the loop."""
+    N, _, m = y.shape
+    nx, n = x0.shape[1], A.shape[2]
+    zero = N - N
+    cls = np.empty((N, 0, m), dtype=np.int8) if cls is None else cls
+    F = np.empty((1, m, 0, nx)) if F is None else F
+    r = np.empty((1, 1, m)) if r is None else r
+    lo = np.empty((1, 1, m)) if lo is None else lo
+    hi = np.empty((1, 1, m)) if hi is None else hi
+    par = np.empty((1, m, 0)) if par is None else par
+    J = zero if J is None else zero + J
+    npass = zero + 1 if npass is None else zero + npass
+    noise_code = zero if noise_code is None else zero + noise_code
+    joseph = N < 0 if joseph is None else joseph
+    bu = np.empty((N, 0, n)) if bu is None else bu
+    du = np.empty((N, 0, m)) if du is None else du
+    means = np.empty((N, 0, n)) if means is None else means
+    covs = np.empty((N, 0, n, n)) if covs is None else covs
+    pmeans = np.empty((N, 0, n)) if pmeans is None else pmeans
+    pcovs = np.empty((N, 0, n, n)) if pcovs is None else pcovs
+    pu = np.empty((N, 0, m)) if pu is None else pu
+    ey = np.empty((N, 0, m)) if ey is None else ey
+    ll = np.empty((N, 0)) if ll is None else ll
+    comp = np.empty((N, 0, m, J)) if comp is None else comp
+    compiled_loop(
+        zero + family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
+        means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def kalman_loop(y, A, Qd, H, par, joseph, x0, P0, means, covs, pmeans, pcovs, x_last, P_last):
     """:func:`~tobitkf.filters._compiled_loop.compiled_loop` for the Kalman filter: ``H`` (1, m, n) the rows C,
     ``par`` (1, m, m) the noise covariance R; the other arguments as there."""
-    N, _, m = y.shape
-    n = A.shape[0]
-    zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
-    compiled_loop(
-        zero + KALMAN,
-        y,
-        np.empty((N, 0, m), dtype=np.int8),
-        A.reshape((1, 1) + A.shape),  # shared by the runs and the steps
-        Qd.reshape((1, 1) + Qd.shape),
-        H,
-        np.empty((1, m, 0, n)),
-        np.empty((1, 1, m)),
-        np.empty((1, 1, m)),
-        np.empty((1, 1, m)),
-        par,
-        zero,
-        zero + 1,
-        zero,
-        joseph,
-        np.empty((N, 0, n)),
-        np.empty((N, 0, m)),
-        x0,
-        P0,
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        np.empty((N, 0, m)),
-        np.empty((N, 0, m)),
-        np.empty((N, 0)),
-        np.empty((N, 0, m, 0)),
-        x_last,
-        P_last,
-    )
+    loop_call(
+        KALMAN, y, A.reshape((1, 1) + A.shape), Qd.reshape((1, 1) + Qd.shape), H, x0, P0, x_last, P_last,
+        par=par, joseph=joseph, means=means, covs=covs, pmeans=pmeans, pcovs=pcovs,
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -69,40 +107,12 @@ def tobit_loop(
     """:func:`~tobitkf.filters._compiled_loop.compiled_loop` for the Tobit Kalman filter: ``H`` (1, m, n) the rows
     C, ``sigma`` (1, m) the noise standard deviations, ``lo``/``hi`` (TL, m) the limits, ``noise_code`` of
     :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; the other arguments as there."""
-    N, _, m = y.shape
-    n = A.shape[0]
-    zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
-    compiled_loop(
-        zero + TOBIT,
-        y,
-        np.empty((N, 0, m), dtype=np.int8),
-        A.reshape((1, 1) + A.shape),  # shared by the runs and the steps
-        Qd.reshape((1, 1) + Qd.shape),
-        H,
-        np.empty((1, m, 0, n)),
-        sigma.reshape((1,) + sigma.shape),
-        lo.reshape((1,) + lo.shape),
-        hi.reshape((1,) + hi.shape),
-        np.empty((1, m, 0)),
-        zero,
-        zero + 1,
-        noise_code,
-        joseph,
-        bu,
-        du,
-        x0,
-        P0,
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        pu,
-        ey,
-        np.empty((N, 0)),
-        np.empty((N, 0, m, 0)),
-        x_last,
-        P_last,
-    )
+    loop_call(
+        TOBIT, y, A.reshape((1, 1) + A.shape), Qd.reshape((1, 1) + Qd.shape), H, x0, P0, x_last, P_last,
+        r=sigma.reshape((1,) + sigma.shape), lo=lo.reshape((1,) + lo.shape), hi=hi.reshape((1,) + hi.shape),
+        noise_code=noise_code, joseph=joseph, bu=bu, du=du, means=means, covs=covs, pmeans=pmeans, pcovs=pcovs,
+        pu=pu, ey=ey,
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -194,39 +204,13 @@ def protocol_tkf_step(y, cls, consts, row, x0, P0, comp, x_last, P_last):
     nx = x0.shape[1]
     nn = (consts.shape[0] - 3) // 2
     n = int(np.sqrt(nn) + 0.5)
-    zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
-    e_m, e_c, e_1 = np.empty((N, 0, n)), np.empty((N, 0, n, n)), np.empty((N, 0, 1))
-    compiled_loop(
-        zero + PROTOCOL_TKF,
-        y,
-        cls,
-        consts[0:nn].reshape((1, 1, n, n)),
-        consts[nn : 2 * nn].reshape((1, 1, n, n)),
-        row[0:nx].reshape((1, 1, nx)),
-        row[nx : 2 * nx].reshape((1, 1, 1, nx)),
-        row[2 * nx : 2 * nx + 1].reshape((1, 1, 1)),
-        consts[2 * nn : 2 * nn + 1].reshape((1, 1, 1)),
-        np.full((1, 1, 1), np.inf),
-        row[2 * nx + 1 : 2 * nx + 4].reshape((1, 1, 3)),
-        zero,
-        zero + 1,
-        zero + int(consts[2 * nn + 1]),
-        consts[2 * nn + 2] != 0.0,
-        e_m,
-        e_1,
-        x0,
-        P0,
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        e_1,
-        e_1,
-        np.empty((N, 0)),
-        comp,
-        x_last,
-        P_last,
-    )
+    loop_call(
+        PROTOCOL_TKF, y, consts[0:nn].reshape((1, 1, n, n)), consts[nn : 2 * nn].reshape((1, 1, n, n)),
+        row[0:nx].reshape((1, 1, nx)), x0, P0, x_last, P_last, cls=cls, F=row[nx : 2 * nx].reshape((1, 1, 1, nx)),
+        r=row[2 * nx : 2 * nx + 1].reshape((1, 1, 1)), lo=consts[2 * nn : 2 * nn + 1].reshape((1, 1, 1)),
+        hi=np.full((1, 1, 1), np.inf), par=row[2 * nx + 1 : 2 * nx + 4].reshape((1, 1, 3)),
+        noise_code=int(consts[2 * nn + 1]), joseph=consts[2 * nn + 2] != 0.0, comp=comp,
+    )  # fmt: skip
     for b in range(N):
         for i in range(nx):
             if not np.isfinite(P_last[b, i, i]):
@@ -256,35 +240,9 @@ def fading_step(y, consts, lohi, k, x0, P0, out3, sm_mean, sm_cov, x_last, P_las
     H = consts[e + j * m * nxi : e + (j + 1) * m * nxi].reshape((1, m, nxi))
     e += L1 * m * nxi
     ts = 1 if sm_mean.shape[1] > 0 else 0
-    zero = N - N  # the integer arguments as run-time int64, not literals: one specialisation of the loop
-    compiled_loop(
-        zero + FADING,
-        y.reshape((N, 1, m)),
-        np.empty((N, 0, m), dtype=np.int8),
-        A,
-        Qd,
-        H,
-        np.empty((1, m, 0, nxi)),
-        consts[e : e + m].reshape((1, 1, m)),
-        lohi[0].reshape((1, 1, m)),
-        lohi[1].reshape((1, 1, m)),
-        np.empty((1, m, 0)),
-        zero + 1,
-        zero + 1,
-        zero + int(consts[1]),
-        consts[2] != 0.0,
-        np.empty((N, 0, n)),
-        np.empty((N, 0, m)),
-        x0,
-        P0,
-        sm_mean.reshape((N, ts, nxi)),
-        sm_cov.reshape((N, ts, nxi, n)),
-        np.empty((N, 0, n)),
-        np.empty((N, 0, n, n)),
-        out3[0].reshape((N, 1, m)),
-        out3[1].reshape((N, 1, m)),
-        np.empty((N, 0)),
-        out3[2].reshape((N, 1, m, 1)),
-        x_last,
-        P_last,
-    )
+    loop_call(
+        FADING, y.reshape((N, 1, m)), A, Qd, H, x0, P0, x_last, P_last, r=consts[e : e + m].reshape((1, 1, m)),
+        lo=lohi[0].reshape((1, 1, m)), hi=lohi[1].reshape((1, 1, m)), J=1, noise_code=int(consts[1]),
+        joseph=consts[2] != 0.0, means=sm_mean.reshape((N, ts, nxi)), covs=sm_cov.reshape((N, ts, nxi, n)),
+        pu=out3[0].reshape((N, 1, m)), ey=out3[1].reshape((N, 1, m)), comp=out3[2].reshape((N, 1, m, 1)),
+    )  # fmt: skip

@@ -11,7 +11,7 @@ and runs the loop into outputs carved from the output pool. Plain Python: the co
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -32,6 +32,7 @@ from ._readings import classify_readings, interval_classes
 from .core import FilterState
 
 __all__ = [
+    "LoopArguments",
     "CompiledSpec",
     "compiled_filter",
     "censoring_spec",
@@ -40,6 +41,71 @@ __all__ = [
     "saturation_spec",
     "channel_spec",
 ]
+
+
+class LoopArguments(NamedTuple):
+    """The arguments of :func:`~tobitkf.filters._compiled_loop.compiled_loop` in its order and by its names (its
+    docstring says what each is), for a call from Python: give what the family uses, :meth:`filled` makes the rest
+    as the loop reads an absent array (``cls`` (N, 0, m) int8, ``F`` (1, m, 0, n_x), ``r``/``lo``/``hi``
+    (1, 1, m), ``par`` (1, m, 0), ``bu`` (N, 0, n), ``du`` (N, 0, m); outputs with a T axis of length 0: not
+    written) and ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False. The compiled entries do the same
+    in compiled code (:func:`~tobitkf.filters._compiled_entries.loop_call`)."""
+
+    family: int
+    y: np.ndarray
+    cls: np.ndarray | None = None
+    A: np.ndarray | None = None
+    Qd: np.ndarray | None = None
+    H: np.ndarray | None = None
+    F: np.ndarray | None = None
+    r: np.ndarray | None = None
+    lo: np.ndarray | None = None
+    hi: np.ndarray | None = None
+    par: np.ndarray | None = None
+    J: int = 0
+    npass: int = 1
+    noise_code: int = 0
+    joseph: bool = False
+    bu: np.ndarray | None = None
+    du: np.ndarray | None = None
+    x0: np.ndarray | None = None
+    P0: np.ndarray | None = None
+    means: np.ndarray | None = None
+    covs: np.ndarray | None = None
+    pmeans: np.ndarray | None = None
+    pcovs: np.ndarray | None = None
+    pu: np.ndarray | None = None
+    ey: np.ndarray | None = None
+    ll: np.ndarray | None = None
+    comp: np.ndarray | None = None
+    x_last: np.ndarray | None = None
+    P_last: np.ndarray | None = None
+
+    def filled(self) -> LoopArguments:
+        """These arguments with every absent one made (see the class)."""
+        assert self.A is not None and self.x0 is not None
+        N, _, m = self.y.shape
+        nx, n = self.x0.shape[1], self.A.shape[2]
+        absent = {
+            "cls": lambda: np.empty((N, 0, m), dtype=np.int8),
+            "F": lambda: _empty((1, m, 0, nx)),
+            "r": lambda: _empty((1, 1, m)),
+            "lo": lambda: _empty((1, 1, m)),
+            "hi": lambda: _empty((1, 1, m)),
+            "par": lambda: _empty((1, m, 0)),
+            "bu": lambda: _empty((N, 0, n)),
+            "du": lambda: _empty((N, 0, m)),
+            "means": lambda: _empty((N, 0, n)),
+            "covs": lambda: _empty((N, 0, n, n)),
+            "pmeans": lambda: _empty((N, 0, n)),
+            "pcovs": lambda: _empty((N, 0, n, n)),
+            "pu": lambda: _empty((N, 0, m)),
+            "ey": lambda: _empty((N, 0, m)),
+            "ll": lambda: _empty((N, 0)),
+            "comp": lambda: _empty((N, 0, m, self.J)),
+        }
+        made: dict[str, Any] = {k: make() for k, make in absent.items() if getattr(self, k) is None}
+        return self._replace(**made)
 
 
 @dataclass
@@ -351,37 +417,13 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     loop = censored_entry(
         _compiled_loop.compiled_loop, spec.family, A, Qd, spec.H, F, r, lo, hi, x0, pu.shape[1] + ll.shape[1] > 0
     )
-    loop(
-        spec.family,
-        _c(y2),
-        np.require(cls, dtype=np.int8, requirements=("C", "W")),
-        A,
-        Qd,
-        _c(spec.H),
-        _c(F),
-        _c(r),
-        _c(lo),
-        _c(hi),
-        _c(spec.par),
-        spec.J,
-        spec.npass,
-        0,
-        False,
-        spec.bu,
-        spec.du,
-        x0,
-        P0,
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        pu,
-        _empty((N, 0, m)),
-        ll,
-        comp if comp.shape[1] > 0 else np.empty((N, 0, m, spec.J)),
-        x_last,
-        P_last,
-    )
+    args = LoopArguments(
+        spec.family, _c(y2), np.require(cls, dtype=np.int8, requirements=("C", "W")), A, Qd, _c(spec.H), _c(F), _c(r),
+        _c(lo), _c(hi), _c(spec.par), spec.J, spec.npass, x0=x0, P0=P0, bu=spec.bu, du=spec.du, means=means,
+        covs=covs, pmeans=pmeans, pcovs=pcovs, pu=pu, ll=ll, comp=comp if comp.shape[1] > 0 else None,
+        x_last=x_last, P_last=P_last,
+    )  # fmt: skip
+    loop(*args.filled())
     if not np.isfinite(np.diagonal(P_last, axis1=-2, axis2=-1)).all():
         return None
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)

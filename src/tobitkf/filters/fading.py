@@ -820,6 +820,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     mean and the diagonal blocks of the covariance ((N, T, nxi), (N, T, nxi, n)), and ``mean`` and ``cov`` are
     copies of their first blocks."""
     from ._compiled_loop import FADING, compiled_loop
+    from ._loop_specs import LoopArguments
 
     N, T, m = y2.shape
     n, L, nxi = est.n, est.L, est._nxi
@@ -846,37 +847,13 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     )
     bu, du = _input_terms(est, u2, N, T)
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
-    compiled_loop(
-        FADING,
-        loop_input(y2),
-        np.empty((N, 0, m), dtype=np.int8),
-        A[None, None],
-        Qd[None, None],
-        np.ascontiguousarray(H),
-        np.empty((1, m, 0, nxi)),
-        sigma[None, None],
-        loop_input(lo)[None],
-        loop_input(hi)[None],
-        np.empty((1, m, 0)),
-        1,
-        1,
-        int(est.exact_tobit_variance),
-        est.covariance_update == "joseph",
-        bu,
-        du,
-        loop_input(state.x),
-        loop_input(state.P),
-        means,
-        covs,
-        pmeans,
-        pcovs,
-        pu,
-        ey,
-        _empty((N, 0)),
-        lam,
-        x_last,
-        P_last,
-    )
+    args = LoopArguments(
+        FADING, loop_input(y2), A=A[None, None], Qd=Qd[None, None], H=np.ascontiguousarray(H), r=sigma[None, None],
+        lo=loop_input(lo)[None], hi=loop_input(hi)[None], J=1, noise_code=int(est.exact_tobit_variance),
+        joseph=est.covariance_update == "joseph", bu=bu, du=du, x0=loop_input(state.x), P0=loop_input(state.P),
+        means=means, covs=covs, pmeans=pmeans, pcovs=pcovs, pu=pu, ey=ey, comp=lam, x_last=x_last, P_last=P_last,
+    )  # fmt: skip
+    compiled_loop(*args.filled())
 
     def out(a):
         return kernel_array(a, batch)
