@@ -311,7 +311,20 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
     return X, logw
 
 
-class _Fading(_Model):
+class _Augmented(_Model):
+    """A model whose state stacks the current state on the last ones, :math:`[x_k; x_{k-1}; \\dots]` (the fading
+    and protocol channels' windows): the top block moves as the plain model's state, the others shift down one."""
+
+    def predict_moments(self, k, x, P, b):
+        return shift_predict(x, P, self.system.transition(k - 1), self.system.process_cov(k - 1), b)
+
+    def propagate(self, rng, k, X, b):
+        n = self.n
+        top = super().propagate(rng, k, X[..., :n], b)
+        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
+
+
+class _Fading(_Augmented):
     """Rice fading of order L (Gaussian coefficients marginalized exactly; other laws drawn)."""
 
     serves = RiceFading
@@ -332,14 +345,6 @@ class _Fading(_Model):
         X = np.zeros((N, Np, self.nx))
         X[..., : self.n] = super().initial(rng, N, Np, x0, P0)
         return X
-
-    def predict_moments(self, k, x, P, b):
-        return shift_predict(x, P, self.system.transition(k - 1), self.system.process_cov(k - 1), b)
-
-    def propagate(self, rng, k, X, b):
-        n = self.n
-        top = super().propagate(rng, k, X[..., :n], b)
-        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
 
     def modes(self, rng, k, X, dy):
         n, m = self.n, self.m
@@ -366,7 +371,7 @@ class _Fading(_Model):
         return [(0.0, mu, sd)]
 
 
-class _Protocol(_Model):
+class _Protocol(_Augmented):
     """Integral window + failure gains + Round-Robin + censoring at tau (the scheduled sensor's reading)."""
 
     serves = ProtocolChannel
@@ -412,14 +417,6 @@ class _Protocol(_Model):
             else:
                 X[..., s * n : (s + 1) * n] = 0.0
         return X
-
-    def predict_moments(self, k, x, P, b):
-        return shift_predict(x, P, self.system.transition(k - 1), self.system.process_cov(k - 1), b)
-
-    def propagate(self, rng, k, X, b):
-        n = self.n
-        top = super().propagate(rng, k, X[..., :n], b)
-        return np.concatenate([top, X[..., : self.nx - n]], axis=-1)
 
     def _window_row(self, k):
         h = self.sensor(k)
@@ -778,6 +775,22 @@ def _saturation_pieces(kind, y, m, s, r, u, lo, hi, logpi, U, Z):
     return np.where(np.isfinite(c), c, m), tot  # a non-finite draw only where no piece explains y
 
 
+def channel_log_likelihood(channel: Channel, k: int, y: np.ndarray, mu: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    r"""The log-likelihood of the readings ``y`` (N, m) (NaN: missing, no term) at step ``k`` for each particle,
+    :math:`\sum_l \log p(y_l \mid y^*_l \sim N(\mu_l, s_l^2))` by the channel's ``reading_log_likelihood``:
+    ``mu`` (N, Np, m) the particles' latent means, ``sd`` (m,) the noise standard deviations. Returns (N, Np)."""
+    N, Np, m = mu.shape
+    out = np.zeros((N, Np))
+    for l in range(m):
+        rows = np.flatnonzero(~np.isnan(y[:, l]))
+        if rows.size == 0:
+            continue
+        yy = np.repeat(y[rows, l], Np)
+        ll = channel.reading_log_likelihood(yy, mu[rows, :, l].ravel(), np.full(yy.size, sd[l]), k, l)
+        out[rows] += np.asarray(ll, dtype=float).reshape(rows.size, Np)
+    return out
+
+
 def _flatten(channel: Any) -> list:
     if channel is None:
         return []
@@ -812,16 +825,7 @@ class _Contract(_Model):
         if not (np.isscalar(dy) and dy == 0.0):
             mu = mu + dy[:, None, :]
         sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")
-        N, Np = X.shape[:2]
-        out = np.zeros((N, Np))
-        for l in range(self.m):
-            rows = np.flatnonzero(~np.isnan(y[:, l]))
-            if rows.size == 0:
-                continue
-            yy = np.repeat(y[rows, l], Np)
-            ll = self.channel.reading_log_likelihood(yy, mu[rows, :, l].ravel(), np.full(yy.size, sd[l]), k, l)
-            out[rows] += np.asarray(ll, dtype=float).reshape(rows.size, Np)
-        return out
+        return channel_log_likelihood(self.channel, k, y, mu, sd)
 
     def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
         sys_ = self.system

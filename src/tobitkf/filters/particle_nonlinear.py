@@ -25,7 +25,7 @@ from .._validation import ValidationError
 from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
-from ._particle_models import SYSTEM_MODELS, _diag_sigma, _flatten, _mat, _Model
+from ._particle_models import SYSTEM_MODELS, _diag_sigma, _flatten, _mat, _Model, channel_log_likelihood
 from .nonlinear import SigmaPoints, _sigma_moments
 
 __all__ = ["nonlinear_model"]  # registered with the particle filter when imported (by tobitkf)
@@ -75,15 +75,7 @@ class _Nonlinear(_Model):
         N, Np, n = X.shape
         mu = self.system.measurement_map(X.reshape(N * Np, n), k).reshape(N, Np, self.m)
         sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")
-        out = np.zeros((N, Np))
-        for l in range(self.m):
-            rows = np.flatnonzero(~np.isnan(y[:, l]))
-            if rows.size == 0:
-                continue
-            yy = np.repeat(y[rows, l], Np)
-            ll = self.channel.reading_log_likelihood(yy, mu[rows, :, l].ravel(), np.full(yy.size, sd[l]), k, l)
-            out[rows] += np.asarray(ll, dtype=float).reshape(rows.size, Np)
-        return out
+        return channel_log_likelihood(self.channel, k, y, mu, sd)
 
     def check_record(self, y2: np.ndarray, start: int) -> None:
         self.channel.check(self.system, start - 1 + y2.shape[1])
