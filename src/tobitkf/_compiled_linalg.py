@@ -3,6 +3,8 @@ r"""Compiled (numba) dense linear algebra shared by the filters' kernels and the
 :func:`gauss_solve` is Gaussian elimination with partial pivoting (what LAPACK's gesv behind
 ``numpy.linalg.solve`` does), written once and called by the TKF's gain solve
 (:mod:`tobitkf.filters._compiled_tobit`) and by :func:`nees_terms` (:func:`tobitkf.metrics.nees_terms`).
+:func:`cholesky_lower` and :func:`psd_root` are the square roots of a covariance that the compiled nonlinear
+filters (sigma points) and the compiled particle filters (the optimal proposal's draws) take.
 Compiled on first use and cached on disk; importing this module imports numba.
 """
 
@@ -13,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["gauss_solve", "nees_terms"]
+__all__ = ["gauss_solve", "nees_terms", "cholesky_lower", "psd_root"]
 
 _INF = math.inf
 
@@ -55,6 +57,42 @@ def gauss_solve(M, W):
                 t -= M[c, j] * W[j, i]
             W[c, i] = t / M[c, c]
     return True
+
+
+@njit(cache=True, error_model="numpy")
+def cholesky_lower(M, L):
+    """The lower Cholesky factor of the symmetric ``M`` (n, n) into ``L`` (:math:`LL^T = M`, read from M's lower
+    triangle); False (``L`` unfinished) when M is not numerically positive definite (a pivot not > 0)."""
+    n = M.shape[0]
+    L[:] = 0.0
+    for j in range(n):
+        d = M[j, j]
+        for c in range(j):
+            d -= L[j, c] * L[j, c]
+        if not d > 0.0:
+            return False
+        d = math.sqrt(d)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = M[i, j]
+            for c in range(j):
+                s -= L[i, c] * L[j, c]
+            L[i, j] = s / d
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def psd_root(M, L):
+    r"""A square root of the symmetric PSD ``M`` (n, n) into ``L`` (:math:`LL^T = M`): the lower Cholesky factor
+    (:func:`cholesky_lower`), or the eigen root :math:`V\mathrm{diag}(\sqrt{\max(w, 0)})` of M's symmetric part
+    when M is not numerically positive definite (as :func:`tobitkf._linalg.psd_sqrt`)."""
+    if cholesky_lower(M, L):
+        return
+    n = M.shape[0]
+    w, V = np.linalg.eigh(0.5 * (M + M.T))
+    for i in range(n):
+        for c in range(n):
+            L[i, c] = V[i, c] * math.sqrt(max(w[c], 0.0))
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

@@ -87,6 +87,7 @@ from numba import njit
 from numba.np.random.distributions import random_standard_normal as _standard_normal
 from numba.np.random.generator_core import next_double as _next_double
 
+from .._compiled_linalg import psd_root
 from ._compiled_censored import _exp_neg, _one_sided_at
 from ._particle_rng import generator
 from ._readings import _INTERIOR, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
@@ -298,39 +299,17 @@ def _mass_factor(far, lm, M, upper, F):
     return F * mass, 0.0
 
 
-# --------------------------------------------------------------------------- small linear algebra
-
-
-@njit(cache=True, error_model="numpy")
-def _psd_sqrt(M, L):
-    """L with L L^T = M (n, n): the lower Cholesky factor when M is positive definite, else the
-    eigen-decomposition root of its symmetric part (as :func:`tobitkf._linalg.psd_sqrt`)."""
-    n = M.shape[0]
-    ok = True
-    for i in range(n):
-        for j in range(n):
-            L[i, j] = 0.0
-    for j in range(n):
-        s = M[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            ok = False
-            break
-        d = math.sqrt(s)
-        L[j, j] = d
-        for i in range(j + 1, n):
-            s = M[i, j]
-            for k in range(j):
-                s -= L[i, k] * L[j, k]
-            L[i, j] = s / d
-    if ok:
-        return
-    S = 0.5 * (M + M.T)
-    w, V = np.linalg.eigh(S)
-    for i in range(n):
-        for j in range(n):
-            L[i, j] = V[i, j] * math.sqrt(max(w[j], 0.0))
+@njit(cache=True, error_model="numpy", inline="always")
+def _limit_z(Z, lower, lo, hi, isd, Np):
+    """The particles' standardised distances past a censored reading's limit, in place: ``Z`` (Np,) the latent
+    means become :math:`(lo - z_p)/s` at the lower limit (``lower``), :math:`(z_p - hi)/s` at the upper one
+    (``isd`` = 1/s), so that the reading's mass is :math:`\Phi(Z_p)` on either side."""
+    if lower:
+        for p in range(Np):
+            Z[p] = (lo - Z[p]) * isd
+    else:
+        for p in range(Np):
+            Z[p] = (Z[p] - hi) * isd
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -547,7 +526,7 @@ def pf_block(
                             v = 0.5 * (Sig[i, j] + Sig[j, i])
                             Sig[i, j] = v
                             Sig[j, i] = v
-                _psd_sqrt(Sig, L)
+                psd_root(Sig, L)
                 # the run's numbers first, in the documented order (then the arithmetic runs without calls)
                 for p in range(Np):
                     for l in range(m):
@@ -579,14 +558,7 @@ def pf_block(
                             INC[p] += -0.5 * zz * zz - ls
                             Z[p] = dv
                     else:
-                        if c == _LOWER:
-                            lo = LO[k, l]
-                            for p in range(Np):
-                                Z[p] = (lo - Z[p]) * isl
-                        else:
-                            hi = HI[k, l]
-                            for p in range(Np):
-                                Z[p] = (Z[p] - hi) * isl
+                        _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         sgn = sd if c == _LOWER else -sd
                         for p in range(Np):  # the masses (vectorised)
                             MM[p] = _tail_mass(Z[p])
@@ -632,14 +604,7 @@ def pf_block(
                             zz = (yl - Z[p]) * isl
                             INC[p] += -0.5 * zz * zz - ls
                     else:
-                        if c == _LOWER:
-                            lo = LO[k, l]
-                            for p in range(Np):
-                                Z[p] = (lo - Z[p]) * isl
-                        else:
-                            hi = HI[k, l]
-                            for p in range(Np):
-                                Z[p] = (Z[p] - hi) * isl
+                        _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         if lb:
                             for p in range(Np):  # the masses (vectorised)
                                 MM[p] = _tail_mass(Z[p])
