@@ -35,6 +35,8 @@ import numpy as np
 from numba import njit, types
 from numba.extending import overload
 
+from .._compiled_linalg import cholesky_lower as _cholesky
+from .._compiled_linalg import psd_root as _root
 from ._compiled_moments import CENSORED, classify, family_block
 from ._compiled_tobit import GL_W, GL_X, censored_stats
 
@@ -43,42 +45,6 @@ __all__ = ["KALMAN", "TOBIT", "ADF", "nonlinear_loop", "sigma_moments", "channel
 KALMAN, TOBIT, ADF = 0, 1, 2  #: update codes of :func:`nonlinear_loop`
 _TINY = float(np.finfo(np.float64).tiny)
 _CBRT_EPS = float(np.cbrt(np.finfo(np.float64).eps))
-
-
-@njit(error_model="numpy", cache=True)
-def _cholesky(P, out):
-    """The lower Cholesky factor of ``P`` into ``out``; False (``out`` unfinished) when P is not numerically
-    positive definite."""
-    n = P.shape[0]
-    out[:] = 0.0
-    for j in range(n):
-        d = P[j, j]
-        for c in range(j):
-            d -= out[j, c] * out[j, c]
-        if not d > 0.0:
-            return False
-        d = math.sqrt(d)
-        out[j, j] = d
-        for i in range(j + 1, n):
-            s = P[i, j]
-            for c in range(j):
-                s -= out[i, c] * out[j, c]
-            out[i, j] = s / d
-    return True
-
-
-@njit(error_model="numpy", cache=True)
-def _root(P, out):
-    r"""A square root of the symmetric PSD ``P`` into ``out``: the lower Cholesky factor, or the eigen root
-    :math:`V\mathrm{diag}(\sqrt{\max(w, 0)})` when P is not numerically positive definite
-    (:func:`tobitkf._linalg.psd_sqrt`)."""
-    if _cholesky(P, out):
-        return
-    n = P.shape[0]
-    w, V = np.linalg.eigh(0.5 * (P + P.T))
-    for i in range(n):
-        for c in range(n):
-            out[i, c] = V[i, c] * math.sqrt(max(w[c], 0.0))
 
 
 @njit(error_model="numpy", cache=True)
@@ -358,31 +324,13 @@ def _block_rows(xs, X, nb):
 def _block_points(xs, Ps, xi, root, X, nb, act):
     """The sigma points of N(``xs[b]``, ``Ps[b]``) of the runs b < nb with ``act[b]``, stacked in ``X`` (L rows a
     run, in order): :math:`\\chi_l = x + L\\xi_l` with the lower Cholesky factor (:func:`_root`: an eigen root when
-    it fails); returns how many runs. Indexes the block arrays directly (no per-run views or calls)."""
+    it fails); returns how many runs. The factor by :func:`~tobitkf._compiled_linalg.cholesky_lower`."""
     L, n = xi.shape
     q = 0
     for b in range(nb):
         if not act[b]:
             continue
-        ok = True  # the Cholesky factor of Ps[b] into root (as _cholesky)
-        for i in range(n):
-            for c in range(n):
-                root[i, c] = 0.0
-        for j in range(n):
-            d = Ps[b, j, j]
-            for c in range(j):
-                d -= root[j, c] * root[j, c]
-            if not d > 0.0:
-                ok = False
-                break
-            d = math.sqrt(d)
-            root[j, j] = d
-            for i in range(j + 1, n):
-                s = Ps[b, i, j]
-                for c in range(j):
-                    s -= root[i, c] * root[j, c]
-                root[i, j] = s / d
-        if not ok:
+        if not _cholesky(Ps[b], root):
             _root(Ps[b], root)
         base = q * L
         for p in range(L):
