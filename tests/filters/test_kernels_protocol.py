@@ -135,6 +135,55 @@ def test_kernel_given_uncensored_and_continued_state():
             np.testing.assert_array_equal(a2.extras["scheduled"], b2.extras["scheduled"])
 
 
+@pytest.mark.parametrize("form", ["joseph", "standard"])
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_kernel_lost_readings_equal_numpy(mode, form):
+    """Lost readings (NaN: a whole step of one run, a run of steps, the first step) run through the compiled
+    loop (``backend="numba"`` accepts them; the loop's class MISSING) and equal the numpy path to 1e-12, with
+    the detection device's gamma given too, True at some lost readings: a lost reading only predicts whatever
+    gamma says (reported not uncensored, its innovation 0, its expected reading tau), on both paths."""
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (4,), 30, seed=7)
+    y[1, 3] = np.nan
+    y[2, 10:14] = np.nan
+    y[3, 0] = np.nan
+    g = y > 0.0
+    g[2, 11:13] = True  # "uncensored" at a lost reading
+    for kw in ({}, {"uncensored": g}):
+        a, b = both(sys_, ch, y, failure_term=mode, covariance_update=form, **kw)
+        assert_results_equal(a, b)
+        assert np.isfinite(a.mean).all()
+        assert not a.extras["uncensored"][2, 10:14].any()
+        np.testing.assert_array_equal(a.extras["innovation"][2, 10:14], 0.0)
+        np.testing.assert_array_equal(a.extras["expected_y"][2, 10:14], ch.threshold)
+    # the step after a lost reading is the prediction of the step before, updated once
+    ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numba", failure_term=mode, covariance_update=form)
+    r = ref.filter(y, outputs=("mean", "pred_mean", "cov", "pred_cov"))
+    assert_same(r.mean[2, 10], r.pred_mean[2, 10], 0.0)
+    assert_same(r.cov[2, 10], r.pred_cov[2, 10], 0.0)
+
+
+def test_numpy_path_takes_the_compiled_moments(monkeypatch):
+    """The numpy path's moments of (13)-(16), (21), (23)-(24) are those of the compiled loop's function
+    (protocol_tkf_block), called once per step, not a second copy of the equations."""
+    from tobitkf.filters import _compiled_moments
+
+    calls = []
+    block = _compiled_moments.protocol_tkf_block
+
+    def spy(*args):
+        calls.append(args[0])
+        return block(*args)
+
+    monkeypatch.setattr(_compiled_moments, "protocol_tkf_block", spy)
+    sys_, ch = oscillator(), channel()
+    y = data(sys_, ch, (3,), 12)
+    for form in ("joseph", "standard", "square_root"):
+        calls.clear()
+        ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", covariance_update=form).filter(y)
+        assert calls == [3] * 12
+
+
 def three_sensor_case():
     """p = 3 sensors served in the order 3, 1, 3, 2 (sensor 3 twice per cycle), a failure law per sensor,
     window 1, threshold -0.5, on the example's oscillator."""

@@ -614,3 +614,27 @@ def test_bound_phi_upper_mean_trajectory_is_tighter():
     a = protocol_covariance_bounds(sys_, ch, 60)
     b = protocol_covariance_bounds(sys_, ch, 60, phi_upper="mean_trajectory")
     assert (np.trace(b.upper, axis1=1, axis2=2) <= np.trace(a.upper, axis1=1, axis2=2) + 1e-12).all()
+
+
+@pytest.mark.parametrize("mode", FAILURE_TERMS)
+def test_square_root_form_reports_the_innovation_variance_of_24(mode):
+    """``innovation_var`` is P_y of (24), H P H^T + F + R(1 - phi), in every covariance form: the square-root
+    form reported the noise R(1 - phi) alone before."""
+    w = 0.052 * np.pi
+    sys_ = tk.LinearSystem(
+        A=[[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]], C=[[1.0, 0.0], [0.3, 1.0]], Q=0.0025 * np.eye(2),
+        R=np.diag([1.0, 0.5]), x0=[5.0, 0.0], P0=np.eye(2),
+    )  # fmt: skip
+    ch = ProtocolChannel(2, window=2, failures=LAMBDA_BASE, threshold=0.0)
+    y = tk.simulate(sys_, 25, 3, seed=2, channel=ch).y
+    res = {
+        form: ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode, covariance_update=form, backend="numpy").filter(y)
+        for form in ("joseph", "square_root")
+    }
+    a, b = res["square_root"].extras, res["joseph"].extras
+    np.testing.assert_allclose(a["innovation_var"], b["innovation_var"], rtol=1e-10)
+    g = b["uncensored"]
+    # where gamma = 1 it exceeds the noise term by H P H^T + F > 0
+    r = np.where(b["scheduled"] == 1, 1.0, 0.5)
+    noise = r * (1.0 - b["trunc_var_factor"])
+    assert (a["innovation_var"][g] > noise[g] * (1 + 1e-9)).all()

@@ -408,13 +408,13 @@ PROTOCOL_TKF_EXTRAS = (
     "p_uncensored",
     "innovation_var",
 )
-_FLOOR = 1e-12  # R (1 - phi) floored at 1e-12 R, as protocol_model._TINY
+_FLOOR = 1e-12  # R (1 - phi) floored at 1e-12 R
 
 
 @njit(cache=True, error_model="numpy")
 def protocol_tkf_block(nb, mom, ok, sd, r, tau, lm, lv, fixed, mode, glx, glw, buf):
     r"""The measurement moments of the protocol Tobit Kalman filter (Geng et al. (13)–(16), (21), (23)–(24);
-    :func:`tobitkf.filters.protocol_model.protocol_measurement` on the numpy path) for the runs ``b < nb`` of a
+    also :func:`tobitkf.filters.protocol_model.protocol_measurement`, the numpy path's moments) for the runs ``b < nb`` of a
     block, the scheduled sensor h with noise variance ``r`` (``sd`` = :math:`\sqrt r`), threshold τ = ``tau``,
     failure mean and variance ``lm`` = :math:`\bar\Lambda_h`, ``lv`` = :math:`\check\Lambda_h`:
 

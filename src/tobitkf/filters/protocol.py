@@ -96,6 +96,7 @@ from .core import (
 )
 from .kalman import LinearGaussianFamily, _finite_or_none
 from .protocol_model import (
+    FAILURE_CODES,
     FAILURE_TERMS,
     PREHISTORY_PRIORS,
     _check_parts,
@@ -153,11 +154,11 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         (:mod:`tobitkf.filters._compiled_loop`, its protocol TKF code; equal to the numpy path to rounding) where it covers the case (a time-invariant system, the standard or Joseph form,
         every failure term, ``keep_augmented=False``) and numba imports (``"auto"``), insists on it
         (``"numba"``), or runs the numpy reference path (``"numpy"``). The online ``step`` runs the same loop
-        for one reading in those cases without an input, a lost reading or ``failure_term="lmmse_unconditional"``.
-        Elsewhere (the other steps, the cases the loop does not cover) ``"auto"`` and ``"numba"`` run the
-        shared predict and update compiled
-        (:mod:`tobitkf.filters._compiled_step`), the censored moments of (21)-(24) of a batch from the TKF
-        kernel's compiled statistics.
+        for one reading in those cases without an input or ``failure_term="lmmse_unconditional"``. Lost readings
+        (NaN) take the loop too. Elsewhere (the other steps, the cases the loop does not cover) ``"auto"`` and
+        ``"numba"`` run the shared predict and update compiled (:mod:`tobitkf.filters._compiled_step`). Both
+        paths take the moments of (13)-(16), (21), (23)-(24) from the same compiled function
+        (:func:`~tobitkf.filters._compiled_moments.protocol_tkf_block`).
 
     Raises
     ------
@@ -281,7 +282,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         return terms
 
     def _step_terms(self, k: int, h: int) -> tuple:
-        """``(Cc, r, sqrt(r), H, H[None, :], lam_mean, lam_var)`` of sensor h at step k; for a constant C and R
+        """``(Cc, r, H, H[None, :], lam_mean, lam_var)`` of sensor h at step k; for a constant C and R
         computed once per sensor and kept (the constants of :func:`protocol_measurement`)."""
         cache = self.__dict__.setdefault("_terms_cache", {}) if self._constant_C else None
         if cache is not None and h in cache:
@@ -292,7 +293,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         H0 = H[None, :]
         for a in (Cc, H, H0):
             a.flags.writeable = False  # shared by every step's prediction
-        terms = (Cc, r, np.sqrt(r), H, H0, lam_mean, lam_var)
+        terms = (Cc, r, H, H0, lam_mean, lam_var)
         if cache is not None:
             cache[h] = terms
         return terms
@@ -304,7 +305,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
                 "give the system no D (a control input enters through Bu only)"
             )
         h = self._sensor(k)
-        Cc, r, sd, H, H0, lam_mean, lam_var = self._step_terms(k, h)
+        Cc, r, H, H0, lam_mean, lam_var = self._step_terms(k, h)
         X = None
         if "X" in carry:
             carry = dict(carry)
@@ -313,16 +314,14 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             carry["X"] = X = Aa @ carry["X"] @ Aa.T + Bn @ self.system.process_cov(k - 1) @ Bn.T
         yk = y[:, 0]
         tau = self._tau
-        # a lost reading (NaN) counts as censored here (NaN > tau is False) and leaves the update through the
-        # shared update's mask (its innovation is NaN): the step only predicts
+        # a lost reading (NaN) is never uncensored (NaN > tau is False; _prediction masks a given gamma): the step
+        # only predicts
         gam = yk > tau if uncensored is None else uncensored[:, 0]
-        mp = _prediction(
-            xp, Pp, yk, gam, Cc, r, sd, H, H0, tau, lam_mean, lam_var, self.failure_term, X, self._compiled_core()
-        )
+        mp = _prediction(xp, Pp, yk, gam, Cc, r, H, H0, tau, lam_mean, lam_var, self.failure_term, X)
         return mp, carry
 
     def _extras(self, k, xp, Pp, x, P, mp, K, Ree, options):
-        info = _protocol_info(mp, Ree)
+        info = _protocol_info(mp)
         info["aug_mean"], info["aug_pred_mean"] = x, xp
         info["uncensored"] = mp.extras["_gamma"]
         if options.get("keep_augmented"):
@@ -391,8 +390,8 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
         ``u`` (..., T, p), optional: the control inputs u(0..T-1) of a system with ``Bu`` (the prediction of
         step k adds B_u u(k-1) to the current state's block; not in the source, whose plant has no input).
-        A NaN reading (a packet lost on the link, not in the source's model) only predicts; such a record
-        runs the numpy loop.
+        A NaN reading (a packet lost on the link, not in the source's model) only predicts, whatever
+        ``uncensored`` says there (it is reported as not uncensored).
         """
         y2, batch = self._prepare_record(y)
         N, T, _ = y2.shape
@@ -437,7 +436,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     # ---- the compiled path (``filter``, and ``step`` through _protocol_loop_step) -------------------
     def _compiled_online_step(self, state, y, u, options):
         """One online step through the compiled loop (T = 1, :func:`_protocol_loop_step`); None (the numpy
-        step runs) with an input, a lost reading (NaN), ``failure_term="lmmse_unconditional"`` (its X_k is
+        step runs) with an input, ``failure_term="lmmse_unconditional"`` (its X_k is
         carried on the numpy path), a case the loop does not cover, or a covariance that stopped being
         finite. Never raises for ``backend="numba"``: the numpy step has always run those cases."""
         if u is not None or self.failure_term == "lmmse_unconditional":
@@ -449,9 +448,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             )
         if not ok:
             return None
-        vals = y.ravel().tolist() if y.size <= 16 else None
-        if any(map(math.isnan, vals)) if vals is not None else np.isnan(y).any():
-            return None
         return _protocol_loop_step(self, y, options.get("uncensored"), state)
 
     def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
@@ -459,8 +455,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         step_options = step_options or {}
         if "uncensored_record" not in step_options:  # a loop not started by filter(): gamma unknown here
             gap = "a loop without the uncensored record"
-        elif np.isnan(y2).any():
-            gap = "missing readings (NaN)"
         elif step_options.get("keep_augmented"):
             gap = "keep_augmented=True"
         else:
@@ -481,7 +475,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 
 
 # --------------------------------------------------------------------------- the compiled path
-_KERNEL_MODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_unconditional": 3}
 
 
 def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
@@ -514,7 +507,7 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
         Hs, Cs, rs, pars = table[:, :nxi], table[:, nxi : 2 * nxi], table[:, 2 * nxi], table[:, 2 * nxi + 1 :]
         A, Qd = _loop_specs._system_arrays(est.system, 0, 1)
         lohi = (np.full((1, 1, 1), est._tau), np.full((1, 1, 1), math.inf))
-        codes = (_KERNEL_MODES[est.failure_term], est.covariance_update == "joseph")
+        codes = (FAILURE_CODES[est.failure_term], est.covariance_update == "joseph")
         flat = np.concatenate([A.ravel(), Qd.ravel(), [est._tau, codes[0], float(codes[1])]])
         ctx = (Hs, Cs, rs, pars, tuple(table), set(), A, Qd) + lohi
         ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {}, _compiled_entries, flat)
@@ -528,7 +521,7 @@ def _sensor_rows(est: ProtocolTobitKalmanFilter, h: int, k: int, ctx: tuple) -> 
     loop would."""
     Hs, Cs, rs, pars, _, filled = ctx[:6]
     if h not in filled:
-        Cc, r, _, H, _, lam_mean, lam_var = est._step_terms(k, h)
+        Cc, r, H, _, lam_mean, lam_var = est._step_terms(k, h)
         Hs[h], Cs[h], rs[h], pars[h, :2] = H, Cc, r, (lam_mean, lam_var)
         filled.add(h)
 
@@ -580,6 +573,15 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     return None if new is None else mark_trusted(est, check_step(est, state, new))
 
 
+def _received(y: np.ndarray, tau: float, gamma: Any) -> np.ndarray:
+    """γ of the compiled loop, laid out like ``y`` (C order, bool): ``y > τ``, or the given ``gamma``; a lost
+    reading (NaN) is never uncensored (the loop's class ``MISSING``: the step only predicts), as on the numpy
+    path (:func:`~tobitkf.filters.protocol_model._prediction`)."""
+    if gamma is None:
+        return y > tau  # NaN > tau is False
+    return np.array(gamma, dtype=np.bool_, order="C").reshape(y.shape) & ~np.isnan(y)
+
+
 def _protocol_loop_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, state: FilterState):
     """One online step (y (N, 1), ``gamma`` (N, 1) bool or None for y > τ) through the compiled loop with T = 1:
     the scheduled sensor's rows kept per sensor (:func:`_loop_constants`), no state outputs, the extras of the
@@ -594,7 +596,7 @@ def _protocol_loop_step(est: ProtocolTobitKalmanFilter, y: np.ndarray, gamma, st
         _sensor_rows(est, h, state.k + 1, ctx)
     assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
     yk = loop_input(y).reshape(N, 1, 1)
-    gam = yk > est._tau if gamma is None else np.array(gamma, dtype=np.bool_, order="C").reshape(N, 1, 1)
+    gam = _received(yk, est._tau, gamma)
     P = state.P if state.P.shape[0] in (1, N) else np.broadcast_to(state.P, (N, nxi, nxi))
     names = ctx[10]
     nex = len(names)
@@ -634,7 +636,7 @@ def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: Fil
         carry = dict(carry)
         carry["X"] = Xk
     y3 = np.require(y2, dtype=np.float64, requirements=("C", "W"))
-    gam = y3 > est._tau if step_data is None else np.array(step_data["uncensored"], dtype=np.bool_, order="C")
+    gam = _received(y3, est._tau, None if step_data is None else step_data["uncensored"])
     assert state.P is not None, "the compiled loop runs the Joseph and standard forms, which carry P"
     ext = "extras" in want
     names = ctx[10]

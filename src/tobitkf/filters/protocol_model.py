@@ -12,6 +12,7 @@ bounds of Theorems 3–5 in :mod:`tobitkf.design.protocol_bounds`. Time conventi
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -23,10 +24,8 @@ from .._validation import (
     check_instance,
     check_psd,
 )
-from ..censored import CensoredMoments, _small_moments, unchecked_moments
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
-from ._backend import kernels
 from .core import (
     MeasurementPrediction,
 )
@@ -45,9 +44,6 @@ FAILURE_TERMS = ("variance", "literal", "second_moment", "lmmse_unconditional")
 
 
 PREHISTORY_PRIORS = ("x0", "zero_mean")
-
-
-_TINY = 1e-12
 
 
 # --- augmentation (9)-(10) -------------------------------------------------------------
@@ -100,27 +96,6 @@ def _sensor_stats(system: LinearSystem, k: int, h: int):
     return C[h], r
 
 
-def _failure_term(
-    mode: str,
-    Cc: np.ndarray,
-    P_pred: np.ndarray,
-    xi_pred: np.ndarray,
-    lam_mean: float,
-    lam_var: float,
-    X: np.ndarray | None,
-) -> np.ndarray:
-    """F_k, the failure term of (24) (docs/sources GP-01), (N,) or (1,) (a covariance shared by the runs;
-    it broadcasts)."""
-    if mode == "lmmse_unconditional":
-        return np.full(P_pred.shape[0], lam_var * float(Cc @ X @ Cc))
-    CPC = (P_pred @ Cc) @ Cc  # (N or 1,): C P C^T of each run's covariance, P_pred never broadcast
-    if mode == "variance":
-        return lam_var * CPC
-    if mode == "literal":
-        return (lam_mean**2 + lam_var) * CPC
-    return lam_var * (CPC + (xi_pred @ Cc) ** 2)  # second_moment
-
-
 def _check_parts(system: Any, channel: Any) -> None:
     check_instance(system, LinearSystem, "system")
     check_instance(channel, ProtocolChannel, "channel")
@@ -160,97 +135,60 @@ def protocol_measurement(
     """
     H = lam_mean * Cc
     return _prediction(
-        xi_pred, P_pred, y, gamma, Cc, r, np.sqrt(r), H, H[None, :], tau, lam_mean, lam_var, failure_term, second_moment
+        xi_pred, P_pred, y, gamma, Cc, r, H, H[None, :], tau, lam_mean, lam_var, failure_term, second_moment
     )
 
 
-def _prediction(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term, X, compiled=False):
-    """:func:`protocol_measurement` with the per-sensor constants ``sd`` = sqrt(r), ``H`` = lam_mean Cc and
-    ``H0`` = H[None, :] given (the filter computes them once per sensor). ``compiled``: the censored moments of
-    several runs from the compiled statistics of the TKF kernel
-    (:func:`tobitkf.filters._compiled_tobit.censored_moments_array`, equal to :func:`~tobitkf.censored.unchecked_moments`
-    to rounding) instead of the array code."""
-    if xi_pred.shape[0] == 1 and failure_term != "lmmse_unconditional":
-        one = _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term)
-        if one is not None:
-            return one
-    zeta = xi_pred @ H
-    if compiled and np.isfinite(zeta).all():
-        kern = kernels()
-        K = zeta.shape[0]
-        rows = kern.censored_moments_array(
-            np.ascontiguousarray(zeta, dtype=float),
-            np.full(K, float(sd)),
-            np.full(K, float(tau)),
-            np.full(K, math.inf),
-            kern.GL_X,
-            kern.GL_W,
-        )
-        st = CensoredMoments(*rows)
-    else:
-        st = unchecked_moments(zeta, sd, tau, np.inf)
-    lam = st.inverse_mills
-    noise = np.maximum(st.truncated_var, _TINY * r)  # R (1 - phi), floored
-    F = _failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, X)
-    yhat = zeta + sd * lam  # (21), gamma = 1
-    g = gamma if isinstance(gamma, np.ndarray) and gamma.dtype == bool else np.asarray(gamma, dtype=bool)
-    if math.isfinite(tau):  # tau - zeta cannot be inf - inf; sd > 0, so no division by zero
-        theta = (tau - zeta) / sd
-    else:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            theta = (tau - zeta) / sd
-    extras = {
-        "theta_bar": theta,
-        "inverse_mills": lam,
-        "trunc_var_factor": 1.0 - noise / r,
-        "expected_y": np.where(g, yhat, tau),
-        "innovation": np.where(g, y - yhat, 0.0),
-        "p_uncensored": st.p_uncensored,
-        "_noise": noise,
-        "_gamma": g,
-    }
+#: the failure terms' codes in :func:`~tobitkf.filters._compiled_moments.protocol_tkf_block` (its ``mode``)
+FAILURE_CODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_unconditional": 3}
+
+
+@lru_cache(maxsize=1)
+def _nodes() -> tuple[np.ndarray, np.ndarray]:
+    """Writable copies of the compiled statistics' Gauss-Legendre nodes and weights: the compiled loop types them
+    writable, and a read-only array would compile :func:`protocol_tkf_block` a second time."""
+    from ._compiled_tobit import GL_W, GL_X
+
+    return np.array(GL_X), np.array(GL_W)
+
+
+def _prediction(xi_pred, P_pred, y, gamma, Cc, r, H, H0, tau, lam_mean, lam_var, failure_term, X):
+    r""":func:`protocol_measurement` with the per-sensor constants ``H`` = lam_mean Cc and ``H0`` = H[None, :]
+    given (the filter computes them once per sensor). The moments of (13)–(16), (21), (23)–(24) come from
+    :func:`~tobitkf.filters._compiled_moments.protocol_tkf_block`, the function the compiled loop calls, over
+    the N runs at once: its inputs :math:`\zeta = \mathbf H\hat\xi^-`, :math:`\mathbf HP^-\mathbf H^T`,
+    :math:`\mathcal C_hP^-\mathcal C_h^T`, :math:`\mathcal C_h\hat\xi^-` and the reading, its outputs the
+    step's scalars and the noise :math:`F_k + \mathcal R(1-\varphi)`; the failure term of
+    ``"lmmse_unconditional"`` (the same for every run) from ``X`` here. A lost reading (NaN) is not
+    uncensored (γ = 0 whatever ``gamma`` says): the step only predicts."""
+    from ._compiled_moments import PROTOCOL_TKF_EXTRAS, protocol_tkf_block
+
+    glx, glw = _nodes()
+    N = xi_pred.shape[0]
+    mom = np.empty((20, N))
+    mom[0] = xi_pred @ H
+    mom[1] = (P_pred @ H) @ H  # (N or 1,): P_pred is never broadcast to the runs
+    mom[2] = (P_pred @ Cc) @ Cc
+    mom[3] = xi_pred @ Cc
+    mom[14] = y
+    g = np.array(gamma, dtype=np.bool_).reshape(N) & ~np.isnan(mom[14])
+    fixed = lam_var * float(Cc @ X @ Cc) if failure_term == "lmmse_unconditional" else 0.0
+    ok = g.copy()
+    buf = np.empty((2, glx.shape[0]))
+    protocol_tkf_block(
+        N, mom, ok, math.sqrt(r), float(r), float(tau), float(lam_mean), float(lam_var), fixed,
+        FAILURE_CODES[failure_term], glx, glw, buf,
+    )  # fmt: skip
+    extras: dict[str, np.ndarray] = {name: mom[4 + i] for i, name in enumerate(PROTOCOL_TKF_EXTRAS)}
+    extras["_gamma"] = g
+    # expected: y-hat of (21) where gamma = 1 (the runs that take part), tau elsewhere (left out by ``valid``)
     return MeasurementPrediction(
-        expected=yhat[:, None], H0=H0, noise=(F + noise)[:, None], valid=g[:, None], extras=extras
+        expected=mom[7][:, None], H0=H0, noise=mom[11][:, None], valid=g[:, None], extras=extras
     )
 
 
-def _prediction_one(xi_pred, P_pred, y, gamma, Cc, r, sd, H, H0, tau, lam_mean, lam_var, failure_term):
-    """:func:`_prediction` of one run (the online step) on Python floats: the same equations (21)-(24) in the
-    same order, the censored moments from the scalar route of :func:`~tobitkf.censored.unchecked_moments`
-    (tested equal to the array route to 1e-13). None when that route does not apply (the array code runs)."""
-    xi = xi_pred[0]
-    zeta = float(xi @ H)
-    row = _small_moments(zeta, float(sd), float(tau), math.inf)
-    if row is None:
-        return None
-    gam_u, lam, tvar = row[2], row[3], row[5]
-    noise = max(tvar, _TINY * r)  # R (1 - phi), floored
-    F = float(_failure_term(failure_term, Cc, P_pred, xi_pred, lam_mean, lam_var, None)[0])  # (24), one formula
-    yhat = zeta + sd * lam  # (21), gamma = 1
-    g = bool(np.asarray(gamma).reshape(-1)[0])
-    theta = (tau - zeta) / sd if math.isfinite(tau) else math.copysign(math.inf, tau)
-    y0 = float(y[0])
-    extras = {
-        "theta_bar": np.array([theta]),
-        "inverse_mills": np.array([lam]),
-        "trunc_var_factor": np.array([1.0 - noise / r]),
-        "expected_y": np.array([yhat if g else tau]),
-        "innovation": np.array([y0 - yhat if g else 0.0]),
-        "p_uncensored": np.array([gam_u]),
-        "_noise": np.array([noise]),
-        "_gamma": np.array([g]),
-    }
-    return MeasurementPrediction(
-        expected=np.array([[yhat]]), H0=H0, noise=np.array([[F + noise]]), valid=np.array([[g]]), extras=extras
-    )
-
-
-def _protocol_info(mp: MeasurementPrediction, Ree: np.ndarray | None) -> dict[str, np.ndarray]:
-    info = {k: v for k, v in mp.extras.items() if not k.startswith("_")}
-    g = mp.extras["_gamma"]
-    S = mp.extras["_noise"] if Ree is None else Ree[..., 0, 0]
-    info["innovation_var"] = np.where(g, S, mp.extras["_noise"])
-    return info
+def _protocol_info(mp: MeasurementPrediction) -> dict[str, np.ndarray]:
+    return {k: v for k, v in mp.extras.items() if not k.startswith("_")}
 
 
 def protocol_update(
@@ -283,5 +221,5 @@ def protocol_update(
     mp = protocol_measurement(
         xi_pred, P_pred, y, gamma, Cc, r, tau, lam_mean, lam_var, failure_term=failure_term, second_moment=second_moment
     )
-    xi, P, _, _, Ree = measurement_update(xi_pred, P_pred, None, y[:, None], mp, covariance_update)
-    return xi, P, _protocol_info(mp, Ree)
+    xi, P, _, _, _ = measurement_update(xi_pred, P_pred, None, y[:, None], mp, covariance_update)
+    return xi, P, _protocol_info(mp)
