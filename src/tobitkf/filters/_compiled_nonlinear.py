@@ -37,6 +37,7 @@ from numba.extending import overload
 
 from .._compiled_linalg import cholesky_lower as _cholesky
 from .._compiled_linalg import psd_root as _root
+from ._compiled_inputs import _model_inputs, active_inputs
 from ._compiled_moments import CENSORED, classify, family_block
 from ._compiled_tobit import GL_W, GL_X, censored_stats
 
@@ -552,7 +553,7 @@ def _record_ll(lsum, r0, t, nb, ll):
 
 @njit(error_model="numpy")
 def nonlinear_loop(
-    f, h, F, H, code, xi, wm, wc, y, u, Qs, Rs, k0, x0, P0,
+    f, h, F, H, code, xi, wm, wc, y, u, uh, Qs, Rs, k0, x0, P0,
     family, lo, hi, par, noise_code, iterations, joseph,
     means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
 ):  # fmt: skip
@@ -560,8 +561,8 @@ def nonlinear_loop(
     ``P0`` (N or 1, n, n) at time ``k0``.
 
     ``f``, ``h``, ``F``, ``H``: the model's compiled functions (``F``/``H`` None: central differences); ``u``
-    (N, T, p) the inputs of an ``f(x, k, u)`` or None; ``xi`` (L, n), ``wm``, ``wc`` (L,) the sigma-point rule
-    (L = 0: the extended form); ``Qs`` (TQ, n, n) :math:`Q_{k-1}` and ``Rs`` (TR, m, m) :math:`R_k` per step
+    (N, T, p) the inputs of an ``f(x, k, u)`` or None, ``uh`` those of an ``h(x, k, u)`` or None; ``xi`` (L, n),
+    ``wm``, ``wc`` (L,) the sigma-point rule (L = 0: the extended form); ``Qs`` (TQ, n, n) :math:`Q_{k-1}` and ``Rs`` (TR, m, m) :math:`R_k` per step
     (one row: constant); ``code`` :data:`KALMAN`, :data:`TOBIT` or :data:`ADF`; ``family``, ``lo``/``hi`` (TL, m),
     ``par`` (TP, m, K) the channel of the ADF (a family of :mod:`~tobitkf.filters._compiled_moments`) and the
     limits of the Tobit update, ``noise_code`` its noise term; ``iterations`` the ADF's linearisations;
@@ -583,7 +584,7 @@ def nonlinear_loop(
     rows = L if L > 0 else 2 * n  # points per run of one call
     xs, Ps, xps, Pps, xms, Pms, X, X1, deltas, J, Hj, every, act, lsum = _scratch(B, n, m, rows)
     root, fxy = np.empty((n, n)), np.empty((n, n))
-    U = _input_scratch(u, B * rows)
+    U = _input_scratch(u if uh is None else uh, B * rows)
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         _block_start(x0, P0, r0, nb, xs, Ps)
@@ -619,26 +620,30 @@ def nonlinear_loop(
                         q = _block_points(xms, Pms, xi, root, X, nb, act)
                         if q == 0:
                             break
+                        Yh = _call(h, X[: q * L], k, active_inputs(uh, r0, nb, t, L, U, act))
                         _adf_project(
-                            it, ch, X, h(X[: q * L], k), wm, wc, y, r0, t, xs, Ps, xms, Pms, act, R[ch, ch], family,
+                            it, ch, X, Yh, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, R[ch, ch], family,
                             lo_t[ch], hi_t[ch], par[min(t, TP - 1), ch], lsum, nb,
                         )  # fmt: skip
                     _block_copy(xms, Pms, xs, Ps, nb)
                 _record_ll(lsum, r0, t, nb, ll)
             elif L == 0:  # the extended measurement: h(x̄) and its Jacobian
                 _block_rows(xps, X1, nb)
-                Y1 = h(X1[:nb], k)
+                Y1 = _call(h, X1[:nb], k, _block_inputs(uh, r0, nb, t, 1, U))
                 if H is None:
                     _block_differences(xps, X, deltas, nb)
-                    _block_jacobians(h(X[: nb * rows], k), deltas, Hj, nb)
+                    Yh = _call(h, X[: nb * rows], k, _block_inputs(uh, r0, nb, t, rows, U))
+                    _block_jacobians(Yh, deltas, Hj, nb)
                     _update_joint(code, False, X, Y1, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t, noise_code,
                                   joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
                 else:
-                    _update_joint(code, False, X, Y1, H(X1[:nb], k), wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
+                    Jh = _call(H, X1[:nb], k, _block_inputs(uh, r0, nb, t, 1, U))
+                    _update_joint(code, False, X, Y1, Jh, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
                                   noise_code, joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
             else:
                 _block_points(xps, Pps, xi, root, X, nb, every)
-                _update_joint(code, True, X, h(X[: nb * L], k), Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
+                Yh = _call(h, X[: nb * L], k, _block_inputs(uh, r0, nb, t, L, U))
+                _update_joint(code, True, X, Yh, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
                               noise_code, joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
             _record(xs, Ps, r0, t, nb, means, covs)
         _block_end(xs, Ps, r0, nb, x_last, P_last)
@@ -724,8 +729,9 @@ def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = 
             (ext and code == ADF, ()),
         )  # fmt: skip
     x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
+    uf, uh = _model_inputs(sys_, u2, N, T)
     nonlinear_loop(
-        sys_.f, sys_.h, sys_.F, sys_.H, code, xi, wm, wc, _c(y2), None if u2 is None else _c(u2), Qs, Rs, k0,
+        sys_.f, sys_.h, sys_.F, sys_.H, code, xi, wm, wc, _c(y2), uf, uh, Qs, Rs, k0,
         _c(state.x), _c(state.P), family, lo, hi, par, noise_code, est.iterations if code == ADF else 1,
         est.covariance_update == "joseph", means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
     )  # fmt: skip

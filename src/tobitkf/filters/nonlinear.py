@@ -420,7 +420,7 @@ class _NonlinearFamily(GaussianFilter):
             return None
         p = self.system.p
         if p is None:
-            raise ShapeError("u: this NonlinearSystem's f(x, k) takes no input (write f(x, k, u), inputs=p)")
+            raise ShapeError("u: this NonlinearSystem takes no input (write f(x, k, u) or h(x, k, u), with inputs=p)")
         arr = as_float_array(u, "u")
         want = state.batch_shape + (p,)
         try:
@@ -453,25 +453,37 @@ class _NonlinearFamily(GaussianFilter):
         xp, _, Pf = _sigma_moments(self.rule, lambda z: sys_.transition_map(z, k - 1, _per_point(u, L)), x, P)
         return xp, symmetrize(Pf + Q), None
 
-    def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray):
-        """``(ŷ, P_xy, P_yy, H)`` of :math:`h(x_k)` under the prediction (H the Jacobian, None for sigma points)."""
+    def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray, u: np.ndarray | None = None):
+        """``(ŷ, P_xy, P_yy, H)`` of :math:`h(x_k)` (or :math:`h(x_k, k, u_k)`, ``u`` (N, p) or None) under the
+        prediction (H the Jacobian, None for sigma points)."""
         sys_ = self.system
         if self.rule is None:
-            yhat = sys_.measurement_map(xp, k)
-            H = sys_.measurement_jacobian(xp, k)
+            yhat = sys_.measurement_map(xp, k, u)
+            H = sys_.measurement_jacobian(xp, k, u)
             Pxy = Pp @ H.swapaxes(-1, -2)
             return yhat, Pxy, symmetrize(H @ Pxy), H
-        yhat, Pxy, Pyy = _sigma_moments(self.rule, lambda z: sys_.measurement_map(z, k), xp, Pp)
+        yhat, Pxy, Pyy = _sigma_moments(self.rule, self._h_points(k, u), xp, Pp)
         return yhat, Pxy, Pyy, None
 
-    def _measurement_factor(self, k: int, xp: np.ndarray, Sp: np.ndarray):
+    def _h_points(self, k: int, u: np.ndarray | None, l: int | None = None):
+        """The measurement map of the rule's points (N L, n) -> (N L, m) (or channel ``l`` alone, (N L, 1)), with
+        the input of each run repeated for its points."""
+        sys_ = self.system
+        assert self.rule is not None, "sigma points need a rule"
+        L = self.rule.unit(self.n)[0].shape[0]
+        uL = _per_point(u, L)
+        if l is None:
+            return lambda z: sys_.measurement_map(z, k, uL)
+        return lambda z: sys_.measurement_map(z, k, uL)[:, l : l + 1]
+
+    def _measurement_factor(self, k: int, xp: np.ndarray, Sp: np.ndarray, u: np.ndarray | None = None):
         r"""Square-root form: ``(ŷ, H, E, wc)``, the statistical linearisation :math:`\mathcal H` (N, m, n) of h
         about :math:`N(\bar x, \bar S\bar S^T)` and its residual rows (:func:`_linearisation`); the extended
         form: ŷ = h(x̄), the Jacobian and no residual (None, None)."""
         sys_ = self.system
         if self.rule is None:
-            return sys_.measurement_map(xp, k), sys_.measurement_jacobian(xp, k), None, None
-        ym, dY, xi, wc = _sigma_factor(self.rule, lambda z: sys_.measurement_map(z, k), xp, Sp)
+            return sys_.measurement_map(xp, k, u), sys_.measurement_jacobian(xp, k, u), None, None
+        ym, dY, xi, wc = _sigma_factor(self.rule, self._h_points(k, u), xp, Sp)
         _, H, E = _linearisation(Sp, dY, xi, wc)
         return ym, H, E, wc
 
@@ -491,6 +503,9 @@ class _NonlinearFamily(GaussianFilter):
         xp, Pp, Sp = self._predict(k, state.x, state.P, state.S, uk)
         carry = dict(state.carry)
         carry["_predicted"] = True
+        carry.pop("_u", None)
+        if uk is not None:  # the update's h(x, k, u) reads the same step's input
+            carry["_u"] = uk
         return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
 
     def filter(
@@ -634,7 +649,7 @@ class _KalmanUpdate:
     def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
         R = self._noise(k)
         if Sp is not None:  # the array form on the linearisation: noise Ω + R with the factor of both
-            yhat, H, E, wc = self._measurement_factor(k, xp, Sp)
+            yhat, H, E, wc = self._measurement_factor(k, xp, Sp, u)
             innov, valid = _masked(y, yhat)
             Rroot = psd_sqrt(R)
             if E is None:
@@ -644,7 +659,7 @@ class _KalmanUpdate:
                 noise = root @ np.swapaxes(root, -1, -2)
             x, P, S, _ = sqrt_update(xp, Sp, innov, H, noise, valid, R_root=root)
             return x, P, S, carry, None
-        yhat, Pxy, Pyy, H = self._measurement_moments(k, xp, Pp)
+        yhat, Pxy, Pyy, H = self._measurement_moments(k, xp, Pp, u)
         innov, valid = _masked(y, yhat)
         if self.covariance_update == "joseph":
             x, P, _ = gain_update(xp, Pp, innov, Pxy, Pyy + R, valid, H=H, noise=R[None])
@@ -778,7 +793,7 @@ class _TobitUpdate(_ContractChecks):
 
     def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
         if Sp is not None:  # the array form: H -> G H, noise G Ω G + diag(N), with the factor of the noise
-            yhat, H, Eres, wc = self._measurement_factor(k, xp, Sp)
+            yhat, H, Eres, wc = self._measurement_factor(k, xp, Sp, u)
             E, g, V = self._tobit_statistics(k, yhat)
             Vroot = np.sqrt(np.maximum(V, 0.0))[:, :, None] * np.eye(self.m)
             root = Vroot if Eres is None else _weighted_factor(Eres * g[:, None, :], wc, Vroot)
@@ -787,7 +802,7 @@ class _TobitUpdate(_ContractChecks):
                 xp, Sp, innov, g[:, :, None] * H, root @ np.swapaxes(root, -1, -2), valid, R_root=root
             )
             return x, P, S, carry, {"expected_y": E, "slope": g}
-        yhat, Pxy, Pyy, _ = self._measurement_moments(k, xp, Pp)
+        yhat, Pxy, Pyy, _ = self._measurement_moments(k, xp, Pp, u)
         E, g, V = self._tobit_statistics(k, yhat)
         Rxe = Pxy * g[:, None, :]
         Ree = g[:, :, None] * Pyy * g[:, None, :] + V[:, :, None] * np.eye(self.m)

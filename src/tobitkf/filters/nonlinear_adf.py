@@ -130,21 +130,23 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         if Sp is not None:
             x, S = xp, _full(Sp, N)
             for l in range(self.m):
-                x, S, lll = self._channel_sqrt(k, l, x, S, y[:, l], r[l])
+                x, S, lll = self._channel_sqrt(k, l, x, S, y[:, l], r[l], u)
                 ll += lll
             return x, symmetrize(S @ np.swapaxes(S, -1, -2)), S, carry, {"log_likelihood": ll}
         x, P = xp, _full(Pp, N)
         for l in range(self.m):
-            x, P, lll = self._channel(k, l, x, P, y[:, l], r[l])
+            x, P, lll = self._channel(k, l, x, P, y[:, l], r[l], u)
             ll += lll
         return x, P, None, carry, {"log_likelihood": ll}
 
-    def _channel_sqrt(self, k: int, l: int, x: np.ndarray, S: np.ndarray, y: np.ndarray, r: float):
+    def _channel_sqrt(
+        self, k: int, l: int, x: np.ndarray, S: np.ndarray, y: np.ndarray, r: float, u: np.ndarray | None = None
+    ):
         r"""The square-root form of :meth:`_channel`: the linearisation :math:`\mathcal H, \Omega` from the factor
         (:func:`_linearisation`), the Kalman part :math:`\bar P - K s^2K^T` by the array form
         (:func:`~tobitkf.filters.core.sqrt_update`, noise :math:`\Omega + R_{ll}`) and :math:`+KVK^T` by one more
         QR, so the factor stays PSD by construction."""
-        rule, h_l, has, ll = self._channel_setup(k, l, y)
+        rule, h_l, has, ll = self._channel_setup(k, l, y, u)
         if not has.any():
             return x, S, ll
         xm, Sm = x, S
@@ -236,7 +238,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             xs = np.concatenate([sm.extras["initial_mean"][:, None], sm.mean], axis=1)
             Ps = np.concatenate([sm.extras["initial_cov"][:, None], np.broadcast_to(sm.cov, (N, T) + Pa.shape[1:])], 1)
             lin_f = self._linearise_f(xs, Ps, u2)
-            res = self._linearised_pass(y2, xa, Pa, lin_f, xs, Ps)
+            res = self._linearised_pass(y2, u2, xa, Pa, lin_f, xs, Ps)
             trans = lin_f[0]
             sm = rts_smooth(res, lambda k: trans[:, k], x0=xa, P0=Pa)
         return _unflatten(sm, batch)
@@ -257,7 +259,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             )
         return A, a, Lam
 
-    def _linearised_pass(self, y2, xa, Pa, lin_f, xs, Ps) -> FilterResult:
+    def _linearised_pass(self, y2, u2, xa, Pa, lin_f, xs, Ps) -> FilterResult:
         """The forward pass of the model linearised about the smoothed ``xs``, ``Ps`` (rows k = 0..T): the
         filtered and predicted moments as a flat (N, T, ...) :class:`~tobitkf.FilterResult`."""
         sys_ = cast(NonlinearSystem, self.system)
@@ -275,8 +277,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             P = symmetrize(A[:, i] @ P @ A[:, i].swapaxes(-1, -2) + Lam[:, i] + sys_.process_cov(k - 1))
             out["pred_mean"][:, i], out["pred_cov"][:, i] = x, P
             r = self._r if self._r is not None else _noise_variances(self._noise(k), f"R({k})")
+            uk = None if u2 is None else u2[:, i]  # u_k, the input of the reading y_k (row k - 1)
             for l in range(m):
-                Hl, bl, om = _slr(rule, lambda z: sys_.measurement_map(z, k)[:, l : l + 1], xs[:, k], Ps[:, k])
+                Hl, bl, om = _slr(rule, self._h_points(k, uk, l), xs[:, k], Ps[:, k])
                 H1 = Hl[:, 0]  # (N, n)
                 cxy = np.einsum("rij,rj->ri", P, H1)
                 mu = np.einsum("ri,ri->r", H1, x) + bl[:, 0]
@@ -311,9 +314,11 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         terms = self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
         return terms if per_step else terms.sum(-1)
 
-    def _channel(self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float):
+    def _channel(
+        self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float, u: np.ndarray | None = None
+    ):
         """The projection of channel ``l``, iterated about the posterior: ``(x, P, log p(y))``."""
-        rule, h_l, has, ll = self._channel_setup(k, l, y)
+        rule, h_l, has, ll = self._channel_setup(k, l, y, u)
         if not has.any():
             return x, P, ll
         xm, Pm = x, P
@@ -343,13 +348,12 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         xm, Pm, K = gain_update(x, P, (obs - mu)[:, None], cxy[:, :, None], s2[:, None, None], ok[:, None])
         return xm, symmetrize(Pm + (K * V[:, None, None]) @ K.swapaxes(-1, -2))
 
-    def _channel_setup(self, k: int, l: int, y: np.ndarray):
-        """``(rule, h_l, has, ll)``: the rule, channel ``l``'s measurement map (N, n) -> (N, 1), the runs with a
-        reading and zeroed log-likelihood terms."""
-        sys_ = cast(NonlinearSystem, self.system)
+    def _channel_setup(self, k: int, l: int, y: np.ndarray, u: np.ndarray | None = None):
+        """``(rule, h_l, has, ll)``: the rule, channel ``l``'s measurement map of the points (N L, n) -> (N L, 1)
+        (with the input ``u`` (N, p) of each run), the runs with a reading and zeroed log-likelihood terms."""
         rule = self.rule
         assert rule is not None, "the assumed-density filter linearises with sigma points"
-        return rule, lambda z: sys_.measurement_map(z, k)[:, l : l + 1], ~np.isnan(y), np.zeros(y.shape[0])
+        return rule, self._h_points(k, u, l), ~np.isnan(y), np.zeros(y.shape[0])
 
     def _latent_moments(self, k, l, y, has, mu, s2, ll):
         r"""The channel's moments of the latent reading :math:`y^* \sim N(\mu, s^2)` given ``y`` (N,): ``(ok, E[y^*

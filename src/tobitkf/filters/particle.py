@@ -374,6 +374,7 @@ class ParticleFilter(Estimator):
         b = 0.0 if u is None or self.system.Bu is None else u @ self.system.Bu.at(k).T
         b = u if u is not None and getattr(self.model, "takes_input", False) else b  # an f(x, k, u): u_k itself
         dy = self._feedthrough(k, u)
+        dy = u if u is not None and getattr(self.model, "feedthrough_input", False) else dy  # an h(x, k, u): u_k
         xp, Pp = self.model.predict_moments(k, x, P, b)
         Cn = None
         if self.proposal == "rao_blackwellised":

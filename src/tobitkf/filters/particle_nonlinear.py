@@ -44,6 +44,8 @@ class _Nonlinear(_Model):
         self.nx, self.m = system.n, system.m
         # the particle filter then hands the step's input u_k (N, p) to predict_moments/propagate as ``b``
         self.takes_input = system.takes_input
+        # ... and, for an h(x, k, u), the same input to log_likelihood as ``dy``
+        self.feedthrough_input = system.h_takes_input
 
     @property
     def label(self) -> str:
@@ -73,7 +75,7 @@ class _Nonlinear(_Model):
 
     def log_likelihood(self, rng, k, X, y, dy):
         N, Np, n = X.shape
-        mu = self.system.measurement_map(X.reshape(N * Np, n), k).reshape(N, Np, self.m)
+        mu = self.system.measurement_map(X.reshape(N * Np, n), k, self._input(dy, Np)).reshape(N, Np, self.m)
         sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")
         return channel_log_likelihood(self.channel, k, y, mu, sd)
 

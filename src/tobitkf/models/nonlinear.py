@@ -21,10 +21,17 @@ convention: :math:`u_k` acts over the interval (k-1, k] and is stored at index k
 
 .. math:: x_k = f(x_{k-1}, k-1, u_k) + w_{k-1},
 
-``u`` batched like ``x`` ((..., p), one row per state). Whether ``f`` takes an input is read from its
-signature (a third positional parameter without a default) or declared with ``inputs=p``; its length p is
-always given as ``inputs=p``. The filters, smoothers and :func:`~tobitkf.simulate` then take ``u``
-(``inputs`` for the simulator) of shape (..., T, p); no input given means :math:`u_k = 0`.
+``u`` batched like ``x`` ((..., p), one row per state). The output map may take the same input,
+``h(x, k, u)`` (a feedthrough :math:`Du_k`, or an output that depends on the input), with :math:`u_k` of the same
+step as the reading:
+
+.. math:: y^*_k = h(x_k, k, u_k) + v_k,
+
+as the linear model's :math:`y^*_k = C_kx_k + D_ku_k + v_k`. Whether ``f`` or ``h`` takes an input is read from
+its signature (a third positional parameter without a default) or, with ``inputs=p`` given, from a third
+positional parameter with a default too (an ``f`` whose signature cannot be read takes it, an ``h`` does not);
+its length p is always given as ``inputs=p``. The filters, smoothers and :func:`~tobitkf.simulate` then take
+``u`` (``inputs`` for the simulator) of shape (..., T, p); no input given means :math:`u_k = 0`.
 """
 
 from __future__ import annotations
@@ -163,8 +170,9 @@ class NonlinearSystem:
     ----------
     f : callable ``f(x, k) -> (..., n)``
         Transition, batched over the leading axes of ``x`` (..., n); :math:`x_k = f(x_{k-1}, k-1) + w_{k-1}`.
-    h : callable ``h(x, k) -> (..., m)``
-        Measurement function, batched likewise; :math:`y^*_k = h(x_k, k) + v_k`.
+    h : callable ``h(x, k) -> (..., m)`` or ``h(x, k, u)``
+        Measurement function, batched likewise; :math:`y^*_k = h(x_k, k) + v_k` (or :math:`h(x_k, k, u_k) + v_k`
+        with a known input, module docstring).
     Q : (n, n) or (T, n, n) array_like or callable
         Process-noise covariance :math:`Q_k` (symmetric PSD).
     R : (m, m) or (T, m, m) array_like or callable
@@ -177,15 +185,16 @@ class NonlinearSystem:
     H : callable ``H(x, k) -> (..., m, n)``, optional
         Jacobian :math:`\partial h/\partial x`; default central differences as for ``F``.
     inputs : int >= 1, optional
-        The length p of a known input :math:`u_k` of ``f(x, k, u)`` (module docstring); required when ``f``
-        takes one (read from its signature, or declared by giving ``inputs``). ``F`` then takes ``u`` too.
+        The length p of a known input :math:`u_k` of ``f(x, k, u)`` and/or ``h(x, k, u)`` (module docstring);
+        required when either takes one (read from its signature, or declared by giving ``inputs``). ``F`` (``H``)
+        then takes ``u`` too when ``f`` (``h``) does.
 
     Raises
     ------
     ValidationError
         ``f``, ``h`` (or ``F``, ``H``) not callable, a non-finite value of f or h at the prior mean, a
-        covariance that is not symmetric PSD, an ``f(x, k, u)`` without ``inputs``, ``inputs`` for an ``f(x, k)``
-        or not a positive integer.
+        covariance that is not symmetric PSD, an ``f(x, k, u)`` or ``h(x, k, u)`` without ``inputs``, ``inputs``
+        when neither ``f`` nor ``h`` takes an input, or not a positive integer.
     ShapeError
         ``f(x0, 0)`` not of shape (n,), ``f`` or ``h`` not batched ((1, n) in, (1, ...) out), ``Q`` not (n, n),
         ``R`` not (m, m) with m the length of ``h(x0, 1)``, a Jacobian of the wrong shape.
@@ -226,23 +235,29 @@ class NonlinearSystem:
         check_psd(self.P0, "P0")
         self.f, self.h, self.F, self.H = f, h, F, H
         if inputs is None:
-            if _takes_input(f):
-                raise ValidationError(
-                    "inputs: f(x, k, u) takes a known input u; give its length as inputs=p (or drop the third "
-                    "parameter of f)"
-                )
+            for name, fn in (("f", f), ("h", h)):
+                if _takes_input(fn):
+                    raise ValidationError(
+                        f"inputs: {name}(x, k, u) takes a known input u; give its length as inputs=p (or drop the "
+                        f"third parameter of {name})"
+                    )
             self.p: int | None = None
+            self.f_takes_input = self.h_takes_input = False
         else:
-            if _takes_input(f, optional=True) is False:
+            f_in, h_in = _takes_input(f, optional=True), _takes_input(h, optional=True)
+            if f_in is False and h_in is not True:
                 raise ValidationError(
-                    f"inputs: given ({inputs!r}) but f takes no input (expected f(x, k, u) with a third parameter)"
+                    f"inputs: given ({inputs!r}) but neither f nor h takes an input (expected f(x, k, u) or h(x, k, u) "
+                    "with a third parameter)"
                 )
             self.p = check_int(inputs, "inputs", minimum=1)
-        u0 = () if self.p is None else (np.zeros(self.p),)
-        fx = as_float_array(f(self.x0.copy(), 0, *u0), "f(x0, 0)", ndim=1)
+            # an f whose signature cannot be read takes the input (as declared); such an h does not
+            self.f_takes_input, self.h_takes_input = f_in is not False, h_in is True
+        u0 = () if self.p is None else (np.zeros(self.p),)  # unbatched: x0 (n,) with u (p,)
+        fx = as_float_array(f(self.x0.copy(), 0, *(u0 if self.f_takes_input else ())), "f(x0, 0)", ndim=1)
         if fx.shape != (n,):
             raise ShapeError(f"f(x0, 0): expected shape ({n},) (f maps (..., n) to (..., n)), got {fx.shape}")
-        hx = as_float_array(h(self.x0.copy(), 1), "h(x0, 1)", ndim=1)
+        hx = as_float_array(h(self.x0.copy(), 1, *(u0 if self.h_takes_input else ())), "h(x0, 1)", ndim=1)
         m = hx.shape[0]
         if m < 1:
             raise ShapeError("h(x0, 1): expected at least one output, got shape (0,)")
@@ -265,41 +280,50 @@ class NonlinearSystem:
 
     @property
     def takes_input(self) -> bool:
-        """Whether ``f`` takes a known input, ``f(x, k, u)``."""
+        """Whether the model takes a known input (``f(x, k, u)``, ``h(x, k, u)`` or both; ``inputs=p``)."""
         return self.p is not None
 
-    def _input_args(self, x: np.ndarray, u: np.ndarray | None) -> tuple[np.ndarray, ...]:
-        """``(u,)`` with one row per row of ``x`` (zeros when no input is given), or ``()`` for an ``f(x, k)``."""
+    def _inputs(self, rows: int, u: np.ndarray | None) -> tuple[np.ndarray, ...]:
+        """``(u,)`` with ``rows`` rows (zeros when no input is given; ``u`` (N', p) repeated for a multiple N' of
+        the rows, run-innermost), or ``()`` for a model without inputs."""
         if self.p is None:
             return ()
         if u is None:
-            return (np.zeros((x.shape[0], self.p)),)
-        reps = x.shape[0] // u.shape[0]
+            return (np.zeros((rows, self.p)),)
+        reps = rows // u.shape[0]
         return (u if reps == 1 else np.tile(u, (reps, 1)),)
+
+    def _f_args(self, rows: int, u: np.ndarray | None) -> tuple[np.ndarray, ...]:
+        return self._inputs(rows, u) if self.f_takes_input else ()
+
+    def _h_args(self, rows: int, u: np.ndarray | None) -> tuple[np.ndarray, ...]:
+        return self._inputs(rows, u) if self.h_takes_input else ()
 
     # --- the maps, batched (N, n) -> (N, .) ------------------------------------------------------------
     def transition_map(self, x: np.ndarray, k: int, u: np.ndarray | None = None) -> np.ndarray:
         """:math:`f(x, k)` (or :math:`f(x, k, u)`) for ``x`` (N, n): (N, n), checked. ``u`` (N', p) holds the
         input of each run, with N a multiple of N' and the rows of ``x`` run-innermost (``x`` (R, N', n)
         flattened); None means :math:`u = 0`."""
-        return _checked(self.f(x, k, *self._input_args(x, u)), (x.shape[0], self.n), f"f(x, {k})")
+        return _checked(self.f(x, k, *self._f_args(x.shape[0], u)), (x.shape[0], self.n), f"f(x, {k})")
 
-    def measurement_map(self, x: np.ndarray, k: int) -> np.ndarray:
-        """:math:`h(x, k)` for ``x`` (N, n): (N, m), checked."""
-        return _checked(self.h(x, k), (x.shape[0], self.m), f"h(x, {k})")
+    def measurement_map(self, x: np.ndarray, k: int, u: np.ndarray | None = None) -> np.ndarray:
+        """:math:`h(x, k)` (or :math:`h(x, k, u)`) for ``x`` (N, n): (N, m), checked; ``u`` as
+        :meth:`transition_map`'s (:math:`u_k`, the input of the reading's step)."""
+        return _checked(self.h(x, k, *self._h_args(x.shape[0], u)), (x.shape[0], self.m), f"h(x, {k})")
 
     def transition_jacobian(self, x: np.ndarray, k: int, u: np.ndarray | None = None) -> np.ndarray:
         r""":math:`\partial f/\partial x` at ``x`` (N, n): (N, n, n), from ``F`` or central differences (``u`` as
         :meth:`transition_map`'s)."""
         if self.F is None:
             return jacobian_fd(lambda z: self.transition_map(z, k, u), x)
-        return _checked(self.F(x, k, *self._input_args(x, u)), (x.shape[0], self.n, self.n), f"F(x, {k})")
+        return _checked(self.F(x, k, *self._f_args(x.shape[0], u)), (x.shape[0], self.n, self.n), f"F(x, {k})")
 
-    def measurement_jacobian(self, x: np.ndarray, k: int) -> np.ndarray:
-        r""":math:`\partial h/\partial x` at ``x`` (N, n): (N, m, n), from ``H`` or central differences."""
+    def measurement_jacobian(self, x: np.ndarray, k: int, u: np.ndarray | None = None) -> np.ndarray:
+        r""":math:`\partial h/\partial x` at ``x`` (N, n): (N, m, n), from ``H`` or central differences (``u`` as
+        :meth:`measurement_map`'s)."""
         if self.H is None:
-            return jacobian_fd(lambda z: self.measurement_map(z, k), x)
-        return _checked(self.H(x, k), (x.shape[0], self.m, self.n), f"H(x, {k})")
+            return jacobian_fd(lambda z: self.measurement_map(z, k, u), x)
+        return _checked(self.H(x, k, *self._h_args(x.shape[0], u)), (x.shape[0], self.m, self.n), f"H(x, {k})")
 
     # --- per-step accessors, as LinearSystem's -----------------------------------------------------------
     def process_cov(self, k: int) -> np.ndarray:
@@ -322,7 +346,8 @@ class NonlinearSystem:
             part.validate_all(steps)
 
     def check_inputs(self, u: Any, steps: int, name: str = "u") -> np.ndarray | None:
-        """Validate a known-input sequence ``(..., T, p)`` of an ``f(x, k, u)``; None when none is given.
+        """Validate a known-input sequence ``(..., T, p)`` of an ``f(x, k, u)`` / ``h(x, k, u)``; None when none is
+        given.
 
         Raises
         ------
@@ -332,7 +357,9 @@ class NonlinearSystem:
         if u is None:
             return None
         if self.p is None:
-            raise ShapeError(f"{name}: this NonlinearSystem's f(x, k) takes no input (write f(x, k, u), inputs=p)")
+            raise ShapeError(
+                f"{name}: this NonlinearSystem takes no input (write f(x, k, u) or h(x, k, u), with inputs=p)"
+            )
         arr = as_float_array(u, name)
         if arr.ndim < 2 or arr.shape[-2:] != (steps, self.p):
             raise ShapeError(f"{name}: expected (..., {steps}, {self.p}), got {arr.shape}")

@@ -100,7 +100,8 @@ def simulate(
     ----------
     system : LinearSystem or NonlinearSystem
         The model (a :class:`~tobitkf.NonlinearSystem` draws :math:`x_k = f(x_{k-1}, k-1) + w_{k-1}`,
-        :math:`y^*_k = h(x_k, k) + v_k`; no channel piece may draw its reading from ``C``).
+        :math:`y^*_k = h(x_k, k) + v_k`, with an input :math:`f(x_{k-1}, k-1, u_k)` and :math:`h(x_k, k, u_k)`;
+        no channel piece may draw its reading from ``C``).
     steps : int
         Horizon T (number of measurements).
     runs : int, default 1
@@ -229,7 +230,9 @@ def simulate(
     extras: dict[str, Any] = {}
     if measurement is None:
         if isinstance(system, NonlinearSystem):
-            y_latent = np.stack([system.measurement_map(x[:, k], k) for k in range(1, steps + 1)], axis=1) + v
+            # an h(x, k, u) reads the input u_k of its own step (row k - 1)
+            uk = [None if u is None else u[:, k - 1] for k in range(1, steps + 1)]
+            y_latent = np.stack([system.measurement_map(x[:, k], k, uk[k - 1]) for k in range(1, steps + 1)], 1) + v
         elif system.C.varying:
             y_latent = np.stack([x[:, k] @ system.measurement(k).T for k in range(1, steps + 1)], axis=1) + v
         else:
