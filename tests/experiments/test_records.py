@@ -334,6 +334,7 @@ def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
     ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
     got = m.daily_smooth(th)
     assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
+    assert m.dyn.tolist() == [0, m.nx - 1]  # the filter moves the drifting intercept and the residual only
     np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)
 

@@ -30,8 +30,12 @@ fits and the leave-one-out refits run on the samples' days: a *batch* of paramet
 through the filter at once (:func:`~tobitkf.experiments.records_common.adf_pass`: each run its own
 :math:`A_k`, :math:`Q_k`, the package's censored channel update, compiled for the likelihood, and its RTS
 pass :func:`~tobitkf.filters.smoothing.rts_smooth`), which gives central finite-difference gradients in
-one call. The daily concentration comes from the package's RTS pass over the daily grid
-(:meth:`RiverModel.daily_smooth`, equal to :func:`tobitkf.smooth` on the daily system, tested).
+one call. The static coefficients are constants with no prior variance: the pass runs on the moving states
+only (the drifting coefficients' deviations from their prior means and the residuals, :meth:`RiverModel.reduced`),
+the static part of the mean entering each run's readings as a known offset, which is exact and makes the
+experiment's model a two-state filter instead of a nine-state one. The daily concentration comes from the
+package's RTS pass over the daily grid (:meth:`RiverModel.daily_smooth`, equal to :func:`tobitkf.smooth` on the
+daily system, tested).
 
 Leave-one-out (:func:`batched_loo_refit`): for each sample i, the parameters are refitted to the record
 without it, warm-started at the full fit, every sample's refit one run of a batched quasi-Newton search, and
@@ -173,6 +177,12 @@ class RiverModel:
         self.nb = self.rows.shape[1] - self.nres  # regression coefficients
         self.nx = self.nb + self.nres
         self.C = self.rows[self.day]  # (n, nx)
+        # the states that move: the drifting coefficients and the residual(s); a static coefficient has no noise
+        # and no prior variance, so it is a constant that enters the reading's mean as an offset (run)
+        moving = [self.coef.index(c) for g in self.drift for c in self.GROUPS[g]]
+        if self.residual_ar or not moving:
+            moving += list(range(self.nb, self.nx))
+        self.dyn = np.array(sorted(moving), dtype=int)
         self.zcol = self.coef.index("ln_q") if "ln_q" in self.coef else None
         if self.flow_variance and self.zcol is None:
             raise ValueError("flow_variance: needs an ln_q regressor")
@@ -309,8 +319,30 @@ class RiverModel:
             P0[:, nb + 1, nb + 1] = nat["sigma_fast"] ** 2
         return x0, P0
 
+    def reduced(self, nat: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+        r"""The model on its moving states only (``dyn``: the drifting coefficients and the residuals).
+
+        A static coefficient :math:`\beta_j = b_j` has no noise and no prior variance, and a drifting one is
+        :math:`\beta_{j,d} = b_j + \delta_{j,d}` with :math:`\delta_{j,0} = 0`: the state
+        :math:`x_d = \bar x + E\,s_d` with :math:`\bar x = (b, 0)`, :math:`E` the columns ``dyn`` of the
+        identity and :math:`s_d` (the deviations of the drifting coefficients and the residuals) starting at
+        :math:`s_0 \sim N(0, \mathrm{diag}(0, \sigma^2))`, so the reading is :math:`C_d E s_d + C_d \bar x +
+        v_d`, the second term a known offset per run. The filter on :math:`s` equals the filter on :math:`x`
+        (the static rows of the gain are 0) at the cost of a model of ``len(dyn)`` states instead of ``nx``.
+
+        Returns
+        -------
+        s0 (N, m), S0 (N, m, m), rate (N, m), diffusion (N, m), xbar (N, nx); m = ``len(dyn)``
+        """
+        x0, P0 = self.prior(nat)
+        rate, diffusion = self.continuous(nat)
+        dyn = self.dyn
+        s0 = np.zeros((x0.shape[0], dyn.size))
+        return s0, P0[:, dyn][:, :, dyn], rate[:, dyn], diffusion[:, dyn], x0
+
     def run(self, theta: np.ndarray, y: np.ndarray | None = None, *, smooth: bool = False) -> dict[str, Any]:
-        r"""The assumed-density filter on the samples' days for a batch of parameter vectors.
+        r"""The assumed-density filter on the samples' days for a batch of parameter vectors (on the moving
+        states, :meth:`reduced`; the filtered and smoothed results hold those states).
 
         Parameters
         ----------
@@ -330,15 +362,16 @@ class RiverModel:
         N, T = theta.shape[0], self.n_samples
         Y = np.broadcast_to(self.y, (N, T)) if y is None else np.asarray(y, dtype=float)
         nat = self.natural(theta)
-        x0, P0 = self.prior(nat)
-        rate, diffusion = self.continuous(nat)
+        s0, S0, rate, diffusion, xbar = self.reduced(nat)
         r2 = self.noise_var(nat, np.arange(T))
         flags = None
         if self.interval.any():  # interval readings need the indicator (a removed reading is not flagged)
             flags = self.censored & ~np.isnan(Y)
+        offset = xbar @ self.C.T  # (N, n): C_k xbar
         return adf_pass(
-            x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, self.upper, r2, smooth=smooth, censored=flags
-        )
+            s0, S0, rate, diffusion, self.gaps, self.C[:, self.dyn], Y, self.lower, self.upper, r2, dy=offset,
+            smooth=smooth, censored=flags,
+        )  # fmt: skip
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         r"""The smoothed state on every day of the daily grid, for one parameter vector.
@@ -358,8 +391,10 @@ class RiverModel:
             P_{d|D} = \bar P_d + J_d(P_{k+1|D} - P_{k+1|k})J_d^T
 
         (the pseudo-inverse of :func:`~tobitkf.filters.smoothing.solve_psd`, as the RTS pass); a sample day
-        takes the sample's smoothed moments, a day after the last sample the prediction. Equal to
-        :func:`tobitkf.smooth` on the daily system (:meth:`daily_system`), tested.
+        takes the sample's smoothed moments, a day after the last sample the prediction. All of this on the
+        moving states :math:`s` of :meth:`reduced`, mapped back to :math:`x = \bar x + E s` (the static
+        coefficients' rows and columns of :math:`P_{d|D}` are 0). Equal to :func:`tobitkf.smooth` on the daily
+        system (:meth:`daily_system`), tested.
 
         Returns
         -------
@@ -375,36 +410,49 @@ class RiverModel:
         f, sm = out["filtered"], out["smoothed"]
         D, n = self.rows.shape[0], self.n_samples
         days = np.arange(D)
-        x0, P0 = self.prior(nat)
+        dyn = self.dyn
+        x0, P0, rate, diffusion, xbar = self.reduced(nat)  # the moving states s (reduced), x = xbar + E s
+        rate, diffusion = rate[:1], diffusion[:1]
+
+        def step_matrices(gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            a, qd = gap_matrices(rate, diffusion, gap)
+            return a[0], qd[0]
+
+        m = dyn.size
         # the prediction to each day from the last sample strictly before it (index 0: the prior, day -1)
         prev = np.searchsorted(self.day, days, side="left") - 1
         xf = np.concatenate([x0, f.mean[0]])
         Pf = np.concatenate([P0, f.cov[0]])
         t_prev = np.where(prev >= 0, self.day[np.maximum(prev, 0)], -1)
-        a, qd = self._step_matrices(nat, (days - t_prev).astype(float))
+        a, qd = step_matrices((days - t_prev).astype(float))
         x = a * xf[prev + 1]
         P = Pf[prev + 1] * a[:, :, None] * a[:, None, :]
-        P[:, np.arange(self.nx), np.arange(self.nx)] += qd
+        P[:, np.arange(m), np.arange(m)] += qd
         nxt = prev + 1  # the next sample on or after each day (n: none)
         on = nxt < n
         k = np.minimum(nxt, n - 1)
         sample_day = on & (self.day[k] == days)
         between = np.flatnonzero(on & ~sample_day)
         kb = k[between]
-        ar, _ = self._step_matrices(nat, (self.day[kb] - days[between]).astype(float))
+        ar, _ = step_matrices((self.day[kb] - days[between]).astype(float))
         Pp = f.pred_cov[0][kb]
         J = np.swapaxes(solve_psd(Pp, ar[:, :, None] * P[between]), -1, -2)  # P_d A_r^T Pp^+ (Pp symmetric)
         x[between] += np.einsum("dij,dj->di", J, sm.mean[0][kb] - f.pred_mean[0][kb])
         P[between] += J @ (sm.cov[0][kb] - Pp) @ np.swapaxes(J, -1, -2)
         x[sample_day] = sm.mean[0][k[sample_day]]
         P[sample_day] = sm.cov[0][k[sample_day]]
-        ln_mean = np.einsum("dj,dj->d", x, self.rows)
-        ln_var = np.einsum("dij,di,dj->d", P, self.rows, self.rows)
+        rd = self.rows[:, dyn]
+        ln_mean = np.einsum("dj,dj->d", x, rd) + self.rows @ xbar[0]
+        ln_var = np.einsum("dij,di,dj->d", P, rd, rd)
+        X = np.broadcast_to(xbar[0], (D, self.nx)).copy()
+        X[:, dyn] += x
+        PX = np.zeros((D, self.nx, self.nx))
+        PX[:, dyn[:, None], dyn[None, :]] = P
         z = self.rows[:, self.zcol] if self.zcol is not None else np.zeros(D)
         noise = float(nat["r"][0]) * np.exp(float(nat["gamma"][0]) * z)
         return {
-            "mean": x,
-            "cov": P,
+            "mean": X,
+            "cov": PX,
             "ln_mean": ln_mean,
             "ln_sd": np.sqrt(np.maximum(ln_var, 0)),
             "noise_sd": noise,
