@@ -16,7 +16,8 @@ with some coefficients random walks (:math:`\beta_{j,d+1} = \beta_{j,d} + w_{j,d
 ln Q slope, the second seasonal harmonic, a flow anomaly: :class:`RiverModel`), the residual :math:`\xi`
 a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary variance
 :math:`\sigma^2`) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with an sd that
-depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}`. ``data-arkansas`` compares many
+depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}` (and on the season:
+``season_variance``). ``data-arkansas`` compares many
 such models (:mod:`~tobitkf.experiments.records_arkansas`). The state is :math:`x_d = (\beta_{\cdot,d},
 \xi_d)`, the daily regressors are known time-varying rows :math:`C_d` of a :class:`~tobitkf.LinearSystem`,
 the readings are NaN on days without a sample, and a censored sample lies below its own detection limit.
@@ -79,6 +80,11 @@ class RiverModel:
         Add the regressor :math:`(\ln Q - \overline{\ln Q})^2` (centred).
     flow_variance : bool
         Sample noise sd :math:`r\,e^{\gamma(\ln Q - \overline{\ln Q})}` instead of r.
+    season_variance : bool
+        A seasonal sample noise: the log sd also carries :math:`\gamma_s \sin 2\pi t + \gamma_c \cos 2\pi t`
+        (parameters ``gamma_sin``, ``gamma_cos``), so that the noise sd is
+        :math:`r\,e^{\gamma(\ln Q - \overline{\ln Q}) + \gamma_s \sin 2\pi t + \gamma_c \cos 2\pi t}`
+        (WRTDS's local residual sd varies with the season as well as with the flow).
     season_slope : bool
         Add :math:`\ln Q \sin 2\pi t` and :math:`\ln Q \cos 2\pi t` (a seasonal ln Q slope).
     harmonics : int
@@ -123,6 +129,7 @@ class RiverModel:
     drift: tuple[str, ...] = ("intercept", "slope", "season")
     quadratic: bool = False
     flow_variance: bool = False
+    season_variance: bool = False
     season_slope: bool = False
     harmonics: int = 1
     flow_anomaly_days: float = 0.0
@@ -187,6 +194,12 @@ class RiverModel:
         if self.flow_variance and self.zcol is None:
             raise ValueError("flow_variance: needs an ln_q regressor")
         self.z = self.C[:, self.zcol] if self.zcol is not None else np.zeros(self.y.size)
+        # the columns of the rows that shift the sample noise's log sd (gamma_flow, gamma_sin, gamma_cos)
+        self.vcols: list[int] = [self.zcol] if self.flow_variance and self.zcol is not None else []
+        if self.season_variance:
+            if "sin" not in self.coef or "cos" not in self.coef:
+                raise ValidationError(f"season_variance: needs the sin and cos regressors, found coef={self.coef}")
+            self.vcols += [self.coef.index("sin"), self.coef.index("cos")]
         if self.lower is None:
             self.lower = np.where(self.censored, self.y, -np.inf)
         self.lower = np.asarray(self.lower, dtype=float)
@@ -199,6 +212,7 @@ class RiverModel:
             + (("log_tau_fast_days", "log_sigma_fast") if self.fast_residual else ())
             + ("log_r",)
             + (("gamma_flow",) if self.flow_variance else ())
+            + (("gamma_sin", "gamma_cos") if self.season_variance else ())
             + tuple(f"log_sd_drift_{g}" for g in self.drift)
         )
 
@@ -249,7 +263,8 @@ class RiverModel:
         nb = self.nb
         q = np.zeros(th.shape[:-1] + (nb,))
         j = nb + 2 * (int(self.residual_ar) + int(self.fast_residual))  # index of log_r
-        off = j + 1 + int(self.flow_variance)
+        nv = len(self.vcols)
+        off = j + 1 + nv
         for i, g in enumerate(self.drift):
             for c in self.GROUPS[g]:
                 q[..., self.coef.index(c)] = np.exp(2 * th[..., off + i])
@@ -260,18 +275,20 @@ class RiverModel:
             "tau_fast": np.exp(th[..., nb + 2]) if self.fast_residual else np.ones(th.shape[:-1]),
             "sigma_fast": np.exp(th[..., nb + 3]) if self.fast_residual else np.zeros(th.shape[:-1]),
             "r": np.exp(th[..., j]),
-            "gamma": th[..., j + 1] if self.flow_variance else np.zeros(th.shape[:-1]),
+            "gamma": th[..., j + 1 : j + 1 + nv],  # (..., nv): the log sd's coefficients on the rows' vcols
             "q": q,  # per year
         }
 
+    def noise_sd(self, nat: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+        r"""The sample noise sd :math:`r\,e^{\gamma^T v}` (per run (N, T)) on the rows ``rows`` (T, nx + nres) of
+        :math:`C` (:math:`v` their ``vcols``: the centred ln Q, and sin, cos with ``season_variance``)."""
+        shift = np.einsum("...j,tj->...t", nat["gamma"], rows[:, self.vcols])
+        return nat["r"][..., None] * np.exp(shift)
+
     def noise_var(self, nat: dict[str, np.ndarray], k: Any) -> np.ndarray:
-        """The sample noise variance r^2 exp(2 gamma z_k) of sample(s) k, per run (N,) or (N, len(k))."""
-        z = self.z[k]
-        return (
-            (nat["r"] ** 2)[..., None] * np.exp(2 * nat["gamma"][..., None] * np.atleast_1d(z))
-            if np.ndim(z)
-            else nat["r"] ** 2 * np.exp(2 * nat["gamma"] * z)
-        )
+        """The sample noise variance of sample(s) k, per run (N,) or (N, len(k)) (:meth:`noise_sd` squared)."""
+        v = self.noise_sd(nat, self.C[np.atleast_1d(k)]) ** 2
+        return v if np.ndim(k) else v[..., 0]
 
     def start(self) -> np.ndarray:
         """Starting values: least squares on the uncensored samples, a month's correlation, small drifts."""
@@ -283,7 +300,7 @@ class RiverModel:
             [np.log(30.0), np.log(0.7 * resid)] if self.residual_ar else [],
             [np.log(3.0), np.log(0.3 * resid)] if self.fast_residual else [],
             np.log(0.5 * resid),
-            [0.0] * int(self.flow_variance),
+            [0.0] * len(self.vcols),
             [np.log(0.05)] * len(self.drift),
         ]
 
@@ -448,8 +465,7 @@ class RiverModel:
         X[:, dyn] += x
         PX = np.zeros((D, self.nx, self.nx))
         PX[:, dyn[:, None], dyn[None, :]] = P
-        z = self.rows[:, self.zcol] if self.zcol is not None else np.zeros(D)
-        noise = float(nat["r"][0]) * np.exp(float(nat["gamma"][0]) * z)
+        noise = self.noise_sd(nat, self.rows)[0]
         return {
             "mean": X,
             "cov": PX,
@@ -477,11 +493,7 @@ class RiverModel:
             A=np.diag(a[0]),
             C=self.rows[:, None, :],
             Q=np.diag(qd[0]),
-            R=(
-                float(nat["r"][0]) ** 2
-                * np.exp(2 * float(nat["gamma"][0]) * (self.rows[:, self.zcol] if self.zcol is not None else 0.0))
-                * np.ones(D)
-            )[:, None, None],
+            R=(self.noise_sd(nat, self.rows)[0] ** 2)[:, None, None],
             x0=x0[0],
             P0=P0[0],
         )
