@@ -295,6 +295,33 @@ def test_batched_parameter_vectors_equal_each_on_the_daily_grid(short_model):
     assert np.all(np.isfinite(terms))
 
 
+def test_seasonal_sample_noise_is_what_the_model_says_and_the_pass_equals_the_daily_adf(short_model):
+    """season_variance: the noise sd r exp(gamma z + gamma_s sin 2 pi t + gamma_c cos 2 pi t) of each sample, written
+    out from the dates, and the sample-grid pass with it against the package's ADF on the daily grid."""
+    from tobitkf.inference.wrtds import decimal_year
+
+    m0 = short_model
+    m = RiverModel(
+        day=m0.day, y=m0.y, censored=m0.censored, rows=m0.rows, coef=m0.coef, drift=m0.drift, flow_variance=True,
+        season_variance=True,
+    )  # fmt: skip
+    assert m.names[m.names.index("gamma_flow") + 1 : m.names.index("gamma_flow") + 3] == ("gamma_sin", "gamma_cos")
+    th = _theta(m)
+    th[m.names.index("gamma_sin")], th[m.names.index("gamma_cos")] = 0.4, -0.3
+    rec = load_arkansas()
+    t = decimal_year(rec.daily_date[m.day])
+    z = np.log(rec.daily_q) - np.log(rec.daily_q).mean()
+    r = np.exp(th[m.names.index("log_r")])
+    want = r * np.exp(-0.2 * z[m.day] + 0.4 * np.sin(2 * np.pi * t) - 0.3 * np.cos(2 * np.pi * t))
+    np.testing.assert_allclose(m.noise_var(m.natural(th[None]), np.arange(m.n_samples))[0], want**2, rtol=1e-12)
+    sys_, y, cens, ind = m.daily_system(th)
+    ll_daily = tk.adf_log_likelihood(sys_, cens, y, censored=ind, per_step=True)
+    np.testing.assert_allclose(m.run(th[None])["terms"][0], ll_daily[m.day], rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="season_variance"):
+        RiverModel(day=m0.day, y=m0.y, censored=m0.censored, rows=m0.rows[:, [0, 1, -1]], coef=("intercept", "ln_q"),
+                   drift=(), season_variance=True)  # fmt: skip
+
+
 def test_added_regressors_are_what_the_model_says():
     """The second harmonic is sin/cos of 4 pi t on the daily dates; the flow anomaly is ln Q against its
     exponentially weighted mean of the days before (a loop over the days)."""
@@ -334,6 +361,7 @@ def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
     ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
     got = m.daily_smooth(th)
     assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
+    assert m.dyn.tolist() == [0, m.nx - 1]  # the filter moves the drifting intercept and the residual only
     np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)
 

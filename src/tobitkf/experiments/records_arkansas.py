@@ -80,6 +80,21 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
         "flow_anomaly_days": 30.0,
         "fast_residual": True,
     },
+    {
+        "drift": ("intercept", "slope", "season"),
+        "flow_variance": True,
+        "harmonics": 2,
+        "quadratic": True,
+        "flow_anomaly_days": 30.0,
+    },
+    {
+        "drift": ("intercept",),
+        "flow_variance": True,
+        "season_variance": True,
+        "harmonics": 2,
+        "quadratic": True,
+        "flow_anomaly_days": 30.0,
+    },
 )
 """Every model tried on this record (:class:`~tobitkf.experiments.records_river.RiverModel` options), in the
 order they were tried. ``data-arkansas`` fits each, takes the one of smallest AIC (on the full record, not on
@@ -165,7 +180,7 @@ def _nested_start(model: RiverModel, fitted: list[tuple[dict[str, Any], RiverMod
 
 def _label(opts: dict[str, Any]) -> str:
     parts = [("drift " + "+".join(opts["drift"])) if opts.get("drift") else "static"]
-    parts += [k for k in ("flow_variance", "quadratic", "season_slope") if opts.get(k)]
+    parts += [k for k in ("flow_variance", "season_variance", "quadratic", "season_slope") if opts.get(k)]
     if opts.get("harmonics", 1) == 2:
         parts.append("2 harmonics")
     if opts.get("flow_anomaly_days"):

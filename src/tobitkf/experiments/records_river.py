@@ -16,7 +16,8 @@ with some coefficients random walks (:math:`\beta_{j,d+1} = \beta_{j,d} + w_{j,d
 ln Q slope, the second seasonal harmonic, a flow anomaly: :class:`RiverModel`), the residual :math:`\xi`
 a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary variance
 :math:`\sigma^2`) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with an sd that
-depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}`. ``data-arkansas`` compares many
+depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}` (and on the season:
+``season_variance``). ``data-arkansas`` compares many
 such models (:mod:`~tobitkf.experiments.records_arkansas`). The state is :math:`x_d = (\beta_{\cdot,d},
 \xi_d)`, the daily regressors are known time-varying rows :math:`C_d` of a :class:`~tobitkf.LinearSystem`,
 the readings are NaN on days without a sample, and a censored sample lies below its own detection limit.
@@ -30,8 +31,12 @@ fits and the leave-one-out refits run on the samples' days: a *batch* of paramet
 through the filter at once (:func:`~tobitkf.experiments.records_common.adf_pass`: each run its own
 :math:`A_k`, :math:`Q_k`, the package's censored channel update, compiled for the likelihood, and its RTS
 pass :func:`~tobitkf.filters.smoothing.rts_smooth`), which gives central finite-difference gradients in
-one call. The daily concentration comes from the package's RTS pass over the daily grid
-(:meth:`RiverModel.daily_smooth`, equal to :func:`tobitkf.smooth` on the daily system, tested).
+one call. The static coefficients are constants with no prior variance: the pass runs on the moving states
+only (the drifting coefficients' deviations from their prior means and the residuals, :meth:`RiverModel.reduced`),
+the static part of the mean entering each run's readings as a known offset, which is exact and makes the
+experiment's model a two-state filter instead of a nine-state one. The daily concentration comes from the
+package's RTS pass over the daily grid (:meth:`RiverModel.daily_smooth`, equal to :func:`tobitkf.smooth` on the
+daily system, tested).
 
 Leave-one-out (:func:`batched_loo_refit`): for each sample i, the parameters are refitted to the record
 without it, warm-started at the full fit, every sample's refit one run of a batched quasi-Newton search, and
@@ -75,6 +80,11 @@ class RiverModel:
         Add the regressor :math:`(\ln Q - \overline{\ln Q})^2` (centred).
     flow_variance : bool
         Sample noise sd :math:`r\,e^{\gamma(\ln Q - \overline{\ln Q})}` instead of r.
+    season_variance : bool
+        A seasonal sample noise: the log sd also carries :math:`\gamma_s \sin 2\pi t + \gamma_c \cos 2\pi t`
+        (parameters ``gamma_sin``, ``gamma_cos``), so that the noise sd is
+        :math:`r\,e^{\gamma(\ln Q - \overline{\ln Q}) + \gamma_s \sin 2\pi t + \gamma_c \cos 2\pi t}`
+        (WRTDS's local residual sd varies with the season as well as with the flow).
     season_slope : bool
         Add :math:`\ln Q \sin 2\pi t` and :math:`\ln Q \cos 2\pi t` (a seasonal ln Q slope).
     harmonics : int
@@ -119,6 +129,7 @@ class RiverModel:
     drift: tuple[str, ...] = ("intercept", "slope", "season")
     quadratic: bool = False
     flow_variance: bool = False
+    season_variance: bool = False
     season_slope: bool = False
     harmonics: int = 1
     flow_anomaly_days: float = 0.0
@@ -173,10 +184,22 @@ class RiverModel:
         self.nb = self.rows.shape[1] - self.nres  # regression coefficients
         self.nx = self.nb + self.nres
         self.C = self.rows[self.day]  # (n, nx)
+        # the states that move: the drifting coefficients and the residual(s); a static coefficient has no noise
+        # and no prior variance, so it is a constant that enters the reading's mean as an offset (run)
+        moving = [self.coef.index(c) for g in self.drift for c in self.GROUPS[g]]
+        if self.residual_ar or not moving:
+            moving += list(range(self.nb, self.nx))
+        self.dyn = np.array(sorted(moving), dtype=int)
         self.zcol = self.coef.index("ln_q") if "ln_q" in self.coef else None
         if self.flow_variance and self.zcol is None:
             raise ValueError("flow_variance: needs an ln_q regressor")
         self.z = self.C[:, self.zcol] if self.zcol is not None else np.zeros(self.y.size)
+        # the columns of the rows that shift the sample noise's log sd (gamma_flow, gamma_sin, gamma_cos)
+        self.vcols: list[int] = [self.zcol] if self.flow_variance and self.zcol is not None else []
+        if self.season_variance:
+            if "sin" not in self.coef or "cos" not in self.coef:
+                raise ValidationError(f"season_variance: needs the sin and cos regressors, found coef={self.coef}")
+            self.vcols += [self.coef.index("sin"), self.coef.index("cos")]
         if self.lower is None:
             self.lower = np.where(self.censored, self.y, -np.inf)
         self.lower = np.asarray(self.lower, dtype=float)
@@ -189,6 +212,7 @@ class RiverModel:
             + (("log_tau_fast_days", "log_sigma_fast") if self.fast_residual else ())
             + ("log_r",)
             + (("gamma_flow",) if self.flow_variance else ())
+            + (("gamma_sin", "gamma_cos") if self.season_variance else ())
             + tuple(f"log_sd_drift_{g}" for g in self.drift)
         )
 
@@ -239,7 +263,8 @@ class RiverModel:
         nb = self.nb
         q = np.zeros(th.shape[:-1] + (nb,))
         j = nb + 2 * (int(self.residual_ar) + int(self.fast_residual))  # index of log_r
-        off = j + 1 + int(self.flow_variance)
+        nv = len(self.vcols)
+        off = j + 1 + nv
         for i, g in enumerate(self.drift):
             for c in self.GROUPS[g]:
                 q[..., self.coef.index(c)] = np.exp(2 * th[..., off + i])
@@ -250,18 +275,20 @@ class RiverModel:
             "tau_fast": np.exp(th[..., nb + 2]) if self.fast_residual else np.ones(th.shape[:-1]),
             "sigma_fast": np.exp(th[..., nb + 3]) if self.fast_residual else np.zeros(th.shape[:-1]),
             "r": np.exp(th[..., j]),
-            "gamma": th[..., j + 1] if self.flow_variance else np.zeros(th.shape[:-1]),
+            "gamma": th[..., j + 1 : j + 1 + nv],  # (..., nv): the log sd's coefficients on the rows' vcols
             "q": q,  # per year
         }
 
+    def noise_sd(self, nat: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
+        r"""The sample noise sd :math:`r\,e^{\gamma^T v}` (per run (N, T)) on the rows ``rows`` (T, nx + nres) of
+        :math:`C` (:math:`v` their ``vcols``: the centred ln Q, and sin, cos with ``season_variance``)."""
+        shift = np.einsum("...j,tj->...t", nat["gamma"], rows[:, self.vcols])
+        return nat["r"][..., None] * np.exp(shift)
+
     def noise_var(self, nat: dict[str, np.ndarray], k: Any) -> np.ndarray:
-        """The sample noise variance r^2 exp(2 gamma z_k) of sample(s) k, per run (N,) or (N, len(k))."""
-        z = self.z[k]
-        return (
-            (nat["r"] ** 2)[..., None] * np.exp(2 * nat["gamma"][..., None] * np.atleast_1d(z))
-            if np.ndim(z)
-            else nat["r"] ** 2 * np.exp(2 * nat["gamma"] * z)
-        )
+        """The sample noise variance of sample(s) k, per run (N,) or (N, len(k)) (:meth:`noise_sd` squared)."""
+        v = self.noise_sd(nat, self.C[np.atleast_1d(k)]) ** 2
+        return v if np.ndim(k) else v[..., 0]
 
     def start(self) -> np.ndarray:
         """Starting values: least squares on the uncensored samples, a month's correlation, small drifts."""
@@ -273,7 +300,7 @@ class RiverModel:
             [np.log(30.0), np.log(0.7 * resid)] if self.residual_ar else [],
             [np.log(3.0), np.log(0.3 * resid)] if self.fast_residual else [],
             np.log(0.5 * resid),
-            [0.0] * int(self.flow_variance),
+            [0.0] * len(self.vcols),
             [np.log(0.05)] * len(self.drift),
         ]
 
@@ -309,8 +336,30 @@ class RiverModel:
             P0[:, nb + 1, nb + 1] = nat["sigma_fast"] ** 2
         return x0, P0
 
+    def reduced(self, nat: dict[str, np.ndarray]) -> tuple[np.ndarray, ...]:
+        r"""The model on its moving states only (``dyn``: the drifting coefficients and the residuals).
+
+        A static coefficient :math:`\beta_j = b_j` has no noise and no prior variance, and a drifting one is
+        :math:`\beta_{j,d} = b_j + \delta_{j,d}` with :math:`\delta_{j,0} = 0`: the state
+        :math:`x_d = \bar x + E\,s_d` with :math:`\bar x = (b, 0)`, :math:`E` the columns ``dyn`` of the
+        identity and :math:`s_d` (the deviations of the drifting coefficients and the residuals) starting at
+        :math:`s_0 \sim N(0, \mathrm{diag}(0, \sigma^2))`, so the reading is :math:`C_d E s_d + C_d \bar x +
+        v_d`, the second term a known offset per run. The filter on :math:`s` equals the filter on :math:`x`
+        (the static rows of the gain are 0) at the cost of a model of ``len(dyn)`` states instead of ``nx``.
+
+        Returns
+        -------
+        s0 (N, m), S0 (N, m, m), rate (N, m), diffusion (N, m), xbar (N, nx); m = ``len(dyn)``
+        """
+        x0, P0 = self.prior(nat)
+        rate, diffusion = self.continuous(nat)
+        dyn = self.dyn
+        s0 = np.zeros((x0.shape[0], dyn.size))
+        return s0, P0[:, dyn][:, :, dyn], rate[:, dyn], diffusion[:, dyn], x0
+
     def run(self, theta: np.ndarray, y: np.ndarray | None = None, *, smooth: bool = False) -> dict[str, Any]:
-        r"""The assumed-density filter on the samples' days for a batch of parameter vectors.
+        r"""The assumed-density filter on the samples' days for a batch of parameter vectors (on the moving
+        states, :meth:`reduced`; the filtered and smoothed results hold those states).
 
         Parameters
         ----------
@@ -330,15 +379,16 @@ class RiverModel:
         N, T = theta.shape[0], self.n_samples
         Y = np.broadcast_to(self.y, (N, T)) if y is None else np.asarray(y, dtype=float)
         nat = self.natural(theta)
-        x0, P0 = self.prior(nat)
-        rate, diffusion = self.continuous(nat)
+        s0, S0, rate, diffusion, xbar = self.reduced(nat)
         r2 = self.noise_var(nat, np.arange(T))
         flags = None
         if self.interval.any():  # interval readings need the indicator (a removed reading is not flagged)
             flags = self.censored & ~np.isnan(Y)
+        offset = xbar @ self.C.T  # (N, n): C_k xbar
         return adf_pass(
-            x0, P0, rate, diffusion, self.gaps, self.C, Y, self.lower, self.upper, r2, smooth=smooth, censored=flags
-        )
+            s0, S0, rate, diffusion, self.gaps, self.C[:, self.dyn], Y, self.lower, self.upper, r2, dy=offset,
+            smooth=smooth, censored=flags,
+        )  # fmt: skip
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
         r"""The smoothed state on every day of the daily grid, for one parameter vector.
@@ -358,8 +408,10 @@ class RiverModel:
             P_{d|D} = \bar P_d + J_d(P_{k+1|D} - P_{k+1|k})J_d^T
 
         (the pseudo-inverse of :func:`~tobitkf.filters.smoothing.solve_psd`, as the RTS pass); a sample day
-        takes the sample's smoothed moments, a day after the last sample the prediction. Equal to
-        :func:`tobitkf.smooth` on the daily system (:meth:`daily_system`), tested.
+        takes the sample's smoothed moments, a day after the last sample the prediction. All of this on the
+        moving states :math:`s` of :meth:`reduced`, mapped back to :math:`x = \bar x + E s` (the static
+        coefficients' rows and columns of :math:`P_{d|D}` are 0). Equal to :func:`tobitkf.smooth` on the daily
+        system (:meth:`daily_system`), tested.
 
         Returns
         -------
@@ -375,36 +427,48 @@ class RiverModel:
         f, sm = out["filtered"], out["smoothed"]
         D, n = self.rows.shape[0], self.n_samples
         days = np.arange(D)
-        x0, P0 = self.prior(nat)
+        dyn = self.dyn
+        x0, P0, rate, diffusion, xbar = self.reduced(nat)  # the moving states s (reduced), x = xbar + E s
+        rate, diffusion = rate[:1], diffusion[:1]
+
+        def step_matrices(gap: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            a, qd = gap_matrices(rate, diffusion, gap)
+            return a[0], qd[0]
+
+        m = dyn.size
         # the prediction to each day from the last sample strictly before it (index 0: the prior, day -1)
         prev = np.searchsorted(self.day, days, side="left") - 1
         xf = np.concatenate([x0, f.mean[0]])
         Pf = np.concatenate([P0, f.cov[0]])
         t_prev = np.where(prev >= 0, self.day[np.maximum(prev, 0)], -1)
-        a, qd = self._step_matrices(nat, (days - t_prev).astype(float))
+        a, qd = step_matrices((days - t_prev).astype(float))
         x = a * xf[prev + 1]
         P = Pf[prev + 1] * a[:, :, None] * a[:, None, :]
-        P[:, np.arange(self.nx), np.arange(self.nx)] += qd
+        P[:, np.arange(m), np.arange(m)] += qd
         nxt = prev + 1  # the next sample on or after each day (n: none)
         on = nxt < n
         k = np.minimum(nxt, n - 1)
         sample_day = on & (self.day[k] == days)
         between = np.flatnonzero(on & ~sample_day)
         kb = k[between]
-        ar, _ = self._step_matrices(nat, (self.day[kb] - days[between]).astype(float))
+        ar, _ = step_matrices((self.day[kb] - days[between]).astype(float))
         Pp = f.pred_cov[0][kb]
         J = np.swapaxes(solve_psd(Pp, ar[:, :, None] * P[between]), -1, -2)  # P_d A_r^T Pp^+ (Pp symmetric)
         x[between] += np.einsum("dij,dj->di", J, sm.mean[0][kb] - f.pred_mean[0][kb])
         P[between] += J @ (sm.cov[0][kb] - Pp) @ np.swapaxes(J, -1, -2)
         x[sample_day] = sm.mean[0][k[sample_day]]
         P[sample_day] = sm.cov[0][k[sample_day]]
-        ln_mean = np.einsum("dj,dj->d", x, self.rows)
-        ln_var = np.einsum("dij,di,dj->d", P, self.rows, self.rows)
-        z = self.rows[:, self.zcol] if self.zcol is not None else np.zeros(D)
-        noise = float(nat["r"][0]) * np.exp(float(nat["gamma"][0]) * z)
+        rd = self.rows[:, dyn]
+        ln_mean = np.einsum("dj,dj->d", x, rd) + self.rows @ xbar[0]
+        ln_var = np.einsum("dij,di,dj->d", P, rd, rd)
+        X = np.broadcast_to(xbar[0], (D, self.nx)).copy()
+        X[:, dyn] += x
+        PX = np.zeros((D, self.nx, self.nx))
+        PX[:, dyn[:, None], dyn[None, :]] = P
+        noise = self.noise_sd(nat, self.rows)[0]
         return {
-            "mean": x,
-            "cov": P,
+            "mean": X,
+            "cov": PX,
             "ln_mean": ln_mean,
             "ln_sd": np.sqrt(np.maximum(ln_var, 0)),
             "noise_sd": noise,
@@ -429,11 +493,7 @@ class RiverModel:
             A=np.diag(a[0]),
             C=self.rows[:, None, :],
             Q=np.diag(qd[0]),
-            R=(
-                float(nat["r"][0]) ** 2
-                * np.exp(2 * float(nat["gamma"][0]) * (self.rows[:, self.zcol] if self.zcol is not None else 0.0))
-                * np.ones(D)
-            )[:, None, None],
+            R=(self.noise_sd(nat, self.rows)[0] ** 2)[:, None, None],
             x0=x0[0],
             P0=P0[0],
         )
