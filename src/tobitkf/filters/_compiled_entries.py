@@ -130,65 +130,32 @@ def _unpack(consts, n, m, q):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def kalman_step(y, consts, x0, P0, x_last, P_last):
-    """One step of :func:`kalman_loop` (the online ``step``): ``y`` (N, m), ``consts`` the flat ``A, Qd, C, R,
-    joseph`` (:func:`~tobitkf.filters.kalman.step_constants`), ``x0`` (N, n), ``P0`` (N or 1, n, n); writes the
-    new state into ``x_last``, ``P_last``."""
+    """One step of the Kalman filter through :func:`loop_call` (the online ``step``): ``y`` (N, m), ``consts`` the
+    flat ``A, Qd, C, R, joseph`` (:func:`~tobitkf.filters.kalman.step_constants`), ``x0`` (N, n), ``P0`` (N or 1,
+    n, n); writes the new state into ``x_last``, ``P_last``."""
     N, m = y.shape
     n = x0.shape[1]
-    Pn = P0.shape[0]
     A, Qd, H, par, rest = _unpack(consts, n, m, m)
-    e_m, e_c = np.empty((N, 0, n)), np.empty((Pn, 0, n, n))
-    kalman_loop(
-        y.reshape((N, 1, m)),
-        A,
-        Qd,
-        H,
-        par.reshape((1, m, m)),
-        rest[0] != 0.0,
-        x0,
-        P0,
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        x_last,
-        P_last,
-    )
+    loop_call(
+        KALMAN, y.reshape((N, 1, m)), A.reshape((1, 1, n, n)), Qd.reshape((1, 1, n, n)), H, x0, P0, x_last, P_last,
+        par=par.reshape((1, m, m)), joseph=rest[0] != 0.0,
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def tobit_step(y, consts, lohi, x0, P0, out2, x_last, P_last):
-    """One step of :func:`tobit_loop` without inputs (the online ``step``): ``y`` (N, m), ``consts`` the flat ``A,
-    Qd, C, sigma, noise_code, joseph`` (:func:`~tobitkf.filters.kalman.step_constants`), ``lohi`` (2, 1, m) the
-    step's limits, ``x0`` (N, n), ``P0`` (N, n, n); writes P(uncensored) and E[y] into ``out2`` (2, N, m), the new
-    state into ``x_last``, ``P_last``."""
+    """One step of the Tobit Kalman filter without inputs through :func:`loop_call` (the online ``step``): ``y``
+    (N, m), ``consts`` the flat ``A, Qd, C, sigma, noise_code, joseph``
+    (:func:`~tobitkf.filters.kalman.step_constants`), ``lohi`` (2, 1, m) the step's limits, ``x0`` (N, n), ``P0``
+    (N, n, n); writes P(uncensored) and E[y] into ``out2`` (2, N, m), the new state into ``x_last``, ``P_last``."""
     N, m = y.shape
     n = x0.shape[1]
     A, Qd, H, sigma, rest = _unpack(consts, n, m, 1)
-    e_m, e_c = np.empty((N, 0, n)), np.empty((N, 0, n, n))
-    tobit_loop(
-        y.reshape((N, 1, m)),
-        A,
-        Qd,
-        H,
-        sigma.reshape((1, m)),
-        lohi[0],
-        lohi[1],
-        np.empty((N, 0, n)),
-        np.empty((N, 0, m)),
-        int(rest[0]),
-        rest[1] != 0.0,
-        x0,
-        P0,
-        e_m,
-        e_c,
-        e_m,
-        e_c,
-        out2[0].reshape((N, 1, m)),
-        out2[1].reshape((N, 1, m)),
-        x_last,
-        P_last,
-    )
+    loop_call(
+        TOBIT, y.reshape((N, 1, m)), A.reshape((1, 1, n, n)), Qd.reshape((1, 1, n, n)), H, x0, P0, x_last, P_last,
+        r=sigma.reshape((1, 1, m)), lo=lohi[0].reshape((1, 1, m)), hi=lohi[1].reshape((1, 1, m)),
+        noise_code=int(rest[0]), joseph=rest[1] != 0.0, pu=out2[0].reshape((N, 1, m)), ey=out2[1].reshape((N, 1, m)),
+    )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

@@ -214,6 +214,14 @@ class _Linear(_Model):
         return _gaussian_proposal(rng, mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :], y, lo, hi)
 
 
+def _exact_reading(yv: np.ndarray, p: np.ndarray, sd: Any) -> tuple[np.ndarray, np.ndarray]:
+    """An exact reading ``yv`` (rows, 1) in the sequential proposals: the latent value drawn is the reading itself
+    (broadcast to the particles' ``p`` (rows, Np)) and its weight the normal log-density
+    :math:`\log N(y; p, sd^2)`."""
+    z = (yv - p) / sd
+    return np.broadcast_to(yv, p.shape), -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
+
+
 def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
     r"""Sample :math:`(x_k, y^*_{cens})` from the Gaussian model :math:`x_k \sim N(\mu, Q_d)`,
     :math:`y^*_l = H_lx_k + o_l + v_l`, :math:`v_l \sim N(0, r_l)`, given the readings, channel by channel
@@ -237,9 +245,7 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
 
     def reading(l, kind, rows, p, sd):
         if kind == _INTERIOR:
-            yv = y[rows, l][:, None]
-            z = (yv - p) / sd
-            return np.broadcast_to(yv, p.shape), -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
+            return _exact_reading(y[rows, l][:, None], p, sd)
         if kind == _LOWER:
             lm = log_ndtr((lo[l] - p) / sd)
             return _truncated_draw(p, sd, lm, U[rows, :, l], -1), lm
@@ -847,9 +853,7 @@ class _Contract(_Model):
 
         def reading(l, kind, rows, p, sd):
             if kind == _INTERIOR:
-                yv = lo[rows, l][:, None]
-                z = (yv - p) / sd
-                return np.broadcast_to(yv, p.shape), -0.5 * z * z - np.log(sd) - _LOG_SQRT_2PI
+                return _exact_reading(lo[rows, l][:, None], p, sd)
             a, bb = (lo[rows, l][:, None] - p) / sd, (hi[rows, l][:, None] - p) / sd
             lm = _log_interval(a, bb)
             return p + sd * _interval_z(a, bb, lm, U[rows, :, l]), lm
