@@ -394,12 +394,31 @@ class Estimator:
     r"""Base of every estimator: the online API (:meth:`init`, :meth:`step`) and the one time loop
     (:meth:`_run`, behind each family's ``filter``).
 
-    An estimator implements ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)`` (the prior) and
-    ``_step_arrays(k, x, P, S, carry, y, u, options)`` → ``(x, P, S, carry, x̄, P̄, extras)`` (one
-    reading, batched over N runs, no validation inside). :class:`GaussianFilter` implements the
-    second from three smaller hooks shared by every Gaussian-update family; estimators that are not
-    Gaussian updates (the particle filter, the H∞ filter, the tracker) implement it directly and get
-    the same ``init``/``step``/``filter`` and the same recorded outputs.
+    The hooks a family supplies, on arrays batched over N runs (no validation inside); the first two are
+    required, every other one has a default:
+
+    * ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)``: the prior (``P`` (N or 1, n_x, n_x) or None);
+    * ``_step_arrays(k, x, P, S, carry, y, u, options)`` → ``(x, P, S, carry, x̄, P̄, extras)``: one reading.
+      :class:`GaussianFilter` implements it from ``_transition`` and ``_measurement``; estimators that are not
+      Gaussian updates (the particle filter, the H∞ filter, the tracker) implement it directly and get the same
+      ``init``/``step``/``filter`` and the same recorded outputs;
+    * ``_state_dim()``: the dimension n_x of the carried state when it is not ``n`` (an augmented state);
+      ``_bytes_per_run()`` when a run carries more than its mean and covariance (particles);
+    * ``_check_record(y2, u2, k0, name)``: the checks of a record (N, T, m) whose first reading has time
+      ``k0 + 1`` (limits, horizon); ``_check_reading(k, y, options)``: those of the one reading (N, m) of time k
+      of ``step`` and ``update`` (default: ``_check_record`` of a record of one step);
+    * ``_prepare_record(y, name)``: the record's layout, ``(N, T, m)`` and the batch shape (default ``(..., T, m)``);
+    * ``_prepare_inputs(u, N, T, batch)`` and ``_step_input(state, u)``: control inputs of a record and of one
+      step (default: refused);
+    * ``_prepare_step_options(state, options)``: the keywords of ``step``/``update`` (their names in the class
+      attribute ``_step_options``) as the arrays ``_step_arrays`` takes;
+    * ``_compiled_filter(y2, u2, state, want, batch, step_options)`` and
+      ``_compiled_online_step(state, y, u, options)``: the compiled path of a record and of one step, each None
+      when it does not cover the call (the numpy path runs); ``_compiled_core()``: whether the shared predict and
+      update run compiled (default: numba imports and ``backend`` is not ``"numpy"``).
+
+    :meth:`_run` (the loop, which a family's ``filter`` calls) and ``_reading`` (the reading of one step,
+    parsed and checked) are the machinery around those hooks, not hooks.
     """
 
     #: dimension of the reported state (set by the family)
@@ -620,12 +639,14 @@ class GaussianFilter(Estimator):
 
     A family implements three hooks on arrays (batched over N runs, no validation inside):
 
-    * ``_initial(N, x0, P0)`` → ``(x, P, carry)``: the prior;
+    * ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)``: the prior;
     * ``_transition(k, u, carry)`` → :class:`Transition` from k-1 to k;
     * ``_measurement(k, x̄, P̄, y, u, carry, **step_options)`` → ``(MeasurementPrediction, carry)``;
 
     and optionally ``_extras(k, x̄, P̄, x, P, mp, K, Ree, options)`` for per-step quantities that need
-    the posterior. Everything else (the predict, the update in each covariance form, the masking, the
+    the posterior, and ``_update_arrays(k, x̄, P̄, S̄, y, u, carry, options)`` → ``(x, P, S, carry, extras)`` to
+    replace the Kalman-type update of ``_measurement``'s moments (an assumed-density family's projection); the
+    optional hooks of :class:`Estimator` apply too. Everything else (the predict, the update in each covariance form, the masking, the
     divergence check, the recording of outputs, :meth:`init`, :meth:`predict`, :meth:`update`,
     :meth:`step` and :meth:`filter`) is shared.
     """

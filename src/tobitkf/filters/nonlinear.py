@@ -394,7 +394,7 @@ class _NonlinearFamily(GaussianFilter):
             return super().step(state, y, u=u)  # refuses a predicted state, with the numpy step's message
         yk = self._reading(state, y)
         uk = self._step_input(state, u)
-        self._check_reading(state, yk, {})
+        self._check_reading(state.k + 1, yk, {})
         from . import _compiled_nonlinear
 
         out = _compiled_nonlinear.compiled_run(
