@@ -64,7 +64,6 @@ from ._outputs import loop_input
 from .assumed_density import AssumedDensityFamily
 from .core import (
     COVARIANCE_FORMS,
-    FilterState,
     MeasurementPrediction,
     check_keywords,
     measurement_update,
@@ -276,11 +275,8 @@ class _ContractChecks:
         self.channel.check(self.system, k0 + y2.shape[1])
         self.channel.check_readings(y2, start=k0 + 1, name=name)
 
-    def _check_reading(self, state: FilterState, y: np.ndarray, options) -> None:
-        self.channel.check_readings(y[:, None], start=state.k + 1)
-
-    def _check_update_reading(self, state: FilterState, y: np.ndarray, options) -> None:
-        self.channel.check_readings(y[:, None], start=state.k)
+    def _check_reading(self, k: int, y: np.ndarray, options) -> None:
+        self.channel.check_readings(y[:, None], start=k)
 
 
 class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):

@@ -466,7 +466,7 @@ class AssumedDensityFamily(GaussianFilter):
         owner = next(c for c in cls.__mro__ if "_compiled_spec" in c.__dict__)
         return all(getattr(cls, h, None) is getattr(owner, h, None) for h in _NUMPY_HOOKS)
 
-    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         """The compiled loop (:mod:`tobitkf.filters._compiled_loop`) when the ``backend`` allows it and covers
         the options; None: the numpy loop runs."""
         backend = getattr(self, "backend", "numpy")
@@ -739,10 +739,6 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
 
     def _project(self, k, xp, Pp, Sp, y, u, **options):
         return self._sequential(k, xp, Pp, Sp, y, u, **options)
-
-    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
-        if self.check_limits and options.get("lower") is None and options.get("upper") is None:
-            self.censoring.check_measurements(y[:, None], start=state.k)
 
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         flags = None

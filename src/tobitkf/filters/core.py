@@ -248,7 +248,7 @@ def _token(est: Any) -> object:
 
 def mark_trusted(est: Any, state: FilterState) -> FilterState:
     """Mark ``state`` as made (or checked in full) by ``est``: it then enters ``est``'s ``step``, ``predict``
-    and ``update`` without the full check of :meth:`Estimator._check_state`. Returns ``state``."""
+    and ``update`` without the full check of :func:`entering_state`. Returns ``state``."""
     state.__dict__[_ORIGIN] = _token(est)
     return state
 
@@ -394,12 +394,31 @@ class Estimator:
     r"""Base of every estimator: the online API (:meth:`init`, :meth:`step`) and the one time loop
     (:meth:`_run`, behind each family's ``filter``).
 
-    An estimator implements ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)`` (the prior) and
-    ``_step_arrays(k, x, P, S, carry, y, u, options)`` → ``(x, P, S, carry, x̄, P̄, extras)`` (one
-    reading, batched over N runs, no validation inside). :class:`GaussianFilter` implements the
-    second from three smaller hooks shared by every Gaussian-update family; estimators that are not
-    Gaussian updates (the particle filter, the H∞ filter, the tracker) implement it directly and get
-    the same ``init``/``step``/``filter`` and the same recorded outputs.
+    The hooks a family supplies, on arrays batched over N runs (no validation inside); the first two are
+    required, every other one has a default:
+
+    * ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)``: the prior (``P`` (N or 1, n_x, n_x) or None);
+    * ``_step_arrays(k, x, P, S, carry, y, u, options)`` → ``(x, P, S, carry, x̄, P̄, extras)``: one reading.
+      :class:`GaussianFilter` implements it from ``_transition`` and ``_measurement``; estimators that are not
+      Gaussian updates (the particle filter, the H∞ filter, the tracker) implement it directly and get the same
+      ``init``/``step``/``filter`` and the same recorded outputs;
+    * ``_state_dim()``: the dimension n_x of the carried state when it is not ``n`` (an augmented state);
+      ``_bytes_per_run()`` when a run carries more than its mean and covariance (particles);
+    * ``_check_record(y2, u2, k0, name)``: the checks of a record (N, T, m) whose first reading has time
+      ``k0 + 1`` (limits, horizon); ``_check_reading(k, y, options)``: those of the one reading (N, m) of time k
+      of ``step`` and ``update`` (default: ``_check_record`` of a record of one step);
+    * ``_prepare_record(y, name)``: the record's layout, ``(N, T, m)`` and the batch shape (default ``(..., T, m)``);
+    * ``_prepare_inputs(u, N, T, batch)`` and ``_step_input(state, u)``: control inputs of a record and of one
+      step (default: refused);
+    * ``_prepare_step_options(state, options)``: the keywords of ``step``/``update`` (their names in the class
+      attribute ``_step_options``) as the arrays ``_step_arrays`` takes;
+    * ``_compiled_filter(y2, u2, state, want, batch, step_options)`` and
+      ``_compiled_online_step(state, y, u, options)``: the compiled path of a record and of one step, each None
+      when it does not cover the call (the numpy path runs); ``_compiled_core()``: whether the shared predict and
+      update run compiled (default: numba imports and ``backend`` is not ``"numpy"``).
+
+    :meth:`_run` (the loop, which a family's ``filter`` calls) and ``_reading`` (the reading of one step,
+    parsed and checked) are the machinery around those hooks, not hooks.
     """
 
     #: dimension of the reported state (set by the family)
@@ -430,14 +449,12 @@ class Estimator:
             return None
         raise ValidationError(f"u: {self._name} takes no control input")
 
-    def _compiled_filter(self, y2, u2, state: FilterState, want: frozenset[str], batch) -> FilterResult | None:
-        """A compiled implementation of the loop, or None (the numpy loop runs)."""
+    def _compiled_filter(
+        self, y2, u2, state: FilterState, want: frozenset[str], batch, step_options=None
+    ) -> FilterResult | None:
+        """A compiled implementation of the loop over the record ``y2`` (N, T, m) from ``state``, or None (the
+        numpy loop runs); ``step_options`` are those of the loop (:meth:`_run`)."""
         return None
-
-    def _compiled_filter_with(self, y2, u2, state: FilterState, want: frozenset[str], batch, step_options):
-        """:meth:`_compiled_filter` for a loop run with ``step_options`` (a family whose kernel depends on
-        them overrides this; by default they are not looked at)."""
-        return self._compiled_filter(y2, u2, state, want, batch)
 
     def _compiled_core(self) -> bool:
         """Whether the shared predict and update run compiled (:mod:`tobitkf.filters._compiled_step`):
@@ -474,22 +491,8 @@ class Estimator:
         nx = self._state_dim()
         return 8 * (nx + nx * nx * (2 if self.covariance_update == "square_root" else 1))
 
-    def _check_state(self, state: Any) -> FilterState:
-        """``state`` as it may enter this estimator: a state this estimator made passes at the cost of two
-        dictionary look-ups (:func:`is_trusted`); any other (unpickled, copied, ``replace``-d, built by hand or
-        made by another estimator) gets the full check of :func:`check_state` once."""
-        if is_trusted(self, state):
-            return state
-        return check_state(self, state)
-
     def _state_dim(self) -> int:
         return self.n
-
-    def _refused_nan(self, err: ValidationError) -> ValidationError:
-        """The NaN refusal ``err`` with the family's reason appended."""
-        if self._missing_reason and "NaN" in str(err):
-            return ValidationError(f"{err} ({self._missing_reason})")
-        return err
 
     def _reading(self, state: FilterState, y: Any, name: str = "y") -> np.ndarray:
         # The online step of one run with a float64 reading of shape (m,) (a row of a record): the verdict of
@@ -507,7 +510,7 @@ class Estimator:
         try:
             arr = as_float_array(y, name, allow_nan=self._allow_missing)
         except ValidationError as err:
-            raise self._refused_nan(err) from None
+            raise _refused_nan(self, err) from None
         check_scale(arr, name)
         m = self.m
         want = state.batch_shape + (m,)
@@ -525,12 +528,6 @@ class Estimator:
             return None
         raise ValidationError(f"u: {self._name} takes no control input")
 
-    def _check_options(self, options: Mapping[str, Any]) -> dict[str, Any]:
-        for key in options:
-            if key not in self._step_options:
-                raise TypeError(f"unexpected keyword argument {key!r}")
-        return dict(options)
-
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``); NaN = missing channel.
 
@@ -542,7 +539,7 @@ class Estimator:
         filter's own covariance allows (a diverging filter: :mod:`tobitkf.filters._online_check`, every
         8th step), naming the step and the remedy.
         """
-        state = self._check_state(state)
+        state = entering_state(self, state)
         if state.carry.get("_predicted"):
             raise _prediction_to_step()
         yk = self._reading(state, y)
@@ -550,8 +547,8 @@ class Estimator:
             uk, opts = None, self._prepare_step_options(state, options)
         else:
             uk = self._step_input(state, u)
-            opts = self._prepare_step_options(state, self._check_options(options))
-        self._check_reading(state, yk, opts)
+            opts = self._prepare_step_options(state, _step_keywords(self, options))
+        self._check_reading(state.k + 1, yk, opts)
         fast = self._compiled_online_step(state, yk, uk, opts)
         if fast is not None:
             # the check's own test, without its call, for the common case: a step it does not look at whose carry
@@ -575,13 +572,14 @@ class Estimator:
     def _prepare_step_options(self, state: FilterState, options: dict[str, Any]) -> dict[str, Any]:
         return options
 
-    def _check_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
-        """Checks of one reading (N, m) of ``step`` beyond its shape (e.g. within the censoring limits): those of
-        ``filter`` (:meth:`_check_record` of a record of one step), so that ``step`` and ``filter`` accept the
-        same readings; a step that sets its own limits (``lower``/``upper``) is checked by its family."""
+    def _check_reading(self, k: int, y: np.ndarray, options: Mapping[str, Any]) -> None:
+        """Checks of the reading (N, m) of time ``k`` beyond its shape (e.g. within the censoring limits), for
+        ``step`` and ``update``: those of ``filter`` (:meth:`_check_record` of a record of one step), so that
+        ``step``, ``update`` and ``filter`` accept the same readings; a step that sets its own limits
+        (``lower``/``upper``) is checked by its family."""
         if options and (options.get("lower") is not None or options.get("upper") is not None):
             return
-        self._check_record(y[:, None], None, state.k)
+        self._check_record(y[:, None], None, k - 1)
 
     def _run(
         self,
@@ -605,7 +603,7 @@ class Estimator:
         if state is not None:
             if x0 is not None or P0 is not None:
                 raise ValidationError("state: give either a state to continue from or x0/P0, not both")
-            state = self._check_state(state)
+            state = entering_state(self, state)
             if state.carry.get("_predicted"):
                 raise _prediction_to_step("filter")
             if state.batch_shape != batch and state.runs != N:
@@ -615,45 +613,22 @@ class Estimator:
         u2 = self._prepare_inputs(u, N, T, batch)
         self._check_record(y2, u2, state.k, name)
         _check_output_memory(want, N, T, self.n, name)
-        fast = self._compiled_filter_with(y2, u2, state, want, batch, step_options)
+        fast = self._compiled_filter(y2, u2, state, want, batch, step_options)
         if fast is None:
             rec = _Recorder(want, T, batch, self.n)
-            x, P, S, carry = state.x, state.P, state.S, state.carry
             with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
-                fast = self._loop(rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T)
+                fast = _numpy_loop(self, rec, state, y2, u2, step_options, step_data, batch)
         if fast.final is not None:
             mark_trusted(self, fast.final)
         if isinstance(self, GaussianFilter):
             _correction_check(self, fast)
         return fast
 
-    def _loop(self, rec, state, x, P, S, carry, y2, u2, step_options, step_data, batch, N, T):
-        first_bad = None
-        for i in range(T):
-            k = state.k + i + 1
-            opts = step_options
-            if step_data:
-                opts = dict(step_options or {})
-                opts.update({key: val[:, i] for key, val in step_data.items()})
-            x, P, S, carry, xp, Pp, extras = self._step_arrays(
-                k, x, P, S, carry, y2[:, i], None if u2 is None else u2[:, i], opts
-            )
-            if first_bad is None:
-                first_bad = _first_nonfinite(P if S is None else S, k)
-            if first_bad is not None:
-                x = _poison_diverged(x, P if S is None else S)
-            rec.record(i, xp, Pp, x, P, extras)
-        if first_bad is not None:
-            _divergence_warning(self._name, first_bad, self.covariance_update)
-        final = FilterState(k=state.k + T, batch_shape=batch, x=x, P=P, n=self.n, S=S, carry=carry)
-        times = np.arange(state.k + 1, state.k + T + 1)
-        return rec.result(N, times, final)
-
     def _prepare_record(self, y: Any, name: str = "y") -> tuple[np.ndarray, tuple[int, ...]]:
         try:
             return prepare_measurements(y, self.m, name, allow_nan=self._allow_missing)
         except ValidationError as err:
-            raise self._refused_nan(err) from None
+            raise _refused_nan(self, err) from None
 
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -664,12 +639,14 @@ class GaussianFilter(Estimator):
 
     A family implements three hooks on arrays (batched over N runs, no validation inside):
 
-    * ``_initial(N, x0, P0)`` → ``(x, P, carry)``: the prior;
+    * ``_initial(N, x0, P0, batch)`` → ``(x, P, carry)``: the prior;
     * ``_transition(k, u, carry)`` → :class:`Transition` from k-1 to k;
     * ``_measurement(k, x̄, P̄, y, u, carry, **step_options)`` → ``(MeasurementPrediction, carry)``;
 
     and optionally ``_extras(k, x̄, P̄, x, P, mp, K, Ree, options)`` for per-step quantities that need
-    the posterior. Everything else (the predict, the update in each covariance form, the masking, the
+    the posterior, and ``_update_arrays(k, x̄, P̄, S̄, y, u, carry, options)`` → ``(x, P, S, carry, extras)`` to
+    replace the Kalman-type update of ``_measurement``'s moments (an assumed-density family's projection); the
+    optional hooks of :class:`Estimator` apply too. Everything else (the predict, the update in each covariance form, the masking, the
     divergence check, the recording of outputs, :meth:`init`, :meth:`predict`, :meth:`update`,
     :meth:`step` and :meth:`filter`) is shared.
     """
@@ -703,13 +680,6 @@ class GaussianFilter(Estimator):
         )
         return xn, Pn, Sn, carry, self._extras(k, xp, Pp, xn, Pn, mp, K, Ree, options)
 
-    def _check_update_reading(self, state: FilterState, y: np.ndarray, options: Mapping[str, Any]) -> None:
-        """Checks of :meth:`update`'s reading (N, m) beyond its shape: those of ``filter`` for the reading of
-        time ``state.k`` (as :meth:`~Estimator._check_reading`)."""
-        if options and (options.get("lower") is not None or options.get("upper") is not None):
-            return
-        self._check_record(y[:, None], None, state.k - 1)
-
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):
         """One predict + update on arrays: returns ``(x, P, S, carry, x̄, P̄, extras)``."""
         tr = self._transition(k, u, carry)
@@ -720,7 +690,7 @@ class GaussianFilter(Estimator):
     def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
         """The time update alone: the prediction :math:`\\hat x_{k+1|k}`, :math:`P_{k+1|k}` as a state
         whose ``k`` is the predicted time (pass it to :meth:`update` with that time's reading)."""
-        state = self._check_state(state)
+        state = entering_state(self, state)
         uk = self._step_input(state, u)
         k = state.k + 1
         tr = self._transition(k, uk, state.carry)
@@ -736,14 +706,14 @@ class GaussianFilter(Estimator):
 
     def update(self, state: FilterState, y: Any, **options: Any) -> FilterState:
         """The measurement update alone, of a state from :meth:`predict` with the reading of its time."""
-        state = self._check_state(state)
+        state = entering_state(self, state)
         if not state.carry.get("_predicted"):
             raise ValidationError(
                 "state: update() needs a predicted state (from predict()); use step() for a filtered one"
             )
         yk = self._reading(state, y)
-        self._check_update_reading(state, yk, options)
-        opts = self._prepare_step_options(state, self._check_options(options))
+        self._check_reading(state.k, yk, options)
+        opts = self._prepare_step_options(state, _step_keywords(self, options))
         carry = {k: v for k, v in state.carry.items() if k not in ("_predicted", "_u")}
         uk = state.carry.get("_u")
         with np.errstate(over="ignore", invalid="ignore"):  # an overflow is detected and reported below
@@ -757,6 +727,58 @@ class GaussianFilter(Estimator):
                 k=state.k, batch_shape=state.batch_shape, x=x, P=P, n=self.n, S=S, carry=carry, extras=extras or {}
             ),
         )
+
+
+def _numpy_loop(est: Estimator, rec: _Recorder, state: FilterState, y2, u2, step_options, step_data, batch):
+    """The numpy time loop of :meth:`Estimator._run`: :meth:`~Estimator._step_arrays` for each reading of ``y2``
+    (N, T, m) from ``state``, the outputs recorded, the runs whose covariance stopped being finite poisoned (NaN
+    means) and reported once."""
+    N, T = y2.shape[0], y2.shape[1]
+    x, P, S, carry = state.x, state.P, state.S, state.carry
+    first_bad = None
+    for i in range(T):
+        k = state.k + i + 1
+        opts = step_options
+        if step_data:
+            opts = dict(step_options or {})
+            opts.update({key: val[:, i] for key, val in step_data.items()})
+        x, P, S, carry, xp, Pp, extras = est._step_arrays(
+            k, x, P, S, carry, y2[:, i], None if u2 is None else u2[:, i], opts
+        )
+        if first_bad is None:
+            first_bad = _first_nonfinite(P if S is None else S, k)
+        if first_bad is not None:
+            x = _poison_diverged(x, P if S is None else S)
+        rec.record(i, xp, Pp, x, P, extras)
+    if first_bad is not None:
+        _divergence_warning(est._name, first_bad, est.covariance_update)
+    final = FilterState(k=state.k + T, batch_shape=batch, x=x, P=P, n=est.n, S=S, carry=carry)
+    times = np.arange(state.k + 1, state.k + T + 1)
+    return rec.result(N, times, final)
+
+
+def _step_keywords(est: Estimator, options: Mapping[str, Any]) -> dict[str, Any]:
+    """The keywords of ``step``/``update`` as a dict, each one of the family's ``_step_options``."""
+    for key in options:
+        if key not in est._step_options:
+            raise TypeError(f"unexpected keyword argument {key!r}")
+    return dict(options)
+
+
+def entering_state(est: Estimator, state: Any) -> FilterState:
+    """``state`` as it may enter ``est``: a state this estimator made passes at the cost of two dictionary
+    look-ups (:func:`is_trusted`); any other (unpickled, copied, ``replace``-d, built by hand or made by another
+    estimator) gets the full check of :func:`check_state` once."""
+    if is_trusted(est, state):
+        return state
+    return check_state(est, state)
+
+
+def _refused_nan(est: Estimator, err: ValidationError) -> ValidationError:
+    """The NaN refusal ``err`` with the family's reason (``_missing_reason``) appended."""
+    if est._missing_reason and "NaN" in str(err):
+        return ValidationError(f"{err} ({est._missing_reason})")
+    return err
 
 
 def _check_batch(batch_shape: Any) -> tuple[int, ...]:
@@ -863,7 +885,7 @@ def _state_template(est: Estimator) -> FilterState | None:
 
 
 def check_state(est: Estimator, state: Any) -> FilterState:
-    r"""The full check of a state entering ``est`` (:meth:`Estimator._check_state` of a state it did not make).
+    r"""The full check of a state entering ``est`` (:func:`entering_state` of a state it did not make).
 
     Checks, naming the field: a :class:`FilterState`; ``k`` an integer not before the estimator's prior
     (``est.k0``); ``batch_shape`` a tuple of positive integers; ``n`` and ``x`` (N, n_x) float64 of this

@@ -361,10 +361,9 @@ class _FadingFamily(LinearGaussianFamily):
         if self.tobit and self.check_limits:
             self._cens.check_measurements(y2, name, start=k0 + 1)
 
-    def _check_reading(self, state, y, options):
+    def _check_reading(self, k, y, options):
         # the checks of _check_record for one step, without its record-wide calls (the limits' channels were
         # checked at construction; the one-step limit check directly): ~2.5 µs of an online step
-        k = state.k + 1
         self._check_horizon(k)
         cens = self._cens
         if cens.time_varying:
@@ -516,7 +515,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
         return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
     # ---- the compiled path (``filter``, and ``step`` through _compiled_step) ----------------------------------
-    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         ok = self._compiled_ok(u2, bool(step_options.get("keep_augmented")))
         return (
             _finite_or_none(_compiled_run(self, y2, u2, state, want, batch, bool(step_options["keep_smoothed"])))

@@ -197,7 +197,7 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
     def _compiled_ok(self, u) -> bool:
         return compiled_ok(self, u, "the Kalman filter")
 
-    def _compiled_filter(self, y2, u2, state, want, batch):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not self._compiled_ok(u2):
             return None
         return _finite_or_none(_kf_compiled_run(self, y2, state, want, batch))
@@ -524,7 +524,7 @@ class DroppingKalmanFilter(KalmanFilter):
         super()._check_record(y2, u2, k0, name)
         self.censoring.check_measurements(y2, name, start=k0 + 1)
 
-    def _compiled_filter(self, y2, u2, state, want, batch):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not self._compiled_ok(u2):
             return None
         at_lo, at_hi = self.censoring.censored_mask(y2, rtol=self.rtol, start=state.k + 1)

@@ -103,6 +103,7 @@ from .core import (
     GaussianFilter,
     check_keywords,
     check_prior,
+    entering_state,
     gain_update,
     mark_trusted,
     prepare_inputs,
@@ -370,7 +371,7 @@ class _NonlinearFamily(GaussianFilter):
             self._compiled_ok = cached
         return cached
 
-    def _compiled_filter(self, y2, u2, state, want, batch):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not self._use_compiled():
             return None
         from . import _compiled_nonlinear
@@ -388,12 +389,12 @@ class _NonlinearFamily(GaussianFilter):
         """
         if options or not self._use_compiled():
             return super().step(state, y, u=u, **options)
-        state = self._check_state(state)
+        state = entering_state(self, state)
         if state.carry.get("_predicted"):
             return super().step(state, y, u=u)  # refuses a predicted state, with the numpy step's message
         yk = self._reading(state, y)
         uk = self._step_input(state, u)
-        self._check_reading(state, yk, {})
+        self._check_reading(state.k + 1, yk, {})
         from . import _compiled_nonlinear
 
         out = _compiled_nonlinear.compiled_run(
@@ -496,7 +497,7 @@ class _NonlinearFamily(GaussianFilter):
         """The time update alone: the prediction :math:`\bar x_{k+1}`, :math:`\bar P_{k+1}` as a state whose
         ``k`` is the predicted time (pass it to :meth:`update` with that time's reading); ``u`` the input
         :math:`u_{k+1}` of an ``f(x, k, u)``."""
-        state = self._check_state(state)
+        state = entering_state(self, state)
         uk = self._step_input(state, u)
         k = state.k + 1
         assert state.P is not None, "a Gaussian filter's state carries P"

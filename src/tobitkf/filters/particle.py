@@ -327,7 +327,7 @@ class ParticleFilter(Estimator):
             return f"{self.model.label} readings (linear readings with censoring only)"
         return system_gap(self.system, u)
 
-    def _compiled_filter(self, y2, u2, state, want, batch):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not use_kernel(self.backend, self._compiled_gap(u2), "the particle filter"):
             return None
         from ._compiled_particle import filter_blocks

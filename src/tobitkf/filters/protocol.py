@@ -361,19 +361,6 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             ) from None
         return {"uncensored": arr.reshape(state.runs, 1)}
 
-    def _reading(self, state, y, name="y"):
-        arr = super()._reading(state, y, name)
-        tau = self._tau
-        # the common case in one comparison: no NaN, none below tau (a few readings in Python floats, the same verdict)
-        if all(v >= tau for v in arr.ravel().tolist()) if arr.size <= 16 else (arr >= tau).all():
-            return arr
-        if self.check_limits and (arr < self.channel.threshold).any():
-            raise ValidationError(
-                f"{name}: readings below the threshold tau={self.channel.threshold} cannot come "
-                f"from (4), found {arr[arr < self.channel.threshold][:3]}"
-            )
-        return arr
-
     def filter(
         self,
         y: Any,
@@ -450,7 +437,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             return None
         return _protocol_loop_step(self, y, options.get("uncensored"), state)
 
-    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         what = "the protocol Tobit Kalman filter"
         step_options = step_options or {}
         if "uncensored_record" not in step_options:  # a loop not started by filter(): gamma unknown here

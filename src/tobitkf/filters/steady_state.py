@@ -332,17 +332,20 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         return {"latent": True} if latent else {}
 
     # ---- the compiled path (batched ``filter``/``filter_controlled`` only; ``step`` runs numpy) ------
-    # the divergence warning of ``filter``/``filter_controlled`` is issued at the end of either path: the
-    # compiled one scans the means only when the last mean is not finite, the numpy loop scans them
-    def _compiled_filter_with(self, y2, u2, state, want, batch, step_options):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not use_kernel(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
             return None
         return _steady_loop_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
 
-    def _loop(self, rec, state, *args):
-        res = super()._loop(rec, state, *args)
-        # stack: here, Estimator._run, filter or filter_controlled, the caller
-        _warn_if_diverged(res.mean, self._name, state.k, stacklevel=5)
+    def _fixed_gain_run(self, y: Any, u: Any, x0: Any, outputs: Any, state: FilterState | None, **kw: Any):
+        """The one loop (compiled or numpy) of ``filter``/``filter_controlled``, then the divergence warning of
+        either path: the means are scanned only when the last one is not finite (an overflow never recovers:
+        inf and NaN spread through A and K)."""
+        k0 = self.k0 if state is None else state.k
+        res = self._run(y, u, x0, None, outputs=outputs, state=state, **kw)
+        if res.final is not None and not np.isfinite(res.final.x).all():
+            # stack: here, filter or filter_controlled, the caller
+            _warn_if_diverged(res.mean, self._name, k0, stacklevel=4)
         return res
 
     def filter(
@@ -358,7 +361,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         NaN (a missing sample) is refused with a :class:`ValidationError`: a fixed gain
         cannot skip a sample without making the reported covariance wrong.
         """
-        return self._run(y, u, x0, None, outputs=outputs, state=state)
+        return self._fixed_gain_run(y, u, x0, outputs, state)
 
     def filter_controlled(
         self, y_latent: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
@@ -370,9 +373,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         Returns the usual result with extras ``limits`` and ``y`` (..., T, m): the limits
         used and the censored readings the filter received.
         """
-        return self._run(
-            y_latent, u, x0, None, outputs=outputs, state=state, name="y_latent", step_options={"latent": True}
-        )
+        return self._fixed_gain_run(y_latent, u, x0, outputs, state, name="y_latent", step_options={"latent": True})
 
 
 class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
@@ -506,10 +507,6 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
 
     def out(a):
         return kernel_array(a, batch)
-
-    if not np.isfinite(x_last).all():  # an overflow never recovers (inf and NaN spread through A and K)
-        # locate the first one (stack: here, _compiled_filter_with, Estimator._run, filter*, caller)
-        _warn_if_diverged(out(means), est._name, state.k, stacklevel=6)
 
     def const(key, P):
         # the numpy loop stores a covariance shared by the runs once and broadcasts it (a copy for one run)

@@ -350,7 +350,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
     def _compiled_ok(self, u) -> bool:
         return compiled_ok(self, u, "the Tobit Kalman filter", inputs=True)
 
-    def _compiled_filter(self, y2, u2, state, want, batch):
+    def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not self._compiled_ok(u2):
             return None
         lo, hi = self.censoring.all_limits(y2.shape[1], self.m, start=state.k + 1, check=False)  # checked at _run
@@ -368,9 +368,9 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         """
         return super().step(state, y, u=u, **options)
 
-    def _check_reading(self, state, y, options):
+    def _check_reading(self, k, y, options):
         if self.check_limits and not options:
-            self.censoring.check_reading(y, state.k + 1)
+            self.censoring.check_reading(y, k)
 
     def filter(
         self,

@@ -79,6 +79,7 @@ from .core import (
     FilterState,
     MeasurementPrediction,
     Transition,
+    entering_state,
     mark_trusted,
     measurement_update,
     step_state,
@@ -481,7 +482,7 @@ class MultiTargetTracker(Estimator):
 
     def step(self, state: FilterState, detections: Any) -> FilterState:  # type: ignore[override]  # one frame per step
         """Track one frame of unordered detections (L, 2) (L may be 0)."""
-        state = self._check_state(state)
+        state = entering_state(self, state)
         M = self._frame(detections)
         k = state.k + 1
         x, P, S, carry, _, _, extras = self._step_arrays(
@@ -499,7 +500,7 @@ class MultiTargetTracker(Estimator):
             state = self.init(initial)
         elif initial is not None:
             raise ValidationError("state: give either a state to continue from or the initial locations, not both")
-        state = self._check_state(state)
+        state = entering_state(self, state)
         if (
             isinstance(detections, (str, bytes))
             or not hasattr(detections, "__len__")
