@@ -487,14 +487,13 @@ def per_component_tolerance(se: Any, runs: int, what: str) -> tuple[np.ndarray, 
 def optimum_bound(ratio: Any, conv: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     r"""An upper bound of a ratio to the *exact* optimum from its ratio to the particle filter with 2 N_p particles.
 
-        The bootstrap filter's excess RMSE over the exact optimum falls about as :math:`1/N_p`, so the 2 N_p filter's
-        excess :math:`e` is about the relative change :math:`c` of its RMSE from N_p to 2 N_p particles
-        (:math:`c = e(N_p) - e(2N_p) pprox e(2N_p)`); bounding it by :math:`c + z\,\mathrm{se}` (the convergence
-        check's one-sided bound, ``conv`` from :func:`~tobitkf.experiments._optimum.convergence`), the ratio to the
-        exact optimum is at most :math:`
-    ho(1 + \max(c + z\,\mathrm{se}, 0))`, per component.
+    The bootstrap filter's excess RMSE over the exact optimum falls about as :math:`1/N_p`, so the 2 N_p filter's
+    excess :math:`e` is about the relative change :math:`c` of its RMSE from N_p to 2 N_p particles
+    (:math:`c = e(N_p) - e(2N_p) \approx e(2N_p)`); bounding it by :math:`c + z\,\mathrm{se}` (the convergence
+    check's one-sided bound, ``conv`` from :func:`~tobitkf.experiments._optimum.convergence`), the ratio to the
+    exact optimum is at most :math:`\rho(1 + \max(c + z\,\mathrm{se}, 0))`, per component.
 
-        Returns the bound and the excess bound :math:`\max(c + z\,\mathrm{se}, 0)`, per component."""
+    Returns the bound and the excess bound :math:`\max(c + z\,\mathrm{se}, 0)`, per component."""
     change = np.asarray(conv.get("signed_change", conv["relative_change"]), dtype=float)
     excess = np.maximum(change + float(conv["z"]) * np.asarray(conv["stderr"], dtype=float), 0.0)
     return np.asarray(ratio, dtype=float) * (1.0 + excess), excess
