@@ -292,3 +292,25 @@ def test_a_comparison_carried_by_a_few_runaway_runs_is_not_shown_and_says_why():
     # every run with the rival three times the filter's error: shown
     ev["errors"]["rival"] = 3 * ea * (1 + 0.1 * np.random.default_rng(0).random((N, 1, 1)))
     assert NL.better_claim("case", ev, "rival")["holds"]
+
+
+def test_the_robust_views_count_runaway_runs_and_compare_medians():
+    # 38 runs where the filter errs by 0.1 and the rival by 0.3, 2 where the rival runs away (error 10); the prior
+    # mean errs by 1 on every run: the rival ran away on those 2 runs (RMSE 10 > 1), the filter on none
+    N, T = 40, 5
+    ea = np.full((N, T, 1), 0.1)
+    eb = np.full((N, T, 1), 0.3) * (1 + 0.1 * np.random.default_rng(1).random((N, 1, 1)))
+    eb[:2] = 10.0
+    ev = {"errors": {"adf": ea, "rival": eb}, "prior_errors": np.ones((N, T, 1)), "runs": N, "estimators": {}}
+    run, away = NL.runaways(eb, ev["prior_errors"])
+    np.testing.assert_allclose(run[:2], 10.0)
+    assert away.sum() == 2
+    median, share = NL.robust_claims("case", ev, "rival")
+    assert median["holds"]  # 0.1 against about 0.31, every resample
+    # 2 of 40: the paired indicators' standard error is sqrt(0.05 * 0.95 * 40 / 39 / 40) = 0.0349, three of which
+    # (0.105) exceed the difference 0.05: not shown
+    assert not share["holds"] and "2 of 40 for rival" in share["note"]
+    # a non-finite estimate is a runaway run with an infinite RMSE
+    eb[5, 2, 0] = np.nan
+    run, away = NL.runaways(eb, ev["prior_errors"])
+    assert np.isinf(run[5]) and away[5]
