@@ -43,6 +43,7 @@ __all__ = [
     "ARKANSAS_MODEL",
     "ARKANSAS_CANDIDATES",
     "STATIC_MODEL",
+    "MOVING_WINDOWS_MODEL",
     "FLUX_FACTOR",
     "LOO_GTOL",
 ]
@@ -87,7 +88,7 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
         "harmonics": 2,
         "quadratic": True,
         "flow_anomaly_days": 30.0,
-    },
+    },  # MOVING_WINDOWS_MODEL
     {
         "drift": ("intercept",),
         "flow_variance": True,
@@ -114,6 +115,16 @@ anomaly over a 30-day mean, an AR(1) residual and a sample noise whose sd depend
 candidates)."""
 STATIC_MODEL: dict[str, Any] = {"drift": (), "flow_variance": False}
 """The static regression on ln Q and season with an AR(1) residual on the daily grid (the simpler model)."""
+MOVING_WINDOWS_MODEL: dict[str, Any] = {
+    "drift": ("intercept", "slope", "season"),
+    "flow_variance": True,
+    "harmonics": 2,
+    "quadratic": True,
+    "flow_anomaly_days": 30.0,
+}
+"""The state-space counterpart of WRTDS's moving windows on the record's regressors: the intercept, the ln Q
+slope and the seasonal coefficients all drift as random walks, with the AR(1) residual and the flow-dependent
+noise. Its leave-one-out is run in every run of ``data-arkansas``, beside the chosen and the static model's."""
 LOO_GTOL = 1e-4
 
 
@@ -319,7 +330,7 @@ def run_arkansas(
         }
         same = m.names == model.names and o == opts
         is_static = o == dict(STATIC_MODEL)
-        if loo_all or same or (static_baseline and is_static):
+        if loo_all or same or (static_baseline and is_static) or o == MOVING_WINDOWS_MODEL:
             if same:
                 lj, sj, tj = loo, sc_s, t_loo
             else:
