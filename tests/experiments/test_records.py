@@ -346,8 +346,10 @@ def test_added_regressors_are_what_the_model_says():
 
 def test_the_documented_models_are_candidates():
     from tobitkf.experiments.records import ARKANSAS_CANDIDATES
+    from tobitkf.experiments.records_arkansas import MOVING_WINDOWS_MODEL
 
     assert ARKANSAS_MODEL in ARKANSAS_CANDIDATES and STATIC_MODEL in ARKANSAS_CANDIDATES
+    assert MOVING_WINDOWS_MODEL in ARKANSAS_CANDIDATES
     assert len({repr(sorted(c.items())) for c in ARKANSAS_CANDIDATES}) == len(ARKANSAS_CANDIDATES)  # no repeats
 
 

@@ -3,12 +3,13 @@ below one of three detection limits, discharge known every day), a drifting-coef
 state-space model (:class:`~tobitkf.experiments.records_river.RiverModel`) against WRTDS.
 
 The model is chosen, not assumed: every model tried on this record is listed in
-:data:`ARKANSAS_CANDIDATES` (drifting coefficients, a flow-dependent noise, a square of ln Q, a seasonal ln Q
-slope, a second seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days, a second
-residual with a short memory beside the first); the
-experiment fits each by maximum likelihood (:func:`fit_river`: two starts and the best nested candidate's
-estimates) and takes the one of smallest AIC on the full record. The leave-one-out score of every candidate is reported beside it (``models_compared``),
-so that a reader sees how many models were compared and where the chosen one stands.
+:data:`ARKANSAS_CANDIDATES` (drifting coefficients, up to every coefficient drifting as WRTDS's windows move
+in time, a noise sd depending on the flow and on the season, a square of ln Q, a seasonal ln Q slope, a second
+seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days, a second residual with a
+short memory beside the first); the experiment fits each by maximum likelihood (:func:`fit_river`: two starts
+and the best nested candidate's estimates) and takes the one of smallest AIC on the full record. The
+leave-one-out score of every candidate is reported beside it (``models_compared``), so that a reader sees how
+many models were compared and where the chosen one stands.
 
 Leave-one-out: for each sample i, the parameters are refitted to the record without it
 (warm-started at the full fit, batched quasi-Newton over all samples at once: every sample's
@@ -42,6 +43,7 @@ __all__ = [
     "ARKANSAS_MODEL",
     "ARKANSAS_CANDIDATES",
     "STATIC_MODEL",
+    "MOVING_WINDOWS_MODEL",
     "FLUX_FACTOR",
     "LOO_GTOL",
 ]
@@ -86,7 +88,7 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
         "harmonics": 2,
         "quadratic": True,
         "flow_anomaly_days": 30.0,
-    },
+    },  # MOVING_WINDOWS_MODEL
     {
         "drift": ("intercept",),
         "flow_variance": True,
@@ -102,15 +104,27 @@ the leave-one-out score) and reports every candidate's leave-one-out score besid
 ARKANSAS_MODEL: dict[str, Any] = {
     "drift": ("intercept",),
     "flow_variance": True,
+    "season_variance": True,
     "harmonics": 2,
     "quadratic": True,
     "flow_anomaly_days": 30.0,
 }
 """The smallest-AIC candidate: a drifting intercept, ln Q and its square, two seasonal harmonics, the flow
-anomaly over a 30-day mean, an AR(1) residual and a flow-dependent sample noise (``data-arkansas`` selects it
-afresh from :data:`ARKANSAS_CANDIDATES`; this is the default of a run without candidates)."""
+anomaly over a 30-day mean, an AR(1) residual and a sample noise whose sd depends on the flow and the season
+(``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the default of a run without
+candidates)."""
 STATIC_MODEL: dict[str, Any] = {"drift": (), "flow_variance": False}
 """The static regression on ln Q and season with an AR(1) residual on the daily grid (the simpler model)."""
+MOVING_WINDOWS_MODEL: dict[str, Any] = {
+    "drift": ("intercept", "slope", "season"),
+    "flow_variance": True,
+    "harmonics": 2,
+    "quadratic": True,
+    "flow_anomaly_days": 30.0,
+}
+"""The state-space counterpart of WRTDS's moving windows on the record's regressors: the intercept, the ln Q
+slope and the seasonal coefficients all drift as random walks, with the AR(1) residual and the flow-dependent
+noise. Its leave-one-out is run in every run of ``data-arkansas``, beside the chosen and the static model's."""
 LOO_GTOL = 1e-4
 
 
@@ -316,7 +330,7 @@ def run_arkansas(
         }
         same = m.names == model.names and o == opts
         is_static = o == dict(STATIC_MODEL)
-        if loo_all or same or (static_baseline and is_static):
+        if loo_all or same or (static_baseline and is_static) or o == MOVING_WINDOWS_MODEL:
             if same:
                 lj, sj, tj = loo, sc_s, t_loo
             else:
