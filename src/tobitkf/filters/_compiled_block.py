@@ -59,14 +59,15 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of the compi
 
 
 # --- the block scratch ---------------------------------------------------------------------
-# One allocator of the block scratch for every kernel (here, the loop, the closed loop),
-# called once per kernel call (never per block or step) and inlined into the kernel at the numba
-# IR level, so that LLVM sees the arrays as fresh and unaliased. Not a workspace made by the
-# Python driver and passed in: measured on the TKF, views cut from one passed-in buffer cost more
-# to make than the allocations (21-33 ns against 20 ns per array) and made a single run's step
-# markedly slower (n = 2, m = 1: 1.0-1.6 us against 0.7-1.2 us per step, CPU time on a loaded
-# machine), LLVM no longer knowing that the arrays are distinct; a tuple of arrays passed in is
-# unboxed array by array on every call (28 arrays: 7.3 us per call).
+# One allocator of the block scratch for every kernel (here, the loop, the closed loop), called once per kernel
+# call (never per block or step) and inlined into the kernel at the numba IR level. Each allocator makes ONE
+# allocation per dtype and cuts its arrays from it as views (:func:`_take`): in numba every array made costs a
+# heap allocation and its release, ~22 ns whatever its size (a zero-size array as much), a view of a
+# workspace ~2 ns (measured in isolation, 10 arrays a call, thread CPU time, load 9: 374 ns allocating them,
+# 355 ns allocating them empty, 170 ns cutting them from one allocation, 152 ns for the call alone). With its
+# ~48 arrays made per call the compiled loop paid ~1 us on every one-run online step. Not a workspace made by
+# the Python driver and passed in: a tuple of arrays passed in is unboxed array by array on every call
+# (28 arrays: 7.3 us per call).
 
 
 @njit(cache=True)
@@ -116,10 +117,39 @@ def _block_dims(N, T, d=0, block=BLOCK):
     return B, S
 
 
+ALIGN = 8  # each view of a workspace starts a multiple of 8 numbers (64 bytes) after the previous one
+
+
+@njit(cache=True, inline="always")
+def _room(shape):
+    """The numbers a view of ``shape`` takes in a workspace: its size rounded up to :data:`ALIGN`."""
+    size = 1
+    for d in shape:
+        size *= d
+    return (size + ALIGN - 1) // ALIGN * ALIGN
+
+
+@njit(cache=True, inline="always")
+def _take(ws, o, shape):
+    """A C-contiguous view of ``shape`` cut from the 1-d workspace ``ws`` at offset ``o``, and the offset of
+    the next view (:func:`_room` further on). The views of one workspace share no element."""
+    size = 1
+    for d in shape:
+        size *= d
+    return ws[o : o + size].reshape(shape), o + _room(shape)
+
+
 @njit(cache=True, inline="always")
 def _mean_scratch(dim, m, B):
-    """The scratch of the mean recursion of a block: ``x``, ``xp`` (dim, B), ``e``, ``ybar`` (m, B)."""
-    return np.empty((dim, B)), np.empty((dim, B)), np.empty((m, B)), np.empty((m, B))
+    """The scratch of the mean recursion of a block: ``x``, ``xp`` (dim, B), ``e``, ``ybar`` (m, B) (views of one
+    allocation)."""
+    sx, se = (dim, B), (m, B)
+    ws = np.empty(2 * _room(sx) + 2 * _room(se))
+    x, o = _take(ws, 0, sx)
+    xp, o = _take(ws, o, sx)
+    e, o = _take(ws, o, se)
+    ybar, o = _take(ws, o, se)
+    return x, xp, e, ybar
 
 
 @njit(cache=True, inline="always")
@@ -132,32 +162,42 @@ def _update_scratch(dim, ntop, m, B, G):
     :func:`_cov_update`, ``noise``
     (m, m, B) zeroed), the per-run solve scratch ``(Rs, Ws, Ks, oks, Rxs, ds)`` of :func:`_gain_of_run`,
     the block solve scratch ``(Rw, Wb, db, bad)`` of :func:`_gain_block` (empty for m = 1) and the
-    (2, G) quadrature buffer of :func:`censored_stats`."""
+    (2, G) quadrature buffer of :func:`censored_stats`: the numbers cut from one allocation, the flags from
+    another (:func:`_take`). ``m = 0``: the predict's scratch alone (the gain's arrays empty)."""
     g = m if m > 1 else 0
     gb = B if m > 1 else 0
-    blk = (
-        np.empty((dim, dim, B)),  # P
-        np.empty((dim, dim, B)),  # Pp
-        np.empty((dim, ntop, B)),  # AP
-        np.empty((m, dim, B)),  # CP
-        np.empty((dim, m, B)),  # Rxe
-        np.empty((m, m, B)),  # Ree
-        np.empty((dim, m, B)),  # K
-        np.empty((dim, m, B)),  # MH
-        np.zeros((m, m, B)),  # noise
-        np.empty((m, B)),  # gam
-        np.empty((m, B), dtype=np.bool_),  # ok
-    )
-    run = (
-        np.empty((m, m)),  # Rs
-        np.empty((m, dim)),  # Ws
-        np.empty((dim, m)),  # Ks
-        np.empty(m, dtype=np.bool_),  # oks
-        np.empty((dim, m)),  # Rxs
-        np.empty(m),  # ds
-    )
-    solve = (np.empty((g, g, gb)), np.empty((g, dim if g else 0, gb)), np.empty((g, gb)), np.empty(gb, dtype=np.bool_))
-    return blk, run, solve, np.empty((2, G))
+    sP, sAP, sCP, sK, sR, sg = (dim, dim, B), (dim, ntop, B), (m, dim, B), (dim, m, B), (m, m, B), (m, B)
+    sRs, sWs, sKs, sds = (m, m), (m, dim), (dim, m), (m,)
+    sRw, sWb, sdb, sbuf = (g, g, gb), (g, dim if g else 0, gb), (g, gb), (2, G)
+    size = 2 * _room(sP) + _room(sAP) + _room(sCP) + 3 * _room(sK) + 2 * _room(sR) + _room(sg)
+    size += _room(sRs) + _room(sWs) + 2 * _room(sKs) + _room(sds) + _room(sRw) + _room(sWb) + _room(sdb)
+    ws = np.empty(size + _room(sbuf))
+    P, o = _take(ws, 0, sP)
+    Pp, o = _take(ws, o, sP)
+    AP, o = _take(ws, o, sAP)
+    CP, o = _take(ws, o, sCP)
+    Rxe, o = _take(ws, o, sK)
+    Ree, o = _take(ws, o, sR)
+    K, o = _take(ws, o, sK)
+    MH, o = _take(ws, o, sK)
+    noise, o = _take(ws, o, sR)
+    noise[...] = 0.0
+    gam, o = _take(ws, o, sg)
+    Rs, o = _take(ws, o, sRs)
+    Ws, o = _take(ws, o, sWs)
+    Ks, o = _take(ws, o, sKs)
+    Rxs, o = _take(ws, o, sKs)
+    ds, o = _take(ws, o, sds)
+    Rw, o = _take(ws, o, sRw)
+    Wb, o = _take(ws, o, sWb)
+    db, o = _take(ws, o, sdb)
+    buf, o = _take(ws, o, sbuf)
+    flags = np.empty(_room(sg) + _room(sds) + _room((gb,)), dtype=np.bool_)
+    ok, o = _take(flags, 0, sg)
+    oks, o = _take(flags, o, sds)
+    bad, o = _take(flags, o, (gb,))
+    blk = (P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok)
+    return blk, (Rs, Ws, Ks, oks, Rxs, ds), (Rw, Wb, db, bad), buf
 
 
 @njit(cache=True)
@@ -647,6 +687,27 @@ def _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb):
     _mirror(P, nb)
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def scaled_update(C, joseph, xp, Pp, e, x, P, scratch, nb):
+    r"""The update of a block at the effective measurement matrix :math:`H = \mathrm{diag}(\gamma)C` once its
+    channel statistics are in: :math:`R_{xe}`, :math:`R_{ee}` (:func:`_innovation_moments`, ``gam`` and the
+    noise term in ``blk``), the masked gain and :math:`\hat x = \bar x + Ke` (:func:`_gain_block` for m > 1,
+    :func:`_gain`), the covariance (:func:`_cov_update`, standard or Joseph form): the tail of the Tobit
+    update (Miller (3.39)–(3.41)) and of the fading TKF's (Geng et al. (23)–(26), (19), (20')), written once.
+    ``C`` (m, dim), ``xp``, ``Pp`` the prediction, ``e`` (m, B) the innovations, ``x``, ``P`` the posterior
+    written; ``scratch`` the ``(blk, run, solve, buf)`` of :func:`_update_scratch`."""
+    blk, run, solve, _buf = scratch
+    _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    Rs, Ws, Ks, oks, Rxs, ds = run
+    Rw, Wb, db, bad = solve
+    _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
+    if C.shape[0] > 1:
+        _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
+    else:
+        _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
+    _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
+
+
 @njit(cache=True, error_model="numpy")
 def _load(x0, P0, r0, nb, x, P):
     n = x.shape[0]
@@ -659,14 +720,39 @@ def _load(x0, P0, r0, nb, x, P):
 
 @njit(cache=True, error_model="numpy")
 def _stage(xv, Pv, tt, nb, mbuf, cbuf):
-    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt``; a buffer with
-    no runs (``shape[0] == 0``: that output was not requested) is skipped."""
-    n = mbuf.shape[1]
-    if mbuf.shape[0] > 0:
-        for i in range(n):
-            for b in range(nb):
-                mbuf[tt, i, b] = xv[i, b]
+    """Copy a block's x[i, b], P[i, j, b] into the staging buffers at chunk step ``tt`` (:func:`_stage_mean`,
+    :func:`_stage_cov`); a buffer with no steps (that output was not requested) is skipped."""
+    _stage_mean(xv, mbuf, tt, nb)
     _stage_cov(Pv, cbuf, tt, nb)
+
+
+@njit(cache=True, error_model="numpy")
+def _stage_mean(xv, mbuf, tt, nb):
+    """Copy the top ``d`` rows of a block's x[i, b] (d = ``mbuf.shape[1]`` at most the state size) into the
+    staging buffer ``mbuf`` (S, d, B) at chunk step ``tt``; with d = w + n_x above the state size n_x, its top
+    w rows and then all n_x (the fading TKF's mean and its smoothed blocks in one output: no copy of the
+    mean out of them afterwards). Skipped when ``mbuf`` has no steps."""
+    if mbuf.shape[0] == 0:
+        return
+    d, nx = mbuf.shape[1], xv.shape[0]
+    off = d - nx if d > nx else 0
+    for i in range(d):
+        ii = i - off if i >= off else i
+        for b in range(nb):
+            mbuf[tt, i, b] = xv[ii, b]
+
+
+@njit(cache=True, error_model="numpy")
+def _stage_rows(v, buf, tt, nb):
+    """Copy a block's values ``v`` (d, B) into the staging buffer ``buf`` (S, ..., B) (d numbers per run-step)
+    at chunk step ``tt``; skipped when ``buf`` has no steps (that output was not requested)."""
+    if buf.shape[0] == 0:
+        return
+    d = v.shape[0]
+    dst = buf.reshape((buf.shape[0], d, buf.shape[buf.ndim - 1]))
+    for i in range(d):
+        for b in range(nb):
+            dst[tt, i, b] = v[i, b]
 
 
 @njit(cache=True, error_model="numpy")
@@ -675,7 +761,9 @@ def _stage_cov(Pv, cbuf, tt, nb):
     buffer ``cbuf`` (S, n, n, B) at chunk step ``tt``, or only its diagonal into ``cbuf`` (S, n, 1, B) (the
     variances, for ``outputs=("var",)``: no (N, T, n, n) array), or, for ``cbuf`` (S, n_x, w, B) with w < n_x,
     the w x w diagonal blocks of an augmented state, stacked (row s w + i, column j: P[s w + i, s w + j]; the
-    fading TKF's smoothed covariances); skipped when ``cbuf`` has no steps."""
+    fading TKF's smoothed covariances), or for ``cbuf`` (S, w + n_x, w, B) the top w x w block and then those
+    diagonal blocks (the fading TKF's covariance and its smoothed covariances in one output); skipped when
+    ``cbuf`` has no steps."""
     if cbuf.shape[0] == 0:
         return
     n, w = cbuf.shape[1], cbuf.shape[2]
@@ -685,11 +773,14 @@ def _stage_cov(Pv, cbuf, tt, nb):
                 cbuf[tt, i, 0, b] = Pv[i, i, b]
         return
     if w < n:
+        nx = Pv.shape[0]
+        off = n - nx if n > nx else 0
         for i in range(n):
-            o = i - i % w
+            ii = i - off if i >= off else i
+            o = ii - ii % w
             for j in range(w):
                 for b in range(nb):
-                    cbuf[tt, i, j, b] = Pv[i, o + j, b]
+                    cbuf[tt, i, j, b] = Pv[ii, o + j, b]
         return
     for i in range(n):
         for j in range(n):

@@ -28,14 +28,7 @@ from __future__ import annotations
 
 from numba import njit
 
-from ._compiled_block import (
-    _block_dims,
-    _cov_update,
-    _gain,
-    _gain_block,
-    _innovation_moments,
-    mean_predict,
-)
+from ._compiled_block import _block_dims, mean_predict, scaled_update
 from ._compiled_censored import GL_W, GL_X, _one_sided_at, censored_stats, noise_term
 from ._compiled_tobit import _INF
 
@@ -139,10 +132,8 @@ def fading_update_block(C, sigma, lo, hi, tl, noise_code, joseph, y, du, r0, t, 
     (21) into ``mu`` (m, B), the innovation into ``e``, the inverse Mills ratio into ``lam`` (m, B) and
     :math:`\bar\gamma` into ``gam`` of ``blk``; ``scratch`` the ``(blk, run, solve, buf)`` of
     :func:`~tobitkf.filters._compiled_block._update_scratch` (``buf`` the (2, G) buffer of the quadrature)."""
-    blk, run, solve, buf = scratch
-    _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
-    Rs, Ws, Ks, oks, Rxs, ds = run
-    Rw, Wb, db, bad = solve
+    buf = scratch[3]
+    noise, gam = scratch[0][8], scratch[0][9]
     m, nxi = C.shape
     has_du = du.shape[1] > 0
     for l in range(m):
@@ -169,10 +160,5 @@ def fading_update_block(C, sigma, lo, hi, tl, noise_code, joseph, y, du, r0, t, 
             noise[l, l, b] = noise_term(noise_code, ml[b], st[2], st[4], st[5], st[7])
             ml[b] = st[6]
             e[l, b] = y[r0 + b, t, l] - st[6]
-    # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k  (24)-(26)
-    _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
-    if m > 1:  # (23), (19)
-        _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
-    else:
-        _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
-    _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # (20')
+    # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k (24)-(26); the gain (23), (19); P (20')
+    scaled_update(C, joseph, xp, Pp, e, x, P, scratch, nb)

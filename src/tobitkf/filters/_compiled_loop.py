@@ -6,8 +6,10 @@ Tobit Kalman filters and every assumed-density family.
 (:func:`~tobitkf.filters._compiled_block._predict`, or the block shift of an augmented state,
 :func:`~tobitkf.filters._compiled_fading.shift_predict_block`), the input term :math:`B^uu_k`, the family's
 update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._compiled_block`),
-carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). The update is chosen by a code,
-one branch per block and step:
+carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). Its scratch is sized to the family
+(an array the family's update does not use gets no room) and cut as views from a few allocations
+(:func:`_loop_scratch`, :func:`~tobitkf.filters._compiled_block._update_scratch`): a one-run online step pays
+for the allocations, not for the arrays. The update is chosen by a code, one branch per block and step:
 
 * :data:`KALMAN`: :math:`K = \bar PC^T(C\bar PC^T + R)^{-1}` over the channels that take part (a NaN reading
   does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
@@ -70,9 +72,13 @@ from ._compiled_block import (
     _mean_scratch,
     _mirror,
     _predict,
+    _room,
     _stage,
+    _stage_mean,
+    _stage_rows,
     _stage_shape,
     _store_last,
+    _take,
     _take_part,
     _update_scratch,
     mean_predict,
@@ -150,51 +156,24 @@ def _kalman_moments(C, R, Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _channel_updates(
-    family,
-    npass,
-    y,
-    cls,
-    has_cls,
-    H,
-    F,
-    r,
-    lo,
-    hi,
-    par,
-    du,
-    r0,
-    t,
-    xp,
-    Pp,
-    Pc,
-    scr,
-    alpha,
-    beta,
-    llb,
-    pt,
-    compt,
-    pub,
-    compb,
-    member,
-    cv,
-    nb,
-):
+def _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, scratch, nb):
     r"""The assumed-density update of a block, channel by channel (module docstring): for each channel its row
-    ``H[t]``, the noise variance ``r`` and the limits ``lo``/``hi`` (runs or 1, steps, m) of each run, the prior moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
+    ``H[t]``, the noise variance ``r`` and the limits ``lo``/``hi`` (runs or 1, steps, m) of each run, the prior
+    moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
     variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`, the family's :math:`(\alpha, \beta)` from
     :func:`~tobitkf.filters._compiled_moments.family_block`, and the rank-one change along :math:`\bar Ph^T`
-    of ``xp``, ``Pp`` in place. ``npass = 2``: the readings inside their limits first, then the others. Adds
-    each channel's log-likelihood to ``llb``; ``pub`` (m, B), ``compb`` (m, J, B) its probability of an
-    uncensored reading (of the pass that updated the run) and its components' posterior weights (of the last
-    pass); ``pt``, ``compt``, ``member``, ``cv`` scratch."""
+    of ``xp``, ``Pp`` in place. ``npass = 2``: the readings inside their limits first, then the others.
+    ``scratch`` = ``(Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)`` (:func:`_adf_scratch`):
+    adds each channel's log-likelihood to ``llb`` (B,); ``pub`` (m, B), ``compb`` (m, J, B) its probability of
+    an uncensored reading (of the pass that updated the run) and its components' posterior weights (of the last
+    pass); the rest scratch."""
+    Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf = scratch
     m = y.shape[2]
     nx = xp.shape[0]
     Q = F.shape[2]
     hx, hph, rb, yv, lov, hiv = scr[0], scr[1], scr[2], scr[3], scr[4], scr[5]
     has_du = du.shape[1] > 0
     glx, glw = GL_X, GL_W
-    buf = np.empty((2, glx.shape[0]))
     th, tf, tr = min(t, H.shape[0] - 1), min(t, F.shape[0] - 1), min(t, r.shape[1] - 1)
     tl, tp = min(t, lo.shape[1] - 1), min(t, par.shape[0] - 1)
     nr, nl = r.shape[0] > 1, lo.shape[0] > 1  # noise / limits per run: run r0 + b of the block reads its own
@@ -380,7 +359,7 @@ def _fixed_gain_means(y, A, C, par, code, x0, means, pmeans, comp, x_last):
     x, xp, e, ybar = _mean_scratch(n, m, B)
     s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
     s_comp = np.empty(_stage_shape(comp, B, S))
-    want_m, want_pm, want_x = means.shape[1] > 0, pmeans.shape[1] > 0, comp.shape[1] > 0
+    want_x = comp.shape[1] > 0
     for r0 in range(0, N, B):
         nb = min(B, N - r0)
         for b in range(nb):
@@ -420,14 +399,8 @@ def _fixed_gain_means(y, A, C, par, code, x0, means, pmeans, comp, x_last):
                     k = par[l, 2 + i]
                     for b in range(nb):
                         x[i, b] += k * e[l, b]
-            if want_pm:
-                for i in range(n):
-                    for b in range(nb):
-                        s_pmean[tt, i, b] = xp[i, b]
-            if want_m:
-                for i in range(n):
-                    for b in range(nb):
-                        s_mean[tt, i, b] = x[i, b]
+            _stage_mean(xp, s_pmean, tt, nb)
+            _stage_mean(x, s_mean, tt, nb)
             if tt == S - 1 or t == T - 1:
                 t0 = t - tt
                 _flush(s_mean, means, r0, t0, nb, tt + 1)
@@ -436,6 +409,61 @@ def _fixed_gain_means(y, A, C, par, code, x0, means, pmeans, comp, x_last):
         for b in range(nb):
             for i in range(n):
                 x_last[r0 + b, i] = x[i, b]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _loop_scratch(family, n, nx, m, J, B, S, TK, buf, means, covs, pmeans, pcovs, pu, ey, ll, comp):
+    """The loop's own scratch beyond the block's (:func:`~tobitkf.filters._compiled_block._update_scratch`),
+    sized to the family ``family`` and cut from one allocation of numbers (and one each of flags and classes):
+    ``APr`` (n, n) of :func:`_predict_runs`; ``Kall`` (TK, n, m) the shared Kalman gains (TK = 0: not shared);
+    ``mom`` (20, B) of the protocol TKF (0 rows otherwise); the assumed-density scratch of
+    :func:`_channel_updates` ``(Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)``, its run
+    axis of length 0 for a family that does not use it (``Pc`` (nx, B) also the protocol TKF's, ``compb``
+    (m, J, B) also the fading TKF's inverse Mills ratios; ``compt``, ``compb`` zeroed; ``buf`` the quadrature
+    buffer passed in); and the staging buffers of the eight outputs (``(0, ..., B)`` for one not requested,
+    :func:`~tobitkf.filters._compiled_block._stage_shape`), in the order mean, cov, pred. mean, pred. cov,
+    pu, ey, ll, comp."""
+    adf = family < KALMAN
+    Ba = B if adf else 0
+    Bq = B if adf or family == PROTOCOL_TKF else 0
+    Bc = B if adf or family == FADING else 0
+    sAP, sK, smom = (n, n), (TK, n, m), (20 if family == PROTOCOL_TKF else 0, B)
+    sPc, sscr, sv, spub, scompt, scompb = (nx, Bq), (6, Ba), (Ba,), (m, Ba), (J, Ba), (m, J, Bc)
+    m1, m2, m3, m4 = (
+        _stage_shape(means, B, S),
+        _stage_shape(covs, B, S),
+        _stage_shape(pmeans, B, S),
+        _stage_shape(pcovs, B, S),
+    )
+    o1, o2, o3, o4 = _stage_shape(pu, B, S), _stage_shape(ey, B, S), _stage_shape(ll, B, S), _stage_shape(comp, B, S)
+    size = _room(sAP) + _room(sK) + _room(smom) + _room(sPc) + _room(sscr) + 4 * _room(sv) + _room(spub)
+    size += _room(scompt) + _room(scompb) + _room(m1) + _room(m2) + _room(m3) + _room(m4)
+    ws = np.empty(size + _room(o1) + _room(o2) + _room(o3) + _room(o4))
+    APr, o = _take(ws, 0, sAP)
+    Kall, o = _take(ws, o, sK)
+    mom, o = _take(ws, o, smom)
+    Pc, o = _take(ws, o, sPc)
+    scr, o = _take(ws, o, sscr)
+    alpha, o = _take(ws, o, sv)
+    beta, o = _take(ws, o, sv)
+    llb, o = _take(ws, o, sv)
+    pt, o = _take(ws, o, sv)
+    pub, o = _take(ws, o, spub)
+    compt, o = _take(ws, o, scompt)
+    compb, o = _take(ws, o, scompb)
+    compt[...] = 0.0
+    compb[...] = 0.0
+    s_mean, o = _take(ws, o, m1)
+    s_cov, o = _take(ws, o, m2)
+    s_pmean, o = _take(ws, o, m3)
+    s_pcov, o = _take(ws, o, m4)
+    s_pu, o = _take(ws, o, o1)
+    s_ey, o = _take(ws, o, o2)
+    s_ll, o = _take(ws, o, o3)
+    s_comp, o = _take(ws, o, o4)
+    member, cv = np.empty(Ba, dtype=np.bool_), np.empty(Ba, dtype=np.int8)
+    adfs = (Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)
+    return APr, Kall, mom, adfs, (s_mean, s_cov, s_pmean, s_pcov, s_pu, s_ey, s_ll, s_comp)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -487,8 +515,10 @@ def compiled_loop(
     none); ``x0`` (N, n_x), ``P0`` (N or 1, n_x, n_x). Outputs (T axis 0: not written): ``means``,
     ``pmeans`` (N, T, n), ``covs`` (N, T, n, n) or (N, T, n, 1) (the variances), ``pcovs`` (N, T, n, n),
     ``pu``, ``ey`` (N, T, m) (P(uncensored), the TKF's E(y)), ``ll`` (N, T), ``comp`` (N, T, m, J) (:data:`FADING`:
-    J = 1, the inverse Mills ratios); for an augmented state ``means`` may be (N, T, n_x) (every block) and
-    ``covs`` (N, T, n_x, n) (the n x n diagonal blocks, :func:`~tobitkf.filters._compiled_block._stage_cov`);
+    J = 1, the inverse Mills ratios); for an augmented state ``means`` may be (N, T, n_x) (every block) or
+    (N, T, n + n_x) (the top block, then every block), ``covs`` (N, T, n_x, n) (the n x n diagonal blocks) or
+    (N, T, n + n_x, n) (the top block, then the diagonal blocks) (:func:`~tobitkf.filters._compiled_block._stage_mean`,
+    :func:`~tobitkf.filters._compiled_block._stage_cov`);
     ``x_last``, ``P_last`` the state after the last step. The Kalman filter with one prior covariance
     (``P0`` (1, n, n), N > 1, nothing missing) runs the covariance and the gains once (``covs``, ``pcovs``,
     ``P_last`` with one run) and the means of every run with those gains."""
@@ -498,39 +528,31 @@ def compiled_loop(
         return
     nx = x0.shape[1]
     n = A.shape[2]
+    adf = family < KALMAN  # an assumed-density family: channel by channel (_channel_updates)
     # a transition or noise per run (run axis longer than 1): each lane of a block its own (_predict_runs)
     per_run = A.shape[0] > 1 or Qd.shape[0] > 1
     shared = family == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
     runs = 1 if shared else N
-    glx, glw = GL_X, GL_W
     B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, AUG_BLOCK if family == FADING else runs_per_block(nx))
-    APr = np.empty((n, n))
+    # the scratch sized to the family, cut from a few allocations (_compiled_block._take)
     x, xp, e, mu = _mean_scratch(nx, m, B)
-    blk, run, solve, buf = _update_scratch(nx, n, m, B, glx.shape[0] if family == TOBIT or family == FADING else 0)
-    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    sc = _update_scratch(nx, n, 0 if adf else m, B, 0 if family == KALMAN else GL_X.shape[0])
+    blk = sc[0]
+    P, Pp, AP, noise, gam = blk[0], blk[1], blk[2], blk[8], blk[9]
+    APr, Kall, mom, adfs, stg = _loop_scratch(
+        family, n, nx, m, J, B, S, T if shared else 0, sc[3], means, covs, pmeans, pcovs, pu, ey, ll, comp
+    )
+    s_mean, s_cov, s_pmean, s_pcov, s_pu, s_ey, s_ll, s_comp = stg
+    pub, compb = adfs[7], adfs[8]
+    llf, compf = adfs[4].reshape((1, adfs[4].shape[0])), compb.reshape((m * J, compb.shape[2]))
     C = H[0]
     if family == KALMAN:
         gam[:, :] = 1.0  # H = C
         for l in range(m):
             for q in range(m):
                 noise[l, q, :] = par[0, l, q]
-    # the assumed-density scratch
-    Pc = np.empty((nx, B))
-    scr = np.empty((6, B))
-    alpha, beta, llb = np.empty(B), np.empty(B), np.empty(B)
-    pt, pub = np.empty(B), np.empty((m, B))
-    compt, compb = np.zeros((J, B)), np.zeros((m, J, B))
-    member = np.empty(B, dtype=np.bool_)
-    cv = np.empty(B, dtype=np.int8)
     has_cls, has_bu = cls.shape[1] > 0, bu.shape[1] > 0
-    mom, pbuf = np.empty((20 if family == PROTOCOL_TKF else 0, B)), np.empty((2, glx.shape[0]))  # protocol TKF
-    Kall = np.empty((T if shared else 0, n, m))
-    # staging only for the requested outputs (an output of shape (N, 0, ...) gets a (0, S, ...) buffer)
-    s_mean, s_pmean = np.empty(_stage_shape(means, B, S)), np.empty(_stage_shape(pmeans, B, S))
-    s_cov, s_pcov = np.empty(_stage_shape(covs, B, S)), np.empty(_stage_shape(pcovs, B, S))
-    s_pu, s_ey = np.empty(_stage_shape(pu, B, S)), np.empty(_stage_shape(ey, B, S))
-    s_ll, s_comp = np.empty(_stage_shape(ll, B, S)), np.empty(_stage_shape(comp, B, S))
-    want_pu, want_ey, want_ll, want_comp = pu.shape[1] > 0, ey.shape[1] > 0, ll.shape[1] > 0, comp.shape[1] > 0
+    want_comp = comp.shape[1] > 0
     one_p = P0.shape[0] == 1
     for r0 in range(0, runs, B):
         nb = min(B, runs - r0)
@@ -557,6 +579,7 @@ def compiled_loop(
             _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
             if family == TOBIT:
                 tl = min(t, lo.shape[1] - 1)
+                run, solve, buf = sc[1], sc[2], sc[3]
                 tobit_update_block(
                     C,
                     r[0, 0],
@@ -570,8 +593,8 @@ def compiled_loop(
                     t,
                     noise_code,
                     joseph,
-                    glx,
-                    glw,
+                    GL_X,
+                    GL_W,
                     xp,
                     Pp,
                     mu,
@@ -584,16 +607,12 @@ def compiled_loop(
                     buf,
                     nb,
                 )
-                if want_pu or want_ey:
-                    for l in range(m):
-                        for b in range(nb):
-                            if want_pu:
-                                s_pu[tt, l, b] = gam[l, b]
-                            if want_ey:
-                                s_ey[tt, l, b] = mu[l, b]
+                _stage_rows(gam, s_pu, tt, nb)
+                _stage_rows(mu, s_ey, tt, nb)
             elif family == PROTOCOL_TKF:
+                Pc = adfs[0]
                 _protocol_tkf_update(
-                    y, cls, H, F, r, lo, par, noise_code, joseph, r0, t, xp, Pp, x, P, blk, Pc, mom, pbuf, nb
+                    y, cls, H, F, r, lo, par, noise_code, joseph, r0, t, xp, Pp, x, P, blk, Pc, mom, sc[3], nb
                 )
                 if want_comp:  # the step's scalars, then the augmented posterior and prior means
                     for i in range(len(PROTOCOL_TKF_EXTRAS)):
@@ -605,10 +624,11 @@ def compiled_loop(
                             s_comp[tt, 0, i0 + i, b] = x[i, b]
                             s_comp[tt, 0, i0 + nx + i, b] = xp[i, b]
             elif family == KALMAN:
+                CP, Rxe, Ree, K, MH, ok = blk[3], blk[4], blk[5], blk[6], blk[7], blk[10]
                 _kalman_moments(C, par[0], Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
-                Rs, Ws, Ks, oks, Rxs, ds = run
+                Rs, Ws, Ks, oks, Rxs, ds = sc[1]
                 if m > 1:
-                    Rw, Wb, db, bad = solve
+                    Rw, Wb, db, bad = sc[2]
                     _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
                 else:
                     _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
@@ -620,62 +640,17 @@ def compiled_loop(
             elif family == FADING:  # the rows H_k of the step, the inverse Mills ratios into compb[:, 0] (J = 1)
                 lam = compb.reshape((m, B))
                 Ht, tl = H[min(t, H.shape[0] - 1)], min(t, lo.shape[1] - 1)
-                sc = (blk, run, solve, buf)
                 fading_update_block(
                     Ht, r[0, 0], lo[0], hi[0], tl, noise_code, joseph, y, du, r0, t, xp, Pp, x, P, mu, e, lam, sc, nb
                 )
-                if want_pu or want_ey or want_comp:
-                    for l in range(m):
-                        for b in range(nb):
-                            if want_pu:
-                                s_pu[tt, l, b] = gam[l, b]
-                            if want_ey:
-                                s_ey[tt, l, b] = mu[l, b]
-                            if want_comp:
-                                s_comp[tt, l, 0, b] = lam[l, b]
+                _stage_rows(gam, s_pu, tt, nb)
+                _stage_rows(mu, s_ey, tt, nb)
+                _stage_rows(lam, s_comp, tt, nb)
             else:
-                _channel_updates(
-                    family,
-                    npass,
-                    y,
-                    cls,
-                    has_cls,
-                    H,
-                    F,
-                    r,
-                    lo,
-                    hi,
-                    par,
-                    du,
-                    r0,
-                    t,
-                    xp,
-                    Pp,
-                    Pc,
-                    scr,
-                    alpha,
-                    beta,
-                    llb,
-                    pt,
-                    compt,
-                    pub,
-                    compb,
-                    member,
-                    cv,
-                    nb,
-                )
-                if want_pu:
-                    for l in range(m):
-                        for b in range(nb):
-                            s_pu[tt, l, b] = pub[l, b]
-                if want_ll:
-                    for b in range(nb):
-                        s_ll[tt, b] = llb[b]
-                if want_comp:
-                    for l in range(m):
-                        for j in range(J):
-                            for b in range(nb):
-                                s_comp[tt, l, j, b] = compb[l, j, b]
+                _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, adfs, nb)
+                _stage_rows(pub, s_pu, tt, nb)
+                _stage_rows(llf, s_ll, tt, nb)
+                _stage_rows(compf, s_comp, tt, nb)
                 x, xp = xp, x
                 P, Pp = Pp, P
             _stage(x, P, tt, nb, s_mean, s_cov)

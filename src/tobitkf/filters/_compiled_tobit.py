@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._compiled_block import _cov_update, _gain, _gain_block, _innovation_moments
+from ._compiled_block import scaled_update
 from ._compiled_censored import GL_W, GL_X, censored_moments_array, censored_stats, noise_term, one_sided_block
 
 __all__ = [
@@ -90,9 +90,7 @@ def tobit_update_block(
     run by run. Inlined (numba
     ``inline="always"``): the caller's loop sees the statistics of :func:`censored_stats` inlined as before.
     """
-    _P, _Pp, _AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
-    Rs, Ws, Ks, oks, Rxs, ds = run
-    Rw, Wb, db, bad = solve
+    noise, gam = blk[8], blk[9]
     m, n = C.shape
     has_du = du.shape[1] > 0
     for l in range(m):
@@ -123,10 +121,5 @@ def tobit_update_block(
             noise[l, l, b] = noise_term(noise_code, mean, st[2], st[4], st[5], st[7])
             e[l, b] = y[r0 + b, t, l] - st[6]
             mu[l, b] = st[6]
-    # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40)
-    _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
-    if m > 1:
-        _gain_block(Rxe, Ree, ok, K, e, xp, x, nb, Rw, Wb, db, bad, Rs, Ws, Ks, oks, Rxs, ds)
-    else:
-        _gain(Rxe, Ree, ok, K, e, xp, x, nb, Rs, Ws, Ks, oks, Rxs, ds)
-    _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)  # H = diag(E(p)) C (3.41)
+    # Rxe = Pbar C^T E(p), Ree = E(p) C Pbar C^T E(p) + Ruu  (3.39), (3.40); the gain; P with H = diag(E(p)) C (3.41)
+    scaled_update(C, joseph, xp, Pp, e, x, P, (blk, run, solve, buf), nb)

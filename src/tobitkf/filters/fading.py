@@ -815,9 +815,10 @@ def _undefined_blocks(sm_mean: np.ndarray, sm_cov: np.ndarray | None, k0: int, L
 
 def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want, batch, keep_smoothed):
     """The compiled loop (update :data:`~tobitkf.filters._compiled_loop.FADING`) from ``state`` (augmented x, P);
-    outputs on request, as the numpy path's. With the smoothed blocks requested the loop writes every block of the
-    mean and the diagonal blocks of the covariance ((N, T, nxi), (N, T, nxi, n)), and ``mean`` and ``cov`` are
-    copies of their first blocks."""
+    outputs on request, as the numpy path's. With the smoothed blocks requested the loop writes the mean (top block)
+    and then every block of the state into one output ((N, T, n + nxi)), the covariance's top block and then the
+    diagonal blocks into another ((N, T, n + nxi, n)), and ``mean``, ``cov`` and the smoothed blocks are views
+    of them (:func:`~tobitkf.filters._compiled_block._stage_mean`, ``_stage_cov``)."""
     from ._compiled_loop import FADING, compiled_loop
     from ._loop_specs import LoopArguments
 
@@ -832,8 +833,10 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     ext = "extras" in want
     sm = ext and keep_smoothed
     state_out: tuple[tuple[bool, tuple[int, ...]], ...] = state_specs(want, n)[:2]
+    top = n if sm and "mean" in want else 0  # the mean's rows ahead of the smoothed blocks (_stage_mean)
+    ctop = n if sm and ("cov" in want or "var" in want) else 0
     if sm:
-        state_out = ((True, (nxi,)), (True, (nxi, n)))
+        state_out = ((True, (top + nxi,)), (True, (ctop + nxi, n)))
     means, covs, pmeans, pcovs, pu, ey, lam = output_arrays(
         N,
         T,
@@ -861,13 +864,14 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     if ext:
         extras = {"p_uncensored": out(pu), "expected_y": out(ey), "inverse_mills": out(lam.reshape(N, T, m))}
     if sm:
-        sm_mean, sm_cov = means.reshape(N, T, L + 1, n), covs.reshape(N, T, L + 1, n, n)
+        sm_mean, sm_cov = means[:, :, top:].reshape(N, T, L + 1, n), covs[:, :, ctop:].reshape(N, T, L + 1, n, n)
         _undefined_blocks(sm_mean, sm_cov, k0, L)
         extras.update(smoothed_mean=out(sm_mean), smoothed_cov=out(sm_cov))
-        # the mean and the covariance: copies of the first blocks (the result's arrays share no element)
-        means = np.ascontiguousarray(means[:, :, :n]) if "mean" in want else _empty((N, 0, n))
+        # the mean and the covariance: the rows the loop wrote ahead of the smoothed blocks, views (no copy; the
+        # result's arrays share no element)
+        means = means[:, :, :n] if top else _empty((N, 0, n))
         if "cov" in want:
-            covs = np.ascontiguousarray(covs[:, :, :n])
+            covs = covs[:, :, :n]
         elif "var" in want:  # the layout of cov_spec: the variances alone
             covs = np.diagonal(covs[:, :, :n], axis1=-2, axis2=-1)[..., None].copy()
         else:
