@@ -63,7 +63,7 @@ def test_psd_root_of_definite_and_singular_matrices(n):
     rng = np.random.default_rng(n)
     B = rng.normal(size=(n, n))
     definite = B @ B.T + 0.1 * np.eye(n)
-    singular = np.full((n, n), 2.0)  # rank one: the second pivot is exactly 0
+    singular = np.ones((n, n))  # rank one: the second pivot is exactly 1 - 1 = 0
     L = np.empty((n, n))
     assert cholesky_lower(definite, L)
     np.testing.assert_allclose(L, np.linalg.cholesky(definite), rtol=0, atol=1e-12)

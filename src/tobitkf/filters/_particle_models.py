@@ -46,6 +46,14 @@ def _mat(X: np.ndarray, M: np.ndarray) -> np.ndarray:
     return (X.reshape(-1, X.shape[-1]) @ M).reshape(X.shape[:-1] + M.shape[-1:])
 
 
+def _shifted(mu: np.ndarray, b: Any) -> np.ndarray:
+    """The particles' means ``mu`` (N, Np, d) plus each run's known term ``b`` (N, d) (an input's :math:`B^uu_k`,
+    a feedthrough :math:`Du_k`); ``mu`` itself when there is none (``b`` the scalar 0.0)."""
+    if np.isscalar(b) and b == 0.0:
+        return mu
+    return mu + b[:, None, :]
+
+
 def _truncated_draw(mean: np.ndarray, sd: Any, log_mass: np.ndarray, u: np.ndarray, side: int) -> np.ndarray:
     r"""A draw of :math:`N(\mu, s^2)` truncated to :math:`(-\infty, l]` (``side=-1``) or :math:`[h, \infty)`
     (``side=+1``), by inversion in log space: :math:`z = \Phi^{-1}(u\,\Phi(a))` through ``ndtri_exp``
@@ -206,9 +214,7 @@ class _Linear(_Model):
     def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
         r"""Draw from p(x_k | x_{k-1}, y_k) channel by channel; returns (X_new, log p(y_k | x_{k-1}))."""
         sys_ = self.system
-        mu = _mat(X, sys_.transition(k - 1).T)
-        if not (np.isscalar(b) and b == 0.0):
-            mu = mu + b[:, None, :]
+        mu = _shifted(_mat(X, sys_.transition(k - 1).T), b)
         lo, hi = self.limits(k)
         r = _diag_sigma(sys_, k, "censored readings") ** 2
         return _gaussian_proposal(rng, mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :], y, lo, hi)
@@ -667,9 +673,7 @@ class _Saturation(_Model):
         Returns (X_new (N, Np, n), log incremental weight (N, Np)).
         """
         sys_ = self.system
-        mu = _mat(X, sys_.transition(k - 1).T)
-        if not (np.isscalar(b) and b == 0.0):
-            mu = mu + b[:, None, :]
+        mu = _shifted(_mat(X, sys_.transition(k - 1).T), b)
         N, Np, n = mu.shape
         m = self.m
         lo, hi = self.limits(k)
@@ -827,17 +831,13 @@ class _Contract(_Model):
         return type(self.channel).__name__
 
     def log_likelihood(self, rng, k, X, y, dy):
-        mu = _mat(X, self.system.measurement(k).T)
-        if not (np.isscalar(dy) and dy == 0.0):
-            mu = mu + dy[:, None, :]
+        mu = _shifted(_mat(X, self.system.measurement(k).T), dy)
         sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")
         return channel_log_likelihood(self.channel, k, y, mu, sd)
 
     def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
         sys_ = self.system
-        mu = _mat(X, sys_.transition(k - 1).T)
-        if not (np.isscalar(b) and b == 0.0):
-            mu = mu + b[:, None, :]
+        mu = _shifted(_mat(X, sys_.transition(k - 1).T), b)
         N, Np, n = mu.shape
         m = self.m
         lo, hi = np.full((N, m), np.nan), np.full((N, m), np.nan)
