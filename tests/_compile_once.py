@@ -13,8 +13,9 @@ the whole-record loop alone takes about three minutes of CPU, paid once per work
   without a lock), so the saves take one shared lock.
 * :func:`warm` (``python tests/_compile_once.py LOCKS CLAIMS START``, one process per worker, before the workers
   start) runs the targets of ``tobitkf warmup`` (the common kernels at the argument types a user's call passes),
-  each target by the first process that claims it, the processes starting at different targets: they compile
-  different kernels side by side instead of the same ones.
+  each target by the first process that claims it, the processes starting at different targets; a target that
+  reaches a function another process is compiling is set aside and retried later, so the processes compile
+  different kernels side by side instead of waiting for each other.
 
 Without numba, ``fcntl`` (Windows) or the numba internals named above, :func:`install` does nothing and each
 process compiles on first use, as before.
@@ -35,13 +36,21 @@ ENV = "TOBITKF_TEST_COMPILE_LOCKS"
 _STATE = threading.local()
 
 
+class Busy(BaseException):
+    """Another process is compiling this function (raised in a warm-up process, which then tries another target).
+    A BaseException, so that a library's ``except Exception`` fallback cannot swallow it."""
+
+
 @contextlib.contextmanager
-def _locked(path: str) -> Iterator[None]:
+def _locked(path: str, wait: bool = True) -> Iterator[None]:
     import fcntl
 
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX if wait else fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise Busy(path) from None
         yield
     finally:
         os.close(fd)  # releases the lock
@@ -73,9 +82,10 @@ def install(lock_dir: str) -> bool:
         func = getattr(self, "py_func", None)
         name = f"{getattr(func, '__module__', '?')}.{getattr(func, '__qualname__', '?')}"
         path = os.path.join(lock_dir, hashlib.sha1(name.encode()).hexdigest()[:16] + ".lock")
+        wait = not getattr(_STATE, "defer", False)
         _STATE.inside = True
         try:
-            with _locked(path):
+            with _locked(path, wait):
                 return compile_(self, sig)
         finally:
             _STATE.inside = False
@@ -90,20 +100,43 @@ def install(lock_dir: str) -> bool:
     return True
 
 
+def _run(target, defer: bool) -> bool:
+    """Run a warm-up target; False when it stopped at a function another process is compiling (``defer``)."""
+    _STATE.defer = defer
+    try:
+        target()
+    except Busy:
+        return False
+    finally:
+        _STATE.defer = False
+    return True
+
+
 def warm(lock_dir: str, claim_dir: str, start: int) -> int:
     """Run the targets of ``tobitkf warmup`` not yet claimed by another process, starting at target ``start``;
-    returns the number of kernels this process compiled."""
+    returns the number of kernels this process compiled.
+
+    A target that reaches a function another process is compiling is put back at the end of the queue (it is
+    re-run later, loading what it already compiled), so the processes compile different functions side by side
+    while there are any; when only such targets are left, the process waits for the lock."""
     install(lock_dir)
     from tobitkf import _compiled, _warmup
 
     targets = list(enumerate(_warmup.TARGETS))
     start %= max(len(targets), 1)
+    deferred = []
     for i, (_label, target) in targets[start:] + targets[:start]:
-        try:
+        try:  # claimed when this process gets to it, so that the other processes take the targets ahead
             os.close(os.open(os.path.join(claim_dir, f"target-{i}"), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
         except FileExistsError:
             continue
-        target()
+        if not _run(target, defer=True):
+            deferred.append(target)
+    while deferred:
+        left = [t for t in deferred if not _run(t, defer=True)]
+        if len(left) == len(deferred):  # every one waits on another process: wait for the first
+            _run(left.pop(0), defer=False)
+        deferred = left
     return int(_compiled.compile_stats()["compiled"])
 
 

@@ -123,7 +123,8 @@ def pytest_terminal_summary(terminalreporter):
 # the argument types a user's call passes) in one process per worker, the processes compiling different kernels side
 # by side; the workers then load them from the on-disk cache. Workers and warm-up processes take turns on any one
 # function (tests/_compile_once.py): a kernel outside the warm-up is compiled by the first worker that needs it and
-# loaded by the other. With the cache already filled this costs seconds (kernels loaded, not compiled); without
+# loaded by the other; and the workers start on different shares of the suite (pytest_xdist_make_scheduler), so they
+# first need different kernels. With the cache already filled this costs seconds (kernels loaded, not compiled); without
 # xdist or without numba nothing changes (one process compiles each kernel once anyway, on first use).
 # TOBITKF_TEST_WARMUP=0 turns the warm-up off.
 _WARMUP_LINE: list[str] = []
@@ -186,6 +187,25 @@ def pytest_sessionstart(session):
     else:
         compiled = sum(int(out.strip() or 0) for out, _err in done)
         _WARMUP_LINE.append(f"`tobitkf warmup` before the workers: {compiled} kernels compiled in {took:.0f} s")
+
+
+def _dist_asked_for(config) -> bool:
+    """The run names a distribution mode itself (command line, PYTEST_ADDOPTS or the ini's addopts)."""
+    args = [*config.invocation_params.args, *os.environ.get("PYTEST_ADDOPTS", "").split(), *config.getini("addopts")]
+    return any(a in ("--dist", "-d", "--distload") or a.startswith("--dist=") for a in args)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    """`-n N` alone: each worker starts on its own share of the suite (work stealing) rather than both on the
+    same first tests (xdist's default `load`), so that on a fresh cache the workers first need, and compile,
+    different kernels side by side; an idle worker takes tests from the other at the end. An explicit --dist
+    keeps its mode."""
+    if config.getvalue("dist") != "load" or _dist_asked_for(config):
+        return None
+    from xdist.scheduler import WorkStealingScheduling
+
+    return WorkStealingScheduling(config, log)
 
 
 def _warmup_targets() -> list:
