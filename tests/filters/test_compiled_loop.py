@@ -133,3 +133,41 @@ def test_read_only_inputs_reach_the_loop_as_writable_arrays(monkeypatch):
         monkeypatch.setattr(_compiled_soa, name, spy(getattr(_compiled_soa, name)))
     calls()
     assert len(flags) > 60 and all(flags)
+
+
+def _disjoint(arrays):
+    """No two non-empty arrays of the list share an element, and a write through one reaches no other."""
+    on = [a for a in arrays if a.size]
+    for i, a in enumerate(on):
+        assert a.flags.c_contiguous
+        assert all(not np.shares_memory(a, b) for b in on[i + 1 :])
+
+
+def test_block_scratch_shapes_share_no_element():
+    """The block scratch: the shapes the block functions expect, no two arrays sharing an element (a write to
+    one cannot change another), the noise term zeroed; m = 0 leaves the gain's arrays empty (the
+    assumed-density families, whose loop scratch is sized to the family)."""
+    from numba import njit
+
+    from tobitkf.filters._compiled_block import _mean_scratch, _update_scratch
+
+    @njit
+    def scratch(dim, ntop, m, B, G):
+        return _mean_scratch(dim, m, B), _update_scratch(dim, ntop, m, B, G)
+
+    (x, xp, e, ybar), (blk, run, solve, buf) = scratch(6, 2, 3, 5, 4)
+    P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok = blk
+    assert [a.shape for a in (x, xp, e, ybar)] == [(6, 5), (6, 5), (3, 5), (3, 5)]
+    assert [a.shape for a in blk] == [(6, 6, 5)] * 2 + [(6, 2, 5), (3, 6, 5), (6, 3, 5), (3, 3, 5)] + [
+        (6, 3, 5)
+    ] * 2 + [(3, 3, 5), (3, 5), (3, 5)]
+    assert [a.shape for a in run] == [(3, 3), (3, 6), (6, 3), (3,), (6, 3), (3,)]
+    assert [a.shape for a in solve] == [(3, 3, 5), (3, 6, 5), (3, 5), (5,)] and buf.shape == (2, 4)
+    assert (noise == 0.0).all() and ok.dtype == np.bool_ and solve[3].dtype == np.bool_
+    floats = [a for a in (x, xp, e, ybar, *blk, *run, *solve, buf) if a.dtype == np.float64]
+    _disjoint(floats)
+    for i, a in enumerate(floats):  # a write through one reaches no other
+        a[...] = i
+    assert all((a == i).all() for i, a in enumerate(floats))
+    _, (blk0, run0, solve0, _) = scratch(4, 4, 0, 8, 0)
+    assert blk0[0].shape == (4, 4, 8) and all(a.size == 0 for a in blk0[3:]) and all(a.size == 0 for a in solve0)

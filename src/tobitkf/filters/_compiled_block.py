@@ -60,14 +60,15 @@ STAGE_BYTES = 1 << 18  # at most this many bytes per staging buffer of the compi
 
 # --- the block scratch ---------------------------------------------------------------------
 # One allocator of the block scratch for every kernel (here, the loop, the closed loop), called once per kernel
-# call (never per block or step) and inlined into the kernel at the numba IR level. Each allocator makes ONE
-# allocation per dtype and cuts its arrays from it as views (:func:`_take`): in numba every array made costs a
-# heap allocation and its release, ~22 ns whatever its size (a zero-size array as much), a view of a
-# workspace ~2 ns (measured in isolation, 10 arrays a call, thread CPU time, load 9: 374 ns allocating them,
-# 355 ns allocating them empty, 170 ns cutting them from one allocation, 152 ns for the call alone). With its
-# ~48 arrays made per call the compiled loop paid ~1 us on every one-run online step. Not a workspace made by
-# the Python driver and passed in: a tuple of arrays passed in is unboxed array by array on every call
-# (28 arrays: 7.3 us per call).
+# call (never per block or step) and inlined into the kernel at the numba IR level. One array per piece of
+# scratch: in numba an array made costs ~22 ns (its allocation and release) whatever its size, and a view of a
+# slice of one workspace reshaped to a piece's shape as much (the reshape goes through numba's run-time helper;
+# measured in isolation, 10 arrays a call, thread CPU time, load 9-16: 374-402 ns allocating them, 355 ns
+# allocating them empty, 368-392 ns cutting them from one workspace by slice and reshape, 167-219 ns by integer
+# index of one (10, ...) array, 152 ns the call alone); the compiled loop with its scratch cut by slice and
+# reshape made the one-run Kalman filter's step slower (4.7 against 4.2 us per call of the step's entry). Not a
+# workspace made by the Python driver and passed in: a tuple of arrays passed in is unboxed array by array on
+# every call (28 arrays: 7.3 us per call).
 
 
 @njit(cache=True)
@@ -117,39 +118,10 @@ def _block_dims(N, T, d=0, block=BLOCK):
     return B, S
 
 
-ALIGN = 8  # each view of a workspace starts a multiple of 8 numbers (64 bytes) after the previous one
-
-
-@njit(cache=True, inline="always")
-def _room(shape):
-    """The numbers a view of ``shape`` takes in a workspace: its size rounded up to :data:`ALIGN`."""
-    size = 1
-    for d in shape:
-        size *= d
-    return (size + ALIGN - 1) // ALIGN * ALIGN
-
-
-@njit(cache=True, inline="always")
-def _take(ws, o, shape):
-    """A C-contiguous view of ``shape`` cut from the 1-d workspace ``ws`` at offset ``o``, and the offset of
-    the next view (:func:`_room` further on). The views of one workspace share no element."""
-    size = 1
-    for d in shape:
-        size *= d
-    return ws[o : o + size].reshape(shape), o + _room(shape)
-
-
 @njit(cache=True, inline="always")
 def _mean_scratch(dim, m, B):
-    """The scratch of the mean recursion of a block: ``x``, ``xp`` (dim, B), ``e``, ``ybar`` (m, B) (views of one
-    allocation)."""
-    sx, se = (dim, B), (m, B)
-    ws = np.empty(2 * _room(sx) + 2 * _room(se))
-    x, o = _take(ws, 0, sx)
-    xp, o = _take(ws, o, sx)
-    e, o = _take(ws, o, se)
-    ybar, o = _take(ws, o, se)
-    return x, xp, e, ybar
+    """The scratch of the mean recursion of a block: ``x``, ``xp`` (dim, B), ``e``, ``ybar`` (m, B)."""
+    return np.empty((dim, B)), np.empty((dim, B)), np.empty((m, B)), np.empty((m, B))
 
 
 @njit(cache=True, inline="always")
@@ -162,42 +134,32 @@ def _update_scratch(dim, ntop, m, B, G):
     :func:`_cov_update`, ``noise``
     (m, m, B) zeroed), the per-run solve scratch ``(Rs, Ws, Ks, oks, Rxs, ds)`` of :func:`_gain_of_run`,
     the block solve scratch ``(Rw, Wb, db, bad)`` of :func:`_gain_block` (empty for m = 1) and the
-    (2, G) quadrature buffer of :func:`censored_stats`: the numbers cut from one allocation, the flags from
-    another (:func:`_take`). ``m = 0``: the predict's scratch alone (the gain's arrays empty)."""
+    (2, G) quadrature buffer of :func:`censored_stats`."""
     g = m if m > 1 else 0
     gb = B if m > 1 else 0
-    sP, sAP, sCP, sK, sR, sg = (dim, dim, B), (dim, ntop, B), (m, dim, B), (dim, m, B), (m, m, B), (m, B)
-    sRs, sWs, sKs, sds = (m, m), (m, dim), (dim, m), (m,)
-    sRw, sWb, sdb, sbuf = (g, g, gb), (g, dim if g else 0, gb), (g, gb), (2, G)
-    size = 2 * _room(sP) + _room(sAP) + _room(sCP) + 3 * _room(sK) + 2 * _room(sR) + _room(sg)
-    size += _room(sRs) + _room(sWs) + 2 * _room(sKs) + _room(sds) + _room(sRw) + _room(sWb) + _room(sdb)
-    ws = np.empty(size + _room(sbuf))
-    P, o = _take(ws, 0, sP)
-    Pp, o = _take(ws, o, sP)
-    AP, o = _take(ws, o, sAP)
-    CP, o = _take(ws, o, sCP)
-    Rxe, o = _take(ws, o, sK)
-    Ree, o = _take(ws, o, sR)
-    K, o = _take(ws, o, sK)
-    MH, o = _take(ws, o, sK)
-    noise, o = _take(ws, o, sR)
-    noise[...] = 0.0
-    gam, o = _take(ws, o, sg)
-    Rs, o = _take(ws, o, sRs)
-    Ws, o = _take(ws, o, sWs)
-    Ks, o = _take(ws, o, sKs)
-    Rxs, o = _take(ws, o, sKs)
-    ds, o = _take(ws, o, sds)
-    Rw, o = _take(ws, o, sRw)
-    Wb, o = _take(ws, o, sWb)
-    db, o = _take(ws, o, sdb)
-    buf, o = _take(ws, o, sbuf)
-    flags = np.empty(_room(sg) + _room(sds) + _room((gb,)), dtype=np.bool_)
-    ok, o = _take(flags, 0, sg)
-    oks, o = _take(flags, o, sds)
-    bad, o = _take(flags, o, (gb,))
-    blk = (P, Pp, AP, CP, Rxe, Ree, K, MH, noise, gam, ok)
-    return blk, (Rs, Ws, Ks, oks, Rxs, ds), (Rw, Wb, db, bad), buf
+    blk = (
+        np.empty((dim, dim, B)),  # P
+        np.empty((dim, dim, B)),  # Pp
+        np.empty((dim, ntop, B)),  # AP
+        np.empty((m, dim, B)),  # CP
+        np.empty((dim, m, B)),  # Rxe
+        np.empty((m, m, B)),  # Ree
+        np.empty((dim, m, B)),  # K
+        np.empty((dim, m, B)),  # MH
+        np.zeros((m, m, B)),  # noise
+        np.empty((m, B)),  # gam
+        np.empty((m, B), dtype=np.bool_),  # ok
+    )
+    run = (
+        np.empty((m, m)),  # Rs
+        np.empty((m, dim)),  # Ws
+        np.empty((dim, m)),  # Ks
+        np.empty(m, dtype=np.bool_),  # oks
+        np.empty((dim, m)),  # Rxs
+        np.empty(m),  # ds
+    )
+    solve = (np.empty((g, g, gb)), np.empty((g, dim if g else 0, gb)), np.empty((g, gb)), np.empty(gb, dtype=np.bool_))
+    return blk, run, solve, np.empty((2, G))
 
 
 @njit(cache=True)

@@ -7,9 +7,7 @@ Tobit Kalman filters and every assumed-density family.
 :func:`~tobitkf.filters._compiled_fading.shift_predict_block`), the input term :math:`B^uu_k`, the family's
 update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._compiled_block`),
 carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). Its scratch is sized to the family
-(an array the family's update does not use gets no room) and cut as views from a few allocations
-(:func:`_loop_scratch`, :func:`~tobitkf.filters._compiled_block._update_scratch`): a one-run online step pays
-for the allocations, not for the arrays. The update is chosen by a code, one branch per block and step:
+(an array the family's update does not use gets no room, :func:`_loop_scratch`). The update is chosen by a code, one branch per block and step:
 
 * :data:`KALMAN`: :math:`K = \bar PC^T(C\bar PC^T + R)^{-1}` over the channels that take part (a NaN reading
   does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
@@ -72,13 +70,11 @@ from ._compiled_block import (
     _mean_scratch,
     _mirror,
     _predict,
-    _room,
     _stage,
     _stage_mean,
     _stage_rows,
     _stage_shape,
     _store_last,
-    _take,
     _take_part,
     _update_scratch,
     mean_predict,
@@ -414,7 +410,7 @@ def _fixed_gain_means(y, A, C, par, code, x0, means, pmeans, comp, x_last):
 @njit(cache=True, error_model="numpy", inline="always")
 def _loop_scratch(family, n, nx, m, J, B, S, TK, buf, means, covs, pmeans, pcovs, pu, ey, ll, comp):
     """The loop's own scratch beyond the block's (:func:`~tobitkf.filters._compiled_block._update_scratch`),
-    sized to the family ``family`` and cut from one allocation of numbers (and one each of flags and classes):
+    sized to the family ``family`` (an array it does not use gets no room):
     ``APr`` (n, n) of :func:`_predict_runs`; ``Kall`` (TK, n, m) the shared Kalman gains (TK = 0: not shared);
     ``mom`` (20, B) of the protocol TKF (0 rows otherwise); the assumed-density scratch of
     :func:`_channel_updates` ``(Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)``, its run
@@ -436,31 +432,18 @@ def _loop_scratch(family, n, nx, m, J, B, S, TK, buf, means, covs, pmeans, pcovs
         _stage_shape(pcovs, B, S),
     )
     o1, o2, o3, o4 = _stage_shape(pu, B, S), _stage_shape(ey, B, S), _stage_shape(ll, B, S), _stage_shape(comp, B, S)
-    size = _room(sAP) + _room(sK) + _room(smom) + _room(sPc) + _room(sscr) + 4 * _room(sv) + _room(spub)
-    size += _room(scompt) + _room(scompb) + _room(m1) + _room(m2) + _room(m3) + _room(m4)
-    ws = np.empty(size + _room(o1) + _room(o2) + _room(o3) + _room(o4))
-    APr, o = _take(ws, 0, sAP)
-    Kall, o = _take(ws, o, sK)
-    mom, o = _take(ws, o, smom)
-    Pc, o = _take(ws, o, sPc)
-    scr, o = _take(ws, o, sscr)
-    alpha, o = _take(ws, o, sv)
-    beta, o = _take(ws, o, sv)
-    llb, o = _take(ws, o, sv)
-    pt, o = _take(ws, o, sv)
-    pub, o = _take(ws, o, spub)
-    compt, o = _take(ws, o, scompt)
-    compb, o = _take(ws, o, scompb)
-    compt[...] = 0.0
-    compb[...] = 0.0
-    s_mean, o = _take(ws, o, m1)
-    s_cov, o = _take(ws, o, m2)
-    s_pmean, o = _take(ws, o, m3)
-    s_pcov, o = _take(ws, o, m4)
-    s_pu, o = _take(ws, o, o1)
-    s_ey, o = _take(ws, o, o2)
-    s_ll, o = _take(ws, o, o3)
-    s_comp, o = _take(ws, o, o4)
+    APr, Kall, mom = np.empty(sAP), np.empty(sK), np.empty(smom)
+    Pc, scr, alpha, beta, llb, pt = (
+        np.empty(sPc),
+        np.empty(sscr),
+        np.empty(sv),
+        np.empty(sv),
+        np.empty(sv),
+        np.empty(sv),
+    )
+    pub, compt, compb = np.empty(spub), np.zeros(scompt), np.zeros(scompb)
+    s_mean, s_cov, s_pmean, s_pcov = np.empty(m1), np.empty(m2), np.empty(m3), np.empty(m4)
+    s_pu, s_ey, s_ll, s_comp = np.empty(o1), np.empty(o2), np.empty(o3), np.empty(o4)
     member, cv = np.empty(Ba, dtype=np.bool_), np.empty(Ba, dtype=np.int8)
     adfs = (Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)
     return APr, Kall, mom, adfs, (s_mean, s_cov, s_pmean, s_pcov, s_pu, s_ey, s_ll, s_comp)
@@ -534,7 +517,7 @@ def compiled_loop(
     shared = family == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
     runs = 1 if shared else N
     B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, AUG_BLOCK if family == FADING else runs_per_block(nx))
-    # the scratch sized to the family, cut from a few allocations (_compiled_block._take)
+    # the scratch sized to the family
     x, xp, e, mu = _mean_scratch(nx, m, B)
     sc = _update_scratch(nx, n, 0 if adf else m, B, 0 if family == KALMAN else GL_X.shape[0])
     blk = sc[0]
