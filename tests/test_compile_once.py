@@ -48,6 +48,7 @@ USER = textwrap.dedent(
         def on_end(self, e):
             pass
     event.register("numba:compile", Count())
+    _compile_once.PACKAGES.append("fakekernels")
     assert _compile_once.install(sys.argv[1])
     import fakekernels
     while not os.path.exists(sys.argv[2]):
@@ -64,6 +65,7 @@ WARM = textwrap.dedent(
     from tests import _compile_once
     from tobitkf import _compiled, _warmup
     _compiled._PACKAGES.append("fakekernels")
+    _compile_once.PACKAGES.append("fakekernels")
     import fakekernels
     ran = []
     def target(name, fn):
