@@ -125,8 +125,8 @@ def pytest_terminal_summary(terminalreporter):
 # function (tests/_compile_once.py): a kernel outside the warm-up is compiled by the first worker that needs it and
 # loaded by the other; and the workers start on different shares of the suite (pytest_xdist_make_scheduler), so they
 # first need different kernels. With the cache already filled this costs seconds (kernels loaded, not compiled); without
-# xdist or without numba nothing changes (one process compiles each kernel once anyway, on first use).
-# TOBITKF_TEST_WARMUP=0 turns the warm-up off.
+# xdist or without numba nothing changes (one process compiles each kernel once anyway, on first use). The warm-up
+# runs when the run names a folder (or nothing: the testpaths); TOBITKF_TEST_WARMUP=0 turns it off.
 _WARMUP_LINE: list[str] = []
 _LOCKS: list[str] = []
 
@@ -149,7 +149,7 @@ def pytest_sessionstart(session):
     locks = tempfile.mkdtemp(prefix="tobitkf-compile-")
     _LOCKS.append(locks)
     os.environ[_compile_once.ENV] = locks  # the workers, started after this hook, inherit it
-    if os.environ.get("TOBITKF_TEST_WARMUP", "1") == "0":
+    if os.environ.get("TOBITKF_TEST_WARMUP", "1") == "0" or not _runs_a_folder(config):
         return
     here = Path(__file__).resolve()
     src = str(here.parents[1] / "src")  # the tobitkf the workers import (pytest's pythonpath = src)
@@ -187,6 +187,12 @@ def pytest_sessionstart(session):
     else:
         compiled = sum(int(out.strip() or 0) for out, _err in done)
         _WARMUP_LINE.append(f"`tobitkf warmup` before the workers: {compiled} kernels compiled in {took:.0f} s")
+
+
+def _runs_a_folder(config) -> bool:
+    """The run names a folder of tests (or none: the testpaths), not only test files or tests: a run of a few files
+    needs few kernels, and its workers compile those once between them without the warm-up."""
+    return any(Path(str(arg).split("::")[0]).is_dir() for arg in config.args)
 
 
 def _dist_asked_for(config) -> bool:
