@@ -185,8 +185,16 @@ def pytest_sessionstart(session):
         tail = (failed[0].strip().splitlines() or ["?"])[-1]
         _WARMUP_LINE.append(f"the warm-up failed after {took:.0f} s ({tail}); the workers compile on first use")
     else:
-        compiled = sum(int(out.strip() or 0) for out, _err in done)
+        compiled = sum(_last_int(out) for out, _err in done)
         _WARMUP_LINE.append(f"`tobitkf warmup` before the workers: {compiled} kernels compiled in {took:.0f} s")
+
+
+def _last_int(out: str) -> int:
+    """The count a warm-up process prints last (0 if it printed none)."""
+    try:
+        return int((out.strip().splitlines() or ["0"])[-1])
+    except ValueError:
+        return 0
 
 
 def _runs_a_folder(config) -> bool:
