@@ -144,7 +144,7 @@ def pytest_configure(config):
 
 def pytest_sessionstart(session):
     config = session.config
-    if not _distributed(config) or find_spec("numba") is None:
+    if not _distributed(config) or find_spec("numba") is None or find_spec("fcntl") is None:
         return
     locks = tempfile.mkdtemp(prefix="tobitkf-compile-")
     _LOCKS.append(locks)
@@ -164,8 +164,9 @@ def pytest_sessionstart(session):
     n = len(_warmup_targets())
     script = str(here.parent / "_compile_once.py")
     t0 = time.perf_counter()
+    procs: list[subprocess.Popen] = []
     try:
-        procs = [
+        procs += [
             subprocess.Popen(
                 [sys.executable, script, locks, claims, str(i * n // workers)],
                 env=env,
@@ -177,6 +178,8 @@ def pytest_sessionstart(session):
         ]
         done = [p.communicate(timeout=3600) for p in procs]
     except (OSError, subprocess.SubprocessError) as exc:  # the workers compile on first use, as without it
+        for p in procs:
+            p.kill()
         _WARMUP_LINE.append(f"the warm-up did not run ({exc!r}); the workers compile on first use")
         return
     took = time.perf_counter() - t0
