@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 from hypothesis import HealthCheck, settings
 
-from tests import _compile_once
+from . import _compile_once
 
 settings.register_profile(
     "ci", max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large]
@@ -125,8 +125,8 @@ def pytest_terminal_summary(terminalreporter):
 # function (tests/_compile_once.py): a kernel outside the warm-up is compiled by the first worker that needs it and
 # loaded by the other; and the workers start on different shares of the suite (pytest_xdist_make_scheduler), so they
 # first need different kernels. With the cache already filled this costs seconds (kernels loaded, not compiled); without
-# xdist or without numba nothing changes (one process compiles each kernel once anyway, on first use).
-# TOBITKF_TEST_WARMUP=0 turns the warm-up off.
+# xdist or without numba nothing changes (one process compiles each kernel once anyway, on first use). The warm-up
+# runs when the run names a folder (or nothing: the testpaths); TOBITKF_TEST_WARMUP=0 turns it off.
 _WARMUP_LINE: list[str] = []
 _LOCKS: list[str] = []
 
@@ -144,12 +144,12 @@ def pytest_configure(config):
 
 def pytest_sessionstart(session):
     config = session.config
-    if not _distributed(config) or find_spec("numba") is None:
+    if not _distributed(config) or find_spec("numba") is None or find_spec("fcntl") is None:
         return
     locks = tempfile.mkdtemp(prefix="tobitkf-compile-")
     _LOCKS.append(locks)
     os.environ[_compile_once.ENV] = locks  # the workers, started after this hook, inherit it
-    if os.environ.get("TOBITKF_TEST_WARMUP", "1") == "0":
+    if os.environ.get("TOBITKF_TEST_WARMUP", "1") == "0" or not _runs_a_folder(config):
         return
     here = Path(__file__).resolve()
     src = str(here.parents[1] / "src")  # the tobitkf the workers import (pytest's pythonpath = src)
@@ -164,8 +164,9 @@ def pytest_sessionstart(session):
     n = len(_warmup_targets())
     script = str(here.parent / "_compile_once.py")
     t0 = time.perf_counter()
+    procs: list[subprocess.Popen] = []
     try:
-        procs = [
+        procs += [
             subprocess.Popen(
                 [sys.executable, script, locks, claims, str(i * n // workers)],
                 env=env,
@@ -177,6 +178,8 @@ def pytest_sessionstart(session):
         ]
         done = [p.communicate(timeout=3600) for p in procs]
     except (OSError, subprocess.SubprocessError) as exc:  # the workers compile on first use, as without it
+        for p in procs:
+            p.kill()
         _WARMUP_LINE.append(f"the warm-up did not run ({exc!r}); the workers compile on first use")
         return
     took = time.perf_counter() - t0
@@ -185,8 +188,22 @@ def pytest_sessionstart(session):
         tail = (failed[0].strip().splitlines() or ["?"])[-1]
         _WARMUP_LINE.append(f"the warm-up failed after {took:.0f} s ({tail}); the workers compile on first use")
     else:
-        compiled = sum(int(out.strip() or 0) for out, _err in done)
+        compiled = sum(_last_int(out) for out, _err in done)
         _WARMUP_LINE.append(f"`tobitkf warmup` before the workers: {compiled} kernels compiled in {took:.0f} s")
+
+
+def _last_int(out: str) -> int:
+    """The count a warm-up process prints last (0 if it printed none)."""
+    try:
+        return int((out.strip().splitlines() or ["0"])[-1])
+    except ValueError:
+        return 0
+
+
+def _runs_a_folder(config) -> bool:
+    """The run names a folder of tests (or none: the testpaths), not only test files or tests: a run of a few files
+    needs few kernels, and its workers compile those once between them without the warm-up."""
+    return any(Path(str(arg).split("::")[0]).is_dir() for arg in config.args)
 
 
 def _dist_asked_for(config) -> bool:
