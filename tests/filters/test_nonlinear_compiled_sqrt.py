@@ -88,9 +88,9 @@ def h_ill(x, k):
 
 def test_the_compiled_square_root_form_stays_psd_where_the_covariance_form_does_not():
     # two readings of variance 1e-12 of a prior of variance 1e6 (correlation 0.99): the covariance form subtracts
-    # numbers of order 1e6 to leave ones of order 1e-12, and its rounding (eps 1e6 ~ 1e-10) ruins the posterior:
-    # indefinite on the numpy path, or (compiled: another order of the same sums) wrong by orders of magnitude;
-    # the factor of the array form is PSD by construction and the same on both paths
+    # numbers of order 1e6 to leave ones of order 1, and its rounding makes the numpy path's posterior indefinite
+    # (the compiled covariance form, summing in another order, happens to stay PSD here); the factor of the array
+    # form is PSD by construction, on both paths and the same on both
     P0 = 1e6 * np.array([[1.0, 0.99], [0.99, 1.0]])
     system = tk.NonlinearSystem(f_id, h_ill, np.zeros((2, 2)), 1e-12 * np.eye(2), [1.0, 2.0], P0)
     y = np.array([[1.5, 3.5]])
@@ -103,7 +103,6 @@ def test_the_compiled_square_root_form_stays_psd_where_the_covariance_form_does_
     ):
         with np.errstate(all="ignore"), _quiet():
             std = make("standard", "numpy").filter(y).cov[0]
-            std_c = make("standard", "numba").filter(y).cov[0]
         sq_est = make("square_root", "numba")
         assert sq_est._use_compiled()
         sq = sq_est.filter(y).cov[0]
@@ -112,8 +111,6 @@ def test_the_compiled_square_root_form_stays_psd_where_the_covariance_form_does_
         assert np.linalg.eigvalsh(sq).min() >= -4 * eps * scale  # PSD to the rounding of its eigenvalues
         np.testing.assert_allclose(sq, ref, rtol=1e-6, atol=1e-6 * scale)
         assert np.linalg.eigvalsh(std).min() < -1e3 * eps * scale  # indefinite far beyond rounding
-        ruined = np.linalg.eigvalsh(std_c).min() < -1e3 * eps * scale or np.abs(std_c - sq).max() > 1e6 * scale
-        assert ruined, std_c
 
 
 class _quiet:
