@@ -163,9 +163,12 @@ def test_the_compiled_loop_reads_the_input_of_h():
         lambda b: tk.TobitUnscentedKalmanFilter(system, CENS, rule="cubature", backend=b),
         lambda b: tk.NonlinearAssumedDensityFilter(system, CENS, iterations=2, backend=b),
     ):
+        # numba's sin and numpy's may differ in the last bit; a central-difference Jacobian (step ~6e-6) turns that
+        # into ~4e-11 of H, which a run's steps can grow a few times: 1e-9 for the extended filters
+        tol = 1e-9 if make("numpy").rule is None else 1e-10
         for u in (U, None):  # no input given: u = 0 on both paths
             a, b = make("numpy").filter(y, u=u), make("numba").filter(y, u=u)
-            np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=1e-10, err_msg=repr(make("numpy")))
-            np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=1e-10)
+            np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=tol, err_msg=repr(make("numpy")))
+            np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=tol)
     est = tk.NonlinearAssumedDensityFilter(system, CENS, backend="numba")
     assert est._use_compiled()

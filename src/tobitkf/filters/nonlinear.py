@@ -340,8 +340,6 @@ class _NonlinearFamily(GaussianFilter):
         plain = [name for name in ("f", "h", "F", "H") if not _is_jitted(getattr(sys_, name))]
         if plain:
             return f"{', '.join(plain)} not compiled with numba.njit"
-        if self.covariance_update == "square_root":
-            return "covariance_update='square_root' (the compiled loop runs the standard and Joseph forms)"
         from . import _compiled_nonlinear
 
         return _compiled_nonlinear.channel_gap(self)
@@ -374,6 +372,10 @@ class _NonlinearFamily(GaussianFilter):
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not self._use_compiled():
             return None
+        if self.covariance_update == "square_root":  # the factor carried by its own compiled loop
+            from . import _compiled_nonlinear_sqrt
+
+            return _compiled_nonlinear_sqrt.compiled_run(self, y2, u2, state, want, batch)
         from . import _compiled_nonlinear
 
         return _compiled_nonlinear.compiled_run(self, y2, u2, state, want, batch)
@@ -387,8 +389,8 @@ class _NonlinearFamily(GaussianFilter):
         the numpy step (from the step's own prediction); a covariance that stops being finite reruns the step on
         the numpy path, which reports it.
         """
-        if options or not self._use_compiled():
-            return super().step(state, y, u=u, **options)
+        if options or not self._use_compiled() or self.covariance_update == "square_root":
+            return super().step(state, y, u=u, **options)  # the square-root form's online step runs on numpy
         state = entering_state(self, state)
         if state.carry.get("_predicted"):
             return super().step(state, y, u=u)  # refuses a predicted state, with the numpy step's message
