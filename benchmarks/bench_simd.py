@@ -7,6 +7,9 @@ model). Contestants, all on one thread, all writing into output arrays allocated
 * the structure-of-arrays step (``tobitkf.filters._compiled_soa``), means only and means + covariances;
 * the compiled loop's TKF entry (``tobitkf.filters._compiled_entries.tobit_loop``: the block path the filters
   run today), the same two output sets, and the KF through both, means only;
+* the TKF with two finite limits (the same readings clipped to a window, the split step), means only, both ways;
+* the censored assumed-density filter (two finite limits) with its log-likelihood and P(uncensored), both ways
+  (``soa_censored_loop`` against ``compiled_loop``), means and the two extras;
 * the hand-fused scalar numba TKF (``benchmarks/_fused_tkf.py``, one run at a time, means + covariances: the
   yardstick of ``bench_limit.py``).
 
@@ -40,10 +43,11 @@ def _load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def case(runs: int, steps: int, repeat: int) -> None:
+def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
     from _fused_tkf import fused_tkf
     from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
-    from tobitkf.filters._compiled_soa import soa_kalman_loop, soa_tobit_loop
+    from tobitkf.filters._compiled_loop import compiled_loop
+    from tobitkf.filters._compiled_soa import soa_censored_loop, soa_kalman_loop, soa_tobit_loop
 
     w = 0.05
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -71,15 +75,40 @@ def case(runs: int, steps: int, repeat: int) -> None:
     def kf(fn):
         return lambda: fn(y, A, Q, H, R, False, x0, P0, means, e_c, e_m, e_c, xl, Pl)
 
-    contestants = {
-        "SoA TKF, means only": tkf(soa_tobit_loop, e_c),
-        "SoA TKF, mean+cov": tkf(soa_tobit_loop, covs),
-        "compiled loop TKF, means only": tkf(tobit_loop, e_c),
-        "compiled loop TKF, mean+cov": tkf(tobit_loop, covs),
-        "SoA KF, means only": kf(soa_kalman_loop),
-        "compiled loop KF, means only": kf(kalman_loop),
-        "hand-fused TKF, mean+cov": lambda: fused_tkf(y2, A, Q, H[0, 0], 0.1**0.5, 0.0, x0[0], P0[0], means, covs),
+    # two finite limits: the window [-0.5, 0.5] (about a third of the readings at a limit)
+    lo2, hi2 = np.full((1, 1), -0.5), np.full((1, 1), 0.5)
+    yw = np.clip(y, -0.5, 0.5)
+    pu, ll = np.zeros((N, T, 1)), np.zeros((N, T))
+    cls0 = np.empty((N, 0, 1), dtype=np.int8)
+
+    def tkf2(fn):
+        return lambda: fn(yw, A, Q, H, sig, lo2, hi2, bu, du, 0, False, x0, P0, means, e_c, e_m, e_c, e1, e1, xl, Pl)
+
+    def adf(fn):
+        return lambda: fn(
+            0, yw, cls0, A[None, None], Q[None, None], H, np.zeros((1, 1, 0, n)), R, lo2[None], hi2[None],
+            np.zeros((1, 1, 0)), 0, 1, 0, False, bu, du, x0, P0, means, e_c, e_m, e_c, pu, e1, ll,
+            np.empty((N, 0, 1, 0)), xl, Pl,
+        )  # fmt: skip
+
+    groups = {
+        "tkf": {
+            "SoA TKF, means only": tkf(soa_tobit_loop, e_c),
+            "SoA TKF, mean+cov": tkf(soa_tobit_loop, covs),
+            "compiled loop TKF, means only": tkf(tobit_loop, e_c),
+            "compiled loop TKF, mean+cov": tkf(tobit_loop, covs),
+        },
+        "kf": {"SoA KF, means only": kf(soa_kalman_loop), "compiled loop KF, means only": kf(kalman_loop)},
+        "tkf2": {"SoA TKF 2-sided, means only": tkf2(soa_tobit_loop), "loop TKF 2-sided, means only": tkf2(tobit_loop)},
+        "adf": {
+            "SoA ADF 2-sided, mean+extras": adf(soa_censored_loop),
+            "loop ADF 2-sided, mean+extras": adf(compiled_loop),
+        },
     }
+    contestants = {k: v for g, c in groups.items() if g in which for k, v in c.items()}
+    contestants["hand-fused TKF, mean+cov"] = lambda: fused_tkf(
+        y2, A, Q, H[0, 0], 0.1**0.5, 0.0, x0[0], P0[0], means, covs
+    )
     for fn in contestants.values():
         fn()  # compilation, first touch
     cpu: dict[str, list[float]] = {k: [] for k in contestants}
@@ -111,13 +140,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
+    ap.add_argument("--which", default="tkf,kf,tkf2,adf", help="contestant groups, comma-separated (default all)")
+    ap.add_argument("--sizes", default="100000x100,10000x1000", help="runs x steps, comma-separated")
     args = ap.parse_args()
     if not numba_available():
         print("numba is not installed: nothing to measure")
         return
-    cases = [(100_000, 100), (10_000, 1_000)] if not args.smoke else [(300, 20)]
+    sizes = [tuple(int(v) for v in c.split("x")) for c in args.sizes.split(",")]
+    cases = sizes if not args.smoke else [(300, 20)]
     for runs, steps in cases:
-        case(runs, steps, args.repeat if not args.smoke else 2)
+        case(runs, steps, args.repeat if not args.smoke else 2, set(args.which.split(",")))
 
 
 if __name__ == "__main__":

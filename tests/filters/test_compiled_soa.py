@@ -129,6 +129,66 @@ def test_tkf_prior_40_sigma_from_the_limit(dist, upper):
     assert np.all(np.isfinite(g)) and (np.all(g < 1e-300) or np.all(g > 1 - 1e-12))
 
 
+@pytest.mark.parametrize("n", [1, 2, 4])
+@pytest.mark.parametrize("joseph", [False, True])
+@pytest.mark.parametrize("code", [0, 1, 2])
+def test_tkf_two_sided_equals_the_compiled_loop(n, joseph, code):
+    """Two finite limits (the split step): 131 runs (a block and a remainder), missing readings, inputs, readings
+    at both limits, and priors spread so that runs take every route of the window statistics (direct formulas,
+    one side negligible in a tail, a window in a tail: quadrature)."""
+    N, T = 131, 25
+    rng, A, Q, H, x0, P0, y, bu, du = _case(n, N, T, 200 + 10 * n + code, inputs=True)
+    x0 = x0 * rng.choice([1.0, 8.0, 30.0], size=(N, 1))  # some runs far from the window
+    lo, hi = np.full((1, 1), -0.3), np.full((1, 1), 0.5)
+    y = np.clip(y, lo[None], hi[None])
+    y[rng.random(size=y.shape) < 0.05] = np.nan
+    sigma = np.array([[0.4]])
+    a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, bu, du, code, joseph, x0, P0)
+    for u, v in zip(a, b):
+        _assert_close(u, v)
+    assert np.isfinite(a[0]).all() and (a[4] < 0.5).any()
+
+
+@pytest.mark.parametrize("sd", [0.05, 0.4, 3.0])
+def test_tkf_limits_of_every_kind_per_step(sd):
+    """Per-step limits cycling lower, upper, two-sided, none, a narrow window (quadrature for every run) and a
+    wide one; the noise standard deviation from narrower than the window to wider (the routes of the window
+    statistics); the three covariance outputs."""
+    n, N, T = 2, 140, 36
+    rng, A, Q, H, x0, P0, y, bu, du = _case(n, N, T, 31)
+    kinds = [(0.0, np.inf), (-np.inf, 0.4), (-0.3, 0.5), (-np.inf, np.inf), (0.1, 0.15), (-2.0, 3.0)]
+    lo = np.array([kinds[t % len(kinds)][0] for t in range(T)])[:, None]
+    hi = np.array([kinds[t % len(kinds)][1] for t in range(T)])[:, None]
+    y = np.clip(y, lo[None], hi[None])
+    y[rng.random(size=y.shape) < 0.05] = np.nan
+    sigma = np.array([[sd]])
+    for cov_shape in ("full", "var", "none"):
+        a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, bu, du, 2, False, x0, P0, cov_shape)
+        for u, v in zip(a, b):
+            _assert_close(u, v)
+
+
+@pytest.mark.parametrize("dist", [-40.0, 40.0])
+def test_tkf_two_sided_prior_40_sigma_from_the_window(dist):
+    """The latent prediction 40 standard deviations below or above a window of one standard deviation: the
+    window in a tail (quadrature) for every run, a finite update."""
+    n, N, T = 2, 9, 6
+    A = np.array([[0.9, 0.1], [0.0, 0.8]])
+    Q = 1e-4 * np.eye(n)
+    H = np.array([[[1.0, 0.0]]])
+    sigma = np.array([[0.2]])
+    x0 = np.zeros((N, n))
+    P0 = np.broadcast_to(1e-4 * np.eye(n), (N, n, n)).copy()
+    sd = float(np.sqrt(0.04 + 1e-4))
+    lo = np.full((1, 1), -dist * sd)
+    hi = lo + sd
+    y = np.full((N, T, 1), lo[0, 0] if dist < 0 else hi[0, 0])
+    a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, np.empty((N, 0, n)), np.empty((N, 0, 1)), 0, False, x0, P0)
+    for u, v in zip(a, b):
+        _assert_close(u, v)
+    assert np.isfinite(a[0]).all() and np.isfinite(a[1]).all()
+
+
 @pytest.mark.parametrize("n", [1, 3])
 @pytest.mark.parametrize("joseph", [False, True])
 def test_kf_equals_the_compiled_loop(n, joseph):
@@ -173,8 +233,10 @@ def test_covers():
     inf = np.inf
     assert soa.soa_covers(False, 1, 2, 5, 5, np.zeros((1, 1)), np.full((1, 1), inf))
     assert soa.soa_covers(False, 1, 4, 5, 5, np.array([[-inf], [0.0]]), np.array([[1.0], [inf]]))
-    assert not soa.soa_covers(False, 1, 2, 5, 5, np.zeros((1, 1)), np.ones((1, 1)))  # two-sided
-    assert not soa.soa_covers(False, 1, 2, 5, 5, np.full((1, 1), -inf), np.full((1, 1), inf))  # no limit
+    assert soa.soa_covers(False, 1, 2, 5, 5, np.zeros((1, 1)), np.ones((1, 1)))  # two-sided
+    assert soa.soa_covers(False, 1, 2, 5, 5, np.full((1, 1), -inf), np.full((1, 1), inf))  # no limit
+    assert not soa.soa_covers(False, 1, 2, 5, 5, np.ones((1, 1)), np.ones((1, 1)))  # lo == hi
+    assert not soa.soa_covers(False, 1, 2, 5, 5, np.full((1, 1), np.nan), np.ones((1, 1)))  # a NaN limit
     assert not soa.soa_covers(False, 2, 2, 5, 5, np.zeros((1, 2)), np.full((1, 2), inf))  # two channels
     assert not soa.soa_covers(False, 1, 5, 5, 5, np.zeros((1, 1)), np.full((1, 1), inf))  # n too large
     assert soa.soa_covers(True, 1, 3, 5, 5)
@@ -184,7 +246,8 @@ def test_covers():
 def test_entries_choose_the_soa_path_only_where_covered():
     inf = np.inf
     assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.full((1, 1), inf)) is soa.soa_tobit_loop
-    assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is tobit_loop
+    assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is soa.soa_tobit_loop
+    assert soa.tobit_entry(tobit_loop, 2, 2, np.zeros((1, 2)), np.ones((1, 2))) is tobit_loop
     assert soa.kalman_entry(kalman_loop, 1, 2, 7, 7) is soa.soa_kalman_loop
     assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is kalman_loop
 
@@ -296,6 +359,50 @@ def test_adf_prior_40_sigma_from_the_limit(dist, kind):
     for u, v in zip(s, ref):
         _assert_close(u, v)
     assert np.isfinite(s[5]).all()
+
+
+def test_adf_interval_readings_equal_the_compiled_loop():
+    """Given classes with interval readings (flagged censored strictly inside two finite limits: the mass of the
+    window, by quadrature) take the compiled loop's update: the SoA entry hands such a record to the loop."""
+    n, N, T = 2, 131, 20
+    rng, A, Q, H, x0, P0, y, _, _ = _case(n, N, T, 91)
+    lo, hi = np.full((1, 1, 1), -0.3), np.full((1, 1, 1), 0.5)
+    y = np.clip(y, -0.3, 0.5)
+    from tobitkf.filters._readings import INTERVAL, classify_readings
+
+    cls = classify_readings(y, lo, hi)
+    inside = (y > -0.3) & (y < 0.5)
+    cls[inside & (rng.random(size=y.shape) < 0.2)] = INTERVAL
+    cls = np.ascontiguousarray(cls, dtype=np.int8)
+    assert (cls == INTERVAL).any()
+    s, ref = _adf_both(y, A, Q, H, np.full((1, 1, 1), 0.2), lo, hi, x0, P0, cls=cls)
+    for u, v in zip(s, ref):
+        _assert_close(u, v)
+
+
+def test_log_pos_within_two_ulp_of_math_log():
+    """The vectorisable logarithm of the log-likelihoods (no libm call) against ``numpy.log``: within 2 ulp from
+    the smallest normal number to the largest finite one, exact at 1 and at powers of two, inf at inf."""
+    from numba import njit
+
+    from tobitkf.filters._compiled_censored import _log_pos
+
+    @njit
+    def logs(x):
+        out = np.empty_like(x)
+        for i in range(x.size):
+            out[i] = _log_pos(x[i])
+        return out
+
+    rng = np.random.default_rng(0)
+    tiny, big = np.finfo(float).tiny, np.finfo(float).max
+    x = np.concatenate(
+        [np.exp(rng.uniform(-708, 709, 100_000)), 1 + rng.normal(0, 1e-6, 1000), [tiny, big, np.sqrt(2.0)]]
+    )
+    x = np.concatenate([x, np.nextafter(x[-1], 2.0), np.ldexp(1.0, np.arange(-1022, 1024))[None]], axis=None)
+    ref, got = np.log(x), logs(x)
+    assert np.all(np.abs(got - ref) <= 2 * np.spacing(np.abs(ref)))
+    assert logs(np.array([1.0]))[0] == 0.0 and logs(np.array([np.inf]))[0] == np.inf
 
 
 def test_adf_covers():

@@ -57,7 +57,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._compiled_censored import beyond, censored_stats, lower_stats_block
+from ._compiled_censored import _exp_neg, _log_pos, beyond, censored_stats, lower_stats_block
 
 __all__ = [
     "CENSORED",
@@ -165,7 +165,7 @@ def _censored_one(y, c, mu, s2, lo, hi):
     p_above_lo, lp_lo, m_lo, v_lo = beyond(mu, s, lo, -1.0) if lo_fin else (1.0, 0.0, 0.0, 0.0)  # y* <= lo
     p_below_hi, lp_hi, m_hi, v_hi = beyond(mu, s, hi, 1.0) if hi_fin else (1.0, 0.0, 0.0, 0.0)  # y* >= hi
     if lo_fin and hi_fin:
-        pu = p_above_lo - math.exp(lp_hi)
+        pu = p_above_lo - _exp_neg(lp_hi)  # (lp_hi <= 0) no libm call: the loop over runs stays vectorisable
     elif lo_fin:
         pu = p_above_lo
     elif hi_fin:
@@ -176,7 +176,7 @@ def _censored_one(y, c, mu, s2, lo, hi):
     is_lo = c == LOWER
     is_hi = c == UPPER
     z = (y - mu) / s
-    ll_in = -0.5 * z * z - math.log(s) - _LOG_SQRT_2PI
+    ll_in = -0.5 * z * z - _log_pos(s) - _LOG_SQRT_2PI
     obs = m_lo if is_lo else (m_hi if is_hi else y)
     v = v_lo if is_lo else (v_hi if is_hi else 0.0)
     ll = lp_lo if is_lo else (lp_hi if is_hi else ll_in)

@@ -28,7 +28,13 @@ readings (N, T, 1) as given. The step of run b, with one channel (m = 1), row :m
   statistics of :math:`\mu` and :math:`\sigma` at the channel's one finite limit, :math:`(\gamma, E(y),
   R_{uu})`, from :func:`~tobitkf.filters._compiled_censored._one_sided_at` (the branch-free routes written for
   vectorisation, imported: the same numbers as the compiled loop's statistics), :math:`e = y - E(y)`,
-  :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`R_{xe} = \gamma h`;
+  :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`R_{xe} = \gamma h`; with two finite limits, or none, at some step
+  (:data:`TOBIT_ANY`) the step is split into three vectorised loops over the block (prediction and moments;
+  statistics; update): two finite limits take the direct formulas of
+  :func:`~tobitkf.filters._compiled_censored.window_direct` for all runs, and the few runs whose window needs
+  another route (a window narrower than :math:`\sigma`, or in a tail) then
+  :func:`~tobitkf.filters._compiled_censored.censored_stats` one by one, the compiled loop's numbers (its sums
+  are taken in the loop's order, so that :math:`\mu`, which picks the route, is the loop's to the bit);
 
 then :math:`K = R_{xe}/R_{ee}`, :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` (standard form) or the
 Joseph form :math:`P = M - (MH^T - KR)K^T`, :math:`M = \bar P - KR_{xe}^T`, :math:`H = \gamma c` (as
@@ -39,12 +45,13 @@ the smallest normal number, leaves the run's prediction unchanged (the compiled 
   class (missing, inside its limits, at the lower or the upper limit: given, or by the limit rule of
   :func:`~tobitkf.filters._compiled_moments.classify`) and the latent :math:`N(\mu, s + r)` give
   :math:`(\alpha, \beta)`, the log-likelihood and P(uncensored) from
-  :func:`~tobitkf.filters._compiled_moments._censored_one` (the compiled loop's function, imported), and
+  :func:`~tobitkf.filters._compiled_moments._censored_one` (the compiled loop's function, imported; its
+  logarithms and exponential without a libm call, so that they vectorise too), and
   :math:`\hat x = \bar x + \alpha h`, :math:`P = \bar P - \beta hh^T`. With one channel both of its orders
   (``"channels"``, ``"uncensored_first"``) are this one update.
 
 Covered (:func:`soa_covers`, :func:`censored_covers`): one channel, n from 1 to :data:`SOA_MAX_N`; for the TKF
-one finite limit per step (lower or upper; the limits may change with the step), every noise term, the
+limits without NaN, ``lo < hi`` (one finite limit, two or none; the limits may change with the step), every noise term, the
 standard and Joseph forms, the input terms :math:`B^uu_k`, :math:`Du_k`; for the KF a covariance per run (with
 one prior covariance shared by the runs, nothing missing, the compiled loop computes the covariance once and is
 faster), both forms; for the censored assumed-density filter a time-invariant system (A, Q and C shared by the
@@ -71,9 +78,10 @@ import math
 import numpy as np
 from numba import njit
 
+from . import _compiled_loop
 from ._compiled_block import _flush, _stage, _stage_shape, _store_last
-from ._compiled_censored import _one_sided_at
-from ._compiled_moments import CENSORED, classify
+from ._compiled_censored import GL_W, GL_X, _assemble, _one_sided_at, censored_stats, noise_term, window_direct
+from ._compiled_moments import CENSORED, INTERVAL, classify
 from ._compiled_moments import _censored_one as _adf_update
 
 __all__ = [
@@ -82,6 +90,7 @@ __all__ = [
     "SIZES",
     "KALMAN",
     "TOBIT",
+    "TOBIT_ANY",
     "CENSORED_ADF",
     "soa_covers",
     "censored_covers",
@@ -100,10 +109,10 @@ SOA_MAX_N = 4  # largest state covered: every state loop is unrolled (n^3 produc
 #: :func:`soa_loop` per n, found by the ordinary dispatch on the argument types at every call)
 SIZES = {n: (0,) * n for n in range(1, SOA_MAX_N + 1)}
 #: the updates of :func:`soa_loop` (the assumed-density filter without or with its log-likelihood and P(uncensored))
-KALMAN, TOBIT, CENSORED_ADF, CENSORED_ADF_STATS = 0, 1, 2, 3
+KALMAN, TOBIT, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 1, 2, 3, 4
 #: the update as a type, likewise: a tuple of ``update + 1`` zeros (one specialisation per update, so that each
 #: vectorised loop holds only its update's code)
-KINDS = {k: (0,) * (k + 1) for k in (KALMAN, TOBIT, CENSORED_ADF, CENSORED_ADF_STATS)}
+KINDS = {k: (0,) * (k + 1) for k in (KALMAN, TOBIT, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY)}
 _CHUNK = 64  # steps staged per flush (as the compiled loop's CHUNK)
 _STAGE_BYTES = 1 << 18
 _TINY = float(np.finfo(np.float64).tiny)
@@ -113,16 +122,21 @@ _INF = math.inf
 def soa_covers(kalman: bool, m: int, n: int, P0_rows: int, N: int, lo=None, hi=None) -> bool:
     """Whether :func:`soa_loop` covers a KF or TKF call: one channel (``m == 1``), ``1 <= n <=``
     :data:`SOA_MAX_N`; the KF with a covariance per run (``P0_rows == N``; one shared covariance runs the compiled
-    loop's shared-gain path), the TKF with exactly one finite limit in every row of ``lo``/``hi`` (TL, 1)."""
+    loop's shared-gain path), the TKF with limits ``lo``/``hi`` (TL, 1) without NaN and ``lo < hi`` in every row
+    (one finite limit, two or none)."""
     if m != 1 or not 1 <= n <= SOA_MAX_N:
         return False
     if kalman:
         return P0_rows == N or N == 1
     if lo is None or hi is None:
         return False
-    lo_inf = np.isneginf(np.asarray(lo))
-    hi_inf = np.isposinf(np.asarray(hi))
-    return bool(np.all(lo_inf != hi_inf)) and not bool(np.isnan(lo).any() or np.isnan(hi).any())
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    return bool(np.all(lo < hi))  # False for a NaN limit too
+
+
+def _one_sided_rows(lo, hi) -> bool:
+    """Whether every row of ``lo``/``hi`` has exactly one finite limit (the fused step :data:`TOBIT`)."""
+    return bool(np.all(np.isneginf(lo) != np.isposinf(hi)))
 
 
 def censored_covers(family: int, A, Qd, H, F, r, lo, hi, x0) -> bool:
@@ -149,8 +163,8 @@ def censored_covers(family: int, A, Qd, H, F, r, lo, hi, x0) -> bool:
 
 def tobit_entry(default, m: int, n: int, lo, hi):
     """The TKF's whole-record entry: :func:`soa_tobit_loop` when :func:`soa_covers` the call (one channel, n up
-    to :data:`SOA_MAX_N`, one finite limit in every row of ``lo``/``hi``), else ``default`` (the compiled
-    loop's ``tobit_loop``); both take the same arguments."""
+    to :data:`SOA_MAX_N`, limits without NaN, ``lo < hi``), else ``default`` (the compiled loop's ``tobit_loop``);
+    both take the same arguments."""
     return soa_tobit_loop if soa_covers(False, m, n, 0, 0, lo, hi) else default
 
 
@@ -188,7 +202,100 @@ def _offsets(n):
     oEY = oG + 1
     oCL = oEY + 1
     oLL = oCL + 1
-    return oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oLL + 1
+    oMU = oLL + 1  # the split step (TOBIT_ANY): the moments mu, s and the noise term between its loops
+    oS = oMU + 1
+    oV = oS + 1
+    oSL = oV + 1  # 1: the run's window statistics take another route than the direct formulas
+    return oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oSL + 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _predict_moments(W, cst, b, n):
+    r"""The prediction of run ``b`` of the block, :math:`\bar x = A\hat x + B^uu_k`, :math:`\bar P = APA^T + Q`
+    (upper triangle, mirrored), into ``W``, and the moments of its reading: :math:`h = \bar Pc^T` into ``W``,
+    returns :math:`(\mu, s) = (c\bar x + Du_k, c\bar Pc^T)`."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    BK = SOA_BLOCK
+    nn = n * n
+    # every sum in the compiled loop's order (its terms from 0, the inputs and Q added last): the same rounding,
+    # so that the reading's mean, which picks the route of the window statistics, is the loop's to the bit
+    for i in range(n):
+        acc = 0.0
+        for k in range(n):
+            acc += cst[i * n + k] * W[(oX + k) * BK + b]
+        W[(oXP + i) * BK + b] = acc + W[(oBU + i) * BK + b]  # 0 without inputs (W starts zeroed)
+    for i in range(n):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += cst[i * n + k] * W[(oP + k * n + j) * BK + b]
+            W[(oAP + i * n + j) * BK + b] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = 0.0
+            for k in range(n):
+                acc += W[(oAP + i * n + k) * BK + b] * cst[j * n + k]
+            acc += cst[nn + i * n + j]
+            W[(oPp + i * n + j) * BK + b] = acc
+            W[(oPp + j * n + i) * BK + b] = acc
+    mu = 0.0
+    for i in range(n):
+        mu += W[(oXP + i) * BK + b] * cst[2 * nn + i]
+    mu += W[oDU * BK + b]
+    sv = 0.0
+    for i in range(n):
+        acc = 0.0
+        for k in range(n):
+            acc += W[(oPp + i * n + k) * BK + b] * cst[2 * nn + k]
+        W[(oH + i) * BK + b] = acc
+        sv += cst[2 * nn + i] * acc
+    return mu, sv
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _one_sided_tkf(mu, sd, lim, sg, noise_code):
+    """The TKF's ``(gamma, R_uu, E(y))`` of a reading with latent mean ``mu``, standard deviation ``sd`` and one
+    finite limit: ``sg`` 1 a lower limit ``lim``, -1 an upper one (``lim`` then the lower limit -hi of -y)."""
+    ms = sg * mu
+    _plo, g, _lam, tmean, tvar, cm, cvar = _one_sided_at(ms, sd, lim)
+    return g, noise_term(noise_code, ms, g, tmean, tvar, cvar), sg * cm
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph):
+    r"""The KF/TKF update of run ``b`` from its prediction and :math:`h` in ``W``: :math:`e = y - E(y)`,
+    :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`K = \gamma h/R_{ee}`, :math:`\hat x = \bar x + Ke`,
+    :math:`P = \bar P - \gamma Kh^T` (standard form) or Joseph's (module docstring); no change for a NaN
+    reading or :math:`R_{ee}` not above the smallest normal number."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    BK = SOA_BLOCK
+    nn = n * n
+    e = yb - ey
+    ree = g * g * sv + v
+    good = ree > _TINY and not math.isnan(e)
+    e = e if good else 0.0
+    f = g / ree if good else 0.0  # K = f h, R_xe = g h
+    for i in range(n):
+        kgi = f * W[(oH + i) * BK + b]
+        W[(oK + i) * BK + b] = kgi
+        W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + kgi * e
+    for i in range(n):
+        for j in range(i, n):
+            pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * (g * W[(oH + j) * BK + b])
+            W[(oP + i * n + j) * BK + b] = pij
+            W[(oP + j * n + i) * BK + b] = pij
+    if joseph:
+        # P = M - (M H^T - K R) K^T, M the standard form's result just computed, H = g c
+        for i in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += W[(oP + i * n + k) * BK + b] * cst[2 * nn + k]
+            W[(oAP + i) * BK + b] = acc * g - W[(oK + i) * BK + b] * v
+        for i in range(n):
+            for j in range(i, n):
+                pij = W[(oP + i * n + j) * BK + b] - W[(oAP + i) * BK + b] * W[(oK + j) * BK + b]
+                W[(oP + i * n + j) * BK + b] = pij
+                W[(oP + j * n + i) * BK + b] = pij
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -219,14 +326,15 @@ def soa_loop(
     x_last,
     P_last,
 ):
-    r"""The KF, the TKF or the censored assumed-density filter (``mode`` :data:`KALMAN`, :data:`TOBIT`,
-    :data:`CENSORED_ADF`) over N runs x T steps, one channel, state size ``n = len(size)`` (a tuple of n zeros,
-    :data:`SIZES`: a compile-time constant); fills the outputs (module docstring).
+    r"""The KF, the TKF or the censored assumed-density filter (``kind`` :data:`KALMAN`, :data:`TOBIT`,
+    :data:`TOBIT_ANY`, :data:`CENSORED_ADF`, :data:`CENSORED_ADF_STATS` as :data:`KINDS`) over N runs x T steps,
+    one channel, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
+    fills the outputs (module docstring).
 
     ``y`` (N, T, 1) readings (NaN: missing); ``A``, ``Qd`` (n, n); ``C`` (1, n); ``rv`` (TR,) per step (row
     ``min(t, TR - 1)``) the KF's noise variance R, the TKF's standard deviation σ or the assumed-density
-    filter's noise variance r; ``lo``, ``hi`` (TL, 1) the limits, row ``min(t, TL - 1)`` (the TKF: one of them
-    finite); ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
+    filter's noise variance r; ``lo``, ``hi`` (TL, 1) the limits, row ``min(t, TL - 1)`` (:data:`TOBIT`: one of
+    them finite); ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
     assumed-density filter's reading classes (T axis 0: by the limit rule); ``noise_code`` of
     :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; ``joseph`` the Joseph form (KF, TKF); ``x0`` (N, n),
     ``P0`` (N or 1, n, n). Outputs as :func:`~tobitkf.filters._compiled_loop.compiled_loop` (T axis 0: not
@@ -240,16 +348,25 @@ def soa_loop(
     it would need for a dozen arrays exceed its limit (the loop stayed scalar: ~1300 scalar double
     instructions against 35 vector ones). Rows of one array a compile-time constant apart are independent
     by construction. The readings, the input terms and the outputs move between ``W`` and their arrays in
-    short loops of their own."""
+    short loops of their own.
+
+    :data:`TOBIT_ANY` splits the step into three loops over the block's runs: the prediction and the moments
+    (vectorised), the step's statistics (vectorised: one-sided, none, or two finite limits by
+    :func:`~tobitkf.filters._compiled_censored.window_direct`, whose runs off the direct route, a narrow window
+    or one in a tail, then take :func:`~tobitkf.filters._compiled_censored.censored_stats` one at a time: the
+    compiled loop's numbers), and the update (vectorised)."""
     n = len(size)
     mode = len(kind) - 1
     stats = mode == CENSORED_ADF_STATS
+    adf = mode == CENSORED_ADF or mode == CENSORED_ADF_STATS
     N, T, m = y.shape
     BK = SOA_BLOCK
     S = max(1, min(_CHUNK, max(T, 1), _STAGE_BYTES // (8 * n * n * BK)))
     nn = n * n
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, rows = _offsets(n)
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
     W = np.zeros(rows * BK)
+    glx, glw = GL_X, GL_W
+    buf = np.empty((2, glx.shape[0]))
     # the constants: A (n x n), sym(Q) (n x n), c (n)
     cst = np.empty(2 * nn + n)
     for i in range(n):
@@ -282,7 +399,8 @@ def soa_loop(
             tl = min(t, lo.shape[0] - 1)
             lo_t, hi_t = lo[tl, 0], hi[tl, 0]
             rn = rv[min(t, rv.shape[0] - 1)]
-            upper = lo_t == -_INF  # the TKF's one finite limit: an upper one is the lower limit -hi of -y
+            lo_fin, hi_fin = lo_t != -_INF, hi_t != _INF
+            upper = not lo_fin  # one finite limit: an upper one is the lower limit -hi of -y
             sg = -1.0 if upper else 1.0
             lim = sg * (hi_t if upper else lo_t)
             if tt == 0:  # the readings of the chunk's steps, run by run (contiguous reads), into (S, B)
@@ -302,99 +420,78 @@ def soa_loop(
             if has_cls:
                 for b in range(nb):
                     W[oCL * BK + b] = cls[r0 + b, t, 0]
-            for b in range(nb):  # the whole step of run b: straight-line code, vectorised over b
-                # predict: xbar = A x + B^u u, Pbar = A P A^T + Q (upper triangle, mirrored)
-                for i in range(n):
-                    acc = W[(oBU + i) * BK + b]  # 0 without inputs (W starts zeroed)
-                    for k in range(n):
-                        acc += cst[i * n + k] * W[(oX + k) * BK + b]
-                    W[(oXP + i) * BK + b] = acc
-                for i in range(n):
-                    for j in range(n):
-                        acc = 0.0
-                        for k in range(n):
-                            acc += cst[i * n + k] * W[(oP + k * n + j) * BK + b]
-                        W[(oAP + i * n + j) * BK + b] = acc
-                for i in range(n):
-                    for j in range(i, n):
-                        acc = cst[nn + i * n + j]
-                        for k in range(n):
-                            acc += W[(oAP + i * n + k) * BK + b] * cst[j * n + k]
-                        W[(oPp + i * n + j) * BK + b] = acc
-                        W[(oPp + j * n + i) * BK + b] = acc
-                # the moments of the reading: mu = c xbar (+ D u), s = c Pbar c^T, h = Pbar c^T
-                mu = W[oDU * BK + b]
-                for i in range(n):
-                    mu += cst[2 * nn + i] * W[(oXP + i) * BK + b]
-                sv = 0.0
-                for i in range(n):
-                    acc = 0.0
-                    for k in range(n):
-                        acc += W[(oPp + i * n + k) * BK + b] * cst[2 * nn + k]
-                    W[(oH + i) * BK + b] = acc
-                    sv += cst[2 * nn + i] * acc
-                yb = W[oY * BK + b]
-                if mode >= CENSORED_ADF:
-                    # x = xbar + alpha h, P = Pbar - beta h h^T
-                    cl = W[oCL * BK + b] if has_cls else float(classify(yb, lo_t, hi_t))
-                    al, be, lb, p = _adf_update(yb, cl, mu, sv + rn, lo_t, hi_t)
-                    if stats:  # a constant: without, the log-likelihood and P(uncensored) are not computed
-                        W[oG * BK + b] = p
-                        W[oLL * BK + b] = lb
-                    for i in range(n):
-                        hv = W[(oH + i) * BK + b]
-                        W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + al * hv
-                        W[(oK + i) * BK + b] = be * hv
-                    for i in range(n):
-                        for j in range(i, n):
-                            pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * W[(oH + j) * BK + b]
-                            W[(oP + i * n + j) * BK + b] = pij
-                            W[(oP + j * n + i) * BK + b] = pij
-                    continue
-                if mode == TOBIT:
-                    ms = sg * mu
-                    _plo, g, _lam, tmean, tvar, cm, cvar = _one_sided_at(ms, rn, lim)
-                    if noise_code == 0:
-                        v = tvar
-                    elif noise_code == 1:
-                        v = cvar
+            if mode == TOBIT_ANY:
+                for b in range(nb):  # prediction and moments
+                    mu, sv = _predict_moments(W, cst, b, n)
+                    W[oMU * BK + b] = mu
+                    W[oS * BK + b] = sv
+                if lo_fin and hi_fin:  # two finite limits: the direct formulas, vectorised
+                    for b in range(nb):
+                        mu = W[oMU * BK + b]
+                        other, _a2, _b2, _fl, _os, p_lo, p_hi, gam, lam, zvar = window_direct(mu, rn, lo_t, hi_t)
+                        st = _assemble(mu, rn, lo_t, hi_t, p_lo, p_hi, gam, lam, zvar)
+                        W[oG * BK + b] = st[2]
+                        W[oV * BK + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
+                        W[oEY * BK + b] = st[6]
+                        W[oSL * BK + b] = 1.0 if other else 0.0
+                    for b in range(nb):  # the runs off the direct route: the compiled loop's statistics
+                        if W[oSL * BK + b] != 0.0:
+                            mu = W[oMU * BK + b]
+                            st = censored_stats(mu, rn, lo_t, hi_t, glx, glw, buf)
+                            W[oG * BK + b] = st[2]
+                            W[oV * BK + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
+                            W[oEY * BK + b] = st[6]
+                elif lo_fin or hi_fin:
+                    for b in range(nb):
+                        g, v, cm = _one_sided_tkf(W[oMU * BK + b], rn, lim, sg, noise_code)
+                        W[oG * BK + b] = g
+                        W[oV * BK + b] = v
+                        W[oEY * BK + b] = cm
+                else:  # no limit: the latent reading's moments
+                    for b in range(nb):
+                        W[oG * BK + b] = 1.0
+                        W[oV * BK + b] = rn * rn
+                        W[oEY * BK + b] = W[oMU * BK + b]
+                for b in range(nb):  # the update
+                    _gain_update(
+                        W,
+                        cst,
+                        b,
+                        n,
+                        W[oY * BK + b],
+                        W[oG * BK + b],
+                        W[oV * BK + b],
+                        W[oEY * BK + b],
+                        W[oS * BK + b],
+                        joseph,
+                    )
+            else:
+                for b in range(nb):  # the whole step of run b: straight-line code, vectorised over b
+                    mu, sv = _predict_moments(W, cst, b, n)
+                    yb = W[oY * BK + b]
+                    if adf:
+                        # x = xbar + alpha h, P = Pbar - beta h h^T
+                        cl = W[oCL * BK + b] if has_cls else float(classify(yb, lo_t, hi_t))
+                        al, be, lb, p = _adf_update(yb, cl, mu, sv + rn, lo_t, hi_t)
+                        if stats:  # a constant: without, the log-likelihood and P(uncensored) are not computed
+                            W[oG * BK + b] = p
+                            W[oLL * BK + b] = lb
+                        for i in range(n):
+                            hv = W[(oH + i) * BK + b]
+                            W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + al * hv
+                            W[(oK + i) * BK + b] = be * hv
+                        for i in range(n):
+                            for j in range(i, n):
+                                pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * W[(oH + j) * BK + b]
+                                W[(oP + i * n + j) * BK + b] = pij
+                                W[(oP + j * n + i) * BK + b] = pij
+                    elif mode == TOBIT:
+                        g, v, cm = _one_sided_tkf(mu, rn, lim, sg, noise_code)
+                        W[oG * BK + b] = g
+                        W[oEY * BK + b] = cm
+                        _gain_update(W, cst, b, n, yb, g, v, cm, sv, joseph)
                     else:
-                        dm = tmean - ms
-                        v = g * (tvar + dm * dm)
-                    cm = sg * cm
-                    W[oG * BK + b] = g
-                    W[oEY * BK + b] = cm
-                    e = yb - cm
-                    ree = g * g * sv + v
-                else:
-                    g = 1.0
-                    v = rn
-                    e = yb - mu
-                    ree = sv + rn
-                good = ree > _TINY and not math.isnan(e)
-                e = e if good else 0.0
-                f = g / ree if good else 0.0  # K = f h, R_xe = g h
-                for i in range(n):
-                    kgi = f * W[(oH + i) * BK + b]
-                    W[(oK + i) * BK + b] = kgi
-                    W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + kgi * e
-                for i in range(n):
-                    for j in range(i, n):
-                        pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * (g * W[(oH + j) * BK + b])
-                        W[(oP + i * n + j) * BK + b] = pij
-                        W[(oP + j * n + i) * BK + b] = pij
-                if joseph:
-                    # P = M - (M H^T - K R) K^T, M the standard form's result just computed, H = g c
-                    for i in range(n):
-                        acc = 0.0
-                        for k in range(n):
-                            acc += W[(oP + i * n + k) * BK + b] * cst[2 * nn + k]
-                        W[(oAP + i) * BK + b] = acc * g - W[(oK + i) * BK + b] * v
-                    for i in range(n):
-                        for j in range(i, n):
-                            pij = W[(oP + i * n + j) * BK + b] - W[(oAP + i) * BK + b] * W[(oK + j) * BK + b]
-                            W[(oP + i * n + j) * BK + b] = pij
-                            W[(oP + j * n + i) * BK + b] = pij
+                        _gain_update(W, cst, b, n, yb, 1.0, rn, mu, sv, joseph)
             _stage(Wxp, WPp, tt, nb, s_pmean, s_pcov)
             _stage(Wx, WP, tt, nb, s_mean, s_cov)
             if w_pu:
@@ -464,11 +561,12 @@ def soa_tobit_loop(
 ) -> None:
     """:func:`soa_loop` for the Tobit Kalman filter with the arguments of
     :func:`~tobitkf.filters._compiled_entries.tobit_loop` (``H`` (1, 1, n), ``sigma`` (1, 1), ``lo``/``hi``
-    (TL, 1)); the caller checked :func:`soa_covers`."""
+    (TL, 1)); the caller checked :func:`soa_covers`. One finite limit in every row: the fused step
+    (:data:`TOBIT`); else the split one (:data:`TOBIT_ANY`: two finite limits, or none, at some step)."""
     N, _, m = y.shape
     soa_loop(
         SIZES[A.shape[0]],
-        KINDS[TOBIT],
+        KINDS[TOBIT if _one_sided_rows(lo, hi) else TOBIT_ANY],
         y,
         A,
         Qd,
@@ -530,7 +628,14 @@ def soa_censored_loop(
     :func:`~tobitkf.filters._compiled_loop.compiled_loop` (``A``, ``Qd`` (1, 1, n, n), ``H`` (1, 1, n), ``r``,
     ``lo``, ``hi`` (1, steps or 1, 1); ``F``, ``par``, ``J``, ``npass``, ``noise_code``, ``joseph``, ``ey`` and
     ``comp`` unused: no fading rows, no mixture, one channel, the standard form); the caller checked
-    :func:`censored_covers`."""
+    :func:`censored_covers`. Given classes with an interval reading (:data:`~tobitkf.filters._readings.INTERVAL`:
+    flagged censored inside its limits, whose update takes quadrature) run the compiled loop itself."""
+    if cls.shape[1] > 0 and bool((cls == INTERVAL).any()):
+        _compiled_loop.compiled_loop(
+            family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
+            means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
+        )  # fmt: skip
+        return
     soa_loop(
         SIZES[x0.shape[1]],
         KINDS[CENSORED_ADF_STATS if pu.shape[1] > 0 or ll.shape[1] > 0 else CENSORED_ADF],
