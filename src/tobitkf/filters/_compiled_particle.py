@@ -301,7 +301,7 @@ def _mass_factor(far, lm, M, upper, F):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _limit_z(Z, lower, lo, hi, isd, Np):
-    """The particles' standardised distances past a censored reading's limit, in place: ``Z`` (Np,) the latent
+    r"""The particles' standardised distances past a censored reading's limit, in place: ``Z`` (Np,) the latent
     means become :math:`(lo - z_p)/s` at the lower limit (``lower``), :math:`(z_p - hi)/s` at the upper one
     (``isd`` = 1/s), so that the reading's mass is :math:`\Phi(Z_p)` on either side."""
     if lower:

@@ -221,7 +221,7 @@ class _Linear(_Model):
 
 
 def _exact_reading(yv: np.ndarray, p: np.ndarray, sd: Any) -> tuple[np.ndarray, np.ndarray]:
-    """An exact reading ``yv`` (rows, 1) in the sequential proposals: the latent value drawn is the reading itself
+    r"""An exact reading ``yv`` (rows, 1) in the sequential proposals: the latent value drawn is the reading itself
     (broadcast to the particles' ``p`` (rows, Np)) and its weight the normal log-density
     :math:`\log N(y; p, sd^2)`."""
     z = (yv - p) / sd
