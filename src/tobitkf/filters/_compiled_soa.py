@@ -270,13 +270,15 @@ def _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph):
     oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
     BK = SOA_BLOCK
     nn = n * n
+    # the compiled loop's operations in its order (_innovation_moments, _gain): the same rounding
     e = yb - ey
-    ree = g * g * sv + v
+    ree = sv * g * g + v
     good = ree > _TINY and not math.isnan(e)
     e = e if good else 0.0
-    f = g / ree if good else 0.0  # K = f h, R_xe = g h
+    r = ree if good else 1.0
     for i in range(n):
-        kgi = f * W[(oH + i) * BK + b]
+        rxe = W[(oH + i) * BK + b] * g
+        kgi = (rxe if good else 0.0) / r
         W[(oK + i) * BK + b] = kgi
         W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + kgi * e
     for i in range(n):
