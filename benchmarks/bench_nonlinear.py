@@ -37,6 +37,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import argparse  # noqa: E402
 import resource  # noqa: E402
 import time  # noqa: E402
+from typing import Any  # noqa: E402
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
@@ -141,7 +142,7 @@ def batched(runs: int, steps: int, repeat: int) -> None:
     y = tk.simulate(nl, steps, runs, channel=clip, seed=0).y
     print(f"(1) batched: {runs} runs x {steps} steps, n = 4, m = 2, {clip.at_limit(y).mean():.0%} of readings clipped")
     print(f"    per run-step, best of {repeat}: wall / user / sys microseconds; ratio of wall times")
-    cases = [
+    cases: list[tuple[str, Any]] = [
         ("linear ADF (compiled)", tk.AssumedDensityTobitFilter(lin, clip)),
         ("nonlinear ADF, numpy f, h", tk.NonlinearAssumedDensityFilter(nl, clip)),
         ("nonlinear ADF, njit f, h", tk.NonlinearAssumedDensityFilter(nl_jit, clip)),
@@ -162,6 +163,7 @@ def batched(runs: int, steps: int, repeat: int) -> None:
             worst = wall / ref
         print(f"    {name:30s} {wall * per:9.3f} / {user * per:9.3f} / {sys_ * per:7.3f}{ratio}", flush=True)
         ref = wall if ref is None else ref
+    assert ref is not None
     wall, user, sys_ = _timed(lambda: _calls_alone(f_njit, h_njit, runs, steps, L, 2, X), repeat)
     print(
         f"    {'f, h calls alone (njit)':30s} {wall * per:9.3f} / {user * per:9.3f} / {sys_ * per:7.3f}"
