@@ -25,6 +25,13 @@ block steps cached on disk. Covered: the standard form
 (and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
 filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters;
 the square-root form and other channels run the numpy path.
+
+Measured (``benchmarks/bench_nonlinear.py``: two coupled pendulums, n = 4, m = 2, unscented rule, 10^4 runs x
+100 steps, 25 % of readings clipped; two runs on a 2-core machine under a load average of 10-16): the
+assumed-density filter 3.57x and 3.24x the compiled linear assumed-density filter per run-step in wall time
+(1.07 and 1.05 against 0.29 and 0.26 µs of CPU time), the calls of f and h alone 1.70x and 1.66x; the
+uncensored UKF 4.22x and 4.18x. Before the block steps stopped allocating and had their state loops unrolled:
+5.9x (2,000 runs, the same load), with about 0.8 µs per run-step outside f and h.
 """
 
 from __future__ import annotations
