@@ -225,3 +225,71 @@ def test_numba_backend_refuses_python_functions(record):
     assert tk.UnscentedKalmanFilter(_system(True), covariance_update="square_root", backend="numba")._use_compiled()
     with pytest.raises(tk.ValidationError, match="backend"):
         tk.UnscentedKalmanFilter(_system(True), backend="gpu")
+
+
+@pytest.mark.parametrize("name", ["tekf", "ekf_joseph", "adf_gauss_hermite"])
+def test_compiled_blocks_of_runs_other_updates(name):
+    """The Tobit and Joseph updates and a rule with points off the axes (of the nine unit points of the
+    Gauss–Hermite rule of order 3 in 2-D, four have two nonzero coordinates, four one, the centre none: every
+    branch of the points' shortcut), over a full and a partial block with readings lost in both: equal to numpy
+    run by run."""
+    from tobitkf.filters._compiled_nonlinear import NL_BLOCK
+
+    N = NL_BLOCK + 5
+    y = tk.simulate(_system(False), 5, N, channel=CLIP, seed=8).y
+    y[: NL_BLOCK // 2, 1, 1] = np.nan
+    y[NL_BLOCK:, 3, 0] = np.nan  # every run of the partial block loses channel 0 at step 4
+    mk = ESTIMATORS[name]
+    _same(mk(_system(False), "numpy").filter(y), mk(_system(True), "numba").filter(y))
+
+
+def test_point_columns():
+    """The shortcut of the sigma points: the centre, the axis points of the unscented rule, a point off the axes."""
+    from tobitkf.filters._compiled_nonlinear import point_columns
+
+    xi = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [0.0, 0.0, -2.0], [1.0, 1.0, 0.0]])
+    np.testing.assert_array_equal(point_columns(xi), [-1, 0, 2, -2])
+    assert point_columns(np.empty((0, 3))).shape == (0,)
+
+
+def test_compiled_singular_prior():
+    """A prior covariance that is singular in every run: the eigen root replaces the Cholesky factor at the
+    first step (the numpy path's rule when its Cholesky fails), the shortcut of the points applied to it."""
+    y = tk.simulate(_system(False), 8, 3, channel=CLIP, seed=9).y
+    P0s = np.diag([0.1, 0.0])
+    ref = tk.NonlinearAssumedDensityFilter(tk.NonlinearSystem(f_osc.py_func, h_osc.py_func, Q, R, X0, P0s), CLIP)
+    est = tk.NonlinearAssumedDensityFilter(tk.NonlinearSystem(f_osc, h_osc, Q, R, X0, P0s), CLIP, backend="numba")
+    _same(ref.filter(y), est.filter(y))
+
+
+@numba.njit
+def f_big(x, k):
+    out = np.empty(x.shape)
+    n = x.shape[-1]
+    for i in range(n):
+        out[..., i] = 0.95 * x[..., i] + 0.05 * np.sin(x[..., (i + 1) % n])
+    return out
+
+
+@numba.njit
+def h_big(x, k):
+    out = np.empty(x.shape[:-1] + (2,))
+    out[..., 0] = np.sin(x[..., 0])
+    out[..., 1] = x[..., 3] + 0.1 * x[..., 6] ** 2
+    return out
+
+
+def test_compiled_state_beyond_the_unrolled_sizes():
+    """A state larger than the block steps unroll (n = 7): they read n from their arrays; equal to numpy."""
+    from tobitkf.filters._compiled_nonlinear import NL_MAX_UNROLL
+
+    n = 7
+    assert n > NL_MAX_UNROLL
+    Qb, P0b, x0b = 1e-3 * np.eye(n), 0.05 * np.eye(n), np.linspace(-0.5, 0.5, n)
+    clip = tk.Censoring(lower=[-0.4, -np.inf], upper=[0.4, 0.3])
+    sys_np = tk.NonlinearSystem(f_big.py_func, h_big.py_func, Qb, R, x0b, P0b)
+    y = tk.simulate(sys_np, 6, 3, channel=clip, seed=10).y
+    y[1, 2, 0] = np.nan
+    ref = tk.NonlinearAssumedDensityFilter(sys_np, clip).filter(y)
+    est = tk.NonlinearAssumedDensityFilter(tk.NonlinearSystem(f_big, h_big, Qb, R, x0b, P0b), clip, backend="numba")
+    _same(ref, est.filter(y))
