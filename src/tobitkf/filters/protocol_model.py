@@ -145,11 +145,11 @@ FAILURE_CODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_uncondi
 
 @lru_cache(maxsize=1)
 def _nodes() -> tuple[np.ndarray, np.ndarray]:
-    """Writable copies of the compiled statistics' Gauss-Legendre nodes and weights: the compiled loop types them
-    writable, and a read-only array would compile :func:`protocol_tkf_block` a second time."""
+    """The compiled statistics' Gauss-Legendre nodes and weights, read-only as the compiled loop sees them (its
+    module-level arrays): a writable copy would compile :func:`protocol_tkf_block` a second time."""
     from ._compiled_tobit import GL_W, GL_X
 
-    return np.array(GL_X), np.array(GL_W)
+    return GL_X, GL_W
 
 
 def _prediction(xi_pred, P_pred, y, gamma, Cc, r, H, H0, tau, lam_mean, lam_var, failure_term, X):
