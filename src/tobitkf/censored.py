@@ -65,10 +65,6 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _TAIL = 4.0  # beyond this many sigma the window is treated by quadrature
 _NARROW = 1.0  # windows narrower than this (in sigma) too
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(64)
-# Read-only, as compiled code sees a module-level array: a compiled function handed these from Python and from
-# another compiled function is then compiled once, for one argument type.
-_GL_X.flags.writeable = False
-_GL_W.flags.writeable = False
 _CF_FROM = 4.0  # one-sided windows beyond this many sigma: the continued fraction
 _FAR = 100.0  # b'^2 - a'^2 above this: the far limit is negligible (phi ratio < e^-50)
 _CF_TERMS = 140.0  # int(_CF_TERMS / x) + 6 terms of the continued fraction at x

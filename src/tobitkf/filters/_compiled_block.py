@@ -729,14 +729,15 @@ def _stage_cov(Pv, cbuf, tt, nb):
     if cbuf.shape[0] == 0:
         return
     n, w = cbuf.shape[1], cbuf.shape[2]
-    if w == 1:
+    nx = Pv.shape[0]
+    off = n - nx if n > nx else 0  # rows of the top block ahead of the diagonal blocks
+    if w == 1:  # the variances (a scalar state's 1 x 1 blocks too, after its top block when off = 1)
         for i in range(n):
+            ii = i - off if i >= off else i
             for b in range(nb):
-                cbuf[tt, i, 0, b] = Pv[i, i, b]
+                cbuf[tt, i, 0, b] = Pv[ii, ii, b]
         return
     if w < n:
-        nx = Pv.shape[0]
-        off = n - nx if n > nx else 0
         for i in range(n):
             ii = i - off if i >= off else i
             o = ii - ii % w

@@ -145,11 +145,14 @@ FAILURE_CODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_uncondi
 
 @lru_cache(maxsize=1)
 def _nodes() -> tuple[np.ndarray, np.ndarray]:
-    """The compiled statistics' Gauss-Legendre nodes and weights, read-only as the compiled loop sees them (its
-    module-level arrays): a writable copy would compile :func:`protocol_tkf_block` a second time."""
+    """Read-only views of the compiled statistics' Gauss-Legendre nodes and weights, as the compiled loop sees them
+    (numba freezes a module-level array read-only): a writable array would compile :func:`protocol_tkf_block` a
+    second time."""
     from ._compiled_tobit import GL_W, GL_X
 
-    return GL_X, GL_W
+    x, w = GL_X.view(), GL_W.view()
+    x.flags.writeable = w.flags.writeable = False
+    return x, w
 
 
 def _prediction(xi_pred, P_pred, y, gamma, Cc, r, H, H0, tau, lam_mean, lam_var, failure_term, X):
