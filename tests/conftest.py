@@ -82,6 +82,47 @@ def _needless_specialisations() -> list[str]:
     return found
 
 
+# Where the run's compile time goes: the CPU seconds of every outermost numba compile of a tobitkf function (its callees
+# compiled inside it included), summed over the processes of the run, the largest listed in the run's summary. On a
+# fresh numba cache compiling is most of the default run's time; a function listed with more versions than the tests
+# need, or compiled by every worker, is where it can be cut.
+_COMPILE_CPU: dict[str, list[float]] = {}
+
+
+def _compile_listener():
+    import time
+
+    from numba.core import event
+
+    class _Listener(event.Listener):
+        def __init__(self):
+            self.started: list[float] = []
+
+        def on_start(self, ev):
+            self.started.append(time.process_time())
+
+        def on_end(self, ev):
+            t0 = self.started.pop()
+            if self.started:  # a callee compiled inside an outer compile: counted in the outer one
+                return
+            func = getattr((ev.data or {}).get("dispatcher"), "py_func", None)
+            mod = getattr(func, "__module__", "") or ""
+            if mod.startswith("tobitkf"):
+                entry = _COMPILE_CPU.setdefault(f"{mod}.{func.__qualname__}", [0.0, 0])
+                entry[0] += time.process_time() - t0
+                entry[1] += 1
+
+    return _Listener()
+
+
+def pytest_configure(config):
+    try:
+        from numba.core import event
+    except ImportError:
+        return
+    event.register("numba:compile", _compile_listener())
+
+
 def pytest_sessionfinish(session):
     try:
         found = _needless_specialisations()
@@ -90,13 +131,19 @@ def pytest_sessionfinish(session):
     workeroutput = getattr(session.config, "workeroutput", None)
     if workeroutput is not None:  # an xdist worker: the controller reports it
         workeroutput["needless_specialisations"] = found
+        workeroutput["compile_cpu"] = dict(_COMPILE_CPU)
     else:
         _NEEDLESS.extend(found)
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_testnodedown(node, error):
-    _NEEDLESS.extend(getattr(node, "workeroutput", {}).get("needless_specialisations", []))
+    out = getattr(node, "workeroutput", {})
+    _NEEDLESS.extend(out.get("needless_specialisations", []))
+    for name, (seconds, count) in out.get("compile_cpu", {}).items():
+        entry = _COMPILE_CPU.setdefault(name, [0.0, 0])
+        entry[0] += seconds
+        entry[1] += count
 
 
 def pytest_terminal_summary(terminalreporter):
@@ -104,3 +151,8 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.section("kernels compiled again for read-only or strided arrays")
         for line in sorted(set(_NEEDLESS)):
             terminalreporter.write_line(line)
+    if _COMPILE_CPU:
+        total = sum(seconds for seconds, _ in _COMPILE_CPU.values())
+        terminalreporter.section(f"numba compiles: {total:.0f} s of CPU in all processes; the largest")
+        for name, (seconds, count) in sorted(_COMPILE_CPU.items(), key=lambda kv: -kv[1][0])[:15]:
+            terminalreporter.write_line(f"{seconds:8.1f} s  {count:3d} compiles  {name}")
