@@ -256,7 +256,7 @@ class AugmentedLMMSE(_DelayEstimator):
             raise ValidationError(f"lags: expected lags <= window W = {self.window}, got {max(lags)}")
         return {"lags": lags}
 
-    def filter(
+    def filter(  # type: ignore[override]  # the delay family: a prior of its own and lag options
         self, y: Any, *, lags: Any = (), prior: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
         """Run Algorithm A over ``y`` (..., T, m); see :func:`augmented_lmmse`."""

@@ -314,7 +314,7 @@ class ChainLMMSE(_DelayEstimator):
             return {"lags": (), "horizons": (), "point": None}
         return self._checked_options(options.get("lags", ()), options.get("horizons", ()), options.get("point"))
 
-    def filter(
+    def filter(  # type: ignore[override]  # the delay family: a prior of its own and lag options
         self,
         y: Any,
         *,

@@ -488,7 +488,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         st = t % W
         xp[t + 1] = xm[t].dot(R["abar"][st].T) + y.dot(R["j"][st].T)
 
-    def filter(
+    def filter(  # type: ignore[override]  # the delay family: a prior of its own
         self, y: Any, *, prior: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
         """Run Algorithm D over ``y`` (..., T, m); see :func:`reorganized_lmmse`."""

@@ -176,6 +176,23 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     """
 
     _name = "ProtocolTobitKalmanFilter"
+    _filter_doc = """Run the PBTKF-IMSF (Geng et al., Theorem 1, Table I; the update (21)–(24)) over a batch of received
+    records ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`. ``extras["scheduled"]`` (T,): the sensor
+    the schedule gave each step."""
+    _filter_params = {
+        "y": "(..., T, 1) array_like\n"
+        "    Received scalar readings y_1..y_T (a censored reading equals τ). A NaN reading (a packet lost on the\n"
+        "    link, not in the source's model) only predicts, whatever ``uncensored`` says there (it is reported\n"
+        "    as not uncensored).",
+        "u": "(..., T, p) array_like, optional\n"
+        "    The control inputs u(0..T-1) of a system with ``Bu`` (the prediction of step k adds B_u u(k-1) to the\n"
+        "    current state's block; not in the source, whose plant has no input).",
+        "uncensored": "(..., T, 1) bool array_like, optional\n"
+        "    :math:`\\gamma_k` from the detection device, laid out like ``y``; default ``y > threshold``.",
+        "keep_augmented": "bool, default False\n"
+        "    Also return the ξ-space covariances ``aug_cov``, ``aug_pred_cov`` (memory: N T n_ξ²).",
+    }
+    _filter_raises = "a reading below τ (``check_limits``); ``uncensored`` not laid out like ``y`` (a ShapeError)"
     _step_options = ("uncensored",)
     _loop_ctx: tuple  # what every call of the compiled loop takes from the estimator (_loop_constants)
     _kernel_static: bool  # whether the compiled loop runs (decided on the first call)
@@ -373,13 +390,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         outputs: Any = "all",
         state: FilterState | None = None,
     ) -> FilterResult:
-        """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`.
-
-        ``u`` (..., T, p), optional: the control inputs u(0..T-1) of a system with ``Bu`` (the prediction of
-        step k adds B_u u(k-1) to the current state's block; not in the source, whose plant has no input).
-        A NaN reading (a packet lost on the link, not in the source's model) only predicts, whatever
-        ``uncensored`` says there (it is reported as not uncensored).
-        """
+        # the shared loop with the recorded indicator as step data (``super().filter`` takes none)
         y2, batch = self._prepare_record(y)
         N, T, _ = y2.shape
         step_data = None

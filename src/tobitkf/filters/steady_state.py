@@ -219,6 +219,22 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         "with gaps"
     )
 
+    _filter_doc = r"""Fixed-gain update (Miller §3.4.2, (3.58)) of measurements censored at the controlled limits.
+
+    ``y`` (..., T, m) must have been censored at the limits :meth:`limit` gives for this filter's own priors
+    (e.g. by :meth:`filter_controlled`); the filter itself only needs :math:`E[y_k]`, which (3.58) gives without
+    the limits. Covariances are the constant :math:`\Psi_\infty`, :math:`\bar\Psi_\infty` (read-only broadcast
+    views)."""
+    _filter_params = {
+        "y": "(..., T, m) array_like\n    The censored readings y_1..y_T; no NaN (see Raises).",
+        "x0": "array_like, optional\n"
+        "    Override the prior mean of :math:`x_0`, ``(n,)`` or ``(..., n)`` (the covariance is the constant\n"
+        "    limit).",
+    }
+    _filter_raises = (
+        "NaN (a missing sample): a fixed gain cannot skip a sample without making the reported covariance wrong"
+    )
+
     def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
         check_option(side, "side", ("upper", "lower"))
@@ -348,19 +364,9 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
             _warn_if_diverged(res.mean, self._name, k0, stacklevel=4)
         return res
 
-    def filter(
+    def filter(  # type: ignore[override]  # no P0: the covariances are the constant limits
         self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
-        r"""Fixed-gain update of measurements censored at the controlled limits.
-
-        ``y`` (..., T, m) must have been censored at the limits :meth:`limit` gives for
-        this filter's own priors (e.g. by :meth:`filter_controlled`); the filter
-        itself only needs :math:`E[y_k]`, which (3.58) gives without the limits.
-        Covariances are the constant :math:`\Psi_\infty`, :math:`\bar\Psi_\infty`
-        (read-only broadcast views).
-        NaN (a missing sample) is refused with a :class:`ValidationError`: a fixed gain
-        cannot skip a sample without making the reported covariance wrong.
-        """
         return self._fixed_gain_run(y, u, x0, outputs, state)
 
     def filter_controlled(
