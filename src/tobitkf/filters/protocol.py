@@ -83,7 +83,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from ._online_check import check_step
-from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import kernel_array, kernel_result, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -491,9 +491,9 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
     :func:`~tobitkf.filters._compiled_entries.protocol_tkf_step`), its columns ``Hs``, ``Cs``, ``rs``, ``pars``
     (views), its rows (views), the set of the filled sensors, the transition ``A`` and noise ``Qd`` (1, 1, n, n),
     the threshold ``lo``, ``hi`` (1, 1, 1), the names of the step's scalars
-    (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the modules of the loop and of its entries
-    (imported here, with numba, on first use), the failure-term code and the covariance form, the step's flat
-    constants, and the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
+    (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the loop's module, the failure-term code and
+    the covariance form, the loop's named arguments (:class:`~tobitkf.filters._loop_specs.LoopArguments`), the
+    entries' module (the modules imported here, with numba, on first use) and the step's flat constants."""
     ctx = est.__dict__.get("_loop_ctx")
     if ctx is None:
         from . import _compiled_entries, _compiled_loop, _loop_specs
@@ -508,7 +508,7 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
         codes = (FAILURE_CODES[est.failure_term], est.covariance_update == "joseph")
         flat = np.concatenate([A.ravel(), Qd.ravel(), [est._tau, codes[0], float(codes[1])]])
         ctx = (Hs, Cs, rs, pars, tuple(table), set(), A, Qd) + lohi
-        ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {}, _compiled_entries, flat)
+        ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, _loop_specs.LoopArguments, _compiled_entries, flat)
         est._loop_ctx = ctx
     return ctx
 
@@ -522,25 +522,6 @@ def _sensor_rows(est: ProtocolTobitKalmanFilter, h: int, k: int, ctx: tuple) -> 
         Cc, r, H, _, lam_mean, lam_var = est._step_terms(k, h)
         Hs[h], Cs[h], rs[h], pars[h, :2] = H, Cc, r, (lam_mean, lam_var)
         filled.add(h)
-
-
-def _loop_call(est, ctx, y, gam, H, F, r, par, x, P, outs, comp, x_last, P_last) -> None:
-    r""":func:`~tobitkf.filters._compiled_loop.compiled_loop` with the protocol TKF's code: readings ``y`` (N, T, 1),
-    γ ``gam`` (N, T, 1) bool (as int8, 1 the class ``INTERIOR``), the per-step rows ``H`` (T', 1, n_ξ), ``F``
-    (T', 1, 1, n_ξ) (:math:`\mathcal C_h`), ``r`` (1, T', 1), ``par`` (T', 1, 3); ``outs`` the state outputs,
-    ``comp`` (N, T, 1, 7 + 2 n_ξ) the extras."""
-    cl = ctx[11]
-    N = y.shape[0]
-    none = ctx[13].get(N)
-    if none is None:  # the inputs and outputs the protocol TKF does not use, per number of runs
-        none = ctx[13][N] = (_empty((N, 0, est.n)), _empty((N, 0, 1)), _empty((N, 0)))
-    mode, joseph = ctx[12]
-    lo, hi = ctx[8], ctx[9]
-    e_n, e_1, e_0 = none
-    cl.compiled_loop(
-        cl.PROTOCOL_TKF, y, gam.view(np.int8), ctx[6], ctx[7], H, F, r, lo, hi, par, 0, 1, mode, joseph, e_n, e_1, x, P,
-        *outs, e_1, e_1, e_0, comp, x_last, P_last,
-    )  # fmt: skip
 
 
 def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> FilterState | None:
@@ -643,22 +624,14 @@ def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: Fil
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
     P = state.P if state.P.shape[0] in (1, N) else np.broadcast_to(state.P, (N, nxi, nxi))
     H, F, r = Hs[sched][:, None], Cs[sched][:, None, None], rs[sched][None, :, None]
-    _loop_call(
-        est,
-        ctx,
-        y3,
-        gam,
-        H,
-        F,
-        r,
-        par,
-        loop_input(state.x),
-        loop_input(P),
-        (means, covs, pmeans, pcovs),
-        comp,
-        x_last,
-        P_last,
-    )
+    mode, joseph = ctx[12]
+    loop = ctx[11]
+    args = ctx[13](
+        loop.PROTOCOL_TKF, y3, cls=gam.view(np.int8), A=ctx[6], Qd=ctx[7], H=H, F=F, r=r, lo=ctx[8], hi=ctx[9], par=par,
+        noise_code=mode, joseph=joseph, x0=loop_input(state.x), P0=loop_input(P), means=means, covs=covs,
+        pmeans=pmeans, pcovs=pcovs, comp=comp, x_last=x_last, P_last=P_last,
+    )  # fmt: skip
+    loop.compiled_loop(*args.filled())  # the arrays the protocol TKF does not use: made by filled()
 
     def out(a):
         return kernel_array(a, batch)

@@ -66,7 +66,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
-from ._outputs import _empty, kernel_array, loop_input, output_arrays
+from ._outputs import kernel_array, loop_input, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, tobit_measurement
@@ -478,38 +478,12 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
         N, T, ("mean" in want, (n,)), ("pred_mean" in want, (n,)), (ext, (m, 2))
     )
     x_last = np.empty((N, n))
-    e = np.empty((1, 1, m))
-    _compiled_loop.compiled_loop(
-        _compiled_loop.FIXED_GAIN,
-        loop_input(y2),
-        np.empty((N, 0, m), dtype=np.int8),
-        A,
-        Qd,
-        C,
-        np.empty((1, m, 0, n)),
-        e,
-        e,
-        e,
-        par,
-        0,
-        1,
-        code + 2 * latent,
-        False,
-        _empty((N, 0, n)),
-        _empty((N, 0, m)),
-        loop_input(state.x),
-        est.cov[None],
-        means,
-        _empty((N, 0, n, n)),
-        pmeans,
-        _empty((N, 0, n, n)),
-        _empty((N, 0, m)),
-        _empty((N, 0, m)),
-        _empty((N, 0)),
-        comp,
-        x_last,
-        np.empty((N, 0, 0)),  # no covariance is carried
-    )
+    args = _loop_specs.LoopArguments(
+        _compiled_loop.FIXED_GAIN, loop_input(y2), A=A, Qd=Qd, H=C, par=par, noise_code=code + 2 * latent,
+        x0=loop_input(state.x), P0=est.cov[None], means=means, pmeans=pmeans, comp=comp, x_last=x_last,
+        P_last=np.empty((N, 0, 0)),  # no covariance is carried
+    )  # fmt: skip
+    _compiled_loop.compiled_loop(*args.filled())  # the arrays the fixed gain does not use: made by filled()
 
     def out(a):
         return kernel_array(a, batch)
