@@ -103,7 +103,7 @@ from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, system_gap, use_kernel
 from ._online_check import system_only
-from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -540,7 +540,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
         runs) where the loop does not cover the case or the covariance stopped being finite."""
         keep_smoothed = bool(options.get("keep_smoothed", True)) if options else True
         if u is None and not (options and options.get("keep_augmented")):  # the plain step: decided once
-            ok = self.__dict__.get("_kernel_static")
+            ok = self.__dict__.get("_compiled_static")
             if ok is None:
                 ok = self._compiled_ok(None, False)
             return _compiled_step(self, y, state, keep_smoothed) if ok else None
@@ -560,9 +560,9 @@ class FadingTobitKalmanFilter(_FadingFamily):
         ``keep_augmented``, else afresh (raises for ``backend="numba"`` and a case it does not cover)."""
         what = "the fading Tobit Kalman filter"
         if u is None and not keep_augmented:
-            ok = self.__dict__.get("_kernel_static")
+            ok = self.__dict__.get("_compiled_static")
             if ok is None:
-                ok = self._kernel_static = use_kernel(self.backend, _compiled_gap(self, None), what)
+                ok = self._compiled_static = use_kernel(self.backend, _compiled_gap(self, None), what)
             return ok
         return use_kernel(self.backend, "keep_augmented=True" if keep_augmented else _compiled_gap(self, u), what)
 
@@ -857,7 +857,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     compiled_loop(*args.filled())
 
     def out(a):
-        return kernel_array(a, batch)
+        return loop_array(a, batch)
 
     extras: dict[str, Any] = {}
     if ext:

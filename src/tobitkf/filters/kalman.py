@@ -232,8 +232,8 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
 
 def _finite_or_none(res: FilterResult) -> FilterResult | None:
-    """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
-    the call, which makes the affected means NaN from the first bad step and warns (the kernels would
+    """The compiled loop's result, or None when its covariance stopped being finite: then the numpy loop reruns
+    the call, which makes the affected means NaN from the first bad step and warns (the compiled loop would
     skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
     P = None if res.final is None else res.final.P
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None

@@ -83,7 +83,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from ._online_check import check_step
-from ._outputs import kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import kernel_result, loop_array, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -195,7 +195,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     _filter_raises = "a reading below τ (``check_limits``); ``uncensored`` not laid out like ``y`` (a ShapeError)"
     _step_options = ("uncensored",)
     _loop_ctx: tuple  # what every call of the compiled loop takes from the estimator (_loop_constants)
-    _kernel_static: bool  # whether the compiled loop runs (decided on the first call)
+    _compiled_static: bool  # whether the compiled loop runs (decided on the first call)
 
     def __init__(
         self,
@@ -439,10 +439,10 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         finite. Never raises for ``backend="numba"``: the numpy step has always run those cases."""
         if u is not None or self.failure_term == "lmmse_unconditional":
             return None
-        ok = self.__dict__.get("_kernel_static")
+        ok = self.__dict__.get("_compiled_static")
         if ok is None:
-            ok = self._kernel_static = use_kernel(
-                self.backend, _protocol_kernel_gap(self, None), "the protocol Tobit Kalman filter"
+            ok = self._compiled_static = use_kernel(
+                self.backend, _protocol_compiled_gap(self, None), "the protocol Tobit Kalman filter"
             )
         if not ok:
             return None
@@ -456,11 +456,12 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         elif step_options.get("keep_augmented"):
             gap = "keep_augmented=True"
         else:
-            ok = self.__dict__.get("_kernel_static") if u2 is None else None  # decided once for the case without input
+            # decided once for the case without input
+            ok = self.__dict__.get("_compiled_static") if u2 is None else None
             if ok is None:
-                ok = use_kernel(self.backend, _protocol_kernel_gap(self, u2), what)
+                ok = use_kernel(self.backend, _protocol_compiled_gap(self, u2), what)
                 if u2 is None:
-                    self._kernel_static = ok
+                    self._compiled_static = ok
             if not ok:
                 return None
             return _finite_or_none(_protocol_loop_run(self, y2, step_options["uncensored_record"], state, want, batch))
@@ -475,7 +476,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 # --------------------------------------------------------------------------- the compiled path
 
 
-def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
+def _protocol_compiled_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
     """Why the compiled loop cannot run ``est`` (None when it can); ``keep_augmented`` and the uncensored record
     are checked by the caller."""
     if est.covariance_update == "square_root":
@@ -534,7 +535,7 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     below τ). None otherwise (the general step then runs, with its checks and messages), or when the
     covariance stopped being finite."""
     if not (
-        est.__dict__.get("_kernel_static")
+        est.__dict__.get("_compiled_static")
         and is_trusted(est, state)  # a state this estimator made (any other takes the general step's checks)
         and not state.carry.get("_predicted")
         and type(y) is np.ndarray
@@ -634,7 +635,7 @@ def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: Fil
     loop.compiled_loop(*args.filled())  # the arrays the protocol TKF does not use: made by filled()
 
     def out(a):
-        return kernel_array(a, batch)
+        return loop_array(a, batch)
 
     extras: dict[str, Any] = {}
     if ext:

@@ -66,7 +66,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
-from ._outputs import kernel_array, loop_input, output_arrays
+from ._outputs import loop_array, loop_input, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, tobit_measurement
@@ -411,7 +411,7 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
         self.side, self.sigma_ = side, sigma
 
     def _compiled_filter(self, *args):
-        # the TKF kernel takes the limits as data; here they are set from the prior inside the loop, so
+        # the TKF's compiled loop takes the limits as data; here they are set from the prior inside the loop, so
         # there is no compiled path: numpy under "auto", a refusal under "numba" (not a silent numpy run)
         use_kernel(self.backend, "a limit set from the filter's prior (3.56)", "the controlled-limit TKF")
         return None
@@ -486,7 +486,7 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
     _compiled_loop.compiled_loop(*args.filled())  # the arrays the fixed gain does not use: made by filled()
 
     def out(a):
-        return kernel_array(a, batch)
+        return loop_array(a, batch)
 
     def const(key, P):
         # the numpy loop stores a covariance shared by the runs once and broadcasts it (a copy for one run)

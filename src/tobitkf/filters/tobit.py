@@ -79,7 +79,7 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
-from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
 from ._times import at_times
 from .assumed_density import assumed_density_filter
@@ -410,7 +410,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
 
 def _input_terms(est: TobitKalmanFilter, u: np.ndarray | None, N: int, T: int) -> tuple[np.ndarray, np.ndarray]:
-    """The kernel's input arrays from ``u`` (N, T, p) or None: ``bu`` = :math:`B^uu_k` (N, T, n) and ``du`` =
+    """The compiled loop's input arrays from ``u`` (N, T, p) or None: ``bu`` = :math:`B^uu_k` (N, T, n) and ``du`` =
     :math:`Du_k` (N, T, m) as contiguous float64, each (N, 0, ...) when absent (the same products as the
     numpy path's ``u @ Bu.T`` and ``u @ D.T``, per step)."""
     sys_ = est.system
@@ -542,9 +542,7 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
     else:
         run_split(work, N, check_threads(est.threads))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    extras = (
-        {"p_uncensored": kernel_array(pu, batch), "expected_y": kernel_array(ey, batch)} if "extras" in want else {}
-    )
+    extras = {"p_uncensored": loop_array(pu, batch), "expected_y": loop_array(ey, batch)} if "extras" in want else {}
     return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
