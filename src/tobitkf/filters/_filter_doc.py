@@ -71,7 +71,8 @@ def filter_docstring(cls: type, fn: Callable[..., Any]) -> str:
         raise TypeError(f"{cls.__qualname__}.filter: give the class a _filter_doc (its summary) or a docstring")
     own: Mapping[str, str] = getattr(cls, "_filter_params", {})
     entries = []
-    for name in list(inspect.signature(fn).parameters)[1:]:  # after self
+    names = list(inspect.signature(fn).parameters)[1:]  # after self
+    for name in names:
         text = own.get(name, PARAMETERS.get(name))
         if text is None:
             raise TypeError(f"{cls.__qualname__}.filter: parameter {name!r} has no text in _filter_params")
@@ -80,7 +81,8 @@ def filter_docstring(cls: type, fn: Callable[..., Any]) -> str:
     refused = textwrap.fill(
         _RAISES + (f"; {extra}." if extra else "."), 108, initial_indent="    ", subsequent_indent="    "
     )
-    raises = "ShapeError\n    Malformed ``y`` or ``u``, a prior of the wrong shape, or a ``state`` of another batch.\n"
+    inputs = "``y`` or ``u``" if "u" in names else "``y``"
+    raises = f"ShapeError\n    Malformed {inputs}, a prior of the wrong shape, or a ``state`` of another batch.\n"
     raises += f"ValidationError\n{refused}"
     params = "\n".join(entries)
     return f"{inspect.cleandoc(doc)}\n\nParameters\n----------\n{params}\n\nReturns\n-------\n{_RETURNS}\n\nRaises\n------\n{raises}\n"
