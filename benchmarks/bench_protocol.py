@@ -85,7 +85,7 @@ def compiled_loop(smoke: bool) -> None:
             "numpy": ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode, backend="numpy"),
             "core": ProtocolTobitKalmanFilter(sys_, ch, failure_term=mode, backend="auto"),
         }
-        ests["core"]._kernel_static = False  # the numpy loop around the compiled shared step
+        ests["core"]._compiled_static = False  # the numpy loop around the compiled shared step
         times: dict[str, list[float]] = {be: [] for be in ests}
         for est in ests.values():
             est.filter(y[:2, :3])  # compile / warm up outside the timings

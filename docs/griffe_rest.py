@@ -17,6 +17,7 @@ Only the documentation build uses it (``mkdocs.yml``); the docstrings themselves
 
 from __future__ import annotations
 
+import inspect
 import re
 
 import griffe
@@ -127,9 +128,65 @@ def convert(text: str) -> str:
     return _XREF_ROLE.sub(_xref, text)
 
 
+def _filter_docstrings(pkg: griffe.Module) -> None:
+    """Each estimator's ``filter`` with the docstring it has at run time.
+
+    The package writes that docstring once and completes it per family when the class is defined
+    (``tobitkf.filters._filter_doc``), which reading the source cannot see: a ``filter`` written without a
+    docstring gets the run-time one, and a class that inherits ``filter`` with a summary of its own (the
+    run time gives it a ``filter`` of its own) gets a member of that signature with its text.
+    """
+    import importlib
+
+    try:
+        base = pkg.get_member("filters.core.Estimator.filter")
+    except (KeyError, AttributeError):  # not the tobitkf package
+        return
+    for module in _modules(pkg.get_member("filters")):  # where the estimators live
+        try:
+            live = importlib.import_module(module.path)
+        except ImportError:
+            continue
+        for cls in list(module.classes.values()):
+            if cls.is_alias:
+                continue
+            obj = getattr(live, cls.name, None)
+            fn = getattr(obj, "__dict__", {}).get("filter")
+            doc = getattr(fn, "__doc__", None)
+            if not doc:
+                continue
+            member = cls.members.get("filter")
+            if member is None:
+                member = griffe.Function("filter", parameters=_parameters(fn), returns=base.returns)
+                cls.set_member("filter", member)
+            if member.is_alias or (member.docstring is not None and member.docstring.value.strip()):
+                continue
+            member.docstring = griffe.Docstring(convert(inspect.cleandoc(doc)), parent=member)
+
+
+def _parameters(fn) -> griffe.Parameters:
+    """The parameters of the function ``fn`` as griffe's (names, kinds, defaults; no annotations)."""
+    params = []
+    for p in inspect.signature(fn).parameters.values():
+        default = None if p.default is inspect.Parameter.empty else repr(p.default)
+        params.append(griffe.Parameter(p.name, kind=griffe.ParameterKind(p.kind.description), default=default))
+    return griffe.Parameters(*params)
+
+
+def _modules(module: griffe.Module):
+    yield module
+    for sub in module.modules.values():
+        if not sub.is_alias:
+            yield from _modules(sub)
+
+
 class RestToMarkdown(griffe.Extension):
-    """Rewrite every loaded docstring with :func:`convert`."""
+    """Rewrite every loaded docstring with :func:`convert`; give each estimator's ``filter`` its run-time
+    docstring (:func:`_filter_docstrings`)."""
 
     def on_instance(self, *, obj: griffe.Object, **kwargs) -> None:  # noqa: D102
         if obj.docstring is not None:
             obj.docstring.value = convert(obj.docstring.value)
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:  # noqa: D102
+        _filter_docstrings(pkg)

@@ -1127,7 +1127,7 @@ def test_reorganized_preallocated_kernel_equals_numpy_over_long_runs(n, m, d, mo
             t = sr.k + 1
             if t >= sr.carry["t0"]:
                 rk, rn = sr.carry["ring"].copy(), sr.carry["ring"].copy()
-                fast._kernel(rk, t, *fast._kernel_args)
+                fast._compiled_cov(rk, t, *fast._compiled_cov_args)
                 ref._cov_step(t, _ring_views(rn, layout))
                 np.testing.assert_allclose(rk, rn, rtol=1e-12, atol=1e-12 * max(1.0, float(np.abs(rn).max())))
             sf, sr = fast.step(sf, y[k]), ref.step(sr, y[k])

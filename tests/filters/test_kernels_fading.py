@@ -475,7 +475,7 @@ def test_online_kernel_step_with_time_varying_limits_and_options(keep_smoothed, 
             assert_same(a.extras[key], b.extras[key])
         means.append(a.mean)
     assert_same(np.stack(means, axis=-2), ref.filter(y).mean)
-    assert fast._kernel_static and "_loop_limits" not in vars(fast)  # the loop ran, the limits not cached
+    assert fast._compiled_static and "_loop_limits" not in vars(fast)  # the loop ran, the limits not cached
     with pytest.raises(tk.ShapeError, match="time-varying limits"):
         fast.step(a, y[..., 0, :])  # step T + 1: beyond the limits, the same error as the numpy step
     with pytest.raises(tk.ShapeError, match="time-varying limits"):

@@ -96,9 +96,9 @@ def compiled_ok(est, u, what: str, *, inputs: bool = False) -> bool:
     for the case without input (its system and options do not change), else afresh. ``inputs``: the
     kernel covers control inputs (see :func:`system_gap`)."""
     if u is None:
-        cached = est.__dict__.get("_kernel_static")
+        cached = est.__dict__.get("_compiled_static")
         if cached is None:
-            cached = est._kernel_static = use_kernel(
+            cached = est._compiled_static = use_kernel(
                 est.backend,
                 check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, None),
                 what,

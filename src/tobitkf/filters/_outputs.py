@@ -1,6 +1,6 @@
 """The outputs of the compiled loop: the ``(runs, T, ...)`` arrays it writes, carved from one allocation of the output
 pool (:func:`output_arrays`, laid out by :func:`state_specs` / :func:`cov_spec`), and the :class:`FilterResult` read
-back from them (:func:`kernel_result`, :func:`kernel_array`). Shared by the compiled loop and the families' glue;
+back from them (:func:`kernel_result`, :func:`loop_array`). Shared by the compiled loop and the families' glue;
 :mod:`tobitkf.filters.kalman` re-exports them."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 from ._pool import take_buffer
 from .core import FilterResult, FilterState
 
-__all__ = ["kernel_array", "cov_spec", "state_specs", "output_arrays", "kernel_result"]
+__all__ = ["loop_array", "cov_spec", "state_specs", "output_arrays", "kernel_result"]
 
 
 _EMPTY: dict[tuple, np.ndarray] = {}
@@ -41,9 +41,9 @@ def loop_input(a: np.ndarray) -> np.ndarray:
     return np.require(a, float, ("C", "W"))
 
 
-def kernel_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
-    """A kernel's output ``(N or 1, T, ...)`` as ``batch + (T, ...)``: None when it was not requested
-    (``T`` axis of length 0), a read-only broadcast view when the kernel wrote one row for all runs (a
+def loop_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
+    """A compiled loop's output ``(N or 1, T, ...)`` as ``batch + (T, ...)``: None when it was not requested
+    (``T`` axis of length 0), a read-only broadcast view when the loop wrote one row for all runs (a
     covariance shared by the runs)."""
     if a.shape[1] == 0:
         return None
@@ -96,11 +96,11 @@ def output_arrays(runs: int, T: int, *specs: tuple[bool, tuple[int, ...]]) -> li
 def kernel_result(
     want, batch, T: int, means, covs, pmeans, pcovs, extras: dict[str, Any], final: FilterState
 ) -> FilterResult:
-    """The :class:`FilterResult` of a compiled loop over T readings ending at ``final`` (the kernels of
-    every family): its outputs by :func:`kernel_array`, ``covs`` as laid out by :func:`cov_spec`
+    """The :class:`FilterResult` of a compiled loop over T readings ending at ``final`` (the compiled loops of
+    every family): its outputs by :func:`loop_array`, ``covs`` as laid out by :func:`cov_spec`
     (``var`` the diagonals of the covariances, or the diagonals the loop wrote alone), ``times`` the
     readings' time indices."""
-    cov = kernel_array(covs, batch)
+    cov = loop_array(covs, batch)
     if cov is None or "var" not in want:
         var = None
     elif "cov" in want:
@@ -108,10 +108,10 @@ def kernel_result(
     else:
         var = cov[..., 0]
     return FilterResult(
-        mean=kernel_array(means, batch),
+        mean=loop_array(means, batch),
         cov=cov if "cov" in want else None,
-        pred_mean=kernel_array(pmeans, batch),
-        pred_cov=kernel_array(pcovs, batch),
+        pred_mean=loop_array(pmeans, batch),
+        pred_cov=loop_array(pcovs, batch),
         extras=extras,
         times=np.arange(final.k - T + 1, final.k + 1),
         var=var,

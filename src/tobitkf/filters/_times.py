@@ -29,7 +29,7 @@ from .core import FilterResult
 
 __all__ = ["at_times", "system_at_times", "model_times", "smooth_on_grid"]
 
-_CACHES = ("_kernel_mats", "_loop_mats")  # per-system caches of an estimator (rebuilt for the new system)
+_CACHES = ("_loop_mats",)  # per-system caches of an estimator (rebuilt for the new system)
 
 
 def _continuous(est: Any) -> ContinuousLinearSystem:

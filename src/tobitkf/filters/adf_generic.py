@@ -470,6 +470,9 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
     """
 
     _name = "TobitFilter"
+    _filter_doc = """Filter the readings ``y`` (..., T, m) with the Tobit Kalman filter's update for this channel: the
+    shared Kalman update with the channel's reading statistics (mean, slope g, variance) as its moments."""
+    _filter_raises = "a reading the channel cannot give (refused by its own checks)"
 
     def __init__(
         self,
@@ -513,8 +516,6 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
             expected=E, H0=C, scale=g, noise=noise, valid=~np.isnan(y), extras={"expected_y": E, "slope": g}
         )
         return mp, carry
-
-    filter = AssumedDensityFamily.filter  # the same record loop, parameters and errors
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The assumed-density terms (..., T) of this filter's model (system and channel)."""

@@ -410,6 +410,20 @@ class AssumedDensityFamily(GaussianFilter):
     :class:`~tobitkf.filters.adf_generic.AssumedDensityFilter`.
     """
 
+    _filter_doc = """Filter the readings ``y`` (..., T, m) by the assumed-density update: the exact posterior of each
+    step's reading projected onto a Gaussian (its mean and covariance matched)."""
+    _filter_params = {
+        "x0": "array_like, optional\n"
+        "    Override the prior mean of :math:`x_0` (and of an augmented state's window blocks), ``(n,)`` or\n"
+        "    ``(..., n)``.",
+        "P0": "array_like, optional\n    Override the prior covariance, ``(n, n)`` or ``(..., n, n)``.",
+    }
+    _filter_raises = (
+        "a reading the channel cannot give (outside the censoring limits, below a protocol's threshold τ, refused"
+        " by a channel's own ``check_readings``); a measurement covariance R that is not diagonal (or, where the"
+        " family needs it, not positive) at a step"
+    )
+
     def _project(self, k, xp, Pp, Sp, y, u, **options):  # pragma: no cover - abstract
         raise NotImplementedError
 
@@ -483,42 +497,6 @@ class AssumedDensityFamily(GaussianFilter):
 
         spec_of = getattr(_loop_specs, self._compiled_spec)
         return _loop_specs.compiled_filter(self, y2, u2, state, want, batch, _STEP_DATA.get(), spec_of)
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
-
-        Parameters
-        ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T.
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs (through ``Bu``, and ``D`` where the reading has a feed-through).
-        x0, P0 : array_like, optional
-            Override the system's prior of :math:`x_0` (and of an augmented state's window blocks).
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state.
-
-        Raises
-        ------
-        ValidationError
-            A reading the channel cannot give (outside the censoring limits, below a protocol's threshold
-            τ, refused by a channel's own ``check_readings``); a measurement covariance R that is not
-            diagonal (or, where the family needs it, not positive) at a step.
-        ShapeError
-            Malformed ``y`` or ``u``.
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
 
 class AugmentedWindow:
@@ -669,6 +647,23 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
     """
 
     _name = "AssumedDensityTobitFilter"
+    _filter_doc = """Filter censored readings ``y`` (..., T, m) by the assumed-density update (the exact posterior of
+    a censored reading projected onto a Gaussian), with the recorded indicator or limits per run when given."""
+    _filter_params = {
+        **AssumedDensityFamily._filter_params,
+        "censored": "(..., T, m) bool array_like, optional\n"
+        "    The censoring indicator recorded with the data (True = censored); default the limit rule. See the\n"
+        "    class Notes.",
+        "lower": "array_like broadcastable to (..., T, m), optional\n"
+        "    Lower limits of each run and step replacing the censoring's (e.g. each subject's assay limits in a\n"
+        "    panel); the censoring's limits stay where one is not given. Every reading must lie within them.",
+        "upper": "array_like broadcastable to (..., T, m), optional\n    Upper limits, as ``lower``.",
+    }
+    _filter_raises = (
+        "a reading outside its limits; ``censored`` not boolean (or 0/1), or flagging a missing reading or one inside"
+        " limits that are not both finite; ``lower``, ``upper`` or ``censored`` not laid out like ``y`` (a"
+        " ShapeError)"
+    )
     _step_options = ("lower", "upper", "censored")
 
     def __init__(
@@ -785,35 +780,13 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         lower: Any = None,
         upper: Any = None,
     ) -> FilterResult:
-        """Filter censored readings ``y`` (..., T, m); NaN = missing: :meth:`AssumedDensityFamily.filter`
-        (its parameters) with the recorded indicator.
-
-        Parameters
-        ----------
-        censored : (..., T, m) bool array_like, optional
-            The censoring indicator recorded with the data (True = censored); default the limit rule.
-            See the class Notes.
-        times : (T,) array_like, optional
-            Sample times, for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
-        lower, upper : array_like broadcastable to (..., T, m), optional
-            Limits of each run and step replacing the censoring's (e.g. each subject's assay limits in a
-            panel); the censoring's limits stay where one is not given. Every reading must lie within them.
-
-        Raises
-        ------
-        ValidationError
-            A reading outside its limits; ``censored`` not boolean (or 0/1), or flagging a missing
-            reading or one inside limits that are not both finite.
-        ShapeError
-            Malformed ``y``, ``u``, limits or ``censored``.
-        """
         if times is not None:
             est = at_times(self, times, y)
             return est.filter(
                 y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state, lower=lower, upper=upper
             )
         if censored is None and lower is None and upper is None:
-            return self._run(y, u, x0, P0, outputs=outputs, state=state)
+            return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])

@@ -63,9 +63,11 @@ from .._validation import (
 )
 from . import _online_check
 from ._boundary import check_keywords, check_prior, prepare_inputs, prepare_measurements, process_roots
+from ._filter_doc import document_filter, filter_docstring
 from ._online_check import (
     _correction_check,
 )
+from ._output_names import OUTPUTS, check_output_memory, parse_outputs
 from ._update import (
     MeasurementPrediction,
     Transition,
@@ -107,7 +109,6 @@ __all__ = [
 ]
 
 COVARIANCE_FORMS = ("standard", "joseph", "square_root")
-OUTPUTS = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
 _TINY = np.finfo(np.float64).tiny
 
 
@@ -303,29 +304,6 @@ class FilterResult:
 # --------------------------------------------------------------------------- outputs
 
 
-def parse_outputs(outputs: Any) -> frozenset[str]:
-    """The per-step outputs a ``filter`` call records: ``"all"`` (default: mean, cov, pred_mean,
-    pred_cov, extras), ``"last"`` (only the final state), or names from :data:`OUTPUTS`."""
-    if outputs is None or (isinstance(outputs, str) and outputs == "all"):
-        return frozenset(("mean", "cov", "pred_mean", "pred_cov", "extras"))
-    if isinstance(outputs, str) and outputs == "last":
-        return frozenset()
-    if isinstance(outputs, str):
-        names: tuple[Any, ...] = (outputs,)
-    else:
-        try:
-            names = tuple(outputs)
-        except TypeError:
-            raise ValidationError(
-                f"outputs: expected 'all', 'last', a name or a list of names from {', '.join(OUTPUTS)}, got "
-                f"{outputs!r} ({type(outputs).__name__})"
-            ) from None
-    bad = [o for o in names if not isinstance(o, str) or o not in OUTPUTS]
-    if bad:
-        raise ValidationError(f"outputs: expected 'all', 'last' or names from {', '.join(OUTPUTS)}, got {bad[0]!r}")
-    return frozenset(names)
-
-
 class _Recorder:
     """Per-step outputs stored time-major (T, N, ...), each step one contiguous block; returned as
     ``batch + (T, ...)`` views. A covariance shared by the runs (leading axis 1) is stored once."""
@@ -391,8 +369,8 @@ class _Recorder:
 
 
 class Estimator:
-    r"""Base of every estimator: the online API (:meth:`init`, :meth:`step`) and the one time loop
-    (:meth:`_run`, behind each family's ``filter``).
+    r"""Base of every estimator: the online API (:meth:`init`, :meth:`step`), the one record filter
+    (:meth:`filter`) and the one time loop behind it (:meth:`_run`).
 
     The hooks a family supplies, on arrays batched over N runs (no validation inside); the first two are
     required, every other one has a default:
@@ -417,8 +395,11 @@ class Estimator:
       when it does not cover the call (the numpy path runs); ``_compiled_core()``: whether the shared predict and
       update run compiled (default: numba imports and ``backend`` is not ``"numpy"``).
 
-    :meth:`_run` (the loop, which a family's ``filter`` calls) and ``_reading`` (the reading of one step,
-    parsed and checked) are the machinery around those hooks, not hooks.
+    :meth:`filter` is written once: a family names its equations in the class attribute ``_filter_doc`` (and
+    its own keywords in ``_filter_params``, what else it refuses in ``_filter_raises``), which complete the
+    shared docstring (:mod:`tobitkf.filters._filter_doc`); a family with keywords of its own overrides ``filter``
+    (without a docstring) and calls ``super().filter`` or :meth:`_run`. :meth:`_run` (the loop) and ``_reading``
+    (the reading of one step, parsed and checked) are the machinery around those hooks, not hooks.
     """
 
     #: dimension of the reported state (set by the family)
@@ -437,6 +418,29 @@ class Estimator:
     #: on the data (the delay family) or that have no update to skip (the H-infinity filter)
     _allow_missing: bool = True
     _missing_reason: str = ""  # why a family that refuses NaN readings does (appended to the error)
+    #: the summary of :meth:`filter`'s docstring, naming the family's equations; with ``_filter_params`` (the text
+    #: of the family's own keywords) and ``_filter_raises`` (what else it refuses) it completes the shared text
+    #: (:mod:`tobitkf.filters._filter_doc`)
+    _filter_doc: str = "Filter the readings ``y`` (..., T, m) of a batch of records: one predict and update per step."
+    _filter_params: Mapping[str, str] = {}
+    _filter_raises: str = ""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        document_filter(cls)
+
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
+        # the docstring is the shared text completed by the family's fragments (set below and per subclass)
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def _initial(self, N: int, x0: Any, P0: Any, batch: tuple[int, ...]):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -612,7 +616,7 @@ class Estimator:
             state = self.init(batch, x0=x0, P0=P0)
         u2 = self._prepare_inputs(u, N, T, batch)
         self._check_record(y2, u2, state.k, name)
-        _check_output_memory(want, N, T, self.n, name)
+        check_output_memory(want, N, T, self.n, name)
         fast = self._compiled_filter(y2, u2, state, want, batch, step_options)
         if fast is None:
             rec = _Recorder(want, T, batch, self.n)
@@ -632,6 +636,9 @@ class Estimator:
 
     def _step_arrays(self, k: int, x, P, S, carry, y, u, options=None):  # pragma: no cover - abstract
         raise NotImplementedError
+
+
+Estimator.filter.__doc__ = filter_docstring(Estimator, Estimator.filter)
 
 
 class GaussianFilter(Estimator):
@@ -977,19 +984,3 @@ def check_state(est: Estimator, state: Any) -> FilterState:
     if est.covariance_update == "square_root" and S is None and P is not None:
         state = state.replace(S=psd_sqrt(P))
     return mark_trusted(est, state)
-
-
-# --------------------------------------------------------------------------- memory of a run's outputs
-
-_OUTPUT_SIZES = {"mean": 1, "pred_mean": 1, "var": 1, "cov": 2, "pred_cov": 2}
-
-
-def _check_output_memory(want: frozenset[str], N: int, T: int, n: int, name: str) -> None:
-    """Refuse, before the loop allocates them, outputs that cannot fit in memory (``name``: the readings)."""
-    per = sum(n ** _OUTPUT_SIZES[key] for key in want if key in _OUTPUT_SIZES)
-    if per:
-        check_memory(
-            8 * N * T * per,
-            name,
-            f"the outputs ({', '.join(sorted(want & set(_OUTPUT_SIZES)))}) of {plural(N, 'run')} x {plural(T, 'step')}",
-        )

@@ -116,7 +116,7 @@ def _ring_views(buf: np.ndarray, layout: dict) -> dict[str, np.ndarray]:
 
 
 def _flat_layout(shapes: tuple[tuple[int, ...], ...]) -> tuple[int, tuple[tuple[int, int, tuple[int, ...]], ...]]:
-    """The size of the flat output of a whole-step kernel of :mod:`tobitkf.filters._compiled_delay` whose arrays
+    """The size of the flat output of a compiled whole step of :mod:`tobitkf.filters._compiled_delay` whose arrays
     have ``shapes``, one after the other, then the trace of the step's covariance, and the ``(offset, size,
     shape)`` of each array (formed once per estimator and number of runs)."""
     out, o = [], 0
@@ -128,8 +128,8 @@ def _flat_layout(shapes: tuple[tuple[int, ...], ...]) -> tuple[int, tuple[tuple[
 
 
 def _flat_views(buf: np.ndarray, layout: tuple[tuple[int, int, tuple[int, ...]], ...]) -> list[np.ndarray]:
-    """The arrays of ``layout`` (entries of :func:`_flat_layout`) in the flat ``buf`` the kernel wrote (one array,
-    not a tuple: boxing each output would cost about a microsecond), as views."""
+    """The arrays of ``layout`` (entries of :func:`_flat_layout`) in the flat ``buf`` the compiled step wrote
+    (one array, not a tuple: boxing each output would cost about a microsecond), as views."""
     return [buf[o : o + z].reshape(sh) for o, z, sh in layout]
 
 
@@ -145,7 +145,7 @@ def _cached_layout(est: Any, key: Any, shapes: Any) -> tuple[int, tuple[tuple[in
     return lay
 
 
-#: the most runs the whole-step kernels of Algorithms C and D take (the online case: one run, a few); more runs
+#: the most runs the compiled whole steps of Algorithms C and D take (the online case: one run, a few); more runs
 #: keep their vectorised numpy means and threaded shared update, which a single-threaded loop over the runs
 #: does not beat (D, 10^4 runs: 1.3-1.8x slower; measured 3 Dec 2026)
 _WHOLE_STEP_MAX_RUNS = 1024
@@ -153,7 +153,8 @@ _WHOLE_STEP_MAX_RUNS = 1024
 #: the layouts of an estimator that has formed none yet (:func:`_cached_layout`)
 _NO_LAYOUTS: dict = {}
 
-#: a placeholder array for a kernel argument that is not read (an innovation of a time before the first reading)
+#: a placeholder array for a compiled step's argument that is not read (an innovation of a time before the first
+#: reading)
 _NOTHING = np.zeros((1, 1))
 
 
@@ -297,14 +298,14 @@ def _extend_second_moments(system: DelayFadingSystem, lam: dict[int, np.ndarray]
     return lam
 
 
-def _kernel_gap(system: DelayFadingSystem) -> str | None:
-    """What the compiled delay kernels (:mod:`tobitkf.filters._compiled_delay`) do not cover in ``system``."""
+def _compiled_gap(system: DelayFadingSystem) -> str | None:
+    """What the compiled delay steps (:mod:`tobitkf.filters._compiled_delay`) do not cover in ``system``."""
     if system.fading.varying or not system.q_constant:
         return "fading or multiplicative-noise laws that change with t"
     return None
 
 
-def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
+def _compiled_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
     """The constant arguments of :func:`tobitkf.filters._compiled_delay.delay_moments` after Λ (those of
     ``reorg_cov_step`` after ``d, W``): the model's matrices, Q_ζ (empty without multiplicative noise),
     γ̄, σ² and the decorrelation mode, for laws constant in t."""
@@ -316,9 +317,9 @@ def _kernel_moment_args(system: DelayFadingSystem, mode: str) -> tuple:
 
 
 def _packed_moment_args(system: DelayFadingSystem, mode: str, *ints: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_kernel_moment_args` packed for the whole-step kernels (``_compiled_delay._unpack_moments``): the
+    """:func:`_compiled_moment_args` packed for the compiled whole steps (``_compiled_delay._unpack_moments``): the
     matrices row-major then γ̄, σ² in one float array, and (n, m, p, h, optimal) followed by ``ints``."""
-    args = list(_kernel_moment_args(system, mode))
+    args = list(_compiled_moment_args(system, mode))
     h = np.size(args[8])  # Q_ζ: one per multiplicative noise (none: no A_i either)
     args[7] = args[7][:h]
     cb = np.concatenate([np.ravel(a) for a in args[:-3]] + [np.array(args[-3:-1], dtype=float)])
@@ -346,16 +347,16 @@ class _DelayEstimator(Estimator):
         self.n, self.m = system.n, system.m
 
     def _whole_takes(self, state: FilterState, options: dict[str, Any]) -> bool:
-        """Whether the family's compiled whole step (one kernel call) takes the step from ``state``."""
+        """Whether the family's compiled whole step (one compiled call) takes the step from ``state``."""
         return False
 
     def _compiled_online_step(
         self, state: FilterState, y: np.ndarray, u: Any, options: dict[str, Any]
     ) -> FilterState | None:
         """The online step by the compiled whole step (the family's :meth:`_whole_online`: its branch of
-        :meth:`_step_arrays` without the loop's floating-point context, as the kernel's arithmetic warns of nothing,
-        and with the divergence check on the kernel's trace of the one shared covariance); None (the checked step
-        runs, which warns and makes the means NaN) when the kernel does not take this step or a variance is not
+        :meth:`_step_arrays` without the loop's floating-point context, as the compiled arithmetic warns of nothing,
+        and with the divergence check on the compiled step's trace of the one shared covariance); None (the checked step
+        runs, which warns and makes the means NaN) when the compiled step does not take this step or a variance is not
         finite."""
         if not self._whole_takes(state, options):
             return None
@@ -363,7 +364,7 @@ class _DelayEstimator(Estimator):
 
     def _whole_online(self, state: FilterState, y: np.ndarray) -> FilterState | None:
         """The compiled whole step from ``state`` as the online step (the family's own, without the loop's
-        per-step outputs the online state does not keep); None when the kernel's trace of the step's covariance
+        per-step outputs the online state does not keep); None when the compiled step's trace of the step's covariance
         (a sum of the variances of the one shared covariance) is not finite (or, harmlessly, overflows: the
         checked step then runs)."""
         raise NotImplementedError  # pragma: no cover - every family with a whole step implements it

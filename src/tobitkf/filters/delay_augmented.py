@@ -31,9 +31,9 @@ from .delay import (
     _NO_LAYOUTS,
     _cached_layout,
     _check_lags,
+    _compiled_gap,
     _DelayEstimator,
     _flat_views,
-    _kernel_gap,
     _mult_sum,
     _solve_small,
     second_moments,
@@ -154,7 +154,7 @@ class AugmentedLMMSE(_DelayEstimator):
             raise ValidationError(f"window: expected an integer >= d = {d}, got {window!r}")
         self.window = int(W)
         self._mats = _augmented_matrices(system, self.window)
-        gap = _kernel_gap(system)
+        gap = _compiled_gap(system)
         if gap is None and covariance_update != "standard":
             gap = f"covariance_update={covariance_update!r} (the whole-step kernel runs the standard form)"
         self._whole = None  # the compiled whole step and its constant arguments after (X, P, Λ_X, y)
@@ -187,7 +187,7 @@ class AugmentedLMMSE(_DelayEstimator):
         else:
             Xpr, Ppr, Spr = x, P, S
         if self._whole is not None and Ppr.shape[0] == 1:  # one compiled call (a covariance shared by the runs)
-            Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(*self._whole_kernel(Xpr, Ppr, carry, y))
+            Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(*self._whole_compiled_step(Xpr, Ppr, carry, y))
             Sf = Sp = None
         else:
             form, fast = self.covariance_update, self._compiled_core()
@@ -216,10 +216,10 @@ class AugmentedLMMSE(_DelayEstimator):
             "_lam": carry["LamX"][:n, :n][None],
         }
 
-    def _whole_kernel(self, Xpr, Ppr, carry, y):
+    def _whole_compiled_step(self, Xpr, Ppr, carry, y):
         """The compiled whole step (:func:`~tobitkf.filters._compiled_delay.aug_step`) from the prediction
         ``Xpr``, ``Ppr``: its flat output (the trace of P(t|t) last) and the layout of its arrays."""
-        kern, consts = self._whole
+        step, consts = self._whole
         N, nx = Xpr.shape
         m = self.m
         lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N) or _cached_layout(
@@ -228,14 +228,14 @@ class AugmentedLMMSE(_DelayEstimator):
         size, lay = lay
         buf = np.empty(size)
         # y contiguous whether a row of a record or one reading: numba types a strided array apart (one compile more)
-        kern(Xpr, Ppr[0], carry["LamX"], np.ascontiguousarray(y), *consts, buf)
+        step(Xpr, Ppr[0], carry["LamX"], np.ascontiguousarray(y), *consts, buf)
         return buf, lay
 
     def _whole_online(self, state, y):
         """:meth:`_step_arrays`' compiled branch as the online step (no lags)."""
         t, carry = state.k + 1, state.carry
         Xpr, Ppr, _ = carry["next"] if "next" in carry else (state.x, state.P, None)
-        buf, lay = self._whole_kernel(Xpr, Ppr, carry, y)
+        buf, lay = self._whole_compiled_step(Xpr, Ppr, carry, y)
         if not math.isfinite(buf[-1]):
             return None
         Xf, Xp, eps, Pf, Pp, Qe, LamX = _flat_views(buf, lay)
@@ -256,7 +256,7 @@ class AugmentedLMMSE(_DelayEstimator):
             raise ValidationError(f"lags: expected lags <= window W = {self.window}, got {max(lags)}")
         return {"lags": lags}
 
-    def filter(
+    def filter(  # type: ignore[override]  # the delay family: a prior of its own and lag options
         self, y: Any, *, lags: Any = (), prior: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
         """Run Algorithm A over ``y`` (..., T, m); see :func:`augmented_lmmse`."""

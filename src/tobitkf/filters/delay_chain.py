@@ -37,11 +37,11 @@ from .delay import (
     _blockdiag,
     _cached_layout,
     _check_lags,
+    _compiled_gap,
+    _compiled_moment_args,
     _DelayEstimator,
     _extend_second_moments,
     _flat_views,
-    _kernel_gap,
-    _kernel_moment_args,
     _moments_at,
     _packed_moment_args,
     _solve_small,
@@ -96,10 +96,10 @@ class ChainLMMSE(_DelayEstimator):
         self._GS = system.GS
         self._moments = None  # the compiled moments of Λ(t-d) and their constant arguments
         self._whole = None  # the compiled plain step (:func:`~tobitkf.filters._compiled_delay.chain_step`)
-        if use_kernel(backend, _kernel_gap(system), "the chain LMMSE's moments"):
+        if use_kernel(backend, _compiled_gap(system), "the chain LMMSE's moments"):
             from ._compiled_delay import chain_step, delay_moments
 
-            self._moments = (delay_moments, _kernel_moment_args(system, decorrelation))
+            self._moments = (delay_moments, _compiled_moment_args(system, decorrelation))
             self._whole = (chain_step, _packed_moment_args(system, decorrelation, system.d))
 
     def _state_dim(self) -> int:
@@ -135,8 +135,8 @@ class ChainLMMSE(_DelayEstimator):
         # what time t needs of Λ(t-d), each formed once: R(t) = Q_v + σ² H Λ H^T, J(t), Ā(t), Σ(t) and Λ(t+1)
         lam = dict(carry["lam"])
         if self._moments is not None:
-            kern, margs = self._moments
-            R, J, Abar, Sigma, lam[t + 1] = kern(lam[e], *margs)
+            moments, margs = self._moments
+            R, J, Abar, Sigma, lam[t + 1] = moments(lam[e], *margs)
         else:
             R, (J, Abar, Sigma), lam[t + 1] = _moments_at(sys_, t, lam[e], self.decorrelation)
         if horizons and max(horizons) > 1:
@@ -210,10 +210,10 @@ class ChainLMMSE(_DelayEstimator):
         new = _chain_prune(t, d, lags, point, xb, Pb, D, lam)
         return x_new, P_new, None, new, xp, Pp, extras
 
-    def _plain_kernel(self, t, x, P, carry, y):
+    def _plain_compiled_step(self, t, x, P, carry, y):
         """The compiled plain step (:func:`~tobitkf.filters._compiled_delay.chain_step`) at t >= 1: its flat output
         (the trace of the new window's covariance last) and the layout of its arrays."""
-        kern, args = self._whole
+        step, args = self._whole
         N, nw = x.shape
         lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N) or _cached_layout(
             self, N, lambda: self._plain_shapes(N, nw)
@@ -222,7 +222,7 @@ class ChainLMMSE(_DelayEstimator):
         buf = np.empty(size)
         # y contiguous whether a row of a record or one reading: numba types a strided array apart (one compile more)
         y = np.ascontiguousarray(y)
-        kern(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - self.system.d], y, *args, buf)
+        step(x, P[0], carry["xb"][t], carry["Pb"][t][0], carry["lam"][t - self.system.d], y, *args, buf)
         return buf, lay
 
     def _plain_shapes(self, N, nw):
@@ -249,7 +249,7 @@ class ChainLMMSE(_DelayEstimator):
     def _plain_step(self, t, x, P, carry, y):
         """:meth:`_step_arrays` at t >= 1 without lags, horizons or a fixed point, as one compiled call
         (:func:`~tobitkf.filters._compiled_delay.chain_step`; the same carry and extras, equal to rounding)."""
-        buf, lay = self._plain_kernel(t, x, P, carry, y)
+        buf, lay = self._plain_compiled_step(t, x, P, carry, y)
         x_new, xp, xn, eps, P_new, Pp, Pn, Qe, lam_next = _flat_views(buf, lay)
         new = self._plain_carry(t, carry, xn, Pn, lam_next)
         return x_new, P_new, None, new, xp, Pp, self._plain_extras(t, carry, x_new, P_new, xn, Pn, eps, Qe)
@@ -270,7 +270,7 @@ class ChainLMMSE(_DelayEstimator):
         """:meth:`_plain_step` as the online step: the views of the window before the reading, which the state
         does not keep, are not cut."""
         t, carry, x = state.k + 1, state.carry, state.x
-        buf, lay = self._plain_kernel(t, x, state.P, carry, y)
+        buf, lay = self._plain_compiled_step(t, x, state.P, carry, y)
         if not math.isfinite(buf[-1]):
             return None
         (o0, z0, s0), _, (o2, z2, s2), (o3, z3, s3), (o4, z4, s4), _, (o6, z6, s6), (o7, z7, s7), (o8, z8, s8) = lay
@@ -314,7 +314,7 @@ class ChainLMMSE(_DelayEstimator):
             return {"lags": (), "horizons": (), "point": None}
         return self._checked_options(options.get("lags", ()), options.get("horizons", ()), options.get("point"))
 
-    def filter(
+    def filter(  # type: ignore[override]  # the delay family: a prior of its own and lag options
         self,
         y: Any,
         *,

@@ -31,10 +31,10 @@ from .delay import (
     _REORG_DICTS,
     _RING_FIELDS,
     _cached_layout,
+    _compiled_gap,
+    _compiled_moment_args,
     _DelayEstimator,
     _flat_views,
-    _kernel_gap,
-    _kernel_moment_args,
     _moments_at,
     _packed_moment_args,
     _ring_layout,
@@ -99,13 +99,13 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         self._t0(self.prior)
         self._HT = system.H.T
         self.backend = backend
-        gap = _kernel_gap(system)
+        gap = _compiled_gap(system)
         # the compiled whole step (covariances and means) and its arguments after (ring, t); d = 0 is
         # Algorithm C (its chain's own step)
         self._whole = None
         if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
             self._whole = self._compiled_step()
-            self._kernel, self._kernel_args = self._compiled_cov_step()
+            self._compiled_cov, self._compiled_cov_args = self._compiled_cov_step()
         self._eps_back = tuple(range(1, system.d - 1))  # the whole step reads ε(t-k), k = 1..d-2
         self._lag_keys = (f"lag{system.d - 1}_mean", f"lag{system.d - 1}_cov")
         if system.d == 0:
@@ -128,7 +128,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         sys_ = self.system
         W, layout = _ring_layout(sys_.d, self.n, self.m)
         offs = np.array([layout[k][0] for k in _RING_FIELDS], dtype=np.int64)
-        args = (offs, sys_.d, W) + _kernel_moment_args(sys_, self.decorrelation)
+        args = (offs, sys_.d, W) + _compiled_moment_args(sys_, self.decorrelation)
         return reorg_cov_step, args + tuple(e in self.errata for e in ("E5", "E6", "E7"))
 
     def _compiled_step(self):
@@ -227,7 +227,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         if t < c["t0"]:
             self._warmup_step(t, y, c, R)
         elif self._whole is not None:  # many runs: the compiled covariance step, the numpy means
-            self._kernel(ring, t, *self._kernel_args)
+            self._compiled_cov(ring, t, *self._compiled_cov_args)
             self._means_step(t, y, xf, xsm, xm, xp, eps, R)
         else:
             self._cov_step(t, R)
@@ -258,14 +258,14 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         """:meth:`_step_arrays` at t >= warmup as one compiled call (:func:`~tobitkf.filters._compiled_delay.reorg_step`:
         the covariance step, the means and the ring's pruning) on the step's own copies of the carry."""
         xpred = xp[t]
-        buf, lay = self._whole_kernel(t, y, xf, xsm, xp, eps, ring)
+        buf, lay = self._whole_compiled_step(t, y, xf, xsm, xp, eps, ring)
         x, P, Pprior, extras = self._whole_assemble(t, buf, lay, c, xf, xsm, xm, xp, eps)
         return x, P, None, c, xpred, Pprior, extras
 
-    def _whole_kernel(self, t, y, xf, xsm, xp, eps, ring):
+    def _whole_compiled_step(self, t, y, xf, xsm, xp, eps, ring):
         """The compiled whole step's flat output (the trace of P(t|t) last) and the layout of its arrays."""
         d, n, m = self.system.d, self.n, self.m
-        kern, args = self._whole
+        step, args = self._whole
         N = y.shape[0]
         lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N) or _cached_layout(
             self, N, lambda: ((4, N, n), (N, m), (7, 1, n, n), (1, m, m))
@@ -276,21 +276,22 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         # (the warm-up stores its means C-ordered too)
         back = self._eps_back  # ε(t-1), ..., ε(t-d+2)
         prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
-        xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the kernel's own x̂(t|t)
+        xf_a = xf[t - d + 1] if d > 1 else xp[t]  # for d = 1 the compiled step's own x̂(t|t)
         buf = np.empty(size)
-        kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev, buf)  # prev: ε(t-1)..ε(t-d+2)
+        step(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf_a, prev, buf)  # prev: ε(t-1)..ε(t-d+2)
         return buf, lay
 
     def _whole_assemble(self, t, buf, lay, c, xf, xsm, xm, xp, eps):
-        """The means of the kernel's output into the step's per-time dicts (those of time t-2d-3 dropped: the
-        kernel zeroed the ring's Ψ, K H of t-2d-2), Λ(t+1) into ``c``; x̂(t|t), P(t|t), P(t|t-1) and the extras."""
+        """The means of the compiled step's output into the step's per-time dicts (those of time t-2d-3 dropped: the
+        compiled step zeroed the ring's Ψ, K H of t-2d-2), Λ(t+1) into ``c``; x̂(t|t), P(t|t), P(t|t-1) and the
+        extras."""
         M, e_t, C, Qe = _flat_views(buf, lay)
         extras = self._store_step(t, c, xf, xsm, xm, xp, eps, M, e_t, C, Qe)
         return M[0], C[0], C[1], extras
 
     def _store_step(self, t, c, xf, xsm, xm, xp, eps, M, e_t, C, Qe):
-        """The kernel's outputs of step t (views of its buffer) into the per-time dicts of the means (those of
-        time t-2d-3 dropped: the kernel zeroed the ring's Ψ, K H of t-2d-2) and Λ(t+1) into ``c``; returns the
+        """The compiled step's outputs of step t (views of its buffer) into the per-time dicts of the means (those of
+        time t-2d-3 dropped: the compiled step zeroed the ring's Ψ, K H of t-2d-2) and Λ(t+1) into ``c``; returns the
         step's extras."""
         m0, m1, m2, m3 = M[0], M[1], M[2], M[3]  # (indexing: a third of the cost of iterating)
         xf[t], xsm[t], xm[t], xp[t + 1], eps[t] = m0, m1, m2, m3, e_t
@@ -313,7 +314,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     def _whole_online(self, state, y):
         """:meth:`_step_arrays`' compiled branch as the online step: the new carry (the ring copied once, the
-        per-time dicts of the means copied and grown), the kernel, and the checked trace of P(t|t)."""
+        per-time dicts of the means copied and grown), the compiled step, and the checked trace of P(t|t)."""
         t, carry = state.k + 1, state.carry
         c = dict(carry)
         xf = c["xf"] = carry["xf"].copy()
@@ -322,8 +323,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         xp = c["xp"] = carry["xp"].copy()
         eps = c["eps"] = carry["eps"].copy()
         ring = c["ring"] = carry["ring"].copy()
-        # :meth:`_whole_kernel` and the views of :meth:`_whole_assemble` written out (their calls and the list of
-        # views are a tenth of this step; the test of the reorganized kernel's step loop holds the two forms equal)
+        # :meth:`_whole_compiled_step` and the views of :meth:`_whole_assemble` written out (their calls and the list of
+        # views are a tenth of this step; the test of the reorganized compiled step's loop holds the two forms equal)
         N = y.shape[0]
         d = self.system.d
         lay = self.__dict__.get("_flat_layouts", _NO_LAYOUTS).get(N)
@@ -333,8 +334,8 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         back = self._eps_back
         prev = tuple([eps[t - k] if t >= k else _NOTHING for k in back]) if back else (_NOTHING,)
         buf = np.empty(size)
-        kern, args = self._whole
-        kern(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf[t - d + 1] if d > 1 else xp[t], prev, buf)
+        step, args = self._whole
+        step(ring, t, *args, np.ascontiguousarray(y), xp[t], xsm[t - 1], xf[t - d + 1] if d > 1 else xp[t], prev, buf)
         if not math.isfinite(buf[-1]):
             return None
         M, e_t = buf[:z0].reshape(s0), buf[o1 : o1 + z1].reshape(s1)
@@ -344,14 +345,14 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
 
     def _whole_online_first(self, state, y):
         """:meth:`_whole_online` by the two methods it writes out, at the first step for a number of runs (which
-        forms the layout of the kernel's output)."""
+        forms the layout of the compiled step's output)."""
         t, carry = state.k + 1, state.carry
         c = dict(carry)
         for key in _REORG_DICTS:
             c[key] = dict(carry[key])
         ring = c["ring"] = carry["ring"].copy()
         xf, xsm, xm, xp, eps = c["xf"], c["xsm"], c["xm"], c["xp"], c["eps"]
-        buf, lay = self._whole_kernel(t, y, xf, xsm, xp, eps, ring)
+        buf, lay = self._whole_compiled_step(t, y, xf, xsm, xp, eps, ring)
         if not math.isfinite(buf[-1]):
             return None
         x, P, _, extras = self._whole_assemble(t, buf, lay, c, xf, xsm, xm, xp, eps)
@@ -488,7 +489,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         st = t % W
         xp[t + 1] = xm[t].dot(R["abar"][st].T) + y.dot(R["j"][st].T)
 
-    def filter(
+    def filter(  # type: ignore[override]  # the delay family: a prior of its own
         self, y: Any, *, prior: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
         """Run Algorithm D over ``y`` (..., T, m); see :func:`reorganized_lmmse`."""

@@ -103,7 +103,7 @@ from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, system_gap, use_kernel
 from ._online_check import system_only
-from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -375,7 +375,31 @@ class _FadingFamily(LinearGaussianFamily):
         # a plain step has none: no comprehension's frame (~0.2 µs) for an empty dict
         return {k: bool(v) for k, v in options.items()} if options else {}
 
-    def _filter(self, y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state):
+    _filter_params = {
+        "x0": "array_like, optional\n"
+        "    Override the prior mean of :math:`x_0` (the augmented state's window blocks start from it), ``(n,)``\n"
+        "    or ``(..., n)``.",
+        "keep_augmented": "bool, default False\n"
+        "    Also return the full augmented :math:`\\hat\\xi`, :math:`\\mathcal P` (filtered and predicted), the gain\n"
+        "    and :math:`\\Sigma_{\\tilde y\\tilde y}` in ``extras``.",
+        "keep_smoothed": "bool, default True\n"
+        "    Return the fixed-lag smoothed blocks (``extras['smoothed_mean']``, ``extras['smoothed_cov']``); False\n"
+        "    saves memory ((..., T, L+1, n, n)) in large Monte Carlo runs and changes nothing else.",
+    }
+
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        keep_augmented: bool = False,
+        keep_smoothed: bool = True,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+    ) -> FilterResult:
+        # the shared loop with the two keywords as step options (not ``super().filter``: it takes none)
         return self._run(
             y,
             u,
@@ -451,6 +475,9 @@ class FadingTobitKalmanFilter(_FadingFamily):
     """
 
     _name = "FadingTobitKalmanFilter"
+    _filter_doc = """Filter censored fading measurements ``y`` (..., T, m) with the TKF-FM (Geng et al. 2017, the
+    repaired (20'), (25)); see :func:`fading_tobit_kalman_filter`."""
+    _filter_raises = "a reading outside its censoring limits (``check_limits``)"
     _fading_mats: tuple[Any, tuple[np.ndarray, ...]]  # the system; its A, Qd, H_0..H_L, sigma for the loop; set once
     _fading_flat: tuple[Any, np.ndarray]  # the system and the online step's flat constants, set once
     _loop_limits: np.ndarray  # the online step's constant limits (2, 1, m), set once
@@ -499,21 +526,6 @@ class FadingTobitKalmanFilter(_FadingFamily):
             "covariance_update": covariance_update,
         }
 
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        keep_augmented: bool = False,
-        keep_smoothed: bool = True,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter censored fading measurements ``y`` (..., T, m); see :func:`fading_tobit_kalman_filter`."""
-        return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
-
     # ---- the compiled path (``filter``, and ``step`` through _compiled_step) ----------------------------------
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         ok = self._compiled_ok(u2, bool(step_options.get("keep_augmented")))
@@ -528,7 +540,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
         runs) where the loop does not cover the case or the covariance stopped being finite."""
         keep_smoothed = bool(options.get("keep_smoothed", True)) if options else True
         if u is None and not (options and options.get("keep_augmented")):  # the plain step: decided once
-            ok = self.__dict__.get("_kernel_static")
+            ok = self.__dict__.get("_compiled_static")
             if ok is None:
                 ok = self._compiled_ok(None, False)
             return _compiled_step(self, y, state, keep_smoothed) if ok else None
@@ -548,9 +560,9 @@ class FadingTobitKalmanFilter(_FadingFamily):
         ``keep_augmented``, else afresh (raises for ``backend="numba"`` and a case it does not cover)."""
         what = "the fading Tobit Kalman filter"
         if u is None and not keep_augmented:
-            ok = self.__dict__.get("_kernel_static")
+            ok = self.__dict__.get("_compiled_static")
             if ok is None:
-                ok = self._kernel_static = use_kernel(self.backend, _compiled_gap(self, None), what)
+                ok = self._compiled_static = use_kernel(self.backend, _compiled_gap(self, None), what)
             return ok
         return use_kernel(self.backend, "keep_augmented=True" if keep_augmented else _compiled_gap(self, u), what)
 
@@ -568,6 +580,8 @@ class FadingKalmanFilter(_FadingFamily):
     """
 
     _name = "FadingKalmanFilter"
+    _filter_doc = """Filter fading measurements ``y`` (..., T, m) with the augmented Kalman filter on the fading means
+    (no censoring handling, the baseline "kf-fm"); see :func:`fading_kalman_filter`."""
 
     def __init__(
         self,
@@ -591,21 +605,6 @@ class FadingKalmanFilter(_FadingFamily):
             check_limits=False,
         )
         self.options = {"fading_variance_term": fading_variance_term, "covariance_update": covariance_update}
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        keep_augmented: bool = False,
-        keep_smoothed: bool = True,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter ``y`` (..., T, m); see :func:`fading_kalman_filter`."""
-        return self._filter(y, u, x0, P0, keep_augmented, keep_smoothed, outputs, state)
 
 
 def fading_tobit_kalman_filter(
@@ -858,7 +857,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     compiled_loop(*args.filled())
 
     def out(a):
-        return kernel_array(a, batch)
+        return loop_array(a, batch)
 
     extras: dict[str, Any] = {}
     if ext:

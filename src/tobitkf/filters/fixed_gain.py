@@ -54,6 +54,8 @@ class FixedGainTobitObserver(Estimator):
     """
 
     _name = "FixedGainTobitObserver"
+    _filter_doc = """Run the observer (5.2) over ``y`` (..., T, m): rows x̂ (``times`` 1..T)."""
+    _filter_params = {"x0": "array_like, optional\n    The initial estimate x̂_0, ``(n,)`` or ``(..., n)`` (default 0)."}
     _allow_missing = False
     _missing_reason = "the observer (5.2) has a given gain and no rule for a lost reading"
 
@@ -104,6 +106,7 @@ class FixedGainTobitObserver(Estimator):
             return xbar + (y - self._expected(xbar)) @ self.L.T, None, None, carry, xbar, None, None
         return x @ self.A.T + (y - self._expected(x)) @ self.L.T, None, None, carry, None, None, None
 
-    def filter(self, y: Any, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
-        """Run the observer over ``y`` (..., T, m): rows x̂ (``times`` 1..T); ``x0`` is x̂_0 (default 0)."""
+    def filter(  # type: ignore[override]  # no u, no P0: the estimate carries no covariance
+        self, y: Any, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         return self._run(y, None, x0, None, outputs=outputs, state=state)

@@ -55,6 +55,13 @@ class RegionalHinfFilter(Estimator):
     """
 
     _name = "RegionalHinfFilter"
+    _filter_doc = (
+        """Run the filter (5) on ``y`` (..., T, m): rows x̂_1..x̂_T, ``extras["z"]`` ẑ_1..ẑ_T, ``times`` 1..T."""
+    )
+    _filter_params = {
+        "y": "(..., T, m) array_like\n    The readings y_1..y_T; no NaN (the filter has no update to skip).",
+        "x0": "array_like, optional\n    The initial estimate x̂_0, ``(n,)`` or ``(..., n)`` (default 0).",
+    }
     _allow_missing = False
     _missing_reason = (
         "the filter (5) has given gains and no rule for a lost reading: pass the value its channel "
@@ -98,9 +105,7 @@ class RegionalHinfFilter(Estimator):
         x_new = x @ self.Af.T + y @ self.Bf.T  # (5)
         return x_new, None, None, carry, None, None, {"z": x_new @ self.M.T}
 
-    def filter(self, y: Any, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None) -> FilterResult:
-        """Run (5) on ``y`` (..., T, m): rows x̂_1..x̂_T, ``extras["z"]`` ẑ_1..ẑ_T, ``times`` 1..T.
-
-        ``x0`` is x̂_0 (default 0).
-        """
+    def filter(  # type: ignore[override]  # no u, no P0: the estimate carries no covariance
+        self, y: Any, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
+    ) -> FilterResult:
         return self._run(y, None, x0, None, outputs=outputs, state=state)

@@ -176,6 +176,8 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
     """
 
     _name = "KalmanFilter"
+    _filter_doc = """Run the Kalman filter (Miller (2.3)–(2.6)) over a batch of records ``y`` (..., T, m); see
+    :func:`kalman_filter`. A NaN reading leaves its channel out of that step's update."""
 
     def __init__(self, system: LinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
@@ -218,16 +220,9 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
         state: FilterState | None = None,
         times: Any = None,
     ) -> FilterResult:
-        """Filter measurements ``y`` (..., T, m); see :func:`kalman_filter`.
-
-        ``outputs`` selects what is recorded per step (``"all"``, ``"last"`` or names from
-        ``mean, cov, var, pred_mean, pred_cov, extras``); ``state`` continues from a previous state
-        (e.g. ``result.final``) instead of the prior. ``times`` (T,): the sample times of the readings, for a
-        :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly; the prior at the first time).
-        """
         if times is not None:
             return at_times(self, times, y).filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+        return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """Exact prediction-error terms (..., T) of ``y`` under the linear Gaussian model (NaN readings skipped),
@@ -237,8 +232,8 @@ class KalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
 
 def _finite_or_none(res: FilterResult) -> FilterResult | None:
-    """The kernel's result, or None when its covariance stopped being finite: then the numpy loop reruns
-    the call, which makes the affected means NaN from the first bad step and warns (the kernels would
+    """The compiled loop's result, or None when its covariance stopped being finite: then the numpy loop reruns
+    the call, which makes the affected means NaN from the first bad step and warns (the compiled loop would
     skip a channel whose innovation variance is NaN and return a finite, wrong mean)."""
     P = None if res.final is None else res.final.P
     return res if P is None or np.isfinite(np.diagonal(P, axis1=-2, axis2=-1)).all() else None
@@ -485,6 +480,15 @@ class DroppingKalmanFilter(KalmanFilter):
     """
 
     _name = "DroppingKalmanFilter"
+    _filter_doc = """Filter ``y`` (..., T, m) with the Kalman filter (Miller (2.3)–(2.6)), dropping the censored
+    readings: by the limit rule, or by the recorded indicator ``censored`` when given (then an unflagged reading
+    at the limit is used; :func:`dropping_with_indicator`). ``extras["censored"]`` (..., T, m): the readings
+    dropped."""
+    _filter_params = {
+        "censored": "(..., T, m) bool array_like, optional\n"
+        "    The censoring indicator recorded with the data (True = censored); default the limit rule."
+    }
+    _filter_raises = "a flagged reading that does not lie at or beyond a limit"
 
     def __init__(
         self,
@@ -548,14 +552,11 @@ class DroppingKalmanFilter(KalmanFilter):
         state: FilterState | None = None,
         times: Any = None,
     ) -> FilterResult:
-        """Filter ``y`` (..., T, m), dropping the censored readings: by the limit rule, or by the recorded
-        indicator ``censored`` (..., T, m) when given (then an unflagged reading at the limit is used;
-        :func:`dropping_with_indicator`). ``times``: sample times of a continuous-time model."""
         if times is not None:
             est = at_times(self, times, y)
             return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
         if censored is None:
-            return self._run(y, u, x0, P0, outputs=outputs, state=state)
+            return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
         return dropping_with_indicator(self, y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
 
     def _compiled_online_step(self, state, y, u, options):

@@ -120,7 +120,7 @@ from ._particle_models import SYSTEM_MODELS, _build_model, _diag_sigma, _Linear,
 from ._particle_rng import generator as _generator
 from ._particle_rng import rng_state as _rng_state
 from ._readings import censored_log_likelihood
-from .core import Estimator, FilterResult, FilterState, check_prior
+from .core import Estimator, FilterState, check_prior
 from .kalman import LinearGaussianFamily
 
 __all__ = ["ParticleFilter", "PROPOSALS", "systematic_resample", "censored_log_likelihood"]
@@ -257,6 +257,20 @@ class ParticleFilter(Estimator):
     """
 
     _name = "ParticleFilter"
+    _filter_doc = """Filter the readings ``y`` (..., T, m) with the particle filter: each step propagates the particles,
+    weights them by the channel's likelihood of the reading and resamples when the effective sample size falls
+    below ``resample_threshold`` times the particle count; the mean and covariance are those of the weighted
+    particles."""
+    _filter_params = {
+        "y": "(..., T, m) array_like\n"
+        "    Readings y_1..y_T (m = 1 for the protocol channel: the scheduled sensor's reading); NaN = missing.",
+        "u": "(T, p) or (..., T, p) array_like, optional\n    Control inputs u_1..u_T.",
+        "state": "FilterState, optional\n    Continue from this state (e.g. ``result.final``), generator included.",
+    }
+    _filter_raises = (
+        "a reading outside its censoring limits; a control input ``u`` with a system that has a feedthrough D on"
+        " the protocol or random-saturation channel (their readings have none: u enters through Bu)"
+    )
     k0 = 0
 
     def __init__(
@@ -417,43 +431,6 @@ class ParticleFilter(Estimator):
         }
         extras = {"ess": ess, "resampled": res, "log_likelihood": ll}
         return xm, Pm, None, carry, xp, Pp, extras
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`FilterResult`.
-
-        Parameters
-        ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T (m = 1 for the protocol channel: the scheduled sensor's reading).
-        u : (T, p) or (..., T, p) array_like, optional
-            Control inputs u_1..u_T.
-        x0, P0 : array_like, optional
-            Override the system's prior (``(..., n)``, ``(..., n, n)``).
-        outputs : str or sequence of str, default "all"
-            Per-step outputs to record: ``"all"``, ``"last"`` or names from
-            ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state (e.g. ``result.final``), generator included.
-
-        Raises
-        ------
-        ShapeError
-            Malformed ``y``, ``u`` or prior.
-        ValidationError
-            A reading outside its censoring limits, NaN-free checks of the inputs; a control input ``u``
-            with a system that has a feedthrough D on the protocol or random-saturation channel (their
-            readings have none: u enters through Bu).
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def log_likelihood(
         self,

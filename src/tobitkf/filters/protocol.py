@@ -83,7 +83,7 @@ from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, kernels, system_gap, use_kernel
 from ._online_check import check_step
-from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import kernel_result, loop_array, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -176,9 +176,26 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
     """
 
     _name = "ProtocolTobitKalmanFilter"
+    _filter_doc = """Run the PBTKF-IMSF (Geng et al., Theorem 1, Table I; the update (21)–(24)) over a batch of received
+    records ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`. ``extras["scheduled"]`` (T,): the sensor
+    the schedule gave each step."""
+    _filter_params = {
+        "y": "(..., T, 1) array_like\n"
+        "    Received scalar readings y_1..y_T (a censored reading equals τ). A NaN reading (a packet lost on the\n"
+        "    link, not in the source's model) only predicts, whatever ``uncensored`` says there (it is reported\n"
+        "    as not uncensored).",
+        "u": "(..., T, p) array_like, optional\n"
+        "    The control inputs u(0..T-1) of a system with ``Bu`` (the prediction of step k adds B_u u(k-1) to the\n"
+        "    current state's block; not in the source, whose plant has no input).",
+        "uncensored": "(..., T, 1) bool array_like, optional\n"
+        "    :math:`\\gamma_k` from the detection device, laid out like ``y``; default ``y > threshold``.",
+        "keep_augmented": "bool, default False\n"
+        "    Also return the ξ-space covariances ``aug_cov``, ``aug_pred_cov`` (memory: N T n_ξ²).",
+    }
+    _filter_raises = "a reading below τ (``check_limits``); ``uncensored`` not laid out like ``y`` (a ShapeError)"
     _step_options = ("uncensored",)
     _loop_ctx: tuple  # what every call of the compiled loop takes from the estimator (_loop_constants)
-    _kernel_static: bool  # whether the compiled loop runs (decided on the first call)
+    _compiled_static: bool  # whether the compiled loop runs (decided on the first call)
 
     def __init__(
         self,
@@ -373,13 +390,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         outputs: Any = "all",
         state: FilterState | None = None,
     ) -> FilterResult:
-        """Filter ``y`` (..., T, 1); see :func:`protocol_tobit_kalman_filter`.
-
-        ``u`` (..., T, p), optional: the control inputs u(0..T-1) of a system with ``Bu`` (the prediction of
-        step k adds B_u u(k-1) to the current state's block; not in the source, whose plant has no input).
-        A NaN reading (a packet lost on the link, not in the source's model) only predicts, whatever
-        ``uncensored`` says there (it is reported as not uncensored).
-        """
+        # the shared loop with the recorded indicator as step data (``super().filter`` takes none)
         y2, batch = self._prepare_record(y)
         N, T, _ = y2.shape
         step_data = None
@@ -428,10 +439,10 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         finite. Never raises for ``backend="numba"``: the numpy step has always run those cases."""
         if u is not None or self.failure_term == "lmmse_unconditional":
             return None
-        ok = self.__dict__.get("_kernel_static")
+        ok = self.__dict__.get("_compiled_static")
         if ok is None:
-            ok = self._kernel_static = use_kernel(
-                self.backend, _protocol_kernel_gap(self, None), "the protocol Tobit Kalman filter"
+            ok = self._compiled_static = use_kernel(
+                self.backend, _protocol_compiled_gap(self, None), "the protocol Tobit Kalman filter"
             )
         if not ok:
             return None
@@ -445,11 +456,12 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         elif step_options.get("keep_augmented"):
             gap = "keep_augmented=True"
         else:
-            ok = self.__dict__.get("_kernel_static") if u2 is None else None  # decided once for the case without input
+            # decided once for the case without input
+            ok = self.__dict__.get("_compiled_static") if u2 is None else None
             if ok is None:
-                ok = use_kernel(self.backend, _protocol_kernel_gap(self, u2), what)
+                ok = use_kernel(self.backend, _protocol_compiled_gap(self, u2), what)
                 if u2 is None:
-                    self._kernel_static = ok
+                    self._compiled_static = ok
             if not ok:
                 return None
             return _finite_or_none(_protocol_loop_run(self, y2, step_options["uncensored_record"], state, want, batch))
@@ -464,7 +476,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
 # --------------------------------------------------------------------------- the compiled path
 
 
-def _protocol_kernel_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
+def _protocol_compiled_gap(est: ProtocolTobitKalmanFilter, u) -> str | None:
     """Why the compiled loop cannot run ``est`` (None when it can); ``keep_augmented`` and the uncensored record
     are checked by the caller."""
     if est.covariance_update == "square_root":
@@ -480,9 +492,9 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
     :func:`~tobitkf.filters._compiled_entries.protocol_tkf_step`), its columns ``Hs``, ``Cs``, ``rs``, ``pars``
     (views), its rows (views), the set of the filled sensors, the transition ``A`` and noise ``Qd`` (1, 1, n, n),
     the threshold ``lo``, ``hi`` (1, 1, 1), the names of the step's scalars
-    (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the modules of the loop and of its entries
-    (imported here, with numba, on first use), the failure-term code and the covariance form, the step's flat
-    constants, and the unused inputs and outputs per number of runs (filled by :func:`_loop_call`)."""
+    (:data:`~tobitkf.filters._compiled_moments.PROTOCOL_TKF_EXTRAS`), the loop's module, the failure-term code and
+    the covariance form, the loop's named arguments (:class:`~tobitkf.filters._loop_specs.LoopArguments`), the
+    entries' module (the modules imported here, with numba, on first use) and the step's flat constants."""
     ctx = est.__dict__.get("_loop_ctx")
     if ctx is None:
         from . import _compiled_entries, _compiled_loop, _loop_specs
@@ -497,7 +509,7 @@ def _loop_constants(est: ProtocolTobitKalmanFilter) -> tuple:
         codes = (FAILURE_CODES[est.failure_term], est.covariance_update == "joseph")
         flat = np.concatenate([A.ravel(), Qd.ravel(), [est._tau, codes[0], float(codes[1])]])
         ctx = (Hs, Cs, rs, pars, tuple(table), set(), A, Qd) + lohi
-        ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, {}, _compiled_entries, flat)
+        ctx += (PROTOCOL_TKF_EXTRAS, _compiled_loop, codes, _loop_specs.LoopArguments, _compiled_entries, flat)
         est._loop_ctx = ctx
     return ctx
 
@@ -513,25 +525,6 @@ def _sensor_rows(est: ProtocolTobitKalmanFilter, h: int, k: int, ctx: tuple) -> 
         filled.add(h)
 
 
-def _loop_call(est, ctx, y, gam, H, F, r, par, x, P, outs, comp, x_last, P_last) -> None:
-    r""":func:`~tobitkf.filters._compiled_loop.compiled_loop` with the protocol TKF's code: readings ``y`` (N, T, 1),
-    γ ``gam`` (N, T, 1) bool (as int8, 1 the class ``INTERIOR``), the per-step rows ``H`` (T', 1, n_ξ), ``F``
-    (T', 1, 1, n_ξ) (:math:`\mathcal C_h`), ``r`` (1, T', 1), ``par`` (T', 1, 3); ``outs`` the state outputs,
-    ``comp`` (N, T, 1, 7 + 2 n_ξ) the extras."""
-    cl = ctx[11]
-    N = y.shape[0]
-    none = ctx[13].get(N)
-    if none is None:  # the inputs and outputs the protocol TKF does not use, per number of runs
-        none = ctx[13][N] = (_empty((N, 0, est.n)), _empty((N, 0, 1)), _empty((N, 0)))
-    mode, joseph = ctx[12]
-    lo, hi = ctx[8], ctx[9]
-    e_n, e_1, e_0 = none
-    cl.compiled_loop(
-        cl.PROTOCOL_TKF, y, gam.view(np.int8), ctx[6], ctx[7], H, F, r, lo, hi, par, 0, 1, mode, joseph, e_n, e_1, x, P,
-        *outs, e_1, e_1, e_0, comp, x_last, P_last,
-    )  # fmt: skip
-
-
 def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> FilterState | None:
     """:meth:`ProtocolTobitKalmanFilter.step` of a plain call (no input, no keyword) straight to the compiled
     step, :func:`_protocol_loop_step`, when the general step's checks would pass it unchanged and its
@@ -542,7 +535,7 @@ def _protocol_plain_step(est: ProtocolTobitKalmanFilter, state: Any, y: Any) -> 
     below τ). None otherwise (the general step then runs, with its checks and messages), or when the
     covariance stopped being finite."""
     if not (
-        est.__dict__.get("_kernel_static")
+        est.__dict__.get("_compiled_static")
         and is_trusted(est, state)  # a state this estimator made (any other takes the general step's checks)
         and not state.carry.get("_predicted")
         and type(y) is np.ndarray
@@ -632,25 +625,17 @@ def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: Fil
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
     P = state.P if state.P.shape[0] in (1, N) else np.broadcast_to(state.P, (N, nxi, nxi))
     H, F, r = Hs[sched][:, None], Cs[sched][:, None, None], rs[sched][None, :, None]
-    _loop_call(
-        est,
-        ctx,
-        y3,
-        gam,
-        H,
-        F,
-        r,
-        par,
-        loop_input(state.x),
-        loop_input(P),
-        (means, covs, pmeans, pcovs),
-        comp,
-        x_last,
-        P_last,
-    )
+    mode, joseph = ctx[12]
+    loop = ctx[11]
+    args = ctx[13](
+        loop.PROTOCOL_TKF, y3, cls=gam.view(np.int8), A=ctx[6], Qd=ctx[7], H=H, F=F, r=r, lo=ctx[8], hi=ctx[9], par=par,
+        noise_code=mode, joseph=joseph, x0=loop_input(state.x), P0=loop_input(P), means=means, covs=covs,
+        pmeans=pmeans, pcovs=pcovs, comp=comp, x_last=x_last, P_last=P_last,
+    )  # fmt: skip
+    loop.compiled_loop(*args.filled())  # the arrays the protocol TKF does not use: made by filled()
 
     def out(a):
-        return kernel_array(a, batch)
+        return loop_array(a, batch)
 
     extras: dict[str, Any] = {}
     if ext:

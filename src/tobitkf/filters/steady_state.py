@@ -66,7 +66,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
-from ._outputs import _empty, kernel_array, loop_input, output_arrays
+from ._outputs import loop_array, loop_input, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, tobit_measurement
@@ -219,6 +219,22 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         "with gaps"
     )
 
+    _filter_doc = r"""Fixed-gain update (Miller §3.4.2, (3.58)) of measurements censored at the controlled limits.
+
+    ``y`` (..., T, m) must have been censored at the limits :meth:`limit` gives for this filter's own priors
+    (e.g. by :meth:`filter_controlled`); the filter itself only needs :math:`E[y_k]`, which (3.58) gives without
+    the limits. Covariances are the constant :math:`\Psi_\infty`, :math:`\bar\Psi_\infty` (read-only broadcast
+    views)."""
+    _filter_params = {
+        "y": "(..., T, m) array_like\n    The censored readings y_1..y_T; no NaN (see Raises).",
+        "x0": "array_like, optional\n"
+        "    Override the prior mean of :math:`x_0`, ``(n,)`` or ``(..., n)`` (the covariance is the constant\n"
+        "    limit).",
+    }
+    _filter_raises = (
+        "NaN (a missing sample): a fixed gain cannot skip a sample without making the reported covariance wrong"
+    )
+
     def __init__(self, system: LinearSystem, xi_uncensored: Any, *, side: str = "upper", backend: str = "auto"):
         check_instance(system, LinearSystem, "system")
         check_option(side, "side", ("upper", "lower"))
@@ -348,19 +364,9 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
             _warn_if_diverged(res.mean, self._name, k0, stacklevel=4)
         return res
 
-    def filter(
+    def filter(  # type: ignore[override]  # no P0: the covariances are the constant limits
         self, y: Any, *, u: Any = None, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
-        r"""Fixed-gain update of measurements censored at the controlled limits.
-
-        ``y`` (..., T, m) must have been censored at the limits :meth:`limit` gives for
-        this filter's own priors (e.g. by :meth:`filter_controlled`); the filter
-        itself only needs :math:`E[y_k]`, which (3.58) gives without the limits.
-        Covariances are the constant :math:`\Psi_\infty`, :math:`\bar\Psi_\infty`
-        (read-only broadcast views).
-        NaN (a missing sample) is refused with a :class:`ValidationError`: a fixed gain
-        cannot skip a sample without making the reported covariance wrong.
-        """
         return self._fixed_gain_run(y, u, x0, outputs, state)
 
     def filter_controlled(
@@ -405,7 +411,7 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
         self.side, self.sigma_ = side, sigma
 
     def _compiled_filter(self, *args):
-        # the TKF kernel takes the limits as data; here they are set from the prior inside the loop, so
+        # the TKF's compiled loop takes the limits as data; here they are set from the prior inside the loop, so
         # there is no compiled path: numpy under "auto", a refusal under "numba" (not a silent numpy run)
         use_kernel(self.backend, "a limit set from the filter's prior (3.56)", "the controlled-limit TKF")
         return None
@@ -472,41 +478,15 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
         N, T, ("mean" in want, (n,)), ("pred_mean" in want, (n,)), (ext, (m, 2))
     )
     x_last = np.empty((N, n))
-    e = np.empty((1, 1, m))
-    _compiled_loop.compiled_loop(
-        _compiled_loop.FIXED_GAIN,
-        loop_input(y2),
-        np.empty((N, 0, m), dtype=np.int8),
-        A,
-        Qd,
-        C,
-        np.empty((1, m, 0, n)),
-        e,
-        e,
-        e,
-        par,
-        0,
-        1,
-        code + 2 * latent,
-        False,
-        _empty((N, 0, n)),
-        _empty((N, 0, m)),
-        loop_input(state.x),
-        est.cov[None],
-        means,
-        _empty((N, 0, n, n)),
-        pmeans,
-        _empty((N, 0, n, n)),
-        _empty((N, 0, m)),
-        _empty((N, 0, m)),
-        _empty((N, 0)),
-        comp,
-        x_last,
-        np.empty((N, 0, 0)),  # no covariance is carried
-    )
+    args = _loop_specs.LoopArguments(
+        _compiled_loop.FIXED_GAIN, loop_input(y2), A=A, Qd=Qd, H=C, par=par, noise_code=code + 2 * latent,
+        x0=loop_input(state.x), P0=est.cov[None], means=means, pmeans=pmeans, comp=comp, x_last=x_last,
+        P_last=np.empty((N, 0, 0)),  # no covariance is carried
+    )  # fmt: skip
+    _compiled_loop.compiled_loop(*args.filled())  # the arrays the fixed gain does not use: made by filled()
 
     def out(a):
-        return kernel_array(a, batch)
+        return loop_array(a, batch)
 
     def const(key, P):
         # the numpy loop stores a covariance shared by the runs once and broadcasts it (a copy for one run)

@@ -79,7 +79,7 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
-from ._outputs import _empty, kernel_array, kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
 from ._times import at_times
 from .assumed_density import assumed_density_filter
@@ -271,6 +271,17 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
     """
 
     _name = "TobitKalmanFilter"
+    _filter_doc = """Run the Tobit Kalman filter (Miller (3.37)–(3.41), the covariance (3.55)) over a batch of censored
+    records ``y`` (..., T, m), censored readings equal to their limit; see :func:`tobit_kalman_filter`."""
+    _filter_params = {
+        "y": "(..., T, m) array_like\n"
+        "    Censored readings y_1..y_T (a censored one equal to its limit); NaN = missing (the channel is\n"
+        "    skipped in that step).",
+        "censored": "(..., T, m) bool array_like, optional\n"
+        "    The censoring indicator recorded with the data, checked against the readings (a flagged one must lie\n"
+        "    at its limit); the update is linear in the reading and unchanged by it.",
+    }
+    _filter_raises = "a reading outside its censoring limits (``check_limits``); a flag on a reading inside them"
     _step_options: tuple[str, ...] = ("lower", "upper")
     _loop_limits: np.ndarray  # (2, 1, m) the constant limits of the compiled step, set on its first call
 
@@ -384,18 +395,12 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         state: FilterState | None = None,
         times: Any = None,
     ) -> FilterResult:
-        """Filter censored measurements ``y`` (..., T, m); see :func:`tobit_kalman_filter`.
-
-        ``censored`` (..., T, m), the recorded indicator, is checked against the readings (a flagged one
-        must lie at its limit); the update (3.37)-(3.41) is linear in the reading and unchanged by it.
-        ``times`` (T,): sample times for a :class:`~tobitkf.ContinuousLinearSystem` (each gap discretised exactly).
-        """
         if times is not None:
             est = at_times(self, times, y)
             return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
         if censored is not None:
             check_tobit_indicator(self.censoring, y, censored, start=(0 if state is None else state.k) + 1)
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
+        return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The TKF's update defines no likelihood: the assumed-density terms (..., T) of its model (system and
@@ -405,7 +410,7 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
 
 
 def _input_terms(est: TobitKalmanFilter, u: np.ndarray | None, N: int, T: int) -> tuple[np.ndarray, np.ndarray]:
-    """The kernel's input arrays from ``u`` (N, T, p) or None: ``bu`` = :math:`B^uu_k` (N, T, n) and ``du`` =
+    """The compiled loop's input arrays from ``u`` (N, T, p) or None: ``bu`` = :math:`B^uu_k` (N, T, n) and ``du`` =
     :math:`Du_k` (N, T, m) as contiguous float64, each (N, 0, ...) when absent (the same products as the
     numpy path's ``u @ Bu.T`` and ``u @ D.T``, per step)."""
     sys_ = est.system
@@ -537,9 +542,7 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
     else:
         run_split(work, N, check_threads(est.threads))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    extras = (
-        {"p_uncensored": kernel_array(pu, batch), "expected_y": kernel_array(ey, batch)} if "extras" in want else {}
-    )
+    extras = {"p_uncensored": loop_array(pu, batch), "expected_y": loop_array(ey, batch)} if "extras" in want else {}
     return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 

@@ -490,7 +490,7 @@ class MultiTargetTracker(Estimator):
         )
         return mark_trusted(self, step_state(k, state.batch_shape, x, P, 4, S, carry, extras))
 
-    def filter(
+    def filter(  # type: ignore[override]  # its record is a sequence of detection frames, not readings (..., T, m)
         self, detections: Sequence[Any], *, initial: Any = None, state: FilterState | None = None, outputs: Any = "all"
     ) -> FilterResult:
         """Track every frame of ``detections`` (a sequence of T arrays (L_k, 2)) from ``initial`` (N, 2)
