@@ -495,14 +495,12 @@ def _step_asm(kind, n, m=1):
     return step.inspect_asm(step.signatures[0])
 
 
-_KIND_NAMES = {soa.KALMAN: "KF", soa.TOBIT_ANY: "TKF", soa.CENSORED_ADF: "censored ADF",
-               soa.CENSORED_ADF_STATS: "censored ADF with extras"}  # fmt: skip
+_KIND_NAMES = {soa.KALMAN: "KF", soa.TOBIT_ANY: "TKF", soa.CENSORED_ADF: "censored ADF"}
 
 
 @pytest.mark.parametrize(
     "kind",
-    [soa.KALMAN]
-    + [pytest.param(k, marks=pytest.mark.heavy) for k in (soa.TOBIT_ANY, soa.CENSORED_ADF, soa.CENSORED_ADF_STATS)],
+    [soa.KALMAN] + [pytest.param(k, marks=pytest.mark.heavy) for k in (soa.TOBIT_ANY, soa.CENSORED_ADF)],
     ids=lambda k: _KIND_NAMES[k],
 )
 def test_each_update_compiles_to_packed_vector_instructions(kind):

@@ -113,14 +113,14 @@ SOA_MAX_N = 4  # largest state covered: every state loop is unrolled (n^3 produc
 #: the state size n as a type: a tuple of n zeros, whose length numba folds to a constant (one specialisation of
 #: :func:`soa_loop` per n, found by the ordinary dispatch on the argument types at every call)
 SIZES = {n: (0,) * n for n in range(1, SOA_MAX_N + 1)}
-#: the updates of :func:`soa_loop` (the assumed-density filter without or with its log-likelihood and P(uncensored))
-KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
+#: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter, the TKF (any limits)
+KALMAN, CENSORED_ADF, TOBIT_ANY = 0, 2, 4
 #: the update as a type, likewise: a tuple of ``update`` zeros (one specialisation per update). :func:`soa_loop`
 #: branches on ``len(kind) == update`` directly: numba rewrites the length of a tuple argument as a constant and
 #: prunes the branches of the other updates before typing, so that each specialisation holds only its update's
-#: code (kept, their inlined bodies made the reference-count pruning give up on the step loop: an ``NRT_incref``
-#: and ``NRT_decref`` call per run, which LLVM cannot vectorise across)
-KINDS = {k: (0,) * k for k in (KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY)}
+#: code (compared through a variable, every update's code was compiled into every version: the KF's at n = 2 took
+#: 127 s to compile on a loaded machine, pruned 20 s)
+KINDS = {k: (0,) * k for k in (KALMAN, CENSORED_ADF, TOBIT_ANY)}
 _CHUNK = 64  # steps staged per flush (as the compiled loop's CHUNK)
 _STAGE_BYTES = 1 << 18
 _TINY = float(np.finfo(np.float64).tiny)
@@ -387,9 +387,10 @@ def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, h
             yb = W[oY * BK + b]
             cl = W[oCL * BK + b] if has_cls else float(classify(yb, lo_t, hi_t))
             al, be, lb, p = _adf_update(yb, cl, mu, sv + rn, lo_t, hi_t)
-            if len(kind) == CENSORED_ADF_STATS:  # without, they are not computed
-                W[oG * BK + b] = p
-                W[oLL * BK + b] = lb
+            # P(uncensored) and the log-likelihood always (staged only when asked): without their stores the
+            # loop stayed scalar (0 packed multiplications at n = 1; with them 339, and faster though it does more)
+            W[oG * BK + b] = p
+            W[oLL * BK + b] = lb
             for i in range(n):
                 hv = W[(oH + i) * BK + b]
                 W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + al * hv
@@ -430,7 +431,7 @@ def soa_loop(
     P_last,
 ):
     r"""The KF, the TKF or the censored assumed-density filter (``kind`` :data:`KALMAN`,
-    :data:`TOBIT_ANY`, :data:`CENSORED_ADF`, :data:`CENSORED_ADF_STATS` as :data:`KINDS`) over N runs x T steps,
+    :data:`TOBIT_ANY`, :data:`CENSORED_ADF` as :data:`KINDS`) over N runs x T steps,
     one channel, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
     fills the outputs (module docstring).
 
@@ -665,7 +666,7 @@ def soa_censored_loop(
         return
     soa_loop(
         SIZES[x0.shape[1]],
-        KINDS[CENSORED_ADF_STATS if pu.shape[1] > 0 or ll.shape[1] > 0 else CENSORED_ADF],
+        KINDS[CENSORED_ADF],
         y,
         A[0, 0],
         Qd[0, 0],
