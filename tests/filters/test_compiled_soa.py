@@ -495,12 +495,27 @@ def _step_asm(kind, n, m=1):
     return step.inspect_asm(step.signatures[0])
 
 
-_KIND_NAMES = {soa.KALMAN: "KF", soa.TOBIT_ANY: "TKF", soa.CENSORED_ADF: "censored ADF"}
+_KIND_NAMES = {soa.KALMAN: "KF", soa.TOBIT_ANY: "TKF", soa.CENSORED_ADF: "censored ADF",
+               soa.CENSORED_ADF_STATS: "censored ADF with extras"}  # fmt: skip
 
 
 @pytest.mark.parametrize(
     "kind",
-    [soa.KALMAN] + [pytest.param(k, marks=pytest.mark.heavy) for k in (soa.TOBIT_ANY, soa.CENSORED_ADF)],
+    [soa.KALMAN]
+    + [pytest.param(k, marks=pytest.mark.heavy) for k in (soa.TOBIT_ANY, soa.CENSORED_ADF_STATS)]
+    + [
+        pytest.param(
+            soa.CENSORED_ADF,
+            marks=[
+                pytest.mark.heavy,
+                pytest.mark.xfail(
+                    strict=True,
+                    reason="the assumed-density filter's loop without its log-likelihood and P(uncensored) stays "
+                    "scalar (with them it vectorises; always computing them was no faster: 68.7 against 64 ns)",
+                ),
+            ],
+        )
+    ],
     ids=lambda k: _KIND_NAMES[k],
 )
 def test_each_update_compiles_to_packed_vector_instructions(kind):

@@ -6,16 +6,17 @@ step as some tens of short loops over the runs, one per product, each storing it
 n = 2, m = 1 most of a step is the loops' set-up and the stores between them. Here the state size n is a
 compile-time constant (the length of the tuple ``size``, :data:`SIZES`: one specialisation per n, chosen by
 numba's ordinary dispatch on the argument's type), so that every loop over the state is unrolled and the
-*whole* step of one run, predict, gain and covariance update, is straight-line code in the body of a loop over
-the runs of a block, which LLVM vectorises (AVX2: 4 runs per instruction, AVX-512: 8). Three things keep it so,
-each of which, lost, left the step scalar (0 packed multiplications in its code, checked for every update by the
-tests, :func:`_step`): the loops over the runs have a trip count bounded by :data:`SOA_BLOCK` (numba's wraparound of
-negative indices is then proven dead), the step runs in a function of its own taking the scratch as an argument
-(no reference-count calls in the loop) with the update's code alone in each specialisation and the covariance form
-chosen outside the loop; and the loop stays below the size LLVM's vectoriser gives up on: the KF's predict and
-update fuse into one loop, while the TKF's (the censored statistics between them) runs as three loops, each
-vectorised (fused, the one loop stayed scalar and took 48.7 ns per run-step against the three loops' 18.1, n = 2,
-one-sided limits).
+*whole* step of one run, predict, gain and covariance update, is straight-line code in the body of a loop over the
+runs of a block, which LLVM vectorises (AVX2: 4 runs per instruction, AVX-512: 8). Three things keep it so, each of
+which, lost, left the step scalar (0 packed multiplications in its code; counted for every update by the tests,
+:func:`_step`): the loops over the runs have a trip count bounded by :data:`SOA_BLOCK` (numba's wraparound of
+negative indices is then proven dead; unbounded, the addresses are not affine in the run); the step runs in a
+function of its own taking the scratch as an argument, the covariance form chosen outside the loops over the runs
+(no reference-count calls left in them); and the TKF's step runs as three loops (prediction and moments;
+statistics; update), each vectorised: fused into one loop, LLVM left it scalar without a reason it reports (48.7 ns
+per run-step against the three loops' 18.1, n = 2, one-sided limits). The censored assumed-density filter's loop
+without its log-likelihood and P(uncensored) stays scalar (with them it vectorises, but computing them always was
+no faster).
 
 Layout: a block of :data:`SOA_BLOCK` runs, means ``x[i, b]`` (n, B), covariances ``P[i, j, b]`` (n, n, B)
 (symmetric, both triangles stored: the output staging of :mod:`tobitkf.filters._compiled_block` reads them),
@@ -64,12 +65,12 @@ no limit, one or two finite ones), the input terms, the standard form, with or w
 P(uncensored) (:func:`censored_entry`; given interval readings run the loop). Anything else runs
 :func:`~tobitkf.filters._compiled_loop.compiled_loop`.
 
-Measured (n = 2, m = 1, 10^5 runs x 100 steps, left-censored readings from the model, outputs allocated and
-touched before, thread CPU time per run-step, medians of 5 interleaved calls, one thread, a 2-core AVX-512
-machine under a load average of 5-10): TKF 16.4 against the compiled loop's 29.6 ns (means only), 23.2 against
-36.3 (means and covariances); censored assumed-density filter 47.2 against 75.4 and 54.4 against 82.8 (91.4
-against 85.9 with its log-likelihood and P(uncensored): those run the loop); KF 16.6 against 18.2 and 23.6
-against 24.9. Two finite limits (n = 2, 2 x 10^4 runs x 100 steps, readings clipped to [-0.5, 0.5], means only
+Measured (n = 2, m = 1, 2 x 10^4 runs x 100 steps, readings max(N(0.1, 0.5^2), 0), lower limit 0, outputs
+allocated and touched before, thread CPU time per run-step, medians of 5 alternating calls in one process, one
+thread, a 2-core AVX-512 machine under a load average of 8-10): TKF 18.1 against the compiled loop's 30.3 ns
+(means only), 25.7 against 41.1 (means and covariances); KF 10.2 against 25.8 and 18.2 against 28.8; censored
+assumed-density filter 63.9 and 65.2 (its loop scalar), with its log-likelihood and P(uncensored) 68.7 and 71.9
+(vectorised). Two finite limits (n = 2, 2 x 10^4 runs x 100 steps, readings clipped to [-0.5, 0.5], means only
 plus the extras, medians of 5 alternating calls, load average 8-12): TKF 82.7 against the loop's 108.2 ns;
 censored assumed-density filter with its log-likelihood and P(uncensored) 59.8 against 171.0. The entries :func:`soa_kalman_loop`,
 :func:`soa_tobit_loop` and :func:`soa_censored_loop` take the arguments of
@@ -113,14 +114,15 @@ SOA_MAX_N = 4  # largest state covered: every state loop is unrolled (n^3 produc
 #: the state size n as a type: a tuple of n zeros, whose length numba folds to a constant (one specialisation of
 #: :func:`soa_loop` per n, found by the ordinary dispatch on the argument types at every call)
 SIZES = {n: (0,) * n for n in range(1, SOA_MAX_N + 1)}
-#: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter, the TKF (any limits)
-KALMAN, CENSORED_ADF, TOBIT_ANY = 0, 2, 4
+#: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
+#: and P(uncensored), the TKF (any limits)
+KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
 #: the update as a type, likewise: a tuple of ``update`` zeros (one specialisation per update). :func:`soa_loop`
 #: branches on ``len(kind) == update`` directly: numba rewrites the length of a tuple argument as a constant and
 #: prunes the branches of the other updates before typing, so that each specialisation holds only its update's
 #: code (compared through a variable, every update's code was compiled into every version: the KF's at n = 2 took
 #: 127 s to compile on a loaded machine, pruned 20 s)
-KINDS = {k: (0,) * k for k in (KALMAN, CENSORED_ADF, TOBIT_ANY)}
+KINDS = {k: (0,) * k for k in (KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY)}
 _CHUNK = 64  # steps staged per flush (as the compiled loop's CHUNK)
 _STAGE_BYTES = 1 << 18
 _TINY = float(np.finfo(np.float64).tiny)
@@ -387,10 +389,9 @@ def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, h
             yb = W[oY * BK + b]
             cl = W[oCL * BK + b] if has_cls else float(classify(yb, lo_t, hi_t))
             al, be, lb, p = _adf_update(yb, cl, mu, sv + rn, lo_t, hi_t)
-            # P(uncensored) and the log-likelihood always (staged only when asked): without their stores the
-            # loop stayed scalar (0 packed multiplications at n = 1; with them 339, and faster though it does more)
-            W[oG * BK + b] = p
-            W[oLL * BK + b] = lb
+            if len(kind) == CENSORED_ADF_STATS:  # without, they are not computed
+                W[oG * BK + b] = p
+                W[oLL * BK + b] = lb
             for i in range(n):
                 hv = W[(oH + i) * BK + b]
                 W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + al * hv
@@ -431,7 +432,7 @@ def soa_loop(
     P_last,
 ):
     r"""The KF, the TKF or the censored assumed-density filter (``kind`` :data:`KALMAN`,
-    :data:`TOBIT_ANY`, :data:`CENSORED_ADF` as :data:`KINDS`) over N runs x T steps,
+    :data:`TOBIT_ANY`, :data:`CENSORED_ADF`, :data:`CENSORED_ADF_STATS` as :data:`KINDS`) over N runs x T steps,
     one channel, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
     fills the outputs (module docstring).
 
@@ -666,7 +667,7 @@ def soa_censored_loop(
         return
     soa_loop(
         SIZES[x0.shape[1]],
-        KINDS[CENSORED_ADF],
+        KINDS[CENSORED_ADF_STATS if pu.shape[1] > 0 or ll.shape[1] > 0 else CENSORED_ADF],
         y,
         A[0, 0],
         Qd[0, 0],
