@@ -6,12 +6,17 @@ step as some tens of short loops over the runs, one per product, each storing it
 n = 2, m = 1 most of a step is the loops' set-up and the stores between them. Here the state size n is a
 compile-time constant (the length of the tuple ``size``, :data:`SIZES`: one specialisation per n, chosen by
 numba's ordinary dispatch on the argument's type), so that every loop over the state is unrolled and the
-*whole* step of one run, predict, censored statistics, gain and covariance update, is straight-line code in the
-body of a single loop over the runs of a block, which LLVM vectorises (AVX2: 4 runs per instruction, AVX-512:
-8). Checked with ``inspect_asm`` on a fresh compile (n = 2, AVX-512 machine): the TKF step's loop is emitted on
-8-lane ``zmm`` registers (157 ``vmulpd``, 118 ``vaddpd``, 4 ``vdivpd``, the exponential's
-``vrndscalepd``/``vcvttpd2qq`` and one ``vgatherqpd`` for its table of powers of two), next to the scalar copy
-LLVM keeps for the remainder of a block.
+*whole* step of one run, predict, gain and covariance update, is straight-line code in the body of a loop over the
+runs of a block, which LLVM vectorises (AVX2: 4 runs per instruction, AVX-512: 8). Three things keep it so, each of
+which, lost, left the step scalar (0 packed multiplications in its code; counted for every update by the tests,
+:func:`_step`): the loops over the runs have a trip count bounded by :data:`SOA_BLOCK` (numba's wraparound of
+negative indices is then proven dead; unbounded, the addresses are not affine in the run); the step runs in a
+function of its own taking the scratch as an argument, the covariance form chosen outside the loops over the runs
+(no reference-count calls left in them); and the TKF's step runs as three loops (prediction and moments;
+statistics; update), each vectorised: fused into one loop, LLVM left it scalar without a reason it reports (48.7 ns
+per run-step against the three loops' 18.1, n = 2, one-sided limits). The censored assumed-density filter's loop
+without its log-likelihood and P(uncensored) stays scalar (with them it vectorises, but computing them always was
+no faster).
 
 Layout: a block of :data:`SOA_BLOCK` runs, means ``x[i, b]`` (n, B), covariances ``P[i, j, b]`` (n, n, B)
 (symmetric, both triangles stored: the output staging of :mod:`tobitkf.filters._compiled_block` reads them),
@@ -24,17 +29,17 @@ readings (N, T, 1) as given. The step of run b, with one channel (m = 1), row :m
 
 * Kalman filter (:data:`KALMAN`, Miller (2015) (2.3)–(2.6)): :math:`e = y - \mu`, :math:`R_{ee} = s + R`,
   :math:`R_{xe} = h`;
-* Tobit Kalman filter (:data:`TOBIT`, Miller (3.37)–(3.41), all statistics at the prior): the censored-normal
-  statistics of :math:`\mu` and :math:`\sigma` at the channel's one finite limit, :math:`(\gamma, E(y),
-  R_{uu})`, from :func:`~tobitkf.filters._compiled_censored._one_sided_at` (the branch-free routes written for
-  vectorisation, imported: the same numbers as the compiled loop's statistics), :math:`e = y - E(y)`,
-  :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`R_{xe} = \gamma h`; with two finite limits, or none, at some step
-  (:data:`TOBIT_ANY`) the step is split into three vectorised loops over the block (prediction and moments;
-  statistics; update): two finite limits take the direct formulas of
+* Tobit Kalman filter (:data:`TOBIT_ANY`, Miller (3.37)–(3.41), all statistics at the prior), in three
+  vectorised loops over the block (prediction and moments; statistics; update): the censored-normal statistics
+  of :math:`\mu` and :math:`\sigma` at the step's limits, :math:`(\gamma, E(y), R_{uu})`; one finite limit from
+  :func:`~tobitkf.filters._compiled_censored._one_sided_at` (the branch-free routes written for vectorisation,
+  imported: the same numbers as the compiled loop's statistics), two finite limits by the direct formulas of
   :func:`~tobitkf.filters._compiled_censored.window_direct` for all runs, and the few runs whose window needs
   another route (a window narrower than :math:`\sigma`, or in a tail) then
   :func:`~tobitkf.filters._compiled_censored.censored_stats` one by one, the compiled loop's numbers (its sums
-  are taken in the loop's order, so that :math:`\mu`, which picks the route, is the loop's to the bit);
+  are taken in the loop's order, so that :math:`\mu`, which picks the route, is the loop's to the bit), no limit
+  the latent reading's moments; :math:`e = y - E(y)`, :math:`R_{ee} = \gamma^2 s + R_{uu}`,
+  :math:`R_{xe} = \gamma h`;
 
 then :math:`K = R_{xe}/R_{ee}`, :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` (standard form) or the
 Joseph form :math:`P = M - (MH^T - KR)K^T`, :math:`M = \bar P - KR_{xe}^T`, :math:`H = \gamma c` (as
@@ -60,12 +65,12 @@ no limit, one or two finite ones), the input terms, the standard form, with or w
 P(uncensored) (:func:`censored_entry`; given interval readings run the loop). Anything else runs
 :func:`~tobitkf.filters._compiled_loop.compiled_loop`.
 
-Measured (n = 2, m = 1, 10^5 runs x 100 steps, left-censored readings from the model, outputs allocated and
-touched before, thread CPU time per run-step, medians of 5 interleaved calls, one thread, a 2-core AVX-512
-machine under a load average of 5-10): TKF 16.4 against the compiled loop's 29.6 ns (means only), 23.2 against
-36.3 (means and covariances); censored assumed-density filter 47.2 against 75.4 and 54.4 against 82.8 (91.4
-against 85.9 with its log-likelihood and P(uncensored): those run the loop); KF 16.6 against 18.2 and 23.6
-against 24.9. Two finite limits (n = 2, 2 x 10^4 runs x 100 steps, readings clipped to [-0.5, 0.5], means only
+Measured (n = 2, m = 1, 2 x 10^4 runs x 100 steps, readings max(N(0.1, 0.5^2), 0), lower limit 0, outputs
+allocated and touched before, thread CPU time per run-step, medians of 5 alternating calls in one process, one
+thread, a 2-core AVX-512 machine under a load average of 8-10): TKF 18.1 against the compiled loop's 30.3 ns
+(means only), 25.7 against 41.1 (means and covariances); KF 10.2 against 25.8 and 18.2 against 28.8; censored
+assumed-density filter 63.9 and 65.2 (its loop scalar), with its log-likelihood and P(uncensored) 68.7 and 71.9
+(vectorised). Two finite limits (n = 2, 2 x 10^4 runs x 100 steps, readings clipped to [-0.5, 0.5], means only
 plus the extras, medians of 5 alternating calls, load average 8-12): TKF 82.7 against the loop's 108.2 ns;
 censored assumed-density filter with its log-likelihood and P(uncensored) 59.8 against 171.0. The entries :func:`soa_kalman_loop`,
 :func:`soa_tobit_loop` and :func:`soa_censored_loop` take the arguments of
@@ -91,7 +96,6 @@ __all__ = [
     "SOA_MAX_N",
     "SIZES",
     "KALMAN",
-    "TOBIT",
     "TOBIT_ANY",
     "CENSORED_ADF",
     "soa_covers",
@@ -110,11 +114,15 @@ SOA_MAX_N = 4  # largest state covered: every state loop is unrolled (n^3 produc
 #: the state size n as a type: a tuple of n zeros, whose length numba folds to a constant (one specialisation of
 #: :func:`soa_loop` per n, found by the ordinary dispatch on the argument types at every call)
 SIZES = {n: (0,) * n for n in range(1, SOA_MAX_N + 1)}
-#: the updates of :func:`soa_loop` (the assumed-density filter without or with its log-likelihood and P(uncensored))
-KALMAN, TOBIT, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 1, 2, 3, 4
-#: the update as a type, likewise: a tuple of ``update + 1`` zeros (one specialisation per update, so that each
-#: vectorised loop holds only its update's code)
-KINDS = {k: (0,) * (k + 1) for k in (KALMAN, TOBIT, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY)}
+#: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
+#: and P(uncensored), the TKF (any limits)
+KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
+#: the update as a type, likewise: a tuple of ``update`` zeros (one specialisation per update). :func:`soa_loop`
+#: branches on ``len(kind) == update`` directly: numba rewrites the length of a tuple argument as a constant and
+#: prunes the branches of the other updates before typing, so that each specialisation holds only its update's
+#: code (compared through a variable, every update's code was compiled into every version: the KF's at n = 2 took
+#: 127 s to compile on a loaded machine, pruned 20 s)
+KINDS = {k: (0,) * k for k in (KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY)}
 _CHUNK = 64  # steps staged per flush (as the compiled loop's CHUNK)
 _STAGE_BYTES = 1 << 18
 _TINY = float(np.finfo(np.float64).tiny)
@@ -134,11 +142,6 @@ def soa_covers(kalman: bool, m: int, n: int, P0_rows: int, N: int, lo=None, hi=N
         return False
     lo, hi = np.asarray(lo), np.asarray(hi)
     return bool(np.all(lo < hi))  # False for a NaN limit too
-
-
-def _one_sided_rows(lo, hi) -> bool:
-    """Whether every row of ``lo``/``hi`` has exactly one finite limit (the fused step :data:`TOBIT`)."""
-    return bool(np.all(np.isneginf(lo) != np.isposinf(hi)))
 
 
 def censored_covers(family: int, A, Qd, H, F, r, lo, hi, x0) -> bool:
@@ -301,6 +304,105 @@ def _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph):
                 W[(oP + j * n + i) * BK + b] = pij
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _update_of(W, cst, b, n, joseph):
+    """The split TKF step's update of run ``b`` from the statistics its second loop left in ``W``."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    BK = SOA_BLOCK
+    yb, g, v, ey, sv = W[oY * BK + b], W[oG * BK + b], W[oV * BK + b], W[oEY * BK + b], W[oS * BK + b]
+    _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _kalman_step(W, cst, b, n, rn, joseph):
+    """The Kalman filter's whole step of run ``b`` (noise variance ``rn``)."""
+    mu, sv = _predict_moments(W, cst, b, n)
+    _gain_update(W, cst, b, n, W[_offsets(n)[7] * SOA_BLOCK + b], 1.0, rn, mu, sv, joseph)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf):
+    """The update ``kind`` of one step for the ``nb`` runs of a block, from and into the scratch ``W`` of
+    :func:`soa_loop` (its docstring). A function of its own, not inlined into the time loop: ``W`` and ``cst``
+    are arguments here (borrowed references), so that the helpers inlined into the loop over the runs take them
+    without reference counting; inlined into :func:`soa_loop`, whose own arrays they are, each run's step made an
+    ``NRT_incref``/``NRT_decref`` call pair that numba's reference-count pruning did not remove, and LLVM does not
+    vectorise a loop with a call in it (the whole step stayed scalar)."""
+    n = len(size)
+    BK = SOA_BLOCK
+    # the runs' loops' trip count bounded (0 to SOA_BLOCK), so that LLVM proves every index W[row * BK + b]
+    # non-negative and drops numba's wraparound of negative indices: with it the addresses are not affine in b
+    # and no loop over the runs vectorised
+    nb = max(0, min(nb, BK))
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    lo_fin, hi_fin = lo_t != -_INF, hi_t != _INF
+    if len(kind) == TOBIT_ANY:  # (len(kind): a constant, the other updates' branches pruned)
+        for b in range(nb):  # prediction and moments
+            mu, sv = _predict_moments(W, cst, b, n)
+            W[oMU * BK + b] = mu
+            W[oS * BK + b] = sv
+        if lo_fin and hi_fin:  # two finite limits: the direct formulas, vectorised
+            for b in range(nb):
+                mu = W[oMU * BK + b]
+                other, _a2, _b2, _fl, _os, p_lo, p_hi, gam, lam, zvar = window_direct(mu, rn, lo_t, hi_t)
+                st = _assemble(mu, rn, lo_t, hi_t, p_lo, p_hi, gam, lam, zvar)
+                W[oG * BK + b] = st[2]
+                W[oV * BK + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
+                W[oEY * BK + b] = st[6]
+                W[oSL * BK + b] = 1.0 if other else 0.0
+            for b in range(nb):  # the runs off the direct route: the compiled loop's statistics
+                if W[oSL * BK + b] != 0.0:
+                    mu = W[oMU * BK + b]
+                    st = censored_stats(mu, rn, lo_t, hi_t, glx, glw, buf)
+                    W[oG * BK + b] = st[2]
+                    W[oV * BK + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
+                    W[oEY * BK + b] = st[6]
+        elif lo_fin or hi_fin:
+            for b in range(nb):
+                g, v, cm = _one_sided_tkf(W[oMU * BK + b], rn, lim, sg, noise_code)
+                W[oG * BK + b] = g
+                W[oV * BK + b] = v
+                W[oEY * BK + b] = cm
+        else:  # no limit: the latent reading's moments
+            for b in range(nb):
+                W[oG * BK + b] = 1.0
+                W[oV * BK + b] = rn * rn
+                W[oEY * BK + b] = W[oMU * BK + b]
+        # the update; the Joseph form chosen outside the loops over the runs, a constant inside: a branch on it
+        # within a run's step kept a reference-count call pair in the loop (not vectorised)
+        if joseph:
+            for b in range(nb):
+                _update_of(W, cst, b, n, True)
+        else:
+            for b in range(nb):
+                _update_of(W, cst, b, n, False)
+    elif len(kind) == KALMAN:
+        if joseph:
+            for b in range(nb):
+                _kalman_step(W, cst, b, n, rn, True)
+        else:
+            for b in range(nb):
+                _kalman_step(W, cst, b, n, rn, False)
+    else:
+        for b in range(nb):  # the censored assumed-density filter: x = xbar + alpha h, P = Pbar - beta h h^T
+            mu, sv = _predict_moments(W, cst, b, n)
+            yb = W[oY * BK + b]
+            cl = W[oCL * BK + b] if has_cls else float(classify(yb, lo_t, hi_t))
+            al, be, lb, p = _adf_update(yb, cl, mu, sv + rn, lo_t, hi_t)
+            if len(kind) == CENSORED_ADF_STATS:  # without, they are not computed
+                W[oG * BK + b] = p
+                W[oLL * BK + b] = lb
+            for i in range(n):
+                hv = W[(oH + i) * BK + b]
+                W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + al * hv
+                W[(oK + i) * BK + b] = be * hv
+            for i in range(n):
+                for j in range(i, n):
+                    pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * W[(oH + j) * BK + b]
+                    W[(oP + i * n + j) * BK + b] = pij
+                    W[(oP + j * n + i) * BK + b] = pij
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
 def soa_loop(
     size,
@@ -329,15 +431,14 @@ def soa_loop(
     x_last,
     P_last,
 ):
-    r"""The KF, the TKF or the censored assumed-density filter (``kind`` :data:`KALMAN`, :data:`TOBIT`,
+    r"""The KF, the TKF or the censored assumed-density filter (``kind`` :data:`KALMAN`,
     :data:`TOBIT_ANY`, :data:`CENSORED_ADF`, :data:`CENSORED_ADF_STATS` as :data:`KINDS`) over N runs x T steps,
     one channel, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
     fills the outputs (module docstring).
 
     ``y`` (N, T, 1) readings (NaN: missing); ``A``, ``Qd`` (n, n); ``C`` (1, n); ``rv`` (TR,) per step (row
     ``min(t, TR - 1)``) the KF's noise variance R, the TKF's standard deviation σ or the assumed-density
-    filter's noise variance r; ``lo``, ``hi`` (TL, 1) the limits, row ``min(t, TL - 1)`` (:data:`TOBIT`: one of
-    them finite); ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
+    filter's noise variance r; ``lo``, ``hi`` (TL, 1) the limits, row ``min(t, TL - 1)``; ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
     assumed-density filter's reading classes (T axis 0: by the limit rule); ``noise_code`` of
     :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; ``joseph`` the Joseph form (KF, TKF); ``x0`` (N, n),
     ``P0`` (N or 1, n, n). Outputs as :func:`~tobitkf.filters._compiled_loop.compiled_loop` (T axis 0: not
@@ -353,15 +454,12 @@ def soa_loop(
     by construction. The readings, the input terms and the outputs move between ``W`` and their arrays in
     short loops of their own.
 
-    :data:`TOBIT_ANY` splits the step into three loops over the block's runs: the prediction and the moments
+    :data:`TOBIT_ANY` (the TKF) splits the step into three loops over the block's runs: the prediction and the moments
     (vectorised), the step's statistics (vectorised: one-sided, none, or two finite limits by
     :func:`~tobitkf.filters._compiled_censored.window_direct`, whose runs off the direct route, a narrow window
     or one in a tail, then take :func:`~tobitkf.filters._compiled_censored.censored_stats` one at a time: the
     compiled loop's numbers), and the update (vectorised)."""
     n = len(size)
-    mode = len(kind) - 1
-    stats = mode == CENSORED_ADF_STATS
-    adf = mode == CENSORED_ADF or mode == CENSORED_ADF_STATS
     N, T, m = y.shape
     BK = SOA_BLOCK
     S = max(1, min(_CHUNK, max(T, 1), _STAGE_BYTES // (8 * n * n * BK)))
@@ -402,8 +500,7 @@ def soa_loop(
             tl = min(t, lo.shape[0] - 1)
             lo_t, hi_t = lo[tl, 0], hi[tl, 0]
             rn = rv[min(t, rv.shape[0] - 1)]
-            lo_fin, hi_fin = lo_t != -_INF, hi_t != _INF
-            upper = not lo_fin  # one finite limit: an upper one is the lower limit -hi of -y
+            upper = lo_t == -_INF  # one finite limit: an upper one is the lower limit -hi of -y
             sg = -1.0 if upper else 1.0
             lim = sg * (hi_t if upper else lo_t)
             if tt == 0:  # the readings of the chunk's steps, run by run (contiguous reads), into (S, B)
@@ -423,78 +520,7 @@ def soa_loop(
             if has_cls:
                 for b in range(nb):
                     W[oCL * BK + b] = cls[r0 + b, t, 0]
-            if mode == TOBIT_ANY:
-                for b in range(nb):  # prediction and moments
-                    mu, sv = _predict_moments(W, cst, b, n)
-                    W[oMU * BK + b] = mu
-                    W[oS * BK + b] = sv
-                if lo_fin and hi_fin:  # two finite limits: the direct formulas, vectorised
-                    for b in range(nb):
-                        mu = W[oMU * BK + b]
-                        other, _a2, _b2, _fl, _os, p_lo, p_hi, gam, lam, zvar = window_direct(mu, rn, lo_t, hi_t)
-                        st = _assemble(mu, rn, lo_t, hi_t, p_lo, p_hi, gam, lam, zvar)
-                        W[oG * BK + b] = st[2]
-                        W[oV * BK + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
-                        W[oEY * BK + b] = st[6]
-                        W[oSL * BK + b] = 1.0 if other else 0.0
-                    for b in range(nb):  # the runs off the direct route: the compiled loop's statistics
-                        if W[oSL * BK + b] != 0.0:
-                            mu = W[oMU * BK + b]
-                            st = censored_stats(mu, rn, lo_t, hi_t, glx, glw, buf)
-                            W[oG * BK + b] = st[2]
-                            W[oV * BK + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
-                            W[oEY * BK + b] = st[6]
-                elif lo_fin or hi_fin:
-                    for b in range(nb):
-                        g, v, cm = _one_sided_tkf(W[oMU * BK + b], rn, lim, sg, noise_code)
-                        W[oG * BK + b] = g
-                        W[oV * BK + b] = v
-                        W[oEY * BK + b] = cm
-                else:  # no limit: the latent reading's moments
-                    for b in range(nb):
-                        W[oG * BK + b] = 1.0
-                        W[oV * BK + b] = rn * rn
-                        W[oEY * BK + b] = W[oMU * BK + b]
-                for b in range(nb):  # the update
-                    _gain_update(
-                        W,
-                        cst,
-                        b,
-                        n,
-                        W[oY * BK + b],
-                        W[oG * BK + b],
-                        W[oV * BK + b],
-                        W[oEY * BK + b],
-                        W[oS * BK + b],
-                        joseph,
-                    )
-            else:
-                for b in range(nb):  # the whole step of run b: straight-line code, vectorised over b
-                    mu, sv = _predict_moments(W, cst, b, n)
-                    yb = W[oY * BK + b]
-                    if adf:
-                        # x = xbar + alpha h, P = Pbar - beta h h^T
-                        cl = W[oCL * BK + b] if has_cls else float(classify(yb, lo_t, hi_t))
-                        al, be, lb, p = _adf_update(yb, cl, mu, sv + rn, lo_t, hi_t)
-                        if stats:  # a constant: without, the log-likelihood and P(uncensored) are not computed
-                            W[oG * BK + b] = p
-                            W[oLL * BK + b] = lb
-                        for i in range(n):
-                            hv = W[(oH + i) * BK + b]
-                            W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + al * hv
-                            W[(oK + i) * BK + b] = be * hv
-                        for i in range(n):
-                            for j in range(i, n):
-                                pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * W[(oH + j) * BK + b]
-                                W[(oP + i * n + j) * BK + b] = pij
-                                W[(oP + j * n + i) * BK + b] = pij
-                    elif mode == TOBIT:
-                        g, v, cm = _one_sided_tkf(mu, rn, lim, sg, noise_code)
-                        W[oG * BK + b] = g
-                        W[oEY * BK + b] = cm
-                        _gain_update(W, cst, b, n, yb, g, v, cm, sv, joseph)
-                    else:
-                        _gain_update(W, cst, b, n, yb, 1.0, rn, mu, sv, joseph)
+            _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf)
             _stage(Wxp, WPp, tt, nb, s_pmean, s_pcov)
             _stage(Wx, WP, tt, nb, s_mean, s_cov)
             if w_pu:
@@ -564,12 +590,12 @@ def soa_tobit_loop(
 ) -> None:
     """:func:`soa_loop` for the Tobit Kalman filter with the arguments of
     :func:`~tobitkf.filters._compiled_entries.tobit_loop` (``H`` (1, 1, n), ``sigma`` (1, 1), ``lo``/``hi``
-    (TL, 1)); the caller checked :func:`soa_covers`. One finite limit in every row: the fused step
-    (:data:`TOBIT`); else the split one (:data:`TOBIT_ANY`: two finite limits, or none, at some step)."""
+    (TL, 1)); the caller checked :func:`soa_covers`. Every kind of limits takes the split step
+    (:data:`TOBIT_ANY`, three vectorised loops per step: the module docstring)."""
     N, _, m = y.shape
     soa_loop(
         SIZES[A.shape[0]],
-        KINDS[TOBIT if _one_sided_rows(lo, hi) else TOBIT_ANY],
+        KINDS[TOBIT_ANY],
         y,
         A,
         Qd,
