@@ -160,7 +160,7 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
     """
 
     _name = "FadingExtendedKalmanFilter"
-    _forms = ("standard",)
+    _forms = ("standard",)  # type: ignore[assignment]  # the Joseph and square-root forms are refused
 
     def __init__(
         self,
