@@ -313,3 +313,24 @@ def test_bad_fading_parameters_are_refused_with_the_argument_named():
     lin, _ = _linear_pair()
     with pytest.raises(tk.ValidationError, match="system"):
         tk.FadingExtendedKalmanFilter(lin, tk.RiceFading(0, [0.9]))
+
+
+# --------------------------------------------------------------------------- simulation
+
+
+def test_simulate_draws_faded_readings_of_a_nonlinear_system_then_censors_them():
+    sys_ = tk.NonlinearSystem(_f, _h, Q=np.diag([1e-3, 4e-3]), R=1e-20 * np.eye(2), x0=[0.8, 0.0], P0=0.1 * np.eye(2))
+    cens = tk.Censoring(lower=[0.9, -np.inf])
+    N, T = 400, 10
+    data = tk.simulate(sys_, steps=T, runs=N, channel=[FAD2, cens], seed=8)
+    theta = data.extras["fading"][:, :, 0, :]
+    hx = np.stack([_h(data.x[:, k], k) for k in range(1, T + 1)], axis=1)
+    np.testing.assert_allclose(data.y_latent, theta * hx, rtol=0, atol=1e-8)  # v has a standard deviation 1e-10
+    np.testing.assert_array_equal(data.y, cens.clip(data.y_latent))
+    # the gains' law: mean and variance per channel within five standard errors of N T draws
+    flat = theta.reshape(-1, 2)
+    mean, var = FAD2.mean_gains(2)[0], FAD2.var_gains(2)[0]
+    assert (np.abs(flat.mean(0) - mean) < 5 * np.sqrt(var / flat.shape[0])).all()
+    assert (np.abs(flat.var(0) - var) < 5 * var * np.sqrt(2 / flat.shape[0])).all()
+    with pytest.raises(tk.ValidationError, match="RiceFading"):  # only order 0 reads h(x_k) alone
+        tk.simulate(sys_, steps=T, runs=2, channel=tk.RiceFading.gaussian(1, [0.9, 0.5], [0.0, 0.0]))
