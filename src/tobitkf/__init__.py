@@ -89,6 +89,7 @@ from .filters.nonlinear_fading import (
     FadingTobitUnscentedKalmanFilter,
     FadingUnscentedKalmanFilter,
 )
+from .filters.nonlinear_saturation import SaturationNonlinearAssumedDensityFilter
 from .filters.particle import ParticleFilter
 from .filters.particle_nonlinear import nonlinear_model as _nonlinear_particle_model  # registers it
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
@@ -132,6 +133,7 @@ __all__ = [
     "FadingTobitExtendedKalmanFilter",
     "FadingTobitUnscentedKalmanFilter",
     "FadingNonlinearAssumedDensityFilter",
+    "SaturationNonlinearAssumedDensityFilter",
     "Censoring",
     "multi_region",
     "Channel",

@@ -353,11 +353,11 @@ def _scratch(B, n, m, rows):
 @njit(error_model="numpy", cache=True)
 def _adf_scratch(B, n):
     """The scratch of :func:`_adf_project`, allocated once per call of the loop: the runs' indices, ten rows of
-    per-run statistics, the reading classes, the cross-covariances (B, n), a vector (n,), the components
-    (unused by the covered families) and the quadrature buffer."""
+    per-run statistics, the reading classes, the cross-covariances (B, n), a vector (n,), the components (3, B)
+    (the modes of random saturation) and the quadrature buffer."""
     return (
         np.empty(B, dtype=np.int64), np.empty((10, B)), np.empty(B, dtype=np.int8), np.empty((B, n)), np.empty(n),
-        np.empty((0, B)), np.empty((2, GL_X.shape[0])),
+        np.empty((3, B)), np.empty((2, GL_X.shape[0])),
     )  # fmt: skip
 
 
@@ -801,6 +801,8 @@ def channel_arrays(est, k0: int, T: int):
     channel = est.channel
     if getattr(est, "_sigma" if code == TOBIT else "_r", None) is None:
         return "a measurement covariance R given per step"
+    if code == ADF and hasattr(est, "_compiled_channel"):  # a family that gives its block's arrays itself
+        return est._compiled_channel(k0, T)
     if isinstance(channel, Censoring):
         lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
         noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
