@@ -23,8 +23,11 @@ process and combination (a function specialised on another is not cached on disk
 thin (the loops over blocks, steps, channels and linearisations, and the calls of f, h); the per-run algebra is in
 block steps cached on disk. Covered: the standard form
 (and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
-filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters;
-the square-root form and other channels run the numpy path.
+filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters,
+fading readings :math:`\vartheta\odot h(x) + v` for every filter (``fade``: the moments of
+:mod:`~tobitkf.filters._compiled_fading_moments`) and random saturation for the assumed-density filter (a family
+that gives its block's arrays itself, ``_compiled_channel``); the square-root form and other channels run the
+numpy path.
 
 Measured (``benchmarks/bench_nonlinear.py``: two coupled pendulums, n = 4, m = 2, unscented rule, 10^4 runs x
 100 steps, 25 % of readings clipped; two runs on a 2-core machine under a load average of 10-16): the
