@@ -82,6 +82,14 @@ from .filters.nonlinear import (
     UnscentedKalmanFilter,
 )
 from .filters.nonlinear_adf import NonlinearAssumedDensityFilter
+from .filters.nonlinear_fading import (
+    FadingExtendedKalmanFilter,
+    FadingNonlinearAssumedDensityFilter,
+    FadingTobitExtendedKalmanFilter,
+    FadingTobitUnscentedKalmanFilter,
+    FadingUnscentedKalmanFilter,
+)
+from .filters.nonlinear_saturation import SaturationNonlinearAssumedDensityFilter
 from .filters.particle import ParticleFilter
 from .filters.particle_nonlinear import nonlinear_model as _nonlinear_particle_model  # registers it
 from .filters.protocol import ProtocolTobitKalmanFilter, protocol_tobit_kalman_filter
@@ -120,6 +128,12 @@ __all__ = [
     "TobitExtendedKalmanFilter",
     "TobitUnscentedKalmanFilter",
     "NonlinearAssumedDensityFilter",
+    "FadingExtendedKalmanFilter",
+    "FadingUnscentedKalmanFilter",
+    "FadingTobitExtendedKalmanFilter",
+    "FadingTobitUnscentedKalmanFilter",
+    "FadingNonlinearAssumedDensityFilter",
+    "SaturationNonlinearAssumedDensityFilter",
     "Censoring",
     "multi_region",
     "Channel",

@@ -187,7 +187,8 @@ class RiceFading(Channel):
         rng : numpy.random.Generator
         x : (N, T+1, n) ndarray
             True states :math:`x_0..x_T`.
-        system : LinearSystem
+        system : LinearSystem or NonlinearSystem
+            A :class:`~tobitkf.NonlinearSystem` (order 0 only) reads :math:`\vartheta_k(0)h(x_k, k)`.
         noise : (N, T, m) ndarray
             The drawn :math:`\upsilon_k`.
         inputs : (N, T, p) ndarray, optional
@@ -203,6 +204,16 @@ class RiceFading(Channel):
         T = T1 - 1
         m = system.m
         theta = self.sample(rng, N, T, m)
+        if not hasattr(system, "C"):  # a NonlinearSystem (order 0, draws_nonlinear): theta_k h(x_k, k) + v_k
+            self._check_nonlinear()
+            hx = np.stack(
+                [
+                    system.measurement_map(x[:, k], k, None if inputs is None else inputs[:, k - 1])
+                    for k in range(1, T1)
+                ],
+                axis=1,
+            )
+            return theta[:, :, 0] * hx + noise, {"fading": theta}
         if system.C.varying:
             cx = np.stack([x[:, j] @ measurement_matrix_at(system, j).T for j in range(T + 1)], axis=1)
         else:
@@ -216,6 +227,18 @@ class RiceFading(Channel):
         if inputs is not None and system.D is not None:
             y += np.stack([inputs[:, k - 1] @ system.D.at(k).T for k in range(1, T + 1)], axis=1)
         return y, {"fading": theta}
+
+    @property
+    def draws_nonlinear(self) -> bool:
+        r"""True for order 0: the reading :math:`\vartheta_kh(x_k, k) + v_k` of a :class:`~tobitkf.NonlinearSystem`
+        (:func:`tobitkf.simulate` draws it; the filters are in :mod:`tobitkf.filters.nonlinear_fading`)."""
+        return self.order == 0
+
+    def _check_nonlinear(self) -> None:
+        if not self.draws_nonlinear:
+            raise ValidationError(
+                f"fading: a NonlinearSystem's faded reading is theta h(x_k) + v (order 0), got order L={self.order}"
+            )
 
     def __repr__(self) -> str:
         return f"RiceFading(order={self.order}, coefficients={self.coefficients!r})"

@@ -23,8 +23,11 @@ process and combination (a function specialised on another is not cached on disk
 thin (the loops over blocks, steps, channels and linearisations, and the calls of f, h); the per-run algebra is in
 block steps cached on disk. Covered: the standard form
 (and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
-filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters;
-the square-root form and other channels run the numpy path.
+filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters,
+fading readings :math:`\vartheta\odot h(x) + v` for every filter (``fade``: the moments of
+:mod:`~tobitkf.filters._compiled_fading_moments`) and random saturation for the assumed-density filter (a family
+that gives its block's arrays itself, ``_compiled_channel``); the square-root form and other channels run the
+numpy path.
 
 Measured (``benchmarks/bench_nonlinear.py``: two coupled pendulums, n = 4, m = 2, unscented rule, 10^4 runs x
 100 steps, 25 % of readings clipped; two runs on a 2-core machine under a load average of 10-16): the
@@ -44,6 +47,7 @@ from numba.extending import overload
 
 from .._compiled_linalg import cholesky_lower as _cholesky
 from .._compiled_linalg import psd_root as _root
+from ._compiled_fading_moments import fading_channel, fading_moments
 from ._compiled_inputs import _model_inputs, active_inputs
 from ._compiled_moments import CENSORED, classify, family_block
 from ._compiled_tobit import GL_W, GL_X, censored_stats
@@ -53,6 +57,7 @@ __all__ = ["KALMAN", "TOBIT", "ADF", "nonlinear_loop", "sigma_moments", "channel
 KALMAN, TOBIT, ADF = 0, 1, 2  #: update codes of :func:`nonlinear_loop`
 _TINY = float(np.finfo(np.float64).tiny)
 _CBRT_EPS = float(np.cbrt(np.finfo(np.float64).eps))
+_NO_FADING = np.zeros((0, 1))  # the loop's ``fade`` of an unfaded reading
 
 
 @njit(error_model="numpy", cache=True)
@@ -351,11 +356,11 @@ def _scratch(B, n, m, rows):
 @njit(error_model="numpy", cache=True)
 def _adf_scratch(B, n):
     """The scratch of :func:`_adf_project`, allocated once per call of the loop: the runs' indices, ten rows of
-    per-run statistics, the reading classes, the cross-covariances (B, n), a vector (n,), the components
-    (unused by the covered families) and the quadrature buffer."""
+    per-run statistics, the reading classes, the cross-covariances (B, n), a vector (n,), the components (3, B)
+    (the modes of random saturation) and the quadrature buffer."""
     return (
         np.empty(B, dtype=np.int64), np.empty((10, B)), np.empty(B, dtype=np.int8), np.empty((B, n)), np.empty(n),
-        np.empty((0, B)), np.empty((2, GL_X.shape[0])),
+        np.empty((3, B)), np.empty((2, GL_X.shape[0])),
     )  # fmt: skip
 
 
@@ -523,11 +528,12 @@ def _predict_extended(Y1, J, Ps, Q, xps, Pps, FP, nb):
 
 @njit(error_model="numpy", cache=True)
 def _update_joint(
-    code, sigma, X, Y, J, wm, wc, xps, Pps, y, r0, t, R, lo, hi, noise_code, joseph, xs, Ps, Hj, ey, slope, nb
+    code, sigma, X, Y, J, wm, wc, xps, Pps, y, r0, t, R, lo, hi, noise_code, joseph, xs, Ps, Hj, ey, slope, nb, fade
 ):  # fmt: skip
     """The update of all channels at once (:func:`_joint_update`) of the block's runs from the values ``Y`` of h:
     at the sigma points ``X`` (``sigma``) or at the means, with the Jacobians ``J``; the Tobit extras into
-    ``ey``, ``slope``."""
+    ``ey``, ``slope``. ``fade`` (2, m): the fading gains' means and variances, whose faded moments
+    (:func:`~tobitkf.filters._compiled_fading_moments.fading_moments`) replace those of h; (0, m): no fading."""
     L = wm.shape[0]
     n = xs.shape[1]
     m = y.shape[2]
@@ -541,6 +547,8 @@ def _update_joint(
             ym[:] = Y[b]
             Hb[:] = J[b]
             _extended_moments(xps[b], Pps[b], Hb, Pxy, Pyy)
+        if fade.shape[0] > 0:
+            fading_moments(fade[0], fade[1], ym, Pxy, Pyy)
         _joint_update(code, y[r0 + b, t], ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hb, xps[b], Pps[b], xs[b],
                       Ps[b], E, g, us)  # fmt: skip
         if ey.shape[1] > 0:
@@ -563,7 +571,7 @@ def _adf_channel_start(size, y, r0, t, ch, xs, Ps, xms, Pms, act, nb):
 
 @njit(error_model="numpy", cache=True)
 def _adf_project(
-    size, it, ch, X, Y, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, rl, family, lo, hi, par, lsum, nb, ws
+    size, it, ch, X, Y, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, rl, family, lo, hi, par, lsum, nb, ws, fade
 ):  # fmt: skip
     r"""Linearisation ``it`` of channel ``ch`` for the block's runs in ``act``, from the values ``Y`` of h at their
     stacked sigma points ``X`` the rule's moments of
@@ -572,7 +580,8 @@ def _adf_project(
     (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``xs``, ``Ps``
     into ``xms``, ``Pms``; the log-likelihood of the first linearisation into ``lsum``. A run whose latent
     variance is not above the smallest normal number keeps the prior and leaves ``act``. ``ws``: the scratch of
-    :func:`_adf_scratch`."""
+    :func:`_adf_scratch`; ``fade`` as :func:`_update_joint` (the channel's faded moments,
+    :func:`~tobitkf.filters._compiled_fading_moments.fading_channel`)."""
     L = wm.shape[0]
     n = _n(size, xs)
     idx, st, cls, C, c, comp, buf = ws
@@ -597,6 +606,10 @@ def _adf_project(
             for i in range(n):
                 c[i] += (X[base + p, i] - xms[b, i]) * da
             pyy += da * (Y[base + p, ch] - mu0)
+        if fade.shape[0] > 0:
+            mu0, scale, pyy = fading_channel(fade[0, ch], fade[1, ch], mu0, pyy)
+            for i in range(n):
+                c[i] *= scale
         if it == 0:
             mu = mu0
             for i in range(n):
@@ -669,7 +682,7 @@ def _record_ll(lsum, r0, t, nb, ll):
 def nonlinear_loop(
     size, f, h, F, H, code, xi, xcol, wm, wc, y, u, uh, Qs, Rs, k0, x0, P0,
     family, lo, hi, par, noise_code, iterations, joseph,
-    means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
+    means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last, fade,
 ):  # fmt: skip
     r"""The filter of every nonlinear family over the runs of ``y`` (N, T, m) from the prior ``x0`` (N, n),
     ``P0`` (N or 1, n, n) at time ``k0``.
@@ -682,7 +695,8 @@ def nonlinear_loop(
     (one row: constant); ``code`` :data:`KALMAN`, :data:`TOBIT` or :data:`ADF`; ``family``, ``lo``/``hi`` (TL, m),
     ``par`` (TP, m, K) the channel of the ADF (a family of :mod:`~tobitkf.filters._compiled_moments`) and the
     limits of the Tobit update, ``noise_code`` its noise term; ``iterations`` the ADF's linearisations;
-    ``joseph`` the Joseph form of the Kalman update. Writes ``means``/``pmeans`` (N, T or 0, n), ``covs``
+    ``joseph`` the Joseph form of the Kalman update; ``fade`` (2, m) the means and variances of fading gains
+    :math:`\vartheta` of a reading :math:`\vartheta\odot h(x) + v` ((0, m): none). Writes ``means``/``pmeans`` (N, T or 0, n), ``covs``
     (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit extras ``ey``/``slope`` (N, T or 0, m), the
     ADF's ``ll`` (N, T or 0), and the last state ``x_last``/``P_last``.
 
@@ -740,7 +754,7 @@ def nonlinear_loop(
                         Yh = _call(h, X[: q * L], k, active_inputs(uh, r0, nb, t, L, U, act))
                         _adf_project(
                             size, it, ch, X, Yh, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, R[ch, ch],
-                            family, lo_t[ch], hi_t[ch], par[min(t, TP - 1), ch], lsum, nb, ws,
+                            family, lo_t[ch], hi_t[ch], par[min(t, TP - 1), ch], lsum, nb, ws, fade,
                         )  # fmt: skip
                     _block_copy(size, xms, Pms, xs, Ps, nb)
                 _record_ll(lsum, r0, t, nb, ll)
@@ -752,16 +766,16 @@ def nonlinear_loop(
                     Yh = _call(h, X[: nb * rows], k, _block_inputs(uh, r0, nb, t, rows, U))
                     _block_jacobians(Yh, deltas, Hj, nb)
                     _update_joint(code, False, X, Y1, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t, noise_code,
-                                  joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
+                                  joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
                 else:
                     Jh = _call(H, X1[:nb], k, _block_inputs(uh, r0, nb, t, 1, U))
                     _update_joint(code, False, X, Y1, Jh, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
-                                  noise_code, joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
+                                  noise_code, joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
             else:
                 _block_points(size, xps, Pps, xi, xcol, root, X, nb, every)
                 Yh = _call(h, X[: nb * L], k, _block_inputs(uh, r0, nb, t, L, U))
                 _update_joint(code, True, X, Yh, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
-                              noise_code, joseph, xs, Ps, Hj, ey, slope, nb)  # fmt: skip
+                              noise_code, joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
             _record(size, xs, Ps, r0, t, nb, means, covs)
         _block_end(xs, Ps, r0, nb, x_last, P_last)
 
@@ -790,6 +804,8 @@ def channel_arrays(est, k0: int, T: int):
     channel = est.channel
     if getattr(est, "_sigma" if code == TOBIT else "_r", None) is None:
         return "a measurement covariance R given per step"
+    if code == ADF and hasattr(est, "_compiled_channel"):  # a family that gives its block's arrays itself
+        return est._compiled_channel(k0, T)
     if isinstance(channel, Censoring):
         lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
         noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
@@ -852,6 +868,7 @@ def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = 
         SIZES.get(n, ()), sys_.f, sys_.h, sys_.F, sys_.H, code, xi, xcol, wm, wc, _c(y2), uf, uh, Qs, Rs, k0,
         _c(state.x), _c(state.P), family, lo, hi, par, noise_code, est.iterations if code == ADF else 1,
         est.covariance_update == "joseph", means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
+        getattr(est, "_fade", _NO_FADING),
     )  # fmt: skip
     if not np.isfinite(np.diagonal(P_last, axis1=-2, axis2=-1)).all():
         return None

@@ -323,7 +323,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             return x, P, ll
         xm, Pm = x, P
         for it in range(self.iterations):
-            ybar, Pxy, Pyy = _sigma_moments(rule, h_l, xm, Pm)
+            ybar, Pxy, Pyy = self._channel_moments(l, rule, h_l, xm, Pm)
             if it == 0:  # linearised about the prior itself: the moments as they are
                 mu, cxy, s2 = ybar[:, 0], Pxy[:, :, 0], Pyy[:, 0, 0] + r
             else:  # the affine model fitted about the posterior, applied to the prior
@@ -337,6 +337,11 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
                 return x, P, ll
             xm, Pm = post
         return xm, Pm, ll
+
+    def _channel_moments(self, l: int, rule: SigmaPoints, h_l: Any, xm: np.ndarray, Pm: np.ndarray):
+        """``(ȳ, P_xy, P_yy)`` ((N, 1), (N, n, 1), (N, 1, 1)) of channel ``l``'s measurement map ``h_l`` under
+        :math:`N(x_m, P_m)` by the rule (a family reading another function of h, as a faded one, changes them)."""
+        return _sigma_moments(rule, h_l, xm, Pm)
 
     def _project(self, k, l, x, P, y, has, mu, cxy, s2, ll):
         r"""The projection of channel ``l`` under the affine model :math:`y^*_l \sim N(\mu, s^2)`, covariance

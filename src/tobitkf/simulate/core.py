@@ -101,7 +101,8 @@ def simulate(
     system : LinearSystem or NonlinearSystem
         The model (a :class:`~tobitkf.NonlinearSystem` draws :math:`x_k = f(x_{k-1}, k-1) + w_{k-1}`,
         :math:`y^*_k = h(x_k, k) + v_k`, with an input :math:`f(x_{k-1}, k-1, u_k)` and :math:`h(x_k, k, u_k)`;
-        no channel piece may draw its reading from ``C``).
+        no channel piece may draw its reading from ``C``; a :class:`~tobitkf.RiceFading` of order 0 draws
+        :math:`\vartheta_k h(x_k, k) + v_k`).
     steps : int
         Horizon T (number of measurements).
     runs : int, default 1
@@ -184,7 +185,7 @@ def simulate(
         )
     if drawers:
         measurement = drawers[0]
-    if nonlinear and measurement is not None:
+    if nonlinear and measurement is not None and not getattr(measurement, "draws_nonlinear", False):
         raise ValidationError(
             "channel: a NonlinearSystem's reading is h(x, k) + v; a piece that draws its own reading from C "
             f"({type(measurement).__name__}) does not apply"
