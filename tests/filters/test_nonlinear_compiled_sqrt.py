@@ -115,8 +115,9 @@ class _quiet:
 @pytest.mark.parametrize("rule", ["unscented", "gauss_hermite"])  # points on the axes, and points off them
 def test_the_points_of_a_carried_factor_are_those_of_its_covariance(n, rule):
     """The block step that places the sigma points serves both forms: from the factor S the square-root form
-    carries, and from P = SS^T (its Cholesky factor, S again) in the standard form: the same points, to the bit,
-    and both x + S xi (numpy) to rounding; a singular P falls back to its eigen root."""
+    carries, and from P = SS^T (its Cholesky factor, S again when S is that factor) in the standard form: the
+    same points, to the bit, and both x + S xi (numpy) to rounding; a singular P falls back to its eigen root."""
+    from tobitkf._compiled_linalg import cholesky_lower
     from tobitkf.filters._compiled_nonlinear import SIZES, _block_points, point_columns
 
     rng = np.random.default_rng(n)
@@ -125,7 +126,9 @@ def test_the_points_of_a_carried_factor_are_those_of_its_covariance(n, rule):
     G = rng.normal(size=(nb, n, n))
     Ps = G @ G.transpose(0, 2, 1) + 0.1 * np.eye(n)
     Ps[-1] = np.outer(G[-1, 0], G[-1, 0])  # rank one: no Cholesky factor
-    Ss = np.linalg.cholesky(Ps[:-1])
+    Ss = np.zeros((nb - 1, n, n))
+    assert all(cholesky_lower(P, S) for P, S in zip(Ps[:-1], Ss))  # the factor the standard form takes
+    np.testing.assert_allclose(Ss, np.linalg.cholesky(Ps[:-1]), rtol=0, atol=1e-12 * np.abs(Ss).max())
     xi, _, wc = tk.SigmaPoints(rule, order=2).unit(n)
     xi = np.ascontiguousarray(xi)
     L = xi.shape[0]
