@@ -3,7 +3,7 @@ r"""Compiled (numba) dense linear algebra shared by the filters' kernels and the
 :func:`gauss_solve` is Gaussian elimination with partial pivoting (what LAPACK's gesv behind
 ``numpy.linalg.solve`` does), written once and called by the TKF's gain solve
 (:mod:`tobitkf.filters._compiled_tobit`) and by :func:`nees_terms` (:func:`tobitkf.metrics.nees_terms`).
-:func:`cholesky_lower` and :func:`psd_root` are the square roots of a covariance that the compiled nonlinear
+:func:`cholesky_lower` (one implementation, :func:`cholesky_leading`) and :func:`psd_root` are the square roots of a covariance that the compiled nonlinear
 filters (sigma points) and the compiled particle filters (the optimal proposal's draws) take.
 Compiled on first use and cached on disk; importing this module imports numba.
 """
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["gauss_solve", "nees_terms", "cholesky_lower", "psd_root"]
+__all__ = ["gauss_solve", "nees_terms", "cholesky_leading", "cholesky_lower", "psd_root"]
 
 _INF = math.inf
 
@@ -59,12 +59,17 @@ def gauss_solve(M, W):
     return True
 
 
-@njit(cache=True, error_model="numpy")
-def cholesky_lower(M, L):
-    """The lower Cholesky factor of the symmetric ``M`` (n, n) into ``L`` (:math:`LL^T = M`, read from M's lower
-    triangle); False (``L`` unfinished) when M is not numerically positive definite (a pivot not > 0)."""
-    n = M.shape[0]
-    L[:] = 0.0
+@njit(cache=True, error_model="numpy", inline="always")
+def cholesky_leading(M, L, n):
+    r"""The lower Cholesky factor of the leading (n, n) block of the symmetric ``M`` into the leading block of
+    ``L`` (:math:`LL^T = M`, read from M's lower triangle, L's strict upper triangle zeroed); False (``L``
+    unfinished) when that block is not numerically positive definite (a pivot not > 0).
+
+    Inlined into its caller, so that a state size the caller knows at compile time (the nonlinear filters'
+    block steps pass one) unrolls its loops; :func:`cholesky_lower` is the call for a whole matrix."""
+    for i in range(n):
+        for c in range(i + 1, n):
+            L[i, c] = 0.0
     for j in range(n):
         d = M[j, j]
         for c in range(j):
@@ -79,6 +84,13 @@ def cholesky_lower(M, L):
                 s -= L[i, c] * L[j, c]
             L[i, j] = s / d
     return True
+
+
+@njit(cache=True, error_model="numpy")
+def cholesky_lower(M, L):
+    """The lower Cholesky factor of the symmetric ``M`` (n, n) into ``L`` (:math:`LL^T = M`, read from M's lower
+    triangle); False (``L`` unfinished) when M is not numerically positive definite (a pivot not > 0)."""
+    return cholesky_leading(M, L, M.shape[0])
 
 
 @njit(cache=True, error_model="numpy")

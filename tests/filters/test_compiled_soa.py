@@ -107,24 +107,29 @@ def test_tkf_limits_changing_side_with_the_step(n):
             _assert_close(u, v)
 
 
+def _tail_case():
+    """9 runs x 6 steps of a precise two-state prior at the origin read through its first component with noise
+    sd 0.2, no inputs: ``N, T, A, Q, H, sigma, x0, P0``, the (empty) input terms and the latent prediction's sd
+    (for limits many sds away)."""
+    n, N, T = 2, 9, 6
+    x0 = np.zeros((N, n))
+    P0 = np.broadcast_to(1e-4 * np.eye(n), (N, n, n)).copy()
+    A, Q, H = np.array([[0.9, 0.1], [0.0, 0.8]]), 1e-4 * np.eye(n), np.array([[[1.0, 0.0]]])
+    bu, du = np.empty((N, 0, n)), np.empty((N, 0, 1))
+    return N, T, A, Q, H, np.array([[0.2]]), x0, P0, bu, du, float(np.sqrt(0.04 + 1e-4))
+
+
 @pytest.mark.parametrize("dist", [-40.0, 40.0])
 @pytest.mark.parametrize("upper", [False, True])
 def test_tkf_prior_40_sigma_from_the_limit(dist, upper):
     """The latent prediction 40 standard deviations inside or outside the uncensored region, both sides: the
     tail routes of the statistics (the TKF's gamma near 0 or 1)."""
-    n, N, T = 2, 9, 6
-    A = np.array([[0.9, 0.1], [0.0, 0.8]])
-    Q = 1e-4 * np.eye(n)
-    H = np.array([[[1.0, 0.0]]])
-    sigma = np.array([[0.2]])
-    x0 = np.zeros((N, n))
-    P0 = np.broadcast_to(1e-4 * np.eye(n), (N, n, n)).copy()
-    sd = float(np.sqrt(0.04 + 1e-4))
+    N, T, A, Q, H, sigma, x0, P0, bu, du, sd = _tail_case()
     lim = -dist * sd if not upper else dist * sd
     lo = np.full((1, 1), -np.inf if upper else lim)
     hi = np.full((1, 1), lim if upper else np.inf)
     y = np.full((N, T, 1), lim)
-    a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, np.empty((N, 0, n)), np.empty((N, 0, 1)), 0, False, x0, P0)
+    a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, bu, du, 0, False, x0, P0)
     for u, v in zip(a, b):
         _assert_close(u, v)
     g = a[4]
@@ -174,18 +179,11 @@ def test_tkf_limits_of_every_kind_per_step(sd):
 def test_tkf_two_sided_prior_40_sigma_from_the_window(dist):
     """The latent prediction 40 standard deviations below or above a window of one standard deviation: the
     window in a tail (quadrature) for every run, a finite update."""
-    n, N, T = 2, 9, 6
-    A = np.array([[0.9, 0.1], [0.0, 0.8]])
-    Q = 1e-4 * np.eye(n)
-    H = np.array([[[1.0, 0.0]]])
-    sigma = np.array([[0.2]])
-    x0 = np.zeros((N, n))
-    P0 = np.broadcast_to(1e-4 * np.eye(n), (N, n, n)).copy()
-    sd = float(np.sqrt(0.04 + 1e-4))
+    N, T, A, Q, H, sigma, x0, P0, bu, du, sd = _tail_case()
     lo = np.full((1, 1), -dist * sd)
     hi = lo + sd
     y = np.full((N, T, 1), lo[0, 0] if dist < 0 else hi[0, 0])
-    a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, np.empty((N, 0, n)), np.empty((N, 0, 1)), 0, False, x0, P0)
+    a, b = _tkf_both(y, A, Q, H, sigma, lo, hi, bu, du, 0, False, x0, P0)
     for u, v in zip(a, b):
         _assert_close(u, v)
     assert np.isfinite(a[0]).all() and np.isfinite(a[1]).all()

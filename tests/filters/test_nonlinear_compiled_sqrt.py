@@ -14,28 +14,14 @@ import tobitkf as tk
 
 numba = pytest.importorskip("numba")
 
+from ._nonlinear_oscillator import f_osc, h_osc  # noqa: E402
+
 TOL = 1e-10
-
-
-@numba.njit
-def f_a(x, k):
-    out = np.empty(x.shape)
-    out[..., 0] = x[..., 0] + 0.1 * x[..., 1]
-    out[..., 1] = x[..., 1] - 0.1 * np.sin(x[..., 0]) - 0.02 * x[..., 1]
-    return out
-
-
-@numba.njit
-def h_a(x, k):
-    out = np.empty(x.shape[:-1] + (2,))
-    out[..., 0] = np.sin(x[..., 0])
-    out[..., 1] = 0.5 * x[..., 1] + 0.1 * x[..., 0] ** 3
-    return out
 
 
 Q = np.diag([1e-3, 4e-3])
 R = np.diag([0.05, 0.1])
-SYSTEM = tk.NonlinearSystem(f_a, h_a, Q, R, [0.8, 0.1], np.diag([0.2, 0.3]))
+SYSTEM = tk.NonlinearSystem(f_osc, h_osc, Q, R, [0.8, 0.1], np.diag([0.2, 0.3]))
 CENS = tk.Censoring(lower=[-0.5, -np.inf], upper=[0.5, 0.9])
 
 
@@ -123,3 +109,36 @@ class _quiet:
 
     def __exit__(self, *exc):
         return self._ctx.__exit__(*exc)
+
+
+@pytest.mark.parametrize("n", [3, 8])  # a state size unrolled in the block steps, and one that is not
+@pytest.mark.parametrize("rule", ["unscented", "gauss_hermite"])  # points on the axes, and points off them
+def test_the_points_of_a_carried_factor_are_those_of_its_covariance(n, rule):
+    """The block step that places the sigma points serves both forms: from the factor S the square-root form
+    carries, and from P = SS^T (its Cholesky factor, S again when S is that factor) in the standard form: the
+    same points, to the bit, and both x + S xi (numpy) to rounding; a singular P falls back to its eigen root."""
+    from tobitkf._compiled_linalg import cholesky_lower
+    from tobitkf.filters._compiled_nonlinear import SIZES, _block_points, point_columns
+
+    rng = np.random.default_rng(n)
+    nb = 5
+    xs = rng.normal(size=(nb, n))
+    G = rng.normal(size=(nb, n, n))
+    Ps = G @ G.transpose(0, 2, 1) + 0.1 * np.eye(n)
+    Ps[-1] = np.outer(G[-1, 0], G[-1, 0])  # rank one: no Cholesky factor
+    Ss = np.zeros((nb - 1, n, n))
+    assert all(cholesky_lower(P, S) for P, S in zip(Ps[:-1], Ss))  # the factor the standard form takes
+    np.testing.assert_allclose(Ss, np.linalg.cholesky(Ps[:-1]), rtol=0, atol=1e-12 * np.abs(Ss).max())
+    xi, _, wc = tk.SigmaPoints(rule, order=2).unit(n)
+    xi = np.ascontiguousarray(xi)
+    L = xi.shape[0]
+    size, xcol = SIZES.get(n, ()), point_columns(xi)
+    act = np.ones(nb, dtype=bool)
+    from_cov, from_factor = np.empty((nb * L, n)), np.empty(((nb - 1) * L, n))
+    assert _block_points(size, xs, Ps, xi, xcol, np.empty((n, n)), from_cov, nb, act, False) == nb
+    assert _block_points(size, xs, Ss, xi, xcol, np.empty((0, 0)), from_factor, nb - 1, act, True) == nb - 1
+    np.testing.assert_array_equal(from_cov[: (nb - 1) * L], from_factor)
+    expected = (xs[:-1, None, :] + np.einsum("bij,lj->bli", Ss, xi)).reshape(-1, n)
+    np.testing.assert_allclose(from_factor, expected, rtol=0, atol=1e-13)
+    pts = from_cov[(nb - 1) * L :] - xs[-1]  # an eigen root R (RR^T = P): the rule's spread of the points is P
+    np.testing.assert_allclose(np.einsum("l,li,lj->ij", wc, pts, pts), Ps[-1], rtol=0, atol=1e-12 * Ps[-1].max())

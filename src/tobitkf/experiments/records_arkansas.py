@@ -52,8 +52,32 @@ FLUX_FACTOR = 28.316846592 * 86400.0 * 1e-6
 """kg/day per (mg/L x ft^3/s): 28.3168 L per cubic foot, 86400 s per day, 1e-6 kg per mg."""
 
 
+ARKANSAS_MODEL: dict[str, Any] = {
+    "drift": ("intercept",),
+    "flow_variance": True,
+    "season_variance": True,
+    "harmonics": 2,
+    "quadratic": True,
+    "flow_anomaly_days": 30.0,
+}
+"""The smallest-AIC candidate: a drifting intercept, ln Q and its square, two seasonal harmonics, the flow
+anomaly over a 30-day mean, an AR(1) residual and a sample noise whose sd depends on the flow and the season
+(``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the default of a run without
+candidates)."""
+STATIC_MODEL: dict[str, Any] = {"drift": (), "flow_variance": False}
+"""The static regression on ln Q and season with an AR(1) residual on the daily grid (the simpler model)."""
+MOVING_WINDOWS_MODEL: dict[str, Any] = {
+    "drift": ("intercept", "slope", "season"),
+    "flow_variance": True,
+    "harmonics": 2,
+    "quadratic": True,
+    "flow_anomaly_days": 30.0,
+}
+"""The state-space counterpart of WRTDS's moving windows on the record's regressors: the intercept, the ln Q
+slope and the seasonal coefficients all drift as random walks, with the AR(1) residual and the flow-dependent
+noise. Its leave-one-out is run in every run of ``data-arkansas``, beside the chosen and the static model's."""
 ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
-    {"drift": (), "flow_variance": False},
+    dict(STATIC_MODEL),
     {"drift": ("intercept",), "flow_variance": False},
     {"drift": ("intercept",), "flow_variance": True},
     {"drift": ("intercept",), "flow_variance": True, "quadratic": True},
@@ -82,49 +106,12 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
         "flow_anomaly_days": 30.0,
         "fast_residual": True,
     },
-    {
-        "drift": ("intercept", "slope", "season"),
-        "flow_variance": True,
-        "harmonics": 2,
-        "quadratic": True,
-        "flow_anomaly_days": 30.0,
-    },  # MOVING_WINDOWS_MODEL
-    {
-        "drift": ("intercept",),
-        "flow_variance": True,
-        "season_variance": True,
-        "harmonics": 2,
-        "quadratic": True,
-        "flow_anomaly_days": 30.0,
-    },
+    dict(MOVING_WINDOWS_MODEL),
+    dict(ARKANSAS_MODEL),
 )
 """Every model tried on this record (:class:`~tobitkf.experiments.records_river.RiverModel` options), in the
 order they were tried. ``data-arkansas`` fits each, takes the one of smallest AIC (on the full record, not on
 the leave-one-out score) and reports every candidate's leave-one-out score beside it (``models_compared``)."""
-ARKANSAS_MODEL: dict[str, Any] = {
-    "drift": ("intercept",),
-    "flow_variance": True,
-    "season_variance": True,
-    "harmonics": 2,
-    "quadratic": True,
-    "flow_anomaly_days": 30.0,
-}
-"""The smallest-AIC candidate: a drifting intercept, ln Q and its square, two seasonal harmonics, the flow
-anomaly over a 30-day mean, an AR(1) residual and a sample noise whose sd depends on the flow and the season
-(``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the default of a run without
-candidates)."""
-STATIC_MODEL: dict[str, Any] = {"drift": (), "flow_variance": False}
-"""The static regression on ln Q and season with an AR(1) residual on the daily grid (the simpler model)."""
-MOVING_WINDOWS_MODEL: dict[str, Any] = {
-    "drift": ("intercept", "slope", "season"),
-    "flow_variance": True,
-    "harmonics": 2,
-    "quadratic": True,
-    "flow_anomaly_days": 30.0,
-}
-"""The state-space counterpart of WRTDS's moving windows on the record's regressors: the intercept, the ln Q
-slope and the seasonal coefficients all drift as random walks, with the AR(1) residual and the flow-dependent
-noise. Its leave-one-out is run in every run of ``data-arkansas``, beside the chosen and the static model's."""
 LOO_GTOL = 1e-4
 
 

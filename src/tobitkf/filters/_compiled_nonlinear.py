@@ -1,12 +1,9 @@
-r"""The compiled time loop of the nonlinear filters, for a :class:`~tobitkf.NonlinearSystem` whose ``f`` and ``h``
-(and ``F``, ``H`` when given) are ``numba.njit`` functions.
+r"""The block steps of the nonlinear filters' compiled loop (:mod:`tobitkf.filters._compiled_nonlinear_loop`): those
+of the covariance form, and those both forms share (the sigma points, the central differences, the copies of the
+block state, the Tobit terms).
 
-:func:`nonlinear_loop` is the numpy path of :mod:`tobitkf.filters.nonlinear` (whose module docstring states the
-equations) run by numba over blocks of :data:`NL_BLOCK` runs and steps: the user's functions are called from
-compiled code once per block and step on the stacked points of the block's runs, ``f(X, k)`` with ``X``
-(nb * L, n) (the L sigma points of each run, or the one mean and the 2n central-difference points of the extended
-form) and ``h(X, k)`` likewise, as the batched numpy path calls them, so a function written for it serves here
-unchanged. Per step:
+The loop runs the numpy path of :mod:`tobitkf.filters.nonlinear` (whose module docstring states the equations) over
+blocks of :data:`NL_BLOCK` runs. Per step:
 
 * the **prediction**: extended (:math:`\bar x = f(\hat x)`, :math:`\bar P = F\hat PF^T + Q`) or by the sigma-point
   rule (:func:`sigma_moments`: the unit points ``xi`` and weights ``wm``, ``wc`` of
@@ -17,24 +14,6 @@ unchanged. Per step:
   censored-normal statistics of :func:`~tobitkf.filters._compiled_tobit.censored_stats` and the noise terms of
   :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`), :data:`ADF` (channel by channel, iterated, the channel's
   moments of the latent reading from :func:`~tobitkf.filters._compiled_moments.family_block`).
-
-The user's functions are arguments, so numba specialises the loop for each (f, h, F, H): compiled once per
-process and combination (a function specialised on another is not cached on disk). That specialised loop is kept
-thin (the loops over blocks, steps, channels and linearisations, and the calls of f, h); the per-run algebra is in
-block steps cached on disk. Covered: the standard form
-(and Joseph for the extended Kalman filter), inputs ``f(x, k, u)``, time-varying Q (and R for the uncensored
-filters), censoring and quantized readings for the assumed-density filter, censoring for the Tobit filters,
-fading readings :math:`\vartheta\odot h(x) + v` for every filter (``fade``: the moments of
-:mod:`~tobitkf.filters._compiled_fading_moments`) and random saturation for the assumed-density filter (a family
-that gives its block's arrays itself, ``_compiled_channel``); the square-root form and other channels run the
-numpy path.
-
-Measured (``benchmarks/bench_nonlinear.py``: two coupled pendulums, n = 4, m = 2, unscented rule, 10^4 runs x
-100 steps, 25 % of readings clipped; two runs on a 2-core machine under a load average of 10-16): the
-assumed-density filter 3.57x and 3.24x the compiled linear assumed-density filter per run-step in wall time
-(1.07 and 1.05 against 0.29 and 0.26 µs of CPU time), the calls of f and h alone 1.70x and 1.66x; the
-uncensored UKF 4.22x and 4.18x. Before the block steps stopped allocating and had their state loops unrolled:
-5.9x (2,000 runs, the same load), with about 0.8 µs per run-step outside f and h.
 """
 
 from __future__ import annotations
@@ -45,19 +24,17 @@ import numpy as np
 from numba import njit, types
 from numba.extending import overload
 
+from .._compiled_linalg import cholesky_leading, psd_root
 from .._compiled_linalg import cholesky_lower as _cholesky
-from .._compiled_linalg import psd_root as _root
 from ._compiled_fading_moments import fading_channel, fading_moments
-from ._compiled_inputs import _model_inputs, active_inputs
 from ._compiled_moments import CENSORED, classify, family_block
 from ._compiled_tobit import GL_W, GL_X, censored_stats
 
-__all__ = ["KALMAN", "TOBIT", "ADF", "nonlinear_loop", "sigma_moments", "channel_gap", "compiled_run"]
+__all__ = ["KALMAN", "TOBIT", "ADF", "NL_BLOCK", "SIZES", "sigma_moments", "tobit_terms", "point_columns"]
 
-KALMAN, TOBIT, ADF = 0, 1, 2  #: update codes of :func:`nonlinear_loop`
+KALMAN, TOBIT, ADF = 0, 1, 2  #: update codes of :func:`~tobitkf.filters._compiled_nonlinear_loop.nonlinear_loop`
 _TINY = float(np.finfo(np.float64).tiny)
 _CBRT_EPS = float(np.cbrt(np.finfo(np.float64).eps))
-_NO_FADING = np.zeros((0, 1))  # the loop's ``fade`` of an unfaded reading
 
 
 @njit(error_model="numpy", cache=True)
@@ -192,27 +169,28 @@ def _gain_update(x, P, e, Rxe, Ree, ok, H, R, joseph, xo, Po, K, us):
 
 
 @njit(error_model="numpy", cache=True)
-def _extended_moments(xp, Pp, Hj, Pxy, Pyy):
-    r"""The extended measurement moments :math:`P_{xy} = \bar PH^T`, :math:`P_{yy} = HP_{xy}` (symmetrised;
-    element loops, no temporaries)."""
-    n = Pp.shape[0]
-    m = Hj.shape[0]
+def _congruence(A, P, G, out):
+    r"""The linearised moments of :math:`Ax` for :math:`x \sim N(\cdot, P)`: :math:`G = PA^T` (n, r) into ``G``
+    and :math:`AG = APA^T` (r, r), symmetrised, into ``out`` (element loops, no temporaries). The extended
+    measurement's :math:`P_{xy}`, :math:`P_{yy}` (A = H) and the extended prediction's :math:`F\hat PF^T`."""
+    n = P.shape[0]
+    r = A.shape[0]
     for i in range(n):
-        for a in range(m):
+        for a in range(r):
             s = 0.0
             for j in range(n):
-                s += Pp[i, j] * Hj[a, j]
-            Pxy[i, a] = s
-    for a in range(m):
+                s += P[i, j] * A[a, j]
+            G[i, a] = s
+    for a in range(r):
         for b in range(a + 1):
             s1 = 0.0
             s2 = 0.0
             for i in range(n):
-                s1 += Hj[a, i] * Pxy[i, b]
-                s2 += Hj[b, i] * Pxy[i, a]
+                s1 += A[a, i] * G[i, b]
+                s2 += A[b, i] * G[i, a]
             v = 0.5 * (s1 + s2)
-            Pyy[a, b] = v
-            Pyy[b, a] = v
+            out[a, b] = v
+            out[b, a] = v
 
 
 @njit(error_model="numpy", cache=True)
@@ -225,6 +203,25 @@ def _update_scratch(n, m):
         np.empty(m, dtype=np.bool_), np.empty(m), np.empty((m, m)), np.empty((n, m)), np.empty((n, m)),
         np.empty((2, GL_X.shape[0])),
     )  # fmt: skip
+
+
+@njit(error_model="numpy", cache=True)
+def tobit_terms(ym, R, lo, hi, noise_code, g, E, V, buf):
+    r"""The Tobit update's terms of each channel at the predicted measurement ``ym`` (m,) with noise sd
+    :math:`\sqrt{R_{aa}}` and limits ``lo``, ``hi``: the slope (the probability of an uncensored reading) into ``g``,
+    :math:`E[y]` into ``E`` and the noise term of ``noise_code``
+    (:data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`) into ``V``, from
+    :func:`~tobitkf.filters._compiled_tobit.censored_stats` (``buf`` its quadrature buffer)."""
+    for a in range(ym.shape[0]):
+        st = censored_stats(ym[a], math.sqrt(R[a, a]), lo[a], hi[a], GL_X, GL_W, buf)
+        g[a] = st[2]
+        E[a] = st[6]
+        if noise_code == 0:
+            V[a] = st[5]
+        elif noise_code == 1:
+            V[a] = st[7]
+        else:
+            V[a] = st[2] * (st[5] + (st[4] - ym[a]) ** 2)
 
 
 @njit(error_model="numpy", cache=True)
@@ -246,16 +243,7 @@ def _joint_update(code, yt, ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hj, xp,
             ok[a] = not math.isnan(yt[a]) and Ree[a, a] > _TINY
         _gain_update(xp, Pp, e, Pxy, Ree, ok, Hj, R, joseph, x, P, K, us)
         return
-    for a in range(m):
-        st = censored_stats(ym[a], math.sqrt(R[a, a]), lo[a], hi[a], GL_X, GL_W, buf)
-        g[a] = st[2]
-        E[a] = st[6]
-        if noise_code == 0:
-            V[a] = st[5]
-        elif noise_code == 1:
-            V[a] = st[7]
-        else:
-            V[a] = st[2] * (st[5] + (st[4] - ym[a]) ** 2)
+    tobit_terms(ym, R, lo, hi, noise_code, g, E, V, buf)
     for i in range(n):
         for a in range(m):
             Rxe[i, a] = Pxy[i, a] * g[a]
@@ -400,38 +388,26 @@ def _block_rows(xs, X, nb):
 
 
 @njit(error_model="numpy", cache=True)
-def _block_points(size, xs, Ps, xi, xcol, root, X, nb, act):
+def _block_points(size, xs, Ps, xi, xcol, root, X, nb, act, factors):
     """The sigma points of N(``xs[b]``, ``Ps[b]``) of the runs b < nb with ``act[b]``, stacked in ``X`` (L rows a
-    run, in order): :math:`\\chi_l = x + L\\xi_l` with the lower Cholesky factor (:func:`_root`: an eigen root when
-    it fails); returns how many runs. Indexes the block arrays directly (no per-run views or calls); a point
-    with one nonzero unit coordinate (``xcol[l]`` = its column, -1 for the centre: :func:`point_columns`) is
-    :math:`x + \\xi_{lj}L_{:,j}`, the full sum's value (its other terms are exact zeros) at 1/n of its cost."""
+    run, in order): :math:`\\chi_l = x + S\\xi_l` with S the lower Cholesky factor of ``Ps[b]`` (an eigen root
+    when it fails: :func:`~tobitkf._compiled_linalg.psd_root`) taken into ``root``, or, with ``factors`` (the
+    square-root form), ``Ps[b]`` itself; returns how many runs. Indexes the block arrays directly (no per-run
+    views or calls); a point with one nonzero unit coordinate (``xcol[l]`` = its column, -1 for the centre:
+    :func:`point_columns`) is :math:`x + \\xi_{lj}S_{:,j}`, the full sum's value (its other terms are exact
+    zeros) at 1/n of its cost."""
     L = xi.shape[0]
     n = _n(size, xs)
     q = 0
     for b in range(nb):
         if not act[b]:
             continue
-        ok = True  # the Cholesky factor of Ps[b] into root (as _cholesky)
-        for i in range(n):
-            for c in range(i + 1, n):
-                root[i, c] = 0.0
-        for j in range(n):
-            d = Ps[b, j, j]
-            for c in range(j):
-                d -= root[j, c] * root[j, c]
-            if not d > 0.0:
-                ok = False
-                break
-            d = math.sqrt(d)
-            root[j, j] = d
-            for i in range(j + 1, n):
-                s = Ps[b, i, j]
-                for c in range(j):
-                    s -= root[i, c] * root[j, c]
-                root[i, j] = s / d
-        if not ok:
-            _root(Ps[b], root)
+        if factors:
+            S = Ps[b]
+        else:
+            if not cholesky_leading(Ps[b], root, n):
+                psd_root(Ps[b], root)
+            S = root
         base = q * L
         for p in range(L):
             col = xcol[p]
@@ -441,12 +417,12 @@ def _block_points(size, xs, Ps, xi, xcol, root, X, nb, act):
             elif col >= 0:
                 v = xi[p, col]
                 for i in range(n):
-                    X[base + p, i] = xs[b, i] + root[i, col] * v
+                    X[base + p, i] = xs[b, i] + S[i, col] * v
             else:
                 for i in range(n):
                     s = xs[b, i]
                     for j in range(n):
-                        s += root[i, j] * xi[p, j]
+                        s += S[i, j] * xi[p, j]
                     X[base + p, i] = s
         q += 1
     return q
@@ -501,27 +477,18 @@ def _predict_sigma(size, Y, wm, wc, Q, xps, Pps, dv, nb):
 
 
 @njit(error_model="numpy", cache=True)
-def _predict_extended(Y1, J, Ps, Q, xps, Pps, FP, nb):
+def _predict_extended(Y1, J, Ps, Q, xps, Pps, G, nb):
     r"""The extended prediction of the block's runs: :math:`\bar x = f(\hat x)` from ``Y1`` (nb, n),
-    :math:`\bar P = F\hat PF^T + Q` from the Jacobians ``J`` (nb, n, n), symmetrised (``FP`` (n, n) scratch for
-    :math:`F\hat P`; element loops, no temporaries)."""
+    :math:`\bar P = F\hat PF^T + Q` from the Jacobians ``J`` (nb, n, n) (:func:`_congruence`, ``G`` (n, n)
+    scratch for :math:`\hat PF^T`), Q symmetrised."""
     n = Ps.shape[1]
     for b in range(nb):
         for i in range(n):
             xps[b, i] = Y1[b, i]
-            for j in range(n):
-                s = 0.0
-                for c in range(n):
-                    s += J[b, i, c] * Ps[b, c, j]
-                FP[i, j] = s
+        _congruence(J[b], Ps[b], G, Pps[b])
         for i in range(n):
             for j in range(i + 1):
-                s1 = 0.0
-                s2 = 0.0
-                for c in range(n):
-                    s1 += FP[i, c] * J[b, j, c]
-                    s2 += FP[j, c] * J[b, i, c]
-                v = 0.5 * ((s1 + Q[i, j]) + (s2 + Q[j, i]))
+                v = Pps[b, i, j] + 0.5 * (Q[i, j] + Q[j, i])
                 Pps[b, i, j] = v
                 Pps[b, j, i] = v
 
@@ -546,7 +513,7 @@ def _update_joint(
         else:
             ym[:] = Y[b]
             Hb[:] = J[b]
-            _extended_moments(xps[b], Pps[b], Hb, Pxy, Pyy)
+            _congruence(Hb, Pps[b], Pxy, Pyy)
         if fade.shape[0] > 0:
             fading_moments(fade[0], fade[1], ym, Pxy, Pyy)
         _joint_update(code, y[r0 + b, t], ym, Pxy, Pyy, R, lo, hi, noise_code, joseph, Hb, xps[b], Pps[b], xs[b],
@@ -676,211 +643,3 @@ def _record_ll(lsum, r0, t, nb, ll):
     if ll.shape[1] > 0:
         for b in range(nb):
             ll[r0 + b, t] = lsum[b]
-
-
-@njit(error_model="numpy")
-def nonlinear_loop(
-    size, f, h, F, H, code, xi, xcol, wm, wc, y, u, uh, Qs, Rs, k0, x0, P0,
-    family, lo, hi, par, noise_code, iterations, joseph,
-    means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last, fade,
-):  # fmt: skip
-    r"""The filter of every nonlinear family over the runs of ``y`` (N, T, m) from the prior ``x0`` (N, n),
-    ``P0`` (N or 1, n, n) at time ``k0``.
-
-    ``size`` the state size as a type (:data:`SIZES`, or ``()``); ``f``, ``h``, ``F``, ``H``: the model's
-    compiled functions (``F``/``H`` None: central differences); ``u`` (N, T, p) the inputs of an ``f(x, k, u)`` or
-    None, ``uh`` those of an ``h(x, k, u)`` or None; ``xi`` (L, n), ``wm``, ``wc`` (L,) the sigma-point rule
-    (L = 0: the extended form), ``xcol`` (L,) its :func:`point_columns`; ``Qs`` (TQ, n, n) :math:`Q_{k-1}` and
-    ``Rs`` (TR, m, m) :math:`R_k` per step
-    (one row: constant); ``code`` :data:`KALMAN`, :data:`TOBIT` or :data:`ADF`; ``family``, ``lo``/``hi`` (TL, m),
-    ``par`` (TP, m, K) the channel of the ADF (a family of :mod:`~tobitkf.filters._compiled_moments`) and the
-    limits of the Tobit update, ``noise_code`` its noise term; ``iterations`` the ADF's linearisations;
-    ``joseph`` the Joseph form of the Kalman update; ``fade`` (2, m) the means and variances of fading gains
-    :math:`\vartheta` of a reading :math:`\vartheta\odot h(x) + v` ((0, m): none). Writes ``means``/``pmeans`` (N, T or 0, n), ``covs``
-    (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit extras ``ey``/``slope`` (N, T or 0, m), the
-    ADF's ``ll`` (N, T or 0), and the last state ``x_last``/``P_last``.
-
-    The runs go in blocks of :data:`NL_BLOCK`; each call of f, h (F, H) takes the stacked points of a block
-    (:func:`_block_points`: (nb * L, n); the extended form: the nb means, or the nb * 2n central-difference
-    points), the assumed-density update only those of the runs still taking part. Only this function is
-    specialised on the user's functions (and compiled in every process): everything it does besides calling
-    them is in the cached block steps above.
-    """
-    N, T, m = y.shape
-    n = x0.shape[1]
-    L = xi.shape[0]
-    TQ, TR, TL, TP = Qs.shape[0], Rs.shape[0], lo.shape[0], par.shape[0]
-    B = min(NL_BLOCK, N)
-    rows = L if L > 0 else 2 * n  # points per run of one call
-    xs, Ps, xps, Pps, xms, Pms, X, X1, deltas, J, Hj, every, act, lsum = _scratch(B, n, m, rows)
-    root, dv = np.empty((n, n)), np.empty(n)
-    ws = _adf_scratch(B, n)
-    U = _input_scratch(u if uh is None else uh, B * rows)
-    for r0 in range(0, N, B):
-        nb = min(B, N - r0)
-        _block_start(x0, P0, r0, nb, xs, Ps)
-        for t in range(T):
-            k = k0 + t + 1
-            Q, R = Qs[min(t, TQ - 1)], Rs[min(t, TR - 1)]
-            lo_t, hi_t = lo[min(t, TL - 1)], hi[min(t, TL - 1)]
-            # ---- the prediction: extended or by the rule
-            if L == 0:
-                _block_rows(xs, X1, nb)
-                Y1 = _call(f, X1[:nb], k - 1, _block_inputs(u, r0, nb, t, 1, U))
-                if F is None:
-                    _block_differences(xs, X, deltas, nb)
-                    V = _call(f, X[: nb * rows], k - 1, _block_inputs(u, r0, nb, t, rows, U))
-                    _block_jacobians(V, deltas, J, nb)
-                    _predict_extended(Y1, J, Ps, Q, xps, Pps, root, nb)
-                else:
-                    _predict_extended(Y1, _call(F, X1[:nb], k - 1, _block_inputs(u, r0, nb, t, 1, U)), Ps, Q, xps,
-                                      Pps, root, nb)  # fmt: skip
-            else:
-                _block_points(size, xs, Ps, xi, xcol, root, X, nb, every)
-                Y = _call(f, X[: nb * L], k - 1, _block_inputs(u, r0, nb, t, L, U))
-                _predict_sigma(size, Y, wm, wc, Q, xps, Pps, dv, nb)
-            _record(size, xps, Pps, r0, t, nb, pmeans, pcovs)
-            # ---- the update
-            if code == ADF:  # channel by channel, each linearised `iterations` times
-                _block_copy(size, xps, Pps, xs, Ps, nb)
-                lsum[:] = 0.0
-                for ch in range(m):
-                    if _adf_channel_start(size, y, r0, t, ch, xs, Ps, xms, Pms, act, nb) == 0:
-                        continue
-                    for it in range(iterations):
-                        q = _block_points(size, xms, Pms, xi, xcol, root, X, nb, act)
-                        if q == 0:
-                            break
-                        Yh = _call(h, X[: q * L], k, active_inputs(uh, r0, nb, t, L, U, act))
-                        _adf_project(
-                            size, it, ch, X, Yh, wm, wc, y, r0, t, xs, Ps, xms, Pms, act, R[ch, ch],
-                            family, lo_t[ch], hi_t[ch], par[min(t, TP - 1), ch], lsum, nb, ws, fade,
-                        )  # fmt: skip
-                    _block_copy(size, xms, Pms, xs, Ps, nb)
-                _record_ll(lsum, r0, t, nb, ll)
-            elif L == 0:  # the extended measurement: h(x̄) and its Jacobian
-                _block_rows(xps, X1, nb)
-                Y1 = _call(h, X1[:nb], k, _block_inputs(uh, r0, nb, t, 1, U))
-                if H is None:
-                    _block_differences(xps, X, deltas, nb)
-                    Yh = _call(h, X[: nb * rows], k, _block_inputs(uh, r0, nb, t, rows, U))
-                    _block_jacobians(Yh, deltas, Hj, nb)
-                    _update_joint(code, False, X, Y1, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t, noise_code,
-                                  joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
-                else:
-                    Jh = _call(H, X1[:nb], k, _block_inputs(uh, r0, nb, t, 1, U))
-                    _update_joint(code, False, X, Y1, Jh, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
-                                  noise_code, joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
-            else:
-                _block_points(size, xps, Pps, xi, xcol, root, X, nb, every)
-                Yh = _call(h, X[: nb * L], k, _block_inputs(uh, r0, nb, t, L, U))
-                _update_joint(code, True, X, Yh, Hj, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t,
-                              noise_code, joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
-            _record(size, xs, Ps, r0, t, nb, means, covs)
-        _block_end(xs, Ps, r0, nb, x_last, P_last)
-
-
-# --------------------------------------------------------------------------- the Python side
-
-
-def _c(a) -> np.ndarray:
-    """``a`` as a C-contiguous, writable float64 array (a read-only one would specialise the loop once more)."""
-    return np.require(a, dtype=float, requirements=("C", "W"))
-
-
-def channel_arrays(est, k0: int, T: int):
-    """``(family, lo, hi, par, noise_code)`` of the estimator's channel for the steps k0+1..k0+T, or a string
-    saying why the compiled loop does not cover it (the numpy path runs)."""
-    from ..channels.censoring import Censoring
-    from ._compiled_moments import FAMILIES, QUANTIZER
-    from ._compiled_tobit import NOISE_CODES
-
-    m = est.m
-    inf = np.full((1, m), np.inf)
-    none = np.zeros((1, m, 0))
-    code = est._compiled_code
-    if code == KALMAN:
-        return CENSORED, -inf, inf, none, 0
-    channel = est.channel
-    if getattr(est, "_sigma" if code == TOBIT else "_r", None) is None:
-        return "a measurement covariance R given per step"
-    if code == ADF and hasattr(est, "_compiled_channel"):  # a family that gives its block's arrays itself
-        return est._compiled_channel(k0, T)
-    if isinstance(channel, Censoring):
-        lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
-        noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
-        return CENSORED, _c(lo), _c(hi), none, noise
-    if code == ADF and FAMILIES.get(getattr(channel, "compiled_moments", None) or "") == QUANTIZER:
-        par = _c(channel.compiled_parameters(k0 + 1, T, m))
-        return QUANTIZER, -inf, inf, par, 0
-    return f"the channel {type(channel).__name__} (the compiled path covers censoring and, for the ADF, quantizers)"
-
-
-def channel_gap(est) -> str | None:
-    """Why the compiled loop does not cover the estimator's channel and noise (None: it does)."""
-    gap = channel_arrays(est, 0, 1)
-    return gap if isinstance(gap, str) else None
-
-
-def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = False):
-    """The compiled ``filter`` (or, ``online``, one step) of a nonlinear estimator whose gap is None: a
-    :class:`~tobitkf.FilterResult` (for a step the new state and the step's prediction ``(state, x̄, P̄)``), or None when the covariance stopped being finite
-    (the numpy path reruns the call and reports where) or the channel is not covered."""
-    from ._outputs import _empty, kernel_result, output_arrays, state_specs
-    from .core import FilterState, step_state
-
-    N, T, m = y2.shape
-    n = est.n
-    sys_ = est.system
-    arrays = channel_arrays(est, state.k, T)
-    if isinstance(arrays, str):
-        return None
-    family, lo, hi, par, noise_code = arrays
-    rule = est.rule
-    if rule is None:
-        xi, wm, wc = np.empty((0, n)), np.empty(0), np.empty(0)
-    else:
-        xi, wm, wc = (_c(a) for a in rule.unit(n))
-    xcol = point_columns(xi)
-    k0 = state.k
-    Qs = _c(np.stack([sys_.process_cov(k0 + t) for t in range(T)]) if sys_.Q.varying else sys_.process_cov(0)[None])
-    Rs = _c(np.stack([sys_.measurement_cov(k0 + t + 1) for t in range(T)]) if sys_.R.varying else
-            sys_.measurement_cov(1)[None])  # fmt: skip
-    code = est._compiled_code
-    ext = online or "extras" in want
-    if online:  # the prediction too, for the consistency check of the step
-        means, covs, pmeans, pcovs = (
-            _empty((N, 0, n)),
-            _empty((N, 0, n, n)),
-            np.empty((N, 1, n)),
-            np.empty((N, 1, n, n)),
-        )
-        ey, slope, ll = (np.empty((N, 1, m)), np.empty((N, 1, m)), np.empty((N, 0))) if code == TOBIT else (
-            _empty((N, 0, m)), _empty((N, 0, m)), np.empty((N, 1)) if code == ADF else _empty((N, 0)))  # fmt: skip
-    else:
-        means, covs, pmeans, pcovs, ey, slope, ll = output_arrays(
-            N, T, *state_specs(want, n), (ext and code == TOBIT, (m,)), (ext and code == TOBIT, (m,)),
-            (ext and code == ADF, ()),
-        )  # fmt: skip
-    x_last, P_last = np.empty((N, n)), np.empty((N, n, n))
-    uf, uh = _model_inputs(sys_, u2, N, T)
-    nonlinear_loop(
-        SIZES.get(n, ()), sys_.f, sys_.h, sys_.F, sys_.H, code, xi, xcol, wm, wc, _c(y2), uf, uh, Qs, Rs, k0,
-        _c(state.x), _c(state.P), family, lo, hi, par, noise_code, est.iterations if code == ADF else 1,
-        est.covariance_update == "joseph", means, covs, pmeans, pcovs, ey, slope, ll, x_last, P_last,
-        getattr(est, "_fade", _NO_FADING),
-    )  # fmt: skip
-    if not np.isfinite(np.diagonal(P_last, axis1=-2, axis2=-1)).all():
-        return None
-    extras = {}
-    if ext and code == TOBIT:
-        extras = {"expected_y": ey, "slope": slope}
-    elif ext and code == ADF:
-        extras = {"log_likelihood": ll}
-    if online:
-        new = step_state(k0 + 1, state.batch_shape, x_last, P_last, n, None, state.carry,
-                         {key: v[:, 0] for key, v in extras.items()} or None)  # fmt: skip
-        return new, pmeans[:, 0], pcovs[:, 0]
-    extras = {key: v.reshape(batch + v.shape[1:]) for key, v in extras.items()}
-    final = FilterState(k=k0 + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)

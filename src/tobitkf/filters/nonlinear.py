@@ -312,7 +312,7 @@ class _NonlinearFamily(GaussianFilter):
     system: Any  # a NonlinearSystem (Any: the contract checks' mixin declares a LinearSystem)
     _forms: tuple[str, ...] = ("standard", "square_root")
 
-    #: the update code of the compiled loop (:mod:`tobitkf.filters._compiled_nonlinear`): 0 Kalman, 1 Tobit, 2 ADF
+    #: the update code of the compiled loop (:mod:`tobitkf.filters._compiled_nonlinear_loop`): 0 Kalman, 1 Tobit, 2 ADF
     _compiled_code = 0
 
     def _setup(self, system: Any, covariance_update: str, rule: SigmaPoints | None, backend: str = "auto") -> None:
@@ -333,16 +333,16 @@ class _NonlinearFamily(GaussianFilter):
     def _compiled_core(self) -> bool:
         return False
 
-    # ---- the compiled path (:mod:`tobitkf.filters._compiled_nonlinear`)
+    # ---- the compiled path (:mod:`tobitkf.filters._compiled_nonlinear_loop`)
     def _compiled_gap(self) -> str | None:
         """Why the compiled loop cannot run this estimator, or None."""
         sys_ = self.system
         plain = [name for name in ("f", "h", "F", "H") if not _is_jitted(getattr(sys_, name))]
         if plain:
             return f"{', '.join(plain)} not compiled with numba.njit"
-        from . import _compiled_nonlinear
+        from . import _compiled_nonlinear_loop
 
-        return _compiled_nonlinear.channel_gap(self)
+        return _compiled_nonlinear_loop.channel_gap(self)
 
     def _use_compiled(self) -> bool:
         """Whether ``filter`` and ``step`` run the compiled loop: decided once per estimator by its ``backend``
@@ -372,13 +372,9 @@ class _NonlinearFamily(GaussianFilter):
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
         if not self._use_compiled():
             return None
-        if self.covariance_update == "square_root":  # the factor carried by its own compiled loop
-            from . import _compiled_nonlinear_sqrt
+        from . import _compiled_nonlinear_loop
 
-            return _compiled_nonlinear_sqrt.compiled_run(self, y2, u2, state, want, batch)
-        from . import _compiled_nonlinear
-
-        return _compiled_nonlinear.compiled_run(self, y2, u2, state, want, batch)
+        return _compiled_nonlinear_loop.compiled_run(self, y2, u2, state, want, batch)
 
     def step(self, state: FilterState, y: Any, *, u: Any = None, **options: Any) -> FilterState:
         """One predict + update with the reading ``y`` (``batch_shape + (m,)``; NaN = missing); ``u`` the input
@@ -397,9 +393,9 @@ class _NonlinearFamily(GaussianFilter):
         yk = self._reading(state, y)
         uk = self._step_input(state, u)
         self._check_reading(state.k + 1, yk, {})
-        from . import _compiled_nonlinear
+        from . import _compiled_nonlinear_loop
 
-        out = _compiled_nonlinear.compiled_run(
+        out = _compiled_nonlinear_loop.compiled_run(
             self, yk[:, None], None if uk is None else uk[:, None], state, frozenset(), state.batch_shape, online=True
         )
         if out is None:
