@@ -3,7 +3,7 @@
 The model (n = 4, m = 2): two coupled pendulums (semi-implicit Euler, dt = 0.05), each read through the
 horizontal offset of its bob, :math:`\\sin\\theta_i`, clipped at ±0.5 (both limits censored). ``f`` and ``h``
 come twice: as numpy functions and as ``numba.njit`` functions (the same equations); with the njit ones the
-nonlinear filters run their compiled loop (:mod:`tobitkf.filters._compiled_nonlinear`), with the numpy ones
+nonlinear filters run their compiled loop (:mod:`tobitkf.filters._compiled_nonlinear_loop`), with the numpy ones
 their numpy path.
 
 (1) Batched: ``tk.NonlinearAssumedDensityFilter`` (unscented rule, one linearisation) and the uncensored
