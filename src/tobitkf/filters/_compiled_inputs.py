@@ -1,4 +1,4 @@
-"""The known inputs of a compiled nonlinear loop (:mod:`tobitkf.filters._compiled_nonlinear`): which of the model's
+"""The known inputs of a compiled nonlinear loop (:mod:`tobitkf.filters._compiled_nonlinear_loop`): which of the model's
 functions take them, and the rows of the runs still taking part in an assumed-density update."""
 
 from __future__ import annotations
