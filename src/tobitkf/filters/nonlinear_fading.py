@@ -60,7 +60,6 @@ from .._validation import ValidationError, check_bool, check_instance
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
 from ..models.nonlinear import NonlinearSystem
-from ._compiled_fading_moments import fading_moments_batch
 from .nonlinear import (
     ExtendedKalmanFilter,
     TobitExtendedKalmanFilter,
@@ -121,6 +120,8 @@ class _FadingMoments:
     def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray, u: np.ndarray | None = None):
         yhat, Pxy, Pyy, H = super()._measurement_moments(k, xp, Pp, u)  # type: ignore[misc]
         yhat, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (yhat, Pxy, Pyy))
+        from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
+
         fading_moments_batch(self._fade[0], self._fade[1], yhat, Pxy, Pyy)
         return yhat, Pxy, Pyy, None if H is None else H * self._fade[0][:, None]
 
@@ -406,6 +407,8 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         ybar, Pxy, Pyy = super()._channel_moments(l, rule, h_l, xm, Pm)
         ybar, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (ybar, Pxy, Pyy))
         fade = np.ascontiguousarray(self._fade[:, l : l + 1])
+        from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
+
         fading_moments_batch(fade[0], fade[1], ybar, Pxy, Pyy)
         return ybar, Pxy, Pyy
 
