@@ -429,7 +429,7 @@ class _NonlinearFamily(GaussianFilter):
         return arr.reshape(state.runs, p)
 
     def _predict(self, k: int, x: np.ndarray, P: np.ndarray, S: np.ndarray | None = None, u: np.ndarray | None = None):
-        """:math:`\bar x_k, \bar P_k` (and the factor :math:`\bar S_k` in the square-root form, else None) from
+        r""":math:`\bar x_k, \bar P_k` (and the factor :math:`\bar S_k` in the square-root form, else None) from
         the posterior at k-1, with the input :math:`u_k` (N, p) or None."""
         sys_, Q = self.system, self.system.process_cov(k - 1)
         if self.rule is None:
@@ -492,7 +492,7 @@ class _NonlinearFamily(GaussianFilter):
         return xn, Pn, Sn, carry, xp, Pp, extras
 
     def predict(self, state: FilterState, *, u: Any = None) -> FilterState:
-        """The time update alone: the prediction :math:`\bar x_{k+1}`, :math:`\bar P_{k+1}` as a state whose
+        r"""The time update alone: the prediction :math:`\bar x_{k+1}`, :math:`\bar P_{k+1}` as a state whose
         ``k`` is the predicted time (pass it to :meth:`update` with that time's reading); ``u`` the input
         :math:`u_{k+1}` of an ``f(x, k, u)``."""
         state = entering_state(self, state)

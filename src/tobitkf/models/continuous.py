@@ -70,7 +70,7 @@ def expm_batch(M: np.ndarray) -> np.ndarray:
     (Moler & Van Loan 2003, "Nineteen dubious ways...", methods 1 and 3).
 
     Each matrix is scaled by :math:`2^{-s}` to a 1-norm at most 1/2, its exponential summed to degree 14
-    (truncation error below :math:`0.5^{15}/15! pprox 2	imes10^{-17}` relative), then squared s times.
+    (truncation error below :math:`0.5^{15}/15! \approx 2\times10^{-17}` relative), then squared s times.
     Equal to ``scipy.linalg.expm`` to about 1e-12 relative for norms up to a few hundred (tested); used
     instead of it because its batched form costs tens of milliseconds per call for a few small matrices,
     which a fit pays at every likelihood evaluation.

@@ -94,7 +94,7 @@ def simulate(
     inputs: Any = None,
     seed: Any = 0,
 ) -> SimulationData:
-    """Draw truth and censored measurements for many runs at once.
+    r"""Draw truth and censored measurements for many runs at once.
 
     Parameters
     ----------
