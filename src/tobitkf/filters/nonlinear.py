@@ -312,6 +312,16 @@ class _NonlinearFamily(GaussianFilter):
     system: Any  # a NonlinearSystem (Any: the contract checks' mixin declares a LinearSystem)
     _forms: tuple[str, ...] = ("standard", "square_root")
 
+    _filter_doc = (
+        "Filter the readings ``y`` (..., T, m) of a batch of records: one predict and update per step (f, h or a "
+        "Jacobian returning the wrong shape: a ShapeError naming it)."
+    )
+    _filter_params = {
+        "u": "(T, p) or (..., T, p) array_like, optional\n"
+        "    Known inputs u_1..u_T of an ``f(x, k, u)`` (index k-1 holds u_k; none given: u = 0).",
+    }
+    _filter_raises = "a reading the channel cannot give (its ``check_readings``)"
+
     #: the update code of the compiled loop (:mod:`tobitkf.filters._compiled_nonlinear_loop`): 0 Kalman, 1 Tobit, 2 ADF
     _compiled_code = 0
 
@@ -506,41 +516,6 @@ class _NonlinearFamily(GaussianFilter):
         if uk is not None:  # the update's h(x, k, u) reads the same step's input
             carry["_u"] = uk
         return FilterState(k=k, batch_shape=state.batch_shape, x=xp, P=Pp, n=self.n, S=Sp, carry=carry)
-
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-    ) -> FilterResult:
-        """Filter the readings ``y`` (..., T, m); NaN = missing. Returns a :class:`~tobitkf.FilterResult`.
-
-        Parameters
-        ----------
-        y : (..., T, m) array_like
-            Readings y_1..y_T (leading axes are runs).
-        u : (T, p) or (..., T, p) array_like, optional
-            Known inputs u_1..u_T of an ``f(x, k, u)`` (index k-1 holds u_k; none given: u = 0).
-        x0, P0 : array_like, optional
-            Override the system's prior ((n,)/(n, n) or laid out like the batch).
-        outputs : str or sequence of str, default "all"
-            ``"all"``, ``"last"`` or names from ``mean, cov, var, pred_mean, pred_cov, extras``.
-        state : FilterState, optional
-            Continue from this state (from :meth:`init`, :meth:`step` or a result's ``final``).
-
-        Raises
-        ------
-        ShapeError
-            Malformed ``y`` or ``u`` (or an input for an ``f(x, k)``), or f, h or a Jacobian returning the wrong
-            shape.
-        ValidationError
-            Infinite readings, or a reading the channel cannot give.
-        """
-        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def _noise(self, k: int) -> np.ndarray:
         return self.system.measurement_cov(k)

@@ -119,6 +119,11 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     ):
         self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
         self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
+        self._take_channel(system, channel)
+
+    def _take_channel(self, system: NonlinearSystem, channel: Any) -> None:
+        """Check and keep ``channel`` (``self.channel``) and the constant noise variances ``self._r`` (m,) (None
+        for an R given per step): the one part of the set-up a channel family of this filter replaces."""
         self.channel = _contract_channel(channel, "moments", "the nonlinear assumed-density filter")
         self.channel.check(system)
         self._r = None if system.R.varying else _noise_variances(system.measurement_cov(1), "R")

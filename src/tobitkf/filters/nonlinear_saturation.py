@@ -21,15 +21,13 @@ For a linear h it is that filter (tested).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
-from .._validation import check_instance, check_int
+from .._validation import check_instance
 from ..channels.saturation import RandomSaturation
 from ..models.nonlinear import NonlinearSystem
 from ._boundary import _noise_variances
-from .nonlinear import _TINY, _rule
+from .nonlinear import _TINY
 from .nonlinear_adf import NonlinearAssumedDensityFilter
 
 __all__ = ["SaturationNonlinearAssumedDensityFilter"]
@@ -76,22 +74,8 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
     _name = "SaturationNonlinearAssumedDensityFilter"
     _forms = ("standard",)
 
-    def __init__(
-        self,
-        system: NonlinearSystem,
-        channel: RandomSaturation,
-        *,
-        rule: Any = "unscented",
-        iterations: int = 1,
-        alpha: float = 1.0,
-        beta: float = 2.0,
-        kappa: float = 0.0,
-        order: int = 3,
-        covariance_update: str = "standard",
-        backend: str = "auto",
-    ):
-        self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
-        self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
+    def _take_channel(self, system: NonlinearSystem, channel: RandomSaturation) -> None:
+        """The saturation channel, its noise variances (positive) and the parameters of ``saturation_block``."""
         check_instance(channel, RandomSaturation, "channel")
         channel.check(system)
         self.channel = channel
