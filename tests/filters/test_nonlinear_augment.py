@@ -84,3 +84,31 @@ def test_tracked_stiffness_converges_within_its_band_on_a_censored_oscillator(ma
     assert np.mean(np.abs(theta - TRUTH) < 3 * sd) >= 0.9
     assert np.mean(np.abs(theta - TRUTH)) < 0.3
     assert np.all(sd < 0.5)  # the band itself has shrunk from the prior's 1
+
+
+def test_an_output_with_a_known_input_and_a_tracked_parameter():
+    # h(x, k, theta, u) = theta C x + D u with theta known (variance 0): along the sigma points theta stays fixed,
+    # so the map is linear in x and the unscented filter of the augmented model is the Kalman filter of the
+    # linear model with C -> theta C and the feed-through D (to rounding); f takes no input
+    A, C, D, R, theta = np.array([[0.9, 0.1], [0.0, 0.8]]), np.array([[1.0, 0.5]]), np.array([[0.7]]), [[0.05]], 1.5
+
+    def f(x, k, th):
+        return x @ A.T
+
+    def h(x, k, th, u):
+        return th * (x @ C.T) + u @ D.T
+
+    aug = tk.augment_parameters(f, h, Q, R, X0, P0, theta0=[theta], theta_cov=0.0, inputs=1)
+    assert (aug.f_takes_input, aug.h_takes_input) == (False, True)
+    lin = tk.LinearSystem(A=A, C=theta * C, Q=Q, R=R, x0=X0, P0=P0, Bu=np.zeros((2, 1)), D=D)
+    u = np.random.default_rng(3).normal(size=(25, 1))
+    y = tk.simulate(lin, 25, 3, seed=4, inputs=u).y
+    a = tk.UnscentedKalmanFilter(aug).filter(y, u=u)
+    b = tk.KalmanFilter(lin).filter(y, u=u)
+    np.testing.assert_allclose(a.mean[..., :2], b.mean, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.cov[..., :2, :2], b.cov, rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(a.mean[..., 2], theta)
+    with pytest.raises(tk.ValidationError, match="inputs"):  # an input taken but its length not given
+        tk.augment_parameters(f, h, Q, R, X0, P0, theta0=[theta], theta_cov=0.0)
+    with pytest.raises(tk.ValidationError, match="inputs"):  # a length given but no map takes an input
+        tk.augment_parameters(f, position, Q, R, X0, P0, theta0=[theta], theta_cov=0.0, inputs=1)

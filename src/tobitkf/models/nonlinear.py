@@ -145,10 +145,10 @@ def discretize(fc: Callable[..., np.ndarray], dt: float, substeps: int = 1):
     return f
 
 
-def _takes_input(fn: Any, *, optional: bool = False) -> bool | None:
-    """Whether ``fn(x, k, u)`` takes an input by its signature: a third positional parameter without a default
-    (or, with ``optional``, with one). True, False, or None when the signature cannot be read (a compiled or
-    built-in function) or takes ``*args``."""
+def _takes_input(fn: Any, *, optional: bool = False, position: int = 2) -> bool | None:
+    """Whether ``fn(x, k, u)`` takes an input by its signature: a third positional parameter (``position``: its
+    index; 3 for an ``f(x, k, theta, u)``) without a default (or, with ``optional``, with one). True, False, or
+    None when the signature cannot be read (a compiled or built-in function) or takes ``*args``."""
     try:
         sig = inspect.signature(fn)
     except (TypeError, ValueError):
@@ -160,7 +160,7 @@ def _takes_input(fn: Any, *, optional: bool = False) -> bool | None:
         for p in sig.parameters.values()
         if p.kind in (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
     ]
-    return len(positional) >= 3 and (optional or positional[2].default is inspect.Parameter.empty)
+    return len(positional) > position and (optional or positional[position].default is inspect.Parameter.empty)
 
 
 class NonlinearSystem:
@@ -410,7 +410,7 @@ def augment_parameters(
     Parameters
     ----------
     f : callable ``f(x, k, theta)`` (or ``f(x, k, theta, u)`` with ``inputs``)
-    h : callable ``h(x, k, theta)``
+    h : callable ``h(x, k, theta)`` (or ``h(x, k, theta, u)`` with ``inputs``: an output with a known input)
     Q : (n, n) or (T, n, n) array_like or callable ; R : as for :class:`NonlinearSystem`
     x0 : (n,) ; P0 : (n, n)
     theta0 : (d,) array_like
@@ -420,7 +420,9 @@ def augment_parameters(
     theta_noise : float, (d,) or (d, d) array_like, default 0
         The random walk's step covariance :math:`Q_\theta` (a scalar or vector: variances).
     inputs : int, optional
-        The input length p of an ``f(x, k, theta, u)``.
+        The input length p of an ``f(x, k, theta, u)`` and/or ``h(x, k, theta, u)`` (which of the two takes it: read
+        from a fourth positional parameter, as :class:`NonlinearSystem` reads a third; an ``f`` whose signature
+        cannot be read takes it, such an ``h`` does not).
 
     Returns
     -------
@@ -431,7 +433,7 @@ def augment_parameters(
     ------
     ValidationError, ShapeError
         As :class:`NonlinearSystem` for the augmented model; ``theta_cov`` or ``theta_noise`` not PSD or not
-        of size d.
+        of size d; ``inputs`` given when neither f nor h has a fourth parameter.
 
     Examples
     --------
@@ -453,15 +455,37 @@ def augment_parameters(
     if P0a.shape != (n, n):
         raise ShapeError(f"P0: expected shape ({n}, {n}) to match x0, got {P0a.shape}")
 
-    def f_aug(z: np.ndarray, k: int, *u: np.ndarray) -> np.ndarray:
+    if inputs is None:
+        for name, fn in (("f", f), ("h", h)):
+            if _takes_input(fn, position=3):
+                raise ValidationError(
+                    f"inputs: {name}(x, k, theta, u) takes a known input u; give its length as inputs=p (or drop the "
+                    f"fourth parameter of {name})"
+                )
+    f_in = inputs is not None and _takes_input(f, optional=True, position=3) is not False
+    h_in = inputs is not None and _takes_input(h, optional=True, position=3) is True
+    if inputs is not None and not (f_in or h_in):
+        raise ValidationError(
+            f"inputs: given ({inputs!r}) but neither f nor h takes an input (expected f(x, k, theta, u) or "
+            "h(x, k, theta, u) with a fourth parameter)"
+        )
+
+    def f_with(z: np.ndarray, k: int, u: tuple[np.ndarray, ...]) -> np.ndarray:
         theta = z[..., n:]
         return np.concatenate([np.asarray(f(z[..., :n], k, theta, *u), dtype=float), theta], axis=-1)
 
+    # the augmented maps take u exactly when f or h does (NonlinearSystem reads that from their signatures)
+    def f_aug(z: np.ndarray, k: int) -> np.ndarray:
+        return f_with(z, k, ())
+
     def f_aug_u(z: np.ndarray, k: int, u: np.ndarray) -> np.ndarray:
-        return f_aug(z, k, u)
+        return f_with(z, k, (u,))
 
     def h_aug(z: np.ndarray, k: int) -> np.ndarray:
         return h(z[..., :n], k, z[..., n:])
+
+    def h_aug_u(z: np.ndarray, k: int, u: np.ndarray) -> np.ndarray:
+        return h(z[..., :n], k, z[..., n:], u)
 
     if callable(Q):
         Q_aug: Any = lambda k: _block(np.asarray(Q(k), dtype=float), Q_th)  # noqa: E731
@@ -469,8 +493,8 @@ def augment_parameters(
         Qa = as_float_array(Q, "Q", ndim=(2, 3))
         Q_aug = _block(Qa, Q_th) if Qa.ndim == 2 else np.stack([_block(q, Q_th) for q in Qa])
     return NonlinearSystem(
-        f_aug if inputs is None else f_aug_u,
-        h_aug,
+        f_aug_u if f_in else f_aug,
+        h_aug_u if h_in else h_aug,
         Q_aug,
         R,
         np.concatenate([xa, th]),
