@@ -188,6 +188,10 @@ def _label(opts: dict[str, Any]) -> str:
         parts.append(f"flow anomaly {opts['flow_anomaly_days']:g} d")
     if opts.get("fast_residual"):
         parts.append("fast + slow residual")
+    if opts.get("flow_spline_knots"):
+        parts.append(f"ln Q spline {opts['flow_spline_knots']} knots")
+    extra = ("anomaly_slope", "slope_trend", "flow_variance_square", "anomaly_variance", "variance_trend")
+    parts += [k for k in extra if opts.get(k)]
     return ", ".join(parts)
 
 
