@@ -20,6 +20,7 @@ OPTIONS = [
     {"flow_variance": True, "flow_variance_square": True},
     {"variance_trend": True},
     {"flow_anomaly_days": 30.0, "anomaly_variance": True},
+    {"flow_anomaly_days": 10.0, "slow_anomaly_days": 90.0},
 ]
 BASE = {"drift": ("intercept",), "flow_variance": True, "harmonics": 2}
 
@@ -59,7 +60,7 @@ def test_each_option_at_its_null_value_is_the_model_without_it(rec, option):
 def test_added_regressors_and_noise_sd_written_out(rec):
     m = RiverModel.from_record(
         rec, drift=(), flow_variance=True, flow_variance_square=True, variance_trend=True, season_variance=True,
-        flow_anomaly_days=30.0, anomaly_variance=True, anomaly_slope=True, slope_trend=True, flow_spline_knots=4,
+        flow_anomaly_days=30.0, slow_anomaly_days=90.0, anomaly_variance=True, anomaly_slope=True, slope_trend=True, flow_spline_knots=4,
     )  # fmt: skip
     t = decimal_year(rec.daily_date)
     z = np.log(rec.daily_q) - np.log(rec.daily_q).mean()
@@ -71,6 +72,11 @@ def test_added_regressors_and_noise_sd_written_out(rec):
     anomaly = z - np.r_[z[0], ema[:-1]]
     col = m.coef.index
     np.testing.assert_allclose(m.rows[:, col("flow_anomaly_ln_q")], anomaly * z, atol=1e-12)
+    ema90 = np.empty_like(z)
+    ema90[0] = z[0]
+    for d in range(1, z.size):
+        ema90[d] = ema90[d - 1] + (z[d] - ema90[d - 1]) / 90.0
+    np.testing.assert_allclose(m.rows[:, col("flow_anomaly_slow")], z - np.r_[z[0], ema90[:-1]], atol=1e-12)
     np.testing.assert_allclose(m.rows[:, col("ln_q_trend")], z * dec, atol=1e-12)
     k = np.quantile(z, [0.05, 0.35, 0.65, 0.95])
     s1 = (

@@ -186,6 +186,10 @@ def _label(opts: dict[str, Any]) -> str:
         parts.append("2 harmonics")
     if opts.get("flow_anomaly_days"):
         parts.append(f"flow anomaly {opts['flow_anomaly_days']:g} d")
+    if opts.get("slow_anomaly_days"):
+        parts.append(f"slow flow anomaly {opts['slow_anomaly_days']:g} d")
+    if opts.get("residual_ar") is False:
+        parts.append("no AR residual")
     if opts.get("fast_residual"):
         parts.append("fast + slow residual")
     if opts.get("flow_spline_knots"):

@@ -54,13 +54,25 @@ import numpy as np
 from .._validation import ValidationError
 from .records_common import _FD_STEP, _YEAR, adf_pass, fd_gradient, fd_hessian, gap_matrices
 
-__all__ = ["RiverModel", "batched_loo_refit", "flow_spline_basis", "spline_knots"]
+__all__ = ["RiverModel", "batched_loo_refit", "flow_anomaly", "flow_spline_basis", "spline_knots"]
 
 _SPLINE_QUANTILES = {
     3: (0.1, 0.5, 0.9),
     4: (0.05, 0.35, 0.65, 0.95),
     5: (0.05, 0.275, 0.5, 0.725, 0.95),
 }
+
+
+def flow_anomaly(z: np.ndarray, days: float) -> np.ndarray:
+    r"""The flow anomaly :math:`z_d - m_{d-1}` of a daily series z (D,): the day's value against its exponentially
+    weighted mean over the days before, :math:`m_d = m_{d-1} + (z_d - m_{d-1})/L`, :math:`L` = ``days``,
+    :math:`m_0 = z_0` (and the anomaly of day 0 is 0)."""
+    from scipy.signal import lfilter
+
+    z = np.asarray(z, dtype=float)
+    w = 1.0 / days
+    m, _ = lfilter([w], [1.0, w - 1.0], z[1:], zi=[(1.0 - w) * z[0]])  # m_d, d = 1..D-1
+    return z - np.r_[z[0], z[0], m[:-1]]
 
 
 def spline_knots(z: np.ndarray, count: int) -> np.ndarray:
@@ -170,6 +182,10 @@ class RiverModel:
         each cubic between the knots and linear beyond the outer ones, so that with the ln Q column the
         flow response is a natural cubic spline (WRTDS fits a different regression at each flow; this is its
         smooth global counterpart).
+    slow_anomaly_days : float
+        If positive, a second flow anomaly regressor over this many days (coefficient ``flow_anomaly_slow``),
+        :math:`\ln Q_d - m'_{d-1}` with :math:`m'` the exponentially weighted mean of ``flow_anomaly_days``'s
+        definition over the longer window: a wet or dry season (months) beside the storm (weeks).
     anomaly_slope : bool
         Add the regressor :math:`a_d z_d` (the flow anomaly times the centred ln Q, coefficient
         ``flow_anomaly_ln_q``): the response to a rising or falling flow depends on the flow itself; needs
@@ -221,6 +237,7 @@ class RiverModel:
     coef: tuple[str, ...] = ("intercept", "ln_q", "sin", "cos")
     residual_ar: bool = True
     fast_residual: bool = False
+    slow_anomaly_days: float = 0.0
     flow_spline_knots: int = 0
     anomaly_slope: bool = False
     slope_trend: bool = False
@@ -259,15 +276,11 @@ class RiverModel:
             si, co = (self.rows[:, self.coef.index(c)] for c in ("sin", "cos"))
             self.rows = np.column_stack([self.rows[:, :-1], 2 * si * co, co**2 - si**2, self.rows[:, -1:]])
             self.coef = self.coef + ("sin2", "cos2")
-        if self.flow_anomaly_days > 0:
-            from scipy.signal import lfilter
-
-            z = self.rows[:, self.coef.index("ln_q")]
-            w = 1.0 / self.flow_anomaly_days
-            m, _ = lfilter([w], [1.0, w - 1.0], z[1:], zi=[(1.0 - w) * z[0]])  # m_d, d = 1..D-1
-            anomaly = z - np.r_[z[0], z[0], m[:-1]]
-            self.rows = np.column_stack([self.rows[:, :-1], anomaly, self.rows[:, -1:]])
-            self.coef = self.coef + ("flow_anomaly",)
+        for days, name in ((self.flow_anomaly_days, "flow_anomaly"), (self.slow_anomaly_days, "flow_anomaly_slow")):
+            if days > 0:
+                anomaly = flow_anomaly(self.rows[:, self.coef.index("ln_q")], days)
+                self.rows = np.column_stack([self.rows[:, :-1], anomaly, self.rows[:, -1:]])
+                self.coef = self.coef + (name,)
         if self.years is not None:
             self.years = np.asarray(self.years, dtype=float)
             if self.years.shape != (self.rows.shape[0],):
