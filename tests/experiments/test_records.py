@@ -358,12 +358,16 @@ def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
     variance, the added regressors, days after the last sample): the one-step fill-in between sample days
     against the RTS pass over every day."""
     m = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
-    th = _theta(m)
+    th = m.start()
+    th[m.names.index("gamma_flow")] = -0.2
+    if m.residual_ar:
+        th[m.names.index("log_tau_days")] = np.log(40.0)
     sys_, y, cens, ind = m.daily_system(th)
     ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
     got = m.daily_smooth(th)
     assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
-    assert m.dyn.tolist() == [0, m.nx - 1]  # the filter moves the drifting intercept and the residual only
+    # the filter moves the drifting intercept (and the residual, if any) only
+    assert m.dyn.tolist() == [0] + [m.nx - 1] * m.residual_ar
     np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)
 

@@ -12,12 +12,13 @@ model is the state-space counterpart of WRTDS's moving windows: on the daily gri
 
 with some coefficients random walks (:math:`\beta_{j,d+1} = \beta_{j,d} + w_{j,d}`,
 :math:`w_{j,d} \sim N(0, q_j/365.25)`, :math:`t` in decimal years; the two seasonal terms share one
-:math:`q_2`), optional further known regressors :math:`z_j` (the square of the centred ln Q, a seasonal
-ln Q slope, the second seasonal harmonic, a flow anomaly: :class:`RiverModel`), the residual :math:`\xi`
-a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary variance
-:math:`\sigma^2`) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with an sd that
-depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}` (and on the season:
-``season_variance``). ``data-arkansas`` compares many
+:math:`q_2`), optional further known regressors :math:`z_j` (the square of the centred ln Q or a natural
+cubic spline in it, a seasonal ln Q slope, an ln Q slope trend, the second seasonal harmonic, a flow anomaly
+against the recent mean flow, a slower one, the anomaly times ln Q: :class:`RiverModel`), the residual
+:math:`\xi` a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary
+variance :math:`\sigma^2`; optional) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with
+an sd that depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}` (and on its square, the
+season, the flow anomaly's size, the years: :class:`RiverModel`). ``data-arkansas`` compares many
 such models (:mod:`~tobitkf.experiments.records_arkansas`). The state is :math:`x_d = (\beta_{\cdot,d},
 \xi_d)`, the daily regressors are known time-varying rows :math:`C_d` of a :class:`~tobitkf.LinearSystem`,
 the readings are NaN on days without a sample, and a censored sample lies below its own detection limit.
