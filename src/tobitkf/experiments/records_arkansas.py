@@ -62,9 +62,9 @@ _BASE: dict[str, Any] = {
 }
 _PREVIOUS_MODEL: dict[str, Any] = {**_BASE, "quadratic": True}
 _SPLINE: dict[str, Any] = {**_BASE, "flow_spline_knots": 5, "anomaly_slope": True, "residual_ar": False}
-ARKANSAS_MODEL: dict[str, Any] = {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 90.0}
+ARKANSAS_MODEL: dict[str, Any] = {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 30.0}
 """The smallest-AIC candidate: a drifting intercept, a natural cubic spline in ln Q (5 knots), two seasonal
-harmonics, the flow anomaly over a 10-day mean and its product with ln Q, a slower anomaly over a 90-day mean,
+harmonics, the flow anomaly over a 10-day mean and its product with ln Q, a slower anomaly over a 30-day mean,
 no AR residual (its variance goes to 0 once the anomaly's slope is in), and a sample noise whose sd depends on
 the flow and the season (``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the
 default of a run without candidates)."""
