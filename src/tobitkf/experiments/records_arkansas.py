@@ -347,6 +347,11 @@ def run_arkansas(
         "se": float(d.std(ddof=1) / np.sqrt(d.size)),
         "rmse_wrtds_minus_state_space": rd,
         "rmse_se": rd_se,
+        # the samples that carry WRTDS's side of the difference (the per-sample scores are heavy-tailed)
+        "largest_wrtds_advantage": [
+            {"date": str(dates[i]), "censored": bool(np.isinf(low[i])), "difference": float(d[i])}
+            for i in np.argsort(d)[:3]
+        ],
     }
     data_plot: dict[str, Any] = {"rec": rec, "model": model, "daily": daily, "idx": idx, "cv": cv, "loo": loo}
     # the table of every candidate: fit, AIC, and (loo_all) its refitted leave-one-out against WRTDS
@@ -479,6 +484,11 @@ def _arkansas_claims(metrics: dict[str, Any]) -> list[dict[str, Any]]:
     scored = [r for r in table if "loo_mean_log_score" in r]
     best_loo = max(scored, key=lambda r: r["loo_mean_log_score"]) if scored else None
     note = f"{how}: {metrics['model']['label']}"
+    worst = dif.get("largest_wrtds_advantage", [])
+    if worst:
+        note += "; the samples WRTDS predicts best against it: " + ", ".join(
+            f"{w['date']} ({'censored' if w['censored'] else 'measured'}, {w['difference']:+.2f})" for w in worst
+        )
     if best_loo is not None:
         note += (
             f"; the best leave-one-out score of the {len(scored)} scored candidates: {best_loo['model']}, "
