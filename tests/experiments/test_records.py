@@ -202,6 +202,10 @@ def test_arkansas_reduced_run_has_the_loo_fields():
     d = loo["difference_state_space_minus_wrtds"]
     assert d["mean_log_score"] == pytest.approx(loo["state_space"]["mean_log_score"] - loo["wrtds"]["mean_log_score"])
     assert d["se"] > 0
+    per_sample = np.array(loo["state_space"]["log_score"]) - np.array(loo["wrtds"]["log_score"])
+    worst = d["largest_wrtds_advantage"]
+    np.testing.assert_allclose([w["difference"] for w in worst], np.sort(per_sample)[:3], rtol=1e-12)
+    assert worst[0]["date"] == loo["wrtds"]["date"][int(np.argmin(per_sample))]
     assert loo["state_space"]["refits_converged"] == 10
     # the model is the candidate of smallest AIC, and the table scores every candidate against WRTDS
     table = metrics["models_compared"]
@@ -210,6 +214,7 @@ def test_arkansas_reduced_run_has_the_loo_fields():
     assert metrics["model"]["options"] == table[int(np.argmin(aic))]["options"]
     for r in table:
         assert r["aic"] == pytest.approx(-2 * r["loglik"] + 2 * r["n_params"])
+        assert r["bic"] == pytest.approx(-2 * r["loglik"] + np.log(254) * r["n_params"])
         assert r["minus_wrtds"] == pytest.approx(r["loo_mean_log_score"] - loo["wrtds"]["mean_log_score"])
     assert table[0]["loo_mean_log_score"] == pytest.approx(loo["static_ar1"]["mean_log_score"])
     fit = metrics["model"]["fit"]
@@ -358,12 +363,16 @@ def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
     variance, the added regressors, days after the last sample): the one-step fill-in between sample days
     against the RTS pass over every day."""
     m = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
-    th = _theta(m)
+    th = m.start()
+    th[m.names.index("gamma_flow")] = -0.2
+    if m.residual_ar:
+        th[m.names.index("log_tau_days")] = np.log(40.0)
     sys_, y, cens, ind = m.daily_system(th)
     ref = tk.smooth(sys_, y, censoring=cens, censored=ind)
     got = m.daily_smooth(th)
     assert m.day[-1] < m.rows.shape[0] - 1  # some days follow the last sample
-    assert m.dyn.tolist() == [0, m.nx - 1]  # the filter moves the drifting intercept and the residual only
+    # the filter moves the drifting intercept (and the residual, if any) only
+    assert m.dyn.tolist() == [0] + [m.nx - 1] * m.residual_ar
     np.testing.assert_allclose(got["mean"], ref.mean, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(got["cov"], ref.cov, rtol=1e-8, atol=1e-11)
 

@@ -4,9 +4,10 @@ state-space model (:class:`~tobitkf.experiments.records_river.RiverModel`) again
 
 The model is chosen, not assumed: every model tried on this record is listed in
 :data:`ARKANSAS_CANDIDATES` (drifting coefficients, up to every coefficient drifting as WRTDS's windows move
-in time, a noise sd depending on the flow and on the season, a square of ln Q, a seasonal ln Q slope, a second
-seasonal harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days, a second residual with a
-short memory beside the first); the experiment fits each by maximum likelihood (:func:`fit_river`: two starts
+in time, a noise sd depending on the flow, its square, the season, the flow anomaly's size or the years, a
+square of ln Q or a natural cubic spline in it, a seasonal ln Q slope, an ln Q slope trend, a second seasonal
+harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days, its product with ln Q, a second
+slower anomaly, a second residual with a short memory beside the first, no AR residual); the experiment fits each by maximum likelihood (:func:`fit_river`: two starts
 and the best nested candidate's estimates) and takes the one of smallest AIC on the full record. The
 leave-one-out score of every candidate is reported beside it (``models_compared``), so that a reader sees how
 many models were compared and where the chosen one stands.
@@ -52,18 +53,21 @@ FLUX_FACTOR = 28.316846592 * 86400.0 * 1e-6
 """kg/day per (mg/L x ft^3/s): 28.3168 L per cubic foot, 86400 s per day, 1e-6 kg per mg."""
 
 
-ARKANSAS_MODEL: dict[str, Any] = {
+_BASE: dict[str, Any] = {
     "drift": ("intercept",),
     "flow_variance": True,
     "season_variance": True,
     "harmonics": 2,
-    "quadratic": True,
     "flow_anomaly_days": 30.0,
 }
-"""The smallest-AIC candidate: a drifting intercept, ln Q and its square, two seasonal harmonics, the flow
-anomaly over a 30-day mean, an AR(1) residual and a sample noise whose sd depends on the flow and the season
-(``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the default of a run without
-candidates)."""
+_PREVIOUS_MODEL: dict[str, Any] = {**_BASE, "quadratic": True}
+_SPLINE: dict[str, Any] = {**_BASE, "flow_spline_knots": 5, "anomaly_slope": True, "residual_ar": False}
+ARKANSAS_MODEL: dict[str, Any] = {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 30.0}
+"""The smallest-AIC candidate: a drifting intercept, a natural cubic spline in ln Q (5 knots), two seasonal
+harmonics, the flow anomaly over a 10-day mean and its product with ln Q, a slower anomaly over a 30-day mean,
+no AR residual (its variance goes to 0 once the anomaly's slope is in), and a sample noise whose sd depends on
+the flow and the season (``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the
+default of a run without candidates)."""
 STATIC_MODEL: dict[str, Any] = {"drift": (), "flow_variance": False}
 """The static regression on ln Q and season with an AR(1) residual on the daily grid (the simpler model)."""
 MOVING_WINDOWS_MODEL: dict[str, Any] = {
@@ -107,7 +111,41 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
         "fast_residual": True,
     },
     dict(MOVING_WINDOWS_MODEL),
-    dict(ARKANSAS_MODEL),
+    dict(_PREVIOUS_MODEL),
+    # WRTDS's local flow response and scatter as global structure: a spline in ln Q, the flow anomaly times ln Q,
+    # noise sd terms; then without the AR residual (its variance went to 0 once the anomaly's slope was in)
+    {**_BASE, "flow_spline_knots": 4},
+    {**_BASE, "quadratic": True, "flow_variance_square": True},
+    {**_BASE, "quadratic": True, "anomaly_variance": True},
+    {**_BASE, "quadratic": True, "anomaly_slope": True},
+    {**_BASE, "quadratic": True, "slope_trend": True},
+    {**_BASE, "quadratic": True, "variance_trend": True},
+    {**_BASE, "flow_spline_knots": 3},
+    {**_BASE, "flow_spline_knots": 5},
+    {**_BASE, "quadratic": True, "anomaly_slope": True, "residual_ar": False},
+    {**_BASE, "flow_spline_knots": 5, "anomaly_slope": True},
+    {**_SPLINE},
+    {**_BASE, "flow_anomaly_days": 90.0, "quadratic": True, "anomaly_slope": True},
+    {**_BASE, "flow_anomaly_days": 10.0, "quadratic": True, "anomaly_slope": True},
+    {**_BASE, "quadratic": True, "anomaly_slope": True, "anomaly_variance": True},
+    {**_SPLINE, "drift": ("intercept", "slope")},
+    {**_SPLINE, "drift": ("intercept", "season")},
+    {**_SPLINE, "season_slope": True},
+    {**_SPLINE, "flow_variance_square": True},
+    {**_SPLINE, "variance_trend": True},
+    {**_SPLINE, "slow_anomaly_days": 90.0},
+    {**_SPLINE, "slow_anomaly_days": 180.0},
+    {**_SPLINE, "slow_anomaly_days": 365.0},
+    {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 90.0},
+    {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 30.0},
+    {**_SPLINE, "season_variance": False},
+    {**_SPLINE, "drift": ()},
+    {**_SPLINE, "flow_spline_knots": 4},
+    {**_SPLINE, "flow_variance": False},
+    {**_SPLINE, "season_variance": False, "flow_anomaly_days": 10.0, "slow_anomaly_days": 90.0},
+    {**_SPLINE, "season_variance": False, "flow_spline_knots": 0, "quadratic": True},
+    {**_SPLINE, "season_variance": False, "flow_variance_square": True},
+    {**_SPLINE, "season_variance": False, "anomaly_variance": True},
 )
 """Every model tried on this record (:class:`~tobitkf.experiments.records_river.RiverModel` options), in the
 order they were tried. ``data-arkansas`` fits each, takes the one of smallest AIC (on the full record, not on
@@ -186,8 +224,16 @@ def _label(opts: dict[str, Any]) -> str:
         parts.append("2 harmonics")
     if opts.get("flow_anomaly_days"):
         parts.append(f"flow anomaly {opts['flow_anomaly_days']:g} d")
+    if opts.get("slow_anomaly_days"):
+        parts.append(f"slow flow anomaly {opts['slow_anomaly_days']:g} d")
+    if opts.get("residual_ar") is False:
+        parts.append("no AR residual")
     if opts.get("fast_residual"):
         parts.append("fast + slow residual")
+    if opts.get("flow_spline_knots"):
+        parts.append(f"ln Q spline {opts['flow_spline_knots']} knots")
+    extra = ("anomaly_slope", "slope_trend", "flow_variance_square", "anomaly_variance", "variance_trend")
+    parts += [k for k in extra if opts.get(k)]
     return ", ".join(parts)
 
 
@@ -301,6 +347,11 @@ def run_arkansas(
         "se": float(d.std(ddof=1) / np.sqrt(d.size)),
         "rmse_wrtds_minus_state_space": rd,
         "rmse_se": rd_se,
+        # the samples that carry WRTDS's side of the difference (the per-sample scores are heavy-tailed)
+        "largest_wrtds_advantage": [
+            {"date": str(dates[i]), "censored": bool(np.isinf(low[i])), "difference": float(d[i])}
+            for i in np.argsort(d)[:3]
+        ],
     }
     data_plot: dict[str, Any] = {"rec": rec, "model": model, "daily": daily, "idx": idx, "cv": cv, "loo": loo}
     # the table of every candidate: fit, AIC, and (loo_all) its refitted leave-one-out against WRTDS
@@ -312,6 +363,7 @@ def run_arkansas(
             "n_params": m.p,
             "loglik": f["loglik"],
             "aic": -2 * f["loglik"] + 2 * m.p,
+            "bic": -2 * f["loglik"] + np.log(m.n_samples) * m.p,  # for reference; the rule is the AIC
             "fit_seconds": round(f["fit_seconds"], 3),
             "estimates": dict(zip(m.names, np.round(f["theta"], 4).tolist())),
         }
@@ -432,6 +484,11 @@ def _arkansas_claims(metrics: dict[str, Any]) -> list[dict[str, Any]]:
     scored = [r for r in table if "loo_mean_log_score" in r]
     best_loo = max(scored, key=lambda r: r["loo_mean_log_score"]) if scored else None
     note = f"{how}: {metrics['model']['label']}"
+    worst = dif.get("largest_wrtds_advantage", [])
+    if worst:
+        note += "; the samples WRTDS predicts best against it: " + ", ".join(
+            f"{w['date']} ({'censored' if w['censored'] else 'measured'}, {w['difference']:+.2f})" for w in worst
+        )
     if best_loo is not None:
         note += (
             f"; the best leave-one-out score of the {len(scored)} scored candidates: {best_loo['model']}, "

@@ -12,12 +12,13 @@ model is the state-space counterpart of WRTDS's moving windows: on the daily gri
 
 with some coefficients random walks (:math:`\beta_{j,d+1} = \beta_{j,d} + w_{j,d}`,
 :math:`w_{j,d} \sim N(0, q_j/365.25)`, :math:`t` in decimal years; the two seasonal terms share one
-:math:`q_2`), optional further known regressors :math:`z_j` (the square of the centred ln Q, a seasonal
-ln Q slope, the second seasonal harmonic, a flow anomaly: :class:`RiverModel`), the residual :math:`\xi`
-a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary variance
-:math:`\sigma^2`) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with an sd that
-depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}` (and on the season:
-``season_variance``). ``data-arkansas`` compares many
+:math:`q_2`), optional further known regressors :math:`z_j` (the square of the centred ln Q or a natural
+cubic spline in it, a seasonal ln Q slope, an ln Q slope trend, the second seasonal harmonic, a flow anomaly
+against the recent mean flow, a slower one, the anomaly times ln Q: :class:`RiverModel`), the residual
+:math:`\xi` a daily AR(1) (a sampled Ornstein-Uhlenbeck process, :math:`\phi = e^{-1/\tau}`, stationary
+variance :math:`\sigma^2`; optional) and :math:`v_d \sim N(0, r^2)` the sample's own noise, optionally with
+an sd that depends on the flow, :math:`r\,e^{\gamma(\ln Q_d - \overline{\ln Q})}` (and on its square, the
+season, the flow anomaly's size, the years: :class:`RiverModel`). ``data-arkansas`` compares many
 such models (:mod:`~tobitkf.experiments.records_arkansas`). The state is :math:`x_d = (\beta_{\cdot,d},
 \xi_d)`, the daily regressors are known time-varying rows :math:`C_d` of a :class:`~tobitkf.LinearSystem`,
 the readings are NaN on days without a sample, and a censored sample lies below its own detection limit.
@@ -54,7 +55,67 @@ import numpy as np
 from .._validation import ValidationError
 from .records_common import _FD_STEP, _YEAR, adf_pass, fd_gradient, fd_hessian, gap_matrices
 
-__all__ = ["RiverModel", "batched_loo_refit"]
+__all__ = ["RiverModel", "batched_loo_refit", "flow_anomaly", "flow_spline_basis", "spline_knots"]
+
+_SPLINE_QUANTILES = {
+    3: (0.1, 0.5, 0.9),
+    4: (0.05, 0.35, 0.65, 0.95),
+    5: (0.05, 0.275, 0.5, 0.725, 0.95),
+}
+
+
+def flow_anomaly(z: np.ndarray, days: float) -> np.ndarray:
+    r"""The flow anomaly :math:`z_d - m_{d-1}` of a daily series z (D,): the day's value against its exponentially
+    weighted mean over the days before, :math:`m_d = m_{d-1} + (z_d - m_{d-1})/L`, :math:`L` = ``days``,
+    :math:`m_0 = z_0` (and the anomaly of day 0 is 0)."""
+    from scipy.signal import lfilter
+
+    z = np.asarray(z, dtype=float)
+    w = 1.0 / days
+    m, _ = lfilter([w], [1.0, w - 1.0], z[1:], zi=[(1.0 - w) * z[0]])  # m_d, d = 1..D-1
+    return z - np.r_[z[0], z[0], m[:-1]]
+
+
+def spline_knots(z: np.ndarray, count: int) -> np.ndarray:
+    """The ``count`` knots (3, 4 or 5) of :func:`flow_spline_basis` at Harrell's quantiles of ``z``.
+
+    Raises
+    ------
+    ValidationError
+        ``count`` not 3, 4 or 5.
+    """
+    if count not in _SPLINE_QUANTILES:
+        raise ValidationError(f"flow_spline_knots: expected 0 (none), 3, 4 or 5 knots, found {count!r}")
+    return np.quantile(np.asarray(z, dtype=float), _SPLINE_QUANTILES[count])
+
+
+def flow_spline_basis(z: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    r"""The K - 2 nonlinear columns (len(z), K - 2) of the restricted (natural) cubic spline with knots
+    :math:`k_1 < \dots < k_K` (:class:`RiverModel`'s ``flow_spline_knots``):
+
+    .. math::
+
+        s_j(z) = \frac{(z - k_j)_+^3 - (z - k_{K-1})_+^3\,\frac{k_K - k_j}{k_K - k_{K-1}}
+                 + (z - k_K)_+^3\,\frac{k_{K-1} - k_j}{k_K - k_{K-1}}}{(k_K - k_1)^2};
+
+    0 below :math:`k_1`, linear above :math:`k_K` (the cubic and quadratic terms cancel there).
+    """
+    z = np.asarray(z, dtype=float)
+    k = np.asarray(knots, dtype=float)
+    K = k.size
+    if K < 3 or np.any(np.diff(k) <= 0):
+        raise ValidationError(f"knots: expected at least 3 strictly increasing knots, found {k.tolist()}")
+
+    def cube(a: np.ndarray) -> np.ndarray:
+        return np.maximum(a, 0.0) ** 3
+
+    span = (k[-1] - k[0]) ** 2
+    last = k[-1] - k[-2]
+    cols = [
+        (cube(z - k[j]) - cube(z - k[-2]) * (k[-1] - k[j]) / last + cube(z - k[-1]) * (k[-2] - k[j]) / last) / span
+        for j in range(K - 2)
+    ]
+    return np.column_stack(cols)
 
 
 @dataclass
@@ -107,13 +168,54 @@ class RiverModel:
         A second Ornstein-Uhlenbeck residual beside the first, with its own time scale and sd (parameters
         ``log_tau_fast_days``, ``log_sigma_fast``): a residual with a short memory (storm events, days)
         and a long one (months); needs ``residual_ar``.
+    flow_spline_knots : int
+        If 3 or more, a smooth nonlinear response to the flow: the restricted (natural) cubic spline in
+        :math:`z = \ln Q - \overline{\ln Q}` with this many knots :math:`k_1 < \dots < k_K` at fixed quantiles
+        of the daily z (Harrell's: 0.1, 0.5, 0.9 for 3 knots; 0.05, 0.35, 0.65, 0.95 for 4; 0.05, 0.275, 0.5,
+        0.725, 0.95 for 5), adding the K - 2 regressors (coefficients ``ln_q_rcs1`` ...)
+
+        .. math::
+
+            s_j(z) = \frac{(z - k_j)_+^3 - (z - k_{K-1})_+^3\,\frac{k_K - k_j}{k_K - k_{K-1}}
+                     + (z - k_K)_+^3\,\frac{k_{K-1} - k_j}{k_K - k_{K-1}}}{(k_K - k_1)^2},
+            \quad j = 1..K-2,
+
+        each cubic between the knots and linear beyond the outer ones, so that with the ln Q column the
+        flow response is a natural cubic spline (WRTDS fits a different regression at each flow; this is its
+        smooth global counterpart).
+    slow_anomaly_days : float
+        If positive, a second flow anomaly regressor over this many days (coefficient ``flow_anomaly_slow``),
+        :math:`\ln Q_d - m'_{d-1}` with :math:`m'` the exponentially weighted mean of ``flow_anomaly_days``'s
+        definition over the longer window: a wet or dry season (months) beside the storm (weeks).
+    anomaly_slope : bool
+        Add the regressor :math:`a_d z_d` (the flow anomaly times the centred ln Q, coefficient
+        ``flow_anomaly_ln_q``): the response to a rising or falling flow depends on the flow itself; needs
+        ``flow_anomaly_days``.
+    slope_trend : bool
+        Add the regressor :math:`z_d (t_d - \bar t)/10` (coefficient ``ln_q_trend``, :math:`t` in decimal years,
+        :math:`\bar t` the middle of the daily grid): an ln Q slope that changes linearly over the decades;
+        needs ``years``.
+    flow_variance_square : bool
+        The sample noise's log sd also carries :math:`\gamma_2 z^2` (parameter ``gamma_flow_sq``): a noise sd
+        that can be larger (or smaller) at both extremes of the flow; needs ``flow_variance``.
+    anomaly_variance : bool
+        The sample noise's log sd also carries :math:`\gamma_a |a_d|` (parameter ``gamma_anomaly``, :math:`a_d` the
+        flow anomaly): a sample taken while the flow rises or falls fast (a storm) scatters more; needs
+        ``flow_anomaly_days``.
+    variance_trend : bool
+        The sample noise's log sd also carries :math:`\gamma_t (t - \bar t)/10` (parameter
+        ``gamma_trend``, per decade): a record whose scatter changes over the years; needs ``years``.
+    years : (D,) ndarray, optional
+        The decimal year of every day of the grid (:meth:`from_record` sets it); needed by ``slope_trend`` and
+        ``variance_trend``.
 
     Attributes
     ----------
     names : tuple of str
         The unconstrained parameters, in order: ``b_<coef>`` (the coefficients' prior means),
         ``log_tau_days``, ``log_sigma`` (the AR residual), ``log_r`` (the sample noise sd),
-        ``gamma_flow``, ``log_sd_drift_<group>`` (the random walks' sd per year).
+        ``gamma_flow``, ``gamma_flow_sq``, ``gamma_sin``, ``gamma_cos``, ``gamma_anomaly``, ``gamma_trend`` (the log noise sd's
+        coefficients, those of the options chosen), ``log_sd_drift_<group>`` (the random walks' sd per year).
 
     Raises
     ------
@@ -136,6 +238,14 @@ class RiverModel:
     coef: tuple[str, ...] = ("intercept", "ln_q", "sin", "cos")
     residual_ar: bool = True
     fast_residual: bool = False
+    slow_anomaly_days: float = 0.0
+    flow_spline_knots: int = 0
+    anomaly_slope: bool = False
+    slope_trend: bool = False
+    flow_variance_square: bool = False
+    anomaly_variance: bool = False
+    variance_trend: bool = False
+    years: np.ndarray | None = None
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
     names: tuple[str, ...] = field(init=False)
@@ -167,15 +277,38 @@ class RiverModel:
             si, co = (self.rows[:, self.coef.index(c)] for c in ("sin", "cos"))
             self.rows = np.column_stack([self.rows[:, :-1], 2 * si * co, co**2 - si**2, self.rows[:, -1:]])
             self.coef = self.coef + ("sin2", "cos2")
-        if self.flow_anomaly_days > 0:
-            from scipy.signal import lfilter
-
+        for days, name in ((self.flow_anomaly_days, "flow_anomaly"), (self.slow_anomaly_days, "flow_anomaly_slow")):
+            if days > 0:
+                anomaly = flow_anomaly(self.rows[:, self.coef.index("ln_q")], days)
+                self.rows = np.column_stack([self.rows[:, :-1], anomaly, self.rows[:, -1:]])
+                self.coef = self.coef + (name,)
+        if self.years is not None:
+            self.years = np.asarray(self.years, dtype=float)
+            if self.years.shape != (self.rows.shape[0],):
+                raise ValidationError(
+                    f"years: expected one decimal year per day of rows ({self.rows.shape[0]}), found shape "
+                    f"{self.years.shape}"
+                )
+        for opt in ("slope_trend", "variance_trend"):
+            if getattr(self, opt) and self.years is None:
+                raise ValidationError(f"{opt}: needs years (the decimal year of every day of rows), found None")
+        decades = None if self.years is None else (self.years - 0.5 * (self.years[0] + self.years[-1])) / 10.0
+        if self.flow_spline_knots:
             z = self.rows[:, self.coef.index("ln_q")]
-            w = 1.0 / self.flow_anomaly_days
-            m, _ = lfilter([w], [1.0, w - 1.0], z[1:], zi=[(1.0 - w) * z[0]])  # m_d, d = 1..D-1
-            anomaly = z - np.r_[z[0], z[0], m[:-1]]
-            self.rows = np.column_stack([self.rows[:, :-1], anomaly, self.rows[:, -1:]])
-            self.coef = self.coef + ("flow_anomaly",)
+            basis = flow_spline_basis(z, spline_knots(z, self.flow_spline_knots))
+            self.rows = np.column_stack([self.rows[:, :-1], basis, self.rows[:, -1:]])
+            self.coef = self.coef + tuple(f"ln_q_rcs{j + 1}" for j in range(basis.shape[1]))
+        if self.anomaly_slope:
+            if "flow_anomaly" not in self.coef:
+                raise ValidationError("anomaly_slope: needs flow_anomaly_days > 0 (the flow anomaly regressor)")
+            a, z = (self.rows[:, self.coef.index(c)] for c in ("flow_anomaly", "ln_q"))
+            self.rows = np.column_stack([self.rows[:, :-1], a * z, self.rows[:, -1:]])
+            self.coef = self.coef + ("flow_anomaly_ln_q",)
+        if self.slope_trend:
+            assert decades is not None
+            z = self.rows[:, self.coef.index("ln_q")]
+            self.rows = np.column_stack([self.rows[:, :-1], z * decades, self.rows[:, -1:]])
+            self.coef = self.coef + ("ln_q_trend",)
         if self.fast_residual:
             if not self.residual_ar:
                 raise ValidationError("fast_residual: needs residual_ar (the second residual beside the first)")
@@ -194,12 +327,26 @@ class RiverModel:
         if self.flow_variance and self.zcol is None:
             raise ValueError("flow_variance: needs an ln_q regressor")
         self.z = self.C[:, self.zcol] if self.zcol is not None else np.zeros(self.y.size)
-        # the columns of the rows that shift the sample noise's log sd (gamma_flow, gamma_sin, gamma_cos)
-        self.vcols: list[int] = [self.zcol] if self.flow_variance and self.zcol is not None else []
+        # the daily covariates of the sample noise's log sd (gamma_flow, gamma_flow_sq, gamma_sin, gamma_cos,
+        # gamma_trend, those chosen): V (D, nv), noise sd r exp(V_d gamma)
+        zd = self.rows[:, self.zcol] if self.zcol is not None else None
+        vcols: list[np.ndarray] = [zd] if self.flow_variance and zd is not None else []
+        if self.flow_variance_square:
+            if not self.flow_variance or zd is None:
+                raise ValidationError("flow_variance_square: needs flow_variance (and an ln_q regressor)")
+            vcols.append(zd**2)
         if self.season_variance:
             if "sin" not in self.coef or "cos" not in self.coef:
                 raise ValidationError(f"season_variance: needs the sin and cos regressors, found coef={self.coef}")
-            self.vcols += [self.coef.index("sin"), self.coef.index("cos")]
+            vcols += [self.rows[:, self.coef.index("sin")], self.rows[:, self.coef.index("cos")]]
+        if self.anomaly_variance:
+            if "flow_anomaly" not in self.coef:
+                raise ValidationError("anomaly_variance: needs flow_anomaly_days > 0 (the flow anomaly regressor)")
+            vcols.append(np.abs(self.rows[:, self.coef.index("flow_anomaly")]))
+        if self.variance_trend:
+            assert decades is not None
+            vcols.append(decades)
+        self.V = np.column_stack(vcols) if vcols else np.zeros((self.rows.shape[0], 0))
         if self.lower is None:
             self.lower = np.where(self.censored, self.y, -np.inf)
         self.lower = np.asarray(self.lower, dtype=float)
@@ -212,7 +359,10 @@ class RiverModel:
             + (("log_tau_fast_days", "log_sigma_fast") if self.fast_residual else ())
             + ("log_r",)
             + (("gamma_flow",) if self.flow_variance else ())
+            + (("gamma_flow_sq",) if self.flow_variance_square else ())
             + (("gamma_sin", "gamma_cos") if self.season_variance else ())
+            + (("gamma_anomaly",) if self.anomaly_variance else ())
+            + (("gamma_trend",) if self.variance_trend else ())
             + tuple(f"log_sd_drift_{g}" for g in self.drift)
         )
 
@@ -233,6 +383,7 @@ class RiverModel:
         rows = np.column_stack(
             [np.ones(lq.size), lq - lq.mean(), np.sin(2 * np.pi * t), np.cos(2 * np.pi * t), np.ones(lq.size)]
         )
+        options.setdefault("years", t)
         day = np.searchsorted(rec.daily_date, rec.date)
         if np.any(rec.daily_date[np.minimum(day, lq.size - 1)] != rec.date):
             raise ValueError("rec: a sample day is not in the daily discharge record")
@@ -263,7 +414,7 @@ class RiverModel:
         nb = self.nb
         q = np.zeros(th.shape[:-1] + (nb,))
         j = nb + 2 * (int(self.residual_ar) + int(self.fast_residual))  # index of log_r
-        nv = len(self.vcols)
+        nv = self.V.shape[1]
         off = j + 1 + nv
         for i, g in enumerate(self.drift):
             for c in self.GROUPS[g]:
@@ -275,19 +426,22 @@ class RiverModel:
             "tau_fast": np.exp(th[..., nb + 2]) if self.fast_residual else np.ones(th.shape[:-1]),
             "sigma_fast": np.exp(th[..., nb + 3]) if self.fast_residual else np.zeros(th.shape[:-1]),
             "r": np.exp(th[..., j]),
-            "gamma": th[..., j + 1 : j + 1 + nv],  # (..., nv): the log sd's coefficients on the rows' vcols
+            "gamma": th[..., j + 1 : j + 1 + nv],  # (..., nv): the log sd's coefficients on the columns of V
             "q": q,  # per year
         }
 
-    def noise_sd(self, nat: dict[str, np.ndarray], rows: np.ndarray) -> np.ndarray:
-        r"""The sample noise sd :math:`r\,e^{\gamma^T v}` (per run (N, T)) on the rows ``rows`` (T, nx + nres) of
-        :math:`C` (:math:`v` their ``vcols``: the centred ln Q, and sin, cos with ``season_variance``)."""
-        shift = np.einsum("...j,tj->...t", nat["gamma"], rows[:, self.vcols])
+    def noise_sd(self, nat: dict[str, np.ndarray], days: Any = None) -> np.ndarray:
+        r"""The sample noise sd :math:`r\,e^{\gamma^T v_d}` (per run (N, T)) on the days ``days`` (T,) of the
+        daily grid (default every day), :math:`v_d` the row of ``V`` (the centred ln Q with ``flow_variance``, its
+        square with ``flow_variance_square``, sin and cos with ``season_variance``, the flow anomaly's size with
+        ``anomaly_variance``, decades from the middle of the grid with ``variance_trend``)."""
+        V = self.V if days is None else self.V[np.asarray(days, dtype=int)]
+        shift = np.einsum("...j,tj->...t", nat["gamma"], V)
         return nat["r"][..., None] * np.exp(shift)
 
     def noise_var(self, nat: dict[str, np.ndarray], k: Any) -> np.ndarray:
         """The sample noise variance of sample(s) k, per run (N,) or (N, len(k)) (:meth:`noise_sd` squared)."""
-        v = self.noise_sd(nat, self.C[np.atleast_1d(k)]) ** 2
+        v = self.noise_sd(nat, self.day[np.atleast_1d(k)]) ** 2
         return v if np.ndim(k) else v[..., 0]
 
     def start(self) -> np.ndarray:
@@ -300,7 +454,7 @@ class RiverModel:
             [np.log(30.0), np.log(0.7 * resid)] if self.residual_ar else [],
             [np.log(3.0), np.log(0.3 * resid)] if self.fast_residual else [],
             np.log(0.5 * resid),
-            [0.0] * len(self.vcols),
+            [0.0] * self.V.shape[1],
             [np.log(0.05)] * len(self.drift),
         ]
 
@@ -465,7 +619,7 @@ class RiverModel:
         X[:, dyn] += x
         PX = np.zeros((D, self.nx, self.nx))
         PX[:, dyn[:, None], dyn[None, :]] = P
-        noise = self.noise_sd(nat, self.rows)[0]
+        noise = self.noise_sd(nat)[0]
         return {
             "mean": X,
             "cov": PX,
@@ -493,7 +647,7 @@ class RiverModel:
             A=np.diag(a[0]),
             C=self.rows[:, None, :],
             Q=np.diag(qd[0]),
-            R=(self.noise_sd(nat, self.rows)[0] ** 2)[:, None, None],
+            R=(self.noise_sd(nat)[0] ** 2)[:, None, None],
             x0=x0[0],
             P0=P0[0],
         )
