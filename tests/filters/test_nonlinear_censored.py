@@ -282,6 +282,6 @@ def test_particle_filter_refusals_for_a_nonlinear_system():
     with pytest.raises(tk.ValidationError, match="one channel piece"):
         tk.ParticleFilter(pendulum(), [tk.Censoring(lower=0.0), tk.Quantizer(0.5)])
     with pytest.raises(tk.ValidationError, match="region"):
-        tk.ParticleFilter(pendulum(), tk.RandomSaturation(mu=[0.5, 0.5], nu=[0.5, 0.5]))
+        tk.ParticleFilter(pendulum(), tk.ProtocolChannel(2, window=0))
     with pytest.raises(tk.ValidationError, match="optimal"):
         tk.ParticleFilter(pendulum(), tk.Censoring(lower=0.0), proposal="optimal")

@@ -359,13 +359,20 @@ class _Fading(_Augmented):
         return X
 
     def modes(self, rng, k, X, dy):
-        n, m = self.n, self.m
-        N, Np = X.shape[:2]
+        n = self.n
         S = min(self.L, k)
         cx = np.stack(
             [_mat(X[..., s * n : (s + 1) * n], measurement_matrix_at(self.system, k - s).T) for s in range(S + 1)],
             axis=2,
         )  # (N, Np, S+1, m)
+        return self._faded_modes(rng, k, cx, dy)
+
+    def _faded_modes(self, rng, k, cx, dy):
+        r"""The latent reading's law given each particle's unfaded terms ``cx`` (N, Np, S+1, m), term s the
+        reading :math:`C_{k-s}x_{k-s}` that the gain :math:`\vartheta(s)` multiplies (a NonlinearSystem's order 0:
+        :math:`h(x_k, k)`), plus the unfaded feedthrough ``dy`` (N, m) or 0."""
+        N, Np, S1, m = cx.shape
+        S = S1 - 1
         sigma = _diag_sigma(self.system, k, "fading readings")
         if self.gaussian:
             mu = np.einsum("rpsm,sm->rpm", cx, self.mean_g[: S + 1])
@@ -626,7 +633,11 @@ class _Saturation(_Model):
             censoring.check(system.m)
 
     def modes(self, rng, k, X, dy):
-        cx = _mat(X, self.system.measurement(k).T)
+        return self._saturated_modes(k, _mat(X, self.system.measurement(k).T))
+
+    def _saturated_modes(self, k, cx):
+        """The three modes given each particle's unsaturated reading ``cx`` (N, Np, m) (:math:`C_kx_k`; a
+        NonlinearSystem's :math:`h(x_k, k)`)."""
         sd = _diag_sigma(self.system, k, "saturated readings")
         return [
             (self.logp[0], saturate(cx, self.channel.level), sd),

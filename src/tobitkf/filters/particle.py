@@ -178,7 +178,8 @@ class ParticleFilter(Estimator):
     ----------
     system : LinearSystem or NonlinearSystem
         The dynamics (and C, R, D of the readings). R must be diagonal and positive. A
-        :class:`~tobitkf.NonlinearSystem` runs the bootstrap proposal with one contract channel
+        :class:`~tobitkf.NonlinearSystem` runs the bootstrap proposal with one contract channel, or with
+        :class:`~tobitkf.RiceFading` of order 0 or :class:`~tobitkf.RandomSaturation`, either with a Censoring
         (:mod:`tobitkf.filters.particle_nonlinear`).
     channel : Channel or sequence of Channel, optional
         :class:`~tobitkf.Censoring` (one-, two-sided, time-varying; several regions as stacked
