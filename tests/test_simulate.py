@@ -257,3 +257,21 @@ def test_simulate_validation_inputs_and_horizon():
     )
     with pytest.raises(ValidationError, match=r"C\(2\): expected finite numbers, found NaN"):
         simulate(nan_c, steps=3)
+
+
+def test_random_saturation_of_a_nonlinear_system_is_the_linear_draw_for_a_linear_h():
+    # (2) with h(x_k, k) = C x_k and f(x, k) = A x drawn through tk.simulate equals the linear system's draw for the
+    # same seed: the same states, modes and readings (the draw order of the linear case unchanged)
+    import tobitkf as tk
+
+    A, C = np.array([[0.95, 0.1], [-0.1, 0.9]]), np.array([[1.0, 0.5], [0.0, 1.0]])
+    kw = dict(Q=0.05 * np.eye(2), R=np.diag([0.05, 0.04]), x0=[1.0, 0.0], P0=np.eye(2))
+    sat = tk.RandomSaturation(mu=[0.4, 0.2], nu=[0.8, 0.9], level=[0.8, 0.6])
+    lin = tk.simulate(tk.LinearSystem(A=A, C=C, **kw), 30, 4, channel=sat, seed=7)
+    nl_sys = tk.NonlinearSystem(lambda x, k: x @ A.T, lambda x, k: x @ C.T, **kw)
+    nl = tk.simulate(nl_sys, 30, 4, channel=sat, seed=7)
+    np.testing.assert_allclose(nl.x, lin.x, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(nl.extras["alpha"], lin.extras["alpha"])
+    np.testing.assert_array_equal(nl.extras["beta"], lin.extras["beta"])
+    np.testing.assert_allclose(nl.y, lin.y, rtol=0, atol=1e-12)
+    assert 0.2 < nl.extras["alpha"].mean() < 0.4  # both modes occur

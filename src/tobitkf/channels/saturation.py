@@ -122,6 +122,13 @@ class RandomSaturation(Channel):
             "missing": (1 - self.mu) * (1 - self.nu),
         }
 
+    @property
+    def draws_nonlinear(self) -> bool:
+        r"""True: :func:`tobitkf.simulate` draws (2) for a :class:`~tobitkf.NonlinearSystem` with :math:`h(x_k, k)`
+        in place of :math:`C_kx_k` (its filters: :class:`~tobitkf.SaturationNonlinearAssumedDensityFilter`, the
+        particle filter)."""
+        return True
+
     # --- drawing and applying -------------------------------------------------------
     def draw_modes(self, rng: np.random.Generator, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Draw α and β of shape ``shape + (m,)`` (0/1 floats), α first, then β."""
@@ -145,16 +152,28 @@ class RandomSaturation(Channel):
     def draw(
         self, rng: np.random.Generator, x: np.ndarray, system: Any, noise: np.ndarray, inputs: Any = None
     ) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-        """Measurement-model hook of :func:`tobitkf.simulate`: eq. (2) on a linear system.
+        """Measurement-model hook of :func:`tobitkf.simulate`: eq. (2) on a linear system, or on a
+        :class:`~tobitkf.NonlinearSystem` with :math:`h(x_k, k)` (or :math:`h(x_k, k, u_k)`) in place of
+        :math:`C_kx_k`.
 
         ``x`` is (N, T+1, n), ``noise`` the (N, T, m) draw of v_k; returns y_1..y_T and the
         draws ``{"alpha", "beta"}`` (N, T, m). Lets the linear-Gaussian simulator produce ROSS
         measurements for the other estimators (Gaussian noise instead of the paper's l_2 noise).
         """
-        refuse_feedthrough(system, inputs, "the randomly saturated reading (2)")
         N, T = noise.shape[0], noise.shape[1]
+        if hasattr(system, "C"):
+            refuse_feedthrough(system, inputs, "the randomly saturated reading (2)")
         alpha, beta = self.draw_modes(rng, (N, T))
-        cx = np.stack([x[:, k] @ system.measurement(k).T for k in range(1, T + 1)], axis=1)
+        if not hasattr(system, "C"):  # a NonlinearSystem (draws_nonlinear): an input enters through h
+            cx = np.stack(
+                [
+                    system.measurement_map(x[:, k], k, None if inputs is None else inputs[:, k - 1])
+                    for k in range(1, T + 1)
+                ],
+                axis=1,
+            )
+        else:
+            cx = np.stack([x[:, k] @ system.measurement(k).T for k in range(1, T + 1)], axis=1)
         if cx.shape[-1] != self.m:
             raise ShapeError(f"system: expected {self.m} measurement channels (length of mu), got {cx.shape[-1]}")
         return self.measure(cx, alpha, beta, noise), {"alpha": alpha, "beta": beta}

@@ -102,7 +102,8 @@ def simulate(
         The model (a :class:`~tobitkf.NonlinearSystem` draws :math:`x_k = f(x_{k-1}, k-1) + w_{k-1}`,
         :math:`y^*_k = h(x_k, k) + v_k`, with an input :math:`f(x_{k-1}, k-1, u_k)` and :math:`h(x_k, k, u_k)`;
         no channel piece may draw its reading from ``C``; a :class:`~tobitkf.RiceFading` of order 0 draws
-        :math:`\vartheta_k h(x_k, k) + v_k`).
+        :math:`\vartheta_k h(x_k, k) + v_k`, a :class:`~tobitkf.RandomSaturation` its three modes at
+        :math:`h(x_k, k)`).
     steps : int
         Horizon T (number of measurements).
     runs : int, default 1
