@@ -20,15 +20,15 @@ from tobitkf.filters import _compiled_soa as soa  # noqa: E402
 from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop  # noqa: E402
 
 #: the state sizes every update is checked at in the default run. The step is compiled once per state size and
-#: update (one version of ``soa_loop`` each, 10 to 30 s of CPU on a fresh numba cache), and the rest of the suite
-#: compiles the versions of n = 1 and 2 anyway; the larger sizes, up to :data:`~tobitkf.filters._compiled_soa.SOA_MAX_N`,
-#: with the heavy tests (``-m heavy``, which CI runs too)
+#: update (one version of ``soa_loop`` each, 10 to 30 s of CPU on a fresh numba cache), and other tests of the default
+#: run compile most versions at n = 1 and 2 anyway (the public filters on one- and two-state systems); the larger
+#: sizes, up to :data:`~tobitkf.filters._compiled_soa.SOA_MAX_N`, with the heavy tests (``-m heavy``, which CI runs too)
 DEFAULT_SIZES = (1, 2)
 
 
-def _sizes(*ns):
-    """The parameters ``ns`` of a state size: those of :data:`DEFAULT_SIZES` as they are, the others heavy."""
-    return [n if n in DEFAULT_SIZES else pytest.param(n, marks=pytest.mark.heavy) for n in ns]
+def _sizes(*ns, default=DEFAULT_SIZES):
+    """The parameters ``ns`` of a state size: those in ``default`` as they are, the others heavy."""
+    return [n if n in default else pytest.param(n, marks=pytest.mark.heavy) for n in ns]
 
 
 def _assert_close(a, b, rtol=1e-12):
@@ -147,7 +147,8 @@ def test_tkf_prior_40_sigma_from_the_limit(dist, upper):
     assert np.all(np.isfinite(g)) and (np.all(g < 1e-300) or np.all(g > 1 - 1e-12))
 
 
-@pytest.mark.parametrize("n", _sizes(1, 2, 4))
+# n = 4 too: the TKF's version at n = 4 is compiled in the default run anyway (tests/filters/test_kernel_outputs.py)
+@pytest.mark.parametrize("n", _sizes(1, 2, 4, default=(1, 2, 4)))
 @pytest.mark.parametrize("joseph", [False, True])
 @pytest.mark.parametrize("code", [0, 1, 2])
 def test_tkf_two_sided_equals_the_compiled_loop(n, joseph, code):
