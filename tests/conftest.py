@@ -22,8 +22,10 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
-# The heavy tests: whole experiments, the docs site with every tutorial executed, Monte Carlo recovery.
-# They take most of the suite's time, so the default run (the README's test command) leaves them out
+# The heavy tests: whole experiments, the docs site with every tutorial executed, Monte Carlo recovery, and
+# (marked in their modules) compiled kernels at the sizes the rest of the suite does not compile, each a version of
+# its own to compile on a fresh numba cache. They take most of the suite's time, so the default run (the README's
+# test command) leaves them out
 # and .ci/run runs them as a second step (`python -m pytest -n 2 -q -m heavy`); run one by hand with
 # `-m heavy` (or `-m ""` for everything).
 HEAVY = (

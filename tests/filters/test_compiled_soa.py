@@ -19,6 +19,17 @@ pytest.importorskip("numba")
 from tobitkf.filters import _compiled_soa as soa  # noqa: E402
 from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop  # noqa: E402
 
+#: the state sizes every update is checked at in the default run. The step is compiled once per state size and
+#: update (one version of ``soa_loop`` each, 10 to 30 s of CPU on a fresh numba cache), and other tests of the default
+#: run compile most versions at n = 1 and 2 anyway (the public filters on one- and two-state systems); the larger
+#: sizes, up to :data:`~tobitkf.filters._compiled_soa.SOA_MAX_N`, with the heavy tests (``-m heavy``, which CI runs too)
+DEFAULT_SIZES = (1, 2)
+
+
+def _sizes(*ns, default=DEFAULT_SIZES):
+    """The parameters ``ns`` of a state size: those in ``default`` as they are, the others heavy."""
+    return [n if n in default else pytest.param(n, marks=pytest.mark.heavy) for n in ns]
+
 
 def _assert_close(a, b, rtol=1e-12):
     a, b = np.asarray(a), np.asarray(b)
@@ -74,7 +85,7 @@ def _case(n, N, T, seed, *, inputs=False):
     return rng, A, Q, H, x0, P0, y, bu, du
 
 
-@pytest.mark.parametrize("n", [1, 2, 3])
+@pytest.mark.parametrize("n", _sizes(1, 2, 3))
 @pytest.mark.parametrize("joseph", [False, True])
 @pytest.mark.parametrize("code", [0, 1, 2])
 def test_tkf_equals_the_compiled_loop(n, joseph, code):
@@ -91,7 +102,7 @@ def test_tkf_equals_the_compiled_loop(n, joseph, code):
     assert np.isnan(y).any() and np.isfinite(a[0]).all()
 
 
-@pytest.mark.parametrize("n", [2, 3])
+@pytest.mark.parametrize("n", _sizes(2, 3))
 def test_tkf_limits_changing_side_with_the_step(n):
     """Per-step limits: a lower limit on even steps, an upper limit on odd ones, at different levels; the
     variances-only covariance output."""
@@ -136,7 +147,8 @@ def test_tkf_prior_40_sigma_from_the_limit(dist, upper):
     assert np.all(np.isfinite(g)) and (np.all(g < 1e-300) or np.all(g > 1 - 1e-12))
 
 
-@pytest.mark.parametrize("n", [1, 2, 4])
+# n = 4 too: the TKF's version at n = 4 is compiled in the default run anyway (tests/filters/test_kernel_outputs.py)
+@pytest.mark.parametrize("n", _sizes(1, 2, 4, default=(1, 2, 4)))
 @pytest.mark.parametrize("joseph", [False, True])
 @pytest.mark.parametrize("code", [0, 1, 2])
 def test_tkf_two_sided_equals_the_compiled_loop(n, joseph, code):
@@ -189,7 +201,7 @@ def test_tkf_two_sided_prior_40_sigma_from_the_window(dist):
     assert np.isfinite(a[0]).all() and np.isfinite(a[1]).all()
 
 
-@pytest.mark.parametrize("n", [1, 3])
+@pytest.mark.parametrize("n", _sizes(1, 2, 3))
 @pytest.mark.parametrize("joseph", [False, True])
 def test_kf_equals_the_compiled_loop(n, joseph):
     """The Kalman filter, a covariance per run, missing readings, 200 runs (one block and a remainder)."""
@@ -295,7 +307,7 @@ _LIMITS = {
 }
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 4])
+@pytest.mark.parametrize("n", _sizes(1, 2, 3, 4))
 @pytest.mark.parametrize("kind", list(_LIMITS))
 @pytest.mark.parametrize("extras", [True, False])
 def test_adf_equals_the_compiled_loop(n, kind, extras):
@@ -316,10 +328,11 @@ def test_adf_equals_the_compiled_loop(n, kind, extras):
         assert np.isfinite(s[5]).all() and (s[4] < 1.0).any()  # censored readings took part
 
 
-def test_adf_per_step_limits_and_noise_given_classes_and_two_passes():
+@pytest.mark.parametrize("n", _sizes(2, 3))
+def test_adf_per_step_limits_and_noise_given_classes_and_two_passes(n):
     """Limits changing kind with the step (lower, upper, two-sided, none), a noise variance per step, the classes
     given (a reading at a limit declared uncensored), and the two-pass order (one channel: the same update)."""
-    n, N, T = 3, 40, 24
+    N, T = 40, 24
     rng, A, Q, H, x0, P0, y, _, _ = _case(n, N, T, 77)
     kinds = list(_LIMITS.values())
     lo = np.array([kinds[t % 4][0] for t in range(T)])[None, :, None]

@@ -10,6 +10,8 @@ import pytest
 import tobitkf as tk
 from tobitkf.filters._compiled_fading_moments import fading_moments_batch
 
+from ._jit import jitted
+
 TOL = 1e-12
 
 A = np.array([[0.95, 0.1], [-0.1, 0.9]])
@@ -50,8 +52,7 @@ def _nonlinear(jit: bool = False) -> tk.NonlinearSystem:
 
 
 def _jitted():
-    numba = pytest.importorskip("numba")
-    return numba.njit(_f), numba.njit(_h)
+    return jitted(_f, _h)  # the same compiled functions for every test: one specialisation of the compiled loop
 
 
 def _faded(x, h, fading, rng, R):

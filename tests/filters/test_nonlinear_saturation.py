@@ -9,6 +9,8 @@ import pytest
 
 import tobitkf as tk
 
+from ._jit import jitted
+
 TOL = 1e-12
 A = np.array([[0.95, 0.1], [-0.1, 0.9]])
 C = np.array([[1.0, 0.5], [0.0, 1.0]])
@@ -66,8 +68,7 @@ def test_sensors_that_never_saturate_give_the_plain_adf():
 
 @pytest.mark.parametrize("iterations", [1, 3])
 def test_compiled_loop_equals_numpy_path(iterations):
-    numba = pytest.importorskip("numba")
-    f, h = numba.njit(_f), numba.njit(_h)
+    f, h = jitted(_f, _h)  # the same compiled functions for both parameters: one specialisation of the loop
     sys_ = tk.NonlinearSystem(f, h, Q=np.diag([1e-3, 4e-3]), R=R, x0=[0.8, 0.0], P0=0.1 * np.eye(2))
     data = tk.simulate(sys_, steps=15, runs=5, seed=6)
     y = _saturated(data.x, h, SAT, np.random.default_rng(7), R)
