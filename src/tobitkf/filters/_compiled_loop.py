@@ -509,8 +509,8 @@ def compiled_loop(
     compiles its own version of the loop, which holds that family's update alone (the branches of the others are
     pruned before typing: compiled with a run-time code, the loop held every family's update, and the Kalman
     filter's version took minutes to compile). A kind is found by the ordinary dispatch on the argument types; an
-    integer from Python is made a literal (``numba.literally``: the dispatcher compiles again on each such call, a
-    few milliseconds; the package passes kinds) and from compiled code must be a literal.
+    integer from Python is made a literal (``numba.literally``: the dispatcher retypes each such call, tenths of a
+    second; the package's callers pass kinds) and from compiled code must be a literal.
     ``y`` (N, T, m) readings (NaN: missing); ``cls`` (N, T, m) int8 their classes, or (N, 0, m): by the limit
     rule (assumed-density families only); ``A``, ``Qd`` (NA, TA, n, n) acting on the top block of the state
     (n_x = ``x0.shape[1]`` > n: the block shift); ``H`` (TH, m, n_x) the rows (KF, TKF: C, one row); ``F`` (TF,
@@ -544,7 +544,9 @@ def _by_kind(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, 
     raise TypeError("compiled code only")
 
 
-@overload(_by_kind, jit_options={"error_model": "numpy", "nogil": True})
+# inline: the choice adds no function of its own around the loop (numba optimises the whole linked module of every
+# compiled function again, so that each wrapper around the loop costs about one more LLVM pass over all of it)
+@overload(_by_kind, inline="always", jit_options={"error_model": "numpy", "nogil": True})
 def _by_kind_typed(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
     means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
     code = kind_code(family)

@@ -378,7 +378,7 @@ def kind_code(kind) -> int | None:
     """The family code a numba type carries (at typing time): the length of a kind tuple (:func:`kind`), the value
     of an integer literal; None for anything else (a run-time integer)."""
     if isinstance(kind, types.BaseTuple):
-        return kind.count
+        return len(kind)
     if isinstance(kind, types.IntegerLiteral):
         return int(kind.literal_value)
     return None
