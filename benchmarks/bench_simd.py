@@ -47,6 +47,7 @@ def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
     from _fused_tkf import fused_tkf
     from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
     from tobitkf.filters._compiled_loop import compiled_loop
+    from tobitkf.filters._compiled_moments import CENSORED, kind
     from tobitkf.filters._compiled_soa import soa_censored_loop, soa_kalman_loop, soa_tobit_loop
 
     w = 0.05
@@ -86,7 +87,7 @@ def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
 
     def adf(fn):
         return lambda: fn(
-            0, yw, cls0, A[None, None], Q[None, None], H, np.zeros((1, 1, 0, n)), R, lo2[None], hi2[None],
+            kind(CENSORED), yw, cls0, A[None, None], Q[None, None], H, np.zeros((1, 1, 0, n)), R, lo2[None], hi2[None],
             np.zeros((1, 1, 0)), 0, 1, 0, False, bu, du, x0, P0, means, e_c, e_m, e_c, pu, e1, ll,
             np.empty((N, 0, 1, 0)), xl, Pl,
         )  # fmt: skip

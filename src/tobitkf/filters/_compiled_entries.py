@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._compiled_loop import FADING, KALMAN, PROTOCOL_TKF, TOBIT, compiled_loop
+from ._compiled_loop import FADING_KIND, KALMAN_KIND, PROTOCOL_TKF_KIND, TOBIT_KIND, _kind_loop
 from ._compiled_soa import kalman_entry, tobit_entry  # noqa: F401 - the choice between the runs-vectorised step and the loop
 
 __all__ = ["loop_call", "kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step", "fading_step"]
@@ -58,9 +58,10 @@ def loop_call(
     """:func:`~tobitkf.filters._compiled_loop.compiled_loop` (its arguments, by the same names) with what a family
     does not give made here: the arrays the loop reads as absent (``cls`` (N, 0, m) int8, ``F`` (1, m, 0, n_x),
     ``r``/``lo``/``hi`` (1, 1, m), ``par`` (1, m, 0), ``bu`` (N, 0, n), ``du`` (N, 0, m); outputs with a T axis
-    of length 0: not written), ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False. The integers go
-    to the loop as run-time int64 (``family`` too: a module constant is a literal to numba), so that every
-    entry shares one specialisation of the loop."""
+    of length 0: not written), ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False. ``family`` a kind
+    (:func:`~tobitkf.filters._compiled_moments.kind`): each family's entries share that family's version of the
+    loop, which holds its update alone; the integers go to the loop as run-time int64 (a module constant is a
+    literal to numba), so that the entries of a family share one specialisation."""
     N, _, m = y.shape
     nx, n = x0.shape[1], A.shape[2]
     zero = N - N
@@ -84,8 +85,8 @@ def loop_call(
     ey = np.empty((N, 0, m)) if ey is None else ey
     ll = np.empty((N, 0)) if ll is None else ll
     comp = np.empty((N, 0, m, J)) if comp is None else comp
-    compiled_loop(
-        zero + family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
+    _kind_loop(  # the family's version of compiled_loop, called directly (no wrapper to optimise again)
+        family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
         means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
     )  # fmt: skip
 
@@ -95,7 +96,7 @@ def kalman_loop(y, A, Qd, H, par, joseph, x0, P0, means, covs, pmeans, pcovs, x_
     """:func:`~tobitkf.filters._compiled_loop.compiled_loop` for the Kalman filter: ``H`` (1, m, n) the rows C,
     ``par`` (1, m, m) the noise covariance R; the other arguments as there."""
     loop_call(
-        KALMAN, y, A.reshape((1, 1) + A.shape), Qd.reshape((1, 1) + Qd.shape), H, x0, P0, x_last, P_last,
+        KALMAN_KIND, y, A.reshape((1, 1) + A.shape), Qd.reshape((1, 1) + Qd.shape), H, x0, P0, x_last, P_last,
         par=par, joseph=joseph, means=means, covs=covs, pmeans=pmeans, pcovs=pcovs,
     )  # fmt: skip
 
@@ -108,7 +109,7 @@ def tobit_loop(
     C, ``sigma`` (1, m) the noise standard deviations, ``lo``/``hi`` (TL, m) the limits, ``noise_code`` of
     :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; the other arguments as there."""
     loop_call(
-        TOBIT, y, A.reshape((1, 1) + A.shape), Qd.reshape((1, 1) + Qd.shape), H, x0, P0, x_last, P_last,
+        TOBIT_KIND, y, A.reshape((1, 1) + A.shape), Qd.reshape((1, 1) + Qd.shape), H, x0, P0, x_last, P_last,
         r=sigma.reshape((1,) + sigma.shape), lo=lo.reshape((1,) + lo.shape), hi=hi.reshape((1,) + hi.shape),
         noise_code=noise_code, joseph=joseph, bu=bu, du=du, means=means, covs=covs, pmeans=pmeans, pcovs=pcovs,
         pu=pu, ey=ey,
@@ -137,7 +138,7 @@ def kalman_step(y, consts, x0, P0, x_last, P_last):
     n = x0.shape[1]
     A, Qd, H, par, rest = _unpack(consts, n, m, m)
     loop_call(
-        KALMAN, y.reshape((N, 1, m)), A.reshape((1, 1, n, n)), Qd.reshape((1, 1, n, n)), H, x0, P0, x_last, P_last,
+        KALMAN_KIND, y.reshape((N, 1, m)), A.reshape((1, 1, n, n)), Qd.reshape((1, 1, n, n)), H, x0, P0, x_last, P_last,
         par=par.reshape((1, m, m)), joseph=rest[0] != 0.0,
     )  # fmt: skip
 
@@ -152,7 +153,7 @@ def tobit_step(y, consts, lohi, x0, P0, out2, x_last, P_last):
     n = x0.shape[1]
     A, Qd, H, sigma, rest = _unpack(consts, n, m, 1)
     loop_call(
-        TOBIT, y.reshape((N, 1, m)), A.reshape((1, 1, n, n)), Qd.reshape((1, 1, n, n)), H, x0, P0, x_last, P_last,
+        TOBIT_KIND, y.reshape((N, 1, m)), A.reshape((1, 1, n, n)), Qd.reshape((1, 1, n, n)), H, x0, P0, x_last, P_last,
         r=sigma.reshape((1, 1, m)), lo=lohi[0].reshape((1, 1, m)), hi=lohi[1].reshape((1, 1, m)),
         noise_code=int(rest[0]), joseph=rest[1] != 0.0, pu=out2[0].reshape((N, 1, m)), ey=out2[1].reshape((N, 1, m)),
     )  # fmt: skip
@@ -172,7 +173,7 @@ def protocol_tkf_step(y, cls, consts, row, x0, P0, comp, x_last, P_last):
     nn = (consts.shape[0] - 3) // 2
     n = int(np.sqrt(nn) + 0.5)
     loop_call(
-        PROTOCOL_TKF, y, consts[0:nn].reshape((1, 1, n, n)), consts[nn : 2 * nn].reshape((1, 1, n, n)),
+        PROTOCOL_TKF_KIND, y, consts[0:nn].reshape((1, 1, n, n)), consts[nn : 2 * nn].reshape((1, 1, n, n)),
         row[0:nx].reshape((1, 1, nx)), x0, P0, x_last, P_last, cls=cls, F=row[nx : 2 * nx].reshape((1, 1, 1, nx)),
         r=row[2 * nx : 2 * nx + 1].reshape((1, 1, 1)), lo=consts[2 * nn : 2 * nn + 1].reshape((1, 1, 1)),
         hi=np.full((1, 1, 1), np.inf), par=row[2 * nx + 1 : 2 * nx + 4].reshape((1, 1, 3)),
@@ -208,7 +209,7 @@ def fading_step(y, consts, lohi, k, x0, P0, out3, sm_mean, sm_cov, x_last, P_las
     e += L1 * m * nxi
     ts = 1 if sm_mean.shape[1] > 0 else 0
     loop_call(
-        FADING, y.reshape((N, 1, m)), A, Qd, H, x0, P0, x_last, P_last, r=consts[e : e + m].reshape((1, 1, m)),
+        FADING_KIND, y.reshape((N, 1, m)), A, Qd, H, x0, P0, x_last, P_last, r=consts[e : e + m].reshape((1, 1, m)),
         lo=lohi[0].reshape((1, 1, m)), hi=lohi[1].reshape((1, 1, m)), J=1, noise_code=int(consts[1]),
         joseph=consts[2] != 0.0, means=sm_mean.reshape((N, ts, nxi)), covs=sm_cov.reshape((N, ts, nxi, n)),
         pu=out3[0].reshape((N, 1, m)), ey=out3[1].reshape((N, 1, m)), comp=out3[2].reshape((N, 1, m, 1)),

@@ -7,7 +7,8 @@ Tobit Kalman filters and every assumed-density family.
 :func:`~tobitkf.filters._compiled_fading.shift_predict_block`), the input term :math:`B^uu_k`, the family's
 update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._compiled_block`),
 carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). Its scratch is sized to the family
-(an array the family's update does not use gets no room, :func:`_loop_scratch`). The update is chosen by a code, one branch per block and step:
+(an array the family's update does not use gets no room, :func:`_loop_scratch`). The update is chosen by a code, and
+each family compiles its own version of the loop (:func:`_kind_loop`) that holds its update alone:
 
 * :data:`KALMAN`: :math:`K = \bar PC^T(C\bar PC^T + R)^{-1}` over the channels that take part (a NaN reading
   does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
@@ -35,7 +36,11 @@ carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). Its
   alone, :math:`\hat x = \bar x + K_\infty(y - E[y])` (Miller (3.56)–(3.58), :func:`_fixed_gain_means`).
 
 A code, not a function argument: numba does not cache a function specialised on another compiled function, so a
-loop taking the update as an argument would be compiled again in every process.
+loop taking the update as an argument would be compiled again in every process. The code travels as a kind
+(:func:`~tobitkf.filters._compiled_moments.kind`, the tuple of ``code`` Nones): numba reads the length of a tuple
+argument as a constant before typing and prunes the branches of the other families, so that the Kalman filter's
+version does not compile the assumed-density moments, nor theirs the Tobit update (compared as a run-time integer,
+every family's update was typed and lowered into every version).
 
 What an assumed-density family gives the loop (:class:`~tobitkf.filters._loop_specs.CompiledSpec`, built by the
 ``*_spec`` functions of :mod:`tobitkf.filters._loop_specs` from an estimator and a record;
@@ -59,7 +64,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import literally, njit
+from numba.core import errors, types
+from numba.extending import overload
 
 from ._compiled_block import (
     _block_dims,
@@ -82,11 +89,14 @@ from ._compiled_block import (
 )
 from ._compiled_fading import AUG_BLOCK, fading_update_block, shift_predict_block
 from ._compiled_moments import (
+    FAMILIES,
     INTERIOR,
     MISSING,
     PROTOCOL_TKF_EXTRAS,
     classify,
     family_block,
+    kind,
+    kind_code,
     protocol_tkf_block,
 )
 from ._compiled_tobit import GL_W, GL_X, tobit_update_block
@@ -98,21 +108,28 @@ __all__ = [
     "PROTOCOL_TKF",
     "FIXED_GAIN",
     "FADING",
+    "CODES",
+    "kind",
 ]
 
 
 #: update codes of :func:`compiled_loop` beyond the assumed-density families of
-#: :data:`~tobitkf.filters._compiled_moments.FAMILIES`: the Kalman filter and the Tobit Kalman filter (a joint update
-#: of all channels, not channel by channel)
-KALMAN, TOBIT = 100, 101
+#: :data:`~tobitkf.filters._compiled_moments.FAMILIES` (codes below :data:`KALMAN`): the Kalman filter and the Tobit
+#: Kalman filter (a joint update of all channels, not channel by channel)
+KALMAN, TOBIT = 16, 17
 #: update codes of the protocol Tobit Kalman filter (Geng et al. (21)-(24), a joint update of its one scheduled
 #: channel, :func:`_protocol_tkf_update`) and of the fixed-gain (steady-state) Tobit Kalman filter (Miller (3.58),
 #: means only, :func:`_fixed_gain_means`)
-PROTOCOL_TKF, FIXED_GAIN = 102, 103
+PROTOCOL_TKF, FIXED_GAIN = 18, 19
 #: update code of the fading Tobit Kalman filter (Geng et al. 2017): the Tobit update of the augmented state at the
 #: step's rows :math:`H_k`, with the inverse Mills ratio among its outputs
 #: (:func:`~tobitkf.filters._compiled_fading.fading_update_block`)
-FADING = 110
+FADING = 20
+#: every update code of :func:`compiled_loop`
+CODES = (*FAMILIES.values(), KALMAN, TOBIT, PROTOCOL_TKF, FIXED_GAIN, FADING)
+#: the loop's update codes as types (:func:`~tobitkf.filters._compiled_moments.kind`: a tuple of ``code`` zeros),
+#: for calls from compiled code
+KALMAN_KIND, TOBIT_KIND, PROTOCOL_TKF_KIND, FADING_KIND = kind(KALMAN), kind(TOBIT), kind(PROTOCOL_TKF), kind(FADING)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -152,13 +169,15 @@ def _kalman_moments(C, R, Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, scratch, nb):
+def _channel_updates(kind, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, scratch, nb):
     r"""The assumed-density update of a block, channel by channel (module docstring): for each channel its row
     ``H[t]``, the noise variance ``r`` and the limits ``lo``/``hi`` (runs or 1, steps, m) of each run, the prior
     moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
     variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`, the family's :math:`(\alpha, \beta)` from
     :func:`~tobitkf.filters._compiled_moments.family_block`, and the rank-one change along :math:`\bar Ph^T`
-    of ``xp``, ``Pp`` in place. ``npass = 2``: the readings inside their limits first, then the others.
+    of ``xp``, ``Pp`` in place. ``kind`` the family (:func:`~tobitkf.filters._compiled_moments.kind`: each family
+    compiles its own version, holding its block function alone). ``npass = 2``: the readings inside their limits
+    first, then the others.
     ``scratch`` = ``(Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)`` (:func:`_adf_scratch`):
     adds each channel's log-likelihood to ``llb`` (B,); ``pub`` (m, B), ``compb`` (m, J, B) its probability of
     an uncensored reading (of the pass that updated the run) and its components' posterior weights (of the last
@@ -222,7 +241,7 @@ def _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r
             c = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
             member[b] = npass == 1 or ((c == INTERIOR) == (ps == 0))
             cv[b] = c if member[b] else MISSING
-        family_block(family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pt, compt, glx, glw, buf)
+        family_block(kind, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pt, compt, glx, glw, buf)
         # the rank-one update along P h^T
         for i in range(nx):
             for b in range(nb):
@@ -410,7 +429,8 @@ def _fixed_gain_means(y, A, C, par, code, x0, means, pmeans, comp, x_last):
 @njit(cache=True, error_model="numpy", inline="always")
 def _loop_scratch(family, n, nx, m, J, B, S, TK, buf, means, covs, pmeans, pcovs, pu, ey, ll, comp):
     """The loop's own scratch beyond the block's (:func:`~tobitkf.filters._compiled_block._update_scratch`),
-    sized to the family ``family`` (an array it does not use gets no room):
+    sized to the family of code ``family`` (an array it does not use gets no room; a constant where the loop is
+    compiled for one family):
     ``APr`` (n, n) of :func:`_predict_runs`; ``Kall`` (TK, n, m) the shared Kalman gains (TK = 0: not shared);
     ``mom`` (20, B) of the protocol TKF (0 rows otherwise); the assumed-density scratch of
     :func:`_channel_updates` ``(Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)``, its run
@@ -484,7 +504,13 @@ def compiled_loop(
     r"""The one compiled time loop of the Gaussian-update families over N runs x T steps; fills the outputs.
 
     ``family``: :data:`KALMAN`, :data:`TOBIT` (a joint update of all channels) or an assumed-density family
-    code of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module docstring).
+    code of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module docstring), as a kind
+    (:func:`~tobitkf.filters._compiled_moments.kind`, the tuple of ``code`` zeros) or an integer. Each family
+    compiles its own version of the loop, which holds that family's update alone (the branches of the others are
+    pruned before typing: compiled with a run-time code, the loop held every family's update, and the Kalman
+    filter's version took minutes to compile). A kind is found by the ordinary dispatch on the argument types; an
+    integer from Python is made a literal (``numba.literally``: the dispatcher retypes each such call, tenths of a
+    second; the package's callers pass kinds) and from compiled code must be a literal.
     ``y`` (N, T, m) readings (NaN: missing); ``cls`` (N, T, m) int8 their classes, or (N, 0, m): by the limit
     rule (assumed-density families only); ``A``, ``Qd`` (NA, TA, n, n) acting on the top block of the state
     (n_x = ``x0.shape[1]`` > n: the block shift); ``H`` (TH, m, n_x) the rows (KF, TKF: C, one row); ``F`` (TF,
@@ -505,31 +531,109 @@ def compiled_loop(
     ``x_last``, ``P_last`` the state after the last step. The Kalman filter with one prior covariance
     (``P0`` (1, n, n), N > 1, nothing missing) runs the covariance and the gains once (``covs``, ``pcovs``,
     ``P_last`` with one run) and the means of every run with those gains."""
+    _by_kind(
+        family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
+        pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
+    )  # fmt: skip
+
+
+def _by_kind(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
+    pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
+    """:func:`compiled_loop`'s choice of the version of :func:`_kind_loop` by the type of ``family`` (compiled code
+    only)."""
+    raise TypeError("compiled code only")
+
+
+# inline: the choice adds no function of its own around the loop (numba optimises the whole linked module of every
+# compiled function again, so that each wrapper around the loop costs about one more LLVM pass over all of it)
+@overload(_by_kind, inline="always", jit_options={"error_model": "numpy", "nogil": True})
+def _by_kind_typed(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
+    means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
+    code = kind_code(family)
+    if code is None:
+        if not isinstance(family, types.Integer):
+            raise errors.TypingError(f"compiled_loop: family: expected a kind tuple or an integer code, got {family}")
+
+        def literal(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
+            means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
+            literally(family)
+
+        return literal
+    if code not in CODES:
+        raise errors.TypingError(f"compiled_loop: family: no update has the code {code} (known: {CODES})")
+    k = kind(code)
+
+    def one(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
+        pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
+        _kind_loop(
+            k, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
+            pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
+        )  # fmt: skip
+
+    return one
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def _kind_loop(
+    kind,
+    y,
+    cls,
+    A,
+    Qd,
+    H,
+    F,
+    r,
+    lo,
+    hi,
+    par,
+    J,
+    npass,
+    noise_code,
+    joseph,
+    bu,
+    du,
+    x0,
+    P0,
+    means,
+    covs,
+    pmeans,
+    pcovs,
+    pu,
+    ey,
+    ll,
+    comp,
+    x_last,
+    P_last,
+):
+    """:func:`compiled_loop` for the family ``kind`` (a tuple whose length is the update code, read as a constant
+    before typing, so that the branches of the other families are pruned: the arguments and the equations are
+    :func:`compiled_loop`'s)."""
+    code = len(kind)  # a constant: numba rewrites the length of a tuple argument before typing
     N, T, m = y.shape
-    if family == FIXED_GAIN:
+    if code == FIXED_GAIN:
         _fixed_gain_means(y, A[0, 0], H[0], par[0], noise_code, x0, means, pmeans, comp, x_last)
         return
     nx = x0.shape[1]
     n = A.shape[2]
-    adf = family < KALMAN  # an assumed-density family: channel by channel (_channel_updates)
+    adf = code < KALMAN  # an assumed-density family: channel by channel (_channel_updates)
     # a transition or noise per run (run axis longer than 1): each lane of a block its own (_predict_runs)
     per_run = A.shape[0] > 1 or Qd.shape[0] > 1
-    shared = family == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
+    shared = code == KALMAN and P0.shape[0] == 1 and N > 1 and not per_run
     runs = 1 if shared else N
-    B, S = _block_dims(runs, T, 0 if family == KALMAN else n * n, AUG_BLOCK if family == FADING else runs_per_block(nx))
+    B, S = _block_dims(runs, T, 0 if code == KALMAN else n * n, AUG_BLOCK if code == FADING else runs_per_block(nx))
     # the scratch sized to the family
     x, xp, e, mu = _mean_scratch(nx, m, B)
-    sc = _update_scratch(nx, n, 0 if adf else m, B, 0 if family == KALMAN else GL_X.shape[0])
+    sc = _update_scratch(nx, n, 0 if adf else m, B, 0 if code == KALMAN else GL_X.shape[0])
     blk = sc[0]
     P, Pp, AP, noise, gam = blk[0], blk[1], blk[2], blk[8], blk[9]
     APr, Kall, mom, adfs, stg = _loop_scratch(
-        family, n, nx, m, J, B, S, T if shared else 0, sc[3], means, covs, pmeans, pcovs, pu, ey, ll, comp
+        code, n, nx, m, J, B, S, T if shared else 0, sc[3], means, covs, pmeans, pcovs, pu, ey, ll, comp
     )
     s_mean, s_cov, s_pmean, s_pcov, s_pu, s_ey, s_ll, s_comp = stg
     pub, compb = adfs[7], adfs[8]
     llf, compf = adfs[4].reshape((1, adfs[4].shape[0])), compb.reshape((m * J, compb.shape[2]))
     C = H[0]
-    if family == KALMAN:
+    if code == KALMAN:
         gam[:, :] = 1.0  # H = C
         for l in range(m):
             for q in range(m):
@@ -560,7 +664,7 @@ def compiled_loop(
                     for b in range(nb):
                         xp[i, b] += bu[r0 + b, t, i]
             _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
-            if family == TOBIT:
+            if code == TOBIT:
                 tl = min(t, lo.shape[1] - 1)
                 run, solve, buf = sc[1], sc[2], sc[3]
                 tobit_update_block(
@@ -592,7 +696,7 @@ def compiled_loop(
                 )
                 _stage_rows(gam, s_pu, tt, nb)
                 _stage_rows(mu, s_ey, tt, nb)
-            elif family == PROTOCOL_TKF:
+            elif code == PROTOCOL_TKF:
                 Pc = adfs[0]
                 _protocol_tkf_update(
                     y, cls, H, F, r, lo, par, noise_code, joseph, r0, t, xp, Pp, x, P, blk, Pc, mom, sc[3], nb
@@ -606,7 +710,7 @@ def compiled_loop(
                         for b in range(nb):
                             s_comp[tt, 0, i0 + i, b] = x[i, b]
                             s_comp[tt, 0, i0 + nx + i, b] = xp[i, b]
-            elif family == KALMAN:
+            elif code == KALMAN:
                 CP, Rxe, Ree, K, MH, ok = blk[3], blk[4], blk[5], blk[6], blk[7], blk[10]
                 _kalman_moments(C, par[0], Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
                 Rs, Ws, Ks, oks, Rxs, ds = sc[1]
@@ -620,7 +724,7 @@ def compiled_loop(
                         for l in range(m):
                             Kall[t, i, l] = K[i, l, 0]
                 _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
-            elif family == FADING:  # the rows H_k of the step, the inverse Mills ratios into compb[:, 0] (J = 1)
+            elif code == FADING:  # the rows H_k of the step, the inverse Mills ratios into compb[:, 0] (J = 1)
                 lam = compb.reshape((m, B))
                 Ht, tl = H[min(t, H.shape[0] - 1)], min(t, lo.shape[1] - 1)
                 fading_update_block(
@@ -629,8 +733,8 @@ def compiled_loop(
                 _stage_rows(gam, s_pu, tt, nb)
                 _stage_rows(mu, s_ey, tt, nb)
                 _stage_rows(lam, s_comp, tt, nb)
-            else:
-                _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, adfs, nb)
+            elif code < KALMAN:  # an assumed-density family
+                _channel_updates(kind, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, adfs, nb)
                 _stage_rows(pub, s_pu, tt, nb)
                 _stage_rows(llf, s_ll, tt, nb)
                 _stage_rows(compf, s_comp, tt, nb)
@@ -648,7 +752,7 @@ def compiled_loop(
                 _flush(s_ll, ll, r0, t0, nb, tt + 1)
                 _flush(s_comp, comp, r0, t0, nb, tt + 1)
         _store_last(x, P, r0, nb, x_last, P_last)
-    if shared:
+    if code == KALMAN and shared:
         _shared_gain_means(A[0, 0], C, Kall, y, x0, means, pmeans, x_last)
 
 

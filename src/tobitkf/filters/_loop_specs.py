@@ -25,6 +25,7 @@ from ._compiled_moments import (
     PROTOCOL,
     SATURATION,
     UPPER,
+    kind,
 )
 from ._compiled_soa import censored_entry
 from ._outputs import _empty, kernel_result, output_arrays, state_specs
@@ -48,10 +49,11 @@ class LoopArguments(NamedTuple):
     docstring says what each is), for a call from Python: give what the family uses, :meth:`filled` makes the rest
     as the loop reads an absent array (``cls`` (N, 0, m) int8, ``F`` (1, m, 0, n_x), ``r``/``lo``/``hi``
     (1, 1, m), ``par`` (1, m, 0), ``bu`` (N, 0, n), ``du`` (N, 0, m); outputs with a T axis of length 0: not
-    written) and ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False. The compiled entries do the same
-    in compiled code (:func:`~tobitkf.filters._compiled_entries.loop_call`)."""
+    written) and ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False; an integer ``family`` becomes its
+    kind (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's version for that family alone). The compiled
+    entries do the same in compiled code (:func:`~tobitkf.filters._compiled_entries.loop_call`)."""
 
-    family: int
+    family: int | tuple[None, ...]
     y: np.ndarray
     cls: np.ndarray | None = None
     A: np.ndarray | None = None
@@ -105,6 +107,8 @@ class LoopArguments(NamedTuple):
             "comp": lambda: _empty((N, 0, m, self.J)),
         }
         made: dict[str, Any] = {k: make() for k, make in absent.items() if getattr(self, k) is None}
+        if not isinstance(self.family, tuple):
+            made["family"] = kind(int(self.family))
         return self._replace(**made)
 
 

@@ -101,7 +101,7 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         r"""The three modes' merged moments of the latent reading :math:`y^* \sim N(\mu, s^2)`, :math:`s^2 =
         s_c^2 + R_{ll}`, from :func:`~tobitkf.filters._compiled_moments.saturation_block`'s :math:`(\alpha,
         \beta)`: :math:`E = \mu + \alpha s^2`, :math:`V = s^2 - \beta s^4` (the projection's form)."""
-        from ._compiled_moments import INTERIOR, SATURATION, family_array
+        from ._compiled_moments import INTERIOR, SATURATION, family_array, kind
         from ._compiled_tobit import GL_W, GL_X
 
         r = (
@@ -115,7 +115,7 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
             q = int(ok.sum())
             sv = np.ascontiguousarray(s2[ok])
             alpha, beta, lp, _, _ = family_array(
-                SATURATION, np.ascontiguousarray(y[ok]), np.full(q, INTERIOR, dtype=np.int8),
+                kind(SATURATION), np.ascontiguousarray(y[ok]), np.full(q, INTERIOR, dtype=np.int8),
                 np.ascontiguousarray(mu[ok]), sv - r, np.full(q, float(r)), np.full(q, -np.inf), np.full(q, np.inf),
                 self._par[l].copy(), 3, GL_X, GL_W,
             )  # fmt: skip
