@@ -271,6 +271,7 @@ def _adf_both(y, A, Q, H, r, lo, hi, x0, P0, *, cls=None, bu=None, du=None, extr
     """The SoA step and the compiled loop (the oracle) with the same arguments of ``compiled_loop``: ``r``, ``lo``,
     ``hi`` (1, steps or 1, 1); outputs all, or the means only (``extras``/``covs`` False)."""
     from tobitkf.filters._compiled_loop import compiled_loop
+    from tobitkf.filters._compiled_moments import CENSORED, kind
 
     N, T, _ = y.shape
     n = A.shape[0]
@@ -291,7 +292,7 @@ def _adf_both(y, A, Q, H, r, lo, hi, x0, P0, *, cls=None, bu=None, du=None, extr
         ]
         means, cv, pm, pc, pu, ll, xl, Pl = outs
         fn(
-            0, y, cls, A[None, None], Q[None, None], H, np.zeros((1, 1, 0, n)), r, lo, hi, np.zeros((1, 1, 0)), 0,
+            kind(CENSORED), y, cls, A[None, None], Q[None, None], H, np.zeros((1, 1, 0, n)), r, lo, hi, np.zeros((1, 1, 0)), 0,
             npass, 0, False, bu, du, x0, P0, means, cv, pm, pc, pu, np.empty((N, 0, 1)), ll,
             np.empty((N, 0, 1, 0)), xl, Pl,
         )  # fmt: skip
