@@ -249,7 +249,7 @@ def test_entries_choose_the_soa_path_only_where_covered():
     assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is soa.soa_tobit_loop
     assert soa.tobit_entry(tobit_loop, 2, 2, np.zeros((1, 2)), np.ones((1, 2))) is tobit_loop
     assert soa.kalman_entry(kalman_loop, 1, 2, 7, 7) is soa.soa_kalman_loop
-    assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is kalman_loop
+    assert soa.kalman_entry(kalman_loop, 2, 3, 7, 7) is kalman_loop  # two channels, n = 3: not measured
 
 
 # ---- the censored assumed-density filter: the SoA step against the compiled loop ------------------------------------
@@ -572,3 +572,23 @@ def test_kf_several_channels_equals_the_compiled_loop(n, m, joseph):
     # the step where run 3 lost every channel leaves its prediction unchanged
     np.testing.assert_array_equal(a[0][3, 4], a[2][3, 4])
     np.testing.assert_array_equal(a[1][3, 4], a[3][3, 4])
+
+
+def test_kf_several_channels_routing():
+    """The KF's entry takes the joint runs-vectorised update only for the measured (m, n) of ``KF_JOINT_ROUTED``
+    (m = 2, n = 2) with a covariance per run; the public filter then runs it, with the numpy path's numbers."""
+    assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is soa.soa_kalman_loop
+    assert soa.kalman_entry(kalman_loop, 2, 2, 1, 7) is kalman_loop  # one shared covariance: the shared-gain path
+    assert soa.kalman_entry(kalman_loop, 3, 2, 7, 7) is kalman_loop
+    assert soa.kalman_entry(kalman_loop, 4, 2, 7, 7) is kalman_loop
+    w = 0.05
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0], [0.5, 1.0]], Q=0.01 * np.eye(2), R=[[0.1, 0.02], [0.02, 0.2]],
+                           x0=[0.3, 0.0], P0=0.05 * np.eye(2))  # fmt: skip
+    rng = np.random.default_rng(11)
+    y = rng.normal(0.2, 0.6, size=(131, 30, 2))
+    y[rng.random(size=y.shape) < 0.1] = np.nan  # a covariance per run: the runs lose different readings
+    ref = tk.KalmanFilter(sys_, backend="numpy").filter(y)
+    got = tk.KalmanFilter(sys_, backend="numba").filter(y)
+    for f in ("mean", "cov", "pred_mean", "pred_cov"):
+        _assert_close(getattr(got, f), getattr(ref, f), rtol=1e-10)
