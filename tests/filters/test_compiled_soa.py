@@ -592,3 +592,12 @@ def test_kf_several_channels_routing():
     got = tk.KalmanFilter(sys_, backend="numba").filter(y)
     for f in ("mean", "cov", "pred_mean", "pred_cov"):
         _assert_close(getattr(got, f), getattr(ref, f), rtol=1e-10)
+
+
+@pytest.mark.heavy
+def test_kf_two_channels_compiles_to_packed_vector_instructions():
+    """The KF's joint update of two channels (n = 1) is vectorised over the runs: its compiled step holds at least
+    the one-channel minimum of packed multiplications (heavy: a version the default run does not compile)."""
+    asm = _step_asm(soa.KALMAN, 1, 2)
+    found = len(_PACKED_MUL.findall(asm))
+    assert found >= _MIN_PACKED, f"KF, two channels: {found} packed multiplications in the step"
