@@ -5,6 +5,8 @@ model). Contestants, all on one thread, all writing into output arrays allocated
 (compute only; what the output pool and a user's loop add is ``bench_limit.py``'s subject):
 
 * the structure-of-arrays step (``tobitkf.filters._compiled_soa``), means only and means + covariances;
+* the KF with two channels (the oscillator read through both components, the joint update), means only and
+  means + covariances, both ways;
 * the compiled loop's TKF entry (``tobitkf.filters._compiled_entries.tobit_loop``: the block path the filters
   run today), the same two output sets, and the KF through both, means only;
 * the TKF with two finite limits (the same readings clipped to a window, the split step), means only, both ways;
@@ -92,6 +94,16 @@ def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
             np.empty((N, 0, 1, 0)), xl, Pl,
         )  # fmt: skip
 
+    # the KF with two channels (the joint update): the oscillator read through both components
+    sys2 = tk.LinearSystem(
+        A=A, C=np.eye(2), Q=0.01 * np.eye(2), R=np.diag([0.1, 0.2]), x0=[0.0, 0.0], P0=0.05 * np.eye(2)
+    )
+    y_2 = np.ascontiguousarray(tk.simulate(sys2, steps, runs, seed=1).y, dtype=float)
+    H2, R2 = np.eye(2)[None], np.diag([0.1, 0.2])[None]
+
+    def kf2(fn, cov):
+        return lambda: fn(y_2, A, Q, H2, R2, False, x0, P0, means, cov, e_m, e_c, xl, Pl)
+
     groups = {
         "tkf": {
             "SoA TKF, means only": tkf(soa_tobit_loop, e_c),
@@ -100,6 +112,12 @@ def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
             "compiled loop TKF, mean+cov": tkf(tobit_loop, covs),
         },
         "kf": {"SoA KF, means only": kf(soa_kalman_loop), "compiled loop KF, means only": kf(kalman_loop)},
+        "kf2": {
+            "SoA KF m=2, means only": kf2(soa_kalman_loop, e_c),
+            "loop KF m=2, means only": kf2(kalman_loop, e_c),
+            "SoA KF m=2, mean+cov": kf2(soa_kalman_loop, covs),
+            "loop KF m=2, mean+cov": kf2(kalman_loop, covs),
+        },
         "tkf2": {"SoA TKF 2-sided, means only": tkf2(soa_tobit_loop), "loop TKF 2-sided, means only": tkf2(tobit_loop)},
         "adf": {
             "SoA ADF 2-sided, mean+extras": adf(soa_censored_loop),
@@ -141,7 +159,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
-    ap.add_argument("--which", default="tkf,kf,tkf2,adf", help="contestant groups, comma-separated (default all)")
+    ap.add_argument("--which", default="tkf,kf,kf2,tkf2,adf", help="contestant groups, comma-separated (default all)")
     ap.add_argument("--sizes", default="100000x100,10000x1000", help="runs x steps, comma-separated")
     args = ap.parse_args()
     if not numba_available():

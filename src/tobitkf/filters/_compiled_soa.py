@@ -20,7 +20,7 @@ no faster).
 
 Layout: a block of :data:`SOA_BLOCK` runs, means ``x[i, b]`` (n, B), covariances ``P[i, j, b]`` (n, n, B)
 (symmetric, both triangles stored: the output staging of :mod:`tobitkf.filters._compiled_block` reads them),
-readings (N, T, 1) as given. The step of run b, with one channel (m = 1), row :math:`c` (the measurement matrix),
+readings (N, T, m) as given. The step of run b, with one channel (m = 1), row :math:`c` (the measurement matrix),
 
 .. math::
 
@@ -46,6 +46,15 @@ Joseph form :math:`P = M - (MH^T - KR)K^T`, :math:`M = \bar P - KR_{xe}^T`, :mat
 :func:`~tobitkf.filters._compiled_block._cov_update`). A reading that is NaN, or an innovation variance not above
 the smallest normal number, leaves the run's prediction unchanged (the compiled loop's rule).
 
+* Kalman filter with m = 2 or 3 channels (:data:`KALMAN` with ``chans`` of length m, :data:`CHANS`), the joint
+  update of the compiled loop, each operation in its order (so that the two agree to rounding): the rows
+  :math:`C` (m, n) and :math:`R` (m, m) constant, :math:`R_{xe} = \bar PC^T`, :math:`R_{ee} = C\bar PC^T + R`,
+  :math:`e = y - C\bar x`, a channel whose reading is NaN (or whose variance is not above the smallest normal
+  number) left out (innovation 0, gain column 0), :math:`K` from the unit-diagonal
+  :math:`(DR_{ee}D)Z = DR_{xe}^T`, :math:`D = \mathrm{diag}(R_{ee})^{-1/2}`, by elimination without pivoting
+  (:func:`_kalman_joint_gain`; a run with a pivot not positive again with partial pivoting,
+  :func:`_kalman_fallback`), then :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` or Joseph's
+  :math:`P = M - (MC^T - KR)K^T` (:func:`_kalman_joint_update`), in three loops over the block's runs.
 * Censored assumed-density filter (:data:`CENSORED_ADF`, :mod:`tobitkf.filters.assumed_density`): the reading's
   class (missing, inside its limits, at the lower or the upper limit: given, or by the limit rule of
   :func:`~tobitkf.filters._compiled_moments.classify`) and the latent :math:`N(\mu, s + r)` give
@@ -62,7 +71,9 @@ one prior covariance shared by the runs, nothing missing, the compiled loop comp
 faster), both forms; for the censored assumed-density filter a time-invariant system (A, Q and C shared by the
 runs and the steps), the noise variance and the limits shared by the runs (either may change with the step;
 no limit, one or two finite ones), the input terms, the standard form, with or without the log-likelihood and
-P(uncensored) (:func:`censored_entry`; given interval readings run the loop). Anything else runs
+P(uncensored) (:func:`censored_entry`; given interval readings run the loop); the KF's joint update of
+m = 2, 3 channels (n up to :data:`SOA_MAX_N`) is tested equal to the loop, and routed for the measured
+(m, n) of :data:`KF_JOINT_ROUTED`. Anything else runs
 :func:`~tobitkf.filters._compiled_loop.compiled_loop`.
 
 Measured (n = 2, m = 1, 2 x 10^4 runs x 100 steps, readings max(N(0.1, 0.5^2), 0), lower limit 0, outputs
@@ -72,7 +83,9 @@ thread, a 2-core AVX-512 machine under a load average of 8-10): TKF 18.1 against
 assumed-density filter 63.9 and 65.2 (its loop scalar), with its log-likelihood and P(uncensored) 68.7 and 71.9
 (vectorised). Two finite limits (n = 2, 2 x 10^4 runs x 100 steps, readings clipped to [-0.5, 0.5], means only
 plus the extras, medians of 5 alternating calls, load average 8-12): TKF 82.7 against the loop's 108.2 ns;
-censored assumed-density filter with its log-likelihood and P(uncensored) 59.8 against 171.0. The entries :func:`soa_kalman_loop`,
+censored assumed-density filter with its log-likelihood and P(uncensored) 59.8 against 171.0. The KF with two channels (n = 2, C = I,
+R = diag(0.1, 0.2), 2 x 10^4 runs x 100 steps, medians of 7 alternating calls, load average 10.7): 22.2 against the
+loop's 30.9 ns (means only), 27.6 against 37.0 (means and covariances). The entries :func:`soa_kalman_loop`,
 :func:`soa_tobit_loop` and :func:`soa_censored_loop` take the arguments of
 :mod:`tobitkf.filters._compiled_entries`' ``kalman_loop`` and ``tobit_loop`` and of ``compiled_loop`` and fill
 the same outputs.
@@ -86,7 +99,7 @@ import numpy as np
 from numba import njit
 
 from . import _compiled_loop
-from ._compiled_block import _flush, _stage, _stage_shape, _store_last
+from ._compiled_block import _flush, _solve_gain, _stage, _stage_shape, _store_last
 from ._compiled_censored import GL_W, GL_X, _assemble, _one_sided_at, censored_stats, noise_term, window_direct
 from ._compiled_moments import CENSORED, INTERVAL, classify
 from ._compiled_moments import _censored_one as _adf_update
@@ -95,6 +108,9 @@ __all__ = [
     "SOA_BLOCK",
     "SOA_MAX_N",
     "SIZES",
+    "CHANS",
+    "SOA_MAX_M",
+    "KF_JOINT_ROUTED",
     "KALMAN",
     "TOBIT_ANY",
     "CENSORED_ADF",
@@ -114,6 +130,15 @@ SOA_MAX_N = 4  # largest state covered: every state loop is unrolled (n^3 produc
 #: the state size n as a type: a tuple of n zeros, whose length numba folds to a constant (one specialisation of
 #: :func:`soa_loop` per n, found by the ordinary dispatch on the argument types at every call)
 SIZES = {n: (0,) * n for n in range(1, SOA_MAX_N + 1)}
+SOA_MAX_M = 3  # most channels of the KF's joint update (one channel for the other updates)
+#: the number of channels m as a type, likewise (a tuple of m zeros: one specialisation per m)
+CHANS = {m: (0,) * m for m in range(1, SOA_MAX_M + 1)}
+#: the (m, n) of the KF's joint update (m > 1) that :func:`kalman_entry` routes to :func:`soa_loop`: those measured
+#: faster than the compiled loop (n = 2, m = 2, 2 x 10^4 runs x 100 steps, thread CPU time per run-step, medians of
+#: 7 alternating calls in one process, load average 10.7 on 2 cores: 22.2 against 30.9 ns means only, 27.6 against
+#: 37.0 with covariances). Every m up to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop;
+#: the rest run the loop until measured (and each would add a compiled version to the first use)
+KF_JOINT_ROUTED = frozenset({(2, 2)})
 #: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
 #: and P(uncensored), the TKF (any limits)
 KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
@@ -131,9 +156,11 @@ _INF = math.inf
 
 def soa_covers(kalman: bool, m: int, n: int, P0_rows: int, N: int, lo=None, hi=None) -> bool:
     """Whether :func:`soa_loop` covers a KF or TKF call: one channel (``m == 1``), ``1 <= n <=``
-    :data:`SOA_MAX_N`; the KF with a covariance per run (``P0_rows == N``; one shared covariance runs the compiled
+    :data:`SOA_MAX_N`, or for the KF's joint update the (m, n) of :data:`KF_JOINT_ROUTED`; the KF with a covariance per run (``P0_rows == N``; one shared covariance runs the compiled
     loop's shared-gain path), the TKF with limits ``lo``/``hi`` (TL, 1) without NaN and ``lo < hi`` in every row
     (one finite limit, two or none)."""
+    if kalman and (m, n) in KF_JOINT_ROUTED:
+        return P0_rows == N or N == 1
     if m != 1 or not 1 <= n <= SOA_MAX_N:
         return False
     if kalman:
@@ -189,36 +216,70 @@ def censored_entry(default, family: int, A, Qd, H, F, r, lo, hi, x0, stats: bool
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _offsets(n):
-    """The rows of :func:`soa_loop`'s scratch ``W`` (each :data:`SOA_BLOCK` numbers): state, prediction, scratch,
-    the step's inputs and statistics; the last is the number of rows."""
+def _offsets(n, m):
+    """The rows of :func:`soa_loop`'s scratch ``W`` (each :data:`SOA_BLOCK` numbers) for state size ``n`` and
+    ``m`` channels: state, prediction, scratch, the step's inputs and statistics (a row per channel, ``h`` and the
+    gain ``n`` rows per channel, channel ``l``'s at ``oH + l * n``), the joint gain's elimination (``m > 1``:
+    :math:`DR_{ee}D` by rows, the right-hand sides, the scaling, the channels that take part and a run's flag for
+    the pivoting fallback); the last is the number of rows."""
     nn = n * n
     oX, oP = 0, n
     oXP = oP + nn
     oPp = oXP + n
     oAP = oPp + nn
     oH = oAP + nn
-    oK = oH + n
-    oY = oK + n
-    oBU = oY + 1
+    oK = oH + n * m
+    oY = oK + n * m
+    oBU = oY + m
     oDU = oBU + n
-    oG = oDU + 1
-    oEY = oG + 1
-    oCL = oEY + 1
-    oLL = oCL + 1
+    oG = oDU + m
+    oEY = oG + m
+    oCL = oEY + m
+    oLL = oCL + m
     oMU = oLL + 1  # the split step (TOBIT_ANY): the moments mu, s and the noise term between its loops
-    oS = oMU + 1
-    oV = oS + 1
-    oSL = oV + 1  # 1: the run's window statistics take another route than the direct formulas
-    return oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oSL + 1
+    oS = oMU + m
+    oV = oS + m * m
+    oSL = oV + m  # 1: the run's window statistics take another route than the direct formulas
+    oRW = oSL + 1  # the joint gain (m > 1): D R_ee D (m x m), the right-hand sides D R_xe^T (m x n), D (m)
+    oRH = oRW + m * m
+    oD = oRH + m * n
+    oOK = oD + m  # 1.0: the channel takes part
+    oBAD = oOK + m  # 1.0: a pivot not positive, the run's gain again with partial pivoting
+    return (
+        oX,
+        oP,
+        oXP,
+        oPp,
+        oAP,
+        oH,
+        oK,
+        oY,
+        oBU,
+        oDU,
+        oG,
+        oEY,
+        oCL,
+        oLL,
+        oMU,
+        oS,
+        oV,
+        oSL,
+        oRW,
+        oRH,
+        oD,
+        oOK,
+        oBAD,
+        oBAD + 1,
+    )
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _predict_moments(W, cst, b, n):
+def _predict_state(W, cst, b, n, m):
     r"""The prediction of run ``b`` of the block, :math:`\bar x = A\hat x + B^uu_k`, :math:`\bar P = APA^T + Q`
-    (upper triangle, mirrored), into ``W``, and the moments of its reading: :math:`h = \bar Pc^T` into ``W``,
-    returns :math:`(\mu, s) = (c\bar x + Du_k, c\bar Pc^T)`."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    (upper triangle, mirrored), into ``W`` (the layout of ``m`` channels)."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
     BK = SOA_BLOCK
     nn = n * n
     # every sum in the compiled loop's order (its terms from 0, the inputs and Q added last): the same rounding,
@@ -242,6 +303,18 @@ def _predict_moments(W, cst, b, n):
             acc += cst[nn + i * n + j]
             W[(oPp + i * n + j) * BK + b] = acc
             W[(oPp + j * n + i) * BK + b] = acc
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _predict_moments(W, cst, b, n):
+    r"""The prediction of run ``b`` of the block (:func:`_predict_state`, one channel) and the moments of its
+    reading: :math:`h = \bar Pc^T` into ``W``, returns :math:`(\mu, s) = (c\bar x + Du_k, c\bar Pc^T)`."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, 1)
+    )
+    BK = SOA_BLOCK
+    nn = n * n
+    _predict_state(W, cst, b, n, 1)
     mu = 0.0
     for i in range(n):
         mu += W[(oXP + i) * BK + b] * cst[2 * nn + i]
@@ -271,7 +344,9 @@ def _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph):
     :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`K = \gamma h/R_{ee}`, :math:`\hat x = \bar x + Ke`,
     :math:`P = \bar P - \gamma Kh^T` (standard form) or Joseph's (module docstring); no change for a NaN
     reading or :math:`R_{ee}` not above the smallest normal number."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, 1)
+    )
     BK = SOA_BLOCK
     nn = n * n
     # the compiled loop's operations in its order (_innovation_moments, _gain): the same rounding
@@ -307,7 +382,9 @@ def _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph):
 @njit(cache=True, error_model="numpy", inline="always")
 def _update_of(W, cst, b, n, joseph):
     """The split TKF step's update of run ``b`` from the statistics its second loop left in ``W``."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, 1)
+    )
     BK = SOA_BLOCK
     yb, g, v, ey, sv = W[oY * BK + b], W[oG * BK + b], W[oV * BK + b], W[oEY * BK + b], W[oS * BK + b]
     _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph)
@@ -317,11 +394,163 @@ def _update_of(W, cst, b, n, joseph):
 def _kalman_step(W, cst, b, n, rn, joseph):
     """The Kalman filter's whole step of run ``b`` (noise variance ``rn``)."""
     mu, sv = _predict_moments(W, cst, b, n)
-    _gain_update(W, cst, b, n, W[_offsets(n)[7] * SOA_BLOCK + b], 1.0, rn, mu, sv, joseph)
+    _gain_update(W, cst, b, n, W[_offsets(n, 1)[7] * SOA_BLOCK + b], 1.0, rn, mu, sv, joseph)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _kalman_joint_gain(W, cst, b, n, m):
+    r"""The Kalman filter's prediction, innovation moments and joint gain of run ``b`` with ``m`` channels, each
+    operation as the compiled loop's (:func:`~tobitkf.filters._compiled_loop._kalman_moments`,
+    :func:`~tobitkf.filters._compiled_block._gain_block`), in its order: :math:`h_l = \bar Pc_l^T` (the column
+    :math:`l` of :math:`R_{xe}`), :math:`R_{ee} = C\bar PC^T + R`, :math:`e = y - C\bar x` (0 for a channel
+    whose reading is NaN or whose variance is not above the smallest normal number: it does not take part, its
+    gain column is 0), and with :math:`D = \mathrm{diag}(R_{ee})^{-1/2}` the unit-diagonal system
+    :math:`(DR_{ee}D)Z = DR_{xe}^T` by Gaussian elimination without pivoting, :math:`K = (DZ)^T`. A pivot not
+    positive flags the run (row ``oBAD``) for :func:`_kalman_fallback`."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
+    BK = SOA_BLOCK
+    nn = n * n
+    oc, orr = 2 * nn, 2 * nn + m * n  # the rows C, then R, in the constants
+    _predict_state(W, cst, b, n, m)
+    for l in range(m):
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += cst[oc + l * n + k] * W[(oPp + k * n + j) * BK + b]
+            W[(oH + l * n + j) * BK + b] = acc
+    for l in range(m):
+        for q in range(m):
+            acc = 0.0
+            for k in range(n):
+                acc += W[(oH + l * n + k) * BK + b] * cst[oc + q * n + k]
+            W[(oS + l * m + q) * BK + b] = acc + cst[orr + l * m + q]
+        acc = 0.0
+        for j in range(n):
+            acc += W[(oXP + j) * BK + b] * cst[oc + l * n + j]
+        e = W[(oY + l) * BK + b] - acc
+        good = W[(oS + l * m + l) * BK + b] > _TINY and not math.isnan(e)
+        W[(oOK + l) * BK + b] = 1.0 if good else 0.0
+        W[(oMU + l) * BK + b] = e if good else 0.0
+    for i in range(m):
+        v = W[(oS + i * m + i) * BK + b]
+        W[(oD + i) * BK + b] = 1.0 / math.sqrt(v) if (W[(oOK + i) * BK + b] != 0.0 and v > 0.0) else 1.0
+    for i in range(m):
+        oki = W[(oOK + i) * BK + b] != 0.0
+        di = W[(oD + i) * BK + b]
+        for j in range(m):
+            both = oki and W[(oOK + j) * BK + b] != 0.0
+            W[(oRW + i * m + j) * BK + b] = (
+                W[(oS + i * m + j) * BK + b] * di * W[(oD + j) * BK + b] if both else (1.0 if i == j else 0.0)
+            )
+        for k in range(n):
+            W[(oRH + i * n + k) * BK + b] = W[(oH + i * n + k) * BK + b] * di if oki else 0.0
+    bad = False
+    for c in range(m):
+        piv = W[(oRW + c * m + c) * BK + b]
+        ok_piv = piv > 0.0  # (False for NaN too)
+        bad = bad or not ok_piv
+        piv = piv if ok_piv else 1.0  # keeps the arithmetic finite; the run is redone
+        W[(oRW + c * m + c) * BK + b] = piv
+        for q in range(c + 1, m):
+            f = W[(oRW + q * m + c) * BK + b] / piv
+            W[(oRW + q * m + c) * BK + b] = f
+            for j in range(c + 1, m):
+                W[(oRW + q * m + j) * BK + b] -= f * W[(oRW + c * m + j) * BK + b]
+            for k in range(n):
+                W[(oRH + q * n + k) * BK + b] -= f * W[(oRH + c * n + k) * BK + b]
+    for c in range(m - 1, -1, -1):
+        for j in range(c + 1, m):
+            for k in range(n):
+                W[(oRH + c * n + k) * BK + b] -= W[(oRW + c * m + j) * BK + b] * W[(oRH + j * n + k) * BK + b]
+        for k in range(n):
+            W[(oRH + c * n + k) * BK + b] = W[(oRH + c * n + k) * BK + b] / W[(oRW + c * m + c) * BK + b]
+    for i in range(n):
+        for j in range(m):
+            W[(oK + j * n + i) * BK + b] = W[(oRH + j * n + i) * BK + b] * W[(oD + j) * BK + b]
+    W[oBAD * BK + b] = 1.0 if bad else 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _kalman_fallback(W, nb, n, m):
+    """The gains of the block's runs flagged by :func:`_kalman_joint_gain` (a pivot not positive: a singular or
+    non-finite :math:`R_{ee}`) again by :func:`~tobitkf.filters._compiled_block._solve_gain` (partial pivoting,
+    raising like ``numpy.linalg.solve``), as the compiled loop does; its scratch made only when a run needs it."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
+    BK = SOA_BLOCK
+    for b in range(nb):
+        if W[oBAD * BK + b] != 0.0:
+            Rs, Rxs, Ks = np.empty((m, m)), np.empty((n, m)), np.empty((n, m))
+            Ws, ds, oks = np.empty((m, n)), np.empty(m), np.empty(m, dtype=np.bool_)
+            for i in range(m):
+                oks[i] = W[(oOK + i) * BK + b] != 0.0
+                for j in range(m):
+                    Rs[i, j] = W[(oS + i * m + j) * BK + b]
+                for k in range(n):
+                    Rxs[k, i] = W[(oH + i * n + k) * BK + b]
+            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
+            for i in range(n):
+                for j in range(m):
+                    W[(oK + j * n + i) * BK + b] = Ks[i, j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _kalman_joint_update(W, cst, b, n, m, joseph):
+    r"""The Kalman filter's update of run ``b`` from its joint gain (:func:`_kalman_joint_gain`), as the
+    compiled loop's (:func:`~tobitkf.filters._compiled_block._mean_update`,
+    :func:`~tobitkf.filters._compiled_block._cov_update` with :math:`\Gamma = I`) in its order:
+    :math:`\hat x = \bar x + Ke`, :math:`M = \bar P - KR_{xe}^T` (the channel sums four terms at a time), and in
+    the Joseph form :math:`P = M - (MC^T - KR)K^T`."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
+    BK = SOA_BLOCK
+    nn = n * n
+    oc, orr = 2 * nn, 2 * nn + m * n
+    m4 = m - m % 4
+    for i in range(n):
+        acc = W[(oXP + i) * BK + b]
+        for l in range(m):
+            acc += W[(oK + l * n + i) * BK + b] * W[(oMU + l) * BK + b]
+        W[(oX + i) * BK + b] = acc
+    for i in range(n):
+        for j in range(i, n):
+            acc = W[(oPp + i * n + j) * BK + b]
+            for l in range(0, m4, 4):
+                acc -= (
+                    W[(oK + l * n + i) * BK + b] * W[(oH + l * n + j) * BK + b]
+                    + W[(oK + (l + 1) * n + i) * BK + b] * W[(oH + (l + 1) * n + j) * BK + b]
+                ) + (
+                    W[(oK + (l + 2) * n + i) * BK + b] * W[(oH + (l + 2) * n + j) * BK + b]
+                    + W[(oK + (l + 3) * n + i) * BK + b] * W[(oH + (l + 3) * n + j) * BK + b]
+                )
+            for l in range(m4, m):
+                acc -= W[(oK + l * n + i) * BK + b] * W[(oH + l * n + j) * BK + b]
+            W[(oP + i * n + j) * BK + b] = acc
+            W[(oP + j * n + i) * BK + b] = acc
+    if joseph:  # MH = M C^T - K R into the elimination's right-hand sides (free now), then P = M - MH K^T
+        for i in range(n):
+            for l in range(m):
+                acc = 0.0
+                for k in range(n):
+                    acc += W[(oP + i * n + k) * BK + b] * cst[oc + l * n + k]
+                for q in range(m):
+                    acc -= W[(oK + q * n + i) * BK + b] * cst[orr + q * m + l]
+                W[(oRH + i * m + l) * BK + b] = acc
+        for i in range(n):
+            for j in range(i, n):
+                acc = W[(oP + i * n + j) * BK + b]
+                for l in range(m):
+                    acc -= W[(oRH + i * m + l) * BK + b] * W[(oK + l * n + j) * BK + b]
+                W[(oP + i * n + j) * BK + b] = acc
+                W[(oP + j * n + i) * BK + b] = acc
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf):
+def _step(size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf):
     """The update ``kind`` of one step for the ``nb`` runs of a block, from and into the scratch ``W`` of
     :func:`soa_loop` (its docstring). A function of its own, not inlined into the time loop: ``W`` and ``cst``
     are arguments here (borrowed references), so that the helpers inlined into the loop over the runs take them
@@ -334,7 +563,9 @@ def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, h
     # non-negative and drops numba's wraparound of negative indices: with it the addresses are not affine in b
     # and no loop over the runs vectorised
     nb = max(0, min(nb, BK))
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, 1)
+    )
     lo_fin, hi_fin = lo_t != -_INF, hi_t != _INF
     if len(kind) == TOBIT_ANY:  # (len(kind): a constant, the other updates' branches pruned)
         for b in range(nb):  # prediction and moments
@@ -376,6 +607,17 @@ def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, h
         else:
             for b in range(nb):
                 _update_of(W, cst, b, n, False)
+    elif len(kind) == KALMAN and len(chans) > 1:  # the joint update of m channels: gain; fallback; update
+        m = len(chans)
+        for b in range(nb):
+            _kalman_joint_gain(W, cst, b, n, m)
+        _kalman_fallback(W, nb, n, m)
+        if joseph:
+            for b in range(nb):
+                _kalman_joint_update(W, cst, b, n, m, True)
+        else:
+            for b in range(nb):
+                _kalman_joint_update(W, cst, b, n, m, False)
     elif len(kind) == KALMAN:
         if joseph:
             for b in range(nb):
@@ -406,6 +648,7 @@ def _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, h
 @njit(cache=True, error_model="numpy", nogil=True)
 def soa_loop(
     size,
+    chans,
     kind,
     y,
     A,
@@ -436,8 +679,9 @@ def soa_loop(
     one channel, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
     fills the outputs (module docstring).
 
-    ``y`` (N, T, 1) readings (NaN: missing); ``A``, ``Qd`` (n, n); ``C`` (1, n); ``rv`` (TR,) per step (row
-    ``min(t, TR - 1)``) the KF's noise variance R, the TKF's standard deviation σ or the assumed-density
+    ``chans`` a tuple of m zeros (:data:`CHANS`; m > 1 the KF only); ``y`` (N, T, m) readings (NaN: missing);
+    ``A``, ``Qd`` (n, n); ``C`` (m, n); ``rv`` (TR,) per step (row ``min(t, TR - 1)``) the KF's noise variance R
+    (m > 1: R (m, m) flattened, constant), the TKF's standard deviation σ or the assumed-density
     filter's noise variance r; ``lo``, ``hi`` (TL, 1) the limits, row ``min(t, TL - 1)``; ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
     assumed-density filter's reading classes (T axis 0: by the limit rule); ``noise_code`` of
     :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; ``joseph`` the Joseph form (KF, TKF); ``x0`` (N, n),
@@ -459,19 +703,26 @@ def soa_loop(
     :func:`~tobitkf.filters._compiled_censored.window_direct`, whose runs off the direct route, a narrow window
     or one in a tail, then take :func:`~tobitkf.filters._compiled_censored.censored_stats` one at a time: the
     compiled loop's numbers), and the update (vectorised)."""
-    n = len(size)
-    N, T, m = y.shape
+    n, m = len(size), len(chans)
+    N, T = y.shape[0], y.shape[1]
     BK = SOA_BLOCK
     S = max(1, min(_CHUNK, max(T, 1), _STAGE_BYTES // (8 * n * n * BK)))
     nn = n * n
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, rows = _offsets(n)
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
     W = np.zeros(rows * BK)
     glx, glw = GL_X, GL_W
     buf = np.empty((2, glx.shape[0]))
-    # the constants: A (n x n), sym(Q) (n x n), c (n)
-    cst = np.empty(2 * nn + n)
+    # the constants: A (n x n), sym(Q) (n x n), the rows C (m x n), with m > 1 the KF's R (m x m) from rv
+    cst = np.zeros(2 * nn + m * n + m * m)
+    for l in range(m):
+        for i in range(n):
+            cst[2 * nn + l * n + i] = C[l, i]
+    if m > 1:
+        for i in range(m * m):
+            cst[2 * nn + m * n + i] = rv[i]
     for i in range(n):
-        cst[2 * nn + i] = C[0, i]
         for j in range(n):
             cst[i * n + j] = A[i, j]
             cst[nn + i * n + j] = 0.5 * (Qd[i, j] + Qd[j, i])
@@ -484,7 +735,7 @@ def soa_loop(
     s_pu, s_ey = np.empty(_stage_shape(pu, BK, S)), np.empty(_stage_shape(ey, BK, S))
     s_ll = np.empty(_stage_shape(ll, BK, S))
     w_pu, w_ey, w_ll = pu.shape[1] > 0, ey.shape[1] > 0, ll.shape[1] > 0
-    s_y = np.empty((S, BK))
+    s_y = np.empty((S, m, BK))
     has_bu, has_du, has_cls = bu.shape[1] > 0, du.shape[1] > 0, cls.shape[1] > 0
     one_p = P0.shape[0] == 1
     for r0 in range(0, N, BK):
@@ -499,7 +750,7 @@ def soa_loop(
             tt = t % S
             tl = min(t, lo.shape[0] - 1)
             lo_t, hi_t = lo[tl, 0], hi[tl, 0]
-            rn = rv[min(t, rv.shape[0] - 1)]
+            rn = rv[min(t, rv.shape[0] - 1)]  # (m > 1: unused)
             upper = lo_t == -_INF  # one finite limit: an upper one is the lower limit -hi of -y
             sg = -1.0 if upper else 1.0
             lim = sg * (hi_t if upper else lo_t)
@@ -507,28 +758,34 @@ def soa_loop(
                 cnt = min(S, T - t)
                 for b in range(nb):
                     for s in range(cnt):
-                        s_y[s, b] = y[r0 + b, t + s, 0]
-            for b in range(nb):
-                W[oY * BK + b] = s_y[tt, b]
+                        for l in range(m):
+                            s_y[s, l, b] = y[r0 + b, t + s, l]
+            for l in range(m):
+                for b in range(nb):
+                    W[(oY + l) * BK + b] = s_y[tt, l, b]
             if has_bu:
                 for i in range(n):
                     for b in range(nb):
                         W[(oBU + i) * BK + b] = bu[r0 + b, t, i]
             if has_du:
-                for b in range(nb):
-                    W[oDU * BK + b] = du[r0 + b, t, 0]
+                for l in range(m):
+                    for b in range(nb):
+                        W[(oDU + l) * BK + b] = du[r0 + b, t, l]
             if has_cls:
-                for b in range(nb):
-                    W[oCL * BK + b] = cls[r0 + b, t, 0]
-            _step(size, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf)
+                for l in range(m):
+                    for b in range(nb):
+                        W[(oCL + l) * BK + b] = cls[r0 + b, t, l]
+            _step(size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf)
             _stage(Wxp, WPp, tt, nb, s_pmean, s_pcov)
             _stage(Wx, WP, tt, nb, s_mean, s_cov)
             if w_pu:
-                for b in range(nb):
-                    s_pu[tt, 0, b] = W[oG * BK + b]
+                for l in range(m):
+                    for b in range(nb):
+                        s_pu[tt, l, b] = W[(oG + l) * BK + b]
             if w_ey:
-                for b in range(nb):
-                    s_ey[tt, 0, b] = W[oEY * BK + b]
+                for l in range(m):
+                    for b in range(nb):
+                        s_ey[tt, l, b] = W[(oEY + l) * BK + b]
             if w_ll:
                 for b in range(nb):
                     s_ll[tt, b] = W[oLL * BK + b]
@@ -551,19 +808,20 @@ def _none(N: int, *shape: int) -> np.ndarray:
 
 def soa_kalman_loop(y, A, Qd, H, par, joseph, x0, P0, means, covs, pmeans, pcovs, x_last, P_last) -> None:
     """:func:`soa_loop` for the Kalman filter with the arguments of
-    :func:`~tobitkf.filters._compiled_entries.kalman_loop` (``H`` (1, 1, n), ``par`` (1, 1, 1) the noise variance
-    R); the caller checked :func:`soa_covers`."""
+    :func:`~tobitkf.filters._compiled_entries.kalman_loop` (``H`` (1, m, n) the rows C, ``par`` (1, m, m) the
+    noise covariance R; m from 1 to :data:`SOA_MAX_M`); the caller checked :func:`soa_covers`."""
     N, _, m = y.shape
     n = A.shape[0]
     e = np.empty((1, 1))
     soa_loop(
         SIZES[n],
+        CHANS[m],
         KINDS[KALMAN],
         y,
         A,
         Qd,
         H[0],
-        par.reshape(1),
+        np.ascontiguousarray(par.reshape(m * m)),
         e,
         e,
         _none(N, n),
@@ -595,6 +853,7 @@ def soa_tobit_loop(
     N, _, m = y.shape
     soa_loop(
         SIZES[A.shape[0]],
+        CHANS[1],
         KINDS[TOBIT_ANY],
         y,
         A,
@@ -667,6 +926,7 @@ def soa_censored_loop(
         return
     soa_loop(
         SIZES[x0.shape[1]],
+        CHANS[1],
         KINDS[CENSORED_ADF_STATS if pu.shape[1] > 0 or ll.shape[1] > 0 else CENSORED_ADF],
         y,
         A[0, 0],
