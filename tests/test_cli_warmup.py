@@ -85,7 +85,7 @@ def test_warmup_runs_every_target_with_a_line_each(monkeypatch):
     ran = []
     targets = [("first group", lambda: ran.append(1)), ("second group", lambda: ran.append(2))]
     monkeypatch.setattr(_warmup, "TARGETS", targets)
-    res = CliRunner().invoke(cli.app, ["warmup"])
+    res = CliRunner().invoke(cli.app, ["warmup", "--jobs", "1"])
     assert res.exit_code == 0, res.output
     assert ran == [1, 2]
     assert "[1/2] first group: " in res.output and "[2/2] second group: " in res.output
@@ -127,12 +127,40 @@ def test_plural_and_the_messages_that_count():
         tk.TobitKalmanFilter(sys_, cens).filter(np.zeros((3, 1)))
 
 
+def _write_pid(path: Path) -> None:  # a warmup target of the test below (module level: the workers import it)
+    path.write_text(str(os.getpid()))
+
+
+def test_warmup_runs_its_targets_in_worker_processes_at_once(monkeypatch, tmp_path):
+    """With --jobs 2 each target runs in a worker process (spawned, so each has its own numba state), every
+    target gets its line, and the workers' compile counts are summed (here none compile)."""
+    import functools
+
+    files = [tmp_path / "a", tmp_path / "b", tmp_path / "c"]
+    targets = [(f"group {p.name}", functools.partial(_write_pid, p)) for p in files]
+    monkeypatch.setattr(_warmup, "TARGETS", targets)
+    res = CliRunner().invoke(cli.app, ["warmup", "--jobs", "2"])
+    assert res.exit_code == 0, res.output
+    pids = {int(p.read_text()) for p in files}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2
+    assert all(f"group {p.name}: " in res.output for p in files)
+    assert all(f"[{i}/3] " in res.output for i in (1, 2, 3))
+    assert "warmup: every kernel was cached" in res.output
+
+
+def test_warmup_refuses_a_bad_number_of_jobs():
+    with pytest.raises(ValueError, match=r"jobs: expected an integer >= 1, got 0"):
+        _warmup.warmup(jobs=0)
+    res = CliRunner().invoke(cli.app, ["warmup", "--jobs", "0"])
+    assert res.exit_code == 2 and "--jobs" in res.output
+
+
 def test_warmup_failure_is_one_line_and_exit_2(monkeypatch):
     def broken():
         raise ValueError("no such kernel")
 
     monkeypatch.setattr(_warmup, "TARGETS", [("broken", broken)])
-    res = CliRunner().invoke(cli.app, ["warmup"])
+    res = CliRunner().invoke(cli.app, ["warmup", "--jobs", "1"])
     assert res.exit_code == 2
     assert "no such kernel" in res.output and "Traceback" not in res.output
 

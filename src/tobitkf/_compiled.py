@@ -35,7 +35,7 @@ __all__ = [
 
 COMPILE_NOTICE = (
     "tobitkf: compiling numerical kernels for their first use (once after an install or upgrade, then "
-    "cached on disk: about two minutes on two cores; 'tobitkf warmup' does it ahead)"
+    "cached on disk: up to a minute or two per filter family; 'tobitkf warmup' compiles them all ahead)"
 )
 """The line printed on stderr when the first kernel of a process is compiled."""
 

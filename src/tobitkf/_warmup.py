@@ -7,16 +7,22 @@ warmup takes seconds. The targets are the filters most calls use (the Kalman and
 with their online step, the assumed-density filters, the fading and protocol filters, the smoother, the
 particle filter on censored readings)
 and the censored-AR fit of ``tobitkf fit``.
+
+numba compiles one kernel at a time per process, so on a machine with several cores the targets run in
+that many worker processes at once (``jobs``), each compiling into the same on-disk cache; the cache's
+files are written whole and renamed into place, so two processes compiling a kernel they share leave one
+valid entry.
 """
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["TARGETS", "warmup"]
+__all__ = ["TARGETS", "default_jobs", "warmup"]
 
 
 def _oscillator():
@@ -131,13 +137,87 @@ TARGETS: list[tuple[str, Callable[[], None]]] = [
 """What ``tobitkf warmup`` compiles: (label, a function that runs it on a tiny problem)."""
 
 
-def warmup(report: Callable[[str], None] = print, targets: list[tuple[str, Callable[[], None]]] | None = None) -> float:
-    """Run every target once (compiling its kernels into the on-disk cache); ``report`` gets a line per
-    target with its time. Returns the total seconds."""
+def default_jobs() -> int:
+    """The worker processes of :func:`warmup` by default: the cores this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
+def _run_target(target: Callable[[], None]) -> tuple[float, int, float]:
+    """Run one target in a worker process: (its seconds, kernels it compiled, seconds spent compiling)."""
+    from . import _compiled
+
+    _compiled.watch_compiles()
+    with _compiled._LOCK:
+        _compiled._STATS["announced"] = True  # the parent has said that kernels compile
+    before = _compiled.compile_stats()
+    t0 = time.perf_counter()
+    target()
+    seconds = time.perf_counter() - t0
+    after = _compiled.compile_stats()
+    return seconds, int(after["compiled"]) - int(before["compiled"]), float(after["seconds"]) - float(before["seconds"])
+
+
+def warmup(
+    report: Callable[[str], None] = print,
+    targets: list[tuple[str, Callable[[], None]]] | None = None,
+    jobs: int = 1,
+) -> tuple[float, int, float]:
+    """Run every target once, compiling its kernels into the on-disk cache.
+
+    Parameters
+    ----------
+    report
+        Gets a line per target with its time (``[i/n] label: s``), in the order the targets finish.
+    targets
+        (label, function) pairs; default :data:`TARGETS`. With ``jobs > 1`` each function must be picklable
+        (a module-level function).
+    jobs
+        Worker processes (``spawn``), each running whole targets; 1 runs them here, one after the other.
+
+    Returns
+    -------
+    (seconds, compiled, compile_seconds)
+        The wall seconds of the whole warmup, and the kernels compiled and the seconds spent compiling them,
+        summed over the processes (0 and 0.0 when every kernel was cached).
+
+    Raises
+    ------
+    ValidationError
+        ``jobs`` below 1.
+    """
+    from ._validation import ValidationError
+
+    if int(jobs) != jobs or jobs < 1:
+        raise ValidationError(f"jobs: expected an integer >= 1, got {jobs!r}")
     todo = TARGETS if targets is None else targets
     t_all = time.perf_counter()
-    for i, (label, target) in enumerate(todo, 1):
-        t0 = time.perf_counter()
-        target()
-        report(f"[{i}/{len(todo)}] {label}: {time.perf_counter() - t0:.1f} s")
-    return time.perf_counter() - t_all
+    compiled, compile_seconds = 0, 0.0
+    if jobs == 1 or len(todo) == 1:
+        from . import _compiled
+
+        for i, (label, target) in enumerate(todo, 1):
+            before = _compiled.compile_stats()
+            t0 = time.perf_counter()
+            target()
+            after = _compiled.compile_stats()
+            compiled += int(after["compiled"]) - int(before["compiled"])
+            compile_seconds += float(after["seconds"]) - float(before["seconds"])
+            report(f"[{i}/{len(todo)}] {label}: {time.perf_counter() - t0:.1f} s")
+        return time.perf_counter() - t_all, compiled, compile_seconds
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked numba or thread state
+    workers = min(int(jobs), len(todo))
+    report(f"compiling {len(todo)} groups of kernels, {workers} processes at once")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
+        futures = {pool.submit(_run_target, target): label for label, target in todo}
+        for i, future in enumerate(as_completed(futures), 1):
+            seconds, n, s = future.result()
+            compiled += n
+            compile_seconds += s
+            report(f"[{i}/{len(todo)}] {futures[future]}: {seconds:.1f} s")
+    return time.perf_counter() - t_all, compiled, compile_seconds

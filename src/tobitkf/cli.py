@@ -300,7 +300,7 @@ def is_complete(out: Path, exp_id: str, *, runs: int | None, seed: int, full: bo
 @app.command()
 @cli_errors
 def reproduce(
-    experiment: Annotated[str, typer.Argument(help="experiment id, or 'all'")],
+    experiment: Annotated[list[str], typer.Argument(help="experiment ids, or 'all'")],
     runs: Annotated[
         Optional[int], typer.Option("--runs", min=1, help="Monte Carlo runs (default: the experiment's)")
     ] = None,
@@ -320,19 +320,35 @@ def reproduce(
             help="run every experiment at the sources' sizes (their run counts): about an hour on two cores",
         ),
     ] = False,
+    jobs: Annotated[
+        Optional[int],
+        typer.Option(
+            "--jobs",
+            min=1,
+            help="experiments run at once, each in its own process (default: the cores available; 1: one after "
+            "the other in this process)",
+        ),
+    ] = None,
 ) -> None:
-    """Run an experiment (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html.
+    """Run experiments (or all), write metrics.json and figures under OUT/ID/, then the report OUT/index.html.
 
-    A line on stderr when each experiment starts and ends (with its time; one experiment: when it
-    ends), and every 30 s while it runs when stderr is not a terminal (a log, CI); on a terminal a
-    progress bar."""
+    Several experiments run in parallel worker processes (``--jobs``, default one per core), longest first;
+    each experiment's results do not depend on what runs beside it. A line on stderr when each experiment
+    starts and ends (with its time; one experiment: when it ends), and every 30 s while it runs when
+    stderr is not a terminal (a log, CI); with ``--jobs 1`` on a terminal a progress bar."""
     from ._progress import Heartbeat, format_seconds
     from ._validation import ValidationError, check_int
+    from ._warmup import default_jobs
     from .experiments import all_experiments, get
     from .report import check_report_targets
 
     # everything that can be refused is refused before the first experiment runs
-    ids = [e.id for e in all_experiments()] if experiment == "all" else [get(experiment).id]
+    if "all" in experiment:
+        if len(experiment) > 1:
+            raise ValidationError("experiment: 'all' runs every experiment; give 'all' alone or experiment ids")
+        ids = [e.id for e in all_experiments()]
+    else:
+        ids = list(dict.fromkeys(get(e).id for e in experiment))  # each once, in the order given
     check_int(seed, "--seed", minimum=0)
     if full and runs is not None:
         raise ValidationError(
@@ -342,38 +358,91 @@ def reproduce(
     check_report_targets(out)
     for exp_id in ids:
         check_experiment_folder(out, exp_id)
+    number = {exp_id: f"[{i + 1}/{len(ids)}] " if len(ids) > 1 else "" for i, exp_id in enumerate(ids)}
+    todo = []
+    for exp_id in ids:
+        if resume and is_complete(out, exp_id, runs=runs, seed=seed, full=full):
+            console.print(f"kept {out / exp_id} (complete, --resume)", markup=False, highlight=False, soft_wrap=True)
+        else:
+            todo.append(exp_id)
+    workers = min(default_jobs() if jobs is None else jobs, len(todo))
     terminal = console.is_terminal
-    columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+    every = 0 if terminal else _HEARTBEAT_SECONDS
     t_all, spent = time.perf_counter(), 0.0
-    with Progress(*columns, console=console, transient=False, disable=not terminal) as progress:
-        overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None
-        for i, exp_id in enumerate(ids):
-            if resume and is_complete(out, exp_id, runs=runs, seed=seed, full=full):
-                console.print(
-                    f"kept {out / exp_id} (complete, --resume)", markup=False, highlight=False, soft_wrap=True
-                )
+    if workers > 1:
+        spent = _reproduce_in_workers(todo, number, workers, runs=runs, seed=seed, out=out, full=full, every=every)
+    else:
+        columns = (TextColumn("{task.description}"), BarColumn(), TimeElapsedColumn(), TimeRemainingColumn())
+        with Progress(*columns, console=console, transient=False, disable=not terminal) as progress:
+            overall = progress.add_task("all experiments", total=len(ids)) if len(ids) > 1 else None
+            if overall is not None:
+                progress.advance(overall, len(ids) - len(todo))
+            for exp_id in todo:
+                with Heartbeat(exp_id, every=every, prefix=number[exp_id], announce=len(ids) > 1) as beat:
+                    outdir = run_experiment(
+                        exp_id, runs=runs, seed=seed, out=out, progress=progress, full=full, heartbeat=beat
+                    )
+                spent += beat.elapsed
+                console.print(f"wrote {outdir}", markup=False, highlight=False, soft_wrap=True)
                 if overall is not None:
                     progress.advance(overall)
-                continue
-            prefix = f"[{i + 1}/{len(ids)}] " if len(ids) > 1 else ""
-            every = 0 if terminal else _HEARTBEAT_SECONDS
-            with Heartbeat(exp_id, every=every, prefix=prefix, announce=len(ids) > 1) as beat:
-                outdir = run_experiment(
-                    exp_id, runs=runs, seed=seed, out=out, progress=progress, full=full, heartbeat=beat
-                )
-            spent += beat.elapsed
-            console.print(f"wrote {outdir}", markup=False, highlight=False, soft_wrap=True)
-            if overall is not None:
-                progress.advance(overall)
     if len(ids) > 1:
+        at_once = f"; {workers} at once" if workers > 1 else ""
         console.print(
             f"{len(ids)} experiments in {format_seconds(time.perf_counter() - t_all)} "
-            f"(the experiments' own times add up to {format_seconds(spent)})",
+            f"(the experiments' own times add up to {format_seconds(spent)}{at_once})",
             markup=False,
             highlight=False,
             soft_wrap=True,
         )
     _write_report(out)
+
+
+def _worker_threads(threads: int) -> None:
+    """A worker process of ``reproduce --jobs``: its share of the cores for the filters' threads (unless set)."""
+    os.environ.setdefault("TOBITKF_NUM_THREADS", str(threads))
+
+
+def _reproduce_one(exp_id: str, prefix: str, runs: int | None, seed: int, out: Path, full: bool, every: float) -> float:
+    """Run one experiment in a worker process of ``reproduce --jobs`` (its lines go to this process's stderr);
+    returns its seconds."""
+    from ._progress import Heartbeat
+
+    with Heartbeat(exp_id, every=every, prefix=prefix, announce=True) as beat:
+        run_experiment(exp_id, runs=runs, seed=seed, out=out, full=full, heartbeat=beat)
+    return beat.elapsed
+
+
+def _reproduce_in_workers(
+    ids: list[str], number: dict[str, str], workers: int, *, runs: int | None, seed: int, out: Path, full: bool,
+    every: float,
+) -> float:  # fmt: skip
+    """Run ``ids`` in ``workers`` spawned processes, the longest (:attr:`Experiment.cost`) first; returns the sum of
+    their seconds. The first failure is raised once the experiments already running have ended (their results are
+    written; the ones not started are not)."""
+    import multiprocessing
+    from concurrent.futures import FIRST_EXCEPTION, ProcessPoolExecutor, wait
+
+    from ._warmup import default_jobs
+    from .experiments import get
+
+    order = sorted(ids, key=lambda e: -get(e).cost)  # stable: equal costs keep the registry's order
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter each: no forked numba or thread state
+    threads = max(1, default_jobs() // workers)
+    spent = 0.0
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_threads, initargs=(threads,)) as pool:
+        pending = {pool.submit(_reproduce_one, e, number[e], runs, seed, out, full, every): e for e in order}
+        while pending:
+            done, _ = wait(pending, return_when=FIRST_EXCEPTION)
+            for future in done:
+                exp_id = pending.pop(future)
+                if future.exception() is not None:
+                    for other in pending:
+                        other.cancel()
+                    raise future.exception()  # type: ignore[misc]
+                spent += future.result()
+                console.print(f"wrote {out / exp_id}", markup=False, highlight=False, soft_wrap=True)
+    return spent
 
 
 _HEARTBEAT_SECONDS = 30.0
@@ -382,13 +451,19 @@ _HEARTBEAT_SECONDS = 30.0
 
 @app.command()
 @cli_errors
-def warmup() -> None:
+def warmup(
+    jobs: Annotated[
+        Optional[int],
+        typer.Option("--jobs", min=1, help="worker processes compiling at once (default: the cores available)"),
+    ] = None,
+) -> None:
     """Compile the common kernels (filters, online step, smoother, censored-AR fit) into numba's disk cache.
 
-    The first process after an install or upgrade compiles each kernel on its first call (about a
-    minute on two cores); afterwards they load in seconds. A line per group of kernels on stderr."""
+    The first process after an install or upgrade compiles each kernel on its first call (minutes for
+    all of them); afterwards they load in seconds. The groups of kernels compile in parallel worker
+    processes, one per core. A line per group of kernels on stderr as it finishes."""
     from . import _warmup
-    from ._compiled import compile_stats, numba_available
+    from ._compiled import numba_available
     from ._progress import format_seconds
 
     if not numba_available():
@@ -398,13 +473,14 @@ def warmup() -> None:
     def line(text: str) -> None:
         console.print(text, markup=False, highlight=False, soft_wrap=True)
 
-    before = compile_stats()
-    total = _warmup.warmup(report=line)
-    after = compile_stats()
-    compiled = int(after["compiled"]) - int(before["compiled"])
-    seconds = float(after["seconds"]) - float(before["seconds"])
+    n_jobs = _warmup.default_jobs() if jobs is None else jobs
+    total, compiled, seconds = _warmup.warmup(report=line, jobs=n_jobs)
+    used = min(n_jobs, len(_warmup.TARGETS))
+    where = f" of compile time, {used} processes at once" if used > 1 else ""
     what = (
-        f"{plural(compiled, 'kernel')} compiled in {format_seconds(seconds)}" if compiled else "every kernel was cached"
+        f"{plural(compiled, 'kernel')} compiled in {format_seconds(seconds)}{where}"
+        if compiled
+        else "every kernel was cached"
     )
     typer.echo(f"warmup: {what}; {format_seconds(total)} in all")
 

@@ -125,7 +125,7 @@ def test_reproduce_all_prints_a_line_when_each_experiment_starts_and_ends(tmp_pa
     monkeypatch.setattr(experiments, "_REGISTRY", {"progress-dummy": dummy, "progress-dummy-2": second})
     monkeypatch.setattr(experiments, "_DISCOVERED", True)
     monkeypatch.setattr(cli, "_HEARTBEAT_SECONDS", 0.1)
-    res = CliRunner().invoke(cli.app, ["reproduce", "all", "--out", str(tmp_path / "r")])
+    res = CliRunner().invoke(cli.app, ["reproduce", "all", "--jobs", "1", "--out", str(tmp_path / "r")])
     assert res.exit_code == 0, res.output
     out = res.output
     order = [
@@ -156,7 +156,7 @@ def test_a_failing_experiment_is_one_line_alone_and_named_in_all(tmp_path, monke
     assert res.exit_code == 2 and [ln for ln in res.output.splitlines() if ln.strip()] == ["error: runs: too many"]
     ok = Experiment("progress-ok", "t", "s", _slow_run, _no_plot, 1, __name__)
     monkeypatch.setattr(experiments, "_REGISTRY", {"progress-broken": bad, "progress-ok": ok})
-    res = CliRunner().invoke(cli.app, ["reproduce", "all", "--out", str(tmp_path / "b")])
+    res = CliRunner().invoke(cli.app, ["reproduce", "all", "--jobs", "1", "--out", str(tmp_path / "b")])
     assert res.exit_code == 2
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert lines[0] == "[1/2] progress-broken: started"
@@ -209,3 +209,53 @@ def test_yardstick_names_what_it_is_doing():
     assert "miller-brownian: particle filter, 40 particles, runs 1-4 of 4" in text
     fractions = [f for f, _ in notes]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
+
+
+def _metrics_without_times(folder):
+    """metrics.json without its measured times (every key naming seconds), which differ from run to run."""
+
+    def drop(node):
+        if isinstance(node, dict):
+            return {k: drop(v) for k, v in node.items() if "seconds" not in k}
+        return [drop(v) for v in node] if isinstance(node, list) else node
+
+    return drop(json.loads((folder / "metrics.json").read_text()))
+
+
+@pytest.mark.heavy
+def test_experiments_run_at_once_give_the_results_of_one_after_the_other(tmp_path):
+    """``reproduce A B C --jobs 2``: each experiment in a worker process, the same metrics (times aside) as
+    ``--jobs 1``, a start and an end line for each, the report over all three."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    src = str(Path(cli.__file__).resolve().parents[1])
+    env = {**os.environ, "PYTHONPATH": src + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    ids = ["data-niagara", "miller-fov", "li2018-tracking"]
+    runs = {}
+    for jobs in ("1", "2"):
+        out = tmp_path / f"jobs{jobs}"
+        cmd = [sys.executable, "-m", "tobitkf", "reproduce", *ids, "--runs", "2", "--jobs", jobs, "--out", str(out)]
+        runs[jobs] = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+        assert runs[jobs].returncode == 0, runs[jobs].stderr
+        assert (out / "index.html").is_file()
+    err = runs["2"].stderr
+    for i, exp_id in enumerate(ids, 1):
+        assert err.count(f"[{i}/3] {exp_id}: started") == 1 and err.count(f"[{i}/3] {exp_id}: done in ") == 1, err
+        assert err.count(f"wrote {tmp_path / 'jobs2' / exp_id}") == 1, err
+        assert _metrics_without_times(tmp_path / "jobs2" / exp_id) == _metrics_without_times(
+            tmp_path / "jobs1" / exp_id
+        )
+    assert "3 experiments in " in err and "; 2 at once)" in err
+
+
+def test_reproduce_refuses_all_beside_ids_and_a_bad_jobs(tmp_path):
+    res = CliRunner().invoke(cli.app, ["reproduce", "all", "miller-fov", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "give 'all' alone" in res.output
+    res = CliRunner().invoke(cli.app, ["reproduce", "miller-fov", "--jobs", "0", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "--jobs" in res.output
+    res = CliRunner().invoke(cli.app, ["reproduce", "miller-fov", "no-such-experiment", "--out", str(tmp_path)])
+    assert res.exit_code == 2 and "no-such-experiment" in res.output
+    assert not (tmp_path / "miller-fov").exists()  # refused before anything ran

@@ -83,6 +83,8 @@ class Experiment:
     module: str
     full_runs: int | None = None
     full_settings: dict[str, Any] = field(default_factory=dict)
+    cost: float = 1.0
+    """Roughly its seconds at the default size (a hint: ``tobitkf reproduce`` starts the longest first)."""
 
     def runs_for(self, full: bool = False) -> int:
         """The run count of a default run, or of a full run (``tobitkf reproduce --full``: the sources' sizes)."""
@@ -126,12 +128,14 @@ def register(
     default_runs: int,
     full_runs: int | None = None,
     full_settings: dict[str, Any] | None = None,
+    cost: float = 1.0,
 ):
     """Decorator registering ``run`` under ``id``.
 
     ``default_runs`` is the run count of ``tobitkf reproduce``; ``full_runs`` (default: the same) and
     ``full_settings`` (keyword settings, default none) those of ``tobitkf reproduce --full``, the sources'
-    sizes, for an experiment whose default is smaller to keep the main job short. A smaller default
+    sizes, for an experiment whose default is smaller to keep the main job short. ``cost``, roughly its seconds at
+    the default size, orders the experiments when ``tobitkf reproduce`` runs several at once (longest first). A smaller default
     must still support every claim: the claims' tolerances come from the run count actually used.
 
     The registered (and returned) ``run`` checks the claims of its result against the claims
@@ -172,6 +176,7 @@ def register(
             module=run.__module__,
             full_runs=full_runs,
             full_settings=dict(full_settings or {}),
+            cost=float(cost),
         )
         return checked_run
 

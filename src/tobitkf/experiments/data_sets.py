@@ -532,6 +532,7 @@ def phosphorus(*, runs: int = 1, seed: int = 0, progress=None) -> ExperimentResu
     source="Real censored data (Iowa DNR / USGS; NCAR)",
     plot=_plot,
     default_runs=1,
+    cost=18,
 )
 def cloud_ceiling(*, runs: int = 1, seed: int = 0, progress=None) -> ExperimentResult:
     """Exact ML of y = b0 + AR(p) on the cloud-ceiling data; hold-out with the limit moved down.

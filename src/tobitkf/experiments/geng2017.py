@@ -439,6 +439,7 @@ def run_oscillator(*, runs: int = 1000, seed: int = 0, progress=None, **override
     source="Geng, Wang et al. 2017: Tobit Kalman filter with fading measurements",
     plot=_plot_radar,
     default_runs=1000,
+    cost=19,
 )
 def run_radar(*, runs: int = 1000, seed: int = 0, progress=None, **overrides: Any) -> ExperimentResult:
     """Radar example (Sec. 4.2) with our reconstructed parameters (GF-01); see the module docstring.

@@ -391,6 +391,7 @@ def _plot_fading(result: ExperimentResult, outdir: Path) -> list[Path]:
     source=_SOURCE,
     plot=_plot_fading,
     default_runs=150,
+    cost=22,
 )
 def run_fading(*, runs: int, seed: int, progress=None, S: Any = None, steps: int = 151) -> ExperimentResult:
     """Fig. 2: P(t|t) and Monte Carlo MSE for P(γ = q) = 0.8, q = 1, 0.6, 0.3 (docs/sources LD-11)."""

@@ -324,6 +324,7 @@ def _position_claims(name: str, m, scen: dict, res_all: dict, runs: int) -> list
     source=_SOURCE,
     plot=_plot_closed_loop,
     default_runs=40,
+    cost=55,
 )
 def closed_loop(*, runs: int = 40, seed: int = 0, progress=None) -> ExperimentResult:
     """§6.2: KF-LQG and TKF-LQG (time-varying filter-form observers) with the same LQR and noise.

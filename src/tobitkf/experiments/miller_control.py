@@ -656,6 +656,7 @@ def _plot_position(result: ExperimentResult, outdir: Path) -> list[Path]:
     source=_SOURCE,
     plot=_plot_position,
     default_runs=100,
+    cost=34,
 )
 def dc_motor_position_exp(*, runs: int = 100, seed: int = 0, progress=None, steps: int = 1000) -> ExperimentResult:
     """§5.4.2: gains (5.67) and the Tobit gains at T = 0, −10°, −20° next to the printed values; the

@@ -284,6 +284,7 @@ def _plot_brownian(result: ExperimentResult, outdir: Path) -> list[Path]:
     source=_SOURCE,
     plot=_plot_brownian,
     default_runs=200,
+    cost=40,
 )
 def brownian(
     *,

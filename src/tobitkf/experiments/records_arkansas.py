@@ -639,6 +639,7 @@ def _plot_arkansas(result: ExperimentResult, outdir: Path) -> list[Path]:
     plot=_plot_arkansas,
     default_runs=1,
     full_settings={"loo_all": True},
+    cost=45,
 )
 def arkansas(
     *, runs: int = 1, seed: int = 0, progress=None, loo_samples: Any = None, loo_all: bool = False

@@ -485,6 +485,7 @@ def _plot(result: ExperimentResult, outdir: Path) -> list[Path]:
     default_runs=200,
     full_runs=1000,
     full_settings={"size": "full"},
+    cost=200,
 )
 def run(
     *,
