@@ -106,9 +106,11 @@ def test_zero_weight_leave_one_out_is_the_normal_models(rec):
         loo.update(component_sd=sds, component_weight=weights)
         outs.append((loo, loo_scores(m, loo, low, high)))
     (l0, s0), (l1, s1) = outs
-    for key in ("mean", "sd", "component_sd", "component_weight"):
+    for key in ("mean", "sd", "component_weight"):
         np.testing.assert_allclose(l1[key], l0[key], rtol=1e-12, atol=1e-12, err_msg=key)
+    np.testing.assert_allclose(l1["component_sd"][:, 0], l0["sd"], rtol=1e-12)  # the wide one has weight 0
     np.testing.assert_allclose(l0["component_sd"][:, 0], l0["sd"], rtol=1e-12)
+    np.testing.assert_array_equal(l1["component_weight"][:, 1], 0.0)
     np.testing.assert_allclose(s1.log_score, s0.log_score, rtol=1e-12, atol=1e-12)
     assert s1.rmse == pytest.approx(s0.rmse, rel=1e-12)
 

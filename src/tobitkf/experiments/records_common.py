@@ -265,28 +265,38 @@ def mixture_update(
     -------
     x (N, n), P (N, n, n), log_likelihood (N,) (0 for a missing reading, which leaves the prior unchanged)
     """
-    from scipy.special import logsumexp
-
     from ..filters._readings import _MISSING
     from ..filters._readings import classify_readings as _classify
     from ..filters.assumed_density import censored_channel_update, merge_gaussians
 
+    N = x.shape[0]
     cls = _classify(y, lower, upper) if cls is None else cls
-    w = np.asarray(weight, dtype=float)
+    w = np.broadcast_to(np.asarray(weight, dtype=float), (N,))
+    r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N,))
     with np.errstate(divide="ignore"):
         log_w = np.stack([np.log1p(-w), np.log(w)])  # (2, N); w = 0 gives the Gaussian model exactly
-    parts = [
-        censored_channel_update(x, P, None, y, c, var, lower, upper, dy=dy, cls=cls)
-        for var in (r2, np.asarray(scale2, dtype=float) * r2)
-    ]
-    joint = log_w + np.stack([p[4] for p in parts])
-    ll = logsumexp(joint, axis=0)
+
+    def two(v: Any) -> np.ndarray:  # the two components stacked as 2N runs
+        v = np.broadcast_to(np.asarray(v, dtype=float), (N,) + np.shape(v)[1:])
+        return np.concatenate([v, v])
+
+    # both components in one call of the package's censored update (runs 0..N-1: r^2, N..2N-1: c^2 r^2)
+    xj, Pj, _, _, llj = censored_channel_update(
+        two(x), two(P), None, two(y), c, np.concatenate([r2, np.asarray(scale2, dtype=float) * r2]), two(lower),
+        two(upper), dy=two(dy), cls=np.concatenate([cls, cls]), compiled=True,
+    )  # fmt: skip
+    joint = log_w + llj.reshape(2, N)
+    ll = np.logaddexp(joint[0], joint[1])
     missing = cls == _MISSING
     ll = np.where(missing, 0.0, ll)
     with np.errstate(invalid="ignore"):
         post = np.exp(joint - ll)  # pi_j
     post = np.where(missing | ~np.isfinite(post), np.exp(log_w), post)
-    xm, Pm, _ = merge_gaussians(post, np.stack([p[0] for p in parts]), np.stack([p[1] for p in parts]))
+    n = x.shape[-1]
+    xm, Pm, _ = merge_gaussians(post, xj.reshape(2, N, n), Pj.reshape(2, N, n, n))
+    if missing.any():  # no reading: the prediction itself (not its merge with an equal copy, which rounds)
+        xm = np.where(missing[:, None], x, xm)
+        Pm = np.where(missing[:, None, None], P, Pm)
     return xm, Pm, ll
 
 
