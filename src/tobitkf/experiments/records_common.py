@@ -281,8 +281,9 @@ def mixture_update(
         return np.concatenate([v, v])
 
     # both components in one call of the package's censored update (runs 0..N-1: r^2, N..2N-1: c^2 r^2)
+    var: Any = np.concatenate([r2, np.asarray(scale2, dtype=float) * r2])  # r: scalar or (N,) per run
     xj, Pj, _, _, llj = censored_channel_update(
-        two(x), two(P), None, two(y), c, np.concatenate([r2, np.asarray(scale2, dtype=float) * r2]), two(lower),
+        two(x), two(P), None, two(y), c, var, two(lower),
         two(upper), dy=two(dy), cls=np.concatenate([cls, cls]), compiled=True,
     )  # fmt: skip
     joint = log_w + llj.reshape(2, N)

@@ -452,16 +452,16 @@ class RiverModel:
             for c in self.GROUPS[g]:
                 q[..., self.coef.index(c)] = np.exp(2 * th[..., off + i])
         batch = th.shape[:-1]
-        w, c = np.zeros(batch), np.ones(batch)
+        weight, ratio = np.zeros(batch), np.ones(batch)
         if self.noise == "mixture":
             from scipy.special import expit
 
             k = off + len(self.drift)
             if self.outlier_weight is None:
-                w, k = expit(th[..., k]), k + 1
+                weight, k = expit(th[..., k]), k + 1
             else:
-                w = np.full(batch, float(self.outlier_weight))
-            c = np.exp(th[..., k]) if self.outlier_scale is None else np.full(batch, float(self.outlier_scale))
+                weight = np.full(batch, float(self.outlier_weight))
+            ratio = np.exp(th[..., k]) if self.outlier_scale is None else np.full(batch, float(self.outlier_scale))
         return {
             "b": th[..., :nb],
             "tau": np.exp(th[..., nb]) if self.residual_ar else np.ones(th.shape[:-1]),
@@ -471,8 +471,8 @@ class RiverModel:
             "r": np.exp(th[..., j]),
             "gamma": th[..., j + 1 : j + 1 + nv],  # (..., nv): the log sd's coefficients on the columns of V
             "q": q,  # per year
-            "w": w,  # the outlier weight and sd ratio of the mixture noise (0 and 1 for normal noise)
-            "c": c,
+            "w": weight,  # the outlier weight and sd ratio of the mixture noise (0 and 1 for normal noise)
+            "c": ratio,
         }
 
     def noise_sd(self, nat: dict[str, np.ndarray], days: Any = None) -> np.ndarray:
