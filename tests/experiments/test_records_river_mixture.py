@@ -11,7 +11,7 @@ from scipy.stats import norm
 
 from tobitkf import ValidationError
 from tobitkf.data import load_arkansas
-from tobitkf.experiments.records_arkansas import ARKANSAS_CANDIDATES, ARKANSAS_MODEL, loo_scores
+from tobitkf.experiments.records_arkansas import ARKANSAS_CANDIDATES, ARKANSAS_MODEL, NORMAL_NOISE_MODEL, loo_scores
 from tobitkf.experiments.records_common import mixture_predictive_scores, mixture_update
 from tobitkf.experiments.records_river import RiverModel, batched_loo_refit
 from tobitkf.inference.wrtds import predictive_scores
@@ -51,9 +51,10 @@ def _thetas(m, rng, count=3):
 def test_zero_weight_is_the_normal_model(rec, options):
     """w = 0 (fixed, or its logit at -inf): the likelihood terms, the filtered and smoothed moments, the smoothed
     predictive and the daily smoother equal the normal model's to 1e-12."""
+    options = {**options, "noise": "normal"}
     m0 = RiverModel.from_record(rec, **options)
-    fixed = RiverModel.from_record(rec, **options, noise="mixture", outlier_weight=0.0, outlier_scale=3.0)
-    fitted = RiverModel.from_record(rec, **options, noise="mixture")
+    fixed = RiverModel.from_record(rec, **{**options, "noise": "mixture", "outlier_weight": 0.0, "outlier_scale": 3.0})
+    fitted = RiverModel.from_record(rec, **{**options, "noise": "mixture"})
     assert fixed.names == m0.names and fitted.names == m0.names + ("logit_outlier_weight", "log_outlier_scale")
     th = _thetas(m0, np.random.default_rng(3))
     th_fitted = np.column_stack([th, np.full(len(th), -np.inf), np.full(len(th), np.log(3.0))])
@@ -219,4 +220,21 @@ def test_mixture_candidates_are_appended_to_their_normal_counterparts():
     assert mixture and ARKANSAS_CANDIDATES[: len(normal)] == tuple(normal)
     for c in mixture:
         assert {k: v for k, v in c.items() if k != "noise"} in normal
-    assert {**ARKANSAS_MODEL, "noise": "mixture"} in mixture
+    assert ARKANSAS_MODEL in mixture and {**NORMAL_NOISE_MODEL, "noise": "mixture"} in mixture
+
+
+def test_mixture_daily_smoother_agrees_with_the_sample_grid(rec):
+    """With w > 0 the daily smoother (the mixture filter's moments, the package's RTS pass, the fill-in between
+    samples) gives each sample day the sample-grid smoother's latent mean and variance, and the predictive sd adds
+    the mixture's noise variance (1 - w + w c^2) s^2."""
+    m = RiverModel.from_record(rec, **SMALL, noise="mixture")
+    th = m.start()
+    th[m.names.index("log_tau_days")] = np.log(40.0)
+    sm = m.run(th[None], smooth=True)
+    daily = m.daily_smooth(th)
+    np.testing.assert_allclose(daily["ln_mean"][m.day], sm["mean"][0], rtol=1e-9, atol=1e-10)
+    np.testing.assert_allclose(daily["ln_sd"][m.day] ** 2, sm["latent_var"][0], rtol=1e-9, atol=1e-12)
+    nat = m.natural(th[None])
+    w, c = float(nat["w"][0]), float(nat["c"][0])
+    noise = (1 - w + w * c**2) * daily["noise_sd"][m.day] ** 2
+    np.testing.assert_allclose(sm["sd"][0] ** 2, sm["latent_var"][0] + noise, rtol=1e-12)
