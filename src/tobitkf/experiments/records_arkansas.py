@@ -184,9 +184,11 @@ def _scores_entry(dates: np.ndarray, mean: np.ndarray, sd: np.ndarray, sc: Any, 
 
 
 def loo_scores(model: RiverModel, loo: dict[str, Any], low: np.ndarray, high: np.ndarray) -> Any:
-    """The predictive scores of the leave-one-out predictives of :func:`.records_river.batched_loo_refit`: Gaussian (:func:`tobitkf.wrtds.predictive_scores`) for normal sample noise, the mixture
-    of the two components' predictives (:func:`~tobitkf.experiments.records_common.mixture_predictive_scores`:
-    the mixture's density of a measured sample, its CDF at a censored one's limit) for ``noise="mixture"``."""
+    """The predictive scores of the leave-one-out predictives of
+    :func:`~tobitkf.experiments.records_river.batched_loo_refit`: Gaussian (:func:`tobitkf.wrtds.predictive_scores`)
+    for normal sample noise, the mixture of the two components' predictives
+    (:func:`~tobitkf.experiments.records_common.mixture_predictive_scores`: the mixture's density of a measured
+    sample, its CDF at a censored one's limit) for ``noise="mixture"``."""
     from ..inference.wrtds import predictive_scores
 
     if model.noise == "normal":
