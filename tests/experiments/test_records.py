@@ -362,7 +362,7 @@ def test_daily_smoother_of_the_experiments_model_equals_tk_smooth():
     """The full record under the experiment's model (a drifting intercept, static coefficients of zero prior
     variance, the added regressors, days after the last sample): the one-step fill-in between sample days
     against the RTS pass over every day."""
-    m = RiverModel.from_record(load_arkansas(), **ARKANSAS_MODEL)
+    m = RiverModel.from_record(load_arkansas(), **{**ARKANSAS_MODEL, "noise": "normal"})  # a LinearSystem's noise
     th = m.start()
     th[m.names.index("gamma_flow")] = -0.2
     if m.residual_ar:

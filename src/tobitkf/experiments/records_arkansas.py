@@ -7,15 +7,17 @@ The model is chosen, not assumed: every model tried on this record is listed in
 in time, a noise sd depending on the flow, its square, the season, the flow anomaly's size or the years, a
 square of ln Q or a natural cubic spline in it, a seasonal ln Q slope, an ln Q slope trend, a second seasonal
 harmonic, a flow anomaly against the mean of the previous 10, 30 or 90 days, its product with ln Q, a second
-slower anomaly, a second residual with a short memory beside the first, no AR residual); the experiment fits each by maximum likelihood (:func:`fit_river`: two starts
-and the best nested candidate's estimates) and takes the one of smallest AIC on the full record. The
+slower anomaly, a second residual with a short memory beside the first, no AR residual, and on the leading
+candidates a heavier-tailed sample noise, a scale mixture of two normals); the experiment fits each by maximum
+likelihood (:func:`fit_river`: two starts and the best nested candidate's estimates) and takes the one of smallest AIC on the full record. The
 leave-one-out score of every candidate is reported beside it (``models_compared``), so that a reader sees how
 many models were compared and where the chosen one stands.
 
 Leave-one-out: for each sample i, the parameters are refitted to the record without it
 (warm-started at the full fit, batched quasi-Newton over all samples at once: every sample's
 refit is one run of the batch), and the predictive distribution of its ln value is the smoothed
-state at its day mapped through :math:`C_i`, plus :math:`r^2`. WRTDS's predictions come from
+state at its day mapped through :math:`C_i`, plus the sample noise (variance :math:`r_i^2`; with the mixture
+noise a mixture of two normals, scored by its density and CDF: :func:`loo_scores`). WRTDS's predictions come from
 :meth:`tobitkf.wrtds.WRTDS.cross_validate` (EGRET's ``estCrossVal``). Both are scored by
 :func:`tobitkf.wrtds.predictive_scores`.
 
@@ -34,7 +36,7 @@ import numpy as np
 from ..plotting import new_figure, save
 from . import ExperimentResult, register, report_table, setting
 from . import _claims as CL
-from .records_common import _FD_STEP, _noop, fit_ml, fit_record
+from .records_common import _FD_STEP, _noop, fit_ml, fit_record, mixture_predictive_scores
 from .records_river import RiverModel, batched_loo_refit
 
 __all__ = [
@@ -42,11 +44,13 @@ __all__ = [
     "run_arkansas",
     "fit_river",
     "ARKANSAS_MODEL",
+    "NORMAL_NOISE_MODEL",
     "ARKANSAS_CANDIDATES",
     "STATIC_MODEL",
     "MOVING_WINDOWS_MODEL",
     "FLUX_FACTOR",
     "LOO_GTOL",
+    "loo_scores",
 ]
 
 FLUX_FACTOR = 28.316846592 * 86400.0 * 1e-6
@@ -62,12 +66,21 @@ _BASE: dict[str, Any] = {
 }
 _PREVIOUS_MODEL: dict[str, Any] = {**_BASE, "quadratic": True}
 _SPLINE: dict[str, Any] = {**_BASE, "flow_spline_knots": 5, "anomaly_slope": True, "residual_ar": False}
-ARKANSAS_MODEL: dict[str, Any] = {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 30.0}
-"""The smallest-AIC candidate: a drifting intercept, a natural cubic spline in ln Q (5 knots), two seasonal
-harmonics, the flow anomaly over a 10-day mean and its product with ln Q, a slower anomaly over a 30-day mean,
-no AR residual (its variance goes to 0 once the anomaly's slope is in), and a sample noise whose sd depends on
-the flow and the season (``data-arkansas`` selects it afresh from :data:`ARKANSAS_CANDIDATES`; this is the
-default of a run without candidates)."""
+NORMAL_NOISE_MODEL: dict[str, Any] = {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 30.0}
+"""The smallest-AIC candidate with a normal sample noise: a drifting intercept, a natural cubic spline in ln Q
+(5 knots), two seasonal harmonics, the flow anomaly over a 10-day mean and its product with ln Q, a slower
+anomaly over a 30-day mean, no AR residual (its variance goes to 0 once the anomaly's slope is in), and a sample
+noise whose sd depends on the flow and the season."""
+ARKANSAS_MODEL: dict[str, Any] = {
+    **_SPLINE,
+    "flow_anomaly_days": 10.0,
+    "slow_anomaly_days": 90.0,
+    "noise": "mixture",
+}
+"""The smallest-AIC candidate: as :data:`NORMAL_NOISE_MODEL` with the slower anomaly over a 90-day mean, and a
+heavier-tailed sample noise, a scale mixture of two normals of the same flow- and season-dependent sd, one of
+them wider by a fitted ratio for a fitted fraction of the samples (``data-arkansas`` selects it afresh from
+:data:`ARKANSAS_CANDIDATES`; this is the default of a run without candidates)."""
 STATIC_MODEL: dict[str, Any] = {"drift": (), "flow_variance": False}
 """The static regression on ln Q and season with an AR(1) residual on the daily grid (the simpler model)."""
 MOVING_WINDOWS_MODEL: dict[str, Any] = {
@@ -137,7 +150,7 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
     {**_SPLINE, "slow_anomaly_days": 180.0},
     {**_SPLINE, "slow_anomaly_days": 365.0},
     {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 90.0},
-    {**_SPLINE, "flow_anomaly_days": 10.0, "slow_anomaly_days": 30.0},
+    dict(NORMAL_NOISE_MODEL),
     {**_SPLINE, "season_variance": False},
     {**_SPLINE, "drift": ()},
     {**_SPLINE, "flow_spline_knots": 4},
@@ -146,6 +159,12 @@ ARKANSAS_CANDIDATES: tuple[dict[str, Any], ...] = (
     {**_SPLINE, "season_variance": False, "flow_spline_knots": 0, "quadratic": True},
     {**_SPLINE, "season_variance": False, "flow_variance_square": True},
     {**_SPLINE, "season_variance": False, "anomaly_variance": True},
+    # a heavier-tailed sample noise (a scale mixture of two normals, its weight and sd ratio fitted) on the four
+    # candidates of smallest AIC so far: a few samples far below the model's prediction at low winter noise
+    {**NORMAL_NOISE_MODEL, "noise": "mixture"},
+    dict(ARKANSAS_MODEL),
+    {**_SPLINE, "noise": "mixture"},
+    {**_SPLINE, "season_slope": True, "noise": "mixture"},
 )
 """Every model tried on this record (:class:`~tobitkf.experiments.records_river.RiverModel` options), in the
 order they were tried. ``data-arkansas`` fits each, takes the one of smallest AIC (on the full record, not on
@@ -164,6 +183,19 @@ def _scores_entry(dates: np.ndarray, mean: np.ndarray, sd: np.ndarray, sc: Any, 
     }
 
 
+def loo_scores(model: RiverModel, loo: dict[str, Any], low: np.ndarray, high: np.ndarray) -> Any:
+    """The predictive scores of the leave-one-out predictives of
+    :func:`~tobitkf.experiments.records_river.batched_loo_refit`: Gaussian (:func:`tobitkf.wrtds.predictive_scores`)
+    for normal sample noise, the mixture of the two components' predictives
+    (:func:`~tobitkf.experiments.records_common.mixture_predictive_scores`: the mixture's density of a measured
+    sample, its CDF at a censored one's limit) for ``noise="mixture"``."""
+    from ..inference.wrtds import predictive_scores
+
+    if model.noise == "normal":
+        return predictive_scores(loo["mean"], loo["sd"], low, high)
+    return mixture_predictive_scores(loo["mean"], loo["component_sd"], loo["component_weight"], low, high)
+
+
 def _rmse_difference(mean_a: np.ndarray, mean_b: np.ndarray, low: np.ndarray, high: np.ndarray) -> tuple[float, float]:
     """RMSE_a - RMSE_b over the uncensored samples and its jackknife standard error (paired over the samples)."""
     exact = low == high
@@ -180,8 +212,9 @@ def fit_river(model: RiverModel, nested: tuple[tuple[str, ...], np.ndarray] | No
     """:func:`~tobitkf.experiments.records_common.fit_ml` from two or three starts, the highest likelihood kept:
     the model's own start, a two-month residual time scale with drifts of 0.02 per year, and (``nested``:
     the names and estimates of a model whose parameters are a subset of this one's) the nested model's
-    estimates with this model's further parameters at 0 (coefficients, ``gamma_flow``) or at a drift of 0.02
-    per year. ``fit_seconds`` covers every search."""
+    estimates with this model's further parameters at 0 (coefficients, ``gamma_flow``), at a drift of 0.02
+    per year, or at the model's own start (the mixture noise's weight and sd ratio). A model with the mixture noise
+    and a nested model starts from the nested estimates only. ``fit_seconds`` covers every search."""
     starts = [model.start()]
     st = model.start()
     if "log_tau_days" in model.names:
@@ -196,9 +229,13 @@ def fit_river(model: RiverModel, nested: tuple[tuple[str, ...], np.ndarray] | No
         for i, name in enumerate(model.names):
             if name in est:
                 warm[i] = est[name]
-            elif not name.startswith("log_"):
+            elif not name.startswith(("log_", "logit_")):
                 warm[i] = 0.0  # a further regression coefficient or gamma_flow
         starts.append(warm)
+    if model.noise != "normal" and nested is not None:
+        # a heavier-tailed noise on a fitted model: from that model's estimates only (each likelihood of the
+        # mixture filter costs some 20 of the Gaussian one's, compiled)
+        starts = starts[2:]
     fits = [fit_ml(model, start=x) for x in starts]
     best = dict(max(fits, key=lambda f: f["loglik"]))
     best["fit_seconds"] = sum(f["fit_seconds"] for f in fits)
@@ -234,6 +271,8 @@ def _label(opts: dict[str, Any]) -> str:
         parts.append(f"ln Q spline {opts['flow_spline_knots']} knots")
     extra = ("anomaly_slope", "slope_trend", "flow_variance_square", "anomaly_variance", "variance_trend")
     parts += [k for k in extra if opts.get(k)]
+    if opts.get("noise", "normal") != "normal":
+        parts.append(f"{opts['noise']} noise")
     return ", ".join(parts)
 
 
@@ -316,7 +355,7 @@ def run_arkansas(
     def leave_one_out(m: RiverModel, f: dict[str, Any]) -> tuple[dict[str, Any], Any, float]:
         t0 = time.perf_counter()
         out = batched_loo_refit(m, f["theta"], f["cov"], idx, gtol=LOO_GTOL)
-        return out, predictive_scores(out["mean"], out["sd"], low, high), time.perf_counter() - t0
+        return out, loo_scores(m, out, low, high), time.perf_counter() - t0
 
     loo, sc_s, t_loo = leave_one_out(model, fit)
     progress(0.4)
@@ -340,6 +379,9 @@ def run_arkansas(
             "gtol": LOO_GTOL,
         }
     )
+    if model.noise != "normal":  # the predictive is a mixture: mean and sd alone do not give its scores
+        loo_m["state_space"]["component_sd"] = loo["component_sd"].tolist()
+        loo_m["state_space"]["component_weight"] = loo["component_weight"].tolist()
     d = sc_s.log_score - sc_w.log_score
     rd, rd_se = _rmse_difference(cv.mean[idx], loo["mean"], low, high)
     loo_m["difference_state_space_minus_wrtds"] = {
@@ -659,7 +701,16 @@ def arkansas(
             f"the smallest AIC among {len(metrics['models_compared'])} candidate models (models_compared, each with "
             "its leave-one-out score); the state-space counterpart of WRTDS's moving windows",
         ),
-        "likelihood": setting("assumed-density filter, per-gap exact discretisation of the daily model", "default"),
+        "likelihood": setting(
+            "assumed-density filter, per-gap exact discretisation of the daily model"
+            + (
+                "; the mixture noise's exact posterior (two components) collapsed to its mean and covariance at "
+                "each sample"
+                if metrics["model"]["options"].get("noise", "normal") == "mixture"
+                else ""
+            ),
+            "default",
+        ),
         "wrtds": setting({k: v for k, v in rec_settings().items()}, "source", "EGRET's INFO settings of the record"),
         "loo_refit": setting(
             f"batched BFGS from the full fit, central differences (step {_FD_STEP}), gradient tolerance {LOO_GTOL}",

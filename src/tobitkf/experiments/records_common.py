@@ -12,6 +12,8 @@ import numpy as np
 __all__ = [
     "adf_pass",
     "adf_system",
+    "mixture_update",
+    "mixture_predictive_scores",
     "gap_matrices",
     "fd_gradient",
     "fd_hessian",
@@ -116,6 +118,7 @@ def adf_pass(
     dy: Any = 0.0,
     smooth: bool = False,
     censored: Any = None,
+    mixture: tuple[Any, Any] | None = None,
 ) -> dict[str, Any]:
     r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
 
@@ -139,13 +142,20 @@ def adf_pass(
     smooth : also return the smoothed predictive of every reading
     censored : (T,) or (N, T) bool, optional: the recorded indicator (default: the limit rule); a flagged
         reading strictly inside its limits is an interval reading
+    mixture : ((N,), (N,)), optional
+        The outlier weight :math:`w_i \in [0, 1)` and variance ratio :math:`c_i^2 > 0` of a two-component
+        scale-mixture noise, :math:`v_k \sim (1 - w_i)\,N(0, r^2_{ik}) + w_i\,N(0, c_i^2 r^2_{ik})`, instead of
+        the Gaussian noise (:func:`mixture_update`, one moment-matched update per reading); :math:`w_i = 0` is
+        the Gaussian model.
 
     Returns
     -------
     dict
         ``loglik`` (N,) and ``terms`` (N, T), the assumed-density log-likelihood; with ``smooth``,
         ``mean`` and ``sd`` (N, T): :math:`c_k \hat x_{k|T} + d_{ik}` and
-        :math:`\sqrt{c_k P_{k|T} c_k^T + r^2_{ik}}`, the smoothed predictive of each (latent) reading.
+        :math:`\sqrt{c_k P_{k|T} c_k^T + \bar r^2_{ik}}`, the smoothed predictive of each (latent) reading
+        (:math:`\bar r^2 = r^2` for Gaussian noise, the mixture's :math:`(1 - w + wc^2) r^2` otherwise),
+        ``latent_var`` (N, T) :math:`c_k P_{k|T} c_k^T`, and ``filtered``, ``smoothed`` (the passes' results).
     """
     from .. import Censoring
     from ..filters.assumed_density import assumed_density_filter
@@ -167,6 +177,7 @@ def adf_pass(
                 adf_pass(
                     x0[sl], P0[sl], rate[sl], diffusion[sl], cut(gaps), C, y[sl], cut(lower), cut(upper),
                     cut(r2), dy=cut(dy), smooth=smooth, censored=None if censored is None else cut(censored),
+                    mixture=None if mixture is None else (np.asarray(mixture[0])[sl], np.asarray(mixture[1])[sl]),
                 )
             )  # fmt: skip
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0] if key not in ("filtered", "smoothed")}
@@ -177,23 +188,201 @@ def adf_pass(
     Y = np.asarray(y, dtype=float)[..., None]
     u = np.ascontiguousarray(d[..., None])
     flags = None if censored is None else np.broadcast_to(np.asarray(censored, dtype=bool), (N, T))[..., None]
-    if not smooth:
+    if mixture is not None:
+        res, terms = _mixture_filter(
+            x0, P0, rate, diffusion, gaps, C, np.asarray(y, dtype=float), lo[..., 0], hi[..., 0], r2, d, mixture,
+            None if flags is None else flags[..., 0],
+        )  # fmt: skip
+        w, c2 = (np.asarray(v, dtype=float)[:, None] for v in mixture)
+        noise = np.broadcast_to(np.asarray(r2, dtype=float), (N, T)) * (1.0 - w + w * c2)
+    elif not smooth:
         terms = adf_log_likelihood(
             system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi, censored=flags
         )
         return {"loglik": terms.sum(-1), "terms": terms}
-    res = assumed_density_filter(system, Censoring()).filter(Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi, censored=flags)
-    terms = res.extras["log_likelihood"]
+    else:
+        res = assumed_density_filter(system, Censoring()).filter(
+            Y, u=u, x0=x0, P0=P0, lower=lo, upper=hi, censored=flags
+        )
+        terms = res.extras["log_likelihood"]
+        noise = r2
+    if not smooth:
+        return {"loglik": terms.sum(-1), "terms": terms}
     sm = rts_smooth(res, system, x0=x0, P0=P0)
     assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
     Cn = np.asarray(C, dtype=float)
     out: dict[str, Any] = {"loglik": terms.sum(-1), "terms": terms}
     out["mean"] = np.einsum("ntj,tj->nt", sm.mean, Cn) + d
     v = np.einsum("ntij,ti,tj->nt", sm.cov, Cn, Cn)
-    out["sd"] = np.sqrt(np.maximum(v, 0.0) + r2)
+    out["latent_var"] = np.maximum(v, 0.0)
+    out["sd"] = np.sqrt(out["latent_var"] + noise)
     out["filtered"] = res
     out["smoothed"] = sm
     return out
+
+
+def mixture_update(
+    x: np.ndarray,
+    P: np.ndarray,
+    y: np.ndarray,
+    c: np.ndarray,
+    r2: np.ndarray,
+    weight: np.ndarray,
+    scale2: np.ndarray,
+    lower: np.ndarray,
+    upper: np.ndarray,
+    *,
+    dy: Any = 0.0,
+    cls: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""The assumed-density update of a Gaussian prior by one censored reading whose noise is a scale mixture,
+    batched over runs.
+
+    Prior :math:`x \sim N(\bar x, \bar P)`, latent reading :math:`y^* = cx + d + v` with
+    :math:`v \sim (1 - w)\,N(0, r^2) + w\,N(0, c_s^2 r^2)` (``weight`` w, ``scale2`` :math:`c_s^2`). Given the
+    component j (variance :math:`r_j^2`), :math:`(x, y^*)` is jointly Gaussian and the reading (a value, or an
+    event :math:`y^* \le l`, :math:`y^* \ge h`, :math:`l < y^* < h`) gives the censored update of the package's
+    assumed-density filter (:func:`~tobitkf.filters.assumed_density.censored_channel_update`): the exact
+    posterior moments :math:`\hat x_j`, :math:`P_j` and the evidence :math:`\ell_j = p(y \mid j)` (the density
+    :math:`N(y; c\bar x + d, c\bar Pc^T + r_j^2)` of a measured value, :math:`\Phi((l - c\bar x - d)/s_j)`
+    below a limit). The exact posterior is the two-component mixture with weights
+    :math:`\pi_j \propto w_j \ell_j` (:math:`w_1 = 1 - w`, :math:`w_2 = w`), projected on a Gaussian by its
+    first two moments (:func:`~tobitkf.filters.assumed_density.merge_gaussians`):
+
+    .. math::
+
+        \hat x = \sum_j \pi_j \hat x_j, \qquad
+        P = \sum_j \pi_j \left(P_j + (\hat x_j - \hat x)(\hat x_j - \hat x)^T\right), \qquad
+        \log p(y) = \log \sum_j w_j \ell_j .
+
+    Parameters
+    ----------
+    x : (N, n) ; P : (N, n, n) ; y : (N,) readings (NaN = missing) ; c : (n,) the measurement row
+    r2, weight, scale2 : (N,) ; lower, upper : (N,) limits ; dy : (N,) or 0 the reading's known offset
+    cls : (N,) int8, optional: the reading classes (:func:`~tobitkf.filters._readings.classify_readings`)
+
+    Returns
+    -------
+    x (N, n), P (N, n, n), log_likelihood (N,) (0 for a missing reading, which leaves the prior unchanged)
+    """
+    from ..filters._readings import _MISSING
+    from ..filters._readings import classify_readings as _classify
+    from ..filters.assumed_density import censored_channel_update, merge_gaussians
+
+    N = x.shape[0]
+    cls = _classify(y, lower, upper) if cls is None else cls
+    w = np.broadcast_to(np.asarray(weight, dtype=float), (N,))
+    r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N,))
+    with np.errstate(divide="ignore"):
+        log_w = np.stack([np.log1p(-w), np.log(w)])  # (2, N); w = 0 gives the Gaussian model exactly
+
+    def two(v: Any) -> np.ndarray:  # the two components stacked as 2N runs
+        v = np.broadcast_to(np.asarray(v, dtype=float), (N,) + np.shape(v)[1:])
+        return np.concatenate([v, v])
+
+    # both components in one call of the package's censored update (runs 0..N-1: r^2, N..2N-1: c^2 r^2)
+    var: Any = np.concatenate([r2, np.asarray(scale2, dtype=float) * r2])  # r: scalar or (N,) per run
+    xj, Pj, _, _, llj = censored_channel_update(
+        two(x), two(P), None, two(y), c, var, two(lower),
+        two(upper), dy=two(dy), cls=np.concatenate([cls, cls]), compiled=True,
+    )  # fmt: skip
+    joint = log_w + llj.reshape(2, N)
+    ll = np.logaddexp(joint[0], joint[1])
+    missing = cls == _MISSING
+    ll = np.where(missing, 0.0, ll)
+    with np.errstate(invalid="ignore"):
+        post = np.exp(joint - ll)  # pi_j
+    post = np.where(missing | ~np.isfinite(post), np.exp(log_w), post)
+    n = x.shape[-1]
+    xm, Pm, _ = merge_gaussians(post, xj.reshape(2, N, n), Pj.reshape(2, N, n, n))
+    if missing.any():  # no reading: the prediction itself (not its merge with an equal copy, which rounds)
+        xm = np.where(missing[:, None], x, xm)
+        Pm = np.where(missing[:, None, None], P, Pm)
+    return xm, Pm, ll
+
+
+def _mixture_filter(
+    x0: np.ndarray,
+    P0: np.ndarray,
+    rate: np.ndarray,
+    diffusion: np.ndarray,
+    gaps: np.ndarray,
+    C: np.ndarray,
+    y: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    r2: Any,
+    dy: np.ndarray,
+    mixture: tuple[Any, Any],
+    flags: np.ndarray | None,
+) -> tuple[Any, np.ndarray]:
+    """The filter of :func:`adf_pass` with the mixture noise: the exact diagonal prediction over each gap, then
+    :func:`mixture_update`; a :class:`~tobitkf.filters.core.FilterResult` (filtered and predicted moments, for the
+    package's RTS pass) and the log-likelihood terms (N, T)."""
+    from ..filters._readings import classify_readings, interval_classes
+    from ..filters.core import FilterResult
+
+    N, n = np.shape(rate)
+    T = y.shape[-1]
+    a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
+    cls = classify_readings(y, lo, hi)
+    if flags is not None:
+        cls = interval_classes(cls, flags, lo, hi)
+    r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
+    w = np.broadcast_to(np.asarray(mixture[0], dtype=float), (N,))
+    c2 = np.broadcast_to(np.asarray(mixture[1], dtype=float), (N,))
+    Cn = np.asarray(C, dtype=float)
+    xs, Ps = np.empty((N, T, n)), np.empty((N, T, n, n))
+    xp, Pp = np.empty((N, T, n)), np.empty((N, T, n, n))
+    terms = np.empty((N, T))
+    x, P = np.asarray(x0, dtype=float), np.asarray(P0, dtype=float)
+    diag = np.arange(n)
+    for k in range(T):
+        ak = a[:, k]
+        x = ak * x
+        P = P * ak[:, :, None] * ak[:, None, :]
+        P[:, diag, diag] += qd[:, k]
+        xp[:, k], Pp[:, k] = x, P
+        x, P, terms[:, k] = mixture_update(
+            x, P, y[:, k], Cn[k], r2[:, k], w, c2, lo[:, k], hi[:, k], dy=dy[:, k], cls=cls[:, k]
+        )
+        xs[:, k], Ps[:, k] = x, P
+    res = FilterResult(mean=xs, cov=Ps, pred_mean=xp, pred_cov=Pp, extras={"log_likelihood": terms})
+    return res, terms
+
+
+def mixture_predictive_scores(mean: Any, sds: Any, weights: Any, low: Any, high: Any) -> Any:
+    r"""Log predictive scores of scale-mixture predictions :math:`\sum_j \omega_{ij} N(m_i, s_{ij}^2)` of censored
+    values: per sample :math:`\log \sum_j \omega_{ij} p_j`, with :math:`p_j` the component's density of a measured
+    value or its probability of the censored event (:func:`tobitkf.wrtds.predictive_scores` per component, so the
+    tails go through ``log_ndtr``); the RMSE of the mean as there.
+
+    Parameters
+    ----------
+    mean : (n,) ; sds, weights : (n, J) (each row of weights summing to 1) ; low, high : (n,) as in
+        :func:`~tobitkf.wrtds.predictive_scores`
+
+    Returns
+    -------
+    PredictiveScores
+    """
+    from scipy.special import logsumexp
+
+    from ..inference.wrtds import PredictiveScores, predictive_scores
+
+    sds, weights = np.asarray(sds, dtype=float), np.asarray(weights, dtype=float)
+    each = [predictive_scores(mean, sds[:, j], low, high) for j in range(sds.shape[1])]
+    with np.errstate(divide="ignore"):
+        joint = np.log(weights) + np.stack([e.log_score for e in each], axis=1)
+    score = logsumexp(joint, axis=1)
+    n = score.size
+    return PredictiveScores(
+        log_score=score,
+        mean_log_score=float(np.mean(score)),
+        se_mean_log_score=float(np.std(score, ddof=1) / np.sqrt(n)) if n > 1 else float("nan"),
+        rmse=each[0].rmse,
+        num_uncensored=each[0].num_uncensored,
+    )
 
 
 def fd_gradient(loglik: Any, theta: np.ndarray, h: float = _FD_STEP) -> tuple[np.ndarray, np.ndarray]:
@@ -279,8 +468,8 @@ def _noop(_: float) -> None:
 
 
 def natural_table(model: Any, fit: dict[str, Any]) -> dict[str, Any]:
-    """Estimates and standard errors on the fitted (unconstrained) scale, and of exp(.) of the log parameters
-    (delta method: se of exp(u) = exp(u) se(u))."""
+    """Estimates and standard errors on the fitted (unconstrained) scale, and of exp(.) of the log parameters and
+    the logistic function of the logit ones (delta method: se of exp(u) = exp(u) se(u))."""
     th, se = fit["theta"], fit["se"]
     est = dict(zip(model.names, th.tolist()))
     ses = dict(zip(model.names, se.tolist()))
@@ -289,6 +478,10 @@ def natural_table(model: Any, fit: dict[str, Any]) -> dict[str, Any]:
         if name.startswith("log_"):
             nat[name[4:]] = float(np.exp(v))
             nat_se[name[4:]] = float(np.exp(v) * s)
+        elif name.startswith("logit_"):  # a weight 1/(1 + e^-u): se = w(1 - w) se(u)
+            w = float(1.0 / (1.0 + np.exp(-v)))
+            nat[name[6:]] = w
+            nat_se[name[6:]] = float(w * (1.0 - w) * s)
         else:
             nat[name] = float(v)
             nat_se[name] = float(s)

@@ -208,6 +208,24 @@ class RiverModel:
     years : (D,) ndarray, optional
         The decimal year of every day of the grid (:meth:`from_record` sets it); needed by ``slope_trend`` and
         ``variance_trend``.
+    noise : {"normal", "mixture"}
+        The sample noise's law. ``"normal"``: :math:`v_d \sim N(0, s_d^2)`, :math:`s_d` the noise sd above.
+        ``"mixture"``: a heavier-tailed two-component scale mixture,
+
+        .. math::
+
+            v_d \sim (1 - w)\,N(0, s_d^2) + w\,N(0, (c\,s_d)^2),
+
+        a fraction w of the samples scattering c times wider (parameters ``logit_outlier_weight``,
+        :math:`w = 1/(1 + e^{-\theta})`, and ``log_outlier_scale``, :math:`c = e^\theta`, unless fixed below).
+        The filter's update is the exact posterior of the Gaussian prediction under the mixture (a mixture of the
+        two components' censored updates, weighted by each one's evidence) collapsed to its mean and covariance
+        (:func:`~tobitkf.experiments.records_common.mixture_update`), the likelihood the mixture's evidence
+        :math:`\log((1 - w)\ell_1 + w\ell_2)` of each sample, and a sample's predictive the mixture of the two
+        components' predictives (:meth:`predictive`). w = 0 is the ``"normal"`` model.
+    outlier_weight, outlier_scale : float, optional
+        With ``noise="mixture"``, fix w (in [0, 1)) or c (> 0) instead of fitting it (its parameter is then
+        absent).
 
     Attributes
     ----------
@@ -215,13 +233,15 @@ class RiverModel:
         The unconstrained parameters, in order: ``b_<coef>`` (the coefficients' prior means),
         ``log_tau_days``, ``log_sigma`` (the AR residual), ``log_r`` (the sample noise sd),
         ``gamma_flow``, ``gamma_flow_sq``, ``gamma_sin``, ``gamma_cos``, ``gamma_anomaly``, ``gamma_trend`` (the log noise sd's
-        coefficients, those of the options chosen), ``log_sd_drift_<group>`` (the random walks' sd per year).
+        coefficients, those of the options chosen), ``log_sd_drift_<group>`` (the random walks' sd per year),
+        then with ``noise="mixture"`` ``logit_outlier_weight``, ``log_outlier_scale`` (those not fixed).
 
     Raises
     ------
     ValueError
         Sample days not strictly increasing, ``rows`` not matching ``coef``, ``flow_variance`` without
-        an ln Q regressor.
+        an ln Q regressor, an unknown ``noise``, a fixed ``outlier_weight`` outside [0, 1) or ``outlier_scale``
+        not positive (:class:`~tobitkf.ValidationError`).
     """
 
     day: np.ndarray
@@ -246,6 +266,9 @@ class RiverModel:
     anomaly_variance: bool = False
     variance_trend: bool = False
     years: np.ndarray | None = None
+    noise: str = "normal"
+    outlier_weight: float | None = None
+    outlier_scale: float | None = None
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
     names: tuple[str, ...] = field(init=False)
@@ -353,6 +376,13 @@ class RiverModel:
         self.upper = np.full(self.y.size, np.inf) if self.upper is None else np.asarray(self.upper, dtype=float)
         with np.errstate(invalid="ignore"):
             self.interval = self.censored & (self.y > self.lower) & (self.y < self.upper)
+        if self.noise not in ("normal", "mixture"):
+            raise ValidationError(f"noise: expected 'normal' or 'mixture', found {self.noise!r}")
+        if self.outlier_weight is not None and not 0.0 <= self.outlier_weight < 1.0:
+            raise ValidationError(f"outlier_weight: expected a weight in [0, 1), found {self.outlier_weight!r}")
+        if self.outlier_scale is not None and not self.outlier_scale > 0.0:
+            raise ValidationError(f"outlier_scale: expected a positive sd ratio, found {self.outlier_scale!r}")
+        mixture = self.noise == "mixture"
         self.names = (
             tuple(f"b_{c}" for c in self.coef)
             + (("log_tau_days", "log_sigma") if self.residual_ar else ())
@@ -364,6 +394,8 @@ class RiverModel:
             + (("gamma_anomaly",) if self.anomaly_variance else ())
             + (("gamma_trend",) if self.variance_trend else ())
             + tuple(f"log_sd_drift_{g}" for g in self.drift)
+            + (("logit_outlier_weight",) if mixture and self.outlier_weight is None else ())
+            + (("log_outlier_scale",) if mixture and self.outlier_scale is None else ())
         )
 
     @classmethod
@@ -419,6 +451,17 @@ class RiverModel:
         for i, g in enumerate(self.drift):
             for c in self.GROUPS[g]:
                 q[..., self.coef.index(c)] = np.exp(2 * th[..., off + i])
+        batch = th.shape[:-1]
+        weight, ratio = np.zeros(batch), np.ones(batch)
+        if self.noise == "mixture":
+            from scipy.special import expit
+
+            k = off + len(self.drift)
+            if self.outlier_weight is None:
+                weight, k = expit(th[..., k]), k + 1
+            else:
+                weight = np.full(batch, float(self.outlier_weight))
+            ratio = np.exp(th[..., k]) if self.outlier_scale is None else np.full(batch, float(self.outlier_scale))
         return {
             "b": th[..., :nb],
             "tau": np.exp(th[..., nb]) if self.residual_ar else np.ones(th.shape[:-1]),
@@ -428,6 +471,8 @@ class RiverModel:
             "r": np.exp(th[..., j]),
             "gamma": th[..., j + 1 : j + 1 + nv],  # (..., nv): the log sd's coefficients on the columns of V
             "q": q,  # per year
+            "w": weight,  # the outlier weight and sd ratio of the mixture noise (0 and 1 for normal noise)
+            "c": ratio,
         }
 
     def noise_sd(self, nat: dict[str, np.ndarray], days: Any = None) -> np.ndarray:
@@ -444,8 +489,22 @@ class RiverModel:
         v = self.noise_sd(nat, self.day[np.atleast_1d(k)]) ** 2
         return v if np.ndim(k) else v[..., 0]
 
+    def predictive(self, theta: np.ndarray, samples: Any, latent_var: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r"""The components of the predictive of the ln value of sample ``samples[i]`` under ``theta[i]``, given the
+        variance ``latent_var[i]`` of its latent mean :math:`C_i x_i`: standard deviations (K, 2)
+        :math:`\sqrt{v_i + s_i^2}`, :math:`\sqrt{v_i + c^2 s_i^2}` and weights (K, 2) :math:`(1 - w, w)`
+        (:math:`w = 0` for ``noise="normal"``, whose predictive is the first component alone)."""
+        th = np.atleast_2d(np.asarray(theta, dtype=float))
+        nat = self.natural(th)
+        k = np.asarray(samples, dtype=int)
+        r2 = self.noise_var(nat, np.arange(self.n_samples))[np.arange(th.shape[0]), k]
+        v = np.asarray(latent_var, dtype=float)
+        sds = np.sqrt(np.stack([v + r2, v + nat["c"] ** 2 * r2], axis=1))
+        return sds, np.stack([1.0 - nat["w"], nat["w"]], axis=1)
+
     def start(self) -> np.ndarray:
-        """Starting values: least squares on the uncensored samples, a month's correlation, small drifts."""
+        """Starting values: least squares on the uncensored samples, a month's correlation, small drifts (and for
+        the mixture noise 5 % of the samples scattering three times wider)."""
         ok = ~self.censored
         b, *_ = np.linalg.lstsq(self.C[ok, : self.nb], self.y[ok], rcond=None)
         resid = np.std(self.y[ok] - self.C[ok, : self.nb] @ b)
@@ -456,6 +515,8 @@ class RiverModel:
             np.log(0.5 * resid),
             [0.0] * self.V.shape[1],
             [np.log(0.05)] * len(self.drift),
+            [np.log(0.05 / 0.95)] if self.noise == "mixture" and self.outlier_weight is None else [],
+            [np.log(3.0)] if self.noise == "mixture" and self.outlier_scale is None else [],
         ]
 
     # ---- the system, per run
@@ -527,7 +588,8 @@ class RiverModel:
         Returns
         -------
         dict
-            See :func:`adf_pass`: ``loglik`` (N,), ``terms`` (N, n); with ``smooth`` ``mean``, ``sd`` (N, n).
+            See :func:`adf_pass`: ``loglik`` (N,), ``terms`` (N, n); with ``smooth`` ``mean``, ``sd`` (N, n) (the
+            sd of the mixture with ``noise="mixture"``: :meth:`predictive` gives its components), ``latent_var``.
         """
         theta = np.atleast_2d(np.asarray(theta, dtype=float))
         N, T = theta.shape[0], self.n_samples
@@ -539,9 +601,10 @@ class RiverModel:
         if self.interval.any():  # interval readings need the indicator (a removed reading is not flagged)
             flags = self.censored & ~np.isnan(Y)
         offset = xbar @ self.C.T  # (N, n): C_k xbar
+        mixture = (nat["w"], nat["c"] ** 2) if self.noise == "mixture" else None
         return adf_pass(
             s0, S0, rate, diffusion, self.gaps, self.C[:, self.dyn], Y, self.lower, self.upper, r2, dy=offset,
-            smooth=smooth, censored=flags,
+            smooth=smooth, censored=flags, mixture=mixture,
         )  # fmt: skip
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
@@ -571,7 +634,8 @@ class RiverModel:
         -------
         dict
             ``mean`` (D, nx), ``cov`` (D, nx, nx) of :math:`x_{d|D}`; ``ln_mean``, ``ln_sd`` (D,): the latent
-            daily ln concentration :math:`C_d x_d` (without the sample noise), and ``noise_sd`` (D,).
+            daily ln concentration :math:`C_d x_d` (without the sample noise), and ``noise_sd`` (D,) (of the first,
+            narrower component with ``noise="mixture"``).
         """
         from ..filters.smoothing import solve_psd
 
@@ -630,8 +694,16 @@ class RiverModel:
 
     def daily_system(self, theta: np.ndarray):
         """The model on the daily grid as a :class:`~tobitkf.LinearSystem` (time-varying C and R), the readings
-        (D, 1) (NaN on days without a sample), the :class:`~tobitkf.Censoring` and the indicator (D, 1)."""
+        (D, 1) (NaN on days without a sample), the :class:`~tobitkf.Censoring` and the indicator (D, 1).
+
+        Raises
+        ------
+        ValidationError
+            ``noise="mixture"`` (a LinearSystem's noise is Gaussian)."""
         from .. import Censoring, LinearSystem
+
+        if self.noise != "normal":
+            raise ValidationError(f"daily_system: needs noise='normal' (a LinearSystem's noise), found {self.noise!r}")
 
         nat = self.natural(np.asarray(theta, dtype=float)[None])
         a, qd = self._step_matrices(nat, 1.0)
@@ -694,7 +766,9 @@ def batched_loo_refit(
     -------
     dict
         ``theta`` (K, p), ``loglik`` (K,), ``gradient_max`` (K,), ``iterations`` (K,), ``converged`` (K,),
-        ``mean``/``sd`` (K,): the smoothed predictive of each removed sample's ln value at its refit.
+        ``mean``/``sd`` (K,): the smoothed predictive of each removed sample's ln value at its refit (its mean
+        and sd), ``component_sd``/``component_weight`` (K, 2): its components (:meth:`RiverModel.predictive`;
+        one Gaussian, weights (1, 0), for ``noise="normal"``).
     """
     samples = np.asarray(samples, dtype=int)
     K, p = samples.size, model.p
@@ -738,6 +812,7 @@ def batched_loo_refit(
         active[a] = np.max(np.abs(g_new), axis=1) >= gtol
     sm = model.run(th, Y, smooth=True)
     idx = np.arange(K)
+    sds, weights = model.predictive(th, samples, sm["latent_var"][idx, samples])
     return {
         "theta": th,
         "loglik": f,
@@ -746,4 +821,6 @@ def batched_loo_refit(
         "converged": ~active,
         "mean": sm["mean"][idx, samples],
         "sd": sm["sd"][idx, samples],
+        "component_sd": sds,
+        "component_weight": weights,
     }
