@@ -151,6 +151,9 @@ def fit(
     likelihood: str = "auto",
     progress: Any = None,
     times: Any = None,
+    bias_correction: str | None = None,
+    bootstrap_samples: int = 50,
+    seed: Any = 0,
     **options: Any,
 ) -> FitResult:
     r"""Fit a model to (censored) readings: exact ML, EM or direct maximisation (module docstring).
@@ -187,6 +190,18 @@ def fit(
         Sample times of ``y`` for a callable ``theta -> ContinuousLinearSystem`` (each gap discretised
         exactly). A :class:`~tobitkf.Panel` as ``y`` (many subjects, own times) is fitted jointly the same
         way: :func:`~tobitkf.inference.panel.fit_panel` (options ``align``, ``start``, ``names``).
+    bias_correction : {None, "bootstrap"}, default None
+        ``"bootstrap"`` (a callable model ``theta -> LinearSystem`` or ``NonlinearSystem``): the estimates
+        corrected for their bias by a parametric bootstrap, :math:`\hat\theta_{bc} = 2\hat\theta -
+        \bar\theta^*`, :math:`\bar\theta^*` the mean of the refits of ``bootstrap_samples`` data sets simulated
+        at :math:`\hat\theta` with the data's shape, channel, inputs and missing readings
+        (:mod:`tobitkf.inference._bias_correction`; it costs about ``bootstrap_samples`` further fits). The
+        standard errors, log-likelihood and criteria stay those of the maximum; ``res.extra["bias_correction"]``
+        holds the uncorrected estimates, the estimated bias, its Monte Carlo error and the bootstrap spread.
+    bootstrap_samples : int >= 2, default 50
+        B, the bootstrap data sets of ``bias_correction="bootstrap"``.
+    seed : int or SeedSequence, default 0
+        Source of the bootstrap data sets (the same seed gives the same correction).
     **options
         Passed to the fitter (``maxiter``, ``gtol``, EM's ``tol``, ``standard_errors``, ...).
 
@@ -214,6 +229,27 @@ def fit(
 
     if method not in ("auto", "em", "direct"):
         raise ValidationError(f"method: expected 'auto', 'em' or 'direct', got {method!r}")
+    if bias_correction is not None:
+        return _bootstrap_corrected(
+            model,
+            y,
+            X=X,
+            u=u,
+            censoring=censoring,
+            censored=censored,
+            lower=lower,
+            upper=upper,
+            estimate=estimate,
+            theta0=theta0,
+            method=method,
+            likelihood=likelihood,
+            progress=progress,
+            times=times,
+            bias_correction=bias_correction,
+            samples=bootstrap_samples,
+            seed=seed,
+            options=options,
+        )
     from .panel import Panel, fit_panel, single_series_panel
 
     if times is not None or isinstance(y, Panel):  # a continuous-time model at sample times
@@ -272,6 +308,52 @@ def fit(
         )
     raise ValidationError(
         f"model: expected a CensoredAR, a LinearSystem or a callable theta -> LinearSystem, got {type(model).__name__}"
+    )
+
+
+def _bootstrap_corrected(model, y, *, bias_correction, samples, seed, options, **kw) -> FitResult:
+    """:func:`fit` with ``bias_correction``: the plain fit, then the parametric-bootstrap correction
+    (:func:`~tobitkf.inference._bias_correction.bootstrap_bias_correction`) of a callable model's estimates."""
+    import copy
+
+    from ._bias_correction import bootstrap_bias_correction, check_bootstrap, simulated_like
+
+    if bias_correction != "bootstrap":
+        raise ValidationError(f"bias_correction: expected None or 'bootstrap', got {bias_correction!r}")
+    check_bootstrap(samples, seed)  # refused before the first fit
+    if not callable(model) or kw["theta0"] is None or kw["times"] is not None or kw["censored"] is not None:
+        raise ValidationError(
+            "bias_correction: 'bootstrap' corrects a callable model theta -> LinearSystem or NonlinearSystem "
+            "fitted with theta0 (no times or Panel, no censored indicator: the bootstrap simulates the readings)"
+        )
+    from .panel import Panel
+
+    if isinstance(y, Panel):
+        raise ValidationError("bias_correction: 'bootstrap' is not available for a Panel")
+    res = fit(model, y, **kw, **options)
+    if not res.extra.get("theta_map"):
+        raise ValidationError("bias_correction: 'bootstrap' corrects a callable model's parameter vector")
+    channel = getattr(res.model, "channel", None) if res.model.kind == "nonlinear" else res.model.censoring
+    arr = as_float_array(y, "y", allow_nan=True)
+    u = kw["u"]
+    refit_kw = {**kw, "progress": False}
+    refit_options = {**options, "standard_errors": False}
+
+    def draw(theta, ss):
+        return simulated_like(model(theta), arr, channel=channel, u=u, seed=ss)
+
+    def refit(ystar, start):
+        return fit(model, ystar, **{**refit_kw, "theta0": start}, **refit_options)
+
+    def model_of(theta):
+        if res.model.kind == "nonlinear":
+            return res.model
+        out = copy.copy(res.model)  # a linear map's fitted model holds the system at the estimates
+        out.fitted = model(theta)
+        return out
+
+    return bootstrap_bias_correction(
+        res, draw=draw, refit=refit, model_of=model_of, samples=samples, seed=seed, progress=kw["progress"]
     )
 
 
