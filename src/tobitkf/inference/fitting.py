@@ -21,6 +21,11 @@ Three kinds of model (what ``model`` is):
   assumed-density filter's log-likelihood (:mod:`tobitkf.inference.nonlinear_fit`; options ``channel``,
   ``rule``, ``iterations``, ``names``).
 
+**Bias correction** (a callable model): ``bias_correction="bootstrap"`` corrects the estimates by a parametric
+bootstrap, :math:`2\hat\theta - \bar\theta^*` over ``bootstrap_samples`` refits of data simulated at
+:math:`\hat\theta` (:mod:`tobitkf.inference._bias_correction`), for an approximate likelihood whose maximiser is
+biased (the assumed-density likelihood of censored readings of a nonlinear h).
+
 **Stopping rule and convergence** (every kind): the quasi-Newton search stops when its Newton decrement
 :math:`\sqrt{g^TH^{-1}g}` is below ``gtol`` (1e-3 by default): the remaining step is shorter than ``gtol``
 standard errors, whatever the record's length (:func:`~tobitkf.inference._optimize.maximize`).
