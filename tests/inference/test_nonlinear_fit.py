@@ -129,7 +129,7 @@ def test_bootstrap_correction_of_an_unbiased_estimate_is_its_monte_carlo_noise()
     assert bc.system().process_cov(1)[0, 0] == pytest.approx(bc.theta[0], abs=1e-12)
 
 
-def test_bootstrap_correction_is_seeded_and_keeps_missing_readings_and_records():
+def test_bootstrap_correction_is_seeded_and_keeps_missing_readings_and_records(tmp_path):
     # two records with a missing reading: every bootstrap data set has the data's shape and its NaN
     d = tk.simulate(build(TRUTH), 20, 2, channel=CENS, seed=8)
     y = d.y.copy()
@@ -143,6 +143,9 @@ def test_bootstrap_correction_is_seeded_and_keeps_missing_readings_and_records()
     a, b, c = (tk.fit(build, y, seed=s, **kw) for s in (4, 4, 5))
     np.testing.assert_array_equal(a.theta, b.theta)
     assert not np.array_equal(a.theta, c.theta)
+    back = tk.load_fit(a.save(tmp_path / "fit.json"))  # the correction's record is saved with the fit
+    np.testing.assert_array_equal(back.theta, a.theta)
+    assert back.extra["bias_correction"] == a.extra["bias_correction"]
 
 
 def test_bootstrap_correction_of_a_nonlinear_map_keeps_the_map():

@@ -351,10 +351,18 @@ def _bootstrap_corrected(model, y, *, bias_correction, samples, seed, options, *
         return fit(model, ystar, **{**refit_kw, "theta0": start}, **refit_options)
 
     def model_of(theta):
+        try:
+            system = model(theta)
+        except ValueError as exc:  # the correction crossed a bound of the model (a variance below zero ...)
+            raise ValidationError(
+                f"bias_correction: the corrected estimates {np.round(theta, 6).tolist()} are refused by the model "
+                f"({exc}); the plain estimates are {np.round(res.theta, 6).tolist()}: fit without the correction, "
+                "or reparametrise (e.g. a log-variance)"
+            ) from None
         if res.model.kind == "nonlinear":
             return res.model
         out = copy.copy(res.model)  # a linear map's fitted model holds the system at the estimates
-        out.fitted = model(theta)
+        out.fitted = system
         return out
 
     return bootstrap_bias_correction(
