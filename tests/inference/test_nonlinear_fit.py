@@ -162,6 +162,8 @@ def test_bootstrap_correction_of_a_nonlinear_map_keeps_the_map():
     ("kw", "match"),
     [
         ({"bias_correction": "jackknife"}, "bias_correction"),
+        ({"seed": 1}, "bias_correction"),
+        ({"bootstrap_samples": 10}, "bias_correction"),
         ({"bias_correction": "bootstrap", "bootstrap_samples": 1}, "bootstrap_samples"),
         ({"bias_correction": "bootstrap", "bootstrap_samples": 2.0}, "bootstrap_samples"),
         ({"bias_correction": "bootstrap", "bootstrap_samples": True}, "bootstrap_samples"),

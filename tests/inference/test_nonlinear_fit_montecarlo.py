@@ -21,7 +21,8 @@ censored below -0.3, about 42-45 % censored). Tolerances come from the replicate
   outside the package) leaves a -0.003 +- 0.003, c +0.012 +- 0.007;
 - bias of the bootstrap-corrected fit (12 data sets of 128 records x 50 readings, B = 8): within 3 Monte Carlo errors
   of the truth, where the plain fit's c is not. Measured: plain a -0.0043 (1.6 Monte Carlo errors), c +0.0283 (5.4);
-  corrected a +0.0034 (1.3), c -0.0109 (1.8); 461 s on a loaded machine (load average about 9 on 2 cores).
+  corrected a +0.0034 (1.3), c -0.0109 (1.8). The test took 262 s on a loaded machine (load average about 8 on 2
+  cores; the same computation as a script, 461 s at a load of about 9-11).
 """
 
 from __future__ import annotations

@@ -157,8 +157,8 @@ def fit(
     progress: Any = None,
     times: Any = None,
     bias_correction: str | None = None,
-    bootstrap_samples: int = 50,
-    seed: Any = 0,
+    bootstrap_samples: int | None = None,
+    seed: Any = None,
     **options: Any,
 ) -> FitResult:
     r"""Fit a model to (censored) readings: exact ML, EM or direct maximisation (module docstring).
@@ -203,10 +203,10 @@ def fit(
         (:mod:`tobitkf.inference._bias_correction`; it costs about ``bootstrap_samples`` further fits). The
         standard errors, log-likelihood and criteria stay those of the maximum; ``res.extra["bias_correction"]``
         holds the uncorrected estimates, the estimated bias, its Monte Carlo error and the bootstrap spread.
-    bootstrap_samples : int >= 2, default 50
-        B, the bootstrap data sets of ``bias_correction="bootstrap"``.
-    seed : int or SeedSequence, default 0
-        Source of the bootstrap data sets (the same seed gives the same correction).
+    bootstrap_samples : int >= 2, optional
+        B, the bootstrap data sets of ``bias_correction="bootstrap"`` (default 50).
+    seed : int or SeedSequence, optional
+        Source of the bootstrap data sets (default 0; the same seed gives the same correction).
     **options
         Passed to the fitter (``maxiter``, ``gtol``, EM's ``tol``, ``standard_errors``, ...).
 
@@ -218,7 +218,9 @@ def fit(
     ------
     ValidationError
         An unknown model kind or method, missing ``theta0`` for a callable, data without information,
-        invalid tolerances (module docstring), and the fitters' own errors.
+        invalid tolerances (module docstring), and the fitters' own errors; for ``bias_correction``: an unknown
+        value, a model that is not a callable map, ``bootstrap_samples`` below 2, a bad ``seed``, corrected
+        estimates the model refuses, or ``bootstrap_samples``/``seed`` given without it.
 
     Examples
     --------
@@ -234,6 +236,8 @@ def fit(
 
     if method not in ("auto", "em", "direct"):
         raise ValidationError(f"method: expected 'auto', 'em' or 'direct', got {method!r}")
+    if bias_correction is None and (bootstrap_samples is not None or seed is not None):
+        raise ValidationError("bootstrap_samples/seed: options of bias_correction='bootstrap', which is not set")
     if bias_correction is not None:
         return _bootstrap_corrected(
             model,
@@ -251,8 +255,8 @@ def fit(
             progress=progress,
             times=times,
             bias_correction=bias_correction,
-            samples=bootstrap_samples,
-            seed=seed,
+            samples=50 if bootstrap_samples is None else bootstrap_samples,
+            seed=0 if seed is None else seed,
             options=options,
         )
     from .panel import Panel, fit_panel, single_series_panel
