@@ -21,6 +21,11 @@ Three kinds of model (what ``model`` is):
   assumed-density filter's log-likelihood (:mod:`tobitkf.inference.nonlinear_fit`; options ``channel``,
   ``rule``, ``iterations``, ``names``).
 
+**Bias correction** (a callable model): ``bias_correction="bootstrap"`` corrects the estimates by a parametric
+bootstrap, :math:`2\hat\theta - \bar\theta^*` over ``bootstrap_samples`` refits of data simulated at
+:math:`\hat\theta` (:mod:`tobitkf.inference._bias_correction`), for an approximate likelihood whose maximiser is
+biased (the assumed-density likelihood of censored readings of a nonlinear h).
+
 **Stopping rule and convergence** (every kind): the quasi-Newton search stops when its Newton decrement
 :math:`\sqrt{g^TH^{-1}g}` is below ``gtol`` (1e-3 by default): the remaining step is shorter than ``gtol``
 standard errors, whatever the record's length (:func:`~tobitkf.inference._optimize.maximize`).
@@ -151,6 +156,9 @@ def fit(
     likelihood: str = "auto",
     progress: Any = None,
     times: Any = None,
+    bias_correction: str | None = None,
+    bootstrap_samples: int | None = None,
+    seed: Any = None,
     **options: Any,
 ) -> FitResult:
     r"""Fit a model to (censored) readings: exact ML, EM or direct maximisation (module docstring).
@@ -187,6 +195,18 @@ def fit(
         Sample times of ``y`` for a callable ``theta -> ContinuousLinearSystem`` (each gap discretised
         exactly). A :class:`~tobitkf.Panel` as ``y`` (many subjects, own times) is fitted jointly the same
         way: :func:`~tobitkf.inference.panel.fit_panel` (options ``align``, ``start``, ``names``).
+    bias_correction : {None, "bootstrap"}, default None
+        ``"bootstrap"`` (a callable model ``theta -> LinearSystem`` or ``NonlinearSystem``): the estimates
+        corrected for their bias by a parametric bootstrap, :math:`\hat\theta_{bc} = 2\hat\theta -
+        \bar\theta^*`, :math:`\bar\theta^*` the mean of the refits of ``bootstrap_samples`` data sets simulated
+        at :math:`\hat\theta` with the data's shape, channel, inputs and missing readings
+        (:mod:`tobitkf.inference._bias_correction`; it costs about ``bootstrap_samples`` further fits). The
+        standard errors, log-likelihood and criteria stay those of the maximum; ``res.extra["bias_correction"]``
+        holds the uncorrected estimates, the estimated bias, its Monte Carlo error and the bootstrap spread.
+    bootstrap_samples : int >= 2, optional
+        B, the bootstrap data sets of ``bias_correction="bootstrap"`` (default 50).
+    seed : int or SeedSequence, optional
+        Source of the bootstrap data sets (default 0; the same seed gives the same correction).
     **options
         Passed to the fitter (``maxiter``, ``gtol``, EM's ``tol``, ``standard_errors``, ...).
 
@@ -198,7 +218,9 @@ def fit(
     ------
     ValidationError
         An unknown model kind or method, missing ``theta0`` for a callable, data without information,
-        invalid tolerances (module docstring), and the fitters' own errors.
+        invalid tolerances (module docstring), and the fitters' own errors; for ``bias_correction``: an unknown
+        value, a model that is not a callable map, ``bootstrap_samples`` below 2, a bad ``seed``, corrected
+        estimates the model refuses, or ``bootstrap_samples``/``seed`` given without it.
 
     Examples
     --------
@@ -214,6 +236,29 @@ def fit(
 
     if method not in ("auto", "em", "direct"):
         raise ValidationError(f"method: expected 'auto', 'em' or 'direct', got {method!r}")
+    if bias_correction is None and (bootstrap_samples is not None or seed is not None):
+        raise ValidationError("bootstrap_samples/seed: options of bias_correction='bootstrap', which is not set")
+    if bias_correction is not None:
+        return _bootstrap_corrected(
+            model,
+            y,
+            X=X,
+            u=u,
+            censoring=censoring,
+            censored=censored,
+            lower=lower,
+            upper=upper,
+            estimate=estimate,
+            theta0=theta0,
+            method=method,
+            likelihood=likelihood,
+            progress=progress,
+            times=times,
+            bias_correction=bias_correction,
+            samples=50 if bootstrap_samples is None else bootstrap_samples,
+            seed=0 if seed is None else seed,
+            options=options,
+        )
     from .panel import Panel, fit_panel, single_series_panel
 
     if times is not None or isinstance(y, Panel):  # a continuous-time model at sample times
@@ -272,6 +317,60 @@ def fit(
         )
     raise ValidationError(
         f"model: expected a CensoredAR, a LinearSystem or a callable theta -> LinearSystem, got {type(model).__name__}"
+    )
+
+
+def _bootstrap_corrected(model, y, *, bias_correction, samples, seed, options, **kw) -> FitResult:
+    """:func:`fit` with ``bias_correction``: the plain fit, then the parametric-bootstrap correction
+    (:func:`~tobitkf.inference._bias_correction.bootstrap_bias_correction`) of a callable model's estimates."""
+    import copy
+
+    from ._bias_correction import bootstrap_bias_correction, check_bootstrap, simulated_like
+
+    if bias_correction != "bootstrap":
+        raise ValidationError(f"bias_correction: expected None or 'bootstrap', got {bias_correction!r}")
+    check_bootstrap(samples, seed)  # refused before the first fit
+    if not callable(model) or kw["theta0"] is None or kw["times"] is not None or kw["censored"] is not None:
+        raise ValidationError(
+            "bias_correction: 'bootstrap' corrects a callable model theta -> LinearSystem or NonlinearSystem "
+            "fitted with theta0 (no times or Panel, no censored indicator: the bootstrap simulates the readings)"
+        )
+    from .panel import Panel
+
+    if isinstance(y, Panel):
+        raise ValidationError("bias_correction: 'bootstrap' is not available for a Panel")
+    res = fit(model, y, **kw, **options)
+    if not res.extra.get("theta_map"):
+        raise ValidationError("bias_correction: 'bootstrap' corrects a callable model's parameter vector")
+    channel = getattr(res.model, "channel", None) if res.model.kind == "nonlinear" else res.model.censoring
+    arr = as_float_array(y, "y", allow_nan=True)
+    u = kw["u"]
+    refit_kw = {**kw, "progress": False}
+    refit_options = {**options, "standard_errors": False}
+
+    def draw(theta, ss):
+        return simulated_like(model(theta), arr, channel=channel, u=u, seed=ss)
+
+    def refit(ystar, start):
+        return fit(model, ystar, **{**refit_kw, "theta0": start}, **refit_options)
+
+    def model_of(theta):
+        try:
+            system = model(theta)
+        except ValueError as exc:  # the correction crossed a bound of the model (a variance below zero ...)
+            raise ValidationError(
+                f"bias_correction: the corrected estimates {np.round(theta, 6).tolist()} are refused by the model "
+                f"({exc}); the plain estimates are {np.round(res.theta, 6).tolist()}: fit without the correction, "
+                "or reparametrise (e.g. a log-variance)"
+            ) from None
+        if res.model.kind == "nonlinear":
+            return res.model
+        out = copy.copy(res.model)  # a linear map's fitted model holds the system at the estimates
+        out.fitted = system
+        return out
+
+    return bootstrap_bias_correction(
+        res, draw=draw, refit=refit, model_of=model_of, samples=samples, seed=seed, progress=kw["progress"]
     )
 
 

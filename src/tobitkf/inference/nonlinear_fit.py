@@ -15,6 +15,14 @@ filter's moments are). It is maximised by the quasi-Newton search of every fit i
 stopping rule), and the standard errors are those of the observed information, the inverse of minus the
 central-difference Hessian of :math:`\ell` at the optimum (:class:`~tobitkf.FitResult`).
 
+**Bias.** With censored readings of a nonlinear h the approximation biases the estimates by an amount that does
+not shrink with the data: the filter takes the latent reading :math:`h(x_k) + v_k` as Gaussian, and the probability
+of a censored reading depends on the tail of its actual (skewed) distribution. Finer sigma-point rules, more
+``iterations`` and the square-root form refine the same Gaussian approximation and do not remove the bias (measured in
+``tests/inference/test_nonlinear_fit_montecarlo.py``); without censoring, or with a linear h, there is none.
+``tk.fit(..., bias_correction="bootstrap")`` removes it to first order by a parametric bootstrap
+(:mod:`tobitkf.inference._bias_correction`).
+
 Reached through :func:`tobitkf.fit` with a callable model that returns a ``NonlinearSystem`` at ``theta0``.
 """
 
