@@ -61,6 +61,11 @@ the predicted mixture.
 measurement map that is affine has :math:`\Omega = 0` and never splits either: on a linear-Gaussian model every
 ``components`` gives the Kalman filter.
 
+**Limits.** The split mixture is close to the component in density, not in ratio far in its tails, so a mode
+that carries little of the prediction's mass (a reading that lands in its tail) gets a rough weight; splitting
+stops at ``split_threshold`` or at ``components``, so more components bring the moments closer to the exact
+posterior's only down to that level (tested on one step against quadrature).
+
 Shapes: the components of N runs are arrays (N, K, n), (N, K, n, n) and the log-weights (N, K), K =
 ``components`` (a run's unused slots carry weight 0); every step runs the assumed-density filter once over the
 N K components.
