@@ -28,6 +28,28 @@ def test_one_component_is_the_nonlinear_adf():
         np.testing.assert_allclose(gs.extras["log_likelihood"], adf.extras["log_likelihood"], rtol=0, atol=1e-12)
 
 
+def test_inputs_reach_every_component():
+    # f(x, k, u): each component gets its run's input; one component is the assumed-density filter with u, and a
+    # bigger mixture differs from the same mixture run without the input
+    sys_ = tk.NonlinearSystem(
+        lambda x, k, u: x + u, lambda x, k: x**2, Q=[[0.1]], R=[[0.2]], x0=[1.0], P0=[[2.0]], inputs=1
+    )
+    cens = tk.Censoring(lower=0.3)
+    u = np.array([[[0.5], [-1.0], [0.2], [0.0]], [[0.0], [0.3], [-0.4], [1.0]]])
+    y = np.array([[[1.9], [0.3], [0.6], [0.8]], [[0.3], [1.2], [0.3], [2.5]]])
+    one = tk.GaussianSumAssumedDensityFilter(sys_, cens, components=1).filter(y, u=u)
+    adf = tk.NonlinearAssumedDensityFilter(sys_, cens).filter(y, u=u)
+    np.testing.assert_allclose(one.mean, adf.mean, rtol=0, atol=1e-12)
+    est = tk.GaussianSumAssumedDensityFilter(sys_, cens, components=7)
+    state = est.init(batch_shape=(2,))
+    for t in range(4):
+        state = est.step(state, y[:, t], u=u[:, t])
+    full = est.filter(y, u=u)
+    np.testing.assert_allclose(state.mean, full.mean[:, -1], rtol=0, atol=1e-12)
+    assert (full.extras["components"] > 1).any()
+    assert not np.allclose(full.mean, est.filter(y, u=np.zeros_like(u)).mean)
+
+
 @pytest.mark.parametrize("components", [1, 2, 3, 8])
 def test_linear_gaussian_model_gives_the_kalman_filter_for_every_size(components):
     A = np.array([[0.9, 0.2], [-0.1, 0.8]])
