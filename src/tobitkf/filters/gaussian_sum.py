@@ -233,22 +233,23 @@ class GaussianSumAssumedDensityFilter(Estimator):
         return x, np.broadcast_to(P, (N, n, n)).copy(), carry
 
     def _step_arrays(self, k, x, P, S, carry, y, u, options=None):
-        K, n = self.components, self.n
-        M, Cv = carry["means"], carry["covs"]
+        K = self.components
         lw, count = carry["log_weights"].copy(), carry["count"].copy()
-        N = lw.shape[0]
-        uK = None if u is None else np.repeat(u, K, axis=0)
-        xp, Pp, _ = self._adf._predict(k, M.reshape(N * K, n), Cv.reshape(N * K, n, n), None, uK)
-        Mp, Cp = xp.reshape(N, K, n), Pp.reshape(N, K, n, n)
+        adf = self._adf
+        # the components in use, gathered flat (run r, slot c): the assumed-density filter runs on those alone
+        r, c = _used(count, K)
+        Mp, Cp = carry["means"].copy(), carry["covs"].copy()
+        Mp[r, c], Cp[r, c], _ = adf._predict(k, Mp[r, c], Cp[r, c], None, _rows(u, r))
         pred_mean, pred_cov = _mixture_moments(Mp, Cp, _weights(lw))
         if K > 1:
-            Mp, Cp, lw, count = self._split(k, Mp.copy(), Cp.copy(), lw, count, y, uK)
-        yK = np.repeat(y, K, axis=0)
-        xn, Pn, _, _, ex = self._adf._update_arrays(
-            k, Mp.reshape(N * K, n), Cp.reshape(N * K, n, n), None, yK, uK, {}, {}
-        )
-        Mn, Cn = xn.reshape(N, K, n), symmetrize(Pn.reshape(N, K, n, n))
-        lw_un = lw + ex["log_likelihood"].reshape(N, K)
+            Mp, Cp, lw, count = self._split(k, Mp, Cp, lw, count, y, u)
+            r, c = _used(count, K)
+        xn, Pn, _, _, ex = adf._update_arrays(k, Mp[r, c], Cp[r, c], None, y[r], _rows(u, r), {}, {})
+        Mn, Cn = Mp, Cp
+        Mn[r, c], Cn[r, c] = xn, symmetrize(Pn)
+        ll = np.zeros(lw.shape)
+        ll[r, c] = ex["log_likelihood"]
+        lw_un = lw + ll
         top = lw_un.max(axis=1)
         dead = ~np.isfinite(top)
         if dead.any():  # no component explains the reading: keep the weights, report -inf
@@ -258,31 +259,34 @@ class GaussianSumAssumedDensityFilter(Estimator):
         ll_norm = np.log(tot) + top
         lw = lw_un - ll_norm[:, None]
         if K > 1:
-            Mn, Cn, lw, count = _merge(Mn, Cn, lw, count, self.merge_threshold)
+            Mn, Cn, lw, count = _merge(*_drop_weightless(Mn, Cn, lw, count), self.merge_threshold)
         W = _weights(lw)
         mean, cov = _mixture_moments(Mn, Cn, W)
         carry = {"means": Mn, "covs": Cn, "log_weights": lw, "count": count}
         extras = {"log_likelihood": np.where(dead, -np.inf, ll_norm), "weights": W, "components": count.copy()}
         return mean, cov, None, carry, pred_mean, pred_cov, extras
 
-    def _nonlinearity(self, k: int, M: np.ndarray, Cv: np.ndarray, y: np.ndarray, uK: np.ndarray | None):
-        r""":math:`\eta_i = \max_l \Omega_{i,l}/R_{ll}` (N, K) over the channels with a reading (module docstring)."""
-        N, K, n = M.shape
+    def _nonlinearity(self, k: int, M: np.ndarray, Cv: np.ndarray, y: np.ndarray, u: Any, count: np.ndarray):
+        r""":math:`\eta_i = \max_l \Omega_{i,l}/R_{ll}` (N, K) over the channels with a reading (module docstring);
+        -inf for an unused slot."""
+        N, K, _ = M.shape
         adf = self._adf
         assert adf.rule is not None, "the assumed-density filter linearises with sigma points"
-        x, P = M.reshape(N * K, n), Cv.reshape(N * K, n, n)
-        _, Pxy, Pyy = _sigma_moments(adf.rule, adf._h_points(k, uK), x, P)
+        r, c = _used(count, K)
+        x, P = M[r, c], Cv[r, c]
+        _, Pxy, Pyy = _sigma_moments(adf.rule, adf._h_points(k, _rows(u, r)), x, P)
         try:
             G = np.linalg.solve(P, Pxy)
         except np.linalg.LinAlgError:
             G = np.linalg.pinv(P, hermitian=True) @ Pxy
         omega = np.diagonal(Pyy, axis1=-2, axis2=-1) - np.einsum("rim,rim->rm", Pxy, G)
-        r = adf._r if adf._r is not None else _noise_variances(adf._noise(k), f"R({k})")
-        eta = np.maximum(omega, 0.0) / np.maximum(r, np.finfo(float).tiny)
-        eta = np.where(np.isnan(y)[:, None, :], 0.0, eta.reshape(N, K, -1))
-        return eta.max(axis=-1)
+        noise = adf._r if adf._r is not None else _noise_variances(adf._noise(k), f"R({k})")
+        eta = np.maximum(omega, 0.0) / np.maximum(noise, np.finfo(float).tiny)
+        out = np.full((N, K), -np.inf)
+        out[r, c] = np.where(np.isnan(y[r]), 0.0, eta).max(axis=-1)
+        return out
 
-    def _split(self, k, M, Cv, lw, count, y, uK):
+    def _split(self, k, M, Cv, lw, count, y, u):
         """Split, run by run, the most nonlinear component while it exceeds the threshold and two slots are free."""
         K = self.components
         rows_all = np.arange(M.shape[0])
@@ -290,7 +294,7 @@ class GaussianSumAssumedDensityFilter(Estimator):
             room = count + 2 <= K
             if not room.any():
                 break
-            eta = np.where(np.isfinite(lw), self._nonlinearity(k, M, Cv, y, uK), -np.inf)
+            eta = self._nonlinearity(k, M, Cv, y, u, count)
             j = np.argmax(eta, axis=1)
             do = room & (eta[rows_all, j] > self.split_threshold)
             if not do.any():
@@ -336,6 +340,33 @@ def split_principal(m: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarra
     Pc = symmetrize(P - (1.0 - SPLIT_SCALE**2) * l1[:, None, None] * v[:, :, None] * v[:, None, :])
     means = m[:, None, :] + np.array([-1.0, 0.0, 1.0])[None, :, None] * d[:, None, :]
     return means, Pc
+
+
+def _used(count: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
+    """The (run, slot) indices of the components in use, the first ``count[r]`` slots of run r, run-major."""
+    return np.nonzero(np.arange(K) < count[:, None])
+
+
+def _rows(u: np.ndarray | None, r: np.ndarray) -> np.ndarray | None:
+    """The input of each run (N, p) for the components of the runs ``r``."""
+    return None if u is None else u[r]
+
+
+def _drop_weightless(M: np.ndarray, Cv: np.ndarray, lw: np.ndarray, count: np.ndarray):
+    """Remove the components in use whose weight is 0 (a reading they cannot give), the last one in use moving into
+    the freed slot, so that the slots in use stay the first ``count``; a run keeps at least one."""
+    N, K = lw.shape
+    while True:
+        used = np.arange(K) < count[:, None]
+        gone = used & np.isneginf(lw) & (count > 1)[:, None]
+        if not gone.any():
+            return M, Cv, lw, count
+        r = np.flatnonzero(gone.any(axis=1))
+        j = np.argmax(gone[r], axis=1)
+        last = count[r] - 1
+        M[r, j], Cv[r, j], lw[r, j] = M[r, last], Cv[r, last], lw[r, last]
+        lw[r, last] = -np.inf
+        count[r] -= 1
 
 
 def _weights(lw: np.ndarray) -> np.ndarray:
