@@ -344,7 +344,8 @@ def split_principal(m: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _used(count: np.ndarray, K: int) -> tuple[np.ndarray, np.ndarray]:
     """The (run, slot) indices of the components in use, the first ``count[r]`` slots of run r, run-major."""
-    return np.nonzero(np.arange(K) < count[:, None])
+    r, c = np.nonzero(np.arange(K) < count[:, None])
+    return r, c
 
 
 def _rows(u: np.ndarray | None, r: np.ndarray) -> np.ndarray | None:
