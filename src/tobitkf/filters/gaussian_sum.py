@@ -142,7 +142,8 @@ class GaussianSumAssumedDensityFilter(Estimator):
     -----
     Extras: ``log_likelihood`` (..., T), :math:`\log\sum_iw_ip_i(y_k)` (0 for a step without readings);
     ``weights`` (..., T, K), the components' weights after the step (0 for an unused slot; they sum to 1);
-    ``components`` (..., T), the number in use. The cost of a step is about K times the assumed-density filter's.
+    ``components`` (..., T), the number in use. A step costs about the assumed-density filter's times the components in use, plus the nonlinearity measure
+    of the splits (one sigma-point pass per round).
     The numpy path only (no compiled loop).
 
     Examples
