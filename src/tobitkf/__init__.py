@@ -73,6 +73,7 @@ from .filters.fading import (
     fading_kalman_filter,
     fading_tobit_kalman_filter,
 )
+from .filters.gaussian_sum import GaussianSumAssumedDensityFilter
 from .filters.hinf import RegionalHinfFilter
 from .filters.nonlinear import (
     ExtendedKalmanFilter,
@@ -128,6 +129,7 @@ __all__ = [
     "TobitExtendedKalmanFilter",
     "TobitUnscentedKalmanFilter",
     "NonlinearAssumedDensityFilter",
+    "GaussianSumAssumedDensityFilter",
     "FadingExtendedKalmanFilter",
     "FadingUnscentedKalmanFilter",
     "FadingTobitExtendedKalmanFilter",

@@ -186,6 +186,7 @@ def _blocks(result):
 def test_each_experiment_writes_the_metrics_the_report_reads(tiny, exp_id):
     result = tiny[exp_id]
     want = set(NL.LINEUP) | {"pf"} | ({"ekf-inflate", "ekf-drop"} if exp_id == "nonlinear-accelerometer" else set())
+    want |= {"gsf"} if exp_id == "nonlinear-localisation" else set()
     for block in _blocks(result):
         est = block["estimators"]
         assert set(est) == want
@@ -209,7 +210,7 @@ def test_each_experiment_writes_the_metrics_the_report_reads(tiny, exp_id):
             assert "on the same 5 runs" in c["quantity"]  # measured on the comparison runs
     for case in list(result.metrics["systems"]) if exp_id == "nonlinear-random" else [None]:
         mine = [t for t in texts if case is None or f" {case}:" in t]
-        assert sum("within" in t for t in mine) == 1
+        assert sum("within" in t for t in mine) == (2 if exp_id == "nonlinear-localisation" else 1)
         assert sum("more accurate than the tobit-ekf" in t for t in mine) == 1
         assert sum("more accurate than the tobit-ukf" in t for t in mine) == 1
         assert sum("converged" in t for t in mine) == 1
@@ -221,6 +222,15 @@ def test_the_localisation_reports_where_the_posterior_is_bimodal(tiny):
     assert b["runs"] == 2 and b["threshold"] == pytest.approx(5 / 9)
     assert b["bimodal"]["fraction"] + b["unimodal"]["fraction"] == pytest.approx(1.0)
     assert tiny["nonlinear-localisation"].data["bimodality"].shape == (2, 12)
+    assert np.isfinite(b["bimodal"]["rmse_position_gsf"]) or b["bimodal"]["fraction"] * 24 < 2
+
+
+def test_the_localisation_claims_the_gaussian_sum_filter_beside_the_target(tiny):
+    res = tiny["nonlinear-localisation"]
+    within = [c for c in res.claims if "within" in c["claim"]]
+    assert "nonlinear assumed-density filter" in within[0]["claim"]
+    assert "Gaussian-sum assumed-density filter (8 components)" in within[1]["claim"]
+    assert res.metrics["lineup"]["gsf"] == {"type": "GaussianSumAssumedDensityFilter", "options": {"components": 8}}
 
 
 @pytest.mark.heavy  # the experiment at its default horizon and particles (seconds)
