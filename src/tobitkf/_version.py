@@ -2,4 +2,4 @@
 version), ``tobitkf.__version__``, ``tobitkf --version``, ``metrics.json`` and the sweep stores
 record it. When it changes: CONTRIBUTING.md, "Versions and the changelog"."""
 
-__version__ = "0.2.0.dev1"
+__version__ = "0.2.0.dev2"
