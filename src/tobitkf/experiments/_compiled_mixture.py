@@ -1,0 +1,154 @@
+r"""The assumed-density filter of the river model's scale-mixture noise, compiled (numba): the compiled form of
+:func:`tobitkf.experiments.records_common._mixture_filter`, which stays the numpy reference (tested against it to
+1e-12).
+
+Run i of N, step k of T: the exact diagonal prediction over the gap,
+
+.. math::
+
+    \bar x = a_{ik} \odot \hat x, \qquad \bar P = \mathrm{diag}(a_{ik})\,\hat P\,\mathrm{diag}(a_{ik})
+    + \mathrm{diag}(q^d_{ik}),
+
+then the update of :func:`~tobitkf.experiments.records_common.mixture_update`: for each noise component j
+(variance :math:`r^2_{ik}` and :math:`c_i^2 r^2_{ik}`) the censored update of the package's compiled block
+(:func:`~tobitkf.filters._compiled_moments.censored_block`, the two components as two runs of one block), a
+rank-one change along :math:`\bar Pc_k^T`,
+
+.. math::
+
+    \hat x_j = \bar x + \alpha_j\,\bar Pc_k^T, \qquad P_j = \bar P - \beta_j\,\bar Pc_k^T c_k\bar P,
+
+with its evidence :math:`\ell_j`; the log-likelihood term :math:`\log(e^{\log w_1 + \ell_1} + e^{\log w_2 +
+\ell_2})` and the moment-matched merge with the posterior weights :math:`\pi_j = e^{\log w_j + \ell_j - \ell}`
+(the prior weights where that is not finite). A missing reading leaves the prediction and adds 0.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..filters._compiled_moments import MISSING, censored_block
+
+__all__ = ["mixture_filter_kernel"]
+
+_LOG2 = math.log(2.0)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _logaddexp(u, v):
+    """``numpy.logaddexp`` of two floats, by its formula (the same rounding)."""
+    if u == v:
+        return u + _LOG2
+    t = u - v
+    if t > 0:
+        return u + math.log1p(math.exp(-t))
+    if t <= 0:
+        return v + math.log1p(math.exp(t))
+    return t  # NaN
+
+
+@njit(cache=True, error_model="numpy")
+def mixture_filter_kernel(x0, P0, a, qd, C, y, cls, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw):
+    r"""The filter of the module docstring for every run; writes ``terms`` (N, T) and, with ``store``, the
+    predicted and filtered moments ``xp``, ``xs`` (N, T, n), ``Pp``, ``Ps`` (N, T, n, n) (else those are not
+    touched and may be any size).
+
+    Parameters
+    ----------
+    x0 : (N, n) ; P0 : (N, n, n) ; a, qd : (N, T, n) the diagonals of the transitions and process noises
+    C : (T, n) ; y, lo, hi, r2, dy : (N, T) ; cls : (N, T) int8 reading classes
+    logw : (N, 2) log prior weights of the two components (:math:`\log(1 - w)`, :math:`\log w`; -inf for w = 0)
+    c2 : (N,) variance ratio of the second component ; glx, glw : the Gauss-Legendre rule of the censored block
+    """
+    N, n = x0.shape
+    T = y.shape[1]
+    x = np.empty(n)
+    P = np.empty((n, n))
+    pc = np.empty(n)
+    xj = np.empty((2, n))
+    Pj = np.empty((2, n, n))
+    yy, hx, hph, rb = np.empty(2), np.empty(2), np.empty(2), np.empty(2)
+    lob, hib = np.empty(2), np.empty(2)
+    cc = np.empty(2, dtype=np.int8)
+    alpha, beta, ll, pu = np.empty(2), np.empty(2), np.empty(2), np.empty(2)
+    post = np.empty(2)
+    par = np.zeros(0)
+    comp = np.zeros((0, 2))
+    buf = np.empty((2, glx.shape[0]))
+    for i in range(N):
+        for p in range(n):
+            x[p] = x0[i, p]
+            for q in range(n):
+                P[p, q] = P0[i, p, q]
+        for k in range(T):
+            for p in range(n):
+                x[p] = a[i, k, p] * x[p]
+            for p in range(n):
+                for q in range(n):
+                    P[p, q] = P[p, q] * a[i, k, p] * a[i, k, q]
+                P[p, p] += qd[i, k, p]
+            if store:
+                for p in range(n):
+                    xp[i, k, p] = x[p]
+                    for q in range(n):
+                        Pp[i, k, p, q] = P[p, q]
+            c = cls[i, k]
+            if c == MISSING:
+                terms[i, k] = 0.0
+            else:
+                mu = dy[i, k]
+                cpc = 0.0
+                for p in range(n):
+                    mu += x[p] * C[k, p]
+                    s = 0.0
+                    for q in range(n):
+                        s += P[p, q] * C[k, q]
+                    pc[p] = s
+                    cpc += C[k, p] * s
+                for j in range(2):
+                    yy[j] = y[i, k]
+                    cc[j] = c
+                    hx[j] = mu
+                    hph[j] = cpc
+                    lob[j] = lo[i, k]
+                    hib[j] = hi[i, k]
+                    ll[j] = 0.0
+                rb[0] = r2[i, k]
+                rb[1] = c2[i] * r2[i, k]
+                censored_block(2, yy, cc, hx, hph, rb, lob, hib, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+                j0 = logw[i, 0] + ll[0]
+                j1 = logw[i, 1] + ll[1]
+                tot = _logaddexp(j0, j1)
+                terms[i, k] = tot
+                post[0] = math.exp(j0 - tot)
+                post[1] = math.exp(j1 - tot)
+                if not math.isfinite(post[0]):
+                    post[0] = math.exp(logw[i, 0])
+                if not math.isfinite(post[1]):
+                    post[1] = math.exp(logw[i, 1])
+                for j in range(2):
+                    for p in range(n):
+                        xj[j, p] = x[p] + alpha[j] * pc[p]
+                        for q in range(n):
+                            Pj[j, p, q] = P[p, q] - beta[j] * pc[p] * pc[q]
+                for p in range(n):
+                    x[p] = post[0] * xj[0, p] + post[1] * xj[1, p]
+                for p in range(n):
+                    for q in range(n):
+                        s = 0.0
+                        for j in range(2):
+                            s += post[j] * (Pj[j, p, q] + (xj[j, p] - x[p]) * (xj[j, q] - x[q]))
+                        P[p, q] = s
+                for p in range(n):
+                    for q in range(p + 1, n):
+                        s = 0.5 * (P[p, q] + P[q, p])
+                        P[p, q] = s
+                        P[q, p] = s
+            if store:
+                for p in range(n):
+                    xs[i, k, p] = x[p]
+                    for q in range(n):
+                        Ps[i, k, p, q] = P[p, q]
