@@ -18,9 +18,18 @@ rank-one change along :math:`\bar Pc_k^T`,
 
     \hat x_j = \bar x + \alpha_j\,\bar Pc_k^T, \qquad P_j = \bar P - \beta_j\,\bar Pc_k^T c_k\bar P,
 
-with its evidence :math:`\ell_j`; the log-likelihood term :math:`\log(e^{\log w_1 + \ell_1} + e^{\log w_2 +
-\ell_2})` and the moment-matched merge with the posterior weights :math:`\pi_j = e^{\log w_j + \ell_j - \ell}`
-(the prior weights where that is not finite). A missing reading leaves the prediction and adds 0.
+with its evidence :math:`\ell_j`; the log-likelihood term :math:`\ell = \log(e^{\log w_1 + \ell_1} +
+e^{\log w_2 + \ell_2})` and the moment-matched merge with the posterior weights
+:math:`\pi_j = e^{\log w_j + \ell_j - \ell}` (the prior weights where that is not finite), itself a rank-one
+change (:mod:`tobitkf.filters._compiled_moments`):
+
+.. math::
+
+    \hat x = \bar x + \bar\alpha\,\bar Pc_k^T, \qquad P = \bar P - \bar\beta\,\bar Pc_k^T c_k\bar P, \qquad
+    \bar\alpha = \sum_j \pi_j\alpha_j, \quad \bar\beta = \sum_j \pi_j\left(\beta_j - (\alpha_j -
+    \bar\alpha)^2\right),
+
+symmetric by construction. A missing reading leaves the prediction and adds 0.
 """
 
 from __future__ import annotations
@@ -30,7 +39,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..filters._compiled_moments import MISSING, censored_block
+from ..filters._compiled_moments import MISSING, censored_block, classify
 
 __all__ = ["mixture_filter_kernel"]
 
@@ -51,7 +60,9 @@ def _logaddexp(u, v):
 
 
 @njit(cache=True, error_model="numpy")
-def mixture_filter_kernel(x0, P0, a, qd, C, y, cls, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw):
+def mixture_filter_kernel(
+    x0, P0, a, qd, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw
+):
     r"""The filter of the module docstring for every run; writes ``terms`` (N, T) and, with ``store``, the
     predicted and filtered moments ``xp``, ``xs`` (N, T, n), ``Pp``, ``Ps`` (N, T, n, n) (else those are not
     touched and may be any size).
@@ -59,7 +70,10 @@ def mixture_filter_kernel(x0, P0, a, qd, C, y, cls, lo, hi, r2, dy, logw, c2, st
     Parameters
     ----------
     x0 : (N, n) ; P0 : (N, n, n) ; a, qd : (N, T, n) the diagonals of the transitions and process noises
-    C : (T, n) ; y, lo, hi, r2, dy : (N, T) ; cls : (N, T) int8 reading classes
+    C : (T, n) ; y, lo, hi, r2, dy : (N, T)
+    cls : (N, T) int8 the reading classes when ``given`` (a recorded indicator's,
+        :func:`~tobitkf.filters._readings.interval_classes`); else not read, the classes are the limit rule's
+        (:func:`~tobitkf.filters._compiled_moments.classify`)
     logw : (N, 2) log prior weights of the two components (:math:`\log(1 - w)`, :math:`\log w`; -inf for w = 0)
     c2 : (N,) variance ratio of the second component ; glx, glw : the Gauss-Legendre rule of the censored block
     """
@@ -68,8 +82,6 @@ def mixture_filter_kernel(x0, P0, a, qd, C, y, cls, lo, hi, r2, dy, logw, c2, st
     x = np.empty(n)
     P = np.empty((n, n))
     pc = np.empty(n)
-    xj = np.empty((2, n))
-    Pj = np.empty((2, n, n))
     yy, hx, hph, rb = np.empty(2), np.empty(2), np.empty(2), np.empty(2)
     lob, hib = np.empty(2), np.empty(2)
     cc = np.empty(2, dtype=np.int8)
@@ -95,7 +107,7 @@ def mixture_filter_kernel(x0, P0, a, qd, C, y, cls, lo, hi, r2, dy, logw, c2, st
                     xp[i, k, p] = x[p]
                     for q in range(n):
                         Pp[i, k, p, q] = P[p, q]
-            c = cls[i, k]
+            c = cls[i, k] if given else classify(y[i, k], lo[i, k], hi[i, k])
             if c == MISSING:
                 terms[i, k] = 0.0
             else:
@@ -129,24 +141,16 @@ def mixture_filter_kernel(x0, P0, a, qd, C, y, cls, lo, hi, r2, dy, logw, c2, st
                     post[0] = math.exp(logw[i, 0])
                 if not math.isfinite(post[1]):
                     post[1] = math.exp(logw[i, 1])
-                for j in range(2):
-                    for p in range(n):
-                        xj[j, p] = x[p] + alpha[j] * pc[p]
-                        for q in range(n):
-                            Pj[j, p, q] = P[p, q] - beta[j] * pc[p] * pc[q]
+                # the merge of the two rank-one updates along Pc (module docstring): alpha and beta of the mixture
+                am = post[0] * alpha[0] + post[1] * alpha[1]
+                bm = post[0] * (beta[0] - (alpha[0] - am) ** 2) + post[1] * (beta[1] - (alpha[1] - am) ** 2)
                 for p in range(n):
-                    x[p] = post[0] * xj[0, p] + post[1] * xj[1, p]
+                    x[p] += am * pc[p]
                 for p in range(n):
-                    for q in range(n):
-                        s = 0.0
-                        for j in range(2):
-                            s += post[j] * (Pj[j, p, q] + (xj[j, p] - x[p]) * (xj[j, q] - x[q]))
-                        P[p, q] = s
-                for p in range(n):
-                    for q in range(p + 1, n):
-                        s = 0.5 * (P[p, q] + P[q, p])
-                        P[p, q] = s
-                        P[q, p] = s
+                    for q in range(p, n):
+                        v = P[p, q] - bm * pc[p] * pc[q]
+                        P[p, q] = v
+                        P[q, p] = v
             if store:
                 for p in range(n):
                     xs[i, k, p] = x[p]

@@ -189,7 +189,8 @@ def adf_pass(
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))[..., None]
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))[..., None]
     d = np.broadcast_to(np.asarray(dy, dtype=float), (N, T))
-    system = adf_system(x0, P0, rate, diffusion, gaps, C, r2)
+    # the per-run LinearSystem: for the Gaussian passes and the RTS pass (the mixture's likelihood does without it)
+    system = adf_system(x0, P0, rate, diffusion, gaps, C, r2) if mixture is None or smooth else None
     Y = np.asarray(y, dtype=float)[..., None]
     u = np.ascontiguousarray(d[..., None])
     flags = None if censored is None else np.broadcast_to(np.asarray(censored, dtype=bool), (N, T))[..., None]
@@ -201,6 +202,7 @@ def adf_pass(
         w, c2 = (np.asarray(v, dtype=float)[:, None] for v in mixture)
         noise = np.broadcast_to(np.asarray(r2, dtype=float), (N, T)) * (1.0 - w + w * c2)
     elif not smooth:
+        assert system is not None, "built for the Gaussian pass"
         terms = adf_log_likelihood(
             system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi, censored=flags
         )
@@ -213,6 +215,7 @@ def adf_pass(
         noise = r2
     if not smooth:
         return {"loglik": terms.sum(-1), "terms": terms}
+    assert system is not None, "built for the smoother"
     sm = rts_smooth(res, system, x0=x0, P0=P0)
     assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
     Cn = np.asarray(C, dtype=float)
@@ -338,15 +341,17 @@ def _mixture_filter(
     N, n = np.shape(rate)
     T = y.shape[-1]
     a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
-    cls = classify_readings(y, lo, hi)
-    if flags is not None:
-        cls = interval_classes(cls, flags, lo, hi)
+    if compiled is None:
+        compiled = numba_available()
+    cls = None
+    if not compiled or flags is not None:  # the compiled loop applies the limit rule itself
+        cls = classify_readings(y, lo, hi)
+        if flags is not None:
+            cls = interval_classes(cls, flags, lo, hi)
     r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
     w = np.broadcast_to(np.asarray(mixture[0], dtype=float), (N,))
     c2 = np.broadcast_to(np.asarray(mixture[1], dtype=float), (N,))
     Cn = np.asarray(C, dtype=float)
-    if compiled is None:
-        compiled = numba_available()
     if compiled:
         from ..filters._compiled_tobit import GL_W, GL_X
         from ..filters._outputs import loop_input as f
@@ -359,14 +364,16 @@ def _mixture_filter(
         with np.errstate(divide="ignore"):
             logw = np.stack([np.log1p(-w), np.log(w)], axis=1)  # (N, 2); w = 0 gives the Gaussian model exactly
         B = (N, T)
+        given = np.zeros((0, 0), np.int8) if cls is None else np.require(cls, np.int8, ("C", "W"))
         mixture_filter_kernel(
-            f(x0), f(P0), f(a), f(qd), f(Cn), f(np.broadcast_to(y, B)), np.require(cls, np.int8, ("C", "W")),
+            f(x0), f(P0), f(a), f(qd), f(Cn), f(np.broadcast_to(y, B)), given, cls is not None,
             f(np.broadcast_to(lo, B)), f(np.broadcast_to(hi, B)), f(r2), f(np.broadcast_to(dy, B)), logw, f(c2),
             store, xp, Pp, xs, Ps, terms, GL_X, GL_W,
         )  # fmt: skip
         if not store:
             return None, terms
         return FilterResult(mean=xs, cov=Ps, pred_mean=xp, pred_cov=Pp, extras={"log_likelihood": terms}), terms
+    assert cls is not None, "classified above"
     xs, Ps = np.empty((N, T, n)), np.empty((N, T, n, n))
     xp, Pp = np.empty((N, T, n)), np.empty((N, T, n, n))
     terms = np.empty((N, T))
