@@ -59,9 +59,15 @@ def _logaddexp(u, v):
     return t  # NaN
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _row(v, i):
+    """The row of run i of an (N or 1, T) input."""
+    return i if v.shape[0] > 1 else 0
+
+
 @njit(cache=True, error_model="numpy")
 def mixture_filter_kernel(
-    x0, P0, a, qd, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw
+    x0, P0, rate, diffusion, gaps, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw
 ):
     r"""The filter of the module docstring for every run; writes ``terms`` (N, T) and, with ``store``, the
     predicted and filtered moments ``xp``, ``xs`` (N, T, n), ``Pp``, ``Ps`` (N, T, n, n) (else those are not
@@ -69,8 +75,9 @@ def mixture_filter_kernel(
 
     Parameters
     ----------
-    x0 : (N, n) ; P0 : (N, n, n) ; a, qd : (N, T, n) the diagonals of the transitions and process noises
-    C : (T, n) ; y, lo, hi, r2, dy : (N, T)
+    x0 : (N, n) ; P0 : (N, n, n) ; rate, diffusion : (N, n) the continuous-time model of each run, taken over
+        each gap as :func:`~tobitkf.experiments.records_common.gap_matrices` does
+    C : (T, n) ; gaps, y, lo, hi, r2, dy : (N or 1, T) (one row: shared by the runs)
     cls : (N, T) int8 the reading classes when ``given`` (a recorded indicator's,
         :func:`~tobitkf.filters._readings.interval_classes`); else not read, the classes are the limit rule's
         (:func:`~tobitkf.filters._compiled_moments.classify`)
@@ -82,6 +89,7 @@ def mixture_filter_kernel(
     x = np.empty(n)
     P = np.empty((n, n))
     pc = np.empty(n)
+    ak, qk = np.empty(n), np.empty(n)
     yy, hx, hph, rb = np.empty(2), np.empty(2), np.empty(2), np.empty(2)
     lob, hib = np.empty(2), np.empty(2)
     cc = np.empty(2, dtype=np.int8)
@@ -95,23 +103,30 @@ def mixture_filter_kernel(
             x[p] = x0[i, p]
             for q in range(n):
                 P[p, q] = P0[i, p, q]
+        ig, iy, il, ih = _row(gaps, i), _row(y, i), _row(lo, i), _row(hi, i)
+        ir, idy = _row(r2, i), _row(dy, i)
         for k in range(T):
+            dt = gaps[ig, k]
+            for p in range(n):  # gap_matrices: a = e^(-lambda dt), qd = q dt psi(2 lambda dt)
+                ak[p] = math.exp(-rate[i, p] * dt)
+                z = 2.0 * rate[i, p] * dt
+                qk[p] = diffusion[i, p] * dt * (-math.expm1(-z) / z if z > 0 else 1.0)
             for p in range(n):
-                x[p] = a[i, k, p] * x[p]
+                x[p] = ak[p] * x[p]
             for p in range(n):
                 for q in range(n):
-                    P[p, q] = P[p, q] * a[i, k, p] * a[i, k, q]
-                P[p, p] += qd[i, k, p]
+                    P[p, q] = P[p, q] * ak[p] * ak[q]
+                P[p, p] += qk[p]
             if store:
                 for p in range(n):
                     xp[i, k, p] = x[p]
                     for q in range(n):
                         Pp[i, k, p, q] = P[p, q]
-            c = cls[i, k] if given else classify(y[i, k], lo[i, k], hi[i, k])
+            c = cls[i, k] if given else classify(y[iy, k], lo[il, k], hi[ih, k])
             if c == MISSING:
                 terms[i, k] = 0.0
             else:
-                mu = dy[i, k]
+                mu = dy[idy, k]
                 cpc = 0.0
                 for p in range(n):
                     mu += x[p] * C[k, p]
@@ -121,15 +136,15 @@ def mixture_filter_kernel(
                     pc[p] = s
                     cpc += C[k, p] * s
                 for j in range(2):
-                    yy[j] = y[i, k]
+                    yy[j] = y[iy, k]
                     cc[j] = c
                     hx[j] = mu
                     hph[j] = cpc
-                    lob[j] = lo[i, k]
-                    hib[j] = hi[i, k]
+                    lob[j] = lo[il, k]
+                    hib[j] = hi[ih, k]
                     ll[j] = 0.0
-                rb[0] = r2[i, k]
-                rb[1] = c2[i] * r2[i, k]
+                rb[0] = r2[ir, k]
+                rb[1] = c2[i] * r2[ir, k]
                 censored_block(2, yy, cc, hx, hph, rb, lob, hib, par, alpha, beta, ll, pu, comp, glx, glw, buf)
                 j0 = logw[i, 0] + ll[0]
                 j1 = logw[i, 1] + ll[1]

@@ -340,7 +340,6 @@ def _mixture_filter(
 
     N, n = np.shape(rate)
     T = y.shape[-1]
-    a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
     if compiled is None:
         compiled = numba_available()
     cls = None
@@ -363,17 +362,23 @@ def _mixture_filter(
         terms = np.empty((N, T))
         with np.errstate(divide="ignore"):
             logw = np.stack([np.log1p(-w), np.log(w)], axis=1)  # (N, 2); w = 0 gives the Gaussian model exactly
-        B = (N, T)
+
+        def rows(v: Any) -> np.ndarray:  # (N or 1, T): one row for an input the runs share (a broadcast view)
+            v = np.asarray(v, dtype=float)
+            v = v.reshape(1, -1) if v.ndim < 2 else v
+            return f(v[:1] if v.shape[0] > 1 and v.strides[0] == 0 else v)
+
         given = np.zeros((0, 0), np.int8) if cls is None else np.require(cls, np.int8, ("C", "W"))
         mixture_filter_kernel(
-            f(x0), f(P0), f(a), f(qd), f(Cn), f(np.broadcast_to(y, B)), given, cls is not None,
-            f(np.broadcast_to(lo, B)), f(np.broadcast_to(hi, B)), f(r2), f(np.broadcast_to(dy, B)), logw, f(c2),
+            f(x0), f(P0), f(np.asarray(rate, dtype=float)), f(np.asarray(diffusion, dtype=float)), rows(gaps), f(Cn),
+            rows(y), given, cls is not None, rows(lo), rows(hi), rows(r2), rows(dy), logw, f(c2),
             store, xp, Pp, xs, Ps, terms, GL_X, GL_W,
         )  # fmt: skip
         if not store:
             return None, terms
         return FilterResult(mean=xs, cov=Ps, pred_mean=xp, pred_cov=Pp, extras={"log_likelihood": terms}), terms
     assert cls is not None, "classified above"
+    a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
     xs, Ps = np.empty((N, T, n)), np.empty((N, T, n, n))
     xp, Pp = np.empty((N, T, n)), np.empty((N, T, n, n))
     terms = np.empty((N, T))
