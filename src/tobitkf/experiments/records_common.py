@@ -119,6 +119,7 @@ def adf_pass(
     smooth: bool = False,
     censored: Any = None,
     mixture: tuple[Any, Any] | None = None,
+    compiled: bool | None = None,
 ) -> dict[str, Any]:
     r"""The assumed-density filter (and RTS smoother) of N runs of a scalar reading, each run its own model.
 
@@ -147,6 +148,9 @@ def adf_pass(
         scale-mixture noise, :math:`v_k \sim (1 - w_i)\,N(0, r^2_{ik}) + w_i\,N(0, c_i^2 r^2_{ik})`, instead of
         the Gaussian noise (:func:`mixture_update`, one moment-matched update per reading); :math:`w_i = 0` is
         the Gaussian model.
+    compiled : bool, optional
+        The mixture filter's loop compiled (default when numba imports; the same numbers to rounding) or the numpy
+        reference (False). The Gaussian pass is the package's, compiled when numba imports.
 
     Returns
     -------
@@ -178,24 +182,27 @@ def adf_pass(
                     x0[sl], P0[sl], rate[sl], diffusion[sl], cut(gaps), C, y[sl], cut(lower), cut(upper),
                     cut(r2), dy=cut(dy), smooth=smooth, censored=None if censored is None else cut(censored),
                     mixture=None if mixture is None else (np.asarray(mixture[0])[sl], np.asarray(mixture[1])[sl]),
+                    compiled=compiled,
                 )
             )  # fmt: skip
         return {key: np.concatenate([p[key] for p in parts]) for key in parts[0] if key not in ("filtered", "smoothed")}
     lo = np.broadcast_to(np.asarray(lower, dtype=float), (N, T))[..., None]
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N, T))[..., None]
     d = np.broadcast_to(np.asarray(dy, dtype=float), (N, T))
-    system = adf_system(x0, P0, rate, diffusion, gaps, C, r2)
+    # the per-run LinearSystem: for the Gaussian passes and the RTS pass (the mixture's likelihood does without it)
+    system = adf_system(x0, P0, rate, diffusion, gaps, C, r2) if mixture is None or smooth else None
     Y = np.asarray(y, dtype=float)[..., None]
     u = np.ascontiguousarray(d[..., None])
     flags = None if censored is None else np.broadcast_to(np.asarray(censored, dtype=bool), (N, T))[..., None]
     if mixture is not None:
         res, terms = _mixture_filter(
             x0, P0, rate, diffusion, gaps, C, np.asarray(y, dtype=float), lo[..., 0], hi[..., 0], r2, d, mixture,
-            None if flags is None else flags[..., 0],
+            None if flags is None else flags[..., 0], store=smooth, compiled=compiled,
         )  # fmt: skip
         w, c2 = (np.asarray(v, dtype=float)[:, None] for v in mixture)
         noise = np.broadcast_to(np.asarray(r2, dtype=float), (N, T)) * (1.0 - w + w * c2)
     elif not smooth:
+        assert system is not None, "built for the Gaussian pass"
         terms = adf_log_likelihood(
             system, Censoring(), Y, u=u, x0=x0, P0=P0, per_step=True, lower=lo, upper=hi, censored=flags
         )
@@ -208,6 +215,7 @@ def adf_pass(
         noise = r2
     if not smooth:
         return {"loglik": terms.sum(-1), "terms": terms}
+    assert system is not None, "built for the smoother"
     sm = rts_smooth(res, system, x0=x0, P0=P0)
     assert sm.mean is not None and sm.cov is not None, "the RTS pass returns means and covariances"
     Cn = np.asarray(C, dtype=float)
@@ -315,23 +323,62 @@ def _mixture_filter(
     dy: np.ndarray,
     mixture: tuple[Any, Any],
     flags: np.ndarray | None,
+    *,
+    store: bool = True,
+    compiled: bool | None = None,
 ) -> tuple[Any, np.ndarray]:
     """The filter of :func:`adf_pass` with the mixture noise: the exact diagonal prediction over each gap, then
     :func:`mixture_update`; a :class:`~tobitkf.filters.core.FilterResult` (filtered and predicted moments, for the
-    package's RTS pass) and the log-likelihood terms (N, T)."""
+    package's RTS pass; None without ``store``) and the log-likelihood terms (N, T).
+
+    ``compiled`` (default: when numba imports): the same filter in one compiled loop
+    (:func:`~tobitkf.experiments._compiled_mixture.mixture_filter_kernel`, the same censored block, equal to
+    rounding); False: this numpy time loop, the reference."""
+    from .._compiled import numba_available
     from ..filters._readings import classify_readings, interval_classes
     from ..filters.core import FilterResult
 
     N, n = np.shape(rate)
     T = y.shape[-1]
-    a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
-    cls = classify_readings(y, lo, hi)
-    if flags is not None:
-        cls = interval_classes(cls, flags, lo, hi)
+    if compiled is None:
+        compiled = numba_available()
+    cls = None
+    if not compiled or flags is not None:  # the compiled loop applies the limit rule itself
+        cls = classify_readings(y, lo, hi)
+        if flags is not None:
+            cls = interval_classes(cls, flags, lo, hi)
     r2 = np.broadcast_to(np.asarray(r2, dtype=float), (N, T))
     w = np.broadcast_to(np.asarray(mixture[0], dtype=float), (N,))
     c2 = np.broadcast_to(np.asarray(mixture[1], dtype=float), (N,))
     Cn = np.asarray(C, dtype=float)
+    if compiled:
+        from ..filters._compiled_tobit import GL_W, GL_X
+        from ..filters._outputs import loop_input as f
+        from ._compiled_mixture import mixture_filter_kernel
+
+        shape = (N, T) if store else (0, 0)
+        xp, xs = np.empty(shape + (n,)), np.empty(shape + (n,))
+        Pp, Ps = np.empty(shape + (n, n)), np.empty(shape + (n, n))
+        terms = np.empty((N, T))
+        with np.errstate(divide="ignore"):
+            logw = np.stack([np.log1p(-w), np.log(w)], axis=1)  # (N, 2); w = 0 gives the Gaussian model exactly
+
+        def rows(v: Any) -> np.ndarray:  # (N or 1, T): one row for an input the runs share (a broadcast view)
+            v = np.asarray(v, dtype=float)
+            v = v.reshape(1, -1) if v.ndim < 2 else v
+            return f(v[:1] if v.shape[0] > 1 and v.strides[0] == 0 else v)
+
+        given = np.zeros((0, 0), np.int8) if cls is None else np.require(cls, np.int8, ("C", "W"))
+        mixture_filter_kernel(
+            f(x0), f(P0), f(np.asarray(rate, dtype=float)), f(np.asarray(diffusion, dtype=float)), rows(gaps), f(Cn),
+            rows(y), given, cls is not None, rows(lo), rows(hi), rows(r2), rows(dy), logw, f(c2),
+            store, xp, Pp, xs, Ps, terms, GL_X, GL_W,
+        )  # fmt: skip
+        if not store:
+            return None, terms
+        return FilterResult(mean=xs, cov=Ps, pred_mean=xp, pred_cov=Pp, extras={"log_likelihood": terms}), terms
+    assert cls is not None, "classified above"
+    a, qd = gap_matrices(rate, diffusion, gaps)  # (N, T, n)
     xs, Ps = np.empty((N, T, n)), np.empty((N, T, n, n))
     xp, Pp = np.empty((N, T, n)), np.empty((N, T, n, n))
     terms = np.empty((N, T))

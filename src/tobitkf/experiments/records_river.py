@@ -572,7 +572,9 @@ class RiverModel:
         s0 = np.zeros((x0.shape[0], dyn.size))
         return s0, P0[:, dyn][:, :, dyn], rate[:, dyn], diffusion[:, dyn], x0
 
-    def run(self, theta: np.ndarray, y: np.ndarray | None = None, *, smooth: bool = False) -> dict[str, Any]:
+    def run(
+        self, theta: np.ndarray, y: np.ndarray | None = None, *, smooth: bool = False, compiled: bool | None = None
+    ) -> dict[str, Any]:
         r"""The assumed-density filter on the samples' days for a batch of parameter vectors (on the moving
         states, :meth:`reduced`; the filtered and smoothed results hold those states).
 
@@ -584,6 +586,9 @@ class RiverModel:
             Readings per run (NaN = removed); default the record's for every run.
         smooth : bool
             Also run the RTS pass and return the smoothed ln-value predictive of every sample.
+        compiled : bool, optional
+            The mixture noise's filter compiled (default when numba imports) or its numpy reference (False), as
+            :func:`adf_pass`.
 
         Returns
         -------
@@ -604,7 +609,7 @@ class RiverModel:
         mixture = (nat["w"], nat["c"] ** 2) if self.noise == "mixture" else None
         return adf_pass(
             s0, S0, rate, diffusion, self.gaps, self.C[:, self.dyn], Y, self.lower, self.upper, r2, dy=offset,
-            smooth=smooth, censored=flags, mixture=mixture,
+            smooth=smooth, censored=flags, mixture=mixture, compiled=compiled,
         )  # fmt: skip
 
     def daily_smooth(self, theta: np.ndarray) -> dict[str, np.ndarray]:
