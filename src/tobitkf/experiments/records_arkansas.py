@@ -304,6 +304,8 @@ def run_arkansas(
     t0 = time.perf_counter()
     warm = RiverModel.from_record(rec, **STATIC_MODEL)
     warm.run(warm.start()[None])
+    mixture = RiverModel.from_record(rec, **STATIC_MODEL, noise="mixture")  # and the mixture noise's filter
+    mixture.run(mixture.start()[None])
     t_compile = time.perf_counter() - t0
     n = warm.n_samples
     idx = np.arange(n) if loo_samples is None else np.asarray(loo_samples, dtype=int)
