@@ -263,7 +263,7 @@ def test_entries_choose_the_soa_path_only_where_covered():
     assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is soa.soa_tobit_loop
     assert soa.tobit_entry(tobit_loop, 4, 2, np.zeros((1, 4)), np.ones((1, 4))) is tobit_loop  # four channels
     assert soa.kalman_entry(kalman_loop, 1, 2, 7, 7) is soa.soa_kalman_loop
-    assert soa.kalman_entry(kalman_loop, 2, 3, 7, 7) is kalman_loop  # two channels, n = 3: not measured
+    assert soa.kalman_entry(kalman_loop, 2, 4, 7, 7) is kalman_loop  # two channels, n = 4: measured slower
 
 
 # ---- the censored assumed-density filter: the SoA step against the compiled loop ------------------------------------
@@ -591,11 +591,15 @@ def test_kf_several_channels_equals_the_compiled_loop(n, m, joseph):
 
 
 def test_kf_several_channels_routing():
-    """The KF's entry takes the joint runs-vectorised update only for the measured (m, n) of ``KF_JOINT_ROUTED``
-    (m = 2, n = 2) with a covariance per run; the public filter then runs it, with the numpy path's numbers."""
+    """The KF's entry takes the joint runs-vectorised update only for the (m, n) of ``KF_JOINT_ROUTED`` (measured
+    faster) with a covariance per run; the public filter then runs it, with the numpy path's numbers."""
     assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is soa.soa_kalman_loop
     assert soa.kalman_entry(kalman_loop, 2, 2, 1, 7) is kalman_loop  # one shared covariance: the shared-gain path
-    assert soa.kalman_entry(kalman_loop, 3, 2, 7, 7) is kalman_loop
+    for m in (2, 3):
+        for n in range(1, soa.SOA_MAX_N + 1):
+            want = soa.soa_kalman_loop if (m, n) in soa.KF_JOINT_ROUTED else kalman_loop
+            assert soa.kalman_entry(kalman_loop, m, n, 7, 7) is want
+    assert soa.kalman_entry(kalman_loop, 3, 3, 7, 7) is kalman_loop  # measured slower
     assert soa.kalman_entry(kalman_loop, 4, 2, 7, 7) is kalman_loop
     w = 0.05
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -718,10 +722,10 @@ def test_tkf_several_channels_prior_40_sigma_from_the_limits(dist):
     assert np.all(g < 1e-300) if dist < 0 else np.all(g > 1 - 1e-12)
 
 
-def test_tkf_several_channels_routing():
+def test_tkf_several_channels_routing(monkeypatch):
     """The TKF's entry takes the joint runs-vectorised update only for the measured (m, n) of
-    ``TKF_JOINT_ROUTED``, with limits without NaN and ``lo < hi``; the public filter with two channels then gives
-    the numpy path's numbers (through whichever path its (m, n) takes)."""
+    ``TKF_JOINT_ROUTED`` (measured faster), with limits without NaN and ``lo < hi``; the public filter with two
+    channels and two states runs it, with the numpy path's numbers."""
     inf = np.inf
     lo, hi = np.array([[0.0, -inf]]), np.array([[inf, 0.4]])
     for m in (2, 3):
@@ -732,7 +736,8 @@ def test_tkf_several_channels_routing():
     assert soa.tobit_entry(tobit_loop, 4, 2, np.zeros((1, 4)), np.ones((1, 4))) is tobit_loop  # m > SOA_MAX_M
     for m, n in soa.TKF_JOINT_ROUTED:
         assert soa.tobit_entry(tobit_loop, m, n, np.ones((1, m)), np.ones((1, m))) is tobit_loop  # lo == hi
-    assert not soa.soa_covers(True, 2, 3, 7, 7) or (2, 3) in soa.KF_JOINT_ROUTED
+    assert soa.tobit_entry(tobit_loop, 2, 4, np.zeros((1, 2)), np.ones((1, 2))) is tobit_loop  # measured slower
+    spy = _spy(monkeypatch, "soa_tobit_loop")
     w = 0.05
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
     sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0], [0.5, 1.0]], Q=0.01 * np.eye(2), R=[[0.1, 0.0], [0.0, 0.2]],
@@ -743,6 +748,7 @@ def test_tkf_several_channels_routing():
     y[rng.random(size=y.shape) < 0.1] = np.nan
     ref = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y, outputs=("mean", "cov", "extras"))
     got = tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y, outputs=("mean", "cov", "extras"))
+    assert spy  # (m, n) = (2, 2): routed
     for f in ("mean", "cov"):
         _assert_close(getattr(got, f), getattr(ref, f), rtol=1e-10)
     for k in ("p_uncensored", "expected_y"):

@@ -147,15 +147,25 @@ SOA_MAX_M = 3  # most channels of the KF's joint update (one channel for the oth
 #: the number of channels m as a type, likewise (a tuple of m zeros: one specialisation per m)
 CHANS = {m: (0,) * m for m in range(1, SOA_MAX_M + 1)}
 #: the (m, n) of the KF's joint update (m > 1) that :func:`kalman_entry` routes to :func:`soa_loop`: those measured
-#: faster than the compiled loop (n = 2, m = 2, 2 x 10^4 runs x 100 steps, thread CPU time per run-step, medians of
-#: 7 alternating calls in one process, load average 10.7 on 2 cores: 22.2 against 30.9 ns means only, 27.6 against
-#: 37.0 with covariances). Every m up to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop;
-#: the rest run the loop until measured (and each would add a compiled version to the first use)
-KF_JOINT_ROUTED = frozenset({(2, 2)})
+#: faster than the compiled loop. n = 2, m = 2 (C = I, R = diag(0.1, 0.2), 2 x 10^4 runs x 100 steps, thread CPU time
+#: per run-step, medians of 7 alternating calls in one process, load average 10.7 on 2 cores): 22.2 against 30.9 ns
+#: means only, 27.6 against 37.0 with covariances. The others (``bench_simd.py --which kfm``: channel l reads state
+#: l mod n, the same sizes, load average 7-10), means only / with covariances: (m, n) = (2, 1) 14.7 / 16.6 against
+#: 20.8 / 22.6, (3, 1) 21.5 / 23.2 against 29.9 / 31.5, (3, 2) 28.0 / 35.1 against 39.3 / 46.4, (2, 3) 31.3 / 44.6
+#: against 40.7 / 54.2; slower, not routed: (3, 3) 302 / 317 against 54.8 / 68.1, (2, 4) 227 / 252 against 62.8 /
+#: 93.6, (3, 4) 381 / 406 against 82.3 / 111 (the straight-line step of a run no longer vectorises well). Every m up
+#: to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
+KF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3)})
 #: the (m, n) of the TKF's joint update (m > 1) that :func:`tobit_entry` routes to :func:`soa_loop`: those measured
-#: faster than the compiled loop (filled in below from the measurements); every m up to :data:`SOA_MAX_M` and n up to
-#: :data:`SOA_MAX_N` is tested equal to the loop
-TKF_JOINT_ROUTED: frozenset[tuple[int, int]] = frozenset()
+#: faster than the compiled loop (``bench_simd.py --which tkfm,tkfmw``: every channel left-censored at 0, channel l
+#: reading state l mod n, 2 x 10^4 runs x 100 steps, thread CPU time per run-step, medians of 7 alternating calls in
+#: one process, load average 6-10 on 2 cores), means only / with covariances: (m, n) = (2, 1) 36.4 / 38.4 against
+#: the loop's 40.1 / 42.2 (every channel in the window [-0.5, 0.5]: 144 / 145 against 205 / 206), (3, 1) 53.5 / 56.4
+#: against 59.2 / 63.8 (window: 218 / 218 against 301 / 298), (2, 2) 44.0 / 55.1 against 55.7 / 66.0, (3, 2) 59.1 /
+#: 65.7 against 69.2 / 76.1, (2, 3) 48.9 / 61.8 against 60.2 / 73.9, (3, 3) 73.0 / 87.0 against 86.7 / 100.3; slower,
+#: not routed: (2, 4) 183 / 210 against 79.3 / 109, (3, 4) 445 / 470 against 105 / 131. Every m up to
+#: :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
+TKF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3), (3, 3)})
 #: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
 #: and P(uncensored), the TKF (any limits)
 KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
