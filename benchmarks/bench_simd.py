@@ -7,6 +7,10 @@ model). Contestants, all on one thread, all writing into output arrays allocated
 * the structure-of-arrays step (``tobitkf.filters._compiled_soa``), means only and means + covariances;
 * the KF with two channels (the oscillator read through both components, the joint update), means only and
   means + covariances, both ways;
+* the TKF and the KF with m channels and n states (``--mn``, the joint update; groups ``tkfm``, the TKF with every
+  channel left-censored at 0, ``tkfmw``, the TKF with every channel in the window [-0.5, 0.5], and ``kfm``): a
+  rotation of the first two states, the others decaying, channel l reading state l mod n (plus half of the next
+  one from l = n on), means only and means + covariances, both ways;
 * the compiled loop's TKF entry (``tobitkf.filters._compiled_entries.tobit_loop``: the block path the filters
   run today), the same two output sets, and the KF through both, means only;
 * the TKF with two finite limits (the same readings clipped to a window, the split step), means only, both ways;
@@ -25,6 +29,7 @@ Run by hand::
 
     PYTHONPATH=src python benchmarks/bench_simd.py            # about a minute on an idle machine
     PYTHONPATH=src python benchmarks/bench_simd.py --smoke    # seconds (CI)
+    PYTHONPATH=src python benchmarks/bench_simd.py --which tkfm --mn 2x2,3x2 --sizes 20000x100 --repeat 7
 """
 
 from __future__ import annotations
@@ -45,7 +50,77 @@ def _load() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
 
-def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
+def _system_mn(m: int, n: int) -> tuple[tk.LinearSystem, np.ndarray, np.ndarray, np.ndarray]:
+    """n states (a slow rotation of the first two, the others decaying, each fed by the one before), read through m
+    channels: channel l reads state l mod n, from l = n on plus half of the next state; noise variances 0.1, 0.2,
+    0.15."""
+    A = np.zeros((n, n))
+    if n == 1:
+        A[0, 0] = 0.95
+    else:
+        w = 0.05
+        A[:2, :2] = [[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]]
+        for i in range(2, n):
+            A[i, i], A[i, i - 1] = 0.9, 0.1
+    C = np.zeros((m, n))
+    for l in range(m):
+        C[l, l % n] = 1.0
+        if l >= n:
+            C[l, (l + 1) % n] += 0.5
+    R = np.diag([0.1, 0.2, 0.15][:m])
+    sys_ = tk.LinearSystem(A=A, C=C, Q=0.01 * np.eye(n), R=R, x0=np.zeros(n), P0=0.05 * np.eye(n))
+    return sys_, A, C, R
+
+
+def _groups_mn(runs: int, steps: int, mn: list[tuple[int, int]], which: set[str]) -> dict:
+    """The contestants of the groups ``tkfm``, ``tkfmw`` and ``kfm`` for each (m, n) of ``mn``: the runs-vectorised
+    step against the compiled loop, means only and means + covariances, outputs allocated and touched here."""
+    from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
+    from tobitkf.filters._compiled_soa import soa_kalman_loop, soa_tobit_loop
+
+    out = {}
+    N, T = runs, steps
+    for m, n in mn:
+        sys_, A, C, Rm = _system_mn(m, n)
+        Q = 0.01 * np.eye(n)
+        H = np.ascontiguousarray(C[None])
+        sig = np.sqrt(np.diag(Rm))[None].copy()
+        x0 = np.zeros((N, n))
+        P0 = np.ascontiguousarray(np.broadcast_to(0.05 * np.eye(n), (N, n, n)))
+        bu, du = np.empty((N, 0, n)), np.empty((N, 0, m))
+        e_m, e_c, e_y = np.empty((N, 0, n)), np.empty((N, 0, n, n)), np.empty((N, 0, m))
+        means, covs = np.zeros((N, T, n)), np.zeros((N, T, n, n))
+        xl, Pl = np.empty((N, n)), np.empty((N, n, n))
+        tag = f"m={m} n={n}"
+        if "tkfm" in which or "tkfmw" in which:
+            lat = np.ascontiguousarray(tk.simulate(sys_, steps, runs, seed=2).y, dtype=float)
+        for g, (lo_v, hi_v) in (("tkfm", (0.0, np.inf)), ("tkfmw", (-0.5, 0.5))):
+            if g not in which:
+                continue
+            lo, hi = np.full((1, m), lo_v), np.full((1, m), hi_v)
+            y = np.ascontiguousarray(np.clip(lat, lo_v, hi_v))
+            name = "TKF" if g == "tkfm" else "TKF win"
+            for label, fn in (("SoA", soa_tobit_loop), ("loop", tobit_loop)):
+                for what, cov in (("means only", e_c), ("mean+cov", covs)):
+                    out[f"{label} {name} {tag}, {what}"] = (
+                        lambda fn=fn, y=y, lo=lo, hi=hi, cov=cov, A=A, Q=Q, H=H, sig=sig, bu=bu, du=du, x0=x0, P0=P0,
+                        means=means, e_m=e_m, e_c=e_c, e_y=e_y, xl=xl, Pl=Pl: fn(
+                            y, A, Q, H, sig, lo, hi, bu, du, 0, False, x0, P0, means, cov, e_m, e_c, e_y, e_y, xl, Pl
+                        )
+                    )  # fmt: skip
+        if "kfm" in which:
+            yk = np.ascontiguousarray(tk.simulate(sys_, steps, runs, seed=3).y, dtype=float)
+            R = Rm[None].copy()
+            for label, fn in (("SoA", soa_kalman_loop), ("loop", kalman_loop)):
+                for what, cov in (("means only", e_c), ("mean+cov", covs)):
+                    out[f"{label} KF {tag}, {what}"] = (
+                        lambda fn=fn, yk=yk, cov=cov, A=A, Q=Q, H=H, R=R, x0=x0, P0=P0, means=means, e_m=e_m,
+                        e_c=e_c, xl=xl, Pl=Pl: fn(yk, A, Q, H, R, False, x0, P0, means, cov, e_m, e_c, xl, Pl)
+                    )  # fmt: skip
+    return out
+
+
+def case(runs: int, steps: int, repeat: int, which: set[str], mn: list[tuple[int, int]]) -> None:
     from _fused_tkf import fused_tkf
     from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
     from tobitkf.filters._compiled_loop import compiled_loop
@@ -125,6 +200,7 @@ def case(runs: int, steps: int, repeat: int, which: set[str]) -> None:
         },
     }
     contestants = {k: v for g, c in groups.items() if g in which for k, v in c.items()}
+    contestants.update(_groups_mn(runs, steps, mn, which))
     contestants["hand-fused TKF, mean+cov"] = lambda: fused_tkf(
         y2, A, Q, H[0, 0], 0.1**0.5, 0.0, x0[0], P0[0], means, covs
     )
@@ -159,16 +235,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--smoke", action="store_true", help="tiny sizes for CI")
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
-    ap.add_argument("--which", default="tkf,kf,kf2,tkf2,adf", help="contestant groups, comma-separated (default all)")
+    ap.add_argument(
+        "--which",
+        default="tkf,kf,kf2,tkf2,adf,tkfm",
+        help="contestant groups, comma-separated: tkf, kf, kf2, tkf2, adf, tkfm, tkfmw, kfm (default all but the last "
+        "two)",
+    )
     ap.add_argument("--sizes", default="100000x100,10000x1000", help="runs x steps, comma-separated")
+    ap.add_argument("--mn", default="2x2", help="channels x states of the groups tkfm, tkfmw, kfm (default 2x2)")
     args = ap.parse_args()
+    mn = [tuple(int(v) for v in c.split("x")) for c in args.mn.split(",")]
     if not numba_available():
         print("numba is not installed: nothing to measure")
         return
     sizes = [tuple(int(v) for v in c.split("x")) for c in args.sizes.split(",")]
     cases = sizes if not args.smoke else [(300, 20)]
     for runs, steps in cases:
-        case(runs, steps, args.repeat if not args.smoke else 2, set(args.which.split(",")))
+        case(runs, steps, args.repeat if not args.smoke else 2, set(args.which.split(",")), mn)  # type: ignore[arg-type]
 
 
 if __name__ == "__main__":

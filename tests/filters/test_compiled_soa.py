@@ -249,7 +249,9 @@ def test_covers():
     assert soa.soa_covers(False, 1, 2, 5, 5, np.full((1, 1), -inf), np.full((1, 1), inf))  # no limit
     assert not soa.soa_covers(False, 1, 2, 5, 5, np.ones((1, 1)), np.ones((1, 1)))  # lo == hi
     assert not soa.soa_covers(False, 1, 2, 5, 5, np.full((1, 1), np.nan), np.ones((1, 1)))  # a NaN limit
-    assert not soa.soa_covers(False, 2, 2, 5, 5, np.zeros((1, 2)), np.full((1, 2), inf))  # two channels
+    assert soa.soa_covers(False, 2, 2, 5, 5, np.zeros((1, 2)), np.full((1, 2), inf)) == (
+        (2, 2) in soa.TKF_JOINT_ROUTED
+    )  # two channels: where measured faster
     assert not soa.soa_covers(False, 1, 5, 5, 5, np.zeros((1, 1)), np.full((1, 1), inf))  # n too large
     assert soa.soa_covers(True, 1, 3, 5, 5)
     assert not soa.soa_covers(True, 1, 3, 1, 5)  # one shared covariance: the shared-gain path
@@ -259,9 +261,9 @@ def test_entries_choose_the_soa_path_only_where_covered():
     inf = np.inf
     assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.full((1, 1), inf)) is soa.soa_tobit_loop
     assert soa.tobit_entry(tobit_loop, 1, 2, np.zeros((1, 1)), np.ones((1, 1))) is soa.soa_tobit_loop
-    assert soa.tobit_entry(tobit_loop, 2, 2, np.zeros((1, 2)), np.ones((1, 2))) is tobit_loop
+    assert soa.tobit_entry(tobit_loop, 4, 2, np.zeros((1, 4)), np.ones((1, 4))) is tobit_loop  # four channels
     assert soa.kalman_entry(kalman_loop, 1, 2, 7, 7) is soa.soa_kalman_loop
-    assert soa.kalman_entry(kalman_loop, 2, 3, 7, 7) is kalman_loop  # two channels, n = 3: not measured
+    assert soa.kalman_entry(kalman_loop, 2, 4, 7, 7) is kalman_loop  # two channels, n = 4: measured slower
 
 
 # ---- the censored assumed-density filter: the SoA step against the compiled loop ------------------------------------
@@ -501,8 +503,8 @@ def _step_asm(kind, n, m=1):
     step = njit(error_model="numpy", nogil=True)(soa._step.py_func)
     W = np.zeros(soa._offsets(n, m)[-1] * B)
     cst = np.zeros(2 * n * n + m * n + m * m)
-    args = (soa.SIZES[n], soa.CHANS[m], soa.KINDS[kind], W, cst, B, 0.4, 0.0, np.inf, 0.0, 1.0, 0, False, False,
-            soa.GL_X, soa.GL_W, np.empty((2, soa.GL_X.shape[0])))  # fmt: skip
+    args = (soa.SIZES[n], soa.CHANS[m], soa.KINDS[kind], W, cst, B, 0.4, 0.0, np.inf, 0.0, 1.0, np.zeros(m),
+            np.full(m, np.inf), 0, False, False, soa.GL_X, soa.GL_W, np.empty((2, soa.GL_X.shape[0])))  # fmt: skip
     step.compile(tuple(typeof(a) for a in args))
     return step.inspect_asm(step.signatures[0])
 
@@ -589,11 +591,15 @@ def test_kf_several_channels_equals_the_compiled_loop(n, m, joseph):
 
 
 def test_kf_several_channels_routing():
-    """The KF's entry takes the joint runs-vectorised update only for the measured (m, n) of ``KF_JOINT_ROUTED``
-    (m = 2, n = 2) with a covariance per run; the public filter then runs it, with the numpy path's numbers."""
+    """The KF's entry takes the joint runs-vectorised update only for the (m, n) of ``KF_JOINT_ROUTED`` (measured
+    faster) with a covariance per run; the public filter then runs it, with the numpy path's numbers."""
     assert soa.kalman_entry(kalman_loop, 2, 2, 7, 7) is soa.soa_kalman_loop
     assert soa.kalman_entry(kalman_loop, 2, 2, 1, 7) is kalman_loop  # one shared covariance: the shared-gain path
-    assert soa.kalman_entry(kalman_loop, 3, 2, 7, 7) is kalman_loop
+    for m in (2, 3):
+        for n in range(1, soa.SOA_MAX_N + 1):
+            want = soa.soa_kalman_loop if (m, n) in soa.KF_JOINT_ROUTED else kalman_loop
+            assert soa.kalman_entry(kalman_loop, m, n, 7, 7) is want
+    assert soa.kalman_entry(kalman_loop, 3, 3, 7, 7) is kalman_loop  # measured slower
     assert soa.kalman_entry(kalman_loop, 4, 2, 7, 7) is kalman_loop
     w = 0.05
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -615,3 +621,144 @@ def test_kf_two_channels_compiles_to_packed_vector_instructions():
     asm = _step_asm(soa.KALMAN, 1, 2)
     found = len(_PACKED_MUL.findall(asm))
     assert found >= _MIN_PACKED, f"KF, two channels: {found} packed multiplications in the step"
+
+
+# ---- the Tobit Kalman filter with several channels: the joint update vectorised over the runs -----------------------
+
+#: the limits a channel may have at a step: lower, upper, two-sided, none, a narrow window (the window statistics'
+#: quadrature for most runs) and a wide one
+_TKF_LIMIT_KINDS = [(0.0, np.inf), (-np.inf, 0.4), (-0.3, 0.5), (-np.inf, np.inf), (0.1, 0.15), (-2.0, 3.0)]
+
+
+def _tkf_multi_case(n, m, N, T, seed, per_step):
+    """A random system read through ``m`` random rows with noise sds spread from narrower than the windows to
+    wider, inputs (``B^u u_k``, ``D u_k``), a covariance per run, priors spread so that runs take every route of the
+    statistics; limits of every kind (``per_step``: each channel cycling through :data:`_TKF_LIMIT_KINDS`, shifted
+    by the channel; else channel 0 lower, 1 two-sided, 2 upper, fixed); readings clipped to them, about 10 %
+    missing on each channel independently and run 3 losing every channel at step 4."""
+    rng = np.random.default_rng(seed)
+    A, Q, _ = _random_system(n, rng)
+    H = rng.normal(size=(1, m, n))
+    sigma = np.array([[0.05, 0.4, 3.0][l % 3] for l in range(m)])[None]
+    x0 = rng.normal(size=(N, n)) * rng.choice([1.0, 8.0, 30.0], size=(N, 1))
+    G = rng.normal(size=(N, n, n))
+    P0 = np.ascontiguousarray(0.1 * G @ G.transpose(0, 2, 1) + 0.05 * np.eye(n))
+    if per_step:
+        k = len(_TKF_LIMIT_KINDS)
+        lo = np.array([[_TKF_LIMIT_KINDS[(t + 2 * l) % k][0] for l in range(m)] for t in range(T)])
+        hi = np.array([[_TKF_LIMIT_KINDS[(t + 2 * l) % k][1] for l in range(m)] for t in range(T)])
+    else:
+        fixed = [(0.0, np.inf), (-0.3, 0.5), (-np.inf, 0.4)]
+        lo, hi = np.array([[fixed[l][0] for l in range(m)]]), np.array([[fixed[l][1] for l in range(m)]])
+    y = np.clip(rng.normal(0.2, 1.0, size=(N, T, m)), lo[None], hi[None])
+    y[rng.random(size=y.shape) < 0.1] = np.nan
+    y[3, 4] = np.nan  # every channel lost
+    bu, du = rng.normal(0, 0.1, size=(N, T, n)), rng.normal(0, 0.1, size=(N, T, m))
+    return A, Q, H, sigma, lo, hi, x0, P0, y, bu, du
+
+
+def _tkf_multi_outputs(N, T, n, m, cov_shape):
+    out = _outputs(N, T, n, cov_shape)
+    out[4], out[5] = np.full((N, T, m), np.nan), np.full((N, T, m), np.nan)
+    return out
+
+
+def _check_tkf_multi(n, m, seed, joseph, code, per_step, cov_shape="full"):
+    """The SoA step against the compiled loop on :func:`_tkf_multi_case`: every output to 1e-12, a finite
+    result, and the step where run 3 lost every channel leaving its prediction unchanged."""
+    N, T = 131, 24
+    A, Q, H, sigma, lo, hi, x0, P0, y, bu, du = _tkf_multi_case(n, m, N, T, seed, per_step)
+    a, b = _tkf_multi_outputs(N, T, n, m, cov_shape), _tkf_multi_outputs(N, T, n, m, cov_shape)
+    soa.soa_tobit_loop(y, A, Q, H, sigma, lo, hi, bu, du, code, joseph, x0, P0, *a)
+    tobit_loop(y, A, Q, H, sigma, lo, hi, bu, du, code, joseph, x0, P0, *b)
+    for u, v in zip(a, b):
+        _assert_close(u, v)
+    assert np.isfinite(a[0]).all() and (a[4] < 0.5).any() and np.isnan(y).any()
+    np.testing.assert_array_equal(a[0][3, 4], a[2][3, 4])
+    if cov_shape == "full":
+        np.testing.assert_array_equal(a[1][3, 4], a[3][3, 4])
+
+
+#: (n, m) of the TKF's joint update in the default run (one compiled version each, n = 1 and 2); the larger state
+#: sizes with the heavy tests
+_TKF_MULTI_DEFAULT = [(1, 2), (2, 2), (1, 3), (2, 3)]
+_TKF_MULTI_HEAVY = [(3, 2), (4, 2), (3, 3), (4, 3)]
+
+
+@pytest.mark.parametrize(
+    "n, m", _TKF_MULTI_DEFAULT + [pytest.param(*c, marks=pytest.mark.heavy) for c in _TKF_MULTI_HEAVY]
+)
+def test_tkf_several_channels_equals_the_compiled_loop(n, m):
+    """The TKF's joint update of m = 2 and 3 channels in the runs-vectorised step against the compiled loop's: every
+    noise term in both covariance forms on fixed limits of different kinds per channel (lower, two-sided, upper),
+    and limits changing kind with the step and the channel (lower, upper, two-sided, none, narrow and wide
+    windows) with the three covariance outputs; missing readings, a run losing every channel, inputs, 131 runs."""
+    for joseph in (False, True):
+        for code in (0, 1, 2):
+            _check_tkf_multi(n, m, 500 + 10 * n + m + code, joseph, code, per_step=False)
+    for cov_shape in ("full", "var", "none"):
+        _check_tkf_multi(n, m, 600 + 10 * n + m, True, 2, per_step=True, cov_shape=cov_shape)
+        _check_tkf_multi(n, m, 700 + 10 * n + m, False, 0, per_step=True, cov_shape=cov_shape)
+
+
+@pytest.mark.parametrize("dist", [-40.0, 40.0])
+def test_tkf_several_channels_prior_40_sigma_from_the_limits(dist):
+    """Two channels, the latent predictions 40 standard deviations inside or outside their limits (a lower limit on
+    one, a window of one standard deviation on the other): the tail routes, P(uncensored) near 0 or 1, finite."""
+    N, T, A, Q, _, _, x0, P0, bu, _, sd = _tail_case()
+    H = np.array([[[1.0, 0.0], [1.0, 0.0]]])
+    sigma = np.array([[0.2, 0.2]])
+    lo = np.array([[-dist * sd, -dist * sd]])
+    hi = np.array([[np.inf, -dist * sd + sd]])
+    y = np.broadcast_to(lo[None], (N, T, 2)).copy()
+    du = np.empty((N, 0, 2))
+    a, b = _tkf_multi_outputs(N, T, 2, 2, "full"), _tkf_multi_outputs(N, T, 2, 2, "full")
+    soa.soa_tobit_loop(y, A, Q, H, sigma, lo, hi, bu, du, 0, False, x0, P0, *a)
+    tobit_loop(y, A, Q, H, sigma, lo, hi, bu, du, 0, False, x0, P0, *b)
+    for u, v in zip(a, b):
+        _assert_close(u, v)
+    g = a[4][..., 0]
+    assert np.isfinite(a[0]).all() and np.isfinite(a[1]).all()
+    assert np.all(g < 1e-300) if dist < 0 else np.all(g > 1 - 1e-12)
+
+
+def test_tkf_several_channels_routing(monkeypatch):
+    """The TKF's entry takes the joint runs-vectorised update only for the measured (m, n) of
+    ``TKF_JOINT_ROUTED`` (measured faster), with limits without NaN and ``lo < hi``; the public filter with two
+    channels and two states runs it, with the numpy path's numbers."""
+    inf = np.inf
+    lo, hi = np.array([[0.0, -inf]]), np.array([[inf, 0.4]])
+    for m in (2, 3):
+        for n in range(1, soa.SOA_MAX_N + 1):
+            lo_m, hi_m = np.zeros((1, m)), np.full((1, m), inf)
+            want = soa.soa_tobit_loop if (m, n) in soa.TKF_JOINT_ROUTED else tobit_loop
+            assert soa.tobit_entry(tobit_loop, m, n, lo_m, hi_m) is want
+    assert soa.tobit_entry(tobit_loop, 4, 2, np.zeros((1, 4)), np.ones((1, 4))) is tobit_loop  # m > SOA_MAX_M
+    for m, n in soa.TKF_JOINT_ROUTED:
+        assert soa.tobit_entry(tobit_loop, m, n, np.ones((1, m)), np.ones((1, m))) is tobit_loop  # lo == hi
+    assert soa.tobit_entry(tobit_loop, 2, 4, np.zeros((1, 2)), np.ones((1, 2))) is tobit_loop  # measured slower
+    spy = _spy(monkeypatch, "soa_tobit_loop")
+    w = 0.05
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0], [0.5, 1.0]], Q=0.01 * np.eye(2), R=[[0.1, 0.0], [0.0, 0.2]],
+                           x0=[0.3, 0.0], P0=0.05 * np.eye(2))  # fmt: skip
+    cens = tk.Censoring(lower=lo[0], upper=hi[0])
+    rng = np.random.default_rng(12)
+    y = cens.censor(rng.normal(0.2, 0.6, size=(131, 30, 2)))
+    y[rng.random(size=y.shape) < 0.1] = np.nan
+    ref = tk.TobitKalmanFilter(sys_, cens, backend="numpy").filter(y, outputs=("mean", "cov", "extras"))
+    got = tk.TobitKalmanFilter(sys_, cens, backend="numba").filter(y, outputs=("mean", "cov", "extras"))
+    assert spy  # (m, n) = (2, 2): routed
+    for f in ("mean", "cov"):
+        _assert_close(getattr(got, f), getattr(ref, f), rtol=1e-10)
+    for k in ("p_uncensored", "expected_y"):
+        _assert_close(got.extras[k], ref.extras[k], rtol=1e-10)
+
+
+@pytest.mark.heavy
+def test_tkf_two_channels_compiles_to_packed_vector_instructions():
+    """The TKF's joint update of two channels (n = 1) is vectorised over the runs: its compiled step holds at least
+    the one-channel minimum of packed multiplications (heavy: a version the default run does not compile)."""
+    asm = _step_asm(soa.TOBIT_ANY, 1, 2)
+    found = len(_PACKED_MUL.findall(asm))
+    assert found >= _MIN_PACKED, f"TKF, two channels: {found} packed multiplications in the step"

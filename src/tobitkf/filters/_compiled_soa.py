@@ -55,6 +55,17 @@ the smallest normal number, leaves the run's prediction unchanged (the compiled 
   (:func:`_kalman_joint_gain`; a run with a pivot not positive again with partial pivoting,
   :func:`_kalman_fallback`), then :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` or Joseph's
   :math:`P = M - (MC^T - KR)K^T` (:func:`_kalman_joint_update`), in three loops over the block's runs.
+* Tobit Kalman filter with m = 2 or 3 channels (:data:`TOBIT_ANY` with ``chans`` of length m), the joint update
+  of the compiled loop (all channels' statistics at the prior, :func:`~tobitkf.filters._compiled_tobit.tobit_update_block`),
+  each operation in its order: the prediction, :math:`h_l = \bar Pc_l^T`, :math:`C\bar PC^T` and the latent
+  means :math:`\mu_l = c_l\bar x + (Du_k)_l` (:func:`_tkf_joint_moments`); each channel's statistics
+  :math:`(\gamma_l, E(y_l), R_{uu,l})` at its own limits of the step and its own :math:`\sigma_l`, by the routes
+  of the one channel above; :math:`R_{ee} = \Gamma C\bar PC^T\Gamma + \mathrm{diag}(R_{uu})`,
+  :math:`R_{xe} = \bar PC^T\Gamma`, :math:`e = y - E(y)` (a channel whose reading is NaN, or whose variance is
+  not above the smallest normal number, left out) and the KF's elimination (:func:`_tkf_joint_gain`,
+  :func:`_joint_solve`, the fallback :func:`_kalman_fallback`); then :math:`\hat x = \bar x + Ke`,
+  :math:`P = \bar P - KR_{xe}^T` or Joseph's :math:`P = M - (M C^T\Gamma - K\,\mathrm{diag}(R_{uu}))K^T`
+  (:func:`_kalman_joint_update`): five loops over the block's runs.
 * Censored assumed-density filter (:data:`CENSORED_ADF`, :mod:`tobitkf.filters.assumed_density`): the reading's
   class (missing, inside its limits, at the lower or the upper limit: given, or by the limit rule of
   :func:`~tobitkf.filters._compiled_moments.classify`) and the latent :math:`N(\mu, s + r)` give
@@ -71,9 +82,10 @@ one prior covariance shared by the runs, nothing missing, the compiled loop comp
 faster), both forms; for the censored assumed-density filter a time-invariant system (A, Q and C shared by the
 runs and the steps), the noise variance and the limits shared by the runs (either may change with the step;
 no limit, one or two finite ones), the input terms, the standard form, with or without the log-likelihood and
-P(uncensored) (:func:`censored_entry`; given interval readings run the loop); the KF's joint update of
-m = 2, 3 channels (n up to :data:`SOA_MAX_N`) is tested equal to the loop, and routed for the measured
-(m, n) of :data:`KF_JOINT_ROUTED`. Anything else runs
+P(uncensored) (:func:`censored_entry`; given interval readings run the loop); the joint updates of m = 2, 3
+channels (n up to :data:`SOA_MAX_N`), the KF's and the TKF's (each channel its own limits, which may change with
+the step, and its own :math:`\sigma_l`; every noise term, both forms, the input terms), are tested equal to the
+loop, and routed for the measured (m, n) of :data:`KF_JOINT_ROUTED` and :data:`TKF_JOINT_ROUTED`. Anything else runs
 :func:`~tobitkf.filters._compiled_loop.compiled_loop`.
 
 Measured (n = 2, m = 1, 2 x 10^4 runs x 100 steps, readings max(N(0.1, 0.5^2), 0), lower limit 0, outputs
@@ -111,6 +123,7 @@ __all__ = [
     "CHANS",
     "SOA_MAX_M",
     "KF_JOINT_ROUTED",
+    "TKF_JOINT_ROUTED",
     "KALMAN",
     "TOBIT_ANY",
     "CENSORED_ADF",
@@ -134,11 +147,25 @@ SOA_MAX_M = 3  # most channels of the KF's joint update (one channel for the oth
 #: the number of channels m as a type, likewise (a tuple of m zeros: one specialisation per m)
 CHANS = {m: (0,) * m for m in range(1, SOA_MAX_M + 1)}
 #: the (m, n) of the KF's joint update (m > 1) that :func:`kalman_entry` routes to :func:`soa_loop`: those measured
-#: faster than the compiled loop (n = 2, m = 2, 2 x 10^4 runs x 100 steps, thread CPU time per run-step, medians of
-#: 7 alternating calls in one process, load average 10.7 on 2 cores: 22.2 against 30.9 ns means only, 27.6 against
-#: 37.0 with covariances). Every m up to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop;
-#: the rest run the loop until measured (and each would add a compiled version to the first use)
-KF_JOINT_ROUTED = frozenset({(2, 2)})
+#: faster than the compiled loop. n = 2, m = 2 (C = I, R = diag(0.1, 0.2), 2 x 10^4 runs x 100 steps, thread CPU time
+#: per run-step, medians of 7 alternating calls in one process, load average 10.7 on 2 cores): 22.2 against 30.9 ns
+#: means only, 27.6 against 37.0 with covariances. The others (``bench_simd.py --which kfm``: channel l reads state
+#: l mod n, the same sizes, load average 7-10), means only / with covariances: (m, n) = (2, 1) 14.7 / 16.6 against
+#: 20.8 / 22.6, (3, 1) 21.5 / 23.2 against 29.9 / 31.5, (3, 2) 28.0 / 35.1 against 39.3 / 46.4, (2, 3) 31.3 / 44.6
+#: against 40.7 / 54.2; slower, not routed: (3, 3) 302 / 317 against 54.8 / 68.1, (2, 4) 227 / 252 against 62.8 /
+#: 93.6, (3, 4) 381 / 406 against 82.3 / 111 (the straight-line step of a run no longer vectorises well). Every m up
+#: to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
+KF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3)})
+#: the (m, n) of the TKF's joint update (m > 1) that :func:`tobit_entry` routes to :func:`soa_loop`: those measured
+#: faster than the compiled loop (``bench_simd.py --which tkfm,tkfmw``: every channel left-censored at 0, channel l
+#: reading state l mod n, 2 x 10^4 runs x 100 steps, thread CPU time per run-step, medians of 7 alternating calls in
+#: one process, load average 6-10 on 2 cores), means only / with covariances: (m, n) = (2, 1) 36.4 / 38.4 against
+#: the loop's 40.1 / 42.2 (every channel in the window [-0.5, 0.5]: 144 / 145 against 205 / 206), (3, 1) 53.5 / 56.4
+#: against 59.2 / 63.8 (window: 218 / 218 against 301 / 298), (2, 2) 44.0 / 55.1 against 55.7 / 66.0, (3, 2) 59.1 /
+#: 65.7 against 69.2 / 76.1, (2, 3) 48.9 / 61.8 against 60.2 / 73.9, (3, 3) 73.0 / 87.0 against 86.7 / 100.3; slower,
+#: not routed: (2, 4) 183 / 210 against 79.3 / 109, (3, 4) 445 / 470 against 105 / 131. Every m up to
+#: :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
+TKF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3), (3, 3)})
 #: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
 #: and P(uncensored), the TKF (any limits)
 KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
@@ -156,12 +183,13 @@ _INF = math.inf
 
 def soa_covers(kalman: bool, m: int, n: int, P0_rows: int, N: int, lo=None, hi=None) -> bool:
     """Whether :func:`soa_loop` covers a KF or TKF call: one channel (``m == 1``), ``1 <= n <=``
-    :data:`SOA_MAX_N`, or for the KF's joint update the (m, n) of :data:`KF_JOINT_ROUTED`; the KF with a covariance per run (``P0_rows == N``; one shared covariance runs the compiled
-    loop's shared-gain path), the TKF with limits ``lo``/``hi`` (TL, 1) without NaN and ``lo < hi`` in every row
-    (one finite limit, two or none)."""
+    :data:`SOA_MAX_N`, or for a joint update of several channels the (m, n) of :data:`KF_JOINT_ROUTED` (KF) and
+    :data:`TKF_JOINT_ROUTED` (TKF); the KF with a covariance per run (``P0_rows == N``; one shared covariance runs
+    the compiled loop's shared-gain path), the TKF with limits ``lo``/``hi`` (TL, m) without NaN and ``lo < hi``
+    in every entry (per channel one finite limit, two or none)."""
     if kalman and (m, n) in KF_JOINT_ROUTED:
         return P0_rows == N or N == 1
-    if m != 1 or not 1 <= n <= SOA_MAX_N:
+    if not 1 <= n <= SOA_MAX_N or (m != 1 and (kalman or (m, n) not in TKF_JOINT_ROUTED)):
         return False
     if kalman:
         return P0_rows == N or N == 1
@@ -239,8 +267,8 @@ def _offsets(n, m):
     oMU = oLL + 1  # the split step (TOBIT_ANY): the moments mu, s and the noise term between its loops
     oS = oMU + m
     oV = oS + m * m
-    oSL = oV + m  # 1: the run's window statistics take another route than the direct formulas
-    oRW = oSL + 1  # the joint gain (m > 1): D R_ee D (m x m), the right-hand sides D R_xe^T (m x n), D (m)
+    oSL = oV + m  # 1: the run's window statistics take another route than the direct formulas (a row per channel)
+    oRW = oSL + m  # the joint gain (m > 1): D R_ee D (m x m), the right-hand sides D R_xe^T (m x n), D (m)
     oRH = oRW + m * m
     oD = oRH + m * n
     oOK = oD + m  # 1.0: the channel takes part
@@ -433,6 +461,21 @@ def _kalman_joint_gain(W, cst, b, n, m):
         good = W[(oS + l * m + l) * BK + b] > _TINY and not math.isnan(e)
         W[(oOK + l) * BK + b] = 1.0 if good else 0.0
         W[(oMU + l) * BK + b] = e if good else 0.0
+    _joint_solve(W, b, n, m)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _joint_solve(W, b, n, m):
+    r"""The joint gain of run ``b`` from :math:`R_{ee}` (rows ``oS``), :math:`R_{xe}` (column :math:`l` in rows
+    ``oH + l n``) and the channels that take part (``oOK``), as the compiled loop's
+    :func:`~tobitkf.filters._compiled_block._gain_block` in its order: :math:`D = \mathrm{diag}(R_{ee})^{-1/2}`
+    over the channels that take part, the unit-diagonal :math:`(DR_{ee}D)Z = DR_{xe}^T` (the others' rows and
+    columns those of the identity, their right-hand sides 0) by Gaussian elimination without pivoting,
+    :math:`K = (DZ)^T` into ``oK``; a pivot not positive flags the run (``oBAD``) for :func:`_kalman_fallback`."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
+    BK = SOA_BLOCK
     for i in range(m):
         v = W[(oS + i * m + i) * BK + b]
         W[(oD + i) * BK + b] = 1.0 / math.sqrt(v) if (W[(oOK + i) * BK + b] != 0.0 and v > 0.0) else 1.0
@@ -498,12 +541,14 @@ def _kalman_fallback(W, nb, n, m):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _kalman_joint_update(W, cst, b, n, m, joseph):
-    r"""The Kalman filter's update of run ``b`` from its joint gain (:func:`_kalman_joint_gain`), as the
+def _kalman_joint_update(W, cst, b, n, m, joseph, tobit):
+    r"""The update of run ``b`` from its joint gain (:func:`_kalman_joint_gain`, :func:`_tkf_joint_gain`), as the
     compiled loop's (:func:`~tobitkf.filters._compiled_block._mean_update`,
-    :func:`~tobitkf.filters._compiled_block._cov_update` with :math:`\Gamma = I`) in its order:
-    :math:`\hat x = \bar x + Ke`, :math:`M = \bar P - KR_{xe}^T` (the channel sums four terms at a time), and in
-    the Joseph form :math:`P = M - (MC^T - KR)K^T`."""
+    :func:`~tobitkf.filters._compiled_block._cov_update`) in its order: :math:`\hat x = \bar x + Ke`,
+    :math:`M = \bar P - KR_{xe}^T` (the channel sums four terms at a time), and in the Joseph form
+    :math:`P = M - (MH^T - KN)K^T`: for the Kalman filter (``tobit`` False) :math:`H = C`, :math:`N = R`; for the
+    TKF :math:`H = \Gamma C`, :math:`\Gamma = \mathrm{diag}(\gamma)`, and :math:`N = \mathrm{diag}(R_{uu})`
+    (rows ``oG``, ``oV``)."""
     oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
         _offsets(n, m)
     )
@@ -537,8 +582,12 @@ def _kalman_joint_update(W, cst, b, n, m, joseph):
                 acc = 0.0
                 for k in range(n):
                     acc += W[(oP + i * n + k) * BK + b] * cst[oc + l * n + k]
-                for q in range(m):
-                    acc -= W[(oK + q * n + i) * BK + b] * cst[orr + q * m + l]
+                if tobit:  # (M c_l^T) gamma_l - K_l R_uu,l: the off-diagonal noise terms are 0 (subtracted as
+                    # exact zeros by the compiled loop: the same number)
+                    acc = acc * W[(oG + l) * BK + b] - W[(oK + l * n + i) * BK + b] * W[(oV + l) * BK + b]
+                else:
+                    for q in range(m):
+                        acc -= W[(oK + q * n + i) * BK + b] * cst[orr + q * m + l]
                 W[(oRH + i * m + l) * BK + b] = acc
         for i in range(n):
             for j in range(i, n):
@@ -549,8 +598,68 @@ def _kalman_joint_update(W, cst, b, n, m, joseph):
                 W[(oP + j * n + i) * BK + b] = acc
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _tkf_joint_moments(W, cst, b, n, m):
+    r"""The TKF's prediction of run ``b`` with ``m`` channels and the moments its statistics need, as the
+    compiled loop's (:func:`~tobitkf.filters._compiled_tobit.tobit_update_block`,
+    :func:`~tobitkf.filters._compiled_block._innovation_moments`) in its order: :math:`h_l = \bar Pc_l^T`
+    (rows ``oH + l n``), the unscaled :math:`C\bar PC^T` (rows ``oS``) and the latent readings' means
+    :math:`\mu_l = c_l\bar x + (Du_k)_l` (rows ``oMU``)."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
+    BK = SOA_BLOCK
+    oc = 2 * n * n
+    _predict_state(W, cst, b, n, m)
+    for l in range(m):
+        acc = 0.0
+        for j in range(n):
+            acc += W[(oXP + j) * BK + b] * cst[oc + l * n + j]
+        W[(oMU + l) * BK + b] = acc + W[(oDU + l) * BK + b]  # 0 without inputs (W starts zeroed)
+        for j in range(n):
+            acc = 0.0
+            for k in range(n):
+                acc += cst[oc + l * n + k] * W[(oPp + k * n + j) * BK + b]
+            W[(oH + l * n + j) * BK + b] = acc
+    for l in range(m):
+        for q in range(m):
+            acc = 0.0
+            for k in range(n):
+                acc += W[(oH + l * n + k) * BK + b] * cst[oc + q * n + k]
+            W[(oS + l * m + q) * BK + b] = acc
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tkf_joint_gain(W, cst, b, n, m):
+    r"""The TKF's joint gain of run ``b`` from its moments (:func:`_tkf_joint_moments`) and its channels'
+    statistics (rows ``oG`` :math:`\gamma_l`, ``oV`` :math:`R_{uu,l}`, ``oEY`` :math:`E(y_l)`), as the compiled
+    loop's (:func:`~tobitkf.filters._compiled_block._innovation_moments`, ``_take_part``, ``_gain_block``) in its
+    order (Miller (3.39)–(3.40)): :math:`R_{ee,lq} = (C\bar PC^T)_{lq}\gamma_l\gamma_q + \delta_{lq}R_{uu,l}`
+    (rows ``oS``), :math:`R_{xe} = \bar PC^T\Gamma` (rows ``oH``), :math:`e_l = y_l - E(y_l)` (rows ``oMU``; 0
+    for a channel that does not take part: a NaN reading, or a variance not above the smallest normal number),
+    then :func:`_joint_solve`."""
+    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
+        _offsets(n, m)
+    )
+    BK = SOA_BLOCK
+    for l in range(m):
+        gl = W[(oG + l) * BK + b]
+        for q in range(m):
+            W[(oS + l * m + q) * BK + b] = W[(oS + l * m + q) * BK + b] * gl * W[(oG + q) * BK + b]
+        W[(oS + l * m + l) * BK + b] += W[(oV + l) * BK + b]
+        for j in range(n):
+            W[(oH + l * n + j) * BK + b] = W[(oH + l * n + j) * BK + b] * gl
+        e = W[(oY + l) * BK + b] - W[(oEY + l) * BK + b]
+        good = W[(oS + l * m + l) * BK + b] > _TINY and not math.isnan(e)
+        W[(oOK + l) * BK + b] = 1.0 if good else 0.0
+        W[(oMU + l) * BK + b] = e if good else 0.0
+    _joint_solve(W, b, n, m)
+
+
 @njit(cache=True, error_model="numpy", nogil=True)
-def _step(size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf):
+def _step(
+    size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, lo_r, hi_r, noise_code, joseph, has_cls, glx, glw, buf
+):
     """The update ``kind`` of one step for the ``nb`` runs of a block, from and into the scratch ``W`` of
     :func:`soa_loop` (its docstring). A function of its own, not inlined into the time loop: ``W`` and ``cst``
     are arguments here (borrowed references), so that the helpers inlined into the loop over the runs take them
@@ -567,7 +676,56 @@ def _step(size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, jo
         _offsets(n, 1)
     )
     lo_fin, hi_fin = lo_t != -_INF, hi_t != _INF
-    if len(kind) == TOBIT_ANY:  # (len(kind): a constant, the other updates' branches pruned)
+    if len(kind) == TOBIT_ANY and len(chans) > 1:  # several channels: moments; statistics; gain; fallback; update
+        m = len(chans)
+        om = _offsets(n, m)
+        jG, jEY, jMU, jV, jSL = om[10], om[11], om[14], om[16], om[17]
+        osd = 2 * n * n + m * n  # the channels' standard deviations among the constants
+        for b in range(nb):
+            _tkf_joint_moments(W, cst, b, n, m)
+        for l in range(m):  # each channel's statistics at its limits of the step, the routes of the one channel's
+            lo_l, hi_l, sd = lo_r[l], hi_r[l], cst[osd + l]
+            rG, rEY, rMU, rV, rSL = (jG + l) * BK, (jEY + l) * BK, (jMU + l) * BK, (jV + l) * BK, (jSL + l) * BK
+            if lo_l != -_INF and hi_l != _INF:
+                for b in range(nb):
+                    mu = W[rMU + b]
+                    other, _a2, _b2, _fl, _os, p_lo, p_hi, gam, lam, zvar = window_direct(mu, sd, lo_l, hi_l)
+                    st = _assemble(mu, sd, lo_l, hi_l, p_lo, p_hi, gam, lam, zvar)
+                    W[rG + b] = st[2]
+                    W[rV + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
+                    W[rEY + b] = st[6]
+                    W[rSL + b] = 1.0 if other else 0.0
+                for b in range(nb):
+                    if W[rSL + b] != 0.0:
+                        mu = W[rMU + b]
+                        st = censored_stats(mu, sd, lo_l, hi_l, glx, glw, buf)
+                        W[rG + b] = st[2]
+                        W[rV + b] = noise_term(noise_code, mu, st[2], st[4], st[5], st[7])
+                        W[rEY + b] = st[6]
+            elif lo_l != -_INF or hi_l != _INF:
+                up_l = lo_l == -_INF
+                sg_l = -1.0 if up_l else 1.0
+                lim_l = sg_l * (hi_l if up_l else lo_l)
+                for b in range(nb):
+                    g, v, cm = _one_sided_tkf(W[rMU + b], sd, lim_l, sg_l, noise_code)
+                    W[rG + b] = g
+                    W[rV + b] = v
+                    W[rEY + b] = cm
+            else:
+                for b in range(nb):
+                    W[rG + b] = 1.0
+                    W[rV + b] = sd * sd
+                    W[rEY + b] = W[rMU + b]
+        for b in range(nb):
+            _tkf_joint_gain(W, cst, b, n, m)
+        _kalman_fallback(W, nb, n, m)
+        if joseph:
+            for b in range(nb):
+                _kalman_joint_update(W, cst, b, n, m, True, True)
+        else:
+            for b in range(nb):
+                _kalman_joint_update(W, cst, b, n, m, False, True)
+    elif len(kind) == TOBIT_ANY:  # (len(kind): a constant, the other updates' branches pruned)
         for b in range(nb):  # prediction and moments
             mu, sv = _predict_moments(W, cst, b, n)
             W[oMU * BK + b] = mu
@@ -614,10 +772,10 @@ def _step(size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, jo
         _kalman_fallback(W, nb, n, m)
         if joseph:
             for b in range(nb):
-                _kalman_joint_update(W, cst, b, n, m, True)
+                _kalman_joint_update(W, cst, b, n, m, True, False)
         else:
             for b in range(nb):
-                _kalman_joint_update(W, cst, b, n, m, False)
+                _kalman_joint_update(W, cst, b, n, m, False, False)
     elif len(kind) == KALMAN:
         if joseph:
             for b in range(nb):
@@ -676,18 +834,19 @@ def soa_loop(
 ):
     r"""The KF, the TKF or the censored assumed-density filter (``kind`` :data:`KALMAN`,
     :data:`TOBIT_ANY`, :data:`CENSORED_ADF`, :data:`CENSORED_ADF_STATS` as :data:`KINDS`) over N runs x T steps,
-    one channel, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
+    m channels, state size ``n = len(size)`` (a tuple of n zeros, :data:`SIZES`: a compile-time constant);
     fills the outputs (module docstring).
 
-    ``chans`` a tuple of m zeros (:data:`CHANS`; m > 1 the KF only); ``y`` (N, T, m) readings (NaN: missing);
-    ``A``, ``Qd`` (n, n); ``C`` (m, n); ``rv`` (TR,) per step (row ``min(t, TR - 1)``) the KF's noise variance R
-    (m > 1: R (m, m) flattened, constant), the TKF's standard deviation σ or the assumed-density
-    filter's noise variance r; ``lo``, ``hi`` (TL, 1) the limits, row ``min(t, TL - 1)``; ``bu`` (N, T, n), ``du`` (N, T, 1) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
+    ``chans`` a tuple of m zeros (:data:`CHANS`; m > 1 the KF and the TKF); ``y`` (N, T, m) readings (NaN:
+    missing); ``A``, ``Qd`` (n, n); ``C`` (m, n); ``rv`` (TR,) per step (row ``min(t, TR - 1)``) the KF's noise
+    variance R, the TKF's standard deviation σ or the assumed-density filter's noise variance r (m > 1,
+    constant: the KF's R (m, m) flattened, the TKF's σ (m,)); ``lo``, ``hi`` (TL, m) the limits, row
+    ``min(t, TL - 1)``; ``bu`` (N, T, n), ``du`` (N, T, m) the input terms (T axis 0: none); ``cls`` (N, T, 1) int8 the
     assumed-density filter's reading classes (T axis 0: by the limit rule); ``noise_code`` of
     :data:`~tobitkf.filters._compiled_tobit.NOISE_CODES`; ``joseph`` the Joseph form (KF, TKF); ``x0`` (N, n),
     ``P0`` (N or 1, n, n). Outputs as :func:`~tobitkf.filters._compiled_loop.compiled_loop` (T axis 0: not
     written): ``means``, ``pmeans`` (N, T, n), ``covs`` (N, T, n, n) or (N, T, n, 1), ``pcovs`` (N, T, n, n),
-    ``pu`` (N, T, 1) P(uncensored), ``ey`` (N, T, 1) the TKF's E(y), ``ll`` (N, T) the assumed-density filter's
+    ``pu`` (N, T, m) P(uncensored), ``ey`` (N, T, m) the TKF's E(y), ``ll`` (N, T) the assumed-density filter's
     log-likelihood, ``x_last`` (N, n), ``P_last`` (N, n, n).
 
     Why one scratch array ``W`` with rows :data:`SOA_BLOCK` apart, indexed ``W[row * SOA_BLOCK + b]``, and the
@@ -719,8 +878,8 @@ def soa_loop(
     for l in range(m):
         for i in range(n):
             cst[2 * nn + l * n + i] = C[l, i]
-    if m > 1:
-        for i in range(m * m):
+    if m > 1:  # the KF's R (m x m), the TKF's standard deviations (m)
+        for i in range(min(m * m, rv.shape[0])):
             cst[2 * nn + m * n + i] = rv[i]
     for i in range(n):
         for j in range(n):
@@ -775,7 +934,10 @@ def soa_loop(
                 for l in range(m):
                     for b in range(nb):
                         W[(oCL + l) * BK + b] = cls[r0 + b, t, l]
-            _step(size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, noise_code, joseph, has_cls, glx, glw, buf)
+            _step(
+                size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, lo[tl], hi[tl], noise_code, joseph, has_cls,
+                glx, glw, buf,
+            )  # fmt: skip
             _stage(Wxp, WPp, tt, nb, s_pmean, s_pcov)
             _stage(Wx, WP, tt, nb, s_mean, s_cov)
             if w_pu:
@@ -847,19 +1009,20 @@ def soa_tobit_loop(
     y, A, Qd, H, sigma, lo, hi, bu, du, noise_code, joseph, x0, P0, means, covs, pmeans, pcovs, pu, ey, x_last, P_last
 ) -> None:
     """:func:`soa_loop` for the Tobit Kalman filter with the arguments of
-    :func:`~tobitkf.filters._compiled_entries.tobit_loop` (``H`` (1, 1, n), ``sigma`` (1, 1), ``lo``/``hi``
-    (TL, 1)); the caller checked :func:`soa_covers`. Every kind of limits takes the split step
-    (:data:`TOBIT_ANY`, three vectorised loops per step: the module docstring)."""
+    :func:`~tobitkf.filters._compiled_entries.tobit_loop` (``H`` (1, m, n), ``sigma`` (1, m), ``lo``/``hi``
+    (TL, m); m from 1 to :data:`SOA_MAX_M`); the caller checked :func:`soa_covers`. Every kind of limits takes the
+    split step (:data:`TOBIT_ANY`, three vectorised loops per step, with m > 1 the joint update's gain and
+    update after them: the module docstring)."""
     N, _, m = y.shape
     soa_loop(
         SIZES[A.shape[0]],
-        CHANS[1],
+        CHANS[m],
         KINDS[TOBIT_ANY],
         y,
         A,
         Qd,
         H[0],
-        sigma.reshape(1),
+        np.ascontiguousarray(sigma.reshape(m)),
         lo,
         hi,
         bu,

@@ -509,7 +509,8 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
     A, Qd, H, sigma, joseph = _loop_arrays(est)
     entries = loop_entries()
     loop = entries.tobit_loop
-    # one channel of up to 4 states with one finite limit per row: the step vectorised over runs (equal to the loop)
+    # up to 4 states, one channel or the measured (m, n) of several, limits without NaN and lo < hi: the step
+    # vectorised over runs (equal to the loop)
     loop = entries.tobit_entry(loop, m, n, lo, hi)
 
     def work(a: int, b: int) -> None:  # runs a..b-1; row slices of C-ordered arrays stay contiguous
