@@ -130,7 +130,7 @@ def test_censored_block_is_the_adf_update_of_one_channel():
     cls = tk.filters._readings.classify_readings(y, lo, hi)
     hph = np.einsum("rij,i,j->r", P, c, c)
     alpha, beta, llc, puc, _ = cm.family_array(
-        cm.CENSORED,
+        cm.kind(cm.CENSORED),
         y,
         cls,
         mu,

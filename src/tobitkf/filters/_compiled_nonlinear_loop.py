@@ -41,7 +41,7 @@ from numba import njit
 
 from . import _compiled_nonlinear_sqrt as sq
 from ._compiled_inputs import _model_inputs, active_inputs
-from ._compiled_moments import CENSORED
+from ._compiled_moments import CENSORED, kind
 from ._compiled_nonlinear import (
     ADF,
     KALMAN,
@@ -93,7 +93,8 @@ def nonlinear_loop(
     square-root form, with ``Rroots`` (TR, m, m) the roots of ``Rs``, ``Qs`` (TQ, n, q) the roots of Q and
     ``P0``, ``P_last`` factors :math:`S` (:math:`P = SS^T`). ``code`` ``KALMAN``, ``TOBIT`` or ``ADF``;
     ``family``, ``lo``/``hi`` (TL, m), ``par`` (TP, m, K) the channel of the ADF (a family of
-    :mod:`~tobitkf.filters._compiled_moments`) and the limits of the Tobit update, ``noise_code`` its noise
+    :mod:`~tobitkf.filters._compiled_moments` as a kind, :func:`~tobitkf.filters._compiled_moments.kind`: its
+    moments alone are compiled) and the limits of the Tobit update, ``noise_code`` its noise
     term; ``iterations`` the ADF's linearisations; ``joseph`` the Joseph form of the Kalman update. Writes
     ``means``/``pmeans`` (N, T or 0, n), ``covs`` (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit
     extras ``ey``/``slope`` (N, T or 0, m), the ADF's ``ll`` (N, T or 0), and the last state
@@ -210,7 +211,9 @@ def _c(a) -> np.ndarray:
 
 def channel_arrays(est, k0: int, T: int):
     """``(family, lo, hi, par, noise_code)`` of the estimator's channel for the steps k0+1..k0+T, or a string
-    saying why the compiled loop does not cover it (the numpy path runs)."""
+    saying why the compiled loop does not cover it (the numpy path runs). ``family`` a kind
+    (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's assumed-density update compiles that family's
+    moments alone)."""
     from ..channels.censoring import Censoring
     from ._compiled_moments import FAMILIES, QUANTIZER
     from ._compiled_tobit import NOISE_CODES
@@ -220,7 +223,7 @@ def channel_arrays(est, k0: int, T: int):
     none = np.zeros((1, m, 0))
     code = est._compiled_code
     if code == KALMAN:
-        return CENSORED, -inf, inf, none, 0
+        return kind(CENSORED), -inf, inf, none, 0
     channel = est.channel
     if getattr(est, "_sigma" if code == TOBIT else "_r", None) is None:
         return "a measurement covariance R given per step"
@@ -229,10 +232,10 @@ def channel_arrays(est, k0: int, T: int):
     if isinstance(channel, Censoring):
         lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
         noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
-        return CENSORED, _c(lo), _c(hi), none, noise
+        return kind(CENSORED), _c(lo), _c(hi), none, noise
     if code == ADF and FAMILIES.get(getattr(channel, "compiled_moments", None) or "") == QUANTIZER:
         par = _c(channel.compiled_parameters(k0 + 1, T, m))
-        return QUANTIZER, -inf, inf, par, 0
+        return kind(QUANTIZER), -inf, inf, par, 0
     return f"the channel {type(channel).__name__} (the compiled path covers censoring and, for the ADF, quantizers)"
 
 

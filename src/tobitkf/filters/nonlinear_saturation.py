@@ -91,11 +91,11 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         self._par = np.ascontiguousarray(np.concatenate([channel.level[:, None], logp], axis=1))
 
     def _compiled_channel(self, k0: int, T: int):
-        """``(family, lo, hi, par, noise_code)`` of the compiled loop (its ``channel_arrays``)."""
-        from ._compiled_moments import SATURATION
+        """``(family, lo, hi, par, noise_code)`` of the compiled loop (its ``channel_arrays``; ``family`` a kind)."""
+        from ._compiled_moments import SATURATION, kind
 
         inf = np.full((1, self.m), np.inf)
-        return SATURATION, -inf, inf, self._par[None].copy(), 0
+        return kind(SATURATION), -inf, inf, self._par[None].copy(), 0
 
     def _latent_moments(self, k, l, y, has, mu, s2, ll):
         r"""The three modes' merged moments of the latent reading :math:`y^* \sim N(\mu, s^2)`, :math:`s^2 =
