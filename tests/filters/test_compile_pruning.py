@@ -144,3 +144,18 @@ def test_nonlinear_filters_pass_their_family_as_a_kind():
         assert channel_arrays(est, 0, 3)[0] == cm.kind(code)
     for est in cases_kf:
         assert channel_arrays(est, 0, 3)[0] == cm.kind(cm.CENSORED)
+
+
+def test_each_nonlinear_update_compiles_alone():
+    """The nonlinear filters' loop (:func:`~tobitkf.filters._compiled_nonlinear_loop.nonlinear_loop`, compiled in
+    every process: it is specialised on the user's functions) takes its update as a kind too: the Kalman and
+    Tobit filters' versions hold the joint update and not the assumed-density one, the ADF's the reverse."""
+    from tobitkf.filters import _compiled_nonlinear as nl
+    from tobitkf.filters._compiled_nonlinear_loop import nonlinear_loop
+
+    at = nonlinear_loop.py_func.__code__.co_varnames.index("code")
+    for code in (nl.KALMAN, nl.TOBIT):
+        called = _called(code, nonlinear_loop, at)
+        assert "_update_joint" in called and not {"_adf_project", "_adf_channel_start"} & called
+    called = _called(nl.ADF, nonlinear_loop, at)
+    assert {"_adf_project", "_adf_channel_start"} <= called and "_update_joint" not in called
