@@ -140,8 +140,6 @@ def test_censored_block_is_the_adf_update_of_one_channel():
         np.full(N, hi),
         np.zeros(0),
         0,
-        GL_X,
-        GL_W,
     )
     Pc = P @ c
     np.testing.assert_allclose(x + alpha[:, None] * Pc, xn, rtol=0, atol=1e-12 * np.abs(xn).max())

@@ -57,7 +57,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._compiled_censored import _exp_neg, _log_pos, beyond, censored_stats, lower_stats_block
+from ._compiled_censored import GL_W, GL_X, _exp_neg, _log_pos, beyond, censored_stats, lower_stats_block
 
 __all__ = [
     "CENSORED",
@@ -402,15 +402,16 @@ def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, 
 
 
 @njit(cache=True, error_model="numpy")
-def family_array(family, y, cls, hx, hph, rb, lo, hi, par, J, glx, glw):
+def family_array(family, y, cls, hx, hph, rb, lo, hi, par, J):
     """:func:`family_block` over 1-d arrays (a testing aid, and the form the numpy side may call): returns
     ``(alpha, beta, ll, pu, comp)`` with ``comp`` (J, N). ``family`` a kind (:func:`kind`: this family's block
-    alone is compiled)."""
+    alone is compiled). The quadrature nodes are the module's (read-only constants in compiled code, as the
+    compiled loops pass them: the block functions are compiled once for both callers)."""
     n = y.shape[0]
     alpha, beta, ll, pu = np.empty(n), np.empty(n), np.zeros(n), np.empty(n)
     comp = np.zeros((J, n))
-    buf = np.empty((2, glx.shape[0]))
-    family_block(family, n, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    buf = np.empty((2, GL_X.shape[0]))
+    family_block(family, n, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, GL_X, GL_W, buf)
     return alpha, beta, ll, pu, comp
 
 

@@ -265,7 +265,8 @@ def joint(code, sigma, Y, J, xi, wm, wc, xps, Sps, y, r0, t, R, Rroot, lo, hi, n
     for b in range(nb):
         Eres = np.empty((max(L, 1), m))
         if sigma:
-            _linearise(Y[b * L : (b + 1) * L], xi, wm, wc, Sps[b], ym, Hl, Eres)
+            # the run's rows as a strided view (layout A), as adf_channel's column: _linearise compiled once
+            _linearise(Y[b * L : (b + 1) * L, :], xi, wm, wc, Sps[b], ym, Hl, Eres)
         else:
             ym[:] = Y[b]
             Hl[:] = J[b]

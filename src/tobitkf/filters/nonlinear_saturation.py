@@ -102,7 +102,6 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         s_c^2 + R_{ll}`, from :func:`~tobitkf.filters._compiled_moments.saturation_block`'s :math:`(\alpha,
         \beta)`: :math:`E = \mu + \alpha s^2`, :math:`V = s^2 - \beta s^4` (the projection's form)."""
         from ._compiled_moments import INTERIOR, SATURATION, family_array, kind
-        from ._compiled_tobit import GL_W, GL_X
 
         r = (
             self._r
@@ -117,7 +116,7 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
             alpha, beta, lp, _, _ = family_array(
                 kind(SATURATION), np.ascontiguousarray(y[ok]), np.full(q, INTERIOR, dtype=np.int8),
                 np.ascontiguousarray(mu[ok]), sv - r, np.full(q, float(r)), np.full(q, -np.inf), np.full(q, np.inf),
-                self._par[l].copy(), 3, GL_X, GL_W,
+                self._par[l].copy(), 3,
             )  # fmt: skip
             obs[ok] = mu[ok] + alpha * sv
             V[ok] = sv - beta * sv * sv
