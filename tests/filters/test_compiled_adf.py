@@ -130,7 +130,7 @@ def test_censored_block_is_the_adf_update_of_one_channel():
     cls = tk.filters._readings.classify_readings(y, lo, hi)
     hph = np.einsum("rij,i,j->r", P, c, c)
     alpha, beta, llc, puc, _ = cm.family_array(
-        cm.CENSORED,
+        cm.kind(cm.CENSORED),
         y,
         cls,
         mu,
@@ -140,8 +140,6 @@ def test_censored_block_is_the_adf_update_of_one_channel():
         np.full(N, hi),
         np.zeros(0),
         0,
-        GL_X,
-        GL_W,
     )
     Pc = P @ c
     np.testing.assert_allclose(x + alpha[:, None] * Pc, xn, rtol=0, atol=1e-12 * np.abs(xn).max())

@@ -275,7 +275,7 @@ def test_one_compiled_specialization_for_every_call():
     sys_, ch = oscillator(), channel()
     y = data(sys_, ch, (4,), 10)
     ProtocolTobitKalmanFilter(sys_, ch, backend="numba").filter(y)
-    before = len(_compiled_loop._kind_loop.signatures)
+    before = len(_compiled_loop.compiled_loop.signatures)
     assert before >= 1  # the protocol TKF runs the family's version of the loop
     y.flags.writeable = False
     g = y > 0.0
@@ -286,7 +286,7 @@ def test_one_compiled_specialization_for_every_call():
     est.filter(y, state=r.final)
     st = est.step(est.step(est.init(), y[0, 0], uncensored=g[0, 0]), y[0, 1])  # the online step's call too
     est.step(est.init((4,)), y[:, 0])
-    assert st.k == 2 and len(_compiled_loop._kind_loop.signatures) == before
+    assert st.k == 2 and len(_compiled_loop.compiled_loop.signatures) == before
 
 
 def test_divergence_reruns_on_numpy():

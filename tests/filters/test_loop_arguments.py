@@ -37,12 +37,13 @@ def test_compiled_packer_takes_every_loop_parameter_by_name():
 def test_filled_arguments_are_what_the_loop_reads_as_absent():
     """The made arrays: writable, C-contiguous, float64 (``cls`` int8), with a T axis of length 0 for the outputs
     (not written) and the family's own arrays untouched."""
+    from tobitkf.filters._compiled_moments import kind
     from tobitkf.filters._loop_specs import LoopArguments
 
     N, T, m, n = 3, 5, 2, 4
     y, A, x0 = np.zeros((N, T, m)), np.zeros((1, 1, n, n)), np.zeros((N, n))
     means = np.zeros((N, T, n))
-    args = LoopArguments(7, y, A=A, Qd=A, H=np.zeros((1, m, n)), x0=x0, P0=np.zeros((1, n, n)), means=means,
+    args = LoopArguments(kind(7), y, A=A, Qd=A, H=np.zeros((1, m, n)), x0=x0, P0=np.zeros((1, n, n)), means=means,
                          x_last=x0, P_last=np.zeros((N, n, n))).filled()  # fmt: skip
     assert args.means is means and args.y is y
     assert (args.J, args.npass, args.noise_code, args.joseph) == (0, 1, 0, False)

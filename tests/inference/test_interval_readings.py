@@ -53,8 +53,7 @@ def test_an_interval_reading_is_the_quadrature_posterior(backend, lo, hi):
 def test_an_interval_open_on_one_side_is_the_censored_reading_exactly():
     """The interval event with one infinite end is, to the last bit, the censored reading at the other end: in
     the compiled moments (the loop's block), in the numpy moments and in the log-likelihood."""
-    from tobitkf.filters._compiled_moments import CENSORED, family_array
-    from tobitkf.filters._compiled_tobit import GL_W, GL_X
+    from tobitkf.filters._compiled_moments import CENSORED, family_array, kind
     from tobitkf.filters._readings import LOWER, UPPER
     from tobitkf.filters.assumed_density import censored_reading_moments
 
@@ -69,8 +68,8 @@ def test_an_interval_open_on_one_side_is_the_censored_reading_exactly():
 
     def block(cls, lo, hi):
         return family_array(
-            CENSORED, f(a), f(np.full(n, cls, np.int8)), f(mu), f(s2 - 0.01), f(np.full(n, 0.01)), f(lo), f(hi),
-            np.zeros(0), 0, GL_X, GL_W,
+            kind(CENSORED), f(a), f(np.full(n, cls, np.int8)), f(mu), f(s2 - 0.01), f(np.full(n, 0.01)), f(lo), f(hi),
+            np.zeros(0), 0,
         )[:3]  # fmt: skip
 
     for got, want in zip(block(INTERVAL, a, inf), block(UPPER, -inf, a)):  # [a, inf) and "above a"

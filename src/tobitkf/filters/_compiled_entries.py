@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from ._compiled_loop import FADING_KIND, KALMAN_KIND, PROTOCOL_TKF_KIND, TOBIT_KIND, _kind_loop
+from ._compiled_loop import FADING_KIND, KALMAN_KIND, PROTOCOL_TKF_KIND, TOBIT_KIND, compiled_loop
 from ._compiled_soa import kalman_entry, tobit_entry  # noqa: F401 - the choice between the runs-vectorised step and the loop
 
 __all__ = ["loop_call", "kalman_loop", "tobit_loop", "kalman_step", "tobit_step", "protocol_tkf_step", "fading_step"]
@@ -85,7 +85,7 @@ def loop_call(
     ey = np.empty((N, 0, m)) if ey is None else ey
     ll = np.empty((N, 0)) if ll is None else ll
     comp = np.empty((N, 0, m, J)) if comp is None else comp
-    _kind_loop(  # the family's version of compiled_loop, called directly (no wrapper to optimise again)
+    compiled_loop(
         family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
         means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
     )  # fmt: skip

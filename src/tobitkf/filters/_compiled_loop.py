@@ -8,7 +8,7 @@ Tobit Kalman filters and every assumed-density family.
 update, the outputs staged for a chunk of steps and written run by run (:mod:`tobitkf.filters._compiled_block`),
 carved from the output pool (:func:`~tobitkf.filters.kalman.output_arrays`). Its scratch is sized to the family
 (an array the family's update does not use gets no room, :func:`_loop_scratch`). The update is chosen by a code, and
-each family compiles its own version of the loop (:func:`_kind_loop`) that holds its update alone:
+each family compiles its own version of the loop that holds its update alone:
 
 * :data:`KALMAN`: :math:`K = \bar PC^T(C\bar PC^T + R)^{-1}` over the channels that take part (a NaN reading
   does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
@@ -64,9 +64,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import literally, njit
-from numba.core import errors, types
-from numba.extending import overload
+from numba import njit
 
 from ._compiled_block import (
     _block_dims,
@@ -96,7 +94,6 @@ from ._compiled_moments import (
     classify,
     family_block,
     kind,
-    kind_code,
     protocol_tkf_block,
 )
 from ._compiled_tobit import GL_W, GL_X, tobit_update_block
@@ -127,9 +124,10 @@ PROTOCOL_TKF, FIXED_GAIN = 18, 19
 FADING = 20
 #: every update code of :func:`compiled_loop`
 CODES = (*FAMILIES.values(), KALMAN, TOBIT, PROTOCOL_TKF, FIXED_GAIN, FADING)
-#: the loop's update codes as types (:func:`~tobitkf.filters._compiled_moments.kind`: a tuple of ``code`` zeros),
-#: for calls from compiled code
+#: the loop's update codes as types (:func:`~tobitkf.filters._compiled_moments.kind`: a tuple of ``code`` Nones),
+#: what its callers pass as ``family``
 KALMAN_KIND, TOBIT_KIND, PROTOCOL_TKF_KIND, FADING_KIND = kind(KALMAN), kind(TOBIT), kind(PROTOCOL_TKF), kind(FADING)
+FIXED_GAIN_KIND = kind(FIXED_GAIN)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -169,15 +167,15 @@ def _kalman_moments(C, R, Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _channel_updates(kind, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, scratch, nb):
+def _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, scratch, nb):
     r"""The assumed-density update of a block, channel by channel (module docstring): for each channel its row
     ``H[t]``, the noise variance ``r`` and the limits ``lo``/``hi`` (runs or 1, steps, m) of each run, the prior
     moments :math:`h\bar x + d`, :math:`h\bar Ph^T`, the noise variance plus the fading
     variance :math:`\sum_q f_q\bar Pf_q^T + (f_q\bar x)^2`, the family's :math:`(\alpha, \beta)` from
     :func:`~tobitkf.filters._compiled_moments.family_block`, and the rank-one change along :math:`\bar Ph^T`
-    of ``xp``, ``Pp`` in place. ``kind`` the family (:func:`~tobitkf.filters._compiled_moments.kind`: each family
-    compiles its own version, holding its block function alone). ``npass = 2``: the readings inside their limits
-    first, then the others.
+    of ``xp``, ``Pp`` in place. ``family`` the family as a kind (:func:`~tobitkf.filters._compiled_moments.kind`:
+    each family compiles its own version, holding its block function alone). ``npass = 2``: the readings inside
+    their limits first, then the others.
     ``scratch`` = ``(Pc, scr, alpha, beta, llb, pt, compt, pub, compb, member, cv, buf)`` (:func:`_adf_scratch`):
     adds each channel's log-likelihood to ``llb`` (B,); ``pub`` (m, B), ``compb`` (m, J, B) its probability of
     an uncensored reading (of the pass that updated the run) and its components' posterior weights (of the last
@@ -241,7 +239,7 @@ def _channel_updates(kind, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0,
             c = cls[r0 + b, t, l] if has_cls else classify(yb, lo_l, hi_l)
             member[b] = npass == 1 or ((c == INTERIOR) == (ps == 0))
             cv[b] = c if member[b] else MISSING
-        family_block(kind, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pt, compt, glx, glw, buf)
+        family_block(family, nb, yv, cv, hx, hph, rb, lov, hiv, par[tp, l], alpha, beta, llb, pt, compt, glx, glw, buf)
         # the rank-one update along P h^T
         for i in range(nx):
             for b in range(nb):
@@ -503,14 +501,14 @@ def compiled_loop(
 ):
     r"""The one compiled time loop of the Gaussian-update families over N runs x T steps; fills the outputs.
 
-    ``family``: :data:`KALMAN`, :data:`TOBIT` (a joint update of all channels) or an assumed-density family
-    code of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module docstring), as a kind
-    (:func:`~tobitkf.filters._compiled_moments.kind`, the tuple of ``code`` zeros) or an integer. Each family
-    compiles its own version of the loop, which holds that family's update alone (the branches of the others are
-    pruned before typing: compiled with a run-time code, the loop held every family's update, and the Kalman
-    filter's version took minutes to compile). A kind is found by the ordinary dispatch on the argument types; an
-    integer from Python is made a literal (``numba.literally``: the dispatcher retypes each such call, tenths of a
-    second; the package's callers pass kinds) and from compiled code must be a literal.
+    ``family``: the update, as a kind (:func:`~tobitkf.filters._compiled_moments.kind`, the tuple of ``code``
+    Nones) of one of :data:`CODES`: :data:`KALMAN`, :data:`TOBIT` (a joint update of all channels), an
+    assumed-density family of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module
+    docstring), :data:`PROTOCOL_TKF`, :data:`FIXED_GAIN` or :data:`FADING`. Each family compiles its own version
+    of the loop, chosen by numba's ordinary dispatch on the argument types, which holds that family's update alone
+    (numba reads the tuple's length as a constant and prunes the branches of the others before typing: compiled
+    with a run-time code, the loop held every family's update, and the Kalman filter's version took minutes to
+    compile).
     ``y`` (N, T, m) readings (NaN: missing); ``cls`` (N, T, m) int8 their classes, or (N, 0, m): by the limit
     rule (assumed-density families only); ``A``, ``Qd`` (NA, TA, n, n) acting on the top block of the state
     (n_x = ``x0.shape[1]`` > n: the block shift); ``H`` (TH, m, n_x) the rows (KF, TKF: C, one row); ``F`` (TF,
@@ -531,84 +529,9 @@ def compiled_loop(
     ``x_last``, ``P_last`` the state after the last step. The Kalman filter with one prior covariance
     (``P0`` (1, n, n), N > 1, nothing missing) runs the covariance and the gains once (``covs``, ``pcovs``,
     ``P_last`` with one run) and the means of every run with those gains."""
-    _by_kind(
-        family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
-        pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
-    )  # fmt: skip
-
-
-def _by_kind(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
-    pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
-    """:func:`compiled_loop`'s choice of the version of :func:`_kind_loop` by the type of ``family`` (compiled code
-    only)."""
-    raise TypeError("compiled code only")
-
-
-# inline: the choice adds no function of its own around the loop (numba optimises the whole linked module of every
-# compiled function again, so that each wrapper around the loop costs about one more LLVM pass over all of it)
-@overload(_by_kind, inline="always", jit_options={"error_model": "numpy", "nogil": True})
-def _by_kind_typed(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
-    means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
-    code = kind_code(family)
-    if code is None:
-        if not isinstance(family, types.Integer):
-            raise errors.TypingError(f"compiled_loop: family: expected a kind tuple or an integer code, got {family}")
-
-        def literal(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
-            means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
-            literally(family)
-
-        return literal
-    if code not in CODES:
-        raise errors.TypingError(f"compiled_loop: family: no update has the code {code} (known: {CODES})")
-    k = kind(code)
-
-    def one(family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
-        pmeans, pcovs, pu, ey, ll, comp, x_last, P_last):  # fmt: skip
-        _kind_loop(
-            k, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0, means, covs,
-            pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
-        )  # fmt: skip
-
-    return one
-
-
-@njit(cache=True, error_model="numpy", nogil=True)
-def _kind_loop(
-    kind,
-    y,
-    cls,
-    A,
-    Qd,
-    H,
-    F,
-    r,
-    lo,
-    hi,
-    par,
-    J,
-    npass,
-    noise_code,
-    joseph,
-    bu,
-    du,
-    x0,
-    P0,
-    means,
-    covs,
-    pmeans,
-    pcovs,
-    pu,
-    ey,
-    ll,
-    comp,
-    x_last,
-    P_last,
-):
-    """:func:`compiled_loop` for the family ``kind`` (a tuple whose length is the update code, read as a constant
-    before typing, so that the branches of the other families are pruned: the arguments and the equations are
-    :func:`compiled_loop`'s)."""
-    code = len(kind)  # a constant: numba rewrites the length of a tuple argument before typing
+    code = len(family)  # a constant: numba rewrites the length of a tuple argument before typing
+    if code > FADING:  # (a kind below KALMAN and of no family: family_block raises)
+        raise ValueError("compiled_loop: family: expected the kind of an update code of CODES")
     N, T, m = y.shape
     if code == FIXED_GAIN:
         _fixed_gain_means(y, A[0, 0], H[0], par[0], noise_code, x0, means, pmeans, comp, x_last)
@@ -734,7 +657,7 @@ def _kind_loop(
                 _stage_rows(mu, s_ey, tt, nb)
                 _stage_rows(lam, s_comp, tt, nb)
             elif code < KALMAN:  # an assumed-density family
-                _channel_updates(kind, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, adfs, nb)
+                _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, adfs, nb)
                 _stage_rows(pub, s_pu, tt, nb)
                 _stage_rows(llf, s_ll, tt, nb)
                 _stage_rows(compf, s_comp, tt, nb)

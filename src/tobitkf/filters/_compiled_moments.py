@@ -56,10 +56,8 @@ import math
 
 import numpy as np
 from numba import njit
-from numba.core import errors, types
-from numba.extending import overload
 
-from ._compiled_censored import _exp_neg, _log_pos, beyond, censored_stats, lower_stats_block
+from ._compiled_censored import GL_W, GL_X, _exp_neg, _log_pos, beyond, censored_stats, lower_stats_block
 
 __all__ = [
     "CENSORED",
@@ -81,7 +79,6 @@ __all__ = [
     "family_block",
     "family_array",
     "kind",
-    "kind_code",
     "PROTOCOL_TKF_EXTRAS",
     "protocol_tkf_block",
 ]
@@ -374,16 +371,6 @@ def quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, c
         ll[b] += lp
 
 
-def kind_code(kind) -> int | None:
-    """The family code a numba type carries (at typing time): the length of a kind tuple (:func:`kind`), the value
-    of an integer literal; None for anything else (a run-time integer)."""
-    if isinstance(kind, types.BaseTuple):
-        return len(kind)
-    if isinstance(kind, types.IntegerLiteral):
-        return int(kind.literal_value)
-    return None
-
-
 def kind(code: int) -> tuple[None, ...]:
     """The family ``code`` as a type: the tuple of ``code`` Nones (its length read as a constant while compiled code
     given it is typed; Nones, not integers, so that the tuple has one numba type from Python and as a constant of
@@ -393,62 +380,38 @@ def kind(code: int) -> tuple[None, ...]:
     return (None,) * code
 
 
+@njit(cache=True, error_model="numpy")
 def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
     """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`,
-    :data:`QUANTIZER`), called from compiled code. ``family`` a kind (:func:`kind`) or an integer literal: the
-    family's block function is chosen while the caller is typed, and the other families' code is not compiled
-    into it; a run-time integer: a branch per channel and block, not per run, over every family. (A loop that
-    took the family's function as an argument would be recompiled in every process: numba does not cache a
-    function specialised on another.)"""
-    raise TypeError("family_block: compiled code only (numba); from Python, call family_array")
-
-
-_BLOCKS = {
-    CENSORED: censored_block,
-    SATURATION: saturation_block,
-    PROTOCOL: protocol_block,
-    QUANTIZER: quantizer_block,
-}
-
-
-@overload(family_block, jit_options={"error_model": "numpy"})
-def _family_block_typed(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-    code = kind_code(family)
-    if code is not None:  # the family known at typing time: its block alone
-        if code not in _BLOCKS:
-            raise errors.TypingError(f"family_block: no assumed-density family has the code {code}")
-        block = _BLOCKS[code]
-
-        def one(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-            block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
-
-        return one
-    if not isinstance(family, types.Integer):
-        return None
-
-    def any_family(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-        if family == CENSORED:
-            censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
-        elif family == SATURATION:
-            saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
-        elif family == QUANTIZER:
-            quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
-        else:
-            protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
-
-    return any_family
+    :data:`QUANTIZER`) as a kind (:func:`kind`): numba reads the tuple's length as a constant and prunes the other
+    families' branches before typing, so that each family's version holds its own block function alone (chosen by
+    the ordinary dispatch on the argument types). A kind of no family raises ValueError. (A loop that took the
+    family's function as an argument would be recompiled in every process: numba does not cache a function
+    specialised on another.)"""
+    code = len(family)  # a constant: numba rewrites the length of a tuple argument before typing
+    if code == CENSORED:
+        censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif code == SATURATION:
+        saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif code == PROTOCOL:
+        protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif code == QUANTIZER:
+        quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    else:
+        raise ValueError("family_block: family: expected the kind of an assumed-density family")
 
 
 @njit(cache=True, error_model="numpy")
-def family_array(family, y, cls, hx, hph, rb, lo, hi, par, J, glx, glw):
+def family_array(family, y, cls, hx, hph, rb, lo, hi, par, J):
     """:func:`family_block` over 1-d arrays (a testing aid, and the form the numpy side may call): returns
     ``(alpha, beta, ll, pu, comp)`` with ``comp`` (J, N). ``family`` a kind (:func:`kind`: this family's block
-    alone is compiled) or an integer code (every family's)."""
+    alone is compiled). The quadrature nodes are the module's (read-only constants in compiled code, as the
+    compiled loops pass them: the block functions are compiled once for both callers)."""
     n = y.shape[0]
     alpha, beta, ll, pu = np.empty(n), np.empty(n), np.zeros(n), np.empty(n)
     comp = np.zeros((J, n))
-    buf = np.empty((2, glx.shape[0]))
-    family_block(family, n, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    buf = np.empty((2, GL_X.shape[0]))
+    family_block(family, n, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, GL_X, GL_W, buf)
     return alpha, beta, ll, pu, comp
 
 

@@ -546,7 +546,9 @@ def _adf_project(
     ``it`` = 0), the channel's moments of the latent reading for the runs at once
     (:func:`~tobitkf.filters._compiled_moments.family_block`) and the projection of the prior ``xs``, ``Ps``
     into ``xms``, ``Pms``; the log-likelihood of the first linearisation into ``lsum``. A run whose latent
-    variance is not above the smallest normal number keeps the prior and leaves ``act``. ``ws``: the scratch of
+    variance is not above the smallest normal number keeps the prior and leaves ``act``. ``family`` the channel's
+    family as a kind (:func:`~tobitkf.filters._compiled_moments.kind`: each family's version holds its own block
+    function alone). ``ws``: the scratch of
     :func:`_adf_scratch`; ``fade`` as :func:`_update_joint` (the channel's faded moments,
     :func:`~tobitkf.filters._compiled_fading_moments.fading_channel`)."""
     L = wm.shape[0]
@@ -599,7 +601,7 @@ def _adf_project(
         yb = y[r0 + b, t, ch]
         idx[q2] = b
         yv[q2], hx[q2], hph[q2], rb[q2], lo_c[q2], hi_c[q2], llb[q2] = yb, mu, s2 - rl, rl, lo, hi, 0.0
-        cls[q2] = classify(yb, lo, hi) if family == CENSORED else 1
+        cls[q2] = classify(yb, lo, hi) if len(family) == CENSORED else 1
         q2 += 1
     if q2 == 0:
         return

@@ -41,7 +41,7 @@ from numba import njit
 
 from . import _compiled_nonlinear_sqrt as sq
 from ._compiled_inputs import _model_inputs, active_inputs
-from ._compiled_moments import CENSORED
+from ._compiled_moments import CENSORED, kind
 from ._compiled_nonlinear import (
     ADF,
     KALMAN,
@@ -91,9 +91,13 @@ def nonlinear_loop(
     :func:`~tobitkf.filters._compiled_nonlinear.point_columns`; ``Qs`` (TQ, n, n) :math:`Q_{k-1}` and ``Rs``
     (TR, m, m) :math:`R_k` per step (one row: constant); ``Rroots`` None: the covariance form; else the
     square-root form, with ``Rroots`` (TR, m, m) the roots of ``Rs``, ``Qs`` (TQ, n, q) the roots of Q and
-    ``P0``, ``P_last`` factors :math:`S` (:math:`P = SS^T`). ``code`` ``KALMAN``, ``TOBIT`` or ``ADF``;
+    ``P0``, ``P_last`` factors :math:`S` (:math:`P = SS^T`). ``code`` ``KALMAN``, ``TOBIT`` or ``ADF`` as a kind
+    (:func:`~tobitkf.filters._compiled_moments.kind`: its length is read as a constant and the other updates'
+    branches are pruned before typing, so that the Kalman filters' versions do not compile the assumed-density
+    update nor the ADF's the joint one);
     ``family``, ``lo``/``hi`` (TL, m), ``par`` (TP, m, K) the channel of the ADF (a family of
-    :mod:`~tobitkf.filters._compiled_moments`) and the limits of the Tobit update, ``noise_code`` its noise
+    :mod:`~tobitkf.filters._compiled_moments` as a kind, :func:`~tobitkf.filters._compiled_moments.kind`: its
+    moments alone are compiled) and the limits of the Tobit update, ``noise_code`` its noise
     term; ``iterations`` the ADF's linearisations; ``joseph`` the Joseph form of the Kalman update. Writes
     ``means``/``pmeans`` (N, T or 0, n), ``covs`` (N, T or 0, n, n or 1: the diagonals), ``pcovs``, the Tobit
     extras ``ey``/``slope`` (N, T or 0, m), the ADF's ``ll`` (N, T or 0), and the last state
@@ -106,6 +110,7 @@ def nonlinear_loop(
     (and compiled in every process); ``Rroots is None`` is decided by its type, so only one form's branches are
     compiled.
     """
+    upd = len(code)  # a constant: numba rewrites the length of a tuple argument before typing
     N, T, m = y.shape
     n = x0.shape[1]
     L = xi.shape[0]
@@ -151,7 +156,7 @@ def nonlinear_loop(
             else:
                 sq.record(xps, Pps, r0, t, nb, pmeans, pcovs)
             # ---- the update
-            if code == ADF:  # channel by channel, each linearised `iterations` times
+            if upd == ADF:  # channel by channel, each linearised `iterations` times
                 _block_copy(size, xps, Pps, xs, Ps, nb)
                 lsum[:] = 0.0
                 for ch in range(m):
@@ -188,10 +193,10 @@ def nonlinear_loop(
                     Yh = _call(h, X[: nb * L], k, _block_inputs(uh, r0, nb, t, L, U))
                     Jh = Hj
                 if Rroots is None:
-                    _update_joint(code, L > 0, X, Yh, Jh, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t, noise_code,
+                    _update_joint(upd, L > 0, X, Yh, Jh, wm, wc, xps, Pps, y, r0, t, R, lo_t, hi_t, noise_code,
                                   joseph, xs, Ps, Hj, ey, slope, nb, fade)  # fmt: skip
                 else:
-                    sq.joint(code, L > 0, Yh, Jh, xi, wm, wc, xps, Pps, y, r0, t, R, Rroots[min(t, TR - 1)], lo_t,
+                    sq.joint(upd, L > 0, Yh, Jh, xi, wm, wc, xps, Pps, y, r0, t, R, Rroots[min(t, TR - 1)], lo_t,
                              hi_t, noise_code, xs, Ps, ey, slope, nb)  # fmt: skip
             if Rroots is None:
                 _record(size, xs, Ps, r0, t, nb, means, covs)
@@ -210,7 +215,9 @@ def _c(a) -> np.ndarray:
 
 def channel_arrays(est, k0: int, T: int):
     """``(family, lo, hi, par, noise_code)`` of the estimator's channel for the steps k0+1..k0+T, or a string
-    saying why the compiled loop does not cover it (the numpy path runs)."""
+    saying why the compiled loop does not cover it (the numpy path runs). ``family`` a kind
+    (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's assumed-density update compiles that family's
+    moments alone)."""
     from ..channels.censoring import Censoring
     from ._compiled_moments import FAMILIES, QUANTIZER
     from ._compiled_tobit import NOISE_CODES
@@ -220,7 +227,7 @@ def channel_arrays(est, k0: int, T: int):
     none = np.zeros((1, m, 0))
     code = est._compiled_code
     if code == KALMAN:
-        return CENSORED, -inf, inf, none, 0
+        return kind(CENSORED), -inf, inf, none, 0
     channel = est.channel
     if getattr(est, "_sigma" if code == TOBIT else "_r", None) is None:
         return "a measurement covariance R given per step"
@@ -229,10 +236,10 @@ def channel_arrays(est, k0: int, T: int):
     if isinstance(channel, Censoring):
         lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
         noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
-        return CENSORED, _c(lo), _c(hi), none, noise
+        return kind(CENSORED), _c(lo), _c(hi), none, noise
     if code == ADF and FAMILIES.get(getattr(channel, "compiled_moments", None) or "") == QUANTIZER:
         par = _c(channel.compiled_parameters(k0 + 1, T, m))
-        return QUANTIZER, -inf, inf, par, 0
+        return kind(QUANTIZER), -inf, inf, par, 0
     return f"the channel {type(channel).__name__} (the compiled path covers censoring and, for the ADF, quantizers)"
 
 
@@ -246,7 +253,7 @@ class Run(NamedTuple):
     """The arguments of one compiled run that the standard and the square-root form share (:func:`run_arrays`)."""
 
     head: tuple[Any, ...]
-    """The loop's leading arguments: ``size, f, h, F, H, code, xi, xcol, wm, wc, y, u, uh``."""
+    """The loop's leading arguments: ``size, f, h, F, H, code, xi, xcol, wm, wc, y, u, uh`` (``code`` a kind)."""
     channel: tuple[Any, ...]
     """``family, lo, hi, par, noise_code, iterations``."""
     outputs: tuple[np.ndarray, ...]
@@ -287,7 +294,7 @@ def run_arrays(est, y2: np.ndarray, u2, state, want, *, online: bool = False) ->
             (ext and code == ADF, ()),
         ))  # fmt: skip
     uf, uh = _model_inputs(sys_, u2, N, T)
-    head = (SIZES.get(n, ()), sys_.f, sys_.h, sys_.F, sys_.H, code, xi, point_columns(xi), wm, wc, _c(y2), uf, uh)
+    head = (SIZES.get(n, ()), sys_.f, sys_.h, sys_.F, sys_.H, kind(code), xi, point_columns(xi), wm, wc, _c(y2), uf, uh)
     channel = (*arrays, est.iterations if code == ADF else 1)
     return Run(head, channel, outputs, code, ext, T)
 

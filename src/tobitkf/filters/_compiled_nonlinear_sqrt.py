@@ -265,7 +265,8 @@ def joint(code, sigma, Y, J, xi, wm, wc, xps, Sps, y, r0, t, R, Rroot, lo, hi, n
     for b in range(nb):
         Eres = np.empty((max(L, 1), m))
         if sigma:
-            _linearise(Y[b * L : (b + 1) * L], xi, wm, wc, Sps[b], ym, Hl, Eres)
+            # the run's rows as a strided view (layout A), as adf_channel's column: _linearise compiled once
+            _linearise(Y[b * L : (b + 1) * L, :], xi, wm, wc, Sps[b], ym, Hl, Eres)
         else:
             ym[:] = Y[b]
             Hl[:] = J[b]
@@ -305,7 +306,8 @@ def adf_channel(it, ch, Y, xi, wm, wc, y, r0, t, xs, Ss, xms, Sms, act, rl, fami
     r"""Linearisation ``it`` of channel ``ch`` (the numpy ``_channel_sqrt``) for the runs in ``act``, from the values
     ``Y`` of h at their stacked points of :math:`N(x_m, S_mS_m^T)`: the affine model (about the prior when
     ``it`` = 0), the channel's moments of the latent reading, then the array update of the prior ``xs``, ``Ss``
-    with noise :math:`\Omega + R_{ll}` and one QR for :math:`+KVK^T`, into ``xms``, ``Sms``."""
+    with noise :math:`\Omega + R_{ll}` and one QR for :math:`+KVK^T`, into ``xms``, ``Sms``. ``family`` the
+    channel's family as a kind (:func:`~tobitkf.filters._compiled_moments.kind`)."""
     L = wm.shape[0]
     n = xs.shape[1]
     ym = np.empty(1)
@@ -344,7 +346,7 @@ def adf_channel(it, ch, Y, xi, wm, wc, y, r0, t, xs, Ss, xms, Sms, act, rl, fami
             continue
         yb = y[r0 + b, t, ch]
         yv[0], hx[0], hph[0], rb[0], lo_c[0], hi_c[0], llb[0] = yb, mu, s2 - rl, rl, lo, hi, 0.0
-        cls[0] = classify(yb, lo, hi) if family == CENSORED else 1
+        cls[0] = classify(yb, lo, hi) if len(family) == CENSORED else 1
         family_block(family, 1, yv, cls, hx, hph, rb, lo_c, hi_c, par, alpha, beta, llb, pu, comp, GL_X, GL_W, buf)
         e[0] = alpha[0] * s2  # E[y* | y] - mu
         Vr = s2 - beta[0] * s2 * s2  # Var[y* | y]

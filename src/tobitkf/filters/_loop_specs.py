@@ -49,11 +49,11 @@ class LoopArguments(NamedTuple):
     docstring says what each is), for a call from Python: give what the family uses, :meth:`filled` makes the rest
     as the loop reads an absent array (``cls`` (N, 0, m) int8, ``F`` (1, m, 0, n_x), ``r``/``lo``/``hi``
     (1, 1, m), ``par`` (1, m, 0), ``bu`` (N, 0, n), ``du`` (N, 0, m); outputs with a T axis of length 0: not
-    written) and ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False; an integer ``family`` becomes its
-    kind (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's version for that family alone). The compiled
+    written) and ``J`` = 0, ``npass`` = 1, ``noise_code`` = 0, ``joseph`` False. ``family`` is a kind
+    (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's version for that family alone). The compiled
     entries do the same in compiled code (:func:`~tobitkf.filters._compiled_entries.loop_call`)."""
 
-    family: int | tuple[None, ...]
+    family: tuple[None, ...]
     y: np.ndarray
     cls: np.ndarray | None = None
     A: np.ndarray | None = None
@@ -106,9 +106,11 @@ class LoopArguments(NamedTuple):
             "ll": lambda: _empty((N, 0)),
             "comp": lambda: _empty((N, 0, m, self.J)),
         }
-        made: dict[str, Any] = {k: make() for k, make in absent.items() if getattr(self, k) is None}
         if not isinstance(self.family, tuple):
-            made["family"] = kind(int(self.family))
+            raise TypeError(
+                f"LoopArguments.family: expected a kind (_compiled_moments.kind(code)), got {self.family!r}"
+            )
+        made: dict[str, Any] = {k: make() for k, make in absent.items() if getattr(self, k) is None}
         return self._replace(**made)
 
 
@@ -422,7 +424,7 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         _compiled_loop.compiled_loop, spec.family, A, Qd, spec.H, F, r, lo, hi, x0, pu.shape[1] + ll.shape[1] > 0
     )
     args = LoopArguments(
-        spec.family, _c(y2), np.require(cls, dtype=np.int8, requirements=("C", "W")), A, Qd, _c(spec.H), _c(F), _c(r),
+        kind(spec.family), _c(y2), np.require(cls, dtype=np.int8, requirements=("C", "W")), A, Qd, _c(spec.H), _c(F), _c(r),
         _c(lo), _c(hi), _c(spec.par), spec.J, spec.npass, x0=x0, P0=P0, bu=spec.bu, du=spec.du, means=means,
         covs=covs, pmeans=pmeans, pcovs=pcovs, pu=pu, ll=ll, comp=comp if comp.shape[1] > 0 else None,
         x_last=x_last, P_last=P_last,

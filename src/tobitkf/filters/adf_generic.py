@@ -250,12 +250,11 @@ def channel_update(
 def _compiled_moments(family, par, y, has, mu, cPc, r):
     """``(alpha, beta, log_likelihood)`` of the compiled block ``family`` for the readings ``y`` (N,)."""
     from ._compiled_moments import INTERIOR, MISSING, family_array, kind
-    from ._compiled_tobit import GL_W, GL_X
 
     inf = np.full(y.shape, np.inf)
     cls = np.where(has, INTERIOR, MISSING).astype(np.int8)
     f = loop_input  # writable: numba types read-only arrays (broadcast views) apart, one compile more each
-    alpha, beta, ll, _, _ = family_array(kind(family), f(y), cls, f(mu), f(cPc), f(r), -inf, inf, f(par), 0, GL_X, GL_W)
+    alpha, beta, ll, _, _ = family_array(kind(family), f(y), cls, f(mu), f(cPc), f(r), -inf, inf, f(par), 0)
     return alpha, beta, ll
 
 

@@ -210,14 +210,13 @@ def censored_channel_update(
     hi = np.broadcast_to(np.asarray(upper, dtype=float), (N,))
     if compiled:
         from ._compiled_moments import CENSORED, family_array, kind
-        from ._compiled_tobit import GL_W, GL_X
 
         cls = _classify(y, lo, hi) if cls is None else cls
         f = loop_input  # writable: numba types read-only arrays (broadcast views) apart, one compile more each
         cPc = s2 - rv
         alpha, beta, ll, p_unc, _ = family_array(
             kind(CENSORED), f(y), np.require(cls, np.int8, ("C", "W")), f(mu), f(cPc), f(np.broadcast_to(rv, (N,))),
-            f(lo), f(hi), np.zeros(0), 0, GL_X, GL_W,
+            f(lo), f(hi), np.zeros(0), 0,
         )  # fmt: skip
         valid = ok & (cls != _MISSING)
         beyond = valid & ((cls == _LOWER) | (cls == _UPPER) | (cls == _INTERVAL))

@@ -818,7 +818,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     and then every block of the state into one output ((N, T, n + nxi)), the covariance's top block and then the
     diagonal blocks into another ((N, T, n + nxi, n)), and ``mean``, ``cov`` and the smoothed blocks are views
     of them (:func:`~tobitkf.filters._compiled_block._stage_mean`, ``_stage_cov``)."""
-    from ._compiled_loop import FADING, compiled_loop
+    from ._compiled_loop import FADING_KIND, compiled_loop
     from ._loop_specs import LoopArguments
 
     N, T, m = y2.shape
@@ -849,7 +849,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
     bu, du = _input_terms(est, u2, N, T)
     x_last, P_last = np.empty((N, nxi)), np.empty((N, nxi, nxi))
     args = LoopArguments(
-        FADING, loop_input(y2), A=A[None, None], Qd=Qd[None, None], H=np.ascontiguousarray(H), r=sigma[None, None],
+        FADING_KIND, loop_input(y2), A=A[None, None], Qd=Qd[None, None], H=np.ascontiguousarray(H), r=sigma[None, None],
         lo=loop_input(lo)[None], hi=loop_input(hi)[None], J=1, noise_code=int(est.exact_tobit_variance),
         joseph=est.covariance_update == "joseph", bu=bu, du=du, x0=loop_input(state.x), P0=loop_input(state.P),
         means=means, covs=covs, pmeans=pmeans, pcovs=pcovs, pu=pu, ey=ey, comp=lam, x_last=x_last, P_last=P_last,

@@ -91,18 +91,17 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         self._par = np.ascontiguousarray(np.concatenate([channel.level[:, None], logp], axis=1))
 
     def _compiled_channel(self, k0: int, T: int):
-        """``(family, lo, hi, par, noise_code)`` of the compiled loop (its ``channel_arrays``)."""
-        from ._compiled_moments import SATURATION
+        """``(family, lo, hi, par, noise_code)`` of the compiled loop (its ``channel_arrays``; ``family`` a kind)."""
+        from ._compiled_moments import SATURATION, kind
 
         inf = np.full((1, self.m), np.inf)
-        return SATURATION, -inf, inf, self._par[None].copy(), 0
+        return kind(SATURATION), -inf, inf, self._par[None].copy(), 0
 
     def _latent_moments(self, k, l, y, has, mu, s2, ll):
         r"""The three modes' merged moments of the latent reading :math:`y^* \sim N(\mu, s^2)`, :math:`s^2 =
         s_c^2 + R_{ll}`, from :func:`~tobitkf.filters._compiled_moments.saturation_block`'s :math:`(\alpha,
         \beta)`: :math:`E = \mu + \alpha s^2`, :math:`V = s^2 - \beta s^4` (the projection's form)."""
         from ._compiled_moments import INTERIOR, SATURATION, family_array, kind
-        from ._compiled_tobit import GL_W, GL_X
 
         r = (
             self._r
@@ -117,7 +116,7 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
             alpha, beta, lp, _, _ = family_array(
                 kind(SATURATION), np.ascontiguousarray(y[ok]), np.full(q, INTERIOR, dtype=np.int8),
                 np.ascontiguousarray(mu[ok]), sv - r, np.full(q, float(r)), np.full(q, -np.inf), np.full(q, np.inf),
-                self._par[l].copy(), 3, GL_X, GL_W,
+                self._par[l].copy(), 3,
             )  # fmt: skip
             obs[ok] = mu[ok] + alpha * sv
             V[ok] = sv - beta * sv * sv

@@ -628,7 +628,7 @@ def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: Fil
     mode, joseph = ctx[12]
     loop = ctx[11]
     args = ctx[13](
-        loop.PROTOCOL_TKF, y3, cls=gam.view(np.int8), A=ctx[6], Qd=ctx[7], H=H, F=F, r=r, lo=ctx[8], hi=ctx[9], par=par,
+        loop.PROTOCOL_TKF_KIND, y3, cls=gam.view(np.int8), A=ctx[6], Qd=ctx[7], H=H, F=F, r=r, lo=ctx[8], hi=ctx[9], par=par,
         noise_code=mode, joseph=joseph, x0=loop_input(state.x), P0=loop_input(P), means=means, covs=covs,
         pmeans=pmeans, pcovs=pcovs, comp=comp, x_last=x_last, P_last=P_last,
     )  # fmt: skip

@@ -479,7 +479,7 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
     )
     x_last = np.empty((N, n))
     args = _loop_specs.LoopArguments(
-        _compiled_loop.FIXED_GAIN, loop_input(y2), A=A, Qd=Qd, H=C, par=par, noise_code=code + 2 * latent,
+        _compiled_loop.FIXED_GAIN_KIND, loop_input(y2), A=A, Qd=Qd, H=C, par=par, noise_code=code + 2 * latent,
         x0=loop_input(state.x), P0=est.cov[None], means=means, pmeans=pmeans, comp=comp, x_last=x_last,
         P_last=np.empty((N, 0, 0)),  # no covariance is carried
     )  # fmt: skip
