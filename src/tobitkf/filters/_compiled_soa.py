@@ -155,7 +155,10 @@ CHANS = {m: (0,) * m for m in range(1, SOA_MAX_M + 1)}
 #: against 40.7 / 54.2; slower, not routed: (3, 3) 302 / 317 against 54.8 / 68.1, (2, 4) 227 / 252 against 62.8 /
 #: 93.6, (3, 4) 381 / 406 against 82.3 / 111 (the straight-line step of a run no longer vectorises well). Every m up
 #: to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
-KF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3)})
+#: to :data:`SOA_MAX_N`. Routed for now only at (2, 2), the largest gain measured: each routed (m, n) is a compiled
+#: version of its own (about 20 s of compiling on the first call at that size, and in the test run), and the other
+#: gains (8-30 %) come from one run on a loaded machine, to be confirmed on an idle one before they are routed
+KF_JOINT_ROUTED = frozenset({(2, 2)})
 #: the (m, n) of the TKF's joint update (m > 1) that :func:`tobit_entry` routes to :func:`soa_loop`: those measured
 #: faster than the compiled loop (``bench_simd.py --which tkfm,tkfmw``: every channel left-censored at 0, channel l
 #: reading state l mod n, 2 x 10^4 runs x 100 steps, thread CPU time per run-step, medians of 7 alternating calls in
@@ -165,7 +168,8 @@ KF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3)})
 #: 65.7 against 69.2 / 76.1, (2, 3) 48.9 / 61.8 against 60.2 / 73.9, (3, 3) 73.0 / 87.0 against 86.7 / 100.3; slower,
 #: not routed: (2, 4) 183 / 210 against 79.3 / 109, (3, 4) 445 / 470 against 105 / 131. Every m up to
 #: :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
-TKF_JOINT_ROUTED = frozenset({(2, 1), (3, 1), (2, 2), (3, 2), (2, 3), (3, 3)})
+#: Routed for now only at (2, 2), the largest gain measured, for the reason given at :data:`KF_JOINT_ROUTED`
+TKF_JOINT_ROUTED = frozenset({(2, 2)})
 #: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
 #: and P(uncensored), the TKF (any limits)
 KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
