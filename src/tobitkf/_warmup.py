@@ -145,19 +145,26 @@ def default_jobs() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _run_target(target: Callable[[], None]) -> tuple[float, int, float]:
-    """Run one target in a worker process: (its seconds, kernels it compiled, seconds spent compiling)."""
+def _timed(target: Callable[[], None]) -> tuple[float, int, float]:
+    """Run one target in this process: (its seconds, kernels it compiled, seconds spent compiling)."""
     from . import _compiled
 
-    _compiled.watch_compiles()
-    with _compiled._LOCK:
-        _compiled._STATS["announced"] = True  # the parent has said that kernels compile
     before = _compiled.compile_stats()
     t0 = time.perf_counter()
     target()
     seconds = time.perf_counter() - t0
     after = _compiled.compile_stats()
     return seconds, int(after["compiled"]) - int(before["compiled"]), float(after["seconds"]) - float(before["seconds"])
+
+
+def _run_target(target: Callable[[], None]) -> tuple[float, int, float]:
+    """Run one target in a worker process (:func:`_timed`), the compile notice left to the parent."""
+    from . import _compiled
+
+    _compiled.watch_compiles()
+    with _compiled._LOCK:
+        _compiled._STATS["announced"] = True  # the parent has said that kernels compile
+    return _timed(target)
 
 
 def warmup(
@@ -196,16 +203,11 @@ def warmup(
     t_all = time.perf_counter()
     compiled, compile_seconds = 0, 0.0
     if jobs == 1 or len(todo) == 1:
-        from . import _compiled
-
         for i, (label, target) in enumerate(todo, 1):
-            before = _compiled.compile_stats()
-            t0 = time.perf_counter()
-            target()
-            after = _compiled.compile_stats()
-            compiled += int(after["compiled"]) - int(before["compiled"])
-            compile_seconds += float(after["seconds"]) - float(before["seconds"])
-            report(f"[{i}/{len(todo)}] {label}: {time.perf_counter() - t0:.1f} s")
+            seconds, n, s = _timed(target)
+            compiled += n
+            compile_seconds += s
+            report(f"[{i}/{len(todo)}] {label}: {seconds:.1f} s")
         return time.perf_counter() - t_all, compiled, compile_seconds
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor, as_completed
