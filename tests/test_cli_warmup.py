@@ -180,3 +180,58 @@ def test_the_real_warmup_exits_0_and_a_second_one_compiles_nothing():
     second = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=1800)
     assert second.returncode == 0, second.stderr
     assert "every kernel was cached" in second.stdout and COMPILE_NOTICE not in second.stderr
+
+
+WORKERS = textwrap.dedent(
+    """
+    import multiprocessing
+    import os
+    import sys
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tobitkf import cli
+
+
+    def compile_in_worker(name):
+        # a barrier on files: each task waits until both have started, so each worker runs one of them
+        open(os.path.join(os.environ["BARRIER"], name), "w").close()
+        t0 = time.time()
+        while len(os.listdir(os.environ["BARRIER"])) < 2 and time.time() - t0 < 120:
+            time.sleep(0.01)
+        from tobitkf import _compiled
+        _compiled._PACKAGES.append("fakekernels")
+        import fakekernels
+        getattr(fakekernels, name)(3)
+        return _compiled.compile_stats()["compiled"]
+
+
+    if __name__ == "__main__":
+        ctx = multiprocessing.get_context("spawn")
+        shared = sys.argv[1] == "shared"
+        init = {"initializer": cli._worker_threads, "initargs": (1, ctx.Value("b", 0))} if shared else {}
+        with ProcessPoolExecutor(2, mp_context=ctx, **init) as pool:
+            print(*pool.map(compile_in_worker, ["add_one", "double"]))  # one task each: both workers compile
+    """
+)
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_the_notice_comes_once_for_all_worker_processes_of_reproduce(tmp_path, shared):
+    # reproduce's worker processes share a flag (cli._worker_threads): two workers that both compile print one
+    # notice; without the flag each process prints its own (the case it guards against)
+    (tmp_path / "fakekernels.py").write_text(KERNELS)
+    script = tmp_path / "workers.py"
+    script.write_text(WORKERS)
+    (tmp_path / "barrier").mkdir()
+    env = {
+        **os.environ,
+        "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+        "BARRIER": str(tmp_path / "barrier"),
+        "PYTHONPATH": SRC + os.pathsep + str(tmp_path) + os.pathsep + os.environ.get("PYTHONPATH", ""),
+    }
+    arg = "shared" if shared else "plain"
+    res = subprocess.run([sys.executable, str(script), arg], capture_output=True, text=True, env=env, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split() == ["1", "1"]  # each worker compiled its kernel
+    assert res.stderr.count(COMPILE_NOTICE) == (1 if shared else 2)

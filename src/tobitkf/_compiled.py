@@ -41,6 +41,27 @@ COMPILE_NOTICE = (
 
 _STATS = {"compiled": 0, "seconds": 0.0, "announced": False, "watching": False}
 _LOCK = threading.Lock()
+_SHARED: list = []
+"""A flag shared by the worker processes of one command (:func:`share_notice`), empty when there are none."""
+
+
+def share_notice(flag) -> None:
+    """Print the compile notice once across processes: ``flag`` is a ``multiprocessing.Value`` (a lock with
+    it) given to every worker process of one command; the first process to compile sets it and prints the
+    notice, the others stay silent."""
+    _SHARED[:] = [flag]
+
+
+def _claim_notice() -> bool:
+    """Whether this compile is the first of the process, and of the command's processes (:func:`share_notice`)."""
+    with _LOCK:
+        first = not _STATS["announced"]
+        _STATS["announced"] = True
+    if first and _SHARED:
+        flag = _SHARED[0]
+        with flag.get_lock():
+            first, flag.value = not flag.value, 1
+    return first
 
 
 def compile_stats() -> dict[str, float | int | bool]:
@@ -80,10 +101,7 @@ def _make_listener():
             if self.depth > 1:
                 return
             self.t0 = time.perf_counter()
-            with _LOCK:
-                first = not _STATS["announced"]
-                _STATS["announced"] = True
-            if first:
+            if _claim_notice():
                 try:
                     sys.stderr.write(COMPILE_NOTICE + "\n")
                     sys.stderr.flush()

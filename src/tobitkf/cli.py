@@ -398,9 +398,13 @@ def reproduce(
     _write_report(out)
 
 
-def _worker_threads(threads: int) -> None:
-    """A worker process of ``reproduce --jobs``: its share of the cores for the filters' threads (unless set)."""
+def _worker_threads(threads: int, notice) -> None:
+    """A worker process of ``reproduce --jobs``: its share of the cores for the filters' threads (unless set), and
+    the compile notice printed by the first worker that compiles (``notice``, a shared flag)."""
+    from ._compiled import share_notice
+
     os.environ.setdefault("TOBITKF_NUM_THREADS", str(threads))
+    share_notice(notice)
 
 
 def _reproduce_one(exp_id: str, prefix: str, runs: int | None, seed: int, out: Path, full: bool, every: float) -> float:
@@ -429,8 +433,11 @@ def _reproduce_in_workers(
     order = sorted(ids, key=lambda e: -get(e).cost)  # stable: equal costs keep the registry's order
     context = multiprocessing.get_context("spawn")  # a fresh interpreter each: no forked numba or thread state
     threads = max(1, default_jobs() // workers)
+    notice = context.Value("b", 0)  # the compile notice: once for all the workers
     spent = 0.0
-    with ProcessPoolExecutor(workers, mp_context=context, initializer=_worker_threads, initargs=(threads,)) as pool:
+    with ProcessPoolExecutor(
+        workers, mp_context=context, initializer=_worker_threads, initargs=(threads, notice)
+    ) as pool:
         pending = {pool.submit(_reproduce_one, e, number[e], runs, seed, out, full, every): e for e in order}
         while pending:
             done, _ = wait(pending, return_when=FIRST_EXCEPTION)
