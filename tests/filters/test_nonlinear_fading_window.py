@@ -93,8 +93,10 @@ def test_vanishing_delayed_gains_give_the_order_0_filter(make):
     zero = tk.RiceFading.gaussian(2, [[0.8, 1.1], [0.0, 0.0], [0.0, 0.0]], [[0.05, 0.02], [0.0, 0.0], [0.0, 0.0]])
     a = make(sys_, tk.RiceFading.gaussian(0, [[0.8, 1.1]], [[0.05, 0.02]])).filter(y)
     b = make(sys_, zero).filter(y)
-    np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=1e-12)
+    # the same equations summed in another order: last-bit differences, which the central-difference Jacobians
+    # (step ~6e-6) grow to ~1e-11
+    np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=TOL)
+    np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=TOL)
 
 
 # --------------------------------------------------------------------------- against the particle filter
@@ -141,7 +143,7 @@ def test_simulate_draws_the_delayed_terms_at_their_own_time():
             want[:, k - 1] += theta[:, k - 1, s] * h(data.x[:, k - s], k - s)
     np.testing.assert_allclose(data.y_latent, want, rtol=0, atol=1e-8)  # v has a standard deviation 1e-10
     np.testing.assert_array_equal(data.y, cens.clip(data.y_latent))
-    assert (theta[:, 0, 1:] == 0).all() and (theta[:, 1, 2] == 0).all()
+    assert (theta[:, 0, 2] == 0).all() and (theta[:, 1:, 2] != 0).all()  # no term s = 2 at k = 1
 
 
 # --------------------------------------------------------------------------- refusals

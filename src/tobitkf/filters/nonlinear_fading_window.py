@@ -90,7 +90,7 @@ def _window_map(system: Any, nx: int, k: int, u: np.ndarray | None):
 
 
 def _window_noise(system: Any, nx: int, k: int) -> np.ndarray:
-    """:math:`\mathrm{diag}(Q_{k-1}, 0, \dots)` (n_ξ, n_ξ)."""
+    r""":math:`\mathrm{diag}(Q_{k-1}, 0, \dots)` (n_ξ, n_ξ)."""
     n = system.n
     Qa = np.zeros((nx, nx))
     Qa[:n, :n] = system.process_cov(k - 1)
