@@ -78,6 +78,7 @@ class _Model:
     m: int  # reading dimension
     optimal: bool = False
     linearised: bool = False  # the linearised optimal proposal (a NonlinearSystem's region channel)
+    steps: int = 1  # its linearisation point: the prediction (1), or after steps - 1 Gauss-Newton steps
     censoring: Censoring | None = None
     serves: type | None = None  # the channel class this model is the particle filter's reading model of
     feedthrough = True  # the reading carries D u (the protocol and saturation readings do not)
@@ -262,7 +263,7 @@ def _gaussian_proposal(rng, mu, Qd, H, offset, r, y, lo, hi):
     return _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps)
 
 
-def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps, latent=None):
+def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
     r"""The channel-by-channel Gaussian conditioning shared by the closed-form proposals.
 
     :math:`x_k \sim N(\mu, \Sigma)`, :math:`\Sigma = Q_d` at the start; for each channel l with a reading
@@ -280,8 +281,7 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps, latent=None)
     ----------
     mu : (N, Np, n) ; Qd : (n, n) ; H : (m, n), or (N, Np, m, n) one per particle ;
     offset : (N, Np, m), (N, m) or 0 ; r : (N or 1, m) (>= 0) ;
-    cls : (N, m) reading classes ; reading : callable ; eps : (N, Np, n) standard normal draws ;
-    latent : (N, Np, m) array, optional, filled with the latent values conditioned on (untouched where missing)
+    cls : (N, m) reading classes ; reading : callable ; eps : (N, Np, n) standard normal draws
 
     Returns
     -------
@@ -322,8 +322,6 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps, latent=None)
             v, lw = reading(l, kind, rows, pred[rows], sr[rows])
             val[rows] = v
             logw[rows] += lw
-        if latent is not None:
-            latent[valid, :, l] = val[valid]
         innov = np.where(valid[:, None], val - pred, 0.0)
         if per_particle:
             mu = mu + innov[..., None] * g

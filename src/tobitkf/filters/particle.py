@@ -115,7 +115,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import symmetrize
-from .._validation import ValidationError, as_float_array, check_instance, check_memory
+from .._validation import ValidationError, as_float_array, check_instance, check_int, check_memory
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
@@ -205,6 +205,11 @@ class ParticleFilter(Estimator):
         ``"linearised"`` for everything but a NonlinearSystem read through one channel with a ``region``. With ``"rao_blackwellised"`` the
         ``particles`` of a state's ``carry`` are the particles' Gaussian means (and ``covariances``
         their covariances).
+    linearisation_steps : int >= 1, default 1
+        Where ``proposal="linearised"`` linearises h for each particle: 1 about its prediction
+        :math:`\mu = f(x_{k-1}, k-1)` (the extended Kalman update); s > 1 about the point reached by s - 1
+        Gauss–Newton steps on the exact readings from there (the iterated extended Kalman update, towards the
+        mode of :math:`p(x_k \mid x_{k-1}, y_k)`). The weights are exact for every choice.
     seed : int, SeedSequence, Generator or None, default None
         Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
         gives the same numbers; None draws fresh entropy once, when the filter is built.
@@ -289,6 +294,7 @@ class ParticleFilter(Estimator):
         proposal: str = "auto",
         seed: Any = None,
         backend: str = "auto",
+        linearisation_steps: int = 1,
     ):
         builder = next((b for t, b in SYSTEM_MODELS.items() if isinstance(system, t)), None)
         if builder is None:
@@ -321,6 +327,12 @@ class ParticleFilter(Estimator):
                 "NonlinearSystem read through one channel with a region() (Censoring, Quantizer, ...), not for "
                 f"{self.model.label} readings (use 'auto' or 'prior')"
             )
+        steps = check_int(linearisation_steps, "linearisation_steps", minimum=1, maximum=100)
+        if steps != 1 and proposal != "linearised":
+            raise ValidationError(
+                f"linearisation_steps: {steps} steps set the linearisation of proposal='linearised', not of {proposal!r}"
+            )
+        self.linearisation_steps = self.model.steps = steps
         if proposal == "rao_blackwellised" and not (isinstance(self.model, _Protocol) and self.model.optimal):
             raise ValidationError(
                 "proposal: 'rao_blackwellised' is implemented for the protocol channel with discrete failure "
@@ -502,7 +514,9 @@ class ParticleFilter(Estimator):
     def __repr__(self) -> str:
         return (
             f"ParticleFilter({self.model.label}, particles={self.particles}, "
-            f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})"
+            f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold}"
+            + ("" if self.linearisation_steps == 1 else f", linearisation_steps={self.linearisation_steps}")
+            + ")"
         )
 
 

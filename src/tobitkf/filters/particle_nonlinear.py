@@ -23,24 +23,27 @@ unscented prediction of the filtered moments (:class:`~tobitkf.UnscentedKalmanFi
 
 **The linearised optimal proposal** (``proposal="linearised"``; Doucet, Godsill & Andrieu 2000, §II.D.2), for one
 contract channel with a ``region`` (:class:`~tobitkf.Censoring`, :class:`~tobitkf.Quantizer`, ...): per particle,
-:math:`h` is linearised about the particle's prediction :math:`\mu = f(x_{k-1}, k-1)`,
-:math:`h(x) \approx Hx + o`, :math:`H = \partial h/\partial x(\mu)`, :math:`o = h(\mu) - H\mu`, and the linear
-model's locally optimal proposal is drawn: the channels in sequence (diagonal R), each conditioning
-:math:`N(\mu, Q_{k-1})` on its latent reading :math:`y^*_l` (an exact reading its value, an interval one a draw
-of :math:`N(p_l, s_l^2)` truncated to the interval, :math:`p_l = H_l\mu_{<l} + o_l`,
-:math:`s_l^2 = H_l\Sigma_{<l}H_l^T + R_{ll}`). The proposal is a density on :math:`(x_k, y^*)`; the target is
-:math:`p(x_k \mid x_{k-1})\prod_lN(y^*_l; h_l(x_k), R_{ll})` on the readings' regions, whose :math:`x_k`-marginal
-is :math:`p(x_k \mid x_{k-1})p(y_k \mid x_k)`, so the weight
+:math:`h` is linearised about a point :math:`a`, :math:`h(x) \approx Hx + o`, :math:`H = \partial h/\partial x(a)`,
+:math:`o = h(a) - Ha`, and the linear model's locally optimal proposal is drawn for the exact readings E: the
+channels in sequence (diagonal R), each conditioning :math:`N(\mu, Q_{k-1})`, :math:`\mu = f(x_{k-1}, k-1)`, on its
+value (:math:`p_l = H_l\mu_{<l} + o_l`, :math:`s_l^2 = H_l\Sigma_{<l}H_l^T + R_{ll}`). The point is
+:math:`a = \mu` (``linearisation_steps=1``, the extended Kalman update) or the result of s - 1 Gauss–Newton steps
+:math:`a \leftarrow \mu + K(y_E - h_E(a) - H_E(\mu - a))`, :math:`K = QH_E^T(H_EQH_E^T + R_E)^{-1}` (the iterated
+update, towards the mode of :math:`p(x_k \mid x_{k-1}, y_k)`). The readings that say an interval (censored,
+quantized) do not move the proposal and enter the weight by their probability under the model. The weight
 
 .. math::
 
-    \log w = \sum_l\log M_l + \sum_l\big[\log N(y^*_l; h_l(x_k), R_{ll}) - \log N(y^*_l; H_lx_k + o_l, R_{ll})\big],
+    \log w = \sum_{l \in E}\Big[\log N(y_l; p_l, s_l^2) + \log N(y_l; h_l(x_k), R_{ll})
+      - \log N(y_l; H_lx_k + o_l, R_{ll})\Big] + \sum_{l \notin E}\log p(y_l \mid x_k)
 
-:math:`M_l = N(y_l; p_l, s_l^2)` for an exact reading and the truncated normal's mass for an interval, is exact:
-the filter stays consistent however poor the linearisation. For a linear :math:`h` the bracket is zero and the
-proposal, its weights and its particles are those of the linear model's ``"optimal"`` proposal for the same
-seed (tested); a missing reading takes no part. The default stays the bootstrap (``"auto"``). The Jacobian is
-the system's ``H`` or central differences.
+is :math:`p(y_k \mid x_k)p(x_k \mid x_{k-1})/q(x_k \mid x_{k-1}, y_k)` exactly (the linearised model's joint density
+of :math:`x_k` and :math:`y_E` factors as :math:`q(x_k)\prod_{l\in E}N(y_l; p_l, s_l^2)`), so the filter stays
+consistent however poor the linearisation. For a linear :math:`h` and exact readings the bracket's last two terms
+cancel and the particles and weights are those of the linear model's ``"optimal"`` proposal for the same seed
+(tested). A Gaussian per particle: where the posterior has a mode the linearisation does not see (a non-monotone h)
+or a heavier tail than the Gaussian, the weights stay exact but their variance can be large, and the bootstrap
+proposal (the default, ``"auto"``) is the safer choice. The Jacobian is the system's ``H`` or central differences.
 
 **Known inputs.** With an ``f(x, k, u)`` (``NonlinearSystem(inputs=p)``) the filter's ``filter``, ``step`` and
 ``log_likelihood`` take ``u`` (..., T, p) as the Gaussian filters do (row k-1 holds :math:`u_k`): every particle
@@ -74,6 +77,7 @@ from ._particle_models import (
     channel_log_likelihood,
     region_reader,
 )
+from ._readings import _INTERIOR, _MISSING
 from .nonlinear import SigmaPoints, _sigma_moments
 from .nonlinear_fading_window import window_predict
 
@@ -140,26 +144,43 @@ class _Nonlinear(_NonlinearDynamics, _Model):
         return f"nonlinear {type(self.channel).__name__}"
 
     def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
-        r"""The linearised locally optimal proposal (``proposal="linearised"``, module docstring): per particle,
-        the channels in sequence conditioned on the readings under :math:`h` linearised about
-        :math:`\mu = f(x_{k-1}, k-1)`, then the exact weight. Returns (X_new (N, Np, n), log weight (N, Np))."""
+        r"""The linearised locally optimal proposal (``proposal="linearised"``, module docstring): per particle, the
+        exact readings in sequence conditioned on under :math:`h` linearised about :math:`\mu = f(x_{k-1}, k-1)`
+        (or the point of ``steps - 1`` Gauss–Newton steps from it), the interval readings left to the weight, which
+        is exact. Returns (X_new (N, Np, n), log weight (N, Np))."""
         sys_ = self.system
         N, Np, n = X.shape
         m = self.m
         mu = sys_.transition_map(X.reshape(N * Np, n), k - 1, self._input(b, Np))
         uh = self._input(dy, Np)
-        H = sys_.measurement_jacobian(mu, k, uh)  # (N Np, m, n)
-        off = sys_.measurement_map(mu, k, uh) - np.einsum("qij,qj->qi", H, mu)
-        H, off, mu = H.reshape(N, Np, m, n), off.reshape(N, Np, m), mu.reshape(N, Np, n)
         r = _diag_sigma(sys_, k, f"{type(self.channel).__name__} readings") ** 2
+        # the uniforms the linear proposal draws for its interval readings, so that a linear h draws its numbers
         cls, reading = region_reader(self.channel, k, y, rng.random((N, Np, m)))
+        exact = cls == _INTERIOR  # (N, m); the interval readings enter the weight only
+        Q = sys_.process_cov(k - 1)
+        at = mu
+        ex = np.repeat(exact, Np, axis=0)  # (N Np, m)
+        yy = np.repeat(np.where(exact, y, 0.0), Np, axis=0)
+        for _ in range(self.steps - 1):  # x <- mu + K(y - h(x) - H(mu - x)), K = Q H^T (H Q H^T + R)^-1
+            H = sys_.measurement_jacobian(at, k, uh) * ex[:, :, None]
+            innov = np.where(ex, yy - sys_.measurement_map(at, k, uh), 0.0) + np.einsum("qij,qj->qi", H, at - mu)
+            S = H @ Q @ np.swapaxes(H, -1, -2) + np.where(ex, r, 1.0)[:, :, None] * np.eye(m)
+            at = mu + np.einsum("ij,qkj,qk->qi", Q, H, np.linalg.solve(S, innov[..., None])[..., 0])
+        H = sys_.measurement_jacobian(at, k, uh)  # (N Np, m, n)
+        off = sys_.measurement_map(at, k, uh) - np.einsum("qij,qj->qi", H, at)
+        H, off, mu = H.reshape(N, Np, m, n), off.reshape(N, Np, m), mu.reshape(N, Np, n)
         eps = rng.standard_normal((N, Np, n))
-        latent = np.full((N, Np, m), np.nan)
-        Xn, logw = _condition_in_sequence(mu, sys_.process_cov(k - 1), H, off, r[None, :], cls, reading, eps, latent)
-        # log N(y*; h(x_k), r) - log N(y*; H x_k + o, r): the model's latent density over the linearised one's
+        cond = np.where(exact, cls, _MISSING).astype(cls.dtype)
+        Xn, logw = _condition_in_sequence(mu, Q, H, off, r[None, :], cond, reading, eps)
+        # log N(y; h(x_k), r) - log N(y; H x_k + o, r): the model's density of an exact reading over the linearised
+        # one's; an interval reading: its probability under the model
+        hx = self._h(k, Xn, dy)
         lin = np.einsum("rpij,rpj->rpi", H, Xn) + off
-        corr = ((latent - lin) ** 2 - (latent - self._h(k, Xn, dy)) ** 2) / (2.0 * r)
-        return Xn, logw + np.where(np.isnan(latent), 0.0, corr).sum(axis=-1)
+        yl = np.where(exact, y, 0.0)[:, None, :]
+        corr = ((yl - lin) ** 2 - (yl - hx) ** 2) / (2.0 * r)
+        logw = logw + np.where(exact[:, None, :], corr, 0.0).sum(axis=-1)
+        interval = np.where(exact, np.nan, y)
+        return Xn, logw + channel_log_likelihood(self.channel, k, interval, hx, np.sqrt(r))
 
     def log_likelihood(self, rng, k, X, y, dy):
         sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")

@@ -321,7 +321,8 @@ _ENTRY_LIST = [
         options={
             "particles": int,
             "resample_threshold": float,
-            "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
+            "proposal": ("auto", "optimal", "prior", "rao_blackwellised", "linearised"),
+            "linearisation_steps": int,
             "seed": object,
             "backend": BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
         },
