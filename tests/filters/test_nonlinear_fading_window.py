@@ -1,7 +1,6 @@
-"""Rice fading of order L > 0 on a NonlinearSystem, y*_k = sum_s theta_k(s) h(x_(k-s), k-s) + v_k: the filters'
-window of past states against the linear fading filters (a linear h, order 2), the exact reduction to the order-0
-filters when the delayed gains vanish, a Monte Carlo check against the particle filter, the simulated readings,
-and the refusals."""
+"""Rice fading of order L > 0 on a NonlinearSystem, y*_k = sum_s theta_k(s) h(x_(k-s), k-s) + v_k: the exact
+reduction to the order-0 filters when the delayed gains vanish, a Monte Carlo check against the particle filter, the
+simulated readings and the refusals (the linear fading filters of order 2 for a linear h: test_nonlinear_fading.py)."""
 
 from __future__ import annotations
 
@@ -10,69 +9,14 @@ import pytest
 
 import tobitkf as tk
 
-from .test_nonlinear_fading import _linear_pair, _nonlinear, _scalar_model
+from .test_nonlinear_fading import _nonlinear, _scalar_model
 
 TOL = 1e-10
 FAD = tk.RiceFading.gaussian(2, [[0.8, 1.1], [0.5, 0.3], [0.3, -0.4]], [[0.05, 0.02], [0.01, 0.03], [0.02, 0.0]])
 
 
-@pytest.fixture(scope="module")
-def linear_record():
-    lin, _ = _linear_pair()
-    cens = tk.Censoring(lower=[0.2, -0.3])
-    data = tk.simulate(lin, steps=25, runs=6, censoring=cens, measurement=FAD, seed=4)
-    y = data.y.copy()
-    y[1, 3, 0] = np.nan
-    y[2, 0] = np.nan
-    return data, cens, y
-
-
-# --------------------------------------------------------------------------- exact reductions, linear h
-
-
-@pytest.mark.parametrize("rule", ["unscented", "cubature"])
-def test_adf_with_linear_h_is_the_linear_fading_adf(linear_record, rule):
-    data, cens, y = linear_record
-    lin, nl = _linear_pair()
-    a = tk.FadingAssumedDensityFilter(lin, FAD, cens, backend="numpy").filter(y)
-    b = tk.FadingNonlinearAssumedDensityFilter(nl, FAD, cens, rule=rule).filter(y)
-    np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.pred_cov, a.pred_cov, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.extras["log_likelihood"], a.extras["log_likelihood"], rtol=0, atol=TOL)
-    # the window: the fixed-lag estimates x_(k-s|k) and their covariance
-    np.testing.assert_allclose(b.final.aug_mean, a.final.aug_mean, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.final.aug_cov, a.final.aug_cov, rtol=0, atol=TOL)
-
-
-@pytest.mark.parametrize("kind", ["extended", "unscented"])
-def test_tobit_forms_with_linear_h_are_the_tkf_fm_of_order_2(linear_record, kind):
-    data, cens, y = linear_record
-    lin, nl = _linear_pair()
-    a = tk.FadingTobitKalmanFilter(lin, FAD, cens, covariance_update="standard", backend="numpy").filter(y)
-    cls = tk.FadingTobitExtendedKalmanFilter if kind == "extended" else tk.FadingTobitUnscentedKalmanFilter
-    b = cls(nl, FAD, cens, fading_variance_term=False).filter(y)
-    np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.extras["expected_y"], a.extras["expected_y"], rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.extras["slope"], a.extras["p_uncensored"], rtol=0, atol=TOL)
-
-
-@pytest.mark.parametrize("kind", ["extended", "unscented"])
-def test_kalman_forms_with_linear_h_keep_the_exact_fading_variance(linear_record, kind):
-    """One channel: the Kalman update with the window's faded moments is the fading ADF of order 2 without
-    censoring (its exact second moment under the prediction)."""
-    data, _, _ = linear_record
-    lin, nl = _linear_pair(1)
-    fad = tk.RiceFading.gaussian(2, [0.8, 0.5, 0.3], [0.05, 0.01, 0.02])
-    y = data.y_latent[..., :1]
-    a = tk.FadingAssumedDensityFilter(lin, fad, backend="numpy").filter(y)
-    cls = tk.FadingExtendedKalmanFilter if kind == "extended" else tk.FadingUnscentedKalmanFilter
-    b = cls(nl, fad).filter(y)
-    np.testing.assert_allclose(b.mean, a.mean, rtol=0, atol=TOL)
-    np.testing.assert_allclose(b.cov, a.cov, rtol=0, atol=TOL)
-    c = cls(nl, fad, fading_variance_term=False).filter(y)
-    assert np.abs(c.cov - a.cov).max() > 1e-3
+# --------------------------------------------------------------------------- exact reductions
+# (for a linear h, the linear fading filters of order 2: tests/filters/test_nonlinear_fading.py)
 
 
 @pytest.mark.parametrize(

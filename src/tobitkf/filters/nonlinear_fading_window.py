@@ -113,8 +113,11 @@ class FadingWindow:
     n: int
     nx: int
     rule: Any
+    fading: Any  # the RiceFading
+    fading_variance_term: bool
+    _fade: np.ndarray  # order 0: (2, m), the gains read by the compiled loop
     _lags: int = 0
-    _gains: np.ndarray  # (2, L+1, m)
+    _gains: np.ndarray  # order L > 0: (2, L+1, m)
 
     def _window_setup(self, system: Any, fading: Any, fading_variance_term: bool) -> None:
         """Set the window of ``fading`` (order L): nothing to do for order 0.
