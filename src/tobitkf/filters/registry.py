@@ -321,8 +321,7 @@ _ENTRY_LIST = [
         options={
             "particles": int,
             "resample_threshold": float,
-            "proposal": ("auto", "optimal", "prior", "rao_blackwellised", "linearised"),
-            "linearisation_steps": int,
+            "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
             "seed": object,
             "backend": BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
         },
