@@ -139,7 +139,12 @@ def test_simulate_lost_readings_and_refused_drawers():
     sys_ = pendulum()
     d = tk.simulate(sys_, 10, 2, channel=[tk.Censoring(upper=0.5), Lose()], seed=7)
     assert np.isnan(d.y[:, ::2]).all() and not np.isnan(d.y[:, 1::2]).any()
-    with pytest.raises(tk.ValidationError, match="NonlinearSystem"):  # a drawer of C x (fading of order 1)
-        tk.simulate(sys_, 5, channel=tk.RiceFading(1, [[0.9, 0.8], [0.5, 0.4]]))
+
+    class FromC(tk.Channel):  # a drawer of its own reading from C x
+        def draw(self, rng, x, system, noise, inputs=None):
+            return x[:, 1:] @ system.C.at(1).T + noise, {}
+
+    with pytest.raises(tk.ValidationError, match="NonlinearSystem"):
+        tk.simulate(sys_, 5, channel=FromC())
     d = tk.simulate(sys_, 5, 2, channel=tk.RandomSaturation(level=1.0, mu=[0.5, 0.5], nu=[0.5, 0.5]), seed=1)
     assert d.y.shape == (2, 5, 2) and set(d.extras) >= {"alpha", "beta"}  # (2) at h(x_k, k): drawn

@@ -1,5 +1,6 @@
-"""The particle filter of a NonlinearSystem read through Rice fading of order 0 or random saturation (each with an
-optional censoring): on a linear f, h it is the linear model's bootstrap filter, draw for draw; one step from a
+"""The particle filter of a NonlinearSystem read through Rice fading (of order 0 and 2: the window of past states) or
+random saturation (each with an optional censoring): on a linear f, h it is the linear model's bootstrap filter,
+draw for draw; one step from a
 Gaussian prior matches the exact posterior mean and evidence by brute-force quadrature over the state (and the
 fading gain); the online steps equal ``filter``; the channels it still refuses are named."""
 
@@ -21,10 +22,18 @@ FADING_UNIFORM = tk.RiceFading(0, tk.laws.Uniform([[0.5, 0.9]], [[1.1, 1.3]]))  
 SATURATION = tk.RandomSaturation(mu=[0.3, 0.2], nu=[0.8, 0.9], level=[1.0, 0.8])
 CENS = tk.Censoring(lower=[0.2, -0.3])
 
+FADING2 = tk.RiceFading.gaussian(2, [[0.8, 1.1], [0.5, 0.3], [0.2, -0.4]], [[0.05, 0.02], [0.01, 0.03], [0.02, 0.0]])
+FADING2_UNIFORM = tk.RiceFading(
+    2, tk.laws.Uniform([[0.5, 0.9], [0.1, 0.2], [0.0, 0.1]], [[1.1, 1.3], [0.5, 0.6], [0.3, 0.2]])
+)
+
 PAIRS = {
     "fading": [FADING],
     "fading censored": [FADING, CENS],
     "fading drawn gains": [FADING_UNIFORM],
+    "fading of order 2": [FADING2],
+    "fading of order 2 censored": [FADING2, CENS],
+    "fading of order 2 drawn gains": [FADING2_UNIFORM],
     "saturation": [SATURATION],
     "saturation censored": [SATURATION, CENS],
 }
@@ -201,8 +210,15 @@ def test_steps_equal_filter(name):
 
 def test_refusals_name_what_is_wrong():
     _, nl = _linear_pair()
-    with pytest.raises(tk.ValidationError, match="order 0"):  # a delayed gain would need h(x_(k-s))
-        tk.ParticleFilter(nl, tk.RiceFading.gaussian(1, [[0.9, 0.9], [0.5, 0.5]], 0.0))
+    nl_u = tk.NonlinearSystem(lambda x, k: x @ A.T, lambda x, k, u: x @ C.T + u, Q=Q, R=R, x0=X0, P0=P0, inputs=2)
+    with pytest.raises(tk.ValidationError, match="past inputs"):  # a delayed term would need h(x_(k-s), k-s, u_(k-s))
+        tk.ParticleFilter(nl_u, tk.RiceFading.gaussian(1, [[0.9, 0.9], [0.5, 0.5]], 0.0))
+    with pytest.raises(tk.ValidationError, match="'linearised' .* not for nonlinear saturation"):
+        tk.ParticleFilter(nl, SATURATION, proposal="linearised")
+    with pytest.raises(tk.ValidationError, match="'linearised' .* not for linear"):
+        tk.ParticleFilter(_linear_pair()[0], CENS, proposal="linearised")
+    with pytest.raises(tk.ValidationError, match="or 'linearised'"):
+        tk.ParticleFilter(nl, CENS, proposal="optimal")
     with pytest.raises(tk.ValidationError, match="one channel piece"):
         tk.ParticleFilter(nl, [FADING, SATURATION])
     with pytest.raises(tk.ValidationError, match="one channel piece"):

@@ -188,7 +188,7 @@ class RiceFading(Channel):
         x : (N, T+1, n) ndarray
             True states :math:`x_0..x_T`.
         system : LinearSystem or NonlinearSystem
-            A :class:`~tobitkf.NonlinearSystem` (order 0 only) reads :math:`\vartheta_k(0)h(x_k, k)`.
+            A :class:`~tobitkf.NonlinearSystem` reads :math:`h(x_{k-s}, k-s)` in place of :math:`C_{k-s}x_{k-s}`.
         noise : (N, T, m) ndarray
             The drawn :math:`\upsilon_k`.
         inputs : (N, T, p) ndarray, optional
@@ -204,17 +204,19 @@ class RiceFading(Channel):
         T = T1 - 1
         m = system.m
         theta = self.sample(rng, N, T, m)
-        if not hasattr(system, "C"):  # a NonlinearSystem (order 0, draws_nonlinear): theta_k h(x_k, k) + v_k
-            self._check_nonlinear()
-            hx = np.stack(
-                [
-                    system.measurement_map(x[:, k], k, None if inputs is None else inputs[:, k - 1])
-                    for k in range(1, T1)
-                ],
-                axis=1,
-            )
-            return theta[:, :, 0] * hx + noise, {"fading": theta}
-        if system.C.varying:
+        if not hasattr(system, "C"):  # a NonlinearSystem: sum_s theta_k(s) h(x_(k-s), k-s) + v_k
+            self._check_nonlinear(system)
+            if self.order == 0:
+                hx = np.stack(
+                    [
+                        system.measurement_map(x[:, k], k, None if inputs is None else inputs[:, k - 1])
+                        for k in range(1, T1)
+                    ],
+                    axis=1,
+                )
+                return theta[:, :, 0] * hx + noise, {"fading": theta}
+            cx = np.stack([system.measurement_map(x[:, j], j) for j in range(T + 1)], axis=1)  # h(x_j, j)
+        elif system.C.varying:
             cx = np.stack([x[:, j] @ measurement_matrix_at(system, j).T for j in range(T + 1)], axis=1)
         else:
             cx = x @ measurement_matrix_at(system, 0).T  # (N, T+1, m): C_j x_j
@@ -224,20 +226,23 @@ class RiceFading(Channel):
             if k0 > T:
                 break
             y[:, k0 - 1 :] += theta[:, k0 - 1 :, s] * cx[:, k0 - s : T + 1 - s]
-        if inputs is not None and system.D is not None:
+        if inputs is not None and getattr(system, "D", None) is not None:
             y += np.stack([inputs[:, k - 1] @ system.D.at(k).T for k in range(1, T + 1)], axis=1)
         return y, {"fading": theta}
 
     @property
     def draws_nonlinear(self) -> bool:
-        r"""True for order 0: the reading :math:`\vartheta_kh(x_k, k) + v_k` of a :class:`~tobitkf.NonlinearSystem`
-        (:func:`tobitkf.simulate` draws it; the filters are in :mod:`tobitkf.filters.nonlinear_fading`)."""
-        return self.order == 0
+        r"""True: the reading :math:`\sum_{s\le\min(L,k)}\vartheta_k(s)h(x_{k-s}, k-s) + v_k` of a
+        :class:`~tobitkf.NonlinearSystem` (:func:`tobitkf.simulate` draws it, term s = k with :math:`h(x_0, 0)`;
+        the filters are in :mod:`tobitkf.filters.nonlinear_fading`); of order L > 0 for an ``h(x, k)`` without
+        input."""
+        return True
 
-    def _check_nonlinear(self) -> None:
-        if not self.draws_nonlinear:
+    def _check_nonlinear(self, system: Any) -> None:
+        if self.order > 0 and system.h_takes_input:
             raise ValidationError(
-                f"fading: a NonlinearSystem's faded reading is theta h(x_k) + v (order 0), got order L={self.order}"
+                f"fading: an h(x, k, u) read through fading of order L={self.order} is not covered (the delayed "
+                "terms h(x_(k-s), k-s) would need the past inputs); fold the input into h or use order 0"
             )
 
     def __repr__(self) -> str:

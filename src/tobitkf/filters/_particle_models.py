@@ -77,6 +77,8 @@ class _Model:
     nx: int  # state (history) dimension carried by the particles
     m: int  # reading dimension
     optimal: bool = False
+    linearised: bool = False  # the linearised optimal proposal (a NonlinearSystem's region channel)
+    steps: int = 1  # its linearisation point: the prediction (1), or after steps - 1 Gauss-Newton steps
     censoring: Censoring | None = None
     serves: type | None = None  # the channel class this model is the particle filter's reading model of
     feedthrough = True  # the reading carries D u (the protocol and saturation readings do not)
@@ -272,10 +274,13 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
     the Gaussian is conditioned on it: :math:`\mu \leftarrow \mu + g(y^*_l - p)`,
     :math:`\Sigma \leftarrow \Sigma - s^2gg^T`, :math:`g = \Sigma H_l^T/s^2` (:math:`g = 0` where
     :math:`s^2 = 0`: the value is then :math:`p` itself). Finally :math:`x_k = \mu + \Sigma^{1/2}\varepsilon`.
+    With one H per particle (a linearisation about each particle's prediction) :math:`\Sigma` is carried per
+    particle.
 
     Parameters
     ----------
-    mu : (N, Np, n) ; Qd : (n, n) ; H : (m, n) ; offset : (N, Np, m), (N, m) or 0 ; r : (N or 1, m) (>= 0)
+    mu : (N, Np, n) ; Qd : (n, n) ; H : (m, n), or (N, Np, m, n) one per particle ;
+    offset : (N, Np, m), (N, m) or 0 ; r : (N or 1, m) (>= 0) ;
     cls : (N, m) reading classes ; reading : callable ; eps : (N, Np, n) standard normal draws
 
     Returns
@@ -283,32 +288,46 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
     X : (N, Np, n) ; logw : (N, Np) the sum of the channels' log weights
     """
     N, Np, n = mu.shape
-    m = H.shape[0]
+    m = H.shape[-2]
+    per_particle = H.ndim == 4
     logw = np.zeros((N, Np))
     per_run = bool((cls == _MISSING).any()) or r.shape[0] != 1
-    Sig = np.broadcast_to(Qd, (N if per_run else 1, n, n)).copy()
+    Sig = np.broadcast_to(Qd, (N, Np, n, n) if per_particle else (N if per_run else 1, n, n)).copy()
     off = offset if np.ndim(offset) != 2 else offset[:, None, :]
     for l in range(m):
-        c = H[l]
         valid = cls[:, l] != _MISSING
         if not valid.any():
             continue
-        Sc = Sig @ c  # (Ns, n)
-        s2 = Sc @ c + r[:, l]  # (Ns,)
-        g = Sc / np.where(s2 > 0, s2, 1.0)[:, None]
-        pred = _mat(mu, c[:, None])[..., 0]
+        if per_particle:
+            c = H[:, :, l, :]  # (N, Np, n)
+            Sc = np.einsum("rpij,rpj->rpi", Sig, c)
+            s2 = np.einsum("rpi,rpi->rp", Sc, c) + r[:, l][:, None]  # (N, Np)
+            g = Sc / np.where(s2 > 0, s2, 1.0)[..., None]
+            pred = np.einsum("rpi,rpi->rp", mu, c)
+            sr = np.sqrt(s2)
+        else:
+            c = H[l]
+            Sc = Sig @ c  # (Ns, n)
+            s2 = Sc @ c + r[:, l]  # (Ns,)
+            g = Sc / np.where(s2 > 0, s2, 1.0)[:, None]
+            pred = _mat(mu, c[:, None])[..., 0]
+            sr = np.broadcast_to(np.sqrt(s2), (N,))[:, None]
         if not (np.isscalar(off) and off == 0.0):
             pred = pred + off[..., l]
         val = np.zeros((N, Np))
-        sr = np.broadcast_to(np.sqrt(s2), (N,))
         for kind in (_INTERIOR, _LOWER, _UPPER):
             rows = np.flatnonzero(cls[:, l] == kind)
             if rows.size == 0:
                 continue
-            v, lw = reading(l, kind, rows, pred[rows], sr[rows][:, None])
+            v, lw = reading(l, kind, rows, pred[rows], sr[rows])
             val[rows] = v
             logw[rows] += lw
         innov = np.where(valid[:, None], val - pred, 0.0)
+        if per_particle:
+            mu = mu + innov[..., None] * g
+            upd = s2[..., None, None] * g[..., :, None] * g[..., None, :]
+            Sig = symmetrize(Sig - np.where(valid[:, None, None, None], upd, 0.0))
+            continue
         gr = np.broadcast_to(g, (N, n)) if g.shape[0] == 1 else g
         mu = mu + innov[..., None] * gr[:, None, :]
         upd = s2[:, None, None] * g[:, :, None] * g[:, None, :]
@@ -316,7 +335,9 @@ def _condition_in_sequence(mu, Qd, H, offset, r, cls, reading, eps):
             upd = np.where(valid[:, None, None], upd, 0.0)
         Sig = symmetrize(Sig - upd)
     L = psd_sqrt(Sig)
-    if L.shape[0] == 1:
+    if per_particle:
+        X = mu + np.einsum("rpij,rpj->rpi", L, eps)
+    elif L.shape[0] == 1:
         X = mu + _mat(eps, L[0].T)
     else:
         X = mu + np.einsum("rij,rpj->rpi", L, eps)
@@ -823,6 +844,29 @@ def _flatten(channel: Any) -> list:
     return [channel]
 
 
+def region_reader(channel: Channel, k: int, y: np.ndarray, U: np.ndarray):
+    r"""The reading classes (N, m) and the ``reading`` of :func:`_condition_in_sequence` for a channel with a
+    ``region``: an exact reading (``lo == hi``) conditions on its value, an interval one on a draw of :math:`y^*`
+    from the normal truncated to it (by the uniforms ``U`` (N, Np, m); weight its mass)."""
+    N, m = y.shape
+    lo, hi = np.full((N, m), np.nan), np.full((N, m), np.nan)
+    cls = np.full((N, m), _MISSING, dtype=np.int8)
+    for l in range(m):
+        rows = ~np.isnan(y[:, l])
+        if rows.any():
+            lo[rows, l], hi[rows, l] = channel.region(y[rows, l], k, l)
+            cls[rows, l] = np.where(lo[rows, l] == hi[rows, l], _INTERIOR, _LOWER)  # exact / an interval
+
+    def reading(l, kind, rows, p, sd):
+        if kind == _INTERIOR:
+            return _exact_reading(lo[rows, l][:, None], p, sd)
+        a, bb = (lo[rows, l][:, None] - p) / sd, (hi[rows, l][:, None] - p) / sd
+        lm = _log_interval(a, bb)
+        return p + sd * _interval_z(a, bb, lm, U[rows, :, l]), lm
+
+    return cls, reading
+
+
 class _Contract(_Model):
     r"""A channel of the measurement contract (:mod:`tobitkf.channels.base`): the reading of channel l is a
     function of :math:`y^*_l = C_lx + D_lu + v_l`; its weight is the channel's ``reading_log_likelihood`` of the
@@ -850,25 +894,9 @@ class _Contract(_Model):
         sys_ = self.system
         mu = _shifted(_mat(X, sys_.transition(k - 1).T), b)
         N, Np, n = mu.shape
-        m = self.m
-        lo, hi = np.full((N, m), np.nan), np.full((N, m), np.nan)
-        cls = np.full((N, m), _MISSING, dtype=np.int8)
-        for l in range(m):
-            rows = ~np.isnan(y[:, l])
-            if rows.any():
-                lo[rows, l], hi[rows, l] = self.channel.region(y[rows, l], k, l)
-                cls[rows, l] = np.where(lo[rows, l] == hi[rows, l], _INTERIOR, _LOWER)  # exact / an interval
         r = _diag_sigma(sys_, k, f"{type(self.channel).__name__} readings") ** 2
-        U = rng.random((N, Np, m))
+        cls, reading = region_reader(self.channel, k, y, rng.random((N, Np, self.m)))
         eps = rng.standard_normal((N, Np, n))
-
-        def reading(l, kind, rows, p, sd):
-            if kind == _INTERIOR:
-                return _exact_reading(lo[rows, l][:, None], p, sd)
-            a, bb = (lo[rows, l][:, None] - p) / sd, (hi[rows, l][:, None] - p) / sd
-            lm = _log_interval(a, bb)
-            return p + sd * _interval_z(a, bb, lm, U[rows, :, l]), lm
-
         return _condition_in_sequence(
             mu, sys_.process_cov(k - 1), sys_.measurement(k), dy, r[None, :], cls, reading, eps
         )

@@ -6,7 +6,10 @@ a random gain :math:`\vartheta_k(l)` per channel and step, independent over chan
 and the noise, of mean :math:`\bar\vartheta_l` and variance :math:`\tilde\vartheta_l` (Assumption 2; any law of
 :mod:`tobitkf.channels.laws`: the filters use its mean and variance), given as a
 :class:`~tobitkf.RiceFading` of order 0. With a :class:`~tobitkf.Censoring` the faded reading is then censored
-((3) of the source).
+((3) of the source). A :class:`~tobitkf.RiceFading` of order L > 0, :math:`y^*_k = \sum_{s\le\min(L,k)}
+\vartheta_k(s)\odot h(x_{k-s}, k-s) + v_k`, is read by every filter here through the window of past states
+:math:`[x_k; \dots; x_{k-L}]` (:mod:`tobitkf.filters.nonlinear_fading_window`, with its equations; the numpy path
+only); the rest of this docstring is order 0.
 
 Every filter here is its unfaded counterpart of :mod:`tobitkf.filters.nonlinear` with the measurement moments of
 :math:`h` under the prediction (:math:`\hat y`, :math:`P_{xy}`, :math:`P_{yy}`, by linearisation or sigma
@@ -68,6 +71,7 @@ from .nonlinear import (
     _form,
 )
 from .nonlinear_adf import NonlinearAssumedDensityFilter
+from .nonlinear_fading_window import FadingWindow
 
 __all__ = [
     "FadingExtendedKalmanFilter",
@@ -95,8 +99,8 @@ def fading_gains(system: Any, fading: Any, fading_variance_term: Any = True) -> 
     check_instance(fading, RiceFading, "fading")
     if fading.order != 0:
         raise ValidationError(
-            f"fading: expected a RiceFading of order 0 for a NonlinearSystem (the reading theta h(x_k) + v), got "
-            f"order L={fading.order} (the delayed terms theta(s) h(x_(k-s)) are not modelled)"
+            f"fading: expected a RiceFading of order 0 for the gains of theta h(x_k) + v, got order L={fading.order} "
+            "(the filters read a higher order through their window: tobitkf.filters.nonlinear_fading_window)"
         )
     fading.check(system.m)
     use_var = check_bool(fading_variance_term, "fading_variance_term")
@@ -106,18 +110,33 @@ def fading_gains(system: Any, fading: Any, fading_variance_term: Any = True) -> 
     return np.ascontiguousarray(np.stack([gm, gv if use_var else np.zeros_like(gv)]))
 
 
-class _FadingMoments:
+def _fading_setup(est: Any, system: Any, fading: Any, fading_variance_term: Any) -> None:
+    """The fading of a filter: the order-0 gains ``_fade`` (read by the compiled loop too) or, for an order
+    L > 0, the window (:mod:`tobitkf.filters.nonlinear_fading_window`)."""
+    check_instance(system, NonlinearSystem, "system")
+    check_instance(fading, RiceFading, "fading")
+    use_var = check_bool(fading_variance_term, "fading_variance_term")
+    if fading.order == 0:
+        est._fade = fading_gains(system, fading, use_var)
+    else:
+        fading.check(system.m)
+    est._window_setup(system, fading, use_var)
+    est.fading = fading
+    est.fading_variance_term = use_var
+
+
+class _FadingMoments(FadingWindow):
     """The faded measurement moments (module docstring) on top of a nonlinear filter's own."""
 
     _forms = ("standard",)
     _fade: np.ndarray  # (2, m): the coefficients' means and variances, read by the compiled loop too
 
     def _fading_setup(self, system: Any, fading: Any, fading_variance_term: Any) -> None:
-        self._fade = fading_gains(system, fading, fading_variance_term)
-        self.fading = fading
-        self.fading_variance_term = bool(fading_variance_term)
+        _fading_setup(self, system, fading, fading_variance_term)
 
     def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray, u: np.ndarray | None = None):
+        if self._lags:
+            return self._window_measurement(k, xp, Pp)
         yhat, Pxy, Pyy, H = super()._measurement_moments(k, xp, Pp, u)  # type: ignore[misc]
         yhat, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (yhat, Pxy, Pyy))
         from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
@@ -136,7 +155,10 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
     ----------
     system : NonlinearSystem
     fading : RiceFading
-        Of order 0: the law of the gains :math:`\vartheta` (its mean and variance per channel).
+        The law of the gains :math:`\vartheta` (its mean and variance per channel); of order L > 0 the filter
+        carries the window :math:`[x_k; \dots; x_{k-L}]` (:mod:`tobitkf.filters.nonlinear_fading_window`; the
+        numpy path, an ``h(x, k)`` without input, no smoother), and the state's ``aug_mean`` holds the
+        fixed-lag estimates :math:`\hat x_{k-s|k}`.
     fading_variance_term : bool, default True
         Keep :math:`\tilde\vartheta(P_{yy} + \hat y^2)` in the innovation variance (False: the means only, as
         the source's filter).
@@ -145,7 +167,8 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
     Raises
     ------
     ValidationError
-        ``system`` not a NonlinearSystem, ``fading`` not an order-0 RiceFading, an unknown option.
+        ``system`` not a NonlinearSystem, ``fading`` not a RiceFading, an unknown option; an ``h(x, k, u)`` with
+        fading of order L > 0; ``backend="numba"`` with order L > 0.
     ShapeError
         A fading law whose channels do not match the system.
 
@@ -186,7 +209,7 @@ class FadingUnscentedKalmanFilter(_FadingMoments, UnscentedKalmanFilter):
     ----------
     system : NonlinearSystem
     fading : RiceFading
-        Of order 0.
+        As :class:`FadingExtendedKalmanFilter` (any order L).
     rule, alpha, beta, kappa, order
         The sigma-point rule, as :class:`~tobitkf.UnscentedKalmanFilter`.
     fading_variance_term : bool, default True
@@ -242,7 +265,7 @@ class FadingTobitExtendedKalmanFilter(_FadingMoments, TobitExtendedKalmanFilter)
     system : NonlinearSystem
         The model; R diagonal with positive entries.
     fading : RiceFading
-        Of order 0.
+        As :class:`FadingExtendedKalmanFilter` (any order L).
     censoring : Censoring, optional
         The limits of the faded reading; default none.
     noise_term : {"dissertation", "total_variance", "exact_pv"}, default "dissertation"
@@ -298,7 +321,7 @@ class FadingTobitUnscentedKalmanFilter(_FadingMoments, TobitUnscentedKalmanFilte
     system : NonlinearSystem
         The model; R diagonal with positive entries.
     fading : RiceFading
-        Of order 0.
+        As :class:`FadingExtendedKalmanFilter` (any order L).
     censoring : Censoring, optional
         The limits of the faded reading; default none.
     rule, alpha, beta, kappa, order
@@ -344,7 +367,7 @@ class FadingTobitUnscentedKalmanFilter(_FadingMoments, TobitUnscentedKalmanFilte
         )
 
 
-class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
+class FadingNonlinearAssumedDensityFilter(FadingWindow, NonlinearAssumedDensityFilter):
     r"""The assumed-density filter of fading readings of a nonlinear model, through a channel (module docstring).
 
     Channel by channel, the faded reading's moments under the sigma-point linearisation give the Gaussian latent
@@ -357,7 +380,7 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
     system : NonlinearSystem
         The model; R diagonal, entries >= 0.
     fading : RiceFading
-        Of order 0.
+        As :class:`FadingExtendedKalmanFilter` (any order L).
     channel : Channel, optional
         What happens to the faded reading (a :class:`~tobitkf.Censoring`, a :class:`~tobitkf.Quantizer`, a
         channel of your own with ``region`` or ``reading_moments``); default no censoring.
@@ -395,9 +418,7 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fade = fading_gains(system, fading, fading_variance_term)
-        self.fading = fading
-        self.fading_variance_term = bool(fading_variance_term)
+        _fading_setup(self, system, fading, fading_variance_term)
         super().__init__(
             system, Censoring() if channel is None else channel, rule=rule, iterations=iterations, alpha=alpha,
             beta=beta, kappa=kappa, order=order, covariance_update=covariance_update, backend=backend,
@@ -405,6 +426,8 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
 
     def _channel_moments(self, l: int, rule: Any, h_l: Any, xm: np.ndarray, Pm: np.ndarray):
         ybar, Pxy, Pyy = super()._channel_moments(l, rule, h_l, xm, Pm)
+        if self._lags:  # h_l is channel l's stacked map over the window
+            return self._window_channel(l, ybar, Pxy, Pyy)
         ybar, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (ybar, Pxy, Pyy))
         fade = np.ascontiguousarray(self._fade[:, l : l + 1])
         from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use

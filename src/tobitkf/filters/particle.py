@@ -86,6 +86,9 @@ Proposals (``proposal``):
   converged reference, times :math:`N_p`, over the posterior variance) is about 1 instead of 13–25, at
   3–4 times the cost per particle. Memory :math:`O(N N_p n_x^2)` (a covariance per particle).
   Without failures and censoring every particle is the augmented Kalman filter (exact, tested).
+* ``"linearised"`` (a :class:`~tobitkf.NonlinearSystem` read through a channel with a ``region``): the
+  ``"optimal"`` proposal of the readings linearised about each particle's prediction, weighted exactly
+  (:mod:`tobitkf.filters.particle_nonlinear`).
 * ``"auto"`` (default): ``"optimal"`` where available, else ``"prior"``.
 
 Weights are kept as logarithms, normalized every step; the run's particles are resampled
@@ -112,7 +115,7 @@ from typing import Any
 import numpy as np
 
 from .._linalg import symmetrize
-from .._validation import ValidationError, as_float_array, check_instance, check_memory
+from .._validation import ValidationError, as_float_array, check_instance, check_int, check_memory
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
@@ -125,7 +128,7 @@ from .kalman import LinearGaussianFamily
 
 __all__ = ["ParticleFilter", "PROPOSALS", "systematic_resample", "censored_log_likelihood"]
 
-PROPOSALS = ("auto", "optimal", "prior", "rao_blackwellised")
+PROPOSALS = ("auto", "optimal", "prior", "rao_blackwellised", "linearised")
 
 
 # --------------------------------------------------------------------------- resampling
@@ -178,9 +181,9 @@ class ParticleFilter(Estimator):
     ----------
     system : LinearSystem or NonlinearSystem
         The dynamics (and C, R, D of the readings). R must be diagonal and positive. A
-        :class:`~tobitkf.NonlinearSystem` runs the bootstrap proposal with one contract channel, or with
-        :class:`~tobitkf.RiceFading` of order 0 or :class:`~tobitkf.RandomSaturation`, either with a Censoring
-        (:mod:`tobitkf.filters.particle_nonlinear`).
+        :class:`~tobitkf.NonlinearSystem` runs the bootstrap proposal (or ``"linearised"``) with one contract
+        channel, or with :class:`~tobitkf.RiceFading` of any order or :class:`~tobitkf.RandomSaturation`, either
+        with a Censoring (:mod:`tobitkf.filters.particle_nonlinear`).
     channel : Channel or sequence of Channel, optional
         :class:`~tobitkf.Censoring` (one-, two-sided, time-varying; several regions as stacked
         channels, :func:`~tobitkf.multi_region`), :class:`~tobitkf.RiceFading` (with a Censoring),
@@ -195,12 +198,18 @@ class ParticleFilter(Estimator):
     resample_threshold : float in [0, 1], default 0.5
         Resample a run when its effective sample size is below this fraction of :math:`N_p`
         (0: never, 1: every step).
-    proposal : {"auto", "optimal", "prior", "rao_blackwellised"}, default "auto"
+    proposal : {"auto", "optimal", "prior", "rao_blackwellised", "linearised"}, default "auto"
         See the module docstring; ``"optimal"`` is refused for channels without a closed form
-        (fading, protocol with a continuous failure law), ``"rao_blackwellised"`` for every channel but
-        the protocol channel with discrete failure laws. With ``"rao_blackwellised"`` the
+        (fading, protocol with a continuous failure law, every reading of a NonlinearSystem),
+        ``"rao_blackwellised"`` for every channel but the protocol channel with discrete failure laws,
+        ``"linearised"`` for everything but a NonlinearSystem read through one channel with a ``region``. With ``"rao_blackwellised"`` the
         ``particles`` of a state's ``carry`` are the particles' Gaussian means (and ``covariances``
         their covariances).
+    linearisation_steps : int >= 1, default 1
+        Where ``proposal="linearised"`` linearises h for each particle: 1 about its prediction
+        :math:`\mu = f(x_{k-1}, k-1)` (the extended Kalman update); s > 1 about the point reached by s - 1
+        Gauss–Newton steps on the exact readings from there (the iterated extended Kalman update, towards the
+        mode of :math:`p(x_k \mid x_{k-1}, y_k)`). The weights are exact for every choice.
     seed : int, SeedSequence, Generator or None, default None
         Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
         gives the same numbers; None draws fresh entropy once, when the filter is built.
@@ -285,6 +294,7 @@ class ParticleFilter(Estimator):
         proposal: str = "auto",
         seed: Any = None,
         backend: str = "auto",
+        linearisation_steps: int = 1,
     ):
         builder = next((b for t, b in SYSTEM_MODELS.items() if isinstance(system, t)), None)
         if builder is None:
@@ -308,8 +318,21 @@ class ParticleFilter(Estimator):
             self.model = _build_model(system, channel, censoring)
         if proposal == "optimal" and not self.model.optimal:
             raise ValidationError(
-                f"proposal: 'optimal' has no closed form for {self.model.label} readings (use 'auto' or 'prior')"
+                f"proposal: 'optimal' has no closed form for {self.model.label} readings (use 'auto' or 'prior'"
+                + (", or 'linearised', its linearisation about each particle)" if self.model.linearised else ")")
             )
+        if proposal == "linearised" and not self.model.linearised:
+            raise ValidationError(
+                "proposal: 'linearised' (the optimal proposal of readings linearised about each particle) is for a "
+                "NonlinearSystem read through one channel with a region() (Censoring, Quantizer, ...), not for "
+                f"{self.model.label} readings (use 'auto' or 'prior')"
+            )
+        steps = check_int(linearisation_steps, "linearisation_steps", minimum=1, maximum=100)
+        if steps != 1 and proposal != "linearised":
+            raise ValidationError(
+                f"linearisation_steps: {steps} steps set the linearisation of proposal='linearised', not of {proposal!r}"
+            )
+        self.linearisation_steps = self.model.steps = steps
         if proposal == "rao_blackwellised" and not (isinstance(self.model, _Protocol) and self.model.optimal):
             raise ValidationError(
                 "proposal: 'rao_blackwellised' is implemented for the protocol channel with discrete failure "
@@ -395,7 +418,7 @@ class ParticleFilter(Estimator):
         if self.proposal == "rao_blackwellised":
             assert isinstance(self.model, _Protocol)
             Xn, Cn, inc = self.model.rb_step(rng, k, X, carry["covariances"], y, b)
-        elif self.proposal == "optimal":
+        elif self.proposal in ("optimal", "linearised"):
             Xn, inc = self.model.propose(rng, k, X, y, b, dy, xp, Pp)
         else:
             Xn = self.model.propagate(rng, k, X, b)
@@ -491,7 +514,9 @@ class ParticleFilter(Estimator):
     def __repr__(self) -> str:
         return (
             f"ParticleFilter({self.model.label}, particles={self.particles}, "
-            f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold})"
+            f"proposal={self.proposal!r}, resample_threshold={self.resample_threshold}"
+            + ("" if self.linearisation_steps == 1 else f", linearisation_steps={self.linearisation_steps}")
+            + ")"
         )
 
 

@@ -8,9 +8,11 @@ the plain Gaussian reading). Two channels have a reading model of their own, the
 :math:`C_kx_k` replaced by :math:`h(x_k, k)` (:mod:`tobitkf.filters._particle_models`, one likelihood for both),
 each optionally followed by a :class:`~tobitkf.Censoring` of the reading:
 
-* :class:`~tobitkf.RiceFading` of order 0, :math:`y^*_{k,l} = \vartheta_k(l)h_l(x_k, k) + v_{k,l}`: a Gaussian
-  gain law marginalised exactly, :math:`y^*_{k,l} \mid x_k \sim N(\bar\vartheta_lh_l,
-  \tilde\vartheta_lh_l^2 + R_{k,ll})`; any other law drawn per particle;
+* :class:`~tobitkf.RiceFading` of order L, :math:`y^*_{k,l} = \sum_{s\le\min(L,k)}\vartheta_k(s)_lh_l(x_{k-s},
+  k-s) + v_{k,l}`: a Gaussian gain law marginalised exactly, :math:`y^*_{k,l} \mid x_{k-L..k} \sim
+  N(\sum_s\bar\vartheta(s)_lh_l, \sum_s\tilde\vartheta(s)_lh_l^2 + R_{k,ll})`; any other law drawn per particle.
+  The particles carry the window :math:`[x_k; \dots; x_{k-L}]` (zero blocks before time 0), the top block moved by
+  :math:`f`, the others shifted down; an ``h(x, k)`` without input for L > 0;
 * :class:`~tobitkf.RandomSaturation`, the three modes :math:`\sigma(h_l(x_k, k))`, :math:`h_l(x_k, k)` and 0
   with probabilities :math:`\mu_l`, :math:`(1-\mu_l)\nu_l`, :math:`(1-\mu_l)(1-\nu_l)`, each plus
   :math:`v_{k,l}`.
@@ -18,6 +20,30 @@ each optionally followed by a :class:`~tobitkf.Censoring` of the reading:
 With a linear :math:`h(x) = Cx` and :math:`f(x) = Ax` these give, for the same seed, the particles and weights of
 the linear model's bootstrap filter (``proposal="prior"``). The predicted moments it reports (``pred_mean``, ``pred_cov``) are the
 unscented prediction of the filtered moments (:class:`~tobitkf.UnscentedKalmanFilter`'s).
+
+**The linearised optimal proposal** (``proposal="linearised"``; Doucet, Godsill & Andrieu 2000, §II.D.2), for one
+contract channel with a ``region`` (:class:`~tobitkf.Censoring`, :class:`~tobitkf.Quantizer`, ...): per particle,
+:math:`h` is linearised about a point :math:`a`, :math:`h(x) \approx Hx + o`, :math:`H = \partial h/\partial x(a)`,
+:math:`o = h(a) - Ha`, and the linear model's locally optimal proposal is drawn for the exact readings E: the
+channels in sequence (diagonal R), each conditioning :math:`N(\mu, Q_{k-1})`, :math:`\mu = f(x_{k-1}, k-1)`, on its
+value (:math:`p_l = H_l\mu_{<l} + o_l`, :math:`s_l^2 = H_l\Sigma_{<l}H_l^T + R_{ll}`). The point is
+:math:`a = \mu` (``linearisation_steps=1``, the extended Kalman update) or the result of s - 1 Gauss–Newton steps
+:math:`a \leftarrow \mu + K(y_E - h_E(a) - H_E(\mu - a))`, :math:`K = QH_E^T(H_EQH_E^T + R_E)^{-1}` (the iterated
+update, towards the mode of :math:`p(x_k \mid x_{k-1}, y_k)`). The readings that say an interval (censored,
+quantized) do not move the proposal and enter the weight by their probability under the model. The weight
+
+.. math::
+
+    \log w = \sum_{l \in E}\Big[\log N(y_l; p_l, s_l^2) + \log N(y_l; h_l(x_k), R_{ll})
+      - \log N(y_l; H_lx_k + o_l, R_{ll})\Big] + \sum_{l \notin E}\log p(y_l \mid x_k)
+
+is :math:`p(y_k \mid x_k)p(x_k \mid x_{k-1})/q(x_k \mid x_{k-1}, y_k)` exactly (the linearised model's joint density
+of :math:`x_k` and :math:`y_E` factors as :math:`q(x_k)\prod_{l\in E}N(y_l; p_l, s_l^2)`), so the filter stays
+consistent however poor the linearisation. For a linear :math:`h` and exact readings the bracket's last two terms
+cancel and the particles and weights are those of the linear model's ``"optimal"`` proposal for the same seed
+(tested). A Gaussian per particle: where the posterior has a mode the linearisation does not see (a non-monotone h)
+or a heavier tail than the Gaussian, the weights stay exact but their variance can be large, and the bootstrap
+proposal (the default, ``"auto"``) is the safer choice. The Jacobian is the system's ``H`` or central differences.
 
 **Known inputs.** With an ``f(x, k, u)`` (``NonlinearSystem(inputs=p)``) the filter's ``filter``, ``step`` and
 ``log_likelihood`` take ``u`` (..., T, p) as the Gaussian filters do (row k-1 holds :math:`u_k`): every particle
@@ -41,6 +67,7 @@ from ..channels.saturation import RandomSaturation
 from ..models.nonlinear import NonlinearSystem
 from ._particle_models import (
     SYSTEM_MODELS,
+    _condition_in_sequence,
     _diag_sigma,
     _Fading,
     _flatten,
@@ -48,8 +75,11 @@ from ._particle_models import (
     _Model,
     _Saturation,
     channel_log_likelihood,
+    region_reader,
 )
+from ._readings import _INTERIOR, _MISSING
 from .nonlinear import SigmaPoints, _sigma_moments
+from .nonlinear_fading_window import window_predict
 
 __all__ = ["nonlinear_model"]  # registered with the particle filter when imported (by tobitkf)
 
@@ -107,10 +137,50 @@ class _Nonlinear(_NonlinearDynamics, _Model):
         self.channel = channel
         self.nx, self.m = system.n, system.m
         self._nonlinear_setup(system)
+        self.linearised = type(channel).region is not Channel.region  # the readings say an interval of y*
 
     @property
     def label(self) -> str:
         return f"nonlinear {type(self.channel).__name__}"
+
+    def propose(self, rng, k, X, y, b, dy, xp=None, Pp=None):
+        r"""The linearised locally optimal proposal (``proposal="linearised"``, module docstring): per particle, the
+        exact readings in sequence conditioned on under :math:`h` linearised about :math:`\mu = f(x_{k-1}, k-1)`
+        (or the point of ``steps - 1`` Gauss–Newton steps from it), the interval readings left to the weight, which
+        is exact. Returns (X_new (N, Np, n), log weight (N, Np))."""
+        sys_ = self.system
+        N, Np, n = X.shape
+        m = self.m
+        mu = sys_.transition_map(X.reshape(N * Np, n), k - 1, self._input(b, Np))
+        uh = self._input(dy, Np)
+        r = _diag_sigma(sys_, k, f"{type(self.channel).__name__} readings") ** 2
+        # the uniforms the linear proposal draws for its interval readings, so that a linear h draws its numbers
+        cls, reading = region_reader(self.channel, k, y, rng.random((N, Np, m)))
+        exact = cls == _INTERIOR  # (N, m); the interval readings enter the weight only
+        Q = sys_.process_cov(k - 1)
+        at = mu
+        ex = np.repeat(exact, Np, axis=0)  # (N Np, m)
+        yy = np.repeat(np.where(exact, y, 0.0), Np, axis=0)
+        for _ in range(self.steps - 1):  # x <- mu + K(y - h(x) - H(mu - x)), K = Q H^T (H Q H^T + R)^-1
+            H = sys_.measurement_jacobian(at, k, uh) * ex[:, :, None]
+            innov = np.where(ex, yy - sys_.measurement_map(at, k, uh), 0.0) + np.einsum("qij,qj->qi", H, at - mu)
+            S = H @ Q @ np.swapaxes(H, -1, -2) + np.where(ex, r, 1.0)[:, :, None] * np.eye(m)
+            at = mu + np.einsum("ij,qkj,qk->qi", Q, H, np.linalg.solve(S, innov[..., None])[..., 0])
+        H = sys_.measurement_jacobian(at, k, uh)  # (N Np, m, n)
+        off = sys_.measurement_map(at, k, uh) - np.einsum("qij,qj->qi", H, at)
+        H, off, mu = H.reshape(N, Np, m, n), off.reshape(N, Np, m), mu.reshape(N, Np, n)
+        eps = rng.standard_normal((N, Np, n))
+        cond = np.where(exact, cls, _MISSING).astype(cls.dtype)
+        Xn, logw = _condition_in_sequence(mu, Q, H, off, r[None, :], cond, reading, eps)
+        # log N(y; h(x_k), r) - log N(y; H x_k + o, r): the model's density of an exact reading over the linearised
+        # one's; an interval reading: its probability under the model
+        hx = self._h(k, Xn, dy)
+        lin = np.einsum("rpij,rpj->rpi", H, Xn) + off
+        yl = np.where(exact, y, 0.0)[:, None, :]
+        corr = ((yl - lin) ** 2 - (yl - hx) ** 2) / (2.0 * r)
+        logw = logw + np.where(exact[:, None, :], corr, 0.0).sum(axis=-1)
+        interval = np.where(exact, np.nan, y)
+        return Xn, logw + channel_log_likelihood(self.channel, k, interval, hx, np.sqrt(r))
 
     def log_likelihood(self, rng, k, X, y, dy):
         sd = _diag_sigma(self.system, k, f"{type(self.channel).__name__} readings")
@@ -122,11 +192,12 @@ class _Nonlinear(_NonlinearDynamics, _Model):
 
 
 class _NonlinearFading(_NonlinearDynamics, _Fading):
-    r"""Fading of order 0, :math:`y^* = \vartheta\odot h(x_k, k) + v` (then censored): the linear fading model's law
-    of the latent reading with :math:`C_kx_k` replaced by :math:`h(x_k, k)` (a feedthrough sits inside h)."""
+    r"""Fading of order L, :math:`y^* = \sum_s\vartheta(s)\odot h(x_{k-s}, k-s) + v` (then censored): the linear
+    fading model's law of the latent reading with :math:`C_{k-s}x_{k-s}` replaced by :math:`h(x_{k-s}, k-s)` (a
+    feedthrough sits inside h, order 0 only), the window of past states moved by f."""
 
     def __init__(self, system: NonlinearSystem, fading: RiceFading, censoring: Censoring | None):
-        fading._check_nonlinear()
+        fading._check_nonlinear(system)
         super().__init__(system, fading, censoring)
         self._nonlinear_setup(system)
 
@@ -134,8 +205,19 @@ class _NonlinearFading(_NonlinearDynamics, _Fading):
     def label(self) -> str:
         return "nonlinear fading"
 
+    def predict_moments(self, k, x, P, b):
+        if not self.L:
+            return super().predict_moments(k, x, P, b)
+        return window_predict(_PREDICTION, self.system, self.nx, k, x, P, None if np.ndim(b) == 0 else b)
+
+    def propagate(self, rng, k, X, b):
+        top = super().propagate(rng, k, X[..., : self.n], b)  # the window shifts down one
+        return np.concatenate([top, X[..., : self.nx - self.n]], axis=-1)
+
     def modes(self, rng, k, X, dy):
-        return self._faded_modes(rng, k, self._h(k, X, dy)[:, :, None, :], 0.0)
+        n = self.n
+        terms = [self._h(k - s, X[..., s * n : (s + 1) * n], dy) for s in range(min(self.L, k) + 1)]
+        return self._faded_modes(rng, k, np.stack(terms, axis=2), 0.0)
 
 
 class _NonlinearSaturation(_NonlinearDynamics, _Saturation):
@@ -167,7 +249,7 @@ def _reading_model(piece: Any) -> Any:
 
 def nonlinear_model(system: Any, channel: Any, censoring: Any) -> _Model:
     """The particle filter's model of ``system`` (a NonlinearSystem) read through one contract channel (or a
-    Censoring given as ``censoring``; none: plain Gaussian readings), or through Rice fading of order 0 or random
+    Censoring given as ``censoring``; none: plain Gaussian readings), or through Rice fading of any order or random
     saturation, either with an optional Censoring of the reading."""
     pieces = _flatten(channel) + ([] if censoring is None else [censoring])
     own = [(p, model) for p in pieces if (model := _reading_model(p)) is not None]
