@@ -87,8 +87,37 @@ def _needless_specialisations() -> list[str]:
 # Where the run's compile time goes: the CPU seconds of every outermost numba compile of a tobitkf function (its callees
 # compiled inside it included), summed over the processes of the run, the largest listed in the run's summary. On a
 # fresh numba cache compiling is most of the default run's time; a function listed with more versions than the tests
-# need, or compiled by every worker, is where it can be cut.
-_COMPILE_CPU: dict[str, list[float]] = {}
+# need, or compiled by every worker, is where it can be cut. Each compile is kept as (function, argument types) with
+# its CPU seconds and the test that was running (the one that paid for it): the summary lists the costliest versions
+# with that test, and the CPU of compiles of a version that another process of the run compiled too (two xdist
+# workers needing it at once, before either had written it to the on-disk cache).
+_COMPILES: list[tuple[str, str, float, str]] = []
+_CURRENT_TEST = {"nodeid": "(outside a test)"}
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    _CURRENT_TEST["nodeid"] = item.nodeid
+    yield
+    _CURRENT_TEST["nodeid"] = "(outside a test)"
+
+
+def _short_types(args) -> str:
+    """The argument types of a compile, short: ``f8[3C]`` a C-contiguous 3-d float64 array (``R`` read-only, ``A``
+    any layout), ``(k)`` a tuple of k numbers (the compile-time sizes and kinds), ``f()`` a compiled function ``f``,
+    other types by name."""
+    from numba.core import types
+
+    def one(t):
+        if isinstance(t, types.Array):
+            return f"{t.dtype.name}[{t.ndim}{t.layout}{'' if t.mutable else 'R'}]".replace("float64", "f8")
+        if isinstance(t, types.UniTuple):
+            return f"({t.count})"
+        if isinstance(t, types.Dispatcher):  # a compiled model function: its name, not its address
+            return f"{t.dispatcher.py_func.__name__}()"
+        return str(t)
+
+    return " ".join(one(t) for t in args)
 
 
 def _compile_listener():
@@ -107,12 +136,13 @@ def _compile_listener():
             t0 = self.started.pop()
             if self.started:  # a callee compiled inside an outer compile: counted in the outer one
                 return
-            func = getattr((ev.data or {}).get("dispatcher"), "py_func", None)
+            data = ev.data or {}
+            func = getattr(data.get("dispatcher"), "py_func", None)
             mod = getattr(func, "__module__", "") or ""
             if mod.startswith("tobitkf"):
-                entry = _COMPILE_CPU.setdefault(f"{mod}.{func.__qualname__}", [0.0, 0])
-                entry[0] += time.process_time() - t0
-                entry[1] += 1
+                name = f"{mod}.{func.__qualname__}"
+                _COMPILES.append((name, _short_types(data.get("args", ())), time.process_time() - t0,
+                                  _CURRENT_TEST["nodeid"]))  # fmt: skip
 
     return _Listener()
 
@@ -133,7 +163,7 @@ def pytest_sessionfinish(session):
     workeroutput = getattr(session.config, "workeroutput", None)
     if workeroutput is not None:  # an xdist worker: the controller reports it
         workeroutput["needless_specialisations"] = found
-        workeroutput["compile_cpu"] = dict(_COMPILE_CPU)
+        workeroutput["compiles"] = list(_COMPILES)
     else:
         _NEEDLESS.extend(found)
 
@@ -142,10 +172,7 @@ def pytest_sessionfinish(session):
 def pytest_testnodedown(node, error):
     out = getattr(node, "workeroutput", {})
     _NEEDLESS.extend(out.get("needless_specialisations", []))
-    for name, (seconds, count) in out.get("compile_cpu", {}).items():
-        entry = _COMPILE_CPU.setdefault(name, [0.0, 0])
-        entry[0] += seconds
-        entry[1] += count
+    _COMPILES.extend(tuple(c) for c in out.get("compiles", []))
 
 
 def pytest_terminal_summary(terminalreporter):
@@ -153,8 +180,33 @@ def pytest_terminal_summary(terminalreporter):
         terminalreporter.section("kernels compiled again for read-only or strided arrays")
         for line in sorted(set(_NEEDLESS)):
             terminalreporter.write_line(line)
-    if _COMPILE_CPU:
-        total = sum(seconds for seconds, _ in _COMPILE_CPU.values())
-        terminalreporter.section(f"numba compiles: {total:.0f} s of CPU in all processes; the largest")
-        for name, (seconds, count) in sorted(_COMPILE_CPU.items(), key=lambda kv: -kv[1][0])[:15]:
-            terminalreporter.write_line(f"{seconds:8.1f} s  {count:3d} compiles  {name}")
+    if _COMPILES:
+        _compile_summary(terminalreporter)
+
+
+def _compile_summary(terminalreporter) -> None:
+    """The run's compile CPU: per function (compiles, distinct versions), the costliest versions with the test that
+    paid for each (its costliest compile, when two processes compiled it), and what the compiles of a version that
+    another process compiled too cost."""
+    per_fn: dict[str, list] = {}
+    per_version: dict[tuple[str, str], list] = {}
+    for name, sig, seconds, test in _COMPILES:
+        fn = per_fn.setdefault(name, [0.0, 0, set()])
+        fn[0] += seconds
+        fn[1] += 1
+        fn[2].add(sig)
+        per_version.setdefault((name, sig), []).append((seconds, test))
+    total = sum(c[2] for c in _COMPILES)
+    again = sum(seconds for v in per_version.values() for seconds, _ in sorted(v, reverse=True)[1:])
+    write = terminalreporter.write_line
+    terminalreporter.section(
+        f"numba compiles: {total:.0f} s of CPU in all processes, {len(_COMPILES)} compiles of {len(per_version)} "
+        f"versions ({again:.0f} s compiling a version again in another process); the largest functions"
+    )
+    for name, (seconds, count, sigs) in sorted(per_fn.items(), key=lambda kv: -kv[1][0])[:15]:
+        write(f"{seconds:8.1f} s  {count:3d} compiles  {len(sigs):3d} versions  {name}")
+    terminalreporter.section("numba compiles: the costliest versions, with the test that paid for each")
+    first = {key: max(v) for key, v in per_version.items()}
+    for (name, sig), (seconds, test) in sorted(first.items(), key=lambda kv: -kv[1][0])[:25]:
+        write(f"{seconds:6.1f} s  {name.rsplit('.', 1)[-1]}  {test}")
+        write(f"          {sig[:160]}")
