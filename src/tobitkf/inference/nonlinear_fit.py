@@ -51,11 +51,20 @@ class NonlinearModel:
 
     kind = "nonlinear"
 
-    def __init__(self, build: Callable[[np.ndarray], Any] | None, channel: Any, rule: str, iterations: int):
+    def __init__(
+        self,
+        build: Callable[[np.ndarray], Any] | None,
+        channel: Any,
+        rule: str,
+        iterations: int,
+        update: str = "linearised",
+    ):
         self.build, self.channel, self.rule, self.iterations = build, channel, rule, iterations
+        self.update = update
 
     def __repr__(self) -> str:
-        return f"NonlinearModel(channel={self.channel!r}, rule={self.rule!r}, iterations={self.iterations})"
+        up = "" if self.update == "linearised" else f", update={self.update!r}"
+        return f"NonlinearModel(channel={self.channel!r}, rule={self.rule!r}, iterations={self.iterations}{up})"
 
     def system(self, theta: Any = None, l: int = 0) -> NonlinearSystem:
         if self.build is None:
@@ -63,11 +72,12 @@ class NonlinearModel:
         return self.build(np.asarray(theta, dtype=float))
 
     def to_spec(self) -> dict[str, Any]:
-        return {"kind": self.kind, "rule": self.rule, "iterations": self.iterations}
+        return {"kind": self.kind, "rule": self.rule, "iterations": self.iterations, "update": self.update}
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> NonlinearModel:
-        return cls(None, None, str(spec.get("rule", "unscented")), int(spec.get("iterations", 1)))
+        rule, iterations = str(spec.get("rule", "unscented")), int(spec.get("iterations", 1))
+        return cls(None, None, rule, iterations, str(spec.get("update", "linearised")))
 
     def _unavailable(self, what: str):
         raise ValidationError(
@@ -109,6 +119,7 @@ def fit_nonlinear(
     progress: Any = None,
     rule: str = "unscented",
     iterations: int = 1,
+    update: str = "linearised",
     names: Any = None,
     gtol: float = 1e-3,
     maxiter: int = 200,
@@ -140,6 +151,11 @@ def fit_nonlinear(
         The sigma-point rule of the filter (``"unscented"``, ``"cubature"``, ``"gauss_hermite"``).
     iterations : int, default 1
         The filter's posterior-linearisation iterations per channel.
+    update : {"linearised", "quadrature"}, default "linearised"
+        The filter's update (:class:`~tobitkf.NonlinearAssumedDensityFilter`): ``"quadrature"`` maximises the
+        evidence of the exact one-step posterior instead, the likelihood of each reading integrated over the
+        Gaussian prediction of x (the default tensor Gauss–Hermite rule; about 40 times the cost per
+        evaluation for n = 1), which removes most of the bias below.
     names : sequence of str, optional
         Parameter names (default ``theta0``, ``theta1``, ...).
     gtol, maxiter, standard_errors
@@ -187,12 +203,12 @@ def fit_nonlinear(
         channel = censoring
 
     sys_of = checked_map(model, NonlinearSystem)
-    first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations)
+    first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations, update=update)
     first.log_likelihood(y2, u=u)  # the readings, inputs and channel checked once, with their own errors
 
     def ll_of(th: np.ndarray) -> float:
         try:
-            est = NonlinearAssumedDensityFilter(sys_of(th), channel, rule=rule, iterations=iterations)
+            est = NonlinearAssumedDensityFilter(sys_of(th), channel, rule=rule, iterations=iterations, update=update)
         except ValueError as exc:  # a parameter the map or the system refuses (a negative variance ...)
             if "the map returned" in str(exc):
                 raise
@@ -213,7 +229,7 @@ def fit_nonlinear(
         progress=_progress_callback(progress, "fit nonlinear model"),
         standard_errors=standard_errors,
         started=t0,
-        model_of=lambda th: NonlinearModel(model, channel, rule, iterations),
+        model_of=lambda th: NonlinearModel(model, channel, rule, iterations, update),
         n_obs=int((~np.isnan(y2)).sum()),
         likelihood="adf",
         data={"y": y2, "u": u},

@@ -1,0 +1,134 @@
+r"""The Gaussian projection of the exact posterior of one step by quadrature over x (internal).
+
+Given the prediction :math:`x \sim N(\bar x, \bar P)`, :math:`\bar P = SS^T`, and the exact log-likelihood
+:math:`\log p(y \mid x)` of the step's readings, the posterior :math:`p(x \mid y) \propto N(x; \bar x, \bar P)
+\,p(y \mid x)` is integrated in the whitened coordinates :math:`x = \bar x + S\xi`, :math:`\xi \sim N(0, I)`,
+by a rule with nodes :math:`\xi_i` and weights :math:`w_i \ge 0`, :math:`\sum_i w_i = 1`:
+
+.. math::
+
+    \log p(y) \approx \log\sum_i w_i\,p(y \mid \bar x + S\xi_i), \qquad
+    \pi_i = \frac{w_i\,p(y \mid \bar x + S\xi_i)}{\sum_j w_j\,p(y \mid \bar x + S\xi_j)},
+
+    \hat x = \bar x + S\mu_\xi, \quad \mu_\xi = \sum_i \pi_i\xi_i, \qquad
+    P = SC_\xi S^T, \quad C_\xi = \sum_i \pi_i(\xi_i - \mu_\xi)(\xi_i - \mu_\xi)^T,
+
+the weights formed from :math:`\log w_i + \log p(y \mid x_i)` by log-sum-exp, so a reading far in a tail does
+not underflow; the factor form takes :math:`C_\xi = R^TR` from one QR of the rows
+:math:`\sqrt{\pi_i}(\xi_i - \mu_\xi)^T` (PSD by construction).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable
+
+import numpy as np
+
+from .._validation import ValidationError, check_int
+from ._particle_models import logsumexp
+from ._update import qr_r
+from .nonlinear import SigmaPoints
+
+__all__ = ["quadrature_rule", "default_order", "project_posterior"]
+
+NODE_BUDGET = 4096
+"""Nodes of the default tensor Gauss-Hermite rule at most (its order: the largest p <= 40 with p^n <= this)."""
+
+
+def default_order(n: int) -> int:
+    """The order p of the default tensor Gauss–Hermite rule of dimension ``n``: min(40, floor(4096^(1/n))).
+
+    Raises
+    ------
+    ValidationError
+        ``n`` above 12 (the rule would have one node per coordinate): a rule must be chosen.
+    """
+    p = min(40, int(math.floor(NODE_BUDGET ** (1.0 / n) + 1e-9)))
+    if p < 2:
+        raise ValidationError(
+            f"quadrature: a tensor Gauss-Hermite rule of {n} states with at most {NODE_BUDGET} nodes has one node "
+            "per coordinate; pass a rule (an order p, p**n nodes, or SigmaPoints('cubature'), 2n nodes)"
+        )
+    return p
+
+
+def quadrature_rule(quadrature: Any, n: int) -> tuple[np.ndarray, np.ndarray, str]:
+    """The unit nodes ``(L, n)``, their log-weights ``(L,)`` and a description of ``quadrature``: None (the default
+    tensor Gauss–Hermite rule, :func:`default_order`), an order p (the tensor rule of p points per coordinate,
+    p^n nodes) or a :class:`~tobitkf.SigmaPoints` rule with non-negative weights.
+
+    Raises
+    ------
+    ValidationError
+        An order outside [2, 40], a rule with a negative weight, anything else.
+    """
+    if quadrature is None:
+        quadrature = default_order(n)
+    if isinstance(quadrature, SigmaPoints):
+        rule = quadrature
+    elif isinstance(quadrature, (int, np.integer)) and not isinstance(quadrature, bool):
+        rule = SigmaPoints("gauss_hermite", order=check_int(quadrature, "quadrature", minimum=2, maximum=40))
+    else:
+        raise ValidationError(
+            f"quadrature: expected None, an order (points per coordinate) or a SigmaPoints rule, got {quadrature!r}"
+        )
+    xi, wm, _ = rule.unit(n)
+    if np.any(wm < 0):
+        raise ValidationError(
+            f"quadrature: the rule {rule!r} has a negative weight; a quadrature of the posterior needs weights >= 0 "
+            "(the Gauss-Hermite or cubature rule)"
+        )
+    with np.errstate(divide="ignore"):
+        logw = np.log(wm / wm.sum())
+    return xi, logw, repr(rule)
+
+
+def project_posterior(
+    x: np.ndarray,
+    S: np.ndarray,
+    loglik: Callable[[np.ndarray], np.ndarray],
+    xi: np.ndarray,
+    logw: np.ndarray,
+    *,
+    factor: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    r"""The Gaussian projection of :math:`N(x; \bar x, SS^T)\,p(y \mid x)` (module docstring).
+
+    Parameters
+    ----------
+    x : (N, n) ndarray
+        Predicted means.
+    S : (N, n, n) ndarray
+        Factors of the predicted covariances, :math:`\bar P = SS^T` (any square root).
+    loglik : callable
+        Points (N, L, n) -> :math:`\log p(y \mid x)` (N, L) of each run's readings.
+    xi, logw : (L, n), (L,) ndarrays
+        The rule's unit nodes and log-weights (:func:`quadrature_rule`).
+    factor : bool
+        Also return a factor of the posterior covariance.
+
+    Returns
+    -------
+    mean, cov, factor, log_evidence : (N, n), (N, n, n), (N, n, n) or None, (N,)
+    """
+    X = x[:, None, :] + np.einsum("lj,rij->rli", xi, S)
+    lw = logw + loglik(X)
+    lz = logsumexp(lw, axis=1)
+    if not np.all(np.isfinite(lz)):
+        bad = int(np.flatnonzero(~np.isfinite(lz))[0])
+        raise ValidationError(
+            f"y: the readings of run {bad} have zero likelihood at every quadrature node of the prediction "
+            "(a reading the channel cannot give, or a prediction too far from it for the rule)"
+        )
+    pi = np.exp(lw - lz[:, None])
+    mu = pi @ xi  # (N, n)
+    D = xi[None] - mu[:, None, :]
+    mean = x + np.einsum("rij,rj->ri", S, mu)
+    if factor:
+        U = qr_r(np.sqrt(pi)[:, :, None] * D)  # C_xi = U^T U
+        F = S @ np.swapaxes(U, -1, -2)
+        return mean, F @ np.swapaxes(F, -1, -2), F, lz
+    C = np.einsum("rl,rli,rlj->rij", pi, D, D)
+    P = S @ C @ np.swapaxes(S, -1, -2)
+    return mean, 0.5 * (P + np.swapaxes(P, -1, -2)), None, lz
