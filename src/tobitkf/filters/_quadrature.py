@@ -91,7 +91,9 @@ def project_posterior(
     xi: np.ndarray,
     logw: np.ndarray,
     *,
+    passes: int = 1,
     factor: bool = False,
+    runs: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
     r"""The Gaussian projection of :math:`N(x; \bar x, SS^T)\,p(y \mid x)` (module docstring).
 
@@ -105,30 +107,58 @@ def project_posterior(
         Points (N, L, n) -> :math:`\log p(y \mid x)` (N, L) of each run's readings.
     xi, logw : (L, n), (L,) ndarrays
         The rule's unit nodes and log-weights (:func:`quadrature_rule`).
+    passes : int >= 1
+        Quadratures: the first over the prediction, each further one over the previous pass's Gaussian (module
+        docstring).
     factor : bool
         Also return a factor of the posterior covariance.
+    runs : (N,) ndarray, optional
+        The runs' indices, for the error message.
 
     Returns
     -------
     mean, cov, factor, log_evidence : (N, n), (N, n, n), (N, n, n) or None, (N,)
+        NaN where the likelihood is (a prediction that is not finite).
+
+    Raises
+    ------
+    ValidationError
+        A run whose readings have zero likelihood at every node.
     """
-    X = x[:, None, :] + np.einsum("lj,rij->rli", xi, S)
-    lw = logw + loglik(X)
-    lz = logsumexp(lw, axis=1)
-    if not np.all(np.isfinite(lz)):
-        bad = int(np.flatnonzero(~np.isfinite(lz))[0])
-        raise ValidationError(
-            f"y: the readings of run {bad} have zero likelihood at every quadrature node of the prediction "
-            "(a reading the channel cannot give, or a prediction too far from it for the rule)"
-        )
-    pi = np.exp(lw - lz[:, None])
-    mu = pi @ xi  # (N, n)
-    D = xi[None] - mu[:, None, :]
+    N, n = x.shape
+    mu, G = np.zeros((N, n)), None  # the rule's Gaussian in the whitened coordinates: N(mu, G G^T)
+    for _ in range(passes):
+        if G is None:
+            Z = np.broadcast_to(xi, (N,) + xi.shape)
+        else:  # a floor on the rule's spread: a posterior collapsed in a direction still has a density
+            idx = np.arange(n)
+            G[:, idx, idx] = np.maximum(G[:, idx, idx], 1e-8)
+            Z = mu[:, None, :] + np.einsum("lj,rij->rli", xi, G)
+        lw = logw + loglik(x[:, None, :] + np.einsum("rlj,rij->rli", Z, S))
+        if G is not None:  # the prediction's density over the rule's: N(z; 0, I) / N(z; mu, G G^T)
+            logdet = np.log(np.diagonal(G, axis1=-2, axis2=-1)).sum(-1)
+            lw = lw - 0.5 * np.einsum("rli,rli->rl", Z, Z) + 0.5 * np.einsum("li,li->l", xi, xi) + logdet[:, None]
+        lz = logsumexp(lw, axis=1)
+        if np.isneginf(lz).any():
+            bad = int(np.flatnonzero(np.isneginf(lz))[0])
+            raise ValidationError(
+                f"y: the readings of run {bad if runs is None else int(runs[bad])} have zero likelihood at every "
+                "quadrature node of the prediction (a reading the channel cannot give)"
+            )
+        pi = np.exp(lw - lz[:, None])
+        mu = np.einsum("rl,rli->ri", pi, Z)
+        D = Z - mu[:, None, :]
+        U = qr_r(np.sqrt(pi)[:, :, None] * D)  # C = U^T U, the posterior covariance in the whitened coordinates
+        G = _lower(U)
+    assert G is not None
     mean = x + np.einsum("rij,rj->ri", S, mu)
-    if factor:
-        U = qr_r(np.sqrt(pi)[:, :, None] * D)  # C_xi = U^T U
-        F = S @ np.swapaxes(U, -1, -2)
-        return mean, F @ np.swapaxes(F, -1, -2), F, lz
-    C = np.einsum("rl,rli,rlj->rij", pi, D, D)
-    P = S @ C @ np.swapaxes(S, -1, -2)
-    return mean, 0.5 * (P + np.swapaxes(P, -1, -2)), None, lz
+    F = S @ G
+    P = F @ np.swapaxes(F, -1, -2)
+    return mean, 0.5 * (P + np.swapaxes(P, -1, -2)), (F if factor else None), lz
+
+
+def _lower(U: np.ndarray) -> np.ndarray:
+    """The lower factor G (N, n, n) with :math:`GG^T = U^TU` from the R factors U of a QR, its diagonal >= 0."""
+    G = np.swapaxes(U, -1, -2)
+    sign = np.where(np.diagonal(G, axis1=-2, axis2=-1) < 0, -1.0, 1.0)
+    return G * sign[:, None, :]

@@ -66,8 +66,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     rule : {"unscented", "cubature", "gauss_hermite"} or SigmaPoints, default "unscented"
         The rule of the prediction and of the statistical linearisation; parameters as
         :class:`UnscentedKalmanFilter` (``alpha``, ``beta``, ``kappa``, ``order``).
-    iterations : int >= 1, default 1
-        Linearisations per channel and step.
+    iterations : int >= 1, optional
+        Linearisations per channel and step (default 1); with ``update="quadrature"`` the quadratures per step
+        (default 2: the first over the prediction, the second re-centred on the first one's posterior, below).
     covariance_update : {"standard", "square_root"}, default "standard"
         ``"square_root"``: a factor carried throughout, each channel's projection as the array form of its
         linearisation (noise :math:`\Omega + R_{ll}`) plus one QR for :math:`+KVK^T`; PSD by construction
@@ -89,7 +90,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     ValidationError
         ``system`` not a NonlinearSystem, a channel without ``region``/``reading_moments``, a non-diagonal or
         negative R, an unknown rule or a bad parameter; with ``update="quadrature"``: a zero variance in R (the
-        reading's likelihood needs noise), ``iterations`` other than 1, a rule with a negative weight,
+        reading's likelihood needs noise), a rule with a negative weight,
         ``quadrature`` without it; when filtering, readings with zero likelihood at every node.
 
     Notes
@@ -163,7 +164,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         channel: Any,
         *,
         rule: Any = "unscented",
-        iterations: int = 1,
+        iterations: int | None = None,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
@@ -174,8 +175,10 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         backend: str = "auto",
     ):
         self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
-        self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
         check_keywords({"update": update}, {"update": UPDATES})
+        if iterations is None:
+            iterations = 2 if update == "quadrature" else 1
+        self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
         self.update = update
         self._take_channel(system, channel)
         self._nodes: tuple[np.ndarray, np.ndarray, str] | None = None
@@ -189,11 +192,6 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
                 raise ValidationError(
                     f"update: {type(self).__name__} reads its channel through a model of its own; 'quadrature' "
                     "integrates a contract channel's reading likelihood (NonlinearAssumedDensityFilter)"
-                )
-            if self.iterations != 1:
-                raise ValidationError(
-                    f"iterations: the quadrature update integrates the exact likelihood and linearises nothing; "
-                    f"expected 1, got {iterations!r}"
                 )
             self._nodes = quadrature_rule(quadrature, self.n)
             if self._r is not None:
@@ -260,7 +258,9 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
                 loglik,
                 xi,
                 logw,
+                passes=self.iterations,
                 factor=Sn is not None,
+                runs=rows,
             )
             if Sn is not None:
                 Sn[rows] = F

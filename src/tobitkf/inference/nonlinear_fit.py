@@ -118,7 +118,7 @@ def fit_nonlinear(
     likelihood: str = "auto",
     progress: Any = None,
     rule: str = "unscented",
-    iterations: int = 1,
+    iterations: int | None = None,
     update: str = "linearised",
     names: Any = None,
     gtol: float = 1e-3,
@@ -149,8 +149,9 @@ def fit_nonlinear(
         As :func:`tobitkf.fit`'s.
     rule : str, default "unscented"
         The sigma-point rule of the filter (``"unscented"``, ``"cubature"``, ``"gauss_hermite"``).
-    iterations : int, default 1
-        The filter's posterior-linearisation iterations per channel.
+    iterations : int, optional
+        The filter's posterior-linearisation iterations per channel (default 1), or with ``update="quadrature"``
+        its quadratures per step (default 2).
     update : {"linearised", "quadrature"}, default "linearised"
         The filter's update (:class:`~tobitkf.NonlinearAssumedDensityFilter`): ``"quadrature"`` maximises the
         evidence of the exact one-step posterior instead, the likelihood of each reading integrated over the
@@ -205,6 +206,7 @@ def fit_nonlinear(
     sys_of = checked_map(model, NonlinearSystem)
     first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations, update=update)
     first.log_likelihood(y2, u=u)  # the readings, inputs and channel checked once, with their own errors
+    iterations = first.iterations
 
     def ll_of(th: np.ndarray) -> float:
         try:
