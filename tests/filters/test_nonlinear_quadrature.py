@@ -177,9 +177,11 @@ def test_step_loop_and_single_runs_equal_the_batched_filter():
         full = est.filter(y)
         state = est.init(batch_shape=(3,))
         for t in range(15):
+            split = est.update(est.predict(state), y[:, t])  # predict, then update: the same step
             state = est.step(state, y[:, t])
             np.testing.assert_allclose(state.mean, full.mean[:, t], rtol=0, atol=1e-12)
             np.testing.assert_allclose(state.cov, full.cov[:, t], rtol=0, atol=1e-12)
+            np.testing.assert_allclose(split.mean, state.mean, rtol=0, atol=1e-12)
         for r in range(3):
             one = est.filter(y[r])
             np.testing.assert_allclose(one.mean, full.mean[r], rtol=0, atol=1e-12)

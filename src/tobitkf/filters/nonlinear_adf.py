@@ -179,7 +179,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         if iterations is None:
             iterations = 2 if update == "quadrature" else 1
         self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
-        self.update = update
+        self.update_method = update
         self._take_channel(system, channel)
         self._nodes: tuple[np.ndarray, np.ndarray, str] | None = None
         if update == "quadrature":
@@ -200,7 +200,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             raise ValidationError("quadrature: an option of update='quadrature'")
 
     def _compiled_gap(self) -> str | None:
-        if self.update == "quadrature":
+        if self.update_method == "quadrature":
             return "the quadrature update (it runs on numpy)"
         return super()._compiled_gap()
 
@@ -347,7 +347,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
         if iterations == 1:
             return super().smooth(y, u=u, x0=x0, P0=P0)
-        if self.update == "quadrature":
+        if self.update_method == "quadrature":
             raise ValidationError(
                 "iterations: the iterated posterior-linearisation smoother linearises the readings; with "
                 "update='quadrature' smooth with iterations=1 (the RTS smoother over the filter's moments)"

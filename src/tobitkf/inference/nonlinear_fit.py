@@ -20,8 +20,12 @@ not shrink with the data: the filter takes the latent reading :math:`h(x_k) + v_
 of a censored reading depends on the tail of its actual (skewed) distribution. Finer sigma-point rules, more
 ``iterations`` and the square-root form refine the same Gaussian approximation and do not remove the bias (measured in
 ``tests/inference/test_nonlinear_fit_montecarlo.py``); without censoring, or with a linear h, there is none.
+``tk.fit(..., update="quadrature")`` removes most of it at its source: the filter's likelihood is then the evidence
+of the exact one-step posterior, each reading's likelihood integrated over the Gaussian prediction of x (on the
+model of that test, 256 records x 100 readings, from the expected score at the truth: c +0.051 +- 0.010 with the
+linearised update, +0.007 +- 0.010 with the quadrature, at about 16 times the cost per evaluation).
 ``tk.fit(..., bias_correction="bootstrap")`` removes it to first order by a parametric bootstrap
-(:mod:`tobitkf.inference._bias_correction`).
+(:mod:`tobitkf.inference._bias_correction`), with either update.
 
 Reached through :func:`tobitkf.fit` with a callable model that returns a ``NonlinearSystem`` at ``theta0``.
 """
