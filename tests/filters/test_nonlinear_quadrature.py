@@ -245,12 +245,14 @@ def test_refuses_a_noiseless_reading_and_too_many_states_without_a_rule():
         )
 
 
-def test_fit_maximises_the_quadrature_evidence_and_keeps_the_option():
+def test_fit_maximises_the_quadrature_evidence_and_keeps_the_option(tmp_path):
     from tests.inference.test_nonlinear_fit import CENS, TRUTH, build
 
     y = tk.simulate(build(TRUTH), 60, 3, channel=CENS, seed=4).y
     res = tk.fit(build, y, theta0=[0.5, 0.9], censoring=CENS, progress=False, update="quadrature")
-    assert res.converged and res.model.update == "quadrature"
+    assert res.converged and res.model.update == "quadrature" and res.model.iterations == 2
+    back = tk.load_fit(res.save(tmp_path / "fit.json"))  # the update is saved with the fit
+    assert back.model.update == "quadrature" and back.model.iterations == 2
     ll = tk.NonlinearAssumedDensityFilter(build(res.theta), CENS, update="quadrature").log_likelihood(y).sum()
     assert res.loglik == pytest.approx(ll, abs=1e-9)
     # the search stopped within 1e-3 standard errors of the quadrature evidence's maximum: a step of 0.05 of a
