@@ -14,8 +14,12 @@ by a rule with nodes :math:`\xi_i` and weights :math:`w_i \ge 0`, :math:`\sum_i 
     P = SC_\xi S^T, \quad C_\xi = \sum_i \pi_i(\xi_i - \mu_\xi)(\xi_i - \mu_\xi)^T,
 
 the weights formed from :math:`\log w_i + \log p(y \mid x_i)` by log-sum-exp, so a reading far in a tail does
-not underflow; the factor form takes :math:`C_\xi = R^TR` from one QR of the rows
-:math:`\sqrt{\pi_i}(\xi_i - \mu_\xi)^T` (PSD by construction).
+not underflow; :math:`C_\xi = U^TU` from one QR of the rows :math:`\sqrt{\pi_i}(\xi_i - \mu_\xi)^T` (PSD by
+construction). A further pass re-centres the rule on the previous pass's Gaussian :math:`N(\mu_\xi, GG^T)`,
+:math:`G = U^T` (adaptive Gauss–Hermite quadrature): nodes :math:`z_i = \mu_\xi + G\xi_i`, each weight times the
+ratio of the prediction's density to the rule's, :math:`\log w_i - \tfrac12|z_i|^2 + \tfrac12|\xi_i|^2 +
+\log\det G` (G's diagonal floored at 1e-8), the same moments of the :math:`z_i`; so the nodes sit where the
+posterior lives when a reading falls in the prediction's tail.
 """
 
 from __future__ import annotations
