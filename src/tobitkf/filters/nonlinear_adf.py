@@ -13,13 +13,16 @@ from typing import Any, cast
 
 import numpy as np
 
-from .._linalg import symmetrize
-from .._validation import check_int
+from .._linalg import psd_sqrt, symmetrize
+from .._validation import ValidationError, check_int
 from ..models.nonlinear import NonlinearSystem
 from ._boundary import _noise_variances
+from ._particle_models import channel_log_likelihood
+from ._quadrature import project_posterior, quadrature_rule
 from .adf_generic import _contract_channel, _ContractChecks
 from .core import (
     FilterResult,
+    check_keywords,
     check_prior,
     gain_update,
     sqrt_update,
@@ -38,7 +41,9 @@ from .nonlinear import (
     _sigma_moments,
 )
 
-__all__ = ["NonlinearAssumedDensityFilter"]
+__all__ = ["NonlinearAssumedDensityFilter", "UPDATES"]
+
+UPDATES = ("linearised", "quadrature")
 
 
 class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
@@ -61,23 +66,73 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     rule : {"unscented", "cubature", "gauss_hermite"} or SigmaPoints, default "unscented"
         The rule of the prediction and of the statistical linearisation; parameters as
         :class:`UnscentedKalmanFilter` (``alpha``, ``beta``, ``kappa``, ``order``).
-    iterations : int >= 1, default 1
-        Linearisations per channel and step.
+    iterations : int >= 1, optional
+        Linearisations per channel and step (default 1); with ``update="quadrature"`` the quadratures per step
+        (default 2: the first over the prediction, the second re-centred on the first one's posterior, below).
     covariance_update : {"standard", "square_root"}, default "standard"
         ``"square_root"``: a factor carried throughout, each channel's projection as the array form of its
         linearisation (noise :math:`\Omega + R_{ll}`) plus one QR for :math:`+KVK^T`; PSD by construction
-        and equal to the standard form to rounding when that stays PSD.
+        and equal to the standard form to rounding when that stays PSD. With ``update="quadrature"`` the
+        posterior factor is :math:`SU^T`, U from one QR of the weighted node deviations (below).
+    update : {"linearised", "quadrature"}, default "linearised"
+        ``"linearised"``: the statistical linearisation above, channel by channel. ``"quadrature"``: the
+        Gaussian projection of the exact posterior of the step's readings (not in the sources; below); the
+        prediction stays the rule's.
+    quadrature : None, int or SigmaPoints, optional
+        The rule over x of ``update="quadrature"``: None, the tensor Gauss–Hermite rule of order
+        :math:`p = \min(40, \lfloor 4096^{1/n}\rfloor)` (40 points for n <= 2, 16 for n = 3, 8 for n = 4, ...;
+        refused above n = 12); an int p in [2, 40], the tensor rule of :math:`p^n` nodes; a
+        :class:`~tobitkf.SigmaPoints` rule with weights >= 0 (``SigmaPoints("cubature")``, 2n nodes: cheap,
+        exact only for moments of degree 3 of the integrand, so rough for a peaked likelihood).
 
     Raises
     ------
     ValidationError
         ``system`` not a NonlinearSystem, a channel without ``region``/``reading_moments``, a non-diagonal or
-        negative R, an unknown rule or a bad parameter.
+        negative R, an unknown rule or a bad parameter; with ``update="quadrature"``: a zero variance in R (the
+        reading's likelihood needs noise), a rule with a negative weight,
+        ``quadrature`` without it; when filtering, readings with zero likelihood at every node.
 
     Notes
     -----
     Extras: ``log_likelihood`` (..., T), :math:`\sum_l \log p(y_k(l))` under the first linearisation of each
-    channel (the channel's third ``reading_moments`` output; 0 for a missing reading).
+    channel (the channel's third ``reading_moments`` output; 0 for a missing reading); with
+    ``update="quadrature"`` the quadrature's evidence :math:`\log p(y_k)` below (0 for a step without a
+    reading).
+
+    **The quadrature update** (``update="quadrature"``). With the prediction :math:`x_k \sim N(\bar x, \bar P)`
+    and the exact likelihood of the step's readings through the channel (R diagonal),
+
+    .. math::
+
+        p(y_k \mid x) = \prod_l p\big(y_{k,l} \mid y^*_{k,l} \sim N(h_l(x, k), R_{ll})\big)
+
+    (the channel's ``reading_log_likelihood``: the normal density at :math:`h_l(x)` for a measured reading, the
+    normal tail mass :math:`\Phi((c - h_l(x))/\sqrt{R_{ll}})` through ``log_ndtr`` for one censored at c, the
+    mass of its interval for a quantizer; a missing reading contributes 1), the posterior
+    :math:`p(x \mid y_k) \propto N(x; \bar x, \bar P)\,p(y_k \mid x)` is projected on a Gaussian by
+    quadrature in the whitened coordinates of the prediction, :math:`x_i = \bar x + S\xi_i`,
+    :math:`SS^T = \bar P` the Cholesky factor (the carried factor in the square-root form), nodes
+    :math:`\xi_i` and weights :math:`w_i` of the rule ``quadrature`` for N(0, I):
+
+    .. math::
+
+        \log p(y_k) = \log\sum_i w_i\,p(y_k \mid x_i), \qquad
+        \pi_i = w_i\,p(y_k \mid x_i)/p(y_k), \qquad
+        \hat x = \bar x + S\mu, \quad P = SCS^T,
+
+    :math:`\mu = \sum_i\pi_i\xi_i`, :math:`C = \sum_i\pi_i(\xi_i - \mu)(\xi_i - \mu)^T`, the weights
+    :math:`\pi_i` by log-sum-exp (no underflow for a reading far in a tail). All channels of a step are taken
+    together (the linearised update takes them in sequence), so the update is the projection of the exact
+    one-step posterior to the rule's accuracy, whatever h; its ``log_likelihood`` is the evidence of that
+    posterior, and :func:`tobitkf.fit` maximises it with ``update="quadrature"``. For a linear h and one
+    channel it is the linearised update (the exact projection; tested to 1e-10 with 40 nodes). The rule
+    must resolve the likelihood: when a reading is much more precise than the prediction (:math:`R_{ll}`
+    small against the spread of :math:`h_l` under the prediction), few nodes fall where the likelihood
+    lives and the projection is rough; raise the order. Cost per step and run: L nodes (:math:`p^n` for
+    the tensor rule) evaluations of h and of the channel's likelihood of each reading, against the
+    linearised update's 2n + 1 sigma points per channel: for n = 2 and the default 1600 nodes, about 100
+    times the linearised update's evaluations. Runs on numpy (``backend="auto"`` falls back to it).
 
     Examples
     --------
@@ -109,17 +164,45 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         channel: Any,
         *,
         rule: Any = "unscented",
-        iterations: int = 1,
+        iterations: int | None = None,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
         order: int = 3,
         covariance_update: str = "standard",
+        update: str = "linearised",
+        quadrature: Any = None,
         backend: str = "auto",
     ):
         self._setup(system, covariance_update, _rule(rule, alpha, beta, kappa, order), backend)
+        check_keywords({"update": update}, {"update": UPDATES})
+        if iterations is None:
+            iterations = 2 if update == "quadrature" else 1
         self.iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
+        self.update_method = update
         self._take_channel(system, channel)
+        self._nodes: tuple[np.ndarray, np.ndarray, str] | None = None
+        if update == "quadrature":
+            own = [
+                name
+                for name in ("_take_channel", "_latent_moments", "_channel_moments")
+                if getattr(type(self), name) is not getattr(NonlinearAssumedDensityFilter, name)
+            ]
+            if own:
+                raise ValidationError(
+                    f"update: {type(self).__name__} reads its channel through a model of its own; 'quadrature' "
+                    "integrates a contract channel's reading likelihood (NonlinearAssumedDensityFilter)"
+                )
+            self._nodes = quadrature_rule(quadrature, self.n)
+            if self._r is not None:
+                _noise_variances(system.measurement_cov(1), "R", positive="the quadrature update")
+        elif quadrature is not None:
+            raise ValidationError("quadrature: an option of update='quadrature'")
+
+    def _compiled_gap(self) -> str | None:
+        if self.update_method == "quadrature":
+            return "the quadrature update (it runs on numpy)"
+        return super()._compiled_gap()
 
     def _take_channel(self, system: NonlinearSystem, channel: Any) -> None:
         """Check and keep ``channel`` (``self.channel``) and the constant noise variances ``self._r`` (m,) (None
@@ -131,6 +214,8 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
     def _update_arrays(self, k, xp, Pp, Sp, y, u, carry, options):
         N = xp.shape[0]
         r = self._r if self._r is not None else _noise_variances(self._noise(k), f"R({k})")
+        if self._nodes is not None:
+            return self._quadrature_update(k, xp, Pp, Sp, y, u, r, carry)
         ll = np.zeros(N)
         if Sp is not None:
             x, S = xp, _full(Sp, N)
@@ -143,6 +228,43 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
             x, P, lll = self._channel(k, l, x, P, y[:, l], r[l], u)
             ll += lll
         return x, P, None, carry, {"log_likelihood": ll}
+
+    def _quadrature_update(self, k, xp, Pp, Sp, y, u, r, carry):
+        r"""The projection of the exact posterior of the step's readings (class docstring) for the runs with a
+        reading; the others keep the prediction."""
+        assert self._nodes is not None
+        if np.any(r <= 0):
+            _noise_variances(self._noise(k), f"R({k})", positive="the quadrature update")
+        N, n = xp.shape
+        xi, logw, _ = self._nodes
+        ll = np.zeros(N)
+        S = _full(Sp if Sp is not None else psd_sqrt(Pp), N)
+        x, P = xp.copy(), _full(Pp, N).copy()
+        Sn = S.copy() if Sp is not None else None
+        rows = np.flatnonzero(~np.isnan(y).all(axis=1))
+        if rows.size:
+            sd = np.sqrt(r)
+            L = xi.shape[0]
+            uL = None if u is None else np.repeat(u[rows], L, axis=0)
+            sys_, yr = self.system, y[rows]
+
+            def loglik(X: np.ndarray) -> np.ndarray:
+                mu = sys_.measurement_map(X.reshape(-1, n), k, uL).reshape(rows.size, L, -1)
+                return channel_log_likelihood(self.channel, k, yr, mu, sd)
+
+            x[rows], P[rows], F, ll[rows] = project_posterior(
+                xp[rows],
+                S[rows],
+                loglik,
+                xi,
+                logw,
+                passes=self.iterations,
+                factor=Sn is not None,
+                runs=rows,
+            )
+            if Sn is not None:
+                Sn[rows] = F
+        return x, P, Sn, carry, {"log_likelihood": ll}
 
     def _channel_sqrt(
         self, k: int, l: int, x: np.ndarray, S: np.ndarray, y: np.ndarray, r: float, u: np.ndarray | None = None
@@ -225,6 +347,11 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         iterations = check_int(iterations, "iterations", minimum=1, maximum=1000)
         if iterations == 1:
             return super().smooth(y, u=u, x0=x0, P0=P0)
+        if self.update_method == "quadrature":
+            raise ValidationError(
+                "iterations: the iterated posterior-linearisation smoother linearises the readings; with "
+                "update='quadrature' smooth with iterations=1 (the RTS smoother over the filter's moments)"
+            )
         from .smoothing import rts_smooth
 
         y2, batch = self._prepare_record(y)
@@ -380,6 +507,8 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
 
     def __repr__(self) -> str:
         it = "" if self.iterations == 1 else f", iterations={self.iterations}"
+        if self._nodes is not None:
+            it += f", update='quadrature', quadrature={self._nodes[2]}"
         return f"NonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it}{_form(self)})"
 
 

@@ -19,7 +19,7 @@ Three kinds of model (what ``model`` is):
   same log-likelihood;
 * a callable ``theta -> NonlinearSystem`` with ``theta0``: direct maximisation of the nonlinear
   assumed-density filter's log-likelihood (:mod:`tobitkf.inference.nonlinear_fit`; options ``channel``,
-  ``rule``, ``iterations``, ``names``).
+  ``rule``, ``iterations``, ``update``, ``names``).
 
 **Bias correction** (a callable model): ``bias_correction="bootstrap"`` corrects the estimates by a parametric
 bootstrap, :math:`2\hat\theta - \bar\theta^*` over ``bootstrap_samples`` refits of data simulated at

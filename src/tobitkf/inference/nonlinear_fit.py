@@ -20,8 +20,12 @@ not shrink with the data: the filter takes the latent reading :math:`h(x_k) + v_
 of a censored reading depends on the tail of its actual (skewed) distribution. Finer sigma-point rules, more
 ``iterations`` and the square-root form refine the same Gaussian approximation and do not remove the bias (measured in
 ``tests/inference/test_nonlinear_fit_montecarlo.py``); without censoring, or with a linear h, there is none.
+``tk.fit(..., update="quadrature")`` removes most of it at its source: the filter's likelihood is then the evidence
+of the exact one-step posterior, each reading's likelihood integrated over the Gaussian prediction of x (on the
+model of that test, 256 records x 100 readings, from the expected score at the truth: c +0.051 +- 0.010 with the
+linearised update, +0.007 +- 0.010 with the quadrature, at about 16 times the cost per evaluation).
 ``tk.fit(..., bias_correction="bootstrap")`` removes it to first order by a parametric bootstrap
-(:mod:`tobitkf.inference._bias_correction`).
+(:mod:`tobitkf.inference._bias_correction`), with either update.
 
 Reached through :func:`tobitkf.fit` with a callable model that returns a ``NonlinearSystem`` at ``theta0``.
 """
@@ -51,11 +55,20 @@ class NonlinearModel:
 
     kind = "nonlinear"
 
-    def __init__(self, build: Callable[[np.ndarray], Any] | None, channel: Any, rule: str, iterations: int):
+    def __init__(
+        self,
+        build: Callable[[np.ndarray], Any] | None,
+        channel: Any,
+        rule: str,
+        iterations: int,
+        update: str = "linearised",
+    ):
         self.build, self.channel, self.rule, self.iterations = build, channel, rule, iterations
+        self.update = update
 
     def __repr__(self) -> str:
-        return f"NonlinearModel(channel={self.channel!r}, rule={self.rule!r}, iterations={self.iterations})"
+        up = "" if self.update == "linearised" else f", update={self.update!r}"
+        return f"NonlinearModel(channel={self.channel!r}, rule={self.rule!r}, iterations={self.iterations}{up})"
 
     def system(self, theta: Any = None, l: int = 0) -> NonlinearSystem:
         if self.build is None:
@@ -63,11 +76,12 @@ class NonlinearModel:
         return self.build(np.asarray(theta, dtype=float))
 
     def to_spec(self) -> dict[str, Any]:
-        return {"kind": self.kind, "rule": self.rule, "iterations": self.iterations}
+        return {"kind": self.kind, "rule": self.rule, "iterations": self.iterations, "update": self.update}
 
     @classmethod
     def from_spec(cls, spec: dict[str, Any]) -> NonlinearModel:
-        return cls(None, None, str(spec.get("rule", "unscented")), int(spec.get("iterations", 1)))
+        rule, iterations = str(spec.get("rule", "unscented")), int(spec.get("iterations", 1))
+        return cls(None, None, rule, iterations, str(spec.get("update", "linearised")))
 
     def _unavailable(self, what: str):
         raise ValidationError(
@@ -108,7 +122,8 @@ def fit_nonlinear(
     likelihood: str = "auto",
     progress: Any = None,
     rule: str = "unscented",
-    iterations: int = 1,
+    iterations: int | None = None,
+    update: str = "linearised",
     names: Any = None,
     gtol: float = 1e-3,
     maxiter: int = 200,
@@ -138,8 +153,14 @@ def fit_nonlinear(
         As :func:`tobitkf.fit`'s.
     rule : str, default "unscented"
         The sigma-point rule of the filter (``"unscented"``, ``"cubature"``, ``"gauss_hermite"``).
-    iterations : int, default 1
-        The filter's posterior-linearisation iterations per channel.
+    iterations : int, optional
+        The filter's posterior-linearisation iterations per channel (default 1), or with ``update="quadrature"``
+        its quadratures per step (default 2).
+    update : {"linearised", "quadrature"}, default "linearised"
+        The filter's update (:class:`~tobitkf.NonlinearAssumedDensityFilter`): ``"quadrature"`` maximises the
+        evidence of the exact one-step posterior instead, the likelihood of each reading integrated over the
+        Gaussian prediction of x (the default tensor Gauss–Hermite rule; about 40 times the cost per
+        evaluation for n = 1), which removes most of the bias below.
     names : sequence of str, optional
         Parameter names (default ``theta0``, ``theta1``, ...).
     gtol, maxiter, standard_errors
@@ -187,12 +208,13 @@ def fit_nonlinear(
         channel = censoring
 
     sys_of = checked_map(model, NonlinearSystem)
-    first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations)
+    first = NonlinearAssumedDensityFilter(sys_of(th0), channel, rule=rule, iterations=iterations, update=update)
     first.log_likelihood(y2, u=u)  # the readings, inputs and channel checked once, with their own errors
+    iterations = first.iterations
 
     def ll_of(th: np.ndarray) -> float:
         try:
-            est = NonlinearAssumedDensityFilter(sys_of(th), channel, rule=rule, iterations=iterations)
+            est = NonlinearAssumedDensityFilter(sys_of(th), channel, rule=rule, iterations=iterations, update=update)
         except ValueError as exc:  # a parameter the map or the system refuses (a negative variance ...)
             if "the map returned" in str(exc):
                 raise
@@ -213,7 +235,7 @@ def fit_nonlinear(
         progress=_progress_callback(progress, "fit nonlinear model"),
         standard_errors=standard_errors,
         started=t0,
-        model_of=lambda th: NonlinearModel(model, channel, rule, iterations),
+        model_of=lambda th: NonlinearModel(model, channel, rule, iterations, update),
         n_obs=int((~np.isnan(y2)).sum()),
         likelihood="adf",
         data={"y": y2, "u": u},
