@@ -74,6 +74,34 @@ def test_kalman_and_tobit_loops_take_writable_covariances(monkeypatch):
     assert spies.bad == []
 
 
+def test_fading_loops_take_writable_arrays(monkeypatch):
+    """The fading TKF of order 0 (the runs-vectorised step) and of order 1 (the compiled loop): one run, a record
+    continued from per-run covariances."""
+    from tobitkf.channels.fading import RiceFading
+    from tobitkf.filters import _compiled_loop, _compiled_soa
+    from tobitkf.filters.fading import FadingTobitKalmanFilter
+
+    sys_ = _system()
+    cens = tk.Censoring(lower=0.0)
+    y = cens.censor(tk.simulate(sys_, 8, 3, seed=1).y)
+    y[0, 2, 0] = np.nan
+    ests = [FadingTobitKalmanFilter(sys_, RiceFading(L, [0.9] * (L + 1)), cens, backend="numba") for L in (0, 1)]
+
+    def calls():
+        for est in ests:
+            est.filter(y[:1])
+            first = est.filter(y[:, :4])
+            est.filter(y[:, 4:], state=first.final)
+
+    calls()
+    spies = _Spies(monkeypatch)
+    spies.spy(_compiled_loop, "compiled_loop")
+    spies.spy(_compiled_soa, "soa_fading_loop")
+    calls()
+    assert spies.calls.count("soa_fading_loop") == 3 and spies.calls.count("compiled_loop") == 3
+    assert spies.bad == []
+
+
 def test_censored_moments_take_writable_arrays(monkeypatch):
     """The compiled censored moments of the assumed-density update, with per-run limits and noise variances (each
     broadcast to its own shape) and a covariance shared by the runs."""
