@@ -503,8 +503,8 @@ def _step_asm(kind, n, m=1):
     step = njit(error_model="numpy", nogil=True)(soa._step.py_func)
     W = np.zeros(soa._offsets(n, m)[-1] * B)
     cst = np.zeros(2 * n * n + m * n + m * m)
-    args = (soa.SIZES[n], soa.CHANS[m], soa.KINDS[kind], W, cst, B, 0.4, 0.0, np.inf, 0.0, 1.0, np.zeros(m),
-            np.full(m, np.inf), 0, False, False, soa.GL_X, soa.GL_W, np.empty((2, soa.GL_X.shape[0])))  # fmt: skip
+    args = (soa.SIZES[n], soa.CHANS[m], soa.KINDS[kind], W, cst, B, 0.4, np.zeros(m), np.full(m, np.inf), 0, False,
+            False, soa.GL_X, soa.GL_W, np.empty((2, soa.GL_X.shape[0])))  # fmt: skip
     step.compile(tuple(typeof(a) for a in args))
     return step.inspect_asm(step.signatures[0])
 
@@ -764,3 +764,139 @@ def test_tkf_two_channels_compiles_to_packed_vector_instructions():
     asm = _step_asm(soa.TOBIT_ANY, 1, 2)
     found = len(_PACKED_MUL.findall(asm))
     assert found >= _MIN_PACKED, f"TKF, two channels: {found} packed multiplications in the step"
+
+
+# ---- the fading TKF of order 0: the TKF's step at the rows of the fading means --------------------------------------
+
+#: the limits of the fading tests' steps, cycling: lower, upper, two-sided (a window of 0.35 sd), none, a window in a
+#: tail (the window statistics' other routes), lower again at another level
+_FADING_LIMITS = [(0.0, np.inf), (-np.inf, 0.4), (-0.3, 0.5), (-np.inf, np.inf), (2.0, 2.1), (-0.5, np.inf)]
+
+
+def _fading_args(n, N, T, seed, *, noise_code, joseph, outputs, inputs, per_step=True):
+    """The arguments of ``compiled_loop`` for the fading TKF of order 0 (as ``fading._compiled_run`` makes them: the
+    smoothed layout ``means`` (N, T, 2n), ``covs`` (N, T, 2n, n) for ``outputs="all"``), a random system and rows,
+    limits of every kind changing with the step (``per_step``), missing readings, inputs; the outputs NaN-filled."""
+    from tobitkf.filters._compiled_loop import FADING_KIND
+    from tobitkf.filters._loop_specs import LoopArguments
+
+    rng, A, Q, H, x0, P0, y, bu, du = _case(n, N, T, seed, inputs=inputs)
+    H = 0.9 * H  # the rows thbar(0) C
+    k = len(_FADING_LIMITS) if per_step else 1
+    lo = np.array([[[_FADING_LIMITS[t % k][0]] for t in range(T if per_step else 1)]])
+    hi = np.array([[[_FADING_LIMITS[t % k][1]] for t in range(T if per_step else 1)]])
+    y = np.clip(y, lo[0][None, : y.shape[1]] if per_step else lo[0], hi[0][None, : y.shape[1]] if per_step else hi[0])
+    y[rng.random(size=y.shape) < 0.05] = np.nan
+
+    def out(*shape):
+        return np.full(shape, np.nan)
+
+    full = outputs == "all"
+    return LoopArguments(
+        FADING_KIND, np.ascontiguousarray(y), A=A[None, None], Qd=Q[None, None], H=H, r=np.full((1, 1, 1), 0.4),
+        lo=lo, hi=hi, J=1, noise_code=noise_code, joseph=joseph, bu=bu, du=du, x0=x0, P0=P0,
+        means=out(N, T, 2 * n if full else n), covs=out(N, T, 2 * n, n) if full else out(N, 0, n, n),
+        pmeans=out(N, T if full else 0, n), pcovs=out(N, T if full else 0, n, n), pu=out(N, T if full else 0, 1),
+        ey=out(N, T if full else 0, 1), comp=out(N, T if full else 0, 1, 1), x_last=out(N, n), P_last=out(N, n, n),
+    ).filled()  # fmt: skip
+
+
+def _fading_both(n, seed, **kw):
+    """The runs-vectorised step and the compiled loop (the oracle) on the same arguments: their outputs."""
+    from tobitkf.filters._compiled_loop import compiled_loop
+
+    res = []
+    for fn in (soa.soa_fading_loop, compiled_loop):
+        args = _fading_args(n, 131, 25, seed, **kw)
+        fn(*args)
+        res.append(args[19:])
+    return res
+
+
+@pytest.mark.parametrize("n", _sizes(2, 1, 3, 4, default=(2,)))
+def test_fading_order_0_equals_the_compiled_loop(n):
+    """The fading TKF of order 0 in the runs-vectorised step against the compiled loop's fading update: both noise
+    terms (the truncated and, ``exact_tobit_variance``, the censored variance), both covariance forms, with and
+    without inputs, the means only and every output (the smoothed layout, P(uncensored), E(y), the inverse Mills
+    ratios), limits of every kind changing with the step, missing readings, 131 runs (a block and a remainder):
+    every output to 1e-12. n = 2 in the default run (the TKF's compiled version), the others heavy."""
+    for noise_code in (0, 1):
+        for joseph in (False, True):
+            for outputs in ("means", "all"):
+                inputs = noise_code == 1
+                s, ref = _fading_both(n, 700 + 10 * n + 2 * noise_code + joseph, noise_code=noise_code,
+                                      joseph=joseph, outputs=outputs, inputs=inputs)  # fmt: skip
+                for u, v in zip(s, ref):
+                    _assert_close(u, v)
+                assert np.isfinite(s[0]).all()
+                if outputs == "all":
+                    lam, pu = s[7], s[4]
+                    assert np.isfinite(lam).all() and (lam > 0).any() and (lam < 0).any()  # lower and upper limits
+                    assert (pu < 1.0).any() and (pu == 1.0).any()  # censoring steps and the steps without a limit
+
+
+def _fading_filter(L):
+    from tobitkf.channels.fading import RiceFading
+
+    w = 0.05
+    A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
+    sys_ = tk.LinearSystem(A=A, C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.3, 0.0], P0=0.05 * np.eye(2))
+    fad = RiceFading.gaussian(L, [0.9, 0.6][: L + 1], [0.01, 0.02][: L + 1])
+    return sys_, fad
+
+
+def test_fading_covers():
+    inf = np.inf
+    A, Q, H, r, x0 = (
+        np.eye(2)[None, None],
+        np.eye(2)[None, None],
+        np.ones((1, 1, 2)),
+        np.ones((1, 1, 1)),
+        np.ones((3, 2)),
+    )
+    lo, hi = np.zeros((1, 1, 1)), np.full((1, 1, 1), inf)
+    assert soa.fading_covers(A, Q, H, r, lo, hi, x0)
+    assert soa.fading_covers(A, Q, H, r, np.array([[[-inf], [0.0]]]), np.array([[[1.0], [inf]]]), x0)  # per step
+    assert soa.fading_covers(A, Q, H, r, np.full((1, 1, 1), -inf), np.full((1, 1, 1), inf), x0)  # no limit
+    assert not soa.fading_covers(A, Q, np.ones((1, 1, 4)), r, lo, hi, np.ones((3, 4)))  # L = 1: augmented
+    assert not soa.fading_covers(A, Q, np.ones((2, 1, 2)), r, lo, hi, x0)  # rows changing with the step
+    assert not soa.fading_covers(A, Q, np.ones((1, 2, 2)), np.ones((1, 1, 2)), np.zeros((1, 1, 2)), hi, x0)  # m = 2
+    assert not soa.fading_covers(A, Q, H, r, lo, lo, x0)  # lo == hi
+    assert not soa.fading_covers(A, Q, H, r, np.full((1, 1, 1), np.nan), hi, x0)  # a NaN limit
+    assert not soa.fading_covers(np.ones((2, 1, 2, 2)), Q, H, r, lo, hi, x0)  # a transition per run
+    big = np.eye(5)[None, None]
+    assert not soa.fading_covers(big, big, np.ones((1, 1, 5)), r, lo, hi, np.ones((3, 5)))  # n too large
+    assert soa.fading_entry(None, A, Q, H, r, lo, hi, x0) is soa.soa_fading_loop
+    assert soa.fading_entry(None, A, Q, np.ones((1, 1, 4)), r, lo, hi, np.ones((3, 4))) is None
+
+
+def test_the_fading_filter_takes_the_soa_step_at_order_0(monkeypatch):
+    """``FadingTobitKalmanFilter.filter`` (backend numba) of order 0 runs the runs-vectorised step, with the numbers
+    of the numpy path (default options: the Joseph form; the standard form with the censored variance; the means
+    only); order 1 and the online step keep the compiled loop."""
+    from tobitkf.filters.fading import FadingTobitKalmanFilter
+
+    cens = tk.Censoring(lower=-0.2, upper=0.6)
+    rng = np.random.default_rng(13)
+    y = cens.censor(rng.normal(0.2, 0.6, size=(131, 30, 1)))
+    y[5, 3] = np.nan
+    calls = _spy(monkeypatch, "soa_fading_loop")
+    sys_, fad = _fading_filter(0)
+    for opts, outputs in [({}, "all"), ({"covariance_update": "standard", "exact_tobit_variance": True}, "all"),
+                          ({}, ("mean",))]:  # fmt: skip
+        ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", **opts).filter(y, outputs=outputs)
+        got = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **opts).filter(y, outputs=outputs)
+        for f in ("mean", "cov", "pred_mean", "pred_cov"):
+            if getattr(ref, f) is not None:
+                _assert_close(getattr(got, f), getattr(ref, f), rtol=1e-10)
+        assert got.extras.keys() == ref.extras.keys()
+        for key in ref.extras:
+            _assert_close(got.extras[key], ref.extras[key], rtol=1e-10)
+    assert len(calls) == 3
+    est = FadingTobitKalmanFilter(sys_, fad, cens, backend="numba")
+    state = est.init(batch_shape=(131,))
+    for t in range(2):
+        state = est.step(state, y[:, t])
+    sys1, fad1 = _fading_filter(1)
+    FadingTobitKalmanFilter(sys1, fad1, cens, backend="numba").filter(y)
+    assert len(calls) == 3
