@@ -122,7 +122,6 @@ __all__ = [
 ]
 
 RULES = ("unscented", "cubature", "gauss_hermite")
-_TINY = np.finfo(np.float64).tiny
 
 
 # --------------------------------------------------------------------------- sigma-point rules

@@ -378,9 +378,12 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
                 ll[ok] = lp
         return ok, obs, V
 
+    def _iterations_repr(self) -> str:
+        return "" if self.iterations == 1 else f", iterations={self.iterations}"
+
     def __repr__(self) -> str:
-        it = "" if self.iterations == 1 else f", iterations={self.iterations}"
-        return f"NonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it}{_form(self)})"
+        head = f"{self._name}({self.system!r}, {self.channel!r}, rule={self.rule!r}"
+        return f"{head}{self._iterations_repr()}{_form(self)})"
 
 
 def _slr(rule: SigmaPoints, fun, x: np.ndarray, P: np.ndarray):

@@ -106,23 +106,33 @@ def fading_gains(system: Any, fading: Any, fading_variance_term: Any = True) -> 
     return np.ascontiguousarray(np.stack([gm, gv if use_var else np.zeros_like(gv)]))
 
 
+def _take_fading(est: Any, system: Any, fading: Any, fading_variance_term: Any) -> None:
+    """Check and keep the fading law of a filter of fading readings: ``est._fade`` (:func:`fading_gains`),
+    ``est.fading``, ``est.fading_variance_term``."""
+    est._fade = fading_gains(system, fading, fading_variance_term)
+    est.fading = fading
+    est.fading_variance_term = bool(fading_variance_term)
+
+
+def _faded_moments(fade: np.ndarray, yhat: Any, Pxy: Any, Pyy: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The moments of the faded reading from those of ``h(x)`` (``yhat`` (N, r), ``Pxy`` (N, n, r), ``Pyy``
+    (N, r, r); copies) and the gains' means and variances ``fade`` (2, r) (module docstring)."""
+    yhat, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (yhat, Pxy, Pyy))
+    from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
+
+    fading_moments_batch(fade[0], fade[1], yhat, Pxy, Pyy)
+    return yhat, Pxy, Pyy
+
+
 class _FadingMoments:
     """The faded measurement moments (module docstring) on top of a nonlinear filter's own."""
 
-    _forms = ("standard",)
+    _forms: tuple[str, ...] = ("standard",)  # the Joseph and square-root forms are refused
     _fade: np.ndarray  # (2, m): the coefficients' means and variances, read by the compiled loop too
-
-    def _fading_setup(self, system: Any, fading: Any, fading_variance_term: Any) -> None:
-        self._fade = fading_gains(system, fading, fading_variance_term)
-        self.fading = fading
-        self.fading_variance_term = bool(fading_variance_term)
 
     def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray, u: np.ndarray | None = None):
         yhat, Pxy, Pyy, H = super()._measurement_moments(k, xp, Pp, u)  # type: ignore[misc]
-        yhat, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (yhat, Pxy, Pyy))
-        from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
-
-        fading_moments_batch(self._fade[0], self._fade[1], yhat, Pxy, Pyy)
+        yhat, Pxy, Pyy = _faded_moments(self._fade, yhat, Pxy, Pyy)
         return yhat, Pxy, Pyy, None if H is None else H * self._fade[0][:, None]
 
     def _fading_repr(self) -> str:
@@ -161,7 +171,6 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
     """
 
     _name = "FadingExtendedKalmanFilter"
-    _forms = ("standard",)  # type: ignore[assignment]  # the Joseph and square-root forms are refused
 
     def __init__(
         self,
@@ -172,7 +181,7 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _take_fading(self, system, fading, fading_variance_term)
         super().__init__(system, covariance_update=covariance_update, backend=backend)
 
     def __repr__(self) -> str:
@@ -200,7 +209,6 @@ class FadingUnscentedKalmanFilter(_FadingMoments, UnscentedKalmanFilter):
     """
 
     _name = "FadingUnscentedKalmanFilter"
-    _forms = ("standard",)
 
     def __init__(
         self,
@@ -216,7 +224,7 @@ class FadingUnscentedKalmanFilter(_FadingMoments, UnscentedKalmanFilter):
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _take_fading(self, system, fading, fading_variance_term)
         super().__init__(
             system, rule=rule, alpha=alpha, beta=beta, kappa=kappa, order=order,
             covariance_update=covariance_update, backend=backend,
@@ -265,7 +273,6 @@ class FadingTobitExtendedKalmanFilter(_FadingMoments, TobitExtendedKalmanFilter)
     """
 
     _name = "FadingTobitExtendedKalmanFilter"
-    _forms = ("standard",)
 
     def __init__(
         self,
@@ -278,7 +285,7 @@ class FadingTobitExtendedKalmanFilter(_FadingMoments, TobitExtendedKalmanFilter)
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _take_fading(self, system, fading, fading_variance_term)
         super().__init__(
             system, _censoring(censoring), noise_term=noise_term, covariance_update=covariance_update, backend=backend
         )
@@ -313,7 +320,6 @@ class FadingTobitUnscentedKalmanFilter(_FadingMoments, TobitUnscentedKalmanFilte
     """
 
     _name = "FadingTobitUnscentedKalmanFilter"
-    _forms = ("standard",)
 
     def __init__(
         self,
@@ -331,7 +337,7 @@ class FadingTobitUnscentedKalmanFilter(_FadingMoments, TobitUnscentedKalmanFilte
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _take_fading(self, system, fading, fading_variance_term)
         super().__init__(
             system, _censoring(censoring), rule=rule, alpha=alpha, beta=beta, kappa=kappa, order=order,
             noise_term=noise_term, covariance_update=covariance_update, backend=backend,
@@ -395,9 +401,7 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fade = fading_gains(system, fading, fading_variance_term)
-        self.fading = fading
-        self.fading_variance_term = bool(fading_variance_term)
+        _take_fading(self, system, fading, fading_variance_term)
         super().__init__(
             system, Censoring() if channel is None else channel, rule=rule, iterations=iterations, alpha=alpha,
             beta=beta, kappa=kappa, order=order, covariance_update=covariance_update, backend=backend,
@@ -405,17 +409,11 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
 
     def _channel_moments(self, l: int, rule: Any, h_l: Any, xm: np.ndarray, Pm: np.ndarray):
         ybar, Pxy, Pyy = super()._channel_moments(l, rule, h_l, xm, Pm)
-        ybar, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (ybar, Pxy, Pyy))
-        fade = np.ascontiguousarray(self._fade[:, l : l + 1])
-        from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
-
-        fading_moments_batch(fade[0], fade[1], ybar, Pxy, Pyy)
-        return ybar, Pxy, Pyy
+        return _faded_moments(np.ascontiguousarray(self._fade[:, l : l + 1]), ybar, Pxy, Pyy)
 
     def __repr__(self) -> str:
-        it = "" if self.iterations == 1 else f", iterations={self.iterations}"
         extra = "" if self.fading_variance_term else ", fading_variance_term=False"
         return (
             f"FadingNonlinearAssumedDensityFilter({self.system!r}, {self.fading!r}, {self.channel!r}, "
-            f"rule={self.rule!r}{it}{extra})"
+            f"rule={self.rule!r}{self._iterations_repr()}{extra})"
         )
