@@ -19,13 +19,13 @@ from ..models.nonlinear import NonlinearSystem
 from ._boundary import _noise_variances
 from .adf_generic import _contract_channel, _ContractChecks
 from .core import (
+    _TINY,
     FilterResult,
     check_prior,
     gain_update,
     sqrt_update,
 )
 from .nonlinear import (
-    _TINY,
     SigmaPoints,
     _add_retained,
     _form,
