@@ -129,6 +129,8 @@ class _FadingMoments:
 
     _forms: tuple[str, ...] = ("standard",)  # the Joseph and square-root forms are refused
     _fade: np.ndarray  # (2, m): the coefficients' means and variances, read by the compiled loop too
+    fading: RiceFading
+    fading_variance_term: bool
 
     def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray, u: np.ndarray | None = None):
         yhat, Pxy, Pyy, H = super()._measurement_moments(k, xp, Pp, u)  # type: ignore[misc]
@@ -384,6 +386,9 @@ class FadingNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
 
     _name = "FadingNonlinearAssumedDensityFilter"
     _forms = ("standard",)
+    _fade: np.ndarray  # (2, m), as _FadingMoments'
+    fading: RiceFading
+    fading_variance_term: bool
 
     def __init__(
         self,
