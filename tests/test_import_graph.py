@@ -140,6 +140,8 @@ def test_names_handed_on_are_the_same_objects():
     for cls in (tk.KalmanFilter, tk.DroppingKalmanFilter, tk.TobitKalmanFilter, tk.AssumedDensityTobitFilter):
         assert cls.smooth is smoothing.SmoothingMethods.smooth
         assert cls.log_likelihood is smoothing.SmoothingMethods.log_likelihood
+    for cls in (tk.DroppingKalmanFilter, tk.TobitKalmanFilter):  # one filter() (a copy per family's docstring)
+        assert cls.filter.__code__ is smoothing.IndicatorFilterMethods.filter.__code__
 
 
 def test_control_uses_no_private_name_of_another_layer():

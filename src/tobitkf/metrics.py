@@ -128,7 +128,9 @@ def nees_terms(err: np.ndarray, cov: np.ndarray) -> np.ndarray:
             from ._compiled_linalg import nees_terms as kernel
 
             out = np.empty(int(np.prod(lead)))
-            kernel(np.ascontiguousarray(err.reshape(-1, n)), np.ascontiguousarray(cov.reshape(-1, n, n)), out)
+            # C-contiguous and writable, as numba types a read-only array (a broadcast covariance) apart
+            flat_err, flat_cov = (np.require(a, float, ("C", "W")) for a in (err.reshape(-1, n), cov.reshape(-1, n, n)))
+            kernel(flat_err, flat_cov, out)
             return out.reshape(lead)
     try:
         sol = np.linalg.solve(cov, err[..., None])[..., 0]

@@ -17,7 +17,7 @@ from scipy.special import log_ndtr
 
 import tobitkf as tk
 from tobitkf.channels.laws import PMF, Uniform
-from tobitkf.filters.particle import ParticleFilter, censored_log_likelihood, systematic_resample
+from tobitkf.filters.particle import ParticleFilter, censored_log_likelihood, reweight, systematic_resample
 
 KAPPA = 30.0
 
@@ -643,3 +643,16 @@ def test_rao_blackwellised_is_refused_where_it_is_not_implemented():
         ParticleFilter(oscillator(), tk.Censoring(lower=0.0), proposal="rao_blackwellised")
     with pytest.raises(tk.ValidationError, match="'rao_blackwellised' is implemented for the protocol channel"):
         ParticleFilter(sys_, tk.ProtocolChannel(2, failures=Uniform(0.3, 1.0)), proposal="rao_blackwellised")
+
+
+def test_reweight_is_the_bayes_step_and_keeps_the_weights_of_a_run_no_member_explains():
+    """Run 0: weights (1/2, 1/2), likelihoods (1, 3): the step's likelihood 2 and the weights (1/4, 3/4).
+    Run 1: no member explains the reading (all -inf): its weights stay, its log-likelihood is -inf."""
+    lw = np.log(np.array([[0.5, 0.5], [0.2, 0.8]]))
+    inc = np.array([[0.0, np.log(3.0)], [-np.inf, -np.inf]])
+    E, tot, new, ll = reweight(lw, inc)
+    np.testing.assert_allclose(ll[0], np.log(2.0), rtol=1e-14)
+    np.testing.assert_allclose(np.exp(new[0]), [0.25, 0.75], rtol=1e-14)
+    np.testing.assert_allclose(E[0] / tot[0], [0.25, 0.75], rtol=1e-14)
+    assert ll[1] == -np.inf
+    np.testing.assert_allclose(np.exp(new[1]), [0.2, 0.8], rtol=1e-14)

@@ -47,6 +47,7 @@ with the reference to 1e-13 relative where it is accurate (and through a filter 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit, types
@@ -128,28 +129,28 @@ _TINY = float(np.finfo(np.float64).tiny)
 _INF = math.inf
 
 
-@intrinsic
-def _f64_bits(typingctx, x):
-    """The bits of a float64 as an int64 (an LLVM bitcast: vectorisable, unlike ``math.frexp``)."""
-    if x != types.float64:
-        return None
+def _bitcast(name: str, source: Any, target: Any, doc: str) -> Any:
+    """The intrinsic ``name`` that reads the bits of a ``source`` value as a ``target`` (an LLVM bitcast:
+    vectorisable, unlike ``math.frexp``); ``source`` and ``target`` numba types of one size."""
 
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], context.get_value_type(types.int64))
+    def cast(typingctx, value):
+        if value != source:
+            return None
 
-    return types.int64(types.float64), codegen
+        def codegen(context, builder, signature, args):
+            return builder.bitcast(args[0], context.get_value_type(target))
+
+        return target(source), codegen
+
+    cast.__name__ = cast.__qualname__ = name
+    cast.__doc__ = doc
+    return intrinsic(cast)
 
 
-@intrinsic
-def _bits_f64(typingctx, i):
-    """The float64 of the bits ``i`` (int64): the inverse of :func:`_f64_bits`."""
-    if i != types.int64:
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], context.get_value_type(types.float64))
-
-    return types.float64(types.int64), codegen
+_f64_bits = _bitcast("_f64_bits", types.float64, types.int64, "The bits of a float64 as an int64.")
+_bits_f64 = _bitcast(
+    "_bits_f64", types.int64, types.float64, "The float64 of the bits (int64): the inverse of _f64_bits."
+)
 
 
 # log(x) without libm (so that the loop vectorises): x = 2^k m, m in [sqrt(1/2), sqrt(2)), from the bits;

@@ -30,11 +30,22 @@ from ._compiled_fading_moments import fading_channel, fading_moments
 from ._compiled_moments import CENSORED, classify, family_block
 from ._compiled_tobit import GL_W, GL_X, censored_stats
 
-__all__ = ["KALMAN", "TOBIT", "ADF", "NL_BLOCK", "SIZES", "sigma_moments", "tobit_terms", "point_columns"]
+__all__ = ["KALMAN", "TOBIT", "ADF", "NL_BLOCK", "SIZES", "rule_mean", "sigma_moments", "tobit_terms", "point_columns"]
 
 KALMAN, TOBIT, ADF = 0, 1, 2  #: update codes of :func:`~tobitkf.filters._compiled_nonlinear_loop.nonlinear_loop`
 _TINY = float(np.finfo(np.float64).tiny)
 _CBRT_EPS = float(np.cbrt(np.finfo(np.float64).eps))
+
+
+@njit(error_model="numpy", cache=True, inline="always")
+def rule_mean(Y, wm, ym):
+    r"""The rule's mean :math:`\bar y = \sum_l w^m_lY_l` of the mapped points ``Y`` (L, r) into ``ym`` (r,)."""
+    L, r = Y.shape
+    for a in range(r):
+        s = 0.0
+        for p in range(L):
+            s += wm[p] * Y[p, a]
+        ym[a] = s
 
 
 @njit(error_model="numpy", cache=True)
@@ -44,11 +55,7 @@ def sigma_moments(X, x, Y, wm, wc, ym, Pxy, Pyy):
     symmetrised :math:`P_{yy}` into ``Pyy`` (r, r)."""
     L, r = Y.shape
     n = X.shape[1]
-    for a in range(r):
-        s = 0.0
-        for p in range(L):
-            s += wm[p] * Y[p, a]
-        ym[a] = s
+    rule_mean(Y, wm, ym)
     Pxy[:] = 0.0
     Pyy[:] = 0.0
     for p in range(L):

@@ -29,7 +29,7 @@ from numba import njit
 
 from .._compiled_linalg import psd_root
 from ._compiled_moments import CENSORED, classify, family_block
-from ._compiled_nonlinear import KALMAN, tobit_terms
+from ._compiled_nonlinear import KALMAN, rule_mean, tobit_terms
 from ._compiled_tobit import GL_W, GL_X
 
 __all__ = ["predict", "joint", "adf_channel", "record"]
@@ -223,11 +223,7 @@ def _linearise(Yb, xi, wm, wc, Sp, ym, Hl, E):
     the residual rows ``E`` (L, r)."""
     L, r = Yb.shape
     n = xi.shape[1]
-    for a in range(r):
-        s = 0.0
-        for p in range(L):
-            s += wm[p] * Yb[p, a]
-        ym[a] = s
+    rule_mean(Yb, wm, ym)
     Z = np.zeros((n, r))
     for p in range(L):
         for a in range(r):

@@ -97,7 +97,7 @@ from ._boundary import _noise_variances
 from .core import Estimator, check_prior
 from .nonlinear import _sigma_moments
 from .nonlinear_adf import NonlinearAssumedDensityFilter
-from .particle import _mixture_moments
+from .particle import _mixture_moments, reweight
 
 __all__ = ["GaussianSumAssumedDensityFilter", "split_principal", "SPLIT_WEIGHTS", "SPLIT_OFFSET", "SPLIT_SCALE"]
 
@@ -250,21 +250,13 @@ class GaussianSumAssumedDensityFilter(Estimator):
         Mn[r, c], Cn[r, c] = xn, symmetrize(Pn)
         ll = np.zeros(lw.shape)
         ll[r, c] = ex["log_likelihood"]
-        lw_un = lw + ll
-        top = lw_un.max(axis=1)
-        dead = ~np.isfinite(top)
-        if dead.any():  # no component explains the reading: keep the weights, report -inf
-            lw_un[dead] = lw[dead]
-            top = lw_un.max(axis=1)
-        tot = np.exp(lw_un - top[:, None]).sum(axis=1)
-        ll_norm = np.log(tot) + top
-        lw = lw_un - ll_norm[:, None]
+        _, _, lw, ll_step = reweight(lw, ll)
         if K > 1:
             Mn, Cn, lw, count = _merge(*_drop_weightless(Mn, Cn, lw, count), self.merge_threshold)
         W = _weights(lw)
         mean, cov = _mixture_moments(Mn, Cn, W)
         carry = {"means": Mn, "covs": Cn, "log_weights": lw, "count": count}
-        extras = {"log_likelihood": np.where(dead, -np.inf, ll_norm), "weights": W, "components": count.copy()}
+        extras = {"log_likelihood": ll_step, "weights": W, "components": count.copy()}
         return mean, cov, None, carry, pred_mean, pred_cov, extras
 
     def _nonlinearity(self, k: int, M: np.ndarray, Cv: np.ndarray, y: np.ndarray, u: Any, count: np.ndarray):

@@ -69,7 +69,7 @@ from .core import (
     step_state,
 )
 from .likelihood import prediction_log_densities
-from .smoothing import SmoothingMethods
+from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter", "LinearGaussianFamily", "dropping_with_indicator"]
 
@@ -454,7 +454,7 @@ def kalman_filter(
     return est.filter(y, u=u, x0=x0, P0=P0, outputs=outputs)
 
 
-class DroppingKalmanFilter(KalmanFilter):
+class DroppingKalmanFilter(IndicatorFilterMethods, KalmanFilter):
     """Kalman filter that skips censored readings: the "IKF" baseline (Miller §1.2 item 2, §3.3.6).
 
     A channel whose reading equals its censoring limit (to relative tolerance
@@ -540,23 +540,7 @@ class DroppingKalmanFilter(KalmanFilter):
         extras = {"censored": dropped.reshape(batch + dropped.shape[1:])} if "extras" in want else {}
         return replace(res, extras=extras)
 
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        censored: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-        times: Any = None,
-    ) -> FilterResult:
-        if times is not None:
-            est = at_times(self, times, y)
-            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
-        if censored is None:
-            return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+    def _filter_indicated(self, y: Any, censored: Any, *, u: Any, x0: Any, P0: Any, outputs: Any, state: Any):
         return dropping_with_indicator(self, y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
 
     def _compiled_online_step(self, state, y, u, options):

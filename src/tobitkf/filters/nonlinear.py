@@ -122,7 +122,6 @@ __all__ = [
 ]
 
 RULES = ("unscented", "cubature", "gauss_hermite")
-_TINY = np.finfo(np.float64).tiny
 
 
 # --------------------------------------------------------------------------- sigma-point rules
@@ -674,7 +673,7 @@ class ExtendedKalmanFilter(_KalmanUpdate, _NonlinearFamily):
     """
 
     _name = "ExtendedKalmanFilter"
-    _forms = ("standard", "joseph", "square_root")
+    _forms: tuple[str, ...] = ("standard", "joseph", "square_root")
 
     def __init__(self, system: NonlinearSystem, *, covariance_update: str = "standard", backend: str = "auto"):
         self._setup(system, covariance_update, None, backend)

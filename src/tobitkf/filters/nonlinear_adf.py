@@ -21,6 +21,7 @@ from ._particle_models import channel_log_likelihood
 from ._quadrature import project_posterior, quadrature_rule
 from .adf_generic import _contract_channel, _ContractChecks
 from .core import (
+    _TINY,
     FilterResult,
     check_keywords,
     check_prior,
@@ -28,7 +29,6 @@ from .core import (
     sqrt_update,
 )
 from .nonlinear import (
-    _TINY,
     SigmaPoints,
     _add_retained,
     _form,
@@ -505,11 +505,15 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
                 ll[ok] = lp
         return ok, obs, V
 
-    def __repr__(self) -> str:
+    def _iterations_repr(self) -> str:
         it = "" if self.iterations == 1 else f", iterations={self.iterations}"
         if self._nodes is not None:
             it += f", update='quadrature', quadrature={self._nodes[2]}"
-        return f"NonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it}{_form(self)})"
+        return it
+
+    def __repr__(self) -> str:
+        head = f"{self._name}({self.system!r}, {self.channel!r}, rule={self.rule!r}"
+        return f"{head}{self._iterations_repr()}{_form(self)})"
 
 
 def _slr(rule: SigmaPoints, fun, x: np.ndarray, P: np.ndarray):

@@ -125,23 +125,29 @@ def _fading_setup(est: Any, system: Any, fading: Any, fading_variance_term: Any)
     est.fading_variance_term = use_var
 
 
+def _faded_moments(fade: np.ndarray, yhat: Any, Pxy: Any, Pyy: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The moments of the faded reading from those of ``h(x)`` (``yhat`` (N, r), ``Pxy`` (N, n, r), ``Pyy``
+    (N, r, r); copies) and the gains' means and variances ``fade`` (2, r) (module docstring)."""
+    yhat, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (yhat, Pxy, Pyy))
+    from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
+
+    fading_moments_batch(fade[0], fade[1], yhat, Pxy, Pyy)
+    return yhat, Pxy, Pyy
+
+
 class _FadingMoments(FadingWindow):
     """The faded measurement moments (module docstring) on top of a nonlinear filter's own."""
 
-    _forms = ("standard",)
+    _forms: tuple[str, ...] = ("standard",)  # the Joseph and square-root forms are refused
     _fade: np.ndarray  # (2, m): the coefficients' means and variances, read by the compiled loop too
-
-    def _fading_setup(self, system: Any, fading: Any, fading_variance_term: Any) -> None:
-        _fading_setup(self, system, fading, fading_variance_term)
+    fading: RiceFading
+    fading_variance_term: bool
 
     def _measurement_moments(self, k: int, xp: np.ndarray, Pp: np.ndarray, u: np.ndarray | None = None):
         if self._lags:
             return self._window_measurement(k, xp, Pp)
         yhat, Pxy, Pyy, H = super()._measurement_moments(k, xp, Pp, u)  # type: ignore[misc]
-        yhat, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (yhat, Pxy, Pyy))
-        from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
-
-        fading_moments_batch(self._fade[0], self._fade[1], yhat, Pxy, Pyy)
+        yhat, Pxy, Pyy = _faded_moments(self._fade, yhat, Pxy, Pyy)
         return yhat, Pxy, Pyy, None if H is None else H * self._fade[0][:, None]
 
     def _fading_repr(self) -> str:
@@ -184,7 +190,6 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
     """
 
     _name = "FadingExtendedKalmanFilter"
-    _forms = ("standard",)  # type: ignore[assignment]  # the Joseph and square-root forms are refused
 
     def __init__(
         self,
@@ -195,7 +200,7 @@ class FadingExtendedKalmanFilter(_FadingMoments, ExtendedKalmanFilter):
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _fading_setup(self, system, fading, fading_variance_term)
         super().__init__(system, covariance_update=covariance_update, backend=backend)
 
     def __repr__(self) -> str:
@@ -223,7 +228,6 @@ class FadingUnscentedKalmanFilter(_FadingMoments, UnscentedKalmanFilter):
     """
 
     _name = "FadingUnscentedKalmanFilter"
-    _forms = ("standard",)
 
     def __init__(
         self,
@@ -239,7 +243,7 @@ class FadingUnscentedKalmanFilter(_FadingMoments, UnscentedKalmanFilter):
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _fading_setup(self, system, fading, fading_variance_term)
         super().__init__(
             system, rule=rule, alpha=alpha, beta=beta, kappa=kappa, order=order,
             covariance_update=covariance_update, backend=backend,
@@ -288,7 +292,6 @@ class FadingTobitExtendedKalmanFilter(_FadingMoments, TobitExtendedKalmanFilter)
     """
 
     _name = "FadingTobitExtendedKalmanFilter"
-    _forms = ("standard",)
 
     def __init__(
         self,
@@ -301,7 +304,7 @@ class FadingTobitExtendedKalmanFilter(_FadingMoments, TobitExtendedKalmanFilter)
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _fading_setup(self, system, fading, fading_variance_term)
         super().__init__(
             system, _censoring(censoring), noise_term=noise_term, covariance_update=covariance_update, backend=backend
         )
@@ -336,7 +339,6 @@ class FadingTobitUnscentedKalmanFilter(_FadingMoments, TobitUnscentedKalmanFilte
     """
 
     _name = "FadingTobitUnscentedKalmanFilter"
-    _forms = ("standard",)
 
     def __init__(
         self,
@@ -354,7 +356,7 @@ class FadingTobitUnscentedKalmanFilter(_FadingMoments, TobitUnscentedKalmanFilte
         covariance_update: str = "standard",
         backend: str = "auto",
     ):
-        self._fading_setup(system, fading, fading_variance_term)
+        _fading_setup(self, system, fading, fading_variance_term)
         super().__init__(
             system, _censoring(censoring), rule=rule, alpha=alpha, beta=beta, kappa=kappa, order=order,
             noise_term=noise_term, covariance_update=covariance_update, backend=backend,
@@ -401,6 +403,9 @@ class FadingNonlinearAssumedDensityFilter(FadingWindow, NonlinearAssumedDensityF
 
     _name = "FadingNonlinearAssumedDensityFilter"
     _forms = ("standard",)
+    _fade: np.ndarray  # (2, m), as _FadingMoments'
+    fading: RiceFading
+    fading_variance_term: bool
 
     def __init__(
         self,
@@ -428,17 +433,11 @@ class FadingNonlinearAssumedDensityFilter(FadingWindow, NonlinearAssumedDensityF
         ybar, Pxy, Pyy = super()._channel_moments(l, rule, h_l, xm, Pm)
         if self._lags:  # h_l is channel l's stacked map over the window
             return self._window_channel(l, ybar, Pxy, Pyy)
-        ybar, Pxy, Pyy = (np.array(a, dtype=float, order="C") for a in (ybar, Pxy, Pyy))
-        fade = np.ascontiguousarray(self._fade[:, l : l + 1])
-        from ._compiled_fading_moments import fading_moments_batch  # numba is imported on first use
-
-        fading_moments_batch(fade[0], fade[1], ybar, Pxy, Pyy)
-        return ybar, Pxy, Pyy
+        return _faded_moments(np.ascontiguousarray(self._fade[:, l : l + 1]), ybar, Pxy, Pyy)
 
     def __repr__(self) -> str:
-        it = "" if self.iterations == 1 else f", iterations={self.iterations}"
         extra = "" if self.fading_variance_term else ", fading_variance_term=False"
         return (
             f"FadingNonlinearAssumedDensityFilter({self.system!r}, {self.fading!r}, {self.channel!r}, "
-            f"rule={self.rule!r}{it}{extra})"
+            f"rule={self.rule!r}{self._iterations_repr()}{extra})"
         )

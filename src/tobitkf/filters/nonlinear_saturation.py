@@ -27,7 +27,7 @@ from .._validation import check_instance
 from ..channels.saturation import RandomSaturation
 from ..models.nonlinear import NonlinearSystem
 from ._boundary import _noise_variances
-from .nonlinear import _TINY
+from .core import _TINY
 from .nonlinear_adf import NonlinearAssumedDensityFilter
 
 __all__ = ["SaturationNonlinearAssumedDensityFilter"]
@@ -123,7 +123,3 @@ class SaturationNonlinearAssumedDensityFilter(NonlinearAssumedDensityFilter):
             if ll is not None:
                 ll[ok] = lp
         return ok, obs, V
-
-    def __repr__(self) -> str:
-        it = "" if self.iterations == 1 else f", iterations={self.iterations}"
-        return f"SaturationNonlinearAssumedDensityFilter({self.system!r}, {self.channel!r}, rule={self.rule!r}{it})"

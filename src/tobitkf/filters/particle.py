@@ -423,18 +423,8 @@ class ParticleFilter(Estimator):
         else:
             Xn = self.model.propagate(rng, k, X, b)
             inc = self.model.log_likelihood(rng, k, Xn, y, dy)
-        lw_un = lw + inc
-        top = lw_un.max(axis=1)
-        dead = ~np.isfinite(top)
-        if dead.any():  # no particle explains the reading: keep the weights, report -inf
-            lw_un[dead] = lw[dead]
-            top = lw_un.max(axis=1)
-        W = np.exp(lw_un - top[:, None])
-        tot = W.sum(axis=1)
+        W, tot, lw_new, ll = reweight(lw, inc)
         W /= tot[:, None]
-        ll_norm = np.log(tot) + top
-        ll = np.where(dead, -np.inf, ll_norm)
-        lw_new = lw_un - ll_norm[:, None]
         xm, Pm = _moments(Xn, W) if Cn is None else _mixture_moments(Xn, Cn, W)
         ess = 1.0 / np.einsum("rp,rp->r", W, W)
         ur = rng.random(X.shape[0])
@@ -518,6 +508,30 @@ class ParticleFilter(Estimator):
             + ("" if self.linearisation_steps == 1 else f", linearisation_steps={self.linearisation_steps}")
             + ")"
         )
+
+
+def reweight(lw: np.ndarray, inc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    r"""The Bayes step of the log-weights ``lw`` (N, P) of a particle set or a Gaussian sum by the readings'
+    log-likelihoods ``inc`` (N, P): :math:`\ell_i = \log w_i + \log p_i(y)`, with :math:`t = \max_i \ell_i`
+    the step's log-likelihood :math:`\log\sum_i e^{\ell_i} = t + \log\sum_i e^{\ell_i - t}` and the new
+    log-weights :math:`\ell_i` minus it. A run that no member explains (every :math:`\ell_i = -\infty`) keeps
+    its weights and reports :math:`-\infty`.
+
+    Returns
+    -------
+    E : (N, P) the unnormalised weights :math:`e^{\ell_i - t}`; tot : (N,) their sums; lw : (N, P) the new
+    log-weights; ll : (N,) the step's log-likelihood (:math:`-\infty` for a run no member explains).
+    """
+    lw_un = lw + inc
+    top = lw_un.max(axis=1)
+    dead = ~np.isfinite(top)
+    if dead.any():  # no member explains the reading: keep the weights, report -inf
+        lw_un[dead] = lw[dead]
+        top = lw_un.max(axis=1)
+    E = np.exp(lw_un - top[:, None])
+    tot = E.sum(axis=1)
+    ll_norm = np.log(tot) + top
+    return E, tot, lw_un - ll_norm[:, None], np.where(dead, -np.inf, ll_norm)
 
 
 def _mixture_moments(M: np.ndarray, C: np.ndarray, W: np.ndarray):

@@ -23,7 +23,8 @@ singular :math:`\bar P_{k+1|k}` (a singular Q after an exact reading, R = 0) tak
 The Gaussian filters of this package (:class:`~tobitkf.KalmanFilter`, :class:`~tobitkf.DroppingKalmanFilter`,
 :class:`~tobitkf.TobitKalmanFilter`, :class:`~tobitkf.AssumedDensityTobitFilter`) take :class:`SmoothingMethods`:
 ``smooth`` runs the filter and this backward pass over its moments, ``log_likelihood`` sums the filter's
-per-step terms (:meth:`SmoothingMethods._log_likelihood_terms`, which each filter defines). The model-level
+per-step terms (:meth:`SmoothingMethods._log_likelihood_terms`, which each filter defines); the dropping KF and
+the TKF take their ``filter`` with the recorded indicator from :class:`IndicatorFilterMethods`. The model-level
 entry points (:func:`tobitkf.smooth`, :func:`tobitkf.log_likelihood`) live in :mod:`tobitkf.inference`,
 which builds on this module: the imports run one way, the filters below the inference.
 
@@ -44,9 +45,9 @@ import numpy as np
 from .._validation import ValidationError
 from ..models.linear import LinearSystem
 from ._times import at_times, smooth_on_grid
-from .core import FilterResult, check_prior
+from .core import FilterResult, FilterState, check_prior
 
-__all__ = ["rts_smooth", "rts_step", "solve_psd", "SmoothingMethods"]
+__all__ = ["rts_smooth", "rts_step", "solve_psd", "SmoothingMethods", "IndicatorFilterMethods"]
 
 
 @overload
@@ -321,6 +322,39 @@ class SmoothingMethods:
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The per-step log-likelihood terms (..., T) of ``y``; each filter that takes the mixin defines it."""
+        raise NotImplementedError
+
+
+class IndicatorFilterMethods:
+    """``filter`` of the linear filters that take the recorded censoring indicator ``censored`` (the dropping KF,
+    the TKF), written once: sample times (``times``, a :class:`~tobitkf.ContinuousLinearSystem`) run the filter
+    on the exact discretisation (:func:`~tobitkf.filters._times.at_times`); without an indicator the shared
+    loop runs; with one the family's :meth:`_filter_indicated` decides what it means."""
+
+    _run: Callable[..., FilterResult]
+
+    def filter(
+        self,
+        y: Any,
+        *,
+        u: Any = None,
+        censored: Any = None,
+        x0: Any = None,
+        P0: Any = None,
+        outputs: Any = "all",
+        state: FilterState | None = None,
+        times: Any = None,
+    ) -> FilterResult:
+        # the docstring is the shared text completed by the family's fragments (``_filter_doc``)
+        if times is not None:
+            est = at_times(self, times, y)
+            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
+        if censored is None:
+            return self._run(y, u, x0, P0, outputs=outputs, state=state)
+        return self._filter_indicated(y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+
+    def _filter_indicated(self, y: Any, censored: Any, *, u: Any, x0: Any, P0: Any, outputs: Any, state: Any):
+        """``filter`` of ``y`` with the recorded indicator ``censored`` (not None); each family defines it."""
         raise NotImplementedError
 
 

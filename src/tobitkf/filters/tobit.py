@@ -81,7 +81,6 @@ from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
 from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
-from ._times import at_times
 from .assumed_density import assumed_density_filter
 from .core import (
     COVARIANCE_FORMS,
@@ -94,7 +93,7 @@ from .core import (
     step_state,
 )
 from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries, step_constants
-from .smoothing import SmoothingMethods
+from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
     "tobit_update",
@@ -210,7 +209,7 @@ def tobit_update(
     return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
-class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
+class TobitKalmanFilter(IndicatorFilterMethods, SmoothingMethods, LinearGaussianFamily):
     r"""Tobit Kalman filter for left, right, two-sided and multi-region censoring (Miller §3.3.4).
 
     Parameters
@@ -383,24 +382,10 @@ class TobitKalmanFilter(SmoothingMethods, LinearGaussianFamily):
         if self.check_limits and not options:
             self.censoring.check_reading(y, k)
 
-    def filter(
-        self,
-        y: Any,
-        *,
-        u: Any = None,
-        censored: Any = None,
-        x0: Any = None,
-        P0: Any = None,
-        outputs: Any = "all",
-        state: FilterState | None = None,
-        times: Any = None,
-    ) -> FilterResult:
-        if times is not None:
-            est = at_times(self, times, y)
-            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
-        if censored is not None:
-            check_tobit_indicator(self.censoring, y, censored, start=(0 if state is None else state.k) + 1)
-        return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+    def _filter_indicated(self, y: Any, censored: Any, *, u: Any, x0: Any, P0: Any, outputs: Any, state: Any):
+        # the recorded indicator is checked against the limits; the update is the limit rule's all the same
+        check_tobit_indicator(self.censoring, y, censored, start=(0 if state is None else state.k) + 1)
+        return self._run(y, u, x0, P0, outputs=outputs, state=state)
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The TKF's update defines no likelihood: the assumed-density terms (..., T) of its model (system and
