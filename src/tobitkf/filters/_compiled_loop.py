@@ -126,7 +126,8 @@ KALMAN, TOBIT = 16, 17
 PROTOCOL_TKF, FIXED_GAIN = 18, 19
 #: update code of the fading Tobit Kalman filter (Geng et al. 2017): the Tobit update of the augmented state at the
 #: step's rows :math:`H_k`, with the inverse Mills ratio among its outputs (written in the loop, beside the Kalman
-#: filter's update, whose gain and covariance update it shares; :func:`~tobitkf.filters._compiled_fading.fading_lower_block`)
+#: filter's update, whose gain and covariance update it shares;
+#: :func:`~tobitkf.filters._compiled_fading.fading_lower_block`)
 FADING = 20
 #: every update code of :func:`compiled_loop`
 CODES = (*FAMILIES.values(), KALMAN, TOBIT, PROTOCOL_TKF, FIXED_GAIN, FADING)
@@ -575,7 +576,11 @@ def compiled_loop(
     one_p = P0.shape[0] == 1
     # What the time loop reads but does not change is taken here, once: every array view made or tuple item taken
     # inside it costs an atomic increment and decrement of the array's reference count per step and block, and an
-    # output not requested gets no call at all (the fading filter's means alone paid ~7 % of its time for these)
+    # output not requested gets no call at all. With these and the fading update written out below (no function
+    # inlined by numba with the block's arrays as arguments) the fading version's time loop went from 44 to 3
+    # reference-count increments in its LLVM IR; the fading TKF (n = 2, L = 2, 5,000 runs x 100 steps, thread CPU
+    # time of the loop, fastest of 11 calls, 3 processes each alternated, load ~13): means 79-96 -> 69-73, mean and
+    # covariance 83-89 -> 76-77 ns per run-step
     At, Qt = A[0, 0], Qd[0, 0]
     tv_a = A.shape[1] > 1 or Qd.shape[1] > 1
     sig, lo0, hi0, lam = r[0, 0], lo[0], hi[0], compb.reshape((m, compb.shape[1] * compb.shape[2]))
