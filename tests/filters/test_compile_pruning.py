@@ -30,7 +30,7 @@ OWN = {
     cl.TOBIT: "tobit_update_block",
     cl.PROTOCOL_TKF: "_protocol_tkf_update",
     cl.FIXED_GAIN: "_fixed_gain_means",
-    cl.FADING: "fading_update_block",
+    cl.FADING: "fading_lower_block",
     **{code: "_channel_updates" for code in cm.FAMILIES.values()},
 }
 

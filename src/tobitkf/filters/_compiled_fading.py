@@ -8,7 +8,8 @@ repaired (20')), not a second algorithm: the augmented state
 :math:`\xi_k = \mathrm{col}\{x_k, \dots, x_{k-L}\}` of fixed size :math:`n_\xi = n(L+1)`, the
 predict (17)–(18) with the block-shift structure of :math:`\mathcal A` (:func:`shift_predict_block`, as
 :func:`tobitkf.filters.core.shift_predict`; also the predict of the protocol filter's augmented state), and the
-update :func:`fading_update_block`: the censored statistics at :math:`\hat\chi = H_k\hat\xi_{k|k-1}` (Lemma 1,
+one-sided censored statistics of a block (:func:`fading_lower_block`). The update itself is written in the loop's
+``FADING`` branch: the censored statistics at :math:`\hat\chi = H_k\hat\xi_{k|k-1}` (Lemma 1,
 :math:`H_k = \bar\theta_k\mathcal C_k`, the loop's rows of the step), :math:`\hat y` (21), the gain scale
 :math:`\bar\Upsilon_k` (so :math:`G_k = \bar\Upsilon_kH_k`), the noise :math:`N_k` = the truncated variance (12)
 or, with ``exact_tobit_variance``, the censored variance, and the update in the Joseph or the standard form,
@@ -17,7 +18,7 @@ both in the rank-m arithmetic of the shared numpy update.
 Everything that is not specific to the fading model is shared with the Tobit Kalman filter's update
 (:func:`~tobitkf.filters._compiled_tobit.tobit_update_block`): the censored-normal statistics
 (:func:`~tobitkf.filters._compiled_censored.censored_stats`; for a lower limit alone the vectorised statistics
-of a whole block, :func:`_lower_block`), the noise term
+of a whole block, :func:`fading_lower_block`), the noise term
 (:func:`~tobitkf.filters._compiled_censored.noise_term`: the truncated variance is the TKF's ``"dissertation"``
 term, the censored variance its ``"total_variance"``), the moments of the scaled update and the masked gain
 (missing or degenerate channels get a zero gain column; for m > 1 the block solve over all runs of a block).
@@ -28,12 +29,11 @@ from __future__ import annotations
 
 from numba import njit
 
-from ._compiled_block import _block_dims, mean_predict, scaled_update
-from ._compiled_censored import GL_W, GL_X, _one_sided_at, censored_stats, noise_term
-from ._compiled_tobit import _INF
+from ._compiled_block import _block_dims, mean_predict
+from ._compiled_censored import _one_sided_at
 
 __all__ = [
-    "fading_update_block",
+    "fading_lower_block",
     "shift_predict_block",
     "AUG_BLOCK",
     "aug_block_dims",
@@ -104,61 +104,19 @@ def shift_predict_block(A, Qd, x, P, xp, Pp, X, nb):
 
 
 @njit(cache=True, error_model="numpy")
-def _lower_block(ym, sd, lo, nb, noise_code, gam, lam, noise):
-    """The statistics of the runs ``b < nb`` of a block for a lower limit ``lo`` alone, vectorised: γ into ``gam``,
-    the inverse Mills ratio into ``lam``, the noise term of ``noise_code`` (0 the truncated, 1 the censored
-    variance) into ``noise``, the censored mean over the means ``ym`` (each (B,)); the numbers of
-    :func:`~tobitkf.filters._compiled_censored.censored_stats`. A function of its own, as the TKF's
-    :func:`~tobitkf.filters._compiled_censored.one_sided_block`: compiled apart from the loop, its loop over the
-    runs vectorises."""
+def fading_lower_block(ym, l, sd, lo, nb, noise_code, gam, lam, noise):
+    r"""The statistics of channel ``l`` of the runs ``b < nb`` of a block for a lower limit ``lo`` alone
+    (Lemma 1), vectorised: γ into ``gam[l]``, the inverse Mills ratio into ``lam[l]`` (``gam``, ``lam`` (m, B)),
+    the noise term of ``noise_code`` (0 the truncated variance (12), 1 the censored variance) into
+    ``noise[l, l]`` ((m, m, B)), and :math:`\hat y` (21), the censored mean, over the means ``ym[l]`` ((m, B));
+    the numbers of :func:`~tobitkf.filters._compiled_censored.censored_stats`. Compiled apart from the loop (as
+    the TKF's :func:`~tobitkf.filters._compiled_censored.one_sided_block`), so that its loop over the runs
+    vectorises; the channel by index, not as views of its rows, and no call inside, so that a call costs the
+    loop no reference counting (a view made per step and channel, or an array handed to a function that calls
+    another, costs an atomic increment and decrement of its reference count per call)."""
     for b in range(nb):
-        _plo, g, lm, _tmean, tv, cm, cv = _one_sided_at(ym[b], sd, lo)
-        gam[b] = g
-        lam[b] = lm
-        noise[b] = tv if noise_code == 0 else cv
-        ym[b] = cm
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def fading_update_block(C, sigma, lo, hi, tl, noise_code, joseph, y, du, r0, t, xp, Pp, x, P, mu, e, lam, scratch, nb):
-    r"""The TKF-FM measurement update of a block of ``nb`` runs ((6), (21), (23)–(26), (19), (20')), all channel
-    statistics at the prediction :math:`\hat\chi = H_k\hat\xi_{k|k-1} + Du_k` (Lemma 1).
-
-    ``C`` (m, n_ξ) the step's rows :math:`H_k`; ``sigma`` (m,) the noise standard deviations; ``lo``/``hi``
-    (TL, m) the limits, row ``tl`` this step's; run b reads ``y[r0 + b, t]`` (NaN: missing) and ``du[r0 + b,
-    t]`` (``du`` with no steps: no feedthrough); ``noise_code`` 0 (the truncated variance (12), the source) or 1
-    (the censored variance, ``exact_tobit_variance``) of :func:`~tobitkf.filters._compiled_censored.noise_term`;
-    ``xp`` (n_ξ, B), ``Pp`` (n_ξ, n_ξ, B) the prediction. Writes the posterior ``x``, ``P``, :math:`\hat y`
-    (21) into ``mu`` (m, B), the innovation into ``e``, the inverse Mills ratio into ``lam`` (m, B) and
-    :math:`\bar\gamma` into ``gam`` of ``blk``; ``scratch`` the ``(blk, run, solve, buf)`` of
-    :func:`~tobitkf.filters._compiled_block._update_scratch` (``buf`` the (2, G) buffer of the quadrature)."""
-    buf = scratch[3]
-    noise, gam = scratch[0][8], scratch[0][9]
-    m, nxi = C.shape
-    has_du = du.shape[1] > 0
-    for l in range(m):
-        ml = mu[l]
-        for b in range(nb):  # chi = H_k xi + D u for the whole block (vectorised; the numpy path's sums in order)
-            ml[b] = 0.0
-        for j in range(nxi):
-            c = C[l, j]
-            for b in range(nb):
-                ml[b] += xp[j, b] * c
-        if has_du:
-            for b in range(nb):
-                ml[b] += du[r0 + b, t, l]
-        sd, lo_l, hi_l = sigma[l], lo[tl, l], hi[tl, l]
-        if hi_l == _INF and lo_l != -_INF:  # a lower limit alone: the statistics of the block at once, vectorised
-            _lower_block(ml, sd, lo_l, nb, noise_code, gam[l], lam[l], noise[l, l])
-            for b in range(nb):
-                e[l, b] = y[r0 + b, t, l] - ml[b]
-            continue
-        for b in range(nb):
-            st = censored_stats(ml[b], sd, lo_l, hi_l, GL_X, GL_W, buf)
-            gam[l, b] = st[2]
-            lam[l, b] = st[3]
-            noise[l, l, b] = noise_term(noise_code, ml[b], st[2], st[4], st[5], st[7])
-            ml[b] = st[6]
-            e[l, b] = y[r0 + b, t, l] - st[6]
-    # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k (24)-(26); the gain (23), (19); P (20')
-    scaled_update(C, joseph, xp, Pp, e, x, P, scratch, nb)
+        _plo, g, lm, _tmean, tv, cm, cv = _one_sided_at(ym[l, b], sd, lo)
+        gam[l, b] = g
+        lam[l, b] = lm
+        noise[l, l, b] = tv if noise_code == 0 else cv
+        ym[l, b] = cm
