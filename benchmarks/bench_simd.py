@@ -16,8 +16,6 @@ model). Contestants, all on one thread, all writing into output arrays allocated
 * the TKF with two finite limits (the same readings clipped to a window, the split step), means only, both ways;
 * the censored assumed-density filter (two finite limits) with its log-likelihood and P(uncensored), both ways
   (``soa_censored_loop`` against ``compiled_loop``), means and the two extras;
-* the fading TKF of order 0 (rows 0.9 C, the Joseph form), both ways (``soa_fading_loop`` against
-  ``compiled_loop``), means only and every output of its ``filter``;
 * the hand-fused scalar numba TKF (``benchmarks/_fused_tkf.py``, one run at a time, means + covariances: the
   yardstick of ``bench_limit.py``).
 
@@ -125,9 +123,9 @@ def _groups_mn(runs: int, steps: int, mn: list[tuple[int, int]], which: set[str]
 def case(runs: int, steps: int, repeat: int, which: set[str], mn: list[tuple[int, int]]) -> None:
     from _fused_tkf import fused_tkf
     from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop
-    from tobitkf.filters._compiled_loop import FADING_KIND, compiled_loop
+    from tobitkf.filters._compiled_loop import compiled_loop
     from tobitkf.filters._compiled_moments import CENSORED, kind
-    from tobitkf.filters._compiled_soa import soa_censored_loop, soa_fading_loop, soa_kalman_loop, soa_tobit_loop
+    from tobitkf.filters._compiled_soa import soa_censored_loop, soa_kalman_loop, soa_tobit_loop
 
     w = 0.05
     A = np.array([[np.cos(w), -np.sin(w)], [np.sin(w), np.cos(w)]])
@@ -171,27 +169,6 @@ def case(runs: int, steps: int, repeat: int, which: set[str], mn: list[tuple[int
             np.empty((N, 0, 1, 0)), xl, Pl,
         )  # fmt: skip
 
-    # the fading TKF of order 0 (rows 0.9 C, the Joseph form: its defaults), the same readings: the means only, and
-    # every output in the layout of its ``filter`` (the mean and its smoothed block, the covariance and its block,
-    # the predictions, P(uncensored), E(y), the inverse Mills ratios)
-    Hf = 0.9 * H
-    means2, covs2 = np.zeros((N, T, 2 * n)), np.zeros((N, T, 2 * n, n))
-    pmf, pcf, puf, eyf, lamf = (
-        np.zeros((N, T, n)),
-        np.zeros((N, T, n, n)),
-        np.zeros((N, T, 1)),
-        np.zeros((N, T, 1)),
-        np.zeros((N, T, 1, 1)),
-    )
-    e_ll, e_lam = np.empty((N, 0)), np.empty((N, 0, 1, 1))
-
-    def fad(fn, full):
-        outs = (means2, covs2, pmf, pcf, puf, eyf, e_ll, lamf) if full else (means, e_c, e_m, e_c, e1, e1, e_ll, e_lam)
-        return lambda: fn(
-            FADING_KIND, y, cls0, A[None, None], Q[None, None], Hf, np.zeros((1, 1, 0, n)), sig[None], lo[None],
-            hi[None], np.zeros((1, 1, 0)), 1, 1, 0, True, bu, du, x0, P0, *outs, xl, Pl,
-        )  # fmt: skip
-
     # the KF with two channels (the joint update): the oscillator read through both components
     sys2 = tk.LinearSystem(
         A=A, C=np.eye(2), Q=0.01 * np.eye(2), R=np.diag([0.1, 0.2]), x0=[0.0, 0.0], P0=0.05 * np.eye(2)
@@ -217,12 +194,6 @@ def case(runs: int, steps: int, repeat: int, which: set[str], mn: list[tuple[int
             "loop KF m=2, mean+cov": kf2(kalman_loop, covs),
         },
         "tkf2": {"SoA TKF 2-sided, means only": tkf2(soa_tobit_loop), "loop TKF 2-sided, means only": tkf2(tobit_loop)},
-        "fading": {
-            "SoA fading L=0, means only": fad(soa_fading_loop, False),
-            "loop fading L=0, means only": fad(compiled_loop, False),
-            "SoA fading L=0, all outputs": fad(soa_fading_loop, True),
-            "loop fading L=0, all outputs": fad(compiled_loop, True),
-        },
         "adf": {
             "SoA ADF 2-sided, mean+extras": adf(soa_censored_loop),
             "loop ADF 2-sided, mean+extras": adf(compiled_loop),
@@ -266,9 +237,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5, help="timed calls per contestant (default 5)")
     ap.add_argument(
         "--which",
-        default="tkf,kf,kf2,tkf2,adf,fading,tkfm",
-        help="contestant groups, comma-separated: tkf, kf, kf2, tkf2, adf, fading, tkfm, tkfmw, kfm (default all but "
-        "the last two)",
+        default="tkf,kf,kf2,tkf2,adf,tkfm",
+        help="contestant groups, comma-separated: tkf, kf, kf2, tkf2, adf, tkfm, tkfmw, kfm (default all but the last "
+        "two)",
     )
     ap.add_argument("--sizes", default="100000x100,10000x1000", help="runs x steps, comma-separated")
     ap.add_argument("--mn", default="2x2", help="channels x states of the groups tkfm, tkfmw, kfm (default 2x2)")

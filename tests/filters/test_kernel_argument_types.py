@@ -45,22 +45,6 @@ def _system() -> tk.LinearSystem:
     )
 
 
-def _censored_record(sys_: tk.LinearSystem, cens: tk.Censoring) -> np.ndarray:
-    """Three runs of eight censored readings, one missing."""
-    y = cens.censor(tk.simulate(sys_, 8, 3, seed=1).y)
-    y[0, 2, 0] = np.nan
-    return y
-
-
-def _one_run_then_continued(ests, y: np.ndarray) -> None:
-    """Each estimator's ``filter`` on the first run alone (its covariance broadcast to its own shape: a read-only
-    view), then on the first half of the record and the rest continued from per-run covariances."""
-    for est in ests:
-        est.filter(y[:1])
-        first = est.filter(y[:, :4])
-        est.filter(y[:, 4:], state=first.final)
-
-
 def test_kalman_and_tobit_loops_take_writable_covariances(monkeypatch):
     """One run with a missing reading (its covariance broadcast to its own shape: a read-only view) and a record
     continued from per-run covariances, for the KF and the TKF."""
@@ -68,11 +52,15 @@ def test_kalman_and_tobit_loops_take_writable_covariances(monkeypatch):
 
     sys_ = _system()
     cens = tk.Censoring(lower=0.0)
-    y = _censored_record(sys_, cens)
+    y = cens.censor(tk.simulate(sys_, 8, 3, seed=1).y)
+    y[0, 2, 0] = np.nan
     ests = (tk.KalmanFilter(sys_, backend="numba"), tk.TobitKalmanFilter(sys_, cens, backend="numba"))
 
     def calls():
-        _one_run_then_continued(ests, y)
+        for est in ests:
+            est.filter(y[:1])
+            first = est.filter(y[:, :4])
+            est.filter(y[:, 4:], state=first.final)
 
     calls()
     spies = _Spies(monkeypatch)
@@ -83,30 +71,6 @@ def test_kalman_and_tobit_loops_take_writable_covariances(monkeypatch):
         spies.spy(_compiled_soa, name)
     calls()
     assert {"kalman_loop", "soa_kalman_loop"} & set(spies.calls) and {"tobit_loop", "soa_tobit_loop"} & set(spies.calls)
-    assert spies.bad == []
-
-
-def test_fading_loops_take_writable_arrays(monkeypatch):
-    """The fading TKF of order 0 (the runs-vectorised step) and of order 1 (the compiled loop): one run, a record
-    continued from per-run covariances."""
-    from tobitkf.channels.fading import RiceFading
-    from tobitkf.filters import _compiled_loop, _compiled_soa
-    from tobitkf.filters.fading import FadingTobitKalmanFilter
-
-    sys_ = _system()
-    cens = tk.Censoring(lower=0.0)
-    y = _censored_record(sys_, cens)
-    ests = [FadingTobitKalmanFilter(sys_, RiceFading(L, [0.9] * (L + 1)), cens, backend="numba") for L in (0, 1)]
-
-    def calls():
-        _one_run_then_continued(ests, y)
-
-    calls()
-    spies = _Spies(monkeypatch)
-    spies.spy(_compiled_loop, "compiled_loop")
-    spies.spy(_compiled_soa, "soa_fading_loop")
-    calls()
-    assert spies.calls.count("soa_fading_loop") == 3 and spies.calls.count("compiled_loop") == 3
     assert spies.bad == []
 
 

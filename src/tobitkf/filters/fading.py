@@ -548,7 +548,7 @@ class FadingTobitKalmanFilter(_FadingFamily):
             return None
         N = y.shape[0]
         res = _compiled_run(
-            self, y.reshape(N, 1, self.m), u.reshape(N, 1, -1), state, _STEP_OUTPUTS, (N,), keep_smoothed, record=False
+            self, y.reshape(N, 1, self.m), u.reshape(N, 1, -1), state, _STEP_OUTPUTS, (N,), keep_smoothed
         )
         if not finite_variances(res.final.P):
             return None
@@ -812,16 +812,13 @@ def _undefined_blocks(sm_mean: np.ndarray, sm_cov: np.ndarray | None, k0: int, L
             sm_cov[:, t, k + 1 :] = np.nan
 
 
-def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want, batch, keep_smoothed, record=True):
+def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want, batch, keep_smoothed):
     """The compiled loop (update :data:`~tobitkf.filters._compiled_loop.FADING`) from ``state`` (augmented x, P);
     outputs on request, as the numpy path's. With the smoothed blocks requested the loop writes the mean (top block)
     and then every block of the state into one output ((N, T, n + nxi)), the covariance's top block and then the
     diagonal blocks into another ((N, T, n + nxi, n)), and ``mean``, ``cov`` and the smoothed blocks are views
-    of them (:func:`~tobitkf.filters._compiled_block._stage_mean`, ``_stage_cov``). A whole record (``record``, not
-    an online step) of order L = 0 with one channel runs the step vectorised over the runs where it covers the call
-    (:func:`~tobitkf.filters._compiled_soa.fading_entry`: the same numbers to rounding)."""
+    of them (:func:`~tobitkf.filters._compiled_block._stage_mean`, ``_stage_cov``)."""
     from ._compiled_loop import FADING_KIND, compiled_loop
-    from ._compiled_soa import fading_entry
     from ._loop_specs import LoopArguments
 
     N, T, m = y2.shape
@@ -856,14 +853,8 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
         lo=loop_input(lo)[None], hi=loop_input(hi)[None], J=1, noise_code=int(est.exact_tobit_variance),
         joseph=est.covariance_update == "joseph", bu=bu, du=du, x0=loop_input(state.x), P0=loop_input(state.P),
         means=means, covs=covs, pmeans=pmeans, pcovs=pcovs, pu=pu, ey=ey, comp=lam, x_last=x_last, P_last=P_last,
-    ).filled()  # fmt: skip
-    # the order L = 0 with one channel: the runs-vectorised step where it covers the call (a whole record)
-    loop = (
-        fading_entry(compiled_loop, args.A, args.Qd, args.H, args.r, args.lo, args.hi, args.x0)
-        if record
-        else compiled_loop
-    )
-    loop(*args)
+    )  # fmt: skip
+    compiled_loop(*args.filled())
 
     def out(a):
         return loop_array(a, batch)
