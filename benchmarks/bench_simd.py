@@ -42,6 +42,7 @@ import time
 
 import numpy as np
 
+import _timing  # noqa: F401 (prints the process's wall, user and system time at exit)
 import tobitkf as tk
 from tobitkf.filters._backend import numba_available
 
