@@ -6,7 +6,7 @@ so the figures are single-core). Where the family has a linear counterpart, filt
 ``KalmanFilter`` on the equivalent (augmented) linear model, on the same data, looped over
 ``--peer-runs`` runs and scaled, gives the ratio (filterpy does no Tobit, fading, failure or
 delay-correlation terms, so it does less arithmetic per step than the estimator it is set
-against). The issue's target is 10^6 run-steps/s.
+against). The target is 10^6 run-steps/s.
 
 Families and sizes (n state, m measurements, augmented size in brackets):
 
@@ -20,7 +20,7 @@ Families and sizes (n state, m measurements, augmented size in brackets):
 * closed    LQG loop with a (Tobit) Kalman observer, DC-motor position (Miller §6.4): n=3, m=1,
             p=1; each run-step also simulates the plant (filterpy: the KF observer alone); the compiled
             loop (default) and the numpy loop, interleaved repeats, medians (min-max) and their ratio
-            (issue 19: >= 5x), and one run's microseconds per step
+            (target: >= 5x), and one run's microseconds per step
 
 Run by hand::
 

@@ -14,7 +14,7 @@ The single-run numpy rows time 10^4 steps (their cost per step is constant).
 
 (c) TKF at n = 16, m = 8 (a random stable system, left-censored at 0 in every channel, 10^3 runs
     x 100 steps): the compiled kernel (``threads=1``) against the numpy path, median of
-    ``repeat`` interleaved calls (min-max), all outputs and means only (issue 19: at least 3x); wall time and,
+    ``repeat`` interleaved calls (min-max), all outputs and means only (target: at least 3x); wall time and,
     from ``getrusage`` around each call, user and system CPU time (the system time is mostly the first touch
     of the fresh output pages, ~450 MB a call with all outputs, whose cost on this VM swings by 10x from call
     to call and is paid by both paths alike: the user time is the arithmetic). The compiled path takes its
@@ -25,7 +25,7 @@ The single-run numpy rows time 10^4 steps (their cost per step is constant).
     the windows (-1.5, -0.1) and (0.1, 1.5), sigma = 0.05; n = 1, m = 2), without and with a control input
     (B^u, D): the compiled kernel (``threads=1``) against the numpy path at the experiment's size (10 runs x
     2000 steps), at 10^4 runs x 100 steps, and one run through ``filter`` (microseconds per step); median of
-    ``repeat`` interleaved calls (min-max) (issue 19: compiled >= 5x numpy, one run <= 5 us per step).
+    ``repeat`` interleaved calls (min-max) (targets: compiled >= 5x numpy, one run <= 5 us per step).
 
 ``--smoke`` runs a tiny version (CI). Run by hand:  python benchmarks/bench_core.py
 (``--only-m8`` runs (c) alone, ``--only-multi-region`` (d) alone).
@@ -239,7 +239,7 @@ def main() -> None:
         print(f"  {name:44s} {t * 1e6:10.2f} us/step   filterpy/this = {t_fp1 / t:6.2f}")
     best = "numba" if "numba" in backends else "numpy"
     print(
-        f"targets (issue): batched TKF >= 30x filterpy: x{rates[best] * t_fp:.1f} ({best}); "
+        f"targets: batched TKF >= 30x filterpy: x{rates[best] * t_fp:.1f} ({best}); "
         f"single-run TKF no slower per step than filterpy: {lat[best] * 1e6:.2f} vs {t_fp1 * 1e6:.2f} us/step"
     )
     multichannel(args.smoke)

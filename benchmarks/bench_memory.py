@@ -1,4 +1,4 @@
-"""Peak memory of one ``filter`` call against the size of what it returns (issue 19's memory target).
+"""Peak memory of one ``filter`` call against the size of what it returns (the memory target).
 
 For each estimator and output selection (``outputs="mean"``, ``("mean", "var")``, ``"all"``) one fresh
 process loads the readings (10^5 runs x 100 steps, n = 2, m = 1, half the readings censored; the fading
@@ -12,7 +12,7 @@ and then measures the call on all runs in two ways:
   resident set before it: every allocation that was touched, numba's included (Linux only; elsewhere
   the column is NaN).
 
-Both are printed as multiples of the means array ``(N, T, n)`` float64 that the call returns. Issue 19's
+Both are printed as multiples of the means array ``(N, T, n)`` float64 that the call returns. The
 target: means only, 10^5 runs x 100 steps, peak increment at most 1.3x the means array.
 
 Run: ``PYTHONPATH=src python benchmarks/bench_memory.py`` (``--smoke``: 10^3 runs, for CI;

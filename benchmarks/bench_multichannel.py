@@ -1,4 +1,4 @@
-"""The m > 1 path of the compiled kernels against the numpy reference path (issue 19, item 2).
+"""The m > 1 path of the compiled kernels against the numpy reference path.
 
 Cases, ns of process CPU time per run-step (median of ``--repeat`` calls after one untimed call that
 compiles; spread min-max), one thread, outputs ``"mean"`` only, and the ratio numpy / compiled:

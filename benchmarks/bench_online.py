@@ -2,7 +2,7 @@
 
 Every family is driven as an online user drives it, ``state = est.step(state, y_k)`` in a Python loop,
 on its paper's example size, and compared with filterpy's ``predict()`` + ``update()`` of the
-equivalent linear model measured in the same process (the peer the issue names). Each timing is the
+equivalent linear model measured in the same process (the peer of the target). Each timing is the
 median of ``repeat`` loops over ``steps`` readings, the repeats interleaved across the cases and the
 ratio to filterpy taken within each repeat (this machine is shared: medians and the spread min..max are
 printed). The KF, TKF and dropping-KF steps run the compiled kernels when numba is installed (a single step
@@ -11,7 +11,7 @@ steady-state TKF and the tracker (once its gain is fixed) the fixed-gain recursi
 Gaussian families the compiled shared predict and update (:mod:`tobitkf.filters._compiled_step`) around their
 own moments; the "(numpy)" rows the reference path.
 
-Targets (issue "One estimation core"): KF and TKF step no slower than filterpy's predict + update;
+Targets: KF and TKF step no slower than filterpy's predict + update;
 every other family within 5x of it.
 
 ``--smoke`` runs a tiny version (CI). Run by hand:  python benchmarks/bench_online.py

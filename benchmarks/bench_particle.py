@@ -4,7 +4,7 @@
     N_p particles per run, batched; particle-steps / CPU second (best of ``--repeat``; BLAS held to
     one thread, so the figure is per core), for the locally optimal and the bootstrap proposal, and
     for the fading (Geng et al. 2017, n_xi = 6) and protocol (Round-Robin, ell = 2, n_xi = 6) channels.
-    The issue's target: >= 1e6 particle-steps/s per core for n = 2, m = 1.
+    The target: >= 1e6 particle-steps/s per core for n = 2, m = 1.
 (b) Memory: peak traced allocation (tracemalloc) of ``filter(y, outputs="last")`` for T and 10 T steps:
     the particles are O(N N_p n_x) and nothing grows with T (the ratio should be ~1).
 (c) The target: the censored oscillator (n = 2, m = 1, censoring at 0), ``ParticleFilter`` compiled

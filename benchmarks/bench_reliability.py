@@ -1,4 +1,4 @@
-"""Long-run reliability benchmark (issue 9 item 3): one run of 10^6 steps per estimator family.
+"""Long-run reliability benchmark: one run of 10^6 steps per estimator family.
 
 For each estimator: steps/second, and whether the whole run stayed finite, exactly
 symmetric and PSD (smallest eigenvalue >= -1e-9 x the largest entry), with the largest

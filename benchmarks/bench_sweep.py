@@ -4,12 +4,12 @@
   processes`` with 1 and with 2 workers, each a fresh ``tobitkf sweep``-like process timed
   from start to exit (interpreter start, cluster start, store and summary included); the
   two are run alternately ``--repeat`` times and the best and median wall times are
-  printed with the speed-up of the best times (issue 19: >= 1.7x on 2 cores). A ``local``
+  printed with the speed-up of the best times (target: >= 1.7x on 2 cores). A ``local``
   run of the same file gives the in-process reference.
 * Memory: peak resident memory of a ``local`` sweep process for growing run counts
   (``--mem-runs``, default 10^4, 10^5, 10^6; target: flat, 10^6 runs of the core TKF with T = 100
   within 2 GB), or with ``--mem-scheduler processes`` of a 2-worker Dask sweep, summed over the
-  whole process tree (driver, nannies, workers; issue 19 asks for a 10^7-run sweep with memory
+  whole process tree (driver, nannies, workers; the target is a 10^7-run sweep with memory
   flat: ``--mem-runs 10000 1000000 10000000 --mem-scheduler processes``), and of an experiment
   sweep (the fading TKF example in blocks of 1000 runs) for 2000 and 20000 runs.
 

@@ -58,7 +58,7 @@ SUITE: list[tuple[str, str, list[str], bool]] = [
     ("particle", "bench_particle.py", [], True),
     ("nonlinear", "bench_nonlinear.py", [], True),
     ("sweep", "bench_sweep.py", ["--mem-runs", "10000", "1000000", "10000000", "--mem-scheduler", "processes"], True),
-    # not speed benchmarks of issue 19, or long: run with --only
+    # not speed benchmarks, or long: run with --only
     ("delay", "bench_delay.py", [], False),
     ("multichannel", "bench_multichannel.py", [], False),
     ("reliability", "bench_reliability.py", [], False),
