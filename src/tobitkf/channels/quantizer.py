@@ -36,6 +36,14 @@ The sums run over the levels within 12 s of :math:`\mu` (the mass beyond is belo
 cost grows like s/w, so a very fine quantizer (w much smaller than the noise) is cheaper as a linear
 reading. Readings are checked against the level grid: one more than :math:`10^{-6}w` off a level, or
 outside :math:`[\ell_{min}, \ell_{max}]`, is refused.
+
+How close the assumed-density filter comes to the optimum: one update is exact (the moments of the interval
+posterior); over a record it keeps one Gaussian. On a scalar state :math:`x_{k+1} = 0.95x_k + w_k` (Q = 0.1,
+R = 0.09) its mean-squared error was within 0.4 % of a converged particle filter's for widths 0.5 to 5 (300 runs
+x 40 steps). On a binary sensor (two levels: the sign of :math:`y^*`) of a slowly drifting state read with
+little noise (:math:`x_{k+1} = 0.99x_k + w_k`, Q = 0.01, R = 1e-4), where the posterior is a normal cut at 0, it
+was 2-7 % above it (1.067 ± 0.022, 1.044 ± 0.014, 1.022 ± 0.012 on three seeds of 300-600 runs x 40 steps):
+there the particle filter is the better estimate.
 """
 
 from __future__ import annotations
