@@ -20,11 +20,15 @@ __all__ = ["gauss_solve", "nees_terms", "cholesky_leading", "cholesky_lower", "p
 _INF = math.inf
 
 
-@njit(cache=True, error_model="numpy")
+# One version for every caller: its callers hand it whole arrays (C-contiguous) and views of a work array (any
+# layout, 'A'); typed lazily, each caller's layout compiled a version of its own. Declared for any layout, it is
+# compiled once (on import, or loaded from the disk cache) and a C-contiguous array converts to it.
+@njit("b1(f8[:, :], f8[:, :])", cache=True, error_model="numpy")
 def gauss_solve(M, W):
     """Solve ``M X = W`` in place (``W`` (m, r) becomes X; ``M`` (m, m) is overwritten) by Gaussian
     elimination with partial pivoting, like LAPACK gesv behind ``numpy.linalg.solve``. Returns
-    False, leaving both half-eliminated, when a pivot is exactly zero (a singular ``M``)."""
+    False, leaving both half-eliminated, when a pivot is exactly zero (a singular ``M``). Both float64 and
+    writable, of any layout (one compiled version serves every caller)."""
     m, r = W.shape
     for c in range(m):
         p = c

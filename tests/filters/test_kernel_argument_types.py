@@ -17,6 +17,8 @@ import tobitkf as tk
 
 pytest.importorskip("numba")
 
+from tobitkf.filters._compiled_censored import GL_W, GL_X  # noqa: E402
+
 
 class _Spies:
     """Replaces kernels (module attributes) by wrappers that record their calls and their bad array arguments."""
@@ -212,3 +214,51 @@ def test_state_space_likelihood_takes_writable_arrays(monkeypatch):
     got = calls()
     assert spies.calls == ["log_likelihood"] and spies.bad == []
     assert got == want and np.isfinite(got)
+
+
+# --------------------------------------------------------------------------- one version for both kinds of caller
+#
+# A kernel that is called from Python and from other compiled code is compiled for each argument type it meets: a
+# module-level array read inside compiled code is a read-only constant to numba, a view of a work array is of any
+# layout ('A'). The arrays the two kinds of caller hand over must have one type, or the kernel must be declared for
+# both.
+
+
+def test_the_quadrature_nodes_from_python_have_the_type_of_the_compiled_constant():
+    """The compiled loops read the censored statistics' Gauss-Legendre nodes and weights as module constants
+    (read-only); a kernel handed the module's arrays from Python (the closed loop, the river mixture filter, the
+    protocol TKF's moments, the testing aids) sees the same type: a function of the nodes is compiled once for both
+    (handed writable copies, ``_window_stats``, ``_quadrature_moments`` and ``_two_sided`` were compiled twice)."""
+    import numba
+
+    @numba.njit
+    def nodes(glx, glw):
+        return glx.shape[0] + glw.shape[0]
+
+    @numba.njit
+    def from_compiled_code():
+        return nodes(GL_X, GL_W)  # module globals: read-only constants to numba
+
+    assert from_compiled_code() == nodes(GL_X, GL_W) == 2 * 64
+    assert len(nodes.signatures) == 1
+
+
+def test_gauss_solve_is_one_version_for_whole_arrays_and_work_views():
+    """:func:`~tobitkf._compiled_linalg.gauss_solve` takes whole arrays (the TKF's gain, the NEES) and strided views
+    of a work array (the time-delay filters' work blocks): one compiled version serves both (it compiled two), with
+    the same numbers, those of ``numpy.linalg.solve`` to rounding."""
+    from tobitkf._compiled_linalg import gauss_solve
+
+    rng = np.random.default_rng(7)
+    M = rng.normal(size=(3, 3)) + 3.0 * np.eye(3)
+    W = rng.normal(size=(3, 2))
+    X = W.copy()
+    assert gauss_solve(M.copy(), X)
+    work = np.zeros((2, 4, 4))
+    Mv, Wv = work[0, :3, :3], work[1, :3, :2]  # as the delay filters' work blocks: neither is C-contiguous
+    assert not (Mv.flags.c_contiguous or Wv.flags.c_contiguous)
+    Mv[...], Wv[...] = M, W
+    assert gauss_solve(Mv, Wv)
+    np.testing.assert_array_equal(Wv, X)
+    np.testing.assert_allclose(X, np.linalg.solve(M, W), rtol=1e-12)
+    assert len(gauss_solve.signatures) == 1

@@ -130,7 +130,7 @@ def test_the_points_of_a_carried_factor_are_those_of_its_covariance(n, rule):
     assert all(cholesky_lower(P, S) for P, S in zip(Ps[:-1], Ss))  # the factor the standard form takes
     np.testing.assert_allclose(Ss, np.linalg.cholesky(Ps[:-1]), rtol=0, atol=1e-12 * np.abs(Ss).max())
     xi, _, wc = tk.SigmaPoints(rule, order=2).unit(n)
-    xi = np.ascontiguousarray(xi)
+    xi = np.array(xi)  # writable, as the loop is handed it (the rule's own array is read-only: a second version)
     L = xi.shape[0]
     size, xcol = SIZES.get(n, ()), point_columns(xi)
     act = np.ones(nb, dtype=bool)

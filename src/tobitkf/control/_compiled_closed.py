@@ -42,7 +42,7 @@ from ..filters._compiled_block import (
     stage_block,
     stage_shape,
 )
-from ..filters._compiled_tobit import tobit_update_block
+from ..filters._compiled_tobit import GL_W, GL_X, tobit_update_block
 
 __all__ = ["OBSERVER_CODES", "closed_loop_kernel"]
 
@@ -75,8 +75,6 @@ def closed_loop_kernel(
     xh0,
     P0,
     noise_code,
-    glx,
-    glw,
     bound,
     X,
     est,
@@ -113,7 +111,7 @@ def closed_loop_kernel(
     moving = obs_code >= 2
     steady = obs_code == 3
     B = min(runs_per_block(n), max(N, 1))
-    (xh, xp, e, mu), (blk, run, solve, buf) = block_scratch(n, m, B, glx.shape[0])
+    (xh, xp, e, mu), (blk, run, solve, buf) = block_scratch(n, m, B, GL_X.shape[0])
     P, Pp, AP = blk[0], blk[1], blk[2]
     gam = blk[9]
     xn = np.empty((n, B))
@@ -260,8 +258,8 @@ def closed_loop_kernel(
                     0,
                     noise_code,
                     False,
-                    glx,
-                    glw,
+                    GL_X,
+                    GL_W,
                     xp,
                     Pp,
                     mu,

@@ -404,7 +404,7 @@ def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma
     """The loop of :func:`simulate_closed_loop` by :func:`tobitkf.control._compiled_closed.closed_loop_kernel`
     (same noises, same observer matrices, read from the observer's public attributes); fills ``x`` (N, T+1, n)
     from its row 0 and returns the other outputs by the numpy loop's names."""
-    from ..filters._compiled_tobit import GL_W, GL_X, NOISE_CODES
+    from ..filters._compiled_tobit import NOISE_CODES
     from . import _compiled_closed as kc
 
     runs, steps, n = w.shape
@@ -452,8 +452,6 @@ def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma
         f64(state.x, dtype=float),
         P0,
         NOISE_CODES[noise_term],
-        GL_X,
-        GL_W,
         float(bound),
         x,
         out["estimate"],

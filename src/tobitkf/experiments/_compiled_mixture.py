@@ -40,6 +40,7 @@ import numpy as np
 from numba import njit
 
 from ..filters._compiled_moments import MISSING, censored_block, classify
+from ..filters._compiled_tobit import GL_W, GL_X
 
 __all__ = ["mixture_filter_kernel"]
 
@@ -67,7 +68,7 @@ def _row(v, i):
 
 @njit(cache=True, error_model="numpy")
 def mixture_filter_kernel(
-    x0, P0, rate, diffusion, gaps, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw
+    x0, P0, rate, diffusion, gaps, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms
 ):
     r"""The filter of the module docstring for every run; writes ``terms`` (N, T) and, with ``store``, the
     predicted and filtered moments ``xp``, ``xs`` (N, T, n), ``Pp``, ``Ps`` (N, T, n, n) (else those are not
@@ -82,7 +83,7 @@ def mixture_filter_kernel(
         :func:`~tobitkf.filters._readings.interval_classes`); else not read, the classes are the limit rule's
         (:func:`~tobitkf.filters._compiled_moments.classify`)
     logw : (N, 2) log prior weights of the two components (:math:`\log(1 - w)`, :math:`\log w`; -inf for w = 0)
-    c2 : (N,) variance ratio of the second component ; glx, glw : the Gauss-Legendre rule of the censored block
+    c2 : (N,) variance ratio of the second component
     """
     N, n = x0.shape
     T = y.shape[1]
@@ -97,7 +98,7 @@ def mixture_filter_kernel(
     post = np.empty(2)
     par = np.zeros(0)
     comp = np.zeros((0, 2))
-    buf = np.empty((2, glx.shape[0]))
+    buf = np.empty((2, GL_X.shape[0]))
     for i in range(N):
         for p in range(n):
             x[p] = x0[i, p]
@@ -145,7 +146,7 @@ def mixture_filter_kernel(
                     ll[j] = 0.0
                 rb[0] = r2[ir, k]
                 rb[1] = c2[i] * r2[ir, k]
-                censored_block(2, yy, cc, hx, hph, rb, lob, hib, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+                censored_block(2, yy, cc, hx, hph, rb, lob, hib, par, alpha, beta, ll, pu, comp, GL_X, GL_W, buf)
                 j0 = logw[i, 0] + ll[0]
                 j1 = logw[i, 1] + ll[1]
                 tot = _logaddexp(j0, j1)

@@ -352,7 +352,6 @@ def _mixture_filter(
     c2 = np.broadcast_to(np.asarray(mixture[1], dtype=float), (N,))
     Cn = np.asarray(C, dtype=float)
     if compiled:
-        from ..filters._compiled_tobit import GL_W, GL_X
         from ..filters._outputs import loop_input as f
         from ._compiled_mixture import mixture_filter_kernel
 
@@ -372,7 +371,7 @@ def _mixture_filter(
         mixture_filter_kernel(
             f(x0), f(P0), f(np.asarray(rate, dtype=float)), f(np.asarray(diffusion, dtype=float)), rows(gaps), f(Cn),
             rows(y), given, cls is not None, rows(lo), rows(hi), rows(r2), rows(dy), logw, f(c2),
-            store, xp, Pp, xs, Ps, terms, GL_X, GL_W,
+            store, xp, Pp, xs, Ps, terms,
         )  # fmt: skip
         if not store:
             return None, terms

@@ -72,7 +72,11 @@ __all__ = [
     "A_TAIL",
 ]
 
-GL_X, GL_W = _GL_X, _GL_W  # the quadrature of censored_moments (passed to the kernels)
+# The quadrature of censored_moments (passed to the kernels), read-only: numba freezes a module-level array read-only
+# in compiled code, so a kernel handed these from Python is compiled for the argument types the compiled loops give it
+# (writable, every function that takes them, and its callees, was compiled a second time).
+GL_X, GL_W = _GL_X.view(), _GL_W.view()
+GL_X.flags.writeable = GL_W.flags.writeable = False
 
 X0 = _CF_FROM * math.sqrt(0.5)  # erfcx argument at |a| = 4, the far side's edge
 A_TAIL = 2.0  # a > A_TAIL: the tail fits (no cancellation in the variance), else erfcx

@@ -12,7 +12,6 @@ bounds of Theorems 3–5 in :mod:`tobitkf.design.protocol_bounds`. Time conventi
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -143,18 +142,6 @@ def protocol_measurement(
 FAILURE_CODES = {"variance": 0, "literal": 1, "second_moment": 2, "lmmse_unconditional": 3}
 
 
-@lru_cache(maxsize=1)
-def _nodes() -> tuple[np.ndarray, np.ndarray]:
-    """Read-only views of the compiled statistics' Gauss-Legendre nodes and weights, as the compiled loop sees them
-    (numba freezes a module-level array read-only): a writable array would compile :func:`protocol_tkf_block` a
-    second time."""
-    from ._compiled_tobit import GL_W, GL_X
-
-    x, w = GL_X.view(), GL_W.view()
-    x.flags.writeable = w.flags.writeable = False
-    return x, w
-
-
 def _prediction(xi_pred, P_pred, y, gamma, Cc, r, H, H0, tau, lam_mean, lam_var, failure_term, X):
     r""":func:`protocol_measurement` with the per-sensor constants ``H`` = lam_mean Cc and ``H0`` = H[None, :]
     given (the filter computes them once per sensor). The moments of (13)–(16), (21), (23)–(24) come from
@@ -165,8 +152,8 @@ def _prediction(xi_pred, P_pred, y, gamma, Cc, r, H, H0, tau, lam_mean, lam_var,
     ``"lmmse_unconditional"`` (the same for every run) from ``X`` here. A lost reading (NaN) is not
     uncensored (γ = 0 whatever ``gamma`` says): the step only predicts."""
     from ._compiled_moments import PROTOCOL_TKF_EXTRAS, protocol_tkf_block
+    from ._compiled_tobit import GL_W, GL_X  # read-only, as the compiled loop sees them
 
-    glx, glw = _nodes()
     N = xi_pred.shape[0]
     mom = np.empty((20, N))
     mom[0] = xi_pred @ H
@@ -177,10 +164,10 @@ def _prediction(xi_pred, P_pred, y, gamma, Cc, r, H, H0, tau, lam_mean, lam_var,
     g = np.array(gamma, dtype=np.bool_).reshape(N) & ~np.isnan(mom[14])
     fixed = lam_var * float(Cc @ X @ Cc) if failure_term == "lmmse_unconditional" else 0.0
     ok = g.copy()
-    buf = np.empty((2, glx.shape[0]))
+    buf = np.empty((2, GL_X.shape[0]))
     protocol_tkf_block(
         N, mom, ok, math.sqrt(r), float(r), float(tau), float(lam_mean), float(lam_var), fixed,
-        FAILURE_CODES[failure_term], glx, glw, buf,
+        FAILURE_CODES[failure_term], GL_X, GL_W, buf,
     )  # fmt: skip
     extras: dict[str, np.ndarray] = {name: mom[4 + i] for i, name in enumerate(PROTOCOL_TKF_EXTRAS)}
     extras["_gamma"] = g
