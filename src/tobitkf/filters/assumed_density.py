@@ -77,7 +77,6 @@ from ._readings import (
     interval_classes,
 )
 from ._readings import classify_readings as _classify
-from ._times import at_times
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
@@ -93,7 +92,7 @@ from .core import (
     psd_sqrt,
 )
 from .kalman import LinearGaussianFamily
-from .smoothing import SmoothingMethods
+from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
     "AssumedDensityTobitFilter",
@@ -559,7 +558,7 @@ def _run_limits(given: Any, own: np.ndarray, batch: tuple[int, ...], shape: tupl
     return np.ascontiguousarray(full.reshape(shape))
 
 
-class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
+class AssumedDensityTobitFilter(IndicatorFilterMethods, SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for censored readings: exact posterior moments, Kalman cost.
 
     Parameters
@@ -779,13 +778,15 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         lower: Any = None,
         upper: Any = None,
     ) -> FilterResult:
-        if times is not None:
-            est = at_times(self, times, y)
-            return est.filter(
-                y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state, lower=lower, upper=upper
-            )
-        if censored is None and lower is None and upper is None:
-            return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+        # IndicatorFilterMethods' filter with the limits as record keywords (those given)
+        limits = {name: v for name, v in (("lower", lower), ("upper", upper)) if v is not None}
+        return self._filter_record(y, u, censored, x0, P0, outputs, state, times, **limits)
+
+    def _filter_indicated(
+        self, y: Any, censored: Any, *, u: Any, x0: Any, P0: Any, outputs: Any, state: Any, lower=None, upper=None
+    ) -> FilterResult:
+        """:meth:`filter` with the recorded indicator ``censored`` and/or limits per run and step (``lower``,
+        ``upper``), checked against the readings and handed to the loop as step data."""
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])
