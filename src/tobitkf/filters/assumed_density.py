@@ -92,6 +92,7 @@ from .core import (
     psd_sqrt,
 )
 from .kalman import LinearGaussianFamily
+from .likelihood import filter_log_likelihood
 from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
@@ -823,7 +824,7 @@ class AssumedDensityTobitFilter(IndicatorFilterMethods, SmoothingMethods, Assume
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The ``log_likelihood`` extras of :meth:`filter` (..., T): the terms of :meth:`log_likelihood`."""
-        return self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",), **recorded).extras["log_likelihood"]
+        return filter_log_likelihood(self, y, u=u, x0=x0, P0=P0, **recorded)
 
     def __repr__(self) -> str:
         order = "" if self.order == "channels" else f", order={self.order!r}"
