@@ -515,6 +515,7 @@ class AugmentedWindow:
 
     _prepare_inputs = LinearGaussianFamily._prepare_inputs
     _step_input = LinearGaussianFamily._step_input
+    _linear_transition = LinearGaussianFamily._linear_transition
 
     def _state_dim(self) -> int:
         return self.nx
@@ -541,10 +542,7 @@ class AugmentedWindow:
         return xi, M, {}
 
     def _transition(self, k, u, carry) -> Transition:
-        sys_ = self.system
-        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
-        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
+        return self._linear_transition(k, u, shift=True, source=0)
 
 
 def _run_limits(given: Any, own: np.ndarray, batch: tuple[int, ...], shape: tuple[int, ...], name: str) -> np.ndarray:
