@@ -25,9 +25,9 @@ The Gaussian filters of this package (:class:`~tobitkf.KalmanFilter`, :class:`~t
 ``smooth`` runs the filter and this backward pass over its moments, ``log_likelihood`` sums the filter's
 per-step terms (:meth:`SmoothingMethods._log_likelihood_terms`, which each filter defines); the dropping KF, the
 TKF and the assumed-density filter take their ``filter`` with the recorded indicator from
-:class:`IndicatorFilterMethods`. The model-level
-entry points (:func:`tobitkf.smooth`, :func:`tobitkf.log_likelihood`) live in :mod:`tobitkf.inference`,
-which builds on this module: the imports run one way, the filters below the inference.
+:class:`IndicatorFilterMethods`. The model-level entry points (:func:`tobitkf.smooth`,
+:func:`tobitkf.log_likelihood`) live in :mod:`tobitkf.inference`, which builds on this module: the imports run
+one way, the filters below the inference.
 
 Output of :func:`rts_smooth`: a :class:`~tobitkf.FilterResult` whose ``mean``/``cov`` are :math:`\hat x_{k|T}`,
 :math:`P_{k|T}` (row k-1 for k = 1..T), ``pred_mean``/``pred_cov`` the filter's predictions, and
