@@ -142,6 +142,8 @@ def test_names_handed_on_are_the_same_objects():
         assert cls.log_likelihood is smoothing.SmoothingMethods.log_likelihood
     for cls in (tk.DroppingKalmanFilter, tk.TobitKalmanFilter):  # one filter() (a copy per family's docstring)
         assert cls.filter.__code__ is smoothing.IndicatorFilterMethods.filter.__code__
+    # the assumed-density filter adds its limits to the same filter (its sample times and indicator branches)
+    assert tk.AssumedDensityTobitFilter._filter_record is smoothing.IndicatorFilterMethods._filter_record
 
 
 def test_control_uses_no_private_name_of_another_layer():

@@ -615,32 +615,9 @@ def compiled_loop(
                 tl = min(t, lo.shape[1] - 1)
                 run, solve, buf = sc[1], sc[2], sc[3]
                 tobit_update_block(
-                    C,
-                    r[0, 0],
-                    lo[0],
-                    hi[0],
-                    tl,
-                    0,
-                    y,
-                    du,
-                    r0,
-                    t,
-                    noise_code,
-                    joseph,
-                    GL_X,
-                    GL_W,
-                    xp,
-                    Pp,
-                    mu,
-                    e,
-                    x,
-                    P,
-                    blk,
-                    run,
-                    solve,
-                    buf,
-                    nb,
-                )
+                    C, r[0, 0], lo[0], hi[0], tl, 0, y, du, r0, t, noise_code, joseph, GL_X, GL_W,
+                    xp, Pp, mu, e, x, P, blk, run, solve, buf, nb,
+                )  # fmt: skip
                 _stage_rows(gam, s_pu, tt, nb)
                 _stage_rows(mu, s_ey, tt, nb)
             elif code == PROTOCOL_TKF:

@@ -69,6 +69,7 @@ from .core import (
     measurement_update,
 )
 from .kalman import LinearGaussianFamily
+from .likelihood import filter_log_likelihood
 from .smoothing import SmoothingMethods
 
 __all__ = ["AssumedDensityFilter", "TobitFilter", "channel_update", "register_named_form", "named_forms"]
@@ -404,7 +405,7 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
         """The ``log_likelihood`` extras of :meth:`filter` (..., T)."""
         if recorded:
             raise TypeError(f"unexpected keyword argument {next(iter(recorded))!r}")
-        return self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
+        return filter_log_likelihood(self, y, u=u, x0=x0, P0=P0)
 
     def __repr__(self) -> str:
         backend = "" if self.backend == "auto" else f", backend={self.backend!r}"

@@ -77,7 +77,6 @@ from ._readings import (
     interval_classes,
 )
 from ._readings import classify_readings as _classify
-from ._times import at_times
 from .core import (
     COVARIANCE_FORMS,
     FilterResult,
@@ -93,7 +92,8 @@ from .core import (
     psd_sqrt,
 )
 from .kalman import LinearGaussianFamily
-from .smoothing import SmoothingMethods
+from .likelihood import filter_log_likelihood
+from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
     "AssumedDensityTobitFilter",
@@ -515,6 +515,7 @@ class AugmentedWindow:
 
     _prepare_inputs = LinearGaussianFamily._prepare_inputs
     _step_input = LinearGaussianFamily._step_input
+    _linear_transition = LinearGaussianFamily._linear_transition
 
     def _state_dim(self) -> int:
         return self.nx
@@ -541,10 +542,7 @@ class AugmentedWindow:
         return xi, M, {}
 
     def _transition(self, k, u, carry) -> Transition:
-        sys_ = self.system
-        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
-        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, source=0, G=G)
+        return self._linear_transition(k, u, shift=True, source=0)
 
 
 def _run_limits(given: Any, own: np.ndarray, batch: tuple[int, ...], shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -559,7 +557,7 @@ def _run_limits(given: Any, own: np.ndarray, batch: tuple[int, ...], shape: tupl
     return np.ascontiguousarray(full.reshape(shape))
 
 
-class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
+class AssumedDensityTobitFilter(IndicatorFilterMethods, SmoothingMethods, AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for censored readings: exact posterior moments, Kalman cost.
 
     Parameters
@@ -779,13 +777,15 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
         lower: Any = None,
         upper: Any = None,
     ) -> FilterResult:
-        if times is not None:
-            est = at_times(self, times, y)
-            return est.filter(
-                y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state, lower=lower, upper=upper
-            )
-        if censored is None and lower is None and upper is None:
-            return super().filter(y, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+        # IndicatorFilterMethods' filter with the limits as record keywords (those given)
+        limits = {name: v for name, v in (("lower", lower), ("upper", upper)) if v is not None}
+        return self._filter_record(y, u, censored, x0, P0, outputs, state, times, **limits)
+
+    def _filter_indicated(
+        self, y: Any, censored: Any, *, u: Any, x0: Any, P0: Any, outputs: Any, state: Any, lower=None, upper=None
+    ) -> FilterResult:
+        """:meth:`filter` with the recorded indicator ``censored`` and/or limits per run and step (``lower``,
+        ``upper``), checked against the readings and handed to the loop as step data."""
         y2, batch = prepare_measurements(y, self.m)
         k0 = self.k0 if state is None else state.k
         self.censoring.check(self.m, k0 + y2.shape[1])
@@ -822,7 +822,7 @@ class AssumedDensityTobitFilter(SmoothingMethods, AssumedDensityFamily, LinearGa
 
     def _log_likelihood_terms(self, y: Any, *, u: Any, x0: Any, P0: Any, **recorded: Any) -> np.ndarray:
         """The ``log_likelihood`` extras of :meth:`filter` (..., T): the terms of :meth:`log_likelihood`."""
-        return self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",), **recorded).extras["log_likelihood"]
+        return filter_log_likelihood(self, y, u=u, x0=x0, P0=P0, **recorded)
 
     def __repr__(self) -> str:
         order = "" if self.order == "channels" else f", order={self.order!r}"

@@ -108,7 +108,6 @@ from .core import (
     FilterResult,
     FilterState,
     MeasurementPrediction,
-    Transition,
     check_keywords,
     check_prior,
     step_state,
@@ -260,11 +259,7 @@ class _FadingFamily(LinearGaussianFamily):
 
     @system_only
     def _transition(self, k, u, carry):
-        sys_ = self.system
-        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
-        # (17)-(18) with the shift structure of the augmented A
-        G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, shift=True, G=G)
+        return self._linear_transition(k, u, shift=True)  # (17)-(18) with the shift structure of the augmented A
 
     def _measurement(self, k, xp, Pp, y, u, carry, **options):
         sys_, L, m, n = self.system, self.L, self.m, self.n

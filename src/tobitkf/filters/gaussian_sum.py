@@ -95,6 +95,7 @@ from .._validation import as_float, check_int
 from ..models.nonlinear import NonlinearSystem
 from ._boundary import _noise_variances
 from .core import Estimator, check_prior
+from .likelihood import filter_log_likelihood
 from .nonlinear import _sigma_moments
 from .nonlinear_adf import NonlinearAssumedDensityFilter
 from .particle import _mixture_moments, reweight
@@ -117,10 +118,9 @@ class GaussianSumAssumedDensityFilter(Estimator):
     Parameters
     ----------
     system : NonlinearSystem
-        The model; R diagonal (the channels are updated in sequence), entries >= 0.
     channel : Channel
-        A channel with ``region`` or ``reading_moments`` (:class:`~tobitkf.Censoring`,
-        :class:`~tobitkf.Quantizer`, a channel of your own), as the assumed-density filter.
+        The model (R diagonal, entries >= 0) and the channel (with ``region`` or ``reading_moments``), as
+        :class:`~tobitkf.NonlinearAssumedDensityFilter`'s.
     components : int >= 1, default 8
         The most components a run carries (K); 1 is the assumed-density filter.
     split_threshold : float > 0, default 0.05
@@ -309,8 +309,7 @@ class GaussianSumAssumedDensityFilter(Estimator):
         ValidationError, ShapeError
             As :meth:`filter`.
         """
-        terms = self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
-        return terms if per_step else terms.sum(-1)
+        return filter_log_likelihood(self, y, per_step=per_step, u=u, x0=x0, P0=P0)
 
     def __repr__(self) -> str:
         return (

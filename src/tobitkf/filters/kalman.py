@@ -101,10 +101,17 @@ class LinearGaussianFamily(GaussianFilter):
 
     @system_only
     def _transition(self, k: int, u: np.ndarray | None, carry) -> Transition:
+        return self._linear_transition(k, u)
+
+    def _linear_transition(self: Any, k: int, u: np.ndarray | None, **layout: Any) -> Transition:
+        """The system's transition from k-1 to k: :math:`A_{k-1}`, :math:`B_{k-1}Q_{k-1}B_{k-1}^T`, the offset
+        :math:`B^u_ku_k` and, in the square-root form, the root of the noise; ``layout`` the rest of the
+        :class:`Transition` (an augmented state's ``shift``, a fixed covariance). Lent to
+        :class:`~tobitkf.filters.assumed_density.AugmentedWindow` too (hence ``self: Any``)."""
         sys_ = self.system
         b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
         G = self._roots(k - 1) if self.covariance_update == "square_root" else None
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, G=G)
+        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, G=G, **layout)
 
     def _feedthrough(self, k: int, u: np.ndarray | None):
         if u is None or self.system.D is None:

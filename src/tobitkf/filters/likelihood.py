@@ -22,7 +22,7 @@ from ..models.linear import LinearSystem
 from .core import FilterResult, prepare_inputs, prepare_measurements
 from .smoothing import _flat
 
-__all__ = ["prediction_log_densities", "gaussian_log_density", "LOG_2PI"]
+__all__ = ["prediction_log_densities", "gaussian_log_density", "filter_log_likelihood", "LOG_2PI"]
 
 LOG_2PI = float(np.log(2.0 * np.pi))
 
@@ -72,6 +72,13 @@ def prediction_log_densities(system: LinearSystem, y: Any, result: FilterResult,
         S = C @ Pp[:, i] @ np.swapaxes(C, -1, -2) + R
         out[:, i] = gaussian_log_density(y2[:, i] - yhat, S, ~np.isnan(y2[:, i]))
     return out.reshape(batch + (T,))
+
+
+def filter_log_likelihood(est: Any, y: Any, *, per_step: bool = True, **keywords: Any) -> np.ndarray:
+    """The ``log_likelihood`` extras (..., T) of ``est.filter(y, **keywords)``, the per-step terms of a filter that
+    records them (the assumed-density and Gaussian-sum filters), or with ``per_step=False`` their sum (...)."""
+    terms = est.filter(y, outputs=("extras",), **keywords).extras["log_likelihood"]
+    return terms if per_step else terms.sum(-1)
 
 
 def gaussian_log_density(e: np.ndarray, S: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:

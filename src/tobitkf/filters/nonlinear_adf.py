@@ -28,6 +28,7 @@ from .core import (
     gain_update,
     sqrt_update,
 )
+from .likelihood import filter_log_likelihood
 from .nonlinear import (
     SigmaPoints,
     _add_retained,
@@ -443,8 +444,7 @@ class NonlinearAssumedDensityFilter(_ContractChecks, _NonlinearFamily):
         ValidationError, ShapeError
             As :meth:`filter`.
         """
-        terms = self.filter(y, u=u, x0=x0, P0=P0, outputs=("extras",)).extras["log_likelihood"]
-        return terms if per_step else terms.sum(-1)
+        return filter_log_likelihood(self, y, per_step=per_step, u=u, x0=x0, P0=P0)
 
     def _channel(
         self, k: int, l: int, x: np.ndarray, P: np.ndarray, y: np.ndarray, r: float, u: np.ndarray | None = None

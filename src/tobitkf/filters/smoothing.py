@@ -23,10 +23,11 @@ singular :math:`\bar P_{k+1|k}` (a singular Q after an exact reading, R = 0) tak
 The Gaussian filters of this package (:class:`~tobitkf.KalmanFilter`, :class:`~tobitkf.DroppingKalmanFilter`,
 :class:`~tobitkf.TobitKalmanFilter`, :class:`~tobitkf.AssumedDensityTobitFilter`) take :class:`SmoothingMethods`:
 ``smooth`` runs the filter and this backward pass over its moments, ``log_likelihood`` sums the filter's
-per-step terms (:meth:`SmoothingMethods._log_likelihood_terms`, which each filter defines); the dropping KF and
-the TKF take their ``filter`` with the recorded indicator from :class:`IndicatorFilterMethods`. The model-level
-entry points (:func:`tobitkf.smooth`, :func:`tobitkf.log_likelihood`) live in :mod:`tobitkf.inference`,
-which builds on this module: the imports run one way, the filters below the inference.
+per-step terms (:meth:`SmoothingMethods._log_likelihood_terms`, which each filter defines); the dropping KF, the
+TKF and the assumed-density filter take their ``filter`` with the recorded indicator from
+:class:`IndicatorFilterMethods`. The model-level entry points (:func:`tobitkf.smooth`,
+:func:`tobitkf.log_likelihood`) live in :mod:`tobitkf.inference`, which builds on this module: the imports run
+one way, the filters below the inference.
 
 Output of :func:`rts_smooth`: a :class:`~tobitkf.FilterResult` whose ``mean``/``cov`` are :math:`\hat x_{k|T}`,
 :math:`P_{k|T}` (row k-1 for k = 1..T), ``pred_mean``/``pred_cov`` the filter's predictions, and
@@ -327,9 +328,12 @@ class SmoothingMethods:
 
 class IndicatorFilterMethods:
     """``filter`` of the linear filters that take the recorded censoring indicator ``censored`` (the dropping KF,
-    the TKF), written once: sample times (``times``, a :class:`~tobitkf.ContinuousLinearSystem`) run the filter
-    on the exact discretisation (:func:`~tobitkf.filters._times.at_times`); without an indicator the shared
-    loop runs; with one the family's :meth:`_filter_indicated` decides what it means."""
+    the TKF, the assumed-density filter), written once: sample times (``times``, a
+    :class:`~tobitkf.ContinuousLinearSystem`) run the filter on the exact discretisation
+    (:func:`~tobitkf.filters._times.at_times`); without a record beside the readings the shared loop runs; with one
+    the family's :meth:`_filter_indicated` decides what it means. A family with record keywords of its own (the
+    assumed-density filter's ``lower``/``upper``) writes a ``filter`` taking them that hands them, those given, to
+    :meth:`_filter_record`."""
 
     _run: Callable[..., FilterResult]
 
@@ -346,15 +350,22 @@ class IndicatorFilterMethods:
         times: Any = None,
     ) -> FilterResult:
         # the docstring is the shared text completed by the family's fragments (``_filter_doc``)
+        return self._filter_record(y, u, censored, x0, P0, outputs, state, times)
+
+    def _filter_record(
+        self, y: Any, u: Any, censored: Any, x0: Any, P0: Any, outputs: Any, state: Any, times: Any, **record: Any
+    ) -> FilterResult:
+        """:meth:`filter` with ``record``: the family's own record keywords that were given (not None)."""
         if times is not None:
             est = at_times(self, times, y)
-            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state)
-        if censored is None:
+            return est.filter(y, u=u, censored=censored, x0=x0, P0=P0, outputs=outputs, state=state, **record)
+        if censored is None and not record:
             return self._run(y, u, x0, P0, outputs=outputs, state=state)
-        return self._filter_indicated(y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state)
+        return self._filter_indicated(y, censored, u=u, x0=x0, P0=P0, outputs=outputs, state=state, **record)
 
     def _filter_indicated(self, y: Any, censored: Any, *, u: Any, x0: Any, P0: Any, outputs: Any, state: Any):
-        """``filter`` of ``y`` with the recorded indicator ``censored`` (not None); each family defines it."""
+        """``filter`` of ``y`` with what was recorded beside it: the indicator ``censored`` (None when only the
+        family's own record keywords were given, which it then takes too); each family defines it."""
         raise NotImplementedError
 
 

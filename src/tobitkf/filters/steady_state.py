@@ -67,7 +67,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_kernel
 from ._outputs import loop_array, loop_input, output_arrays
-from .core import FilterResult, FilterState, MeasurementPrediction, Transition, step_state
+from .core import FilterResult, FilterState, MeasurementPrediction, step_state
 from .kalman import LinearGaussianFamily
 from .tobit import TobitKalmanFilter, tobit_measurement
 
@@ -290,9 +290,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
         return _initial_mean(self.system, x0, N, batch), self.cov[None].copy(), {}
 
     def _transition(self, k, u, carry):
-        sys_ = self.system
-        b = 0.0 if u is None or sys_.Bu is None else u @ sys_.Bu.at(k).T
-        return Transition(A=sys_.transition(k - 1), Qd=sys_.process_cov(k - 1), b=b, P_fixed=self.prior_cov[None])
+        return self._linear_transition(k, u, P_fixed=self.prior_cov[None])
 
     def _measurement(self, k, xp, Pp, y, u, carry, latent=False):
         ybar = xp @ self.system.measurement(k).T + self._feedthrough(k, u)
