@@ -140,14 +140,11 @@ KALMAN_KIND, TOBIT_KIND, PROTOCOL_TKF_KIND, FADING_KIND = kind(KALMAN), kind(TOB
 FIXED_GAIN_KIND = kind(FIXED_GAIN)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _kalman_moments(C, R, Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb):
     r"""The Kalman filter's innovation moments of a block (Miller (2.4)–(2.5)): :math:`R_{ee} = C\bar PC^T + R`,
     :math:`R_{xe} = \bar PC^T`, :math:`e = y - C\bar x`; a channel whose reading is NaN or whose innovation
-    variance is not positive does not take part (its innovation set to 0). Called, not inlined: inlined into the
-    time loop, its ten array arguments cost an atomic reference-count increment and decrement each per step and
-    block (13 increments in the KF version's time loop, n = 4, m = 2); a function that calls no other keeps none of
-    its arguments' counts (numba's pruning removes them)."""
+    variance is not positive does not take part (its innovation set to 0)."""
     m, n = C.shape
     for l in range(m):
         for j in range(n):
@@ -591,7 +588,6 @@ def compiled_loop(
     At, Qt = A[0, 0], Qd[0, 0]
     tv_a = A.shape[1] > 1 or Qd.shape[1] > 1
     sig, lo0, hi0, lam = r[0, 0], lo[0], hi[0], compb.reshape((m, compb.shape[1] * compb.shape[2]))
-    R0 = par[0]  # the KF's noise covariance
     want_pred, want_post = s_pmean.shape[0] + s_pcov.shape[0] > 0, s_mean.shape[0] + s_cov.shape[0] > 0
     want_x = s_pu.shape[0] + s_ey.shape[0] + s_comp.shape[0] > 0
     for r0 in range(0, runs, B):
@@ -635,7 +631,7 @@ def compiled_loop(
                             s_comp[tt, 0, i0 + nx + i, b] = xp[i, b]
             elif code == KALMAN or code == TOBIT or code == FADING:
                 if code == KALMAN:
-                    _kalman_moments(C, R0, Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
+                    _kalman_moments(C, par[0], Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
                 elif code == TOBIT:  # the channel statistics at the prior (Miller (3.8), (3.22), (3.32))
                     tl = min(t, lo0.shape[0] - 1)
                     tobit_stats_block(
