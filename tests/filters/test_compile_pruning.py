@@ -27,7 +27,7 @@ from tobitkf.filters import _compiled_moments as cm  # noqa: E402
 #: the update each family calls, and no other family does
 OWN = {
     cl.KALMAN: "_kalman_moments",
-    cl.TOBIT: "tobit_update_block",
+    cl.TOBIT: "tobit_stats_block",
     cl.PROTOCOL_TKF: "_protocol_tkf_update",
     cl.FIXED_GAIN: "_fixed_gain_means",
     cl.FADING: "fading_lower_block",

@@ -13,8 +13,11 @@ each family compiles its own version of the loop that holds its update alone:
 * :data:`KALMAN`: :math:`K = \bar PC^T(C\bar PC^T + R)^{-1}` over the channels that take part (a NaN reading
   does not), Miller (2015) (2.3)–(2.6); with one prior covariance for all runs and nothing missing the
   covariance and the gains are computed once and the means of every run with those gains;
-* :data:`TOBIT`: the Tobit update of all channels at the prior,
-  :func:`~tobitkf.filters._compiled_tobit.tobit_update_block` (Miller (3.37)–(3.41));
+* :data:`TOBIT`: the Tobit update of all channels at the prior (Miller (3.37)–(3.41)): the channel statistics of
+  :func:`~tobitkf.filters._compiled_tobit.tobit_stats_block` (called, not inlined: its arrays arrive borrowed),
+  then the moments, the masked gain and the covariance update written in the loop beside the Kalman filter's and
+  the fading TKF's (what :func:`~tobitkf.filters._compiled_tobit.tobit_update_block` does for the closed loop of
+  :mod:`tobitkf.control`);
 * :data:`FADING`: the fading TKF's update of its augmented state (Geng et al. 2017, Table 1), the same Tobit
   update at the step's rows ``H[t]`` (:math:`H_k = \bar\theta_k\mathcal C_k`) with the inverse Mills ratios
   among the outputs, written in the loop itself beside the Kalman filter's update (whose masked gain and covariance
@@ -102,7 +105,7 @@ from ._compiled_moments import (
     kind,
     protocol_tkf_block,
 )
-from ._compiled_tobit import _INF, GL_W, GL_X, tobit_update_block
+from ._compiled_tobit import _INF, GL_W, GL_X, tobit_stats_block
 
 __all__ = [
     "compiled_loop",
@@ -580,7 +583,8 @@ def compiled_loop(
     # inlined by numba with the block's arrays as arguments) the fading version's time loop went from 44 to 3
     # reference-count increments in its LLVM IR; the fading TKF (n = 2, L = 2, 5,000 runs x 100 steps, thread CPU
     # time of the loop, fastest of 11 calls, 3 processes each alternated, load ~13): means 79-96 -> 69-73, mean and
-    # covariance 83-89 -> 76-77 ns per run-step
+    # covariance 83-89 -> 76-77 ns per run-step. The Tobit KF's likewise (its statistics called, tobit_stats_block,
+    # instead of the inlined tobit_update_block): 40 -> 3 increments in the time loop (n = 4, m = 2)
     At, Qt = A[0, 0], Qd[0, 0]
     tv_a = A.shape[1] > 1 or Qd.shape[1] > 1
     sig, lo0, hi0, lam = r[0, 0], lo[0], hi[0], compb.reshape((m, compb.shape[1] * compb.shape[2]))
@@ -611,16 +615,7 @@ def compiled_loop(
                         xp[i, b] += bu[r0 + b, t, i]
             if want_pred:
                 _stage(xp, Pp, tt, nb, s_pmean, s_pcov)
-            if code == TOBIT:
-                tl = min(t, lo.shape[1] - 1)
-                run, solve, buf = sc[1], sc[2], sc[3]
-                tobit_update_block(
-                    C, r[0, 0], lo[0], hi[0], tl, 0, y, du, r0, t, noise_code, joseph, GL_X, GL_W,
-                    xp, Pp, mu, e, x, P, blk, run, solve, buf, nb,
-                )  # fmt: skip
-                _stage_rows(gam, s_pu, tt, nb)
-                _stage_rows(mu, s_ey, tt, nb)
-            elif code == PROTOCOL_TKF:
+            if code == PROTOCOL_TKF:
                 Pc = adfs[0]
                 _protocol_tkf_update(
                     y, cls, H, F, r, lo, par, noise_code, joseph, r0, t, xp, Pp, x, P, blk, Pc, mom, sc[3], nb
@@ -634,9 +629,14 @@ def compiled_loop(
                         for b in range(nb):
                             s_comp[tt, 0, i0 + i, b] = x[i, b]
                             s_comp[tt, 0, i0 + nx + i, b] = xp[i, b]
-            elif code == KALMAN or code == FADING:
+            elif code == KALMAN or code == TOBIT or code == FADING:
                 if code == KALMAN:
                     _kalman_moments(C, par[0], Pp, xp, y, r0, t, e, CP, Rxe, Ree, ok, nb)
+                elif code == TOBIT:  # the channel statistics at the prior (Miller (3.8), (3.22), (3.32))
+                    tl = min(t, lo0.shape[0] - 1)
+                    tobit_stats_block(
+                        C, sig, lo0, hi0, tl, 0, y, du, r0, t, noise_code, GL_X, GL_W, xp, mu, e, gam, noise, buf, nb
+                    )
                 else:  # the fading TKF (Geng et al. 2017, Table 1) at the rows H_k of the step
                     if t < H.shape[0]:  # H_min(k, L): the last row from then on
                         C = H[t]
@@ -663,6 +663,7 @@ def compiled_loop(
                                 mu[l, b] = st[6]
                         for b in range(nb):
                             e[l, b] = y[r0 + b, t, l] - mu[l, b]
+                if code != KALMAN:  # Rxe = P C^T E(p), Ree = E(p) C P C^T E(p) + Ruu (TKF (3.39), (3.40)); fading:
                     # Sigma_xy = P G^T, Sigma_yy = G P G^T + N_k, G = diag(gamma) H_k (24)-(26)
                     _innovation_moments(C, Pp, gam, noise, e, CP, Rxe, Ree, ok, nb)
                 # the masked gain and the mean ((23), (19)); the covariance, standard or Joseph form ((20'))
@@ -675,10 +676,11 @@ def compiled_loop(
                         for l in range(m):
                             Kall[t, i, l] = K[i, l, 0]
                 _cov_update(Pp, K, Rxe, C, gam, noise, joseph, P, MH, nb)
-                if code == FADING and want_x:
+                if code != KALMAN and want_x:  # P(uncensored), E[y] (the fading TKF: and the inverse Mills ratios)
                     _stage_rows(gam, s_pu, tt, nb)
                     _stage_rows(mu, s_ey, tt, nb)
-                    _stage_rows(lam, s_comp, tt, nb)
+                    if code == FADING:
+                        _stage_rows(lam, s_comp, tt, nb)
             elif code < KALMAN:  # an assumed-density family
                 _channel_updates(family, npass, y, cls, has_cls, H, F, r, lo, hi, par, du, r0, t, xp, Pp, adfs, nb)
                 _stage_rows(pub, s_pu, tt, nb)
