@@ -41,7 +41,7 @@ from numba import njit
 
 from ..filters._compiled_moments import MISSING, censored_block, classify
 
-__all__ = ["mixture_filter_kernel"]
+__all__ = ["compiled_mixture_filter"]
 
 _LOG2 = math.log(2.0)
 
@@ -66,7 +66,7 @@ def _row(v, i):
 
 
 @njit(cache=True, error_model="numpy")
-def mixture_filter_kernel(
+def compiled_mixture_filter(
     x0, P0, rate, diffusion, gaps, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms, glx, glw
 ):
     r"""The filter of the module docstring for every run; writes ``terms`` (N, T) and, with ``store``, the
