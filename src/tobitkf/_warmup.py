@@ -214,7 +214,7 @@ def warmup(
 
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: no forked numba or thread state
     workers = min(int(jobs), len(todo))
-    report(f"compiling {len(todo)} groups of kernels, {workers} processes at once")
+    report(f"compiling the compiled paths of {len(todo)} families, {workers} processes at once")
     with ProcessPoolExecutor(max_workers=workers, mp_context=context) as pool:
         futures = {pool.submit(_run_target, target): label for label, target in todo}
         for i, future in enumerate(as_completed(futures), 1):

@@ -467,8 +467,8 @@ def warmup(
     """Compile the common kernels (filters, online step, smoother, censored-AR fit) into numba's disk cache.
 
     The first process after an install or upgrade compiles each kernel on its first call (minutes for
-    all of them); afterwards they load in seconds. The groups of kernels compile in parallel worker
-    processes, one per core. A line per group of kernels on stderr as it finishes."""
+    all of them); afterwards they load in seconds. The families' compiled paths compile in parallel
+    worker processes, one per core. A line per family on stderr as it finishes."""
     from . import _warmup
     from ._compiled import numba_available
     from ._progress import format_seconds

@@ -250,7 +250,7 @@ def test_a_filter_continued_from_its_final_state_equals_one_call():
 def test_dispatch_covers_linear_readings_only():
     fad = tk.RiceFading.gaussian(1, [0.9, 0.5], [0.01, 0.01])
     sys_ = system(1)
-    with pytest.raises(tk.ValidationError, match="backend: the numba kernel of the particle filter"):
+    with pytest.raises(tk.ValidationError, match="backend: the compiled path of the particle filter"):
         tk.ParticleFilter(sys_, fad, particles=10, backend="numba").filter(np.zeros((5, 1)))
     with pytest.raises(tk.ValidationError, match="backend: expected one of"):
         tk.ParticleFilter(sys_, particles=10, backend="jax")

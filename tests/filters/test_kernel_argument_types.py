@@ -153,9 +153,9 @@ def test_closed_loop_takes_writable_noise_and_covariance(monkeypatch):
 
     want = calls()
     spies = _Spies(monkeypatch)
-    spies.spy(_compiled_closed, "closed_loop_kernel")
+    spies.spy(_compiled_closed, "compiled_closed_loop")
     got = calls()
-    assert spies.calls == ["closed_loop_kernel"] and spies.bad == []
+    assert spies.calls == ["compiled_closed_loop"] and spies.bad == []
     np.testing.assert_array_equal(got.x, want.x)
 
 

@@ -497,7 +497,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     ref_k = kalman_filter(sys_, y, u=u, backend="numpy")
     if which == "time_varying":  # the TKF kernel covers control inputs (test_tkf_kernel_with_inputs_equals_numpy)
         with pytest.raises(
-            ValidationError, match=f"backend: the numba kernel of the Tobit Kalman filter does not cover {match}"
+            ValidationError, match=f"backend: the compiled path of the Tobit Kalman filter does not cover {match}"
         ):
             tobit_kalman_filter(sys_, cens, y, u=u, backend="numba")
     with pytest.raises(ValidationError, match=f"does not cover {match}"):

@@ -292,7 +292,9 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     fad = fading(2)
     y = data(oscillator(), fad, cens, runs=2, steps=20)
     ref = FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", **opts).filter(y, **call)
-    with pytest.raises(ValidationError, match=f"numba kernel of the fading Tobit Kalman filter does not cover {match}"):
+    with pytest.raises(
+        ValidationError, match=f"compiled path of the fading Tobit Kalman filter does not cover {match}"
+    ):
         FadingTobitKalmanFilter(sys_, fad, cens, backend="numba", **opts).filter(y, **call)
     _no_loop(monkeypatch)
     auto = FadingTobitKalmanFilter(sys_, fad, cens, **opts).filter(y, **call)

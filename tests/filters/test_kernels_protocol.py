@@ -348,7 +348,7 @@ def test_uncovered_cases_fall_back_to_numpy(which, monkeypatch):
     y = data(oscillator(), ch, (3,), 20)
     ref = ProtocolTobitKalmanFilter(sys_, ch, backend="numpy", **opts).filter(y, **call)
     with pytest.raises(
-        ValidationError, match=f"numba kernel of the protocol Tobit Kalman filter does not cover {match}"
+        ValidationError, match=f"compiled path of the protocol Tobit Kalman filter does not cover {match}"
     ):
         ProtocolTobitKalmanFilter(sys_, ch, backend="numba", **opts).filter(y, **call)
     monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)

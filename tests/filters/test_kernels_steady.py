@@ -192,7 +192,7 @@ def test_input_falls_back_to_numpy_or_is_refused(method, monkeypatch):
     y = latent(oscillator(), runs=2, steps=20)
     u = np.ones((20, 1))
     ref = getattr(SteadyStateTobitKalmanFilter(sys_, 0.7, backend="numpy"), method)(y, u=u)
-    match = "numba kernel of the steady-state Tobit Kalman filter does not cover control inputs"
+    match = "compiled path of the steady-state Tobit Kalman filter does not cover control inputs"
     with pytest.raises(ValidationError, match=match):
         getattr(SteadyStateTobitKalmanFilter(sys_, 0.7, backend="numba"), method)(y, u=u)
     monkeypatch.setattr(_compiled_loop, "compiled_loop", _raise)

@@ -216,7 +216,7 @@ def test_batched_equals_each_run_alone(which):
 def test_numba_backend_refuses_square_root():
     s = random_system(2, 1, seed=0, diagonal_R=True)
     y = np.zeros((5, 1))
-    msg = "backend: the numba kernel of the {} has no square-root form"
+    msg = "backend: the compiled path of the {} has no square-root form"
     with pytest.raises(ValidationError, match=msg.format("Kalman filter")):
         tk.KalmanFilter(s, covariance_update="square_root", backend="numba")
     with pytest.raises(ValidationError, match=msg.format("Kalman filter")):

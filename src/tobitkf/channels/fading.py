@@ -43,7 +43,7 @@ from .._validation import ShapeError, ValidationError
 from .base import Channel
 from .laws import CoefficientLaw, Gaussian, as_law
 
-__all__ = ["RiceFading", "FadingMeasurement", "measurement_matrix_at"]
+__all__ = ["RiceFading", "measurement_matrix_at"]
 
 
 def _check_order(order: Any) -> int:
@@ -247,7 +247,3 @@ class RiceFading(Channel):
 
     def __repr__(self) -> str:
         return f"RiceFading(order={self.order}, coefficients={self.coefficients!r})"
-
-
-FadingMeasurement = RiceFading
-"""Alias of :class:`RiceFading` (the measurement-model name used by :func:`tobitkf.simulate`)."""

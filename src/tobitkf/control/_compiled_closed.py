@@ -44,14 +44,14 @@ from ..filters._compiled_block import (
 )
 from ..filters._compiled_tobit import GL_W, GL_X, tobit_update_block
 
-__all__ = ["OBSERVER_CODES", "closed_loop_kernel"]
+__all__ = ["OBSERVER_CODES", "compiled_closed_loop"]
 
 #: observer name -> kernel code
 OBSERVER_CODES = {"kf": 0, "tkf": 1, "tkf-moving": 2, "sstkf": 3}
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def closed_loop_kernel(
+def compiled_closed_loop(
     obs_code,
     A,
     Bu,

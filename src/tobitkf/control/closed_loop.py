@@ -68,7 +68,7 @@ from .._validation import (
     diagonal_sigma,
 )
 from ..channels.censoring import Censoring
-from ..filters._backend import BACKENDS, use_kernel
+from ..filters._backend import BACKENDS, use_compiled
 from ..filters.kalman import KalmanFilter
 from ..filters.steady_state import SteadyStateTobitKalmanFilter
 from ..filters.tobit import NOISE_TERMS, TobitKalmanFilter
@@ -315,7 +315,7 @@ def simulate_closed_loop(
     else:
         state = obs.init((runs,), x0=x0_estimate, P0=P0_estimate)
     gap = "the KF observer with a non-diagonal R" if observer == "kf" and np.any(R != np.diag(np.diagonal(R))) else None
-    if use_kernel(backend, gap, "the closed loop"):
+    if use_compiled(backend, gap, "the closed loop"):
         run = _compiled_loop(
             plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma, noise_term, divergence_bound, shift, side
         )
@@ -401,7 +401,7 @@ def _result(out: dict[str, np.ndarray]) -> ClosedLoopResult:
 
 
 def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma, noise_term, bound, shift, side):
-    """The loop of :func:`simulate_closed_loop` by :func:`tobitkf.control._compiled_closed.closed_loop_kernel`
+    """The loop of :func:`simulate_closed_loop` by :func:`tobitkf.control._compiled_closed.compiled_closed_loop`
     (same noises, same observer matrices, read from the observer's public attributes); fills ``x`` (N, T+1, n)
     from its row 0 and returns the other outputs by the numpy loop's names."""
     from ..filters._compiled_tobit import NOISE_CODES
@@ -428,7 +428,7 @@ def _compiled_loop(plant, obs, observer, state, x, w, v, K, Nbar, r, cens, sigma
     lo, hi = cens.all_limits(steps, m, check=False)
     out = _outputs(runs, steps, n, p, m)
     dstep = np.empty(runs, dtype=np.int64)
-    kc.closed_loop_kernel(
+    kc.compiled_closed_loop(
         kc.OBSERVER_CODES[observer],
         A,
         Bu,

@@ -42,7 +42,7 @@ from numba import njit
 from ..filters._compiled_moments import MISSING, censored_block, classify
 from ..filters._compiled_tobit import GL_W, GL_X
 
-__all__ = ["mixture_filter_kernel"]
+__all__ = ["compiled_mixture_filter"]
 
 _LOG2 = math.log(2.0)
 
@@ -67,7 +67,7 @@ def _row(v, i):
 
 
 @njit(cache=True, error_model="numpy")
-def mixture_filter_kernel(
+def compiled_mixture_filter(
     x0, P0, rate, diffusion, gaps, C, y, cls, given, lo, hi, r2, dy, logw, c2, store, xp, Pp, xs, Ps, terms
 ):
     r"""The filter of the module docstring for every run; writes ``terms`` (N, T) and, with ``store``, the

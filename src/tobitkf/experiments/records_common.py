@@ -332,7 +332,7 @@ def _mixture_filter(
     package's RTS pass; None without ``store``) and the log-likelihood terms (N, T).
 
     ``compiled`` (default: when numba imports): the same filter in one compiled loop
-    (:func:`~tobitkf.experiments._compiled_mixture.mixture_filter_kernel`, the same censored block, equal to
+    (:func:`~tobitkf.experiments._compiled_mixture.compiled_mixture_filter`, the same censored block, equal to
     rounding); False: this numpy time loop, the reference."""
     from .._compiled import numba_available
     from ..filters._readings import classify_readings, interval_classes
@@ -353,7 +353,7 @@ def _mixture_filter(
     Cn = np.asarray(C, dtype=float)
     if compiled:
         from ..filters._outputs import loop_input as f
-        from ._compiled_mixture import mixture_filter_kernel
+        from ._compiled_mixture import compiled_mixture_filter
 
         shape = (N, T) if store else (0, 0)
         xp, xs = np.empty(shape + (n,)), np.empty(shape + (n,))
@@ -368,7 +368,7 @@ def _mixture_filter(
             return f(v[:1] if v.shape[0] > 1 and v.strides[0] == 0 else v)
 
         given = np.zeros((0, 0), np.int8) if cls is None else np.require(cls, np.int8, ("C", "W"))
-        mixture_filter_kernel(
+        compiled_mixture_filter(
             f(x0), f(P0), f(np.asarray(rate, dtype=float)), f(np.asarray(diffusion, dtype=float)), rows(gaps), f(Cn),
             rows(y), given, cls is not None, rows(lo), rows(hi), rows(r2), rows(dy), logw, f(c2),
             store, xp, Pp, xs, Ps, terms,

@@ -1,8 +1,8 @@
-"""Choice between the numpy reference path and the compiled (numba) kernels of a filter.
+"""Choice between the numpy reference path and the compiled (numba) path of a filter.
 
-``backend="auto"`` (the default of the filters that have a kernel) uses the kernel
-when numba imports and the case is covered, else numpy; ``"numpy"`` always runs the
-reference path; ``"numba"`` insists on the kernel and raises if it cannot be used.
+``backend="auto"`` (the default of the filters that have a compiled path) uses the compiled
+path when numba imports and the case is covered, else numpy; ``"numpy"`` always runs the
+reference path; ``"numba"`` insists on the compiled path and raises if it cannot be used.
 numba is imported lazily, on the first filter call that may use it, so ``import
 tobitkf`` does not pay for it (:mod:`tobitkf._compiled` answers whether it can be).
 """
@@ -18,8 +18,8 @@ from .._validation import ValidationError
 __all__ = [
     "BACKENDS",
     "numba_available",
-    "kernels",
-    "use_kernel",
+    "compiled_module",
+    "use_compiled",
     "compiled_ok",
     "system_gap",
     "default_threads",
@@ -41,11 +41,11 @@ def _load() -> ModuleType | None:
 
 
 def numba_available() -> bool:
-    """True when the filters' kernels can be compiled (numba imports)."""
+    """True when the filters' compiled path can be used (numba imports)."""
     return _load() is not None
 
 
-def kernels() -> ModuleType:
+def compiled_module() -> ModuleType:
     """The :mod:`tobitkf.filters._compiled_tobit` module (imports numba)."""
     mod = _load()
     if mod is None:
@@ -54,7 +54,7 @@ def kernels() -> ModuleType:
 
 
 def system_gap(system, u, *, inputs: bool = False, matrices: bool = True) -> str | None:
-    """Why the kernels cannot run this system/input, or None when they can. ``inputs=True``: the kernel
+    """Why the compiled path cannot run this system/input, or None when it can. ``inputs=True``: it
     covers control inputs (constant B^u and D); ``matrices=False``: it covers time-varying and per-run
     system matrices (only the inputs are checked)."""
     if matrices and getattr(system, "per_run", False):
@@ -69,42 +69,42 @@ def system_gap(system, u, *, inputs: bool = False, matrices: bool = True) -> str
     return None
 
 
-def use_kernel(backend: str, gap: str | None, what: str) -> bool:
-    """Decide whether to run the compiled kernel of ``what``.
+def use_compiled(backend: str, gap: str | None, what: str) -> bool:
+    """Decide whether to run the compiled path of ``what``.
 
     Raises
     ------
     ImportError
         ``backend="numba"`` without numba installed.
     ValidationError
-        ``backend="numba"`` for a case the kernel does not cover (``gap`` says which).
+        ``backend="numba"`` for a case the compiled path does not cover (``gap`` says which).
     """
     if backend == "numpy":
         return False
     if backend == "numba":
-        kernels()
+        compiled_module()
         if gap is not None:
             raise ValidationError(
-                f"backend: the numba kernel of {what} does not cover {gap}; use backend='auto' or 'numpy'"
+                f"backend: the compiled path of {what} does not cover {gap}; use backend='auto' or 'numpy'"
             )
         return True
     return gap is None and numba_available()
 
 
 def compiled_ok(est, u, what: str, *, inputs: bool = False) -> bool:
-    """Whether ``est`` (a KF or TKF) runs its compiled kernel for input ``u``: decided once per estimator
+    """Whether ``est`` (a KF or TKF) runs its compiled path for input ``u``: decided once per estimator
     for the case without input (its system and options do not change), else afresh. ``inputs``: the
-    kernel covers control inputs (see :func:`system_gap`)."""
+    compiled path covers control inputs (see :func:`system_gap`)."""
     if u is None:
         cached = est.__dict__.get("_compiled_static")
         if cached is None:
-            cached = est._compiled_static = use_kernel(
+            cached = est._compiled_static = use_compiled(
                 est.backend,
                 check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, None),
                 what,
             )
         return cached
-    return use_kernel(
+    return use_compiled(
         est.backend,
         check_square_root(est.backend, est.covariance_update, what) or system_gap(est.system, u, inputs=inputs),
         what,
@@ -112,8 +112,8 @@ def compiled_ok(est, u, what: str, *, inputs: bool = False) -> bool:
 
 
 def check_square_root(backend: str, covariance_update: str, what: str) -> str | None:
-    """Refuse ``backend="numba"`` with ``covariance_update="square_root"`` (the kernels have no
-    square-root form); return the reason the kernel cannot run that form (for :func:`use_kernel`'s
+    """Refuse ``backend="numba"`` with ``covariance_update="square_root"`` (the compiled path has
+    no square-root form); return the reason it cannot run that form (for :func:`use_compiled`'s
     ``gap``), or None for the other forms.
 
     Raises
@@ -125,7 +125,7 @@ def check_square_root(backend: str, covariance_update: str, what: str) -> str | 
         return None
     if backend == "numba":
         raise ValidationError(
-            f"backend: the numba kernel of {what} has no square-root form, so "
+            f"backend: the compiled path of {what} has no square-root form, so "
             "covariance_update='square_root' needs backend='auto' or 'numpy' "
             "(or use covariance_update='standard' or 'joseph' with 'numba')"
         )

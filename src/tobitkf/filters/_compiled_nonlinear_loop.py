@@ -303,7 +303,7 @@ def run_result(run: Run, want, batch, state, x_last, P_last, S_last=None, *, onl
     """The :class:`~tobitkf.FilterResult` of a compiled run (``online``: the new state and the step's prediction
     ``(state, x̄, P̄)``) from its last means ``x_last``, covariances ``P_last`` (and factors ``S_last`` of the
     square-root form)."""
-    from ._outputs import kernel_result
+    from ._outputs import compiled_result
     from .core import FilterState, step_state
 
     means, covs, pmeans, pcovs, ey, slope, ll = run.outputs
@@ -320,7 +320,7 @@ def run_result(run: Run, want, batch, state, x_last, P_last, S_last=None, *, onl
         return new, pmeans[:, 0], pcovs[:, 0]
     extras = {key: v.reshape(batch + v.shape[1:]) for key, v in extras.items()}
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, S=S_last, carry=state.carry)
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+    return compiled_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
 def compiled_run(est, y2: np.ndarray, u2, state, want, batch, *, online: bool = False):

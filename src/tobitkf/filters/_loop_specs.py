@@ -16,7 +16,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from . import _compiled_loop
-from ._backend import system_gap, use_kernel
+from ._backend import system_gap, use_compiled
 from ._boundary import _noise_variances
 from ._compiled_moments import (
     CENSORED,
@@ -28,7 +28,7 @@ from ._compiled_moments import (
     kind,
 )
 from ._compiled_soa import censored_entry
-from ._outputs import _empty, kernel_result, output_arrays, state_specs
+from ._outputs import _empty, compiled_result, output_arrays, state_specs
 from ._readings import classify_readings, interval_classes
 from .core import FilterState
 
@@ -384,7 +384,7 @@ def channel_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_
 
 def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spec_of) -> Any:
     """The compiled ``filter`` of an assumed-density family, or None (the numpy loop runs): decides with the
-    estimator's ``backend`` (:func:`~tobitkf.filters._backend.use_kernel`), builds its arrays with
+    estimator's ``backend`` (:func:`~tobitkf.filters._backend.use_compiled`), builds its arrays with
     ``spec_of`` (one of the ``*_spec`` functions) and runs :func:`~tobitkf.filters._compiled_loop.compiled_loop`. A covariance that stops being
     finite also returns None, so that the numpy loop reruns the call and reports where it diverged."""
     what = f"the {est._name}"
@@ -400,7 +400,7 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         spec = spec_of(est, y2, u2, state, want, batch, step_data)
         if spec is None:
             gap = "these options"
-    if not use_kernel(getattr(est, "backend", "auto"), gap, what):
+    if not use_compiled(getattr(est, "backend", "auto"), gap, what):
         return None
     assert spec is not None
     N, T, m = y2.shape
@@ -434,4 +434,4 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
         return None
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
     extras = spec.extras(pu, ll, comp) if ext else {}
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+    return compiled_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)

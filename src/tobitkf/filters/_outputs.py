@@ -1,6 +1,6 @@
 """The outputs of the compiled loop: the ``(runs, T, ...)`` arrays it writes, carved from one allocation of the output
 pool (:func:`output_arrays`, laid out by :func:`state_specs` / :func:`cov_spec`), and the :class:`FilterResult` read
-back from them (:func:`kernel_result`, :func:`loop_array`). Shared by the compiled loop and the families' glue;
+back from them (:func:`compiled_result`, :func:`loop_array`). Shared by the compiled loop and the families' glue;
 :mod:`tobitkf.filters.kalman` re-exports them."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 from ._pool import take_buffer
 from .core import FilterResult, FilterState
 
-__all__ = ["loop_array", "cov_spec", "state_specs", "output_arrays", "kernel_result"]
+__all__ = ["loop_array", "cov_spec", "state_specs", "output_arrays", "compiled_result"]
 
 
 _EMPTY: dict[tuple, np.ndarray] = {}
@@ -56,7 +56,7 @@ def loop_array(a: np.ndarray, batch: tuple[int, ...]) -> np.ndarray | None:
 def cov_spec(want, n: int) -> tuple[bool, tuple[int, ...]]:
     """The filtered-covariance output of a compiled loop as an ``(on, shape)`` entry of :func:`output_arrays`:
     ``(runs, T, n, n)`` when ``"cov"`` is requested, ``(runs, T, n, 1)`` (the diagonals only, no n x n array
-    per step) when only ``"var"`` is, not written otherwise; :func:`kernel_result` reads it back."""
+    per step) when only ``"var"`` is, not written otherwise; :func:`compiled_result` reads it back."""
     if "cov" in want:
         return True, (n, n)
     return ("var" in want), ((n, 1) if "var" in want else (n, n))
@@ -93,7 +93,7 @@ def output_arrays(runs: int, T: int, *specs: tuple[bool, tuple[int, ...]]) -> li
     return out
 
 
-def kernel_result(
+def compiled_result(
     want, batch, T: int, means, covs, pmeans, pcovs, extras: dict[str, Any], final: FilterState
 ) -> FilterResult:
     """The :class:`FilterResult` of a compiled loop over T readings ending at ``final`` (the compiled loops of

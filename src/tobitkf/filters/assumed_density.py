@@ -62,7 +62,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_boo
 from ..censored import censored_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, kernels, numba_available
+from ._backend import BACKENDS, compiled_module, numba_available
 from ._boundary import _noise_variances
 from ._outputs import loop_input
 from ._readings import (
@@ -490,7 +490,7 @@ class AssumedDensityFamily(GaussianFilter):
             return None
         if not numba_available():
             if backend == "numba":
-                kernels()  # raises: numba is not installed
+                compiled_module()  # raises: numba is not installed
             return None
         from . import _loop_specs
 

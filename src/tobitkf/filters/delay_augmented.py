@@ -15,7 +15,7 @@ import numpy as np
 
 from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
-from ._backend import BACKENDS, use_kernel
+from ._backend import BACKENDS, use_compiled
 from .core import (
     FilterResult,
     FilterState,
@@ -158,7 +158,7 @@ class AugmentedLMMSE(_DelayEstimator):
         if gap is None and covariance_update != "standard":
             gap = f"covariance_update={covariance_update!r} (the whole-step kernel runs the standard form)"
         self._whole = None  # the compiled whole step and its constant arguments after (X, P, Λ_X, y)
-        if use_kernel(backend, gap, "the augmented LMMSE's step"):
+        if use_compiled(backend, gap, "the augmented LMMSE's step"):
             from ._compiled_delay import aug_step
 
             AA, Ai, _, HH, GQG, GS_T = self._mats

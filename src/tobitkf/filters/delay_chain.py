@@ -18,7 +18,7 @@ import numpy as np
 from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
 from . import delay as _shared  # _WHOLE_STEP_MAX_RUNS read at call time: one knob for C and D
-from ._backend import BACKENDS, use_kernel
+from ._backend import BACKENDS, use_compiled
 from .core import (
     FilterResult,
     FilterState,
@@ -96,7 +96,7 @@ class ChainLMMSE(_DelayEstimator):
         self._GS = system.GS
         self._moments = None  # the compiled moments of Λ(t-d) and their constant arguments
         self._whole = None  # the compiled plain step (:func:`~tobitkf.filters._compiled_delay.chain_step`)
-        if use_kernel(backend, _compiled_gap(system), "the chain LMMSE's moments"):
+        if use_compiled(backend, _compiled_gap(system), "the chain LMMSE's moments"):
             from ._compiled_delay import chain_step, delay_moments
 
             self._moments = (delay_moments, _compiled_moment_args(system, decorrelation))

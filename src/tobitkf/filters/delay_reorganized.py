@@ -16,7 +16,7 @@ import numpy as np
 from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
 from . import delay as _shared  # _WHOLE_STEP_MAX_RUNS read at call time: one knob for C and D
-from ._backend import BACKENDS, use_kernel
+from ._backend import BACKENDS, use_compiled
 from .core import (
     FilterResult,
     FilterState,
@@ -103,7 +103,7 @@ class ReorganizedInnovationLMMSE(_DelayEstimator):
         # the compiled whole step (covariances and means) and its arguments after (ring, t); d = 0 is
         # Algorithm C (its chain's own step)
         self._whole = None
-        if system.d and use_kernel(backend, gap, "the reorganized LMMSE's covariance step"):
+        if system.d and use_compiled(backend, gap, "the reorganized LMMSE's covariance step"):
             self._whole = self._compiled_step()
             self._compiled_cov, self._compiled_cov_args = self._compiled_cov_step()
         self._eps_back = tuple(range(1, system.d - 1))  # the whole step reads ε(t-k), k = 1..d-2

@@ -101,9 +101,9 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, check_square_root, system_gap, use_kernel
+from ._backend import BACKENDS, check_square_root, system_gap, use_compiled
 from ._online_check import system_only
-from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
+from ._outputs import _empty, compiled_result, loop_array, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -557,9 +557,9 @@ class FadingTobitKalmanFilter(_FadingFamily):
         if u is None and not keep_augmented:
             ok = self.__dict__.get("_compiled_static")
             if ok is None:
-                ok = self._compiled_static = use_kernel(self.backend, _compiled_gap(self, None), what)
+                ok = self._compiled_static = use_compiled(self.backend, _compiled_gap(self, None), what)
             return ok
-        return use_kernel(self.backend, "keep_augmented=True" if keep_augmented else _compiled_gap(self, u), what)
+        return use_compiled(self.backend, "keep_augmented=True" if keep_augmented else _compiled_gap(self, u), what)
 
 
 class FadingKalmanFilter(_FadingFamily):
@@ -871,7 +871,7 @@ def _compiled_run(est: FadingTobitKalmanFilter, y2, u2, state: FilterState, want
         else:
             covs = _empty((N, 0, n, n))
     final = FilterState(k=k0 + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+    return compiled_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
 def _input_terms(est: FadingTobitKalmanFilter, u2, N: int, T: int) -> tuple[np.ndarray, np.ndarray]:

@@ -51,7 +51,7 @@ from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, compiled_ok
 from ._online_check import system_only
-from ._outputs import kernel_result, loop_input, output_arrays, state_specs
+from ._outputs import compiled_result, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
 from ._times import at_times
 from .core import (
@@ -357,7 +357,7 @@ def _kf_compiled_run(est: KalmanFilter, y2: np.ndarray, state: FilterState, want
     x_last, P_last = np.empty((N, n)), np.empty((Pn, n, n))
     _kalman_call(est, np.require(y2, float, ("C", "W")), x, P, (means, covs, pmeans, pcovs), x_last, P_last)
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, {}, final)
+    return compiled_result(want, batch, T, means, covs, pmeans, pcovs, {}, final)
 
 
 def kalman_filter(
@@ -394,11 +394,11 @@ def kalman_filter(
         Override the system's prior (``(..., n)``, ``(..., n, n)``).
     backend : {"auto", "numpy", "numba"}, default "auto"
         Implementation of the time loop (same results to rounding, tested to 1e-12).
-        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._compiled_tobit`, which
+        ``"numba"`` runs the compiled path (numba), which
         covers time-invariant A, B, C, Q, R without control input (missing samples,
         ``skip``, per-run priors and the standard and Joseph updates included, not the
         square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers
-        everything; ``"auto"`` the kernel when numba is installed and the case is covered,
+        everything; ``"auto"`` the compiled path when numba is installed and the case is covered,
         else numpy (always numpy for ``covariance_update="square_root"``).
     outputs : str or sequence of str, default "all"
         Per-step outputs to record: ``"all"``, ``"last"`` (only ``result.final``), or names from
@@ -415,7 +415,7 @@ def kalman_filter(
     ------
     ShapeError, ValidationError
         On malformed ``y``, ``u``, ``skip`` or an unknown option; ``backend="numba"`` for a
-        case the kernel does not cover (including ``covariance_update="square_root"``).
+        case the compiled path does not cover (including ``covariance_update="square_root"``).
     ImportError
         ``backend="numba"`` without numba installed.
 

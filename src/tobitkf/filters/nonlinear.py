@@ -95,7 +95,7 @@ from .._validation import ShapeError, ValidationError, as_float_array, check_ins
 from ..channels.censoring import Censoring
 from ..models.nonlinear import NonlinearSystem
 from . import _online_check
-from ._backend import BACKENDS, use_kernel
+from ._backend import BACKENDS, use_compiled
 from .adf_generic import _contract_channel, _ContractChecks
 from .core import (
     FilterResult,
@@ -374,7 +374,7 @@ class _NonlinearFamily(GaussianFilter):
                         f"backend: 'numba' runs f and h compiled, but {gap}; decorate them with @numba.njit "
                         "(written for a batch of points (..., n) as for numpy), or use backend='auto' or 'numpy'"
                     )
-                cached = use_kernel(self.backend, gap, f"the {self._name}")
+                cached = use_compiled(self.backend, gap, f"the {self._name}")
             self._compiled_ok = cached
         return cached
 

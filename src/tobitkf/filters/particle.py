@@ -118,7 +118,7 @@ from .._linalg import symmetrize
 from .._validation import ValidationError, as_float_array, check_instance, check_int, check_memory
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, system_gap, use_kernel
+from ._backend import BACKENDS, system_gap, use_compiled
 from ._particle_models import SYSTEM_MODELS, _build_model, _diag_sigma, _Linear, _Protocol
 from ._particle_rng import generator as _generator
 from ._particle_rng import rng_state as _rng_state
@@ -366,7 +366,7 @@ class ParticleFilter(Estimator):
         return system_gap(self.system, u)
 
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
-        if not use_kernel(self.backend, self._compiled_gap(u2), "the particle filter"):
+        if not use_compiled(self.backend, self._compiled_gap(u2), "the particle filter"):
             return None
         from ._compiled_particle import filter_blocks
 

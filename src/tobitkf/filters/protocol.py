@@ -81,9 +81,9 @@ from .._validation import (
 )
 from ..channels.protocol import NO_FAILURE, ProtocolChannel
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, kernels, system_gap, use_kernel
+from ._backend import BACKENDS, compiled_module, system_gap, use_compiled
 from ._online_check import check_step
-from ._outputs import kernel_result, loop_array, loop_input, output_arrays, state_specs
+from ._outputs import compiled_result, loop_array, loop_input, output_arrays, state_specs
 from .core import (
     FilterResult,
     FilterState,
@@ -212,7 +212,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
         prehistory_prior = _check_options(failure_term, prehistory_prior, covariance_update)
         check_option(backend, "backend", BACKENDS)
         if backend == "numba":
-            kernels()  # raises ImportError without numba
+            compiled_module()  # raises ImportError without numba
         self.backend = backend
         _check_parts(system, channel)
         self._setup_system(system)
@@ -441,7 +441,7 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             return None
         ok = self.__dict__.get("_compiled_static")
         if ok is None:
-            ok = self._compiled_static = use_kernel(
+            ok = self._compiled_static = use_compiled(
                 self.backend, _protocol_compiled_gap(self, None), "the protocol Tobit Kalman filter"
             )
         if not ok:
@@ -459,13 +459,13 @@ class ProtocolTobitKalmanFilter(LinearGaussianFamily):
             # decided once for the case without input
             ok = self.__dict__.get("_compiled_static") if u2 is None else None
             if ok is None:
-                ok = use_kernel(self.backend, _protocol_compiled_gap(self, u2), what)
+                ok = use_compiled(self.backend, _protocol_compiled_gap(self, u2), what)
                 if u2 is None:
                     self._compiled_static = ok
             if not ok:
                 return None
             return _finite_or_none(_protocol_loop_run(self, y2, step_options["uncensored_record"], state, want, batch))
-        use_kernel(self.backend, gap, what)  # raises for backend="numba"
+        use_compiled(self.backend, gap, what)  # raises for backend="numba"
         return None
 
     def __repr__(self) -> str:
@@ -646,7 +646,7 @@ def _protocol_loop_run(est: ProtocolTobitKalmanFilter, y2, step_data, state: Fil
             uncensored=out(gam[..., 0]),
         )
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=carry)
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+    return compiled_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
 def protocol_tobit_kalman_filter(

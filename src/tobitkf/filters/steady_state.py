@@ -65,7 +65,7 @@ from scipy.special import ndtri
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, check_option, diagonal_sigma
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
-from ._backend import BACKENDS, system_gap, use_kernel
+from ._backend import BACKENDS, system_gap, use_compiled
 from ._outputs import loop_array, loop_input, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, step_state
 from .kalman import LinearGaussianFamily
@@ -347,7 +347,7 @@ class SteadyStateTobitKalmanFilter(LinearGaussianFamily):
 
     # ---- the compiled path (batched ``filter``/``filter_controlled`` only; ``step`` runs numpy) ------
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
-        if not use_kernel(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
+        if not use_compiled(self.backend, system_gap(self.system, u2), "the steady-state Tobit Kalman filter"):
             return None
         return _steady_loop_run(self, y2, state, want, batch, bool((step_options or {}).get("latent", False)))
 
@@ -411,7 +411,7 @@ class ControlledLimitTobitKalmanFilter(TobitKalmanFilter):
     def _compiled_filter(self, *args):
         # the TKF's compiled loop takes the limits as data; here they are set from the prior inside the loop, so
         # there is no compiled path: numpy under "auto", a refusal under "numba" (not a silent numpy run)
-        use_kernel(self.backend, "a limit set from the filter's prior (3.56)", "the controlled-limit TKF")
+        use_compiled(self.backend, "a limit set from the filter's prior (3.56)", "the controlled-limit TKF")
         return None
 
     def _compiled_online_step(self, *args):

@@ -79,7 +79,7 @@ from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
-from ._outputs import _empty, kernel_result, loop_array, loop_input, output_arrays, state_specs
+from ._outputs import _empty, compiled_result, loop_array, loop_input, output_arrays, state_specs
 from ._readings import censoring_sides
 from .assumed_density import assumed_density_filter
 from .core import (
@@ -229,10 +229,10 @@ class TobitKalmanFilter(IndicatorFilterMethods, SmoothingMethods, LinearGaussian
         :math:`S`, :math:`\Psi = SS^T`, through QR factorizations (positive semidefinite by
         construction; every ``noise_term``; see :func:`tobit_kalman_filter`).
     backend : {"auto", "numpy", "numba"}, default "auto"
-        Compiled kernel or numpy reference path; see :func:`tobit_kalman_filter`.
+        Compiled path or numpy reference path; see :func:`tobit_kalman_filter`.
         ``"numba"`` has no square-root form and is refused with ``covariance_update="square_root"``.
     threads : int, optional
-        Threads for the compiled kernel; see :func:`tobit_kalman_filter`.
+        Threads for the compiled path; see :func:`tobit_kalman_filter`.
     check_limits : bool, default True
         Raise if a reading lies outside its censoring limits.
 
@@ -529,7 +529,7 @@ def _tkf_compiled_run(est: TobitKalmanFilter, y2, u2, lo, hi, state: FilterState
         run_split(work, N, check_threads(est.threads))
     final = FilterState(k=state.k + T, batch_shape=batch, x=x_last, P=P_last, n=n, carry=state.carry)
     extras = {"p_uncensored": loop_array(pu, batch), "expected_y": loop_array(ey, batch)} if "extras" in want else {}
-    return kernel_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
+    return compiled_result(want, batch, T, means, covs, pmeans, pcovs, extras, final)
 
 
 def tobit_kalman_filter(
@@ -574,14 +574,14 @@ def tobit_kalman_filter(
         Raise if a measurement lies outside its censoring limits.
     backend : {"auto", "numpy", "numba"}, default "auto"
         Implementation of the time loop (same results to rounding, tested to 1e-12).
-        ``"numba"`` runs the compiled kernel of :mod:`tobitkf.filters._compiled_tobit`, which
+        ``"numba"`` runs the compiled path (numba), which
         covers time-invariant A, B, C, Q, R, with or without control input through constant
         B^u and D (any limits, multi-region included, NaN samples and noise term; the standard
         and Joseph updates, not the square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;
-        ``"auto"`` the kernel when numba is installed and the case is covered, else numpy
+        ``"auto"`` the compiled path when numba is installed and the case is covered, else numpy
         (always numpy for ``covariance_update="square_root"``).
     threads : int, optional
-        Threads over which the compiled kernel splits the runs (it releases the GIL; the
+        Threads over which the compiled path splits the runs (it releases the GIL; the
         result is identical bit for bit). Default: ``TOBITKF_NUM_THREADS``, else
         ``OMP_NUM_THREADS`` (Dask workers set it to 1), else the number of CPUs. Batches
         below 256 runs per thread are not split. Ignored by the numpy path.
@@ -599,7 +599,7 @@ def tobit_kalman_filter(
     ------
     ValidationError
         Non-diagonal R, a reading outside its limits, an unknown option, or
-        ``backend="numba"`` for a case the kernel does not cover (including
+        ``backend="numba"`` for a case the compiled path does not cover (including
         ``covariance_update="square_root"``).
     ImportError
         ``backend="numba"`` without numba installed.

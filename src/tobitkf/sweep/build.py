@@ -47,16 +47,12 @@ class Point:
         own = self._own()
         return (own if own is not None else self.parts["censoring"]).at_limit(y)
 
-    # the pre-0.2 tuple form: (system, censoring, {key: estimator})
-    def __iter__(self):
-        return iter((self.system, self.parts.get("censoring"), {k: e for k, (_, e) in self.estimators.items()}))
-
 
 def build_point(spec: Any, point: dict[str, Any], *, threads: int | None = None) -> Point:
     """System, channel pieces and estimator objects of one grid point (model mode).
 
     ``threads`` is passed to the estimators that split their runs over threads (the TKF's
-    compiled kernel); None keeps their default."""
+    compiled path); None keeps their default."""
     from ..channels.base import channel_class
     from ..channels.censoring import Censoring
     from ..filters.registry import get

@@ -508,7 +508,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
         from .build import build_point
 
         try:
-            sys0, _, ests0 = build_point(spec, {})
+            base = build_point(spec, {})
         except ValidationError as exc:
             arg = str(exc).split(":", 1)[0].split("(")[0].strip()
             est_key = next((f"estimators.{k}.{arg}" for k, e in ests.items() if arg in e), None)
@@ -525,7 +525,7 @@ def parse_sweep(text: str, *, name: str = "sweep") -> SweepSpec:
             except ValidationError as exc:
                 key = next(iter(point))
                 raise _fail(text, f"grid.{key}", f"invalid at grid point {point}: {exc}") from None
-        spec.check_size(sys0.n, sys0.m, sys0.q, len(ests0))
+        spec.check_size(base.system.n, base.system.m, base.system.q, len(base.estimators))
     else:
         spec.check_size(None, None, None, None)
     return spec
