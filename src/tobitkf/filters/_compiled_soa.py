@@ -18,62 +18,24 @@ per run-step against the three loops' 18.1, n = 2, one-sided limits). The censor
 without its log-likelihood and P(uncensored) stays scalar (with them it vectorises, but computing them always was
 no faster).
 
-Layout: a block of :data:`SOA_BLOCK` runs, means ``x[i, b]`` (n, B), covariances ``P[i, j, b]`` (n, n, B)
-(symmetric, both triangles stored: the output staging of :mod:`tobitkf.filters._compiled_block` reads them),
-readings (N, T, m) as given. The step of run b, with one channel (m = 1), row :math:`c` (the measurement matrix),
+The pieces: the scratch layout (a block of :data:`SOA_BLOCK` runs, means ``x[i, b]`` (n, B), covariances
+``P[i, j, b]`` (n, n, B), readings (N, T, m) as given) and the step of one run with one channel, the Kalman
+filter's (:data:`KALMAN`) and the Tobit Kalman filter's update (:data:`TOBIT_ANY`), in
+:mod:`tobitkf.filters._compiled_soa_step`; the joint update of m = 2 or 3 channels, the KF's and the TKF's, in
+:mod:`tobitkf.filters._compiled_soa_joint`; here the time loop (:func:`soa_loop`), the step of a block
+(:func:`_step`: which update, its loops over the runs, the TKF's censored statistics at the prior), what is
+covered and the entries. Each is the compiled loop's arithmetic in its order, so that the two agree to rounding; a
+reading that is NaN, or an innovation variance not above the smallest normal number, leaves the run's prediction
+unchanged (the compiled loop's rule).
 
-.. math::
-
-    \bar x = A\hat x + B^uu_k,\quad \bar P = A P A^T + Q,\quad h = \bar P c^T,\quad s = c\bar Pc^T,
-    \quad \mu = c\bar x + Du_k,
-
-* Kalman filter (:data:`KALMAN`, Miller (2015) (2.3)–(2.6)): :math:`e = y - \mu`, :math:`R_{ee} = s + R`,
-  :math:`R_{xe} = h`;
-* Tobit Kalman filter (:data:`TOBIT_ANY`, Miller (3.37)–(3.41), all statistics at the prior), in three
-  vectorised loops over the block (prediction and moments; statistics; update): the censored-normal statistics
-  of :math:`\mu` and :math:`\sigma` at the step's limits, :math:`(\gamma, E(y), R_{uu})`; one finite limit from
-  :func:`~tobitkf.filters._compiled_censored._one_sided_at` (the branch-free routes written for vectorisation,
-  imported: the same numbers as the compiled loop's statistics), two finite limits by the direct formulas of
-  :func:`~tobitkf.filters._compiled_censored.window_direct` for all runs, and the few runs whose window needs
-  another route (a window narrower than :math:`\sigma`, or in a tail) then
-  :func:`~tobitkf.filters._compiled_censored.censored_stats` one by one, the compiled loop's numbers (its sums
-  are taken in the loop's order, so that :math:`\mu`, which picks the route, is the loop's to the bit), no limit
-  the latent reading's moments; :math:`e = y - E(y)`, :math:`R_{ee} = \gamma^2 s + R_{uu}`,
-  :math:`R_{xe} = \gamma h`;
-
-then :math:`K = R_{xe}/R_{ee}`, :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` (standard form) or the
-Joseph form :math:`P = M - (MH^T - KR)K^T`, :math:`M = \bar P - KR_{xe}^T`, :math:`H = \gamma c` (as
-:func:`~tobitkf.filters._compiled_block._cov_update`). A reading that is NaN, or an innovation variance not above
-the smallest normal number, leaves the run's prediction unchanged (the compiled loop's rule).
-
-* Kalman filter with m = 2 or 3 channels (:data:`KALMAN` with ``chans`` of length m, :data:`CHANS`), the joint
-  update of the compiled loop, each operation in its order (so that the two agree to rounding): the rows
-  :math:`C` (m, n) and :math:`R` (m, m) constant, :math:`R_{xe} = \bar PC^T`, :math:`R_{ee} = C\bar PC^T + R`,
-  :math:`e = y - C\bar x`, a channel whose reading is NaN (or whose variance is not above the smallest normal
-  number) left out (innovation 0, gain column 0), :math:`K` from the unit-diagonal
-  :math:`(DR_{ee}D)Z = DR_{xe}^T`, :math:`D = \mathrm{diag}(R_{ee})^{-1/2}`, by elimination without pivoting
-  (:func:`_kalman_joint_gain`; a run with a pivot not positive again with partial pivoting,
-  :func:`_kalman_fallback`), then :math:`\hat x = \bar x + Ke`, :math:`P = \bar P - KR_{xe}^T` or Joseph's
-  :math:`P = M - (MC^T - KR)K^T` (:func:`_kalman_joint_update`), in three loops over the block's runs.
-* Tobit Kalman filter with m = 2 or 3 channels (:data:`TOBIT_ANY` with ``chans`` of length m), the joint update
-  of the compiled loop (all channels' statistics at the prior, :func:`~tobitkf.filters._compiled_tobit.tobit_update_block`),
-  each operation in its order: the prediction, :math:`h_l = \bar Pc_l^T`, :math:`C\bar PC^T` and the latent
-  means :math:`\mu_l = c_l\bar x + (Du_k)_l` (:func:`_tkf_joint_moments`); each channel's statistics
-  :math:`(\gamma_l, E(y_l), R_{uu,l})` at its own limits of the step and its own :math:`\sigma_l`, by the routes
-  of the one channel above; :math:`R_{ee} = \Gamma C\bar PC^T\Gamma + \mathrm{diag}(R_{uu})`,
-  :math:`R_{xe} = \bar PC^T\Gamma`, :math:`e = y - E(y)` (a channel whose reading is NaN, or whose variance is
-  not above the smallest normal number, left out) and the KF's elimination (:func:`_tkf_joint_gain`,
-  :func:`_joint_solve`, the fallback :func:`_kalman_fallback`); then :math:`\hat x = \bar x + Ke`,
-  :math:`P = \bar P - KR_{xe}^T` or Joseph's :math:`P = M - (M C^T\Gamma - K\,\mathrm{diag}(R_{uu}))K^T`
-  (:func:`_kalman_joint_update`): five loops over the block's runs.
-* Censored assumed-density filter (:data:`CENSORED_ADF`, :mod:`tobitkf.filters.assumed_density`): the reading's
-  class (missing, inside its limits, at the lower or the upper limit: given, or by the limit rule of
-  :func:`~tobitkf.filters._compiled_moments.classify`) and the latent :math:`N(\mu, s + r)` give
-  :math:`(\alpha, \beta)`, the log-likelihood and P(uncensored) from
-  :func:`~tobitkf.filters._compiled_moments._censored_one` (the compiled loop's function, imported; its
-  logarithms and exponential without a libm call, so that they vectorise too), and
-  :math:`\hat x = \bar x + \alpha h`, :math:`P = \bar P - \beta hh^T`. With one channel both of its orders
-  (``"channels"``, ``"uncensored_first"``) are this one update.
+The censored assumed-density filter's update (:data:`CENSORED_ADF`, :mod:`tobitkf.filters.assumed_density`),
+in :func:`_step`: the reading's class (missing, inside its limits, at the lower or the upper limit: given, or by
+the limit rule of :func:`~tobitkf.filters._compiled_moments.classify`) and the latent :math:`N(\mu, s + r)` give
+:math:`(\alpha, \beta)`, the log-likelihood and P(uncensored) from
+:func:`~tobitkf.filters._compiled_moments._censored_one` (the compiled loop's function, imported; its logarithms
+and exponential without a libm call, so that they vectorise too), and :math:`\hat x = \bar x + \alpha h`,
+:math:`P = \bar P - \beta hh^T`. With one channel both of its orders (``"channels"``, ``"uncensored_first"``) are
+this one update.
 
 Covered (:func:`soa_covers`, :func:`censored_covers`): one channel, n from 1 to :data:`SOA_MAX_N`; for the TKF
 limits without NaN, ``lo < hi`` (one finite limit, two or none; the limits may change with the step), every noise term, the
@@ -111,10 +73,34 @@ import numpy as np
 from numba import njit
 
 from . import _compiled_loop
-from ._compiled_block import _flush, _solve_gain, _stage, _stage_shape, _store_last
-from ._compiled_censored import GL_W, GL_X, _assemble, _one_sided_at, censored_stats, noise_term, window_direct
+from ._compiled_block import _flush, _stage, _stage_shape, _store_last
+from ._compiled_censored import GL_W, GL_X, _assemble, censored_stats, noise_term, window_direct
 from ._compiled_moments import CENSORED, INTERVAL, classify
 from ._compiled_moments import _censored_one as _adf_update
+from ._compiled_soa_joint import (
+    _kalman_fallback,
+    _kalman_joint_gain,
+    _kalman_joint_update,
+    _tkf_joint_gain,
+    _tkf_joint_moments,
+)
+from ._compiled_soa_step import (
+    CENSORED_ADF,
+    CENSORED_ADF_STATS,
+    CHANS,
+    KALMAN,
+    KINDS,
+    SIZES,
+    SOA_BLOCK,
+    SOA_MAX_M,
+    SOA_MAX_N,
+    TOBIT_ANY,
+    _kalman_step,
+    _offsets,
+    _one_sided_tkf,
+    _predict_moments,
+    _update_of,
+)
 
 __all__ = [
     "SOA_BLOCK",
@@ -127,6 +113,8 @@ __all__ = [
     "KALMAN",
     "TOBIT_ANY",
     "CENSORED_ADF",
+    "CENSORED_ADF_STATS",
+    "KINDS",
     "soa_covers",
     "censored_covers",
     "soa_kalman_loop",
@@ -138,14 +126,6 @@ __all__ = [
     "censored_entry",
 ]
 
-SOA_BLOCK = 128  # runs per block: a multiple of the vector width (8 doubles with AVX-512)
-SOA_MAX_N = 4  # largest state covered: every state loop is unrolled (n^3 products per step in straight-line code)
-#: the state size n as a type: a tuple of n zeros, whose length numba folds to a constant (one specialisation of
-#: :func:`soa_loop` per n, found by the ordinary dispatch on the argument types at every call)
-SIZES = {n: (0,) * n for n in range(1, SOA_MAX_N + 1)}
-SOA_MAX_M = 3  # most channels of the KF's joint update (one channel for the other updates)
-#: the number of channels m as a type, likewise (a tuple of m zeros: one specialisation per m)
-CHANS = {m: (0,) * m for m in range(1, SOA_MAX_M + 1)}
 #: the (m, n) of the KF's joint update (m > 1) that :func:`kalman_entry` routes to :func:`soa_loop`: those measured
 #: faster than the compiled loop. n = 2, m = 2 (C = I, R = diag(0.1, 0.2), 2 x 10^4 runs x 100 steps, thread CPU time
 #: per run-step, medians of 7 alternating calls in one process, load average 10.7 on 2 cores): 22.2 against 30.9 ns
@@ -154,8 +134,7 @@ CHANS = {m: (0,) * m for m in range(1, SOA_MAX_M + 1)}
 #: 20.8 / 22.6, (3, 1) 21.5 / 23.2 against 29.9 / 31.5, (3, 2) 28.0 / 35.1 against 39.3 / 46.4, (2, 3) 31.3 / 44.6
 #: against 40.7 / 54.2; slower, not routed: (3, 3) 302 / 317 against 54.8 / 68.1, (2, 4) 227 / 252 against 62.8 /
 #: 93.6, (3, 4) 381 / 406 against 82.3 / 111 (the straight-line step of a run no longer vectorises well). Every m up
-#: to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
-#: to :data:`SOA_MAX_N`. Routed for now only at (2, 2), the largest gain measured: each routed (m, n) is a compiled
+#: to :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop. Routed for now only at (2, 2), the largest gain measured: each routed (m, n) is a compiled
 #: version of its own (about 20 s of compiling on the first call at that size, and in the test run), and the other
 #: gains (8-30 %) come from one run on a loaded machine, to be confirmed on an idle one before they are routed
 KF_JOINT_ROUTED = frozenset({(2, 2)})
@@ -170,18 +149,8 @@ KF_JOINT_ROUTED = frozenset({(2, 2)})
 #: :data:`SOA_MAX_M` and n up to :data:`SOA_MAX_N` is tested equal to the loop
 #: Routed for now only at (2, 2), the largest gain measured, for the reason given at :data:`KF_JOINT_ROUTED`
 TKF_JOINT_ROUTED = frozenset({(2, 2)})
-#: the updates of :func:`soa_loop`: the KF, the censored assumed-density filter without or with its log-likelihood
-#: and P(uncensored), the TKF (any limits)
-KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY = 0, 2, 3, 4
-#: the update as a type, likewise: a tuple of ``update`` zeros (one specialisation per update). :func:`soa_loop`
-#: branches on ``len(kind) == update`` directly: numba rewrites the length of a tuple argument as a constant and
-#: prunes the branches of the other updates before typing, so that each specialisation holds only its update's
-#: code (compared through a variable, every update's code was compiled into every version: the KF's at n = 2 took
-#: 127 s to compile on a loaded machine, pruned 20 s)
-KINDS = {k: (0,) * k for k in (KALMAN, CENSORED_ADF, CENSORED_ADF_STATS, TOBIT_ANY)}
 _CHUNK = 64  # steps staged per flush (as the compiled loop's CHUNK)
 _STAGE_BYTES = 1 << 18
-_TINY = float(np.finfo(np.float64).tiny)
 _INF = math.inf
 
 
@@ -247,419 +216,6 @@ def censored_entry(default, family: int, A, Qd, H, F, r, lo, hi, x0, stats: bool
     return soa_censored_loop if censored_covers(family, A, Qd, H, F, r, lo, hi, x0) else default
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _offsets(n, m):
-    """The rows of :func:`soa_loop`'s scratch ``W`` (each :data:`SOA_BLOCK` numbers) for state size ``n`` and
-    ``m`` channels: state, prediction, scratch, the step's inputs and statistics (a row per channel, ``h`` and the
-    gain ``n`` rows per channel, channel ``l``'s at ``oH + l * n``), the joint gain's elimination (``m > 1``:
-    :math:`DR_{ee}D` by rows, the right-hand sides, the scaling, the channels that take part and a run's flag for
-    the pivoting fallback); the last is the number of rows."""
-    nn = n * n
-    oX, oP = 0, n
-    oXP = oP + nn
-    oPp = oXP + n
-    oAP = oPp + nn
-    oH = oAP + nn
-    oK = oH + n * m
-    oY = oK + n * m
-    oBU = oY + m
-    oDU = oBU + n
-    oG = oDU + m
-    oEY = oG + m
-    oCL = oEY + m
-    oLL = oCL + m
-    oMU = oLL + 1  # the split step (TOBIT_ANY): the moments mu, s and the noise term between its loops
-    oS = oMU + m
-    oV = oS + m * m
-    oSL = oV + m  # 1: the run's window statistics take another route than the direct formulas (a row per channel)
-    oRW = oSL + m  # the joint gain (m > 1): D R_ee D (m x m), the right-hand sides D R_xe^T (m x n), D (m)
-    oRH = oRW + m * m
-    oD = oRH + m * n
-    oOK = oD + m  # 1.0: the channel takes part
-    oBAD = oOK + m  # 1.0: a pivot not positive, the run's gain again with partial pivoting
-    return (
-        oX,
-        oP,
-        oXP,
-        oPp,
-        oAP,
-        oH,
-        oK,
-        oY,
-        oBU,
-        oDU,
-        oG,
-        oEY,
-        oCL,
-        oLL,
-        oMU,
-        oS,
-        oV,
-        oSL,
-        oRW,
-        oRH,
-        oD,
-        oOK,
-        oBAD,
-        oBAD + 1,
-    )
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _predict_state(W, cst, b, n, m):
-    r"""The prediction of run ``b`` of the block, :math:`\bar x = A\hat x + B^uu_k`, :math:`\bar P = APA^T + Q`
-    (upper triangle, mirrored), into ``W`` (the layout of ``m`` channels)."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    nn = n * n
-    # every sum in the compiled loop's order (its terms from 0, the inputs and Q added last): the same rounding,
-    # so that the reading's mean, which picks the route of the window statistics, is the loop's to the bit
-    for i in range(n):
-        acc = 0.0
-        for k in range(n):
-            acc += cst[i * n + k] * W[(oX + k) * BK + b]
-        W[(oXP + i) * BK + b] = acc + W[(oBU + i) * BK + b]  # 0 without inputs (W starts zeroed)
-    for i in range(n):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += cst[i * n + k] * W[(oP + k * n + j) * BK + b]
-            W[(oAP + i * n + j) * BK + b] = acc
-    for i in range(n):
-        for j in range(i, n):
-            acc = 0.0
-            for k in range(n):
-                acc += W[(oAP + i * n + k) * BK + b] * cst[j * n + k]
-            acc += cst[nn + i * n + j]
-            W[(oPp + i * n + j) * BK + b] = acc
-            W[(oPp + j * n + i) * BK + b] = acc
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _predict_moments(W, cst, b, n):
-    r"""The prediction of run ``b`` of the block (:func:`_predict_state`, one channel) and the moments of its
-    reading: :math:`h = \bar Pc^T` into ``W``, returns :math:`(\mu, s) = (c\bar x + Du_k, c\bar Pc^T)`."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, 1)
-    )
-    BK = SOA_BLOCK
-    nn = n * n
-    _predict_state(W, cst, b, n, 1)
-    mu = 0.0
-    for i in range(n):
-        mu += W[(oXP + i) * BK + b] * cst[2 * nn + i]
-    mu += W[oDU * BK + b]
-    sv = 0.0
-    for i in range(n):
-        acc = 0.0
-        for k in range(n):
-            acc += W[(oPp + i * n + k) * BK + b] * cst[2 * nn + k]
-        W[(oH + i) * BK + b] = acc
-        sv += cst[2 * nn + i] * acc
-    return mu, sv
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _one_sided_tkf(mu, sd, lim, sg, noise_code):
-    """The TKF's ``(gamma, R_uu, E(y))`` of a reading with latent mean ``mu``, standard deviation ``sd`` and one
-    finite limit: ``sg`` 1 a lower limit ``lim``, -1 an upper one (``lim`` then the lower limit -hi of -y)."""
-    ms = sg * mu
-    _plo, g, _lam, tmean, tvar, cm, cvar = _one_sided_at(ms, sd, lim)
-    return g, noise_term(noise_code, ms, g, tmean, tvar, cvar), sg * cm
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph):
-    r"""The KF/TKF update of run ``b`` from its prediction and :math:`h` in ``W``: :math:`e = y - E(y)`,
-    :math:`R_{ee} = \gamma^2 s + R_{uu}`, :math:`K = \gamma h/R_{ee}`, :math:`\hat x = \bar x + Ke`,
-    :math:`P = \bar P - \gamma Kh^T` (standard form) or Joseph's (module docstring); no change for a NaN
-    reading or :math:`R_{ee}` not above the smallest normal number."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, 1)
-    )
-    BK = SOA_BLOCK
-    nn = n * n
-    # the compiled loop's operations in its order (_innovation_moments, _gain): the same rounding
-    e = yb - ey
-    ree = sv * g * g + v
-    good = ree > _TINY and not math.isnan(e)
-    e = e if good else 0.0
-    r = ree if good else 1.0
-    for i in range(n):
-        rxe = W[(oH + i) * BK + b] * g
-        kgi = (rxe if good else 0.0) / r
-        W[(oK + i) * BK + b] = kgi
-        W[(oX + i) * BK + b] = W[(oXP + i) * BK + b] + kgi * e
-    for i in range(n):
-        for j in range(i, n):
-            pij = W[(oPp + i * n + j) * BK + b] - W[(oK + i) * BK + b] * (g * W[(oH + j) * BK + b])
-            W[(oP + i * n + j) * BK + b] = pij
-            W[(oP + j * n + i) * BK + b] = pij
-    if joseph:
-        # P = M - (M H^T - K R) K^T, M the standard form's result just computed, H = g c
-        for i in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += W[(oP + i * n + k) * BK + b] * cst[2 * nn + k]
-            W[(oAP + i) * BK + b] = acc * g - W[(oK + i) * BK + b] * v
-        for i in range(n):
-            for j in range(i, n):
-                pij = W[(oP + i * n + j) * BK + b] - W[(oAP + i) * BK + b] * W[(oK + j) * BK + b]
-                W[(oP + i * n + j) * BK + b] = pij
-                W[(oP + j * n + i) * BK + b] = pij
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _update_of(W, cst, b, n, joseph):
-    """The split TKF step's update of run ``b`` from the statistics its second loop left in ``W``."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, 1)
-    )
-    BK = SOA_BLOCK
-    yb, g, v, ey, sv = W[oY * BK + b], W[oG * BK + b], W[oV * BK + b], W[oEY * BK + b], W[oS * BK + b]
-    _gain_update(W, cst, b, n, yb, g, v, ey, sv, joseph)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _kalman_step(W, cst, b, n, rn, joseph):
-    """The Kalman filter's whole step of run ``b`` (noise variance ``rn``)."""
-    mu, sv = _predict_moments(W, cst, b, n)
-    _gain_update(W, cst, b, n, W[_offsets(n, 1)[7] * SOA_BLOCK + b], 1.0, rn, mu, sv, joseph)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _kalman_joint_gain(W, cst, b, n, m):
-    r"""The Kalman filter's prediction, innovation moments and joint gain of run ``b`` with ``m`` channels, each
-    operation as the compiled loop's (:func:`~tobitkf.filters._compiled_loop._kalman_moments`,
-    :func:`~tobitkf.filters._compiled_block._gain_block`), in its order: :math:`h_l = \bar Pc_l^T` (the column
-    :math:`l` of :math:`R_{xe}`), :math:`R_{ee} = C\bar PC^T + R`, :math:`e = y - C\bar x` (0 for a channel
-    whose reading is NaN or whose variance is not above the smallest normal number: it does not take part, its
-    gain column is 0), and with :math:`D = \mathrm{diag}(R_{ee})^{-1/2}` the unit-diagonal system
-    :math:`(DR_{ee}D)Z = DR_{xe}^T` by Gaussian elimination without pivoting, :math:`K = (DZ)^T`. A pivot not
-    positive flags the run (row ``oBAD``) for :func:`_kalman_fallback`."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    nn = n * n
-    oc, orr = 2 * nn, 2 * nn + m * n  # the rows C, then R, in the constants
-    _predict_state(W, cst, b, n, m)
-    for l in range(m):
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += cst[oc + l * n + k] * W[(oPp + k * n + j) * BK + b]
-            W[(oH + l * n + j) * BK + b] = acc
-    for l in range(m):
-        for q in range(m):
-            acc = 0.0
-            for k in range(n):
-                acc += W[(oH + l * n + k) * BK + b] * cst[oc + q * n + k]
-            W[(oS + l * m + q) * BK + b] = acc + cst[orr + l * m + q]
-        acc = 0.0
-        for j in range(n):
-            acc += W[(oXP + j) * BK + b] * cst[oc + l * n + j]
-        e = W[(oY + l) * BK + b] - acc
-        good = W[(oS + l * m + l) * BK + b] > _TINY and not math.isnan(e)
-        W[(oOK + l) * BK + b] = 1.0 if good else 0.0
-        W[(oMU + l) * BK + b] = e if good else 0.0
-    _joint_solve(W, b, n, m)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _joint_solve(W, b, n, m):
-    r"""The joint gain of run ``b`` from :math:`R_{ee}` (rows ``oS``), :math:`R_{xe}` (column :math:`l` in rows
-    ``oH + l n``) and the channels that take part (``oOK``), as the compiled loop's
-    :func:`~tobitkf.filters._compiled_block._gain_block` in its order: :math:`D = \mathrm{diag}(R_{ee})^{-1/2}`
-    over the channels that take part, the unit-diagonal :math:`(DR_{ee}D)Z = DR_{xe}^T` (the others' rows and
-    columns those of the identity, their right-hand sides 0) by Gaussian elimination without pivoting,
-    :math:`K = (DZ)^T` into ``oK``; a pivot not positive flags the run (``oBAD``) for :func:`_kalman_fallback`."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    for i in range(m):
-        v = W[(oS + i * m + i) * BK + b]
-        W[(oD + i) * BK + b] = 1.0 / math.sqrt(v) if (W[(oOK + i) * BK + b] != 0.0 and v > 0.0) else 1.0
-    for i in range(m):
-        oki = W[(oOK + i) * BK + b] != 0.0
-        di = W[(oD + i) * BK + b]
-        for j in range(m):
-            both = oki and W[(oOK + j) * BK + b] != 0.0
-            W[(oRW + i * m + j) * BK + b] = (
-                W[(oS + i * m + j) * BK + b] * di * W[(oD + j) * BK + b] if both else (1.0 if i == j else 0.0)
-            )
-        for k in range(n):
-            W[(oRH + i * n + k) * BK + b] = W[(oH + i * n + k) * BK + b] * di if oki else 0.0
-    bad = False
-    for c in range(m):
-        piv = W[(oRW + c * m + c) * BK + b]
-        ok_piv = piv > 0.0  # (False for NaN too)
-        bad = bad or not ok_piv
-        piv = piv if ok_piv else 1.0  # keeps the arithmetic finite; the run is redone
-        W[(oRW + c * m + c) * BK + b] = piv
-        for q in range(c + 1, m):
-            f = W[(oRW + q * m + c) * BK + b] / piv
-            W[(oRW + q * m + c) * BK + b] = f
-            for j in range(c + 1, m):
-                W[(oRW + q * m + j) * BK + b] -= f * W[(oRW + c * m + j) * BK + b]
-            for k in range(n):
-                W[(oRH + q * n + k) * BK + b] -= f * W[(oRH + c * n + k) * BK + b]
-    for c in range(m - 1, -1, -1):
-        for j in range(c + 1, m):
-            for k in range(n):
-                W[(oRH + c * n + k) * BK + b] -= W[(oRW + c * m + j) * BK + b] * W[(oRH + j * n + k) * BK + b]
-        for k in range(n):
-            W[(oRH + c * n + k) * BK + b] = W[(oRH + c * n + k) * BK + b] / W[(oRW + c * m + c) * BK + b]
-    for i in range(n):
-        for j in range(m):
-            W[(oK + j * n + i) * BK + b] = W[(oRH + j * n + i) * BK + b] * W[(oD + j) * BK + b]
-    W[oBAD * BK + b] = 1.0 if bad else 0.0
-
-
-@njit(cache=True, error_model="numpy")
-def _kalman_fallback(W, nb, n, m):
-    """The gains of the block's runs flagged by :func:`_kalman_joint_gain` (a pivot not positive: a singular or
-    non-finite :math:`R_{ee}`) again by :func:`~tobitkf.filters._compiled_block._solve_gain` (partial pivoting,
-    raising like ``numpy.linalg.solve``), as the compiled loop does; its scratch made only when a run needs it."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    for b in range(nb):
-        if W[oBAD * BK + b] != 0.0:
-            Rs, Rxs, Ks = np.empty((m, m)), np.empty((n, m)), np.empty((n, m))
-            Ws, ds, oks = np.empty((m, n)), np.empty(m), np.empty(m, dtype=np.bool_)
-            for i in range(m):
-                oks[i] = W[(oOK + i) * BK + b] != 0.0
-                for j in range(m):
-                    Rs[i, j] = W[(oS + i * m + j) * BK + b]
-                for k in range(n):
-                    Rxs[k, i] = W[(oH + i * n + k) * BK + b]
-            _solve_gain(Rs, Rxs, oks, Ks, Ws, ds)
-            for i in range(n):
-                for j in range(m):
-                    W[(oK + j * n + i) * BK + b] = Ks[i, j]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _kalman_joint_update(W, cst, b, n, m, joseph, tobit):
-    r"""The update of run ``b`` from its joint gain (:func:`_kalman_joint_gain`, :func:`_tkf_joint_gain`), as the
-    compiled loop's (:func:`~tobitkf.filters._compiled_block._mean_update`,
-    :func:`~tobitkf.filters._compiled_block._cov_update`) in its order: :math:`\hat x = \bar x + Ke`,
-    :math:`M = \bar P - KR_{xe}^T` (the channel sums four terms at a time), and in the Joseph form
-    :math:`P = M - (MH^T - KN)K^T`: for the Kalman filter (``tobit`` False) :math:`H = C`, :math:`N = R`; for the
-    TKF :math:`H = \Gamma C`, :math:`\Gamma = \mathrm{diag}(\gamma)`, and :math:`N = \mathrm{diag}(R_{uu})`
-    (rows ``oG``, ``oV``)."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    nn = n * n
-    oc, orr = 2 * nn, 2 * nn + m * n
-    m4 = m - m % 4
-    for i in range(n):
-        acc = W[(oXP + i) * BK + b]
-        for l in range(m):
-            acc += W[(oK + l * n + i) * BK + b] * W[(oMU + l) * BK + b]
-        W[(oX + i) * BK + b] = acc
-    for i in range(n):
-        for j in range(i, n):
-            acc = W[(oPp + i * n + j) * BK + b]
-            for l in range(0, m4, 4):
-                acc -= (
-                    W[(oK + l * n + i) * BK + b] * W[(oH + l * n + j) * BK + b]
-                    + W[(oK + (l + 1) * n + i) * BK + b] * W[(oH + (l + 1) * n + j) * BK + b]
-                ) + (
-                    W[(oK + (l + 2) * n + i) * BK + b] * W[(oH + (l + 2) * n + j) * BK + b]
-                    + W[(oK + (l + 3) * n + i) * BK + b] * W[(oH + (l + 3) * n + j) * BK + b]
-                )
-            for l in range(m4, m):
-                acc -= W[(oK + l * n + i) * BK + b] * W[(oH + l * n + j) * BK + b]
-            W[(oP + i * n + j) * BK + b] = acc
-            W[(oP + j * n + i) * BK + b] = acc
-    if joseph:  # MH = M C^T - K R into the elimination's right-hand sides (free now), then P = M - MH K^T
-        for i in range(n):
-            for l in range(m):
-                acc = 0.0
-                for k in range(n):
-                    acc += W[(oP + i * n + k) * BK + b] * cst[oc + l * n + k]
-                if tobit:  # (M c_l^T) gamma_l - K_l R_uu,l: the off-diagonal noise terms are 0 (subtracted as
-                    # exact zeros by the compiled loop: the same number)
-                    acc = acc * W[(oG + l) * BK + b] - W[(oK + l * n + i) * BK + b] * W[(oV + l) * BK + b]
-                else:
-                    for q in range(m):
-                        acc -= W[(oK + q * n + i) * BK + b] * cst[orr + q * m + l]
-                W[(oRH + i * m + l) * BK + b] = acc
-        for i in range(n):
-            for j in range(i, n):
-                acc = W[(oP + i * n + j) * BK + b]
-                for l in range(m):
-                    acc -= W[(oRH + i * m + l) * BK + b] * W[(oK + l * n + j) * BK + b]
-                W[(oP + i * n + j) * BK + b] = acc
-                W[(oP + j * n + i) * BK + b] = acc
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _tkf_joint_moments(W, cst, b, n, m):
-    r"""The TKF's prediction of run ``b`` with ``m`` channels and the moments its statistics need, as the
-    compiled loop's (:func:`~tobitkf.filters._compiled_tobit.tobit_update_block`,
-    :func:`~tobitkf.filters._compiled_block._innovation_moments`) in its order: :math:`h_l = \bar Pc_l^T`
-    (rows ``oH + l n``), the unscaled :math:`C\bar PC^T` (rows ``oS``) and the latent readings' means
-    :math:`\mu_l = c_l\bar x + (Du_k)_l` (rows ``oMU``)."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    oc = 2 * n * n
-    _predict_state(W, cst, b, n, m)
-    for l in range(m):
-        acc = 0.0
-        for j in range(n):
-            acc += W[(oXP + j) * BK + b] * cst[oc + l * n + j]
-        W[(oMU + l) * BK + b] = acc + W[(oDU + l) * BK + b]  # 0 without inputs (W starts zeroed)
-        for j in range(n):
-            acc = 0.0
-            for k in range(n):
-                acc += cst[oc + l * n + k] * W[(oPp + k * n + j) * BK + b]
-            W[(oH + l * n + j) * BK + b] = acc
-    for l in range(m):
-        for q in range(m):
-            acc = 0.0
-            for k in range(n):
-                acc += W[(oH + l * n + k) * BK + b] * cst[oc + q * n + k]
-            W[(oS + l * m + q) * BK + b] = acc
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _tkf_joint_gain(W, cst, b, n, m):
-    r"""The TKF's joint gain of run ``b`` from its moments (:func:`_tkf_joint_moments`) and its channels'
-    statistics (rows ``oG`` :math:`\gamma_l`, ``oV`` :math:`R_{uu,l}`, ``oEY`` :math:`E(y_l)`), as the compiled
-    loop's (:func:`~tobitkf.filters._compiled_block._innovation_moments`, ``_take_part``, ``_gain_block``) in its
-    order (Miller (3.39)–(3.40)): :math:`R_{ee,lq} = (C\bar PC^T)_{lq}\gamma_l\gamma_q + \delta_{lq}R_{uu,l}`
-    (rows ``oS``), :math:`R_{xe} = \bar PC^T\Gamma` (rows ``oH``), :math:`e_l = y_l - E(y_l)` (rows ``oMU``; 0
-    for a channel that does not take part: a NaN reading, or a variance not above the smallest normal number),
-    then :func:`_joint_solve`."""
-    oX, oP, oXP, oPp, oAP, oH, oK, oY, oBU, oDU, oG, oEY, oCL, oLL, oMU, oS, oV, oSL, oRW, oRH, oD, oOK, oBAD, rows = (
-        _offsets(n, m)
-    )
-    BK = SOA_BLOCK
-    for l in range(m):
-        gl = W[(oG + l) * BK + b]
-        for q in range(m):
-            W[(oS + l * m + q) * BK + b] = W[(oS + l * m + q) * BK + b] * gl * W[(oG + q) * BK + b]
-        W[(oS + l * m + l) * BK + b] += W[(oV + l) * BK + b]
-        for j in range(n):
-            W[(oH + l * n + j) * BK + b] = W[(oH + l * n + j) * BK + b] * gl
-        e = W[(oY + l) * BK + b] - W[(oEY + l) * BK + b]
-        good = W[(oS + l * m + l) * BK + b] > _TINY and not math.isnan(e)
-        W[(oOK + l) * BK + b] = 1.0 if good else 0.0
-        W[(oMU + l) * BK + b] = e if good else 0.0
-    _joint_solve(W, b, n, m)
-
-
 @njit(cache=True, error_model="numpy", nogil=True)
 def _step(
     size, chans, kind, W, cst, nb, rn, lo_t, hi_t, lim, sg, lo_r, hi_r, noise_code, joseph, has_cls, glx, glw, buf
@@ -680,6 +236,10 @@ def _step(
         _offsets(n, 1)
     )
     lo_fin, hi_fin = lo_t != -_INF, hi_t != _INF
+    # The TKF's statistics are written out in both of its branches below (one channel, several), not as one helper
+    # inlined into both: as a helper (taking the limits, or the limits and sg, lim as arguments) the TKF's step at
+    # n = 1, m = 1 took 44-46 s of CPU to compile against 30-32 s written out (fresh cache, the same machine and
+    # load, measured in parallel), for the same numbers
     if len(kind) == TOBIT_ANY and len(chans) > 1:  # several channels: moments; statistics; gain; fallback; update
         m = len(chans)
         om = _offsets(n, m)
@@ -1048,48 +608,17 @@ def soa_tobit_loop(
     )
 
 
-def soa_censored_loop(
-    family,
-    y,
-    cls,
-    A,
-    Qd,
-    H,
-    F,
-    r,
-    lo,
-    hi,
-    par,
-    J,
-    npass,
-    noise_code,
-    joseph,
-    bu,
-    du,
-    x0,
-    P0,
-    means,
-    covs,
-    pmeans,
-    pcovs,
-    pu,
-    ey,
-    ll,
-    comp,
-    x_last,
-    P_last,
-) -> None:
-    """:func:`soa_loop` for the censored assumed-density filter with the arguments of
+def soa_censored_loop(*args) -> None:
+    """:func:`soa_loop` for the censored assumed-density filter with the 29 arguments of
     :func:`~tobitkf.filters._compiled_loop.compiled_loop` (``A``, ``Qd`` (1, 1, n, n), ``H`` (1, 1, n), ``r``,
     ``lo``, ``hi`` (1, steps or 1, 1); ``F``, ``par``, ``J``, ``npass``, ``noise_code``, ``joseph``, ``ey`` and
     ``comp`` unused: no fading rows, no mixture, one channel, the standard form); the caller checked
     :func:`censored_covers`. Given classes with an interval reading (:data:`~tobitkf.filters._readings.INTERVAL`:
     flagged censored inside its limits, whose update takes quadrature) run the compiled loop itself."""
+    (_family, y, cls, A, Qd, H, _F, r, lo, hi, _par, _J, _npass, _noise_code, _joseph, bu, du, x0, P0, means, covs,
+     pmeans, pcovs, pu, _ey, ll, _comp, x_last, P_last) = args  # fmt: skip
     if cls.shape[1] > 0 and bool((cls == INTERVAL).any()):
-        _compiled_loop.compiled_loop(
-            family, y, cls, A, Qd, H, F, r, lo, hi, par, J, npass, noise_code, joseph, bu, du, x0, P0,
-            means, covs, pmeans, pcovs, pu, ey, ll, comp, x_last, P_last,
-        )  # fmt: skip
+        _compiled_loop.compiled_loop(*args)
         return
     soa_loop(
         SIZES[x0.shape[1]],
