@@ -6,13 +6,15 @@ estimation error |x_hat - x| over the run (bounded = no drift to infinity).
 
 Run by hand:  PYTHONPATH=src python benchmarks/bench_reliability.py [--steps 1000000] [--only KF,TKF]
 ``--smoke`` runs 2000 steps (CI). The same check at 10^6 steps is the slow-marked test
-tests/reliability/test_long_runs.py.
+tests/reliability/test_long_runs.py. Each estimator's run is timed by wall, user and system time
+(``benchmarks/_timing.py``), and the script prints the totals at its exit like the other benchmarks.
 """
 
 from __future__ import annotations
 
 import argparse
-import time
+import os
+import sys
 
 import numpy as np
 
@@ -25,6 +27,12 @@ from tobitkf.filters.protocol import ProtocolTobitKalmanFilter
 from tobitkf.filters.steady_state import SteadyStateTobitKalmanFilter, tobit_kalman_filter_controlled
 from tobitkf.models.delay import paper_example, paper_prior
 from tobitkf.simulate.delay import simulate_delay
+
+try:
+    import _timing  # run as a script: benchmarks/ is on sys.path (prints the times at exit)
+except ImportError:  # imported by path from elsewhere (tests/reliability): the sibling module by its folder
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import _timing
 
 
 def oscillator() -> tk.LinearSystem:
@@ -136,18 +144,17 @@ def main() -> None:
     print(f"one run of {steps:,} steps per estimator")
     print(
         f"{'estimator':28s} {'steps/s':>10s} {'finite':>7s} {'sym':>5s} {'PSD':>5s} {'min eig/scale':>14s} "
-        f"{'max |err|':>10s}"
+        f"{'max |err|':>10s} {'wall s':>7s} {'user s':>7s} {'sys s':>6s}"
     )
     for name, fn in cases(steps).items():
         if only and name not in only:
             continue
-        t = time.perf_counter()
-        mean, cov, truth = fn()
-        dt = time.perf_counter() - t
+        sample, (mean, cov, truth) = _timing.measure(fn)
         h = health(mean, cov, truth)
         print(
-            f"{name:28s} {steps / dt:10,.0f} {str(h['finite']):>7s} {str(h['symmetric']):>5s} {str(h['psd']):>5s} "
-            f"{h['min_eig_rel']:14.2e} {h['max_abs_error']:10.3g}",
+            f"{name:28s} {steps / sample.wall:10,.0f} {str(h['finite']):>7s} {str(h['symmetric']):>5s} "
+            f"{str(h['psd']):>5s} {h['min_eig_rel']:14.2e} {h['max_abs_error']:10.3g} {sample.wall:7.2f} "
+            f"{sample.user:7.2f} {sample.sys:6.2f}",
             flush=True,
         )
 
