@@ -374,3 +374,21 @@ def test_a_rival_whose_squared_error_has_an_infinite_mean_says_so():
     eb = 0.2 + 0.01 * rng.random((N, T, 1))
     c = NL.better_claim("case", {"errors": {"adf": ea, "rival": eb}, "runs": N, "estimators": {}}, "rival")
     assert "tail index" not in c["note"]
+
+
+def test_the_localisation_splits_the_excess_by_beacons_in_range(tiny):
+    # by hand: two runs of three steps; the filter's squared position error 25 (3, 4) where one beacon is in range,
+    # the optimum's 0 there and 1 elsewhere (the filter's too): all the excess (2 x 25) falls on the one-beacon steps
+    err = {"adf": np.zeros((2, 3, 2)), "pf": np.zeros((2, 3, 2))}
+    in_range = np.array([[1, 2, 3], [1, 3, 3]])
+    err["adf"][in_range == 1] = [3.0, 4.0]
+    err["adf"][in_range != 1] = [1.0, 0.0]
+    err["pf"][in_range != 1] = [0.0, 1.0]
+    out, rows = E._excess_by_range(err, in_range)
+    assert set(out) == {"1", "2", "3"}
+    assert out["1"]["share_of_excess"] == 1.0 and out["3"]["share_of_excess"] == 0.0
+    assert out["1"]["rmse_position_adf"] == 5.0 and out["1"]["rmse_position_pf"] == 0.0
+    assert out["3"]["share_of_steps"] == pytest.approx(0.5) and out["2"]["rmse_position_pf"] == 1.0
+    assert [r[0] for r in rows] == [1, 2, 3]
+    got = tiny["nonlinear-localisation"].metrics["beacons_in_range"]
+    assert sum(v["share_of_steps"] for v in got.values()) == pytest.approx(1.0)
