@@ -32,7 +32,7 @@ particle filter; every estimator's RMSE / optimum and its cost in microseconds p
     with 4000 particles, which 2000 match to +0.2 ± 0.4 % and -0.2 ± 0.3 %) its RMSE is 1.083 ± 0.030 and
     1.057 ± 0.014 times the optimum's per coordinate (1.10/1.08 and 1.06/1.03 on the two halves: the worst 1 % of
     the runs carry half its excess squared error), above 1.05 though within the Monte Carlo error, at 60 runs as
-    at 600. Where it loses (:func:`_excess_by_range`, the table "beacons in range"): 67 % of its excess squared
+    at 600. Where it loses (the table "beacons in range"): 67 % of its excess squared
     position error falls on the steps with one beacon in range (45 % of the steps, its MSE 1.20 times the
     optimum's there) and 27 % on those with two; 22 % on the 5 % of steps 5 to 19 steps after two beacons were
     last in range (1.5 times). The particle cloud is bimodal on 2 % of the steps (300 runs), which carry 19 % of
@@ -780,7 +780,14 @@ def localisation(
         ),
         report_table(
             "Where the assumed-density filter loses to the optimum: beacons in range",
-            ["beacons in range", "share of steps", "ADF position RMSE", "PF position RMSE", "ADF / PF", "share of excess"],
+            [
+                "beacons in range",
+                "share of steps",
+                "ADF position RMSE",
+                "PF position RMSE",
+                "ADF / PF",
+                "share of excess",
+            ],
             range_rows,
             note=f"Over the {runs} runs: the (run, step) samples pooled by the number of beacons in range at that "
             "step (readings above the floor); share of excess: the part of the filter's summed squared position "
