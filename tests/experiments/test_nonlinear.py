@@ -392,3 +392,15 @@ def test_the_localisation_splits_the_excess_by_beacons_in_range(tiny):
     assert [r[0] for r in rows] == [1, 2, 3]
     got = tiny["nonlinear-localisation"].metrics["beacons_in_range"]
     assert sum(v["share_of_steps"] for v in got.values()) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("count", "shown"), [(8, False), (9, True)])
+def test_with_no_runaway_of_the_filter_nine_of_the_rivals_show_the_difference(count, shown):
+    # the paired indicators' difference has mean c/N and standard error sqrt(c/N (1 - c/N) / (N - 1)): three of them
+    # are below c/N iff c > 9 N / (N + 8), i.e. c >= 9 at N = 3000 (the accelerometer's comparison runs)
+    N, T = 3000, 2
+    ea = np.full((N, T, 1), 0.5)
+    eb = ea.copy()
+    eb[:count] = 5.0
+    ev = {"errors": {"adf": ea, "rival": eb}, "prior_errors": np.ones((N, T, 1)), "runs": N, "estimators": {}}
+    assert NL.robust_claims("case", ev, "rival")[1]["holds"] is shown

@@ -120,9 +120,9 @@ would be 3.84 of its standard errors (the 3-standard-error test with 80 % power 
 truth), rounded up with room for the heavy tails of the Tobit filters' errors, as long as ``tobitkf reproduce
 all`` stays short; the oscillator's pilot already shows its margins, so it has no extra runs. The accelerometer's
 are set by its runaway-share claim instead (its mean-RMSE claim has no such size, module docstring): the Tobit
-filters run away on about 0.9 % of the runs and the filter on none, and the paired test of the shares clears three
-standard errors once the rival has run away on about 10 runs, so 3000 runs (about 26 expected; fewer than 10 with
-probability about 1e-4)."""
+filters ran away on 0.74-1.0 % of the runs (4 x 5000 runs) and the filter on none, and with none for the filter the
+paired test of the shares clears three standard errors once the rival has run away on 9 runs or more, so 3000 runs
+(22-30 expected; fewer than 9 with probability 5e-4 at the lowest rate measured, 3e-5 at the mean rate)."""
 
 
 def _check_size(value: Any, name: str) -> int:
