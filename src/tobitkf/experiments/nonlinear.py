@@ -32,13 +32,13 @@ particle filter; every estimator's RMSE / optimum and its cost in microseconds p
     with 4000 particles, which 2000 match to +0.2 ± 0.4 % and -0.2 ± 0.3 %) its RMSE is 1.083 ± 0.030 and
     1.057 ± 0.014 times the optimum's per coordinate (1.10/1.08 and 1.06/1.03 on the two halves: the worst 1 % of
     the runs carry half its excess squared error), above 1.05 though within the Monte Carlo error, at 60 runs as
-    at 600. Where it loses (the table "beacons in range"): 67 % of its excess squared
-    position error falls on the steps with one beacon in range (45 % of the steps, its MSE 1.20 times the
-    optimum's there) and 27 % on those with two; 22 % on the 5 % of steps 5 to 19 steps after two beacons were
-    last in range (1.5 times). The particle cloud is bimodal on 2 % of the steps (300 runs), which carry 19 % of
-    the excess: by that measure what a single Gaussian misses is mostly a posterior of one mode, though not a
-    Gaussian one (an arc of a beacon's ring cut by the other beacons' floors), not two modes. The filter's own levers do not close the gap (same 600 runs): ``iterations`` 3 and 10, 1.106 /
-    1.064 and 1.118 / 1.081; the cubature rule 1.117 / 1.107; Gauss–Hermite of order 5, 1.090 / 1.048; the
+    at 600. Where it loses (the table "beacons in range"): 67 % of its excess squared position error falls on
+    the steps with one beacon in range (45 % of the steps, its MSE 1.20 times the optimum's there) and 27 % on
+    those with two; 22 % on the 5 % of steps 5 to 19 steps after two beacons were last in range (1.5 times). The
+    particle cloud is bimodal on 2 % of the steps (300 runs), which carry 19 % of the excess: by that measure
+    what a single Gaussian misses is mostly a posterior of one mode, though not a Gaussian one (an arc of a
+    beacon's ring cut by the other beacons' floors), not two modes. The filter's own levers do not close the gap
+    (same 600 runs): ``iterations`` 3 and 10, 1.106 / 1.064 and 1.118 / 1.081; the cubature rule 1.117 / 1.107; Gauss–Hermite of order 5, 1.090 / 1.048; the
     square-root form, the standard form's numbers; ``update="quadrature"`` (400 nodes; 1600 gave the same on 300
     runs), 1.043 ± 0.013 / 1.058 ± 0.017 at about 40 times the cost, against the linearised update 0.96 ± 0.03 /
     1.00 ± 0.01 (paired: no gain shown). The Gaussian sum: 1.019 ± 0.008 / 1.012 ± 0.005.
