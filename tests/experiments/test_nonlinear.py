@@ -324,3 +324,83 @@ def test_the_robust_views_count_runaway_runs_and_compare_medians():
     eb[5, 2, 0] = np.nan
     run, away = NL.runaways(eb, ev["prior_errors"])
     assert np.isinf(run[5]) and away[5]
+
+
+def test_the_tail_index_of_a_pareto_law_is_its_exponent():
+    # Hill's estimate from the k = 1 % largest of N draws of a Pareto law of index alpha: by Renyi's representation
+    # 1/alpha_hat is a gamma variable of mean 1/alpha and relative standard deviation 1/sqrt(k) (k = 400 here:
+    # 5 %); four of them
+    rng = np.random.default_rng(3)
+    N = 40_000
+    k = int(0.01 * N)
+    for alpha in (0.5, 1.5, 4.0):
+        v = rng.pareto(alpha, N) + 1.0
+        got = NL.tail_index(v)
+        assert abs(alpha / got - 1.0) < 4.0 / np.sqrt(k), (alpha, got)
+    # too few runs for 10 tail values, a non-finite (diverged) run or a zero: no estimate
+    assert np.isnan(NL.tail_index(np.ones(999) + rng.random(999)))
+    assert np.isfinite(NL.tail_index(rng.random(1000) + 1.0))
+    assert np.isnan(NL.tail_index(np.r_[rng.random(2000) + 1.0, np.inf]))
+    assert np.isnan(NL.tail_index(np.r_[rng.random(2000) + 1.0, 0.0]))
+
+
+def test_the_runaway_claim_gives_the_exact_sign_test_of_the_runs_where_one_ran_away():
+    # the rival ran away on 9 runs, the filter on 1 other: of the 10 runs where exactly one did, 9 are the rival's,
+    # P(Bin(10, 1/2) >= 9) = 11/1024
+    N, T = 200, 4
+    prior = np.ones((N, T, 1))
+    ea = np.full((N, T, 1), 0.5)
+    eb = ea.copy()
+    eb[:9] = 5.0
+    ea[20] = 5.0
+    ev = {"errors": {"adf": ea, "rival": eb}, "prior_errors": prior, "runs": N, "estimators": {}}
+    _, share = NL.robust_claims("case", ev, "rival")
+    assert "on the 10 runs where exactly one ran away, rival did on 9" in share["note"]
+    assert f"p = {11 / 1024:.2g}" in share["note"]
+
+
+def test_a_rival_whose_squared_error_has_an_infinite_mean_says_so():
+    # 2000 runs; the rival's per-run squared error Pareto of index 0.5 (its mean infinite), the filter's constant:
+    # the note gives the Hill estimate (within 4 of its relative standard errors 1/sqrt(20) of 0.5: below 1)
+    rng = np.random.default_rng(4)
+    N, T = 2000, 3
+    ea = np.full((N, T, 1), 0.1)
+    eb = np.broadcast_to(np.sqrt(rng.pareto(0.5, N) + 1.0)[:, None, None], (N, T, 1)).copy()
+    c = NL.better_claim("case", {"errors": {"adf": ea, "rival": eb}, "runs": N, "estimators": {}}, "rival")
+    alpha = NL.tail_index((eb**2).mean(axis=(1, 2)))
+    assert alpha < 1 and f"tail index of rival's per-run mean squared error is {alpha:.2f}" in c["note"]
+    assert "below 1 its mean" in c["note"]
+    # a light tail: nothing said
+    eb = 0.2 + 0.01 * rng.random((N, T, 1))
+    c = NL.better_claim("case", {"errors": {"adf": ea, "rival": eb}, "runs": N, "estimators": {}}, "rival")
+    assert "tail index" not in c["note"]
+
+
+def test_the_localisation_splits_the_excess_by_beacons_in_range(tiny):
+    # by hand: two runs of three steps; the filter's squared position error 25 (3, 4) where one beacon is in range,
+    # the optimum's 0 there and 1 elsewhere (the filter's too): all the excess (2 x 25) falls on the one-beacon steps
+    err = {"adf": np.zeros((2, 3, 2)), "pf": np.zeros((2, 3, 2))}
+    in_range = np.array([[1, 2, 3], [1, 3, 3]])
+    err["adf"][in_range == 1] = [3.0, 4.0]
+    err["adf"][in_range != 1] = [1.0, 0.0]
+    err["pf"][in_range != 1] = [0.0, 1.0]
+    out, rows = E._excess_by_range(err, in_range)
+    assert set(out) == {"1", "2", "3"}
+    assert out["1"]["share_of_excess"] == 1.0 and out["3"]["share_of_excess"] == 0.0
+    assert out["1"]["rmse_position_adf"] == 5.0 and out["1"]["rmse_position_pf"] == 0.0
+    assert out["3"]["share_of_steps"] == pytest.approx(0.5) and out["2"]["rmse_position_pf"] == 1.0
+    assert [r[0] for r in rows] == [1, 2, 3]
+    got = tiny["nonlinear-localisation"].metrics["beacons_in_range"]
+    assert sum(v["share_of_steps"] for v in got.values()) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("count", "shown"), [(8, False), (9, True)])
+def test_with_no_runaway_of_the_filter_nine_of_the_rivals_show_the_difference(count, shown):
+    # the paired indicators' difference has mean c/N and standard error sqrt(c/N (1 - c/N) / (N - 1)): three of them
+    # are below c/N iff c > 9 N / (N + 8), i.e. c >= 9 at N = 3000 (the accelerometer's comparison runs)
+    N, T = 3000, 2
+    ea = np.full((N, T, 1), 0.5)
+    eb = ea.copy()
+    eb[:count] = 5.0
+    ev = {"errors": {"adf": ea, "rival": eb}, "prior_errors": np.ones((N, T, 1)), "runs": N, "estimators": {}}
+    assert NL.robust_claims("case", ev, "rival")[1]["holds"] is shown
