@@ -89,6 +89,7 @@ from numba.np.random.generator_core import next_double as _next_double
 
 from .._compiled_linalg import psd_root
 from ._compiled_censored import _exp_neg, _one_sided_at
+from ._compiled_particle_readings import compiled_readings, log_ndtr, reading_log_weights
 from ._particle_rng import generator
 from ._readings import _INTERIOR, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
 
@@ -105,7 +106,6 @@ __all__ = [
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
 _LN2 = math.log(2.0)
-_SQRT_PI = math.sqrt(math.pi)
 _INF = math.inf
 
 #: cache budget of one block of runs (bytes): its particles and log-weights stay in the core's L2 cache
@@ -118,32 +118,6 @@ _LOG_W_MIN = math.log(_W_MIN)
 
 
 # --------------------------------------------------------------------------- normal tails
-
-
-@njit(cache=True, error_model="numpy")
-def log_ndtr(x):
-    r""":math:`\log\Phi(x)`, accurate in both tails: :math:`\mathrm{log1p}(-\tfrac12\mathrm{erfc}(x/\sqrt2))`
-    for x > 0, :math:`\log(\tfrac12\mathrm{erfc}(t))`, :math:`t = -x/\sqrt2`, down to t = 25, and below
-    :math:`-x^2/2 + \log(\tfrac12\mathrm{erfcx}(t))` with the asymptotic series of erfcx (8 terms,
-    truncation < 1e-16 for t > 25)."""
-    if x != x:
-        return x
-    if x == _INF:
-        return 0.0
-    if x == -_INF:
-        return -_INF
-    if x > 0.0:
-        return math.log1p(-0.5 * math.erfc(x * _SQRT1_2))
-    t = -x * _SQRT1_2
-    if t < 25.0:
-        return math.log(0.5 * math.erfc(t))
-    q = 1.0 / (2.0 * t * t)
-    term = 1.0
-    s = 1.0
-    for k in range(1, 9):
-        term *= -(2.0 * k - 1.0) * q
-        s += term
-    return -0.5 * x * x + math.log(0.5 * s / (t * _SQRT_PI))
 
 
 # Wichura's AS 241 (PPND16): the normal quantile by rational functions, relative error about 1e-16.
@@ -379,7 +353,30 @@ def _dev2_sum(w, x, x0, z, z0):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def pf_block(
-    optimal, rng, X, lw, ll_acc, xm, Pm, A, G, Qd, C, r, y, LO, HI, thr, o_mean, o_cov, o_var, o_pm, o_pc, o_ext, want
+    optimal,
+    rng,
+    X,
+    lw,
+    ll_acc,
+    xm,
+    Pm,
+    A,
+    G,
+    Qd,
+    C,
+    r,
+    y,
+    LO,
+    HI,
+    readings,
+    thr,
+    o_mean,
+    o_cov,
+    o_var,
+    o_pm,
+    o_pc,
+    o_ext,
+    want,
 ):
     r"""The particle filter for the B runs of a block over T steps, in place, drawing its own numbers.
 
@@ -398,12 +395,19 @@ def pf_block(
         Running sum of the log-likelihood, updated.
     xm, Pm : (B, n), (B, n, n)
         In: the weighted moments at the start; out: those after the last step.
-    A, G, Qd : (n, n)
-        Transition, a root of the process covariance (G G^T = Qd), the process covariance.
+    A, G, Qd : (n, n), (n, w), (n, n)
+        Transition, a root of the process covariance (G G^T = Qd), the process covariance (of a window of
+        states: the top block of ``nb`` rows moves, the others are shifted down by A's identity blocks, G is
+        zero below the top block).
     C : (m, n) ; r : (m,)
         Readings matrix and noise variances.
     y : (B, T, m) ; LO, HI : (T, m)
         Readings (NaN = missing) and limits.
+    readings : tuple
+        ``(general, nb, k0, H, gains, modes, ylo, yhi)``: whether the readings are the general ones of
+        :mod:`tobitkf.filters._compiled_particle_readings` (bootstrap proposal only; else linear readings with
+        censoring, by C, LO, HI), the top block's size, the step before the first reading, and that module's
+        rows, gains, modes (m, K, n), (m, K, 2), (m, J, 3) and reading intervals (B, T, m).
     thr : float
         Resample when the effective sample size is below ``thr`` (the threshold times Np).
     o_mean, o_cov, o_var, o_pm, o_pc : (B, T, ...) or placeholders
@@ -417,6 +421,10 @@ def pf_block(
     """
     B, Np, n = X.shape
     T, m = LO.shape
+    general, nb, k0, H, gains, modes, ylo, yhi = readings
+    K = H.shape[1]
+    TJ = np.empty(modes.shape[1])
+    V = np.empty(Np)
     bg = rng.bit_generator  # the draws go to it directly (see the imports)
     cls = np.empty(m, dtype=np.int8)
     Sig = np.empty((n, n))
@@ -449,7 +457,7 @@ def pf_block(
     MU = np.empty((n, Np))  # the proposals' means (optimal), the propagated particles (bootstrap)
     T1 = np.empty(Np)  # a row of the noise term
     U = np.empty((m, Np))  # one run-step's random numbers: the uniforms of the censored readings...
-    E = np.empty((n, Np))  # ...and the normals
+    E = np.empty((G.shape[1], Np))  # ...and the normals
     MM = np.empty(Np)  # the masses Phi(-|a|) of a censored channel
     Z = np.empty(Np)  # a channel's predicted reading, then its standardised limit, then the draw's offset
     INC = np.empty(Np)  # the log part of the new weights (then with the old log weights: work)
@@ -474,21 +482,21 @@ def pf_block(
             Xb = Xs[b]
             # the linear prediction of the weighted moments (core.predict), where it is recorded
             if want[3]:
-                for i in range(n):
+                for i in range(nb):  # (the outputs: the top block of a window)
                     s = 0.0
                     for j in range(n):
                         s += A[i, j] * xm[b, j]
                     o_pm[b, k, i] = s
             if want[4]:
-                for i in range(n):
-                    for j in range(n):
+                for i in range(nb):
+                    for j in range(nb):
                         s = 0.0
                         for q in range(n):
                             for h in range(n):
                                 s += A[i, q] * Pm[b, q, h] * A[j, h]
                         Sig[i, j] = s + Qd[i, j]
-                for i in range(n):
-                    for j in range(n):
+                for i in range(nb):
+                    for j in range(nb):
                         o_pc[b, k, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
             for l in range(m):
                 cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
@@ -581,18 +589,28 @@ def pf_block(
                         Xb[i, p] = MU[i, p] + T1[p]
             else:
                 for p in range(Np):
-                    for j in range(n):
+                    for j in range(E.shape[0]):
                         E[j, p] = _standard_normal(bg)
-                for i in range(n):
+                for i in range(nb):
                     _row_dot(Xb, A[i], MU[i])
                     _row_dot(E, G[i], T1)
                     for p in range(Np):
                         MU[i, p] += T1[p]
+                for i in range(nb, n):  # a window's older blocks: shifted down
+                    for p in range(Np):
+                        MU[i, p] = Xb[i - nb, p]
                 for i in range(n):
                     for p in range(Np):
                         Xb[i, p] = MU[i, p]
                 for l in range(m):
                     c = cls[l]
+                    if general:
+                        lo = ylo[b, k, l]
+                        if lo == lo:  # (NaN: missing)
+                            present = min(K, k0 + k + 2)  # term s reads the state s steps back
+                            reading_log_weights(Xb, H[l], gains[l], modes[l], present, lo, yhi[b, k, l], r[l], INC, Z,
+                                                V, TJ)  # fmt: skip
+                        continue
                     if c == _MISSING:
                         continue
                     _row_dot(MU, C[l], Z)
@@ -730,14 +748,14 @@ def pf_block(
                 for p in range(Np):
                     lw[b, p] = math.log(lw[b, p]) + math.log(F[p]) + INC[p] - lt
             if want[0]:
-                for i in range(n):
+                for i in range(nb):
                     o_mean[b, k, i] = xm[b, i]
             if want[1]:
-                for i in range(n):
-                    for j in range(n):
+                for i in range(nb):
+                    for j in range(nb):
                         o_cov[b, k, i, j] = Pm[b, i, j]
             if want[2]:
-                for i in range(n):
+                for i in range(nb):
                     o_var[b, k, i] = Pm[b, i, i]
             if want[5]:
                 o_ext[b, k, 0] = ess
@@ -764,7 +782,8 @@ def runs_per_block(particles: int, n: int, budget: int = BLOCK_BYTES) -> int:
 def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], batch: tuple[int, ...], block=None):
     """The particle filter's loop over the readings ``y2`` (N, T, m) from ``state``, compiled, in blocks of runs.
 
-    ``pf`` is a :class:`~tobitkf.ParticleFilter` with a linear model (time-invariant system, no input);
+    ``pf`` is a :class:`~tobitkf.ParticleFilter` whose model the loop covers (time-invariant system, no input:
+    ``ParticleFilter._compiled_gap``);
     ``block`` overrides the runs per block (:func:`runs_per_block`). Returns the
     :class:`~tobitkf.filters.core.FilterResult` its numpy loop returns: the outputs in ``want`` per step,
     the final state (particles, log weights, generator, running log-likelihood)."""
@@ -772,18 +791,17 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
 
     model, system = pf.model, pf.system
     N, T, m = y2.shape
-    n, Np = system.n, pf.particles
+    n, Np, ns = model.nx, pf.particles, pf.n  # the particles' state (a window for fading), the system's
     optimal = pf.proposal == "optimal"
-    k0 = state.k
-    A = np.ascontiguousarray(system.transition(k0), dtype=float)
-    Qd = np.ascontiguousarray(system.process_cov(k0), dtype=float)
-    G = np.ascontiguousarray(model._root(k0), dtype=float)
+    k0 = int(state.k)
     C = np.ascontiguousarray(system.measurement(k0 + 1), dtype=float)
     d = np.diagonal(system.measurement_cov(k0 + 1)).astype(float)
     r = np.ascontiguousarray(np.sqrt(d) ** 2 if optimal else d)  # as the numpy path forms them
     LO, HI = np.empty((T, m)), np.empty((T, m))  # the limits per step: m numbers each, nothing per particle
     for i in range(T):
         LO[i], HI[i] = model.limits(k0 + 1 + i)
+    rd = compiled_readings(model, system, y2, k0, LO, HI)  # the dynamics (of a window of states) and the readings
+    A, G, Qd, general = rd["A"], rd["G"], rd["Qd"], rd["general"]
     carry = state.carry
     X = np.array(carry["particles"], dtype=float, order="C")  # (N, Np, n): the final particles, in place
     lw = np.array(carry["log_weights"], dtype=float, order="C")
@@ -793,7 +811,7 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     rng = generator(carry["rng"])  # the filter's generator, restored from the state
     names = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
     flags = np.array([key in want for key in names])
-    shapes = {"mean": (n,), "cov": (n, n), "var": (n,), "pred_mean": (n,), "pred_cov": (n, n)}
+    shapes = {"mean": (ns,), "cov": (ns, ns), "var": (ns,), "pred_mean": (ns,), "pred_cov": (ns, ns)}
     outs = {key: np.empty((N, T) + shp) if key in want else np.empty((1, 1) + shp) for key, shp in shapes.items()}
     ext = np.empty((N, T, 3)) if flags[5] else np.empty((1, 1, 3))
     Bmax = min(N, int(block) if block else runs_per_block(Np, n))
@@ -801,11 +819,13 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     for r0 in range(0, N, Bmax):
         r1 = min(N, r0 + Bmax)
         blk = {key: (a[r0:r1] if key in want else a) for key, a in outs.items()}
+        reads = (general, rd["nb"], k0, rd["H"], rd["gains"], rd["modes"], rd["ylo"][r0:r1] if general else rd["ylo"],
+                 rd["yhi"][r0:r1] if general else rd["yhi"])  # fmt: skip
         pf_block(optimal, rng, X[r0:r1], lw[r0:r1], ll_acc[r0:r1], xm[r0:r1], Pm[r0:r1], A, G, Qd, C, r,
-                 yc[r0:r1], LO, HI, pf.resample_threshold * Np, blk["mean"], blk["cov"], blk["var"],
+                 yc[r0:r1], LO, HI, reads, pf.resample_threshold * Np, blk["mean"], blk["cov"], blk["var"],
                  blk["pred_mean"], blk["pred_cov"], ext[r0:r1] if flags[5] else ext, flags)  # fmt: skip
     new_carry = {"particles": X, "log_weights": lw, "rng": rng.bit_generator.state, "log_likelihood": ll_acc}
-    final = FilterState(k=k0 + T, batch_shape=batch, x=xm, P=Pm, n=n, S=None, carry=new_carry)
+    final = FilterState(k=k0 + T, batch_shape=batch, x=xm, P=Pm, n=ns, S=None, carry=new_carry)
 
     def shaped(key):
         return outs[key].reshape(batch + outs[key].shape[1:]) if key in want else None

@@ -116,10 +116,20 @@ import numpy as np
 
 from .._linalg import symmetrize
 from .._validation import ValidationError, as_float_array, check_instance, check_int, check_memory
+from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_compiled
-from ._particle_models import SYSTEM_MODELS, _build_model, _diag_sigma, _Linear, _Protocol
+from ._particle_models import (
+    SYSTEM_MODELS,
+    _build_model,
+    _Contract,
+    _diag_sigma,
+    _Fading,
+    _Linear,
+    _Protocol,
+    _Saturation,
+)
 from ._particle_rng import generator as _generator
 from ._particle_rng import rng_state as _rng_state
 from ._readings import censored_log_likelihood
@@ -361,8 +371,20 @@ class ParticleFilter(Estimator):
 
     def _compiled_gap(self, u) -> str | None:
         """Why the compiled loop (:mod:`tobitkf.filters._compiled_particle`) cannot run, or None."""
-        if type(self.model) is not _Linear:
-            return f"{self.model.label} readings (linear readings with censoring only)"
+        model, kind = self.model, type(self.model)
+        if kind not in (_Linear, _Saturation, _Fading, _Contract):
+            return (
+                f"{model.label} readings (compiled: linear readings with censoring, random saturation, Rice fading "
+                "with Gaussian coefficients, channels whose likelihood is their region's)"
+            )
+        if kind is not _Linear and self.proposal != "prior":
+            return f"the {self.proposal!r} proposal of {model.label} readings (compiled: their bootstrap 'prior')"
+        if kind is _Fading and not model.gaussian:
+            return "Rice fading with coefficients that are not Gaussian (drawn per particle)"
+        if kind is _Contract:
+            ch = type(model.channel)
+            if ch.region is Channel.region or ch.reading_log_likelihood is not Channel.reading_log_likelihood:
+                return f"{model.label} readings (compiled: a channel whose likelihood is its region's interval mass)"
         return system_gap(self.system, u)
 
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
