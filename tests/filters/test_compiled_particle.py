@@ -247,17 +247,29 @@ def test_a_filter_continued_from_its_final_state_equals_one_call():
     np.testing.assert_allclose(var, np.diagonal(whole.cov, axis1=-2, axis2=-1), atol=TOL)
 
 
-def test_dispatch_covers_linear_readings_only():
-    fad = tk.RiceFading.gaussian(1, [0.9, 0.5], [0.01, 0.01])
+def test_dispatch_names_what_runs_numpy():
     sys_ = system(1)
-    with pytest.raises(tk.ValidationError, match="backend: the compiled path of the particle filter"):
-        tk.ParticleFilter(sys_, fad, particles=10, backend="numba").filter(np.zeros((5, 1)))
+    uniform = tk.RiceFading(1, tk.laws.Uniform([0.8, 0.2], [1.0, 0.6]))  # coefficients drawn per particle
+    sat = tk.RandomSaturation([0.3], [0.8], level=0.5)
+    for channel, proposal, gap in [
+        (uniform, "auto", "coefficients that are not Gaussian"),
+        (sat, "optimal", "the 'optimal' proposal of saturation readings"),
+        (tk.Quantizer(0.2), "auto", "the 'optimal' proposal of Quantizer readings"),
+        (
+            tk.ProtocolChannel(1, window=1, failures=tk.laws.PMF([1.0, 0.0], [0.9, 0.1]), threshold=0.0),
+            "prior",
+            "protocol",
+        ),
+    ]:
+        with pytest.raises(tk.ValidationError, match=f"backend: the compiled path of the particle filter .*{gap}"):
+            pf = tk.ParticleFilter(sys_, channel, particles=10, proposal=proposal, backend="numba")
+            pf.filter(np.ones((5, 1)))
     with pytest.raises(tk.ValidationError, match="backend: expected one of"):
         tk.ParticleFilter(sys_, particles=10, backend="jax")
-    # "auto" falls back to numpy for fading: equal to backend="numpy" exactly
+    # "auto" falls back to numpy where the loop does not cover the model: equal to backend="numpy" exactly
     y = np.abs(np.random.default_rng(0).normal(size=(3, 5, 1)))
-    a = tk.ParticleFilter(sys_, fad, particles=50, seed=1, backend="auto").filter(y)
-    b = tk.ParticleFilter(sys_, fad, particles=50, seed=1, backend="numpy").filter(y)
+    a = tk.ParticleFilter(sys_, sat, particles=50, seed=1, backend="auto").filter(y)
+    b = tk.ParticleFilter(sys_, sat, particles=50, seed=1, backend="numpy").filter(y)
     np.testing.assert_array_equal(a.mean, b.mean)
     # a control input is not covered by the compiled loop
     sys_u = tk.LinearSystem(
@@ -265,6 +277,52 @@ def test_dispatch_covers_linear_readings_only():
     )
     with pytest.raises(tk.ValidationError, match="control inputs"):
         tk.ParticleFilter(sys_u, particles=10, backend="numba").filter(np.zeros((5, 1)), u=np.zeros((5, 2)))
+
+
+# The bootstrap proposal of the channels beyond censoring: random saturation (three modes, one of them of probability
+# 0 on the second sensor), a quantizer (interval readings, open at the saturated ends) and Rice fading of order 2
+# (a window of states, a variance per particle). One compiled version serves them and the censored readings: the
+# readings' model travels as arrays.
+OTHER_CHANNELS = {
+    "saturation": (
+        2,
+        lambda: tk.RandomSaturation([0.3, 0.0], [0.8, 0.9], level=[0.5, 0.4]),
+        tk.Censoring(lower=[-0.3, -np.inf], upper=[np.inf, 0.35]),
+    ),
+    "quantizer": (2, lambda: tk.Quantizer(0.2, lower=-0.6, upper=0.6), None),
+    "fading": (1, lambda: tk.RiceFading.gaussian(2, [0.9, 0.5, 0.3], [0.01, 0.02, 0.03]), tk.Censoring(lower=[0.0])),
+}
+
+
+def other_channel(kind, steps=12):
+    m, make, cens = OTHER_CHANNELS[kind]
+    ch = make()
+    y = tk.simulate(system(m), steps, 6, channel=ch, censoring=cens, seed=0).y.copy()
+    y[1, 3, 0] = np.nan  # one channel missing
+    y[2, 5] = np.nan  # every channel missing
+    return m, (ch if cens is None else [ch, cens]), y
+
+
+@pytest.mark.parametrize("kind", list(OTHER_CHANNELS))
+def test_compiled_bootstrap_of_other_channels_equals_numpy_for_the_same_random_numbers(kind):
+    m, channel, y = other_channel(kind)
+    pf = tk.ParticleFilter(system(m), channel, particles=100, proposal="prior", seed=3, resample_threshold=0.7)
+    assert pf._compiled_gap(None) is None
+    if kind == "quantizer":  # readings at the saturated ends of the range and between
+        assert np.isclose(np.abs(y), 0.6).any() and (np.abs(y) < 0.5).any()
+    check_against_numpy(pf, y)
+
+
+def test_fading_continued_from_a_state_inside_its_first_window_equals_one_call():
+    # the fading reading sums the terms of the states present: from step 1 (a state continued at k = 1 < L = 2)
+    _, channel, y = other_channel("fading", steps=8)
+    pf = tk.ParticleFilter(system(1), channel, particles=80, proposal="prior", seed=2, backend="numba")
+    whole = pf.filter(y)
+    first = pf.filter(y[:, :1])
+    rest = pf.filter(y[:, 1:], state=first.final)
+    np.testing.assert_allclose(rest.mean, whole.mean[:, 1:], rtol=0, atol=TOL)
+    np.testing.assert_allclose(rest.final.carry["log_likelihood"], whole.final.carry["log_likelihood"], atol=TOL)
+    assert whole.mean.shape == (6, 8, 2) and whole.final.carry["particles"].shape == (6, 80, 6)
 
 
 def test_log_ndtr_matches_scipy_in_both_tails():
