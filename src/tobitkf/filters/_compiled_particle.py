@@ -424,7 +424,8 @@ def pf_block(
     general, nb, k0, H, gains, modes, ylo, yhi = readings
     K = H.shape[1]
     TJ = np.empty(modes.shape[1])
-    V = np.empty(Np)
+    SR = np.empty((4, Np))  # the general readings' scratch
+    BAD = np.empty(Np, dtype=np.bool_)
     bg = rng.bit_generator  # the draws go to it directly (see the imports)
     cls = np.empty(m, dtype=np.int8)
     Sig = np.empty((n, n))
@@ -608,8 +609,8 @@ def pf_block(
                         lo = ylo[b, k, l]
                         if lo == lo:  # (NaN: missing)
                             present = min(K, k0 + k + 2)  # term s reads the state s steps back
-                            reading_log_weights(Xb, H[l], gains[l], modes[l], present, lo, yhi[b, k, l], r[l], INC, Z,
-                                                V, TJ)  # fmt: skip
+                            reading_log_weights(Xb, H[l], gains[l], modes[l], present, lo, yhi[b, k, l], r[l], INC, SR,
+                                                BAD, TJ)  # fmt: skip
                         continue
                     if c == _MISSING:
                         continue
