@@ -313,6 +313,22 @@ def test_compiled_bootstrap_of_other_channels_equals_numpy_for_the_same_random_n
     check_against_numpy(pf, y)
 
 
+@pytest.mark.parametrize("kind", ["quantizer", "saturation"])
+def test_general_readings_far_in_the_tails(kind):
+    # readings 40-90 standard deviations from every particle, and quantizer cells so narrow (a hundredth of the
+    # latent reading's deviation at 5 of them) that their masses cancel: those particles are weighted in
+    # logarithms throughout, and must still equal the numpy path
+    if kind == "quantizer":
+        channel = tk.Quantizer(0.01, lower=-20.0, upper=20.0)
+        y = np.array([[[15.0]] * 3, [[-20.0]] * 3, [[1.6], [1.7], [0.0]], [[-1.5], [20.0], [0.3]]])
+    else:
+        channel = tk.RandomSaturation([0.3], [0.8], level=0.5)
+        y = np.array([[[30.0]] * 3, [[-25.0], [0.1], [12.0]], [[0.2], [0.4], [-0.1]]])
+    pf = tk.ParticleFilter(system(1), channel, particles=150, proposal="prior", seed=4, resample_threshold=0.7)
+    got = check_against_numpy(pf, y, both_branches=False)
+    assert np.isfinite(got.mean).all() and (got.extras["log_likelihood"][0] < -400).all()
+
+
 def test_fading_continued_from_a_state_inside_its_first_window_equals_one_call():
     # the fading reading sums the terms of the states present: from step 1 (a state continued at k = 1 < L = 2)
     _, channel, y = other_channel("fading", steps=8)
