@@ -16,6 +16,8 @@ from scipy.special import log_ndtr as scipy_log_ndtr
 from scipy.special import ndtri_exp as scipy_ndtri_exp
 
 import tobitkf as tk
+from tobitkf.channels.base import interval_moments
+from tobitkf.filters import _particle_models as pm
 from tobitkf.filters import particle as pt
 from tobitkf.filters._particle_rng import generator
 from tobitkf.filters._readings import LOWER, UPPER, classify_readings
@@ -80,6 +82,12 @@ def replay(pf, state, y, block):
     lo = np.array([a for a, _ in lims])[None]
     hi = np.array([b for _, b in lims])[None]
     censored = np.isin(classify_readings(y, lo, hi), (LOWER, UPPER))
+    channel = getattr(pf.model, "channel", None)
+    if channel is not None and not isinstance(pf.model, pm._Saturation):  # a region: a uniform per interval reading
+        for k in range(T):
+            for l in range(m):
+                a, b = channel.region(np.nan_to_num(y[:, k, l]), state.k + 1 + k, l)
+                censored[:, k, l] = (a != b) & ~np.isnan(y[:, k, l])
     g = generator(state.carry["rng"])
     U, E, UR = np.full((T, N, Np, m), 0.5), np.empty((T, N, Np, n)), np.full((T, N), 0.5)
     resampled = {}
@@ -247,6 +255,13 @@ def test_a_filter_continued_from_its_final_state_equals_one_call():
     np.testing.assert_allclose(var, np.diagonal(whole.cov, axis1=-2, axis2=-1), atol=TOL)
 
 
+class _MomentsOnly(tk.Channel):
+    """A channel with a likelihood of its own (its moments), not a region's."""
+
+    def reading_moments(self, y, mean, std, k, l):
+        return interval_moments(mean, std, y - 0.1, y + 0.1)
+
+
 def test_dispatch_names_what_runs_numpy():
     sys_ = system(1)
     uniform = tk.RiceFading(1, tk.laws.Uniform([0.8, 0.2], [1.0, 0.6]))  # coefficients drawn per particle
@@ -254,7 +269,7 @@ def test_dispatch_names_what_runs_numpy():
     for channel, proposal, gap in [
         (uniform, "auto", "coefficients that are not Gaussian"),
         (sat, "optimal", "the 'optimal' proposal of saturation readings"),
-        (tk.Quantizer(0.2), "auto", "the 'optimal' proposal of Quantizer readings"),
+        (_MomentsOnly(), "auto", "_MomentsOnly readings"),
         (
             tk.ProtocolChannel(1, window=1, failures=tk.laws.PMF([1.0, 0.0], [0.9, 0.1]), threshold=0.0),
             "prior",
@@ -279,10 +294,23 @@ def test_dispatch_names_what_runs_numpy():
         tk.ParticleFilter(sys_u, particles=10, backend="numba").filter(np.zeros((5, 1)), u=np.zeros((5, 2)))
 
 
-# The bootstrap proposal of the channels beyond censoring: random saturation (three modes, one of them of probability
-# 0 on the second sensor), a quantizer (interval readings, open at the saturated ends) and Rice fading of order 2
-# (a window of states, a variance per particle). One compiled version serves them and the censored readings: the
-# readings' model travels as arrays.
+class _DeadBand(tk.Channel):
+    """A sensor that reads 0 inside the band (-0.1, 0.1) and the latent reading itself outside: exact readings and
+    intervals."""
+
+    def censor(self, y_latent):
+        return np.where(np.abs(y_latent) < 0.1, 0.0, y_latent)
+
+    def region(self, y, k, l):
+        inside = y == 0.0
+        return np.where(inside, -0.1, y), np.where(inside, 0.1, y)
+
+
+# The channels beyond censoring: random saturation (three modes, one of them of probability 0 on the second sensor),
+# a quantizer (interval readings, open at the saturated ends), a dead band (exact readings and intervals) and Rice
+# fading of order 2 (a window of states, a variance per particle); their bootstrap proposal, and the locally optimal
+# one of the region channels. One compiled version serves them and the censored readings: the readings' model
+# travels as arrays.
 OTHER_CHANNELS = {
     "saturation": (
         2,
@@ -290,6 +318,7 @@ OTHER_CHANNELS = {
         tk.Censoring(lower=[-0.3, -np.inf], upper=[np.inf, 0.35]),
     ),
     "quantizer": (2, lambda: tk.Quantizer(0.2, lower=-0.6, upper=0.6), None),
+    "dead band": (2, lambda: _DeadBand(), None),
     "fading": (1, lambda: tk.RiceFading.gaussian(2, [0.9, 0.5, 0.3], [0.01, 0.02, 0.03]), tk.Censoring(lower=[0.0])),
 }
 
@@ -303,13 +332,19 @@ def other_channel(kind, steps=12):
     return m, (ch if cens is None else [ch, cens]), y
 
 
-@pytest.mark.parametrize("kind", list(OTHER_CHANNELS))
-def test_compiled_bootstrap_of_other_channels_equals_numpy_for_the_same_random_numbers(kind):
+@pytest.mark.parametrize(
+    ("kind", "proposal"),
+    [("saturation", "prior"), ("quantizer", "prior"), ("quantizer", "optimal"), ("dead band", "prior"),
+     ("dead band", "optimal"), ("fading", "prior")],
+)  # fmt: skip
+def test_compiled_other_channels_equal_numpy_for_the_same_random_numbers(kind, proposal):
     m, channel, y = other_channel(kind)
-    pf = tk.ParticleFilter(system(m), channel, particles=100, proposal="prior", seed=3, resample_threshold=0.7)
+    pf = tk.ParticleFilter(system(m), channel, particles=100, proposal=proposal, seed=3, resample_threshold=0.7)
     assert pf._compiled_gap(None) is None
     if kind == "quantizer":  # readings at the saturated ends of the range and between
         assert np.isclose(np.abs(y), 0.6).any() and (np.abs(y) < 0.5).any()
+    if kind == "dead band":  # exact readings and intervals
+        assert (y == 0.0).any() and (np.abs(y) > 0.1).any()
     check_against_numpy(pf, y)
 
 

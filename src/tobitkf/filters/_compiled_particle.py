@@ -91,7 +91,7 @@ from .._compiled_linalg import psd_root
 from ._compiled_censored import _exp_neg, _one_sided_at
 from ._compiled_particle_readings import compiled_readings, log_ndtr, reading_log_weights
 from ._particle_rng import generator
-from ._readings import _INTERIOR, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
+from ._readings import _INTERIOR, _INTERVAL, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
 
 __all__ = [
     "log_ndtr",
@@ -258,6 +258,30 @@ def censored_draw(a, u):
     if far:
         return lm, z
     return (math.log1p(-M) if upper else math.log(M)), z
+
+
+@njit(cache=True, error_model="numpy")
+def interval_draw(a, b, u):
+    r"""The log-mass and a draw of a standard normal truncated to :math:`[a, b]` for a uniform u, as the numpy
+    path's ``_log_interval`` and ``_interval_z``: mirrored to :math:`a \le 0` (:math:`[-b, -a]` when a > 0),
+    :math:`\ell = \log\Phi(b) + \mathrm{log1p}(-e^{\log\Phi(a) - \log\Phi(b)})`,
+    :math:`z = \Phi^{-1}(\Phi(a) + u e^\ell)` through :func:`ndtri_exp` of the log-sum (numpy's ``logaddexp``),
+    clipped to the window."""
+    flip = a > 0.0
+    a2 = -b if flip else a
+    b2 = -a if flip else b
+    la = log_ndtr(a2)
+    lb = log_ndtr(b2)
+    lm = lb + math.log1p(-math.exp(la - lb))
+    t = math.log(u) + lm
+    if la == t:
+        q = la + _LN2
+    elif la > t:
+        q = la + math.log1p(math.exp(t - la))
+    else:
+        q = t + math.log1p(math.exp(la - t))
+    z = min(max(ndtri_exp(q), a2), b2)
+    return lm, -z if flip else z
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -501,6 +525,9 @@ def pf_block(
                         o_pc[b, k, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
             for l in range(m):
                 cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
+                if general:  # a region's reading: exact (its value) or an interval
+                    v = ylo[b, k, l]
+                    cls[l] = _MISSING if v != v else (_INTERIOR if v == yhi[b, k, l] else _INTERVAL)
             lb = lin[b]
             for p in range(Np):
                 INC[p] = 0.0
@@ -539,7 +566,7 @@ def pf_block(
                 # the run's numbers first, in the documented order (then the arithmetic runs without calls)
                 for p in range(Np):
                     for l in range(m):
-                        if cls[l] == _LOWER or cls[l] == _UPPER:
+                        if cls[l] == _LOWER or cls[l] == _UPPER or cls[l] == _INTERVAL:
                             U[l, p] = _next_double(bg)
                     for j in range(n):
                         E[j, p] = _standard_normal(bg)
@@ -559,13 +586,19 @@ def pf_block(
                     sd = sr[l]
                     isl = isd[l]
                     if c == _INTERIOR:
-                        yl = y[b, k, l]
+                        yl = ylo[b, k, l] if general else y[b, k, l]
                         ls = lsd[l]
                         for p in range(Np):
                             dv = yl - Z[p]
                             zz = dv * isl
                             INC[p] += -0.5 * zz * zz - ls
                             Z[p] = dv
+                    elif c == _INTERVAL:  # a draw from the window the reading says the latent reading is in
+                        lo, hi = ylo[b, k, l], yhi[b, k, l]
+                        for p in range(Np):
+                            lm, z = interval_draw((lo - Z[p]) / sd, (hi - Z[p]) / sd, U[l, p])
+                            INC[p] += lm
+                            Z[p] = sd * z
                     else:
                         _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         sgn = sd if c == _LOWER else -sd

@@ -377,7 +377,7 @@ class ParticleFilter(Estimator):
                 f"{model.label} readings (compiled: linear readings with censoring, random saturation, Rice fading "
                 "with Gaussian coefficients, channels whose likelihood is their region's)"
             )
-        if kind is not _Linear and self.proposal != "prior":
+        if kind in (_Saturation, _Fading) and self.proposal != "prior":
             return f"the {self.proposal!r} proposal of {model.label} readings (compiled: their bootstrap 'prior')"
         if kind is _Fading and not model.gaussian:
             return "Rice fading with coefficients that are not Gaussian (drawn per particle)"
