@@ -449,6 +449,7 @@ def pf_block(
     K = H.shape[1]
     TJ = np.empty(modes.shape[1])
     SR = np.empty((4, Np))  # the general readings' scratch
+    SR2 = np.empty((2, 2 * Np))
     BAD = np.empty(Np, dtype=np.bool_)
     bg = rng.bit_generator  # the draws go to it directly (see the imports)
     cls = np.empty(m, dtype=np.int8)
@@ -643,7 +644,7 @@ def pf_block(
                         if lo == lo:  # (NaN: missing)
                             present = min(K, k0 + k + 2)  # term s reads the state s steps back
                             reading_log_weights(Xb, H[l], gains[l], modes[l], present, lo, yhi[b, k, l], r[l], INC, SR,
-                                                BAD, TJ)  # fmt: skip
+                                                SR2, BAD, TJ)  # fmt: skip
                         continue
                     if c == _MISSING:
                         continue

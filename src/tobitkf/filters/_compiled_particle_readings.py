@@ -103,13 +103,6 @@ def _tail_mass(x):
     return _one_sided_at(0.0, 1.0, abs(x))[1]
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _upper_mass(x):
-    r""":math:`\Phi(x)` from :func:`_tail_mass` (for x > 0 as :math:`1 - \Phi(-x)`)."""
-    M = _tail_mass(x)
-    return 1.0 - M if x > 0.0 else M
-
-
 @njit(cache=True, error_model="numpy")
 def _log_weight(c, sd, ls, modes, lo, hi, TJ):
     r"""The log-likelihood of one particle (latent mean ``c``, standard deviation ``sd``, ``ls`` = log sd) in
@@ -145,7 +138,7 @@ def _log_weight(c, sd, ls, modes, lo, hi, TJ):
 
 
 @njit(cache=True, error_model="numpy")
-def reading_log_weights(Xb, H, gains, modes, terms, lo, hi, r, INC, S, BAD, TJ):
+def reading_log_weights(Xb, H, gains, modes, terms, lo, hi, r, INC, S, S2, BAD, TJ):
     r"""Add the log-likelihood of one reading of one channel to each particle's ``INC`` (Np,) (the module's
     equations).
 
@@ -170,12 +163,13 @@ def reading_log_weights(Xb, H, gains, modes, terms, lo, hi, r, INC, S, BAD, TJ):
         The reading's interval (equal: an exact reading).
     r : float
         The noise variance :math:`R_{ll}`.
-    S : (4, Np) ; BAD : (Np,) bool ; TJ : (J,)
-        Scratch: the latent means, variances, inverse standard deviations and likelihoods; the particles
-        weighted in logarithms; one particle's modes.
+    S : (4, Np) ; S2 : (2, 2 Np) ; BAD : (Np,) bool ; TJ : (J,)
+        Scratch: the latent means, variances, inverse standard deviations and likelihoods; an interval's ends
+        and their tail masses; the particles weighted in logarithms; one particle's modes.
     """
     n, Np = Xb.shape
     Z, V, IS, ACC = S[0], S[1], S[2], S[3]
+    TA, TM = S2[0], S2[1]
     varying = False
     for s in range(terms):
         varying = varying or gains[s, 1] != 0.0
@@ -204,16 +198,20 @@ def reading_log_weights(Xb, H, gains, modes, terms, lo, hi, r, INC, S, BAD, TJ):
         if modes[j, 2] > -_INF:
             active += 1
             g, u, lp = modes[j, 0], modes[j, 1], modes[j, 2]
-    if exact and active == 1:  # the log-density directly
+    single = exact and active == 1
+    if single:  # the log-density directly (its -log s by the log pass below where s varies)
         for p in range(Np):
-            isd = IS[p]
-            ls = -_log_pos(isd) if varying else ls0
-            z = (lo - g * min(max(Z[p], -u), u)) * isd
-            INC[p] += (-0.5 * z * z - ls - _LOG_SQRT_2PI) + lp
-        return
-    for p in range(Np):
-        ACC[p] = 0.0
-        BAD[p] = False
+            z = (lo - g * min(max(Z[p], -u), u)) * IS[p]
+            INC[p] += (-0.5 * z * z - (0.0 if varying else ls0) - _LOG_SQRT_2PI) + lp
+            ACC[p] = IS[p]
+            BAD[p] = False
+        if not varying:
+            return
+        J = 0
+    else:
+        for p in range(Np):
+            ACC[p] = 0.0
+            BAD[p] = False
     whole = lo == -_INF and hi == _INF
     for j in range(J):  # the modes' likelihoods, summed (vectorised passes)
         g, u, lp = modes[j, 0], modes[j, 1], modes[j, 2]
@@ -230,26 +228,20 @@ def reading_log_weights(Xb, H, gains, modes, terms, lo, hi, r, INC, S, BAD, TJ):
         elif whole:
             for p in range(Np):
                 ACC[p] += w
-        elif lo == -_INF:
-            for p in range(Np):
-                x = (hi - g * min(max(Z[p], -u), u)) * IS[p]
-                ACC[p] += w * _upper_mass(x)
-                BAD[p] = BAD[p] or x < -35.0
-        elif hi == _INF:
-            for p in range(Np):
-                x = (g * min(max(Z[p], -u), u) - lo) * IS[p]
-                ACC[p] += w * _upper_mass(x)
-                BAD[p] = BAD[p] or x < -35.0
-        else:
+        else:  # an interval, mirrored to the side of the lower tail: its ends' tail masses in one pass of 2 Np
             for p in range(Np):
                 mu = g * min(max(Z[p], -u), u)
-                a = (lo - mu) * IS[p]
-                b = (hi - mu) * IS[p]
+                a = (lo - mu) * IS[p] if lo > -_INF else -_INF
+                b = (hi - mu) * IS[p] if hi < _INF else _INF
                 flip = a + b > 0.0
-                a2 = -b if flip else a
-                b2 = -a if flip else b
-                pb = _upper_mass(b2)
-                mass = pb - _tail_mass(a2)
+                TA[p] = -b if flip else a
+                TA[Np + p] = -a if flip else b
+            for i in range(2 * Np):
+                TM[i] = _tail_mass(TA[i])
+            for p in range(Np):
+                b2 = TA[Np + p]
+                pb = 1.0 - TM[Np + p] if b2 > 0.0 else TM[Np + p]
+                mass = pb - (TM[p] if TA[p] > -_INF else 0.0)
                 ACC[p] += w * mass
                 BAD[p] = BAD[p] or b2 < -35.0 or mass * 4.0 < pb
     for p in range(Np):  # one log (vectorised)
@@ -257,6 +249,8 @@ def reading_log_weights(Xb, H, gains, modes, terms, lo, hi, r, INC, S, BAD, TJ):
         bad = BAD[p] or not v > 1e-290
         BAD[p] = bad
         INC[p] += _log_pos(v if not bad else 1.0)
+    if single:
+        return
     for p in range(Np):  # the particles far in the tails: in logarithms throughout
         if BAD[p]:
             sd = math.sqrt(V[p] + r2) if varying else sr
