@@ -285,6 +285,29 @@ def interval_draw(a, b, u):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _window_core(a, b, Ma, Mb, u):
+    r"""The log-mass of the window :math:`[a, b]` (:math:`a \le 0`) and the draw
+    :math:`\Phi^{-1}(\Phi(a) + u(\Phi(b) - \Phi(a)))`, from the tail masses :math:`M_a = \Phi(-|a|)`,
+    :math:`M_b = \Phi(-|b|)` (:func:`_tail_mass`): the quantile by AS 241 from p, or from
+    :math:`1 - p = (1 - \Phi(b)) + (1 - u)(\Phi(b) - \Phi(a))` in the upper tail. NaN (for
+    :func:`interval_draw`) where the mass would lose more than two bits to cancellation or b < -35."""
+    pa = Ma if a > -_INF else 0.0
+    qb = (Mb if b > 0.0 else 1.0 - Mb) if b < _INF else 0.0
+    pb = 1.0 - qb if b > 0.0 else Mb
+    mass = pb - pa
+    if b < -35.0 or not mass * 4.0 >= pb:
+        return math.nan, 0.0
+    p = pa + u * mass
+    if p > 0.925:
+        z = _quantile_tail(math.sqrt(-math.log(qb + (1.0 - u) * mass)))
+    elif p < 0.075:
+        z = -_quantile_tail(math.sqrt(-math.log(p))) if p > 0.0 else -_INF
+    else:
+        z = _quantile_center(p - 0.5)
+    return math.log(mass), min(max(z, a), b)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _mass_factor(far, lm, M, upper, F):
     """A censored channel's weight factor in the linear weights: ``(F', log-part)``. The mass multiplies the
     particle's factor F while the product stays above :data:`_F_MIN`; else (or far in the tail) its
@@ -449,7 +472,7 @@ def pf_block(
     K = H.shape[1]
     TJ = np.empty(modes.shape[1])
     SR = np.empty((4, Np))  # the general readings' scratch
-    SR2 = np.empty((2, 2 * Np))
+    SR2 = np.empty((2, 2 * Np))  # (and an interval's ends and tail masses)
     BAD = np.empty(Np, dtype=np.bool_)
     bg = rng.bit_generator  # the draws go to it directly (see the imports)
     cls = np.empty(m, dtype=np.int8)
@@ -596,8 +619,21 @@ def pf_block(
                             Z[p] = dv
                     elif c == _INTERVAL:  # a draw from the window the reading says the latent reading is in
                         lo, hi = ylo[b, k, l], yhi[b, k, l]
+                        TA, TM = SR2[0], SR2[1]
+                        for p in range(Np):  # its ends, mirrored to a <= 0 (as the numpy path)
+                            a = (lo - Z[p]) / sd
+                            bb = (hi - Z[p]) / sd
+                            flip = a > 0.0
+                            TA[p] = -bb if flip else a
+                            TA[Np + p] = -a if flip else bb
+                        for i in range(2 * Np):  # their tail masses (vectorised)
+                            TM[i] = _tail_mass(TA[i])
                         for p in range(Np):
-                            lm, z = interval_draw((lo - Z[p]) / sd, (hi - Z[p]) / sd, U[l, p])
+                            lm, z = _window_core(TA[p], TA[Np + p], TM[p], TM[Np + p], U[l, p])
+                            if lm != lm:  # far in the tails or a cancelling mass: logarithms throughout
+                                lm, z = interval_draw((lo - Z[p]) / sd, (hi - Z[p]) / sd, U[l, p])
+                            elif (lo - Z[p]) / sd > 0.0:
+                                z = -z
                             INC[p] += lm
                             Z[p] = sd * z
                     else:
