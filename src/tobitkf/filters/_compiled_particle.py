@@ -88,8 +88,8 @@ from numba.np.random.distributions import random_standard_normal as _standard_no
 from numba.np.random.generator_core import next_double as _next_double
 
 from .._compiled_linalg import psd_root
-from ._compiled_censored import _exp_neg, _one_sided_at
-from ._compiled_particle_readings import compiled_readings, log_ndtr, reading_log_weights
+from ._compiled_censored import _exp_neg
+from ._compiled_particle_readings import _tail_mass, compiled_readings, log_ndtr, reading_log_weights, tail_masses
 from ._particle_rng import generator
 from ._readings import _INTERIOR, _INTERVAL, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
 
@@ -200,15 +200,6 @@ def ndtri_exp(t):
     if t > _LOG_P_HIGH:
         return _quantile_tail(math.sqrt(-math.log(-math.expm1(t))))
     return _quantile_center(math.exp(t) - 0.5)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _tail_mass(x):
-    r""":math:`\Phi(-|x|)` by the package's compiled censored statistics (``_compiled_censored._one_sided_at``:
-    polynomial fits of erfcx and an exp without libm; relative error about 1e-14 within 8 standard deviations,
-    2e-13 at 35), which a loop over particles vectorises: the censored weights take their masses from one such
-    pass, where a library ``erfc`` is a call per particle."""
-    return _one_sided_at(0.0, 1.0, abs(x))[1]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -626,8 +617,7 @@ def pf_block(
                             flip = a > 0.0
                             TA[p] = -bb if flip else a
                             TA[Np + p] = -a if flip else bb
-                        for i in range(2 * Np):  # their tail masses (vectorised)
-                            TM[i] = _tail_mass(TA[i])
+                        tail_masses(TA, TM, 2 * Np)  # their tail masses
                         for p in range(Np):
                             lm, z = _window_core(TA[p], TA[Np + p], TM[p], TM[Np + p], U[l, p])
                             if lm != lm:  # far in the tails or a cancelling mass: logarithms throughout
@@ -639,8 +629,7 @@ def pf_block(
                     else:
                         _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         sgn = sd if c == _LOWER else -sd
-                        for p in range(Np):  # the masses (vectorised)
-                            MM[p] = _tail_mass(Z[p])
+                        tail_masses(Z, MM, Np)  # the masses
                         for p in range(Np):  # the draws: branches, and a log in the quantile's tails
                             far, lm, M, upper, z = _censored_core(Z[p], MM[p], U[l, p])
                             if lb:
@@ -695,8 +684,7 @@ def pf_block(
                     else:
                         _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         if lb:
-                            for p in range(Np):  # the masses (vectorised)
-                                MM[p] = _tail_mass(Z[p])
+                            tail_masses(Z, MM, Np)  # the masses
                             for p in range(Np):
                                 far, lm, M, upper = _normal_mass(Z[p], MM[p])
                                 F[p], lm = _mass_factor(far, lm, M, upper, F[p])
