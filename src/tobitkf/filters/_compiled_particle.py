@@ -1,4 +1,4 @@
-r"""Compiled (numba) propagate–weight–resample of the particle filter for linear readings with censoring.
+r"""Compiled (numba) propagate–weight–resample of the particle filter.
 
 An *implementation* of the numpy path of :class:`tobitkf.ParticleFilter` for its linear model
 (``_Linear``: :math:`y^* = Cx + v`, one- or two-sided censoring, constant or time-varying limits, missing
@@ -8,6 +8,14 @@ the same order per particle, the same log-sum-exp normalisation of the weights, 
 resampling (Kitagawa 1996) when the effective sample size :math:`1/\sum_iW_i^2` falls below the
 threshold. Given the same random numbers, the results equal the numpy path's to rounding (tested to
 1e-12 by feeding the numpy path the draws of the compiled loop).
+
+The same loop runs the readings of :mod:`tobitkf.filters._compiled_particle_readings` (a normal latent reading
+seen through an interval, as a mixture of modes, over a window of states): random saturation and Rice fading
+with Gaussian coefficients under the bootstrap proposal, and a channel whose likelihood is its ``region``'s
+(a quantizer) under both; the locally optimal proposal of an interval reading draws its latent reading from the
+window, :math:`z = \Phi^{-1}(\Phi(a) + u(\Phi(b) - \Phi(a)))` (one uniform, in the place of a censored
+reading's), from the window's two tail masses (one vectorised pass) and AS 241's quantile, and an exact one
+conditions on its value. One compiled version serves every model: the readings' model travels as arrays.
 
 **Random numbers.** The compiled loop draws its own numbers, inside the loop, from the filter's
 ``numpy.random.Generator`` (numba's implementations of numpy's own algorithms, called on the generator's

@@ -224,13 +224,17 @@ class ParticleFilter(Estimator):
         Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
         gives the same numbers; None draws fresh entropy once, when the filter is built.
     backend : {"auto", "numba", "numpy"}, default "auto"
-        ``filter`` for linear readings (censored or not) of a time-invariant system without input runs
-        compiled (:mod:`tobitkf.filters._compiled_particle`: the same equations, in blocks of runs,
-        drawing from the same generator in its own order, so equal to the numpy loop in law, and to
-        rounding for the same numbers) under ``"auto"`` when numba imports, and always under
-        ``"numba"`` (which refuses the other channels: fading, the protocol channel, random saturation,
-        contract channels and nonlinear models run the numpy loop); ``"numpy"`` always runs the numpy
-        loop. ``step`` is numpy. The two backends give different particles for the same seed.
+        ``filter`` of a time-invariant system without input runs compiled
+        (:mod:`tobitkf.filters._compiled_particle`: the same equations, in blocks of runs, drawing from the
+        same generator in its own order, so equal to the numpy loop in law, and to rounding for the same
+        numbers) under ``"auto"`` when numba imports, and always under ``"numba"``, for these models:
+        linear readings, censored or not (both proposals); a channel of the measurement contract whose
+        likelihood is its ``region``'s (:class:`~tobitkf.Quantizer`, a dead band, a channel of your own; both
+        proposals); random saturation and Rice fading with Gaussian coefficients, either with a Censoring
+        (the bootstrap proposal ``"prior"``). ``"numba"`` refuses the rest, which runs the numpy loop: the
+        locally optimal proposal of random saturation, fading with other coefficient laws, the protocol
+        channel, channels with a likelihood of their own and nonlinear models. ``"numpy"`` always runs the
+        numpy loop. ``step`` is numpy. The two backends give different particles for the same seed.
 
     Raises
     ------
