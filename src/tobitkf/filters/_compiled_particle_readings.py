@@ -2,7 +2,8 @@ r"""The readings of the compiled particle filter beyond censoring: their likelih
 
 The compiled loop (:func:`tobitkf.filters._compiled_particle.pf_block`) runs the bootstrap proposal for every
 model whose reading of channel l, given a particle :math:`\xi`, is a normal latent reading seen through an
-interval, possibly as a mixture over discrete modes j:
+interval, possibly as a mixture over discrete modes j (and the locally optimal proposal of those with one term
+and one mode: the region channels; there an interval reading draws its latent reading from the window):
 
 .. math::
 
