@@ -23,6 +23,11 @@
     resampling, JIT-compiled before timing), medians of 5; a peer that is not installed is skipped
     (``pip install "tobitkf[bench]"`` for cuthbert; ``pip install --no-deps particles``, which keeps numpy 2).
     Target: ours faster than both.
+(e) The channels beyond censoring, compiled against ParticleFilter's own numpy path (the same model and
+    proposal), interleaved, µs per run-step (CPU and wall), medians and (min-max) of ``--repeat``: random
+    saturation (two sensors, bootstrap), a quantizer (two channels; its default, the locally optimal proposal,
+    and the bootstrap) and Rice fading of order 2 (n_xi = 6, bootstrap), at ``--channel-runs`` x
+    ``--target-steps`` x ``--target-particles``.
 
 Run by hand::
 
@@ -56,6 +61,52 @@ def oscillator(omega: float = 0.05) -> tk.LinearSystem:
     return tk.LinearSystem(
         A=[[c, -s], [s, c]], C=[[1.0, 0.0]], Q=0.01 * np.eye(2), R=[[0.1]], x0=[0.0, 0.0], P0=0.05 * np.eye(2)
     )
+
+
+def other_channels():
+    """(e): the channels beyond censoring: (name, system, channel, proposal)."""
+    two = tk.LinearSystem(
+        A=[[0.95, 0.1], [0.0, 0.9]], C=[[1.0, 0.0], [0.5, 1.0]], Q=0.05 * np.eye(2), R=np.diag([0.1, 0.2]),
+        x0=[0.2, 0.0], P0=np.eye(2),
+    )  # fmt: skip
+    sat = tk.RandomSaturation([0.3, 0.2], [0.8, 0.9], level=[0.5, 0.4])
+    quant = tk.Quantizer(0.2, lower=-0.6, upper=0.6)
+    _, _, fsys, fch, _, _ = cases()[2]
+    return [
+        ("saturation m=2, bootstrap", two, sat, "prior"),
+        ("quantizer m=2, optimal", two, quant, "optimal"),
+        ("quantizer m=2, bootstrap", two, quant, "prior"),
+        ("fading L=2, bootstrap", fsys, fch, "prior"),
+    ]
+
+
+def channels_vs_numpy(runs: int, particles: int, steps: int, repeat: int) -> dict:
+    """(e): µs per run-step of the compiled filter and ParticleFilter's numpy path on the channels beyond
+    censoring, interleaved; ratios per round = numpy time / compiled time."""
+    print(
+        f"(e) the channels beyond censoring, compiled vs ParticleFilter's numpy path: {runs} runs x {steps} steps x "
+        f"{particles} particles; µs per run-step, medians (min-max) of {repeat}, interleaved; {_load()}"
+    )
+    print(HEAD)
+    out = {}
+    for name, sys_, channel, proposal in other_channels():
+        pieces = channel if isinstance(channel, list) else [channel]
+        cens = next((c for c in pieces if isinstance(c, tk.Censoring)), None)
+        drawer = next((c for c in pieces if not isinstance(c, tk.Censoring)), None)
+        y = tk.simulate(sys_, steps, runs, channel=drawer, censoring=cens, seed=0).y
+        pfs = {
+            be: tk.ParticleFilter(sys_, channel, particles=particles, proposal=proposal, seed=1, backend=be)
+            for be in ("numba", "numpy")
+        }
+        pfs["numba"].filter(y[:1, :2])  # compile (or load the cache)
+        t = interleaved({be: (lambda pf=pf: pf.filter(y, outputs="mean")) for be, pf in pfs.items()}, repeat)
+        r = ratios(t["numpy"], t["numba"])
+        print(f"  {name}")
+        print(_row("ours (compiled)", t["numba"], runs * steps))
+        print(_row("ours (numpy path)", t["numpy"], runs * steps))
+        print(f"  -> compiled faster by CPU {_med(r['cpu'])}, wall {_med(r['wall'])}", flush=True)
+        out[name] = dict(samples=t, ratio=statistics.median(r["cpu"]), ratios=r)
+    return out
 
 
 def cases():
@@ -383,12 +434,18 @@ def main() -> None:
         "--proposal", choices=("optimal", "prior", "both"), default="both", help="(c): the proposals timed"
     )
     parser.add_argument("--no-peers", action="store_true", help="skip (d)")
+    parser.add_argument("--channel-runs", type=int, default=20, help="(e): runs")
+    parser.add_argument("--channels", action="store_true", help="(e) only")
     args = parser.parse_args()
     if args.smoke:
         throughput(4, 500, 5, 1)
         memory(4, 500, 5)
         compiled_vs_plain(4, 500, 5, 1, numpy_path=True)
         peers(8, 200, 5, 1)
+        channels_vs_numpy(4, 200, 5, 1)
+        return
+    if args.channels:
+        channels_vs_numpy(args.channel_runs, args.target_particles, args.target_steps, args.repeat)
         return
     props = ("optimal", "prior") if args.proposal == "both" else (args.proposal,)
     if args.target:
@@ -403,6 +460,7 @@ def main() -> None:
     )
     if not args.no_peers:
         peers(args.peer_runs, args.target_particles, args.target_steps, args.repeat)
+    channels_vs_numpy(args.channel_runs, args.target_particles, args.target_steps, args.repeat)
 
 
 if __name__ == "__main__":

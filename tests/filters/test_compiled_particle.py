@@ -16,6 +16,8 @@ from scipy.special import log_ndtr as scipy_log_ndtr
 from scipy.special import ndtri_exp as scipy_ndtri_exp
 
 import tobitkf as tk
+from tobitkf.channels.base import interval_moments
+from tobitkf.filters import _particle_models as pm
 from tobitkf.filters import particle as pt
 from tobitkf.filters._particle_rng import generator
 from tobitkf.filters._readings import LOWER, UPPER, classify_readings
@@ -80,6 +82,12 @@ def replay(pf, state, y, block):
     lo = np.array([a for a, _ in lims])[None]
     hi = np.array([b for _, b in lims])[None]
     censored = np.isin(classify_readings(y, lo, hi), (LOWER, UPPER))
+    channel = getattr(pf.model, "channel", None)
+    if channel is not None and not isinstance(pf.model, pm._Saturation):  # a region: a uniform per interval reading
+        for k in range(T):
+            for l in range(m):
+                a, b = channel.region(np.nan_to_num(y[:, k, l]), state.k + 1 + k, l)
+                censored[:, k, l] = (a != b) & ~np.isnan(y[:, k, l])
     g = generator(state.carry["rng"])
     U, E, UR = np.full((T, N, Np, m), 0.5), np.empty((T, N, Np, n)), np.full((T, N), 0.5)
     resampled = {}
@@ -247,17 +255,36 @@ def test_a_filter_continued_from_its_final_state_equals_one_call():
     np.testing.assert_allclose(var, np.diagonal(whole.cov, axis1=-2, axis2=-1), atol=TOL)
 
 
-def test_dispatch_covers_linear_readings_only():
-    fad = tk.RiceFading.gaussian(1, [0.9, 0.5], [0.01, 0.01])
+class _MomentsOnly(tk.Channel):
+    """A channel with a likelihood of its own (its moments), not a region's."""
+
+    def reading_moments(self, y, mean, std, k, l):
+        return interval_moments(mean, std, y - 0.1, y + 0.1)
+
+
+def test_dispatch_names_what_runs_numpy():
     sys_ = system(1)
-    with pytest.raises(tk.ValidationError, match="backend: the compiled path of the particle filter"):
-        tk.ParticleFilter(sys_, fad, particles=10, backend="numba").filter(np.zeros((5, 1)))
+    uniform = tk.RiceFading(1, tk.laws.Uniform([0.8, 0.2], [1.0, 0.6]))  # coefficients drawn per particle
+    sat = tk.RandomSaturation([0.3], [0.8], level=0.5)
+    for channel, proposal, gap in [
+        (uniform, "auto", "coefficients that are not Gaussian"),
+        (sat, "optimal", "the 'optimal' proposal of saturation readings"),
+        (_MomentsOnly(), "auto", "_MomentsOnly readings"),
+        (
+            tk.ProtocolChannel(1, window=1, failures=tk.laws.PMF([1.0, 0.0], [0.9, 0.1]), threshold=0.0),
+            "prior",
+            "protocol",
+        ),
+    ]:
+        with pytest.raises(tk.ValidationError, match=f"backend: the compiled path of the particle filter .*{gap}"):
+            pf = tk.ParticleFilter(sys_, channel, particles=10, proposal=proposal, backend="numba")
+            pf.filter(np.ones((5, 1)))
     with pytest.raises(tk.ValidationError, match="backend: expected one of"):
         tk.ParticleFilter(sys_, particles=10, backend="jax")
-    # "auto" falls back to numpy for fading: equal to backend="numpy" exactly
+    # "auto" falls back to numpy where the loop does not cover the model: equal to backend="numpy" exactly
     y = np.abs(np.random.default_rng(0).normal(size=(3, 5, 1)))
-    a = tk.ParticleFilter(sys_, fad, particles=50, seed=1, backend="auto").filter(y)
-    b = tk.ParticleFilter(sys_, fad, particles=50, seed=1, backend="numpy").filter(y)
+    a = tk.ParticleFilter(sys_, sat, particles=50, seed=1, backend="auto").filter(y)
+    b = tk.ParticleFilter(sys_, sat, particles=50, seed=1, backend="numpy").filter(y)
     np.testing.assert_array_equal(a.mean, b.mean)
     # a control input is not covered by the compiled loop
     sys_u = tk.LinearSystem(
@@ -265,6 +292,90 @@ def test_dispatch_covers_linear_readings_only():
     )
     with pytest.raises(tk.ValidationError, match="control inputs"):
         tk.ParticleFilter(sys_u, particles=10, backend="numba").filter(np.zeros((5, 1)), u=np.zeros((5, 2)))
+
+
+class _DeadBand(tk.Channel):
+    """A sensor that reads 0 inside the band (-0.1, 0.1) and the latent reading itself outside: exact readings and
+    intervals."""
+
+    def censor(self, y_latent):
+        return np.where(np.abs(y_latent) < 0.1, 0.0, y_latent)
+
+    def region(self, y, k, l):
+        inside = y == 0.0
+        return np.where(inside, -0.1, y), np.where(inside, 0.1, y)
+
+
+# The channels beyond censoring: random saturation (three modes, one of them of probability 0 on the second sensor),
+# a quantizer (interval readings, open at the saturated ends), a dead band (exact readings and intervals) and Rice
+# fading of order 2 (a window of states, a variance per particle); their bootstrap proposal, and the locally optimal
+# one of the region channels. One compiled version serves them and the censored readings: the readings' model
+# travels as arrays.
+OTHER_CHANNELS = {
+    "saturation": (
+        2,
+        lambda: tk.RandomSaturation([0.3, 0.0], [0.8, 0.9], level=[0.5, 0.4]),
+        tk.Censoring(lower=[-0.3, -np.inf], upper=[np.inf, 0.35]),
+    ),
+    "quantizer": (2, lambda: tk.Quantizer(0.2, lower=-0.6, upper=0.6), None),
+    "dead band": (2, lambda: _DeadBand(), None),
+    "fading": (1, lambda: tk.RiceFading.gaussian(2, [0.9, 0.5, 0.3], [0.01, 0.02, 0.03]), tk.Censoring(lower=[0.0])),
+}
+
+
+def other_channel(kind, steps=12):
+    m, make, cens = OTHER_CHANNELS[kind]
+    ch = make()
+    y = tk.simulate(system(m), steps, 6, channel=ch, censoring=cens, seed=0).y.copy()
+    y[1, 3, 0] = np.nan  # one channel missing
+    y[2, 5] = np.nan  # every channel missing
+    return m, (ch if cens is None else [ch, cens]), y
+
+
+@pytest.mark.parametrize(
+    ("kind", "proposal"),
+    [("saturation", "prior"), ("quantizer", "prior"), ("quantizer", "optimal"), ("dead band", "prior"),
+     ("dead band", "optimal"), ("fading", "prior")],
+)  # fmt: skip
+def test_compiled_other_channels_equal_numpy_for_the_same_random_numbers(kind, proposal):
+    m, channel, y = other_channel(kind)
+    pf = tk.ParticleFilter(system(m), channel, particles=100, proposal=proposal, seed=3, resample_threshold=0.7)
+    assert pf._compiled_gap(None) is None
+    if kind == "quantizer":  # readings at the saturated ends of the range and between
+        assert np.isclose(np.abs(y), 0.6).any() and (np.abs(y) < 0.5).any()
+    if kind == "dead band":  # exact readings and intervals
+        assert (y == 0.0).any() and (np.abs(y) > 0.1).any()
+    check_against_numpy(pf, y)
+
+
+@pytest.mark.parametrize(
+    ("kind", "proposal"), [("quantizer", "prior"), ("quantizer", "optimal"), ("saturation", "prior")]
+)
+def test_general_readings_far_in_the_tails(kind, proposal):
+    # readings 40-90 standard deviations from every particle, and quantizer cells so narrow (a hundredth of the
+    # latent reading's deviation at 5 of them) that their masses cancel: those particles are weighted in
+    # logarithms throughout, and must still equal the numpy path
+    if kind == "quantizer":
+        channel = tk.Quantizer(0.01, lower=-20.0, upper=20.0)
+        y = np.array([[[15.0]] * 3, [[-20.0]] * 3, [[1.6], [1.7], [0.0]], [[-1.5], [20.0], [0.3]]])
+    else:
+        channel = tk.RandomSaturation([0.3], [0.8], level=0.5)
+        y = np.array([[[30.0]] * 3, [[-25.0], [0.1], [12.0]], [[0.2], [0.4], [-0.1]]])
+    pf = tk.ParticleFilter(system(1), channel, particles=150, proposal=proposal, seed=4, resample_threshold=0.7)
+    got = check_against_numpy(pf, y, both_branches=False)
+    assert np.isfinite(got.mean).all() and got.extras["log_likelihood"][0, 0] < -400  # (the far reading)
+
+
+def test_fading_continued_from_a_state_inside_its_first_window_equals_one_call():
+    # the fading reading sums the terms of the states present: from step 1 (a state continued at k = 1 < L = 2)
+    _, channel, y = other_channel("fading", steps=8)
+    pf = tk.ParticleFilter(system(1), channel, particles=80, proposal="prior", seed=2, backend="numba")
+    whole = pf.filter(y)
+    first = pf.filter(y[:, :1])
+    rest = pf.filter(y[:, 1:], state=first.final)
+    np.testing.assert_allclose(rest.mean, whole.mean[:, 1:], rtol=0, atol=TOL)
+    np.testing.assert_allclose(rest.final.carry["log_likelihood"], whole.final.carry["log_likelihood"], atol=TOL)
+    assert whole.mean.shape == (6, 8, 2) and whole.final.carry["particles"].shape == (6, 80, 6)
 
 
 def test_log_ndtr_matches_scipy_in_both_tails():

@@ -1,4 +1,4 @@
-r"""Compiled (numba) propagate–weight–resample of the particle filter for linear readings with censoring.
+r"""Compiled (numba) propagate–weight–resample of the particle filter.
 
 An *implementation* of the numpy path of :class:`tobitkf.ParticleFilter` for its linear model
 (``_Linear``: :math:`y^* = Cx + v`, one- or two-sided censoring, constant or time-varying limits, missing
@@ -8,6 +8,14 @@ the same order per particle, the same log-sum-exp normalisation of the weights, 
 resampling (Kitagawa 1996) when the effective sample size :math:`1/\sum_iW_i^2` falls below the
 threshold. Given the same random numbers, the results equal the numpy path's to rounding (tested to
 1e-12 by feeding the numpy path the draws of the compiled loop).
+
+The same loop runs the readings of :mod:`tobitkf.filters._compiled_particle_readings` (a normal latent reading
+seen through an interval, as a mixture of modes, over a window of states): random saturation and Rice fading
+with Gaussian coefficients under the bootstrap proposal, and a channel whose likelihood is its ``region``'s
+(a quantizer) under both; the locally optimal proposal of an interval reading draws its latent reading from the
+window, :math:`z = \Phi^{-1}(\Phi(a) + u(\Phi(b) - \Phi(a)))` (one uniform, in the place of a censored
+reading's), from the window's two tail masses (one vectorised pass) and AS 241's quantile, and an exact one
+conditions on its value. One compiled version serves every model: the readings' model travels as arrays.
 
 **Random numbers.** The compiled loop draws its own numbers, inside the loop, from the filter's
 ``numpy.random.Generator`` (numba's implementations of numpy's own algorithms, called on the generator's
@@ -88,9 +96,10 @@ from numba.np.random.distributions import random_standard_normal as _standard_no
 from numba.np.random.generator_core import next_double as _next_double
 
 from .._compiled_linalg import psd_root
-from ._compiled_censored import _exp_neg, _one_sided_at
+from ._compiled_censored import _exp_neg
+from ._compiled_particle_readings import _tail_mass, compiled_readings, log_ndtr, reading_log_weights, tail_masses
 from ._particle_rng import generator
-from ._readings import _INTERIOR, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
+from ._readings import _INTERIOR, _INTERVAL, _LOWER, _MISSING, _RTOL_LIMIT, _UPPER
 
 __all__ = [
     "log_ndtr",
@@ -105,7 +114,6 @@ __all__ = [
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
 _SQRT1_2 = math.sqrt(0.5)
 _LN2 = math.log(2.0)
-_SQRT_PI = math.sqrt(math.pi)
 _INF = math.inf
 
 #: cache budget of one block of runs (bytes): its particles and log-weights stay in the core's L2 cache
@@ -118,32 +126,6 @@ _LOG_W_MIN = math.log(_W_MIN)
 
 
 # --------------------------------------------------------------------------- normal tails
-
-
-@njit(cache=True, error_model="numpy")
-def log_ndtr(x):
-    r""":math:`\log\Phi(x)`, accurate in both tails: :math:`\mathrm{log1p}(-\tfrac12\mathrm{erfc}(x/\sqrt2))`
-    for x > 0, :math:`\log(\tfrac12\mathrm{erfc}(t))`, :math:`t = -x/\sqrt2`, down to t = 25, and below
-    :math:`-x^2/2 + \log(\tfrac12\mathrm{erfcx}(t))` with the asymptotic series of erfcx (8 terms,
-    truncation < 1e-16 for t > 25)."""
-    if x != x:
-        return x
-    if x == _INF:
-        return 0.0
-    if x == -_INF:
-        return -_INF
-    if x > 0.0:
-        return math.log1p(-0.5 * math.erfc(x * _SQRT1_2))
-    t = -x * _SQRT1_2
-    if t < 25.0:
-        return math.log(0.5 * math.erfc(t))
-    q = 1.0 / (2.0 * t * t)
-    term = 1.0
-    s = 1.0
-    for k in range(1, 9):
-        term *= -(2.0 * k - 1.0) * q
-        s += term
-    return -0.5 * x * x + math.log(0.5 * s / (t * _SQRT_PI))
 
 
 # Wichura's AS 241 (PPND16): the normal quantile by rational functions, relative error about 1e-16.
@@ -229,15 +211,6 @@ def ndtri_exp(t):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _tail_mass(x):
-    r""":math:`\Phi(-|x|)` by the package's compiled censored statistics (``_compiled_censored._one_sided_at``:
-    polynomial fits of erfcx and an exp without libm; relative error about 1e-14 within 8 standard deviations,
-    2e-13 at 35), which a loop over particles vectorises: the censored weights take their masses from one such
-    pass, where a library ``erfc`` is a call per particle."""
-    return _one_sided_at(0.0, 1.0, abs(x))[1]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
 def _normal_mass(x, M):
     r"""The mass :math:`\Phi(x)` in the form the weights use, given :math:`M = \Phi(-|x|)`
     (:func:`_tail_mass`): ``(far, lm, M, upper)``.
@@ -284,6 +257,53 @@ def censored_draw(a, u):
     if far:
         return lm, z
     return (math.log1p(-M) if upper else math.log(M)), z
+
+
+@njit(cache=True, error_model="numpy")
+def interval_draw(a, b, u):
+    r"""The log-mass and a draw of a standard normal truncated to :math:`[a, b]` for a uniform u, as the numpy
+    path's ``_log_interval`` and ``_interval_z``: mirrored to :math:`a \le 0` (:math:`[-b, -a]` when a > 0),
+    :math:`\ell = \log\Phi(b) + \mathrm{log1p}(-e^{\log\Phi(a) - \log\Phi(b)})`,
+    :math:`z = \Phi^{-1}(\Phi(a) + u e^\ell)` through :func:`ndtri_exp` of the log-sum (numpy's ``logaddexp``),
+    clipped to the window."""
+    flip = a > 0.0
+    a2 = -b if flip else a
+    b2 = -a if flip else b
+    la = log_ndtr(a2)
+    lb = log_ndtr(b2)
+    lm = lb + math.log1p(-math.exp(la - lb))
+    t = math.log(u) + lm
+    if la == t:
+        q = la + _LN2
+    elif la > t:
+        q = la + math.log1p(math.exp(t - la))
+    else:
+        q = t + math.log1p(math.exp(la - t))
+    z = min(max(ndtri_exp(q), a2), b2)
+    return lm, -z if flip else z
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _window_core(a, b, Ma, Mb, u):
+    r"""The log-mass of the window :math:`[a, b]` (:math:`a \le 0`) and the draw
+    :math:`\Phi^{-1}(\Phi(a) + u(\Phi(b) - \Phi(a)))`, from the tail masses :math:`M_a = \Phi(-|a|)`,
+    :math:`M_b = \Phi(-|b|)` (:func:`_tail_mass`): the quantile by AS 241 from p, or from
+    :math:`1 - p = (1 - \Phi(b)) + (1 - u)(\Phi(b) - \Phi(a))` in the upper tail. NaN (for
+    :func:`interval_draw`) where the mass would lose more than two bits to cancellation or b < -35."""
+    pa = Ma if a > -_INF else 0.0
+    qb = (Mb if b > 0.0 else 1.0 - Mb) if b < _INF else 0.0
+    pb = 1.0 - qb if b > 0.0 else Mb
+    mass = pb - pa
+    if b < -35.0 or not mass * 4.0 >= pb:
+        return math.nan, 0.0
+    p = pa + u * mass
+    if p > 0.925:
+        z = _quantile_tail(math.sqrt(-math.log(qb + (1.0 - u) * mass)))
+    elif p < 0.075:
+        z = -_quantile_tail(math.sqrt(-math.log(p))) if p > 0.0 else -_INF
+    else:
+        z = _quantile_center(p - 0.5)
+    return math.log(mass), min(max(z, a), b)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -379,7 +399,30 @@ def _dev2_sum(w, x, x0, z, z0):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def pf_block(
-    optimal, rng, X, lw, ll_acc, xm, Pm, A, G, Qd, C, r, y, LO, HI, thr, o_mean, o_cov, o_var, o_pm, o_pc, o_ext, want
+    optimal,
+    rng,
+    X,
+    lw,
+    ll_acc,
+    xm,
+    Pm,
+    A,
+    G,
+    Qd,
+    C,
+    r,
+    y,
+    LO,
+    HI,
+    readings,
+    thr,
+    o_mean,
+    o_cov,
+    o_var,
+    o_pm,
+    o_pc,
+    o_ext,
+    want,
 ):
     r"""The particle filter for the B runs of a block over T steps, in place, drawing its own numbers.
 
@@ -398,12 +441,19 @@ def pf_block(
         Running sum of the log-likelihood, updated.
     xm, Pm : (B, n), (B, n, n)
         In: the weighted moments at the start; out: those after the last step.
-    A, G, Qd : (n, n)
-        Transition, a root of the process covariance (G G^T = Qd), the process covariance.
+    A, G, Qd : (n, n), (n, w), (n, n)
+        Transition, a root of the process covariance (G G^T = Qd), the process covariance (of a window of
+        states: the top block of ``nb`` rows moves, the others are shifted down by A's identity blocks, G is
+        zero below the top block).
     C : (m, n) ; r : (m,)
         Readings matrix and noise variances.
     y : (B, T, m) ; LO, HI : (T, m)
         Readings (NaN = missing) and limits.
+    readings : tuple
+        ``(general, nb, k0, H, gains, modes, ylo, yhi)``: whether the readings are the general ones of
+        :mod:`tobitkf.filters._compiled_particle_readings` (bootstrap proposal only; else linear readings with
+        censoring, by C, LO, HI), the top block's size, the step before the first reading, and that module's
+        rows, gains, modes (m, K, n), (m, K, 2), (m, J, 3) and reading intervals (B, T, m).
     thr : float
         Resample when the effective sample size is below ``thr`` (the threshold times Np).
     o_mean, o_cov, o_var, o_pm, o_pc : (B, T, ...) or placeholders
@@ -417,6 +467,12 @@ def pf_block(
     """
     B, Np, n = X.shape
     T, m = LO.shape
+    general, nb, k0, H, gains, modes, ylo, yhi = readings
+    K = H.shape[1]
+    TJ = np.empty(modes.shape[1])
+    SR = np.empty((4, Np))  # the general readings' scratch
+    SR2 = np.empty((2, 2 * Np))  # (and an interval's ends and tail masses)
+    BAD = np.empty(Np, dtype=np.bool_)
     bg = rng.bit_generator  # the draws go to it directly (see the imports)
     cls = np.empty(m, dtype=np.int8)
     Sig = np.empty((n, n))
@@ -449,7 +505,7 @@ def pf_block(
     MU = np.empty((n, Np))  # the proposals' means (optimal), the propagated particles (bootstrap)
     T1 = np.empty(Np)  # a row of the noise term
     U = np.empty((m, Np))  # one run-step's random numbers: the uniforms of the censored readings...
-    E = np.empty((n, Np))  # ...and the normals
+    E = np.empty((G.shape[1], Np))  # ...and the normals
     MM = np.empty(Np)  # the masses Phi(-|a|) of a censored channel
     Z = np.empty(Np)  # a channel's predicted reading, then its standardised limit, then the draw's offset
     INC = np.empty(Np)  # the log part of the new weights (then with the old log weights: work)
@@ -474,24 +530,27 @@ def pf_block(
             Xb = Xs[b]
             # the linear prediction of the weighted moments (core.predict), where it is recorded
             if want[3]:
-                for i in range(n):
+                for i in range(nb):  # (the outputs: the top block of a window)
                     s = 0.0
                     for j in range(n):
                         s += A[i, j] * xm[b, j]
                     o_pm[b, k, i] = s
             if want[4]:
-                for i in range(n):
-                    for j in range(n):
+                for i in range(nb):
+                    for j in range(nb):
                         s = 0.0
                         for q in range(n):
                             for h in range(n):
                                 s += A[i, q] * Pm[b, q, h] * A[j, h]
                         Sig[i, j] = s + Qd[i, j]
-                for i in range(n):
-                    for j in range(n):
+                for i in range(nb):
+                    for j in range(nb):
                         o_pc[b, k, i, j] = 0.5 * (Sig[i, j] + Sig[j, i])
             for l in range(m):
                 cls[l] = _classify(y[b, k, l], LO[k, l], HI[k, l])
+                if general:  # a region's reading: exact (its value) or an interval
+                    v = ylo[b, k, l]
+                    cls[l] = _MISSING if v != v else (_INTERIOR if v == yhi[b, k, l] else _INTERVAL)
             lb = lin[b]
             for p in range(Np):
                 INC[p] = 0.0
@@ -530,7 +589,7 @@ def pf_block(
                 # the run's numbers first, in the documented order (then the arithmetic runs without calls)
                 for p in range(Np):
                     for l in range(m):
-                        if cls[l] == _LOWER or cls[l] == _UPPER:
+                        if cls[l] == _LOWER or cls[l] == _UPPER or cls[l] == _INTERVAL:
                             U[l, p] = _next_double(bg)
                     for j in range(n):
                         E[j, p] = _standard_normal(bg)
@@ -550,18 +609,35 @@ def pf_block(
                     sd = sr[l]
                     isl = isd[l]
                     if c == _INTERIOR:
-                        yl = y[b, k, l]
+                        yl = ylo[b, k, l] if general else y[b, k, l]
                         ls = lsd[l]
                         for p in range(Np):
                             dv = yl - Z[p]
                             zz = dv * isl
                             INC[p] += -0.5 * zz * zz - ls
                             Z[p] = dv
+                    elif c == _INTERVAL:  # a draw from the window the reading says the latent reading is in
+                        lo, hi = ylo[b, k, l], yhi[b, k, l]
+                        TA, TM = SR2[0], SR2[1]
+                        for p in range(Np):  # its ends, mirrored to a <= 0 (as the numpy path)
+                            a = (lo - Z[p]) / sd
+                            bb = (hi - Z[p]) / sd
+                            flip = a > 0.0
+                            TA[p] = -bb if flip else a
+                            TA[Np + p] = -a if flip else bb
+                        tail_masses(TA, TM, 2 * Np)  # their tail masses
+                        for p in range(Np):
+                            lm, z = _window_core(TA[p], TA[Np + p], TM[p], TM[Np + p], U[l, p])
+                            if lm != lm:  # far in the tails or a cancelling mass: logarithms throughout
+                                lm, z = interval_draw((lo - Z[p]) / sd, (hi - Z[p]) / sd, U[l, p])
+                            elif (lo - Z[p]) / sd > 0.0:
+                                z = -z
+                            INC[p] += lm
+                            Z[p] = sd * z
                     else:
                         _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         sgn = sd if c == _LOWER else -sd
-                        for p in range(Np):  # the masses (vectorised)
-                            MM[p] = _tail_mass(Z[p])
+                        tail_masses(Z, MM, Np)  # the masses
                         for p in range(Np):  # the draws: branches, and a log in the quantile's tails
                             far, lm, M, upper, z = _censored_core(Z[p], MM[p], U[l, p])
                             if lb:
@@ -581,18 +657,28 @@ def pf_block(
                         Xb[i, p] = MU[i, p] + T1[p]
             else:
                 for p in range(Np):
-                    for j in range(n):
+                    for j in range(E.shape[0]):
                         E[j, p] = _standard_normal(bg)
-                for i in range(n):
+                for i in range(nb):
                     _row_dot(Xb, A[i], MU[i])
                     _row_dot(E, G[i], T1)
                     for p in range(Np):
                         MU[i, p] += T1[p]
+                for i in range(nb, n):  # a window's older blocks: shifted down
+                    for p in range(Np):
+                        MU[i, p] = Xb[i - nb, p]
                 for i in range(n):
                     for p in range(Np):
                         Xb[i, p] = MU[i, p]
                 for l in range(m):
                     c = cls[l]
+                    if general:
+                        lo = ylo[b, k, l]
+                        if lo == lo:  # (NaN: missing)
+                            present = min(K, k0 + k + 2)  # term s reads the state s steps back
+                            reading_log_weights(Xb, H[l], gains[l], modes[l], present, lo, yhi[b, k, l], r[l], INC, SR,
+                                                SR2, BAD, TJ)  # fmt: skip
+                        continue
                     if c == _MISSING:
                         continue
                     _row_dot(MU, C[l], Z)
@@ -606,8 +692,7 @@ def pf_block(
                     else:
                         _limit_z(Z, c == _LOWER, LO[k, l], HI[k, l], isl, Np)
                         if lb:
-                            for p in range(Np):  # the masses (vectorised)
-                                MM[p] = _tail_mass(Z[p])
+                            tail_masses(Z, MM, Np)  # the masses
                             for p in range(Np):
                                 far, lm, M, upper = _normal_mass(Z[p], MM[p])
                                 F[p], lm = _mass_factor(far, lm, M, upper, F[p])
@@ -730,14 +815,14 @@ def pf_block(
                 for p in range(Np):
                     lw[b, p] = math.log(lw[b, p]) + math.log(F[p]) + INC[p] - lt
             if want[0]:
-                for i in range(n):
+                for i in range(nb):
                     o_mean[b, k, i] = xm[b, i]
             if want[1]:
-                for i in range(n):
-                    for j in range(n):
+                for i in range(nb):
+                    for j in range(nb):
                         o_cov[b, k, i, j] = Pm[b, i, j]
             if want[2]:
-                for i in range(n):
+                for i in range(nb):
                     o_var[b, k, i] = Pm[b, i, i]
             if want[5]:
                 o_ext[b, k, 0] = ess
@@ -764,7 +849,8 @@ def runs_per_block(particles: int, n: int, budget: int = BLOCK_BYTES) -> int:
 def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], batch: tuple[int, ...], block=None):
     """The particle filter's loop over the readings ``y2`` (N, T, m) from ``state``, compiled, in blocks of runs.
 
-    ``pf`` is a :class:`~tobitkf.ParticleFilter` with a linear model (time-invariant system, no input);
+    ``pf`` is a :class:`~tobitkf.ParticleFilter` whose model the loop covers (time-invariant system, no input:
+    ``ParticleFilter._compiled_gap``);
     ``block`` overrides the runs per block (:func:`runs_per_block`). Returns the
     :class:`~tobitkf.filters.core.FilterResult` its numpy loop returns: the outputs in ``want`` per step,
     the final state (particles, log weights, generator, running log-likelihood)."""
@@ -772,18 +858,17 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
 
     model, system = pf.model, pf.system
     N, T, m = y2.shape
-    n, Np = system.n, pf.particles
+    n, Np, ns = model.nx, pf.particles, pf.n  # the particles' state (a window for fading), the system's
     optimal = pf.proposal == "optimal"
-    k0 = state.k
-    A = np.ascontiguousarray(system.transition(k0), dtype=float)
-    Qd = np.ascontiguousarray(system.process_cov(k0), dtype=float)
-    G = np.ascontiguousarray(model._root(k0), dtype=float)
+    k0 = int(state.k)
     C = np.ascontiguousarray(system.measurement(k0 + 1), dtype=float)
     d = np.diagonal(system.measurement_cov(k0 + 1)).astype(float)
     r = np.ascontiguousarray(np.sqrt(d) ** 2 if optimal else d)  # as the numpy path forms them
     LO, HI = np.empty((T, m)), np.empty((T, m))  # the limits per step: m numbers each, nothing per particle
     for i in range(T):
         LO[i], HI[i] = model.limits(k0 + 1 + i)
+    rd = compiled_readings(model, system, y2, k0, LO, HI)  # the dynamics (of a window of states) and the readings
+    A, G, Qd, general = rd["A"], rd["G"], rd["Qd"], rd["general"]
     carry = state.carry
     X = np.array(carry["particles"], dtype=float, order="C")  # (N, Np, n): the final particles, in place
     lw = np.array(carry["log_weights"], dtype=float, order="C")
@@ -793,7 +878,7 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     rng = generator(carry["rng"])  # the filter's generator, restored from the state
     names = ("mean", "cov", "var", "pred_mean", "pred_cov", "extras")
     flags = np.array([key in want for key in names])
-    shapes = {"mean": (n,), "cov": (n, n), "var": (n,), "pred_mean": (n,), "pred_cov": (n, n)}
+    shapes = {"mean": (ns,), "cov": (ns, ns), "var": (ns,), "pred_mean": (ns,), "pred_cov": (ns, ns)}
     outs = {key: np.empty((N, T) + shp) if key in want else np.empty((1, 1) + shp) for key, shp in shapes.items()}
     ext = np.empty((N, T, 3)) if flags[5] else np.empty((1, 1, 3))
     Bmax = min(N, int(block) if block else runs_per_block(Np, n))
@@ -801,11 +886,13 @@ def filter_blocks(pf: Any, y2: np.ndarray, state: Any, want: frozenset[str], bat
     for r0 in range(0, N, Bmax):
         r1 = min(N, r0 + Bmax)
         blk = {key: (a[r0:r1] if key in want else a) for key, a in outs.items()}
+        reads = (general, rd["nb"], k0, rd["H"], rd["gains"], rd["modes"], rd["ylo"][r0:r1] if general else rd["ylo"],
+                 rd["yhi"][r0:r1] if general else rd["yhi"])  # fmt: skip
         pf_block(optimal, rng, X[r0:r1], lw[r0:r1], ll_acc[r0:r1], xm[r0:r1], Pm[r0:r1], A, G, Qd, C, r,
-                 yc[r0:r1], LO, HI, pf.resample_threshold * Np, blk["mean"], blk["cov"], blk["var"],
+                 yc[r0:r1], LO, HI, reads, pf.resample_threshold * Np, blk["mean"], blk["cov"], blk["var"],
                  blk["pred_mean"], blk["pred_cov"], ext[r0:r1] if flags[5] else ext, flags)  # fmt: skip
     new_carry = {"particles": X, "log_weights": lw, "rng": rng.bit_generator.state, "log_likelihood": ll_acc}
-    final = FilterState(k=k0 + T, batch_shape=batch, x=xm, P=Pm, n=n, S=None, carry=new_carry)
+    final = FilterState(k=k0 + T, batch_shape=batch, x=xm, P=Pm, n=ns, S=None, carry=new_carry)
 
     def shaped(key):
         return outs[key].reshape(batch + outs[key].shape[1:]) if key in want else None

@@ -116,10 +116,20 @@ import numpy as np
 
 from .._linalg import symmetrize
 from .._validation import ValidationError, as_float_array, check_instance, check_int, check_memory
+from ..channels.base import Channel
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, system_gap, use_compiled
-from ._particle_models import SYSTEM_MODELS, _build_model, _diag_sigma, _Linear, _Protocol
+from ._particle_models import (
+    SYSTEM_MODELS,
+    _build_model,
+    _Contract,
+    _diag_sigma,
+    _Fading,
+    _Linear,
+    _Protocol,
+    _Saturation,
+)
 from ._particle_rng import generator as _generator
 from ._particle_rng import rng_state as _rng_state
 from ._readings import censored_log_likelihood
@@ -214,13 +224,17 @@ class ParticleFilter(Estimator):
         Source of the random numbers. Every :meth:`init` restarts from it, so ``filter`` called twice
         gives the same numbers; None draws fresh entropy once, when the filter is built.
     backend : {"auto", "numba", "numpy"}, default "auto"
-        ``filter`` for linear readings (censored or not) of a time-invariant system without input runs
-        compiled (:mod:`tobitkf.filters._compiled_particle`: the same equations, in blocks of runs,
-        drawing from the same generator in its own order, so equal to the numpy loop in law, and to
-        rounding for the same numbers) under ``"auto"`` when numba imports, and always under
-        ``"numba"`` (which refuses the other channels: fading, the protocol channel, random saturation,
-        contract channels and nonlinear models run the numpy loop); ``"numpy"`` always runs the numpy
-        loop. ``step`` is numpy. The two backends give different particles for the same seed.
+        ``filter`` of a time-invariant system without input runs compiled
+        (:mod:`tobitkf.filters._compiled_particle`: the same equations, in blocks of runs, drawing from the
+        same generator in its own order, so equal to the numpy loop in law, and to rounding for the same
+        numbers) under ``"auto"`` when numba imports, and always under ``"numba"``, for these models:
+        linear readings, censored or not (both proposals); a channel of the measurement contract whose
+        likelihood is its ``region``'s (:class:`~tobitkf.Quantizer`, a dead band, a channel of your own; both
+        proposals); random saturation and Rice fading with Gaussian coefficients, either with a Censoring
+        (the bootstrap proposal ``"prior"``). ``"numba"`` refuses the rest, which runs the numpy loop: the
+        locally optimal proposal of random saturation, fading with other coefficient laws, the protocol
+        channel, channels with a likelihood of their own and nonlinear models. ``"numpy"`` always runs the
+        numpy loop. ``step`` is numpy. The two backends give different particles for the same seed.
 
     Raises
     ------
@@ -361,8 +375,20 @@ class ParticleFilter(Estimator):
 
     def _compiled_gap(self, u) -> str | None:
         """Why the compiled loop (:mod:`tobitkf.filters._compiled_particle`) cannot run, or None."""
-        if type(self.model) is not _Linear:
-            return f"{self.model.label} readings (linear readings with censoring only)"
+        model, kind = self.model, type(self.model)
+        if kind not in (_Linear, _Saturation, _Fading, _Contract):
+            return (
+                f"{model.label} readings (compiled: linear readings with censoring, random saturation, Rice fading "
+                "with Gaussian coefficients, channels whose likelihood is their region's)"
+            )
+        if kind in (_Saturation, _Fading) and self.proposal != "prior":
+            return f"the {self.proposal!r} proposal of {model.label} readings (compiled: their bootstrap 'prior')"
+        if kind is _Fading and not model.gaussian:
+            return "Rice fading with coefficients that are not Gaussian (drawn per particle)"
+        if kind is _Contract:
+            ch = type(model.channel)
+            if ch.region is Channel.region or ch.reading_log_likelihood is not Channel.reading_log_likelihood:
+                return f"{model.label} readings (compiled: a channel whose likelihood is its region's interval mass)"
         return system_gap(self.system, u)
 
     def _compiled_filter(self, y2, u2, state, want, batch, step_options=None):
