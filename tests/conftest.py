@@ -46,6 +46,26 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.heavy)
 
 
+# The runs-vectorised step (tobitkf.filters._compiled_soa) is compiled once per state size, channel count and update
+# (15 to 40 s of CPU each on a fresh numba cache), and the public KF, TKF and censored assumed-density filter take it
+# for every problem of up to 4 states: each test of a filter on a system of a size of its own compiled a version of
+# its own. Outside the tests marked `vectorised_step`, the test run hands those calls to the compiled loop (one
+# version for every size, compiled anyway), which gives the same numbers to rounding. The step itself is tested equal
+# to the compiled loop, for every update it serves, in tests/filters/test_compiled_soa.py (marked: there, and in the
+# other tests marked, the public filters route as for a user).
+@pytest.fixture(autouse=True)
+def _small_problems_on_the_compiled_loop(request, monkeypatch):
+    if request.node.get_closest_marker("vectorised_step") is None:
+        try:
+            from tobitkf.filters import _compiled_soa
+        except ImportError:  # no numba: no compiled path
+            pass
+        else:
+            monkeypatch.setattr(_compiled_soa, "soa_covers", lambda *args, **kwargs: False)
+            monkeypatch.setattr(_compiled_soa, "censored_covers", lambda *args, **kwargs: False)
+    yield
+
+
 # Needless compiles: numba compiles a kernel once per argument type, and a read-only array (np.broadcast_to returns one
 # even at the array's own shape) or a strided one (a row of a record) is a type of its own. A caller that hands one
 # over compiles the kernel once more in every process with a fresh cache (a minute or more of CPU for the

@@ -19,6 +19,9 @@ pytest.importorskip("numba")
 from tobitkf.filters import _compiled_soa as soa  # noqa: E402
 from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop  # noqa: E402
 
+# the public filters route small problems to the runs-vectorised step here, as for a user (tests/conftest.py)
+pytestmark = pytest.mark.vectorised_step
+
 #: the state sizes every update is checked at in the default run. The step is compiled once per state size and
 #: update (one version of ``soa_loop`` each, 10 to 30 s of CPU on a fresh numba cache), and other tests of the default
 #: run compile most versions at n = 1 and 2 anyway (the public filters on one- and two-state systems); the larger
