@@ -46,6 +46,50 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.heavy)
 
 
+# The runs-vectorised step (tobitkf.filters._compiled_soa) is compiled once per state size, channel count and update
+# (15 to 40 s of CPU each on a fresh numba cache), and the public KF, TKF and censored assumed-density filter take it
+# for every problem of up to 4 states: each test of a filter on a system of a size of its own compiled a version of
+# its own. Outside the tests marked `vectorised_step`, the test run hands those calls to the compiled loop (one
+# version for every size, compiled anyway), which gives the same numbers to rounding: for the whole session (module
+# fixtures filter too), undone for each marked test. The step itself is tested equal to the compiled loop, for every
+# update it serves, in tests/filters/test_compiled_soa.py (marked: there, and in the other tests marked, the public
+# filters route as for a user).
+_SOA_ROUTES = ("soa_covers", "censored_covers")
+
+
+def _not_covered(*args, **kwargs) -> bool:
+    return False
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _small_problems_on_the_compiled_loop():
+    try:
+        from tobitkf.filters import _compiled_soa
+    except ImportError:  # no numba: no compiled path
+        yield None
+        return
+    real = {name: getattr(_compiled_soa, name) for name in _SOA_ROUTES}
+    patch = pytest.MonkeyPatch()
+    for name in _SOA_ROUTES:
+        patch.setattr(_compiled_soa, name, _not_covered)
+    yield _compiled_soa, real
+    patch.undo()
+
+
+@pytest.fixture(autouse=True)
+def _vectorised_step_where_marked(request, _small_problems_on_the_compiled_loop):
+    routes = _small_problems_on_the_compiled_loop
+    if routes is None or request.node.get_closest_marker("vectorised_step") is None:
+        yield
+        return
+    module, real = routes
+    patch = pytest.MonkeyPatch()
+    for name, fn in real.items():
+        patch.setattr(module, name, fn)
+    yield
+    patch.undo()
+
+
 # Needless compiles: numba compiles a kernel once per argument type, and a read-only array (np.broadcast_to returns one
 # even at the array's own shape) or a strided one (a row of a record) is a type of its own. A caller that hands one
 # over compiles the kernel once more in every process with a fresh cache (a minute or more of CPU for the

@@ -97,6 +97,7 @@ def test_dropping_kf_step_and_filter_through_the_loop_equal_numpy():
     np.testing.assert_array_equal(a.extras["censored"], b.extras["censored"])
 
 
+@pytest.mark.vectorised_step  # the runs-vectorised steps too (n = 2: versions tests/filters/test_compiled_soa.py compiles)
 def test_read_only_inputs_reach_the_loop_as_writable_arrays(monkeypatch):
     """numba types a read-only array apart from a writable one: each read-only argument (cached limits, a
     read-only record) compiled the whole loop once more. Every array reaching the loop is writable."""

@@ -19,11 +19,15 @@ pytest.importorskip("numba")
 from tobitkf.filters import _compiled_soa as soa  # noqa: E402
 from tobitkf.filters._compiled_entries import kalman_loop, tobit_loop  # noqa: E402
 
+# the public filters route small problems to the runs-vectorised step here, as for a user (tests/conftest.py)
+pytestmark = pytest.mark.vectorised_step
+
 #: the state sizes every update is checked at in the default run. The step is compiled once per state size and
-#: update (one version of ``soa_loop`` each, 10 to 30 s of CPU on a fresh numba cache), and other tests of the default
-#: run compile most versions at n = 1 and 2 anyway (the public filters on one- and two-state systems); the larger
-#: sizes, up to :data:`~tobitkf.filters._compiled_soa.SOA_MAX_N`, with the heavy tests (``-m heavy``, which CI runs too)
-DEFAULT_SIZES = (1, 2)
+#: update (one version of ``soa_loop`` each, 15 to 40 s of CPU on a fresh numba cache), and only the tests of this
+#: module compile it in the default run (elsewhere the public filters run the compiled loop: tests/conftest.py): each
+#: update at n = 2 (the state loops unrolled with their cross terms); n = 1 and the larger sizes, up to
+#: :data:`~tobitkf.filters._compiled_soa.SOA_MAX_N`, with the heavy tests (``-m heavy``, which CI runs too)
+DEFAULT_SIZES = (2,)
 
 
 def _sizes(*ns, default=DEFAULT_SIZES):
@@ -147,8 +151,7 @@ def test_tkf_prior_40_sigma_from_the_limit(dist, upper):
     assert np.all(np.isfinite(g)) and (np.all(g < 1e-300) or np.all(g > 1 - 1e-12))
 
 
-# n = 4 too: the TKF's version at n = 4 is compiled in the default run anyway (tests/filters/test_kernel_outputs.py)
-@pytest.mark.parametrize("n", _sizes(1, 2, 4, default=(1, 2, 4)))
+@pytest.mark.parametrize("n", _sizes(1, 2, 4))
 @pytest.mark.parametrize("joseph", [False, True])
 @pytest.mark.parametrize("code", [0, 1, 2])
 def test_tkf_two_sided_equals_the_compiled_loop(n, joseph, code):

@@ -47,6 +47,7 @@ def _system() -> tk.LinearSystem:
     )
 
 
+@pytest.mark.vectorised_step  # the runs-vectorised steps too (n = 2: versions tests/filters/test_compiled_soa.py compiles)
 def test_kalman_and_tobit_loops_take_writable_covariances(monkeypatch):
     """One run with a missing reading (its covariance broadcast to its own shape: a read-only view) and a record
     continued from per-run covariances, for the KF and the TKF."""
