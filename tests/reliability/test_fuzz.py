@@ -64,8 +64,8 @@ def log_uniform(lo, hi):
 
 
 @st.composite
-def models(draw, *, m_max=2, n_max=3, diagonal_R=True):
-    n = draw(st.integers(1, n_max))
+def models(draw, *, m_max=2, n_max=3, n_min=1, diagonal_R=True):
+    n = draw(st.integers(n_min, n_max))
     m = draw(st.integers(1, m_max))
     seed = draw(st.integers(0, 2**32 - 1))
     rng = np.random.default_rng(seed)
@@ -118,6 +118,23 @@ def scenarios(draw, **kw):
 )
 def test_core_filters_valid_inputs_are_healthy(scn, form, noise_term, backend):
     """``auto`` is the compiled kernel when numba is installed, ``numpy`` the reference path."""
+    _core_filters_are_healthy(scn, form, noise_term, backend)
+
+
+@pytest.mark.vectorised_step
+@given(
+    scenarios(n_min=2, n_max=2),
+    st.sampled_from(["standard", "joseph"]),
+    st.sampled_from(["dissertation", "total_variance", "exact_pv"]),
+)
+def test_the_vectorised_step_valid_inputs_are_healthy(scn, form, noise_term):
+    """Two states, one channel or two, as a user runs them: the KF and the TKF take the runs-vectorised step where
+    it covers the call (elsewhere in the test run they take the compiled loop: tests/conftest.py), at the size whose
+    versions tests/filters/test_compiled_soa.py compiles."""
+    _core_filters_are_healthy(scn, form, noise_term, "auto")
+
+
+def _core_filters_are_healthy(scn, form, noise_term, backend):
     sys_, cens, data = scn
     with no_hang(TIME_LIMIT):
         for out in (
