@@ -1103,8 +1103,10 @@ def test_augmented_online_step_with_lags_equals_its_filter():
     np.testing.assert_allclose(s.mean, res.mean[-1], rtol=1e-12, atol=1e-14)
 
 
+# d = 5 with the heavy tests: its whole step is a compiled version of its own (three earlier innovations); d = 4 (two)
+# runs in the default run (test_reorganized_compiled_equals_numpy, test_reorganized_whole_step_kernel_step_loop_equals_numpy)
 @pytest.mark.parametrize("n, m", [(2, 1), (3, 2), (4, 3)])
-@pytest.mark.parametrize("d", [1, 2, 3, 5])
+@pytest.mark.parametrize("d", [1, 2, 3, pytest.param(5, marks=pytest.mark.heavy)])
 @pytest.mark.parametrize("mode", ["optimal", "paper"])
 def test_reorganized_preallocated_kernel_equals_numpy_over_long_runs(n, m, d, mode):
     """The compiled covariance step (its products written into preallocated arrays, no array per product) keeps
