@@ -95,7 +95,9 @@ class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"``: :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when numba
         is installed and the options are covered (the standard covariance form, time-invariant system matrices, failure laws with the same number of outcomes for every sensor), else the numpy loop; ``"numba"``
-        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12).
+        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12). The numpy loop takes each
+        failure outcome's moments from the compiled censored block (the function
+        :func:`~tobitkf.filters._compiled_moments.protocol_block` applies per outcome), on every backend.
 
     Raises
     ------
@@ -172,8 +174,8 @@ class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
         xs, Ps, Ss, lls, pus = [], [], [], [], []
         for lam in vals:
             x_j, P_j, S_j, pu, ll = censored_channel_update(
-                xp, Pp, Sp, yk, lam * Cc, r, tau, np.inf, form=self.covariance_update
-            )
+                xp, Pp, Sp, yk, lam * Cc, r, tau, np.inf, form=self.covariance_update, compiled=True
+            )  # each outcome's moments from the compiled censored block (protocol_block's per outcome)
             xs.append(x_j)
             Ps.append(np.broadcast_to(P_j, (N,) + P_j.shape[1:]))
             Ss.append(None if S_j is None else np.broadcast_to(S_j, (N,) + S_j.shape[1:]))

@@ -75,7 +75,6 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, diagonal_sigma
-from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
@@ -134,15 +133,19 @@ def tobit_measurement(
     and :math:`H = E(\mathbf p)C`: ``expected`` = E(y), ``H0`` = C, ``scale`` = E(p), ``noise`` =
     :math:`R_{uu}` (the truncated variance (3.41) for ``"dissertation"``, the censored variance for
     ``"total_variance"``, :math:`E[pv^2] = \gamma(V_{tr} + (m_{tr} - \mu)^2)` for ``"exact_pv"``).
-    ``extras`` hold ``p_uncensored`` and ``expected_y`` (N, m).
+    ``extras`` hold ``p_uncensored`` and ``expected_y`` (N, m). The censored statistics come from
+    :func:`~tobitkf.filters._compiled_censored.compiled_censored_moments`, the compiled function the compiled
+    loop takes them from (numba), on every backend: the two paths share one implementation.
 
     Parameters
     ----------
     x_pred : (N, n) ; C : (m, n) or (N or 1, m, n) (one per run) ; sigma : (m,) or (N or 1, m) ;
     lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
     """
+    from ._compiled_censored import compiled_censored_moments  # numba: imported on first use
+
     mu = (x_pred @ C.T if C.ndim == 2 else np.einsum("...ij,...j->...i", C, x_pred)) + dy
-    st = unchecked_moments(mu, sigma, lower, upper)
+    st = compiled_censored_moments(mu, sigma, lower, upper)
     gam = st.p_uncensored
     if noise_term == "dissertation":
         Ruu = st.truncated_var
@@ -206,7 +209,9 @@ def tobit_update(
     mp = tobit_measurement(x_pred, C, sigma, lower, upper, dy=dy, noise_term=noise_term)
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P, _, _, _ = measurement_update(x_pred, P_pred, S, y, mp, covariance_update)
-    return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
+    from ._compiled_censored import compiled_censored_moments
+
+    return x, P, compiled_censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
 class TobitKalmanFilter(IndicatorFilterMethods, SmoothingMethods, LinearGaussianFamily):
@@ -579,7 +584,8 @@ def tobit_kalman_filter(
         B^u and D (any limits, multi-region included, NaN samples and noise term; the standard
         and Joseph updates, not the square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;
         ``"auto"`` the compiled path when numba is installed and the case is covered, else numpy
-        (always numpy for ``covariance_update="square_root"``).
+        (always numpy for ``covariance_update="square_root"``). The numpy loop takes the censored statistics from
+        the compiled function the compiled path calls (:func:`tobit_measurement`), on every backend.
     threads : int, optional
         Threads over which the compiled path splits the runs (it releases the GIL; the
         result is identical bit for bit). Default: ``TOBITKF_NUM_THREADS``, else
