@@ -1,7 +1,7 @@
 """The numpy path of each family takes its measurement moments from the function the compiled loop calls.
 
 The Tobit Kalman filter and the fading TKF take their censored statistics from
-``_compiled_censored.compiled_censored_moments`` (over ``censored_stats``, the statistics of the compiled loop); the
+``_readings.compiled_censored_moments`` (over ``censored_stats``, the statistics of the compiled loop); the
 fading, protocol and saturation assumed-density filters theirs from ``_compiled_moments.family_array`` (the censored
 and the saturation blocks of the compiled loop). Each test replaces that function by a spy and counts its calls on
 ``backend="numpy"`` in every covariance form: one per step (and channel, failure outcome or pass), not a second
@@ -21,6 +21,7 @@ from tobitkf.channels.laws import PMF
 pytest.importorskip("numba")
 
 from tobitkf.filters import _compiled_censored, _compiled_moments  # noqa: E402
+from tobitkf.filters._readings import compiled_censored_moments  # noqa: E402
 
 FORMS = ("standard", "joseph", "square_root")
 N, T = 3, 12
@@ -62,7 +63,7 @@ def test_wrapper_broadcasts_and_matches_the_reference():
     mu = np.linspace(-2.0, 2.0, 15).reshape(5, 3)
     sd = np.array([0.5, 1.0, 2.0])
     lo, hi = np.array([-np.inf, -0.3, 0.1]), np.array([0.8, np.inf, 1.5])
-    got = _compiled_censored.compiled_censored_moments(mu, sd, lo, hi)
+    got = compiled_censored_moments(mu, sd, lo, hi)
     ref = censored_moments(mu, sd, lo, hi)
     flat = [np.ascontiguousarray(a.ravel()) for a in np.broadcast_arrays(mu, sd, lo, hi)]
     rows = _compiled_censored.censored_moments_array(*flat, _compiled_censored.GL_X, _compiled_censored.GL_W)

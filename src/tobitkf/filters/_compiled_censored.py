@@ -55,7 +55,7 @@ from numba.extending import intrinsic
 from numpy.polynomial import chebyshev as _cheb
 from scipy.special import erfcx as _erfcx
 
-from ..censored import _CF_FROM, _FAR, _GL_W, _GL_X, _NARROW, CensoredMoments
+from ..censored import _CF_FROM, _FAR, _GL_W, _GL_X, _NARROW
 
 __all__ = [
     "censored_stats",
@@ -64,7 +64,6 @@ __all__ = [
     "one_sided_block",
     "lower_stats_block",
     "censored_moments_array",
-    "compiled_censored_moments",
     "one_sided_array",
     "lower_stats_array",
     "GL_X",
@@ -503,17 +502,3 @@ def lower_stats_array(ym, sd, lo):
     out = np.empty((5, n))
     lower_stats_block(ym, sd, lo, n, out[0], out[1], out[2], out[3], out[4])
     return out
-
-
-def compiled_censored_moments(mean: Any, std: Any, lower: Any, upper: Any) -> CensoredMoments:
-    r"""The censored-normal statistics of :math:`y = \mathrm{clip}(y^*, l, h)`, :math:`y^* \sim N(\mu, \sigma^2)`,
-    from :func:`censored_stats`, the function the compiled loops call: the numbers of the compiled path for the
-    numpy path's Tobit-type updates (the TKF, the fading TKF), written once. The arguments broadcast together
-    (``lower`` < ``upper``, either infinite; ``std`` > 0); returns a :class:`~tobitkf.censored.CensoredMoments`
-    of their broadcast shape. :func:`tobitkf.censored_moments` is the high-precision reference (tested
-    against it)."""
-    arrs = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (mean, std, lower, upper)))
-    shape = arrs[0].shape
-    flat = [np.require(a, np.float64, ("C", "W")).reshape(-1) for a in arrs]  # one argument type: C, writable
-    out = censored_moments_array(flat[0], flat[1], flat[2], flat[3], GL_X, GL_W)
-    return CensoredMoments(*(row.reshape(shape) for row in out))

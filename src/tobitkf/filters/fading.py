@@ -80,7 +80,7 @@ source) is available too.
 Upper limits (two-sided censoring) are ours (not in the source): all censoring statistics are the
 censored-normal statistics (:func:`tobitkf.censored_moments`, which reduces to Lemma 1 for a lower limit),
 taken on every path from the compiled function the compiled loop calls
-(:func:`~tobitkf.filters._compiled_censored.compiled_censored_moments`).
+(:func:`~tobitkf.filters._readings.compiled_censored_moments`).
 
 Time convention: x_0 ~ N(x̄_0, P_0) is the prior; no update at k = 0; y_1 (stored at
 index 0) is the first measurement and mixes x_1 and x_0 when L >= 1 (docs/sources GF-10). Output
@@ -288,7 +288,7 @@ class _FadingFamily(LinearGaussianFamily):
             cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Ck, mom_cov, Ck) + (mom_mean @ Ck.T) ** 2
             carry.update(mom_mean=mom_mean, mom_cov=mom_cov, cxxc=cxxc)
         if self.tobit:  # the statistics of the compiled loop's function, on every backend
-            from ._compiled_censored import compiled_censored_moments
+            from ._readings import compiled_censored_moments
 
             st = compiled_censored_moments(chi, sigma, lo, hi)
             if self._stale:  # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}

@@ -134,7 +134,7 @@ def tobit_measurement(
     :math:`R_{uu}` (the truncated variance (3.41) for ``"dissertation"``, the censored variance for
     ``"total_variance"``, :math:`E[pv^2] = \gamma(V_{tr} + (m_{tr} - \mu)^2)` for ``"exact_pv"``).
     ``extras`` hold ``p_uncensored`` and ``expected_y`` (N, m). The censored statistics come from
-    :func:`~tobitkf.filters._compiled_censored.compiled_censored_moments`, the compiled function the compiled
+    :func:`~tobitkf.filters._readings.compiled_censored_moments`, the compiled function the compiled
     loop takes them from (numba), on every backend: the two paths share one implementation.
 
     Parameters
@@ -142,7 +142,7 @@ def tobit_measurement(
     x_pred : (N, n) ; C : (m, n) or (N or 1, m, n) (one per run) ; sigma : (m,) or (N or 1, m) ;
     lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
     """
-    from ._compiled_censored import compiled_censored_moments  # numba: imported on first use
+    from ._readings import compiled_censored_moments  # numba: imported on first use
 
     mu = (x_pred @ C.T if C.ndim == 2 else np.einsum("...ij,...j->...i", C, x_pred)) + dy
     st = compiled_censored_moments(mu, sigma, lower, upper)
@@ -209,7 +209,7 @@ def tobit_update(
     mp = tobit_measurement(x_pred, C, sigma, lower, upper, dy=dy, noise_term=noise_term)
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P, _, _, _ = measurement_update(x_pred, P_pred, S, y, mp, covariance_update)
-    from ._compiled_censored import compiled_censored_moments
+    from ._readings import compiled_censored_moments
 
     return x, P, compiled_censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
