@@ -38,8 +38,9 @@ from .._validation import check_bool, check_instance
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, AugmentedWindow, censored_channel_update
+from .assumed_density import ADF_OPTIONS, AssumedDensityFamily, AugmentedWindow, censored_channel_update
 from .kalman import LinearGaussianFamily
+from .registry import family_entry, register
 
 __all__ = ["FadingAssumedDensityFilter"]
 
@@ -156,3 +157,13 @@ class FadingAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
 
     def __repr__(self) -> str:
         return f"FadingAssumedDensityFilter({self.fading!r}, {self.censoring!r})"
+
+
+register(
+    family_entry(
+        FadingAssumedDensityFilter,
+        "assumed-density filter for censored readings through Rice fading (beyond the sources)",
+        ("fading", "censoring?"),
+        options=ADF_OPTIONS,
+    )
+)

@@ -48,7 +48,14 @@ from .._validation import ValidationError, check_instance
 from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, AugmentedWindow, censored_channel_update, merge_gaussians
+from .assumed_density import (
+    ADF_OPTIONS,
+    AssumedDensityFamily,
+    AugmentedWindow,
+    censored_channel_update,
+    merge_gaussians,
+)
+from .registry import family_entry, register
 
 __all__ = ["ProtocolAssumedDensityFilter", "failure_nodes"]
 
@@ -216,3 +223,13 @@ class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
 
     def __repr__(self) -> str:
         return f"ProtocolAssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"
+
+
+register(
+    family_entry(
+        ProtocolAssumedDensityFilter,
+        "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
+        ("protocol",),
+        options={**ADF_OPTIONS, "nodes": int},
+    )
+)

@@ -48,9 +48,10 @@ from ..censored import censored_moments
 from ..channels.saturation import RandomSaturation
 from ..models.linear import LinearSystem
 from ._outputs import loop_input
-from .assumed_density import AssumedDensityFamily, merge_gaussians
+from .assumed_density import ADF_OPTIONS, AssumedDensityFamily, merge_gaussians
 from .core import MeasurementPrediction, measurement_update
 from .kalman import LinearGaussianFamily
+from .registry import family_entry, register
 
 __all__ = ["SaturationAssumedDensityFilter", "saturated_reading_moments"]
 
@@ -249,3 +250,13 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
 
     def __repr__(self) -> str:
         return f"SaturationAssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"
+
+
+register(
+    family_entry(
+        SaturationAssumedDensityFilter,
+        "assumed-density filter for random saturation with missing readings (beyond the sources)",
+        ("saturation",),
+        options=ADF_OPTIONS,
+    )
+)

@@ -17,6 +17,7 @@ from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
 from ._backend import BACKENDS, use_compiled
 from .core import (
+    COVARIANCE_FORMS,
     FilterResult,
     FilterState,
     MeasurementPrediction,
@@ -38,6 +39,7 @@ from .delay import (
     _solve_small,
     second_moments,
 )
+from .registry import family_entry, register
 
 __all__ = [
     "AugmentedLMMSE",
@@ -326,3 +328,14 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
         LamX = symmetrize(AA @ LamX @ AA.T + Qu)
         lam[t + 1] = LamX[:n, :n]
     return lam
+
+
+register(
+    family_entry(
+        AugmentedLMMSE,
+        "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
+        ("prior",),
+        options={"window": int, "covariance_update": COVARIANCE_FORMS},
+        model="delay",
+    )
+)

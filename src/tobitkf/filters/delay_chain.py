@@ -47,6 +47,7 @@ from .delay import (
     _solve_small,
     _stack_blocks,
 )
+from .registry import family_entry, register
 
 __all__ = [
     "ChainLMMSE",
@@ -490,3 +491,14 @@ def smooth_point(system: DelayFadingSystem, prior: HistoryPrior, y: Any, j0: int
     """
     res = chain_lmmse(system, prior, y, fixed_point=j0)
     return res.extras["point"]["mean"], res.extras["point"]["cov"]
+
+
+register(
+    family_entry(
+        ChainLMMSE,
+        "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
+        ("prior",),
+        options={"decorrelation": _DECORRELATION, "backend": BACKENDS},
+        model="delay",
+    )
+)

@@ -43,6 +43,7 @@ from .delay import (
 )
 from .delay_augmented import AugmentedLMMSE, _aug_step, _augmented_matrices, _blk
 from .delay_chain import ChainLMMSE
+from .registry import family_entry, register
 
 __all__ = [
     "ReorganizedInnovationLMMSE",
@@ -577,3 +578,14 @@ def reorganized_lmmse(
         system, prior, decorrelation=decorrelation, warmup=warmup, reinsert_errata=reinsert_errata
     )
     return est.filter(y)
+
+
+register(
+    family_entry(
+        ReorganizedInnovationLMMSE,
+        "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
+        ("prior",),
+        options={"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
+        model="delay",
+    )
+)

@@ -115,6 +115,7 @@ from .core import (
     symmetrize,
 )
 from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, finite_variances, loop_entries
+from .registry import family_entry, register
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -932,3 +933,19 @@ def _compiled_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterSta
             sm_cov[:, k + 1 :] = np.nan
         extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
     return step_state(k, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
+
+
+register(
+    family_entry(
+        FadingTobitKalmanFilter,
+        "TKF with L-th order Rice fading (Geng et al. 2017)",
+        ("fading", "censoring?"),
+        options=_TOBIT_OPTIONS,
+    ),
+    family_entry(
+        FadingKalmanFilter,
+        "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
+        ("fading",),
+        options=_KF_OPTIONS,
+    ),
+)

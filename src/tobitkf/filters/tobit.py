@@ -92,6 +92,7 @@ from .core import (
     step_state,
 )
 from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries, step_constants
+from .registry import family_entry, register
 from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
@@ -680,3 +681,13 @@ def check_tobit_indicator(censoring: Censoring, y: Any, censored: Any, *, start:
     except ValueError:
         raise ShapeError(f"censored: expected the shape of y {arr.shape}, got {np.shape(censored)}") from None
     censoring_sides(y2, lo, hi, c2)
+
+
+register(
+    family_entry(
+        TobitKalmanFilter,
+        "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
+        ("censoring",),
+        options={**_OPTIONS, "threads": int},
+    )
+)
