@@ -82,18 +82,18 @@ def test_tkf_numpy_path_takes_the_compiled_statistics(monkeypatch, form):
 
 
 @pytest.mark.parametrize("form", FORMS)
-def test_fading_tkf_numpy_path_takes_the_compiled_statistics(monkeypatch, form):
-    calls = _spy(monkeypatch, _compiled_censored, "censored_moments_array")
+@pytest.mark.parametrize(
+    "cls, module, function",
+    [
+        (tk.FadingTobitKalmanFilter, _compiled_censored, "censored_moments_array"),
+        (tk.FadingAssumedDensityFilter, _compiled_moments, "family_array"),
+    ],
+)
+def test_fading_numpy_paths_take_the_compiled_moments(monkeypatch, form, cls, module, function):
+    """The fading TKF's censored statistics and the fading ADF's block, one call per step (one channel)."""
+    calls = _spy(monkeypatch, module, function)
     sys_, fad, cens = _oscillator(), tk.RiceFading(1, [0.8, 0.3]), tk.Censoring(lower=-0.1)
-    tk.FadingTobitKalmanFilter(sys_, fad, cens, backend="numpy", covariance_update=form).filter(_readings(1))
-    assert calls == [N] * T
-
-
-@pytest.mark.parametrize("form", FORMS)
-def test_fading_adf_numpy_path_takes_the_compiled_block(monkeypatch, form):
-    calls = _spy(monkeypatch, _compiled_moments, "family_array")
-    sys_, fad, cens = _oscillator(), tk.RiceFading(1, [0.8, 0.3]), tk.Censoring(lower=-0.1)
-    tk.FadingAssumedDensityFilter(sys_, fad, cens, backend="numpy", covariance_update=form).filter(_readings(1))
+    cls(sys_, fad, cens, backend="numpy", covariance_update=form).filter(_readings(1))
     assert calls == [N] * T
 
 

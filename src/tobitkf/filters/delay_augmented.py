@@ -37,9 +37,9 @@ from .delay import (
     _flat_views,
     _mult_sum,
     _solve_small,
+    register_delay,
     second_moments,
 )
-from .registry import family_entry, register
 
 __all__ = [
     "AugmentedLMMSE",
@@ -330,12 +330,8 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
     return lam
 
 
-register(
-    family_entry(
-        AugmentedLMMSE,
-        "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
-        ("prior",),
-        options={"window": int, "covariance_update": COVARIANCE_FORMS},
-        model="delay",
-    )
+register_delay(
+    AugmentedLMMSE,
+    "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
+    {"window": int, "covariance_update": COVARIANCE_FORMS},
 )

@@ -46,8 +46,8 @@ from .delay import (
     _packed_moment_args,
     _solve_small,
     _stack_blocks,
+    register_delay,
 )
-from .registry import family_entry, register
 
 __all__ = [
     "ChainLMMSE",
@@ -493,12 +493,8 @@ def smooth_point(system: DelayFadingSystem, prior: HistoryPrior, y: Any, j0: int
     return res.extras["point"]["mean"], res.extras["point"]["cov"]
 
 
-register(
-    family_entry(
-        ChainLMMSE,
-        "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
-        ("prior",),
-        options={"decorrelation": _DECORRELATION, "backend": BACKENDS},
-        model="delay",
-    )
+register_delay(
+    ChainLMMSE,
+    "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
+    {"decorrelation": _DECORRELATION, "backend": BACKENDS},
 )

@@ -40,10 +40,10 @@ from .delay import (
     _ring_layout,
     _ring_views,
     _solve_small,
+    register_delay,
 )
 from .delay_augmented import AugmentedLMMSE, _aug_step, _augmented_matrices, _blk
 from .delay_chain import ChainLMMSE
-from .registry import family_entry, register
 
 __all__ = [
     "ReorganizedInnovationLMMSE",
@@ -580,12 +580,8 @@ def reorganized_lmmse(
     return est.filter(y)
 
 
-register(
-    family_entry(
-        ReorganizedInnovationLMMSE,
-        "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
-        ("prior",),
-        options={"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
-        model="delay",
-    )
+register_delay(
+    ReorganizedInnovationLMMSE,
+    "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
+    {"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
 )
