@@ -137,3 +137,17 @@ def test_bad_arguments_are_refused():
     two = tk.LinearSystem(A=np.eye(2), C=np.eye(2), Q=np.eye(2), R=[[1.0, 0.2], [0.2, 1.0]], x0=[0, 0], P0=np.eye(2))
     with pytest.raises(tk.ValidationError, match="R: the PCRLB needs a diagonal R"):
         tk.posterior_crlb(two, steps=2)
+
+
+def test_censoring_gives_the_fisher_information_of_its_reading():
+    """``Censoring.fisher_information`` (the contract's, which the PCRLB asks every channel): per channel at its
+    limits, against quadrature of the squared score (independent oracle); no limit: 1/sigma^2."""
+    cens = tk.Censoring(lower=[0.2, -np.inf], upper=[np.inf, np.inf])
+    mu, sd = np.array([-0.4, 0.1, 0.9]), np.array([0.5, 1.0, 2.0])
+    got = cens.fisher_information(mu, sd, 1, 0)
+    for i in range(3):
+        a = (0.2 - mu[i]) / sd[i]
+        censored = stats.norm.pdf(a) ** 2 / stats.norm.cdf(a)  # P(at the limit) * score^2
+        inside, _ = integrate.quad(lambda z: z * z * stats.norm.pdf(z), a, np.inf, epsabs=1e-14, epsrel=1e-12)
+        np.testing.assert_allclose(got[i], (censored + inside) / sd[i] ** 2, rtol=1e-9)
+    np.testing.assert_allclose(cens.fisher_information(mu, sd, 1, 1), 1.0 / sd**2, rtol=1e-12)

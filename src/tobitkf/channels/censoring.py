@@ -228,6 +228,15 @@ class Censoring(Channel):
         st = unchecked_moments(mean, std, lo, hi)
         return st.censored_mean, st.p_uncensored, st.censored_var
 
+    def fisher_information(self, mean: np.ndarray, std: np.ndarray, k: int, l: int) -> np.ndarray:
+        r"""Fisher information :math:`I_{\mu\mu}` of one censored reading of channel ``l`` at step ``k`` about
+        the latent mean, (N,) (:func:`tobitkf.censored_fisher_information` at this channel's limits; without a
+        finite limit :math:`1/\sigma^2`): what the PCRLB asks every channel."""
+        from ..design.pcrlb import censored_fisher_information
+
+        lo, hi = (np.broadcast_to(v, (max(self.channels or 1, l + 1),))[l] for v in self.limits(k))
+        return censored_fisher_information(mean, std, lo, hi)[0]
+
     def check_readings(self, y: np.ndarray, start: int = 1, name: str = "y") -> None:
         """:meth:`check_measurements` (the contract's name)."""
         self.check_measurements(y, name, start=start)

@@ -158,22 +158,24 @@ class PosteriorCRLB:
 
 
 def _split(channel: Any, censoring: Any):
+    """The reading's channel (a channel of the contract that gives its reading's Fisher information, the
+    :class:`Censoring` among them; an uncensored one when none is given) and the Rice fading (or None)."""
     pieces = [] if channel is None else (list(channel) if isinstance(channel, (list, tuple)) else [channel])
     if censoring is not None:
         pieces.append(censoring)
-    cens = [p for p in pieces if isinstance(p, Censoring)]
     fad = [p for p in pieces if isinstance(p, RiceFading)]
+    cens = [p for p in pieces if isinstance(p, Censoring)]
     other = [p for p in pieces if not isinstance(p, (Censoring, RiceFading))]
-    if len(other) == 1 and not cens and not fad and isinstance(other[0], Channel) and other[0].supports("fisher"):
-        return other[0], None  # a channel of the contract with the Fisher information of its reading
-    if other or len(cens) > 1 or len(fad) > 1:
+    fisher = [p for p in other if isinstance(p, Channel) and p.supports("fisher")]
+    if len(fad) > 1 or len(cens) > 1 or len(other) != len(fisher) or len(fisher) + len(cens) > 1 or (fad and fisher):
         names = ", ".join(type(p).__name__ for p in pieces)
         raise ValidationError(
             f"channel: the PCRLB covers censored linear readings and Rice fading (at most one "
             f"Censoring and one RiceFading), and channels that give their reading's Fisher information "
             f"(fisher_information, tobitkf.channels.base), got {names}"
         )
-    return (cens[0] if cens else None), (fad[0] if fad else None)
+    reading = (fisher or cens or [Censoring()])[0]
+    return reading, (fad[0] if fad else None)
 
 
 def _sigmas(system: LinearSystem, k: int) -> np.ndarray:
@@ -256,9 +258,7 @@ def posterior_crlb(
             raise ValidationError(
                 "channel: the fading PCRLB needs Gaussian coefficients (the reading is then normal given the states)"
             )
-    if cens is not None:
-        cens.check(system.m)
-    contract = cens is not None and not isinstance(cens, Censoring)
+    cens.check(system.m)
     if truth is None:
         if steps is None:
             raise ValidationError("steps: give the horizon T (or the true trajectories as truth)")
@@ -290,20 +290,13 @@ def posterior_crlb(
             Bp[n:, n:] = B[: nx - n, : nx - n]
         sig = _sigmas(system, k)
         J = np.zeros((nx, nx))
-        if contract:
+        if fad is None:  # every channel alike: the Fisher information of its reading about the latent mean
             C = system.measurement(k)
             mu = X[:, k] @ C.T  # (N, m)
             Imm = np.stack([cens.fisher_information(mu[:, l], np.full(mu.shape[0], sig[l]), k, l) for l in range(m)], 1)
             J = (C.T * Imm.mean(0)) @ C
-        elif fad is None:
-            lo, hi = (np.full(m, -np.inf), np.full(m, np.inf)) if cens is None else cens.limits(k)
-            lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
-            C = system.measurement(k)
-            mu = X[:, k] @ C.T  # (N, m)
-            Imm, _, _ = censored_fisher_information(mu, sig, lo, hi)
-            J = (C.T * Imm.mean(0)) @ C
         else:
-            lo, hi = (np.full(m, -np.inf), np.full(m, np.inf)) if cens is None else cens.limits(k)
+            lo, hi = cens.limits(k)
             lo, hi = np.broadcast_to(lo, (m,)), np.broadcast_to(hi, (m,))
             S_ = min(L, k)
             Cs = [measurement_matrix_at(system, k - s) for s in range(S_ + 1)]

@@ -18,6 +18,7 @@ from scipy.special import log_ndtr
 from .._validation import ShapeError, ValidationError
 
 __all__ = [
+    "compiled_censored_moments",
     "classify_readings",
     "censored_log_likelihood",
     "censoring_sides",
@@ -208,3 +209,20 @@ def _as_indicator(censored: Any, shape: tuple[int, ...], name: str) -> np.ndarra
         return np.broadcast_to(arr, shape)
     except ValueError:
         raise ShapeError(f"{name}: expected the shape of y {shape}, got {arr.shape}") from None
+
+
+def compiled_censored_moments(mean: Any, std: Any, lower: Any, upper: Any) -> Any:
+    r"""The censored-normal statistics of :math:`y = \mathrm{clip}(y^*, l, h)`, :math:`y^* \sim N(\mu, \sigma^2)`,
+    from :func:`~tobitkf.filters._compiled_censored.censored_stats`, the function the compiled loops call: the
+    numbers of the compiled path for the numpy path's Tobit-type updates (the TKF, the fading TKF), written once
+    (needs numba, a core dependency). The arguments broadcast together (``lower`` < ``upper``, either infinite;
+    ``std`` > 0); returns a :class:`~tobitkf.censored.CensoredMoments` of their broadcast shape.
+    :func:`tobitkf.censored_moments` is the high-precision reference (tested against it)."""
+    from ..censored import CensoredMoments
+    from . import _compiled_censored as kc
+
+    arrs = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (mean, std, lower, upper)))
+    shape = arrs[0].shape
+    flat = [np.require(a, np.float64, ("C", "W")).reshape(-1) for a in arrs]  # one argument type: C, writable
+    out = kc.censored_moments_array(flat[0], flat[1], flat[2], flat[3], kc.GL_X, kc.GL_W)
+    return CensoredMoments(*(row.reshape(shape) for row in out))

@@ -38,8 +38,9 @@ from .._validation import check_bool, check_instance
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, AugmentedWindow, censored_channel_update
+from .assumed_density import ADF_OPTIONS, AssumedDensityFamily, AugmentedWindow, censored_channel_update
 from .kalman import LinearGaussianFamily
+from .registry import family_entry, register
 
 __all__ = ["FadingAssumedDensityFilter"]
 
@@ -62,7 +63,9 @@ class FadingAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"``: :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when numba
         is installed and the options are covered (the standard covariance form, time-invariant system matrices, inputs through constant ``Bu``/``D``), else the numpy loop; ``"numba"``
-        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12).
+        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12). The numpy loop takes each
+        channel's moments from the compiled loop's block (:func:`~tobitkf.filters._compiled_moments.censored_block`,
+        with the fading variance in the noise term), on every backend.
 
     Raises
     ------
@@ -141,8 +144,8 @@ class FadingAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
                         np.einsum("rij,i,j->r", P[:, blk, blk], c, c) + (x[:, blk] @ c) ** 2
                     )
             x, P, S, pu[:, l], lll = censored_channel_update(
-                x, P, S, y[:, l], H, var, lo[l], hi[l], dy=dy[:, l], form=self.covariance_update
-            )
+                x, P, S, y[:, l], H, var, lo[l], hi[l], dy=dy[:, l], form=self.covariance_update, compiled=True
+            )  # the moments of the compiled loop's block (censored_block), on every backend
             ll += lll
         return x, P, S, {"p_uncensored": pu, "log_likelihood": ll}
 
@@ -154,3 +157,13 @@ class FadingAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
 
     def __repr__(self) -> str:
         return f"FadingAssumedDensityFilter({self.fading!r}, {self.censoring!r})"
+
+
+register(
+    family_entry(
+        FadingAssumedDensityFilter,
+        "assumed-density filter for censored readings through Rice fading (beyond the sources)",
+        ("fading", "censoring?"),
+        options=ADF_OPTIONS,
+    )
+)

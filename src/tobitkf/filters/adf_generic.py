@@ -70,6 +70,7 @@ from .core import (
 )
 from .kalman import LinearGaussianFamily
 from .likelihood import filter_log_likelihood
+from .registry import family_entry, register
 from .smoothing import SmoothingMethods
 
 __all__ = ["AssumedDensityFilter", "TobitFilter", "channel_update", "register_named_form", "named_forms"]
@@ -534,3 +535,19 @@ class TobitFilter(_ContractChecks, SmoothingMethods, LinearGaussianFamily):
 
 class _GenericADF(AssumedDensityFilter):
     """The generic update whatever the channel (no named form)."""
+
+
+register(
+    family_entry(
+        AssumedDensityFilter,
+        "assumed-density filter of any channel: a named form where one exists, else the channel's moments",
+        ("channel",),
+        options={"covariance_update": COVARIANCE_FORMS},
+    ),
+    family_entry(
+        TobitFilter,
+        "the Tobit Kalman filter's update for any channel with reading statistics (beyond the sources)",
+        ("channel",),
+        options={"covariance_update": COVARIANCE_FORMS, "linearization": ("prior_mean", "predictive")},
+    ),
+)

@@ -48,7 +48,14 @@ from .._validation import ValidationError, check_instance
 from ..channels.laws import PMF, Gaussian, Uniform
 from ..channels.protocol import ProtocolChannel
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, AugmentedWindow, censored_channel_update, merge_gaussians
+from .assumed_density import (
+    ADF_OPTIONS,
+    AssumedDensityFamily,
+    AugmentedWindow,
+    censored_channel_update,
+    merge_gaussians,
+)
+from .registry import family_entry, register
 
 __all__ = ["ProtocolAssumedDensityFilter", "failure_nodes"]
 
@@ -95,7 +102,9 @@ class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"``: :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when numba
         is installed and the options are covered (the standard covariance form, time-invariant system matrices, failure laws with the same number of outcomes for every sensor), else the numpy loop; ``"numba"``
-        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12).
+        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12). The numpy loop takes each
+        failure outcome's moments from the compiled censored block (the function
+        :func:`~tobitkf.filters._compiled_moments.protocol_block` applies per outcome), on every backend.
 
     Raises
     ------
@@ -172,8 +181,8 @@ class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
         xs, Ps, Ss, lls, pus = [], [], [], [], []
         for lam in vals:
             x_j, P_j, S_j, pu, ll = censored_channel_update(
-                xp, Pp, Sp, yk, lam * Cc, r, tau, np.inf, form=self.covariance_update
-            )
+                xp, Pp, Sp, yk, lam * Cc, r, tau, np.inf, form=self.covariance_update, compiled=True
+            )  # each outcome's moments from the compiled censored block (protocol_block's per outcome)
             xs.append(x_j)
             Ps.append(np.broadcast_to(P_j, (N,) + P_j.shape[1:]))
             Ss.append(None if S_j is None else np.broadcast_to(S_j, (N,) + S_j.shape[1:]))
@@ -214,3 +223,13 @@ class ProtocolAssumedDensityFilter(AugmentedWindow, AssumedDensityFamily):
 
     def __repr__(self) -> str:
         return f"ProtocolAssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"
+
+
+register(
+    family_entry(
+        ProtocolAssumedDensityFilter,
+        "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
+        ("protocol",),
+        options={**ADF_OPTIONS, "nodes": int},
+    )
+)

@@ -47,9 +47,11 @@ from .._validation import ValidationError, check_instance
 from ..censored import censored_moments
 from ..channels.saturation import RandomSaturation
 from ..models.linear import LinearSystem
-from .assumed_density import AssumedDensityFamily, merge_gaussians
+from ._outputs import loop_input
+from .assumed_density import ADF_OPTIONS, AssumedDensityFamily, merge_gaussians
 from .core import MeasurementPrediction, measurement_update
 from .kalman import LinearGaussianFamily
+from .registry import family_entry, register
 
 __all__ = ["SaturationAssumedDensityFilter", "saturated_reading_moments"]
 
@@ -104,6 +106,27 @@ def saturated_reading_moments(y: np.ndarray, mean: np.ndarray, var: np.ndarray, 
     return np.log(tot) + top, pm, np.maximum(pv, 0.0)
 
 
+_SATURATED_ONLY = np.array([0.0, -np.inf, -np.inf])  # log prior probabilities: the saturated mode alone
+
+
+def _saturation_moments(y, missing, mean, var, r, level, logp):
+    r"""The compiled loop's block of the saturating sensor
+    (:func:`~tobitkf.filters._compiled_moments.saturation_block`) over N runs: ``(w, ll, alpha, beta)``, the
+    modes' posterior probabilities (3, N) (their prior ones for a missing reading), the log-likelihood (N,) (0
+    for a missing reading) and the merged update's scalars (N,) (:math:`\alpha = (E[c \mid y] - \mu_c)/s^2`,
+    :math:`\beta = (s^2 - V)/s^4` with the log prior probabilities ``logp`` (3,) of the saturated, linear
+    and noise-only modes)."""
+    from ._compiled_moments import INTERIOR, MISSING, SATURATION, family_array, kind
+
+    f = loop_input  # writable, C-contiguous: one argument type (a broadcast view would compile apart)
+    cls = np.where(missing, MISSING, INTERIOR).astype(np.int8)
+    inf = np.full(y.shape, np.inf)
+    par = np.concatenate([[float(level)], logp])
+    rb = np.full(y.shape, float(r))
+    alpha, beta, ll, _, w = family_array(kind(SATURATION), f(y), cls, f(mean), f(var), rb, -inf, inf, par, 3)
+    return w, ll, alpha, beta
+
+
 class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily):
     r"""Assumed-density filter for random saturation with missing readings (see the module docstring).
 
@@ -118,7 +141,9 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
     backend : {"auto", "numba", "numpy"}, default "auto"
         ``"auto"``: :meth:`filter` through the compiled loop (:mod:`tobitkf.filters._compiled_loop`) when numba
         is installed and the options are covered (the standard covariance form, time-invariant system matrices), else the numpy loop; ``"numba"``
-        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12).
+        insists on it; ``"numpy"`` never uses it (the same numbers, tested to 1e-12). The numpy loop takes the
+        modes' probabilities, the log-likelihood and the saturated mode's moments from the compiled loop's block
+        (:func:`~tobitkf.filters._compiled_moments.saturation_block`), on every backend.
 
     Raises
     ------
@@ -187,9 +212,11 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
             mu_c = x @ c
             var = np.broadcast_to(np.einsum("rij,i,j->r", P, c, c), (N,))
             ok = var > _TINY
-            vs = np.where(ok, var, 1.0)
-            # saturated mode
-            l1, pm, pv = saturated_reading_moments(yz, mu_c, vs, ri, float(self.channel.level[i]))
+            # the modes' posterior probabilities and the log-likelihood, then the saturated mode's posterior
+            # moments alone (its prior probability 1), from the compiled loop's block (saturation_block)
+            w, ll_i = _saturation_moments(yz, miss, mu_c, var, ri, self.channel.level[i], self._logp[i])[:2]
+            csat, dsat = _saturation_moments(yz, miss, mu_c, var, ri, self.channel.level[i], _SATURATED_ONLY)[2:]
+            pm, pv = mu_c + csat * var, var - dsat * var * var
             sat = MeasurementPrediction(
                 expected=mu_c[:, None],
                 H0=c[None],
@@ -203,14 +230,6 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
                 expected=mu_c[:, None], H0=c[None], noise=np.full((1, 1), ri), valid=~miss[:, None]
             )
             x2, P2, S2, _, _ = measurement_update(x, P, S, yz[:, None], lin, form)
-            l2 = _lognorm(yz, mu_c, var + ri)
-            l3 = _lognorm(yz, 0.0, ri)
-            l1 = np.where(ok, l1, _lognorm(yz, np.clip(mu_c, -self.channel.level[i], self.channel.level[i]), ri))
-            logs = self._logp[i][:, None] + np.stack([l1, l2, l3])  # (3, N)
-            top = logs.max(0)
-            w = np.exp(logs - top)
-            tot = w.sum(0)
-            w /= tot
             Ns = (N,) + P.shape[1:]
             covs = np.stack([np.broadcast_to(P1, Ns), np.broadcast_to(P2, Ns), np.broadcast_to(P, Ns)])
             facs = (
@@ -225,9 +244,19 @@ class SaturationAssumedDensityFilter(AssumedDensityFamily, LinearGaussianFamily)
                 if Sm is not None:
                     Sm = np.where(miss[:, None, None], np.broadcast_to(S, Ns), Sm)
             x, P, S = xm, Pm, Sm
-            post[:, i] = np.where(miss[:, None], np.exp(self._logp[i]), w.T)
-            ll += np.where(miss, 0.0, np.log(tot) + top)
+            post[:, i] = w.T
+            ll += ll_i
         return x, P, S, {"mode_posterior": post, "log_likelihood": ll}
 
     def __repr__(self) -> str:
         return f"SaturationAssumedDensityFilter({self.channel!r}, covariance_update={self.covariance_update!r})"
+
+
+register(
+    family_entry(
+        SaturationAssumedDensityFilter,
+        "assumed-density filter for random saturation with missing readings (beyond the sources)",
+        ("saturation",),
+        options=ADF_OPTIONS,
+    )
+)

@@ -93,6 +93,7 @@ from .core import (
 )
 from .kalman import LinearGaussianFamily
 from .likelihood import filter_log_likelihood
+from .registry import family_entry, register
 from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
@@ -106,6 +107,8 @@ __all__ = [
 ]
 
 _ORDERS = ("channels", "uncensored_first")
+#: the options every assumed-density family takes (their registry entries)
+ADF_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
 _NUMPY_HOOKS = ("_project", "_sequential", "_update_arrays", "_step_arrays", "_initial", "_transition")
 _STEP_DATA: ContextVar[Mapping[str, np.ndarray] | None] = ContextVar("adf_step_data", default=None)
 _TINY = np.finfo(np.float64).tiny
@@ -853,3 +856,13 @@ def assumed_density_filter(system, censoring, *, covariance_update: str = "stand
         The filter's own: non-diagonal or negative R, an unknown option.
     """
     return AssumedDensityTobitFilter(system, censoring, covariance_update=covariance_update, order="uncensored_first")
+
+
+register(
+    family_entry(
+        AssumedDensityTobitFilter,
+        "assumed-density filter: the exact posterior moments of each censored reading (beyond the sources)",
+        ("censoring",),
+        options={**ADF_OPTIONS, "order": _ORDERS},
+    )
+)

@@ -430,3 +430,11 @@ def _blockdiag(blocks: list[np.ndarray]) -> np.ndarray:
     for i, B in enumerate(blocks):
         out[0, i * n : (i + 1) * n, i * n : (i + 1) * n] = B
     return out
+
+
+def register_delay(cls: Any, summary: str, options: dict[str, Any]) -> None:
+    """Register the delay-family estimator ``cls`` (:func:`~tobitkf.filters.registry.register`): it takes the
+    history prior (the channel piece ``prior``) and a delay model."""
+    from .registry import family_entry, register
+
+    register(family_entry(cls, summary, ("prior",), options=options, model="delay"))

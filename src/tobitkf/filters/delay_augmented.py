@@ -17,6 +17,7 @@ from .._validation import ValidationError
 from ..models.delay import DelayFadingSystem, HistoryPrior
 from ._backend import BACKENDS, use_compiled
 from .core import (
+    COVARIANCE_FORMS,
     FilterResult,
     FilterState,
     MeasurementPrediction,
@@ -36,6 +37,7 @@ from .delay import (
     _flat_views,
     _mult_sum,
     _solve_small,
+    register_delay,
     second_moments,
 )
 
@@ -326,3 +328,10 @@ def _augmented_second_moments(system: DelayFadingSystem, prior: HistoryPrior, T:
         LamX = symmetrize(AA @ LamX @ AA.T + Qu)
         lam[t + 1] = LamX[:n, :n]
     return lam
+
+
+register_delay(
+    AugmentedLMMSE,
+    "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
+    {"window": int, "covariance_update": COVARIANCE_FORMS},
+)

@@ -46,6 +46,7 @@ from .delay import (
     _packed_moment_args,
     _solve_small,
     _stack_blocks,
+    register_delay,
 )
 
 __all__ = [
@@ -490,3 +491,10 @@ def smooth_point(system: DelayFadingSystem, prior: HistoryPrior, y: Any, j0: int
     """
     res = chain_lmmse(system, prior, y, fixed_point=j0)
     return res.extras["point"]["mean"], res.extras["point"]["cov"]
+
+
+register_delay(
+    ChainLMMSE,
+    "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
+    {"decorrelation": _DECORRELATION, "backend": BACKENDS},
+)

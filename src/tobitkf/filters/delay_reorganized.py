@@ -40,6 +40,7 @@ from .delay import (
     _ring_layout,
     _ring_views,
     _solve_small,
+    register_delay,
 )
 from .delay_augmented import AugmentedLMMSE, _aug_step, _augmented_matrices, _blk
 from .delay_chain import ChainLMMSE
@@ -577,3 +578,10 @@ def reorganized_lmmse(
         system, prior, decorrelation=decorrelation, warmup=warmup, reinsert_errata=reinsert_errata
     )
     return est.filter(y)
+
+
+register_delay(
+    ReorganizedInnovationLMMSE,
+    "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
+    {"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
+)

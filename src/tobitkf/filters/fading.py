@@ -77,8 +77,10 @@ scale :math:`\bar\gamma_k` (so that :math:`G_k = \bar\Upsilon_kH_k`) and the dia
 :math:`N_k`; the shared update in Joseph form is (20'). ``covariance_update="square_root"`` (not in the
 source) is available too.
 
-Upper limits (two-sided censoring) are ours (not in the source): all censoring statistics
-come from :func:`tobitkf.censored_moments`, which reduces to Lemma 1 for a lower limit.
+Upper limits (two-sided censoring) are ours (not in the source): all censoring statistics are the
+censored-normal statistics (:func:`tobitkf.censored_moments`, which reduces to Lemma 1 for a lower limit),
+taken on every path from the compiled function the compiled loop calls
+(:func:`~tobitkf.filters._readings.compiled_censored_moments`).
 
 Time convention: x_0 ~ N(x̄_0, P_0) is the prior; no update at k = 0; y_1 (stored at
 index 0) is the first measurement and mixes x_1 and x_0 when L >= 1 (docs/sources GF-10). Output
@@ -97,7 +99,6 @@ from typing import Any
 import numpy as np
 
 from .._validation import check_instance, diagonal_sigma
-from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading, measurement_matrix_at
 from ..models.linear import LinearSystem
@@ -114,6 +115,7 @@ from .core import (
     symmetrize,
 )
 from .kalman import KalmanFilter, LinearGaussianFamily, _finite_or_none, finite_variances, loop_entries
+from .registry import family_entry, register
 from .tobit import TobitKalmanFilter
 
 __all__ = [
@@ -286,11 +288,13 @@ class _FadingFamily(LinearGaussianFamily):
             cxxc[:, 1:] = carry["cxxc"][:, :-1]
             cxxc[:, 0] = np.einsum("ij,njk,ik->ni", Ck, mom_cov, Ck) + (mom_mean @ Ck.T) ** 2
             carry.update(mom_mean=mom_mean, mom_cov=mom_cov, cxxc=cxxc)
-        if self.tobit:
-            st = unchecked_moments(chi, sigma, lo, hi)
+        if self.tobit:  # the statistics of the compiled loop's function, on every backend
+            from ._readings import compiled_censored_moments
+
+            st = compiled_censored_moments(chi, sigma, lo, hi)
             if self._stale:  # (6) literally: mu = sum_s thbar(s) C_{k-s} x̂_{k-s|k-s-1}
                 mu = dy + sum(self._thb[s] * carry["cx_pred"][:, s] for s in range(top + 1))
-                sp = unchecked_moments(mu, sigma, lo, hi)
+                sp = compiled_censored_moments(mu, sigma, lo, hi)
                 p_lo, gam, p_hi = sp.p_lower, sp.p_uncensored, sp.p_upper
             else:
                 p_lo, gam, p_hi = st.p_lower, st.p_uncensored, st.p_upper
@@ -659,7 +663,8 @@ def fading_tobit_kalman_filter(
         numpy path to rounding; it covers a time-invariant system, control inputs through a constant
         ``Bu`` and ``D``, ``p_uncensored_mode="augmented"``, ``fading_variance_term=False``, the Joseph
         and standard forms, ``keep_augmented=False``) and raises for another case; ``"auto"`` uses it when numba is
-        installed and the case is covered, else numpy; ``"numpy"`` always runs the reference path.
+        installed and the case is covered, else numpy; ``"numpy"`` always runs the numpy loop (its censored
+        statistics from the compiled function the compiled loop calls, on every backend).
 
     Returns
     -------
@@ -928,3 +933,19 @@ def _compiled_step(est: FadingTobitKalmanFilter, y: np.ndarray, state: FilterSta
             sm_cov[:, k + 1 :] = np.nan
         extras["smoothed_mean"], extras["smoothed_cov"] = sm_mean, sm_cov
     return step_state(k, state.batch_shape, x_last, P_last, n, None, state.carry, extras)
+
+
+register(
+    family_entry(
+        FadingTobitKalmanFilter,
+        "TKF with L-th order Rice fading (Geng et al. 2017)",
+        ("fading", "censoring?"),
+        options=_TOBIT_OPTIONS,
+    ),
+    family_entry(
+        FadingKalmanFilter,
+        "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
+        ("fading",),
+        options=_KF_OPTIONS,
+    ),
+)

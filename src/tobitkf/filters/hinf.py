@@ -20,6 +20,7 @@ from .._validation import ShapeError, ValidationError, as_float_array
 from ..design.hinf import HinfCertificate
 from ..models import ross as _ross
 from .core import Estimator, FilterResult, FilterState
+from .registry import family_entry, register
 
 __all__ = ["RegionalHinfFilter"]
 
@@ -109,3 +110,19 @@ class RegionalHinfFilter(Estimator):
         self, y: Any, *, x0: Any = None, outputs: Any = "all", state: FilterState | None = None
     ) -> FilterResult:
         return self._run(y, None, x0, None, outputs=outputs, state=state)
+
+
+def _from_gains(system, parts, o):
+    return RegionalHinfFilter(o["Af"], o["Bf"], system.M)
+
+
+register(
+    family_entry(
+        RegionalHinfFilter,
+        "regional H-infinity filter with given gains (Wang, Shen & Liu)",
+        options={"Af": object, "Bf": object},  # the designed gains (n, n) and (n, m), array_like
+        required=("Af", "Bf"),
+        model="ross",
+        factory=_from_gains,
+    )
+)

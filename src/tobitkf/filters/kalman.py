@@ -69,6 +69,7 @@ from .core import (
     step_state,
 )
 from .likelihood import prediction_log_densities
+from .registry import family_entry, register
 from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = ["kalman_filter", "KalmanFilter", "DroppingKalmanFilter", "LinearGaussianFamily", "dropping_with_indicator"]
@@ -629,3 +630,18 @@ def dropping_with_indicator(
     if res.mean is not None or outputs == "all" or "extras" in (outputs or ()):
         extras["censored"] = (side != 0).reshape(batch + y2.shape[1:])
     return replace(res, extras=extras)
+
+
+register(
+    family_entry(
+        KalmanFilter,
+        "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
+        options={"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS},
+    ),
+    family_entry(
+        DroppingKalmanFilter,
+        "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
+        ("censoring",),
+        options={"covariance_update": COVARIANCE_FORMS, "rtol": float, "backend": BACKENDS},
+    ),
+)

@@ -65,6 +65,7 @@ from ..channels.censoring import Censoring
 from ..channels.fading import RiceFading
 from ..channels.saturation import RandomSaturation
 from ..models.nonlinear import NonlinearSystem
+from ._backend import BACKENDS
 from ._particle_models import (
     SYSTEM_MODELS,
     _condition_in_sequence,
@@ -80,6 +81,8 @@ from ._particle_models import (
 from ._readings import _INTERIOR, _MISSING
 from .nonlinear import SigmaPoints, _sigma_moments
 from .nonlinear_fading_window import window_predict
+from .particle import ParticleFilter
+from .registry import family_entry, register
 
 __all__ = ["nonlinear_model"]  # registered with the particle filter when imported (by tobitkf)
 
@@ -272,3 +275,22 @@ def nonlinear_model(system: Any, channel: Any, censoring: Any) -> _Model:
 
 
 SYSTEM_MODELS[NonlinearSystem] = nonlinear_model
+
+
+# The particle filter's registry entry, beside its other registration (the model of a NonlinearSystem above)
+register(
+    family_entry(
+        ParticleFilter,
+        "bootstrap / optimal-proposal particle filter on any channel: the Bayes optimum (beyond the sources)",
+        ("channel",),
+        needs=(),  # no channel piece: linear readings
+        options={
+            "particles": int,
+            "resample_threshold": float,
+            "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
+            "seed": object,
+            "backend": BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
+        },
+        required=("seed",),  # a registry-built particle filter draws the same particles on every run
+    )
+)

@@ -108,6 +108,7 @@ from .protocol_model import (
     noise_input,
     stacked_measurement,
 )
+from .registry import family_entry, register
 
 __all__ = [
     "ProtocolTobitKalmanFilter",
@@ -749,3 +750,25 @@ def baseline_channel(channel: ProtocolChannel) -> ProtocolChannel:
     (:math:`\bar\Lambda \equiv 1`, :math:`\check\Lambda \equiv 0`, so :math:`F_k = 0`).
     """
     return channel.replace(window=0, failures=NO_FAILURE)
+
+
+def _baseline(system, parts, o):
+    return ProtocolTobitKalmanFilter.baseline(system, parts["protocol"], **o)
+
+
+register(
+    family_entry(
+        ProtocolTobitKalmanFilter,
+        "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
+        ("protocol",),
+        options={**_OPTIONS, "backend": BACKENDS},
+    ),
+    family_entry(
+        ProtocolTobitKalmanFilter,
+        "the protocol paper's PBTKF baseline: no window, no failures modelled",
+        ("protocol",),
+        options={"covariance_update": _OPTIONS["covariance_update"]},
+        name="ProtocolBaselineTobitKalmanFilter",
+        factory=_baseline,  # ProtocolTobitKalmanFilter.baseline
+    ),
+)

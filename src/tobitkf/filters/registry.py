@@ -4,7 +4,10 @@ Sweeps (:mod:`tobitkf.sweep`) build every model-mode estimator from it, so a swe
 family on a :class:`~tobitkf.LinearSystem` (``type = "FadingTobitKalmanFilter"``, ...), the
 experiments (:mod:`tobitkf.experiments`) declare their line-ups of estimators as data, key ->
 (registry name, options), build them with :func:`lineup` and record them with :func:`describe`
-(``metrics["lineup"]``), and the command line lists it (``tobitkf estimators``). An entry knows
+(``metrics["lineup"]``), and the command line lists it (``tobitkf estimators``). Each family's module
+registers its own estimators beside their classes (``register(family_entry(cls, summary, pieces, options=...))``,
+as a channel class registers its ``section``): this module names no family, and a new family needs no edit here.
+An entry knows
 
 * the **channel pieces** its constructor takes, by the ``section`` name each channel class registers
   itself under (:mod:`tobitkf.channels.base`; a sweep file's table of that name): ``censoring``
@@ -44,21 +47,24 @@ A line-up, built and described:
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from importlib import import_module
 from typing import Any, Callable, Mapping
 
 from .._validation import ValidationError
-from ._backend import BACKENDS
-from .assumed_density import _ORDERS
-from .core import COVARIANCE_FORMS
-from .delay import _DECORRELATION
-from .fading import _KF_OPTIONS as _FADING_KF_OPTIONS
-from .fading import _TOBIT_OPTIONS as _FADING_TOBIT_OPTIONS
-from .protocol import _OPTIONS as _PROTOCOL_OPTIONS
-from .tobit import _OPTIONS as _TOBIT_OPTIONS
-from .tobit import NOISE_TERMS
 
-__all__ = ["Entry", "ENTRIES", "get", "names", "make", "lineup", "describe", "parts_of", "channel_of", "Lineup"]
+__all__ = [
+    "Entry",
+    "ENTRIES",
+    "register",
+    "family_entry",
+    "get",
+    "names",
+    "make",
+    "lineup",
+    "describe",
+    "parts_of",
+    "channel_of",
+    "Lineup",
+]
 
 
 @dataclass(frozen=True)
@@ -122,18 +128,34 @@ class Entry:
         return estimator.filter(data.y, **kwargs)
 
 
-# the option values are the families' own constants (each family checks its options against them)
-_FORMS = COVARIANCE_FORMS
-_ADF_OPTIONS = {"covariance_update": COVARIANCE_FORMS, "backend": BACKENDS}
+ENTRIES: dict[str, Entry] = {}
+"""Every registered estimator, by name, in the order the families registered them (each family's module
+declares its own entries: :func:`register`)."""
 
 
-def _maker(module: str, name: str, *pieces: str) -> Callable[..., Any]:
-    """The factory of the class ``name`` of ``tobitkf.filters.<module>`` (imported when first built): it takes
-    the system, then the channel ``pieces`` by section name (a name ending in ``?`` is optional: None when not
-    given; ``"channel"`` is the channel the pieces make, :func:`channel_of`), then the options."""
+def register(*entries: Entry) -> None:
+    """Add ``entries`` to the registry (a family's module calls this beside its classes, as a channel class
+    registers its ``section``): afterwards :func:`get`, the sweep files, the line-ups and ``tobitkf estimators``
+    know them, with no edit to this module.
+
+    Raises
+    ------
+    ValidationError
+        A name that another entry (a different summary) has already taken.
+    """
+    for entry in entries:
+        old = ENTRIES.get(entry.name)
+        if old is not None and old.summary != entry.summary:
+            raise ValidationError(f"estimator: {entry.name!r} is already registered ({old.summary}); give another name")
+        ENTRIES[entry.name] = entry
+
+
+def _maker(cls: Callable[..., Any], pieces: tuple[str, ...]) -> Callable[..., Any]:
+    """The factory of ``cls``: it takes the system, then the channel ``pieces`` by section name (a name ending in
+    ``?`` is optional: None when not given; ``"channel"`` is the channel the pieces make, :func:`channel_of`),
+    then the options."""
 
     def make(system, parts, o):
-        cls = getattr(import_module(f"{__package__}.{module}"), name)
         args = [
             channel_of(parts) if p == "channel" else parts.get(p[:-1]) if p.endswith("?") else parts[p] for p in pieces
         ]
@@ -142,25 +164,16 @@ def _maker(module: str, name: str, *pieces: str) -> Callable[..., Any]:
     return make
 
 
-def _pbtkf(system, parts, o):
-    from .protocol import ProtocolTobitKalmanFilter
-
-    return ProtocolTobitKalmanFilter.baseline(system, parts["protocol"], **o)
-
-
-_DELAY_MODULES = {"ChainLMMSE": "delay_chain", "AugmentedLMMSE": "delay_augmented"}
-
-
-def _family(name: str, summary: str, module: str, takes: tuple[str, ...] = (), **fields: Any) -> Entry:
-    """The entry of the class ``name`` of ``tobitkf.filters.<module>``, built by :func:`_maker` with the channel
-    pieces ``takes``: it needs those not marked optional (``?``). ``fields`` are the entry's other fields."""
-    needs = tuple(p for p in takes if not p.endswith("?"))
-    return Entry(name, summary, _maker(module, name, *takes), needs=needs, **fields)
-
-
-def _delay(name: str, summary: str, **fields: Any) -> Entry:
-    """A delay-family entry (:func:`_family`): its class takes the history prior."""
-    return _family(name, summary, _DELAY_MODULES.get(name, "delay_reorganized"), ("prior",), model="delay", **fields)
+def family_entry(cls: Any, summary: str, takes: tuple[str, ...] = (), **fields: Any) -> Entry:
+    """The entry of the estimator class ``cls``, built as ``cls(system, *pieces, **options)`` with the channel
+    pieces ``takes`` by section name (:func:`_maker`): it needs those not marked optional (``?``). ``fields`` are
+    the entry's other fields (``options``, ``required``, ``reads``, ``model``); a ``name`` other than the class's,
+    ``needs`` (a channel piece the estimator can do without) and a ``factory`` of its own
+    (``factory(system, parts, options)``) replace the defaults."""
+    needs = fields.pop("needs", tuple(p for p in takes if not p.endswith("?")))
+    name = fields.pop("name", None) or cls.__name__
+    factory = fields.pop("factory", None) or _maker(cls, takes)
+    return Entry(name, summary, factory, needs=needs, **fields)
 
 
 def channel_of(parts: Mapping[str, Any]) -> Any:
@@ -188,188 +201,6 @@ def channel_of(parts: Mapping[str, Any]) -> Any:
         cens = None  # a censoring without a finite limit (a sweep file's default) censors nothing
     chosen = [p for p in (drawers[-1] if drawers else None, cens) if p is not None]
     return chosen[0] if len(chosen) == 1 else (chosen or None)
-
-
-def _hinf(system, parts, o):
-    from .hinf import RegionalHinfFilter
-
-    return RegionalHinfFilter(o["Af"], o["Bf"], system.M)
-
-
-def _tracker(system, parts, o):
-    from .tracking import MultiTargetTracker
-
-    return MultiTargetTracker(**o)
-
-
-_ENTRY_LIST = [
-    _family(
-        "KalmanFilter",
-        "Kalman filter; fed censored readings, the naive baseline (Miller §2.1)",
-        "kalman",
-        options={"covariance_update": _FORMS, "backend": BACKENDS},
-    ),
-    _family(
-        "DroppingKalmanFilter",
-        "Kalman filter that drops readings at a censoring limit (Miller §3.3.6)",
-        "kalman",
-        ("censoring",),
-        options={"covariance_update": _FORMS, "rtol": float, "backend": BACKENDS},
-    ),
-    _family(
-        "TobitKalmanFilter",
-        "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
-        "tobit",
-        ("censoring",),
-        options={**_TOBIT_OPTIONS, "threads": int},
-    ),
-    _family(
-        "SteadyStateTobitKalmanFilter",
-        "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
-        "steady_state",  # xi_uncensored: an option by keyword
-        options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": BACKENDS},
-        required=("xi_uncensored",),
-        reads="latent",
-    ),
-    _family(
-        "ControlledLimitTobitKalmanFilter",
-        "full TKF with the steered limit of (3.56) (Miller §3.4)",
-        "steady_state",
-        options={
-            "xi_uncensored": float,
-            "side": ("upper", "lower"),
-            "noise_term": NOISE_TERMS,
-            "backend": BACKENDS,  # no compiled path: "auto" and "numpy" run numpy, "numba" refuses
-        },
-        required=("xi_uncensored",),
-        reads="latent",
-    ),
-    _family(
-        "FadingTobitKalmanFilter",
-        "TKF with L-th order Rice fading (Geng et al. 2017)",
-        "fading",
-        ("fading", "censoring?"),
-        options=_FADING_TOBIT_OPTIONS,
-    ),
-    _family(
-        "FadingKalmanFilter",
-        "augmented KF with the fading means, no censoring handling (Geng et al. 2017)",
-        "fading",
-        ("fading",),
-        options=_FADING_KF_OPTIONS,
-    ),
-    _family(
-        "ProtocolTobitKalmanFilter",
-        "protocol-based TKF: Round-Robin, integral readings, failures (Geng et al.)",
-        "protocol",
-        ("protocol",),
-        options={**_PROTOCOL_OPTIONS, "backend": BACKENDS},
-    ),
-    Entry(
-        "ProtocolBaselineTobitKalmanFilter",
-        "the protocol paper's PBTKF baseline: no window, no failures modelled",
-        _pbtkf,
-        needs=("protocol",),
-        options={"covariance_update": _PROTOCOL_OPTIONS["covariance_update"]},
-    ),
-    _family(
-        "AssumedDensityTobitFilter",
-        "assumed-density filter: the exact posterior moments of each censored reading (beyond the sources)",
-        "assumed_density",
-        ("censoring",),
-        options={**_ADF_OPTIONS, "order": _ORDERS},
-    ),
-    _family(
-        "FadingAssumedDensityFilter",
-        "assumed-density filter for censored readings through Rice fading (beyond the sources)",
-        "adf_fading",
-        ("fading", "censoring?"),
-        options=_ADF_OPTIONS,
-    ),
-    _family(
-        "ProtocolAssumedDensityFilter",
-        "protocol-channel filter conditioning on the failure outcome (beyond the sources)",
-        "adf_protocol",
-        ("protocol",),
-        options={**_ADF_OPTIONS, "nodes": int},
-    ),
-    _family(
-        "SaturationAssumedDensityFilter",
-        "assumed-density filter for random saturation with missing readings (beyond the sources)",
-        "adf_saturation",
-        ("saturation",),
-        options=_ADF_OPTIONS,
-    ),
-    _family(
-        "AssumedDensityFilter",
-        "assumed-density filter of any channel: a named form where one exists, else the channel's moments",
-        "adf_generic",
-        ("channel",),
-        options={"covariance_update": _FORMS},
-    ),
-    _family(
-        "TobitFilter",
-        "the Tobit Kalman filter's update for any channel with reading statistics (beyond the sources)",
-        "adf_generic",
-        ("channel",),
-        options={"covariance_update": _FORMS, "linearization": ("prior_mean", "predictive")},
-    ),
-    Entry(
-        "ParticleFilter",
-        "bootstrap / optimal-proposal particle filter on any channel: the Bayes optimum (beyond the sources)",
-        _maker("particle", "ParticleFilter", "channel"),
-        options={
-            "particles": int,
-            "resample_threshold": float,
-            "proposal": ("auto", "optimal", "prior", "rao_blackwellised"),
-            "seed": object,
-            "backend": BACKENDS,  # compiled for linear readings with censoring; the other channels run numpy
-        },
-        required=("seed",),  # a registry-built particle filter draws the same particles on every run
-    ),
-    _delay(
-        "ChainLMMSE",
-        "exact LMMSE of a pure-delay system with fading, chain-decoupled (Li, Li & Wang 2018)",
-        options={"decorrelation": _DECORRELATION, "backend": BACKENDS},
-    ),
-    _delay(
-        "AugmentedLMMSE",
-        "exact LMMSE on the augmented delay state (Li, Li & Wang 2018)",
-        options={"window": int, "covariance_update": _FORMS},
-    ),
-    _delay(
-        "ReorganizedInnovationLMMSE",
-        "the source's reorganized-innovation estimator (Li, Li & Wang 2018)",
-        options={"decorrelation": _DECORRELATION, "warmup": int, "backend": BACKENDS},
-    ),
-    Entry(
-        "RegionalHinfFilter",
-        "regional H-infinity filter with given gains (Wang, Shen & Liu)",
-        _hinf,
-        options={"Af": object, "Bf": object},  # the designed gains (n, n) and (n, m), array_like
-        required=("Af", "Bf"),
-        model="ross",
-    ),
-    Entry(
-        "MultiTargetTracker",
-        "multi-target tracker leaving a field of view (Miller §2.2)",
-        _tracker,
-        options={
-            "gate0": float,
-            "gate_slope": float,
-            "mu": float,
-            "warmup": int,
-            "feedback": ("corrected", "printed", "off"),
-            "second_map": ("closest", "mutual"),
-            "gate": (False, True),
-            "covariance_update": _FORMS,
-        },
-        model="frames",
-    ),
-]
-
-ENTRIES: dict[str, Entry] = {e.name: e for e in _ENTRY_LIST}
-"""Every registered estimator, by name."""
 
 
 def get(name: str) -> Entry:

@@ -69,7 +69,8 @@ from ._backend import BACKENDS, system_gap, use_compiled
 from ._outputs import loop_array, loop_input, output_arrays
 from .core import FilterResult, FilterState, MeasurementPrediction, step_state
 from .kalman import LinearGaussianFamily
-from .tobit import TobitKalmanFilter, tobit_measurement
+from .registry import family_entry, register
+from .tobit import NOISE_TERMS, TobitKalmanFilter, tobit_measurement
 
 __all__ = [
     "SteadyStateTobitKalmanFilter",
@@ -504,3 +505,26 @@ def _steady_loop_run(est: SteadyStateTobitKalmanFilter, y2, state: FilterState, 
         var=const("var", np.diagonal(est.cov).copy()),
         final=final,
     )
+
+
+register(
+    family_entry(
+        SteadyStateTobitKalmanFilter,
+        "fixed-gain TKF whose sensor limit is steered from its prior (Miller §3.4)",
+        options={"xi_uncensored": float, "side": ("upper", "lower"), "backend": BACKENDS},  # xi: by keyword
+        required=("xi_uncensored",),
+        reads="latent",
+    ),
+    family_entry(
+        ControlledLimitTobitKalmanFilter,
+        "full TKF with the steered limit of (3.56) (Miller §3.4)",
+        options={
+            "xi_uncensored": float,
+            "side": ("upper", "lower"),
+            "noise_term": NOISE_TERMS,
+            "backend": BACKENDS,  # no compiled path: "auto" and "numpy" run numpy, "numba" refuses
+        },
+        required=("xi_uncensored",),
+        reads="latent",
+    ),
+)

@@ -75,7 +75,6 @@ from typing import Any
 import numpy as np
 
 from .._validation import ShapeError, ValidationError, as_float_array, check_instance, diagonal_sigma
-from ..censored import unchecked_moments
 from ..channels.censoring import Censoring
 from ..models.linear import LinearSystem
 from ._backend import BACKENDS, check_square_root, check_threads, compiled_ok, run_split
@@ -93,6 +92,7 @@ from .core import (
     step_state,
 )
 from .kalman import LinearGaussianFamily, _finite_or_none, _loop_arrays, loop_entries, step_constants
+from .registry import family_entry, register
 from .smoothing import IndicatorFilterMethods, SmoothingMethods
 
 __all__ = [
@@ -134,15 +134,19 @@ def tobit_measurement(
     and :math:`H = E(\mathbf p)C`: ``expected`` = E(y), ``H0`` = C, ``scale`` = E(p), ``noise`` =
     :math:`R_{uu}` (the truncated variance (3.41) for ``"dissertation"``, the censored variance for
     ``"total_variance"``, :math:`E[pv^2] = \gamma(V_{tr} + (m_{tr} - \mu)^2)` for ``"exact_pv"``).
-    ``extras`` hold ``p_uncensored`` and ``expected_y`` (N, m).
+    ``extras`` hold ``p_uncensored`` and ``expected_y`` (N, m). The censored statistics come from
+    :func:`~tobitkf.filters._readings.compiled_censored_moments`, the compiled function the compiled
+    loop takes them from (numba), on every backend: the two paths share one implementation.
 
     Parameters
     ----------
     x_pred : (N, n) ; C : (m, n) or (N or 1, m, n) (one per run) ; sigma : (m,) or (N or 1, m) ;
     lower, upper : (m,) or (N, m) ; dy : (N, m) or 0
     """
+    from ._readings import compiled_censored_moments  # numba: imported on first use
+
     mu = (x_pred @ C.T if C.ndim == 2 else np.einsum("...ij,...j->...i", C, x_pred)) + dy
-    st = unchecked_moments(mu, sigma, lower, upper)
+    st = compiled_censored_moments(mu, sigma, lower, upper)
     gam = st.p_uncensored
     if noise_term == "dissertation":
         Ruu = st.truncated_var
@@ -206,7 +210,9 @@ def tobit_update(
     mp = tobit_measurement(x_pred, C, sigma, lower, upper, dy=dy, noise_term=noise_term)
     S = psd_sqrt(P_pred) if covariance_update == "square_root" else None
     x, P, _, _, _ = measurement_update(x_pred, P_pred, S, y, mp, covariance_update)
-    return x, P, unchecked_moments(x_pred @ C.T + dy, sigma, lower, upper)
+    from ._readings import compiled_censored_moments
+
+    return x, P, compiled_censored_moments(x_pred @ C.T + dy, sigma, lower, upper)
 
 
 class TobitKalmanFilter(IndicatorFilterMethods, SmoothingMethods, LinearGaussianFamily):
@@ -579,7 +585,8 @@ def tobit_kalman_filter(
         B^u and D (any limits, multi-region included, NaN samples and noise term; the standard
         and Joseph updates, not the square-root form); ``"numpy"`` the shared loop of :mod:`tobitkf.filters.core`, which covers everything;
         ``"auto"`` the compiled path when numba is installed and the case is covered, else numpy
-        (always numpy for ``covariance_update="square_root"``).
+        (always numpy for ``covariance_update="square_root"``). The numpy loop takes the censored statistics from
+        the compiled function the compiled path calls (:func:`tobit_measurement`), on every backend.
     threads : int, optional
         Threads over which the compiled path splits the runs (it releases the GIL; the
         result is identical bit for bit). Default: ``TOBITKF_NUM_THREADS``, else
@@ -674,3 +681,13 @@ def check_tobit_indicator(censoring: Censoring, y: Any, censored: Any, *, start:
     except ValueError:
         raise ShapeError(f"censored: expected the shape of y {arr.shape}, got {np.shape(censored)}") from None
     censoring_sides(y2, lo, hi, c2)
+
+
+register(
+    family_entry(
+        TobitKalmanFilter,
+        "Tobit Kalman filter, one- and two-sided, multi-region (Miller §3.3, §6.6)",
+        ("censoring",),
+        options={**_OPTIONS, "threads": int},
+    )
+)

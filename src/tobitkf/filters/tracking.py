@@ -85,6 +85,7 @@ from .core import (
     step_state,
     time_update,
 )
+from .registry import family_entry, register
 
 __all__ = ["MultiTargetTracker", "TrackResult", "constant_velocity_pixel_model"]
 
@@ -544,3 +545,27 @@ class MultiTargetTracker(Estimator):
             np.swapaxes(res.extras["assignment"], 0, 1),
             np.swapaxes(res.extras["occluded_frames"], 0, 1),
         )
+
+
+def _tracker(system, parts, o):
+    return MultiTargetTracker(**o)
+
+
+register(
+    family_entry(
+        MultiTargetTracker,
+        "multi-target tracker leaving a field of view (Miller §2.2)",
+        options={
+            "gate0": float,
+            "gate_slope": float,
+            "mu": float,
+            "warmup": int,
+            "feedback": ("corrected", "printed", "off"),
+            "second_map": ("closest", "mutual"),
+            "gate": (False, True),
+            "covariance_update": COVARIANCE_FORMS,
+        },
+        model="frames",
+        factory=_tracker,
+    )
+)
