@@ -162,11 +162,12 @@ def test_its_compiled_block_is_the_numpy_update(dead_band):
         np.testing.assert_allclose(st_b.cov, st_a.cov, rtol=0, atol=1e-12)
     # no noise, a known state: no update; the term 0 where the reading allows the state, else -inf
     exact = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[0.0]], x0=[0.2], P0=[[0.0]])
-    yd = np.array([[[0.0]], [[0.7]], [[0.2]]])
-    lls = [tk.AssumedDensityFilter(exact, band, backend=be).filter(yd).extras["log_likelihood"][:, 0] for be in
-           ("numpy", "numba")]  # fmt: skip
-    np.testing.assert_array_equal(lls[0], [0.0, -np.inf, 0.0])
-    np.testing.assert_array_equal(lls[1], lls[0])
+    yd = np.array([[[0.0]], [[0.7]], [[-0.9]]])
+    for x0, want in (([0.2], [0.0, -np.inf, -np.inf]), ([0.7], [-np.inf, 0.0, -np.inf])):
+        lls = [tk.AssumedDensityFilter(exact, band, backend=be).filter(yd, x0=x0).extras["log_likelihood"][:, 0]
+               for be in ("numpy", "numba")]  # fmt: skip
+        np.testing.assert_array_equal(lls[0], want)
+        np.testing.assert_array_equal(lls[1], lls[0])
 
 
 def test_its_block_key_follows_its_code_not_its_file(dead_band):
@@ -189,3 +190,31 @@ def test_its_block_key_follows_its_code_not_its_file(dead_band):
     other_global = code.replace("import MISSING, interval_update", "import interval_update\n\nMISSING = 7")
     assert cm._block_key(block_of(other_global)) != key  # a global it reads, another value
     assert cm.channel_kind(dead_band.DeadBand(0.5)) == cm.block_kind(dead_band.dead_band_block)
+
+
+@pytest.mark.heavy
+def test_its_compiled_loop_loads_from_the_cache_in_another_process(tmp_path):
+    """The loop's version for the tutorial's block, compiled in one process, loads from numba's on-disk cache in the
+    next one (the block's file loaded by path, as the tutorial's readers may): no compile there."""
+    pytest.importorskip("numba")
+    import subprocess
+    import sys
+
+    code = re.findall(r"```python\n(.*?)```", PAGE.read_text(encoding="utf-8"), re.S)[0]
+    (tmp_path / "dead_band.py").write_text(code, encoding="utf-8")
+    script = f"""
+import importlib.util, numpy as np, tobitkf as tk
+from tobitkf._compiled import compile_stats
+spec = importlib.util.spec_from_file_location("dead_band", {str(tmp_path / "dead_band.py")!r})
+mod = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mod)
+sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.2]], R=[[0.05]], x0=[0.0], P0=[[1.0]])
+y = np.array([[[0.0], [0.8], [np.nan]]])
+print(tk.AssumedDensityFilter(sys_, mod.DeadBand(0.5), backend="numba").filter(y).mean.sum(), compile_stats()["compiled"])
+"""
+    env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    outs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
+            for _ in range(2)]  # fmt: skip
+    (m1, c1), (m2, c2) = (o.stdout.split() for o in outs)
+    assert int(c1) > 0 and int(c2) == 0, (c1, c2)
+    assert m1 == m2

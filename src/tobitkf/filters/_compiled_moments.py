@@ -62,6 +62,7 @@ import hashlib
 import importlib
 import inspect
 import math
+import sys
 from types import CodeType
 from typing import Any
 
@@ -509,6 +510,16 @@ def _block_key(block: Any) -> str:
     return f"{block.py_func.__qualname__}-{h.hexdigest()[:24]}"
 
 
+def _importable_dynamic_module() -> None:
+    """Make numba's stand-in module of functions whose module cannot be imported (``"<dynamic>"``: a block defined
+    in a file loaded by path, or in code run by ``exec``) importable, so that a cached loop compiled with such a
+    block loads in another process: numba rebuilds the block's environment (its globals, unused by compiled code
+    that handles no Python objects) by importing the module it names."""
+    from numba.core.utils import _dynamic_modname, _dynamic_module
+
+    sys.modules.setdefault(_dynamic_modname, _dynamic_module)
+
+
 def block_kind(block: Any, who: str = "the channel") -> tuple[BlockHandle, ...]:
     """The kind (:func:`kind`) of a channel's own block: the tuple of :data:`BLOCK` handles of the block function
     ``block`` (a ``numba.njit`` function of the parameters :data:`BLOCK_PARAMETERS`, or ``"module:name"`` naming
@@ -543,6 +554,8 @@ def block_kind(block: Any, who: str = "the channel") -> tuple[BlockHandle, ...]:
             f"compiled_block: expected a block function of the {len(BLOCK_PARAMETERS)} parameters "
             f"({', '.join(BLOCK_PARAMETERS)}) for {who}, got {block.py_func.__qualname__}({', '.join(params)})"
         )
+    if sys.modules.get(block.py_func.__module__) is None:
+        _importable_dynamic_module()
     key = _block_key(block)
     _BLOCKS.setdefault(key, block)  # the same key: the same code, whichever function compiles it
     handle = BlockHandle(key)
