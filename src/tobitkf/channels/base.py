@@ -99,7 +99,7 @@ stable 40 σ into the tails), then ``ll[b] += lp``. The block's parameters come 
 none, K = 0). With it :class:`~tobitkf.AssumedDensityFilter` runs :meth:`filter` in the compiled loop (and the
 nonlinear assumed-density filter its compiled loop), and takes its moments from the same block in the numpy
 loop too (``backend`` as for the other filters); a channel without one runs on the numpy path. The loop's
-version for a block is compiled once (tens of seconds) and cached on disk under a key made of the hash of the
+version for a block is compiled once (about a minute of CPU) and cached on disk under a key made of the hash of the
 block's code and of the globals it reads (numbers, arrays, the functions it calls): an edit of the block
 compiles it afresh, in-package and outside alike. Alternatively ``compiled_moments`` names one of the package's
 blocks (``"censored_block"``, ``"saturation_block"``, ``"protocol_block"`` of
