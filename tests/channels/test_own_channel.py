@@ -212,7 +212,8 @@ sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.2]], R=[[0.05]], x0=[0.0], P0
 y = np.array([[[0.0], [0.8], [np.nan]]])
 print(tk.AssumedDensityFilter(sys_, mod.DeadBand(0.5), backend="numba").filter(y).mean.sum(), compile_stats()["compiled"])
 """
-    env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    src = str(Path(tk.__file__).resolve().parents[1])  # the package under test, in the child processes too
+    env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": src}
     outs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
             for _ in range(2)]  # fmt: skip
     (m1, c1), (m2, c2) = (o.stdout.split() for o in outs)
