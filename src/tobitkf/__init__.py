@@ -36,11 +36,13 @@ Public API (stable):
   (:mod:`tobitkf.inference`); :mod:`tobitkf.data` -- real censored data sets.
 """
 
+from . import channels as _channels
 from . import control, data, metrics
 from ._validation import ShapeError, ValidationError
 from ._version import __version__
 from .censored import CensoredMoments, censored_moments
-from .channels import Censoring, Channel, Quantizer, laws, multi_region
+from .channels import *  # noqa: F403 - every channel of the package (channels.__all__): a new one edits no file here
+from .channels import laws
 from .channels.fading import RiceFading
 from .channels.protocol import IntegralMeasurement, ProtocolChannel, RoundRobin
 from .channels.saturation import RandomSaturation
@@ -136,10 +138,6 @@ __all__ = [
     "FadingTobitUnscentedKalmanFilter",
     "FadingNonlinearAssumedDensityFilter",
     "SaturationNonlinearAssumedDensityFilter",
-    "Censoring",
-    "multi_region",
-    "Channel",
-    "Quantizer",
     "AssumedDensityFilter",
     "TobitFilter",
     "simulate",
@@ -219,3 +217,4 @@ __all__ = [
     "output_pool_limit",
     "__version__",
 ]
+__all__ += _channels.__all__

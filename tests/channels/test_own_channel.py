@@ -125,3 +125,97 @@ type = "AssumedDensityFilter"
     assert parse_sweep(text).channels == {"dead_band": {"width": 0.4}}
     with pytest.raises(tk.ValidationError, match="dead_band.depth"):
         parse_sweep(text.replace("width = 0.4", "width = 0.4\ndepth = 1"))
+
+
+def _same(a, b, tol=1e-12):
+    for key in ("mean", "cov", "pred_mean", "pred_cov"):
+        va, vb = getattr(a, key), getattr(b, key)
+        np.testing.assert_allclose(vb, va, rtol=0, atol=tol * max(1.0, np.abs(va).max()), err_msg=key)
+    la, lb = a.extras["log_likelihood"], b.extras["log_likelihood"]
+    np.testing.assert_array_equal(np.isfinite(lb), np.isfinite(la))
+    fin = np.isfinite(la)
+    np.testing.assert_allclose(lb[fin], la[fin], rtol=0, atol=tol * max(1.0, np.abs(la[fin]).max()))
+
+
+def test_its_compiled_block_is_the_numpy_update(dead_band):
+    """The tutorial's compiled block (``backend="numba"``: the compiled loop of the assumed-density filter, and the
+    step loop taking the block's moments) equals the numpy update from ``region`` to 1e-12: readings in the band
+    and outside, missing ones, the band 40 predicted standard deviations away, a degenerate latent."""
+    pytest.importorskip("numba")
+    sys_ = tk.LinearSystem(
+        A=[[1.0, 0.1], [0.0, 0.95]], C=[[1.0, 0.0]], Q=np.diag([1e-4, 4e-3]), R=[[0.01]], x0=[0.0, 0.0],
+        P0=np.diag([0.5, 0.1]),
+    )  # fmt: skip
+    band = dead_band.DeadBand(0.5)
+    y = tk.simulate(sys_, 30, 6, channel=band, seed=5).y.copy()
+    y[1, 3:7] = np.nan
+    assert (y == 0.0).any() and (np.abs(y) > 0.5).any()
+    fast, ref = (tk.AssumedDensityFilter(sys_, band, backend=be) for be in ("numba", "numpy"))
+    for x0 in ([0.0, 0.0], [45.0, 0.0], [-30.0, 1.0]):  # a start 40 sigma and more from the band
+        a, b = ref.filter(y, x0=x0), fast.filter(y, x0=x0)
+        assert np.isfinite(a.extras["log_likelihood"]).all()
+        _same(a, b)
+    st_a, st_b = ref.init((6,)), fast.init((6,))
+    for t in range(5):
+        st_a, st_b = ref.step(st_a, y[:, t]), fast.step(st_b, y[:, t])  # the step loop: the block's moments
+        np.testing.assert_allclose(st_b.mean, st_a.mean, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(st_b.cov, st_a.cov, rtol=0, atol=1e-12)
+    # no noise, a known state: no update; the term 0 where the reading allows the state, else -inf
+    exact = tk.LinearSystem(A=[[1.0]], C=[[1.0]], Q=[[0.0]], R=[[0.0]], x0=[0.2], P0=[[0.0]])
+    yd = np.array([[[0.0]], [[0.7]], [[-0.9]]])
+    for x0, want in (([0.2], [0.0, -np.inf, -np.inf]), ([0.7], [-np.inf, 0.0, -np.inf])):
+        lls = [tk.AssumedDensityFilter(exact, band, backend=be).filter(yd, x0=x0).extras["log_likelihood"][:, 0]
+               for be in ("numpy", "numba")]  # fmt: skip
+        np.testing.assert_array_equal(lls[0], want)
+        np.testing.assert_array_equal(lls[1], lls[0])
+
+
+def test_its_block_key_follows_its_code_not_its_file(dead_band):
+    """The compiled loop's version for a block is cached under the hash of the block's code and of the globals it
+    reads: the same source elsewhere (another file, code run without one) has the same key, an edited one
+    another."""
+    pytest.importorskip("numba")
+    from tobitkf.filters import _compiled_moments as cm
+
+    code = re.findall(r"```python\n(.*?)```", PAGE.read_text(encoding="utf-8"), re.S)[0]
+
+    def block_of(source):
+        ns: dict = {"__name__": "elsewhere"}
+        exec(compile(source, "<elsewhere>", "exec"), ns)  # noqa: S102 - the tutorial's own code
+        return ns["dead_band_block"]
+
+    key = cm._block_key(dead_band.dead_band_block)
+    assert cm._block_key(block_of(code)) == key
+    assert cm._block_key(block_of(code.replace("pu[b] = 1.0", "pu[b] = 0.5"))) != key
+    other_global = code.replace("import MISSING, interval_update", "import interval_update\n\nMISSING = 7")
+    assert cm._block_key(block_of(other_global)) != key  # a global it reads, another value
+    assert cm.channel_kind(dead_band.DeadBand(0.5)) == cm.block_kind(dead_band.dead_band_block)
+
+
+@pytest.mark.heavy
+def test_its_compiled_loop_loads_from_the_cache_in_another_process(tmp_path):
+    """The loop's version for the tutorial's block, compiled in one process, loads from numba's on-disk cache in the
+    next one (the block's file loaded by path, as the tutorial's readers may): no compile there."""
+    pytest.importorskip("numba")
+    import subprocess
+    import sys
+
+    code = re.findall(r"```python\n(.*?)```", PAGE.read_text(encoding="utf-8"), re.S)[0]
+    (tmp_path / "dead_band.py").write_text(code, encoding="utf-8")
+    script = f"""
+import importlib.util, numpy as np, tobitkf as tk
+from tobitkf._compiled import compile_stats
+spec = importlib.util.spec_from_file_location("dead_band", {str(tmp_path / "dead_band.py")!r})
+mod = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(mod)
+sys_ = tk.LinearSystem(A=[[0.9]], C=[[1.0]], Q=[[0.2]], R=[[0.05]], x0=[0.0], P0=[[1.0]])
+y = np.array([[[0.0], [0.8], [np.nan]]])
+print(tk.AssumedDensityFilter(sys_, mod.DeadBand(0.5), backend="numba").filter(y).mean.sum(), compile_stats()["compiled"])
+"""
+    src = str(Path(tk.__file__).resolve().parents[1])  # the package under test, in the child processes too
+    env = {**__import__("os").environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"), "PYTHONPATH": src}
+    outs = [subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
+            for _ in range(2)]  # fmt: skip
+    (m1, c1), (m2, c2) = (o.stdout.split() for o in outs)
+    assert int(c1) > 0 and int(c2) == 0, (c1, c2)
+    assert m1 == m2

@@ -31,7 +31,7 @@ OWN = {
     cl.PROTOCOL_TKF: "_protocol_tkf_update",
     cl.FIXED_GAIN: "_fixed_gain_means",
     cl.FADING: "fading_lower_block",
-    **{code: "_channel_updates" for code in cm.FAMILIES.values()},
+    **{code: "_channel_updates" for code in (*cm.FAMILIES.values(), cm.BLOCK)},
 }
 
 
@@ -78,7 +78,7 @@ def test_a_family_code_becomes_its_kind():
     Python must carry the kind, not the integer (which the loop no longer turns into a kind)."""
     from tobitkf.filters._loop_specs import LoopArguments
 
-    assert len(set(cl.CODES)) == len(cl.CODES) and max(cm.FAMILIES.values()) < cl.KALMAN
+    assert len(set(cl.CODES)) == len(cl.CODES) and max(*cm.FAMILIES.values(), cm.BLOCK) < cl.KALMAN
     assert len({typeof(cm.kind(code)) for code in cl.CODES}) == len(cl.CODES)
     for code in cl.CODES:
         k = cm.kind(code)
@@ -98,7 +98,7 @@ BLOCKS = {
     cm.CENSORED: "censored_block",
     cm.SATURATION: "saturation_block",
     cm.PROTOCOL: "protocol_block",
-    cm.QUANTIZER: "quantizer_block",
+    cm.BLOCK: "call_block",  # a channel's own block, named by the handle's type
 }
 
 
@@ -111,7 +111,7 @@ def test_each_family_moments_call_their_own_block_only(code):
     assert BLOCKS[code] in called
     assert not (set(BLOCKS.values()) - {BLOCKS[code]}) & called
     assert "ValueError" not in called
-    assert set(BLOCKS.values()) <= set(cm.FAMILIES), "every block function is a family of the registry"
+    assert set(BLOCKS.values()) - {"call_block"} == set(cm.FAMILIES), "every block function is a family of the registry"
 
 
 def test_a_kind_of_no_family_is_refused():
@@ -122,8 +122,8 @@ def test_a_kind_of_no_family_is_refused():
 
 def test_nonlinear_filters_pass_their_family_as_a_kind():
     """The nonlinear filters' compiled loop is handed the channel's family as a kind (its assumed-density update
-    then compiles that family's moments alone): censoring, a quantizer, random saturation; the Kalman and Tobit
-    filters, which read no moments, the censored kind."""
+    then compiles that family's moments alone): censoring, a quantizer (its own block's kind), random saturation;
+    the Kalman and Tobit filters, which read no moments, the censored kind."""
     import tobitkf as tk
     from tobitkf.filters._compiled_nonlinear_loop import channel_arrays
 
@@ -136,12 +136,13 @@ def test_nonlinear_filters_pass_their_family_as_a_kind():
     sys_ = tk.NonlinearSystem(f, h, 0.1 * np.eye(2), [[0.2]], np.zeros(2), np.eye(2))
     cases = {
         cm.CENSORED: tk.NonlinearAssumedDensityFilter(sys_, tk.Censoring(lower=0.0)),
-        cm.QUANTIZER: tk.NonlinearAssumedDensityFilter(sys_, tk.Quantizer(0.5)),
         cm.SATURATION: tk.SaturationNonlinearAssumedDensityFilter(sys_, tk.RandomSaturation([0.3], [0.7], level=[0.4])),
     }
     cases_kf = (tk.UnscentedKalmanFilter(sys_), tk.TobitUnscentedKalmanFilter(sys_, tk.Censoring(lower=0.0)))
     for code, est in cases.items():
         assert channel_arrays(est, 0, 3)[0] == cm.kind(code)
+    quantized = channel_arrays(tk.NonlinearAssumedDensityFilter(sys_, tk.Quantizer(0.5)), 0, 3)[0]
+    assert quantized == cm.block_kind(tk.Quantizer.compiled_block) and len(quantized) == cm.BLOCK
     for est in cases_kf:
         assert channel_arrays(est, 0, 3)[0] == cm.kind(cm.CENSORED)
 

@@ -448,6 +448,28 @@ def test_generic_adf_backend_choice():
         tk.AssumedDensityFilter(sys_, Misnamed(0.3), backend="numba").filter(y)
 
 
+def test_a_compiled_block_that_is_no_block_function_is_refused():
+    """``compiled_block`` must be a numba.njit function of the block's parameters (or "module:name" of one)."""
+    from numba import njit
+
+    sys_ = oscillator(1)
+    yd = np.zeros((2, 4, 1))
+
+    def plain(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+        pass
+
+    cases = {
+        "a numba.njit function": plain,
+        "of the 17 parameters": njit(lambda nb, y: None),
+        "'module:name'": "tobitkf.channels.no_such_module:block",
+    }
+    for message, block in cases.items():
+        own = type("Own", (_DeadBand,), {"compiled_block": block})
+        for be in ("numba", "auto"):
+            with pytest.raises(tk.ValidationError, match=f"compiled_block: expected .*{message}"):
+                tk.AssumedDensityFilter(sys_, own(), backend=be).filter(yd)
+
+
 @pytest.mark.parametrize("form", ["joseph", "square_root"])
 def test_quantizer_numpy_loop_with_compiled_moments_equals_numpy_moments(form):
     """Where the numpy loop runs (here the Joseph and square-root forms) the quantizer's moments come from the

@@ -7,6 +7,8 @@ knows its statistics): every piece implements :class:`~tobitkf.channels.base.Cha
 :class:`~tobitkf.channels.protocol.ProtocolChannel` (:mod:`.protocol`),
 :class:`~tobitkf.channels.saturation.RandomSaturation` (:mod:`.saturation`),
 :class:`~tobitkf.channels.quantizer.Quantizer` (:mod:`.quantizer`), and the coefficient laws of :mod:`.laws`.
+A channel's compiled update (its ``compiled_block``) may call the helpers of :mod:`.compiled` (which imports numba,
+so it is not imported here). The names of ``__all__`` are the package's top-level channel names too.
 """
 
 from .base import Channel

@@ -77,13 +77,33 @@ generic assumed-density update follows (the projection formula, Maybeck 1982 §1
 ``at_limit(y, start=1)``
     the ``(..., T, m)`` mask of readings at a limit of the sensor (reported by the sweeps).
 
-``compiled_moments`` (class attribute, default None) names the numba-compiled form of the channel's
-moments over a block of runs: a block function of :mod:`tobitkf.filters._compiled_moments` (a key of its
-``FAMILIES``, e.g. ``"quantizer_block"``), whose per-step parameters the channel gives by
-``compiled_parameters(k, steps, m)`` → an array (1 or ``steps``, m, K). With it,
-:class:`~tobitkf.AssumedDensityFilter` runs :meth:`filter` in the compiled loop of the assumed-density
-filters and takes its moments from that block in the numpy loop too (``backend`` as for the other
-filters); a channel without one runs on the numpy path.
+``compiled_block`` (class attribute, default None): the channel's moments compiled, for the compiled loop of
+the assumed-density filters. A ``numba.njit`` function (or ``"module:name"`` of one, imported when first needed,
+so that importing the channel does not import numba) of the block signature
+
+.. code-block:: python
+
+    block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+
+that updates the runs ``b < nb`` of a block of one channel l: ``y[b]`` the reading and ``cls[b]`` its class
+(0 missing: no update, no term; else 1), :math:`\mu` = ``hx[b]`` and :math:`s^2` = ``hph[b] + rb[b]`` (the prior
+variance of :math:`c\bar x` and the noise's), ``par`` (K,) the channel's parameters at the step; it writes
+``alpha[b]`` :math:`= (E[y^* \mid y] - \mu)/s^2`, ``beta[b]`` :math:`= (s^2 - \mathrm{Var}[y^* \mid y])/s^4`,
+``pu[b]`` (1 for a channel without censoring) and adds :math:`\log p(y)` to ``ll[b]``; ``lo``, ``hi``, ``comp``
+are unused here and ``glx``, ``glw``, ``buf`` go to the helpers. For a reading that is an interval of
+:math:`y^*` one call per run does it all:
+``alpha[b], beta[b], lp = interval_update(hx[b], hph[b] + rb[b], lo_b, hi_b, glx, glw, buf)``
+(:func:`tobitkf.channels.compiled.interval_update`, the exact and the interval case as :meth:`region` says,
+stable 40 σ into the tails), then ``ll[b] += lp``. The block's parameters come from
+``compiled_parameters(k, steps, m)`` → an array (1 or ``steps``, m, K) for the steps k..k+steps-1 (default:
+none, K = 0). With it :class:`~tobitkf.AssumedDensityFilter` runs :meth:`filter` in the compiled loop (and the
+nonlinear assumed-density filter its compiled loop), and takes its moments from the same block in the numpy
+loop too (``backend`` as for the other filters); a channel without one runs on the numpy path. The loop's
+version for a block is compiled once (about a minute of CPU) and cached on disk under a key made of the hash of the
+block's code and of the globals it reads (numbers, arrays, the functions it calls): an edit of the block
+compiles it afresh, in-package and outside alike. Alternatively ``compiled_moments`` names one of the package's
+blocks (``"censored_block"``, ``"saturation_block"``, ``"protocol_block"`` of
+:mod:`tobitkf.filters._compiled_moments`); it takes precedence over ``compiled_block``.
 
 Registration
 ------------
@@ -128,8 +148,11 @@ class Channel:
     """Keywords a sweep file's section may give -> their kind (``float``, ``int``, tuple of values, ``object``)."""
     replaces_censoring: ClassVar[bool] = False
     """True when the channel carries its own limits (no separate :class:`~tobitkf.Censoring` with it)."""
+    compiled_block: ClassVar[Any] = None
+    """The channel's compiled block: a ``numba.njit`` function or ``"module:name"`` of one (module docstring);
+    None: the numpy path only (unless ``compiled_moments``)."""
     compiled_moments: ClassVar[Any] = None
-    """Name of the channel's block function in the compiled moments (module docstring); None: numpy path only."""
+    """Name of one of the package's block functions (module docstring); None: the channel's own ``compiled_block``."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -212,6 +235,11 @@ class Channel:
         r"""Fisher information :math:`I_{\mu\mu}` of one reading of channel ``l`` about the latent mean, (N,).
         Not implemented by default."""
         raise NotImplementedError(f"{type(self).__name__} gives no Fisher information (fisher_information)")
+
+    def compiled_parameters(self, k: int, steps: int, m: int) -> np.ndarray:
+        """The ``par`` of the channel's compiled block (module docstring) for the steps k..k+steps-1, an array
+        (1 or ``steps``, m, K); default: none, (1, m, 0)."""
+        return np.zeros((1, m, 0))
 
     def check_readings(self, y: np.ndarray, start: int = 1, name: str = "y") -> None:
         """Raise :class:`~tobitkf.ValidationError` for a reading of ``y`` (..., T, m) the channel cannot give

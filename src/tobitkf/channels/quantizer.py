@@ -96,8 +96,8 @@ class Quantizer(Channel):
     section = "quantizer"
     sweep_options = {"width": float, "offset": float, "lower": float, "upper": float}
     replaces_censoring = True
-    compiled_moments = "quantizer_block"
-    """The compiled loop's block of this channel (:func:`tobitkf.filters._compiled_moments.quantizer_block`)."""
+    compiled_block = "tobitkf.channels._compiled_quantizer:quantizer_block"
+    """The compiled block of this channel (:func:`tobitkf.channels._compiled_quantizer.quantizer_block`)."""
 
     def __init__(self, width: Any, offset: Any = 0.0, lower: Any = -np.inf, upper: Any = np.inf):
         w = as_float_array(width, "width", ndim=(0, 1))

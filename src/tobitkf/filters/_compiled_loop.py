@@ -25,7 +25,8 @@ each family compiles its own version of the loop that holds its update alone:
   :func:`~tobitkf.filters._compiled_fading.fading_lower_block`): an array handed per step to a function inlined
   by numba, or a view made per step, costs an atomic increment and decrement of its reference count, some 40 per
   step and block as a function taking the block's scratch (the means-only filter ~7 % slower);
-* an assumed-density family (:data:`~tobitkf.filters._compiled_moments.FAMILIES`): channel by channel, a
+* an assumed-density family (:data:`~tobitkf.filters._compiled_moments.FAMILIES`, or a channel's own block,
+  :data:`~tobitkf.filters._compiled_moments.BLOCK`): channel by channel, a
   rank-one change along :math:`\bar Ph^T` (:mod:`tobitkf.filters._compiled_moments`),
 
   .. math::
@@ -42,8 +43,11 @@ each family compiles its own version of the loop that holds its update alone:
 * :data:`FIXED_GAIN`: the steady-state Tobit Kalman filter, whose gain and covariances are constants: its means
   alone, :math:`\hat x = \bar x + K_\infty(y - E[y])` (Miller (3.56)–(3.58), :func:`_fixed_gain_means`).
 
-A code, not a function argument: numba does not cache a function specialised on another compiled function, so a
-loop taking the update as an argument would be compiled again in every process. The code travels as a kind
+A code, not a function argument: numba types a compiled function given as an argument by the object, a type that
+does not survive the process, so a loop taking the update as an argument would be compiled again in every process
+(a channel's own block travels as a handle whose type is named by the hash of the block's code instead,
+:func:`~tobitkf.filters._compiled_moments.block_kind`, and its version of the loop is cached like the package's
+families'). The code travels as a kind
 (:func:`~tobitkf.filters._compiled_moments.kind`, the tuple of ``code`` Nones): numba reads the length of a tuple
 argument as a constant before typing and prunes the branches of the other families, so that the Kalman filter's
 version does not compile the assumed-density moments, nor theirs the Tobit update (compared as a run-time integer,
@@ -96,6 +100,7 @@ from ._compiled_block import (
 from ._compiled_censored import censored_stats, noise_term
 from ._compiled_fading import AUG_BLOCK, fading_lower_block, shift_predict_block
 from ._compiled_moments import (
+    BLOCK,
     FAMILIES,
     INTERIOR,
     MISSING,
@@ -133,7 +138,7 @@ PROTOCOL_TKF, FIXED_GAIN = 18, 19
 #: :func:`~tobitkf.filters._compiled_fading.fading_lower_block`)
 FADING = 20
 #: every update code of :func:`compiled_loop`
-CODES = (*FAMILIES.values(), KALMAN, TOBIT, PROTOCOL_TKF, FIXED_GAIN, FADING)
+CODES = (*FAMILIES.values(), BLOCK, KALMAN, TOBIT, PROTOCOL_TKF, FIXED_GAIN, FADING)
 #: the loop's update codes as types (:func:`~tobitkf.filters._compiled_moments.kind`: a tuple of ``code`` Nones),
 #: what its callers pass as ``family``
 KALMAN_KIND, TOBIT_KIND, PROTOCOL_TKF_KIND, FADING_KIND = kind(KALMAN), kind(TOBIT), kind(PROTOCOL_TKF), kind(FADING)
@@ -513,8 +518,8 @@ def compiled_loop(
 
     ``family``: the update, as a kind (:func:`~tobitkf.filters._compiled_moments.kind`, the tuple of ``code``
     Nones) of one of :data:`CODES`: :data:`KALMAN`, :data:`TOBIT` (a joint update of all channels), an
-    assumed-density family of :data:`~tobitkf.filters._compiled_moments.FAMILIES` (channel by channel, module
-    docstring), :data:`PROTOCOL_TKF`, :data:`FIXED_GAIN` or :data:`FADING`. Each family compiles its own version
+    assumed-density family of :data:`~tobitkf.filters._compiled_moments.FAMILIES` or a channel's own block
+    (:func:`~tobitkf.filters._compiled_moments.block_kind`) (channel by channel, module docstring), :data:`PROTOCOL_TKF`, :data:`FIXED_GAIN` or :data:`FADING`. Each family compiles its own version
     of the loop, chosen by numba's ordinary dispatch on the argument types, which holds that family's update alone
     (numba reads the tuple's length as a constant and prunes the branches of the others before typing: compiled
     with a run-time code, the loop held every family's update, and the Kalman filter's version took minutes to

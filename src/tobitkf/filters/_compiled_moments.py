@@ -30,15 +30,21 @@ block (runs on the last axis, as in every kernel), by one function of the common
   (stacked channels), the Rice-fading channel (its fading variance is in ``rb``);
 * :func:`saturation_block` (:data:`SATURATION`): random saturation, three modes;
 * :func:`protocol_block` (:data:`PROTOCOL`): the protocol channel's failure outcomes, censored at τ;
-* :func:`quantizer_block` (:data:`QUANTIZER`): a quantized sensor, the reading's cell as a window.
+* a channel's own block (:data:`BLOCK`): the function its ``compiled_block`` names (:func:`block_kind`; the
+  quantized sensor's is :func:`tobitkf.channels._compiled_quantizer.quantizer_block`).
 
 The protocol Tobit Kalman filter (not an assumed-density update: a Kalman-type update with the censored
 moments of (21)–(24)) supplies its moments by :func:`protocol_tkf_block`.
 
-A channel of the measurement contract (:mod:`tobitkf.channels.base`) reaches the loop by naming its block
-in its ``compiled_moments`` attribute (a key of :data:`FAMILIES`) and giving the block's ``par`` through
-``compiled_parameters``; adding a family is a block here and an entry in :data:`FAMILIES` and
-:func:`family_block`, with no edit to the loop or its callers.
+A channel of the measurement contract (:mod:`tobitkf.channels.base`) reaches the loop with a block function of
+its own, its ``compiled_block`` (:func:`channel_kind`), or by naming one of the blocks here in its
+``compiled_moments`` (a key of :data:`FAMILIES`), and gives the block's ``par`` through ``compiled_parameters``.
+A block of its own travels as a kind too, :func:`block_kind`: the tuple of :data:`BLOCK` handles of a numba type
+named by the hash of the block's code (:class:`BlockType`), which :func:`family_block` calls. The type is the same
+in every process for the same code, so the loop's version for that block is cached on disk like the package's own
+families' (an ``njit`` function as the argument, typed by numba as that object, is not: its type does not survive
+the process, and the loop was compiled again in every one). No edit to this module, the loop or its callers adds a
+channel.
 
 The event "the latent reading lies in [ea, eb]" (:func:`interval_event`: beyond a limit on one side, or
 between two finite bounds) is the piece a quantized sensor's interval update reuses. Every statistic comes
@@ -52,10 +58,18 @@ log-probabilities stay finite 40σ (and more) into the tails: :math:`\log Q(a) =
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import inspect
 import math
+import sys
+from types import CodeType
+from typing import Any
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.core.registry import CPUDispatcher
+from numba.extending import NativeValue, models, overload, register_model, typeof_impl, unbox
 
 from ._compiled_censored import GL_W, GL_X, _exp_neg, _log_pos, beyond, censored_stats, lower_stats_block
 
@@ -73,9 +87,14 @@ __all__ = [
     "censored_block",
     "saturation_block",
     "protocol_block",
-    "quantizer_block",
-    "QUANTIZER",
+    "BLOCK",
     "FAMILIES",
+    "BlockType",
+    "block_kind",
+    "channel_kind",
+    "call_block",
+    "interval_update",
+    "BLOCK_PARAMETERS",
     "family_block",
     "family_array",
     "kind",
@@ -83,14 +102,18 @@ __all__ = [
     "protocol_tkf_block",
 ]
 
-CENSORED, SATURATION, PROTOCOL, QUANTIZER = 0, 1, 2, 3  #: family codes of the compiled loop
+CENSORED, SATURATION, PROTOCOL = 0, 1, 2  #: family codes of the compiled loop
+BLOCK = 3  #: the family code of a channel's own block (:func:`block_kind`)
 #: the block functions a channel may name in its ``compiled_moments`` -> their family codes
 FAMILIES = {
     "censored_block": CENSORED,
     "saturation_block": SATURATION,
     "protocol_block": PROTOCOL,
-    "quantizer_block": QUANTIZER,
 }
+#: the parameters of every block function, in order (a channel's own ``compiled_block`` takes the same)
+BLOCK_PARAMETERS = (
+    "nb", "y", "cls", "hx", "hph", "rb", "lo", "hi", "par", "alpha", "beta", "ll", "pu", "comp", "glx", "glw", "buf",
+)  # fmt: skip
 MISSING, INTERIOR, LOWER, UPPER, INTERVAL = 0, 1, 2, 3, 4  #: reading classes (as tobitkf.filters._readings)
 _TINY = float(np.finfo(np.float64).tiny)
 _LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
@@ -222,6 +245,24 @@ def _lognorm(y, m, var):
     return -0.5 * d * d / var - 0.5 * math.log(var) - _LOG_SQRT_2PI
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def interval_update(mu, s2, ea, eb, glx, glw, buf):
+    r"""``(alpha, beta, log_p)`` of one run whose reading says :math:`ea \le y^* \le eb` under
+    :math:`y^* \sim N(\mu, s2)`: ``ea == eb`` the exact value, :math:`(y - \mu)/s^2`, :math:`1/s^2` and
+    :math:`\log N(y; \mu, s^2)`; an interval (either end may be infinite) the truncated moments :math:`(E, V)` and
+    the log-probability of :func:`interval_event`, :math:`\alpha = (E - \mu)/s^2`, :math:`\beta = (s^2 - V)/s^4`
+    (finite 40σ into either tail). A degenerate latent (``s2`` not above the smallest normal number): no update,
+    the term 0 when :math:`\mu` lies in :math:`[ea, eb]`, else :math:`-\infty`. The update of every channel whose
+    reading is an interval of the latent reading (the contract's ``region``: a quantizer, a dead band); ``glx``,
+    ``glw``, ``buf`` are the block function's own arguments, passed on."""
+    if not s2 > _TINY:
+        return 0.0, 0.0, (0.0 if (ea <= mu and mu <= eb) else -_INF)
+    if ea == eb:
+        return (ea - mu) / s2, 1.0 / s2, _lognorm(ea, mu, s2)
+    lp, tm, tv = interval_event(mu, math.sqrt(s2), ea, eb, glx, glw, buf)
+    return (tm - mu) / s2, (s2 - tv) / (s2 * s2), lp
+
+
 @njit(cache=True, error_model="numpy")
 def saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
     r"""The assumed-density update of a randomly saturating sensor (:mod:`tobitkf.filters.adf_saturation`)
@@ -337,40 +378,6 @@ def protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, co
             ll[b] += math.log(tot) + top
 
 
-@njit(cache=True, error_model="numpy")
-def quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-    r"""The assumed-density update of a quantized sensor (:class:`~tobitkf.Quantizer`) for the runs
-    ``b < nb``: ``par`` = ``(w, o, j_min, j_max)`` (width, offset, the end levels' indices, infinite without
-    an end). The reading :math:`\ell = o + jw`, :math:`j = \mathrm{rint}((y - o)/w)`, says
-    :math:`y^* \in [\ell - w/2, \ell + w/2)`, open to :math:`-\infty` at :math:`j \le j_{min}` and to
-    :math:`+\infty` at :math:`j \ge j_{max}` (the channel's ``region``); :func:`interval_event` gives the
-    log-probability and the truncated moments :math:`(E, V)` under :math:`y^* \sim N(\mu, s^2)`,
-    :math:`\mu` = ``hx``, :math:`s^2` = ``hph + rb``, and :math:`\alpha = (E - \mu)/s^2`,
-    :math:`\beta = (s^2 - V)/s^4`. A missing reading: no update, no term; a degenerate latent
-    (:math:`s^2` not above the smallest normal number): no update, the term 0 if :math:`\mu` lies in the
-    cell, else :math:`-\infty`. ``pu`` is 1, ``lo``/``hi``/``comp`` unused."""
-    w, o, j_min, j_max = par[0], par[1], par[2], par[3]
-    for b in range(nb):
-        pu[b] = 1.0
-        alpha[b] = 0.0
-        beta[b] = 0.0
-        if cls[b] == MISSING:
-            continue
-        j = np.rint((y[b] - o) / w)
-        level = o + j * w
-        ea = -_INF if j <= j_min else level - 0.5 * w
-        eb = _INF if j >= j_max else level + 0.5 * w
-        mu = hx[b]
-        s2 = hph[b] + rb[b]
-        if not s2 > _TINY:
-            ll[b] += 0.0 if (ea <= mu and mu <= eb) else -_INF
-            continue
-        lp, tm, tv = interval_event(mu, math.sqrt(s2), ea, eb, glx, glw, buf)
-        alpha[b] = (tm - mu) / s2
-        beta[b] = (s2 - tv) / (s2 * s2)
-        ll[b] += lp
-
-
 def kind(code: int) -> tuple[None, ...]:
     """The family ``code`` as a type: the tuple of ``code`` Nones (its length read as a constant while compiled code
     given it is typed; Nones, not integers, so that the tuple has one numba type from Python and as a constant of
@@ -380,14 +387,217 @@ def kind(code: int) -> tuple[None, ...]:
     return (None,) * code
 
 
+class BlockType(types.Dummy):
+    """The numba type of a handle of a channel's own block (:func:`block_kind`), named by the block's key: its
+    qualified name and the hash of its code (:func:`_block_key`). Equal for equal code in every process (a handle
+    carries no data), so that the cached versions of the compiled functions specialised on it load from disk; the
+    block function itself is looked up by the key when numba compiles a call of it (:func:`call_block`)."""
+
+    def __init__(self, key: str):
+        self.block_key = key
+        super().__init__(f"CompiledBlock({key})")
+
+
+class BlockHandle:
+    """What compiled code is given for a channel's own block (typed :class:`BlockType`; :func:`block_kind`)."""
+
+    __slots__ = ("key",)
+
+    def __init__(self, key: str):
+        self.key = key
+
+    def __repr__(self) -> str:
+        return f"BlockHandle({self.key!r})"
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, BlockHandle) and other.key == self.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+
+_BLOCKS: dict[str, Any] = {}  # key -> the block's njit function (this process)
+_HANDLES: dict[int, tuple[Any, BlockHandle]] = {}  # id(block) -> (block, handle); the block held, so the id stays
+
+
+@typeof_impl.register(BlockHandle)
+def _typeof_handle(val, c):
+    return BlockType(val.key)
+
+
+register_model(BlockType)(models.OpaqueModel)
+
+
+@unbox(BlockType)
+def _unbox_handle(typ, obj, c):
+    return NativeValue(c.context.get_dummy_value())
+
+
+def call_block(handle, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    """Call the block a handle names (``handle`` of :class:`BlockType`) with the block arguments; compiled code only
+    (:func:`family_block`)."""
+    raise NotImplementedError("call_block: runs in compiled code only (tobitkf.filters._compiled_moments)")
+
+
+@overload(call_block, jit_options={"error_model": "numpy"})
+def _call_block_impl(handle, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+    if not isinstance(handle, BlockType):
+        return None
+    fn = _BLOCKS[handle.block_key]
+
+    def impl(handle, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
+        fn(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+
+    return impl
+
+
+def _hash_code(code: CodeType, h: Any, names: set[str]) -> None:
+    """Feed the bytecode, names and constants of ``code`` (and of the code nested in it) to ``h``, without its file
+    name or line numbers (the same function has the same hash wherever its file lies); collect its names."""
+    h.update(code.co_code)
+    h.update(repr(code.co_names).encode())
+    names.update(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, CodeType):
+            _hash_code(c, h, names)
+        elif isinstance(c, frozenset):
+            h.update(repr(sorted(map(repr, c))).encode())
+        else:
+            h.update(repr(c).encode())
+
+
+def _hash_function(fn: Any, h: Any, seen: set[int]) -> None:
+    """Feed what numba compiles into ``fn`` to ``h``: its code and the values of the globals and closure variables it
+    names (numba freezes them into the machine code): a number, string or array by value, a module by name, a
+    compiled function of this package by name (the package's cache key holds its code, :mod:`tobitkf._compiled_cache`),
+    any other compiled or plain function by its own hash."""
+    if id(fn) in seen:
+        return
+    seen.add(id(fn))
+    names: set[str] = set()
+    h.update(fn.__qualname__.encode())
+    _hash_code(fn.__code__, h, names)
+    scope = dict(fn.__globals__)
+    if fn.__closure__:
+        scope.update(zip(fn.__code__.co_freevars, (cell.cell_contents for cell in fn.__closure__)))
+    for name in sorted(names):
+        if name not in scope:
+            continue
+        v = scope[name]
+        h.update(name.encode())
+        if isinstance(v, (bool, int, float, complex, str, bytes, type(None))) or (
+            isinstance(v, tuple) and all(isinstance(e, (bool, int, float, str, type(None))) for e in v)
+        ):
+            h.update(repr(v).encode())
+        elif isinstance(v, np.ndarray):
+            h.update(repr((v.dtype.str, v.shape)).encode() + np.ascontiguousarray(v).tobytes())
+        elif inspect.ismodule(v):
+            h.update(v.__name__.encode())
+        else:
+            py = getattr(v, "py_func", v)
+            mod = getattr(py, "__module__", None) or ""
+            if inspect.isfunction(py) and not (mod == "tobitkf" or mod.startswith("tobitkf.")):
+                _hash_function(py, h, seen)
+            else:
+                h.update(f"{mod}.{getattr(py, '__qualname__', type(py).__qualname__)}".encode())
+
+
+def _block_key(block: Any) -> str:
+    """The key of a block function: its qualified name and a hash of what numba compiles into it
+    (:func:`_hash_function`)."""
+    h = hashlib.sha256()
+    _hash_function(block.py_func, h, set())
+    return f"{block.py_func.__qualname__}-{h.hexdigest()[:24]}"
+
+
+def _importable_dynamic_module() -> None:
+    """Make numba's stand-in module of functions whose module cannot be imported (``"<dynamic>"``: a block defined
+    in a file loaded by path, or in code run by ``exec``) importable, so that a cached loop compiled with such a
+    block loads in another process: numba rebuilds the block's environment (its globals, unused by compiled code
+    that handles no Python objects) by importing the module it names."""
+    from numba.core.utils import _dynamic_modname, _dynamic_module
+
+    sys.modules.setdefault(_dynamic_modname, _dynamic_module)
+
+
+def block_kind(block: Any, who: str = "the channel") -> tuple[BlockHandle, ...]:
+    """The kind (:func:`kind`) of a channel's own block: the tuple of :data:`BLOCK` handles of the block function
+    ``block`` (a ``numba.njit`` function of the parameters :data:`BLOCK_PARAMETERS`, or ``"module:name"`` naming
+    one, imported here), which the compiled functions given it call (:func:`family_block`). One handle per block
+    function and process.
+
+    Raises
+    ------
+    ValidationError
+        A ``block`` that is not such a function (or names none).
+    """
+    from .._validation import ValidationError
+
+    if isinstance(block, str):
+        module, _, name = block.partition(":")
+        try:
+            block = getattr(importlib.import_module(module), name)
+        except (ImportError, AttributeError, ValueError):
+            raise ValidationError(
+                f"compiled_block: expected 'module:name' of a numba.njit block function for {who}, got {block!r}"
+            ) from None
+    known = _HANDLES.get(id(block))
+    if known is not None and known[0] is block:
+        return (known[1],) * BLOCK
+    if not isinstance(block, CPUDispatcher):
+        raise ValidationError(
+            f"compiled_block: expected a numba.njit function (or 'module:name' of one) for {who}, got {block!r}"
+        )
+    params = tuple(inspect.signature(block.py_func).parameters)
+    if len(params) != len(BLOCK_PARAMETERS):
+        raise ValidationError(
+            f"compiled_block: expected a block function of the {len(BLOCK_PARAMETERS)} parameters "
+            f"({', '.join(BLOCK_PARAMETERS)}) for {who}, got {block.py_func.__qualname__}({', '.join(params)})"
+        )
+    if sys.modules.get(block.py_func.__module__) is None:
+        _importable_dynamic_module()
+    key = _block_key(block)
+    _BLOCKS.setdefault(key, block)  # the same key: the same code, whichever function compiles it
+    handle = BlockHandle(key)
+    _HANDLES[id(block)] = (block, handle)
+    return (handle,) * BLOCK
+
+
+def channel_kind(channel: Any) -> tuple[Any, ...] | None:
+    """The kind of a channel's compiled moments: of the package's block its ``compiled_moments`` names (a key of
+    :data:`FAMILIES`), else of its own ``compiled_block`` (:func:`block_kind`); None when it has neither.
+
+    Raises
+    ------
+    ValidationError
+        A ``compiled_moments`` that names no block of the compiled loop, a ``compiled_block`` that is none.
+    """
+    from .._validation import ValidationError
+
+    who = type(channel).__name__
+    name = getattr(channel, "compiled_moments", None)
+    if name is not None:
+        if not (isinstance(name, str) and name in FAMILIES):
+            raise ValidationError(
+                f"compiled_moments: expected the name of a block of the compiled loop ({', '.join(FAMILIES)}) "
+                f"for {who}, got {name!r}"
+            )
+        return kind(FAMILIES[name])
+    block = getattr(channel, "compiled_block", None)
+    if inspect.ismethod(block):  # an njit function set on the class binds to the instance like a method
+        block = block.__func__
+    return None if block is None else block_kind(block, who)
+
+
 @njit(cache=True, error_model="numpy")
 def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf):
-    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`,
-    :data:`QUANTIZER`) as a kind (:func:`kind`): numba reads the tuple's length as a constant and prunes the other
-    families' branches before typing, so that each family's version holds its own block function alone (chosen by
-    the ordinary dispatch on the argument types). A kind of no family raises ValueError. (A loop that took the
-    family's function as an argument would be recompiled in every process: numba does not cache a function
-    specialised on another.)"""
+    """The block function of the family ``family`` (:data:`CENSORED`, :data:`SATURATION`, :data:`PROTOCOL`, or a
+    channel's own, :data:`BLOCK`) as a kind (:func:`kind`, :func:`block_kind`): numba reads the tuple's length as a
+    constant and prunes the other families' branches before typing, so that each family's version holds its own
+    block function alone (chosen by the ordinary dispatch on the argument types). A kind of no family raises
+    ValueError. (A channel's own block travels as a handle of :class:`BlockType`, not as the ``njit`` function:
+    numba types a function argument by the object, a type that does not survive the process, and the loop would
+    be compiled again in every process.)"""
     code = len(family)  # a constant: numba rewrites the length of a tuple argument before typing
     if code == CENSORED:
         censored_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
@@ -395,8 +605,8 @@ def family_block(family, nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, 
         saturation_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     elif code == PROTOCOL:
         protocol_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
-    elif code == QUANTIZER:
-        quantizer_block(nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
+    elif code == BLOCK:  # a channel's own block (block_kind): the handle's type names it
+        call_block(family[0], nb, y, cls, hx, hph, rb, lo, hi, par, alpha, beta, ll, pu, comp, glx, glw, buf)
     else:
         raise ValueError("family_block: family: expected the kind of an assumed-density family")
 

@@ -19,10 +19,11 @@ process and combination (a function specialised on another is not cached on disk
 thin (the loops over blocks, steps, channels and linearisations, and the calls of f, h). The form is chosen by the
 type of an argument (the roots of R, or None), so numba compiles only that form's branch. Covered: the standard
 (and Joseph for the extended Kalman filter) and square-root forms, inputs ``f(x, k, u)``, time-varying Q (and R
-for the uncensored filters), censoring and quantized readings for the assumed-density filter, censoring for the
-Tobit filters, fading readings :math:`\vartheta\odot h(x) + v` for every filter in the covariance form (``fade``:
-the moments of :mod:`~tobitkf.filters._compiled_fading_moments`) and random saturation for the assumed-density
-filter (a family that gives its block's arrays itself, ``_compiled_channel``); other channels run the numpy path.
+for the uncensored filters), censoring and any channel with compiled moments (a quantizer, a channel's own
+``compiled_block``) for the assumed-density filter, censoring for the Tobit filters, fading readings
+:math:`\vartheta\odot h(x) + v` for every filter in the covariance form (``fade``: the moments of
+:mod:`~tobitkf.filters._compiled_fading_moments`) and random saturation for the assumed-density filter (a family
+that gives its block's arrays itself, ``_compiled_channel``); other channels run the numpy path.
 
 Measured (``benchmarks/bench_nonlinear.py``: two coupled pendulums, n = 4, m = 2, unscented rule, 10^4 runs x
 100 steps, 25 % of readings clipped; two runs on a 2-core machine under a load average of 10-16): the
@@ -216,10 +217,11 @@ def _c(a) -> np.ndarray:
 def channel_arrays(est, k0: int, T: int):
     """``(family, lo, hi, par, noise_code)`` of the estimator's channel for the steps k0+1..k0+T, or a string
     saying why the compiled loop does not cover it (the numpy path runs). ``family`` a kind
-    (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's assumed-density update compiles that family's
-    moments alone)."""
+    (:func:`~tobitkf.filters._compiled_moments.kind`, or of a channel's own block,
+    :func:`~tobitkf.filters._compiled_moments.channel_kind`: the loop's assumed-density update compiles that
+    family's moments alone)."""
     from ..channels.censoring import Censoring
-    from ._compiled_moments import FAMILIES, QUANTIZER
+    from ._compiled_moments import channel_kind
     from ._compiled_tobit import NOISE_CODES
 
     m = est.m
@@ -237,10 +239,14 @@ def channel_arrays(est, k0: int, T: int):
         lo, hi = channel.all_limits(T, m, start=k0 + 1, check=False)
         noise = NOISE_CODES[est.noise_term] if code == TOBIT else 0
         return kind(CENSORED), _c(lo), _c(hi), none, noise
-    if code == ADF and FAMILIES.get(getattr(channel, "compiled_moments", None) or "") == QUANTIZER:
+    family = channel_kind(channel) if code == ADF else None
+    if family is not None:  # a channel with compiled moments (its own compiled_block: a quantizer, ...)
         par = _c(channel.compiled_parameters(k0 + 1, T, m))
-        return kind(QUANTIZER), -inf, inf, par, 0
-    return f"the channel {type(channel).__name__} (the compiled path covers censoring and, for the ADF, quantizers)"
+        return family, -inf, inf, par, 0
+    return (
+        f"the channel {type(channel).__name__} (the compiled path covers censoring and, for the ADF, channels "
+        "with compiled moments)"
+    )
 
 
 def channel_gap(est) -> str | None:

@@ -20,11 +20,11 @@ from ._backend import system_gap, use_compiled
 from ._boundary import _noise_variances
 from ._compiled_moments import (
     CENSORED,
-    FAMILIES,
     LOWER,
     PROTOCOL,
     SATURATION,
     UPPER,
+    channel_kind,
     kind,
 )
 from ._compiled_soa import censored_entry
@@ -53,7 +53,7 @@ class LoopArguments(NamedTuple):
     (:func:`~tobitkf.filters._compiled_moments.kind`: the loop's version for that family alone). The compiled
     entries do the same in compiled code (:func:`~tobitkf.filters._compiled_entries.loop_call`)."""
 
-    family: tuple[None, ...]
+    family: tuple[Any, ...]
     y: np.ndarray
     cls: np.ndarray | None = None
     A: np.ndarray | None = None
@@ -119,7 +119,8 @@ class CompiledSpec:
     """What an assumed-density family gives :func:`~tobitkf.filters._compiled_loop.compiled_loop` (its module docstring); ``extras`` turns the loop's ``pu`` (N, T, m),
     ``ll`` (N, T) and ``comp`` (N, T, m, J) into the family's extras dict (batch shape restored)."""
 
-    family: int
+    family: int | tuple[Any, ...]
+    """The family's code, or its kind (a channel's own block, :func:`~tobitkf.filters._compiled_moments.block_kind`)."""
     H: np.ndarray
     r: np.ndarray
     lo: np.ndarray
@@ -340,9 +341,9 @@ def saturation_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, st
 
 
 def channel_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_data) -> CompiledSpec | None:
-    """The generic :class:`~tobitkf.AssumedDensityFilter`'s arrays for a channel that names its compiled
-    moments (:mod:`tobitkf.channels.base`): ``channel.compiled_moments``, a key of
-    :data:`~tobitkf.filters._compiled_moments.FAMILIES` (the block function), and
+    """The generic :class:`~tobitkf.AssumedDensityFilter`'s arrays for a channel with compiled moments
+    (:mod:`tobitkf.channels.base`): its own block ``channel.compiled_block`` or one of the package's that
+    ``channel.compiled_moments`` names (:func:`~tobitkf.filters._compiled_moments.channel_kind`), and
     ``channel.compiled_parameters(k, steps, m)``, the block's ``par`` (TP, m, K) for the steps k..k+steps-1
     (TP = 1: constant). The rows are C, the noise variances R's diagonal, no limits (every reading but a
     missing one goes to the block). None (the numpy path) for a channel without compiled moments or a
@@ -351,20 +352,16 @@ def channel_spec(est, y2: np.ndarray, u2, state: FilterState, want, batch, step_
     Raises
     ------
     ValidationError
-        A ``compiled_moments`` that names no block of the compiled loop, or parameters of another shape.
+        Compiled moments that name no block function, or parameters of another shape.
     """
     from .._validation import ValidationError
 
-    name = getattr(est.channel, "compiled_moments", None)
-    if name is None or est._r is None:
+    if est._r is None:
+        return None
+    family = channel_kind(est.channel)
+    if family is None:
         return None
     N, T, m = y2.shape
-    family = FAMILIES.get(name) if isinstance(name, str) else None
-    if family is None:
-        raise ValidationError(
-            f"compiled_moments: expected the name of a block of the compiled loop ({', '.join(FAMILIES)}) "
-            f"for {type(est.channel).__name__}, got {name!r}"
-        )
     par = _c(est.channel.compiled_parameters(state.k + 1, T, m))
     if par.ndim != 3 or par.shape[0] not in (1, T) or par.shape[1] != m:
         raise ValidationError(
@@ -420,11 +417,13 @@ def compiled_filter(est, y2, u2, state: FilterState, want, batch, step_data, spe
     F = spec.F if spec.F is not None else np.zeros((1, m, 0, nx))
     cls = spec.cls if spec.cls is not None else np.empty((N, 0, m), dtype=np.int8)
     # the censored family, one channel of up to 4 states, one system, no extras: the step vectorised over runs
+    # a code, or a kind (whose length is its code)
+    code, family = (spec.family, kind(spec.family)) if isinstance(spec.family, int) else (len(spec.family), spec.family)
     loop = censored_entry(
-        _compiled_loop.compiled_loop, spec.family, A, Qd, spec.H, F, r, lo, hi, x0, pu.shape[1] + ll.shape[1] > 0
+        _compiled_loop.compiled_loop, code, A, Qd, spec.H, F, r, lo, hi, x0, pu.shape[1] + ll.shape[1] > 0
     )
     args = LoopArguments(
-        kind(spec.family), _c(y2), np.require(cls, dtype=np.int8, requirements=("C", "W")), A, Qd, _c(spec.H), _c(F), _c(r),
+        family, _c(y2), np.require(cls, dtype=np.int8, requirements=("C", "W")), A, Qd, _c(spec.H), _c(F), _c(r),
         _c(lo), _c(hi), _c(spec.par), spec.J, spec.npass, x0=x0, P0=P0, bu=spec.bu, du=spec.du, means=means,
         covs=covs, pmeans=pmeans, pcovs=pcovs, pu=pu, ll=ll, comp=comp if comp.shape[1] > 0 else None,
         x_last=x_last, P_last=P_last,

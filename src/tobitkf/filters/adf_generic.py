@@ -184,7 +184,7 @@ def channel_update(
     *,
     dy: Any = 0.0,
     form: str = "standard",
-    compiled: tuple[int, np.ndarray] | None = None,
+    compiled: tuple[tuple[Any, ...], np.ndarray] | None = None,
 ):
     r"""The assumed-density update of channel ``l`` of ``channel`` at step ``k`` (the module docstring), batched.
 
@@ -197,7 +197,8 @@ def channel_update(
     c : (n,) its row of C ; r : its noise variance (>= 0), scalar or (N,) ; dy : (N,) or 0, the feed-through
     form : {"standard", "joseph", "square_root"}
     compiled : (family, par), optional
-        Take the moments from the compiled block of the family code ``family`` with this channel's parameters
+        Take the moments from the compiled block of the family ``family`` (a kind,
+        :func:`~tobitkf.filters._compiled_moments.channel_kind`) with this channel's parameters
         ``par`` (K,) (:func:`~tobitkf.filters._compiled_moments.family_array`, the function the compiled loop
         runs) instead of ``reading_moments``: :math:`E[y^* \mid y] = \mu + \alpha s^2`,
         :math:`V = s^2 - \beta s^4`. Needs numba.
@@ -251,12 +252,12 @@ def channel_update(
 
 def _compiled_moments(family, par, y, has, mu, cPc, r):
     """``(alpha, beta, log_likelihood)`` of the compiled block ``family`` for the readings ``y`` (N,)."""
-    from ._compiled_moments import INTERIOR, MISSING, family_array, kind
+    from ._compiled_moments import INTERIOR, MISSING, family_array
 
     inf = np.full(y.shape, np.inf)
     cls = np.where(has, INTERIOR, MISSING).astype(np.int8)
     f = loop_input  # writable: numba types read-only arrays (broadcast views) apart, one compile more each
-    alpha, beta, ll, _, _ = family_array(kind(family), f(y), cls, f(mu), f(cPc), f(r), -inf, inf, f(par), 0)
+    alpha, beta, ll, _, _ = family_array(family, f(y), cls, f(mu), f(cPc), f(r), -inf, inf, f(par), 0)
     return alpha, beta, ll
 
 
@@ -358,24 +359,23 @@ class AssumedDensityFilter(_ContractChecks, SmoothingMethods, AssumedDensityFami
         self._configure(system, covariance_update, backend)
         self.channel.check(system)
 
-    #: a channel that names its compiled moments (``compiled_moments``) runs :meth:`filter` in the compiled loop
+    #: a channel with compiled moments (``compiled_block`` or ``compiled_moments``) runs :meth:`filter` in the
+    #: compiled loop
     _compiled_spec = "channel_spec"
 
-    def _compiled_block(self, k: int, m: int) -> tuple[int, np.ndarray] | None:
+    def _compiled_block(self, k: int, m: int) -> tuple[tuple[Any, ...], np.ndarray] | None:
         """``(family, par (m, K))`` of the channel's compiled moments at step ``k`` when the step loop takes them
-        (the channel names them, numba is installed, ``backend`` is not ``"numpy"``), else None."""
-        name = getattr(self.channel, "compiled_moments", None)
-        if name is None or self.backend == "numpy" or not numba_available():
+        (the channel has them, numba is installed, ``backend`` is not ``"numpy"``), else None; ``family`` a kind
+        (:func:`~tobitkf.filters._compiled_moments.channel_kind`)."""
+        has = getattr(self.channel, "compiled_moments", None) or getattr(self.channel, "compiled_block", None)
+        if has is None or self.backend == "numpy" or not numba_available():
             return None
-        from ._compiled_moments import FAMILIES
+        from ._compiled_moments import channel_kind
 
-        if name not in FAMILIES:
-            raise ValidationError(
-                f"compiled_moments: expected the name of a block of the compiled loop ({', '.join(FAMILIES)}) "
-                f"for {type(self.channel).__name__}, got {name!r}"
-            )
-        par = np.array(getattr(self.channel, "compiled_parameters")(k, 1, m), dtype=np.float64)
-        return FAMILIES[name], par[0]
+        family = channel_kind(self.channel)
+        assert family is not None
+        par = np.array(self.channel.compiled_parameters(k, 1, m), dtype=np.float64)
+        return family, par[0]
 
     def _project(self, k, xp, Pp, Sp, y, u, **options):
         N, m = y.shape
