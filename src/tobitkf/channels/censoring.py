@@ -232,7 +232,7 @@ class Censoring(Channel):
         r"""Fisher information :math:`I_{\mu\mu}` of one censored reading of channel ``l`` at step ``k`` about
         the latent mean, (N,) (:func:`tobitkf.censored_fisher_information` at this channel's limits; without a
         finite limit :math:`1/\sigma^2`): what the PCRLB asks every channel."""
-        from ..design.pcrlb import censored_fisher_information
+        from ..censored import censored_fisher_information
 
         lo, hi = (np.broadcast_to(v, (max(self.channels or 1, l + 1),))[l] for v in self.limits(k))
         return censored_fisher_information(mean, std, lo, hi)[0]
